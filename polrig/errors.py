@@ -1,0 +1,54 @@
+"""Typed errors. Every error a user can cause or a device can raise is one of these.
+
+Device errors carry the device's own code and text where the device reports one, so an
+operator sees what the manual calls it.
+"""
+
+from __future__ import annotations
+
+
+class PolrigError(Exception):
+    """Base class of every error polrig raises on purpose."""
+
+
+class ConfigError(PolrigError, ValueError):
+    """A rig configuration or command-line value is invalid; the message names the key."""
+
+
+class FormatError(PolrigError, ValueError):
+    """A file or a buffer is not in the format expected (pixel format, EXR, raw frame)."""
+
+
+class DeviceError(PolrigError):
+    """Base class of hardware errors."""
+
+    def __init__(self, message: str, *, device: str | None = None):
+        self.device = device
+        super().__init__(f"{device}: {message}" if device else message)
+
+
+class DeviceNotFound(DeviceError):
+    """The device (or its port, producer, serial number) cannot be found or opened."""
+
+
+class DeviceTimeout(DeviceError):
+    """The device did not answer or finish within the stated timeout."""
+
+
+class DeviceFault(DeviceError):
+    """The device reported an error of its own; ``code`` and ``text`` are the device's."""
+
+    def __init__(self, message: str, *, device: str | None = None,
+                 code: int | str | None = None, text: str | None = None):
+        self.code = code
+        self.text = text
+        detail = f" (device error {code}: {text})" if code is not None else ""
+        super().__init__(message + detail, device=device)
+
+
+class ProtocolError(DeviceError):
+    """The device answered with bytes that do not follow its protocol (garbled, partial)."""
+
+
+class DeviceDisconnected(DeviceError):
+    """The transport to the device went away (cable pulled, port closed)."""
