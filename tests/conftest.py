@@ -1,0 +1,19 @@
+"""Shared test fixtures. Paths to the shared real data live here."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+SHARED = pathlib.Path(os.environ.get("POLRIG_SHARED", REPO.parent / "shared"))
+REAL_DOFP = SHARED / "data" / "real-dofp"
+
+
+@pytest.fixture(scope="session")
+def real_dofp_dir() -> pathlib.Path:
+    if not REAL_DOFP.is_dir():
+        pytest.fail(f"real DoFP frames not found at {REAL_DOFP} (set POLRIG_SHARED)")
+    return REAL_DOFP
