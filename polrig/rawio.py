@@ -1,0 +1,157 @@
+"""Raw DoFP frames on disk: lossless 16-bit (or 8-bit) PNG, TIFF or ``.npy`` plus a JSON sidecar.
+
+A raw frame is a single-channel integer mosaic ``(H, W)`` (one value per sensor pixel, DN) and
+its :class:`polrig.hal.FrameMeta`. The sidecar sits next to the image as ``<file>.json``
+(``frame.png`` -> ``frame.png.json``). Every write is atomic (temporary file in the same
+folder, flush, ``fsync``, ``os.replace``), so a crash never leaves a half-written frame under
+the final name. Colour (3- or 4-channel) images are refused: a DoFP raw frame has one value
+per pixel.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pathlib
+import tempfile
+from typing import Any
+
+import cv2
+import numpy as np
+
+from polrig.errors import FormatError
+from polrig.hal import Frame, FrameMeta
+
+PathLike = str | os.PathLike
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
+RAW_SUFFIXES = IMAGE_SUFFIXES + (".npy",)
+
+
+def atomic_write_bytes(path: PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically: temp file in the same folder, flush + fsync,
+    then ``os.replace``. The temporary file is removed if anything fails."""
+    path = pathlib.Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:  # make the rename durable; not possible on every platform/filesystem
+        dfd = os.open(path.parent or ".", os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
+
+
+def atomic_write_text(path: PathLike, text: str) -> None:
+    """UTF-8 text variant of :func:`atomic_write_bytes`."""
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def sidecar_path(path: PathLike) -> pathlib.Path:
+    """Path of the JSON metadata sidecar of a raw frame file (``<file>.json``)."""
+    p = pathlib.Path(path)
+    return p.with_name(p.name + ".json")
+
+
+def encode_mosaic(raw: np.ndarray, suffix: str) -> bytes:
+    """Bytes of a single-channel integer mosaic in the file format named by ``suffix``."""
+    raw = np.asarray(raw)
+    check_mosaic(raw, "mosaic")
+    suffix = suffix.lower()
+    if suffix == ".npy":
+        buf = io.BytesIO()
+        np.save(buf, np.ascontiguousarray(raw), allow_pickle=False)
+        return buf.getvalue()
+    if suffix not in IMAGE_SUFFIXES:
+        raise FormatError(f"cannot write a raw frame as {suffix!r}; use one of "
+                          f"{', '.join(RAW_SUFFIXES)}")
+    ok, enc = cv2.imencode(suffix, np.ascontiguousarray(raw))
+    if not ok:  # pragma: no cover - OpenCV encodes every uint8/uint16 mono image
+        raise FormatError(f"OpenCV could not encode a {raw.dtype} mosaic as {suffix}")
+    return enc.tobytes()
+
+
+def check_mosaic(raw: np.ndarray, what: str) -> None:
+    """Raise :class:`FormatError` unless ``raw`` is a 2-D uint8/uint16 mosaic."""
+    if raw.ndim != 2:
+        raise FormatError(f"{what}: a raw DoFP frame has one channel, got an array of shape "
+                          f"{raw.shape} (colour or multi-channel image?)")
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise FormatError(f"{what}: raw frames are uint8 or uint16, got {raw.dtype}")
+
+
+def write_raw(path: PathLike, frame: Frame) -> pathlib.Path:
+    """Write ``frame.raw`` losslessly (``.png``, ``.tif``/``.tiff`` or ``.npy``, chosen by the
+    suffix of ``path``) and its metadata as the JSON sidecar, both atomically. Returns the
+    sidecar path."""
+    path = pathlib.Path(path)
+    data = encode_mosaic(frame.raw, path.suffix)
+    side = sidecar_path(path)
+    atomic_write_bytes(path, data)
+    atomic_write_text(side, json.dumps(frame.meta.to_json(), indent=1, sort_keys=True))
+    return side
+
+
+def read_mosaic(path: PathLike) -> np.ndarray:
+    """Read a raw mosaic ``(H, W)`` uint8/uint16 from a PNG, TIFF or ``.npy`` file, unchanged.
+
+    Raises :class:`FormatError` for colour images, other dtypes, unreadable files.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise FormatError(f"{path}: not a readable .npy array ({exc})") from None
+    elif suffix in IMAGE_SUFFIXES:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise FormatError(f"{path}: not a readable {suffix[1:].upper()} image")
+    else:
+        raise FormatError(f"{path}: unsupported raw file type {suffix!r}; use one of "
+                          f"{', '.join(RAW_SUFFIXES)}")
+    check_mosaic(raw, str(path))
+    return raw
+
+
+def read_raw(path: PathLike, *, layout: str = "imx250mzr", **meta_defaults: Any) -> Frame:
+    """Read a raw frame and its sidecar metadata.
+
+    Without a sidecar the metadata is synthesised: ``layout`` (default ``"imx250mzr"``), the
+    bit depth of the dtype, ``Mono8``/``Mono16`` pixel format, zero exposure/gain/timestamp;
+    ``meta_defaults`` override those fields. A sidecar that is not valid metadata raises
+    :class:`FormatError`.
+    """
+    raw = read_mosaic(path)
+    side = sidecar_path(path)
+    if side.is_file():
+        try:
+            meta = FrameMeta.from_json(json.loads(side.read_text("utf-8")))
+        except (ValueError, TypeError) as exc:
+            raise FormatError(f"{side}: not valid frame metadata ({exc})") from None
+    else:
+        bits = 8 if raw.dtype == np.uint8 else 16
+        fields: dict[str, Any] = dict(frame_id=0, timestamp_s=0.0, exposure_us=0.0, gain_db=0.0,
+                                      pixel_format=f"Mono{bits}", layout=layout, bit_depth=bits,
+                                      host_timestamp=True)
+        fields.update(meta_defaults)
+        meta = FrameMeta(**fields)
+    return Frame(raw=raw, meta=meta)
