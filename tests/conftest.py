@@ -7,6 +7,9 @@ import pathlib
 
 import pytest
 
+# Qt widgets render offscreen in tests (CI has no display).
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("POLRIG_SHARED", REPO.parent / "shared"))
 REAL_DOFP = SHARED / "data" / "real-dofp"
