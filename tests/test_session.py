@@ -1,0 +1,130 @@
+"""Session folders: atomic checksummed files, no overwrites, disk-space check, verify, restart."""
+
+from __future__ import annotations
+
+import errno
+import json
+import pathlib
+
+import pytest
+
+from polrig.errors import FormatError
+from polrig.session import (COMPLETE, MANIFEST_NAME, PENDING, Session, SessionError,
+                            check_free_space, sha256_file)
+
+PLAN = {"poses_deg": [0.0, 90.0], "mode": "reference", "states_deg": [0, 45, 90, 135]}
+
+
+def make(tmp_path: pathlib.Path, **kw) -> Session:
+    return Session.create(tmp_path / "s", plan=PLAN, rig={"kind": "test"},
+                          calibration_id="nominal", command_line=["polrig", "capture"], **kw)
+
+
+def test_create_lists_one_pending_capture_per_pose(tmp_path):
+    s = make(tmp_path)
+    m = json.loads((s.root / MANIFEST_NAME).read_text())
+    assert m["schema_version"] == 1 and m["calibration_id"] == "nominal"
+    assert [c["pose_deg"] for c in m["captures"]] == [0.0, 90.0]
+    assert all(c["status"] == PENDING for c in m["captures"])
+    assert m["conventions_version"] and m["software"]["version"]
+
+
+def test_refuses_non_empty_folder(tmp_path):
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "keep.txt").write_text("precious")
+    with pytest.raises(FileExistsError, match="--resume"):
+        make(tmp_path)
+    assert (tmp_path / "s" / "keep.txt").read_text() == "precious"
+
+
+def test_disk_space_check_names_need_and_free(tmp_path):
+    with pytest.raises(SessionError, match="needs about .* free"):
+        check_free_space(tmp_path / "new" / "deeper", 1 << 62)
+    with pytest.raises(SessionError):
+        make(tmp_path, required_bytes=1 << 62)
+    assert not (tmp_path / "s").exists()
+
+
+def test_files_are_recorded_with_checksums_and_verified(tmp_path):
+    s = make(tmp_path)
+    s.capture(0)["name"] = "c000"
+    rec = s.add_file(0, "raw", "c000/raw/a.png", b"pixels", sidecar=b"{}", state_deg=45.0)
+    s.add_file(0, "mueller", "c000/mueller.exr", b"exr")
+    again = Session.open(s.root)
+    files = again.capture(0)["files"]
+    assert files["raw"][0]["sha256"] == sha256_file(s.root / "c000/raw/a.png")
+    assert files["raw"][0]["meta_path"] == "c000/raw/a.png.json"
+    assert files["raw"][0]["state_deg"] == 45.0 and rec["bytes"] == 6
+    assert again.verify() == []
+    (s.root / "c000/raw/a.png").write_bytes(b"pixelz")
+    (s.root / "c000/stray.bin").write_bytes(b"?")
+    (s.root / "c000/mueller.exr").unlink()
+    problems = "\n".join(again.verify())
+    assert "a.png: SHA-256 mismatch" in problems
+    assert "mueller.exr: missing" in problems
+    assert "stray.bin: not recorded" in problems
+
+
+def test_never_overwrites(tmp_path):
+    s = make(tmp_path)
+    s.add_file(0, "mueller", "c000/mueller.exr", b"one")
+    with pytest.raises(FileExistsError):
+        s.add_file(1, "mueller", "c000/mueller.exr", b"two")
+    assert (s.root / "c000/mueller.exr").read_bytes() == b"one"
+
+
+def test_disk_full_leaves_previous_manifest_and_no_partial_file(tmp_path):
+    s = make(tmp_path)
+    s.add_file(0, "raw", "c000/raw/a.png", b"a")
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    s.write_hook = full
+    with pytest.raises(OSError) as info:
+        s.add_file(0, "raw", "c000/raw/b.png", b"b")
+    assert info.value.errno == errno.ENOSPC
+    assert not (s.root / "c000/raw/b.png").exists()
+    on_disk = Session.open(s.root)
+    assert [r["path"] for r in on_disk.capture(0)["files"]["raw"]] == ["c000/raw/a.png"]
+    assert on_disk.verify() == []
+    assert not [p for p in s.root.rglob("*.tmp")]
+
+
+def test_restart_removes_partial_capture_and_discard_unrecorded(tmp_path):
+    s = make(tmp_path)
+    s.capture(0)["name"] = "c000"
+    s.add_file(0, "raw", "c000/raw/a.png", b"a")
+    (s.root / "c000/raw/orphan.png").write_bytes(b"o")  # written, crash before recording
+    assert s.discard_unrecorded(0) == ["c000/raw/orphan.png"]
+    s.restart_capture(0)
+    assert not (s.root / "c000").exists()
+    assert s.capture(0)["files"] == {} and s.capture(0)["attempts"] == 1
+    s.complete_capture(0)
+    assert s.capture(0)["status"] == COMPLETE
+    with pytest.raises(SessionError):
+        s.restart_capture(0)
+
+
+def test_open_rejects_non_sessions(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        Session.open(tmp_path / "nope")
+    with pytest.raises(FormatError, match="not a polrig session"):
+        Session.open(tmp_path)
+    (tmp_path / MANIFEST_NAME).write_text("{")
+    with pytest.raises(FormatError, match="not valid JSON"):
+        Session.open(tmp_path)
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps({"captures": [], "schema_version": 99}))
+    with pytest.raises(FormatError, match="schema version 99"):
+        Session.open(tmp_path)
+
+
+def test_revisions_are_separate_entries(tmp_path):
+    s = make(tmp_path)
+    s.add_file(0, "mueller", "c000/mueller.exr", b"m0")
+    name = s.new_revision({"mode": "reference", "demosaic": "bilinear"})
+    s.start_revision(0, name)
+    s.add_file(0, "mueller", f"c000/{name}/mueller.exr", b"m1", revision=name)
+    roles = [role for _, role, _ in s.iter_file_records()]
+    assert roles == ["mueller", "rev1/mueller"]
+    assert Session.open(s.root).verify() == []
