@@ -1,0 +1,265 @@
+"""Thorlabs Elliptec ELL14 rotation mount as a :class:`polrig.hal.RotationStage`.
+
+Protocol: Thorlabs "ELLx modules protocol manual" (Elliptec communication protocol):
+RS-232 levels over the interface board's USB bridge, 9600 baud 8N1, no flow control,
+multidrop addresses ``0``-``F``. Host packets ``<addr><cmd>[data]`` (lower-case command,
+data as 8 upper-case hex digits, 32-bit two's complement), replies
+``<addr><CMD><data>\\r\\n``. ``in`` -> ``IN`` (30 characters: type 2, serial 8, year 4,
+firmware 2, hardware 2, travel 4 hex, pulses per travel 8 hex); ``gs`` -> ``GS`` (2 hex
+status: 0 OK ... 9 busy ... 13 over current); ``gp`` -> ``PO``; ``ho<dir>``, ``ma``, ``mr``
+reply ``PO`` when the motion has ended or ``GS<code>`` on error, after which the next
+``gs`` repeats and clears the code. Field layout cross-checked with pylablib
+``devices/Thorlabs/elliptec.py``. The pulses per degree come from the ``IN`` reply
+(143360 pulses / 360 deg for an ELL14), never from a constant.
+
+Angles: degrees in ``[0, 360)``; see ``docs/conventions.md`` for the stage zero axis
+(``zero_offset_deg`` maps the device's home to the rig's zero axis).
+"""
+
+from __future__ import annotations
+
+import time
+
+from drivers._serial import SerialLink
+from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
+from polrig.hal import DeviceInfo, RotationStage
+
+BAUDRATE = 9600
+STATUS_TEXT = {
+    0: "OK", 1: "communication time-out", 2: "mechanical time-out",
+    3: "command error or not supported", 4: "value out of range", 5: "module isolated",
+    6: "module out of isolation", 7: "initialising error", 8: "thermal error", 9: "busy",
+    10: "sensor error", 11: "motor error", 12: "out of range", 13: "over current",
+}
+BUSY = 9
+
+
+class Ell14Stage(RotationStage):
+    """An ELL14 on ``port`` at multidrop ``address`` (0-15).
+
+    ``reply_timeout_s`` bounds every query (the manual allows about 100 ms per reply; a
+    generous default covers slow USB bridges).
+    """
+
+    def __init__(self, port: str, address: int = 0, *, zero_offset_deg: float = 0.0,
+                 reply_timeout_s: float = 1.0, kind: str = "stage"):
+        if not 0 <= int(address) <= 15:
+            raise ValueError(f"ELL14 address must be 0..15, got {address!r}")
+        self.port = port
+        self.address = f"{int(address):X}"
+        self.zero_offset_deg = float(zero_offset_deg)
+        self.reply_timeout_s = float(reply_timeout_s)
+        self.kind = kind
+        self._link = SerialLink(port, baudrate=BAUDRATE, device=f"ell14 {port}")
+        self._info: DeviceInfo | None = None
+        self.pulses_per_deg = 0.0
+        self._move_pending = False
+
+    # -- life cycle ------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._link.is_open
+
+    def open(self) -> None:
+        self._link.open()
+        try:
+            self._link.discard_input()
+            self._identify()
+        except Exception:
+            self._link.close()
+            raise
+
+    def close(self) -> None:
+        self._link.close()
+        self._move_pending = False
+
+    def info(self) -> DeviceInfo:
+        if self._info is None:
+            self._identify()
+        assert self._info is not None
+        return self._info
+
+    def _identify(self) -> None:
+        data = self._query("in", "IN")
+        if len(data) != 30:
+            raise ProtocolError(f"IN reply has {len(data)} characters, expected 30: {data!r}",
+                                device=self._link.device)
+        try:
+            dev_type = int(data[0:2], 16)
+            travel = int(data[18:22], 16)
+            pulses = int(data[22:30], 16)
+        except ValueError:
+            raise ProtocolError(f"malformed IN reply {data!r}", device=self._link.device) from None
+        if travel <= 0 or pulses <= 0:
+            raise ProtocolError(f"IN reply gives travel {travel} and pulses {pulses}",
+                                device=self._link.device)
+        self.pulses_per_deg = pulses / travel
+        self._info = DeviceInfo(
+            kind=self.kind, driver="ell14", model=f"ELL{dev_type}", serial=data[2:10],
+            firmware=f"{int(data[14:16], 16)}", port=self.port,
+            extra={"year": data[10:14], "hardware": data[16:18], "travel": travel,
+                   "pulses_per_travel": pulses, "address": self.address})
+
+    # -- protocol --------------------------------------------------------------------------
+    def _send(self, cmd: str, data: str = "") -> None:
+        self._link.write(f"{self.address}{cmd}{data}".encode("ascii"))
+
+    def _read_reply(self, timeout_s: float) -> tuple[str, str]:
+        raw = self._link.read_until(b"\r\n", timeout_s, what="ELL14 reply")
+        try:
+            text = raw.decode("ascii")
+        except UnicodeDecodeError:
+            self._resync()
+            raise ProtocolError(f"garbled reply {raw!r}", device=self._link.device) from None
+        if len(text) < 3 or text[0].upper() != self.address or not text[1:3].isupper():
+            self._resync()
+            raise ProtocolError(f"garbled reply {raw!r}", device=self._link.device)
+        return text[1:3], text[3:]
+
+    def _resync(self) -> None:
+        time.sleep(0.05)
+        self._link.discard_input()
+
+    def _query(self, cmd: str, expect: str, data: str = "",
+               timeout_s: float | None = None) -> str:
+        """Send ``cmd`` and return the data of the ``expect`` reply; ``GS`` errors raise."""
+        self._send(cmd, data)
+        reply, payload = self._read_reply(timeout_s or self.reply_timeout_s)
+        if reply == expect:
+            return payload
+        if reply == "GS":
+            self._raise_status(payload, cmd)
+        raise ProtocolError(f"{cmd!r} answered {reply}{payload!r}, expected {expect}",
+                            device=self._link.device)
+
+    def _raise_status(self, payload: str, cmd: str) -> None:
+        try:
+            code = int(payload, 16)
+        except ValueError:
+            raise ProtocolError(f"malformed status {payload!r}", device=self._link.device) from None
+        if code == 0:
+            return
+        if code != BUSY:
+            self._clear_error()
+        raise DeviceFault(f"{cmd!r} failed", device=self._link.device, code=code,
+                          text=STATUS_TEXT.get(code, "reserved"))
+
+    def _clear_error(self) -> None:
+        """The manual: the next ``gs`` repeats the error code and clears it."""
+        try:
+            self._send("gs")
+            self._read_reply(self.reply_timeout_s)
+        except (DeviceTimeout, ProtocolError):
+            self._link.discard_input()
+
+    def status_code(self) -> int:
+        return int(self._query("gs", "GS"), 16)
+
+    # -- RotationStage ---------------------------------------------------------------------
+    def _to_pulses(self, angle_deg: float) -> int:
+        return round(((angle_deg + self.zero_offset_deg) % 360.0) * self.pulses_per_deg)
+
+    def _to_deg(self, pulses: int) -> float:
+        return (pulses / self.pulses_per_deg - self.zero_offset_deg) % 360.0
+
+    @staticmethod
+    def _signed(text: str) -> int:
+        v = int(text, 16)
+        return (v + 2**31) % 2**32 - 2**31
+
+    def position_deg(self) -> float:
+        if self._move_pending:
+            self.is_busy()
+        payload = self._query("gp", "PO")
+        try:
+            return self._to_deg(self._signed(payload))
+        except ValueError:
+            raise ProtocolError(f"malformed position {payload!r}", device=self._link.device) from None
+
+    def home(self, timeout_s: float = 60.0) -> None:
+        self._start("ho", "0")
+        self.wait(timeout_s)
+
+    def move_to(self, angle_deg: float, *, wait: bool = True, timeout_s: float = 30.0) -> None:
+        angle_deg = float(angle_deg)
+        if angle_deg != angle_deg or angle_deg in (float("inf"), float("-inf")):
+            raise ValueError(f"stage angle must be finite, got {angle_deg!r}")
+        self._start("ma", f"{self._to_pulses(angle_deg) % 2**32:08X}")
+        if wait:
+            self.wait(timeout_s)
+
+    def _start(self, cmd: str, data: str) -> None:
+        if self._move_pending:
+            raise DeviceFault(f"cannot start {cmd!r} while a motion is running",
+                              device=self._link.device, code=BUSY, text=STATUS_TEXT[BUSY])
+        if not self.pulses_per_deg:
+            self._identify()
+        self._link.discard_input()
+        self._send(cmd, data)
+        self._move_pending = True
+
+    def _finish(self, reply: str, payload: str) -> bool:
+        """Handle a reply that may end the pending motion; True if it ended it."""
+        if reply == "PO":
+            self._move_pending = False
+            return True
+        if reply == "GS":
+            code = int(payload, 16) if payload.strip() else 0
+            if code not in (0, BUSY):
+                self._move_pending = False
+                self._raise_status(payload, "move")
+        return False
+
+    def wait(self, timeout_s: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while self._move_pending:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
+                                    device=self._link.device)
+            try:
+                reply, payload = self._read_reply(min(left, 0.25))
+            except DeviceTimeout:
+                continue
+            except ProtocolError:
+                # The end-of-move reply was corrupted: ask the device where it is.
+                self._move_pending = False
+                raise
+            self._finish(reply, payload)
+
+    def is_busy(self) -> bool:
+        if not self._move_pending:
+            return self.status_code() == BUSY
+        self._send("gs")
+        while True:
+            reply, payload = self._read_reply(self.reply_timeout_s)
+            if reply == "GS":
+                code = int(payload, 16)
+                if code == BUSY:
+                    return True
+                if code != 0:
+                    self._move_pending = False
+                    self._raise_status(payload, "move")
+                # GS00 while the end-of-move PO has not been read yet: read it
+                if self._move_pending:
+                    self._read_move_end()
+                return False
+            self._finish(reply, payload)
+
+    def _read_move_end(self) -> None:
+        try:
+            reply, payload = self._read_reply(self.reply_timeout_s)
+            self._finish(reply, payload)
+        finally:
+            self._move_pending = False
+
+    def stop(self) -> None:
+        self._link.discard_input()
+        self._send("st")
+        deadline = time.monotonic() + self.reply_timeout_s
+        while time.monotonic() < deadline:
+            reply, _ = self._read_reply(self.reply_timeout_s)
+            if reply == "PO":
+                break
+        self._move_pending = False
+        self._link.discard_input()

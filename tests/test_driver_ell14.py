@@ -1,0 +1,144 @@
+"""ELL14 driver against the ELL14 emulator on a pseudo-terminal (real ASCII bytes)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import serial
+
+from drivers.ell14 import Ell14Stage
+from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+
+pytestmark = pytest.mark.timeout(20)
+PULSE_DEG = 360.0 / PULSES_PER_REV
+
+
+@pytest.fixture
+def emu(tmp_path):
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=4.0) as e:
+        yield e
+
+
+@pytest.fixture
+def stage(emu):
+    with Ell14Stage(emu.port, reply_timeout_s=0.5) as s:
+        yield s
+
+
+def assert_released(port: str) -> None:
+    """Another program can open the port exclusively: the driver let go of it."""
+    with serial.Serial(port, 9600, timeout=0.1, exclusive=True):
+        pass
+
+
+def test_identify_and_pulses_from_in_reply(stage):
+    info = stage.info()
+    assert info.model == "ELL14" and info.serial == "11400123"
+    assert stage.pulses_per_deg == pytest.approx(143360 / 360)
+
+
+def test_move_home_position_busy(stage, emu):
+    stage.move_to(45.0)
+    assert abs(emu.position_deg - 45.0) <= PULSE_DEG
+    assert stage.position_deg() == pytest.approx(45.0, abs=PULSE_DEG)
+    stage.move_to(350.0, wait=False)
+    assert stage.is_busy()
+    stage.wait(5.0)
+    assert not stage.is_busy()
+    assert stage.position_deg() == pytest.approx(350.0, abs=PULSE_DEG)
+    stage.move_to(-10.0)  # wraps into [0, 360)
+    assert stage.position_deg() == pytest.approx(350.0, abs=PULSE_DEG)
+    stage.home()
+    assert emu.position_deg == pytest.approx(0.0, abs=PULSE_DEG)
+    assert b"0ho0" in emu.received
+
+
+def test_stop_mid_move(stage, emu):
+    emu.speed_factor = 0.2
+    stage.move_to(300.0, wait=False)
+    time.sleep(0.1)
+    stage.stop()
+    pos = stage.position_deg()
+    assert 0 < pos < 300
+    assert not stage.is_busy()
+
+
+def test_no_reply_times_out_then_recovers(stage, emu):
+    emu.inject("no_reply")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        stage.position_deg()
+    assert time.monotonic() - t0 < 1.0
+    assert stage.position_deg() == pytest.approx(0.0, abs=PULSE_DEG)
+
+
+def test_move_timeout_is_bounded(stage, emu):
+    emu.speed_factor = 0.05
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        stage.move_to(180.0, timeout_s=0.3)
+    assert time.monotonic() - t0 < 0.8
+    stage.stop()
+    stage.move_to(10.0)
+
+
+@pytest.mark.parametrize("fault", ["garble", "partial"])
+def test_bad_replies_are_protocol_errors(stage, emu, fault):
+    emu.inject(fault)
+    with pytest.raises(ProtocolError):
+        stage.position_deg()
+    stage.move_to(20.0)
+    assert stage.position_deg() == pytest.approx(20.0, abs=PULSE_DEG)
+
+
+def test_garbled_end_of_move(stage, emu):
+    stage.move_to(5.0)
+    emu.inject("garble")
+    with pytest.raises(ProtocolError):
+        stage.move_to(30.0)
+    assert stage.position_deg() == pytest.approx(30.0, abs=PULSE_DEG)
+
+
+def test_device_error_mid_move(stage, emu):
+    emu.inject("error_mid_move")
+    with pytest.raises(DeviceFault) as ei:
+        stage.move_to(90.0, timeout_s=5)
+    assert ei.value.code == 2 and "mechanical" in ei.value.text
+    assert 0 < emu.position_deg < 90
+    assert emu.pending_error == 0  # the driver read and cleared the error
+    stage.move_to(90.0)
+    assert emu.position_deg == pytest.approx(90.0, abs=PULSE_DEG)
+
+
+def test_disconnect_then_reconnect(stage, emu):
+    stage.move_to(15.0)
+    emu.disconnect()
+    with pytest.raises(DeviceDisconnected):
+        stage.position_deg()
+    assert not stage.is_open
+    emu.reconnect()
+    stage.open()
+    assert stage.position_deg() == pytest.approx(15.0, abs=PULSE_DEG)
+
+
+def test_port_released_on_close_and_exclusive_while_open(emu):
+    st = Ell14Stage(emu.port)
+    st.open()
+    with pytest.raises(serial.SerialException):
+        serial.Serial(emu.port, 9600, exclusive=True)
+    st.close()
+    st.close()  # twice is fine
+    assert_released(emu.port)
+
+
+def test_missing_port_and_silent_device(tmp_path, emu):
+    with pytest.raises(DeviceNotFound):
+        Ell14Stage(str(tmp_path / "nope")).open()
+    emu.inject("no_reply")
+    st = Ell14Stage(emu.port, address=3, reply_timeout_s=0.3)  # nobody answers at address 3
+    with pytest.raises(DeviceTimeout):
+        st.open()
+    assert not st.is_open
+    assert_released(emu.port)
