@@ -1,0 +1,126 @@
+"""Building blocks shared by PIPNet, PMMNet and the direct baseline (PyTorch, ``train`` extra).
+
+All tensors are NCHW. The backbone is a small U-Net (Ronneberger et al., MICCAI 2015) sized
+for a CPU: its convolutions run at 1/2, 1/4 and 1/8 of the input resolution and the
+full-resolution features come from a pixel-wise (1x1) layer over the upsampled decoder
+features concatenated with the input, so heads stay pixel-wise as in the paper while the
+cost per full-resolution pixel stays small. Input height and width must be multiples of
+:data:`SIZE_MULTIPLE` (the runtime pads).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+#: Height and width of network inputs must be multiples of this (three stride-2 stages).
+SIZE_MULTIPLE = 8
+
+
+def conv_bn_relu(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
+
+
+class UNetBackbone(nn.Module):
+    """U-Net encoder-decoder. ``forward(x) -> (full-resolution features (B, width, H, W),
+    bottleneck features (B, 4 width, H/8, W/8))``."""
+
+    def __init__(self, in_channels: int, width: int = 16):
+        super().__init__()
+        w = width
+        self.width = w
+        self.enc1 = nn.Sequential(conv_bn_relu(in_channels, w, 2), conv_bn_relu(w, w))
+        self.enc2 = nn.Sequential(conv_bn_relu(w, 2 * w, 2), conv_bn_relu(2 * w, 2 * w))
+        self.enc3 = nn.Sequential(conv_bn_relu(2 * w, 4 * w, 2), conv_bn_relu(4 * w, 4 * w))
+        self.dec2 = conv_bn_relu(6 * w, 2 * w)
+        self.dec1 = conv_bn_relu(3 * w, w)
+        self.full = nn.Sequential(nn.Conv2d(w + in_channels, w, 1), nn.ReLU(inplace=True),
+                                  nn.Conv2d(w, w, 1), nn.ReLU(inplace=True))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        e1 = self.enc1(x)
+        e2 = self.enc2(e1)
+        e3 = self.enc3(e2)
+        d2 = self.dec2(torch.cat([_up(e3, e2), e2], 1))
+        d1 = self.dec1(torch.cat([_up(d2, e1), e1], 1))
+        full = self.full(torch.cat([_up(d1, x), x], 1))
+        return full, e3
+
+
+def stokes_from_analyzer(analyzer: torch.Tensor) -> torch.Tensor:
+    """Ideal-analyzer Stokes ``(B, C, 3, H, W)`` from analyzer images ``(B, C, 4, H, W)``
+    in the order 0, 45, 90, 135 deg (``docs/conventions.md``: ``S0 = (I0+I45+I90+I135)/2``
+    (the mean of the two estimates ``I0+I90`` and ``I45+I135``), ``S1 = I0 - I90``,
+    ``S2 = I45 - I135``)."""
+    i0, i45, i90, i135 = analyzer.unbind(2)
+    return torch.stack([0.5 * (i0 + i45 + i90 + i135), i0 - i90, i45 - i135], 2)
+
+
+def normalised_stokes(stokes: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """``(S1/S0, S2/S0)`` per colour ``(B, 2C, H, W)``: scale-free polarization features."""
+    s0 = stokes[:, :, 0:1].clamp_min(eps)
+    return (stokes[:, :, 1:] / s0).clamp(-2.0, 2.0).flatten(1, 2)
+
+
+def planes(v: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """A per-image vector ``(B, K)`` as ``K`` constant planes shaped like ``like``'s H, W."""
+    return v[:, :, None, None].expand(-1, -1, like.shape[-2], like.shape[-1])
+
+
+def signed_log(x: torch.Tensor) -> torch.Tensor:
+    """``sign(x) log(1 + |x|)``: compresses specular peaks of Mueller inputs."""
+    return torch.sign(x) * torch.log1p(torch.abs(x))
+
+
+def apply_mueller(m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """``S_out = M S_in`` for Mueller images ``(B, C, 3, 3, H, W)`` and states ``(B, 3)``
+    -> ``(B, C, 3, H, W)``."""
+    return (m * s[:, None, None, :, None, None]).sum(3)
+
+
+class HighFrequencyAttention(nn.Module):
+    """Spatial attention driven by the high-pass part of the features (features minus their
+    3x3 local mean), so the specular branch concentrates on highlights and edges."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.gate = nn.Conv2d(channels, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        hf = x - F.avg_pool2d(x, 3, 1, 1, count_include_pad=False)
+        return x * (1.0 + torch.sigmoid(self.gate(hf)))
+
+
+class MultiHeadChannelAttention(nn.Module):
+    """Multi-head attention across channels (transposed attention: a ``c x c`` map per head,
+    linear in the number of pixels; Zamir et al., Restormer, CVPR 2022)."""
+
+    def __init__(self, channels: int, heads: int = 4):
+        super().__init__()
+        if channels % heads:
+            raise ValueError("channels must be a multiple of heads")
+        self.heads = heads
+        self.qkv = nn.Conv2d(channels, 3 * channels, 1)
+        self.temperature = nn.Parameter(torch.ones(heads, 1, 1))
+        self.proj = nn.Conv2d(channels, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = x.shape
+        q, k, v = self.qkv(x).reshape(b, 3, self.heads, c // self.heads, h * w).unbind(1)
+        q = F.normalize(q, dim=-1)
+        k = F.normalize(k, dim=-1)
+        attn = torch.softmax((q @ k.transpose(-2, -1)) * self.temperature, dim=-1)
+        out = (attn @ v).reshape(b, c, h, w)
+        return x + self.proj(out)
+
+
+def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x`` (B, K, H, W) over masked pixels (mask (B, 1, H, W) in {0, 1}) and K."""
+    m = mask.expand_as(x)
+    return (x * m).sum() / m.sum().clamp_min(1.0)

@@ -1,0 +1,150 @@
+"""PMMNet (stage 2), the single-shot composite graph and the direct Stokes->MM baseline.
+
+PMMNet refines the analytic initialization ``M = ks Ms + kd_c Md`` (``models.pbrdf_torch``
+evaluated on PIPNet's outputs, eta = 1.5, ks = 1) by residual learning under
+
+* polarization-colour decoupling: one wavelength-independent 3x3 block per component
+  (specular ``Ms``, diffuse ``Md`` with unit albedo); colour enters only through ``kd``;
+* redundant-channel separation: the specular branch (high-frequency attention) predicts
+  residuals of ``{m00, m11, m12, m21, m22}``, the diffuse branch (multi-head channel
+  attention) residuals of ``{m00, m01, m02, m10, m20}``; each 5-vector is expanded back to
+  3x3 (other elements keep the initialization), weighted by ``ks`` and ``kd`` per colour and
+  summed into the ``(B, C, 3, 3, H, W)`` Mueller image.
+
+Two additions to the paper, both needed on the simulator's data and stated in
+``models/MODEL_CARD.md``: the specular branch also predicts a per-pixel log gain on ``ks``
+(the true ``ks`` and the light's fall-off are not 1) and the diffuse branch a per-colour log
+gain on PIPNet's ``kd``. Final layers start at zero, so an untrained PMMNet returns exactly
+the PIPNet-pBRDF initialization.
+
+Loss: ``L1(M) + L_Stokes`` with ``L_Stokes`` the L1 error of ``M S`` over the probe states
+``[1,0,0], [1,1,0], [1,0,1]`` for every colour, averaged over the mask.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from models.layers import (HighFrequencyAttention, MultiHeadChannelAttention, UNetBackbone,
+                           apply_mueller, masked_mean, planes, signed_log, stokes_from_analyzer)
+from models.pbrdf_torch import image_blocks
+from models.pipnet import PIPNet, pipnet_features
+
+#: Element positions (row, col) refined by each branch.
+SPECULAR_ELEMENTS = ((0, 0), (1, 1), (1, 2), (2, 1), (2, 2))
+DIFFUSE_ELEMENTS = ((0, 0), (0, 1), (0, 2), (1, 0), (2, 0))
+#: Probe incident states of the Stokes consistency loss.
+PROBE_STATES = ((1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 0.0, 1.0))
+
+
+def expand5(values: torch.Tensor, elements: tuple[tuple[int, int], ...]) -> torch.Tensor:
+    """Place 5 channels ``(B, 5, H, W)`` at ``elements`` of a zero 3x3 -> ``(B, 3, 3, H, W)``."""
+    zero = torch.zeros_like(values[:, 0])
+    index = {e: i for i, e in enumerate(elements)}
+    rows = [torch.stack([values[:, index[(r, c)]] if (r, c) in index else zero for c in range(3)], 1)
+            for r in range(3)]
+    return torch.stack(rows, 1)
+
+
+def _zero_conv(cin: int, cout: int) -> nn.Conv2d:
+    conv = nn.Conv2d(cin, cout, 1)
+    nn.init.zeros_(conv.weight)
+    nn.init.zeros_(conv.bias)
+    return conv
+
+
+class PMMNet(nn.Module):
+    """Residual refinement. ``forward(analyzer, mask, s_in, ms_init, md_init, kd_init)``
+    -> dict with ``mueller`` (B,C,3,3,H,W), ``ms``, ``md`` (B,3,3,H,W), ``kd`` (B,C,H,W)."""
+
+    def __init__(self, colours: int = 3, width: int = 16, heads: int = 4):
+        super().__init__()
+        self.colours = colours
+        # measured Stokes (3C), rendered Stokes of the init (3C), their difference (3C),
+        # Ms (9), Md (9), kd (C), mask (1), s_in planes (3)
+        self.backbone = UNetBackbone(10 * colours + 22, width)
+        self.spec_att = HighFrequencyAttention(width)
+        self.spec_head = nn.Sequential(nn.Conv2d(width, width, 1), nn.ReLU(inplace=True),
+                                       _zero_conv(width, 6))
+        self.diff_att = MultiHeadChannelAttention(width, heads)
+        self.diff_head = nn.Sequential(nn.Conv2d(width, width, 1), nn.ReLU(inplace=True),
+                                       _zero_conv(width, 5 + colours))
+
+    def forward(self, analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
+                ms_init: torch.Tensor, md_init: torch.Tensor, kd_init: torch.Tensor) -> dict[str, torch.Tensor]:
+        stokes = stokes_from_analyzer(analyzer)
+        m_init = ms_init[:, None] + kd_init[:, :, None, None] * md_init[:, None]
+        rendered = apply_mueller(m_init, s_in)
+        x = torch.cat([stokes.flatten(1, 2), rendered.flatten(1, 2), (stokes - rendered).flatten(1, 2),
+                       signed_log(ms_init.flatten(1, 2)), signed_log(md_init.flatten(1, 2)),
+                       kd_init, mask, planes(s_in, mask)], 1)
+        feat, _ = self.backbone(x)
+        spec = self.spec_head(self.spec_att(feat))
+        diff = self.diff_head(self.diff_att(feat))
+        ks = torch.exp(spec[:, 5:6].clamp(-6.0, 6.0))[:, :, None]  # (B,1,1,H,W)
+        ms = ks * ms_init + expand5(spec[:, :5], SPECULAR_ELEMENTS)
+        md = md_init + expand5(diff[:, :5], DIFFUSE_ELEMENTS)
+        kd = kd_init * torch.exp(diff[:, 5:].clamp(-6.0, 6.0))
+        mueller = (ms[:, None] + kd[:, :, None, None] * md[:, None]) * mask[:, :, None, None]
+        return {"mueller": mueller, "ms": ms, "md": md, "kd": kd}
+
+
+class SingleShotNet(nn.Module):
+    """PIPNet -> differentiable pBRDF -> PMMNet as one graph (what ships as ONNX).
+
+    Inputs: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W) float {0,1}, ``s_in``
+    (B,3) normalised incident Stokes, ``wo`` (B,3,H,W) unit view directions, ``stage_zero_axis``
+    (B,3) in the camera frame. Outputs: ``mueller`` (B,C,3,3,H,W), ``mueller_init`` (the
+    PIPNet-pBRDF matrix), ``normal``, ``kd``, ``wi``, ``alpha``.
+    """
+
+    def __init__(self, pipnet: PIPNet, pmmnet: PMMNet):
+        super().__init__()
+        self.pipnet, self.pmmnet = pipnet, pmmnet
+
+    def initialization(self, analyzer, mask, s_in, wo, stage_zero_axis):
+        p = self.pipnet(analyzer, mask, s_in, wo)
+        ms, md = image_blocks(p["normal"], p["wi"], wo, p["alpha"], stage_zero_axis)
+        return p, ms * mask[:, None], md * mask[:, None]
+
+    def forward(self, analyzer, mask, s_in, wo, stage_zero_axis):
+        p, ms, md = self.initialization(analyzer, mask, s_in, wo, stage_zero_axis)
+        m_init = (ms[:, None] + p["kd"][:, :, None, None] * md[:, None]) * mask[:, :, None, None]
+        r = self.pmmnet(analyzer, mask, s_in, ms, md, p["kd"])
+        return r["mueller"], m_init, p["normal"], p["kd"], p["wi"], p["alpha"]
+
+
+SINGLE_SHOT_OUTPUTS = ("mueller", "mueller_init", "normal", "kd", "wi", "alpha")
+
+
+class DirectStokesToMM(nn.Module):
+    """Ablation baseline: the same U-Net backbone regresses the 27 Mueller elements directly
+    from the analyzer images, their Stokes, the mask, ``s_in`` planes and ``wo`` (no physics)."""
+
+    def __init__(self, colours: int = 3, width: int = 16):
+        super().__init__()
+        self.colours = colours
+        self.backbone = UNetBackbone(9 * colours + 7, width)
+        self.head = nn.Sequential(nn.Conv2d(width, width, 1), nn.ReLU(inplace=True),
+                                  nn.Conv2d(width, 9 * colours, 1))
+
+    def forward(self, analyzer, mask, s_in, wo, stage_zero_axis=None):
+        stokes = stokes_from_analyzer(analyzer)
+        x = torch.cat([pipnet_features(analyzer, mask, s_in, wo), stokes.flatten(1, 2)], 1)
+        feat, _ = self.backbone(x)
+        b, _, h, w = feat.shape
+        return self.head(feat).reshape(b, self.colours, 3, 3, h, w) * mask[:, :, None, None]
+
+
+def mueller_loss(pred: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """``L1(M) + L_Stokes`` over the mask for Mueller images ``(B, C, 3, 3, H, W)``."""
+    b, c, _, _, h, w = pred.shape
+    l1 = masked_mean((pred - truth).abs().reshape(b, -1, h, w), mask)
+    probes = torch.tensor(PROBE_STATES, dtype=pred.dtype)
+    diff = pred - truth
+    ls = pred.new_zeros(())
+    for s in probes:
+        ls = ls + masked_mean(apply_mueller(diff, s.expand(b, 3)).abs().reshape(b, -1, h, w), mask)
+    ls = ls * (3.0 / len(probes))  # sum over the 3 Stokes components, mean over probes
+    return l1 + ls, {"l1_m": float(l1), "l_stokes": float(ls)}
