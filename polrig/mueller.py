@@ -205,3 +205,34 @@ def estimate_linear(s_in: np.ndarray, s_out: np.ndarray,
         rhs = np.einsum("...k,ki,...kj->...ij", w, s_in, s_out)
         mt = np.linalg.solve(a, rhs)
     return np.swapaxes(mt, -1, -2), cond
+
+
+def jones_to_mueller(jones: np.ndarray) -> np.ndarray:
+    """Non-depolarizing Mueller matrix ``(..., 4, 4)`` of Jones matrices ``(..., 2, 2)``.
+
+    ``m_ij = 1/2 tr(sigma_i J sigma_j J^H)`` with the Pauli matrices in Stokes order
+    (:data:`polrig.realizability.PAULI`: ``sigma_3 = [[0, -i], [i, 0]]``), which makes
+    ``jones_to_mueller(diag(1, exp(i d)))`` equal :func:`linear_retarder` ``(d)`` and the Stokes
+    vector of a field ``E`` equal ``(E^H sigma_i E)``. Reference: R. A. Chipman, W. S. T. Lam,
+    G. Young, *Polarized Light and Optical Systems* (CRC 2018), ch. 6.
+    """
+    j = np.asarray(jones, dtype=np.complex128)
+    pauli = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1j], [1j, 0]]])
+    return 0.5 * np.einsum("iab,...bc,jcd,...ad->...ij", pauli, j, pauli, j.conj()).real
+
+
+def diattenuation(m: np.ndarray) -> np.ndarray:
+    """Diattenuation ``|(m01, m02[, m03])| / m00`` of ``(..., 3, 3)`` or ``(..., 4, 4)`` matrices
+    (linear diattenuation for a 3x3 block); Lu and Chipman, JOSA A 13(5), 1106 (1996).
+    ``0`` where ``m00 <= 0`` or non-finite."""
+    m = np.asarray(m, dtype=np.float64)
+    m00 = m[..., 0, 0]
+    ok = np.isfinite(m).all(axis=(-2, -1)) & (m00 > 0)
+    num = np.sqrt(np.sum(np.where(ok[..., None], m[..., 0, 1:], 0.0) ** 2, axis=-1))
+    return np.where(ok, num / np.where(ok, m00, 1.0), 0.0)
+
+
+def polarizance(m: np.ndarray) -> np.ndarray:
+    """Polarizance ``|(m10, m20[, m30])| / m00`` (DoP of the output for unpolarized input);
+    Lu and Chipman 1996. ``0`` where ``m00 <= 0`` or non-finite."""
+    return diattenuation(np.swapaxes(np.asarray(m, dtype=np.float64), -1, -2))

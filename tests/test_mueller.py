@@ -1,0 +1,155 @@
+"""Mueller algebra against closed forms, invariants and round trips (polrig.mueller)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from polrig import mueller as mu
+
+finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
+angles = st.floats(-2 * np.pi, 2 * np.pi, allow_nan=False)
+SETTINGS = settings(max_examples=60, deadline=None)
+
+
+def _linear_state(aolp, dolp, s0=1.0):
+    return np.stack([s0 * np.ones_like(aolp), s0 * dolp * np.cos(2 * aolp), s0 * dolp * np.sin(2 * aolp)], -1)
+
+
+# --------------------------------------------------------------------------- estimate_linear
+@SETTINGS
+@given(m=arrays(np.float64, (3, 3), elements=finite),
+       aolp=arrays(np.float64, st.integers(3, 12), elements=st.floats(0, np.pi)),
+       data=st.data())
+def test_estimate_linear_recovers_m(m, aolp, data):
+    dolp = data.draw(arrays(np.float64, aolp.shape, elements=st.floats(0, 1)))
+    s_in = _linear_state(aolp, dolp)
+    sv = np.linalg.svd(s_in, compute_uv=False)
+    assume(sv[-1] > 1e-3 * sv[0])
+    s_out = s_in @ m.T
+    est, cond = mu.estimate_linear(s_in, s_out)
+    assert cond == pytest.approx(sv[0] / sv[-1])
+    assert np.allclose(est, m, atol=1e-9 * cond * (1 + np.abs(m).max()))
+    # weighted solve gives the same answer for consistent data, broadcast over pixels
+    w = np.linspace(0.5, 2.0, len(aolp))
+    est_w, _ = mu.estimate_linear(s_in, np.broadcast_to(s_out, (2,) + s_out.shape), np.broadcast_to(w, (2, len(w))))
+    assert np.allclose(est_w, m, atol=1e-8 * cond * (1 + np.abs(m).max()))
+
+
+def test_estimate_linear_condition_numbers_and_errors():
+    s4 = mu.polarizer_stokes(np.radians([0, 45, 90, 135]))
+    _, cond = mu.estimate_linear(s4, s4)
+    # s_in^T s_in = diag(1, 1/2, 1/2): the 3-state-vector condition number is sqrt(2)
+    assert cond == pytest.approx(np.sqrt(2.0))
+    # collinear: 0, 90 and their unpolarized average span only (S0, S1)
+    bad = np.array([[0.5, 0.5, 0.0], [0.5, -0.5, 0.0], [1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="collinear"):
+        mu.estimate_linear(bad, bad)
+    with pytest.raises(ValueError, match="at least 3"):
+        mu.estimate_linear(s4[:2], s4[:2])
+
+
+# --------------------------------------------------------------------------- element closed forms
+@SETTINGS
+@given(theta=angles, phi=angles, s0=st.floats(1e-6, 1e6))
+def test_polarizer_malus_law(theta, phi, s0):
+    s_in = np.array([s0, s0 * np.cos(2 * phi), s0 * np.sin(2 * phi), 0.0])
+    out = mu.apply(mu.polarizer_at(theta), s_in)
+    assert out[0] == pytest.approx(s0 * np.cos(theta - phi) ** 2, abs=1e-12 * s0)
+    # the output is fully polarized along theta
+    assert np.allclose(out, out[0] * np.array([1, np.cos(2 * theta), np.sin(2 * theta), 0]), atol=1e-12 * s0)
+
+
+@SETTINGS
+@given(theta=angles, er=st.floats(1.0, 1e6))
+def test_polarizer_matches_jones_projector(theta, er):
+    """Independent check of the rotation sign: a polarizer at theta is the Jones matrix that
+    passes the field along (cos theta, sin theta) (angle from x towards y)."""
+    c, s = np.cos(theta), np.sin(theta)
+    r = np.array([[c, -s], [s, c]])
+    j = r @ np.diag([1.0, 1.0 / np.sqrt(er)]) @ r.T
+    assert np.allclose(mu.polarizer_at(theta, er), mu.jones_to_mueller(j), atol=1e-12)
+
+
+@SETTINGS
+@given(a=angles, b=angles)
+def test_rotator_composition(a, b):
+    assert np.allclose(mu.rotator(a) @ mu.rotator(b), mu.rotator(a + b), atol=1e-12)
+    assert np.allclose(mu.rotator(a) @ mu.rotator(-a), np.eye(4), atol=1e-12)
+    assert np.allclose(mu.rotator(np.pi), np.eye(4), atol=1e-12)
+    # a rotated element composes: rotating by a then b is rotating by a + b
+    m = mu.linear_retarder(0.7)
+    assert np.allclose(mu.rotated_element(a, mu.rotated_element(b, m)), mu.rotated_element(a + b, m), atol=1e-12)
+
+
+@SETTINGS
+@given(theta=angles)
+def test_half_wave_plate_mirrors_aolp(theta):
+    hwp = mu.rotated_element(theta, mu.linear_retarder(np.pi))
+    s_in = np.array([1.0, 1.0, 0.0, 0.0])  # horizontal
+    assert np.allclose(mu.apply(hwp, s_in), [1, np.cos(4 * theta), np.sin(4 * theta), 0], atol=1e-12)
+
+
+def test_quarter_wave_plate_makes_circular():
+    qwp = mu.rotated_element(np.pi / 4, mu.linear_retarder(np.pi / 2))
+    out = mu.apply(qwp, np.array([1.0, 1.0, 0.0, 0.0]))
+    assert np.allclose(np.abs(out), [1, 0, 0, 1], atol=1e-12)
+    # retarder leaves its own axes alone
+    assert np.allclose(mu.apply(mu.linear_retarder(0.3), np.array([1.0, 1.0, 0, 0])), [1, 1, 0, 0])
+
+
+@SETTINGS
+@given(eta=st.floats(1.01, 4.0))
+def test_fresnel_closed_forms(eta):
+    rs, rp = mu.fresnel_reflectance(np.cos(np.arctan(eta)), eta)
+    assert rp == pytest.approx(0.0, abs=1e-14)  # Brewster
+    r0 = ((eta - 1) / (eta + 1)) ** 2
+    assert np.allclose(mu.fresnel_reflectance(1.0, eta), (r0, r0))
+    # energy: T + R = 1 for s and p (a and b of the two matrices add to 1 and 0)
+    cos_i = np.linspace(0.0, 1.0, 33)
+    r, t = mu.specular_reflection(cos_i, eta), mu.specular_transmission(cos_i, eta)
+    assert np.allclose(r[..., 0, 0] + t[..., 0, 0], 1.0)
+    assert np.allclose(r[..., 0, 1] + t[..., 0, 1], 0.0)
+    # grazing incidence reflects everything, the Mueller matrix stays finite
+    assert np.isfinite(r).all() and r[0, 0, 0] == pytest.approx(1.0)
+
+
+def test_fresnel_mitsuba_brewster_value():
+    """Mitsuba 3 src/render/tests/test_mueller.py: eta 1.5 at Brewster's angle."""
+    m = mu.specular_reflection(np.cos(np.arctan(1.5)), 1.5)
+    assert np.allclose(m[:2, :2], 0.0739645, atol=1e-7)
+    assert np.allclose(m[2:, :2], 0) and np.allclose(m[:2, 2:], 0)
+
+
+def test_normal_incidence_flips_handedness():
+    m = mu.specular_reflection(1.0, 1.5)
+    assert np.allclose(np.diag(m), [0.04, 0.04, -0.04, -0.04])
+
+
+# --------------------------------------------------------------------------- Jones, diattenuation
+jones = arrays(np.float64, (2, 2, 2), elements=finite).map(lambda a: a[0] + 1j * a[1])
+
+
+@SETTINGS
+@given(j1=jones, j2=jones)
+def test_jones_to_mueller_is_a_homomorphism(j1, j2):
+    m12 = mu.jones_to_mueller(j1 @ j2)
+    assert np.allclose(m12, mu.jones_to_mueller(j1) @ mu.jones_to_mueller(j2),
+                       atol=1e-9 * (1 + np.abs(m12).max()))
+    # non-depolarizing: M^T G M = |det J|^2 G
+    g = np.diag([1.0, -1, -1, -1])
+    m1 = mu.jones_to_mueller(j1)
+    assert np.allclose(m1.T @ g @ m1, abs(np.linalg.det(j1)) ** 2 * g, atol=1e-9 * (1 + np.abs(m1).max()) ** 2)
+
+
+def test_diattenuation_and_polarizance():
+    assert mu.diattenuation(mu.polarizer_at(0.4)) == pytest.approx(1.0)
+    assert mu.polarizance(mu.polarizer_at(0.4)) == pytest.approx(1.0)
+    assert mu.diattenuation(mu.depolarizer(0.3)) == 0.0
+    assert mu.diattenuation(mu.diattenuator(0.8, 0.2)) == pytest.approx(0.6)
+    assert mu.diattenuation(mu.linear_block(mu.diattenuator(0.8, 0.2))) == pytest.approx(0.6)
+    bad = np.array([np.full((4, 4), np.nan), np.zeros((4, 4))])
+    assert np.array_equal(mu.diattenuation(bad), [0.0, 0.0])
