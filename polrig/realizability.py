@@ -153,9 +153,11 @@ def is_physical_gk(m: np.ndarray, *, rtol: float = 1e-6) -> np.ndarray:
     eigenvalue must contain a physical Stokes vector. Eigenvalues within ``rtol`` of the
     largest are treated as degenerate with it: a non-depolarizing matrix has
     ``N = |det J|^2 I`` (fourfold degenerate), and ``numpy.linalg.eig`` returns an arbitrary
-    basis of such an eigenspace, so the test asks whether the span of the (real and imaginary
-    parts of the) returned eigenvectors contains ``x`` with ``x^T G x >= -rtol |x|^2``, via an
-    orthonormal basis ``U`` of the span and the largest eigenvalue of ``U^T G U``.
+    basis of such an eigenspace with nearly parallel vectors when rounding perturbs ``N``. The
+    test therefore takes the eigenspace as the right singular vectors of ``N - lambda_max I``
+    with singular values ``<= rtol`` (an orthonormal ``U``) and asks whether it contains ``x``
+    with ``x^T G x >= -rtol |x|^2``, i.e. whether the largest eigenvalue of ``U^T G U`` is
+    ``>= -rtol``.
 
     Non-finite matrices are ``False``; the zero matrix is ``True`` (perfect absorber).
     """
@@ -165,14 +167,15 @@ def is_physical_gk(m: np.ndarray, *, rtol: float = 1e-6) -> np.ndarray:
     zero = scale == 0
     mn = mz / np.where(zero, 1.0, scale)[..., None, None]
     n_mat = _G @ np.swapaxes(mn, -1, -2) @ _G @ mn
-    w, v = np.linalg.eig(n_mat)
-    real = np.all(np.abs(w.imag) <= rtol, axis=-1)
-    wr = w.real
-    top = wr.max(axis=-1, keepdims=True)
-    cluster = wr >= top - rtol * np.maximum(1.0, np.abs(top))  # (..., 4)
-    span = np.concatenate([v.real * cluster[..., None, :], v.imag * cluster[..., None, :]], axis=-1)
-    u, s, _ = np.linalg.svd(span, full_matrices=False)  # u: (..., 4, 4)
-    rank = s > 1e-6 * s[..., :1]
+    w = np.linalg.eigvals(n_mat)
+    real = np.all(np.abs(w.imag) <= rtol * np.maximum(1.0, np.abs(w).max(axis=-1, keepdims=True)), axis=-1)
+    top = w.real.max(axis=-1)
+    # (pseudo-)eigenspace of the largest eigenvalue: right singular vectors of N - top I whose
+    # singular values are below the tolerance (always at least the smallest one)
+    _, s, vh = np.linalg.svd(n_mat - top[..., None, None] * np.eye(4))
+    rank = s <= rtol * np.maximum(1.0, np.abs(top))[..., None]
+    rank[..., -1] = True
+    u = np.swapaxes(vh, -1, -2)  # columns are the right singular vectors
     b = np.swapaxes(u, -1, -2) @ _G @ u
     keep = rank[..., :, None] & rank[..., None, :]
     b = np.where(keep, b, 0.0) - 1e3 * np.eye(4) * (~rank)[..., None, :]
