@@ -13,11 +13,15 @@ so two programs never talk to one device at once. Reference: pyserial 3.5 API do
 
 from __future__ import annotations
 
+import termios
 import time
 
 import serial
 
 from polrig.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout, ProtocolError
+
+# what pyserial lets through when a port vanishes (tcdrain raises termios.error, not OSError)
+_LOST = (serial.SerialException, OSError, termios.error)
 
 
 class SerialLink:
@@ -46,7 +50,7 @@ class SerialLink:
             self._ser = serial.Serial(self.port, self.baudrate, bytesize=8, parity="N",
                                       stopbits=1, rtscts=self.rtscts, timeout=self._poll_s,
                                       write_timeout=2.0, exclusive=True)
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (*_LOST, ValueError) as exc:
             self._ser = None
             raise DeviceNotFound(f"cannot open serial port {self.port}: {exc}",
                                  device=self.device) from None
@@ -56,7 +60,7 @@ class SerialLink:
         if ser is not None:
             try:
                 ser.close()
-            except (serial.SerialException, OSError):
+            except _LOST:
                 pass
 
     def _require(self) -> serial.Serial:
@@ -74,7 +78,7 @@ class SerialLink:
         try:
             ser.write(data)
             ser.flush()
-        except (serial.SerialException, OSError) as exc:
+        except _LOST as exc:
             raise self._lost(exc) from None
 
     def discard_input(self) -> bytes:
@@ -83,14 +87,14 @@ class SerialLink:
         try:
             n = ser.in_waiting
             return ser.read(n) if n else b""
-        except (serial.SerialException, OSError) as exc:
+        except _LOST as exc:
             raise self._lost(exc) from None
 
     def in_waiting(self) -> int:
         ser = self._require()
         try:
             return ser.in_waiting
-        except (serial.SerialException, OSError) as exc:
+        except _LOST as exc:
             raise self._lost(exc) from None
 
     def read_exact(self, n: int, timeout_s: float, what: str = "reply") -> bytes:
@@ -103,7 +107,7 @@ class SerialLink:
                 self._raise_incomplete(bytes(buf), timeout_s, what)
             try:
                 buf += ser.read(n - len(buf))
-            except (serial.SerialException, OSError) as exc:
+            except _LOST as exc:
                 raise self._lost(exc) from None
         return bytes(buf)
 
@@ -121,7 +125,7 @@ class SerialLink:
                                     device=self.device)
             try:
                 chunk = ser.read(1)
-            except (serial.SerialException, OSError) as exc:
+            except _LOST as exc:
                 raise self._lost(exc) from None
             buf += chunk
         return bytes(buf[: -len(terminator)])

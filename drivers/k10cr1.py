@@ -1,0 +1,184 @@
+"""Thorlabs K10CR1 motorised rotation stage as a :class:`polrig.hal.RotationStage`.
+
+Transport: FTDI USB serial (VID:PID 0403:FAF0), 115200 baud 8N1 with RTS/CTS handshake, as
+the Thorlabs "APT Communications Protocol" document prescribes for its USB controllers.
+Messages (see :mod:`drivers.apt`): ``HW_REQ_INFO``/``HW_GET_INFO`` (identity),
+``MOD_SET_CHANENABLESTATE`` (enable channel 1), ``MOT_MOVE_HOME``/``MOT_MOVE_HOMED``,
+``MOT_MOVE_ABSOLUTE``/``MOT_MOVE_COMPLETED``, ``MOT_MOVE_STOP``/``MOT_MOVE_STOPPED``,
+``MOT_REQ_STATUSBITS``/``MOT_GET_STATUSBITS``, ``MOT_REQ_POSCOUNTER``/``MOT_GET_POSCOUNTER``;
+``HW_RESPONSE``/``HW_RICHRESPONSE`` report device errors (code and text), raised as
+:class:`polrig.errors.DeviceFault`. Scale: 409600/3 micro-steps per degree (K10CR1 with the
+default 2048 micro-steps and 66:1 worm gear; pylablib ``kinesis.py`` lists the same value).
+
+The stage must be homed after power-up or a motion error (status bit "homed" clear) before
+absolute moves mean anything; ``require_homed`` makes moves refuse until it is.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+
+from drivers import apt
+from drivers._serial import SerialLink
+from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
+from polrig.hal import DeviceInfo, RotationStage
+
+BAUDRATE = 115200
+STEPS_PER_DEG = 409600 / 3
+_END_OF_MOTION = (apt.MOT_MOVE_COMPLETED, apt.MOT_MOVE_HOMED, apt.MOT_MOVE_STOPPED)
+
+
+class K10cr1Stage(RotationStage):
+    """A K10CR1 on ``port`` (channel 1)."""
+
+    def __init__(self, port: str, *, zero_offset_deg: float = 0.0, require_homed: bool = True,
+                 reply_timeout_s: float = 1.0, kind: str = "stage"):
+        self.port = port
+        self.zero_offset_deg = float(zero_offset_deg)
+        self.require_homed = bool(require_homed)
+        self.reply_timeout_s = float(reply_timeout_s)
+        self.kind = kind
+        self._link = SerialLink(port, baudrate=BAUDRATE, rtscts=True, device=f"k10cr1 {port}")
+        self._info: DeviceInfo | None = None
+        self._pending = False  # a motion whose end-of-motion message has not been read
+
+    # -- life cycle ------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._link.is_open
+
+    def open(self) -> None:
+        self._link.open()
+        try:
+            self._link.discard_input()
+            self._send(apt.AptMessage(apt.HW_STOP_UPDATEMSGS))
+            self._identify()
+            self._send(apt.AptMessage(apt.MOD_SET_CHANENABLESTATE, 1, 0x01))
+        except Exception:
+            self._link.close()
+            raise
+
+    def close(self) -> None:
+        self._pending = False
+        self._link.close()
+
+    def info(self) -> DeviceInfo:
+        if self._info is None:
+            self._identify()
+        assert self._info is not None
+        return self._info
+
+    def _identify(self) -> None:
+        data = self._request(apt.AptMessage(apt.HW_REQ_INFO), apt.HW_GET_INFO)
+        serial_no, model, hw_type, fw, notes, _, hw_ver, mod_state, nchan = struct.unpack(
+            "<I8sH4s48s12sHHH", data)
+        self._info = DeviceInfo(
+            kind=self.kind, driver="k10cr1", model=model.rstrip(b"\0").decode("ascii", "replace"),
+            serial=str(serial_no), firmware=f"{fw[2]}.{fw[1]}.{fw[0]}", port=self.port,
+            extra={"type": hw_type, "notes": notes.rstrip(b"\0").decode("ascii", "replace"),
+                   "hardware_version": hw_ver, "channels": nchan})
+
+    # -- framing ---------------------------------------------------------------------------
+    def _send(self, msg: apt.AptMessage) -> None:
+        self._link.write(msg.pack())
+
+    def _read_message(self, timeout_s: float) -> tuple[int, int, int, bytes | None]:
+        header = self._link.read_exact(6, timeout_s, what="APT header")
+        msg_id, p1, p2, _dest, _src, has_data = apt.unpack_header(header)
+        if msg_id not in apt.REPLY_DATA_LEN:
+            self._resync()
+            raise ProtocolError(f"unknown APT message id 0x{msg_id:04X} (garbled frame "
+                                f"{header.hex(' ')})", device=self._link.device)
+        expected = apt.REPLY_DATA_LEN[msg_id]
+        n = (p1 | p2 << 8) if has_data else None
+        if n != expected:
+            self._resync()
+            raise ProtocolError(f"APT message 0x{msg_id:04X} with data length {n}, "
+                                f"expected {expected}", device=self._link.device)
+        data = None
+        if n:
+            try:
+                data = self._link.read_exact(n, timeout_s, what="APT data")
+            except DeviceTimeout:
+                self._resync()
+                raise ProtocolError(f"partial APT frame: header 0x{msg_id:04X} announced {n} "
+                                    "data bytes that never came", device=self._link.device) from None
+        if msg_id in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
+            self._pending = False
+            code, text = None, "error reported (HW_RESPONSE)"
+            if data is not None:
+                _ident, code, raw = struct.unpack("<HH64s", data)
+                text = raw.split(b"\0", 1)[0].decode("ascii", "replace")
+            raise DeviceFault("controller reported an error", device=self._link.device,
+                              code=code if code is not None else "HW_RESPONSE", text=text)
+        return msg_id, p1, p2, data
+
+    def _resync(self) -> None:
+        time.sleep(0.05)
+        self._link.discard_input()
+
+    def _request(self, msg: apt.AptMessage, reply_id: int) -> bytes:
+        self._send(msg)
+        deadline = time.monotonic() + self.reply_timeout_s
+        while True:
+            msg_id, _, _, data = self._read_message(max(deadline - time.monotonic(), 0.0))
+            if msg_id == reply_id:
+                return data or b""
+            if msg_id in _END_OF_MOTION:
+                self._pending = False
+
+    # -- RotationStage ---------------------------------------------------------------------
+    def status_bits(self) -> int:
+        data = self._request(apt.AptMessage(apt.MOT_REQ_STATUSBITS, 1), apt.MOT_GET_STATUSBITS)
+        return struct.unpack("<HI", data)[1]
+
+    def position_deg(self) -> float:
+        data = self._request(apt.AptMessage(apt.MOT_REQ_POSCOUNTER, 1), apt.MOT_GET_POSCOUNTER)
+        steps = struct.unpack("<Hi", data)[1]
+        return (steps / STEPS_PER_DEG - self.zero_offset_deg) % 360.0
+
+    def is_busy(self) -> bool:
+        busy = bool(self.status_bits() & apt.STATUS_MOVING)
+        if not busy and self._pending:
+            self.wait(self.reply_timeout_s)  # the end-of-motion message is on its way
+        return busy
+
+    def home(self, timeout_s: float = 60.0) -> None:
+        self._link.discard_input()
+        self._send(apt.AptMessage(apt.MOT_MOVE_HOME, 1))
+        self._pending = True
+        self.wait(timeout_s)
+
+    def move_to(self, angle_deg: float, *, wait: bool = True, timeout_s: float = 30.0) -> None:
+        angle_deg = float(angle_deg)
+        if angle_deg != angle_deg or abs(angle_deg) == float("inf"):
+            raise ValueError(f"stage angle must be finite, got {angle_deg!r}")
+        if self.require_homed and not self.status_bits() & apt.STATUS_HOMED:
+            raise DeviceFault("stage is not homed (run `polrig home stage`)",
+                              device=self._link.device, code="not homed",
+                              text="status bit 'homed' is clear")
+        steps = round(((angle_deg % 360.0) + self.zero_offset_deg) * STEPS_PER_DEG)
+        self._send(apt.AptMessage(apt.MOT_MOVE_ABSOLUTE, data=struct.pack("<Hi", 1, steps)))
+        self._pending = True
+        if wait:
+            self.wait(timeout_s)
+
+    def wait(self, timeout_s: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while self._pending:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
+                                    device=self._link.device)
+            try:
+                msg_id, *_ = self._read_message(min(left, 0.25))
+            except DeviceTimeout:
+                continue
+            if msg_id in _END_OF_MOTION:
+                self._pending = False
+
+    def stop(self) -> None:
+        self._link.discard_input()
+        self._request(apt.AptMessage(apt.MOT_MOVE_STOP, 1, 0x01), apt.MOT_MOVE_STOPPED)
+        self._pending = False

@@ -1,0 +1,139 @@
+"""K10CR1 driver against the APT emulator on a pseudo-terminal (binary frames)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import serial
+
+from drivers import apt
+from drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
+from drivers.k10cr1 import K10cr1Stage
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+
+pytestmark = pytest.mark.timeout(20)
+STEP_DEG = 1 / STEPS_PER_DEG
+
+
+@pytest.fixture
+def emu(tmp_path):
+    with K10cr1Emulator(link=tmp_path / "k10cr1", speed_factor=40.0) as e:
+        yield e
+
+
+@pytest.fixture
+def stage(emu):
+    with K10cr1Stage(emu.port, reply_timeout_s=0.5) as s:
+        yield s
+
+
+def test_binary_frames_survive_the_pty(emu):
+    """Every byte value passes unchanged (raw mode: no CR/LF mapping, no XON/XOFF)."""
+    payload = bytes(range(256))
+    with serial.Serial(emu.port, 115200, rtscts=True, timeout=0.5) as ser:
+        emu.write_raw(payload)
+        assert ser.read(256) == payload
+        ser.write(payload)
+        time.sleep(0.1)
+    assert bytes(emu.received[-256:]) == payload
+
+
+def test_identify(stage):
+    info = stage.info()
+    assert info.model == "K10CR1" and info.serial == "55000123"
+    assert info.firmware == "3.0.0"
+
+
+def test_requires_home_then_moves(stage, emu):
+    with pytest.raises(DeviceFault, match="not homed"):
+        stage.move_to(45.0)
+    stage.home(timeout_s=5)
+    assert stage.status_bits() & apt.STATUS_HOMED
+    stage.move_to(45.0, timeout_s=5)
+    assert abs(emu.position_deg - 45.0) <= STEP_DEG
+    assert stage.position_deg() == pytest.approx(45.0, abs=STEP_DEG)
+    stage.move_to(100.0, wait=False)
+    assert stage.is_busy()
+    stage.wait(5)
+    assert not stage.is_busy()
+    assert emu.position_deg == pytest.approx(100.0, abs=STEP_DEG)
+    # the host sent exactly the documented MOT_MOVE_ABSOLUTE frame for 100 deg
+    frame = apt.AptMessage(apt.MOT_MOVE_ABSOLUTE,
+                           data=(1).to_bytes(2, "little")
+                           + round(100 * STEPS_PER_DEG).to_bytes(4, "little", signed=True)).pack()
+    assert frame[:6] == bytes([0x53, 0x04, 0x06, 0x00, 0xD0, 0x01])
+    assert frame in emu.received
+
+
+def test_stop(stage, emu):
+    stage.home(timeout_s=5)
+    emu.speed_factor = 2.0
+    stage.move_to(300.0, wait=False)
+    time.sleep(0.1)
+    stage.stop()
+    assert 0 < stage.position_deg() < 300
+    assert not stage.is_busy()
+
+
+def test_no_reply_times_out_and_recovers(stage, emu):
+    emu.inject("no_reply")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        stage.position_deg()
+    assert time.monotonic() - t0 < 1.0
+    assert stage.position_deg() == pytest.approx(0.0)
+
+
+def test_move_timeout_bounded(stage, emu):
+    stage.home(timeout_s=5)
+    emu.speed_factor = 0.5
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        stage.move_to(90.0, timeout_s=0.3)
+    assert time.monotonic() - t0 < 0.8
+    stage.stop()
+
+
+@pytest.mark.parametrize("fault", ["garble", "partial"])
+def test_bad_frames_are_protocol_errors(stage, emu, fault):
+    emu.inject(fault)
+    with pytest.raises(ProtocolError):
+        stage.status_bits()
+    assert stage.status_bits() & apt.STATUS_ENABLED
+
+
+def test_error_mid_move_needs_rehome(stage, emu):
+    stage.home(timeout_s=5)
+    emu.inject("error_mid_move")
+    with pytest.raises(DeviceFault) as ei:
+        stage.move_to(60.0, timeout_s=5)
+    assert ei.value.code == 10002 and "Motion error" in ei.value.text
+    assert 0 < emu.position_deg < 60
+    with pytest.raises(DeviceFault, match="not homed"):
+        stage.move_to(60.0)
+    stage.home(timeout_s=5)
+    stage.move_to(60.0, timeout_s=5)
+    assert emu.position_deg == pytest.approx(60.0, abs=STEP_DEG)
+
+
+def test_disconnect_reconnect(stage, emu):
+    stage.home(timeout_s=5)
+    emu.disconnect()
+    with pytest.raises(DeviceDisconnected):
+        stage.position_deg()
+    assert not stage.is_open
+    emu.reconnect()
+    stage.open()
+    stage.move_to(10.0, timeout_s=5)
+    assert emu.position_deg == pytest.approx(10.0, abs=STEP_DEG)
+
+
+def test_not_found_and_release(tmp_path, emu):
+    with pytest.raises(DeviceNotFound):
+        K10cr1Stage(str(tmp_path / "absent")).open()
+    st = K10cr1Stage(emu.port)
+    st.open()
+    st.close()
+    with serial.Serial(emu.port, 115200, exclusive=True):
+        pass
