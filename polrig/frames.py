@@ -48,7 +48,8 @@ def _as_vectors(v, name: str) -> np.ndarray:
 
 def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot product of ``(..., 3)`` arrays (broadcasting)."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def _empty_vectors(shape: tuple[int, ...]) -> np.ndarray:
@@ -131,6 +132,11 @@ def basis_from_reference(k, x_ref) -> np.ndarray:
     n2 = dot(x, x)
     ok = ok_ref & (n2 > _DEGENERATE_SQ)
     inv = 1.0 / np.sqrt(np.where(ok, n2, 1.0))
+    # second Gram-Schmidt pass: exact orthogonality also for references close to k
+    xk = dot(x, k) * inv
+    for c in range(3):
+        x[..., c] = x[..., c] * inv - xk * k[..., c]
+    inv = 1.0 / np.sqrt(np.where(ok, dot(x, x), 1.0))
     for c in range(3):
         x[..., c] *= inv
     if not np.all(ok):
@@ -174,14 +180,17 @@ def rotation_cos_sin_2theta(forward, basis_current, basis_target) -> tuple[np.nd
     ``basis_current`` into ``basis_target`` about ``forward`` (positive from ``x`` towards
     ``y = forward x x``), as in Mitsuba's ``mueller::rotate_stokes_basis``.
 
-    Uses ``theta = atan2(forward . (cur x tgt), cur . tgt)`` without trigonometric calls; the
-    bases need not be normalised. A zero current or target basis gives ``theta = 0``.
+    Uses ``theta = atan2(|cur x tgt|, cur . tgt)`` with the sign of ``forward . (cur x tgt)``
+    (Mitsuba: ``unit_angle`` and that sign) without trigonometric calls; neither ``forward``
+    nor the bases need be normalised (the bases must be perpendicular to ``forward``). A zero
+    current or target basis gives ``theta = 0``.
     """
     f = _as_vectors(forward, "forward")
     cur = _as_vectors(basis_current, "basis_current")
     tgt = _as_vectors(basis_target, "basis_target")
     c = dot(cur, tgt)
-    s = dot(f, cross(cur, tgt))
+    cr = cross(cur, tgt)
+    s = np.copysign(np.sqrt(dot(cr, cr)), dot(f, cr))
     r2 = c * c + s * s
     ok = np.isfinite(r2) & (r2 > 0)
     r2 = np.where(ok, r2, 1.0)
@@ -196,7 +205,8 @@ def rotation_angle(forward, basis_current, basis_target) -> np.ndarray:
     f = _as_vectors(forward, "forward")
     cur = _as_vectors(basis_current, "basis_current")
     tgt = _as_vectors(basis_target, "basis_target")
-    return np.arctan2(dot(f, cross(cur, tgt)), dot(cur, tgt))
+    cr = cross(cur, tgt)
+    return np.arctan2(np.copysign(np.sqrt(dot(cr, cr)), dot(f, cr)), dot(cur, tgt))
 
 
 def _rotator_cs(cos2: np.ndarray, sin2: np.ndarray) -> np.ndarray:

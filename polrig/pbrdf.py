@@ -53,7 +53,6 @@ from typing import NamedTuple
 import numpy as np
 
 from polrig import frames as _fr
-from polrig import mueller as _mu
 
 DISTRIBUTIONS = ("ggx", "beckmann")
 COMPONENTS = ("specular", "diffuse")
@@ -142,9 +141,11 @@ def _fresnel_rs_rp(cos_i: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray, np.n
 
 def _fresnel_reflection_abcs(cos_i, eta) -> tuple[np.ndarray, ...]:
     """Elements ``(a, b, c, s)`` of the Fresnel reflection Mueller matrix
-    ``[[a, b, 0, 0], [b, a, 0, 0], [0, 0, c, -s], [0, 0, s, c]]`` (s/p bases) for real ``eta``;
-    real arithmetic, total internal reflection pixels via
-    :func:`polrig.mueller.specular_reflection` (complex amplitudes)."""
+    ``[[a, b, 0, 0], [b, a, 0, 0], [0, 0, c, -s], [0, 0, s, c]]`` (s/p bases) for real ``eta``,
+    with Mitsuba 3's ``mueller::specular_reflection`` layout: ``c + i s = r_p conj(r_s)``
+    (phase ``delta = arg r_p - arg r_s``). Real arithmetic; under total internal reflection
+    (``eta < 1``) the amplitudes are complex with ``cos_t = -i sqrt(sin^2/eta^2 - 1)``, the
+    branch that reproduces Mitsuba's sign of the retardance."""
     ci = np.asarray(cos_i, dtype=np.float64)
     rs, rp, tir = _fresnel_rs_rp(ci, eta)
     Rs, Rp = rs * rs, rp * rp
@@ -153,18 +154,23 @@ def _fresnel_reflection_abcs(cos_i, eta) -> tuple[np.ndarray, ...]:
     if np.any(tir):
         shape = c.shape
         tir = np.broadcast_to(tir, shape)
-        m = _mu.specular_reflection(np.broadcast_to(ci, shape)[tir],
-                                    np.broadcast_to(np.asarray(eta, dtype=np.float64), shape)[tir] + 0j)
+        cit = np.clip(np.broadcast_to(ci, shape)[tir], 0.0, 1.0)
+        et = np.broadcast_to(np.asarray(eta, dtype=np.float64), shape)[tir]
+        ct = -1j * np.sqrt((1.0 - cit * cit) / (et * et) - 1.0)
+        rs_c = (cit - et * ct) / (cit + et * ct)
+        rp_c = (et * cit - ct) / (et * cit + ct)
+        prod = rp_c * np.conj(rs_c)
         a, b, c = (np.array(np.broadcast_to(x, shape)) for x in (a, b, c))
-        a[tir], b[tir], c[tir], s[tir] = m[:, 0, 0], m[:, 0, 1], m[:, 2, 2], m[:, 3, 2]
+        Rs_c, Rp_c = np.abs(rs_c) ** 2, np.abs(rp_c) ** 2
+        a[tir], b[tir], c[tir], s[tir] = 0.5 * (Rs_c + Rp_c), 0.5 * (Rs_c - Rp_c), prod.real, prod.imag
     return a, b, c, s
 
 
 def fresnel_reflection_sp(cos_i, eta) -> np.ndarray:
     """Fresnel reflection Mueller matrix ``(..., 4, 4)`` in the s/p bases for a real relative
-    index ``eta``: the same matrix as :func:`polrig.mueller.specular_reflection` (Mitsuba's
-    ``mueller::specular_reflection``), computed in real arithmetic (total internal reflection,
-    ``eta < 1``, is delegated to the complex version)."""
+    index ``eta``, equal to Mitsuba 3's ``mueller::specular_reflection`` (also under total
+    internal reflection, ``eta < 1``, where the retardance elements ``m23 = -m32`` appear).
+    Same as :func:`polrig.mueller.specular_reflection` for real amplitudes (``eta > 1``)."""
     a, b, c, s = _fresnel_reflection_abcs(cos_i, eta)
     out = np.zeros(a.shape + (4, 4))
     out[..., 0, 0] = out[..., 1, 1] = a
