@@ -1,0 +1,484 @@
+"""Capture orchestration over turntable poses: plan, acquire, write, process. No printing.
+
+Used by ``polrig capture`` / ``polrig reconstruct`` and the GUI alike. Progress is reported
+through a callback (:class:`Progress` events); pause and stop come in through
+:class:`CaptureControl` (``threading.Event`` s). Files go through :mod:`polrig.session`
+(atomic, checksummed, raw frames first). Angles in degrees, exposures in microseconds,
+conventions as in ``docs/conventions.md``.
+
+Per pose the reference mode (issue 5): turn the turntable, grab dark frames with the light
+off (if asked), then for each polarizer state move the stage (waiting for the move to end)
+and grab ``K`` frames at each bracket exposure; every raw frame is written to the session as
+soon as it arrives. Processing then reads the raw frames back from the session (the same
+code path as ``polrig reconstruct``), averages and HDR-merges them, demosaics, solves the
+3x3 linear Mueller block per pixel (:mod:`polrig.reference`) and writes the Mueller EXR with
+its uncertainty and mask planes (see :mod:`polrig.processing`).
+
+Device faults: a grab that times out is retried (``grab_retries`` times, a timeout loses no
+data); a stage or turntable move that times out or faults is retried once after re-homing
+(homing is the documented recovery of the ELL14/K10CR1 stages and loses no data); any other
+device error, a full disk or a stop request ends the session cleanly: the capture in
+progress is marked ``failed`` (device error, disk full) or left ``pending`` (Ctrl-C, stop),
+files it wrote are either recorded with checksums or removed, and the session is
+``interrupted`` with the reason. ``resume`` re-does every capture that is not complete.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import threading
+from typing import Any, Callable
+
+import numpy as np
+
+from polrig.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout
+from polrig.hal import Frame
+from polrig.rawio import encode_mosaic
+from polrig.session import (COMPLETE, FAILED, INTERRUPTED, PENDING, RUNNING, SESSION_COMPLETE,
+                            Session, is_disk_full)
+
+MODES = ("reference", "single-shot")
+DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
+RAW_SUFFIX = ".png"
+
+
+# -- parsing command-line style specs ------------------------------------------------------
+def parse_pose_spec(spec: str) -> tuple[float, ...]:
+    """Turntable poses in degrees from ``"0,30,60"`` (a list) or ``"START:STOP:STEP"``
+    (a range, STOP exclusive like Python's ``range``: ``"0:360:90"`` is 0, 90, 180, 270).
+
+    Raises :class:`ConfigError` naming the spec for anything else (empty, non-numeric,
+    non-finite, zero step, a range that is empty).
+    """
+    text = str(spec).strip()
+    bad = f"invalid pose spec {spec!r}"
+    if not text:
+        raise ConfigError(f"{bad}: give a list like 0,30,60 or a range START:STOP:STEP")
+    if ":" in text:
+        parts = text.split(":")
+        if len(parts) != 3:
+            raise ConfigError(f"{bad}: a range is START:STOP:STEP (STOP exclusive), e.g. 0:360:30")
+        start, stop, step = (_number(p, bad) for p in parts)
+        if step == 0:
+            raise ConfigError(f"{bad}: STEP must not be 0")
+        count = math.ceil((stop - start) / step - 1e-9)
+        if count <= 0:
+            raise ConfigError(f"{bad}: the range is empty (STOP is exclusive)")
+        if count > 100000:
+            raise ConfigError(f"{bad}: {count} poses is too many")
+        return tuple(round(start + i * step, 9) for i in range(count))
+    return tuple(_number(p, bad) for p in text.split(","))
+
+
+def _number(text: str, bad: str) -> float:
+    try:
+        v = float(text.strip())
+    except ValueError:
+        raise ConfigError(f"{bad}: {text.strip()!r} is not a number") from None
+    if not math.isfinite(v):
+        raise ConfigError(f"{bad}: {text.strip()!r} is not a finite angle")
+    return v
+
+
+def parse_float_list(spec: str, name: str, *, positive: bool = False) -> tuple[float, ...]:
+    """``"0,45,90"`` -> floats; :class:`ConfigError` naming the option ``name`` otherwise."""
+    bad = f"invalid {name} {spec!r}"
+    values = tuple(_number(p, bad) for p in str(spec).split(","))
+    if positive and any(v <= 0 for v in values):
+        raise ConfigError(f"{bad}: values must be > 0")
+    return values
+
+
+# -- the plan -------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class CapturePlan:
+    """What a session acquires at every pose.
+
+    ``exposures_us`` empty means "the camera's current exposure"; more than one is an
+    exposure bracket merged to HDR (first entry = reference exposure of the result).
+    ``dark_frames`` per exposure, light off, per pose (0 = subtract the camera's black level
+    only). ``demosaic`` is the method used for processing (``superpixel`` by default: each
+    Mueller pixel then uses four physically measured analyzer values and no interpolated
+    ones, so the uncertainty propagated from the noise model is exact; interpolating methods
+    correlate neighbouring pixels and mix their Mueller matrices at edges).
+    """
+
+    poses_deg: tuple[float, ...]
+    mode: str = "reference"
+    states_deg: tuple[float, ...] = DEFAULT_STATES_DEG
+    frames_per_state: int = 1
+    exposures_us: tuple[float, ...] = ()
+    dark_frames: int = 0
+    demosaic: str = "superpixel"
+    grab_retries: int = 3
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if not self.poses_deg:
+            raise ConfigError("invalid pose spec: no poses")
+        if self.frames_per_state < 1:
+            raise ConfigError(f"--frames must be >= 1, got {self.frames_per_state}")
+        if self.dark_frames < 0:
+            raise ConfigError(f"--dark-frames must be >= 0, got {self.dark_frames}")
+        if any(not (e > 0 and math.isfinite(e)) for e in self.exposures_us):
+            raise ConfigError(f"--exposure values must be > 0 microseconds, got {self.exposures_us}")
+        if self.mode == "reference" and len(self.states_deg) < 3:
+            raise ConfigError(f"--states: the reference method needs at least 3 polarizer "
+                              f"states, got {len(self.states_deg)}")
+        object.__setattr__(self, "poses_deg", tuple(float(p) for p in self.poses_deg))
+        object.__setattr__(self, "states_deg", tuple(float(s) for s in self.states_deg))
+        object.__setattr__(self, "exposures_us", tuple(float(e) for e in self.exposures_us))
+
+    def to_json(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        for k in ("poses_deg", "states_deg", "exposures_us"):
+            d[k] = list(d[k])
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "CapturePlan":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in fields}
+        return cls(**kw)
+
+    def frames_per_pose(self) -> int:
+        n_exp = max(1, len(self.exposures_us))
+        n_states = len(self.states_deg) if self.mode == "reference" else 1
+        return n_exp * (n_states * self.frames_per_state + self.dark_frames)
+
+    def acquired_states_deg(self) -> tuple[float, ...]:
+        """Stage angles visited per pose (single-shot uses only the first state)."""
+        return self.states_deg if self.mode == "reference" else self.states_deg[:1]
+
+
+def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
+                  n_colours: int) -> int:
+    """Upper estimate of the disk space ``n_poses`` captures of ``plan`` take: 16-bit raw
+    frames (+ sidecars) and float32 EXRs of Mueller, sigma and mask (result and truth) at
+    full resolution (an upper bound for every demosaic method)."""
+    raw = plan.frames_per_pose() * (2 * width * height + 4096)
+    exr = 2 * n_colours * (9 + 9 + 1) * 4 * width * height + 65536
+    return int(n_poses * (raw + exr) * 1.05) + (1 << 20)
+
+
+# -- progress and control ---------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """One progress event. ``kind``: ``"frame"`` (a raw frame written), ``"capture-start"``,
+    ``"capture-done"`` (``score`` set on the simulated rig), ``"capture-failed"``,
+    ``"retry"``, ``"session-done"``. ``step``/``total`` count raw frames of the session."""
+
+    kind: str
+    capture_index: int
+    n_captures: int
+    step: int
+    total: int
+    pose_deg: float | None = None
+    message: str = ""
+    score: dict[str, Any] | None = None
+
+
+ProgressCallback = Callable[[Progress], None]
+
+
+@dataclasses.dataclass
+class CaptureControl:
+    """Pause/stop requests from another thread (the GUI). Checked between frames."""
+
+    pause: threading.Event = dataclasses.field(default_factory=threading.Event)
+    stop: threading.Event = dataclasses.field(default_factory=threading.Event)
+    poll_s: float = 0.05
+
+    def checkpoint(self) -> None:
+        """Block while paused; raise :class:`StopRequested` when stop is set."""
+        while self.pause.is_set() and not self.stop.is_set():
+            self.stop.wait(self.poll_s)
+        if self.stop.is_set():
+            raise StopRequested("stopped by the operator")
+
+
+class StopRequested(Exception):
+    """Raised inside the capture loop when :attr:`CaptureControl.stop` is set."""
+
+
+@dataclasses.dataclass
+class SessionResult:
+    """How a run ended. ``status`` is the session status; ``reason`` why it stopped early."""
+
+    status: str
+    completed: list[int]
+    failed: list[int]
+    reason: str | None = None
+    scores: dict[int, dict[str, Any]] = dataclasses.field(default_factory=dict)
+
+
+# -- device helpers -------------------------------------------------------------------------
+def grab_with_retry(camera, retries: int, on_retry: Callable[[str], None] | None = None) -> Frame:
+    """``camera.grab()``; a :class:`DeviceTimeout` is retried up to ``retries`` times (a
+    timed-out software-triggered grab delivered nothing, so grabbing again loses nothing)."""
+    for attempt in range(retries + 1):
+        try:
+            return camera.grab()
+        except DeviceTimeout as exc:
+            if attempt == retries:
+                raise DeviceTimeout(f"grab timed out {retries + 1} times: {exc}") from exc
+            if on_retry:
+                on_retry(f"camera grab timed out ({exc}); retry {attempt + 1}/{retries}")
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def move_with_rehome(stage, angle_deg: float, what: str,
+                     on_retry: Callable[[str], None] | None = None) -> None:
+    """Move ``stage`` to ``angle_deg`` and wait. On a timeout or a device fault, home the
+    stage and try once more; a second failure is raised. Disconnections are not retried."""
+    try:
+        stage.move_to(angle_deg, wait=True)
+        return
+    except DeviceDisconnected:
+        raise
+    except (DeviceTimeout, DeviceFault) as exc:
+        if on_retry:
+            on_retry(f"{what} move to {angle_deg:g} deg failed ({exc}); re-homing and retrying once")
+    stage.home()
+    stage.move_to(angle_deg, wait=True)
+
+
+# -- the session run ---
+def frame_geometry(rig) -> tuple[int, int, int]:
+    """``(width, height, n_colours)`` of the rig camera's raw frames."""
+    from polrig.analyzer import resolve_layout
+
+    width, height = rig.camera.roi[:2]
+    return int(width), int(height), resolve_layout(rig.camera.layout).n_colours
+
+
+def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
+                   command_line: list[str] | None = None, write_hook=None) -> Session:
+    """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked)."""
+    width, height, colours = frame_geometry(rig)
+    need = planned_bytes(plan, len(plan.poses_deg), width, height, colours)
+    return Session.create(out, plan=plan.to_json(), rig=describe_rig(rig),
+                          calibration_id=calibration_id, command_line=command_line,
+                          required_bytes=need, write_hook=write_hook)
+
+
+def check_resume_space(session: Session, rig, n_captures: int) -> None:
+    """Check the free disk space for ``n_captures`` more captures of ``session``."""
+    from polrig.session import check_free_space
+
+    width, height, colours = frame_geometry(rig)
+    plan = CapturePlan.from_json(session.plan)
+    check_free_space(session.root, planned_bytes(plan, n_captures, width, height, colours))
+    session.log("resumed", remaining=n_captures)
+
+
+# -- the session run (acquisition) ------------------------------------------------------------------------
+def describe_rig(rig) -> dict[str, Any]:
+    """What the manifest records about the rig: its config and the devices' identities."""
+    out: dict[str, Any] = {"simulated": getattr(rig, "truth", None) is not None}
+    cfg = getattr(rig, "config", None)
+    if cfg is not None:
+        out["config"] = _jsonable(cfg)
+    devices = {}
+    for name in ("camera", "stage", "turntable", "light"):
+        dev = getattr(rig, name, None)
+        if dev is None:
+            continue
+        try:
+            devices[name] = _jsonable(dataclasses.asdict(dev.info()))
+        except Exception as exc:  # a device that cannot describe itself is still usable
+            devices[name] = {"error": str(exc)}
+    out["devices"] = devices
+    truth = getattr(rig, "truth", None)
+    if truth is not None and hasattr(truth, "rig_parameters"):
+        try:
+            out["sim_parameters"] = _jsonable(truth.rig_parameters())
+        except Exception as exc:
+            out["sim_parameters"] = {"error": str(exc)}
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    """A JSON-compatible copy of ``obj`` (arrays to lists, dataclasses to dicts, paths to str)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(dataclasses.asdict(obj))
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist()) if obj.size <= 64 else f"<array {obj.shape} {obj.dtype}>"
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)
+
+
+def raw_relpath(folder: str, state_index: int, state_deg: float, exposure_index: int,
+                frame_index: int) -> str:
+    return (f"{folder}/raw/s{state_index:02d}_{state_deg:05.1f}deg_e{exposure_index}"
+            f"_f{frame_index:03d}{RAW_SUFFIX}")
+
+
+def dark_relpath(folder: str, exposure_index: int, frame_index: int) -> str:
+    return f"{folder}/dark/e{exposure_index}_f{frame_index:03d}{RAW_SUFFIX}"
+
+
+def _frame_bytes(frame: Frame) -> tuple[bytes, bytes]:
+    image = encode_mosaic(frame.raw, RAW_SUFFIX)
+    meta = json.dumps(frame.meta.to_json(), indent=1, sort_keys=True).encode("utf-8")
+    return image, meta
+
+
+def run_session(rig, session: Session, *, processor=None,
+                progress: ProgressCallback | None = None,
+                control: CaptureControl | None = None) -> SessionResult:
+    """Acquire (and process) every capture of ``session`` that is not complete yet.
+
+    ``processor`` (normally :func:`polrig.processing.make_processor`'s result) has
+    ``after_acquire(session, index, rig)`` (run while the rig is still at the pose: the
+    simulated rig's ground truth) and ``process(session, index) -> score dict or None``
+    (turns the capture's raw files into results).
+    Returns how the run ended; raises ``KeyboardInterrupt`` after leaving the session
+    consistent when interrupted by Ctrl-C.
+    """
+    plan = CapturePlan.from_json(session.plan)
+    control = control or CaptureControl()
+    todo = session.next_pending()
+    n = len(session.captures)
+    total = len(todo) * plan.frames_per_pose()
+    step = 0
+    result = SessionResult(status=RUNNING, completed=[c["index"] for c in session.captures
+                                                      if c["status"] == COMPLETE], failed=[])
+
+    def emit(kind: str, index: int, message: str = "", score=None) -> None:
+        if progress:
+            progress(Progress(kind, index, n, step, total, session.capture(index)["pose_deg"],
+                              message, score))
+
+    session.set_status(RUNNING)
+    if todo:
+        try:
+            _prepare_rig(rig, plan)
+        except DeviceError as exc:
+            session.set_status(INTERRUPTED, f"rig preparation failed: {exc}")
+            return SessionResult(INTERRUPTED, result.completed, [], str(exc))
+    for index in todo:
+        try:
+            session.restart_capture(index)
+            emit("capture-start", index)
+
+            def frame_done(message: str = "") -> None:
+                nonlocal step
+                step += 1
+                emit("frame", index, message)
+
+            _acquire_capture(rig, session, plan, index, control, frame_done,
+                             lambda msg: emit("retry", index, msg))
+            score = None
+            if processor is not None:
+                processor.after_acquire(session, index, rig)  # truth while at this pose
+                control.checkpoint()
+                score = processor.process(session, index)
+            session.complete_capture(index, score)
+            result.completed.append(index)
+            if score is not None:
+                result.scores[index] = score
+            emit("capture-done", index, score=score)
+        except (KeyboardInterrupt, StopRequested) as exc:
+            reason = ("interrupted by the operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt)
+                      else "stopped by the operator")
+            _stop_cleanly(session, index, reason, capture_status=PENDING)
+            result.status, result.reason = INTERRUPTED, reason
+            emit("capture-failed", index, reason)
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            return result
+        except (DeviceError, OSError) as exc:
+            if isinstance(exc, OSError) and not is_disk_full(exc):
+                raise
+            kind = "disk full" if is_disk_full(exc) else type(exc).__name__
+            reason = f"{kind}: {exc}"
+            _stop_cleanly(session, index, reason, capture_status=FAILED)
+            result.status, result.reason = INTERRUPTED, reason
+            result.failed.append(index)
+            emit("capture-failed", index, reason)
+            return result
+    session.set_status(SESSION_COMPLETE)
+    result.status = SESSION_COMPLETE
+    emit("session-done", todo[-1] if todo else 0)
+    return result
+
+
+def _stop_cleanly(session: Session, index: int, reason: str, *, capture_status: str) -> None:
+    """Leave the session consistent after a stop: unrecorded files of the capture removed,
+    its status set, session ``interrupted`` with ``reason``. Saving may itself fail (a full
+    disk): the manifest on disk then still is the last consistent one, which is fine."""
+    try:
+        session.discard_unrecorded(index)
+    except OSError:
+        pass
+    cap = session.capture(index)
+    if capture_status == FAILED:
+        session.fail_capture(index, reason, save=False)
+    else:
+        cap.update(status=PENDING, reason=reason)
+    try:
+        session.set_status(INTERRUPTED, reason)
+    except OSError:
+        pass
+
+
+def _prepare_rig(rig, plan: CapturePlan) -> None:
+    cam = rig.camera
+    if hasattr(cam, "set_trigger"):
+        cam.set_trigger("software")
+    rig.light.set_on(True)
+    rig.stage.home()
+
+
+def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
+                     control: CaptureControl, frame_done: Callable[[str], None],
+                     on_retry: Callable[[str], None]) -> None:
+    """Turn to the pose, grab and write every raw frame of capture ``index``."""
+    cap = session.capture(index)
+    folder = cap["name"]
+    control.checkpoint()
+    move_with_rehome(rig.turntable, cap["pose_deg"], "turntable", on_retry)
+    exposures = plan.exposures_us or (float(rig.camera.exposure_us),)
+    if plan.dark_frames:
+        rig.light.set_on(False)
+        try:
+            for e, exposure_us in enumerate(exposures):
+                rig.camera.set_exposure_us(exposure_us)
+                for k in range(plan.dark_frames):
+                    control.checkpoint()
+                    frame = grab_with_retry(rig.camera, plan.grab_retries, on_retry)
+                    image, meta = _frame_bytes(frame)
+                    session.add_file(index, "dark", dark_relpath(folder, e, k), image,
+                                     sidecar=meta, exposure_us=exposure_us, exposure_index=e,
+                                     frame=k)
+                    frame_done()
+        finally:
+            rig.light.set_on(True)
+    for j, state_deg in enumerate(plan.acquired_states_deg()):
+        control.checkpoint()
+        move_with_rehome(rig.stage, state_deg, "polarizer stage", on_retry)
+        for e, exposure_us in enumerate(exposures):
+            rig.camera.set_exposure_us(exposure_us)
+            for k in range(plan.frames_per_state):
+                control.checkpoint()
+                frame = grab_with_retry(rig.camera, plan.grab_retries, on_retry)
+                image, meta = _frame_bytes(frame)
+                session.add_file(index, "raw", raw_relpath(folder, j, state_deg, e, k), image,
+                                 sidecar=meta, state_index=j, state_deg=state_deg,
+                                 exposure_us=exposure_us, exposure_index=e, frame=k)
+                frame_done()
+    if len(exposures) > 1:
+        rig.camera.set_exposure_us(exposures[0])

@@ -1,0 +1,178 @@
+"""``polrig capture``: reference (or single-shot) captures over turntable poses into a session.
+
+Thin shell over :mod:`polrig.capture` (acquisition), :mod:`polrig.processing` (results) and
+:mod:`polrig.session` (files). Bad input (pose spec, states, output folder, config) is
+rejected before any device is opened or any file is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+from polrig.errors import ConfigError
+
+POSES_HELP = ("turntable poses in degrees: a list 0,30,60 or a range START:STOP:STEP with STOP "
+              "exclusive (0:360:90 = 0, 90, 180, 270)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "capture", help="capture Mueller images over turntable poses into a session folder",
+        description="Capture over turntable poses into a session folder (simulated rig unless "
+                    "--config names real hardware). Every raw frame is kept; each pose gets a "
+                    "Mueller EXR with uncertainty and mask planes. " + POSES_HELP + ".")
+    p.add_argument("--poses", help=POSES_HELP + " (required unless --resume)")
+    p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
+                   help="reference: N polarizer states per pose (default); single-shot: the "
+                        "trained network")
+    p.add_argument("--states", help="polarizer stage angles in degrees (default 0,45,90,135; "
+                                    "at least 3 non-collinear states for the reference method)")
+    p.add_argument("--frames", type=int, default=None, help="frames averaged per state (default 1)")
+    p.add_argument("--exposure", help="exposure time(s) in microseconds; several (comma "
+                                      "separated) form an HDR bracket, the first is the "
+                                      "reference exposure (default: the camera's current one)")
+    p.add_argument("--dark-frames", type=int, default=None,
+                   help="dark frames (light off) per pose and exposure (default 0: subtract "
+                        "the camera's black level only)")
+    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+                   help="demosaic method for processing (default superpixel: no interpolated "
+                        "values, exact propagated uncertainty)")
+    p.add_argument("--config", help="rig configuration TOML (default: the simulated rig)")
+    p.add_argument("--calibration", help="calibration set folder (default: nominal ideal "
+                                         "polarizer and analyzer, calibration id 'nominal')")
+    p.add_argument("--out", required=True, help="session folder (must be new or empty)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the session in --out where it stopped")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def build_plan(args: argparse.Namespace):
+    """The :class:`CapturePlan` the arguments ask for (defaults filled in)."""
+    from polrig.capture import DEFAULT_STATES_DEG, CapturePlan, parse_float_list, parse_pose_spec
+
+    if not args.poses:
+        raise ConfigError("--poses is required (e.g. --poses 0:360:90)")
+    return CapturePlan(
+        poses_deg=parse_pose_spec(args.poses),
+        mode=args.mode or "reference",
+        states_deg=(parse_float_list(args.states, "--states") if args.states
+                    else DEFAULT_STATES_DEG),
+        frames_per_state=1 if args.frames is None else args.frames,
+        exposures_us=(parse_float_list(args.exposure, "--exposure", positive=True)
+                      if args.exposure else ()),
+        dark_frames=0 if args.dark_frames is None else args.dark_frames,
+        demosaic=args.demosaic or "superpixel")
+
+
+def check_resume_args(args: argparse.Namespace, stored) -> None:
+    """On ``--resume`` the plan comes from the manifest; options that contradict it are
+    refused (a resumed session must be the same session)."""
+    from polrig.capture import parse_float_list, parse_pose_spec
+
+    given = {
+        "poses_deg": parse_pose_spec(args.poses) if args.poses else None,
+        "mode": args.mode,
+        "states_deg": parse_float_list(args.states, "--states") if args.states else None,
+        "frames_per_state": args.frames,
+        "exposures_us": (parse_float_list(args.exposure, "--exposure", positive=True)
+                         if args.exposure else None),
+        "dark_frames": args.dark_frames,
+        "demosaic": args.demosaic,
+    }
+    for key, value in given.items():
+        if value is not None and value != getattr(stored, key):
+            raise ConfigError(f"--resume: the session was planned with {key}="
+                              f"{getattr(stored, key)!r}, the command line asks for {value!r}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig import capture, processing
+    from polrig.session import Session
+
+    out = pathlib.Path(args.out)
+    if args.config and not pathlib.Path(args.config).is_file():
+        raise FileNotFoundError(f"--config {args.config}: no such file")
+    if args.resume:
+        if not (out / "session.json").is_file():
+            raise FileNotFoundError(f"--resume: {out} holds no session to resume")
+        session = Session.open(out)
+        plan = capture.CapturePlan.from_json(session.plan)
+        check_resume_args(args, plan)
+        calibration = processing.load_calibration(args.calibration, session=session)
+    else:
+        plan = build_plan(args)
+        if out.exists() and not out.is_dir():
+            raise FileExistsError(f"--out {out}: exists and is not a folder")
+        if out.is_dir() and any(out.iterdir()):
+            raise FileExistsError(f"--out {out}: folder is not empty; pass --resume to continue "
+                                  f"the session in it, or choose a new folder")
+        calibration = processing.load_calibration(args.calibration)
+    processing.check_plan(plan, calibration)  # states conditioning, single-shot model
+
+    from polrig.rig import open_rig
+
+    with open_rig(args.config) as rig:
+        if args.resume:
+            remaining = len(session.next_pending())
+            capture.check_resume_space(session, rig, remaining)
+        else:
+            session = capture.create_session(out, rig, plan, calibration_id=calibration.id,
+                                             command_line=["polrig", *sys.argv[1:]])
+        processor = processing.make_processor(plan, calibration, truth=rig.truth)
+        bar = _ProgressPrinter(enabled=not args.no_progress)
+        try:
+            result = capture.run_session(rig, session, processor=processor,
+                                         progress=bar)
+        finally:
+            bar.close()
+    if result.status != "complete":
+        print(f"polrig: error: capture stopped ({result.reason}); completed captures are "
+              f"intact, continue with: polrig capture --out {out} --resume", file=sys.stderr)
+        return 1
+    print(f"session complete: {len(result.completed)} captures in {out}")
+    return 0
+
+
+class _ProgressPrinter:
+    """tqdm bar on stderr (frames, with ETA) and one score line per capture on stdout."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.bar = None
+
+    def __call__(self, ev) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None and self.enabled and ev.total:
+            self.bar = tqdm(total=ev.total, unit="frame", file=sys.stderr, dynamic_ncols=True,
+                            desc="capture")
+        if ev.kind == "frame" and self.bar is not None:
+            self.bar.update(ev.step - self.bar.n)
+            self.bar.set_postfix_str(f"pose {ev.pose_deg:g} deg", refresh=False)
+        elif ev.kind == "retry":
+            self._write(f"retry: {ev.message}", sys.stderr)
+        elif ev.kind == "capture-done":
+            line = f"capture {ev.capture_index + 1}/{ev.n_captures} pose {ev.pose_deg:g} deg: done"
+            if ev.score:
+                from polrig.processing import format_score
+
+                line += " | " + format_score(ev.score)
+            self._write(line, sys.stdout)
+        elif ev.kind == "capture-failed":
+            self._write(f"capture {ev.capture_index + 1}/{ev.n_captures} pose "
+                        f"{ev.pose_deg:g} deg: {ev.message}", sys.stderr)
+
+    def _write(self, line: str, stream) -> None:
+        if self.bar is not None:
+            from tqdm import tqdm
+
+            tqdm.write(line, file=stream)
+        else:
+            print(line, file=stream, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
