@@ -24,6 +24,7 @@ import os
 import select
 import threading
 import time
+import traceback
 import tty
 
 
@@ -179,10 +180,13 @@ class PtyEmulator:
                 time.sleep(0.005)
             now = time.monotonic()
             with self.lock:
-                if data:
-                    self.received += data
-                    self.feed(data, now)
-                self.tick(now)
+                try:
+                    if data:
+                        self.received += data
+                        self.feed(data, now)
+                    self.tick(now)
+                except Exception:  # an emulator bug must show, not silently kill the device
+                    traceback.print_exc()
 
 
 def run_cli(factory, description: str, argv: list[str] | None = None) -> None:

@@ -1,0 +1,243 @@
+"""Emulator of a GRBL 1.1 controller driving a rotary axis, on a pseudo-terminal.
+
+Protocol: grbl/grbl ``doc/markdown/interface.md`` and ``commands.md`` (GRBL 1.1): lines of
+G-code or ``$`` commands answered ``ok`` or ``error:N``; real-time single bytes ``?``
+(status report ``<State|MPos:x,y,z,a|FS:feed,speed>``), ``!`` (feed hold), ``~`` (cycle
+start / resume), ``0x18`` (soft reset; banner ``Grbl 1.1h ['$' for help]``). ``$H`` homes
+(``ok`` when the cycle is done), ``$X`` unlocks, ``$I`` prints build info, ``ALARM:N`` is
+pushed when an alarm fires. With homing enabled (``$22=1``) the controller starts locked in
+the Alarm state, as real GRBL does. Moves queue in a planner (G0 at the axis maximum rate,
+G1 at the F feed rate, units per minute), run one after another; ``G90``/``G91`` modes.
+
+Faults: see :mod:`drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
+(``ALARM:1``, motion aborted, position lost: re-home).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+from drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
+
+BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
+AXES = "XYZA"
+_WORD = re.compile(r"([A-Z])([-+]?[0-9]*\.?[0-9]*)")
+
+
+class GrblEmulator(PtyEmulator):
+    name = "grbl"
+
+    def __init__(self, *, link=None, speed_factor: float = 1.0, homing_enabled: bool = True,
+                 max_rate_per_min: float = 3600.0, homing_s: float = 1.0):
+        super().__init__(link=link, speed_factor=speed_factor)
+        self.homing_enabled = homing_enabled
+        self.max_rate = max_rate_per_min  # axis units per minute ($110..$113)
+        self.homing_s = homing_s
+        self.pos = [0.0] * len(AXES)
+        self.state = "Alarm" if homing_enabled else "Idle"
+        self.absolute = True
+        self.feed_rate = 0.0
+        self.queue: list[tuple[list[float], float]] = []  # (target, rate units/min)
+        self.move: list[LinearMove] | None = None
+        self.move_start_pos: list[float] | None = None
+        self.homing_until = 0.0
+        self._fails = False
+        self._line = bytearray()
+
+    def start(self):
+        super().start()
+        self._banner()
+        return self
+
+    def _banner(self) -> None:
+        self.send(BANNER)
+        if self.state == "Alarm":
+            self.send(b"[MSG:'$H'|'$X' to unlock]\r\n")
+
+    def axis_position(self, axis: str = "A") -> float:
+        with self.lock:
+            self.tick(time.monotonic())
+            return self.pos[AXES.index(axis)]
+
+    def garble(self, data: bytes) -> bytes:
+        return bytes(b | 0x80 for b in data[:-2]) + data[-2:]
+
+    # -- motion ----------------------------------------------------------------------------
+    def _begin_next(self, now: float) -> None:
+        if self.move is not None or not self.queue or self.state not in ("Idle", "Run"):
+            if self.move is None and not self.queue and self.state == "Run":
+                self.state = "Idle"
+            return
+        target, rate = self.queue.pop(0)
+        dist = max(abs(t - p) for t, p in zip(target, self.pos)) or 0.0
+        speed = rate / 60.0 * self.speed_factor
+        dur = dist / speed if speed > 0 else 0.0
+        self.move = [LinearMove(p, t, abs(t - p) / dur if dur else 1.0, now)
+                     for p, t in zip(self.pos, target)]
+        self.state = "Run"
+        self._fails = self.take_fault("error_mid_move")
+
+    def tick(self, now: float) -> None:
+        if self.state == "Home":
+            if now >= self.homing_until:
+                self.pos = [0.0] * len(AXES)
+                self.state = "Idle"
+                self.send(b"ok\r\n")
+            return
+        if self.move is not None and self.state == "Run":
+            mid = max(m.midpoint_time for m in self.move)
+            if self._fails and now >= mid:
+                self.pos = [m.position(now) for m in self.move]
+                self._alarm(1)
+                return
+            self.pos = [m.position(now) for m in self.move]
+            if all(m.done(now) for m in self.move):
+                self.move = None
+                self._begin_next(now)
+                if self.move is None:
+                    self.state = "Idle"
+        elif self.state in ("Idle", "Run"):
+            self._begin_next(now)
+
+    def _alarm(self, code: int) -> None:
+        self.move, self.queue, self._fails = None, [], False
+        self.state = "Alarm"
+        self.send(f"ALARM:{code}\r\n".encode())
+
+    def on_disconnect(self) -> None:
+        # GRBL boards are USB-powered through the Arduino: unplugging resets the controller.
+        self.tick(time.monotonic())
+        self.move, self.queue = None, []
+        self.state = "Alarm" if self.homing_enabled else "Idle"
+
+    def on_reconnect(self) -> None:
+        self._banner()
+
+    # -- input -----------------------------------------------------------------------------
+    def feed(self, data: bytes, now: float) -> None:
+        for b in data:
+            if b == ord("?"):
+                self._report(now)
+            elif b == ord("!"):
+                if self.state == "Run" and self.move is not None:
+                    self.pos = [m.position(now) for m in self.move]
+                    rest = [m.target for m in self.move]
+                    self.queue.insert(0, (rest, self.max_rate))
+                    self.move = None
+                    self.state = "Hold:0"
+            elif b == ord("~"):
+                if self.state.startswith("Hold"):
+                    self.state = "Idle"
+                    self._begin_next(now)
+            elif b == 0x18:
+                self._soft_reset(now)
+            elif b in (ord("\n"), ord("\r")):
+                line, self._line = bytes(self._line), bytearray()
+                if line.strip():
+                    self._execute(line.decode("ascii", "replace").strip().upper(), now)
+            else:
+                self._line.append(b)
+
+    def _report(self, now: float) -> None:
+        self.tick(now)
+        mpos = ",".join(f"{p:.3f}" for p in self.pos)
+        self.send(f"<{self.state}|MPos:{mpos}|FS:{self.feed_rate:.0f},0>\r\n".encode())
+
+    def _soft_reset(self, now: float) -> None:
+        self._line = bytearray()
+        if self.state == "Run" or self.state == "Home":
+            self.pos = [m.position(now) for m in self.move] if self.move else self.pos
+            self._alarm(3 if self.state == "Run" else 6)
+        else:
+            self.move, self.queue = None, []
+            if self.state != "Alarm":
+                self.state = "Idle"
+        self._banner()
+
+    def _ok(self) -> None:
+        self.send(b"ok\r\n")
+
+    def _error(self, code: int) -> None:
+        self.send(f"error:{code}\r\n".encode())
+
+    def _execute(self, line: str, now: float) -> None:
+        if line.startswith("$"):
+            cmd = line[1:]
+            if cmd == "X":
+                if self.state == "Alarm":
+                    self.state = "Idle"
+                    self.send(b"[MSG:Caution: Unlocked]\r\n")
+                self._ok()
+            elif cmd == "H":
+                if not self.homing_enabled:
+                    self._error(5)
+                elif self.state not in ("Idle", "Alarm"):
+                    self._error(8)
+                else:
+                    self.state = "Home"
+                    self.homing_until = now + self.homing_s / self.speed_factor
+            elif cmd == "I":
+                self.send(b"[VER:1.1h.20190825:ROTARY]\r\n[OPT:V,15,128]\r\n")
+                self._ok()
+            elif cmd == "":
+                self.send(b"[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]\r\n")
+                self._ok()
+            else:
+                self._error(3)
+            return
+        if self.state == "Alarm":
+            self._error(9)
+            return
+        words = _WORD.findall(line.replace(" ", ""))
+        if "".join(l + n for l, n in words) != line.replace(" ", ""):
+            self._error(1)
+            return
+        target = list(self.queue[-1][0]) if self.queue else (
+            [m.target for m in self.move] if self.move else list(self.pos))
+        motion, has_axis = None, False
+        absolute, feed = self.absolute, self.feed_rate
+        for letter, num in words:
+            try:
+                value = float(num)
+            except ValueError:
+                self._error(2)
+                return
+            if letter == "G":
+                if value in (0, 1):
+                    motion = int(value)
+                elif value == 90:
+                    absolute = True
+                elif value == 91:
+                    absolute = False
+                elif value == 21:
+                    pass
+                else:
+                    self._error(20)
+                    return
+            elif letter == "F":
+                feed = value
+            elif letter in AXES:
+                i = AXES.index(letter)
+                target[i] = value if absolute else target[i] + value
+                has_axis = True
+            else:
+                self._error(20)
+                return
+        if motion == 1 and feed <= 0:
+            self._error(22)
+            return
+        self.absolute, self.feed_rate = absolute, feed
+        if has_axis:
+            self.queue.append((target, self.max_rate if motion in (0, None) else feed))
+            self._begin_next(now)
+        self._ok()
+
+
+def main(argv: list[str] | None = None) -> None:
+    run_cli(GrblEmulator, "Emulated GRBL 1.1 rotary-axis controller on a pseudo-terminal.",
+            argv)
+
+
+if __name__ == "__main__":
+    main()

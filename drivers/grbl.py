@@ -1,0 +1,215 @@
+"""A GRBL 1.1 controller driving the object turntable on one rotary axis (:class:`Turntable`).
+
+Protocol: grbl/grbl ``doc/markdown/interface.md`` and ``doc/markdown/commands.md`` (GRBL
+1.1): G-code lines are answered ``ok`` or ``error:N`` (texts from ``doc/csv``, see
+:mod:`drivers.grbl_codes`); real-time single bytes without newline: ``?`` status report
+``<State|MPos:...|...>``, ``!`` feed hold, ``~`` resume, ``0x18`` soft reset (answered by the
+``Grbl 1.1x ['$' for help]`` banner); ``$H`` homing (``ok`` after the cycle), ``$X`` unlock,
+``$I`` build info; ``ALARM:N`` lines are pushed asynchronously. ``ok`` acknowledges that a
+motion was *planned*, not finished: completion is seen by polling ``?`` until ``Idle``.
+
+The turntable axis letter (default ``A``) and its position in the ``MPos`` list (``axes``,
+default ``"XYZA"``) come from the rig configuration, and ``degrees_per_unit`` converts the
+axis units (GRBL's ``$10x`` steps per unit setting decides what one unit is) to degrees.
+Stopping uses feed hold then soft reset, which GRBL documents as the way to cancel a motion
+without losing position. Angles: degrees, counter-clockwise seen from above
+(``polrig.hal``).
+"""
+
+from __future__ import annotations
+
+import time
+
+from drivers._serial import SerialLink
+from drivers.grbl_codes import ALARMS, ERRORS
+from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
+from polrig.hal import DeviceInfo, Turntable
+
+BAUDRATE = 115200
+SOFT_RESET = b"\x18"
+
+
+class GrblTurntable(Turntable):
+    def __init__(self, port: str, *, axis: str = "A", axes: str = "XYZA",
+                 degrees_per_unit: float = 1.0, rate_per_min: float | None = None,
+                 reply_timeout_s: float = 2.0, poll_s: float = 0.02, kind: str = "turntable"):
+        axis = str(axis).upper()
+        if len(axis) != 1 or axis not in axes:
+            raise ValueError(f"axis {axis!r} is not one of the controller's axes {axes!r}")
+        if not degrees_per_unit or degrees_per_unit != degrees_per_unit:
+            raise ValueError(f"degrees_per_unit must be a non-zero number, got {degrees_per_unit!r}")
+        self.port = port
+        self.axis = axis
+        self.axis_index = axes.index(axis)
+        self.degrees_per_unit = float(degrees_per_unit)
+        self.rate_per_min = rate_per_min
+        self.reply_timeout_s = float(reply_timeout_s)
+        self.poll_s = float(poll_s)
+        self.kind = kind
+        self._link = SerialLink(port, baudrate=BAUDRATE, device=f"grbl {port}")
+        self._info: DeviceInfo | None = None
+        self.state = ""
+
+    # -- life cycle ------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._link.is_open
+
+    def open(self) -> None:
+        self._link.open()
+        try:
+            self._link.discard_input()
+            self._reset()
+            lines = self._command("$I")
+            self._info = DeviceInfo(kind=self.kind, driver="grbl", model="GRBL",
+                                    firmware=self._banner, port=self.port,
+                                    extra={"build": [l for l in lines if l.startswith("[")],
+                                           "axis": self.axis})
+            self.status()
+        except Exception:
+            self._link.close()
+            raise
+
+    def close(self) -> None:
+        self._link.close()
+
+    def info(self) -> DeviceInfo:
+        if self._info is None:
+            raise DeviceFault("device is not open", device=self._link.device)
+        return self._info
+
+    # -- protocol --------------------------------------------------------------------------
+    def _readline(self, timeout_s: float, what: str) -> str:
+        raw = self._link.read_until(b"\n", timeout_s, what=what).rstrip(b"\r")
+        try:
+            return raw.decode("ascii")
+        except UnicodeDecodeError:
+            self._resync()
+            raise ProtocolError(f"garbled {what} {raw!r}", device=self._link.device) from None
+
+    def _resync(self) -> None:
+        time.sleep(0.05)
+        self._link.discard_input()
+
+    def _alarm(self, line: str) -> DeviceFault:
+        code = int(line.split(":", 1)[1]) if line[6:].strip().isdigit() else line[6:]
+        self.state = "Alarm"
+        return DeviceFault("alarm (home the turntable: polrig home turntable)",
+                           device=self._link.device, code=code,
+                           text=ALARMS.get(code, "unknown alarm"))
+
+    def _reset(self) -> None:
+        """Soft reset and wait for the banner (proves a GRBL is at the other end)."""
+        self._link.write(SOFT_RESET)
+        deadline = time.monotonic() + self.reply_timeout_s
+        while True:
+            line = self._readline(max(deadline - time.monotonic(), 0.0), "GRBL banner")
+            if line.startswith("Grbl "):
+                self._banner = line.split("[")[0].strip()
+                return
+            if line.startswith("ALARM:"):
+                self.state = "Alarm"
+
+    def _command(self, line: str, timeout_s: float | None = None) -> list[str]:
+        """Send one line; return the lines before ``ok``; ``error:N``/``ALARM:N`` raise."""
+        self._link.write(line.encode("ascii") + b"\n")
+        deadline = time.monotonic() + (timeout_s or self.reply_timeout_s)
+        out: list[str] = []
+        while True:
+            reply = self._readline(max(deadline - time.monotonic(), 0.0), f"reply to {line!r}")
+            if reply == "ok":
+                return out
+            if reply.startswith("error:"):
+                code_s = reply[6:]
+                code = int(code_s) if code_s.isdigit() else code_s
+                raise DeviceFault(f"{line!r} rejected", device=self._link.device, code=code,
+                                  text=ERRORS.get(code, "unknown error"))
+            if reply.startswith("ALARM:"):
+                raise self._alarm(reply)
+            if reply and not reply.startswith(("<", "[", "Grbl")):
+                self._resync()
+                raise ProtocolError(f"unexpected reply {reply!r} to {line!r}",
+                                    device=self._link.device)
+            out.append(reply)
+
+    def status(self) -> dict:
+        """One ``?`` status report: ``{"state": ..., "mpos": [...], "position_deg": ...}``."""
+        self._link.write(b"?")
+        deadline = time.monotonic() + self.reply_timeout_s
+        while True:
+            line = self._readline(max(deadline - time.monotonic(), 0.0), "status report")
+            if line.startswith("ALARM:"):
+                raise self._alarm(line)
+            if line.startswith("<") and line.endswith(">"):
+                return self._parse_status(line)
+            if line.startswith("<"):
+                self._resync()
+                raise ProtocolError(f"truncated status report {line!r}", device=self._link.device)
+
+    def _parse_status(self, line: str) -> dict:
+        fields = line[1:-1].split("|")
+        state = fields[0]
+        mpos = None
+        for f in fields[1:]:
+            if f.startswith("MPos:"):
+                try:
+                    mpos = [float(v) for v in f[5:].split(",")]
+                except ValueError:
+                    mpos = None
+        if mpos is None or len(mpos) <= self.axis_index:
+            self._resync()
+            raise ProtocolError(f"status report without axis {self.axis}: {line!r}",
+                                device=self._link.device)
+        self.state = state
+        return {"state": state, "mpos": mpos,
+                "position_deg": mpos[self.axis_index] * self.degrees_per_unit}
+
+    # -- Turntable -------------------------------------------------------------------------
+    def position_deg(self) -> float:
+        return self.status()["position_deg"]
+
+    def is_busy(self) -> bool:
+        st = self.status()["state"]
+        if st == "Alarm":
+            raise DeviceFault("controller is in alarm state", device=self._link.device,
+                              code="Alarm", text="locked: home or unlock ($X) first")
+        return st.split(":")[0] in ("Run", "Jog", "Home") or st == "Hold:1"
+
+    def wait(self, timeout_s: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while self.is_busy():
+            if time.monotonic() > deadline:
+                raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
+                                    device=self._link.device)
+            time.sleep(self.poll_s)
+
+    def home(self, timeout_s: float = 60.0) -> None:
+        self._link.discard_input()
+        self._command("$H", timeout_s=timeout_s)
+        self.state = "Idle"
+
+    def unlock(self) -> None:
+        self._command("$X")
+
+    def move_to(self, angle_deg: float, *, wait: bool = True, timeout_s: float = 30.0) -> None:
+        angle_deg = float(angle_deg)
+        if angle_deg != angle_deg or abs(angle_deg) == float("inf"):
+            raise ValueError(f"turntable angle must be finite, got {angle_deg!r}")
+        units = angle_deg / self.degrees_per_unit
+        if self.rate_per_min:
+            line = f"G90 G1 {self.axis}{units:.4f} F{self.rate_per_min:g}"
+        else:
+            line = f"G90 G0 {self.axis}{units:.4f}"
+        self._command(line)
+        if wait:
+            self.wait(timeout_s)
+
+    def stop(self) -> None:
+        """Feed hold, wait for the hold to complete, then soft reset (position kept)."""
+        self._link.write(b"!")
+        deadline = time.monotonic() + self.reply_timeout_s
+        while self.status()["state"] not in ("Hold:0", "Idle", "Alarm"):
+            if time.monotonic() > deadline:
+                raise DeviceTimeout("feed hold did not complete", device=self._link.device)
+            time.sleep(self.poll_s)
+        self._reset()
