@@ -28,8 +28,8 @@ def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 
 class UNetBackbone(nn.Module):
-    """U-Net encoder-decoder. ``forward(x) -> (full-resolution features (B, width, H, W),
-    bottleneck features (B, 4 width, H/8, W/8))``."""
+    """U-Net encoder-decoder with additive skips. ``forward(x) -> (full-resolution features
+    (B, width, H, W), bottleneck features (B, 4 width, H/8, W/8))``."""
 
     def __init__(self, in_channels: int, width: int = 16):
         super().__init__()
@@ -38,8 +38,10 @@ class UNetBackbone(nn.Module):
         self.enc1 = nn.Sequential(conv_bn_relu(in_channels, w, 2), conv_bn_relu(w, w))
         self.enc2 = nn.Sequential(conv_bn_relu(w, 2 * w, 2), conv_bn_relu(2 * w, 2 * w))
         self.enc3 = nn.Sequential(conv_bn_relu(2 * w, 4 * w, 2), conv_bn_relu(4 * w, 4 * w))
-        self.dec2 = conv_bn_relu(6 * w, 2 * w)
-        self.dec1 = conv_bn_relu(3 * w, w)
+        self.lat3 = nn.Conv2d(4 * w, 2 * w, 1)
+        self.dec2 = conv_bn_relu(2 * w, 2 * w)
+        self.lat2 = nn.Conv2d(2 * w, w, 1)
+        self.dec1 = conv_bn_relu(w, w)
         self.full = nn.Sequential(nn.Conv2d(w + in_channels, w, 1), nn.ReLU(inplace=True),
                                   nn.Conv2d(w, w, 1), nn.ReLU(inplace=True))
 
@@ -47,8 +49,8 @@ class UNetBackbone(nn.Module):
         e1 = self.enc1(x)
         e2 = self.enc2(e1)
         e3 = self.enc3(e2)
-        d2 = self.dec2(torch.cat([_up(e3, e2), e2], 1))
-        d1 = self.dec1(torch.cat([_up(d2, e1), e1], 1))
+        d2 = self.dec2(_up(self.lat3(e3), e2) + e2)
+        d1 = self.dec1(_up(self.lat2(d2), e1) + e1)
         full = self.full(torch.cat([_up(d1, x), x], 1))
         return full, e3
 

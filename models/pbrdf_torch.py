@@ -4,6 +4,10 @@ The same math as :mod:`polrig.pbrdf` (the core numpy implementation; ``tests/tes
 checks the two agree to 1e-5 on random inputs), written with torch ops only so that it runs
 inside the training graph and exports to ONNX (no ``atan2``, no complex numbers: basis
 rotations use ``cos 2phi = c^2 - s^2``, ``sin 2phi = 2 c s`` from dot and cross products).
+The rotated matrices are written out in closed form element by element (no batched 3x3
+matmuls, no per-pixel stacks): the vector axis is a parameter, so the same code serves
+matrix-last arrays ``(..., 3)`` and plane-first images ``(B, 3, H, W)``, and the exported graph
+is a short chain of element-wise ops that onnxruntime runs fast.
 
 Conventions (``docs/conventions.md``): vectors are camera-frame unit vectors with the vector
 axis last, ``normal`` points out of the surface, ``wi`` from the surface towards the light,
@@ -31,35 +35,46 @@ import math
 import torch
 
 _EPS = 1e-12
+_DEGENERATE_SQ = 1e-14
 
 
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(-1)
+class _Vec:
+    """Vector helpers along axis ``dim`` (kept with length 1 by reductions)."""
 
+    def __init__(self, dim: int):
+        self.dim = dim
 
-def _normalize(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.sqrt((v * v).sum(-1, keepdim=True) + _EPS)
+    def c(self, v: torch.Tensor, i: int) -> torch.Tensor:
+        return v.narrow(self.dim, i, 1)
 
+    def dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return (a * b).sum(self.dim, keepdim=True)
 
-def _perpendicular_axis(axis: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-    """``axis`` made perpendicular to the unit vector ``k`` and normalised."""
-    return _normalize(axis - _dot(axis, k)[..., None] * k)
+    def cross(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        c = self.c
+        return torch.cat([c(a, 1) * c(b, 2) - c(a, 2) * c(b, 1),
+                          c(a, 2) * c(b, 0) - c(a, 0) * c(b, 2),
+                          c(a, 0) * c(b, 1) - c(a, 1) * c(b, 0)], self.dim)
 
+    def normalize(self, v: torch.Tensor) -> torch.Tensor:
+        return v / torch.sqrt(self.dot(v, v) + _EPS)
 
-def _basis_rotation(k: torch.Tensor, x_from: torch.Tensor, x_to: torch.Tensor) -> torch.Tensor:
-    """Stokes rotator ``R(phi)`` (``(..., 3, 3)``) with ``phi`` the angle from ``x_from`` to
-    ``x_to`` about ``k`` (towards ``y = k x x_from``): ``S_to = R(phi) S_from``."""
-    c = _dot(x_from, x_to)
-    s = _dot(k, torch.cross(x_from, x_to, dim=-1))
-    n2 = c * c + s * s + _EPS
-    c2 = (c * c - s * s) / n2
-    s2 = 2.0 * c * s / n2
-    one, zero = torch.ones_like(c2), torch.zeros_like(c2)
-    return torch.stack([
-        torch.stack([one, zero, zero], -1),
-        torch.stack([zero, c2, s2], -1),
-        torch.stack([zero, -s2, c2], -1),
-    ], -2)
+    def perpendicular(self, axis: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        """``axis`` made perpendicular to the unit vector ``k``, normalised."""
+        return self.normalize(axis - self.dot(axis, k) * k)
+
+    def rotation_2phi(self, k, x_from, x_to) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(cos 2phi, sin 2phi)``, ``phi`` the angle from ``x_from`` to ``x_to`` about ``k``
+        (towards ``y = k x x_from``); ``R(phi) = [[1,0,0],[0,C,S],[0,-S,C]]`` maps Stokes in
+        the ``x_from`` basis to the ``x_to`` basis."""
+        c = self.dot(x_from, x_to)
+        s = self.dot(k, self.cross(x_from, x_to))
+        n2 = c * c + s * s + _EPS
+        return (c * c - s * s) / n2, 2.0 * c * s / n2
+
+    def axis_or(self, raw: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
+        """``normalize(raw)``, or ``fallback`` where ``raw`` is (nearly) zero."""
+        return torch.where(self.dot(raw, raw) < _DEGENERATE_SQ, fallback, self.normalize(raw))
 
 
 def _fresnel_r(cos_i: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -73,95 +88,93 @@ def _fresnel_r(cos_i: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch.Ten
     return rs, rp
 
 
-def _sp_block(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    zero = torch.zeros_like(a)
-    return torch.stack([
-        torch.stack([a, b, zero], -1),
-        torch.stack([b, a, zero], -1),
-        torch.stack([zero, zero, c], -1),
-    ], -2)
-
-
-def fresnel_reflection_block(cos_i: torch.Tensor, eta: float) -> torch.Tensor:
-    """3x3 Fresnel reflection block in s/p bases (``polrig.mueller.specular_reflection``)."""
-    rs, rp = _fresnel_r(cos_i, eta)
-    Rs, Rp = rs * rs, rp * rp
-    return _sp_block(0.5 * (Rs + Rp), 0.5 * (Rs - Rp), rs * rp)
-
-
-def fresnel_transmission_block(cos_i: torch.Tensor, eta: float) -> torch.Tensor:
-    """3x3 Fresnel transmission block in s/p bases (``polrig.mueller.specular_transmission``)."""
-    rs, rp = _fresnel_r(cos_i, eta)
-    Ts, Tp = (1.0 - rs * rs).clamp(0.0, 1.0), (1.0 - rp * rp).clamp(0.0, 1.0)
-    return _sp_block(0.5 * (Ts + Tp), 0.5 * (Ts - Tp), torch.sqrt(Ts * Tp + _EPS) * (Ts * Tp > 0))
-
-
 def ggx_d(cos_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """GGX normal distribution (1/sr) for ``cos_h = n . h``."""
+    """GGX normal distribution (1/sr) at ``cos_h = n . h`` (zero for ``cos_h <= 0``)."""
     a2 = alpha * alpha
     t = cos_h * cos_h * (a2 - 1.0) + 1.0
-    return a2 / (math.pi * t * t + _EPS) * (cos_h > 0)
+    return a2 / (math.pi * t * t + _EPS) * (cos_h > 0).to(cos_h.dtype)
 
 
 def smith_g1(cos_w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """Separable Smith GGX masking for a direction at ``cos_w = n . w``."""
+    """Separable Smith GGX masking ``2 cos / (cos + sqrt(a^2 + (1 - a^2) cos^2))``."""
     a2 = alpha * alpha
     c = cos_w.clamp_min(0.0)
     return 2.0 * c / (c + torch.sqrt(a2 + (1.0 - a2) * c * c) + _EPS)
 
 
+def _blocks9(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: int):
+    """Specular and diffuse blocks as two lists of 9 element tensors (row-major ``m_rc``),
+    each shaped like a dot product of the inputs (vector axis ``dim`` kept, length 1)."""
+    v = _Vec(dim)
+    n, wi, wo = v.normalize(n), v.normalize(wi), v.normalize(wo)
+    cos_i, cos_o = v.dot(n, wi), v.dot(n, wo)
+    visible = ((cos_i > 0) & (cos_o > 0)).to(n.dtype)
+    k_in, k_out = -wi, wo
+    x_in = v.perpendicular(stage_zero_axis, k_in)
+    x_out = v.perpendicular(camera_x_axis, k_out)
+
+    # Specular: Fresnel reflection at the half vector in the plane (wi, wo), s = wi x h.
+    h = v.normalize(wi + wo)
+    s_axis = v.axis_or(v.cross(wi, h), x_in)
+    ci, si = v.rotation_2phi(k_in, x_in, s_axis)
+    co, so = v.rotation_2phi(k_out, s_axis, x_out)
+    rs, rp = _fresnel_r(v.dot(wi, h), eta)
+    scalar = (ggx_d(v.dot(n, h), alpha) * smith_g1(cos_i, alpha) * smith_g1(cos_o, alpha)
+              / (4.0 * cos_o.clamp_min(1e-6))) * visible
+    a = 0.5 * (rs * rs + rp * rp) * scalar
+    b = 0.5 * (rs * rs - rp * rp) * scalar
+    c = rs * rp * scalar
+    spec = [a, b * ci, b * si,
+            co * b, co * a * ci - so * c * si, co * a * si + so * c * ci,
+            -so * b, -so * a * ci - co * c * si, -so * a * si + co * c * ci]
+
+    # Diffuse: rank one, (R_out T_out e0) (e0^T T_in R_in) cos_i / pi.
+    s_in = v.axis_or(v.cross(n, k_in), x_in)
+    s_out = v.axis_or(v.cross(n, k_out), x_out)
+    ci_d, si_d = v.rotation_2phi(k_in, x_in, s_in)
+    co_d, so_d = v.rotation_2phi(k_out, s_out, x_out)
+
+    def transmission_ab(cos_t):
+        ts_r, tp_r = _fresnel_r(cos_t, eta)
+        ts, tp = (1.0 - ts_r * ts_r).clamp(0.0, 1.0), (1.0 - tp_r * tp_r).clamp(0.0, 1.0)
+        return 0.5 * (ts + tp), 0.5 * (ts - tp)
+
+    a_i, b_i = transmission_ab(cos_i)
+    a_o, b_o = transmission_ab(cos_o)
+    scale = cos_i.clamp_min(0.0) / math.pi * visible
+    u = [a_o, co_d * b_o, -so_d * b_o]
+    w = [scale * a_i, scale * ci_d * b_i, scale * si_d * b_i]
+    diff = [u[r] * w[col] for r in range(3) for col in range(3)]
+    return spec, diff
+
+
 def specular_diffuse_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, *,
                             alpha: torch.Tensor, stage_zero_axis: torch.Tensor,
-                            camera_x_axis: torch.Tensor, eta: float = 1.5,
-                            ks: float | torch.Tensor = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Specular and (unit-albedo) diffuse 3x3 blocks ``(..., 3, 3)`` in the rig frames.
+                            camera_x_axis: torch.Tensor, eta: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit specular (``ks = 1``) and diffuse (``kd = 1``) blocks ``(..., 3, 3)`` in the rig
+    frames, as :func:`polrig.pbrdf.specular_diffuse_blocks`.
 
     ``normal``, ``wi``, ``wo``: ``(..., 3)`` (normalised here); ``alpha``: GGX roughness
     broadcastable to ``(...)``; ``stage_zero_axis``, ``camera_x_axis``: ``(..., 3)`` or ``(3,)``.
     Pixels facing away from the light or the camera (``cos <= 0``) get zero blocks.
     """
-    n, wi, wo = _normalize(normal), _normalize(wi), _normalize(wo)
-    alpha = torch.as_tensor(alpha, dtype=n.dtype)
-    cos_i, cos_o = _dot(n, wi), _dot(n, wo)
-    visible = ((cos_i > 0) & (cos_o > 0)).to(n.dtype)
-    k_in, k_out = -wi, wo
-    x_in = _perpendicular_axis(torch.broadcast_to(stage_zero_axis, k_in.shape), k_in)
-    x_out = _perpendicular_axis(torch.broadcast_to(camera_x_axis, k_out.shape), k_out)
-
-    # Specular: Fresnel reflection at the half vector, s axis perpendicular to the plane (wi, wo).
-    h = _normalize(wi + wo)
-    cos_d = _dot(wi, h)
-    s_raw = torch.cross(wi, h, dim=-1)
-    degenerate = (_dot(s_raw, s_raw) < 1e-14)[..., None]
-    s_axis = torch.where(degenerate, x_out, _normalize(s_raw))
-    f_local = fresnel_reflection_block(cos_d, eta)
-    spec = (_basis_rotation(k_out, s_axis, x_out) @ f_local
-            @ _basis_rotation(k_in, x_in, _perpendicular_axis(s_axis, k_in)))
-    scalar = (ggx_d(_dot(n, h), alpha) * smith_g1(cos_i, alpha) * smith_g1(cos_o, alpha)
-              / (4.0 * cos_o.clamp_min(1e-6)))
-    spec = spec * (ks * scalar * visible)[..., None, None]
-
-    # Diffuse: transmission in at theta_i, depolarize, transmission out at theta_o.
-    s_in_raw = torch.cross(n, k_in, dim=-1)
-    s_out_raw = torch.cross(n, k_out, dim=-1)
-    s_in = torch.where((_dot(s_in_raw, s_in_raw) < 1e-14)[..., None], x_in, _normalize(s_in_raw))
-    s_out = torch.where((_dot(s_out_raw, s_out_raw) < 1e-14)[..., None], x_out, _normalize(s_out_raw))
-    t_in = fresnel_transmission_block(cos_i, eta) @ _basis_rotation(k_in, x_in, s_in)
-    t_out = _basis_rotation(k_out, s_out, x_out) @ fresnel_transmission_block(cos_o, eta)
-    diff = t_out[..., :, 0:1] * t_in[..., 0:1, :]
-    diff = diff * (cos_i.clamp_min(0.0) / math.pi * visible)[..., None, None]
-    return spec, diff
+    alpha = torch.as_tensor(alpha, dtype=normal.dtype)[..., None]
+    spec, diff = _blocks9(normal, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta, -1)
+    shape = torch.broadcast_shapes(*[t.shape for t in spec + diff])[:-1]
+    as33 = lambda parts: torch.cat([p.expand(shape + (1,)) for p in parts], -1).reshape(shape + (3, 3))  # noqa: E731
+    return as33(spec), as33(diff)
 
 
 def image_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, alpha: torch.Tensor,
                  stage_zero_axis: torch.Tensor, camera_x_axis: torch.Tensor | None = None,
                  eta: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """Plane-first wrapper for networks: ``normal``/``wi``/``wo`` ``(B, 3, H, W)``, ``alpha``
-    ``(B,)``, ``stage_zero_axis`` ``(B, 3)`` -> blocks ``(B, 3, 3, H, W)`` (ks = 1)."""
-    perm = lambda t: t.permute(0, 2, 3, 1)  # noqa: E731
-    if camera_x_axis is None:
-        camera_x_axis = torch.tensor([1.0, 0.0, 0.0], dtype=normal.dtype)
-    spec, diff = specular_diffuse_blocks(
-        perm(normal), perm(wi), perm(wo), alpha=alpha[:, None, None],
-        stage_zero_axis=stage_zero_axis[:, None, None, :], camera_x_axis=camera_x_axis, eta=eta)
-    return spec.permute(0, 3, 4, 1, 2), diff.permute(0, 3, 4, 1, 2)
+    """Plane-first version for networks: ``normal``/``wi``/``wo`` ``(B, 3, H, W)``, ``alpha``
+    ``(B,)``, ``stage_zero_axis`` ``(B, 3)`` -> blocks ``(B, 3, 3, H, W)`` (ks = kd = 1)."""
+    if camera_x_axis is None:  # the camera X axis, built from the input so tracing keeps no constant tensor
+        cam = torch.cat([torch.ones_like(normal[:1, :1, :1, :1]), torch.zeros_like(normal[:1, :2, :1, :1])], 1)
+    else:
+        cam = camera_x_axis.reshape(-1, 3, 1, 1)
+    spec, diff = _blocks9(normal, wi, wo, alpha[:, None, None, None], stage_zero_axis[:, :, None, None],
+                          cam, eta, 1)
+    b, _, h, w = normal.shape
+    return torch.cat(spec, 1).reshape(b, 3, 3, h, w), torch.cat(diff, 1).reshape(b, 3, 3, h, w)

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from models.layers import UNetBackbone, masked_mean, normalised_stokes, planes, stokes_from_analyzer
+from models.layers import SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_stokes, planes, stokes_from_analyzer
 
 #: Roughness range the head can output (GGX alpha).
 ALPHA_MIN, ALPHA_MAX = 0.01, 1.0
@@ -48,7 +48,7 @@ class PIPNet(nn.Module):
         normal = F.normalize(self.normal_head(feat) + wo, dim=1, eps=1e-6)
         wi = F.normalize(self.wi_head(feat) + wo, dim=1, eps=1e-6)
         kd = F.softplus(self.kd_head(feat))
-        small_mask = F.adaptive_avg_pool2d(mask, bottleneck.shape[-2:])
+        small_mask = F.avg_pool2d(mask, SIZE_MULTIPLE, SIZE_MULTIPLE)
         pooled = (bottleneck * small_mask).sum((2, 3)) / small_mask.sum((2, 3)).clamp_min(1e-6)
         alpha = ALPHA_MIN + (ALPHA_MAX - ALPHA_MIN) * torch.sigmoid(self.alpha_head(pooled)[:, 0])
         return {"normal": normal, "kd": kd, "wi": wi, "alpha": alpha}
@@ -62,5 +62,5 @@ def pipnet_loss(pred: dict[str, torch.Tensor], normal: torch.Tensor, kd: torch.T
     l_wi = masked_mean((pred["wi"] - wi).abs(), mask)
     l_alpha = (pred["alpha"] - alpha).abs().mean()
     total = cos + 0.5 * l_kd + 0.5 * l_wi + 0.3 * l_alpha
-    return total, {"cos_n": float(cos), "l1_kd": float(l_kd), "l1_wi": float(l_wi),
-                   "l1_alpha": float(l_alpha)}
+    return total, {k: float(v.detach()) for k, v in
+                   (("cos_n", cos), ("l1_kd", l_kd), ("l1_wi", l_wi), ("l1_alpha", l_alpha))}

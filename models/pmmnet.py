@@ -61,9 +61,9 @@ class PMMNet(nn.Module):
     def __init__(self, colours: int = 3, width: int = 16, heads: int = 4):
         super().__init__()
         self.colours = colours
-        # measured Stokes (3C), rendered Stokes of the init (3C), their difference (3C),
+        # measured Stokes (3C), measured minus rendered-by-the-init Stokes (3C),
         # Ms (9), Md (9), kd (C), mask (1), s_in planes (3)
-        self.backbone = UNetBackbone(10 * colours + 22, width)
+        self.backbone = UNetBackbone(7 * colours + 22, width)
         self.spec_att = HighFrequencyAttention(width)
         self.spec_head = nn.Sequential(nn.Conv2d(width, width, 1), nn.ReLU(inplace=True),
                                        _zero_conv(width, 6))
@@ -76,7 +76,7 @@ class PMMNet(nn.Module):
         stokes = stokes_from_analyzer(analyzer)
         m_init = ms_init[:, None] + kd_init[:, :, None, None] * md_init[:, None]
         rendered = apply_mueller(m_init, s_in)
-        x = torch.cat([stokes.flatten(1, 2), rendered.flatten(1, 2), (stokes - rendered).flatten(1, 2),
+        x = torch.cat([stokes.flatten(1, 2), (stokes - rendered).flatten(1, 2),
                        signed_log(ms_init.flatten(1, 2)), signed_log(md_init.flatten(1, 2)),
                        kd_init, mask, planes(s_in, mask)], 1)
         feat, _ = self.backbone(x)
@@ -147,4 +147,4 @@ def mueller_loss(pred: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) ->
     for s in probes:
         ls = ls + masked_mean(apply_mueller(diff, s.expand(b, 3)).abs().reshape(b, -1, h, w), mask)
     ls = ls * (3.0 / len(probes))  # sum over the 3 Stokes components, mean over probes
-    return l1 + ls, {"l1_m": float(l1), "l_stokes": float(ls)}
+    return l1 + ls, {"l1_m": float(l1.detach()), "l_stokes": float(ls.detach())}

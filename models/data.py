@@ -1,0 +1,121 @@
+"""Load ``polrig sim dataset`` output for training and evaluation.
+
+A dataset folder holds ``manifest.json`` and ``shard-*.npz`` files, each with float32 arrays
+over its samples (plane-first, ``docs/conventions.md``): ``analyzer`` (N,C,4,H,W) normalised
+analyzer images, ``mask`` (N,H,W), ``normal``/``kd``/``wi``/``wo`` (N,3,H,W) camera frame,
+``alpha`` (N,), ``s_in`` (N,3) normalised incident Stokes, ``mueller`` (N,C,3,3,H,W) on the
+analyzer's scale, ``family`` (N,), ``scale`` (N,) (DN per normalised unit). The stage zero
+axis in the camera frame comes from ``stage_zero_axis`` (N,3) in the shards, or from the
+manifest (one axis for the whole set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+
+import numpy as np
+
+from polrig.errors import FormatError
+
+#: Arrays every shard must hold.
+REQUIRED = ("analyzer", "mask", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller")
+OPTIONAL = ("family", "scale", "stage_zero_axis")
+
+
+@dataclasses.dataclass
+class Dataset:
+    """All samples of a dataset folder as numpy arrays (float32 unless stated)."""
+
+    arrays: dict[str, np.ndarray]
+    manifest: dict
+
+    def __len__(self) -> int:
+        return int(self.arrays["analyzer"].shape[0])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.arrays["analyzer"].shape[-2:])  # type: ignore[return-value]
+
+    def subset(self, index) -> "Dataset":
+        return Dataset({k: v[index] for k, v in self.arrays.items()}, self.manifest)
+
+
+def _stage_axes(manifest: dict, n: int) -> np.ndarray | None:
+    for key in ("stage_zero_axis_camera", "stage_zero_axis"):
+        if key in manifest:
+            axis = np.asarray(manifest[key], dtype=np.float32).reshape(-1, 3)
+            return np.broadcast_to(axis, (n, 3)).copy() if len(axis) == 1 else axis
+    rig = manifest.get("rig") or {}
+    for key in ("stage_zero_axis_camera", "stage_zero_axis"):
+        if key in rig:
+            return np.broadcast_to(np.asarray(rig[key], np.float32).reshape(3), (n, 3)).copy()
+    return None
+
+
+def load_dataset(folder: str | pathlib.Path, limit: int | None = None) -> Dataset:
+    """Read every shard of ``folder`` (sorted by name), at most ``limit`` samples.
+
+    Raises :class:`FormatError` naming the first missing or malformed array."""
+    folder = pathlib.Path(folder)
+    manifest_path = folder / "manifest.json"
+    if not manifest_path.is_file():
+        raise FileNotFoundError(f"{manifest_path} not found (make one with `polrig sim dataset`)")
+    manifest = json.loads(manifest_path.read_text())
+    shards = sorted(folder.glob("shard-*.npz"))
+    if not shards:
+        raise FormatError(f"{folder}: no shard-*.npz files")
+    parts: dict[str, list[np.ndarray]] = {}
+    total = 0
+    for shard in shards:
+        with np.load(shard) as z:
+            missing = [k for k in REQUIRED if k not in z.files]
+            if missing:
+                raise FormatError(f"{shard.name}: missing arrays {missing}")
+            n = z["analyzer"].shape[0]
+            take = n if limit is None else min(n, limit - total)
+            for k in REQUIRED + OPTIONAL:
+                if k in z.files:
+                    parts.setdefault(k, []).append(np.asarray(z[k][:take]))
+            total += take
+        if limit is not None and total >= limit:
+            break
+    arrays = {k: np.concatenate(v, 0) for k, v in parts.items()}
+    n = arrays["analyzer"].shape[0]
+    if "stage_zero_axis" not in arrays:
+        axes = _stage_axes(manifest, n)
+        if axes is None:
+            raise FormatError(f"{folder}: no stage_zero_axis in the shards or the manifest")
+        arrays["stage_zero_axis"] = axes
+    for k in ("analyzer", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller", "stage_zero_axis"):
+        arrays[k] = np.ascontiguousarray(arrays[k], dtype=np.float32)
+    arrays["mask"] = (np.asarray(arrays["mask"]) > 0).astype(np.float32)
+    _check_shapes(arrays, folder)
+    return Dataset(arrays, manifest)
+
+
+def _check_shapes(a: dict[str, np.ndarray], folder) -> None:
+    n, c, four, h, w = a["analyzer"].shape
+    expect = {"mask": (n, h, w), "normal": (n, 3, h, w), "kd": (n, c, h, w), "wi": (n, 3, h, w),
+              "wo": (n, 3, h, w), "alpha": (n,), "s_in": (n, 3), "mueller": (n, c, 3, 3, h, w),
+              "stage_zero_axis": (n, 3)}
+    if four != 4:
+        raise FormatError(f"{folder}: analyzer must be (N, C, 4, H, W), got {a['analyzer'].shape}")
+    for k, shape in expect.items():
+        if a[k].shape != shape:
+            raise FormatError(f"{folder}: {k} has shape {a[k].shape}, expected {shape}")
+
+
+def write_dataset(folder: str | pathlib.Path, arrays: dict[str, np.ndarray], manifest: dict,
+                  shard_size: int = 256) -> None:
+    """Write arrays in the dataset format (used by tests and by :func:`crop_dataset`)."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    n = arrays["analyzer"].shape[0]
+    for i, start in enumerate(range(0, n, shard_size)):
+        np.savez(folder / f"shard-{i:05d}.npz", **{k: v[start:start + shard_size] for k, v in arrays.items()})
+    (folder / "manifest.json").write_text(json.dumps(dict(manifest, count=n), indent=2))

@@ -1,0 +1,99 @@
+"""Export the trained networks to ONNX and check the graphs against PyTorch.
+
+Shipped graphs (``models/weights/``):
+
+* ``single_shot.onnx``: PIPNet -> differentiable pBRDF (:mod:`models.pbrdf_torch`, eta = 1.5,
+  ks = 1) -> PMMNet as **one graph**. Chosen over "ONNX PIPNet -> numpy :mod:`polrig.pbrdf`
+  -> ONNX PMMNet" for speed: one onnxruntime call, no float64 numpy pass over every pixel and
+  no copies between sessions (the numpy pBRDF alone costs more than both networks at 512x512
+  on this CPU); the torch pBRDF is tested against :mod:`polrig.pbrdf` to 1e-5, so the physics is
+  the same. Outputs ``mueller``, ``mueller_init`` (PIPNet-pBRDF alone), ``normal``, ``kd``,
+  ``wi``, ``alpha``.
+* ``direct.onnx``: the direct Stokes->MM ablation baseline (same backbone, no physics).
+
+Inputs of both: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W), ``s_in`` (B,3),
+``wo`` (B,3,H,W), ``stage_zero_axis`` (B,3); batch, height and width are dynamic (H and W
+multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import pathlib
+
+import numpy as np
+import torch
+
+from models.layers import SIZE_MULTIPLE
+from models.pmmnet import SINGLE_SHOT_OUTPUTS, DirectStokesToMM, SingleShotNet
+from models.pipnet import PIPNet
+from models.pmmnet import PMMNet
+
+OPSET = 17
+INPUTS = ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")
+_DYNAMIC = {"analyzer": {0: "batch", 3: "height", 4: "width"}, "mask": {0: "batch", 2: "height", 3: "width"},
+            "s_in": {0: "batch"}, "wo": {0: "batch", 2: "height", 3: "width"},
+            "stage_zero_axis": {0: "batch"}}
+
+
+def _export(model: torch.nn.Module, sample: dict[str, torch.Tensor], outputs: tuple[str, ...],
+            path: pathlib.Path) -> None:
+    dyn = dict(_DYNAMIC)
+    for name in outputs:
+        dyn[name] = {0: "batch"}
+    args = tuple(sample[k] for k in INPUTS)
+    with contextlib.redirect_stdout(io.StringIO()):
+        torch.onnx.export(model, args, str(path), input_names=list(INPUTS), output_names=list(outputs),
+                          opset_version=OPSET, dynamic_axes=dyn, dynamo=False, do_constant_folding=True)
+
+
+def compare_with_onnxruntime(model: torch.nn.Module, path: pathlib.Path,
+                             sample: dict[str, torch.Tensor]) -> float:
+    """Max abs difference between the torch model and the ONNX graph on ``sample``."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = {i.name for i in sess.get_inputs()}
+    ort_out = sess.run(None, {k: sample[k].numpy() for k in INPUTS if k in names})
+    with torch.no_grad():
+        ref = model(*(sample[k] for k in INPUTS))
+    ref = ref if isinstance(ref, tuple) else (ref,)
+    return float(max(np.max(np.abs(o - r.numpy())) for o, r in zip(ort_out, ref)))
+
+
+def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights_dir: str | pathlib.Path,
+               sample: dict[str, torch.Tensor]) -> dict[str, dict]:
+    """Export ``single_shot.onnx`` and ``direct.onnx`` plus ``model.json`` into ``weights_dir``;
+    returns ``{file: {bytes, max_abs_diff, max_abs_output}}``."""
+    wd = pathlib.Path(weights_dir)
+    wd.mkdir(parents=True, exist_ok=True)
+    single = SingleShotNet(pipnet, pmmnet).eval()
+    direct = direct.eval()
+    h, w = sample["analyzer"].shape[-2:]
+    if h % SIZE_MULTIPLE or w % SIZE_MULTIPLE:
+        raise ValueError(f"export sample must be a multiple of {SIZE_MULTIPLE} pixels, got {h}x{w}")
+    report = {}
+    for name, model, outputs in (("single_shot.onnx", single, SINGLE_SHOT_OUTPUTS),
+                                 ("direct.onnx", direct, ("mueller",))):
+        path = wd / name
+        _export(model, sample, outputs, path)
+        with torch.no_grad():
+            first = model(*(sample[k] for k in INPUTS))
+        first = first[0] if isinstance(first, tuple) else first
+        report[name] = {"bytes": path.stat().st_size,
+                        "max_abs_diff": compare_with_onnxruntime(model, path, sample),
+                        "max_abs_output": float(first.abs().max())}
+    meta = {"colours": int(pipnet.colours), "width": int(pipnet.backbone.width), "opset": OPSET,
+            "inputs": list(INPUTS), "single_shot_outputs": list(SINGLE_SHOT_OUTPUTS),
+            "size_multiple": SIZE_MULTIPLE, "eta": 1.5, "ks": 1.0, "camera_x_axis": [1.0, 0.0, 0.0],
+            "conventions_version": _conventions_version(), "export_check": report}
+    (wd / "model.json").write_text(json.dumps(meta, indent=2))
+    return report
+
+
+def _conventions_version() -> str:
+    from polrig.conventions import CONVENTIONS_VERSION
+
+    return CONVENTIONS_VERSION

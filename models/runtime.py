@@ -1,0 +1,222 @@
+"""Single-shot Mueller reconstruction with onnxruntime (never imports torch).
+
+:meth:`SingleShotModel.load` opens the shipped graph ``models/weights/single_shot.onnx``
+(PIPNet -> pBRDF -> PMMNet in one graph, see :mod:`models.export` for why one graph) and
+:meth:`SingleShotModel.reconstruct` turns one capture's analyzer images ``(C, 4, H, W)`` in DN
+under a known incident state ``s_in`` into a Mueller image ``(C, 3, 3, H, W)`` in DN per unit
+incident S0 (``docs/conventions.md``, "Radiometric units").
+
+Steps: mask (given, or ``S0 > mask_fraction * percentile99(S0)``), normalisation by ``scale``
+(DN per normalised unit: given, or :func:`default_scale`, the same rule the simulator's
+dataset writer uses), view directions ``wo`` from the pinhole intrinsics (default: the
+simulated rig's camera, ``fx = fy = 2.5 min(H, W)``, principal point at the image centre),
+padding to a multiple of 8 pixels (edge padding, masked out), one onnxruntime call, crop,
+back to DN.
+
+Arbitrary sizes: the networks are fully convolutional, so any size runs in one pass (padded
+to a multiple of 8). Images with more than ``max_pixels`` pixels (default 1.5 Mpx, about
+2 GB of activations) are resized down with area averaging to fit, reconstructed, and the
+Mueller image is resized back bilinearly (the output then has the detail of the reduced
+size; pass a larger ``max_pixels`` to avoid it). Tiling is not used because the roughness is
+image-wide (pooled over the whole mask).
+
+Threading: ``intra_op_num_threads`` = the number of physical cores, one inter-op thread,
+sequential execution, all graph optimisations (onnxruntime performance tuning guide).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import time
+
+import numpy as np
+
+from polrig.errors import FormatError
+
+WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
+SIZE_MULTIPLE = 8
+#: Fraction of the 99th percentile of S0 below which a pixel is background when no mask is given.
+MASK_FRACTION = 0.02
+#: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
+DEFAULT_FOCAL_PER_PX = 2.5
+
+
+def physical_cores() -> int:
+    """Physical CPU cores available to this process (``/proc/cpuinfo`` core ids, else the
+    affinity mask)."""
+    try:
+        avail = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - non-Linux
+        avail = os.cpu_count() or 1
+    try:
+        cores, phys = set(), None
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("physical id"):
+                phys = line.split(":")[1].strip()
+            elif line.startswith("core id"):
+                cores.add((phys, line.split(":")[1].strip()))
+        if cores:
+            return max(1, min(len(cores), avail))
+    except OSError:  # pragma: no cover
+        pass
+    return max(1, avail)
+
+
+def view_directions(shape: tuple[int, int], intrinsics: tuple[float, float, float, float] | None = None) -> np.ndarray:
+    """Unit directions surface -> camera ``wo`` ``(3, H, W)`` (camera frame, OpenCV axes) of a
+    pinhole camera with ``intrinsics = (fx, fy, cx, cy)`` in pixels of the analyzer image
+    (default: the simulated rig's camera). Pixel centres are at integer coordinates."""
+    h, w = shape
+    if intrinsics is None:
+        f = DEFAULT_FOCAL_PER_PX * min(h, w)
+        intrinsics = (f, f, (w - 1) / 2.0, (h - 1) / 2.0)
+    fx, fy, cx, cy = (float(x) for x in intrinsics)
+    x = (np.arange(w, dtype=np.float64) - cx) / fx
+    y = (np.arange(h, dtype=np.float64) - cy) / fy
+    ray = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.ones((1, 1))), 0)
+    return (-ray / np.linalg.norm(ray, axis=0, keepdims=True)).astype(np.float32)
+
+
+def stokes_s0(analyzer: np.ndarray) -> np.ndarray:
+    """``S0 = (I0 + I45 + I90 + I135) / 2`` per colour, ``(C, H, W)``."""
+    return 0.5 * np.sum(analyzer, axis=1)
+
+
+def default_mask(analyzer: np.ndarray, fraction: float = MASK_FRACTION) -> np.ndarray:
+    """Object mask ``(H, W)`` bool: finite pixels whose mean S0 exceeds ``fraction`` of the
+    99th percentile of S0 (a lit object on a dark background)."""
+    s0 = np.mean(stokes_s0(analyzer), axis=0)
+    finite = np.isfinite(s0)
+    if not finite.any():
+        return np.zeros(s0.shape, bool)
+    ref = np.percentile(s0[finite], 99.0)
+    return finite & (s0 > fraction * ref) if ref > 0 else np.zeros(s0.shape, bool)
+
+
+def default_scale(analyzer: np.ndarray, mask: np.ndarray) -> float:
+    """Normalisation scale (DN per unit) of a capture: the 99th percentile of the
+    colour-mean S0 over the mask (1 for an empty mask). The simulator's dataset writer and
+    :mod:`models.data` use the same rule, so the networks see the training distribution."""
+    s0 = np.mean(stokes_s0(analyzer), axis=0)
+    vals = s0[mask & np.isfinite(s0)]
+    if vals.size == 0:
+        return 1.0
+    q = float(np.percentile(vals, 99.0))
+    return q if q > 0 else 1.0
+
+
+def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.ndarray:
+    import cv2
+
+    flat = img.reshape((-1,) + img.shape[-2:])
+    out = np.stack([cv2.resize(p, (shape[1], shape[0]), interpolation=interpolation) for p in flat])
+    return out.reshape(img.shape[:-2] + shape)
+
+
+class SingleShotModel:
+    """onnxruntime session of the shipped single-shot graph (and optionally the baseline)."""
+
+    def __init__(self, session, meta: dict, weights_dir: pathlib.Path):
+        self.session = session
+        self.meta = meta
+        self.weights_dir = weights_dir
+        self.input_names = [i.name for i in session.get_inputs()]
+        self.output_names = [o.name for o in session.get_outputs()]
+        self.colours = int(meta.get("colours", 3))
+
+    @classmethod
+    def load(cls, weights_dir: str | os.PathLike | None = None, *, graph: str = "single_shot.onnx",
+             threads: int | None = None) -> "SingleShotModel":
+        """Open ``graph`` in ``weights_dir`` (default: the shipped ``models/weights``)."""
+        import onnxruntime as ort
+
+        wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
+        path = wd / graph
+        if not path.is_file():
+            raise FileNotFoundError(f"model graph {path} not found")
+        meta_path = wd / "model.json"
+        meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads or physical_cores()
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        return cls(sess, meta, wd)
+
+    def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
+                       stage_zero_axis: np.ndarray) -> dict[str, np.ndarray]:
+        """One graph call on batched, normalised, padded inputs (names as :mod:`models.export`)."""
+        feed = {"analyzer": analyzer, "mask": mask, "s_in": s_in, "wo": wo, "stage_zero_axis": stage_zero_axis}
+        outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names})
+        return dict(zip(self.output_names, outs))
+
+    def reconstruct(self, analyzer: np.ndarray, s_in, mask: np.ndarray | None = None, scale: float | None = None,
+                    *, stage_zero_axis=(1.0, 0.0, 0.0), intrinsics=None,
+                    max_pixels: int = 1_500_000) -> tuple[np.ndarray, dict]:
+        """Mueller image ``(C, 3, 3, H, W)`` float32 in DN per unit incident S0 from analyzer
+        images ``(C, 4, H, W)`` in DN (black level removed) under the normalised incident
+        state ``s_in`` ``(3,)`` (incident frame, ``docs/conventions.md``).
+
+        ``mask`` ``(H, W)``: object pixels (default :func:`default_mask`); ``scale``: DN per
+        normalised unit (default :func:`default_scale`); ``stage_zero_axis``: the polarizer
+        stage zero axis in the camera frame; ``intrinsics``: ``(fx, fy, cx, cy)`` of the
+        analyzer image (default: the simulated rig's camera). Background pixels are 0.
+        ``aux`` holds ``mueller_init`` (PIPNet-pBRDF, DN), ``normal``, ``kd``, ``wi``,
+        ``alpha``, ``mask``, ``scale`` and ``timings_s``.
+        """
+        t0 = time.perf_counter()
+        a = np.asarray(analyzer, dtype=np.float32)
+        if a.ndim != 4 or a.shape[1] != 4:
+            raise FormatError(f"analyzer images must be (C, 4, H, W), got shape {a.shape}")
+        if a.shape[0] != self.colours:
+            raise FormatError(f"model expects {self.colours} colour channel(s), analyzer has {a.shape[0]}")
+        s = np.asarray(s_in, dtype=np.float32).reshape(-1)
+        if s.shape != (3,) or not np.all(np.isfinite(s)):
+            raise ValueError(f"s_in must be 3 finite numbers (S0, S1, S2), got {s_in!r}")
+        h, w = a.shape[-2:]
+        finite = np.all(np.isfinite(a), axis=(0, 1))
+        m = default_mask(a) if mask is None else np.asarray(mask).astype(bool)
+        if m.shape != (h, w):
+            raise FormatError(f"mask must be ({h}, {w}), got {m.shape}")
+        m = m & finite
+        a = np.where(finite, a, 0.0).astype(np.float32)
+        sc = default_scale(a, m) if scale is None else float(scale)
+        if not (np.isfinite(sc) and sc > 0):
+            raise ValueError(f"scale must be a positive number, got {scale!r}")
+        wo = view_directions((h, w), intrinsics)
+        # Size: resize down if needed, then pad to the network's size multiple.
+        factor = min(1.0, float(np.sqrt(max_pixels / float(h * w))))
+        hr, wr = (max(SIZE_MULTIPLE, int(h * factor)), max(SIZE_MULTIPLE, int(w * factor))) if factor < 1 else (h, w)
+        an, mk, won = a / sc, m.astype(np.float32), wo
+        if (hr, wr) != (h, w):
+            import cv2
+
+            an = _resize(an, (hr, wr), cv2.INTER_AREA)
+            mk = (_resize(mk, (hr, wr), cv2.INTER_AREA) > 0.5).astype(np.float32)
+            won = view_directions((hr, wr), None if intrinsics is None else
+                                  tuple(np.asarray(intrinsics, float) * [wr / w, hr / h, wr / w, hr / h]))
+        ph, pw = (-hr) % SIZE_MULTIPLE, (-wr) % SIZE_MULTIPLE
+        pad = lambda x: np.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, ph), (0, pw)], mode="edge")  # noqa: E731
+        an_p = pad(an)
+        mk_p = np.pad(mk, [(0, ph), (0, pw)])
+        wo_p = pad(won)
+        t1 = time.perf_counter()
+        out = self.run_normalised(an_p[None], mk_p[None, None], s[None], wo_p[None],
+                                  np.asarray(stage_zero_axis, np.float32).reshape(1, 3))
+        t2 = time.perf_counter()
+        crop = lambda x: x[0, ..., :hr, :wr]  # noqa: E731
+        res = {k: crop(v) for k, v in out.items() if k != "alpha"}
+        if (hr, wr) != (h, w):
+            import cv2
+
+            res = {k: _resize(v, (h, w), cv2.INTER_LINEAR) for k, v in res.items()}
+        mueller = (res.pop("mueller") * sc * m).astype(np.float32)
+        aux = {k: v.astype(np.float32) for k, v in res.items()}
+        if "mueller_init" in aux:
+            aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
+        aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
+                    "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
+        return mueller, aux

@@ -1,0 +1,237 @@
+"""Train PIPNet, then PMMNet (and the direct Stokes->MM baseline), then export ONNX.
+
+``polrig train --data DIR --out DIR`` calls :func:`train`. Stages run in order
+``pipnet -> pmmnet -> direct``; each uses Adam with a constant learning rate for the first
+``decay_start`` fraction of its epochs and a linear decay to ``lr_final_fraction`` after
+(the paper: 40 + 20 epochs, linear decay in the later half). After every epoch the models,
+optimizers and progress are written to ``OUT/checkpoint.pt``; ``resume=True`` continues from
+it. Losses go to ``OUT/log.csv`` (one row per epoch) and ``OUT/summary.json``. At the end the
+graphs are exported with :func:`models.export.export_all` into ``OUT/weights`` and checked
+against PyTorch with onnxruntime.
+
+PMMNet trains on the PIPNet-pBRDF initialization of the frozen stage-1 network (computed
+once per sample, PIPNet in eval mode), exactly what it sees at inference.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Callable
+
+import numpy as np
+import torch
+
+from models.data import Dataset, load_dataset
+from models.pipnet import PIPNet, pipnet_loss
+from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
+
+STAGES = ("pipnet", "pmmnet", "direct")
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    pipnet_epochs: int = 12
+    pmmnet_epochs: int = 8
+    direct_epochs: int = 8
+    batch_size: int = 16
+    lr: float = 1e-3
+    decay_start: float = 0.5
+    lr_final_fraction: float = 0.05
+    width: int = 16
+    threads: int = 2
+    seed: int = 0
+    val_fraction: float = 0.05
+    limit: int | None = None
+
+
+def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
+    a = ds.arrays
+    t = {k: torch.from_numpy(np.ascontiguousarray(a[k])) for k in
+         ("analyzer", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller", "stage_zero_axis")}
+    t["mask"] = torch.from_numpy(a["mask"])[:, None]
+    return t
+
+
+def lr_at(config: TrainConfig, epoch: int, epochs: int) -> float:
+    """Constant, then linear decay from ``decay_start * epochs`` to ``lr_final_fraction``."""
+    start = int(round(config.decay_start * epochs))
+    if epoch < start or epochs <= start:
+        return config.lr
+    frac = (epoch - start + 1) / (epochs - start)
+    return config.lr * (1.0 - frac * (1.0 - config.lr_final_fraction))
+
+
+def _batches(n: int, batch: int, rng: np.random.Generator | None):
+    order = rng.permutation(n) if rng is not None else np.arange(n)
+    for i in range(0, n, batch):
+        yield torch.from_numpy(order[i:i + batch])
+
+
+def _pick(t: dict[str, torch.Tensor], idx: torch.Tensor, keys) -> list[torch.Tensor]:
+    return [t[k][idx] for k in keys]
+
+
+def pipnet_step(model: PIPNet, t, idx):
+    a, m, s, wo, n, kd, wi, al = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "normal", "kd", "wi", "alpha"))
+    return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m)
+
+
+def pmmnet_step(model: PMMNet, t, idx):
+    a, m, s, ms, md, kd, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "ms_init", "md_init", "kd_init", "mueller"))
+    return mueller_loss(model(a, m, s, ms, md, kd)["mueller"], mu, m)
+
+
+def direct_step(model: DirectStokesToMM, t, idx):
+    a, m, s, wo, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "mueller"))
+    return mueller_loss(model(a, m, s, wo), mu, m)
+
+
+@torch.no_grad()
+def add_initialization(pipnet: PIPNet, t: dict[str, torch.Tensor], batch: int = 32) -> None:
+    """Add ``ms_init``, ``md_init`` (N,3,3,H,W) and ``kd_init`` (N,C,H,W) from PIPNet."""
+    net = SingleShotNet(pipnet, PMMNet(pipnet.colours, 8)).eval()
+    ms, md, kd = [], [], []
+    for idx in _batches(len(t["analyzer"]), batch, None):
+        p, s_blk, d_blk = net.initialization(*_pick(t, idx, ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")))
+        ms.append(s_blk)
+        md.append(d_blk)
+        kd.append(p["kd"])
+    t["ms_init"], t["md_init"], t["kd_init"] = torch.cat(ms), torch.cat(md), torch.cat(kd)
+
+
+class _Log:
+    def __init__(self, out: pathlib.Path, echo: Callable[[str], None]):
+        self.path = out / "log.csv"
+        self.echo = echo
+
+    def write(self, row: dict) -> None:
+        new = not self.path.exists()
+        with self.path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=["stage", "epoch", "lr", "train_loss", "val_loss",
+                                              "epoch_s", "details"])
+            if new:
+                w.writeheader()
+            w.writerow(row)
+        self.echo(f"{row['stage']:7s} epoch {row['epoch']:3d}  lr {row['lr']:.2e}  "
+                  f"train {row['train_loss']:.5f}  val {row['val_loss']:.5f}  {row['epoch_s']:.1f}s")
+
+
+def _run_epoch(model, step, t, idx_all, batch, opt, rng) -> tuple[float, dict[str, float]]:
+    model.train()
+    total, parts, count = 0.0, {}, 0
+    for b in _batches(len(idx_all), batch, rng):
+        idx = idx_all[b]
+        loss, detail = step(model, t, idx)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        k = len(idx)
+        total += float(loss) * k
+        count += k
+        for name, v in detail.items():
+            parts[name] = parts.get(name, 0.0) + v * k
+    return total / max(count, 1), {k: v / max(count, 1) for k, v in parts.items()}
+
+
+@torch.no_grad()
+def _evaluate(model, step, t, idx_all, batch) -> float:
+    model.eval()
+    total, count = 0.0, 0
+    for b in _batches(len(idx_all), batch, None):
+        loss, _ = step(model, t, idx_all[b])
+        total += float(loss) * len(b)
+        count += len(b)
+    return total / max(count, 1)
+
+
+def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
+          *, resume: bool = False, export: bool = True, echo: Callable[[str], None] = print) -> dict:
+    """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
+
+    Returns the summary dict also written to ``OUT/summary.json``."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / "checkpoint.pt"
+    state = None
+    if resume and ckpt_path.exists():
+        state = torch.load(ckpt_path, weights_only=False)
+        config = TrainConfig(**state["config"])
+        echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
+    elif (out / "log.csv").exists() and not resume:
+        (out / "log.csv").unlink()
+    config = config or TrainConfig()
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+
+    t0 = time.time()
+    ds = load_dataset(data_dir, config.limit)
+    t = _tensors(ds)
+    n = len(ds)
+    colours = ds["analyzer"].shape[1]
+    rng = np.random.default_rng(config.seed)
+    perm = rng.permutation(n)
+    n_val = max(1, int(round(config.val_fraction * n))) if n > 1 else 0
+    val_idx, train_idx = torch.from_numpy(perm[:n_val]), torch.from_numpy(perm[n_val:] if n > 1 else perm)
+    echo(f"data: {n} samples of {ds.shape[0]}x{ds.shape[1]} ({len(train_idx)} train, {n_val} val), "
+         f"loaded in {time.time() - t0:.1f}s")
+
+    models = {"pipnet": PIPNet(colours, config.width), "pmmnet": PMMNet(colours, config.width),
+              "direct": DirectStokesToMM(colours, config.width)}
+    steps = {"pipnet": pipnet_step, "pmmnet": pmmnet_step, "direct": direct_step}
+    epochs = {"pipnet": config.pipnet_epochs, "pmmnet": config.pmmnet_epochs, "direct": config.direct_epochs}
+    opts = {k: torch.optim.Adam(m.parameters(), lr=config.lr) for k, m in models.items()}
+    times = {k: 0.0 for k in STAGES}
+    start_stage, start_epoch = 0, 0
+    if state is not None:
+        for k in STAGES:
+            models[k].load_state_dict(state["models"][k])
+            opts[k].load_state_dict(state["optimizers"][k])
+        times = state["times"]
+        start_stage, start_epoch = STAGES.index(state["stage"]), state["epoch"]
+        rng = np.random.default_rng(state["rng_seed"])
+    log = _Log(out, echo)
+
+    for si, stage in enumerate(STAGES):
+        if si < start_stage:
+            continue
+        if stage == "pmmnet":
+            t_init = time.time()
+            add_initialization(models["pipnet"].eval(), t)
+            echo(f"pmmnet: PIPNet-pBRDF initialization of {n} samples in {time.time() - t_init:.1f}s")
+        model, opt = models[stage], opts[stage]
+        for epoch in range(start_epoch if si == start_stage else 0, epochs[stage]):
+            lr = lr_at(config, epoch, epochs[stage])
+            for g in opt.param_groups:
+                g["lr"] = lr
+            te = time.time()
+            train_loss, detail = _run_epoch(model, steps[stage], t, train_idx, config.batch_size, opt, rng)
+            val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
+            dt = time.time() - te
+            times[stage] += dt
+            log.write({"stage": stage, "epoch": epoch, "lr": lr, "train_loss": train_loss,
+                       "val_loss": val_loss, "epoch_s": dt, "details": json.dumps(detail)})
+            nxt = (stage, epoch + 1)
+            torch.save({"config": dataclasses.asdict(config), "stage": nxt[0], "epoch": nxt[1],
+                        "models": {k: m.state_dict() for k, m in models.items()},
+                        "optimizers": {k: o.state_dict() for k, o in opts.items()},
+                        "times": times, "rng_seed": int(rng.integers(2**31))}, ckpt_path)
+        start_epoch = 0
+
+    summary = {"config": dataclasses.asdict(config), "data": str(data_dir), "samples": n,
+               "resolution": list(ds.shape), "train_seconds": times,
+               "torch_threads": torch.get_num_threads(), "torch_version": torch.__version__}
+    if export:
+        from models.export import export_all
+
+        sample = {k: t[k][val_idx[:2] if n_val else train_idx[:2]] for k in
+                  ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")}
+        summary["export"] = export_all(models["pipnet"], models["pmmnet"], models["direct"],
+                                       out / "weights", sample)
+        for name, rec in summary["export"].items():
+            echo(f"export {name}: {rec['bytes'] / 1e6:.2f} MB, max |onnx - torch| = {rec['max_abs_diff']:.3g}")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
