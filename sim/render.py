@@ -1,0 +1,248 @@
+"""Vectorised ray casting of a :class:`sim.scene.Scene` into per-pixel ground truth.
+
+One camera ray per pixel centre (:meth:`sim.geometry.PinholeCamera.ray_directions`), nearest
+analytic hit over all objects (:mod:`sim.shapes`), one shadow ray per lit pixel towards the
+point light against the same shapes, then the pBRDF (:func:`polrig.pbrdf.linear_rig_mueller`)
+in the rig's Stokes frames (incident ``x`` = the stage zero axis, emergent ``x`` = the camera
+``X`` axis; ``docs/conventions.md``). Only the terms a pixel needs are evaluated: nothing
+outside the mask or in shadow, no specular term for ``ks = 0`` materials, no diffuse term for
+``kd = 0``; the specular term is colour independent and evaluated once, the diffuse one for
+unit albedo and scaled per colour (``M_c = ks Ms + kd_c Md``, the decomposition of
+:func:`polrig.pbrdf.specular_diffuse_blocks`).
+
+Radiometry (``docs/conventions.md``, "Radiometric units"): ``brdf`` is the pBRDF times
+``cos(theta_i)`` (1/sr) and ``inv_r2`` the inverse-square falloff ``1 / |light - p|^2``
+(1/m^2); the radiance leaving a pixel's surface point towards the camera, per unit radiant
+intensity of the light and per unit normalised incident Stokes, is ``brdf * inv_r2``
+(:meth:`RenderResult.radiance_mueller`). :mod:`sim.world` turns it into DN.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from polrig.pbrdf import linear_rig_mueller
+from sim.geometry import unit
+from sim.scene import Scene
+
+#: Offset of shadow-ray origins along the geometric normal (metres).
+SHADOW_EPS_M = 1e-5
+
+
+@dataclasses.dataclass
+class RenderResult:
+    """Per-pixel ground truth of one pose over the full simulated sensor ``(H, W)``.
+
+    Image stacks are plane-first (``docs/conventions.md``). Directions are unit vectors in the
+    **camera frame** (OpenCV); zero outside the mask. ``brdf`` is ``(3, 3, 3, H, W)``
+    (colour R, G, B, row, col, v, u) in the rig frames, 1/sr, zero outside lit pixels.
+    """
+
+    turntable_deg: float
+    mask: np.ndarray          # (H, W) bool: a surface is hit
+    lit: np.ndarray           # (H, W) bool: hit, facing the light, not in shadow
+    shadow: np.ndarray        # (H, W) bool: hit, facing the light, occluded
+    object_index: np.ndarray  # (H, W) int16, -1 = background
+    material_index: np.ndarray  # (H, W) int16 into scene.materials, -1 = background
+    normal: np.ndarray        # (3, H, W) shading normal, camera frame
+    wi: np.ndarray            # (3, H, W) towards the light, camera frame
+    wo: np.ndarray            # (3, H, W) towards the camera, camera frame
+    position_m: np.ndarray    # (3, H, W) world frame, metres
+    depth_m: np.ndarray       # (H, W) camera Z, metres (0 outside the mask)
+    kd: np.ndarray            # (3, H, W)
+    alpha: np.ndarray         # (H, W)
+    eta: np.ndarray           # (H, W)
+    ks: np.ndarray            # (H, W)
+    inv_r2: np.ndarray        # (H, W) 1/m^2
+    brdf: np.ndarray          # (3, 3, 3, H, W) float32, 1/sr
+    timings_s: dict[str, float]
+    counts: dict[str, int]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mask.shape  # type: ignore[return-value]
+
+    def radiance_mueller(self) -> np.ndarray:
+        """``brdf * inv_r2`` ``(3, 3, 3, H, W)`` float32: emergent radiance per unit radiant
+        intensity of the light and per unit normalised incident Stokes."""
+        return (self.brdf * self.inv_r2.astype(np.float32)).astype(np.float32)
+
+
+def _nearest_hit(scene: Scene, turntable_deg: float, o: np.ndarray, d: np.ndarray,
+                 t_max: np.ndarray | None = None, any_hit: bool = False):
+    """Nearest hit over all objects of rays ``o``, ``d`` ``(N, 3)`` (world). Returns
+    ``(t, object index, normal world (N, 3), local point (N, 3))``; with ``any_hit`` only
+    whether some object is hit before ``t_max``."""
+    n = d.shape[0]
+    t_best = np.full(n, np.inf) if t_max is None else np.asarray(t_max, float).copy()
+    obj = np.full(n, -1, dtype=np.int64)
+    nrm = np.zeros((n, 3))
+    p_loc = np.zeros((n, 3))
+    for k, ob in enumerate(scene.objects):
+        r, t = ob.world_pose(scene.turntable, turntable_deg)
+        ol = (o - t) @ r          # R^T (o - t) for row vectors
+        dl = d @ r
+        th, nh = ob.shape.intersect(ol, dl)
+        closer = th < t_best
+        if not np.any(closer):
+            continue
+        t_best = np.where(closer, th, t_best)
+        obj = np.where(closer, k, obj)
+        if any_hit:
+            continue
+        nrm[closer] = nh[closer] @ r.T
+        p_loc[closer] = ol[closer] + th[closer, None] * dl[closer]
+    return t_best, obj, nrm, p_loc
+
+
+def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx",
+           skip_terms: bool = True) -> RenderResult:
+    """Ray-cast ``scene`` with its objects turned to ``turntable_deg``.
+
+    ``skip_terms=False`` evaluates both pBRDF terms on every pixel (mask or not, lit or not)
+    and is only there to measure what skipping saves (``benchmarks/bench_sim.py``); the result
+    is identical on lit pixels.
+    """
+    tim: dict[str, float] = {}
+    cam = scene.camera
+    h, w = cam.height, cam.width
+    t0 = time.perf_counter()
+    d_all = cam.ray_directions().reshape(-1, 3)
+    origin = cam.centre_m
+    o_all = np.broadcast_to(origin, d_all.shape)
+    t_hit, obj, n_geo, p_loc = _nearest_hit(scene, turntable_deg, o_all, d_all)
+    hit = np.isfinite(t_hit)
+    idx = np.nonzero(hit)[0]
+    d = d_all[idx]
+    p = origin + t_hit[idx, None] * d
+    wo = -d
+    ng = unit(n_geo[idx])
+    # shading normals and materials per object
+    ns = ng.copy()
+    mat_index = np.zeros(idx.size, dtype=np.int64)
+    mat_base = np.cumsum([0] + [len(o.materials) for o in scene.objects])
+    ob_hit = obj[idx]
+    for k, ob in enumerate(scene.objects):
+        sel = ob_hit == k
+        if not np.any(sel):
+            continue
+        r, _ = ob.world_pose(scene.turntable, turntable_deg)
+        nl = ng[sel] @ r  # back to local
+        ns[sel] = unit(ob.shape.shading_normal(p_loc[idx][sel], nl) @ r.T)
+        mat_index[sel] = mat_base[k] + ob.material_index(p_loc[idx][sel])
+    flip = np.einsum("ij,ij->i", ng, wo) < 0  # two-sided surfaces face the camera
+    ng[flip] *= -1
+    ns[flip] *= -1
+    tim["intersection"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    to_light = scene.light.position_m - p
+    dist = np.linalg.norm(to_light, axis=1)
+    wi = to_light / dist[:, None]
+    facing = (np.einsum("ij,ij->i", ng, wi) > 0) & (np.einsum("ij,ij->i", ns, wi) > 0)
+    shadowed = np.zeros(idx.size, dtype=bool)
+    f_idx = np.nonzero(facing)[0]
+    if f_idx.size:
+        so = p[f_idx] + SHADOW_EPS_M * ng[f_idx]
+        ts, _, _, _ = _nearest_hit(scene, turntable_deg, so, wi[f_idx],
+                                   t_max=dist[f_idx] - SHADOW_EPS_M, any_hit=True)
+        shadowed[f_idx] = np.isfinite(ts) & (ts < dist[f_idx] - SHADOW_EPS_M)
+    lit = facing & ~shadowed
+    tim["shadow"] = time.perf_counter() - t0
+
+    mats = scene.materials
+    kd_tab = np.array([m.kd for m in mats])
+    al_tab = np.array([m.alpha for m in mats])
+    eta_tab = np.array([m.eta for m in mats])
+    ks_tab = np.array([m.ks for m in mats])
+    kd = kd_tab[mat_index]
+    alpha, eta, ks = al_tab[mat_index], eta_tab[mat_index], ks_tab[mat_index]
+
+    zero_axis = scene.stage_zero_axis
+    cam_x = cam.R[0]
+    brdf_px = np.zeros((idx.size, 3, 3, 3))
+    if skip_terms:
+        need = lit
+        spec_sel = np.nonzero(need & (ks > 0))[0]
+        diff_sel = np.nonzero(need & (kd.max(axis=1) > 0))[0]
+    else:  # the brute-force reference for the benchmark: every term on every pixel
+        spec_sel = diff_sel = None
+    t0 = time.perf_counter()
+    if skip_terms:
+        if spec_sel.size:
+            s = spec_sel
+            ms = linear_rig_mueller(ns[s], wi[s], wo[s], kd=0.0, alpha=alpha[s], eta=eta[s],
+                                    ks=1.0, distribution=distribution, components=("specular",),
+                                    stage_zero_axis=zero_axis, camera_x_axis=cam_x)
+            brdf_px[s] += (ks[s, None, None] * ms)[:, None]
+    else:
+        ns_f, wi_f, wo_f = _full_directions(cam, d_all, idx, ns, wi, wo, scene)
+        ms = linear_rig_mueller(ns_f, wi_f, wo_f, kd=0.0, alpha=_full(al_tab.mean(), idx, alpha, h * w),
+                                eta=_full(1.5, idx, eta, h * w), ks=1.0, distribution=distribution,
+                                components=("specular",), stage_zero_axis=zero_axis,
+                                camera_x_axis=cam_x)
+        brdf_px += (np.where(lit, ks, 0.0)[:, None, None] * ms[idx])[:, None]
+    tim["specular"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if skip_terms:
+        if diff_sel.size:
+            s = diff_sel
+            md = linear_rig_mueller(ns[s], wi[s], wo[s], kd=1.0, alpha=alpha[s], eta=eta[s],
+                                    ks=0.0, distribution=distribution, components=("diffuse",),
+                                    stage_zero_axis=zero_axis, camera_x_axis=cam_x)
+            brdf_px[s] += kd[s, :, None, None] * md[:, None]
+    else:
+        md = linear_rig_mueller(ns_f, wi_f, wo_f, kd=1.0, alpha=_full(0.5, idx, alpha, h * w),
+                                eta=_full(1.5, idx, eta, h * w), ks=0.0, distribution=distribution,
+                                components=("diffuse",), stage_zero_axis=zero_axis,
+                                camera_x_axis=cam_x)
+        brdf_px += (np.where(lit[:, None], kd, 0.0)[:, :, None, None] * md[idx][:, None])
+    tim["diffuse"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    n_pix = h * w
+
+    def image(values: np.ndarray, fill=0.0, dtype=np.float32) -> np.ndarray:
+        out = np.full((n_pix,) + values.shape[1:], fill, dtype=dtype)
+        out[idx] = values
+        return np.moveaxis(out.reshape((h, w) + values.shape[1:]),
+                           (0, 1), (-2, -1)) if values.ndim > 1 else out.reshape(h, w)
+
+    to_cam = cam.R.T  # row vectors: v_cam = v_world @ R^T
+    mask = hit.reshape(h, w)
+    p_cam_z = (p @ to_cam + cam.t)[:, 2]
+    brdf = image(brdf_px.reshape(idx.size, 27)).reshape(3, 3, 3, h, w)
+    res = RenderResult(
+        turntable_deg=float(turntable_deg), mask=mask,
+        lit=image(lit, False, bool), shadow=image(facing & shadowed, False, bool),
+        object_index=image(ob_hit, -1, np.int16), material_index=image(mat_index, -1, np.int16),
+        normal=image(ns @ to_cam), wi=image(wi @ to_cam), wo=image(wo @ to_cam),
+        position_m=image(p), depth_m=image(p_cam_z), kd=image(kd), alpha=image(alpha),
+        eta=image(eta), ks=image(ks), inv_r2=image(1.0 / dist ** 2), brdf=brdf,
+        timings_s=tim,
+        counts={"pixels": n_pix, "hit": int(idx.size), "lit": int(lit.sum()),
+                "shadowed": int((facing & shadowed).sum()),
+                "specular_evals": int(n_pix if spec_sel is None else spec_sel.size),
+                "diffuse_evals": int(n_pix if diff_sel is None else diff_sel.size)})
+    tim["assemble"] = time.perf_counter() - t0
+    return res
+
+
+def _full(fill: float, idx: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``values`` at pixels ``idx`` of a flat image of ``n`` pixels, ``fill`` elsewhere."""
+    out = np.full(n, fill)
+    out[idx] = values
+    return out
+
+
+def _full_directions(cam, d_all, idx, ns, wi, wo, scene):
+    """Per-pixel vectors over the whole image for the no-skipping benchmark path (background
+    pixels get a plausible geometry so the pBRDF does full work on them)."""
+    ns_f = -d_all.copy()
+    wo_f = -d_all.copy()
+    wi_f = unit(scene.light.position_m - (cam.centre_m + 0.5 * d_all))
+    ns_f[idx], wi_f[idx], wo_f[idx] = ns, wi, wo
+    return ns_f, wi_f, wo_f

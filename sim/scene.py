@@ -1,0 +1,274 @@
+"""Scenes of the simulator: objects (shape + pose + materials), the rig (camera, light,
+turntable, polarizer stage axis) and named presets.
+
+Units: metres, world frame ``+Z`` up (:mod:`sim.geometry`). An object's pose maps its local
+frame to the world at turntable angle 0; objects with ``on_turntable`` are additionally carried
+by the turntable rotation. Per-region materials: ``region(p_local) -> index`` into
+``materials`` (``None``: one material).
+
+The incident Stokes frame's ``x`` axis is the polarizer stage's zero axis, ``stage_zero_axis``,
+a world unit vector perpendicular to the illumination axis (light -> ``illumination_target_m``);
+see ``docs/conventions.md`` ("Stokes reference frames").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from sim.geometry import PinholeCamera, PointLight, TurntableGeometry, look_at, unit
+from sim.materials import Material, get_material, random_material
+from sim.shapes import (Box, Cylinder, HeightField, Rectangle, Shape, Sphere, gaussian_bumps,
+                        wave_normal_map)
+
+RegionFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneObject:
+    """One object: ``shape`` in its local frame, placed by ``rotation`` (local->world) and
+    ``position_m`` at turntable angle 0."""
+
+    name: str
+    shape: Shape
+    materials: tuple[Material, ...]
+    position_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    rotation: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
+    region: RegionFn | None = None
+    on_turntable: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position_m", np.asarray(self.position_m, float).reshape(3))
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, float).reshape(3, 3))
+        if not self.materials:
+            raise ValueError(f"object {self.name}: needs at least one material")
+
+    def world_pose(self, turntable: TurntableGeometry,
+                   angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, t)`` with ``p_world = R @ p_local + t`` at turntable ``angle_deg``."""
+        if not self.on_turntable:
+            return self.rotation, self.position_m
+        rt, tt = turntable.transform(angle_deg)
+        return rt @ self.rotation, rt @ self.position_m + tt
+
+    def material_index(self, p_local: np.ndarray) -> np.ndarray:
+        if self.region is None or len(self.materials) == 1:
+            return np.zeros(len(p_local), dtype=np.int64)
+        return np.clip(np.asarray(self.region(p_local), dtype=np.int64), 0,
+                       len(self.materials) - 1)
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "shape": self.shape.to_json(),
+                "materials": [m.to_json() for m in self.materials],
+                "position_m": self.position_m.tolist(), "rotation": self.rotation.tolist(),
+                "regions": self.region is not None, "on_turntable": self.on_turntable}
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    name: str
+    objects: tuple[SceneObject, ...]
+    camera: PinholeCamera
+    light: PointLight
+    turntable: TurntableGeometry
+    stage_zero_axis: np.ndarray
+    illumination_target_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        k = unit(np.asarray(self.illumination_target_m, float) - self.light.position_m)
+        x = np.asarray(self.stage_zero_axis, float)
+        x = unit(x - np.dot(x, k) * k)
+        if not np.any(x):
+            raise ValueError("stage zero axis must not be parallel to the illumination axis")
+        object.__setattr__(self, "stage_zero_axis", x)
+        object.__setattr__(self, "illumination_target_m",
+                           np.asarray(self.illumination_target_m, float).reshape(3))
+
+    @property
+    def materials(self) -> list[Material]:
+        return [m for o in self.objects for m in o.materials]
+
+    def with_camera(self, camera: PinholeCamera) -> "Scene":
+        return dataclasses.replace(self, camera=camera)
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "objects": [o.to_json() for o in self.objects],
+                "camera": self.camera.to_json(),
+                "light": {"position_m": self.light.position_m.tolist(),
+                          "intensity_rgb": self.light.intensity_rgb.tolist()},
+                "turntable": {"axis": self.turntable.axis.tolist(),
+                              "point_m": self.turntable.point_m.tolist()},
+                "stage_zero_axis": self.stage_zero_axis.tolist(),
+                "illumination_target_m": self.illumination_target_m.tolist()}
+
+
+# ---------------------------------------------------------------------------------------------
+# The default rig and named scenes
+
+#: Object centre height above the turntable in the default rig (metres).
+OBJECT_Z_M = 0.06
+
+
+def default_camera(width: int, height: int, *, distance_m: float = 0.5,
+                   elevation_deg: float = 15.0, target_m=(0.0, 0.0, OBJECT_Z_M),
+                   focal_per_px: float = 2.5) -> PinholeCamera:
+    """The default camera: ``distance_m`` from the target along ``-Y`` raised by
+    ``elevation_deg``; ``fx = fy = focal_per_px * min(width, height)``, principal point at the
+    image centre (so the field of view does not depend on the simulated size)."""
+    e = np.deg2rad(elevation_deg)
+    target = np.asarray(target_m, float)
+    eye = target + distance_m * np.array([0.0, -np.cos(e), np.sin(e)])
+    r, t = look_at(eye, target)
+    f = focal_per_px * min(width, height)
+    return PinholeCamera(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height, r, t)
+
+
+def default_light(position_m=(0.18, -0.42, 0.25), intensity_rgb=(1.0, 1.0, 1.0)) -> PointLight:
+    return PointLight(np.asarray(position_m, float), np.asarray(intensity_rgb, float))
+
+
+def _rig(name: str, objects: list[SceneObject], width: int, height: int,
+         light: PointLight | None = None, camera: PinholeCamera | None = None) -> Scene:
+    light = light or default_light()
+    target = np.array([0.0, 0.0, OBJECT_Z_M])
+    k = unit(target - light.position_m)
+    zero = np.cross(k, [0.0, 0.0, 1.0])  # horizontal, perpendicular to the illumination axis
+    return Scene(name, tuple(objects), camera or default_camera(width, height), light,
+                 TurntableGeometry(), zero, target)
+
+
+def checker_regions(n_az: int = 6, n_el: int = 3) -> RegionFn:
+    """Region index 0/1 in a checkerboard over azimuth/elevation of the local point."""
+    def region(p: np.ndarray) -> np.ndarray:
+        az = np.arctan2(p[:, 1], p[:, 0]) + np.pi
+        el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])) + np.pi / 2
+        return ((np.floor(az / (2 * np.pi) * n_az) + np.floor(el / np.pi * n_el)) % 2).astype(int)
+    return region
+
+
+def halves_region(axis: int = 0) -> RegionFn:
+    """Region 1 where the local coordinate ``axis`` is positive, else 0."""
+    return lambda p: (p[:, axis] > 0).astype(int)
+
+
+def _floor(material: str = "diffuse_grey") -> SceneObject:
+    return SceneObject("floor", Rectangle(0.25, 0.25), (get_material(material),),
+                       position_m=np.zeros(3), on_turntable=False)
+
+
+def _tilt(deg_x: float, deg_z: float) -> np.ndarray:
+    from sim.geometry import rotation_about_axis
+    return rotation_about_axis([0, 0, 1], deg_z) @ rotation_about_axis([1, 0, 0], deg_x)
+
+
+def _scene_objects(name: str) -> list[SceneObject]:
+    c = np.array([0.0, 0.0, OBJECT_Z_M])
+    m = get_material
+    if name == "sphere":
+        return [SceneObject("sphere", Sphere(0.05), (m("plastic_red"),), c)]
+    if name == "diffuse_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (m("diffuse"),), c)]
+    if name == "mirror_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (m("mirror"),), c)]
+    if name == "rough_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (m("rough"),), c)]
+    if name == "checker_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (m("plastic_blue"), m("ceramic")), c,
+                            region=checker_regions())]
+    if name == "plane":
+        return [SceneObject("plane", Rectangle(0.06, 0.06), (m("ceramic"), m("rough")), c,
+                            rotation=_tilt(70.0, 20.0), region=halves_region(0))]
+    if name == "box":
+        return [SceneObject("box", Box((0.045, 0.03, 0.035)), (m("plastic_green"),),
+                            c + [0.015, 0.0, -0.02], rotation=_tilt(0.0, 30.0)), _floor()]
+    if name == "cylinder":
+        return [SceneObject("cylinder", Cylinder(0.035, 0.05), (m("plastic_white"),),
+                            c + [0.0, 0.0, -0.005], rotation=_tilt(0.0, 0.0))]
+    if name == "multi":
+        return [
+            SceneObject("sphere", Sphere(0.03), (m("plastic_red"),), [-0.03, -0.02, 0.03]),
+            SceneObject("box", Box((0.025, 0.025, 0.04)), (m("rough"),), [0.035, 0.03, 0.04],
+                        rotation=_tilt(0.0, 25.0)),
+            SceneObject("cylinder", Cylinder(0.015, 0.035), (m("mirror"), m("diffuse")),
+                        [0.03, -0.035, 0.035], region=halves_region(2)),
+            _floor(),
+        ]
+    if name == "heightfield":
+        h, g = gaussian_bumps([[-0.02, 0.01], [0.025, -0.015], [0.0, 0.03], [0.01, -0.035]],
+                              [0.012, 0.015, 0.01, 0.008], [0.015, 0.02, -0.008, 0.01])
+        return [SceneObject("terrain", HeightField(0.06, 0.06, -0.009, 0.021, h, g),
+                            (m("ceramic"),), [0.0, 0.0, 0.02])]
+    if name == "normalmap":
+        return [SceneObject("panel", Rectangle(0.06, 0.06, normal_map=wave_normal_map()),
+                            (m("plastic_white"),), c, rotation=_tilt(70.0, 0.0))]
+    raise ValueError(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
+
+
+SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_sphere",
+          "plane", "box", "cylinder", "multi", "heightfield", "normalmap")
+
+
+def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
+               light_position_m=None, light_intensity_rgb=None) -> Scene:
+    """A named scene (:data:`SCENES`) in the default rig at a sensor of ``width x height``."""
+    light = default_light()
+    if light_position_m is not None or light_intensity_rgb is not None:
+        light = PointLight(light.position_m if light_position_m is None else light_position_m,
+                           light.intensity_rgb if light_intensity_rgb is None
+                           else light_intensity_rgb)
+    return _rig(name, _scene_objects(name), width, height, light=light)
+
+
+#: Shape families of the random dataset scenes (``family`` id = index).
+FAMILIES = ("sphere", "box", "cylinder", "multi", "heightfield", "plane")
+#: Families kept out of the training set by ``polrig sim dataset`` (``--holdout`` makes them).
+HOLDOUT_FAMILIES = ("heightfield", "plane")
+
+
+def random_scene(rng: np.random.Generator, width: int, height: int,
+                 family: int) -> Scene:
+    """A randomized scene of shape family ``FAMILIES[family]``: random size, pose, material
+    (one material per scene, so one roughness per image), light position and colour."""
+    fam = FAMILIES[family]
+    mat = random_material(rng)
+    rot = _tilt(rng.uniform(-40, 40), rng.uniform(0, 360))
+    c = np.array([0.0, 0.0, OBJECT_Z_M]) + rng.uniform(-0.01, 0.01, 3)
+    if fam == "sphere":
+        objs = [SceneObject("sphere", Sphere(rng.uniform(0.035, 0.06)), (mat,), c)]
+    elif fam == "box":
+        objs = [SceneObject("box", Box(tuple(rng.uniform(0.02, 0.045, 3))), (mat,), c,
+                            rotation=rot)]
+    elif fam == "cylinder":
+        objs = [SceneObject("cylinder", Cylinder(rng.uniform(0.02, 0.04),
+                                                 rng.uniform(0.025, 0.05)), (mat,), c,
+                            rotation=rot)]
+    elif fam == "multi":
+        objs = [SceneObject("sphere", Sphere(rng.uniform(0.02, 0.035)), (mat,),
+                            c + [-0.03, -0.02, -0.02]),
+                SceneObject("box", Box(tuple(rng.uniform(0.015, 0.03, 3))), (mat,),
+                            c + [0.03, 0.02, -0.01], rotation=rot)]
+    elif fam == "heightfield":
+        k = int(rng.integers(3, 7))
+        h, g = gaussian_bumps(rng.uniform(-0.045, 0.045, (k, 2)), rng.uniform(0.006, 0.018, k),
+                              rng.uniform(-0.012, 0.02, k))
+        objs = [SceneObject("terrain", HeightField(0.06, 0.06, -0.012 * k, 0.02 * k, h, g),
+                            (mat,), c - [0, 0, 0.03], rotation=_tilt(rng.uniform(-20, 20),
+                                                                      rng.uniform(0, 360)))]
+    elif fam == "plane":
+        objs = [SceneObject("plane", Rectangle(0.06, 0.06,
+                                               normal_map=wave_normal_map(
+                                                   64, rng.uniform(1, 6), rng.uniform(0, 0.5))),
+                            (mat,), c, rotation=_tilt(rng.uniform(40, 85), rng.uniform(-30, 30)))]
+    else:  # pragma: no cover - FAMILIES is exhaustive
+        raise ValueError(fam)
+    az = rng.uniform(-70, 70)
+    el = rng.uniform(5, 60)
+    dist = rng.uniform(0.3, 0.6)
+    a, e = np.deg2rad(az), np.deg2rad(el)
+    lp = np.array([0.0, 0.0, OBJECT_Z_M]) + dist * np.array(
+        [np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
+    colour = rng.uniform(0.6, 1.0, 3)
+    light = PointLight(lp, colour / colour.max())
+    return _rig(fam, objs, width, height, light=light)

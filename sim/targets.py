@@ -1,0 +1,139 @@
+"""Calibration targets of the simulated rig, as :class:`sim.scene.SceneObject` s.
+
+* ``charuco``: a ChArUco board (:class:`calibration.charuco.BoardSpec` geometry, printed with
+  OpenCV's own board image) on a fixture at the turntable centre: a two-sided
+  :class:`sim.shapes.Rectangle` whose per-region materials (matte black / matte white
+  dielectric, Baek diffuse only) follow the board image;
+* ``mirror_plate``: a polished metal plate in the same fixture (pBRDF specular only with a very
+  large ``eta``: an ideal, non-depolarizing mirror whose GGX lobe of roughness 0.3 spreads the
+  reflected light of the polarizer over the whole image), the polarized flat field of the DoFP
+  calibration;
+* ``white_plate``: a matte white plate in the same fixture (flat field, unpolarizing);
+* ``chrome_sphere``: a chrome ball of known radius off the turntable axis, in front of a matte
+  white backdrop (so that its silhouette is a dark disc), for the light position.
+
+The fixture's pose (tilt back from vertical, yaw on the turntable) is shared by the plates and
+the board so that a board pose measured at a turntable angle is the plate pose there, as with a
+kinematic mount in the lab. :func:`mount` swaps the target of a running simulated rig (the
+guided procedures call it where an operator would swap targets by hand); the rig's camera,
+light, stage, sensor and hidden parameters stay the same.
+
+Hook added here (the simulator's scene model has no notion of swapping objects): :func:`mount`
+replaces ``world.scene`` and empties the world's render caches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from sim.geometry import rotation_about_axis
+from sim.materials import Material
+from sim.scene import OBJECT_Z_M, Scene, SceneObject
+from sim.shapes import Rectangle, Sphere
+
+TARGETS = ("charuco", "mirror_plate", "white_plate", "chrome_sphere")
+
+BOARD_BLACK = Material("board_black", (0.03, 0.03, 0.03), 0.5, 1.5, ks=0.0)
+BOARD_WHITE = Material("board_white", (0.85, 0.85, 0.85), 0.5, 1.5, ks=0.0)
+#: An ideal metal: ``eta`` so large that Rs = Rp = 1 to 1e-3 (non-depolarizing mirror).
+POLISHED_METAL = Material("polished_metal", (0.0, 0.0, 0.0), 0.3, 1000.0, ks=1.0)
+CHROME = Material("chrome", (0.0, 0.0, 0.0), 0.02, 1000.0, ks=1.0)
+WHITE = Material("matte_white", (0.8, 0.8, 0.8), 0.5, 1.5, ks=0.0)
+
+#: Default geometry of the targets (metres, degrees).
+DEFAULTS: dict[str, Any] = {
+    "fixture_centre_m": (0.0, 0.0, OBJECT_Z_M),
+    "tilt_deg": 25.0,
+    "yaw_deg": 0.0,
+    "squares_x": 6, "squares_y": 5, "square_m": 0.025, "marker_m": 0.018,
+    "dictionary": "4X4_50",
+    "plate_half_m": 0.2,
+    "sphere_radius_m": 0.02,
+    "sphere_offset_m": (0.045, 0.0, 0.0),
+    "sphere_height_m": 0.05,
+    "backdrop_y_m": 0.2,
+}
+
+
+def fixture_rotation(tilt_deg: float, yaw_deg: float) -> np.ndarray:
+    """Local -> world rotation of the fixture at turntable angle 0: the plate's local ``+z``
+    (its front) faces the camera side (``-Y``), tilted back (towards ``+Z``) by ``tilt_deg``
+    and turned about the vertical by ``yaw_deg``; local ``+y`` is the plate's up edge."""
+    r0 = np.column_stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+    return rotation_about_axis([0, 0, 1], yaw_deg) @ rotation_about_axis([1, 0, 0], -tilt_deg) @ r0
+
+
+def board_region(spec, half_x_m: float, half_y_m: float, pixels_per_square: int = 64):
+    """Region function (0 black, 1 white) of a ChArUco board on a rectangle: local ``x`` to
+    the right, ``y`` up the printed image, so board coordinates (OpenCV's, ``y`` down the
+    print) are ``(x + half_x, half_y - y)``."""
+    img = spec.image(pixels_per_square)
+    h, w = img.shape
+    scale = pixels_per_square / spec.square_m
+
+    def region(p: np.ndarray) -> np.ndarray:
+        col = np.clip(np.floor((p[:, 0] + half_x_m) * scale).astype(np.int64), 0, w - 1)
+        row = np.clip(np.floor((half_y_m - p[:, 1]) * scale).astype(np.int64), 0, h - 1)
+        return (img[row, col] > 127).astype(np.int64)
+
+    return region
+
+
+def board_spec(**kw):
+    """The :class:`calibration.charuco.BoardSpec` of the simulated board."""
+    from calibration.charuco import BoardSpec
+
+    o = {**DEFAULTS, **kw}
+    return BoardSpec(int(o["squares_x"]), int(o["squares_y"]), float(o["square_m"]),
+                     float(o["marker_m"]), str(o["dictionary"]))
+
+
+def target_objects(name: str, **kw) -> list[SceneObject]:
+    """The scene objects of calibration target ``name`` (:data:`TARGETS`); keyword arguments
+    override :data:`DEFAULTS`."""
+    unknown = set(kw) - set(DEFAULTS)
+    if unknown:
+        raise ValueError(f"unknown target option(s) {sorted(unknown)}; known: {sorted(DEFAULTS)}")
+    o = {**DEFAULTS, **kw}
+    centre = np.asarray(o["fixture_centre_m"], float)
+    rot = fixture_rotation(float(o["tilt_deg"]), float(o["yaw_deg"]))
+    if name == "charuco":
+        spec = board_spec(**kw)
+        hx, hy = 0.5 * spec.size_m[0], 0.5 * spec.size_m[1]
+        return [SceneObject("charuco", Rectangle(hx, hy), (BOARD_BLACK, BOARD_WHITE), centre,
+                            rotation=rot, region=board_region(spec, hx, hy))]
+    if name in ("mirror_plate", "white_plate"):
+        half = float(o["plate_half_m"])
+        mat = POLISHED_METAL if name == "mirror_plate" else WHITE
+        return [SceneObject(name, Rectangle(half, half), (mat,), centre, rotation=rot)]
+    if name == "chrome_sphere":
+        r = float(o["sphere_radius_m"])
+        pos = np.asarray(o["sphere_offset_m"], float) + [0.0, 0.0, float(o["sphere_height_m"])]
+        backdrop_rot = np.column_stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+        return [SceneObject("chrome_sphere", Sphere(r), (CHROME,), pos),
+                SceneObject("backdrop", Rectangle(0.6, 0.6), (WHITE,),
+                            [0.0, float(o["backdrop_y_m"]), OBJECT_Z_M],
+                            rotation=backdrop_rot, on_turntable=False)]
+    raise ValueError(f"unknown calibration target {name!r}; known: {', '.join(TARGETS)}")
+
+
+def target_scene(base: Scene, name: str, **kw) -> Scene:
+    """``base`` (camera, light, turntable, stage axis kept) with its objects replaced by the
+    calibration target ``name``."""
+    return dataclasses.replace(base, name=f"target:{name}", objects=tuple(target_objects(name, **kw)))
+
+
+def mount(rig, name: str, **kw) -> None:
+    """Swap the target of a simulated rig (a :class:`sim.devices.SimRig` or anything with a
+    ``world`` attribute): the world's scene gets the target's objects and its render caches are
+    emptied. Camera, light, stage, turntable position and all hidden parameters are kept."""
+    world = getattr(rig, "world", None)
+    if world is None:
+        raise ValueError("mount() needs a simulated rig (an object with a 'world')")
+    with world._lock:
+        world.scene = target_scene(world.scene, name, **kw)
+        world._poses.data.clear()
+        world._states.data.clear()

@@ -1,0 +1,196 @@
+"""Ground truth of the simulated rig and the truth files written next to simulated captures.
+
+:meth:`SimTruth.ground_truth` gives the per-pixel truth for the camera's current ROI, exposure,
+gain, the light's level and the turntable's pose; :meth:`SimTruth.rig_parameters` the hidden
+parameters calibration has to recover. :func:`write_truth` writes them as ``truth.json`` plus
+one ``truth_<name>.npz`` (and, when :mod:`polrig.exr` is available, ``truth_<name>_mueller.exr``)
+per capture; the schema is documented in ``docs/sim.md``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import pathlib
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from polrig.conventions import CONVENTIONS_VERSION
+from polrig.rawio import atomic_write_bytes, atomic_write_text
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.devices import SimRig
+    from sim.world import Roi, SimWorld
+
+TRUTH_FORMAT = "polrig-sim-truth"
+TRUTH_VERSION = 1
+
+#: Per-pixel arrays of :meth:`SimTruth.ground_truth` and the truth ``.npz`` files.
+PIXEL_KEYS = ("mueller", "mask", "lit", "shadow", "normal", "kd", "alpha", "eta", "ks", "wi",
+              "wo", "depth_m", "position_m", "object_index", "material_index")
+
+
+def pose_truth(world: "SimWorld", *, turntable_deg: float, roi: "Roi", exposure_us: float,
+               gain_db: float) -> dict[str, Any]:
+    """Per-pixel truth of a ROI at a turntable pose (see :meth:`SimTruth.ground_truth`)."""
+    r = world.render_pose(turntable_deg)
+    w, h, ox, oy = roi
+    sl = (slice(oy, oy + h), slice(ox, ox + w))
+    out: dict[str, Any] = {
+        "mueller": world.mueller_dn(turntable_deg, exposure_us, gain_db, roi),
+        "mask": r.mask[sl], "lit": r.lit[sl], "shadow": r.shadow[sl],
+        "normal": r.normal[(...,) + sl], "kd": r.kd[(...,) + sl], "alpha": r.alpha[sl],
+        "eta": r.eta[sl], "ks": r.ks[sl], "wi": r.wi[(...,) + sl], "wo": r.wo[(...,) + sl],
+        "depth_m": r.depth_m[sl], "position_m": r.position_m[(...,) + sl],
+        "object_index": r.object_index[sl], "material_index": r.material_index[sl],
+    }
+    out = {k: np.ascontiguousarray(v) for k, v in out.items()}
+    out.update({"turntable_deg": float(turntable_deg), "roi": tuple(int(v) for v in roi),
+                "exposure_us": float(exposure_us), "gain_db": float(gain_db),
+                "light_level": float(world.light_level), "light_on": bool(world.light_on)})
+    return out
+
+
+class SimTruth:
+    """Ground-truth provider of a :class:`sim.devices.SimRig`."""
+
+    def __init__(self, rig: "SimRig") -> None:
+        self._rig = rig
+
+    def ground_truth(self, *, turntable_deg: float | None = None) -> dict[str, Any]:
+        """Truth for the camera's current ROI, exposure and gain, the light's level and the
+        turntable's current angle (or ``turntable_deg``).
+
+        Arrays (``docs/sim.md``, frames and units in ``docs/conventions.md``): ``mueller``
+        ``(C, 3, 3, h, w)`` float32 in DN per unit incident S0 in the rig frames; ``mask``,
+        ``lit``, ``shadow`` ``(h, w)`` bool; ``normal``, ``wi``, ``wo`` ``(3, h, w)`` unit
+        vectors in the camera frame; ``kd`` ``(3, h, w)``; ``alpha``, ``eta``, ``ks``,
+        ``depth_m`` ``(h, w)``; ``position_m`` ``(3, h, w)`` world metres; plus the scalars
+        ``turntable_deg``, ``roi``, ``exposure_us``, ``gain_db``, ``light_level``, ``light_on``.
+        """
+        cam = self._rig.camera
+        world = self._rig.world
+        table = world.turntable_angle_deg() if turntable_deg is None else float(turntable_deg)
+        return pose_truth(world, turntable_deg=table, roi=cam.roi, exposure_us=cam.exposure_us,
+                          gain_db=cam.gain_db)
+
+    def rig_parameters(self) -> dict[str, Any]:
+        """Hidden parameters of the simulated rig, JSON-serialisable."""
+        return rig_parameters(self._rig.world)
+
+    def incident_stokes(self, stage_deg: float) -> np.ndarray:
+        """True normalised incident Stokes ``(3,)`` at a stage reading."""
+        return self._rig.world.generator.incident_stokes(stage_deg)
+
+
+def rig_parameters(world: "SimWorld") -> dict[str, Any]:
+    """Hidden parameters of a :class:`sim.world.SimWorld` (see ``docs/sim.md``)."""
+    sc = world.scene
+    return {
+        "light_position_m": sc.light.position_m.tolist(),
+        "light_intensity_rgb": sc.light.intensity_rgb.tolist(),
+        "stage_zero_axis": sc.stage_zero_axis.tolist(),
+        "illumination_target_m": sc.illumination_target_m.tolist(),
+        "generator": world.generator.to_json(),
+        "camera": sc.camera.to_json(),
+        "turntable": {"axis": sc.turntable.axis.tolist(),
+                      "point_m": sc.turntable.point_m.tolist()},
+        "sensor": world.sensor.to_json(),
+        "scene": sc.to_json(),
+        "distribution": world.distribution,
+        "seed": world.seed,
+        "noise": world.noise,
+    }
+
+
+def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def write_truth(directory: str | pathlib.Path, name: str, truth: dict[str, Any],
+                parameters: dict[str, Any], *, capture: dict[str, Any] | None = None,
+                exr: bool = True, compress: bool = True) -> dict[str, str]:
+    """Write one capture's truth into ``directory`` (atomically) and register it in
+    ``truth.json`` (created or updated; a capture of the same ``name`` is replaced).
+
+    ``truth``: a :meth:`SimTruth.ground_truth` dict; ``parameters``: :func:`rig_parameters`;
+    ``capture``: extra JSON metadata of the capture (frames written, incident states).
+    Returns the written file names.
+    """
+    d = pathlib.Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    files: dict[str, str] = {}
+    arrays = {k: np.asarray(truth[k]) for k in PIXEL_KEYS if k in truth}
+    npz_name = f"truth_{name}.npz"
+    if compress:
+        atomic_write_bytes(d / npz_name, _npz_bytes(arrays))
+    else:
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        atomic_write_bytes(d / npz_name, buf.getvalue())
+    files["npz"] = npz_name
+    if exr:
+        exr_name = _write_mueller_exr(d, f"truth_{name}_mueller.exr", truth["mueller"], parameters)
+        if exr_name:
+            files["exr"] = exr_name
+    entry = {"name": name, "files": files,
+             **{k: truth[k] for k in ("turntable_deg", "exposure_us", "gain_db", "light_level",
+                                      "light_on") if k in truth},
+             "roi": list(truth.get("roi", ())),
+             "shape": list(np.shape(truth["mask"])),
+             "channels": int(np.shape(truth["mueller"])[0]),
+             **(capture or {})}
+    index_path = d / "truth.json"
+    index = {"format": TRUTH_FORMAT, "version": TRUTH_VERSION,
+             "conventions_version": CONVENTIONS_VERSION, "units": {
+                 "mueller": "DN per unit incident S0 (docs/conventions.md, Radiometric units)",
+                 "normal": "unit, camera frame", "wi": "unit, towards the light, camera frame",
+                 "wo": "unit, towards the camera, camera frame", "depth_m": "m, camera Z",
+                 "position_m": "m, world frame"},
+             "rig": parameters, "captures": []}
+    if index_path.is_file():
+        try:
+            old = json.loads(index_path.read_text())
+            if old.get("format") == TRUTH_FORMAT:
+                index["captures"] = [c for c in old.get("captures", []) if c.get("name") != name]
+        except (OSError, ValueError):
+            pass
+    index["captures"].append(entry)
+    atomic_write_text(index_path, json.dumps(index, indent=1, default=_json_default))
+    files["json"] = "truth.json"
+    return files
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _write_mueller_exr(d: pathlib.Path, name: str, mueller: np.ndarray,
+                       parameters: dict[str, Any]) -> str | None:
+    """Write the Mueller image with :mod:`polrig.exr` if that module is present."""
+    try:
+        from polrig import exr as exr_mod
+    except ImportError:
+        return None
+    exr_mod.write_mueller(d / name, np.asarray(mueller, dtype=np.float32),
+                          metadata={"source": "polrig sim truth",
+                                    "units": "DN per unit incident S0"})
+    return name
+
+
+def read_truth(directory: str | pathlib.Path, name: str | None = None) -> tuple[dict, dict]:
+    """``(truth.json contents, arrays of capture name)`` (the first capture by default)."""
+    d = pathlib.Path(directory)
+    index = json.loads((d / "truth.json").read_text())
+    caps = index["captures"]
+    entry = caps[0] if name is None else next(c for c in caps if c["name"] == name)
+    with np.load(d / entry["files"]["npz"], allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    return index, arrays
