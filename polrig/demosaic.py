@@ -62,7 +62,8 @@ def preprocess(raw: np.ndarray, *, black_level_dn: float = 0.0,
     raw = np.asarray(raw)
     if raw.ndim != 2:
         raise ValueError(f"raw mosaic must be 2-D (H, W), got shape {raw.shape}")
-    x = raw.astype(np.float32, copy=True)
+    with np.errstate(over="ignore", invalid="ignore"):
+        x = raw.astype(np.float32, copy=True)
     if dark is not None:
         dark = np.asarray(dark, dtype=np.float32)
         if dark.shape != raw.shape:
@@ -102,11 +103,12 @@ def demosaic_float(x: np.ndarray, layout: MosaicLayout, method: str) -> np.ndarr
         raise ValueError(f"raw mosaic {x.shape} is smaller than one {ph}x{pw} layout cell")
     if x.dtype != np.float32:
         x = x.astype(np.float32)
-    if method == "superpixel":
-        return _superpixel(x, layout)
-    if method == "bilinear":
-        return _bilinear(x, layout)
-    return _newton(x, layout)
+    with np.errstate(all="ignore"):  # non-finite input is expected and masked downstream
+        if method == "superpixel":
+            return _superpixel(x, layout)
+        if method == "bilinear":
+            return _bilinear(x, layout)
+        return _newton(x, layout)
 
 
 def _check_method(method: str) -> None:
@@ -228,6 +230,11 @@ def demosaic_combined(x: np.ndarray, layout: MosaicLayout, method: str,
         if all(norm is None for _, norm in plan.values()):
             return _bilinear_combined(x, layout, w, ky, kx, plan)
     a = demosaic_float(x, layout, method)
+    with np.errstate(all="ignore"):
+        return _combine(a, w)
+
+
+def _combine(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     out = np.empty((a.shape[0], w.shape[0]) + a.shape[2:], np.float32)
     for c in range(a.shape[0]):
         for j in range(w.shape[0]):

@@ -62,11 +62,14 @@ class StokesSolver:
         self.inverse = ideal_inverse().astype(np.float32)  # (3, 4)
         self.pixel_inverse: np.ndarray | None = None  # (C, 3, 4, H', W')
         self.offset: np.ndarray | None = None  # (C, 4, H', W')
+        self._bilinear: StokesSolver | None = None  # calibrated newton: pre-correction
         if analyzer is not None:
             self._build(analyzer, method)
 
     @property
     def is_ideal(self) -> bool:
+        """True when :meth:`solve` applies the ideal inverse (no calibration, or a calibrated
+        ``newton`` solver whose calibration acts in :meth:`prepare_mosaic`)."""
         return self.pixel_inverse is None
 
     @property
@@ -76,10 +79,20 @@ class StokesSolver:
 
     def _build(self, model: AnalyzerModel, method: str) -> None:
         layout = model.mosaic_layout
-        m = "bilinear" if method == "newton" else method
+        if method == "newton":
+            # Newton's edge-directed weights are data dependent, so the calibration cannot be
+            # carried through them. Instead the mosaic is made ideal before demosaicing
+            # (prepare_mosaic): offset removed and each pixel's deviation from the ideal
+            # analyzer, (rows - ideal rows) . S, subtracted with S from the calibrated
+            # bilinear solve. Exact for locally uniform light, second order elsewhere.
+            self._bilinear = StokesSolver(model, "bilinear")
+            ideal = AnalyzerModel.ideal(layout, model.shape)
+            self._delta_rows = (model.rows() - ideal.rows()).astype(np.float32)  # (H, W, 3)
+            self._colour_map = model.colour_map()
+            return
         rows = model.rows()  # (H, W, 3)
         # effective analyzer rows on the output grid: a[j] is (C, 4, H', W')
-        a = [demosaic_float(np.ascontiguousarray(rows[..., j], np.float32), layout, m)
+        a = [demosaic_float(np.ascontiguousarray(rows[..., j], np.float32), layout, method)
              for j in range(3)]
         c, _, h, w = a[0].shape
         pinv = np.empty((c, 3, 4, h, w), np.float32)
@@ -88,7 +101,27 @@ class StokesSolver:
             sl = (slice(None), slice(None), slice(y0, y0 + step))
             pinv[..., y0:y0 + step, :] = _pixel_pseudo_inverse([aj[sl] for aj in a])
         self.pixel_inverse = pinv
-        self.offset = demosaic_float(model.offset_dn.astype(np.float32), layout, m)
+        self.offset = demosaic_float(model.offset_dn.astype(np.float32), layout, method)
+
+    def prepare_mosaic(self, x: np.ndarray) -> np.ndarray:
+        """The pre-processed float32 mosaic as this solver's demosaic step expects it:
+        unchanged, except for a calibrated ``newton`` solver, which returns the mosaic an ideal
+        sensor would have recorded (see :meth:`_build`)."""
+        if self._bilinear is None:
+            return x
+        if x.shape != self._delta_rows.shape[:2]:
+            raise ValueError(f"raw mosaic {x.shape} does not match the calibrated model "
+                             f"{self._delta_rows.shape[:2]}")
+        model = self.model
+        s = self._bilinear.solve(demosaic_float(x, model.mosaic_layout, "bilinear"))
+        if s.shape[0] == 1:
+            own = s[0]
+        else:
+            own = np.take_along_axis(s, self._colour_map[None, None], axis=0)[0]
+        out = x - model.offset_dn.astype(np.float32)
+        for j in range(3):
+            out -= self._delta_rows[..., j] * own[j]
+        return out
 
     def solve(self, analyzers: np.ndarray) -> np.ndarray:
         """Stokes images ``(C, 3, H', W')`` float32 of analyzer images ``(C, 4, H', W')``.
@@ -99,6 +132,10 @@ class StokesSolver:
         if a.ndim != 4 or a.shape[1] != 4:
             raise ValueError(f"analyzer images must have shape (C, 4, H, W), got {a.shape}")
         a = a.astype(np.float32, copy=False)
+        with np.errstate(all="ignore"):
+            return self._solve(a)
+
+    def _solve(self, a: np.ndarray) -> np.ndarray:
         c = a.shape[0]
         out = np.empty((c, 3) + a.shape[2:], np.float32)
         if self.pixel_inverse is None:
@@ -309,12 +346,24 @@ def stokes_from_raw(raw: np.ndarray, layout: LayoutLike, method: str = "superpix
     values are compared with it before black-level/dark removal. ``analyzer``: ``None`` for the
     ideal model, or a calibrated model / solver of this readout (see :class:`StokesSolver`).
     """
+    with np.errstate(all="ignore"):  # non-finite input is expected: it ends up masked
+        return _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer,
+                                saturation_dn, bit_depth)
+
+
+def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, saturation_dn,
+                     bit_depth) -> StokesImages:
     lay = resolve_layout(layout)
     raw = np.asarray(raw)
     x = preprocess(raw, black_level_dn=black_level_dn, dark=dark)
     solver = analyzer
     if isinstance(analyzer, AnalyzerModel):
         solver = StokesSolver(analyzer, method)
+    if solver is not None:
+        if solver.method != method and solver.model is not None:
+            raise ValueError(f"the Stokes solver was built for {solver.method!r} demosaicing, "
+                             f"not {method!r}")
+        x = solver.prepare_mosaic(x)
     if solver is None or solver.is_ideal:
         stokes = demosaic_combined(x, lay, method, ideal_inverse())
     else:

@@ -1,0 +1,138 @@
+"""Demosaicing: output sizes, exactness where the method is exact, accuracy ordering."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from _dofp_scenes import analyzer_truth, cell_constant, smooth_stokes
+from polrig.analyzer import AnalyzerModel
+from polrig.demosaic import METHODS, demosaic, demosaic_combined, output_shape
+from polrig.layouts import IMX250MYR, IMX250MZR, MosaicLayout, get_layout
+from polrig.stokes import ideal_inverse
+
+PHASES = [(0, 0), (1, 0), (0, 1), (1, 1), (2, 3), (3, 2)]
+
+
+def _raw(layout, stokes):
+    return AnalyzerModel.ideal(layout, stokes.shape[-2:]).mosaic(stokes)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("layout", [IMX250MZR, IMX250MYR])
+def test_output_shape_and_dtype(layout, method):
+    raw = np.zeros((18, 22), np.uint16)
+    out = demosaic(raw, layout, method)
+    ph, pw = layout.period
+    expect = (18 // ph, 22 // pw) if method == "superpixel" else (18, 22)
+    assert out.shape == (layout.n_colours, 4) + expect
+    assert output_shape(layout, raw.shape, method) == expect
+    assert out.dtype == np.float32
+
+
+@pytest.mark.parametrize("phase", PHASES)
+@pytest.mark.parametrize("base", [IMX250MZR, IMX250MYR])
+def test_superpixel_is_exact_on_cell_constant_scenes(base, phase):
+    layout = base.shifted(*phase)
+    small = smooth_stokes(layout.n_colours, (5, 6), freq=1.0, seed=3)
+    stokes = cell_constant(small, layout.period)
+    out = demosaic(_raw(layout, stokes), layout, "superpixel")
+    np.testing.assert_allclose(out, analyzer_truth(small), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("phase", PHASES[:4])
+def test_bilinear_reproduces_affine_scenes_in_the_interior(phase):
+    layout = IMX250MZR.shifted(*phase)
+    v, u = np.mgrid[0:20, 0:24].astype(float)
+    s0 = 3 + 0.05 * u + 0.03 * v
+    stokes = np.stack([s0, 0.02 * u - 0.01 * v, 0.5 - 0.01 * u])[None]
+    out = demosaic(_raw(layout, stokes), layout, "bilinear")
+    np.testing.assert_allclose(out[..., 2:-2, 2:-2], analyzer_truth(stokes)[..., 2:-2, 2:-2],
+                               atol=2e-5)
+
+
+@pytest.mark.parametrize("phase", PHASES[:4])
+def test_newton_is_exact_on_unpolarized_cubic_scenes(phase):
+    """Li et al.'s kernel is a cubic Newton interpolation plus the polarization-difference
+    correction, whose second differences cancel for a shared signal: exact for cubics."""
+    layout = IMX250MZR.shifted(*phase)
+    v, u = np.mgrid[0:40, 0:44].astype(float) / 40
+    s0 = 2 + u ** 3 - 0.5 * v ** 3 + 0.7 * u * v - u ** 2
+    stokes = np.stack([s0, 0 * s0, 0 * s0])[None]
+    out = demosaic(_raw(layout, stokes), layout, "newton")
+    err = np.abs(out - analyzer_truth(stokes))[..., 11:-11, 11:-11].max()
+    bil = demosaic(_raw(layout, stokes), layout, "bilinear")
+    err_bil = np.abs(bil - analyzer_truth(stokes))[..., 11:-11, 11:-11].max()
+    assert err < 1e-5 < err_bil
+
+
+def _psnr(est, truth):
+    mse = np.mean((est - truth) ** 2)
+    return 10 * np.log10(np.ptp(truth) ** 2 / mse)
+
+
+def _superpixel_upsampled(raw, layout):
+    sp = demosaic(raw, layout, "superpixel")
+    h, w = raw.shape
+    return np.stack([[cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR) for p in c]
+                     for c in sp])
+
+
+@pytest.mark.parametrize("layout", [IMX250MZR, IMX250MYR, get_layout("imx250myr", 1, 2)])
+def test_interpolating_methods_beat_upsampled_superpixel(layout):
+    stokes = smooth_stokes(layout.n_colours, (96, 128), freq=0.25, seed=1)
+    raw = _raw(layout, stokes)
+    truth = analyzer_truth(stokes)
+    crop = (Ellipsis, slice(12, -12), slice(12, -12))
+    p_sp = _psnr(_superpixel_upsampled(raw, layout)[crop], truth[crop])
+    p_bil = _psnr(demosaic(raw, layout, "bilinear")[crop], truth[crop])
+    p_new = _psnr(demosaic(raw, layout, "newton")[crop], truth[crop])
+    assert p_bil > p_sp + 1 and p_new > p_sp + 1, (p_sp, p_bil, p_new)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("layout", [IMX250MZR, get_layout("imx250mzr", 1, 1), IMX250MYR])
+def test_combined_equals_demosaic_then_combination(layout, method):
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0, 100, (24, 28)).astype(np.float32)
+    w = ideal_inverse()
+    a = demosaic(x, layout, method)
+    expect = np.einsum("jk,ckhw->cjhw", w, a)
+    np.testing.assert_allclose(demosaic_combined(x, layout, method, w), expect, atol=2e-4)
+
+
+def test_black_level_and_dark_are_removed():
+    rng = np.random.default_rng(5)
+    raw = rng.integers(100, 4000, (8, 8)).astype(np.uint16)
+    dark = rng.uniform(0, 20, (8, 8)).astype(np.float32)
+    a = demosaic(raw, IMX250MZR, "superpixel", black_level_dn=64, dark=dark)
+    b = demosaic(raw.astype(np.float32) - dark - 64, IMX250MZR, "superpixel")
+    np.testing.assert_allclose(a, b, atol=1e-3)
+    with pytest.raises(ValueError, match="dark frame"):
+        demosaic(raw, IMX250MZR, "bilinear", dark=np.zeros((4, 4)))
+
+
+def test_bad_inputs_give_clear_errors():
+    with pytest.raises(ValueError, match="unknown demosaic method"):
+        demosaic(np.zeros((4, 4)), IMX250MZR, "cubic")
+    with pytest.raises(ValueError, match="smaller than one"):
+        demosaic(np.zeros((2, 3)), IMX250MYR, "bilinear")
+    with pytest.raises(ValueError, match="2-D"):
+        demosaic(np.zeros((4, 4, 3)), IMX250MZR)
+    strip = MosaicLayout("strip", np.array([[0, 45, 90, 135]]), np.zeros((1, 4), int), ("Y",))
+    assert demosaic(np.ones((4, 8)), strip, "bilinear").shape == (1, 4, 4, 8)
+    with pytest.raises(ValueError, match="2x2-periodic"):
+        demosaic(np.ones((4, 8)), strip, "newton")
+
+
+@pytest.mark.parametrize("method,radius", [("bilinear", 1), ("newton", 10)])
+def test_non_finite_input_stays_local(method, radius):
+    raw = np.full((40, 40), 100.0)
+    raw[20, 21] = np.nan
+    out = demosaic(raw, IMX250MZR, method)
+    bad = ~np.isfinite(out).all(axis=(0, 1))
+    rows, cols = np.nonzero(bad)
+    assert bad[20, 21]
+    assert rows.min() >= 20 - radius and rows.max() <= 20 + radius
+    assert cols.min() >= 21 - radius and cols.max() <= 21 + radius
