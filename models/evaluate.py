@@ -1,0 +1,285 @@
+"""Evaluate single-shot reconstruction on a held-out simulated set: the paper's two tables.
+
+``polrig evaluate --data DIR`` (or ``python -m models.evaluate``) runs five methods on every
+sample of a dataset folder (``polrig sim dataset --holdout`` output: seeds and shape/material
+families never seen in training) and writes a Markdown table (default
+``benchmarks/results/single_shot.md``) plus the numbers as JSON next to it.
+
+Methods (rows), all producing normalised Mueller images ``(C, 3, 3, H, W)``:
+
+* **Full model**: ``single_shot.onnx`` (PIPNet -> pBRDF -> PMMNet) through onnxruntime.
+* **PIPNet-pBRDF**: the same graph's ``mueller_init`` (analytic pBRDF on PIPNet's outputs,
+  eta = 1.5, ks = 1, kd from PIPNet).
+* **Best-fit pBRDF (GT parameters)**: :func:`polrig.pbrdf.specular_diffuse_blocks` on the
+  true normal, light and view directions and roughness (eta = 1.5), with one specular gain and
+  one diffuse gain per colour (times the true kd) fitted per image to the true Mueller image by
+  least squares: an upper bound of what the analytic model can do.
+* **Direct Stokes->MM**: ``direct.onnx``, the same backbone regressing 27 elements.
+* **Four-state reference (same noise)**: captures under polarizer states 0/45/90/135 deg
+  rendered from the true Mueller image with the ideal analyzers
+  (:func:`polrig.reference.forward_measurements`), Gaussian noise of the variance the dataset's
+  own single-shot images show (``var = a + b I``, fitted on the set's residuals against the
+  noise-free rendering), solved by :func:`polrig.reference.solve_reference`.
+
+Metrics (all over the object mask, averaged over images):
+
+Table 1 (observed state ``s_in``): matrix PSNR (dB, peak = max |m| of the true image, MSE over
+the 27 elements), rendering PSNR and SSIM of the four analyzer images per colour rendered under
+``s_in`` (peak = max of the true rendering; SSIM of Wang et al. 2004, Gaussian window sigma 1.5,
+averaged over mask pixels), DoLP MAE and AoLP wrapped error (deg, ``min(|d|, 180 - |d|)``, over
+pixels with true DoLP >= 0.02) of the emergent Stokes under ``s_in``.
+
+Table 2 (11 held-out incident states: linear polarizer at 8 + 16.36 k deg, k = 0..10, on unit
+unpolarized light, ``S = 0.5 [1, cos 2t, sin 2t]``): forward Stokes relative L2
+``sqrt(sum |S_pred - S_true|^2 / sum |S_true|^2)`` over mask pixels, colours and states, DoLP
+MAE, AoLP error; GK and coherency (PSD) pass rates of the 3x3 blocks
+(:func:`polrig.realizability.is_physical_linear`, ``max_min_eigenvalue`` completion) before and
+after Cloude filtering (:func:`polrig.realizability.filter_linear`), on up to
+``realizability_pixels`` random mask pixels per image and colour.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import time
+
+import cv2
+import numpy as np
+
+from models.data import Dataset, load_dataset
+from models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig import pbrdf, realizability, reference
+from polrig.mueller import polarizer_stokes
+from polrig.stokes import aolp_deg, dolp, ideal_analyzer_matrix
+
+METHODS = ("full", "pipnet_pbrdf", "bestfit_pbrdf", "direct", "reference4")
+METHOD_NAMES = {"full": "Full model (PIPNet + pBRDF + PMMNet)", "pipnet_pbrdf": "PIPNet-pBRDF alone",
+                "bestfit_pbrdf": "Best-fit pBRDF (GT parameters)", "direct": "Direct Stokes->MM (same backbone)",
+                "reference4": "Four-state reference (same noise)"}
+HELD_OUT_STATES_DEG = tuple(8.0 + k * 180.0 / 11.0 for k in range(11))
+REFERENCE_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
+AOLP_MIN_DOLP = 0.02
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def emergent_stokes(m: np.ndarray, s_in: np.ndarray) -> np.ndarray:
+    """``M S`` for a Mueller image ``(C, 3, 3, H, W)`` and one state ``(3,)`` -> ``(C, 3, H, W)``."""
+    return np.einsum("cabhw,b->cahw", m, np.asarray(s_in, m.dtype))
+
+
+def render_analyzer(m: np.ndarray, s_in: np.ndarray) -> np.ndarray:
+    """Ideal analyzer images ``(C, 4, H, W)`` of ``M`` under ``s_in``."""
+    return np.einsum("jb,cbhw->cjhw", ideal_analyzer_matrix().astype(m.dtype), emergent_stokes(m, s_in))
+
+
+def psnr(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, peak: float) -> float:
+    """PSNR in dB over the masked pixels of planes ``(..., H, W)``."""
+    err = (pred - truth)[..., mask]
+    mse = float(np.mean(err.astype(np.float64) ** 2)) if err.size else float("nan")
+    if not mse > 0:
+        return float("inf") if mse == 0 else float("nan")
+    return 10.0 * np.log10(peak * peak / mse)
+
+
+def ssim_masked(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, peak: float) -> float:
+    """Mean SSIM (Wang et al., IEEE TIP 13(4) 2004; Gaussian window sigma 1.5) of planes
+    ``(..., H, W)`` over the masked pixels."""
+    c1, c2 = (0.01 * peak) ** 2, (0.03 * peak) ** 2
+    blur = lambda x: cv2.GaussianBlur(x, (11, 11), 1.5, borderType=cv2.BORDER_REFLECT)  # noqa: E731
+    vals = []
+    for p, t in zip(pred.reshape(-1, *pred.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])):
+        p, t = p.astype(np.float64), t.astype(np.float64)
+        mp, mt = blur(p), blur(t)
+        vp, vt, cov = blur(p * p) - mp * mp, blur(t * t) - mt * mt, blur(p * t) - mp * mt
+        s = ((2 * mp * mt + c1) * (2 * cov + c2)) / ((mp * mp + mt * mt + c1) * (vp + vt + c2))
+        vals.append(s[mask])
+    return float(np.mean(np.concatenate(vals))) if vals else float("nan")
+
+
+def _dolp_aolp_errors(sp: np.ndarray, st: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    valid_t = np.broadcast_to(mask, st.shape[:1] + mask.shape) & (st[:, 0] > 0)
+    valid_p = valid_t & (sp[:, 0] > 0)
+    dt, dp = dolp(st, valid_t), dolp(sp, valid_p)
+    at, ap = aolp_deg(st, valid_t), aolp_deg(sp, valid_p)
+    d = np.abs(ap - at)
+    d = np.minimum(d, 180.0 - d)
+    return np.abs(dp - dt)[valid_t], d[valid_t & (dt >= AOLP_MIN_DOLP)]
+
+
+def fit_noise_model(ds: Dataset, limit: int = 64) -> tuple[float, float]:
+    """``(a, b)`` of ``var = a + b I`` (normalised units) from the residual between the
+    dataset's analyzer images and the noise-free rendering of its true Mueller images."""
+    xs, ys = [], []
+    for i in range(min(len(ds), limit)):
+        mask = ds["mask"][i] > 0
+        clean = render_analyzer(ds["mueller"][i], ds["s_in"][i])
+        r = ds["analyzer"][i] - clean
+        xs.append(clean[:, :, mask].ravel())
+        ys.append((r[:, :, mask] ** 2).ravel())
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    if x.size < 10:
+        return 1e-8, 0.0
+    a_mat = np.stack([np.ones_like(x), np.clip(x, 0, None)], 1).astype(np.float64)
+    coef, *_ = np.linalg.lstsq(a_mat, y.astype(np.float64), rcond=None)
+    a, b = float(max(coef[0], 1e-12)), float(max(coef[1], 0.0))
+    return a, b
+
+
+def bestfit_pbrdf(ds: Dataset, i: int) -> np.ndarray:
+    """pBRDF with the true geometry and roughness, gains fitted by least squares (see module)."""
+    mask = ds["mask"][i] > 0
+    hw = lambda a: np.moveaxis(a, 0, -1)[mask]  # noqa: E731  (3, H, W) -> (P, 3)
+    ms, md = pbrdf.specular_diffuse_blocks(hw(ds["normal"][i]), hw(ds["wi"][i]), hw(ds["wo"][i]),
+                                           alpha=float(ds["alpha"][i]), eta=1.5,
+                                           stage_zero_axis=ds["stage_zero_axis"][i], camera_x_axis=[1.0, 0, 0])
+    kd = hw(ds["kd"][i])  # (P, C)
+    truth = np.moveaxis(ds["mueller"][i], (-2, -1), (0, 1))[mask]  # (P, C, 3, 3)
+    n_c = truth.shape[1]
+    # Unknowns: g_s, g_1..g_C; rows: every (pixel, colour, element).
+    cols = [np.broadcast_to(ms[:, None], truth.shape).ravel()]
+    for c in range(n_c):
+        d = np.zeros(truth.shape)
+        d[:, c] = kd[:, c, None, None] * md
+        cols.append(d.ravel())
+    g, *_ = np.linalg.lstsq(np.stack(cols, 1), truth.ravel(), rcond=None)
+    fit = g[0] * ms[:, None] + (g[1:][None, :, None, None] * kd[:, :, None, None]) * md[:, None]
+    out = np.zeros(ds["mueller"][i].shape, np.float32)
+    out[..., mask] = np.moveaxis(fit, (0,), (-1,)).astype(np.float32)
+    return out
+
+
+def reference_four_state(ds: Dataset, i: int, noise: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
+    """Four-state reference solve at the dataset's single-shot noise (see module)."""
+    truth = ds["mueller"][i]
+    states = polarizer_stokes(np.deg2rad(REFERENCE_STATES_DEG))
+    clean = reference.forward_measurements(truth, states)
+    var = noise[0] + noise[1] * np.clip(clean, 0, None)
+    measured = clean + rng.normal(size=clean.shape) * np.sqrt(var)
+    res = reference.solve_reference(states, measured, var)
+    return (res.mueller * (ds["mask"][i] > 0)).astype(np.float32)
+
+
+def _network_inputs(ds: Dataset, i: int) -> tuple:
+    return (ds["analyzer"][i][None], ds["mask"][i][None, None], ds["s_in"][i][None], ds["wo"][i][None],
+            ds["stage_zero_axis"][i][None])
+
+
+# ----------------------------------------------------------------------------- metrics
+
+def _sample_metrics(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, s_in: np.ndarray,
+                    rng: np.random.Generator, realizability_pixels: int) -> dict[str, float]:
+    out: dict[str, float] = {}
+    peak_m = float(np.abs(truth[..., mask]).max()) if mask.any() else 1.0
+    out["matrix_psnr"] = psnr(pred, truth, mask, peak_m)
+    rp, rt = render_analyzer(pred, s_in), render_analyzer(truth, s_in)
+    peak_r = float(rt[..., mask].max()) if mask.any() else 1.0
+    out["render_psnr"] = psnr(rp, rt, mask, peak_r)
+    out["render_ssim"] = ssim_masked(rp, rt, mask, peak_r)
+    dd, da = _dolp_aolp_errors(emergent_stokes(pred, s_in), emergent_stokes(truth, s_in), mask)
+    out["dolp_mae"], out["aolp_err"] = float(np.mean(dd)), float(np.mean(da)) if da.size else float("nan")
+    # Held-out states.
+    num = den = 0.0
+    d_all, a_all = [], []
+    for theta in HELD_OUT_STATES_DEG:
+        s = polarizer_stokes(np.deg2rad(theta))
+        sp, st = emergent_stokes(pred, s), emergent_stokes(truth, s)
+        num += float(np.sum((sp - st)[..., mask].astype(np.float64) ** 2))
+        den += float(np.sum(st[..., mask].astype(np.float64) ** 2))
+        dd, da = _dolp_aolp_errors(sp, st, mask)
+        d_all.append(dd)
+        a_all.append(da)
+    out["fwd_l2"] = float(np.sqrt(num / den)) if den > 0 else float("nan")
+    out["fwd_dolp_mae"] = float(np.mean(np.concatenate(d_all)))
+    a_cat = np.concatenate(a_all)
+    out["fwd_aolp_err"] = float(np.mean(a_cat)) if a_cat.size else float("nan")
+    # Realizability on a pixel sample.
+    blocks = np.moveaxis(pred, (-2, -1), (0, 1))[mask]  # (P, C, 3, 3)
+    blocks = blocks.reshape(-1, 3, 3)
+    if len(blocks) > realizability_pixels:
+        blocks = blocks[rng.choice(len(blocks), realizability_pixels, replace=False)]
+    blocks = blocks.astype(np.float64)
+    filtered = realizability.filter_linear(blocks)
+    out["gk_before"] = float(np.mean(realizability.is_physical_linear(blocks, test="gk")))
+    out["psd_before"] = float(np.mean(realizability.is_physical_linear(blocks, test="coherency")))
+    out["gk_after"] = float(np.mean(realizability.is_physical_linear(filtered, test="gk")))
+    out["psd_after"] = float(np.mean(realizability.is_physical_linear(filtered, test="coherency")))
+    return out
+
+
+def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | None = None, *,
+             limit: int | None = None, seed: int = 0, realizability_pixels: int = 400,
+             echo=print) -> dict:
+    """Run every method on every sample; returns ``{"methods": {name: {metric: mean}}, ...}``."""
+    ds = load_dataset(data_dir, limit)
+    wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
+    full = SingleShotModel.load(wd)
+    direct = SingleShotModel.load(wd, graph="direct.onnx")
+    noise = fit_noise_model(ds)
+    rng = np.random.default_rng(seed)
+    per: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS}
+    times: dict[str, float] = {m: 0.0 for m in METHODS}
+    t_start = time.time()
+    for i in range(len(ds)):
+        mask = ds["mask"][i] > 0
+        if not mask.any():
+            continue
+        truth, s_in = ds["mueller"][i], ds["s_in"][i]
+        preds = {}
+        t = time.perf_counter()
+        out = full.run_normalised(*_network_inputs(ds, i))
+        times["full"] += time.perf_counter() - t
+        preds["full"], preds["pipnet_pbrdf"] = out["mueller"][0], out["mueller_init"][0]
+        t = time.perf_counter()
+        preds["bestfit_pbrdf"] = bestfit_pbrdf(ds, i)
+        times["bestfit_pbrdf"] += time.perf_counter() - t
+        t = time.perf_counter()
+        preds["direct"] = direct.run_normalised(*_network_inputs(ds, i))["mueller"][0]
+        times["direct"] += time.perf_counter() - t
+        t = time.perf_counter()
+        preds["reference4"] = reference_four_state(ds, i, noise, rng)
+        times["reference4"] += time.perf_counter() - t
+        for name, pred in preds.items():
+            per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, rng, realizability_pixels))
+    n = len(per["full"])
+    methods = {m: {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} for m, rows in per.items() if rows}
+    families = sorted({int(f) for f in ds["family"]}) if "family" in ds.arrays else []
+    result = {"data": str(data_dir), "samples": n, "resolution": list(ds.shape), "families": families,
+              "noise_model": {"a": noise[0], "b": noise[1]}, "methods": methods,
+              "seconds_per_sample": {m: times[m] / max(n, 1) for m in METHODS},
+              "held_out_states_deg": list(HELD_OUT_STATES_DEG), "manifest": ds.manifest,
+              "eval_seconds": time.time() - t_start}
+    echo(markdown_tables(result))
+    return result
+
+
+def markdown_tables(result: dict) -> str:
+    """The paper's two tables as Markdown."""
+    m = result["methods"]
+    lines = [f"Held-out set: {result['samples']} samples at {result['resolution'][0]}x{result['resolution'][1]}.", "",
+             "| Method | Matrix PSNR (dB) ↑ | Rendering PSNR (dB) ↑ | Rendering SSIM ↑ | DoLP MAE ↓ | AoLP err. (deg) ↓ |",
+             "|---|---|---|---|---|---|"]
+    for k in METHODS:
+        if k in m:
+            r = m[k]
+            lines.append(f"| {METHOD_NAMES[k]} | {r['matrix_psnr']:.2f} | {r['render_psnr']:.2f} | "
+                         f"{r['render_ssim']:.4f} | {r['dolp_mae']:.4f} | {r['aolp_err']:.2f} |")
+    lines += ["", "| Method | Forward Stokes L2 (rel.) ↓ | DoLP MAE ↓ | AoLP err. (deg) ↓ | GK pass | PSD pass | GK pass (Cloude) | PSD pass (Cloude) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for k in METHODS:
+        if k in m:
+            r = m[k]
+            lines.append(f"| {METHOD_NAMES[k]} | {r['fwd_l2']:.4f} | {r['fwd_dolp_mae']:.4f} | {r['fwd_aolp_err']:.2f} | "
+                         f"{100 * r['gk_before']:.1f}% | {100 * r['psd_before']:.1f}% | "
+                         f"{100 * r['gk_after']:.1f}% | {100 * r['psd_after']:.1f}% |")
+    return "\n".join(lines)
+
+
+def write_results(result: dict, out_md: str | pathlib.Path) -> None:
+    out_md = pathlib.Path(out_md)
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    out_md.with_suffix(".json").write_text(json.dumps(result, indent=2, default=str))
+    out_md.write_text("# Single-shot Mueller reconstruction: held-out evaluation\n\n"
+                      "Produced by `polrig evaluate` (models/evaluate.py; metric definitions in its docstring).\n\n"
+                      + markdown_tables(result) + "\n")

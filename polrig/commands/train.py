@@ -1,0 +1,54 @@
+"""``polrig train --data DIR --out DIR``: train the single-shot networks (needs the ``train``
+extra, i.e. PyTorch) on ``polrig sim dataset`` output and export ONNX into ``OUT/weights``.
+
+Thin shell over :func:`models.train.train` (stages, schedule, logs and checkpoints are
+documented there).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train PIPNet + PMMNet (and the direct baseline), export ONNX",
+                       description="Train PIPNet, then PMMNet, then the direct Stokes->MM baseline on "
+                                   "a simulated dataset; checkpoints every epoch (resume with "
+                                   "--resume), logs OUT/log.csv, exports OUT/weights/*.onnx and "
+                                   "checks them against PyTorch with onnxruntime.")
+    p.add_argument("--data", required=True, help="dataset folder written by `polrig sim dataset`")
+    p.add_argument("--out", required=True, help="output folder (checkpoint, logs, weights/)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="epochs of every stage (overrides the per-stage defaults)")
+    p.add_argument("--pipnet-epochs", type=int, default=None)
+    p.add_argument("--pmmnet-epochs", type=int, default=None)
+    p.add_argument("--direct-epochs", type=int, default=None)
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None, help="initial Adam learning rate")
+    p.add_argument("--width", type=int, default=None, help="backbone width (channels at 1/2 resolution)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
+    p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--no-export", action="store_true", help="skip the ONNX export")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from models.train import TrainConfig, train
+    except ImportError as exc:  # torch missing
+        raise ValueError(f"training needs the 'train' extra (pip install polrig[train]): {exc}") from exc
+
+    cfg = TrainConfig()
+    if args.epochs is not None:
+        cfg.pipnet_epochs = cfg.pmmnet_epochs = cfg.direct_epochs = args.epochs
+    for name in ("pipnet_epochs", "pmmnet_epochs", "direct_epochs", "batch_size", "lr", "width",
+                 "threads", "limit", "seed"):
+        value = getattr(args, name)
+        if value is not None:
+            if isinstance(value, (int, float)) and name != "lr" and value < 0:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 0")
+            setattr(cfg, name, value)
+    train(args.data, args.out, cfg, resume=args.resume, export=not args.no_export)
+    return 0
