@@ -1,0 +1,119 @@
+"""DC2200 driver through real pyusb calls into the USBTMC emulator backend."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from drivers import usbtmc
+from drivers.dc2200 import Dc2200Light
+from drivers.emulators.dc2200 import Dc2200Emulator
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+
+pytestmark = pytest.mark.timeout(20)
+
+
+@pytest.fixture
+def emu():
+    return Dc2200Emulator()
+
+
+@pytest.fixture
+def light(emu):
+    with Dc2200Light(backend=emu, timeout_s=0.3) as lt:
+        yield lt
+
+
+def test_identity_and_constant_brightness_mode(light, emu):
+    info = light.info()
+    assert (info.model, info.serial, info.firmware) == ("DC2200", "M00123456", "1.2.0")
+    assert emu.mode == "CB"
+    assert "SOURCE1:MODE CB\n" in emu.received
+
+
+def test_on_level_status(light, emu):
+    light.set_level(0.25)
+    light.set_on(True)
+    assert emu.output_on and emu.brightness_percent == pytest.approx(25.0)
+    st = light.status()
+    assert st["on"] is True and st["level"] == pytest.approx(0.25) and st["mode"] == "CB"
+    light.set_on(False)
+    assert light.status()["on"] is False
+    with pytest.raises(ValueError):
+        light.set_level(1.5)
+    with pytest.raises(ValueError):
+        light.set_level(float("nan"))
+
+
+def test_usbtmc_frames_are_padded():
+    frame = usbtmc.dev_dep_msg_out(7, b"*IDN?\n")
+    assert len(frame) % 4 == 0 and frame[:4] == bytes([1, 7, 0xF8, 0])
+    assert int.from_bytes(frame[4:8], "little") == 6 and frame[8] == 1
+
+
+def test_scpi_error_is_device_fault(light, emu):
+    with pytest.raises(DeviceFault) as ei:
+        light.command("SOURCE1:CBRIGHTNESS:BRIGHTNESS 150")
+    assert ei.value.code == -222 and "out of range" in ei.value.text
+    light.set_level(0.5)  # queue drained: the next command is clean
+
+
+def test_select_by_serial(emu):
+    with pytest.raises(DeviceNotFound, match="serial X1"):
+        Dc2200Light("X1", backend=emu).open()
+    with Dc2200Light("M00123456", backend=emu) as lt:
+        assert lt.info().serial == "M00123456"
+
+
+def test_no_reply_times_out_and_recovers(light, emu):
+    emu.inject("no_reply")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        light.status()
+    assert time.monotonic() - t0 < 1.0
+    assert light.status()["on"] is False
+
+
+@pytest.mark.parametrize("fault", ["garble", "partial"])
+def test_bad_replies(light, emu, fault):
+    emu.inject(fault)
+    with pytest.raises(ProtocolError):
+        light.status()
+    assert light.status()["level"] == 0.0
+
+
+def test_led_head_lost(light, emu):
+    light.set_on(True)
+    emu.inject("device_error")
+    with pytest.raises(DeviceFault) as ei:
+        light.set_on(True)
+    assert ei.value.code == -241 and "Hardware missing" in ei.value.text
+    assert light.status()["on"] is False
+    emu.led_connected = True
+    light.set_on(True)
+    assert emu.output_on
+
+
+def test_disconnect_and_reopen(light, emu):
+    emu.disconnect()
+    with pytest.raises(DeviceDisconnected):
+        light.set_on(True)
+    assert not light.is_open
+    with pytest.raises(DeviceNotFound):
+        light.open()
+    emu.reconnect()
+    light.open()
+    light.set_on(True)
+    assert emu.output_on
+    light.close()
+    light.close()
+
+
+def test_backend_module_name():
+    from drivers.emulators import dc2200 as mod
+    with Dc2200Light(backend="drivers.emulators.dc2200") as lt:
+        lt.set_level(0.1)
+    assert mod.get_backend().brightness_percent == pytest.approx(10.0)
+    with pytest.raises(DeviceNotFound):
+        Dc2200Light(backend="no.such.backend").open()
