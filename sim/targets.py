@@ -48,7 +48,8 @@ DEFAULTS: dict[str, Any] = {
     "fixture_centre_m": (0.0, 0.0, OBJECT_Z_M),
     "tilt_deg": 25.0,
     "yaw_deg": 0.0,
-    "squares_x": 6, "squares_y": 5, "square_m": 0.025, "marker_m": 0.018,
+    "roll_deg": 0.0,
+    "squares_x": 8, "squares_y": 6, "square_m": 0.025, "marker_m": 0.018,
     "dictionary": "4X4_50",
     "plate_half_m": 0.2,
     "sphere_radius_m": 0.02,
@@ -58,12 +59,14 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
-def fixture_rotation(tilt_deg: float, yaw_deg: float) -> np.ndarray:
+def fixture_rotation(tilt_deg: float, yaw_deg: float, roll_deg: float = 0.0) -> np.ndarray:
     """Local -> world rotation of the fixture at turntable angle 0: the plate's local ``+z``
     (its front) faces the camera side (``-Y``), tilted back (towards ``+Z``) by ``tilt_deg``
-    and turned about the vertical by ``yaw_deg``; local ``+y`` is the plate's up edge."""
+    and turned about the vertical by ``yaw_deg``; local ``+y`` is the plate's up edge, turned
+    in the plate's plane by ``roll_deg`` (counter-clockwise seen from the front)."""
     r0 = np.column_stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
-    return rotation_about_axis([0, 0, 1], yaw_deg) @ rotation_about_axis([1, 0, 0], -tilt_deg) @ r0
+    return (rotation_about_axis([0, 0, 1], yaw_deg) @ rotation_about_axis([1, 0, 0], -tilt_deg)
+            @ r0 @ rotation_about_axis([0, 0, 1], roll_deg))
 
 
 def board_region(spec, half_x_m: float, half_y_m: float, pixels_per_square: int = 64):
@@ -99,7 +102,7 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
         raise ValueError(f"unknown target option(s) {sorted(unknown)}; known: {sorted(DEFAULTS)}")
     o = {**DEFAULTS, **kw}
     centre = np.asarray(o["fixture_centre_m"], float)
-    rot = fixture_rotation(float(o["tilt_deg"]), float(o["yaw_deg"]))
+    rot = fixture_rotation(float(o["tilt_deg"]), float(o["yaw_deg"]), float(o["roll_deg"]))
     if name == "charuco":
         spec = board_spec(**kw)
         hx, hy = 0.5 * spec.size_m[0], 0.5 * spec.size_m[1]

@@ -1,0 +1,25 @@
+"""Typed errors of the calibration procedures. Each message names what to change."""
+
+from __future__ import annotations
+
+from polrig.errors import PolrigError
+
+
+class CalibrationError(PolrigError, ValueError):
+    """A calibration input cannot give a result (too few views, degenerate geometry)."""
+
+
+class BoardNotFound(CalibrationError):
+    """The ChArUco board is not (sufficiently) visible in an image."""
+
+
+class SphereNotFound(CalibrationError):
+    """No mirror sphere silhouette could be found in an image."""
+
+
+class SphereSaturated(CalibrationError):
+    """The specular highlight on the mirror sphere is clipped at the sensor's maximum."""
+
+
+class TooFewAngles(CalibrationError):
+    """Too few stage or turntable angles for the fit to be determined."""
