@@ -1,0 +1,124 @@
+"""Stokes/Mueller OpenEXR files: bit-exact round trips, metadata, one-line errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from polrig.conventions import CONVENTIONS_VERSION
+from polrig.errors import FormatError
+from polrig.exr import (colour_planes, mueller_channels, read_exr, read_mueller_exr,
+                        read_stokes_exr, write_exr, write_mueller_exr, write_stokes_exr)
+
+
+def _bits(a):
+    return np.ascontiguousarray(a, np.float32).view(np.uint32)
+
+
+def _nasty(rng, shape):
+    """Random float32 including NaN, +-inf, -0, subnormals and extremes."""
+    a = rng.normal(0, 1e3, shape).astype(np.float32)
+    flat = a.reshape(-1)
+    specials = np.array([np.nan, np.inf, -np.inf, -0.0, 1e-45, 3.4e38, -1e-40], np.float32)
+    flat[: specials.size] = specials
+    return a
+
+
+@pytest.mark.parametrize("c", [1, 3])
+def test_mueller_round_trip_is_bit_exact(tmp_path, c):
+    rng = np.random.default_rng(c)
+    m = _nasty(rng, (c, 3, 3, 7, 9))
+    mask = rng.random((7, 9)) > 0.5
+    sigma = rng.random((c, 7, 9)).astype(np.float32)
+    meta = {"incident_state": [[1.0, 0.5, 0.0]], "calibration_id": "cal-2026-11-22",
+            "capture": {"exposure_us": 1200.0, "poses": 3}}
+    p = write_mueller_exr(tmp_path / "m.exr", m,
+                          extra={"mask": mask, **colour_planes("sigma.M00", sigma)},
+                          metadata=meta)
+    back = read_mueller_exr(p)
+    assert back.mueller.shape == m.shape and back.mueller.dtype == np.float32
+    np.testing.assert_array_equal(_bits(back.mueller), _bits(m))
+    np.testing.assert_array_equal(back.extra["mask"], mask.astype(np.float32))
+    np.testing.assert_array_equal(back.extra[f"sigma.M00.{'Y' if c == 1 else 'G'}"],
+                                  sigma[0 if c == 1 else 1])
+    assert back.metadata == meta
+    assert back.conventions == CONVENTIONS_VERSION
+    names = set(read_exr(p).planes)
+    assert set(mueller_channels(c)) <= names
+    assert ("M12.Y" in names) == (c == 1) and ("M12.B" in names) == (c == 3)
+
+
+@pytest.mark.parametrize("c", [1, 3])
+def test_stokes_round_trip_is_bit_exact(tmp_path, c):
+    rng = np.random.default_rng(10 + c)
+    s = _nasty(rng, (c, 3, 5, 4))
+    p = write_stokes_exr(tmp_path / "s.exr", s, extra=colour_planes("dolp", s[:, 1]))
+    back = read_stokes_exr(p)
+    np.testing.assert_array_equal(_bits(back.stokes), _bits(s))
+    assert set(back.extra) == set(colour_planes("dolp", s[:, 1]))
+    img = read_exr(p)
+    assert img.kind == "stokes" and "S2." + ("Y" if c == 1 else "B") in img.planes
+
+
+def test_files_are_readable_by_plain_openexr(tmp_path):
+    s = np.arange(2 * 3 * 3, dtype=np.float32).reshape(1, 3, 2, 3)
+    p = write_stokes_exr(tmp_path / "s.exr", s, metadata={"note": "x"})
+    f = OpenEXR.File(str(p), separate_channels=True)
+    np.testing.assert_array_equal(f.channels()["S1.Y"].pixels, s[0, 1])
+    assert f.header()["polrig:note"] == '"x"'
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind
+
+
+def _one_line(exc, path):
+    msg = str(exc.value)
+    assert "\n" not in msg and str(path) in msg
+    return msg
+
+
+def test_non_exr_file(tmp_path):
+    p = tmp_path / "not.exr"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    with pytest.raises(FormatError) as e:
+        read_stokes_exr(p)
+    assert "not an OpenEXR file" in _one_line(e, p)
+
+
+@pytest.mark.parametrize("keep", [0.3, 0.6, 0.95])
+def test_truncated_file(tmp_path, keep):
+    rng = np.random.default_rng(1)
+    p = write_mueller_exr(tmp_path / "m.exr", rng.random((3, 3, 3, 64, 64)).astype(np.float32))
+    data = p.read_bytes()
+    bad = tmp_path / "trunc.exr"
+    bad.write_bytes(data[: int(len(data) * keep)])
+    with pytest.raises(FormatError) as e:
+        read_mueller_exr(bad)
+    assert "OpenEXR" in _one_line(e, bad)
+
+
+def test_missing_channels(tmp_path):
+    m = np.zeros((3, 3, 3, 4, 4), np.float32)
+    planes = {f"M{r}{c}.{s}": m[0, r, c] for r in range(3) for c in range(3) for s in "RGB"}
+    del planes["M21.G"], planes["M02.B"]
+    p = write_exr(tmp_path / "m.exr", planes, kind="mueller")
+    with pytest.raises(FormatError) as e:
+        read_mueller_exr(p)
+    msg = _one_line(e, p)
+    assert "M21.G" in msg and "M02.B" in msg
+    with pytest.raises(FormatError) as e:
+        read_stokes_exr(p)
+    assert "S0" in _one_line(e, p)
+
+
+def test_missing_file_and_bad_arrays(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        read_exr(tmp_path / "nope.exr")
+    with pytest.raises(ValueError):
+        write_stokes_exr(tmp_path / "x.exr", np.zeros((2, 3, 4, 4)))
+    with pytest.raises(ValueError):
+        write_mueller_exr(tmp_path / "x.exr", np.zeros((1, 3, 4, 4, 4)))
+    with pytest.raises(ValueError, match="clashes"):
+        write_stokes_exr(tmp_path / "x.exr", np.zeros((1, 3, 4, 4)),
+                         extra={"S0.Y": np.zeros((4, 4))})
+    with pytest.raises(ValueError, match="JSON"):
+        write_stokes_exr(tmp_path / "x.exr", np.zeros((1, 3, 4, 4)), metadata={"a": object()})
