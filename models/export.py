@@ -22,6 +22,7 @@ import contextlib
 import io
 import json
 import pathlib
+import warnings
 
 import numpy as np
 import torch
@@ -44,7 +45,8 @@ def _export(model: torch.nn.Module, sample: dict[str, torch.Tensor], outputs: tu
     for name in outputs:
         dyn[name] = {0: "batch"}
     args = tuple(sample[k] for k in INPUTS)
-    with contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer notes
         torch.onnx.export(model, args, str(path), input_names=list(INPUTS), output_names=list(outputs),
                           opset_version=OPSET, dynamic_axes=dyn, dynamo=False, do_constant_folding=True)
 

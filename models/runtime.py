@@ -220,3 +220,52 @@ class SingleShotModel:
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
         return mueller, aux
+
+
+def incident_stokes(state_deg: float, extinction_ratio: float = float("inf")) -> np.ndarray:
+    """Normalised incident Stokes ``(3,)`` of the polarizer at stage angle ``state_deg`` on
+    unit unpolarized light (``S0 = 0.5`` for an ideal polarizer, ``docs/conventions.md``)."""
+    from polrig.mueller import polarizer_stokes
+
+    return polarizer_stokes(np.deg2rad(float(state_deg)), extinction_ratio).astype(np.float32)
+
+
+def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotModel, *,
+                demosaic_method: str = "superpixel", black_level_dn: float = 0.0,
+                mask: np.ndarray | None = None, scale: float | None = None,
+                stage_zero_axis=(1.0, 0.0, 0.0), intrinsics=None) -> tuple[np.ndarray, dict]:
+    """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
+    demosaic (:func:`polrig.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
+    sampling: a quarter of the raw size per axis for the colour IMX250MYR), then
+    :meth:`SingleShotModel.reconstruct` under the state of the polarizer at ``state_deg``.
+    ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings."""
+    from polrig.analyzer import resolve_layout
+    from polrig.demosaic import demosaic
+    from polrig.stokes import stokes_from_analyzers
+
+    t0 = time.perf_counter()
+    lay = resolve_layout(layout)
+    analyzer = demosaic(raw, lay, demosaic_method, black_level_dn=black_level_dn)
+    t1 = time.perf_counter()
+    stokes = stokes_from_analyzers(analyzer)
+    t2 = time.perf_counter()
+    mueller, aux = model.reconstruct(analyzer, incident_stokes(state_deg), mask=mask, scale=scale,
+                                     stage_zero_axis=stage_zero_axis, intrinsics=intrinsics)
+    aux["stokes"] = stokes
+    aux["timings_s"] = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
+    return mueller, aux
+
+
+def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None):
+    """Mueller EXR (``M{r}{c}.{R,G,B}``) with ``mask`` and the estimated ``normal.{X,Y,Z}``
+    planes and the model's scalars in the header (:func:`polrig.exr.write_mueller_exr`)."""
+    from polrig.exr import write_mueller_exr
+
+    extra = {"mask": aux["mask"].astype(np.float32)}
+    if "normal" in aux:
+        for k, name in enumerate("XYZ"):
+            extra[f"normal.{name}"] = aux["normal"][k]
+    meta = {"method": "single-shot", "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
+            "scale_dn": aux.get("scale"), "alpha": aux.get("alpha")}
+    meta.update(metadata or {})
+    return write_mueller_exr(path, mueller, extra=extra, metadata=meta)

@@ -130,7 +130,7 @@ def _run_epoch(model, step, t, idx_all, batch, opt, rng) -> tuple[float, dict[st
         loss.backward()
         opt.step()
         k = len(idx)
-        total += float(loss) * k
+        total += float(loss.detach()) * k
         count += k
         for name, v in detail.items():
             parts[name] = parts.get(name, 0.0) + v * k

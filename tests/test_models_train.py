@@ -1,0 +1,89 @@
+"""The whole training path in seconds: tiny dataset -> PIPNet -> PMMNet -> direct -> ONNX,
+resume, ONNX vs torch agreement, and the runtime on the exported graphs."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnxruntime")
+
+from models.data import load_dataset  # noqa: E402
+from models.train import TrainConfig, lr_at, train  # noqa: E402
+
+from models_fixtures import make_tiny_dataset  # noqa: E402
+
+TINY = TrainConfig(pipnet_epochs=2, pmmnet_epochs=2, direct_epochs=1, batch_size=2, width=8, val_fraction=0.25)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train")
+    data = make_tiny_dataset(root / "data", count=4, size=32)
+    summary = train(data, root / "run", TINY, echo=lambda s: None)
+    return root, data, summary
+
+
+def test_training_logs_checkpoints_and_exports(trained):
+    root, _, summary = trained
+    run = root / "run"
+    rows = list(csv.DictReader((run / "log.csv").open()))
+    assert [r["stage"] for r in rows] == ["pipnet"] * 2 + ["pmmnet"] * 2 + ["direct"]
+    assert all(np.isfinite(float(r["train_loss"])) for r in rows)
+    assert (run / "checkpoint.pt").is_file()
+    for name in ("single_shot.onnx", "direct.onnx"):
+        rec = summary["export"][name]
+        assert (run / "weights" / name).stat().st_size == rec["bytes"]
+        # ONNX graph and PyTorch agree on the same inputs (float32 rounding only).
+        assert rec["max_abs_diff"] <= 1e-4 * max(1.0, rec["max_abs_output"])
+    meta = json.loads((run / "weights" / "model.json").read_text())
+    assert meta["opset"] >= 17 and meta["colours"] == 3
+
+
+def test_resume_continues_after_the_last_epoch(trained, tmp_path):
+    root, data, _ = trained
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(root / "run", run)
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert (ckpt["stage"], ckpt["epoch"]) == ("direct", 1)
+    # Pretend the direct stage was configured longer: resume trains only the missing epoch.
+    ckpt["config"]["direct_epochs"] = 2
+    torch.save(ckpt, run / "checkpoint.pt")
+    train(data, run, resume=True, export=False, echo=lambda s: None)
+    rows = list(csv.DictReader((run / "log.csv").open()))
+    assert [(r["stage"], r["epoch"]) for r in rows][-2:] == [("direct", "0"), ("direct", "1")]
+    assert len(rows) == 6
+
+
+def test_runtime_on_exported_graph_is_finite_and_in_dn(trained):
+    from models.runtime import SingleShotModel
+
+    root, data, _ = trained
+    ds = load_dataset(data)
+    model = SingleShotModel.load(root / "run" / "weights")
+    scale = 1000.0
+    mueller, aux = model.reconstruct(ds["analyzer"][0] * scale, ds["s_in"][0], mask=ds["mask"][0] > 0,
+                                     scale=scale, stage_zero_axis=ds["stage_zero_axis"][0])
+    assert mueller.shape == (3, 3, 3, 32, 32) and mueller.dtype == np.float32
+    assert np.all(np.isfinite(mueller)) and np.all(mueller[..., ds["mask"][0] == 0] == 0)
+    # DN scaling: the same capture in other units gives the same matrices in those units.
+    m2, _ = model.reconstruct(ds["analyzer"][0], ds["s_in"][0], mask=ds["mask"][0] > 0, scale=1.0,
+                              stage_zero_axis=ds["stage_zero_axis"][0])
+    np.testing.assert_allclose(mueller, m2 * scale, rtol=1e-4, atol=1e-6 * scale)
+    assert 0.01 <= aux["alpha"] <= 1.0
+    # An odd size is padded internally and cropped back.
+    odd, _ = model.reconstruct(ds["analyzer"][0][..., :29, :27], ds["s_in"][0], scale=1.0)
+    assert odd.shape == (3, 3, 3, 29, 27) and np.all(np.isfinite(odd))
+
+
+def test_lr_schedule_constant_then_linear_decay():
+    cfg = TrainConfig(lr=1.0, decay_start=0.5, lr_final_fraction=0.1)
+    lrs = [lr_at(cfg, e, 10) for e in range(10)]
+    assert lrs[:5] == [1.0] * 5
+    assert all(a > b for a, b in zip(lrs[4:], lrs[5:])) and lrs[-1] == pytest.approx(0.1)
