@@ -33,8 +33,6 @@ from sim.world import SimWorld
 
 FAULT_KINDS = ("timeout", "fault", "disconnect", "protocol")
 DEVICE_KINDS = ("camera", "stage", "turntable", "light")
-#: ADC resolution of the simulated sensor (bits); other formats shift the values.
-ADC_BITS = 12
 
 
 @dataclasses.dataclass
@@ -227,9 +225,12 @@ class SimCamera(_SimDevice, hal.Camera):
                                   roi=self._roi)
         clock.sleep(frame_s)
         fmt = get_pixel_format(self._pixel_format)
-        shift = fmt.bits - ADC_BITS
-        raw = np.asarray(raw_adc, dtype=np.float64) * (2.0 ** shift)
-        raw = np.clip(np.rint(raw), 0, 2 ** fmt.bits - 1).astype(fmt.dtype)
+        # The ADC delivers sensor_model.bit_depth bits; wider formats carry the code shifted
+        # left (12-bit ADC, 16-bit format: code << 4), narrower ones rounded to their bits.
+        adc_bits = int(self._world.sensor.model.bit_depth)
+        shift = fmt.bits - adc_bits
+        adc = np.clip(np.rint(raw_adc), 0, 2 ** adc_bits - 1)  # noise off: the rounded mean
+        raw = np.clip(np.rint(adc * 2.0 ** shift), 0, 2 ** fmt.bits - 1).astype(fmt.dtype)
         self._frame_id += 1
         w, h, ox, oy = self._roi
         black = self._world.sensor.model.black_level_dn * 2.0 ** shift

@@ -52,6 +52,15 @@ class Shape(abc.ABC):
         return d
 
 
+def _clean(o: np.ndarray, d: np.ndarray, t: np.ndarray,
+           n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Misses, non-finite hits and rays with non-finite origin or direction get ``t = inf``
+    and a zero normal."""
+    hit = (np.isfinite(t) & np.isfinite(n).all(axis=1) & np.isfinite(o).all(axis=1)
+           & np.isfinite(d).all(axis=1))
+    return np.where(hit, t, np.inf), np.where(hit[:, None], n, 0.0)
+
+
 def _nearest(*cands: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     t = np.full(cands[0][0].shape, np.inf)
     n = np.zeros(cands[0][0].shape + (3,))
@@ -78,7 +87,7 @@ class Sphere(Shape):
             t = np.where(t1 > t_min, t1, np.where(t2 > t_min, t2, np.inf))
             t = np.where(np.isfinite(t), t, np.inf)
             n = (o + np.where(np.isfinite(t), t, 0.0)[:, None] * d) / self.radius_m
-        return t, n
+        return _clean(o, d, t, n)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,7 +111,7 @@ class Rectangle(Shape):
         t = np.where(ok, t, np.inf)
         n = np.zeros_like(o)
         n[:, 2] = 1.0
-        return t, n
+        return _clean(o, d, t, n)
 
     def shading_normal(self, p, n_geo):
         if self.normal_map is None:
@@ -143,7 +152,7 @@ class Box(Shape):
         p_ax = np.take_along_axis(o + np.where(np.isfinite(t), t, 0.0)[:, None] * d,
                                   ax[:, None], axis=1)[:, 0]
         n[np.arange(len(ax)), ax] = np.sign(p_ax)
-        return t, n
+        return _clean(o, d, t, n)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,7 +187,7 @@ class Cylinder(Shape):
                 nc = np.zeros_like(o)
                 nc[:, 2] = np.sign(zc)
                 caps.append((np.where(ok, tc, np.inf), nc))
-        return _nearest(*side, *caps)
+        return _clean(o, d, *_nearest(*side, *caps))
 
 
 HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -187,7 +196,8 @@ HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 @dataclasses.dataclass(frozen=True)
 class HeightField(Shape):
     """Height field ``z = height(x, y)`` over ``|x| <= half_x_m``, ``|y| <= half_y_m`` (local),
-    seen from above (``+z``), with heights within ``[z_min_m, z_max_m]``.
+    seen from above (``+z``), with heights within ``[z_min_m, z_max_m]``. It is a surface, not a
+    solid: a ray entering the bounding slab below the surface (through a side) misses.
 
     ``height`` and ``gradient`` are vectorised callables of local ``x, y`` (metres);
     ``gradient`` returns ``(dz/dx, dz/dy)``. ``steps`` marching samples per ray before the
@@ -244,14 +254,14 @@ class HeightField(Shape):
             go_hi = fm <= 0.0
             hi = np.where(go_hi, mid, hi)
             lo = np.where(go_hi, lo, mid)
-        t_hit = np.where(start_below, a, hi)
-        keep = found
+        t_hit = hi
+        keep = found & ~start_below  # entering below the surface: through a side, a miss
         p = o_ + t_hit[:, None] * d_
         gx, gy = self.gradient(p[:, 0], p[:, 1])
         n = unit(np.stack([-gx, -gy, np.ones_like(gx)], axis=1))
         t_out[idx[keep]] = t_hit[keep]
         n_out[idx[keep]] = n[keep]
-        return t_out, n_out
+        return _clean(o, d, t_out, n_out)
 
 
 def gaussian_bumps(centres_m: np.ndarray, sigmas_m: np.ndarray,
