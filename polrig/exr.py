@@ -24,7 +24,6 @@ import dataclasses
 import json
 import os
 import pathlib
-import tempfile
 from typing import Any, Mapping
 
 import numpy as np
@@ -32,6 +31,7 @@ import OpenEXR
 
 from polrig.conventions import CONVENTIONS_VERSION, MONO, RGB
 from polrig.errors import FormatError
+from polrig.rawio import temporary_sibling
 
 PathLike = str | os.PathLike
 _PREFIX = "polrig:"
@@ -126,8 +126,7 @@ def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | N
                                                     default=_json_default)
         except TypeError as exc:
             raise ValueError(f"metadata {key!r} is not JSON-serialisable: {exc}") from None
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".exr", dir=path.parent or ".")
-    os.close(fd)
+    tmp = str(temporary_sibling(path))
     try:
         OpenEXR.File(header, chans).write(tmp)
         with open(tmp, "rb+") as f:

@@ -14,7 +14,7 @@ import io
 import json
 import os
 import pathlib
-import tempfile
+import uuid
 from typing import Any
 
 import cv2
@@ -32,7 +32,9 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically: temp file in the same folder, flush + fsync,
     then ``os.replace``. The temporary file is removed if anything fails."""
     path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    tmp = temporary_sibling(path)
+    # os.open with 0o666 honours the umask (tempfile.mkstemp would force 0o600)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
@@ -55,6 +57,12 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
         pass
     finally:
         os.close(dfd)
+
+
+def temporary_sibling(path: PathLike) -> pathlib.Path:
+    """A fresh hidden temporary name in the folder of ``path`` (for atomic replacement)."""
+    p = pathlib.Path(path)
+    return p.with_name(f".{p.name}.{uuid.uuid4().hex[:12]}.tmp{p.suffix}")
 
 
 def atomic_write_text(path: PathLike, text: str) -> None:
