@@ -1,0 +1,388 @@
+"""GenICam camera through a GenTL producer (.cti) with harvesters, as a :class:`Camera`.
+
+Sources: harvesters 1.4 documentation (``docs/TUTORIAL.rst``: ``Harvester.add_file``,
+``update``, ``device_info_list``, ``create``, ``ImageAcquirer.start/stop``,
+``fetch(timeout=...)`` as a context manager that re-queues the buffer on exit) and
+``src/harvesters/core.py``; GenICam SFNC 2.x feature names (``PixelFormat``, ``Width``,
+``Height``, ``OffsetX``, ``OffsetY``, ``ExposureTime`` [us], ``Gain`` [dB],
+``TriggerMode``/``TriggerSource``/``TriggerSoftware``, ``AcquisitionFrameRate``); GenTL
+SFNC for buffer info (frame id, timestamp, image offset). Known pitfalls handled here:
+``fetch()`` without a timeout can block forever (harvesters issues #348, #375), so every
+fetch has one; polarization pixel formats are not decoded by harvesters (#167, #316, #473),
+so the payload bytes are copied out of the buffer *before* it is re-queued and decoded by
+:mod:`polrig.pixelformats`.
+
+Features are set through the node map where the camera has them; asking for a missing one
+(e.g. ``ExposureTime`` on a simulated producer) raises :class:`DeviceFault` naming it.
+The mosaic layout (``layout``, e.g. ``"imx250mzr"``) is configuration: GenICam does not
+describe the on-chip polarizer arrangement.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from polrig import pixelformats
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, FormatError
+from polrig.hal import DEFAULT_TIMEOUT_S, Camera, DeviceInfo, Frame, FrameMeta
+from polrig.layouts import get_layout
+
+
+def _gentl():
+    import genicam.gentl as gentl  # noqa: PLC0415 (heavy import, only when a camera is used)
+
+    return gentl
+
+
+def _genapi():
+    import genicam.genapi as genapi  # noqa: PLC0415
+
+    return genapi
+
+
+def _harvester(cti_files: list[str]):
+    from harvesters.core import Harvester  # noqa: PLC0415
+
+    h = Harvester()
+    for cti in cti_files:
+        if not Path(cti).is_file():
+            h.reset()
+            raise DeviceNotFound(f"GenTL producer {cti!r} not found (set [camera] cti to a "
+                                 "producer .cti file)", device="genicam")
+        h.add_file(cti)
+    try:
+        h.update()
+    except _gentl().GenericException as exc:
+        h.reset()
+        raise DeviceNotFound(f"GenTL producer cannot be loaded: {exc}", device="genicam") from None
+    return h
+
+
+def list_gentl_devices(cti_files: list[str]) -> list[DeviceInfo]:
+    """Devices the producers offer (``polrig devices``); a missing .cti raises DeviceNotFound."""
+    h = _harvester(cti_files)
+    try:
+        return [DeviceInfo(kind="camera", driver="genicam", model=d.model or "",
+                           serial=d.serial_number or "", port=d.id_ or "",
+                           extra={"vendor": d.vendor, "cti": cti_files})
+                for d in h.device_info_list]
+    finally:
+        h.reset()
+
+
+def gentl_paths_from_env() -> list[str]:
+    """.cti files in the folders of ``GENICAM_GENTL64_PATH`` (GenTL standard, section 6.1)."""
+    out: list[str] = []
+    for folder in os.environ.get("GENICAM_GENTL64_PATH", "").split(os.pathsep):
+        if folder and Path(folder).is_dir():
+            out += sorted(str(p) for p in Path(folder).glob("*.cti"))
+    return out
+
+
+class GenicamCamera(Camera):
+    """A GenICam camera selected by ``serial`` (or ``index``) from the producer ``cti``.
+
+    Optional settings applied on open: ``pixel_format``, ``roi`` ``(w, h, x, y)``,
+    ``exposure_us``, ``gain_db``, ``frame_rate_hz``, ``trigger`` (``"free"`` or
+    ``"software"``).
+    """
+
+    def __init__(self, cti: str | list[str], serial: str | None = None, index: int | None = None,
+                 *, layout: str = "imx250mzr", pixel_format: str | None = None,
+                 roi: tuple[int, int, int, int] | None = None, exposure_us: float | None = None,
+                 gain_db: float | None = None, frame_rate_hz: float | None = None,
+                 trigger: str = "free", black_level_dn: float = 0.0, kind: str = "camera"):
+        self.cti_files = [cti] if isinstance(cti, (str, os.PathLike)) else list(cti)
+        self.cti_files = [os.fspath(c) for c in self.cti_files]
+        self.serial = None if serial in (None, "") else str(serial)
+        self.index = index
+        get_layout(layout)  # validate the name now
+        self._layout = layout
+        self._settings = dict(pixel_format=pixel_format, roi=roi, exposure_us=exposure_us,
+                              gain_db=gain_db, frame_rate_hz=frame_rate_hz)
+        self._trigger = trigger
+        self.black_level_dn = float(black_level_dn)
+        self.kind = kind
+        self._h = None
+        self._ia = None
+        self._info: DeviceInfo | None = None
+        self.name = f"genicam {self.serial or self.index or ''}".strip()
+
+    # -- life cycle ------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._ia is not None
+
+    def open(self) -> None:
+        if self._ia is not None:
+            return
+        h = _harvester(self.cti_files)
+        devices = list(h.device_info_list)
+        serials = [d.serial_number for d in devices]
+        try:
+            if self.serial is not None:
+                if self.serial not in serials:
+                    raise DeviceNotFound(f"no camera with serial {self.serial!r}; the producer "
+                                         f"offers {serials or 'no devices'}", device=self.name)
+                pick = serials.index(self.serial)
+            else:
+                pick = self.index or 0
+                if not 0 <= pick < len(devices):
+                    raise DeviceNotFound(f"no camera at index {pick}; the producer offers "
+                                         f"{len(devices)} device(s)", device=self.name)
+            try:
+                ia = h.create(pick)
+            except _gentl().GenericException as exc:
+                raise DeviceNotFound(f"cannot open camera: {exc}", device=self.name) from None
+        except Exception:
+            h.reset()
+            raise
+        self._h, self._ia = h, ia
+        d = devices[pick]
+        self._info = DeviceInfo(kind=self.kind, driver="genicam", model=d.model or "",
+                                serial=d.serial_number or "", firmware=d.version or "",
+                                port=d.id_ or "", extra={"vendor": d.vendor,
+                                                         "cti": self.cti_files})
+        try:
+            s = self._settings
+            if s["pixel_format"]:
+                self.set_pixel_format(s["pixel_format"])
+            if s["roi"]:
+                self.set_roi(*s["roi"])
+            if s["exposure_us"] is not None:
+                self.set_exposure_us(s["exposure_us"])
+            if s["gain_db"] is not None:
+                self.set_gain_db(s["gain_db"])
+            if s["frame_rate_hz"] is not None:
+                self.set_frame_rate_hz(s["frame_rate_hz"])
+            self.set_trigger(self._trigger)
+        except Exception:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        ia, self._ia = self._ia, None
+        h, self._h = self._h, None
+        if ia is not None:
+            with contextlib.suppress(Exception):
+                ia.stop()
+            with contextlib.suppress(Exception):
+                ia.destroy()
+        if h is not None:
+            with contextlib.suppress(Exception):
+                h.reset()
+
+    def info(self) -> DeviceInfo:
+        if self._info is None:
+            raise DeviceFault("camera is not open", device=self.name)
+        return self._info
+
+    # -- node map --------------------------------------------------------------------------
+    def _require(self):
+        if self._ia is None:
+            raise DeviceDisconnected("camera is not open (open it again)", device=self.name)
+        if not self._ia.is_valid():
+            self.close()
+            raise DeviceDisconnected("camera went away", device=self.name)
+        return self._ia
+
+    def has_feature(self, name: str) -> bool:
+        return bool(self._require().remote_device.node_map.has_node(name))
+
+    def _node(self, name: str):
+        nm = self._require().remote_device.node_map
+        if not nm.has_node(name):
+            raise DeviceFault(f"camera has no {name} feature", device=self.name,
+                              code="feature missing", text=name)
+        return nm.get_node(name)
+
+    def _set(self, name: str, value: Any) -> None:
+        node = self._node(name)
+        ia = self._require()
+        was_streaming = ia.is_acquiring()
+        if was_streaming:
+            ia.stop()
+        try:
+            node.value = value
+        except _genapi().GenericException as exc:
+            raise DeviceFault(f"setting {name} = {value!r} failed", device=self.name,
+                              code=type(exc).__name__, text=str(exc).split(" : ")[0]) from None
+        finally:
+            if was_streaming:
+                ia.start()
+
+    def _get(self, name: str, default: Any = None) -> Any:
+        nm = self._require().remote_device.node_map
+        if not nm.has_node(name):
+            return default
+        return nm.get_node(name).value
+
+    # -- Camera ----------------------------------------------------------------------------
+    def set_pixel_format(self, name: str) -> None:
+        symbolics = self._node("PixelFormat").symbolics
+        if name not in symbolics:
+            raise DeviceFault(f"pixel format {name!r} not offered", device=self.name,
+                              code="PixelFormat", text=f"camera offers {', '.join(symbolics)}")
+        self._set("PixelFormat", name)
+
+    @property
+    def pixel_format(self) -> str:
+        return str(self._node("PixelFormat").value)
+
+    def set_roi(self, width: int, height: int, offset_x: int = 0, offset_y: int = 0) -> None:
+        # Offsets first to 0 so the new size fits, then size, then offsets (SFNC ordering).
+        for name in ("OffsetX", "OffsetY"):
+            if self.has_feature(name):
+                self._set(name, 0)
+            elif (offset_x if name == "OffsetX" else offset_y):
+                self._node(name)  # raises: a non-zero offset needs the feature
+        self._set("Width", int(width))
+        self._set("Height", int(height))
+        if offset_x:
+            self._set("OffsetX", int(offset_x))
+        if offset_y:
+            self._set("OffsetY", int(offset_y))
+
+    @property
+    def roi(self) -> tuple[int, int, int, int]:
+        return (int(self._get("Width")), int(self._get("Height")),
+                int(self._get("OffsetX", 0)), int(self._get("OffsetY", 0)))
+
+    def set_exposure_us(self, exposure_us: float) -> None:
+        self._set("ExposureTime", float(exposure_us))
+
+    @property
+    def exposure_us(self) -> float:
+        return float(self._get("ExposureTime", float("nan")))
+
+    def set_gain_db(self, gain_db: float) -> None:
+        self._set("Gain", float(gain_db))
+
+    @property
+    def gain_db(self) -> float:
+        return float(self._get("Gain", float("nan")))
+
+    def set_frame_rate_hz(self, rate_hz: float) -> None:
+        self._set("AcquisitionFrameRate", float(rate_hz))
+
+    def set_trigger(self, mode: str) -> None:
+        if mode not in ("free", "software"):
+            raise ValueError(f"trigger mode must be 'free' or 'software', got {mode!r}")
+        if mode == "software":
+            self._set("TriggerSelector", "FrameStart") if self.has_feature("TriggerSelector") else None
+            self._set("TriggerMode", "On")
+            self._set("TriggerSource", "Software")
+        elif self.has_feature("TriggerMode"):
+            self._set("TriggerMode", "Off")
+        self._trigger = mode
+
+    @property
+    def trigger(self) -> str:
+        return self._trigger
+
+    @property
+    def layout(self) -> str:
+        return self._layout
+
+    def start(self) -> None:
+        ia = self._require()
+        if not ia.is_acquiring():
+            ia.start()
+
+    def stop(self) -> None:
+        ia = self._require()
+        if ia.is_acquiring():
+            ia.stop()
+
+    def grab(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> Frame:
+        """One new frame: in free run, frames queued before this call are discarded."""
+        ia = self._require()
+        self.start()
+        if self._trigger == "software":
+            self._node("TriggerSoftware").execute()
+        else:
+            self._drain(ia)
+        return self._fetch(ia, timeout_s)
+
+    def frames(self, count: int, timeout_s: float = DEFAULT_TIMEOUT_S) -> Iterator[Frame]:
+        """``count`` consecutive frames of the running stream (none discarded)."""
+        ia = self._require()
+        self.start()
+        for _ in range(count):
+            if self._trigger == "software":
+                self._node("TriggerSoftware").execute()
+            yield self._fetch(ia, timeout_s)
+
+    def fetch(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> Frame:
+        """The next frame of the stream as it is: no start, no trigger, nothing discarded."""
+        return self._fetch(self._require(), timeout_s)
+
+    def _drain(self, ia) -> None:
+        gentl = _gentl()
+        for _ in range(64):
+            try:
+                buf = ia.try_fetch(timeout=1e-4)
+            except gentl.GenericException:
+                return
+            if buf is None:
+                return
+            buf.queue()
+
+    def _fetch(self, ia, timeout_s: float) -> Frame:
+        gentl = _gentl()
+        try:
+            with ia.fetch(timeout=timeout_s) as buf:
+                frame = self._copy_frame(buf)
+        except gentl.TimeoutException:
+            raise DeviceTimeout(f"no frame within {timeout_s:g} s", device=self.name) from None
+        except (gentl.InvalidHandleException, gentl.NotInitializedException, gentl.IoException,
+                gentl.ClosedException) as exc:
+            self.close()
+            raise DeviceDisconnected(f"camera stream lost: {exc}", device=self.name) from None
+        except gentl.GenericException as exc:
+            raise DeviceFault("frame acquisition failed", device=self.name,
+                              code=type(exc).__name__, text=str(exc)) from None
+        return frame
+
+    def _copy_frame(self, buf) -> Frame:
+        """Copy the payload out of the GenTL buffer (it is re-queued right after) and decode."""
+        module = buf.module
+        fmt_name = self.pixel_format
+        width, height = int(module.width), int(module.height)
+        try:
+            fmt = pixelformats.get_pixel_format(fmt_name)
+        except FormatError as exc:
+            raise FormatError(f"camera pixel format {fmt_name!r} is not a raw mosaic format "
+                              f"polrig can decode ({exc})") from None
+        try:
+            offset = int(module.image_offset)
+        except Exception:  # producers may not report it  # noqa: BLE001
+            offset = 0
+        n = fmt.frame_bytes(width, height)
+        comp = buf.payload.components[0] if buf.payload and buf.payload.components else None
+        if comp is not None and comp.data is not None and fmt.packing in ("u8", "u16") \
+                and comp.data.nbytes == n:
+            data = np.array(comp.data, copy=True).view(np.uint8).reshape(-1)
+        else:
+            data = np.frombuffer(module.raw_buffer, dtype=np.uint8)[offset : offset + n].copy()
+        raw = pixelformats.decode(data, fmt_name, width, height)
+        if raw.ndim != 2:
+            raise FormatError(f"pixel format {fmt_name!r} delivers angle planes, not a raw "
+                              "mosaic; choose a mosaic format (e.g. PolarizeMono12p)")
+        try:
+            ts, host = module.timestamp_ns * 1e-9, False
+        except _gentl().GenericException:
+            ts, host = time.time(), True
+        _, _, ox, oy = self.roi
+        meta = FrameMeta(frame_id=int(module.frame_id), timestamp_s=float(ts),
+                         exposure_us=self.exposure_us, gain_db=self.gain_db,
+                         pixel_format=fmt_name, layout=self._layout, bit_depth=fmt.bits,
+                         offset_xy=(ox, oy), black_level_dn=self.black_level_dn,
+                         host_timestamp=host, extra={"serial": self.info().serial})
+        return Frame(raw=raw, meta=meta)

@@ -1,0 +1,129 @@
+"""GenICam camera driver against the GenTL producer shipped in the genicam wheel (viky.cti)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import genicam
+import numpy as np
+import pytest
+
+from drivers.genicam_camera import GenicamCamera, gentl_paths_from_env, list_gentl_devices
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, FormatError
+from polrig.layouts import get_layout
+
+pytestmark = pytest.mark.timeout(60)
+VIKY = str(Path(genicam.__file__).parent / "viky.cti")
+
+
+@pytest.fixture(scope="module")
+def viky():
+    if not Path(VIKY).is_file():
+        pytest.fail(f"viky.cti missing from the genicam wheel at {VIKY}")
+    return VIKY
+
+
+@pytest.fixture
+def cam(viky):
+    c = GenicamCamera(viky, serial="1", pixel_format="Mono8", frame_rate_hz=200.0,
+                      roi=(120, 100, 0, 0))
+    with c:
+        yield c
+
+
+def test_lists_the_three_viky_devices(viky, monkeypatch):
+    devs = list_gentl_devices([viky])
+    assert [d.serial for d in devs] == ["0", "1", "2"]
+    assert all(d.model == "Viky" for d in devs)
+    monkeypatch.setenv("GENICAM_GENTL64_PATH", str(Path(viky).parent))
+    assert VIKY in gentl_paths_from_env()
+
+
+def test_configure_and_stream_100_frames(cam):
+    assert cam.info().serial == "1" and cam.info().model == "Viky"
+    assert cam.pixel_format == "Mono8" and cam.roi == (120, 100, 0, 0)
+    t0 = time.monotonic()
+    frames = list(cam.frames(100, timeout_s=2.0))
+    elapsed = time.monotonic() - t0
+    assert len(frames) == 100 and elapsed < 10
+    ids = [f.meta.frame_id for f in frames]
+    assert ids == sorted(ids) and len(set(ids)) == 100
+    f = frames[-1]
+    assert f.raw.shape == (100, 120) and f.raw.dtype == np.uint8
+    assert f.meta.bit_depth == 8 and f.meta.layout == "imx250mzr" and f.meta.host_timestamp
+    get_layout(f.meta.layout, *f.meta.offset_xy)
+    # copies, not views of re-queued buffers: frames differ in identity and survive
+    assert not np.shares_memory(frames[0].raw, frames[1].raw)
+    assert f.raw.flags.owndata or f.raw.base is not None
+
+
+def test_fetch_timeout_then_recover(cam):
+    cam.set_frame_rate_hz(2.0)
+    cam.grab(timeout_s=3.0)  # one frame, the next is half a second away
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        cam.grab(timeout_s=0.2)
+    assert time.monotonic() - t0 < 1.0
+    cam.set_frame_rate_hz(200.0)
+    assert cam.grab(timeout_s=2.0).raw.shape == (100, 120)
+
+
+def test_stopped_stream_times_out_then_restarts(cam):
+    cam.grab(timeout_s=2.0)
+    cam.stop()
+    with pytest.raises(DeviceTimeout):
+        cam.fetch(timeout_s=0.2)
+    cam.start()
+    assert cam.grab(timeout_s=2.0).raw.size == 120 * 100
+
+
+def test_missing_features_are_named(cam):
+    assert np.isnan(cam.exposure_us)
+    with pytest.raises(DeviceFault, match="ExposureTime"):
+        cam.set_exposure_us(1000.0)
+    with pytest.raises(DeviceFault, match="TriggerMode"):
+        cam.set_trigger("software")
+    with pytest.raises(DeviceFault, match="not offered"):
+        cam.set_pixel_format("Mono12p")
+    with pytest.raises(DeviceFault, match="Width"):
+        cam.set_roi(10, 10)  # below the camera's minimum
+
+
+def test_non_mosaic_format_is_a_format_error(viky):
+    with GenicamCamera(viky, serial="2", pixel_format="RGBa8", frame_rate_hz=200.0,
+                       roi=(100, 100, 0, 0)) as c:
+        with pytest.raises(FormatError, match="RGBa8"):
+            c.grab(timeout_s=2.0)
+        c.set_pixel_format("Mono8")
+        assert c.grab(timeout_s=2.0).raw.shape == (100, 100)
+
+
+def test_close_reopen_and_errors(viky, tmp_path):
+    c = GenicamCamera(viky, serial="0", pixel_format="Mono8", frame_rate_hz=200.0)
+    c.open()
+    with pytest.raises(DeviceNotFound):  # one camera, one owner
+        GenicamCamera(viky, serial="0").open()
+    c.close()
+    c.close()
+    c.open()
+    assert c.grab(timeout_s=2.0).raw.shape == (400, 400)
+    c.close()
+    with pytest.raises(DeviceNotFound, match="not found"):
+        GenicamCamera(str(tmp_path / "missing.cti")).open()
+    with pytest.raises(DeviceNotFound, match="serial '42'"):
+        GenicamCamera(viky, serial="42").open()
+    with pytest.raises(DeviceNotFound, match="index 7"):
+        GenicamCamera(viky, index=7).open()
+
+
+def test_vanished_device(viky):
+    c = GenicamCamera(viky, serial="1", pixel_format="Mono8", frame_rate_hz=200.0)
+    c.open()
+    c._ia.destroy()  # the producer drops the device under the driver
+    with pytest.raises(DeviceDisconnected):
+        c.grab(timeout_s=1.0)
+    assert not c.is_open
+    c.open()
+    assert c.grab(timeout_s=2.0).raw.ndim == 2
+    c.close()
