@@ -258,9 +258,13 @@ def frame_geometry(rig) -> tuple[int, int, int]:
 def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
                    command_line: list[str] | None = None, write_hook=None) -> Session:
     """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked)."""
+    from polrig.processing import sensor_model_of
+
     width, height, colours = frame_geometry(rig)
     need = planned_bytes(plan, len(plan.poses_deg), width, height, colours)
-    return Session.create(out, plan=plan.to_json(), rig=describe_rig(rig),
+    rig_info = describe_rig(rig)
+    rig_info["sensor_model"] = dataclasses.asdict(sensor_model_of(rig))
+    return Session.create(out, plan=plan.to_json(), rig=rig_info,
                           calibration_id=calibration_id, command_line=command_line,
                           required_bytes=need, write_hook=write_hook)
 

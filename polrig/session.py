@@ -260,7 +260,8 @@ class Session:
     def iter_file_records(self, capture: dict[str, Any] | None = None
                           ) -> Iterator[tuple[dict[str, Any], str, dict[str, Any]]]:
         """Every ``(capture, role, record)`` of the session (or of one capture), revisions
-        included (their role is ``"<revision>/<role>"``)."""
+        included (their role is ``"<revision>/<role>"``). Entries with ``part_of`` (roles
+        stored as channels of another role's file) are not files of their own: skipped."""
         caps = self.captures if capture is None else [capture]
         for cap in caps:
             groups = [("", cap["files"])] + [(f"{name}/", rev["files"])
@@ -268,6 +269,8 @@ class Session:
             for prefix, files in groups:
                 for role, entry in files.items():
                     for rec in entry if isinstance(entry, list) else [entry]:
+                        if "part_of" in rec:  # a view into another role's file
+                            continue
                         yield cap, prefix + role, rec
 
     def recorded_paths(self, capture: dict[str, Any] | None = None) -> set[str]:

@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             session = capture.create_session(out, rig, plan, calibration_id=calibration.id,
                                              command_line=["polrig", *sys.argv[1:]])
-        processor = processing.make_processor(plan, calibration, truth=rig.truth)
+        processor = processing.make_processor(plan, calibration,
+                                              processing.session_sensor_model(session))
         bar = _ProgressPrinter(enabled=not args.no_progress)
         try:
             result = capture.run_session(rig, session, processor=processor,

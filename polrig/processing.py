@@ -1,0 +1,613 @@
+"""Turn a capture's raw frames into Mueller images (with uncertainty and mask), and score them.
+
+Array level (pure functions, ``docs/conventions.md`` layouts and units):
+
+* :func:`state_radiance` -- K frames (and an exposure bracket) of one polarizer state ->
+  black/dark-subtracted mean mosaic in DN at the reference exposure, its variance from the
+  sensor noise model, and the samples to exclude (saturated).
+* :func:`analyzer_stack` -- demosaic mosaics, variances and exclusions into analyzer images
+  ``(C, 4, H', W')``.
+* :func:`reference_from_frames` -- all states -> :class:`polrig.reference.ReferenceResult`.
+* :func:`score_against_truth` -- error of a result against a truth Mueller image.
+
+Session level: :class:`Processor` (used by :func:`polrig.capture.run_session`) reads a
+capture's raw frames back from the session (checksums verified), solves, writes
+``mueller.exr`` (Mueller channels plus ``sigma``, ``residual`` and ``mask`` planes), and on the
+simulated rig ``truth_mueller.exr`` and a score; :func:`reprocess_session` does the same into
+a new revision for ``polrig reconstruct``.
+
+Uncertainty propagation: per raw sample the model variance
+(:meth:`polrig.noise.SensorModel.variance_dn2` at the measured mean signal, divided by K;
+plus the variance of the subtracted dark mean), HDR-merged by :func:`polrig.reference.merge_hdr`;
+the ``superpixel`` demosaic averages ``n`` same-class pixels, so the variance is the mean
+variance divided by ``n`` (exact); interpolating demosaics get the interpolated variance
+(an approximation: it ignores the correlation the interpolation creates).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import pathlib
+import tempfile
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from polrig.analyzer import AnalyzerModel, resolve_layout
+from polrig.demosaic import class_positions, demosaic_float
+from polrig.errors import ConfigError, FormatError
+from polrig.hal import Frame
+from polrig.layouts import MosaicLayout
+from polrig.mueller import polarizer_stokes
+from polrig.noise import SensorModel
+from polrig.rawio import read_raw
+from polrig.reference import (ReferenceResult, reason_names, solve_reference,
+                              validate_states, merge_hdr)
+from polrig.session import COMPLETE, FAILED, PENDING, Session, sha256_file
+
+NOMINAL_CALIBRATION_ID = "nominal"
+
+
+# -- calibration -------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """What processing needs from a calibration set.
+
+    ``incident_stokes_fn`` maps stage angles (deg, ``(N,)``) to normalised incident linear
+    Stokes vectors ``(N, 3)`` (``docs/conventions.md``, "Radiometric units"); ``None`` is the
+    nominal ideal polarizer (:func:`polrig.mueller.polarizer_stokes` with intensity 1, so
+    ``S0 = 1/2``). ``analyzer`` is a per-pixel analyzer model of the full readout, ``None``
+    for the ideal analyzer.
+    """
+
+    id: str
+    incident_stokes_fn: Callable[[np.ndarray], np.ndarray] | None = None
+    analyzer: AnalyzerModel | None = None
+
+    def incident_stokes(self, states_deg: Sequence[float]) -> np.ndarray:
+        a = np.asarray(states_deg, dtype=np.float64)
+        if self.incident_stokes_fn is None:
+            return polarizer_stokes(np.deg2rad(a), intensity=1.0)
+        return np.asarray(self.incident_stokes_fn(a), dtype=np.float64).reshape(len(a), 3)
+
+
+def nominal_calibration() -> Calibration:
+    return Calibration(NOMINAL_CALIBRATION_ID)
+
+
+def load_calibration(path: str | os.PathLike | None, *, session: Session | None = None
+                     ) -> Calibration:
+    """The calibration named by ``--calibration`` (``None``: nominal).
+
+    For a resumed ``session`` the calibration must be the one it was started with.
+    """
+    if path is None:
+        cal = nominal_calibration()
+    else:
+        p = pathlib.Path(path)
+        if not p.exists():
+            raise FileNotFoundError(f"--calibration {p}: no such calibration set")
+        try:
+            from calibration import calibset  # type: ignore[attr-defined]
+        except ImportError:
+            raise ConfigError(f"--calibration {p}: this polrig cannot read calibration sets "
+                              f"yet (no calibration loader installed); omit --calibration to "
+                              f"use the nominal model") from None
+        cs = calibset.load(p)  # pragma: no cover - depends on the calibration package
+        cal = Calibration(cs.id, cs.incident_stokes, getattr(cs, "analyzer", None))
+    if session is not None and session.manifest.get("calibration_id") != cal.id:
+        raise ConfigError(f"--resume: the session was captured with calibration "
+                          f"{session.manifest.get('calibration_id')!r}, not {cal.id!r}")
+    return cal
+
+
+def check_plan(plan, calibration: Calibration) -> float | None:
+    """Reject a plan that cannot give a result, before any device moves.
+
+    Reference mode: the incident states must determine the Mueller block (at least 3, not
+    collinear, condition number below :data:`polrig.reference.DEFAULT_MAX_CONDITION`);
+    returns the condition number. Single-shot: a model must be installed.
+    """
+    if plan.mode == "single-shot":
+        single_shot_model()
+        return None
+    try:
+        return validate_states(calibration.incident_stokes(plan.states_deg))
+    except ConfigError as exc:
+        raise ConfigError(f"--states {','.join(f'{a:g}' for a in plan.states_deg)}: {exc}") from None
+
+
+def single_shot_model():
+    """The installed single-shot model; :class:`ConfigError` (one line) when there is none."""
+    try:
+        from models.runtime import SingleShotModel  # type: ignore[import-not-found]
+    except ImportError:
+        raise ConfigError("--mode single-shot: no single-shot model is installed (models.runtime "
+                          "is missing); use --mode reference") from None
+    try:
+        return SingleShotModel.load()
+    except (FileNotFoundError, OSError, FormatError) as exc:
+        raise ConfigError(f"--mode single-shot: no single-shot model is installed ({exc}); "
+                          f"use --mode reference") from None
+
+
+# -- sensor model ------------------------------------------------------------------------------
+def sensor_model_of(rig) -> SensorModel:
+    """The noise model of the rig's camera: the simulated rig's own, else the configured one
+    (``rig.config.sensor_model`` if the config carries it), else the IMX250 defaults."""
+    truth = getattr(rig, "truth", None)
+    if truth is not None:
+        try:
+            fields = truth.rig_parameters()["sensor"]["sensor_model"]
+            return SensorModel(**fields)
+        except (KeyError, TypeError):
+            pass
+    cfg = getattr(rig, "config", None)
+    sm = getattr(cfg, "sensor_model", None) if cfg is not None else None
+    if isinstance(sm, SensorModel):
+        return sm
+    if isinstance(sm, dict):
+        return SensorModel(**sm)
+    return SensorModel()
+
+
+def model_for_frames(model: SensorModel, bit_depth: int) -> SensorModel:
+    """``model`` expressed in the DN of frames delivered with ``bit_depth`` bits (a 12-bit
+    ADC read out as Mono16 is scaled by 16: DN per electron and black level scale with it)."""
+    shift = int(bit_depth) - int(model.bit_depth)
+    if shift == 0:
+        return model
+    f = 2.0 ** shift
+    return dataclasses.replace(model, bit_depth=int(bit_depth),
+                               gain_e_per_dn=model.gain_e_per_dn / f,
+                               black_level_dn=model.black_level_dn * f)
+
+
+# -- array level -------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class StateRadiance:
+    """One state's mosaic ``(H, W)``: ``signal_dn`` (black/dark-subtracted, at the reference
+    exposure), ``variance_dn2`` and ``excluded`` (bool, saturated in every exposure)."""
+
+    signal_dn: np.ndarray
+    variance_dn2: np.ndarray
+    excluded: np.ndarray
+
+
+def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Sequence[float],
+                   model: SensorModel, *, black_level_dn: float = 0.0,
+                   darks: Sequence[Sequence[np.ndarray]] | None = None) -> StateRadiance:
+    """Mean black-subtracted mosaic of one polarizer state.
+
+    ``brackets[e]``: the K raw frames ``(H, W)`` taken at ``exposures_us[e]``; ``darks[e]``:
+    dark frames at that exposure (light off) or ``None``/empty (subtract ``black_level_dn``
+    only). A sample is excluded when any of its frames reaches the saturation level
+    (``black + model.saturation_dn``); several exposures are merged by
+    :func:`polrig.reference.merge_hdr` at ``exposures_us[0]`` (the reference exposure).
+    """
+    if len(brackets) != len(exposures_us) or not brackets:
+        raise ValueError("one list of frames per exposure is needed")
+    sat_raw = black_level_dn + model.saturation_dn
+    means, variances, sats = [], [], []
+    for e, frames in enumerate(brackets):
+        f = np.asarray(frames, dtype=np.float64)
+        k = f.shape[0]
+        mean = f.mean(axis=0)
+        sat = (f >= sat_raw).any(axis=0)
+        dark_list = darks[e] if darks else None
+        if dark_list is not None and len(dark_list):
+            d = np.asarray(dark_list, dtype=np.float64)
+            offset = d.mean(axis=0)
+            dark_var = model.variance_dn2(0.0, exposures_us[e], d.shape[0])
+            signal = mean - offset
+            # the dark mean already holds the mean dark signal: the photo-signal is what is left
+            var = model.variance_dn2(signal, exposures_us[e], k) + dark_var
+        else:
+            signal = mean - black_level_dn - model.dark_electrons(exposures_us[e]) / model.gain_e_per_dn
+            var = model.variance_dn2(signal, exposures_us[e], k)
+        means.append(signal)
+        variances.append(var)
+        sats.append(sat)
+    if len(brackets) == 1:
+        return StateRadiance(means[0], variances[0], sats[0])
+    # merge_hdr excludes samples >= saturation_dn: mark the saturated ones that way
+    marked = [np.where(s, np.inf, m) for m, s in zip(means, sats)]
+    radiance, variance, valid = merge_hdr(list(zip(marked, exposures_us)), model.saturation_dn,
+                                          model, reference_exposure_us=exposures_us[0],
+                                          n_frames=len(brackets[0]))
+    return StateRadiance(radiance, variance, ~valid)
+
+
+def analyzer_stack(state: StateRadiance, layout: MosaicLayout, method: str,
+                   analyzer: AnalyzerModel | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Demosaic one state: ``(measured, variance, valid, rows)``, the first three
+    ``(C, 4, H', W')`` and ``rows`` ``(C, 4, 3, H', W')`` (``None`` for the ideal analyzer).
+
+    A calibrated ``analyzer`` (of this readout) has its offsets removed from the signal and its
+    per-pixel rows carried to the output grid by the same demosaic.
+    """
+    signal = np.asarray(state.signal_dn, dtype=np.float64)
+    rows = None
+    if analyzer is not None:
+        if analyzer.shape != signal.shape:
+            raise ValueError(f"analyzer model {analyzer.shape} does not match frames {signal.shape}")
+        signal = signal - analyzer.offset_dn
+        r = analyzer.rows()
+        rows = np.stack([demosaic_float(r[..., i].astype(np.float32), layout, method)
+                         for i in range(3)], axis=2)
+    measured = demosaic_float(signal.astype(np.float32), layout, method)
+    variance = demosaic_float(np.asarray(state.variance_dn2, np.float32), layout, method)
+    if method == "superpixel":
+        counts = np.zeros((layout.n_colours, 4), np.float32)
+        for (c, k), pos in class_positions(layout).items():
+            counts[c, k] = len(pos)
+        variance = variance / counts[:, :, None, None]
+    bad = demosaic_float(state.excluded.astype(np.float32), layout, method)
+    valid = ~(bad > 0)
+    return measured, variance, valid, rows
+
+
+def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
+                          layout: str | MosaicLayout, method: str = "superpixel",
+                          analyzer: AnalyzerModel | None = None) -> ReferenceResult:
+    """The reference solve of all states (see :func:`polrig.reference.solve_reference`)."""
+    lay = resolve_layout(layout)
+    parts = [analyzer_stack(s, lay, method, analyzer) for s in states]
+    measured = np.stack([p[0] for p in parts])
+    variance = np.stack([p[1] for p in parts])
+    valid = np.stack([p[2] for p in parts])
+    rows = parts[0][3]
+    return solve_reference(s_in, measured, variance, valid, rows)
+
+
+# -- truth and score ---------------------------------------------------------------------------
+def truth_on_output_grid(truth_mueller: np.ndarray, layout: MosaicLayout, method: str
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Truth Mueller image ``(C, 3, 3, H, W)`` on the demosaic's output grid, and its spread
+    (max - min of each element over the pixels an output pixel draws on), both
+    ``(C, 3, 3, H', W')``.
+
+    ``superpixel``: the mean and spread over each layout cell (each analyzer sample of a cell
+    sees a different sensor pixel's matrix, so a cell with a large spread -- object edges,
+    fast shading -- cannot be compared element by element). Full-resolution methods: the
+    truth itself, spread over one cell period around the pixel (the interpolation support).
+    """
+    t = np.asarray(truth_mueller, dtype=np.float64)
+    c, _, _, h, w = t.shape
+    ph, pw = layout.period
+    if method == "superpixel":
+        hh, ww = h // ph, w // pw
+        blocks = t[..., : hh * ph, : ww * pw].reshape(c, 3, 3, hh, ph, ww, pw)
+        return blocks.mean(axis=(4, 6)), blocks.max(axis=(4, 6)) - blocks.min(axis=(4, 6))
+    import cv2
+
+    k = np.ones((2 * ph - 1, 2 * pw - 1), np.uint8)
+    flat = t.reshape(c * 9, h, w).astype(np.float32)
+    hi = np.stack([cv2.dilate(p, k) for p in flat]).reshape(c, 3, 3, h, w)
+    lo = np.stack([cv2.erode(p, k) for p in flat]).reshape(c, 3, 3, h, w)
+    return t, (hi - lo).astype(np.float64)
+
+
+#: A pixel is compared element by element when the truth varies over its support by at most
+#: this fraction of the result's own standard deviation (so resolution bias stays below it).
+UNIFORM_SIGMA_FRACTION = 0.1
+
+
+def score_against_truth(result: ReferenceResult, truth: np.ndarray, spread: np.ndarray,
+                        object_mask: np.ndarray | None = None) -> dict[str, Any]:
+    """Error of ``result`` against ``truth`` ``(C, 3, 3, H, W)`` on the same grid.
+
+    Pixels *compared*: valid in the result (mask 0), inside ``object_mask`` ``(H, W)`` if
+    given, and where the truth is uniform over the pixel's support (every element's
+    ``spread`` at most :data:`UNIFORM_SIGMA_FRACTION` of its sigma), so that the comparison
+    measures the estimator, not the sampling of edges. Over them: ``rmse``/``mae`` (DN per unit
+    S0) over the 9 elements; ``psnr_db`` = 20 log10(peak / rmse) with ``peak`` the largest truth
+    ``m00`` compared (``|m_ij| <= m00`` for a physical matrix: the matrix PSNR in the units of
+    the data); ``within_2sigma``: fraction of elements with ``|error| <= 2 sigma`` (0.954 for
+    Gaussian errors when sigma is right); ``chi2_per_element``: mean ``(error / sigma)^2``
+    (1 when sigma is right); ``mean_sigma``: the error the noise model predicts
+    (root-mean-square sigma, comparable with ``rmse``); ``realizable``: pass rate of the
+    coherency test (:func:`polrig.realizability.is_physical_linear`).
+    ``rmse_all_valid``: RMSE over every valid object pixel (edges included).
+    """
+    from polrig.realizability import is_physical_linear
+
+    m = np.asarray(result.mueller, np.float64)
+    s = np.asarray(result.sigma, np.float64)
+    t = np.asarray(truth, np.float64)
+    if m.shape != t.shape:
+        raise ValueError(f"result {m.shape} and truth {t.shape} differ in shape")
+    valid = result.valid.copy()
+    if object_mask is not None:
+        valid &= np.asarray(object_mask, bool)[None]
+    uniform = (np.asarray(spread) <= UNIFORM_SIGMA_FRACTION * s).all(axis=(1, 2))
+    use = valid & uniform
+    n = int(use.sum())
+    out: dict[str, Any] = {"pixels_compared": n,
+                           "pixels_valid": int(valid.sum()),
+                           "pixels_total": int(result.valid.size),
+                           "mask_counts": result.reason_counts(),
+                           "condition_number": float(result.condition_number)}
+    keys = ("rmse", "mae", "psnr_db", "within_2sigma", "chi2_per_element", "mean_sigma",
+            "peak_m00", "realizable", "rmse_all_valid")
+    out.update({k: None for k in keys})
+    if valid.any():
+        err_all = (m - t).transpose(1, 2, 0, 3, 4)[:, :, valid]
+        out["rmse_all_valid"] = float(np.sqrt(np.mean(err_all**2)))
+    if n == 0:
+        return out
+    err = (m - t).transpose(1, 2, 0, 3, 4)[:, :, use]  # (3, 3, n)
+    sig = s.transpose(1, 2, 0, 3, 4)[:, :, use]
+    peak = float(np.abs(t[:, 0, 0][use]).max())
+    rmse = float(np.sqrt(np.mean(err**2)))
+    pos = sig > 0
+    mats = m.transpose(0, 3, 4, 1, 2)[use]  # (n, 3, 3)
+    out.update(
+        rmse=rmse, mae=float(np.mean(np.abs(err))),
+        psnr_db=float(20 * math.log10(peak / rmse)) if rmse > 0 else float("inf"),
+        within_2sigma=float(np.mean(np.abs(err[pos]) <= 2 * sig[pos])) if pos.any() else None,
+        chi2_per_element=float(np.mean((err[pos] / sig[pos]) ** 2)) if pos.any() else None,
+        mean_sigma=float(np.sqrt(np.mean(sig**2))), peak_m00=peak,
+        realizable=float(np.mean(is_physical_linear(mats))))
+    return out
+
+
+def format_score(score: dict[str, Any]) -> str:
+    """One line for a score dict (``polrig capture`` and ``polrig info``)."""
+    if not score or score.get("rmse") is None:
+        return "no pixels to score"
+    psnr = score["psnr_db"]
+    parts = [f"RMSE {score['rmse']:.4g}", f"MAE {score['mae']:.4g}",
+             f"PSNR {psnr:.1f} dB" if math.isfinite(psnr) else "PSNR inf",
+             f"mean sigma {score['mean_sigma']:.4g}"]
+    if score.get("within_2sigma") is not None:
+        parts.append(f"{100 * score['within_2sigma']:.1f}% within 2 sigma")
+    parts.append(f"realizable {100 * score['realizable']:.1f}%")
+    parts.append(f"{score['pixels_compared']} px")
+    return ", ".join(parts)
+
+
+# -- session level -------------------------------------------------------------------------------
+def _exr_bytes(writer: Callable[[pathlib.Path], Any]) -> bytes:
+    """Bytes of an EXR written by ``writer(path)`` to a scratch folder (the session then writes
+    them atomically, checksummed, under their final name)."""
+    with tempfile.TemporaryDirectory(prefix="polrig-exr-") as d:
+        p = pathlib.Path(d) / "image.exr"
+        writer(p)
+        return p.read_bytes()
+
+
+def read_verified_frame(session: Session, record: dict[str, Any]) -> Frame:
+    """Read one recorded raw frame after checking its (and its sidecar's) SHA-256."""
+    for key, digest in (("path", "sha256"), ("meta_path", "meta_sha256")):
+        if key not in record:
+            continue
+        path = session.root / record[key]
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: raw file of the session is missing")
+        if sha256_file(path) != record[digest]:
+            raise FormatError(f"{path}: SHA-256 does not match the session manifest (changed "
+                              f"or corrupt raw data)")
+    return read_raw(session.root / record["path"])
+
+
+@dataclasses.dataclass
+class CaptureFrames:
+    """Raw frames of one capture grouped for processing."""
+
+    states_deg: list[float]
+    exposures_us: list[float]
+    frames: list[list[list[Frame]]]  # [state][exposure][k]
+    darks: list[list[Frame]]  # [exposure][k]
+
+    @property
+    def first(self) -> Frame:
+        return self.frames[0][0][0]
+
+
+def load_capture_frames(session: Session, index: int) -> CaptureFrames:
+    """Every raw and dark frame of capture ``index``, checksums verified."""
+    files = session.capture(index)["files"]
+    raw = files.get("raw", [])
+    if not raw:
+        raise FormatError(f"capture {index} of {session.root} has no raw frames")
+    n_states = 1 + max(r["state_index"] for r in raw)
+    n_exp = 1 + max(r["exposure_index"] for r in raw)
+    states = [0.0] * n_states
+    exposures = [0.0] * n_exp
+    frames: list[list[list[tuple[int, Frame]]]] = [[[] for _ in range(n_exp)]
+                                                   for _ in range(n_states)]
+    for r in raw:
+        states[r["state_index"]] = float(r["state_deg"])
+        exposures[r["exposure_index"]] = float(r["exposure_us"])
+        frames[r["state_index"]][r["exposure_index"]].append((r["frame"],
+                                                              read_verified_frame(session, r)))
+    darks: list[list[tuple[int, Frame]]] = [[] for _ in range(n_exp)]
+    for r in files.get("dark", []):
+        darks[r["exposure_index"]].append((r["frame"], read_verified_frame(session, r)))
+    for j, per_state in enumerate(frames):
+        for e, lst in enumerate(per_state):
+            if not lst:
+                raise FormatError(f"capture {index}: no frames of state {j} at exposure {e}")
+    srt = lambda lst: [f for _, f in sorted(lst, key=lambda t: t[0])]  # noqa: E731
+    return CaptureFrames(states, exposures, [[srt(l) for l in s] for s in frames],
+                         [srt(l) for l in darks])
+
+
+def frame_layout(frame: Frame) -> MosaicLayout:
+    """Mosaic layout of a frame, phase from its ROI offset."""
+    from polrig.analyzer import layout_name_at
+
+    ox, oy = frame.meta.offset_xy
+    return resolve_layout(layout_name_at(frame.meta.layout, ox, oy))
+
+
+def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
+                      method: str) -> tuple[ReferenceResult, np.ndarray, MosaicLayout]:
+    """Reference solve of one capture's frames: ``(result, s_in, layout)``."""
+    first = cf.first
+    lay = frame_layout(first)
+    fmodel = model_for_frames(model, first.meta.bit_depth)
+    black = float(first.meta.black_level_dn)
+    have_darks = any(len(d) for d in cf.darks)
+    states = []
+    for per_state in cf.frames:
+        states.append(state_radiance(
+            [[f.raw for f in lst] for lst in per_state], cf.exposures_us, fmodel,
+            black_level_dn=black,
+            darks=[[f.raw for f in d] for d in cf.darks] if have_darks else None))
+    analyzer = calibration.analyzer
+    if analyzer is not None and analyzer.shape != first.raw.shape:
+        w = first.raw.shape[1]
+        h = first.raw.shape[0]
+        ox, oy = first.meta.offset_xy
+        analyzer = analyzer.crop(ox, oy, w, h)
+    s_in = calibration.incident_stokes(cf.states_deg)
+    return reference_from_frames(states, s_in, lay, method, analyzer), s_in, lay
+
+
+class Processor:
+    """Processing of captures inside a session (see :func:`polrig.capture.run_session`).
+
+    ``mode``/``demosaic`` as in the plan; ``sensor_model`` the camera's noise model.
+    """
+
+    def __init__(self, mode: str, demosaic: str, calibration: Calibration,
+                 sensor_model: SensorModel):
+        if mode != "reference":
+            single_shot_model()  # raises the one-line "no model installed" error
+            raise ConfigError("--mode single-shot processing is not available in this polrig")
+        self.mode = mode
+        self.demosaic = demosaic
+        self.calibration = calibration
+        self.sensor_model = sensor_model
+
+    # called by run_session while the rig is still at the pose
+    def after_acquire(self, session: Session, index: int, rig) -> None:
+        truth = getattr(rig, "truth", None)
+        if truth is None:
+            return
+        gt = truth.ground_truth()
+        cap = session.capture(index)
+        planes = {"object_mask": np.asarray(gt["mask"], np.float32)}
+        meta = {"source": "polrig simulated rig ground truth", "pose_deg": cap["pose_deg"],
+                "units": "DN per unit incident S0 (docs/conventions.md)",
+                "exposure_us": gt.get("exposure_us"), "gain_db": gt.get("gain_db")}
+        from polrig.exr import write_mueller_exr
+
+        data = _exr_bytes(lambda p: write_mueller_exr(p, gt["mueller"], extra=planes,
+                                                      metadata=meta))
+        session.add_file(index, "truth_mueller", f"{cap['name']}/truth_mueller.exr", data)
+
+    def process(self, session: Session, index: int, revision: str | None = None
+                ) -> dict[str, Any] | None:
+        """Solve capture ``index`` from its raw files; write the result files (into
+        ``revision`` if given); return the score against the truth (simulated rig) or None."""
+        from polrig import __version__
+        from polrig.exr import colour_planes, write_mueller_exr
+
+        cap = session.capture(index)
+        cf = load_capture_frames(session, index)
+        result, s_in, lay = process_reference(cf, self.calibration, self.sensor_model,
+                                              self.demosaic)
+        extra: dict[str, np.ndarray] = {}
+        for r in range(3):
+            for c in range(3):
+                extra.update(colour_planes(f"sigma.M{r}{c}", result.sigma[:, r, c]))
+        extra.update(colour_planes("mask", result.mask.astype(np.float32)))
+        extra.update(colour_planes("residual", result.residual))
+        meta = {
+            "calibration_id": self.calibration.id, "mode": self.mode, "demosaic": self.demosaic,
+            "pose_deg": cap["pose_deg"], "states_deg": cf.states_deg,
+            "incident_state": np.asarray(s_in).tolist(),
+            "exposure_us": cf.exposures_us[0], "exposures_us": cf.exposures_us,
+            "frames_per_state": len(cf.frames[0][0]), "dark_frames": len(cf.darks[0]),
+            "layout": lay.name, "condition_number": result.condition_number,
+            "units": "DN per unit incident S0 at exposure_us (docs/conventions.md)",
+            "mask_bits": {str(b): n for b, n in reason_names().items()},
+            "planes": {"sigma.M{rc}": "standard deviation of M{rc} from the sensor noise model",
+                       "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"},
+            "software": f"polrig {__version__}", "capture": cap["name"],
+            "revision": revision or "capture",
+        }
+        data = _exr_bytes(lambda p: write_mueller_exr(p, result.mueller, extra=extra,
+                                                      metadata=meta))
+        folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
+        rec = session.add_file(index, "mueller", f"{folder}/mueller.exr", data,
+                               revision=revision)
+        files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
+        files["uncertainty"] = {"part_of": "mueller", "path": rec["path"],
+                                "channels": "sigma.M{row}{col}.{colour}, residual.{colour}"}
+        files["mask"] = {"part_of": "mueller", "path": rec["path"],
+                         "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        score = self.score(session, index, result, lay)
+        if revision is not None:
+            cap["revisions"][revision].update(status=COMPLETE, score=score)
+        session.save()
+        return score
+
+    def score(self, session: Session, index: int, result: ReferenceResult,
+              layout: MosaicLayout) -> dict[str, Any] | None:
+        rec = session.capture(index)["files"].get("truth_mueller")
+        if rec is None:
+            return None
+        from polrig.exr import read_mueller_exr
+
+        path = session.root / rec["path"]
+        if sha256_file(path) != rec["sha256"]:
+            raise FormatError(f"{path}: SHA-256 does not match the session manifest")
+        img = read_mueller_exr(path)
+        t, spread = truth_on_output_grid(img.mueller, layout, self.demosaic)
+        obj = img.extra.get("object_mask")
+        if obj is not None:
+            obj_t, _ = truth_on_output_grid(np.broadcast_to(obj, (1, 3, 3) + obj.shape),
+                                            layout, self.demosaic)
+            obj = obj_t[0, 0, 0] >= 1.0  # the whole support on the object
+        return score_against_truth(result, t, spread, obj)
+
+
+def make_processor(plan, calibration: Calibration, sensor_model: SensorModel) -> Processor:
+    return Processor(plan.mode, plan.demosaic, calibration, sensor_model)
+
+
+def session_sensor_model(session: Session) -> SensorModel:
+    """The noise model recorded in a session's manifest (IMX250 defaults if none)."""
+    fields = session.manifest.get("rig", {}).get("sensor_model")
+    return SensorModel(**fields) if fields else SensorModel()
+
+
+def reprocess_session(session: Session, *, mode: str | None = None, demosaic: str | None = None,
+                      calibration: Calibration | None = None,
+                      command_line: list[str] | None = None,
+                      progress: Callable[[int, dict[str, Any] | None], None] | None = None) -> str:
+    """Re-process every complete capture from its raw frames into a new revision (raw data
+    and earlier results untouched). Returns the revision name."""
+    plan = session.plan
+    mode = mode or plan["mode"]
+    demosaic = demosaic or plan.get("demosaic", "superpixel")
+    calibration = calibration or nominal_calibration()
+    processor = Processor(mode, demosaic, calibration, session_sensor_model(session))
+    done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
+    if not done:
+        raise ConfigError(f"{session.root}: no complete capture to reconstruct")
+    if mode == "reference":
+        check_plan(dataclasses.make_dataclass("P", ["mode", "states_deg"])(
+            mode, plan["states_deg"]), calibration)
+    name = session.new_revision({"mode": mode, "demosaic": demosaic,
+                                 "calibration_id": calibration.id}, command_line)
+    for index in done:
+        session.start_revision(index, name)
+        try:
+            score = processor.process(session, index, revision=name)
+        except BaseException as exc:
+            session.capture(index)["revisions"][name].update(
+                status=FAILED if isinstance(exc, Exception) else PENDING, reason=str(exc))
+            session.save()
+            raise
+        if progress:
+            progress(index, score)
+    return name
