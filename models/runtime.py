@@ -256,13 +256,15 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     return mueller, aux
 
 
-def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None):
-    """Mueller EXR (``M{r}{c}.{R,G,B}``) with ``mask`` and the estimated ``normal.{X,Y,Z}``
-    planes and the model's scalars in the header (:func:`polrig.exr.write_mueller_exr`)."""
+def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None, *,
+                     with_normal: bool = False):
+    """Mueller EXR (``M{r}{c}.{R,G,B}``) with a ``mask`` plane (and the estimated
+    ``normal.{X,Y,Z}`` with ``with_normal``) and the model's scalars in the header
+    (:func:`polrig.exr.write_mueller_exr`)."""
     from polrig.exr import write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
-    if "normal" in aux:
+    if with_normal and "normal" in aux:
         for k, name in enumerate("XYZ"):
             extra[f"normal.{name}"] = aux["normal"][k]
     meta = {"method": "single-shot", "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",

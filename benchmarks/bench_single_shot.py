@@ -1,0 +1,116 @@
+"""Latency and throughput of the whole single-shot path on this machine.
+
+Path per frame: decode the raw file (16-bit PNG, :func:`polrig.rawio.read_raw`), demosaic,
+Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call, :func:`models.runtime.infer_frame`),
+Mueller EXR (:func:`models.runtime.write_result_exr`). Raw frames are IMX250MYR mosaics of a
+lit sphere rendered with the pBRDF (content matters little for speed, the mask does for
+nothing: every pixel runs through the networks).
+
+Sizes are **raw sensor sizes** (256x256, 512x512, full 2448x2048). With the default
+``superpixel`` demosaic the colour sensor's native analyzer images are a quarter of that per
+axis (64x64, 128x128, 612x512); with ``bilinear`` the network runs at the raw size (the full
+sensor then exceeds the runtime's ``max_pixels`` and is resized, see :mod:`models.runtime`).
+
+Usage: ``python benchmarks/bench_single_shot.py [--repeat N] [--threads T] [--out FILE]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import statistics
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from models.runtime import SingleShotModel, infer_frame, physical_cores, write_result_exr  # noqa: E402
+from polrig.hal import Frame, FrameMeta  # noqa: E402
+from polrig.layouts import get_layout  # noqa: E402
+from polrig.rawio import read_raw, write_raw  # noqa: E402
+
+SIZES = ((256, 256), (512, 512), (2048, 2448))
+
+
+def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """A 12-bit IMX250MYR mosaic of a diffuse sphere with a polarized highlight (DN)."""
+    h, w = shape
+    lay = get_layout("imx250myr")
+    angle = np.deg2rad(lay.angle_map(shape))
+    v, u = np.mgrid[0:h, 0:w]
+    r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / (0.4 * min(h, w)) ** 2
+    inside = r2 < 1
+    s0 = np.where(inside, 1500 * np.sqrt(np.clip(1 - r2, 0, 1)) + 200, 40.0)
+    dolp = np.where(inside, 0.3 * r2, 0.0)
+    aolp = np.arctan2(v - h / 2, u - w / 2)
+    signal = 0.5 * s0 * (1 + dolp * np.cos(2 * (angle - aolp)))
+    noisy = rng.poisson(np.clip(signal, 0, None)) + rng.normal(0, 2.0, shape) + 64
+    return np.clip(noisy, 0, 4095).astype(np.uint16)
+
+
+def bench(size, method, model, repeat, tmp: pathlib.Path, rng) -> dict:
+    raw = synthetic_raw(size, rng)
+    meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
+                     layout="imx250myr", bit_depth=12, black_level_dn=64.0)
+    src = tmp / f"raw_{size[0]}x{size[1]}.png"
+    write_raw(src, Frame(raw=raw, meta=meta))
+    out = tmp / "out.exr"
+    rows = []
+    for i in range(repeat + 1):  # the first run warms up caches and the session
+        t0 = time.perf_counter()
+        frame = read_raw(src)
+        t1 = time.perf_counter()
+        mueller, aux = infer_frame(frame.raw, frame.meta.layout, 0.0, model, demosaic_method=method,
+                                   black_level_dn=frame.meta.black_level_dn)
+        t2 = time.perf_counter()
+        write_result_exr(out, mueller, aux)
+        t3 = time.perf_counter()
+        if i:
+            tt = aux["timings_s"]
+            rows.append({"decode": t1 - t0, "demosaic": tt["demosaic"], "stokes": tt["stokes"],
+                         "prepare": tt["prepare"], "network": tt["network"], "finish": tt["finish"],
+                         "exr": t3 - t2, "total": t3 - t0})
+    med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+    return {"raw": f"{size[1]}x{size[0]}", "method": method, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}",
+            **med, "fps": 1.0 / med["total"]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: physical cores)")
+    ap.add_argument("--methods", default="superpixel,bilinear")
+    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped models/weights)")
+    ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
+    args = ap.parse_args(argv)
+    model = SingleShotModel.load(args.weights, threads=args.threads)
+    rng = np.random.default_rng(0)
+    results = []
+    with tempfile.TemporaryDirectory() as d:
+        for method in args.methods.split(","):
+            for size in SIZES:
+                reps = args.repeat if size[0] * size[1] <= 512 * 512 or method == "superpixel" else max(2, args.repeat // 2)
+                results.append(bench(size, method, model, reps, pathlib.Path(d), rng))
+                r = results[-1]
+                print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms", flush=True)
+    threads = args.threads or physical_cores()
+    lines = [f"onnxruntime intra-op threads: {threads}; median of the runs after one warm-up; times in ms.", "",
+             "| raw size | demosaic | network size | decode | demosaic | Stokes | prepare | networks + pBRDF | finish | EXR | **total** | frames/s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        lines.append(f"| {r['raw']} | {r['method']} | {r['net']} | " + " | ".join(
+            f"{1e3 * r[k]:.1f}" for k in ("decode", "demosaic", "stokes", "prepare", "network", "finish", "exr"))
+            + f" | **{1e3 * r['total']:.1f}** | {r['fps']:.1f} |")
+    table = "\n".join(lines)
+    print(table)
+    if args.out:
+        pathlib.Path(args.out).write_text("# Single-shot inference speed\n\n" + table + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
