@@ -1,0 +1,115 @@
+"""``polrig stokes``: raw file in, Stokes EXR and previews out; clear errors on bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from polrig.analyzer import AnalyzerModel
+from polrig.cli import main
+from polrig.exr import read_stokes_exr
+from polrig.hal import Frame, FrameMeta
+from polrig.rawio import write_raw
+
+
+def _polarized_raw(layout="imx250mzr", shape=(32, 40), aolp_deg=30.0, dolp=0.6, s0=2000.0,
+                   offset=(0, 0)):
+    model = AnalyzerModel.ideal(f"{layout}@{offset[0]},{offset[1]}", shape)
+    t = np.deg2rad(2 * aolp_deg)
+    c = model.n_colours
+    s = np.array([s0, s0 * dolp * np.cos(t), s0 * dolp * np.sin(t)])
+    stokes = np.broadcast_to(s[None, :, None, None], (c, 3) + shape)
+    return np.round(model.mosaic(stokes)).astype(np.uint16)
+
+
+@pytest.mark.parametrize("method", ["superpixel", "bilinear", "newton"])
+def test_stokes_command_writes_exr_and_previews(tmp_path, method, capsys):
+    raw = _polarized_raw()
+    src = tmp_path / "frame.png"
+    ok, enc = cv2.imencode(".png", raw)
+    src.write_bytes(enc.tobytes())
+    out = tmp_path / "out.exr"
+    rc = main(["stokes", str(src), "--layout", "imx250mzr", "--demosaic", method,
+               "--out", str(out)])
+    assert rc == 0
+    back = read_stokes_exr(out)
+    h, w = (16, 20) if method == "superpixel" else (32, 40)
+    assert back.stokes.shape == (1, 3, h, w)
+    assert back.conventions == "1"
+    inner = back.stokes[0, :, 3:-3, 3:-3]
+    np.testing.assert_allclose(inner[0], 2000, rtol=1e-3)
+    aolp = back.extra["aolp_deg.Y"][3:-3, 3:-3]
+    np.testing.assert_allclose(aolp, 30.0, atol=0.1)
+    np.testing.assert_allclose(back.extra["dolp.Y"][3:-3, 3:-3], 0.6, atol=2e-3)
+    assert back.extra["mask"].all()
+    assert back.metadata["processing"]["demosaic"] == method
+    for suffix in ("_dolp.png", "_aolp.png"):
+        img = cv2.imread(str(tmp_path / f"out{suffix}"), cv2.IMREAD_UNCHANGED)
+        assert img.shape == (h, w, 3) and img.dtype == np.uint8
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_sidecar_supplies_layout_offset_black_level_and_bit_depth(tmp_path):
+    raw = _polarized_raw("imx250myr", (32, 32), offset=(1, 2), s0=1000) + 64
+    raw[5, 5] = 4095  # saturated at 12 bits
+    meta = FrameMeta(frame_id=7, timestamp_s=1.0, exposure_us=500.0, gain_db=0.0,
+                     pixel_format="BayerRGPolarized12p", layout="imx250myr", bit_depth=12,
+                     offset_xy=(1, 2), black_level_dn=64.0)
+    src = tmp_path / "frame.png"
+    write_raw(src, Frame(raw, meta))
+    out = tmp_path / "o.exr"
+    assert main(["stokes", str(src), "--demosaic", "superpixel", "--out", str(out)]) == 0
+    back = read_stokes_exr(out)
+    assert back.stokes.shape == (3, 3, 8, 8)
+    ok = back.extra["mask"] > 0
+    assert not ok[1, 1] and ok.sum() == 63  # the 4x4 cell holding the saturated pixel
+    np.testing.assert_allclose(back.stokes[:, 0][:, ok], 1000, rtol=2e-3)
+    assert back.metadata["capture"]["frame"]["frame_id"] == 7
+    assert back.metadata["processing"]["layout"] == "imx250myr@1,2"
+
+
+def test_roi_offset_changes_the_phase(tmp_path):
+    raw = _polarized_raw(offset=(1, 0), aolp_deg=20)
+    src = tmp_path / "r.npy"
+    np.save(src, raw)
+    for offset, expect in (("1,0", 20.0), ("0,0", None)):
+        out = tmp_path / f"o{offset[0]}.exr"
+        assert main(["stokes", str(src), "--roi-offset", offset, "--demosaic", "superpixel",
+                     "--out", str(out)]) == 0
+        aolp = read_stokes_exr(out).extra["aolp_deg.Y"]
+        if expect is not None:
+            np.testing.assert_allclose(aolp, expect, atol=0.05)
+        else:
+            assert np.abs(aolp - 20).min() > 10  # the wrong phase gives a wrong angle
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--out", "{tmp}/o.exr", "{tmp}/missing.png"], "missing.png"),
+    (["--out", "{tmp}/o.png", "{raw}"], ".exr"),
+    (["--out", "{tmp}/o.exr", "--roi-offset", "a,b", "{raw}"], "--roi-offset"),
+    (["--out", "{tmp}/o.exr", "{rgb}"], "one channel"),
+    (["--out", "{tmp}/nowhere/o.exr", "{raw}"], "does not exist"),
+])
+def test_bad_input_gives_one_line_error(tmp_path, capsys, args, needle):
+    raw = tmp_path / "raw.png"
+    cv2.imwrite(str(raw), _polarized_raw())
+    rgb = tmp_path / "rgb.png"
+    cv2.imwrite(str(rgb), np.zeros((8, 8, 3), np.uint8))
+    argv = ["stokes"] + [a.format(tmp=tmp_path, raw=raw, rgb=rgb) for a in args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("polrig: error:") and needle in err and "\n" not in err
+
+
+def test_console_script_help_lists_stokes():
+    out = subprocess.run([sys.executable, "-m", "polrig.cli", "--help"], capture_output=True,
+                         text=True, check=True).stdout
+    assert "stokes" in out
+    out = subprocess.run([sys.executable, "-m", "polrig.cli", "stokes", "--help"],
+                         capture_output=True, text=True, check=True).stdout
+    for opt in ("--layout", "--demosaic", "--black-level", "--roi-offset", "--out"):
+        assert opt in out
