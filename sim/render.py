@@ -83,19 +83,40 @@ def _nearest_hit(scene: Scene, turntable_deg: float, o: np.ndarray, d: np.ndarra
     p_loc = np.zeros((n, 3))
     for k, ob in enumerate(scene.objects):
         r, t = ob.world_pose(scene.turntable, turntable_deg)
-        ol = (o - t) @ r          # R^T (o - t) for row vectors
-        dl = d @ r
+        cand = _bound_candidates(o, d, t, ob.shape.bound_radius_m, t_best)
+        if cand is not None and cand.size == 0:
+            continue
+        oc = o if cand is None else o[cand]
+        dc = d if cand is None else d[cand]
+        ol = (oc - t) @ r          # R^T (o - t) for row vectors
+        dl = dc @ r
         th, nh = ob.shape.intersect(ol, dl)
-        closer = th < t_best
+        closer = th < (t_best if cand is None else t_best[cand])
         if not np.any(closer):
             continue
-        t_best = np.where(closer, th, t_best)
-        obj = np.where(closer, k, obj)
+        sel = np.nonzero(closer)[0] if cand is None else cand[closer]
+        t_best[sel] = th[closer]
+        obj[sel] = k
         if any_hit:
             continue
-        nrm[closer] = nh[closer] @ r.T
-        p_loc[closer] = ol[closer] + th[closer, None] * dl[closer]
+        nrm[sel] = nh[closer] @ r.T
+        p_loc[sel] = ol[closer] + th[closer, None] * dl[closer]
     return t_best, obj, nrm, p_loc
+
+
+def _bound_candidates(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radius: float,
+                      t_best: np.ndarray) -> np.ndarray | None:
+    """Indices of the rays ``o + t d`` (``(N, 3)``, unit ``d``) that come within ``radius`` of
+    ``centre`` before ``t_best`` (``None``: all rays, for unbounded shapes)."""
+    if not np.isfinite(radius):
+        return None
+    oc = centre - o
+    tca = np.einsum("ij,ij->i", oc, d)
+    oc2 = np.einsum("ij,ij->i", oc, oc)
+    r2 = radius * radius * (1.0 + 1e-9) + 1e-18
+    inside = oc2 <= r2
+    near = (oc2 - tca * tca <= r2) & (tca + radius >= 0) & (tca - radius < t_best)
+    return np.nonzero(near | inside)[0]
 
 
 def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx",

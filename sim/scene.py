@@ -130,13 +130,18 @@ def default_light(position_m=(0.18, -0.42, 0.25), intensity_rgb=(1.0, 1.0, 1.0))
 
 
 def _rig(name: str, objects: list[SceneObject], width: int, height: int,
-         light: PointLight | None = None, camera: PinholeCamera | None = None) -> Scene:
+         light: PointLight | None = None, camera: PinholeCamera | None = None,
+         stage_zero_axis: np.ndarray | None = None) -> Scene:
+    """A scene in the default rig. The stage zero axis defaults to the horizontal direction
+    perpendicular to the illumination axis."""
     light = light or default_light()
+    camera = camera or default_camera(width, height)
     target = np.array([0.0, 0.0, OBJECT_Z_M])
-    k = unit(target - light.position_m)
-    zero = np.cross(k, [0.0, 0.0, 1.0])  # horizontal, perpendicular to the illumination axis
-    return Scene(name, tuple(objects), camera or default_camera(width, height), light,
-                 TurntableGeometry(), zero, target)
+    if stage_zero_axis is None:
+        k = unit(target - light.position_m)
+        stage_zero_axis = np.cross(k, [0.0, 0.0, 1.0])
+    return Scene(name, tuple(objects), camera, light, TurntableGeometry(), stage_zero_axis,
+                 target)
 
 
 def checker_regions(n_az: int = 6, n_el: int = 3) -> RegionFn:
@@ -230,7 +235,9 @@ HOLDOUT_FAMILIES = ("heightfield", "plane")
 def random_scene(rng: np.random.Generator, width: int, height: int,
                  family: int) -> Scene:
     """A randomized scene of shape family ``FAMILIES[family]``: random size, pose, material
-    (one material per scene, so one roughness per image), light position and colour."""
+    (one material per scene, so one roughness per image), light position and colour. The
+    camera is the default one and the stage zero axis is the camera's up direction (``-Y``), so
+    that the rig frames are fixed in the camera frame across samples."""
     fam = FAMILIES[family]
     mat = random_material(rng)
     rot = _tilt(rng.uniform(-40, 40), rng.uniform(0, 360))
@@ -271,4 +278,6 @@ def random_scene(rng: np.random.Generator, width: int, height: int,
         [np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
     colour = rng.uniform(0.6, 1.0, 3)
     light = PointLight(lp, colour / colour.max())
-    return _rig(fam, objs, width, height, light=light)
+    cam = default_camera(width, height)
+    return _rig(fam, objs, width, height, light=light, camera=cam,
+                stage_zero_axis=-cam.R[1])  # camera up (-Y): fixed in the camera frame

@@ -40,6 +40,12 @@ class Shape(abc.ABC):
         """Shading normals at local hit points ``p`` ``(N, 3)`` (default: geometric)."""
         return n_geo
 
+    @property
+    def bound_radius_m(self) -> float:
+        """Radius of a sphere about the local origin enclosing the shape (``inf``: unbounded);
+        the renderer skips rays that miss it."""
+        return float("inf")
+
     def to_json(self) -> dict:
         d = {"type": type(self).__name__}
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
@@ -77,6 +83,10 @@ class Sphere(Shape):
 
     radius_m: float
 
+    @property
+    def bound_radius_m(self) -> float:
+        return float(self.radius_m)
+
     def intersect(self, o, d, t_min=T_MIN):
         with np.errstate(**_ERR):
             b = np.einsum("ij,ij->i", o, d)
@@ -102,6 +112,10 @@ class Rectangle(Shape):
     half_x_m: float = np.inf
     half_y_m: float = np.inf
     normal_map: np.ndarray | None = None
+
+    @property
+    def bound_radius_m(self) -> float:
+        return float(np.hypot(self.half_x_m, self.half_y_m))
 
     def intersect(self, o, d, t_min=T_MIN):
         with np.errstate(**_ERR):
@@ -135,6 +149,10 @@ class Box(Shape):
 
     half_m: tuple[float, float, float]
 
+    @property
+    def bound_radius_m(self) -> float:
+        return float(np.linalg.norm(self.half_m))
+
     def intersect(self, o, d, t_min=T_MIN):
         h = np.asarray(self.half_m, dtype=np.float64)
         with np.errstate(**_ERR):
@@ -161,6 +179,10 @@ class Cylinder(Shape):
 
     radius_m: float
     half_height_m: float
+
+    @property
+    def bound_radius_m(self) -> float:
+        return float(np.hypot(self.radius_m, self.half_height_m))
 
     def intersect(self, o, d, t_min=T_MIN):
         r, hh = self.radius_m, self.half_height_m
@@ -213,6 +235,11 @@ class HeightField(Shape):
     gradient: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
     steps: int = 48
     bisections: int = 24
+
+    @property
+    def bound_radius_m(self) -> float:
+        return float(np.sqrt(self.half_x_m ** 2 + self.half_y_m ** 2
+                             + max(abs(self.z_min_m), abs(self.z_max_m)) ** 2))
 
     def _slab(self, o, d, t_min):
         box = Box((self.half_x_m, self.half_y_m, 0.5 * (self.z_max_m - self.z_min_m)))

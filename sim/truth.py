@@ -3,8 +3,7 @@
 :meth:`SimTruth.ground_truth` gives the per-pixel truth for the camera's current ROI, exposure,
 gain, the light's level and the turntable's pose; :meth:`SimTruth.rig_parameters` the hidden
 parameters calibration has to recover. :func:`write_truth` writes them as ``truth.json`` plus
-one ``truth_<name>.npz`` (and, when :mod:`polrig.exr` is available, ``truth_<name>_mueller.exr``)
-per capture; the schema is documented in ``docs/sim.md``.
+one ``truth_<name>.npz`` and ``truth_<name>_mueller.exr`` (:mod:`polrig.exr`) per capture; the schema is documented in ``docs/sim.md``.
 """
 
 from __future__ import annotations
@@ -12,6 +11,7 @@ from __future__ import annotations
 import io
 import json
 import pathlib
+import zipfile
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -104,9 +104,17 @@ def rig_parameters(world: "SimWorld") -> dict[str, Any]:
     }
 
 
-def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+def npz_bytes(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
+    """An ``.npz`` archive (readable by :func:`numpy.load`) in memory; ``compress`` uses
+    DEFLATE level 1 (several times faster than :func:`numpy.savez_compressed`'s default and
+    nearly as small on images that are mostly background)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(buf, "w", method, compresslevel=1 if compress else None,
+                         allowZip64=True) as zf:
+        for name, a in arrays.items():
+            with zf.open(name + ".npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
     return buf.getvalue()
 
 
@@ -125,17 +133,10 @@ def write_truth(directory: str | pathlib.Path, name: str, truth: dict[str, Any],
     files: dict[str, str] = {}
     arrays = {k: np.asarray(truth[k]) for k in PIXEL_KEYS if k in truth}
     npz_name = f"truth_{name}.npz"
-    if compress:
-        atomic_write_bytes(d / npz_name, _npz_bytes(arrays))
-    else:
-        buf = io.BytesIO()
-        np.savez(buf, **arrays)
-        atomic_write_bytes(d / npz_name, buf.getvalue())
+    atomic_write_bytes(d / npz_name, npz_bytes(arrays, compress))
     files["npz"] = npz_name
     if exr:
-        exr_name = _write_mueller_exr(d, f"truth_{name}_mueller.exr", truth["mueller"], parameters)
-        if exr_name:
-            files["exr"] = exr_name
+        files["exr"] = _write_mueller_exr(d, f"truth_{name}_mueller.exr", truth)
     entry = {"name": name, "files": files,
              **{k: truth[k] for k in ("turntable_deg", "exposure_us", "gain_db", "light_level",
                                       "light_on") if k in truth},
@@ -172,16 +173,18 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _write_mueller_exr(d: pathlib.Path, name: str, mueller: np.ndarray,
-                       parameters: dict[str, Any]) -> str | None:
-    """Write the Mueller image with :mod:`polrig.exr` if that module is present."""
-    try:
-        from polrig import exr as exr_mod
-    except ImportError:
-        return None
-    exr_mod.write_mueller(d / name, np.asarray(mueller, dtype=np.float32),
-                          metadata={"source": "polrig sim truth",
-                                    "units": "DN per unit incident S0"})
+def _write_mueller_exr(d: pathlib.Path, name: str, truth: dict[str, Any]) -> str:
+    """Write the truth Mueller image (``M{row}{col}.{R,G,B|Y}``) with the mask and the
+    normals as extra planes (:func:`polrig.exr.write_mueller_exr`)."""
+    from polrig.exr import colour_planes, write_mueller_exr
+
+    extra = {"mask": np.asarray(truth["mask"], np.float32)}
+    extra.update(colour_planes("normal", np.asarray(truth["normal"], np.float32)))
+    meta = {"source": "polrig sim truth", "units": "DN per unit incident S0",
+            **{k: truth[k] for k in ("turntable_deg", "exposure_us", "gain_db", "light_level")
+               if k in truth}, "roi": list(truth.get("roi", ()))}
+    write_mueller_exr(d / name, np.asarray(truth["mueller"], dtype=np.float32), extra=extra,
+                      metadata=meta)
     return name
 
 

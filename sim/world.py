@@ -119,9 +119,9 @@ class SimWorld:
         key = ("S", _angle_key(turntable_deg), round(float(stage_deg), 9))
 
         def make() -> np.ndarray:
-            s_in = self.generator.incident_stokes(stage_deg).astype(np.float32)
+            s = self.generator.incident_stokes(stage_deg).astype(np.float32)
             m = self.radiance_mueller(turntable_deg)
-            return np.einsum("cijhw,j->cihw", m, s_in, optimize=True)
+            return m[:, :, 0] * s[0] + m[:, :, 1] * s[1] + m[:, :, 2] * s[2]
 
         with self._lock:
             return self._states.get(key, make)

@@ -1,0 +1,235 @@
+"""Training sets of randomized simulated scenes for the single-shot networks (``models/``).
+
+Layout of a dataset folder (the schema is documented in ``docs/sim.md``, section "Dataset"):
+``manifest.json`` and shards ``shard-00000.npz``, ``shard-00001.npz``, ... of
+``shard_size`` samples each. Sample ``i`` depends only on ``(seed, holdout, i)`` (its own
+random generator), so shards can be made in any order, a crashed run resumes by skipping the
+shards already complete, and every shard is written atomically (temporary file + rename).
+
+Each sample is one single-shot capture: a random scene (:func:`sim.scene.random_scene`: shape
+family, one material, light position and colour, turntable pose), one random polarizer state,
+the full-resolution ideal-analyzer intensities per colour (0/45/90/135 deg) at ``H x W``
+with the sensor noise model (:class:`polrig.noise.SensorModel`) applied independently to every
+value, black level and mean dark signal removed, divided by a per-sample ``scale``. The ground
+truth Mueller image is in the same units. Vectors are in the camera frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import zipfile
+from typing import Any
+
+import numpy as np
+
+from polrig.conventions import CONVENTIONS_VERSION
+from polrig.errors import ConfigError, FormatError
+from polrig.noise import SensorModel
+from polrig.rawio import atomic_write_bytes, atomic_write_text
+from sim.generator import Generator
+from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
+from sim.render import render
+from sim.scene import FAMILIES, HOLDOUT_FAMILIES, default_camera, random_scene
+from sim.truth import npz_bytes
+from sim.world import ideal_analyzer_images
+
+DATASET_FORMAT = "polrig-sim-dataset"
+DATASET_VERSION = 1
+#: Exposure (microseconds) used for the dark signal of the dataset's noise model.
+DATASET_EXPOSURE_US = 10000.0
+#: Percentile of the analyzer values inside the mask that ``scale`` maps to 1.
+SCALE_PERCENTILE = 99.5
+
+#: Arrays of a shard: name -> (shape with N, H, W symbols, dtype).
+SHARD_ARRAYS: dict[str, tuple[str, str]] = {
+    "analyzer": ("(N, 3, 4, H, W)", "float32"),
+    "scale": ("(N,)", "float32"),
+    "mask": ("(N, H, W)", "uint8"),
+    "normal": ("(N, 3, H, W)", "float32"),
+    "kd": ("(N, 3, H, W)", "float32"),
+    "alpha": ("(N,)", "float32"),
+    "eta": ("(N,)", "float32"),
+    "wi": ("(N, 3, H, W)", "float32"),
+    "wo": ("(N, 3, H, W)", "float32"),
+    "s_in": ("(N, 3)", "float32"),
+    "mueller": ("(N, 3, 3, 3, H, W)", "float32"),
+    "family": ("(N,)", "int16"),
+    "index": ("(N,)", "int64"),
+    "stage_deg": ("(N,)", "float32"),
+    "lit": ("(N, H, W)", "uint8"),
+}
+
+
+def families_for(holdout: bool) -> tuple[int, ...]:
+    """Family ids (indices of :data:`sim.scene.FAMILIES`) of the training or held-out set."""
+    return tuple(i for i, f in enumerate(FAMILIES) if (f in HOLDOUT_FAMILIES) == bool(holdout))
+
+
+def dataset_sensor_model() -> SensorModel:
+    return SensorModel(**SENSOR_MODEL_DEFAULTS)
+
+
+def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool = False,
+                model: SensorModel | None = None) -> dict[str, Any]:
+    """One sample (arrays without the ``N`` axis), deterministic in ``(seed, holdout, index)``."""
+    model = model or dataset_sensor_model()
+    rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index)])
+    fams = families_for(holdout)
+    family = int(fams[rng.integers(len(fams))])
+    scene = random_scene(rng, width, height, family)
+    res = render(scene, float(rng.uniform(0.0, 360.0)))
+    stage_deg = float(rng.uniform(0.0, 180.0))
+    gen = Generator(0.0, float(np.exp(rng.uniform(np.log(200.0), np.log(3000.0)))))
+    s_in = gen.incident_stokes(stage_deg)
+    colour = scene.light.intensity_rgb * np.asarray(HIDDEN_DEFAULTS["colour_qe"])
+    m_rad = res.radiance_mueller().astype(np.float64) * colour[:, None, None, None, None]
+    an_rad = ideal_analyzer_images(np.einsum("cijhw,j->cihw", m_rad, s_in))
+    mask = res.mask
+    vals = an_rad[:, :, mask]
+    ref = float(np.percentile(vals, SCALE_PERCENTILE)) if vals.size else 0.0
+    target = float(rng.uniform(0.25, 0.85)) * model.clip_dn  # random exposure
+    k = target / ref if ref > 0 else 1.0
+    dark_dn = float(model.dark_electrons(DATASET_EXPOSURE_US) / model.gain_e_per_dn)
+    raw = model.sample_raw(np.clip(an_rad * k, 0, None) * model.gain_e_per_dn, rng,
+                           DATASET_EXPOSURE_US)
+    analyzer = raw.astype(np.float64) - model.black_level_dn - dark_dn
+    vals = analyzer[:, :, mask]
+    scale = max(float(np.percentile(vals, SCALE_PERCENTILE)) if vals.size else 1.0, 1.0)
+    lit = res.lit
+    alpha = float(res.alpha[mask][0]) if mask.any() else float(scene.materials[0].alpha)
+    eta = float(res.eta[mask][0]) if mask.any() else float(scene.materials[0].eta)
+    return {
+        "analyzer": (analyzer / scale).astype(np.float32),
+        "scale": np.float32(scale),
+        "mask": mask.astype(np.uint8),
+        "normal": res.normal, "kd": res.kd, "wi": res.wi, "wo": res.wo,
+        "alpha": np.float32(alpha), "eta": np.float32(eta),
+        "s_in": s_in.astype(np.float32),
+        "mueller": (m_rad * (k / scale)).astype(np.float32),
+        "family": np.int16(family), "index": np.int64(index),
+        "stage_deg": np.float32(stage_deg), "lit": lit.astype(np.uint8),
+    }
+
+
+def _shard_bytes(samples: list[dict[str, Any]], compress: bool) -> bytes:
+    arrays = {k: np.stack([np.asarray(s[k]) for s in samples]).astype(SHARD_ARRAYS[k][1])
+              for k in SHARD_ARRAYS}
+    return npz_bytes(arrays, compress)
+
+
+def shard_name(k: int) -> str:
+    return f"shard-{k:05d}.npz"
+
+
+def shard_complete(path: pathlib.Path, n_expected: int) -> bool:
+    """Whether ``path`` is a readable shard with every array and ``n_expected`` samples."""
+    if not path.is_file():
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if set(SHARD_ARRAYS) - set(z.files):
+                return False
+            return len(z["index"]) == n_expected
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+        return False
+
+
+def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: int,
+              holdout: bool, shard_size: int, compress: bool, model: SensorModel) -> dict:
+    cam = default_camera(width, height)
+    n_shards = -(-count // shard_size)
+    return {
+        "format": DATASET_FORMAT, "version": DATASET_VERSION,
+        "conventions_version": CONVENTIONS_VERSION,
+        "count": count, "width": width, "height": height, "seed": seed,
+        "holdout": bool(holdout), "shard_size": shard_size, "n_shards": n_shards,
+        "shards": [shard_name(k) for k in range(n_shards)], "compressed": bool(compress),
+        "sensor": "imx250myr", "layout": "imx250myr", "channels": ["R", "G", "B"],
+        "analyzer_order_deg": [0, 45, 90, 135],
+        "families": list(FAMILIES), "families_present": [FAMILIES[i] for i in families_for(holdout)],
+        "holdout_families": list(HOLDOUT_FAMILIES),
+        "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                       "varies": False},
+        "frames": {"vectors": "camera (OpenCV: X right, Y down, Z forward)",
+                   "stage_zero_axis_camera": [0.0, -1.0, 0.0],
+                   "camera_x_axis_camera": [1.0, 0.0, 0.0]},
+        "noise": {"model": "polrig.noise.SensorModel, independent per analyzer value",
+                  "sensor_model": dataclasses.asdict(model),
+                  "exposure_us_for_dark": DATASET_EXPOSURE_US,
+                  "analyzer": "ideal (0/45/90/135 deg), full resolution per colour, no demosaicing"},
+        "normalisation": {"scale": f"{SCALE_PERCENTILE} percentile of the noisy analyzer values "
+                                   "inside the mask (all colours and angles), at least 1 DN",
+                          "analyzer": "black-subtracted DN / scale",
+                          "mueller": "DN per unit incident S0 / scale"},
+        "arrays": {k: {"shape": v[0], "dtype": v[1]} for k, v in SHARD_ARRAYS.items()},
+    }
+
+
+_RESUME_KEYS = ("format", "version", "count", "width", "height", "seed", "holdout",
+                "shard_size", "compressed")
+
+
+def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
+                     height: int | None = None, seed: int = 0, holdout: bool = False,
+                     shard_size: int = 16, compress: bool = True, progress: bool = True,
+                     max_shards: int | None = None) -> dict[str, int]:
+    """Write (or resume) a dataset; returns ``{"written": shards made, "skipped": shards
+    already complete}``. ``max_shards`` stops after that many new shards (for tests and
+    partial runs). A folder holding a different dataset raises :class:`ConfigError`."""
+    from tqdm import tqdm
+
+    height = width if height is None else int(height)
+    if count < 1 or shard_size < 1:
+        raise ConfigError("count and shard size must be >= 1")
+    if not (8 <= width <= 4096 and 8 <= height <= 4096):
+        raise ConfigError(f"dataset size {width}x{height} out of range (8..4096)")
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = dataset_sensor_model()
+    manifest = _manifest(out, count=count, width=width, height=height, seed=seed,
+                         holdout=holdout, shard_size=shard_size, compress=compress, model=model)
+    mpath = out / "manifest.json"
+    if mpath.is_file():
+        try:
+            old = json.loads(mpath.read_text())
+        except ValueError:
+            raise FormatError(f"{mpath}: not a JSON dataset manifest") from None
+        diff = [k for k in _RESUME_KEYS if old.get(k) != manifest[k]]
+        if diff:
+            raise ConfigError(f"{out} holds a different dataset ({', '.join(diff)} differ); "
+                              f"choose another --out")
+    else:
+        atomic_write_text(mpath, json.dumps(manifest, indent=1))
+    written = skipped = 0
+    n_shards = manifest["n_shards"]
+    todo = []
+    for k in range(n_shards):
+        n_k = min(shard_size, count - k * shard_size)
+        if shard_complete(out / shard_name(k), n_k):
+            skipped += 1
+        else:
+            todo.append((k, n_k))
+    bar = tqdm(total=count, initial=count - sum(n for _, n in todo), unit="sample",
+               disable=not progress, desc=f"sim dataset -> {out.name}")
+    try:
+        for k, n_k in todo:
+            if max_shards is not None and written >= max_shards:
+                break
+            samples = []
+            for i in range(k * shard_size, k * shard_size + n_k):
+                samples.append(make_sample(i, seed=seed, width=width, height=height,
+                                           holdout=holdout, model=model))
+                bar.update(1)
+            atomic_write_bytes(out / shard_name(k), _shard_bytes(samples, compress))
+            written += 1
+    finally:
+        bar.close()
+    return {"written": written, "skipped": skipped}
+
+
+def load_shard(path: str | pathlib.Path) -> dict[str, np.ndarray]:
+    """All arrays of a shard."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
