@@ -22,7 +22,7 @@ import time
 from drivers import apt
 from drivers._serial import SerialLink
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import DeviceInfo, RotationStage
+from polrig.hal import DeviceInfo, RotationStage, Turntable
 
 BAUDRATE = 115200
 STEPS_PER_DEG = 409600 / 3
@@ -182,3 +182,11 @@ class K10cr1Stage(RotationStage):
         self._link.discard_input()
         self._request(apt.AptMessage(apt.MOT_MOVE_STOP, 1, 0x01), apt.MOT_MOVE_STOPPED)
         self._pending = False
+
+
+class K10cr1Turntable(K10cr1Stage, Turntable):
+    """A K10CR1 carrying the object: the same driver as a :class:`Turntable`."""
+
+    def __init__(self, port: str, **kw):
+        kw.setdefault("kind", "turntable")
+        super().__init__(port, **kw)
