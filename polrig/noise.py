@@ -89,11 +89,12 @@ class SensorModel:
     def saturation_dn(self) -> float:
         """Black-subtracted DN at or above which a sample is treated as saturated.
 
-        :attr:`clip_dn` minus three read-noise standard deviations and one code: a clipped
-        pixel reads the clip level plus read noise, so a threshold exactly at the clip level
-        would let about half of the saturated samples through.
+        :attr:`clip_dn` minus five read-noise standard deviations and one code: a pixel
+        clipped at the full well reads the clip level plus read noise, so a threshold exactly at
+        the clip level would let about half of the saturated samples through (five sigma: one
+        in 3.5 million slips through).
         """
-        return self.clip_dn - 3.0 * self.read_noise_dn - 1.0
+        return self.clip_dn - 5.0 * self.read_noise_dn - 1.0
 
     def dark_electrons(self, exposure_us: float | np.ndarray) -> np.ndarray:
         """Mean dark electrons accumulated in ``exposure_us``."""
@@ -133,11 +134,13 @@ class SensorModel:
         Poisson photo- and dark electrons (clipped at the full well), Gaussian read noise,
         conversion by the gain, black level, rounding to the nearest code and clipping to
         ``0 .. max_code_dn``. Pure: all randomness comes from ``rng`` (same seed, same frame).
-        Raises ``ValueError`` for negative or non-finite means.
+        Raises ``ValueError`` for negative (below ``-1e-6``, i.e. beyond rounding) or
+        non-finite means.
         """
         mean_e = np.asarray(mean_electrons, dtype=np.float64)
-        if not np.isfinite(mean_e).all() or (mean_e < 0).any():
+        if not np.isfinite(mean_e).all() or (mean_e < -1e-6).any():
             raise ValueError("mean_electrons must be finite and >= 0")
+        mean_e = np.clip(mean_e, 0.0, None)  # rounding-level negatives of computed means
         if not (np.isfinite(exposure_us) and exposure_us >= 0):
             raise ValueError(f"exposure_us must be finite and >= 0, got {exposure_us!r}")
         lam = mean_e + self.dark_electrons(exposure_us)

@@ -17,7 +17,7 @@ def test_defaults_and_derived_constants():
     assert s.gain_e_per_dn == pytest.approx(10500 / 4095)
     assert s.clip_dn == pytest.approx(4095.0)
     assert s.read_noise_dn == pytest.approx(2.3 / (10500 / 4095))
-    assert s.clip_dn - 5 < s.saturation_dn < s.clip_dn
+    assert s.saturation_dn == pytest.approx(s.clip_dn - 5 * s.read_noise_dn - 1)
     with pytest.raises(dataclasses.FrozenInstanceError):
         s.read_noise_e = 1.0  # type: ignore[misc]
     # an explicit gain wins; a black level lowers the clip level

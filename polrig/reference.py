@@ -1,0 +1,488 @@
+"""N-state reference Mueller solve: per pixel and colour, the 3x3 linear block from all
+``N x 4`` analyzer measurements, with uncertainty, residual, condition numbers and masks.
+
+Measurement model (``docs/conventions.md``: Stokes, analyzer order 0/45/90/135 deg, units):
+for polarizer state ``k`` with incident linear Stokes vector ``s_k`` (normalised units, section
+"Radiometric units") and analyzer ``j`` with row ``a_j`` (ideal: ``[1, cos 2t, sin 2t] / 2``),
+the black-subtracted intensity is
+
+    I_kj = a_j^T M s_k = kron(a_j, s_k) . vec(M)        (vec row-major: m00, m01, ..., m22)
+
+so all ``4 N`` samples of a pixel give a linear system ``D vec(M) = I`` with the design matrix
+``D`` of rows ``kron(a_j, s_k)`` (:func:`design_matrix`). It is solved by weighted least squares
+with weights ``w = 1 / variance`` per sample: ``vec(M) = (D^T W D)^-1 D^T W I``, covariance
+``(D^T W D)^-1`` (whose diagonal gives :attr:`ReferenceResult.sigma`) and
+``chi^2 / dof = sum w r^2 / (n - 9)`` (:attr:`ReferenceResult.residual`; about 1 when the noise
+model is right).
+
+**Why measurements, not Stokes images.** Solving from the ``N`` Stokes images (one 3x4 pseudo-
+inverse per state, then ``N`` (S_in, S_out) pairs) would weight the states equally although
+their analyzer samples differ in variance by orders of magnitude (shot noise follows the
+signal, so a crossed state is far less noisy than a parallel one), would ignore the correlation
+that the Stokes inversion introduces between ``S0, S1, S2``, and would have to discard a whole
+state whenever one of its four analyzer samples is saturated. Working on the ``4 N`` samples
+weights each by its own variance and drops saturated or bad samples individually; the other
+samples of the same state still count.
+
+Normal equations are formed for a chunk of pixels at once: with a shared analyzer the 45
+distinct entries of ``D^T W D`` are one matrix product ``W (P x 4N) @ (4N x 45)`` of the
+weights with the precomputed products of design rows; they are solved by a batched Cholesky
+factorisation laid out pixels-last (long vector operations), so a 1024 x 1024 x 3-colour image
+takes a few seconds on two cores. Per-pixel analyzer rows take the general (slower) path.
+
+Masks (:data:`DARK`, :data:`SATURATED`, :data:`ILL_CONDITIONED`, :data:`NONFINITE` bit flags,
+uint8 ``(C, H, W)``, names via :func:`reason_names`): a pixel with ``mask == 0`` is good.
+``SATURATED`` and ``NONFINITE`` mean that samples were excluded (invalid in the given mask, or
+non-finite value/variance, or variance <= 0); the pixel is still solved from the rest when they
+determine ``M`` well. ``ILL_CONDITIONED`` means the remaining samples do not (condition number
+of the remaining design above ``max_condition``, or fewer than 9 samples): its Mueller matrix,
+sigma and residual are 0 (finite, never NaN). ``DARK`` means ``m00`` is below ``min_snr`` times
+its own standard deviation; the estimate is kept.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from polrig.errors import ConfigError
+from polrig.noise import SensorModel
+from polrig.stokes import ideal_analyzer_matrix
+
+__all__ = [
+    "DARK", "SATURATED", "ILL_CONDITIONED", "NONFINITE", "REASONS", "reason_names",
+    "ReferenceResult", "design_matrix", "condition_number", "validate_states",
+    "forward_measurements", "solve_reference", "average_frames", "merge_hdr",
+]
+
+DARK = 1  #: m00 below ``min_snr`` standard deviations (estimate kept)
+SATURATED = 2  #: some samples excluded by the validity mask (saturated or bad)
+ILL_CONDITIONED = 4  #: remaining samples do not determine M (estimate set to 0)
+NONFINITE = 8  #: some samples had a non-finite value or a non-finite/non-positive variance
+
+#: bit -> name, in bit order
+REASONS: dict[int, str] = {DARK: "dark", SATURATED: "saturated",
+                           ILL_CONDITIONED: "ill_conditioned", NONFINITE: "nonfinite"}
+
+DEFAULT_MAX_CONDITION = 50.0
+
+
+def reason_names(code: int | None = None) -> dict[int, str] | tuple[str, ...]:
+    """Without argument: the ``{bit: name}`` table. With a mask value: the names of its set
+    bits in bit order, e.g. ``reason_names(6) == ("saturated", "ill_conditioned")``."""
+    if code is None:
+        return dict(REASONS)
+    code = int(code)
+    return tuple(name for bit, name in REASONS.items() if code & bit)
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceResult:
+    """Output of :func:`solve_reference` (image stacks plane-first, ``docs/conventions.md``).
+
+    ``mueller``: ``(C, 3, 3, H, W)`` float32, DN per unit incident S0.
+    ``sigma``: ``(C, 3, 3, H, W)`` float32 standard deviation of each element, from the
+    covariance ``(D^T W D)^-1`` (noise model, not scaled by the residual).
+    ``residual``: ``(C, H, W)`` float32 ``chi^2 / dof`` (0 where ``dof <= 0`` or unsolved).
+    ``mask``: ``(C, H, W)`` uint8 reason bits (0 = good), see :func:`reason_names`.
+    ``condition_number``: of the full design of the state set (all samples).
+    ``pixel_condition``: ``(C, H, W)`` float32 condition number of the design of the samples
+    actually used at each pixel (``inf`` where fewer than 9 or rank deficient).
+    ``n_samples``: ``(C, H, W)`` uint16 number of samples used.
+    """
+
+    mueller: np.ndarray
+    sigma: np.ndarray
+    residual: np.ndarray
+    mask: np.ndarray
+    condition_number: float
+    pixel_condition: np.ndarray
+    n_samples: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(C, H, W)`` bool, ``mask == 0``."""
+        return self.mask == 0
+
+    def reason_counts(self) -> dict[str, int]:
+        """Number of pixels (over colours) with each reason bit set."""
+        return {name: int(np.count_nonzero(self.mask & bit)) for bit, name in REASONS.items()}
+
+
+# ---------------------------------------------------------------------------- design
+def _states(s_in: np.ndarray) -> np.ndarray:
+    s = np.asarray(s_in, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 3:
+        raise ConfigError(f"incident states must be an (N, 3) array of linear Stokes vectors, got shape {s.shape}")
+    if not np.isfinite(s).all():
+        raise ConfigError("incident states contain non-finite values")
+    return s
+
+
+def _shared_rows(analyzer_rows: np.ndarray | None) -> np.ndarray:
+    if analyzer_rows is None:
+        return ideal_analyzer_matrix()
+    a = np.asarray(analyzer_rows, dtype=np.float64)
+    if a.shape != (4, 3):
+        raise ValueError(f"shared analyzer rows must have shape (4, 3), got {a.shape}")
+    return a
+
+
+def design_matrix(s_in: np.ndarray, analyzer_rows: np.ndarray | None = None) -> np.ndarray:
+    """``(4 N, 9)`` design matrix, row ``4 k + j`` = ``kron(a_j, s_k)`` (ideal analyzer rows
+    when ``analyzer_rows`` is None; else one shared ``(4, 3)`` set)."""
+    s = _states(s_in)
+    a = _shared_rows(analyzer_rows)
+    return np.einsum("ja,kb->kjab", a, s).reshape(len(s) * 4, 9)
+
+
+def _cond_from_singular(sv: np.ndarray) -> float:
+    if sv.size == 0 or not np.isfinite(sv).all() or sv[-1] <= 1e-12 * sv[0]:
+        return float("inf")
+    return float(sv[0] / sv[-1])
+
+
+def condition_number(s_in: np.ndarray, analyzer_rows: np.ndarray | None = None) -> float:
+    """2-norm condition number of the full ``4 N x 9`` design (``inf`` when rank deficient).
+
+    With ideal analyzers the polarizer states 0/45/90/135 deg give 2.0, 0/60/120 give 2.0,
+    0/45/90 give 3.41 (``2 + sqrt 2``), 0/30/60 give 8.8 and 0/10/20 give 96.
+    """
+    d = design_matrix(s_in, analyzer_rows)
+    if len(d) < 9:
+        return float("inf")
+    return _cond_from_singular(np.linalg.svd(d, compute_uv=False))
+
+
+def validate_states(s_in: np.ndarray, max_condition: float = DEFAULT_MAX_CONDITION,
+                    analyzer_rows: np.ndarray | None = None) -> float:
+    """Check a polarizer state set; return its condition number.
+
+    Raises :class:`polrig.errors.ConfigError` (a ``ValueError``) with one clear line for fewer
+    than 3 states, non-finite states, collinear states (rank < 3) or a condition number above
+    ``max_condition``.
+    """
+    s = _states(s_in)
+    if len(s) < 3:
+        raise ConfigError(f"need at least 3 polarizer states, got {len(s)}")
+    cond = condition_number(s, analyzer_rows)
+    if not np.isfinite(cond):
+        raise ConfigError("polarizer states are collinear (their Stokes vectors span fewer than 3 "
+                          "dimensions); the Mueller matrix is not determined")
+    if cond > max_condition:
+        raise ConfigError(f"polarizer states are nearly collinear: condition number {cond:.3g} "
+                          f"exceeds {max_condition:g}")
+    return cond
+
+
+def forward_measurements(mueller: np.ndarray, s_in: np.ndarray,
+                         analyzer_rows: np.ndarray | None = None) -> np.ndarray:
+    """Noise-free analyzer images ``(N, C, 4, H, W)`` of Mueller images ``(C, 3, 3, H, W)``:
+    ``I_kj = a_j^T M s_k`` (the model :func:`solve_reference` inverts). ``analyzer_rows`` as
+    in :func:`solve_reference`."""
+    s = _states(s_in)
+    m = np.asarray(mueller, dtype=np.float64)
+    if m.ndim != 5 or m.shape[1:3] != (3, 3):
+        raise ValueError(f"Mueller images must have shape (C, 3, 3, H, W), got {m.shape}")
+    a = _analyzer_planes(analyzer_rows, m.shape[0], m.shape[-2:])
+    ms = np.einsum("cabhw,kb->kcahw", m, s)  # M s_k: (N, C, 3, H, W)
+    return np.einsum("cjahw,kcahw->kcjhw", a, ms)
+
+
+def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarray:
+    """Analyzer rows as a broadcast ``(C, 4, 3, H, W)`` view (no copy)."""
+    if analyzer_rows is None:
+        a = ideal_analyzer_matrix()
+    else:
+        a = np.asarray(analyzer_rows, dtype=np.float64)
+    if a.shape == (4, 3):
+        a = a[None, :, :, None, None]
+    elif a.ndim == 4 and a.shape[:2] == (4, 3):
+        a = a[None]
+    elif not (a.ndim == 5 and a.shape[1:3] == (4, 3)):
+        raise ValueError(f"analyzer rows must have shape (4, 3), (4, 3, H, W) or (C, 4, 3, H, W), got {a.shape}")
+    try:
+        return np.broadcast_to(a, (n_col, 4, 3) + tuple(hw))
+    except ValueError:
+        raise ValueError(f"analyzer rows {a.shape} do not match images of {n_col} colours and "
+                         f"size {tuple(hw)}") from None
+
+
+# ---------------------------------------------------------------------------- solve
+def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
+                    valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
+                    max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = 3.0,
+                    chunk_pixels: int = 4096, dtype=np.float32) -> ReferenceResult:
+    """Per-pixel, per-colour weighted least-squares 3x3 Mueller block (see module docstring).
+
+    ``s_in``: ``(N, 3)`` incident linear Stokes vectors, normalised units, N >= 3.
+    ``measured``: ``(N, C, 4, H, W)`` black-subtracted analyzer images in DN (averaged over
+    frames and/or HDR-merged, analyzer offsets removed). ``variance``: the same shape, the
+    variance of each sample (e.g. :meth:`polrig.noise.SensorModel.variance_dn2`, or from
+    :func:`average_frames` / :func:`merge_hdr`). ``valid``: optional bool of the same shape,
+    ``False`` for saturated or bad samples. ``analyzer_rows``: None (ideal), one shared
+    ``(4, 3)`` set, or per pixel ``(4, 3, H, W)`` / ``(C, 4, 3, H, W)`` (e.g. demosaiced rows of
+    a calibrated analyzer model). ``max_condition``: per-pixel limit on the condition number of
+    the design of the samples used. ``min_snr``: ``m00 / sigma(m00)`` below it is ``DARK``.
+
+    ``chunk_pixels``: pixels solved at once (small chunks stay in cache). ``dtype``: of the
+    ``mueller``, ``sigma`` and ``residual`` outputs (float32 by the conventions; float64 to
+    keep full precision, e.g. in tests).
+
+    Raises :class:`polrig.errors.ConfigError` for a bad state set (fewer than 3, collinear,
+    condition number above ``max_condition``) and ``ValueError`` for mismatched shapes; never
+    for bad pixel values (they are masked).
+    """
+    shared = analyzer_rows is None or np.ndim(analyzer_rows) == 2
+    cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
+    s = _states(s_in)
+    n = len(s)
+    meas = np.asarray(measured)
+    if meas.ndim != 5 or meas.shape[0] != n or meas.shape[2] != 4:
+        raise ValueError(f"measured must have shape (N={n}, C, 4, H, W), got {meas.shape}")
+    var = np.asarray(variance)
+    if var.shape != meas.shape:
+        raise ValueError(f"variance shape {var.shape} differs from measured {meas.shape}")
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        if valid.shape != meas.shape:
+            raise ValueError(f"valid shape {valid.shape} differs from measured {meas.shape}")
+    _, n_col, _, h, w = meas.shape
+    a_planes = _analyzer_planes(analyzer_rows, n_col, (h, w))
+    a_shared = _shared_rows(analyzer_rows) if shared else None
+
+    mueller = np.zeros((n_col, 3, 3, h, w), dtype)
+    sigma = np.zeros_like(mueller)
+    residual = np.zeros((n_col, h, w), dtype)
+    mask = np.zeros((n_col, h, w), np.uint8)
+    pix_cond = np.zeros((n_col, h, w), np.float32)
+    n_used = np.zeros((n_col, h, w), np.uint16)
+
+    hw = h * w
+    chunk = max(1, int(chunk_pixels))
+    pattern_cache: dict[bytes, float] = {}
+    for c in range(n_col):
+        m_c = meas[:, c].reshape(n, 4, hw)
+        v_c = var[:, c].reshape(n, 4, hw)
+        ok_c = None if valid is None else valid[:, c].reshape(n, 4, hw)
+        a_c = None if shared else a_planes[c].reshape(4, 3, hw)
+        for p0 in range(0, hw, chunk):
+            sl = slice(p0, min(p0 + chunk, hw))
+            res = _solve_chunk(
+                s,
+                np.moveaxis(m_c[..., sl], -1, 0).astype(np.float64),
+                np.moveaxis(v_c[..., sl], -1, 0).astype(np.float64),
+                None if ok_c is None else np.moveaxis(ok_c[..., sl], -1, 0),
+                a_shared, None if a_c is None else np.moveaxis(a_c[..., sl], -1, 0),
+                max_condition, min_snr, pattern_cache, cond_all)
+            mm, sg, rs, mk, pc, nu = res
+            mueller.reshape(n_col, 3, 3, hw)[c, :, :, sl] = np.moveaxis(mm, 0, -1)
+            sigma.reshape(n_col, 3, 3, hw)[c, :, :, sl] = np.moveaxis(sg, 0, -1)
+            residual.reshape(n_col, hw)[c, sl] = rs
+            mask.reshape(n_col, hw)[c, sl] = mk
+            pix_cond.reshape(n_col, hw)[c, sl] = pc
+            n_used.reshape(n_col, hw)[c, sl] = nu
+    return ReferenceResult(mueller, sigma, residual, mask, cond_all, pix_cond, n_used)
+
+
+def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, pattern_cache,
+                 cond_all):
+    """Solve ``P`` pixels. meas/var/valid: ``(P, N, 4)``; a_pix: ``(P, 4, 3)`` or None (then
+    ``a_shared`` ``(4, 3)`` is used)."""
+    p, n, _ = meas.shape
+    meas = meas.reshape(p, n * 4)
+    var = var.reshape(p, n * 4)
+    good = np.isfinite(meas) & np.isfinite(var) & (var > 0)
+    given = np.ones_like(good) if valid is None else valid.reshape(p, n * 4)
+    ok = good & given
+    flags = np.where((given & ~good).any(axis=1), NONFINITE, 0).astype(np.uint8)
+    flags |= np.where((~given).any(axis=1), SATURATED, 0).astype(np.uint8)
+    n_ok = ok.sum(axis=1)
+    wgt = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
+    wi = wgt * np.where(ok, meas, 0.0)
+
+    if a_pix is None:
+        d = np.einsum("ja,kb->kjab", a_shared, s).reshape(n * 4, 9)  # design, row 4k + j
+        dd = np.einsum("ri,rj->rij", d, d)[:, _TRIL[0], _TRIL[1]]  # (4N, 45)
+        nm = (wgt @ dd).T  # (45, P) lower triangle of D^T W D
+        rhs = (wi @ d).T  # (9, P)
+        # per-pixel condition: all samples -> the state set's; other patterns computed once
+        cond = np.full(p, cond_all)
+        partial = ~ok.all(axis=1)
+        if partial.any():
+            keys, inverse = np.unique(np.packbits(ok[partial], axis=1), axis=0, return_inverse=True)
+            vals = np.empty(len(keys))
+            for i, key in enumerate(keys):
+                kb = key.tobytes()
+                if kb not in pattern_cache:
+                    rows = d[np.unpackbits(key)[: n * 4].astype(bool)]
+                    pattern_cache[kb] = (_cond_from_singular(np.linalg.svd(rows, compute_uv=False))
+                                         if len(rows) >= 9 else float("inf"))
+                vals[i] = pattern_cache[kb]
+            cond[partial] = vals[inverse.ravel()]
+    else:
+        dpix = np.einsum("pja,kb->pkjab", a_pix, s).reshape(p, n * 4, 9)
+        nm = np.einsum("pr,pri,prj->ijp", wgt, dpix, dpix)[_TRIL[0], _TRIL[1]]
+        rhs = np.einsum("pr,pri->ip", wi, dpix)
+        a_unw = np.einsum("pr,pri,prj->pij", ok.astype(np.float64), dpix, dpix)
+        ev = np.linalg.eigvalsh(a_unw)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cond = np.sqrt(ev[:, -1] / ev[:, 0])
+        cond = np.where((ev[:, 0] > 1e-24 * ev[:, -1]) & np.isfinite(cond), cond, np.inf)
+    cond = np.where(n_ok >= 9, cond, np.inf)
+    solvable = cond <= max_condition
+
+    # equilibrate (weights span decades), then batched Cholesky in structure-of-arrays layout
+    diag = nm[_TRIL_DIAG]
+    dscale = np.where(solvable & (diag > 0), 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
+    nm = nm * dscale[_TRIL[0]] * dscale[_TRIL[1]]
+    nm[:, ~solvable] = _EYE_TRIL[:, None]
+    x, dinv, bad = _cholesky_solve(_from_tril(nm), np.where(solvable, rhs * dscale, 0.0))
+    solvable &= ~bad
+    x = x * dscale
+    sig = dscale * np.sqrt(np.clip(dinv, 0.0, None))
+
+    if a_pix is None:
+        pred = x.T @ d.T  # (P, 4N)
+    else:
+        pred = np.einsum("pri,ip->pr", dpix, x)
+    r = np.where(ok, np.where(ok, meas, 0.0) - pred, 0.0)
+    chi2 = np.einsum("pr,pr->p", wgt * r, r)
+    dof = n_ok - 9
+    resid = np.where(solvable & (dof > 0), chi2 / np.maximum(dof, 1), 0.0)
+    finite = np.isfinite(x).all(axis=0) & np.isfinite(sig).all(axis=0) & np.isfinite(resid)
+    solvable &= finite
+    flags |= np.where(solvable, 0, ILL_CONDITIONED).astype(np.uint8)
+    with np.errstate(invalid="ignore"):
+        dark = solvable & ~(x[0] >= min_snr * sig[0])
+    flags |= np.where(dark, DARK, 0).astype(np.uint8)
+    x = np.where(solvable, x, 0.0)
+    sig = np.where(solvable, sig, 0.0)
+    resid = np.where(solvable, resid, 0.0)
+    return (x.T.reshape(p, 3, 3), sig.T.reshape(p, 3, 3), resid, flags,
+            cond, np.minimum(n_ok, 65535))
+
+
+_TRIL = np.tril_indices(9)
+_TRIL_DIAG = np.flatnonzero(_TRIL[0] == _TRIL[1])
+_EYE_TRIL = (_TRIL[0] == _TRIL[1]).astype(np.float64)
+
+
+def _from_tril(t: np.ndarray) -> np.ndarray:
+    """``(45, P)`` lower-triangle entries -> ``(9, 9, P)`` with the lower triangle filled
+    (all that :func:`_cholesky_solve` reads)."""
+    out = np.zeros((9, 9, t.shape[1]))
+    out[_TRIL[0], _TRIL[1]] = t
+    return out
+
+
+def _cholesky_solve(a: np.ndarray, b: np.ndarray, eps: float = 1e-12):
+    """Batched Cholesky solve in structure-of-arrays layout (pixels last, which keeps every
+    operation a long vector operation; faster than ``numpy.linalg`` on many 9x9 systems).
+
+    ``a``: ``(n, n, P)`` symmetric positive definite (equilibrated: unit diagonal), ``b``:
+    ``(n, P)``. Returns ``x = a^-1 b``, ``diag(a^-1)`` (both ``(n, P)``) and ``bad`` ``(P,)``,
+    true where a pivot fell below ``eps`` (not positive definite to working precision; those
+    results are meaningless and must be masked).
+    """
+    n, _, p = a.shape
+    low = np.zeros_like(a)
+    bad = np.zeros(p, bool)
+    for j in range(n):
+        piv = a[j, j] - np.einsum("kp,kp->p", low[j, :j], low[j, :j]) if j else a[j, j].copy()
+        bad |= ~(piv > eps)
+        low[j, j] = np.sqrt(np.where(bad, 1.0, piv))
+        if j + 1 < n:
+            acc = a[j + 1:, j] - np.einsum("ikp,kp->ip", low[j + 1:, :j], low[j, :j]) if j else a[j + 1:, j]
+            low[j + 1:, j] = acc / low[j, j]
+    y = np.empty_like(b)
+    for i in range(n):
+        y[i] = (b[i] - np.einsum("kp,kp->p", low[i, :i], y[:i])) / low[i, i]
+    x = np.empty_like(b)
+    for i in range(n - 1, -1, -1):
+        x[i] = (y[i] - np.einsum("kp,kp->p", low[i + 1:, i], x[i + 1:])) / low[i, i]
+    inv = np.zeros_like(a)  # inverse of the Cholesky factor, lower triangular
+    for i in range(n):
+        inv[i, i] = 1.0 / low[i, i]
+        if i:
+            inv[i, :i] = -np.einsum("kp,kjp->jp", low[i, :i], inv[:i, :i]) / low[i, i]
+    return x, np.einsum("kip,kip->ip", inv, inv), bad
+
+
+# ---------------------------------------------------------------------------- frames, HDR
+def average_frames(frames: np.ndarray, saturation_dn: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``K >= 2`` frames (axis 0) and the empirical variance of that mean
+    (sample variance with ``ddof=1`` divided by ``K``), both float64.
+
+    With ``saturation_dn``, a sample where any frame reached it is reported at
+    ``saturation_dn`` exactly, so the usual ``>= saturation_dn`` test (e.g. in
+    :func:`merge_hdr`) still excludes it after averaging. Note that an empirical variance
+    from a few frames is itself noisy (relative error ``sqrt(2 / (K - 1))``); a model variance
+    (:meth:`polrig.noise.SensorModel.variance_dn2` with ``n_frames=K``) is usually the better
+    weight.
+    """
+    f = np.asarray(frames, dtype=np.float64)
+    if f.ndim < 1 or f.shape[0] < 2:
+        raise ValueError(f"need at least 2 frames along axis 0 to estimate a variance, got shape {f.shape}")
+    k = f.shape[0]
+    mean = f.mean(axis=0)
+    variance = f.var(axis=0, ddof=1) / k
+    if saturation_dn is not None:
+        sat = (f >= saturation_dn).any(axis=0)
+        mean = np.where(sat, float(saturation_dn), mean)
+    return mean, variance
+
+
+def merge_hdr(brackets: Sequence[tuple[np.ndarray, float]], saturation_dn: float,
+              sensor_model: SensorModel, *, reference_exposure_us: float | None = None,
+              n_frames: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge an exposure bracket into one image at ``reference_exposure_us``.
+
+    ``brackets``: ``[(image, exposure_us), ...]``, images of one shape in black-subtracted DN
+    (each the mean of ``n_frames`` frames). A sample is used where it is finite and below
+    ``saturation_dn`` (e.g. ``sensor_model.saturation_dn``). Each used sample is scaled to the
+    reference exposure (default: the longest) by ``r = t_ref / t``; the samples are combined
+    with inverse-variance weights, the variance of each being the model variance
+    ``r^2 var(x_hat, t)`` at the *predicted* signal ``x_hat = y0 / r`` (``y0``: the estimate of
+    the longest usable exposure) rather than at the measured one, which would bias the merge
+    low (noise-correlated weights). Returns ``(radiance, variance, valid)``: radiance in DN at
+    the reference exposure, its variance (``1 / sum w``), and ``valid`` (some exposure
+    usable). Where no exposure is usable, radiance is the shortest exposure's value scaled
+    (a lower bound), variance 0 and ``valid`` False (finite outputs; exclude by ``valid``).
+    """
+    if len(brackets) < 1:
+        raise ValueError("merge_hdr needs at least one (image, exposure_us) pair")
+    images = [np.asarray(im, dtype=np.float64) for im, _ in brackets]
+    exps = np.array([float(e) for _, e in brackets])
+    if not (np.isfinite(exps).all() and (exps > 0).all()):
+        raise ValueError(f"exposures must be positive and finite, got {exps.tolist()}")
+    shape = images[0].shape
+    if any(im.shape != shape for im in images):
+        raise ValueError(f"bracket images differ in shape: {[im.shape for im in images]}")
+    t_ref = float(exps.max() if reference_exposure_us is None else reference_exposure_us)
+    order = np.argsort(exps)[::-1]  # longest first
+    scaled = [images[i] * (t_ref / exps[i]) for i in range(len(images))]
+    usable = [np.isfinite(im) & (im < saturation_dn) for im in images]
+
+    y0 = np.zeros(shape)
+    have = np.zeros(shape, bool)
+    for i in order:
+        take = usable[i] & ~have
+        y0 = np.where(take, scaled[i], y0)
+        have |= take
+    wsum = np.zeros(shape)
+    ysum = np.zeros(shape)
+    for i in range(len(images)):
+        r = t_ref / exps[i]
+        v = sensor_model.variance_dn2(np.clip(y0, 0.0, None) / r, exps[i], n_frames) * r**2
+        wt = np.where(usable[i], 1.0 / v, 0.0)
+        wsum += wt
+        ysum += wt * np.where(usable[i], scaled[i], 0.0)
+    valid = wsum > 0
+    shortest = int(np.argmin(exps))
+    fallback = np.where(np.isfinite(scaled[shortest]), scaled[shortest], 0.0)
+    radiance = np.where(valid, ysum / np.where(valid, wsum, 1.0), fallback)
+    variance = np.where(valid, 1.0 / np.where(valid, wsum, 1.0), 0.0)
+    return radiance, variance, valid
