@@ -6,7 +6,8 @@ analyzer images, ``mask`` (N,H,W), ``normal``/``kd``/``wi``/``wo`` (N,3,H,W) cam
 ``alpha`` (N,), ``s_in`` (N,3) normalised incident Stokes, ``mueller`` (N,C,3,3,H,W) on the
 analyzer's scale, ``family`` (N,), ``scale`` (N,) (DN per normalised unit). The stage zero
 axis in the camera frame comes from ``stage_zero_axis`` (N,3) in the shards, or from the
-manifest (one axis for the whole set).
+manifest (one axis for the whole set: ``frames.stage_zero_axis_camera`` in the simulator's
+manifest, :mod:`sim.dataset`).
 """
 
 from __future__ import annotations
@@ -50,10 +51,11 @@ def _stage_axes(manifest: dict, n: int) -> np.ndarray | None:
         if key in manifest:
             axis = np.asarray(manifest[key], dtype=np.float32).reshape(-1, 3)
             return np.broadcast_to(axis, (n, 3)).copy() if len(axis) == 1 else axis
-    rig = manifest.get("rig") or {}
-    for key in ("stage_zero_axis_camera", "stage_zero_axis"):
-        if key in rig:
-            return np.broadcast_to(np.asarray(rig[key], np.float32).reshape(3), (n, 3)).copy()
+    for section in ("frames", "rig"):
+        sub = manifest.get(section) or {}
+        for key in ("stage_zero_axis_camera", "stage_zero_axis"):
+            if key in sub:
+                return np.broadcast_to(np.asarray(sub[key], np.float32).reshape(3), (n, 3)).copy()
     return None
 
 

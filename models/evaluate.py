@@ -110,21 +110,36 @@ def _dolp_aolp_errors(sp: np.ndarray, st: np.ndarray, mask: np.ndarray) -> tuple
 
 def fit_noise_model(ds: Dataset, limit: int = 64) -> tuple[float, float]:
     """``(a, b)`` of ``var = a + b I`` (normalised units) from the residual between the
-    dataset's analyzer images and the noise-free rendering of its true Mueller images."""
-    xs, ys = [], []
+    dataset's analyzer images and the noise-free rendering of its true Mueller images.
+
+    Robust to saturated highlights (clipped analyzer values, huge residuals): the variance of
+    each of 20 signal bins is ``(1.4826 MAD)^2`` and the line is fitted to the bins by least
+    squares weighted by their counts."""
+    xs, rs = [], []
     for i in range(min(len(ds), limit)):
         mask = ds["mask"][i] > 0
         clean = render_analyzer(ds["mueller"][i], ds["s_in"][i])
-        r = ds["analyzer"][i] - clean
         xs.append(clean[:, :, mask].ravel())
-        ys.append((r[:, :, mask] ** 2).ravel())
-    x, y = np.concatenate(xs), np.concatenate(ys)
-    if x.size < 10:
+        rs.append((ds["analyzer"][i] - clean)[:, :, mask].ravel())
+    x, r = np.concatenate(xs), np.concatenate(rs)
+    keep = (x >= 0) & (x <= 1.0)
+    x, r = x[keep], r[keep]
+    if x.size < 100:
         return 1e-8, 0.0
-    a_mat = np.stack([np.ones_like(x), np.clip(x, 0, None)], 1).astype(np.float64)
-    coef, *_ = np.linalg.lstsq(a_mat, y.astype(np.float64), rcond=None)
-    a, b = float(max(coef[0], 1e-12)), float(max(coef[1], 0.0))
-    return a, b
+    edges = np.quantile(x, np.linspace(0, 1, 21))
+    cx, cv, cw = [], [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (x >= lo) & (x <= hi)
+        if sel.sum() < 20:
+            continue
+        rr = r[sel]
+        cx.append(float(np.median(x[sel])))
+        cv.append(float((1.4826 * np.median(np.abs(rr - np.median(rr)))) ** 2))
+        cw.append(float(sel.sum()))
+    cx, cv, cw = (np.asarray(v) for v in (cx, cv, cw))
+    a_mat = np.stack([np.ones_like(cx), cx], 1) * np.sqrt(cw)[:, None]
+    coef, *_ = np.linalg.lstsq(a_mat, cv * np.sqrt(cw), rcond=None)
+    return float(max(coef[0], 1e-12)), float(max(coef[1], 0.0))
 
 
 def bestfit_pbrdf(ds: Dataset, i: int) -> np.ndarray:

@@ -66,7 +66,7 @@ def compare_with_onnxruntime(model: torch.nn.Module, path: pathlib.Path,
 
 
 def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights_dir: str | pathlib.Path,
-               sample: dict[str, torch.Tensor]) -> dict[str, dict]:
+               sample: dict[str, torch.Tensor], extra_meta: dict | None = None) -> dict[str, dict]:
     """Export ``single_shot.onnx`` and ``direct.onnx`` plus ``model.json`` into ``weights_dir``;
     returns ``{file: {bytes, max_abs_diff, max_abs_output}}``."""
     wd = pathlib.Path(weights_dir)
@@ -91,6 +91,7 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
             "inputs": list(INPUTS), "single_shot_outputs": list(SINGLE_SHOT_OUTPUTS),
             "size_multiple": SIZE_MULTIPLE, "eta": 1.5, "ks": 1.0, "camera_x_axis": [1.0, 0.0, 0.0],
             "conventions_version": _conventions_version(), "export_check": report}
+    meta.update(extra_meta or {})
     (wd / "model.json").write_text(json.dumps(meta, indent=2))
     return report
 

@@ -37,6 +37,11 @@ from polrig.errors import FormatError
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
 SIZE_MULTIPLE = 8
+#: Percentile of the analyzer values in the mask that the normalisation maps to 1 (sim.dataset).
+SCALE_PERCENTILE = 99.5
+#: Stage zero axis of the simulated rig in the camera frame (sim.dataset manifest), used when
+#: neither the caller nor the model's ``model.json`` gives one.
+DEFAULT_STAGE_ZERO_AXIS = (0.0, -1.0, 0.0)
 #: Fraction of the 99th percentile of S0 below which a pixel is background when no mask is given.
 MASK_FRACTION = 0.02
 #: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
@@ -96,15 +101,15 @@ def default_mask(analyzer: np.ndarray, fraction: float = MASK_FRACTION) -> np.nd
 
 
 def default_scale(analyzer: np.ndarray, mask: np.ndarray) -> float:
-    """Normalisation scale (DN per unit) of a capture: the 99th percentile of the
-    colour-mean S0 over the mask (1 for an empty mask). The simulator's dataset writer and
-    :mod:`models.data` use the same rule, so the networks see the training distribution."""
-    s0 = np.mean(stokes_s0(analyzer), axis=0)
-    vals = s0[mask & np.isfinite(s0)]
+    """Normalisation scale (DN per normalised unit) of a capture: the 99.5th percentile of the
+    analyzer values (all colours and angles) inside the mask, at least 1 DN. This is the rule
+    of the simulator's dataset writer (:data:`sim.dataset.SCALE_PERCENTILE`), so the networks
+    see their training distribution."""
+    vals = np.asarray(analyzer)[:, :, mask]
+    vals = vals[np.isfinite(vals)]
     if vals.size == 0:
         return 1.0
-    q = float(np.percentile(vals, 99.0))
-    return q if q > 0 else 1.0
+    return max(float(np.percentile(vals, SCALE_PERCENTILE)), 1.0)
 
 
 def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.ndarray:
@@ -154,7 +159,7 @@ class SingleShotModel:
         return dict(zip(self.output_names, outs))
 
     def reconstruct(self, analyzer: np.ndarray, s_in, mask: np.ndarray | None = None, scale: float | None = None,
-                    *, stage_zero_axis=(1.0, 0.0, 0.0), intrinsics=None,
+                    *, stage_zero_axis=None, intrinsics=None,
                     max_pixels: int = 1_500_000) -> tuple[np.ndarray, dict]:
         """Mueller image ``(C, 3, 3, H, W)`` float32 in DN per unit incident S0 from analyzer
         images ``(C, 4, H, W)`` in DN (black level removed) under the normalised incident
@@ -162,7 +167,8 @@ class SingleShotModel:
 
         ``mask`` ``(H, W)``: object pixels (default :func:`default_mask`); ``scale``: DN per
         normalised unit (default :func:`default_scale`); ``stage_zero_axis``: the polarizer
-        stage zero axis in the camera frame; ``intrinsics``: ``(fx, fy, cx, cy)`` of the
+        stage zero axis in the camera frame (default: the training rig's, from ``model.json``);
+        ``intrinsics``: ``(fx, fy, cx, cy)`` of the
         analyzer image (default: the simulated rig's camera). Background pixels are 0.
         ``aux`` holds ``mueller_init`` (PIPNet-pBRDF, DN), ``normal``, ``kd``, ``wi``,
         ``alpha``, ``mask``, ``scale`` and ``timings_s``.
@@ -186,6 +192,8 @@ class SingleShotModel:
         sc = default_scale(a, m) if scale is None else float(scale)
         if not (np.isfinite(sc) and sc > 0):
             raise ValueError(f"scale must be a positive number, got {scale!r}")
+        if stage_zero_axis is None:
+            stage_zero_axis = self.meta.get("stage_zero_axis_camera", DEFAULT_STAGE_ZERO_AXIS)
         wo = view_directions((h, w), intrinsics)
         # Size: resize down if needed, then pad to the network's size multiple.
         factor = min(1.0, float(np.sqrt(max_pixels / float(h * w))))
@@ -233,7 +241,7 @@ def incident_stokes(state_deg: float, extinction_ratio: float = float("inf")) ->
 def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotModel, *,
                 demosaic_method: str = "superpixel", black_level_dn: float = 0.0,
                 mask: np.ndarray | None = None, scale: float | None = None,
-                stage_zero_axis=(1.0, 0.0, 0.0), intrinsics=None) -> tuple[np.ndarray, dict]:
+                stage_zero_axis=None, intrinsics=None) -> tuple[np.ndarray, dict]:
     """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
     demosaic (:func:`polrig.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
     sampling: a quarter of the raw size per axis for the colour IMX250MYR), then

@@ -149,10 +149,13 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
 
 
 def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
-          *, resume: bool = False, export: bool = True, echo: Callable[[str], None] = print) -> dict:
+          *, resume: bool = False, export: bool = True, overrides: dict | None = None,
+          echo: Callable[[str], None] = print) -> dict:
     """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
 
-    Returns the summary dict also written to ``OUT/summary.json``."""
+    ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
+    of the checkpoint's configuration (e.g. more epochs for a stage). Returns the summary dict
+    also written to ``OUT/summary.json``."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -163,7 +166,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
         echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
     elif (out / "log.csv").exists() and not resume:
         (out / "log.csv").unlink()
-    config = config or TrainConfig()
+    config = dataclasses.replace(config or TrainConfig(), **(overrides or {}))
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
 
@@ -229,8 +232,16 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
 
         sample = {k: t[k][val_idx[:2] if n_val else train_idx[:2]] for k in
                   ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")}
+        frames = ds.manifest.get("frames", {})
+        extra = {"stage_zero_axis_camera": [float(x) for x in t["stage_zero_axis"][0]],
+                 "camera_x_axis_camera": frames.get("camera_x_axis_camera", [1.0, 0.0, 0.0]),
+                 "training": {"samples": n, "resolution": list(ds.shape),
+                              "dataset": {k: ds.manifest.get(k) for k in
+                                          ("format", "version", "seed", "holdout", "families_present",
+                                           "intrinsics", "normalisation")},
+                              "train_seconds": times, "config": dataclasses.asdict(config)}}
         summary["export"] = export_all(models["pipnet"], models["pmmnet"], models["direct"],
-                                       out / "weights", sample)
+                                       out / "weights", sample, extra)
         for name, rec in summary["export"].items():
             echo(f"export {name}: {rec['bytes'] / 1e6:.2f} MB, max |onnx - torch| = {rec['max_abs_diff']:.3g}")
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -30,8 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="demosaic method (default superpixel: the sensor's native sampling)")
     p.add_argument("--black-level", type=float, default=None, help="black level in DN (default: the sidecar's)")
     p.add_argument("--scale", type=float, default=None, help="DN per normalised unit (default: from the image)")
-    p.add_argument("--stage-zero-axis", type=_vector, default=(1.0, 0.0, 0.0),
-                   help="polarizer stage zero axis in the camera frame, x,y,z (default 1,0,0)")
+    p.add_argument("--stage-zero-axis", type=_vector, default=None,
+                   help="polarizer stage zero axis in the camera frame, x,y,z (default: the "
+                        "training rig's, from the model's model.json)")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
     p.set_defaults(func=run)
 

@@ -40,15 +40,16 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:  # torch missing
         raise ValueError(f"training needs the 'train' extra (pip install polrig[train]): {exc}") from exc
 
-    cfg = TrainConfig()
+    overrides = {}
     if args.epochs is not None:
-        cfg.pipnet_epochs = cfg.pmmnet_epochs = cfg.direct_epochs = args.epochs
+        overrides.update(pipnet_epochs=args.epochs, pmmnet_epochs=args.epochs, direct_epochs=args.epochs)
     for name in ("pipnet_epochs", "pmmnet_epochs", "direct_epochs", "batch_size", "lr", "width",
                  "threads", "limit", "seed"):
         value = getattr(args, name)
         if value is not None:
-            if isinstance(value, (int, float)) and name != "lr" and value < 0:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 0")
-            setattr(cfg, name, value)
-    train(args.data, args.out, cfg, resume=args.resume, export=not args.no_export)
+            if value < 0 or (name in ("batch_size", "width", "threads", "limit") and value < 1):
+                raise ValueError(f"--{name.replace('_', '-')} out of range: {value}")
+            overrides[name] = value
+    train(args.data, args.out, TrainConfig(), resume=args.resume, export=not args.no_export,
+          overrides=overrides)
     return 0
