@@ -136,3 +136,69 @@ def test_non_finite_input_stays_local(method, radius):
     assert bad[20, 21]
     assert rows.min() >= 20 - radius and rows.max() <= 20 + radius
     assert cols.min() >= 21 - radius and cols.max() <= 21 + radius
+
+
+def _newton_reference(img: np.ndarray, cell: np.ndarray) -> np.ndarray:
+    """Per-pixel loops written from Li et al. 2019 (Eqs. 14-17 and the edge classifier with
+    tau = 5.8), interior pixels only; a slow, independent statement of the method."""
+    m, n = img.shape
+    o = lambda i, j: cell[i % 2, j % 2]  # noqa: E731  analyzer index at a pixel
+    t = [1 / 16, -1 / 4, 7 / 16, 1 / 2, 7 / 16, -1 / 4, 1 / 16]
+    r = np.repeat(img[None].astype(float), 4, axis=0)
+    y1, y2 = img.astype(float).copy(), img.astype(float).copy()
+    rng = lambda size: range(3, size - 3)  # noqa: E731
+    for i in rng(m):
+        for j in rng(n):
+            r[o(i, j + 1), i, j] = sum(t[k + 3] * img[i, j + k] for k in range(-3, 4))
+            r[o(i + 1, j), i, j] = sum(t[k + 3] * img[i + k, j] for k in range(-3, 4))
+            y1[i, j] = sum(t[k + 3] * img[i + k, j + k] for k in range(-3, 4))
+            y2[i, j] = sum(t[k + 3] * img[i + k, j - k] for k in range(-3, 4))
+
+    def fuse(e1, e2, i, j, g1, g2):
+        p1 = sum(abs(e1[i + k, j + l] - img[i + k, j + l]) for k in (-2, 0, 2) for l in (-2, 0, 2))
+        p2 = sum(abs(e2[i + k, j + l] - img[i + k, j + l]) for k in (-2, 0, 2) for l in (-2, 0, 2))
+        if p1 > 5.8 * p2:
+            return e2[i, j]
+        if p2 > 5.8 * p1:
+            return e1[i, j]
+        w1, w2 = 1 / (g1 + 1e-12), 1 / (g2 + 1e-12)
+        return (w1 * e1[i, j] + w2 * e2[i, j]) / (w1 + w2)
+
+    def grad(i, j, di, dj):
+        return (abs(img[i - di, j - dj] - img[i + di, j + dj])
+                + abs(2 * img[i, j] - img[i - 2 * di, j - 2 * dj] - img[i + 2 * di, j + 2 * dj]))
+
+    for i in range(5, m - 5):
+        for j in range(5, n - 5):
+            r[o(i + 1, j + 1), i, j] = fuse(y1, y2, i, j, grad(i, j, 1, 1), grad(i, j, 1, -1))
+    rr = r.copy()
+    xx1, xx2, yy1, yy2 = (img.astype(float).copy() for _ in range(4))
+    for i in range(8, m - 8):
+        for j in range(8, n - 8):
+            b, c = o(i, j + 1), o(i + 1, j)
+            xx1[i, j] = r[b, i, j]
+            xx2[i, j] = sum(t[k + 3] * (img[i + k, j] if k % 2 == 0 else r[b, i + k, j])
+                            for k in range(-3, 4))
+            yy1[i, j] = r[c, i, j]
+            yy2[i, j] = sum(t[k + 3] * (img[i, j + k] if k % 2 == 0 else r[c, i, j + k])
+                            for k in range(-3, 4))
+    for i in range(10, m - 10):
+        for j in range(10, n - 10):
+            gh, gv = grad(i, j, 0, 1), grad(i, j, 1, 0)
+            rr[o(i, j + 1), i, j] = fuse(xx1, xx2, i, j, gh, gv)
+            rr[o(i + 1, j), i, j] = fuse(yy2, yy1, i, j, gh, gv)
+    return rr
+
+
+@pytest.mark.parametrize("phase", [(0, 0), (1, 1)])
+def test_newton_matches_a_per_pixel_statement_of_the_paper(phase):
+    layout = IMX250MZR.shifted(*phase)
+    rng = np.random.default_rng(12)
+    stokes = smooth_stokes(1, (28, 30), freq=0.4, seed=5)
+    raw = _raw(layout, stokes) + rng.normal(0, 0.02, (28, 30))  # texture + noise: both branches
+    raw[14:, :] += 0.8  # an edge
+    idx = {a: i for i, a in enumerate((0, 45, 90, 135))}
+    cell = np.vectorize(idx.__getitem__)(layout.angle_deg)
+    ref = _newton_reference(raw.astype(np.float32).astype(float), cell)
+    got = demosaic(raw, layout, "newton")[0]
+    np.testing.assert_allclose(got[:, 10:-10, 10:-10], ref[:, 10:-10, 10:-10], atol=2e-4)
