@@ -93,11 +93,14 @@ class GenicamCamera(Camera):
     ``"software"``).
     """
 
-    def __init__(self, cti: str | list[str], serial: str | None = None, index: int | None = None,
+    def __init__(self, cti: str | list[str] | None = None, serial: str | None = None,
+                 index: int | None = None,
                  *, layout: str = "imx250mzr", pixel_format: str | None = None,
                  roi: tuple[int, int, int, int] | None = None, exposure_us: float | None = None,
                  gain_db: float | None = None, frame_rate_hz: float | None = None,
                  trigger: str = "free", black_level_dn: float = 0.0, kind: str = "camera"):
+        if cti is None:
+            cti = gentl_paths_from_env()
         self.cti_files = [cti] if isinstance(cti, (str, os.PathLike)) else list(cti)
         self.cti_files = [os.fspath(c) for c in self.cti_files]
         self.serial = None if serial in (None, "") else str(serial)
@@ -122,6 +125,9 @@ class GenicamCamera(Camera):
     def open(self) -> None:
         if self._ia is not None:
             return
+        if not self.cti_files:
+            raise DeviceNotFound("no GenTL producer: name a .cti in [camera] cti or set "
+                                 "GENICAM_GENTL64_PATH", device=self.name)
         h = _harvester(self.cti_files)
         devices = list(h.device_info_list)
         serials = [d.serial_number for d in devices]

@@ -176,27 +176,51 @@ class Rig:
         return "\n".join(lines)
 
 
+def _make_device(kind: str, table: dict[str, Any], sim_rig_factory) -> Device:
+    if table["driver"] == "sim":
+        return getattr(sim_rig_factory(), kind)
+    cls = _import_class(DRIVERS[table["driver"]].classes[kind])
+    dev = cls(**driver_kwargs(table), kind=kind)
+    if not isinstance(dev, _HAL[kind]):  # pragma: no cover - registry bug
+        raise TypeError(f"{cls.__name__} is not a {_HAL[kind].__name__}")
+    return dev
+
+
+def _sim_factory(config: RigConfig, sim_options: dict[str, Any] | None):
+    """A function returning the one shared simulated rig, created on first use."""
+    made: list[Any] = []
+
+    def factory():
+        if not made:
+            from sim.devices import create_sim_rig  # lazily: only when a sim device is used
+
+            made.append(create_sim_rig({**config.get("sim", {}), **(sim_options or {}),
+                                        "open": False}))
+        return made[0]
+
+    factory.made = made  # type: ignore[attr-defined]
+    return factory
+
+
 def build_rig(config: RigConfig, sim_options: dict[str, Any] | None = None) -> Rig:
     """Instantiate (not open) the configured devices; ``sim`` ones share one simulated rig."""
-    sim_rig = None
-    devices: dict[str, Any] = {}
-    for kind in DEVICE_KINDS:
-        table = config[kind]
-        if table["driver"] == "sim":
-            if sim_rig is None:
-                from sim.devices import create_sim_rig  # lazily: only when a sim device is used
-
-                options = {**config.get("sim", {}), **(sim_options or {}), "open": False}
-                sim_rig = create_sim_rig(options)
-            devices[kind] = getattr(sim_rig, kind)
-            continue
-        cls = _import_class(DRIVERS[table["driver"]].classes[kind])
-        devices[kind] = cls(**driver_kwargs(table), kind=kind)
-        if not isinstance(devices[kind], _HAL[kind]):  # pragma: no cover - registry bug
-            raise TypeError(f"{cls.__name__} is not a {_HAL[kind].__name__}")
+    factory = _sim_factory(config, sim_options)
+    devices = {kind: _make_device(kind, config[kind], factory) for kind in DEVICE_KINDS}
+    sim_rig = factory.made[0] if factory.made else None
     all_sim = all(config[k]["driver"] == "sim" for k in DEVICE_KINDS)
     return Rig(**devices, truth=sim_rig.truth if (sim_rig is not None and all_sim) else None,
                config=config, source=config.source, sim=sim_rig)
+
+
+def open_device(config_path: str | Path | None, kind: str, **sim_options: Any) -> Device:
+    """Open just one device of the configured rig (for single-device commands such as
+    ``polrig move stage``); use it as a context manager."""
+    if kind not in DEVICE_KINDS:
+        raise ValueError(f"device kind must be one of {', '.join(DEVICE_KINDS)}, got {kind!r}")
+    config = load_rig_config(config_path)
+    dev = _make_device(kind, config[kind], _sim_factory(config, sim_options))
+    dev.open()
+    return dev
 
 
 def load_rig_config(config_path: str | Path | None) -> RigConfig:

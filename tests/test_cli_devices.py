@@ -1,0 +1,172 @@
+"""Operator commands against emulated hardware: move, home, light, snap, devices."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import genicam
+import numpy as np
+import pytest
+
+from drivers.emulators import dc2200 as dc2200_emulator
+from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
+from drivers.emulators.grbl import GrblEmulator
+from drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
+from polrig.cli import main
+from polrig.rawio import read_raw
+
+pytestmark = pytest.mark.timeout(30)
+VIKY = Path(genicam.__file__).parent / "viky.cti"
+REPO = Path(__file__).resolve().parents[1]
+
+
+def config(tmp_path, text: str) -> str:
+    p = tmp_path / "rig.toml"
+    p.write_text(textwrap.dedent(text))
+    return str(p)
+
+
+def run(capsys, *argv: str) -> tuple[int, str, str]:
+    rc = main(list(argv))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_move_stage_ell14(tmp_path, capsys):
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=4) as emu:
+        cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{emu.port}"\naddress = 0\n')
+        rc, out, err = run(capsys, "move", "stage", "45", "--config", cfg)
+        assert rc == 0, err
+        assert abs(emu.position_deg - 45.0) <= 360.0 / PULSES_PER_REV  # one encoder pulse
+        assert out.startswith("stage: at 45.0") and "ELL14, serial 11400123" in out
+        rc, out, _ = run(capsys, "home", "stage", "--config", cfg)
+        assert rc == 0 and "homed, at 0.0000 deg" in out
+        assert emu.position_deg == pytest.approx(0.0, abs=360.0 / PULSES_PER_REV)
+
+
+def test_move_stage_k10cr1(tmp_path, capsys):
+    with K10cr1Emulator(link=tmp_path / "k10cr1", speed_factor=40) as emu:
+        cfg = config(tmp_path, f'[stage]\ndriver = "k10cr1"\nport = "{emu.port}"\n')
+        rc, out, err = run(capsys, "move", "stage", "45", "--config", cfg)
+        assert rc == 1 and err.count("\n") == 1 and "not homed" in err
+        assert run(capsys, "home", "stage", "--config", cfg)[0] == 0
+        rc, out, err = run(capsys, "move", "stage", "45", "--config", cfg)
+        assert rc == 0, err
+        assert abs(emu.position_deg - 45.0) <= 1.0 / STEPS_PER_DEG  # one micro-step
+        assert "K10CR1, serial 55000123" in out
+
+
+def test_move_turntable_grbl(tmp_path, capsys):
+    with GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as emu:
+        cfg = config(tmp_path, f'[turntable]\ndriver = "grbl"\nport = "{emu.port}"\naxis = "A"\n')
+        rc, _, err = run(capsys, "move", "turntable", "45", "--config", cfg)
+        assert rc == 1 and ("alarm" in err.lower() or "error 9" in err)
+        assert run(capsys, "home", "turntable", "--config", cfg)[0] == 0
+        rc, out, err = run(capsys, "move", "turntable", "45", "--config", cfg)
+        assert rc == 0, err
+        assert emu.axis_position("A") == pytest.approx(45.0, abs=1e-3)
+        assert out.startswith("turntable: at 45.0000 deg")
+
+
+def test_move_timeout_and_missing_port(tmp_path, capsys):
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=0.05) as emu:
+        cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{emu.port}"\n')
+        t0 = time.monotonic()
+        rc, _, err = run(capsys, "move", "stage", "180", "--timeout", "0.3", "--config", cfg)
+        assert rc == 1 and "within 0.3 s" in err and err.count("\n") == 1
+        assert time.monotonic() - t0 < 2.0
+    cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{tmp_path / "ttyNone"}"\n')
+    rc, _, err = run(capsys, "move", "stage", "10", "--config", cfg)
+    assert rc == 1 and "cannot open serial port" in err and err.count("\n") == 1
+
+
+def test_bad_config_is_usage_error_before_opening(tmp_path, capsys):
+    with Ell14Emulator(link=tmp_path / "ell14") as emu:
+        cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{emu.port}"\naddress = "0"\n')
+        rc, _, err = run(capsys, "move", "stage", "10", "--config", cfg)
+        assert rc == 2 and "[stage] address: expected an integer" in err
+        assert emu.received == b""
+
+
+def test_light_on_off(tmp_path, capsys):
+    cfg = config(tmp_path, '[light]\ndriver = "dc2200"\nbackend = "drivers.emulators.dc2200"\n')
+    rc, out, err = run(capsys, "light", "on", "--level", "0.4", "--config", cfg)
+    assert rc == 0, err
+    emu = dc2200_emulator.get_backend()
+    assert emu.output_on and emu.brightness_percent == pytest.approx(40.0)
+    assert out.startswith("light: on, level 0.400") and "DC2200, serial M00123456" in out
+    rc, out, _ = run(capsys, "light", "off", "--config", cfg)
+    assert rc == 0 and not emu.output_on and out.startswith("light: off")
+    rc, _, err = run(capsys, "light", "on", "--level", "2", "--config", cfg)
+    assert rc == 2 and "[0, 1]" in err
+
+
+def test_snap_from_viky(tmp_path, capsys):
+    cfg = config(tmp_path, f"""
+        [camera]
+        driver = "genicam"
+        cti = "{VIKY}"
+        serial = "0"
+        pixel_format = "Mono8"
+        frame_rate_hz = 200.0
+        roi = [128, 100, 0, 0]
+        layout = "imx250mzr"
+        """)
+    out_file = tmp_path / "frame.png"
+    rc, out, err = run(capsys, "snap", "--out", str(out_file), "--config", cfg)
+    assert rc == 0, err
+    frame = read_raw(out_file)
+    assert frame.raw.shape == (100, 128) and frame.raw.dtype == np.uint8
+    side = json.loads(Path(str(out_file) + ".json").read_text())
+    assert side["layout"] == "imx250mzr" and side["pixel_format"] == "Mono8"
+    for name in ("frame_s0.png", "frame_dolp.png", "frame_aolp.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert "Viky, serial 0" in out
+    rc, _, err = run(capsys, "snap", "--out", str(tmp_path / "x.jpg"), "--config", cfg)
+    assert rc == 2 and "--out must end in" in err
+
+
+def test_devices_lists_configured_and_discovered(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("GENICAM_GENTL64_PATH", str(VIKY.parent))
+    with Ell14Emulator(link=tmp_path / "ell14") as emu:
+        cfg = config(tmp_path, f"""
+            [stage]
+            driver = "ell14"
+            port = "{emu.port}"
+            [light]
+            driver = "dc2200"
+            backend = "drivers.emulators.dc2200"
+            """)
+        rc, out, err = run(capsys, "devices", "--config", cfg)
+        assert rc == 0, err
+        assert "ok: ELL14, serial 11400123" in out and "ok: DC2200, serial M00123456" in out
+        assert "serial M00123456" in out.split("USB LED drivers")[1]
+        assert f"{VIKY}: Viky serial 2" in out
+    rc, out, err = run(capsys, "devices", "--config", cfg)  # emulator gone
+    assert rc == 1 and "unreachable" in out and "could not be opened" in err
+
+
+def test_emulator_cli_and_polrig_in_separate_processes(tmp_path):
+    """A human's path: start the emulator from its CLI, point a config at the link."""
+    link = tmp_path / "ell14"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    emu = subprocess.Popen([sys.executable, "-m", "drivers.emulators.ell14", "--link", str(link),
+                            "--speed-factor", "4"], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        first = emu.stdout.readline()
+        assert first.startswith("/dev/pts/") and f"(link {link})" in first
+        cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{link}"\n')
+        res = subprocess.run([sys.executable, "-m", "polrig.cli", "move", "stage", "45",
+                              "--config", cfg], capture_output=True, text=True, env=env,
+                             timeout=20)
+        assert res.returncode == 0, res.stderr
+        assert res.stdout.startswith("stage: at 45.0")
+    finally:
+        emu.terminate()
+        emu.wait(timeout=5)
