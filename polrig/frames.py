@@ -77,9 +77,8 @@ def valid_direction(v) -> np.ndarray:
     return np.isfinite(n2) & (n2 > 0)
 
 
-def normalize(v) -> np.ndarray:
-    """Unit vectors along ``v`` ``(..., 3)``; zero or non-finite vectors become ``(0, 0, 1)``
-    (mask them with :func:`valid_direction`)."""
+def unit_and_valid(v) -> tuple[np.ndarray, np.ndarray]:
+    """``(normalize(v), valid_direction(v))`` in one pass (one length computation)."""
     v = _as_vectors(v, "v")
     n2 = dot(v, v)
     ok = np.isfinite(n2) & (n2 > 0)
@@ -89,7 +88,13 @@ def normalize(v) -> np.ndarray:
         out[..., c] = v[..., c] * inv
     if not ok.all():
         out[~ok] = (0.0, 0.0, 1.0)
-    return out
+    return out, ok
+
+
+def normalize(v) -> np.ndarray:
+    """Unit vectors along ``v`` ``(..., 3)``; zero or non-finite vectors become ``(0, 0, 1)``
+    (mask them with :func:`valid_direction`)."""
+    return unit_and_valid(v)[0]
 
 
 def stokes_basis(k) -> np.ndarray:
@@ -100,7 +105,11 @@ def stokes_basis(k) -> np.ndarray:
     ``mueller::stokes_basis``. It is continuous except across ``k_z = 0`` where the branch
     changes (``k_z >= 0`` takes the ``+`` branch). ``k`` is normalised first.
     """
-    n = normalize(k)
+    return stokes_basis_unit(normalize(k))
+
+
+def stokes_basis_unit(n: np.ndarray) -> np.ndarray:
+    """:func:`stokes_basis` for an already unit direction ``n`` (skips normalising)."""
     nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
     sign = np.where(nz >= 0.0, 1.0, -1.0)
     a = -1.0 / (sign + nz)
@@ -119,29 +128,38 @@ def basis_from_reference(k, x_ref) -> np.ndarray:
     Where ``x_ref`` is (nearly) parallel to ``k``, zero or non-finite, falls back to
     :func:`stokes_basis` of ``k``.
     """
-    k = normalize(k)
+    return basis_from_reference_unit(normalize(k), x_ref)
+
+
+def basis_from_reference_unit(k: np.ndarray, x_ref) -> np.ndarray:
+    """:func:`basis_from_reference` for an already unit ``k`` (skips normalising ``k``)."""
     r = _as_vectors(x_ref, "x_ref")
     shape = np.broadcast_shapes(k.shape, r.shape)
-    rn2 = dot(r, r)
-    ok_ref = np.isfinite(rn2) & (rn2 > 0)
-    inv_r = 1.0 / np.sqrt(np.where(ok_ref, rn2, 1.0))
-    rk = dot(r, k) * inv_r
+    with np.errstate(invalid="ignore", over="ignore"):
+        big = np.abs(r).max(axis=-1)  # scale first: no underflow/overflow in |r|^2
+        ok_ref = np.isfinite(big) & (big > 0)
+        r = r / np.where(ok_ref, big, 1.0)[..., None]
+        r = r / np.sqrt(dot(r, r))[..., None]
+    rk = dot(r, k)
     x = _empty_vectors(shape)
     for c in range(3):
-        x[..., c] = r[..., c] * inv_r - rk * k[..., c]
+        x[..., c] = r[..., c] - rk * k[..., c]
     n2 = dot(x, x)
     ok = ok_ref & (n2 > _DEGENERATE_SQ)
     inv = 1.0 / np.sqrt(np.where(ok, n2, 1.0))
-    # second Gram-Schmidt pass: exact orthogonality also for references close to k
-    xk = dot(x, k) * inv
-    for c in range(3):
-        x[..., c] = x[..., c] * inv - xk * k[..., c]
-    inv = 1.0 / np.sqrt(np.where(ok, dot(x, x), 1.0))
     for c in range(3):
         x[..., c] *= inv
+    # References within ~0.6 deg of k lose digits to cancellation: a second Gram-Schmidt pass
+    # there keeps x exactly perpendicular to k.
+    near = np.broadcast_to(ok & (n2 < 1e-4), shape[:-1])
+    if np.any(near):
+        kn = np.broadcast_to(k, shape)[near]
+        xn = x[near]
+        xn = xn - dot(xn, kn)[..., None] * kn
+        x[near] = xn / np.sqrt(dot(xn, xn))[..., None]
     if not np.all(ok):
         ok = np.broadcast_to(ok, shape[:-1])
-        x[~ok] = stokes_basis(np.broadcast_to(k, shape)[~ok])
+        x[~ok] = stokes_basis_unit(np.broadcast_to(k, shape)[~ok])
     return x
 
 
@@ -197,6 +215,20 @@ def rotation_cos_sin_2theta(forward, basis_current, basis_target) -> tuple[np.nd
     cos2 = np.where(ok, (c * c - s * s) / r2, 1.0)
     sin2 = np.where(ok, 2.0 * c * s / r2, 0.0)
     return cos2, sin2
+
+
+def rotation_cos_sin_2theta_to_frame(basis_current, x_target, y_target) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`rotation_cos_sin_2theta` with the target given as a full frame
+    ``(x_target, y_target = k x x_target)`` (unit vectors): ``basis_current`` (any length,
+    perpendicular to ``k``) lies at ``phi = atan2(cur . y, cur . x)`` in the target frame and
+    the rotation is ``theta = -phi``. Two dot products, no cross product: the fast path when
+    several bases are rotated into one frame."""
+    c = dot(basis_current, x_target)
+    s = dot(basis_current, y_target)
+    r2 = c * c + s * s
+    ok = np.isfinite(r2) & (r2 > 0)
+    r2 = np.where(ok, r2, 1.0)
+    return np.where(ok, (c * c - s * s) / r2, 1.0), np.where(ok, -2.0 * c * s / r2, 0.0)
 
 
 def rotation_angle(forward, basis_current, basis_target) -> np.ndarray:

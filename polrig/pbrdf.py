@@ -211,73 +211,132 @@ def _components(components: Sequence[str]) -> tuple[bool, bool]:
 
 
 class _Pixels(NamedTuple):
-    """Valid pixels gathered into flat, component-major stacks (``P`` pixels)."""
+    """One chunk of valid pixels, flat and component-major (``P`` pixels). Per-pixel material
+    parameters are ``(P,)`` or scalars; reference axes ``(P, 3)``, ``(3,)`` or None."""
 
-    n: np.ndarray       # (P, 3)
-    wi: np.ndarray      # (P, 3)
-    wo: np.ndarray      # (P, 3)
-    cos_i: np.ndarray   # (P,)
-    cos_o: np.ndarray   # (P,)
-    batch: tuple        # pixel shape of the result
-    flat: np.ndarray | None  # flat indices of the valid pixels, None when all are valid
-
-    @property
-    def npix(self) -> int:
-        return int(np.prod(self.batch)) if self.flat is None else int(self.flat.size)
-
-    def scalar(self, a) -> np.ndarray:
-        """A per-pixel parameter (scalar or broadcastable to ``batch``) at the valid pixels;
-        scalars stay scalars."""
-        a = np.asarray(a, dtype=np.float64)
-        if a.ndim == 0:
-            return a
-        a = np.broadcast_to(a, self.batch).reshape(-1)
-        return a if self.flat is None else a[self.flat]
-
-    def vectors(self, v) -> np.ndarray:
-        """``(..., 3)`` vectors at the valid pixels, ``(P, 3)`` (a single ``(3,)`` stays)."""
-        v = np.asarray(v, dtype=np.float64)
-        if v.ndim == 1:
-            return v
-        out = _fr._empty_vectors((self.npix, 3))
-        for c in range(3):
-            comp = np.broadcast_to(v[..., c], self.batch).reshape(-1)
-            out[:, c] = comp if self.flat is None else comp[self.flat]
-        return out
+    n: np.ndarray        # (P, 3) unit normals
+    wi: np.ndarray       # (P, 3) unit directions to the light
+    wo: np.ndarray       # (P, 3) unit directions to the camera
+    cos_i: np.ndarray    # (P,)
+    cos_o: np.ndarray    # (P,)
+    alpha: np.ndarray    # (P,) or scalar, clamped to ALPHA_MIN
+    eta: np.ndarray      # (P,) or scalar
+    refs: tuple | None   # (stage_zero_axis, camera_x_axis) or None for Mitsuba's default bases
 
 
-def _gather(normal, wi, wo, alpha, eta, *, extra_shapes=(), extra_ok=None) -> tuple[_Pixels, np.ndarray, np.ndarray]:
-    """Validate and gather the valid pixels. Returns ``(pixels, alpha_v, eta_v)``."""
+#: Pixels per chunk: keeps every temporary (~64 kB) in cache and out of the page-fault path of
+#: large allocations; the Python overhead per chunk is well under a millisecond.
+CHUNK = 8192
+
+
+def _flat(a, batch: tuple, trailing: int) -> np.ndarray:
+    """``a`` with its pixel axes flattened to one, ``(N,) + trailing axes``; arrays without pixel
+    axes (scalars, a single vector) are returned as they are."""
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim == trailing:
+        return a
+    tail = a.shape[a.ndim - trailing:] if trailing else ()
+    return np.broadcast_to(a, batch + tail).reshape((-1,) + tail)
+
+
+def _take(a: np.ndarray, trailing: int, rows) -> np.ndarray:
+    """Rows ``rows`` (a slice or flat indices) of a flattened per-pixel array; constants pass."""
+    return a if a.ndim == trailing else a[rows]
+
+
+class _Inputs(NamedTuple):
+    """Validated inputs, pixel axes flattened (see :func:`_flat`)."""
+
+    batch: tuple
+    normal: np.ndarray
+    wi: np.ndarray
+    wo: np.ndarray
+    alpha: np.ndarray
+    eta: np.ndarray
+    ks: np.ndarray
+    kd: np.ndarray          # (N,), (N, C), scalar or (C,)
+    ncolour: int | None
+    refs: tuple | None
+
+
+def _prepare(normal, wi, wo, *, alpha, eta, ks=1.0, kd=0.0, refs=None) -> _Inputs:
+    """Check arguments (one-line ``ValueError``s) and flatten the pixel axes."""
     vecs = [_fr._as_vectors(v, name) for v, name in ((normal, "normal"), (wi, "wi"), (wo, "wo"))]
     alpha = np.asarray(alpha, dtype=np.float64)
     eta = np.asarray(eta, dtype=np.float64)
+    ks = np.asarray(ks, dtype=np.float64)
+    kd = np.asarray(kd, dtype=np.float64)
     if np.any(alpha < 0):
         raise ValueError("alpha (microfacet roughness) must be >= 0")
     if np.any(eta <= 0):
         raise ValueError("eta (relative refractive index) must be > 0")
-    batch = np.broadcast_shapes(*(v.shape[:-1] for v in vecs), alpha.shape, eta.shape, *extra_shapes)
-    n, i, o = (_fr.normalize(v) for v in vecs)
-    cos_i = _fr.dot(n, i)
-    cos_o = _fr.dot(n, o)
-    ok = (_fr.valid_direction(vecs[0]) & _fr.valid_direction(vecs[1]) & _fr.valid_direction(vecs[2])
-          & (cos_i > 0) & (cos_o > 0) & np.isfinite(alpha) & np.isfinite(eta))
-    if extra_ok is not None:
-        ok = ok & extra_ok
-    ok = np.broadcast_to(ok, batch).reshape(-1)
-    flat = None if ok.all() else np.flatnonzero(ok)
-    pix = _Pixels(n, i, o, cos_i, cos_o, batch, flat)
-    pix = pix._replace(n=pix.vectors(n), wi=pix.vectors(i), wo=pix.vectors(o))
-    pix = pix._replace(cos_i=_fr.dot(pix.n, pix.wi), cos_o=_fr.dot(pix.n, pix.wo))
-    return pix, np.maximum(pix.scalar(alpha), ALPHA_MIN), pix.scalar(eta)
+    shapes = [v.shape[:-1] for v in vecs] + [alpha.shape, eta.shape]
+    if refs is not None:
+        refs = (_fr._as_vectors(refs[0], "stage_zero_axis"), _fr._as_vectors(refs[1], "camera_x_axis"))
+        shapes += [r.shape[:-1] for r in refs]
+    try:
+        nd = len(np.broadcast_shapes(*shapes))
+        ncolour = kd.shape[-1] if kd.ndim == nd + 1 and kd.ndim > 0 else None
+        if kd.ndim > nd + 1:
+            raise ValueError(f"kd has shape {kd.shape}: expected the pixel shape or the pixel shape + (C,)")
+        if ks.ndim > nd:
+            raise ValueError(f"ks has shape {ks.shape}: expected a scalar or the pixel shape")
+        batch = np.broadcast_shapes(*shapes, kd.shape[:-1] if ncolour else kd.shape, ks.shape)
+    except ValueError as exc:
+        if "kd" in str(exc) or "ks" in str(exc):
+            raise
+        raise ValueError(f"pixel shapes do not broadcast: {exc}") from None
+    ct = 1 if ncolour else 0
+    return _Inputs(batch, *(_flat(v, batch, 1) for v in vecs), _flat(alpha, batch, 0), _flat(eta, batch, 0),
+                   _flat(ks, batch, 0), _flat(kd, batch, ct), ncolour,
+                   None if refs is None else tuple(_flat(r, batch, 1) for r in refs))
+
+
+def _valid_rows(inp: _Inputs, extra_ok: bool) -> np.ndarray | None:
+    """Flat indices of the valid pixels (None when all are): finite non-zero vectors, ``wi`` and
+    ``wo`` above the horizon (signs of unnormalised dot products), finite ``alpha``/``eta``
+    and, when ``extra_ok``, finite ``ks``/``kd``. Computed in chunks (small temporaries)."""
+    total = int(np.prod(inp.batch))
+    ct = 1 if inp.ncolour else 0
+    ok = np.empty(total, dtype=bool)
+    for start in range(0, total, 4 * CHUNK):
+        sl = slice(start, min(total, start + 4 * CHUNK))
+        n, i, o = (_take(v, 1, sl) for v in (inp.normal, inp.wi, inp.wo))
+        good = np.ones(sl.stop - sl.start, dtype=bool)
+        for v in (n, i, o):
+            n2 = _fr.dot(v, v)
+            good &= np.isfinite(n2) & (n2 > 0)
+        good &= (_fr.dot(n, i) > 0) & (_fr.dot(n, o) > 0)
+        good &= np.isfinite(_take(inp.alpha, 0, sl)) & np.isfinite(_take(inp.eta, 0, sl))
+        if extra_ok:
+            kd = _take(inp.kd, ct, sl)
+            good &= np.isfinite(_take(inp.ks, 0, sl)) & (np.isfinite(kd).all(axis=-1) if ct else np.isfinite(kd))
+        ok[sl] = good
+    return None if ok.all() else np.flatnonzero(ok)
+
+
+def _chunks(inp: _Inputs, extra_ok: bool):
+    """Yield ``(rows, pixels)`` for chunks of :data:`CHUNK` valid pixels: ``rows`` (a slice or
+    flat indices into the flattened pixels) and the gathered, normalised :class:`_Pixels`."""
+    flat = _valid_rows(inp, extra_ok)
+    count = int(np.prod(inp.batch)) if flat is None else flat.size
+    for start in range(0, count, CHUNK):
+        stop = min(count, start + CHUNK)
+        rows = slice(start, stop) if flat is None else flat[start:stop]
+        m = stop - start
+        n, i, o = (np.broadcast_to(_fr.normalize(_take(v, 1, rows)), (m, 3)) for v in (inp.normal, inp.wi, inp.wo))
+        alpha, eta = _take(inp.alpha, 0, rows), _take(inp.eta, 0, rows)
+        refs = None if inp.refs is None else tuple(_take(r, 1, rows) for r in inp.refs)
+        yield rows, _Pixels(n, i, o, _fr.dot(n, i), _fr.dot(n, o), np.maximum(alpha, ALPHA_MIN), eta, refs)
 
 
 # ----------------------------------------------------------------------------- unit terms
 # Terms are dictionaries {(row, col): (P,) array} of their non-zero elements.
 
-def _specular_elements(pix: _Pixels, alpha, eta, distribution, x_in, x_out, nmat: int) -> dict:
+def _specular_elements(pix: _Pixels, distribution, frame_in, frame_out, nmat: int) -> dict:
     """Elements of ``Ms`` (``ks = 1``) in bases ``x_in`` (about ``-wi``), ``x_out`` (about
     ``wo``): ``R(theta_out) F R(theta_in)^T * D G / (4 cos_o)``, written out element-wise."""
-    wi, wo = pix.wi, pix.wo
+    wi, wo, alpha, eta = pix.wi, pix.wo, pix.alpha, pix.eta
     h = _fr.normalize(wi + wo)
     cos_h = _fr.dot(pix.n, h)
     cos_ih = _fr.dot(wi, h)  # = wo . h
@@ -291,9 +350,9 @@ def _specular_elements(pix: _Pixels, alpha, eta, distribution, x_in, x_out, nmat
     sax = _fr.cross(wi, h)
     bad = _fr.dot(sax, sax) <= 1e-24
     if np.any(bad):
-        sax[bad] = _fr.stokes_basis(-wi[bad])
-    ci, si = _fr.rotation_cos_sin_2theta(-wi, sax, x_in)
-    co, so = _fr.rotation_cos_sin_2theta(wo, sax, x_out)
+        sax[bad] = _fr.stokes_basis_unit(-wi[bad])
+    ci, si = _fr.rotation_cos_sin_2theta_to_frame(sax, *frame_in)
+    co, so = _fr.rotation_cos_sin_2theta_to_frame(sax, *frame_out)
     cib, sib = ci * b, si * b
     e = {(0, 0): a, (0, 1): cib, (0, 2): -sib, (1, 0): co * b, (2, 0): -so * b}
     ca, sa, cc, sc = ci * a, si * a, ci * c, si * c
@@ -310,10 +369,10 @@ def _specular_elements(pix: _Pixels, alpha, eta, distribution, x_in, x_out, nmat
     return e
 
 
-def _diffuse_elements(pix: _Pixels, eta, x_in, x_out) -> dict:
+def _diffuse_elements(pix: _Pixels, frame_in, frame_out) -> dict:
     """Elements of ``Md`` (``kd = 1``): the rank-one ``cos_i / pi (R_out t_out)(R_in t_in)^T``
     with ``t = (a, b, 0, 0)`` the first row/column of the Fresnel transmission matrices."""
-    wi, wo, n = pix.wi, pix.wo, pix.n
+    wi, wo, n, eta = pix.wi, pix.wo, pix.n, pix.eta
     a_i, b_i = _transmission_ab(pix.cos_i, eta)
     a_o, b_o = _transmission_ab(pix.cos_o, eta)
     s_in = _fr.cross(n, -wi)
@@ -321,99 +380,77 @@ def _diffuse_elements(pix: _Pixels, eta, x_in, x_out) -> dict:
     # Normal incidence/exitance: b = 0 there and the axis does not matter.
     bad = _fr.dot(s_in, s_in) <= 1e-24
     if np.any(bad):
-        s_in[bad] = _fr.stokes_basis(-wi[bad])
+        s_in[bad] = _fr.stokes_basis_unit(-wi[bad])
     bad = _fr.dot(s_out, s_out) <= 1e-24
     if np.any(bad):
-        s_out[bad] = _fr.stokes_basis(wo[bad])
-    ci, si = _fr.rotation_cos_sin_2theta(-wi, s_in, x_in)
-    co, so = _fr.rotation_cos_sin_2theta(wo, s_out, x_out)
+        s_out[bad] = _fr.stokes_basis_unit(wo[bad])
+    ci, si = _fr.rotation_cos_sin_2theta_to_frame(s_in, *frame_in)
+    co, so = _fr.rotation_cos_sin_2theta_to_frame(s_out, *frame_out)
     scale = pix.cos_i / np.pi
     u = (a_o, co * b_o, -so * b_o)
     v = (scale * a_i, scale * ci * b_i, -scale * si * b_i)
     return {(r, k): u[r] * v[k] for r in range(3) for k in range(3)}
 
 
-def _terms(pix, alpha, eta, distribution, components, x_in, x_out, nmat):
-    want_s, want_d = _components(components)
-    es = _specular_elements(pix, alpha, eta, distribution, x_in, x_out, nmat) if want_s else None
-    ed = _diffuse_elements(pix, eta, x_in, x_out) if want_d else None
-    return es, ed
-
-
-def _assemble(pix: _Pixels, es, ed, ks, kd, nmat: int, ncolour: int | None) -> np.ndarray:
-    """``ks Ms + kd Md`` into a zero-initialised ``batch + ([C,]) + (nmat, nmat)`` array."""
-    cshape = () if ncolour is None else (ncolour,)
-    out = np.zeros(pix.batch + cshape + (nmat, nmat))
-    if pix.flat is not None and pix.flat.size == 0:
-        return out
-    npix = pix.npix
-    sub = out.reshape((-1,) + cshape + (nmat, nmat)) if pix.flat is None else np.zeros((npix,) + cshape + (nmat, nmat))
-    ks_v = pix.scalar(ks)
-    if ncolour is None:
-        kd_v = pix.scalar(kd)
-        ks_c = ks_v
+def _bases(pix: _Pixels):
+    """Incident and outgoing frames ``((x_in, y_in), (x_out, y_out))``: Mitsuba's default
+    bases when ``pix.refs`` is None, else the rig frames from ``(stage_zero_axis,
+    camera_x_axis)``; ``y = k x x`` with ``k = -wi`` and ``k = wo``."""
+    k_in = -pix.wi
+    if pix.refs is None:
+        x_in, x_out = _fr.stokes_basis_unit(k_in), _fr.stokes_basis_unit(pix.wo)
     else:
-        kd = np.asarray(kd, dtype=np.float64)
-        kd_v = np.broadcast_to(kd, pix.batch + cshape).reshape(-1, ncolour)
-        kd_v = kd_v if pix.flat is None else kd_v[pix.flat]
-        ks_c = ks_v[..., None] if ks_v.ndim else ks_v
+        x_in = _fr.basis_from_reference_unit(k_in, pix.refs[0])
+        x_out = _fr.basis_from_reference_unit(pix.wo, pix.refs[1])
+    return (x_in, _fr.cross(k_in, x_in)), (x_out, _fr.cross(pix.wo, x_out))
+
+
+def _new_planes(batch: tuple, ncolour: int | None, nmat: int) -> tuple[np.ndarray, np.ndarray]:
+    """Zero output stored plane-first (memory order ``([C,] row, col, pixels)``, the image
+    layout of ``docs/conventions.md``): returns ``(flat planes ([C,] n, n, N), matrix-last view
+    batch + ([C,]) + (n, n))``; each element is written contiguously and ``np.moveaxis`` back
+    to the image layout is free."""
+    cshape = () if ncolour is None else (ncolour,)
+    planes = np.zeros(cshape + (nmat, nmat) + batch)
+    lead = len(cshape) + 2
+    view = np.moveaxis(planes, tuple(range(lead)), tuple(range(-lead, 0)))
+    return planes.reshape(cshape + (nmat, nmat, -1)), view
+
+
+def _write(planes, cols, es, ed, ks, kd, nmat: int) -> None:
+    """``planes[..., r, k, cols] = ks es[r, k] + kd ed[r, k]`` for one chunk of valid pixels;
+    ``kd`` is scalar, ``(P,)`` or ``(C, P)``."""
+    unit_ks = ks.ndim == 0 and ks == 1.0
     for r in range(nmat):
         for k in range(nmat):
             val = None
             if es is not None and (r, k) in es:
-                x = es[r, k] if ncolour is None else es[r, k][:, None]
-                val = ks_c * x
+                val = es[r, k] if unit_ks else ks * es[r, k]
             if ed is not None and (r, k) in ed:
-                x = ed[r, k] if ncolour is None else ed[r, k][:, None]
-                val = kd_v * x if val is None else val + kd_v * x
+                val = kd * ed[r, k] if val is None else val + kd * ed[r, k]
             if val is not None:
-                sub[..., r, k] = val
-    if pix.flat is not None:
-        out.reshape((-1,) + cshape + (nmat, nmat))[pix.flat] = sub
-    return out
+                planes[..., r, k, cols] = val
 
 
-def _colour_rule(kd, batch_shapes) -> tuple[tuple, int | None, np.ndarray]:
-    """Pixel shape of ``kd``, its colour count (``None`` if no colour axis) and where it is
-    finite (all colours)."""
-    kd = np.asarray(kd, dtype=np.float64)
-    nd = len(np.broadcast_shapes(*batch_shapes))
-    if kd.ndim > nd + 1:
-        raise ValueError(f"kd has shape {kd.shape}: expected the pixel shape or the pixel shape + (C,)")
-    if kd.ndim == nd + 1 and kd.ndim > 0:
-        return kd.shape[:-1], kd.shape[-1], np.isfinite(kd).all(axis=-1)
-    return kd.shape, None, np.isfinite(kd)
-
-
-def _evaluate(normal, wi, wo, *, kd, alpha, eta, ks, distribution, components, nmat,
-              refs=None) -> np.ndarray:
+def _evaluate(normal, wi, wo, *, kd, alpha, eta, ks, distribution, components, nmat, refs=None) -> np.ndarray:
     distribution = _check_distribution(distribution)
-    _components(components)
-    shapes = [np.shape(v)[:-1] for v in (normal, wi, wo)] + [np.shape(alpha), np.shape(eta)]
-    if refs is not None:
-        shapes += [np.shape(r)[:-1] for r in refs]
-    kd_shape, ncolour, kd_ok = _colour_rule(kd, shapes)
-    ks = np.asarray(ks, dtype=np.float64)
-    extra_ok = kd_ok & np.isfinite(ks)
-    pix, alpha_v, eta_v = _gather(normal, wi, wo, alpha, eta,
-                                  extra_shapes=[kd_shape, ks.shape] + shapes[5:], extra_ok=extra_ok)
-    x_in, x_out = _bases(pix, refs)
-    es, ed = _terms(pix, alpha_v, eta_v, distribution, components, x_in, x_out, nmat)
-    return _assemble(pix, es, ed, ks, kd, nmat, ncolour)
-
-
-def _bases(pix: _Pixels, refs):
-    """Incident and outgoing basis ``x`` at the valid pixels: Mitsuba's defaults when
-    ``refs`` is None, else the rig frames from ``(stage_zero_axis, camera_x_axis)``."""
-    if refs is None:
-        return _fr.stokes_basis(-pix.wi), _fr.stokes_basis(pix.wo)
-    stage, cam = (pix.vectors(r) for r in refs)
-    return _fr.basis_from_reference(-pix.wi, stage), _fr.basis_from_reference(pix.wo, cam)
-
-
-def _check_refs(stage_zero_axis, camera_x_axis):
-    return (_fr._as_vectors(stage_zero_axis, "stage_zero_axis"),
-            _fr._as_vectors(camera_x_axis, "camera_x_axis"))
+    want_s, want_d = _components(components)
+    inp = _prepare(normal, wi, wo, alpha=alpha, eta=eta, ks=ks, kd=kd, refs=refs)
+    planes, out = _new_planes(inp.batch, inp.ncolour, nmat)
+    if not (want_s or want_d):
+        return out
+    ct = 1 if inp.ncolour else 0
+    for rows, pix in _chunks(inp, extra_ok=True):
+        frame_in, frame_out = _bases(pix)
+        es = _specular_elements(pix, distribution, frame_in, frame_out, nmat) if want_s else None
+        ed = _diffuse_elements(pix, frame_in, frame_out) if want_d else None
+        kd_c = _take(inp.kd, ct, rows)
+        if ct and kd_c.ndim == 2:
+            kd_c = kd_c.T  # (C, P)
+        elif ct:
+            kd_c = kd_c[:, None]  # one colour for all pixels: (C, 1)
+        _write(planes, rows, es, ed, _take(inp.ks, 0, rows), kd_c, nmat)
+    return out
 
 
 # ----------------------------------------------------------------------------- public API
@@ -448,7 +485,8 @@ def to_rig_frames(m, wi, wo, *, stage_zero_axis, camera_x_axis) -> np.ndarray:
     m = np.asarray(m, dtype=np.float64)
     if m.ndim < 2 or m.shape[-1] != m.shape[-2] or m.shape[-1] not in (3, 4):
         raise ValueError(f"m must be (..., 3, 3) or (..., 4, 4), got shape {m.shape}")
-    stage, cam = _check_refs(stage_zero_axis, camera_x_axis)
+    stage = _fr._as_vectors(stage_zero_axis, "stage_zero_axis")
+    cam = _fr._as_vectors(camera_x_axis, "camera_x_axis")
     i = _fr.normalize(wi)
     o = _fr.normalize(wo)
     ci, si = _fr.rotation_cos_sin_2theta(-i, _fr.stokes_basis(-i), _fr.basis_from_reference(-i, stage))
@@ -473,9 +511,8 @@ def linear_rig_mueller(normal, wi, wo, *, kd, alpha, eta=1.5, ks=1.0, distributi
     ``(3,)`` or per pixel ``(..., 3)``. Other parameters as :func:`mueller`. The simulator's
     truth and the networks' analytic initialisation both use this. Units 1/sr.
     """
-    refs = _check_refs(stage_zero_axis, camera_x_axis)
     return _evaluate(normal, wi, wo, kd=kd, alpha=alpha, eta=eta, ks=ks, distribution=distribution,
-                     components=components, nmat=3, refs=refs)
+                     components=components, nmat=3, refs=(stage_zero_axis, camera_x_axis))
 
 
 def specular_diffuse_blocks(normal, wi, wo, *, alpha, eta=1.5, distribution: str = "ggx",
@@ -485,9 +522,11 @@ def specular_diffuse_blocks(normal, wi, wo, *, alpha, eta=1.5, distribution: str
     (``Md`` is the diffuse block for unit albedo ``kd = 1``, ``Ms`` for ``ks = 1``).
     Invalid pixels are zero in both."""
     distribution = _check_distribution(distribution)
-    refs = _check_refs(stage_zero_axis, camera_x_axis)
-    shapes = [r.shape[:-1] for r in refs]
-    pix, alpha_v, eta_v = _gather(normal, wi, wo, alpha, eta, extra_shapes=shapes)
-    x_in, x_out = _bases(pix, refs)
-    es, ed = _terms(pix, alpha_v, eta_v, distribution, COMPONENTS, x_in, x_out, 3)
-    return (_assemble(pix, es, None, 1.0, 0.0, 3, None), _assemble(pix, None, ed, 0.0, 1.0, 3, None))
+    inp = _prepare(normal, wi, wo, alpha=alpha, eta=eta, refs=(stage_zero_axis, camera_x_axis))
+    (ms_planes, ms), (md_planes, md) = _new_planes(inp.batch, None, 3), _new_planes(inp.batch, None, 3)
+    one = np.float64(1.0)
+    for rows, pix in _chunks(inp, extra_ok=False):
+        frame_in, frame_out = _bases(pix)
+        _write(ms_planes, rows, _specular_elements(pix, distribution, frame_in, frame_out, 3), None, one, one, 3)
+        _write(md_planes, rows, None, _diffuse_elements(pix, frame_in, frame_out), one, one, 3)
+    return ms, md

@@ -39,7 +39,7 @@ def test_frames_are_right_handed_orthonormal(k, ref):
     _assert_frame_ok(frames.StokesFrame(f.x[ok], f.y[ok], f.k[ok]))
     # x lies in the plane of k and the reference where the reference is usable
     kk = k[ok] / np.linalg.norm(k[ok], axis=-1, keepdims=True)
-    r = ref[ok]
+    r = ref[ok] / np.maximum(np.abs(ref[ok]).max(axis=-1, keepdims=True), 1e-300)
     rperp = r - frames.dot(r, kk)[:, None] * kk
     usable = np.linalg.norm(rperp, axis=-1) > 1e-6 * np.maximum(np.linalg.norm(r, axis=-1), 1e-300)
     if usable.any():
