@@ -42,7 +42,10 @@ def ideal_analyzer_matrix() -> np.ndarray:
 
 def ideal_inverse() -> np.ndarray:
     """``(3, 4)`` pseudo-inverse of :func:`ideal_analyzer_matrix` (rounded: exact 0, 1/2, 1)."""
-    return np.round(np.linalg.pinv(ideal_analyzer_matrix()), 12)
+    return _IDEAL_INVERSE.copy()
+
+
+_IDEAL_INVERSE = np.round(np.linalg.pinv(ideal_analyzer_matrix()), 12)
 
 
 class StokesSolver:
@@ -285,19 +288,28 @@ def saturation_mask(raw: np.ndarray, layout: LayoutLike, method: str,
     above ``saturation_dn`` (conservative: the method's whole support, all colours)."""
     lay = resolve_layout(layout)
     raw = np.asarray(raw)
-    sat = (raw >= saturation_dn).view(np.uint8)
+    sat = raw >= saturation_dn
+    return _saturation_mask(sat, lay, method)
+
+
+def _saturation_mask(sat: np.ndarray, lay: MosaicLayout, method: str) -> np.ndarray:
     ph, pw = lay.period
-    h, w = output_shape(lay, raw.shape, method)
+    h, w = output_shape(lay, sat.shape, method)
     if method == "superpixel":
-        m = sat[: h * ph, : w * pw].reshape(h, ph, w, pw).max(axis=(1, 3)).astype(bool)
+        m = sat[0 : h * ph : ph, 0 : w * pw : pw].copy()
+        for r in range(ph):
+            for q in range(pw):
+                if r or q:
+                    m |= sat[r : h * ph : ph, q : w * pw : pw]
     else:
+        sat = sat.view(np.uint8)
         ry, rx = ph - 1, pw - 1  # bilinear: the tent's support
         if method == "newton":  # 7-tap filters, 5x5 gradients and windows, two stages
             ry, rx = NEWTON_RADIUS + (ry if lay.is_colour else 0), \
                 NEWTON_RADIUS + (rx if lay.is_colour else 0)
         k = np.ones((2 * ry + 1, 2 * rx + 1), np.uint8)
-        m = cv2.dilate(sat, k, borderType=cv2.BORDER_REFLECT_101).astype(bool)
-    return np.repeat(m[None], lay.n_colours, axis=0)
+        m = cv2.dilate(sat, k, borderType=cv2.BORDER_REFLECT_101).view(bool)
+    return m[None] if lay.n_colours == 1 else np.repeat(m[None], lay.n_colours, axis=0)
 
 
 #: Support radius (pixels) of the Newton demosaic: stage one 3 + fusion windows 2, stage two
@@ -377,8 +389,9 @@ def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, satura
         stokes[:, 0][~finite] = 0  # a pixel with any non-finite Stokes value is invalid
     sat_level = default_saturation_dn(raw, bit_depth) if saturation_dn is None else saturation_dn
     valid = stokes[:, 0] > 0
-    if np.isfinite(sat_level) and raw.size and np.nanmax(raw) >= sat_level:
-        saturated = saturation_mask(raw, lay, method, sat_level)
+    sat = raw >= sat_level if np.isfinite(sat_level) else None
+    if sat is not None and sat.any():
+        saturated = _saturation_mask(sat, lay, method)
         valid &= ~saturated
     else:
         saturated = np.zeros(valid.shape, bool)
