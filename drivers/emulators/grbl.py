@@ -38,6 +38,7 @@ class GrblEmulator(PtyEmulator):
         self.state = "Alarm" if homing_enabled else "Idle"
         self.absolute = True
         self.feed_rate = 0.0
+        self.motion_mode = 0  # modal G0/G1
         self.queue: list[tuple[list[float], float]] = []  # (target, rate units/min)
         self.move: list[LinearMove] | None = None
         self.move_start_pos: list[float] | None = None
@@ -195,7 +196,7 @@ class GrblEmulator(PtyEmulator):
             return
         target = list(self.queue[-1][0]) if self.queue else (
             [m.target for m in self.move] if self.move else list(self.pos))
-        motion, has_axis = None, False
+        motion, has_axis = self.motion_mode, False
         absolute, feed = self.absolute, self.feed_rate
         for letter, num in words:
             try:
@@ -227,9 +228,9 @@ class GrblEmulator(PtyEmulator):
         if motion == 1 and feed <= 0:
             self._error(22)
             return
-        self.absolute, self.feed_rate = absolute, feed
+        self.absolute, self.feed_rate, self.motion_mode = absolute, feed, motion
         if has_axis:
-            self.queue.append((target, self.max_rate if motion in (0, None) else feed))
+            self.queue.append((target, self.max_rate if motion == 0 else min(feed, self.max_rate)))
             self._begin_next(now)
         self._ok()
 

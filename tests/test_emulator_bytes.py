@@ -1,0 +1,124 @@
+"""The emulators answer the documented bytes (checked without the drivers, so a mistake
+shared by a driver and its emulator cannot hide)."""
+
+from __future__ import annotations
+
+import struct
+import time
+
+import pytest
+import serial
+import usb.core
+
+from drivers.emulators.dc2200 import Dc2200Emulator
+from drivers.emulators.ell14 import Ell14Emulator
+from drivers.emulators.grbl import GrblEmulator
+from drivers.emulators.k10cr1 import K10cr1Emulator
+
+pytestmark = pytest.mark.timeout(20)
+
+
+def lines(ser: serial.Serial, n: int, timeout_s: float = 2.0) -> list[bytes]:
+    out = []
+    deadline = time.monotonic() + timeout_s
+    while len(out) < n and time.monotonic() < deadline:
+        line = ser.readline()
+        if line:
+            out.append(line)
+    return out
+
+
+def test_ell14_documented_replies():
+    with Ell14Emulator(speed_factor=10) as emu, \
+            serial.Serial(emu.port, 9600, timeout=0.2) as ser:
+        ser.write(b"0in")
+        [info] = lines(ser, 1)
+        assert info.endswith(b"\r\n") and info[:3] == b"0IN" and len(info) == 3 + 30 + 2
+        assert info[3:5] == b"0E"  # ELL14 = type 14
+        assert int(info[21:25], 16) == 360 and int(info[25:33], 16) == 143360
+        ser.write(b"0gs")
+        assert lines(ser, 1) == [b"0GS00\r\n"]
+        ser.write(b"1gs")  # another address on the bus: silence
+        assert lines(ser, 1, 0.3) == []
+        ser.write(b"0ma00008C00")  # 35840 pulses = 90 deg; PO comes when the move ends
+        ser.write(b"0gs")
+        assert lines(ser, 1) == [b"0GS09\r\n"]  # busy
+        assert lines(ser, 1) == [b"0PO00008C00\r\n"]
+        ser.write(b"0mrFFFFC400")  # -15360 pulses (two's complement) = -38.57 deg
+        assert lines(ser, 1) == [b"0PO00005000\r\n"]
+        ser.write(b"0ma00FFFFFF")  # far outside one revolution
+        assert lines(ser, 1) == [b"0GS04\r\n"]
+        ser.write(b"0gs")
+        assert lines(ser, 1) == [b"0GS04\r\n"]  # the error is repeated once, then cleared
+        ser.write(b"0gs")
+        assert lines(ser, 1) == [b"0GS00\r\n"]
+        ser.write(b"0xx")
+        assert lines(ser, 1) == [b"0GS03\r\n"]
+
+
+def test_k10cr1_documented_frames():
+    with K10cr1Emulator(speed_factor=100) as emu, \
+            serial.Serial(emu.port, 115200, rtscts=True, timeout=0.5) as ser:
+        ser.write(bytes([0x05, 0x00, 0x00, 0x00, 0x50, 0x01]))  # HW_REQ_INFO
+        header = ser.read(6)
+        assert header == bytes([0x06, 0x00, 84, 0x00, 0x81, 0x50])
+        data = ser.read(84)
+        assert struct.unpack("<I", data[:4])[0] == 55000123 and data[4:10] == b"K10CR1"
+        ser.write(bytes([0x43, 0x04, 0x01, 0x00, 0x50, 0x01]))  # MOT_MOVE_HOME channel 1
+        assert ser.read(6) == bytes([0x44, 0x04, 0x01, 0x00, 0x01, 0x50])  # MOVE_HOMED
+        steps = round(45 * 409600 / 3)
+        ser.write(bytes([0x53, 0x04, 0x06, 0x00, 0xD0, 0x01]) + struct.pack("<Hi", 1, steps))
+        assert ser.read(6) == bytes([0x64, 0x04, 14, 0x00, 0x81, 0x50])  # MOVE_COMPLETED
+        chan, pos, enc, status = struct.unpack("<HiiI", ser.read(14))
+        assert (chan, pos) == (1, steps) and status & (1 << 10) and status & (1 << 31)
+        ser.write(bytes([0x29, 0x04, 0x01, 0x00, 0x50, 0x01]))  # MOT_REQ_STATUSBITS
+        assert ser.read(6) == bytes([0x2A, 0x04, 6, 0x00, 0x81, 0x50])
+        assert struct.unpack("<HI", ser.read(6))[1] & (1 << 10)
+
+
+def test_grbl_documented_replies():
+    with GrblEmulator(speed_factor=50) as emu, serial.Serial(emu.port, 115200, timeout=0.2) as ser:
+        ser.write(b"\x18")  # soft reset (opening the port flushed the power-up banner)
+        assert lines(ser, 3) == [b"\r\n", b"Grbl 1.1h ['$' for help]\r\n",
+                                 b"[MSG:'$H'|'$X' to unlock]\r\n"]
+        ser.write(b"?")
+        assert lines(ser, 1) == [b"<Alarm|MPos:0.000,0.000,0.000,0.000|FS:0,0>\r\n"]
+        ser.write(b"G0 A10\n")
+        assert lines(ser, 1) == [b"error:9\r\n"]
+        ser.write(b"$X\n")
+        assert lines(ser, 2) == [b"[MSG:Caution: Unlocked]\r\n", b"ok\r\n"]
+        ser.write(b"G1 A10\n")
+        assert lines(ser, 1) == [b"error:22\r\n"]
+        ser.write(b"G1 A10 F600\n")
+        assert lines(ser, 1) == [b"ok\r\n"]  # planned, not finished
+        ser.write(b"?")
+        assert lines(ser, 1)[0].startswith(b"<Run|MPos:")
+        time.sleep(0.1)
+        ser.write(b"?")
+        assert lines(ser, 1) == [b"<Idle|MPos:0.000,0.000,0.000,10.000|FS:600,0>\r\n"]
+        ser.write(b"G91 G0 A-4\n")
+        assert lines(ser, 1) == [b"ok\r\n"]
+        time.sleep(0.05)
+        assert emu.axis_position("A") == pytest.approx(6.0)
+        ser.write(b"G38.2 A1\n")
+        assert lines(ser, 1) == [b"error:20\r\n"]
+
+
+def test_dc2200_usbtmc_bytes_through_pyusb():
+    emu = Dc2200Emulator()
+    dev = usb.core.find(idVendor=0x1313, idProduct=0x80C8, backend=emu)
+    assert dev is not None and dev.serial_number == "M00123456" and dev.product == "DC2200"
+    dev.set_configuration()
+    # DEV_DEP_MSG_OUT, bTag 1, "*IDN?\n" (6 bytes), EOM, padded to 20 bytes
+    dev.write(0x02, bytes([1, 1, 0xFE, 0, 6, 0, 0, 0, 1, 0, 0, 0]) + b"*IDN?\n\0\0")
+    # REQUEST_DEV_DEP_MSG_IN, bTag 2, up to 256 bytes
+    dev.write(0x02, bytes([2, 2, 0xFD, 0, 0, 1, 0, 0, 0, 0, 0, 0]))
+    reply = bytes(dev.read(0x81, 512))
+    text = b"Thorlabs,DC2200,M00123456,1.2.0\n"
+    assert reply[:12] == bytes([2, 2, 0xFD, 0]) + struct.pack("<I", len(text)) + bytes([1, 0, 0, 0])
+    assert reply[12:12 + len(text)] == text and len(reply) % 4 == 0
+    with pytest.raises(usb.core.USBTimeoutError):  # nothing requested: nothing to read
+        dev.read(0x81, 512, timeout=50)
+    emu.disconnect()
+    with pytest.raises(usb.core.USBError):
+        dev.write(0x02, bytes([1, 3, 0xFC, 0, 0, 0, 0, 0, 1, 0, 0, 0]))
