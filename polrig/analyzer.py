@@ -21,6 +21,7 @@ calibration (``calibration/``) fits a real one and saves it with :meth:`Analyzer
 from __future__ import annotations
 
 import dataclasses
+import io
 import os
 import re
 from typing import Union
@@ -29,6 +30,7 @@ import numpy as np
 
 from polrig.errors import FormatError
 from polrig.layouts import MosaicLayout, get_layout
+from polrig.rawio import atomic_write_bytes
 
 LayoutLike = Union[str, MosaicLayout]
 
@@ -173,10 +175,6 @@ class AnalyzerModel:
     # -- files ----------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         """Write the model to a ``.npz`` file (atomically)."""
-        import io
-
-        from polrig.rawio import atomic_write_bytes
-
         buf = io.BytesIO()
         np.savez_compressed(buf, version=np.int64(_FILE_VERSION), layout=np.str_(self.layout),
                             gain=self.gain, angle_deg=self.angle_deg,
