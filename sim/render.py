@@ -20,6 +20,7 @@ intensity of the light and per unit normalised incident Stokes, is ``brdf * inv_
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -37,8 +38,9 @@ class RenderResult:
     """Per-pixel ground truth of one pose over the full simulated sensor ``(H, W)``.
 
     Image stacks are plane-first (``docs/conventions.md``). Directions are unit vectors in the
-    **camera frame** (OpenCV); zero outside the mask. ``brdf`` is ``(3, 3, 3, H, W)``
-    (colour R, G, B, row, col, v, u) in the rig frames, 1/sr, zero outside lit pixels.
+    **camera frame** (OpenCV); zero outside the mask. The pBRDF is stored for the lit pixels
+    only (``brdf_lit``); :attr:`brdf` is the ``(3, 3, 3, H, W)`` image (colour R, G, B, row,
+    col, v, u) in the rig frames, 1/sr, zero outside lit pixels.
     """
 
     turntable_deg: float
@@ -57,7 +59,9 @@ class RenderResult:
     eta: np.ndarray           # (H, W)
     ks: np.ndarray            # (H, W)
     inv_r2: np.ndarray        # (H, W) 1/m^2
-    brdf: np.ndarray          # (3, 3, 3, H, W) float32, 1/sr
+    lit_index: np.ndarray     # (N,) flat pixel indices (row-major) of the lit pixels
+    brdf_lit: np.ndarray      # (N, 3, 3, 3) float32, 1/sr: colour, row, col per lit pixel
+    inv_r2_lit: np.ndarray    # (N,) float32 1/m^2 at the lit pixels
     timings_s: dict[str, float]
     counts: dict[str, int]
 
@@ -65,10 +69,32 @@ class RenderResult:
     def shape(self) -> tuple[int, int]:
         return self.mask.shape  # type: ignore[return-value]
 
+    def _scatter(self, values: np.ndarray) -> np.ndarray:
+        """Lit-pixel values ``(N, *k)`` as a zero-filled plane-first image ``(*k, H, W)``."""
+        h, w = self.shape
+        k = values.shape[1:]
+        out = np.zeros(k + (h * w,), dtype=np.float32)
+        out[..., self.lit_index] = np.moveaxis(values, 0, -1)
+        return out.reshape(k + (h, w))
+
+    @functools.cached_property
+    def brdf(self) -> np.ndarray:
+        """pBRDF times cos ``(3, 3, 3, H, W)`` float32 (1/sr), zero where not lit."""
+        return self._scatter(self.brdf_lit)
+
     def radiance_mueller(self) -> np.ndarray:
         """``brdf * inv_r2`` ``(3, 3, 3, H, W)`` float32: emergent radiance per unit radiant
         intensity of the light and per unit normalised incident Stokes."""
-        return (self.brdf * self.inv_r2.astype(np.float32)).astype(np.float32)
+        return self._scatter(self.brdf_lit * self.inv_r2_lit[:, None, None, None])
+
+    def radiance_state(self, s_in: np.ndarray) -> np.ndarray:
+        """Emergent radiance Stokes image ``(3, 3, H, W)`` float32 (colour, S0..S2) per unit
+        radiant intensity for incident Stokes ``s_in`` ``(3,)``: ``S = M s_in`` evaluated on
+        the lit pixels only (27 multiply-adds each)."""
+        s = np.asarray(s_in, dtype=np.float32) * 1.0
+        m = self.brdf_lit
+        out = (m[..., 0] * s[0] + m[..., 1] * s[1] + m[..., 2] * s[2]) * self.inv_r2_lit[:, None, None]
+        return self._scatter(out)
 
 
 def _nearest_hit(scene: Scene, turntable_deg: float, o: np.ndarray, d: np.ndarray,
@@ -184,43 +210,40 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
 
     zero_axis = scene.stage_zero_axis
     cam_x = cam.R[0]
-    brdf_px = np.zeros((idx.size, 3, 3, 3))
+    lit_sel = np.nonzero(lit)[0]  # positions in the hit arrays of the lit pixels
+    brdf_px = np.zeros((lit_sel.size, 3, 3, 3))
     if skip_terms:
-        need = lit
-        spec_sel = np.nonzero(need & (ks > 0))[0]
-        diff_sel = np.nonzero(need & (kd.max(axis=1) > 0))[0]
+        spec_sel = np.nonzero(ks[lit_sel] > 0)[0]  # positions in lit_sel
+        diff_sel = np.nonzero(kd[lit_sel].max(axis=1) > 0)[0]
     else:  # the brute-force reference for the benchmark: every term on every pixel
         spec_sel = diff_sel = None
-    t0 = time.perf_counter()
-    if skip_terms:
-        if spec_sel.size:
-            s = spec_sel
-            ms = linear_rig_mueller(ns[s], wi[s], wo[s], kd=0.0, alpha=alpha[s], eta=eta[s],
-                                    ks=1.0, distribution=distribution, components=("specular",),
-                                    stage_zero_axis=zero_axis, camera_x_axis=cam_x)
-            brdf_px[s] += (ks[s, None, None] * ms)[:, None]
-    else:
         ns_f, wi_f, wo_f = _full_directions(cam, d_all, idx, ns, wi, wo, scene)
-        ms = linear_rig_mueller(ns_f, wi_f, wo_f, kd=0.0, alpha=_full(al_tab.mean(), idx, alpha, h * w),
-                                eta=_full(1.5, idx, eta, h * w), ks=1.0, distribution=distribution,
-                                components=("specular",), stage_zero_axis=zero_axis,
-                                camera_x_axis=cam_x)
-        brdf_px += (np.where(lit, ks, 0.0)[:, None, None] * ms[idx])[:, None]
+        at_lit = idx[lit_sel]  # flat pixel index of the lit pixels
+
+    def term(component: str, sel: np.ndarray | None) -> np.ndarray:
+        """Unit specular (ks = 1) or diffuse (kd = 1) block at the lit positions ``sel``, or
+        over the whole image (no skipping) then picked at the lit pixels."""
+        kw = dict(kd=1.0 if component == "diffuse" else 0.0,
+                  ks=1.0 if component == "specular" else 0.0, distribution=distribution,
+                  components=(component,), stage_zero_axis=zero_axis, camera_x_axis=cam_x)
+        if sel is not None:
+            q = lit_sel[sel]
+            return linear_rig_mueller(ns[q], wi[q], wo[q], alpha=alpha[q], eta=eta[q], **kw)
+        m = linear_rig_mueller(ns_f, wi_f, wo_f, alpha=_full(0.5, idx, alpha, h * w),
+                               eta=_full(1.5, idx, eta, h * w), **kw)
+        return m[at_lit]
+
+    t0 = time.perf_counter()
+    if spec_sel is None or spec_sel.size:
+        ms = term("specular", spec_sel)
+        q = slice(None) if spec_sel is None else spec_sel
+        brdf_px[q] += (ks[lit_sel][q, None, None] * ms)[:, None]
     tim["specular"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if skip_terms:
-        if diff_sel.size:
-            s = diff_sel
-            md = linear_rig_mueller(ns[s], wi[s], wo[s], kd=1.0, alpha=alpha[s], eta=eta[s],
-                                    ks=0.0, distribution=distribution, components=("diffuse",),
-                                    stage_zero_axis=zero_axis, camera_x_axis=cam_x)
-            brdf_px[s] += kd[s, :, None, None] * md[:, None]
-    else:
-        md = linear_rig_mueller(ns_f, wi_f, wo_f, kd=1.0, alpha=_full(0.5, idx, alpha, h * w),
-                                eta=_full(1.5, idx, eta, h * w), ks=0.0, distribution=distribution,
-                                components=("diffuse",), stage_zero_axis=zero_axis,
-                                camera_x_axis=cam_x)
-        brdf_px += (np.where(lit[:, None], kd, 0.0)[:, :, None, None] * md[idx][:, None])
+    if diff_sel is None or diff_sel.size:
+        md = term("diffuse", diff_sel)
+        q = slice(None) if diff_sel is None else diff_sel
+        brdf_px[q] += kd[lit_sel][q, :, None, None] * md[:, None]
     tim["diffuse"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -235,14 +258,15 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
     to_cam = cam.R.T  # row vectors: v_cam = v_world @ R^T
     mask = hit.reshape(h, w)
     p_cam_z = (p @ to_cam + cam.t)[:, 2]
-    brdf = image(brdf_px.reshape(idx.size, 27)).reshape(3, 3, 3, h, w)
     res = RenderResult(
         turntable_deg=float(turntable_deg), mask=mask,
         lit=image(lit, False, bool), shadow=image(facing & shadowed, False, bool),
         object_index=image(ob_hit, -1, np.int16), material_index=image(mat_index, -1, np.int16),
         normal=image(ns @ to_cam), wi=image(wi @ to_cam), wo=image(wo @ to_cam),
         position_m=image(p), depth_m=image(p_cam_z), kd=image(kd), alpha=image(alpha),
-        eta=image(eta), ks=image(ks), inv_r2=image(1.0 / dist ** 2), brdf=brdf,
+        eta=image(eta), ks=image(ks), inv_r2=image(1.0 / dist ** 2),
+        lit_index=idx[lit_sel], brdf_lit=brdf_px.astype(np.float32),
+        inv_r2_lit=(1.0 / dist[lit_sel] ** 2).astype(np.float32),
         timings_s=tim,
         counts={"pixels": n_pix, "hit": int(idx.size), "lit": int(lit.sum()),
                 "shadowed": int((facing & shadowed).sum()),

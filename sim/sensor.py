@@ -74,6 +74,8 @@ class DoFPSensor:
     colour_qe: tuple[float, ...] = COLOUR_QE
     mono_weights: tuple[float, float, float] = MONO_WEIGHTS
     photons_per_radiance_us: float = 2.0
+    _roi_cache: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                         compare=False)
 
     def __post_init__(self) -> None:
         n = self.analyzer.n_colours
@@ -110,8 +112,18 @@ class DoFPSensor:
     def signal_mosaic(self, stokes_dn: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
         """Noise-free black-subtracted DN mosaic ``(h, w)`` of the Stokes images
         ``(C, 3, h, w)`` of a ROI ``(width, height, offset_x, offset_y)``."""
-        w, h, ox, oy = roi
-        return self.analyzer.crop(ox, oy, w, h).mosaic(stokes_dn)
+        return self.roi_analyzer(roi).mosaic(stokes_dn)
+
+    def roi_analyzer(self, roi: tuple[int, int, int, int]) -> AnalyzerModel:
+        """The analyzer model of a ROI (its layout phase follows the offset), cached."""
+        roi = tuple(int(v) for v in roi)
+        cache = self._roi_cache
+        if roi not in cache:
+            w, h, ox, oy = roi
+            if len(cache) > 8:
+                cache.clear()
+            cache[roi] = self.analyzer.crop(ox, oy, w, h)
+        return cache[roi]
 
     def expose(self, signal_dn: np.ndarray, *, exposure_us: float, gain_db: float,
                rng: np.random.Generator | None, noise: bool = True) -> np.ndarray:

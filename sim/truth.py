@@ -131,7 +131,9 @@ def write_truth(directory: str | pathlib.Path, name: str, truth: dict[str, Any],
     d = pathlib.Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
-    arrays = {k: np.asarray(truth[k]) for k in PIXEL_KEYS if k in truth}
+    # The Mueller image goes into the EXR when one is written (not duplicated in the npz).
+    arrays = {k: np.asarray(truth[k]) for k in PIXEL_KEYS
+              if k in truth and not (exr and k == "mueller")}
     npz_name = f"truth_{name}.npz"
     atomic_write_bytes(d / npz_name, npz_bytes(arrays, compress))
     files["npz"] = npz_name
@@ -189,11 +191,16 @@ def _write_mueller_exr(d: pathlib.Path, name: str, truth: dict[str, Any]) -> str
 
 
 def read_truth(directory: str | pathlib.Path, name: str | None = None) -> tuple[dict, dict]:
-    """``(truth.json contents, arrays of capture name)`` (the first capture by default)."""
+    """``(truth.json contents, arrays of capture name)`` (the first capture by default); the
+    Mueller image comes from the EXR when the npz does not hold it."""
     d = pathlib.Path(directory)
     index = json.loads((d / "truth.json").read_text())
     caps = index["captures"]
     entry = caps[0] if name is None else next(c for c in caps if c["name"] == name)
     with np.load(d / entry["files"]["npz"], allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
+    if "mueller" not in arrays:
+        from polrig.exr import read_mueller_exr
+
+        arrays["mueller"] = read_mueller_exr(d / entry["files"]["exr"]).mueller
     return index, arrays

@@ -3,8 +3,8 @@ turntable, sensor and the simulated clock.
 
 Images are produced lazily and cached: a turntable pose is ray-cast once
 (:func:`sim.render.render`, kept in a small LRU cache); a polarizer state recombines the
-cached radiance Mueller image with the new incident Stokes vector (``S_out = M S_in``, 27
-multiply-adds per pixel, also cached per state); exposure, gain and light level only scale it;
+cached Mueller matrices of the lit pixels with the new incident Stokes vector
+(``S_out = M S_in``, 27 multiply-adds per lit pixel, also cached per state); exposure, gain and light level only scale it;
 noise is sampled per grab. Units and frames: ``docs/conventions.md``.
 """
 
@@ -119,9 +119,8 @@ class SimWorld:
         key = ("S", _angle_key(turntable_deg), round(float(stage_deg), 9))
 
         def make() -> np.ndarray:
-            s = self.generator.incident_stokes(stage_deg).astype(np.float32)
-            m = self.radiance_mueller(turntable_deg)
-            return m[:, :, 0] * s[0] + m[:, :, 1] * s[1] + m[:, :, 2] * s[2]
+            s_in = self.generator.incident_stokes(stage_deg)
+            return self.render_pose(turntable_deg).radiance_state(s_in)
 
         with self._lock:
             return self._states.get(key, make)
