@@ -192,12 +192,22 @@ def _transmission_ab(cos_i: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray]:
 
 # ----------------------------------------------------------------------------- inputs
 
+def _geometry_ok(n: np.ndarray, i: np.ndarray, o: np.ndarray) -> np.ndarray:
+    """Finite non-zero vectors (``|v|^2`` finite and positive) with ``wi`` and ``wo`` strictly
+    above the horizon; uses the signs of unnormalised dot products."""
+    good = True
+    for v in (n, i, o):
+        n2 = _fr.dot(v, v)
+        good = good & np.isfinite(n2) & (n2 > 0)
+    return good & (_fr.dot(n, i) > 0) & (_fr.dot(n, o) > 0)
+
+
 def visible(normal, wi, wo) -> np.ndarray:
     """``True`` where the pBRDF is defined: finite non-zero vectors and both ``wi`` and ``wo``
-    strictly above the tangent plane of ``normal`` (all ``(..., 3)``, world coordinates)."""
-    n, i, o = (_fr.normalize(v) for v in (normal, wi, wo))
-    ok = _fr.valid_direction(normal) & _fr.valid_direction(wi) & _fr.valid_direction(wo)
-    return ok & (_fr.dot(n, i) > 0) & (_fr.dot(n, o) > 0)
+    strictly above the tangent plane of ``normal`` (all ``(..., 3)``, world coordinates).
+    Material parameters are not checked here (non-finite ones also give zero matrices)."""
+    vecs = [_fr._as_vectors(v, name) for v, name in ((normal, "normal"), (wi, "wi"), (wo, "wo"))]
+    return np.broadcast_to(_geometry_ok(*vecs), np.broadcast_shapes(*(v.shape[:-1] for v in vecs)))
 
 
 def _components(components: Sequence[str]) -> tuple[bool, bool]:
@@ -301,16 +311,11 @@ def _valid_rows(inp: _Inputs, extra_ok: bool) -> np.ndarray | None:
     ok = np.empty(total, dtype=bool)
     for start in range(0, total, 4 * CHUNK):
         sl = slice(start, min(total, start + 4 * CHUNK))
-        n, i, o = (_take(v, 1, sl) for v in (inp.normal, inp.wi, inp.wo))
-        good = np.ones(sl.stop - sl.start, dtype=bool)
-        for v in (n, i, o):
-            n2 = _fr.dot(v, v)
-            good &= np.isfinite(n2) & (n2 > 0)
-        good &= (_fr.dot(n, i) > 0) & (_fr.dot(n, o) > 0)
-        good &= np.isfinite(_take(inp.alpha, 0, sl)) & np.isfinite(_take(inp.eta, 0, sl))
+        good = _geometry_ok(*(_take(v, 1, sl) for v in (inp.normal, inp.wi, inp.wo)))
+        good = good & np.isfinite(_take(inp.alpha, 0, sl)) & np.isfinite(_take(inp.eta, 0, sl))
         if extra_ok:
             kd = _take(inp.kd, ct, sl)
-            good &= np.isfinite(_take(inp.ks, 0, sl)) & (np.isfinite(kd).all(axis=-1) if ct else np.isfinite(kd))
+            good = good & np.isfinite(_take(inp.ks, 0, sl)) & (np.isfinite(kd).all(axis=-1) if ct else np.isfinite(kd))
         ok[sl] = good
     return None if ok.all() else np.flatnonzero(ok)
 

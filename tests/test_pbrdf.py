@@ -283,7 +283,7 @@ def test_below_horizon_degenerate_and_nonfinite_inputs_give_zero():
                    [np.inf, 0, 1], [-0.2, 0.1, 0.9], [-0.2, 0.1, 0.9], [1.0, 0.0, 0.0]])
     alpha = np.array([0.2, 0.2, 0.2, 0.2, 0.2, 0.2, np.nan, 0.2, 0.2])
     kd = np.array([[0.5, 0.5, 0.5]] * 7 + [[np.nan, 0.5, 0.5]] + [[0.5, 0.5, 0.5]])
-    with np.errstate(all="raise"):  # nothing may warn on the way either
+    with np.errstate(divide="raise", invalid="raise", over="raise"):  # nothing may warn on the way
         m = pbrdf.mueller(Z, wi, wo, kd=kd, alpha=alpha)
         lin = pbrdf.linear_rig_mueller(Z, wi, wo, kd=kd, alpha=alpha, stage_zero_axis=[0, 0, 1.0],
                                        camera_x_axis=[1.0, 0, 0])
@@ -369,3 +369,30 @@ def test_pbrdf_matrices_are_physically_realizable():
     assert rate4 == 1.0
     assert gk4 == 1.0
     assert rate3 == 1.0
+
+
+wild = st.one_of(st.floats(-1e6, 1e6, allow_nan=False), st.just(0.0), st.just(np.nan), st.just(np.inf),
+                 st.just(-np.inf), st.just(1e-300), st.just(1e300))
+
+
+@settings(max_examples=150, deadline=None)
+@given(arrays(np.float64, (6, 3), elements=wild), arrays(np.float64, (6, 3), elements=wild),
+       arrays(np.float64, (6, 3), elements=wild),
+       arrays(np.float64, (6,), elements=st.one_of(st.floats(0, 10), st.just(np.nan))),
+       st.floats(0.05, 20), st.sampled_from(pbrdf.DISTRIBUTIONS))
+def test_property_finite_and_diattenuation_polarizance_bounded(normal, wi, wo, alpha, eta, distribution):
+    """Any input (NaN, inf, zero, huge, grazing) gives finite matrices, zero outside
+    :func:`visible`, and m00 >= |(m01, m02, m03)|, m00 >= |(m10, m20, m30)| (diattenuation and
+    polarizance at most 1, as for every physical Mueller matrix)."""
+    with np.errstate(divide="raise", invalid="raise", over="raise", under="ignore"):
+        m = pbrdf.mueller(normal, wi, wo, kd=0.7, alpha=alpha, eta=eta, distribution=distribution)
+        lin = pbrdf.linear_rig_mueller(normal, wi, wo, kd=0.7, alpha=alpha, eta=eta, distribution=distribution,
+                                       stage_zero_axis=[0.0, 1.0, 0.0], camera_x_axis=wi)
+    assert np.all(np.isfinite(m)) and np.all(np.isfinite(lin))
+    vis = pbrdf.visible(normal, wi, wo) & np.isfinite(alpha)
+    assert np.all(m[~vis] == 0) and np.all(lin[~vis] == 0)
+    tol = 1e-12 * np.abs(m).max(axis=(-1, -2))
+    assert np.all(m[..., 0, 0] >= 0)
+    assert np.all(np.linalg.norm(m[..., 0, 1:], axis=-1) <= m[..., 0, 0] + tol)
+    assert np.all(np.linalg.norm(m[..., 1:, 0], axis=-1) <= m[..., 0, 0] + tol)
+    np.testing.assert_allclose(lin[..., 0, 0], m[..., 0, 0], rtol=1e-12, atol=0)
