@@ -85,6 +85,10 @@ def gentl_paths_from_env() -> list[str]:
     return out
 
 
+#: features that change the payload size: the stream is stopped while they are set
+_PAYLOAD_FEATURES = frozenset({"PixelFormat", "Width", "Height"})
+
+
 class GenicamCamera(Camera):
     """A GenICam camera selected by ``serial`` (or ``index``) from the producer ``cti``.
 
@@ -209,19 +213,31 @@ class GenicamCamera(Camera):
         return nm.get_node(name)
 
     def _set(self, name: str, value: Any) -> None:
+        """Set a feature; if the camera locks it while streaming, stop, set and restart."""
         node = self._node(name)
+        genapi = _genapi()
         ia = self._require()
-        was_streaming = ia.is_acquiring()
-        if was_streaming:
+        if name in _PAYLOAD_FEATURES and ia.is_acquiring():
+            ia.stop()  # the stream's buffers were sized for the old payload
+        else:
+            try:
+                node.value = value
+                return
+            except genapi.AccessException:
+                if not ia.is_acquiring():
+                    raise DeviceFault(f"{name} is not writable", device=self.name,
+                                      code="AccessException", text=name) from None
+            except genapi.GenericException as exc:
+                raise DeviceFault(f"setting {name} = {value!r} failed", device=self.name,
+                                  code=type(exc).__name__, text=str(exc).split(" : ")[0]) from None
             ia.stop()
         try:
             node.value = value
-        except _genapi().GenericException as exc:
+        except genapi.GenericException as exc:
             raise DeviceFault(f"setting {name} = {value!r} failed", device=self.name,
                               code=type(exc).__name__, text=str(exc).split(" : ")[0]) from None
         finally:
-            if was_streaming:
-                ia.start()
+            ia.start()
 
     def _get(self, name: str, default: Any = None) -> Any:
         nm = self._require().remote_device.node_map
@@ -371,12 +387,11 @@ class GenicamCamera(Camera):
         except Exception:  # producers may not report it  # noqa: BLE001
             offset = 0
         n = fmt.frame_bytes(width, height)
-        comp = buf.payload.components[0] if buf.payload and buf.payload.components else None
-        if comp is not None and comp.data is not None and fmt.packing in ("u8", "u16") \
-                and comp.data.nbytes == n:
-            data = np.array(comp.data, copy=True).view(np.uint8).reshape(-1)
-        else:
-            data = np.frombuffer(module.raw_buffer, dtype=np.uint8)[offset : offset + n].copy()
+        payload = np.frombuffer(module.raw_buffer, dtype=np.uint8)  # the buffer, not a copy
+        if payload.size < offset + n:
+            raise FormatError(f"{fmt_name} {width}x{height} frame needs {n} bytes at offset "
+                              f"{offset}; the buffer holds {payload.size}")
+        data = payload[offset : offset + n].copy()  # owned by us before the buffer is re-queued
         raw = pixelformats.decode(data, fmt_name, width, height)
         if raw.ndim != 2:
             raise FormatError(f"pixel format {fmt_name!r} delivers angle planes, not a raw "
