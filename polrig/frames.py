@@ -16,8 +16,8 @@ The rig's frames (per pixel):
 
 Degenerate references (``x_ref`` parallel to ``k``, zero or non-finite) fall back to Mitsuba's
 default basis :func:`stokes_basis` of ``k``; nothing here returns NaN for finite non-zero ``k``.
-A zero or non-finite ``k`` gives the frame ``x = (1,0,0), y = (0,1,0), k = (0,0,1)`` so that
-callers can mask such pixels (see :func:`valid_direction`) without NaN propagation.
+A zero or non-finite ``k`` is replaced by ``(0, 0, 1)`` (finite frame, no NaN propagation);
+callers mask such pixels with :func:`valid_direction`.
 """
 
 from __future__ import annotations
