@@ -143,3 +143,16 @@ def test_not_a_grbl_and_release(tmp_path, emu):
     assert not t.is_open
     with serial.Serial(emu.port, 115200, exclusive=True):
         pass
+
+
+def test_soft_limit_alarm(tmp_path):
+    with GrblEmulator(link=tmp_path / "g", speed_factor=20, soft_limits=(-360.0, 360.0)) as emu, \
+            GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
+        t.home(timeout_s=5)
+        with pytest.raises(DeviceFault) as ei:
+            t.move_to(400.0)
+        assert ei.value.code == 2 and "Soft limit" in ei.value.text
+        assert emu.axis_position() == 0.0
+        t.home(timeout_s=5)
+        t.move_to(-90.0, timeout_s=5)
+        assert emu.axis_position() == pytest.approx(-90.0)

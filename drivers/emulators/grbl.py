@@ -10,7 +10,8 @@ the Alarm state, as real GRBL does. Moves queue in a planner (G0 at the axis max
 G1 at the F feed rate, units per minute), run one after another; ``G90``/``G91`` modes.
 
 Faults: see :mod:`drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
-(``ALARM:1``, motion aborted, position lost: re-home).
+(``ALARM:1``, motion aborted, position lost: re-home). With ``soft_limits`` a target outside
+the travel raises ``ALARM:2`` (soft limit) before any motion, as GRBL 1.1 does.
 """
 
 from __future__ import annotations
@@ -29,11 +30,13 @@ class GrblEmulator(PtyEmulator):
     name = "grbl"
 
     def __init__(self, *, link=None, speed_factor: float = 1.0, homing_enabled: bool = True,
-                 max_rate_per_min: float = 3600.0, homing_s: float = 1.0):
+                 max_rate_per_min: float = 3600.0, homing_s: float = 1.0,
+                 soft_limits: tuple[float, float] | None = None):
         super().__init__(link=link, speed_factor=speed_factor)
         self.homing_enabled = homing_enabled
         self.max_rate = max_rate_per_min  # axis units per minute ($110..$113)
         self.homing_s = homing_s
+        self.soft_limits = soft_limits  # ($20=1, $130..: machine travel) on every axis
         self.pos = [0.0] * len(AXES)
         self.state = "Alarm" if homing_enabled else "Idle"
         self.absolute = True
@@ -229,6 +232,12 @@ class GrblEmulator(PtyEmulator):
             self._error(22)
             return
         self.absolute, self.feed_rate, self.motion_mode = absolute, feed, motion
+        if has_axis and self.soft_limits is not None:
+            lo, hi = self.soft_limits
+            if any(not lo <= t <= hi for t in target):
+                # GRBL 1.1: a G-code target beyond the machine travel is a soft-limit alarm
+                self._alarm(2)
+                return
         if has_axis:
             self.queue.append((target, self.max_rate if motion == 0 else min(feed, self.max_rate)))
             self._begin_next(now)
