@@ -230,6 +230,21 @@ def grab_with_retry(camera, retries: int, on_retry: Callable[[str], None] | None
     raise AssertionError("unreachable")  # pragma: no cover
 
 
+def set_with_retry(setter: Callable[[Any], None], value: Any, retries: int,
+                   on_retry: Callable[[str], None] | None = None) -> None:
+    """Apply a camera setting; a :class:`DeviceTimeout` is retried (setting a value again is
+    idempotent, so retrying loses nothing)."""
+    for attempt in range(retries + 1):
+        try:
+            setter(value)
+            return
+        except DeviceTimeout as exc:
+            if attempt == retries:
+                raise
+            if on_retry:
+                on_retry(f"camera setting timed out ({exc}); retry {attempt + 1}/{retries}")
+
+
 def move_with_rehome(stage, angle_deg: float, what: str,
                      on_retry: Callable[[str], None] | None = None) -> None:
     """Move ``stage`` to ``angle_deg`` and wait. On a timeout or a device fault, home the
@@ -425,6 +440,7 @@ def _stop_cleanly(session: Session, index: int, reason: str, *, capture_status: 
     its status set, session ``interrupted`` with ``reason``. Saving may itself fail (a full
     disk): the manifest on disk then still is the last consistent one, which is fine."""
     try:
+        session.reload()  # what is on disk is what counts: a failed save may be missing
         session.discard_unrecorded(index)
     except OSError:
         pass
@@ -456,11 +472,16 @@ def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
     control.checkpoint()
     move_with_rehome(rig.turntable, cap["pose_deg"], "turntable", on_retry)
     exposures = plan.exposures_us or (float(rig.camera.exposure_us),)
+
+    def set_exposure(exposure_us: float) -> None:
+        if float(rig.camera.exposure_us) != exposure_us:
+            set_with_retry(rig.camera.set_exposure_us, exposure_us, plan.grab_retries, on_retry)
+
     if plan.dark_frames:
         rig.light.set_on(False)
         try:
             for e, exposure_us in enumerate(exposures):
-                rig.camera.set_exposure_us(exposure_us)
+                set_exposure(exposure_us)
                 for k in range(plan.dark_frames):
                     control.checkpoint()
                     frame = grab_with_retry(rig.camera, plan.grab_retries, on_retry)
@@ -475,7 +496,7 @@ def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
         control.checkpoint()
         move_with_rehome(rig.stage, state_deg, "polarizer stage", on_retry)
         for e, exposure_us in enumerate(exposures):
-            rig.camera.set_exposure_us(exposure_us)
+            set_exposure(exposure_us)
             for k in range(plan.frames_per_state):
                 control.checkpoint()
                 frame = grab_with_retry(rig.camera, plan.grab_retries, on_retry)
@@ -484,5 +505,4 @@ def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
                                  sidecar=meta, state_index=j, state_deg=state_deg,
                                  exposure_us=exposure_us, exposure_index=e, frame=k)
                 frame_done()
-    if len(exposures) > 1:
-        rig.camera.set_exposure_us(exposures[0])
+    set_exposure(exposures[0])  # the reference exposure (the truth is taken at it)

@@ -154,16 +154,11 @@ def sensor_model_of(rig) -> SensorModel:
     return SensorModel()
 
 
-def model_for_frames(model: SensorModel, bit_depth: int) -> SensorModel:
-    """``model`` expressed in the DN of frames delivered with ``bit_depth`` bits (a 12-bit
-    ADC read out as Mono16 is scaled by 16: DN per electron and black level scale with it)."""
-    shift = int(bit_depth) - int(model.bit_depth)
-    if shift == 0:
-        return model
-    f = 2.0 ** shift
-    return dataclasses.replace(model, bit_depth=int(bit_depth),
-                               gain_e_per_dn=model.gain_e_per_dn / f,
-                               black_level_dn=model.black_level_dn * f)
+def adc_scale(model: SensorModel, bit_depth: int) -> float:
+    """Factor from the DN of frames delivered with ``bit_depth`` bits to the DN of the ADC the
+    noise model describes (a 12-bit ADC read out as Mono16 delivers values times 16: the
+    factor is 1/16). Results are always in ADC DN, whatever the pixel format."""
+    return 2.0 ** (int(model.bit_depth) - int(bit_depth))
 
 
 # -- array level -------------------------------------------------------------------------------
@@ -265,54 +260,44 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
 
 
 # -- truth and score ---------------------------------------------------------------------------
-def truth_on_output_grid(truth_mueller: np.ndarray, layout: MosaicLayout, method: str
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Truth Mueller image ``(C, 3, 3, H, W)`` on the demosaic's output grid, and its spread
-    (max - min of each element over the pixels an output pixel draws on), both
-    ``(C, 3, 3, H', W')``.
+def truth_on_output_grid(truth_mueller: np.ndarray, layout: MosaicLayout, method: str,
+                         s_in: np.ndarray, model: SensorModel, exposure_us: float) -> np.ndarray:
+    """The truth as a perfect rig at this resolution measures it: the noise-free estimate
+    from the per-pixel truth Mueller image ``(C, 3, 3, H, W)`` (each sensor pixel sees its own
+    pixel's matrix, ideal analyzers, incident states ``s_in``), demosaiced with ``method`` and
+    solved with the noise model's weights, exactly as a capture is processed. Returns
+    ``(C, 3, 3, H', W')`` on the output grid.
 
-    ``superpixel``: the mean and spread over each layout cell (each analyzer sample of a cell
-    sees a different sensor pixel's matrix, so a cell with a large spread -- object edges,
-    fast shading -- cannot be compared element by element). Full-resolution methods: the
-    truth itself, spread over one cell period around the pixel (the interpolation support).
+    Where the truth is uniform over a pixel's support this is the truth itself; at edges and
+    under fast shading it is what the demosaic can resolve (each analyzer sample of a
+    super-pixel sees a different sensor pixel), so the error of a capture against it is the
+    error of the measurement (noise, calibration), not of the sampling.
     """
     t = np.asarray(truth_mueller, dtype=np.float64)
-    c, _, _, h, w = t.shape
-    ph, pw = layout.period
-    if method == "superpixel":
-        hh, ww = h // ph, w // pw
-        blocks = t[..., : hh * ph, : ww * pw].reshape(c, 3, 3, hh, ph, ww, pw)
-        return blocks.mean(axis=(4, 6)), blocks.max(axis=(4, 6)) - blocks.min(axis=(4, 6))
-    import cv2
-
-    k = np.ones((2 * ph - 1, 2 * pw - 1), np.uint8)
-    flat = t.reshape(c * 9, h, w).astype(np.float32)
-    hi = np.stack([cv2.dilate(p, k) for p in flat]).reshape(c, 3, 3, h, w)
-    lo = np.stack([cv2.erode(p, k) for p in flat]).reshape(c, 3, 3, h, w)
-    return t, (hi - lo).astype(np.float64)
+    h, w = t.shape[-2:]
+    ideal = AnalyzerModel.ideal(layout, (h, w))
+    states = []
+    for s in np.asarray(s_in, dtype=np.float64):
+        mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", t, s))
+        states.append(StateRadiance(mosaic, model.variance_dn2(mosaic, exposure_us),
+                                    np.zeros(mosaic.shape, bool)))
+    return reference_from_frames(states, s_in, layout, method).mueller
 
 
-#: A pixel is compared element by element when the truth varies over its support by at most
-#: this fraction of the result's own standard deviation (so resolution bias stays below it).
-UNIFORM_SIGMA_FRACTION = 0.1
-
-
-def score_against_truth(result: ReferenceResult, truth: np.ndarray, spread: np.ndarray,
+def score_against_truth(result: ReferenceResult, truth: np.ndarray,
                         object_mask: np.ndarray | None = None) -> dict[str, Any]:
-    """Error of ``result`` against ``truth`` ``(C, 3, 3, H, W)`` on the same grid.
+    """Error of ``result`` against ``truth`` ``(C, 3, 3, H, W)`` on the same grid (normally
+    :func:`truth_on_output_grid`) over the pixels valid in the result (mask 0) and inside
+    ``object_mask`` ``(H, W)`` if given.
 
-    Pixels *compared*: valid in the result (mask 0), inside ``object_mask`` ``(H, W)`` if
-    given, and where the truth is uniform over the pixel's support (every element's
-    ``spread`` at most :data:`UNIFORM_SIGMA_FRACTION` of its sigma), so that the comparison
-    measures the estimator, not the sampling of edges. Over them: ``rmse``/``mae`` (DN per unit
-    S0) over the 9 elements; ``psnr_db`` = 20 log10(peak / rmse) with ``peak`` the largest truth
-    ``m00`` compared (``|m_ij| <= m00`` for a physical matrix: the matrix PSNR in the units of
-    the data); ``within_2sigma``: fraction of elements with ``|error| <= 2 sigma`` (0.954 for
-    Gaussian errors when sigma is right); ``chi2_per_element``: mean ``(error / sigma)^2``
-    (1 when sigma is right); ``mean_sigma``: the error the noise model predicts
-    (root-mean-square sigma, comparable with ``rmse``); ``realizable``: pass rate of the
-    coherency test (:func:`polrig.realizability.is_physical_linear`).
-    ``rmse_all_valid``: RMSE over every valid object pixel (edges included).
+    ``rmse``/``mae`` (DN per unit S0) over the 9 elements; ``psnr_db`` = 20 log10(peak / rmse)
+    with ``peak`` the largest truth ``m00`` compared (``|m_ij| <= m00`` for a physical matrix:
+    the matrix PSNR in the units of the data); ``within_2sigma``: fraction of elements with
+    ``|error| <= 2 sigma`` (0.954 for Gaussian errors when sigma is right);
+    ``chi2_per_element``: mean ``(error / sigma)^2`` (1 when sigma is right); ``mean_sigma``:
+    root-mean-square reported sigma, the error the noise model predicts (comparable with
+    ``rmse``); ``realizable``: pass rate of the coherency test
+    (:func:`polrig.realizability.is_physical_linear`) of the measured matrices.
     """
     from polrig.realizability import is_physical_linear
 
@@ -321,23 +306,18 @@ def score_against_truth(result: ReferenceResult, truth: np.ndarray, spread: np.n
     t = np.asarray(truth, np.float64)
     if m.shape != t.shape:
         raise ValueError(f"result {m.shape} and truth {t.shape} differ in shape")
-    valid = result.valid.copy()
+    use = result.valid.copy()
     if object_mask is not None:
-        valid &= np.asarray(object_mask, bool)[None]
-    uniform = (np.asarray(spread) <= UNIFORM_SIGMA_FRACTION * s).all(axis=(1, 2))
-    use = valid & uniform
+        use &= np.asarray(object_mask, bool)[None]
     n = int(use.sum())
     out: dict[str, Any] = {"pixels_compared": n,
-                           "pixels_valid": int(valid.sum()),
+                           "pixels_valid": int(result.valid.sum()),
                            "pixels_total": int(result.valid.size),
                            "mask_counts": result.reason_counts(),
                            "condition_number": float(result.condition_number)}
     keys = ("rmse", "mae", "psnr_db", "within_2sigma", "chi2_per_element", "mean_sigma",
-            "peak_m00", "realizable", "rmse_all_valid")
+            "peak_m00", "realizable")
     out.update({k: None for k in keys})
-    if valid.any():
-        err_all = (m - t).transpose(1, 2, 0, 3, 4)[:, :, valid]
-        out["rmse_all_valid"] = float(np.sqrt(np.mean(err_all**2)))
     if n == 0:
         return out
     err = (m - t).transpose(1, 2, 0, 3, 4)[:, :, use]  # (3, 3, n)
@@ -451,15 +431,16 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     """Reference solve of one capture's frames: ``(result, s_in, layout)``."""
     first = cf.first
     lay = frame_layout(first)
-    fmodel = model_for_frames(model, first.meta.bit_depth)
-    black = float(first.meta.black_level_dn)
+    scale = adc_scale(model, first.meta.bit_depth)
+    adc = lambda f: f.raw.astype(np.float64) * scale if scale != 1 else f.raw  # noqa: E731
+    black = float(first.meta.black_level_dn) * scale
     have_darks = any(len(d) for d in cf.darks)
     states = []
     for per_state in cf.frames:
         states.append(state_radiance(
-            [[f.raw for f in lst] for lst in per_state], cf.exposures_us, fmodel,
+            [[adc(f) for f in lst] for lst in per_state], cf.exposures_us, model,
             black_level_dn=black,
-            darks=[[f.raw for f in d] for d in cf.darks] if have_darks else None))
+            darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
     analyzer = calibration.analyzer
     if analyzer is not None and analyzer.shape != first.raw.shape:
         w = first.raw.shape[1]
@@ -544,14 +525,16 @@ class Processor:
                                 "channels": "sigma.M{row}{col}.{colour}, residual.{colour}"}
         files["mask"] = {"part_of": "mueller", "path": rec["path"],
                          "channels": "mask.{colour} (reason bits, 0 = valid)"}
-        score = self.score(session, index, result, lay)
+        score = self.score(session, index, result, lay, s_in, cf.exposures_us[0])
         if revision is not None:
             cap["revisions"][revision].update(status=COMPLETE, score=score)
         session.save()
         return score
 
     def score(self, session: Session, index: int, result: ReferenceResult,
-              layout: MosaicLayout) -> dict[str, Any] | None:
+              layout: MosaicLayout, s_in: np.ndarray, exposure_us: float
+              ) -> dict[str, Any] | None:
+        """Score against the capture's truth file (simulated rig), or None without one."""
         rec = session.capture(index)["files"].get("truth_mueller")
         if rec is None:
             return None
@@ -561,13 +544,13 @@ class Processor:
         if sha256_file(path) != rec["sha256"]:
             raise FormatError(f"{path}: SHA-256 does not match the session manifest")
         img = read_mueller_exr(path)
-        t, spread = truth_on_output_grid(img.mueller, layout, self.demosaic)
+        t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, self.sensor_model,
+                                 exposure_us)
         obj = img.extra.get("object_mask")
-        if obj is not None:
-            obj_t, _ = truth_on_output_grid(np.broadcast_to(obj, (1, 3, 3) + obj.shape),
-                                            layout, self.demosaic)
-            obj = obj_t[0, 0, 0] >= 1.0  # the whole support on the object
-        return score_against_truth(result, t, spread, obj)
+        if obj is not None:  # output pixels whose whole support lies on the object
+            support = demosaic_float(np.asarray(obj, np.float32), layout, self.demosaic)
+            obj = support.min(axis=(0, 1)) >= 1.0
+        return score_against_truth(result, t, obj)
 
 
 def make_processor(plan, calibration: Calibration, sensor_model: SensorModel) -> Processor:

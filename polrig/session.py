@@ -181,6 +181,11 @@ class Session:
         return cls(root, manifest, write_hook)
 
     # -- manifest -------------------------------------------------------------------------
+    def reload(self) -> None:
+        """Replace the in-memory manifest by the one on disk (after a failed save the disk
+        copy is the consistent one: every file it names exists completely)."""
+        self.manifest = Session.open(self.root).manifest
+
     @property
     def captures(self) -> list[dict[str, Any]]:
         return self.manifest["captures"]

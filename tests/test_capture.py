@@ -1,0 +1,270 @@
+"""Capture sessions on the simulated rig (in-process API): accuracy against the ground truth,
+device faults, Ctrl-C, stop requests, a full disk, resume, re-processing."""
+
+from __future__ import annotations
+
+import errno
+import math
+import pathlib
+
+import numpy as np
+import pytest
+
+from polrig import processing
+from polrig.capture import CaptureControl, CapturePlan, create_session, run_session
+from polrig.demosaic import demosaic
+from polrig.exr import read_mueller_exr
+from polrig.mueller import polarizer_stokes
+from polrig.analyzer import AnalyzerModel, resolve_layout
+from polrig.reference import solve_reference
+from polrig.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
+from sim.devices import create_sim_rig
+
+IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
+
+
+def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
+    opts = {"size": (size, size), "sensor": "imx250mzr", "clock_speed": math.inf,
+            "seed": seed, "scene": scene, "noise": noise, "hidden": dict(IDEAL), **kw}
+    return create_sim_rig(opts)
+
+
+def start(rig, out: pathlib.Path, plan: CapturePlan, **kw) -> tuple[Session, processing.Processor]:
+    cal = processing.nominal_calibration()
+    processing.check_plan(plan, cal)
+    session = create_session(out, rig, plan, calibration_id=cal.id, **kw)
+    return session, processing.make_processor(plan, cal, processing.session_sensor_model(session))
+
+
+def resume(rig, out: pathlib.Path, **kw):
+    session = Session.open(out)
+    plan = CapturePlan.from_json(session.plan)
+    proc = processing.make_processor(plan, processing.nominal_calibration(),
+                                     processing.session_sensor_model(session))
+    return session, run_session(rig, session, processor=proc, **kw)
+
+
+def content(session: Session) -> list:
+    """What must be identical between two runs: per capture its pose, status and every file's
+    path and checksum (image and result files; frame sidecars hold clock timestamps and
+    frame counters, so only their presence is compared)."""
+    out = []
+    for cap in session.captures:
+        files = []
+        for _, role, rec in session.iter_file_records(cap):
+            files.append((role, rec["path"], rec["sha256"], rec.get("meta_path")))
+        out.append((cap["pose_deg"], cap["status"], sorted(files)))
+    return out
+
+
+POSES4 = (0.0, 90.0, 180.0, 270.0)
+
+
+@pytest.fixture(scope="module")
+def reference_session(tmp_path_factory):
+    """Uninterrupted noise-free session, the yardstick for the interruption tests."""
+    out = tmp_path_factory.mktemp("ref") / "s"
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, out, CapturePlan(POSES4))
+        result = run_session(rig, session, processor=proc)
+    assert result.status == "complete"
+    return Session.open(out)
+
+
+def test_uninterrupted_session_is_complete_and_verified(reference_session):
+    s = reference_session
+    assert s.manifest["status"] == "complete"
+    assert [c["status"] for c in s.captures] == [COMPLETE] * 4
+    for cap in s.captures:
+        assert len(cap["files"]["raw"]) == 4
+        assert {"mueller", "uncertainty", "mask", "truth_mueller"} <= set(cap["files"])
+    assert s.verify() == []
+
+
+def test_noise_free_capture_is_the_exact_estimate_of_the_truth(tmp_path):
+    """Noise off: the simulated camera delivers the rounded mean (12-bit ADC codes). The
+    pipeline's Mueller image (frames -> files -> averaging -> demosaic -> solve -> EXR) equals,
+    to 1e-4 of the peak m00, the estimate computed here straight from the per-pixel ground
+    truth: forward model through the IMX250MZR mosaic with the nominal states, the same
+    rounding to ADC codes, superpixel demosaic, weighted solve. Where the truth is uniform over
+    a cell, that estimate is the truth up to the 12-bit quantization."""
+    states = (0.0, 45.0, 90.0, 135.0)
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan((30.0,), states_deg=states))
+        assert run_session(rig, session, processor=proc).status == "complete"
+        truth = rig.truth.ground_truth()["mueller"].astype(np.float64)
+        exposure_us = rig.camera.exposure_us
+    model = processing.session_sensor_model(session)
+    cap = session.capture(0)
+    got = read_mueller_exr(tmp_path / "s" / cap["files"]["mueller"]["path"])
+    h, w = truth.shape[-2:]
+    lay = resolve_layout("imx250mzr")
+    s_in = polarizer_stokes(np.deg2rad(states), intensity=1.0)
+    ideal = AnalyzerModel.ideal(lay, (h, w))
+    offset = model.black_level_dn + model.dark_electrons(exposure_us) / model.gain_e_per_dn
+    codes = [np.clip(np.rint(ideal.mosaic(np.einsum("cijhw,j->cihw", truth, s)) + offset), 0,
+                     model.max_code_dn) for s in s_in]
+    measured = np.stack([demosaic(c - offset, lay, "superpixel") for c in codes]).astype(float)
+    variance = model.variance_dn2(measured, exposure_us)
+    expected = solve_reference(s_in, measured, variance).mueller.astype(np.float64)
+    valid = got.extra["mask.Y"] == 0
+    peak = expected[0, 0, 0][valid].max()
+    assert valid.sum() > 100
+    err = np.abs(got.mueller - expected)[:, :, :, valid]
+    assert err.max() <= 1e-4 * peak, err.max() / peak
+    # without the rounding it is processing.truth_on_output_grid (what scores compare with),
+    # and that is the truth where the truth does not vary over a cell
+    t = processing.truth_on_output_grid(truth, lay, "superpixel", s_in, model, exposure_us)
+    assert np.abs(t - expected)[:, :, :, valid].max() <= 2e-3 * peak
+    blocks = truth.reshape(1, 3, 3, h // 2, 2, w // 2, 2)
+    flat = (blocks.max(axis=(4, 6)) == blocks.min(axis=(4, 6))).all(axis=(1, 2))
+    assert flat.any()
+    assert np.allclose(t[:, :, :, flat[0]], blocks.mean(axis=(4, 6))[:, :, :, flat[0]],
+                       rtol=1e-9, atol=1e-6 * peak)
+
+
+def test_noisy_mueller_matches_truth_within_reported_sigma(tmp_path):
+    """With the sensor noise on, per pose the errors against the truth follow the reported
+    sigma: the fraction of valid elements within 2 sigma is 95.45% (Gaussian errors, sigma
+    right) within 3 binomial standard deviations of the sample (about 0.9% for ~500 pixels x 9
+    elements), and chi^2 per element is 1 within 4 of its standard errors plus 3%."""
+    with sim_rig(scene="box") as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
+        result = run_session(rig, session, processor=proc)
+    assert result.status == "complete"
+    assert sorted(result.scores) == [0, 1, 2, 3]
+    p = 0.9545
+    for score in result.scores.values():
+        n = 9 * score["pixels_compared"]
+        assert n > 3000
+        assert score["within_2sigma"] >= p - 3 * math.sqrt(p * (1 - p) / n), score
+        assert abs(score["chi2_per_element"] - 1) <= 4 * math.sqrt(2 / n) + 0.03, score
+        assert score["realizable"] > 0.9, score
+
+
+def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, reference_session):
+    out = tmp_path / "s"
+    frames = []
+
+    def progress(ev):
+        if ev.kind == "frame":
+            frames.append(ev)
+            if len(frames) == 6:  # second capture, second state
+                raise KeyboardInterrupt
+
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, out, CapturePlan(POSES4))
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert [c["status"] for c in s.captures] == [COMPLETE, PENDING, PENDING, PENDING]
+    assert len(s.capture(1)["files"]["raw"]) == 2  # complete and checksummed, nothing else
+    assert s.verify() == []
+    with sim_rig(noise=False) as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert s2.verify() == []
+    assert content(s2) == content(reference_session)
+    assert s2.capture(1)["attempts"] == 2
+
+
+@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 3),
+                                                  ("turntable", "timeout", 1)])
+def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
+    events = []
+    with sim_rig(noise=False) as rig:
+        rig.inject_fault(device, kind, after_calls=after)
+        session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
+        result = run_session(rig, session, processor=proc, progress=events.append)
+    assert result.status == "complete"
+    assert any(e.kind == "retry" for e in events)
+    assert content(session) == content(reference_session)
+
+
+def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_session):
+    out = tmp_path / "s"
+    with sim_rig(noise=False) as rig:
+        rig.inject_fault("camera", "disconnect", after_calls=9)
+        session, proc = start(rig, out, CapturePlan(POSES4))
+        result = run_session(rig, session, processor=proc)
+    assert result.status == INTERRUPTED and "DeviceDisconnected" in result.reason
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert "DeviceDisconnected" in s.manifest["status_reason"]
+    failed = [c for c in s.captures if c["status"] == FAILED]
+    assert len(failed) == 1 and "connection lost" in failed[0]["reason"]
+    assert s.captures[0]["status"] == COMPLETE
+    assert s.verify() == []
+    with sim_rig(noise=False) as rig:  # reconnected
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert content(s2) == content(reference_session)
+
+
+def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
+    out = tmp_path / "s"
+    writes = []
+
+    def hook(path, data):
+        writes.append(path)
+        if len(writes) > 30:  # capture 0 complete, capture 1 half way
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
+        result = run_session(rig, session, processor=proc)
+    assert result.status == INTERRUPTED and result.reason.startswith("disk full")
+    s = Session.open(out)  # the manifest on disk is the last consistent one
+    assert s.verify() == []
+    assert not list(out.rglob("*.tmp"))
+    assert s.captures[0]["status"] == COMPLETE
+    with sim_rig(noise=False) as rig:  # space freed: no hook
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert content(s2) == content(reference_session)
+
+
+def test_stop_request_leaves_capture_pending(tmp_path):
+    control = CaptureControl()
+
+    def progress(ev):
+        if ev.kind == "capture-done" and ev.capture_index == 0:
+            control.stop.set()
+
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan((0.0, 90.0)))
+        result = run_session(rig, session, processor=proc, progress=progress, control=control)
+    assert result.status == INTERRUPTED and result.reason == "stopped by the operator"
+    assert [c["status"] for c in session.captures] == [COMPLETE, PENDING]
+    assert session.verify() == []
+
+
+def test_reprocess_writes_a_revision_and_never_touches_raw(tmp_path):
+    out = tmp_path / "s"
+    with sim_rig() as rig:
+        session, proc = start(rig, out, CapturePlan((0.0,)))
+        run_session(rig, session, processor=proc)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "session.json"}
+    name = processing.reprocess_session(Session.open(out), demosaic="bilinear")
+    s = Session.open(out)
+    assert name == "rev1" and s.manifest["revisions"][0]["demosaic"] == "bilinear"
+    rev = s.capture(0)["revisions"]["rev1"]
+    assert rev["status"] == COMPLETE and rev["score"]["pixels_valid"] > 0
+    full = read_mueller_exr(out / rev["files"]["mueller"]["path"]).mueller
+    assert full.shape[-2:] == (64, 64)
+    assert all(p.read_bytes() == data for p, data in before.items())
+    assert s.verify() == []
+
+
+def test_tampered_raw_frame_is_refused_by_reprocessing(tmp_path):
+    out = tmp_path / "s"
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, out, CapturePlan((0.0,)))
+        run_session(rig, session, processor=proc)
+    raw = out / session.capture(0)["files"]["raw"][0]["path"]
+    raw.write_bytes(raw.read_bytes()[:-10])
+    from polrig.errors import FormatError
+
+    with pytest.raises(FormatError, match="SHA-256"):
+        processing.reprocess_session(Session.open(out))
