@@ -78,6 +78,9 @@ class SerialLink:
         try:
             ser.write(data)
             ser.flush()
+        except serial.SerialTimeoutException:
+            raise DeviceTimeout(f"write of {len(data)} bytes did not complete (flow control "
+                                "holding the line?)", device=self.device) from None
         except _LOST as exc:
             raise self._lost(exc) from None
 

@@ -22,7 +22,6 @@ device's code and text. ``level`` in [0, 1] maps to brightness percent = 100 * l
 
 from __future__ import annotations
 
-import array
 import errno
 import importlib
 from typing import Any
