@@ -117,3 +117,13 @@ def test_backend_module_name():
     assert mod.get_backend().brightness_percent == pytest.approx(10.0)
     with pytest.raises(DeviceNotFound):
         Dc2200Light(backend="no.such.backend").open()
+
+
+def test_scpi_short_and_long_forms(light, emu):
+    light.command("SOUR1:MOD CB")
+    light.command("source1:cbrightness:brightness:level:amplitude 12.5")
+    assert emu.brightness_percent == pytest.approx(12.5)
+    assert light.query("SOURce:CBRightness:BRIGhtness:AMPLitude?").startswith("1.25")
+    with pytest.raises(DeviceFault) as ei:
+        light.command("SOURCE1:BRIGHTNESS 3")
+    assert ei.value.code == -113

@@ -9,7 +9,7 @@ product 0x80C8 (DC2200), USBTMC interface class 0xFE/0x03/0x01 with bulk-OUT 0x0
 
 SCPI subset (DC2200 manual, chapter "Remote control" / SCPI command reference; IEEE 488.2
 common commands): ``*IDN?``, ``*RST``, ``*CLS``, ``SYSTem:ERRor[:NEXT]?``,
-``SOURce[1]:MODE CB|CC|PWM`` and ``?``, ``SOURce[1]:CBRightness:BRIGhtness <percent>`` and
+``SOURce[1]:MODe CB|CC|PWM`` and ``?``, ``SOURce[1]:CBRightness:BRIGhtness <percent>`` and
 ``?``, ``OUTPut[1]:STATe ON|OFF|1|0`` and ``?``. Long and short mnemonics, case-insensitive.
 SCPI error queue with the standard codes (-100 command error, -113 undefined header,
 -222 data out of range, -224 illegal parameter value, -241 hardware missing).
@@ -306,7 +306,7 @@ class Dc2200Emulator(usb.backend.IBackend):
         elif self._path(header, "SYSTem", "ERRor", "[NEXT]") and query:
             code, msg = self.errors.popleft() if self.errors else (0, "No error")
             self._responses.append(f'{code:+d},"{msg}"\n'.encode())
-        elif self._path(header, "[SOURce]", "MODE"):
+        elif self._path(header, "[SOURce]", "MODe"):
             if query:
                 self._responses.append(f"{self.mode}\n".encode())
             elif arg.upper() in ("CB", "CC", "PWM", "PULS", "INT", "TTL", "MOD"):
