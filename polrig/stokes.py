@@ -28,7 +28,7 @@ import dataclasses
 import cv2
 import numpy as np
 
-from polrig.analyzer import AnalyzerModel, LayoutLike, resolve_layout
+from polrig.analyzer import AnalyzerModel, LayoutLike, layout_name_at, resolve_layout
 from polrig.demosaic import (METHODS, demosaic_combined, demosaic_float, output_shape,
                              preprocess)
 from polrig.layouts import ANALYZER_ANGLES_DEG, MosaicLayout
@@ -371,6 +371,10 @@ def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, satura
     solver = analyzer
     if isinstance(analyzer, AnalyzerModel):
         solver = StokesSolver(analyzer, method)
+    if solver is not None and solver.model is not None:
+        if layout_name_at(solver.model.layout, 0, 0) != layout_name_at(lay, 0, 0):
+            raise ValueError(f"the analyzer model is for layout {solver.model.layout}, the "
+                             f"frame is {lay.name}")
     if solver is not None:
         if solver.method != method and solver.model is not None:
             raise ValueError(f"the Stokes solver was built for {solver.method!r} demosaicing, "

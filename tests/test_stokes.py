@@ -110,6 +110,10 @@ def test_solver_rejects_wrong_grid_and_singular_models():
         StokesSolver(dead, "superpixel")
     with pytest.raises(ValueError, match="shape"):
         stokes_from_analyzers(np.zeros((1, 3, 4, 4)))
+    with pytest.raises(ValueError, match="layout"):
+        stokes_from_raw(np.zeros((8, 8)), "imx250mzr@1,0", "superpixel", analyzer=model)
+    with pytest.raises(ValueError, match="built for"):
+        stokes_from_raw(np.zeros((8, 8)), "imx250mzr", "bilinear", analyzer=solver)
 
 
 def test_dolp_aolp_closed_forms():
