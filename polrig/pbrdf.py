@@ -99,9 +99,10 @@ def microfacet_d(cos_h, alpha, distribution: str = "ggx") -> np.ndarray:
 def smith_g1(cos_v, cos_vh, alpha, distribution: str = "ggx") -> np.ndarray:
     """Smith masking ``G1(v, h)`` for a direction at ``cos_v = n . v`` and ``cos_vh = v . h``.
 
-    GGX: ``2 / (1 + sqrt(1 + a^2 tan^2))``; Beckmann: Walter et al. (2007) eq. 27's rational
-    approximation with ``b = 1 / (a tan)``: ``(3.535 b + 2.181 b^2) / (1 + 2.276 b + 2.577 b^2)``
-    for ``b < 1.6``, else 1 (what Mitsuba 3 evaluates). 1 at normal incidence; 0 when ``v``
+    GGX: ``2 / (1 + sqrt(1 + a^2 tan^2))`` (Walter et al. 2007, eq. 34); Beckmann: the
+    rational approximation of Walter et al. (2007) eq. 27 with ``b = 1 / (a tan)``:
+    ``(3.535 b + 2.181 b^2) / (1 + 2.276 b + 2.577 b^2)`` for ``b < 1.6``, else 1 (what
+    Mitsuba 3 evaluates; within 0.35 % of the exact erf form). 1 at normal incidence; 0 when ``v``
     sees the back of the microfacet (``cos_vh cos_v <= 0``).
     """
     d = _check_distribution(distribution)

@@ -82,7 +82,8 @@ def test_normal_incidence_closed_forms(eta):
 
 
 def _atkinson_diffuse_dolp(eta, theta):
-    """Atkinson & Hancock, IEEE TIP 15(6), 2006, eq. 6 (DoLP of diffuse reflection)."""
+    """Atkinson & Hancock, "Recovery of surface orientation from diffuse polarization", IEEE
+    TIP 15(6), 1653-1664, 2006: DoLP of diffuse reflection at emission angle theta."""
     s2 = np.sin(theta) ** 2
     num = (eta - 1 / eta) ** 2 * s2
     den = 2 + 2 * eta**2 - (eta + 1 / eta) ** 2 * s2 + 4 * np.cos(theta) * np.sqrt(eta**2 - s2)
@@ -396,3 +397,28 @@ def test_property_finite_and_diattenuation_polarizance_bounded(normal, wi, wo, a
     assert np.all(np.linalg.norm(m[..., 0, 1:], axis=-1) <= m[..., 0, 0] + tol)
     assert np.all(np.linalg.norm(m[..., 1:, 0], axis=-1) <= m[..., 0, 0] + tol)
     np.testing.assert_allclose(lin[..., 0, 0], m[..., 0, 0], rtol=1e-12, atol=0)
+
+
+def test_chunked_evaluation_matches_piecewise_evaluation():
+    """More pixels than one internal chunk (pbrdf.CHUNK), valid and invalid interleaved: the
+    result equals evaluating small slices separately (no chunk-boundary or gather errors)."""
+    rng = np.random.default_rng(12)
+    n = 2 * pbrdf.CHUNK + 1234
+    normal, wi, wo = (_unit(rng.normal(size=(n, 3))) for _ in range(3))  # ~1/4 valid
+    kd = rng.uniform(size=(n, 3))
+    alpha = rng.uniform(0.02, 1.0, size=n)
+    stage = _unit(rng.normal(size=(n, 3)))
+    kw = dict(stage_zero_axis=stage, camera_x_axis=[1.0, 0, 0])
+    whole = pbrdf.linear_rig_mueller(normal, wi, wo, kd=kd, alpha=alpha, **kw)
+    parts = [pbrdf.linear_rig_mueller(normal[s], wi[s], wo[s], kd=kd[s], alpha=alpha[s],
+                                      stage_zero_axis=stage[s], camera_x_axis=[1.0, 0, 0])
+             for s in (slice(a, a + 777) for a in range(0, n, 777))]
+    np.testing.assert_array_equal(whole, np.concatenate(parts))
+    vis = pbrdf.visible(normal, wi, wo)
+    assert 0.1 < vis.mean() < 0.5
+    assert np.all(whole[~vis] == 0) and np.all(np.abs(whole[vis]).max(axis=(-1, -2, -3)) > 0)
+    # all-valid stacks take the slice path: same values as the indexed path
+    v = np.flatnonzero(vis)
+    np.testing.assert_array_equal(
+        pbrdf.linear_rig_mueller(normal[v], wi[v], wo[v], kd=kd[v], alpha=alpha[v], stage_zero_axis=stage[v],
+                                 camera_x_axis=[1.0, 0, 0]), whole[v])
