@@ -31,7 +31,8 @@ from polrig.rawio import atomic_write_bytes, atomic_write_text
 from sim.generator import Generator
 from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
 from sim.render import render
-from sim.scene import FAMILIES, HOLDOUT_FAMILIES, default_camera, random_scene
+from sim.scene import (FAMILIES, HOLDOUT_FAMILIES, RANDOM_FOCAL_PER_PX, default_camera,
+                       random_scene)
 from sim.truth import npz_bytes
 from sim.world import ideal_analyzer_images
 
@@ -138,7 +139,7 @@ def shard_complete(path: pathlib.Path, n_expected: int) -> bool:
 
 def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: int,
               holdout: bool, shard_size: int, compress: bool, model: SensorModel) -> dict:
-    cam = default_camera(width, height)
+    cam = default_camera(width, height, focal_per_px=RANDOM_FOCAL_PER_PX)
     n_shards = -(-count // shard_size)
     return {
         "format": DATASET_FORMAT, "version": DATASET_VERSION,

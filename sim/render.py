@@ -91,7 +91,7 @@ class RenderResult:
         """Emergent radiance Stokes image ``(3, 3, H, W)`` float32 (colour, S0..S2) per unit
         radiant intensity for incident Stokes ``s_in`` ``(3,)``: ``S = M s_in`` evaluated on
         the lit pixels only (27 multiply-adds each)."""
-        s = np.asarray(s_in, dtype=np.float32) * 1.0
+        s = np.asarray(s_in, dtype=np.float32)
         m = self.brdf_lit
         out = (m[..., 0] * s[0] + m[..., 1] * s[1] + m[..., 2] * s[2]) * self.inv_r2_lit[:, None, None]
         return self._scatter(out)

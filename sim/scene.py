@@ -228,6 +228,10 @@ def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
 
 #: Shape families of the random dataset scenes (``family`` id = index).
 FAMILIES = ("sphere", "box", "cylinder", "multi", "heightfield", "plane")
+#: Focal length of the dataset camera in units of min(width, height) (objects fill more of
+#: the frame than in the default rig).
+RANDOM_FOCAL_PER_PX = 3.2
+
 #: Families kept out of the training set by ``polrig sim dataset`` (``--holdout`` makes them).
 HOLDOUT_FAMILIES = ("heightfield", "plane")
 
@@ -236,8 +240,9 @@ def random_scene(rng: np.random.Generator, width: int, height: int,
                  family: int) -> Scene:
     """A randomized scene of shape family ``FAMILIES[family]``: random size, pose, material
     (one material per scene, so one roughness per image), light position and colour. The
-    camera is the default one and the stage zero axis is the camera's up direction (``-Y``), so
-    that the rig frames are fixed in the camera frame across samples."""
+    camera is the default one with ``RANDOM_FOCAL_PER_PX``; the stage zero axis is the
+    camera's up direction (``-Y``), so that the rig frames are fixed in the camera frame
+    across samples."""
     fam = FAMILIES[family]
     mat = random_material(rng)
     rot = _tilt(rng.uniform(-40, 40), rng.uniform(0, 360))
@@ -278,6 +283,6 @@ def random_scene(rng: np.random.Generator, width: int, height: int,
         [np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
     colour = rng.uniform(0.6, 1.0, 3)
     light = PointLight(lp, colour / colour.max())
-    cam = default_camera(width, height)
+    cam = default_camera(width, height, focal_per_px=RANDOM_FOCAL_PER_PX)
     return _rig(fam, objs, width, height, light=light, camera=cam,
                 stage_zero_axis=-cam.R[1])  # camera up (-Y): fixed in the camera frame

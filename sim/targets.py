@@ -40,7 +40,7 @@ BOARD_BLACK = Material("board_black", (0.03, 0.03, 0.03), 0.5, 1.5, ks=0.0)
 BOARD_WHITE = Material("board_white", (0.85, 0.85, 0.85), 0.5, 1.5, ks=0.0)
 #: An ideal metal: ``eta`` so large that Rs = Rp = 1 to 1e-3 (non-depolarizing mirror).
 POLISHED_METAL = Material("polished_metal", (0.0, 0.0, 0.0), 0.3, 1000.0, ks=1.0)
-CHROME = Material("chrome", (0.0, 0.0, 0.0), 0.02, 1000.0, ks=1.0)
+CHROME = Material("chrome", (0.0, 0.0, 0.0), 0.04, 1000.0, ks=1.0)
 WHITE = Material("matte_white", (0.8, 0.8, 0.8), 0.5, 1.5, ks=0.0)
 
 #: Default geometry of the targets (metres, degrees).
@@ -52,10 +52,10 @@ DEFAULTS: dict[str, Any] = {
     "squares_x": 8, "squares_y": 6, "square_m": 0.025, "marker_m": 0.018,
     "dictionary": "4X4_50",
     "plate_half_m": 0.2,
-    "sphere_radius_m": 0.02,
-    "sphere_offset_m": (0.045, 0.0, 0.0),
+    "sphere_radius_m": 0.03,
+    "sphere_offset_m": (0.075, 0.0, 0.0),
     "sphere_height_m": 0.05,
-    "backdrop_y_m": 0.2,
+    "backdrop_y_m": 0.3,
 }
 
 
