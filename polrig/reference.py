@@ -25,8 +25,8 @@ weights each by its own variance and drops saturated or bad samples individually
 samples of the same state still count.
 
 Normal equations are formed for a chunk of pixels at once: with a shared analyzer the 45
-distinct entries of ``D^T W D`` are one matrix product ``W (P x 4N) @ (4N x 45)`` of the
-weights with the precomputed products of design rows; they are solved by a batched Cholesky
+distinct entries of ``D^T W D`` are one product ``W (P x 4N) (4N x 45)`` of the weights with
+the precomputed products of design rows; they are solved by a batched Cholesky
 factorisation laid out pixels-last (long vector operations), so a 1024 x 1024 x 3-colour image
 takes a few seconds on two cores. Per-pixel analyzer rows take the general (slower) path.
 
@@ -89,7 +89,10 @@ class ReferenceResult:
     ``mask``: ``(C, H, W)`` uint8 reason bits (0 = good), see :func:`reason_names`.
     ``condition_number``: of the full design of the state set (all samples).
     ``pixel_condition``: ``(C, H, W)`` float32 condition number of the design of the samples
-    actually used at each pixel (``inf`` where fewer than 9 or rank deficient).
+    actually used at each pixel (``inf`` where fewer than 9 or rank deficient). With per-pixel
+    analyzer rows it is computed with the ideal analyzer rows (one value per sample pattern,
+    which keeps it cheap; a calibrated analyzer differs from the ideal by a few percent), and
+    systems that are singular to working precision are caught by the Cholesky pivots instead.
     ``n_samples``: ``(C, H, W)`` uint16 number of samples used.
     """
 
@@ -251,7 +254,7 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
             raise ValueError(f"valid shape {valid.shape} differs from measured {meas.shape}")
     _, n_col, _, h, w = meas.shape
     a_planes = _analyzer_planes(analyzer_rows, n_col, (h, w))
-    a_shared = _shared_rows(analyzer_rows) if shared else None
+    a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
 
     mueller = np.zeros((n_col, 3, 3, h, w), dtype)
     sigma = np.zeros_like(mueller)
@@ -290,7 +293,8 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
 def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, pattern_cache,
                  cond_all):
     """Solve ``P`` pixels. meas/var/valid: ``(P, N, 4)``; a_pix: ``(P, 4, 3)`` or None (then
-    ``a_shared`` ``(4, 3)`` is used)."""
+    ``a_shared`` ``(4, 3)`` is the analyzer; with ``a_pix`` it only serves the condition
+    numbers)."""
     p, n, _ = meas.shape
     meas = meas.reshape(p, n * 4)
     var = var.reshape(p, n * 4)
@@ -303,34 +307,36 @@ def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, p
     wgt = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
     wi = wgt * np.where(ok, meas, 0.0)
 
+    d = np.einsum("ja,kb->kjab", a_shared, s).reshape(n * 4, 9)  # design, row 4k + j
     if a_pix is None:
-        d = np.einsum("ja,kb->kjab", a_shared, s).reshape(n * 4, 9)  # design, row 4k + j
         dd = np.einsum("ri,rj->rij", d, d)[:, _TRIL[0], _TRIL[1]]  # (4N, 45)
-        nm = (wgt @ dd).T  # (45, P) lower triangle of D^T W D
-        rhs = (wi @ d).T  # (9, P)
-        # per-pixel condition: all samples -> the state set's; other patterns computed once
-        cond = np.full(p, cond_all)
-        partial = ~ok.all(axis=1)
-        if partial.any():
-            keys, inverse = np.unique(np.packbits(ok[partial], axis=1), axis=0, return_inverse=True)
-            vals = np.empty(len(keys))
-            for i, key in enumerate(keys):
-                kb = key.tobytes()
-                if kb not in pattern_cache:
-                    rows = d[np.unpackbits(key)[: n * 4].astype(bool)]
-                    pattern_cache[kb] = (_cond_from_singular(np.linalg.svd(rows, compute_uv=False))
-                                         if len(rows) >= 9 else float("inf"))
-                vals[i] = pattern_cache[kb]
-            cond[partial] = vals[inverse.ravel()]
+        # (einsum, not BLAS: multithreaded GEMM on these thin matrices is several times slower)
+        nm = np.einsum("rq,pr->qp", dd, wgt)  # (45, P) lower triangle of D^T W D
+        rhs = np.einsum("ri,pr->ip", d, wi)  # (9, P)
     else:
         dpix = np.einsum("pja,kb->pkjab", a_pix, s).reshape(p, n * 4, 9)
-        nm = np.einsum("pr,pri,prj->ijp", wgt, dpix, dpix)[_TRIL[0], _TRIL[1]]
+        # Kronecker structure: D^T W D = sum_j (a_j a_j^T) (x) (sum_k w_kj s_k s_k^T)
+        sj = np.einsum("pkj,kq->pjq", wgt.reshape(p, n, 4), np.einsum("kb,kd->kbd", s, s).reshape(n, 9))
+        aa = np.einsum("pja,pjc->pjac", a_pix, a_pix).reshape(p, 4, 9)
+        nm = np.einsum("pjr,pjq->rqp", aa, sj)  # [(a, c), (b, d), P]
+        nm = nm.reshape(3, 3, 3, 3, p).transpose(0, 2, 1, 3, 4).reshape(81, p)[_TRIL_FLAT]
         rhs = np.einsum("pr,pri->ip", wi, dpix)
-        a_unw = np.einsum("pr,pri,prj->pij", ok.astype(np.float64), dpix, dpix)
-        ev = np.linalg.eigvalsh(a_unw)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cond = np.sqrt(ev[:, -1] / ev[:, 0])
-        cond = np.where((ev[:, 0] > 1e-24 * ev[:, -1]) & np.isfinite(cond), cond, np.inf)
+    # per-pixel condition number of the design of the samples used, with the shared (or, for
+    # per-pixel rows, the ideal) analyzer: all samples -> the state set's; every other sample
+    # pattern is computed once and cached
+    cond = np.full(p, cond_all)
+    partial = ~ok.all(axis=1)
+    if partial.any():
+        keys, inverse = np.unique(np.packbits(ok[partial], axis=1), axis=0, return_inverse=True)
+        vals = np.empty(len(keys))
+        for i, key in enumerate(keys):
+            kb = key.tobytes()
+            if kb not in pattern_cache:
+                rows = d[np.unpackbits(key)[: n * 4].astype(bool)]
+                pattern_cache[kb] = (_cond_from_singular(np.linalg.svd(rows, compute_uv=False))
+                                     if len(rows) >= 9 else float("inf"))
+            vals[i] = pattern_cache[kb]
+        cond[partial] = vals[inverse.ravel()]
     cond = np.where(n_ok >= 9, cond, np.inf)
     solvable = cond <= max_condition
 
@@ -367,6 +373,7 @@ def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, p
 
 _TRIL = np.tril_indices(9)
 _TRIL_DIAG = np.flatnonzero(_TRIL[0] == _TRIL[1])
+_TRIL_FLAT = _TRIL[0] * 9 + _TRIL[1]
 _EYE_TRIL = (_TRIL[0] == _TRIL[1]).astype(np.float64)
 
 
