@@ -83,6 +83,17 @@ class SimWorld:
         self._states = _Lru(16)
         self.render_count = 0
 
+    def set_scene(self, scene: Scene) -> None:
+        """Replace the scene (e.g. swap a calibration target in) and drop every cached image.
+        The camera must keep the sensor's size."""
+        if self.sensor.shape != (scene.camera.height, scene.camera.width):
+            raise ValueError(f"scene camera {scene.camera.width}x{scene.camera.height} does not "
+                             f"match the {self.sensor.shape[1]}x{self.sensor.shape[0]} sensor")
+        with self._lock:
+            self.scene = scene
+            self._poses.data.clear()
+            self._states.data.clear()
+
     # -- motion state -----------------------------------------------------------------------
     def stage_angle_deg(self) -> float:
         return self.stage_move.position(self.clock.now())

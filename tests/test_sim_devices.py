@@ -270,3 +270,15 @@ def test_noise_free_four_state_round_trip_recovers_the_truth(sensor):
     rel = np.abs(est[..., lit] - t[..., lit]) / scale
     assert rel.max() < 1e-4
     assert cond < 3
+
+
+def test_swapping_the_scene_drops_cached_images():
+    from sim.scene import make_scene
+
+    rig = _rig()
+    before = rig.truth.ground_truth()["mask"].sum()
+    rig.world.set_scene(make_scene("plane", 64, 48))
+    after = rig.truth.ground_truth()["mask"].sum()
+    assert before != after
+    with pytest.raises(ValueError, match="sensor"):
+        rig.world.set_scene(make_scene("plane", 32, 32))
