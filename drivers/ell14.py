@@ -123,6 +123,8 @@ class Ell14Stage(RotationStage):
     def _query(self, cmd: str, expect: str, data: str = "",
                timeout_s: float | None = None) -> str:
         """Send ``cmd`` and return the data of the ``expect`` reply; ``GS`` errors raise."""
+        if not self._move_pending:
+            self._link.discard_input()  # a late reply to an earlier, timed-out query
         self._send(cmd, data)
         reply, payload = self._read_reply(timeout_s or self.reply_timeout_s)
         if reply == expect:

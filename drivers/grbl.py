@@ -49,6 +49,7 @@ class GrblTurntable(Turntable):
         self._link = SerialLink(port, baudrate=BAUDRATE, device=f"grbl {port}")
         self._info: DeviceInfo | None = None
         self.state = ""
+        self.last_alarm: int | str | None = None
 
     # -- life cycle ------------------------------------------------------------------------
     @property
@@ -92,11 +93,26 @@ class GrblTurntable(Turntable):
         self._link.discard_input()
 
     def _alarm(self, line: str) -> DeviceFault:
-        code = int(line.split(":", 1)[1]) if line[6:].strip().isdigit() else line[6:]
-        self.state = "Alarm"
+        code = int(line[6:]) if line[6:].strip().isdigit() else line[6:]
+        self.state, self.last_alarm = "Alarm", code
+        return self._alarm_fault()
+
+    def _alarm_fault(self) -> DeviceFault:
+        code = self.last_alarm if self.last_alarm is not None else "Alarm"
         return DeviceFault("alarm (home the turntable: polrig home turntable)",
                            device=self._link.device, code=code,
-                           text=ALARMS.get(code, "unknown alarm"))
+                           text=ALARMS.get(code, "controller locked in the Alarm state"))
+
+    def _drain_pending(self) -> None:
+        """Read what arrived unasked (late replies of a timed-out command, pushed messages)
+        so it is not taken for the answer to the next command; remember any alarm."""
+        if self._link.in_waiting() == 0:
+            return
+        time.sleep(0.01)
+        for raw in self._link.discard_input().split(b"\n"):
+            line = raw.strip().decode("ascii", "replace")
+            if line.startswith("ALARM:"):
+                self._alarm(line)
 
     def _reset(self) -> None:
         """Soft reset and wait for the banner (proves a GRBL is at the other end)."""
@@ -112,6 +128,7 @@ class GrblTurntable(Turntable):
 
     def _command(self, line: str, timeout_s: float | None = None) -> list[str]:
         """Send one line; return the lines before ``ok``; ``error:N``/``ALARM:N`` raise."""
+        self._drain_pending()
         self._link.write(line.encode("ascii") + b"\n")
         deadline = time.monotonic() + (timeout_s or self.reply_timeout_s)
         out: list[str] = []
@@ -134,6 +151,7 @@ class GrblTurntable(Turntable):
 
     def status(self) -> dict:
         """One ``?`` status report: ``{"state": ..., "mpos": [...], "position_deg": ...}``."""
+        self._drain_pending()
         self._link.write(b"?")
         deadline = time.monotonic() + self.reply_timeout_s
         while True:
@@ -171,8 +189,7 @@ class GrblTurntable(Turntable):
     def is_busy(self) -> bool:
         st = self.status()["state"]
         if st == "Alarm":
-            raise DeviceFault("controller is in alarm state", device=self._link.device,
-                              code="Alarm", text="locked: home or unlock ($X) first")
+            raise self._alarm_fault()
         return st.split(":")[0] in ("Run", "Jog", "Home") or st == "Hold:1"
 
     def wait(self, timeout_s: float = 30.0) -> None:
@@ -184,9 +201,17 @@ class GrblTurntable(Turntable):
             time.sleep(self.poll_s)
 
     def home(self, timeout_s: float = 60.0) -> None:
+        """``$H``; if it does not finish in time the cycle is aborted by a soft reset (GRBL
+        then reports ALARM:6, homing failed) so the machine never keeps moving unattended."""
         self._link.discard_input()
-        self._command("$H", timeout_s=timeout_s)
-        self.state = "Idle"
+        try:
+            self._command("$H", timeout_s=timeout_s)
+        except DeviceTimeout:
+            self._link.write(SOFT_RESET)
+            time.sleep(0.05)
+            self._drain_pending()
+            raise
+        self.state, self.last_alarm = "Idle", None
 
     def unlock(self) -> None:
         self._command("$X")

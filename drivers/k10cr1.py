@@ -119,6 +119,8 @@ class K10cr1Stage(RotationStage):
         self._link.discard_input()
 
     def _request(self, msg: apt.AptMessage, reply_id: int) -> bytes:
+        if not self._pending:
+            self._link.discard_input()  # a late reply to an earlier, timed-out request
         self._send(msg)
         deadline = time.monotonic() + self.reply_timeout_s
         while True:

@@ -156,3 +156,30 @@ def test_soft_limit_alarm(tmp_path):
         t.home(timeout_s=5)
         t.move_to(-90.0, timeout_s=5)
         assert emu.axis_position() == pytest.approx(-90.0)
+
+
+def test_lost_ok_does_not_shift_later_replies(table, emu):
+    table.home(timeout_s=5)
+    emu.inject("no_reply")  # the 'ok' of the next line is lost; the move still runs
+    with pytest.raises(DeviceTimeout):
+        table.move_to(10.0)
+    table.wait(5)
+    assert table.position_deg() == pytest.approx(10.0, abs=1e-3)
+    table.move_to(20.0, timeout_s=5)
+    assert emu.axis_position() == pytest.approx(20.0, abs=1e-3)
+
+
+def test_home_timeout_aborts_the_cycle(tmp_path):
+    with GrblEmulator(link=tmp_path / "g", speed_factor=1.0, homing_s=5.0) as emu, \
+            GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout):
+            t.home(timeout_s=0.3)
+        assert time.monotonic() - t0 < 1.0
+        assert emu.state == "Alarm"  # reset during homing: ALARM:6, nothing moves
+        with pytest.raises(DeviceFault) as ei:
+            t.wait(1)
+        assert ei.value.code == 6
+        emu.homing_s = 0.05
+        t.home(timeout_s=5)
+        assert not t.is_busy()

@@ -354,3 +354,23 @@ def get_backend() -> Dc2200Emulator:
     if _SHARED is None:
         _SHARED = Dc2200Emulator()
     return _SHARED
+
+
+def main(argv: list[str] | None = None) -> None:
+    """A USB backend cannot be shared between processes: say how to use the emulator, and
+    prove it answers by asking ``*IDN?`` through the real driver."""
+    import argparse
+
+    from drivers.dc2200 import Dc2200Light
+
+    argparse.ArgumentParser(description="Emulated Thorlabs DC2200 (a pyusb backend). Point a "
+                            "rig config at it with [light] driver = \"dc2200\", backend = "
+                            "\"drivers.emulators.dc2200\" (in-process only).").parse_args(argv)
+    with Dc2200Light(backend=get_backend()) as light:
+        info = light.info()
+        print(f"emulated {info.model} serial {info.serial} firmware {info.firmware}; use "
+              f'backend = "drivers.emulators.dc2200" in the [light] table')
+
+
+if __name__ == "__main__":
+    main()
