@@ -445,7 +445,9 @@ def _stop_cleanly(session: Session, index: int, reason: str, *, capture_status: 
     except OSError:
         pass
     cap = session.capture(index)
-    if capture_status == FAILED:
+    if cap["status"] == COMPLETE:
+        pass  # the interruption came after the capture was complete and saved: keep it
+    elif capture_status == FAILED:
         session.fail_capture(index, reason, save=False)
     else:
         cap.update(status=PENDING, reason=reason)

@@ -137,7 +137,7 @@ def single_shot_model():
 # -- sensor model ------------------------------------------------------------------------------
 def sensor_model_of(rig) -> SensorModel:
     """The noise model of the rig's camera: the simulated rig's own, else the configured one
-    (``rig.config.sensor_model`` if the config carries it), else the IMX250 defaults."""
+    (the ``[sensor_model]`` table of the rig config), else the IMX250 defaults."""
     truth = getattr(rig, "truth", None)
     if truth is not None:
         try:
@@ -146,7 +146,7 @@ def sensor_model_of(rig) -> SensorModel:
         except (KeyError, TypeError):
             pass
     cfg = getattr(rig, "config", None)
-    sm = getattr(cfg, "sensor_model", None) if cfg is not None else None
+    sm = cfg.get("sensor_model") if isinstance(cfg, dict) else None
     if isinstance(sm, SensorModel):
         return sm
     if isinstance(sm, dict):

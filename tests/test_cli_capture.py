@@ -1,0 +1,176 @@
+"""``polrig capture`` / ``reconstruct`` / ``info`` end to end on the simulated rig."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from polrig.cli import main
+from polrig.session import Session
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def sim_config(path: pathlib.Path, *, noise: bool = True, clock_speed: str = "inf",
+               scene: str = "box", ideal: bool = True) -> pathlib.Path:
+    hidden = ("\n[sim.hidden]\nstage_zero_offset_deg = 0.0\nextinction_ratio = 1e12\n"
+              "ideal_analyzer = true\n") if ideal else ""
+    path.write_text(f'[sim]\nsize = "64x64"\nsensor = "imx250mzr"\nclock_speed = {clock_speed}\n'
+                    f'seed = 11\nscene = "{scene}"\nnoise = {str(noise).lower()}\n{hidden}')
+    return path
+
+
+def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsys):
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    rc = main(["capture", "--poses", "0:360:90", "--mode", "reference", "--config", str(cfg),
+               "--out", str(out), "--no-progress"])
+    printed = capsys.readouterr().out
+    assert rc == 0
+    assert printed.count("within 2 sigma") == 4 and "session complete: 4 captures" in printed
+    s = Session.open(out)
+    assert [c["pose_deg"] for c in s.captures] == [0.0, 90.0, 180.0, 270.0]
+    assert all(c["status"] == "complete" for c in s.captures)
+    assert s.manifest["calibration_id"] == "nominal"
+    assert s.manifest["command_line"][:2] == ["polrig", "capture"] or s.manifest["command_line"]
+    assert s.manifest["rig"]["simulated"] is True
+    for cap in s.captures:
+        assert cap["score"]["within_2sigma"] > 0.9
+    assert main(["info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert "4 complete" in info and "checksums: all 40 files verified" in info
+    assert main(["reconstruct", str(out), "--demosaic", "bilinear", "--no-progress"]) == 0
+    s = Session.open(out)
+    assert s.manifest["revisions"][0]["name"] == "rev1"
+    assert all(c["revisions"]["rev1"]["status"] == "complete" for c in s.captures)
+    assert s.verify() == []
+    # a changed raw frame is found by info
+    raw = out / s.capture(2)["files"]["raw"][1]["path"]
+    raw.write_bytes(raw.read_bytes() + b"\0")
+    assert main(["info", str(out)]) == 1
+    assert "SHA-256 mismatch" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--poses", "0:360"], "invalid pose spec"),
+    (["--poses", "zero,90"], "invalid pose spec"),
+    (["--poses", "0", "--states", "0,90"], "at least 3"),
+    (["--poses", "0", "--states", "0,180,360"], "collinear"),
+    (["--poses", "0", "--states", "0,5,10"], "condition number"),
+    (["--poses", "0", "--frames", "0"], "--frames"),
+    (["--poses", "0", "--exposure", "-5"], "--exposure"),
+    (["--poses", "0", "--config", "/nonexistent/rig.toml"], "no such file"),
+    (["--poses", "0", "--mode", "single-shot"], "single-shot"),
+])
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, message):
+    out = tmp_path / "out"
+    rc = main(["capture", *args, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and message in err, err
+    assert not out.exists()  # nothing was created
+
+
+def test_non_empty_output_without_resume_exits_2(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "precious.exr").write_bytes(b"data")
+    rc = main(["capture", "--poses", "0", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "not empty" in err and "--resume" in err
+    assert len(err.strip().splitlines()) == 1
+    assert (out / "precious.exr").read_bytes() == b"data"
+
+
+def test_resume_refuses_a_different_plan(tmp_path, capsys):
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--config", str(cfg), "--out", str(out),
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["capture", "--poses", "0,90", "--config", str(cfg), "--out", str(out),
+                 "--resume", "--no-progress"]) == 2
+    assert "planned with poses_deg" in capsys.readouterr().err
+    # nothing left to do: resume is a no-op that succeeds
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0
+
+
+def content(root: pathlib.Path) -> list:
+    s = Session.open(root)
+    return [(c["pose_deg"], c["status"],
+             sorted((role, r["path"], r["sha256"]) for _, role, r in s.iter_file_records(c)))
+            for c in s.captures]
+
+
+@pytest.mark.slow
+def test_sigint_mid_session_then_resume_equals_uninterrupted(tmp_path):
+    """SIGINT to a running ``polrig capture`` after its first capture, then ``--resume``:
+    the session has the same captures and files (checksums) as an uninterrupted run. Noise
+    off so that every frame is reproducible."""
+    cfg = sim_config(tmp_path / "rig.toml", noise=False, clock_speed="40")
+    poses = "0:360:45"
+    ref = tmp_path / "ref"
+    assert main(["capture", "--poses", poses, "--config", str(cfg), "--out", str(ref),
+                 "--no-progress"]) == 0
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses", poses,
+                             "--config", str(cfg), "--out", str(out), "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            cwd=REPO)
+    line = proc.stdout.readline()
+    assert "capture 1/8" in line and "done" in line, line + proc.stderr.read()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    s = Session.open(out)
+    assert s.manifest["status"] == "interrupted"
+    statuses = [c["status"] for c in s.captures]
+    assert statuses[0] == "complete" and "pending" in statuses
+    assert s.verify() == []
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0
+    assert content(out) == content(ref)
+    assert Session.open(out).verify() == []
+    history = [h["event"] for h in Session.open(out).manifest["history"]]
+    assert "resumed" in history
+
+
+def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypatch):
+    """A device that disconnects mid-session: exit 1 with the reason, the manifest names it,
+    ``--resume`` completes the session with the same content as an uninterrupted run."""
+    import polrig.rig
+
+    cfg = sim_config(tmp_path / "rig.toml", noise=False)
+    ref = tmp_path / "ref"
+    assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(ref),
+                 "--no-progress"]) == 0
+    real_open = polrig.rig.open_rig
+
+    def faulty_open(*a, **kw):
+        rig = real_open(*a, **kw)
+        rig.sim.inject_fault("stage", "disconnect", after_calls=6)
+        return rig
+
+    monkeypatch.setattr(polrig.rig, "open_rig", faulty_open)
+    out = tmp_path / "run"
+    capsys.readouterr()
+    rc = main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "--resume" in err and "DeviceDisconnected" in err
+    m = json.loads((out / "session.json").read_text())
+    assert m["status"] == "interrupted" and "connection lost" in m["status_reason"]
+    assert [c["status"] for c in m["captures"]].count("failed") == 1
+    monkeypatch.setattr(polrig.rig, "open_rig", real_open)
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0
+    assert content(out) == content(ref)
