@@ -39,10 +39,16 @@ vectors or non-finite material parameters, give the zero matrix (see :func:`visi
 
 Reciprocity (Stokes bases as above, reversing the path keeps each physical ``x`` axis): with
 ``Q = diag(1, 1, -1, 1)``, ``M(wo, wi) / cos(theta_o) = Q M(wi, wo)^T Q / cos(theta_i)``
-when ``M(wo, wi)`` uses in basis ``x_out`` and out basis ``x_in`` of ``M(wi, wo)``
-(Jones-matrix reciprocity, J. W. Hovenier, J. Atmos. Sci. 26, 488, 1969; H. C. van de Hulst,
-*Light Scattering by Small Particles*, 1957, sec. 5.32; the ``-1`` on ``S2`` because
-``y = k x x`` flips with ``k``). Tested in ``tests/test_pbrdf.py``.
+when ``M(wo, wi)`` uses in basis ``x_out`` and out basis ``x_in`` of ``M(wi, wo)``.
+Derivation: for a reciprocal interaction the Jones matrix of the reversed path is the
+transpose in fixed Cartesian axes (Saxon, Phys. Rev. 100, 1771, 1955); keeping ``x`` while
+``k`` reverses flips ``y = k x x``, so ``J' = P J^T P`` with ``P = diag(1, -1) = sigma_1``.
+With ``m_ij = tr(sigma_i J sigma_j J^H) / 2``, conjugation by ``sigma_1`` flips the signs of
+``sigma_2, sigma_3`` (``(1, 1, -1, -1)``) and transposition those of ``sigma_3^T = -sigma_3``
+(``(1, 1, 1, -1)``): together ``Q``. Depolarizing sums of such matrices inherit it. This is the
+Mueller reciprocity relation of J. W. Hovenier, J. Atmos. Sci. 26, 488 (1969) and H. C. van de
+Hulst, *Light Scattering by Small Particles* (1957), sec. 5.32. ``M`` carries ``cos(theta_i)``,
+hence the cosines. Tested in ``tests/test_pbrdf.py``.
 """
 
 from __future__ import annotations
