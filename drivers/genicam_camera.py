@@ -147,7 +147,8 @@ class GenicamCamera(Camera):
                     raise DeviceNotFound(f"no camera at index {pick}; the producer offers "
                                          f"{len(devices)} device(s)", device=self.name)
             try:
-                ia = h.create(pick)
+                ia = h.create({"serial_number": self.serial} if self.serial is not None
+                              else pick)
             except _gentl().GenericException as exc:
                 raise DeviceNotFound(f"cannot open camera: {exc}", device=self.name) from None
         except Exception:
