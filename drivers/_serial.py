@@ -138,3 +138,10 @@ class SerialLink:
             raise ProtocolError(f"{what}: partial reply {got!r} (incomplete after "
                                 f"{timeout_s:g} s)", device=self.device)
         raise DeviceTimeout(f"no {what} within {timeout_s:g} s", device=self.device)
+
+
+def wrap_deg(angle_deg: float) -> float:
+    """``angle_deg`` wrapped into ``[0, 360)`` (``x % 360`` alone returns 360.0 for tiny
+    negative ``x``)."""
+    w = angle_deg % 360.0
+    return 0.0 if w >= 360.0 else w

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 
-from drivers._serial import SerialLink
+from drivers._serial import SerialLink, wrap_deg
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, RotationStage
 
@@ -159,10 +159,12 @@ class Ell14Stage(RotationStage):
 
     # -- RotationStage ---------------------------------------------------------------------
     def _to_pulses(self, angle_deg: float) -> int:
-        return round(((angle_deg + self.zero_offset_deg) % 360.0) * self.pulses_per_deg)
+        """Device position in ``[0, pulses per revolution)``."""
+        per_rev = round(360.0 * self.pulses_per_deg)
+        return round(wrap_deg(angle_deg + self.zero_offset_deg) * self.pulses_per_deg) % per_rev
 
     def _to_deg(self, pulses: int) -> float:
-        return (pulses / self.pulses_per_deg - self.zero_offset_deg) % 360.0
+        return wrap_deg(pulses / self.pulses_per_deg - self.zero_offset_deg)
 
     @staticmethod
     def _signed(text: str) -> int:

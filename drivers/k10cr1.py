@@ -20,7 +20,7 @@ import struct
 import time
 
 from drivers import apt
-from drivers._serial import SerialLink
+from drivers._serial import SerialLink, wrap_deg
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, RotationStage, Turntable
 
@@ -138,7 +138,7 @@ class K10cr1Stage(RotationStage):
     def position_deg(self) -> float:
         data = self._request(apt.AptMessage(apt.MOT_REQ_POSCOUNTER, 1), apt.MOT_GET_POSCOUNTER)
         steps = struct.unpack("<Hi", data)[1]
-        return (steps / STEPS_PER_DEG - self.zero_offset_deg) % 360.0
+        return wrap_deg(steps / STEPS_PER_DEG - self.zero_offset_deg)
 
     def is_busy(self) -> bool:
         busy = bool(self.status_bits() & apt.STATUS_MOVING)
@@ -160,7 +160,7 @@ class K10cr1Stage(RotationStage):
             raise DeviceFault("stage is not homed (run `polrig home stage`)",
                               device=self._link.device, code="not homed",
                               text="status bit 'homed' is clear")
-        steps = round(((angle_deg % 360.0) + self.zero_offset_deg) * STEPS_PER_DEG)
+        steps = round((wrap_deg(angle_deg) + self.zero_offset_deg) * STEPS_PER_DEG)
         self._send(apt.AptMessage(apt.MOT_MOVE_ABSOLUTE, data=struct.pack("<Hi", 1, steps)))
         self._pending = True
         if wait:
