@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -116,3 +117,10 @@ def test_rejected_before_any_device_is_opened(tmp_path):
         with pytest.raises(ConfigError, match=r"\[light\] timeout_s: expected a number"):
             open_rig(path)
         assert emu.received == b""
+
+
+def test_shipped_example_config_is_valid():
+    example = Path(__file__).resolve().parents[1] / "drivers" / "emulators" / "rig-emulated.toml"
+    cfg = load_rig_config(example)
+    assert [cfg.driver(k) for k in ("camera", "stage", "turntable", "light")] == \
+        ["genicam", "ell14", "grbl", "dc2200"]
