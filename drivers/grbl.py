@@ -225,7 +225,14 @@ class GrblTurntable(Turntable):
             line = f"G90 G1 {self.axis}{units:.4f} F{self.rate_per_min:g}"
         else:
             line = f"G90 G0 {self.axis}{units:.4f}"
-        self._command(line)
+        try:
+            self._command(line)
+        except DeviceFault as exc:
+            if exc.code == 9:  # G-code locked out: Alarm state after power-up, reset or limit
+                raise DeviceFault("turntable is locked in the Alarm state (run `polrig home "
+                                  "turntable`)", device=self._link.device, code=9,
+                                  text=exc.text) from None
+            raise
         if wait:
             self.wait(timeout_s)
 

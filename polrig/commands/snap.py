@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
     _write_png(names["dolp"], dolp_gray(res.dolp[ci], valid=valid))
     _write_png(names["aolp"], aolp_rgb(res.aolp_deg[ci], res.dolp[ci], valid=valid))
     h, w = frame.raw.shape
+    exposure = f"{m.exposure_us:g} us" if m.exposure_us == m.exposure_us else "not reported"
     print(f"snap: frame {m.frame_id} {w}x{h} {m.pixel_format} ({m.bit_depth} bit, layout "
-          f"{m.layout}, exposure {m.exposure_us:g} us) from {who}")
+          f"{m.layout}, exposure {exposure}) from {who}")
     print(f"wrote {out} (+ .json sidecar), {', '.join(p.name for p in names.values())}")
     return 0
