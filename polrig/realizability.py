@@ -339,12 +339,20 @@ def is_physical_linear(m3: np.ndarray, *, test: str = "coherency",
 def filter_linear(m3: np.ndarray, completion: str = "max_min_eigenvalue") -> np.ndarray:
     """Realizable 3x3 block: complete, Cloude-filter, take the upper-left block.
 
-    The filter maps matrices with zero circular couplings to matrices with zero circular
-    couplings (the clipping commutes with the symmetry ``M -> D M D``,
+    Blocks that already pass :func:`is_physical_linear` (same completion) are returned as they
+    are (the filter would not change them) without a search, which makes the filter cheap on
+    mostly-physical images. The filter maps matrices with zero circular couplings to matrices
+    with zero circular couplings (the clipping commutes with the symmetry ``M -> D M D``,
     ``D = diag(1, 1, 1, -1)``), so the result is realizable under the same kind of completion.
-    Non-finite blocks give the zero block.
+    Non-finite blocks give the zero block. Returns float64.
     """
-    return cloude_filter(complete_linear(m3, completion))[..., :3, :3]
+    m3 = _as_matrices(m3, 3)
+    mz, finite = _finite_or_zero(m3)
+    out = mz.reshape(-1, 3, 3).copy()
+    bad = np.flatnonzero(~is_physical_linear(mz, completion=completion).reshape(-1))
+    if len(bad):
+        out[bad] = cloude_filter(complete_linear(out[bad], completion))[..., :3, :3]
+    return np.where(finite[..., None, None], out.reshape(m3.shape), 0.0)
 
 
 def pass_rate(mask: np.ndarray, valid: np.ndarray | None = None) -> float:

@@ -177,3 +177,18 @@ def test_image_shaped_input_and_pass_rate():
     assert np.isnan(rz.pass_rate(ok, np.zeros_like(valid)))
     with pytest.raises(ValueError, match="4, 4"):
         rz.is_physical_gk(np.eye(3))
+
+
+def test_linear_test_shortcuts_agree_with_full_search():
+    rng = np.random.default_rng(12)
+    j = rng.normal(size=(2000, 3, 2, 2)) + 1j * rng.normal(size=(2000, 3, 2, 2))
+    phys = np.einsum("pk,pkij->pij", rng.random((2000, 3)), mu.jones_to_mueller(j))[:, :3, :3]
+    noisy = phys + 0.03 * rng.normal(size=phys.shape) * phys[:, :1, :1]
+    for m3 in (phys, noisy, rng.normal(size=(500, 3, 3))):
+        fast = rz.is_physical_linear(m3)
+        full = rz.is_physical_coherency(rz.complete_linear(m3))
+        assert np.array_equal(fast, full)
+        f = rz.filter_linear(m3)
+        assert np.array_equal(f[fast], m3[fast])
+        assert rz.is_physical_linear(f, rtol=1e-8).all()
+    assert 0.5 < rz.pass_rate(rz.is_physical_linear(noisy)) < 1.0
