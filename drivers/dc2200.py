@@ -97,8 +97,11 @@ class Dc2200Light(Light):
                                  "config", device=self.name)
         dev = found[0]
         try:
-            if dev.is_kernel_driver_active(0):
-                dev.detach_kernel_driver(0)
+            try:
+                if dev.is_kernel_driver_active(0):  # e.g. the Linux usbtmc module holds it
+                    dev.detach_kernel_driver(0)
+            except NotImplementedError:  # backends without kernel-driver control
+                pass
             dev.set_configuration()
             intf = usb.util.find_descriptor(dev.get_active_configuration(),
                                             bInterfaceClass=usbtmc.INTERFACE_CLASS,
