@@ -193,7 +193,7 @@ class Ell14Stage(RotationStage):
             self.wait(timeout_s)
 
     def _start(self, cmd: str, data: str) -> None:
-        if self._move_pending:
+        if self._move_pending and self.is_busy():
             raise DeviceFault(f"cannot start {cmd!r} while a motion is running",
                               device=self._link.device, code=BUSY, text=STATUS_TEXT[BUSY])
         if not self.pulses_per_deg:
@@ -251,9 +251,13 @@ class Ell14Stage(RotationStage):
             self._finish(reply, payload)
 
     def _read_move_end(self) -> None:
+        """The device says it is idle: take its end-of-move reply if it comes (it may have
+        been lost on the line, which is not an error once the device reports idle)."""
         try:
             reply, payload = self._read_reply(self.reply_timeout_s)
             self._finish(reply, payload)
+        except DeviceTimeout:
+            pass
         finally:
             self._move_pending = False
 

@@ -143,7 +143,10 @@ class K10cr1Stage(RotationStage):
     def is_busy(self) -> bool:
         busy = bool(self.status_bits() & apt.STATUS_MOVING)
         if not busy and self._pending:
-            self.wait(self.reply_timeout_s)  # the end-of-motion message is on its way
+            try:
+                self.wait(self.reply_timeout_s)  # the end-of-motion message is on its way
+            except DeviceTimeout:
+                self._pending = False  # it was lost on the line; the controller is idle
         return busy
 
     def home(self, timeout_s: float = 60.0) -> None:

@@ -142,3 +142,19 @@ def test_missing_port_and_silent_device(tmp_path, emu):
         st.open()
     assert not st.is_open
     assert_released(emu.port)
+
+
+def test_lost_end_of_move_reply(stage, emu):
+    emu.inject("no_reply")  # the PO that ends the move never arrives
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        stage.move_to(60.0, timeout_s=0.6)
+    assert time.monotonic() - t0 < 1.0
+    assert not stage.is_busy()  # the device says idle: the lost reply is forgiven
+    stage.move_to(70.0)
+    assert emu.position_deg == pytest.approx(70.0, abs=PULSE_DEG)
+    emu.inject("no_reply")
+    with pytest.raises(DeviceTimeout):
+        stage.move_to(80.0, timeout_s=0.6)
+    stage.move_to(90.0)  # a new move right away also recovers
+    assert emu.position_deg == pytest.approx(90.0, abs=PULSE_DEG)

@@ -137,3 +137,14 @@ def test_not_found_and_release(tmp_path, emu):
     st.close()
     with serial.Serial(emu.port, 115200, exclusive=True):
         pass
+
+
+def test_lost_move_completed(stage, emu):
+    stage.home(timeout_s=5)
+    emu.inject("no_reply")  # MOT_MOVE_COMPLETED never arrives
+    with pytest.raises(DeviceTimeout):
+        stage.move_to(30.0, timeout_s=0.5)
+    assert not stage.is_busy()
+    assert stage.position_deg() == pytest.approx(30.0, abs=STEP_DEG)
+    stage.move_to(40.0, timeout_s=5)
+    assert emu.position_deg == pytest.approx(40.0, abs=STEP_DEG)
