@@ -265,23 +265,58 @@ def _weight_plane(cell: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _bilinear_combined(x, layout, w, ky, kx, plan) -> np.ndarray:
-    ph, pw = layout.period
-    out = np.empty((layout.n_colours, w.shape[0]) + x.shape, np.float32)
-    tmp = None
-    for c in range(layout.n_colours):
-        for j in range(w.shape[0]):
-            cell = np.zeros((ph, pw), np.float32)  # weight of every cell position
-            for (cc, k), (pos, _) in plan.items():
-                if cc == c:
-                    for r, q in pos:
-                        cell[r, q] = w[j, k]
-            if np.all(cell == cell.flat[0]):  # uniform weight: fold it into the kernel
-                cv2.sepFilter2D(x, -1, kx * cell.flat[0], ky, dst=out[c, j],
-                                borderType=_BORDER)
-                continue
-            tmp = cv2.multiply(x, _weight_plane(cell, x.shape), dst=tmp)
-            cv2.sepFilter2D(tmp, -1, kx, ky, dst=out[c, j], borderType=_BORDER)
-    return out
+    return BilinearCombiner(layout, x.shape, w).strip(x, 0)
+
+
+class BilinearCombiner:
+    """Bilinear demosaicing followed by a fixed per-colour linear combination ``weights``
+    ``(J, 4)`` of the analyzer images, computable strip by strip (cache-friendly).
+
+    Only for layouts whose bilinear normalisation is exactly 1 (``supported``): then each
+    output plane is one separable filter of the mosaic times a periodic weight plane. A strip
+    ``x[e0:e1]`` gives exact outputs for rows ``e0 + halo .. e1 - halo`` (and up to the image
+    border where ``e0 == 0`` or ``e1 == H``).
+    """
+
+    def __init__(self, layout: MosaicLayout, shape: tuple[int, int], weights: np.ndarray):
+        self.layout = layout
+        self.shape = tuple(shape)
+        w = np.asarray(weights, np.float32)
+        self.n_out = w.shape[0]
+        self.ky, self.kx, plan = _bilinear_plan(layout, self.shape)
+        self.halo = (len(self.ky) - 1) // 2
+        self.supported = all(norm is None for _, norm in plan.values())
+        ph, pw = layout.period
+        self.terms: list[list[tuple[float | None, np.ndarray | None]]] = []
+        for c in range(layout.n_colours):
+            row = []
+            for j in range(self.n_out):
+                cell = np.zeros((ph, pw), np.float32)  # weight of every cell position
+                for (cc, k), (pos, _) in plan.items():
+                    if cc == c:
+                        for r, q in pos:
+                            cell[r, q] = w[j, k]
+                if np.all(cell == cell.flat[0]):  # uniform weight: folded into the kernel
+                    row.append((float(cell.flat[0]), None))
+                else:
+                    row.append((None, _weight_plane(cell, self.shape)))
+            self.terms.append(row)
+
+    def strip(self, x: np.ndarray, e0: int) -> np.ndarray:
+        """``(C, J, rows, W)`` float32 for the mosaic rows ``x = mosaic[e0:e0 + rows]``."""
+        rows = x.shape[0]
+        out = np.empty((self.layout.n_colours, self.n_out, rows, x.shape[1]), np.float32)
+        tmp = None
+        for c, row in enumerate(self.terms):
+            for j, (scale, plane) in enumerate(row):
+                if plane is None:
+                    cv2.sepFilter2D(x, -1, self.kx * np.float32(scale), self.ky,
+                                    dst=out[c, j], borderType=_BORDER)
+                else:
+                    tmp = cv2.multiply(x, plane[e0:e0 + rows], dst=tmp)
+                    cv2.sepFilter2D(tmp, -1, self.kx, self.ky, dst=out[c, j],
+                                    borderType=_BORDER)
+        return out
 
 
 # -- Newton polynomial interpolation (Li et al. 2019) -----------------------------------------

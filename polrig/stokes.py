@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 
 from polrig.analyzer import AnalyzerModel, LayoutLike, layout_name_at, resolve_layout
-from polrig.demosaic import (METHODS, demosaic_combined, demosaic_float, output_shape,
-                             preprocess)
+from polrig.demosaic import (METHODS, BilinearCombiner, demosaic_combined, demosaic_float,
+                             output_shape, preprocess)
 from polrig.layouts import ANALYZER_ANGLES_DEG, MosaicLayout
 
 
@@ -363,10 +363,28 @@ def stokes_from_raw(raw: np.ndarray, layout: LayoutLike, method: str = "superpix
                                 saturation_dn, bit_depth)
 
 
+def _saturation_level(raw, saturation_dn, bit_depth) -> float:
+    return default_saturation_dn(raw, bit_depth) if saturation_dn is None else saturation_dn
+
+
 def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, saturation_dn,
                      bit_depth) -> StokesImages:
     lay = resolve_layout(layout)
     raw = np.asarray(raw)
+    if raw.ndim != 2:
+        raise ValueError(f"raw mosaic must be 2-D (H, W), got shape {raw.shape}")
+    if dark is not None and np.shape(dark) != raw.shape:
+        raise ValueError(f"dark frame shape {np.shape(dark)} differs from raw {raw.shape}")
+    ph, pw = lay.period
+    if raw.shape[0] < ph or raw.shape[1] < pw:
+        raise ValueError(f"raw mosaic {raw.shape} is smaller than one {ph}x{pw} layout cell")
+    if method not in METHODS:
+        raise ValueError(f"unknown demosaic method {method!r}; use one of {', '.join(METHODS)}")
+    if method == "bilinear" and analyzer is None:
+        comb = BilinearCombiner(lay, raw.shape, ideal_inverse())
+        if comb.supported:
+            return _bilinear_in_strips(raw, lay, comb, black_level_dn, dark,
+                                       _saturation_level(raw, saturation_dn, bit_depth))
     x = preprocess(raw, black_level_dn=black_level_dn, dark=dark)
     solver = analyzer
     if isinstance(analyzer, AnalyzerModel):
@@ -391,7 +409,7 @@ def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, satura
         finite = np.isfinite(stokes).all(axis=1)
         stokes[~np.isfinite(stokes)] = 0
         stokes[:, 0][~finite] = 0  # a pixel with any non-finite Stokes value is invalid
-    sat_level = default_saturation_dn(raw, bit_depth) if saturation_dn is None else saturation_dn
+    sat_level = _saturation_level(raw, saturation_dn, bit_depth)
     valid = stokes[:, 0] > 0
     sat = raw >= sat_level if np.isfinite(sat_level) else None
     if sat is not None and sat.any():
@@ -407,3 +425,64 @@ def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, satura
     np.copyto(a, 0, where=~valid)
     a[~(a < 180)] = 0
     return StokesImages(stokes, valid, saturated, d, a, n_over, lay.name, method)
+
+
+#: Rows per strip of the strip-wise bilinear path (about 2**17 pixels of a 2448-wide frame):
+#: the working set of one strip stays in the CPU caches.
+STRIP_PIXELS = 2 ** 17
+
+
+def _bilinear_in_strips(raw: np.ndarray, lay: MosaicLayout, comb, black_level_dn: float,
+                        dark: np.ndarray | None, sat_level: float) -> StokesImages:
+    """The ideal-analyzer bilinear pipeline computed strip by strip: the same numbers as the
+    whole-image path, with far less memory traffic (every intermediate of a strip stays in
+    cache). Outputs as :func:`stokes_from_raw`."""
+    h, w = raw.shape
+    c = lay.n_colours
+    stokes = np.empty((c, 3, h, w), np.float32)
+    valid = np.empty((c, h, w), bool)
+    saturated = np.zeros((c, h, w), bool)
+    dl = np.empty((c, h, w), np.float32)
+    al = np.empty((c, h, w), np.float32)
+    check_finite = not (np.issubdtype(raw.dtype, np.integer) and
+                        (dark is None or np.isfinite(dark).all())
+                        and np.isfinite(black_level_dn))
+    halo = comb.halo
+    step = max(lay.period[0], STRIP_PIXELS // max(w, 1))
+    n_over = 0
+    sat_kernel = np.ones((2 * halo + 1, 2 * halo + 1), np.uint8)
+    for y0 in range(0, h, step):
+        y1 = min(h, y0 + step)
+        e0, e1 = max(0, y0 - halo), min(h, y1 + halo)
+        xs = preprocess(raw[e0:e1], black_level_dn=black_level_dn,
+                        dark=None if dark is None else dark[e0:e1])
+        s = comb.strip(xs, e0)[:, :, y0 - e0:y1 - e0]
+        if check_finite and not np.isfinite(s).all():
+            bad = ~np.isfinite(s)
+            s[bad] = 0
+            s[:, 0][bad.any(axis=1)] = 0  # a pixel with any non-finite value is invalid
+        stokes[:, :, y0:y1] = s
+        v = valid[:, y0:y1]
+        np.greater(s[:, 0], 0, out=v)
+        if np.isfinite(sat_level):
+            sat = raw[e0:e1] >= sat_level
+            if sat.any():
+                m = cv2.dilate(sat.view(np.uint8), sat_kernel,
+                               borderType=cv2.BORDER_REFLECT_101).view(bool)[y0 - e0:y1 - e0]
+                saturated[:, y0:y1] = m
+                v &= ~m
+        for ci in range(c):
+            d, a = dl[ci, y0:y1], al[ci, y0:y1]
+            cv2.cartToPolar(s[ci, 1], s[ci, 2], magnitude=d, angle=a, angleInDegrees=True)
+            inv = ~v[ci]
+            np.divide(d, s[ci, 0], out=d)
+            d[inv] = 0
+            over = d > 1
+            k = int(np.count_nonzero(over))
+            if k:
+                d[over] = 1
+                n_over += k
+            a *= np.float32(0.5)
+            a[inv] = 0
+            a[~(a < 180)] = 0
+    return StokesImages(stokes, valid, saturated, dl, al, n_over, lay.name, "bilinear")
