@@ -141,9 +141,11 @@ def test_not_found_and_release(tmp_path, emu):
 
 def test_lost_move_completed(stage, emu):
     stage.home(timeout_s=5)
+    emu.speed_factor = 10.0
+    stage.move_to(30.0, wait=False)
     emu.inject("no_reply")  # MOT_MOVE_COMPLETED never arrives
     with pytest.raises(DeviceTimeout):
-        stage.move_to(30.0, timeout_s=0.5)
+        stage.wait(timeout_s=0.8)
     assert not stage.is_busy()
     assert stage.position_deg() == pytest.approx(30.0, abs=STEP_DEG)
     stage.move_to(40.0, timeout_s=5)
