@@ -91,6 +91,16 @@ def unit_and_valid(v) -> tuple[np.ndarray, np.ndarray]:
     return out, ok
 
 
+def unit_fast(v: np.ndarray) -> np.ndarray:
+    """``v / |v|`` for ``(..., 3)`` vectors already known to be finite and non-zero (no checks;
+    component-major result). Use :func:`normalize` for arbitrary input."""
+    inv = 1.0 / np.sqrt(dot(v, v))
+    out = _empty_vectors(v.shape)
+    for c in range(3):
+        np.multiply(v[..., c], inv, out=out[..., c])
+    return out
+
+
 def normalize(v) -> np.ndarray:
     """Unit vectors along ``v`` ``(..., 3)``; zero or non-finite vectors become ``(0, 0, 1)``
     (mask them with :func:`valid_direction`)."""
@@ -219,16 +229,21 @@ def rotation_cos_sin_2theta(forward, basis_current, basis_target) -> tuple[np.nd
 
 def rotation_cos_sin_2theta_to_frame(basis_current, x_target, y_target) -> tuple[np.ndarray, np.ndarray]:
     """As :func:`rotation_cos_sin_2theta` with the target given as a full frame
-    ``(x_target, y_target = k x x_target)`` (unit vectors): ``basis_current`` (any length,
-    perpendicular to ``k``) lies at ``phi = atan2(cur . y, cur . x)`` in the target frame and
-    the rotation is ``theta = -phi``. Two dot products, no cross product: the fast path when
-    several bases are rotated into one frame."""
+    ``(x_target, y_target = k x x_target)`` (unit vectors): ``basis_current`` (any non-zero
+    length, perpendicular to ``k``) lies at ``phi = atan2(cur . y, cur . x)`` in the target
+    frame and the rotation is ``theta = -phi``. Two dot products and no cross product: the fast
+    path when several bases are rotated into one frame. A zero or non-finite current basis
+    gives ``theta = 0``."""
     c = dot(basis_current, x_target)
     s = dot(basis_current, y_target)
-    r2 = c * c + s * s
+    cc, ss = c * c, s * s
+    r2 = cc + ss
     ok = np.isfinite(r2) & (r2 > 0)
-    r2 = np.where(ok, r2, 1.0)
-    return np.where(ok, (c * c - s * s) / r2, 1.0), np.where(ok, -2.0 * c * s / r2, 0.0)
+    if ok.all():
+        inv = 1.0 / r2
+        return (cc - ss) * inv, -2.0 * c * s * inv
+    inv = 1.0 / np.where(ok, r2, 1.0)
+    return np.where(ok, (cc - ss) * inv, 1.0), np.where(ok, -2.0 * c * s * inv, 0.0)
 
 
 def rotation_angle(forward, basis_current, basis_target) -> np.ndarray:

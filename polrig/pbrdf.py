@@ -336,7 +336,8 @@ def _chunks(inp: _Inputs, extra_ok: bool):
         stop = min(count, start + CHUNK)
         rows = slice(start, stop) if flat is None else flat[start:stop]
         m = stop - start
-        n, i, o = (np.broadcast_to(_fr.normalize(_take(v, 1, rows)), (m, 3)) for v in (inp.normal, inp.wi, inp.wo))
+        # validated by _valid_rows: finite and non-zero
+        n, i, o = (np.broadcast_to(_fr.unit_fast(_take(v, 1, rows)), (m, 3)) for v in (inp.normal, inp.wi, inp.wo))
         alpha, eta = _take(inp.alpha, 0, rows), _take(inp.eta, 0, rows)
         refs = None if inp.refs is None else tuple(_take(r, 1, rows) for r in inp.refs)
         yield rows, _Pixels(n, i, o, _fr.dot(n, i), _fr.dot(n, o), np.maximum(alpha, ALPHA_MIN), eta, refs)
@@ -349,7 +350,7 @@ def _specular_elements(pix: _Pixels, distribution, frame_in, frame_out, nmat: in
     """Elements of ``Ms`` (``ks = 1``) in bases ``x_in`` (about ``-wi``), ``x_out`` (about
     ``wo``): ``R(theta_out) F R(theta_in)^T * D G / (4 cos_o)``, written out element-wise."""
     wi, wo, alpha, eta = pix.wi, pix.wo, pix.alpha, pix.eta
-    h = _fr.normalize(wi + wo)
+    h = _fr.unit_fast(wi + wo)  # wi + wo != 0: both above the horizon
     cos_h = _fr.dot(pix.n, h)
     cos_ih = _fr.dot(wi, h)  # = wo . h
     value = (microfacet_d(cos_h, alpha, distribution)
