@@ -54,6 +54,10 @@ def main(argv=None) -> None:
     kd_rgb = rng.uniform(size=(n, n, 3))
     axes = dict(stage_zero_axis=np.array([0.0, 1.0, 0.0]), camera_x_axis=np.array([1.0, 0.0, 0.0]))
     print(f"polrig.pbrdf, {n}x{n} pixels, float64, best of {args.repeat}")
+    a, b = rng.random(n * n), rng.random(n * n)
+    ref = best_of(lambda: a * b, 50)[0]
+    print(f"machine reference: one {n}x{n} float64 multiply takes {1e6 * ref:.0f} us "
+          "(about 70 us on an idle machine of this project; scale the table by it under load)")
     print(f"{'scene':6} {'valid':>6}  {'call':44} {'wall ms':>8} {'cpu ms':>8}")
     for kind in ("lit", "mixed"):
         normal, wi, wo = scene(kind, n, rng)
