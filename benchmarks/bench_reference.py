@@ -68,10 +68,14 @@ def main() -> None:
     m3 = np.moveaxis(truth[0], (0, 1), (-2, -1)).astype(np.float64)
     m3 = m3 + rng.normal(size=m3.shape) * 50
     m4 = rz.complete_linear(m3[: n // 4], "zero")
+    m3r = rng.normal(size=(n // 64, n, 3, 3))  # mostly non-physical: full search
     cases += [
         ("is_physical_coherency, zero completion (1/4)", m4.shape[0] * n, lambda: rz.is_physical_coherency(m4)),
         ("is_physical_gk, zero completion (1/4)", m4.shape[0] * n, lambda: rz.is_physical_gk(m4)),
+        ("is_physical_linear, max-min-eigenvalue (1/16)", (n // 16) * n,
+         lambda: rz.is_physical_linear(m3[: n // 16])),
         ("filter_linear, max-min-eigenvalue (1/16)", (n // 16) * n, lambda: rz.filter_linear(m3[: n // 16])),
+        ("filter_linear, random blocks (1/64)", (n // 64) * n, lambda: rz.filter_linear(m3r)),
     ]
     print(f"# polrig reference/realizability benchmark, {c} colour(s) x {n} x {n}, "
           f"states {args.states}")

@@ -27,10 +27,10 @@ J^H)`` for a Jones matrix ``J``, see :func:`polrig.mueller.jones_to_mueller`):
 Hermitian matrix of usnistgov pySCATMECH ``mueller.py`` (``MuellerToHermitian``, a different
 basis whose eigenvalues are exactly twice those of ``H``); the test suite repeats that check.
 
-**Cloude filtering** (Cloude 1986; used e.g. by pySCATMECH and Ossikovski's papers): eigen-
-decompose ``H``, clip its negative eigenvalues to zero, and rebuild ``M`` from
-``m_ij = tr(H (sigma_i (x) sigma_j^*))``. A realizable matrix is returned unchanged up to
-rounding.
+**Cloude filtering** (Cloude 1986; the eigen-decomposition of ``H`` is the Cloude
+decomposition of ``M`` into at most four non-depolarizing terms): eigen-decompose ``H``, clip
+its negative eigenvalues to zero, and rebuild ``M`` from ``m_ij = tr(H (sigma_i (x)
+sigma_j^*))``. A realizable matrix is returned unchanged up to rounding.
 
 **3x3 linear blocks.** A DoFP rig measures only the upper-left 3x3 block. Realizability is a
 property of a 4x4 matrix, so a block must be completed first, and the answer depends on the

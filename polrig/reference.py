@@ -53,6 +53,7 @@ from polrig.stokes import ideal_analyzer_matrix
 
 __all__ = [
     "DARK", "SATURATED", "ILL_CONDITIONED", "NONFINITE", "REASONS", "reason_names",
+    "DEFAULT_MAX_CONDITION",
     "ReferenceResult", "design_matrix", "condition_number", "validate_states",
     "forward_measurements", "solve_reference", "average_frames", "merge_hdr",
 ]
@@ -66,6 +67,8 @@ NONFINITE = 8  #: some samples had a non-finite value or a non-finite/non-positi
 REASONS: dict[int, str] = {DARK: "dark", SATURATED: "saturated",
                            ILL_CONDITIONED: "ill_conditioned", NONFINITE: "nonfinite"}
 
+#: default limit on the condition number of a state set and of a pixel's remaining design
+#: (0/45/90/135 and 0/60/120 give 2, 0/45/90 3.4, 0/30/60 8.8, 0/10/20 96)
 DEFAULT_MAX_CONDITION = 50.0
 
 
