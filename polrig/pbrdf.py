@@ -287,7 +287,7 @@ def _prepare(normal, wi, wo, *, alpha, eta, ks=1.0, kd=0.0, refs=None) -> _Input
         raise ValueError("alpha (microfacet roughness) must be >= 0")
     if np.any(eta <= 0):
         raise ValueError("eta (relative refractive index) must be > 0")
-    shapes = [v.shape[:-1] for v in vecs] + [alpha.shape, eta.shape]
+    shapes = [v.shape[:-1] for v in vecs] + [alpha.shape, eta.shape, ks.shape]
     if refs is not None:
         refs = (_fr._as_vectors(refs[0], "stage_zero_axis"), _fr._as_vectors(refs[1], "camera_x_axis"))
         shapes += [r.shape[:-1] for r in refs]
@@ -296,11 +296,9 @@ def _prepare(normal, wi, wo, *, alpha, eta, ks=1.0, kd=0.0, refs=None) -> _Input
         ncolour = kd.shape[-1] if kd.ndim == nd + 1 and kd.ndim > 0 else None
         if kd.ndim > nd + 1:
             raise ValueError(f"kd has shape {kd.shape}: expected the pixel shape or the pixel shape + (C,)")
-        if ks.ndim > nd:
-            raise ValueError(f"ks has shape {ks.shape}: expected a scalar or the pixel shape")
-        batch = np.broadcast_shapes(*shapes, kd.shape[:-1] if ncolour else kd.shape, ks.shape)
+        batch = np.broadcast_shapes(*shapes, kd.shape[:-1] if ncolour else kd.shape)
     except ValueError as exc:
-        if "kd" in str(exc) or "ks" in str(exc):
+        if str(exc).startswith("kd has shape"):
             raise
         raise ValueError(f"pixel shapes do not broadcast: {exc}") from None
     ct = 1 if ncolour else 0
