@@ -103,8 +103,10 @@ def test_filter_returns_realizable_and_is_idempotent(m):
     psd = rz.is_physical_coherency(m)
     assert (rz.is_physical_gk(m) | ~psd).all()
     # scale invariance of both tests for positive scales
+    gk = rz.is_physical_gk(m)
     for s in (1e-6, 1e6):
         assert np.array_equal(rz.is_physical_coherency(s * m), psd)
+        assert np.array_equal(rz.is_physical_gk(s * m), gk)
 
 
 def test_known_verdicts():
