@@ -85,9 +85,10 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: physical cores)")
     ap.add_argument("--methods", default="superpixel,bilinear")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped models/weights)")
+    ap.add_argument("--spinning", action="store_true", help="let onnxruntime worker threads spin")
     ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
     args = ap.parse_args(argv)
-    model = SingleShotModel.load(args.weights, threads=args.threads)
+    model = SingleShotModel.load(args.weights, threads=args.threads, spinning=args.spinning)
     rng = np.random.default_rng(0)
     results = []
     with tempfile.TemporaryDirectory() as d:
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
                 r = results[-1]
                 print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms", flush=True)
     threads = args.threads or physical_cores()
-    lines = [f"onnxruntime intra-op threads: {threads}; median of the runs after one warm-up; times in ms.", "",
+    lines = [f"onnxruntime intra-op threads: {threads}, spinning {'on' if args.spinning else 'off'}; median of the runs after one warm-up; times in ms.", "",
              "| raw size | demosaic | network size | decode | demosaic | Stokes | prepare | networks + pBRDF | finish | EXR | **total** | frames/s |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:

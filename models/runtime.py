@@ -21,7 +21,8 @@ size; pass a larger ``max_pixels`` to avoid it). Tiling is not used because the 
 image-wide (pooled over the whole mask).
 
 Threading: ``intra_op_num_threads`` = the number of physical cores, one inter-op thread,
-sequential execution, all graph optimisations (onnxruntime performance tuning guide).
+sequential execution, all graph optimisations, no spinning by default (onnxruntime
+performance tuning guide, "Thread management").
 """
 
 from __future__ import annotations
@@ -133,8 +134,13 @@ class SingleShotModel:
 
     @classmethod
     def load(cls, weights_dir: str | os.PathLike | None = None, *, graph: str = "single_shot.onnx",
-             threads: int | None = None) -> "SingleShotModel":
-        """Open ``graph`` in ``weights_dir`` (default: the shipped ``models/weights``)."""
+             threads: int | None = None, spinning: bool = False) -> "SingleShotModel":
+        """Open ``graph`` in ``weights_dir`` (default: the shipped ``models/weights``).
+
+        ``threads``: intra-op threads (default :func:`physical_cores`). ``spinning``: let idle
+        worker threads busy-wait between operators (onnxruntime's default); off by default
+        because on a shared or oversubscribed CPU spinning threads steal the cores the other
+        threads need (see ``benchmarks/bench_single_shot.py`` for both settings)."""
         import onnxruntime as ort
 
         wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
@@ -148,6 +154,7 @@ class SingleShotModel:
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         return cls(sess, meta, wd)
 
