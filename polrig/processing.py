@@ -261,26 +261,35 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
 
 # -- truth and score ---------------------------------------------------------------------------
 def truth_on_output_grid(truth_mueller: np.ndarray, layout: MosaicLayout, method: str,
-                         s_in: np.ndarray, model: SensorModel, exposure_us: float) -> np.ndarray:
+                         s_in: np.ndarray, weights_like: Sequence[StateRadiance] | None = None,
+                         model: SensorModel | None = None, exposure_us: float | None = None
+                         ) -> np.ndarray:
     """The truth as a perfect rig at this resolution measures it: the noise-free estimate
     from the per-pixel truth Mueller image ``(C, 3, 3, H, W)`` (each sensor pixel sees its own
     pixel's matrix, ideal analyzers, incident states ``s_in``), demosaiced with ``method`` and
-    solved with the noise model's weights, exactly as a capture is processed. Returns
-    ``(C, 3, 3, H', W')`` on the output grid.
+    solved exactly as a capture is processed. Returns ``(C, 3, 3, H', W')``.
 
-    Where the truth is uniform over a pixel's support this is the truth itself; at edges and
-    under fast shading it is what the demosaic can resolve (each analyzer sample of a
-    super-pixel sees a different sensor pixel), so the error of a capture against it is the
-    error of the measurement (noise, calibration), not of the sampling.
+    The weights matter where the truth varies inside a pixel's support (the estimate mixes
+    the matrices of the pixels it draws on): ``weights_like`` (the capture's own states) gives
+    the sample variances and exclusions to use, so that the result is the expectation of that
+    capture's estimator; without it the noise model's variance of the noise-free signal at
+    ``exposure_us`` is used. Where the truth is uniform over a pixel's support the result is
+    the truth itself, whatever the weights.
     """
     t = np.asarray(truth_mueller, dtype=np.float64)
     h, w = t.shape[-2:]
     ideal = AnalyzerModel.ideal(layout, (h, w))
     states = []
-    for s in np.asarray(s_in, dtype=np.float64):
+    for k, s in enumerate(np.asarray(s_in, dtype=np.float64)):
         mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", t, s))
-        states.append(StateRadiance(mosaic, model.variance_dn2(mosaic, exposure_us),
-                                    np.zeros(mosaic.shape, bool)))
+        if weights_like is not None:
+            like = weights_like[k]
+            states.append(StateRadiance(mosaic, like.variance_dn2, like.excluded))
+        else:
+            if model is None or exposure_us is None:
+                raise ValueError("give weights_like, or model and exposure_us")
+            states.append(StateRadiance(mosaic, model.variance_dn2(mosaic, exposure_us),
+                                        np.zeros(mosaic.shape, bool)))
     return reference_from_frames(states, s_in, layout, method).mueller
 
 
@@ -427,8 +436,9 @@ def frame_layout(frame: Frame) -> MosaicLayout:
 
 
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
-                      method: str) -> tuple[ReferenceResult, np.ndarray, MosaicLayout]:
-    """Reference solve of one capture's frames: ``(result, s_in, layout)``."""
+                      method: str
+                      ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
+    """Reference solve of one capture's frames: ``(result, s_in, layout, states)``."""
     first = cf.first
     lay = frame_layout(first)
     scale = adc_scale(model, first.meta.bit_depth)
@@ -448,7 +458,7 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
         ox, oy = first.meta.offset_xy
         analyzer = analyzer.crop(ox, oy, w, h)
     s_in = calibration.incident_stokes(cf.states_deg)
-    return reference_from_frames(states, s_in, lay, method, analyzer), s_in, lay
+    return reference_from_frames(states, s_in, lay, method, analyzer), s_in, lay, states
 
 
 class Processor:
@@ -493,8 +503,8 @@ class Processor:
 
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
-        result, s_in, lay = process_reference(cf, self.calibration, self.sensor_model,
-                                              self.demosaic)
+        result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
+                                                      self.demosaic)
         extra: dict[str, np.ndarray] = {}
         for r in range(3):
             for c in range(3):
@@ -525,14 +535,14 @@ class Processor:
                                 "channels": "sigma.M{row}{col}.{colour}, residual.{colour}"}
         files["mask"] = {"part_of": "mueller", "path": rec["path"],
                          "channels": "mask.{colour} (reason bits, 0 = valid)"}
-        score = self.score(session, index, result, lay, s_in, cf.exposures_us[0])
+        score = self.score(session, index, result, lay, s_in, states)
         if revision is not None:
             cap["revisions"][revision].update(status=COMPLETE, score=score)
         session.save()
         return score
 
     def score(self, session: Session, index: int, result: ReferenceResult,
-              layout: MosaicLayout, s_in: np.ndarray, exposure_us: float
+              layout: MosaicLayout, s_in: np.ndarray, states: Sequence[StateRadiance]
               ) -> dict[str, Any] | None:
         """Score against the capture's truth file (simulated rig), or None without one."""
         rec = session.capture(index)["files"].get("truth_mueller")
@@ -544,8 +554,7 @@ class Processor:
         if sha256_file(path) != rec["sha256"]:
             raise FormatError(f"{path}: SHA-256 does not match the session manifest")
         img = read_mueller_exr(path)
-        t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, self.sensor_model,
-                                 exposure_us)
+        t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, states)
         obj = img.extra.get("object_mask")
         if obj is not None:  # output pixels whose whole support lies on the object
             support = demosaic_float(np.asarray(obj, np.float32), layout, self.demosaic)

@@ -114,7 +114,8 @@ def test_noise_free_capture_is_the_exact_estimate_of_the_truth(tmp_path):
     assert err.max() <= 1e-4 * peak, err.max() / peak
     # without the rounding it is processing.truth_on_output_grid (what scores compare with),
     # and that is the truth where the truth does not vary over a cell
-    t = processing.truth_on_output_grid(truth, lay, "superpixel", s_in, model, exposure_us)
+    t = processing.truth_on_output_grid(truth, lay, "superpixel", s_in, model=model,
+                                        exposure_us=exposure_us)
     assert np.abs(t - expected)[:, :, :, valid].max() <= 2e-3 * peak
     blocks = truth.reshape(1, 3, 3, h // 2, 2, w // 2, 2)
     flat = (blocks.max(axis=(4, 6)) == blocks.min(axis=(4, 6))).all(axis=(1, 2))
