@@ -323,7 +323,9 @@ def score_against_truth(result: ReferenceResult, truth: np.ndarray,
                            "pixels_valid": int(result.valid.sum()),
                            "pixels_total": int(result.valid.size),
                            "mask_counts": result.reason_counts(),
-                           "condition_number": float(result.condition_number)}
+                           "condition_number": (float(result.condition_number)
+                                                if math.isfinite(result.condition_number)
+                                                else None)}
     keys = ("rmse", "mae", "psnr_db", "within_2sigma", "chi2_per_element", "mean_sigma",
             "peak_m00", "realizable")
     out.update({k: None for k in keys})
@@ -340,7 +342,7 @@ def score_against_truth(result: ReferenceResult, truth: np.ndarray,
         psnr_db=float(20 * math.log10(peak / rmse)) if rmse > 0 else float("inf"),
         within_2sigma=float(np.mean(np.abs(err[pos]) <= 2 * sig[pos])) if pos.any() else None,
         chi2_per_element=float(np.mean((err[pos] / sig[pos]) ** 2)) if pos.any() else None,
-        mean_sigma=float(np.sqrt(np.mean(sig**2))), peak_m00=peak,
+        mean_sigma=float(np.sqrt(np.mean(sig**2))) if pos.any() else None, peak_m00=peak,
         realizable=float(np.mean(is_physical_linear(mats))))
     return out
 
@@ -351,8 +353,9 @@ def format_score(score: dict[str, Any]) -> str:
         return "no pixels to score"
     psnr = score["psnr_db"]
     parts = [f"RMSE {score['rmse']:.4g}", f"MAE {score['mae']:.4g}",
-             f"PSNR {psnr:.1f} dB" if math.isfinite(psnr) else "PSNR inf",
-             f"mean sigma {score['mean_sigma']:.4g}"]
+             f"PSNR {psnr:.1f} dB" if math.isfinite(psnr) else "PSNR inf"]
+    if score.get("mean_sigma") is not None:
+        parts.append(f"mean sigma {score['mean_sigma']:.4g}")
     if score.get("within_2sigma") is not None:
         parts.append(f"{100 * score['within_2sigma']:.1f}% within 2 sigma")
     parts.append(f"realizable {100 * score['realizable']:.1f}%")
@@ -469,9 +472,10 @@ class Processor:
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel):
-        if mode != "reference":
-            single_shot_model()  # raises the one-line "no model installed" error
-            raise ConfigError("--mode single-shot processing is not available in this polrig")
+        if mode not in ("reference", "single-shot"):
+            raise ConfigError(f"unknown mode {mode!r}; use reference or single-shot")
+        # single-shot: the installed network, or the one-line "no model installed" error
+        self.model = single_shot_model() if mode == "single-shot" else None
         self.mode = mode
         self.demosaic = demosaic
         self.calibration = calibration
@@ -503,8 +507,11 @@ class Processor:
 
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
-        result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
-                                                      self.demosaic)
+        if self.mode == "single-shot":
+            result, s_in, lay, states = self.single_shot(cf)
+        else:
+            result, s_in, lay, states = process_reference(cf, self.calibration,
+                                                          self.sensor_model, self.demosaic)
         extra: dict[str, np.ndarray] = {}
         for r in range(3):
             for c in range(3):
@@ -535,14 +542,44 @@ class Processor:
                                 "channels": "sigma.M{row}{col}.{colour}, residual.{colour}"}
         files["mask"] = {"part_of": "mueller", "path": rec["path"],
                          "channels": "mask.{colour} (reason bits, 0 = valid)"}
-        score = self.score(session, index, result, lay, s_in, states)
+        score = self.score(session, index, result, lay, s_in,
+                           states if self.mode == "reference" else None, cf.exposures_us[0])
         if revision is not None:
             cap["revisions"][revision].update(status=COMPLETE, score=score)
         session.save()
         return score
 
+    def single_shot(self, cf: CaptureFrames
+                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
+        """One state through the installed network (:mod:`models.runtime`): averaged and
+        HDR-merged like the reference states, demosaiced, reconstructed. The network reports
+        no uncertainty: sigma planes are 0 and the mask marks background (``dark``)."""
+        from polrig.reference import DARK
+
+        first = cf.first
+        lay = frame_layout(first)
+        scale = adc_scale(self.sensor_model, first.meta.bit_depth)
+        adc = lambda f: f.raw.astype(np.float64) * scale  # noqa: E731
+        state = state_radiance([[adc(f) for f in lst] for lst in cf.frames[0]],
+                               cf.exposures_us, self.sensor_model,
+                               black_level_dn=float(first.meta.black_level_dn) * scale,
+                               darks=[[adc(f) for f in d] for d in cf.darks]
+                               if any(len(d) for d in cf.darks) else None)
+        measured, _, valid, _ = analyzer_stack(state, lay, self.demosaic)
+        s_in = self.calibration.incident_stokes(cf.states_deg[:1])
+        mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0])
+        obj = np.asarray(aux["mask"], bool)
+        c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
+        mask = np.where(obj, 0, DARK).astype(np.uint8)[None].repeat(c, axis=0)
+        zeros = np.zeros((c, h, w), np.float32)
+        result = ReferenceResult(mueller.astype(np.float32), np.zeros_like(mueller, np.float32),
+                                 zeros, mask, float("nan"), zeros + np.inf,
+                                 np.zeros((c, h, w), np.uint16))
+        return result, s_in, lay, None
+
     def score(self, session: Session, index: int, result: ReferenceResult,
-              layout: MosaicLayout, s_in: np.ndarray, states: Sequence[StateRadiance]
+              layout: MosaicLayout, s_in: np.ndarray,
+              states: Sequence[StateRadiance] | None, exposure_us: float
               ) -> dict[str, Any] | None:
         """Score against the capture's truth file (simulated rig), or None without one."""
         rec = session.capture(index)["files"].get("truth_mueller")
@@ -554,7 +591,12 @@ class Processor:
         if sha256_file(path) != rec["sha256"]:
             raise FormatError(f"{path}: SHA-256 does not match the session manifest")
         img = read_mueller_exr(path)
-        t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, states)
+        if states is None:  # single-shot: the truth at this resolution, nominal 4-state weights
+            t = truth_on_output_grid(img.mueller, layout, self.demosaic,
+                                     polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
+                                     model=self.sensor_model, exposure_us=exposure_us)
+        else:
+            t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, states)
         obj = img.extra.get("object_mask")
         if obj is not None:  # output pixels whose whole support lies on the object
             support = demosaic_float(np.asarray(obj, np.float32), layout, self.demosaic)

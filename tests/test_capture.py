@@ -269,3 +269,31 @@ def test_tampered_raw_frame_is_refused_by_reprocessing(tmp_path):
 
     with pytest.raises(FormatError, match="SHA-256"):
         processing.reprocess_session(Session.open(out))
+
+
+def test_dark_frames_and_hdr_bracket_keep_errors_within_sigma(tmp_path):
+    """Dark frames (light off) are recorded per exposure and subtracted; a two-exposure bracket
+    is merged to HDR at the first (reference) exposure. Errors against the truth still follow
+    the reported sigma, and the bracket lowers the error."""
+    plan = CapturePlan((0.0,), frames_per_state=2, exposures_us=(20000.0, 80000.0),
+                       dark_frames=2)
+    with sim_rig(scene="box") as rig:
+        session, proc = start(rig, tmp_path / "s", plan)
+        result = run_session(rig, session, processor=proc)
+        assert rig.light.status()["on"]  # back on after the dark frames
+    assert result.status == "complete"
+    files = session.capture(0)["files"]
+    assert len(files["dark"]) == 4 and len(files["raw"]) == 16
+    from polrig.rawio import read_raw
+
+    dark = read_raw(session.root / files["dark"][0]["path"])
+    assert dark.raw.mean() < 40  # black level 16 DN + read noise: the light was off
+    score = result.scores[0]
+    n = 9 * score["pixels_compared"]
+    assert n > 3000
+    assert score["within_2sigma"] >= 0.9545 - 3 * math.sqrt(0.9545 * 0.0455 / n), score
+    assert abs(score["chi2_per_element"] - 1) <= 4 * math.sqrt(2 / n) + 0.05, score
+    with sim_rig(scene="box") as rig:
+        single, proc = start(rig, tmp_path / "single", CapturePlan((0.0,), frames_per_state=2))
+        plain = run_session(rig, single, processor=proc).scores[0]
+    assert score["mean_sigma"] < plain["mean_sigma"]

@@ -15,6 +15,7 @@ from polrig.cli import main
 from polrig.session import Session
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
+MODEL_INSTALLED = (REPO / "models" / "weights" / "single_shot.onnx").is_file()
 
 
 def sim_config(path: pathlib.Path, *, noise: bool = True, clock_speed: str = "inf",
@@ -69,6 +70,8 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     (["--poses", "0", "--mode", "single-shot"], "single-shot"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, message):
+    if "single-shot" in args and MODEL_INSTALLED:
+        pytest.skip("a single-shot model is installed: --mode single-shot is valid input")
     out = tmp_path / "out"
     rc = main(["capture", *args, "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err
@@ -174,3 +177,17 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
     assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
                  "--no-progress"]) == 0
     assert content(out) == content(ref)
+
+
+@pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
+def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[sim]\nsize = "128x128"\nclock_speed = inf\nseed = 3\n')
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0,180", "--mode", "single-shot", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 0
+    s = Session.open(out)
+    for cap in s.captures:
+        assert len(cap["files"]["raw"]) == 1  # one state, one frame
+        assert cap["score"]["pixels_compared"] > 0 and cap["score"]["psnr_db"] > 20
+    assert s.verify() == []
