@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from polrig.pbrdf import linear_rig_mueller
-from sim.geometry import unit
+from sim.geometry import rows_times, unit
 from sim.scene import Scene
 
 #: Offset of shadow-ray origins along the geometric normal (metres).
@@ -114,8 +114,8 @@ def _nearest_hit(scene: Scene, turntable_deg: float, o: np.ndarray, d: np.ndarra
             continue
         oc = o if cand is None else o[cand]
         dc = d if cand is None else d[cand]
-        ol = (oc - t) @ r          # R^T (o - t) for row vectors
-        dl = dc @ r
+        ol = rows_times(oc - t, r)  # R^T (o - t) for row vectors
+        dl = rows_times(dc, r)
         th, nh = ob.shape.intersect(ol, dl)
         closer = th < (t_best if cand is None else t_best[cand])
         if not np.any(closer):
@@ -125,7 +125,7 @@ def _nearest_hit(scene: Scene, turntable_deg: float, o: np.ndarray, d: np.ndarra
         obj[sel] = k
         if any_hit:
             continue
-        nrm[sel] = nh[closer] @ r.T
+        nrm[sel] = rows_times(nh[closer], r.T)
         p_loc[sel] = ol[closer] + th[closer, None] * dl[closer]
     return t_best, obj, nrm, p_loc
 
@@ -177,8 +177,8 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
         if not np.any(sel):
             continue
         r, _ = ob.world_pose(scene.turntable, turntable_deg)
-        nl = ng[sel] @ r  # back to local
-        ns[sel] = unit(ob.shape.shading_normal(p_loc[idx][sel], nl) @ r.T)
+        nl = rows_times(ng[sel], r)  # back to local
+        ns[sel] = unit(rows_times(ob.shape.shading_normal(p_loc[idx][sel], nl), r.T))
         mat_index[sel] = mat_base[k] + ob.material_index(p_loc[idx][sel])
     flip = np.einsum("ij,ij->i", ng, wo) < 0  # two-sided surfaces face the camera
     ng[flip] *= -1
@@ -257,12 +257,13 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
 
     to_cam = cam.R.T  # row vectors: v_cam = v_world @ R^T
     mask = hit.reshape(h, w)
-    p_cam_z = (p @ to_cam + cam.t)[:, 2]
+    p_cam_z = rows_times(p, to_cam)[:, 2] + cam.t[2]
     res = RenderResult(
         turntable_deg=float(turntable_deg), mask=mask,
         lit=image(lit, False, bool), shadow=image(facing & shadowed, False, bool),
         object_index=image(ob_hit, -1, np.int16), material_index=image(mat_index, -1, np.int16),
-        normal=image(ns @ to_cam), wi=image(wi @ to_cam), wo=image(wo @ to_cam),
+        normal=image(rows_times(ns, to_cam)), wi=image(rows_times(wi, to_cam)),
+        wo=image(rows_times(wo, to_cam)),
         position_m=image(p), depth_m=image(p_cam_z), kd=image(kd), alpha=image(alpha),
         eta=image(eta), ks=image(ks), inv_r2=image(1.0 / dist ** 2),
         lit_index=idx[lit_sel], brdf_lit=brdf_px.astype(np.float32),

@@ -55,7 +55,7 @@ DEFAULTS: dict[str, Any] = {
     "sphere_radius_m": 0.03,
     "sphere_offset_m": (0.075, 0.0, 0.0),
     "sphere_height_m": 0.05,
-    "backdrop_y_m": 0.3,
+    "backdrop_y_m": 0.6,
 }
 
 
@@ -117,7 +117,7 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
         pos = np.asarray(o["sphere_offset_m"], float) + [0.0, 0.0, float(o["sphere_height_m"])]
         backdrop_rot = np.column_stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
         return [SceneObject("chrome_sphere", Sphere(r), (CHROME,), pos),
-                SceneObject("backdrop", Rectangle(0.6, 0.6), (WHITE,),
+                SceneObject("backdrop", Rectangle(1.0, 1.0), (WHITE,),
                             [0.0, float(o["backdrop_y_m"]), OBJECT_Z_M],
                             rotation=backdrop_rot, on_turntable=False)]
     raise ValueError(f"unknown calibration target {name!r}; known: {', '.join(TARGETS)}")
