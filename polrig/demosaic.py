@@ -313,7 +313,7 @@ class BilinearCombiner:
                     cv2.sepFilter2D(x, -1, self.kx * np.float32(scale), self.ky,
                                     dst=out[c, j], borderType=_BORDER)
                 else:
-                    tmp = cv2.multiply(x, plane[e0:e0 + rows], dst=tmp)
+                    tmp = np.multiply(x, plane[e0:e0 + rows], out=tmp)
                     cv2.sepFilter2D(tmp, -1, self.kx, self.ky, dst=out[c, j],
                                     borderType=_BORDER)
         return out

@@ -23,7 +23,9 @@ over and the number of such pixels is reported.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 
 import cv2
 import numpy as np
@@ -427,9 +429,11 @@ def _stokes_from_raw(raw, layout, method, black_level_dn, dark, analyzer, satura
     return StokesImages(stokes, valid, saturated, d, a, n_over, lay.name, method)
 
 
-#: Rows per strip of the strip-wise bilinear path (about 2**17 pixels of a 2448-wide frame):
+_BELOW_180 = float(np.nextafter(np.float32(180), np.float32(0)))
+
+#: Rows per strip of the strip-wise bilinear path (2**18 pixels, 107 rows of a 2448-wide frame):
 #: the working set of one strip stays in the CPU caches.
-STRIP_PIXELS = 2 ** 17
+STRIP_PIXELS = 2 ** 18
 
 
 def _bilinear_in_strips(raw: np.ndarray, lay: MosaicLayout, comb, black_level_dn: float,
@@ -449,40 +453,53 @@ def _bilinear_in_strips(raw: np.ndarray, lay: MosaicLayout, comb, black_level_dn
                         and np.isfinite(black_level_dn))
     halo = comb.halo
     step = max(lay.period[0], STRIP_PIXELS // max(w, 1))
-    n_over = 0
     sat_kernel = np.ones((2 * halo + 1, 2 * halo + 1), np.uint8)
-    for y0 in range(0, h, step):
-        y1 = min(h, y0 + step)
-        e0, e1 = max(0, y0 - halo), min(h, y1 + halo)
-        xs = preprocess(raw[e0:e1], black_level_dn=black_level_dn,
-                        dark=None if dark is None else dark[e0:e1])
-        s = comb.strip(xs, e0)[:, :, y0 - e0:y1 - e0]
-        if check_finite and not np.isfinite(s).all():
-            bad = ~np.isfinite(s)
-            s[bad] = 0
-            s[:, 0][bad.any(axis=1)] = 0  # a pixel with any non-finite value is invalid
-        stokes[:, :, y0:y1] = s
-        v = valid[:, y0:y1]
-        np.greater(s[:, 0], 0, out=v)
-        if np.isfinite(sat_level):
-            sat = raw[e0:e1] >= sat_level
-            if sat.any():
-                m = cv2.dilate(sat.view(np.uint8), sat_kernel,
-                               borderType=cv2.BORDER_REFLECT_101).view(bool)[y0 - e0:y1 - e0]
-                saturated[:, y0:y1] = m
-                v &= ~m
-        for ci in range(c):
-            d, a = dl[ci, y0:y1], al[ci, y0:y1]
-            cv2.cartToPolar(s[ci, 1], s[ci, 2], magnitude=d, angle=a, angleInDegrees=True)
-            inv = ~v[ci]
-            np.divide(d, s[ci, 0], out=d)
-            d[inv] = 0
-            over = d > 1
-            k = int(np.count_nonzero(over))
-            if k:
-                d[over] = 1
-                n_over += k
-            a *= np.float32(0.5)
-            a[inv] = 0
-            a[~(a < 180)] = 0
+
+    def one_strip(y0: int) -> int:
+        """Rows ``y0 .. y0 + step`` of every output; returns the DoLP overshoot count."""
+        n_over = 0
+        with np.errstate(all="ignore"):  # per thread: non-finite input ends up masked
+            y1 = min(h, y0 + step)
+            e0, e1 = max(0, y0 - halo), min(h, y1 + halo)
+            xs = preprocess(raw[e0:e1], black_level_dn=black_level_dn,
+                            dark=None if dark is None else dark[e0:e1])
+            s = comb.strip(xs, e0)[:, :, y0 - e0:y1 - e0]
+            if check_finite and not np.isfinite(s).all():
+                bad = ~np.isfinite(s)
+                s[bad] = 0
+                s[:, 0][bad.any(axis=1)] = 0  # a pixel with any non-finite value is invalid
+            stokes[:, :, y0:y1] = s
+            v = valid[:, y0:y1]
+            np.greater(s[:, 0], 0, out=v)
+            if np.isfinite(sat_level):
+                sat = raw[e0:e1] >= sat_level
+                if sat.any():
+                    m = cv2.dilate(sat.view(np.uint8), sat_kernel,
+                                   borderType=cv2.BORDER_REFLECT_101).view(bool)
+                    m = m[y0 - e0:y1 - e0]
+                    saturated[:, y0:y1] = m
+                    v &= ~m
+            for ci in range(c):
+                d, a, vc = dl[ci, y0:y1], al[ci, y0:y1], v[ci]
+                cv2.cartToPolar(s[ci, 1], s[ci, 2], magnitude=d, angle=a,
+                                angleInDegrees=True)
+                np.divide(d, s[ci, 0], out=d, where=vc)
+                np.copyto(d, 0, where=~vc)  # (the magnitude may overflow to inf: no multiply)
+                k = int(np.count_nonzero(d > 1))
+                if k:
+                    cv2.threshold(d, 1.0, 1.0, cv2.THRESH_TRUNC, dst=d)
+                    n_over += k
+                a *= np.float32(0.5)
+                np.multiply(a, vc, out=a)
+                # cartToPolar may return exactly 360 deg: AoLP 180 is AoLP 0
+                cv2.threshold(a, _BELOW_180, 0.0, cv2.THRESH_TOZERO_INV, dst=a)
+        return n_over
+
+    starts = range(0, h, step)
+    workers = min(len(starts), os.cpu_count() or 1)
+    if workers > 1:  # strips write disjoint rows; numpy and OpenCV release the GIL
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            n_over = sum(pool.map(one_strip, starts))
+    else:
+        n_over = sum(map(one_strip, starts))
     return StokesImages(stokes, valid, saturated, dl, al, n_over, lay.name, "bilinear")
