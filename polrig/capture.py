@@ -388,6 +388,9 @@ def run_session(rig, session: Session, *, processor=None,
         except DeviceError as exc:
             session.set_status(INTERRUPTED, f"rig preparation failed: {exc}")
             return SessionResult(INTERRUPTED, result.completed, [], str(exc))
+        except KeyboardInterrupt:
+            session.set_status(INTERRUPTED, "interrupted by the operator (Ctrl-C)")
+            raise
     for index in todo:
         try:
             session.restart_capture(index)

@@ -31,10 +31,11 @@ def run(args: argparse.Namespace) -> int:
     rig = m.get("rig", {})
     print(f"  rig: {'simulated' if rig.get('simulated') else 'hardware'}; calibration: "
           f"{m['calibration_id']}")
-    exposures = ",".join(f"{e:g}" for e in plan.get("exposures_us", [])) or "camera default"
+    exposures = (",".join(f"{e:g}" for e in plan.get("exposures_us", [])) + " us"
+                 if plan.get("exposures_us") else "camera default")
     print(f"  plan: mode {plan['mode']}, {len(plan['poses_deg'])} poses, states "
           f"{','.join(f'{a:g}' for a in plan.get('states_deg', []))} deg, "
-          f"{plan.get('frames_per_state', 1)} frame(s)/state, exposure {exposures} us, "
+          f"{plan.get('frames_per_state', 1)} frame(s)/state, exposure {exposures}, "
           f"{plan.get('dark_frames', 0)} dark frame(s), demosaic {plan.get('demosaic')}")
     counts: dict[str, int] = {}
     for cap in s.captures:
