@@ -2,7 +2,8 @@
 term skipping saves, and the end-to-end ``polrig sim render`` of four polarizer states.
 
 Run: ``.venv/bin/python benchmarks/bench_sim.py [--size 512] [--repeat 3]``. Prints tables of
-median wall times (seconds) over ``--repeat`` runs; nothing is asserted.
+median wall times (seconds) over ``--repeat`` runs; nothing is asserted. Check ``uptime``
+first: on a loaded machine wall times inflate several-fold.
 """
 
 from __future__ import annotations
@@ -83,9 +84,17 @@ def bench_cli(size: int, repeat: int) -> None:
             main(["sim", "render", "--scene", "sphere", "--size", f"{size}x{size}",
                   "--out", d])
 
-    _, t = _median(run, repeat)
+    cpu = []
+
+    def timed_run():
+        c0 = time.process_time()
+        run()
+        cpu.append(time.process_time() - c0)
+
+    _, t = _median(timed_run, repeat)
     print(f"\npolrig sim render sphere {size}x{size}, 4 states + truth files "
-          f"(in-process, median of {repeat}): {t:.3f} s")
+          f"(in-process, median of {repeat}): {t:.3f} s wall, "
+          f"{statistics.median(cpu):.3f} s CPU (process time; less sensitive to machine load)")
 
 
 def main() -> None:

@@ -186,7 +186,7 @@ def test_term_skipping_changes_nothing_and_skips_work():
                                m[:, 2] / get_material("diffuse").kd[2], rtol=1e-5)
 
 
-def test_every_rendered_truth_mueller_is_realizable():
+def test_every_rendered_truth_mueller_is_realizable(record_property):
     """Pass rate of the Cloude/coherency and Givens-Kostinski tests over every lit pixel of
     every named scene (small renders; the 3x3 blocks completed by polrig.realizability's
     default max-min-eigenvalue completion)."""
@@ -197,7 +197,9 @@ def test_every_rendered_truth_mueller_is_realizable():
         assert len(m) > 20, name
         for test in ("coherency", "gk"):
             rates[(name, test)] = pass_rate(is_physical_linear(m, test=test))
-    print("realizability pass rates:", {f"{k[0]}/{k[1]}": v for k, v in rates.items()})
+    summary = {f"{k[0]}/{k[1]}": v for k, v in rates.items()}
+    record_property("realizability_pass_rates", summary)
+    print("realizability pass rates:", summary)
     assert min(rates.values()) == 1.0, rates
 
 
