@@ -39,7 +39,9 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     assert [c["pose_deg"] for c in s.captures] == [0.0, 90.0, 180.0, 270.0]
     assert all(c["status"] == "complete" for c in s.captures)
     assert s.manifest["calibration_id"] == "nominal"
-    assert s.manifest["command_line"][:2] == ["polrig", "capture"] or s.manifest["command_line"]
+    assert s.manifest["command_line"] == ["polrig", "capture", "--poses", "0:360:90", "--mode",
+                                          "reference", "--config", str(cfg), "--out", str(out),
+                                          "--no-progress"]
     assert s.manifest["rig"]["simulated"] is True
     for cap in s.captures:
         assert cap["score"]["within_2sigma"] > 0.9

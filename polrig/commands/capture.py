@@ -88,6 +88,21 @@ def check_resume_args(args: argparse.Namespace, stored) -> None:
                               f"{getattr(stored, key)!r}, the command line asks for {value!r}")
 
 
+def command_line(args: argparse.Namespace, command: str = "capture") -> list[str]:
+    """The command as the manifest records it, rebuilt from the parsed options (so that it
+    is the same whether polrig ran as a console script or in-process)."""
+    out = ["polrig", command]
+    for key, value in vars(args).items():
+        if key in ("func", "command", "session") or value is None or value is False:
+            continue
+        out.append("--" + key.replace("_", "-"))
+        if value is not True:
+            out.append(str(value))
+    if getattr(args, "session", None):
+        out.append(str(args.session))
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from polrig import capture, processing
     from polrig.session import Session
@@ -118,9 +133,10 @@ def run(args: argparse.Namespace) -> int:
         if args.resume:
             remaining = len(session.next_pending())
             capture.check_resume_space(session, rig, remaining)
+            session.log("resume command", command_line=command_line(args))
         else:
             session = capture.create_session(out, rig, plan, calibration_id=calibration.id,
-                                             command_line=["polrig", *sys.argv[1:]])
+                                             command_line=command_line(args))
         processor = processing.make_processor(plan, calibration,
                                               processing.session_sensor_model(session))
         bar = _ProgressPrinter(enabled=not args.no_progress)

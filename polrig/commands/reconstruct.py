@@ -27,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from polrig import processing
+    from polrig.commands.capture import command_line
     from polrig.session import Session
 
     session = Session.open(args.session)
@@ -47,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
             tqdm.write(line, file=sys.stdout)
     name = processing.reprocess_session(session, mode=args.mode, demosaic=args.demosaic,
                                         calibration=calibration,
-                                        command_line=["polrig", *sys.argv[1:]],
+                                        command_line=command_line(args, "reconstruct"),
                                         progress=progress)
     if not args.no_progress:
         bar.close()
