@@ -228,9 +228,10 @@ def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
 
 #: Shape families of the random dataset scenes (``family`` id = index).
 FAMILIES = ("sphere", "box", "cylinder", "multi", "heightfield", "plane")
-#: Focal length of the dataset camera in units of min(width, height) (objects fill more of
-#: the frame than in the default rig).
-RANDOM_FOCAL_PER_PX = 3.2
+#: Focal length of the dataset camera in units of min(width, height): the default rig's, so
+#: that networks trained on datasets see the geometry of ``polrig sim render`` captures
+#: (``models.runtime.DEFAULT_FOCAL_PER_PX`` relies on it).
+RANDOM_FOCAL_PER_PX = 2.5
 
 #: Families kept out of the training set by ``polrig sim dataset`` (``--holdout`` makes them).
 HOLDOUT_FAMILIES = ("heightfield", "plane")
