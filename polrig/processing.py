@@ -629,8 +629,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
     if mode == "reference":
-        check_plan(dataclasses.make_dataclass("P", ["mode", "states_deg"])(
-            mode, plan["states_deg"]), calibration)
+        validate_states(calibration.incident_stokes(plan["states_deg"]))
     name = session.new_revision({"mode": mode, "demosaic": demosaic,
                                  "calibration_id": calibration.id}, command_line)
     for index in done:
