@@ -15,6 +15,10 @@ Analyzer models:
   are data dependent), and the per-pixel least-squares pseudo-inverses ``(A^T A)^-1 A^T`` are
   computed once in :class:`StokesSolver`.
 
+Speed: the ideal-analyzer ``bilinear`` path of :func:`stokes_from_raw` runs in cache-sized
+strips of rows on a thread pool (same numbers as the whole-image computation; see
+``benchmarks/bench_dofp.py``).
+
 Masks: a pixel is **valid** when all its Stokes values are finite, ``S0 > 0`` and no
 contributing sensor pixel is saturated. Outputs are always finite: non-finite Stokes values
 are set to 0, DoLP and AoLP are 0 where invalid. DoLP is clipped to 1 only where noise pushes it
@@ -250,7 +254,7 @@ def _dolp_from_magnitude(mag: np.ndarray, s0: np.ndarray, valid: np.ndarray
 
 
 def dolp(stokes: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """DoLP in [0, 1] (``docs/conventions.md``), 0 where invalid; see :func:`dolp_with_overshoot`."""
+    """DoLP in [0, 1] (``docs/conventions.md``), 0 where invalid (:func:`dolp_with_overshoot`)."""
     return dolp_with_overshoot(stokes, valid)[0]
 
 
@@ -480,17 +484,17 @@ def _bilinear_in_strips(raw: np.ndarray, lay: MosaicLayout, comb, black_level_dn
                     saturated[:, y0:y1] = m
                     v &= ~m
             for ci in range(c):
-                d, a, vc = dl[ci, y0:y1], al[ci, y0:y1], v[ci]
+                d, a, inv = dl[ci, y0:y1], al[ci, y0:y1], ~v[ci]
                 cv2.cartToPolar(s[ci, 1], s[ci, 2], magnitude=d, angle=a,
                                 angleInDegrees=True)
-                np.divide(d, s[ci, 0], out=d, where=vc)
-                np.copyto(d, 0, where=~vc)  # (the magnitude may overflow to inf: no multiply)
+                np.divide(d, s[ci, 0], out=d)  # inf/NaN where S0 <= 0: overwritten next
+                np.copyto(d, 0, where=inv)
                 k = int(np.count_nonzero(d > 1))
                 if k:
                     cv2.threshold(d, 1.0, 1.0, cv2.THRESH_TRUNC, dst=d)
                     n_over += k
                 a *= np.float32(0.5)
-                np.multiply(a, vc, out=a)
+                np.copyto(a, 0, where=inv)
                 # cartToPolar may return exactly 360 deg: AoLP 180 is AoLP 0
                 cv2.threshold(a, _BELOW_180, 0.0, cv2.THRESH_TOZERO_INV, dst=a)
         return n_over
