@@ -146,10 +146,10 @@ def build_world(opts: dict[str, Any]) -> SimWorld:
     """The :class:`SimWorld` of parsed options."""
     w, h = opts["size"]
     hid = opts["hidden"]
+    table = TurntableGeometry(np.asarray(hid["turntable_axis"], float),
+                              np.asarray(hid["turntable_point_m"], float))
     scene = make_scene(opts["scene"], w, h, light_position_m=hid["light_position_m"],
-                       light_intensity_rgb=hid["light_intensity_rgb"])
-    scene = dataclasses.replace(scene, turntable=TurntableGeometry(
-        np.asarray(hid["turntable_axis"], float), np.asarray(hid["turntable_point_m"], float)))
+                       light_intensity_rgb=hid["light_intensity_rgb"], turntable=table)
     rng = np.random.default_rng([opts["seed"], 1])
     sensor = build_sensor(opts, rng)
     gen = Generator(float(hid["stage_zero_offset_deg"]), float(hid["extinction_ratio"]))

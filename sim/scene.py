@@ -129,19 +129,35 @@ def default_light(position_m=(0.18, -0.42, 0.25), intensity_rgb=(1.0, 1.0, 1.0))
     return PointLight(np.asarray(position_m, float), np.asarray(intensity_rgb, float))
 
 
+def stage_zero_axis_for(light: PointLight, turntable: TurntableGeometry,
+                        height_m: float = OBJECT_Z_M) -> tuple[np.ndarray, np.ndarray]:
+    """The rig's definition of the polarizer stage zero axis and the illumination target.
+
+    The target is the turntable-axis point at ``height_m`` (world ``Z`` of the object centre);
+    the zero axis is the horizontal direction (perpendicular to the turntable axis, the rig's
+    "up") perpendicular to the illumination axis: ``x0 = normalize(k x up)`` with ``k`` from
+    the light to the target, as ``calibration/rigframes.py`` defines it for the lab rig.
+    """
+    up = turntable.axis
+    target = turntable.point_m + up * (height_m - turntable.point_m[2]) / up[2]
+    x0 = unit(np.cross(target - light.position_m, up))
+    if not np.any(x0):
+        raise ValueError("the light lies on the turntable axis: the stage zero axis is undefined")
+    return x0, target
+
+
 def _rig(name: str, objects: list[SceneObject], width: int, height: int,
          light: PointLight | None = None, camera: PinholeCamera | None = None,
-         stage_zero_axis: np.ndarray | None = None) -> Scene:
-    """A scene in the default rig. The stage zero axis defaults to the horizontal direction
-    perpendicular to the illumination axis."""
+         stage_zero_axis: np.ndarray | None = None,
+         turntable: TurntableGeometry | None = None) -> Scene:
+    """A scene in the default rig; the stage zero axis defaults to :func:`stage_zero_axis_for`."""
     light = light or default_light()
     camera = camera or default_camera(width, height)
-    target = np.array([0.0, 0.0, OBJECT_Z_M])
-    if stage_zero_axis is None:
-        k = unit(target - light.position_m)
-        stage_zero_axis = np.cross(k, [0.0, 0.0, 1.0])
-    return Scene(name, tuple(objects), camera, light, TurntableGeometry(), stage_zero_axis,
-                 target)
+    turntable = turntable or TurntableGeometry()
+    zero, target = stage_zero_axis_for(light, turntable)
+    if stage_zero_axis is not None:
+        zero = stage_zero_axis
+    return Scene(name, tuple(objects), camera, light, turntable, zero, target)
 
 
 def checker_regions(n_az: int = 6, n_el: int = 3) -> RegionFn:
@@ -216,14 +232,16 @@ SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_
 
 
 def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
-               light_position_m=None, light_intensity_rgb=None) -> Scene:
-    """A named scene (:data:`SCENES`) in the default rig at a sensor of ``width x height``."""
+               light_position_m=None, light_intensity_rgb=None,
+               turntable: TurntableGeometry | None = None) -> Scene:
+    """A named scene (:data:`SCENES`) in the default rig at a sensor of ``width x height``
+    (``turntable``: the axis the objects turn about; default vertical through the origin)."""
     light = default_light()
     if light_position_m is not None or light_intensity_rgb is not None:
         light = PointLight(light.position_m if light_position_m is None else light_position_m,
                            light.intensity_rgb if light_intensity_rgb is None
                            else light_intensity_rgb)
-    return _rig(name, _scene_objects(name), width, height, light=light)
+    return _rig(name, _scene_objects(name), width, height, light=light, turntable=turntable)
 
 
 #: Shape families of the random dataset scenes (``family`` id = index).
