@@ -255,3 +255,37 @@ def board_pose(detection: CharucoDetection, K: np.ndarray,
     rms = float(np.sqrt(np.mean(np.sum((p.reshape(-1, 2) - img) ** 2, axis=1))))
     R, _ = cv2.Rodrigues(rvec)
     return R, tvec.reshape(3), rms
+
+
+def class_scales(raw: np.ndarray, layout, black_level_dn: float = 0.0) -> np.ndarray:
+    """Relative level of every mosaic pixel ``(H, W)``: the median of its (colour, analyzer)
+    class over the brighter half of ``raw`` (an unpolarized, grey-ish scene)."""
+    from polrig.analyzer import resolve_layout
+
+    lay = resolve_layout(layout)
+    a = np.asarray(raw, dtype=np.float64) - float(black_level_dn)
+    a = np.where(np.isfinite(a), a, 0.0)
+    bright = a > np.percentile(a, 50)
+    out = np.ones_like(a)
+    for m in lay.masks(a.shape).values():
+        sel = m & bright
+        s = np.median(a[sel]) if np.count_nonzero(sel) > 8 else np.median(a[m])
+        out[m] = s if s > 0 else 1.0
+    return out
+
+
+def intensity_image(raw: np.ndarray, layout, black_level_dn: float = 0.0,
+                    scales: np.ndarray | None = None) -> np.ndarray:
+    """A grey float image of a raw DoFP mosaic for geometric detection (board corners, sphere
+    silhouettes): black level removed, every (colour, analyzer angle) pixel class divided by
+    its level (:func:`class_scales` of this frame unless ``scales`` from another frame of the
+    same scene are given), then a centred ``[1, 2, 1] / 4`` smoothing that suppresses what
+    remains of the mosaic without shifting edges. ``layout``: a
+    :class:`polrig.layouts.MosaicLayout` or a name such as ``"imx250myr@0,1"``.
+    """
+    a = np.asarray(raw, dtype=np.float64) - float(black_level_dn)
+    a = np.where(np.isfinite(a), a, 0.0)
+    if scales is None:
+        scales = class_scales(a, layout)
+    k = np.array([0.25, 0.5, 0.25])
+    return cv2.sepFilter2D(a / scales, -1, k, k, borderType=cv2.BORDER_REFLECT)

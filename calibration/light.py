@@ -53,7 +53,8 @@ class SphereObservation:
 
 
 def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
-                min_radius_px: float = 4.0) -> SphereObservation:
+                min_radius_px: float = 4.0,
+                highlight_image: np.ndarray | None = None) -> SphereObservation:
     """Silhouette edge points and highlight of a mirror sphere in a grey image (DN, 2-D).
 
     The sphere is the largest connected region darker than the Otsu threshold of the image
@@ -61,7 +62,8 @@ def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
     (the highlight) filled. Edge points are the sub-pixel crossings of the mid level between
     neighbouring inside/outside pixels (4-neighbours). Raises :class:`SphereNotFound` or
     :class:`SphereSaturated` (when more than one highlight pixel reaches ``saturation_dn``)
-    with what to change.
+    with what to change. ``highlight_image`` (same shape; e.g. a shorter exposure in which the
+    highlight is not clipped) is used for the highlight instead of ``image``.
     """
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2:
@@ -75,21 +77,27 @@ def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
     thr, dark = cv2.threshold(g8, 0, 1, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=4)
     h, w = img.shape
-    best, best_area = -1, 0
+    hil = img if highlight_image is None else np.asarray(highlight_image, dtype=np.float64)
+    hil = np.where(np.isfinite(hil), hil, 0.0)
+    # candidates: dark discs inside the image; the sphere is the one holding the brightest
+    # highlight (a shadow of the sphere on the backdrop is dark too, but has no highlight)
+    best, best_peak, filled = -1, -np.inf, None
     for k in range(1, n):
         x, y, ww, hh, area = stats[k]
-        if x == 0 or y == 0 or x + ww >= w or y + hh >= h:
+        if x == 0 or y == 0 or x + ww >= w or y + hh >= h or area < np.pi * min_radius_px ** 2:
             continue
-        if area > best_area:
-            best, best_area = k, area
-    if best < 0 or best_area < np.pi * min_radius_px ** 2:
+        region = (labels == k).astype(np.uint8)
+        contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        f = np.zeros_like(region)
+        cv2.drawContours(f, contours, -1, 1, thickness=cv2.FILLED)
+        core_k = cv2.erode(f, np.ones((3, 3), np.uint8)).astype(bool)
+        peak_k = float(np.max(hil[core_k])) if core_k.any() else -np.inf
+        if peak_k > best_peak:
+            best, best_peak, filled = k, peak_k, f
+    if best < 0:
         raise SphereNotFound("no mirror sphere silhouette found (need a dark disc of radius "
                              f">= {min_radius_px:.0f} px fully inside the image on a lit "
                              "background); move the sphere into view or light the background")
-    region = (labels == best).astype(np.uint8)
-    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    filled = np.zeros_like(region)
-    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
     inside = filled.astype(bool)
     # background and sphere levels near the edge
     ring_out = cv2.dilate(filled, np.ones((5, 5), np.uint8)).astype(bool) & ~inside
@@ -115,6 +123,11 @@ def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
     edge = np.concatenate(pts)
     # highlight: brightest pixels inside the disc (away from the rim)
     core = cv2.erode(filled, np.ones((3, 3), np.uint8)).astype(bool)
+    if highlight_image is not None:
+        img = np.asarray(highlight_image, dtype=np.float64)
+        if img.shape != inside.shape:
+            raise ValueError(f"highlight image shape {img.shape} differs from {inside.shape}")
+        img = np.where(np.isfinite(img), img, 0.0)
     vals = np.where(core, img, -np.inf)
     peak_idx = np.unravel_index(np.argmax(vals), img.shape)
     peak = img[peak_idx]
@@ -166,12 +179,18 @@ def fit_sphere_centre(edge_rays: np.ndarray, radius_m: float) -> tuple[np.ndarra
         raise SphereNotFound(f"sphere silhouette has only {len(d)} edge points; move the "
                              "sphere closer or use a larger sphere")
     w, *_ = np.linalg.lstsq(d, np.ones(len(d)), rcond=None)
-    res = d @ w - 1.0
-    # one robust re-fit without the worst 5 % (highlight touching the rim, occlusions)
-    keep = np.abs(res) <= np.quantile(np.abs(res), 0.95)
-    if keep.sum() >= 8:
+    keep = np.ones(len(d), bool)
+    # robust re-fits: drop edge points far from the cone (a shadow or another dark object
+    # touching the silhouette), with a MAD-based threshold
+    for _ in range(8):
+        r_all = d @ w - 1.0
+        sig = 1.4826 * np.median(np.abs(r_all[keep] - np.median(r_all[keep]))) + 1e-12
+        new = np.abs(r_all) <= max(3.0 * sig, 1e-9)
+        if new.sum() < 8 or np.array_equal(new, keep):
+            break
+        keep = new
         w, *_ = np.linalg.lstsq(d[keep], np.ones(int(keep.sum())), rcond=None)
-        res = d[keep] @ w - 1.0
+    res = d[keep] @ w - 1.0
     nw = np.linalg.norm(w)
     if not np.isfinite(nw) or nw <= 1.0:
         raise SphereNotFound("sphere silhouette does not fit a sphere (degenerate cone)")
@@ -255,6 +274,14 @@ def fit_light_position(observations: list[SphereObservation], radius_m: float, K
         ray = pixel_rays(ob.highlight_px[None], K, dist)[0]
         p, refl = reflected_ray(c, radius_m, ray)
         fits.append(SphereFit(c, radius_m, rms, p, refl))
+    # a silhouette merged with its shadow or another object fits the cone badly: drop views
+    # whose edge residual is far above the typical one
+    med = float(np.median([f.edge_residual_rms for f in fits]))
+    good = [f for f in fits if f.edge_residual_rms <= 5.0 * med]
+    if len(good) < 2:
+        raise TooFewAngles("fewer than 2 clean mirror-sphere silhouettes; keep the sphere's "
+                           "shadow off its outline (move the backdrop back) or add positions")
+    fits = good
     x, cov, dists = intersect_rays(np.array([f.hit_cam_m for f in fits]),
                                    np.array([f.reflected_dir for f in fits]))
     return LightFit(x, cov, dists, tuple(fits))

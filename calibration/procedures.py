@@ -1,0 +1,500 @@
+"""Guided calibration procedures that drive a rig through its HAL devices.
+
+Each procedure takes a rig-like object with ``camera``, ``stage``, ``turntable`` and ``light``
+(:mod:`polrig.hal` devices, as :func:`polrig.rig.open_rig` returns them) and a ``mount``
+callback ``mount(target_name, **fixture)`` that asks the operator to put a calibration target
+in place (on the simulated rig it swaps the simulated target, :func:`sim.targets.mount`).
+Targets: ``"charuco"`` (board in the turntable fixture, with ``tilt_deg``/``roll_deg``),
+``"mirror_plate"`` (polished metal plate in the same fixture), ``"chrome_sphere"`` (chrome
+ball of known radius off the turntable axis in front of a white backdrop). Procedures never
+look at simulator internals.
+
+Order (each step uses the previous ones): :func:`run_intrinsics` -> :func:`run_turntable` ->
+:func:`run_light` -> :func:`run_generator_offset` -> :func:`run_dofp`. Geometry is in the
+camera frame (``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import numpy as np
+
+from calibration import charuco, dofp, light, rigframes, turntable
+from calibration.errors import BoardNotFound, CalibrationError, SphereNotFound, TooFewAngles
+from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
+                                   wrap_deg)
+from polrig.analyzer import AnalyzerModel, layout_name_at
+from polrig.mueller import polarizer_stokes
+
+Mount = Callable[..., None]
+Log = Callable[[str], None]
+
+#: Design value of the mean micro-polarizer diattenuation of the IMX250MZR/MYR-class sensor
+#: the simulator models. The DoFP light path only measures the product of a pixel's
+#: diattenuation and the generator's DoLP, so the generator's extinction ratio is referred to
+#: this value; set the camera's own (datasheet / bench measurement) with
+#: ``sensor_diattenuation``.
+DEFAULT_SENSOR_DIATTENUATION = 0.985
+
+INTRINSIC_MOUNTS: tuple[dict[str, float], ...] = (
+    {"tilt_deg": 0.0}, {"tilt_deg": 50.0}, {"tilt_deg": 40.0, "roll_deg": 40.0},
+    {"tilt_deg": 40.0, "roll_deg": -40.0}, {"tilt_deg": 60.0, "roll_deg": 20.0})
+INTRINSIC_ANGLES_DEG = tuple(range(-45, 46, 15))
+TURNTABLE_MOUNT = {"tilt_deg": 35.0}
+TURNTABLE_ANGLES_DEG = tuple(range(-45, 46, 10))
+LIGHT_ANGLES_DEG = tuple(range(0, 360, 30))
+#: Two sphere heights on the turntable, for a vertical as well as a horizontal baseline.
+LIGHT_MOUNTS: tuple[dict[str, float], ...] = ({"sphere_height_m": 0.01}, {"sphere_height_m": 0.10})
+STAGE_ANGLES_DEG = tuple(float(a) for a in range(0, 180, 5))
+
+
+def _noop(*_a, **_k) -> None:
+    return None
+
+
+# --------------------------------------------------------------------------- capture helpers
+def _full_scale(meta) -> float:
+    return float((1 << int(meta.bit_depth)) - 1)
+
+
+def grab_mean(camera, n: int = 1) -> tuple[np.ndarray, Any]:
+    """Mean of ``n`` raw frames (float64, black level still in) and the last frame's meta."""
+    acc = None
+    meta = None
+    for _ in range(max(1, int(n))):
+        f = camera.grab()
+        acc = f.raw.astype(np.float64) if acc is None else acc + f.raw
+        meta = f.meta
+    return acc / max(1, int(n)), meta
+
+
+def auto_expose(camera, *, percentile: float = 99.5, target: float = 0.6,
+                mask: np.ndarray | None = None, iterations: int = 6) -> float:
+    """Set the exposure so that the ``percentile`` of the (masked) black-subtracted raw frame
+    is ``target`` of the full scale; returns the exposure in microseconds."""
+    lo, hi = getattr(camera, "EXPOSURE_RANGE_US", (10.0, 1e7))
+    for _ in range(iterations):
+        f = camera.grab()
+        full = _full_scale(f.meta) - f.meta.black_level_dn
+        a = f.raw.astype(np.float64) - f.meta.black_level_dn
+        v = float(np.percentile(a[mask] if mask is not None else a, percentile))
+        if v >= 0.98 * full:  # saturated: halve and retry
+            new = camera.exposure_us / 4.0
+        elif v <= 0:
+            new = camera.exposure_us * 8.0
+        else:
+            new = camera.exposure_us * target * full / v
+            if abs(new / camera.exposure_us - 1.0) < 0.1:
+                return camera.exposure_us
+        camera.set_exposure_us(float(np.clip(new, lo, hi)))
+    return camera.exposure_us
+
+
+def _layout(camera) -> str:
+    w, h, ox, oy = camera.roi
+    return layout_name_at(camera.layout, ox, oy)
+
+
+def _move(dev, angle_deg: float) -> None:
+    dev.move_to(float(angle_deg), wait=True, timeout_s=120.0)
+
+
+def _board_image(camera, n: int = 1) -> np.ndarray:
+    raw, meta = grab_mean(camera, n)
+    return charuco.intensity_image(raw, _layout(camera), meta.black_level_dn)
+
+
+# --------------------------------------------------------------------------- intrinsics
+@dataclasses.dataclass
+class IntrinsicsRun:
+    """Zhang intrinsics and the board views ``(mount index, turntable angle, detection)``."""
+
+    result: charuco.IntrinsicsResult
+    views: list
+    skipped: list[str]
+
+
+def capture_board_views(rig, mount: Mount, spec: charuco.BoardSpec, mounts, angles_deg,
+                        log: Log = _noop) -> tuple[list, list[str]]:
+    """Board views over fixture mounts and turntable angles; views where the board is not
+    found are skipped and listed."""
+    views, skipped = [], []
+    cam = rig.camera
+    for i, m in enumerate(mounts):
+        mount("charuco", **m)
+        log(f"board mounted {m}")
+        _move(rig.turntable, 0.0)
+        auto_expose(cam, percentile=99.0, target=0.7)
+        for a in angles_deg:
+            _move(rig.turntable, a)
+            try:
+                views.append((i, float(a), charuco.detect(spec, _board_image(cam))))
+            except BoardNotFound as exc:
+                skipped.append(f"{m} @ {a} deg: {exc}")
+    return views, skipped
+
+
+def run_intrinsics(rig, mount: Mount, spec: charuco.BoardSpec, *,
+                   mounts=INTRINSIC_MOUNTS, angles_deg=INTRINSIC_ANGLES_DEG,
+                   distortion: str = "k1k2", log: Log = _noop) -> IntrinsicsRun:
+    """Board at several fixture tilts/rolls and turntable angles -> pinhole intrinsics
+    (Zhang's method; :func:`run_turntable` refines them together with the turntable axis)."""
+    views, skipped = capture_board_views(rig, mount, spec, mounts, angles_deg, log)
+    w, h = rig.camera.roi[:2]
+    res = charuco.calibrate_intrinsics([d for _, _, d in views], (w, h), distortion)
+    log(f"intrinsics (Zhang): {len(views)} views, fx={res.fx:.2f}±{res.std_fx_fy_cx_cy[0]:.2f} "
+        f"px, fy={res.fy:.2f}±{res.std_fx_fy_cx_cy[1]:.2f} px, cx={res.K[0, 2]:.2f}, "
+        f"cy={res.K[1, 2]:.2f}, reprojection RMS {res.rms_px:.3f} px")
+    return IntrinsicsRun(res, views, skipped)
+
+
+# --------------------------------------------------------------------------- turntable
+def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: IntrinsicsRun | None,
+                  K: np.ndarray | None = None, dist: np.ndarray | None = None, *,
+                  mounts=INTRINSIC_MOUNTS, angles_deg=INTRINSIC_ANGLES_DEG,
+                  distortion: bool = True, log: Log = _noop) -> turntable.JointRigResult:
+    """Turntable axis (and refined intrinsics) from board views at several turntable angles
+    and fixture mounts: a linear axis estimate from one mount's PnP poses, then the joint
+    bundle adjustment :func:`calibration.turntable.refine_rig`. Reuses the views of
+    ``intrinsics`` when given, otherwise captures them (with ``K``, ``dist`` as the start)."""
+    if intrinsics is not None:
+        views = intrinsics.views
+        K, dist = intrinsics.result.K, intrinsics.result.dist
+    else:
+        if K is None:
+            raise CalibrationError("turntable calibration needs intrinsics: run 'intrinsics' "
+                                   "first or pass a calibration set that has them")
+        views, _ = capture_board_views(rig, mount, spec, mounts, angles_deg, log)
+    counts = {}
+    for m, _, _ in views:
+        counts[m] = counts.get(m, 0) + 1
+    if not counts:
+        raise TooFewAngles("no board views: bring the board into view")
+    m_best = max(counts, key=counts.get)
+    Rs, ts, angs = [], [], []
+    for m, a, d in views:
+        if m != m_best:
+            continue
+        R, t, _ = charuco.board_pose(d, K, dist)
+        Rs.append(R)
+        ts.append(t)
+        angs.append(a)
+    lin = turntable.fit_turntable_axis(np.array(Rs), np.array(ts), np.array(angs))
+    res = turntable.refine_rig(views, K, dist, lin.axis_cam, lin.point_cam_m,
+                               fit_distortion=distortion)
+    ax = dataclasses.replace(res.axis, angle_scale=lin.angle_scale,
+                             zero_angle_deg=lin.zero_angle_deg,
+                             angle_residuals_deg=lin.angle_residuals_deg,
+                             circle_residual_rms_m=lin.circle_residual_rms_m)
+    res = dataclasses.replace(res, axis=ax)
+    sf = res.std_fx_fy_cx_cy
+    log(f"turntable: {len(views)} views, axis {np.round(ax.axis_cam, 5).tolist()} ± "
+        f"{ax.axis_std_deg:.3f} deg, point {np.round(ax.point_cam_m, 4).tolist()} m; refined "
+        f"fx={res.K[0, 0]:.2f}±{sf[0]:.2f}, fy={res.K[1, 1]:.2f}±{sf[1]:.2f}, "
+        f"cx={res.K[0, 2]:.2f}±{sf[2]:.2f}, cy={res.K[1, 2]:.2f}±{sf[3]:.2f} px, "
+        f"RMS {res.rms_px:.3f} px")
+    return res
+
+
+# --------------------------------------------------------------------------- light
+def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: float, *,
+              angles_deg=LIGHT_ANGLES_DEG, mounts=LIGHT_MOUNTS,
+              log: Log = _noop) -> light.LightFit:
+    """Chrome sphere on the turntable at several angles -> light position (camera frame).
+
+    The sphere is mounted at each of ``mounts`` (heights) in turn. Per angle: a long exposure (background at mid scale) for the silhouette and a short one
+    (highlight below saturation) for the highlight, each the sum of stage angles 0 and 90 deg
+    so that the light is unpolarized and the mosaic does not bias the centroid."""
+    cam = rig.camera
+    lay = _layout(cam)
+    obs = []
+    for m, a in [(m, a) for m in mounts for a in angles_deg]:
+        if a == angles_deg[0]:
+            mount("chrome_sphere", **m)
+        _move(rig.turntable, a)
+        frames = {}
+        for name, (pct, tgt) in {"silhouette": (50.0, 0.5), "highlight": (100.0, 0.6)}.items():
+            _move(rig.stage, 0.0)
+            auto_expose(cam, percentile=pct, target=tgt)
+            r0, meta = grab_mean(cam)
+            _move(rig.stage, 90.0)
+            r90, _ = grab_mean(cam)
+            frames[name] = (r0 + r90 - 2 * meta.black_level_dn, meta)
+        sil, meta = frames["silhouette"]
+        hil, hmeta = frames["highlight"]
+        sat = 2 * (_full_scale(hmeta) - hmeta.black_level_dn) * 0.98
+        if np.max(hil) >= sat:
+            from calibration.errors import SphereSaturated
+
+            raise SphereSaturated("sphere highlight saturated even at the shortest exposure; "
+                                  "lower the light level")
+        scales = charuco.class_scales(sil, lay)
+        try:
+            ob = light.find_sphere(charuco.intensity_image(sil, lay, scales=scales),
+                                   highlight_image=charuco.intensity_image(hil, lay,
+                                                                           scales=scales))
+        except SphereNotFound as exc:
+            log(f"light: sphere {m} at turntable {a} deg skipped: {exc}")
+            continue
+        obs.append(ob)
+    fit = light.fit_light_position(obs, radius_m, K, dist)
+    dist_m = np.linalg.norm(fit.position_cam_m)
+    log(f"light: {len(obs)} sphere views, position {np.round(fit.position_cam_m, 4).tolist()} m "
+        f"(camera frame) ± {np.round(fit.std_m * 1000, 2).tolist()} mm, distance {dist_m:.4f} m")
+    return fit
+
+
+# --------------------------------------------------------------------------- generator offset
+@dataclasses.dataclass
+class OffsetRun:
+    zero_offset_deg: float
+    zero_offset_std_deg: float
+    turntable_deg: float
+    incidence_deg: float
+    pixels: int
+    per_pixel_deg: np.ndarray  # (N,) offsets of the pixels used
+    modulation: np.ndarray  # (N,) measured relative modulation
+    stage_zero_axis_cam: np.ndarray
+
+
+def harmonic_fit(stage_angles_deg: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-pixel ``I = A + B cos 2 theta + C sin 2 theta`` over frames ``(K, ...)``: returns
+    ``(A, B, C)``."""
+    th = np.deg2rad(np.asarray(stage_angles_deg, float)) * 2
+    X = np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1)
+    coef = np.linalg.pinv(X) @ frames.reshape(len(th), -1)
+    return tuple(c.reshape(frames.shape[1:]) for c in coef)
+
+
+def _choose_angle(n0, p0, axis, point, light_cam, want_incidence_deg, max_view_deg=60.0,
+                  candidates=np.arange(-90.0, 90.1, 2.5)):
+    best, best_err = None, np.inf
+    for a in candidates:
+        Ra = turntable._axis_rotation(axis, a)
+        n = Ra @ n0
+        p = Ra @ (p0 - point) + point
+        wi = light_cam - p
+        wi /= np.linalg.norm(wi)
+        wo = -p / np.linalg.norm(p)
+        ci, co = n @ wi, n @ wo
+        if ci <= 0 or co <= np.cos(np.deg2rad(max_view_deg)):
+            continue
+        err = abs(np.degrees(np.arccos(ci)) - want_incidence_deg)
+        if err < best_err:
+            best, best_err = a, err
+    if best is None:
+        raise CalibrationError("no turntable angle shows the board to both the light and the "
+                               "camera; check the light position and the board fixture")
+    return float(best)
+
+
+def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec, K: np.ndarray,
+                         dist: np.ndarray, axis: turntable.TurntableAxisResult,
+                         light_cam_m: np.ndarray, *, stage_angles_deg=STAGE_ANGLES_DEG,
+                         incidence_deg: float = 72.0, frames_per_angle: int = 2,
+                         fixture=TURNTABLE_MOUNT, log: Log = _noop) -> OffsetRun:
+    """Stage zero offset from the polarization-dependent Fresnel transmission into the matte
+    board lit at grazing incidence.
+
+    The diffuse light leaving a matte dielectric is depolarized inside it, so every sensor
+    pixel reads ``c_p (a + b S1_sp(theta))`` with ``a, b`` the Fresnel transmission of the
+    incident light (``b = (Ts - Tp) / 2 < 0``) and ``S1_sp`` the incident Stokes ``S1`` in the
+    s/p basis of the plane of incidence: ``d cos 2 (theta + offset - psi_s)``. The phase of the
+    ``cos 2 theta`` response is therefore ``psi_s - offset + 90 deg``, independent of the
+    analyzer, gain or colour of the pixel; ``psi_s`` (the s direction in the incident frame)
+    follows from the board pose, the light position and the stage zero axis. References:
+    Baek et al., "Simultaneous acquisition of polarimetric SVBRDF and normals", ACM TOG 37(6),
+    2018 (diffuse term ``T_out D T_in``); Collett 2005 (Fresnel transmission Mueller matrix).
+    """
+    th = check_stage_angles(stage_angles_deg)
+    mount("charuco", **fixture)
+    cam = rig.camera
+    _move(rig.turntable, 0.0)
+    _move(rig.stage, 0.0)
+    auto_expose(cam, percentile=99.0, target=0.7)
+    d0 = charuco.detect(spec, _board_image(cam))
+    R0, t0, _ = charuco.board_pose(d0, K, dist)
+    p0, n0 = rigframes.board_plane(R0, t0)
+    a_sel = _choose_angle(n0, p0, axis.axis_cam, axis.point_cam_m, light_cam_m, incidence_deg)
+    _move(rig.turntable, a_sel)
+    auto_expose(cam, percentile=99.0, target=0.35)
+    img = _board_image(cam, 2)
+    det = charuco.detect(spec, img)
+    R, t, _ = charuco.board_pose(det, K, dist)
+    pb, nb = rigframes.board_plane(R, t)
+    frames = []
+    for a in th:
+        _move(rig.stage, a)
+        raw, meta = grab_mean(cam, frames_per_angle)
+        frames.append(raw - meta.black_level_dn)
+    frames = np.array(frames)
+    full = _full_scale(meta) - meta.black_level_dn
+    A, B, C = harmonic_fit(th, frames)
+    h, w = A.shape
+    rays = rigframes.pixel_rays_grid(K, dist, (h, w))
+    P = rigframes.intersect_plane(rays, pb, nb)
+    # pixels on the white print of the board, 1 mm or more from any black (board model)
+    pb_board = np.einsum("ji,hwj->hwi", R, P - t)  # board coordinates R^T (P - t)
+    pps = 64
+    tex = spec.image(pps)
+    margin = max(1, int(round(0.001 / spec.square_m * pps)))
+    from cv2 import erode
+
+    tex_w = erode(tex, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 127
+    col = np.floor(np.nan_to_num(pb_board[..., 0], nan=-1.0) / spec.square_m * pps).astype(int)
+    row = np.floor(np.nan_to_num(pb_board[..., 1], nan=-1.0) / spec.square_m * pps).astype(int)
+    inside = (col >= 0) & (row >= 0) & (col < tex.shape[1]) & (row < tex.shape[0])
+    bright = np.zeros_like(inside)
+    bright[inside] = tex_w[row[inside], col[inside]]
+    sat = (frames.max(axis=0) >= 0.98 * full)
+    use = inside & bright & ~sat & np.isfinite(P).all(-1)
+    if use.sum() < 50:
+        raise CalibrationError(f"only {int(use.sum())} usable board pixels at grazing light; "
+                               "raise the light level or exposure")
+    Pu = P[use]
+    wi = light_cam_m - Pu
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    zero = rigframes.stage_zero_axis_cam(light_cam_m, axis.point_cam_m, axis.axis_cam)
+    k_in = -wi
+    s_dir = np.cross(k_in, nb)
+    s_dir /= np.linalg.norm(s_dir, axis=1, keepdims=True)
+    psi_s = rigframes.incident_basis_angle_deg(wi, zero, s_dir)
+    phase = np.rad2deg(0.5 * np.arctan2(C[use], B[use]))
+    off_px = wrap_deg(psi_s - phase + 90.0, 180.0)
+    amp = np.hypot(B[use], C[use])
+    z = np.sum(amp ** 2 * np.exp(2j * np.deg2rad(off_px)))
+    off = float(np.rad2deg(np.angle(z)) / 2)
+    res = wrap_deg(off_px - off, 180.0)
+    wgt = amp ** 2 / np.sum(amp ** 2)
+    n_eff = 1.0 / np.sum(wgt ** 2)
+    std = float(np.sqrt(np.sum(wgt * res ** 2) / max(n_eff - 1, 1)))
+    inc = float(np.degrees(np.arccos(np.clip(np.median(np.sum(wi * nb, axis=1)), -1, 1))))
+    log(f"generator offset: {off:.3f} ± {std:.3f} deg from {int(use.sum())} board pixels at "
+        f"turntable {a_sel:.1f} deg, light incidence {inc:.1f} deg")
+    return OffsetRun(off, std, a_sel, inc, int(use.sum()), off_px, amp / A[use], zero)
+
+
+# --------------------------------------------------------------------------- DoFP analyzer
+@dataclasses.dataclass
+class DofpRun:
+    analyzer: AnalyzerModel
+    fit: dofp.DofpFit
+    generator: GeneratorModel
+    dark_dn: np.ndarray
+    flat_scale: np.ndarray
+    turntable_deg: float
+    exposure_us: float
+
+
+def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_axis,
+                  generator: GeneratorModel, stage_angles_deg, alpha: float = 0.3,
+                  eta: float = 1000.0) -> np.ndarray:
+    """Relative Stokes ``(K, 3, H, W)`` reaching each pixel from a rough ideal-metal plate:
+    the plate's pBRDF Mueller matrix (:func:`polrig.pbrdf.linear_rig_mueller`, specular term
+    only) in the rig frames, normalised by ``m00``, times the generator's incident states; and
+    the modelled relative radiance ``(H, W)`` (``m00 / r^2``) of each pixel."""
+    from polrig.pbrdf import linear_rig_mueller
+
+    h, w = shape
+    rays = rigframes.pixel_rays_grid(K, dist, shape).reshape(-1, 3)
+    P = rigframes.intersect_plane(rays, plane_point, plane_normal)
+    ok = np.isfinite(P).all(-1)
+    P = np.where(ok[:, None], P, rays)
+    wi = light_cam_m - P
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo = -rays
+    n = np.broadcast_to(plane_normal, rays.shape)
+    m = linear_rig_mueller(n, wi, wo, kd=0.0, alpha=alpha, eta=eta, ks=1.0,
+                           components=("specular",), stage_zero_axis=zero_axis,
+                           camera_x_axis=np.array([1.0, 0.0, 0.0]))
+    m = np.asarray(m, dtype=np.float64).reshape(-1, 3, 3)
+    m00 = m[:, 0, 0]
+    good = ok & (m00 > 0)
+    m = np.where(good[:, None, None], m / np.where(good, m00, 1.0)[:, None, None], np.nan)
+    s_in = generator.incident_stokes(np.asarray(stage_angles_deg, float))  # (K, 3)
+    st = np.einsum("pij,kj->kip", m, s_in)
+    # modelled radiance factor (pBRDF m00 times inverse-square falloff), for the flat field
+    r2 = np.sum((light_cam_m - P) ** 2, axis=1)
+    radiance = np.where(good, m00 / r2, np.nan).reshape(h, w)
+    return st.reshape(len(s_in), 3, h, w), radiance
+
+
+def run_dofp(rig, mount: Mount, spec: charuco.BoardSpec, K: np.ndarray, dist: np.ndarray,
+             axis: turntable.TurntableAxisResult, light_cam_m: np.ndarray, zero_offset_deg: float,
+             *, stage_angles_deg=STAGE_ANGLES_DEG, frames_per_angle: int = 2,
+             sensor_diattenuation: float = DEFAULT_SENSOR_DIATTENUATION,
+             fixture=None, dark_frames: int = 8, log: Log = _noop) -> DofpRun:
+    """Per-pixel analyzer calibration from the polished plate under the rotating polarizer.
+
+    The plate sits in the board fixture; its pose is the board pose measured in the same
+    fixture at the same turntable angle. A dark frame (light off) gives the offsets; the stage
+    sweep, with the generator's offset and the plate's Mueller matrix in the rig frames, gives
+    each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
+    diattenuation times the generator DoLP; the generator's extinction ratio follows from the
+    mean modulation and ``sensor_diattenuation`` (see
+    :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
+    th = check_stage_angles(stage_angles_deg)
+    fixture = dict(fixture or {"tilt_deg": 20.0})
+    mount("charuco", **fixture)
+    cam = rig.camera
+    _move(rig.turntable, 0.0)
+    auto_expose(cam, percentile=99.0, target=0.7)
+    d0 = charuco.detect(spec, _board_image(cam))
+    R0, t0, _ = charuco.board_pose(d0, K, dist)
+    p0, n0 = rigframes.board_plane(R0, t0)
+    # turn the plate so that its normal bisects the directions to the light and the camera
+    bis = light_cam_m / np.linalg.norm(light_cam_m - p0) - p0 / np.linalg.norm(p0)
+    best, best_c = 0.0, -2.0
+    for a in np.arange(-45.0, 45.1, 1.0):
+        n = turntable._axis_rotation(axis.axis_cam, a) @ n0
+        c = n @ (bis / np.linalg.norm(bis))
+        if c > best_c:
+            best, best_c = float(a), c
+    _move(rig.turntable, best)
+    det = charuco.detect(spec, _board_image(cam, 2))
+    R, t, _ = charuco.board_pose(det, K, dist)
+    pb, nb = rigframes.board_plane(R, t)
+    mount("mirror_plate", **fixture)
+    _move(rig.stage, 0.0)
+    auto_expose(cam, percentile=99.0, target=0.4)
+    rig.light.set_on(False)
+    dark, meta = grab_mean(cam, dark_frames)
+    rig.light.set_on(True)
+    frames = []
+    for a in th:
+        _move(rig.stage, a)
+        raw, meta = grab_mean(cam, frames_per_angle)
+        frames.append(raw - dark)
+    frames = np.array(frames)
+    full = _full_scale(meta)
+    sat = (np.max(frames + dark, axis=0) >= 0.98 * full)
+    zero = rigframes.stage_zero_axis_cam(light_cam_m, axis.point_cam_m, axis.axis_cam)
+    states, radiance = mirror_states(K, dist, frames.shape[1:], pb, nb, light_cam_m, zero,
+                                     GeneratorModel(zero_offset_deg, np.inf), th)
+    states = np.where(np.isfinite(states), states, 0.0)
+    fit = dofp.fit_analyzer_rows(frames, states)
+    # flat field: divide the fitted scale by the modelled radiance first, so the smooth fit
+    # only has to absorb what the model misses (light falloff errors, exposure)
+    fit = dataclasses.replace(fit, scale=np.where(np.isfinite(radiance) & (radiance > 0),
+                                                  fit.scale / np.where(radiance > 0, radiance, 1),
+                                                  fit.scale),
+                              valid=fit.valid & np.isfinite(radiance))
+    if sat.any():
+        fit = dataclasses.replace(fit, valid=fit.valid & ~sat)
+    if fit.valid.mean() < 0.5:
+        raise CalibrationError(f"only {fit.valid.mean():.0%} of the pixels give a valid DoFP fit; "
+                               "the polished plate must fill the view (check the fixture)")
+    mod = float(np.median(fit.modulation[fit.valid]))
+    d_gen = min(mod / float(sensor_diattenuation), 1.0 - 1e-9)
+    mod_std = float(np.std(fit.modulation[fit.valid]) / np.sqrt(fit.valid.sum()))
+    er = float(extinction_ratio_from_dolp(d_gen))
+    er_std = float(2.0 / (1.0 - d_gen) ** 2 * mod_std / sensor_diattenuation)
+    offset_dn = dark - meta.black_level_dn
+    model = dofp.analyzer_model_from_fit(fit, _layout(cam), d_gen, offset_dn)
+    gen = GeneratorModel(zero_offset_deg, er, 0.0, er_std)
+    log(f"dofp: {int(fit.valid.sum())} pixels, median angle std "
+        f"{np.median(fit.angle_std_deg[fit.valid]):.3f} deg, generator DoLP {d_gen:.5f} "
+        f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation})")
+    return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us)
