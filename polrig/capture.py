@@ -124,7 +124,8 @@ class CapturePlan:
         if self.dark_frames < 0:
             raise ConfigError(f"--dark-frames must be >= 0, got {self.dark_frames}")
         if any(not (e > 0 and math.isfinite(e)) for e in self.exposures_us):
-            raise ConfigError(f"--exposure values must be > 0 microseconds, got {self.exposures_us}")
+            raise ConfigError(f"--exposure values must be > 0 microseconds, got "
+                              f"{self.exposures_us}")
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise ConfigError(f"--states: the reference method needs at least 3 polarizer "
                               f"states, got {len(self.states_deg)}")
@@ -256,12 +257,13 @@ def move_with_rehome(stage, angle_deg: float, what: str,
         raise
     except (DeviceTimeout, DeviceFault) as exc:
         if on_retry:
-            on_retry(f"{what} move to {angle_deg:g} deg failed ({exc}); re-homing and retrying once")
+            on_retry(f"{what} move to {angle_deg:g} deg failed ({exc}); re-homing and "
+                     f"retrying once")
     stage.home()
     stage.move_to(angle_deg, wait=True)
 
 
-# -- the session run ---
+# -- sessions ------------------------------------------------------------------------------
 def frame_geometry(rig) -> tuple[int, int, int]:
     """``(width, height, n_colours)`` of the rig camera's raw frames."""
     from polrig.analyzer import resolve_layout
@@ -294,7 +296,7 @@ def check_resume_space(session: Session, rig, n_captures: int) -> None:
     session.log("resumed", remaining=n_captures)
 
 
-# -- the session run (acquisition) ------------------------------------------------------------------------
+# -- the session run (acquisition) ------------------------------------------------------
 def describe_rig(rig) -> dict[str, Any]:
     """What the manifest records about the rig: its config and the devices' identities."""
     out: dict[str, Any] = {"simulated": getattr(rig, "truth", None) is not None}
@@ -432,6 +434,9 @@ def run_session(rig, session: Session, *, processor=None,
             result.failed.append(index)
             emit("capture-failed", index, reason)
             return result
+        except Exception as exc:  # a processing bug or bad data: record it, then report it
+            _stop_cleanly(session, index, f"{type(exc).__name__}: {exc}", capture_status=FAILED)
+            raise
     session.set_status(SESSION_COMPLETE)
     result.status = SESSION_COMPLETE
     emit("session-done", todo[-1] if todo else 0)

@@ -27,7 +27,6 @@ variance divided by ``n`` (exact); interpolating demosaics get the interpolated 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import pathlib
@@ -117,7 +116,8 @@ def check_plan(plan, calibration: Calibration) -> float | None:
     try:
         return validate_states(calibration.incident_stokes(plan.states_deg))
     except ConfigError as exc:
-        raise ConfigError(f"--states {','.join(f'{a:g}' for a in plan.states_deg)}: {exc}") from None
+        states = ",".join(f"{a:g}" for a in plan.states_deg)
+        raise ConfigError(f"--states {states}: {exc}") from None
 
 
 def single_shot_model():
@@ -201,7 +201,8 @@ def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Seque
             # the dark mean already holds the mean dark signal: the photo-signal is what is left
             var = model.variance_dn2(signal, exposures_us[e], k) + dark_var
         else:
-            signal = mean - black_level_dn - model.dark_electrons(exposures_us[e]) / model.gain_e_per_dn
+            dark_dn = model.dark_electrons(exposures_us[e]) / model.gain_e_per_dn
+            signal = mean - black_level_dn - dark_dn
             var = model.variance_dn2(signal, exposures_us[e], k)
         means.append(signal)
         variances.append(var)
@@ -229,7 +230,8 @@ def analyzer_stack(state: StateRadiance, layout: MosaicLayout, method: str,
     rows = None
     if analyzer is not None:
         if analyzer.shape != signal.shape:
-            raise ValueError(f"analyzer model {analyzer.shape} does not match frames {signal.shape}")
+            raise ValueError(f"analyzer model {analyzer.shape} does not match frames "
+                             f"{signal.shape}")
         signal = signal - analyzer.offset_dn
         r = analyzer.rows()
         rows = np.stack([demosaic_float(r[..., i].astype(np.float32), layout, method)
