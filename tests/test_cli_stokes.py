@@ -113,3 +113,24 @@ def test_console_script_help_lists_stokes():
                          capture_output=True, text=True, check=True).stdout
     for opt in ("--layout", "--demosaic", "--black-level", "--roi-offset", "--out"):
         assert opt in out
+
+
+def test_calibrated_analyzer_file(tmp_path):
+    rng = np.random.default_rng(3)
+    ideal = AnalyzerModel.ideal("imx250mzr", (16, 16))
+    model = AnalyzerModel(ideal.layout, rng.uniform(0.8, 1.2, (16, 16)),
+                          ideal.angle_deg + rng.normal(0, 3, (16, 16)),
+                          rng.uniform(0.9, 1.0, (16, 16)), np.zeros((16, 16)))
+    model.save(tmp_path / "analyzer.npz")
+    s = np.array([1000.0, 250.0, -300.0])
+    raw = model.mosaic(np.broadcast_to(s[None, :, None, None], (1, 3, 16, 16)))
+    np.save(tmp_path / "raw.npy", np.round(raw * 16).astype(np.uint16))  # headroom for 16 bit
+    out = tmp_path / "o.exr"
+    assert main(["stokes", str(tmp_path / "raw.npy"), "--demosaic", "superpixel",
+                 "--analyzer", str(tmp_path / "analyzer.npz"), "--out", str(out)]) == 0
+    got = read_stokes_exr(out).stokes[0].reshape(3, -1).T / 16
+    np.testing.assert_allclose(got, np.broadcast_to(s, got.shape), atol=0.1)
+    assert main(["stokes", str(tmp_path / "raw.npy"), "--demosaic", "superpixel",
+                 "--out", str(tmp_path / "plain.exr")]) == 0
+    plain = read_stokes_exr(tmp_path / "plain.exr").stokes[0].reshape(3, -1).T / 16
+    assert np.abs(plain - s).max() > 10  # the calibration matters
