@@ -297,3 +297,38 @@ def test_dark_frames_and_hdr_bracket_keep_errors_within_sigma(tmp_path):
         single, proc = start(rig, tmp_path / "single", CapturePlan((0.0,), frames_per_state=2))
         plain = run_session(rig, single, processor=proc).scores[0]
     assert score["mean_sigma"] < plain["mean_sigma"]
+
+
+def test_pause_blocks_between_frames_until_released(tmp_path):
+    """The GUI's pause: the capture thread waits at the next frame boundary while paused
+    and carries on, losing nothing, when the pause is released from another thread."""
+    import threading
+    import time
+
+    control = CaptureControl(poll_s=0.01)
+    seen = []
+
+    def progress(ev):
+        if ev.kind == "frame":
+            seen.append(time.monotonic())
+            if len(seen) == 2:
+                control.pause.set()
+                threading.Timer(0.3, control.pause.clear).start()
+
+    with sim_rig(noise=False) as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan((0.0,)))
+        result = run_session(rig, session, processor=proc, progress=progress, control=control)
+    assert result.status == "complete" and len(seen) == 4
+    assert seen[2] - seen[1] >= 0.25  # the third frame waited for the release
+    assert session.verify() == []
+
+
+def test_colour_sensor_capture_has_rgb_mueller(tmp_path):
+    with sim_rig(sensor="imx250myr", scene="box") as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan((0.0,)))
+        result = run_session(rig, session, processor=proc)
+    assert result.status == "complete"
+    got = read_mueller_exr(tmp_path / "s" / session.capture(0)["files"]["mueller"]["path"])
+    assert got.mueller.shape == (3, 3, 3, 16, 16)  # 4x4 colour cell -> quarter resolution
+    assert {"sigma.M00.R", "sigma.M22.B", "mask.G", "residual.R"} <= set(got.extra)
+    assert result.scores[0]["pixels_compared"] > 20
