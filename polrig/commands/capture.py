@@ -22,7 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "capture", help="capture Mueller images over turntable poses into a session folder",
         description="Capture over turntable poses into a session folder (simulated rig unless "
                     "--config names real hardware). Every raw frame is kept; each pose gets a "
-                    "Mueller EXR with uncertainty and mask planes. " + POSES_HELP + ".")
+                    "Mueller EXR with uncertainty and mask planes. --poses: " + POSES_HELP + ". "
+                    "Interrupted sessions (Ctrl-C, device fault, full disk) continue with "
+                    "--out DIR --resume.")
     p.add_argument("--poses", help=POSES_HELP + " (required unless --resume)")
     p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
                    help="reference: N polarizer states per pose (default); single-shot: the "
