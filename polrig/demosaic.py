@@ -155,12 +155,12 @@ _PLAN_CACHE: dict[tuple, tuple] = {}
 def _bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
     """Per class: the cell positions and the normalisation (1-D row/col reciprocals for
     separable class lattices, a full plane otherwise, ``None`` when it is exactly 1).
-    Cached per layout pattern and image shape (a small bounded cache)."""
+    Memoised per layout pattern and image shape (the last two: a frame stream reuses one)."""
     key = (layout.angle_deg.tobytes(), layout.colour.tobytes(), layout.period,
            layout.n_colours, tuple(shape))
     plan = _PLAN_CACHE.get(key)
     if plan is None:
-        if len(_PLAN_CACHE) >= 8:
+        if len(_PLAN_CACHE) >= 2:  # colour plans hold full-size planes: keep few
             _PLAN_CACHE.pop(next(iter(_PLAN_CACHE)))
         plan = _PLAN_CACHE[key] = _make_bilinear_plan(layout, tuple(shape))
     return plan
@@ -246,24 +246,6 @@ def _combine(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-_WEIGHT_CACHE: dict[tuple, np.ndarray] = {}
-
-
-def _weight_plane(cell: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The periodic weight ``cell`` tiled over ``shape`` (float32, cached, read-only)."""
-    key = (cell.tobytes(), cell.shape, tuple(shape))
-    plane = _WEIGHT_CACHE.get(key)
-    if plane is None:
-        if len(_WEIGHT_CACHE) >= 6:
-            _WEIGHT_CACHE.pop(next(iter(_WEIGHT_CACHE)))
-        ph, pw = cell.shape
-        plane = np.tile(cell, (-(-shape[0] // ph), -(-shape[1] // pw)))[: shape[0], : shape[1]]
-        plane = np.ascontiguousarray(plane, np.float32)
-        plane.setflags(write=False)
-        _WEIGHT_CACHE[key] = plane
-    return plane
-
-
 def _bilinear_combined(x, layout, w, ky, kx, plan) -> np.ndarray:
     return BilinearCombiner(layout, x.shape, w).strip(x, 0)
 
@@ -299,8 +281,22 @@ class BilinearCombiner:
                 if np.all(cell == cell.flat[0]):  # uniform weight: folded into the kernel
                     row.append((float(cell.flat[0]), None))
                 else:
-                    row.append((None, _weight_plane(cell, self.shape)))
+                    row.append((None, cell))
             self.terms.append(row)
+        self._weights: dict[tuple, np.ndarray] = {}  # tiled cells by (c, j, row phase, rows)
+
+    def _weight_rows(self, c: int, j: int, cell: np.ndarray, e0: int, rows: int,
+                     width: int) -> np.ndarray:
+        """``cell`` tiled over mosaic rows ``e0 .. e0 + rows`` (memoised per row phase)."""
+        ph, pw = cell.shape
+        key = (c, j, e0 % ph, rows, width)
+        plane = self._weights.get(key)
+        if plane is None:
+            rolled = np.roll(cell, -(e0 % ph), axis=0)
+            plane = np.ascontiguousarray(
+                np.tile(rolled, (-(-rows // ph), -(-width // pw)))[:rows, :width])
+            self._weights[key] = plane
+        return plane
 
     def strip(self, x: np.ndarray, e0: int) -> np.ndarray:
         """``(C, J, rows, W)`` float32 for the mosaic rows ``x = mosaic[e0:e0 + rows]``."""
@@ -308,12 +304,13 @@ class BilinearCombiner:
         out = np.empty((self.layout.n_colours, self.n_out, rows, x.shape[1]), np.float32)
         tmp = None
         for c, row in enumerate(self.terms):
-            for j, (scale, plane) in enumerate(row):
-                if plane is None:
+            for j, (scale, cell) in enumerate(row):
+                if cell is None:
                     cv2.sepFilter2D(x, -1, self.kx * np.float32(scale), self.ky,
                                     dst=out[c, j], borderType=_BORDER)
                 else:
-                    tmp = np.multiply(x, plane[e0:e0 + rows], out=tmp)
+                    plane = self._weight_rows(c, j, cell, e0, rows, x.shape[1])
+                    tmp = np.multiply(x, plane, out=tmp)
                     cv2.sepFilter2D(tmp, -1, self.kx, self.ky, dst=out[c, j],
                                     borderType=_BORDER)
         return out

@@ -456,7 +456,8 @@ def _bilinear_in_strips(raw: np.ndarray, lay: MosaicLayout, comb, black_level_dn
                         (dark is None or np.isfinite(dark).all())
                         and np.isfinite(black_level_dn))
     halo = comb.halo
-    step = max(lay.period[0], STRIP_PIXELS // max(w, 1))
+    ph = lay.period[0]
+    step = max(ph, STRIP_PIXELS // max(w, 1) // ph * ph)  # whole cells: one row phase
     sat_kernel = np.ones((2 * halo + 1, 2 * halo + 1), np.uint8)
 
     def one_strip(y0: int) -> int:
