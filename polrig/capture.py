@@ -156,12 +156,18 @@ class CapturePlan:
 
 
 def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
-                  n_colours: int) -> int:
-    """Upper estimate of the disk space ``n_poses`` captures of ``plan`` take: 16-bit raw
-    frames (+ sidecars) and float32 EXRs of Mueller, sigma and mask (result and truth) at
-    full resolution (an upper bound for every demosaic method)."""
+                  n_colours: int, cell: tuple[int, int] = (1, 1)) -> int:
+    """Upper estimate of the disk space ``n_poses`` captures of ``plan`` take: uncompressed
+    16-bit raw frames (+ sidecars), the float32 result EXR (9 Mueller + 9 sigma + mask +
+    residual planes per colour) at the demosaic's output size (``cell`` = the layout period
+    ``(ph, pw)``, which ``superpixel`` divides the size by) and the truth EXR (9 + 1 planes
+    per colour) at full size; 5 % and 1 MiB (manifest) on top."""
     raw = plan.frames_per_pose() * (2 * width * height + 4096)
-    exr = 2 * n_colours * (9 + 9 + 1) * 4 * width * height + 65536
+    if plan.demosaic == "superpixel":
+        out_px = (height // cell[0]) * (width // cell[1])
+    else:
+        out_px = width * height
+    exr = n_colours * 4 * (20 * out_px + 10 * width * height) + 2 * 65536
     return int(n_poses * (raw + exr) * 1.05) + (1 << 20)
 
 
@@ -264,12 +270,13 @@ def move_with_rehome(stage, angle_deg: float, what: str,
 
 
 # -- sessions ------------------------------------------------------------------------------
-def frame_geometry(rig) -> tuple[int, int, int]:
-    """``(width, height, n_colours)`` of the rig camera's raw frames."""
+def frame_geometry(rig) -> tuple[int, int, int, tuple[int, int]]:
+    """``(width, height, n_colours, layout period)`` of the rig camera's raw frames."""
     from polrig.analyzer import resolve_layout
 
     width, height = rig.camera.roi[:2]
-    return int(width), int(height), resolve_layout(rig.camera.layout).n_colours
+    lay = resolve_layout(rig.camera.layout)
+    return int(width), int(height), lay.n_colours, tuple(lay.period)
 
 
 def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
@@ -277,8 +284,8 @@ def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
     """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked)."""
     from polrig.processing import sensor_model_of
 
-    width, height, colours = frame_geometry(rig)
-    need = planned_bytes(plan, len(plan.poses_deg), width, height, colours)
+    width, height, colours, cell = frame_geometry(rig)
+    need = planned_bytes(plan, len(plan.poses_deg), width, height, colours, cell)
     rig_info = describe_rig(rig)
     rig_info["sensor_model"] = dataclasses.asdict(sensor_model_of(rig))
     return Session.create(out, plan=plan.to_json(), rig=rig_info,
@@ -290,9 +297,10 @@ def check_resume_space(session: Session, rig, n_captures: int) -> None:
     """Check the free disk space for ``n_captures`` more captures of ``session``."""
     from polrig.session import check_free_space
 
-    width, height, colours = frame_geometry(rig)
+    width, height, colours, cell = frame_geometry(rig)
     plan = CapturePlan.from_json(session.plan)
-    check_free_space(session.root, planned_bytes(plan, n_captures, width, height, colours))
+    check_free_space(session.root,
+                     planned_bytes(plan, n_captures, width, height, colours, cell))
     session.log("resumed", remaining=n_captures)
 
 

@@ -64,3 +64,4 @@ def test_planned_bytes_grows_with_everything():
     assert planned_bytes(p, 2, 128, 128, 1) > base
     assert planned_bytes(p, 2, 64, 64, 3) > base
     assert base > 2 * 4 * 64 * 64 * 2  # at least the raw frames
+    assert planned_bytes(p, 2, 64, 64, 1, (2, 2)) < base  # superpixel results are smaller
