@@ -25,7 +25,8 @@ Methods (speed/accuracy choice):
     with the 1-D kernel ``[1/16, -1/4, 7/16, 1/2, 7/16, -1/4, 1/16]`` (their Eqs. 14-17: a
     cubic Newton interpolation of the other channel plus the own channel's second difference)
     and the diagonal channel along both diagonals, fused by the edge classifier (threshold
-    ``tau = 5.8`` on the ratio of the summed polarization differences, otherwise weighted by the
+    ``tau = 5.8`` on the ratio of the summed polarization differences over the 3x3 same-channel
+    neighbourhood, as in the authors' published MATLAB implementation; otherwise weighted by the
     inverse directional gradients); stage two re-estimates the horizontal/vertical channels
     along the other axis from the stage-one diagonal plane and fuses them the same way. It needs
     an angle pattern of period 2x2 (the Sony layouts at any phase). For a colour layout the
