@@ -38,12 +38,15 @@ Log = Callable[[str], None]
 #: ``sensor_diattenuation``.
 DEFAULT_SENSOR_DIATTENUATION = 0.985
 
+#: Board mounts of the geometric calibration; the first two are also the fixture poses of the
+#: DoFP plate (:func:`run_dofp`) and of the grazing-light board (:func:`run_generator_offset`),
+#: whose poses then come from the joint bundle adjustment over all their views.
 INTRINSIC_MOUNTS: tuple[dict[str, float], ...] = (
-    {"tilt_deg": 0.0}, {"tilt_deg": 50.0}, {"tilt_deg": 40.0, "roll_deg": 40.0},
+    {"tilt_deg": 20.0}, {"tilt_deg": 35.0}, {"tilt_deg": 55.0}, {"tilt_deg": 40.0, "roll_deg": 40.0},
     {"tilt_deg": 40.0, "roll_deg": -40.0}, {"tilt_deg": 60.0, "roll_deg": 20.0})
+DOFP_MOUNT_INDEX = 0
+OFFSET_MOUNT_INDEX = 0
 INTRINSIC_ANGLES_DEG = tuple(range(-45, 46, 15))
-TURNTABLE_MOUNT = {"tilt_deg": 35.0}
-TURNTABLE_ANGLES_DEG = tuple(range(-45, 46, 10))
 LIGHT_ANGLES_DEG = tuple(range(0, 360, 30))
 #: Two sphere heights on the turntable, for a vertical as well as a horizontal baseline.
 LIGHT_MOUNTS: tuple[dict[str, float], ...] = ({"sphere_height_m": 0.01}, {"sphere_height_m": 0.10})
@@ -290,11 +293,12 @@ def _choose_angle(n0, p0, axis, point, light_cam, want_incidence_deg, max_view_d
     return float(best)
 
 
-def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec, K: np.ndarray,
-                         dist: np.ndarray, axis: turntable.TurntableAxisResult,
-                         light_cam_m: np.ndarray, *, stage_angles_deg=STAGE_ANGLES_DEG,
-                         incidence_deg: float = 72.0, frames_per_angle: int = 2,
-                         fixture=TURNTABLE_MOUNT, log: Log = _noop) -> OffsetRun:
+def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec,
+                         geometry: turntable.JointRigResult, light_cam_m: np.ndarray, *,
+                         stage_angles_deg=STAGE_ANGLES_DEG, incidence_deg: float = 85.0,
+                         max_view_deg: float = 75.0, frames_per_angle: int = 2,
+                         mounts=INTRINSIC_MOUNTS, mount_index: int = OFFSET_MOUNT_INDEX,
+                         log: Log = _noop) -> OffsetRun:
     """Stage zero offset from the polarization-dependent Fresnel transmission into the matte
     board lit at grazing incidence.
 
@@ -304,25 +308,28 @@ def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec, K: np.ndarr
     s/p basis of the plane of incidence: ``d cos 2 (theta + offset - psi_s)``. The phase of the
     ``cos 2 theta`` response is therefore ``psi_s - offset + 90 deg``, independent of the
     analyzer, gain or colour of the pixel; ``psi_s`` (the s direction in the incident frame)
-    follows from the board pose, the light position and the stage zero axis. References:
-    Baek et al., "Simultaneous acquisition of polarimetric SVBRDF and normals", ACM TOG 37(6),
-    2018 (diffuse term ``T_out D T_in``); Collett 2005 (Fresnel transmission Mueller matrix).
+    follows from the board pose, the light position and the stage zero axis. The board pose
+    is the fixture pose of the joint bundle adjustment (``geometry``, mount ``mount_index``)
+    turned to the chosen turntable angle: one PnP pose has a normal error of about 0.1 deg,
+    which would go straight into the offset. References: Baek et al., "Simultaneous
+    acquisition of polarimetric SVBRDF and normals", ACM TOG 37(6), 2018 (diffuse term
+    ``T_out D T_in``); Collett 2005 (Fresnel transmission Mueller matrix).
     """
     th = check_stage_angles(stage_angles_deg)
-    mount("charuco", **fixture)
+    K, dist, axis = geometry.K, geometry.dist, geometry.axis
+    if mount_index >= len(geometry.mount_poses):
+        raise CalibrationError(f"the geometric calibration has no pose for board mount "
+                               f"{mount_index}; run 'turntable' with the default mounts")
+    mount("charuco", **mounts[mount_index])
     cam = rig.camera
-    _move(rig.turntable, 0.0)
-    _move(rig.stage, 0.0)
-    auto_expose(cam, percentile=99.0, target=0.7)
-    d0 = charuco.detect(spec, _board_image(cam))
-    R0, t0, _ = charuco.board_pose(d0, K, dist)
+    R0, t0 = geometry.pose_at(mount_index, 0.0)
     p0, n0 = rigframes.board_plane(R0, t0)
-    a_sel = _choose_angle(n0, p0, axis.axis_cam, axis.point_cam_m, light_cam_m, incidence_deg)
+    a_sel = _choose_angle(n0, p0, axis.axis_cam, axis.point_cam_m, light_cam_m, incidence_deg,
+                          max_view_deg)
     _move(rig.turntable, a_sel)
+    _move(rig.stage, 0.0)
     auto_expose(cam, percentile=99.0, target=0.35)
-    img = _board_image(cam, 2)
-    det = charuco.detect(spec, img)
-    R, t, _ = charuco.board_pose(det, K, dist)
+    R, t = geometry.pose_at(mount_index, a_sel)
     pb, nb = rigframes.board_plane(R, t)
     frames = []
     for a in th:
@@ -421,44 +428,45 @@ def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_a
     return st.reshape(len(s_in), 3, h, w), radiance
 
 
-def run_dofp(rig, mount: Mount, spec: charuco.BoardSpec, K: np.ndarray, dist: np.ndarray,
-             axis: turntable.TurntableAxisResult, light_cam_m: np.ndarray, zero_offset_deg: float,
-             *, stage_angles_deg=STAGE_ANGLES_DEG, frames_per_angle: int = 2,
-             sensor_diattenuation: float = DEFAULT_SENSOR_DIATTENUATION,
-             fixture=None, dark_frames: int = 8, log: Log = _noop) -> DofpRun:
+def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m: np.ndarray,
+             zero_offset_deg: float, *, stage_angles_deg=STAGE_ANGLES_DEG,
+             frames_per_angle: int = 6, sensor_diattenuation: float = DEFAULT_SENSOR_DIATTENUATION,
+             mounts=INTRINSIC_MOUNTS, mount_index: int = DOFP_MOUNT_INDEX, dark_frames: int = 8,
+             log: Log = _noop) -> DofpRun:
     """Per-pixel analyzer calibration from the polished plate under the rotating polarizer.
 
-    The plate sits in the board fixture; its pose is the board pose measured in the same
-    fixture at the same turntable angle. A dark frame (light off) gives the offsets; the stage
+    The plate sits in the board fixture; its pose is the board pose of the same fixture from
+    the joint bundle adjustment (``geometry``, mount ``mount_index``), turned to the
+    turntable angle that centres the specular lobe. A dark frame (light off) gives the offsets; the stage
     sweep, with the generator's offset and the plate's Mueller matrix in the rig frames, gives
     each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
     diattenuation times the generator DoLP; the generator's extinction ratio follows from the
     mean modulation and ``sensor_diattenuation`` (see
     :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
     th = check_stage_angles(stage_angles_deg)
-    fixture = dict(fixture or {"tilt_deg": 20.0})
-    mount("charuco", **fixture)
+    K, dist, axis = geometry.K, geometry.dist, geometry.axis
+    if mount_index >= len(geometry.mount_poses):
+        raise CalibrationError(f"the geometric calibration has no pose for board mount "
+                               f"{mount_index}; run 'turntable' with the default mounts")
+    fixture = dict(mounts[mount_index])
     cam = rig.camera
-    _move(rig.turntable, 0.0)
-    auto_expose(cam, percentile=99.0, target=0.7)
-    d0 = charuco.detect(spec, _board_image(cam))
-    R0, t0, _ = charuco.board_pose(d0, K, dist)
+    R0, t0 = geometry.pose_at(mount_index, 0.0)
     p0, n0 = rigframes.board_plane(R0, t0)
     # turn the plate so that its normal bisects the directions to the light and the camera
-    bis = light_cam_m / np.linalg.norm(light_cam_m - p0) - p0 / np.linalg.norm(p0)
     best, best_c = 0.0, -2.0
     for a in np.arange(-45.0, 45.1, 1.0):
-        n = turntable._axis_rotation(axis.axis_cam, a) @ n0
-        c = n @ (bis / np.linalg.norm(bis))
+        Rm, tm = geometry.pose_at(mount_index, a)
+        pm, nm = rigframes.board_plane(Rm, tm)
+        bis = (light_cam_m - pm) / np.linalg.norm(light_cam_m - pm) - pm / np.linalg.norm(pm)
+        c = nm @ (bis / np.linalg.norm(bis))
         if c > best_c:
             best, best_c = float(a), c
     _move(rig.turntable, best)
-    det = charuco.detect(spec, _board_image(cam, 2))
-    R, t, _ = charuco.board_pose(det, K, dist)
+    R, t = geometry.pose_at(mount_index, best)
     pb, nb = rigframes.board_plane(R, t)
     mount("mirror_plate", **fixture)
     _move(rig.stage, 0.0)
-    auto_expose(cam, percentile=99.0, target=0.4)
+    auto_expose(cam, percentile=99.0, target=0.75)
     rig.light.set_on(False)
     dark, meta = grab_mean(cam, dark_frames)
     rig.light.set_on(True)

@@ -253,6 +253,14 @@ class JointRigResult:
     axis: TurntableAxisResult
     rms_px: float
     residuals_px: np.ndarray
+    mount_poses: tuple = ()  # per mount index: (R, t) board -> camera at turntable angle 0
+
+    def pose_at(self, mount_index: int, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """Board pose (board -> camera) of a mount at a turntable angle, from the model."""
+        R, t = self.mount_poses[mount_index]
+        Ra = _axis_rotation(self.axis.axis_cam, angle_deg)
+        c = self.axis.point_cam_m
+        return Ra @ R, Ra @ (t - c) + c
 
 
 def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0: np.ndarray,
@@ -374,4 +382,5 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
                              zero_direction_cam=z / zn if zn > 0 else z,
                              circle_residual_rms_m=0.0)
     return JointRigResult(Kp, dp, np.sqrt(np.clip(np.diag(cov)[:4], 0, None)), ax,
-                          float(np.sqrt(np.mean(np.sum(res2 ** 2, axis=1)))), res2)
+                          float(np.sqrt(np.mean(np.sum(res2 ** 2, axis=1)))), res2,
+                          tuple((poses[midx[m]][0], poses[midx[m]][1]) for m in mounts))
