@@ -220,9 +220,12 @@ class SimCamera(_SimDevice, hal.Camera):
         t_mid = t_start + 0.5 * self._exposure_us * 1e-6
         stage = self._world.stage_move.position(t_mid)
         table = self._world.turntable_move.position(t_mid)
+        rng = self._world.grab_rng((table, stage, self._exposure_us, self._gain_db,
+                                    *self._roi, self._world.light_on,
+                                    self._world.light_level))
         raw_adc = self._world.raw(turntable_deg=table, stage_deg=stage,
                                   exposure_us=self._exposure_us, gain_db=self._gain_db,
-                                  roi=self._roi)
+                                  roi=self._roi, rng=rng)
         clock.sleep(frame_s)
         fmt = get_pixel_format(self._pixel_format)
         # The ADC delivers sensor_model.bit_depth bits; wider formats carry the code shifted
@@ -285,6 +288,7 @@ class _SimAxis(_SimDevice):
             self._wait(timeout_s)
 
     def _start(self, target_deg: float) -> None:
+        self._world.note_motion()
         now = self._world.clock.now()
         self._set_move(Move(self._move.position(now), target_deg, now, self.speed_deg_s,
                             self.accel_deg_s2))

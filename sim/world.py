@@ -82,6 +82,32 @@ class SimWorld:
         self._poses = _Lru(4)
         self._states = _Lru(16)
         self.render_count = 0
+        self._repeats: dict[tuple, int] = {}
+        self._last_condition: tuple | None = None
+
+    # -- reproducible noise -------------------------------------------------------------------
+    def note_motion(self) -> None:
+        """A motion command was issued: the next grab starts a new run of repeated frames."""
+        with self._lock:
+            self._repeats.clear()
+            self._last_condition = None
+
+    def grab_rng(self, condition: tuple[float | int, ...]) -> np.random.Generator:
+        """The noise generator of the next grab under ``condition`` (pose, state, exposure, ...).
+
+        Noise is keyed by ``(seed, condition, repeat index)``, where the repeat index counts
+        the grabs since the condition last changed or a motion command was issued. A session
+        that is interrupted and resumed therefore sees exactly the noise an uninterrupted one
+        would have seen, while repeated frames of one state still get independent noise.
+        """
+        key = tuple(int(round(float(v) * 1e4)) % (1 << 63) for v in condition)
+        with self._lock:
+            if key != self._last_condition:
+                self._repeats.clear()
+                self._last_condition = key
+            n = self._repeats.get(key, 0)
+            self._repeats[key] = n + 1
+        return np.random.default_rng(np.random.SeedSequence([self.seed, n, *key]))
 
     def set_scene(self, scene: Scene) -> None:
         """Replace the scene (e.g. swap a calibration target in) and drop every cached image.
