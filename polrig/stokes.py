@@ -35,8 +35,8 @@ import cv2
 import numpy as np
 
 from polrig.analyzer import AnalyzerModel, LayoutLike, layout_name_at, resolve_layout
-from polrig.demosaic import (METHODS, BilinearCombiner, demosaic_combined, demosaic_float,
-                             output_shape, preprocess)
+from polrig.demosaic import (METHODS, NEWTON_RADIUS, BilinearCombiner, demosaic_combined,
+                             demosaic_float, output_shape, preprocess)
 from polrig.layouts import ANALYZER_ANGLES_DEG, MosaicLayout
 
 
@@ -316,11 +316,6 @@ def _saturation_mask(sat: np.ndarray, lay: MosaicLayout, method: str) -> np.ndar
         k = np.ones((2 * ry + 1, 2 * rx + 1), np.uint8)
         m = cv2.dilate(sat, k, borderType=cv2.BORDER_REFLECT_101).view(bool)
     return m[None] if lay.n_colours == 1 else np.repeat(m[None], lay.n_colours, axis=0)
-
-
-#: Support radius (pixels) of the Newton demosaic: stage one 3 + fusion windows 2, stage two
-#: 3 more on the diagonal plane (radius 5) + fusion windows 2.
-NEWTON_RADIUS = 10
 
 
 def default_saturation_dn(raw: np.ndarray, bit_depth: int | None = None) -> float:

@@ -202,3 +202,18 @@ def test_newton_matches_a_per_pixel_statement_of_the_paper(phase):
     ref = _newton_reference(raw.astype(np.float32).astype(float), cell)
     got = demosaic(raw, layout, "newton")[0]
     np.testing.assert_allclose(got[:, 10:-10, 10:-10], ref[:, 10:-10, 10:-10], atol=2e-4)
+
+
+def test_newton_strips_equal_the_whole_image(monkeypatch):
+    import polrig.demosaic as dm
+
+    rng = np.random.default_rng(21)
+    for layout in (IMX250MZR.shifted(1, 0), IMX250MYR.shifted(0, 3)):
+        stokes = smooth_stokes(layout.n_colours, (90, 40), freq=0.3, seed=2)
+        raw = _raw(layout, stokes) + rng.normal(0, 0.01, (90, 40))
+        raw[45:, 10:] += 0.5  # an edge across strip seams
+        whole = demosaic(raw, layout, "newton")  # 90 rows: a single strip
+        monkeypatch.setattr(dm, "NEWTON_STRIP_PIXELS", 8 * 40)  # 8-row strips
+        strips = demosaic(raw, layout, "newton")
+        monkeypatch.undo()
+        np.testing.assert_array_equal(strips, whole)
