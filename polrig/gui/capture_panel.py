@@ -1,0 +1,378 @@
+"""Capture panel: the options of ``polrig capture``, start/pause/stop/resume, progress with
+ETA, thumbnails of finished poses and (simulated rig) the score against truth.
+
+:class:`CaptureWorker` runs exactly what ``polrig capture`` runs (:mod:`polrig.commands.capture`
+builds the plan, :mod:`polrig.processing` the calibration and processor,
+:func:`polrig.capture.run_session` acquires and processes) in a ``QThread`` holding every device
+lock. Pause and stop go through :class:`polrig.capture.CaptureControl`; a stop (or closing the
+window) leaves the session ``interrupted`` and resumable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import pathlib
+import time
+from typing import Any
+
+import numpy as np
+from PySide6.QtCore import QSize, Qt, QThread, Signal
+from PySide6.QtGui import QIcon, QPixmap
+from PySide6.QtWidgets import (QComboBox, QFileDialog, QFormLayout, QGroupBox, QHBoxLayout,
+                               QLabel, QLineEdit, QListWidget, QListWidgetItem, QProgressBar,
+                               QPushButton, QSpinBox, QVBoxLayout, QWidget)
+
+from polrig.capture import CaptureControl, Progress
+from polrig.errors import PolrigError
+from polrig.gui.qtimage import to_qimage
+from polrig.gui.rigaccess import RigLocks
+
+THUMB_PX = 128
+
+
+@dataclasses.dataclass
+class CaptureRequest:
+    """The ``polrig capture`` options as the panel holds them (strings as typed)."""
+
+    out: str
+    poses: str = "0:360:90"
+    mode: str = "reference"
+    states: str = ""
+    frames: int = 1
+    exposure: str = ""
+    dark_frames: int = 0
+    demosaic: str = "superpixel"
+    calibration: str = ""
+    resume: bool = False
+
+    def namespace(self) -> argparse.Namespace:
+        """The argparse namespace ``polrig capture`` would build from the same options."""
+        return argparse.Namespace(
+            poses=self.poses or None, mode=self.mode or None, states=self.states or None,
+            frames=self.frames, exposure=self.exposure or None, dark_frames=self.dark_frames,
+            demosaic=self.demosaic or None, calibration=self.calibration or None,
+            out=self.out, resume=self.resume, config=None, no_progress=True)
+
+
+def thumbnail_rgb(path: pathlib.Path, size: int = THUMB_PX) -> np.ndarray:
+    """A small preview of a capture's Mueller EXR: the tone-mapped ``m00`` (RGB), resized."""
+    import cv2
+
+    from polrig.exr import read_mueller_exr
+    from polrig.gui.pipeline import fast_white
+    from polrig.preview import tone_map
+
+    m00 = read_mueller_exr(path).mueller[:, 0, 0]
+    rgb = tone_map(m00, white=fast_white(m00))
+    h, w = rgb.shape[:2]
+    s = size / max(h, w)
+    return cv2.resize(rgb, (max(1, int(w * s)), max(1, int(h * s))),
+                      interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_NEAREST)
+
+
+class CaptureWorker(QThread):
+    """Runs one capture session (new or resumed). Signals: ``progress(Progress)``,
+    ``finished_result(status, reason, scores)``, ``failed(message)`` (a problem before the
+    session ran, e.g. bad options), ``session_ready(path)``."""
+
+    progress = Signal(object)
+    finished_result = Signal(str, str, object)
+    failed = Signal(str)
+    session_ready = Signal(str)
+
+    def __init__(self, rig, locks: RigLocks, request: CaptureRequest, parent=None):
+        super().__init__(parent)
+        self.rig = rig
+        self.locks = locks
+        self.request = request
+        self.control = CaptureControl()
+        self.session = None
+        self.result = None
+
+    def run(self) -> None:
+        try:
+            self._run()
+        except (PolrigError, OSError, ValueError) as exc:
+            self.failed.emit(str(exc))
+        except Exception as exc:  # noqa: BLE001 - report, never kill the GUI
+            self.failed.emit(f"{type(exc).__name__}: {exc}")
+
+    def _run(self) -> None:
+        from polrig import capture, processing
+        from polrig.commands.capture import build_plan, check_resume_args
+        from polrig.session import Session
+
+        args = self.request.namespace()
+        out = pathlib.Path(args.out)
+        if not args.out:
+            raise ValueError("choose an output folder for the session")
+        if args.resume:  # as `polrig capture --resume`
+            if not (out / "session.json").is_file():
+                raise FileNotFoundError(f"resume: {out} holds no session to resume")
+            session = Session.open(out)
+            plan = capture.CapturePlan.from_json(session.plan)
+            args.poses = args.mode = args.states = args.exposure = args.demosaic = None
+            args.frames = args.dark_frames = None
+            check_resume_args(args, plan)
+            calibration = processing.load_calibration(args.calibration, session=session)
+        else:
+            plan = build_plan(args)
+            if out.exists() and not out.is_dir():
+                raise FileExistsError(f"output {out}: exists and is not a folder")
+            if out.is_dir() and any(out.iterdir()):
+                raise FileExistsError(f"output {out}: folder is not empty; resume the session "
+                                      f"in it, or choose a new folder")
+            calibration = processing.load_calibration(args.calibration)
+        processing.check_plan(plan, calibration)
+        with self.locks.hold(timeout_s=10.0, who="capture"):
+            if args.resume:
+                capture.check_resume_space(session, self.rig, len(session.next_pending()))
+            else:
+                session = capture.create_session(out, self.rig, plan,
+                                                 calibration_id=calibration.id,
+                                                 command_line=["polrig", "gui"])
+            self.session = session
+            self.session_ready.emit(str(out))
+            processor = processing.make_processor(plan, calibration,
+                                                  processing.session_sensor_model(session))
+            self.result = capture.run_session(self.rig, session, processor=processor,
+                                              progress=self.progress.emit,
+                                              control=self.control)
+        r = self.result
+        self.finished_result.emit(r.status, r.reason or "", dict(r.scores))
+
+
+class CapturePanel(QWidget):
+    """Options form, controls, progress, thumbnails. ``running(bool)`` tells the window to
+    pause the live view and lock the device controls; ``message(level, text)`` logs."""
+
+    running = Signal(bool)
+    message = Signal(str, str)
+
+    def __init__(self, rig, locks: RigLocks, parent=None):
+        super().__init__(parent)
+        self.rig = rig
+        self.locks = locks
+        self.worker: CaptureWorker | None = None
+        self._active = False
+        self.events: list[Progress] = []
+        self.scores: dict[int, dict[str, Any]] = {}
+        self.last_status = ""
+        self._t_start = 0.0
+        self._step0 = 0
+
+        self.poses = QLineEdit("0:360:90")
+        self.poses.setToolTip("turntable poses in degrees: a list 0,30,60 or a range "
+                              "START:STOP:STEP with STOP exclusive")
+        self.mode = QComboBox()
+        self.mode.addItems(["reference", "single-shot"])
+        self.states = QLineEdit()
+        self.states.setPlaceholderText("0,45,90,135")
+        self.frames = QSpinBox()
+        self.frames.setRange(1, 1000)
+        self.exposure = QLineEdit()
+        self.exposure.setPlaceholderText("camera's current (us; several = HDR bracket)")
+        self.dark_frames = QSpinBox()
+        self.dark_frames.setRange(0, 1000)
+        self.demosaic = QComboBox()
+        self.demosaic.addItems(["superpixel", "bilinear", "newton"])
+        self.calibration = QLineEdit()
+        self.calibration.setPlaceholderText("nominal")
+        self.out = QLineEdit()
+        browse = QPushButton("Browse...")
+        browse.clicked.connect(self._browse)
+        out_row = QHBoxLayout()
+        out_row.addWidget(self.out, 1)
+        out_row.addWidget(browse)
+        form = QFormLayout()
+        form.addRow("Poses (deg)", self.poses)
+        form.addRow("Mode", self.mode)
+        form.addRow("States (deg)", self.states)
+        form.addRow("Frames per state", self.frames)
+        form.addRow("Exposure(s)", self.exposure)
+        form.addRow("Dark frames", self.dark_frames)
+        form.addRow("Demosaic", self.demosaic)
+        form.addRow("Calibration set", self.calibration)
+        form.addRow("Output folder", out_row)
+        opts = QGroupBox("Capture options (as polrig capture)")
+        opts.setLayout(form)
+
+        self.start_button = QPushButton("Start capture (Ctrl+R)")
+        self.pause_button = QPushButton("Pause")
+        self.pause_button.setCheckable(True)
+        self.stop_button = QPushButton("Stop (Esc)")
+        self.resume_button = QPushButton("Resume session in folder")
+        self.start_button.clicked.connect(self.start)
+        self.pause_button.toggled.connect(self.set_paused)
+        self.stop_button.clicked.connect(self.stop)
+        self.resume_button.clicked.connect(self.resume)
+        buttons = QHBoxLayout()
+        for b in (self.start_button, self.pause_button, self.stop_button, self.resume_button):
+            buttons.addWidget(b)
+        self.progress = QProgressBar()
+        self.progress.setFormat("%v / %m frames")
+        self.eta = QLabel("idle")
+        self.score = QLabel("")
+        self.score.setWordWrap(True)
+        self.score.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.thumbs = QListWidget()
+        self.thumbs.setViewMode(QListWidget.ViewMode.IconMode)
+        self.thumbs.setIconSize(QSize(THUMB_PX, THUMB_PX))
+        self.thumbs.setFlow(QListWidget.Flow.LeftToRight)
+        self.thumbs.setWrapping(False)
+        self.thumbs.setFixedHeight(THUMB_PX + 48)
+        lay = QVBoxLayout(self)
+        lay.addWidget(opts)
+        lay.addLayout(buttons)
+        lay.addWidget(self.progress)
+        lay.addWidget(self.eta)
+        lay.addWidget(QLabel("Finished poses"))
+        lay.addWidget(self.thumbs)
+        lay.addWidget(self.score)
+        lay.addStretch(1)
+        self._set_running(False)
+
+    # -- options
+    def request(self, resume: bool = False) -> CaptureRequest:
+        return CaptureRequest(out=self.out.text().strip(), poses=self.poses.text().strip(),
+                              mode=self.mode.currentText(), states=self.states.text().strip(),
+                              frames=self.frames.value(), exposure=self.exposure.text().strip(),
+                              dark_frames=self.dark_frames.value(),
+                              demosaic=self.demosaic.currentText(),
+                              calibration=self.calibration.text().strip(), resume=resume)
+
+    def _browse(self) -> None:
+        path = QFileDialog.getExistingDirectory(self, "Session folder", self.out.text())
+        if path:
+            self.out.setText(path)
+
+    # -- control
+    @property
+    def is_running(self) -> bool:
+        return self._active
+
+    def start(self) -> None:
+        self._launch(self.request(resume=False))
+
+    def resume(self) -> None:
+        self._launch(self.request(resume=True))
+
+    def _launch(self, req: CaptureRequest) -> None:
+        if self.is_running:
+            self.message.emit("warning", "a capture is already running")
+            return
+        self.events.clear()
+        self.scores.clear()
+        self.thumbs.clear()
+        self.score.setText("")
+        self.progress.setValue(0)
+        self.eta.setText("starting...")
+        self.last_status = "running"
+        w = CaptureWorker(self.rig, self.locks, req, self)
+        w.progress.connect(self._progress)
+        w.finished_result.connect(self._finished)
+        w.failed.connect(self._failed)
+        w.finished.connect(lambda: self._set_running(False))
+        self.worker = w
+        self._t_start, self._step0 = time.monotonic(), 0
+        self._set_running(True)
+        w.start()
+        self.message.emit("info", f"capture {'resumed' if req.resume else 'started'} in {req.out}")
+
+    def set_paused(self, paused: bool) -> None:
+        if self.worker is None:
+            return
+        (self.worker.control.pause.set if paused else self.worker.control.pause.clear)()
+        self.pause_button.setText("Continue" if paused else "Pause")
+        self.eta.setText("paused" if paused else "continuing...")
+
+    def stop(self) -> None:
+        if self.is_running:
+            self.worker.control.stop.set()
+            self.worker.control.pause.clear()
+            self.eta.setText("stopping after the current frame...")
+            self.message.emit("info", "capture: stop requested")
+
+    def _set_running(self, running: bool) -> None:
+        self._active = running
+        self.start_button.setEnabled(not running)
+        self.resume_button.setEnabled(not running)
+        self.pause_button.setEnabled(running)
+        self.stop_button.setEnabled(running)
+        if not running:
+            self.pause_button.blockSignals(True)
+            self.pause_button.setChecked(False)
+            self.pause_button.setText("Pause")
+            self.pause_button.blockSignals(False)
+        self.running.emit(running)
+
+    # -- events from the worker
+    def _progress(self, ev: Progress) -> None:
+        self.events.append(ev)
+        if ev.total:
+            self.progress.setMaximum(ev.total)
+            self.progress.setValue(ev.step)
+        if ev.kind == "capture-start" and not self._step0:
+            self._t_start, self._step0 = time.monotonic(), max(ev.step, 0)
+        if ev.kind == "frame" and ev.total:
+            done = ev.step - self._step0
+            el = time.monotonic() - self._t_start
+            eta = el / done * (ev.total - ev.step) if done > 0 else float("nan")
+            self.eta.setText(f"capture {ev.capture_index + 1}/{ev.n_captures}, pose "
+                             f"{ev.pose_deg:g} deg, frame {ev.step}/{ev.total}, ETA "
+                             f"{_fmt_s(eta)}")
+        elif ev.kind == "retry":
+            self.message.emit("warning", f"capture: {ev.message}")
+        elif ev.kind == "capture-failed":
+            self.message.emit("error", f"capture {ev.capture_index + 1} pose {ev.pose_deg:g} "
+                                       f"deg: {ev.message}")
+        elif ev.kind == "capture-done":
+            self._capture_done(ev)
+
+    def _capture_done(self, ev: Progress) -> None:
+        from polrig.processing import format_score
+
+        text = f"pose {ev.pose_deg:g} deg"
+        if ev.score:
+            self.scores[ev.capture_index] = ev.score
+            line = format_score(ev.score)
+            self.score.setText("\n".join(f"capture {i + 1}: {format_score(s)}"
+                                         for i, s in sorted(self.scores.items())))
+            self.message.emit("info", f"capture {ev.capture_index + 1} ({text}) done | {line}")
+        else:
+            self.message.emit("info", f"capture {ev.capture_index + 1} ({text}) done")
+        item = QListWidgetItem(text)
+        session = self.worker.session if self.worker else None
+        if session is not None:
+            rec = session.capture(ev.capture_index)["files"].get("mueller")
+            if rec is not None:
+                try:
+                    pix = QPixmap.fromImage(to_qimage(thumbnail_rgb(session.root / rec["path"])))
+                    item.setIcon(QIcon(pix))
+                except (OSError, PolrigError, ValueError) as exc:
+                    self.message.emit("warning", f"thumbnail of pose {ev.pose_deg:g}: {exc}")
+        self.thumbs.addItem(item)
+
+    def _finished(self, status: str, reason: str, _scores: object) -> None:
+        self.last_status = status
+        if status == "complete":
+            self.eta.setText(f"session complete ({len(self.scores) or self.thumbs.count()} "
+                             f"captures)")
+            self.message.emit("info", "capture: session complete")
+        else:
+            self.eta.setText(f"session {status}: {reason} (resume to continue)")
+            self.message.emit("error", f"capture stopped: {reason}; completed captures are "
+                                       f"intact, use 'Resume session in folder' to continue")
+
+    def _failed(self, text: str) -> None:
+        self.last_status = "failed"
+        self.eta.setText(f"not started: {text}")
+        self.message.emit("error", f"capture: {text}")
+
+
+def _fmt_s(s: float) -> str:
+    if not np.isfinite(s):
+        return "--"
+    s = int(round(s))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"

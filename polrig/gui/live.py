@@ -1,0 +1,238 @@
+"""Live view: a worker ``QThread`` grabs and processes frames, the widget shows the latest one.
+
+Threading: the worker grabs (holding the camera lock of :class:`polrig.gui.rigaccess.RigLocks`),
+processes (:mod:`polrig.gui.pipeline`: Stokes/DoLP/AoLP, or single-shot Mueller inference),
+renders the display image and puts the result into a :class:`LatestSlot`. The slot holds one
+result: a newer one replaces an older one that the UI has not taken yet (that frame is
+dropped and counted), so nothing is ever queued without bound and the UI thread never waits
+for a device or for inference; it only takes what is in the slot when ``frame_ready`` fires.
+Camera settings (exposure, gain) are handed to the worker and applied between frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections import deque
+from typing import Any, Callable
+
+import numpy as np
+from PySide6.QtCore import QThread, Signal
+from PySide6.QtGui import QImage
+
+from polrig.errors import DeviceDisconnected, PolrigError
+from polrig.gui import pipeline
+from polrig.gui.qtimage import to_qimage
+from polrig.gui.rigaccess import DeviceBusy, RigLocks
+
+
+class LatestSlot:
+    """A one-item mailbox between threads: :meth:`put` replaces, :meth:`take` empties."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._item: Any = None
+        self.dropped = 0
+
+    def put(self, item: Any) -> bool:
+        """Store ``item``; True when the slot was empty (the reader needs a notification),
+        False when an unread item was replaced (dropped)."""
+        with self._lock:
+            was_empty = self._item is None
+            if not was_empty:
+                self.dropped += 1
+            self._item = item
+            return was_empty
+
+    def take(self) -> Any:
+        with self._lock:
+            item, self._item = self._item, None
+            return item
+
+
+@dataclasses.dataclass
+class LiveSettings:
+    """What the worker computes (changed from the UI thread; read once per frame)."""
+
+    display: str = "aolp_dolp"
+    colour: int = pipeline.LUMINANCE
+    method: str = "superpixel"
+    saturation_overlay: bool = True
+    max_fps: float = 30.0
+
+
+@dataclasses.dataclass
+class LiveResult:
+    """One processed frame, ready for the UI."""
+
+    image: QImage
+    data: pipeline.PolarizationData
+    display: str
+    colour: int
+    frame_id: int
+    exposure_us: float
+    gain_db: float
+    hist: tuple[np.ndarray, np.ndarray, str]
+    processing_s: float
+    fps: float
+    note: str = ""
+
+
+class RateMeter:
+    """Events per second over a sliding window of the last ``window_s`` seconds."""
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self.times: deque[float] = deque()
+
+    def tick(self, t: float | None = None) -> None:
+        t = time.perf_counter() if t is None else t
+        self.times.append(t)
+        while self.times and self.times[0] < t - self.window_s:
+            self.times.popleft()
+
+    def rate(self) -> float:
+        if len(self.times) < 2:
+            return 0.0
+        span = self.times[-1] - self.times[0]
+        return (len(self.times) - 1) / span if span > 0 else 0.0
+
+
+class LiveWorker(QThread):
+    """Grab -> process -> render loop (see the module docstring). ``rig`` is a
+    :class:`polrig.rig.Rig`; ``model_loader`` returns the single-shot model (called in this
+    thread the first time the Mueller display is chosen; its exceptions become messages)."""
+
+    frame_ready = Signal()
+    message = Signal(str, str)  # level, text
+
+    def __init__(self, rig, locks: RigLocks, settings: LiveSettings | None = None,
+                 model_loader: Callable[[], Any] | None = None, parent=None):
+        super().__init__(parent)
+        self.rig = rig
+        self.locks = locks
+        self.settings = settings or LiveSettings()
+        self.slot = LatestSlot()
+        self.model_loader = model_loader
+        self._model: Any = None
+        self._model_error: str | None = None
+        self._quit = threading.Event()
+        self._running = threading.Event()
+        self._running.set()
+        self._pending: dict[str, float] = {}
+        self._pending_lock = threading.Lock()
+        self.meter = RateMeter()
+        self.frames_processed = 0
+        self._last_error = ""
+
+    # -- control from the UI thread
+    def stop(self) -> None:
+        self._quit.set()
+        self._running.set()
+
+    def pause(self, paused: bool) -> None:
+        (self._running.clear if paused else self._running.set)()
+
+    @property
+    def paused(self) -> bool:
+        return not self._running.is_set()
+
+    def set_camera(self, **values: float) -> None:
+        """Queue camera settings (``exposure_us``, ``gain_db``); the newest value wins."""
+        with self._pending_lock:
+            self._pending.update(values)
+
+    # -- the loop
+    def run(self) -> None:  # noqa: C901 - one loop, kept readable by its helpers
+        while not self._quit.is_set():
+            if not self._running.is_set():
+                self._running.wait(0.2)
+                continue
+            t0 = time.perf_counter()
+            try:
+                result = self._one_frame()
+            except DeviceBusy:
+                self._quit.wait(0.1)
+                continue
+            except (PolrigError, OSError, ValueError) as exc:
+                self._report(exc)
+                self._quit.wait(1.0 if isinstance(exc, DeviceDisconnected) else 0.3)
+                continue
+            if result is None:
+                self._quit.wait(0.2)
+                continue
+            self._last_error = ""
+            self.frames_processed += 1
+            if self.slot.put(result):
+                self.frame_ready.emit()
+            s = self.settings
+            rest = 1.0 / s.max_fps - (time.perf_counter() - t0) if s.max_fps > 0 else 0
+            if rest > 0:
+                self._quit.wait(rest)
+
+    def _report(self, exc: BaseException) -> None:
+        text = f"live view: {exc}"
+        if text != self._last_error:  # one message per distinct problem, not one per frame
+            self._last_error = text
+            self.message.emit("error", text)
+
+    def _apply_pending(self, cam) -> None:
+        with self._pending_lock:
+            pending, self._pending = self._pending, {}
+        for key, value in pending.items():
+            try:
+                (cam.set_exposure_us if key == "exposure_us" else cam.set_gain_db)(value)
+                self.message.emit("info", f"camera {key.replace('_', ' ')} set to {value:g}")
+            except (PolrigError, ValueError) as exc:
+                self.message.emit("error", f"camera: cannot set {key}: {exc}")
+
+    def _one_frame(self) -> LiveResult | None:
+        cam = self.rig.camera
+        s = dataclasses.replace(self.settings)  # one consistent copy for this frame
+        want_mueller = s.display == "mueller"
+        with self.locks.hold("camera", timeout_s=0.2, who="live view"):
+            if not cam.is_open:
+                return None
+            self._apply_pending(cam)
+            frame = cam.grab(timeout_s=2.0)
+        t0 = time.perf_counter()
+        note = ""
+        data = None
+        if want_mueller:
+            model = self._get_model()
+            if model is None:
+                note = f"Mueller display unavailable: {self._model_error}"
+            else:
+                state = self._stage_angle()
+                data = pipeline.infer_mueller(frame, model, state, s.method, source="live")
+        if data is None:
+            data = pipeline.process_frame(frame, s.method, source="live")
+        display = s.display if s.display in data.available() else "aolp_dolp"
+        rgb = pipeline.render(data, display, s.colour, saturation_overlay=s.saturation_overlay)
+        hist = pipeline.histogram(data, display, s.colour)
+        image = to_qimage(rgb)
+        self.meter.tick()
+        return LiveResult(image, data, display, s.colour, frame.meta.frame_id,
+                          frame.meta.exposure_us, frame.meta.gain_db, hist,
+                          time.perf_counter() - t0, self.meter.rate(), note)
+
+    def _stage_angle(self) -> float:
+        """The polarizer stage angle for single-shot inference (0 if it cannot be read)."""
+        try:
+            with self.locks.hold("stage", timeout_s=0.2, who="live view"):
+                return float(self.rig.stage.position_deg())
+        except (PolrigError, ValueError):
+            return 0.0
+
+    def _get_model(self):
+        if self._model is None and self._model_error is None:
+            if self.model_loader is None:
+                self._model_error = "no single-shot model loader"
+            else:
+                try:
+                    self._model = self.model_loader()
+                except Exception as exc:  # noqa: BLE001 - any load problem is a message
+                    self._model_error = str(exc)
+                    self.message.emit("warning", f"single-shot model: {exc}")
+        return self._model

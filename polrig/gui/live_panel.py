@@ -1,0 +1,158 @@
+"""Live view panel: display choice, camera controls, image, cursor readout, histogram.
+
+The panel owns a :class:`polrig.gui.live.LiveWorker`; on ``frame_ready`` it takes the latest
+result from the worker's slot (never blocking) and shows it.
+"""
+
+from __future__ import annotations
+
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout,
+                               QLabel, QPushButton, QSplitter, QVBoxLayout, QWidget)
+
+from polrig.gui import pipeline
+from polrig.gui.live import LiveResult, LiveSettings, LiveWorker
+from polrig.gui.widgets import HistogramWidget, ImageView
+
+DEMOSAIC_METHODS = ("superpixel", "bilinear", "newton")
+
+
+def colour_choices(n_colours: int) -> list[tuple[str, int]]:
+    if n_colours == 1:
+        return [("Y (mono)", pipeline.LUMINANCE)]
+    return [("luminance / RGB", pipeline.LUMINANCE), ("R", 0), ("G", 1), ("B", 2)]
+
+
+class LivePanel(QWidget):
+    """Live camera view. ``status(text)`` carries the frame-rate line for the status bar."""
+
+    status = Signal(str)
+    message = Signal(str, str)
+
+    def __init__(self, worker: LiveWorker, n_colours: int = 3, parent=None):
+        super().__init__(parent)
+        self.worker = worker
+        self.frames_shown = 0
+        self.last: LiveResult | None = None
+        self._hover = (-1, -1)
+
+        self.display = QComboBox()
+        for key, label in pipeline.DISPLAYS.items():
+            self.display.addItem(label, key)
+        self.colour = QComboBox()
+        for label, value in colour_choices(n_colours):
+            self.colour.addItem(label, value)
+        self.method = QComboBox()
+        self.method.addItems(DEMOSAIC_METHODS)
+        self.exposure = QDoubleSpinBox()
+        self.exposure.setRange(10.0, 10_000_000.0)
+        self.exposure.setDecimals(0)
+        self.exposure.setSuffix(" us")
+        self.exposure.setKeyboardTracking(False)
+        self.gain = QDoubleSpinBox()
+        self.gain.setRange(0.0, 48.0)
+        self.gain.setSuffix(" dB")
+        self.gain.setKeyboardTracking(False)
+        self.overlay = QCheckBox("saturation overlay (red)")
+        self.overlay.setChecked(True)
+        self.pause_button = QPushButton("Pause live")
+        self.pause_button.setCheckable(True)
+
+        form = QFormLayout()
+        form.addRow("Display", self.display)
+        form.addRow("Colour", self.colour)
+        form.addRow("Demosaic", self.method)
+        form.addRow("Exposure", self.exposure)
+        form.addRow("Gain", self.gain)
+        form.addRow(self.overlay)
+        form.addRow(self.pause_button)
+        self.readout = QLabel("move the cursor over the image")
+        self.readout.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.readout.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
+        self.readout.setStyleSheet("font-family: monospace; font-size: 9pt")
+        self.readout.setWordWrap(False)
+        self.histogram = HistogramWidget()
+        side = QVBoxLayout()
+        side.addLayout(form)
+        side.addWidget(QLabel("Histogram"))
+        side.addWidget(self.histogram)
+        side.addWidget(self.readout, 1)
+        side_w = QWidget()
+        side_w.setLayout(side)
+        side_w.setMaximumWidth(470)
+        self.view = ImageView(placeholder="waiting for the camera...")
+        split = QSplitter()
+        split.addWidget(self.view)
+        split.addWidget(side_w)
+        split.setStretchFactor(0, 3)
+        lay = QHBoxLayout(self)
+        lay.addWidget(split)
+
+        self.display.currentIndexChanged.connect(self._settings_changed)
+        self.colour.currentIndexChanged.connect(self._settings_changed)
+        self.method.currentIndexChanged.connect(self._settings_changed)
+        self.overlay.toggled.connect(self._settings_changed)
+        self.exposure.valueChanged.connect(lambda v: self.worker.set_camera(exposure_us=v))
+        self.gain.valueChanged.connect(lambda v: self.worker.set_camera(gain_db=v))
+        self.pause_button.toggled.connect(self._pause_toggled)
+        self.view.hovered.connect(self._hovered)
+        worker.frame_ready.connect(self._take_frame)
+        worker.message.connect(self.message)
+
+    # -- settings
+    def settings(self) -> LiveSettings:
+        return self.worker.settings
+
+    def set_display(self, key: str) -> None:
+        self.display.setCurrentIndex(max(0, self.display.findData(key)))
+
+    def set_camera_values(self, exposure_us: float, gain_db: float) -> None:
+        """Show the camera's values without sending them back to the camera."""
+        for box, v in ((self.exposure, exposure_us), (self.gain, gain_db)):
+            box.blockSignals(True)
+            box.setValue(v)
+            box.blockSignals(False)
+
+    def _settings_changed(self, *_a) -> None:
+        s = self.worker.settings
+        s.display = self.display.currentData()
+        s.colour = self.colour.currentData()
+        s.method = self.method.currentText()
+        s.saturation_overlay = self.overlay.isChecked()
+
+    def _pause_toggled(self, paused: bool) -> None:
+        self.worker.pause(paused)
+        self.pause_button.setText("Resume live" if paused else "Pause live")
+
+    def pause_for(self, reason: str, paused: bool) -> None:
+        """Pause/resume for another task (a capture); the button shows why."""
+        self.worker.pause(paused or self.pause_button.isChecked())
+        self.pause_button.setEnabled(not paused)
+        if paused:
+            self.status.emit(f"live view paused: {reason}")
+
+    # -- frames
+    def _take_frame(self) -> None:
+        res = self.worker.slot.take()
+        if res is None:
+            return
+        self.last = res
+        self.frames_shown += 1
+        self.view.set_image(res.image)
+        self.histogram.set_data(*res.hist)
+        if self._hover != (-1, -1):
+            self._hovered(*self._hover)
+        shape = res.image.width(), res.image.height()
+        text = (f"live {res.fps:.1f} fps | frame {res.frame_id} | {shape[0]}x{shape[1]} "
+                f"{pipeline.DISPLAYS[res.display]} | exposure {res.exposure_us:g} us, gain "
+                f"{res.gain_db:g} dB | processing {1e3 * res.processing_s:.0f} ms | dropped "
+                f"{self.worker.slot.dropped}")
+        if res.note:
+            text += f" | {res.note}"
+        self.status.emit(text)
+
+    def _hovered(self, x: int, y: int) -> None:
+        self._hover = (x, y)
+        if self.last is None or x < 0:
+            return
+        self.readout.setText(pipeline.readout(self.last.data, self.last.display, x, y))

@@ -1,0 +1,168 @@
+"""The main window: tabs for live view, devices, capture, calibration and the viewer; a
+dialog-free message area; the live frame rate in the status bar; settings and shortcuts.
+
+Device access is arbitrated by one :class:`polrig.gui.rigaccess.RigLocks`: while a capture or
+a calibration step runs, the live view is paused and the manual device controls are disabled
+(the task holds every device lock). Closing the window during a capture asks the capture to
+stop (the session is left ``interrupted`` and resumable) and closes once it has.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from PySide6.QtCore import QByteArray, Qt
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import QDockWidget, QLabel, QMainWindow, QTabWidget
+
+from polrig.gui import settings as st
+from polrig.gui.calibration_panel import CalibrationPanel
+from polrig.gui.capture_panel import CapturePanel
+from polrig.gui.devices import DevicesPanel
+from polrig.gui.live import LiveSettings, LiveWorker
+from polrig.gui.live_panel import LivePanel
+from polrig.gui.rigaccess import RigLocks
+from polrig.gui.viewer import ViewerPanel
+from polrig.gui.widgets import MessageArea
+
+STOP_KEYS = ("Esc", "Ctrl+.")
+CAPTURE_KEY = "Ctrl+R"
+
+
+def _n_colours(rig) -> int:
+    from polrig.analyzer import resolve_layout
+
+    try:
+        return resolve_layout(rig.camera.layout).n_colours
+    except Exception:  # noqa: BLE001 - a closed real camera may not know its layout yet
+        return 3
+
+
+class MainWindow(QMainWindow):
+    """``MainWindow(rig, settings)``: ``rig`` from :func:`polrig.rig.build_rig` (opened by the
+    window's devices worker), ``settings`` a ``QSettings``. Call :meth:`start` after showing."""
+
+    def __init__(self, rig, settings, *, model_loader: Callable[[], Any] | None = None,
+                 live_max_fps: float = 30.0, poll_ms: int = 500, parent=None):
+        super().__init__(parent)
+        self.rig = rig
+        self.locks = RigLocks()
+        self.qsettings = settings
+        self._closing = False
+        src = getattr(rig, "source", None)
+        self.setWindowTitle(f"polrig - {src or 'simulated rig'}")
+
+        self.live_worker = LiveWorker(rig, self.locks, LiveSettings(max_fps=live_max_fps),
+                                      model_loader)
+        self.live = LivePanel(self.live_worker, _n_colours(rig))
+        self.devices = DevicesPanel(rig, self.locks, poll_ms=poll_ms)
+        self.capture = CapturePanel(rig, self.locks)
+        self.calibration = CalibrationPanel(rig, self.locks)
+        self.viewer = ViewerPanel()
+        self.tabs = QTabWidget()
+        for w, name in ((self.live, "Live"), (self.devices, "Devices"),
+                        (self.capture, "Capture"), (self.calibration, "Calibration"),
+                        (self.viewer, "Viewer")):
+            self.tabs.addTab(w, name)
+        self.setCentralWidget(self.tabs)
+
+        self.messages = MessageArea()
+        dock = QDockWidget("Messages")
+        dock.setObjectName("messages")
+        dock.setWidget(self.messages)
+        dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
+        self.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, dock)
+        self.fps_label = QLabel("live: -")
+        self.statusBar().addPermanentWidget(self.fps_label)
+
+        for panel in (self.live, self.devices, self.capture, self.calibration, self.viewer):
+            panel.message.connect(self.show_message)
+        self.live.status.connect(self.fps_label.setText)
+        self.devices.camera_values.connect(self._camera_values)
+        self.capture.running.connect(lambda r: self._task_running("capture", r))
+        self.calibration.running.connect(lambda r: self._task_running("calibration", r))
+
+        self.capture_action = QAction("Start capture", self)
+        self.capture_action.setShortcut(QKeySequence(CAPTURE_KEY))
+        self.capture_action.triggered.connect(self.capture.start)
+        self.stop_action = QAction("Stop capture", self)
+        self.stop_action.setShortcuts([QKeySequence(k) for k in STOP_KEYS])
+        self.stop_action.triggered.connect(self.capture.stop)
+        for a in (self.capture_action, self.stop_action):
+            a.setShortcutContext(Qt.ShortcutContext.WindowShortcut)
+            self.addAction(a)
+        menu = self.menuBar().addMenu("&Capture")
+        menu.addAction(self.capture_action)
+        menu.addAction(self.stop_action)
+
+        self.binder = st.SettingsBinder(settings)
+        self._bind_settings()
+        self.binder.restore()
+        geo = settings.value("window/geometry")
+        if isinstance(geo, QByteArray):
+            self.restoreGeometry(geo)
+        else:
+            self.resize(1280, 860)
+
+    def _bind_settings(self) -> None:
+        b, lp, cp = self.binder, self.live, self.capture
+        b.bind("live/display", st.combo_binding(lp.display))
+        b.bind("live/colour", st.combo_binding(lp.colour))
+        b.bind("live/demosaic", st.combo_binding(lp.method))
+        b.bind("live/saturation_overlay", st.bool_binding(lp.overlay))
+        for key, w in (("poses", cp.poses), ("states", cp.states), ("exposure", cp.exposure),
+                       ("calibration", cp.calibration), ("out", cp.out)):
+            b.bind(f"capture/{key}", st.text_binding(w))
+        b.bind("capture/mode", st.combo_binding(cp.mode))
+        b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
+        b.bind("capture/frames", st.int_binding(cp.frames))
+        b.bind("capture/dark_frames", st.int_binding(cp.dark_frames))
+        b.bind("calibration/report_dir", st.text_binding(self.calibration.report_dir))
+        b.bind("calibration/sphere_radius_m", st.float_binding(self.calibration.sphere_radius))
+        b.bind("window/tab", (self.tabs.currentIndex, lambda v: self.tabs.setCurrentIndex(int(v))))
+
+    # -- life cycle
+    def start(self) -> None:
+        """Start the workers and connect every device (off the UI thread)."""
+        self.devices.start()
+        self.devices.connect_all()
+        self.live_worker.start()
+
+    def show_message(self, level: str, text: str) -> None:
+        self.messages.add(level, text)
+        self.statusBar().showMessage(text, 15000 if level == "error" else 5000)
+
+    def _camera_values(self, exposure_us: float, gain_db: float) -> None:
+        if not (self.live.exposure.hasFocus() or self.live.gain.hasFocus()):
+            self.live.set_camera_values(exposure_us, gain_db)
+
+    def _task_running(self, task: str, running: bool) -> None:
+        busy = running or self.capture.is_running or self.calibration.is_running
+        self.live.pause_for(task, busy)
+        self.devices.setEnabled(not busy)
+        self.capture.setEnabled(not (self.calibration.is_running))
+        self.calibration.setEnabled(not self.capture.is_running)
+        if not busy and self._closing:
+            self.close()
+
+    def closeEvent(self, event) -> None:  # noqa: N802 - Qt naming
+        if self.capture.is_running or self.calibration.is_running:
+            self._closing = True
+            self.capture.stop()
+            if self.calibration.worker is not None:
+                self.calibration.worker.cancelled.set()
+            self.show_message("info", "closing once the running task has stopped...")
+            event.ignore()
+            return
+        self.binder.save()
+        self.qsettings.setValue("window/geometry", self.saveGeometry())
+        self.qsettings.sync()
+        self.shutdown()
+        event.accept()
+
+    def shutdown(self) -> None:
+        """Stop the workers and close the rig (idempotent)."""
+        self.live_worker.stop()
+        self.live_worker.wait(5000)
+        self.devices.shutdown()
+        self.rig.close()

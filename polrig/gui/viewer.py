@@ -1,0 +1,199 @@
+"""Viewer of saved sessions and EXRs with the live view's displays.
+
+A session folder lists its captures' files (Mueller EXR, truth EXR on the simulated rig, raw
+frames); a Mueller or Stokes EXR opens on its own. Files are read with the core readers
+(:mod:`polrig.session`, :mod:`polrig.exr`, :mod:`polrig.rawio`) and shown through
+:mod:`polrig.gui.pipeline` (a raw frame is processed like a live frame).
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import (QComboBox, QFileDialog, QHBoxLayout, QLabel, QListWidget,
+                               QListWidgetItem, QPushButton, QSplitter, QVBoxLayout, QWidget)
+
+from polrig.errors import FormatError, PolrigError
+from polrig.gui import pipeline
+from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
+from polrig.gui.qtimage import to_qimage
+from polrig.gui.widgets import HistogramWidget, ImageView
+
+
+def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
+    """A Mueller or a Stokes EXR as :class:`pipeline.PolarizationData` (kind from its
+    channels); :class:`polrig.errors.FormatError` for anything else."""
+    from polrig.exr import read_exr, read_mueller_exr, read_stokes_exr
+
+    path = pathlib.Path(path)
+    planes = read_exr(path).planes
+    if any(k.startswith("M00.") for k in planes):
+        return pipeline.PolarizationData.from_mueller(read_mueller_exr(path).mueller, str(path))
+    if any(k.startswith("S0.") for k in planes):
+        return pipeline.PolarizationData.from_stokes(read_stokes_exr(path).stokes, str(path))
+    raise FormatError(f"{path}: neither a Mueller (M00.*) nor a Stokes (S0.*) EXR")
+
+
+def load_raw(path: str | pathlib.Path, method: str = "superpixel") -> pipeline.PolarizationData:
+    """A raw frame (with its sidecar) processed like a live frame."""
+    from polrig.rawio import read_raw
+
+    return pipeline.process_frame(read_raw(path, layout="imx250myr"), method, source=str(path))
+
+
+def session_entries(root: str | pathlib.Path) -> list[tuple[str, str, pathlib.Path]]:
+    """``(label, kind, path)`` of the viewable files of a session: per capture its Mueller
+    EXR(s) (``exr``) and raw frames (``raw``), in plan order."""
+    from polrig.session import Session
+
+    s = Session.open(root)
+    out = []
+    for cap in s.captures:
+        head = f"{cap['name']} ({cap['status']})"
+        files = cap["files"]
+        for role in ("mueller", "truth_mueller"):
+            rec = files.get(role)
+            if rec and "part_of" not in rec:
+                out.append((f"{head}: {role}.exr", "exr", s.root / rec["path"]))
+        for name, rev in cap.get("revisions", {}).items():
+            rec = rev.get("files", {}).get("mueller")
+            if rec and "part_of" not in rec:
+                out.append((f"{head}: {name} mueller.exr", "exr", s.root / rec["path"]))
+        for rec in files.get("raw", []):
+            out.append((f"{head}: raw {pathlib.PurePosixPath(rec['path']).name}", "raw",
+                        s.root / rec["path"]))
+    return out
+
+
+class ViewerPanel(QWidget):
+    """Open a session or an EXR, pick an entry, choose the display."""
+
+    message = Signal(str, str)
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        self.data: pipeline.PolarizationData | None = None
+        self.path: pathlib.Path | None = None
+        open_session = QPushButton("Open session...")
+        open_exr = QPushButton("Open EXR...")
+        open_session.clicked.connect(self._ask_session)
+        open_exr.clicked.connect(self._ask_exr)
+        self.entries = QListWidget()
+        self.entries.currentItemChanged.connect(self._entry_chosen)
+        self.display = QComboBox()
+        self.colour = QComboBox()
+        self.method = QComboBox()
+        self.method.addItems(DEMOSAIC_METHODS)
+        self.display.currentIndexChanged.connect(self.refresh)
+        self.colour.currentIndexChanged.connect(self.refresh)
+        self.method.currentIndexChanged.connect(self._reload)
+        self.view = ImageView(placeholder="open a session folder or a Mueller/Stokes EXR")
+        self.view.hovered.connect(self._hovered)
+        self.readout = QLabel("")
+        self.readout.setStyleSheet("font-family: monospace; font-size: 9pt")
+        self.readout.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
+        self.histogram = HistogramWidget()
+
+        left = QVBoxLayout()
+        row = QHBoxLayout()
+        row.addWidget(open_session)
+        row.addWidget(open_exr)
+        left.addLayout(row)
+        left.addWidget(self.entries, 1)
+        for label, w in (("Display", self.display), ("Colour", self.colour),
+                         ("Demosaic (raw frames)", self.method)):
+            left.addWidget(QLabel(label))
+            left.addWidget(w)
+        left.addWidget(self.histogram)
+        left.addWidget(self.readout, 1)
+        lw = QWidget()
+        lw.setLayout(left)
+        lw.setMaximumWidth(470)
+        split = QSplitter()
+        split.addWidget(lw)
+        split.addWidget(self.view)
+        split.setStretchFactor(1, 3)
+        QHBoxLayout(self).addWidget(split)
+
+    # -- opening
+    def _ask_session(self) -> None:
+        path = QFileDialog.getExistingDirectory(self, "Session folder")
+        if path:
+            self.open_session(path)
+
+    def _ask_exr(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "EXR file", "", "OpenEXR (*.exr)")
+        if path:
+            self.open_file(path)
+
+    def open_session(self, root: str | pathlib.Path) -> bool:
+        try:
+            entries = session_entries(root)
+        except (PolrigError, OSError, ValueError) as exc:
+            self.message.emit("error", f"viewer: {exc}")
+            return False
+        self.entries.clear()
+        for label, kind, path in entries:
+            item = QListWidgetItem(label)
+            item.setData(Qt.ItemDataRole.UserRole, (kind, str(path)))
+            self.entries.addItem(item)
+        self.message.emit("info", f"viewer: {root}: {len(entries)} files")
+        if entries:
+            self.entries.setCurrentRow(0)
+        return True
+
+    def open_file(self, path: str | pathlib.Path, kind: str = "exr") -> bool:
+        try:
+            data = load_exr(path) if kind == "exr" else load_raw(path, self.method.currentText())
+        except (PolrigError, OSError, ValueError) as exc:
+            self.message.emit("error", f"viewer: {exc}")
+            return False
+        self.path = pathlib.Path(path)
+        self._kind = kind
+        self.set_data(data)
+        return True
+
+    def _entry_chosen(self, item, _prev=None) -> None:
+        if item is not None:
+            kind, path = item.data(Qt.ItemDataRole.UserRole)
+            self.open_file(path, kind)
+
+    def _reload(self) -> None:
+        if self.path is not None and getattr(self, "_kind", "") == "raw":
+            self.open_file(self.path, "raw")
+
+    # -- showing
+    def set_data(self, data: pipeline.PolarizationData) -> None:
+        self.data = data
+        keep = self.display.currentData()
+        self.display.blockSignals(True)
+        self.colour.blockSignals(True)
+        self.display.clear()
+        for key in data.available():
+            self.display.addItem(pipeline.DISPLAYS[key], key)
+        want = keep if keep in data.available() else (
+            "mueller" if "mueller" in data.available() else data.available()[0])
+        self.display.setCurrentIndex(self.display.findData(want))
+        self.colour.clear()
+        for label, value in colour_choices(data.n_colours):
+            self.colour.addItem(label, value)
+        self.display.blockSignals(False)
+        self.colour.blockSignals(False)
+        self.refresh()
+
+    def refresh(self, *_a) -> None:
+        if self.data is None or self.display.currentData() is None:
+            return
+        display, colour = self.display.currentData(), self.colour.currentData()
+        try:
+            rgb = pipeline.render(self.data, display, colour, saturation_overlay=True)
+            self.histogram.set_data(*pipeline.histogram(self.data, display, colour))
+        except ValueError as exc:
+            self.message.emit("error", f"viewer: {exc}")
+            return
+        self.view.set_image(to_qimage(rgb))
+
+    def _hovered(self, x: int, y: int) -> None:
+        if self.data is not None and x >= 0:
+            self.readout.setText(pipeline.readout(self.data, self.display.currentData(), x, y))

@@ -1,0 +1,130 @@
+"""Small widgets shared by the panels: image view with cursor tracking, histogram, messages."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from PySide6.QtCore import QPoint, QRect, Qt, Signal
+from PySide6.QtGui import QColor, QImage, QPainter, QPen
+from PySide6.QtWidgets import QPlainTextEdit, QSizePolicy, QWidget
+
+
+class ImageView(QWidget):
+    """Shows a ``QImage`` scaled to fit (aspect kept, nearest-neighbour when enlarged).
+
+    ``hovered(x, y)`` gives the image pixel under the cursor (``-1, -1`` outside the image).
+    """
+
+    hovered = Signal(int, int)
+
+    def __init__(self, parent=None, placeholder: str = "no image"):
+        super().__init__(parent)
+        self._image: QImage | None = None
+        self.placeholder = placeholder
+        self.setMouseTracking(True)
+        self.setMinimumSize(160, 120)
+        self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
+        self.images_shown = 0
+
+    def set_image(self, image: QImage | None) -> None:
+        self._image = image
+        if image is not None:
+            self.images_shown += 1
+        self.update()
+
+    def image(self) -> QImage | None:
+        return self._image
+
+    def set_placeholder(self, text: str) -> None:
+        self.placeholder = text
+        self.update()
+
+    def _target(self) -> QRect:
+        img = self._image
+        w, h = self.width(), self.height()
+        s = min(w / img.width(), h / img.height())
+        tw, th = max(1, int(img.width() * s)), max(1, int(img.height() * s))
+        return QRect((w - tw) // 2, (h - th) // 2, tw, th)
+
+    def paintEvent(self, _event) -> None:  # noqa: N802 - Qt naming
+        p = QPainter(self)
+        p.fillRect(self.rect(), QColor(30, 30, 30))
+        if self._image is None or self._image.isNull():
+            p.setPen(QColor(200, 200, 200))
+            p.drawText(self.rect(), Qt.AlignmentFlag.AlignCenter | Qt.TextFlag.TextWordWrap,
+                       self.placeholder)
+            return
+        t = self._target()
+        p.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform,
+                        t.width() < self._image.width())
+        p.drawImage(t, self._image)
+
+    def map_to_image(self, pos: QPoint) -> tuple[int, int]:
+        if self._image is None:
+            return -1, -1
+        t = self._target()
+        x = int((pos.x() - t.x()) * self._image.width() / t.width())
+        y = int((pos.y() - t.y()) * self._image.height() / t.height())
+        if 0 <= x < self._image.width() and 0 <= y < self._image.height():
+            return x, y
+        return -1, -1
+
+    def mouseMoveEvent(self, event) -> None:  # noqa: N802
+        x, y = self.map_to_image(event.position().toPoint())
+        self.hovered.emit(x, y)
+
+
+class HistogramWidget(QWidget):
+    """Bar histogram of counts over bin edges, with the quantity's label and range."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        self.counts = np.zeros(0)
+        self.edges = np.zeros(1)
+        self.label = ""
+        self.setMinimumHeight(80)
+
+    def set_data(self, counts: np.ndarray, edges: np.ndarray, label: str) -> None:
+        self.counts, self.edges, self.label = np.asarray(counts), np.asarray(edges), label
+        self.update()
+
+    def paintEvent(self, _event) -> None:  # noqa: N802
+        p = QPainter(self)
+        p.fillRect(self.rect(), QColor(250, 250, 250))
+        n = len(self.counts)
+        h = self.height() - 16
+        if n and self.counts.max() > 0:
+            top = float(self.counts.max())
+            bw = self.width() / n
+            p.setPen(Qt.PenStyle.NoPen)
+            p.setBrush(QColor(70, 110, 170))
+            for i, c in enumerate(self.counts):
+                bh = int(h * c / top)
+                p.drawRect(int(i * bw), h - bh, max(1, int(bw) - 1), bh)
+        p.setPen(QPen(QColor(0, 0, 0)))
+        if len(self.edges) > 1:
+            p.drawText(2, self.height() - 3, f"{self.edges[0]:.3g}")
+            text = f"{self.label}  {self.edges[-1]:.4g}"
+            p.drawText(QRect(0, h, self.width() - 2, 16),
+                       Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter, text)
+
+
+class MessageArea(QPlainTextEdit):
+    """Dialog-free log of messages (device faults, capture events), newest at the bottom."""
+
+    LEVELS = {"info": "", "warning": "WARNING ", "error": "ERROR "}
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        self.setReadOnly(True)
+        self.setMaximumBlockCount(500)
+        self.setMinimumHeight(60)
+        self.messages: list[tuple[str, str]] = []
+
+    def add(self, level: str, text: str) -> None:
+        self.messages.append((level, text))
+        if len(self.messages) > 1000:
+            del self.messages[:500]
+        stamp = time.strftime("%H:%M:%S")
+        self.appendPlainText(f"{stamp} {self.LEVELS.get(level, '')}{text}")
