@@ -62,9 +62,11 @@ POSES4 = (0.0, 90.0, 180.0, 270.0)
 
 @pytest.fixture(scope="module")
 def reference_session(tmp_path_factory):
-    """Uninterrupted noise-free session, the yardstick for the interruption tests."""
+    """Uninterrupted session (sensor noise on: the simulator keys noise by pose, state and
+    repeat index, so an interrupted and resumed session must reproduce it bit for bit), the
+    yardstick for the interruption tests."""
     out = tmp_path_factory.mktemp("ref") / "s"
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc)
     assert result.status == "complete"
@@ -153,7 +155,7 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
             if len(frames) == 6:  # second capture, second state
                 raise KeyboardInterrupt
 
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4))
         with pytest.raises(KeyboardInterrupt):
             run_session(rig, session, processor=proc, progress=progress)
@@ -162,7 +164,7 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
     assert [c["status"] for c in s.captures] == [COMPLETE, PENDING, PENDING, PENDING]
     assert len(s.capture(1)["files"]["raw"]) == 2  # complete and checksummed, nothing else
     assert s.verify() == []
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         s2, result = resume(rig, out)
     assert result.status == "complete"
     assert s2.verify() == []
@@ -174,7 +176,7 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
                                                   ("turntable", "timeout", 1)])
 def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
     events = []
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         rig.inject_fault(device, kind, after_calls=after)
         session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc, progress=events.append)
@@ -185,7 +187,7 @@ def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, afte
 
 def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_session):
     out = tmp_path / "s"
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         rig.inject_fault("camera", "disconnect", after_calls=9)
         session, proc = start(rig, out, CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc)
@@ -197,7 +199,7 @@ def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_sess
     assert len(failed) == 1 and "connection lost" in failed[0]["reason"]
     assert s.captures[0]["status"] == COMPLETE
     assert s.verify() == []
-    with sim_rig(noise=False) as rig:  # reconnected
+    with sim_rig() as rig:  # reconnected
         s2, result = resume(rig, out)
     assert result.status == "complete"
     assert content(s2) == content(reference_session)
@@ -212,7 +214,7 @@ def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
         if len(writes) > 30:  # capture 0 complete, capture 1 half way
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
         result = run_session(rig, session, processor=proc)
     assert result.status == INTERRUPTED and result.reason.startswith("disk full")
@@ -220,7 +222,7 @@ def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
     assert s.verify() == []
     assert not list(out.rglob("*.tmp"))
     assert s.captures[0]["status"] == COMPLETE
-    with sim_rig(noise=False) as rig:  # space freed: no hook
+    with sim_rig() as rig:  # space freed: no hook
         s2, result = resume(rig, out)
     assert result.status == "complete"
     assert content(s2) == content(reference_session)
@@ -233,7 +235,7 @@ def test_stop_request_leaves_capture_pending(tmp_path):
         if ev.kind == "capture-done" and ev.capture_index == 0:
             control.stop.set()
 
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         session, proc = start(rig, tmp_path / "s", CapturePlan((0.0, 90.0)))
         result = run_session(rig, session, processor=proc, progress=progress, control=control)
     assert result.status == INTERRUPTED and result.reason == "stopped by the operator"
@@ -260,7 +262,7 @@ def test_reprocess_writes_a_revision_and_never_touches_raw(tmp_path):
 
 def test_tampered_raw_frame_is_refused_by_reprocessing(tmp_path):
     out = tmp_path / "s"
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan((0.0,)))
         run_session(rig, session, processor=proc)
     raw = out / session.capture(0)["files"]["raw"][0]["path"]
@@ -315,7 +317,7 @@ def test_pause_blocks_between_frames_until_released(tmp_path):
                 control.pause.set()
                 threading.Timer(0.3, control.pause.clear).start()
 
-    with sim_rig(noise=False) as rig:
+    with sim_rig() as rig:
         session, proc = start(rig, tmp_path / "s", CapturePlan((0.0,)))
         result = run_session(rig, session, processor=proc, progress=progress, control=control)
     assert result.status == "complete" and len(seen) == 4

@@ -117,13 +117,13 @@ def content(root: pathlib.Path) -> list:
 @pytest.mark.slow
 def test_sigint_mid_session_then_resume_equals_uninterrupted(tmp_path):
     """SIGINT to a running ``polrig capture`` after its first capture, then ``--resume``:
-    the session has the same captures and files (checksums) as an uninterrupted run. Noise
-    off so that every frame is reproducible."""
-    cfg = sim_config(tmp_path / "rig.toml", noise=False, clock_speed="40")  # ~0.5 s/capture
+    the session has the same captures and files (checksums) as an uninterrupted run, with the
+    sensor noise on (the simulator keys noise by pose, state and repeat index)."""
+    cfg = sim_config(tmp_path / "rig.toml", noise=True, clock_speed="40")  # ~0.5 s/capture
     poses = "0:360:90"
     ref = tmp_path / "ref"
     assert main(["capture", "--poses", poses, "--config", str(sim_config(tmp_path / "fast.toml",
-                 noise=False)), "--out", str(ref), "--no-progress"]) == 0
+                 noise=True)), "--out", str(ref), "--no-progress"]) == 0
     out = tmp_path / "run"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses", poses,
@@ -154,7 +154,7 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
     ``--resume`` completes the session with the same content as an uninterrupted run."""
     import polrig.rig
 
-    cfg = sim_config(tmp_path / "rig.toml", noise=False)
+    cfg = sim_config(tmp_path / "rig.toml", noise=True)
     ref = tmp_path / "ref"
     assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(ref),
                  "--no-progress"]) == 0
@@ -199,8 +199,8 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
 def test_crash_mid_session_then_resume_equals_uninterrupted(tmp_path):
     """SIGKILL (a crash: no clean-up runs) after the first capture, then ``--resume``: the
     manifest on disk was consistent, and the resumed session equals an uninterrupted one."""
-    cfg = sim_config(tmp_path / "rig.toml", noise=False, clock_speed="40")
-    fast = sim_config(tmp_path / "fast.toml", noise=False)
+    cfg = sim_config(tmp_path / "rig.toml", noise=True, clock_speed="40")
+    fast = sim_config(tmp_path / "fast.toml", noise=True)
     ref = tmp_path / "ref"
     assert main(["capture", "--poses", "0:360:90", "--config", str(fast), "--out", str(ref),
                  "--no-progress"]) == 0
