@@ -1,0 +1,221 @@
+"""Run calibration steps in order, record them in a :class:`CalibrationSet`, and score them
+against a simulator's hidden truth when one is given.
+
+Steps: ``intrinsics``, ``turntable``, ``light``, ``stokes`` (generator zero offset), ``dofp``
+(analyzer model and the generator's extinction ratio); ``all`` runs them in that order. A step
+reads what earlier steps stored in the set (``polrig calibrate light`` needs the intrinsics) and
+raises :class:`CalibrationError` naming the missing step otherwise.
+
+Truth (simulated rig only): a plain dict as :meth:`sim.truth.SimTruth.rig_parameters` returns
+it, plus optionally the true per-pixel :class:`polrig.analyzer.AnalyzerModel`. Errors are
+reported in the calibration's own frames (camera frame; the stage zero axis defined from the
+calibrated turntable axis, :mod:`calibration.rigframes`): the hidden zero offset is converted
+into that frame before comparing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import numpy as np
+
+from calibration import procedures as pr
+from calibration import turntable as tt
+from calibration.calset import CalibrationSet
+from calibration.charuco import BoardSpec
+from calibration.errors import CalibrationError
+from calibration.generator import GeneratorModel
+from polrig import frames as fr
+from polrig.analyzer import AnalyzerModel
+
+STEPS = ("intrinsics", "turntable", "light", "stokes", "dofp")
+
+
+@dataclasses.dataclass
+class Options:
+    """Targets and settings of a calibration run (defaults: the simulated targets)."""
+
+    board: BoardSpec = dataclasses.field(default_factory=lambda: BoardSpec(8, 6, 0.025, 0.018))
+    sphere_radius_m: float = 0.03
+    sensor_diattenuation: float = pr.DEFAULT_SENSOR_DIATTENUATION
+    distortion: str = "k1k2"
+    stage_angles_deg: tuple[float, ...] = pr.STAGE_ANGLES_DEG
+    dofp_frames_per_angle: int = 6
+
+
+def _geometry(cs: CalibrationSet) -> tt.JointRigResult:
+    intr = cs.intrinsics
+    ax = cs.turntable_axis
+    fixtures = cs._section("fixtures")
+    axis = tt.TurntableAxisResult(ax["axis_cam"], ax["point_cam_m"], float(ax["axis_std_deg"]),
+                                  np.asarray(ax.get("point_std_m", [0, 0, 0]), float), 1.0, 0.0,
+                                  np.zeros(0), np.zeros(3), 0.0)
+    poses = tuple((np.asarray(f["R"], float), np.asarray(f["t_m"], float))
+                  for f in fixtures["poses"])
+    return tt.JointRigResult(intr["K"], intr["dist"], np.asarray(intr["std_fx_fy_cx_cy_px"]),
+                             axis, float(intr.get("rms_px", 0.0)), np.zeros((0, 2)), poses)
+
+
+def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
+              options: Options | None = None, log: Callable[[str], None] = print,
+              extras: dict[str, Any] | None = None) -> CalibrationSet:
+    """Run ``steps`` (names from :data:`STEPS`, in the given order) and store the results in
+    ``cs``. ``extras`` (optional dict) receives the raw results for reports."""
+    o = options or Options()
+    extras = {} if extras is None else extras
+    for step in steps:
+        if step not in STEPS:
+            raise ValueError(f"unknown calibration step {step!r}; one of {', '.join(STEPS)}, all")
+        if step == "intrinsics":
+            ir = pr.run_intrinsics(rig, mount, o.board, distortion=o.distortion, log=log)
+            r = ir.result
+            cs.params["intrinsics"] = {**r.to_json(), "method": "zhang", "views": len(ir.views),
+                                       "skipped_views": ir.skipped, "board": o.board.to_json()}
+            extras["intrinsics"] = ir
+        elif step == "turntable":
+            ir = extras.get("intrinsics")
+            if ir is None:
+                intr = cs.intrinsics
+                jr = pr.run_turntable(rig, mount, o.board, None, intr["K"], intr["dist"],
+                                      distortion=o.distortion != "none", log=log)
+            else:
+                jr = pr.run_turntable(rig, mount, o.board, ir, distortion=o.distortion != "none",
+                                      log=log)
+            w, h = rig.camera.roi[:2]
+            cs.params["intrinsics"] = {
+                **cs.params.get("intrinsics", {}), "K": jr.K.tolist(), "dist": jr.dist.tolist(),
+                "image_size": [w, h], "std_fx_fy_cx_cy_px": jr.std_fx_fy_cx_cy.tolist(),
+                "rms_px": jr.rms_px, "method": "joint bundle adjustment with the turntable",
+                "board": o.board.to_json()}
+            cs.params["turntable"] = jr.axis.to_json()
+            cs.params["fixtures"] = {"mounts": [dict(m) for m in pr.INTRINSIC_MOUNTS],
+                                     "poses": [{"R": R.tolist(), "t_m": t.tolist()}
+                                               for R, t in jr.mount_poses]}
+            extras["turntable"] = jr
+        elif step == "light":
+            intr = cs.intrinsics
+            lf = pr.run_light(rig, mount, intr["K"], intr["dist"], o.sphere_radius_m, log=log)
+            cs.params["light"] = {**lf.to_json(), "sphere_radius_m": o.sphere_radius_m}
+            extras["light"] = lf
+        elif step == "stokes":
+            geo = _geometry(cs)
+            off = pr.run_generator_offset(rig, mount, o.board, geo, cs.light_position_m,
+                                          stage_angles_deg=o.stage_angles_deg, log=log)
+            prev = cs.params.get("generator", {})
+            cs.params["generator"] = {
+                "zero_offset_deg": off.zero_offset_deg,
+                "zero_offset_std_deg": off.zero_offset_std_deg,
+                "extinction_ratio": prev.get("extinction_ratio", float("inf")),
+                "extinction_ratio_std": prev.get("extinction_ratio_std", 0.0),
+                "stage_zero_axis_cam": off.stage_zero_axis_cam.tolist(),
+                "offset_method": "grazing-incidence Fresnel transmission into the matte board",
+                "offset_turntable_deg": off.turntable_deg, "offset_incidence_deg":
+                    off.incidence_deg, "offset_pixels": off.pixels}
+            extras["stokes"] = off
+        elif step == "dofp":
+            geo = _geometry(cs)
+            gen = cs.generator
+            dr = pr.run_dofp(rig, mount, geo, cs.light_position_m, gen.zero_offset_deg,
+                             stage_angles_deg=o.stage_angles_deg,
+                             frames_per_angle=o.dofp_frames_per_angle,
+                             sensor_diattenuation=o.sensor_diattenuation, log=log)
+            cs.analyzer = dr.analyzer
+            f = dr.fit
+            cs.dofp_maps = {"dark_dn": dr.dark_dn.astype(np.float32),
+                            "flat_scale": f.scale.astype(np.float32),
+                            "angle_std_deg": f.angle_std_deg.astype(np.float32),
+                            "modulation_std": f.modulation_std.astype(np.float32),
+                            "residual_rms_dn": f.residual_rms_dn.astype(np.float32),
+                            "valid": f.valid}
+            g = cs.params["generator"]
+            g.update({"extinction_ratio": dr.generator.extinction_ratio,
+                      "extinction_ratio_std": dr.generator.extinction_ratio_std,
+                      "extinction_ratio_reference": f"mean micro-polarizer diattenuation "
+                                                    f"{o.sensor_diattenuation}"})
+            v = f.valid
+            cs.params["dofp"] = {
+                "layout": dr.analyzer.layout, "shape": list(dr.analyzer.shape),
+                "valid_fraction": float(v.mean()), "turntable_deg": dr.turntable_deg,
+                "exposure_us": dr.exposure_us,
+                "angle_std_deg_median": float(np.median(f.angle_std_deg[v])),
+                "modulation_std_median": float(np.median(f.modulation_std[v])),
+                "residual_rms_dn_median": float(np.median(f.residual_rms_dn[v])),
+                "sensor_diattenuation_reference": o.sensor_diattenuation,
+                "stage_angles_deg": list(o.stage_angles_deg),
+                "frames_per_angle": o.dofp_frames_per_angle}
+            extras["dofp"] = dr
+    return cs
+
+
+# ------------------------------------------------------------------------------- truth
+def truth_in_camera(truth: dict[str, Any]) -> dict[str, Any]:
+    """The hidden rig parameters converted into the camera frame."""
+    cam = truth["camera"]
+    R, t = np.asarray(cam["R"], float), np.asarray(cam["t_m"], float)
+    L = R @ np.asarray(truth["light_position_m"], float) + t
+    target = R @ np.asarray(truth["illumination_target_m"], float) + t
+    tt_ = truth["turntable"]
+    return {"fx": cam["fx"], "fy": cam["fy"], "cx": cam["cx"], "cy": cam["cy"],
+            "light_cam_m": L, "axis_cam": R @ np.asarray(tt_["axis"], float),
+            "axis_point_cam_m": R @ np.asarray(tt_["point_m"], float) + t,
+            "stage_zero_axis_cam": R @ np.asarray(truth["stage_zero_axis"], float),
+            "target_cam_m": target,
+            "zero_offset_deg": float(truth["generator"]["stage_zero_offset_deg"]),
+            "extinction_ratio": float(truth["generator"]["extinction_ratio"])}
+
+
+def errors_against_truth(cs: CalibrationSet, truth: dict[str, Any],
+                         analyzer_truth: AnalyzerModel | None = None) -> dict[str, Any]:
+    """Errors of every calibrated quantity present in ``cs`` against the hidden truth."""
+    t = truth_in_camera(truth)
+    out: dict[str, Any] = {}
+    if cs.has("intrinsics"):
+        K = cs.intrinsics["K"]
+        out["intrinsics"] = {"fx_rel_error": K[0, 0] / t["fx"] - 1, "fy_rel_error": K[1, 1] / t["fy"] - 1,
+                             "cx_error_px": K[0, 2] - t["cx"], "cy_error_px": K[1, 2] - t["cy"]}
+    if cs.has("turntable"):
+        a = cs.turntable_axis
+        d = a["point_cam_m"] - t["axis_point_cam_m"]
+        w = t["axis_cam"]
+        out["turntable"] = {"axis_error_deg": tt.axis_angle_error_deg(a["axis_cam"], w),
+                            "point_error_perp_m": float(np.linalg.norm(d - (d @ w) * w))}
+    if cs.has("light"):
+        L = cs.light_position_m
+        e = L - t["light_cam_m"]
+        dist = np.linalg.norm(t["light_cam_m"] - t["axis_point_cam_m"])
+        out["light"] = {"error_m": e.tolist(), "error_norm_m": float(np.linalg.norm(e)),
+                        "illumination_distance_m": float(dist),
+                        "rel_error_of_illumination_distance": float(np.linalg.norm(e) / dist),
+                        "camera_distance_m": float(np.linalg.norm(t["light_cam_m"]))}
+    if cs.has("generator"):
+        g = cs.params["generator"]
+        zero = np.asarray(g["stage_zero_axis_cam"], float)
+        k = t["target_cam_m"] - t["light_cam_m"]
+        k = k / np.linalg.norm(k)
+        xm = fr.basis_from_reference(k, zero)
+        xt = fr.basis_from_reference(k, t["stage_zero_axis_cam"])
+        frame_deg = float(np.degrees(fr.rotation_angle(k, xm, xt)))
+        truth_off = t["zero_offset_deg"] + frame_deg
+        out["generator"] = {"zero_offset_truth_in_calibration_frame_deg": truth_off,
+                            "zero_axis_frame_rotation_deg": frame_deg,
+                            "zero_offset_error_deg": float(g["zero_offset_deg"]) - truth_off}
+        er = float(g["extinction_ratio"])
+        if np.isfinite(er):
+            out["generator"]["extinction_ratio_rel_error"] = er / t["extinction_ratio"] - 1
+    if cs.analyzer is not None and analyzer_truth is not None:
+        a, b = cs.analyzer, analyzer_truth
+        v = cs.dofp_maps.get("valid", np.ones(a.shape, bool)).astype(bool)
+        ea = (a.angle_deg - b.angle_deg)[v]
+        eg = (a.gain / b.gain - 1)[v]
+        ed = (a.diattenuation - b.diattenuation)[v]
+        ideal = AnalyzerModel.ideal(b.layout, b.shape)
+        out["dofp"] = {"angle_rms_error_deg": float(np.sqrt(np.mean(ea ** 2))),
+                       "angle_mean_error_deg": float(ea.mean()),
+                       "gain_rms_rel_error": float(np.sqrt(np.mean(eg ** 2))),
+                       "diattenuation_rms_error": float(np.sqrt(np.mean(ed ** 2))),
+                       "ideal_model_angle_rms_error_deg":
+                           float(np.sqrt(np.mean((ideal.angle_deg - b.angle_deg)[v] ** 2))),
+                       "ideal_model_gain_rms_rel_error":
+                           float(np.sqrt(np.mean((1.0 / b.gain - 1)[v] ** 2)))}
+    return out
