@@ -26,6 +26,10 @@ Packing (all little-endian; 16-bit containers hold the value in the low bits):
 * GigE Vision legacy ``Packed`` (``Mono12Packed``): 2 pixels in 3 bytes, byte0 = p0[11:4],
   byte1 = p1[3:0] << 4 | p0[3:0], byte2 = p1[11:4].
 
+Buffers are whole frames without line padding (GenICam ``PaddingX = 0``, the default of the
+supported cameras); a buffer of any other length raises :class:`FormatError` naming the format
+and the expected and actual sizes.
+
 Sources: GenICam Pixel Format Naming Convention (PFNC) 2.x, section "Packed formats" and the
 PFNC.h value list (codes ``0x01080001`` Mono8 ... ``0x010C0047`` Mono12p); GigE Vision 2.x
 specification, pixel format appendix (``GVSP_Mono12Packed`` ``0x010C0006``); FLIR Blackfly S
