@@ -7,7 +7,7 @@ part ``(..., 3, 3)`` used throughout polrig. Angles are radians unless the name 
 
 References: E. Collett, *Field Guide to Polarization* (SPIE 2005) for the element matrices;
 Mitsuba 3 ``include/mitsuba/render/mueller.h`` for the Fresnel matrices and sign conventions
-(reflection ``[[a,b,0,0],[b,a,0,0],[0,0,c cos d, c sin d],[0,0,-c sin d, c cos d]]`` with
+(reflection ``[[a,b,0,0],[b,a,0,0],[0,0,c cos d, -c sin d],[0,0,c sin d, c cos d]]`` with
 ``a = (Rs+Rp)/2``, ``b = (Rs-Rp)/2``, ``c = sqrt(Rs Rp)``, ``d`` the s-p phase difference).
 """
 
@@ -131,7 +131,7 @@ def specular_reflection(cos_theta_i: ArrayLike, eta: ArrayLike | complex) -> np.
     prod = rs * np.conj(rp)  # c * exp(i delta)
     ccos, csin = prod.real, prod.imag
     z = np.zeros(a.shape)
-    return _stack([[a, b, z, z], [b, a, z, z], [z, z, ccos, csin], [z, z, -csin, ccos]], a.shape)
+    return _stack([[a, b, z, z], [b, a, z, z], [z, z, ccos, -csin], [z, z, csin, ccos]], a.shape)
 
 
 def specular_transmission(cos_theta_i: ArrayLike, eta: ArrayLike) -> np.ndarray:

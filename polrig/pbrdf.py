@@ -177,7 +177,8 @@ def fresnel_reflection_sp(cos_i, eta) -> np.ndarray:
     """Fresnel reflection Mueller matrix ``(..., 4, 4)`` in the s/p bases for a real relative
     index ``eta``, equal to Mitsuba 3's ``mueller::specular_reflection`` (also under total
     internal reflection, ``eta < 1``, where the retardance elements ``m23 = -m32`` appear).
-    Same as :func:`polrig.mueller.specular_reflection` for real amplitudes (``eta > 1``)."""
+    Equal to the general complex-amplitude :func:`polrig.mueller.specular_reflection` (tested);
+    this real-index form is the fast path evaluated per pixel."""
     a, b, c, s = _fresnel_reflection_abcs(cos_i, eta)
     out = np.zeros(a.shape + (4, 4))
     out[..., 0, 0] = out[..., 1, 1] = a

@@ -153,3 +153,24 @@ def test_diattenuation_and_polarizance():
     assert mu.diattenuation(mu.linear_block(mu.diattenuator(0.8, 0.2))) == pytest.approx(0.6)
     bad = np.array([np.full((4, 4), np.nan), np.zeros((4, 4))])
     assert np.array_equal(mu.diattenuation(bad), [0.0, 0.0])
+
+
+@pytest.mark.parametrize("eta", [1.5, 0.6, 0.7, 0.2 + 3j, 1.3 + 0.5j])
+def test_specular_reflection_matches_mitsuba_including_retardance(eta):
+    """Conductors and total internal reflection have complex amplitudes: the retardance
+    elements m23 = -m32 must carry Mitsuba 3's sign (mueller::specular_reflection)."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_spectral_polarized")
+    for cos_i in (0.05, 0.3, 0.5, 0.9, 1.0):
+        e = mi.Complex2f(eta.real, eta.imag) if isinstance(eta, complex) else float(eta)
+        ref = np.array(mi.mueller.specular_reflection(mi.Float(cos_i), e)).reshape(4, 4)
+        np.testing.assert_allclose(mu.specular_reflection(cos_i, eta), ref, atol=2e-6)
+
+
+def test_specular_reflection_agrees_with_the_pbrdf_fast_path():
+    from polrig import pbrdf
+
+    cos_i = np.linspace(0.0, 1.0, 41)
+    for eta in (0.5, 0.8, 1.33, 1.5, 2.4):
+        np.testing.assert_allclose(mu.specular_reflection(cos_i, eta),
+                                   pbrdf.fresnel_reflection_sp(cos_i, eta), atol=1e-12)
