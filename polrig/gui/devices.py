@@ -136,6 +136,7 @@ class DevicesPanel(QWidget):
         self.worker = DeviceWorker(rig, locks, self)
         self.last_status: dict[str, Any] = {}
         self.failures: list[tuple[str, str]] = []
+        self._poll_errors: dict[str, str] = {}
 
         self.conn: dict[str, tuple[QLabel, QPushButton, QPushButton]] = {}
         top = QGroupBox("Connections")
@@ -264,8 +265,12 @@ class DevicesPanel(QWidget):
             text = "open" if st["open"] else "closed"
             if "error" in st:
                 text += f" - {st['error']}"
+                if self._poll_errors.get(kind) != st["error"]:  # once per distinct fault
+                    self.failures.append((f"{kind} status", st["error"]))
+                    self.message.emit("error", f"{kind} status failed: {st['error']}")
             elif "busy_with" in st:
                 text += " - in use"
+            self._poll_errors[kind] = st.get("error", "")
             lab.setText(text)
         for kind, box in (("stage", self.stage), ("turntable", self.turntable)):
             st = status[kind]

@@ -88,6 +88,11 @@ class LivePanel(QWidget):
         lay = QHBoxLayout(self)
         lay.addWidget(split)
 
+        s = worker.settings  # the combos start at the worker's settings
+        self.display.setCurrentIndex(max(0, self.display.findData(s.display)))
+        self.colour.setCurrentIndex(max(0, self.colour.findData(s.colour)))
+        self.method.setCurrentText(s.method)
+        self.overlay.setChecked(s.saturation_overlay)
         self.display.currentIndexChanged.connect(self._settings_changed)
         self.colour.currentIndexChanged.connect(self._settings_changed)
         self.method.currentIndexChanged.connect(self._settings_changed)
