@@ -26,7 +26,8 @@ from polrig.mueller import polarizer_stokes
 def dolp_from_extinction_ratio(extinction_ratio) -> np.ndarray:
     """DoLP ``(ER - 1) / (ER + 1)`` of unpolarized light after a polarizer of ratio ``ER``."""
     er = np.asarray(extinction_ratio, dtype=np.float64)
-    return np.where(np.isinf(er), 1.0, (er - 1.0) / (er + 1.0))
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isinf(er), 1.0, (er - 1.0) / (er + 1.0))
 
 
 def extinction_ratio_from_dolp(dolp) -> np.ndarray:

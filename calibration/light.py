@@ -140,15 +140,17 @@ def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
         if nsat > 1:
             raise SphereSaturated(f"sphere highlight saturated ({nsat} pixels at "
                                   f"{saturation_dn:.0f} DN); lower the exposure or light level")
-    half = base + 0.5 * (peak - base)
+    # intensity-weighted centroid with weights falling continuously to zero at 10 % of the
+    # peak (no truncation step that would pull the centroid towards the peak pixel)
+    thr = 0.1 * (peak - base)
     r0, c0 = peak_idx
-    win = 6
+    win = 8
     rs, cs = slice(max(r0 - win, 0), r0 + win + 1), slice(max(c0 - win, 0), c0 + win + 1)
     patch = img[rs, cs] - base
-    m = (patch >= half - base) & core[rs, cs]
+    m = (patch > thr) & core[rs, cs]
     lab_n, lab = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
     m = lab == lab[r0 - rs.start, c0 - cs.start]
-    wgt = np.where(m, patch, 0.0)
+    wgt = np.where(m, patch - thr, 0.0)
     yy, xx = np.mgrid[rs, cs]
     tot = wgt.sum()
     u, v = (wgt * xx).sum() / tot, (wgt * yy).sum() / tot
