@@ -33,7 +33,7 @@ DISPLAYS: dict[str, str] = {
     "dolp": "DoLP",
     "aolp": "AoLP (hue)",
     "aolp_dolp": "AoLP weighted by DoLP",
-    "mueller": "Mueller 3x3 (single-shot)",
+    "mueller": "Mueller 3x3",
 }
 #: Colour choice "luminance": the mean over the colour channels (a mono sensor has one channel).
 LUMINANCE = -1

@@ -1,0 +1,110 @@
+"""Render screenshots of the main GUI views offscreen into ``docs/screenshots/``.
+
+``python -m polrig.gui.screenshots [--out docs/screenshots] [--size 512x512]`` opens the
+window on the simulated rig (``QT_QPA_PLATFORM=offscreen`` unless a platform is set), waits
+for real frames and writes:
+
+* ``live_dolp.png``, ``live_aolp.png`` -- the live view showing DoLP and DoLP-weighted AoLP;
+* ``mueller_grid.png`` -- the 3x3 Mueller grid with its colour bar: the single-shot live
+  display when a model is installed, otherwise the viewer showing the reference capture's
+  Mueller EXR (the same rendering);
+* ``capture_progress.png`` -- the capture panel during a reference capture (progress, ETA,
+  thumbnails of finished poses, scores against the simulator's truth);
+* ``devices.png`` -- the devices panel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import sys
+import tempfile
+import time
+
+
+def _wait(app, cond, timeout_s: float, what: str) -> None:
+    t = time.monotonic()
+    while not cond():
+        if time.monotonic() - t > timeout_s:
+            raise TimeoutError(f"screenshots: timed out waiting for {what}")
+        app.processEvents()
+        time.sleep(0.01)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m polrig.gui.screenshots", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="docs/screenshots", help="output folder")
+    ap.add_argument("--size", default="512x512", help="simulated sensor size WxH")
+    args = ap.parse_args(argv)
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    from PySide6.QtWidgets import QApplication
+
+    from polrig.gui.app import model_loader
+    from polrig.gui.main_window import MainWindow
+    from polrig.gui.settings import make_settings
+    from polrig.rig import build_rig, load_rig_config
+
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    app = QApplication.instance() or QApplication(sys.argv[:1])
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="polrig-shots-"))
+    rig = build_rig(load_rig_config(None), {"size": args.size, "clock_speed": 200.0})
+    w = MainWindow(rig, make_settings(tmp / "gui.ini"), model_loader=model_loader(),
+                   live_max_fps=15.0)
+    w.resize(1400, 900)
+    w.show()
+    w.start()
+    written = []
+
+    def shot(widget, name: str) -> None:
+        app.processEvents()
+        path = out / name
+        widget.grab().save(str(path))
+        written.append(path)
+
+    w.tabs.setCurrentWidget(w.live)
+    for display, name in (("dolp", "live_dolp.png"), ("aolp_dolp", "live_aolp.png")):
+        w.live.set_display(display)
+        _wait(app, lambda: w.live.last is not None and w.live.last.display == display
+              and w.live.frames_shown > 3, 120, f"live {display}")
+        w.live._hovered(w.live.last.image.width() // 2, w.live.last.image.height() // 2)
+        shot(w, name)
+    w.live.set_display("mueller")
+    _wait(app, lambda: w.live.last.display == "mueller" or "unavailable" in w.live.last.note,
+          300, "the Mueller display")
+    live_mueller = w.live.last.display == "mueller"
+    if live_mueller:
+        shot(w, "mueller_grid.png")
+    w.live.set_display("aolp_dolp")
+
+    cp = w.capture
+    cp.poses.setText("0:360:60")
+    cp.out.setText(str(tmp / "session"))
+    w.tabs.setCurrentWidget(cp)
+    cp.start()
+    _wait(app, lambda: cp.thumbs.count() >= 2 or not cp.is_running, 600, "two finished poses")
+    _wait(app, lambda: any(e.kind == "frame" and e.step > cp.progress.maximum() // 3 + 2
+                           for e in cp.events) or not cp.is_running, 600, "capture progress")
+    shot(w, "capture_progress.png")
+    cp.stop()
+    _wait(app, lambda: not cp.is_running, 600, "the capture to stop")
+    if not live_mueller:
+        w.viewer.open_session(tmp / "session")
+        w.tabs.setCurrentWidget(w.viewer)
+        v = w.viewer
+        v._hovered(40, 40)
+        shot(w, "mueller_grid.png")
+    w.tabs.setCurrentWidget(w.devices)
+    _wait(app, lambda: bool(w.devices.last_status), 30, "device status")
+    shot(w, "devices.png")
+    w.close()
+    _wait(app, lambda: not w.isVisible(), 60, "the window to close")
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

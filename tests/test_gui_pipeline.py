@@ -1,0 +1,125 @@
+"""The GUI's display pipeline (no widgets): strip-parallel Stokes equal the core's, displays
+render finite uint8 images with the saturation overlay where the core says saturated, the
+readout shows the core's numbers, the latest-frame slot never holds more than one frame."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from polrig.gui import pipeline
+from polrig.gui.live import LatestSlot, RateMeter
+from polrig.hal import Frame, FrameMeta
+from polrig.stokes import stokes_from_raw
+
+
+def _frame(raw: np.ndarray, layout: str, bit_depth: int = 12, black: float = 16.0) -> Frame:
+    return Frame(raw, FrameMeta(7, 0.0, 1000.0, 0.0, "Mono12p", layout, bit_depth, (0, 0), black))
+
+
+@pytest.mark.parametrize("layout", ["imx250myr", "imx250mzr"])
+@pytest.mark.parametrize("shape", [(8, 8), (24, 40), (100, 64), (4, 4)])
+@pytest.mark.parametrize("workers", [2, 3, 4])
+def test_strips_equal_one_core_call(layout, shape, workers):
+    rng = np.random.default_rng(sum(shape) + workers)
+    raw = rng.integers(0, 4096, shape).astype(np.uint16)
+    raw[0, :3] = 4095  # saturated samples
+    if layout == "imx250myr" and shape[0] % 4:
+        pytest.skip("colour layout needs multiples of 4")
+    ref = stokes_from_raw(raw, layout, "superpixel", black_level_dn=16.0, bit_depth=12)
+    got = pipeline.stokes_from_raw_strips(raw, layout, "superpixel", black_level_dn=16.0,
+                                          bit_depth=12, workers=workers)
+    for name in ("stokes", "valid", "saturated", "dolp", "aolp_deg"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    assert got.dolp_overshoot == ref.dolp_overshoot
+
+
+def test_non_superpixel_methods_go_to_the_core_unchanged():
+    raw = np.random.default_rng(1).integers(0, 4096, (32, 32)).astype(np.uint16)
+    for method in ("bilinear", "newton"):
+        ref = stokes_from_raw(raw, "imx250mzr", method, bit_depth=12)
+        got = pipeline.stokes_from_raw_strips(raw, "imx250mzr", method, bit_depth=12, workers=2)
+        np.testing.assert_array_equal(got.stokes, ref.stokes)
+
+
+@pytest.mark.parametrize("fill", ["dark", "saturated", "noise", "zero"])
+@pytest.mark.parametrize("layout", ["imx250myr", "imx250mzr"])
+def test_every_display_renders_uint8_with_the_saturation_overlay(fill, layout):
+    rng = np.random.default_rng(3)
+    raw = {"dark": np.full((32, 32), 16), "saturated": np.full((32, 32), 4095),
+           "noise": rng.integers(0, 4096, (32, 32)), "zero": np.zeros((32, 32))}[fill]
+    data = pipeline.process_frame(_frame(raw.astype(np.uint16), layout))
+    for display in data.available():
+        for colour in (pipeline.LUMINANCE, 0, 2):
+            rgb = pipeline.render(data, display, colour, saturation_overlay=True)
+            assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3
+            counts, edges, _ = pipeline.histogram(data, display, colour)
+            assert np.all(np.isfinite(edges)) and counts.sum() >= 0
+            if fill == "saturated" and display != "raw":
+                assert np.all(rgb == pipeline.SATURATION_RGB)  # every pixel saturated
+            if fill == "saturated" and display == "raw":
+                assert np.all(rgb == pipeline.SATURATION_RGB)
+
+
+def test_readout_shows_the_core_numbers():
+    rng = np.random.default_rng(5)
+    raw = rng.integers(200, 3000, (16, 16)).astype(np.uint16)
+    frame = _frame(raw, "imx250mzr")
+    data = pipeline.process_frame(frame)
+    ref = stokes_from_raw(raw, "imx250mzr", "superpixel", black_level_dn=16.0, bit_depth=12)
+    text = pipeline.readout(data, "dolp", 3, 2)
+    s = ref.stokes[0, :, 2, 3]
+    assert f"S=({s[0]:.1f}, {s[1]:.1f}, {s[2]:.1f})" in text
+    assert f"DoLP {ref.dolp[0, 2, 3]:.3f}" in text and f"AoLP {ref.aolp_deg[0, 2, 3]:.1f}" in text
+    assert pipeline.readout(data, "dolp", 100, 100) == ""  # outside: nothing, no exception
+
+
+def test_mueller_grid_coordinates_and_readout():
+    m = np.zeros((1, 3, 3, 10, 12), np.float32)
+    m[0, 0, 0] = 2.0
+    m[0, 1, 2, 4, 5] = -1.0
+    data = pipeline.PolarizationData.from_mueller(m)
+    grid = pipeline.render(data, "mueller")
+    b = pipeline.GRID_BORDER_PX
+    x, y = b + 2 * (12 + b) + 5, b + 1 * (10 + b) + 4  # element m12, pixel (u=5, v=4)
+    assert pipeline.grid_to_pixel(x, y, (10, 12)) == (1, 2, 5, 4)
+    assert pipeline.grid_to_pixel(0, 0, (10, 12)) is None
+    assert np.array_equal(grid[y, x], pipeline.preview.diverging(np.array([[-0.5]]), vmax=1.0)[0, 0])
+    text = pipeline.readout(data, "mueller", x, y)
+    assert "Mueller at (u=5, v=4)" in text and "-0.500" in text
+    assert pipeline.render(data, "s0").shape == (10, 12, 3)  # m00 for a Mueller-only source
+    with pytest.raises(ValueError, match="not available"):
+        pipeline.render(data, "dolp")
+
+
+def test_latest_slot_holds_one_item_and_counts_drops():
+    slot = LatestSlot()
+    assert slot.put(1) is True and slot.put(2) is False and slot.put(3) is False
+    assert slot.dropped == 2 and slot.take() == 3 and slot.take() is None
+
+    def writer():
+        for i in range(10000):
+            slot.put(i)
+
+    threads = [threading.Thread(target=writer) for _ in range(3)]
+    for t in threads:
+        t.start()
+    taken = []
+    while any(t.is_alive() for t in threads):
+        v = slot.take()
+        if v is not None:
+            taken.append(v)
+    for t in threads:
+        t.join()
+    rest = slot.take()
+    total = len(taken) + (rest is not None) + slot.dropped
+    assert total == 2 + 30000 + 1  # every put was either taken, still there, or dropped
+
+
+def test_rate_meter():
+    m = RateMeter(window_s=10.0)
+    for k in range(11):
+        m.tick(100.0 + 0.05 * k)
+    assert m.rate() == pytest.approx(20.0)
