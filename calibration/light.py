@@ -53,8 +53,8 @@ class SphereObservation:
 
 
 def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
-                min_radius_px: float = 4.0,
-                highlight_image: np.ndarray | None = None) -> SphereObservation:
+                min_radius_px: float = 4.0, highlight_image: np.ndarray | None = None,
+                edge_image: np.ndarray | None = None) -> SphereObservation:
     """Silhouette edge points and highlight of a mirror sphere in a grey image (DN, 2-D).
 
     The sphere is the largest connected region darker than the Otsu threshold of the image
@@ -63,7 +63,8 @@ def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
     neighbouring inside/outside pixels (4-neighbours). Raises :class:`SphereNotFound` or
     :class:`SphereSaturated` (when more than one highlight pixel reaches ``saturation_dn``)
     with what to change. ``highlight_image`` (same shape; e.g. a shorter exposure in which the
-    highlight is not clipped) is used for the highlight instead of ``image``.
+    highlight is not clipped) is used for the highlight instead of ``image``, and
+    ``edge_image`` (e.g. the same frame without smoothing) for the edge points.
     """
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2:
@@ -99,18 +100,25 @@ def find_sphere(image: np.ndarray, saturation_dn: float | None = None,
                              f">= {min_radius_px:.0f} px fully inside the image on a lit "
                              "background); move the sphere into view or light the background")
     inside = filled.astype(bool)
-    # background and sphere levels near the edge
-    ring_out = cv2.dilate(filled, np.ones((5, 5), np.uint8)).astype(bool) & ~inside
-    ring_in = inside & ~cv2.erode(filled, np.ones((5, 5), np.uint8)).astype(bool)
-    bg, fg = np.median(img[ring_out]), np.median(img[ring_in])
+    # edge points from the unsmoothed image when given (sharper), else from ``image``
+    e_img = img if edge_image is None else np.where(np.isfinite(edge_image), edge_image, 0.0)
+    band = cv2.dilate(filled, np.ones((7, 7), np.uint8)).astype(bool) & \
+        ~cv2.erode(filled, np.ones((7, 7), np.uint8)).astype(bool)
+    ring_out = cv2.dilate(filled, np.ones((9, 9), np.uint8)).astype(bool) & \
+        ~cv2.dilate(filled, np.ones((5, 5), np.uint8)).astype(bool)
+    ring_in = cv2.erode(filled, np.ones((5, 5), np.uint8)).astype(bool) & \
+        ~cv2.erode(filled, np.ones((9, 9), np.uint8)).astype(bool)
+    bg, fg = np.median(e_img[ring_out]), np.median(e_img[ring_in])
     mid = 0.5 * (bg + fg)
+    dark_px = (e_img < mid) & band | (inside & ~band)
     pts = []
     for axis in (0, 1):
-        a_in = inside[:, :-1] if axis == 1 else inside[:-1, :]
-        b_in = inside[:, 1:] if axis == 1 else inside[1:, :]
-        a_v = img[:, :-1] if axis == 1 else img[:-1, :]
-        b_v = img[:, 1:] if axis == 1 else img[1:, :]
-        tr = a_in != b_in
+        a_in = dark_px[:, :-1] if axis == 1 else dark_px[:-1, :]
+        b_in = dark_px[:, 1:] if axis == 1 else dark_px[1:, :]
+        a_v = e_img[:, :-1] if axis == 1 else e_img[:-1, :]
+        b_v = e_img[:, 1:] if axis == 1 else e_img[1:, :]
+        a_b = band[:, :-1] if axis == 1 else band[:-1, :]
+        tr = (a_in != b_in) & a_b
         r, c = np.nonzero(tr)
         va, vb = a_v[r, c], b_v[r, c]
         den = vb - va

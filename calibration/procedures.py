@@ -237,7 +237,8 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
         try:
             ob = light.find_sphere(charuco.intensity_image(sil, lay, scales=scales),
                                    highlight_image=charuco.intensity_image(hil, lay,
-                                                                           scales=scales))
+                                                                           scales=scales),
+                                   edge_image=sil / scales)
         except SphereNotFound as exc:
             log(f"light: sphere {m} at turntable {a} deg skipped: {exc}")
             continue
