@@ -129,7 +129,7 @@ def measure(app, panel, worker, display: str, method: str, seconds: float,
         app.processEvents()
         if time.perf_counter() - t > 60:
             break
-    p0, s0, d0 = worker.frames_processed, panel.frames_shown, worker.slot.dropped
+    p0, s0, d0 = worker.frames_processed, panel.frames_shown, worker.dropped
     proc: list[float] = []
     seen = [panel.frames_shown]
     clock = QElapsedTimer()
@@ -155,10 +155,10 @@ def measure(app, panel, worker, display: str, method: str, seconds: float,
         time.sleep(0.001)
     el = time.perf_counter() - t0
     timer.stop()
-    return {"display": display, "method": method,
+    return {"display": display, "method": method, "load": os.getloadavg()[0],
             "worker_fps": (worker.frames_processed - p0) / el,
             "shown_fps": (panel.frames_shown - s0) / el,
-            "dropped": worker.slot.dropped - d0,
+            "dropped": worker.dropped - d0,
             "proc_ms": 1e3 * float(np.median(proc)) if proc else float("nan"),
             "latency_ms": 1e3 * (max(gaps) - 0.010) if gaps else float("nan"),
             "status_fps": panel.last.fps if panel.last else float("nan")}
@@ -188,12 +188,13 @@ def main(argv: list[str] | None = None) -> int:
         panel.resize(1200, 800)
         panel.show()
         worker.start()
-        configs = [(d, "superpixel") for d in ("s0", "dolp", "aolp", "aolp_dolp")]
-        configs += [("aolp_dolp", "bilinear")]
-        for display, method in configs:
+        configs = [(d, "superpixel", 1024) for d in ("s0", "dolp", "aolp", "aolp_dolp")]
+        configs += [("aolp_dolp", "superpixel", 0), ("aolp_dolp", "bilinear", 1024)]
+        for display, method, max_px in configs:
+            worker.settings.max_display_px = max_px
             r = measure(app, panel, worker, display, method, args.seconds,
                         4 if sensor == "imx250myr" else 2)
-            r["sensor"] = sensor
+            r["sensor"], r["max_display_px"] = sensor, max_px
             rows.append(r)
             print(f"  {display:<10} {method:<10} worker {r['worker_fps']:6.1f} fps, shown "
                   f"{r['shown_fps']:6.1f} fps, dropped {r['dropped']:3d}, processing "
@@ -212,15 +213,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def format_table(rows: list[dict]) -> str:
     lines = ["| sensor | display | demosaic | output size | worker fps | shown fps | dropped | "
-             "processing ms (median) | UI latency max ms |",
-             "|---|---|---|---|---:|---:|---:|---:|---:|"]
+             "processing ms (median) | UI latency max ms | load avg (1 min) |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         period = 4 if r["sensor"] == "imx250myr" else 2
         size = (f"{FULL_SIZE[0] // period}x{FULL_SIZE[1] // period}" if r["method"] == "superpixel"
                 else f"{FULL_SIZE[0]}x{FULL_SIZE[1]}")
+        if r.get("max_display_px") == 0:
+            size += " (shown 1:1)"
         lines.append(f"| {r['sensor']} | {r['display']} | {r['method']} | {size} | "
                      f"{r['worker_fps']:.1f} | {r['shown_fps']:.1f} | {r['dropped']} | "
-                     f"{r['proc_ms']:.1f} | {r['latency_ms']:.1f} |")
+                     f"{r['proc_ms']:.1f} | {r['latency_ms']:.1f} | {r['load']:.1f} |")
     return "\n".join(lines)
 
 
@@ -232,6 +235,11 @@ replayed by a HAL camera, through the GUI's live worker (grab, Stokes/DoLP/AoLP 
 analyzers, display image, latest-frame slot) and the live panel on the UI thread (offscreen
 Qt). Worker unthrottled. "processing" is Stokes + display image + histogram per frame.
 Target: >= 15 fps for Stokes/DoLP/AoLP (superpixel demosaic, the live view's default).
+Processing is at full resolution; the displayed image is decimated to at most 1024 pixels on
+its long side (the GUI default, ``LiveSettings.max_display_px``; the cursor readout still reads
+the full-resolution data); the "shown 1:1" row displays every pixel.
+The machine is shared: the load average column shows how busy it was (2 cores; a load above 2
+means other processes were competing for them).
 
 Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python
 {platform.python_version()}, measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.

@@ -68,7 +68,7 @@ def test_window_opens_and_live_frames_arrive(qtbot, window):
     qtbot.waitUntil(lambda: all(s["open"] for s in window.devices.last_status.values()),
                     timeout=10000)
     print(f"\nlive: {window.live.frames_shown} frames shown, {res.fps:.1f} fps, "
-          f"{window.live_worker.slot.dropped} dropped")
+          f"{window.live_worker.dropped} dropped")
 
 
 @pytest.mark.parametrize("display", ["raw", "s0", "dolp", "aolp", "aolp_dolp"])

@@ -1,12 +1,14 @@
 """Live view: a worker ``QThread`` grabs and processes frames, the widget shows the latest one.
 
-Threading: the worker grabs (holding the camera lock of :class:`polrig.gui.rigaccess.RigLocks`),
-processes (:mod:`polrig.gui.pipeline`: Stokes/DoLP/AoLP, or single-shot Mueller inference),
-renders the display image and puts the result into a :class:`LatestSlot`. The slot holds one
-result: a newer one replaces an older one that the UI has not taken yet (that frame is
-dropped and counted), so nothing is ever queued without bound and the UI thread never waits
-for a device or for inference; it only takes what is in the slot when ``frame_ready`` fires.
-Camera settings (exposure, gain) are handed to the worker and applied between frames.
+Threading: the worker is a two-stage pipeline so that both CPU cores work. Stage 1 (a thread
+the worker starts) grabs (holding the camera lock of :class:`polrig.gui.rigaccess.RigLocks`)
+and processes (:mod:`polrig.gui.pipeline`: Stokes/DoLP/AoLP, or single-shot Mueller
+inference); stage 2 (the ``QThread`` itself) renders the display image of the newest
+processed frame and puts it into a :class:`LatestSlot` for the UI. Each hand-over is a
+one-item slot: a newer item replaces one not taken yet (that frame is dropped and counted),
+so nothing is ever queued without bound, and the UI thread never waits for a device or for
+inference; it only takes what is in the slot when ``frame_ready`` fires. Camera settings
+(exposure, gain) are handed to the worker and applied between frames.
 """
 
 from __future__ import annotations
@@ -60,6 +62,9 @@ class LiveSettings:
     method: str = "superpixel"
     saturation_overlay: bool = True
     max_fps: float = 30.0
+    #: Longest side of the displayed image in pixels (0: full resolution); see
+    #: :func:`polrig.gui.pipeline.display_step`. Processing is always at full resolution.
+    max_display_px: int = 1024
 
 
 @dataclasses.dataclass
@@ -77,6 +82,7 @@ class LiveResult:
     processing_s: float
     fps: float
     note: str = ""
+    step: int = 1  # display pixel (x, y) is data pixel (x * step, y * step)
 
 
 class RateMeter:
@@ -113,7 +119,9 @@ class LiveWorker(QThread):
         self.rig = rig
         self.locks = locks
         self.settings = settings or LiveSettings()
-        self.slot = LatestSlot()
+        self.slot = LatestSlot()  # rendered results for the UI thread
+        self._processed = LatestSlot()  # processed data for the render stage
+        self._processed_ready = threading.Event()
         self.model_loader = model_loader
         self._model: Any = None
         self._model_error: str | None = None
@@ -135,6 +143,12 @@ class LiveWorker(QThread):
         (self._running.clear if paused else self._running.set)()
 
     @property
+    def dropped(self) -> int:
+        """Frames dropped at both hand-overs (processed but never rendered, or rendered but
+        never shown)."""
+        return self._processed.dropped + self.slot.dropped
+
+    @property
     def paused(self) -> bool:
         return not self._running.is_set()
 
@@ -143,15 +157,38 @@ class LiveWorker(QThread):
         with self._pending_lock:
             self._pending.update(values)
 
-    # -- the loop
-    def run(self) -> None:  # noqa: C901 - one loop, kept readable by its helpers
+    # -- the loop: stage 1 (grab + process) in a Python thread, stage 2 (render) in this QThread
+    def run(self) -> None:
+        grabber = threading.Thread(target=self._grab_loop, name="polrig-live-grab", daemon=True)
+        grabber.start()
+        try:
+            while not self._quit.is_set():
+                if not self._processed_ready.wait(0.2):
+                    continue
+                self._processed_ready.clear()
+                item = self._processed.take()
+                if item is None:
+                    continue
+                try:
+                    result = self._render(*item)
+                except (PolrigError, ValueError) as exc:
+                    self._report(exc)
+                    continue
+                self.frames_processed += 1
+                if self.slot.put(result):
+                    self.frame_ready.emit()
+        finally:
+            self._quit.set()
+            grabber.join(10.0)
+
+    def _grab_loop(self) -> None:
         while not self._quit.is_set():
             if not self._running.is_set():
                 self._running.wait(0.2)
                 continue
             t0 = time.perf_counter()
             try:
-                result = self._one_frame()
+                item = self._acquire()
             except DeviceBusy:
                 self._quit.wait(0.1)
                 continue
@@ -159,13 +196,12 @@ class LiveWorker(QThread):
                 self._report(exc)
                 self._quit.wait(1.0 if isinstance(exc, DeviceDisconnected) else 0.3)
                 continue
-            if result is None:
+            if item is None:
                 self._quit.wait(0.2)
                 continue
             self._last_error = ""
-            self.frames_processed += 1
-            if self.slot.put(result):
-                self.frame_ready.emit()
+            self._processed.put(item)  # an unrendered older frame is dropped
+            self._processed_ready.set()
             s = self.settings
             rest = 1.0 / s.max_fps - (time.perf_counter() - t0) if s.max_fps > 0 else 0
             if rest > 0:
@@ -187,10 +223,10 @@ class LiveWorker(QThread):
             except (PolrigError, ValueError) as exc:
                 self.message.emit("error", f"camera: cannot set {key}: {exc}")
 
-    def _one_frame(self) -> LiveResult | None:
+    def _acquire(self):
+        """Stage 1: grab one frame and compute its polarization data (or Mueller image)."""
         cam = self.rig.camera
         s = dataclasses.replace(self.settings)  # one consistent copy for this frame
-        want_mueller = s.display == "mueller"
         with self.locks.hold("camera", timeout_s=0.2, who="live view"):
             if not cam.is_open:
                 return None
@@ -199,23 +235,31 @@ class LiveWorker(QThread):
         t0 = time.perf_counter()
         note = ""
         data = None
-        if want_mueller:
+        if s.display == "mueller":
             model = self._get_model()
             if model is None:
                 note = f"Mueller display unavailable: {self._model_error}"
             else:
-                state = self._stage_angle()
-                data = pipeline.infer_mueller(frame, model, state, s.method, source="live")
+                data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
+                                              source="live")
         if data is None:
             data = pipeline.process_frame(frame, s.method, source="live")
+        return frame.meta, data, note, time.perf_counter() - t0
+
+    def _render(self, meta, data, note: str, process_s: float) -> LiveResult:
+        """Stage 2: the display image, histogram and ``QImage`` of processed data."""
+        t0 = time.perf_counter()
+        s = dataclasses.replace(self.settings)
         display = s.display if s.display in data.available() else "aolp_dolp"
-        rgb = pipeline.render(data, display, s.colour, saturation_overlay=s.saturation_overlay)
-        hist = pipeline.histogram(data, display, s.colour)
+        step = pipeline.display_step(data, display, s.max_display_px)
+        rgb = pipeline.render(data, display, s.colour, saturation_overlay=s.saturation_overlay,
+                              step=step)
+        hist = pipeline.histogram(data, display, s.colour, step=step)
         image = to_qimage(rgb)
         self.meter.tick()
-        return LiveResult(image, data, display, s.colour, frame.meta.frame_id,
-                          frame.meta.exposure_us, frame.meta.gain_db, hist,
-                          time.perf_counter() - t0, self.meter.rate(), note)
+        return LiveResult(image, data, display, s.colour, meta.frame_id, meta.exposure_us,
+                          meta.gain_db, hist, process_s + time.perf_counter() - t0,
+                          self.meter.rate(), note, step)
 
     def _stage_angle(self) -> float:
         """The polarizer stage angle for single-shot inference (0 if it cannot be read)."""

@@ -79,7 +79,8 @@ class LivePanel(QWidget):
         side.addWidget(self.readout, 1)
         side_w = QWidget()
         side_w.setLayout(side)
-        side_w.setMaximumWidth(470)
+        side_w.setMaximumWidth(520)
+        side_w.setMinimumWidth(430)
         self.view = ImageView(placeholder="waiting for the camera...")
         split = QSplitter()
         split.addWidget(self.view)
@@ -147,11 +148,12 @@ class LivePanel(QWidget):
         self.histogram.set_data(*res.hist)
         if self._hover != (-1, -1):
             self._hovered(*self._hover)
-        shape = res.image.width(), res.image.height()
-        text = (f"live {res.fps:.1f} fps | frame {res.frame_id} | {shape[0]}x{shape[1]} "
+        h, w = pipeline.display_shape(res.data, res.display)
+        shape = f"{w}x{h}" + (f" (shown 1:{res.step})" if res.step > 1 else "")
+        text = (f"live {res.fps:.1f} fps | frame {res.frame_id} | {shape} "
                 f"{pipeline.DISPLAYS[res.display]} | exposure {res.exposure_us:g} us, gain "
                 f"{res.gain_db:g} dB | processing {1e3 * res.processing_s:.0f} ms | dropped "
-                f"{self.worker.slot.dropped}")
+                f"{self.worker.dropped}")
         if res.note:
             text += f" | {res.note}"
         self.status.emit(text)
@@ -160,4 +162,5 @@ class LivePanel(QWidget):
         self._hover = (x, y)
         if self.last is None or x < 0:
             return
-        self.readout.setText(pipeline.readout(self.last.data, self.last.display, x, y))
+        k = self.last.step
+        self.readout.setText(pipeline.readout(self.last.data, self.last.display, x * k, y * k))

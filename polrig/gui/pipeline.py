@@ -62,6 +62,7 @@ class PolarizationData:
     bit_depth: int = 16
     black_level_dn: float = 0.0
     source: str = ""
+    _views: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def n_colours(self) -> int:
@@ -216,23 +217,45 @@ def channel_view(data: PolarizationData, colour: int) -> tuple[np.ndarray, np.nd
     if colour != LUMINANCE or data.stokes.shape[0] == 1:
         c = 0 if data.stokes.shape[0] == 1 else min(colour, data.stokes.shape[0] - 1)
         return data.stokes[c, 0], data.dolp[c], data.aolp_deg[c], data.valid[c]
-    mean = data.stokes.mean(axis=0, keepdims=True)
-    valid = data.valid.all(axis=0, keepdims=True)
-    return mean[0, 0], dolp(mean, valid)[0], aolp_deg(mean, valid)[0], valid[0]
+    if "luminance" not in data._views:  # computed once per data (render + histogram)
+        mean = data.stokes.mean(axis=0, keepdims=True)
+        valid = data.valid.all(axis=0, keepdims=True)
+        data._views["luminance"] = (mean[0, 0], dolp(mean, valid)[0], aolp_deg(mean, valid)[0],
+                                    valid[0])
+    return data._views["luminance"]
+
+
+def display_shape(data: PolarizationData, display: str) -> tuple[int, int]:
+    """``(H, W)`` of the full-resolution image of ``display`` (before any decimation)."""
+    if display == "raw":
+        return tuple(data.raw.shape)  # type: ignore[return-value]
+    src = data.stokes if data.stokes is not None else data.mueller
+    return tuple(src.shape[-2:])  # type: ignore[return-value]
+
+
+def display_step(data: PolarizationData, display: str, max_px: int) -> int:
+    """Decimation step so that the displayed image has at most ``max_px`` pixels on its long
+    side (0: no limit). A screen shows no more pixels than it has; the data (and the cursor
+    readout) stay at full resolution. The Mueller grid is never decimated."""
+    if max_px <= 0 or display == "mueller":
+        return 1
+    return max(1, -(-max(display_shape(data, display)) // int(max_px)))
 
 
 def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
-           saturation_overlay: bool = False) -> np.ndarray:
+           saturation_overlay: bool = False, step: int = 1) -> np.ndarray:
     """The uint8 RGB image ``(H, W, 3)`` of ``display`` (a key of :data:`DISPLAYS`).
 
     S0 of the luminance choice is the RGB composite of a colour sensor; saturated pixels are
-    painted :data:`SATURATION_RGB` when ``saturation_overlay`` is set.
+    painted :data:`SATURATION_RGB` when ``saturation_overlay`` is set. ``step`` > 1 shows every
+    ``step``-th pixel in each direction (see :func:`display_step`; not for the Mueller grid).
     """
     if display not in data.available():
         raise ValueError(f"{DISPLAYS.get(display, display)} is not available for this data")
     sat = None
+    k = slice(None, None, max(1, int(step)))
     if display == "raw":
-        raw = data.raw
+        raw = data.raw[k, k]
         full = float(2 ** int(data.bit_depth) - 1)
         g = np.empty(raw.shape, np.uint8)
         np.copyto(g, np.clip(raw * np.float32(255.0 / full), 0, 255), casting="unsafe")
@@ -244,16 +267,17 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
                                     min(colour, data.mueller.shape[0] - 1),
                                     border_px=GRID_BORDER_PX)
     elif display == "s0" and data.stokes is None:  # Mueller only: m00
-        m00 = _pick(data.mueller[:, 0, 0], colour)
+        m00 = _pick(data.mueller[:, 0, 0], colour)[k, k]
         rgb = preview.tone_map(m00, white=fast_white(m00))
     elif display == "s0":
         planes = data.stokes[:, 0] if colour == LUMINANCE else data.stokes[[min(
             colour, data.stokes.shape[0] - 1)], 0]
+        planes = planes[:, k, k]
         rgb = preview.tone_map(planes, white=fast_white(planes))
         if saturation_overlay:
-            sat = data.saturated.any(axis=0)
+            sat = data.saturated[:, k, k].any(axis=0)
     else:
-        _, d, a, valid = channel_view(data, colour)
+        _, d, a, valid = (v[k, k] for v in channel_view(data, colour))
         if display == "dolp":
             rgb = preview.dolp_colormap(d, valid=valid)
         elif display == "aolp":
@@ -261,19 +285,20 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
         else:
             rgb = preview.aolp_rgb(a, d, valid=valid)
         if saturation_overlay:
-            sat = data.saturated.any(axis=0)
+            sat = data.saturated[:, k, k].any(axis=0)
     if sat is not None and sat.any():
         rgb[sat] = SATURATION_RGB
     return rgb
 
 
 def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
-              bins: int = 64) -> tuple[np.ndarray, np.ndarray, str]:
+              bins: int = 64, step: int = 1) -> tuple[np.ndarray, np.ndarray, str]:
     """``(counts, edges, label)`` of the quantity a display shows (valid pixels only):
     raw DN, S0 DN, DoLP in [0, 1] or AoLP in degrees [0, 180). The Mueller grid shows the
-    histogram of ``m00``."""
+    histogram of ``m00``. ``step`` > 1 counts every ``step``-th pixel in each direction."""
+    k = slice(None, None, max(1, int(step)))
     if display == "raw":
-        x = data.raw.reshape(-1)[::3]
+        x = data.raw[k, k].reshape(-1)
         rng = (0.0, float(2 ** int(data.bit_depth)))
         label = "raw DN"
     elif display in ("s0", "mueller") and (data.stokes is None or display == "mueller"):
@@ -282,7 +307,7 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
         rng = (0.0, float(x.max()) if x.size else 1.0)
         label = "m00 (DN per unit S0)"
     else:
-        s0, d, a, valid = channel_view(data, colour)
+        s0, d, a, valid = (v[k, k] for v in channel_view(data, colour))
         q = {"s0": s0, "dolp": d}.get(display, a)
         x = q[valid]
         rng = {"dolp": (0.0, 1.0), "aolp": (0.0, 180.0), "aolp_dolp": (0.0, 180.0)}.get(

@@ -41,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
 
+    from polrig.gui import pipeline
     from polrig.gui.app import model_loader
     from polrig.gui.main_window import MainWindow
     from polrig.gui.settings import make_settings
@@ -94,7 +95,9 @@ def main(argv: list[str] | None = None) -> int:
         w.viewer.open_session(tmp / "session")
         w.tabs.setCurrentWidget(w.viewer)
         v = w.viewer
-        v._hovered(40, 40)
+        h, wd = v.data.mueller.shape[-2:]  # cursor on the object in the m11 tile
+        b = pipeline.GRID_BORDER_PX
+        v._hovered(2 * b + wd + wd // 2 - wd // 10, 2 * b + h + h // 2 - h // 10)
         shot(w, "mueller_grid.png")
     w.tabs.setCurrentWidget(w.devices)
     _wait(app, lambda: bool(w.devices.last_status), 30, "device status")
