@@ -11,11 +11,12 @@ evaluated on PIPNet's outputs, eta = 1.5, ks = 1) by residual learning under
   3x3 (other elements keep the initialization), weighted by ``ks`` and ``kd`` per colour and
   summed into the ``(B, C, 3, 3, H, W)`` Mueller image.
 
-Two additions to the paper, both needed on the simulator's data and stated in
-``models/MODEL_CARD.md``: the specular branch also predicts a per-pixel log gain on ``ks``
-(the true ``ks`` and the light's fall-off are not 1) and the diffuse branch a per-colour log
-gain on PIPNet's ``kd``. Final layers start at zero, so an untrained PMMNet returns exactly
-the PIPNet-pBRDF initialization.
+Additions to the paper, needed on the simulator's data and stated in ``models/MODEL_CARD.md``:
+the unknown radiometric scales (light fall-off and colour, exposure, the true ``ks``) are
+first fitted per pixel to the measured state in closed form (:func:`fit_gains`: one specular
+gain, one diffuse gain per colour); the specular branch then also predicts a per-pixel log
+gain on ``ks`` and the diffuse branch a per-colour log gain on ``kd``. Final layers start at
+zero, so an untrained PMMNet returns exactly the gain-fitted PIPNet-pBRDF initialization.
 
 Loss: ``L1(M) + L_Stokes`` with ``L_Stokes`` the L1 error of ``M S`` over the probe states
 ``[1,0,0], [1,1,0], [1,0,1]`` for every colour, averaged over the mask.
@@ -36,6 +37,40 @@ SPECULAR_ELEMENTS = ((0, 0), (1, 1), (1, 2), (2, 1), (2, 2))
 DIFFUSE_ELEMENTS = ((0, 0), (0, 1), (0, 2), (1, 0), (2, 0))
 #: Probe incident states of the Stokes consistency loss.
 PROBE_STATES = ((1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 0.0, 1.0))
+
+
+def fit_gains(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
+              s_in: torch.Tensor, ridge: float = 0.05, eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel radiometric gains of the pBRDF fitted to the one measured state.
+
+    The measured emergent Stokes ``S_c`` (``(B, C, 3, H, W)``) under ``s_in`` should be
+    ``g_s a + g_c b_c`` with ``a = Ms s_in`` (specular, colour independent) and
+    ``b_c = kd_c Md s_in``: the light's fall-off and colour, the exposure and the true ``ks``
+    are unknown scale factors that PIPNet cannot see. Solved per pixel in closed form (variable
+    projection of the 4-unknown linear least squares over the ``3 C`` Stokes values) with a
+    ridge ``ridge * (|a|^2 + sum |b_c|^2) / 4`` towards the common gain ``g0`` (the least-squares
+    scale of the whole initialization), which keeps ill-separated pixels (specular and diffuse
+    light polarized alike, or no specular at all) at ``g0``. Returns ``g_s`` (B,1,H,W) and
+    ``g_c`` (B,C,H,W), both >= 0.
+    """
+    a = (ms * s_in[:, None, :, None, None]).sum(2)  # (B,3,H,W)
+    b = kd[:, :, None] * (md * s_in[:, None, :, None, None]).sum(2)[:, None]  # (B,C,3,H,W)
+    r = a[:, None] + b  # rendering of the initialization
+    g0 = ((stokes * r).sum((1, 2)) / ((r * r).sum((1, 2)) + eps)).clamp_min(0.0)[:, None]  # (B,1,H,W)
+    lam = ridge * ((a * a).sum(1, keepdim=True) + (b * b).sum((1, 2))[:, None]) / 4.0 + eps
+    nb = (b * b).sum(2)  # (B,C,H,W)
+    den_c = nb + lam
+    bs = (b * stokes).sum(2)
+    ba = (b * a[:, None]).sum(2)
+    big_r = stokes - b * ((bs + lam * g0) / den_c)[:, :, None]
+    big_q = a[:, None] - b * (ba / den_c)[:, :, None]
+    p = (bs - g0 * nb) / den_c
+    q = ba / den_c
+    num = (big_r * big_q).sum((1, 2))[:, None] + (lam * p * q).sum(1, keepdim=True) + lam * g0
+    den = (big_q * big_q).sum((1, 2))[:, None] + (lam * q * q).sum(1, keepdim=True) + lam
+    g_s = (num / den).clamp_min(0.0)
+    g_c = ((bs - g_s * ba + lam * g0) / den_c).clamp_min(0.0)
+    return g_s, g_c
 
 
 def expand5(values: torch.Tensor, elements: tuple[tuple[int, int], ...]) -> torch.Tensor:
@@ -74,6 +109,10 @@ class PMMNet(nn.Module):
     def forward(self, analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
                 ms_init: torch.Tensor, md_init: torch.Tensor, kd_init: torch.Tensor) -> dict[str, torch.Tensor]:
         stokes = stokes_from_analyzer(analyzer)
+        # Radiometric fit of the analytic initialization to the measured state (fit_gains).
+        g_s, g_c = fit_gains(stokes, ms_init, md_init, kd_init, s_in)
+        ms_init = ms_init * g_s[:, :, None]
+        kd_init = kd_init * g_c
         m_init = ms_init[:, None] + kd_init[:, :, None, None] * md_init[:, None]
         rendered = apply_mueller(m_init, s_in)
         x = torch.cat([stokes.flatten(1, 2), (stokes - rendered).flatten(1, 2),

@@ -150,12 +150,18 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
 
 def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
           *, resume: bool = False, export: bool = True, overrides: dict | None = None,
+          init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] = STAGES,
           echo: Callable[[str], None] = print) -> dict:
     """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
-    of the checkpoint's configuration (e.g. more epochs for a stage). Returns the summary dict
-    also written to ``OUT/summary.json``."""
+    of the checkpoint's configuration (e.g. more epochs for a stage). ``init_from`` (a
+    checkpoint of another run) with ``stages`` retrains only those stages from scratch and
+    takes the other networks (and their training times) from that checkpoint, e.g. a new
+    PMMNet on a trained PIPNet. Returns the summary dict also written to ``OUT/summary.json``."""
+    bad = [s for s in stages if s not in STAGES]
+    if bad:
+        raise ValueError(f"unknown stage(s) {bad}; stages are {STAGES}")
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -163,9 +169,15 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     if resume and ckpt_path.exists():
         state = torch.load(ckpt_path, weights_only=False)
         config = TrainConfig(**state["config"])
+        stages = tuple(state.get("stages", STAGES))
         echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
     elif (out / "log.csv").exists() and not resume:
         (out / "log.csv").unlink()
+    donor = None
+    if init_from is not None and state is None:
+        donor = torch.load(init_from, weights_only=False)
+        if config is None:  # same architecture and settings as the run the networks come from
+            config = TrainConfig(**donor["config"])
     config = dataclasses.replace(config or TrainConfig(), **(overrides or {}))
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -189,6 +201,13 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     opts = {k: torch.optim.Adam(m.parameters(), lr=config.lr) for k, m in models.items()}
     times = {k: 0.0 for k in STAGES}
     start_stage, start_epoch = 0, 0
+    if donor is not None:
+        for k in STAGES:
+            if k not in stages:
+                models[k].load_state_dict(donor["models"][k])
+                times[k] = donor["times"][k]
+                epochs[k] = donor["config"][f"{k}_epochs"]
+        echo(f"networks {[k for k in STAGES if k not in stages]} taken from {init_from}")
     if state is not None:
         for k in STAGES:
             models[k].load_state_dict(state["models"][k])
@@ -199,7 +218,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     log = _Log(out, echo)
 
     for si, stage in enumerate(STAGES):
-        if si < start_stage:
+        if si < start_stage or stage not in stages:
             continue
         if stage == "pmmnet":
             t_init = time.time()
@@ -218,13 +237,16 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             log.write({"stage": stage, "epoch": epoch, "lr": lr, "train_loss": train_loss,
                        "val_loss": val_loss, "epoch_s": dt, "details": json.dumps(detail)})
             nxt = (stage, epoch + 1)
-            torch.save({"config": dataclasses.asdict(config), "stage": nxt[0], "epoch": nxt[1],
+            torch.save({"config": dict(dataclasses.asdict(config), **{f"{k}_epochs": v for k, v in epochs.items()}),
+                        "stage": nxt[0], "epoch": nxt[1], "stages": list(stages),
                         "models": {k: m.state_dict() for k, m in models.items()},
                         "optimizers": {k: o.state_dict() for k, o in opts.items()},
                         "times": times, "rng_seed": int(rng.integers(2**31))}, ckpt_path)
         start_epoch = 0
 
+    config = dataclasses.replace(config, **{f"{k}_epochs": v for k, v in epochs.items()})
     summary = {"config": dataclasses.asdict(config), "data": str(data_dir), "samples": n,
+               "stages_trained": list(stages), "init_from": None if init_from is None else str(init_from),
                "resolution": list(ds.shape), "train_seconds": times,
                "torch_threads": torch.get_num_threads(), "torch_version": torch.__version__}
     if export:

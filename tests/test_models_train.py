@@ -87,3 +87,18 @@ def test_lr_schedule_constant_then_linear_decay():
     lrs = [lr_at(cfg, e, 10) for e in range(10)]
     assert lrs[:5] == [1.0] * 5
     assert all(a > b for a, b in zip(lrs[4:], lrs[5:])) and lrs[-1] == pytest.approx(0.1)
+
+
+def test_retrain_one_stage_on_networks_of_another_run(trained, tmp_path):
+    root, data, _ = trained
+    summary = train(data, tmp_path / "run", init_from=root / "run" / "checkpoint.pt", stages=("pmmnet",),
+                    export=False, echo=lambda s: None)
+    rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
+    assert {r["stage"] for r in rows} == {"pmmnet"} and len(rows) == TINY.pmmnet_epochs
+    donor = torch.load(root / "run" / "checkpoint.pt", weights_only=False)
+    mine = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    for k, v in donor["models"]["pipnet"].items():
+        assert torch.equal(v, mine["models"]["pipnet"][k])
+    assert summary["stages_trained"] == ["pmmnet"] and summary["config"]["direct_epochs"] == TINY.direct_epochs
+    with pytest.raises(ValueError):
+        train(data, tmp_path / "bad", stages=("nonsense",), echo=lambda s: None)

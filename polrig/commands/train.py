@@ -30,6 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--stages", default="pipnet,pmmnet,direct",
+                   help="stages to train (comma separated, default all); with --init-from the "
+                        "others are taken from that checkpoint")
+    p.add_argument("--init-from", default=None, help="checkpoint.pt of another run to take the "
+                                                     "networks of the stages not trained from")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export")
     p.set_defaults(func=run)
 
@@ -56,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
             if value < 0 or (name in ("batch_size", "width", "threads", "limit") and value < 1):
                 raise ValueError(f"--{name.replace('_', '-')} out of range: {value}")
             overrides[name] = value
-    train(args.data, args.out, TrainConfig(), resume=args.resume, export=not args.no_export,
-          overrides=overrides)
+    stages = tuple(x.strip() for x in args.stages.split(",") if x.strip())
+    if args.init_from is None and set(stages) != {"pipnet", "pmmnet", "direct"} and not args.resume:
+        raise ValueError("training a subset of the stages needs --init-from CHECKPOINT for the others")
+    train(args.data, args.out, None, resume=args.resume, export=not args.no_export,
+          overrides=overrides, init_from=args.init_from, stages=stages)
     return 0

@@ -1,0 +1,77 @@
+"""PMMNet's physics pieces: the closed-form gain fit, the 5 -> 3x3 expansion, and the
+zero-initialised residuals (an untrained PMMNet returns the gain-fitted initialization)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.layers import apply_mueller  # noqa: E402
+from models.pmmnet import (DIFFUSE_ELEMENTS, SPECULAR_ELEMENTS, PMMNet, expand5,  # noqa: E402
+                           fit_gains)
+
+
+def _random_blocks(b=2, h=5, w=6, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    ms = torch.randn(b, 3, 3, h, w, generator=g, dtype=torch.float64)
+    md = torch.randn(b, 3, 3, h, w, generator=g, dtype=torch.float64)
+    kd = torch.rand(b, 3, h, w, generator=g, dtype=torch.float64) + 0.1
+    s_in = torch.tensor([[0.5, 0.3, -0.2], [0.5, -0.1, 0.45]], dtype=torch.float64)
+    return ms, md, kd, s_in
+
+
+def test_fit_gains_recovers_the_gains_of_an_exact_measurement():
+    ms, md, kd, s_in = _random_blocks()
+    gs_true = torch.rand(2, 1, 5, 6, dtype=torch.float64) * 3 + 0.2
+    gc_true = torch.rand(2, 3, 5, 6, dtype=torch.float64) * 2 + 0.1
+    m = (gs_true[:, :, None] * ms)[:, None] + (gc_true * kd)[:, :, None, None] * md[:, None]
+    stokes = apply_mueller(m, s_in)
+    gs, gc = fit_gains(stokes, ms, md, kd, s_in, ridge=0.0, eps=1e-15)
+    np.testing.assert_allclose(gs.numpy(), gs_true.numpy(), rtol=1e-6)
+    np.testing.assert_allclose(gc.numpy(), gc_true.numpy(), rtol=1e-6)
+
+
+def test_fit_gains_without_specular_falls_back_to_the_common_gain():
+    ms, md, kd, s_in = _random_blocks(seed=1)
+    ms = torch.zeros_like(ms)
+    m = 2.5 * kd[:, :, None, None] * md[:, None]
+    stokes = apply_mueller(m, s_in)
+    gs, gc = fit_gains(stokes, ms, md, kd, s_in)
+    np.testing.assert_allclose(gs.numpy(), 2.5, rtol=1e-4)  # = g0, nothing to fit
+    np.testing.assert_allclose(gc.numpy(), 2.5, rtol=1e-4)
+    # Dark pixels: zero gains, no NaN.
+    gs0, gc0 = fit_gains(torch.zeros_like(stokes), ms, md, kd, s_in)
+    assert torch.all(gs0 == 0) and torch.all(gc0 == 0)
+
+
+def test_expand5_places_the_branch_elements():
+    v = torch.arange(5, dtype=torch.float32).reshape(1, 5, 1, 1) + 1
+    for elements in (SPECULAR_ELEMENTS, DIFFUSE_ELEMENTS):
+        m = expand5(v, elements)[0, :, :, 0, 0]
+        for i, (r, c) in enumerate(elements):
+            assert m[r, c] == i + 1
+        assert int((m != 0).sum()) == 5
+
+
+def test_untrained_pmmnet_is_the_gain_fitted_initialization():
+    torch.manual_seed(0)
+    b, h, w = 1, 16, 16
+    ms, md, kd, _ = _random_blocks(b, h, w, seed=2)
+    ms, md, kd = ms.float().abs(), md.float().abs(), kd.float()
+    s_in = torch.tensor([[0.5, 0.2, 0.3]])
+    m_true = (1.7 * ms)[:, None] + (0.6 * kd)[:, :, None, None] * md[:, None]
+    stokes = apply_mueller(m_true, s_in)
+    # Analyzer images whose ideal Stokes are `stokes` (I_t = (S0 + S1 cos 2t + S2 sin 2t) / 2).
+    t = torch.deg2rad(torch.tensor([0.0, 45.0, 90.0, 135.0]))
+    rows = 0.5 * torch.stack([torch.ones(4), torch.cos(2 * t), torch.sin(2 * t)], 1)
+    analyzer = torch.einsum("ja,bcahw->bcjhw", rows, stokes)
+    mask = torch.ones(b, 1, h, w)
+    out = PMMNet(3, 8).eval()(analyzer, mask, s_in, ms, md, kd)
+    gs, gc = fit_gains(stokes, ms, md, kd, s_in)
+    expected = (gs[:, :, None] * ms)[:, None] + (gc * kd)[:, :, None, None] * md[:, None]
+    np.testing.assert_allclose(out["mueller"].detach().numpy(), expected.numpy(), rtol=1e-5, atol=1e-6)
+    # The ridge keeps the fit close to, not exactly at, the measurement (true gains 1.7, 0.6).
+    rendered = apply_mueller(out["mueller"], s_in).detach()
+    assert torch.linalg.norm(rendered - stokes) < 0.05 * torch.linalg.norm(stokes)
