@@ -46,8 +46,8 @@ INTRINSIC_MOUNTS: tuple[dict[str, float], ...] = (
     {"tilt_deg": 40.0, "roll_deg": -40.0}, {"tilt_deg": 60.0, "roll_deg": 20.0})
 DOFP_MOUNT_INDEX = 0
 OFFSET_MOUNT_INDEX = 0
-INTRINSIC_ANGLES_DEG = tuple(range(-45, 46, 15))
-LIGHT_ANGLES_DEG = tuple(range(0, 360, 30))
+INTRINSIC_ANGLES_DEG = tuple(float(a) for a in range(-45, 46, 9))
+LIGHT_ANGLES_DEG = tuple(float(a) for a in range(0, 360, 40))
 #: Two sphere heights on the turntable, for a vertical as well as a horizontal baseline.
 LIGHT_MOUNTS: tuple[dict[str, float], ...] = ({"sphere_height_m": 0.01}, {"sphere_height_m": 0.10})
 STAGE_ANGLES_DEG = tuple(float(a) for a in range(0, 180, 5))
