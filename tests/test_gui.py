@@ -25,9 +25,10 @@ pytestmark = pytest.mark.gui
 SIM = {"size": "64x64", "clock_speed": 1000.0}
 
 
-def make_window(qtbot, settings_path, start: bool = True, **sim) -> MainWindow:
+def make_window(qtbot, settings_path, start: bool = True, model_loader=None, **sim) -> MainWindow:
     rig = build_rig(load_rig_config(None), {**SIM, **sim})
-    w = MainWindow(rig, make_settings(settings_path), live_max_fps=40.0, poll_ms=150)
+    w = MainWindow(rig, make_settings(settings_path), live_max_fps=40.0, poll_ms=150,
+                   model_loader=model_loader)
     qtbot.addWidget(w)
     w.show()
     if start:
@@ -109,6 +110,51 @@ def test_mueller_display_without_a_model_is_a_message_not_a_crash(qtbot, window)
     else:
         assert "single-shot" in res.note and "unavailable" in window.fps_label.text()
         assert res.display == "aolp_dolp"  # still showing live frames
+
+
+@pytest.fixture(scope="module")
+def untrained_model_dir(tmp_path_factory):
+    """A real single-shot ONNX graph exported from freshly initialised (untrained) networks:
+    it exercises the live Mueller path end to end (its numbers are not a reconstruction)."""
+    torch = pytest.importorskip("torch")
+    from models.export import export_all
+    from models.pipnet import PIPNet
+    from models.pmmnet import DirectStokesToMM, PMMNet
+
+    torch.manual_seed(0)
+    wo = torch.zeros(1, 3, 16, 16)
+    wo[:, 2] = -1.0
+    sample = {"analyzer": torch.rand(1, 3, 4, 16, 16), "mask": torch.ones(1, 1, 16, 16),
+              "s_in": torch.tensor([[0.5, 0.5, 0.0]]), "wo": wo,
+              "stage_zero_axis": torch.tensor([[0.0, -1.0, 0.0]])}
+    out = tmp_path_factory.mktemp("untrained")
+    export_all(PIPNet(3, 4), PMMNet(3, 4, 2), DirectStokesToMM(3, 4), out, sample)
+    return out
+
+
+@pytest.mark.slow
+def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
+    from models.runtime import SingleShotModel
+
+    w = make_window(qtbot, tmp_path / "gui.ini",
+                    model_loader=lambda: SingleShotModel.load(untrained_model_dir, threads=1))
+    try:
+        w.live.set_display("mueller")
+        qtbot.waitUntil(lambda: w.live.last is not None and w.live.last.display == "mueller",
+                        timeout=60000)
+        res = w.live.last
+        assert res.data.mueller.shape == (3, 3, 3, 16, 16)
+        grid = from_qimage(res.image)
+        b = pipeline.GRID_BORDER_PX
+        assert grid.shape[0] == 3 * 16 + 4 * b and grid.shape[1] > 3 * 16 + 4 * b  # + colour bar
+        w.live.colour.setCurrentIndex(w.live.colour.findData(1))  # green only
+        qtbot.waitUntil(lambda: w.live.last.colour == 1 and w.live.last.display == "mueller",
+                        timeout=30000)
+        w.live._hovered(b + 8, b + 8)
+        text = w.live.readout.text()
+        assert "Mueller at (u=8, v=8)" in text and "G:" in text
+    finally:
+        close_window(qtbot, w)
 
 
 def test_two_pose_reference_capture_completes(qtbot, window, tmp_path):
