@@ -354,3 +354,28 @@ def test_calibration_step_out_of_order_is_a_readable_failure(qtbot, window):
     assert "run the intrinsics step first" in cal.report_view.toPlainText()
     assert any("calibration step light failed" in t for _, t in window.messages.messages)
     wait_frames(qtbot, window, 2)  # live view resumed
+
+
+def test_polrig_gui_command(qtbot, tmp_path, capsys):
+    from PySide6.QtWidgets import QApplication
+
+    from polrig.cli import main
+
+    assert main(["gui", "--config", str(tmp_path / "missing.toml")]) == 2
+    assert main(["gui", "--sim-size", "big"]) == 2
+    assert "size must be" in capsys.readouterr().err
+    seen = {}
+
+    def close_when_live():
+        wins = [w for w in QApplication.topLevelWidgets() if isinstance(w, MainWindow)]
+        if wins and wins[0].live.frames_shown >= 3:
+            seen["frames"] = wins[0].live.frames_shown
+            wins[0].close()
+        else:
+            QTimer.singleShot(50, close_when_live)
+
+    QTimer.singleShot(50, close_when_live)
+    ini = tmp_path / "gui.ini"
+    assert main(["gui", "--sim-size", "64x64", "--sim-clock-speed", "1000",
+                 "--settings", str(ini)]) == 0
+    assert seen["frames"] >= 3 and ini.is_file()
