@@ -376,14 +376,16 @@ def _stokes_lines(data: PolarizationData, u: int, v: int) -> str:
 
 
 def _mueller_lines(mueller: np.ndarray, u: int, v: int) -> str:
-    out = [f"Mueller at (u={u}, v={v}) [DN per unit S0; / m00]"]
+    out = [f"Mueller at (u={u}, v={v}): m00 in DN per unit S0, then M / m00"]
     for c, name in enumerate(_colour_names(mueller.shape[0])):
         m = mueller[c, :, :, v, u]
-        m00 = m[0, 0]
-        out.append(f"{name}:")
+        m00 = float(m[0, 0])
+        out.append(f"{name}: m00 = {m00:.4g}")
+        if not (m00 > 0 and np.isfinite(m).all()):
+            out.append("   (no valid matrix here)")
+            continue
         for r in range(3):
-            norm = "  ".join(f"{m[r, q] / m00:+.3f}" if m00 > 0 else "   n/a" for q in range(3))
-            out.append("  " + "  ".join(f"{m[r, q]:9.3g}" for q in range(3)) + "   | " + norm)
+            out.append("   " + "  ".join(f"{m[r, q] / m00:+.3f}" for q in range(3)))
     return "\n".join(out)
 
 

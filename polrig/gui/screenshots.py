@@ -8,6 +8,7 @@ for real frames and writes:
 * ``mueller_grid.png`` -- the 3x3 Mueller grid with its colour bar: the single-shot live
   display when a model is installed, otherwise the viewer showing the reference capture's
   Mueller EXR (the same rendering);
+* ``viewer_reference_mueller.png`` -- the viewer showing a reference capture's Mueller EXR;
 * ``capture_progress.png`` -- the capture panel during a reference capture (progress, ETA,
   thumbnails of finished poses, scores against the simulator's truth);
 * ``devices.png`` -- the devices panel.
@@ -91,13 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     shot(w, "capture_progress.png")
     cp.stop()
     _wait(app, lambda: not cp.is_running, 600, "the capture to stop")
+    w.viewer.open_session(tmp / "session")
+    w.tabs.setCurrentWidget(w.viewer)
+    v = w.viewer
+    h, wd = v.data.mueller.shape[-2:]  # cursor on the object in the m11 tile
+    b = pipeline.GRID_BORDER_PX
+    v._hovered(2 * b + wd + wd // 2 - wd // 10, 2 * b + h + h // 2 - h // 10)
+    shot(w, "viewer_reference_mueller.png")
     if not live_mueller:
-        w.viewer.open_session(tmp / "session")
-        w.tabs.setCurrentWidget(w.viewer)
-        v = w.viewer
-        h, wd = v.data.mueller.shape[-2:]  # cursor on the object in the m11 tile
-        b = pipeline.GRID_BORDER_PX
-        v._hovered(2 * b + wd + wd // 2 - wd // 10, 2 * b + h + h // 2 - h // 10)
         shot(w, "mueller_grid.png")
     w.tabs.setCurrentWidget(w.devices)
     _wait(app, lambda: bool(w.devices.last_status), 30, "device status")
