@@ -22,11 +22,11 @@ from typing import Any, Callable
 import numpy as np
 
 from calibration import charuco, dofp, light, rigframes, turntable
-from calibration.errors import BoardNotFound, CalibrationError, SphereNotFound, TooFewAngles
+from calibration.errors import (BoardNotFound, CalibrationError, SphereNotFound, SphereSaturated,
+                                TooFewAngles)
 from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
                                    wrap_deg)
 from polrig.analyzer import AnalyzerModel, layout_name_at
-from polrig.mueller import polarizer_stokes
 
 Mount = Callable[..., None]
 Log = Callable[[str], None]
@@ -204,6 +204,7 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
 # --------------------------------------------------------------------------- light
 def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: float, *,
               angles_deg=LIGHT_ANGLES_DEG, mounts=LIGHT_MOUNTS,
+              intrinsics_std_px: np.ndarray | None = None,
               log: Log = _noop) -> light.LightFit:
     """Chrome sphere on the turntable at several angles -> light position (camera frame).
 
@@ -218,21 +219,21 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             mount("chrome_sphere", **m)
         _move(rig.turntable, a)
         frames = {}
-        for name, (pct, tgt) in {"silhouette": (50.0, 0.5), "highlight": (100.0, 0.6)}.items():
+        # the highlight target is 0.3 of full scale at stage 0: at 90 deg the analyzer pixels
+        # crossed at 0 deg see the polarized highlight up to twice as bright
+        for name, (pct, tgt) in {"silhouette": (50.0, 0.5), "highlight": (100.0, 0.3)}.items():
             _move(rig.stage, 0.0)
             auto_expose(cam, percentile=pct, target=tgt)
             r0, meta = grab_mean(cam)
             _move(rig.stage, 90.0)
             r90, _ = grab_mean(cam)
-            frames[name] = (r0 + r90 - 2 * meta.black_level_dn, meta)
-        sil, meta = frames["silhouette"]
-        hil, hmeta = frames["highlight"]
-        sat = 2 * (_full_scale(hmeta) - hmeta.black_level_dn) * 0.98
-        if np.max(hil) >= sat:
-            from calibration.errors import SphereSaturated
-
-            raise SphereSaturated("sphere highlight saturated even at the shortest exposure; "
-                                  "lower the light level")
+            peak = max(float(r0.max()), float(r90.max()))
+            frames[name] = (r0 + r90 - 2 * meta.black_level_dn, meta, peak)
+        sil, meta, _ = frames["silhouette"]
+        hil, hmeta, peak = frames["highlight"]
+        if peak >= 0.98 * _full_scale(hmeta):
+            raise SphereSaturated(f"sphere highlight saturated even at {cam.exposure_us:g} us "
+                                  f"exposure; lower the light level or use a smaller sphere")
         scales = charuco.class_scales(sil, lay)
         try:
             ob = light.find_sphere(charuco.intensity_image(sil, lay, scales=scales),
@@ -244,6 +245,17 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             continue
         obs.append(ob)
     fit = light.fit_light_position(obs, radius_m, K, dist)
+    if intrinsics_std_px is not None:
+        # add the intrinsics' uncertainty (fx, fy, cx, cy), propagated by finite differences
+        cov = fit.covariance_m2.copy()
+        for (i, j), sd in zip(((0, 0), (1, 1), (0, 2), (1, 2)), np.asarray(intrinsics_std_px)[:4]):
+            Kp, Km = K.copy(), K.copy()
+            Kp[i, j] += sd
+            Km[i, j] -= sd
+            d = 0.5 * (light.fit_light_position(obs, radius_m, Kp, dist).position_cam_m
+                       - light.fit_light_position(obs, radius_m, Km, dist).position_cam_m)
+            cov += np.outer(d, d)
+        fit = dataclasses.replace(fit, covariance_m2=cov)
     dist_m = np.linalg.norm(fit.position_cam_m)
     log(f"light: {len(obs)} sphere views, position {np.round(fit.position_cam_m, 4).tolist()} m "
         f"(camera frame) ± {np.round(fit.std_m * 1000, 2).tolist()} mm, distance {dist_m:.4f} m")
@@ -261,6 +273,7 @@ class OffsetRun:
     per_pixel_deg: np.ndarray  # (N,) offsets of the pixels used
     modulation: np.ndarray  # (N,) measured relative modulation
     stage_zero_axis_cam: np.ndarray
+    zero_offset_std_bound_deg: float = 0.0
 
 
 def harmonic_fit(stage_angles_deg: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -299,6 +312,7 @@ def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec,
                          stage_angles_deg=STAGE_ANGLES_DEG, incidence_deg: float = 85.0,
                          max_view_deg: float = 75.0, frames_per_angle: int = 2,
                          mounts=INTRINSIC_MOUNTS, mount_index: int = OFFSET_MOUNT_INDEX,
+                         light_cov_m2: np.ndarray | None = None,
                          log: Log = _noop) -> OffsetRun:
     """Stage zero offset from the polarization-dependent Fresnel transmission into the matte
     board lit at grazing incidence.
@@ -312,7 +326,10 @@ def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec,
     follows from the board pose, the light position and the stage zero axis. The board pose
     is the fixture pose of the joint bundle adjustment (``geometry``, mount ``mount_index``)
     turned to the chosen turntable angle: one PnP pose has a normal error of about 0.1 deg,
-    which would go straight into the offset. References: Baek et al., "Simultaneous
+    which would go straight into the offset. The uncertainty combines the scatter of the
+    per-pixel offsets with the propagated uncertainty of the light position
+    (``light_cov_m2``); ``zero_offset_std_bound_deg`` adds the turntable axis and board normal
+    uncertainties as if independent (an upper bound). References: Baek et al., "Simultaneous
     acquisition of polarimetric SVBRDF and normals", ACM TOG 37(6), 2018 (diffuse term
     ``T_out D T_in``); Collett 2005 (Fresnel transmission Mueller matrix).
     """
@@ -362,26 +379,58 @@ def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec,
         raise CalibrationError(f"only {int(use.sum())} usable board pixels at grazing light; "
                                "raise the light level or exposure")
     Pu = P[use]
-    wi = light_cam_m - Pu
-    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
-    zero = rigframes.stage_zero_axis_cam(light_cam_m, axis.point_cam_m, axis.axis_cam)
-    k_in = -wi
-    s_dir = np.cross(k_in, nb)
-    s_dir /= np.linalg.norm(s_dir, axis=1, keepdims=True)
-    psi_s = rigframes.incident_basis_angle_deg(wi, zero, s_dir)
     phase = np.rad2deg(0.5 * np.arctan2(C[use], B[use]))
-    off_px = wrap_deg(psi_s - phase + 90.0, 180.0)
     amp = np.hypot(B[use], C[use])
-    z = np.sum(amp ** 2 * np.exp(2j * np.deg2rad(off_px)))
-    off = float(np.rad2deg(np.angle(z)) / 2)
-    res = wrap_deg(off_px - off, 180.0)
     wgt = amp ** 2 / np.sum(amp ** 2)
+
+    def offsets(light_m, axis_dir, normal):
+        wi = light_m - Pu
+        wi = wi / np.linalg.norm(wi, axis=1, keepdims=True)
+        zero = rigframes.stage_zero_axis_cam(light_m, axis.point_cam_m, axis_dir)
+        s_dir = np.cross(-wi, normal)
+        s_dir /= np.linalg.norm(s_dir, axis=1, keepdims=True)
+        psi_s = rigframes.incident_basis_angle_deg(wi, zero, s_dir)
+        o_px = wrap_deg(psi_s - phase + 90.0, 180.0)
+        z = np.sum(wgt * np.exp(2j * np.deg2rad(o_px)))
+        return float(np.rad2deg(np.angle(z)) / 2), o_px, zero, wi
+
+    off, off_px, zero, wi = offsets(light_cam_m, axis.axis_cam, nb)
+    res = wrap_deg(off_px - off, 180.0)
     n_eff = 1.0 / np.sum(wgt ** 2)
-    std = float(np.sqrt(np.sum(wgt * res ** 2) / max(n_eff - 1, 1)))
+    var = float(np.sum(wgt * res ** 2) / max(n_eff - 1, 1))
+    # propagate the geometric uncertainties (light position covariance, turntable axis and
+    # board normal directions) by finite differences
+    if light_cov_m2 is not None:
+        cov = np.asarray(light_cov_m2, float)
+        J = np.empty(3)
+        for i in range(3):
+            h = np.zeros(3)
+            h[i] = 1e-4
+            J[i] = (offsets(light_cam_m + h, axis.axis_cam, nb)[0]
+                    - offsets(light_cam_m - h, axis.axis_cam, nb)[0]) / 2e-4
+        var += float(J @ cov @ J)
+    std = float(np.sqrt(var))
+    # axis and board-normal uncertainties, propagated as if independent: an upper bound, since
+    # both come from one bundle adjustment and a common error (e.g. of the principal point)
+    # turns axis, board and light together without changing their relation
+    normal_std = (geometry.mount_rotation_std_deg[mount_index]
+                  if len(geometry.mount_rotation_std_deg) > mount_index else axis.axis_std_deg)
+    var_geo = 0.0
+    for vec, sd_deg, which in ((axis.axis_cam, axis.axis_std_deg, "axis"),
+                               (nb, normal_std, "normal")):
+        u1, u2 = turntable._perp_basis(vec)
+        for u in (u1, u2):
+            d = vec + np.deg2rad(sd_deg) / np.sqrt(2) * u
+            d = d / np.linalg.norm(d)
+            o2 = offsets(light_cam_m, d, nb)[0] if which == "axis" else \
+                offsets(light_cam_m, axis.axis_cam, d)[0]
+            var_geo += wrap_deg(o2 - off, 180.0) ** 2
+    std_bound = float(np.sqrt(var + var_geo))
     inc = float(np.degrees(np.arccos(np.clip(np.median(np.sum(wi * nb, axis=1)), -1, 1))))
-    log(f"generator offset: {off:.3f} ± {std:.3f} deg from {int(use.sum())} board pixels at "
-        f"turntable {a_sel:.1f} deg, light incidence {inc:.1f} deg")
-    return OffsetRun(off, std, a_sel, inc, int(use.sum()), off_px, amp / A[use], zero)
+    log(f"generator offset: {off:.3f} ± {std:.3f} deg (pixels and light position; ± "
+        f"{std_bound:.3f} deg bound with the axis and board pose) from {int(use.sum())} board "
+        f"pixels at turntable {a_sel:.1f} deg, light incidence {inc:.1f} deg")
+    return OffsetRun(off, std, a_sel, inc, int(use.sum()), off_px, amp / A[use], zero, std_bound)
 
 
 # --------------------------------------------------------------------------- DoFP analyzer

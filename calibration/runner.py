@@ -25,7 +25,6 @@ from calibration import turntable as tt
 from calibration.calset import CalibrationSet
 from calibration.charuco import BoardSpec
 from calibration.errors import CalibrationError
-from calibration.generator import GeneratorModel
 from polrig import frames as fr
 from polrig.analyzer import AnalyzerModel
 
@@ -53,8 +52,9 @@ def _geometry(cs: CalibrationSet) -> tt.JointRigResult:
                                   np.zeros(0), np.zeros(3), 0.0)
     poses = tuple((np.asarray(f["R"], float), np.asarray(f["t_m"], float))
                   for f in fixtures["poses"])
+    rot_std = tuple(float(f.get("rotation_std_deg", ax["axis_std_deg"])) for f in fixtures["poses"])
     return tt.JointRigResult(intr["K"], intr["dist"], np.asarray(intr["std_fx_fy_cx_cy_px"]),
-                             axis, float(intr.get("rms_px", 0.0)), np.zeros((0, 2)), poses)
+                             axis, float(intr.get("rms_px", 0.0)), np.zeros((0, 2)), poses, rot_std)
 
 
 def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
@@ -90,22 +90,28 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
                 "board": o.board.to_json()}
             cs.params["turntable"] = jr.axis.to_json()
             cs.params["fixtures"] = {"mounts": [dict(m) for m in pr.INTRINSIC_MOUNTS],
-                                     "poses": [{"R": R.tolist(), "t_m": t.tolist()}
-                                               for R, t in jr.mount_poses]}
+                                     "poses": [{"R": R.tolist(), "t_m": t.tolist(),
+                                                "rotation_std_deg": sd}
+                                               for (R, t), sd in zip(jr.mount_poses,
+                                                                     jr.mount_rotation_std_deg)]}
             extras["turntable"] = jr
         elif step == "light":
             intr = cs.intrinsics
-            lf = pr.run_light(rig, mount, intr["K"], intr["dist"], o.sphere_radius_m, log=log)
+            lf = pr.run_light(rig, mount, intr["K"], intr["dist"], o.sphere_radius_m,
+                              intrinsics_std_px=intr.get("std_fx_fy_cx_cy_px"), log=log)
             cs.params["light"] = {**lf.to_json(), "sphere_radius_m": o.sphere_radius_m}
             extras["light"] = lf
         elif step == "stokes":
             geo = _geometry(cs)
             off = pr.run_generator_offset(rig, mount, o.board, geo, cs.light_position_m,
-                                          stage_angles_deg=o.stage_angles_deg, log=log)
+                                          stage_angles_deg=o.stage_angles_deg,
+                                          light_cov_m2=cs.params["light"].get("covariance_m2"),
+                                          log=log)
             prev = cs.params.get("generator", {})
             cs.params["generator"] = {
                 "zero_offset_deg": off.zero_offset_deg,
                 "zero_offset_std_deg": off.zero_offset_std_deg,
+                "zero_offset_std_bound_deg": off.zero_offset_std_bound_deg,
                 "extinction_ratio": prev.get("extinction_ratio", float("inf")),
                 "extinction_ratio_std": prev.get("extinction_ratio_std", 0.0),
                 "stage_zero_axis_cam": off.stage_zero_axis_cam.tolist(),

@@ -254,6 +254,7 @@ class JointRigResult:
     rms_px: float
     residuals_px: np.ndarray
     mount_poses: tuple = ()  # per mount index: (R, t) board -> camera at turntable angle 0
+    mount_rotation_std_deg: tuple = ()  # per mount: 1-sigma direction of its board normal (deg)
 
     def pose_at(self, mount_index: int, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
         """Board pose (board -> camera) of a mount at a turntable angle, from the model."""
@@ -381,6 +382,16 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
                              angle_residuals_deg=np.zeros(0),
                              zero_direction_cam=z / zn if zn > 0 else z,
                              circle_residual_rms_m=0.0)
+    # uncertainty of each mount's board normal: the rotation-vector covariance projected
+    # perpendicular to the normal (a rotation about the normal does not move it)
+    rot_std = []
+    for i in range(len(mounts)):
+        c_rot = cov[q0 + 4 + 6 * i: q0 + 7 + 6 * i, q0 + 4 + 6 * i: q0 + 7 + 6 * i]
+        n = poses[i][0][:, 2]
+        P = np.eye(3) - np.outer(n, n)
+        rot_std.append(float(np.degrees(np.sqrt(max(np.trace(P @ c_rot @ P), 0.0)))))
+    rot_std = tuple(rot_std)
     return JointRigResult(Kp, dp, np.sqrt(np.clip(np.diag(cov)[:4], 0, None)), ax,
                           float(np.sqrt(np.mean(np.sum(res2 ** 2, axis=1)))), res2,
-                          tuple((poses[midx[m]][0], poses[midx[m]][1]) for m in mounts))
+                          tuple((poses[midx[m]][0], poses[midx[m]][1]) for m in mounts),
+                          rot_std)

@@ -30,8 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="DIR",
                    help="calibration set folder (created or updated)")
     add_config_argument(p)
-    p.add_argument("--size", default="320x240", metavar="WxH",
-                   help="simulated sensor size (simulated rig only; default 320x240)")
+    p.add_argument("--size", default=None, metavar="WxH",
+                   help="simulated sensor size (simulated rig only; default: the simulated "
+                        "rig's, so that captures can use the calibration)")
     p.add_argument("--seed", type=int, default=0, help="simulated rig seed (default 0)")
     p.add_argument("--sensor-diattenuation", type=float, default=None, metavar="D",
                    help="mean micro-polarizer diattenuation of the camera (datasheet), the "
@@ -81,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
         else CalibrationSet()
     sim_options = {}
     if args.config is None:
-        sim_options = {"size": args.size, "seed": args.seed, "clock_speed": float("inf")}
+        sim_options = {"seed": args.seed, "clock_speed": float("inf")}
+        if args.size is not None:
+            sim_options["size"] = args.size
     rig = open_rig(args.config, **sim_options)
     extras: dict = {}
     with rig:
