@@ -335,3 +335,29 @@ def test_edited_calibration_set_is_rejected(tmp_path):
         calset.load(tmp_path)
     with pytest.raises(FileNotFoundError, match="calibrate all"):
         calset.load(tmp_path / "nothing")
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(-90, 90), st.floats(0.5, 1.0), st.floats(0.5, 1.5), st.floats(1.5, 1e6))
+def test_rows_recovered_for_any_analyzer_and_generator(angle, dia, gain, er):
+    """Property: an exact sweep gives back any analyzer row (orientation, diattenuation from
+    0.5 to 1, gain) whatever the generator's extinction ratio (with its states known)."""
+    th = np.arange(0, 180, 15.0)
+    s_in = GeneratorModel(3.0, er).incident_stokes(th)
+    t = np.deg2rad(2 * angle)
+    row = 0.5 * gain * np.array([1, dia * np.cos(t), dia * np.sin(t)])
+    frames = (s_in @ row * 800.0)[:, None, None]
+    fit = dofp.fit_analyzer_rows(frames, s_in)
+    assert fit.valid.all()
+    assert ((fit.angle_deg[0, 0] - angle + 90) % 180 - 90) == pytest.approx(0, abs=1e-7)
+    assert fit.modulation[0, 0] == pytest.approx(dia, rel=1e-9)
+    assert fit.scale[0, 0] == pytest.approx(800 * gain, rel=1e-9)
+
+
+def test_find_sphere_tolerates_nonfinite_pixels():
+    img = _sphere_image()
+    img[0:5, 0:5] = np.nan
+    img[100, 3] = np.inf
+    ob = light.find_sphere(img)
+    assert np.all(np.isfinite(ob.edge_px)) and np.all(np.isfinite(ob.highlight_px))
+    np.testing.assert_allclose(ob.highlight_px, (85.2, 55.4), atol=0.1)
