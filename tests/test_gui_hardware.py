@@ -5,6 +5,7 @@ away while connected becomes a readable message; the window stays responsive."""
 
 from __future__ import annotations
 
+import pathlib
 import textwrap
 
 import pytest
@@ -96,6 +97,64 @@ def test_gui_drives_emulated_hardware(qtbot, tmp_path):
             latency = max(intervals) - 0.010
             print(f"\nstage port lost: {err!r}; event-loop latency max {1e3 * latency:.1f} ms")
             assert latency < 0.5
+        finally:
+            w.close()
+            qtbot.waitUntil(lambda: not w.isVisible(), timeout=30000)
+
+
+def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_path):
+    """All four devices real drivers (the camera is the GenTL test producer shipped with the
+    genicam wheel): live frames through harvesters, and a calibration step asks the operator
+    to mount the board, waits for "Target in place", and ends with a readable message."""
+    import genicam
+
+    viky = pathlib.Path(genicam.__file__).parent / "viky.cti"
+    if not viky.is_file():
+        pytest.skip("genicam test producer viky.cti not installed")
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=8) as ell, \
+            GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as grbl:
+        cfg = tmp_path / "rig.toml"
+        cfg.write_text(textwrap.dedent(f"""
+            [camera]
+            driver = "genicam"
+            cti = "{viky}"
+            serial = "0"
+            pixel_format = "Mono8"
+            frame_rate_hz = 200.0
+            roi = [128, 100, 0, 0]
+            layout = "imx250mzr"
+            [stage]
+            driver = "ell14"
+            port = "{ell.port}"
+            [turntable]
+            driver = "grbl"
+            port = "{grbl.port}"
+            [light]
+            driver = "dc2200"
+            backend = "drivers.emulators.dc2200"
+        """))
+        rig = build_rig(load_rig_config(cfg))
+        assert rig.sim is None
+        w = MainWindow(rig, make_settings(tmp_path / "gui.ini"), poll_ms=150)
+        qtbot.addWidget(w)
+        w.show()
+        w.start()
+        try:
+            qtbot.waitUntil(lambda: w.live.frames_shown >= 3, timeout=30000)
+            assert w.live.last.data.raw.shape == (100, 128)
+            cal = w.calibration
+            cal.run_step("intrinsics")
+            qtbot.waitUntil(lambda: cal.mounted_button.isEnabled(), timeout=20000)
+            assert "Mount the charuco" in cal.prompt.text()
+            assert w.live_worker.paused and not w.devices.isEnabled()
+            cal.mounted_button.click()
+            qtbot.waitUntil(lambda: not cal.is_running, timeout=40000)
+            report = cal.report_view.toPlainText()
+            assert "FAILED" in report  # no board in the test pattern, GRBL locked in alarm
+            failure = next(t for lvl, t in w.messages.messages
+                           if lvl == "error" and "calibration step intrinsics failed" in t)
+            assert "Traceback" not in failure
+            qtbot.waitUntil(lambda: not w.live_worker.paused, timeout=10000)
         finally:
             w.close()
             qtbot.waitUntil(lambda: not w.isVisible(), timeout=30000)
