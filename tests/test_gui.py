@@ -53,6 +53,10 @@ def window(qtbot, tmp_path):
         close_window(qtbot, w)
 
 
+def wait_connected(qtbot, w: MainWindow, timeout: int = 20000) -> None:
+    qtbot.waitUntil(lambda: all(d.is_open for d in w.rig.devices.values()), timeout=timeout)
+
+
 def wait_frames(qtbot, w: MainWindow, n: int, timeout: int = 20000) -> None:
     start = w.live.frames_shown
     qtbot.waitUntil(lambda: w.live.frames_shown >= start + n, timeout=timeout)
@@ -183,6 +187,20 @@ def test_two_pose_reference_capture_completes(qtbot, window, tmp_path):
     wait_frames(qtbot, window, 2)  # live again
 
 
+def test_capture_needs_connected_devices(qtbot, tmp_path):
+    w = make_window(qtbot, tmp_path / "gui.ini", start=False)  # nothing connected
+    w.devices.start()
+    try:
+        w.capture.poses.setText("0")
+        w.capture.out.setText(str(tmp_path / "s"))
+        w.capture.start()
+        qtbot.waitUntil(lambda: w.capture.last_status == "failed", timeout=20000)
+        assert "not connected: camera, stage, turntable, light" in w.messages.messages[-1][1]
+        assert not (tmp_path / "s").exists()  # refused before any file is written
+    finally:
+        close_window(qtbot, w)
+
+
 def test_bad_capture_options_are_a_message(qtbot, window, tmp_path):
     window.capture.poses.setText("0:10:0")
     window.capture.out.setText(str(tmp_path / "s"))
@@ -241,6 +259,7 @@ def test_closing_during_capture_leaves_a_resumable_session(qtbot, tmp_path):
 
     w = make_window(qtbot, tmp_path / "gui.ini")
     out = tmp_path / "session"
+    wait_connected(qtbot, w)
     w.capture.poses.setText("0:360:45")
     w.capture.out.setText(str(out))
     w.capture.start()
@@ -266,6 +285,7 @@ def test_closing_during_capture_leaves_a_resumable_session(qtbot, tmp_path):
 
 def test_stop_shortcut_stops_a_capture(qtbot, window, tmp_path):
     out = tmp_path / "session"
+    wait_connected(qtbot, window)
     window.capture.poses.setText("0:360:30")
     window.capture.out.setText(str(out))
     window.capture.start()
@@ -379,3 +399,13 @@ def test_polrig_gui_command(qtbot, tmp_path, capsys):
     assert main(["gui", "--sim-size", "64x64", "--sim-clock-speed", "1000",
                  "--settings", str(ini)]) == 0
     assert seen["frames"] >= 3 and ini.is_file()
+
+
+def test_qt_binding_check():
+    from polrig.errors import ConfigError
+    from polrig.gui.app import check_qt_binding
+
+    check_qt_binding("6.11.3", (3, 11))
+    check_qt_binding("6.12.0", (3, 12))
+    with pytest.raises(ConfigError, match="PySide6 6.12.0"):
+        check_qt_binding("6.12.0", (3, 11))

@@ -12,6 +12,18 @@ from typing import Any
 DEFAULT_SIM_SIZE = "512x512"
 
 
+def check_qt_binding(pyside_version: str, python: tuple[int, int]) -> None:
+    """Refuse PySide6 6.12.0 on CPython < 3.12: its abi3 build returns ``None`` without
+    taking a reference from every void Qt call, so ``None``'s reference count runs down and the
+    interpreter aborts ("deallocating None") after some thousand calls (measured here;
+    6.11.3 is fine). :class:`polrig.errors.ConfigError` names the fix."""
+    if pyside_version == "6.12.0" and tuple(python) < (3, 12):
+        from polrig.errors import ConfigError
+
+        raise ConfigError("PySide6 6.12.0 crashes on Python < 3.12 (reference counting of None);"
+                          " install another version: pip install 'PySide6-Essentials!=6.12.0'")
+
+
 def sim_options(size: str = DEFAULT_SIM_SIZE, clock_speed: float = 1.0) -> dict[str, Any]:
     return {"size": size, "clock_speed": clock_speed}
 
@@ -33,8 +45,10 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
             sim_clock_speed: float = 1.0, weights: str | None = None,
             settings_file: str | None = None, argv: list[str] | None = None) -> int:
     """Open the rig (simulated unless ``config``) and run the GUI until its window closes."""
+    import PySide6
     from PySide6.QtWidgets import QApplication
 
+    check_qt_binding(PySide6.__version__, sys.version_info[:2])
     from polrig.gui.main_window import MainWindow
     from polrig.gui.settings import make_settings
     from polrig.rig import build_rig, load_rig_config

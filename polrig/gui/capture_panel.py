@@ -126,6 +126,10 @@ class CaptureWorker(QThread):
             calibration = processing.load_calibration(args.calibration)
         processing.check_plan(plan, calibration)
         with self.locks.hold(timeout_s=10.0, who="capture"):
+            closed = [k for k, d in self.rig.devices.items() if not d.is_open]
+            if closed:
+                raise PolrigError(f"not connected: {', '.join(closed)}; connect the devices "
+                                  f"(Devices tab) before capturing")
             if args.resume:
                 capture.check_resume_space(session, self.rig, len(session.next_pending()))
             else:
