@@ -176,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--sensors", default="imx250myr,imx250mzr")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--strip-workers", type=int, default=0,
+                    help="threads of the Stokes step (0: the GUI's automatic choice)")
+    ap.add_argument("--rows", default="", help="only these displays (comma separated)")
     args = ap.parse_args(argv)
     from PySide6.QtWidgets import QApplication
 
@@ -190,13 +193,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{sensor}: {len(frames)} frames {FULL_SIZE[0]}x{FULL_SIZE[1]} rendered in "
               f"{render_s:.1f} s", flush=True)
         rig = types.SimpleNamespace(camera=ReplayCamera(frames), stage=None)
-        worker = LiveWorker(rig, RigLocks(), LiveSettings(max_fps=0.0))
+        worker = LiveWorker(rig, RigLocks(), LiveSettings(max_fps=0.0,
+                                                          strip_workers=args.strip_workers))
         panel = LivePanel(worker, n_colours=3 if sensor == "imx250myr" else 1)
         panel.resize(1200, 800)
         panel.show()
         worker.start()
         configs = [(d, "superpixel", 1024) for d in ("s0", "dolp", "aolp", "aolp_dolp")]
         configs += [("aolp_dolp", "superpixel", 0), ("aolp_dolp", "bilinear", 1024)]
+        if args.rows:
+            configs = [c for c in configs if c[0] in args.rows.split(",") and c[2]
+                       and c[1] == "superpixel"]
         for display, method, max_px in configs:
             worker.settings.max_display_px = max_px
             r = measure(app, panel, worker, display, method, args.seconds,

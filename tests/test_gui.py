@@ -286,7 +286,7 @@ def test_closing_during_capture_leaves_a_resumable_session(qtbot, tmp_path):
 def test_stop_shortcut_stops_a_capture(qtbot, window, tmp_path):
     out = tmp_path / "session"
     wait_connected(qtbot, window)
-    window.capture.poses.setText("0:360:30")
+    window.capture.poses.setText("0:360:60")
     window.capture.out.setText(str(out))
     window.capture.start()
     qtbot.waitUntil(lambda: any(e.kind == "frame" for e in window.capture.events),
@@ -302,6 +302,20 @@ def test_stop_shortcut_stops_a_capture(qtbot, window, tmp_path):
     keys = {s.toString() for s in window.stop_action.shortcuts()}
     assert keys == {"Esc", "Ctrl+."}
     assert window.capture_action.shortcut().toString() == "Ctrl+R"
+    # resume from the panel, pausing and continuing on the way
+    done_before = sum(e.kind == "capture-done" for e in window.capture.events)
+    window.capture.resume_button.click()
+    qtbot.waitUntil(lambda: window.capture.is_running, timeout=10000)
+    window.capture.pause_button.setChecked(True)
+    assert window.capture.worker.control.pause.is_set()
+    assert window.capture.eta.text() == "paused"
+    window.capture.pause_button.setChecked(False)
+    qtbot.waitUntil(lambda: window.capture.last_status == "complete", timeout=60000)
+    manifest = json.loads((out / "session.json").read_text())
+    assert manifest["status"] == "complete" and len(manifest["captures"]) == 6
+    assert all(c["status"] == "complete" for c in manifest["captures"])
+    assert any("resumed" == h["event"] for h in manifest["history"])
+    assert done_before < 6
 
 
 def test_settings_are_remembered(qtbot, tmp_path):

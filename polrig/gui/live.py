@@ -65,6 +65,9 @@ class LiveSettings:
     #: Longest side of the displayed image in pixels (0: full resolution); see
     #: :func:`polrig.gui.pipeline.display_step`. Processing is always at full resolution.
     max_display_px: int = 1024
+    #: Threads of the strip-parallel Stokes step (0: automatic, see
+    #: :func:`polrig.gui.pipeline.stokes_from_raw_strips`; 1: one core call).
+    strip_workers: int = 0
 
 
 @dataclasses.dataclass
@@ -243,7 +246,8 @@ class LiveWorker(QThread):
                 data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
                                               source="live")
         if data is None:
-            data = pipeline.process_frame(frame, s.method, source="live")
+            data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
+                                          source="live")
         return frame.meta, data, note, time.perf_counter() - t0
 
     def _render(self, meta, data, note: str, process_s: float) -> LiveResult:
