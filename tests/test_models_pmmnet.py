@@ -3,6 +3,10 @@ zero-initialised residuals (an untrained PMMNet returns the gain-fitted initiali
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # no spinning threads on a shared CPU (set before torch)
+
 import numpy as np
 import pytest
 

@@ -3,6 +3,10 @@ resume, ONNX vs torch agreement, and the runtime on the exported graphs."""
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # no spinning threads on a shared CPU (set before torch)
+
 import csv
 import json
 
