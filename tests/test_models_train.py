@@ -1,5 +1,6 @@
-"""The whole training path in seconds: tiny dataset -> PIPNet -> PMMNet -> direct -> ONNX,
-resume, ONNX vs torch agreement, and the runtime on the exported graphs."""
+"""The whole training path in seconds: a tiny simulated dataset (sim.dataset) -> PIPNet ->
+PMMNet -> direct -> ONNX, resume, stage retraining, ONNX vs torch agreement, and the runtime on
+the exported graphs."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ pytest.importorskip("onnxruntime")
 from models.data import load_dataset  # noqa: E402
 from models.train import TrainConfig, lr_at, train  # noqa: E402
 
-from models_fixtures import make_tiny_dataset  # noqa: E402
+from sim.dataset import generate_dataset  # noqa: E402
 
 TINY = TrainConfig(pipnet_epochs=2, pmmnet_epochs=2, direct_epochs=1, batch_size=2, width=8, val_fraction=0.25)
 
@@ -27,7 +28,8 @@ TINY = TrainConfig(pipnet_epochs=2, pmmnet_epochs=2, direct_epochs=1, batch_size
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("train")
-    data = make_tiny_dataset(root / "data", count=4, size=32)
+    data = root / "data"  # 4 random simulated scenes of 32x32, as `polrig sim dataset` writes them
+    generate_dataset(data, count=4, width=32, seed=0, shard_size=2, progress=False)
     summary = train(data, root / "run", TINY, echo=lambda s: None)
     return root, data, summary
 
