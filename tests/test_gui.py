@@ -5,7 +5,6 @@ during a capture (then resuming with the core API), settings, shortcuts, the vie
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
