@@ -172,6 +172,8 @@ class SingleShotModel:
         images ``(C, 4, H, W)`` in DN (black level removed) under the normalised incident
         state ``s_in`` ``(3,)`` (incident frame, ``docs/conventions.md``).
 
+        Non-finite analyzer values (saturated or bad samples) are replaced by the largest
+        finite value of their colour; pixels with no finite value are background.
         ``mask`` ``(H, W)``: object pixels (default :func:`default_mask`); ``scale``: DN per
         normalised unit (default :func:`default_scale`); ``stage_zero_axis``: the polarizer
         stage zero axis in the camera frame (default: the training rig's, from ``model.json``);
@@ -190,12 +192,20 @@ class SingleShotModel:
         if s.shape != (3,) or not np.all(np.isfinite(s)):
             raise ValueError(f"s_in must be 3 finite numbers (S0, S1, S2), got {s_in!r}")
         h, w = a.shape[-2:]
-        finite = np.all(np.isfinite(a), axis=(0, 1))
+        bad = ~np.isfinite(a)
+        some_finite = ~np.all(bad, axis=(0, 1))
+        if bad.any():
+            # Non-finite samples (saturated or defective: polrig.processing passes NaN for them)
+            # take the largest finite value of their colour: a saturated sample is at least that
+            # bright, and the training data hold clipped highlights. Pixels with no finite
+            # sample at all leave the mask.
+            with np.errstate(invalid="ignore"):
+                top = np.max(np.where(bad, -np.inf, a), axis=(1, 2, 3), keepdims=True)
+            a = np.where(bad, np.where(np.isfinite(top), top, 0.0), a).astype(np.float32)
         m = default_mask(a) if mask is None else np.asarray(mask).astype(bool)
         if m.shape != (h, w):
             raise FormatError(f"mask must be ({h}, {w}), got {m.shape}")
-        m = m & finite
-        a = np.where(finite, a, 0.0).astype(np.float32)
+        m = m & some_finite
         sc = default_scale(a, m) if scale is None else float(scale)
         if not (np.isfinite(sc) and sc > 0):
             raise ValueError(f"scale must be a positive number, got {scale!r}")

@@ -68,6 +68,19 @@ def test_reconstruct_simulated_capture_is_finite_realizable_and_in_dn(model, cap
     assert np.linalg.norm(s_pred - s_true) < 0.3 * np.linalg.norm(s_true)
 
 
+def test_saturated_samples_given_as_nan_keep_their_pixels(model, capture):
+    scale = float(capture["scale"])
+    mask = capture["mask"] > 0
+    analyzer = capture["analyzer"] * scale
+    limit = np.percentile(analyzer[:, :, mask], 97)
+    saturated = np.where(analyzer > limit, np.nan, analyzer)  # as polrig.processing passes them
+    hit = np.any(np.isnan(saturated), axis=(0, 1)) & mask
+    assert hit.sum() > 5
+    mueller, aux = model.reconstruct(saturated, capture["s_in"], mask=mask, scale=scale)
+    assert np.all(np.isfinite(mueller)) and aux["mask"][hit].all()
+    assert np.all(np.abs(mueller[:, 0, 0][:, hit]) > 0)
+
+
 def test_bad_input_is_a_clear_error(model):
     from polrig.errors import FormatError
 
