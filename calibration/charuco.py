@@ -200,8 +200,8 @@ def calibrate_intrinsics(detections: list[CharucoDetection], image_size: tuple[i
                          distortion: str = "k1k2") -> IntrinsicsResult:
     """Zhang calibration from board detections in images of ``image_size = (width, height)``.
 
-    ``distortion``: ``"none"`` (pinhole only), ``"k1k2"`` (radial k1, k2; default) or
-    ``"full"`` (k1, k2, p1, p2, k3). Raises ``ValueError`` naming what to add when there are
+    ``distortion``: ``"none"`` (pinhole only), ``"k1"`` (radial k1), ``"k1k2"`` (radial k1,
+    k2; default) or ``"full"`` (k1, k2, p1, p2, k3). Raises ``ValueError`` naming what to add when there are
     fewer than 3 usable views (OpenCV's minimum for a stable solution with a planar target).
     """
     views = [d for d in detections if d.count >= 6]
@@ -212,10 +212,11 @@ def calibrate_intrinsics(detections: list[CharucoDetection], image_size: tuple[i
     img = [d.corners_px.astype(np.float32) for d in views]
     flags = {"none": cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
              | cv2.CALIB_ZERO_TANGENT_DIST,
+             "k1": cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
              "k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
              "full": 0}.get(distortion)
     if flags is None:
-        raise ValueError(f"distortion must be 'none', 'k1k2' or 'full', got {distortion!r}")
+        raise ValueError(f"distortion must be 'none', 'k1', 'k1k2' or 'full', got {distortion!r}")
     w, h = image_size
     k0 = np.array([[max(w, h), 0, (w - 1) / 2], [0, max(w, h), (h - 1) / 2], [0, 0, 1]], float)
     rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = cv2.calibrateCameraExtended(

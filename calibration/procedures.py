@@ -141,7 +141,7 @@ def capture_board_views(rig, mount: Mount, spec: charuco.BoardSpec, mounts, angl
 
 def run_intrinsics(rig, mount: Mount, spec: charuco.BoardSpec, *,
                    mounts=INTRINSIC_MOUNTS, angles_deg=INTRINSIC_ANGLES_DEG,
-                   distortion: str = "k1k2", log: Log = _noop) -> IntrinsicsRun:
+                   distortion: str = "k1", log: Log = _noop) -> IntrinsicsRun:
     """Board at several fixture tilts/rolls and turntable angles -> pinhole intrinsics
     (Zhang's method; :func:`run_turntable` refines them together with the turntable axis)."""
     views, skipped = capture_board_views(rig, mount, spec, mounts, angles_deg, log)
@@ -157,7 +157,7 @@ def run_intrinsics(rig, mount: Mount, spec: charuco.BoardSpec, *,
 def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: IntrinsicsRun | None,
                   K: np.ndarray | None = None, dist: np.ndarray | None = None, *,
                   mounts=INTRINSIC_MOUNTS, angles_deg=INTRINSIC_ANGLES_DEG,
-                  distortion: bool = True, log: Log = _noop) -> turntable.JointRigResult:
+                  distortion: bool | int = True, log: Log = _noop) -> turntable.JointRigResult:
     """Turntable axis (and refined intrinsics) from board views at several turntable angles
     and fixture mounts: a linear axis estimate from one mount's PnP poses, then the joint
     bundle adjustment :func:`calibration.turntable.refine_rig`. Reuses the views of
@@ -205,7 +205,7 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
 def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: float, *,
               angles_deg=LIGHT_ANGLES_DEG, mounts=LIGHT_MOUNTS,
               intrinsics_std_px: np.ndarray | None = None,
-              log: Log = _noop) -> light.LightFit:
+              dist_std: np.ndarray | None = None, log: Log = _noop) -> light.LightFit:
     """Chrome sphere on the turntable at several angles -> light position (camera frame).
 
     The sphere is mounted at each of ``mounts`` (heights) in turn. Per angle: a long exposure (background at mid scale) for the silhouette and a short one
@@ -245,15 +245,27 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             continue
         obs.append(ob)
     fit = light.fit_light_position(obs, radius_m, K, dist)
-    if intrinsics_std_px is not None:
-        # add the intrinsics' uncertainty (fx, fy, cx, cy), propagated by finite differences
+    if intrinsics_std_px is not None or dist_std is not None:
+        # add the intrinsics' uncertainty (fx, fy, cx, cy, distortion), propagated by finite
+        # differences (parameters taken as independent)
         cov = fit.covariance_m2.copy()
-        for (i, j), sd in zip(((0, 0), (1, 1), (0, 2), (1, 2)), np.asarray(intrinsics_std_px)[:4]):
-            Kp, Km = K.copy(), K.copy()
-            Kp[i, j] += sd
-            Km[i, j] -= sd
-            d = 0.5 * (light.fit_light_position(obs, radius_m, Kp, dist).position_cam_m
-                       - light.fit_light_position(obs, radius_m, Km, dist).position_cam_m)
+        dist0 = np.zeros(5) if dist is None else np.asarray(dist, float).reshape(-1)
+        perturb = []
+        if intrinsics_std_px is not None:
+            for (i, j), sd in zip(((0, 0), (1, 1), (0, 2), (1, 2)),
+                                  np.asarray(intrinsics_std_px, float)[:4]):
+                dk = np.zeros((3, 3))
+                dk[i, j] = sd
+                perturb.append((dk, np.zeros_like(dist0)))
+        if dist_std is not None:
+            for i, sd in enumerate(np.asarray(dist_std, float)[:dist0.size]):
+                if sd > 0:
+                    dd = np.zeros_like(dist0)
+                    dd[i] = sd
+                    perturb.append((np.zeros((3, 3)), dd))
+        for dk, dd in perturb:
+            d = 0.5 * (light.fit_light_position(obs, radius_m, K + dk, dist0 + dd).position_cam_m
+                       - light.fit_light_position(obs, radius_m, K - dk, dist0 - dd).position_cam_m)
             cov += np.outer(d, d)
         fit = dataclasses.replace(fit, covariance_m2=cov)
     dist_m = np.linalg.norm(fit.position_cam_m)

@@ -29,6 +29,7 @@ from polrig import frames as fr
 from polrig.analyzer import AnalyzerModel
 
 STEPS = ("intrinsics", "turntable", "light", "stokes", "dofp")
+_N_RADIAL = {"none": 0, "k1": 1, "k1k2": 2, "full": 2}
 
 
 @dataclasses.dataclass
@@ -38,7 +39,9 @@ class Options:
     board: BoardSpec = dataclasses.field(default_factory=lambda: BoardSpec(8, 6, 0.025, 0.018))
     sphere_radius_m: float = 0.03
     sensor_diattenuation: float = pr.DEFAULT_SENSOR_DIATTENUATION
-    distortion: str = "k1k2"
+    #: radial distortion model: "none", "k1" (default: the rig's lens covers about 25 deg, where
+    #: k2 is not determined by the board views and only adds noise), "k1k2", "full"
+    distortion: str = "k1"
     stage_angles_deg: tuple[float, ...] = pr.STAGE_ANGLES_DEG
     dofp_frames_per_angle: int = 6
 
@@ -78,14 +81,15 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
             if ir is None:
                 intr = cs.intrinsics
                 jr = pr.run_turntable(rig, mount, o.board, None, intr["K"], intr["dist"],
-                                      distortion=o.distortion != "none", log=log)
+                                      distortion=_N_RADIAL[o.distortion], log=log)
             else:
-                jr = pr.run_turntable(rig, mount, o.board, ir, distortion=o.distortion != "none",
+                jr = pr.run_turntable(rig, mount, o.board, ir, distortion=_N_RADIAL[o.distortion],
                                       log=log)
             w, h = rig.camera.roi[:2]
             cs.params["intrinsics"] = {
                 **cs.params.get("intrinsics", {}), "K": jr.K.tolist(), "dist": jr.dist.tolist(),
                 "image_size": [w, h], "std_fx_fy_cx_cy_px": jr.std_fx_fy_cx_cy.tolist(),
+                "std_dist": jr.std_dist.tolist(),
                 "rms_px": jr.rms_px, "method": "joint bundle adjustment with the turntable",
                 "board": o.board.to_json()}
             cs.params["turntable"] = jr.axis.to_json()
@@ -98,7 +102,8 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
         elif step == "light":
             intr = cs.intrinsics
             lf = pr.run_light(rig, mount, intr["K"], intr["dist"], o.sphere_radius_m,
-                              intrinsics_std_px=intr.get("std_fx_fy_cx_cy_px"), log=log)
+                              intrinsics_std_px=intr.get("std_fx_fy_cx_cy_px"),
+                              dist_std=intr.get("std_dist"), log=log)
             cs.params["light"] = {**lf.to_json(), "sphere_radius_m": o.sphere_radius_m}
             extras["light"] = lf
         elif step == "stokes":

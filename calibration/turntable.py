@@ -255,6 +255,7 @@ class JointRigResult:
     residuals_px: np.ndarray
     mount_poses: tuple = ()  # per mount index: (R, t) board -> camera at turntable angle 0
     mount_rotation_std_deg: tuple = ()  # per mount: 1-sigma direction of its board normal (deg)
+    std_dist: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(5))
 
     def pose_at(self, mount_index: int, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
         """Board pose (board -> camera) of a mount at a turntable angle, from the model."""
@@ -265,13 +266,14 @@ class JointRigResult:
 
 
 def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0: np.ndarray,
-               *, fit_distortion: bool = True, iterations: int = 40) -> JointRigResult:
+               *, fit_distortion: bool | int = True, iterations: int = 40) -> JointRigResult:
     """Bundle adjustment of the intrinsics and the turntable axis over every board view.
 
     ``views``: a list of ``(mount_index, turntable_angle_deg, CharucoDetection)``. Each board
     mount ``m`` has one pose ``(R_m, t_m)`` at turntable angle 0; a view at angle ``a`` sees
     ``R_w(a) (R_m X + t_m - c) + c`` (rotation by the commanded angle about the axis ``w``
-    through ``c``). Parameters: ``fx, fy, cx, cy`` (+ ``k1, k2``), axis direction (2), axis
+    through ``c``). Parameters: ``fx, fy, cx, cy`` (+ ``k1`` and ``k2``: ``fit_distortion`` is
+    the number of radial terms fitted, ``True`` = 2; the others stay as given), axis direction (2), axis
     point (2), 6 per mount; Levenberg-Marquardt with a numerical Jacobian; 1-sigma
     uncertainties from ``(J^T J)^-1`` scaled by the residual variance. Constraining all views
     of a mount to one rigid rotation about one axis determines the principal point and the
@@ -296,12 +298,14 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
         R, t, _ = board_pose(d, K, dist)
         Rb = _axis_rotation(w0, -a)
         base.append((Rb @ R, Rb @ (t - c0) + c0))
-    n_in = 6 if fit_distortion else 4
+    n_dist = 2 if fit_distortion is True else int(fit_distortion)
+    if not 0 <= n_dist <= 2:
+        raise ValueError(f"fit_distortion must be 0, 1 or 2 radial terms, got {fit_distortion!r}")
+    n_in = 4 + n_dist
     npar = n_in + 4 + 6 * len(mounts)
     p_init = np.zeros(npar)
     p_init[:4] = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-    if fit_distortion:
-        p_init[4:6] = dist[:2]
+    p_init[4:n_in] = dist[:n_dist]
     obj = [d.object_m for _, _, d in views]
     img = np.concatenate([d.corners_px for _, _, d in views])
     vm = [midx[m] for m, _, _ in views]
@@ -310,8 +314,7 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
     def unpack(p):
         Kp = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
         dp = dist.copy()
-        if fit_distortion:
-            dp[:2] = p[4:6]
+        dp[:n_dist] = p[4:n_in]
         q = p[n_in:]
         w = w0 + q[0] * u1 + q[1] * u2
         w = w / np.linalg.norm(w)
@@ -335,8 +338,7 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
 
     step = np.full(npar, 1e-6)
     step[:4] = 1e-3
-    if fit_distortion:
-        step[4:6] = 1e-5
+    step[4:n_in] = 1e-5
 
     def jac(p):
         J = np.empty((img.size, npar))
@@ -391,7 +393,9 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
         P = np.eye(3) - np.outer(n, n)
         rot_std.append(float(np.degrees(np.sqrt(max(np.trace(P @ c_rot @ P), 0.0)))))
     rot_std = tuple(rot_std)
+    std_dist = np.zeros(5)
+    std_dist[:n_dist] = np.sqrt(np.clip(np.diag(cov)[4:n_in], 0, None))
     return JointRigResult(Kp, dp, np.sqrt(np.clip(np.diag(cov)[:4], 0, None)), ax,
                           float(np.sqrt(np.mean(np.sum(res2 ** 2, axis=1)))), res2,
                           tuple((poses[midx[m]][0], poses[midx[m]][1]) for m in mounts),
-                          rot_std)
+                          rot_std, std_dist)

@@ -63,9 +63,11 @@ def test_light_position_within_1_percent(calibrated):
     _, _, cs, e, lines, _ = calibrated
     le = e["light"]
     assert le["rel_error_of_illumination_distance"] < 0.01
-    # the reported uncertainty covers the error (within 3 sigma per axis)
+    # the reported uncertainty (residual scatter + intrinsics) covers the error within 3 sigma
+    # per axis (it omits systematics of the silhouette/highlight model, about 2 mm in depth at
+    # this image size, see docs/calibration.md)
     std = np.asarray(cs.params["light"]["std_m"])
-    assert np.all(np.abs(le["error_m"]) < 3 * std + 1e-4)
+    assert np.all(np.abs(le["error_m"]) < 3 * std)
     assert any(l.startswith("light:") and "±" in l for l in lines)
 
 
