@@ -261,9 +261,13 @@ Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Py
 
 {table}
 
-The bilinear row is for reference: full-resolution output of the colour sensor is 12x the
-pixels of the superpixel output and does not reach the target on this machine; the live view
-uses superpixel by default (selectable in the Demosaic box).
+The bilinear rows are for reference: full-resolution output of the colour sensor is 16x the
+pixels of the superpixel output (Stokes per colour at every sensor pixel) and does not reach the
+target on this machine; the live view uses superpixel by default (selectable in the Demosaic
+box). The "shown 1:1" rows show why the display is decimated: rendering and painting every
+pixel of a 1224x1024 mono image makes the render stage the bottleneck (processed frames are
+then dropped at the hand-over, the "dropped" column), while a screen shows at most about
+1024 pixels across anyway.
 """
 
 
