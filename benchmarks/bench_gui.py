@@ -253,8 +253,8 @@ Target: >= 15 fps for Stokes/DoLP/AoLP (superpixel demosaic, the live view's def
 Processing is at full resolution; the displayed image is decimated to at most 1024 pixels on
 its long side (the GUI default, ``LiveSettings.max_display_px``; the cursor readout still reads
 the full-resolution data); the "shown 1:1" row displays every pixel.
-The machine is shared: the load average column shows how busy it was (2 cores; a load above 2
-means other processes were competing for them).
+The machine is shared: the load average column shows how busy it was (2 cores; the benchmark
+itself keeps 2-3 threads busy, anything above that is other work competing for the cores).
 
 Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python
 {platform.python_version()}, measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.
