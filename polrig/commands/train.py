@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     # torch starts its thread pool.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     try:
-        from models.train import TrainConfig, train
+        from models.train import train
     except ImportError as exc:  # torch missing
         raise ValueError(f"training needs the 'train' extra (pip install polrig[train]): {exc}") from exc
 
