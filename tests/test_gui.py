@@ -379,12 +379,15 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
     assert messages[-1][0] == "error" and "missing.exr" in messages[-1][1]
 
 
-def test_calibration_step_out_of_order_is_a_readable_failure(qtbot, window):
+def test_calibration_step_out_of_order_is_a_readable_failure(qtbot, window, tmp_path):
     cal = window.calibration
+    cal.run_selected()
+    assert "choose a calibration set folder" in window.messages.messages[-1][1]
+    cal.folder.setText(str(tmp_path / "cal"))
     cal.steps.setCurrentRow(2)  # light position needs the intrinsics first
     cal.run_selected()
     qtbot.waitUntil(lambda: not cal.is_running, timeout=20000)
-    assert "run the intrinsics step first" in cal.report_view.toPlainText()
+    assert "run 'polrig calibrate intrinsics'" in cal.report_view.toPlainText()
     assert any("calibration step light failed" in t for _, t in window.messages.messages)
     wait_frames(qtbot, window, 2)  # live view resumed
 

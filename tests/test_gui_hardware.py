@@ -143,6 +143,7 @@ def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_p
             qtbot.waitUntil(lambda: w.live.frames_shown >= 3, timeout=30000)
             assert w.live.last.data.raw.shape == (100, 128)
             cal = w.calibration
+            cal.folder.setText(str(tmp_path / "cal"))
             cal.run_step("intrinsics")
             qtbot.waitUntil(lambda: cal.mounted_button.isEnabled(), timeout=20000)
             assert "Mount the charuco" in cal.prompt.text()

@@ -117,8 +117,7 @@ class MainWindow(QMainWindow):
         b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
         b.bind("capture/frames", st.int_binding(cp.frames))
         b.bind("capture/dark_frames", st.int_binding(cp.dark_frames))
-        b.bind("calibration/report_dir", st.text_binding(self.calibration.report_dir))
-        b.bind("calibration/sphere_radius_m", st.float_binding(self.calibration.sphere_radius))
+        b.bind("calibration/folder", st.text_binding(self.calibration.folder))
         b.bind("window/tab", (self.tabs.currentIndex, lambda v: self.tabs.setCurrentIndex(int(v))))
 
     # -- life cycle

@@ -51,10 +51,6 @@ def int_binding(spin):
     return spin.value, lambda v: spin.setValue(int(v))
 
 
-def float_binding(spin):
-    return spin.value, lambda v: spin.setValue(float(v))
-
-
 def bool_binding(box):
     return box.isChecked, lambda v: box.setChecked(v in (True, "true", "1", 1))
 
