@@ -1,7 +1,8 @@
 """Calibration targets of the simulated rig, as :class:`sim.scene.SceneObject` s.
 
-* ``charuco``: a ChArUco board (:class:`calibration.charuco.BoardSpec` geometry, printed with
-  OpenCV's own board image) on a fixture at the turntable centre: a two-sided
+* ``charuco``: a ChArUco board (8 x 6 squares of 25 mm, 18 mm ``4X4_50`` markers: the default
+  board of ``calibration.runner.Options``, printed with OpenCV's own board image) on a fixture
+  at the turntable centre: a two-sided
   :class:`sim.shapes.Rectangle` whose per-region materials (matte black / matte white
   dielectric, Baek diffuse only) follow the board image;
 * ``mirror_plate``: a polished metal plate in the same fixture (pBRDF specular only with a very
@@ -69,13 +70,29 @@ def fixture_rotation(tilt_deg: float, yaw_deg: float, roll_deg: float = 0.0) -> 
             @ r0 @ rotation_about_axis([0, 0, 1], roll_deg))
 
 
-def board_region(spec, half_x_m: float, half_y_m: float, pixels_per_square: int = 64):
-    """Region function (0 black, 1 white) of a ChArUco board on a rectangle: local ``x`` to
+def board_image(squares_x: int, squares_y: int, square_m: float, marker_m: float,
+                dictionary: str, pixels_per_square: int = 64) -> np.ndarray:
+    """The printed ChArUco board (uint8, white 255, no margin) as OpenCV draws it
+    (``cv2.aruco.CharucoBoard.generateImage``): exactly ``squares * pixels_per_square`` pixels
+    on each side, so that image pixel ``(row, col)`` covers board ``x`` in
+    ``[col, col + 1) * square_m / pixels_per_square`` (and ``y`` likewise, down the print).
+    The calibration side (:class:`calibration.charuco.BoardSpec`) describes the same board."""
+    import cv2
+
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, f"DICT_{dictionary.upper()}"))
+    board = cv2.aruco.CharucoBoard((int(squares_x), int(squares_y)), float(square_m),
+                                   float(marker_m), d)
+    return board.generateImage((int(squares_x) * pixels_per_square,
+                                int(squares_y) * pixels_per_square), marginSize=0, borderBits=1)
+
+
+def board_region(img: np.ndarray, square_m: float, half_x_m: float, half_y_m: float,
+                 pixels_per_square: int = 64):
+    """Region function (0 black, 1 white) of a board image on a rectangle: local ``x`` to
     the right, ``y`` up the printed image, so board coordinates (OpenCV's, ``y`` down the
     print) are ``(x + half_x, half_y - y)``."""
-    img = spec.image(pixels_per_square)
     h, w = img.shape
-    scale = pixels_per_square / spec.square_m
+    scale = pixels_per_square / square_m
 
     def region(p: np.ndarray) -> np.ndarray:
         col = np.clip(np.floor((p[:, 0] + half_x_m) * scale).astype(np.int64), 0, w - 1)
@@ -83,15 +100,6 @@ def board_region(spec, half_x_m: float, half_y_m: float, pixels_per_square: int 
         return (img[row, col] > 127).astype(np.int64)
 
     return region
-
-
-def board_spec(**kw):
-    """The :class:`calibration.charuco.BoardSpec` of the simulated board."""
-    from calibration.charuco import BoardSpec
-
-    o = {**DEFAULTS, **kw}
-    return BoardSpec(int(o["squares_x"]), int(o["squares_y"]), float(o["square_m"]),
-                     float(o["marker_m"]), str(o["dictionary"]))
 
 
 def target_objects(name: str, **kw) -> list[SceneObject]:
@@ -104,10 +112,11 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
     centre = np.asarray(o["fixture_centre_m"], float)
     rot = fixture_rotation(float(o["tilt_deg"]), float(o["yaw_deg"]), float(o["roll_deg"]))
     if name == "charuco":
-        spec = board_spec(**kw)
-        hx, hy = 0.5 * spec.size_m[0], 0.5 * spec.size_m[1]
+        sq = float(o["square_m"])
+        img = board_image(o["squares_x"], o["squares_y"], sq, o["marker_m"], o["dictionary"])
+        hx, hy = 0.5 * int(o["squares_x"]) * sq, 0.5 * int(o["squares_y"]) * sq
         return [SceneObject("charuco", Rectangle(hx, hy), (BOARD_BLACK, BOARD_WHITE), centre,
-                            rotation=rot, region=board_region(spec, hx, hy))]
+                            rotation=rot, region=board_region(img, sq, hx, hy))]
     if name in ("mirror_plate", "white_plate"):
         half = float(o["plate_half_m"])
         mat = POLISHED_METAL if name == "mirror_plate" else WHITE

@@ -361,3 +361,16 @@ def test_find_sphere_tolerates_nonfinite_pixels():
     ob = light.find_sphere(img)
     assert np.all(np.isfinite(ob.edge_px)) and np.all(np.isfinite(ob.highlight_px))
     np.testing.assert_allclose(ob.highlight_px, (85.2, 55.4), atol=0.1)
+
+
+def test_simulated_board_is_the_calibration_default_board():
+    from calibration.runner import Options
+    from sim import targets
+
+    spec = Options().board
+    o = targets.DEFAULTS
+    assert (spec.squares_x, spec.squares_y, spec.square_m, spec.marker_m, spec.dictionary) == \
+        (o["squares_x"], o["squares_y"], o["square_m"], o["marker_m"], o["dictionary"])
+    np.testing.assert_array_equal(
+        targets.board_image(o["squares_x"], o["squares_y"], o["square_m"], o["marker_m"],
+                            o["dictionary"], 32), spec.image(32))
