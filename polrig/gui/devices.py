@@ -269,7 +269,7 @@ class DevicesPanel(QWidget):
                     self.failures.append((f"{kind} status", st["error"]))
                     self.message.emit("error", f"{kind} status failed: {st['error']}")
             elif "busy_with" in st:
-                text += " - in use"
+                text += f" - {st['busy_with']}"
             self._poll_errors[kind] = st.get("error", "")
             lab.setText(text)
         for kind, box in (("stage", self.stage), ("turntable", self.turntable)):

@@ -11,7 +11,9 @@ for real frames and writes:
 * ``viewer_reference_mueller.png`` -- the viewer showing a reference capture's Mueller EXR;
 * ``capture_progress.png`` -- the capture panel during a reference capture (progress, ETA,
   thumbnails of finished poses, scores against the simulator's truth);
-* ``devices.png`` -- the devices panel.
+* ``devices.png`` -- the devices panel;
+* ``calibration.png`` -- the calibration panel after the intrinsics and turntable steps
+  (report text and its residual plot).
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="docs/screenshots", help="output folder")
     ap.add_argument("--size", default="512x512", help="simulated sensor size WxH")
+    ap.add_argument("--no-calibration", action="store_true",
+                    help="skip calibration.png (two calibration steps, about a minute)")
     args = ap.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
@@ -102,8 +106,19 @@ def main(argv: list[str] | None = None) -> int:
     if not live_mueller:
         shot(w, "mueller_grid.png")
     w.tabs.setCurrentWidget(w.devices)
-    _wait(app, lambda: bool(w.devices.last_status), 30, "device status")
+    w.devices.move("stage", 22.5)
+    _wait(app, lambda: abs(w.devices.last_status.get("stage", {}).get("position_deg", 0) - 22.5)
+          < 1e-6 and not any("busy_with" in v for v in w.devices.last_status.values()),
+          60, "fresh device status")
     shot(w, "devices.png")
+    if not args.no_calibration:
+        cal = w.calibration
+        cal.folder.setText(str(tmp / "calibration"))
+        w.tabs.setCurrentWidget(cal)
+        for step in ("intrinsics", "turntable"):
+            cal.run_step(step)
+            _wait(app, lambda: not cal.is_running, 900, f"calibration step {step}")
+        shot(w, "calibration.png")
     w.close()
     _wait(app, lambda: not w.isVisible(), 60, "the window to close")
     for p in written:
