@@ -160,8 +160,10 @@ class MainWindow(QMainWindow):
         event.accept()
 
     def shutdown(self) -> None:
-        """Stop the workers and close the rig (idempotent)."""
+        """Stop the workers and close the rig (idempotent). Waits for a device call in
+        progress to end (the longest HAL timeout is a 60 s homing) so that no thread is
+        destroyed while it runs."""
         self.live_worker.stop()
-        self.live_worker.wait(5000)
-        self.devices.shutdown()
+        self.live_worker.wait(15000)
+        self.devices.shutdown(wait_ms=65000)
         self.rig.close()
