@@ -47,7 +47,7 @@ INTRINSIC_MOUNTS: tuple[dict[str, float], ...] = (
 DOFP_MOUNT_INDEX = 0
 OFFSET_MOUNT_INDEX = 0
 INTRINSIC_ANGLES_DEG = tuple(float(a) for a in range(-45, 46, 9))
-LIGHT_ANGLES_DEG = tuple(float(a) for a in range(0, 360, 40))
+LIGHT_ANGLES_DEG = tuple(float(a) for a in range(0, 360, 30))
 #: Two sphere heights on the turntable, for a vertical as well as a horizontal baseline.
 LIGHT_MOUNTS: tuple[dict[str, float], ...] = ({"sphere_height_m": 0.01}, {"sphere_height_m": 0.10})
 STAGE_ANGLES_DEG = tuple(float(a) for a in range(0, 180, 5))
@@ -74,7 +74,7 @@ def grab_mean(camera, n: int = 1) -> tuple[np.ndarray, Any]:
 
 
 def auto_expose(camera, *, percentile: float = 99.5, target: float = 0.6,
-                mask: np.ndarray | None = None, iterations: int = 6) -> float:
+                mask: np.ndarray | None = None, iterations: int = 12) -> float:
     """Set the exposure so that the ``percentile`` of the (masked) black-subtracted raw frame
     is ``target`` of the full scale; returns the exposure in microseconds."""
     lo, hi = getattr(camera, "EXPOSURE_RANGE_US", (10.0, 1e7))
@@ -83,8 +83,8 @@ def auto_expose(camera, *, percentile: float = 99.5, target: float = 0.6,
         full = _full_scale(f.meta) - f.meta.black_level_dn
         a = f.raw.astype(np.float64) - f.meta.black_level_dn
         v = float(np.percentile(a[mask] if mask is not None else a, percentile))
-        if v >= 0.98 * full:  # saturated: halve and retry
-            new = camera.exposure_us / 4.0
+        if v >= 0.98 * full:  # saturated: shorten a lot and retry
+            new = camera.exposure_us / 10.0
         elif v <= 0:
             new = camera.exposure_us * 8.0
         else:
@@ -219,15 +219,25 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             mount("chrome_sphere", **m)
         _move(rig.turntable, a)
         frames = {}
-        # the highlight target is 0.3 of full scale at stage 0: at 90 deg the analyzer pixels
-        # crossed at 0 deg see the polarized highlight up to twice as bright
-        for name, (pct, tgt) in {"silhouette": (50.0, 0.5), "highlight": (100.0, 0.3)}.items():
+        for name, (pct, tgt) in {"silhouette": (50.0, 0.5), "highlight": (100.0, 0.6)}.items():
             _move(rig.stage, 0.0)
             auto_expose(cam, percentile=pct, target=tgt)
-            r0, meta = grab_mean(cam)
-            _move(rig.stage, 90.0)
-            r90, _ = grab_mean(cam)
-            peak = max(float(r0.max()), float(r90.max()))
+            for _ in range(6):
+                _move(rig.stage, 0.0)
+                r0, meta = grab_mean(cam)
+                _move(rig.stage, 90.0)
+                r90, _ = grab_mean(cam)
+                peak = max(float(r0.max()), float(r90.max()))
+                full = _full_scale(meta)
+                # a highlight of a few pixels is polarized: the pixel class crossed at 0 deg
+                # can be the brightest at 90 deg, far above the level set at 0 deg
+                if name == "silhouette" or peak < 0.9 * full:
+                    break
+                lo = getattr(cam, "EXPOSURE_RANGE_US", (10.0, 1e7))[0]
+                if cam.exposure_us <= lo:
+                    break
+                cam.set_exposure_us(max(lo, cam.exposure_us * 0.5 * full / peak
+                                        if peak < 0.98 * full else cam.exposure_us / 10.0))
             frames[name] = (r0 + r90 - 2 * meta.black_level_dn, meta, peak)
         sil, meta, _ = frames["silhouette"]
         hil, hmeta, peak = frames["highlight"]
