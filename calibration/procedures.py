@@ -509,7 +509,8 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
 
     The plate sits in the board fixture; its pose is the board pose of the same fixture from
     the joint bundle adjustment (``geometry``, mount ``mount_index``), turned to the
-    turntable angle that centres the specular lobe. A dark frame (light off) gives the offsets; the stage
+    turntable angle that centres the specular lobe. A dark frame (light off) gives the
+    offsets; the stage
     sweep, with the generator's offset and the plate's Mueller matrix in the rig frames, gives
     each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
     diattenuation times the generator DoLP; the generator's extinction ratio follows from the
@@ -566,7 +567,7 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     if fit.valid.mean() < 0.5:
         raise CalibrationError(f"only {fit.valid.mean():.0%} of the pixels give a valid DoFP fit; "
                                "the polished plate must fill the view (check the fixture)")
-    mod = float(np.median(fit.modulation[fit.valid]))
+    mod = float(np.mean(fit.modulation[fit.valid]))
     d_gen = min(mod / float(sensor_diattenuation), 1.0 - 1e-9)
     mod_std = float(np.std(fit.modulation[fit.valid]) / np.sqrt(fit.valid.sum()))
     er = float(extinction_ratio_from_dolp(d_gen))
