@@ -10,8 +10,20 @@ Steps: mask (given, or ``S0 > mask_fraction * percentile99(S0)``), normalisation
 (DN per normalised unit: given, or :func:`default_scale`, the same rule the simulator's
 dataset writer uses), view directions ``wo`` from the pinhole intrinsics (default: the
 simulated rig's camera, ``fx = fy = 2.5 min(H, W)``, principal point at the image centre),
-padding to a multiple of 8 pixels (edge padding, masked out), one onnxruntime call, crop,
-back to DN.
+padding to a multiple of 8 pixels (edge padding, masked out), the network in its training
+frame (below), crop, back to DN.
+
+Incident frame: the networks were trained with one stage zero axis (``model.json``
+``stage_zero_axis_camera``, the camera's up direction), and PIPNet reads the incident state
+``s_in`` without the axis, so an ``s_in`` expressed about another axis means another physical
+polarizer direction to it (on the default simulated rig, whose axis is ~85 deg away, its light
+direction came out rotated by about that much). :meth:`SingleShotModel.run_rig_frame` therefore
+re-expresses ``s_in`` in the training frame (``S_model = R(theta) S_rig``, ``theta`` the angle
+between the two incident ``x`` axes about the illumination direction, ``docs/conventions.md``),
+runs the graph there, and turns the result back per pixel (``M_rig = M_model R(theta_p)``, with
+the network's own light direction ``wi`` for ``theta_p``). This is exact by the definition of
+the incident frame wherever ``wi`` is right; the illumination direction for the input rotation
+starts at the optical axis and is refined once from the network's mean ``wi``.
 
 Arbitrary sizes: the networks are fully convolutional, so any size runs in one pass (padded
 to a multiple of 8). Images with more than ``max_pixels`` pixels (default 1.5 Mpx, about
@@ -34,6 +46,7 @@ import time
 
 import numpy as np
 
+from polrig import frames
 from polrig.errors import FormatError
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
@@ -83,6 +96,35 @@ def view_directions(shape: tuple[int, int], intrinsics: tuple[float, float, floa
     y = (np.arange(h, dtype=np.float64) - cy) / fy
     ray = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.ones((1, 1))), 0)
     return (-ray / np.linalg.norm(ray, axis=0, keepdims=True)).astype(np.float32)
+
+
+def incident_rotation(wi: np.ndarray, stage_zero_axis, model_axis) -> tuple[np.ndarray, np.ndarray]:
+    """``(cos 2theta, sin 2theta)`` of the basis change from the rig's incident frame (``x`` from
+    ``stage_zero_axis``) to the model's (``x`` from ``model_axis``) for light arriving along
+    ``-wi`` ``(..., 3)`` (unit, surface -> light, camera frame): ``S_model = R(theta) S_rig``
+    and ``M_rig = M_model R(theta)`` (``docs/conventions.md``, "Stokes reference frames";
+    :func:`polrig.frames.rotation_cos_sin_2theta`). Axes ``(3,)`` or ``(..., 3)``, camera frame.
+    A degenerate frame (axis along the illumination) gives ``theta = 0``."""
+    k = -np.asarray(wi, np.float64)
+    x_rig = frames.basis_from_reference(k, np.asarray(stage_zero_axis, np.float64))
+    x_model = frames.basis_from_reference(k, np.asarray(model_axis, np.float64))
+    return frames.rotation_cos_sin_2theta(k, x_rig, x_model)
+
+
+def rotate_stokes(s: np.ndarray, cos2, sin2) -> np.ndarray:
+    """``R(theta) S`` for Stokes vectors ``(..., 3)`` (S0 unchanged)."""
+    s = np.asarray(s, np.float64)
+    c, n = np.asarray(cos2), np.asarray(sin2)
+    return np.stack([s[..., 0], c * s[..., 1] + n * s[..., 2], c * s[..., 2] - n * s[..., 1]], -1)
+
+
+def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray) -> np.ndarray:
+    """``M R(theta)`` per pixel for a plane-first Mueller image ``(..., 3, 3, H, W)`` and
+    ``cos2``/``sin2`` broadcastable to ``(..., H, W)``: the model-frame matrix re-expressed in
+    the rig's incident frame (columns 1 and 2 mix, :func:`polrig.frames.rotate_cols`)."""
+    mm = np.moveaxis(np.asarray(m), (-4, -3), (-2, -1))  # (..., H, W, 3, 3)
+    out = frames.rotate_cols(mm, cos2, -np.asarray(sin2))  # m @ R(-theta)^T = m @ R(theta)
+    return np.moveaxis(out, (-2, -1), (-4, -3)).astype(np.asarray(m).dtype)
 
 
 def stokes_s0(analyzer: np.ndarray) -> np.ndarray:
@@ -165,6 +207,56 @@ class SingleShotModel:
         outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names})
         return dict(zip(self.output_names, outs))
 
+    @property
+    def model_axis(self) -> np.ndarray:
+        """The stage zero axis (camera frame) the networks were trained with (``model.json``)."""
+        return np.asarray(self.meta.get("stage_zero_axis_camera", DEFAULT_STAGE_ZERO_AXIS), np.float64)
+
+    def run_rig_frame(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
+                      stage_zero_axis: np.ndarray, *, wi_guess: np.ndarray | None = None,
+                      tolerance_deg: float = 1.0, rotate_with: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """:meth:`run_normalised` for a rig whose stage zero axis ``(B, 3)`` (camera frame) may
+        differ from the training one: the graph runs in the training frame and ``mueller``
+        and ``mueller_init`` come back in the rig's frame (module docstring).
+
+        ``wi_guess`` ``(B, 3)``: illumination direction (surface -> light) for the input
+        rotation (default: the optical axis, ``(0, 0, -1)``); it is refined from the network's
+        mean ``wi`` over the mask until the input angle moves by less than ``tolerance_deg``
+        (at most one more pass). ``rotate_with`` ``(B, 3, H, W)``: per-pixel light directions
+        for the output rotation instead of the network's ``wi`` (used to run the direct
+        baseline, which predicts none). The result also holds ``incident_rotation_deg`` (B,),
+        the input rotation used."""
+        b = analyzer.shape[0]
+        axis = np.broadcast_to(np.asarray(stage_zero_axis, np.float64).reshape(-1, 3), (b, 3))
+        model_axis = np.broadcast_to(self.model_axis, (b, 3)).astype(np.float32)
+        wi = (np.broadcast_to(np.asarray(wi_guess, np.float64).reshape(-1, 3), (b, 3)) if wi_guess is not None
+              else np.broadcast_to([0.0, 0.0, -1.0], (b, 3)))
+        prev = None
+        for _ in range(2):
+            c2, s2 = incident_rotation(wi, axis, self.model_axis)
+            theta = 0.5 * np.arctan2(s2, c2)
+            if prev is not None and np.all(np.abs(np.rad2deg(np.angle(np.exp(2j * (theta - prev))))) / 2 < tolerance_deg):
+                break
+            out = self.run_normalised(analyzer, mask, rotate_stokes(s_in, c2, s2).astype(np.float32), wo, model_axis)
+            prev = theta
+            if rotate_with is not None or "wi" not in out:
+                break
+            m = mask.reshape(b, 1, -1)
+            w_mean = (out["wi"].reshape(b, 3, -1) * m).sum(-1) / np.maximum(m.sum(-1), 1.0)
+            norm = np.linalg.norm(w_mean, axis=-1, keepdims=True)
+            if not np.all(norm > 1e-6):
+                break
+            wi = w_mean / norm
+        w_pix = np.moveaxis(rotate_with if rotate_with is not None else out["wi"], 1, -1)  # (B, H, W, 3)
+        cp, sp = incident_rotation(w_pix, axis[:, None, None, :], self.model_axis)
+        for key in ("mueller", "mueller_init"):
+            if key in out:
+                ndim = out[key].ndim  # (B, C, 3, 3, H, W)
+                shape = (b,) + (1,) * (ndim - 3) + cp.shape[1:]
+                out[key] = rotate_incident_columns(out[key], cp.reshape(shape), sp.reshape(shape))
+        out["incident_rotation_deg"] = np.rad2deg(prev).astype(np.float32)
+        return out
+
     def reconstruct(self, analyzer: np.ndarray, s_in, mask: np.ndarray | None = None, scale: float | None = None,
                     *, stage_zero_axis=None, intrinsics=None,
                     max_pixels: int = 1_500_000) -> tuple[np.ndarray, dict]:
@@ -229,8 +321,9 @@ class SingleShotModel:
         mk_p = np.pad(mk, [(0, ph), (0, pw)])
         wo_p = pad(won)
         t1 = time.perf_counter()
-        out = self.run_normalised(an_p[None], mk_p[None, None], s[None], wo_p[None],
-                                  np.asarray(stage_zero_axis, np.float32).reshape(1, 3))
+        out = self.run_rig_frame(an_p[None], mk_p[None, None], s[None], wo_p[None],
+                                 np.asarray(stage_zero_axis, np.float64).reshape(1, 3))
+        rotation_deg = float(out.pop("incident_rotation_deg")[0])
         t2 = time.perf_counter()
         crop = lambda x: x[0, ..., :hr, :wr]  # noqa: E731
         res = {k: crop(v) for k, v in out.items() if k != "alpha"}
@@ -243,6 +336,7 @@ class SingleShotModel:
         if "mueller_init" in aux:
             aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
+                    "incident_rotation_deg": rotation_deg,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
         return mueller, aux
 

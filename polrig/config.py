@@ -22,9 +22,15 @@ Example (``docs``: issue 4 and ``polrig devices``)::
     driver = "dc2200"
 
 Device tables are ``camera``, ``stage``, ``turntable`` and ``light``; a device left out is
-the simulated one. Two optional tables: ``[sim]`` (options of the simulated rig, checked by
-:mod:`sim.options`) and ``[sensor_model]`` (fields of :class:`polrig.noise.SensorModel` for a
-real camera). Each device table names its ``driver``; the keys a driver accepts, their
+the simulated one. Optional tables: ``[sim]`` (options of the simulated rig, checked by
+:mod:`sim.options`), ``[sensor_model]`` (fields of :class:`polrig.noise.SensorModel` for a
+real camera) and ``[nominal_geometry]`` (the rig's nominal geometry for single-shot processing when no
+calibration set gives it, :data:`GEOMETRY_KEYS`)::
+
+    [nominal_geometry]
+    intrinsics = [6120.0, 6120.0, 1223.5, 1023.5]   # fx, fy, cx, cy: pixels of the full sensor
+    stage_zero_axis_camera = [0.92, -0.10, 0.38]    # polarizer zero axis, camera frame
+ Each device table names its ``driver``; the keys a driver accepts, their
 types, defaults and meaning are its *schema*, supplied by the driver registry
 (:data:`polrig.rig.DRIVERS`): this module only knows how to check a table against a schema.
 Every problem is a :class:`polrig.errors.ConfigError` with a one-line message naming the
@@ -41,7 +47,12 @@ from typing import Any, Mapping
 from polrig.errors import ConfigError
 
 DEVICE_KINDS = ("camera", "stage", "turntable", "light")
-EXTRA_TABLES = ("sim", "sensor_model")
+EXTRA_TABLES = ("sim", "sensor_model", "nominal_geometry")
+#: Keys of the ``[nominal_geometry]`` table: ``intrinsics`` ``[fx, fy, cx, cy]`` (pixels of the full
+#: sensor readout, OpenCV pinhole, ``docs/conventions.md`` "Image coordinates") and
+#: ``stage_zero_axis_camera`` ``[x, y, z]`` (the polarizer stage's zero axis in the camera frame,
+#: any length but not zero; "Stokes reference frames"). Both optional.
+GEOMETRY_KEYS = {"intrinsics": 4, "stage_zero_axis_camera": 3}
 
 _TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", bool: "true or false",
                list: "a list"}
@@ -217,7 +228,36 @@ def validate_config(data: Mapping[str, Any], registry: Mapping[str, DriverSpec],
             out[extra] = dict(data[extra])
     if "sensor_model" in out:
         _check_sensor_model(out["sensor_model"], where)
+    if "nominal_geometry" in out:
+        out["nominal_geometry"] = _check_geometry(out["nominal_geometry"], where)
     return out
+
+
+def _check_geometry(table: dict[str, Any], where: str) -> dict[str, list[float]]:
+    """The ``[nominal_geometry]`` table as lists of floats (see :data:`GEOMETRY_KEYS`)."""
+    import math
+
+    clean: dict[str, list[float]] = {}
+    for key, value in table.items():
+        if key not in GEOMETRY_KEYS:
+            names = list(GEOMETRY_KEYS)
+            raise ConfigError(f"{where}[nominal_geometry] {key}: unknown key{_closest(key, names)}; "
+                              f"known: {', '.join(names)}")
+        n = GEOMETRY_KEYS[key]
+        if (not isinstance(value, list) or len(value) != n
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+            raise ConfigError(f"{where}[nominal_geometry] {key}: must be a list of {n} numbers, got "
+                              f"{_show(value)}")
+        vals = [float(v) for v in value]
+        if not all(math.isfinite(v) for v in vals):
+            raise ConfigError(f"{where}[nominal_geometry] {key}: values must be finite, got {_show(value)}")
+        if key == "intrinsics" and not (vals[0] > 0 and vals[1] > 0):
+            raise ConfigError(f"{where}[nominal_geometry] intrinsics: focal lengths fx, fy must be > 0, "
+                              f"got {_show(value)}")
+        if key == "stage_zero_axis_camera" and not any(vals):
+            raise ConfigError(f"{where}[nominal_geometry] stage_zero_axis_camera: must not be zero")
+        clean[key] = vals
+    return clean
 
 
 def _check_sensor_model(table: dict[str, Any], where: str) -> None:

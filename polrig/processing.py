@@ -60,11 +60,19 @@ class Calibration:
     nominal ideal polarizer (:func:`polrig.mueller.polarizer_stokes` with intensity 1, so
     ``S0 = 1/2``). ``analyzer`` is a per-pixel analyzer model of the full readout, ``None``
     for the ideal analyzer.
+
+    Geometry for single-shot reconstruction (``None``: not calibrated, the rig's nominal
+    geometry is used, :func:`single_shot_geometry`): ``intrinsics`` ``(fx, fy, cx, cy)`` in
+    pixels of the full sensor readout (OpenCV pinhole, distortion ignored) and
+    ``stage_zero_axis_camera`` ``(x, y, z)``, the polarizer stage's zero axis in the camera
+    frame (the ``x`` of the incident Stokes frame, "Stokes reference frames").
     """
 
     id: str
     incident_stokes_fn: Callable[[np.ndarray], np.ndarray] | None = None
     analyzer: AnalyzerModel | None = None
+    intrinsics: tuple[float, float, float, float] | None = None
+    stage_zero_axis_camera: tuple[float, float, float] | None = None
 
     def incident_stokes(self, states_deg: Sequence[float]) -> np.ndarray:
         a = np.asarray(states_deg, dtype=np.float64)
@@ -95,12 +103,76 @@ def load_calibration(path: str | os.PathLike | None, *, session: Session | None 
             raise ConfigError(f"--calibration {p}: this polrig cannot read calibration sets "
                               f"yet (no calibration loader installed); omit --calibration to "
                               f"use the nominal model") from None
-        cs = calibset.load(p)  # pragma: no cover - depends on the calibration package
-        cal = Calibration(cs.id, cs.incident_stokes, getattr(cs, "analyzer", None))
+        cs = calibset.load(p)
+        cal = Calibration(cs.id, cs.incident_stokes, getattr(cs, "analyzer", None),
+                          *calibration_geometry(cs))
     if session is not None and session.manifest.get("calibration_id") != cal.id:
         raise ConfigError(f"--resume: the session was captured with calibration "
                           f"{session.manifest.get('calibration_id')!r}, not {cal.id!r}")
     return cal
+
+
+def calibration_geometry(cs) -> tuple[tuple[float, float, float, float] | None,
+                                      tuple[float, float, float] | None]:
+    """``(intrinsics, stage_zero_axis_camera)`` of a calibration set
+    (:class:`calibration.calset.CalibrationSet`), each ``None`` where the set lacks the step:
+    ``(fx, fy, cx, cy)`` from the camera matrix ``K`` (full-sensor pixels), and the stage zero
+    axis from the generator step, else from the turntable axis and the light position
+    (:func:`calibration.rigframes.stage_zero_axis_cam`, the rig's definition)."""
+    has = getattr(cs, "has", lambda section: False)
+    intrinsics = axis = None
+    if has("intrinsics"):
+        k = np.asarray(cs.intrinsics["K"], np.float64)
+        intrinsics = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    if has("generator") and "stage_zero_axis_cam" in cs.params.get("generator", {}):
+        axis = np.asarray(cs.stage_zero_axis_cam, np.float64)
+    elif has("turntable") and has("light"):
+        from calibration.rigframes import stage_zero_axis_cam
+
+        tt = cs.turntable_axis
+        axis = stage_zero_axis_cam(cs.light_position_m, tt["point_cam_m"], tt["axis_cam"])
+    if axis is not None and not (np.all(np.isfinite(axis)) and np.any(axis)):
+        axis = None
+    return intrinsics, None if axis is None else tuple(float(v) for v in axis)
+
+
+def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | None,
+                         sensor_size: tuple[int, int] | None = None) -> dict[str, Any]:
+    """Intrinsics (full-sensor pixels) and stage zero axis (camera frame) for single-shot
+    reconstruction: the calibration set's where it has them, else the rig's nominal geometry
+    (:func:`polrig.rig.nominal_geometry`: the ``[nominal_geometry]`` table of the rig config, or the
+    simulator's design values for a simulated camera). ``None`` values mean "unknown": the
+    model then uses its training geometry (``models/weights/model.json``). ``sources`` says
+    where each value came from."""
+    from polrig.rig import nominal_geometry
+
+    nominal = nominal_geometry(rig_config, sensor_size)
+    out: dict[str, Any] = {"sources": {}}
+    for key in ("intrinsics", "stage_zero_axis_camera"):
+        cal_value = getattr(calibration, key)
+        if cal_value is not None:
+            out[key], out["sources"][key] = tuple(cal_value), f"calibration {calibration.id}"
+        elif nominal[key] is not None:
+            out[key], out["sources"][key] = tuple(nominal[key]), nominal["source"]
+        else:
+            out[key], out["sources"][key] = None, "model training geometry"
+    return out
+
+
+def analyzer_grid_intrinsics(intrinsics: Sequence[float], offset_xy: Sequence[int],
+                             raw_shape: tuple[int, int], grid_shape: tuple[int, int]
+                             ) -> tuple[float, float, float, float]:
+    """Full-sensor pinhole intrinsics ``(fx, fy, cx, cy)`` carried to the demosaiced analyzer
+    grid of a readout with ROI offset ``offset_xy`` (pixels) and raw size ``raw_shape``
+    ``(H, W)``: the principal point moves by the offset, and a grid ``p`` times coarser (the
+    ``superpixel`` demosaic of a ``p x p`` mosaic period) has its pixel ``j`` centred on raw
+    ``p j + (p - 1) / 2``, so ``f' = f / p`` and ``c' = (c - offset - (p - 1) / 2) / p``.
+    A full-resolution grid (``bilinear``, ``newton``) keeps ``f`` and ``c - offset``."""
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    ox, oy = (float(v) for v in offset_xy)
+    py = raw_shape[0] / float(grid_shape[0])
+    px = raw_shape[1] / float(grid_shape[1])
+    return (fx / px, fy / py, (cx - ox - (px - 1) / 2) / px, (cy - oy - (py - 1) / 2) / py)
 
 
 def check_plan(plan, calibration: Calibration) -> float | None:
@@ -509,8 +581,15 @@ class Processor:
 
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
+        geometry = None
         if self.mode == "single-shot":
-            result, s_in, lay, states = self.single_shot(cf)
+            rig_info = session.manifest.get("rig", {}) or {}
+            config = rig_info.get("config")
+            size = ((config or {}).get("sim") or {}).get("size")
+            geometry = single_shot_geometry(
+                self.calibration, config,
+                None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
+            result, s_in, lay, states = self.single_shot(cf, geometry)
         else:
             result, s_in, lay, states = process_reference(cf, self.calibration,
                                                           self.sensor_model, self.demosaic)
@@ -534,6 +613,11 @@ class Processor:
             "software": f"polrig {__version__}", "capture": cap["name"],
             "revision": revision or "capture",
         }
+        if geometry is not None:
+            meta["single_shot_geometry"] = {
+                "intrinsics_full_sensor": geometry["intrinsics"],
+                "stage_zero_axis_camera": geometry["stage_zero_axis_camera"],
+                "sources": geometry["sources"]}
         data = _exr_bytes(lambda p: write_mueller_exr(p, result.mueller, extra=extra,
                                                       metadata=meta))
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
@@ -551,11 +635,16 @@ class Processor:
         session.save()
         return score
 
-    def single_shot(self, cf: CaptureFrames
+    def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
         """One state through the installed network (:mod:`models.runtime`): averaged and
         HDR-merged like the reference states, demosaiced, reconstructed. The network reports
-        no uncertainty: sigma planes are 0 and the mask marks background (``dark``)."""
+        no uncertainty: sigma planes are 0 and the mask marks background (``dark``).
+
+        ``geometry`` (:func:`single_shot_geometry`; default: from the calibration alone): the
+        intrinsics, carried to the analyzer grid (:func:`analyzer_grid_intrinsics`), and the
+        stage zero axis the incident state is expressed about; without them the model assumes
+        its training rig's, which on another rig puts the result in the wrong incident frame."""
         from polrig.reference import DARK
 
         first = cf.first
@@ -569,7 +658,16 @@ class Processor:
                                if any(len(d) for d in cf.darks) else None)
         measured, _, valid, _ = analyzer_stack(state, lay, self.demosaic)
         s_in = self.calibration.incident_stokes(cf.states_deg[:1])
-        mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0])
+        if geometry is None:  # the calibration's geometry only
+            geometry = {"intrinsics": self.calibration.intrinsics,
+                        "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
+        intrinsics = geometry.get("intrinsics")
+        if intrinsics is not None:
+            intrinsics = analyzer_grid_intrinsics(intrinsics, first.meta.offset_xy,
+                                                  first.raw.shape, measured.shape[-2:])
+        mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0],
+                                              stage_zero_axis=geometry.get("stage_zero_axis_camera"),
+                                              intrinsics=intrinsics)
         obj = np.asarray(aux["mask"], bool)
         c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
         mask = np.where(obj, 0, DARK).astype(np.uint8)[None].repeat(c, axis=0)

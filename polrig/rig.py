@@ -239,3 +239,49 @@ def open_rig(config_path: str | Path | None = None, **sim_options: Any) -> Rig:
     """
     rig = build_rig(load_rig_config(config_path), sim_options)
     return rig.open()
+
+
+# -- nominal geometry (single-shot processing without a calibration set) --------------------
+def nominal_geometry(config: dict[str, Any] | None,
+                     sensor_size: tuple[int, int] | None = None) -> dict[str, Any]:
+    """The rig's nominal camera intrinsics and stage zero axis, for single-shot processing when
+    no calibration set provides them (:func:`polrig.processing.single_shot_geometry`).
+
+    ``config``: a validated rig configuration (or the ``config`` a session manifest records).
+    Its ``[nominal_geometry]`` table wins (:data:`polrig.config.GEOMETRY_KEYS`). Otherwise, for a rig
+    whose camera is simulated, the simulator's *design* values (never its hidden, perturbed
+    ones): the default camera of :func:`sim.scene.default_camera` (``fx = fy = 2.5 min(W, H)``,
+    principal point at the centre) for a sensor of ``sensor_size`` ``(W, H)`` (default: the
+    ``[sim]`` table's ``size``, else :data:`sim.options.DEFAULTS`), and the stage zero axis of
+    :func:`sim.scene.stage_zero_axis_for` for the default light and a vertical turntable
+    through the origin, in the camera frame. A real rig without ``[nominal_geometry]`` has none.
+
+    Returns ``{"intrinsics": (fx, fy, cx, cy) | None`` (pixels of the full sensor),
+    ``"stage_zero_axis_camera": (x, y, z) | None, "source": str}``.
+    """
+    cfg = dict(config or {})
+    geo = dict(cfg.get("nominal_geometry") or {})
+    out: dict[str, Any] = {"intrinsics": None, "stage_zero_axis_camera": None, "source": "none"}
+    camera = cfg.get("camera") or {}
+    if camera.get("driver", "sim") == "sim":
+        import numpy as np
+
+        from sim.options import DEFAULTS, parse_size
+        from sim.scene import default_camera, default_light, stage_zero_axis_for
+        from sim.geometry import TurntableGeometry
+
+        if sensor_size is None:
+            sensor_size = parse_size((cfg.get("sim") or {}).get("size", DEFAULTS["size"]))
+        w, h = (int(v) for v in sensor_size)
+        cam = default_camera(w, h)
+        axis_world, _ = stage_zero_axis_for(default_light(), TurntableGeometry())
+        out.update(intrinsics=(cam.fx, cam.fy, cam.cx, cam.cy),
+                   stage_zero_axis_camera=tuple(float(v) for v in np.asarray(cam.R) @ axis_world),
+                   source="simulator design geometry")
+    if geo:
+        for key in ("intrinsics", "stage_zero_axis_camera"):
+            if key in geo:
+                out[key] = tuple(float(v) for v in geo[key])
+        out["source"] = "[nominal_geometry] table" if out["source"] == "none" else \
+            "[nominal_geometry] table over the simulator design geometry"
+    return out

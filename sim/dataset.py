@@ -31,8 +31,8 @@ from polrig.rawio import atomic_write_bytes, atomic_write_text
 from sim.generator import Generator
 from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
 from sim.render import render
-from sim.scene import (FAMILIES, HOLDOUT_FAMILIES, RANDOM_FOCAL_PER_PX, default_camera,
-                       random_scene)
+from sim.scene import (FAMILIES, HOLDOUT_FAMILIES, RANDOM_FOCAL_PER_PX, Scene, default_camera,
+                       random_scene, stage_zero_axis_for)
 from sim.truth import npz_bytes
 from sim.world import ideal_analyzer_images
 
@@ -60,7 +60,19 @@ SHARD_ARRAYS: dict[str, tuple[str, str]] = {
     "index": ("(N,)", "int64"),
     "stage_deg": ("(N,)", "float32"),
     "lit": ("(N, H, W)", "uint8"),
+    "stage_zero_axis": ("(N, 3)", "float32"),
 }
+
+#: How the polarizer stage zero axis of a sample is chosen (``stage_zero_axes``):
+#: ``"camera-up"`` -- the camera's up direction ``-Y`` for every sample (version-1 datasets);
+#: ``"random"`` -- per sample, the rig definition of :func:`sim.scene.stage_zero_axis_for`
+#: (horizontal, perpendicular to the illumination axis: the default rig and the lab rig) with
+#: probability :data:`RIG_AXIS_FRACTION`, else the camera up direction with probability
+#: :data:`CAMERA_UP_FRACTION`, else a direction perpendicular to the illumination axis at an
+#: angle uniform in [0, 180) deg, so that a network learns every incident frame.
+STAGE_ZERO_AXES = ("random", "camera-up")
+RIG_AXIS_FRACTION = 0.5
+CAMERA_UP_FRACTION = 0.2
 
 
 def families_for(holdout: bool) -> tuple[int, ...]:
@@ -72,14 +84,37 @@ def dataset_sensor_model() -> SensorModel:
     return SensorModel(**SENSOR_MODEL_DEFAULTS)
 
 
+def sample_stage_zero_axis(scene: Scene, rng: np.random.Generator) -> np.ndarray:
+    """A world-frame stage zero axis for ``scene`` drawn as :data:`STAGE_ZERO_AXES` ``"random"``
+    describes (unit, perpendicular to the illumination axis)."""
+    u = float(rng.uniform())
+    if u < RIG_AXIS_FRACTION:
+        return stage_zero_axis_for(scene.light, scene.turntable)[0]
+    if u < RIG_AXIS_FRACTION + CAMERA_UP_FRACTION:
+        return -scene.camera.R[1]
+    k = np.asarray(scene.illumination_target_m, float) - scene.light.position_m
+    k = k / np.linalg.norm(k)
+    x = np.asarray(scene.stage_zero_axis, float)  # already perpendicular to k
+    y = np.cross(k, x)
+    t = float(rng.uniform(0.0, np.pi))
+    return np.cos(t) * x + np.sin(t) * y
+
+
 def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool = False,
-                model: SensorModel | None = None) -> dict[str, Any]:
-    """One sample (arrays without the ``N`` axis), deterministic in ``(seed, holdout, index)``."""
+                model: SensorModel | None = None, stage_zero_axes: str = "random") -> dict[str, Any]:
+    """One sample (arrays without the ``N`` axis), deterministic in ``(seed, holdout, index)``
+    (and ``stage_zero_axes``, see :data:`STAGE_ZERO_AXES`; the axis comes from its own random
+    stream, so a ``"camera-up"`` sample equals the version-1 sample of the same index)."""
+    if stage_zero_axes not in STAGE_ZERO_AXES:
+        raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
     model = model or dataset_sensor_model()
     rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index)])
     fams = families_for(holdout)
     family = int(fams[rng.integers(len(fams))])
     scene = random_scene(rng, width, height, family)
+    if stage_zero_axes == "random":
+        axis_rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index), 1])
+        scene = dataclasses.replace(scene, stage_zero_axis=sample_stage_zero_axis(scene, axis_rng))
     res = render(scene, float(rng.uniform(0.0, 360.0)))
     stage_deg = float(rng.uniform(0.0, 180.0))
     gen = Generator(0.0, float(np.exp(rng.uniform(np.log(200.0), np.log(3000.0)))))
@@ -111,6 +146,7 @@ def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool
         "mueller": (m_rad * (k / scale)).astype(np.float32),
         "family": np.int16(family), "index": np.int64(index),
         "stage_deg": np.float32(stage_deg), "lit": lit.astype(np.uint8),
+        "stage_zero_axis": (scene.camera.R @ scene.stage_zero_axis).astype(np.float32),
     }
 
 
@@ -138,7 +174,8 @@ def shard_complete(path: pathlib.Path, n_expected: int) -> bool:
 
 
 def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: int,
-              holdout: bool, shard_size: int, compress: bool, model: SensorModel) -> dict:
+              holdout: bool, shard_size: int, compress: bool, model: SensorModel,
+              stage_zero_axes: str = "random") -> dict:
     cam = default_camera(width, height, focal_per_px=RANDOM_FOCAL_PER_PX)
     n_shards = -(-count // shard_size)
     return {
@@ -154,7 +191,11 @@ def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: i
         "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                        "varies": False},
         "frames": {"vectors": "camera (OpenCV: X right, Y down, Z forward)",
+                   # kept for readers of version-1 datasets: the axis of "camera-up" sets;
+                   # the per-sample axis is the shard array ``stage_zero_axis``
                    "stage_zero_axis_camera": [0.0, -1.0, 0.0],
+                   "stage_zero_axes": stage_zero_axes,
+                   "stage_zero_axis_varies": stage_zero_axes != "camera-up",
                    "camera_x_axis_camera": [1.0, 0.0, 0.0]},
         "noise": {"model": "polrig.noise.SensorModel, independent per analyzer value",
                   "sensor_model": dataclasses.asdict(model),
@@ -175,10 +216,12 @@ _RESUME_KEYS = ("format", "version", "count", "width", "height", "seed", "holdou
 def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
                      height: int | None = None, seed: int = 0, holdout: bool = False,
                      shard_size: int = 16, compress: bool = True, progress: bool = True,
-                     max_shards: int | None = None) -> dict[str, int]:
+                     max_shards: int | None = None, stage_zero_axes: str = "random") -> dict[str, int]:
     """Write (or resume) a dataset; returns ``{"written": shards made, "skipped": shards
     already complete}``. ``max_shards`` stops after that many new shards (for tests and
-    partial runs). A folder holding a different dataset raises :class:`ConfigError`."""
+    partial runs). ``stage_zero_axes``: how each sample's polarizer stage zero axis is chosen
+    (:data:`STAGE_ZERO_AXES`). A folder holding a different dataset raises
+    :class:`ConfigError`."""
     from tqdm import tqdm
 
     height = width if height is None else int(height)
@@ -190,7 +233,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     out.mkdir(parents=True, exist_ok=True)
     model = dataset_sensor_model()
     manifest = _manifest(out, count=count, width=width, height=height, seed=seed,
-                         holdout=holdout, shard_size=shard_size, compress=compress, model=model)
+                         holdout=holdout, shard_size=shard_size, compress=compress, model=model,
+                         stage_zero_axes=stage_zero_axes)
     mpath = out / "manifest.json"
     if mpath.is_file():
         try:
@@ -198,6 +242,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         except ValueError:
             raise FormatError(f"{mpath}: not a JSON dataset manifest") from None
         diff = [k for k in _RESUME_KEYS if old.get(k) != manifest[k]]
+        if old.get("frames", {}).get("stage_zero_axes", "camera-up") != stage_zero_axes:
+            diff.append("stage_zero_axes")
         if diff:
             raise ConfigError(f"{out} holds a different dataset ({', '.join(diff)} differ); "
                               f"choose another --out")
@@ -221,7 +267,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
             samples = []
             for i in range(k * shard_size, k * shard_size + n_k):
                 samples.append(make_sample(i, seed=seed, width=width, height=height,
-                                           holdout=holdout, model=model))
+                                           holdout=holdout, model=model,
+                                           stage_zero_axes=stage_zero_axes))
                 bar.update(1)
             atomic_write_bytes(out / shard_name(k), _shard_bytes(samples, compress))
             written += 1
