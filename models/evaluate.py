@@ -21,6 +21,13 @@ Methods (rows), all producing normalised Mueller images ``(C, 3, 3, H, W)``:
   own single-shot images show (``var = a + b I``, fitted on the set's residuals against the
   noise-free rendering), solved by :func:`polrig.reference.solve_reference`.
 
+Incident frame: each sample's stage zero axis (``stage_zero_axis`` of the shards, which may
+differ from the training one) is handled by
+:meth:`models.runtime.SingleShotModel.run_rig_frame`: the graphs run in their training frame
+and the results are turned into the sample's frame (the direct baseline, which predicts no
+light direction, is turned with the full model's ``wi``); for a sample in the training frame
+this is exactly one plain graph call.
+
 Metrics (all over the object mask, averaged over images):
 
 Table 1 (observed state ``s_in``): matrix PSNR (dB, peak = max |m| of the true image, MSE over
@@ -248,14 +255,14 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
             continue
         preds = {}
         t = time.perf_counter()
-        out = full.run_normalised(*_network_inputs(ds, i))
+        out = full.run_rig_frame(*_network_inputs(ds, i))
         times["full"] += time.perf_counter() - t
         preds["full"], preds["pipnet_pbrdf"] = out["mueller"][0], out["mueller_init"][0]
         t = time.perf_counter()
         preds["bestfit_pbrdf"] = bestfit_pbrdf(ds, i)
         times["bestfit_pbrdf"] += time.perf_counter() - t
         t = time.perf_counter()
-        preds["direct"] = direct.run_normalised(*_network_inputs(ds, i))["mueller"][0]
+        preds["direct"] = direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0]
         times["direct"] += time.perf_counter() - t
         t = time.perf_counter()
         preds["reference4"] = reference_four_state(ds, i, noise, rng)

@@ -115,7 +115,8 @@ def rotate_stokes(s: np.ndarray, cos2, sin2) -> np.ndarray:
     """``R(theta) S`` for Stokes vectors ``(..., 3)`` (S0 unchanged)."""
     s = np.asarray(s, np.float64)
     c, n = np.asarray(cos2), np.asarray(sin2)
-    return np.stack([s[..., 0], c * s[..., 1] + n * s[..., 2], c * s[..., 2] - n * s[..., 1]], -1)
+    parts = np.broadcast_arrays(s[..., 0], c * s[..., 1] + n * s[..., 2], c * s[..., 2] - n * s[..., 1])
+    return np.stack(parts, -1)
 
 
 def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray) -> np.ndarray:
