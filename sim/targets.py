@@ -145,7 +145,4 @@ def mount(rig, name: str, **kw) -> None:
     world = getattr(rig, "world", None)
     if world is None:
         raise ValueError("mount() needs a simulated rig (an object with a 'world')")
-    with world._lock:
-        world.scene = target_scene(world.scene, name, **kw)
-        world._poses.data.clear()
-        world._states.data.clear()
+    world.set_scene(target_scene(world.scene, name, **kw))

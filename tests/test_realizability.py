@@ -66,7 +66,10 @@ def test_pure_matrices_pass_both_tests_and_are_rank_one(j):
 @SETTINGS
 @given(j=jones_batch, data=st.data())
 def test_convex_sums_are_realizable_and_unchanged_by_filter(j, data):
-    w = data.draw(arrays(np.float64, j.shape[:1], elements=st.floats(0, 1)))
+    # Weights are 0 or at least 1e-12: a weight near the subnormal range (hypothesis found
+    # 5e-324) rounds the sum to a matrix of a few ulps that is no longer the physical one.
+    w = data.draw(arrays(np.float64, j.shape[:1],
+                         elements=st.one_of(st.just(0.0), st.floats(1e-12, 1))))
     m = _convex_sum(j, w)
     assert rz.is_physical_coherency(m) and rz.is_physical_gk(m)
     assert np.allclose(rz.cloude_filter(m), m, atol=1e-9 * (1 + np.abs(m).max()))
