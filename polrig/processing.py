@@ -639,13 +639,15 @@ class Processor:
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
         """One state through the installed network (:mod:`models.runtime`): averaged and
         HDR-merged like the reference states, demosaiced, reconstructed. The network reports
-        no uncertainty: sigma planes are 0 and the mask marks background (``dark``).
+        no uncertainty: sigma planes are 0 and the mask marks background (``dark``) and, as
+        the reference solve does, object pixels of a colour with an excluded (saturated)
+        analyzer sample (``saturated``; the network's estimate from the clipped data is kept).
 
         ``geometry`` (:func:`single_shot_geometry`; default: from the calibration alone): the
         intrinsics, carried to the analyzer grid (:func:`analyzer_grid_intrinsics`), and the
         stage zero axis the incident state is expressed about; without them the model assumes
         its training rig's, which on another rig puts the result in the wrong incident frame."""
-        from polrig.reference import DARK
+        from polrig.reference import DARK, SATURATED
 
         first = cf.first
         lay = frame_layout(first)
@@ -671,6 +673,8 @@ class Processor:
         obj = np.asarray(aux["mask"], bool)
         c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
         mask = np.where(obj, 0, DARK).astype(np.uint8)[None].repeat(c, axis=0)
+        clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
+        mask = np.where(clipped, SATURATED, mask).astype(np.uint8)
         zeros = np.zeros((c, h, w), np.float32)
         result = ReferenceResult(mueller.astype(np.float32), np.zeros_like(mueller, np.float32),
                                  zeros, mask, float("nan"), zeros + np.inf,
