@@ -215,7 +215,7 @@ class SingleShotModel:
 
     def run_rig_frame(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
                       stage_zero_axis: np.ndarray, *, wi_guess: np.ndarray | None = None,
-                      tolerance_deg: float = 1.0, rotate_with: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                      tolerance_deg: float = 3.0, rotate_with: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """:meth:`run_normalised` for a rig whose stage zero axis ``(B, 3)`` (camera frame) may
         differ from the training one: the graph runs in the training frame and ``mueller``
         and ``mueller_init`` come back in the rig's frame (module docstring).
