@@ -175,6 +175,24 @@ def analyzer_grid_intrinsics(intrinsics: Sequence[float], offset_xy: Sequence[in
     return (fx / px, fy / py, (cx - ox - (px - 1) / 2) / px, (cy - oy - (py - 1) / 2) / py)
 
 
+def single_shot_kwargs(geometry: dict[str, Any], frame: Frame, method: str = "superpixel"
+                       ) -> dict[str, Any]:
+    """``stage_zero_axis`` and ``intrinsics`` keyword arguments of
+    :meth:`models.runtime.SingleShotModel.reconstruct` / :func:`models.runtime.infer_frame` for
+    one raw ``frame`` demosaiced with ``method``, from :func:`single_shot_geometry` (the
+    intrinsics carried to the analyzer grid by :func:`analyzer_grid_intrinsics`). The GUI's
+    live single-shot view and ``polrig infer`` can pass these as processing does."""
+    from polrig.demosaic import output_shape
+
+    intrinsics = geometry.get("intrinsics")
+    if intrinsics is not None:
+        lay = frame_layout(frame)
+        raw_shape = tuple(frame.raw.shape[-2:])
+        intrinsics = analyzer_grid_intrinsics(intrinsics, frame.meta.offset_xy, raw_shape,
+                                              output_shape(lay, raw_shape, method))
+    return {"stage_zero_axis": geometry.get("stage_zero_axis_camera"), "intrinsics": intrinsics}
+
+
 def check_plan(plan, calibration: Calibration) -> float | None:
     """Reject a plan that cannot give a result, before any device moves.
 
@@ -663,13 +681,8 @@ class Processor:
         if geometry is None:  # the calibration's geometry only
             geometry = {"intrinsics": self.calibration.intrinsics,
                         "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
-        intrinsics = geometry.get("intrinsics")
-        if intrinsics is not None:
-            intrinsics = analyzer_grid_intrinsics(intrinsics, first.meta.offset_xy,
-                                                  first.raw.shape, measured.shape[-2:])
         mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0],
-                                              stage_zero_axis=geometry.get("stage_zero_axis_camera"),
-                                              intrinsics=intrinsics)
+                                              **single_shot_kwargs(geometry, first, self.demosaic))
         obj = np.asarray(aux["mask"], bool)
         c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
         mask = np.where(obj, 0, DARK).astype(np.uint8)[None].repeat(c, axis=0)

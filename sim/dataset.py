@@ -227,6 +227,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     height = width if height is None else int(height)
     if count < 1 or shard_size < 1:
         raise ConfigError("count and shard size must be >= 1")
+    if stage_zero_axes not in STAGE_ZERO_AXES:
+        raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
     if not (8 <= width <= 4096 and 8 <= height <= 4096):
         raise ConfigError(f"dataset size {width}x{height} out of range (8..4096)")
     out = pathlib.Path(out)

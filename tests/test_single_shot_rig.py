@@ -117,6 +117,37 @@ def test_intrinsics_on_the_analyzer_grid():
     assert analyzer_grid_intrinsics(full, (8, 4), (256, 320), (256, 320)) == (700.0, 690.0, 292.2, 236.7)
 
 
+def test_single_shot_kwargs_follow_the_demosaic_and_the_roi():
+    from polrig.hal import Frame, FrameMeta
+    from polrig.processing import single_shot_kwargs
+
+    geo = {"intrinsics": (640.0, 640.0, 127.5, 127.5), "stage_zero_axis_camera": (1.0, 0.0, 0.0)}
+    meta = FrameMeta(0, 0.0, 1000.0, 0.0, "Mono16", "imx250myr", 12, offset_xy=(16, 8))
+    frame = Frame(np.zeros((128, 192), np.uint16), meta)
+    sp = single_shot_kwargs(geo, frame, "superpixel")
+    assert sp["stage_zero_axis"] == (1.0, 0.0, 0.0)
+    assert sp["intrinsics"] == (160.0, 160.0, (127.5 - 16 - 1.5) / 4, (127.5 - 8 - 1.5) / 4)
+    assert single_shot_kwargs(geo, frame, "bilinear")["intrinsics"] == (640.0, 640.0, 111.5, 119.5)
+    assert single_shot_kwargs({"intrinsics": None}, frame) == {"stage_zero_axis": None, "intrinsics": None}
+
+
+def test_dataset_axes_are_read_per_sample_and_resume_checks_the_mode(tmp_path):
+    from models.data import load_dataset
+    from sim.dataset import generate_dataset
+
+    generate_dataset(tmp_path / "d", count=3, width=16, seed=4, shard_size=2, progress=False)
+    ds = load_dataset(tmp_path / "d")
+    axes = ds["stage_zero_axis"]
+    assert axes.shape == (3, 3) and np.allclose(np.linalg.norm(axes, axis=1), 1, atol=1e-5)
+    assert not np.allclose(axes, axes[0])  # drawn per sample
+    with pytest.raises(ConfigError, match="stage_zero_axes differ"):
+        generate_dataset(tmp_path / "d", count=3, width=16, seed=4, shard_size=2, progress=False,
+                         stage_zero_axes="camera-up")
+    with pytest.raises(ConfigError, match="stage_zero_axes must be one of"):
+        generate_dataset(tmp_path / "e", count=1, width=16, progress=False, stage_zero_axes="up")
+    assert not (tmp_path / "e").exists()  # nothing written for a bad option
+
+
 def test_calibration_set_geometry_reaches_processing(tmp_path):
     from calibration.calset import CalibrationSet
     from calibration.rigframes import stage_zero_axis_cam
