@@ -140,6 +140,33 @@ class SerialLink:
         raise DeviceTimeout(f"no {what} within {timeout_s:g} s", device=self.device)
 
 
+class SerialDevice:
+    """Life cycle shared by the serial drivers (mixed in before the HAL class).
+
+    ``open`` opens the link, discards stale input, then runs the driver's ``_handshake``
+    (identify, enable, reset, ...); if the handshake fails the port is released again before
+    the error propagates, so a failed open never leaves the port held.
+    """
+
+    _link: SerialLink
+
+    @property
+    def is_open(self) -> bool:
+        return self._link.is_open
+
+    def open(self) -> None:
+        self._link.open()
+        try:
+            self._link.discard_input()
+            self._handshake()
+        except BaseException:
+            self._link.close()
+            raise
+
+    def _handshake(self) -> None:
+        raise NotImplementedError
+
+
 def wrap_deg(angle_deg: float) -> float:
     """``angle_deg`` wrapped into ``[0, 360)`` (``x % 360`` alone returns 360.0 for tiny
     negative ``x``)."""

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 
-from drivers._serial import SerialLink, wrap_deg
+from drivers._serial import SerialDevice, SerialLink, wrap_deg
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, RotationStage
 
@@ -34,7 +34,7 @@ STATUS_TEXT = {
 BUSY = 9
 
 
-class Ell14Stage(RotationStage):
+class Ell14Stage(SerialDevice, RotationStage):
     """An ELL14 on ``port`` at multidrop ``address`` (0-15).
 
     ``reply_timeout_s`` bounds every query (the manual allows about 100 ms per reply; a
@@ -56,18 +56,8 @@ class Ell14Stage(RotationStage):
         self._move_pending = False
 
     # -- life cycle ------------------------------------------------------------------------
-    @property
-    def is_open(self) -> bool:
-        return self._link.is_open
-
-    def open(self) -> None:
-        self._link.open()
-        try:
-            self._link.discard_input()
-            self._identify()
-        except Exception:
-            self._link.close()
-            raise
+    def _handshake(self) -> None:
+        self._identify()
 
     def close(self) -> None:
         self._link.close()

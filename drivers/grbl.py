@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 
-from drivers._serial import SerialLink
+from drivers._serial import SerialDevice, SerialLink
 from drivers.grbl_codes import ALARMS, ERRORS
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, Turntable
@@ -29,7 +29,7 @@ BAUDRATE = 115200
 SOFT_RESET = b"\x18"
 
 
-class GrblTurntable(Turntable):
+class GrblTurntable(SerialDevice, Turntable):
     def __init__(self, port: str, *, axis: str = "A", axes: str = "XYZA",
                  degrees_per_unit: float = 1.0, rate_per_min: float | None = None,
                  reply_timeout_s: float = 2.0, poll_s: float = 0.02, kind: str = "turntable"):
@@ -52,24 +52,14 @@ class GrblTurntable(Turntable):
         self.last_alarm: int | str | None = None
 
     # -- life cycle ------------------------------------------------------------------------
-    @property
-    def is_open(self) -> bool:
-        return self._link.is_open
-
-    def open(self) -> None:
-        self._link.open()
-        try:
-            self._link.discard_input()
-            self._reset()
-            lines = self._command("$I")
-            self._info = DeviceInfo(kind=self.kind, driver="grbl", model="GRBL",
-                                    firmware=self._banner, port=self.port,
-                                    extra={"build": [l for l in lines if l.startswith("[")],
-                                           "axis": self.axis})
-            self.status()
-        except Exception:
-            self._link.close()
-            raise
+    def _handshake(self) -> None:
+        self._reset()
+        lines = self._command("$I")
+        self._info = DeviceInfo(kind=self.kind, driver="grbl", model="GRBL",
+                                firmware=self._banner, port=self.port,
+                                extra={"build": [l for l in lines if l.startswith("[")],
+                                       "axis": self.axis})
+        self.status()
 
     def close(self) -> None:
         self._link.close()

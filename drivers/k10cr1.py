@@ -20,7 +20,7 @@ import struct
 import time
 
 from drivers import apt
-from drivers._serial import SerialLink, wrap_deg
+from drivers._serial import SerialDevice, SerialLink, wrap_deg
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, RotationStage, Turntable
 
@@ -29,7 +29,7 @@ STEPS_PER_DEG = 409600 / 3
 _END_OF_MOTION = (apt.MOT_MOVE_COMPLETED, apt.MOT_MOVE_HOMED, apt.MOT_MOVE_STOPPED)
 
 
-class K10cr1Stage(RotationStage):
+class K10cr1Stage(SerialDevice, RotationStage):
     """A K10CR1 on ``port`` (channel 1)."""
 
     def __init__(self, port: str, *, zero_offset_deg: float = 0.0, require_homed: bool = True,
@@ -44,20 +44,10 @@ class K10cr1Stage(RotationStage):
         self._pending = False  # a motion whose end-of-motion message has not been read
 
     # -- life cycle ------------------------------------------------------------------------
-    @property
-    def is_open(self) -> bool:
-        return self._link.is_open
-
-    def open(self) -> None:
-        self._link.open()
-        try:
-            self._link.discard_input()
-            self._send(apt.AptMessage(apt.HW_STOP_UPDATEMSGS))
-            self._identify()
-            self._send(apt.AptMessage(apt.MOD_SET_CHANENABLESTATE, 1, 0x01))
-        except Exception:
-            self._link.close()
-            raise
+    def _handshake(self) -> None:
+        self._send(apt.AptMessage(apt.HW_STOP_UPDATEMSGS))
+        self._identify()
+        self._send(apt.AptMessage(apt.MOD_SET_CHANENABLESTATE, 1, 0x01))
 
     def close(self) -> None:
         self._pending = False
