@@ -8,6 +8,7 @@ rejected before any device is opened or any file is written.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 import sys
 
@@ -105,13 +106,30 @@ def command_line(args: argparse.Namespace, command: str = "capture") -> list[str
     return out
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclasses.dataclass
+class PreparedCapture:
+    """A validated capture request: nothing opened, nothing written yet."""
+
+    out: pathlib.Path
+    plan: object  # polrig.capture.CapturePlan
+    calibration: object  # polrig.processing.Calibration
+    resume_session: object | None  # the polrig.session.Session to continue, or None
+
+
+def prepare_capture(args: argparse.Namespace) -> PreparedCapture:
+    """Validate a capture request before any device opens or any file is written.
+
+    ``args`` holds the ``polrig capture`` options (the GUI's capture panel builds the same
+    namespace). Raises ``FileNotFoundError``/``FileExistsError``/:class:`ConfigError` with
+    one-line messages naming the option.
+    """
     from polrig import capture, processing
     from polrig.session import Session
 
     out = pathlib.Path(args.out)
-    if args.config and not pathlib.Path(args.config).is_file():
+    if getattr(args, "config", None) and not pathlib.Path(args.config).is_file():
         raise FileNotFoundError(f"--config {args.config}: no such file")
+    session = None
     if args.resume:
         if not (out / "session.json").is_file():
             raise FileNotFoundError(f"--resume: {out} holds no session to resume")
@@ -128,17 +146,32 @@ def run(args: argparse.Namespace) -> int:
                                   f"the session in it, or choose a new folder")
         calibration = processing.load_calibration(args.calibration)
     processing.check_plan(plan, calibration)  # states conditioning, single-shot model
+    return PreparedCapture(out, plan, calibration, session)
 
+
+def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
+    """The session to run on ``rig``: the resumed one (after checking free disk space for
+    what is left) or a new one created in ``prepared.out``."""
+    from polrig import capture
+
+    if prepared.resume_session is not None:
+        session = prepared.resume_session
+        capture.check_resume_space(session, rig, len(session.next_pending()))
+        session.log("resume command", command_line=command_line)
+        return session
+    return capture.create_session(prepared.out, rig, prepared.plan,
+                                  calibration_id=prepared.calibration.id,
+                                  command_line=command_line)
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig import capture, processing
     from polrig.rig import open_rig
 
+    prepared = prepare_capture(args)
+    plan, calibration, out = prepared.plan, prepared.calibration, prepared.out
     with open_rig(args.config) as rig:
-        if args.resume:
-            remaining = len(session.next_pending())
-            capture.check_resume_space(session, rig, remaining)
-            session.log("resume command", command_line=command_line(args))
-        else:
-            session = capture.create_session(out, rig, plan, calibration_id=calibration.id,
-                                             command_line=command_line(args))
+        session = open_session(prepared, rig, command_line(args))
         processor = processing.make_processor(plan, calibration,
                                               processing.session_sensor_model(session))
         bar = _ProgressPrinter(enabled=not args.no_progress)

@@ -100,45 +100,24 @@ class CaptureWorker(QThread):
 
     def _run(self) -> None:
         from polrig import capture, processing
-        from polrig.commands.capture import build_plan, check_resume_args
-        from polrig.session import Session
+        from polrig.commands.capture import open_session, prepare_capture
 
         args = self.request.namespace()
-        out = pathlib.Path(args.out)
         if not args.out:
             raise ValueError("choose an output folder for the session")
-        if args.resume:  # as `polrig capture --resume`
-            if not (out / "session.json").is_file():
-                raise FileNotFoundError(f"resume: {out} holds no session to resume")
-            session = Session.open(out)
-            plan = capture.CapturePlan.from_json(session.plan)
+        if args.resume:  # as `polrig capture --out DIR --resume`: the plan is the session's
             args.poses = args.mode = args.states = args.exposure = args.demosaic = None
             args.frames = args.dark_frames = None
-            check_resume_args(args, plan)
-            calibration = processing.load_calibration(args.calibration, session=session)
-        else:
-            plan = build_plan(args)
-            if out.exists() and not out.is_dir():
-                raise FileExistsError(f"output {out}: exists and is not a folder")
-            if out.is_dir() and any(out.iterdir()):
-                raise FileExistsError(f"output {out}: folder is not empty; resume the session "
-                                      f"in it, or choose a new folder")
-            calibration = processing.load_calibration(args.calibration)
-        processing.check_plan(plan, calibration)
+        prepared = prepare_capture(args)  # the CLI's validation, before any device moves
         with self.locks.hold(timeout_s=10.0, who="capture"):
             closed = [k for k, d in self.rig.devices.items() if not d.is_open]
             if closed:
                 raise PolrigError(f"not connected: {', '.join(closed)}; connect the devices "
                                   f"(Devices tab) before capturing")
-            if args.resume:
-                capture.check_resume_space(session, self.rig, len(session.next_pending()))
-            else:
-                session = capture.create_session(out, self.rig, plan,
-                                                 calibration_id=calibration.id,
-                                                 command_line=["polrig", "gui"])
+            session = open_session(prepared, self.rig, ["polrig", "gui"])
             self.session = session
-            self.session_ready.emit(str(out))
-            processor = processing.make_processor(plan, calibration,
+            self.session_ready.emit(str(prepared.out))
+            processor = processing.make_processor(prepared.plan, prepared.calibration,
                                                   processing.session_sensor_model(session))
             self.result = capture.run_session(self.rig, session, processor=processor,
                                               progress=self.progress.emit,
