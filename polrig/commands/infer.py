@@ -30,9 +30,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="demosaic method (default superpixel: the sensor's native sampling)")
     p.add_argument("--black-level", type=float, default=None, help="black level in DN (default: the sidecar's)")
     p.add_argument("--scale", type=float, default=None, help="DN per normalised unit (default: from the image)")
+    p.add_argument("--calibration", default=None,
+                   help="calibration set folder: its camera intrinsics and stage zero axis "
+                        "are used")
+    p.add_argument("--config", default=None,
+                   help="rig configuration TOML: its [nominal_geometry] table (default: the "
+                        "simulated rig's design geometry), used where no calibration is given")
     p.add_argument("--stage-zero-axis", type=_vector, default=None,
-                   help="polarizer stage zero axis in the camera frame, x,y,z (default: the "
-                        "training rig's, from the model's model.json)")
+                   help="polarizer stage zero axis in the camera frame, x,y,z (overrides the "
+                        "calibration / rig geometry)")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
     p.set_defaults(func=run)
 
@@ -41,7 +47,9 @@ def run(args: argparse.Namespace) -> int:
     import pathlib
 
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
+    from polrig import processing
     from polrig.rawio import read_raw
+    from polrig.rig import load_rig_config
 
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".exr":
@@ -51,9 +59,15 @@ def run(args: argparse.Namespace) -> int:
     frame = read_raw(args.raw, layout=args.layout or "imx250myr")
     layout = args.layout or frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
+    calibration = processing.load_calibration(args.calibration)
+    # the same geometry capture processing uses: calibration set, else the rig's nominal one
+    geometry = processing.single_shot_geometry(calibration, load_rig_config(args.config))
+    kwargs = processing.single_shot_kwargs(geometry, frame, args.demosaic)
+    if args.stage_zero_axis is not None:
+        kwargs["stage_zero_axis"] = args.stage_zero_axis
     model = SingleShotModel.load(args.weights)
     mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
-                               black_level_dn=black, scale=args.scale, stage_zero_axis=args.stage_zero_axis)
+                               black_level_dn=black, scale=args.scale, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
                                          "layout": str(layout), "demosaic": args.demosaic})
     t = aux["timings_s"]

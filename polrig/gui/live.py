@@ -210,6 +210,15 @@ class LiveWorker(QThread):
             if rest > 0:
                 self._quit.wait(rest)
 
+    def _geometry(self) -> dict:
+        """Single-shot geometry of this rig (nominal calibration), computed once."""
+        if getattr(self, "_single_shot_geometry", None) is None:
+            from polrig import processing
+
+            self._single_shot_geometry = processing.single_shot_geometry(
+                processing.nominal_calibration(), getattr(self.rig, "config", None))
+        return self._single_shot_geometry
+
     def _report(self, exc: BaseException) -> None:
         text = f"live view: {exc}"
         if text != self._last_error:  # one message per distinct problem, not one per frame
@@ -244,7 +253,7 @@ class LiveWorker(QThread):
                 note = f"Mueller display unavailable: {self._model_error}"
             else:
                 data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
-                                              source="live")
+                                              source="live", geometry=self._geometry())
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
                                           source="live")
