@@ -117,7 +117,7 @@ def render_frames(sensor: str, n: int = 2) -> tuple[list[Frame], float]:
 
 def measure(app, panel, worker, display: str, method: str, seconds: float,
             period: int) -> dict:
-    from PySide6.QtCore import QElapsedTimer, QTimer
+    from polrig.gui.latency import EventLoopProbe
 
     s = worker.settings
     s.display, s.method = display, method
@@ -139,20 +139,7 @@ def measure(app, panel, worker, display: str, method: str, seconds: float,
     p0, s0, d0 = worker.frames_processed, panel.frames_shown, worker.dropped
     proc: list[float] = []
     seen = [panel.frames_shown]
-    clock = QElapsedTimer()
-    clock.start()
-    last = [clock.nsecsElapsed()]
-    gaps: list[float] = []
-
-    def tick():
-        now = clock.nsecsElapsed()
-        gaps.append((now - last[0]) * 1e-9)
-        last[0] = now
-
-    timer = QTimer()
-    timer.setInterval(10)
-    timer.timeout.connect(tick)
-    timer.start()
+    probe = EventLoopProbe(10).start()
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         app.processEvents()
@@ -161,13 +148,13 @@ def measure(app, panel, worker, display: str, method: str, seconds: float,
             proc.append(panel.last.processing_s)
         time.sleep(0.001)
     el = time.perf_counter() - t0
-    timer.stop()
+    probe.stop()
     return {"display": display, "method": method, "load": os.getloadavg()[0],
             "worker_fps": (worker.frames_processed - p0) / el,
             "shown_fps": (panel.frames_shown - s0) / el,
             "dropped": worker.dropped - d0,
             "proc_ms": 1e3 * float(np.median(proc)) if proc else float("nan"),
-            "latency_ms": 1e3 * (max(gaps) - 0.010) if gaps else float("nan"),
+            "latency_ms": 1e3 * probe.max_latency_s,
             "status_fps": panel.last.fps if panel.last else float("nan")}
 
 

@@ -12,9 +12,10 @@ import pytest
 pytest.importorskip("PySide6")
 pytestqt = pytest.importorskip("pytestqt")
 
-from PySide6.QtCore import QElapsedTimer, Qt, QTimer  # noqa: E402
+from PySide6.QtCore import Qt, QTimer  # noqa: E402
 
 from polrig.gui import pipeline  # noqa: E402
+from polrig.gui.latency import EventLoopProbe  # noqa: E402
 from polrig.gui.main_window import MainWindow  # noqa: E402
 from polrig.gui.qtimage import from_qimage  # noqa: E402
 from polrig.gui.settings import make_settings  # noqa: E402
@@ -213,20 +214,7 @@ def test_device_fault_shows_a_message_and_the_ui_stays_responsive(qtbot, window)
     qtbot.waitUntil(lambda: window.devices.last_status.get("stage", {}).get("open", False),
                     timeout=10000)
     wait_frames(qtbot, window, 2)
-    intervals: list[float] = []
-    clock = QElapsedTimer()
-    clock.start()
-    last = [clock.nsecsElapsed()]
-
-    def tick():
-        now = clock.nsecsElapsed()
-        intervals.append((now - last[0]) * 1e-9)
-        last[0] = now
-
-    timer = QTimer()
-    timer.setInterval(10)
-    timer.timeout.connect(tick)
-    timer.start()
+    probe = EventLoopProbe(10).start()
     frames_before = window.live.frames_shown
     rig = window.rig.sim
     rig.inject_fault("stage", "fault", after_calls=0)
@@ -241,14 +229,14 @@ def test_device_fault_shows_a_message_and_the_ui_stays_responsive(qtbot, window)
                     and window.devices.last_status["turntable"].get("position_deg", 0) > 7999,
                     timeout=20000)
     wait_frames(qtbot, window, 3)  # the live view recovered from the camera timeout
-    timer.stop()
-    latency = max(intervals) - 0.010
+    probe.stop()
+    latency = probe.max_latency_s
     text = [t for lvl, t in window.messages.messages if lvl == "error"]
     assert any("device error 13" in t for t in text)  # the device's own code, readable
     assert "simulated" in window.statusBar().currentMessage() or text
     assert window.live.frames_shown > frames_before
     print(f"\nevent-loop latency during the fault: max {1e3 * latency:.1f} ms over "
-          f"{len(intervals)} ticks (median interval {1e3 * np.median(intervals):.1f} ms)")
+          f"{len(probe.gaps_s)} ticks (median interval {1e3 * np.median(probe.gaps_s):.1f} ms)")
     assert latency < 0.5  # never frozen (the UI thread never waits on a device)
 
 

@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pytestqt")
 
-from PySide6.QtCore import QElapsedTimer, QTimer  # noqa: E402
+from polrig.gui.latency import EventLoopProbe  # noqa: E402
 
 from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator  # noqa: E402
 from drivers.emulators.grbl import GrblEmulator  # noqa: E402
@@ -71,30 +71,17 @@ def test_gui_drives_emulated_hardware(qtbot, tmp_path):
             assert abs(ell.position_deg - 30.0) <= 360.0 / PULSES_PER_REV
             assert "30.0" in w.devices.stage.position.text()
             # the stage's port goes away while connected
-            intervals = []
-            clock = QElapsedTimer()
-            clock.start()
-            last = [clock.nsecsElapsed()]
-
-            def tick():
-                now = clock.nsecsElapsed()
-                intervals.append((now - last[0]) * 1e-9)
-                last[0] = now
-
-            timer = QTimer()
-            timer.setInterval(10)
-            timer.timeout.connect(tick)
-            timer.start()
+            probe = EventLoopProbe(10).start()
             ell.disconnect()  # pull the cable
             w.devices.move("stage", 60.0)
             qtbot.waitUntil(lambda: any("stage" in t for lvl, t in w.messages.messages
                                         if lvl == "error"), timeout=30000)
             wait_more = w.live.frames_shown
             qtbot.waitUntil(lambda: w.live.frames_shown > wait_more + 2, timeout=20000)
-            timer.stop()
+            probe.stop()
             err = next(t for lvl, t in w.messages.messages if lvl == "error" and "stage" in t)
             assert "\n" not in err and "Traceback" not in err
-            latency = max(intervals) - 0.010
+            latency = probe.max_latency_s
             print(f"\nstage port lost: {err!r}; event-loop latency max {1e3 * latency:.1f} ms")
             assert latency < 0.5
         finally:
