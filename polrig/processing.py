@@ -49,6 +49,19 @@ from polrig.session import COMPLETE, FAILED, PENDING, Session, sha256_file
 
 NOMINAL_CALIBRATION_ID = "nominal"
 
+#: 1-sigma priors of an uncalibrated IMX250MZR/MYR analyzer against the ideal model
+#: (``polrig.reference.AnalyzerTolerance``): relative gain 1 % (pixel response non-uniformity of
+#: the IMX250 class, about 1 % in EMVA 1288 data sheets of cameras with this sensor),
+#: micro-polarizer orientation 0.5 deg (per-pixel scatter plus per-angle bias of wire-grid
+#: arrays; measured deviations of a few tenths of a degree, Powell and Gruev, Opt. Express
+#: 21(18), 2013), diattenuation 0.02 (extinction ratios of ~100-300 give D = 0.98-0.993).
+NOMINAL_ANALYZER_TOLERANCE = (0.01, 0.5, 0.02)
+#: 1-sigma priors of an uncalibrated generator (``polrig.reference.GeneratorTolerance``):
+#: stage zero offset 2 deg (a polarizer mounted in its rotation mount by the index mark),
+#: inverse extinction ratio 0.006 (a film polarizer specified ER >= 100: 1/ER in [0, 0.01],
+#: RMS deviation from the nominal 0 about 0.006).
+NOMINAL_GENERATOR_TOLERANCE = (2.0, 0.006)
+
 
 # -- calibration -------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +79,12 @@ class Calibration:
     pixels of the full sensor readout (OpenCV pinhole, distortion ignored) and
     ``stage_zero_axis_camera`` ``(x, y, z)``, the polarizer stage's zero axis in the camera
     frame (the ``x`` of the incident Stokes frame, "Stokes reference frames").
+
+    Uncertainty of the calibration itself (1 sigma, propagated into the reported ``sigma`` by
+    :func:`polrig.reference.solve_reference`): ``analyzer_tolerance`` ``(gain_rel, angle_deg,
+    diattenuation)`` and ``generator_tolerance`` ``(zero_offset_deg, inverse_extinction)``.
+    The defaults (zeros) mean an exactly known rig; :func:`nominal_calibration` declares the
+    priors of an uncalibrated one, :func:`load_calibration` a calibration set's fitted values.
     """
 
     id: str
@@ -73,6 +92,8 @@ class Calibration:
     analyzer: AnalyzerModel | None = None
     intrinsics: tuple[float, float, float, float] | None = None
     stage_zero_axis_camera: tuple[float, float, float] | None = None
+    analyzer_tolerance: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    generator_tolerance: tuple[float, float] = (0.0, 0.0)
 
     def incident_stokes(self, states_deg: Sequence[float]) -> np.ndarray:
         a = np.asarray(states_deg, dtype=np.float64)
@@ -82,7 +103,10 @@ class Calibration:
 
 
 def nominal_calibration() -> Calibration:
-    return Calibration(NOMINAL_CALIBRATION_ID)
+    """Ideal polarizer and ideal analyzer, with the priors of an uncalibrated rig
+    (:data:`NOMINAL_ANALYZER_TOLERANCE`, :data:`NOMINAL_GENERATOR_TOLERANCE`)."""
+    return Calibration(NOMINAL_CALIBRATION_ID, analyzer_tolerance=NOMINAL_ANALYZER_TOLERANCE,
+                       generator_tolerance=NOMINAL_GENERATOR_TOLERANCE)
 
 
 def load_calibration(path: str | os.PathLike | None, *, session: Session | None = None
@@ -104,8 +128,11 @@ def load_calibration(path: str | os.PathLike | None, *, session: Session | None 
                               f"yet (no calibration loader installed); omit --calibration to "
                               f"use the nominal model") from None
         cs = calibset.load(p)
+        a_tol, g_tol = calibset.tolerances(cs, NOMINAL_ANALYZER_TOLERANCE,
+                                           NOMINAL_GENERATOR_TOLERANCE)
         cal = Calibration(cs.id, cs.incident_stokes, getattr(cs, "analyzer", None),
-                          *calibration_geometry(cs))
+                          *calibration_geometry(cs), analyzer_tolerance=a_tol,
+                          generator_tolerance=g_tol)
     if session is not None and session.manifest.get("calibration_id") != cal.id:
         raise ConfigError(f"--resume: the session was captured with calibration "
                           f"{session.manifest.get('calibration_id')!r}, not {cal.id!r}")
@@ -340,15 +367,21 @@ def analyzer_stack(state: StateRadiance, layout: MosaicLayout, method: str,
 
 def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           layout: str | MosaicLayout, method: str = "superpixel",
-                          analyzer: AnalyzerModel | None = None) -> ReferenceResult:
-    """The reference solve of all states (see :func:`polrig.reference.solve_reference`)."""
+                          analyzer: AnalyzerModel | None = None, *,
+                          analyzer_tolerance: Sequence[float] | None = None,
+                          generator_tolerance: Sequence[float] | None = None
+                          ) -> ReferenceResult:
+    """The reference solve of all states (see :func:`polrig.reference.solve_reference`;
+    the tolerances are the calibration's, :class:`Calibration`)."""
     lay = resolve_layout(layout)
     parts = [analyzer_stack(s, lay, method, analyzer) for s in states]
     measured = np.stack([p[0] for p in parts])
     variance = np.stack([p[1] for p in parts])
     valid = np.stack([p[2] for p in parts])
     rows = parts[0][3]
-    return solve_reference(s_in, measured, variance, valid, rows)
+    return solve_reference(s_in, measured, variance, valid, rows,
+                           analyzer_tolerance=analyzer_tolerance,
+                           generator_tolerance=generator_tolerance)
 
 
 # -- truth and score ---------------------------------------------------------------------------
@@ -396,7 +429,7 @@ def score_against_truth(result: ReferenceResult, truth: np.ndarray,
     the matrix PSNR in the units of the data); ``within_2sigma``: fraction of elements with
     ``|error| <= 2 sigma`` (0.954 for Gaussian errors when sigma is right);
     ``chi2_per_element``: mean ``(error / sigma)^2`` (1 when sigma is right); ``mean_sigma``:
-    root-mean-square reported sigma, the error the noise model predicts (comparable with
+    root-mean-square reported sigma (noise and calibration), the predicted error (comparable with
     ``rmse``); ``realizable``: pass rate of the coherency test
     (:func:`polrig.realizability.is_physical_linear`) of the measured matrices.
     """
@@ -553,7 +586,10 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
         ox, oy = first.meta.offset_xy
         analyzer = analyzer.crop(ox, oy, w, h)
     s_in = calibration.incident_stokes(cf.states_deg)
-    return reference_from_frames(states, s_in, lay, method, analyzer), s_in, lay, states
+    result = reference_from_frames(states, s_in, lay, method, analyzer,
+                                   analyzer_tolerance=calibration.analyzer_tolerance,
+                                   generator_tolerance=calibration.generator_tolerance)
+    return result, s_in, lay, states
 
 
 class Processor:
@@ -615,6 +651,7 @@ class Processor:
         for r in range(3):
             for c in range(3):
                 extra.update(colour_planes(f"sigma.M{r}{c}", result.sigma[:, r, c]))
+                extra.update(colour_planes(f"sigma_noise.M{r}{c}", result.sigma_noise[:, r, c]))
         extra.update(colour_planes("mask", result.mask.astype(np.float32)))
         extra.update(colour_planes("residual", result.residual))
         meta = {
@@ -626,7 +663,12 @@ class Processor:
             "layout": lay.name, "condition_number": result.condition_number,
             "units": "DN per unit incident S0 at exposure_us (docs/conventions.md)",
             "mask_bits": {str(b): n for b, n in reason_names().items()},
-            "planes": {"sigma.M{rc}": "standard deviation of M{rc} from the sensor noise model",
+            "analyzer_tolerance": list(self.calibration.analyzer_tolerance),
+            "generator_tolerance": list(self.calibration.generator_tolerance),
+            "planes": {"sigma.M{rc}": "standard deviation of M{rc}: sensor noise and "
+                                      "calibration uncertainty",
+                       "sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor "
+                                            "noise model alone",
                        "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"},
             "software": f"polrig {__version__}", "capture": cap["name"],
             "revision": revision or "capture",
@@ -643,7 +685,9 @@ class Processor:
                                revision=revision)
         files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
         files["uncertainty"] = {"part_of": "mueller", "path": rec["path"],
-                                "channels": "sigma.M{row}{col}.{colour}, residual.{colour}"}
+                                "channels": "sigma.M{row}{col}.{colour}, "
+                                            "sigma_noise.M{row}{col}.{colour}, "
+                                            "residual.{colour}"}
         files["mask"] = {"part_of": "mueller", "path": rec["path"],
                          "channels": "mask.{colour} (reason bits, 0 = valid)"}
         score = self.score(session, index, result, lay, s_in,

@@ -38,12 +38,48 @@ determine ``M`` well. ``ILL_CONDITIONED`` means the remaining samples do not (co
 of the remaining design above ``max_condition``, or fewer than 9 samples): its Mueller matrix,
 sigma and residual are 0 (finite, never NaN). ``DARK`` means ``m00`` is below ``min_snr`` times
 its own standard deviation; the estimate is kept.
+
+**Calibration uncertainty** (:func:`solve_reference` ``analyzer_tolerance`` /
+``generator_tolerance``). The solve assumes analyzer rows ``A0`` and incident states ``S``; the
+real ones differ by calibration errors that are the *same* for every sample of a capture, so
+their effect on ``M`` does not average out with frames and is not in ``(D^T W D)^-1``. To first
+order, true samples ``I = (D + dD) vec(M)`` give the estimate
+``vec(M_hat) = G I = vec(M) + G dD vec(M)`` with ``G = (D^T W D)^-1 D^T W``; a calibration
+parameter ``p`` with sample sensitivity ``e_p = (dD/dp) vec(M)`` (a ``4N`` vector) moves the
+estimate by ``dvec(M)/dp = G e_p``, i.e. one more right-hand side ``D^T W e_p`` of the same
+normal equations. Parameters are independent, so
+``sigma_cal^2 = sum_p sigma_p^2 (G e_p)^2`` per element, evaluated at the estimated ``M``;
+because each ``e_p`` spans all states at once, the full correlation of a calibration error
+across states (and across the four analyzers for the generator) is kept. The reported
+``sigma`` is ``sqrt(sigma_noise^2 + sigma_cal^2)``; ``sigma_noise`` keeps the noise part.
+
+* Analyzer ``j`` (row ``a_j = g_j/2 [1, D_j cos 2t_j, D_j sin 2t_j]``): relative gain
+  (``da/dg = a``), orientation (``da/dt = [0, -2 a_2, 2 a_1]`` per rad) and diattenuation
+  (``da/dD = a_0 [0, cos 2t, sin 2t]``), independent per micro-polarizer class, 12 parameters;
+  ``e[k, j'] = delta_jj' (da_j . M s_k)``. For the unweighted solve (``W = I``, all samples) this
+  is exactly ``dM = A0^+ dA M`` (``D = A0 (x) S`` and ``G = A0^+ (x) S^+``, ``S^+ S = I``), hence
+  ``var(dM_il) = sum_j (A0^+_ij)^2 [s_g^2 (a_j . M_:l)^2 + s_t^2 (a_j' . M_:l)^2 +
+  s_D^2 (da_j/dD . M_:l)^2]``. The per-pixel tolerance is applied to each demosaiced row
+  without dividing by the number of averaged sensor pixels: part of a real sensor's error
+  (per-angle orientation bias, mean diattenuation) is common to all of them.
+* Generator: stage zero offset ``phi`` (rotates every state, ``ds/dphi = [0, -2 s_2, 2 s_1]``
+  per rad) and inverse extinction ratio ``e = 1/ER`` (``s = [(1 + e), (1 - e) u] / 2`` for a
+  polarizer with unit transmission axis ``u = (cos 2theta, sin 2theta)``, so
+  ``ds/de = [1, -u] / 2``); ``e[k, j] = a_j . M ds_k``. Unweighted this is
+  ``dM = M dS^T (S^+)^T`` (``A0^+ A0 = I``).
+
+This is linear propagation about the assumed values (first-order Taylor series, GUM,
+JCGM 100:2008, section 5.1); second-order terms are neglected, which at tolerances of degrees
+and percent keeps the coverage of ``2 sigma`` near 95 % (checked in
+``tests/test_reference.py`` with errors drawn from the tolerances). The 14 extra right-hand
+sides make the solve about 2-3x slower; an exact calibration (zero tolerances) skips them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -54,7 +90,8 @@ from polrig.stokes import ideal_analyzer_matrix
 __all__ = [
     "DARK", "SATURATED", "ILL_CONDITIONED", "NONFINITE", "REASONS", "reason_names",
     "DEFAULT_MAX_CONDITION",
-    "ReferenceResult", "design_matrix", "condition_number", "validate_states",
+    "ReferenceResult", "AnalyzerTolerance", "GeneratorTolerance",
+    "design_matrix", "condition_number", "validate_states",
     "forward_measurements", "solve_reference", "average_frames", "merge_hdr",
 ]
 
@@ -81,13 +118,49 @@ def reason_names(code: int | None = None) -> dict[int, str] | tuple[str, ...]:
     return tuple(name for bit, name in REASONS.items() if code & bit)
 
 
+class AnalyzerTolerance(NamedTuple):
+    """1-sigma uncertainty of the analyzer rows the solve assumes, per micro-polarizer class:
+    relative gain (``0.01`` = 1 %), orientation in degrees, diattenuation (absolute)."""
+
+    gain_rel: float = 0.0
+    angle_deg: float = 0.0
+    diattenuation: float = 0.0
+
+
+class GeneratorTolerance(NamedTuple):
+    """1-sigma uncertainty of the incident states the solve assumes: stage zero offset in
+    degrees (common to all states) and inverse extinction ratio ``1/ER`` of the polarizer."""
+
+    zero_offset_deg: float = 0.0
+    inverse_extinction: float = 0.0
+
+
+def _tolerance(value, cls, what: str):
+    if value is None:
+        return cls()
+    try:
+        vals = [float(v) for v in value]
+        if len(vals) != len(cls._fields):
+            raise ValueError
+        tol = cls(*vals)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} tolerance must be {len(cls._fields)} numbers "
+                          f"{cls._fields}, got {value!r}") from None
+    if not all(np.isfinite(v) and v >= 0 for v in tol):
+        raise ConfigError(f"{what} tolerance must be finite and >= 0, got {tuple(tol)}")
+    return tol
+
+
 @dataclass(frozen=True, eq=False)
 class ReferenceResult:
     """Output of :func:`solve_reference` (image stacks plane-first, ``docs/conventions.md``).
 
     ``mueller``: ``(C, 3, 3, H, W)`` float32, DN per unit incident S0.
-    ``sigma``: ``(C, 3, 3, H, W)`` float32 standard deviation of each element, from the
-    covariance ``(D^T W D)^-1`` (noise model, not scaled by the residual).
+    ``sigma``: ``(C, 3, 3, H, W)`` float32 standard deviation of each element:
+    ``sqrt(sigma_noise^2 + sigma_cal^2)``, the noise part and the calibration part (module
+    docstring; 0 for an exact calibration).
+    ``sigma_noise``: the noise part alone, from the covariance ``(D^T W D)^-1`` (noise model,
+    not scaled by the residual); the same array as ``sigma`` when not given.
     ``residual``: ``(C, H, W)`` float32 ``chi^2 / dof`` (0 where ``dof <= 0`` or unsolved).
     ``mask``: ``(C, H, W)`` uint8 reason bits (0 = good), see :func:`reason_names`.
     ``condition_number``: of the full design of the state set (all samples).
@@ -106,6 +179,11 @@ class ReferenceResult:
     condition_number: float
     pixel_condition: np.ndarray
     n_samples: np.ndarray
+    sigma_noise: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.sigma_noise is None:
+            object.__setattr__(self, "sigma_noise", self.sigma)
 
     @property
     def valid(self) -> np.ndarray:
@@ -220,6 +298,8 @@ def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarr
 def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                     valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
                     max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = 3.0,
+                    analyzer_tolerance: Sequence[float] | None = None,
+                    generator_tolerance: Sequence[float] | None = None,
                     chunk_pixels: int = 4096, dtype=np.float32) -> ReferenceResult:
     """Per-pixel, per-colour weighted least-squares 3x3 Mueller block (see module docstring).
 
@@ -231,7 +311,13 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     ``False`` for saturated or bad samples. ``analyzer_rows``: None (ideal), one shared
     ``(4, 3)`` set, or per pixel ``(4, 3, H, W)`` / ``(C, 4, 3, H, W)`` (e.g. demosaiced rows of
     a calibrated analyzer model). ``max_condition``: per-pixel limit on the condition number of
-    the design of the samples used. ``min_snr``: ``m00 / sigma(m00)`` below it is ``DARK``.
+    the design of the samples used. ``min_snr``: ``m00 / sigma(m00)`` below it is ``DARK``
+    (noise sigma).
+
+    ``analyzer_tolerance`` (:class:`AnalyzerTolerance`: relative gain, orientation in deg,
+    diattenuation) and ``generator_tolerance`` (:class:`GeneratorTolerance`: stage zero offset
+    in deg, ``1/ER``): 1-sigma uncertainty of ``analyzer_rows`` and ``s_in``, propagated into
+    ``sigma`` (module docstring); ``None`` or zeros: exact, ``sigma`` is the noise part alone.
 
     ``chunk_pixels``: pixels solved at once (small chunks stay in cache). ``dtype``: of the
     ``mueller``, ``sigma`` and ``residual`` outputs (float32 by the conventions; float64 to
@@ -241,6 +327,12 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     condition number above ``max_condition``) and ``ValueError`` for mismatched shapes; never
     for bad pixel values (they are masked).
     """
+    a_tol = _tolerance(analyzer_tolerance, AnalyzerTolerance, "analyzer")
+    g_tol = _tolerance(generator_tolerance, GeneratorTolerance, "generator")
+    # 1-sigma of the 3 analyzer parameters (gain, rad, D) and the 2 generator ones (rad, 1/ER)
+    cal_sd = (np.array([a_tol.gain_rel, np.deg2rad(a_tol.angle_deg), a_tol.diattenuation,
+                        np.deg2rad(g_tol.zero_offset_deg), g_tol.inverse_extinction])
+              if any(a_tol) or any(g_tol) else None)
     shared = analyzer_rows is None or np.ndim(analyzer_rows) == 2
     cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
     s = _states(s_in)
@@ -261,6 +353,7 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
 
     mueller = np.zeros((n_col, 3, 3, h, w), dtype)
     sigma = np.zeros_like(mueller)
+    sigma_noise = sigma if cal_sd is None else np.zeros_like(mueller)
     residual = np.zeros((n_col, h, w), dtype)
     mask = np.zeros((n_col, h, w), np.uint8)
     pix_cond = np.zeros((n_col, h, w), np.float32)
@@ -282,22 +375,27 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
                 np.moveaxis(v_c[..., sl], -1, 0).astype(np.float64),
                 None if ok_c is None else np.moveaxis(ok_c[..., sl], -1, 0),
                 a_shared, None if a_c is None else np.moveaxis(a_c[..., sl], -1, 0),
-                max_condition, min_snr, pattern_cache, cond_all)
-            mm, sg, rs, mk, pc, nu = res
+                max_condition, min_snr, pattern_cache, cond_all, cal_sd)
+            mm, sg, sn, rs, mk, pc, nu = res
             mueller.reshape(n_col, 3, 3, hw)[c, :, :, sl] = np.moveaxis(mm, 0, -1)
             sigma.reshape(n_col, 3, 3, hw)[c, :, :, sl] = np.moveaxis(sg, 0, -1)
+            if cal_sd is not None:
+                sigma_noise.reshape(n_col, 3, 3, hw)[c, :, :, sl] = np.moveaxis(sn, 0, -1)
             residual.reshape(n_col, hw)[c, sl] = rs
             mask.reshape(n_col, hw)[c, sl] = mk
             pix_cond.reshape(n_col, hw)[c, sl] = pc
             n_used.reshape(n_col, hw)[c, sl] = nu
-    return ReferenceResult(mueller, sigma, residual, mask, cond_all, pix_cond, n_used)
+    return ReferenceResult(mueller, sigma, residual, mask, cond_all, pix_cond, n_used,
+                           sigma_noise)
 
 
 def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, pattern_cache,
-                 cond_all):
+                 cond_all, cal_sd=None):
     """Solve ``P`` pixels. meas/var/valid: ``(P, N, 4)``; a_pix: ``(P, 4, 3)`` or None (then
     ``a_shared`` ``(4, 3)`` is the analyzer; with ``a_pix`` it only serves the condition
-    numbers)."""
+    numbers). ``cal_sd``: None or the 5 calibration standard deviations (gain, analyzer angle
+    rad, diattenuation, zero offset rad, 1/ER). Returns ``(M, sigma, sigma_noise, residual,
+    flags, condition, n_used)``."""
     p, n, _ = meas.shape
     meas = meas.reshape(p, n * 4)
     var = var.reshape(p, n * 4)
@@ -348,10 +446,19 @@ def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, p
     dscale = np.where(solvable & (diag > 0), 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
     nm = nm * dscale[_TRIL[0]] * dscale[_TRIL[1]]
     nm[:, ~solvable] = _EYE_TRIL[:, None]
-    x, dinv, bad = _cholesky_solve(_from_tril(nm), np.where(solvable, rhs * dscale, 0.0))
+    x, inv, bad = _cholesky_solve(_from_tril(nm), np.where(solvable, rhs * dscale, 0.0))
     solvable &= ~bad
     x = x * dscale
-    sig = dscale * np.sqrt(np.clip(dinv, 0.0, None))
+    sig = dscale * np.sqrt(np.clip(np.einsum("kip,kip->ip", inv, inv), 0.0, None))
+    sig_noise = sig
+    if cal_sd is not None:
+        sens = _calibration_rhs(s, a_shared if a_pix is None else a_pix,
+                                wgt.reshape(p, n, 4), x, cal_sd)  # (P, Q, 9)
+        # G e_p = (D^T W D)^-1 D^T W e_p with the equilibrated factor: S L^-T L^-1 S rhs
+        lin = np.moveaxis(inv, -1, 0)  # (P, 9, 9) L^-1
+        sc = dscale.T[:, None, :]
+        dm = (((sens * sc) @ np.swapaxes(lin, 1, 2)) @ lin) * sc
+        sig = np.sqrt(sig_noise**2 + np.einsum("pqi,pqi->ip", dm, dm))
 
     if a_pix is None:
         pred = x.T @ d.T  # (P, 4N)
@@ -369,9 +476,52 @@ def _solve_chunk(s, meas, var, valid, a_shared, a_pix, max_condition, min_snr, p
     flags |= np.where(dark, DARK, 0).astype(np.uint8)
     x = np.where(solvable, x, 0.0)
     sig = np.where(solvable, sig, 0.0)
+    sig_noise = np.where(solvable, sig_noise, 0.0)
     resid = np.where(solvable, resid, 0.0)
-    return (x.T.reshape(p, 3, 3), sig.T.reshape(p, 3, 3), resid, flags,
-            cond, np.minimum(n_ok, 65535))
+    return (x.T.reshape(p, 3, 3), sig.T.reshape(p, 3, 3), sig_noise.T.reshape(p, 3, 3), resid,
+            flags, cond, np.minimum(n_ok, 65535))
+
+
+def _unit_xy(v: np.ndarray) -> np.ndarray:
+    """``(v_1, v_2) / |(v_1, v_2)|`` of vectors ``(..., 3)`` (0 where that part is 0)."""
+    xy = v[..., 1:3]
+    norm = np.sqrt(np.einsum("...i,...i->...", xy, xy))[..., None]
+    return np.where(norm > 0, xy / np.where(norm > 0, norm, 1.0), 0.0)
+
+
+def _calibration_rhs(s, a_rows, wgt, x, cal_sd):
+    """Right-hand sides ``sigma_p D^T W e_p`` ``(P, Q, 9)`` of the ``Q = 14`` calibration
+    parameters (module docstring): (gain, angle, diattenuation) x 4 analyzers, then zero
+    offset and ``1/ER``. ``s`` ``(N, 3)``, ``a_rows`` shared ``(4, 3)`` or ``(P, 4, 3)``,
+    ``wgt`` ``(P, N, 4)``, ``x`` ``(9, P)`` the estimate, ``cal_sd`` the 5 standard deviations."""
+    p = x.shape[1]
+    n = s.shape[0]
+    m = np.ascontiguousarray(np.moveaxis(x.reshape(3, 3, p), -1, 0))  # (P, 3, 3)
+    a = a_rows if a_rows.ndim == 3 else a_rows[None]
+    # analyzer row derivatives, row 4 q + j: relative gain, angle (rad), diattenuation
+    da = np.zeros(a.shape[:-2] + (3, 4, 3))
+    da[..., 0, :, :] = a
+    da[..., 1, :, 1] = -2.0 * a[..., 2]
+    da[..., 1, :, 2] = 2.0 * a[..., 1]
+    da[..., 2, :, 1:] = a[..., :1] * _unit_xy(a)
+    da = da.reshape(a.shape[:-2] + (12, 3))
+    w_t = wgt.transpose(0, 2, 1)  # (P, 4, N)
+    we = (da @ m @ s.T) * np.tile(w_t, (1, 3, 1))  # w e: da_j . M s_k on analyzer j only
+    out = np.empty((p, 14, 3, 3))
+    # D^T W e = kron(a_j, sum_k w e s_k): outer products a_j (x) (we @ s)
+    out[:, :12] = (np.tile(a, (1, 3, 1))[..., :, None]
+                   @ ((we @ s) * np.repeat(cal_sd[:3], 4)[:, None])[..., None, :])
+    # generator state derivatives (2, N, 3): zero offset (rad), 1/ER
+    ds = np.zeros((2,) + s.shape)
+    ds[0, :, 1] = -2.0 * s[:, 2]
+    ds[0, :, 2] = 2.0 * s[:, 1]
+    ds[1, :, 0] = 0.5
+    ds[1, :, 1:] = -0.5 * _unit_xy(s)
+    e_g = (a @ m @ ds.reshape(2 * n, 3).T).reshape(p, 4, 2, n)  # a_j . M ds_gk
+    at = np.swapaxes(a, -1, -2)  # (P or 1, 3, 4)
+    for g in range(2):
+        out[:, 12 + g] = (at @ (e_g[:, :, g] * w_t) @ s) * cal_sd[3 + g]
+    return out.reshape(p, 14, 9)
 
 
 _TRIL = np.tril_indices(9)
@@ -393,9 +543,10 @@ def _cholesky_solve(a: np.ndarray, b: np.ndarray, eps: float = 1e-12):
     operation a long vector operation; faster than ``numpy.linalg`` on many 9x9 systems).
 
     ``a``: ``(n, n, P)`` symmetric positive definite (equilibrated: unit diagonal), ``b``:
-    ``(n, P)``. Returns ``x = a^-1 b``, ``diag(a^-1)`` (both ``(n, P)``) and ``bad`` ``(P,)``,
-    true where a pivot fell below ``eps`` (not positive definite to working precision; those
-    results are meaningless and must be masked).
+    ``(n, P)``. Returns ``x = a^-1 b`` ``(n, P)``, the inverse ``L^-1`` ``(n, n, P)`` of the
+    Cholesky factor (``a^-1 = L^-T L^-1``; ``diag(a^-1)`` is ``sum_k (L^-1)_ki^2``) and ``bad``
+    ``(P,)``, true where a pivot fell below ``eps`` (not positive definite to working precision;
+    those results are meaningless and must be masked).
     """
     n, _, p = a.shape
     low = np.zeros_like(a)
@@ -418,7 +569,7 @@ def _cholesky_solve(a: np.ndarray, b: np.ndarray, eps: float = 1e-12):
         inv[i, i] = 1.0 / low[i, i]
         if i:
             inv[i, :i] = -np.einsum("kp,kjp->jp", low[i, :i], inv[:i, :i]) / low[i, i]
-    return x, np.einsum("kip,kip->ip", inv, inv), bad
+    return x, inv, bad
 
 
 # ---------------------------------------------------------------------------- frames, HDR

@@ -21,6 +21,9 @@ from polrig.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
 from sim.devices import create_sim_rig
 
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
+#: the ideal rig, exactly known (zero calibration tolerances): its reported sigma is the
+#: sensor noise model's alone, which these tests check against the truth
+EXACT = processing.Calibration("ideal")
 
 
 def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
@@ -30,7 +33,7 @@ def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
 
 
 def start(rig, out: pathlib.Path, plan: CapturePlan, **kw) -> tuple[Session, processing.Processor]:
-    cal = processing.nominal_calibration()
+    cal = EXACT
     processing.check_plan(plan, cal)
     session = create_session(out, rig, plan, calibration_id=cal.id, **kw)
     return session, processing.make_processor(plan, cal, processing.session_sensor_model(session))
@@ -39,7 +42,7 @@ def start(rig, out: pathlib.Path, plan: CapturePlan, **kw) -> tuple[Session, pro
 def resume(rig, out: pathlib.Path, **kw):
     session = Session.open(out)
     plan = CapturePlan.from_json(session.plan)
-    proc = processing.make_processor(plan, processing.nominal_calibration(),
+    proc = processing.make_processor(plan, EXACT,
                                      processing.session_sensor_model(session))
     return session, run_session(rig, session, processor=proc, **kw)
 

@@ -195,6 +195,11 @@ def test_nonfinite_samples_and_extremes_give_masks_not_exceptions():
     assert res.mask[0, 1, 2] == ref.DARK
     assert res.n_samples[0, 0, 0] == 15 and res.n_samples[0, 0, 1] == 0
     assert res.pixel_condition[0, 0, 0] > 2.0 and res.pixel_condition[0, 0, 1] == np.inf
+    # the calibration term keeps outputs finite and masks unchanged (0 where unsolved)
+    rt = ref.solve_reference(s, meas, var, analyzer_tolerance=A_TOL, generator_tolerance=G_TOL,
+                             dtype=np.float64)
+    assert np.isfinite(rt.sigma).all() and np.array_equal(rt.mask, res.mask)
+    assert np.all(rt.sigma[0, :, :, 0, 1] == 0) and np.all(rt.sigma >= rt.sigma_noise)
 
 
 def test_shape_errors_are_value_errors():
@@ -260,3 +265,115 @@ def test_merge_hdr_unbiased_calibrated_and_masks_saturation():
         ref.merge_hdr([(sat, -1.0)], sensor.saturation_dn, sensor)
     with pytest.raises(ValueError, match="shape"):
         ref.merge_hdr([(sat, 1.0), (sat[:3], 2.0)], sensor.saturation_dn, sensor)
+
+
+# ---------------------------------------------------------------------------- calibration sigma
+A_TOL = (0.01, 0.5, 0.02)  # relative gain, orientation deg, diattenuation (1 sigma)
+G_TOL = (2.0, 0.006)  # stage zero offset deg, 1/ER (1 sigma)
+
+
+def _sensor_weighted(truth, s, rows=None, exposure_us=10_000.0):
+    """Noise-free samples with the sensor model's variances as weights (a weighted solve)."""
+    meas = ref.forward_measurements(truth, s, rows)
+    return meas, SensorModel().variance_dn2(np.clip(meas, 0, None), exposure_us)
+
+
+def test_exact_calibration_gives_the_noise_sigma_and_tolerances_change_only_sigma():
+    rng = np.random.default_rng(5)
+    truth = physical_mueller_images(rng, 2, 9, 11, scale_dn=2000.0)
+    s = states(0, 45, 90, 135)
+    meas, var = _sensor_weighted(truth, s)
+    meas[0, 0, 1, 2, 3] = np.nan  # a pixel with an excluded sample: its own weights
+    base = ref.solve_reference(s, meas, var, dtype=np.float64)
+    for a_tol, g_tol in ((None, None), ((0, 0, 0), (0, 0)), ((0.0, 0.0, 0.0), None)):
+        r = ref.solve_reference(s, meas, var, analyzer_tolerance=a_tol,
+                                generator_tolerance=g_tol, dtype=np.float64)
+        assert np.array_equal(r.sigma, base.sigma) and r.sigma_noise is r.sigma
+    r = ref.solve_reference(s, meas, var, analyzer_tolerance=A_TOL, generator_tolerance=G_TOL,
+                            dtype=np.float64)
+    assert np.array_equal(r.sigma_noise, base.sigma)
+    assert np.array_equal(r.mueller, base.mueller) and np.array_equal(r.mask, base.mask)
+    assert np.all(r.sigma >= r.sigma_noise) and np.mean(r.sigma > r.sigma_noise) > 0.9
+    with pytest.raises(ConfigError, match="finite and >= 0"):
+        ref.solve_reference(s, meas, var, analyzer_tolerance=(0.01, -1, 0))
+    with pytest.raises(ConfigError, match="2 numbers"):
+        ref.solve_reference(s, meas, var, generator_tolerance=(1.0,))
+
+
+@pytest.mark.parametrize("per_pixel_rows", [False, True])
+def test_calibration_sigma_of_the_unweighted_solve_is_the_closed_form(per_pixel_rows):
+    """Equal weights: analyzer errors give dM = A0^+ dA M, generator errors
+    dM = M dS^T (S^+)^T (polrig.reference docstring); per-pixel ideal rows take the general
+    path and must agree."""
+    rng = np.random.default_rng(7)
+    m = rng.normal(size=(1, 3, 3, 6, 5))
+    s = states(0, 30, 75, 120, 160)
+    a0 = ideal_analyzer_matrix()
+    rows = np.broadcast_to(a0[:, :, None, None], (4, 3, 6, 5)) if per_pixel_rows else None
+    meas = ref.forward_measurements(m, s, rows)
+    ones = np.ones_like(meas)
+    ra = ref.solve_reference(s, meas, ones, None, rows, analyzer_tolerance=A_TOL, dtype=np.float64)
+    rg = ref.solve_reference(s, meas, ones, None, rows, generator_tolerance=G_TOL, dtype=np.float64)
+    mm = np.moveaxis(m[0], (0, 1), (-2, -1))  # (H, W, 3, 3)
+    t = np.radians([0, 45, 90, 135])
+    da_dt = np.stack([0 * t, -np.sin(2 * t), np.cos(2 * t)], 1)  # d a_j / d t (per rad)
+    da_dd = 0.5 * np.stack([0 * t, np.cos(2 * t), np.sin(2 * t)], 1)  # d a_j / d D
+    proj = lambda d: np.einsum("ja,hwal->hwjl", d, mm) ** 2  # noqa: E731  (d_j . M[:, l])^2
+    var_a = np.einsum("ij,hwjl->hwil", np.linalg.pinv(a0) ** 2,
+                      A_TOL[0] ** 2 * proj(a0) + np.radians(A_TOL[1]) ** 2 * proj(da_dt)
+                      + A_TOL[2] ** 2 * proj(da_dd))
+    sp = np.linalg.pinv(s)  # (3, N)
+    ds_phi = np.stack([0 * s[:, 0], -2 * s[:, 2], 2 * s[:, 1]], 1)
+    ang = 2 * np.radians([0, 30, 75, 120, 160])
+    ds_e = 0.5 * np.stack([np.ones(5), -np.cos(ang), -np.sin(ang)], 1)
+    var_g = sum((tol * np.einsum("hwab,kb,ck->hwac", mm, d, sp)) ** 2
+                for tol, d in ((np.radians(G_TOL[0]), ds_phi), (G_TOL[1], ds_e)))
+    for r, var in ((ra, var_a), (rg, var_g)):
+        cal = np.sqrt(r.sigma[0] ** 2 - r.sigma_noise[0] ** 2)
+        assert np.allclose(np.moveaxis(cal, (0, 1), (-2, -1)), np.sqrt(var),
+                           rtol=1e-6, atol=1e-9 * np.abs(m).max())
+
+
+def _coverage(err, res):
+    """Fraction of elements within 2 sigma_cal (noise-free data: the error is calibration's)."""
+    cal = np.sqrt(np.clip(res.sigma**2 - res.sigma_noise**2, 0, None))
+    assert np.all(res.mask == 0) and np.all(cal > 0)
+    return np.mean(np.abs(err) <= 2 * cal)
+
+
+def test_analyzer_errors_from_the_tolerances_fall_within_2_sigma_cal():
+    """Per-pixel analyzer rows drawn from the stated tolerance distributions (independent per
+    micro-polarizer), noise off, weighted solve with the ideal rows: 95.45 % of the elements
+    lie within 2 sigma_cal (0.9 % is about 3 binomial sd for elements of ~5000 pixels,
+    correlated within a pixel)."""
+    rng = np.random.default_rng(11)
+    c, h, w = 3, 40, 40
+    truth = physical_mueller_images(rng, c, h, w, scale_dn=3000.0)
+    g = 1 + A_TOL[0] * rng.normal(size=(c, 4, h, w))
+    t = (np.radians([0, 45, 90, 135])[None, :, None, None]
+         + np.radians(A_TOL[1]) * rng.normal(size=(c, 4, h, w)))
+    d = 1 + A_TOL[2] * rng.normal(size=(c, 4, h, w))
+    rows = 0.5 * g[:, :, None] * np.stack([np.ones_like(t), d * np.cos(2 * t),
+                                           d * np.sin(2 * t)], 2)
+    s = states(0, 45, 90, 135) * 1.0
+    meas, var = _sensor_weighted(truth, s, rows)
+    res = ref.solve_reference(s, meas, var, analyzer_tolerance=A_TOL, dtype=np.float64)
+    assert _coverage(res.mueller - truth, res) == pytest.approx(0.9545, abs=0.009)
+
+
+def test_generator_errors_from_the_tolerances_fall_within_2_sigma_cal():
+    """Stage zero offset ~ N(0, 2 deg) and 1/ER = |N(0, 0.006)| drawn per pixel (each pixel an
+    independent rig), solved with the nominal ideal polarizer states: 95.45 % within
+    2 sigma_cal. Six states, one of them measured twice (weights from the sensor model)."""
+    rng = np.random.default_rng(12)
+    c, h, w = 2, 50, 50
+    truth = physical_mueller_images(rng, c, h, w, scale_dn=3000.0)
+    stage = np.array([0, 30, 60, 90, 120, 150])
+    phi = np.radians(G_TOL[0]) * rng.normal(size=(c, h, w))
+    er = 1 / np.maximum(np.abs(G_TOL[1] * rng.normal(size=(c, h, w))), 1e-12)
+    s_true = mu.polarizer_stokes(np.radians(stage)[:, None, None, None] + phi, er)  # (N,C,H,W,3)
+    meas = np.einsum("ja,cabhw,kchwb->kcjhw", ideal_analyzer_matrix(), truth, s_true)
+    var = SensorModel().variance_dn2(np.clip(meas, 0, None), 10_000.0)
+    s = states(*stage)
+    res = ref.solve_reference(s, meas, var, generator_tolerance=G_TOL, dtype=np.float64)
+    assert _coverage(res.mueller - truth, res) == pytest.approx(0.9545, abs=0.009)
