@@ -10,6 +10,14 @@ import pytest
 # Qt widgets render offscreen in tests (CI has no display).
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+from hypothesis import settings  # noqa: E402
+
+# No per-example deadline (a loaded 2-core machine must not turn slow examples into failures);
+# in CI the examples are derandomized so a run is reproducible, while local runs keep exploring.
+settings.register_profile("dev", deadline=None)
+settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
+settings.load_profile("ci" if os.environ.get("CI") else "dev")
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("POLRIG_SHARED", REPO.parent / "shared"))
 REAL_DOFP = SHARED / "data" / "real-dofp"
