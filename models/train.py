@@ -151,14 +151,17 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
 def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
           *, resume: bool = False, export: bool = True, overrides: dict | None = None,
           init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] = STAGES,
-          echo: Callable[[str], None] = print) -> dict:
+          warm_start: bool = False, echo: Callable[[str], None] = print) -> dict:
     """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
     of the checkpoint's configuration (e.g. more epochs for a stage). ``init_from`` (a
     checkpoint of another run) with ``stages`` retrains only those stages from scratch and
     takes the other networks (and their training times) from that checkpoint, e.g. a new
-    PMMNet on a trained PIPNet. Returns the summary dict also written to ``OUT/summary.json``."""
+    PMMNet on a trained PIPNet; with ``warm_start`` the trained stages start from the donor's
+    weights instead (fine-tuning with a fresh optimizer and learning-rate schedule). Returns the summary dict also written to ``OUT/summary.json``."""
+    if warm_start and init_from is None:
+        raise ValueError("warm_start needs init_from (the checkpoint to start from)")
     bad = [s for s in stages if s not in STAGES]
     if bad:
         raise ValueError(f"unknown stage(s) {bad}; stages are {STAGES}")
@@ -208,6 +211,10 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                 times[k] = donor["times"][k]
                 epochs[k] = donor["config"][f"{k}_epochs"]
         echo(f"networks {[k for k in STAGES if k not in stages]} taken from {init_from}")
+        if warm_start:
+            for k in stages:
+                models[k].load_state_dict(donor["models"][k])
+            echo(f"networks {list(stages)} warm-started from {init_from}")
     if state is not None:
         for k in STAGES:
             models[k].load_state_dict(state["models"][k])

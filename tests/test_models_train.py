@@ -108,3 +108,18 @@ def test_retrain_one_stage_on_networks_of_another_run(trained, tmp_path):
     assert summary["stages_trained"] == ["pmmnet"] and summary["config"]["direct_epochs"] == TINY.direct_epochs
     with pytest.raises(ValueError):
         train(data, tmp_path / "bad", stages=("nonsense",), echo=lambda s: None)
+
+
+def test_warm_start_fine_tunes_from_the_donor_weights(trained, tmp_path):
+    """With ``warm_start`` the trained stage starts at the donor's weights (lr 0 keeps them
+    exactly); without it the stage starts from a fresh initialization."""
+    root, data, _ = trained
+    donor = torch.load(root / "run" / "checkpoint.pt", weights_only=False)["models"]["direct"]
+    for warm, run in ((True, "warm"), (False, "cold")):
+        train(data, tmp_path / run, init_from=root / "run" / "checkpoint.pt", stages=("direct",), warm_start=warm,
+              overrides={"lr": 0.0}, export=False, echo=lambda s: None)
+        mine = dict(torch.load(tmp_path / run / "checkpoint.pt", weights_only=False)["models"]["direct"])
+        same = all(torch.equal(v, mine[k]) for k, v in donor.items() if k.endswith("weight") and v.dim() == 4)
+        assert same == warm
+    with pytest.raises(ValueError, match="init_from"):
+        train(data, tmp_path / "bad", warm_start=True, echo=lambda s: None)

@@ -35,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "others are taken from that checkpoint")
     p.add_argument("--init-from", default=None, help="checkpoint.pt of another run to take the "
                                                      "networks of the stages not trained from")
+    p.add_argument("--warm-start", action="store_true", help="with --init-from: start the trained "
+                   "stages from that checkpoint's weights too (fine-tuning, fresh schedule)")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export")
     p.set_defaults(func=run)
 
@@ -65,5 +67,6 @@ def run(args: argparse.Namespace) -> int:
     if args.init_from is None and set(stages) != {"pipnet", "pmmnet", "direct"} and not args.resume:
         raise ValueError("training a subset of the stages needs --init-from CHECKPOINT for the others")
     train(args.data, args.out, None, resume=args.resume, export=not args.no_export,
-          overrides=overrides, init_from=args.init_from, stages=stages)
+          overrides=overrides, init_from=args.init_from, stages=stages,
+          warm_start=args.warm_start)
     return 0
