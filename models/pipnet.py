@@ -7,6 +7,19 @@ camera model), a shared U-Net backbone feeds three pixel-wise heads: unit normal
 (camera frame), RGB diffuse albedo ``kd`` and unit light direction ``wi``; an image-wide GGX
 roughness ``alpha`` comes from masked average pooling of the bottleneck and a small fully
 connected branch. Loss: ``cos(n) + 0.5 L1(kd) + 0.5 L1(wi) + 0.3 L1(alpha)`` over the mask.
+
+Shape-from-polarization prior (an addition to the paper, ``sfp_prior=True``; ``models/MODEL_CARD.md``):
+diffuse reflection leaves the surface polarized in the plane of emission (the plane of ``n``
+and ``wo``) with a degree of polarization that depends only on the zenith angle between them
+and the index of refraction (Atkinson & Hancock, IEEE TIP 15(6) 2006, eq. 13 and Fig. 3). So
+every pixel's measured AoLP and DoLP give, in closed form, two candidate normals
+``n+-  = cos(theta) wo +- sin(theta) e`` (``e`` the unit polarization direction in the emergent
+frame, ``theta`` the zenith from the inverted diffuse DoLP at eta = 1.5): :func:`sfp_candidates`.
+They are local (no shape prior), so they hold on shapes never seen in training; what they miss
+is which of the two is right and where specular reflection dominates the polarization. PIPNet
+receives both as input planes and its normal head blends them with a free normal
+(``n = normalize(p+ n+ + p- n- + p_f n_free)``, softmax weights per pixel), so choosing or
+overriding the candidates is what it learns.
 """
 
 from __future__ import annotations
@@ -19,6 +32,62 @@ from models.layers import SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_s
 
 #: Roughness range the head can output (GGX alpha).
 ALPHA_MIN, ALPHA_MAX = 0.01, 1.0
+#: Index of refraction of the shape-from-polarization prior (the pBRDF initialization's eta).
+SFP_ETA = 1.5
+
+
+def diffuse_dolp(zenith: torch.Tensor, eta: float = SFP_ETA) -> torch.Tensor:
+    """Degree of linear polarization of diffuse reflection at emission zenith ``zenith``
+    (rad) for index ``eta`` (Atkinson & Hancock 2006, eq. 13)."""
+    s2 = torch.sin(zenith) ** 2
+    c = torch.cos(zenith)
+    return ((eta - 1.0 / eta) ** 2 * s2
+            / (2.0 + 2.0 * eta * eta - (eta + 1.0 / eta) ** 2 * s2 + 4.0 * c * torch.sqrt(eta * eta - s2)))
+
+
+def diffuse_zenith(dolp: torch.Tensor, eta: float = SFP_ETA) -> torch.Tensor:
+    """Inverse of :func:`diffuse_dolp` in closed form: zenith (rad) in [0, pi/2). The
+    expression is the one W. Smith's code for Smith, Ramamoorthi & Tozza, "Linear depth
+    estimation from an uncalibrated, monocular polarisation image", ECCV 2016 uses
+    (``utils/rho_diffuse.m`` of github.com/waps101/depth-from-polarisation), rearranged;
+    ``tests/test_models_pipnet.py`` checks it inverts :func:`diffuse_dolp`. DoLP values above
+    the model's maximum (grazing emission) are clamped to it."""
+    r_max = float(diffuse_dolp(torch.tensor(0.5 * torch.pi - 1e-4, dtype=torch.float64), eta))
+    r = dolp.clamp(0.0, r_max)
+    e2, e3, e4 = eta * eta, eta ** 3, eta ** 4
+    num = (e4 * (1.0 - r * r) + 2.0 * e2 * (2.0 * r * r + r - 1.0) + r * r + 2.0 * r
+           - 4.0 * e3 * r * torch.sqrt((1.0 - r * r).clamp_min(0.0)) + 1.0)
+    den = (r + 1.0) ** 2 * (e4 + 1.0) + 2.0 * e2 * (3.0 * r * r + 2.0 * r - 1.0)
+    return torch.acos(torch.sqrt((num / den).clamp(0.0, 1.0)))
+
+
+def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
+                   eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two diffuse shape-from-polarization normals ``(B, 3, H, W)`` (camera frame) of
+    measured Stokes images ``(B, C, 3, H, W)`` (averaged over colours) seen along ``wo``.
+
+    Emergent frame (``docs/conventions.md``): ``k = wo``, ``x`` = camera ``X`` made
+    perpendicular to ``k``, ``y = k x x``; the AoLP ``phi`` runs from ``x`` towards ``y``, so the
+    polarization direction is ``e = cos(phi) x + sin(phi) y``, computed without angles from
+    ``(cos 2phi, sin 2phi) = (S1, S2) / |S1, S2|`` as ``(1 + cos 2phi, sin 2phi)`` or
+    ``(sin 2phi, 1 - cos 2phi)`` (both parallel to ``e``, the better conditioned one is used;
+    the sign does not matter since both candidates are returned)."""
+    s = stokes.mean(1)  # (B, 3, H, W)
+    s0, s1, s2 = s[:, 0:1], s[:, 1:2], s[:, 2:3]
+    zen = diffuse_zenith(torch.sqrt(s1 * s1 + s2 * s2) / s0.clamp_min(eps), eta)
+    lin = torch.sqrt(s1 * s1 + s2 * s2 + eps * eps)
+    c2, sn2 = s1 / lin, s2 / lin
+    first = c2 >= 0
+    ex = torch.where(first, 1.0 + c2, sn2)
+    ey = torch.where(first, sn2, 1.0 - c2)
+    k = F.normalize(wo, dim=1, eps=eps)
+    cam_x = torch.cat([torch.ones_like(k[:, :1]), torch.zeros_like(k[:, 1:])], 1)
+    x = F.normalize(cam_x - k[:, :1] * k, dim=1, eps=eps)
+    y = torch.cat([k[:, 1:2] * x[:, 2:3] - k[:, 2:3] * x[:, 1:2], k[:, 2:3] * x[:, 0:1] - k[:, 0:1] * x[:, 2:3],
+                   k[:, 0:1] * x[:, 1:2] - k[:, 1:2] * x[:, 0:1]], 1)  # k x x (no Cross op in ONNX)
+    e = F.normalize(ex * x + ey * y, dim=1, eps=eps)
+    along, across = torch.cos(zen) * k, torch.sin(zen) * e
+    return along + across, along - across
 
 
 def pipnet_features(analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
@@ -30,11 +99,12 @@ def pipnet_features(analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tens
 
 
 class PIPNet(nn.Module):
-    def __init__(self, colours: int = 3, width: int = 16):
+    def __init__(self, colours: int = 3, width: int = 16, sfp_prior: bool = False):
         super().__init__()
         self.colours = colours
-        self.backbone = UNetBackbone(6 * colours + 7, width)
-        self.normal_head = nn.Conv2d(width, 3, 1)
+        self.sfp_prior = sfp_prior
+        self.backbone = UNetBackbone(6 * colours + 7 + (6 if sfp_prior else 0), width)
+        self.normal_head = nn.Conv2d(width, 6 if sfp_prior else 3, 1)
         self.kd_head = nn.Conv2d(width, colours, 1)
         self.wi_head = nn.Conv2d(width, 3, 1)
         self.alpha_head = nn.Sequential(nn.Linear(4 * width, 32), nn.ReLU(inplace=True), nn.Linear(32, 1))
@@ -42,10 +112,19 @@ class PIPNet(nn.Module):
     def forward(self, analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
                 wo: torch.Tensor) -> dict[str, torch.Tensor]:
         """-> ``normal`` (B,3,H,W), ``kd`` (B,C,H,W), ``wi`` (B,3,H,W), ``alpha`` (B,)."""
-        feat, bottleneck = self.backbone(pipnet_features(analyzer, mask, s_in, wo))
+        x = pipnet_features(analyzer, mask, s_in, wo)
+        if self.sfp_prior:
+            n_plus, n_minus = sfp_candidates(stokes_from_analyzer(analyzer), wo)
+            x = torch.cat([x, n_plus, n_minus], 1)
+        feat, bottleneck = self.backbone(x)
         # Bias the normal towards the viewer and the light towards the upper hemisphere so an
         # untrained head starts from a plausible geometry.
-        normal = F.normalize(self.normal_head(feat) + wo, dim=1, eps=1e-6)
+        head = self.normal_head(feat)
+        free = head[:, :3] + wo
+        if self.sfp_prior:
+            w = torch.softmax(head[:, 3:], dim=1)
+            free = w[:, 0:1] * n_plus + w[:, 1:2] * n_minus + w[:, 2:3] * F.normalize(free, dim=1, eps=1e-6)
+        normal = F.normalize(free, dim=1, eps=1e-6)
         wi = F.normalize(self.wi_head(feat) + wo, dim=1, eps=1e-6)
         kd = F.softplus(self.kd_head(feat))
         small_mask = F.avg_pool2d(mask, SIZE_MULTIPLE, SIZE_MULTIPLE)

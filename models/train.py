@@ -42,6 +42,8 @@ class TrainConfig:
     decay_start: float = 0.5
     lr_final_fraction: float = 0.05
     width: int = 16
+    #: PIPNet with the shape-from-polarization normal prior (models.pipnet, an addition to the paper)
+    sfp_prior: bool = True
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -54,6 +56,11 @@ def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
          ("analyzer", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller", "stage_zero_axis")}
     t["mask"] = torch.from_numpy(a["mask"])[:, None]
     return t
+
+
+def _config_of(checkpoint: dict) -> dict:
+    """A checkpoint's configuration; checkpoints from before the SfP prior existed had none."""
+    return {"sfp_prior": False, **checkpoint["config"]}
 
 
 def lr_at(config: TrainConfig, epoch: int, epochs: int) -> float:
@@ -171,7 +178,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     state = None
     if resume and ckpt_path.exists():
         state = torch.load(ckpt_path, weights_only=False)
-        config = TrainConfig(**state["config"])
+        config = TrainConfig(**_config_of(state))
         stages = tuple(state.get("stages", STAGES))
         echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
     elif (out / "log.csv").exists() and not resume:
@@ -180,7 +187,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     if init_from is not None and state is None:
         donor = torch.load(init_from, weights_only=False)
         if config is None:  # same architecture and settings as the run the networks come from
-            config = TrainConfig(**donor["config"])
+            config = TrainConfig(**_config_of(donor))
     config = dataclasses.replace(config or TrainConfig(), **(overrides or {}))
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -197,7 +204,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     echo(f"data: {n} samples of {ds.shape[0]}x{ds.shape[1]} ({len(train_idx)} train, {n_val} val), "
          f"loaded in {time.time() - t0:.1f}s")
 
-    models = {"pipnet": PIPNet(colours, config.width), "pmmnet": PMMNet(colours, config.width),
+    models = {"pipnet": PIPNet(colours, config.width, config.sfp_prior), "pmmnet": PMMNet(colours, config.width),
               "direct": DirectStokesToMM(colours, config.width)}
     steps = {"pipnet": pipnet_step, "pmmnet": pmmnet_step, "direct": direct_step}
     epochs = {"pipnet": config.pipnet_epochs, "pmmnet": config.pmmnet_epochs, "direct": config.direct_epochs}

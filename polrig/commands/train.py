@@ -26,6 +26,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None, help="initial Adam learning rate")
     p.add_argument("--width", type=int, default=None, help="backbone width (channels at 1/2 resolution)")
+    p.add_argument("--decay-start", type=float, default=None,
+                   help="fraction of each stage's epochs at the initial learning rate before the linear decay")
+    p.add_argument("--sfp-prior", action=argparse.BooleanOptionalAction, default=None,
+                   help="PIPNet with the shape-from-polarization normal prior (default on for new runs)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
@@ -56,6 +60,12 @@ def run(args: argparse.Namespace) -> int:
     overrides = {}
     if args.epochs is not None:
         overrides.update(pipnet_epochs=args.epochs, pmmnet_epochs=args.epochs, direct_epochs=args.epochs)
+    if args.sfp_prior is not None:
+        overrides["sfp_prior"] = args.sfp_prior
+    if args.decay_start is not None:
+        if not 0.0 <= args.decay_start <= 1.0:
+            raise ValueError(f"--decay-start must be in [0, 1], got {args.decay_start}")
+        overrides["decay_start"] = args.decay_start
     for name in ("pipnet_epochs", "pmmnet_epochs", "direct_epochs", "batch_size", "lr", "width",
                  "threads", "limit", "seed"):
         value = getattr(args, name)

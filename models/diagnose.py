@@ -1,0 +1,143 @@
+"""Where does the single-shot error come from? A geometry ladder on a held-out set.
+
+``python -m models.diagnose --data DIR [--weights DIR]`` (needs the ``train`` extra: the
+analytic pBRDF and the gain fit are the training graph's own torch functions) runs the shipped
+graph on every sample and prints, per shape family:
+
+* PIPNet's geometry error: median angle (deg) between predicted and true unit normals over the
+  object mask, and between the mean predicted and mean true light direction ``wi``;
+* the forward Stokes relative L2 (:mod:`models.evaluate`, 11 held-out incident states) of the
+  pBRDF initialization with the radiometric gains fitted to the one observed state
+  (:func:`models.pmmnet.fit_gains`, i.e. what an untrained PMMNet returns) on a ladder of
+  geometries: PIPNet's normal and light; the true normal with PIPNet's light; PIPNet's normal
+  with the true light; the true normal and light (eta = 1.5, as the network assumes); and the
+  true normal, light and index of refraction;
+* the full model's and the direct baseline's forward L2 for comparison.
+
+The rungs separate what the analytic model could do with perfect geometry from what the
+geometry network delivers: the gap between the last rungs and the full model is the error that
+better normals and light directions would remove.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+from models.data import load_dataset
+from models.evaluate import HELD_OUT_STATES_DEG, _network_inputs, emergent_stokes
+from models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.mueller import polarizer_stokes
+from sim.scene import FAMILIES
+
+RUNGS = ("pip_n+pip_wi", "true_n+pip_wi", "pip_n+true_wi", "true_n+true_wi", "true_n+true_wi+true_eta")
+
+
+def forward_l2(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    """Relative L2 of ``M S`` over the held-out states (as :mod:`models.evaluate`)."""
+    num = den = 0.0
+    for theta in HELD_OUT_STATES_DEG:
+        s = polarizer_stokes(np.deg2rad(theta))
+        sp, st = emergent_stokes(pred, s), emergent_stokes(truth, s)
+        num += float(np.sum((sp - st)[..., mask].astype(np.float64) ** 2))
+        den += float(np.sum(st[..., mask].astype(np.float64) ** 2))
+    return float(np.sqrt(num / den)) if den > 0 else float("nan")
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    a = a / np.maximum(np.linalg.norm(a, axis=0, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=0, keepdims=True), 1e-12)
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, 0), -1.0, 1.0)))
+
+
+def gain_fitted_pbrdf(normal, wi, sample: dict, eta: float = 1.5) -> np.ndarray:
+    """The pBRDF on the given geometry (``(3, H, W)`` camera-frame arrays) with the gains fitted
+    to the sample's observed Stokes -> Mueller image ``(C, 3, 3, H, W)``."""
+    import torch
+
+    from models.layers import stokes_from_analyzer
+    from models.pbrdf_torch import image_blocks
+    from models.pmmnet import fit_gains
+
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
+    mask = t(sample["mask"])[:, None]
+    with torch.no_grad():
+        ms, md = image_blocks(t(normal), t(wi), t(sample["wo"]), t(np.asarray([sample["alpha"]]))[0],
+                              t(sample["stage_zero_axis"]), eta=eta)
+        stokes = stokes_from_analyzer(t(sample["analyzer"]))
+        kd = torch.ones_like(stokes[:, :, 0])
+        g_s, g_c = fit_gains(stokes, ms, md, kd, t(sample["s_in"]))
+        m = (ms[:, None] * g_s[:, :, None, None] + (kd * g_c)[:, :, None, None] * md[:, None]) * mask[:, :, None, None]
+    return m[0].numpy()
+
+
+def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -> dict:
+    """Run the ladder (module docstring); returns ``{family: {metric: mean}}`` and prints a table."""
+    ds = load_dataset(data_dir, limit)
+    wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
+    full = SingleShotModel.load(wd)
+    direct = SingleShotModel.load(wd, graph="direct.onnx") if (wd / "direct.onnx").is_file() else None
+    eta = None
+    shards = sorted(pathlib.Path(data_dir).glob("shard-*.npz"))
+    etas = [np.load(s)["eta"] for s in shards if "eta" in np.load(s).files]
+    if etas:
+        eta = np.concatenate(etas)[:len(ds)]
+    rows: dict[str, list[dict[str, float]]] = {}
+    for i in range(len(ds)):
+        mask = ds["mask"][i] > 0
+        truth = ds["mueller"][i]
+        if not mask.any() or not np.any(truth[..., mask]):
+            continue
+        out = full.run_rig_frame(*_network_inputs(ds, i))
+        sample = {k: ds[k][i] for k in ("analyzer", "mask", "wo", "alpha", "stage_zero_axis", "s_in")}
+        n_pip, w_pip = out["normal"][0], out["wi"][0]
+        n_true, w_true = ds["normal"][i], ds["wi"][i]
+        r = {"normal_err_deg": float(np.median(_angle_deg(n_pip, n_true)[mask])),
+             "light_err_deg": float(_angle_deg(w_pip[:, mask].mean(1)[:, None], w_true[:, mask].mean(1)[:, None])[0]),
+             "full": forward_l2(out["mueller"][0], truth, mask)}
+        if direct is not None:
+            r["direct"] = forward_l2(direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0],
+                                     truth, mask)
+        geometry = {"pip_n+pip_wi": (n_pip, w_pip, 1.5), "true_n+pip_wi": (n_true, w_pip, 1.5),
+                    "pip_n+true_wi": (n_pip, w_true, 1.5), "true_n+true_wi": (n_true, w_true, 1.5)}
+        if eta is not None:
+            geometry["true_n+true_wi+true_eta"] = (n_true, w_true, float(eta[i]))
+        for rung, (n, w, e) in geometry.items():
+            r[rung] = forward_l2(gain_fitted_pbrdf(n, w, sample, e), truth, mask)
+        family = FAMILIES[int(ds["family"][i])] if "family" in ds.arrays else "all"
+        rows.setdefault(family, []).append(r)
+        rows.setdefault("all", []).append(r)
+    result = {f: dict({k: float(np.mean([r[k] for r in rs])) for k in rs[0]}, samples=len(rs)) for f, rs in rows.items()}
+    echo(markdown(result))
+    return result
+
+
+def markdown(result: dict) -> str:
+    keys = ["normal_err_deg", "light_err_deg", *RUNGS, "full", "direct"]
+    keys = [k for k in keys if k in result["all"]]
+    lines = ["| family | samples | " + " | ".join(keys) + " |", "|" + "---|" * (len(keys) + 2)]
+    for f, r in sorted(result.items(), key=lambda kv: kv[0] == "all"):
+        lines.append(f"| {f} | {r['samples']} | " + " | ".join(
+            f"{r[k]:.1f}" if k.endswith("_deg") else f"{r[k]:.4f}" for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m models.diagnose", description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", required=True, help="dataset folder (`polrig sim dataset` output)")
+    p.add_argument("--weights", default=None, help="folder with single_shot.onnx (default: shipped)")
+    p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
+    p.add_argument("--json", default=None, help="also write the numbers here")
+    args = p.parse_args(argv)
+    result = diagnose(args.data, args.weights, args.limit)
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""PIPNet's shape-from-polarization prior (models.pipnet) against the core pBRDF's physics."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.pipnet import PIPNet, diffuse_dolp, diffuse_zenith, sfp_candidates  # noqa: E402
+from polrig import pbrdf  # noqa: E402
+
+
+@pytest.mark.parametrize("eta", [1.3, 1.5, 1.8])
+def test_diffuse_zenith_inverts_the_diffuse_dolp(eta):
+    zen = torch.linspace(0.0, 0.5 * np.pi - 1e-3, 500, dtype=torch.float64)
+    assert torch.allclose(diffuse_zenith(diffuse_dolp(zen, eta), eta), zen, atol=1e-9)
+    # values the model cannot produce (noise, specular) clamp to grazing instead of NaN
+    over = diffuse_zenith(torch.tensor([0.99, 1.5, -0.1], dtype=torch.float64), eta)
+    assert torch.isfinite(over).all() and over[0] > 1.5 and over[2] == 0.0
+
+
+def test_diffuse_dolp_matches_the_core_pbrdf_transmission():
+    """DoLP of the core pBRDF's diffuse block (unpolarized light in) at emission zenith theta."""
+    rng = np.random.default_rng(1)
+    zen = rng.uniform(0.0, np.deg2rad(85.0), 64)
+    wo = np.stack([np.sin(zen), np.zeros_like(zen), np.cos(zen)], -1)
+    n = np.broadcast_to([0.0, 0.0, 1.0], wo.shape)
+    wi = np.broadcast_to(np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0]), wo.shape)
+    _, md = pbrdf.specular_diffuse_blocks(n, wi, wo, alpha=0.3, eta=1.5, stage_zero_axis=[1.0, 0, 0],
+                                          camera_x_axis=[0, 1.0, 0])
+    s = md[..., 0]  # unpolarized light in
+    expect = np.hypot(s[:, 1], s[:, 2]) / s[:, 0]
+    got = diffuse_dolp(torch.from_numpy(zen), 1.5).numpy()
+    assert np.allclose(got, expect, rtol=1e-9, atol=1e-12)
+
+
+def _random_geometry(rng, count, max_zenith_deg):
+    """Camera-frame unit ``wo`` around -Z (towards the camera), normals at emission zenith up to
+    ``max_zenith_deg`` from ``wo`` and lights in front of them."""
+    wo = np.stack([rng.normal(0, 0.2, count), rng.normal(0, 0.2, count), -np.ones(count)], -1)
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    t = rng.normal(size=(count, 3))
+    t -= np.sum(t * wo, -1, keepdims=True) * wo
+    t /= np.linalg.norm(t, axis=-1, keepdims=True)
+    zen = np.deg2rad(rng.uniform(0.0, max_zenith_deg, count))[:, None]
+    n = np.cos(zen) * wo + np.sin(zen) * t
+    wi = n + rng.normal(0, 0.4, (count, 3))
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    keep = (np.sum(wi * n, -1) > 0.05)
+    return n[keep], wi[keep], wo[keep]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_true_normal_is_one_of_the_candidates_for_diffuse_light(seed):
+    """Pure diffuse reflection of any incident state (the core pBRDF in the rig frames): one of
+    the two candidates is the true normal, the other its mirror about the view direction."""
+    rng = np.random.default_rng(seed)
+    n, wi, wo = _random_geometry(rng, 400, 85.0)
+    _, md = pbrdf.specular_diffuse_blocks(n, wi, wo, alpha=0.2, eta=1.5, stage_zero_axis=[0, -1.0, 0],
+                                          camera_x_axis=[1.0, 0, 0])
+    s_in = np.array([1.0, *(0.98 * np.array([np.cos(0.7 * seed), np.sin(0.7 * seed)]))])
+    stokes = np.einsum("pij,j->pi", md, s_in)  # (P, 3)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a.T[None, :, None, :]))  # noqa: E731 (1,3,1,P)
+    plus, minus = sfp_candidates(t(stokes)[:, None].repeat(1, 3, 1, 1, 1), t(wo))
+    plus, minus = plus[0, :, 0].numpy().T, minus[0, :, 0].numpy().T
+    err = np.minimum(np.linalg.norm(plus - n, axis=-1), np.linalg.norm(minus - n, axis=-1))
+    # below ~1 deg of emission zenith the polarization direction drowns in the epsilon that
+    # guards it (and sin(zenith) makes the normal insensitive to it)
+    steep = np.sum(n * wo, -1) < np.cos(np.deg2rad(2.0))
+    assert err[steep].max() < 1e-4 and err.max() < 2e-3
+    mirror = 2.0 * np.sum(n * wo, -1, keepdims=True) * wo - n
+    other = np.where((np.linalg.norm(plus - n, axis=-1) < np.linalg.norm(minus - n, axis=-1))[:, None], minus, plus)
+    assert np.allclose(other[steep], mirror[steep], atol=1e-4)
+
+
+def test_candidates_of_unpolarized_light_face_the_camera():
+    wo = torch.nn.functional.normalize(torch.tensor([0.1, -0.2, -1.0], dtype=torch.float64), dim=0)
+    stokes = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)[None, None, :, None, None]
+    plus, minus = sfp_candidates(stokes, wo[None, :, None, None])
+    assert torch.allclose(plus[0, :, 0, 0], wo, atol=1e-9) and torch.allclose(minus[0, :, 0, 0], wo, atol=1e-9)
+
+
+def test_pipnet_with_prior_outputs_unit_normals_blended_from_the_candidates():
+    torch.manual_seed(0)
+    net = PIPNet(3, 8, sfp_prior=True).eval()
+    wo = torch.nn.functional.normalize(torch.randn(2, 3, 16, 16) * 0.2 + torch.tensor([0, 0, -1.0])[None, :, None, None], dim=1)
+    with torch.no_grad():
+        # a head that puts all weight on the first candidate returns it exactly
+        net.normal_head.weight.zero_()
+        net.normal_head.bias.copy_(torch.tensor([0.0, 0, 0, 30.0, 0, 0]))
+        analyzer = torch.rand(2, 3, 4, 16, 16)
+        out = net(analyzer, torch.ones(2, 1, 16, 16), torch.tensor([[1.0, 0.9, 0.1]] * 2), wo)
+        from models.layers import stokes_from_analyzer
+        plus, _ = sfp_candidates(stokes_from_analyzer(analyzer), wo)
+    assert torch.allclose(out["normal"].norm(dim=1), torch.ones(2, 16, 16), atol=1e-5)
+    assert torch.allclose(out["normal"], torch.nn.functional.normalize(plus, dim=1), atol=1e-5)
