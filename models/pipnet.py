@@ -16,10 +16,11 @@ every pixel's measured AoLP and DoLP give, in closed form, two candidate normals
 ``n+-  = cos(theta) wo +- sin(theta) e`` (``e`` the unit polarization direction in the emergent
 frame, ``theta`` the zenith from the inverted diffuse DoLP at eta = 1.5): :func:`sfp_candidates`.
 They are local (no shape prior), so they hold on shapes never seen in training; what they miss
-is which of the two is right and where specular reflection dominates the polarization. PIPNet
-receives both as input planes and its normal head blends them with a free normal
-(``n = normalize(p+ n+ + p- n- + p_f n_free)``, softmax weights per pixel), so choosing or
-overriding the candidates is what it learns.
+is which of the two is right and where specular reflection or noise dominates the
+polarization. PIPNet receives both as input planes; its normal head predicts a free normal
+``n_f`` and a per-pixel trust ``c`` in (0, 1), the candidate nearer to ``n_f`` is taken
+(``n_f`` only has to get the side right, which a shape prior does even where its own normal is
+poor) and ``n = normalize(c n_sfp + (1 - c) n_f)``.
 """
 
 from __future__ import annotations
@@ -104,7 +105,7 @@ class PIPNet(nn.Module):
         self.colours = colours
         self.sfp_prior = sfp_prior
         self.backbone = UNetBackbone(6 * colours + 7 + (6 if sfp_prior else 0), width)
-        self.normal_head = nn.Conv2d(width, 6 if sfp_prior else 3, 1)
+        self.normal_head = nn.Conv2d(width, 4 if sfp_prior else 3, 1)
         self.kd_head = nn.Conv2d(width, colours, 1)
         self.wi_head = nn.Conv2d(width, 3, 1)
         self.alpha_head = nn.Sequential(nn.Linear(4 * width, 32), nn.ReLU(inplace=True), nn.Linear(32, 1))
@@ -120,11 +121,11 @@ class PIPNet(nn.Module):
         # Bias the normal towards the viewer and the light towards the upper hemisphere so an
         # untrained head starts from a plausible geometry.
         head = self.normal_head(feat)
-        free = head[:, :3] + wo
+        normal = F.normalize(head[:, :3] + wo, dim=1, eps=1e-6)
         if self.sfp_prior:
-            w = torch.softmax(head[:, 3:], dim=1)
-            free = w[:, 0:1] * n_plus + w[:, 1:2] * n_minus + w[:, 2:3] * F.normalize(free, dim=1, eps=1e-6)
-        normal = F.normalize(free, dim=1, eps=1e-6)
+            nearer = (n_plus * normal).sum(1, keepdim=True) >= (n_minus * normal).sum(1, keepdim=True)
+            trust = torch.sigmoid(head[:, 3:4])
+            normal = F.normalize(trust * torch.where(nearer, n_plus, n_minus) + (1.0 - trust) * normal, dim=1, eps=1e-6)
         wi = F.normalize(self.wi_head(feat) + wo, dim=1, eps=1e-6)
         kd = F.softplus(self.kd_head(feat))
         small_mask = F.avg_pool2d(mask, SIZE_MULTIPLE, SIZE_MULTIPLE)

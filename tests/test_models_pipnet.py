@@ -85,17 +85,24 @@ def test_candidates_of_unpolarized_light_face_the_camera():
     assert torch.allclose(plus[0, :, 0, 0], wo, atol=1e-9) and torch.allclose(minus[0, :, 0, 0], wo, atol=1e-9)
 
 
-def test_pipnet_with_prior_outputs_unit_normals_blended_from_the_candidates():
+def test_pipnet_prior_takes_the_candidate_nearer_its_free_normal_as_trusted():
     torch.manual_seed(0)
     net = PIPNet(3, 8, sfp_prior=True).eval()
     wo = torch.nn.functional.normalize(torch.randn(2, 3, 16, 16) * 0.2 + torch.tensor([0, 0, -1.0])[None, :, None, None], dim=1)
     with torch.no_grad():
-        # a head that puts all weight on the first candidate returns it exactly
+        # a head that fully trusts the prior returns the candidate nearer to its free normal
+        # (a constant head: the free normal is the view direction tilted towards +X)
         net.normal_head.weight.zero_()
-        net.normal_head.bias.copy_(torch.tensor([0.0, 0, 0, 30.0, 0, 0]))
+        net.normal_head.bias.copy_(torch.tensor([0.5, 0, 0, 30.0]))
         analyzer = torch.rand(2, 3, 4, 16, 16)
         out = net(analyzer, torch.ones(2, 1, 16, 16), torch.tensor([[1.0, 0.9, 0.1]] * 2), wo)
         from models.layers import stokes_from_analyzer
-        plus, _ = sfp_candidates(stokes_from_analyzer(analyzer), wo)
+        plus, minus = sfp_candidates(stokes_from_analyzer(analyzer), wo)
+    free = torch.nn.functional.normalize(wo + torch.tensor([0.5, 0, 0])[None, :, None, None], dim=1)
+    nearer = torch.where((plus * free).sum(1, keepdim=True) >= (minus * free).sum(1, keepdim=True), plus, minus)
     assert torch.allclose(out["normal"].norm(dim=1), torch.ones(2, 16, 16), atol=1e-5)
-    assert torch.allclose(out["normal"], torch.nn.functional.normalize(plus, dim=1), atol=1e-5)
+    assert torch.allclose(out["normal"], nearer, atol=1e-5)
+    with torch.no_grad():  # no trust: the free normal
+        net.normal_head.bias.copy_(torch.tensor([0.5, 0, 0, -30.0]))
+        out = net(analyzer, torch.ones(2, 1, 16, 16), torch.tensor([[1.0, 0.9, 0.1]] * 2), wo)
+    assert torch.allclose(out["normal"], free, atol=1e-5)
