@@ -11,7 +11,9 @@ graph on every sample and prints, per shape family:
   (:func:`models.pmmnet.fit_gains`, i.e. what an untrained PMMNet returns) on a ladder of
   geometries: PIPNet's normal and light; the true normal with PIPNet's light; PIPNet's normal
   with the true light; the true normal and light (eta = 1.5, as the network assumes); and the
-  true normal, light and index of refraction;
+  true normal, light and index of refraction; and the light direction fitted by
+  :func:`models.light_fit.fit_light_direction` on PIPNet's and on the true normals (with its
+  angular error), which shows whether physics can recover the light once the normals are right;
 * the full model's and the direct baseline's forward L2 for comparison.
 
 The rungs separate what the analytic model could do with perfect geometry from what the
@@ -34,7 +36,8 @@ from models.runtime import WEIGHTS_DIR, SingleShotModel
 from polrig.mueller import polarizer_stokes
 from sim.scene import FAMILIES
 
-RUNGS = ("pip_n+pip_wi", "true_n+pip_wi", "pip_n+true_wi", "true_n+true_wi", "true_n+true_wi+true_eta")
+RUNGS = ("pip_n+pip_wi", "true_n+pip_wi", "pip_n+true_wi", "pip_n+fit_wi", "true_n+fit_wi", "true_n+true_wi",
+         "true_n+true_wi+true_eta")
 
 
 def forward_l2(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
@@ -75,6 +78,22 @@ def gain_fitted_pbrdf(normal, wi, sample: dict, eta: float = 1.5) -> np.ndarray:
     return m[0].numpy()
 
 
+def fitted_light(normal, sample: dict, pool: int = 2) -> np.ndarray:
+    """:func:`models.light_fit.fit_light_direction` on the given normals -> unit ``(3,)``."""
+    import torch
+
+    from models.layers import stokes_from_analyzer
+    from models.light_fit import fibonacci_directions, fit_light_direction, local_offsets
+
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
+    with torch.no_grad():
+        w = fit_light_direction(stokes_from_analyzer(t(sample["analyzer"])), t(normal), t(sample["wo"]),
+                                torch.tensor([float(sample["alpha"])]), t(sample["s_in"]), t(sample["stage_zero_axis"]),
+                                t(sample["mask"])[:, None], candidates=fibonacci_directions(400, 0.3),
+                                offsets=local_offsets(8.0), pool=pool)
+    return w[0].numpy()
+
+
 def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -> dict:
     """Run the ladder (module docstring); returns ``{family: {metric: mean}}`` and prints a table."""
     ds = load_dataset(data_dir, limit)
@@ -102,8 +121,15 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
         if direct is not None:
             r["direct"] = forward_l2(direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0],
                                      truth, mask)
+        mean_true = w_true[:, mask].mean(1)[:, None]
+        fits = {}
+        for name, n in (("pip_n", n_pip), ("true_n", n_true)):
+            w = fitted_light(n, sample)
+            r[f"fit_light_{name}_err_deg"] = float(_angle_deg(w[:, None], mean_true)[0])
+            fits[name] = np.broadcast_to(w[:, None, None], n_true.shape)
         geometry = {"pip_n+pip_wi": (n_pip, w_pip, 1.5), "true_n+pip_wi": (n_true, w_pip, 1.5),
-                    "pip_n+true_wi": (n_pip, w_true, 1.5), "true_n+true_wi": (n_true, w_true, 1.5)}
+                    "pip_n+true_wi": (n_pip, w_true, 1.5), "pip_n+fit_wi": (n_pip, fits["pip_n"], 1.5),
+                    "true_n+fit_wi": (n_true, fits["true_n"], 1.5), "true_n+true_wi": (n_true, w_true, 1.5)}
         if eta is not None:
             geometry["true_n+true_wi+true_eta"] = (n_true, w_true, float(eta[i]))
         for rung, (n, w, e) in geometry.items():
@@ -117,7 +143,8 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
 
 
 def markdown(result: dict) -> str:
-    keys = ["normal_err_deg", "light_err_deg", *RUNGS, "full", "direct"]
+    keys = ["normal_err_deg", "light_err_deg", "fit_light_pip_n_err_deg", "fit_light_true_n_err_deg", *RUNGS, "full",
+            "direct"]
     keys = [k for k in keys if k in result["all"]]
     lines = ["| family | samples | " + " | ".join(keys) + " |", "|" + "---|" * (len(keys) + 2)]
     for f, r in sorted(result.items(), key=lambda kv: kv[0] == "all"):
