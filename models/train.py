@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import pathlib
 import time
@@ -44,6 +45,8 @@ class TrainConfig:
     width: int = 16
     #: PIPNet with the shape-from-polarization normal prior (models.pipnet, an addition to the paper)
     sfp_prior: bool = True
+    #: Fraction of PIPNet training samples shown through a random window (:func:`window_crop`)
+    crop_fraction: float = 0.0
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -61,6 +64,28 @@ def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
 def _config_of(checkpoint: dict) -> dict:
     """A checkpoint's configuration; checkpoints from before the SfP prior existed had none."""
     return {"sfp_prior": False, **checkpoint["config"]}
+
+
+def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
+                min_side: float = 0.25, max_side: float = 0.75) -> torch.Tensor:
+    """Random windows ``(B, 1, H, W)`` in {0, 1}: for a ``fraction`` of the samples a rectangle
+    with sides uniform in ``[min_side, max_side]`` of the image at a uniform position, else
+    the whole image. Training PIPNet on windowed objects (inputs and loss mask cut to the
+    window) hides silhouettes, so normals have to come from local shading and polarization
+    rather than from the outline of a training shape (an augmentation, not in the paper)."""
+    b, _, h, w = mask.shape
+    out = torch.ones_like(mask)
+    if fraction <= 0.0:
+        return out
+    pick = torch.rand(b, generator=generator) < fraction
+    sides = torch.rand(b, 2, generator=generator) * (max_side - min_side) + min_side
+    corner = torch.rand(b, 2, generator=generator)
+    rows, cols = torch.arange(h, dtype=mask.dtype), torch.arange(w, dtype=mask.dtype)
+    for i in torch.nonzero(pick)[:, 0].tolist():
+        hh, ww = max(1, int(sides[i, 0] * h)), max(1, int(sides[i, 1] * w))
+        r0, c0 = int(corner[i, 0] * (h - hh + 1)), int(corner[i, 1] * (w - ww + 1))
+        out[i, 0] = ((rows >= r0) & (rows < r0 + hh)).to(mask.dtype)[:, None] * ((cols >= c0) & (cols < c0 + ww)).to(mask.dtype)[None]
+    return out
 
 
 def lr_at(config: TrainConfig, epoch: int, epochs: int) -> float:
@@ -82,8 +107,11 @@ def _pick(t: dict[str, torch.Tensor], idx: torch.Tensor, keys) -> list[torch.Ten
     return [t[k][idx] for k in keys]
 
 
-def pipnet_step(model: PIPNet, t, idx):
+def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | None = None):
     a, m, s, wo, n, kd, wi, al = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "normal", "kd", "wi", "alpha"))
+    if crop is not None:
+        window = window_crop(m, *crop)
+        a, m = a * window[:, None], m * window
     return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m)
 
 
@@ -244,7 +272,11 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             for g in opt.param_groups:
                 g["lr"] = lr
             te = time.time()
-            train_loss, detail = _run_epoch(model, steps[stage], t, train_idx, config.batch_size, opt, rng)
+            train_step = steps[stage]
+            if stage == "pipnet" and config.crop_fraction > 0:
+                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+                train_step = functools.partial(pipnet_step, crop=(config.crop_fraction, gen))
+            train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng)
             val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
             dt = time.time() - te
             times[stage] += dt

@@ -123,3 +123,28 @@ def test_warm_start_fine_tunes_from_the_donor_weights(trained, tmp_path):
         assert same == warm
     with pytest.raises(ValueError, match="init_from"):
         train(data, tmp_path / "bad", warm_start=True, echo=lambda s: None)
+
+
+def test_window_crop_cuts_rectangles_for_the_requested_fraction():
+    from models.train import window_crop
+
+    mask = torch.ones(400, 1, 32, 32)
+    gen = torch.Generator().manual_seed(0)
+    win = window_crop(mask, 0.5, gen)
+    cropped = win.sum((1, 2, 3)) < 32 * 32
+    assert 0.4 < float(cropped.float().mean()) < 0.6
+    for w in win[cropped]:  # one axis-aligned rectangle between 1/4 and 3/4 of each side
+        rows, cols = torch.nonzero(w[0].sum(1))[:, 0], torch.nonzero(w[0].sum(0))[:, 0]
+        assert 8 <= len(rows) <= 24 and 8 <= len(cols) <= 24
+        assert float(w.sum()) == len(rows) * len(cols)
+    assert torch.equal(window_crop(mask, 0.0, gen), mask)
+
+
+def test_training_with_crops_runs_and_is_reproducible(trained, tmp_path):
+    root, data, _ = trained
+    losses = []
+    for run in ("a", "b"):
+        train(data, tmp_path / run, TINY, overrides={"crop_fraction": 1.0, "pmmnet_epochs": 0, "direct_epochs": 0},
+              stages=("pipnet",), init_from=root / "run" / "checkpoint.pt", export=False, echo=lambda s: None)
+        losses.append([r["train_loss"] for r in csv.DictReader((tmp_path / run / "log.csv").open())])
+    assert losses[0] == losses[1] and len(losses[0]) == TINY.pipnet_epochs

@@ -30,6 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="fraction of each stage's epochs at the initial learning rate before the linear decay")
     p.add_argument("--sfp-prior", action=argparse.BooleanOptionalAction, default=None,
                    help="PIPNet with the shape-from-polarization normal prior (default on for new runs)")
+    p.add_argument("--crop-fraction", type=float, default=None,
+                   help="fraction of PIPNet training samples seen through a random window (hides silhouettes)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
@@ -62,6 +64,10 @@ def run(args: argparse.Namespace) -> int:
         overrides.update(pipnet_epochs=args.epochs, pmmnet_epochs=args.epochs, direct_epochs=args.epochs)
     if args.sfp_prior is not None:
         overrides["sfp_prior"] = args.sfp_prior
+    if args.crop_fraction is not None:
+        if not 0.0 <= args.crop_fraction <= 1.0:
+            raise ValueError(f"--crop-fraction must be in [0, 1], got {args.crop_fraction}")
+        overrides["crop_fraction"] = args.crop_fraction
     if args.decay_start is not None:
         if not 0.0 <= args.decay_start <= 1.0:
             raise ValueError(f"--decay-start must be in [0, 1], got {args.decay_start}")
