@@ -44,7 +44,11 @@ completed to 4x4 by :func:`polrig.realizability.complete_linear` (``max_min_eige
 tested with :func:`polrig.realizability.is_physical_gk` and
 :func:`polrig.realizability.is_physical_coherency`, before and after Cloude filtering of the
 completed matrix (:func:`polrig.realizability.cloude_filter`), on up to
-``realizability_pixels`` random (pixel, colour) blocks per image.
+``realizability_pixels`` random (pixel, colour) blocks per image of the whole object mask, and
+again (``gk_lit``, ``psd_lit``, before filtering) on blocks of its lit pixels only (``lit`` of the
+dataset: facing the light, not shadowed). In shadow the true matrix is zero and every method,
+the four-state reference included, returns noise, so the lit rates say how physical the
+estimates are where there is a signal.
 """
 
 from __future__ import annotations
@@ -192,8 +196,29 @@ def _network_inputs(ds: Dataset, i: int) -> tuple:
 
 # ----------------------------------------------------------------------------- metrics
 
+def _realizability(pred: np.ndarray, mask: np.ndarray, rng: np.random.Generator, pixels: int,
+                   filtered: bool = True) -> dict[str, float]:
+    """GK and coherency pass rates of up to ``pixels`` random (pixel, colour) 3x3 blocks of
+    ``pred`` (C,3,3,H,W) in ``mask``, completed to 4x4 (``max_min_eigenvalue``), before and
+    (``filtered``) after Cloude filtering."""
+    blocks = np.moveaxis(pred, (-2, -1), (0, 1))[mask].reshape(-1, 3, 3)
+    if not len(blocks):
+        return {}
+    if len(blocks) > pixels:
+        blocks = blocks[rng.choice(len(blocks), pixels, replace=False)]
+    completed = realizability.complete_linear(blocks.astype(np.float64))
+    out = {"gk_before": float(np.mean(realizability.is_physical_gk(completed))),
+           "psd_before": float(np.mean(realizability.is_physical_coherency(completed)))}
+    if filtered:
+        cf = realizability.cloude_filter(completed)
+        out.update(gk_after=float(np.mean(realizability.is_physical_gk(cf))),
+                   psd_after=float(np.mean(realizability.is_physical_coherency(cf))))
+    return out
+
+
 def _sample_metrics(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, s_in: np.ndarray,
-                    rng: np.random.Generator, realizability_pixels: int) -> dict[str, float]:
+                    rng: np.random.Generator, realizability_pixels: int,
+                    lit: np.ndarray | None = None, lit_rng: np.random.Generator | None = None) -> dict[str, float]:
     out: dict[str, float] = {}
     peak_m = float(np.abs(truth[..., mask]).max()) if mask.any() else 1.0
     out["matrix_psnr"] = psnr(pred, truth, mask, peak_m)
@@ -218,18 +243,11 @@ def _sample_metrics(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, s_in:
     out["fwd_dolp_mae"] = float(np.mean(np.concatenate(d_all)))
     a_cat = np.concatenate(a_all)
     out["fwd_aolp_err"] = float(np.mean(a_cat)) if a_cat.size else float("nan")
-    # Realizability on a pixel sample.
-    blocks = np.moveaxis(pred, (-2, -1), (0, 1))[mask]  # (P, C, 3, 3)
-    blocks = blocks.reshape(-1, 3, 3)
-    if len(blocks) > realizability_pixels:
-        blocks = blocks[rng.choice(len(blocks), realizability_pixels, replace=False)]
-    blocks = blocks.astype(np.float64)
-    completed = realizability.complete_linear(blocks)  # max_min_eigenvalue completion, once
-    filtered = realizability.cloude_filter(completed)
-    out["gk_before"] = float(np.mean(realizability.is_physical_gk(completed)))
-    out["psd_before"] = float(np.mean(realizability.is_physical_coherency(completed)))
-    out["gk_after"] = float(np.mean(realizability.is_physical_gk(filtered)))
-    out["psd_after"] = float(np.mean(realizability.is_physical_coherency(filtered)))
+    # Realizability on a pixel sample: the whole object, then its lit part.
+    out.update(_realizability(pred, mask, rng, realizability_pixels))
+    if lit is not None:
+        r = _realizability(pred, mask & lit, lit_rng or rng, realizability_pixels, filtered=False)
+        out["gk_lit"], out["psd_lit"] = r.get("gk_before", float("nan")), r.get("psd_before", float("nan"))
     return out
 
 
@@ -243,6 +261,7 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     direct = SingleShotModel.load(wd, graph="direct.onnx")
     noise = fit_noise_model(ds)
     rng = np.random.default_rng(seed)
+    lit_rng = np.random.default_rng([seed, 1])  # its own stream: the other numbers do not depend on it
     per: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS}
     times: dict[str, float] = {m: 0.0 for m in METHODS}
     t_start = time.time()
@@ -268,7 +287,9 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
         preds["reference4"] = reference_four_state(ds, i, noise, rng)
         times["reference4"] += time.perf_counter() - t
         for name, pred in preds.items():
-            per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, rng, realizability_pixels))
+            lit = (ds["lit"][i] > 0) if "lit" in ds.arrays else None
+            per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, rng, realizability_pixels, lit,
+                                             lit_rng))
     n = len(per["full"])
     methods = {m: {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} for m, rows in per.items() if rows}
     families = sorted({int(f) for f in ds["family"]}) if "family" in ds.arrays else []
@@ -293,14 +314,18 @@ def markdown_tables(result: dict) -> str:
             r = m[k]
             lines.append(f"| {METHOD_NAMES[k]} | {r['matrix_psnr']:.2f} | {r['render_psnr']:.2f} | "
                          f"{r['render_ssim']:.4f} | {r['dolp_mae']:.4f} | {r['aolp_err']:.2f} |")
-    lines += ["", "| Method | Forward Stokes L2 (rel.) ↓ | DoLP MAE ↓ | AoLP err. (deg) ↓ | GK pass | PSD pass | GK pass (Cloude) | PSD pass (Cloude) |",
-              "|---|---|---|---|---|---|---|---|"]
+    lit = any("gk_lit" in m[k] for k in m)
+    lines += ["", "| Method | Forward Stokes L2 (rel.) ↓ | DoLP MAE ↓ | AoLP err. (deg) ↓ | GK pass | PSD pass | GK pass (Cloude) | PSD pass (Cloude) |"
+              + (" GK pass (lit) | PSD pass (lit) |" if lit else ""),
+              "|---|---|---|---|---|---|---|---|" + ("---|---|" if lit else "")]
     for k in METHODS:
         if k in m:
             r = m[k]
             lines.append(f"| {METHOD_NAMES[k]} | {r['fwd_l2']:.4f} | {r['fwd_dolp_mae']:.4f} | {r['fwd_aolp_err']:.2f} | "
                          f"{100 * r['gk_before']:.1f}% | {100 * r['psd_before']:.1f}% | "
-                         f"{100 * r['gk_after']:.1f}% | {100 * r['psd_after']:.1f}% |")
+                         f"{100 * r['gk_after']:.1f}% | {100 * r['psd_after']:.1f}% |"
+                         + (f" {100 * r.get('gk_lit', float('nan')):.1f}% | {100 * r.get('psd_lit', float('nan')):.1f}% |"
+                            if lit else ""))
     return "\n".join(lines)
 
 
