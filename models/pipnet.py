@@ -20,7 +20,10 @@ is which of the two is right and where specular reflection or noise dominates th
 polarization. PIPNet receives both as input planes; its normal head predicts a free normal
 ``n_f`` and a per-pixel trust ``c`` in (0, 1), the candidate nearer to ``n_f`` is taken
 (``n_f`` only has to get the side right, which a shape prior does even where its own normal is
-poor) and ``n = normalize(c n_sfp + (1 - c) n_f)``.
+poor) and ``n = normalize(c n_sfp + (1 - c) n_f)``. "Nearer" is a steep sigmoid of the
+difference of the two dot products (:data:`SELECT_SHARPNESS`) rather than a hard switch, so the
+output is continuous where ``n_f`` is equidistant from both (a hard switch there flips with
+rounding: PyTorch and onnxruntime disagreed by 0.3 on such pixels).
 """
 
 from __future__ import annotations
@@ -35,6 +38,9 @@ from models.layers import SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_s
 ALPHA_MIN, ALPHA_MAX = 0.01, 1.0
 #: Index of refraction of the shape-from-polarization prior (the pBRDF initialization's eta).
 SFP_ETA = 1.5
+#: Slope of the soft choice between the two candidates in their dot-product difference with
+#: the free normal (differences range over [-2, 2]; at 0.1 the nearer one weighs 0.95).
+SELECT_SHARPNESS = 30.0
 
 
 def diffuse_dolp(zenith: torch.Tensor, eta: float = SFP_ETA) -> torch.Tensor:
@@ -123,9 +129,10 @@ class PIPNet(nn.Module):
         head = self.normal_head(feat)
         normal = F.normalize(head[:, :3] + wo, dim=1, eps=1e-6)
         if self.sfp_prior:
-            nearer = (n_plus * normal).sum(1, keepdim=True) >= (n_minus * normal).sum(1, keepdim=True)
+            pick = torch.sigmoid(SELECT_SHARPNESS * ((n_plus - n_minus) * normal).sum(1, keepdim=True))
+            n_sfp = pick * n_plus + (1.0 - pick) * n_minus
             trust = torch.sigmoid(head[:, 3:4])
-            normal = F.normalize(trust * torch.where(nearer, n_plus, n_minus) + (1.0 - trust) * normal, dim=1, eps=1e-6)
+            normal = F.normalize(trust * n_sfp + (1.0 - trust) * normal, dim=1, eps=1e-6)
         wi = F.normalize(self.wi_head(feat) + wo, dim=1, eps=1e-6)
         kd = F.softplus(self.kd_head(feat))
         small_mask = F.avg_pool2d(mask, SIZE_MULTIPLE, SIZE_MULTIPLE)

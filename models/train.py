@@ -31,6 +31,9 @@ from models.pipnet import PIPNet, pipnet_loss
 from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
 
 STAGES = ("pipnet", "pmmnet", "direct")
+#: Stages that read the raw images and must infer the geometry themselves; ``crop_fraction``
+#: windows their training samples (PMMNet refines an initialization of the whole image).
+CROPPED_STAGES = ("pipnet", "direct")
 
 
 @dataclasses.dataclass
@@ -45,7 +48,8 @@ class TrainConfig:
     width: int = 16
     #: PIPNet with the shape-from-polarization normal prior (models.pipnet, an addition to the paper)
     sfp_prior: bool = True
-    #: Fraction of PIPNet training samples shown through a random window (:func:`window_crop`)
+    #: Fraction of PIPNet and direct-baseline training samples shown through a random window
+    #: (:func:`window_crop`; the same augmentation for both, so the ablation stays fair)
     crop_fraction: float = 0.0
     threads: int = 2
     seed: int = 0
@@ -70,9 +74,9 @@ def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
                 min_side: float = 0.25, max_side: float = 0.75) -> torch.Tensor:
     """Random windows ``(B, 1, H, W)`` in {0, 1}: for a ``fraction`` of the samples a rectangle
     with sides uniform in ``[min_side, max_side]`` of the image at a uniform position, else
-    the whole image. Training PIPNet on windowed objects (inputs and loss mask cut to the
-    window) hides silhouettes, so normals have to come from local shading and polarization
-    rather than from the outline of a training shape (an augmentation, not in the paper)."""
+    the whole image. Training on windowed objects (inputs and loss mask cut to the window)
+    hides silhouettes, so geometry has to come from local shading and polarization rather than
+    from the outline of a training shape (an augmentation, not in the paper)."""
     b, _, h, w = mask.shape
     out = torch.ones_like(mask)
     if fraction <= 0.0:
@@ -120,8 +124,11 @@ def pmmnet_step(model: PMMNet, t, idx):
     return mueller_loss(model(a, m, s, ms, md, kd)["mueller"], mu, m)
 
 
-def direct_step(model: DirectStokesToMM, t, idx):
+def direct_step(model: DirectStokesToMM, t, idx, crop: tuple[float, torch.Generator] | None = None):
     a, m, s, wo, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "mueller"))
+    if crop is not None:
+        window = window_crop(m, *crop)
+        a, m = a * window[:, None], m * window
     return mueller_loss(model(a, m, s, wo), mu, m)
 
 
@@ -273,9 +280,9 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                 g["lr"] = lr
             te = time.time()
             train_step = steps[stage]
-            if stage == "pipnet" and config.crop_fraction > 0:
+            if stage in CROPPED_STAGES and config.crop_fraction > 0:
                 gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                train_step = functools.partial(pipnet_step, crop=(config.crop_fraction, gen))
+                train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
             train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng)
             val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
             dt = time.time() - te

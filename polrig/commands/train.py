@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sfp-prior", action=argparse.BooleanOptionalAction, default=None,
                    help="PIPNet with the shape-from-polarization normal prior (default on for new runs)")
     p.add_argument("--crop-fraction", type=float, default=None,
-                   help="fraction of PIPNet training samples seen through a random window (hides silhouettes)")
+                   help="fraction of PIPNet and direct-baseline training samples seen through a random window "
+                        "(hides silhouettes)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
