@@ -171,3 +171,16 @@ def test_cli_dataset(tmp_path, capsys):
     assert main(args) == 0
     assert main(args) == 0
     assert "0 shard(s) written, 2 already complete" in capsys.readouterr().out
+
+
+def test_cli_dataset_stage_zero_axes_camera_up(tmp_path):
+    """``--stage-zero-axes camera-up`` writes version-1 samples (the shipped model's training
+    set): every axis is the camera's up direction made perpendicular to the illumination."""
+    out = tmp_path / "ds"
+    assert main(["sim", "dataset", "--count", "3", "--size", "16", "--seed", "1", "--quiet",
+                 "--stage-zero-axes", "camera-up", "--out", str(out)]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["frames"]["stage_zero_axes"] == "camera-up"
+    with np.load(out / "shard-00000.npz") as z:
+        axes = z["stage_zero_axis"]
+    assert np.all(axes[:, 1] < -0.8)  # close to -Y (up) in the camera frame

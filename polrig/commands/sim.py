@@ -59,6 +59,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--shard-size", type=int, default=16, help="samples per shard")
     d.add_argument("--holdout", action="store_true",
                    help="generate the held-out shape families instead of the training ones")
+    d.add_argument("--stage-zero-axes", default="random", choices=("random", "camera-up"),
+                   help="polarizer stage zero axis per sample: drawn at random (default), or the "
+                        "camera's up direction for every sample (version-1 sets such as the "
+                        "shipped model's training set)")
     d.add_argument("--no-compress", action="store_true", help="store shards uncompressed")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--out", required=True, help="output folder")
@@ -105,7 +109,8 @@ def run_dataset(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     res = generate_dataset(args.out, count=args.count, width=args.size, seed=args.seed,
                            holdout=args.holdout, shard_size=args.shard_size,
-                           compress=not args.no_compress, progress=not args.quiet)
+                           compress=not args.no_compress, progress=not args.quiet,
+                           stage_zero_axes=args.stage_zero_axes)
     print(f"polrig sim dataset: {res['written']} shard(s) written, {res['skipped']} already "
           f"complete -> {args.out} in {time.perf_counter() - t0:.1f} s")
     return 0
