@@ -31,24 +31,12 @@ import sys
 import numpy as np
 
 from models.data import load_dataset
-from models.evaluate import HELD_OUT_STATES_DEG, _network_inputs, emergent_stokes
+from models.evaluate import _network_inputs, forward_l2
 from models.runtime import WEIGHTS_DIR, SingleShotModel
-from polrig.mueller import polarizer_stokes
 from sim.scene import FAMILIES
 
 RUNGS = ("pip_n+pip_wi", "true_n+pip_wi", "pip_n+true_wi", "pip_n+fit_wi", "true_n+fit_wi", "true_n+true_wi",
          "true_n+true_wi+true_eta")
-
-
-def forward_l2(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
-    """Relative L2 of ``M S`` over the held-out states (as :mod:`models.evaluate`)."""
-    num = den = 0.0
-    for theta in HELD_OUT_STATES_DEG:
-        s = polarizer_stokes(np.deg2rad(theta))
-        sp, st = emergent_stokes(pred, s), emergent_stokes(truth, s)
-        num += float(np.sum((sp - st)[..., mask].astype(np.float64) ** 2))
-        den += float(np.sum(st[..., mask].astype(np.float64) ** 2))
-    return float(np.sqrt(num / den)) if den > 0 else float("nan")
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -64,7 +52,7 @@ def gain_fitted_pbrdf(normal, wi, sample: dict, eta: float = 1.5) -> np.ndarray:
 
     from models.layers import stokes_from_analyzer
     from models.pbrdf_torch import image_blocks
-    from models.pmmnet import fit_gains
+    from models.pmmnet import gain_fitted_initialization
 
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
     mask = t(sample["mask"])[:, None]
@@ -72,10 +60,8 @@ def gain_fitted_pbrdf(normal, wi, sample: dict, eta: float = 1.5) -> np.ndarray:
         ms, md = image_blocks(t(normal), t(wi), t(sample["wo"]), t(np.asarray([sample["alpha"]]))[0],
                               t(sample["stage_zero_axis"]), eta=eta)
         stokes = stokes_from_analyzer(t(sample["analyzer"]))
-        kd = torch.ones_like(stokes[:, :, 0])
-        g_s, g_c = fit_gains(stokes, ms, md, kd, t(sample["s_in"]))
-        m = (ms[:, None] * g_s[:, :, None, None] + (kd * g_c)[:, :, None, None] * md[:, None]) * mask[:, :, None, None]
-    return m[0].numpy()
+        _, _, m = gain_fitted_initialization(stokes, ms, md, torch.ones_like(stokes[:, :, 0]), t(sample["s_in"]))
+    return (m * mask[:, :, None, None])[0].numpy()
 
 
 def fitted_light(normal, sample: dict, pool: int = 2) -> np.ndarray:

@@ -87,6 +87,19 @@ def render_analyzer(m: np.ndarray, s_in: np.ndarray) -> np.ndarray:
     return np.einsum("jb,cbhw->cjhw", ideal_analyzer_matrix().astype(m.dtype), emergent_stokes(m, s_in))
 
 
+def forward_l2(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    """Relative L2 ``sqrt(sum |S_pred - S_true|^2 / sum |S_true|^2)`` of the emergent Stokes of
+    Mueller images ``(C, 3, 3, H, W)`` over the masked pixels, colours and the
+    :data:`HELD_OUT_STATES_DEG` polarizer states."""
+    num = den = 0.0
+    for theta in HELD_OUT_STATES_DEG:
+        s = polarizer_stokes(np.deg2rad(theta))
+        sp, st = emergent_stokes(pred, s), emergent_stokes(truth, s)
+        num += float(np.sum((sp - st)[..., mask].astype(np.float64) ** 2))
+        den += float(np.sum(st[..., mask].astype(np.float64) ** 2))
+    return float(np.sqrt(num / den)) if den > 0 else float("nan")
+
+
 def psnr(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, peak: float) -> float:
     """PSNR in dB over the masked pixels of planes ``(..., H, W)``."""
     err = (pred - truth)[..., mask]
@@ -229,17 +242,13 @@ def _sample_metrics(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, s_in:
     dd, da = _dolp_aolp_errors(emergent_stokes(pred, s_in), emergent_stokes(truth, s_in), mask)
     out["dolp_mae"], out["aolp_err"] = float(np.mean(dd)), float(np.mean(da)) if da.size else float("nan")
     # Held-out states.
-    num = den = 0.0
+    out["fwd_l2"] = forward_l2(pred, truth, mask)
     d_all, a_all = [], []
     for theta in HELD_OUT_STATES_DEG:
         s = polarizer_stokes(np.deg2rad(theta))
-        sp, st = emergent_stokes(pred, s), emergent_stokes(truth, s)
-        num += float(np.sum((sp - st)[..., mask].astype(np.float64) ** 2))
-        den += float(np.sum(st[..., mask].astype(np.float64) ** 2))
-        dd, da = _dolp_aolp_errors(sp, st, mask)
+        dd, da = _dolp_aolp_errors(emergent_stokes(pred, s), emergent_stokes(truth, s), mask)
         d_all.append(dd)
         a_all.append(da)
-    out["fwd_l2"] = float(np.sqrt(num / den)) if den > 0 else float("nan")
     out["fwd_dolp_mae"] = float(np.mean(np.concatenate(d_all)))
     a_cat = np.concatenate(a_all)
     out["fwd_aolp_err"] = float(np.mean(a_cat)) if a_cat.size else float("nan")

@@ -32,7 +32,7 @@ import math
 import torch
 from torch.nn import functional as F
 
-from models.pbrdf_torch import image_blocks
+from models.pbrdf_torch import cross, image_blocks
 
 _EPS = 1e-12
 
@@ -117,9 +117,7 @@ def fit_light_direction(stokes: torch.Tensor, normal: torch.Tensor, wo: torch.Te
     helper = torch.where(best[:, 2:3].abs() < 0.9, torch.tensor([0.0, 0.0, 1.0], dtype=best.dtype).expand_as(best),
                          torch.tensor([1.0, 0.0, 0.0], dtype=best.dtype).expand_as(best))
     t1 = F.normalize(helper - (helper * best).sum(1, keepdim=True) * best, dim=1)
-    t2 = torch.cat([best[:, 1:2] * t1[:, 2:3] - best[:, 2:3] * t1[:, 1:2],
-                    best[:, 2:3] * t1[:, 0:1] - best[:, 0:1] * t1[:, 2:3],
-                    best[:, 0:1] * t1[:, 1:2] - best[:, 1:2] * t1[:, 0:1]], 1)
+    t2 = cross(best, t1)
     off = offsets.to(stokes.dtype)
     fine = F.normalize(best[:, None] + off[None, :, 0:1] * t1[:, None] + off[None, :, 1:2] * t2[:, None], dim=2)
     return _pick(fine, _residuals(fine, st, n, v, alpha, s_in, stage_zero_axis, m))

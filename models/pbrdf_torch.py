@@ -38,6 +38,14 @@ _EPS = 1e-12
 _DEGENERATE_SQ = 1e-14
 
 
+def cross(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """``a x b`` along axis ``dim`` written out with element-wise ops (ONNX has no Cross op)."""
+    c = lambda v, i: v.narrow(dim, i, 1)  # noqa: E731
+    return torch.cat([c(a, 1) * c(b, 2) - c(a, 2) * c(b, 1),
+                      c(a, 2) * c(b, 0) - c(a, 0) * c(b, 2),
+                      c(a, 0) * c(b, 1) - c(a, 1) * c(b, 0)], dim)
+
+
 class _Vec:
     """Vector helpers along axis ``dim`` (kept with length 1 by reductions)."""
 
@@ -51,10 +59,7 @@ class _Vec:
         return (a * b).sum(self.dim, keepdim=True)
 
     def cross(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        c = self.c
-        return torch.cat([c(a, 1) * c(b, 2) - c(a, 2) * c(b, 1),
-                          c(a, 2) * c(b, 0) - c(a, 0) * c(b, 2),
-                          c(a, 0) * c(b, 1) - c(a, 1) * c(b, 0)], self.dim)
+        return cross(a, b, self.dim)
 
     def normalize(self, v: torch.Tensor) -> torch.Tensor:
         return v / torch.sqrt(self.dot(v, v) + _EPS)

@@ -33,6 +33,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from models.layers import SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_stokes, planes, stokes_from_analyzer
+from models.pbrdf_torch import cross
 
 #: Roughness range the head can output (GGX alpha).
 ALPHA_MIN, ALPHA_MAX = 0.01, 1.0
@@ -90,8 +91,7 @@ def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
     k = F.normalize(wo, dim=1, eps=eps)
     cam_x = torch.cat([torch.ones_like(k[:, :1]), torch.zeros_like(k[:, 1:])], 1)
     x = F.normalize(cam_x - k[:, :1] * k, dim=1, eps=eps)
-    y = torch.cat([k[:, 1:2] * x[:, 2:3] - k[:, 2:3] * x[:, 1:2], k[:, 2:3] * x[:, 0:1] - k[:, 0:1] * x[:, 2:3],
-                   k[:, 0:1] * x[:, 1:2] - k[:, 1:2] * x[:, 0:1]], 1)  # k x x (no Cross op in ONNX)
+    y = cross(k, x)
     e = F.normalize(ex * x + ey * y, dim=1, eps=eps)
     along, across = torch.cos(zen) * k, torch.sin(zen) * e
     return along + across, along - across

@@ -73,6 +73,17 @@ def fit_gains(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torc
     return g_s, g_c
 
 
+def gain_fitted_initialization(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
+                               s_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The analytic initialization with the :func:`fit_gains` gains applied: the scaled specular
+    block ``g_s Ms`` (B,3,3,H,W), the scaled albedo ``g_c kd`` (B,C,H,W) and the Mueller image
+    ``g_s Ms + g_c kd Md`` (B,C,3,3,H,W) (unmasked)."""
+    g_s, g_c = fit_gains(stokes, ms, md, kd, s_in)
+    ms = ms * g_s[:, :, None]
+    kd = kd * g_c
+    return ms, kd, ms[:, None] + kd[:, :, None, None] * md[:, None]
+
+
 def expand5(values: torch.Tensor, elements: tuple[tuple[int, int], ...]) -> torch.Tensor:
     """Place 5 channels ``(B, 5, H, W)`` at ``elements`` of a zero 3x3 -> ``(B, 3, 3, H, W)``."""
     zero = torch.zeros_like(values[:, 0])
@@ -110,10 +121,7 @@ class PMMNet(nn.Module):
                 ms_init: torch.Tensor, md_init: torch.Tensor, kd_init: torch.Tensor) -> dict[str, torch.Tensor]:
         stokes = stokes_from_analyzer(analyzer)
         # Radiometric fit of the analytic initialization to the measured state (fit_gains).
-        g_s, g_c = fit_gains(stokes, ms_init, md_init, kd_init, s_in)
-        ms_init = ms_init * g_s[:, :, None]
-        kd_init = kd_init * g_c
-        m_init = ms_init[:, None] + kd_init[:, :, None, None] * md_init[:, None]
+        ms_init, kd_init, m_init = gain_fitted_initialization(stokes, ms_init, md_init, kd_init, s_in)
         rendered = apply_mueller(m_init, s_in)
         x = torch.cat([stokes.flatten(1, 2), (stokes - rendered).flatten(1, 2),
                        signed_log(ms_init.flatten(1, 2)), signed_log(md_init.flatten(1, 2)),

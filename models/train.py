@@ -111,11 +111,17 @@ def _pick(t: dict[str, torch.Tensor], idx: torch.Tensor, keys) -> list[torch.Ten
     return [t[k][idx] for k in keys]
 
 
+def _windowed(analyzer: torch.Tensor, mask: torch.Tensor, crop: tuple[float, torch.Generator] | None):
+    """Analyzer images and mask cut to :func:`window_crop` windows (unchanged without ``crop``)."""
+    if crop is None:
+        return analyzer, mask
+    window = window_crop(mask, *crop)
+    return analyzer * window[:, None], mask * window
+
+
 def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | None = None):
     a, m, s, wo, n, kd, wi, al = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "normal", "kd", "wi", "alpha"))
-    if crop is not None:
-        window = window_crop(m, *crop)
-        a, m = a * window[:, None], m * window
+    a, m = _windowed(a, m, crop)
     return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m)
 
 
@@ -126,9 +132,7 @@ def pmmnet_step(model: PMMNet, t, idx):
 
 def direct_step(model: DirectStokesToMM, t, idx, crop: tuple[float, torch.Generator] | None = None):
     a, m, s, wo, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "mueller"))
-    if crop is not None:
-        window = window_crop(m, *crop)
-        a, m = a * window[:, None], m * window
+    a, m = _windowed(a, m, crop)
     return mueller_loss(model(a, m, s, wo), mu, m)
 
 
