@@ -50,7 +50,7 @@ class TrainConfig:
     sfp_prior: bool = True
     #: Fraction of PIPNet and direct-baseline training samples shown through a random window
     #: (:func:`window_crop`; the same augmentation for both, so the ablation stays fair)
-    crop_fraction: float = 0.0
+    crop_fraction: float = 0.7
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -66,8 +66,9 @@ def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
 
 
 def _config_of(checkpoint: dict) -> dict:
-    """A checkpoint's configuration; checkpoints from before the SfP prior existed had none."""
-    return {"sfp_prior": False, **checkpoint["config"]}
+    """A checkpoint's configuration; checkpoints from before the SfP prior and the window crops
+    existed were trained without them."""
+    return {"sfp_prior": False, "crop_fraction": 0.0, **checkpoint["config"]}
 
 
 def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
@@ -205,7 +206,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     checkpoint of another run) with ``stages`` retrains only those stages from scratch and
     takes the other networks (and their training times) from that checkpoint, e.g. a new
     PMMNet on a trained PIPNet; with ``warm_start`` the trained stages start from the donor's
-    weights instead (fine-tuning with a fresh optimizer and learning-rate schedule). Returns the summary dict also written to ``OUT/summary.json``."""
+    weights instead (fine-tuning with a fresh optimizer and learning-rate schedule). Returns
+    the summary dict also written to ``OUT/summary.json``."""
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
     bad = [s for s in stages if s not in STAGES]

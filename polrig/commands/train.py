@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="PIPNet with the shape-from-polarization normal prior (default on for new runs)")
     p.add_argument("--crop-fraction", type=float, default=None,
                    help="fraction of PIPNet and direct-baseline training samples seen through a random window "
-                        "(hides silhouettes)")
+                        "(hides silhouettes; default 0.7 for new runs)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
