@@ -1,5 +1,7 @@
 """Global light direction by analysis-by-synthesis: which direction makes the pBRDF explain the
-one measured Stokes image best? (PyTorch, exported inside the single-shot graph.)
+one measured Stokes image best? (PyTorch; used by :mod:`models.diagnose`, not by the shipped
+graph: with PIPNet's normals on unseen shapes it does no better than PIPNet's own light, with
+the true normals it finds the light to about 9 deg, ``models/MODEL_CARD.md``.)
 
 The rig has one point light, so over an object a few centimetres across at 0.3-0.6 m the
 direction to it varies by a few degrees: one direction per image. For each of ``K`` candidate
@@ -22,7 +24,8 @@ candidate with the smallest residual is refined once on a finer local set around
 Unlike PIPNet's learned light head this is local physics: shading (``cos theta_i`` through the
 diffuse block), the highlight position and the polarization of both components all vote, on
 any shape; it needs normals that are roughly right (PIPNet's, with its shape-from-polarization
-prior). All ops are element-wise, reductions, ``ArgMin`` and ``Gather``: it exports to ONNX.
+prior). All ops are element-wise, reductions, ``ArgMin`` and ``Gather``, so it could run inside
+an exported graph once the normals are good enough to make it worth it.
 """
 
 from __future__ import annotations
