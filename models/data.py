@@ -5,7 +5,8 @@ over its samples (plane-first, ``docs/conventions.md``): ``analyzer`` (N,C,4,H,W
 analyzer images, ``mask`` (N,H,W), ``normal``/``kd``/``wi``/``wo`` (N,3,H,W) camera frame,
 ``alpha`` (N,), ``s_in`` (N,3) normalised incident Stokes, ``mueller`` (N,C,3,3,H,W) on the
 analyzer's scale, ``family`` (N,), ``scale`` (N,) (DN per normalised unit), ``lit`` (N,H,W)
-object pixels that face the light and are not shadowed (optional). The stage zero
+object pixels that face the light and are not shadowed, ``eta`` (N,) the material's index of
+refraction (both optional). The stage zero
 axis in the camera frame comes from ``stage_zero_axis`` (N,3) in the shards, or from the
 manifest (one axis for the whole set: ``frames.stage_zero_axis_camera`` in the simulator's
 manifest, :mod:`sim.dataset`).
@@ -23,7 +24,7 @@ from polrig.errors import FormatError
 
 #: Arrays every shard must hold.
 REQUIRED = ("analyzer", "mask", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller")
-OPTIONAL = ("family", "scale", "stage_zero_axis", "lit")
+OPTIONAL = ("family", "scale", "stage_zero_axis", "lit", "eta")
 
 
 @dataclasses.dataclass

@@ -86,11 +86,7 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
     wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
     full = SingleShotModel.load(wd)
     direct = SingleShotModel.load(wd, graph="direct.onnx") if (wd / "direct.onnx").is_file() else None
-    eta = None
-    shards = sorted(pathlib.Path(data_dir).glob("shard-*.npz"))
-    etas = [np.load(s)["eta"] for s in shards if "eta" in np.load(s).files]
-    if etas:
-        eta = np.concatenate(etas)[:len(ds)]
+    eta = ds.arrays.get("eta")  # the true index of refraction, where the set records it
     rows: dict[str, list[dict[str, float]]] = {}
     for i in range(len(ds)):
         mask = ds["mask"][i] > 0
