@@ -24,24 +24,31 @@ from polrig.rig import build_rig, load_rig_config  # noqa: E402
 pytestmark = [pytest.mark.gui, pytest.mark.timeout(60)]
 
 
+def _rig_toml(tmp_path, ell, grbl, extra: str) -> pathlib.Path:
+    """``rig.toml`` with the emulated ELL14 stage, GRBL turntable and DC2200 light plus ``extra``."""
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(textwrap.dedent(extra) + textwrap.dedent(f"""
+        [stage]
+        driver = "ell14"
+        port = "{ell.port}"
+        [turntable]
+        driver = "grbl"
+        port = "{grbl.port}"
+        [light]
+        driver = "dc2200"
+        backend = "drivers.emulators.dc2200"
+    """))
+    return cfg
+
+
 def test_gui_drives_emulated_hardware(qtbot, tmp_path):
     with Ell14Emulator(link=tmp_path / "ell14", speed_factor=8) as ell, \
             GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as grbl:
-        cfg = tmp_path / "rig.toml"
-        cfg.write_text(textwrap.dedent(f"""
-            [stage]
-            driver = "ell14"
-            port = "{ell.port}"
-            [turntable]
-            driver = "grbl"
-            port = "{grbl.port}"
-            [light]
-            driver = "dc2200"
-            backend = "drivers.emulators.dc2200"
+        cfg = _rig_toml(tmp_path, ell, grbl, """
             [sim]
             size = "64x64"
             clock_speed = 1000.0
-        """))
+        """)
         rig = build_rig(load_rig_config(cfg))
         assert rig.truth is None  # a mixed rig has no simulated truth
         w = MainWindow(rig, make_settings(tmp_path / "gui.ini"), poll_ms=150)
@@ -100,8 +107,7 @@ def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_p
         pytest.skip("genicam test producer viky.cti not installed")
     with Ell14Emulator(link=tmp_path / "ell14", speed_factor=8) as ell, \
             GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as grbl:
-        cfg = tmp_path / "rig.toml"
-        cfg.write_text(textwrap.dedent(f"""
+        cfg = _rig_toml(tmp_path, ell, grbl, f"""
             [camera]
             driver = "genicam"
             cti = "{viky}"
@@ -110,16 +116,7 @@ def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_p
             frame_rate_hz = 200.0
             roi = [128, 100, 0, 0]
             layout = "imx250mzr"
-            [stage]
-            driver = "ell14"
-            port = "{ell.port}"
-            [turntable]
-            driver = "grbl"
-            port = "{grbl.port}"
-            [light]
-            driver = "dc2200"
-            backend = "drivers.emulators.dc2200"
-        """))
+        """)
         rig = build_rig(load_rig_config(cfg))
         assert rig.sim is None
         w = MainWindow(rig, make_settings(tmp_path / "gui.ini"), poll_ms=150)
