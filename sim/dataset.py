@@ -20,7 +20,7 @@ import dataclasses
 import json
 import pathlib
 import zipfile
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -75,9 +75,21 @@ RIG_AXIS_FRACTION = 0.5
 CAMERA_UP_FRACTION = 0.2
 
 
-def families_for(holdout: bool) -> tuple[int, ...]:
-    """Family ids (indices of :data:`sim.scene.FAMILIES`) of the training or held-out set."""
-    return tuple(i for i, f in enumerate(FAMILIES) if (f in HOLDOUT_FAMILIES) == bool(holdout))
+def families_for(holdout: bool, names: Sequence[str] | None = None) -> tuple[int, ...]:
+    """Family ids (indices of :data:`sim.scene.FAMILIES`) of the training or held-out set:
+    every family of that side, or the subset ``names``. A name that is unknown or belongs to
+    the other side raises :class:`ConfigError`, so no held-out family can leak into a
+    training set."""
+    side = tuple(i for i, f in enumerate(FAMILIES) if (f in HOLDOUT_FAMILIES) == bool(holdout))
+    if names is None:
+        return side
+    names = tuple(names)
+    bad = [n for n in names if n not in FAMILIES or FAMILIES.index(n) not in side]
+    if bad or not names:
+        allowed = ", ".join(FAMILIES[i] for i in side)
+        raise ConfigError(f"{'held-out' if holdout else 'training'} families must be a non-empty "
+                          f"subset of {allowed}; got {', '.join(names) or 'none'}")
+    return tuple(i for i in side if FAMILIES[i] in names)
 
 
 def dataset_sensor_model() -> SensorModel:
@@ -101,15 +113,18 @@ def sample_stage_zero_axis(scene: Scene, rng: np.random.Generator) -> np.ndarray
 
 
 def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool = False,
-                model: SensorModel | None = None, stage_zero_axes: str = "random") -> dict[str, Any]:
+                model: SensorModel | None = None, stage_zero_axes: str = "random",
+                families: Sequence[str] | None = None) -> dict[str, Any]:
     """One sample (arrays without the ``N`` axis), deterministic in ``(seed, holdout, index)``
     (and ``stage_zero_axes``, see :data:`STAGE_ZERO_AXES`; the axis comes from its own random
-    stream, so a ``"camera-up"`` sample equals the version-1 sample of the same index)."""
+    stream, so a ``"camera-up"`` sample equals the version-1 sample of the same index) and in
+    ``families`` (the shape families drawn from, :func:`families_for`; version-1 sets used
+    ``sphere, box, cylinder, multi``)."""
     if stage_zero_axes not in STAGE_ZERO_AXES:
         raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
     model = model or dataset_sensor_model()
     rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index)])
-    fams = families_for(holdout)
+    fams = families_for(holdout, families)
     family = int(fams[rng.integers(len(fams))])
     scene = random_scene(rng, width, height, family)
     if stage_zero_axes == "random":
@@ -175,7 +190,7 @@ def shard_complete(path: pathlib.Path, n_expected: int) -> bool:
 
 def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: int,
               holdout: bool, shard_size: int, compress: bool, model: SensorModel,
-              stage_zero_axes: str = "random") -> dict:
+              stage_zero_axes: str = "random", families: Sequence[str] | None = None) -> dict:
     cam = default_camera(width, height, focal_per_px=RANDOM_FOCAL_PER_PX)
     n_shards = -(-count // shard_size)
     return {
@@ -186,7 +201,7 @@ def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: i
         "shards": [shard_name(k) for k in range(n_shards)], "compressed": bool(compress),
         "sensor": "imx250myr", "layout": "imx250myr", "channels": ["R", "G", "B"],
         "analyzer_order_deg": [0, 45, 90, 135],
-        "families": list(FAMILIES), "families_present": [FAMILIES[i] for i in families_for(holdout)],
+        "families": list(FAMILIES), "families_present": [FAMILIES[i] for i in families_for(holdout, families)],
         "holdout_families": list(HOLDOUT_FAMILIES),
         "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                        "varies": False},
@@ -210,18 +225,20 @@ def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: i
 
 
 _RESUME_KEYS = ("format", "version", "count", "width", "height", "seed", "holdout",
-                "shard_size", "compressed")
+                "shard_size", "compressed", "families_present")
 
 
 def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
                      height: int | None = None, seed: int = 0, holdout: bool = False,
                      shard_size: int = 16, compress: bool = True, progress: bool = True,
-                     max_shards: int | None = None, stage_zero_axes: str = "random") -> dict[str, int]:
+                     max_shards: int | None = None, stage_zero_axes: str = "random",
+                     families: Sequence[str] | None = None) -> dict[str, int]:
     """Write (or resume) a dataset; returns ``{"written": shards made, "skipped": shards
     already complete}``. ``max_shards`` stops after that many new shards (for tests and
     partial runs). ``stage_zero_axes``: how each sample's polarizer stage zero axis is chosen
-    (:data:`STAGE_ZERO_AXES`). A folder holding a different dataset raises
-    :class:`ConfigError`."""
+    (:data:`STAGE_ZERO_AXES`). ``families``: shape families to draw from (default: every
+    family of the chosen side, :func:`families_for`). A folder holding a different dataset
+    raises :class:`ConfigError`."""
     from tqdm import tqdm
 
     height = width if height is None else int(height)
@@ -236,7 +253,7 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     model = dataset_sensor_model()
     manifest = _manifest(out, count=count, width=width, height=height, seed=seed,
                          holdout=holdout, shard_size=shard_size, compress=compress, model=model,
-                         stage_zero_axes=stage_zero_axes)
+                         stage_zero_axes=stage_zero_axes, families=families)
     mpath = out / "manifest.json"
     if mpath.is_file():
         try:
@@ -270,7 +287,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
             for i in range(k * shard_size, k * shard_size + n_k):
                 samples.append(make_sample(i, seed=seed, width=width, height=height,
                                            holdout=holdout, model=model,
-                                           stage_zero_axes=stage_zero_axes))
+                                           stage_zero_axes=stage_zero_axes,
+                                           families=families))
                 bar.update(1)
             atomic_write_bytes(out / shard_name(k), _shard_bytes(samples, compress))
             written += 1

@@ -20,8 +20,8 @@ import numpy as np
 
 from sim.geometry import PinholeCamera, PointLight, TurntableGeometry, look_at, unit
 from sim.materials import Material, get_material, random_material
-from sim.shapes import (Box, Cylinder, HeightField, Rectangle, Shape, Sphere, gaussian_bumps,
-                        wave_normal_map)
+from sim.shapes import (Blob, Box, Cylinder, HeightField, Rectangle, Shape, Sphere, Torus,
+                        gaussian_bumps, wave_normal_map)
 
 RegionFn = Callable[[np.ndarray], np.ndarray]
 
@@ -245,7 +245,7 @@ def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
 
 
 #: Shape families of the random dataset scenes (``family`` id = index).
-FAMILIES = ("sphere", "box", "cylinder", "multi", "heightfield", "plane")
+FAMILIES = ("sphere", "box", "cylinder", "multi", "heightfield", "plane", "blob", "torus")
 #: Focal length of the dataset camera in units of min(width, height): the default rig's, so
 #: that networks trained on datasets see the geometry of ``polrig sim render`` captures
 #: (``models.runtime.DEFAULT_FOCAL_PER_PX`` relies on it).
@@ -287,6 +287,16 @@ def random_scene(rng: np.random.Generator, width: int, height: int,
         objs = [SceneObject("terrain", HeightField(0.06, 0.06, -0.012 * k, 0.02 * k, h, g),
                             (mat,), c - [0, 0, 0.03], rotation=_tilt(rng.uniform(-20, 20),
                                                                       rng.uniform(0, 360)))]
+    elif fam == "blob":
+        k = int(rng.integers(4, 11))
+        objs = [SceneObject("blob", Blob(rng.uniform(0.035, 0.05),
+                                         tuple(map(tuple, rng.normal(size=(k, 3)))),
+                                         tuple(rng.uniform(0.25, 0.7, k)),
+                                         tuple(rng.uniform(-0.35, 0.45, k))),
+                            (mat,), c, rotation=rot)]
+    elif fam == "torus":
+        objs = [SceneObject("torus", Torus(rng.uniform(0.03, 0.045), rng.uniform(0.01, 0.02)),
+                            (mat,), c, rotation=_tilt(rng.uniform(-70, 70), rng.uniform(0, 360)))]
     elif fam == "plane":
         objs = [SceneObject("plane", Rectangle(0.06, 0.06,
                                                normal_map=wave_normal_map(

@@ -184,3 +184,25 @@ def test_cli_dataset_stage_zero_axes_camera_up(tmp_path):
     with np.load(out / "shard-00000.npz") as z:
         axes = z["stage_zero_axis"]
     assert np.all(axes[:, 1] < -0.8)  # close to -Y (up) in the camera frame
+
+
+def test_dataset_families_are_a_subset_of_one_side(tmp_path, capsys):
+    """``--families`` narrows the families drawn; a held-out family never enters a training set,
+    and a folder made with other families is not resumed."""
+    assert families_for(False, ["torus", "sphere"]) == (FAMILIES.index("sphere"),
+                                                        FAMILIES.index("torus"))
+    for bad in (["heightfield"], ["teapot"], []):
+        with pytest.raises(ConfigError, match="training families must be"):
+            families_for(False, bad)
+    with pytest.raises(ConfigError, match="held-out families must be"):
+        families_for(True, ["blob"])
+    out = tmp_path / "ds"
+    args = ["sim", "dataset", "--count", "4", "--size", "24", "--seed", "3", "--shard-size",
+            "4", "--quiet", "--families", "blob,torus", "--out", str(out)]
+    assert main(args) == 0
+    fams = {FAMILIES[f] for f in load_shard(out / shard_name(0))["family"]}
+    assert fams <= {"blob", "torus"}
+    assert json.loads((out / "manifest.json").read_text())["families_present"] == ["blob", "torus"]
+    assert main(args[:-4] + ["--families", "blob", "--out", str(out)]) == 2  # another dataset
+    assert "families_present" in capsys.readouterr().err
+    assert main(args[:-4] + ["--families", "plane", "--out", str(tmp_path / "x")]) == 2

@@ -15,7 +15,7 @@ from sim.geometry import PinholeCamera, PointLight, look_at, rotation_about_axis
 from sim.materials import PRESETS, Material, get_material
 from sim.render import render
 from sim.scene import SCENES, SceneObject, make_scene
-from sim.shapes import Box, Cylinder, HeightField, Rectangle, Sphere, gaussian_bumps
+from sim.shapes import Blob, Box, Cylinder, HeightField, Rectangle, Sphere, Torus, gaussian_bumps
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 
@@ -27,11 +27,18 @@ def _rays(n: int, seed: int, spread: float = 0.3):
     return o, unit(target - o)
 
 
+#: bumps and dents that overlap, so the surface has convex, concave and saddle regions
+_BLOB = Blob(0.04, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.3), (0.0, 0.0, 1.0), (0.3, 0.3, 0.9)),
+             (0.5, 0.4, 0.6, 0.3), (0.3, -0.3, 0.25, -0.35))
+
+
 @pytest.mark.parametrize("shape, implicit", [
     (Sphere(0.05), lambda p: np.linalg.norm(p, axis=1) - 0.05),
     (Box((0.04, 0.02, 0.03)), lambda p: np.max(np.abs(p) - [0.04, 0.02, 0.03], axis=1)),
     (Cylinder(0.03, 0.05), lambda p: np.maximum(np.hypot(p[:, 0], p[:, 1]) - 0.03,
                                                 np.abs(p[:, 2]) - 0.05)),
+    (Torus(0.035, 0.012), lambda p: np.hypot(np.hypot(p[:, 0], p[:, 1]) - 0.035, p[:, 2]) - 0.012),
+    (_BLOB, lambda p: _BLOB.inside(p)),
 ])
 def test_hits_lie_on_the_surface_with_outward_unit_normals(shape, implicit):
     o, d = _rays(4000, 1)
@@ -65,11 +72,36 @@ def test_sphere_hit_is_the_nearest_root():
 def test_degenerate_rays_miss_without_exceptions(ox, oy, oz, dx, dy, dz):
     o = np.array([[ox, oy, oz], [np.nan, 0, 0], [np.inf, 0, 1]])
     d = np.array([[dx, dy, dz], [0, 0, -1], [0, 0, -1.0]])
-    for shape in (Sphere(0.3), Box((0.2, 0.3, 0.1)), Cylinder(0.2, 0.1), Rectangle(0.5, 0.5)):
+    for shape in (Sphere(0.3), Box((0.2, 0.3, 0.1)), Cylinder(0.2, 0.1), Rectangle(0.5, 0.5),
+                  Torus(0.2, 0.05), _BLOB):
         t, n = shape.intersect(o, d)
         assert t.shape == (3,) and n.shape == (3, 3)
         assert not np.isfinite(t[1:]).any()
         assert np.isfinite(n).all()
+
+
+@pytest.mark.parametrize("shape", [Torus(0.035, 0.012), _BLOB], ids=["torus", "blob"])
+def test_marched_solid_normals_are_the_gradient_of_the_implicit_function(shape):
+    o, d = _rays(3000, 3)
+    t, n = shape.intersect(o, d)
+    hit = np.isfinite(t)
+    p = o[hit] + t[hit, None] * d[hit]
+    eps = 1e-7
+    grad = np.stack([(shape.inside(p + eps * e) - shape.inside(p - eps * e)) / (2 * eps)
+                     for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(n[hit], unit(grad), atol=1e-6)
+
+
+def test_blob_radius_follows_its_bumps_and_dents():
+    """Along a bump (dent) centre the surface lies at ``radius exp(sum_k a_k e_k)``: outside
+    (inside) the base sphere; a ray from far away along -u hits it there."""
+    c = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    blob = Blob(0.04, tuple(map(tuple, c)), (0.3, 0.3), (0.4, -0.3))
+    for u, a in zip(c, (0.4, -0.3)):
+        other = np.exp((c @ u - 1.0) / 0.09) * np.array([0.4, -0.3])
+        t, _ = blob.intersect(u[None] * 1.0, -u[None])
+        assert 1.0 - t[0] == pytest.approx(0.04 * np.exp(other.sum()), rel=1e-8)
+        assert (1.0 - t[0] > 0.04) == (a > 0)
 
 
 def test_height_field_hits_satisfy_the_height_function():

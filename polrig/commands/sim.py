@@ -26,6 +26,11 @@ def _states(text: str) -> list[float]:
     return states
 
 
+def _names(text: str) -> list[str]:
+    """Comma-separated names (validated where used, with the allowed ones in the error)."""
+    return [s.strip() for s in text.split(",") if s.strip()]
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sim", help="simulated captures with ground truth, training datasets",
                        description="Render simulated DoFP captures with their ground truth, "
@@ -59,6 +64,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--shard-size", type=int, default=16, help="samples per shard")
     d.add_argument("--holdout", action="store_true",
                    help="generate the held-out shape families instead of the training ones")
+    d.add_argument("--families", type=_names, default=None,
+                   help="comma-separated shape families to draw from (default: every training "
+                        "family, or every held-out one with --holdout); the shipped model's "
+                        "version-1 training set used sphere,box,cylinder,multi")
     d.add_argument("--stage-zero-axes", default="random", choices=("random", "camera-up"),
                    help="polarizer stage zero axis per sample: drawn at random (default), or the "
                         "camera's up direction for every sample (version-1 sets such as the "
@@ -110,7 +119,7 @@ def run_dataset(args: argparse.Namespace) -> int:
     res = generate_dataset(args.out, count=args.count, width=args.size, seed=args.seed,
                            holdout=args.holdout, shard_size=args.shard_size,
                            compress=not args.no_compress, progress=not args.quiet,
-                           stage_zero_axes=args.stage_zero_axes)
+                           stage_zero_axes=args.stage_zero_axes, families=args.families)
     print(f"polrig sim dataset: {res['written']} shard(s) written, {res['skipped']} already "
           f"complete -> {args.out} in {time.perf_counter() - t0:.1f} s")
     return 0
