@@ -221,6 +221,14 @@ def _scene_objects(name: str) -> list[SceneObject]:
                               [0.012, 0.015, 0.01, 0.008], [0.015, 0.02, -0.008, 0.01])
         return [SceneObject("terrain", HeightField(0.06, 0.06, -0.009, 0.021, h, g),
                             (m("ceramic"),), [0.0, 0.0, 0.02])]
+    if name == "blob":
+        return [SceneObject("blob", Blob(0.045, ((1.0, 0.2, 0.3), (-0.4, 1.0, 0.2), (0.1, -0.3, 1.0),
+                                                 (-0.8, -0.6, -0.2), (0.3, 0.5, -1.0)),
+                                         (0.5, 0.4, 0.35, 0.6, 0.45), (0.35, -0.25, 0.3, 0.2, -0.3)),
+                            (m("ceramic"),), c, rotation=_tilt(20.0, 30.0))]
+    if name == "torus":
+        return [SceneObject("torus", Torus(0.04, 0.015), (m("plastic_white"),), c,
+                            rotation=_tilt(45.0, 20.0))]
     if name == "normalmap":
         return [SceneObject("panel", Rectangle(0.06, 0.06, normal_map=wave_normal_map()),
                             (m("plastic_white"),), c, rotation=_tilt(70.0, 0.0))]
@@ -228,7 +236,7 @@ def _scene_objects(name: str) -> list[SceneObject]:
 
 
 SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_sphere",
-          "plane", "box", "cylinder", "multi", "heightfield", "normalmap")
+          "plane", "box", "cylinder", "multi", "heightfield", "normalmap", "blob", "torus")
 
 
 def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
