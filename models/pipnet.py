@@ -128,26 +128,63 @@ class PIPNet(nn.Module):
         # untrained head starts from a plausible geometry.
         head = self.normal_head(feat)
         normal = F.normalize(head[:, :3] + wo, dim=1, eps=1e-6)
+        sfp = {}
         if self.sfp_prior:
-            pick = torch.sigmoid(SELECT_SHARPNESS * ((n_plus - n_minus) * normal).sum(1, keepdim=True))
+            pick_logit = SELECT_SHARPNESS * ((n_plus - n_minus) * normal).sum(1, keepdim=True)
+            pick = torch.sigmoid(pick_logit)
             n_sfp = pick * n_plus + (1.0 - pick) * n_minus
             trust = torch.sigmoid(head[:, 3:4])
             normal = F.normalize(trust * n_sfp + (1.0 - trust) * normal, dim=1, eps=1e-6)
+            sfp = {"sfp_plus": n_plus, "sfp_minus": n_minus, "pick_logit": pick_logit,
+                   "trust_logit": head[:, 3:4]}
         wi = F.normalize(self.wi_head(feat) + wo, dim=1, eps=1e-6)
         kd = F.softplus(self.kd_head(feat))
         small_mask = F.avg_pool2d(mask, SIZE_MULTIPLE, SIZE_MULTIPLE)
         pooled = (bottleneck * small_mask).sum((2, 3)) / small_mask.sum((2, 3)).clamp_min(1e-6)
         alpha = ALPHA_MIN + (ALPHA_MAX - ALPHA_MIN) * torch.sigmoid(self.alpha_head(pooled)[:, 0])
-        return {"normal": normal, "kd": kd, "wi": wi, "alpha": alpha}
+        return {"normal": normal, "kd": kd, "wi": wi, "alpha": alpha, **sfp}
+
+
+#: A pixel's nearer SfP candidate counts as reliable (trust target 1) within this angle of the
+#: true normal (deg), and the pick is supervised where the candidates' dot products with the
+#: true normal differ by more than PICK_MARGIN.
+TRUST_TARGET_DEG = 10.0
+PICK_MARGIN = 0.05
+
+
+def sfp_supervision_loss(pred: dict[str, torch.Tensor], normal: torch.Tensor,
+                         mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Direct supervision of the SfP prior's two decisions (an addition to the paper's loss):
+    binary cross-entropies of the pick (target: the candidate nearer the true normal, where
+    the two differ by more than :data:`PICK_MARGIN` in dot product) and of the trust (target:
+    the nearer candidate is within :data:`TRUST_TARGET_DEG` of the true normal, i.e. the
+    pixel's polarization is diffuse-like and well measured). The cosine loss alone only
+    teaches the trust where the candidate beats the free normal, which on the training shapes
+    it rarely does; this teaches it where the local physics holds, which transfers to shapes
+    never seen. Returns ``(pick loss, trust loss)`` averaged over their pixels."""
+    da = (pred["sfp_plus"] * normal).sum(1, keepdim=True)
+    db = (pred["sfp_minus"] * normal).sum(1, keepdim=True)
+    pick_w = mask * ((da - db).abs() > PICK_MARGIN)
+    l_pick = (F.binary_cross_entropy_with_logits(pred["pick_logit"], (da > db).to(da.dtype), reduction="none")
+              * pick_w).sum() / pick_w.sum().clamp_min(1.0)
+    reliable = (torch.maximum(da, db) > torch.cos(torch.deg2rad(torch.tensor(TRUST_TARGET_DEG)))).to(da.dtype)
+    l_trust = masked_mean(F.binary_cross_entropy_with_logits(pred["trust_logit"], reliable, reduction="none"), mask)
+    return l_pick, l_trust
 
 
 def pipnet_loss(pred: dict[str, torch.Tensor], normal: torch.Tensor, kd: torch.Tensor,
-                wi: torch.Tensor, alpha: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-    """The paper's loss ``cos(n) + 0.5 L1(kd) + 0.5 L1(wi) + 0.3 L1(alpha)`` over the mask."""
+                wi: torch.Tensor, alpha: torch.Tensor, mask: torch.Tensor,
+                sfp_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+    """The paper's loss ``cos(n) + 0.5 L1(kd) + 0.5 L1(wi) + 0.3 L1(alpha)`` over the mask,
+    plus ``sfp_weight`` times the two :func:`sfp_supervision_loss` terms (with the prior)."""
     cos = masked_mean(1.0 - (pred["normal"] * normal).sum(1, keepdim=True), mask)
     l_kd = masked_mean((pred["kd"] - kd).abs(), mask)
     l_wi = masked_mean((pred["wi"] - wi).abs(), mask)
     l_alpha = (pred["alpha"] - alpha).abs().mean()
     total = cos + 0.5 * l_kd + 0.5 * l_wi + 0.3 * l_alpha
-    return total, {k: float(v.detach()) for k, v in
-                   (("cos_n", cos), ("l1_kd", l_kd), ("l1_wi", l_wi), ("l1_alpha", l_alpha))}
+    terms = [("cos_n", cos), ("l1_kd", l_kd), ("l1_wi", l_wi), ("l1_alpha", l_alpha)]
+    if sfp_weight > 0 and "pick_logit" in pred:
+        l_pick, l_trust = sfp_supervision_loss(pred, normal, mask)
+        total = total + sfp_weight * (l_pick + l_trust)
+        terms += [("bce_pick", l_pick), ("bce_trust", l_trust)]
+    return total, {k: float(v.detach()) for k, v in terms}

@@ -51,6 +51,9 @@ class TrainConfig:
     #: Fraction of PIPNet and direct-baseline training samples shown through a random window
     #: (:func:`window_crop`; the same augmentation for both, so the ablation stays fair)
     crop_fraction: float = 0.7
+    #: Weight of the direct supervision of the SfP prior's pick and trust
+    #: (:func:`models.pipnet.sfp_supervision_loss`; 0: the paper's loss only)
+    sfp_supervision: float = 0.0
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -68,7 +71,7 @@ def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
 def _config_of(checkpoint: dict) -> dict:
     """A checkpoint's configuration; checkpoints from before the SfP prior and the window crops
     existed were trained without them."""
-    return {"sfp_prior": False, "crop_fraction": 0.0, **checkpoint["config"]}
+    return {"sfp_prior": False, "crop_fraction": 0.0, "sfp_supervision": 0.0, **checkpoint["config"]}
 
 
 def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
@@ -120,10 +123,11 @@ def _windowed(analyzer: torch.Tensor, mask: torch.Tensor, crop: tuple[float, tor
     return analyzer * window[:, None], mask * window
 
 
-def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | None = None):
+def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | None = None,
+                sfp_weight: float = 0.0):
     a, m, s, wo, n, kd, wi, al = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "normal", "kd", "wi", "alpha"))
     a, m = _windowed(a, m, crop)
-    return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m)
+    return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m, sfp_weight)
 
 
 def pmmnet_step(model: PMMNet, t, idx):
@@ -289,6 +293,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             if stage in CROPPED_STAGES and config.crop_fraction > 0:
                 gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
                 train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
+            if stage == "pipnet" and config.sfp_supervision > 0:
+                train_step = functools.partial(train_step, sfp_weight=config.sfp_supervision)
             train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng)
             val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
             dt = time.time() - te

@@ -126,3 +126,46 @@ def test_candidate_choice_is_continuous_at_ties():
         b = net(analyzer * (1 + 1e-4 * torch.rand_like(analyzer)), torch.ones(1, 1, 8, 8),
                 torch.tensor([[1.0, 0.5, 0.2]]), wo.contiguous())["normal"]
     assert float((a - b).abs().max()) < 1e-2
+
+
+def test_sfp_supervision_targets_the_nearer_candidate_and_its_reliability():
+    """The pick is pushed towards the candidate nearer the true normal and the trust towards
+    'the nearer candidate is within TRUST_TARGET_DEG': confident right decisions cost almost
+    nothing, confident wrong ones a lot; ties (equal dot products) are not supervised."""
+    from models.pipnet import TRUST_TARGET_DEG, sfp_supervision_loss
+
+    n = torch.nn.functional.normalize(torch.tensor([0.3, 0.0, -1.0]), dim=0)[None, :, None, None].expand(1, 3, 4, 4)
+    near = n.clone()  # candidate equal to the truth
+    far = torch.nn.functional.normalize(torch.tensor([-0.3, 0.0, -1.0]), dim=0)[None, :, None, None].expand(1, 3, 4, 4)
+    mask = torch.ones(1, 1, 4, 4)
+
+    def loss(pick, trust, plus=near, minus=far):
+        pred = {"sfp_plus": plus, "sfp_minus": minus, "pick_logit": torch.full((1, 1, 4, 4), pick),
+                "trust_logit": torch.full((1, 1, 4, 4), trust)}
+        return [float(x) for x in sfp_supervision_loss(pred, n, mask)]
+
+    assert loss(20.0, 20.0) == pytest.approx([0.0, 0.0], abs=1e-6)  # picks plus, trusts it
+    assert min(loss(-20.0, -20.0)) > 19.0  # picks the far one and distrusts a reliable candidate
+    assert loss(-20.0, 20.0, plus=far, minus=near)[0] == pytest.approx(0.0, abs=1e-6)
+    # the nearer candidate 2x the trust angle away: not reliable, so distrust is right
+    tilt = torch.deg2rad(torch.tensor(2 * TRUST_TARGET_DEG))
+    off = torch.nn.functional.normalize(n + torch.tan(tilt) * torch.tensor([0.0, 1.0, 0.0])[None, :, None, None], dim=1)
+    assert loss(20.0, -20.0, plus=off)[1] == pytest.approx(0.0, abs=1e-6)
+    assert loss(20.0, 20.0, plus=off)[1] > 19.0
+    # equal candidates: nothing to pick, the pick is not supervised
+    assert loss(-20.0, 20.0, plus=near, minus=near)[0] == 0.0
+
+
+def test_pipnet_loss_adds_the_sfp_terms_only_when_asked():
+    from models.pipnet import pipnet_loss
+
+    torch.manual_seed(2)
+    net = PIPNet(3, 8, sfp_prior=True)
+    wo = torch.nn.functional.normalize(torch.randn(2, 3, 16, 16) * 0.2 + torch.tensor([0, 0, -1.0])[None, :, None, None], dim=1)
+    pred = net(torch.rand(2, 3, 4, 16, 16), torch.ones(2, 1, 16, 16), torch.tensor([[1.0, 0.9, 0.1]] * 2), wo)
+    args = (torch.nn.functional.normalize(torch.randn(2, 3, 16, 16), dim=1), torch.rand(2, 3, 16, 16), wo,
+            torch.rand(2), torch.ones(2, 1, 16, 16))
+    base, d0 = pipnet_loss(pred, *args)
+    total, d1 = pipnet_loss(pred, *args, sfp_weight=0.5)
+    assert "bce_pick" not in d0 and {"bce_pick", "bce_trust"} <= set(d1)
+    assert float((total - base).detach()) == pytest.approx(0.5 * (d1["bce_pick"] + d1["bce_trust"]), rel=1e-5)

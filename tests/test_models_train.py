@@ -148,3 +148,15 @@ def test_training_with_crops_runs_and_is_reproducible(trained, tmp_path):
               stages=("pipnet",), init_from=root / "run" / "checkpoint.pt", export=False, echo=lambda s: None)
         losses.append([r["train_loss"] for r in csv.DictReader((tmp_path / run / "log.csv").open())])
     assert losses[0] == losses[1] and len(losses[0]) == TINY.pipnet_epochs
+
+
+def test_sfp_supervision_is_logged_and_changes_the_training(trained, tmp_path):
+    root, data, _ = trained
+    logs = {}
+    for run, weight in (("plain", 0.0), ("supervised", 1.0)):
+        train(data, tmp_path / run, TINY, overrides={"sfp_supervision": weight, "pmmnet_epochs": 0, "direct_epochs": 0},
+              stages=("pipnet",), init_from=root / "run" / "checkpoint.pt", export=False, echo=lambda s: None)
+        logs[run] = list(csv.DictReader((tmp_path / run / "log.csv").open()))
+    assert "bce_trust" in json.loads(logs["supervised"][0]["details"])
+    assert "bce_trust" not in json.loads(logs["plain"][0]["details"])
+    assert logs["plain"][-1]["train_loss"] != logs["supervised"][-1]["train_loss"]

@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--crop-fraction", type=float, default=None,
                    help="fraction of PIPNet and direct-baseline training samples seen through a random window "
                         "(hides silhouettes; default 0.7 for new runs)")
+    p.add_argument("--sfp-supervision", type=float, default=None,
+                   help="weight of the direct supervision of the SfP prior's candidate pick and trust "
+                        "(models.pipnet.sfp_supervision_loss; default 0, the paper's loss only)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
@@ -69,6 +72,10 @@ def run(args: argparse.Namespace) -> int:
         if not 0.0 <= args.crop_fraction <= 1.0:
             raise ValueError(f"--crop-fraction must be in [0, 1], got {args.crop_fraction}")
         overrides["crop_fraction"] = args.crop_fraction
+    if args.sfp_supervision is not None:
+        if args.sfp_supervision < 0:
+            raise ValueError(f"--sfp-supervision must be >= 0, got {args.sfp_supervision}")
+        overrides["sfp_supervision"] = args.sfp_supervision
     if args.decay_start is not None:
         if not 0.0 <= args.decay_start <= 1.0:
             raise ValueError(f"--decay-start must be in [0, 1], got {args.decay_start}")
