@@ -160,8 +160,10 @@ def sfp_supervision_loss(pred: dict[str, torch.Tensor], normal: torch.Tensor,
     the nearer candidate is within :data:`TRUST_TARGET_DEG` of the true normal, i.e. the
     pixel's polarization is diffuse-like and well measured). The cosine loss alone only
     teaches the trust where the candidate beats the free normal, which on the training shapes
-    it rarely does; this teaches it where the local physics holds, which transfers to shapes
-    never seen. Returns ``(pick loss, trust loss)`` averaged over their pixels."""
+    it rarely does; this teaches it where the local physics holds, in the hope that such local
+    decisions transfer to shapes never seen. Measured (``models/MODEL_CARD.md``, "How good must
+    the geometry be"): they did not; the pick learned on convex objects got worse on terrain.
+    Returns ``(pick loss, trust loss)`` averaged over their pixels."""
     da = (pred["sfp_plus"] * normal).sum(1, keepdim=True)
     db = (pred["sfp_minus"] * normal).sum(1, keepdim=True)
     pick_w = mask * ((da - db).abs() > PICK_MARGIN)

@@ -9,8 +9,8 @@ normal-mapped and height-field surfaces where it follows the surface detail).
 Intersections are closed forms (sphere, plane, slab test for the box, quadric plus caps for the
 cylinder); height fields and implicit solids (blob, torus) are found by dense marching followed
 by bisection of the sign change (Musgrave's height-field ray marching, as in Pharr, Jakob and
-Humphreys, *Physically Based Rendering*, 3rd ed., sec. 3.x/4.x on shapes and acceleration). Misses never raise: NaN or
-infinite input rays just miss.
+Humphreys, *Physically Based Rendering*, 3rd ed., sec. 3.x/4.x on shapes and acceleration).
+Misses never raise: NaN or infinite input rays just miss.
 """
 
 from __future__ import annotations
