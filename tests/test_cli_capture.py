@@ -128,10 +128,13 @@ def test_sigint_mid_session_then_resume_equals_uninterrupted(tmp_path):
                  noise=True)), "--out", str(ref), "--no-progress"]) == 0
     out = tmp_path / "run"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # A shell without job control starts background jobs with SIGINT ignored, and an ignored
+    # SIGINT is inherited: give the child the default disposition so Python installs its
+    # Ctrl-C handler however the test runner was started.
     proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses", poses,
                              "--config", str(cfg), "--out", str(out), "--no-progress"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=REPO)
+                            cwd=REPO, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     line = proc.stdout.readline()
     assert "capture 1/4" in line and "done" in line, line + proc.stderr.read()
     proc.send_signal(signal.SIGINT)
