@@ -16,10 +16,10 @@ graph on every sample and prints, per shape family:
   angular error), which shows whether physics can recover the light once the normals are right;
 * the two diffuse shape-from-polarization candidates of every pixel
   (:func:`models.pipnet.sfp_candidates`) with the true light, the candidate chosen by an
-  oracle (the one nearer the true normal) and by Lambertian shading (:func:`shading_pick`:
-  the one whose ``max(n.wi, 0)`` times one global albedo explains the intensity better),
-  each with its median normal error: how good the polarization's own normals are, and what
-  choosing between them costs;
+  oracle (the one nearer the true normal) and by Lambertian shading
+  (:func:`models.light_fit.shading_pick`: the one whose ``max(n.wi, 0)`` times one global
+  albedo explains the intensity better), each with its median normal error: how good the
+  polarization's own normals are, and what choosing between them costs;
 * the full model's and the direct baseline's forward L2 for comparison.
 
 The rungs separate what the analytic model could do with perfect geometry from what the
@@ -86,35 +86,25 @@ def fitted_light(normal, sample: dict, pool: int = 2) -> np.ndarray:
     return w[0].numpy()
 
 
-def shading_pick(plus: np.ndarray, minus: np.ndarray, wi: np.ndarray, intensity: np.ndarray,
-                 mask: np.ndarray, iterations: int = 5) -> np.ndarray:
-    """Per pixel, the one of two candidate normals ``(3, H, W)`` whose Lambertian shading
-    ``k max(n . wi, 0)`` explains ``intensity`` ``(H, W)`` better, with one albedo ``k`` for
-    the image (least squares over ``mask``, alternated with the choice) -> ``(3, H, W)``."""
-    sp, sm = np.clip((plus * wi).sum(0), 0, None), np.clip((minus * wi).sum(0), 0, None)
-    k = 1.0
-    for _ in range(iterations):
-        take_plus = np.abs(intensity - k * sp) < np.abs(intensity - k * sm)
-        s = np.where(take_plus, sp, sm)[mask]
-        k = float((intensity[mask] * s).sum() / max(float((s * s).sum()), 1e-12))
-    return np.where(take_plus[None], plus, minus)
-
-
-def sfp_choices(sample: dict, normal: np.ndarray, wi: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
-    """The shape-from-polarization candidate normals of a sample, chosen per pixel by an oracle
-    (nearer ``normal``) and by :func:`shading_pick` under the light ``wi``."""
+def sfp_geometries(sample: dict, normal: np.ndarray, wi: np.ndarray,
+                   mask: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Geometries ``{rung: (normal (3, H, W), wi (3, H, W))}`` from the sample's own
+    polarization under the true light ``wi``: its shape-from-polarization candidates chosen per
+    pixel by an oracle (the one nearer the true ``normal``) and by Lambertian shading
+    (:func:`models.light_fit.shading_pick`)."""
     import torch
 
     from models.layers import stokes_from_analyzer
+    from models.light_fit import shading_pick
     from models.pipnet import sfp_candidates
 
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
     with torch.no_grad():
-        stokes = stokes_from_analyzer(torch.from_numpy(np.ascontiguousarray(sample["analyzer"], np.float32))[None])
-        plus, minus = (c[0].numpy() for c in sfp_candidates(stokes, torch.from_numpy(
-            np.ascontiguousarray(sample["wo"], np.float32))[None]))
-    oracle = np.where(((plus - minus) * normal).sum(0)[None] >= 0, plus, minus)
-    intensity = stokes[0, :, 0].mean(0).numpy()
-    return {"oracle": oracle, "shading": shading_pick(plus, minus, wi, intensity, mask)}
+        stokes = stokes_from_analyzer(t(sample["analyzer"]))
+        plus, minus = sfp_candidates(stokes, t(sample["wo"]))
+        oracle = torch.where(((plus - minus) * t(normal)).sum(1, keepdim=True) >= 0, plus, minus)
+        shading = shading_pick(plus, minus, t(wi), stokes[:, :, 0].mean(1), torch.from_numpy(mask)[None])
+    return {"sfp_oracle_n+true_wi": (oracle[0].numpy(), wi), "sfp_shading_n+true_wi": (shading[0].numpy(), wi)}
 
 
 def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -> dict:
@@ -151,9 +141,9 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
                     "true_n+fit_wi": (n_true, fits["true_n"], 1.5), "true_n+true_wi": (n_true, w_true, 1.5)}
         if eta is not None:
             geometry["true_n+true_wi+true_eta"] = (n_true, w_true, float(eta[i]))
-        for name, n in sfp_choices(sample, n_true, w_true, mask).items():
-            geometry[f"sfp_{name}_n+true_wi"] = (n, w_true, 1.5)
-            r[f"sfp_{name}_err_deg"] = float(np.median(_angle_deg(n, n_true)[mask]))
+        for rung, (n, w) in sfp_geometries(sample, n_true, w_true, mask).items():
+            geometry[rung] = (n, w, 1.5)
+            r[f"{rung.split('_n+')[0]}_err_deg"] = float(np.median(_angle_deg(n, n_true)[mask]))
         for rung, (n, w, e) in geometry.items():
             r[rung] = forward_l2(gain_fitted_pbrdf(n, w, sample, e), truth, mask)
         family = FAMILIES[int(ds["family"][i])] if "family" in ds.arrays else "all"

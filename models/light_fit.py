@@ -26,6 +26,9 @@ diffuse block), the highlight position and the polarization of both components a
 any shape; it needs normals that are roughly right (PIPNet's, with its shape-from-polarization
 prior). All ops are element-wise, reductions, ``ArgMin`` and ``Gather``, so it could run inside
 an exported graph once the normals are good enough to make it worth it.
+
+:func:`shading_pick` chooses between two candidate normals per pixel by Lambertian shading
+under a given light (used by :mod:`models.diagnose` on the shape-from-polarization candidates).
 """
 
 from __future__ import annotations
@@ -124,3 +127,20 @@ def fit_light_direction(stokes: torch.Tensor, normal: torch.Tensor, wo: torch.Te
     off = offsets.to(stokes.dtype)
     fine = F.normalize(best[:, None] + off[None, :, 0:1] * t1[:, None] + off[None, :, 1:2] * t2[:, None], dim=2)
     return _pick(fine, _residuals(fine, st, n, v, alpha, s_in, stage_zero_axis, m))
+
+
+def shading_pick(plus: torch.Tensor, minus: torch.Tensor, wi: torch.Tensor, intensity: torch.Tensor,
+                 mask: torch.Tensor, iterations: int = 5) -> torch.Tensor:
+    """Per pixel, the one of two candidate normals ``(B, 3, H, W)`` whose Lambertian shading
+    ``k max(n . wi, 0)`` explains ``intensity`` ``(B, H, W)`` better, with one albedo ``k`` per
+    image (least squares over ``mask`` ``(B, H, W)`` bool, alternated with the choice); ``wi``
+    broadcasts against ``plus`` -> ``(B, 3, H, W)``."""
+    sp, sm = (plus * wi).sum(1).clamp_min(0.0), (minus * wi).sum(1).clamp_min(0.0)
+    m = mask.to(intensity.dtype)
+    k = torch.ones(plus.shape[0], 1, 1, dtype=intensity.dtype)
+    for _ in range(iterations):
+        take_plus = (intensity - k * sp).abs() < (intensity - k * sm).abs()
+        s = torch.where(take_plus, sp, sm) * m
+        k = ((intensity * s).sum((1, 2)) / (s * s).sum((1, 2)).clamp_min(_EPS))[:, None, None]
+    return torch.where(take_plus[:, None], plus, minus)
+

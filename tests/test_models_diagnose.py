@@ -39,20 +39,3 @@ def test_diagnose_ladder_on_a_tiny_set(tmp_path):
     assert rows["true_n+true_wi"] < rows["pip_n+pip_wi"]
 
 
-def test_shading_pick_takes_the_candidate_whose_lambertian_shading_explains_the_image():
-    """Intensity rendered as 0.7 max(n.wi, 0) from a random choice between two candidates:
-    the pick recovers that choice wherever the two shadings differ."""
-    from models.diagnose import shading_pick
-
-    rng = np.random.default_rng(4)
-    plus = rng.normal(size=(3, 12, 12)) + np.array([0, 0, -2.0])[:, None, None]
-    plus /= np.linalg.norm(plus, axis=0)
-    minus = plus * np.array([-1, -1, 1.0])[:, None, None]  # azimuth turned by 180 deg about the view axis
-    wi = np.broadcast_to(np.array([0.5, 0.2, -0.8])[:, None, None] / np.linalg.norm([0.5, 0.2, -0.8]), plus.shape)
-    truth = rng.random((12, 12)) < 0.5
-    n = np.where(truth[None], plus, minus)
-    intensity = 0.7 * np.clip((n * wi).sum(0), 0, None)
-    picked = shading_pick(plus, minus, wi, intensity, np.ones((12, 12), bool))
-    differ = np.abs(np.clip((plus * wi).sum(0), 0, None) - np.clip((minus * wi).sum(0), 0, None)) > 1e-3
-    assert differ.mean() > 0.5
-    np.testing.assert_allclose(picked[:, differ], n[:, differ])

@@ -12,7 +12,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.light_fit import _residuals, fibonacci_directions, fit_light_direction, local_offsets  # noqa: E402
+from models.light_fit import (_residuals, fibonacci_directions, fit_light_direction, local_offsets,  # noqa: E402
+                              shading_pick)
 from models.pbrdf_torch import image_blocks  # noqa: E402
 from polrig import pbrdf  # noqa: E402
 
@@ -84,3 +85,22 @@ def test_recovers_the_light_of_a_core_pbrdf_rendering(light, s_deg):
     err = np.degrees(np.arccos(np.clip(float((got[0].double() * torch.from_numpy(light)).sum()), -1, 1)))
     assert err < 4.0
     assert torch.allclose(got.norm(dim=1), torch.ones(1), atol=1e-5)
+
+
+def test_shading_pick_takes_the_candidate_whose_lambertian_shading_explains_the_image():
+    """Intensity rendered as 0.7 max(n.wi, 0) from a random choice between two candidates:
+    the pick recovers that choice wherever the two shadings differ."""
+    rng = np.random.default_rng(4)
+    plus = rng.normal(size=(3, 12, 12)) + np.array([0, 0, -2.0])[:, None, None]
+    plus /= np.linalg.norm(plus, axis=0)
+    minus = plus * np.array([-1, -1, 1.0])[:, None, None]  # azimuth turned by 180 deg about the view axis
+    wi = np.array([0.5, 0.2, -0.8]) / np.linalg.norm([0.5, 0.2, -0.8])
+    truth = rng.random((12, 12)) < 0.5
+    n = np.where(truth[None], plus, minus)
+    intensity = 0.7 * np.clip(np.einsum("chw,c->hw", n, wi), 0, None)
+    picked = shading_pick(_t(plus), _t(minus), _t(wi)[..., None, None], _t(intensity), torch.ones(1, 12, 12, dtype=bool))
+    sp, sm = (np.clip(np.einsum("chw,c->hw", c, wi), 0, None) for c in (plus, minus))
+    differ = np.abs(sp - sm) > 1e-3
+    assert differ.mean() > 0.5
+    np.testing.assert_allclose(picked[0].numpy()[:, differ], n[:, differ], atol=1e-6)
+
