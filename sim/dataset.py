@@ -248,6 +248,7 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
     if not (8 <= width <= 4096 and 8 <= height <= 4096):
         raise ConfigError(f"dataset size {width}x{height} out of range (8..4096)")
+    families_for(holdout, families)  # a bad family list fails before anything is written
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = dataset_sensor_model()

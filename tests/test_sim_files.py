@@ -206,3 +206,4 @@ def test_dataset_families_are_a_subset_of_one_side(tmp_path, capsys):
     assert main(args[:-4] + ["--families", "blob", "--out", str(out)]) == 2  # another dataset
     assert "families_present" in capsys.readouterr().err
     assert main(args[:-4] + ["--families", "plane", "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()  # rejected before anything was written
