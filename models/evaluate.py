@@ -295,8 +295,8 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
         t = time.perf_counter()
         preds["reference4"] = reference_four_state(ds, i, noise, rng)
         times["reference4"] += time.perf_counter() - t
+        lit = (ds["lit"][i] > 0) if "lit" in ds.arrays else None
         for name, pred in preds.items():
-            lit = (ds["lit"][i] > 0) if "lit" in ds.arrays else None
             per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, rng, realizability_pixels, lit,
                                              lit_rng))
     n = len(per["full"])

@@ -98,9 +98,11 @@ def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
 
 
 def pipnet_features(analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
-                    wo: torch.Tensor) -> torch.Tensor:
-    """Input planes: analyzer (4C), S1/S0 and S2/S0 (2C), mask, s_in planes (3), wo (3)."""
-    stokes = stokes_from_analyzer(analyzer)
+                    wo: torch.Tensor, stokes: torch.Tensor | None = None) -> torch.Tensor:
+    """Input planes: analyzer (4C), S1/S0 and S2/S0 (2C), mask, s_in planes (3), wo (3).
+    ``stokes``: the analyzer images' Stokes (:func:`stokes_from_analyzer`) if the caller has them."""
+    if stokes is None:
+        stokes = stokes_from_analyzer(analyzer)
     return torch.cat([analyzer.flatten(1, 2), normalised_stokes(stokes), mask,
                       planes(s_in, mask), wo], 1)
 
@@ -119,9 +121,10 @@ class PIPNet(nn.Module):
     def forward(self, analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
                 wo: torch.Tensor) -> dict[str, torch.Tensor]:
         """-> ``normal`` (B,3,H,W), ``kd`` (B,C,H,W), ``wi`` (B,3,H,W), ``alpha`` (B,)."""
-        x = pipnet_features(analyzer, mask, s_in, wo)
+        stokes = stokes_from_analyzer(analyzer)
+        x = pipnet_features(analyzer, mask, s_in, wo, stokes)
         if self.sfp_prior:
-            n_plus, n_minus = sfp_candidates(stokes_from_analyzer(analyzer), wo)
+            n_plus, n_minus = sfp_candidates(stokes, wo)
             x = torch.cat([x, n_plus, n_minus], 1)
         feat, bottleneck = self.backbone(x)
         # Bias the normal towards the viewer and the light towards the upper hemisphere so an

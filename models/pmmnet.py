@@ -178,7 +178,7 @@ class DirectStokesToMM(nn.Module):
 
     def forward(self, analyzer, mask, s_in, wo, stage_zero_axis=None):
         stokes = stokes_from_analyzer(analyzer)
-        x = torch.cat([pipnet_features(analyzer, mask, s_in, wo), stokes.flatten(1, 2)], 1)
+        x = torch.cat([pipnet_features(analyzer, mask, s_in, wo, stokes), stokes.flatten(1, 2)], 1)
         feat, _ = self.backbone(x)
         b, _, h, w = feat.shape
         return self.head(feat).reshape(b, self.colours, 3, 3, h, w) * mask[:, :, None, None]
