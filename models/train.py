@@ -10,7 +10,10 @@ graphs are exported with :func:`models.export.export_all` into ``OUT/weights`` a
 against PyTorch with onnxruntime.
 
 PMMNet trains on the PIPNet-pBRDF initialization of the frozen stage-1 network (computed
-once per sample, PIPNet in eval mode), exactly what it sees at inference.
+once per sample, PIPNet in eval mode), exactly what it sees at inference; with
+``init_perturb_fraction`` > 0 a fraction of its samples see that initialization evaluated on a
+perturbed geometry instead (:func:`perturbed_geometry`), so that it learns how far to trust an
+initialization whose geometry is wrong, as PIPNet's is on shapes it has not seen.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import torch
 
 from models.data import Dataset, load_dataset
 from models.pipnet import PIPNet, pipnet_loss
+from models.pbrdf_torch import image_blocks
 from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
 
 STAGES = ("pipnet", "pmmnet", "direct")
@@ -54,6 +58,13 @@ class TrainConfig:
     #: Weight of the direct supervision of the SfP prior's pick and trust
     #: (:func:`models.pipnet.sfp_supervision_loss`; 0: the paper's loss only)
     sfp_supervision: float = 0.0
+    #: Fraction of PMMNet training samples whose initialization is evaluated on PIPNet's
+    #: geometry perturbed by :func:`perturbed_geometry` (0: the paper's recipe)
+    init_perturb_fraction: float = 0.0
+    #: Largest common rotation of the perturbed normals and light (deg)
+    init_perturb_deg: float = 40.0
+    #: Largest further rotation of the perturbed light alone (deg)
+    init_perturb_light_deg: float = 30.0
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -71,7 +82,8 @@ def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
 def _config_of(checkpoint: dict) -> dict:
     """A checkpoint's configuration; checkpoints from before the SfP prior and the window crops
     existed were trained without them."""
-    return {"sfp_prior": False, "crop_fraction": 0.0, "sfp_supervision": 0.0, **checkpoint["config"]}
+    return {"sfp_prior": False, "crop_fraction": 0.0, "sfp_supervision": 0.0, "init_perturb_fraction": 0.0,
+            **checkpoint["config"]}
 
 
 def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
@@ -94,6 +106,48 @@ def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
         r0, c0 = int(corner[i, 0] * (h - hh + 1)), int(corner[i, 1] * (w - ww + 1))
         out[i, 0] = ((rows >= r0) & (rows < r0 + hh)).to(mask.dtype)[:, None] * ((cols >= c0) & (cols < c0 + ww)).to(mask.dtype)[None]
     return out
+
+
+#: Smooth per-pixel normal noise of :func:`perturbed_geometry`: Gaussian vectors on a
+#: ``PERTURB_GRID`` x ``PERTURB_GRID`` grid, bilinearly upsampled, times up to ``PERTURB_NOISE``.
+PERTURB_GRID = 8
+PERTURB_NOISE = 0.4
+
+
+def rotation_matrices(axis: torch.Tensor, angle_rad: torch.Tensor) -> torch.Tensor:
+    """Right-handed rotations ``(B, 3, 3)`` by ``angle_rad`` ``(B,)`` about unit ``axis``
+    ``(B, 3)`` (Rodrigues' formula ``I + sin(a) K + (1 - cos(a)) K^2``)."""
+    x, y, z = axis.unbind(1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], 1).reshape(-1, 3, 3)
+    s, c = torch.sin(angle_rad)[:, None, None], torch.cos(angle_rad)[:, None, None]
+    return torch.eye(3, dtype=axis.dtype) + s * k + (1.0 - c) * (k @ k)
+
+
+def perturbed_geometry(normal: torch.Tensor, wi: torch.Tensor, generator: torch.Generator,
+                       rotation_deg: float, light_deg: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A wrong but plausible geometry ``(normal, wi)`` (B, 3, H, W) from a predicted one: both
+    turned by one random rotation (angle uniform in ``[0, rotation_deg]`` about a uniform random
+    axis), which keeps them consistent with each other as PIPNet's are on unseen shapes (its
+    normals about 39 deg and its light 27 deg off, ``models.diagnose``), then the normals bent
+    by smooth per-pixel noise (:data:`PERTURB_NOISE`) and the light turned by a further
+    rotation of up to ``light_deg``. An augmentation for PMMNet's training (not in the paper)."""
+    b, _, h, w = normal.shape
+
+    def random_rotations(max_deg: float) -> torch.Tensor:
+        axis = torch.nn.functional.normalize(torch.randn(b, 3, generator=generator, dtype=normal.dtype), dim=1)
+        angle = torch.rand(b, generator=generator, dtype=normal.dtype) * np.deg2rad(max_deg)
+        return rotation_matrices(axis, angle)
+
+    turn = random_rotations(rotation_deg)
+    n = torch.einsum("bij,bjhw->bihw", turn, normal)
+    noise = torch.nn.functional.interpolate(
+        torch.randn(b, 3, PERTURB_GRID, PERTURB_GRID, generator=generator, dtype=normal.dtype), size=(h, w),
+        mode="bilinear", align_corners=False)
+    n = n + noise * PERTURB_NOISE * torch.rand(b, 1, 1, 1, generator=generator, dtype=normal.dtype)
+    light = torch.einsum("bij,bjhw->bihw", random_rotations(light_deg) @ turn, wi)
+    return (torch.nn.functional.normalize(n, dim=1, eps=1e-6),
+            torch.nn.functional.normalize(light, dim=1, eps=1e-6))
 
 
 def lr_at(config: TrainConfig, epoch: int, epochs: int) -> float:
@@ -130,8 +184,20 @@ def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | Non
     return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m, sfp_weight)
 
 
-def pmmnet_step(model: PMMNet, t, idx):
+def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, torch.Generator] | None = None):
+    """``perturb``: ``(fraction, rotation_deg, light_deg, generator)``: that fraction of the
+    samples gets its initialization from :func:`perturbed_geometry` of PIPNet's."""
     a, m, s, ms, md, kd, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "ms_init", "md_init", "kd_init", "mueller"))
+    if perturb is not None:
+        fraction, rotation_deg, light_deg, gen = perturb
+        sel = torch.nonzero(torch.rand(len(idx), generator=gen) < fraction)[:, 0]
+        if len(sel):
+            n, wi, wo, alpha, axis = _pick(t, idx[sel], ("pip_normal", "pip_wi", "wo", "pip_alpha", "stage_zero_axis"))
+            n, wi = perturbed_geometry(n, wi, gen, rotation_deg, light_deg)
+            with torch.no_grad():
+                ms_p, md_p = image_blocks(n, wi, wo, alpha, axis)
+            ms, md = ms.clone(), md.clone()
+            ms[sel], md[sel] = ms_p * m[sel][:, None], md_p * m[sel][:, None]
     return mueller_loss(model(a, m, s, ms, md, kd)["mueller"], mu, m)
 
 
@@ -143,15 +209,17 @@ def direct_step(model: DirectStokesToMM, t, idx, crop: tuple[float, torch.Genera
 
 @torch.no_grad()
 def add_initialization(pipnet: PIPNet, t: dict[str, torch.Tensor], batch: int = 32) -> None:
-    """Add ``ms_init``, ``md_init`` (N,3,3,H,W) and ``kd_init`` (N,C,H,W) from PIPNet."""
+    """Add ``ms_init``, ``md_init`` (N,3,3,H,W) and ``kd_init`` (N,C,H,W) from PIPNet, and its
+    geometry ``pip_normal``, ``pip_wi`` (N,3,H,W), ``pip_alpha`` (N,)."""
     net = SingleShotNet(pipnet, PMMNet(pipnet.colours, 8)).eval()
-    ms, md, kd = [], [], []
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("ms_init", "md_init", "kd_init", "pip_normal",
+                                                           "pip_wi", "pip_alpha")}
     for idx in _batches(len(t["analyzer"]), batch, None):
         p, s_blk, d_blk = net.initialization(*_pick(t, idx, ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")))
-        ms.append(s_blk)
-        md.append(d_blk)
-        kd.append(p["kd"])
-    t["ms_init"], t["md_init"], t["kd_init"] = torch.cat(ms), torch.cat(md), torch.cat(kd)
+        for k, v in (("ms_init", s_blk), ("md_init", d_blk), ("kd_init", p["kd"]), ("pip_normal", p["normal"]),
+                     ("pip_wi", p["wi"]), ("pip_alpha", p["alpha"])):
+            parts[k].append(v)
+    t.update({k: torch.cat(v) for k, v in parts.items()})
 
 
 class _Log:
@@ -295,6 +363,10 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                 train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
             if stage == "pipnet" and config.sfp_supervision > 0:
                 train_step = functools.partial(train_step, sfp_weight=config.sfp_supervision)
+            if stage == "pmmnet" and config.init_perturb_fraction > 0:
+                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+                train_step = functools.partial(train_step, perturb=(config.init_perturb_fraction, config.init_perturb_deg,
+                                                                    config.init_perturb_light_deg, gen))
             train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng)
             val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
             dt = time.time() - te

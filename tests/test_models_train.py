@@ -160,3 +160,78 @@ def test_sfp_supervision_is_logged_and_changes_the_training(trained, tmp_path):
     assert "bce_trust" in json.loads(logs["supervised"][0]["details"])
     assert "bce_trust" not in json.loads(logs["plain"][0]["details"])
     assert logs["plain"][-1]["train_loss"] != logs["supervised"][-1]["train_loss"]
+
+
+def test_rotation_matrices_are_rotations_by_the_angle():
+    from models.train import rotation_matrices
+
+    gen = torch.Generator().manual_seed(1)
+    axis = torch.nn.functional.normalize(torch.randn(50, 3, generator=gen, dtype=torch.float64), dim=1)
+    angle = torch.rand(50, generator=gen, dtype=torch.float64) * np.pi
+    r = rotation_matrices(axis, angle)
+    assert torch.allclose(r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(50, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(r), torch.ones(50, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(torch.einsum("bij,bj->bi", r, axis), axis, atol=1e-12)  # the axis stays
+    perp = torch.nn.functional.normalize(torch.linalg.cross(axis, torch.randn(50, 3, generator=gen, dtype=torch.float64)), dim=1)
+    turned = torch.einsum("bij,bj->bi", r, perp)
+    assert torch.allclose(torch.acos((turned * perp).sum(1).clamp(-1, 1)), angle, atol=1e-6)
+    # right-handed: a quarter turn about z takes x to y
+    q = rotation_matrices(torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), torch.tensor([np.pi / 2], dtype=torch.float64))
+    assert torch.allclose(q[0] @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+                          torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), atol=1e-12)
+
+
+def test_perturbed_geometry_turns_normals_and_light_together_within_the_bounds():
+    from models.train import perturbed_geometry
+
+    gen = torch.Generator().manual_seed(2)
+    normal = torch.nn.functional.normalize(torch.randn(64, 3, 8, 8, generator=gen, dtype=torch.float64), dim=1)
+    wi = torch.nn.functional.normalize(torch.randn(64, 3, 8, 8, generator=gen, dtype=torch.float64), dim=1)
+    angle = lambda a, b: torch.rad2deg(torch.acos((a * b).sum(1).clamp(-1, 1)))  # noqa: E731
+    n2, w2 = perturbed_geometry(normal, wi, gen, 40.0, 0.0)
+    assert torch.allclose(n2.norm(dim=1), torch.ones(64, 8, 8, dtype=torch.float64))
+    assert torch.allclose(w2.norm(dim=1), torch.ones(64, 8, 8, dtype=torch.float64))
+    turned = angle(w2, wi)
+    assert float(turned.max()) <= 40.0 + 1e-6 and float(turned.mean()) > 5.0
+    # one rigid rotation per image: angles between the light directions of two pixels are kept
+    assert torch.allclose((w2[:, :, 0, 0] * w2[:, :, 3, 5]).sum(1), (wi[:, :, 0, 0] * wi[:, :, 3, 5]).sum(1), atol=1e-9)
+    # the light alone turns further, by at most the sum of the two bounds
+    _, w3 = perturbed_geometry(normal, wi, gen, 10.0, 20.0)
+    assert float(angle(w3, wi).max()) <= 30.0 + 1e-6 and float(angle(w3, wi).max()) > 10.0
+    # without rotations only the smooth noise bends the normals, and the light is untouched
+    n4, w4 = perturbed_geometry(normal, wi, gen, 0.0, 0.0)
+    assert torch.allclose(w4, wi) and float(angle(n4, normal).max()) > 1.0
+
+
+def test_pmmnet_on_perturbed_initializations_trains_reproducibly_and_differs(trained, tmp_path):
+    root, data, _ = trained
+    losses = {}
+    for run, fraction in (("plain", 0.0), ("perturbed", 1.0), ("again", 1.0)):
+        train(data, tmp_path / run, TINY, overrides={"init_perturb_fraction": fraction},
+              stages=("pmmnet",), init_from=root / "run" / "checkpoint.pt", export=False, echo=lambda s: None)
+        losses[run] = [r["train_loss"] for r in csv.DictReader((tmp_path / run / "log.csv").open())]
+    assert losses["perturbed"] == losses["again"] and len(losses["plain"]) == TINY.pmmnet_epochs
+    assert losses["perturbed"] != losses["plain"]
+
+
+@pytest.mark.parametrize("flag, value", [("--init-perturb-fraction", "1.5"), ("--init-perturb-deg", "-1"),
+                                         ("--init-perturb-light-deg", "200")])
+def test_cli_rejects_out_of_range_perturbation_in_one_line(tmp_path, capsys, flag, value):
+    from polrig.cli import main
+
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), flag, value]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("polrig: error: " + flag) and "\n" not in err
+    assert not (tmp_path / "run").exists()  # rejected before anything is written
+
+
+def test_cli_perturbation_flags_reach_the_run_config(trained, tmp_path):
+    from polrig.cli import main
+
+    root, data, _ = trained
+    out = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--out", str(out), "--init-from", str(root / "run" / "checkpoint.pt"),
+                 "--warm-start", "--stages", "pmmnet", "--pmmnet-epochs", "1", "--init-perturb-fraction", "0.5",
+                 "--init-perturb-deg", "25", "--init-perturb-light-deg", "10", "--no-export"]) == 0
+    config = json.loads((out / "summary.json").read_text())["config"]
+    assert (config["init_perturb_fraction"], config["init_perturb_deg"], config["init_perturb_light_deg"]) == (0.5, 25.0, 10.0)

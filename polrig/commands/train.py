@@ -36,6 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sfp-supervision", type=float, default=None,
                    help="weight of the direct supervision of the SfP prior's candidate pick and trust "
                         "(models.pipnet.sfp_supervision_loss; default 0, the paper's loss only)")
+    p.add_argument("--init-perturb-fraction", type=float, default=None,
+                   help="fraction of PMMNet training samples whose initialization is computed on a randomly "
+                        "turned PIPNet geometry (models.train.perturbed_geometry; default 0, the paper's recipe)")
+    p.add_argument("--init-perturb-deg", type=float, default=None,
+                   help="largest common rotation of the perturbed normals and light (deg, default 40)")
+    p.add_argument("--init-perturb-light-deg", type=float, default=None,
+                   help="largest further rotation of the perturbed light alone (deg, default 30)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
@@ -76,6 +83,16 @@ def run(args: argparse.Namespace) -> int:
         if args.sfp_supervision < 0:
             raise ValueError(f"--sfp-supervision must be >= 0, got {args.sfp_supervision}")
         overrides["sfp_supervision"] = args.sfp_supervision
+    if args.init_perturb_fraction is not None:
+        if not 0.0 <= args.init_perturb_fraction <= 1.0:
+            raise ValueError(f"--init-perturb-fraction must be in [0, 1], got {args.init_perturb_fraction}")
+        overrides["init_perturb_fraction"] = args.init_perturb_fraction
+    for name in ("init_perturb_deg", "init_perturb_light_deg"):
+        value = getattr(args, name)
+        if value is not None:
+            if not 0.0 <= value <= 180.0:
+                raise ValueError(f"--{name.replace('_', '-')} must be in [0, 180] deg, got {value}")
+            overrides[name] = value
     if args.decay_start is not None:
         if not 0.0 <= args.decay_start <= 1.0:
             raise ValueError(f"--decay-start must be in [0, 1], got {args.decay_start}")
