@@ -60,7 +60,7 @@ class TrainConfig:
     sfp_supervision: float = 0.0
     #: Fraction of PMMNet training samples whose initialization is evaluated on PIPNet's
     #: geometry perturbed by :func:`perturbed_geometry` (0: the paper's recipe)
-    init_perturb_fraction: float = 0.0
+    init_perturb_fraction: float = 0.5
     #: Largest common rotation of the perturbed normals and light (deg)
     init_perturb_deg: float = 40.0
     #: Largest further rotation of the perturbed light alone (deg)

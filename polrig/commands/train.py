@@ -38,7 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(models.pipnet.sfp_supervision_loss; default 0, the paper's loss only)")
     p.add_argument("--init-perturb-fraction", type=float, default=None,
                    help="fraction of PMMNet training samples whose initialization is computed on a randomly "
-                        "turned PIPNet geometry (models.train.perturbed_geometry; default 0, the paper's recipe)")
+                        "turned PIPNet geometry (models.train.perturbed_geometry; default 0.5 for new runs, 0 is the "
+                        "paper's recipe)")
     p.add_argument("--init-perturb-deg", type=float, default=None,
                    help="largest common rotation of the perturbed normals and light (deg, default 40)")
     p.add_argument("--init-perturb-light-deg", type=float, default=None,
