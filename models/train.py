@@ -80,8 +80,8 @@ def _tensors(ds: Dataset) -> dict[str, torch.Tensor]:
 
 
 def _config_of(checkpoint: dict) -> dict:
-    """A checkpoint's configuration; checkpoints from before the SfP prior and the window crops
-    existed were trained without them."""
+    """A checkpoint's configuration; checkpoints from before the SfP prior, the window crops and
+    the perturbed initializations existed were trained without them."""
     return {"sfp_prior": False, "crop_fraction": 0.0, "sfp_supervision": 0.0, "init_perturb_fraction": 0.0,
             **checkpoint["config"]}
 

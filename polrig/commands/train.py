@@ -76,28 +76,16 @@ def run(args: argparse.Namespace) -> int:
         overrides.update(pipnet_epochs=args.epochs, pmmnet_epochs=args.epochs, direct_epochs=args.epochs)
     if args.sfp_prior is not None:
         overrides["sfp_prior"] = args.sfp_prior
-    if args.crop_fraction is not None:
-        if not 0.0 <= args.crop_fraction <= 1.0:
-            raise ValueError(f"--crop-fraction must be in [0, 1], got {args.crop_fraction}")
-        overrides["crop_fraction"] = args.crop_fraction
-    if args.sfp_supervision is not None:
-        if args.sfp_supervision < 0:
-            raise ValueError(f"--sfp-supervision must be >= 0, got {args.sfp_supervision}")
-        overrides["sfp_supervision"] = args.sfp_supervision
-    if args.init_perturb_fraction is not None:
-        if not 0.0 <= args.init_perturb_fraction <= 1.0:
-            raise ValueError(f"--init-perturb-fraction must be in [0, 1], got {args.init_perturb_fraction}")
-        overrides["init_perturb_fraction"] = args.init_perturb_fraction
-    for name in ("init_perturb_deg", "init_perturb_light_deg"):
+    # Bounded settings: (name, lowest, highest, unit shown in the message).
+    for name, low, high, unit in (("crop_fraction", 0.0, 1.0, ""), ("sfp_supervision", 0.0, float("inf"), ""),
+                                  ("init_perturb_fraction", 0.0, 1.0, ""), ("init_perturb_deg", 0.0, 180.0, " deg"),
+                                  ("init_perturb_light_deg", 0.0, 180.0, " deg"), ("decay_start", 0.0, 1.0, "")):
         value = getattr(args, name)
         if value is not None:
-            if not 0.0 <= value <= 180.0:
-                raise ValueError(f"--{name.replace('_', '-')} must be in [0, 180] deg, got {value}")
+            if not low <= value <= high:
+                bounds = f">= {low:g}" if high == float("inf") else f"in [{low:g}, {high:g}]"
+                raise ValueError(f"--{name.replace('_', '-')} must be {bounds}{unit}, got {value}")
             overrides[name] = value
-    if args.decay_start is not None:
-        if not 0.0 <= args.decay_start <= 1.0:
-            raise ValueError(f"--decay-start must be in [0, 1], got {args.decay_start}")
-        overrides["decay_start"] = args.decay_start
     for name in ("pipnet_epochs", "pmmnet_epochs", "direct_epochs", "batch_size", "lr", "width",
                  "threads", "limit", "seed"):
         value = getattr(args, name)
