@@ -12,8 +12,9 @@ against PyTorch with onnxruntime.
 PMMNet trains on the PIPNet-pBRDF initialization of the frozen stage-1 network (computed
 once per sample, PIPNet in eval mode), exactly what it sees at inference; with
 ``init_perturb_fraction`` > 0 a fraction of its samples see that initialization evaluated on a
-perturbed geometry instead (:func:`perturbed_geometry`), so that it learns how far to trust an
-initialization whose geometry is wrong, as PIPNet's is on shapes it has not seen.
+perturbed geometry instead (:func:`perturbed_geometry`, :func:`geometry_toward_view`), so that
+it learns how far to trust an initialization whose geometry is wrong, as PIPNet's is on shapes
+it has not seen.
 """
 
 from __future__ import annotations
@@ -65,6 +66,10 @@ class TrainConfig:
     init_perturb_deg: float = 40.0
     #: Largest further rotation of the perturbed light alone (deg)
     init_perturb_light_deg: float = 30.0
+    #: Largest pull of the perturbed normals and light towards the view direction
+    #: (:func:`geometry_toward_view`; half of the perturbed samples get it, the other half the
+    #: rotation; 0: all get the rotation)
+    init_perturb_toward_view: float = 0.7
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -83,7 +88,7 @@ def _config_of(checkpoint: dict) -> dict:
     """A checkpoint's configuration; checkpoints from before the SfP prior, the window crops and
     the perturbed initializations existed were trained without them."""
     return {"sfp_prior": False, "crop_fraction": 0.0, "sfp_supervision": 0.0, "init_perturb_fraction": 0.0,
-            **checkpoint["config"]}
+            "init_perturb_toward_view": 0.0, **checkpoint["config"]}
 
 
 def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
@@ -150,6 +155,18 @@ def perturbed_geometry(normal: torch.Tensor, wi: torch.Tensor, generator: torch.
             torch.nn.functional.normalize(light, dim=1, eps=1e-6))
 
 
+def geometry_toward_view(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, generator: torch.Generator,
+                         max_pull: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normals and light ``(B, 3, H, W)`` pulled towards the view directions ``wo`` by one random
+    fraction ``t`` per image, uniform in ``[0, max_pull]``: ``normalize(v + t (wo - v))``. This
+    is the error PIPNet makes on shapes it has not seen: its normals and its light both lie too
+    close to the camera (on heightfields, mean normal z about -0.7 where the truth is -0.4).
+    An augmentation for PMMNet's training (not in the paper)."""
+    t = torch.rand(normal.shape[0], 1, 1, 1, generator=generator, dtype=normal.dtype) * max_pull
+    pull = lambda v: torch.nn.functional.normalize(v + t * (wo - v), dim=1, eps=1e-6)  # noqa: E731
+    return pull(normal), pull(wi)
+
+
 def lr_at(config: TrainConfig, epoch: int, epochs: int) -> float:
     """Constant, then linear decay from ``decay_start * epochs`` to ``lr_final_fraction``."""
     start = int(round(config.decay_start * epochs))
@@ -184,19 +201,25 @@ def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | Non
     return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m, sfp_weight)
 
 
-def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, torch.Generator] | None = None):
-    """``perturb``: ``(fraction, rotation_deg, light_deg, generator)``: that fraction of the
-    samples gets its initialization from :func:`perturbed_geometry` of PIPNet's."""
+def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, float, torch.Generator] | None = None):
+    """``perturb``: ``(fraction, rotation_deg, light_deg, toward_view, generator)``: that
+    fraction of the samples gets its initialization from a perturbed copy of PIPNet's geometry,
+    half of it from :func:`perturbed_geometry` and half from :func:`geometry_toward_view` (all
+    from the former when ``toward_view`` is 0)."""
     a, m, s, ms, md, kd, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "ms_init", "md_init", "kd_init", "mueller"))
     if perturb is not None:
-        fraction, rotation_deg, light_deg, gen = perturb
-        sel = torch.nonzero(torch.rand(len(idx), generator=gen) < fraction)[:, 0]
-        if len(sel):
+        fraction, rotation_deg, light_deg, toward_view, gen = perturb
+        u = torch.rand(len(idx), generator=gen)
+        split = fraction / 2 if toward_view > 0 else fraction
+        ms, md = ms.clone(), md.clone()
+        for sel, turned in ((torch.nonzero(u < split)[:, 0], True), (torch.nonzero((u >= split) & (u < fraction))[:, 0], False)):
+            if not len(sel):
+                continue
             n, wi, wo, alpha, axis = _pick(t, idx[sel], ("pip_normal", "pip_wi", "wo", "pip_alpha", "stage_zero_axis"))
-            n, wi = perturbed_geometry(n, wi, gen, rotation_deg, light_deg)
+            n, wi = (perturbed_geometry(n, wi, gen, rotation_deg, light_deg) if turned
+                     else geometry_toward_view(n, wi, wo, gen, toward_view))
             with torch.no_grad():
                 ms_p, md_p = image_blocks(n, wi, wo, alpha, axis)
-            ms, md = ms.clone(), md.clone()
             ms[sel], md[sel] = ms_p * m[sel][:, None], md_p * m[sel][:, None]
     return mueller_loss(model(a, m, s, ms, md, kd)["mueller"], mu, m)
 
@@ -366,7 +389,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             if stage == "pmmnet" and config.init_perturb_fraction > 0:
                 gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
                 train_step = functools.partial(train_step, perturb=(config.init_perturb_fraction, config.init_perturb_deg,
-                                                                    config.init_perturb_light_deg, gen))
+                                                                    config.init_perturb_light_deg,
+                                                                    config.init_perturb_toward_view, gen))
             train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng)
             val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
             dt = time.time() - te

@@ -203,6 +203,32 @@ def test_perturbed_geometry_turns_normals_and_light_together_within_the_bounds()
     assert torch.allclose(w4, wi) and float(angle(n4, normal).max()) > 1.0
 
 
+def test_geometry_toward_view_pulls_normal_and_light_by_one_fraction_per_image():
+    from models.train import geometry_toward_view
+
+    gen = torch.Generator().manual_seed(3)
+    unit = lambda x: torch.nn.functional.normalize(x, dim=1)  # noqa: E731
+    normal, wi = (unit(torch.randn(32, 3, 4, 4, generator=gen, dtype=torch.float64)) for _ in range(2))
+    wo = unit(torch.randn(32, 3, 4, 4, generator=gen, dtype=torch.float64) * 0.2 + torch.tensor([0.0, 0.0, -1.0],
+                                                                                              dtype=torch.float64)[:, None, None])
+    n2, w2 = geometry_toward_view(normal, wi, wo, gen, 1.0)
+    angle = lambda a, b: torch.acos((a * b).sum(1).clamp(-1, 1))  # noqa: E731
+    for v, v2 in ((normal, n2), (wi, w2)):
+        assert torch.all(angle(v2, wo) <= angle(v, wo) + 1e-9)  # never further from the view
+        assert torch.allclose(torch.linalg.det(torch.stack([v, wo, v2], 1).permute(0, 3, 4, 1, 2)),
+                              torch.zeros(32, 4, 4, dtype=torch.float64), atol=1e-9)  # in the plane of v and wo
+
+    def fraction(v, v2):  # t of normalize(v + t (wo - v)) recovered from the result
+        a, b = torch.linalg.cross(v2, v, dim=1).norm(dim=1), torch.linalg.cross(v2, wo, dim=1).norm(dim=1)
+        return a / (a + b)
+    t_n, t_w = fraction(normal, n2), fraction(wi, w2)
+    assert torch.allclose(t_n, t_w, atol=1e-6)  # one pull per image for normal and light
+    assert torch.allclose(t_n, t_n[:, :1, :1].expand_as(t_n), atol=1e-6)
+    assert float(t_n.max()) <= 1.0 and float(t_n.std()) > 0.1
+    same = geometry_toward_view(normal, wi, wo, gen, 0.0)
+    assert torch.allclose(same[0], normal) and torch.allclose(same[1], wi)
+
+
 def test_pmmnet_on_perturbed_initializations_trains_reproducibly_and_differs(trained, tmp_path):
     root, data, _ = trained
     losses = {}
@@ -215,7 +241,7 @@ def test_pmmnet_on_perturbed_initializations_trains_reproducibly_and_differs(tra
 
 
 @pytest.mark.parametrize("flag, value", [("--init-perturb-fraction", "1.5"), ("--init-perturb-deg", "-1"),
-                                         ("--init-perturb-light-deg", "200")])
+                                         ("--init-perturb-light-deg", "200"), ("--init-perturb-toward-view", "2")])
 def test_cli_rejects_out_of_range_perturbation_in_one_line(tmp_path, capsys, flag, value):
     from polrig.cli import main
 
@@ -232,6 +258,8 @@ def test_cli_perturbation_flags_reach_the_run_config(trained, tmp_path):
     out = tmp_path / "run"
     assert main(["train", "--data", str(data), "--out", str(out), "--init-from", str(root / "run" / "checkpoint.pt"),
                  "--warm-start", "--stages", "pmmnet", "--pmmnet-epochs", "1", "--init-perturb-fraction", "0.5",
-                 "--init-perturb-deg", "25", "--init-perturb-light-deg", "10", "--no-export"]) == 0
+                 "--init-perturb-deg", "25", "--init-perturb-light-deg", "10", "--init-perturb-toward-view", "0.3",
+                 "--no-export"]) == 0
     config = json.loads((out / "summary.json").read_text())["config"]
-    assert (config["init_perturb_fraction"], config["init_perturb_deg"], config["init_perturb_light_deg"]) == (0.5, 25.0, 10.0)
+    assert (config["init_perturb_fraction"], config["init_perturb_deg"], config["init_perturb_light_deg"],
+            config["init_perturb_toward_view"]) == (0.5, 25.0, 10.0, 0.3)
