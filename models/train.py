@@ -60,7 +60,8 @@ class TrainConfig:
     #: (:func:`models.pipnet.sfp_supervision_loss`; 0: the paper's loss only)
     sfp_supervision: float = 0.0
     #: Fraction of PMMNet training samples whose initialization is evaluated on PIPNet's
-    #: geometry perturbed by :func:`perturbed_geometry` (0: the paper's recipe)
+    #: geometry perturbed by :func:`perturbed_geometry` or :func:`geometry_toward_view`
+    #: (0: the paper's recipe)
     init_perturb_fraction: float = 0.5
     #: Largest common rotation of the perturbed normals and light (deg)
     init_perturb_deg: float = 40.0
