@@ -426,7 +426,10 @@ def score_against_truth(result: ReferenceResult, truth: np.ndarray,
 
     ``rmse``/``mae`` (DN per unit S0) over the 9 elements; ``psnr_db`` = 20 log10(peak / rmse)
     with ``peak`` the largest truth ``m00`` compared (``|m_ij| <= m00`` for a physical matrix:
-    the matrix PSNR in the units of the data); ``within_2sigma``: fraction of elements with
+    the matrix PSNR in the units of the data; ``inf`` for an exact result, ``None`` where the
+    truth is dark over every compared pixel, e.g. an object turned so that only its unlit back
+    faces the camera: the PSNR has no peak then, and ``rmse`` still says how far from 0 the
+    result is); ``within_2sigma``: fraction of elements with
     ``|error| <= 2 sigma`` (0.954 for Gaussian errors when sigma is right);
     ``chi2_per_element``: mean ``(error / sigma)^2`` (1 when sigma is right); ``mean_sigma``:
     root-mean-square reported sigma (noise and calibration), the predicted error (comparable with
@@ -464,12 +467,19 @@ def score_against_truth(result: ReferenceResult, truth: np.ndarray,
     mats = m.transpose(0, 3, 4, 1, 2)[use]  # (n, 3, 3)
     out.update(
         rmse=rmse, mae=float(np.mean(np.abs(err))),
-        psnr_db=float(20 * math.log10(peak / rmse)) if rmse > 0 else float("inf"),
+        psnr_db=_psnr_db(peak, rmse),
         within_2sigma=float(np.mean(np.abs(err[pos]) <= 2 * sig[pos])) if pos.any() else None,
         chi2_per_element=float(np.mean((err[pos] / sig[pos]) ** 2)) if pos.any() else None,
         mean_sigma=float(np.sqrt(np.mean(sig**2))) if pos.any() else None, peak_m00=peak,
         realizable=float(np.mean(is_physical_linear(mats))))
     return out
+
+
+def _psnr_db(peak: float, rmse: float) -> float | None:
+    """``20 log10(peak / rmse)``; ``inf`` when ``rmse`` is 0, ``None`` when ``peak`` is 0."""
+    if peak <= 0.0:
+        return None
+    return float(20 * math.log10(peak / rmse)) if rmse > 0 else float("inf")
 
 
 def format_score(score: dict[str, Any]) -> str:
@@ -478,7 +488,7 @@ def format_score(score: dict[str, Any]) -> str:
         return "no pixels to score"
     psnr = score["psnr_db"]
     parts = [f"RMSE {score['rmse']:.4g}", f"MAE {score['mae']:.4g}",
-             f"PSNR {psnr:.1f} dB" if math.isfinite(psnr) else "PSNR inf"]
+             "PSNR n/a (dark truth)" if psnr is None else f"PSNR {psnr:.1f} dB" if math.isfinite(psnr) else "PSNR inf"]
     if score.get("mean_sigma") is not None:
         parts.append(f"mean sigma {score['mean_sigma']:.4g}")
     if score.get("within_2sigma") is not None:
