@@ -711,15 +711,19 @@ class Processor:
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
         """One state through the installed network (:mod:`models.runtime`): averaged and
         HDR-merged like the reference states, demosaiced, reconstructed. The network reports
-        no uncertainty: sigma planes are 0 and the mask marks background (``dark``) and, as
-        the reference solve does, object pixels of a colour with an excluded (saturated)
-        analyzer sample (``saturated``; the network's estimate from the clipped data is kept).
+        no uncertainty: sigma planes are 0. The mask marks, as the reference solve does,
+        ``dark`` pixels: background (outside the network's object mask) and, per colour, pixels
+        whose measured ``S0`` is below :data:`polrig.reference.MIN_SNR` noise standard
+        deviations (the noise model's variance carried through the demosaic; an object turned
+        away from the light is all noise, and the network's relative object mask cannot tell);
+        and ``saturated`` pixels, of a colour with an excluded analyzer sample. The network's
+        estimate is kept in both.
 
         ``geometry`` (:func:`single_shot_geometry`; default: from the calibration alone): the
         intrinsics, carried to the analyzer grid (:func:`analyzer_grid_intrinsics`), and the
         stage zero axis the incident state is expressed about; without them the model assumes
         its training rig's, which on another rig puts the result in the wrong incident frame."""
-        from polrig.reference import DARK, SATURATED
+        from polrig.reference import DARK, MIN_SNR, SATURATED
 
         first = cf.first
         lay = frame_layout(first)
@@ -730,7 +734,7 @@ class Processor:
                                black_level_dn=float(first.meta.black_level_dn) * scale,
                                darks=[[adc(f) for f in d] for d in cf.darks]
                                if any(len(d) for d in cf.darks) else None)
-        measured, _, valid, _ = analyzer_stack(state, lay, self.demosaic)
+        measured, variance, valid, _ = analyzer_stack(state, lay, self.demosaic)
         s_in = self.calibration.incident_stokes(cf.states_deg[:1])
         if geometry is None:  # the calibration's geometry only
             geometry = {"intrinsics": self.calibration.intrinsics,
@@ -739,9 +743,11 @@ class Processor:
                                               **single_shot_kwargs(geometry, first, self.demosaic))
         obj = np.asarray(aux["mask"], bool)
         c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
-        mask = np.where(obj, 0, DARK).astype(np.uint8)[None].repeat(c, axis=0)
+        s0, s0_sigma = 0.5 * measured.sum(axis=1), 0.5 * np.sqrt(variance.sum(axis=1))  # (C, H, W)
+        with np.errstate(invalid="ignore"):
+            dark = ~obj[None] | ~(s0 >= MIN_SNR * s0_sigma)
         clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
-        mask = np.where(clipped, SATURATED, mask).astype(np.uint8)
+        mask = (np.where(dark, DARK, 0) | np.where(clipped, SATURATED, 0)).astype(np.uint8)
         zeros = np.zeros((c, h, w), np.float32)
         result = ReferenceResult(mueller.astype(np.float32), np.zeros_like(mueller, np.float32),
                                  zeros, mask, float("nan"), zeros + np.inf,

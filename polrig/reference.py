@@ -96,6 +96,8 @@ __all__ = [
 ]
 
 DARK = 1  #: m00 below ``min_snr`` standard deviations (estimate kept)
+#: Default ``min_snr``: a signal below this many noise standard deviations is ``DARK``.
+MIN_SNR = 3.0
 SATURATED = 2  #: some samples excluded by the validity mask (saturated or bad)
 ILL_CONDITIONED = 4  #: remaining samples do not determine M (estimate set to 0)
 NONFINITE = 8  #: some samples had a non-finite value or a non-finite/non-positive variance
@@ -297,7 +299,7 @@ def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarr
 # ---------------------------------------------------------------------------- solve
 def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                     valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
-                    max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = 3.0,
+                    max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
                     analyzer_tolerance: Sequence[float] | None = None,
                     generator_tolerance: Sequence[float] | None = None,
                     chunk_pixels: int = 4096, dtype=np.float32) -> ReferenceResult:

@@ -266,3 +266,30 @@ def test_default_rig_capture_scores_near_held_out_and_beats_a_wrong_axis(tmp_pat
     turned = _design_axis_turned_90(256)
     wrong, _ = _capture_psnr(tmp_path, scene, f"\n[nominal_geometry]\nstage_zero_axis_camera = {turned}\n")
     assert psnr - wrong >= min_gain_db
+
+
+@pytest.mark.skipif(not WEIGHTS.is_file(), reason="no single-shot model in models/weights")
+def test_object_turned_away_from_the_light_is_dark_not_scored_noise(tmp_path):
+    """The normal-mapped panel at pose 270 shows the camera only its unlit back: the capture is
+    noise. Single-shot marks it ``dark`` from the noise model, as the reference solve does
+    (the network's relative object mask used to keep ~150 noise pixels, scored at 42 %
+    realizable); at pose 0 the lit panel stays valid."""
+    from polrig.cli import main
+    from polrig.exr import read_mueller_exr
+    from polrig.reference import DARK
+    from polrig.session import Session
+
+    cfg = tmp_path / "panel.toml"
+    cfg.write_text('[sim]\nsize = "256x256"\nclock_speed = inf\nscene = "normalmap"\n')
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0,270", "--mode", "single-shot", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 0
+    lit, back = Session.open(out).captures
+    masks = {}
+    for cap in (lit, back):
+        extra = read_mueller_exr(out / cap["files"]["mueller"]["path"]).extra
+        masks[cap["pose_deg"]] = np.stack([extra[f"mask.{c}"] for c in "RGB"]).astype(np.uint8)
+    assert np.all(masks[270] & DARK)
+    assert back["score"]["pixels_compared"] == 0 and back["score"]["psnr_db"] is None
+    assert np.mean(masks[0] == 0) > 0.3  # the lit panel covers about a third of the frame
+    assert lit["score"]["pixels_compared"] > 3000 and lit["score"]["psnr_db"] > 25.0
