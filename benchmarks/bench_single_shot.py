@@ -19,6 +19,11 @@ geometry), one capture per scene, with processing's own score (``polrig.processi
 ways: the design stage zero axis (what processing does now), the training rig's axis (camera up,
 what processing did before it passed any geometry) and the design axis turned by 90 deg about
 the illumination axis (both through ``[nominal_geometry]``); ``--out`` writes that table.
+``--rig-poses 0:360:45`` captures each scene over those turntable poses instead of pose 0 only
+(one view of a scene says little: the same model differs by several dB from pose to pose);
+every column is then the mean matrix PSNR over the poses with a lit truth (an object turned
+with its unlit back to the camera has no PSNR, :func:`polrig.processing.score_against_truth`),
+and a second table gives the design-geometry PSNR per pose.
 """
 
 from __future__ import annotations
@@ -89,8 +94,11 @@ def bench(size, method, model, repeat, tmp: pathlib.Path, rng) -> dict:
 RIG_SCENES = "sphere,rough_sphere,checker_sphere,box,multi,heightfield,plane,normalmap"
 
 
-def rig_scene_scores(scenes: list[str], tmp: pathlib.Path) -> list[dict]:
-    """Processing scores of single-shot captures on the default simulated rig (see module)."""
+def rig_scene_scores(scenes: list[str], tmp: pathlib.Path, poses: str = "0") -> list[dict]:
+    """Processing scores of single-shot captures on the default simulated rig (see module):
+    per scene and variant the mean matrix PSNR over the ``poses`` (``polrig capture --poses``
+    syntax) whose truth is lit, and the design variant's per-pose PSNRs (``None`` for a dark
+    truth) under ``"design_per_pose"``."""
     import contextlib
     import io
 
@@ -113,11 +121,13 @@ def rig_scene_scores(scenes: list[str], tmp: pathlib.Path) -> list[dict]:
             cfg.write_text(f'[sim]\nsize = "256x256"\nclock_speed = inf\nscene = "{scene}"\n{extra}')
             out = tmp / f"{scene}-{name}"
             with contextlib.redirect_stdout(io.StringIO()):
-                cli(["capture", "--poses", "0", "--mode", "single-shot", "--config", str(cfg), "--out", str(out),
+                cli(["capture", "--poses", poses, "--mode", "single-shot", "--config", str(cfg), "--out", str(out),
                      "--no-progress"])
-            score = Session.open(out).captures[0]["score"]
-            row[name] = score["psnr_db"]
-            row[name + "_rmse"] = score["rmse"]
+            caps = Session.open(out).captures
+            psnr = [c["score"]["psnr_db"] for c in caps]
+            row[name] = float(np.mean([p for p in psnr if p is not None]))
+            if name == "design":
+                row["design_per_pose"] = {c["pose_deg"]: p for c, p in zip(caps, psnr)}
         rows.append(row)
         print(f"{scene:15s} design {row['design']:.2f} dB, training axis {row['training_axis']:.2f} dB, "
               f"turned 90 {row['turned_90']:.2f} dB", flush=True)
@@ -133,6 +143,13 @@ def rig_scene_table(rows: list[dict]) -> str:
     mean = {k: float(np.mean([r[k] for r in rows])) for k in ("design", "training_axis", "turned_90")}
     lines.append(f"| **mean** | **{mean['design']:.2f}** | {mean['training_axis']:.2f} | {mean['turned_90']:.2f} | "
                  f"{mean['design'] - mean['training_axis']:+.2f} |")
+    poses = sorted({p for r in rows for p in r["design_per_pose"]})
+    if len(poses) > 1:
+        lines += ["", "Design geometry per turntable pose (n/a: the truth is dark, the object shows its unlit back):", "",
+                  "| scene | " + " | ".join(f"{p:g} deg" for p in poses) + " |", "|---|" + "---|" * len(poses)]
+        for r in rows:
+            cells = [r["design_per_pose"].get(p) for p in poses]
+            lines.append(f"| {r['scene']} | " + " | ".join("n/a" if c is None else f"{c:.2f}" for c in cells) + " |")
     return "\n".join(lines)
 
 
@@ -146,17 +163,20 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
     ap.add_argument("--rig-scenes", default=None, nargs="?", const=RIG_SCENES,
                     help=f"score single-shot captures of these scenes on the default rig instead (default {RIG_SCENES})")
+    ap.add_argument("--rig-poses", default="0",
+                    help="turntable poses of the --rig-scenes captures, as polrig capture --poses (default 0)")
     args = ap.parse_args(argv)
     if args.rig_scenes:
         with tempfile.TemporaryDirectory() as d:
-            rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d))
+            rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses)
         table = rig_scene_table(rows)
         print(table)
         if args.out:
             pathlib.Path(args.out).write_text(
                 "# Single-shot captures on the default simulated rig: processing scores\n\n"
-                "`python benchmarks/bench_single_shot.py --rig-scenes --out FILE`: one `polrig capture --mode "
-                "single-shot` per scene (256x256 raw, 64x64 analyzer grid, pose 0, seed 0, nominal calibration), matrix "
+                f"`python benchmarks/bench_single_shot.py --rig-scenes --rig-poses {args.rig_poses} --out FILE`: "
+                "`polrig capture --mode single-shot` of each scene (256x256 raw, 64x64 analyzer grid, turntable poses "
+                f"{args.rig_poses}, seed 0, nominal calibration), mean over the poses with a lit truth of the matrix "
                 "PSNR in dB from `polrig.processing.score_against_truth` (peak = largest true m00 compared; pixels "
                 "whose support lies on the object; pixels with saturated samples excluded, as for the reference "
                 "mode).\n\n" + table + "\n")

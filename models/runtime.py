@@ -353,19 +353,27 @@ def incident_stokes(state_deg: float, extinction_ratio: float = float("inf")) ->
 def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotModel, *,
                 demosaic_method: str = "superpixel", black_level_dn: float = 0.0,
                 mask: np.ndarray | None = None, scale: float | None = None,
-                stage_zero_axis=None, intrinsics=None) -> tuple[np.ndarray, dict]:
+                stage_zero_axis=None, intrinsics=None, saturation_dn: float | None = None
+                ) -> tuple[np.ndarray, dict]:
     """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
     demosaic (:func:`polrig.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
     sampling: a quarter of the raw size per axis for the colour IMX250MYR), then
     :meth:`SingleShotModel.reconstruct` under the state of the polarizer at ``state_deg``.
-    ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings."""
+    ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings, and
+    with ``saturation_dn`` (raw DN, black level included, at which the sensor clips)
+    ``saturated`` ``(H', W')`` bool: output pixels with a clipped raw sample in their demosaic
+    support (the network's estimate there comes from clipped data)."""
     from polrig.analyzer import resolve_layout
-    from polrig.demosaic import demosaic
+    from polrig.demosaic import demosaic, demosaic_float
     from polrig.stokes import stokes_from_analyzers
 
     t0 = time.perf_counter()
     lay = resolve_layout(layout)
     analyzer = demosaic(raw, lay, demosaic_method, black_level_dn=black_level_dn)
+    clipped = None
+    if saturation_dn is not None:
+        clipped = demosaic_float((np.asarray(raw) >= saturation_dn).astype(np.float32), lay,
+                                 demosaic_method).max(axis=(0, 1)) > 0
     t1 = time.perf_counter()
     stokes = stokes_from_analyzers(analyzer)
     t2 = time.perf_counter()
@@ -373,17 +381,22 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
                                      stage_zero_axis=stage_zero_axis, intrinsics=intrinsics)
     aux["stokes"] = stokes
     aux["timings_s"] = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
+    if clipped is not None:
+        aux["saturated"] = clipped
     return mueller, aux
 
 
 def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None, *,
                      with_normal: bool = False):
-    """Mueller EXR (``M{r}{c}.{R,G,B}``) with a ``mask`` plane (and the estimated
-    ``normal.{X,Y,Z}`` with ``with_normal``) and the model's scalars in the header
+    """Mueller EXR (``M{r}{c}.{R,G,B}``) with a ``mask`` plane (1 = object), a ``saturated``
+    plane where ``aux`` has one (1 = clipped raw data, :func:`infer_frame`), the estimated
+    ``normal.{X,Y,Z}`` with ``with_normal``, and the model's scalars in the header
     (:func:`polrig.exr.write_mueller_exr`)."""
     from polrig.exr import write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
+    if "saturated" in aux:
+        extra["saturated"] = aux["saturated"].astype(np.float32)
     if with_normal and "normal" in aux:
         for k, name in enumerate("XYZ"):
             extra[f"normal.{name}"] = aux["normal"][k]

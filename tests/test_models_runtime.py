@@ -140,6 +140,29 @@ def test_polrig_infer_writes_the_exr_without_torch(tmp_path, capture):
     m = np.asarray(exr.mueller)
     assert m.shape == (3, 3, 3, 64, 64) and np.all(np.isfinite(m))
     assert np.abs(m).max() > 0
+    assert not np.any(exr.extra["saturated"]) and "warning" not in proc.stderr
+
+
+def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
+    """A raw block at the sensor's full scale: the output pixels built from it are marked in
+    the EXR's ``saturated`` plane, and the command warns on stderr (exit 0, result written)."""
+    from polrig.cli import main
+    from polrig.exr import read_mueller_exr
+
+    raw = np.clip(np.round(_mosaic_from_analyzer(capture["analyzer"] * float(capture["scale"])) + 100),
+                  0, 4095).astype(np.uint16)
+    raw[40:56, 80:104] = 4095  # 16 x 24 raw pixels: superpixel rows 10-13, columns 20-25
+    src = tmp_path / "frame.npy"
+    np.save(src, raw)
+    out = tmp_path / "out.exr"
+    assert main(["infer", str(src), "--layout", "imx250myr", "--black-level", "100", "--saturation-dn", "4095",
+                 "--state-deg", str(float(capture["stage_deg"])), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    sat = read_mueller_exr(out).extra["saturated"] > 0
+    expected = np.zeros((64, 64), bool)
+    expected[10:14, 20:26] = True
+    assert np.array_equal(sat, expected)
+    assert "warning" in err and "clipped" in err and "4095 DN" in err
 
 
 def test_runtime_module_does_not_import_torch():

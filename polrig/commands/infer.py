@@ -39,12 +39,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stage-zero-axis", type=_vector, default=None,
                    help="polarizer stage zero axis in the camera frame, x,y,z (overrides the "
                         "calibration / rig geometry)")
+    p.add_argument("--saturation-dn", type=float, default=None,
+                   help="raw value (DN, black level included) at which the sensor clips (default: "
+                        "full scale of the frame's bit depth, 2^bits - 1; give 4095 for 12-bit data "
+                        "stored in 16-bit files without a sidecar)")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import pathlib
+    import sys
+
+    import numpy as np
 
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
     from polrig import processing
@@ -56,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must be an .exr file, got {out}")
     if not out.parent.exists():
         raise FileNotFoundError(f"output folder {out.parent} does not exist")
+    if args.saturation_dn is not None and not args.saturation_dn > 0:
+        raise ValueError(f"--saturation-dn must be > 0 DN, got {args.saturation_dn:g}")
     frame = read_raw(args.raw, layout=args.layout or "imx250myr")
     layout = args.layout or frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
@@ -66,11 +75,18 @@ def run(args: argparse.Namespace) -> int:
     if args.stage_zero_axis is not None:
         kwargs["stage_zero_axis"] = args.stage_zero_axis
     model = SingleShotModel.load(args.weights)
+    saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
     mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
-                               black_level_dn=black, scale=args.scale, **kwargs)
+                               black_level_dn=black, scale=args.scale, saturation_dn=saturation, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
-                                         "layout": str(layout), "demosaic": args.demosaic})
+                                         "layout": str(layout), "demosaic": args.demosaic,
+                                         "saturation_dn": saturation})
     t = aux["timings_s"]
     print(f"wrote {out}: {mueller.shape[-2]}x{mueller.shape[-1]}, {mueller.shape[0]} colour(s), "
           f"network {1e3 * t['network']:.1f} ms")
+    n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
+    if n_clipped:
+        print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
+              f"{saturation:g} DN (clipped); their Mueller estimate comes from clipped data (EXR plane "
+              f"'saturated'); lower the exposure", file=sys.stderr)
     return 0
