@@ -805,8 +805,15 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
-    if mode == "reference":
-        validate_states(calibration.incident_stokes(plan["states_deg"]))
+    if mode == "reference":  # before a revision exists: an impossible request records nothing
+        from polrig.capture import CapturePlan
+
+        acquired = CapturePlan.from_json(plan).acquired_states_deg()
+        if len(acquired) < 3:
+            raise ConfigError(f"{session.root}: captured in {plan['mode']} mode, {len(acquired)} polarizer "
+                              f"state per pose; the reference method needs at least 3 (reconstruct "
+                              f"with --mode single-shot, or capture again with --mode reference)")
+        validate_states(calibration.incident_stokes(acquired))
     name = session.new_revision({"mode": mode, "demosaic": demosaic,
                                  "calibration_id": calibration.id}, command_line)
     for index in done:

@@ -198,6 +198,13 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
         assert len(cap["files"]["raw"]) == 1  # one state, one frame
         assert cap["score"]["pixels_compared"] > 0 and cap["score"]["psnr_db"] > 20
     assert s.verify() == []
+    # one state per pose cannot be reconstructed by the reference method: one line, no revision
+    before = (out / "session.json").read_bytes()
+    capsys.readouterr()
+    assert main(["reconstruct", str(out), "--mode", "reference", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "captured in single-shot mode" in err and "--mode single-shot" in err and len(err.strip().splitlines()) == 1
+    assert (out / "session.json").read_bytes() == before
 
 
 @pytest.mark.slow
