@@ -60,6 +60,8 @@ DEFAULT_STAGE_ZERO_AXIS = (0.0, -1.0, 0.0)
 MASK_FRACTION = 0.02
 #: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
 DEFAULT_FOCAL_PER_PX = 2.5
+#: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
+COLOUR_OUTPUTS = ("mueller", "mueller_init", "kd")
 
 
 def physical_cores() -> int:
@@ -279,8 +281,16 @@ class SingleShotModel:
         a = np.asarray(analyzer, dtype=np.float32)
         if a.ndim != 4 or a.shape[1] != 4:
             raise FormatError(f"analyzer images must be (C, 4, H, W), got shape {a.shape}")
-        if a.shape[0] != self.colours:
-            raise FormatError(f"model expects {self.colours} colour channel(s), analyzer has {a.shape[0]}")
+        mono = a.shape[0] == 1 and self.colours > 1
+        if mono:
+            # A mono sensor (e.g. IMX250MZR) integrates one broad band: to the colour network its
+            # frame is a grey scene under white light (every colour channel the same). The pBRDF
+            # is colour-decoupled (colour only through kd), so the geometry and polarization the
+            # network infers do not depend on this; its colour outputs are averaged back to one.
+            a = np.repeat(a, self.colours, axis=0)
+        elif a.shape[0] != self.colours:
+            raise FormatError(f"model expects {self.colours} colour channel(s) (or 1, a mono sensor), "
+                              f"analyzer has {a.shape[0]}")
         s = np.asarray(s_in, dtype=np.float32).reshape(-1)
         if s.shape != (3,) or not np.all(np.isfinite(s)):
             raise ValueError(f"s_in must be 3 finite numbers (S0, S1, S2), got {s_in!r}")
@@ -332,6 +342,8 @@ class SingleShotModel:
             import cv2
 
             res = {k: _resize(v, (h, w), cv2.INTER_LINEAR) for k, v in res.items()}
+        if mono:
+            res = {k: v.mean(axis=0, keepdims=True) if k in COLOUR_OUTPUTS else v for k, v in res.items()}
         mueller = (res.pop("mueller") * sc * m).astype(np.float32)
         aux = {k: v.astype(np.float32) for k, v in res.items()}
         if "mueller_init" in aux:

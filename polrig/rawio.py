@@ -140,10 +140,25 @@ def read_mosaic(path: PathLike) -> np.ndarray:
     return raw
 
 
-def read_raw(path: PathLike, *, layout: str = "imx250mzr", **meta_defaults: Any) -> Frame:
+#: Mosaic layout assumed for a raw frame with neither a sidecar nor an explicit layout (mono IMX250MZR).
+DEFAULT_LAYOUT = "imx250mzr"
+
+
+def assumed_layout_note(path: PathLike, layout: str | None) -> str | None:
+    """The line a command prints when it must guess a frame's mosaic layout: ``None`` when
+    ``layout`` is given or ``path`` has a sidecar, else a note naming :data:`DEFAULT_LAYOUT`
+    and the ``--layout`` flag (a colour frame read as mono, or the reverse, demosaics to
+    nonsense without any error)."""
+    if layout is not None or sidecar_path(path).is_file():
+        return None
+    return (f"{path} has no sidecar; assuming the {DEFAULT_LAYOUT} mosaic (mono); "
+            f"pass --layout (e.g. imx250myr for the colour sensor) if that is wrong")
+
+
+def read_raw(path: PathLike, *, layout: str = DEFAULT_LAYOUT, **meta_defaults: Any) -> Frame:
     """Read a raw frame and its sidecar metadata.
 
-    Without a sidecar the metadata is synthesised: ``layout`` (default ``"imx250mzr"``), the
+    Without a sidecar the metadata is synthesised: ``layout`` (default :data:`DEFAULT_LAYOUT`), the
     bit depth of the dtype, ``Mono8``/``Mono16`` pixel format, zero exposure/gain/timestamp;
     ``meta_defaults`` override those fields. A sidecar that is not valid metadata raises
     :class:`FormatError`.

@@ -72,6 +72,18 @@ def test_sidecar_supplies_layout_offset_black_level_and_bit_depth(tmp_path):
     assert back.metadata["processing"]["layout"] == "imx250myr@1,2"
 
 
+def test_a_frame_without_sidecar_or_layout_gets_a_note_naming_the_assumed_layout(tmp_path, capsys):
+    import cv2
+
+    src = tmp_path / "bare.png"
+    cv2.imwrite(str(src), _polarized_raw("imx250mzr", (16, 16), s0=1000).astype(np.uint16))
+    assert main(["stokes", str(src), "--out", str(tmp_path / "a.exr")]) == 0
+    err = capsys.readouterr().err
+    assert "bare.png has no sidecar; assuming the imx250mzr mosaic (mono)" in err and "--layout" in err
+    assert main(["stokes", str(src), "--layout", "imx250mzr", "--out", str(tmp_path / "b.exr")]) == 0
+    assert "note" not in capsys.readouterr().err
+
+
 def test_roi_offset_changes_the_phase(tmp_path):
     raw = _polarized_raw(offset=(1, 0), aolp_deg=20)
     src = tmp_path / "r.npy"

@@ -93,6 +93,21 @@ def test_bad_input_is_a_clear_error(model):
     nan_in = np.full((3, 4, 16, 16), np.nan, np.float32)
     out, aux = model.reconstruct(nan_in, [0.5, 0.5, 0])
     assert np.all(np.isfinite(out)) and not aux["mask"].any()
+    with pytest.raises(FormatError, match="or 1, a mono sensor"):
+        model.reconstruct(np.zeros((2, 4, 8, 8), np.float32), [0.5, 0.5, 0])
+
+
+def test_mono_analyzer_is_the_grey_scene_averaged_back_to_one_colour(model, capture):
+    """A one-channel (mono sensor) analyzer image is reconstructed as the grey scene with that
+    image in every colour, and the colour outputs are averaged back to one channel."""
+    grey = capture["analyzer"].mean(axis=0, keepdims=True) * 1000.0
+    kw = dict(mask=capture["mask"] > 0, stage_zero_axis=capture["stage_zero_axis"])
+    mono, aux = model.reconstruct(grey, capture["s_in"], **kw)
+    rgb, aux_rgb = model.reconstruct(np.repeat(grey, 3, axis=0), capture["s_in"], **kw)
+    assert mono.shape == (1, 3, 3, 64, 64) and aux["kd"].shape == (1, 64, 64)
+    assert aux["mueller_init"].shape == mono.shape and aux["normal"].shape == (3, 64, 64)
+    np.testing.assert_allclose(mono[0], rgb.mean(axis=0), rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(aux["normal"], aux_rgb["normal"], atol=1e-6)
 
 
 def test_view_directions_point_back_to_the_camera():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 import pytest
 
@@ -121,3 +123,22 @@ def test_polarizer_frame_through_camera_pixel_formats(frames, results):
     res12 = stokes_from_raw(dec, "imx250mzr", "superpixel", saturation_dn=255 << 4)
     np.testing.assert_allclose(res12.stokes, 16 * ref.stokes, rtol=1e-6, atol=1e-3)
     np.testing.assert_array_equal(res12.valid, ref.valid)
+
+
+@pytest.mark.skipif(not (pathlib.Path(__file__).resolve().parents[1] / "models" / "weights" / "single_shot.onnx").is_file(),
+                    reason="no single-shot model in models/weights")
+def test_polrig_infer_on_a_real_mono_frame_without_sidecar(real_dofp_dir, tmp_path, capsys):
+    """A real IMX250MZR (mono) frame with no sidecar: ``polrig infer`` says which layout it
+    assumed, reconstructs the one channel as a grey scene and writes a one-colour Mueller EXR
+    at the superpixel resolution (it used to stop at "model expects 3 colour channel(s)")."""
+    from polrig.cli import main
+    from polrig.exr import read_mueller_exr
+
+    out = tmp_path / "carps.exr"
+    assert main(["infer", str(real_dofp_dir / FRAMES[1]), "--state-deg", "0", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "no sidecar; assuming the imx250mzr mosaic" in err and "--layout" in err
+    exr = read_mueller_exr(out)
+    assert exr.mueller.shape == (1, 3, 3, 1024, 1224) and np.all(np.isfinite(exr.mueller))
+    lit = exr.extra["mask"] > 0
+    assert lit.mean() > 0.5 and np.all(exr.mueller[0, 0, 0][lit] >= 0)

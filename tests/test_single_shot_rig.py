@@ -293,3 +293,18 @@ def test_object_turned_away_from_the_light_is_dark_not_scored_noise(tmp_path):
     assert back["score"]["pixels_compared"] == 0 and back["score"]["psnr_db"] is None
     assert np.mean(masks[0] == 0) > 0.3  # the lit panel covers about a third of the frame
     assert lit["score"]["pixels_compared"] > 3000 and lit["score"]["psnr_db"] > 25.0
+
+
+@pytest.mark.skipif(not WEIGHTS.is_file(), reason="no single-shot model in models/weights")
+def test_mono_sensor_capture_is_reconstructed_as_a_grey_scene(tmp_path):
+    """A mono DoFP camera (IMX250MZR) used to stop single-shot mode with "model expects 3
+    colour channel(s)". Its one channel now goes to the colour network as a grey scene and the
+    colour outputs are averaged back: the capture writes a one-colour Mueller EXR that scores
+    within :data:`HELD_OUT_MARGIN_DB` of the held-out matrix PSNR against the simulator's truth."""
+    from polrig.exr import read_mueller_exr
+
+    psnr, meta = _capture_psnr(tmp_path, "sphere", 'sensor = "imx250mzr"\n')
+    assert psnr >= _held_out_matrix_psnr() - HELD_OUT_MARGIN_DB
+    out = next(tmp_path.glob("run-sphere*"))
+    exr = next(out.rglob("mueller.exr"))
+    assert read_mueller_exr(exr).mueller.shape[0] == 1

@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "(16-bit PNG/TIFF/.npy + optional JSON sidecar) captured under a "
                                    "known polarizer state, with the single-shot network.")
     p.add_argument("raw", help="raw frame file")
-    p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250myr)")
+    p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
     p.add_argument("--state-deg", type=float, required=True, help="polarizer stage angle of the capture (deg)")
     p.add_argument("--out", required=True, help="output EXR path")
     p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default="superpixel",
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
 
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
     from polrig import processing
-    from polrig.rawio import read_raw
+    from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
     from polrig.rig import load_rig_config
 
     out = pathlib.Path(args.out)
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"output folder {out.parent} does not exist")
     if args.saturation_dn is not None and not args.saturation_dn > 0:
         raise ValueError(f"--saturation-dn must be > 0 DN, got {args.saturation_dn:g}")
-    frame = read_raw(args.raw, layout=args.layout or "imx250myr")
+    frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
     layout = args.layout or frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
     calibration = processing.load_calibration(args.calibration)
@@ -89,4 +89,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
               f"{saturation:g} DN (clipped); their Mueller estimate comes from clipped data (EXR plane "
               f"'saturated'); lower the exposure", file=sys.stderr)
+    note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
+    if note:
+        print(f"polrig infer: note: {note}", file=sys.stderr)
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import sys
 
 import cv2
 import numpy as np
@@ -14,7 +15,7 @@ from polrig.errors import ConfigError
 from polrig.exr import colour_planes, write_stokes_exr
 from polrig.layouts import LAYOUTS
 from polrig.preview import aolp_rgb, dolp_gray
-from polrig.rawio import atomic_write_bytes, read_raw
+from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, atomic_write_bytes, read_raw
 
 
 def register(subparsers) -> None:
@@ -27,7 +28,7 @@ def register(subparsers) -> None:
                     "OUT_dolp.png, OUT_aolp.png (AoLP as hue, DoLP as value).")
     p.add_argument("raw", type=pathlib.Path, metavar="RAW", help="raw mosaic file")
     p.add_argument("--layout", choices=sorted(LAYOUTS), default=None,
-                   help="mosaic layout (default: from the sidecar, else imx250mzr)")
+                   help="mosaic layout (default: from the sidecar, else imx250mzr, with a note)")
     p.add_argument("--demosaic", choices=METHODS, default="bilinear",
                    help="demosaicing method (default: bilinear)")
     p.add_argument("--black-level", type=float, default=None, metavar="N",
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out folder {out.parent} does not exist")
     frame = read_raw(args.raw)
     meta = frame.meta
-    layout_name = args.layout or meta.layout or "imx250mzr"
+    layout_name = args.layout or meta.layout or DEFAULT_LAYOUT
     if layout_name.split("@")[0].lower() not in LAYOUTS:
         raise ConfigError(f"unknown layout {layout_name!r} (sidecar of {args.raw})")
     ox, oy = _parse_offset(args.roi_offset) if args.roi_offset else tuple(meta.offset_xy)
@@ -97,6 +98,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out} ({res.stokes.shape[-1]}x{res.stokes.shape[-2]}, {c} colour plane(s), "
           f"{args.demosaic}), {dolp_png.name}, {aolp_png.name}; masked "
           f"{int((~res.valid).sum())} pixel(s), DoLP clipped at {res.dolp_overshoot}")
+    note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
+    if note:
+        print(f"polrig stokes: note: {note}", file=sys.stderr)
     return 0
 
 
