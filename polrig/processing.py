@@ -675,8 +675,10 @@ class Processor:
             "mask_bits": {str(b): n for b, n in reason_names().items()},
             "analyzer_tolerance": list(self.calibration.analyzer_tolerance),
             "generator_tolerance": list(self.calibration.generator_tolerance),
-            "planes": {"sigma.M{rc}": "standard deviation of M{rc}: sensor noise and "
-                                      "calibration uncertainty",
+            "planes": {"sigma.M{rc}": ("standard deviation of M{rc}: sensor noise and "
+                                       "calibration uncertainty" if self.mode == "reference" else
+                                       "standard deviation of M{rc}: the single-shot model's "
+                                       "calibrated error (models/uncertainty.py); inf where clipped"),
                        "sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor "
                                             "noise model alone",
                        "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"},
@@ -710,8 +712,11 @@ class Processor:
     def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
         """One state through the installed network (:mod:`models.runtime`): averaged and
-        HDR-merged like the reference states, demosaiced, reconstructed. The network reports
-        no uncertainty: sigma planes are 0. The mask marks, as the reference solve does,
+        HDR-merged like the reference states, demosaiced, reconstructed. ``sigma`` is the
+        model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
+        against the simulator's truth, which sensor noise does not describe; 0 where the graph
+        has no calibration), infinite for a colour with a clipped sample (the magnitude of a
+        clipped highlight is unknown); ``sigma_noise`` is 0. The mask marks, as the reference solve does,
         ``dark`` pixels: background (outside the network's object mask) and, per colour, pixels
         whose measured ``S0`` is below :data:`polrig.reference.MIN_SNR` noise standard
         deviations (the noise model's variance carried through the demosaic; an object turned
@@ -749,9 +754,11 @@ class Processor:
         clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
         mask = (np.where(dark, DARK, 0) | np.where(clipped, SATURATED, 0)).astype(np.uint8)
         zeros = np.zeros((c, h, w), np.float32)
-        result = ReferenceResult(mueller.astype(np.float32), np.zeros_like(mueller, np.float32),
-                                 zeros, mask, float("nan"), zeros + np.inf,
-                                 np.zeros((c, h, w), np.uint16))
+        sigma = np.asarray(aux.get("sigma", np.zeros_like(mueller)), np.float32)
+        sigma = np.where(clipped[:, None, None], np.float32(np.inf), sigma)
+        result = ReferenceResult(mueller.astype(np.float32), sigma, zeros, mask, float("nan"),
+                                 zeros + np.inf, np.zeros((c, h, w), np.uint16),
+                                 sigma_noise=np.zeros_like(sigma))
         return result, s_in, lay, None
 
     def score(self, session: Session, index: int, result: ReferenceResult,

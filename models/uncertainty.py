@@ -1,0 +1,311 @@
+"""Calibrated per-element uncertainty of single-shot Mueller images.
+
+One DoFP capture under one incident state ``s_in`` measures only ``M s_in``; the rest of the
+matrix comes from the network's learned prior, so its error cannot be propagated from the
+sensor noise as :mod:`polrig.reference` does. It is instead *calibrated*: an error model with
+a few coefficients is fitted to the shipped network's errors against the simulator's truth on a
+calibration set, and its coverage is checked on other held-out sets (``models/MODEL_CARD.md``,
+"Uncertainty").
+
+The error model (numpy only: it runs at inference without torch):
+
+* **Observed frame.** The incident Stokes basis is turned about the illumination axis by the
+  state's own angle ``theta`` (``s_in = [1, p cos 2 theta, p sin 2 theta]``):
+  ``M = M' R(theta)`` with ``R = [[1,0,0],[0,c,s],[0,-s,c]]``, ``c, s = cos 2 theta, sin 2 theta``
+  (the rotation of ``docs/conventions.md``), so ``R s_in = [1, p, 0]``. Column 0 of ``M'``
+  (its response to unpolarized light, the same as ``M``'s) and column 1 (to light polarized
+  along the observed state) are tied by the measurement ``M' [1, p, 0]``; column 2 (light
+  polarized at 45 deg to it) is not observed at all. Errors differ by column in this frame,
+  not in the rig's.
+* **Scale and polarization strength.** In the observed frame ``sigma'_rk = scale * (a_rk +
+  b_rk min(q, 1) + c_rk max(q - 1, 0))`` with ``scale = max(|m00|, floor * m_ref)`` (``m_ref``
+  the 99th percentile of ``|m00|`` over the object, so dark pixels keep a floor) and ``q`` the
+  predicted matrix's polarization strength ``||M'[1:, 1:]||_F / |m00|`` (about 0 where diffuse
+  reflection dominates, up to 1 for a specular pixel): errors of the lower-right block grow
+  about tenfold from diffuse to specular pixels.
+* **Back to the rig's frame.** ``M_rc = sum_k M'_rk R_kc``; with independent errors per
+  observed-frame column, ``sigma_rc^2 = sum_k R_kc^2 sigma'_rk^2``. Where the incident state is
+  (nearly) unpolarized, ``p < P_MIN``, columns 1 and 2 are both unobserved and get the larger
+  of their two sigmas.
+
+Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
+``|error'| / scale`` in bins of ``q`` (weighted least squares over the bins, coefficients kept
+>= 0), then each element's sigma is rescaled so that exactly ``COVERAGE`` of the calibration
+errors lie within ``2 sigma``, the fraction a right Gaussian sigma covers. Pixels with a clipped
+analyzer sample are left out: a clipped highlight's magnitude is unknown, and
+:mod:`polrig.processing` reports infinite sigma there.
+
+``python -m models.uncertainty --data DIR [DIR ...] --write`` runs the shipped graph on
+``polrig sim dataset`` folders, calibrates and writes ``models/weights/uncertainty.json`` (with
+the SHA-256 of the graph it belongs to); ``--check DIR ...`` prints the coverage on other sets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import pathlib
+import sys
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+#: Fraction of errors inside +-2 sigma for a right Gaussian sigma (erf(sqrt 2)).
+COVERAGE = 0.9545
+#: Degree of polarization of ``s_in`` below which its angle is undefined (unpolarized input).
+P_MIN = 0.05
+#: Scale floor, as a fraction of the image's 99th-percentile ``|m00|``.
+SCALE_FLOOR = 0.01
+#: Bin edges of the polarization strength ``q`` used by :func:`calibrate` (quantiles of q).
+Q_BINS = 24
+FILE_NAME = "uncertainty.json"
+FORMAT = "polrig-single-shot-uncertainty"
+
+
+def observed_frame_rotation(s_in) -> tuple[np.ndarray, float]:
+    """``(R, p)``: the Stokes rotation ``R(theta)`` (3, 3) that takes the normalised incident
+    state ``s_in = [1, p cos 2 theta, p sin 2 theta]`` to ``[1, p, 0]``, and its degree of
+    polarization ``p`` (``R`` is the identity where ``p < P_MIN``)."""
+    s = np.asarray(s_in, np.float64).reshape(3)
+    s = s / s[0] if s[0] > 0 else s
+    p = float(np.hypot(s[1], s[2]))
+    if p < P_MIN:
+        return np.eye(3), p
+    c, sn = s[1] / p, s[2] / p
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, sn], [0.0, -sn, c]]), p
+
+
+def to_observed_frame(mueller: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``M' = M R^T`` for a Mueller image ``(C, 3, 3, H, W)`` (or blocks ``(..., 3, 3, N)``)."""
+    return np.einsum("...rkn,jk->...rjn", mueller.reshape(*mueller.shape[:-2], -1), rotation).reshape(mueller.shape)
+
+
+def features(m_obs: np.ndarray, object_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(scale, q)`` ``(C, H, W)`` of an observed-frame Mueller image ``(C, 3, 3, H, W)``:
+    ``scale = max(|m00|, SCALE_FLOOR m_ref)``, ``q = ||M'[1:, 1:]|| / scale`` (module docstring)."""
+    m00 = np.abs(m_obs[:, 0, 0])
+    inside = m00[:, np.asarray(object_mask, bool)]
+    ref = float(np.percentile(inside, 99)) if inside.size else 0.0
+    scale = np.maximum(m00, max(SCALE_FLOOR * ref, np.finfo(np.float32).tiny))
+    q = np.sqrt(np.sum(m_obs[:, 1:, 1:] ** 2, axis=(1, 2))) / scale
+    return scale, q
+
+
+def _design(q: np.ndarray) -> np.ndarray:
+    """Feature rows ``[1, min(q, 1), max(q - 1, 0)]`` -> ``(..., 3)``."""
+    return np.stack([np.ones_like(q), np.minimum(q, 1.0), np.maximum(q - 1.0, 0.0)], -1)
+
+
+@dataclasses.dataclass
+class UncertaintyModel:
+    """Coefficients ``(3, 3, 3)``: observed-frame element ``(r, k)``, feature ``j`` (module
+    docstring). ``graph_sha256``: the ONNX graph they were calibrated for."""
+
+    coefficients: np.ndarray
+    graph_sha256: str = ""
+    calibration: dict = dataclasses.field(default_factory=dict)
+
+    def sigma(self, mueller: np.ndarray, s_in, object_mask: np.ndarray) -> np.ndarray:
+        """Standard deviation ``(C, 3, 3, H, W)`` of each element of a single-shot Mueller
+        image ``mueller`` ``(C, 3, 3, H, W)`` (any units: sigma has the same) reconstructed
+        under ``s_in``; ``object_mask`` ``(H, W)``: where the object is (outside it sigma is 0,
+        as the Mueller image)."""
+        m = np.asarray(mueller, np.float64)
+        rot, p = observed_frame_rotation(s_in)
+        m_obs = to_observed_frame(m, rot)
+        scale, q = features(m_obs, object_mask)
+        sig_obs = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", _design(q), self.coefficients)
+        if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
+            sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
+        var = np.einsum("crkhw,kj->crjhw", sig_obs**2, rot**2)  # sum_k R_kc^2 sigma'_rk^2
+        return (np.sqrt(var) * np.asarray(object_mask, bool)).astype(np.float32)
+
+    def to_json(self) -> dict:
+        return {"format": FORMAT, "version": 1, "graph_sha256": self.graph_sha256,
+                "model": "sigma'_rk = scale * (a + b min(q,1) + c max(q-1,0)) in the observed frame "
+                         "(models/uncertainty.py)",
+                "coverage_target": COVERAGE, "scale_floor": SCALE_FLOOR, "p_min": P_MIN,
+                "coefficients": np.round(self.coefficients, 6).tolist(), "calibration": self.calibration}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "UncertaintyModel":
+        if data.get("format") != FORMAT:
+            raise ValueError(f"not a {FORMAT} file (format {data.get('format')!r})")
+        coef = np.asarray(data["coefficients"], np.float64)
+        if coef.shape != (3, 3, 3) or not np.all(np.isfinite(coef)) or np.any(coef < 0):
+            raise ValueError(f"coefficients must be 3x3x3 finite numbers >= 0, got shape {coef.shape}")
+        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})))
+
+
+def graph_sha256(path: str | pathlib.Path) -> str:
+    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def load_for_graph(weights_dir: pathlib.Path, graph: str) -> UncertaintyModel | None:
+    """The calibration in ``weights_dir`` if it belongs to ``graph`` (same SHA-256), else None:
+    a retrained graph has no calibrated uncertainty until ``python -m models.uncertainty`` runs."""
+    path = pathlib.Path(weights_dir) / FILE_NAME
+    if not path.is_file():
+        return None
+    model = UncertaintyModel.from_json(json.loads(path.read_text()))
+    if model.graph_sha256 != graph_sha256(pathlib.Path(weights_dir) / graph):
+        return None
+    return model
+
+
+# ----------------------------------------------------------------------------- calibration
+
+@dataclasses.dataclass
+class Sample:
+    """One prediction with its truth: ``pred``/``truth`` ``(C, 3, 3, H, W)``, ``s_in`` (3,),
+    ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample."""
+
+    pred: np.ndarray
+    truth: np.ndarray
+    s_in: np.ndarray
+    mask: np.ndarray
+    clipped: np.ndarray
+
+
+def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``(|error'| / scale (N, 3, 3), q (N,), p (N,))`` over unclipped object pixels."""
+    ratios, qs, ps = [], [], []
+    for s in samples:
+        rot, p = observed_frame_rotation(s.s_in)
+        pred, truth = to_observed_frame(np.asarray(s.pred, np.float64), rot), \
+            to_observed_frame(np.asarray(s.truth, np.float64), rot)
+        scale, q = features(pred, s.mask)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool)  # (C, H, W)
+        err = np.abs(pred - truth) / scale[:, None, None]
+        ratios.append(np.moveaxis(err, (1, 2), (-2, -1))[use])
+        qs.append(q[use])
+        ps.append(np.full(int(use.sum()), p))
+    return np.concatenate(ratios), np.concatenate(qs), np.concatenate(ps)
+
+
+def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
+    """Coefficients ``(3, 3, 3)`` (module docstring) and a summary of the fit."""
+    ratio, q, p = _observed_errors(samples)
+    polarized = p >= P_MIN
+    ratio, q = ratio[polarized], q[polarized]
+    if len(q) < 100 * Q_BINS:
+        raise ValueError(f"too few calibration pixels ({len(q)}) for {Q_BINS} bins")
+    edges = np.quantile(q, np.linspace(0.0, 1.0, Q_BINS + 1))
+    which = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, Q_BINS - 1)
+    coef = np.zeros((3, 3, 3))
+    x = np.stack([np.median(q[which == b]) for b in range(Q_BINS)])
+    counts = np.bincount(which, minlength=Q_BINS).astype(np.float64)
+    design = _design(x) * np.sqrt(counts)[:, None]
+    for r in range(3):
+        for k in range(3):
+            y = np.array([np.quantile(ratio[which == b, r, k], COVERAGE) / 2.0 for b in range(Q_BINS)])
+            coef[r, k] = _nonnegative_lstsq(design, y * np.sqrt(counts))
+            # exact coverage on the calibration pixels
+            sig = _design(q) @ coef[r, k]
+            coef[r, k] *= np.quantile(ratio[:, r, k] / np.maximum(sig, 1e-12), COVERAGE) / 2.0
+    return coef, {"pixels": int(len(q)), "q_bins": Q_BINS}
+
+
+def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least squares with every coefficient >= 0, by trying each active set (3 unknowns)."""
+    best, best_res = np.zeros(a.shape[1]), np.inf
+    n = a.shape[1]
+    for subset in range(1, 2**n):
+        cols = [j for j in range(n) if subset >> j & 1]
+        sol, *_ = np.linalg.lstsq(a[:, cols], b, rcond=None)
+        if np.any(sol < 0):
+            continue
+        full = np.zeros(n)
+        full[cols] = sol
+        res = float(np.sum((a @ full - b) ** 2))
+        if res < best_res:
+            best, best_res = full, res
+    return best
+
+
+def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, float]:
+    """In the rig's frame: fraction of elements within ``2 sigma`` (all, and per element), the
+    RMS error over the RMS sigma, over unclipped object pixels of ``samples``."""
+    inside, errs, sigs = [], [], []
+    for s in samples:
+        sig = model.sigma(s.pred, s.s_in, s.mask)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool)
+        err = np.abs(np.asarray(s.pred, np.float64) - s.truth)
+        e, g = np.moveaxis(err, (1, 2), (-2, -1))[use], np.moveaxis(sig, (1, 2), (-2, -1))[use]
+        inside.append(e <= 2.0 * g)
+        errs.append(e)
+        sigs.append(g)
+    inside_all, e_all, g_all = np.concatenate(inside), np.concatenate(errs), np.concatenate(sigs)
+    return {"within_2sigma": float(inside_all.mean()),
+            "within_2sigma_per_element": np.round(inside_all.mean(0), 3).tolist(),
+            "rms_error_over_rms_sigma": float(np.sqrt(np.mean(e_all**2) / np.mean(g_all.astype(np.float64) ** 2))),
+            "pixels": int(len(e_all))}
+
+
+def dataset_samples(data_dir, model, limit: int | None = None) -> list[Sample]:
+    """Run ``model`` (:class:`models.runtime.SingleShotModel`) on a ``polrig sim dataset``
+    folder -> samples with the truth (samples without a lit object pixel are skipped, as in
+    :mod:`models.evaluate`). A sample's pixel is clipped where an analyzer value reached the
+    sensor's saturation level (:attr:`polrig.noise.SensorModel.saturation_dn` of the set's
+    sensor model, as :mod:`polrig.processing` flags it)."""
+    from models.data import load_dataset
+    from models.evaluate import _network_inputs
+    from polrig.noise import SensorModel
+
+    ds = load_dataset(data_dir, limit)
+    sensor = SensorModel(**ds.manifest["noise"]["sensor_model"]) if "noise" in ds.manifest else SensorModel()
+    out = []
+    for i in range(len(ds)):
+        mask = ds["mask"][i] > 0
+        truth = ds["mueller"][i]
+        if not mask.any() or not np.any(truth[..., mask]):
+            continue
+        pred = model.run_rig_frame(*_network_inputs(ds, i))["mueller"][0]
+        dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
+        clipped = dn.max(axis=1) >= sensor.saturation_dn
+        out.append(Sample(pred, truth, ds["s_in"][i], mask, clipped))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from models.runtime import WEIGHTS_DIR, SingleShotModel
+
+    ap = argparse.ArgumentParser(prog="python -m models.uncertainty", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", nargs="*", default=[], help="calibration sets (`polrig sim dataset` folders)")
+    ap.add_argument("--check", nargs="*", default=[], help="sets to report the coverage on")
+    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
+    ap.add_argument("--write", action="store_true", help=f"write {FILE_NAME} into the weights folder")
+    args = ap.parse_args(argv)
+    wd = pathlib.Path(args.weights) if args.weights else WEIGHTS_DIR
+    net = SingleShotModel.load(wd)
+    if args.data:
+        cal = [s for d in args.data for s in dataset_samples(d, net)]
+        coef, info = calibrate(cal)
+        model = UncertaintyModel(coef, graph_sha256(wd / "single_shot.onnx"),
+                                 dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)))
+        model.calibration["coverage"] = coverage(model, cal)
+        print(json.dumps(model.to_json(), indent=1))
+        if args.write:
+            (wd / FILE_NAME).write_text(json.dumps(model.to_json(), indent=1) + "\n")
+    else:
+        model = load_for_graph(wd, "single_shot.onnx")
+        if model is None:
+            print(f"no {FILE_NAME} for this graph in {wd}: calibrate with --data", file=sys.stderr)
+            return 2
+    checks = {}
+    for d in args.check:
+        checks[pathlib.Path(d).name] = c = coverage(model, dataset_samples(d, net))
+        print(f"{pathlib.Path(d).name}: within 2 sigma {c['within_2sigma']:.3f}, "
+              f"per element {c['within_2sigma_per_element']}, RMS error / RMS sigma "
+              f"{c['rms_error_over_rms_sigma']:.2f}, {c['pixels']} values")
+    if args.write and checks:
+        data = json.loads((wd / FILE_NAME).read_text())
+        data["checks"] = checks
+        (wd / FILE_NAME).write_text(json.dumps(data, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
