@@ -266,7 +266,7 @@ class SingleShotModel:
 
     def reconstruct(self, analyzer: np.ndarray, s_in, mask: np.ndarray | None = None, scale: float | None = None,
                     *, stage_zero_axis=None, intrinsics=None,
-                    max_pixels: int = 1_500_000) -> tuple[np.ndarray, dict]:
+                    max_pixels: int = 1_500_000, with_sigma: bool = False) -> tuple[np.ndarray, dict]:
         """Mueller image ``(C, 3, 3, H, W)`` float32 in DN per unit incident S0 from analyzer
         images ``(C, 4, H, W)`` in DN (black level removed) under the normalised incident
         state ``s_in`` ``(3,)`` (incident frame, ``docs/conventions.md``).
@@ -279,8 +279,9 @@ class SingleShotModel:
         ``intrinsics``: ``(fx, fy, cx, cy)`` of the
         analyzer image (default: the simulated rig's camera). Background pixels are 0.
         ``aux`` holds ``mueller_init`` (PIPNet-pBRDF, DN), ``normal``, ``kd``, ``wi``,
-        ``alpha``, ``mask``, ``scale``, ``timings_s`` and, where the graph has a calibrated
-        uncertainty (:mod:`models.uncertainty`), ``sigma`` ``(C, 3, 3, H, W)`` DN: the standard
+        ``alpha``, ``mask``, ``scale``, ``timings_s`` and, with ``with_sigma`` where the graph has
+        a calibrated uncertainty (:mod:`models.uncertainty`; about 11 ms at 128x128, a third of
+        the reconstruction, so off by default), ``sigma`` ``(C, 3, 3, H, W)`` DN: the standard
         deviation of each element (calibrated on simulated held-out sets: about 95 % of the
         errors within 2 sigma, ``models/MODEL_CARD.md``).
         """
@@ -355,7 +356,7 @@ class SingleShotModel:
         aux = {k: v.astype(np.float32) for k, v in res.items()}
         if "mueller_init" in aux:
             aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
-        if self.uncertainty is not None:
+        if with_sigma and self.uncertainty is not None:
             aux["sigma"] = self.uncertainty.sigma(mueller, s, m)
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
                     "incident_rotation_deg": rotation_deg,
@@ -374,8 +375,8 @@ def incident_stokes(state_deg: float, extinction_ratio: float = float("inf")) ->
 def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotModel, *,
                 demosaic_method: str = "superpixel", black_level_dn: float = 0.0,
                 mask: np.ndarray | None = None, scale: float | None = None,
-                stage_zero_axis=None, intrinsics=None, saturation_dn: float | None = None
-                ) -> tuple[np.ndarray, dict]:
+                stage_zero_axis=None, intrinsics=None, saturation_dn: float | None = None,
+                with_sigma: bool = False) -> tuple[np.ndarray, dict]:
     """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
     demosaic (:func:`polrig.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
     sampling: a quarter of the raw size per axis for the colour IMX250MYR), then
@@ -383,7 +384,8 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings, and
     with ``saturation_dn`` (raw DN, black level included, at which the sensor clips)
     ``saturated`` ``(H', W')`` bool: output pixels with a clipped raw sample in their demosaic
-    support (the network's estimate there comes from clipped data)."""
+    support (the network's estimate there comes from clipped data); ``with_sigma``: as
+    :meth:`SingleShotModel.reconstruct`."""
     from polrig.analyzer import resolve_layout
     from polrig.demosaic import demosaic, demosaic_float
     from polrig.stokes import stokes_from_analyzers
@@ -399,7 +401,8 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     stokes = stokes_from_analyzers(analyzer)
     t2 = time.perf_counter()
     mueller, aux = model.reconstruct(analyzer, incident_stokes(state_deg), mask=mask, scale=scale,
-                                     stage_zero_axis=stage_zero_axis, intrinsics=intrinsics)
+                                     stage_zero_axis=stage_zero_axis, intrinsics=intrinsics,
+                                     with_sigma=with_sigma)
     aux["stokes"] = stokes
     aux["timings_s"] = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
     if clipped is not None:

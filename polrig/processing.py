@@ -744,7 +744,7 @@ class Processor:
         if geometry is None:  # the calibration's geometry only
             geometry = {"intrinsics": self.calibration.intrinsics,
                         "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
-        mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0],
+        mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0], with_sigma=True,
                                               **single_shot_kwargs(geometry, first, self.demosaic))
         obj = np.asarray(aux["mask"], bool)
         c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]

@@ -180,6 +180,29 @@ def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
     assert "warning" in err and "clipped" in err and "4095 DN" in err
 
 
+def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
+    """``--sigma`` adds the calibrated standard deviations (finite, > 0 on the object, 0 off
+    it); without it the EXR has no sigma planes (the speed path stays as benchmarked)."""
+    from polrig.cli import main
+    from polrig.exr import read_mueller_exr
+
+    raw = np.clip(np.round(_mosaic_from_analyzer(capture["analyzer"] * float(capture["scale"])) + 100),
+                  0, 4095).astype(np.uint16)
+    src = tmp_path / "frame.npy"
+    np.save(src, raw)
+    args = ["infer", str(src), "--layout", "imx250myr", "--black-level", "100",
+            "--state-deg", str(float(capture["stage_deg"]))]
+    assert main(args + ["--out", str(tmp_path / "plain.exr")]) == 0
+    assert not any(k.startswith("sigma.") for k in read_mueller_exr(tmp_path / "plain.exr").extra)
+    assert main(args + ["--sigma", "--out", str(tmp_path / "sigma.exr")]) == 0
+    exr = read_mueller_exr(tmp_path / "sigma.exr")
+    obj = exr.extra["mask"] > 0
+    for r in range(3):
+        for c in range(3):
+            sig = exr.extra[f"sigma.M{r}{c}.G"]
+            assert np.all(np.isfinite(sig)) and np.all(sig[obj] > 0) and np.all(sig[~obj] == 0)
+
+
 def test_runtime_module_does_not_import_torch():
     code = ("import sys, numpy as np\nfrom models.runtime import SingleShotModel\n"
             "m = SingleShotModel.load()\n"

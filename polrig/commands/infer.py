@@ -43,6 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="raw value (DN, black level included) at which the sensor clips (default: "
                         "full scale of the frame's bit depth, 2^bits - 1; give 4095 for 12-bit data "
                         "stored in 16-bit files without a sidecar)")
+    p.add_argument("--sigma", action="store_true",
+                   help="also write the model's calibrated standard deviation of every element "
+                        "(sigma.M{row}{col}.{colour} planes, models/uncertainty.py; costs about a "
+                        "third more time)")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
     p.set_defaults(func=run)
 
@@ -77,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
     model = SingleShotModel.load(args.weights)
     saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
     mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
-                               black_level_dn=black, scale=args.scale, saturation_dn=saturation, **kwargs)
+                               black_level_dn=black, scale=args.scale, saturation_dn=saturation,
+                               with_sigma=args.sigma, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
                                          "layout": str(layout), "demosaic": args.demosaic,
                                          "saturation_dn": saturation})
