@@ -417,13 +417,11 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
     standard deviations ``sigma.M{r}{c}.{R,G,B}`` where ``aux`` has them, the estimated
     ``normal.{X,Y,Z}`` with ``with_normal``, and the model's scalars in the header
     (:func:`polrig.exr.write_mueller_exr`)."""
-    from polrig.exr import colour_planes, write_mueller_exr
+    from polrig.exr import element_planes, write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
     if "sigma" in aux:
-        for r in range(3):
-            for c in range(3):
-                extra.update(colour_planes(f"sigma.M{r}{c}", aux["sigma"][:, r, c]))
+        extra.update(element_planes("sigma", aux["sigma"]))
     if "saturated" in aux:
         extra["saturated"] = aux["saturated"].astype(np.float32)
     if with_normal and "normal" in aux:

@@ -55,6 +55,16 @@ def colour_planes(prefix: str, planes: np.ndarray) -> dict[str, np.ndarray]:
     return {f"{prefix}.{s}": p[i] for i, s in enumerate(channel_suffixes(p.shape[0]))}
 
 
+def element_planes(prefix: str, stack: np.ndarray) -> dict[str, np.ndarray]:
+    """``{"prefix.M{r}{c}.{colour}": ...}`` of a per-element image stack ``(C, 3, 3, H, W)``
+    (e.g. the ``sigma`` planes beside a Mueller image)."""
+    out: dict[str, np.ndarray] = {}
+    for r in range(3):
+        for c in range(3):
+            out.update(colour_planes(f"{prefix}.M{r}{c}", stack[:, r, c]))
+    return out
+
+
 def stokes_channels(n_colours: int) -> list[str]:
     return [f"S{k}.{s}" for k in range(3) for s in channel_suffixes(n_colours)]
 

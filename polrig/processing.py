@@ -641,7 +641,7 @@ class Processor:
         """Solve capture ``index`` from its raw files; write the result files (into
         ``revision`` if given); return the score against the truth (simulated rig) or None."""
         from polrig import __version__
-        from polrig.exr import colour_planes, write_mueller_exr
+        from polrig.exr import colour_planes, element_planes, write_mueller_exr
 
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
@@ -657,11 +657,7 @@ class Processor:
         else:
             result, s_in, lay, states = process_reference(cf, self.calibration,
                                                           self.sensor_model, self.demosaic)
-        extra: dict[str, np.ndarray] = {}
-        for r in range(3):
-            for c in range(3):
-                extra.update(colour_planes(f"sigma.M{r}{c}", result.sigma[:, r, c]))
-                extra.update(colour_planes(f"sigma_noise.M{r}{c}", result.sigma_noise[:, r, c]))
+        extra = element_planes("sigma", result.sigma) | element_planes("sigma_noise", result.sigma_noise)
         extra.update(colour_planes("mask", result.mask.astype(np.float32)))
         extra.update(colour_planes("residual", result.residual))
         meta = {
