@@ -36,6 +36,12 @@ from models.pbrdf_torch import image_blocks
 from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
 
 STAGES = ("pipnet", "pmmnet", "direct")
+#: What each stage's network is called on (``_pick`` keys).
+STAGE_INPUTS = {"pipnet": ("analyzer", "mask", "s_in", "wo"),
+                "pmmnet": ("analyzer", "mask", "s_in", "ms_init", "md_init", "kd_init"),
+                "direct": ("analyzer", "mask", "s_in", "wo")}
+#: Training samples whose statistics set the batch norms of a network recovered from ONNX.
+RECALIBRATION_SAMPLES = 256
 #: Stages that read the raw images and must infer the geometry themselves; ``crop_fraction``
 #: windows their training samples (PMMNet refines an initialization of the whole image).
 CROPPED_STAGES = ("pipnet", "direct")
@@ -299,10 +305,13 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
     of the checkpoint's configuration (e.g. more epochs for a stage). ``init_from`` (a
-    checkpoint of another run) with ``stages`` retrains only those stages from scratch and
+    checkpoint of another run, or a weights folder such as ``models/weights``, whose networks are
+    recovered from its ONNX graphs by :mod:`models.recover`) with ``stages`` retrains only those stages from scratch and
     takes the other networks (and their training times) from that checkpoint, e.g. a new
     PMMNet on a trained PIPNet; with ``warm_start`` the trained stages start from the donor's
-    weights instead (fine-tuning with a fresh optimizer and learning-rate schedule). Returns
+    weights instead (fine-tuning with a fresh optimizer and learning-rate schedule; the batch norms
+    of recovered networks first get the statistics of the training data,
+    :func:`models.recover.recalibrate_batchnorm`). Returns
     the summary dict also written to ``OUT/summary.json``."""
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
@@ -320,9 +329,14 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
         echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
     elif (out / "log.csv").exists() and not resume:
         (out / "log.csv").unlink()
-    donor = None
+    donor, recalibrate = None, set()
     if init_from is not None and state is None:
-        donor = torch.load(init_from, weights_only=False)
+        if pathlib.Path(init_from).is_dir():  # a weights folder: the networks recovered from its ONNX graphs
+            from models.recover import checkpoint_from_weights
+
+            donor = checkpoint_from_weights(init_from)
+        else:
+            donor = torch.load(init_from, weights_only=False)
         if config is None:  # same architecture and settings as the run the networks come from
             config = TrainConfig(**_config_of(donor))
     config = dataclasses.replace(config or TrainConfig(), **(overrides or {}))
@@ -359,6 +373,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             for k in stages:
                 models[k].load_state_dict(donor["models"][k])
             echo(f"networks {list(stages)} warm-started from {init_from}")
+            if donor.get("recovered_from_onnx"):
+                recalibrate = set(stages)
     if state is not None:
         for k in STAGES:
             models[k].load_state_dict(state["models"][k])
@@ -376,6 +392,13 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             add_initialization(models["pipnet"].eval(), t)
             echo(f"pmmnet: PIPNet-pBRDF initialization of {n} samples in {time.time() - t_init:.1f}s")
         model, opt = models[stage], opts[stage]
+        if stage in recalibrate:  # batch norms of a network recovered from ONNX (models.recover)
+            from models.recover import recalibrate_batchnorm
+
+            calib = train_idx[:RECALIBRATION_SAMPLES]
+            recalibrate_batchnorm(model, [lambda i=calib[b]: model(*_pick(t, i, STAGE_INPUTS[stage]))
+                                          for b in _batches(len(calib), config.batch_size, None)])
+            echo(f"{stage}: batch-norm statistics of the recovered network set on {len(calib)} samples")
         for epoch in range(start_epoch if si == start_stage else 0, epochs[stage]):
             lr = lr_at(config, epoch, epochs[stage])
             for g in opt.param_groups:

@@ -263,3 +263,33 @@ def test_cli_perturbation_flags_reach_the_run_config(trained, tmp_path):
     config = json.loads((out / "summary.json").read_text())["config"]
     assert (config["init_perturb_fraction"], config["init_perturb_deg"], config["init_perturb_light_deg"],
             config["init_perturb_toward_view"]) == (0.5, 25.0, 10.0, 0.3)
+
+
+def test_fine_tune_from_a_weights_folder(trained, tmp_path):
+    """``init_from`` a weights folder (the ONNX graphs only, as the repository ships them): the
+    networks are recovered (models.recover), the trained stage's batch norms are set on the
+    data, and the networks taken unchanged export to graphs computing what the donor's do."""
+    import onnxruntime as ort
+
+    from models.evaluate import _network_inputs
+
+    root, data, _ = trained
+    said = []
+    summary = train(data, tmp_path / "run", init_from=root / "run" / "weights", stages=("pmmnet",), warm_start=True,
+                    echo=said.append)
+    assert any("batch-norm statistics" in s for s in said)
+    rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
+    assert [r["stage"] for r in rows] == ["pmmnet"] * TINY.pmmnet_epochs
+    assert summary["config"]["pipnet_epochs"] == TINY.pipnet_epochs  # the donor's lineage is kept
+    ds = load_dataset(data)
+    feed = dict(zip(("analyzer", "mask", "s_in", "wo", "stage_zero_axis"), _network_inputs(ds, 0)))
+
+    def run(weights, graph):
+        sess = ort.InferenceSession(str(weights / graph), providers=["CPUExecutionProvider"])
+        return sess.run(None, {i.name: feed[i.name] for i in sess.get_inputs()})
+
+    old, new = run(root / "run" / "weights", "direct.onnx"), run(tmp_path / "run" / "weights", "direct.onnx")
+    np.testing.assert_allclose(new[0], old[0], atol=1e-5 * max(1.0, float(np.abs(old[0]).max())))
+    old, new = run(root / "run" / "weights", "single_shot.onnx"), run(tmp_path / "run" / "weights", "single_shot.onnx")
+    np.testing.assert_allclose(new[2], old[2], atol=1e-5)  # PIPNet's normals: PIPNet was not trained
+    assert not np.allclose(new[0], old[0])  # PMMNet was

@@ -55,8 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stages", default="pipnet,pmmnet,direct",
                    help="stages to train (comma separated, default all); with --init-from the "
                         "others are taken from that checkpoint")
-    p.add_argument("--init-from", default=None, help="checkpoint.pt of another run to take the "
-                                                     "networks of the stages not trained from")
+    p.add_argument("--init-from", default=None, help="checkpoint.pt of another run, or a weights folder "
+                   "(e.g. models/weights: the shipped networks, recovered from their ONNX graphs), to take the "
+                   "networks of the stages not trained from")
     p.add_argument("--warm-start", action="store_true", help="with --init-from: start the trained "
                    "stages from that checkpoint's weights too (fine-tuning, fresh schedule)")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export")
@@ -100,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
             overrides[name] = value
     stages = tuple(x.strip() for x in args.stages.split(",") if x.strip())
     if args.init_from is None and set(stages) != {"pipnet", "pmmnet", "direct"} and not args.resume:
-        raise ValueError("training a subset of the stages needs --init-from CHECKPOINT for the others")
+        raise ValueError("training a subset of the stages needs --init-from CHECKPOINT (or a weights folder) "
+                         "for the others")
     train(args.data, args.out, None, resume=args.resume, export=not args.no_export,
           overrides=overrides, init_from=args.init_from, stages=stages,
           warm_start=args.warm_start)
