@@ -48,6 +48,7 @@ import numpy as np
 
 from polrig import frames
 from polrig.errors import FormatError
+from polrig.stokes import stokes_from_analyzers
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
 SIZE_MULTIPLE = 8
@@ -357,7 +358,8 @@ class SingleShotModel:
         if "mueller_init" in aux:
             aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
         if with_sigma and self.uncertainty is not None:
-            aux["sigma"] = self.uncertainty.sigma(mueller, s, m)
+            # the capture's own Stokes images, in DN like ``mueller`` (a mono frame is repeated: one copy)
+            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes_from_analyzers(a[:mueller.shape[0]]))
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
                     "incident_rotation_deg": rotation_deg,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
@@ -388,7 +390,6 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     :meth:`SingleShotModel.reconstruct`."""
     from polrig.analyzer import resolve_layout
     from polrig.demosaic import demosaic, demosaic_float
-    from polrig.stokes import stokes_from_analyzers
 
     t0 = time.perf_counter()
     lay = resolve_layout(layout)

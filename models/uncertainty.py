@@ -17,20 +17,24 @@ The error model (numpy only: it runs at inference without torch):
   along the observed state) are tied by the measurement ``M' [1, p, 0]``; column 2 (light
   polarized at 45 deg to it) is not observed at all. Errors differ by column in this frame,
   not in the rig's.
-* **Scale and polarization strength.** In the observed frame ``sigma'_rk = scale * (a_rk +
-  b_rk min(q, 1) + c_rk max(q - 1, 0))`` with ``scale = max(|m00|, floor * m_ref)`` (``m_ref``
-  the 99th percentile of ``|m00|`` over the object, so dark pixels keep a floor) and ``q`` the
-  predicted matrix's polarization strength ``||M'[1:, 1:]||_F / |m00|`` (about 0 where diffuse
-  reflection dominates, up to 1 for a specular pixel): errors of the lower-right block grow
-  about tenfold from diffuse to specular pixels.
+* **Scale, polarization strength and misfit.** In the observed frame ``sigma'_rk = scale *
+  (a_rk + b_rk min(q, 1) + c_rk max(q - 1, 0) + d_rk r)`` with ``scale = max(|m00|, floor *
+  m_ref)`` (``m_ref`` the 99th percentile of ``|m00|`` over the object, so dark pixels keep a
+  floor), ``q`` the predicted matrix's polarization strength ``||M'[1:, 1:]||_F / |m00|``
+  (about 0 where diffuse reflection dominates, up to 1 for a specular pixel: errors of the
+  lower-right block grow about tenfold from diffuse to specular pixels) and ``r`` the misfit of
+  the one thing measured, ``||M s_in - S|| / (|s_in| scale)`` with ``S`` the measured Stokes
+  vector: where the prediction does not reproduce its own observation (the network is unsure of
+  the shape, or the pixel is noisy), the rest of the matrix is less certain too (on the held-out
+  sets the errors grow about fivefold from the lowest to the highest misfits).
 * **Back to the rig's frame.** ``M_rc = sum_k M'_rk R_kc``; with independent errors per
   observed-frame column, ``sigma_rc^2 = sum_k R_kc^2 sigma'_rk^2``. Where the incident state is
   (nearly) unpolarized, ``p < P_MIN``, columns 1 and 2 are both unobserved and get the larger
   of their two sigmas.
 
 Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
-``|error'| / scale`` in bins of ``q`` (weighted least squares over the bins, coefficients kept
->= 0), then each element's sigma is rescaled so that exactly ``COVERAGE`` of the calibration
+``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
+the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly ``COVERAGE`` of the calibration
 errors lie within ``2 sigma``, the fraction a right Gaussian sigma covers. Pixels with a clipped
 analyzer sample are left out: a clipped highlight's magnitude is unknown, and
 :mod:`polrig.processing` reports infinite sigma there.
@@ -58,10 +62,16 @@ COVERAGE = 0.9545
 P_MIN = 0.05
 #: Scale floor, as a fraction of the image's 99th-percentile ``|m00|``.
 SCALE_FLOOR = 0.01
-#: Bin edges of the polarization strength ``q`` used by :func:`calibrate` (quantiles of q).
-Q_BINS = 24
+#: Bins of :func:`calibrate`: quantiles of the polarization strength ``q``, then within each
+#: quantiles of the misfit ``r``.
+Q_BINS = 12
+R_BINS = 6
+#: Features of the error model (:func:`_design`).
+N_FEATURES = 4
 FILE_NAME = "uncertainty.json"
 FORMAT = "polrig-single-shot-uncertainty"
+#: Version 2 added the misfit feature ``r``; a version-1 file counts as no calibration.
+VERSION = 2
 
 
 def observed_frame_rotation(s_in) -> tuple[np.ndarray, float]:
@@ -93,38 +103,51 @@ def features(m_obs: np.ndarray, object_mask: np.ndarray) -> tuple[np.ndarray, np
     return scale, q
 
 
-def _design(q: np.ndarray) -> np.ndarray:
-    """Feature rows ``[1, min(q, 1), max(q - 1, 0)]`` -> ``(..., 3)``."""
-    return np.stack([np.ones_like(q), np.minimum(q, 1.0), np.maximum(q - 1.0, 0.0)], -1)
+def misfit(mueller: np.ndarray, s_in, stokes: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """``r = ||M s_in - S|| / (|s_in| scale)`` ``(C, H, W)`` of a Mueller image ``(C, 3, 3, H, W)``
+    and the measured Stokes images ``S`` ``(C, 3, H, W)`` (same units); non-finite where ``S``
+    is."""
+    s = np.asarray(s_in, np.float64).reshape(3)
+    rendered = np.einsum("crkhw,k->crhw", mueller, s)
+    return np.linalg.norm(rendered - stokes, axis=1) / (np.linalg.norm(s) * scale)
+
+
+def _design(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Feature rows ``[1, min(q,1), max(q - 1, 0), r]`` -> ``(..., N_FEATURES)``."""
+    return np.stack([np.ones_like(q), np.minimum(q, 1.0), np.maximum(q - 1.0, 0.0), r], -1)
 
 
 @dataclasses.dataclass
 class UncertaintyModel:
-    """Coefficients ``(3, 3, 3)``: observed-frame element ``(r, k)``, feature ``j`` (module
+    """Coefficients ``(3, 3, N_FEATURES)``: observed-frame element ``(r, k)``, feature ``j`` (module
     docstring). ``graph_sha256``: the ONNX graph they were calibrated for."""
 
     coefficients: np.ndarray
     graph_sha256: str = ""
     calibration: dict = dataclasses.field(default_factory=dict)
 
-    def sigma(self, mueller: np.ndarray, s_in, object_mask: np.ndarray) -> np.ndarray:
+    def sigma(self, mueller: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray) -> np.ndarray:
         """Standard deviation ``(C, 3, 3, H, W)`` of each element of a single-shot Mueller
         image ``mueller`` ``(C, 3, 3, H, W)`` (any units: sigma has the same) reconstructed
-        under ``s_in``; ``object_mask`` ``(H, W)``: where the object is (outside it sigma is 0,
-        as the Mueller image)."""
+        under ``s_in`` from a capture whose Stokes images are ``stokes`` ``(C, 3, H, W)`` (same
+        units); ``object_mask`` ``(H, W)``: where the object is (outside it sigma is 0, as the
+        Mueller image). Non-finite where ``stokes`` is."""
         m = np.asarray(mueller, np.float64)
+        if np.shape(stokes) != m.shape[:1] + (3,) + m.shape[-2:]:
+            raise ValueError(f"stokes must be {m.shape[:1] + (3,) + m.shape[-2:]}, got {np.shape(stokes)}")
         rot, p = observed_frame_rotation(s_in)
         m_obs = to_observed_frame(m, rot)
         scale, q = features(m_obs, object_mask)
-        sig_obs = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", _design(q), self.coefficients)
+        r = misfit(m, s_in, np.asarray(stokes, np.float64), scale)
+        sig_obs = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", _design(q, r), self.coefficients)
         if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
             sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
         var = np.einsum("crkhw,kj->crjhw", sig_obs**2, rot**2)  # sum_k R_kc^2 sigma'_rk^2
-        return (np.sqrt(var) * np.asarray(object_mask, bool)).astype(np.float32)
+        return np.where(np.asarray(object_mask, bool), np.sqrt(var), 0.0).astype(np.float32)
 
     def to_json(self) -> dict:
-        return {"format": FORMAT, "version": 1, "graph_sha256": self.graph_sha256,
-                "model": "sigma'_rk = scale * (a + b min(q,1) + c max(q-1,0)) in the observed frame "
+        return {"format": FORMAT, "version": VERSION, "graph_sha256": self.graph_sha256,
+                "model": "sigma'_rk = scale * (a + b min(q,1) + c max(q-1,0) + d r) in the observed frame "
                          "(models/uncertainty.py)",
                 "coverage_target": COVERAGE, "scale_floor": SCALE_FLOOR, "p_min": P_MIN,
                 "coefficients": np.round(self.coefficients, 6).tolist(), "calibration": self.calibration}
@@ -134,8 +157,9 @@ class UncertaintyModel:
         if data.get("format") != FORMAT:
             raise ValueError(f"not a {FORMAT} file (format {data.get('format')!r})")
         coef = np.asarray(data["coefficients"], np.float64)
-        if coef.shape != (3, 3, 3) or not np.all(np.isfinite(coef)) or np.any(coef < 0):
-            raise ValueError(f"coefficients must be 3x3x3 finite numbers >= 0, got shape {coef.shape}")
+        if coef.shape != (3, 3, N_FEATURES) or not np.all(np.isfinite(coef)) or np.any(coef < 0):
+            raise ValueError(f"coefficients must be 3x3x{N_FEATURES} finite numbers >= 0, got shape {coef.shape} "
+                             "(an older calibration: run python -m models.uncertainty again)")
         return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})))
 
 
@@ -144,12 +168,16 @@ def graph_sha256(path: str | pathlib.Path) -> str:
 
 
 def load_for_graph(weights_dir: pathlib.Path, graph: str) -> UncertaintyModel | None:
-    """The calibration in ``weights_dir`` if it belongs to ``graph`` (same SHA-256), else None:
-    a retrained graph has no calibrated uncertainty until ``python -m models.uncertainty`` runs."""
+    """The calibration in ``weights_dir`` if it belongs to ``graph`` (same SHA-256) and is of the
+    current :data:`VERSION`, else None: a retrained graph has no calibrated uncertainty until
+    ``python -m models.uncertainty`` runs."""
     path = pathlib.Path(weights_dir) / FILE_NAME
     if not path.is_file():
         return None
-    model = UncertaintyModel.from_json(json.loads(path.read_text()))
+    data = json.loads(path.read_text())
+    if data.get("format") == FORMAT and data.get("version") != VERSION:
+        return None
+    model = UncertaintyModel.from_json(data)
     if model.graph_sha256 != graph_sha256(pathlib.Path(weights_dir) / graph):
         return None
     return model
@@ -160,56 +188,69 @@ def load_for_graph(weights_dir: pathlib.Path, graph: str) -> UncertaintyModel | 
 @dataclasses.dataclass
 class Sample:
     """One prediction with its truth: ``pred``/``truth`` ``(C, 3, 3, H, W)``, ``s_in`` (3,),
-    ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample."""
+    ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample,
+    ``stokes`` ``(C, 3, H, W)`` the measured Stokes images the prediction was made from."""
 
     pred: np.ndarray
     truth: np.ndarray
     s_in: np.ndarray
     mask: np.ndarray
     clipped: np.ndarray
+    stokes: np.ndarray
 
 
-def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled ``(|error'| / scale (N, 3, 3), q (N,), p (N,))`` over unclipped object pixels."""
-    ratios, qs, ps = [], [], []
+def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``(|error'| / scale (N, 3, 3), q (N,), r (N,), p (N,))`` over unclipped object pixels."""
+    ratios, qs, rs, ps = [], [], [], []
     for s in samples:
         rot, p = observed_frame_rotation(s.s_in)
-        pred, truth = to_observed_frame(np.asarray(s.pred, np.float64), rot), \
-            to_observed_frame(np.asarray(s.truth, np.float64), rot)
-        scale, q = features(pred, s.mask)
-        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool)  # (C, H, W)
-        err = np.abs(pred - truth) / scale[:, None, None]
+        pred = np.asarray(s.pred, np.float64)
+        pred_obs, truth = to_observed_frame(pred, rot), to_observed_frame(np.asarray(s.truth, np.float64), rot)
+        scale, q = features(pred_obs, s.mask)
+        r = misfit(pred, s.s_in, np.asarray(s.stokes, np.float64), scale)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.isfinite(r)  # (C, H, W)
+        err = np.abs(pred_obs - truth) / scale[:, None, None]
         ratios.append(np.moveaxis(err, (1, 2), (-2, -1))[use])
         qs.append(q[use])
+        rs.append(r[use])
         ps.append(np.full(int(use.sum()), p))
-    return np.concatenate(ratios), np.concatenate(qs), np.concatenate(ps)
+    return np.concatenate(ratios), np.concatenate(qs), np.concatenate(rs), np.concatenate(ps)
 
 
 def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
-    """Coefficients ``(3, 3, 3)`` (module docstring) and a summary of the fit."""
-    ratio, q, p = _observed_errors(samples)
+    """Coefficients ``(3, 3, N_FEATURES)`` (module docstring) and a summary of the fit."""
+    ratio, q, r, p = _observed_errors(samples)
     polarized = p >= P_MIN
-    ratio, q = ratio[polarized], q[polarized]
-    if len(q) < 100 * Q_BINS:
-        raise ValueError(f"too few calibration pixels ({len(q)}) for {Q_BINS} bins")
-    edges = np.quantile(q, np.linspace(0.0, 1.0, Q_BINS + 1))
-    which = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, Q_BINS - 1)
-    coef = np.zeros((3, 3, 3))
-    x = np.stack([np.median(q[which == b]) for b in range(Q_BINS)])
-    counts = np.bincount(which, minlength=Q_BINS).astype(np.float64)
-    design = _design(x) * np.sqrt(counts)[:, None]
-    for r in range(3):
+    ratio, q, r = ratio[polarized], q[polarized], r[polarized]
+    n_bins = Q_BINS * R_BINS
+    if len(q) < 100 * n_bins:
+        raise ValueError(f"too few calibration pixels ({len(q)}) for {n_bins} bins")
+    which = np.empty(len(q), np.int64)
+    q_bin = np.clip(np.searchsorted(np.quantile(q, np.linspace(0.0, 1.0, Q_BINS + 1)), q, side="right") - 1,
+                    0, Q_BINS - 1)
+    for b in range(Q_BINS):
+        sel = np.flatnonzero(q_bin == b)
+        edges = np.quantile(r[sel], np.linspace(0.0, 1.0, R_BINS + 1))
+        which[sel] = b * R_BINS + np.clip(np.searchsorted(edges, r[sel], side="right") - 1, 0, R_BINS - 1)
+    bins = [np.flatnonzero(which == b) for b in range(n_bins)]
+    bins = [i for i in bins if len(i)]
+    x = _design(np.array([np.median(q[i]) for i in bins]), np.array([np.median(r[i]) for i in bins]))
+    weight = np.sqrt([float(len(i)) for i in bins])
+    design = x * weight[:, None]
+    full_design = _design(q, r)
+    coef = np.zeros((3, 3, N_FEATURES))
+    for row in range(3):
         for k in range(3):
-            y = np.array([np.quantile(ratio[which == b, r, k], COVERAGE) / 2.0 for b in range(Q_BINS)])
-            coef[r, k] = _nonnegative_lstsq(design, y * np.sqrt(counts))
+            y = np.array([np.quantile(ratio[i, row, k], COVERAGE) / 2.0 for i in bins])
+            coef[row, k] = _nonnegative_lstsq(design, y * weight)
             # exact coverage on the calibration pixels
-            sig = _design(q) @ coef[r, k]
-            coef[r, k] *= np.quantile(ratio[:, r, k] / np.maximum(sig, 1e-12), COVERAGE) / 2.0
-    return coef, {"pixels": int(len(q)), "q_bins": Q_BINS}
+            sig = full_design @ coef[row, k]
+            coef[row, k] *= np.quantile(ratio[:, row, k] / np.maximum(sig, 1e-12), COVERAGE) / 2.0
+    return coef, {"pixels": int(len(q)), "q_bins": Q_BINS, "r_bins": R_BINS}
 
 
 def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Least squares with every coefficient >= 0, by trying each active set (3 unknowns)."""
+    """Least squares with every coefficient >= 0, by trying each active set (a few unknowns)."""
     best, best_res = np.zeros(a.shape[1]), np.inf
     n = a.shape[1]
     for subset in range(1, 2**n):
@@ -230,8 +271,8 @@ def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, fl
     RMS error over the RMS sigma, over unclipped object pixels of ``samples``."""
     inside, errs, sigs = [], [], []
     for s in samples:
-        sig = model.sigma(s.pred, s.s_in, s.mask)
-        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool)
+        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
         err = np.abs(np.asarray(s.pred, np.float64) - s.truth)
         e, g = np.moveaxis(err, (1, 2), (-2, -1))[use], np.moveaxis(sig, (1, 2), (-2, -1))[use]
         inside.append(e <= 2.0 * g)
@@ -253,6 +294,7 @@ def dataset_samples(data_dir, model, limit: int | None = None) -> list[Sample]:
     from models.data import load_dataset
     from models.evaluate import _network_inputs
     from polrig.noise import SensorModel
+    from polrig.stokes import stokes_from_analyzers
 
     ds = load_dataset(data_dir, limit)
     sensor = SensorModel(**ds.manifest["noise"]["sensor_model"]) if "noise" in ds.manifest else SensorModel()
@@ -265,7 +307,7 @@ def dataset_samples(data_dir, model, limit: int | None = None) -> list[Sample]:
         pred = model.run_rig_frame(*_network_inputs(ds, i))["mueller"][0]
         dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
         clipped = dn.max(axis=1) >= sensor.saturation_dn
-        out.append(Sample(pred, truth, ds["s_in"][i], mask, clipped))
+        out.append(Sample(pred, truth, ds["s_in"][i], mask, clipped, stokes_from_analyzers(ds["analyzer"][i])))
     return out
 
 

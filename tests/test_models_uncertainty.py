@@ -58,18 +58,31 @@ def _synthetic_samples(coef: np.ndarray, rng: np.random.Generator, n: int = 12, 
         block *= (q_target * m_obs[:, 0, 0] / np.sqrt(np.sum(block**2, axis=(1, 2))))[:, None, None]
         mask = np.ones((size, size), bool)
         scale, q = unc.features(m_obs, mask)
-        sig = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", unc._design(q), coef)
-        truth_obs = m_obs + rng.normal(size=m_obs.shape) * sig
         pred = unc.to_observed_frame(m_obs, rot.T)  # back to the rig frame: M = M' R
+        # measured Stokes: the prediction's rendering of s_in missed by a random misfit r
+        r_target = rng.exponential(0.1, (3, size, size))
+        miss = rng.normal(size=(3, 3, size, size))
+        miss *= (r_target * scale * np.linalg.norm(s_in) / np.linalg.norm(miss, axis=1))[:, None]
+        stokes = np.einsum("crkhw,k->crhw", pred, s_in) + miss
+        r = unc.misfit(pred, s_in, stokes, scale)
+        np.testing.assert_allclose(r, r_target, rtol=1e-9)
+        sig = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", unc._design(q, r), coef)
+        truth_obs = m_obs + rng.normal(size=m_obs.shape) * sig
         truth = unc.to_observed_frame(truth_obs, rot.T)
-        samples.append(unc.Sample(pred, truth, s_in, mask, np.zeros((3, size, size), bool)))
+        samples.append(unc.Sample(pred, truth, s_in, mask, np.zeros((3, size, size), bool), stokes))
     return samples
 
 
+def _consistent_stokes(m: np.ndarray, s_in) -> np.ndarray:
+    """Stokes images that a Mueller image reproduces exactly (misfit 0)."""
+    return np.einsum("crkhw,k->crhw", m, np.asarray(s_in, float))
+
+
 def test_calibration_recovers_a_known_error_model():
-    coef = np.zeros((3, 3, 3))
+    coef = np.zeros((3, 3, unc.N_FEATURES))
     coef[..., 0] = [[0.10, 0.05, 0.06], [0.02, 0.01, 0.02], [0.02, 0.02, 0.01]]
     coef[1:, 1:, 1] = 0.15  # the lower-right block grows with the polarization strength
+    coef[:, 2, 3] = 0.8  # the unobserved column grows with the misfit of the observed state
     rng = np.random.default_rng(1)
     fitted, info = unc.calibrate(_synthetic_samples(coef, rng))
     assert info["pixels"] > 10_000
@@ -79,38 +92,55 @@ def test_calibration_recovers_a_known_error_model():
     cov = unc.coverage(model, _synthetic_samples(coef, rng))  # fresh draws
     assert abs(cov["within_2sigma"] - unc.COVERAGE) < 0.01
     assert np.all(np.abs(np.asarray(cov["within_2sigma_per_element"]) - unc.COVERAGE) < 0.02)
-    # a model that ignores the polarization strength misses the specular pixels
-    flat = fitted.copy()
-    flat[..., 1:] = 0.0
-    assert unc.coverage(unc.UncertaintyModel(flat), _synthetic_samples(coef, rng))["within_2sigma"] < 0.93
+    # a model that ignores the polarization strength misses the specular pixels, one that
+    # ignores the misfit the pixels that do not reproduce their observation
+    for ignored in ([1, 2], [3]):
+        flat = fitted.copy()
+        flat[..., ignored] = 0.0
+        cov = unc.coverage(unc.UncertaintyModel(flat), _synthetic_samples(coef, rng))
+        assert min(cov["within_2sigma_per_element"][r][2] for r in range(3)) < 0.93
 
 
 def test_unpolarized_state_has_no_observed_direction():
-    coef = np.zeros((3, 3, 3))
+    coef = np.zeros((3, 3, unc.N_FEATURES))
     coef[..., 0] = [[0.1, 0.2, 0.4], [0.1, 0.2, 0.4], [0.1, 0.2, 0.4]]
     m = np.zeros((1, 3, 3, 2, 2))
     m[:, 0, 0] = 1.0
-    sig = unc.UncertaintyModel(coef).sigma(m, [1.0, 0.0, 0.0], np.ones((2, 2), bool))
+    s_in = [1.0, 0.0, 0.0]
+    sig = unc.UncertaintyModel(coef).sigma(m, s_in, np.ones((2, 2), bool), _consistent_stokes(m, s_in))
     np.testing.assert_allclose(sig[0, :, 1], sig[0, :, 2])
     np.testing.assert_allclose(sig[0, :, 1, 0, 0], 0.4, rtol=1e-6)
     np.testing.assert_allclose(sig[0, :, 0, 0, 0], 0.1, rtol=1e-6)
 
 
 def test_sigma_is_zero_off_the_object_and_scales_with_the_matrix():
-    coef = np.full((3, 3, 3), 0.05)
+    coef = np.full((3, 3, unc.N_FEATURES), 0.05)
     m = np.zeros((3, 3, 3, 4, 4))
     m[:, 0, 0] = 2.0
     mask = np.zeros((4, 4), bool)
     mask[1:3, 1:3] = True
     model = unc.UncertaintyModel(coef)
     s_in = [1.0, 0.6, 0.8]
-    sig = model.sigma(m, s_in, mask)
+    stokes = _consistent_stokes(m, s_in)
+    sig = model.sigma(m, s_in, mask, stokes)
     assert np.all(sig[..., ~mask] == 0) and np.all(sig[..., mask] > 0)
-    np.testing.assert_allclose(model.sigma(10 * m, s_in, mask), 10 * sig, rtol=1e-6)
+    np.testing.assert_allclose(model.sigma(10 * m, s_in, mask, 10 * stokes), 10 * sig, rtol=1e-6)
+    # a pixel whose prediction misses its own observation is less certain, by d r scale
+    missed = stokes.copy()
+    missed[:, 0, 1, 1] += 0.2 * np.linalg.norm(s_in) * 2.0  # misfit r = 0.2 at scale 2
+    grown = model.sigma(m, s_in, mask, missed)
+    np.testing.assert_allclose(grown[..., 1, 2], sig[..., 1, 2])
+    rot, _ = unc.observed_frame_rotation(s_in)
+    expected_obs = 2.0 * 0.05 * (1 + 0.2)  # scale (a + d r); q = 0
+    np.testing.assert_allclose(grown[:, :, :, 1, 1], np.sqrt(np.einsum("k,kj->j", np.full(3, expected_obs**2),
+                                                                        rot**2))[None, None].repeat(3, 0).repeat(3, 1),
+                               rtol=1e-5)
+    with pytest.raises(ValueError, match="stokes"):
+        model.sigma(m, s_in, mask, stokes[:, :2])
 
 
 def test_file_format_round_trip_and_bad_files(tmp_path):
-    model = unc.UncertaintyModel(np.full((3, 3, 3), 0.01), "abc", {"pixels": 5})
+    model = unc.UncertaintyModel(np.full((3, 3, unc.N_FEATURES), 0.01), "abc", {"pixels": 5})
     back = unc.UncertaintyModel.from_json(json.loads(json.dumps(model.to_json())))
     np.testing.assert_allclose(back.coefficients, model.coefficients)
     assert back.graph_sha256 == "abc"
@@ -127,6 +157,10 @@ def test_file_format_round_trip_and_bad_files(tmp_path):
     model.graph_sha256 = unc.graph_sha256(tmp_path / "single_shot.onnx")
     (tmp_path / unc.FILE_NAME).write_text(json.dumps(model.to_json()))
     assert unc.load_for_graph(tmp_path, "single_shot.onnx") is not None
+    # a calibration of the older format (no misfit term) counts as none
+    old = dict(model.to_json(), version=1, coefficients=np.full((3, 3, 3), 0.01).tolist())
+    (tmp_path / unc.FILE_NAME).write_text(json.dumps(old))
+    assert unc.load_for_graph(tmp_path, "single_shot.onnx") is None
 
 
 @pytest.mark.skipif(not (WEIGHTS_DIR / unc.FILE_NAME).is_file(), reason="no shipped calibration")
