@@ -305,14 +305,14 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
     of the checkpoint's configuration (e.g. more epochs for a stage). ``init_from`` (a
-    checkpoint of another run, or a weights folder such as ``models/weights``, whose networks are
-    recovered from its ONNX graphs by :mod:`models.recover`) with ``stages`` retrains only those stages from scratch and
-    takes the other networks (and their training times) from that checkpoint, e.g. a new
-    PMMNet on a trained PIPNet; with ``warm_start`` the trained stages start from the donor's
-    weights instead (fine-tuning with a fresh optimizer and learning-rate schedule; the batch norms
-    of recovered networks first get the statistics of the training data,
-    :func:`models.recover.recalibrate_batchnorm`). Returns
-    the summary dict also written to ``OUT/summary.json``."""
+    checkpoint of another run, or a weights folder such as ``models/weights``, whose networks
+    are recovered from its ONNX graphs by :mod:`models.recover`) with ``stages`` retrains only
+    those stages from scratch and takes the other networks (and their training times) from that
+    checkpoint, e.g. a new PMMNet on a trained PIPNet; with ``warm_start`` the trained stages
+    start from the donor's weights instead (fine-tuning with a fresh optimizer and learning-rate
+    schedule; the batch norms of recovered networks first get the statistics of the training
+    data, :func:`models.recover.recalibrate_batchnorm`). Returns the summary dict also written
+    to ``OUT/summary.json``."""
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
     bad = [s for s in stages if s not in STAGES]
