@@ -148,7 +148,8 @@ def checkpoint_from_weights(weights_dir: str | pathlib.Path) -> dict:
     a network."""
     nets, meta = networks_from_weights(weights_dir)
     training = meta.get("training") or {}
-    config = dict(training.get("config", {}))
+    # the recipe, not the machine or the subset the last run happened to use
+    config = {k: v for k, v in training.get("config", {}).items() if k not in ("threads", "limit")}
     totals = training.get("totals", {})
     times = {}
     for k in nets:
