@@ -34,9 +34,6 @@ from torch import nn
 
 from polrig.errors import FormatError
 
-#: Graph file of each network in a weights folder (``single_shot.onnx`` holds PIPNet and PMMNet
-#: as ``SingleShotNet``'s ``pipnet`` and ``pmmnet``).
-GRAPHS = {"single_shot.onnx": ("pipnet", "pmmnet"), "direct.onnx": ("direct",)}
 _TRACE_SIZE = 16
 
 
