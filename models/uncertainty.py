@@ -34,8 +34,9 @@ The error model (numpy only: it runs at inference without torch):
 
 Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
 ``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
-the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly ``COVERAGE`` of the calibration
-errors lie within ``2 sigma``, the fraction a right Gaussian sigma covers. Pixels with a clipped
+the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly
+``COVERAGE`` of the calibration errors lie within ``2 sigma``, the fraction a right Gaussian
+sigma covers. Pixels with a clipped
 analyzer sample are left out: a clipped highlight's magnitude is unknown, and
 :mod:`polrig.processing` reports infinite sigma there.
 
@@ -217,6 +218,12 @@ def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray,
     return np.concatenate(ratios), np.concatenate(qs), np.concatenate(rs), np.concatenate(ps)
 
 
+def _quantile_bins(x: np.ndarray, n: int) -> np.ndarray:
+    """Index ``0..n-1`` of each value's bin among ``n`` bins of equal count."""
+    edges = np.quantile(x, np.linspace(0.0, 1.0, n + 1))
+    return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n - 1)
+
+
 def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
     """Coefficients ``(3, 3, N_FEATURES)`` (module docstring) and a summary of the fit."""
     ratio, q, r, p = _observed_errors(samples)
@@ -226,12 +233,10 @@ def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
     if len(q) < 100 * n_bins:
         raise ValueError(f"too few calibration pixels ({len(q)}) for {n_bins} bins")
     which = np.empty(len(q), np.int64)
-    q_bin = np.clip(np.searchsorted(np.quantile(q, np.linspace(0.0, 1.0, Q_BINS + 1)), q, side="right") - 1,
-                    0, Q_BINS - 1)
+    q_bin = _quantile_bins(q, Q_BINS)
     for b in range(Q_BINS):
         sel = np.flatnonzero(q_bin == b)
-        edges = np.quantile(r[sel], np.linspace(0.0, 1.0, R_BINS + 1))
-        which[sel] = b * R_BINS + np.clip(np.searchsorted(edges, r[sel], side="right") - 1, 0, R_BINS - 1)
+        which[sel] = b * R_BINS + _quantile_bins(r[sel], R_BINS)
     bins = [np.flatnonzero(which == b) for b in range(n_bins)]
     bins = [i for i in bins if len(i)]
     x = _design(np.array([np.median(q[i]) for i in bins]), np.array([np.median(r[i]) for i in bins]))
