@@ -96,10 +96,10 @@ def load_onnx_into(model: nn.Module, path: str | pathlib.Path, colours: int) -> 
             new[f"{name}.bias"] = torch.from_numpy(np.array(bias))
             continue
         parent, index = name.rsplit(".", 1)
-        bn = modules.get(f"{parent}.{int(index) + 1}")
+        bn_name = f"{parent}.{int(index) + 1}"  # the module after the convolution in its Sequential
+        bn = modules.get(bn_name)
         if not isinstance(bn, nn.BatchNorm2d):
             raise FormatError(f"{path.name}: {name} has no bias and no batch norm after it")
-        bn_name = f"{parent}.{int(index) + 1}"
         new[f"{bn_name}.weight"] = torch.ones(w.shape[0])
         new[f"{bn_name}.bias"] = torch.from_numpy(np.array(bias))
         new[f"{bn_name}.running_mean"] = torch.zeros(w.shape[0])
