@@ -11,7 +11,9 @@ Sizes are **raw sensor sizes** (256x256, 512x512, full 2448x2048). With the defa
 axis (64x64, 128x128, 612x512); with ``bilinear`` the network runs at the raw size (the full
 sensor then exceeds the runtime's ``max_pixels`` and is resized, see :mod:`models.runtime`).
 
-Usage: ``python benchmarks/bench_single_shot.py [--repeat N] [--threads T] [--out FILE]``.
+Usage: ``python benchmarks/bench_single_shot.py [--repeat N] [--threads T] [--mirror-average] [--out FILE]``;
+``--mirror-average`` adds rows for the mirror-averaged path (:mod:`models.mirror`: the network
+runs on the frame and on its mirror image).
 
 ``--rig-scenes sphere,box,...`` instead scores ``polrig capture --mode single-shot`` on the
 default simulated rig (256x256 raw, virtual clock, nominal calibration: the simulator's design
@@ -19,7 +21,9 @@ geometry), one capture per scene, with processing's own score (``polrig.processi
 ways: the design stage zero axis (what processing does now), the training rig's axis (camera up,
 what processing did before it passed any geometry) and the design axis turned by 90 deg about
 the illumination axis (both through ``[nominal_geometry]``); ``--out`` writes that table.
-``--rig-poses 0:360:45`` captures each scene over those turntable poses instead of pose 0 only
+With ``--mirror-average`` the rig scenes are captured with the design geometry with and
+without ``--mirror-average`` instead. ``--rig-poses 0:360:45`` captures each scene over those
+turntable poses instead of pose 0 only
 (one view of a scene says little: the same model differs by several dB from pose to pose);
 every column is then the mean matrix PSNR over the poses with a lit truth (an object turned
 with its unlit back to the camera has no PSNR, :func:`polrig.processing.score_against_truth`),
@@ -64,7 +68,7 @@ def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarra
     return np.clip(noisy, 0, 4095).astype(np.uint16)
 
 
-def bench(size, method, model, repeat, tmp: pathlib.Path, rng) -> dict:
+def bench(size, method, model, repeat, tmp: pathlib.Path, rng, mirror_average: bool = False) -> dict:
     raw = synthetic_raw(size, rng)
     meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
                      layout="imx250myr", bit_depth=12, black_level_dn=64.0)
@@ -77,7 +81,7 @@ def bench(size, method, model, repeat, tmp: pathlib.Path, rng) -> dict:
         frame = read_raw(src)
         t1 = time.perf_counter()
         mueller, aux = infer_frame(frame.raw, frame.meta.layout, 0.0, model, demosaic_method=method,
-                                   black_level_dn=frame.meta.black_level_dn)
+                                   black_level_dn=frame.meta.black_level_dn, mirror_average=mirror_average)
         t2 = time.perf_counter()
         write_result_exr(out, mueller, aux)
         t3 = time.perf_counter()
@@ -87,18 +91,20 @@ def bench(size, method, model, repeat, tmp: pathlib.Path, rng) -> dict:
                          "prepare": tt["prepare"], "network": tt["network"], "finish": tt["finish"],
                          "exr": t3 - t2, "total": t3 - t0})
     med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
-    return {"raw": f"{size[1]}x{size[0]}", "method": method, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}",
+    label = f"{method}, mirror-averaged" if mirror_average else method
+    return {"raw": f"{size[1]}x{size[0]}", "method": label, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}",
             **med, "fps": 1.0 / med["total"]}
 
 
 RIG_SCENES = "sphere,rough_sphere,checker_sphere,box,multi,heightfield,plane,normalmap"
 
 
-def rig_scene_scores(scenes: list[str], tmp: pathlib.Path, poses: str = "0") -> list[dict]:
+def rig_scene_scores(scenes: list[str], tmp: pathlib.Path, poses: str = "0", mirror: bool = False) -> list[dict]:
     """Processing scores of single-shot captures on the default simulated rig (see module):
     per scene and variant the mean matrix PSNR over the ``poses`` (``polrig capture --poses``
     syntax) whose truth is lit, and the design variant's per-pose PSNRs (``None`` for a dark
-    truth) under ``"design_per_pose"``."""
+    truth) under ``"design_per_pose"``. ``mirror``: the variants are the design geometry
+    with and without ``--mirror-average`` instead."""
     import contextlib
     import io
 
@@ -111,27 +117,35 @@ def rig_scene_scores(scenes: list[str], tmp: pathlib.Path, poses: str = "0") -> 
     x0, target = stage_zero_axis_for(default_light(), TurntableGeometry())
     k = cam.R @ (target - default_light().position_m)
     turned = np.cross(k / np.linalg.norm(k), cam.R @ x0).tolist()
-    variants = {"design": "", "training_axis": "[nominal_geometry]\nstage_zero_axis_camera = [0.0, -1.0, 0.0]\n",
-                "turned_90": f"[nominal_geometry]\nstage_zero_axis_camera = {turned}\n"}
+    variants = ({"design": ("", []), "mirror": ("", ["--mirror-average"])} if mirror else
+                {"design": ("", []),
+                 "training_axis": ("[nominal_geometry]\nstage_zero_axis_camera = [0.0, -1.0, 0.0]\n", []),
+                 "turned_90": (f"[nominal_geometry]\nstage_zero_axis_camera = {turned}\n", [])})
     rows = []
     for scene in scenes:
         row = {"scene": scene}
-        for name, extra in variants.items():
+        for name, (extra, flags) in variants.items():
             cfg = tmp / f"{scene}-{name}.toml"
             cfg.write_text(f'[sim]\nsize = "256x256"\nclock_speed = inf\nscene = "{scene}"\n{extra}')
             out = tmp / f"{scene}-{name}"
             with contextlib.redirect_stdout(io.StringIO()):
                 cli(["capture", "--poses", poses, "--mode", "single-shot", "--config", str(cfg), "--out", str(out),
-                     "--no-progress"])
+                     "--no-progress", *flags])
             caps = Session.open(out).captures
             psnr = [c["score"]["psnr_db"] for c in caps]
             row[name] = float(np.mean([p for p in psnr if p is not None]))
             if name == "design":
                 row["design_per_pose"] = {c["pose_deg"]: p for c, p in zip(caps, psnr)}
         rows.append(row)
-        print(f"{scene:15s} design {row['design']:.2f} dB, training axis {row['training_axis']:.2f} dB, "
-              f"turned 90 {row['turned_90']:.2f} dB", flush=True)
+        print(f"{scene:15s} " + ", ".join(f"{k} {row[k]:.2f} dB" for k in variants), flush=True)
     return rows
+
+
+def rig_mirror_table(rows: list[dict]) -> str:
+    lines = ["| scene | one pass | mirror-averaged | gain (dB) |", "|---|---|---|---|"]
+    for r in rows + [{"scene": "**mean**", **{k: float(np.mean([r[k] for r in rows])) for k in ("design", "mirror")}}]:
+        lines.append(f"| {r['scene']} | {r['design']:.2f} | {r['mirror']:.2f} | {r['mirror'] - r['design']:+.2f} |")
+    return "\n".join(lines)
 
 
 def rig_scene_table(rows: list[dict]) -> str:
@@ -160,12 +174,28 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="superpixel,bilinear")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped models/weights)")
     ap.add_argument("--spinning", action="store_true", help="let onnxruntime worker threads spin")
+    ap.add_argument("--mirror-average", action="store_true",
+                    help="also time the mirror-averaged path (models/mirror.py) with the superpixel demosaic; "
+                         "with --rig-scenes: score captures with and without it instead")
     ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
     ap.add_argument("--rig-scenes", default=None, nargs="?", const=RIG_SCENES,
                     help=f"score single-shot captures of these scenes on the default rig instead (default {RIG_SCENES})")
     ap.add_argument("--rig-poses", default="0",
                     help="turntable poses of the --rig-scenes captures, as polrig capture --poses (default 0)")
     args = ap.parse_args(argv)
+    if args.rig_scenes and args.mirror_average:
+        with tempfile.TemporaryDirectory() as d:
+            rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses, mirror=True)
+        table = rig_mirror_table(rows)
+        print(table)
+        if args.out:
+            pathlib.Path(args.out).write_text(
+                "# Single-shot captures on the default simulated rig: one pass against mirror averaging\n\n"
+                f"`python benchmarks/bench_single_shot.py --rig-scenes {args.rig_scenes} --rig-poses {args.rig_poses} "
+                "--mirror-average --out FILE`: `polrig capture --mode single-shot` with and without `--mirror-average` "
+                "(models/mirror.py), design geometry, otherwise as `single_shot_rig.md`: mean matrix PSNR (dB) over "
+                "the poses with a lit truth.\n\n" + table + "\n")
+        return 0
     if args.rig_scenes:
         with tempfile.TemporaryDirectory() as d:
             rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses)
@@ -188,9 +218,11 @@ def main(argv=None) -> int:
         for method in args.methods.split(","):
             for size in SIZES:
                 reps = args.repeat if size[0] * size[1] <= 512 * 512 or method == "superpixel" else max(2, args.repeat // 2)
-                results.append(bench(size, method, model, reps, pathlib.Path(d), rng))
-                r = results[-1]
-                print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms", flush=True)
+                for mirror_average in (False, True) if args.mirror_average and method == "superpixel" else (False,):
+                    results.append(bench(size, method, model, reps, pathlib.Path(d), rng, mirror_average))
+                    r = results[-1]
+                    print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms",
+                          flush=True)
     threads = args.threads or physical_cores()
     lines = [f"onnxruntime intra-op threads: {threads}, spinning {'on' if args.spinning else 'off'}; median of the runs after one warm-up; times in ms.", "",
              "| raw size | demosaic | network size | decode | demosaic | Stokes | prepare | networks + pBRDF | finish | EXR | **total** | frames/s |",

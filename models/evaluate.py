@@ -1,6 +1,6 @@
 """Evaluate single-shot reconstruction on a held-out simulated set: the paper's two tables.
 
-``polrig evaluate --data DIR`` (or ``python -m models.evaluate``) runs five methods on every
+``polrig evaluate --data DIR`` (or ``python -m models.evaluate``) runs seven methods on every
 sample of a dataset folder (``polrig sim dataset --holdout`` output: seeds and shape/material
 families never seen in training) and writes a Markdown table (default
 ``benchmarks/results/single_shot.md``) plus the numbers as JSON next to it.
@@ -20,6 +20,9 @@ Methods (rows), all producing normalised Mueller images ``(C, 3, 3, H, W)``:
   (:func:`polrig.reference.forward_measurements`), Gaussian noise of the variance the dataset's
   own single-shot images show (``var = a + b I``, fitted on the set's residuals against the
   noise-free rendering), solved by :func:`polrig.reference.solve_reference`.
+* **Full model, mirror-averaged** and **Direct Stokes->MM, mirror-averaged**: each graph run
+  on the sample and on its left-right mirror image, the two answers averaged
+  (:mod:`models.mirror`); both networks get it, so the two rows compare like with like.
 
 Incident frame: each sample's stage zero axis (``stage_zero_axis`` of the shards, which may
 differ from the training one) is handled by
@@ -66,10 +69,12 @@ from polrig import pbrdf, realizability, reference
 from polrig.mueller import polarizer_stokes
 from polrig.stokes import aolp_deg, dolp, ideal_analyzer_matrix
 
-METHODS = ("full", "pipnet_pbrdf", "bestfit_pbrdf", "direct", "reference4")
+METHODS = ("full", "pipnet_pbrdf", "bestfit_pbrdf", "direct", "reference4", "full_mirror", "direct_mirror")
 METHOD_NAMES = {"full": "Full model (PIPNet + pBRDF + PMMNet)", "pipnet_pbrdf": "PIPNet-pBRDF alone",
                 "bestfit_pbrdf": "Best-fit pBRDF (GT parameters)", "direct": "Direct Stokes->MM (same backbone)",
-                "reference4": "Four-state reference (same noise)"}
+                "reference4": "Four-state reference (same noise)",
+                "full_mirror": "Full model, mirror-averaged (2 passes)",
+                "direct_mirror": "Direct Stokes->MM, mirror-averaged (2 passes)"}
 HELD_OUT_STATES_DEG = tuple(8.0 + k * 180.0 / 11.0 for k in range(11))
 REFERENCE_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
 AOLP_MIN_DOLP = 0.02
@@ -271,6 +276,10 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     noise = fit_noise_model(ds)
     rng = np.random.default_rng(seed)
     lit_rng = np.random.default_rng([seed, 1])  # its own stream: the other numbers do not depend on it
+    # the mirror-averaged rows sample with streams of their own, so they leave the others' numbers as they were
+    streams = {m: (rng, lit_rng) for m in METHODS}
+    streams.update({m: (np.random.default_rng([seed, 2, j]), np.random.default_rng([seed, 3, j]))
+                    for j, m in enumerate(("full_mirror", "direct_mirror"))})
     per: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS}
     times: dict[str, float] = {m: 0.0 for m in METHODS}
     t_start = time.time()
@@ -295,10 +304,18 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
         t = time.perf_counter()
         preds["reference4"] = reference_four_state(ds, i, noise, rng)
         times["reference4"] += time.perf_counter() - t
+        t = time.perf_counter()  # models.mirror: the capture and its mirror image, averaged
+        out_m = full.run_rig_frame(*_network_inputs(ds, i), mirror_average=True)
+        preds["full_mirror"] = out_m["mueller"][0]
+        times["full_mirror"] += time.perf_counter() - t
+        t = time.perf_counter()
+        preds["direct_mirror"] = direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out_m["wi"],
+                                                      mirror_average=True)["mueller"][0]
+        times["direct_mirror"] += time.perf_counter() - t
         lit = (ds["lit"][i] > 0) if "lit" in ds.arrays else None
         for name, pred in preds.items():
-            per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, rng, realizability_pixels, lit,
-                                             lit_rng))
+            per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, streams[name][0],
+                                             realizability_pixels, lit, streams[name][1]))
     n = len(per["full"])
     methods = {m: {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} for m, rows in per.items() if rows}
     families = sorted({int(f) for f in ds["family"]}) if "family" in ds.arrays else []

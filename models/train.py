@@ -30,6 +30,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from models import mirror
 from models.data import Dataset, load_dataset
 from models.pipnet import PIPNet, pipnet_loss
 from models.pbrdf_torch import image_blocks
@@ -77,6 +78,9 @@ class TrainConfig:
     #: (:func:`geometry_toward_view`; half of the perturbed samples get it, the other half the
     #: rotation; 0: all get the rotation)
     init_perturb_toward_view: float = 0.7
+    #: Fraction of the training samples of every stage shown as their left-right mirror image
+    #: (:mod:`models.mirror`: an exact symmetry of the physics; 0: none)
+    mirror_fraction: float = 0.0
     threads: int = 2
     seed: int = 0
     val_fraction: float = 0.05
@@ -189,8 +193,33 @@ def _batches(n: int, batch: int, rng: np.random.Generator | None):
         yield torch.from_numpy(order[i:i + batch])
 
 
-def _pick(t: dict[str, torch.Tensor], idx: torch.Tensor, keys) -> list[torch.Tensor]:
-    return [t[k][idx] for k in keys]
+#: How each training tensor maps to its sample's mirror image (:mod:`models.mirror`).
+MIRROR_OF = {"analyzer": mirror.analyzer, "mask": mirror.image, "s_in": mirror.stokes,
+             "stage_zero_axis": mirror.vectors, "kd": mirror.image, "kd_init": mirror.image,
+             "wo": mirror.vector_image, "normal": mirror.vector_image, "wi": mirror.vector_image,
+             "pip_normal": mirror.vector_image, "pip_wi": mirror.vector_image,
+             "mueller": mirror.mueller_image, "ms_init": mirror.mueller_image, "md_init": mirror.mueller_image,
+             "alpha": mirror.scalar, "pip_alpha": mirror.scalar}
+
+
+def _pick(t: dict[str, torch.Tensor], idx: torch.Tensor, keys, mirrored: torch.Tensor | None = None
+          ) -> list[torch.Tensor]:
+    """``t[k][idx]`` for each key; the samples flagged in ``mirrored`` (bool, per ``idx``) as
+    their mirror image (:data:`MIRROR_OF`)."""
+    out = [t[k][idx] for k in keys]
+    if mirrored is None or not bool(mirrored.any()):
+        return out
+    for x, k in zip(out, keys):
+        x[mirrored] = MIRROR_OF[k](x[mirrored])  # x is a copy (advanced indexing)
+    return out
+
+
+def mirror_flags(n: int, mirroring: tuple[float, torch.Generator] | None) -> torch.Tensor | None:
+    """Which of ``n`` samples to show mirrored: ``mirroring = (fraction, generator)``."""
+    if mirroring is None:
+        return None
+    fraction, gen = mirroring
+    return torch.rand(n, generator=gen) < fraction
 
 
 def _windowed(analyzer: torch.Tensor, mask: torch.Tensor, crop: tuple[float, torch.Generator] | None):
@@ -202,18 +231,23 @@ def _windowed(analyzer: torch.Tensor, mask: torch.Tensor, crop: tuple[float, tor
 
 
 def pipnet_step(model: PIPNet, t, idx, crop: tuple[float, torch.Generator] | None = None,
-                sfp_weight: float = 0.0):
-    a, m, s, wo, n, kd, wi, al = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "normal", "kd", "wi", "alpha"))
+                sfp_weight: float = 0.0, mirroring: tuple[float, torch.Generator] | None = None):
+    a, m, s, wo, n, kd, wi, al = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "normal", "kd", "wi", "alpha"),
+                                       mirror_flags(len(idx), mirroring))
     a, m = _windowed(a, m, crop)
     return pipnet_loss(model(a, m, s, wo), n, kd, wi, al, m, sfp_weight)
 
 
-def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, float, torch.Generator] | None = None):
+def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, float, torch.Generator] | None = None,
+                mirroring: tuple[float, torch.Generator] | None = None):
     """``perturb``: ``(fraction, rotation_deg, light_deg, toward_view, generator)``: that
     fraction of the samples gets its initialization from a perturbed copy of PIPNet's geometry,
     half of it from :func:`perturbed_geometry` and half from :func:`geometry_toward_view` (all
-    from the former when ``toward_view`` is 0)."""
-    a, m, s, ms, md, kd, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "ms_init", "md_init", "kd_init", "mueller"))
+    from the former when ``toward_view`` is 0). ``mirroring``: ``(fraction, generator)`` of the
+    samples shown as their mirror image, initialization included (the pBRDF is mirror-symmetric)."""
+    flip = mirror_flags(len(idx), mirroring)
+    a, m, s, ms, md, kd, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "ms_init", "md_init", "kd_init", "mueller"),
+                                    flip)
     if perturb is not None:
         fraction, rotation_deg, light_deg, toward_view, gen = perturb
         u = torch.rand(len(idx), generator=gen)
@@ -222,7 +256,8 @@ def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, float
         for sel, turned in ((torch.nonzero(u < split)[:, 0], True), (torch.nonzero((u >= split) & (u < fraction))[:, 0], False)):
             if not len(sel):
                 continue
-            n, wi, wo, alpha, axis = _pick(t, idx[sel], ("pip_normal", "pip_wi", "wo", "pip_alpha", "stage_zero_axis"))
+            n, wi, wo, alpha, axis = _pick(t, idx[sel], ("pip_normal", "pip_wi", "wo", "pip_alpha", "stage_zero_axis"),
+                                           None if flip is None else flip[sel])
             n, wi = (perturbed_geometry(n, wi, gen, rotation_deg, light_deg) if turned
                      else geometry_toward_view(n, wi, wo, gen, toward_view))
             with torch.no_grad():
@@ -231,8 +266,9 @@ def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, float
     return mueller_loss(model(a, m, s, ms, md, kd)["mueller"], mu, m)
 
 
-def direct_step(model: DirectStokesToMM, t, idx, crop: tuple[float, torch.Generator] | None = None):
-    a, m, s, wo, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "mueller"))
+def direct_step(model: DirectStokesToMM, t, idx, crop: tuple[float, torch.Generator] | None = None,
+                mirroring: tuple[float, torch.Generator] | None = None):
+    a, m, s, wo, mu = _pick(t, idx, ("analyzer", "mask", "s_in", "wo", "mueller"), mirror_flags(len(idx), mirroring))
     a, m = _windowed(a, m, crop)
     return mueller_loss(model(a, m, s, wo), mu, m)
 
@@ -408,6 +444,9 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
             if stage in CROPPED_STAGES and config.crop_fraction > 0:
                 gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
                 train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
+            if config.mirror_fraction > 0:
+                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+                train_step = functools.partial(train_step, mirroring=(config.mirror_fraction, gen))
             if stage == "pipnet" and config.sfp_supervision > 0:
                 train_step = functools.partial(train_step, sfp_weight=config.sfp_supervision)
             if stage == "pmmnet" and config.init_perturb_fraction > 0:

@@ -113,6 +113,9 @@ class CapturePlan:
     dark_frames: int = 0
     demosaic: str = "superpixel"
     grab_retries: int = 3
+    #: single-shot: average the network's answers for the capture and its mirror image
+    #: (:mod:`models.mirror`)
+    mirror_average: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -126,6 +129,8 @@ class CapturePlan:
         if any(not (e > 0 and math.isfinite(e)) for e in self.exposures_us):
             raise ConfigError(f"--exposure values must be > 0 microseconds, got "
                               f"{self.exposures_us}")
+        if self.mirror_average and self.mode != "single-shot":
+            raise ConfigError("--mirror-average applies to --mode single-shot only")
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise ConfigError(f"--states: the reference method needs at least 3 polarizer "
                               f"states, got {len(self.states_deg)}")

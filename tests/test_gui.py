@@ -312,6 +312,7 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.capture.poses.setText("0:180:30")
     w.capture.frames.setValue(3)
     w.capture.mode.setCurrentText("single-shot")
+    w.capture.mirror_average.setChecked(True)
     w.capture.out.setText(str(tmp_path / "x"))
     w.live.colour.setCurrentIndex(2)
     w.close()
@@ -321,6 +322,8 @@ def test_settings_are_remembered(qtbot, tmp_path):
     assert w2.live_worker.settings.display == "dolp"
     assert w2.capture.poses.text() == "0:180:30" and w2.capture.frames.value() == 3
     assert w2.capture.mode.currentText() == "single-shot"
+    assert w2.capture.mirror_average.isEnabled() and w2.capture.mirror_average.isChecked()
+    assert w2.capture.request().mirror_average
     assert w2.capture.out.text() == str(tmp_path / "x")
     assert w2.live.colour.currentIndex() == 2
     w2.close()

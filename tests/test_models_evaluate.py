@@ -36,7 +36,7 @@ def test_tables_and_json(result, tmp_path):
     res, _ = result
     ev.write_results(res, tmp_path / "t.md")
     md = (tmp_path / "t.md").read_text()
-    assert "GK pass (lit)" in md and md.count("| Full model") == 2
+    assert "GK pass (lit)" in md and md.count("| Full model (PIPNet") == 2 and md.count("mirror-averaged") == 4
     assert json.loads((tmp_path / "t.json").read_text())["samples"] == res["samples"]
 
 

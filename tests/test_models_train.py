@@ -293,3 +293,56 @@ def test_fine_tune_from_a_weights_folder(trained, tmp_path):
     old, new = run(root / "run" / "weights", "single_shot.onnx"), run(tmp_path / "run" / "weights", "single_shot.onnx")
     np.testing.assert_allclose(new[2], old[2], atol=1e-5)  # PIPNet's normals: PIPNet was not trained
     assert not np.allclose(new[0], old[0])  # PMMNet was
+
+
+def test_mirrored_training_sample_is_the_simulated_mirror_scene(trained):
+    """A mirrored training sample is what the simulator renders for the mirrored geometry: its
+    truth is the pBRDF of the mirrored normals, light and view (the rendering is ``D M D``), and
+    its analyzer images are the mirrored matrix rendered under the mirrored incident state."""
+    from models import train as tr
+    from models.evaluate import render_analyzer
+    from polrig import pbrdf
+
+    _, data, _ = trained
+    ds = load_dataset(data)
+    t = tr._tensors(ds)
+    t["eta"] = torch.from_numpy(ds["eta"])
+    keys = ("analyzer", "mask", "s_in", "wo", "normal", "wi", "kd", "alpha", "mueller", "stage_zero_axis")
+    idx = torch.tensor([0, 1])
+    plain = dict(zip(keys, tr._pick(t, idx, keys)))
+    flipped = dict(zip(keys, tr._pick(t, idx, keys, torch.tensor([True, False]))))
+    for k in keys:  # the second sample is untouched, the dataset too
+        assert torch.equal(flipped[k][1], plain[k][1]) and torch.equal(t[k][idx][0], plain[k][0])
+    f = {k: v[0].double().numpy() for k, v in flipped.items()}
+    on = lambda v: np.moveaxis(v, 0, -1)  # noqa: E731  (3, H, W) -> (H, W, 3)
+    m = f["mask"][0] > 0
+    got = np.moveaxis(f["mueller"], (-2, -1), (0, 1))[m]
+    errors = []
+    for ks in (1.0, 0.0):  # the simulator draws ks = 0 for one material in ten and does not store it
+        truth = pbrdf.linear_rig_mueller(on(f["normal"])[m], on(f["wi"])[m], on(f["wo"])[m], kd=on(f["kd"])[m],
+                                         alpha=float(f["alpha"]), eta=float(t["eta"][0]), ks=ks,
+                                         stage_zero_axis=f["stage_zero_axis"], camera_x_axis=[1.0, 0.0, 0.0])
+        # The data carry the light's fall-off, colour and the exposure per pixel: compare the
+        # matrices normalised by m00, where both are lit.
+        lit = (truth[..., 0, 0] > 1e-6 * truth[..., 0, 0].max()) & (got[..., 0, 0] > 1e-6 * got[..., 0, 0].max())
+        assert lit.sum() > 30
+        norm = lambda x: x[lit] / x[lit][:, 0, 0][:, None, None]  # noqa: E731
+        assert np.abs(norm(got)[:, :, 2]).max() > 0.01  # column 2 is not trivially zero
+        errors.append(np.abs(norm(got) - norm(truth)).max())
+    assert min(errors) < 1e-3, errors
+    # analyzer images: the mirrored truth under the mirrored state, up to the sensor noise
+    clean = render_analyzer(f["mueller"], f["s_in"])[..., m]
+    assert np.corrcoef(clean.ravel(), f["analyzer"][..., m].ravel())[0, 1] > 0.95
+    wrong = render_analyzer(f["mueller"], f["s_in"] * [1, 1, -1])[..., m]  # the state not mirrored
+    assert np.abs(clean - f["analyzer"][..., m]).mean() < np.abs(wrong - f["analyzer"][..., m]).mean()
+
+
+def test_training_with_mirrored_samples_is_reproducible_and_differs(trained, tmp_path):
+    root, data, _ = trained
+    losses = {}
+    for run, fraction in (("plain", 0.0), ("mirrored", 0.5), ("again", 0.5)):
+        train(data, tmp_path / run, TINY, overrides={"mirror_fraction": fraction, "direct_epochs": 0},
+              stages=("pipnet", "pmmnet"), init_from=root / "run" / "checkpoint.pt", export=False,
+              echo=lambda s: None)
+        losses[run] = [r["train_loss"] for r in csv.DictReader((tmp_path / run / "log.csv").open())]
+    assert losses["mirrored"] == losses["again"] and losses["mirrored"] != losses["plain"]

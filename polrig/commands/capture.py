@@ -30,6 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
                    help="reference: N polarizer states per pose (default); single-shot: the "
                         "trained network")
+    p.add_argument("--mirror-average", action="store_true", default=None,
+                   help="single-shot: also run the network on each frame's left-right mirror image "
+                        "and average the two answers (a few per cent lower error, twice the network "
+                        "time; models/MODEL_CARD.md, 'Mirror averaging')")
     p.add_argument("--states", help="polarizer stage angles in degrees (default 0,45,90,135; "
                                     "at least 3 non-collinear states for the reference method)")
     p.add_argument("--frames", type=int, default=None, help="frames averaged per state (default 1)")
@@ -67,7 +71,8 @@ def build_plan(args: argparse.Namespace):
         exposures_us=(parse_float_list(args.exposure, "--exposure", positive=True)
                       if args.exposure else ()),
         dark_frames=0 if args.dark_frames is None else args.dark_frames,
-        demosaic=args.demosaic or "superpixel")
+        demosaic=args.demosaic or "superpixel",
+        mirror_average=bool(getattr(args, "mirror_average", None)))
 
 
 def check_resume_args(args: argparse.Namespace, stored) -> None:
@@ -84,6 +89,7 @@ def check_resume_args(args: argparse.Namespace, stored) -> None:
                          if args.exposure else None),
         "dark_frames": args.dark_frames,
         "demosaic": args.demosaic,
+        "mirror_average": getattr(args, "mirror_average", None),
     }
     for key, value in given.items():
         if value is not None and value != getattr(stored, key):

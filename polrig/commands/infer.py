@@ -47,6 +47,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also write the model's calibrated standard deviation of every element "
                         "(sigma.M{row}{col}.{colour} planes, models/uncertainty.py; costs about a "
                         "third more time)")
+    p.add_argument("--mirror-average", action="store_true",
+                   help="also run the network on the frame's left-right mirror image and average the "
+                        "two answers (models/mirror.py): a few per cent lower error for twice the "
+                        "network time (models/MODEL_CARD.md, 'Mirror averaging')")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
     p.set_defaults(func=run)
 
@@ -82,10 +86,10 @@ def run(args: argparse.Namespace) -> int:
     saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
     mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
                                black_level_dn=black, scale=args.scale, saturation_dn=saturation,
-                               with_sigma=args.sigma, **kwargs)
+                               with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
                                          "layout": str(layout), "demosaic": args.demosaic,
-                                         "saturation_dn": saturation})
+                                         "saturation_dn": saturation, "mirror_average": args.mirror_average})
     t = aux["timings_s"]
     print(f"wrote {out}: {mueller.shape[-2]}x{mueller.shape[-1]}, {mueller.shape[0]} colour(s), "
           f"network {1e3 * t['network']:.1f} ms")

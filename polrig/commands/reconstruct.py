@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="reconstruction method (default: the session's)")
     p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
                    help="demosaic method (default: the session's)")
+    p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
+                   help="single-shot: average the network's answers for each frame and its mirror "
+                        "image (default: the session's choice)")
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -47,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
                 line += " | " + processing.format_score(score)
             tqdm.write(line, file=sys.stdout)
     name = processing.reprocess_session(session, mode=args.mode, demosaic=args.demosaic,
-                                        calibration=calibration,
+                                        mirror_average=args.mirror_average, calibration=calibration,
                                         command_line=command_line(args, "reconstruct"),
                                         progress=progress)
     if not args.no_progress:

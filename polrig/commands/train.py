@@ -48,6 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="largest pull of the perturbed normals and light towards the view direction "
                         "(models.train.geometry_toward_view; half of the perturbed samples; default 0.7, "
                         "0: all perturbed samples are turned)")
+    p.add_argument("--mirror-fraction", type=float, default=None,
+                   help="fraction of every stage's training samples shown as their left-right mirror image "
+                        "(models/mirror.py; default 0)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
     p.add_argument("--seed", type=int, default=None)
@@ -85,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     for name, low, high, unit in (("crop_fraction", 0.0, 1.0, ""), ("sfp_supervision", 0.0, float("inf"), ""),
                                   ("init_perturb_fraction", 0.0, 1.0, ""), ("init_perturb_deg", 0.0, 180.0, " deg"),
                                   ("init_perturb_light_deg", 0.0, 180.0, " deg"),
-                                  ("init_perturb_toward_view", 0.0, 1.0, ""), ("decay_start", 0.0, 1.0, "")):
+                                  ("init_perturb_toward_view", 0.0, 1.0, ""), ("decay_start", 0.0, 1.0, ""),
+                                  ("mirror_fraction", 0.0, 1.0, "")):
         value = getattr(args, name)
         if value is not None:
             if not low <= value <= high:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from PySide6.QtCore import QSize, Qt, QThread, Signal
 from PySide6.QtGui import QIcon, QPixmap
-from PySide6.QtWidgets import (QComboBox, QFileDialog, QFormLayout, QGroupBox, QHBoxLayout,
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QFileDialog, QFormLayout, QGroupBox, QHBoxLayout,
                                QLabel, QLineEdit, QListWidget, QListWidgetItem, QProgressBar,
                                QPushButton, QSpinBox, QVBoxLayout, QWidget)
 
@@ -43,6 +43,7 @@ class CaptureRequest:
     exposure: str = ""
     dark_frames: int = 0
     demosaic: str = "superpixel"
+    mirror_average: bool = False
     calibration: str = ""
     resume: bool = False
 
@@ -51,7 +52,8 @@ class CaptureRequest:
         return argparse.Namespace(
             poses=self.poses or None, mode=self.mode or None, states=self.states or None,
             frames=self.frames, exposure=self.exposure or None, dark_frames=self.dark_frames,
-            demosaic=self.demosaic or None, calibration=self.calibration or None,
+            demosaic=self.demosaic or None, mirror_average=self.mirror_average or None,
+            calibration=self.calibration or None,
             out=self.out, resume=self.resume, config=None, no_progress=True)
 
 
@@ -106,7 +108,7 @@ class CaptureWorker(QThread):
         if not args.out:
             raise ValueError("choose an output folder for the session")
         if args.resume:  # as `polrig capture --out DIR --resume`: the plan is the session's
-            args.poses = args.mode = args.states = args.exposure = args.demosaic = None
+            args.poses = args.mode = args.states = args.exposure = args.demosaic = args.mirror_average = None
             args.frames = args.dark_frames = None
         prepared = prepare_capture(args)  # the CLI's validation, before any device moves
         with self.locks.hold(timeout_s=10.0, who="capture"):
@@ -150,6 +152,11 @@ class CapturePanel(QWidget):
                               "START:STOP:STEP with STOP exclusive")
         self.mode = QComboBox()
         self.mode.addItems(["reference", "single-shot"])
+        self.mirror_average = QCheckBox("Mirror-average the network (single-shot: twice the network time, "
+                                        "a few per cent lower error)")
+        self.mirror_average.setEnabled(False)
+        self.mode.currentTextChanged.connect(
+            lambda m: self.mirror_average.setEnabled(m == "single-shot"))
         self.states = QLineEdit()
         self.states.setPlaceholderText("0,45,90,135")
         self.frames = QSpinBox()
@@ -171,6 +178,7 @@ class CapturePanel(QWidget):
         form = QFormLayout()
         form.addRow("Poses (deg)", self.poses)
         form.addRow("Mode", self.mode)
+        form.addRow("", self.mirror_average)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
         form.addRow("Exposure(s)", self.exposure)
@@ -223,6 +231,8 @@ class CapturePanel(QWidget):
                               frames=self.frames.value(), exposure=self.exposure.text().strip(),
                               dark_frames=self.dark_frames.value(),
                               demosaic=self.demosaic.currentText(),
+                              mirror_average=(self.mode.currentText() == "single-shot"
+                                              and self.mirror_average.isChecked()),
                               calibration=self.calibration.text().strip(), resume=resume)
 
     def _browse(self) -> None:

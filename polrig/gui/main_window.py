@@ -114,6 +114,7 @@ class MainWindow(QMainWindow):
                        ("calibration", cp.calibration), ("out", cp.out)):
             b.bind(f"capture/{key}", st.text_binding(w))
         b.bind("capture/mode", st.combo_binding(cp.mode))
+        b.bind("capture/mirror_average", st.bool_binding(cp.mirror_average))
         b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
         b.bind("capture/frames", st.int_binding(cp.frames))
         b.bind("capture/dark_frames", st.int_binding(cp.dark_frames))
