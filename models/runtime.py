@@ -63,7 +63,7 @@ MASK_FRACTION = 0.02
 #: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
 DEFAULT_FOCAL_PER_PX = 2.5
 #: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
-COLOUR_OUTPUTS = ("mueller", "mueller_init", "kd")
+COLOUR_OUTPUTS = ("mueller", "mueller_init", "kd", "mueller_disagreement")
 
 
 def physical_cores() -> int:
@@ -238,7 +238,8 @@ class SingleShotModel:
         the input rotation used.
 
         ``mirror_average``: run the capture and its left-right mirror image and average the two
-        answers mapped back (:mod:`models.mirror`; twice the network time)."""
+        answers mapped back (:mod:`models.mirror`; twice the network time); the result then
+        also holds ``mueller_disagreement``, half the two answers' absolute difference."""
         if mirror_average:
             kw = {"tolerance_deg": tolerance_deg}
             plain = self.run_rig_frame(analyzer, mask, s_in, wo, stage_zero_axis, wi_guess=wi_guess,
@@ -248,7 +249,10 @@ class SingleShotModel:
                                       wi_guess=None if wi_guess is None else mirror.vectors(np.asarray(wi_guess)),
                                       rotate_with=None if rotate_with is None else mirror.vector_image(rotate_with),
                                       **kw)
-            return mirror.average(plain, mirror.outputs(seen))
+            back = mirror.outputs(seen)
+            out = mirror.average(plain, back)
+            out["mueller_disagreement"] = (0.5 * np.abs(plain["mueller"] - back["mueller"])).astype(np.float32)
+            return out
         b = analyzer.shape[0]
         axis = np.broadcast_to(np.asarray(stage_zero_axis, np.float64).reshape(-1, 3), (b, 3))
         model_axis = np.broadcast_to(self.model_axis, (b, 3)).astype(np.float32)
@@ -300,8 +304,8 @@ class SingleShotModel:
         a calibrated uncertainty (:mod:`models.uncertainty`; about 11 ms at 128x128, a third of
         the reconstruction, so off by default), ``sigma`` ``(C, 3, 3, H, W)`` DN: the standard
         deviation of each element (calibrated on simulated held-out sets: about 95 % of the
-        errors within 2 sigma, ``models/MODEL_CARD.md``; calibrated on single passes, so it is
-        slightly conservative with ``mirror_average``).
+        errors within 2 sigma, ``models/MODEL_CARD.md``; with ``mirror_average`` it grows with
+        the two passes' disagreement).
         ``mirror_average``: average the answers for the capture and its mirror image
         (:mod:`models.mirror`): a few per cent lower error for twice the network time.
         """
@@ -374,12 +378,16 @@ class SingleShotModel:
         if mono:
             res = {k: v.mean(axis=0, keepdims=True) if k in COLOUR_OUTPUTS else v for k, v in res.items()}
         mueller = (res.pop("mueller") * sc * m).astype(np.float32)
+        disagreement = res.pop("mueller_disagreement", None)
+        if disagreement is not None:
+            disagreement = disagreement * sc * m
         aux = {k: v.astype(np.float32) for k, v in res.items()}
         if "mueller_init" in aux:
             aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
         if with_sigma and self.uncertainty is not None:
             # the capture's own Stokes images, in DN like ``mueller`` (a mono frame is repeated: one copy)
-            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes_from_analyzers(a[:mueller.shape[0]]))
+            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes_from_analyzers(a[:mueller.shape[0]]),
+                                                  disagreement)
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
                     "incident_rotation_deg": rotation_deg,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})

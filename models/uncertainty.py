@@ -32,11 +32,19 @@ The error model (numpy only: it runs at inference without torch):
   (nearly) unpolarized, ``p < P_MIN``, columns 1 and 2 are both unobserved and get the larger
   of their two sigmas.
 
+* **Mirror averaging** (:mod:`models.mirror`): the average of the answers for the capture
+  and its mirror image is scored by the same model, plus the two answers' disagreement
+  ``h = |M_plain - M_mirror| / 2`` per element: ``sigma_avg^2 = sigma^2 + (k h)^2``. Where the
+  two passes disagree the network is unsure (on the held-out sets coverage fell from 94-99 %
+  to 71-83 % in the 1 % of elements that disagree most, measured against ``sigma``).
+
 Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
 ``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
 the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly
 ``COVERAGE`` of the calibration errors lie within ``2 sigma``, the fraction a right Gaussian
-sigma covers. Pixels with a clipped
+sigma covers; ``k`` (:func:`calibrate_mirror`) so that the tenth of the mirror-averaged
+calibration elements whose disagreement is largest against ``sigma`` is covered as well.
+Pixels with a clipped
 analyzer sample are left out: a clipped highlight's magnitude is unknown, and
 :mod:`polrig.processing` reports infinite sigma there.
 
@@ -71,8 +79,12 @@ R_BINS = 6
 N_FEATURES = 4
 FILE_NAME = "uncertainty.json"
 FORMAT = "polrig-single-shot-uncertainty"
-#: Version 2 added the misfit feature ``r``; a version-1 file counts as no calibration.
+#: Version 2 added the misfit feature ``r``; a version-1 file counts as no calibration. The
+#: mirror term's ``mirror_disagreement_k`` is optional (absent: 0, no term).
 VERSION = 2
+#: Fraction of elements, those whose mirror disagreement is largest against ``sigma``, whose
+#: coverage :func:`calibrate_mirror` sets.
+MIRROR_TOP = 0.1
 
 
 def observed_frame_rotation(s_in) -> tuple[np.ndarray, float]:
@@ -126,13 +138,17 @@ class UncertaintyModel:
     coefficients: np.ndarray
     graph_sha256: str = ""
     calibration: dict = dataclasses.field(default_factory=dict)
+    #: ``k`` of the mirror-disagreement term (module docstring); 0: none.
+    mirror_k: float = 0.0
 
-    def sigma(self, mueller: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray) -> np.ndarray:
+    def sigma(self, mueller: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray,
+              disagreement: np.ndarray | None = None) -> np.ndarray:
         """Standard deviation ``(C, 3, 3, H, W)`` of each element of a single-shot Mueller
         image ``mueller`` ``(C, 3, 3, H, W)`` (any units: sigma has the same) reconstructed
         under ``s_in`` from a capture whose Stokes images are ``stokes`` ``(C, 3, H, W)`` (same
         units); ``object_mask`` ``(H, W)``: where the object is (outside it sigma is 0, as the
-        Mueller image). Non-finite where ``stokes`` is."""
+        Mueller image). Non-finite where ``stokes`` is. ``disagreement`` (like ``mueller``): for
+        a mirror-averaged image, ``|M_plain - M_mirror| / 2`` (module docstring)."""
         m = np.asarray(mueller, np.float64)
         if np.shape(stokes) != m.shape[:1] + (3,) + m.shape[-2:]:
             raise ValueError(f"stokes must be {m.shape[:1] + (3,) + m.shape[-2:]}, got {np.shape(stokes)}")
@@ -144,6 +160,10 @@ class UncertaintyModel:
         if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
             sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
         var = np.einsum("crkhw,kj->crjhw", sig_obs**2, rot**2)  # sum_k R_kc^2 sigma'_rk^2
+        if disagreement is not None:
+            if np.shape(disagreement) != m.shape:
+                raise ValueError(f"disagreement must be {m.shape}, got {np.shape(disagreement)}")
+            var = var + (self.mirror_k * np.asarray(disagreement, np.float64)) ** 2
         return np.where(np.asarray(object_mask, bool), np.sqrt(var), 0.0).astype(np.float32)
 
     def to_json(self) -> dict:
@@ -151,7 +171,8 @@ class UncertaintyModel:
                 "model": "sigma'_rk = scale * (a + b min(q,1) + c max(q-1,0) + d r) in the observed frame "
                          "(models/uncertainty.py)",
                 "coverage_target": COVERAGE, "scale_floor": SCALE_FLOOR, "p_min": P_MIN,
-                "coefficients": np.round(self.coefficients, 6).tolist(), "calibration": self.calibration}
+                "coefficients": np.round(self.coefficients, 6).tolist(),
+                "mirror_disagreement_k": round(float(self.mirror_k), 6), "calibration": self.calibration}
 
     @classmethod
     def from_json(cls, data: dict) -> "UncertaintyModel":
@@ -161,7 +182,10 @@ class UncertaintyModel:
         if coef.shape != (3, 3, N_FEATURES) or not np.all(np.isfinite(coef)) or np.any(coef < 0):
             raise ValueError(f"coefficients must be 3x3x{N_FEATURES} finite numbers >= 0, got shape {coef.shape} "
                              "(an older calibration: run python -m models.uncertainty again)")
-        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})))
+        k = float(data.get("mirror_disagreement_k", 0.0))
+        if not (np.isfinite(k) and k >= 0):
+            raise ValueError(f"mirror_disagreement_k must be a finite number >= 0, got {k}")
+        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k)
 
 
 def graph_sha256(path: str | pathlib.Path) -> str:
@@ -190,7 +214,8 @@ def load_for_graph(weights_dir: pathlib.Path, graph: str) -> UncertaintyModel | 
 class Sample:
     """One prediction with its truth: ``pred``/``truth`` ``(C, 3, 3, H, W)``, ``s_in`` (3,),
     ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample,
-    ``stokes`` ``(C, 3, H, W)`` the measured Stokes images the prediction was made from."""
+    ``stokes`` ``(C, 3, H, W)`` the measured Stokes images the prediction was made from;
+    ``disagreement`` (like ``pred``) for a mirror-averaged prediction, else None."""
 
     pred: np.ndarray
     truth: np.ndarray
@@ -198,6 +223,7 @@ class Sample:
     mask: np.ndarray
     clipped: np.ndarray
     stokes: np.ndarray
+    disagreement: np.ndarray | None = None
 
 
 def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -271,12 +297,48 @@ def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return best
 
 
-def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, float]:
-    """In the rig's frame: fraction of elements within ``2 sigma`` (all, and per element), the
-    RMS error over the RMS sigma, over unclipped object pixels of ``samples``."""
-    inside, errs, sigs = [], [], []
+def _errors_sigmas_disagreements(model: UncertaintyModel, samples: Iterable[Sample]
+                                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``|error|``, ``sigma`` without the mirror term and disagreement ``(N, 3, 3)``
+    (rig frame) over unclipped object pixels of mirror-averaged ``samples``."""
+    errs, sigs, dis = [], [], []
     for s in samples:
         sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
+        for out, x in ((errs, np.abs(np.asarray(s.pred, np.float64) - s.truth)), (sigs, sig), (dis, s.disagreement)):
+            out.append(np.moveaxis(np.asarray(x, np.float64), (1, 2), (-2, -1))[use])
+    return np.concatenate(errs), np.concatenate(sigs), np.concatenate(dis)
+
+
+def calibrate_mirror(model: UncertaintyModel, samples: Iterable[Sample]) -> float:
+    """``k`` of ``sigma_avg^2 = sigma^2 + (k h)^2`` (module docstring): the smallest ``k`` for
+    which ``COVERAGE`` of the :data:`MIRROR_TOP` elements with the largest ``h / sigma`` lie
+    within ``2 sigma_avg``, on mirror-averaged ``samples`` (bisection; 0 if already covered)."""
+    e, g, h = _errors_sigmas_disagreements(model, samples)
+    ratio = h / np.maximum(g, 1e-30)
+    top = ratio >= np.quantile(ratio, 1.0 - MIRROR_TOP)
+    e, g, h = e[top], g[top], h[top]
+    covered = lambda k: float(np.mean(e <= 2.0 * np.sqrt(g**2 + (k * h) ** 2)))  # noqa: E731
+    if covered(0.0) >= COVERAGE:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while covered(hi) < COVERAGE:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e3:
+            raise ValueError("the mirror disagreement does not explain the errors (k > 1000)")
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if covered(mid) >= COVERAGE else (mid, hi)
+    return hi
+
+
+def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, float]:
+    """In the rig's frame: fraction of elements within ``2 sigma`` (all, and per element), the
+    RMS error over the RMS sigma, over unclipped object pixels of ``samples`` (with the mirror
+    term for mirror-averaged samples)."""
+    inside, errs, sigs = [], [], []
+    for s in samples:
+        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement)
         use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
         err = np.abs(np.asarray(s.pred, np.float64) - s.truth)
         e, g = np.moveaxis(err, (1, 2), (-2, -1))[use], np.moveaxis(sig, (1, 2), (-2, -1))[use]
@@ -290,10 +352,10 @@ def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, fl
             "pixels": int(len(e_all))}
 
 
-def dataset_samples(data_dir, model, limit: int | None = None) -> list[Sample]:
-    """Run ``model`` (:class:`models.runtime.SingleShotModel`) on a ``polrig sim dataset``
-    folder -> samples with the truth (samples without a lit object pixel are skipped, as in
-    :mod:`models.evaluate`). A sample's pixel is clipped where an analyzer value reached the
+def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: bool = False) -> list[Sample]:
+    """Run ``model`` (:class:`models.runtime.SingleShotModel`; mirror-averaged with
+    ``mirror_average``) on a ``polrig sim dataset`` folder -> samples with the truth (samples
+    without a lit object pixel are skipped, as in :mod:`models.evaluate`). A sample's pixel is clipped where an analyzer value reached the
     sensor's saturation level (:attr:`polrig.noise.SensorModel.saturation_dn` of the set's
     sensor model, as :mod:`polrig.processing` flags it)."""
     from models.data import load_dataset
@@ -309,10 +371,12 @@ def dataset_samples(data_dir, model, limit: int | None = None) -> list[Sample]:
         truth = ds["mueller"][i]
         if not mask.any() or not np.any(truth[..., mask]):
             continue
-        pred = model.run_rig_frame(*_network_inputs(ds, i))["mueller"][0]
+        res = model.run_rig_frame(*_network_inputs(ds, i), mirror_average=mirror_average)
         dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
         clipped = dn.max(axis=1) >= sensor.saturation_dn
-        out.append(Sample(pred, truth, ds["s_in"][i], mask, clipped, stokes_from_analyzers(ds["analyzer"][i])))
+        out.append(Sample(res["mueller"][0], truth, ds["s_in"][i], mask, clipped,
+                          stokes_from_analyzers(ds["analyzer"][i]),
+                          res["mueller_disagreement"][0] if mirror_average else None))
     return out
 
 
@@ -333,6 +397,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         model = UncertaintyModel(coef, graph_sha256(wd / "single_shot.onnx"),
                                  dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)))
         model.calibration["coverage"] = coverage(model, cal)
+        mirrored = [s for d in args.data for s in dataset_samples(d, net, mirror_average=True)]
+        model.mirror_k = calibrate_mirror(model, mirrored)
+        model.calibration["coverage_mirror_averaged"] = coverage(model, mirrored)
         print(json.dumps(model.to_json(), indent=1))
         if args.write:
             (wd / FILE_NAME).write_text(json.dumps(model.to_json(), indent=1) + "\n")
@@ -343,10 +410,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     checks = {}
     for d in args.check:
-        checks[pathlib.Path(d).name] = c = coverage(model, dataset_samples(d, net))
-        print(f"{pathlib.Path(d).name}: within 2 sigma {c['within_2sigma']:.3f}, "
-              f"per element {c['within_2sigma_per_element']}, RMS error / RMS sigma "
-              f"{c['rms_error_over_rms_sigma']:.2f}, {c['pixels']} values")
+        for suffix, mirror_average in (("", False), (" mirror-averaged", True)):
+            checks[pathlib.Path(d).name + suffix] = c = coverage(model, dataset_samples(d, net, mirror_average=mirror_average))
+            print(f"{pathlib.Path(d).name}{suffix}: within 2 sigma {c['within_2sigma']:.3f}, "
+                  f"per element {c['within_2sigma_per_element']}, RMS error / RMS sigma "
+                  f"{c['rms_error_over_rms_sigma']:.2f}, {c['pixels']} values")
     if args.write and checks:
         data = json.loads((wd / FILE_NAME).read_text())
         data["checks"] = checks

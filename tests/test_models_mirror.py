@@ -101,3 +101,22 @@ def test_shipped_graph_answers_the_mirror_image_as_well_as_the_capture():
     # A wrong transform (45 and 135 deg not swapped) scores 0.22 against the plain 0.13 here.
     assert np.mean(seen_err) < 1.15 * np.mean(plain_err), (plain_err, seen_err)
     assert np.mean(avg_err) < np.mean(plain_err) + 0.01, (plain_err, avg_err)
+
+
+def test_mirror_averaged_reconstruction_sigma_grows_with_the_disagreement():
+    pytest.importorskip("onnxruntime")
+    from models.runtime import SingleShotModel
+    from polrig.stokes import stokes_from_analyzers
+    from sim.dataset import make_sample
+
+    model = SingleShotModel.load()
+    if model.uncertainty is None or model.uncertainty.mirror_k <= 0:
+        pytest.skip("no calibrated mirror term shipped")
+    c = make_sample(3, seed=781, width=64, height=64, holdout=True)
+    mask = c["mask"] > 0
+    dn = c["analyzer"] * float(c["scale"])
+    mueller, aux = model.reconstruct(dn, c["s_in"], mask=mask, mirror_average=True, with_sigma=True)
+    assert np.all(np.isfinite(aux["sigma"])) and "mueller_disagreement" not in aux
+    without = model.uncertainty.sigma(mueller, c["s_in"], mask, stokes_from_analyzers(dn))
+    assert np.all(aux["sigma"] >= without - 1e-6 * without.max())
+    assert np.mean(aux["sigma"][..., mask] > without[..., mask] * 1.001) > 0.5  # the passes do disagree

@@ -101,6 +101,42 @@ def test_calibration_recovers_a_known_error_model():
         assert min(cov["within_2sigma_per_element"][r][2] for r in range(3)) < 0.93
 
 
+def test_mirror_term_adds_the_scaled_disagreement_and_its_calibration_recovers_k():
+    """``sigma_avg^2 = sigma^2 + (k h)^2``; on samples whose errors really carry ``k h``,
+    :func:`calibrate_mirror` finds ``k`` and the coverage of the most-disagreeing tenth holds,
+    where without the term it collapses."""
+    coef = np.zeros((3, 3, unc.N_FEATURES))
+    coef[..., 0] = 0.05
+    coef[1:, 1:, 1] = 0.1
+    rng = np.random.default_rng(4)
+    samples = _synthetic_samples(coef, rng, n=6)
+    model = unc.UncertaintyModel(coef)
+    k_true = 1.7
+    mirrored = []
+    for s in samples:
+        g = model.sigma(s.pred, s.s_in, s.mask, s.stokes).astype(np.float64)
+        h = g * rng.lognormal(-1.0, 1.0, g.shape)  # disagreements from far below to far above sigma
+        truth = s.pred + rng.normal(size=g.shape) * k_true * h + (s.truth - s.pred)
+        mirrored.append(unc.Sample(s.pred, truth, s.s_in, s.mask, s.clipped, s.stokes, h))
+    k = unc.calibrate_mirror(model, mirrored)
+    assert k == pytest.approx(k_true, rel=0.15)
+    with_term = unc.UncertaintyModel(coef, mirror_k=k)
+    s = mirrored[0]
+    np.testing.assert_allclose(with_term.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement),
+                               np.sqrt(model.sigma(s.pred, s.s_in, s.mask, s.stokes).astype(np.float64) ** 2
+                                       + (k * s.disagreement) ** 2), rtol=1e-5)
+    e, g, h = unc._errors_sigmas_disagreements(with_term, mirrored)
+    top = h / g >= np.quantile(h / g, 1 - unc.MIRROR_TOP)
+    assert np.mean(e[top] <= 2 * np.sqrt(g[top] ** 2 + (k * h[top]) ** 2)) > 0.94
+    assert np.mean(e[top] <= 2 * g[top]) < 0.6
+    with pytest.raises(ValueError, match="disagreement"):
+        with_term.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement[:2])
+    back = unc.UncertaintyModel.from_json(json.loads(json.dumps(with_term.to_json())))
+    assert back.mirror_k == pytest.approx(k, rel=1e-5)
+    with pytest.raises(ValueError, match="mirror_disagreement_k"):
+        unc.UncertaintyModel.from_json(dict(with_term.to_json(), mirror_disagreement_k=-1.0))
+
+
 def test_unpolarized_state_has_no_observed_direction():
     coef = np.zeros((3, 3, unc.N_FEATURES))
     coef[..., 0] = [[0.1, 0.2, 0.4], [0.1, 0.2, 0.4], [0.1, 0.2, 0.4]]
