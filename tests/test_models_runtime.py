@@ -201,6 +201,13 @@ def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
         for c in range(3):
             sig = exr.extra[f"sigma.M{r}{c}.G"]
             assert np.all(np.isfinite(sig)) and np.all(sig[obj] > 0) and np.all(sig[~obj] == 0)
+    # mirror-averaged: recorded in the header, another estimate, its sigma at least as large where
+    # the two passes disagree (models.mirror, models.uncertainty)
+    assert main(args + ["--sigma", "--mirror-average", "--out", str(tmp_path / "mirror.exr")]) == 0
+    mir = read_mueller_exr(tmp_path / "mirror.exr")
+    assert mir.metadata["mirror_average"] is True and exr.metadata["mirror_average"] is False
+    assert not np.allclose(mir.mueller, exr.mueller) and np.all(np.isfinite(mir.mueller))
+    assert np.all(np.isfinite(mir.extra["sigma.M22.G"])) and np.all(mir.extra["sigma.M22.G"][~obj] == 0)
 
 
 def test_runtime_module_does_not_import_torch():
