@@ -11,9 +11,10 @@ Sizes are **raw sensor sizes** (256x256, 512x512, full 2448x2048). With the defa
 axis (64x64, 128x128, 612x512); with ``bilinear`` the network runs at the raw size (the full
 sensor then exceeds the runtime's ``max_pixels`` and is resized, see :mod:`models.runtime`).
 
-Usage: ``python benchmarks/bench_single_shot.py [--repeat N] [--threads T] [--mirror-average] [--out FILE]``;
-``--mirror-average`` adds rows for the mirror-averaged path (:mod:`models.mirror`: the network
-runs on the frame and on its mirror image).
+Usage: ``python benchmarks/bench_single_shot.py [--repeat N] [--threads T] [--out FILE]``
+(or ``python -m benchmarks single_shot``; default ``--out benchmarks/results/single_shot_speed.md``).
+The superpixel sizes are also timed mirror-averaged (:mod:`models.mirror`: the networks run on
+the frame and on its mirror image), the slower, more accurate alternative.
 
 ``--rig-scenes sphere,box,...`` instead scores ``polrig capture --mode single-shot`` on the
 default simulated rig (256x256 raw, virtual clock, nominal calibration: the simulator's design
@@ -175,9 +176,10 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped models/weights)")
     ap.add_argument("--spinning", action="store_true", help="let onnxruntime worker threads spin")
     ap.add_argument("--mirror-average", action="store_true",
-                    help="also time the mirror-averaged path (models/mirror.py) with the superpixel demosaic; "
-                         "with --rig-scenes: score captures with and without it instead")
-    ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
+                    help="with --rig-scenes: score captures with and without --mirror-average (models/mirror.py) "
+                         "instead of the geometry variants")
+    ap.add_argument("--out", default=None, help="also write the table to this Markdown file (speed: default "
+                                                "benchmarks/results/single_shot_speed.md)")
     ap.add_argument("--rig-scenes", default=None, nargs="?", const=RIG_SCENES,
                     help=f"score single-shot captures of these scenes on the default rig instead (default {RIG_SCENES})")
     ap.add_argument("--rig-poses", default="0",
@@ -218,7 +220,7 @@ def main(argv=None) -> int:
         for method in args.methods.split(","):
             for size in SIZES:
                 reps = args.repeat if size[0] * size[1] <= 512 * 512 or method == "superpixel" else max(2, args.repeat // 2)
-                for mirror_average in (False, True) if args.mirror_average and method == "superpixel" else (False,):
+                for mirror_average in (False, True) if method == "superpixel" else (False,):
                     results.append(bench(size, method, model, reps, pathlib.Path(d), rng, mirror_average))
                     r = results[-1]
                     print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms",
@@ -233,8 +235,9 @@ def main(argv=None) -> int:
             + f" | **{1e3 * r['total']:.1f}** | {r['fps']:.1f} |")
     table = "\n".join(lines)
     print(table)
-    if args.out:
-        pathlib.Path(args.out).write_text("# Single-shot inference speed\n\n" + table + "\n")
+    out = pathlib.Path(args.out) if args.out else REPO / "benchmarks" / "results" / "single_shot_speed.md"
+    out.write_text("# Single-shot inference speed\n\n" + table + "\n")
+    print(f"wrote {out}")
     return 0
 
 
