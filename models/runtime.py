@@ -241,14 +241,13 @@ class SingleShotModel:
         answers mapped back (:mod:`models.mirror`; twice the network time); the result then
         also holds ``mueller_disagreement``, half the two answers' absolute difference."""
         if mirror_average:
-            kw = {"tolerance_deg": tolerance_deg}
             plain = self.run_rig_frame(analyzer, mask, s_in, wo, stage_zero_axis, wi_guess=wi_guess,
-                                       rotate_with=rotate_with, **kw)
+                                       tolerance_deg=tolerance_deg, rotate_with=rotate_with)
             seen = self.run_rig_frame(mirror.analyzer(analyzer), mirror.image(mask), mirror.stokes(s_in),
-                                      mirror.vector_image(wo), mirror.vectors(np.asarray(stage_zero_axis)),
-                                      wi_guess=None if wi_guess is None else mirror.vectors(np.asarray(wi_guess)),
-                                      rotate_with=None if rotate_with is None else mirror.vector_image(rotate_with),
-                                      **kw)
+                                      mirror.vector_image(wo), mirror.vectors(stage_zero_axis),
+                                      wi_guess=None if wi_guess is None else mirror.vectors(wi_guess),
+                                      tolerance_deg=tolerance_deg,
+                                      rotate_with=None if rotate_with is None else mirror.vector_image(rotate_with))
             back = mirror.outputs(seen)
             out = mirror.average(plain, back)
             out["mueller_disagreement"] = (0.5 * np.abs(plain["mueller"] - back["mueller"])).astype(np.float32)

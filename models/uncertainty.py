@@ -297,15 +297,17 @@ def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return best
 
 
-def _errors_sigmas_disagreements(model: UncertaintyModel, samples: Iterable[Sample]
-                                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled ``|error|``, ``sigma`` without the mirror term and disagreement ``(N, 3, 3)``
-    (rig frame) over unclipped object pixels of mirror-averaged ``samples``."""
+def _pooled(model: UncertaintyModel, samples: Iterable[Sample], mirror_term: bool = True
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``|error|``, ``sigma`` (with the mirror term where a sample has a disagreement,
+    unless ``mirror_term`` is False) and disagreement (0 where none) ``(N, 3, 3)``, rig frame,
+    over unclipped object pixels of ``samples`` with a finite sigma."""
     errs, sigs, dis = [], [], []
     for s in samples:
-        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes)
+        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement if mirror_term else None)
         use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
-        for out, x in ((errs, np.abs(np.asarray(s.pred, np.float64) - s.truth)), (sigs, sig), (dis, s.disagreement)):
+        h = np.zeros_like(sig) if s.disagreement is None else s.disagreement
+        for out, x in ((errs, np.abs(np.asarray(s.pred, np.float64) - s.truth)), (sigs, sig), (dis, h)):
             out.append(np.moveaxis(np.asarray(x, np.float64), (1, 2), (-2, -1))[use])
     return np.concatenate(errs), np.concatenate(sigs), np.concatenate(dis)
 
@@ -314,7 +316,7 @@ def calibrate_mirror(model: UncertaintyModel, samples: Iterable[Sample]) -> floa
     """``k`` of ``sigma_avg^2 = sigma^2 + (k h)^2`` (module docstring): the smallest ``k`` for
     which ``COVERAGE`` of the :data:`MIRROR_TOP` elements with the largest ``h / sigma`` lie
     within ``2 sigma_avg``, on mirror-averaged ``samples`` (bisection; 0 if already covered)."""
-    e, g, h = _errors_sigmas_disagreements(model, samples)
+    e, g, h = _pooled(model, samples, mirror_term=False)
     ratio = h / np.maximum(g, 1e-30)
     top = ratio >= np.quantile(ratio, 1.0 - MIRROR_TOP)
     e, g, h = e[top], g[top], h[top]
@@ -336,16 +338,8 @@ def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, fl
     """In the rig's frame: fraction of elements within ``2 sigma`` (all, and per element), the
     RMS error over the RMS sigma, over unclipped object pixels of ``samples`` (with the mirror
     term for mirror-averaged samples)."""
-    inside, errs, sigs = [], [], []
-    for s in samples:
-        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement)
-        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
-        err = np.abs(np.asarray(s.pred, np.float64) - s.truth)
-        e, g = np.moveaxis(err, (1, 2), (-2, -1))[use], np.moveaxis(sig, (1, 2), (-2, -1))[use]
-        inside.append(e <= 2.0 * g)
-        errs.append(e)
-        sigs.append(g)
-    inside_all, e_all, g_all = np.concatenate(inside), np.concatenate(errs), np.concatenate(sigs)
+    e_all, g_all, _ = _pooled(model, samples)
+    inside_all = e_all <= 2.0 * g_all
     return {"within_2sigma": float(inside_all.mean()),
             "within_2sigma_per_element": np.round(inside_all.mean(0), 3).tolist(),
             "rms_error_over_rms_sigma": float(np.sqrt(np.mean(e_all**2) / np.mean(g_all.astype(np.float64) ** 2))),
@@ -355,9 +349,10 @@ def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, fl
 def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: bool = False) -> list[Sample]:
     """Run ``model`` (:class:`models.runtime.SingleShotModel`; mirror-averaged with
     ``mirror_average``) on a ``polrig sim dataset`` folder -> samples with the truth (samples
-    without a lit object pixel are skipped, as in :mod:`models.evaluate`). A sample's pixel is clipped where an analyzer value reached the
-    sensor's saturation level (:attr:`polrig.noise.SensorModel.saturation_dn` of the set's
-    sensor model, as :mod:`polrig.processing` flags it)."""
+    without a lit object pixel are skipped, as in :mod:`models.evaluate`). A sample's pixel is
+    clipped where an analyzer value reached the sensor's saturation level
+    (:attr:`polrig.noise.SensorModel.saturation_dn` of the set's sensor model, as
+    :mod:`polrig.processing` flags it)."""
     from models.data import load_dataset
     from models.evaluate import _network_inputs
     from polrig.noise import SensorModel

@@ -125,7 +125,7 @@ def test_mirror_term_adds_the_scaled_disagreement_and_its_calibration_recovers_k
     np.testing.assert_allclose(with_term.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement),
                                np.sqrt(model.sigma(s.pred, s.s_in, s.mask, s.stokes).astype(np.float64) ** 2
                                        + (k * s.disagreement) ** 2), rtol=1e-5)
-    e, g, h = unc._errors_sigmas_disagreements(with_term, mirrored)
+    e, g, h = unc._pooled(with_term, mirrored, mirror_term=False)
     top = h / g >= np.quantile(h / g, 1 - unc.MIRROR_TOP)
     assert np.mean(e[top] <= 2 * np.sqrt(g[top] ** 2 + (k * h[top]) ** 2)) > 0.94
     assert np.mean(e[top] <= 2 * g[top]) < 0.6

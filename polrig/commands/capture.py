@@ -72,7 +72,7 @@ def build_plan(args: argparse.Namespace):
                       if args.exposure else ()),
         dark_frames=0 if args.dark_frames is None else args.dark_frames,
         demosaic=args.demosaic or "superpixel",
-        mirror_average=bool(getattr(args, "mirror_average", None)))
+        mirror_average=bool(args.mirror_average))
 
 
 def check_resume_args(args: argparse.Namespace, stored) -> None:
@@ -89,7 +89,7 @@ def check_resume_args(args: argparse.Namespace, stored) -> None:
                          if args.exposure else None),
         "dark_frames": args.dark_frames,
         "demosaic": args.demosaic,
-        "mirror_average": getattr(args, "mirror_average", None),
+        "mirror_average": args.mirror_average,
     }
     for key, value in given.items():
         if value is not None and value != getattr(stored, key):
