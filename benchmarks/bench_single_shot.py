@@ -185,33 +185,28 @@ def main(argv=None) -> int:
     ap.add_argument("--rig-poses", default="0",
                     help="turntable poses of the --rig-scenes captures, as polrig capture --poses (default 0)")
     args = ap.parse_args(argv)
-    if args.rig_scenes and args.mirror_average:
-        with tempfile.TemporaryDirectory() as d:
-            rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses, mirror=True)
-        table = rig_mirror_table(rows)
-        print(table)
-        if args.out:
-            pathlib.Path(args.out).write_text(
-                "# Single-shot captures on the default simulated rig: one pass against mirror averaging\n\n"
-                f"`python benchmarks/bench_single_shot.py --rig-scenes {args.rig_scenes} --rig-poses {args.rig_poses} "
-                "--mirror-average --out FILE`: `polrig capture --mode single-shot` with and without `--mirror-average` "
-                "(models/mirror.py), design geometry, otherwise as `single_shot_rig.md`: mean matrix PSNR (dB) over "
-                "the poses with a lit truth.\n\n" + table + "\n")
-        return 0
     if args.rig_scenes:
         with tempfile.TemporaryDirectory() as d:
-            rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses)
-        table = rig_scene_table(rows)
+            rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses,
+                                    mirror=args.mirror_average)
+        table = rig_mirror_table(rows) if args.mirror_average else rig_scene_table(rows)
         print(table)
         if args.out:
-            pathlib.Path(args.out).write_text(
-                "# Single-shot captures on the default simulated rig: processing scores\n\n"
-                f"`python benchmarks/bench_single_shot.py --rig-scenes --rig-poses {args.rig_poses} --out FILE`: "
-                "`polrig capture --mode single-shot` of each scene (256x256 raw, 64x64 analyzer grid, turntable poses "
-                f"{args.rig_poses}, seed 0, nominal calibration), mean over the poses with a lit truth of the matrix "
-                "PSNR in dB from `polrig.processing.score_against_truth` (peak = largest true m00 compared; pixels "
-                "whose support lies on the object; pixels with saturated samples excluded, as for the reference "
-                "mode).\n\n" + table + "\n")
+            command = (f"`python benchmarks/bench_single_shot.py --rig-scenes {args.rig_scenes} --rig-poses "
+                       f"{args.rig_poses}{' --mirror-average' if args.mirror_average else ''} --out FILE`: ")
+            if args.mirror_average:
+                head = ("# Single-shot captures on the default simulated rig: one pass against mirror averaging\n\n"
+                        + command + "`polrig capture --mode single-shot` with and without `--mirror-average` "
+                        "(models/mirror.py), design geometry, otherwise as `single_shot_rig.md`: mean matrix PSNR (dB) "
+                        "over the poses with a lit truth.")
+            else:
+                head = ("# Single-shot captures on the default simulated rig: processing scores\n\n" + command
+                        + "`polrig capture --mode single-shot` of each scene (256x256 raw, 64x64 analyzer grid, "
+                        f"turntable poses {args.rig_poses}, seed 0, nominal calibration), mean over the poses with a lit "
+                        "truth of the matrix PSNR in dB from `polrig.processing.score_against_truth` (peak = largest "
+                        "true m00 compared; pixels whose support lies on the object; pixels with saturated samples "
+                        "excluded, as for the reference mode).")
+            pathlib.Path(args.out).write_text(head + "\n\n" + table + "\n")
         return 0
     model = SingleShotModel.load(args.weights, threads=args.threads, spinning=args.spinning)
     rng = np.random.default_rng(0)
