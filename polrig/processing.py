@@ -615,7 +615,7 @@ class Processor:
         if mode not in ("reference", "single-shot"):
             raise ConfigError(f"unknown mode {mode!r}; use reference or single-shot")
         if mirror_average and mode != "single-shot":
-            raise ConfigError("mirror averaging applies to --mode single-shot only")
+            raise ConfigError("--mirror-average applies to --mode single-shot only")
         # single-shot: the installed network, or the one-line "no model installed" error
         self.model = single_shot_model() if mode == "single-shot" else None
         self.mode = mode

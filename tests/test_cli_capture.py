@@ -284,3 +284,15 @@ def test_calibration_without_a_loader_is_a_clear_error(tmp_path, capsys):
         assert rc == 2 and "--calibration" in err and len(err.strip().splitlines()) == 1
     else:  # pragma: no cover - a loader exists: an empty folder is not a calibration set
         assert rc == 2
+
+
+def test_reconstruct_refuses_mirror_average_with_the_reference_method(tmp_path, capsys):
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    before = (out / "session.json").read_bytes()
+    capsys.readouterr()
+    assert main(["reconstruct", str(out), "--mirror-average", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "--mirror-average applies to --mode single-shot only" in err and len(err.strip().splitlines()) == 1
+    assert (out / "session.json").read_bytes() == before  # no revision recorded
