@@ -157,6 +157,12 @@ def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
         w.live._hovered(b + 8, b + 8)
         text = w.live.readout.text()
         assert "Mueller at (u=8, v=8)" in text and "G:" in text
+        # mirror averaging (models.mirror) reaches the worker and the live frames keep coming
+        w.live.mirror_average.setChecked(True)
+        assert w.live_worker.settings.mirror_average
+        before = w.live.last
+        qtbot.waitUntil(lambda: w.live.last is not before and w.live.last.display == "mueller", timeout=30000)
+        assert np.all(np.isfinite(w.live.last.data.mueller))
     finally:
         close_window(qtbot, w)
 
@@ -315,6 +321,7 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.capture.mirror_average.setChecked(True)
     w.capture.out.setText(str(tmp_path / "x"))
     w.live.colour.setCurrentIndex(2)
+    w.live.mirror_average.setChecked(True)
     w.close()
     assert ini.is_file()
     w2 = make_window(qtbot, ini, start=False)
@@ -326,6 +333,7 @@ def test_settings_are_remembered(qtbot, tmp_path):
     assert w2.capture.request().mirror_average
     assert w2.capture.out.text() == str(tmp_path / "x")
     assert w2.live.colour.currentIndex() == 2
+    assert w2.live.mirror_average.isChecked() and w2.live_worker.settings.mirror_average
     w2.close()
 
 

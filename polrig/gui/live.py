@@ -61,6 +61,9 @@ class LiveSettings:
     colour: int = pipeline.LUMINANCE
     method: str = "superpixel"
     saturation_overlay: bool = True
+    #: Mueller display: average the network's answers for the frame and its mirror image
+    #: (:mod:`models.mirror`; twice the network time)
+    mirror_average: bool = False
     max_fps: float = 30.0
     #: Longest side of the displayed image in pixels (0: full resolution); see
     #: :func:`polrig.gui.pipeline.display_step`. Processing is always at full resolution.
@@ -253,7 +256,8 @@ class LiveWorker(QThread):
                 note = f"Mueller display unavailable: {self._model_error}"
             else:
                 data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
-                                              source="live", geometry=self._geometry())
+                                              source="live", geometry=self._geometry(),
+                                              mirror_average=s.mirror_average)
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
                                           source="live")

@@ -55,6 +55,7 @@ class LivePanel(QWidget):
         self.gain.setKeyboardTracking(False)
         self.overlay = QCheckBox("saturation overlay (red)")
         self.overlay.setChecked(True)
+        self.mirror_average = QCheckBox("Mueller: mirror-average the network (twice the time)")
         self.pause_button = QPushButton("Pause live")
         self.pause_button.setCheckable(True)
 
@@ -65,6 +66,7 @@ class LivePanel(QWidget):
         form.addRow("Exposure", self.exposure)
         form.addRow("Gain", self.gain)
         form.addRow(self.overlay)
+        form.addRow(self.mirror_average)
         form.addRow(self.pause_button)
         self.readout = QLabel("move the cursor over the image")
         self.readout.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
@@ -94,10 +96,12 @@ class LivePanel(QWidget):
         self.colour.setCurrentIndex(max(0, self.colour.findData(s.colour)))
         self.method.setCurrentText(s.method)
         self.overlay.setChecked(s.saturation_overlay)
+        self.mirror_average.setChecked(s.mirror_average)
         self.display.currentIndexChanged.connect(self._settings_changed)
         self.colour.currentIndexChanged.connect(self._settings_changed)
         self.method.currentIndexChanged.connect(self._settings_changed)
         self.overlay.toggled.connect(self._settings_changed)
+        self.mirror_average.toggled.connect(self._settings_changed)
         self.exposure.valueChanged.connect(lambda v: self.worker.set_camera(exposure_us=v))
         self.gain.valueChanged.connect(lambda v: self.worker.set_camera(gain_db=v))
         self.pause_button.toggled.connect(self._pause_toggled)
@@ -125,6 +129,7 @@ class LivePanel(QWidget):
         s.colour = self.colour.currentData()
         s.method = self.method.currentText()
         s.saturation_overlay = self.overlay.isChecked()
+        s.mirror_average = self.mirror_average.isChecked()
 
     def _pause_toggled(self, paused: bool) -> None:
         self.worker.pause(paused)

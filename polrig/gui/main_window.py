@@ -110,6 +110,7 @@ class MainWindow(QMainWindow):
         b.bind("live/colour", st.combo_binding(lp.colour))
         b.bind("live/demosaic", st.combo_binding(lp.method))
         b.bind("live/saturation_overlay", st.bool_binding(lp.overlay))
+        b.bind("live/mirror_average", st.bool_binding(lp.mirror_average))
         for key, w in (("poses", cp.poses), ("states", cp.states), ("exposure", cp.exposure),
                        ("calibration", cp.calibration), ("out", cp.out)):
             b.bind(f"capture/{key}", st.text_binding(w))

@@ -175,20 +175,22 @@ def process_frame(frame: Frame, method: str = "superpixel", *, workers: int | No
 
 
 def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpixel",
-                  source: str = "", geometry: dict | None = None) -> PolarizationData:
+                  source: str = "", geometry: dict | None = None,
+                  mirror_average: bool = False) -> PolarizationData:
     """Single-shot Mueller image of a frame taken with the polarizer at ``state_deg``
     (:func:`models.runtime.infer_frame`), with the Stokes images it computed on the way.
 
     ``geometry``: the rig's single-shot geometry (intrinsics, stage zero axis) from
     :func:`polrig.processing.single_shot_geometry`, exactly as capture processing uses it;
-    ``None`` leaves the model's training geometry."""
+    ``None`` leaves the model's training geometry. ``mirror_average``: as
+    :func:`models.runtime.infer_frame`."""
     from models.runtime import infer_frame
     from polrig.processing import single_shot_kwargs
 
     kwargs = single_shot_kwargs(geometry, frame, method) if geometry else {}
     mueller, aux = infer_frame(frame.raw, frame_layout(frame), state_deg, model,
                                demosaic_method=method, black_level_dn=frame.meta.black_level_dn,
-                               **kwargs)
+                               mirror_average=mirror_average, **kwargs)
     d = PolarizationData.from_stokes(aux["stokes"], source)
     d.mueller = mueller
     d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
