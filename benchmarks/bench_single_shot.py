@@ -2,9 +2,11 @@
 
 Path per frame: decode the raw file (16-bit PNG, :func:`polrig.rawio.read_raw`), demosaic,
 Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call, :func:`models.runtime.infer_frame`),
-Mueller EXR (:func:`models.runtime.write_result_exr`). Raw frames are IMX250MYR mosaics of a
-lit sphere rendered with the pBRDF (content matters little for speed, the mask does for
-nothing: every pixel runs through the networks).
+Mueller EXR (:func:`models.runtime.write_result_exr`). Raw frames are IMX250MYR (colour)
+mosaics of a lit sphere rendered with the pBRDF (content matters little for speed, the mask does
+for nothing: every pixel runs through the networks); the full sensor is also timed as a mono
+IMX250MZR frame ("mono" rows), whose superpixel analyzer images are half the raw size per
+axis (1224x1024), four times the colour sensor's.
 
 Sizes are **raw sensor sizes** (256x256, 512x512, full 2448x2048). With the default
 ``superpixel`` demosaic the colour sensor's native analyzer images are a quarter of that per
@@ -51,12 +53,16 @@ from polrig.layouts import get_layout  # noqa: E402
 from polrig.rawio import read_raw, write_raw  # noqa: E402
 
 SIZES = ((256, 256), (512, 512), (2048, 2448))
+COLOUR, MONO = "imx250myr", "imx250mzr"
+#: Mono sensor rows (the IMX250MZR of ``../shared/data/real-dofp``): its superpixel analyzer
+#: images are half the raw size per axis, four times the colour sensor's pixels.
+MONO_SIZES = ((2048, 2448),)
 
 
-def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
-    """A 12-bit IMX250MYR mosaic of a diffuse sphere with a polarized highlight (DN)."""
+def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator, layout: str = COLOUR) -> np.ndarray:
+    """A 12-bit mosaic (``layout``) of a diffuse sphere with a polarized highlight (DN)."""
     h, w = shape
-    lay = get_layout("imx250myr")
+    lay = get_layout(layout)
     angle = np.deg2rad(lay.angle_map(shape))
     v, u = np.mgrid[0:h, 0:w]
     r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / (0.4 * min(h, w)) ** 2
@@ -69,10 +75,11 @@ def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarra
     return np.clip(noisy, 0, 4095).astype(np.uint16)
 
 
-def bench(size, method, model, repeat, tmp: pathlib.Path, rng, mirror_average: bool = False) -> dict:
-    raw = synthetic_raw(size, rng)
+def bench(size, method, model, repeat, tmp: pathlib.Path, rng, mirror_average: bool = False,
+          layout: str = COLOUR) -> dict:
+    raw = synthetic_raw(size, rng, layout)
     meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
-                     layout="imx250myr", bit_depth=12, black_level_dn=64.0)
+                     layout=layout, bit_depth=12, black_level_dn=64.0)
     src = tmp / f"raw_{size[0]}x{size[1]}.png"
     write_raw(src, Frame(raw=raw, meta=meta))
     out = tmp / "out.exr"
@@ -93,7 +100,8 @@ def bench(size, method, model, repeat, tmp: pathlib.Path, rng, mirror_average: b
                          "exr": t3 - t2, "total": t3 - t0})
     med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
     label = f"{method}, mirror-averaged" if mirror_average else method
-    return {"raw": f"{size[1]}x{size[0]}", "method": label, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}",
+    sensor = " mono" if layout == MONO else ""
+    return {"raw": f"{size[1]}x{size[0]}{sensor}", "method": label, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}",
             **med, "fps": 1.0 / med["total"]}
 
 
@@ -213,13 +221,17 @@ def main(argv=None) -> int:
     results = []
     with tempfile.TemporaryDirectory() as d:
         for method in args.methods.split(","):
-            for size in SIZES:
-                reps = args.repeat if size[0] * size[1] <= 512 * 512 or method == "superpixel" else max(2, args.repeat // 2)
-                for mirror_average in (False, True) if method == "superpixel" else (False,):
-                    results.append(bench(size, method, model, reps, pathlib.Path(d), rng, mirror_average))
-                    r = results[-1]
-                    print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms",
-                          flush=True)
+            passes = (False, True) if method == "superpixel" else (False,)  # mirror averaging off / on
+            jobs = [(size, COLOUR, mirror) for size in SIZES for mirror in passes]
+            if method == "superpixel":
+                jobs += [(size, MONO, mirror) for size in MONO_SIZES for mirror in passes]
+            for size, layout, mirror_average in jobs:
+                small = size[0] * size[1] <= 512 * 512 or method == "superpixel"
+                reps = args.repeat if small else max(2, args.repeat // 2)
+                results.append(bench(size, method, model, reps, pathlib.Path(d), rng, mirror_average, layout))
+                r = results[-1]
+                print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms",
+                      flush=True)
     threads = args.threads or physical_cores()
     lines = [f"onnxruntime intra-op threads: {threads}, spinning {'on' if args.spinning else 'off'}; median of the runs after one warm-up; times in ms.", "",
              "| raw size | demosaic | network size | decode | demosaic | Stokes | prepare | networks + pBRDF | finish | EXR | **total** | frames/s |",
