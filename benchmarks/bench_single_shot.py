@@ -226,8 +226,8 @@ def main(argv=None) -> int:
             if method == "superpixel":
                 jobs += [(size, MONO, mirror) for size in MONO_SIZES for mirror in passes]
             for size, layout, mirror_average in jobs:
-                small = size[0] * size[1] <= 512 * 512 or method == "superpixel"
-                reps = args.repeat if small else max(2, args.repeat // 2)
+                all_repeats = size[0] * size[1] <= 512 * 512 or method == "superpixel"  # the slow bilinear sizes get half
+                reps = args.repeat if all_repeats else max(2, args.repeat // 2)
                 results.append(bench(size, method, model, reps, pathlib.Path(d), rng, mirror_average, layout))
                 r = results[-1]
                 print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms",
