@@ -88,28 +88,38 @@ def rotated_element(angle_rad: ArrayLike, m: np.ndarray) -> np.ndarray:
 def polarizer_at(angle_rad: ArrayLike, extinction_ratio: ArrayLike = np.inf) -> np.ndarray:
     """Linear polarizer (unit major transmittance) with axis at ``angle_rad``.
 
-    ``extinction_ratio`` = major / minor intensity transmittance; ``inf`` is ideal.
+    ``extinction_ratio`` = major / minor intensity transmittance, ``>= 1`` (``1`` transmits
+    both axes alike; ``inf`` is ideal). Raises ``ValueError`` otherwise (NaN included).
     """
     er = np.asarray(extinction_ratio, float)
+    if not np.all(er >= 1.0):
+        raise ValueError(f"extinction_ratio must be >= 1 (inf for an ideal polarizer), got {extinction_ratio!r}")
     ty = np.where(np.isinf(er), 0.0, 1.0 / np.where(np.isinf(er), 1.0, er))
     return rotated_element(angle_rad, diattenuator(np.ones_like(ty), ty))
 
 
 def _fresnel_amplitudes(cos_theta_i: ArrayLike, eta: ArrayLike | complex):
-    """Complex Fresnel amplitudes ``(r_s, r_p, t_s_energy, t_p_energy)`` for light arriving
+    """Complex Fresnel amplitudes ``(r_s, r_p)`` for light arriving
     from the side with index 1 onto a medium of relative index ``eta`` (may be complex).
 
     ``r_p`` uses Mitsuba 3's sign (``(eta cos_i - cos_t) / (eta cos_i + cos_t)``), which makes
     normal-incidence reflection ``diag(R, R, -R, -R)``: reflection flips the handedness of
     the basis. Energy transmittances are ``1 - |r|^2`` (valid for lossless dielectrics).
+
+    Evaluated with ``eta cos_t = sqrt(eta^2 - 1 + cos_i^2)`` (Snell's law; the principal root
+    is the decaying transmitted wave for ``Re eta > 0, Im eta >= 0``), which has no
+    cancellation near grazing when ``eta`` is close to 1; ``r_p`` is multiplied through by
+    ``eta``. An index-matched interface (``eta = 1``) reflects nothing, also at exactly
+    grazing incidence, where the quotients are ``0 / 0``.
     """
     ci = np.clip(np.abs(np.asarray(cos_theta_i, dtype=np.float64)), 0.0, 1.0)
-    eta = np.asarray(eta)
-    eta_c = eta.astype(np.complex128)
-    sin2_t = (1.0 - ci**2) / eta_c**2
-    ct = np.sqrt(1.0 - sin2_t)
-    rs = (ci - eta_c * ct) / (ci + eta_c * ct)
-    rp = (eta_c * ci - ct) / (eta_c * ci + ct)
+    eta_c = np.asarray(eta).astype(np.complex128)
+    ect = np.sqrt(eta_c**2 - 1.0 + ci**2)  # eta cos_t
+    e2ci = eta_c**2 * ci
+    den_s, den_p = ci + ect, e2ci + ect
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = np.where(den_s == 0, 0.0, (ci - ect) / den_s)
+        rp = np.where(den_p == 0, 0.0, (e2ci - ect) / den_p)
     return rs, rp
 
 
@@ -183,10 +193,11 @@ def estimate_linear(s_in: np.ndarray, s_out: np.ndarray,
     """Least-squares 3x3 Mueller block from ``N`` pairs ``S_out_k = M S_in_k``.
 
     ``s_in``: ``(N, 3)`` incident states (one set for all pixels); ``s_out``: ``(..., N, 3)``.
-    Optional ``weights`` ``(..., N)`` give a weighted solve per pixel. Returns
-    ``(M (..., 3, 3), condition number of s_in)``; the condition number (2-norm) is how much
-    relative noise in ``S_out`` can grow in ``M``. Raises ``ValueError`` for ``N < 3`` or a
-    rank-deficient state set.
+    Optional ``weights`` ``(..., N)`` (finite, ``>= 0``) give a weighted solve per pixel.
+    Returns ``(M (..., 3, 3), condition number of s_in)``; the condition number (2-norm, of the
+    unweighted states) is how much relative noise in ``S_out`` can grow in ``M``. Raises
+    ``ValueError`` for ``N < 3``, a rank-deficient state set, or weights that leave fewer than
+    three independent states at some pixel (zero weights on all but two states, say).
     """
     s_in = np.asarray(s_in, dtype=np.float64)
     if s_in.ndim != 2 or s_in.shape[1] != 3 or s_in.shape[0] < 3:
@@ -201,7 +212,14 @@ def estimate_linear(s_in: np.ndarray, s_out: np.ndarray,
         mt = np.einsum("ik,...kj->...ij", pinv, s_out)  # M^T (..., 3, 3)
     else:
         w = np.asarray(weights, dtype=np.float64)
+        if not (np.isfinite(w).all() and (w >= 0).all()):
+            raise ValueError("weights must be finite and >= 0")
         a = np.einsum("...k,ki,kj->...ij", w, s_in, s_in)
+        ev = np.linalg.eigvalsh(a)  # ascending
+        short = ~(ev[..., 0] > 1e-12 * ev[..., -1])
+        if short.any():
+            raise ValueError(f"the weights leave fewer than 3 independent incident states at "
+                             f"{int(short.sum())} of {short.size} pixel(s); the Mueller block is not determined there")
         rhs = np.einsum("...k,ki,...kj->...ij", w, s_in, s_out)
         mt = np.linalg.solve(a, rhs)
     return np.swapaxes(mt, -1, -2), cond

@@ -132,17 +132,21 @@ def smith_g1(cos_v, cos_vh, alpha, distribution: str = "ggx") -> np.ndarray:
 def _fresnel_rs_rp(cos_i: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Real Fresnel amplitudes ``(r_s, r_p, tir)`` for a real ``eta`` (sign convention of
     :func:`polrig.mueller.specular_reflection`, i.e. Mitsuba's); ``tir`` marks total internal
-    reflection (only possible for ``eta < 1``), where the amplitudes are not real."""
+    reflection (only possible for ``eta < 1``), where the amplitudes are not real.
+
+    Same cancellation-free form as :func:`polrig.mueller._fresnel_amplitudes`
+    (``eta cos_t = sqrt(eta^2 - 1 + cos_i^2)``, ``r_p`` multiplied through by ``eta``); an
+    index-matched interface (``eta = 1``) reflects nothing, also at exactly grazing incidence."""
     ci = np.clip(cos_i, 0.0, 1.0)
     eta = np.asarray(eta, dtype=np.float64)
-    ct2 = 1.0 - (1.0 - ci * ci) / (eta * eta)
-    tir = ct2 < 0.0
-    ct = np.sqrt(np.maximum(ct2, 0.0))
-    ect = eta * ct
-    eci = eta * ci
+    ect2 = eta * eta - 1.0 + ci * ci  # (eta cos_t)^2
+    tir = ect2 < 0.0
+    ect = np.sqrt(np.maximum(ect2, 0.0))
+    e2ci = eta * eta * ci
+    den_s, den_p = ci + ect, e2ci + ect
     with np.errstate(divide="ignore", invalid="ignore"):
-        rs = (ci - ect) / (ci + ect)
-        rp = (eci - ct) / (eci + ct)
+        rs = np.where(den_s == 0, 0.0, (ci - ect) / den_s)
+        rp = np.where(den_p == 0, 0.0, (e2ci - ect) / den_p)
     return rs, rp, tir
 
 
@@ -288,6 +292,8 @@ def _prepare(normal, wi, wo, *, alpha, eta, ks=1.0, kd=0.0, refs=None) -> _Input
         raise ValueError("alpha (microfacet roughness) must be >= 0")
     if np.any(eta <= 0):
         raise ValueError("eta (relative refractive index) must be > 0")
+    if np.any(ks < 0) or np.any(kd < 0):
+        raise ValueError("ks and kd (specular and diffuse albedo) must be >= 0")
     shapes = [v.shape[:-1] for v in vecs] + [alpha.shape, eta.shape, ks.shape]
     if refs is not None:
         refs = (_fr._as_vectors(refs[0], "stage_zero_axis"), _fr._as_vectors(refs[1], "camera_x_axis"))

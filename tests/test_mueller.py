@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from decimal import Decimal, localcontext
+
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -9,6 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from polrig import mueller as mu
+from polrig import pbrdf
 
 finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 angles = st.floats(-2 * np.pi, 2 * np.pi, allow_nan=False)
@@ -50,9 +53,31 @@ def test_estimate_linear_condition_numbers_and_errors():
         mu.estimate_linear(bad, bad)
     with pytest.raises(ValueError, match="at least 3"):
         mu.estimate_linear(s4[:2], s4[:2])
+    # weights that zero all but two states leave M undetermined at that pixel: refused, not a
+    # least-squares answer off by more than the matrix itself (weights 1e-17 included)
+    m = np.array([[1.0, 0.2, -0.1], [0.3, 0.5, 0.1], [0.0, -0.2, 0.4]])
+    s_out = np.broadcast_to(s4 @ m.T, (3, 4, 3))
+    for w in ([1, 1, 0, 0], [1, 1, 1e-17, 0], [1, 0, 1, 0]):
+        weights = np.array([[1, 1, 1, 1], w, [2, 1, 1, 2]], float)
+        with pytest.raises(ValueError, match="1 of 3 pixel"):
+            mu.estimate_linear(s4, s_out, weights)
+    for w in ([1, np.nan, 1, 1], [1, -1, 1, 1], [1, np.inf, 1, 1]):
+        with pytest.raises(ValueError, match="finite and >= 0"):
+            mu.estimate_linear(s4, s_out[0], np.array(w))
+    est, _ = mu.estimate_linear(s4, s_out, np.array([[1, 1, 1, 1], [1, 1, 1, 0], [2, 1, 1, 2]], float))
+    np.testing.assert_allclose(est, np.broadcast_to(m, (3, 3, 3)), atol=1e-12)
 
 
 # --------------------------------------------------------------------------- element closed forms
+def test_polarizer_extinction_ratio_must_be_at_least_one():
+    """ER < 1 would make the minor axis transmit more than the major one (a polarizer along
+    the other axis, mislabelled), ER 0 a division by zero: refused in one line."""
+    np.testing.assert_allclose(mu.polarizer_stokes(0.3, 1.0), [1.0, 0.0, 0.0], atol=1e-15)
+    for er in (0.0, 0.5, -3.0, np.nan, [2.0, 0.9]):
+        with pytest.raises(ValueError, match="extinction_ratio must be >= 1"):
+            mu.polarizer_stokes(np.zeros(np.shape(er)), er)
+
+
 @SETTINGS
 @given(theta=angles, phi=angles, s0=st.floats(1e-6, 1e6))
 def test_polarizer_malus_law(theta, phi, s0):
@@ -115,6 +140,37 @@ def test_fresnel_closed_forms(eta):
     assert np.allclose(r[..., 0, 1] + t[..., 0, 1], 0.0)
     # grazing incidence reflects everything, the Mueller matrix stays finite
     assert np.isfinite(r).all() and r[0, 0, 0] == pytest.approx(1.0)
+
+
+def _fresnel_reference(cos_i: float, eta: float) -> tuple[float, float]:
+    """``(Rs, Rp)`` in 60-digit decimal arithmetic (no cancellation to worry about)."""
+    if eta == 1.0:
+        return 0.0, 0.0  # no interface
+    with localcontext() as ctx:
+        ctx.prec = 60
+        ci, n = Decimal(cos_i), Decimal(eta)
+        ect = (n * n - 1 + ci * ci).sqrt()  # eta cos_t, Snell's law
+        rs = (ci - ect) / (ci + ect)
+        rp = (n * n * ci - ect) / (n * n * ci + ect)
+        return float(rs * rs), float(rp * rp)
+
+
+@pytest.mark.parametrize("eta", [1.0, 1.0 + 1e-12, 1.0 + 1e-6, 1.0001, 1.5])
+def test_fresnel_near_grazing_for_eta_near_one_has_no_cancellation(eta):
+    """An index-matched interface reflects nothing, also at exactly grazing incidence, and an
+    interface with ``eta`` just above 1 reflects what the closed form says near grazing: the
+    textbook ``cos_t = sqrt(1 - sin^2 / eta^2)`` loses every digit there (it gave R = 1 for
+    eta = 1 at cos_i = 1e-9, and NaN at cos_i = 0)."""
+    cos_i = np.array([1e-12, 1e-9, 1e-6, 1e-3, 0.3, 1.0] + ([0.0] if eta == 1.0 else []))
+    want = np.array([_fresnel_reference(c, eta) for c in cos_i])  # (n, 2)
+    got = np.stack(mu.fresnel_reflectance(cos_i, eta), -1)
+    fast = pbrdf.fresnel_reflection_sp(cos_i, eta)
+    fast_rs_rp = np.stack([fast[:, 0, 0] + fast[:, 0, 1], fast[:, 0, 0] - fast[:, 0, 1]], -1)
+    for g in (got, fast_rs_rp):
+        assert np.all(np.isfinite(g))
+        np.testing.assert_allclose(g, want, rtol=1e-9, atol=1e-15)
+    t = mu.specular_transmission(cos_i, eta)
+    np.testing.assert_allclose(t[:, 0, 0], 1.0 - want.mean(-1), rtol=1e-9, atol=1e-15)
 
 
 def test_fresnel_mitsuba_brewster_value():

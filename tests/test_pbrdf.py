@@ -320,6 +320,12 @@ def test_bad_arguments_raise_one_line_errors():
         pbrdf.mueller(Z, Z, Z, kd=0.5, alpha=0.1, eta=0.0)
     with pytest.raises(ValueError, match="kd"):
         pbrdf.mueller(np.tile(Z, (5, 1)), Z, Z, kd=np.ones((5, 3, 2)), alpha=0.1)
+    with pytest.raises(ValueError, match="albedo"):  # a negative albedo makes m00 < 0
+        pbrdf.mueller(Z, Z, Z, kd=-1.0, alpha=0.1)
+    with pytest.raises(ValueError, match="albedo"):
+        pbrdf.mueller(Z, Z, Z, kd=[[0.5, -0.1, 0.2]], alpha=0.1, ks=1.0)
+    with pytest.raises(ValueError, match="albedo"):
+        pbrdf.mueller(Z, Z, Z, kd=0.5, alpha=0.1, ks=-0.5)
     with pytest.raises(ValueError, match="length 3"):
         pbrdf.mueller(np.zeros((5, 2)), Z, Z, kd=0.5, alpha=0.1)
     with pytest.raises(ValueError, match="stage_zero_axis"):
