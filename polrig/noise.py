@@ -67,6 +67,10 @@ class SensorModel:
             object.__setattr__(self, "gain_e_per_dn", float(self.full_well_e) / self.max_code_dn)
         elif not (np.isfinite(self.gain_e_per_dn) and self.gain_e_per_dn > 0):
             raise ConfigError(f"gain_e_per_dn must be positive and finite, got {self.gain_e_per_dn!r}")
+        if not self.saturation_dn > 0:
+            raise ConfigError(f"no unsaturated range: the saturation threshold is {self.saturation_dn:.4g} DN "
+                              f"(clip level {self.clip_dn:.4g} DN minus 5 read-noise sigmas and one code); "
+                              f"check full_well_e, read_noise_e, bit_depth and gain_e_per_dn")
 
     # ------------------------------------------------------------------ derived constants
     @property

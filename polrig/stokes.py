@@ -53,6 +53,13 @@ def ideal_inverse() -> np.ndarray:
 
 _IDEAL_INVERSE = np.round(np.linalg.pinv(ideal_analyzer_matrix()), 12)
 
+#: Largest condition number of a calibrated pixel's analyzer matrix (upper bound, see
+#: :func:`_pixel_pseudo_inverse`) that a :class:`StokesSolver` accepts. Ideal analyzers give
+#: 1.9; diattenuation ``D`` with ideal angles gives about ``2.4 / D``, so 50 admits ``D >= 0.05``
+#: (real micro-polarizers: 0.95-0.99) and refuses near-degenerate angle sets, where a 1 DN
+#: noise would already move DoLP by tens of percent.
+MAX_ANALYZER_CONDITION = 50.0
+
 
 class StokesSolver:
     """Analyzer images -> Stokes images, with per-pixel pseudo-inverses computed once.
@@ -170,7 +177,11 @@ class StokesSolver:
 def _pixel_pseudo_inverse(a: list[np.ndarray]) -> np.ndarray:
     """Per-pixel ``(A^T A)^-1 A^T`` of 4x3 matrices given as planes ``a[j][:, k]`` (row k,
     column j), computed in float64 with the adjugate of the 3x3 normal matrix.
-    Returns ``(C, 3, 4, h, w)``; raises ``ValueError`` where a matrix is singular."""
+
+    Returns ``(C, 3, 4, h, w)``; raises ``ValueError`` where a matrix is singular or so
+    ill-conditioned that noise would swamp the Stokes vector: the condition number of ``A``,
+    bounded above by ``sqrt(||N||_F ||N^-1||_F)`` (``N = A^T A``, at most ``sqrt(3)`` times the
+    2-norm value), must not exceed :data:`MAX_ANALYZER_CONDITION` (ideal analyzers: 1.9)."""
     A = np.stack(a, axis=2).astype(np.float64)  # (C, 4, 3, h, w): A[:, k, j]
     n = np.einsum("ckihw,ckjhw->cijhw", A, A)  # normal matrix (C, 3, 3, h, w)
     adj = np.empty_like(n)
@@ -186,6 +197,14 @@ def _pixel_pseudo_inverse(a: list[np.ndarray]) -> np.ndarray:
     if bad.any():
         raise ValueError(f"analyzer model is singular at {int(bad.sum())} output pixels "
                          f"(diattenuation or analyzer angles degenerate)")
+    frob = lambda x: np.sqrt(np.einsum("cijhw,cijhw->chw", x, x))  # noqa: E731
+    with np.errstate(all="ignore"):
+        cond = np.sqrt(frob(n) * frob(adj) / np.abs(det))
+    ill = ~(cond <= MAX_ANALYZER_CONDITION)
+    if ill.any():
+        raise ValueError(f"analyzer model is ill-conditioned at {int(ill.sum())} output pixels "
+                         f"(condition number up to {np.nanmax(np.where(ill, cond, np.nan)):.3g}, limit "
+                         f"{MAX_ANALYZER_CONDITION:g}: diattenuation too low or analyzer angles nearly degenerate)")
     inv = adj / det[:, None, None]
     return np.einsum("cijhw,ckjhw->cikhw", inv, A).astype(np.float32)
 
@@ -232,7 +251,9 @@ def _planes(x: np.ndarray) -> np.ndarray:
 def dolp_with_overshoot(stokes: np.ndarray, valid: np.ndarray | None = None
                         ) -> tuple[np.ndarray, int]:
     """DoLP ``sqrt(S1^2 + S2^2) / S0`` ``(C, H, W)`` float32 in [0, 1] and the number of valid
-    pixels where noise pushed it above 1 (clipped to 1 there). 0 where invalid."""
+    pixels where noise pushed it above 1 (clipped to 1 there). 0 where invalid, and also where
+    a caller's ``valid`` lets through a pixel with ``S0 <= 0`` or a non-finite value (negative
+    or NaN quotients), so the range holds whatever mask is passed."""
     s = np.asarray(stokes, dtype=np.float32)
     if valid is None:
         valid = stokes_validity(s)
@@ -246,6 +267,7 @@ def _dolp_from_magnitude(mag: np.ndarray, s0: np.ndarray, valid: np.ndarray
     with np.errstate(all="ignore"):
         np.divide(d, s0, out=d)
     np.copyto(d, 0, where=~valid)
+    np.fmax(d, 0, out=d)  # NaN and negative quotients -> 0 (fmax ignores NaN)
     over = d > 1
     n_over = int(np.count_nonzero(over))
     if n_over:

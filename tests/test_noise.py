@@ -27,7 +27,9 @@ def test_defaults_and_derived_constants():
 
 @pytest.mark.parametrize("kwargs", [dict(bit_depth=0), dict(bit_depth=17), dict(full_well_e=-1),
                                     dict(read_noise_e=np.nan), dict(gain_e_per_dn=0.0),
-                                    dict(quantum_efficiency=1.5), dict(black_level_dn=5000)])
+                                    dict(quantum_efficiency=1.5), dict(black_level_dn=5000),
+                                    # every sample, even a dark one, would count as saturated:
+                                    dict(bit_depth=1), dict(full_well_e=10, read_noise_e=50)])
 def test_invalid_parameters_raise_config_error(kwargs):
     with pytest.raises(ConfigError):
         SensorModel(**kwargs)

@@ -116,6 +116,24 @@ def test_solver_rejects_wrong_grid_and_singular_models():
         stokes_from_raw(np.zeros((8, 8)), "imx250mzr", "bilinear", analyzer=solver)
 
 
+def test_solver_refuses_ill_conditioned_analyzers_and_accepts_weak_ones():
+    """Analyzer angles 0/1/2/3 deg instead of 0/45/90/135 are not singular, but the solve
+    amplifies 1 DN of noise into a DoLP of 0.4 on unpolarized light: refused with the
+    condition number, not returned as Stokes images. Weak polarizers (D = 0.1) are kept."""
+    ideal = AnalyzerModel.ideal("imx250mzr", (8, 8))
+    squeezed = ideal.angle_deg.copy()
+    for nominal, angle in zip((0, 45, 90, 135), (0, 1, 2, 3)):
+        squeezed[ideal.angle_deg == nominal] = angle
+    bad = AnalyzerModel(ideal.layout, ideal.gain, squeezed, ideal.diattenuation, ideal.offset_dn)
+    with pytest.raises(ValueError, match="ill-conditioned at 16 output pixels"):
+        StokesSolver(bad, "superpixel")
+    weak = AnalyzerModel(ideal.layout, ideal.gain, ideal.angle_deg, np.full((8, 8), 0.1), ideal.offset_dn)
+    s = np.array([1000.0, 30.0, -20.0])
+    raw = np.einsum("hwk,k->hw", weak.rows(), s).astype(np.float32)
+    got = stokes_from_raw(raw, "imx250mzr", "superpixel", analyzer=weak, bit_depth=16).stokes
+    np.testing.assert_allclose(got[0, :, 1, 1], s, rtol=1e-4)
+
+
 def test_dolp_aolp_closed_forms():
     aolp_true = np.array([0.0, 10.0, 45.0, 89.9, 90.0, 135.0, 179.9])
     d_true = np.linspace(0.05, 1.0, aolp_true.size)
@@ -145,6 +163,14 @@ def test_overshoot_is_clipped_and_counted():
     d, n = dolp_with_overshoot(s)
     assert n == 1
     np.testing.assert_allclose(d[0, 0], [1.0, 0.5, 0.9], atol=1e-6)
+
+
+def test_dolp_stays_in_range_whatever_valid_mask_is_passed():
+    """A caller's mask (here: everything valid) that lets through S0 <= 0 or NaN still gives a
+    DoLP in [0, 1], 0 there (it used to return NaN for S = 0 and -0.5 for S0 = -1)."""
+    s = np.array([[[[0.0, -1.0, np.nan, 2.0]], [[0.0, 0.5, 0.1, 1.0]], [[0.0, 0.0, 0.0, 0.0]]]], np.float32)
+    d = dolp(s, np.ones((1, 1, 4), bool))
+    np.testing.assert_array_equal(d[0, 0], [0.0, 0.0, 0.0, 0.5])
 
 
 def test_polarized_split_adds_up():
