@@ -345,7 +345,14 @@ def filter_linear(m3: np.ndarray, completion: str = "max_min_eigenvalue") -> np.
     with zero circular couplings (the clipping commutes with the symmetry ``M -> D M D``,
     ``D = diag(1, 1, 1, -1)``), so the result is realizable under the same kind of completion.
     Non-finite blocks give the zero block. Returns float64.
+
+    Only the ``"max_min_eigenvalue"`` completion is accepted: the filtered 4x4 matrix has its
+    own ``m33``, which the ``"zero"`` completion would drop again (the result failed its own
+    test, and repeated filtering kept changing physical blocks such as the identity).
     """
+    if completion != "max_min_eigenvalue":
+        raise ValueError(f"filter_linear needs the 'max_min_eigenvalue' completion, got {completion!r}: "
+                         f"under the zero completion (m33 = 0) a filtered block is not realizable again")
     m3 = _as_matrices(m3, 3)
     mz, finite = _finite_or_zero(m3)
     out = mz.reshape(-1, 3, 3).copy()

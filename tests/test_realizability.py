@@ -153,6 +153,14 @@ def test_filter_linear_returns_realizable_blocks(m3):
     assert (ev_opt >= ev_zero - 1e-9 * (1 + np.abs(m3).max())).all()
 
 
+def test_filter_linear_refuses_the_zero_completion():
+    """Filtering under m33 = 0 would Cloude-filter to a matrix with m33 != 0 and then drop it:
+    the identity came back as diag(1.25, 0.75, 0.75), not realizable under that completion."""
+    assert rz.filter_linear(np.eye(3)) == pytest.approx(np.eye(3))
+    with pytest.raises(ValueError, match="max_min_eigenvalue"):
+        rz.filter_linear(np.eye(3), completion="zero")
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_nonfinite_input_gives_false_and_finite_output(bad):
     m = np.stack([np.eye(4), np.eye(4)])
