@@ -60,6 +60,12 @@ SCALE_PERCENTILE = 99.5
 DEFAULT_STAGE_ZERO_AXIS = (0.0, -1.0, 0.0)
 #: Fraction of the 99th percentile of S0 below which a pixel is background when no mask is given.
 MASK_FRACTION = 0.02
+#: Largest normalised level (the in-mask 99.5th percentile divided by a caller's ``scale``)
+#: that :meth:`SingleShotModel.reconstruct` accepts; the training data sit at 1.
+MAX_INPUT_LEVEL = 100.0
+#: Noise standard deviations above the darkest percentile of S0 that a small object's pixels
+#: must reach (:func:`default_mask`).
+MASK_NOISE_SIGMAS = 6.0
 #: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
 DEFAULT_FOCAL_PER_PX = 2.5
 #: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
@@ -138,13 +144,30 @@ def stokes_s0(analyzer: np.ndarray) -> np.ndarray:
 
 
 def default_mask(analyzer: np.ndarray, fraction: float = MASK_FRACTION) -> np.ndarray:
-    """Object mask ``(H, W)`` bool: finite pixels whose mean S0 exceeds ``fraction`` of the
-    99th percentile of S0 (a lit object on a dark background)."""
+    """Object mask ``(H, W)`` bool for a lit object on a dark background: finite pixels whose
+    mean S0 exceeds ``fraction`` of a reference level, the 99th percentile of S0.
+
+    Where fewer than 1 % of the pixels are lit (a small object), that percentile is background:
+    the reference is then the 99th percentile of the pixels above the noise floor, and the mask
+    keeps only pixels above the floor too. The floor is the 1st percentile of S0 plus
+    :data:`MASK_NOISE_SIGMAS` noise sigmas, the noise estimated from horizontal neighbour
+    differences (``1.4826 MAD / sqrt 2``; a dark background is flat, so its differences are
+    noise). Where nothing is above the floor (a black frame, or a texture as rough as noise
+    filling the frame), the 99th-percentile rule stands."""
     s0 = np.mean(stokes_s0(analyzer), axis=0)
     finite = np.isfinite(s0)
     if not finite.any():
         return np.zeros(s0.shape, bool)
-    ref = np.percentile(s0[finite], 99.0)
+    vals = s0[finite]
+    diff = np.diff(s0, axis=-1)
+    diff = np.abs(diff[np.isfinite(diff)])
+    noise = 1.4826 * float(np.median(diff)) / np.sqrt(2.0) if diff.size else 0.0
+    floor = float(np.percentile(vals, 1.0)) + MASK_NOISE_SIGMAS * noise
+    ref = float(np.percentile(vals, 99.0))
+    if not ref > floor:  # fewer than 1 % of the pixels lit: the percentile is background
+        lit = vals[vals > floor]
+        if lit.size:
+            return finite & (s0 > max(fraction * float(np.percentile(lit, 99.0)), floor))
     return finite & (s0 > fraction * ref) if ref > 0 else np.zeros(s0.shape, bool)
 
 
@@ -343,6 +366,10 @@ class SingleShotModel:
         sc = default_scale(a, m) if scale is None else float(scale)
         if not (np.isfinite(sc) and sc > 0):
             raise ValueError(f"scale must be a positive number, got {scale!r}")
+        if scale is not None and not default_scale(a, m) / sc <= MAX_INPUT_LEVEL:
+            raise ValueError(f"scale {sc:g} DN per unit puts the capture's bright pixels at "
+                             f"{default_scale(a, m) / sc:.3g} normalised units, the networks were trained at 1; "
+                             f"leave the scale unset to take it from the image")
         if stage_zero_axis is None:
             stage_zero_axis = self.meta.get("stage_zero_axis_camera", DEFAULT_STAGE_ZERO_AXIS)
         wo = view_directions((h, w), intrinsics)

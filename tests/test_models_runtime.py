@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from models.runtime import WEIGHTS_DIR, SingleShotModel, default_scale, view_directions
+from models.runtime import WEIGHTS_DIR, SingleShotModel, default_mask, default_scale, view_directions
 from polrig import realizability
 
 pytest.importorskip("onnxruntime")
@@ -95,6 +95,50 @@ def test_bad_input_is_a_clear_error(model):
     assert np.all(np.isfinite(out)) and not aux["mask"].any()
     with pytest.raises(FormatError, match="or 1, a mono sensor"):
         model.reconstruct(np.zeros((2, 4, 8, 8), np.float32), [0.5, 0.5, 0])
+
+
+def test_a_scale_far_from_the_training_level_is_refused(model):
+    """An explicit scale that puts the capture thousands of times above the training level
+    (DN passed as if normalised) or overflows float32 (NaN output) is a clear error."""
+    img = np.random.default_rng(4).uniform(100, 3000, (3, 4, 16, 16)).astype(np.float32)
+    for bad in (1.0, 1e-20):
+        with pytest.raises(ValueError, match="normalised units"):
+            model.reconstruct(img, [0.5, 0.5, 0], scale=bad)
+    out, _ = model.reconstruct(img, [0.5, 0.5, 0], scale=default_scale(img, np.ones((16, 16), bool)) / 2)
+    assert np.isfinite(out).all()
+
+
+def _object_on_background(obj_px: int, noise_dn: float, size: int = 128, seed: int = 0) -> tuple:
+    rng = np.random.default_rng(seed)
+    img = rng.normal(0.0, noise_dn, (3, 4, size, size)) if noise_dn else np.zeros((3, 4, size, size))
+    truth = np.zeros((size, size), bool)
+    truth[40:40 + obj_px, 50:50 + obj_px] = True
+    img[:, :, truth] += rng.uniform(800, 2000, (3, 4, int(truth.sum())))
+    return img.astype(np.float32), truth
+
+
+@pytest.mark.parametrize("obj_px, noise_dn", [(12, 0.0), (10, 2.0), (6, 2.0), (60, 0.0), (60, 2.0)])
+def test_default_mask_finds_small_and_large_objects(obj_px, noise_dn):
+    """A lit object below 1 % of the frame used to give an empty mask on a black background
+    (the 99th percentile was background) or the whole frame on a noisy one; larger objects
+    keep the rule they had (S0 above 2 % of the frame's 99th percentile)."""
+    img, truth = _object_on_background(obj_px, noise_dn)
+    got = default_mask(img)
+    assert np.count_nonzero(got & ~truth) <= 5
+    assert np.count_nonzero(truth & ~got) == 0
+    if obj_px == 60:
+        s0 = 0.5 * img.sum(axis=1).mean(axis=0)
+        np.testing.assert_array_equal(got, s0 > 0.02 * np.percentile(s0, 99))
+    assert not default_mask(np.zeros_like(img)).any()
+    texture = np.random.default_rng(1).uniform(100, 3000, img.shape).astype(np.float32)
+    assert default_mask(texture).all()  # a frame-filling texture as rough as noise: all object
+
+
+def test_small_object_reconstructs(model):
+    img, truth = _object_on_background(12, 0.0)
+    out, aux = model.reconstruct(img, [0.5, 0.5, 0])
+    np.testing.assert_array_equal(aux["mask"], truth)
+    assert np.abs(out[..., truth]).max() > 0 and np.all(out[..., ~truth] == 0)
 
 
 def test_mono_analyzer_is_the_grey_scene_averaged_back_to_one_colour(model, capture):
