@@ -6,6 +6,15 @@ opened, :class:`DeviceTimeout` when nothing arrives in time, :class:`ProtocolErr
 reply starts but never completes (partial reply), :class:`DeviceDisconnected` when the port
 goes away (the port is then closed, so it is released to the operating system).
 
+A reply that has started when the deadline passes is not cut off: it may go on as long as
+its bytes keep coming, each within an inter-byte timeout of the previous one (64 character
+times at the line rate, at least 0.1 s: a USB bridge delivers a reply in chunks up to its
+latency timer, 16 ms on FTDI chips, apart). Only a reply that stops mid-way for longer is a
+partial reply. Without this grace a reply whose first byte arrived just before the deadline
+was reported as partial although the rest was already in the buffer. Likewise bytes already
+waiting in the input buffer when the deadline passes arrived in time: they are read, not
+reported missing.
+
 Ports are opened with ``exclusive=True`` (pyserial: ``TIOCEXCL`` plus an advisory ``flock``)
 so two programs never talk to one device at once. Reference: pyserial 3.5 API documentation
 (``serial.Serial``), https://pyserial.readthedocs.io/en/latest/pyserial_api.html.
@@ -23,6 +32,33 @@ from polrig.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout, Pro
 # what pyserial lets through when a port vanishes (tcdrain raises termios.error, not OSError)
 _LOST = (serial.SerialException, OSError, termios.error)
 
+# Inter-byte timeout of a reply that has started: this many character times (10 bits each,
+# 8N1) at the line rate, and never less than MIN_INTER_BYTE_S.
+INTER_BYTE_CHARS = 64
+MIN_INTER_BYTE_S = 0.1
+
+
+class _ReplyClock:
+    """Deadline of one read: ``timeout_s`` for the reply to start; once bytes have come, the
+    read only expires after the deadline *and* ``inter_byte_s`` without a new byte.
+    ``started``: the reply began before this read (e.g. the data after a frame header)."""
+
+    def __init__(self, timeout_s: float, inter_byte_s: float, started: bool = False):
+        now = time.monotonic()
+        self.deadline = now + timeout_s
+        self.inter_byte_s = inter_byte_s
+        self.last_byte: float | None = now if started else None
+
+    def got(self, n: int) -> None:
+        if n:
+            self.last_byte = time.monotonic()
+
+    def expired(self) -> bool:
+        now = time.monotonic()
+        if now <= self.deadline:
+            return False
+        return self.last_byte is None or now - self.last_byte > self.inter_byte_s
+
 
 class SerialLink:
     """One serial port with deadline-bounded reads.
@@ -31,12 +67,15 @@ class SerialLink:
     """
 
     def __init__(self, port: str, *, baudrate: int, device: str, rtscts: bool = False,
-                 poll_s: float = 0.02):
+                 poll_s: float = 0.02, inter_byte_s: float | None = None):
         self.port = port
         self.baudrate = baudrate
         self.device = device
         self.rtscts = rtscts
         self._poll_s = poll_s
+        # how long a started reply may pause between bytes once the deadline has passed
+        self.inter_byte_s = (float(inter_byte_s) if inter_byte_s is not None
+                             else max(MIN_INTER_BYTE_S, INTER_BYTE_CHARS * 10.0 / baudrate))
         self._ser: serial.Serial | None = None
 
     @property
@@ -100,38 +139,47 @@ class SerialLink:
         except _LOST as exc:
             raise self._lost(exc) from None
 
-    def read_exact(self, n: int, timeout_s: float, what: str = "reply") -> bytes:
-        """Read exactly ``n`` bytes before ``timeout_s`` runs out."""
+    def read_exact(self, n: int, timeout_s: float, what: str = "reply", *,
+                   started: bool = False) -> bytes:
+        """Read exactly ``n`` bytes: they must start before ``timeout_s`` runs out, and a
+        reply that has started may finish within the inter-byte timeout after that.
+        ``started=True``: these bytes continue a reply already under way (the data after a
+        frame header), so they get the inter-byte timeout even when ``timeout_s`` is spent."""
         ser = self._require()
-        deadline = time.monotonic() + timeout_s
+        clock = _ReplyClock(timeout_s, self.inter_byte_s, started)
         buf = bytearray()
         while len(buf) < n:
-            if time.monotonic() > deadline:
-                self._raise_incomplete(bytes(buf), timeout_s, what)
-            try:
-                buf += ser.read(n - len(buf))
-            except _LOST as exc:
-                raise self._lost(exc) from None
+            self._read_step(ser, clock, buf, n - len(buf), timeout_s, what)
         return bytes(buf)
 
     def read_until(self, terminator: bytes, timeout_s: float, what: str = "reply",
                    max_len: int = 4096) -> bytes:
-        """Read up to and including ``terminator``; return the bytes without it."""
+        """Read up to and including ``terminator``; return the bytes without it. The reply
+        must start before ``timeout_s`` runs out (the inter-byte timeout lets a started one
+        finish)."""
         ser = self._require()
-        deadline = time.monotonic() + timeout_s
+        clock = _ReplyClock(timeout_s, self.inter_byte_s)
         buf = bytearray()
         while not buf.endswith(terminator):
-            if time.monotonic() > deadline:
-                self._raise_incomplete(bytes(buf), timeout_s, what)
             if len(buf) > max_len:
                 raise ProtocolError(f"{what}: no terminator after {len(buf)} bytes",
                                     device=self.device)
-            try:
-                chunk = ser.read(1)
-            except _LOST as exc:
-                raise self._lost(exc) from None
-            buf += chunk
+            self._read_step(ser, clock, buf, 1, timeout_s, what)  # never past the terminator
         return bytes(buf[: -len(terminator)])
+
+    def _read_step(self, ser: serial.Serial, clock: _ReplyClock, buf: bytearray, size: int,
+                   timeout_s: float, what: str) -> None:
+        """One step of a deadline-bounded read: append up to ``size`` bytes to ``buf`` (the
+        port's read blocks at most ``poll_s``), or raise once ``clock`` has expired and
+        nothing is waiting in the input buffer (bytes already there arrived in time)."""
+        try:
+            if clock.expired() and not ser.in_waiting:
+                self._raise_incomplete(bytes(buf), timeout_s, what)
+            chunk = ser.read(size)
+        except _LOST as exc:
+            raise self._lost(exc) from None
+        clock.got(len(chunk))
+        buf += chunk
 
     def _raise_incomplete(self, got: bytes, timeout_s: float, what: str) -> None:
         if got:

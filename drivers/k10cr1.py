@@ -89,7 +89,9 @@ class K10cr1Stage(SerialDevice, RotationStage):
         data = None
         if n:
             try:
-                data = self._link.read_exact(n, timeout_s, what="APT data")
+                # the frame has started: its data get the link's inter-byte timeout even
+                # when the header came at the very end of timeout_s
+                data = self._link.read_exact(n, timeout_s, what="APT data", started=True)
             except DeviceTimeout:
                 self._resync()
                 raise ProtocolError(f"partial APT frame: header 0x{msg_id:04X} announced {n} "

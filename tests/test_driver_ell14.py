@@ -158,3 +158,45 @@ def test_lost_end_of_move_reply(stage, emu):
         stage.move_to(80.0, timeout_s=0.6)
     stage.move_to(90.0)  # a new move right away also recovers
     assert emu.position_deg == pytest.approx(90.0, abs=PULSE_DEG)
+
+
+class SplitReplyEll14(Ell14Emulator):
+    """An ELL14 whose end-of-move reply straddles the driver's 0.25 s polling window: the
+    first byte comes just before the window ends, the rest 50 ms later (as a USB bridge can
+    deliver it)."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self._script: list[tuple[float, bytes]] = []
+
+    def _execute(self, cmd: str, arg: str, now: float) -> None:
+        if cmd != "ma":
+            return super()._execute(cmd, arg, now)
+        self.position_pulses = float(int(arg, 16))
+        reply = f"{self.address}PO{arg}\r\n".encode("ascii")
+        self._script = [(now + 0.235, reply[:1]), (now + 0.285, reply[1:])]
+
+    def tick(self, now: float) -> None:
+        while self._script and self._script[0][0] <= now:
+            self.write_raw(self._script.pop(0)[1])
+
+
+def test_end_of_move_reply_straddling_the_poll_window(tmp_path):
+    """The audit's failure: `polrig move stage 45` against the emulator at speed 0.1 ended
+    with ``partial reply b'0' (incomplete after 0.25 s)``."""
+    with SplitReplyEll14(link=tmp_path / "ell14") as emu, \
+            Ell14Stage(emu.port, reply_timeout_s=0.5) as stage:
+        for angle in (45.0, 90.0, 10.0):
+            stage.move_to(angle, timeout_s=5)
+            assert stage.position_deg() == pytest.approx(angle, abs=PULSE_DEG)
+
+
+def test_end_of_move_reply_that_stops_midway(stage, emu):
+    """A reply that really stops half way is still a ProtocolError (then the device is
+    asked where it is)."""
+    emu.inject("partial")
+    t0 = time.monotonic()
+    with pytest.raises(ProtocolError, match=r"partial reply b'0PO0"):
+        stage.move_to(40.0, timeout_s=5)
+    assert time.monotonic() - t0 < 1.5
+    assert stage.position_deg() == pytest.approx(40.0, abs=PULSE_DEG)

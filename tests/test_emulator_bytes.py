@@ -122,3 +122,20 @@ def test_dc2200_usbtmc_bytes_through_pyusb():
     emu.disconnect()
     with pytest.raises(usb.core.USBError):
         dev.write(0x02, bytes([1, 3, 0xFC, 0, 0, 0, 0, 0, 1, 0, 0, 0]))
+
+
+@pytest.mark.parametrize("module", ["ell14", "grbl", "k10cr1"])
+def test_emulator_help_names_its_own_link(module, capsys, monkeypatch):
+    """Each emulator's --help suggests the link path rig-emulated.toml uses for it."""
+    import importlib
+    import pathlib
+
+    monkeypatch.setenv("COLUMNS", "120")  # argparse wraps help text to the terminal width
+    toml = (pathlib.Path(__file__).resolve().parents[1] / "drivers" / "emulators"
+            / "rig-emulated.toml").read_text()
+    path = f"/tmp/polrig-{module}"
+    assert f"--link {path}" in toml
+    with pytest.raises(SystemExit):
+        importlib.import_module(f"drivers.emulators.{module}").main(["--help"])
+    out = capsys.readouterr().out
+    assert path in out and out.count("/tmp/") == 1

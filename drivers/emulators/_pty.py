@@ -195,7 +195,8 @@ def run_cli(factory, description: str, argv: list[str] | None = None) -> None:
     Prints the pty path (and link) and serves until Ctrl-C.
     """
     parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--link", help="create this symlink to the pty (e.g. /tmp/ell14)")
+    name = getattr(factory, "name", "device")  # example path as in rig-emulated.toml
+    parser.add_argument("--link", help=f"make this symlink to the pty, e.g. /tmp/polrig-{name}")
     parser.add_argument("--speed-factor", type=float, default=1.0,
                         help="multiply the device's motion speed (default 1: real speed)")
     args = parser.parse_args(argv)
