@@ -14,7 +14,8 @@ metadata entry holding its JSON encoding (incident state, calibration id, captur
 Written with the OpenEXR 3.x Python bindings (``OpenEXR.File(header, channels).write``;
 reading ``OpenEXR.File(path, separate_channels=True)``; see the OpenEXR "Python bindings"
 documentation, openexr.com). Writes are atomic (temporary file in the same folder, fsync,
-``os.replace``). Unreadable, truncated, non-EXR files and missing channels raise
+``os.replace``); a write that fails (full disk, read-only folder) raises :class:`OSError` with
+one line naming the file and leaves no temporary file behind. Unreadable, truncated, non-EXR files and missing channels raise
 :class:`polrig.errors.FormatError` with one line naming the file and the problem.
 """
 
@@ -31,7 +32,7 @@ import OpenEXR
 
 from polrig.conventions import CONVENTIONS_VERSION, MONO, RGB
 from polrig.errors import FormatError
-from polrig.rawio import temporary_sibling
+from polrig.rawio import check_input_file, temporary_sibling, write_error
 
 PathLike = str | os.PathLike
 _PREFIX = "polrig:"
@@ -138,15 +139,33 @@ def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | N
             raise ValueError(f"metadata {key!r} is not JSON-serialisable: {exc}") from None
     tmp = str(temporary_sibling(path))
     try:
-        OpenEXR.File(header, chans).write(tmp)
+        try:
+            OpenEXR.File(header, chans).write(tmp)
+        except RuntimeError as exc:  # OpenEXR reports I/O failures (full disk, ...) this way
+            raise OSError(f"{path}: cannot write the OpenEXR file "
+                          f"({_openexr_reason(exc, tmp)})") from None
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and tmp in str(exc):
+            raise write_error(path, exc) from None  # name the user's file, not the temporary one
         raise
     return path
+
+
+def _openexr_reason(exc: RuntimeError, tmp: str) -> str:
+    """The operating system's reason in an OpenEXR write error, without the temporary name:
+    ``Failed to write pixel data to image file "x.tmp.exr". No space left on device.`` ->
+    ``No space left on device``."""
+    text = (str(exc).splitlines() or [""])[0]
+    quoted = f'"{tmp}"'
+    if quoted in text:
+        head, _, tail = text.partition(quoted)
+        text = tail.strip(" .") or head.strip(" .")
+    return text.replace(tmp, "").strip(" .") or type(exc).__name__
 
 
 def _json_default(o: Any) -> Any:
@@ -202,8 +221,7 @@ def _merge_extra(planes: dict[str, np.ndarray], extra: Mapping[str, np.ndarray] 
 def read_exr(path: PathLike) -> ExrImage:
     """Read every channel (float32 ``(H, W)``) and the polrig metadata of an EXR file."""
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
+    check_input_file(path)
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic != b"\x76\x2f\x31\x01":  # OpenEXR magic number 20000630, little-endian

@@ -33,19 +33,25 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
     then ``os.replace``. The temporary file is removed if anything fails."""
     path = pathlib.Path(path)
     tmp = temporary_sibling(path)
-    # os.open with 0o666 honours the umask (tempfile.mkstemp would force 0o600)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    try:
+        # os.open with 0o666 honours the umask (tempfile.mkstemp would force 0o600)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
+                     0o666)
+    except OSError as exc:
+        raise write_error(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(exc, OSError):
+            raise write_error(path, exc) from None
         raise
     try:  # make the rename durable; not possible on every platform/filesystem
         dfd = os.open(path.parent or ".", os.O_RDONLY)
@@ -57,6 +63,21 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
         pass
     finally:
         os.close(dfd)
+
+
+def write_error(path: PathLike, exc: OSError) -> OSError:
+    """``exc`` (a failed write of ``path`` or of its temporary sibling) as one line naming
+    ``path``, the file the user asked for, never the internal temporary name; same class and
+    ``errno`` (a full disk stays a failure while running, a missing folder a bad path)."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    if os.path.isdir(path):
+        reason = "is a directory"
+    try:
+        new = type(exc)(f"{path}: cannot write ({reason})")
+    except TypeError:  # an OSError subclass with a constructor of its own
+        new = OSError(f"{path}: cannot write ({reason})")
+    new.errno = exc.errno
+    return new
 
 
 def temporary_sibling(path: PathLike) -> pathlib.Path:
@@ -121,8 +142,7 @@ def read_mosaic(path: PathLike) -> np.ndarray:
     Raises :class:`FormatError` for colour images, other dtypes, unreadable files.
     """
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
+    check_input_file(path)
     suffix = path.suffix.lower()
     if suffix == ".npy":
         try:
@@ -138,6 +158,54 @@ def read_mosaic(path: PathLike) -> np.ndarray:
                           f"{', '.join(RAW_SUFFIXES)}")
     check_mosaic(raw, str(path))
     return raw
+
+
+def check_input_file(path: PathLike) -> None:
+    """:class:`FileNotFoundError` if ``path`` does not exist, :class:`FormatError` if it is a
+    folder or another non-file (both one line naming ``path``)."""
+    p = pathlib.Path(path)
+    if p.is_file():
+        return
+    if p.is_dir():
+        raise FormatError(f"{p}: is a directory, not a file")
+    if p.exists():
+        raise FormatError(f"{p}: not a regular file")
+    raise FileNotFoundError(f"{p}: no such file")
+
+
+def check_bit_depth(raw: np.ndarray, bit_depth: int, what: str, *,
+                    pixel_format: str | None = None, label: str = "bit_depth",
+                    pixel_format_label: str = "pixel_format", exact_dtype: bool = True) -> None:
+    """:class:`FormatError` unless the mosaic ``raw`` can be ``bit_depth``-bit data (and, when
+    ``pixel_format`` names a known mosaic format, data of that format): no value may exceed
+    ``2**bit_depth - 1``, ``uint8`` cannot hold more than 8 bits, and with ``exact_dtype``
+    (what polrig's own frames obey, :mod:`polrig.pixelformats`) 8-bit data comes as ``uint8``
+    and wider data as ``uint16``. ``what`` names the file; ``label`` and
+    ``pixel_format_label`` say where the claims came from (``"bit_depth in f.png.json"``,
+    ``"--bit-depth"``)."""
+    from polrig.pixelformats import get_pixel_format
+
+    dtype = np.dtype(raw.dtype)
+    if pixel_format is not None:
+        try:
+            fmt = get_pixel_format(pixel_format)
+        except FormatError:
+            fmt = None  # a name polrig cannot decode: nothing to compare the file with
+        if fmt is not None and fmt.values_per_pixel == 1 and fmt.dtype != dtype:
+            raise FormatError(f"{what}: the file holds {dtype} data, but {pixel_format_label} "
+                              f"is {pixel_format!r} ({fmt.dtype} data)")
+    bits = int(bit_depth)
+    if not 1 <= bits <= 16:
+        raise FormatError(f"{what}: {label} must be 1..16 bits, got {bit_depth}")
+    need = np.dtype(np.uint8 if bits <= 8 else np.uint16)
+    if dtype != need and (exact_dtype or dtype.itemsize < need.itemsize):
+        raise FormatError(f"{what}: the file holds {dtype} data, but {label} is {bits} "
+                          f"({need} data)")
+    top = 2 ** bits - 1
+    peak = int(raw.max()) if raw.size else 0
+    if peak > top:
+        raise FormatError(f"{what}: the file has values up to {peak}, but {label} is {bits} "
+                          f"(values up to {top})")
 
 
 #: Mosaic layout assumed for a raw frame with neither a sidecar nor an explicit layout (mono IMX250MZR).
@@ -160,16 +228,21 @@ def read_raw(path: PathLike, *, layout: str = DEFAULT_LAYOUT, **meta_defaults: A
 
     Without a sidecar the metadata is synthesised: ``layout`` (default :data:`DEFAULT_LAYOUT`), the
     bit depth of the dtype, ``Mono8``/``Mono16`` pixel format, zero exposure/gain/timestamp;
-    ``meta_defaults`` override those fields. A sidecar that is not valid metadata raises
-    :class:`FormatError`.
+    ``meta_defaults`` override those fields. A sidecar that is not valid metadata, or that
+    contradicts the file (a ``bit_depth``/``pixel_format`` whose dtype or range the data
+    cannot have, :func:`check_bit_depth`), raises :class:`FormatError`.
     """
     raw = read_mosaic(path)
     side = sidecar_path(path)
     if side.is_file():
         try:
-            meta = FrameMeta.from_json(json.loads(side.read_text("utf-8")))
-        except (ValueError, TypeError) as exc:
-            raise FormatError(f"{side}: not valid frame metadata ({exc})") from None
+            doc = json.loads(side.read_text("utf-8"))
+        except (ValueError, OSError) as exc:
+            raise FormatError(f"{side}: not valid frame metadata JSON ({exc})") from None
+        meta = FrameMeta.from_json(doc, source=side)  # FormatError naming the file and key
+        check_bit_depth(raw, meta.bit_depth, str(path), pixel_format=meta.pixel_format,
+                        label=f"bit_depth in {side.name}",
+                        pixel_format_label=f"pixel_format in {side.name}")
     else:
         bits = 8 if raw.dtype == np.uint8 else 16
         fields: dict[str, Any] = dict(frame_id=0, timestamp_s=0.0, exposure_us=0.0, gain_db=0.0,

@@ -122,3 +122,33 @@ def test_missing_file_and_bad_arrays(tmp_path):
                          extra={"S0.Y": np.zeros((4, 4))})
     with pytest.raises(ValueError, match="JSON"):
         write_stokes_exr(tmp_path / "x.exr", np.zeros((1, 3, 4, 4)), metadata={"a": object()})
+
+
+def test_a_failed_write_is_an_oserror_naming_the_file_and_leaves_nothing(tmp_path):
+    """OpenEXR reports I/O failures as RuntimeError naming its temporary file; write_exr
+    turns them into one-line OSErrors naming the file asked for (exit 1 in the CLI). The
+    failure is real: the child process may not write files over 4 kB (a full disk gives
+    "No space left on device" the same way)."""
+    from _cli_helpers import run_with_file_size_limit
+
+    out = tmp_path / "s.exr"
+    code = ("import numpy as np\nfrom polrig.exr import write_stokes_exr\n"
+            "s = np.random.default_rng(0).random((3, 3, 64, 64)).astype(np.float32)\n"
+            "try:\n"
+            f"    write_stokes_exr({str(out)!r}, s)\n"
+            "except OSError as exc:\n"
+            "    print(type(exc).__name__, exc)\n")
+    res = run_with_file_size_limit(code, 4096)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout == f"OSError {out}: cannot write the OpenEXR file (File too large)\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_writing_onto_a_folder_names_the_folder(tmp_path):
+    (tmp_path / "d.exr").mkdir()
+    with pytest.raises(OSError) as ei:
+        write_stokes_exr(tmp_path / "d.exr", np.zeros((1, 3, 4, 4), np.float32))
+    assert str(ei.value) == f"{tmp_path / 'd.exr'}: cannot write (is a directory)"
+    assert [p.name for p in tmp_path.iterdir()] == ["d.exr"]
+    with pytest.raises(FormatError, match="is a directory"):
+        read_exr(tmp_path / "d.exr")
