@@ -227,7 +227,9 @@ def validate_config(data: Mapping[str, Any], registry: Mapping[str, DriverSpec],
         if extra in data:
             out[extra] = dict(data[extra])
     if "sensor_model" in out:
-        _check_sensor_model(out["sensor_model"], where)
+        out["sensor_model"] = _check_sensor_model(out["sensor_model"], where)
+    if "sim" in out:
+        _check_sim(out["sim"], where)
     if "nominal_geometry" in out:
         out["nominal_geometry"] = _check_geometry(out["nominal_geometry"], where)
     return out
@@ -254,24 +256,86 @@ def _check_geometry(table: dict[str, Any], where: str) -> dict[str, list[float]]
         if key == "intrinsics" and not (vals[0] > 0 and vals[1] > 0):
             raise ConfigError(f"{where}[nominal_geometry] intrinsics: focal lengths fx, fy must be > 0, "
                               f"got {_show(value)}")
-        if key == "stage_zero_axis_camera" and not any(vals):
-            raise ConfigError(f"{where}[nominal_geometry] stage_zero_axis_camera: must not be zero")
+        if key == "stage_zero_axis_camera":
+            problem = axis_problem(vals)
+            if problem:
+                raise ConfigError(f"{where}[nominal_geometry] stage_zero_axis_camera: {problem}")
         clean[key] = vals
     return clean
 
 
-def _check_sensor_model(table: dict[str, Any], where: str) -> None:
+def axis_problem(values: Any) -> str | None:
+    """Why ``values`` is not a usable axis direction (three finite numbers, not all zero; the
+    vector's length does not matter), or ``None``. Shared by the rig configuration and the
+    command-line options (``polrig infer --stage-zero-axis``)."""
+    import math
+
+    try:
+        vals = [float(v) for v in values]
+    except (TypeError, ValueError):
+        return "must be three numbers x, y, z"
+    if len(vals) != 3:
+        return "must be three numbers x, y, z"
+    if not all(math.isfinite(v) for v in vals):
+        return "values must be finite"
+    if not any(vals):
+        return "must not be zero"
+    return None
+
+
+#: Types of the :class:`polrig.noise.SensorModel` fields a table may set (``gain_e_per_dn``
+#: may also be ``None``: derived from the full well).
+_SENSOR_MODEL_TYPES = {"full_well_e": float, "read_noise_e": float, "bit_depth": int,
+                       "gain_e_per_dn": float, "dark_current_e_per_s": float,
+                       "black_level_dn": float, "quantum_efficiency": float}
+
+
+def check_sensor_model(table: Any, where: str = "") -> dict[str, Any]:
+    """Check a table of :class:`polrig.noise.SensorModel` fields (the rig configuration's
+    ``[sensor_model]``, the simulated rig's ``sensor_model`` option): known keys, each of its
+    type, then the model's own range checks. Returns the table with ints made floats where
+    the field is a float. :class:`ConfigError` messages start with ``where`` plus the key
+    (``where`` e.g. ``"rig.toml: [sensor_model] "``)."""
     from polrig.noise import SensorModel
 
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{where.rstrip(' .')}: expected a table of sensor model fields, got "
+                          f"{_show(table)}")
     names = [f.name for f in dataclasses.fields(SensorModel)]
-    for key in table:
+    clean: dict[str, Any] = {}
+    for key, value in table.items():
         if key not in names:
-            raise ConfigError(f"{where}[sensor_model] {key}: unknown key{_closest(key, names)}; "
+            raise ConfigError(f"{where}{key}: unknown key{_closest(str(key), names)}; "
                               f"known: {', '.join(names)}")
+        kind = _SENSOR_MODEL_TYPES.get(key, float)
+        if value is None and key == "gain_e_per_dn":  # unset: derived from the full well
+            clean[key] = None
+            continue
+        try:
+            clean[key] = Field(kind).coerce(value)
+        except ValueError as exc:
+            raise ConfigError(f"{where}{key}: {exc}") from None
     try:
-        SensorModel(**table)
+        SensorModel(**clean)
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}[sensor_model]: {exc}") from None
+        text = str(exc)
+        key = next((k for k in names if text.startswith(k)), None)
+        if key is not None:  # the model's message starts with the field it is about
+            raise ConfigError(f"{where}{key}: {text[len(key):].strip()}") from None
+        raise ConfigError(f"{where.rstrip(' .')}: {text}") from None
+    return clean
+
+
+def _check_sensor_model(table: dict[str, Any], where: str) -> dict[str, Any]:
+    return check_sensor_model(table, f"{where}[sensor_model] ")
+
+
+def _check_sim(table: dict[str, Any], where: str) -> None:
+    """The ``[sim]`` table through the simulated rig's own option parser (the one place
+    its options are checked), so errors name the table and key before anything runs."""
+    from sim.options import parse_options
+
+    parse_options(table, where=f"{where}[sim] ")
 
 
 def load_config(path: str | Path, registry: Mapping[str, DriverSpec]) -> RigConfig:

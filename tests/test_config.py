@@ -124,3 +124,67 @@ def test_shipped_example_config_is_valid():
     cfg = load_rig_config(example)
     assert [cfg.driver(k) for k in ("camera", "stage", "turntable", "light")] == \
         ["genicam", "ell14", "grbl", "dc2200"]
+
+
+@pytest.mark.parametrize("toml, pattern", [
+    ("[sim]\nhidden = {stage_zero_offset_deg = [1, 2]}",
+     r"/rig\.toml: \[sim\] hidden\.stage_zero_offset_deg: expected a number, got \[1, 2\]$"),
+    ('[sim]\nseed = "x"', r"/rig\.toml: \[sim\] seed: expected an integer >= 0, got 'x'$"),
+    ("[sim]\nseed = -1", r"/rig\.toml: \[sim\] seed: expected an integer >= 0"),
+    ('[sim]\nhidden = "abc"', r"/rig\.toml: \[sim\] hidden: expected a table"),
+    ('[sim]\nhidden = {extinction_ratio = "x"}',
+     r"/rig\.toml: \[sim\] hidden\.extinction_ratio: expected a number, got 'x'$"),
+    ("[sim]\nhidden = {extinction_ratio = 0.5}", r"\[sim\] hidden\.extinction_ratio: must be > 1"),
+    ("[sim]\nhidden = {turntable_axis = [0, 0, 0]}", r"\[sim\] hidden\.turntable_axis: must not be zero"),
+    ("[sim]\nhidden = {colour_qe = [1, 1]}", r"\[sim\] hidden\.colour_qe: expected a list of 3 numbers"),
+    ("[sim]\nhidden = {analyzer = {gain_sigma = 'a'}}", r"\[sim\] hidden\.analyzer\.gain_sigma: expected a number"),
+    ("[sim]\nhidden = {analyzer = {gain = 1}}", r"\[sim\] hidden\.analyzer\.gain: unknown key"),
+    ("[sim]\nhidden = {secret = 1}", r"\[sim\] hidden\.secret: unknown hidden parameter"),
+    ("[sim]\nsensor_model = {full_well_e = 'x'}", r"\[sim\] sensor_model\.full_well_e: expected a number"),
+    ('[sim]\nsize = "abc"', r"\[sim\] size must be 'WxH'"),
+    ('[sim]\nscene = "teapot"', r"\[sim\] scene: unknown scene 'teapot'"),
+    ('[sim]\ndistribution = "phong"', r"\[sim\] distribution: must be one of ggx, beckmann"),
+    ("[sim]\nnoise = 1", r"\[sim\] noise: expected true or false, got 1"),
+    ("[sim]\nexposure_us = -5", r"\[sim\] exposure_us: must be > 0"),
+    ("[sim]\nexposure_us = nan", r"\[sim\] exposure_us: must be a finite number"),
+    ("[sim]\nspeed = 3", r"\[sim\] speed: unknown simulated-rig option"),
+    ('[sensor_model]\nfull_well_e = "x"', r"/rig\.toml: \[sensor_model\] full_well_e: expected a number, got 'x'$"),
+    ("[sensor_model]\nbit_depth = 12.5", r"\[sensor_model\] bit_depth: expected an integer"),
+    ("[sensor_model]\nbit_depth = 40", r"\[sensor_model\] bit_depth: must be an integer in 1\.\.16"),
+    ("[sensor_model]\nread_noise_e = nan", r"\[sensor_model\] read_noise_e: must be >= 0 and finite"),
+])
+def test_sim_and_sensor_model_tables_name_table_and_key(tmp_path, toml, pattern):
+    """The [sim] table goes through the simulated rig's own option parser at validation time
+    (bad values used to surface as TypeErrors in build_world, or as one-liners naming neither
+    table nor key, once devices were already being opened)."""
+    with pytest.raises(ConfigError, match=pattern) as ei:
+        load_rig_config(write(tmp_path, toml))
+    assert "\n" not in str(ei.value) and str(ei.value).startswith(str(tmp_path / "rig.toml"))
+
+
+def test_good_sim_table_is_kept_as_written(tmp_path):
+    cfg = load_rig_config(write(tmp_path, """
+        [sim]
+        size = "64x48"
+        seed = 3
+        clock_speed = inf
+        hidden = {extinction_ratio = 1e12, ideal_analyzer = true, turntable_axis = [0, 0, 1]}
+        sensor_model = {full_well_e = 9000}
+        [sensor_model]
+        full_well_e = 9000
+        """))
+    assert cfg["sim"]["size"] == "64x48" and cfg["sim"]["hidden"]["ideal_analyzer"] is True
+    assert cfg["sensor_model"] == {"full_well_e": 9000.0}
+    with open_rig(write(tmp_path, '[sim]\nsize = "64x48"\nclock_speed = inf\n')) as rig:
+        assert rig.camera.grab().raw.shape == (48, 64)
+
+
+def test_devices_checks_the_sim_table_before_printing_anything(tmp_path, capsys):
+    from polrig.cli import main
+
+    path = write(tmp_path, "[sim]\nhidden = {stage_zero_offset_deg = [1, 2]}\n")
+    assert main(["devices", "--config", str(path)]) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == (f"polrig: error: {path}: [sim] hidden.stage_zero_offset_deg: expected a "
+                   f"number, got [1, 2]\n")
