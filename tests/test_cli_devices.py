@@ -170,3 +170,44 @@ def test_emulator_cli_and_polrig_in_separate_processes(tmp_path):
     finally:
         emu.terminate()
         emu.wait(timeout=5)
+
+
+@pytest.mark.parametrize("argv", [["move", "stage", "10", "--timeout", "-1"],
+                                  ["move", "stage", "10", "--timeout", "nan"],
+                                  ["move", "turntable", "10", "--timeout", "0"],
+                                  ["home", "stage", "--timeout", "inf"],
+                                  ["snap", "--out", "x.png", "--timeout", "-3"],
+                                  ["snap", "--out", "x.png", "--exposure-us", "nan"]])
+def test_absurd_timeouts_and_exposures_are_usage_errors(tmp_path, capsys, monkeypatch, argv):
+    """``--timeout -1`` used to fail after opening the device ("did not end within -1 s"),
+    ``--timeout nan`` to pass; now both stop in argument parsing (exit 2) naming the option."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"error: argument {argv[-2]}: " in last
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_snap_never_replaces_a_raw_frame(tmp_path, capsys):
+    """A second snap onto the same name, or onto a name whose previews an earlier snap wrote,
+    is refused before the camera is touched (exit 2); ``--overwrite`` replaces on purpose."""
+    cfg = config(tmp_path, '[sim]\nsize = "32x32"\nclock_speed = inf\n')
+    first = tmp_path / "sn.png"
+    rc, _, err = run(capsys, "snap", "--out", str(first), "--config", cfg)
+    assert rc == 0, err
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(before) == ["rig.toml", "sn.png", "sn.png.json", "sn_aolp.png", "sn_dolp.png",
+                              "sn_s0.png"]
+    rc, out, err = run(capsys, "snap", "--out", str(first), "--config", cfg)
+    assert rc == 2 and out == "" and err.count("\n") == 1
+    assert f"{first} already exists" in err and "--overwrite" in err
+    rc, out, err = run(capsys, "snap", "--out", str(tmp_path / "sn.npy"), "--config", cfg)
+    assert rc == 2 and f"{tmp_path / 'sn_s0.png'} already exists" in err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    rc, out, err = run(capsys, "snap", "--out", str(first), "--overwrite", "--config", cfg)
+    assert rc == 0, err
+    (tmp_path / "folder.png").mkdir()
+    rc, _, err = run(capsys, "snap", "--out", str(tmp_path / "folder.png"), "--config", cfg)
+    assert rc == 2 and f"--out {tmp_path / 'folder.png'} is a directory" in err

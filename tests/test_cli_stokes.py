@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -105,16 +106,91 @@ def test_roi_offset_changes_the_phase(tmp_path):
     (["--out", "{tmp}/o.exr", "--roi-offset", "a,b", "{raw}"], "--roi-offset"),
     (["--out", "{tmp}/o.exr", "{rgb}"], "one channel"),
     (["--out", "{tmp}/nowhere/o.exr", "{raw}"], "does not exist"),
+    (["--out", "{tmp}/outdir.exr", "{raw}"], "outdir.exr is a directory"),
+    (["--out", "{tmp}/o.exr", "{tmp}/adir.png"], "adir.png: is a directory"),
+    (["--out", "{tmp}/o.exr", "--black-level", "1e9", "{raw}"], "--black-level 1e+09 DN is not below"),
+    (["--out", "{tmp}/o.exr", "--bit-depth", "8", "{raw}"], "but --bit-depth is 8"),
+    (["--out", "{tmp}/o.exr", "--bit-depth", "12", "{raw8}"], "uint8 data, but --bit-depth is 12"),
 ])
 def test_bad_input_gives_one_line_error(tmp_path, capsys, args, needle):
     raw = tmp_path / "raw.png"
     cv2.imwrite(str(raw), _polarized_raw())
+    raw8 = tmp_path / "raw8.png"
+    cv2.imwrite(str(raw8), np.full((8, 8), 100, np.uint8))
     rgb = tmp_path / "rgb.png"
     cv2.imwrite(str(rgb), np.zeros((8, 8, 3), np.uint8))
-    argv = ["stokes"] + [a.format(tmp=tmp_path, raw=raw, rgb=rgb) for a in args]
+    (tmp_path / "outdir.exr").mkdir()
+    (tmp_path / "adir.png").mkdir()
+    argv = ["stokes"] + [a.format(tmp=tmp_path, raw=raw, raw8=raw8, rgb=rgb) for a in args]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("polrig: error:") and needle in err and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir.png", "outdir.exr", "raw.png",
+                                                          "raw8.png", "rgb.png"]
+
+
+@pytest.mark.parametrize("option,value", [("--black-level", "nan"), ("--black-level", "-5"),
+                                          ("--black-level", "inf"), ("--bit-depth", "0"),
+                                          ("--bit-depth", "40")])
+def test_absurd_numbers_are_usage_errors(tmp_path, capsys, option, value):
+    raw = tmp_path / "raw.png"
+    cv2.imwrite(str(raw), _polarized_raw())
+    with pytest.raises(SystemExit) as exc:  # argparse: exit 2, the error on its last line
+        main(["stokes", str(raw), option, value, "--out", str(tmp_path / "o.exr")])
+    assert exc.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("polrig stokes: error: argument " + option) and repr(value) in last
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_a_failed_write_is_one_line_exit_1_and_leaves_no_temporary_file(tmp_path):
+    """A write that the operating system refuses (here: the process may not write files over
+    4 kB, a full disk in miniature) is one line naming the output, exit 1 (a failure while
+    running, not bad input), with nothing left behind."""
+    from _cli_helpers import polrig_with_file_size_limit
+
+    raw = np.random.default_rng(0).integers(0, 4000, (32, 40)).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "n.png"), raw)
+    out = tmp_path / "o.exr"
+    res = polrig_with_file_size_limit(["stokes", tmp_path / "n.png", "--out", out], 4096)
+    assert res.returncode == 1, res.stderr
+    assert res.stderr == f"polrig: error: {out}: cannot write the OpenEXR file (File too large)\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["n.png"]
+
+
+@pytest.mark.parametrize("key,value,needle", [
+    ("black_level_dn", None, "black_level_dn: expected a number, got None"),
+    ("black_level_dn", "x", "black_level_dn: expected a number, got 'x'"),
+    ("bit_depth", "twelve", "bit_depth: expected an integer, got 'twelve'"),
+    ("bit_depth", 8, "uint16 data, but bit_depth in frame.png.json is 8"),
+    ("pixel_format", "Mono8", "uint16 data, but pixel_format in frame.png.json is 'Mono8'"),
+])
+def test_a_bad_sidecar_is_one_line_naming_file_and_key(tmp_path, capsys, key, value, needle):
+    meta = FrameMeta(frame_id=7, timestamp_s=1.0, exposure_us=500.0, gain_db=0.0,
+                     pixel_format="Mono16", layout="imx250mzr", bit_depth=16, black_level_dn=0.0)
+    src = tmp_path / "frame.png"
+    write_raw(src, Frame(_polarized_raw(), meta))
+    side = tmp_path / "frame.png.json"
+    doc = json.loads(side.read_text())
+    doc[key] = value
+    side.write_text(json.dumps(doc))
+    assert main(["stokes", str(src), "--out", str(tmp_path / "o.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "frame.png" in err and needle in err
+
+
+def test_an_8_bit_frame_with_a_16_bit_sidecar_is_refused(tmp_path, capsys):
+    """8-bit data whose sidecar says Mono16 / 16 bits / black level 256 used to give a Stokes
+    file with every pixel masked and exit 0."""
+    meta = FrameMeta(frame_id=1, timestamp_s=0.0, exposure_us=500.0, gain_db=0.0,
+                     pixel_format="Mono16", layout="imx250mzr", bit_depth=16, black_level_dn=256.0)
+    src = tmp_path / "frame.png"
+    cv2.imwrite(str(src), np.full((16, 16), 120, np.uint8))
+    (tmp_path / "frame.png.json").write_text(json.dumps(meta.to_json()))
+    assert main(["stokes", str(src), "--out", str(tmp_path / "o.exr")]) == 2
+    err = capsys.readouterr().err
+    assert "frame.png: the file holds uint8 data, but pixel_format in frame.png.json" in err
+    assert not (tmp_path / "o.exr").exists()
 
 
 def test_console_script_help_lists_stokes():

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import sys
 
-from polrig.commands._device_args import add_config_argument
+from polrig.commands._device_args import add_config_argument, positive_float
+from polrig.errors import ConfigError
 
 STEP_CHOICES = ("intrinsics", "turntable", "light", "stokes", "dofp", "all")
 
@@ -34,12 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulated sensor size (simulated rig only; default: the simulated "
                         "rig's, so that captures can use the calibration)")
     p.add_argument("--seed", type=int, default=0, help="simulated rig seed (default 0)")
-    p.add_argument("--sensor-diattenuation", type=float, default=None, metavar="D",
+    p.add_argument("--sensor-diattenuation", type=positive_float, default=None, metavar="D",
                    help="mean micro-polarizer diattenuation of the camera (datasheet), the "
                         "reference of the generator's extinction ratio")
     p.add_argument("--board-png", type=pathlib.Path, default=None, metavar="FILE",
                    help="also write the printable ChArUco board to FILE")
-    p.add_argument("--dpi", type=float, default=300.0, help="DPI of --board-png (default 300)")
+    p.add_argument("--dpi", type=positive_float, default=300.0,
+                   help="DPI of --board-png (default 300)")
     p.set_defaults(func=run)
 
 
@@ -58,6 +61,28 @@ def _mount_for(rig):
     return ask, None
 
 
+def check_out_folder(out: pathlib.Path, flag: str = "--out") -> None:
+    """:class:`ConfigError` (exit 2, one line) unless ``out`` is a folder the calibration set
+    can be written into: an existing writable folder, or a new one whose nearest existing
+    parent is a writable folder. Checked before any calibration runs (on hardware a late
+    failure loses minutes of work)."""
+    out = pathlib.Path(out)
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise ConfigError(f"{flag} {out} exists and is not a folder; give a folder for the "
+                              f"calibration set")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise ConfigError(f"{flag} folder {out} is not writable")
+        return
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{flag} {out} cannot be created: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{flag} {out} cannot be created: folder {parent} is not writable")
+
+
 def run(args: argparse.Namespace) -> int:
     import calibration
     from calibration import runner
@@ -66,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
     from calibration.report import write_report
     from polrig.rig import open_rig
 
+    out: pathlib.Path = args.out
+    check_out_folder(out)
+    if args.board_png is not None and args.board_png.is_dir():
+        raise ConfigError(f"--board-png {args.board_png} is a directory; give a file name")
     steps = list(runner.STEPS) if args.step == "all" else [args.step]
     opts = runner.Options()
     if args.sensor_diattenuation is not None:
@@ -77,7 +106,6 @@ def run(args: argparse.Namespace) -> int:
         write_board_png(opts.board, args.board_png, args.dpi)
         print(f"board: {args.board_png} ({opts.board.squares_x}x{opts.board.squares_y} squares of "
               f"{opts.board.square_m * 1000:g} mm, print at 100 % and {args.dpi:g} dpi)")
-    out: pathlib.Path = args.out
     cs = calibration.load(out) if args.step != "all" and (out / "calibration.json").is_file() \
         else CalibrationSet()
     sim_options = {}

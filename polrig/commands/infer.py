@@ -9,12 +9,9 @@ from __future__ import annotations
 
 import argparse
 
-
-def _vector(text: str) -> tuple[float, float, float]:
-    parts = [float(p) for p in text.split(",")]
-    if len(parts) != 3:
-        raise argparse.ArgumentTypeError("expected three comma-separated numbers x,y,z")
-    return tuple(parts)  # type: ignore[return-value]
+from polrig.commands._device_args import (axis_vector, check_output_file, finite_float,
+                                          nonnegative_float, positive_float)
+from polrig.errors import ConfigError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,22 +21,24 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "known polarizer state, with the single-shot network.")
     p.add_argument("raw", help="raw frame file")
     p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
-    p.add_argument("--state-deg", type=float, required=True, help="polarizer stage angle of the capture (deg)")
+    p.add_argument("--state-deg", type=finite_float, required=True, help="polarizer stage angle of the capture (deg)")
     p.add_argument("--out", required=True, help="output EXR path")
     p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default="superpixel",
                    help="demosaic method (default superpixel: the sensor's native sampling)")
-    p.add_argument("--black-level", type=float, default=None, help="black level in DN (default: the sidecar's)")
-    p.add_argument("--scale", type=float, default=None, help="DN per normalised unit (default: from the image)")
+    p.add_argument("--black-level", type=nonnegative_float, default=None,
+                   help="black level in DN, >= 0 and below the saturation level (default: the sidecar's)")
+    p.add_argument("--scale", type=positive_float, default=None,
+                   help="DN per normalised unit, > 0 (default: from the image)")
     p.add_argument("--calibration", default=None,
                    help="calibration set folder: its camera intrinsics and stage zero axis "
                         "are used")
     p.add_argument("--config", default=None,
                    help="rig configuration TOML: its [nominal_geometry] table (default: the "
                         "simulated rig's design geometry), used where no calibration is given")
-    p.add_argument("--stage-zero-axis", type=_vector, default=None,
+    p.add_argument("--stage-zero-axis", type=axis_vector, default=None,
                    help="polarizer stage zero axis in the camera frame, x,y,z (overrides the "
                         "calibration / rig geometry)")
-    p.add_argument("--saturation-dn", type=float, default=None,
+    p.add_argument("--saturation-dn", type=positive_float, default=None,
                    help="raw value (DN, black level included) at which the sensor clips (default: "
                         "full scale of the frame's bit depth, 2^bits - 1; give 4095 for 12-bit data "
                         "stored in 16-bit files without a sidecar)")
@@ -69,13 +68,14 @@ def run(args: argparse.Namespace) -> int:
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
-    if not out.parent.exists():
-        raise FileNotFoundError(f"output folder {out.parent} does not exist")
-    if args.saturation_dn is not None and not args.saturation_dn > 0:
-        raise ValueError(f"--saturation-dn must be > 0 DN, got {args.saturation_dn:g}")
+    check_output_file(out)
     frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
     layout = args.layout or frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
+    saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
+    if not black < saturation:
+        source = "--black-level" if args.black_level is not None else "the sidecar's black level"
+        raise ConfigError(f"{source} {black:g} DN is not below the saturation level {saturation:g} DN")
     calibration = processing.load_calibration(args.calibration)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
     geometry = processing.single_shot_geometry(calibration, load_rig_config(args.config))
@@ -83,7 +83,6 @@ def run(args: argparse.Namespace) -> int:
     if args.stage_zero_axis is not None:
         kwargs["stage_zero_axis"] = args.stage_zero_axis
     model = SingleShotModel.load(args.weights)
-    saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
     mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
                                black_level_dn=black, scale=args.scale, saturation_dn=saturation,
                                with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
@@ -91,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                                          "layout": str(layout), "demosaic": args.demosaic,
                                          "saturation_dn": saturation, "mirror_average": args.mirror_average})
     t = aux["timings_s"]
-    print(f"wrote {out}: {mueller.shape[-2]}x{mueller.shape[-1]}, {mueller.shape[0]} colour(s), "
+    print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
           f"network {1e3 * t['network']:.1f} ms")
     n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
     if n_clipped:

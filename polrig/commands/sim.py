@@ -12,8 +12,13 @@ resumable training set (:func:`sim.dataset.generate_dataset`).
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import pathlib
 import time
+
+from polrig.commands._device_args import finite_float, positive_float
+from polrig.errors import ConfigError
 
 
 def _states(text: str) -> list[float]:
@@ -21,6 +26,8 @@ def _states(text: str) -> list[float]:
         states = [float(s) for s in text.split(",") if s.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"states must be comma-separated degrees, got {text!r}")
+    if not all(math.isfinite(s) for s in states):
+        raise argparse.ArgumentTypeError(f"states must be finite angles, got {text!r}")
     if not states:
         raise argparse.ArgumentTypeError("give at least one polarizer state")
     return states
@@ -46,13 +53,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--size", default="512x512", help="sensor WxH in pixels (default 512x512)")
     r.add_argument("--states", type=_states, default=[0.0, 45.0, 90.0, 135.0],
                    help="polarizer stage angles in degrees, comma-separated (default 0,45,90,135)")
-    r.add_argument("--pose", type=float, default=0.0, help="turntable angle, degrees")
+    r.add_argument("--pose", type=finite_float, default=0.0, help="turntable angle, degrees")
     r.add_argument("--seed", type=int, default=0, help="noise and hidden-parameter seed")
     r.add_argument("--sensor", default="imx250myr", choices=("imx250myr", "imx250mzr"))
-    r.add_argument("--exposure-us", type=float, default=20000.0)
+    r.add_argument("--exposure-us", type=positive_float, default=20000.0,
+                   help="exposure time in microseconds (default 20000)")
     r.add_argument("--no-noise", action="store_true", help="noise-free frames (rounded means)")
     r.add_argument("--no-exr", action="store_true", help="skip the truth Mueller EXR")
-    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--out", required=True,
+                   help="output folder: new, empty, or an earlier render of the same simulated "
+                        "rig (scene, size, seed, sensor, noise) to add this pose to")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace this pose's frames and truth if --out already has them, or "
+                        "the rig recorded in --out if it is another one")
     r.set_defaults(func=run_render)
 
     d = ss.add_parser("dataset", help="sharded, resumable training set of random scenes",
@@ -86,19 +99,25 @@ def run_render(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file, not a folder")
+    # every option is checked (create_sim_rig) before anything is written
     rig = create_sim_rig({"scene": args.scene, "size": args.size, "seed": args.seed,
                           "sensor": args.sensor, "noise": not args.no_noise,
-                          "clock_speed": float("inf"), "exposure_us": args.exposure_us})
+                          "clock_speed": float("inf"), "exposure_us": args.exposure_us,
+                          "open": False})
+    pose_name = f"pose{args.pose:07.2f}".replace(".", "p").replace("-", "m")
+    names = [f"{pose_name}_state{k:02d}.png" for k in range(len(args.states))]
+    if not args.overwrite:
+        _refuse_to_replace(out, names, pose_name, rig.truth.rig_parameters())
+    out.mkdir(parents=True, exist_ok=True)
     with rig:
         rig.camera.set_pixel_format("Mono16")
         rig.turntable.move_to(args.pose, timeout_s=3600.0)
-        pose_name = f"pose{args.pose:07.2f}".replace(".", "p").replace("-", "m")
         frames = []
-        for k, angle in enumerate(args.states):
+        for angle, name in zip(args.states, names):
             rig.stage.move_to(angle, timeout_s=3600.0)
             frame = rig.camera.grab()
-            name = f"{pose_name}_state{k:02d}.png"
             write_raw(out / name, frame)
             frames.append({"file": name, "stage_deg": angle,
                            "incident_stokes": rig.truth.incident_stokes(angle).tolist()})
@@ -110,6 +129,35 @@ def run_render(args: argparse.Namespace) -> int:
     print(f"polrig sim render: {args.scene} {w}x{h}, {len(frames)} state(s), pose "
           f"{args.pose:g} deg -> {out} ({', '.join(files.values())}) in {dt:.2f} s")
     return 0
+
+
+def _refuse_to_replace(out: pathlib.Path, frame_names: list[str], pose_name: str,
+                       rig_parameters: dict) -> None:
+    """:class:`FileExistsError` (exit 2) unless rendering into ``out`` loses nothing: ``out``
+    is missing or empty, or it is an earlier render (``truth.json``) of the same simulated rig
+    without this pose's files (then this pose is added to it, ``docs/sim.md``)."""
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    index_path = out / "truth.json"
+    if not index_path.is_file():
+        raise FileExistsError(f"--out {out} is not empty and not a 'polrig sim render' folder; "
+                              f"choose a new or empty folder")
+    from sim.truth import _json_default
+
+    for name in [*frame_names, *(f + ".json" for f in frame_names), f"truth_{pose_name}.npz",
+                 f"truth_{pose_name}_mueller.exr"]:
+        if (out / name).exists():
+            raise FileExistsError(f"--out {out} already holds {name} (this pose's capture); "
+                                  f"choose another folder or pass --overwrite")
+    try:
+        recorded = json.loads(index_path.read_text()).get("rig")
+    except (OSError, ValueError, AttributeError):
+        recorded = None
+    ours = json.loads(json.dumps(rig_parameters, default=_json_default))
+    if json.dumps(recorded, sort_keys=True) != json.dumps(ours, sort_keys=True):
+        raise FileExistsError(f"--out {out} holds a render of another simulated rig (scene, "
+                              f"size, seed, sensor or noise differ); choose another folder or "
+                              f"pass --overwrite")
 
 
 def run_dataset(args: argparse.Namespace) -> int:

@@ -8,7 +8,9 @@ from __future__ import annotations
 import argparse
 import pathlib
 
-from polrig.commands._device_args import add_config_argument, add_timeout_argument, identity
+from polrig.commands._device_args import (add_config_argument, add_timeout_argument,
+                                          check_output_file, identity, positive_float,
+                                          refuse_existing)
 from polrig.errors import ConfigError
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
@@ -22,8 +24,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "DoLP and AoLP (superpixel demosaic, ideal analyzers).")
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="FILE",
                    help="raw output file (.png, .tif, .tiff or .npy)")
-    p.add_argument("--exposure-us", type=float, default=None, metavar="US",
+    p.add_argument("--exposure-us", type=positive_float, default=None, metavar="US",
                    help="set the exposure time first (microseconds)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing FILE, its sidecar and previews (default: refuse, "
+                        "so that no raw frame is lost)")
     add_config_argument(p)
     add_timeout_argument(p, 10.0)
     p.set_defaults(func=run)
@@ -32,17 +37,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from polrig.commands.stokes import _write_png  # the stokes command's PNG writer
     from polrig.preview import aolp_rgb, dolp_gray, tone_map
-    from polrig.rawio import write_raw
+    from polrig.rawio import sidecar_path, write_raw
     from polrig.rig import open_device
     from polrig.stokes import stokes_from_raw
 
     out: pathlib.Path = args.out
     if out.suffix.lower() not in RAW_SUFFIXES:
         raise ConfigError(f"--out must end in {', '.join(RAW_SUFFIXES)}, got {out.name}")
-    if not out.parent.is_dir():
-        raise ConfigError(f"--out folder {out.parent} does not exist")
-    if args.exposure_us is not None and not args.exposure_us > 0:
-        raise ConfigError(f"--exposure-us must be positive, got {args.exposure_us}")
+    check_output_file(out)
+    stem = out.with_suffix("")
+    names = {k: stem.with_name(f"{stem.name}_{k}.png") for k in ("s0", "dolp", "aolp")}
+    if not args.overwrite:  # before the camera is touched
+        refuse_existing([out, sidecar_path(out)], what="a raw frame or its sidecar")
+        refuse_existing(names.values(), what="a preview of an earlier snap")
+    for p in (sidecar_path(out), *names.values()):
+        check_output_file(p)
     with open_device(args.config, "camera") as cam:
         if args.exposure_us is not None:
             cam.set_exposure_us(args.exposure_us)
@@ -55,8 +64,6 @@ def run(args: argparse.Namespace) -> int:
                           black_level_dn=m.black_level_dn, bit_depth=m.bit_depth)
     ci = 0 if res.stokes.shape[0] == 1 else 1  # mono Y, or green of a colour sensor
     valid = res.valid[ci]
-    stem = out.with_suffix("")
-    names = {k: stem.with_name(f"{stem.name}_{k}.png") for k in ("s0", "dolp", "aolp")}
     _write_png(names["s0"], tone_map(res.stokes[ci, 0]))
     _write_png(names["dolp"], dolp_gray(res.dolp[ci], valid=valid))
     _write_png(names["aolp"], aolp_rgb(res.aolp_deg[ci], res.dolp[ci], valid=valid))

@@ -10,12 +10,14 @@ import cv2
 import numpy as np
 
 from polrig.analyzer import AnalyzerModel
+from polrig.commands._device_args import check_output_file, int_range, nonnegative_float
 from polrig.demosaic import METHODS
 from polrig.errors import ConfigError
 from polrig.exr import colour_planes, write_stokes_exr
 from polrig.layouts import LAYOUTS
 from polrig.preview import aolp_rgb, dolp_gray
-from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, atomic_write_bytes, read_raw
+from polrig.rawio import (DEFAULT_LAYOUT, assumed_layout_note, atomic_write_bytes,
+                          check_bit_depth, read_raw)
 
 
 def register(subparsers) -> None:
@@ -31,14 +33,16 @@ def register(subparsers) -> None:
                    help="mosaic layout (default: from the sidecar, else imx250mzr, with a note)")
     p.add_argument("--demosaic", choices=METHODS, default="bilinear",
                    help="demosaicing method (default: bilinear)")
-    p.add_argument("--black-level", type=float, default=None, metavar="N",
-                   help="black level in DN to subtract (default: from the sidecar, else 0)")
+    p.add_argument("--black-level", type=nonnegative_float, default=None, metavar="N",
+                   help="black level in DN to subtract, >= 0 and below the full scale "
+                        "(default: from the sidecar, else 0)")
     p.add_argument("--roi-offset", default=None, metavar="X,Y",
                    help="sensor ROI offset of the frame, sets the mosaic phase (default: from "
                         "the sidecar, else 0,0)")
-    p.add_argument("--bit-depth", type=int, default=None, metavar="BITS",
-                   help="significant bits of the raw values; 2**BITS-1 is the saturation "
-                        "level (default: from the sidecar, else the file's dtype)")
+    p.add_argument("--bit-depth", type=int_range(1, 16), default=None, metavar="BITS",
+                   help="significant bits of the raw values, 1..16 (at most 8 for 8-bit "
+                        "files; no value above 2**BITS-1, the saturation level) (default: from "
+                        "the sidecar, else the file's dtype)")
     p.add_argument("--analyzer", type=pathlib.Path, default=None, metavar="NPZ",
                    help="calibrated per-pixel analyzer model (.npz) of this readout")
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="OUT.exr",
@@ -62,8 +66,12 @@ def run(args: argparse.Namespace) -> int:
     out = args.out
     if out.suffix.lower() != ".exr":
         raise ConfigError(f"--out must name an .exr file, got {out}")
-    if not out.parent.is_dir():
-        raise ConfigError(f"--out folder {out.parent} does not exist")
+    check_output_file(out)
+    stem = out.with_suffix("")
+    dolp_png = stem.with_name(stem.name + "_dolp.png")
+    aolp_png = stem.with_name(stem.name + "_aolp.png")
+    for preview in (dolp_png, aolp_png):
+        check_output_file(preview, "--out preview")
     frame = read_raw(args.raw)
     meta = frame.meta
     layout_name = args.layout or meta.layout or DEFAULT_LAYOUT
@@ -71,7 +79,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"unknown layout {layout_name!r} (sidecar of {args.raw})")
     ox, oy = _parse_offset(args.roi_offset) if args.roi_offset else tuple(meta.offset_xy)
     black = meta.black_level_dn if args.black_level is None else args.black_level
-    bits = args.bit_depth or (meta.bit_depth if frame.raw.dtype == np.uint16 else 8)
+    if args.bit_depth is not None:
+        check_bit_depth(frame.raw, args.bit_depth, str(args.raw), label="--bit-depth",
+                        exact_dtype=False)
+    bits = args.bit_depth or meta.bit_depth  # read_raw checked the sidecar's against the data
+    if not black < 2 ** bits - 1:
+        source = "--black-level" if args.black_level is not None else "the sidecar's black level"
+        raise ConfigError(f"{source} {black:g} DN is not below the full scale {2 ** bits - 1} "
+                          f"DN of {bits}-bit data")
     layout = f"{layout_name.split('@')[0].lower()}@{ox},{oy}"
     analyzer = AnalyzerModel.load(args.analyzer) if args.analyzer else None
     res = stokes_from_raw(frame.raw, layout, args.demosaic, black_level_dn=black,
@@ -89,9 +104,6 @@ def run(args: argparse.Namespace) -> int:
     # previews show one colour plane: Y for mono, G (the best-sampled Bayer colour) for colour
     c = res.stokes.shape[0]
     ci = 0 if c == 1 else 1  # green: the best-sampled colour of a Bayer sensor
-    stem = out.with_suffix("")
-    dolp_png = stem.with_name(stem.name + "_dolp.png")
-    aolp_png = stem.with_name(stem.name + "_aolp.png")
     valid = res.valid[ci]
     _write_png(dolp_png, dolp_gray(res.dolp[ci], valid=valid))
     _write_png(aolp_png, aolp_rgb(res.aolp_deg[ci], res.dolp[ci], valid=valid))

@@ -1,0 +1,69 @@
+"""``polrig infer`` on bad input and failed writes: one line, the right exit code, before the
+network runs; its summary line gives the size as WxH, like ``polrig stokes`` and ``--size``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from polrig.cli import main
+
+pytest.importorskip("onnxruntime")
+
+
+@pytest.fixture(scope="module")
+def frame(tmp_path_factory):
+    """A simulated 128x64 (W x H) colour frame with its sidecar."""
+    out = tmp_path_factory.mktemp("render")
+    assert main(["sim", "render", "--size", "128x64", "--states", "0", "--no-exr",
+                 "--out", str(out)]) == 0
+    return next(out.glob("*_state00.png"))
+
+
+def test_summary_gives_width_x_height(frame, tmp_path, capsys):
+    capsys.readouterr()
+    assert main(["infer", str(frame), "--state-deg", "0", "--out", str(tmp_path / "m.exr")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"wrote {tmp_path / 'm.exr'}: 32x16, 3 colour(s)")  # superpixel (4x4 cells) W x H
+
+
+@pytest.mark.parametrize("option,value,needle", [
+    ("--stage-zero-axis", "0,0,0", "must not be zero"),
+    ("--stage-zero-axis", "1,nan,0", "values must be finite"),
+    ("--stage-zero-axis", "1,2", "expected three comma-separated numbers"),
+    ("--black-level", "-1", "must be >= 0"),
+    ("--scale", "0", "must be > 0"),
+    ("--saturation-dn", "nan", "expected a finite number"),
+    ("--state-deg", "inf", "expected a finite number"),
+])
+def test_absurd_numbers_are_usage_errors(frame, tmp_path, capsys, option, value, needle):
+    argv = ["infer", str(frame), "--state-deg", "0", "--out", str(tmp_path / "m.exr")]
+    with pytest.raises(SystemExit) as exc:
+        main(argv + [option, value])
+    assert exc.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"polrig infer: error: argument {option}: ") and needle in last
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_black_level_at_saturation_and_folder_output_are_refused(frame, tmp_path, capsys):
+    base = ["infer", str(frame), "--state-deg", "0"]
+    assert main(base + ["--black-level", "70000", "--out", str(tmp_path / "m.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err == ("polrig: error: --black-level 70000 DN is not below the saturation level "
+                   "65535 DN\n")
+    (tmp_path / "outdir.exr").mkdir()
+    assert main(base + ["--out", str(tmp_path / "outdir.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"polrig: error: --out {tmp_path / 'outdir.exr'} is a directory; give a file name\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["outdir.exr"]
+
+
+def test_a_failed_write_is_one_line_exit_1(frame, tmp_path):
+    from _cli_helpers import polrig_with_file_size_limit
+
+    out = tmp_path / "m.exr"
+    res = polrig_with_file_size_limit(["infer", frame, "--state-deg", "0", "--out", out], 4096)
+    assert res.returncode == 1, res.stderr
+    assert res.stderr == f"polrig: error: {out}: cannot write the OpenEXR file (File too large)\n"
+    assert list(tmp_path.iterdir()) == []
