@@ -195,6 +195,9 @@ def analyzer_grid_intrinsics(intrinsics: Sequence[float], offset_xy: Sequence[in
     ``superpixel`` demosaic of a ``p x p`` mosaic period) has its pixel ``j`` centred on raw
     ``p j + (p - 1) / 2``, so ``f' = f / p`` and ``c' = (c - offset - (p - 1) / 2) / p``.
     A full-resolution grid (``bilinear``, ``newton``) keeps ``f`` and ``c - offset``."""
+    if min(grid_shape[:2]) < 1 or min(raw_shape[:2]) < 1:
+        raise ValueError(f"raw mosaic {tuple(raw_shape)} gives an empty analyzer grid "
+                         f"{tuple(grid_shape)}: it is smaller than one layout cell")
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     ox, oy = (float(v) for v in offset_xy)
     py = raw_shape[0] / float(grid_shape[0])
@@ -211,10 +214,13 @@ def single_shot_kwargs(geometry: dict[str, Any], frame: Frame, method: str = "su
     live single-shot view and ``polrig infer`` can pass these as processing does."""
     from polrig.demosaic import output_shape
 
+    lay = frame_layout(frame)
+    raw_shape = tuple(frame.raw.shape[-2:])
+    ph, pw = lay.period
+    if raw_shape[0] < ph or raw_shape[1] < pw:  # the demosaic's own one-line refusal
+        raise ValueError(f"raw mosaic {raw_shape} is smaller than one {ph}x{pw} layout cell")
     intrinsics = geometry.get("intrinsics")
     if intrinsics is not None:
-        lay = frame_layout(frame)
-        raw_shape = tuple(frame.raw.shape[-2:])
         intrinsics = analyzer_grid_intrinsics(intrinsics, frame.meta.offset_xy, raw_shape,
                                               output_shape(lay, raw_shape, method))
     return {"stage_zero_axis": geometry.get("stage_zero_axis_camera"), "intrinsics": intrinsics}
