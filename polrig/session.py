@@ -13,6 +13,9 @@ A session is a folder holding everything one capture run produced (schema:
 * A capture that did not finish stays ``pending`` (or ``failed`` with a reason);
   :meth:`Session.restart_capture` removes whatever it had written so a resumed session
   re-does it from scratch without duplicating files.
+* A manifest is checked for structural damage (missing keys, wrong types, unsafe paths) in
+  one place, :func:`validate_manifest`, when it is opened: a :class:`FormatError` naming the
+  record, never a ``KeyError`` later.
 
 ``write_hook`` (a callable ``(path, data) -> None`` run before every write) lets tests
 inject write failures such as ``OSError(errno.ENOSPC)`` (a full disk).
@@ -25,8 +28,10 @@ import datetime as _dt
 import errno
 import hashlib
 import json
+import math
 import os
 import pathlib
+import re
 import shutil
 from typing import Any, Callable, Iterator
 
@@ -161,30 +166,21 @@ class Session:
 
     @classmethod
     def open(cls, root: str | os.PathLike, *, write_hook: WriteHook | None = None) -> "Session":
-        """Open an existing session; :class:`FormatError` if ``root`` holds no valid manifest."""
+        """Open an existing session; :class:`FormatError` if ``root`` holds no valid manifest
+        (:func:`validate_manifest`)."""
         root = pathlib.Path(root)
         path = root / MANIFEST_NAME
         if not root.is_dir():
             raise FileNotFoundError(f"{root}: no such session folder")
         if not path.is_file():
             raise FormatError(f"{root}: not a polrig session (no {MANIFEST_NAME})")
-        try:
-            manifest = json.loads(path.read_text("utf-8"))
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise FormatError(f"{path}: not valid JSON ({exc})") from None
-        if not isinstance(manifest, dict) or "captures" not in manifest:
-            raise FormatError(f"{path}: not a polrig session manifest")
-        version = manifest.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise FormatError(f"{path}: session schema version {version!r}, this polrig "
-                              f"reads version {SCHEMA_VERSION}")
-        return cls(root, manifest, write_hook)
+        return cls(root, read_manifest(path), write_hook)
 
     # -- manifest -------------------------------------------------------------------------
     def reload(self) -> None:
         """Replace the in-memory manifest by the one on disk (after a failed save the disk
         copy is the consistent one: every file it names exists completely)."""
-        self.manifest = Session.open(self.root).manifest
+        self.manifest = read_manifest(self.root / MANIFEST_NAME)
 
     @property
     def captures(self) -> list[dict[str, Any]]:
@@ -384,3 +380,203 @@ def capture_folder_name(index: int, pose_deg: float) -> str:
 
 def is_disk_full(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def read_manifest(path: str | os.PathLike) -> dict[str, Any]:
+    """The manifest in ``path`` (``session.json``), parsed and checked by
+    :func:`validate_manifest`; :class:`FormatError` (one line) otherwise."""
+    path = pathlib.Path(path)
+    try:
+        manifest = json.loads(path.read_text("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: not valid JSON ({exc})") from None
+    validate_manifest(manifest, str(path))
+    return manifest
+
+
+# -- manifest structure --------------------------------------------------------------------------
+CAPTURE_STATUSES = (PENDING, COMPLETE, FAILED)
+SESSION_STATUSES = (RUNNING, SESSION_COMPLETE, INTERRUPTED)
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+#: per-role attributes of a frame record (docs/session-schema.md, "Files by role")
+_FRAME_ATTRS = {"raw": ("state_index", "state_deg", "exposure_index", "exposure_us", "frame"),
+                "dark": ("exposure_index", "exposure_us", "frame")}
+_INDEX_ATTRS = ("state_index", "exposure_index", "frame")
+
+
+class _Bad(Exception):
+    """Internal: one structural problem, its message relative to the record being checked."""
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _need(d: dict[str, Any], key: str, ok: Callable[[Any], bool], what: str,
+          optional: bool = False) -> Any:
+    if key not in d:
+        if optional:
+            return None
+        raise _Bad(f"missing {key!r}")
+    if not ok(d[key]):
+        raise _Bad(f"{key!r} must be {what}, got {d[key]!r:.60}")
+    return d[key]
+
+
+def _safe_relpath(v: Any) -> bool:
+    """A ``/``-separated path inside the session folder (no absolute path, no ``..``)."""
+    if not isinstance(v, str) or not v or "\\" in v or "\0" in v or v.startswith("/"):
+        return False
+    return all(part not in ("", ".", "..") for part in v.split("/"))
+
+
+def _folder_name(v: Any) -> bool:
+    return _safe_relpath(v) and "/" not in v
+
+
+def _check_file_record(role: str, rec: Any) -> None:
+    if not isinstance(rec, dict):
+        raise _Bad("is not an object")
+    if "part_of" in rec:  # a view into another role's file
+        _need(rec, "path", _safe_relpath, "a relative path inside the session")
+        return
+    _need(rec, "path", _safe_relpath, "a relative path inside the session")
+    _need(rec, "sha256", lambda v: isinstance(v, str) and bool(_SHA256.fullmatch(v)),
+          "a SHA-256 hex digest")
+    _need(rec, "bytes", lambda v: _is_int(v) and v >= 0, "a byte count")
+    if "meta_path" in rec or "meta_sha256" in rec:
+        _need(rec, "meta_path", _safe_relpath, "a relative path inside the session")
+        _need(rec, "meta_sha256", lambda v: isinstance(v, str) and bool(_SHA256.fullmatch(v)),
+              "a SHA-256 hex digest")
+    for key in _FRAME_ATTRS.get(role.rsplit("/", 1)[-1], ()):
+        if key in _INDEX_ATTRS:
+            _need(rec, key, lambda v: _is_int(v) and v >= 0, "an index >= 0")
+        else:
+            _need(rec, key, lambda v: _is_number(v) and math.isfinite(v), "a finite number")
+
+
+def _check_files(files: Any, where: str) -> None:
+    if not isinstance(files, dict):
+        raise _Bad(f"{where}'files' must be an object, got {files!r:.60}")
+    for role, entry in files.items():
+        if role in LIST_ROLES:
+            if not isinstance(entry, list):
+                raise _Bad(f"{where}files {role!r} must be a list of file records")
+            records = [(f"{where}{role} file record {i}", rec) for i, rec in enumerate(entry)]
+        else:
+            records = [(f"{where}{role} file record", entry)]
+        for label, rec in records:
+            try:
+                _check_file_record(role, rec)
+            except _Bad as exc:
+                raise _Bad(f"{label}: {exc}") from None
+
+
+def _check_score(score: Any) -> None:
+    if score is None:
+        return
+    if not isinstance(score, dict):
+        raise _Bad(f"'score' must be an object or null, got {score!r:.60}")
+    if score.get("rmse") is None:
+        return  # "no pixels to score"
+    num_or_none = lambda v: v is None or _is_number(v)  # noqa: E731
+    for key in ("rmse", "mae", "realizable"):
+        _need(score, key, _is_number, "a number")
+    _need(score, "psnr_db", num_or_none, "a number or null")
+    _need(score, "pixels_compared", _is_int, "an integer")
+    for key in ("mean_sigma", "within_2sigma"):
+        _need(score, key, num_or_none, "a number or null", optional=True)
+
+
+def _check_capture(i: int, cap: Any) -> None:
+    if not isinstance(cap, dict):
+        raise _Bad("is not an object")
+    index = _need(cap, "index", _is_int, "an integer")
+    if index != i:
+        raise _Bad(f"'index' is {index}, but it is entry {i} of the list")
+    _need(cap, "name", _folder_name, "a folder name")
+    _need(cap, "pose_deg", lambda v: _is_number(v) and math.isfinite(v), "a finite number")
+    _need(cap, "status", lambda v: v in CAPTURE_STATUSES, f"one of {', '.join(CAPTURE_STATUSES)}")
+    _need(cap, "reason", lambda v: v is None or isinstance(v, str), "a string or null",
+          optional=True)
+    _need(cap, "attempts", lambda v: _is_int(v) and v >= 0, "a count", optional=True)
+    _check_files(_need(cap, "files", lambda v: True, "present"), "")
+    _check_score(cap.get("score"))
+    revisions = _need(cap, "revisions", lambda v: isinstance(v, dict), "an object",
+                      optional=True) or {}
+    for name, rev in revisions.items():
+        if not isinstance(rev, dict):
+            raise _Bad(f"revision {name!r} is not an object")
+        try:
+            _need(rev, "status", lambda v: v in CAPTURE_STATUSES,
+                  f"one of {', '.join(CAPTURE_STATUSES)}")
+            _check_files(_need(rev, "files", lambda v: True, "present"), "")
+            _check_score(rev.get("score"))
+        except _Bad as exc:
+            raise _Bad(f"revision {name!r}: {exc}") from None
+
+
+def validate_manifest(manifest: Any, where: str = MANIFEST_NAME) -> None:
+    """Check the structure of a session manifest (``docs/session-schema.md``): every key the
+    code reads is there with the right type, every file record has its path (relative, inside
+    the session) and checksum, capture folder names are plain names. Raises
+    :class:`FormatError` ``"<where>: capture 1 (c001_pose090.0): raw file record 2: missing
+    'sha256'"`` naming the first damaged record. The one place the manifest is checked:
+    code that reads an opened session may index what is checked here."""
+    if not isinstance(manifest, dict) or "captures" not in manifest:
+        raise FormatError(f"{where}: not a polrig session manifest")
+    version = manifest.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise FormatError(f"{where}: session schema version {version!r}, this polrig "
+                          f"reads version {SCHEMA_VERSION}")
+    context = ""
+    try:
+        m = manifest
+        _need(m, "status", lambda v: v in SESSION_STATUSES, f"one of {', '.join(SESSION_STATUSES)}")
+        _need(m, "status_reason", lambda v: v is None or isinstance(v, str), "a string or null",
+              optional=True)
+        for key in ("created", "updated", "calibration_id"):
+            _need(m, key, lambda v: isinstance(v, str), "a string")
+        _need(m, "conventions_version", lambda v: isinstance(v, (str, int, float)), "a version")
+        software = _need(m, "software", lambda v: isinstance(v, dict), "an object")
+        context = "software: "
+        _need(software, "version", lambda v: isinstance(v, str), "a string")
+        context = ""
+        _need(m, "rig", lambda v: isinstance(v, dict), "an object", optional=True)
+        _need(m, "command_line", lambda v: isinstance(v, list), "a list", optional=True)
+        _need(m, "history", lambda v: isinstance(v, list), "a list", optional=True)
+        plan = _need(m, "plan", lambda v: isinstance(v, dict), "an object")
+        context = "plan: "
+        poses = _need(plan, "poses_deg", lambda v: isinstance(v, list) and all(
+            _is_number(p) and math.isfinite(p) for p in v), "a list of finite numbers")
+        _need(plan, "mode", lambda v: isinstance(v, str), "a string")
+        for key in ("states_deg", "exposures_us"):
+            _need(plan, key, lambda v: isinstance(v, list) and all(
+                _is_number(p) and math.isfinite(p) for p in v), "a list of finite numbers",
+                optional=True)
+        for key in ("frames_per_state", "dark_frames", "grab_retries"):
+            _need(plan, key, _is_int, "an integer", optional=True)
+        _need(plan, "demosaic", lambda v: isinstance(v, str), "a string", optional=True)
+        _need(plan, "mirror_average", lambda v: isinstance(v, bool), "true or false",
+              optional=True)
+        context = ""
+        caps = _need(m, "captures", lambda v: isinstance(v, list), "a list")
+        if len(caps) != len(poses):
+            raise _Bad(f"{len(caps)} captures listed for the {len(poses)} poses of the plan")
+        for i, cap in enumerate(caps):
+            name = cap.get("name") if isinstance(cap, dict) else None
+            context = f"capture {i}" + (f" ({name})" if isinstance(name, str) else "") + ": "
+            _check_capture(i, cap)
+        context = ""
+        revisions = _need(m, "revisions", lambda v: isinstance(v, list), "a list", optional=True)
+        for i, rev in enumerate(revisions or []):
+            context = f"revision entry {i}: "
+            if not isinstance(rev, dict):
+                raise _Bad("is not an object")
+            _need(rev, "name", _folder_name, "a folder name")
+    except _Bad as exc:
+        raise FormatError(f"{where}: {context}{exc} (damaged session manifest)") from None

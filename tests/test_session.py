@@ -13,6 +13,9 @@ from polrig.session import (COMPLETE, MANIFEST_NAME, PENDING, Session, SessionEr
                             check_free_space, sha256_file)
 
 PLAN = {"poses_deg": [0.0, 90.0], "mode": "reference", "states_deg": [0, 45, 90, 135]}
+#: what a raw frame record carries besides its file (docs/session-schema.md)
+FRAME = {"state_index": 0, "state_deg": 0.0, "exposure_index": 0, "exposure_us": 1000.0,
+         "frame": 0}
 
 
 def make(tmp_path: pathlib.Path, **kw) -> Session:
@@ -48,7 +51,8 @@ def test_disk_space_check_names_need_and_free(tmp_path):
 def test_files_are_recorded_with_checksums_and_verified(tmp_path):
     s = make(tmp_path)
     s.capture(0)["name"] = "c000"
-    rec = s.add_file(0, "raw", "c000/raw/a.png", b"pixels", sidecar=b"{}", state_deg=45.0)
+    rec = s.add_file(0, "raw", "c000/raw/a.png", b"pixels", sidecar=b"{}",
+                     **{**FRAME, "state_deg": 45.0})
     s.add_file(0, "mueller", "c000/mueller.exr", b"exr")
     again = Session.open(s.root)
     files = again.capture(0)["files"]
@@ -75,14 +79,14 @@ def test_never_overwrites(tmp_path):
 
 def test_disk_full_leaves_previous_manifest_and_no_partial_file(tmp_path):
     s = make(tmp_path)
-    s.add_file(0, "raw", "c000/raw/a.png", b"a")
+    s.add_file(0, "raw", "c000/raw/a.png", b"a", **FRAME)
 
     def full(path, data):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     s.write_hook = full
     with pytest.raises(OSError) as info:
-        s.add_file(0, "raw", "c000/raw/b.png", b"b")
+        s.add_file(0, "raw", "c000/raw/b.png", b"b", **FRAME)
     assert info.value.errno == errno.ENOSPC
     assert not (s.root / "c000/raw/b.png").exists()
     on_disk = Session.open(s.root)
@@ -94,7 +98,7 @@ def test_disk_full_leaves_previous_manifest_and_no_partial_file(tmp_path):
 def test_restart_removes_partial_capture_and_discard_unrecorded(tmp_path):
     s = make(tmp_path)
     s.capture(0)["name"] = "c000"
-    s.add_file(0, "raw", "c000/raw/a.png", b"a")
+    s.add_file(0, "raw", "c000/raw/a.png", b"a", **FRAME)
     (s.root / "c000/raw/orphan.png").write_bytes(b"o")  # written, crash before recording
     assert s.discard_unrecorded(0) == ["c000/raw/orphan.png"]
     s.restart_capture(0)
@@ -128,3 +132,59 @@ def test_revisions_are_separate_entries(tmp_path):
     roles = [role for _, role, _ in s.iter_file_records()]
     assert roles == ["mueller", "rev1/mueller"]
     assert Session.open(s.root).verify() == []
+
+
+# -- manifest structure: one validation place, one line naming the record ------------------------
+def _damaged(tmp_path, change) -> pathlib.Path:
+    s = make(tmp_path)
+    s.capture(0)["name"] = "c000"
+    s.add_file(0, "raw", "c000/raw/a.png", b"a", sidecar=b"{}", **FRAME)
+    m = json.loads((s.root / MANIFEST_NAME).read_text())
+    change(m)
+    (s.root / MANIFEST_NAME).write_text(json.dumps(m))
+    return s.root
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda m: m["captures"][0]["files"]["raw"][0].pop("sha256"),
+     "capture 0 (c000): raw file record 0: missing 'sha256'"),
+    (lambda m: m["captures"][0]["files"]["raw"][0].pop("meta_sha256"),
+     "raw file record 0: missing 'meta_sha256'"),
+    (lambda m: m["captures"][0]["files"]["raw"][0].update(path="../../etc/passwd"),
+     "'path' must be a relative path inside the session"),
+    (lambda m: m["captures"][0]["files"]["raw"][0].update(state_index="one"),
+     "'state_index' must be an index >= 0"),
+    (lambda m: m["captures"][0]["files"].update(raw={"path": "x"}),
+     "files 'raw' must be a list"),
+    (lambda m: m["captures"][1].update(name="../outside"), "capture 1 (../outside): 'name' must be a folder name"),
+    (lambda m: m["captures"][1].pop("status"), "capture 1 (c001_pose090.0): missing 'status'"),
+    (lambda m: m["captures"][1].update(index=7), "'index' is 7, but it is entry 1"),
+    (lambda m: m["captures"].pop(), "1 captures listed for the 2 poses"),
+    (lambda m: m["plan"].pop("mode"), "plan: missing 'mode'"),
+    (lambda m: m["plan"].update(exposures_us=["fast"]), "plan: 'exposures_us' must be a list"),
+    (lambda m: m.pop("software"), "missing 'software'"),
+    (lambda m: m.update(status="paused"), "'status' must be one of running, complete, interrupted"),
+    (lambda m: m["captures"][0].update(score={"rmse": 1.0}), "capture 0 (c000): missing 'mae'"),
+    (lambda m: m["captures"][0]["revisions"].update(rev1={"files": {}}),
+     "capture 0 (c000): revision 'rev1': missing 'status'"),
+])
+def test_structural_damage_is_one_format_error_naming_the_record(tmp_path, change, message):
+    root = _damaged(tmp_path, change)
+    with pytest.raises(FormatError) as info:
+        Session.open(root)
+    text = str(info.value)
+    assert message in text and "damaged session manifest" in text and "\n" not in text, text
+
+
+def test_info_and_reconstruct_report_a_record_without_checksum_in_one_line(tmp_path, capsys):
+    """`info` and `reconstruct` on a manifest whose raw record lost its "sha256": exit 2 and
+    one line naming the record (a KeyError traceback before)."""
+    from polrig.cli import main
+
+    root = _damaged(tmp_path, lambda m: m["captures"][0]["files"]["raw"][0].pop("sha256"))
+    before = (root / MANIFEST_NAME).read_bytes()
+    for argv in (["info", str(root)], ["reconstruct", str(root), "--no-progress"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "raw file record 0: missing 'sha256'" in err, err
+    assert (root / MANIFEST_NAME).read_bytes() == before
