@@ -20,7 +20,8 @@ data); a stage or turntable move that times out or faults is retried once after 
 device error, a full disk or a stop request ends the session cleanly: the capture in
 progress is marked ``failed`` (device error, disk full) or left ``pending`` (Ctrl-C, stop),
 files it wrote are either recorded with checksums or removed, and the session is
-``interrupted`` with the reason. ``resume`` re-does every capture that is not complete.
+``interrupted`` with the reason. ``resume`` re-does every capture that is not complete,
+on the same rig only (:func:`check_resume_rig`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,12 @@ from polrig.session import (COMPLETE, FAILED, INTERRUPTED, PENDING, RUNNING, SES
 MODES = ("reference", "single-shot")
 DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
 RAW_SUFFIX = ".png"
+#: Largest turntable pose accepted, in degrees either way (100 turns): beyond it a pose is a
+#: typo, and its capture folder name (``c000_pose<angle>``) would outgrow the file system's.
+MAX_POSE_DEG = 36000.0
+#: Largest polarizer stage angle accepted, either way: a linear polarizer repeats every 180 deg,
+#: so anything beyond one turn is a typo (and would send the stage on a long, timed-out move).
+MAX_STATE_DEG = 360.0
 
 
 # -- parsing command-line style specs ------------------------------------------------------
@@ -122,6 +129,16 @@ class CapturePlan:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
         if not self.poses_deg:
             raise ConfigError("invalid pose spec: no poses")
+        for pose in self.poses_deg:
+            if not (isinstance(pose, (int, float)) and math.isfinite(pose)
+                    and abs(pose) <= MAX_POSE_DEG):
+                raise ConfigError(f"invalid pose spec: pose {pose!r} deg is not a finite angle "
+                                  f"within +-{MAX_POSE_DEG:g} deg ({MAX_POSE_DEG / 360:g} turns)")
+        for state in self.states_deg:
+            if not (isinstance(state, (int, float)) and math.isfinite(state)
+                    and abs(state) <= MAX_STATE_DEG):
+                raise ConfigError(f"--states: {state!r} deg is not a polarizer angle within "
+                                  f"+-{MAX_STATE_DEG:g} deg")
         if self.frames_per_state < 1:
             raise ConfigError(f"--frames must be >= 1, got {self.frames_per_state}")
         if self.dark_frames < 0:
@@ -284,16 +301,130 @@ def frame_geometry(rig) -> tuple[int, int, int, tuple[int, int]]:
     return int(width), int(height), lay.n_colours, tuple(lay.period)
 
 
+def camera_frames(rig) -> dict[str, Any]:
+    """What the rig's camera frames look like (the manifest's ``rig.camera_frames``): size,
+    ROI offset (the mosaic phase), layout and colour count. Frames that differ in any of
+    these cannot be processed or compared together."""
+    from polrig.analyzer import resolve_layout
+
+    width, height, ox, oy = (int(v) for v in rig.camera.roi)
+    layout = str(rig.camera.layout)
+    return {"width": width, "height": height, "offset_xy": [ox, oy], "layout": layout,
+            "colours": int(resolve_layout(layout).n_colours)}
+
+
+def rig_record(rig) -> dict[str, Any]:
+    """The manifest's ``rig`` entry: :func:`describe_rig`, the camera's frame geometry
+    (:func:`camera_frames`) and the noise model used for the uncertainty."""
+    from polrig.processing import sensor_model_of
+
+    info = describe_rig(rig)
+    info["camera_frames"] = camera_frames(rig)
+    info["sensor_model"] = _jsonable(dataclasses.asdict(sensor_model_of(rig)))
+    return info
+
+
+def check_rig_for_plan(rig, plan: CapturePlan, *, resume: bool = False) -> None:
+    """Refuse (:class:`ConfigError`, one line) a plan this rig's camera cannot acquire, before
+    any session file is written: an exposure outside the camera's declared range
+    (``EXPOSURE_RANGE_US`` of its driver, where it declares one)."""
+    rng = getattr(rig.camera, "EXPOSURE_RANGE_US", None)
+    if rng is None or not plan.exposures_us:
+        return
+    lo, hi = (float(v) for v in rng)
+    for e in plan.exposures_us:
+        if not lo <= e <= hi:
+            what = ("--resume: the session's plan asks for an exposure of" if resume
+                    else "--exposure")
+            raise ConfigError(f"{what} {e:g} us; this camera takes [{lo:g}, {hi:g}] us")
+
+
+def _frames_text(f: dict[str, Any]) -> str:
+    off = f.get("offset_xy") or [0, 0]
+    where = f"+{off[0]}+{off[1]}" if any(off) else ""
+    n = f.get("colours")
+    return (f"{f.get('width')}x{f.get('height')}{where} {f.get('layout')}"
+            + (f" ({n} colour{'s' if n != 1 else ''})" if n is not None else ""))
+
+
+def _recorded_camera_frames(session: Session) -> dict[str, Any] | None:
+    """:func:`camera_frames` of a session that predates ``rig.camera_frames``: from its first
+    recorded raw frame, or ``None`` without one."""
+    from polrig.analyzer import resolve_layout
+    from polrig.rawio import read_raw
+
+    for cap in session.captures:
+        for rec in cap["files"].get("raw", []):
+            try:
+                frame = read_raw(session.root / rec["path"])
+                layout = str(frame.meta.layout)
+                return {"width": int(frame.raw.shape[1]), "height": int(frame.raw.shape[0]),
+                        "offset_xy": [int(v) for v in frame.meta.offset_xy], "layout": layout,
+                        "colours": int(resolve_layout(layout).n_colours)}
+            except Exception:  # noqa: BLE001 - a damaged frame: try the next one
+                continue
+    return None
+
+
+def rig_differences(stored: dict[str, Any], current: dict[str, Any],
+                    stored_frames: dict[str, Any] | None = None) -> list[str]:
+    """What makes frames of the rig ``current`` (a :func:`rig_record`) incomparable with those
+    a session recorded on ``stored`` (its manifest's ``rig``): simulated or not, the camera
+    frames' size, offset and layout, each device's driver, model and serial, the noise model,
+    and the simulated world's hidden parameters (scene, seed, sensor...). Settings that do
+    not change the frames (a simulated clock's speed) are not compared. One phrase per
+    difference (empty: the same rig)."""
+    out: list[str] = []
+    if bool(stored.get("simulated")) != bool(current.get("simulated")):
+        kind = lambda r: "the simulated rig" if r.get("simulated") else "hardware"  # noqa: E731
+        out.append(f"captured on {kind(stored)}, this is {kind(current)}")
+    sf = stored.get("camera_frames") or stored_frames
+    cf = current.get("camera_frames")
+    if isinstance(sf, dict) and cf is not None:
+        keys = ("width", "height", "offset_xy", "layout", "colours")
+        if [sf.get(k) for k in keys] != [cf.get(k) for k in keys]:
+            out.append(f"camera frames {_frames_text(sf)}, this camera's {_frames_text(cf)}")
+    if stored.get("sensor_model") and stored.get("sensor_model") != current.get("sensor_model"):
+        keys = sorted(k for k in set(stored["sensor_model"]) | set(current["sensor_model"] or {})
+                      if stored["sensor_model"].get(k) != (current["sensor_model"] or {}).get(k))
+        out.append(f"sensor noise model ({', '.join(keys)})")
+    sp, cp = stored.get("sim_parameters"), current.get("sim_parameters")
+    if (isinstance(sp, dict) and isinstance(cp, dict) and "error" not in sp
+            and "error" not in cp and sp != cp):
+        keys = sorted(k for k in set(sp) | set(cp) if sp.get(k) != cp.get(k))
+        out.append(f"simulated world ({', '.join(keys)})")
+    sd, cd = stored.get("devices") or {}, current.get("devices") or {}
+    for name in ("camera", "stage", "turntable", "light"):
+        a, b = sd.get(name), cd.get(name)
+        if not (isinstance(a, dict) and isinstance(b, dict)) or "error" in a or "error" in b:
+            continue  # a device that could not describe itself is not compared
+        ident = lambda d: " ".join(str(d.get(k)) for k in ("driver", "model", "serial")  # noqa: E731
+                                   if d.get(k))
+        if ident(a) != ident(b):
+            out.append(f"{name} {ident(a)!r}, this rig's {ident(b)!r}")
+    return out
+
+
+def check_resume_rig(session: Session, rig) -> None:
+    """Refuse (:class:`ConfigError`, one line) to resume ``session`` on a rig whose frames
+    would not be comparable with the ones it holds (:func:`rig_differences`); nothing is
+    written. Call before :func:`check_resume_space` and :func:`run_session`."""
+    stored = session.manifest.get("rig") or {}
+    current = json.loads(json.dumps(rig_record(rig)))  # as the manifest would store it
+    frames = None if stored.get("camera_frames") else _recorded_camera_frames(session)
+    diffs = rig_differences(stored, current, frames)
+    if diffs:
+        raise ConfigError(f"--resume: {session.root} was captured on a different rig: "
+                          f"{'; '.join(diffs[:4])}; resume it on the rig it was started with "
+                          f"(the same --config)")
+
+
 def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
                    command_line: list[str] | None = None, write_hook=None) -> Session:
     """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked)."""
-    from polrig.processing import sensor_model_of
-
     width, height, colours, cell = frame_geometry(rig)
     need = planned_bytes(plan, len(plan.poses_deg), width, height, colours, cell)
-    rig_info = describe_rig(rig)
-    rig_info["sensor_model"] = dataclasses.asdict(sensor_model_of(rig))
-    return Session.create(out, plan=plan.to_json(), rig=rig_info,
+    return Session.create(out, plan=plan.to_json(), rig=rig_record(rig),
                           calibration_id=calibration_id, command_line=command_line,
                           required_bytes=need, write_hook=write_hook)
 

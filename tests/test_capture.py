@@ -337,3 +337,45 @@ def test_colour_sensor_capture_has_rgb_mueller(tmp_path):
     assert got.mueller.shape == (3, 3, 3, 16, 16)  # 4x4 colour cell -> quarter resolution
     assert {"sigma.M00.R", "sigma.M22.B", "mask.G", "residual.R"} <= set(got.extra)
     assert result.scores[0]["pixels_compared"] > 20
+
+
+def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
+    """The rig a session resumes on must give comparable frames: same camera geometry and
+    layout, devices, noise model and simulated world; a different clock speed is fine."""
+    from polrig.capture import check_resume_rig
+    from polrig.errors import ConfigError
+
+    out = tmp_path / "s"
+    with sim_rig() as rig:
+        session, proc = start(rig, out, CapturePlan((0.0, 90.0)))
+    s = Session.open(out)
+    assert s.manifest["rig"]["camera_frames"] == {"width": 64, "height": 64, "offset_xy": [0, 0],
+                                                  "layout": "imx250mzr", "colours": 1}
+    with sim_rig(clock_speed=50.0) as rig:
+        check_resume_rig(s, rig)  # the same rig, a slower clock
+    for kw, expected in [({"size": 128}, "camera frames 64x64 imx250mzr (1 colour), this "
+                                         "camera's 128x128 imx250mzr (1 colour)"),
+                         ({"sensor": "imx250myr"}, "imx250myr (3 colours)"),
+                         ({"seed": 6}, "simulated world"),
+                         ({"scene": "box"}, "simulated world (scene)")]:
+        with sim_rig(**kw) as rig:
+            with pytest.raises(ConfigError, match="--resume: .* was captured on a different rig") as info:
+                check_resume_rig(s, rig)
+        assert expected in str(info.value), (kw, str(info.value))
+    # a session from before rig.camera_frames: the geometry comes from its recorded raw frames
+    with sim_rig() as rig:
+        run_session(rig, s, processor=None)
+    del s.manifest["rig"]["camera_frames"]
+    with sim_rig(size=32) as rig:
+        with pytest.raises(ConfigError, match="camera frames 64x64 imx250mzr"):
+            check_resume_rig(s, rig)
+
+
+def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(tmp_path):
+    from polrig.capture import check_rig_for_plan
+    from polrig.errors import ConfigError
+
+    with sim_rig() as rig:
+        check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 4000.0)))
+        with pytest.raises(ConfigError, match=r"--exposure 1e\+12 us; this camera takes \[10, 1e\+07\] us"):
+            check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 1e12)))

@@ -53,6 +53,13 @@ def test_plan_validation_and_json_round_trip():
         CapturePlan((0,), frames_per_state=0)
     with pytest.raises(ConfigError, match="--mode"):
         CapturePlan((0,), mode="magic")
+    # absurd angles are refused before anything is written (a pose of 1e308 deg made a
+    # capture folder name too long for the file system once the session existed)
+    with pytest.raises(ConfigError, match="invalid pose spec: pose 1e\\+308 deg"):
+        CapturePlan((0, 1e308))
+    with pytest.raises(ConfigError, match="--states: 400"):
+        CapturePlan((0,), states_deg=(0, 45, 90, 400))
+    assert CapturePlan((-36000, 36000), states_deg=(-360, 0, 90, 360)).poses_deg[0] == -36000.0
     # single-shot needs one state only
     assert CapturePlan((0,), mode="single-shot", states_deg=(0,)).frames_per_pose() == 1
 

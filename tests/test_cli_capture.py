@@ -69,6 +69,12 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     (["--poses", "0", "--states", "0,5,10"], "condition number"),
     (["--poses", "0", "--frames", "0"], "--frames"),
     (["--poses", "0", "--exposure", "-5"], "--exposure"),
+    # checked before the session is created (they used to leave a session.json behind)
+    (["--poses", "0", "--exposure", "1e12"], "--exposure 1e+12 us; this camera takes [10, 1e+07] us"),
+    (["--poses", "0", "--exposure", "1000,5"], "--exposure 5 us; this camera takes"),
+    (["--poses", "1e308,1e308"], "invalid pose spec: pose 1e+308 deg is not a finite angle"),
+    (["--poses", "0,40000"], "within +-36000 deg"),
+    (["--poses", "0", "--states", "0,45,90,1e300"], "--states: 1e+300 deg is not a polarizer angle"),
     (["--poses", "0", "--config", "/nonexistent/rig.toml"], "no such file"),
     (["--poses", "0", "--mode", "single-shot"], "single-shot"),
     (["--poses", "0", "--mirror-average"], "--mirror-average applies to --mode single-shot only"),
@@ -296,3 +302,45 @@ def test_reconstruct_refuses_mirror_average_with_the_reference_method(tmp_path, 
     err = capsys.readouterr().err
     assert "--mirror-average applies to --mode single-shot only" in err and len(err.strip().splitlines()) == 1
     assert (out / "session.json").read_bytes() == before  # no revision recorded
+
+
+def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "0,90,180"
+                        ) -> pathlib.Path:
+    """A session left interrupted by a stage that disconnects during its second capture."""
+    import polrig.rig
+
+    real_open = polrig.rig.open_rig
+
+    def faulty_open(*a, **kw):
+        rig = real_open(*a, **kw)
+        rig.sim.inject_fault("stage", "disconnect", after_calls=6)
+        return rig
+
+    out = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(polrig.rig, "open_rig", faulty_open)
+        assert main(["capture", "--poses", poses, "--config", str(cfg), "--out", str(out),
+                     "--no-progress"]) == 1
+    assert Session.open(out).manifest["status"] == "interrupted"
+    return out
+
+
+def test_resume_on_a_different_rig_exits_2_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    """A session captured with 64x64 mono frames cannot continue on a 128x128 colour rig: one
+    line naming the difference, exit 2, the session untouched (captures 1-2 used to be
+    captured with the other rig's frames and the manifest kept naming the first)."""
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = interrupted_session(tmp_path, monkeypatch, cfg)
+    other = tmp_path / "other.toml"
+    other.write_text(cfg.read_text().replace('"64x64"', '"128x128"').replace("imx250mzr", "imx250myr"))
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    capsys.readouterr()
+    assert main(["capture", "--config", str(other), "--out", str(out), "--resume",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert ("was captured on a different rig: camera frames 64x64 imx250mzr (1 colour), this "
+            "camera's 128x128 imx250myr (3 colours)") in err
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0

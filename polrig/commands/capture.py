@@ -2,7 +2,9 @@
 
 Thin shell over :mod:`polrig.capture` (acquisition), :mod:`polrig.processing` (results) and
 :mod:`polrig.session` (files). Bad input (pose spec, states, output folder, config) is
-rejected before any device is opened or any file is written.
+rejected before any device is opened or any file is written; what needs the opened rig (the
+camera's exposure range, on ``--resume`` the same rig as the session's) is checked before
+any file is written.
 """
 
 from __future__ import annotations
@@ -156,15 +158,20 @@ def prepare_capture(args: argparse.Namespace) -> PreparedCapture:
 
 
 def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
-    """The session to run on ``rig``: the resumed one (after checking free disk space for
-    what is left) or a new one created in ``prepared.out``."""
+    """The session to run on ``rig``: the resumed one (after checking that ``rig`` is the
+    rig it was captured on and the free disk space for what is left) or a new one created in
+    ``prepared.out``. The plan is checked against the rig's camera first
+    (:func:`polrig.capture.check_rig_for_plan`); a refusal writes nothing."""
     from polrig import capture
 
     if prepared.resume_session is not None:
         session = prepared.resume_session
+        capture.check_resume_rig(session, rig)
+        capture.check_rig_for_plan(rig, prepared.plan, resume=True)
         capture.check_resume_space(session, rig, len(session.next_pending()))
         session.log("resume command", command_line=command_line)
         return session
+    capture.check_rig_for_plan(rig, prepared.plan)
     return capture.create_session(prepared.out, rig, prepared.plan,
                                   calibration_id=prepared.calibration.id,
                                   command_line=command_line)
