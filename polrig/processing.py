@@ -26,6 +26,7 @@ variance divided by ``n`` (exact); interpolating demosaics get the interpolated 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -37,7 +38,7 @@ import numpy as np
 
 from polrig.analyzer import AnalyzerModel, resolve_layout
 from polrig.demosaic import class_positions, demosaic_float
-from polrig.errors import ConfigError, FormatError
+from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.hal import Frame
 from polrig.layouts import MosaicLayout
 from polrig.mueller import polarizer_stokes
@@ -656,6 +657,7 @@ class Processor:
 
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
+        truth_path = self._verified_truth(session, index)  # damaged truth: refused up front
         geometry = None
         if self.mode == "single-shot":
             rig_info = session.manifest.get("rig", {}) or {}
@@ -711,7 +713,8 @@ class Processor:
         files["mask"] = {"part_of": "mueller", "path": rec["path"],
                          "channels": "mask.{colour} (reason bits, 0 = valid)"}
         score = self.score(session, index, result, lay, s_in,
-                           states if self.mode == "reference" else None, cf.exposures_us[0])
+                           states if self.mode == "reference" else None, cf.exposures_us[0],
+                           truth_path=truth_path)
         if revision is not None:
             cap["revisions"][revision].update(status=COMPLETE, score=score)
         session.save()
@@ -770,19 +773,32 @@ class Processor:
                                  sigma_noise=np.zeros_like(sigma))
         return result, s_in, lay, None
 
-    def score(self, session: Session, index: int, result: ReferenceResult,
-              layout: MosaicLayout, s_in: np.ndarray,
-              states: Sequence[StateRadiance] | None, exposure_us: float
-              ) -> dict[str, Any] | None:
-        """Score against the capture's truth file (simulated rig), or None without one."""
+    @staticmethod
+    def _verified_truth(session: Session, index: int) -> pathlib.Path | None:
+        """The capture's truth EXR (simulated rig) after checking its SHA-256, or None
+        without one; a missing or changed file is a one-line error naming it."""
         rec = session.capture(index)["files"].get("truth_mueller")
         if rec is None:
             return None
+        path = session.root / rec["path"]
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: truth file of the session is missing")
+        if sha256_file(path) != rec["sha256"]:
+            raise FormatError(f"{path}: SHA-256 does not match the session manifest (changed "
+                              f"or corrupt truth file)")
+        return path
+
+    def score(self, session: Session, index: int, result: ReferenceResult,
+              layout: MosaicLayout, s_in: np.ndarray,
+              states: Sequence[StateRadiance] | None, exposure_us: float,
+              truth_path: pathlib.Path | None = None) -> dict[str, Any] | None:
+        """Score against the capture's truth file (simulated rig), or None without one.
+        ``truth_path``: the truth file already verified by the caller."""
         from polrig.exr import read_mueller_exr
 
-        path = session.root / rec["path"]
-        if sha256_file(path) != rec["sha256"]:
-            raise FormatError(f"{path}: SHA-256 does not match the session manifest")
+        path = truth_path or self._verified_truth(session, index)
+        if path is None:
+            return None
         img = read_mueller_exr(path)
         if states is None:  # single-shot: the truth at this resolution, nominal 4-state weights
             t = truth_on_output_grid(img.mueller, layout, self.demosaic,
@@ -807,12 +823,36 @@ def session_sensor_model(session: Session) -> SensorModel:
     return SensorModel(**fields) if fields else SensorModel()
 
 
+class ReconstructIncomplete(PolrigError):
+    """Some captures of a :func:`reprocess_session` revision failed (damaged or missing
+    files); the others were processed. ``revision`` names it, ``failed`` lists
+    ``(capture index, reason)``."""
+
+    def __init__(self, session: Session, revision: str, failed: list[tuple[int, str]],
+                 attempted: int):
+        self.revision, self.failed = revision, failed
+        names = "; ".join(f"capture {i} ({session.capture(i)['name']}): {reason}"
+                          for i, reason in failed)
+        others = "" if len(failed) == attempted else ", the others are complete"
+        super().__init__(f"revision {revision}: {len(failed)} of {attempted} capture(s) "
+                         f"failed{others}: {names}")
+
+
 def reprocess_session(session: Session, *, mode: str | None = None, demosaic: str | None = None,
                       mirror_average: bool | None = None, calibration: Calibration | None = None,
                       command_line: list[str] | None = None,
-                      progress: Callable[[int, dict[str, Any] | None], None] | None = None) -> str:
+                      progress: Callable[[int, dict[str, Any] | None], None] | None = None,
+                      on_failed: Callable[[int, str], None] | None = None) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
-    and earlier results untouched). Returns the revision name."""
+    and earlier results untouched). Returns the revision name.
+
+    A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
+    is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
+    called) and the others are processed; at the end :class:`ReconstructIncomplete` names
+    the failed captures. A full disk stops the revision (the capture is marked failed, the
+    error raised). Ctrl-C leaves the capture in progress ``pending`` in the revision."""
+    from polrig.session import is_disk_full
+
     plan = session.plan
     mode = mode or plan["mode"]
     demosaic = demosaic or plan.get("demosaic", "superpixel")
@@ -834,15 +874,39 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         validate_states(calibration.incident_stokes(acquired))
     name = session.new_revision({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
                                  "calibration_id": calibration.id}, command_line)
+    failed: list[tuple[int, str]] = []
     for index in done:
         session.start_revision(index, name)
         try:
             score = processor.process(session, index, revision=name)
-        except BaseException as exc:
-            session.capture(index)["revisions"][name].update(
-                status=FAILED if isinstance(exc, Exception) else PENDING, reason=str(exc))
-            session.save()
+        except Exception as exc:  # this capture's data: record why, go on with the others
+            reason = f"{type(exc).__name__}: {exc}"
+            _mark_revision(session, index, name, FAILED, reason)
+            if is_disk_full(exc):
+                raise
+            failed.append((index, reason))
+            if on_failed:
+                on_failed(index, reason)
+            continue
+        except KeyboardInterrupt:
+            _mark_revision(session, index, name, PENDING, "interrupted by the operator (Ctrl-C)")
             raise
         if progress:
             progress(index, score)
+    if failed:
+        raise ReconstructIncomplete(session, name, failed, len(done))
     return name
+
+
+def _mark_revision(session: Session, index: int, revision: str, status: str,
+                   reason: str) -> None:
+    """Set capture ``index``'s entry of ``revision`` to ``status`` with ``reason`` and save
+    (best effort). Files it wrote stay recorded: each was written completely and checksummed.
+    The manifest on disk is what counts (after a failed save it is the consistent one)."""
+    with contextlib.suppress(OSError, FormatError):
+        session.reload()
+    entry = session.capture(index).setdefault("revisions", {}).setdefault(
+        revision, {"status": PENDING, "files": {}, "score": None})
+    entry.update(status=status, reason=reason)
+    with contextlib.suppress(OSError):
+        session.save()

@@ -270,10 +270,10 @@ def test_tampered_raw_frame_is_refused_by_reprocessing(tmp_path):
         run_session(rig, session, processor=proc)
     raw = out / session.capture(0)["files"]["raw"][0]["path"]
     raw.write_bytes(raw.read_bytes()[:-10])
-    from polrig.errors import FormatError
-
-    with pytest.raises(FormatError, match="SHA-256"):
+    with pytest.raises(processing.ReconstructIncomplete, match="capture 0 .*SHA-256"):
         processing.reprocess_session(Session.open(out))
+    rev = Session.open(out).capture(0)["revisions"]["rev1"]
+    assert rev["status"] == FAILED and "SHA-256" in rev["reason"] and rev["files"] == {}
 
 
 def test_dark_frames_and_hdr_bracket_keep_errors_within_sigma(tmp_path):
@@ -379,3 +379,61 @@ def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(t
         check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 4000.0)))
         with pytest.raises(ConfigError, match=r"--exposure 1e\+12 us; this camera takes \[10, 1e\+07\] us"):
             check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 1e12)))
+
+
+def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, reference_session):
+    """A deleted raw frame (capture 1) and a changed truth file (capture 2): both are marked
+    failed in the revision with their reason, captures 0 and 3 are processed, and the error
+    at the end names the failed ones. (It used to stop at capture 1, leaving 2 and 3 out.)"""
+    import shutil
+
+    out = tmp_path / "s"
+    shutil.copytree(reference_session.root, out)
+    s = Session.open(out)
+    (out / s.capture(1)["files"]["raw"][2]["path"]).unlink()
+    truth = out / s.capture(2)["files"]["truth_mueller"]["path"]
+    truth.write_bytes(truth.read_bytes() + b"\0")
+    failures = []
+    with pytest.raises(processing.ReconstructIncomplete) as info:
+        processing.reprocess_session(s, on_failed=lambda i, r: failures.append(i))
+    message = str(info.value)
+    assert message.startswith("revision rev1: 2 of 4 capture(s) failed, the others are complete")
+    assert "capture 1 (c001_pose090.0): FileNotFoundError" in message
+    assert "capture 2 (c002_pose180.0): FormatError" in message and "truth" in message
+    assert info.value.failed[0][0] == 1 and failures == [1, 2]
+    revs = [c["revisions"]["rev1"] for c in Session.open(out).captures]
+    assert [r["status"] for r in revs] == [COMPLETE, FAILED, FAILED, COMPLETE]
+    assert "missing" in revs[1]["reason"] and "SHA-256" in revs[2]["reason"]
+    assert revs[2]["files"] == {}  # refused before writing anything
+    assert revs[3]["score"]["pixels_valid"] > 0
+    problems = Session.open(out).verify()
+    assert len(problems) == 2 and all("c001" in p or "c002" in p for p in problems)
+
+
+def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, reference_session):
+    """A deleted raw frame (capture 1) and a changed truth file (capture 2): both are marked
+    failed in the revision with their reason, captures 0 and 3 are processed, and the error
+    at the end names the failed ones. (It used to stop at capture 1, leaving 2 and 3 out.)"""
+    import shutil
+
+    out = tmp_path / "s"
+    shutil.copytree(reference_session.root, out)
+    s = Session.open(out)
+    (out / s.capture(1)["files"]["raw"][2]["path"]).unlink()
+    truth = out / s.capture(2)["files"]["truth_mueller"]["path"]
+    truth.write_bytes(truth.read_bytes() + b"\0")
+    failures = []
+    with pytest.raises(processing.ReconstructIncomplete) as info:
+        processing.reprocess_session(s, on_failed=lambda i, r: failures.append(i))
+    message = str(info.value)
+    assert message.startswith("revision rev1: 2 of 4 capture(s) failed, the others are complete")
+    assert "capture 1 (c001_pose090.0): FileNotFoundError" in message
+    assert "capture 2 (c002_pose180.0): FormatError" in message and "truth" in message
+    assert info.value.failed[0][0] == 1 and failures == [1, 2]
+    revs = [c["revisions"]["rev1"] for c in Session.open(out).captures]
+    assert [r["status"] for r in revs] == [COMPLETE, FAILED, FAILED, COMPLETE]
+    assert "missing" in revs[1]["reason"] and "SHA-256" in revs[2]["reason"]
+    assert revs[2]["files"] == {}  # refused before writing anything
+    assert revs[3]["score"]["pixels_valid"] > 0
+    problems = Session.open(out).verify()
+    assert len(problems) == 2 and all("c001" in p or "c002" in p for p in problems)

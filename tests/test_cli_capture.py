@@ -344,3 +344,39 @@ def test_resume_on_a_different_rig_exits_2_and_writes_nothing(tmp_path, capsys, 
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
                  "--no-progress"]) == 0
+
+
+def test_reconstruct_goes_on_past_a_damaged_capture_and_exits_1(tmp_path, capsys):
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
+                 "--no-progress"]) == 0
+    (out / Session.open(out).capture(1)["files"]["raw"][0]["path"]).unlink()
+    capsys.readouterr()
+    assert main(["reconstruct", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert ("polrig: error: revision rev1: 1 of 3 capture(s) failed, the others are complete: "
+            "capture 1 (c001_pose090.0): FileNotFoundError") in err
+    assert [c["revisions"]["rev1"]["status"] for c in Session.open(out).captures] == [
+        "complete", "failed", "complete"]
+    assert main(["info", str(out)]) == 1
+    assert "rev1: failed  (FileNotFoundError" in capsys.readouterr().out
+
+
+def test_reconstruct_goes_on_past_a_damaged_capture_and_exits_1(tmp_path, capsys):
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
+                 "--no-progress"]) == 0
+    (out / Session.open(out).capture(1)["files"]["raw"][0]["path"]).unlink()
+    capsys.readouterr()
+    assert main(["reconstruct", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert ("polrig: error: revision rev1: 1 of 3 capture(s) failed, the others are complete: "
+            "capture 1 (c001_pose090.0): FileNotFoundError") in err
+    assert [c["revisions"]["rev1"]["status"] for c in Session.open(out).captures] == [
+        "complete", "failed", "complete"]
+    assert main(["info", str(out)]) == 1
+    assert "rev1: failed  (FileNotFoundError" in capsys.readouterr().out

@@ -56,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"          score: {format_score(cap['score'])}")
         for name, rev in cap.get("revisions", {}).items():
             extra = f"  score: {format_score(rev['score'])}" if rev.get("score") else ""
+            if rev.get("reason"):
+                extra += f"  ({rev['reason']})"
             print(f"          {name}: {rev['status']}{extra}")
     for rev in m.get("revisions", []):
         settings = ", ".join(f"{k} {rev[k]}" for k in ("mode", "demosaic", "calibration_id")

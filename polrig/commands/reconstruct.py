@@ -1,7 +1,10 @@
 """``polrig reconstruct SESSION``: re-process a session's raw frames into a new revision.
 
 Raw frames are read (their checksums verified first) and never modified; results go to
-``<capture>/<revision>/`` and the manifest records the revision's settings.
+``<capture>/<revision>/`` and the manifest records the revision's settings. A capture whose
+files are damaged is marked ``failed`` in the revision with its reason and the others are
+processed; the command then exits 1 with one line naming the failed captures (as
+``polrig info`` exits 1 on the same damage).
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
 
     session = Session.open(args.session)
     calibration = processing.load_calibration(args.calibration)
-    progress = None
+    progress = on_failed = bar = None
     if not args.no_progress:
         from tqdm import tqdm
 
@@ -49,11 +52,20 @@ def run(args: argparse.Namespace) -> int:
             if score:
                 line += " | " + processing.format_score(score)
             tqdm.write(line, file=sys.stdout)
-    name = processing.reprocess_session(session, mode=args.mode, demosaic=args.demosaic,
-                                        mirror_average=args.mirror_average, calibration=calibration,
-                                        command_line=command_line(args, "reconstruct"),
-                                        progress=progress)
-    if not args.no_progress:
-        bar.close()
+
+        def on_failed(index: int, reason: str) -> None:
+            bar.update(1)
+            cap = session.capture(index)
+            tqdm.write(f"capture {index + 1} pose {cap['pose_deg']:g} deg: failed ({reason})",
+                       file=sys.stdout)
+    try:
+        name = processing.reprocess_session(session, mode=args.mode, demosaic=args.demosaic,
+                                            mirror_average=args.mirror_average,
+                                            calibration=calibration,
+                                            command_line=command_line(args, "reconstruct"),
+                                            progress=progress, on_failed=on_failed)
+    finally:
+        if bar is not None:
+            bar.close()
     print(f"revision {name} written to {session.root}")
     return 0
