@@ -17,10 +17,10 @@ its uncertainty and mask planes (see :mod:`polrig.processing`).
 Device faults: a grab that times out is retried (``grab_retries`` times, a timeout loses no
 data); a stage or turntable move that times out or faults is retried once after re-homing
 (homing is the documented recovery of the ELL14/K10CR1 stages and loses no data); any other
-device error, a full disk or a stop request ends the session cleanly: the capture in
-progress is marked ``failed`` (device error, disk full) or left ``pending`` (Ctrl-C, stop),
-files it wrote are either recorded with checksums or removed, and the session is
-``interrupted`` with the reason. ``resume`` re-does every capture that is not complete,
+device error, a full disk, any other file-system error or a stop request ends the session
+cleanly: the capture in progress is marked ``failed`` (device error, disk full, other
+``OSError``) or left ``pending`` (Ctrl-C, stop), files it wrote are either recorded with
+checksums or removed, and the session is ``interrupted`` with the reason. ``resume`` re-does every capture that is not complete,
 on the same rig only (:func:`check_resume_rig`).
 """
 
@@ -511,7 +511,9 @@ def run_session(rig, session: Session, *, processor=None,
     simulated rig's ground truth) and ``process(session, index) -> score dict or None``
     (turns the capture's raw files into results).
     Returns how the run ended; raises ``KeyboardInterrupt`` after leaving the session
-    consistent when interrupted by Ctrl-C.
+    consistent when interrupted by Ctrl-C, and re-raises a file-system error other than a
+    full disk, or an unexpected error, after marking the capture failed and the session
+    interrupted.
     """
     plan = CapturePlan.from_json(session.plan)
     control = control or CaptureControl()
@@ -570,6 +572,10 @@ def run_session(rig, session: Session, *, processor=None,
             return result
         except (DeviceError, OSError) as exc:
             if isinstance(exc, OSError) and not is_disk_full(exc):
+                # any other file-system error (permissions, I/O error, a name too long):
+                # leave the session consistent and resumable, then let the caller report it
+                _stop_cleanly(session, index, f"{type(exc).__name__}: {exc}",
+                              capture_status=FAILED)
                 raise
             kind = "disk full" if is_disk_full(exc) else type(exc).__name__
             reason = f"{kind}: {exc}"

@@ -437,3 +437,33 @@ def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, refere
     assert revs[3]["score"]["pixels_valid"] > 0
     problems = Session.open(out).verify()
     assert len(problems) == 2 and all("c001" in p or "c002" in p for p in problems)
+
+
+def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_session):
+    """An OSError that is not a full disk (an I/O error here; a name too long, a permission
+    taken away) is re-raised for the caller to report, after the same clean-up as a device
+    error: the capture failed with the reason, the session interrupted, nothing unrecorded
+    left; resume completes it. (It used to skip the clean-up: status stayed "running".)"""
+    out = tmp_path / "s"
+    writes = []
+
+    def hook(path, data):
+        writes.append(path)
+        if len(writes) == 30:  # capture 0 complete, capture 1 half way
+            raise OSError(errno.EIO, "Input/output error", str(path))
+
+    with sim_rig() as rig:
+        session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
+        with pytest.raises(OSError) as info:
+            run_session(rig, session, processor=proc)
+    assert info.value.errno == errno.EIO
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert s.manifest["status_reason"].startswith("OSError:")
+    assert [c["status"] for c in s.captures] == [COMPLETE, FAILED, PENDING, PENDING]
+    assert "Input/output error" in s.capture(1)["reason"]
+    assert s.verify() == [] and not list(out.rglob("*.tmp"))
+    with sim_rig() as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert content(s2) == content(reference_session)

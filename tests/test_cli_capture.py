@@ -380,3 +380,36 @@ def test_reconstruct_goes_on_past_a_damaged_capture_and_exits_1(tmp_path, capsys
         "complete", "failed", "complete"]
     assert main(["info", str(out)]) == 1
     assert "rev1: failed  (FileNotFoundError" in capsys.readouterr().out
+
+
+def test_other_file_system_error_exits_1_with_the_resume_hint(tmp_path, capsys, monkeypatch):
+    """An OSError other than a full disk mid-capture: one line with the reason and the resume
+    command, exit 1; the session says why it stopped (it used to stay "running")."""
+    import errno
+
+    import polrig.session
+
+    cfg = sim_config(tmp_path / "rig.toml")
+    real_write = polrig.session.atomic_write_bytes
+    calls = []
+
+    def failing_write(path, data):
+        calls.append(path)
+        if len(calls) == 16:  # capture 1 of 2, before its result
+            raise OSError(errno.EACCES, "Permission denied", str(path))
+        real_write(path, data)
+
+    out = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(polrig.session, "atomic_write_bytes", failing_write)
+        rc = main(["capture", "--poses", "0,90", "--config", str(cfg), "--out", str(out),
+                   "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 1 and len(err.strip().splitlines()) == 1, err
+    assert "Permission denied" in err and f"polrig capture --out {out} --resume" in err
+    m = json.loads((out / "session.json").read_text())
+    assert m["status"] == "interrupted" and "PermissionError" in m["status_reason"]
+    assert [c["status"] for c in m["captures"]].count("failed") == 1
+    assert Session.open(out).verify() == []
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0

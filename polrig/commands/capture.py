@@ -178,7 +178,10 @@ def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
+
     from polrig import capture, processing
+    from polrig.errors import PolrigError
     from polrig.rig import open_rig
 
     prepared = prepare_capture(args)
@@ -191,6 +194,12 @@ def run(args: argparse.Namespace) -> int:
         try:
             result = capture.run_session(rig, session, processor=processor,
                                          progress=bar)
+        except OSError as exc:
+            # a file-system error other than a full disk: run_session marked the capture
+            # failed and the session interrupted; say so, with the way to continue
+            if os.environ.get("POLRIG_DEBUG") or isinstance(exc, PolrigError):
+                raise
+            result = capture.SessionResult("interrupted", [], [], f"{type(exc).__name__}: {exc}")
         finally:
             bar.close()
     if result.status != "complete":
