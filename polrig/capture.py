@@ -19,13 +19,16 @@ data); a stage or turntable move that times out or faults is retried once after 
 (homing is the documented recovery of the ELL14/K10CR1 stages and loses no data); any other
 device error, a full disk, any other file-system error or a stop request ends the session
 cleanly: the capture in progress is marked ``failed`` (device error, disk full, other
-``OSError``) or left ``pending`` (Ctrl-C, stop), files it wrote are either recorded with
-checksums or removed, and the session is ``interrupted`` with the reason. ``resume`` re-does every capture that is not complete,
-on the same rig only (:func:`check_resume_rig`).
+``OSError``) or left ``pending`` (Ctrl-C, SIGTERM, stop), files it wrote are either recorded
+with checksums or removed, and the session is ``interrupted`` with the reason. A second
+SIGINT/SIGTERM while that clean-up runs is ignored (:class:`polrig.session.SignalGuard`).
+``resume`` re-does every capture that is not complete, on the same rig only
+(:func:`check_resume_rig`). :func:`run_session` holds the session's lock while it runs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -38,7 +41,7 @@ from polrig.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceFa
 from polrig.hal import Frame
 from polrig.rawio import encode_mosaic
 from polrig.session import (COMPLETE, FAILED, INTERRUPTED, PENDING, RUNNING, SESSION_COMPLETE,
-                            Session, is_disk_full)
+                            Session, SignalGuard, interruption_reason, is_disk_full)
 
 MODES = ("reference", "single-shot")
 DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
@@ -421,7 +424,9 @@ def check_resume_rig(session: Session, rig) -> None:
 
 def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
                    command_line: list[str] | None = None, write_hook=None) -> Session:
-    """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked)."""
+    """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked). The returned
+    session holds its lock (:meth:`polrig.session.Session.lock`) until :func:`run_session`
+    ends."""
     width, height, colours, cell = frame_geometry(rig)
     need = planned_bytes(plan, len(plan.poses_deg), width, height, colours, cell)
     return Session.create(out, plan=plan.to_json(), rig=rig_record(rig),
@@ -510,11 +515,26 @@ def run_session(rig, session: Session, *, processor=None,
     ``after_acquire(session, index, rig)`` (run while the rig is still at the pose: the
     simulated rig's ground truth) and ``process(session, index) -> score dict or None``
     (turns the capture's raw files into results).
-    Returns how the run ended; raises ``KeyboardInterrupt`` after leaving the session
-    consistent when interrupted by Ctrl-C, and re-raises a file-system error other than a
+
+    The session's lock is taken (if this object does not hold it yet; :class:`SessionBusy`
+    when another process writes the session) and released when the run ends. In the main
+    thread SIGINT and SIGTERM stop the run like Ctrl-C (:class:`polrig.session.SignalGuard`:
+    a second signal during the clean-up is ignored). Returns how the run ended; raises
+    ``KeyboardInterrupt`` (:class:`polrig.session.Interrupted` for a signal) after leaving
+    the session consistent when interrupted, and re-raises a file-system error other than a
     full disk, or an unexpected error, after marking the capture failed and the session
     interrupted.
     """
+    session.lock()
+    try:
+        with SignalGuard() as guard:
+            return _run_session(rig, session, processor, progress, control, guard)
+    finally:
+        session.unlock()
+
+
+def _run_session(rig, session: Session, processor, progress, control, guard: SignalGuard
+                 ) -> SessionResult:
     plan = CapturePlan.from_json(session.plan)
     control = control or CaptureControl()
     todo = session.next_pending()
@@ -529,65 +549,84 @@ def run_session(rig, session: Session, *, processor=None,
             progress(Progress(kind, index, n, step, total, session.capture(index)["pose_deg"],
                               message, score))
 
-    session.set_status(RUNNING)
-    if todo:
-        try:
-            _prepare_rig(rig, plan)
-        except DeviceError as exc:
-            session.set_status(INTERRUPTED, f"rig preparation failed: {exc}")
-            return SessionResult(INTERRUPTED, result.completed, [], str(exc))
-        except KeyboardInterrupt:
-            session.set_status(INTERRUPTED, "interrupted by the operator (Ctrl-C)")
-            raise
-    for index in todo:
-        try:
-            session.restart_capture(index)
-            emit("capture-start", index)
+    index = None
+    try:
+        session.set_status(RUNNING)
+        if todo:
+            try:
+                _prepare_rig(rig, plan)
+            except DeviceError as exc:
+                with guard.deferred():
+                    session.set_status(INTERRUPTED, f"rig preparation failed: {exc}")
+                return SessionResult(INTERRUPTED, result.completed, [], str(exc))
+        for index in todo:
+            try:
+                session.restart_capture(index)
+                emit("capture-start", index)
 
-            def frame_done(message: str = "") -> None:
-                nonlocal step
-                step += 1
-                emit("frame", index, message)
+                def frame_done(message: str = "") -> None:
+                    nonlocal step
+                    step += 1
+                    emit("frame", index, message)
 
-            _acquire_capture(rig, session, plan, index, control, frame_done,
-                             lambda msg: emit("retry", index, msg))
-            score = None
-            if processor is not None:
-                processor.after_acquire(session, index, rig)  # truth while at this pose
-                control.checkpoint()
-                score = processor.process(session, index)
-            session.complete_capture(index, score)
-            result.completed.append(index)
-            if score is not None:
-                result.scores[index] = score
-            emit("capture-done", index, score=score)
-        except (KeyboardInterrupt, StopRequested) as exc:
-            reason = ("interrupted by the operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt)
-                      else "stopped by the operator")
-            _stop_cleanly(session, index, reason, capture_status=PENDING)
-            result.status, result.reason = INTERRUPTED, reason
-            emit("capture-failed", index, reason)
-            if isinstance(exc, KeyboardInterrupt):
+                _acquire_capture(rig, session, plan, index, control, frame_done,
+                                 lambda msg: emit("retry", index, msg))
+                score = None
+                if processor is not None:
+                    processor.after_acquire(session, index, rig)  # truth while at this pose
+                    control.checkpoint()
+                    score = processor.process(session, index)
+                session.complete_capture(index, score)
+                result.completed.append(index)
+                if score is not None:
+                    result.scores[index] = score
+                emit("capture-done", index, score=score)
+            except (KeyboardInterrupt, StopRequested) as exc:
+                reason = (interruption_reason(exc) if isinstance(exc, KeyboardInterrupt)
+                          else "stopped by the operator")
+                with guard.deferred():
+                    _stop_cleanly(session, index, reason, capture_status=PENDING)
+                result.status, result.reason = INTERRUPTED, reason
+                if isinstance(exc, KeyboardInterrupt):
+                    with contextlib.suppress(Exception):  # a progress display must not stop
+                        emit("capture-failed", index, reason)  # the interruption
+                    raise
+                emit("capture-failed", index, reason)
+                return result
+            except (DeviceError, OSError) as exc:
+                if isinstance(exc, OSError) and not is_disk_full(exc):
+                    # any other file-system error (permissions, I/O error, a name too long):
+                    # leave the session consistent and resumable, then let the caller report it
+                    with guard.deferred():
+                        _stop_cleanly(session, index, f"{type(exc).__name__}: {exc}",
+                                      capture_status=FAILED)
+                    raise
+                kind = "disk full" if is_disk_full(exc) else type(exc).__name__
+                reason = f"{kind}: {exc}"
+                with guard.deferred():
+                    _stop_cleanly(session, index, reason, capture_status=FAILED)
+                result.status, result.reason = INTERRUPTED, reason
+                result.failed.append(index)
+                emit("capture-failed", index, reason)
+                return result
+            except Exception as exc:  # a processing bug or bad data: record it, then report it
+                with guard.deferred():
+                    _stop_cleanly(session, index, f"{type(exc).__name__}: {exc}",
+                                  capture_status=FAILED)
                 raise
-            return result
-        except (DeviceError, OSError) as exc:
-            if isinstance(exc, OSError) and not is_disk_full(exc):
-                # any other file-system error (permissions, I/O error, a name too long):
-                # leave the session consistent and resumable, then let the caller report it
-                _stop_cleanly(session, index, f"{type(exc).__name__}: {exc}",
-                              capture_status=FAILED)
-                raise
-            kind = "disk full" if is_disk_full(exc) else type(exc).__name__
-            reason = f"{kind}: {exc}"
-            _stop_cleanly(session, index, reason, capture_status=FAILED)
-            result.status, result.reason = INTERRUPTED, reason
-            result.failed.append(index)
-            emit("capture-failed", index, reason)
-            return result
-        except Exception as exc:  # a processing bug or bad data: record it, then report it
-            _stop_cleanly(session, index, f"{type(exc).__name__}: {exc}", capture_status=FAILED)
-            raise
-    session.set_status(SESSION_COMPLETE)
+        with guard.deferred():
+            session.set_status(SESSION_COMPLETE)
+    except KeyboardInterrupt as exc:
+        # between captures (rig preparation, the final manifest): the captures are as the
+        # manifest on disk says; the session is interrupted unless a capture's clean-up said so
+        if session.manifest.get("status") not in (INTERRUPTED, SESSION_COMPLETE):
+            with guard.deferred(), contextlib.suppress(Exception):
+                if index is None:
+                    session.set_status(INTERRUPTED, interruption_reason(exc))
+                else:
+                    _stop_cleanly(session, index, interruption_reason(exc),
+                                  capture_status=PENDING)
+        raise
     result.status = SESSION_COMPLETE
     emit("session-done", todo[-1] if todo else 0)
     return result

@@ -1,7 +1,10 @@
 """The ``polrig`` console script: a thin shell over polrig's core calls.
 
-Exit codes: 0 success, 1 a failure while running (device fault, processing error),
-2 bad input (invalid arguments, config, files), 130 interrupted by Ctrl-C.
+Exit codes: 0 success, 1 a failure while running (device fault, processing error, a session
+another process is writing), 2 bad input (invalid arguments, config, files), 130 interrupted
+by Ctrl-C (SIGINT), 143 terminated by SIGTERM (handled as Ctrl-C is: a capture leaves its
+session ``interrupted`` and resumable), 141 when the reader of the output went away (a broken
+pipe, ``polrig info DIR | head``: no message, as ``cat`` and friends do).
 Errors print one line ``polrig: error: ...`` on stderr, never a traceback (set
 ``POLRIG_DEBUG=1`` to see the traceback).
 """
@@ -9,15 +12,20 @@ Errors print one line ``polrig: error: ...`` on stderr, never a traceback (set
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
+import signal
 import sys
+import threading
 
 from polrig import __version__
 from polrig.errors import ConfigError, DeviceError, FormatError, PolrigError
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_TERMINATED = 128 + signal.SIGTERM  # 143
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # 141
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,21 +50,70 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    with _sigterm_as_interrupt():
+        try:
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
+            return code
+        except KeyboardInterrupt as exc:
+            signum = getattr(exc, "signum", signal.SIGINT)
+            if signum == signal.SIGINT:
+                _error_line("polrig: interrupted")
+                return EXIT_INTERRUPTED
+            _error_line(f"polrig: terminated ({signal.Signals(signum).name})")
+            return 128 + signum
+        except BrokenPipeError:
+            return _broken_pipe()
+        except (ConfigError, FormatError, FileNotFoundError, FileExistsError, ValueError) as exc:
+            if os.environ.get("POLRIG_DEBUG"):
+                raise
+            _error_line(f"polrig: error: {exc}")
+            return EXIT_USAGE
+        except (DeviceError, PolrigError, OSError) as exc:
+            if os.environ.get("POLRIG_DEBUG"):
+                raise
+            _error_line(f"polrig: error: {exc}")
+            return EXIT_FAILURE
+
+
+def _error_line(line: str) -> None:
+    with contextlib.suppress(OSError, ValueError):  # stderr gone too: nothing to tell
+        print(line, file=sys.stderr)
+
+
+def _broken_pipe() -> int:
+    """The reader of stdout went away: exit quietly (141, as a process killed by SIGPIPE
+    does). stdout is pointed at /dev/null so that the interpreter's final flush of what is
+    still buffered does not fail a second time."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    return EXIT_BROKEN_PIPE
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises :class:`polrig.session.Interrupted` (a ``KeyboardInterrupt``) so every
+    command stops on it as on Ctrl-C; restored afterwards (``main`` also runs in-process).
+    Not where SIGTERM is ignored or outside the main thread."""
+    from polrig.session import Interrupted
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    old = None
+    if threading.current_thread() is threading.main_thread():
+        old = signal.getsignal(signal.SIGTERM)
+        if old is signal.SIG_IGN:
+            old = None
+        else:
+            signal.signal(signal.SIGTERM, handler)
     try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("polrig: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (ConfigError, FormatError, FileNotFoundError, FileExistsError, ValueError) as exc:
-        if os.environ.get("POLRIG_DEBUG"):
-            raise
-        print(f"polrig: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except (DeviceError, PolrigError, OSError) as exc:
-        if os.environ.get("POLRIG_DEBUG"):
-            raise
-        print(f"polrig: error: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
+        yield
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -46,7 +46,8 @@ from polrig.noise import SensorModel
 from polrig.rawio import read_raw
 from polrig.reference import (ReferenceResult, reason_names, solve_reference,
                               validate_states, merge_hdr)
-from polrig.session import COMPLETE, FAILED, PENDING, Session, sha256_file
+from polrig.session import (COMPLETE, FAILED, PENDING, Session, SignalGuard,
+                            interruption_reason, sha256_file)
 
 NOMINAL_CALIBRATION_ID = "nominal"
 
@@ -850,7 +851,23 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
     called) and the others are processed; at the end :class:`ReconstructIncomplete` names
     the failed captures. A full disk stops the revision (the capture is marked failed, the
-    error raised). Ctrl-C leaves the capture in progress ``pending`` in the revision."""
+    error raised). The session's lock is held while it runs (:class:`SessionBusy` if another
+    process writes the session; the manifest is re-read under it); SIGINT/SIGTERM leave the
+    capture in progress ``pending`` in the revision and raise ``KeyboardInterrupt``."""
+    was_locked = session.locked
+    session.lock()
+    try:
+        if not was_locked:
+            session.reload()  # under the lock: the manifest no other writer changes any more
+        return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
+                          progress, on_failed)
+    finally:
+        if not was_locked:
+            session.unlock()
+
+
+def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
+               progress, on_failed) -> str:
     from polrig.session import is_disk_full
 
     plan = session.plan
@@ -872,27 +889,31 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                               f"state per pose; the reference method needs at least 3 (reconstruct "
                               f"with --mode single-shot, or capture again with --mode reference)")
         validate_states(calibration.incident_stokes(acquired))
-    name = session.new_revision({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
-                                 "calibration_id": calibration.id}, command_line)
     failed: list[tuple[int, str]] = []
-    for index in done:
-        session.start_revision(index, name)
-        try:
-            score = processor.process(session, index, revision=name)
-        except Exception as exc:  # this capture's data: record why, go on with the others
-            reason = f"{type(exc).__name__}: {exc}"
-            _mark_revision(session, index, name, FAILED, reason)
-            if is_disk_full(exc):
+    with SignalGuard() as guard:
+        name = session.new_revision({"mode": mode, "demosaic": demosaic,
+                                     "mirror_average": mirror_average,
+                                     "calibration_id": calibration.id}, command_line)
+        for index in done:
+            session.start_revision(index, name)
+            try:
+                score = processor.process(session, index, revision=name)
+            except Exception as exc:  # this capture's data: record why, go on with the others
+                reason = f"{type(exc).__name__}: {exc}"
+                with guard.deferred():
+                    _mark_revision(session, index, name, FAILED, reason)
+                if is_disk_full(exc):
+                    raise
+                failed.append((index, reason))
+                if on_failed:
+                    on_failed(index, reason)
+                continue
+            except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM
+                with guard.deferred():
+                    _mark_revision(session, index, name, PENDING, interruption_reason(exc))
                 raise
-            failed.append((index, reason))
-            if on_failed:
-                on_failed(index, reason)
-            continue
-        except KeyboardInterrupt:
-            _mark_revision(session, index, name, PENDING, "interrupted by the operator (Ctrl-C)")
-            raise
-        if progress:
-            progress(index, score)
+            if progress:
+                progress(index, score)
     if failed:
         raise ReconstructIncomplete(session, name, failed, len(done))
     return name

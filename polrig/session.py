@@ -13,9 +13,15 @@ A session is a folder holding everything one capture run produced (schema:
 * A capture that did not finish stays ``pending`` (or ``failed`` with a reason);
   :meth:`Session.restart_capture` removes whatever it had written so a resumed session
   re-does it from scratch without duplicating files.
+* One writer at a time: a process that writes a session (capture, resume, reconstruct) holds
+  an exclusive ``flock`` on ``session.lock`` in the folder (:meth:`Session.lock`); a second
+  writer gets :class:`SessionBusy`. Readers (``polrig info``) take no lock.
 * A manifest is checked for structural damage (missing keys, wrong types, unsafe paths) in
   one place, :func:`validate_manifest`, when it is opened: a :class:`FormatError` naming the
   record, never a ``KeyError`` later.
+* :class:`SignalGuard` turns SIGINT and SIGTERM into :class:`Interrupted` (a
+  ``KeyboardInterrupt``) once, and ignores or defers further ones, so the clean-up that
+  writes the final manifest is not itself interrupted.
 
 ``write_hook`` (a callable ``(path, data) -> None`` run before every write) lets tests
 inject write failures such as ``OSError(errno.ENOSPC)`` (a full disk).
@@ -23,9 +29,11 @@ inject write failures such as ``OSError(errno.ENOSPC)`` (a full disk).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import datetime as _dt
 import errno
+import fcntl
 import hashlib
 import json
 import math
@@ -33,6 +41,9 @@ import os
 import pathlib
 import re
 import shutil
+import signal
+import threading
+import weakref
 from typing import Any, Callable, Iterator
 
 from polrig import __version__
@@ -42,6 +53,9 @@ from polrig.rawio import atomic_write_bytes
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "session.json"
+#: Lock file of a session folder: a writer holds an exclusive ``flock`` on it for its whole run
+#: (the file stays; its content is the holder's process id, for the error message only).
+LOCK_NAME = "session.lock"
 
 # capture status
 PENDING, COMPLETE, FAILED = "pending", "complete", "failed"
@@ -56,6 +70,94 @@ WriteHook = Callable[[pathlib.Path, bytes], None]
 
 class SessionError(PolrigError):
     """A session folder cannot be used as asked (not enough disk space, inconsistent plan)."""
+
+
+class SessionBusy(SessionError):
+    """Another process is writing the session (it holds the session's lock)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM, raised by :class:`SignalGuard` (and by ``polrig``'s SIGTERM handler)
+    as a ``KeyboardInterrupt`` so every Ctrl-C path handles it. ``signum`` is the signal."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+    @property
+    def reason(self) -> str:
+        """What the session records as the reason it stopped."""
+        return interruption_reason(self)
+
+
+def interruption_reason(exc: BaseException) -> str:
+    """``status_reason`` of a session stopped by ``exc`` (a ``KeyboardInterrupt``)."""
+    signum = getattr(exc, "signum", signal.SIGINT)
+    if signum == signal.SIGINT:
+        return "interrupted by the operator (Ctrl-C)"
+    return f"terminated by {signal.Signals(signum).name}"
+
+
+class SignalGuard:
+    """Use as ``with SignalGuard() as guard:`` around work that must end in a clean manifest.
+
+    Inside the block (main thread only; elsewhere it does nothing) the first SIGINT or SIGTERM
+    raises :class:`Interrupted`; every later one is ignored until the block ends, so the
+    clean-up that follows the first is not interrupted by a second (an impatient double
+    Ctrl-C). Inside ``with guard.deferred():`` a signal is only recorded and raised when the
+    deferred section ends normally (and when the block ends, if still pending). A signal
+    whose disposition was "ignore" when the block started stays ignored.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.fired: int | None = None
+        self.pending: int | None = None
+        self._defer = 0
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "SignalGuard":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                old = signal.getsignal(sig)
+                if old is signal.SIG_IGN:
+                    continue
+                self._old[sig] = old
+                signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old if old is not None else signal.SIG_DFL)
+        self._old.clear()
+        if exc_type is None:
+            self._raise_pending()
+
+    def _handler(self, signum: int, frame) -> None:
+        if self.fired is not None:
+            return  # the first one is being handled: its clean-up must finish
+        if self._defer:
+            self.pending = self.pending or signum
+            return
+        self.fired = signum
+        raise Interrupted(signum)
+
+    def _raise_pending(self) -> None:
+        if self.pending is not None and self.fired is None:
+            self.fired, self.pending = self.pending, None
+            raise Interrupted(self.fired)
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        """A section no signal interrupts (writing the final manifest)."""
+        self._defer += 1
+        try:
+            yield
+        finally:
+            self._defer -= 1
+        if not self._defer:
+            self._raise_pending()
 
 
 def utc_now() -> str:
@@ -99,7 +201,11 @@ def check_free_space(folder: str | os.PathLike, required_bytes: int) -> int:
 
 
 def folder_is_empty(folder: pathlib.Path) -> bool:
-    return not folder.exists() or (folder.is_dir() and not any(folder.iterdir()))
+    """``folder`` does not exist or holds nothing but a session lock file (left by a session
+    whose creation failed after taking the lock)."""
+    folder = pathlib.Path(folder)
+    return not folder.exists() or (folder.is_dir() and
+                                   all(p.name == LOCK_NAME for p in folder.iterdir()))
 
 
 class Session:
@@ -114,6 +220,8 @@ class Session:
         self.root = pathlib.Path(root)
         self.manifest = manifest
         self.write_hook = write_hook
+        self._lock_fd: int | None = None
+        self._lock_release: Callable[[], Any] | None = None
 
     # -- creation -------------------------------------------------------------------------
     @classmethod
@@ -130,8 +238,7 @@ class Session:
         if root.exists() and not root.is_dir():
             raise FileExistsError(f"{root}: output path exists and is not a folder")
         if not folder_is_empty(root):
-            raise FileExistsError(f"{root}: output folder is not empty; pass --resume to "
-                                  f"continue the session in it, or choose a new folder")
+            raise _not_empty(root)
         if "poses_deg" not in plan or "mode" not in plan:
             raise ValueError("a session plan needs 'poses_deg' and 'mode'")
         check_free_space(root, required_bytes)
@@ -159,22 +266,87 @@ class Session:
             "history": [{"time": now, "event": "created",
                          "command_line": list(command_line or [])}],
         }
+        created = not root.exists()
         root.mkdir(parents=True, exist_ok=True)
         session = cls(root, manifest, write_hook)
-        session.save()
+        session.lock()  # held until the run ends (Session.unlock) or the object is gone
+        try:
+            if not folder_is_empty(root):  # another process got here first
+                raise _not_empty(root)
+            session.save()
+        except BaseException:
+            if not (root / MANIFEST_NAME).exists():
+                with contextlib.suppress(OSError):
+                    (root / LOCK_NAME).unlink()
+                    if created:
+                        root.rmdir()
+            session.unlock()
+            raise
         return session
 
     @classmethod
-    def open(cls, root: str | os.PathLike, *, write_hook: WriteHook | None = None) -> "Session":
+    def open(cls, root: str | os.PathLike, *, write_hook: WriteHook | None = None,
+             lock: bool = False) -> "Session":
         """Open an existing session; :class:`FormatError` if ``root`` holds no valid manifest
-        (:func:`validate_manifest`)."""
+        (:func:`validate_manifest`). ``lock``: open it for writing, taking the session's lock
+        first (:meth:`lock`; :class:`SessionBusy` if another process holds it), so the
+        manifest read is the one no other writer changes any more."""
         root = pathlib.Path(root)
         path = root / MANIFEST_NAME
         if not root.is_dir():
             raise FileNotFoundError(f"{root}: no such session folder")
         if not path.is_file():
             raise FormatError(f"{root}: not a polrig session (no {MANIFEST_NAME})")
-        return cls(root, read_manifest(path), write_hook)
+        session = cls(root, {}, write_hook)
+        if lock:
+            session.lock()
+        try:
+            session.manifest = read_manifest(path)
+        except BaseException:
+            session.unlock()
+            raise
+        return session
+
+    # -- the writer's lock -----------------------------------------------------------------
+    def lock(self) -> None:
+        """Take the session's exclusive lock (``flock`` on :data:`LOCK_NAME`; no-op if this
+        object holds it already). :class:`SessionBusy` (one line, with the holder's process
+        id) if another process writes the session. Released by :meth:`unlock`, when this
+        object is garbage-collected, or when the process ends (whatever way it ends)."""
+        if self._lock_fd is not None:
+            return
+        path = self.root / LOCK_NAME
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = ""
+            with contextlib.suppress(OSError, ValueError):
+                pid = int(os.pread(fd, 32, 0).decode("ascii").strip())
+                holder = f" (pid {pid})"
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise SessionBusy(f"{self.root}: the session is being written by another "
+                                  f"polrig process{holder}; wait until it ends or stop it, "
+                                  f"then try again") from None
+            raise
+        with contextlib.suppress(OSError):  # who holds it: for the message above only
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        self._lock_fd = fd
+        self._lock_release = weakref.finalize(self, os.close, fd)
+
+    def unlock(self) -> None:
+        """Release the lock taken by :meth:`lock` (no-op if not held). The lock file stays
+        (removing it would let two processes lock two different files)."""
+        if self._lock_release is not None:
+            self._lock_release()
+        self._lock_fd = self._lock_release = None
+
+    @property
+    def locked(self) -> bool:
+        """Whether this object holds the session's lock."""
+        return self._lock_fd is not None
 
     # -- manifest -------------------------------------------------------------------------
     def reload(self) -> None:
@@ -380,6 +552,11 @@ def capture_folder_name(index: int, pose_deg: float) -> str:
 
 def is_disk_full(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def _not_empty(root: pathlib.Path) -> FileExistsError:
+    return FileExistsError(f"{root}: output folder is not empty; pass --resume to continue the "
+                           f"session in it, or choose a new folder")
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any]:

@@ -339,6 +339,36 @@ def test_colour_sensor_capture_has_rgb_mueller(tmp_path):
     assert result.scores[0]["pixels_compared"] > 20
 
 
+def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_session):
+    """An OSError that is not a full disk (an I/O error here; a name too long, a permission
+    taken away) is re-raised for the caller to report, after the same clean-up as a device
+    error: the capture failed with the reason, the session interrupted, nothing unrecorded
+    left; resume completes it. (It used to skip the clean-up: status stayed "running".)"""
+    out = tmp_path / "s"
+    writes = []
+
+    def hook(path, data):
+        writes.append(path)
+        if len(writes) == 30:  # capture 0 complete, capture 1 half way
+            raise OSError(errno.EIO, "Input/output error", str(path))
+
+    with sim_rig() as rig:
+        session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
+        with pytest.raises(OSError) as info:
+            run_session(rig, session, processor=proc)
+    assert info.value.errno == errno.EIO
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert s.manifest["status_reason"].startswith("OSError:")
+    assert [c["status"] for c in s.captures] == [COMPLETE, FAILED, PENDING, PENDING]
+    assert "Input/output error" in s.capture(1)["reason"]
+    assert s.verify() == [] and not list(out.rglob("*.tmp"))
+    with sim_rig() as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert content(s2) == content(reference_session)
+
+
 def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
     """The rig a session resumes on must give comparable frames: same camera geometry and
     layout, devices, noise model and simulated world; a different clock speed is fine."""
@@ -348,6 +378,7 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
     out = tmp_path / "s"
     with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan((0.0, 90.0)))
+    session.unlock()
     s = Session.open(out)
     assert s.manifest["rig"]["camera_frames"] == {"width": 64, "height": 64, "offset_xy": [0, 0],
                                                   "layout": "imx250mzr", "colours": 1}
@@ -381,6 +412,22 @@ def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(t
             check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 1e12)))
 
 
+def test_run_session_refuses_a_session_another_writer_holds(tmp_path):
+    from polrig.session import SessionBusy
+
+    out = tmp_path / "s"
+    with sim_rig() as rig:
+        session, proc = start(rig, out, CapturePlan((0.0,)))
+        session.unlock()
+        other = Session.open(out, lock=True)  # another writer (flock: per open file)
+        before = (out / "session.json").read_bytes()
+        with pytest.raises(SessionBusy):
+            run_session(rig, Session.open(out), processor=proc)
+        assert (out / "session.json").read_bytes() == before
+        other.unlock()
+        assert run_session(rig, Session.open(out), processor=proc).status == "complete"
+
+
 def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, reference_session):
     """A deleted raw frame (capture 1) and a changed truth file (capture 2): both are marked
     failed in the revision with their reason, captures 0 and 3 are processed, and the error
@@ -410,60 +457,33 @@ def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, refere
     assert len(problems) == 2 and all("c001" in p or "c002" in p for p in problems)
 
 
-def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, reference_session):
-    """A deleted raw frame (capture 1) and a changed truth file (capture 2): both are marked
-    failed in the revision with their reason, captures 0 and 3 are processed, and the error
-    at the end names the failed ones. (It used to stop at capture 1, leaving 2 and 3 out.)"""
-    import shutil
+def test_a_second_sigint_during_the_clean_up_does_not_cut_it_short(tmp_path):
+    """A real SIGINT stops the run; a second one arriving while the clean-up writes the final
+    manifest is ignored, so the manifest on disk says "interrupted" (it used to stay
+    "running": the second KeyboardInterrupt aborted the write)."""
+    import os
+    import signal
+    import time
 
-    out = tmp_path / "s"
-    shutil.copytree(reference_session.root, out)
-    s = Session.open(out)
-    (out / s.capture(1)["files"]["raw"][2]["path"]).unlink()
-    truth = out / s.capture(2)["files"]["truth_mueller"]["path"]
-    truth.write_bytes(truth.read_bytes() + b"\0")
-    failures = []
-    with pytest.raises(processing.ReconstructIncomplete) as info:
-        processing.reprocess_session(s, on_failed=lambda i, r: failures.append(i))
-    message = str(info.value)
-    assert message.startswith("revision rev1: 2 of 4 capture(s) failed, the others are complete")
-    assert "capture 1 (c001_pose090.0): FileNotFoundError" in message
-    assert "capture 2 (c002_pose180.0): FormatError" in message and "truth" in message
-    assert info.value.failed[0][0] == 1 and failures == [1, 2]
-    revs = [c["revisions"]["rev1"] for c in Session.open(out).captures]
-    assert [r["status"] for r in revs] == [COMPLETE, FAILED, FAILED, COMPLETE]
-    assert "missing" in revs[1]["reason"] and "SHA-256" in revs[2]["reason"]
-    assert revs[2]["files"] == {}  # refused before writing anything
-    assert revs[3]["score"]["pixels_valid"] > 0
-    problems = Session.open(out).verify()
-    assert len(problems) == 2 and all("c001" in p or "c002" in p for p in problems)
+    def deliver(signum):  # the Python handler runs at the next bytecode boundaries
+        os.kill(os.getpid(), signum)
+        time.sleep(0.02)
 
-
-def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_session):
-    """An OSError that is not a full disk (an I/O error here; a name too long, a permission
-    taken away) is re-raised for the caller to report, after the same clean-up as a device
-    error: the capture failed with the reason, the session interrupted, nothing unrecorded
-    left; resume completes it. (It used to skip the clean-up: status stayed "running".)"""
-    out = tmp_path / "s"
-    writes = []
+    def progress(ev):
+        if ev.kind == "frame" and ev.step == 6:  # second capture, second state
+            deliver(signal.SIGINT)
 
     def hook(path, data):
-        writes.append(path)
-        if len(writes) == 30:  # capture 0 complete, capture 1 half way
-            raise OSError(errno.EIO, "Input/output error", str(path))
+        if path.name == "session.json" and b'"status": "interrupted"' in data:
+            deliver(signal.SIGINT)  # while the clean-up writes the final manifest
 
+    out = tmp_path / "s"
     with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
-        with pytest.raises(OSError) as info:
-            run_session(rig, session, processor=proc)
-    assert info.value.errno == errno.EIO
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
     s = Session.open(out)
     assert s.manifest["status"] == INTERRUPTED
-    assert s.manifest["status_reason"].startswith("OSError:")
-    assert [c["status"] for c in s.captures] == [COMPLETE, FAILED, PENDING, PENDING]
-    assert "Input/output error" in s.capture(1)["reason"]
-    assert s.verify() == [] and not list(out.rglob("*.tmp"))
-    with sim_rig() as rig:
-        s2, result = resume(rig, out)
-    assert result.status == "complete"
-    assert content(s2) == content(reference_session)
+    assert s.manifest["status_reason"] == "interrupted by the operator (Ctrl-C)"
+    assert [c["status"] for c in s.captures] == [COMPLETE, PENDING, PENDING, PENDING]
+    assert s.verify() == []

@@ -117,6 +117,25 @@ def test_resume_refuses_a_different_plan(tmp_path, capsys):
                  "--no-progress"]) == 0
 
 
+def spawn_capture(cfg: pathlib.Path, out: pathlib.Path, poses: str = "0:360:90",
+                  *extra: str) -> subprocess.Popen:
+    """``polrig capture`` in a child process, its output unbuffered, after its first capture
+    is done (the first stdout line is read and checked). A shell without job control starts
+    background jobs with SIGINT ignored, and an ignored SIGINT is inherited: the child gets
+    the default disposition so Python installs its Ctrl-C handler however the test runner was
+    started."""
+    proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses", poses,
+                             "--config", str(cfg), "--out", str(out), "--no-progress", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=REPO,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    line = proc.stdout.readline()
+    if not ("capture 1/" in line and "done" in line):
+        proc.kill()
+        raise AssertionError(line + proc.communicate(timeout=60)[1])
+    return proc
+
+
 def content(root: pathlib.Path) -> list:
     s = Session.open(root)
     return [(c["pose_deg"], c["status"],
@@ -135,16 +154,7 @@ def test_sigint_mid_session_then_resume_equals_uninterrupted(tmp_path):
     assert main(["capture", "--poses", poses, "--config", str(sim_config(tmp_path / "fast.toml",
                  noise=True)), "--out", str(ref), "--no-progress"]) == 0
     out = tmp_path / "run"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # A shell without job control starts background jobs with SIGINT ignored, and an ignored
-    # SIGINT is inherited: give the child the default disposition so Python installs its
-    # Ctrl-C handler however the test runner was started.
-    proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses", poses,
-                             "--config", str(cfg), "--out", str(out), "--no-progress"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=REPO, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    line = proc.stdout.readline()
-    assert "capture 1/4" in line and "done" in line, line + proc.stderr.read()
+    proc = spawn_capture(cfg, out, poses)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
@@ -253,11 +263,7 @@ def test_crash_mid_session_then_resume_equals_uninterrupted(tmp_path):
     assert main(["capture", "--poses", "0:360:90", "--config", str(fast), "--out", str(ref),
                  "--no-progress"]) == 0
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses",
-                             "0:360:90", "--config", str(cfg), "--out", str(out),
-                             "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=REPO)
-    assert "capture 1/4" in proc.stdout.readline()
+    proc = spawn_capture(cfg, out)
     proc.kill()
     proc.communicate(timeout=60)
     s = Session.open(out)  # readable: the manifest is only ever replaced atomically
@@ -346,42 +352,6 @@ def test_resume_on_a_different_rig_exits_2_and_writes_nothing(tmp_path, capsys, 
                  "--no-progress"]) == 0
 
 
-def test_reconstruct_goes_on_past_a_damaged_capture_and_exits_1(tmp_path, capsys):
-    cfg = sim_config(tmp_path / "rig.toml")
-    out = tmp_path / "run"
-    assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
-                 "--no-progress"]) == 0
-    (out / Session.open(out).capture(1)["files"]["raw"][0]["path"]).unlink()
-    capsys.readouterr()
-    assert main(["reconstruct", str(out), "--no-progress"]) == 1
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1, err
-    assert ("polrig: error: revision rev1: 1 of 3 capture(s) failed, the others are complete: "
-            "capture 1 (c001_pose090.0): FileNotFoundError") in err
-    assert [c["revisions"]["rev1"]["status"] for c in Session.open(out).captures] == [
-        "complete", "failed", "complete"]
-    assert main(["info", str(out)]) == 1
-    assert "rev1: failed  (FileNotFoundError" in capsys.readouterr().out
-
-
-def test_reconstruct_goes_on_past_a_damaged_capture_and_exits_1(tmp_path, capsys):
-    cfg = sim_config(tmp_path / "rig.toml")
-    out = tmp_path / "run"
-    assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
-                 "--no-progress"]) == 0
-    (out / Session.open(out).capture(1)["files"]["raw"][0]["path"]).unlink()
-    capsys.readouterr()
-    assert main(["reconstruct", str(out), "--no-progress"]) == 1
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1, err
-    assert ("polrig: error: revision rev1: 1 of 3 capture(s) failed, the others are complete: "
-            "capture 1 (c001_pose090.0): FileNotFoundError") in err
-    assert [c["revisions"]["rev1"]["status"] for c in Session.open(out).captures] == [
-        "complete", "failed", "complete"]
-    assert main(["info", str(out)]) == 1
-    assert "rev1: failed  (FileNotFoundError" in capsys.readouterr().out
-
-
 def test_other_file_system_error_exits_1_with_the_resume_hint(tmp_path, capsys, monkeypatch):
     """An OSError other than a full disk mid-capture: one line with the reason and the resume
     command, exit 1; the session says why it stopped (it used to stay "running")."""
@@ -413,3 +383,93 @@ def test_other_file_system_error_exits_1_with_the_resume_hint(tmp_path, capsys, 
     assert Session.open(out).verify() == []
     assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
                  "--no-progress"]) == 0
+
+
+@pytest.mark.slow
+def test_second_writer_is_refused_and_sigterm_stops_like_ctrl_c(tmp_path, capsys):
+    """While one ``polrig capture`` writes a session, a second ``--resume`` and a
+    ``reconstruct`` are refused with one line (exit 1) and change nothing; SIGTERM then stops
+    the capture as Ctrl-C does (exit 143, session interrupted, resumable)."""
+    cfg = sim_config(tmp_path / "rig.toml", clock_speed="40")  # ~0.5 s/capture
+    fast = sim_config(tmp_path / "fast.toml")
+    out = tmp_path / "run"
+    proc = spawn_capture(cfg, out)
+    try:
+        for argv in (["capture", "--config", str(fast), "--out", str(out), "--resume",
+                      "--no-progress"], ["reconstruct", str(out), "--no-progress"]):
+            assert main(argv) == 1
+            err = capsys.readouterr().err
+            assert len(err.strip().splitlines()) == 1, err
+            assert f"being written by another polrig process (pid {proc.pid})" in err
+        assert not (out / "c000_pose000.0" / "rev1").exists()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert err.strip().endswith("polrig: terminated (SIGTERM)")
+    s = Session.open(out)
+    assert s.manifest["status"] == "interrupted"
+    assert s.manifest["status_reason"] == "terminated by SIGTERM"
+    assert s.captures[0]["status"] == "complete" and "pending" in [c["status"] for c in s.captures]
+    assert s.verify() == [] and s.manifest["revisions"] == []
+    assert main(["capture", "--config", str(fast), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0
+
+
+@pytest.mark.slow
+def test_a_burst_of_sigints_still_leaves_the_session_interrupted(tmp_path):
+    """SIGINTs every 0.5 ms (an impatient operator, a supervisor repeating its signal): the
+    first stops the capture, the later ones do not interrupt its clean-up, so the session is
+    interrupted and intact, and resume completes it (the clean-up used to be cut short, the
+    session left "running"). The process ends by SIGINT (shell status 130) either way."""
+    import time
+
+    cfg = sim_config(tmp_path / "rig.toml", clock_speed="40")
+    out = tmp_path / "run"
+    proc = spawn_capture(cfg, out)
+    for _ in range(200):
+        if proc.poll() is not None:
+            break
+        os.kill(proc.pid, signal.SIGINT)
+        time.sleep(0.0005)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode in (130, -signal.SIGINT), err
+    s = Session.open(out)
+    assert s.manifest["status"] == "interrupted", s.manifest["history"]
+    assert s.manifest["status_reason"] == "interrupted by the operator (Ctrl-C)"
+    assert s.verify() == []
+    assert main(["capture", "--config", str(sim_config(tmp_path / "fast.toml")), "--out",
+                 str(out), "--resume", "--no-progress"]) == 0
+
+
+def test_reconstruct_goes_on_past_a_damaged_capture_and_exits_1(tmp_path, capsys):
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
+                 "--no-progress"]) == 0
+    (out / Session.open(out).capture(1)["files"]["raw"][0]["path"]).unlink()
+    capsys.readouterr()
+    assert main(["reconstruct", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert ("polrig: error: revision rev1: 1 of 3 capture(s) failed, the others are complete: "
+            "capture 1 (c001_pose090.0): FileNotFoundError") in err
+    assert [c["revisions"]["rev1"]["status"] for c in Session.open(out).captures] == [
+        "complete", "failed", "complete"]
+    assert main(["info", str(out)]) == 1
+    assert "rev1: failed  (FileNotFoundError" in capsys.readouterr().out
+
+
+def test_info_into_a_closed_pipe_exits_quietly(tmp_path):
+    """``polrig info DIR | head``: the reader goes away; no "Broken pipe" error line, the exit
+    status of a process that SIGPIPE ended (141)."""
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0:360:30", "--config", str(cfg), "--out", str(out),
+                 "--no-progress"]) == 0
+    r, w = os.pipe()
+    os.close(r)  # the reader is gone before polrig writes
+    proc = subprocess.run([sys.executable, "-m", "polrig.cli", "info", str(out)], stdout=w,
+                          stderr=subprocess.PIPE, text=True, cwd=REPO, timeout=60)
+    os.close(w)
+    assert proc.returncode == 141 and proc.stderr == "", proc.stderr

@@ -9,8 +9,9 @@ import pathlib
 import pytest
 
 from polrig.errors import FormatError
-from polrig.session import (COMPLETE, MANIFEST_NAME, PENDING, Session, SessionError,
-                            check_free_space, sha256_file)
+from polrig.session import (COMPLETE, LOCK_NAME, MANIFEST_NAME, PENDING, Interrupted, Session,
+                            SessionBusy, SessionError, SignalGuard, check_free_space,
+                            folder_is_empty, interruption_reason, sha256_file)
 
 PLAN = {"poses_deg": [0.0, 90.0], "mode": "reference", "states_deg": [0, 45, 90, 135]}
 #: what a raw frame record carries besides its file (docs/session-schema.md)
@@ -188,3 +189,99 @@ def test_info_and_reconstruct_report_a_record_without_checksum_in_one_line(tmp_p
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "raw file record 0: missing 'sha256'" in err, err
     assert (root / MANIFEST_NAME).read_bytes() == before
+
+
+# -- one writer at a time ---------------------------------------------------------------------------
+def test_a_second_writer_is_refused_and_readers_need_no_lock(tmp_path):
+    s = make(tmp_path)  # a new session holds its lock
+    assert s.locked and (s.root / LOCK_NAME).is_file()
+    with pytest.raises(SessionBusy, match=r"being written by another polrig process \(pid \d+\)"):
+        Session.open(s.root, lock=True)
+    assert Session.open(s.root).captures  # a reader
+    s.unlock()
+    again = Session.open(s.root, lock=True)
+    with pytest.raises(SessionBusy):
+        s.lock()
+    again.unlock()
+    s.lock()
+    assert s.locked
+
+
+def test_the_lock_of_another_process_is_honoured(tmp_path):
+    """flock is per process here: a child holding the lock refuses this process, and the lock
+    goes when the child ends, however it ends."""
+    import subprocess
+    import sys
+
+    s = make(tmp_path)
+    s.unlock()
+    child = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from polrig.session import Session; "
+        f"s = Session.open({str(s.root)!r}, lock=True); print('locked', flush=True); time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "locked"
+        with pytest.raises(SessionBusy, match=f"pid {child.pid}"):
+            Session.open(s.root, lock=True)
+    finally:
+        child.kill()
+        child.wait()
+    Session.open(s.root, lock=True).unlock()
+
+
+def test_a_lock_file_alone_does_not_make_a_folder_non_empty(tmp_path):
+    root = tmp_path / "s"
+    root.mkdir()
+    (root / LOCK_NAME).write_text("12345\n")  # a creation that failed after locking
+    assert folder_is_empty(root)
+    s = make(tmp_path)
+    assert s.manifest["status"] == "running"
+
+
+def test_create_that_fails_after_locking_leaves_no_folder(tmp_path):
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    with pytest.raises(OSError):
+        make(tmp_path, write_hook=full)
+    assert not (tmp_path / "s").exists()
+
+
+# -- signals: the first stops, the clean-up after it is not interrupted ----------------------------
+def test_signal_guard_raises_once_then_ignores_and_defers(tmp_path):
+    import os
+    import signal
+    import time
+
+    def wait_for_signal():  # the handler runs between bytecodes, soon after the kill
+        for _ in range(1000):
+            time.sleep(0.001)
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Interrupted) as info:
+        with SignalGuard():
+            os.kill(os.getpid(), signal.SIGTERM)
+            wait_for_signal()
+    assert info.value.signum == signal.SIGTERM and isinstance(info.value, KeyboardInterrupt)
+    assert interruption_reason(info.value) == "terminated by SIGTERM"
+    assert signal.getsignal(signal.SIGTERM) is before  # restored
+    cleaned = []
+    with pytest.raises(Interrupted):
+        with SignalGuard():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                wait_for_signal()
+            except KeyboardInterrupt:
+                os.kill(os.getpid(), signal.SIGINT)  # an impatient second Ctrl-C
+                os.kill(os.getpid(), signal.SIGTERM)
+                wait_for_signal()
+                cleaned.append(True)  # the clean-up ran to its end
+                raise
+    assert cleaned == [True]
+    with SignalGuard() as guard:
+        with pytest.raises(Interrupted):
+            with guard.deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                wait_for_signal()
+                cleaned.append("deferred")  # not interrupted inside
+    assert cleaned == [True, "deferred"]

@@ -4,7 +4,7 @@ Thin shell over :mod:`polrig.capture` (acquisition), :mod:`polrig.processing` (r
 :mod:`polrig.session` (files). Bad input (pose spec, states, output folder, config) is
 rejected before any device is opened or any file is written; what needs the opened rig (the
 camera's exposure range, on ``--resume`` the same rig as the session's) is checked before
-any file is written.
+any file is written. A session being written by another process is refused (its lock).
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def prepare_capture(args: argparse.Namespace) -> PreparedCapture:
     one-line messages naming the option.
     """
     from polrig import capture, processing
-    from polrig.session import Session
+    from polrig.session import Session, folder_is_empty
 
     out = pathlib.Path(args.out)
     if getattr(args, "config", None) and not pathlib.Path(args.config).is_file():
@@ -141,19 +141,26 @@ def prepare_capture(args: argparse.Namespace) -> PreparedCapture:
     if args.resume:
         if not (out / "session.json").is_file():
             raise FileNotFoundError(f"--resume: {out} holds no session to resume")
-        session = Session.open(out)
-        plan = capture.CapturePlan.from_json(session.plan)
-        check_resume_args(args, plan)
-        calibration = processing.load_calibration(args.calibration, session=session)
+        # opened for writing: its lock first (SessionBusy if another process writes it), so
+        # the manifest read here is the one this run continues
+        session = Session.open(out, lock=True)
+        try:
+            plan = capture.CapturePlan.from_json(session.plan)
+            check_resume_args(args, plan)
+            calibration = processing.load_calibration(args.calibration, session=session)
+            processing.check_plan(plan, calibration)  # states conditioning, single-shot model
+        except BaseException:
+            session.unlock()
+            raise
     else:
         plan = build_plan(args)
         if out.exists() and not out.is_dir():
             raise FileExistsError(f"--out {out}: exists and is not a folder")
-        if out.is_dir() and any(out.iterdir()):
+        if not folder_is_empty(out):
             raise FileExistsError(f"--out {out}: folder is not empty; pass --resume to continue "
                                   f"the session in it, or choose a new folder")
         calibration = processing.load_calibration(args.calibration)
-    processing.check_plan(plan, calibration)  # states conditioning, single-shot model
+        processing.check_plan(plan, calibration)  # states conditioning, single-shot model
     return PreparedCapture(out, plan, calibration, session)
 
 
@@ -161,14 +168,20 @@ def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
     """The session to run on ``rig``: the resumed one (after checking that ``rig`` is the
     rig it was captured on and the free disk space for what is left) or a new one created in
     ``prepared.out``. The plan is checked against the rig's camera first
-    (:func:`polrig.capture.check_rig_for_plan`); a refusal writes nothing."""
+    (:func:`polrig.capture.check_rig_for_plan`); a refusal writes nothing. The session
+    returned holds its lock until :func:`polrig.capture.run_session` ends."""
     from polrig import capture
 
     if prepared.resume_session is not None:
         session = prepared.resume_session
-        capture.check_resume_rig(session, rig)
-        capture.check_rig_for_plan(rig, prepared.plan, resume=True)
-        capture.check_resume_space(session, rig, len(session.next_pending()))
+        try:
+            session.lock()  # no-op when prepare_capture took it
+            capture.check_resume_rig(session, rig)
+            capture.check_rig_for_plan(rig, prepared.plan, resume=True)
+            capture.check_resume_space(session, rig, len(session.next_pending()))
+        except BaseException:
+            session.unlock()
+            raise
         session.log("resume command", command_line=command_line)
         return session
     capture.check_rig_for_plan(rig, prepared.plan)
@@ -188,8 +201,12 @@ def run(args: argparse.Namespace) -> int:
     plan, calibration, out = prepared.plan, prepared.calibration, prepared.out
     with open_rig(args.config) as rig:
         session = open_session(prepared, rig, command_line(args))
-        processor = processing.make_processor(plan, calibration,
-                                              processing.session_sensor_model(session))
+        try:
+            processor = processing.make_processor(plan, calibration,
+                                                  processing.session_sensor_model(session))
+        except BaseException:
+            session.unlock()
+            raise
         bar = _ProgressPrinter(enabled=not args.no_progress)
         try:
             result = capture.run_session(rig, session, processor=processor,

@@ -1,5 +1,7 @@
 """``polrig info SESSION``: what a session holds, how each capture ended, its scores, and
-whether every file still matches its SHA-256 checksum (exit code 1 if not)."""
+whether every file still matches its SHA-256 checksum (exit code 1 if not). A reader: it takes
+no lock (it may run while a capture writes the session). A structurally damaged manifest is
+one line naming the record (:func:`polrig.session.validate_manifest`, exit code 2)."""
 
 from __future__ import annotations
 

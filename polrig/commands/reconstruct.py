@@ -1,9 +1,10 @@
 """``polrig reconstruct SESSION``: re-process a session's raw frames into a new revision.
 
 Raw frames are read (their checksums verified first) and never modified; results go to
-``<capture>/<revision>/`` and the manifest records the revision's settings. A capture whose
-files are damaged is marked ``failed`` in the revision with its reason and the others are
-processed; the command then exits 1 with one line naming the failed captures (as
+``<capture>/<revision>/`` and the manifest records the revision's settings. The session's
+lock is held while it runs (a session another process writes is refused, exit 1). A capture
+whose files are damaged is marked ``failed`` in the revision with its reason and the others
+are processed; the command then exits 1 with one line naming the failed captures (as
 ``polrig info`` exits 1 on the same damage).
 """
 
@@ -36,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from polrig.commands.capture import command_line
     from polrig.session import Session
 
-    session = Session.open(args.session)
+    session = Session.open(args.session, lock=True)  # SessionBusy if another process writes it
     calibration = processing.load_calibration(args.calibration)
     progress = on_failed = bar = None
     if not args.no_progress:
@@ -67,5 +68,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
+        session.unlock()
     print(f"revision {name} written to {session.root}")
     return 0
