@@ -37,7 +37,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from polrig.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout
+from polrig.errors import (ConfigError, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout,
+                           ProtocolError)
 from polrig.hal import Frame
 from polrig.rawio import encode_mosaic
 from polrig.session import (COMPLETE, FAILED, INTERRUPTED, PENDING, RUNNING, SESSION_COMPLETE,
@@ -279,14 +280,16 @@ def set_with_retry(setter: Callable[[Any], None], value: Any, retries: int,
 
 def move_with_rehome(stage, angle_deg: float, what: str,
                      on_retry: Callable[[str], None] | None = None) -> None:
-    """Move ``stage`` to ``angle_deg`` and wait. On a timeout or a device fault, home the
-    stage and try once more; a second failure is raised. Disconnections are not retried."""
+    """Move ``stage`` to ``angle_deg`` and wait. On a timeout, a device fault or a garbled
+    reply (:class:`ProtocolError`: line noise on a serial link leaves the position unknown),
+    home the stage and try once more; a second failure is raised. Disconnections are not
+    retried."""
     try:
         stage.move_to(angle_deg, wait=True)
         return
     except DeviceDisconnected:
         raise
-    except (DeviceTimeout, DeviceFault) as exc:
+    except (DeviceTimeout, DeviceFault, ProtocolError) as exc:
         if on_retry:
             on_retry(f"{what} move to {angle_deg:g} deg failed ({exc}); re-homing and "
                      f"retrying once")

@@ -176,7 +176,7 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
 
 
 @pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 3),
-                                                  ("turntable", "timeout", 1)])
+                                                  ("turntable", "timeout", 1), ("stage", "protocol", 3)])
 def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
     events = []
     with sim_rig() as rig:
