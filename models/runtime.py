@@ -440,7 +440,8 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings, and
     with ``saturation_dn`` (raw DN, black level included, at which the sensor clips)
     ``saturated`` ``(H', W')`` bool: output pixels with a clipped raw sample in their demosaic
-    support (the network's estimate there comes from clipped data); ``with_sigma``: as
+    support (the network's estimate there comes from clipped data; its ``sigma`` is infinite
+    there, as in a session's single-shot EXR); ``with_sigma``: as
     :meth:`SingleShotModel.reconstruct`, as is ``mirror_average``."""
     from polrig.analyzer import resolve_layout
     from polrig.demosaic import demosaic, demosaic_float
@@ -462,6 +463,8 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     aux["timings_s"] = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
     if clipped is not None:
         aux["saturated"] = clipped
+        if "sigma" in aux:  # the estimate there comes from clipped data: no error bound
+            aux["sigma"] = np.where(clipped, np.float32(np.inf), aux["sigma"])
     return mueller, aux
 
 
@@ -482,7 +485,12 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
     if with_normal and "normal" in aux:
         for k, name in enumerate("XYZ"):
             extra[f"normal.{name}"] = aux["normal"][k]
+    planes = {"mask": "1 = object pixel (the network's input mask; 0 outside: Mueller 0)"}
+    if "saturated" in aux:
+        planes["saturated"] = "1 = a clipped raw sample in the pixel's demosaic support"
+    if "sigma" in aux:
+        planes["sigma.M{rc}"] = "calibrated standard deviation of M{rc} (models/uncertainty.py); inf where saturated"
     meta = {"method": "single-shot", "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
-            "scale_dn": aux.get("scale"), "alpha": aux.get("alpha")}
+            "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes}
     meta.update(metadata or {})
     return write_mueller_exr(path, mueller, extra=extra, metadata=meta)

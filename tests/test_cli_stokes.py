@@ -46,7 +46,8 @@ def test_stokes_command_writes_exr_and_previews(tmp_path, method, capsys):
     aolp = back.extra["aolp_deg.Y"][3:-3, 3:-3]
     np.testing.assert_allclose(aolp, 30.0, atol=0.1)
     np.testing.assert_allclose(back.extra["dolp.Y"][3:-3, 3:-3], 0.6, atol=2e-3)
-    assert back.extra["mask"].all()
+    assert back.extra["valid"].all()
+    assert "valid" in back.metadata["planes"]
     assert back.metadata["processing"]["demosaic"] == method
     for suffix in ("_dolp.png", "_aolp.png"):
         img = cv2.imread(str(tmp_path / f"out{suffix}"), cv2.IMREAD_UNCHANGED)
@@ -66,7 +67,7 @@ def test_sidecar_supplies_layout_offset_black_level_and_bit_depth(tmp_path):
     assert main(["stokes", str(src), "--demosaic", "superpixel", "--out", str(out)]) == 0
     back = read_stokes_exr(out)
     assert back.stokes.shape == (3, 3, 8, 8)
-    ok = back.extra["mask"] > 0
+    ok = back.extra["valid"] > 0
     assert not ok[1, 1] and ok.sum() == 63  # the 4x4 cell holding the saturated pixel
     np.testing.assert_allclose(back.stokes[:, 0][:, ok], 1000, rtol=2e-3)
     assert back.metadata["capture"]["frame"]["frame_id"] == 7

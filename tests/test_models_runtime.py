@@ -222,6 +222,15 @@ def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
     expected[10:14, 20:26] = True
     assert np.array_equal(sat, expected)
     assert "warning" in err and "clipped" in err and "4095 DN" in err
+    # with --sigma the clipped pixels get an infinite sigma (as in a session's single-shot EXR:
+    # no error bound for an estimate from clipped data), the others stay finite
+    out_sigma = tmp_path / "sigma.exr"
+    assert main(["infer", str(src), "--layout", "imx250myr", "--black-level", "100", "--saturation-dn", "4095",
+                 "--state-deg", str(float(capture["stage_deg"])), "--sigma", "--out", str(out_sigma)]) == 0
+    exr = read_mueller_exr(out_sigma)
+    sig = np.stack([exr.extra[f"sigma.M{r}{c}.{ch}"] for r in range(3) for c in range(3) for ch in "RGB"])
+    assert np.all(np.isinf(sig[:, expected])) and np.all(np.isfinite(sig[:, ~expected]))
+    assert "saturated" in exr.metadata["planes"] and "mask" in exr.metadata["planes"]
 
 
 def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):

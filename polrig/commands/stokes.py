@@ -20,6 +20,12 @@ from polrig.rawio import (DEFAULT_LAYOUT, assumed_layout_note, atomic_write_byte
                           check_bit_depth, read_raw)
 
 
+#: What the extra planes of a ``polrig stokes`` EXR mean (also written into its header).
+STOKES_EXR_PLANES = {"valid": "1 = valid in every colour (finite, S0 > 0, no saturated sample in the demosaic support)",
+                     "dolp.{ch}": "degree of linear polarization, 0 where invalid",
+                     "aolp_deg.{ch}": "angle of linear polarization in degrees [0, 180) (docs/conventions.md), 0 where invalid"}
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "stokes", help="turn a raw DoFP mosaic into a Stokes EXR with DoLP/AoLP previews",
@@ -91,10 +97,11 @@ def run(args: argparse.Namespace) -> int:
     analyzer = AnalyzerModel.load(args.analyzer) if args.analyzer else None
     res = stokes_from_raw(frame.raw, layout, args.demosaic, black_level_dn=black,
                           analyzer=analyzer, bit_depth=bits)
-    extra = {"mask": res.valid.all(axis=0)}
+    extra = {"valid": res.valid.all(axis=0)}
     extra.update(colour_planes("dolp", res.dolp))
     extra.update(colour_planes("aolp_deg", res.aolp_deg))
     metadata = {"capture": {"source": str(args.raw), "frame": meta.to_json()},
+                "planes": STOKES_EXR_PLANES,
                 "processing": {"layout": res.layout, "demosaic": args.demosaic,
                                "black_level_dn": black, "bit_depth": bits,
                                "analyzer": str(args.analyzer) if args.analyzer else "ideal",
