@@ -288,7 +288,7 @@ class _SimAxis(_SimDevice):
             self._wait(timeout_s)
 
     def _start(self, target_deg: float) -> None:
-        self._world.note_motion()
+        self._world.note_motion(turntable=self._move_attr == "turntable_move")
         now = self._world.clock.now()
         self._set_move(Move(self._move.position(now), target_deg, now, self.speed_deg_s,
                             self.accel_deg_s2))

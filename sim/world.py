@@ -84,21 +84,30 @@ class SimWorld:
         self.render_count = 0
         self._repeats: dict[tuple, int] = {}
         self._last_condition: tuple | None = None
+        self._runs: dict[tuple, int] = {}
 
     # -- reproducible noise -------------------------------------------------------------------
-    def note_motion(self) -> None:
-        """A motion command was issued: the next grab starts a new run of repeated frames."""
+    def note_motion(self, turntable: bool = False) -> None:
+        """A motion command was issued: the next grab starts a new run of repeated frames.
+        A turntable motion also starts a new capture as far as the noise is concerned (the
+        run counts of :meth:`grab_rng` start again)."""
         with self._lock:
             self._repeats.clear()
             self._last_condition = None
+            if turntable:
+                self._runs.clear()
 
     def grab_rng(self, condition: tuple[float | int, ...]) -> np.random.Generator:
         """The noise generator of the next grab under ``condition`` (pose, state, exposure, ...).
 
-        Noise is keyed by ``(seed, condition, repeat index)``, where the repeat index counts
-        the grabs since the condition last changed or a motion command was issued. A session
-        that is interrupted and resumed therefore sees exactly the noise an uninterrupted one
-        would have seen, while repeated frames of one state still get independent noise.
+        Noise is keyed by ``(seed, condition, repeat index, run)``, where the repeat index
+        counts the grabs since the condition last changed or a motion command was issued, and
+        ``run`` counts the earlier runs of the same condition since the turntable last moved
+        (a plan that visits one polarizer state twice, ``--states 0,0,45,90``, gets
+        independent noise on the second visit; the first run keeps the key without ``run``).
+        A session that is interrupted and resumed (a capture is redone from its turntable
+        move) therefore sees exactly the noise an uninterrupted one would have seen, while
+        repeated frames of one state still get independent noise.
         """
         key = tuple(int(round(float(v) * 1e4)) % (1 << 63) for v in condition)
         with self._lock:
@@ -106,8 +115,12 @@ class SimWorld:
                 self._repeats.clear()
                 self._last_condition = key
             n = self._repeats.get(key, 0)
+            if n == 0:
+                self._runs[key] = self._runs.get(key, -1) + 1
+            run = self._runs[key]
             self._repeats[key] = n + 1
-        return np.random.default_rng(np.random.SeedSequence([self.seed, n, *key]))
+        entropy = [self.seed, n, *key] + ([run] if run else [])
+        return np.random.default_rng(np.random.SeedSequence(entropy))
 
     def set_scene(self, scene: Scene) -> None:
         """Replace the scene (e.g. swap a calibration target in) and drop every cached image.

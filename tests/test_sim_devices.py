@@ -286,21 +286,44 @@ def test_swapping_the_scene_drops_cached_images():
 
 def test_noise_is_keyed_by_condition_and_repeat_index():
     """A resumed session re-grabs the same frames: noise depends on (seed, pose, state,
-    exposure, repeat index), not on how many frames were grabbed before."""
+    exposure, repeat index, earlier visits of the state since the turntable moved), not on how
+    many frames were grabbed before; a resumed capture starts again from its turntable move."""
     from sim.devices import create_sim_rig
 
     def grab_two(detour: bool):
         rig = create_sim_rig({"size": (64, 64), "clock_speed": float("inf"), "seed": 3})
         with rig:
-            rig.turntable.move_to(30)
-            rig.stage.move_to(45)
             if detour:  # an interrupted attempt grabbed and moved before
+                rig.turntable.move_to(30)
+                rig.stage.move_to(45)
                 rig.camera.grab()
                 rig.stage.move_to(90)
-                rig.stage.move_to(45)
+                rig.camera.grab()
+            rig.turntable.move_to(30)
+            rig.stage.move_to(45)
             return rig.camera.grab().raw, rig.camera.grab().raw
 
     a1, b1 = grab_two(False)
     a2, b2 = grab_two(True)
     assert np.array_equal(a1, a2) and np.array_equal(b1, b2)
     assert np.mean(a1 != b1) > 0.5  # repeated frames of one state have independent noise
+
+
+def test_a_state_visited_twice_gets_independent_noise():
+    """``--states 0,45,0``: the second visit to 0 deg is a new exposure, not a copy of the
+    first (identical frames made the reference solve count one noise sample twice)."""
+    from sim.devices import create_sim_rig
+
+    def sweep():
+        rig = create_sim_rig({"size": (64, 64), "clock_speed": float("inf"), "seed": 3})
+        with rig:
+            rig.turntable.move_to(30)
+            frames = []
+            for state in (0, 45, 0):
+                rig.stage.move_to(state)
+                frames.append(rig.camera.grab().raw)
+            return frames
+
+    first, _, second = sweep()
+    assert np.mean(first != second) > 0.5
+    assert all(np.array_equal(a, b) for a, b in zip(sweep(), sweep()))  # still reproducible
