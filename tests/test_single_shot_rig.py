@@ -167,7 +167,8 @@ def test_calibration_set_geometry_reaches_processing(tmp_path):
     assert geo["intrinsics"] == cal.intrinsics  # the calibration wins over the nominal table
     assert geo["sources"]["stage_zero_axis_camera"].startswith("calibration ")
     # the generator step's own axis is preferred when the set has it
-    params["generator"] = {"stage_zero_axis_cam": [0.0, 0.0, 1.0]}
+    params["generator"] = {"zero_offset_deg": 0.0, "extinction_ratio": float("inf"),
+                           "stage_zero_axis_cam": [0.0, 0.0, 1.0]}
     CalibrationSet(params).save(tmp_path / "cal2")
     assert load_calibration(tmp_path / "cal2").stage_zero_axis_camera == (0.0, 0.0, 1.0)
 
