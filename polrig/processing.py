@@ -87,6 +87,12 @@ class Calibration:
     diattenuation)`` and ``generator_tolerance`` ``(zero_offset_deg, inverse_extinction)``.
     The defaults (zeros) mean an exactly known rig; :func:`nominal_calibration` declares the
     priors of an uncalibrated one, :func:`load_calibration` a calibration set's fitted values.
+
+    ``sensor``: the sensor pixels a calibration set was calibrated on
+    (:class:`calibration.calset.SensorGeometry`: layout, calibrated readout area on the
+    sensor, sensor size; ``None``: valid for any camera), ``source`` the set's folder. The
+    analyzer model covers that area (``sensor.area``); frames must come from the same sensor
+    and lie inside it (:func:`check_calibration_fits`).
     """
 
     id: str
@@ -96,6 +102,15 @@ class Calibration:
     stage_zero_axis_camera: tuple[float, float, float] | None = None
     analyzer_tolerance: tuple[float, float, float] = (0.0, 0.0, 0.0)
     generator_tolerance: tuple[float, float] = (0.0, 0.0)
+    sensor: Any = None
+    source: str | None = None
+
+    @property
+    def area_offset(self) -> tuple[int, int]:
+        """Sensor position ``(x, y)`` of the calibrated area's first pixel (the analyzer
+        model's pixel (0, 0)); (0, 0) without a calibrated geometry."""
+        area = getattr(self.sensor, "area", None)
+        return (0, 0) if area is None else (int(area[2]), int(area[3]))
 
     def incident_stokes(self, states_deg: Sequence[float]) -> np.ndarray:
         a = np.asarray(states_deg, dtype=np.float64)
@@ -134,7 +149,8 @@ def load_calibration(path: str | os.PathLike | None, *, session: Session | None 
                                            NOMINAL_GENERATOR_TOLERANCE)
         cal = Calibration(cs.id, cs.incident_stokes, getattr(cs, "analyzer", None),
                           *calibration_geometry(cs), analyzer_tolerance=a_tol,
-                          generator_tolerance=g_tol)
+                          generator_tolerance=g_tol, sensor=cs.sensor_geometry(),
+                          source=str(p))
     if session is not None and session.manifest.get("calibration_id") != cal.id:
         raise ConfigError(f"--resume: the session was captured with calibration "
                           f"{session.manifest.get('calibration_id')!r}, not {cal.id!r}")
@@ -145,14 +161,18 @@ def calibration_geometry(cs) -> tuple[tuple[float, float, float, float] | None,
                                       tuple[float, float, float] | None]:
     """``(intrinsics, stage_zero_axis_camera)`` of a calibration set
     (:class:`calibration.calset.CalibrationSet`), each ``None`` where the set lacks the step:
-    ``(fx, fy, cx, cy)`` from the camera matrix ``K`` (full-sensor pixels), and the stage zero
-    axis from the generator step, else from the turntable axis and the light position
-    (:func:`calibration.rigframes.stage_zero_axis_cam`, the rig's definition)."""
+    ``(fx, fy, cx, cy)`` from the camera matrix ``K`` carried from the calibrated readout's
+    pixels to the full sensor's (the principal point plus the readout offset of the set's
+    ``camera`` section), and the stage zero axis from the generator step, else from the
+    turntable axis and the light position (:func:`calibration.rigframes.stage_zero_axis_cam`,
+    the rig's definition)."""
     has = getattr(cs, "has", lambda section: False)
     intrinsics = axis = None
     if has("intrinsics"):
         k = np.asarray(cs.intrinsics["K"], np.float64)
-        intrinsics = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+        geo = cs.sensor_geometry() if hasattr(cs, "sensor_geometry") else None
+        ox, oy = (0, 0) if geo is None or geo.area is None else geo.area[2:]
+        intrinsics = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]) + ox, float(k[1, 2]) + oy)
     if has("generator") and "stage_zero_axis_cam" in cs.params.get("generator", {}):
         axis = np.asarray(cs.stage_zero_axis_cam, np.float64)
     elif has("turntable") and has("light"):
@@ -163,6 +183,75 @@ def calibration_geometry(cs) -> tuple[tuple[float, float, float, float] | None,
     if axis is not None and not (np.all(np.isfinite(axis)) and np.any(axis)):
         axis = None
     return intrinsics, None if axis is None else tuple(float(v) for v in axis)
+
+
+def check_calibration_fits(calibration: Calibration, *, layout: str | None,
+                           readout: Sequence[int] | None,
+                           sensor_size: Sequence[int] | None = None,
+                           what: str = "the camera", phase: bool = True) -> None:
+    """Refuse (:class:`ConfigError`, one line naming the calibration folder and both
+    geometries) frames that a calibration set was not calibrated for: another mosaic layout
+    (mono/colour, or another mosaic phase when ``phase``), another sensor size (where both
+    are known) or a readout ``(width, height, offset_x, offset_y)`` not inside the calibrated
+    area. A readout (ROI) inside the calibrated area is accepted: the analyzer model is
+    cropped to it and the intrinsics carried by its offset. The nominal calibration, and a set
+    with no camera-dependent step, fit every camera. ``capture`` checks before any device
+    moves or any session exists, ``reconstruct`` before a revision exists, ``infer`` before
+    the network runs."""
+    have = calibration.sensor
+    if have is None:
+        return
+    from calibration.calset import SensorGeometry
+
+    now = SensorGeometry(None if layout is None else str(layout),
+                         None if readout is None else tuple(int(v) for v in readout),
+                         None if sensor_size is None else tuple(int(v) for v in sensor_size))
+    why = have.mismatch(now, phase=phase)
+    if why:
+        raise ConfigError(f"--calibration {calibration.source}: calibrated on "
+                          f"{have.describe('calibrated area')}; {what}: {now.describe()} "
+                          f"({why}); use a set calibrated on this camera ('polrig calibrate "
+                          f"all --out DIR' on it)")
+
+
+def check_calibration_fits_rig(calibration: Calibration, rig) -> None:
+    """:func:`check_calibration_fits` for ``rig``'s camera as it reads out now."""
+    if calibration.sensor is None:
+        return
+    from calibration.calset import SensorGeometry
+
+    now = SensorGeometry.of_rig(rig)
+    check_calibration_fits(calibration, layout=now.layout, readout=now.area,
+                           sensor_size=now.sensor_size, what="this camera")
+
+
+def session_frame_geometry(session: Session) -> tuple[str | None, tuple[int, int, int, int] | None,
+                                                      tuple[int, int] | None]:
+    """``(layout, readout, sensor_size)`` of a session's frames, from its manifest
+    (``rig.camera_frames``, else its first raw frame; the simulated sensor's size from
+    ``rig.sim_parameters``); ``None`` where it does not say."""
+    rig = session.manifest.get("rig") or {}
+    frames = rig.get("camera_frames")
+    if not isinstance(frames, dict):  # a session older than rig.camera_frames
+        from polrig.capture import _recorded_camera_frames
+
+        frames = _recorded_camera_frames(session) or {}
+    layout = frames.get("layout")
+    readout = None
+    try:
+        off = frames.get("offset_xy") or [0, 0]
+        readout = (int(frames["width"]), int(frames["height"]), int(off[0]), int(off[1]))
+    except (KeyError, TypeError, ValueError, IndexError):
+        readout = None
+    size = None
+    sensor = ((rig.get("sim_parameters") or {}).get("sensor") or {}) \
+        if rig.get("simulated") else {}
+    try:
+        h, w = sensor["shape"]
+        size = (int(w), int(h))
+    except (KeyError, TypeError, ValueError):
+        size = None
+    return (str(layout) if layout else None), readout, size
 
 
 def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | None,
@@ -598,11 +687,12 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
             black_level_dn=black,
             darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
     analyzer = calibration.analyzer
-    if analyzer is not None and analyzer.shape != first.raw.shape:
-        w = first.raw.shape[1]
-        h = first.raw.shape[0]
+    if analyzer is not None:  # the frame's readout within the calibrated area
+        h, w = first.raw.shape
+        ax, ay = calibration.area_offset
         ox, oy = first.meta.offset_xy
-        analyzer = analyzer.crop(ox, oy, w, h)
+        if analyzer.shape != (h, w) or (calibration.sensor is not None and (ox, oy) != (ax, ay)):
+            analyzer = analyzer.crop(ox - ax, oy - ay, w, h)
     s_in = calibration.incident_stokes(cf.states_deg)
     result = reference_from_frames(states, s_in, lay, method, analyzer,
                                    analyzer_tolerance=calibration.analyzer_tolerance,
@@ -876,6 +966,10 @@ def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, co
     if mirror_average is None:  # the session's choice where it was single-shot already
         mirror_average = bool(plan.get("mirror_average", False)) and mode == "single-shot"
     calibration = calibration or nominal_calibration()
+    if calibration.sensor is not None:  # before a revision exists: nothing recorded
+        layout, readout, size = session_frame_geometry(session)
+        check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
+                               what=f"the camera of session {session.root}")
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:

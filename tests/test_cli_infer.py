@@ -67,3 +67,33 @@ def test_a_failed_write_is_one_line_exit_1(frame, tmp_path):
     assert res.returncode == 1, res.stderr
     assert res.stderr == f"polrig: error: {out}: cannot write the OpenEXR file (File too large)\n"
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("size, layout, why", [
+    ((64, 48), "imx250myr", "the readout is not inside the calibrated area"),
+    ((128, 64), "imx250mzr", "layout imx250mzr is not imx250myr"),
+])
+def test_a_calibration_set_of_another_camera_is_refused(frame, tmp_path, capsys, size, layout,
+                                                        why):
+    """``--calibration`` of a set that does not cover the frame (or of a mono sensor for a
+    colour frame) used to be applied silently (exit 0)."""
+    from _calibration_sets import set_calibrated_on
+
+    set_calibrated_on(tmp_path / "cal", size, layout)
+    out = tmp_path / "m.exr"
+    rc = main(["infer", str(frame), "--state-deg", "0", "--calibration", str(tmp_path / "cal"),
+               "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"polrig: error: --calibration {tmp_path / 'cal'}: calibrated on "
+                          f"sensor {size[0]}x{size[1]} {layout}")
+    assert f"{frame}: sensor imx250myr, readout 128x64 at (0, 0) ({why})" in err
+    assert not out.exists()
+
+
+def test_a_calibration_set_covering_the_frame_is_used(frame, tmp_path, capsys):
+    from _calibration_sets import set_calibrated_on
+
+    set_calibrated_on(tmp_path / "cal", (256, 128))  # the frame is its corner (an ROI)
+    assert main(["infer", str(frame), "--state-deg", "0", "--calibration", str(tmp_path / "cal"),
+                 "--out", str(tmp_path / "m.exr")]) == 0

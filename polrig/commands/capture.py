@@ -167,16 +167,20 @@ def prepare_capture(args: argparse.Namespace) -> PreparedCapture:
 def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
     """The session to run on ``rig``: the resumed one (after checking that ``rig`` is the
     rig it was captured on and the free disk space for what is left) or a new one created in
-    ``prepared.out``. The plan is checked against the rig's camera first
-    (:func:`polrig.capture.check_rig_for_plan`); a refusal writes nothing. The session
-    returned holds its lock until :func:`polrig.capture.run_session` ends."""
-    from polrig import capture
+    ``prepared.out``. The calibration set must have been calibrated on this camera (same
+    sensor and layout, the readout inside the calibrated area,
+    :func:`polrig.processing.check_calibration_fits_rig`) and the plan is checked against the
+    rig's camera (:func:`polrig.capture.check_rig_for_plan`), both before any device moves; a
+    refusal writes nothing. The session returned holds its lock until
+    :func:`polrig.capture.run_session` ends."""
+    from polrig import capture, processing
 
     if prepared.resume_session is not None:
         session = prepared.resume_session
         try:
             session.lock()  # no-op when prepare_capture took it
             capture.check_resume_rig(session, rig)
+            processing.check_calibration_fits_rig(prepared.calibration, rig)
             capture.check_rig_for_plan(rig, prepared.plan, resume=True)
             capture.check_resume_space(session, rig, len(session.next_pending()))
         except BaseException:
@@ -184,6 +188,7 @@ def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
             raise
         session.log("resume command", command_line=command_line)
         return session
+    processing.check_calibration_fits_rig(prepared.calibration, rig)
     capture.check_rig_for_plan(rig, prepared.plan)
     return capture.create_session(prepared.out, rig, prepared.plan,
                                   calibration_id=prepared.calibration.id,

@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="DN per normalised unit, > 0 (default: from the image)")
     p.add_argument("--calibration", default=None,
                    help="calibration set folder: its camera intrinsics and stage zero axis "
-                        "are used")
+                        "are used (a set of another sensor layout, or whose calibrated area "
+                        "does not cover the frame, is refused)")
     p.add_argument("--config", default=None,
                    help="rig configuration TOML: its [nominal_geometry] table (default: the "
                         "simulated rig's design geometry), used where no calibration is given")
@@ -77,6 +78,11 @@ def run(args: argparse.Namespace) -> int:
         source = "--black-level" if args.black_level is not None else "the sidecar's black level"
         raise ConfigError(f"{source} {black:g} DN is not below the saturation level {saturation:g} DN")
     calibration = processing.load_calibration(args.calibration)
+    # a set from another sensor (layout) or one that does not cover this frame: refused
+    h, w = frame.raw.shape[-2:]
+    processing.check_calibration_fits(calibration, layout=layout,
+                                      readout=(w, h, *frame.meta.offset_xy),
+                                      what=f"{args.raw}", phase=False)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
     geometry = processing.single_shot_geometry(calibration, load_rig_config(args.config))
     kwargs = processing.single_shot_kwargs(geometry, frame, args.demosaic)

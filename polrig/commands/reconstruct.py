@@ -5,7 +5,10 @@ Raw frames are read (their checksums verified first) and never modified; results
 lock is held while it runs (a session another process writes is refused, exit 1). A capture
 whose files are damaged is marked ``failed`` in the revision with its reason and the others
 are processed; the command then exits 1 with one line naming the failed captures (as
-``polrig info`` exits 1 on the same damage).
+``polrig info`` exits 1 on the same damage). A ``--calibration`` set that was not calibrated
+on the session's camera (sensor size, layout, or a readout outside its calibrated area) is
+refused before a revision exists (exit 2,
+:func:`polrig.processing.check_calibration_fits`).
 """
 
 from __future__ import annotations
@@ -38,7 +41,11 @@ def run(args: argparse.Namespace) -> int:
     from polrig.session import Session
 
     session = Session.open(args.session, lock=True)  # SessionBusy if another process writes it
-    calibration = processing.load_calibration(args.calibration)
+    try:  # a calibration set that cannot be used: refused, the lock released, nothing written
+        calibration = processing.load_calibration(args.calibration)
+    except BaseException:
+        session.unlock()
+        raise
     progress = on_failed = bar = None
     if not args.no_progress:
         from tqdm import tqdm
