@@ -23,3 +23,8 @@ class SphereSaturated(CalibrationError):
 
 class TooFewAngles(CalibrationError):
     """Too few stage or turntable angles for the fit to be determined."""
+
+
+class SceneTooDark(PolrigError):
+    """The scene stays too dark at the longest exposure the procedures can use (light off or
+    far too dim): a failure while running (exit 1), not a bad input."""

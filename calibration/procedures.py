@@ -22,10 +22,11 @@ from typing import Any, Callable
 import numpy as np
 
 from calibration import charuco, dofp, light, rigframes, turntable
-from calibration.errors import (BoardNotFound, CalibrationError, SphereNotFound, SphereSaturated,
-                                TooFewAngles)
+from calibration.errors import (BoardNotFound, CalibrationError, SceneTooDark, SphereNotFound,
+                                SphereSaturated, TooFewAngles)
 from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
                                    wrap_deg)
+from polrig import hal
 from polrig.analyzer import AnalyzerModel, layout_name_at
 
 Mount = Callable[..., None]
@@ -73,11 +74,34 @@ def grab_mean(camera, n: int = 1) -> tuple[np.ndarray, Any]:
     return acc / max(1, int(n)), meta
 
 
+#: Longest exposure the procedures set (us): half the grab timeout of the HAL
+#: (:data:`polrig.hal.DEFAULT_TIMEOUT_S`, which every ``camera.grab()`` here uses), so that a
+#: frame always arrives before the grab gives up. A scene still too dark there is reported
+#: (:class:`calibration.errors.SceneTooDark`) instead of timing out.
+MAX_EXPOSURE_US = 0.5 * hal.DEFAULT_TIMEOUT_S * 1e6
+#: :func:`auto_expose` gives up (:class:`SceneTooDark`) when, at :data:`MAX_EXPOSURE_US`, the
+#: measured level is below this fraction of its target.
+TOO_DARK_FRACTION = 0.25
+
+
+def exposure_range_us(camera) -> tuple[float, float]:
+    """``(shortest, longest)`` exposure the procedures use on ``camera``: its declared range
+    (``EXPOSURE_RANGE_US``), the longest capped at :data:`MAX_EXPOSURE_US`."""
+    lo, hi = getattr(camera, "EXPOSURE_RANGE_US", (10.0, 1e7))
+    return float(lo), min(float(hi), MAX_EXPOSURE_US)
+
+
 def auto_expose(camera, *, percentile: float = 99.5, target: float = 0.6,
                 mask: np.ndarray | None = None, iterations: int = 12) -> float:
     """Set the exposure so that the ``percentile`` of the (masked) black-subtracted raw frame
-    is ``target`` of the full scale; returns the exposure in microseconds."""
-    lo, hi = getattr(camera, "EXPOSURE_RANGE_US", (10.0, 1e7))
+    is ``target`` of the full scale; returns the exposure in microseconds.
+
+    Raises :class:`SceneTooDark` when the longest usable exposure
+    (:func:`exposure_range_us`) still leaves the level below :data:`TOO_DARK_FRACTION` of
+    the target (light off or far too dim)."""
+    lo, hi = exposure_range_us(camera)
+    if camera.exposure_us > hi:
+        camera.set_exposure_us(hi)
     for _ in range(iterations):
         f = camera.grab()
         full = _full_scale(f.meta) - f.meta.black_level_dn
@@ -91,6 +115,13 @@ def auto_expose(camera, *, percentile: float = 99.5, target: float = 0.6,
             new = camera.exposure_us * target * full / v
             if abs(new / camera.exposure_us - 1.0) < 0.1:
                 return camera.exposure_us
+        if new > hi and camera.exposure_us >= hi:  # no longer exposure left to try
+            if v < TOO_DARK_FRACTION * target * full:
+                raise SceneTooDark(
+                    f"scene too dark at the longest usable exposure {hi:g} us (the "
+                    f"{percentile:g}th percentile reaches {100 * max(v, 0.0) / full:.1f} % of "
+                    f"full scale, {100 * target:.0f} % wanted); is the light on?")
+            return camera.exposure_us
         camera.set_exposure_us(float(np.clip(new, lo, hi)))
     return camera.exposure_us
 
@@ -233,7 +264,7 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
                 # can be the brightest at 90 deg, far above the level set at 0 deg
                 if name == "silhouette" or peak < 0.9 * full:
                     break
-                lo = getattr(cam, "EXPOSURE_RANGE_US", (10.0, 1e7))[0]
+                lo = exposure_range_us(cam)[0]
                 if cam.exposure_us <= lo:
                     break
                 cam.set_exposure_us(max(lo, cam.exposure_us * 0.5 * full / peak
