@@ -6,6 +6,13 @@ Steps: ``intrinsics``, ``turntable``, ``light``, ``stokes`` (generator zero offs
 reads what earlier steps stored in the set (``polrig calibrate light`` needs the intrinsics) and
 raises :class:`CalibrationError` naming the missing step otherwise.
 
+Which results a step's result was computed from is :data:`DEPENDS_ON` (the one place that
+says it): when a step runs again on a set, the results of the steps that depend on it
+(:func:`dependents`) are dropped from the set, with one log line, because they were computed
+from the result it replaces. A step refuses a set calibrated on another camera readout
+(:func:`check_set_fits_camera`) before it moves anything. Every step records the camera it
+ran on in the set's ``camera`` section (:class:`calibration.calset.SensorGeometry`).
+
 Truth (simulated rig only): a plain dict as :meth:`sim.truth.SimTruth.rig_parameters` returns
 it, plus optionally the true per-pixel :class:`polrig.analyzer.AnalyzerModel`. Errors are
 reported in the calibration's own frames (camera frame; the stage zero axis defined from the
@@ -22,13 +29,35 @@ import numpy as np
 
 from calibration import procedures as pr
 from calibration import turntable as tt
-from calibration.calset import CalibrationSet
+from calibration.calset import CalibrationSet, SensorGeometry
 from calibration.charuco import BoardSpec
 from calibration.errors import CalibrationError
 from polrig import frames as fr
 from polrig.analyzer import AnalyzerModel
 
 STEPS = ("intrinsics", "turntable", "light", "stokes", "dofp")
+
+#: The steps whose results each step's result is computed from (where the set has them):
+#: ``turntable`` refines the intrinsics (bundle adjustment), ``light`` uses the intrinsics
+#: (as ``turntable`` left them), ``stokes`` the geometry (intrinsics, turntable axis, fixture
+#: poses) and the light, ``dofp`` all of that and the generator's zero offset. Re-running a
+#: step drops the results of every step that depends on it, directly or not
+#: (:func:`dependents`). Which steps a step *needs* is separate: ``light`` needs only the
+#: intrinsics, ``stokes`` and ``dofp`` need the turntable and light (and ``dofp`` the stokes
+#: step); a missing one is named by :class:`CalibrationError`.
+DEPENDS_ON: dict[str, tuple[str, ...]] = {
+    "intrinsics": (),
+    "turntable": ("intrinsics",),
+    "light": ("intrinsics", "turntable"),
+    "stokes": ("intrinsics", "turntable", "light"),
+    "dofp": ("intrinsics", "turntable", "light", "stokes"),
+}
+#: The sections of ``calibration.json`` each step writes (``dofp`` also ``analyzer.npz``,
+#: ``dofp_maps.npz`` and the generator's extinction ratio; ``turntable`` also refines the
+#: ``intrinsics`` section).
+STEP_SECTIONS: dict[str, tuple[str, ...]] = {
+    "intrinsics": ("intrinsics",), "turntable": ("turntable", "fixtures"),
+    "light": ("light",), "stokes": ("generator",), "dofp": ("dofp",)}
 _N_RADIAL = {"none": 0, "k1": 1, "k1k2": 2, "full": 2}
 
 
@@ -50,29 +79,109 @@ def _geometry(cs: CalibrationSet) -> tt.JointRigResult:
     intr = cs.intrinsics
     ax = cs.turntable_axis
     fixtures = cs._section("fixtures")
-    axis = tt.TurntableAxisResult(ax["axis_cam"], ax["point_cam_m"], float(ax["axis_std_deg"]),
+    axis_std = float(ax.get("axis_std_deg", 0.0))
+    axis = tt.TurntableAxisResult(ax["axis_cam"], ax["point_cam_m"], axis_std,
                                   np.asarray(ax.get("point_std_m", [0, 0, 0]), float), 1.0, 0.0,
                                   np.zeros(0), np.zeros(3), 0.0)
     poses = tuple((np.asarray(f["R"], float), np.asarray(f["t_m"], float))
                   for f in fixtures["poses"])
-    rot_std = tuple(float(f.get("rotation_std_deg", ax["axis_std_deg"])) for f in fixtures["poses"])
-    return tt.JointRigResult(intr["K"], intr["dist"], np.asarray(intr["std_fx_fy_cx_cy_px"]),
+    rot_std = tuple(float(f.get("rotation_std_deg", axis_std)) for f in fixtures["poses"])
+    return tt.JointRigResult(intr["K"], intr["dist"],
+                             np.asarray(intr.get("std_fx_fy_cx_cy_px", [0.0] * 4), float),
                              axis, float(intr.get("rms_px", 0.0)), np.zeros((0, 2)), poses, rot_std)
+
+
+def dependents(step: str) -> list[str]:
+    """The steps whose results are computed from ``step``'s, directly or not (in
+    :data:`STEPS` order)."""
+    out: set[str] = set()
+    frontier = {step}
+    while frontier:
+        new = {s for s, deps in DEPENDS_ON.items() if frontier & set(deps)} - out
+        out |= new
+        frontier = new
+    return [s for s in STEPS if s in out]
+
+
+def drop_results(cs: CalibrationSet, steps) -> list[str]:
+    """Remove the results of ``steps`` from ``cs``; returns the steps that had results."""
+    dropped = []
+    for step in steps:
+        had = any(cs.has(k) for k in STEP_SECTIONS[step]) or (
+            step == "dofp" and (cs.analyzer is not None or bool(cs.dofp_maps)))
+        for k in STEP_SECTIONS[step]:
+            cs.params.pop(k, None)
+        if step == "dofp":
+            cs.analyzer = None
+            cs.dofp_maps = {}
+            g = cs.params.get("generator")
+            if isinstance(g, dict):  # the extinction ratio is the DoFP step's result
+                g.update(extinction_ratio=float("inf"), extinction_ratio_std=0.0)
+                g.pop("extinction_ratio_reference", None)
+        if had:
+            dropped.append(step)
+    return dropped
+
+
+def check_set_fits_camera(cs: CalibrationSet, rig, name: str = "the calibration set") -> None:
+    """Refuse (:class:`CalibrationError`, one line) to add a step to ``cs`` when ``rig``'s
+    camera is not the readout the set was calibrated on (another sensor size, layout or ROI):
+    the new step's result would be combined with results of another camera. Nothing moves
+    before this check."""
+    have = cs.sensor_geometry()
+    if have is None:
+        return
+    now = SensorGeometry.of_rig(rig)
+    why = have.mismatch(now, exact=True)
+    if why:
+        raise CalibrationError(
+            f"{name} was calibrated on {have.describe('calibrated readout')}; this camera: "
+            f"{now.describe()} ({why}); calibrate this camera into a new folder "
+            f"('polrig calibrate all --out NEW_DIR')")
 
 
 def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
               options: Options | None = None, log: Callable[[str], None] = print,
-              extras: dict[str, Any] | None = None) -> CalibrationSet:
+              extras: dict[str, Any] | None = None,
+              on_step_done: Callable[[str], None] | None = None,
+              set_name: str = "the calibration set") -> CalibrationSet:
     """Run ``steps`` (names from :data:`STEPS`, in the given order) and store the results in
-    ``cs``. ``extras`` (optional dict) receives the raw results for reports."""
+    ``cs``. ``extras`` (optional dict) receives the raw results for reports.
+
+    Before anything moves, a set calibrated on another camera readout is refused
+    (:func:`check_set_fits_camera`, ``set_name`` names it). After each step, the results of
+    the steps that depend on it (:data:`DEPENDS_ON`) are dropped from ``cs`` (one log line)
+    and ``on_step_done(step)`` is called (the command saves the set there, so an
+    interruption keeps the steps that finished). A step that fails changes nothing in
+    ``cs``."""
     o = options or Options()
     extras = {} if extras is None else extras
+    steps = list(steps)
     for step in steps:
         if step not in STEPS:
             raise ValueError(f"unknown calibration step {step!r}; one of {', '.join(STEPS)}, all")
+    check_set_fits_camera(cs, rig, set_name)
+    camera = SensorGeometry.of_rig(rig).to_json()
+    for i, step in enumerate(steps):
+        later = steps[i + 1:]
+
+        def invalidate() -> None:
+            """Drop the results computed from the one this step replaces."""
+            dropped = drop_results(cs, dependents(step))
+            for d in dropped:
+                extras.pop(d, None)
+            if dropped:
+                again = [d for d in dropped if d not in later]
+                log(f"{step}: dropped the set's {', '.join(dropped)} result"
+                    f"{'s' if len(dropped) > 1 else ''} (computed from its earlier {step} "
+                    f"result)" + (f"; run {'them' if len(again) > 1 else 'it'} again, from "
+                                  f"'polrig calibrate {again[0]}'" if again else ""))
+            cs.params["camera"] = dict(camera)
+
         if step == "intrinsics":
             ir = pr.run_intrinsics(rig, mount, o.board, distortion=o.distortion, log=log)
             r = ir.result
+            invalidate()
             cs.params["intrinsics"] = {**r.to_json(), "method": "zhang", "views": len(ir.views),
                                        "skipped_views": ir.skipped, "board": o.board.to_json()}
             extras["intrinsics"] = ir
@@ -85,6 +194,7 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
             else:
                 jr = pr.run_turntable(rig, mount, o.board, ir, distortion=_N_RADIAL[o.distortion],
                                       log=log)
+            invalidate()
             w, h = rig.camera.roi[:2]
             cs.params["intrinsics"] = {
                 **cs.params.get("intrinsics", {}), "K": jr.K.tolist(), "dist": jr.dist.tolist(),
@@ -104,6 +214,7 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
             lf = pr.run_light(rig, mount, intr["K"], intr["dist"], o.sphere_radius_m,
                               intrinsics_std_px=intr.get("std_fx_fy_cx_cy_px"),
                               dist_std=intr.get("std_dist"), log=log)
+            invalidate()
             cs.params["light"] = {**lf.to_json(), "sphere_radius_m": o.sphere_radius_m}
             extras["light"] = lf
         elif step == "stokes":
@@ -112,13 +223,13 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
                                           stage_angles_deg=o.stage_angles_deg,
                                           light_cov_m2=cs.params["light"].get("covariance_m2"),
                                           log=log)
-            prev = cs.params.get("generator", {})
+            invalidate()  # drops the DoFP step's results, fitted with the earlier offset
             cs.params["generator"] = {
                 "zero_offset_deg": off.zero_offset_deg,
                 "zero_offset_std_deg": off.zero_offset_std_deg,
                 "zero_offset_std_bound_deg": off.zero_offset_std_bound_deg,
-                "extinction_ratio": prev.get("extinction_ratio", float("inf")),
-                "extinction_ratio_std": prev.get("extinction_ratio_std", 0.0),
+                "extinction_ratio": float("inf"),  # measured by the dofp step
+                "extinction_ratio_std": 0.0,
                 "stage_zero_axis_cam": off.stage_zero_axis_cam.tolist(),
                 "offset_method": "grazing-incidence Fresnel transmission into the matte board",
                 "offset_turntable_deg": off.turntable_deg, "offset_incidence_deg":
@@ -131,6 +242,7 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
                              stage_angles_deg=o.stage_angles_deg,
                              frames_per_angle=o.dofp_frames_per_angle,
                              sensor_diattenuation=o.sensor_diattenuation, log=log)
+            invalidate()
             cs.analyzer = dr.analyzer
             f = dr.fit
             cs.dofp_maps = {"dark_dn": dr.dark_dn.astype(np.float32),
@@ -156,6 +268,11 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
                 "stage_angles_deg": list(o.stage_angles_deg),
                 "frames_per_angle": o.dofp_frames_per_angle}
             extras["dofp"] = dr
+        if step == "intrinsics" and "turntable" not in later:
+            log("intrinsics: these are Zhang's start values; 'polrig calibrate turntable' "
+                "refines them (joint bundle adjustment with the turntable axis)")
+        if on_step_done is not None:
+            on_step_done(step)
     return cs
 
 

@@ -139,3 +139,69 @@ def test_cli_step_without_prerequisites_fails_cleanly(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err
     assert "polrig: error:" in err and "calibrate intrinsics" in err
+
+
+def test_rerunning_a_step_drops_the_results_computed_from_it(calibrated, tmp_path, capsys):
+    """Re-running ``stokes`` used to keep the analyzer fitted with the old zero offset, and
+    re-running ``intrinsics`` kept the turntable, light, generator and DoFP results computed
+    from the bundle-adjusted intrinsics it replaced (with Zhang start values)."""
+    import shutil
+
+    _, _, cs, _, _, out = calibrated
+    ri = tmp_path / "ri"
+    shutil.copytree(out, ri)
+    capsys.readouterr()
+    assert polrig_main(["calibrate", "stokes", "--size", "320x240", "--out", str(ri)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert ("stokes: dropped the set's dofp result (computed from its earlier stokes result); "
+            "run it again, from 'polrig calibrate dofp'") in printed
+    back = calibration.load(ri)
+    assert not back.has("dofp") and back.analyzer is None and not back.dofp_maps
+    assert back.generator.extinction_ratio == np.inf  # the DoFP step's, dropped with it
+    assert sorted(p.name for p in ri.glob("*.npz")) == []
+    assert back.params["turntable"] == cs.params["turntable"]  # not downstream: kept
+    assert polrig_main(["calibrate", "intrinsics", "--size", "320x240", "--out", str(ri)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert ("intrinsics: dropped the set's turntable, light, stokes results (computed from its "
+            "earlier intrinsics result); run them again, from 'polrig calibrate turntable'"
+            ) in printed
+    assert any(line.startswith("intrinsics: these are Zhang's start values") for line in printed)
+    back = calibration.load(ri)
+    assert [k for k in back.params if k in calibration.calset.SECTIONS] == ["camera", "intrinsics"]
+    assert back.params["intrinsics"]["method"] == "zhang"
+
+
+def test_an_interrupted_or_failed_run_keeps_the_finished_steps(tmp_path, capsys, monkeypatch):
+    """Ctrl-C (or a failure) in a later step of ``calibrate all`` used to save nothing."""
+    from polrig.errors import DeviceFault
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    def stalled(*a, **k):
+        raise DeviceFault("stalled", device="turntable")
+
+    out = tmp_path / "k"
+    argv = ["calibrate", "all", "--size", "256x192", "--out", str(out)]
+    monkeypatch.setattr(procedures, "run_turntable", interrupted)
+    assert polrig_main(argv) == 130
+    captured = capsys.readouterr()
+    cid = calibration.load(out).id
+    assert captured.err == (f"polrig: interrupted during calibration step turntable; saved step "
+                            f"intrinsics in {out} (set {cid}); continue with: polrig calibrate "
+                            f"turntable --size 256x192 --out {out}, then light, stokes, dofp\n")
+    assert f"intrinsics: saved in {out} (set {cid})" in captured.out
+    assert calibration.load(out).has("intrinsics")
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    monkeypatch.setattr(procedures, "run_turntable", stalled)
+    assert polrig_main(["calibrate", "turntable", "--size", "256x192", "--out", str(out)]) == 1
+    assert capsys.readouterr().err == (f"polrig: error: calibration step turntable: turntable: "
+                                       f"stalled; the set in {out} is unchanged\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    out2 = tmp_path / "k2"
+    assert polrig_main(argv[:-1] + [str(out2)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"polrig: error: calibration step turntable: turntable: stalled; saved "
+                          f"step intrinsics in {out2} (set ")
+    assert err.endswith(f"continue with: polrig calibrate turntable --size 256x192 --out {out2}, "
+                        f"then light, stokes, dofp\n")

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from _calibration_sets import set_calibrated_on
 from polrig.cli import main
 
 
@@ -58,3 +59,43 @@ def test_check_out_folder_on_a_read_only_filesystem(tmp_path, monkeypatch):
                         and real(p, mode))
     with pytest.raises(ConfigError, match=f"folder {tmp_path} is not writable"):
         check_out_folder(tmp_path / "a" / "b")
+
+
+# ----------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("extra", [["--size", "64x48"], ["--seed", "5"],
+                                   ["--size", "64x48", "--seed", "5"]])
+def test_sim_options_with_a_config_are_refused(tmp_path, capsys, extra):
+    """--size/--seed pick the simulated rig used without --config; with --config they used
+    to be ignored silently."""
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text('[sim]\nsize = "64x48"\nclock_speed = inf\n')
+    rc = main(["calibrate", "intrinsics", "--config", str(cfg), "--out", str(tmp_path / "c")]
+              + extra)
+    out, err = capsys.readouterr()
+    assert rc == 2 and out == "" and err.count("\n") == 1
+    assert "only pick the simulated rig used without --config" in err and "[sim] table" in err
+    assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("size, layout, legacy, why", [
+    ((320, 240), "imx250myr", False, "(a different sensor size)"),
+    ((320, 240), "imx250myr", True, "(a different sensor size)"),
+    ((64, 48), "imx250mzr", False, "(layout imx250mzr is not imx250myr)"),
+    ((64, 48), "imx250mzr", True, "(layout imx250mzr is not imx250myr)"),
+])
+def test_a_step_refuses_a_set_of_another_camera_before_acquiring(tmp_path, capsys, size,
+                                                                 layout, legacy, why):
+    """``calibrate light --size 64x48`` on a set calibrated at 320x240 used the 320x240
+    intrinsics, printed a wrong light position and crashed (on hardware: saved it)."""
+    out = tmp_path / "cal"
+    before = set_calibrated_on(out, size, layout, legacy=legacy)
+    t0 = time.monotonic()
+    rc = main(["calibrate", "light", "--size", "64x48", "--out", str(out)])
+    stdout, err = capsys.readouterr()
+    assert rc == 2 and stdout == "" and err.count("\n") == 1, err
+    w, h = size
+    assert err.startswith(f"polrig: error: calibration set {out} was calibrated on sensor "
+                          f"{w}x{h} {layout}, calibrated readout {w}x{h} at (0, 0); this camera: "
+                          f"sensor 64x48 imx250myr, readout 64x48 at (0, 0) {why}")
+    assert time.monotonic() - t0 < 5
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
