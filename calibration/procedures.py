@@ -427,7 +427,7 @@ def run_generator_offset(rig, mount: Mount, spec: charuco.BoardSpec,
     bright = np.zeros_like(inside)
     bright[inside] = tex_w[row[inside], col[inside]]
     sat = (frames.max(axis=0) >= 0.98 * full)
-    use = inside & bright & ~sat & np.isfinite(P).all(-1)
+    use = inside & bright & ~sat & np.isfinite(P).all(-1) & (A > 0)  # A: mean signal, the modulation's divisor
     if use.sum() < 50:
         raise CalibrationError(f"only {int(use.sum())} usable board pixels at grazing light; "
                                "raise the light level or exposure")
