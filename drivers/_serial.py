@@ -104,7 +104,7 @@ class SerialLink:
 
     def _require(self) -> serial.Serial:
         if self._ser is None:
-            raise DeviceDisconnected("port is not open (open the device again)",
+            raise DeviceDisconnected("port is not open (open the device first)",
                                      device=self.device)
         return self._ser
 
@@ -140,31 +140,36 @@ class SerialLink:
             raise self._lost(exc) from None
 
     def read_exact(self, n: int, timeout_s: float, what: str = "reply", *,
-                   started: bool = False) -> bytes:
+                   started: bool = False, stated_s: float | None = None) -> bytes:
         """Read exactly ``n`` bytes: they must start before ``timeout_s`` runs out, and a
         reply that has started may finish within the inter-byte timeout after that.
         ``started=True``: these bytes continue a reply already under way (the data after a
-        frame header), so they get the inter-byte timeout even when ``timeout_s`` is spent."""
+        frame header), so they get the inter-byte timeout even when ``timeout_s`` is spent.
+        ``stated_s``: the timeout error messages name (default ``timeout_s``); a caller that
+        reads several messages against one deadline passes its configured timeout, so the
+        message does not show the few milliseconds that were left."""
         ser = self._require()
         clock = _ReplyClock(timeout_s, self.inter_byte_s, started)
         buf = bytearray()
+        shown = timeout_s if stated_s is None else stated_s
         while len(buf) < n:
-            self._read_step(ser, clock, buf, n - len(buf), timeout_s, what)
+            self._read_step(ser, clock, buf, n - len(buf), shown, what)
         return bytes(buf)
 
     def read_until(self, terminator: bytes, timeout_s: float, what: str = "reply",
-                   max_len: int = 4096) -> bytes:
+                   max_len: int = 4096, *, stated_s: float | None = None) -> bytes:
         """Read up to and including ``terminator``; return the bytes without it. The reply
         must start before ``timeout_s`` runs out (the inter-byte timeout lets a started one
-        finish)."""
+        finish). ``stated_s``: the timeout error messages name (see :meth:`read_exact`)."""
         ser = self._require()
         clock = _ReplyClock(timeout_s, self.inter_byte_s)
         buf = bytearray()
+        shown = timeout_s if stated_s is None else stated_s
         while not buf.endswith(terminator):
             if len(buf) > max_len:
                 raise ProtocolError(f"{what}: no terminator after {len(buf)} bytes",
                                     device=self.device)
-            self._read_step(ser, clock, buf, 1, timeout_s, what)  # never past the terminator
+            self._read_step(ser, clock, buf, 1, shown, what)  # never past the terminator
         return bytes(buf[: -len(terminator)])
 
     def _read_step(self, ser: serial.Serial, clock: _ReplyClock, buf: bytearray, size: int,

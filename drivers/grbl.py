@@ -14,6 +14,26 @@ axis units (GRBL's ``$10x`` steps per unit setting decides what one unit is) to 
 Stopping uses feed hold then soft reset, which GRBL documents as the way to cancel a motion
 without losing position. Angles: degrees, counter-clockwise seen from above
 (``polrig.hal``).
+
+Positions are what the ``?`` report gives: the machine position (``MPos``, GRBL's default
+``$10=1``) or, with ``$10=0``, the work position (``WPos``); interface.md: GRBL reports one
+or the other as ``$10`` selects, ``WPos = MPos - WCO``. Moves are ``G90`` targets in the
+active work coordinate system, so with a work offset set (``G10``/``G92``) only ``$10=0``
+makes the reported position the commanded one; with the default zero offsets both agree.
+
+Alarms (interface.md; ``doc/csv/alarm_codes_en_US.csv``): an ``ALARM:N`` line raises
+:class:`DeviceFault` with the code and text wherever it is read, also when it arrived
+unasked between two calls. After a hard or soft limit (``ALARM:1``/``ALARM:2``) GRBL prints
+``[MSG:Reset to continue]`` and ignores everything, ``?`` included, until a soft reset
+(grbl/grbl ``grbl/protocol.c`` ``protocol_exec_rt_system``: "Block everything ... until user
+issues reset"): every call then raises that alarm at once instead of waiting for a reply
+that cannot come, and :meth:`home` (and :meth:`unlock`) soft-reset first.
+
+A motion suspended by a feed hold or an open safety door (states ``Hold`` and ``Door``,
+interface.md) has not ended: :meth:`wait` keeps waiting, because GRBL resumes it on cycle
+start (``~``) once the operator allows, and at its deadline the timeout names the state. A
+controller that cannot move at all (``Sleep``, check mode ``Check``) raises
+:class:`DeviceFault` at once.
 """
 
 from __future__ import annotations
@@ -21,12 +41,15 @@ from __future__ import annotations
 import time
 
 from drivers._serial import SerialDevice, SerialLink
-from drivers.grbl_codes import ALARMS, ERRORS
+from drivers.grbl_codes import ALARMS, CRITICAL_ALARMS, CRITICAL_MESSAGE, ERRORS, SUBSTATES
 from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, Turntable
 
 BAUDRATE = 115200
 SOFT_RESET = b"\x18"
+#: states of a motion that has not ended (interface.md): running, or suspended
+_MOVING = ("Run", "Jog", "Home")
+_SUSPENDED = ("Hold", "Door")
 
 
 class GrblTurntable(SerialDevice, Turntable):
@@ -40,6 +63,7 @@ class GrblTurntable(SerialDevice, Turntable):
             raise ValueError(f"degrees_per_unit must be a non-zero number, got {degrees_per_unit!r}")
         self.port = port
         self.axis = axis
+        self.axes = axes
         self.axis_index = axes.index(axis)
         self.degrees_per_unit = float(degrees_per_unit)
         self.rate_per_min = rate_per_min
@@ -50,6 +74,8 @@ class GrblTurntable(SerialDevice, Turntable):
         self._info: DeviceInfo | None = None
         self.state = ""
         self.last_alarm: int | str | None = None
+        # halted after a critical alarm: GRBL ignores everything but a soft reset
+        self.halted = False
 
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
@@ -70,8 +96,11 @@ class GrblTurntable(SerialDevice, Turntable):
         return self._info
 
     # -- protocol --------------------------------------------------------------------------
-    def _readline(self, timeout_s: float, what: str) -> str:
-        raw = self._link.read_until(b"\n", timeout_s, what=what).rstrip(b"\r")
+    def _readline(self, deadline: float, what: str, stated_s: float) -> str:
+        """One line that must start before ``deadline`` (time.monotonic); a timeout names
+        ``stated_s``, the caller's configured timeout."""
+        raw = self._link.read_until(b"\n", max(deadline - time.monotonic(), 0.0), what=what,
+                                    stated_s=stated_s).rstrip(b"\r")
         try:
             return raw.decode("ascii")
         except UnicodeDecodeError:
@@ -83,47 +112,83 @@ class GrblTurntable(SerialDevice, Turntable):
         self._link.discard_input()
 
     def _alarm(self, line: str) -> DeviceFault:
+        """Record the alarm of an ``ALARM:N`` line and return its DeviceFault."""
         code = int(line[6:]) if line[6:].strip().isdigit() else line[6:]
         self.state, self.last_alarm = "Alarm", code
+        if code in CRITICAL_ALARMS:
+            self.halted = True
         return self._alarm_fault()
 
     def _alarm_fault(self) -> DeviceFault:
         code = self.last_alarm if self.last_alarm is not None else "Alarm"
+        text = ALARMS.get(code, "controller locked in the Alarm state")
+        if self.halted:
+            return DeviceFault("halted by an alarm: the controller ignores every command until "
+                               "it is reset (`polrig home turntable` resets and homes it)",
+                               device=self._link.device, code=code, text=text)
         return DeviceFault("alarm (home the turntable: polrig home turntable)",
-                           device=self._link.device, code=code,
-                           text=ALARMS.get(code, "controller locked in the Alarm state"))
+                           device=self._link.device, code=code, text=text)
 
-    def _drain_pending(self) -> None:
+    def _reset_seen(self, banner: str, during: str) -> DeviceFault:
+        """A ``Grbl 1.1x`` banner nobody asked for: the controller was reset (power, USB
+        re-enumeration toggling DTR, the reset button); whatever it was doing is gone."""
+        self.halted = False
+        self.state = ""
+        self._resync()  # the [MSG:...] lines that follow the banner
+        return DeviceFault(f"controller reset during {during} (power, USB or reset button); "
+                           "the command was not carried out and any motion was aborted",
+                           device=self._link.device, code="reset", text=banner.strip())
+
+    def _drain_pending(self, *, raise_alarm: bool = True) -> None:
         """Read what arrived unasked (late replies of a timed-out command, pushed messages)
-        so it is not taken for the answer to the next command; remember any alarm."""
-        if self._link.in_waiting() == 0:
+        so it is not taken for the answer to the next command. An alarm among it is raised
+        (``raise_alarm``; always recorded); while the controller is halted after a critical
+        alarm the halt is raised, since GRBL would not answer anything but a reset."""
+        alarm = banner = None
+        if self._link.in_waiting():
+            time.sleep(0.01)
+            for raw in self._link.discard_input().split(b"\n"):
+                line = raw.strip().decode("ascii", "replace")
+                if line.startswith("ALARM:"):
+                    alarm = self._alarm(line)
+                elif line == CRITICAL_MESSAGE:
+                    self.halted = True
+                elif line.startswith("Grbl "):
+                    self.halted = False  # someone reset it: the halt is over
+                    self.state, banner = "", line
+        if not raise_alarm:
             return
-        time.sleep(0.01)
-        for raw in self._link.discard_input().split(b"\n"):
-            line = raw.strip().decode("ascii", "replace")
-            if line.startswith("ALARM:"):
-                self._alarm(line)
+        if alarm is not None:
+            raise alarm
+        if banner is not None:
+            raise DeviceFault("controller was reset (power, USB or reset button); any motion "
+                              "was aborted", device=self._link.device, code="reset",
+                              text=banner)
+        if self.halted:
+            raise self._alarm_fault()
 
     def _reset(self) -> None:
         """Soft reset and wait for the banner (proves a GRBL is at the other end)."""
         self._link.write(SOFT_RESET)
         deadline = time.monotonic() + self.reply_timeout_s
         while True:
-            line = self._readline(max(deadline - time.monotonic(), 0.0), "GRBL banner")
+            line = self._readline(deadline, "GRBL banner", self.reply_timeout_s)
             if line.startswith("Grbl "):
                 self._banner = line.split("[")[0].strip()
+                self.halted = False
                 return
             if line.startswith("ALARM:"):
-                self.state = "Alarm"
+                self._alarm(line)
 
     def _command(self, line: str, timeout_s: float | None = None) -> list[str]:
         """Send one line; return the lines before ``ok``; ``error:N``/``ALARM:N`` raise."""
         self._drain_pending()
         self._link.write(line.encode("ascii") + b"\n")
-        deadline = time.monotonic() + (timeout_s or self.reply_timeout_s)
+        stated = timeout_s or self.reply_timeout_s
+        deadline = time.monotonic() + stated
         out: list[str] = []
         while True:
-            reply = self._readline(max(deadline - time.monotonic(), 0.0), f"reply to {line!r}")
+            reply = self._readline(deadline, f"reply to {line!r}", stated)
             if reply == "ok":
                 return out
             if reply.startswith("error:"):
@@ -133,21 +198,32 @@ class GrblTurntable(SerialDevice, Turntable):
                                   text=ERRORS.get(code, "unknown error"))
             if reply.startswith("ALARM:"):
                 raise self._alarm(reply)
-            if reply and not reply.startswith(("<", "[", "Grbl")):
+            if reply == CRITICAL_MESSAGE:
+                self.halted = True
+                raise self._alarm_fault()
+            if reply.startswith("Grbl "):
+                raise self._reset_seen(reply, repr(line))
+            if reply and not reply.startswith(("<", "[")):
                 self._resync()
                 raise ProtocolError(f"unexpected reply {reply!r} to {line!r}",
                                     device=self._link.device)
             out.append(reply)
 
     def status(self) -> dict:
-        """One ``?`` status report: ``{"state": ..., "mpos": [...], "position_deg": ...}``."""
+        """One ``?`` status report: ``{"state": ..., "frame": "MPos" or "WPos",
+        "positions": [...], "position_deg": ...}`` (``positions`` in the ``axes`` order)."""
         self._drain_pending()
         self._link.write(b"?")
         deadline = time.monotonic() + self.reply_timeout_s
         while True:
-            line = self._readline(max(deadline - time.monotonic(), 0.0), "status report")
+            line = self._readline(deadline, "status report", self.reply_timeout_s)
             if line.startswith("ALARM:"):
                 raise self._alarm(line)
+            if line == CRITICAL_MESSAGE:
+                self.halted = True
+                raise self._alarm_fault()
+            if line.startswith("Grbl "):
+                raise self._reset_seen(line, "a status request")
             if line.startswith("<") and line.endswith(">"):
                 return self._parse_status(line)
             if line.startswith("<"):
@@ -157,53 +233,97 @@ class GrblTurntable(SerialDevice, Turntable):
     def _parse_status(self, line: str) -> dict:
         fields = line[1:-1].split("|")
         state = fields[0]
-        mpos = None
+        frame, pos = None, None
         for f in fields[1:]:
-            if f.startswith("MPos:"):
+            if f.startswith(("MPos:", "WPos:")):
+                frame = f[:4]
                 try:
-                    mpos = [float(v) for v in f[5:].split(",")]
+                    pos = [float(v) for v in f[5:].split(",")]
                 except ValueError:
-                    mpos = None
-        if mpos is None or len(mpos) <= self.axis_index:
+                    pos = None
+        if pos is None:
             self._resync()
-            raise ProtocolError(f"status report without axis {self.axis}: {line!r}",
+            raise ProtocolError(f"status report without a position (MPos or WPos): {line!r}",
+                                device=self._link.device)
+        if len(pos) <= self.axis_index:
+            self._resync()
+            raise ProtocolError(f"status report has {len(pos)} axes, but axis {self.axis} is "
+                                f"number {self.axis_index + 1} of the configured axes "
+                                f"{self.axes!r} (set [turntable] axes): {line!r}",
                                 device=self._link.device)
         self.state = state
-        return {"state": state, "mpos": mpos,
-                "position_deg": mpos[self.axis_index] * self.degrees_per_unit}
+        return {"state": state, "frame": frame, "positions": pos,
+                "position_deg": pos[self.axis_index] * self.degrees_per_unit}
 
     # -- Turntable -------------------------------------------------------------------------
     def position_deg(self) -> float:
+        """The axis position from the ``?`` report: machine position (``MPos``, GRBL's
+        default ``$10=1``) or work position (``WPos``, ``$10=0``), times
+        ``degrees_per_unit``."""
         return self.status()["position_deg"]
 
-    def is_busy(self) -> bool:
+    def _motion_state(self) -> tuple[bool, str]:
+        """``(motion not ended, state)``; states in which nothing can move raise."""
         st = self.status()["state"]
-        if st == "Alarm":
+        base = st.split(":")[0]
+        if base == "Alarm":
             raise self._alarm_fault()
-        return st.split(":")[0] in ("Run", "Jog", "Home") or st == "Hold:1"
+        if base == "Sleep":
+            raise DeviceFault("controller is asleep ($SLP): nothing moves until it is reset",
+                              device=self._link.device, code=st, text="sleep mode")
+        if base == "Check":
+            raise DeviceFault("controller is in check mode ($C): G-code is checked, nothing "
+                              "moves (send $C again to leave it)", device=self._link.device,
+                              code=st, text="check mode")
+        return base in _MOVING or base in _SUSPENDED, st
+
+    def is_busy(self) -> bool:
+        """True while a motion has not ended: running, homing, jogging, or suspended by a
+        feed hold or the safety door (it resumes on cycle start)."""
+        return self._motion_state()[0]
 
     def wait(self, timeout_s: float = 30.0) -> None:
         deadline = time.monotonic() + timeout_s
-        while self.is_busy():
+        while True:
+            busy, st = self._motion_state()
+            if not busy:
+                return
             if time.monotonic() > deadline:
+                if st.split(":")[0] in _SUSPENDED:
+                    what = SUBSTATES.get(st, "motion suspended")
+                    raise DeviceTimeout(f"motion did not end within {timeout_s:g} s: it is "
+                                        f"suspended, state {st} ({what}); resume it with cycle "
+                                        "start or stop it", device=self._link.device)
                 raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
                                     device=self._link.device)
             time.sleep(self.poll_s)
 
+    def _clear_halt(self) -> None:
+        """Read what is pending; after a critical alarm, or in sleep mode, soft-reset: the
+        only command GRBL then takes (protocol.c; commands.md ``$SLP``: "the only way to exit
+        sleep mode is to reset"). The controller comes back in the Alarm state."""
+        self._drain_pending(raise_alarm=False)
+        if self.halted or self.state == "Sleep":
+            self._reset()
+
     def home(self, timeout_s: float = 60.0) -> None:
         """``$H``; if it does not finish in time the cycle is aborted by a soft reset (GRBL
-        then reports ALARM:6, homing failed) so the machine never keeps moving unattended."""
+        then reports ALARM:6, homing failed) so the machine never keeps moving unattended.
+        A controller halted by a hard or soft limit is soft-reset first."""
+        self._clear_halt()
         self._link.discard_input()
         try:
             self._command("$H", timeout_s=timeout_s)
         except DeviceTimeout:
             self._link.write(SOFT_RESET)
             time.sleep(0.05)
-            self._drain_pending()
+            self._drain_pending(raise_alarm=False)
             raise
         self.state, self.last_alarm = "Idle", None
 
     def unlock(self) -> None:
+        """``$X`` (soft-resetting first if a hard or soft limit halted the controller)."""
+        self._clear_halt()
         self._command("$X")
 
     def move_to(self, angle_deg: float, *, wait: bool = True, timeout_s: float = 30.0) -> None:
@@ -227,10 +347,14 @@ class GrblTurntable(SerialDevice, Turntable):
             self.wait(timeout_s)
 
     def stop(self) -> None:
-        """Feed hold, wait for the hold to complete, then soft reset (position kept)."""
+        """Feed hold, wait for the hold to complete, then soft reset (position kept). A
+        controller halted by a hard or soft limit has stopped already: nothing is sent."""
+        self._drain_pending(raise_alarm=False)
+        if self.halted:
+            return
         self._link.write(b"!")
         deadline = time.monotonic() + self.reply_timeout_s
-        while self.status()["state"] not in ("Hold:0", "Idle", "Alarm"):
+        while self.status()["state"] not in ("Hold:0", "Door:0", "Door:1", "Idle", "Alarm"):
             if time.monotonic() > deadline:
                 raise DeviceTimeout("feed hold did not complete", device=self._link.device)
             time.sleep(self.poll_s)

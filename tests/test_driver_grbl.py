@@ -183,3 +183,187 @@ def test_home_timeout_aborts_the_cycle(tmp_path):
         emu.homing_s = 0.05
         t.home(timeout_s=5)
         assert not t.is_busy()
+
+
+# -- alarms that halt the controller (grbl/grbl protocol.c: hard and soft limits) ---------
+
+def test_hard_limit_halts_until_reset_then_home_resets_first(table, emu):
+    """After ALARM:1 GRBL prints [MSG:Reset to continue] and ignores everything, `?` too,
+    until 0x18: every call raises the alarm at once (it timed out as 'no status report'),
+    and home() soft-resets before $H (it timed out waiting for $H)."""
+    table.home(timeout_s=5)
+    emu.inject("error_mid_move")
+    with pytest.raises(DeviceFault) as ei:
+        table.move_to(90.0, timeout_s=5)
+    assert ei.value.code == 1 and "reset" in str(ei.value)
+    assert emu.critical
+    t0 = time.monotonic()
+    for call in (table.position_deg, table.is_busy, lambda: table.move_to(10.0)):
+        with pytest.raises(DeviceFault) as ei:
+            call()
+        assert ei.value.code == 1 and "until it is reset" in str(ei.value)
+    assert time.monotonic() - t0 < 0.3  # no reply awaited from a controller that won't answer
+    t0 = time.monotonic()
+    table.home(timeout_s=5)
+    assert time.monotonic() - t0 < 1.0
+    assert not emu.critical and emu.state == "Idle"
+    table.move_to(90.0, timeout_s=5)
+    assert emu.axis_position() == pytest.approx(90.0, abs=1e-3)
+
+
+def test_alarm_that_arrived_between_calls_is_raised(table, emu):
+    """The alarm came while nobody was reading: the next call raises it (it was recorded,
+    then the `?` went unanswered: DeviceTimeout)."""
+    table.home(timeout_s=5)
+    emu.inject("error_mid_move")
+    table.move_to(90.0, wait=False)
+    deadline = time.monotonic() + 3
+    while emu.state != "Alarm" and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    with pytest.raises(DeviceFault) as ei:
+        table.position_deg()
+    assert ei.value.code == 1 and "Hard limit" in ei.value.text
+
+
+def test_soft_limit_halts_until_reset(tmp_path):
+    with GrblEmulator(link=tmp_path / "g", speed_factor=20, soft_limits=(-360.0, 360.0)) as emu, \
+            GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
+        t.home(timeout_s=5)
+        with pytest.raises(DeviceFault) as ei:
+            t.move_to(400.0)
+        assert ei.value.code == 2
+        t0 = time.monotonic()
+        with pytest.raises(DeviceFault) as ei:
+            t.position_deg()
+        assert ei.value.code == 2 and time.monotonic() - t0 < 0.3
+        t.unlock()  # soft reset first, then $X: the soft limit kept the position
+        assert t.position_deg() == pytest.approx(0.0)
+        t.move_to(-90.0, timeout_s=5)
+
+
+# -- suspended motions (interface.md states Hold and Door) --------------------------------
+
+def test_feed_hold_suspends_the_move_it_does_not_end_it(table, emu):
+    """A feed hold pressed on the controller: wait() does not report the move done (it
+    returned at once with the axis paused); it times out naming Hold:0, and the move ends
+    after cycle start."""
+    table.home(timeout_s=5)
+    emu.speed_factor = 4.0  # 240 deg/s
+    table.move_to(180.0, wait=False)
+    time.sleep(0.15)
+    emu.press_feed_hold()
+    assert emu.state == "Hold:0"
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match=r"Hold:0 \(feed hold complete"):
+        table.wait(0.3)
+    assert 0.3 <= time.monotonic() - t0 < 0.8
+    assert table.is_busy()
+    assert 0 < table.position_deg() < 180
+    emu.press_cycle_start()
+    table.wait(5)
+    assert table.position_deg() == pytest.approx(180.0, abs=1e-3)
+
+
+def test_open_safety_door_suspends_the_move(table, emu):
+    table.home(timeout_s=5)
+    emu.speed_factor = 4.0
+    table.move_to(200.0, wait=False)
+    time.sleep(0.15)
+    emu.set_door(True)
+    with pytest.raises(DeviceTimeout, match=r"Door:1 \(safety door ajar"):
+        table.wait(0.3)
+    emu.set_door(False)
+    with pytest.raises(DeviceTimeout, match="Door:0"):
+        table.wait(0.1)
+    emu.press_cycle_start()
+    table.move_to(200.0, timeout_s=5)  # waits for the resumed move, then this one
+    assert emu.axis_position() == pytest.approx(200.0, abs=1e-3)
+
+
+def test_sleeping_controller_is_a_fault(table, emu):
+    table.home(timeout_s=5)
+    table._command("$SLP")
+    with pytest.raises(DeviceFault, match=r"asleep"):
+        table.is_busy()
+    t0 = time.monotonic()
+    table.home(timeout_s=5)  # only a reset ends sleep mode: home() resets first
+    assert time.monotonic() - t0 < 1.0
+    assert not table.is_busy()
+
+
+# -- texts and reports ---------------------------------------------------------------------
+
+def test_error_texts_follow_the_grbl_csv(table):
+    """grbl/grbl doc/csv/error_codes_en_US.csv: 21 is the modal group violation (24 said
+    so), and every code 1-17, 20-38 has its text (12-14, 17, 21, 23, 25-32, 34-38 printed
+    'unknown error')."""
+    from drivers.grbl_codes import ERRORS
+    assert sorted(ERRORS) == list(range(1, 18)) + list(range(20, 39))
+    assert ERRORS[21] == "Modal group violation"
+    assert ERRORS[24].startswith("Invalid gcode ID:24")
+    assert ERRORS[13] == "Check Door" and ERRORS[12] == "Step rate > 30kHz"
+    table.unlock()
+    with pytest.raises(DeviceFault) as ei:
+        table._command("G0 G1 A1")  # two motion commands in one block
+    assert ei.value.code == 21 and ei.value.text == "Modal group violation"
+
+
+def test_work_position_reports(table, emu):
+    """$10=0: GRBL reports WPos instead of MPos (was 'status report without axis A')."""
+    table.unlock()
+    table._command("$10=0")
+    table.move_to(30.0, timeout_s=5)
+    st = table.status()
+    assert st["frame"] == "WPos" and st["position_deg"] == pytest.approx(30.0, abs=1e-3)
+    table._command("$10=1")
+    assert table.status()["frame"] == "MPos"
+
+
+def test_three_axis_report_names_the_axes_setting(tmp_path):
+    with GrblEmulator(link=tmp_path / "g") as emu:
+        t = GrblTurntable(emu.port, axis="B", axes="XYZAB", reply_timeout_s=0.5)
+        with pytest.raises(ProtocolError, match=r"has 4 axes, but axis B is number 5 of "
+                                                r"the configured axes 'XYZAB'"):
+            t.open()
+        t.close()
+
+
+def test_controller_reset_during_a_command(table, emu):
+    """The banner comes instead of 'ok' (brown-out, DTR): said so at once (it was a plain
+    'no reply' timeout)."""
+    table.home(timeout_s=5)
+    emu.inject("reset")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceFault, match="controller reset during 'G90 G0 A10.0000'"):
+        table.move_to(10.0)
+    assert time.monotonic() - t0 < 0.4
+    with pytest.raises(DeviceFault, match="Alarm"):
+        table.move_to(10.0)  # came back locked (homing enabled)
+    table.home(timeout_s=5)
+    table.move_to(10.0, timeout_s=5)
+
+
+class LostOkGrbl(GrblEmulator):
+    """$X is answered by its message line, and the 'ok' after it is lost on the line."""
+
+    def _execute(self, line: str, now: float) -> None:
+        if line == "$X":
+            self.send(b"[MSG:Caution: Unlocked]\r\n")
+            return
+        super()._execute(line, now)
+
+
+def test_timeouts_name_the_configured_timeout(tmp_path):
+    """The second line of an answer is read against what is left of the deadline; the
+    message names the configured timeout (it said 'within 0.49... s')."""
+    with LostOkGrbl(link=tmp_path / "g") as emu:
+        t = GrblTurntable(emu.port, reply_timeout_s=0.5)
+        t.open()
+        time.sleep(0.05)
+        with pytest.raises(DeviceTimeout, match=r"no reply to '\$X' within 0\.5 s$"):
+            t.unlock()
+        t.close()
+        emu.inject("no_reply")
+        with pytest.raises(DeviceTimeout, match=r"no GRBL banner within 0\.5 s$"):
+            t.open()

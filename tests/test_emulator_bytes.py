@@ -104,6 +104,46 @@ def test_grbl_documented_replies():
         assert lines(ser, 1) == [b"error:20\r\n"]
 
 
+def test_grbl_limit_alarm_blocks_everything_until_reset():
+    """grbl/grbl protocol.c protocol_exec_rt_system: after a hard or soft limit the alarm and
+    [MSG:Reset to continue] are printed, then everything but 0x18 is ignored, `?` too; the
+    reset brings the banner and the Alarm lock."""
+    with GrblEmulator(speed_factor=50, soft_limits=(-10.0, 10.0)) as emu, \
+            serial.Serial(emu.port, 115200, timeout=0.2) as ser:
+        ser.write(b"$X\n")
+        assert lines(ser, 2)[-1] == b"ok\r\n"
+        ser.write(b"G0 A20\n")
+        assert lines(ser, 2) == [b"ALARM:2\r\n", b"[MSG:Reset to continue]\r\n"]
+        ser.write(b"?")
+        ser.write(b"$X\n")
+        assert lines(ser, 1, 0.3) == []
+        ser.write(b"\x18")
+        assert lines(ser, 3) == [b"\r\n", b"Grbl 1.1h ['$' for help]\r\n",
+                                 b"[MSG:'$H'|'$X' to unlock]\r\n"]
+        ser.write(b"?")
+        assert lines(ser, 1) == [b"<Alarm|MPos:0.000,0.000,0.000,0.000|FS:0,0>\r\n"]
+
+
+def test_grbl_hold_door_and_wpos_reports():
+    with GrblEmulator(speed_factor=1) as emu, serial.Serial(emu.port, 115200, timeout=0.2) as ser:
+        ser.write(b"$X\n$10=0\nG0 A90\n")
+        assert lines(ser, 4)[-3:] == [b"ok\r\n"] * 3
+        time.sleep(0.1)
+        emu.press_feed_hold()
+        ser.write(b"?")
+        [report] = lines(ser, 1)
+        assert report.startswith(b"<Hold:0|WPos:0.000,0.000,0.000,") and b"MPos" not in report
+        emu.set_door(True)
+        ser.write(b"?")
+        assert lines(ser, 1)[0].startswith(b"<Door:1|")
+        emu.set_door(False)
+        ser.write(b"?")
+        assert lines(ser, 1)[0].startswith(b"<Door:0|")
+        emu.press_cycle_start()
+        ser.write(b"?")
+        assert lines(ser, 1)[0].startswith(b"<Run|")
+
+
 def test_dc2200_usbtmc_bytes_through_pyusb():
     emu = Dc2200Emulator()
     dev = usb.core.find(idVendor=0x1313, idProduct=0x80C8, backend=emu)

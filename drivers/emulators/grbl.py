@@ -11,7 +11,16 @@ G1 at the F feed rate, units per minute), run one after another; ``G90``/``G91``
 
 Faults: see :mod:`drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
 (``ALARM:1``, motion aborted, position lost: re-home). With ``soft_limits`` a target outside
-the travel raises ``ALARM:2`` (soft limit) before any motion, as GRBL 1.1 does.
+the travel raises ``ALARM:2`` (soft limit) before any motion, as GRBL 1.1 does. Both are
+critical alarms: like grbl/grbl ``grbl/protocol.c`` (``protocol_exec_rt_system``) the
+controller prints ``[MSG:Reset to continue]`` and then ignores every byte, ``?`` included,
+until a soft reset (0x18); it comes back locked in the Alarm state.
+
+The controller's input pins (GRBL 1.1 cpu_map: feed hold, cycle start, safety door), as an
+operator would use them: :meth:`press_feed_hold` (state ``Hold:0``, the motion suspended),
+:meth:`press_cycle_start` (resume), :meth:`set_door` (``Door:1`` while open, ``Door:0`` once
+closed; cycle start resumes). ``$10=0`` makes status reports give ``WPos`` instead of
+``MPos`` (interface.md; no work offsets here, so the values are the same).
 """
 
 from __future__ import annotations
@@ -28,6 +37,9 @@ _WORD = re.compile(r"([A-Z])([-+]?[0-9]*\.?[0-9]*)")
 
 class GrblEmulator(PtyEmulator):
     name = "grbl"
+    # "reset": the controller resets (brown-out, DTR pulse) on receiving the next line, which
+    # it never executes: the banner comes instead of the line's ``ok``
+    FAULTS = PtyEmulator.FAULTS + ("reset",)
 
     def __init__(self, *, link=None, speed_factor: float = 1.0, homing_enabled: bool = True,
                  max_rate_per_min: float = 3600.0, homing_s: float = 1.0,
@@ -46,6 +58,8 @@ class GrblEmulator(PtyEmulator):
         self.move: list[LinearMove] | None = None
         self.move_start_pos: list[float] | None = None
         self.homing_until = 0.0
+        self.critical = False  # halted after a hard/soft limit until a soft reset
+        self.status_mask = 1  # $10: bit 0 set reports MPos, clear reports WPos
         self._fails = False
         self._line = bytearray()
 
@@ -108,11 +122,49 @@ class GrblEmulator(PtyEmulator):
         self.move, self.queue, self._fails = None, [], False
         self.state = "Alarm"
         self.send(f"ALARM:{code}\r\n".encode())
+        if code in (1, 2):  # protocol.c: hard and soft limits halt until reset
+            self.critical = True
+            self.send(b"[MSG:Reset to continue]\r\n")
+
+    # -- input pins ------------------------------------------------------------------------
+    def press_feed_hold(self) -> None:
+        with self.lock:
+            self.feed(b"!", time.monotonic())
+
+    def press_cycle_start(self) -> None:
+        with self.lock:
+            self.feed(b"~", time.monotonic())
+
+    def set_door(self, is_open: bool) -> None:
+        """Safety door switch: opening suspends any motion (``Door:1``), closing makes it
+        ready to resume (``Door:0``); cycle start then resumes."""
+        with self.lock:
+            now = time.monotonic()
+            self.tick(now)
+            if self.critical or self.state in ("Alarm", "Sleep"):
+                return
+            if is_open:
+                self._suspend(now)
+                self.state = "Door:1"
+            elif self.state.startswith("Door"):
+                self.state = "Door:0"
+
+    def _suspend(self, now: float) -> None:
+        """Stop the running move where it is and keep the rest queued (resumable)."""
+        if self.move is not None:
+            self.pos = [m.position(now) for m in self.move]
+            rest = [m.target for m in self.move]
+            self.queue.insert(0, (rest, self.max_rate))
+            self.move = None
 
     def on_disconnect(self) -> None:
         # GRBL boards are USB-powered through the Arduino: unplugging resets the controller.
         self.tick(time.monotonic())
-        self.move, self.queue = None, []
+        self._power_on()
+
+    def _power_on(self) -> None:
+        self.move, self.queue, self._line = None, [], bytearray()
+        self.critical = False
         self.state = "Alarm" if self.homing_enabled else "Idle"
 
     def on_reconnect(self) -> None:
@@ -121,17 +173,16 @@ class GrblEmulator(PtyEmulator):
     # -- input -----------------------------------------------------------------------------
     def feed(self, data: bytes, now: float) -> None:
         for b in data:
+            if self.critical and b != 0x18:
+                continue  # halted: everything but a soft reset is ignored (protocol.c)
             if b == ord("?"):
                 self._report(now)
             elif b == ord("!"):
                 if self.state == "Run" and self.move is not None:
-                    self.pos = [m.position(now) for m in self.move]
-                    rest = [m.target for m in self.move]
-                    self.queue.insert(0, (rest, self.max_rate))
-                    self.move = None
+                    self._suspend(now)
                     self.state = "Hold:0"
             elif b == ord("~"):
-                if self.state.startswith("Hold"):
+                if self.state.startswith("Hold") or self.state == "Door:0":
                     self.state = "Idle"
                     self._begin_next(now)
             elif b == 0x18:
@@ -145,18 +196,20 @@ class GrblEmulator(PtyEmulator):
 
     def _report(self, now: float) -> None:
         self.tick(now)
-        mpos = ",".join(f"{p:.3f}" for p in self.pos)
-        self.send(f"<{self.state}|MPos:{mpos}|FS:{self.feed_rate:.0f},0>\r\n".encode())
+        pos = ",".join(f"{p:.3f}" for p in self.pos)
+        frame = "MPos" if self.status_mask & 1 else "WPos"  # WPos = MPos - WCO, WCO = 0
+        self.send(f"<{self.state}|{frame}:{pos}|FS:{self.feed_rate:.0f},0>\r\n".encode())
 
     def _soft_reset(self, now: float) -> None:
         self._line = bytearray()
+        self.critical = False
         if self.state == "Run" or self.state == "Home":
             self.pos = [m.position(now) for m in self.move] if self.move else self.pos
             self._alarm(3 if self.state == "Run" else 6)
         else:
             self.move, self.queue = None, []
-            if self.state != "Alarm":
-                self.state = "Idle"
+            # grbl main.c: a reset out of Alarm or Sleep comes back locked in Alarm
+            self.state = "Alarm" if self.state in ("Alarm", "Sleep") else "Idle"
         self._banner()
 
     def _ok(self) -> None:
@@ -166,6 +219,12 @@ class GrblEmulator(PtyEmulator):
         self.send(f"error:{code}\r\n".encode())
 
     def _execute(self, line: str, now: float) -> None:
+        if self.take_fault("reset"):
+            self._power_on()
+            self._banner()
+            return
+        if self.state == "Sleep":
+            return  # asleep: nothing but a reset is processed
         if line.startswith("$"):
             cmd = line[1:]
             if cmd == "X":
@@ -181,6 +240,19 @@ class GrblEmulator(PtyEmulator):
                 else:
                     self.state = "Home"
                     self.homing_until = now + self.homing_s / self.speed_factor
+            elif cmd.startswith("10="):
+                try:
+                    self.status_mask = int(cmd[3:])
+                except ValueError:
+                    self._error(2)
+                    return
+                self._ok()
+            elif cmd == "SLP":
+                # $SLP: de-energize and sleep; the only way out is a reset (commands.md)
+                self.move, self.queue = None, []
+                self._ok()
+                self.state = "Sleep"
+                self.send(b"[MSG:Sleeping]\r\n")
             elif cmd == "I":
                 self.send(b"[VER:1.1h.20190825:ROTARY]\r\n[OPT:V,15,128]\r\n")
                 self._ok()
@@ -201,6 +273,7 @@ class GrblEmulator(PtyEmulator):
             [m.target for m in self.move] if self.move else list(self.pos))
         motion, has_axis = self.motion_mode, False
         absolute, feed = self.absolute, self.feed_rate
+        groups: set[str] = set()
         for letter, num in words:
             try:
                 value = float(num)
@@ -208,6 +281,11 @@ class GrblEmulator(PtyEmulator):
                 self._error(2)
                 return
             if letter == "G":
+                group = "motion" if value in (0, 1) else "distance" if value in (90, 91) else ""
+                if group and group in groups:
+                    self._error(21)  # two commands of one modal group in a block
+                    return
+                groups.add(group)
                 if value in (0, 1):
                     motion = int(value)
                 elif value == 90:
