@@ -2,8 +2,10 @@
 
 ``polrig evaluate --data DIR`` (or ``python -m models.evaluate``) runs seven methods on every
 sample of a dataset folder (``polrig sim dataset --holdout`` output: seeds and shape/material
-families never seen in training) and writes a Markdown table (default
-``benchmarks/results/single_shot.md``) plus the numbers as JSON next to it.
+families never seen in training) with a lit object pixel (:func:`models.data.has_lit_object`;
+a set with none is refused) and writes a Markdown table (``--out``, default
+``runs/evaluate/single_shot.md``; the published tables live in ``benchmarks/results/``) plus
+the numbers as JSON next to it (same name, ``.json``).
 
 Methods (rows), all producing normalised Mueller images ``(C, 3, 3, H, W)``:
 
@@ -18,8 +20,8 @@ Methods (rows), all producing normalised Mueller images ``(C, 3, 3, H, W)``:
 * **Four-state reference (same noise)**: captures under polarizer states 0/45/90/135 deg
   rendered from the true Mueller image with the ideal analyzers
   (:func:`polrig.reference.forward_measurements`), Gaussian noise of the variance the dataset's
-  own single-shot images show (``var = a + b I``, fitted on the set's residuals against the
-  noise-free rendering), solved by :func:`polrig.reference.solve_reference`.
+  own single-shot images show (``var = a + b I``, fitted on the residuals of its samples with a
+  lit object pixel against the noise-free rendering, :func:`fit_noise_model`), solved by :func:`polrig.reference.solve_reference`.
 * **Full model, mirror-averaged** and **Direct Stokes->MM, mirror-averaged**: each graph run
   on the sample and on its left-right mirror image, the two answers averaged
   (:mod:`models.mirror`); both networks get it, so the two rows compare like with like.
@@ -63,9 +65,10 @@ import time
 import cv2
 import numpy as np
 
-from models.data import Dataset, load_dataset
+from models.data import Dataset, check_network_size, has_lit_object, lit_samples, load_dataset
 from models.runtime import WEIGHTS_DIR, SingleShotModel
 from polrig import pbrdf, realizability, reference
+from polrig.errors import ConfigError
 from polrig.mueller import polarizer_stokes
 from polrig.stokes import aolp_deg, dolp, ideal_analyzer_matrix
 
@@ -141,13 +144,16 @@ def _dolp_aolp_errors(sp: np.ndarray, st: np.ndarray, mask: np.ndarray) -> tuple
 
 def fit_noise_model(ds: Dataset, limit: int = 64) -> tuple[float, float]:
     """``(a, b)`` of ``var = a + b I`` (normalised units) from the residual between the
-    dataset's analyzer images and the noise-free rendering of its true Mueller images.
+    dataset's analyzer images and the noise-free rendering of its true Mueller images, over
+    the first ``limit`` samples with a lit object pixel (:func:`models.data.has_lit_object`,
+    the samples :func:`evaluate` scores: an unlit sample is pure noise divided by the 1 DN
+    floor of its ``scale``, hundreds of times the noise of a lit one in normalised units).
 
     Robust to saturated highlights (clipped analyzer values, huge residuals): the variance of
     each of 20 signal bins is ``(1.4826 MAD)^2`` and the line is fitted to the bins by least
     squares weighted by their counts."""
     xs, rs = [], []
-    for i in range(min(len(ds), limit)):
+    for i in lit_samples(ds)[:limit]:
         mask = ds["mask"][i] > 0
         clean = render_analyzer(ds["mueller"][i], ds["s_in"][i])
         xs.append(clean[:, :, mask].ravel())
@@ -270,6 +276,9 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
              echo=print) -> dict:
     """Run every method on every sample; returns ``{"methods": {name: {metric: mean}}, ...}``."""
     ds = load_dataset(data_dir, limit)
+    check_network_size(ds, data_dir)
+    if not lit_samples(ds):
+        raise ConfigError(f"{data_dir}: no sample with a lit object pixel ({len(ds)} sample(s), none scorable)")
     wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
     full = SingleShotModel.load(wd)
     direct = SingleShotModel.load(wd, graph="direct.onnx")
@@ -287,7 +296,7 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     for i in range(len(ds)):
         mask = ds["mask"][i] > 0
         truth, s_in = ds["mueller"][i], ds["s_in"][i]
-        if not mask.any() or not np.any(truth[..., mask]):
+        if not has_lit_object(ds, i):
             skipped += 1  # nothing lit on the object: no signal to score
             continue
         preds = {}
@@ -355,10 +364,42 @@ def markdown_tables(result: dict) -> str:
     return "\n".join(lines)
 
 
-def write_results(result: dict, out_md: str | pathlib.Path) -> None:
+def results_paths(out_md: str | pathlib.Path) -> tuple[pathlib.Path, pathlib.Path]:
+    """``(Markdown, JSON)`` paths of :func:`write_results` for ``out_md`` (a ``.md`` file; the
+    JSON is the same name with ``.json``). :class:`ConfigError` (one line naming the path)
+    unless both can be written: ``out_md`` ends in ``.md``, neither is a folder, and the folder
+    exists (or can be made) and takes a new file. Call before the evaluation."""
+    from polrig.rawio import temporary_sibling
+
     out_md = pathlib.Path(out_md)
+    if out_md.suffix.lower() != ".md":
+        raise ConfigError(f"--out {out_md}: give a Markdown file name ending in .md (the numbers go next to it "
+                          f"as .json)")
+    out_json = out_md.with_suffix(".json")
+    for path in (out_md, out_json):
+        if path.is_dir():
+            raise ConfigError(f"--out {out_md}: {path} is a folder")
+    folder = out_md.parent
+    existing = next(p for p in (folder, *folder.parents, pathlib.Path(".")) if p.exists())
+    if not existing.is_dir():
+        raise ConfigError(f"--out {out_md}: {existing} is not a folder")
+    try:  # the folder (or the one it will be made in) takes a new file: read-only folders, /proc, ... fail here
+        probe = temporary_sibling(existing / out_md.name)
+        probe.open("x").close()
+        probe.unlink()
+    except OSError as exc:
+        raise ConfigError(f"--out {out_md}: cannot write in {existing} ({exc.strerror or exc})") from None
+    return out_md, out_json
+
+
+def write_results(result: dict, out_md: str | pathlib.Path) -> None:
+    """The tables as Markdown at ``out_md`` and the numbers as JSON next to it (same name,
+    ``.json``; :func:`results_paths`), each written atomically."""
+    from polrig.rawio import atomic_write_text
+
+    out_md, out_json = results_paths(out_md)
     out_md.parent.mkdir(parents=True, exist_ok=True)
-    out_md.with_suffix(".json").write_text(json.dumps(result, indent=2, default=str))
-    out_md.write_text("# Single-shot Mueller reconstruction: held-out evaluation\n\n"
+    atomic_write_text(out_json, json.dumps(result, indent=2, default=str))
+    atomic_write_text(out_md, "# Single-shot Mueller reconstruction: held-out evaluation\n\n"
                       "Produced by `polrig evaluate` (models/evaluate.py; metric definitions in its docstring).\n\n"
                       + markdown_tables(result) + "\n")
