@@ -16,6 +16,17 @@ spellings match Thorlabs' own example ``Current_And_Temperature_Controller_Examp
 <percent>``, ``OUTPUT1:STATE ON|OFF``; after every setting the error queue is read with
 ``SYST:ERR?`` and a non-zero entry raises :class:`polrig.errors.DeviceFault` with the
 device's code and text. ``level`` in [0, 1] maps to brightness percent = 100 * level.
+The queue is then drained so the next command starts clean, but never without bound: an
+IEEE 488.2 / SCPI error queue is finite (SCPI-1999 vol. 2, ``SYSTem:ERRor[:NEXT]?``: a
+first-in first-out queue of fixed size whose last entry becomes -350 "Queue overflow" when
+it is full), so a device that still answers errors after :data:`MAX_ERROR_READS` reads, or
+after the driver's timeout, is reported with the errors read instead of being asked
+forever.
+
+Control requests that fail while opening (INITIATE_CLEAR / CHECK_CLEAR_STATUS time out or
+stall) are typed too: a timeout is :class:`DeviceTimeout`, a stall (the device does not
+take the USBTMC class request) :class:`DeviceNotFound`, a vanished device
+:class:`DeviceDisconnected`.
 
 ``backend`` may be a pyusb backend object or the name of a module with ``get_backend()``
 (pyusb's convention, e.g. ``"usb.backend.libusb1"`` or the emulator
@@ -26,6 +37,7 @@ from __future__ import annotations
 
 import errno
 import importlib
+import time
 from typing import Any
 
 import usb.core
@@ -37,6 +49,8 @@ from polrig.errors import (DeviceDisconnected, DeviceFault, DeviceNotFound, Devi
 from polrig.hal import DeviceInfo, Light, check_level
 
 VENDOR_ID, PRODUCT_ID = 0x1313, 0x80C8
+#: most ``SYST:ERR?`` reads after a setting (the first error included)
+MAX_ERROR_READS = 32
 
 
 def resolve_backend(backend: Any):
@@ -121,7 +135,11 @@ class Dc2200Light(Light):
             raise DeviceNotFound(f"cannot configure the USB device: {exc}", device=self.name) from None
         self._dev = dev
         try:
-            self._clear()
+            try:
+                self._clear()
+            except usb.core.USBError as exc:
+                raise self._control_error(exc, "clearing the USBTMC pipes (INITIATE_CLEAR)") \
+                    from None
             idn = self.query("*IDN?")
             parts = [p.strip() for p in idn.split(",")]
             if len(parts) < 4 or "DC2200" not in parts[1]:
@@ -171,6 +189,17 @@ class Dc2200Light(Light):
             return DeviceDisconnected(f"{what}: USB device went away ({exc})", device=self.name)
         self._recover()
         return ProtocolError(f"{what}: USB transfer failed ({exc})", device=self.name)
+
+    def _control_error(self, exc: usb.core.USBError, what: str) -> Exception:
+        """A class control request failed while opening: typed, and never retried (a
+        recovery would send the same request again)."""
+        if isinstance(exc, usb.core.USBTimeoutError) or exc.errno == errno.ETIMEDOUT:
+            return DeviceTimeout(f"{what}: no answer within {self.timeout_s:g} s (device hung? "
+                                 "unplug it and plug it in again)", device=self.name)
+        if exc.errno in (errno.ENODEV, errno.EIO) or exc.backend_error_code == -4:
+            return DeviceDisconnected(f"{what}: USB device went away ({exc})", device=self.name)
+        return DeviceNotFound(f"{what}: the device refused the USBTMC request ({exc}); it "
+                              "does not work as a USBTMC instrument", device=self.name)
 
     def _require(self) -> usb.core.Device:
         if self._dev is None:
@@ -240,20 +269,40 @@ class Dc2200Light(Light):
         self._write(text)
         self.check_error(text)
 
-    def check_error(self, context: str = "") -> None:
+    def _next_error(self) -> tuple[int, str]:
+        """One ``SYST:ERR?`` entry: ``(code, text)``; code 0 is "No error"."""
         answer = self.query("SYST:ERR?")
         code_s, _, msg = answer.partition(",")
         try:
             code = int(code_s)
         except ValueError:
             raise ProtocolError(f"malformed SYST:ERR? answer {answer!r}", device=self.name) from None
-        if code != 0:
-            while True:  # drain the queue so the next command starts clean
-                more = self.query("SYST:ERR?")
-                if more.startswith(("+0", "0")):
-                    break
-            raise DeviceFault(f"{context!r} failed" if context else "device error",
-                              device=self.name, code=code, text=msg.strip().strip('"'))
+        return code, msg.strip().strip('"')
+
+    def check_error(self, context: str = "") -> None:
+        """Read the error queue; an error raises DeviceFault with the first entry's code and
+        text. The rest of the queue is drained (at most :data:`MAX_ERROR_READS` reads and
+        ``timeout_s``; see the module docstring) so the next command starts clean."""
+        code, text = self._next_error()
+        if code == 0:
+            return
+        errors = [(code, text)]
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            if len(errors) >= MAX_ERROR_READS or time.monotonic() > deadline:
+                shown = "; ".join(f"{c} {t!r}" for c, t in dict.fromkeys(errors))
+                raise DeviceFault(f"{context!r} failed, and the error queue did not empty "
+                                  f"after {len(errors)} reads of SYST:ERR? (errors read: "
+                                  f"{shown}); is the device stuck in an error state?",
+                                  device=self.name, code=code, text=text)
+            more = self._next_error()
+            if more[0] == 0:
+                break
+            errors.append(more)
+        extra = (f"; {len(errors) - 1} more in the queue: "
+                 + "; ".join(f"{c} {t!r}" for c, t in errors[1:])) if len(errors) > 1 else ""
+        raise DeviceFault((f"{context!r} failed" if context else "device error") + extra,
+                          device=self.name, code=code, text=text)
 
     # -- Light -----------------------------------------------------------------------------
     def set_on(self, on: bool) -> None:

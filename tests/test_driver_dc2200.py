@@ -127,3 +127,46 @@ def test_scpi_short_and_long_forms(light, emu):
     with pytest.raises(DeviceFault) as ei:
         light.command("SOURCE1:BRIGHTNESS 3")
     assert ei.value.code == -113
+
+
+def test_error_queue_that_never_empties_is_bounded(light, emu):
+    """SYST:ERR? always answers -241 (it was asked 300,000 times in 5 s, forever): the
+    drain stops after 32 reads (drivers.dc2200.MAX_ERROR_READS) and raises the errors read."""
+    emu.inject("error_queue_stuck")
+    n0 = len(emu.received)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceFault, match=r"did not empty after 32 reads .*-241 'Hardware "
+                                          r"missing'") as ei:
+        light.set_on(True)
+    assert time.monotonic() - t0 < 1.0
+    assert ei.value.code == -241 and ei.value.text == "Hardware missing"
+    assert len(emu.received) - n0 == 1 + 32  # the setting, then SYST:ERR? 32 times
+    emu.stuck_error = None
+    light.set_on(True)
+    assert emu.output_on
+
+
+def test_several_queued_errors_are_drained_and_named(light, emu):
+    with pytest.raises(DeviceFault, match=r"2 more in the queue: -113 'Undefined header'; "
+                                          r"-224 ") as ei:
+        light.command("SOURCE1:CBRIGHTNESS:BRIGHTNESS 150;SOURCE1:NOPE 1;SOURCE1:MODE XX")
+    assert ei.value.code == -222
+    light.set_level(0.5)
+
+
+@pytest.mark.parametrize("fault, error, words", [
+    ("clear_timeout", DeviceTimeout, "no answer within 0.3 s"),
+    ("clear_stall", DeviceNotFound, "refused the USBTMC request"),
+])
+def test_failed_clear_on_open_is_typed(emu, fault, error, words):
+    """INITIATE_CLEAR timing out or stalling while opening raised a raw usb.core.USBError
+    ('polrig: error: [Errno 110] Operation timed out')."""
+    emu.inject(fault)
+    lt = Dc2200Light(backend=emu, timeout_s=0.3)
+    with pytest.raises(error, match=rf"dc2200: clearing the USBTMC pipes \(INITIATE_CLEAR\): "
+                                    rf".*{words}"):
+        lt.open()
+    assert not lt.is_open
+    lt.open()  # the next try works
+    assert lt.info().model == "DC2200"
+    lt.close()

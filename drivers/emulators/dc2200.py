@@ -18,6 +18,11 @@ Faults: ``no_reply`` (the next response is lost: bulk-IN times out), ``garble`` 
 MsgID/bTag), ``partial`` (header announces more bytes than sent, no EOM), ``device_error``
 (the LED head is unplugged: output drops and ``OUTPut ON`` fails with -241 until
 ``led_connected`` is set again), :meth:`disconnect`/:meth:`reconnect` (USB cable).
+``error_queue_stuck``: from now on ``SYSTem:ERRor?`` answers -241 "Hardware missing" every
+time, the queue never reaching "No error" (a firmware stuck in an error condition; set
+``stuck_error = None`` to end it). ``clear_timeout`` / ``clear_stall``: the next USBTMC
+INITIATE_CLEAR control request times out (after the request's timeout, as a hung device's)
+or stalls (EPIPE, a device that refuses the class request).
 """
 
 from __future__ import annotations
@@ -38,7 +43,8 @@ from drivers import usbtmc
 VENDOR_ID, PRODUCT_ID = 0x1313, 0x80C8
 EP_OUT, EP_IN, EP_INT = 0x02, 0x81, 0x83
 STRINGS = {1: "Thorlabs", 2: "DC2200", 3: "M00123456"}
-FAULTS = ("no_reply", "garble", "partial", "device_error")
+FAULTS = ("no_reply", "garble", "partial", "device_error", "error_queue_stuck",
+          "clear_timeout", "clear_stall")
 
 
 def _desc(**fields) -> types.SimpleNamespace:
@@ -55,6 +61,7 @@ class Dc2200Emulator(usb.backend.IBackend):
         self.plugged = True
         self.faults: collections.Counter[str] = collections.Counter()
         self.led_connected = True
+        self.stuck_error: tuple[int, str] | None = None
         self.reset_state()
         self._dev = object()
         self._handles: set[int] = set()
@@ -75,6 +82,9 @@ class Dc2200Emulator(usb.backend.IBackend):
             raise ValueError(f"unknown fault {fault!r}; known: {', '.join(FAULTS)}")
         with self.lock:
             self.faults[fault] += count
+            if fault == "error_queue_stuck":
+                self.faults[fault] = 0
+                self.stuck_error = (-241, "Hardware missing")
             if fault == "device_error":
                 self.led_connected = False
                 if self.output_on:
@@ -177,6 +187,16 @@ class Dc2200Emulator(usb.backend.IBackend):
 
     # -- control endpoint ------------------------------------------------------------------
     def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
+        if bmRequestType == 0xA1 and bRequest == usbtmc.INITIATE_CLEAR:
+            with self.lock:
+                self._check(dev_handle)
+                hung, stall = self._take("clear_timeout"), self._take("clear_stall")
+            if hung:
+                time.sleep((timeout or 1000) / 1000.0)
+                raise usb.core.USBTimeoutError("Operation timed out", error_code=-7,
+                                               errno=errno.ETIMEDOUT)
+            if stall:
+                raise usb.core.USBError("Pipe error", error_code=-9, errno=errno.EPIPE)
         with self.lock:
             self._check(dev_handle)
             reply = b""
@@ -304,7 +324,10 @@ class Dc2200Emulator(usb.backend.IBackend):
         elif h == "*CLS":
             self.errors.clear()
         elif self._path(header, "SYSTem", "ERRor", "[NEXT]") and query:
-            code, msg = self.errors.popleft() if self.errors else (0, "No error")
+            if self.stuck_error is not None:
+                code, msg = self.stuck_error
+            else:
+                code, msg = self.errors.popleft() if self.errors else (0, "No error")
             self._responses.append(f'{code:+d},"{msg}"\n'.encode())
         elif self._path(header, "[SOURce]", "MODe"):
             if query:
