@@ -12,10 +12,24 @@ default 2048 micro-steps and 66:1 worm gear; pylablib ``kinesis.py`` lists the s
 
 The stage must be homed after power-up or a motion error (status bit "homed" clear) before
 absolute moves mean anything; ``require_homed`` makes moves refuse until it is.
+
+Frames with a message id this driver does not use are skipped (logged at debug level)
+while it waits for the reply it asked for: the header says how many data bytes follow
+(dest | 0x80 flags a data packet, APT protocol section 2), so the stream stays in step. A
+header that is not addressed to the host (0x01), or announces an implausible data length,
+is line noise: :class:`ProtocolError`.
+
+End of a motion: ``MOT_MOVE_COMPLETED`` / ``MOT_MOVE_HOMED``. ``MOT_MOVE_STOPPED`` ends it
+too, but unless this driver asked for the stop (:meth:`stop`) the move was interrupted (a
+limit switch, the controller's own stop, another program): :class:`DeviceFault` with the
+position it stopped at. When no message comes for a while, :meth:`wait` asks the status
+bits: a controller that no longer moves has finished, and its end-of-motion message was
+lost on the line (with the motion-error bit set that is a :class:`DeviceFault`).
 """
 
 from __future__ import annotations
 
+import logging
 import struct
 import time
 
@@ -27,6 +41,12 @@ from polrig.hal import DeviceInfo, RotationStage, Turntable
 BAUDRATE = 115200
 STEPS_PER_DEG = 409600 / 3
 _END_OF_MOTION = (apt.MOT_MOVE_COMPLETED, apt.MOT_MOVE_HOMED, apt.MOT_MOVE_STOPPED)
+#: data length beyond which a header is taken for line noise (the largest APT message a
+#: motor controller sends, HW_GET_INFO, has 84 bytes)
+MAX_DATA_LEN = 512
+#: silence after which wait() asks the status bits whether the motion has ended
+POLL_S = 0.25
+_log = logging.getLogger(__name__)
 
 
 class K10cr1Stage(SerialDevice, RotationStage):
@@ -42,6 +62,8 @@ class K10cr1Stage(SerialDevice, RotationStage):
         self._link = SerialLink(port, baudrate=BAUDRATE, rtscts=True, device=f"k10cr1 {port}")
         self._info: DeviceInfo | None = None
         self._pending = False  # a motion whose end-of-motion message has not been read
+        self._stopping = False  # stop() is waiting for its MOT_MOVE_STOPPED
+        self._interrupted: tuple[int | None] | None = None  # (steps,) of an unasked stop
 
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
@@ -73,29 +95,32 @@ class K10cr1Stage(SerialDevice, RotationStage):
     def _send(self, msg: apt.AptMessage) -> None:
         self._link.write(msg.pack())
 
-    def _read_message(self, timeout_s: float) -> tuple[int, int, int, bytes | None]:
-        header = self._link.read_exact(6, timeout_s, what="APT header")
-        msg_id, p1, p2, _dest, _src, has_data = apt.unpack_header(header)
-        if msg_id not in apt.REPLY_DATA_LEN:
-            self._resync()
-            raise ProtocolError(f"unknown APT message id 0x{msg_id:04X} (garbled frame "
-                                f"{header.hex(' ')})", device=self._link.device)
+    def _read_message(self, timeout_s: float, stated_s: float | None = None,
+                      ) -> tuple[int, int, int, bytes | None]:
+        """The next message with an id this driver knows, within ``timeout_s``; frames with
+        other ids are skipped. ``stated_s``: the timeout an error message names."""
+        stated = timeout_s if stated_s is None else stated_s
+        deadline = time.monotonic() + timeout_s
+        while True:
+            header = self._link.read_exact(6, max(deadline - time.monotonic(), 0.0),
+                                           what="APT header", stated_s=stated)
+            msg_id, p1, p2, dest, _src, has_data = apt.unpack_header(header)
+            n = (p1 | p2 << 8) if has_data else None
+            if dest != apt.HOST or (n is not None and n > MAX_DATA_LEN):
+                self._resync()
+                raise ProtocolError(f"garbled APT frame header {header.hex(' ')} (not "
+                                    "addressed to the host, or an implausible data length)",
+                                    device=self._link.device)
+            data = self._read_data(msg_id, n, stated) if n else None
+            if msg_id in apt.REPLY_DATA_LEN:
+                break
+            _log.debug("%s: skipped APT message 0x%04X (%s data bytes)", self._link.device,
+                       msg_id, n or 0)
         expected = apt.REPLY_DATA_LEN[msg_id]
-        n = (p1 | p2 << 8) if has_data else None
         if n != expected:
             self._resync()
             raise ProtocolError(f"APT message 0x{msg_id:04X} with data length {n}, "
                                 f"expected {expected}", device=self._link.device)
-        data = None
-        if n:
-            try:
-                # the frame has started: its data get the link's inter-byte timeout even
-                # when the header came at the very end of timeout_s
-                data = self._link.read_exact(n, timeout_s, what="APT data", started=True)
-            except DeviceTimeout:
-                self._resync()
-                raise ProtocolError(f"partial APT frame: header 0x{msg_id:04X} announced {n} "
-                                    "data bytes that never came", device=self._link.device) from None
         if msg_id in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
             self._pending = False
             code, text = None, "error reported (HW_RESPONSE)"
@@ -105,6 +130,17 @@ class K10cr1Stage(SerialDevice, RotationStage):
             raise DeviceFault("controller reported an error", device=self._link.device,
                               code=code if code is not None else "HW_RESPONSE", text=text)
         return msg_id, p1, p2, data
+
+    def _read_data(self, msg_id: int, n: int, stated_s: float) -> bytes:
+        try:
+            # the frame has started: its data get the link's inter-byte timeout even when
+            # the header came at the very end of the time left
+            return self._link.read_exact(n, 0.0, what="APT data", started=True,
+                                         stated_s=stated_s)
+        except DeviceTimeout:
+            self._resync()
+            raise ProtocolError(f"partial APT frame: header 0x{msg_id:04X} announced {n} "
+                                "data bytes that never came", device=self._link.device) from None
 
     def _resync(self) -> None:
         time.sleep(0.05)
@@ -116,11 +152,32 @@ class K10cr1Stage(SerialDevice, RotationStage):
         self._send(msg)
         deadline = time.monotonic() + self.reply_timeout_s
         while True:
-            msg_id, _, _, data = self._read_message(max(deadline - time.monotonic(), 0.0))
+            msg_id, _, _, data = self._read_message(max(deadline - time.monotonic(), 0.0),
+                                                    stated_s=self.reply_timeout_s)
             if msg_id == reply_id:
                 return data or b""
-            if msg_id in _END_OF_MOTION:
-                self._pending = False
+            self._motion_message(msg_id, data)
+
+    def _motion_message(self, msg_id: int, data: bytes | None) -> None:
+        """Bookkeeping of an end-of-motion message, wherever it was read."""
+        if msg_id not in _END_OF_MOTION or not self._pending:
+            return
+        self._pending = False
+        if msg_id == apt.MOT_MOVE_STOPPED and not self._stopping:
+            steps = struct.unpack("<Hi", data[:6])[1] if data and len(data) >= 6 else None
+            self._interrupted = (steps,)
+
+    def _raise_interrupted(self) -> None:
+        stopped, self._interrupted = self._interrupted, None
+        if stopped is None:
+            return
+        steps = stopped[0]
+        where = (f"at {wrap_deg(steps / STEPS_PER_DEG - self.zero_offset_deg):.4f} deg"
+                 if steps is not None else "at an unknown position")
+        raise DeviceFault(f"move interrupted: the controller stopped it {where} (limit switch, "
+                          "the controller's stop, or another program)",
+                          device=self._link.device, code="MOT_MOVE_STOPPED",
+                          text=f"stopped {where} without a stop request")
 
     # -- RotationStage ---------------------------------------------------------------------
     def status_bits(self) -> int:
@@ -132,19 +189,37 @@ class K10cr1Stage(SerialDevice, RotationStage):
         steps = struct.unpack("<Hi", data)[1]
         return wrap_deg(steps / STEPS_PER_DEG - self.zero_offset_deg)
 
-    def is_busy(self) -> bool:
-        busy = bool(self.status_bits() & apt.STATUS_MOVING)
+    def _check_motion(self) -> bool:
+        """Ask the status bits whether the pending motion still runs; if it does not, its
+        end-of-motion message was lost on the line (it would have come before the status
+        reply): take it if it is still on its way, else count the motion as ended."""
+        bits = self.status_bits()
+        busy = bool(bits & apt.STATUS_MOVING)
         if not busy and self._pending:
             try:
-                self.wait(self.reply_timeout_s)  # the end-of-motion message is on its way
+                msg_id, _, _, data = self._read_message(min(self.reply_timeout_s, 0.1))
+                self._motion_message(msg_id, data)
             except DeviceTimeout:
-                self._pending = False  # it was lost on the line; the controller is idle
+                pass
+            if self._pending:
+                self._pending = False
+                _log.info("%s: end-of-motion message lost; the controller reports idle",
+                          self._link.device)
+                if bits & apt.STATUS_MOTION_ERROR:
+                    raise DeviceFault("motion ended with an error", device=self._link.device,
+                                      code="motion error",
+                                      text="status bit 'motion error' is set")
+        return busy
+
+    def is_busy(self) -> bool:
+        busy = self._check_motion()
+        self._raise_interrupted()
         return busy
 
     def home(self, timeout_s: float = 60.0) -> None:
         self._link.discard_input()
         self._send(apt.AptMessage(apt.MOT_MOVE_HOME, 1))
-        self._pending = True
+        self._pending, self._interrupted = True, None
         self.wait(timeout_s)
 
     def move_to(self, angle_deg: float, *, wait: bool = True, timeout_s: float = 30.0) -> None:
@@ -157,7 +232,7 @@ class K10cr1Stage(SerialDevice, RotationStage):
                               text="status bit 'homed' is clear")
         steps = round((wrap_deg(angle_deg) + self.zero_offset_deg) * STEPS_PER_DEG)
         self._send(apt.AptMessage(apt.MOT_MOVE_ABSOLUTE, data=struct.pack("<Hi", 1, steps)))
-        self._pending = True
+        self._pending, self._interrupted = True, None
         if wait:
             self.wait(timeout_s)
 
@@ -169,16 +244,25 @@ class K10cr1Stage(SerialDevice, RotationStage):
                 raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
                                     device=self._link.device)
             try:
-                msg_id, *_ = self._read_message(min(left, 0.25))
+                msg_id, _, _, data = self._read_message(min(left, POLL_S))
             except DeviceTimeout:
+                try:
+                    self._check_motion()  # silence: is it still moving?
+                except DeviceTimeout:
+                    pass  # the status reply was lost too: keep waiting until the deadline
                 continue
-            if msg_id in _END_OF_MOTION:
-                self._pending = False
+            self._motion_message(msg_id, data)
+        self._raise_interrupted()
 
     def stop(self) -> None:
+        """``MOT_MOVE_STOP`` (immediate); the ``MOT_MOVE_STOPPED`` it brings is no fault."""
         self._link.discard_input()
-        self._request(apt.AptMessage(apt.MOT_MOVE_STOP, 1, 0x01), apt.MOT_MOVE_STOPPED)
-        self._pending = False
+        self._stopping = True
+        try:
+            self._request(apt.AptMessage(apt.MOT_MOVE_STOP, 1, 0x01), apt.MOT_MOVE_STOPPED)
+        finally:
+            self._stopping = False
+        self._pending, self._interrupted = False, None
 
 
 class K10cr1Turntable(K10cr1Stage, Turntable):

@@ -140,13 +140,71 @@ def test_not_found_and_release(tmp_path, emu):
 
 
 def test_lost_move_completed(stage, emu):
+    """MOT_MOVE_COMPLETED is lost: wait() asks the status bits when nothing comes, sees the
+    controller idle and returns (it waited its full timeout and raised DeviceTimeout)."""
     stage.home(timeout_s=5)
     emu.speed_factor = 10.0
     stage.move_to(30.0, wait=False)
     emu.inject("no_reply")  # MOT_MOVE_COMPLETED never arrives
-    with pytest.raises(DeviceTimeout):
-        stage.wait(timeout_s=0.8)
+    time.sleep(0.4)  # the move is over
+    t0 = time.monotonic()
+    stage.wait(timeout_s=3)
+    assert time.monotonic() - t0 < 0.6
     assert not stage.is_busy()
     assert stage.position_deg() == pytest.approx(30.0, abs=STEP_DEG)
     stage.move_to(40.0, timeout_s=5)
     assert emu.position_deg == pytest.approx(40.0, abs=STEP_DEG)
+
+
+def test_lost_move_completed_during_move_to(stage, emu):
+    stage.home(timeout_s=5)
+    emu.speed_factor = 10.0
+    stage.require_homed = False  # no status request before the move
+    emu.inject("no_reply")  # the first thing the controller sends: the completion
+    t0 = time.monotonic()
+    stage.move_to(2.0, timeout_s=3)  # 0.02 s of motion, then silence
+    assert time.monotonic() - t0 < 0.6
+    assert emu.position_deg == pytest.approx(2.0, abs=STEP_DEG)
+
+
+def test_move_stopped_by_the_controller_is_an_interruption(stage, emu):
+    """MOT_MOVE_STOPPED that this driver did not ask for (limit switch, another program):
+    DeviceFault with the position (the move counted as done)."""
+    stage.home(timeout_s=5)
+    emu.inject("stop_mid_move")
+    with pytest.raises(DeviceFault, match=r"move interrupted: the controller stopped it at "
+                                          r"(2[5-9]|3[0-5])\.\d{4} deg") as ei:
+        stage.move_to(60.0, timeout_s=5)
+    assert ei.value.code == "MOT_MOVE_STOPPED"
+    assert 0 < emu.position_deg < 60
+    assert not stage.is_busy()  # reported once
+    stage.move_to(60.0, timeout_s=5)
+    assert emu.position_deg == pytest.approx(60.0, abs=STEP_DEG)
+    emu.inject("stop_mid_move")  # seen by is_busy() when polling a move without wait
+    stage.move_to(0.0, wait=False)
+    deadline = time.monotonic() + 5
+    with pytest.raises(DeviceFault, match="move interrupted"):
+        while time.monotonic() < deadline:
+            stage.is_busy()
+            time.sleep(0.02)
+
+
+def test_unknown_messages_are_skipped(stage, emu):
+    """Well-formed frames with ids the driver does not use (0x0491 with data, 0x0212 header
+    only) before a reply are skipped (they aborted the request: 'unknown APT message id')."""
+    stage.home(timeout_s=5)
+    stage.move_to(20.0, timeout_s=5)
+    emu.inject("unsolicited")
+    assert stage.position_deg() == pytest.approx(20.0, abs=STEP_DEG)
+    emu.inject("unsolicited")  # before MOT_MOVE_COMPLETED
+    stage.move_to(25.0, timeout_s=5)
+    assert stage.position_deg() == pytest.approx(25.0, abs=STEP_DEG)
+
+
+def test_request_timeout_names_the_configured_timeout(stage, emu):
+    """The reply is lost after a skipped frame: the message names the configured 0.5 s."""
+    emu.inject("unsolicited")
+    emu.inject("no_reply")
+    with pytest.raises(DeviceTimeout, match=r"no APT header within 0\.5 s$"):
+        stage.status_bits()
+    assert stage.status_bits() & apt.STATUS_ENABLED

@@ -76,6 +76,24 @@ def test_k10cr1_documented_frames():
         assert struct.unpack("<HI", ser.read(6))[1] & (1 << 10)
 
 
+def test_k10cr1_stop_mid_move_and_unsolicited_frames():
+    with K10cr1Emulator(speed_factor=100, homed=True) as emu, \
+            serial.Serial(emu.port, 115200, rtscts=True, timeout=0.5) as ser:
+        emu.inject("stop_mid_move")
+        steps = round(90 * 409600 / 3)
+        ser.write(bytes([0x53, 0x04, 0x06, 0x00, 0xD0, 0x01]) + struct.pack("<Hi", 1, steps))
+        assert ser.read(6) == bytes([0x66, 0x04, 14, 0x00, 0x81, 0x50])  # MOVE_STOPPED
+        chan, pos, _enc, _status = struct.unpack("<HiiI", ser.read(14))
+        assert chan == 1 and 0 < pos < steps
+        emu.inject("unsolicited")
+        ser.write(bytes([0x11, 0x04, 0x01, 0x00, 0x50, 0x01]))  # MOT_REQ_POSCOUNTER
+        assert ser.read(6) == bytes([0x91, 0x04, 14, 0x00, 0x81, 0x50])
+        assert struct.unpack("<Hi", ser.read(14)[:6]) == (1, pos)
+        assert ser.read(6) == bytes([0x12, 0x02, 0x01, 0x01, 0x01, 0x50])
+        assert ser.read(6) == bytes([0x12, 0x04, 6, 0x00, 0x81, 0x50])  # the reply
+        assert struct.unpack("<Hi", ser.read(6)) == (1, pos)
+
+
 def test_grbl_documented_replies():
     with GrblEmulator(speed_factor=50) as emu, serial.Serial(emu.port, 115200, timeout=0.2) as ser:
         ser.write(b"\x18")  # soft reset (opening the port flushed the power-up banner)

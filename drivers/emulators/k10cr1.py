@@ -10,8 +10,13 @@ enable state (a disabled channel ignores moves and reports an error), ``HW_GET_I
 Faults: see :mod:`drivers.emulators._pty`. ``error_mid_move`` stops the motor half way,
 sets the motion-error bit, clears the homed bit (the position is no longer trusted) and
 sends ``HW_RICHRESPONSE`` with an error code and text; the code values are this emulator's
-own (the protocol document leaves them device specific). ``garble`` sends a frame with an
-unknown message id.
+own (the protocol document leaves them device specific). ``garble`` corrupts the header
+of the next frame (line noise: every header byte flipped, so neither the id nor the
+addresses survive). ``stop_mid_move``: the next move stops half way and the controller
+sends ``MOT_MOVE_STOPPED`` with its status, as when a limit switch trips or another client
+stops it. ``unsolicited``: the next frame is preceded by two well-formed frames the host
+never asked for and a K10CR1 driver does not use (``MOT_GET_DCSTATUSUPDATE`` 0x0491 with 14
+data bytes, ``MOD_GET_CHANENABLESTATE`` 0x0212 header only).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ ERROR_DISABLED = (10001, "Channel is disabled: enable it before moving")
 
 class K10cr1Emulator(PtyEmulator):
     name = "k10cr1"
+    FAULTS = PtyEmulator.FAULTS + ("stop_mid_move", "unsolicited")
 
     def __init__(self, *, serial_number: int = 55000123, link=None, speed_factor: float = 1.0,
                  homed: bool = False):
@@ -41,6 +47,7 @@ class K10cr1Emulator(PtyEmulator):
         self.motion_error = False
         self.move: LinearMove | None = None
         self._move_fails = False
+        self._move_stops = False
         self._buf = bytearray()
 
     @property
@@ -72,7 +79,17 @@ class K10cr1Emulator(PtyEmulator):
         return struct.pack("<HiiI", 1, pos, pos, self.status_bits())
 
     def garble(self, data: bytes) -> bytes:
-        return struct.pack("<H", 0x7E7E) + data[2:]
+        return bytes(b ^ 0x5A for b in data[:6]) + data[6:]
+
+    def send(self, data: bytes) -> None:
+        with self.lock:
+            if self.take_fault("unsolicited"):
+                pos = int(round(self.position_steps))
+                self.write_raw(apt.AptMessage(0x0491, data=struct.pack("<HiiI", 1, pos, 0, 0),
+                                              dest=apt.HOST, source=apt.USB_UNIT).pack())
+                self.write_raw(apt.AptMessage(0x0212, 1, 0x01, dest=apt.HOST,
+                                              source=apt.USB_UNIT).pack())
+            super().send(data)
 
     def _start(self, target: float, now: float, kind: str) -> None:
         if not self.enabled:
@@ -83,6 +100,7 @@ class K10cr1Emulator(PtyEmulator):
         speed = MAX_SPEED_DEG_S * STEPS_PER_DEG * self.speed_factor
         self.move = LinearMove(self.position_steps, target, speed, now, kind)
         self._move_fails = self.take_fault("error_mid_move")
+        self._move_stops = self.take_fault("stop_mid_move")
 
     def tick(self, now: float) -> None:
         mv = self.move
@@ -95,6 +113,11 @@ class K10cr1Emulator(PtyEmulator):
             code, text = ERROR_MOTION
             self._msg(apt.HW_RICHRESPONSE,
                       data=struct.pack("<HH64s", apt.MOT_MOVE_ABSOLUTE, code, text.encode()))
+            return
+        if self._move_stops and now >= mv.midpoint_time:
+            self.position_steps = round(mv.position(now))
+            self.move, self._move_stops = None, False
+            self._msg(apt.MOT_MOVE_STOPPED, data=self._status14())
             return
         self.position_steps = mv.position(now)
         if mv.done(now):
