@@ -14,6 +14,13 @@ Shipped graphs (``models/weights/``):
 Inputs of both: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W), ``s_in`` (B,3),
 ``wo`` (B,3,H,W), ``stage_zero_axis`` (B,3); batch, height and width are dynamic (H and W
 multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter.
+
+The check: each graph is run with onnxruntime on the export sample and compared with PyTorch;
+the export fails (:class:`ExportError`, nothing replaced in ``weights_dir``) when a network has
+a non-finite weight, when either output is non-finite, or when the largest difference exceeds
+:data:`EXPORT_TOLERANCE` times ``max(1, max |output|)`` (float32 rounding gives about 1e-6 of
+the output; the shipped graphs 6e-5 on outputs up to 11). The graphs and ``model.json`` are
+written under temporary names and renamed into place only when every check passed.
 """
 
 from __future__ import annotations
@@ -21,6 +28,8 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
+import os
 import pathlib
 import warnings
 
@@ -31,8 +40,16 @@ from models.layers import SIZE_MULTIPLE
 from models.pmmnet import SINGLE_SHOT_OUTPUTS, DirectStokesToMM, SingleShotNet
 from models.pipnet import PIPNet
 from models.pmmnet import PMMNet
+from polrig.errors import PolrigError
+from polrig.rawio import atomic_write_text, temporary_sibling
 
 OPSET = 17
+#: Largest accepted ``max |onnx - torch|`` relative to ``max(1, max |output|)`` (module docstring).
+EXPORT_TOLERANCE = 1e-3
+
+
+class ExportError(PolrigError):
+    """An exported graph does not compute what the network does (a failure while running)."""
 INPUTS = ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")
 _DYNAMIC = {"analyzer": {0: "batch", 3: "height", 4: "width"}, "mask": {0: "batch", 2: "height", 3: "width"},
             "s_in": {0: "batch"}, "wo": {0: "batch", 2: "height", 3: "width"},
@@ -68,31 +85,56 @@ def compare_with_onnxruntime(model: torch.nn.Module, path: pathlib.Path,
 def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights_dir: str | pathlib.Path,
                sample: dict[str, torch.Tensor], extra_meta: dict | None = None) -> dict[str, dict]:
     """Export ``single_shot.onnx`` and ``direct.onnx`` plus ``model.json`` into ``weights_dir``;
-    returns ``{file: {bytes, max_abs_diff, max_abs_output}}``."""
+    returns ``{file: {bytes, max_abs_diff, max_abs_output}}``. Raises :class:`ExportError`
+    (and leaves ``weights_dir`` as it was) when a check fails (module docstring)."""
     wd = pathlib.Path(weights_dir)
-    wd.mkdir(parents=True, exist_ok=True)
     single = SingleShotNet(pipnet, pmmnet).eval()
     direct = direct.eval()
     h, w = sample["analyzer"].shape[-2:]
     if h % SIZE_MULTIPLE or w % SIZE_MULTIPLE:
         raise ValueError(f"export sample must be a multiple of {SIZE_MULTIPLE} pixels, got {h}x{w}")
-    report = {}
-    for name, model, outputs in (("single_shot.onnx", single, SINGLE_SHOT_OUTPUTS),
-                                 ("direct.onnx", direct, ("mueller",))):
-        path = wd / name
-        _export(model, sample, outputs, path)
-        with torch.no_grad():
-            first = model(*(sample[k] for k in INPUTS))
-        first = first[0] if isinstance(first, tuple) else first
-        report[name] = {"bytes": path.stat().st_size,
-                        "max_abs_diff": compare_with_onnxruntime(model, path, sample),
-                        "max_abs_output": float(first.abs().max())}
-    meta = {"colours": int(pipnet.colours), "width": int(pipnet.backbone.width), "opset": OPSET,
-            "inputs": list(INPUTS), "single_shot_outputs": list(SINGLE_SHOT_OUTPUTS),
-            "size_multiple": SIZE_MULTIPLE, "eta": 1.5, "ks": 1.0, "camera_x_axis": [1.0, 0.0, 0.0],
-            "conventions_version": _conventions_version(), "export_check": report}
-    meta.update(extra_meta or {})
-    (wd / "model.json").write_text(json.dumps(meta, indent=2))
+    for name, net in (("pipnet", pipnet), ("pmmnet", pmmnet), ("direct", direct)):
+        bad = [k for k, v in net.state_dict().items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+        if bad:
+            raise ExportError(f"the {name} network has non-finite weights ({bad[0]}); nothing exported "
+                              f"(the training diverged: lower --lr)")
+    wd.mkdir(parents=True, exist_ok=True)
+    report, written = {}, []
+    try:
+        for name, model, outputs in (("single_shot.onnx", single, SINGLE_SHOT_OUTPUTS),
+                                     ("direct.onnx", direct, ("mueller",))):
+            tmp = temporary_sibling(wd / name)
+            written.append((tmp, wd / name))
+            _export(model, sample, outputs, tmp)
+            with torch.no_grad():
+                first = model(*(sample[k] for k in INPUTS))
+            first = first[0] if isinstance(first, tuple) else first
+            rec = {"bytes": tmp.stat().st_size, "max_abs_diff": compare_with_onnxruntime(model, tmp, sample),
+                   "max_abs_output": float(first.abs().max())}
+            limit = EXPORT_TOLERANCE * max(1.0, rec["max_abs_output"])
+            if not (math.isfinite(rec["max_abs_diff"]) and math.isfinite(rec["max_abs_output"])):
+                raise ExportError(f"export check of {name}: max |onnx - torch| = {rec['max_abs_diff']:.3g}, max "
+                                  f"|output| = {rec['max_abs_output']:.3g} (non-finite); nothing exported")
+            if rec["max_abs_diff"] > limit:
+                raise ExportError(f"export check of {name}: max |onnx - torch| = {rec['max_abs_diff']:.3g} exceeds "
+                                  f"{limit:.3g} ({EXPORT_TOLERANCE:g} x max(1, max |output| "
+                                  f"{rec['max_abs_output']:.3g})); nothing exported")
+            report[name] = rec
+        meta = {"colours": int(pipnet.colours), "width": int(pipnet.backbone.width), "opset": OPSET,
+                "inputs": list(INPUTS), "single_shot_outputs": list(SINGLE_SHOT_OUTPUTS),
+                "size_multiple": SIZE_MULTIPLE, "eta": 1.5, "ks": 1.0, "camera_x_axis": [1.0, 0.0, 0.0],
+                "conventions_version": _conventions_version(), "export_check": report,
+                "export_tolerance": EXPORT_TOLERANCE}
+        meta.update(extra_meta or {})
+        for tmp, final in written:
+            os.replace(tmp, final)
+        written = []
+    finally:
+        for tmp, _ in written:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+    # a calibration of earlier graphs in this folder belongs to them (models.uncertainty checks the hash)
+    atomic_write_text(wd / "model.json", json.dumps(meta, indent=2))
     return report
 
 

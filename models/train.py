@@ -22,7 +22,10 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
+import io
 import json
+import math
+import os
 import pathlib
 import time
 from typing import Callable
@@ -31,10 +34,12 @@ import numpy as np
 import torch
 
 from models import mirror
-from models.data import Dataset, load_dataset
+from models.data import Dataset, check_network_size, dataset_identity, load_dataset, read_manifest
 from models.pipnet import PIPNet, pipnet_loss
 from models.pbrdf_torch import image_blocks
 from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
+from polrig.errors import ConfigError, FormatError, PolrigError
+from polrig.rawio import atomic_write_bytes, atomic_write_text
 
 STAGES = ("pipnet", "pmmnet", "direct")
 #: What each stage's network is called on (``_pick`` keys).
@@ -179,7 +184,12 @@ def geometry_toward_view(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tenso
 
 
 def lr_at(config: TrainConfig, epoch: int, epochs: int) -> float:
-    """Constant, then linear decay from ``decay_start * epochs`` to ``lr_final_fraction``."""
+    """Constant, then linear decay from ``decay_start * epochs`` (rounded half to even) to
+    ``lr_final_fraction`` at the last epoch. A one-epoch stage has nothing to decay from and
+    runs at the base learning rate (``round(0.5)`` is 0, which used to put its only epoch at
+    the final fraction)."""
+    if epochs <= 1:
+        return config.lr
     start = int(round(config.decay_start * epochs))
     if epoch < start or epochs <= start:
         return config.lr
@@ -288,34 +298,185 @@ def add_initialization(pipnet: PIPNet, t: dict[str, torch.Tensor], batch: int = 
     t.update({k: torch.cat(v) for k, v in parts.items()})
 
 
-class _Log:
-    def __init__(self, out: pathlib.Path, echo: Callable[[str], None]):
-        self.path = out / "log.csv"
-        self.echo = echo
-
-    def write(self, row: dict) -> None:
-        new = not self.path.exists()
-        with self.path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=["stage", "epoch", "lr", "train_loss", "val_loss",
-                                              "epoch_s", "details"])
-            if new:
-                w.writeheader()
-            w.writerow(row)
-        self.echo(f"{row['stage']:7s} epoch {row['epoch']:3d}  lr {row['lr']:.2e}  "
-                  f"train {row['train_loss']:.5f}  val {row['val_loss']:.5f}  {row['epoch_s']:.1f}s")
+#: Columns of ``OUT/log.csv`` (one row per finished epoch).
+LOG_FIELDS = ("stage", "epoch", "lr", "train_loss", "val_loss", "epoch_s", "details")
+#: Files of a run in ``OUT`` (and the graphs :func:`models.export.export_all` writes into
+#: ``OUT/weights``, plus a calibration of them): what ``--overwrite`` removes first.
+RUN_FILES = ("checkpoint.pt", "log.csv", "summary.json")
+WEIGHT_FILES = ("single_shot.onnx", "direct.onnx", "model.json", "uncertainty.json")
+CHECKPOINT_FORMAT = "polrig-train-checkpoint"
+#: Configuration fields a resumed run cannot change: the networks' architecture and the samples
+#: (and their train/validation split) it trains on.
+FIXED_ON_RESUME = ("width", "sfp_prior", "seed", "limit", "val_fraction")
 
 
-def _run_epoch(model, step, t, idx_all, batch, opt, rng) -> tuple[float, dict[str, float]]:
+class TrainingError(PolrigError):
+    """Training cannot go on (a non-finite loss): a failure while running (exit 1)."""
+
+
+def _echo_row(echo: Callable[[str], None], row: dict) -> None:
+    echo(f"{row['stage']:7s} epoch {row['epoch']:3d}  lr {row['lr']:.2e}  "
+         f"train {row['train_loss']:.5f}  val {row['val_loss']:.5f}  {row['epoch_s']:.1f}s")
+
+
+def _write_log(path: pathlib.Path, rows: list[dict]) -> None:
+    """``log.csv`` holding exactly ``rows`` (written whole and atomically, so it always matches
+    the checkpoint it was written after)."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(LOG_FIELDS), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+
+
+def _legacy_log_rows(path: pathlib.Path, stage: str, epoch: int) -> list[dict]:
+    """The rows of an existing ``log.csv`` that a checkpoint without its own log (written
+    before checkpoints carried it) covers: epochs before ``(stage, epoch)``, each once."""
+    if not path.is_file():
+        return []
+    end = (STAGES.index(stage), epoch)
+    rows: dict[tuple[int, int], dict] = {}
+    try:
+        with path.open(newline="") as f:
+            for r in csv.DictReader(f):
+                try:
+                    key = (STAGES.index(r["stage"]), int(r["epoch"]))
+                except (KeyError, ValueError, TypeError):
+                    continue
+                if key < end:
+                    rows[key] = {k: r.get(k) for k in LOG_FIELDS}
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return []
+    return [rows[k] for k in sorted(rows)]
+
+
+def _reason(exc: BaseException) -> str:
+    text = (str(exc) or type(exc).__name__).strip().splitlines()
+    line = text[0] if text else type(exc).__name__
+    return line if len(line) <= 160 else line[:157] + "..."
+
+
+def load_checkpoint(path: str | pathlib.Path, *, for_resume: bool = False) -> dict:
+    """A ``polrig train`` checkpoint (``OUT/checkpoint.pt``): :class:`FileNotFoundError` when
+    it is missing, :class:`FormatError` naming the file when it cannot be read (truncated,
+    another kind of file) or holds no networks; ``for_resume`` also needs the progress and
+    optimizer states a resumed run continues from."""
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found")
+    if path.is_dir():
+        raise FormatError(f"{path} is a folder, not a checkpoint file")
+    try:
+        state = torch.load(path, weights_only=False, map_location="cpu")
+    except Exception as exc:  # truncated zip, a JSON or .npz file, pickle errors: all one message
+        raise FormatError(f"{path}: not a readable polrig train checkpoint (truncated or another kind of "
+                          f"file: {_reason(exc)})") from exc
+    need = ("config", "models") + (("stage", "epoch", "optimizers", "times") if for_resume else ())
+    if not isinstance(state, dict) or any(k not in state for k in need) or not isinstance(state["models"], dict) \
+            or not isinstance(state["config"], dict):
+        raise FormatError(f"{path}: not a polrig train checkpoint (no {'progress or ' if for_resume else ''}"
+                          f"networks in it)")
+    missing = [k for k in STAGES if k not in state["models"]]
+    if missing:
+        raise FormatError(f"{path}: checkpoint has no {', '.join(missing)} network")
+    if for_resume and state["stage"] not in STAGES:
+        raise FormatError(f"{path}: checkpoint names an unknown stage {state['stage']!r}")
+    return state
+
+
+def _load_donor(init_from: str | pathlib.Path) -> dict:
+    """The networks to start from: a checkpoint, or a weights folder recovered from its ONNX
+    graphs (:mod:`models.recover`); one-line errors naming the file."""
+    path = pathlib.Path(init_from)
+    if path.is_dir():
+        from models.recover import checkpoint_from_weights
+
+        try:
+            return checkpoint_from_weights(path)
+        except (FormatError, FileNotFoundError):
+            raise
+        except Exception as exc:  # a damaged model.json or graph
+            raise FormatError(f"--init-from {path}: cannot recover the networks from its weights "
+                              f"(model.json, single_shot.onnx, direct.onnx): {_reason(exc)}") from exc
+    if not path.exists():
+        raise FileNotFoundError(f"--init-from {path} not found (a checkpoint.pt or a weights folder)")
+    return load_checkpoint(path)
+
+
+def _check_config(config: TrainConfig, stages: tuple[str, ...], epochs: dict[str, int]) -> None:
+    """:class:`ConfigError` naming the first field no training can use."""
+    def bad(name: str, value, what: str):
+        return ConfigError(f"{name.replace('_', '-')} must be {what}, got {value!r}")
+
+    def is_int(v) -> bool:
+        return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+    for k in STAGES:
+        v = epochs[k]
+        if k in stages and not (is_int(v) and v >= 1):
+            raise bad(f"{k}_epochs", v, f"an integer >= 1 (the {k} stage is trained)")
+        if not (is_int(v) and v >= 0):
+            raise bad(f"{k}_epochs", v, "an integer >= 0")
+    for name, low in (("batch_size", 1), ("threads", 1), ("seed", 0)):
+        v = getattr(config, name)
+        if not (is_int(v) and v >= low):
+            raise bad(name, v, f"an integer >= {low}")
+    if not (is_int(config.width) and config.width >= 4 and config.width % 4 == 0):
+        raise bad("width", config.width, "a multiple of 4, >= 4 (the attention heads split the channels)")
+    if config.limit is not None and not (is_int(config.limit) and config.limit >= 1):
+        raise bad("limit", config.limit, "an integer >= 1")
+    for name, low, high in (("lr", 0.0, 1.0), ("decay_start", 0.0, 1.0), ("lr_final_fraction", 0.0, 1.0),
+                            ("crop_fraction", 0.0, 1.0), ("sfp_supervision", 0.0, math.inf),
+                            ("init_perturb_fraction", 0.0, 1.0), ("init_perturb_deg", 0.0, 180.0),
+                            ("init_perturb_light_deg", 0.0, 180.0), ("init_perturb_toward_view", 0.0, 1.0),
+                            ("mirror_fraction", 0.0, 1.0), ("val_fraction", 0.0, 0.5)):
+        v = getattr(config, name)
+        if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and low <= v <= high):
+            raise bad(name, v, f"a finite number >= {low:g}" if high == math.inf else f"a number in [{low:g}, {high:g}]")
+
+
+def _check_export_possible() -> None:
+    """:class:`ConfigError` before any training when the ONNX export could not run."""
+    for module, why in (("onnx", "the ONNX exporter"), ("onnxruntime", "the export check")):
+        try:
+            __import__(module)
+        except ImportError:
+            raise ConfigError(f"exporting the networks needs the '{module}' package ({why}; pip install "
+                              f"polrig[train]); install it or pass --no-export") from None
+
+
+def _run_files(out: pathlib.Path) -> list[pathlib.Path]:
+    """What of an earlier run lies in ``out``."""
+    found = [out / f for f in RUN_FILES if os.path.lexists(out / f)]
+    found += [out / "weights" / f for f in WEIGHT_FILES if os.path.lexists(out / "weights" / f)]
+    return found
+
+
+def _check_out(out: pathlib.Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file, not a folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ConfigError(f"--out {out}: {parent} is a file, not a folder")
+            break
+
+
+def _run_epoch(model, step, t, idx_all, batch, opt, rng, where: str = "") -> tuple[float, dict[str, float]]:
     model.train()
     total, parts, count = 0.0, {}, 0
-    for b in _batches(len(idx_all), batch, rng):
+    for k_batch, b in enumerate(_batches(len(idx_all), batch, rng)):
         idx = idx_all[b]
         loss, detail = step(model, t, idx)
+        value = float(loss.detach())
+        if not math.isfinite(value):  # before the step: the weights stay finite
+            raise TrainingError(f"{where}: the training loss is {value} at batch {k_batch + 1}; training stopped "
+                                f"(the checkpoint of the last finished epoch is kept); lower --lr")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         k = len(idx)
-        total += float(loss.detach()) * k
+        total += value * k
         count += k
         for name, v in detail.items():
             parts[name] = parts.get(name, 0.0) + v * k
@@ -335,144 +496,295 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
 
 def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
           *, resume: bool = False, export: bool = True, overrides: dict | None = None,
-          init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] = STAGES,
-          warm_start: bool = False, echo: Callable[[str], None] = print) -> dict:
+          init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] | None = None,
+          warm_start: bool = False, overwrite: bool = False, echo: Callable[[str], None] = print) -> dict:
     """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
-    of the checkpoint's configuration (e.g. more epochs for a stage). ``init_from`` (a
-    checkpoint of another run, or a weights folder such as ``models/weights``, whose networks
-    are recovered from its ONNX graphs by :mod:`models.recover`) with ``stages`` retrains only
-    those stages from scratch and takes the other networks (and their training times) from that
-    checkpoint, e.g. a new PMMNet on a trained PIPNet; with ``warm_start`` the trained stages
-    start from the donor's weights instead (fine-tuning with a fresh optimizer and learning-rate
-    schedule; the batch norms of recovered networks first get the statistics of the training
-    data, :func:`models.recover.recalibrate_batchnorm`). Returns the summary dict also written
-    to ``OUT/summary.json``."""
+    of the checkpoint's configuration (e.g. more epochs for the stage the checkpoint is in).
+    ``init_from`` (a checkpoint of another run, or a weights folder such as ``models/weights``,
+    whose networks are recovered from its ONNX graphs by :mod:`models.recover`) with ``stages``
+    (default: all) retrains only those stages from scratch and takes the other networks (and
+    their training times and epochs) from it, e.g. a new PMMNet on a trained PIPNet; with
+    ``warm_start`` the trained stages start from the donor's weights instead (fine-tuning with a
+    fresh optimizer and learning-rate schedule; the batch norms of recovered networks first get
+    the statistics of the training data, :func:`models.recover.recalibrate_batchnorm`). Returns
+    the summary dict also written to ``OUT/summary.json``.
+
+    Everything is checked before anything is written or trained: a folder holding another run
+    is refused unless ``resume`` (continue it) or ``overwrite`` (its files are removed first);
+    ``resume`` needs ``OUT/checkpoint.pt`` and the same dataset (manifest identity,
+    :func:`models.data.dataset_identity`), architecture, seed and samples, and cannot change the
+    epochs of a finished stage; a held-out set (``polrig sim dataset --holdout``) is refused;
+    image sides must be multiples of the networks' size multiple; the export needs ``onnx`` and
+    ``onnxruntime``.
+
+    Every epoch ends with the checkpoint written atomically (models, optimizers, the numpy and
+    torch random states, the log rows, the dataset identity), then ``log.csv`` rewritten from
+    those rows, so an interruption at any point loses at most the epoch in progress and a
+    resumed run reproduces the straight run's log rows and weights exactly. A non-finite
+    training loss stops the run with :class:`TrainingError`."""
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
-    bad = [s for s in stages if s not in STAGES]
-    if bad:
-        raise ValueError(f"unknown stage(s) {bad}; stages are {STAGES}")
+    if resume and overwrite:
+        raise ConfigError("--resume continues the run in --out and --overwrite replaces it: give one of them")
+    if stages is not None:
+        stages = tuple(stages)
+        bad = [s for s in stages if s not in STAGES]
+        if bad or not stages:
+            raise ConfigError(f"unknown stage(s) {', '.join(map(repr, bad)) or 'none given'}; stages are "
+                              f"{', '.join(STAGES)}")
+    overrides = dict(overrides or {})
+    unknown = [k for k in overrides if k not in {f.name for f in dataclasses.fields(TrainConfig)}]
+    if unknown:
+        raise ConfigError(f"unknown training setting(s) {unknown}")
     out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    _check_out(out)
     ckpt_path = out / "checkpoint.pt"
     state = None
-    if resume and ckpt_path.exists():
-        state = torch.load(ckpt_path, weights_only=False)
-        config = TrainConfig(**_config_of(state))
-        stages = tuple(state.get("stages", STAGES))
-        echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
-    elif (out / "log.csv").exists() and not resume:
-        (out / "log.csv").unlink()
+    if resume:
+        if not ckpt_path.is_file():
+            raise ConfigError(f"--resume: no checkpoint.pt in {out} (nothing to continue; start a new run "
+                              f"without --resume)")
+        state = load_checkpoint(ckpt_path, for_resume=True)
+        ck_stages = tuple(state.get("stages", STAGES))
+        if stages is not None and set(stages) != set(ck_stages):
+            raise ConfigError(f"--resume: the run in {out} trains {', '.join(ck_stages)}, not "
+                              f"{', '.join(stages)} (drop --stages)")
+        stages = ck_stages
+        base = TrainConfig(**{k: v for k, v in _config_of(state).items()
+                              if k in {f.name for f in dataclasses.fields(TrainConfig)}})
+        changed = [k for k in FIXED_ON_RESUME if k in overrides and overrides[k] != getattr(base, k)]
+        if changed:
+            k = changed[0]
+            show = (lambda v: f"--{'' if v else 'no-'}sfp-prior") if k == "sfp_prior" else \
+                (lambda v: f"--{k.replace('_', '-')} {v}")
+            raise ConfigError(f"--resume: {show(overrides[k])} differs from the run's {show(getattr(base, k))} "
+                              f"(a resumed run keeps its networks' architecture and its samples; start a new "
+                              f"run for another)")
+        start_stage, start_epoch = STAGES.index(state["stage"]), int(state["epoch"])
+        for si, k in enumerate(STAGES):
+            key = f"{k}_epochs"
+            if key not in overrides or overrides[key] == getattr(base, key):
+                continue
+            if k not in stages:  # taken from the donor: its epochs are the donor's
+                overrides.pop(key)
+            elif si < start_stage:
+                raise ConfigError(f"--resume: the {k} stage is finished ({getattr(base, key)} epochs); its epochs "
+                                  f"cannot change (train it again in a new run: --init-from {ckpt_path} "
+                                  f"--warm-start --stages {k})")
+            elif si == start_stage and overrides[key] < start_epoch:
+                raise ConfigError(f"--resume: the {k} stage has trained {start_epoch} epochs already; "
+                                  f"--{k}-epochs {overrides[key]} would record fewer")
+        config = dataclasses.replace(base, **overrides)
+    else:
+        stages = STAGES if stages is None else stages
+        if set(stages) != set(STAGES) and init_from is None:
+            raise ConfigError(f"training a subset of the stages ({', '.join(stages)}) needs --init-from "
+                              f"CHECKPOINT (or a weights folder) for the others")
+        found = _run_files(out)
+        if found and not overwrite:
+            raise FileExistsError(f"--out {out} holds another training run ({found[0].name}); continue it with "
+                                  f"--resume, replace it with --overwrite, or choose another folder")
+    if export:
+        _check_export_possible()
     donor, recalibrate = None, set()
-    if init_from is not None and state is None:
-        if pathlib.Path(init_from).is_dir():  # a weights folder: the networks recovered from its ONNX graphs
-            from models.recover import checkpoint_from_weights
+    if state is None:
+        if init_from is not None:
+            donor = _load_donor(init_from)
+            if config is None:  # same architecture and settings as the run the networks come from
+                config = TrainConfig(**{k: v for k, v in _config_of(donor).items()
+                                        if k in {f.name for f in dataclasses.fields(TrainConfig)}})
+        config = dataclasses.replace(config or TrainConfig(), **overrides)
+        if donor is not None:
+            dc = _config_of(donor)
+            loaded = [k for k in STAGES if k not in stages or warm_start]
+            if "width" in dc and dc["width"] != config.width:
+                raise ConfigError(f"--init-from {init_from}: its networks have width {dc['width']}, not "
+                                  f"{config.width} (give --width {dc['width']})")
+            if "pipnet" in loaded and bool(dc.get("sfp_prior", False)) != bool(config.sfp_prior):
+                raise ConfigError(f"--init-from {init_from}: its PIPNet was trained "
+                                  f"{'with' if dc.get('sfp_prior') else 'without'} the SfP prior "
+                                  f"(give {'--sfp-prior' if dc.get('sfp_prior') else '--no-sfp-prior'})")
+    epochs = {"pipnet": config.pipnet_epochs, "pmmnet": config.pmmnet_epochs, "direct": config.direct_epochs}
+    if donor is not None:
+        for k in STAGES:
+            if k not in stages:
+                epochs[k] = int(donor["config"].get(f"{k}_epochs", 0))
+    _check_config(config, stages, epochs)
 
-            donor = checkpoint_from_weights(init_from)
-        else:
-            donor = torch.load(init_from, weights_only=False)
-        if config is None:  # same architecture and settings as the run the networks come from
-            config = TrainConfig(**_config_of(donor))
-    config = dataclasses.replace(config or TrainConfig(), **(overrides or {}))
-    torch.set_num_threads(config.threads)
-    torch.manual_seed(config.seed)
-
+    # -- the data (still nothing written)
     t0 = time.time()
+    manifest = read_manifest(data_dir)
+    if manifest.get("holdout"):
+        raise ConfigError(f"{data_dir} is a held-out set (polrig sim dataset --holdout: families "
+                          f"{', '.join(manifest.get('families_present') or manifest.get('holdout_families') or [])}); "
+                          f"those families are the acceptance test set of polrig evaluate, and a model trained "
+                          f"on them would be scored on its own training shapes: train on a set made without --holdout")
+    identity = dataset_identity(manifest)
+    if state is not None and state.get("dataset") is not None and state["dataset"] != identity:
+        diff = [k for k in identity if identity[k] != state["dataset"].get(k)]
+        raise ConfigError(f"--resume: {data_dir} is not the dataset the run in {out} trains on "
+                          f"({', '.join(diff)} differ; it trained on {state.get('data', 'another folder')})")
     ds = load_dataset(data_dir, config.limit)
+    check_network_size(ds, data_dir)
     t = _tensors(ds)
     n = len(ds)
     colours = ds["analyzer"].shape[1]
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     perm = rng.permutation(n)
     n_val = max(1, int(round(config.val_fraction * n))) if n > 1 else 0
     val_idx, train_idx = torch.from_numpy(perm[:n_val]), torch.from_numpy(perm[n_val:] if n > 1 else perm)
-    echo(f"data: {n} samples of {ds.shape[0]}x{ds.shape[1]} ({len(train_idx)} train, {n_val} val), "
-         f"loaded in {time.time() - t0:.1f}s")
 
     models = {"pipnet": PIPNet(colours, config.width, config.sfp_prior), "pmmnet": PMMNet(colours, config.width),
               "direct": DirectStokesToMM(colours, config.width)}
     steps = {"pipnet": pipnet_step, "pmmnet": pmmnet_step, "direct": direct_step}
-    epochs = {"pipnet": config.pipnet_epochs, "pmmnet": config.pmmnet_epochs, "direct": config.direct_epochs}
     opts = {k: torch.optim.Adam(m.parameters(), lr=config.lr) for k, m in models.items()}
     times = {k: 0.0 for k in STAGES}
     start_stage, start_epoch = 0, 0
+    rows: list[dict] = []
+    try:
+        if donor is not None:
+            for k in STAGES:
+                if k not in stages or warm_start:
+                    models[k].load_state_dict(donor["models"][k])
+                if k not in stages:
+                    times[k] = float((donor.get("times") or {}).get(k, 0.0))
+            if warm_start and donor.get("recovered_from_onnx"):
+                recalibrate = set(stages)
+        if state is not None:
+            for k in STAGES:
+                models[k].load_state_dict(state["models"][k])
+                opts[k].load_state_dict(state["optimizers"][k])
+    except (RuntimeError, KeyError, ValueError) as exc:
+        src = ckpt_path if state is not None else init_from
+        raise ConfigError(f"{src}: its networks do not fit the ones configured here (width {config.width}, "
+                          f"sfp_prior {config.sfp_prior}, {colours} colours): {_reason(exc)}") from exc
     if donor is not None:
-        for k in STAGES:
-            if k not in stages:
-                models[k].load_state_dict(donor["models"][k])
-                times[k] = donor["times"][k]
-                epochs[k] = donor["config"][f"{k}_epochs"]
         echo(f"networks {[k for k in STAGES if k not in stages]} taken from {init_from}")
         if warm_start:
-            for k in stages:
-                models[k].load_state_dict(donor["models"][k])
             echo(f"networks {list(stages)} warm-started from {init_from}")
-            if donor.get("recovered_from_onnx"):
-                recalibrate = set(stages)
     if state is not None:
-        for k in STAGES:
-            models[k].load_state_dict(state["models"][k])
-            opts[k].load_state_dict(state["optimizers"][k])
-        times = state["times"]
-        start_stage, start_epoch = STAGES.index(state["stage"]), state["epoch"]
-        rng = np.random.default_rng(state["rng_seed"])
-    log = _Log(out, echo)
+        times = {k: float(v) for k, v in state["times"].items()}
+        start_stage, start_epoch = STAGES.index(state["stage"]), int(state["epoch"])
+        recalibrate = set(state.get("recalibrate", ()))
+        if "rng_state" in state:
+            rng.bit_generator.state = state["rng_state"]
+        else:  # a checkpoint of an older polrig: its stream goes on from a stored seed
+            rng = np.random.default_rng(state["rng_seed"])
+            echo("note: a checkpoint without random states (older polrig): the rest of the run is not "
+                 "bit-identical to an uninterrupted one")
+        if "torch_rng_state" in state:
+            torch.set_rng_state(state["torch_rng_state"])
+        rows = list(state["log"]) if "log" in state else _legacy_log_rows(out / "log.csv", state["stage"],
+                                                                            start_epoch)
+        if init_from is not None:
+            echo(f"note: --init-from {init_from} ignored: the run resumes with the networks of its checkpoint")
+        echo(f"resuming from {ckpt_path}: stage {state['stage']} epoch {state['epoch']}")
 
-    for si, stage in enumerate(STAGES):
-        if si < start_stage or stage not in stages:
-            continue
-        if stage == "pmmnet":
-            t_init = time.time()
-            add_initialization(models["pipnet"].eval(), t)
-            echo(f"pmmnet: PIPNet-pBRDF initialization of {n} samples in {time.time() - t_init:.1f}s")
-        model, opt = models[stage], opts[stage]
-        if stage in recalibrate:  # batch norms of a network recovered from ONNX (models.recover)
-            from models.recover import recalibrate_batchnorm
+    # -- from here on OUT is written
+    out.mkdir(parents=True, exist_ok=True)
+    if overwrite:
+        for f in _run_files(out):
+            f.unlink()
+    if state is not None:
+        if state.get("dataset") is None:
+            echo(f"note: {ckpt_path} does not record its dataset (older polrig); make sure --data is the set "
+                 f"it trained on")
+        _write_log(out / "log.csv", rows)  # exactly the rows of the epochs the checkpoint holds
+    echo(f"data: {n} samples of {ds.shape[0]}x{ds.shape[1]} ({len(train_idx)} train, {n_val} val), "
+         f"loaded in {time.time() - t0:.1f}s")
 
-            calib = train_idx[:RECALIBRATION_SAMPLES]
-            recalibrate_batchnorm(model, [lambda i=calib[b]: model(*_pick(t, i, STAGE_INPUTS[stage]))
-                                          for b in _batches(len(calib), config.batch_size, None)])
-            echo(f"{stage}: batch-norm statistics of the recovered network set on {len(calib)} samples")
-        for epoch in range(start_epoch if si == start_stage else 0, epochs[stage]):
-            lr = lr_at(config, epoch, epochs[stage])
-            for g in opt.param_groups:
-                g["lr"] = lr
-            te = time.time()
-            train_step = steps[stage]
-            if stage in CROPPED_STAGES and config.crop_fraction > 0:
-                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
-            if config.mirror_fraction > 0:
-                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                train_step = functools.partial(train_step, mirroring=(config.mirror_fraction, gen))
-            if stage == "pipnet" and config.sfp_supervision > 0:
-                train_step = functools.partial(train_step, sfp_weight=config.sfp_supervision)
-            if stage == "pmmnet" and config.init_perturb_fraction > 0:
-                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                train_step = functools.partial(train_step, perturb=(config.init_perturb_fraction, config.init_perturb_deg,
-                                                                    config.init_perturb_light_deg,
-                                                                    config.init_perturb_toward_view, gen))
-            train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng)
-            val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
-            dt = time.time() - te
-            times[stage] += dt
-            log.write({"stage": stage, "epoch": epoch, "lr": lr, "train_loss": train_loss,
-                       "val_loss": val_loss, "epoch_s": dt, "details": json.dumps(detail)})
-            nxt = (stage, epoch + 1)
-            torch.save({"config": dict(dataclasses.asdict(config), **{f"{k}_epochs": v for k, v in epochs.items()}),
-                        "stage": nxt[0], "epoch": nxt[1], "stages": list(stages),
-                        "models": {k: m.state_dict() for k, m in models.items()},
-                        "optimizers": {k: o.state_dict() for k, o in opts.items()},
-                        "times": times, "rng_seed": int(rng.integers(2**31))}, ckpt_path)
-        start_epoch = 0
+    def save(stage: str, epoch: int) -> None:
+        blob = io.BytesIO()
+        torch.save({"format": CHECKPOINT_FORMAT, "version": 2,
+                    "config": dict(dataclasses.asdict(config), **{f"{k}_epochs": v for k, v in epochs.items()}),
+                    "stage": stage, "epoch": epoch, "stages": list(stages),
+                    "models": {k: m.state_dict() for k, m in models.items()},
+                    "optimizers": {k: o.state_dict() for k, o in opts.items()},
+                    "times": dict(times), "rng_state": rng.bit_generator.state,
+                    "torch_rng_state": torch.get_rng_state(), "recalibrate": sorted(recalibrate),
+                    "log": list(rows), "dataset": identity, "data": str(data_dir),
+                    "init_from": None if init_from is None else str(init_from)}, blob)
+        atomic_write_bytes(ckpt_path, blob.getvalue())
 
-    config = dataclasses.replace(config, **{f"{k}_epochs": v for k, v in epochs.items()})
-    summary = {"config": dataclasses.asdict(config), "data": str(data_dir), "samples": n,
+    saved = [(state["stage"], int(state["epoch"]))] if state is not None else []
+    try:
+        for si, stage in enumerate(STAGES):
+            if si < start_stage or stage not in stages:
+                continue
+            first = start_epoch if si == start_stage else 0
+            if first >= epochs[stage]:
+                continue
+            if stage == "pmmnet":
+                t_init = time.time()
+                add_initialization(models["pipnet"].eval(), t)
+                echo(f"pmmnet: PIPNet-pBRDF initialization of {n} samples in {time.time() - t_init:.1f}s")
+            model, opt = models[stage], opts[stage]
+            if stage in recalibrate and first == 0:  # batch norms of a network recovered from ONNX (models.recover)
+                from models.recover import recalibrate_batchnorm
+
+                calib = train_idx[:RECALIBRATION_SAMPLES]
+                recalibrate_batchnorm(model, [lambda i=calib[b]: model(*_pick(t, i, STAGE_INPUTS[stage]))
+                                              for b in _batches(len(calib), config.batch_size, None)])
+                echo(f"{stage}: batch-norm statistics of the recovered network set on {len(calib)} samples")
+            recalibrate.discard(stage)
+            for epoch in range(first, epochs[stage]):
+                lr = lr_at(config, epoch, epochs[stage])
+                for g in opt.param_groups:
+                    g["lr"] = lr
+                te = time.time()
+                train_step = steps[stage]
+                if stage in CROPPED_STAGES and config.crop_fraction > 0:
+                    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+                    train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
+                if config.mirror_fraction > 0:
+                    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+                    train_step = functools.partial(train_step, mirroring=(config.mirror_fraction, gen))
+                if stage == "pipnet" and config.sfp_supervision > 0:
+                    train_step = functools.partial(train_step, sfp_weight=config.sfp_supervision)
+                if stage == "pmmnet" and config.init_perturb_fraction > 0:
+                    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+                    train_step = functools.partial(train_step, perturb=(config.init_perturb_fraction,
+                                                                        config.init_perturb_deg,
+                                                                        config.init_perturb_light_deg,
+                                                                        config.init_perturb_toward_view, gen))
+                where = f"{stage} epoch {epoch} (lr {lr:.3g})"
+                train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng, where)
+                val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
+                if n_val and not math.isfinite(val_loss):
+                    raise TrainingError(f"{where}: the validation loss is {val_loss}; training stopped (the "
+                                        f"checkpoint of the last finished epoch is kept); lower --lr")
+                dt = time.time() - te
+                times[stage] += dt
+                row = {"stage": stage, "epoch": epoch, "lr": lr, "train_loss": train_loss,
+                       "val_loss": val_loss, "epoch_s": dt, "details": json.dumps(detail)}
+                rows.append(row)
+                save(stage, epoch + 1)  # the checkpoint first (atomic), then the log that matches it
+                saved[:] = [(stage, epoch + 1)]
+                _write_log(out / "log.csv", rows)
+                _echo_row(echo, row)
+    except KeyboardInterrupt:
+        if saved and saved[0][1] > 0:
+            echo(f"interrupted: {ckpt_path} holds the run through {saved[0][0]} epoch {saved[0][1] - 1}; "
+                 f"continue with --resume")
+        elif saved:
+            echo(f"interrupted: {ckpt_path} holds the run up to the start of the {saved[0][0]} stage; "
+                 f"continue with --resume")
+        else:
+            echo("interrupted before the first epoch finished: nothing saved")
+        raise
+
+    summary = {"config": dataclasses.asdict(dataclasses.replace(config, **{f"{k}_epochs": v
+                                                                         for k, v in epochs.items()})),
+               "data": str(data_dir), "dataset": identity, "samples": n,
                "stages_trained": list(stages), "init_from": None if init_from is None else str(init_from),
                "resolution": list(ds.shape), "train_seconds": times,
                "torch_threads": torch.get_num_threads(), "torch_version": torch.__version__}
+    if state is not None and state.get("init_from"):
+        summary["init_from"] = state["init_from"]
     if export:
         from models.export import export_all
 
@@ -485,10 +797,10 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                               "dataset": {k: ds.manifest.get(k) for k in
                                           ("format", "version", "seed", "holdout", "families_present",
                                            "intrinsics", "normalisation")},
-                              "train_seconds": times, "config": dataclasses.asdict(config)}}
+                              "train_seconds": times, "config": summary["config"]}}
         summary["export"] = export_all(models["pipnet"], models["pmmnet"], models["direct"],
                                        out / "weights", sample, extra)
         for name, rec in summary["export"].items():
             echo(f"export {name}: {rec['bytes'] / 1e6:.2f} MB, max |onnx - torch| = {rec['max_abs_diff']:.3g}")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
     return summary
