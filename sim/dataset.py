@@ -42,6 +42,9 @@ DATASET_VERSION = 1
 DATASET_EXPOSURE_US = 10000.0
 #: Percentile of the analyzer values inside the mask that ``scale`` maps to 1.
 SCALE_PERCENTILE = 99.5
+#: Image sides must be multiples of this: the networks' size multiple (``models.runtime.SIZE_MULTIPLE``,
+#: three 2x downsamplings), which trains and evaluates on whole images without padding.
+SIZE_MULTIPLE = 8
 
 #: Arrays of a shard: name -> (shape with N, H, W symbols, dtype).
 SHARD_ARRAYS: dict[str, tuple[str, str]] = {
@@ -238,7 +241,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     partial runs). ``stage_zero_axes``: how each sample's polarizer stage zero axis is chosen
     (:data:`STAGE_ZERO_AXES`). ``families``: shape families to draw from (default: every
     family of the chosen side, :func:`families_for`). A folder holding a different dataset
-    raises :class:`ConfigError`."""
+    raises :class:`ConfigError`, as do sides that are not multiples of :data:`SIZE_MULTIPLE`, a
+    negative seed and an ``out`` that is (or lies in) a file; all before anything is written."""
     from tqdm import tqdm
 
     height = width if height is None else int(height)
@@ -248,8 +252,20 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
     if not (8 <= width <= 4096 and 8 <= height <= 4096):
         raise ConfigError(f"dataset size {width}x{height} out of range (8..4096)")
+    if width % SIZE_MULTIPLE or height % SIZE_MULTIPLE:
+        raise ConfigError(f"dataset size {width}x{height}: the sides must be multiples of {SIZE_MULTIPLE} "
+                          f"(the networks' size multiple, models.runtime.SIZE_MULTIPLE)")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
     families_for(holdout, families)  # a bad family list fails before anything is written
     out = pathlib.Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file, not a folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ConfigError(f"--out {out}: {parent} is a file, not a folder")
+            break
     out.mkdir(parents=True, exist_ok=True)
     model = dataset_sensor_model()
     manifest = _manifest(out, count=count, width=width, height=height, seed=seed,
@@ -259,8 +275,11 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     if mpath.is_file():
         try:
             old = json.loads(mpath.read_text())
-        except ValueError:
+        except (OSError, ValueError):
             raise FormatError(f"{mpath}: not a JSON dataset manifest") from None
+        if not isinstance(old, dict):
+            raise FormatError(f"{mpath}: not a dataset manifest (a JSON object expected, got "
+                              f"{type(old).__name__}); choose another --out")
         diff = [k for k in _RESUME_KEYS if old.get(k) != manifest[k]]
         if old.get("frames", {}).get("stage_zero_axes", "camera-up") != stage_zero_axes:
             diff.append("stage_zero_axes")

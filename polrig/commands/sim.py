@@ -17,7 +17,7 @@ import math
 import pathlib
 import time
 
-from polrig.commands._device_args import finite_float, positive_float
+from polrig.commands._device_args import finite_float, int_range, positive_float
 from polrig.errors import ConfigError
 
 
@@ -31,6 +31,17 @@ def _states(text: str) -> list[float]:
     if not states:
         raise argparse.ArgumentTypeError("give at least one polarizer state")
     return states
+
+
+def _seed(text: str) -> int:
+    """A dataset seed: an integer >= 0 (numpy's seed sequences take no negative numbers)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
 
 
 def _names(text: str) -> list[str]:
@@ -71,10 +82,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     d = ss.add_parser("dataset", help="sharded, resumable training set of random scenes",
                       description="Write a training set of randomized scenes (docs/sim.md, "
                                   "'Dataset'). Re-running the same command resumes.")
-    d.add_argument("--count", type=int, required=True, help="number of samples")
-    d.add_argument("--size", type=int, default=256, help="image side in pixels (default 256)")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--shard-size", type=int, default=16, help="samples per shard")
+    d.add_argument("--count", type=int_range(1, 10**9), required=True, help="number of samples")
+    d.add_argument("--size", type=int_range(8, 4096), default=256,
+                   help="image side in pixels, a multiple of 8 (the networks' size multiple; default 256)")
+    d.add_argument("--seed", type=_seed, default=0, help="dataset seed, >= 0 (default 0)")
+    d.add_argument("--shard-size", type=int_range(1, 10**6), default=16, help="samples per shard (default 16)")
     d.add_argument("--holdout", action="store_true",
                    help="generate the held-out shape families instead of the training ones")
     d.add_argument("--families", type=_names, default=None,
