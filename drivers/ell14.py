@@ -12,6 +12,14 @@ reply ``PO`` when the motion has ended or ``GS<code>`` on error, after which the
 ``devices/Thorlabs/elliptec.py``. The pulses per degree come from the ``IN`` reply
 (143360 pulses / 360 deg for an ELL14), never from a constant.
 
+End of a motion: the ``PO`` reply, or a ``GS`` status reply (pylablib's elliptec.py takes
+a ``GS`` answer to a move as its end too): ``GS00`` is a normal end, ``GS09`` (busy) means
+it goes on, any other code is the device's error (:class:`DeviceFault`). When nothing
+arrives for a while, :meth:`wait` asks ``gs`` itself (as :meth:`is_busy` does), so a lost
+``PO`` does not run into the timeout once the device reports it is idle. ``st`` (stop) is
+likewise answered by ``PO`` or ``GS``; with no answer at all the device is asked ``gs``.
+A status that is not two hex digits is a :class:`ProtocolError` naming the reply.
+
 Angles: degrees in ``[0, 360)``; see ``docs/conventions.md`` for the stage zero axis
 (``zero_offset_deg`` maps the device's home to the rig's zero axis).
 """
@@ -32,6 +40,11 @@ STATUS_TEXT = {
     10: "sensor error", 11: "motor error", 12: "out of range", 13: "over current",
 }
 BUSY = 9
+#: silence after which wait() asks ``gs`` whether the motion has ended
+POLL_S = 0.25
+#: how long an end-of-move ``PO`` may still come after the device reported idle
+END_GRACE_S = 0.1
+_HEX = frozenset("0123456789ABCDEFabcdef")
 
 
 class Ell14Stage(SerialDevice, RotationStage):
@@ -94,8 +107,8 @@ class Ell14Stage(SerialDevice, RotationStage):
     def _send(self, cmd: str, data: str = "") -> None:
         self._link.write(f"{self.address}{cmd}{data}".encode("ascii"))
 
-    def _read_reply(self, timeout_s: float) -> tuple[str, str]:
-        raw = self._link.read_until(b"\r\n", timeout_s, what="ELL14 reply")
+    def _read_reply(self, timeout_s: float, stated_s: float | None = None) -> tuple[str, str]:
+        raw = self._link.read_until(b"\r\n", timeout_s, what="ELL14 reply", stated_s=stated_s)
         try:
             text = raw.decode("ascii")
         except UnicodeDecodeError:
@@ -124,11 +137,15 @@ class Ell14Stage(SerialDevice, RotationStage):
         raise ProtocolError(f"{cmd!r} answered {reply}{payload!r}, expected {expect}",
                             device=self._link.device)
 
+    def _status_of(self, payload: str) -> int:
+        """The code of a ``GS`` reply: two hex digits (ELLx protocol manual)."""
+        if len(payload) != 2 or not set(payload) <= _HEX:
+            raise ProtocolError(f"malformed status reply {self.address + 'GS' + payload!r} "
+                                "(expected two hex digits)", device=self._link.device)
+        return int(payload, 16)
+
     def _raise_status(self, payload: str, cmd: str) -> None:
-        try:
-            code = int(payload, 16)
-        except ValueError:
-            raise ProtocolError(f"malformed status {payload!r}", device=self._link.device) from None
+        code = self._status_of(payload)
         if code == 0:
             return
         if code != BUSY:
@@ -145,7 +162,7 @@ class Ell14Stage(SerialDevice, RotationStage):
             self._link.discard_input()
 
     def status_code(self) -> int:
-        return int(self._query("gs", "GS"), 16)
+        return self._status_of(self._query("gs", "GS"))
 
     # -- RotationStage ---------------------------------------------------------------------
     def _to_pulses(self, angle_deg: float) -> int:
@@ -178,6 +195,9 @@ class Ell14Stage(SerialDevice, RotationStage):
         angle_deg = float(angle_deg)
         if angle_deg != angle_deg or angle_deg in (float("inf"), float("-inf")):
             raise ValueError(f"stage angle must be finite, got {angle_deg!r}")
+        self._link.in_waiting()  # not open: DeviceDisconnected (before any pulse arithmetic)
+        if not self.pulses_per_deg:
+            self._identify()
         self._start("ma", f"{self._to_pulses(angle_deg) % 2**32:08X}")
         if wait:
             self.wait(timeout_s)
@@ -193,15 +213,19 @@ class Ell14Stage(SerialDevice, RotationStage):
         self._move_pending = True
 
     def _finish(self, reply: str, payload: str) -> bool:
-        """Handle a reply that may end the pending motion; True if it ended it."""
+        """Handle a reply that may end the pending motion; True if it ended it. ``PO`` and
+        ``GS00`` end it, ``GS09`` (busy) does not, another ``GS`` code raises DeviceFault."""
         if reply == "PO":
             self._move_pending = False
             return True
         if reply == "GS":
-            code = int(payload, 16) if payload.strip() else 0
-            if code not in (0, BUSY):
-                self._move_pending = False
+            code = self._status_of(payload)
+            if code == BUSY:
+                return False
+            self._move_pending = False
+            if code != 0:
                 self._raise_status(payload, "move")
+            return True
         return False
 
     def wait(self, timeout_s: float = 30.0) -> None:
@@ -212,23 +236,31 @@ class Ell14Stage(SerialDevice, RotationStage):
                 raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
                                     device=self._link.device)
             try:
-                reply, payload = self._read_reply(min(left, 0.25))
-            except DeviceTimeout:
-                continue
+                try:
+                    reply, payload = self._read_reply(min(left, POLL_S))
+                except DeviceTimeout:
+                    try:
+                        self.is_busy()  # silence: ask the device (its PO may have been lost)
+                    except DeviceTimeout:
+                        pass  # no status either: keep waiting until the deadline
+                    continue
+                self._finish(reply, payload)
             except ProtocolError:
-                # The end-of-move reply was corrupted: ask the device where it is.
+                # A corrupted reply may have been the end of the move: ask the device where
+                # it is next time instead of waiting for an end that may have passed.
                 self._move_pending = False
                 raise
-            self._finish(reply, payload)
 
     def is_busy(self) -> bool:
         if not self._move_pending:
             return self.status_code() == BUSY
         self._send("gs")
+        deadline = time.monotonic() + self.reply_timeout_s
         while True:
-            reply, payload = self._read_reply(self.reply_timeout_s)
+            reply, payload = self._read_reply(max(deadline - time.monotonic(), 0.0),
+                                              stated_s=self.reply_timeout_s)
             if reply == "GS":
-                code = int(payload, 16)
+                code = self._status_of(payload)
                 if code == BUSY:
                     return True
                 if code != 0:
@@ -244,7 +276,7 @@ class Ell14Stage(SerialDevice, RotationStage):
         """The device says it is idle: take its end-of-move reply if it comes (it may have
         been lost on the line, which is not an error once the device reports idle)."""
         try:
-            reply, payload = self._read_reply(self.reply_timeout_s)
+            reply, payload = self._read_reply(min(self.reply_timeout_s, END_GRACE_S))
             self._finish(reply, payload)
         except DeviceTimeout:
             pass
@@ -252,12 +284,42 @@ class Ell14Stage(SerialDevice, RotationStage):
             self._move_pending = False
 
     def stop(self) -> None:
+        """``st``: the device answers ``PO`` (or a ``GS`` status) once stopped; ``GS09``
+        (still decelerating) waits for the next reply, another error code raises
+        DeviceFault. With no answer at all, ``gs`` decides: idle is stopped, busy raises
+        DeviceTimeout."""
         self._link.discard_input()
         self._send("st")
         deadline = time.monotonic() + self.reply_timeout_s
-        while time.monotonic() < deadline:
-            reply, _ = self._read_reply(self.reply_timeout_s)
-            if reply == "PO":
-                break
-        self._move_pending = False
+        try:
+            while True:
+                try:
+                    reply, payload = self._read_reply(max(deadline - time.monotonic(), 0.0),
+                                                      stated_s=self.reply_timeout_s)
+                except DeviceTimeout:
+                    if self._query_status_after_stop() == BUSY:
+                        raise DeviceTimeout("the motor still runs after 'st' (no answer "
+                                            f"within {self.reply_timeout_s:g} s)",
+                                            device=self._link.device) from None
+                    break
+                if reply == "PO":
+                    break
+                if reply == "GS":
+                    code = self._status_of(payload)
+                    if code == 0:
+                        break
+                    if code != BUSY:
+                        self._raise_status(payload, "st")
+        finally:
+            self._move_pending = False
         self._link.discard_input()
+
+    def _query_status_after_stop(self) -> int:
+        self._send("gs")
+        reply, payload = self._read_reply(self.reply_timeout_s)
+        if reply != "GS":
+            raise ProtocolError(f"'gs' answered {reply}{payload!r}", device=self._link.device)
+        code = self._status_of(payload)
+        if code not in (0, BUSY):
+            self._raise_status(payload, "st")
+        return code

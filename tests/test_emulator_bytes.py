@@ -56,6 +56,31 @@ def test_ell14_documented_replies():
         assert lines(ser, 1) == [b"0GS03\r\n"]
 
 
+def test_ell14_reply_variants_and_faults():
+    with Ell14Emulator(speed_factor=10) as emu, \
+            serial.Serial(emu.port, 9600, timeout=0.2) as ser:
+        emu.inject("bad_status")
+        ser.write(b"0gs")
+        assert lines(ser, 1) == [b"0GSQQ\r\n"]
+        emu.end_with_status = True
+        ser.write(b"0ma00008C00")
+        assert lines(ser, 1) == [b"0GS00\r\n"]
+        emu.end_with_status = False
+        emu.stop_reply = "GS"
+        ser.write(b"0st")
+        assert lines(ser, 1) == [b"0GS00\r\n"]
+        emu.stop_reply = None
+        ser.write(b"0st")
+        assert lines(ser, 1, 0.3) == []
+        emu.inject("lost_end")
+        ser.write(b"0ma00000000")
+        ser.write(b"0gs")
+        assert lines(ser, 1) == [b"0GS09\r\n"]
+        assert lines(ser, 1, 0.5) == []  # the PO that ends the move is lost
+        ser.write(b"0gp")
+        assert lines(ser, 1) == [b"0PO00000000\r\n"]
+
+
 def test_k10cr1_documented_frames():
     with K10cr1Emulator(speed_factor=100) as emu, \
             serial.Serial(emu.port, 115200, rtscts=True, timeout=0.5) as ser:

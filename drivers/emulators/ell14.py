@@ -16,6 +16,13 @@ reported once more by the next ``gs`` (then cleared), as the manual describes.
 
 ELL14: 143360 pulses per revolution (``IN`` travel 0x0168 = 360 deg, pulses 0x00023000),
 maximum speed about 430 deg/s.
+
+Faults: see :mod:`drivers.emulators._pty`; ``bad_status``: the next ``GS`` reply carries a
+status that is not two hex digits (``GSQQ``); ``lost_end``: the reply that ends the next
+move is lost on the line (other replies, e.g. to ``gs`` during the move, still come). Reply variants a driver must accept (pylablib's
+elliptec.py takes a ``GS`` reply to a move as its end): ``end_with_status`` ends moves with
+``GS00`` instead of ``PO``; ``stop_reply`` answers ``st`` with ``"PO"`` (default), ``"GS"``
+(the status, ``GS00`` once stopped) or ``None`` (no answer).
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ def _signed32(text: str) -> int:
 
 class Ell14Emulator(PtyEmulator):
     name = "ell14"
+    FAULTS = PtyEmulator.FAULTS + ("bad_status", "lost_end")
 
     def __init__(self, *, address: int = 0, serial_number: str = "11400123",
                  link=None, speed_factor: float = 1.0):
@@ -54,6 +62,8 @@ class Ell14Emulator(PtyEmulator):
         self.pending_error = 0  # error code reported by the next gs
         self.move: LinearMove | None = None
         self._move_fails = False
+        self.end_with_status = False
+        self.stop_reply: str | None = "PO"
         self._buf = bytearray()
 
     # -- state -----------------------------------------------------------------------------
@@ -71,7 +81,7 @@ class Ell14Emulator(PtyEmulator):
         self.send(f"{self.address}{cmd}{data}\r\n".encode("ascii"))
 
     def _status(self, code: int) -> None:
-        self._reply("GS", f"{code:02X}")
+        self._reply("GS", "QQ" if self.take_fault("bad_status") else f"{code:02X}")
 
     def _start_move(self, target: float, now: float, kind: str) -> None:
         self.move = LinearMove(self.position_pulses, target, self._speed_pulses_s(), now, kind)
@@ -92,7 +102,12 @@ class Ell14Emulator(PtyEmulator):
         if mv.done(now):
             self.move = None
             self.position_pulses = round(mv.target) % PULSES_PER_REV
-            self._reply("PO", _hex32(int(self.position_pulses)))
+            if self.take_fault("lost_end"):
+                return
+            if self.end_with_status:
+                self._status(0)
+            else:
+                self._reply("PO", _hex32(int(self.position_pulses)))
 
     def on_disconnect(self) -> None:
         if self.move is not None:
@@ -148,7 +163,10 @@ class Ell14Emulator(PtyEmulator):
             if busy:
                 self.position_pulses = round(self.move.position(now))
                 self.move = None
-            self._reply("PO", _hex32(round(self.position_pulses)))
+            if self.stop_reply == "PO":
+                self._reply("PO", _hex32(round(self.position_pulses)))
+            elif self.stop_reply == "GS":
+                self._status(0)
         elif cmd in ("ho", "ma", "mr", "fw", "bw"):
             if busy:
                 self._status(9)
