@@ -47,6 +47,8 @@ class Dataset:
         return tuple(self.arrays["analyzer"].shape[-2:])  # type: ignore[return-value]
 
     def subset(self, index) -> "Dataset":
+        if isinstance(index, (list, tuple)):  # sample indices (an empty list included)
+            index = np.asarray(index, dtype=np.intp)
         return Dataset({k: v[index] for k, v in self.arrays.items()}, self.manifest)
 
 

@@ -36,9 +36,10 @@ import sys
 
 import numpy as np
 
-from models.data import load_dataset
+from models.data import check_network_size, lit_samples, load_dataset
 from models.evaluate import _network_inputs, forward_l2
 from models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.errors import ConfigError
 from sim.scene import FAMILIES
 
 RUNGS = ("pip_n+pip_wi", "true_n+pip_wi", "pip_n+true_wi", "pip_n+fit_wi", "true_n+fit_wi", "true_n+true_wi",
@@ -110,16 +111,18 @@ def sfp_geometries(sample: dict, normal: np.ndarray, wi: np.ndarray,
 def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -> dict:
     """Run the ladder (module docstring); returns ``{family: {metric: mean}}`` and prints a table."""
     ds = load_dataset(data_dir, limit)
+    check_network_size(ds, data_dir)
+    lit = lit_samples(ds)  # as models.evaluate: a sample without a lit object pixel has no signal
+    if not lit:
+        raise ConfigError(f"{data_dir}: no sample with a lit object pixel ({len(ds)} sample(s), nothing to diagnose)")
     wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
     full = SingleShotModel.load(wd)
     direct = SingleShotModel.load(wd, graph="direct.onnx") if (wd / "direct.onnx").is_file() else None
     eta = ds.arrays.get("eta")  # the true index of refraction, where the set records it
     rows: dict[str, list[dict[str, float]]] = {}
-    for i in range(len(ds)):
+    for i in lit:
         mask = ds["mask"][i] > 0
         truth = ds["mueller"][i]
-        if not mask.any() or not np.any(truth[..., mask]):
-            continue
         out = full.run_rig_frame(*_network_inputs(ds, i))
         sample = {k: ds[k][i] for k in ("analyzer", "mask", "wo", "alpha", "stage_zero_axis", "s_in")}
         n_pip, w_pip = out["normal"][0], out["wi"][0]
@@ -147,7 +150,8 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
         for rung, (n, w, e) in geometry.items():
             r[rung] = forward_l2(gain_fitted_pbrdf(n, w, sample, e), truth, mask)
         family = FAMILIES[int(ds["family"][i])] if "family" in ds.arrays else "all"
-        rows.setdefault(family, []).append(r)
+        if family != "all":
+            rows.setdefault(family, []).append(r)
         rows.setdefault("all", []).append(r)
     result = {f: dict({k: float(np.mean([r[k] for r in rs])) for k in rs[0]}, samples=len(rs)) for f, rs in rows.items()}
     echo(markdown(result))
@@ -166,15 +170,27 @@ def markdown(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from models._cli import run_main
+    from polrig.commands._device_args import int_range
+
     p = argparse.ArgumentParser(prog="python -m models.diagnose", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="dataset folder (`polrig sim dataset` output)")
     p.add_argument("--weights", default=None, help="folder with single_shot.onnx (default: shipped)")
-    p.add_argument("--limit", type=int, default=None, help="use at most this many samples")
-    p.add_argument("--json", default=None, help="also write the numbers here")
+    p.add_argument("--limit", type=int_range(1, 10**9), default=None, help="use at most the first this many samples")
+    p.add_argument("--json", default=None, help="also write the numbers here (a file in an existing folder)")
     args = p.parse_args(argv)
+    return run_main(p.prog, lambda: _main(args))
+
+
+def _main(args: argparse.Namespace) -> int:
+    from polrig.commands._device_args import check_output_file
+    from polrig.rawio import atomic_write_text
+
+    if args.json:
+        check_output_file(pathlib.Path(args.json), "--json")  # before the work
     result = diagnose(args.data, args.weights, args.limit)
     if args.json:
-        pathlib.Path(args.json).write_text(json.dumps(result, indent=2))
+        atomic_write_text(args.json, json.dumps(result, indent=2))
     return 0
 
 

@@ -194,12 +194,14 @@ def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.n
 class SingleShotModel:
     """onnxruntime session of the shipped single-shot graph (and optionally the baseline)."""
 
-    def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty=None):
+    def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty=None, uncertainty_problem: str = ""):
         self.session = session
         self.meta = meta
         self.weights_dir = weights_dir
         #: :class:`models.uncertainty.UncertaintyModel` calibrated for this graph, or None.
         self.uncertainty = uncertainty
+        #: Why :attr:`uncertainty` is None (no file, another graph's, unreadable); "" when it is set.
+        self.uncertainty_problem = uncertainty_problem
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
         self.colours = int(meta.get("colours", 3))
@@ -220,17 +222,26 @@ class SingleShotModel:
         if not path.is_file():
             raise FileNotFoundError(f"model graph {path} not found")
         meta_path = wd / "model.json"
-        meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        try:
+            meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise FormatError(f"{meta_path}: not a readable model description ({exc})") from None
+        if not isinstance(meta, dict):
+            raise FormatError(f"{meta_path}: not a model description (a JSON object expected)")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads or physical_cores()
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
-        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        from models.uncertainty import load_for_graph
+        try:
+            sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
+            reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
+            raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc
+        from models.uncertainty import calibration_for_graph
 
-        return cls(sess, meta, wd, load_for_graph(wd, graph))
+        return cls(sess, meta, wd, *calibration_for_graph(wd, graph))
 
     def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
                        stage_zero_axis: np.ndarray) -> dict[str, np.ndarray]:

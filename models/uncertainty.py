@@ -65,6 +65,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from polrig.errors import ConfigError, FormatError
+
 #: Fraction of errors inside +-2 sigma for a right Gaussian sigma (erf(sqrt 2)).
 COVERAGE = 0.9545
 #: Degree of polarization of ``s_in`` below which its angle is undefined (unpolarized input).
@@ -192,20 +194,45 @@ def graph_sha256(path: str | pathlib.Path) -> str:
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
 
 
+def calibration_for_graph(weights_dir: str | pathlib.Path, graph: str = "single_shot.onnx"
+                          ) -> tuple[UncertaintyModel | None, str]:
+    """``(model, "")`` when ``weights_dir`` holds a calibration of ``graph`` (same SHA-256, the
+    current :data:`VERSION`), else ``(None, why not)``: no file, a file that cannot be read, a
+    calibration of an older version, or one that belongs to another graph (a retrained graph has
+    no calibrated uncertainty until ``python -m models.uncertainty`` runs)."""
+    wd = pathlib.Path(weights_dir)
+    path = wd / FILE_NAME
+    if not path.is_file():
+        return None, f"no {FILE_NAME} in {wd} (this graph has no calibrated uncertainty)"
+    try:
+        data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            raise ValueError(f"a JSON object expected, got {type(data).__name__}")
+        if data.get("format") == FORMAT and data.get("version") != VERSION:
+            return None, (f"{path} is a version-{data.get('version')} calibration (this polrig reads version "
+                          f"{VERSION})")
+        model = UncertaintyModel.from_json(data)
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        return None, f"{path} is not a readable uncertainty calibration ({exc})"
+    try:
+        mine = graph_sha256(wd / graph)
+    except OSError as exc:
+        return None, f"cannot read {wd / graph} ({exc.strerror or exc})"
+    if model.graph_sha256 != mine:
+        return None, (f"{path} belongs to another graph (calibrated for SHA-256 {model.graph_sha256[:12] or 'none'}..., "
+                      f"{graph} here is {mine[:12]}...)")
+    return model, ""
+
+
 def load_for_graph(weights_dir: pathlib.Path, graph: str) -> UncertaintyModel | None:
     """The calibration in ``weights_dir`` if it belongs to ``graph`` (same SHA-256) and is of the
-    current :data:`VERSION`, else None: a retrained graph has no calibrated uncertainty until
-    ``python -m models.uncertainty`` runs."""
-    path = pathlib.Path(weights_dir) / FILE_NAME
-    if not path.is_file():
-        return None
-    data = json.loads(path.read_text())
-    if data.get("format") == FORMAT and data.get("version") != VERSION:
-        return None
-    model = UncertaintyModel.from_json(data)
-    if model.graph_sha256 != graph_sha256(pathlib.Path(weights_dir) / graph):
-        return None
-    return model
+    current :data:`VERSION`, else None (:func:`calibration_for_graph` says why)."""
+    return calibration_for_graph(weights_dir, graph)[0]
+
+
+def how_to_calibrate(weights_dir) -> str:
+    return (f"calibrate it with: python -m models.uncertainty --weights {weights_dir} --data DIR [DIR ...] "
+            f"--write (DIR: polrig sim dataset --holdout sets)")
 
 
 # ----------------------------------------------------------------------------- calibration
@@ -358,14 +385,22 @@ def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: b
     from polrig.noise import SensorModel
     from polrig.stokes import stokes_from_analyzers
 
+    from models.data import check_network_size, lit_samples
+
     ds = load_dataset(data_dir, limit)
-    sensor = SensorModel(**ds.manifest["noise"]["sensor_model"]) if "noise" in ds.manifest else SensorModel()
+    check_network_size(ds, data_dir)
+    try:
+        sensor = SensorModel(**ds.manifest["noise"]["sensor_model"]) if "noise" in ds.manifest else SensorModel()
+    except (TypeError, ValueError, KeyError) as exc:
+        raise FormatError(f"{data_dir}/manifest.json: no usable noise.sensor_model ({exc})") from None
+    lit = lit_samples(ds)
+    if not lit:
+        raise ConfigError(f"{data_dir}: no sample with a lit object pixel ({len(ds)} sample(s), nothing to "
+                          f"calibrate or check on)")
     out = []
-    for i in range(len(ds)):
+    for i in lit:
         mask = ds["mask"][i] > 0
         truth = ds["mueller"][i]
-        if not mask.any() or not np.any(truth[..., mask]):
-            continue
         res = model.run_rig_frame(*_network_inputs(ds, i), mirror_average=mirror_average)
         dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
         clipped = dn.max(axis=1) >= sensor.saturation_dn
@@ -376,7 +411,7 @@ def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: b
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models.runtime import WEIGHTS_DIR, SingleShotModel
+    from models._cli import run_main
 
     ap = argparse.ArgumentParser(prog="python -m models.uncertainty", description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", nargs="*", default=[], help="calibration sets (`polrig sim dataset` folders)")
@@ -384,7 +419,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
     ap.add_argument("--write", action="store_true", help=f"write {FILE_NAME} into the weights folder")
     args = ap.parse_args(argv)
+    return run_main(ap.prog, lambda: _main(args))
+
+
+def _main(args: argparse.Namespace) -> int:
+    from models.data import read_manifest
+    from models.runtime import WEIGHTS_DIR, SingleShotModel
+    from polrig.rawio import atomic_write_text, temporary_sibling
+
     wd = pathlib.Path(args.weights) if args.weights else WEIGHTS_DIR
+    if not wd.is_dir():
+        raise FileNotFoundError(f"weights folder {wd} not found")
+    for d in (*args.data, *args.check):  # every set, before the first is run
+        read_manifest(d)
+    if args.write:
+        if not args.data and not args.check:
+            raise ConfigError("--write needs --data (to calibrate) or --check (to record the coverage)")
+        try:  # the weights folder takes the file: found out now, not after the calibration
+            probe = temporary_sibling(wd / FILE_NAME)
+            probe.open("x").close()
+            probe.unlink()
+        except OSError as exc:
+            raise ConfigError(f"--write: cannot write in {wd} ({exc.strerror or exc})") from None
     net = SingleShotModel.load(wd)
     if args.data:
         cal = [s for d in args.data for s in dataset_samples(d, net)]
@@ -397,12 +453,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         model.calibration["coverage_mirror_averaged"] = coverage(model, mirrored)
         print(json.dumps(model.to_json(), indent=1))
         if args.write:
-            (wd / FILE_NAME).write_text(json.dumps(model.to_json(), indent=1) + "\n")
+            atomic_write_text(wd / FILE_NAME, json.dumps(model.to_json(), indent=1) + "\n")
     else:
-        model = load_for_graph(wd, "single_shot.onnx")
+        model, why = calibration_for_graph(wd, "single_shot.onnx")
         if model is None:
-            print(f"no {FILE_NAME} for this graph in {wd}: calibrate with --data", file=sys.stderr)
-            return 2
+            raise ConfigError(f"{why}; {how_to_calibrate(wd)}")
     checks = {}
     for d in args.check:
         for suffix, mirror_average in (("", False), (" mirror-averaged", True)):
@@ -411,9 +466,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"per element {c['within_2sigma_per_element']}, RMS error / RMS sigma "
                   f"{c['rms_error_over_rms_sigma']:.2f}, {c['pixels']} values")
     if args.write and checks:
-        data = json.loads((wd / FILE_NAME).read_text())
+        data = json.loads((wd / FILE_NAME).read_text())  # the calibration just written or checked above
         data["checks"] = checks
-        (wd / FILE_NAME).write_text(json.dumps(data, indent=1) + "\n")
+        atomic_write_text(wd / FILE_NAME, json.dumps(data, indent=1) + "\n")
     return 0
 
 

@@ -89,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
     if args.stage_zero_axis is not None:
         kwargs["stage_zero_axis"] = args.stage_zero_axis
     model = SingleShotModel.load(args.weights)
+    if args.sigma and model.uncertainty is None:  # before the work: --sigma would silently write no planes
+        from models.uncertainty import how_to_calibrate
+
+        raise ConfigError(f"--sigma: {model.uncertainty_problem}; {how_to_calibrate(model.weights_dir)}")
     mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
                                black_level_dn=black, scale=args.scale, saturation_dn=saturation,
                                with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
