@@ -16,12 +16,28 @@ Features are set through the node map where the camera has them; asking for a mi
 (e.g. ``ExposureTime`` on a simulated producer) raises :class:`DeviceFault` naming it.
 The mosaic layout (``layout``, e.g. ``"imx250mzr"``) is configuration: GenICam does not
 describe the on-chip polarizer arrangement.
+
+A GenTL producer can be initialised once per process (GenTL standard, ``GCInitLib``: a
+second call fails with ``GC_ERR_RESOURCE_IN_USE``, -1004): a second ``Harvester`` on the
+same .cti sees no devices at all. So every producer is loaded once and shared, reference
+counted, by all cameras and device listings of this process (:class:`_SharedProducer`);
+a second camera of the same producer opens, and a listing while a camera is open shows
+the devices the producer offered when it was loaded. Before a .cti is handed to the GenTL
+loader it is checked to be a shared library with the GenTL entry point ``GCInitLib``: any
+other file is refused with :class:`DeviceNotFound` (the loader crashes the process on a
+shared library that is not a producer).
+
+Every timeout must be a positive number of seconds: harvesters treats ``fetch(timeout=0)``
+or less as "wait forever", so those are refused with ValueError.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import math
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any, Iterator
@@ -46,34 +62,102 @@ def _genapi():
     return genapi
 
 
-def _harvester(cti_files: list[str]):
-    from harvesters.core import Harvester  # noqa: PLC0415
-
-    h = Harvester()
-    for cti in cti_files:
-        if not Path(cti).is_file():
-            h.reset()
-            raise DeviceNotFound(f"GenTL producer {cti!r} not found (set [camera] cti to a "
-                                 "producer .cti file)", device="genicam")
-        h.add_file(cti)
+def _check_producer(cti: str) -> None:
+    """``cti`` exists and is a shared library exporting ``GCInitLib`` (a GenTL producer)."""
+    if not Path(cti).is_file():
+        raise DeviceNotFound(f"GenTL producer {cti!r} not found (set [camera] cti to a "
+                             "producer .cti file)", device="genicam")
     try:
-        h.update()
-    except _gentl().GenericException as exc:
-        h.reset()
-        raise DeviceNotFound(f"GenTL producer cannot be loaded: {exc}", device="genicam") from None
-    return h
+        lib = ctypes.CDLL(os.path.realpath(cti))
+    except OSError as exc:
+        raise DeviceNotFound(f"{cti!r} is not a loadable GenTL producer ({exc})",
+                             device="genicam") from None
+    if not hasattr(lib, "GCInitLib"):
+        raise DeviceNotFound(f"{cti!r} is not a GenTL producer (a shared library without the "
+                             "GenTL entry point GCInitLib)", device="genicam")
+
+
+class _SharedProducer:
+    """One GenTL producer (.cti) loaded in this process, with its own ``Harvester``, shared
+    by every user (reference counted): loading it a second time fails (GCInitLib)."""
+
+    _lock = threading.Lock()
+    _loaded: dict[str, "_SharedProducer"] = {}
+
+    def __init__(self, path: str, harvester):
+        self.path, self.h, self.users = path, harvester, 0
+
+    @classmethod
+    def acquire(cls, cti: str) -> "_SharedProducer":
+        path = os.path.realpath(cti)
+        with cls._lock:
+            shared = cls._loaded.get(path)
+            if shared is None:
+                shared = cls(path, cls._load(cti))
+                cls._loaded[path] = shared
+            shared.users += 1
+            return shared
+
+    @staticmethod
+    def _load(cti: str):
+        from harvesters.core import Harvester  # noqa: PLC0415
+
+        _check_producer(cti)
+        h = Harvester()
+        h.add_file(cti)
+        try:
+            h.update()
+        except _gentl().GenericException as exc:
+            h.reset()
+            raise DeviceNotFound(f"GenTL producer {cti!r} cannot be loaded: {exc}",
+                                 device="genicam") from None
+        if not getattr(h, "_producers", [None]):  # harvesters logs the failure and goes on
+            h.reset()
+            raise DeviceNotFound(f"GenTL producer {cti!r} could not be initialised: it is in "
+                                 "use elsewhere in this process (a producer can be opened "
+                                 "once per process), or it failed to start", device="genicam")
+        return h
+
+    def release(self) -> None:
+        with self._lock:
+            self.users -= 1
+            if self.users > 0:
+                return
+            self._loaded.pop(self.path, None)
+        with contextlib.suppress(Exception):
+            self.h.reset()
+
+    def forget(self, ia) -> None:
+        with contextlib.suppress(Exception):
+            self.h.image_acquirers.remove(ia)
 
 
 def list_gentl_devices(cti_files: list[str]) -> list[DeviceInfo]:
-    """Devices the producers offer (``polrig devices``); a missing .cti raises DeviceNotFound."""
-    h = _harvester(cti_files)
+    """Devices the producers offer (``polrig devices``); a missing .cti raises DeviceNotFound.
+    A producer a camera of this process holds open lists the devices it offered then."""
+    out: list[DeviceInfo] = []
+    for cti in cti_files:
+        shared = _SharedProducer.acquire(cti)
+        try:
+            out += [DeviceInfo(kind="camera", driver="genicam", model=d.model or "",
+                               serial=d.serial_number or "", port=d.id_ or "",
+                               extra={"vendor": d.vendor, "cti": cti_files})
+                    for d in shared.h.device_info_list]
+        finally:
+            shared.release()
+    return out
+
+
+def _check_timeout(timeout_s: float) -> float:
+    """A fetch timeout: harvesters waits forever for 0 or less (``fetch(timeout=...)``)."""
     try:
-        return [DeviceInfo(kind="camera", driver="genicam", model=d.model or "",
-                           serial=d.serial_number or "", port=d.id_ or "",
-                           extra={"vendor": d.vendor, "cti": cti_files})
-                for d in h.device_info_list]
-    finally:
-        h.reset()
+        t = float(timeout_s)
+    except (TypeError, ValueError):
+        raise ValueError(f"frame timeout must be a number of seconds, got {timeout_s!r}") from None
+    if not (t > 0 and math.isfinite(t)):
+        raise ValueError(f"frame timeout must be a positive, finite number of seconds, got "
+                         f"{timeout_s!r} (0 or less would wait forever)")
+    return t
 
 
 def gentl_paths_from_env() -> list[str]:
@@ -116,7 +200,7 @@ class GenicamCamera(Camera):
         self._trigger = trigger
         self.black_level_dn = float(black_level_dn)
         self.kind = kind
-        self._h = None
+        self._producer: _SharedProducer | None = None
         self._ia = None
         self._info: DeviceInfo | None = None
         self.name = f"genicam {self.serial or self.index or ''}".strip()
@@ -132,9 +216,17 @@ class GenicamCamera(Camera):
         if not self.cti_files:
             raise DeviceNotFound("no GenTL producer: name a .cti in [camera] cti or set "
                                  "GENICAM_GENTL64_PATH", device=self.name)
-        h = _harvester(self.cti_files)
-        devices = list(h.device_info_list)
-        serials = [d.serial_number for d in devices]
+        producers: list[_SharedProducer] = []
+        try:
+            for cti in self.cti_files:
+                producers.append(_SharedProducer.acquire(cti))
+        except Exception:
+            for p in producers:
+                p.release()
+            raise
+        devices = [(p, i, d) for p in producers for i, d in enumerate(p.h.device_info_list)]
+        serials = [d.serial_number for _, _, d in devices]
+        chosen = None
         try:
             if self.serial is not None:
                 if self.serial not in serials:
@@ -146,16 +238,23 @@ class GenicamCamera(Camera):
                 if not 0 <= pick < len(devices):
                     raise DeviceNotFound(f"no camera at index {pick}; the producer offers "
                                          f"{len(devices)} device(s)", device=self.name)
+            chosen, local, d = devices[pick]
             try:
-                ia = h.create({"serial_number": self.serial} if self.serial is not None
-                              else pick)
+                ia = chosen.h.create(local)
+            except _gentl().ResourceInUseException:
+                raise DeviceNotFound(f"camera serial {d.serial_number!r} is already open (by "
+                                     "another camera of this process or another program)",
+                                     device=self.name) from None
             except _gentl().GenericException as exc:
                 raise DeviceNotFound(f"cannot open camera: {exc}", device=self.name) from None
         except Exception:
-            h.reset()
+            chosen = None
             raise
-        self._h, self._ia = h, ia
-        d = devices[pick]
+        finally:
+            for p in producers:
+                if p is not chosen:
+                    p.release()
+        self._producer, self._ia = chosen, ia
         self._info = DeviceInfo(kind=self.kind, driver="genicam", model=d.model or "",
                                 serial=d.serial_number or "", firmware=d.version or "",
                                 port=d.id_ or "", extra={"vendor": d.vendor,
@@ -179,15 +278,16 @@ class GenicamCamera(Camera):
 
     def close(self) -> None:
         ia, self._ia = self._ia, None
-        h, self._h = self._h, None
+        producer, self._producer = self._producer, None
         if ia is not None:
             with contextlib.suppress(Exception):
                 ia.stop()
             with contextlib.suppress(Exception):
                 ia.destroy()
-        if h is not None:
-            with contextlib.suppress(Exception):
-                h.reset()
+        if producer is not None:
+            if ia is not None:
+                producer.forget(ia)
+            producer.release()
 
     def info(self) -> DeviceInfo:
         if self._info is None:
@@ -325,6 +425,7 @@ class GenicamCamera(Camera):
 
     def grab(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> Frame:
         """One new frame: in free run, frames queued before this call are discarded."""
+        timeout_s = _check_timeout(timeout_s)
         ia = self._require()
         self.start()
         if self._trigger == "software":
@@ -335,6 +436,7 @@ class GenicamCamera(Camera):
 
     def frames(self, count: int, timeout_s: float = DEFAULT_TIMEOUT_S) -> Iterator[Frame]:
         """``count`` consecutive frames of the running stream (none discarded)."""
+        timeout_s = _check_timeout(timeout_s)
         ia = self._require()
         self.start()
         for _ in range(count):
@@ -344,6 +446,7 @@ class GenicamCamera(Camera):
 
     def fetch(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> Frame:
         """The next frame of the stream as it is: no start, no trigger, nothing discarded."""
+        timeout_s = _check_timeout(timeout_s)
         return self._fetch(self._require(), timeout_s)
 
     def _drain(self, ia) -> None:

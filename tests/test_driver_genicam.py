@@ -127,3 +127,63 @@ def test_vanished_device(viky):
     c.open()
     assert c.grab(timeout_s=2.0).raw.ndim == 2
     c.close()
+
+
+def test_two_cameras_of_one_producer(viky):
+    """A second camera of the same producer in one process opens (it failed with 'no
+    camera with serial '0'; the producer offers no devices'), and listing the producer
+    while they are open shows its devices (it returned [])."""
+    c1 = GenicamCamera(viky, serial="1", pixel_format="Mono8", frame_rate_hz=200.0)
+    c2 = GenicamCamera(viky, serial="0", pixel_format="Mono8", frame_rate_hz=200.0)
+    with c1, c2:
+        assert c1.grab(timeout_s=2.0).meta.extra["serial"] == "1"
+        assert c2.grab(timeout_s=2.0).meta.extra["serial"] == "0"
+        assert [d.serial for d in list_gentl_devices([viky])] == ["0", "1", "2"]
+        with pytest.raises(DeviceNotFound, match="serial '0' is already open"):
+            GenicamCamera(viky, serial="0").open()
+        c2.close()
+        assert c1.grab(timeout_s=2.0).raw.ndim == 2
+    assert [d.serial for d in list_gentl_devices([viky])] == ["0", "1", "2"]
+
+
+def test_a_file_that_is_not_a_producer(tmp_path):
+    """Not a GenTL producer: said so (it was 'no camera with serial ...; the producer offers
+    no devices'). A shared library without GCInitLib is refused before the GenTL loader,
+    which crashes the process on one."""
+    text = tmp_path / "notes.cti"
+    text.write_text("not a shared library\n")
+    with pytest.raises(DeviceNotFound, match="is not a loadable GenTL producer"):
+        GenicamCamera(str(text), serial="0").open()
+    with pytest.raises(DeviceNotFound, match="is not a loadable GenTL producer"):
+        list_gentl_devices([str(text)])
+    import _ctypes
+    so = _ctypes.__file__  # a shared library (an extension module), not a producer
+    with pytest.raises(DeviceNotFound, match="without the GenTL entry point GCInitLib"):
+        GenicamCamera(so, serial="0").open()
+
+
+def test_producer_held_by_other_code_in_the_process(viky):
+    """Some other code of this process initialised the producer: said so."""
+    from harvesters.core import Harvester
+    h = Harvester()
+    h.add_file(viky)
+    h.update()
+    try:
+        with pytest.raises(DeviceNotFound, match="in use elsewhere in this process"):
+            GenicamCamera(viky, serial="0").open()
+    finally:
+        h.reset()
+    with GenicamCamera(viky, serial="0") as c:
+        assert c.info().serial == "0"
+
+
+@pytest.mark.parametrize("timeout", [0, -1.0, float("nan"), float("inf")])
+def test_non_positive_frame_timeouts_are_refused(cam, timeout):
+    """harvesters waits forever for fetch(timeout <= 0): the driver refuses them (grab(0)
+    blocked)."""
+    t0 = time.monotonic()
+    for call in (cam.grab, cam.fetch, lambda t: list(cam.frames(1, t))):
+        with pytest.raises(ValueError, match="positive, finite number of seconds"):
+            call(timeout)
+    assert time.monotonic() - t0 < 0.5
+    assert cam.grab(timeout_s=2.0).raw.shape == (100, 120)
