@@ -172,7 +172,7 @@ class Dc2200Light(Light):
 
     def info(self) -> DeviceInfo:
         if self._info is None:
-            raise DeviceFault("device is not open", device=self.name)
+            raise DeviceDisconnected("device is not open (open it first)", device=self.name)
         return self._info
 
     # -- USBTMC ----------------------------------------------------------------------------

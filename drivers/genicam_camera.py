@@ -291,7 +291,7 @@ class GenicamCamera(Camera):
 
     def info(self) -> DeviceInfo:
         if self._info is None:
-            raise DeviceFault("camera is not open", device=self.name)
+            raise DeviceDisconnected("camera is not open (open it first)", device=self.name)
         return self._info
 
     # -- node map --------------------------------------------------------------------------

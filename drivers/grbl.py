@@ -42,7 +42,7 @@ import time
 
 from drivers._serial import SerialDevice, SerialLink
 from drivers.grbl_codes import ALARMS, CRITICAL_ALARMS, CRITICAL_MESSAGE, ERRORS, SUBSTATES
-from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
 from polrig.hal import DeviceInfo, Turntable
 
 BAUDRATE = 115200
@@ -92,7 +92,8 @@ class GrblTurntable(SerialDevice, Turntable):
 
     def info(self) -> DeviceInfo:
         if self._info is None:
-            raise DeviceFault("device is not open", device=self._link.device)
+            raise DeviceDisconnected("device is not open (open it first)",
+                                     device=self._link.device)
         return self._info
 
     # -- protocol --------------------------------------------------------------------------
