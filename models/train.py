@@ -3,11 +3,14 @@
 ``polrig train --data DIR --out DIR`` calls :func:`train`. Stages run in order
 ``pipnet -> pmmnet -> direct``; each uses Adam with a constant learning rate for the first
 ``decay_start`` fraction of its epochs and a linear decay to ``lr_final_fraction`` after
-(the paper: 40 + 20 epochs, linear decay in the later half). After every epoch the models,
-optimizers and progress are written to ``OUT/checkpoint.pt``; ``resume=True`` continues from
-it. Losses go to ``OUT/log.csv`` (one row per epoch) and ``OUT/summary.json``. At the end the
-graphs are exported with :func:`models.export.export_all` into ``OUT/weights`` and checked
-against PyTorch with onnxruntime.
+(the paper: 40 + 20 epochs, linear decay in the later half; a one-epoch stage runs at the
+base rate, :func:`lr_at`). After every epoch the models, optimizers, progress, the numpy and
+torch random states, the log rows and the dataset's identity are written atomically to
+``OUT/checkpoint.pt``, then ``OUT/log.csv`` (one row per epoch) is rewritten from those rows;
+``resume=True`` continues from the checkpoint and reproduces the uninterrupted run exactly.
+``OUT/summary.json`` records the run. At the end the graphs are exported with
+:func:`models.export.export_all` into ``OUT/weights`` and checked against PyTorch with
+onnxruntime (a failed check is an error and replaces nothing).
 
 PMMNet trains on the PIPNet-pBRDF initialization of the frozen stage-1 network (computed
 once per sample, PIPNet in eval mode), exactly what it sees at inference; with
