@@ -220,3 +220,25 @@ def test_config_of_a_run_records_the_epochs_actually_trained_from_a_donor(data, 
     assert summary["config"]["pipnet_epochs"] == TINY.pipnet_epochs  # the donor's, not the ignored override
     assert dataclasses.asdict(TINY)["width"] == summary["config"]["width"]
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["stages_trained"] == ["direct"]
+
+
+def test_a_checkpoint_of_an_older_polrig_still_resumes(data, tmp_path):
+    """Without random states, log rows or dataset identity (checkpoints before this format): the
+    run goes on from the stored seed, and the log keeps each epoch the checkpoint holds once (the
+    old order could leave a row written twice)."""
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        train(data, run, TINY, export=False, echo=_stop_after("pmmnet", 0))
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
+    for key in ("rng_state", "torch_rng_state", "log", "dataset", "recalibrate", "format", "version", "data",
+                "init_from"):
+        ckpt.pop(key)
+    ckpt["rng_seed"] = 5
+    torch.save(ckpt, run / "checkpoint.pt")
+    lines = (run / "log.csv").read_text().splitlines()
+    (run / "log.csv").write_text("\n".join(lines + lines[-1:]) + "\n")  # pmmnet epoch 0 twice
+    said = []
+    train(data, run, resume=True, export=False, echo=said.append)
+    assert any("not bit-identical" in s for s in said) and any("does not record its dataset" in s for s in said)
+    assert [(r["stage"], r["epoch"]) for r in _rows(run)] == [("pipnet", "0"), ("pipnet", "1"), ("pmmnet", "0"),
+                                                             ("pmmnet", "1"), ("direct", "0")]
