@@ -80,6 +80,10 @@ class GrblTurntable(SerialDevice, Turntable):
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
         self._reset()
+        # Opening the port resets many boards (DTR): a boot banner may follow the one just
+        # read; it is no news here, so take it without raising.
+        time.sleep(0.05)
+        self._drain_pending(raise_alarm=False)
         lines = self._command("$I")
         self._info = DeviceInfo(kind=self.kind, driver="grbl", model="GRBL",
                                 firmware=self._banner, port=self.port,
