@@ -69,7 +69,7 @@ DRIVERS: dict[str, DriverSpec] = {
         "grbl", {"turntable": "drivers.grbl:GrblTurntable"}, {
             "port": _PORT,
             "axis": Field(str, default="A", check=_axis_ok, doc="axis letter of the turntable"),
-            "axes": Field(str, default="XYZA", doc="axis letters in MPos order"),
+            "axes": Field(str, default="XYZA", doc="axis letters in the order of the status report's MPos/WPos list"),
             "degrees_per_unit": Field(float, default=1.0, check=_positive,
                                       doc="degrees per GRBL axis unit"),
             "rate_per_min": Field(float, check=_positive,
