@@ -71,7 +71,7 @@ def parse_pose_spec(spec: str) -> tuple[float, ...]:
         parts = text.split(":")
         if len(parts) != 3:
             raise ConfigError(f"{bad}: a range is START:STOP:STEP (STOP exclusive), e.g. 0:360:30")
-        start, stop, step = (_number(p, bad) for p in parts)
+        start, stop, step = (_number(p, bad, "angle") for p in parts)
         if step == 0:
             raise ConfigError(f"{bad}: STEP must not be 0")
         count = math.ceil((stop - start) / step - 1e-9)
@@ -80,16 +80,18 @@ def parse_pose_spec(spec: str) -> tuple[float, ...]:
         if count > 100000:
             raise ConfigError(f"{bad}: {count} poses is too many")
         return tuple(round(start + i * step, 9) for i in range(count))
-    return tuple(_number(p, bad) for p in text.split(","))
+    return tuple(_number(p, bad, "angle") for p in text.split(","))
 
 
-def _number(text: str, bad: str) -> float:
+def _number(text: str, bad: str, what: str = "number") -> float:
+    """``text`` as a finite float; :class:`ConfigError` ``"{bad}: 'x' is not a finite
+    {what}"`` otherwise (``what``: "angle" for poses, "number" for any other value)."""
     try:
         v = float(text.strip())
     except ValueError:
         raise ConfigError(f"{bad}: {text.strip()!r} is not a number") from None
     if not math.isfinite(v):
-        raise ConfigError(f"{bad}: {text.strip()!r} is not a finite angle")
+        raise ConfigError(f"{bad}: {text.strip()!r} is not a finite {what}")
     return v
 
 
@@ -633,6 +635,27 @@ def _run_session(rig, session: Session, processor, progress, control, guard: Sig
     result.status = SESSION_COMPLETE
     emit("session-done", todo[-1] if todo else 0)
     return result
+
+
+def interrupted_result(session: Session, exc: BaseException) -> SessionResult:
+    """How a run ended that raised ``exc`` after ``session`` was opened: :func:`run_session`
+    re-raises a file-system error other than a full disk and an unexpected error (a
+    processing bug) after leaving the session ``interrupted``; an error before the run (the
+    processor could not be built) leaves it as it was. Either way the session is
+    ``interrupted`` with the reason (written here where the run did not), its lock released,
+    and the result says so, for the caller to report as any other stop: the completed
+    captures are intact and ``--resume`` continues (``polrig capture``, the GUI)."""
+    reason = f"{type(exc).__name__}: {exc}"
+    if session.manifest.get("status") == INTERRUPTED:
+        reason = session.manifest.get("status_reason") or reason
+    else:
+        with contextlib.suppress(Exception):  # another writer, a failing disk: as it is
+            session.lock()
+            session.set_status(INTERRUPTED, reason)
+    session.unlock()
+    done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
+    failed = [c["index"] for c in session.captures if c["status"] == FAILED]
+    return SessionResult(INTERRUPTED, done, failed, reason)
 
 
 def _stop_cleanly(session: Session, index: int, reason: str, *, capture_status: str) -> None:

@@ -5,7 +5,12 @@ ETA, thumbnails of finished poses and (simulated rig) the score against truth.
 builds the plan, :mod:`polrig.processing` the calibration and processor,
 :func:`polrig.capture.run_session` acquires and processes) in a ``QThread`` holding every device
 lock. Pause and stop go through :class:`polrig.capture.CaptureControl`; a stop (or closing the
-window) leaves the session ``interrupted`` and resumable.
+window) leaves the session ``interrupted`` and resumable. Once the session exists, every way a
+run can end is reported like ``polrig capture`` reports it: complete, or stopped with the
+reason (a device fault, a full disk, any other file-system error, a processing error:
+:func:`polrig.capture.interrupted_result`) and the hint that the completed captures are intact
+and "Resume session in folder" continues; only a refusal before the session exists (bad
+options, devices not connected, devices busy) is "not started".
 """
 
 from __future__ import annotations
@@ -75,8 +80,11 @@ def thumbnail_rgb(path: pathlib.Path, size: int = THUMB_PX) -> np.ndarray:
 
 class CaptureWorker(QThread):
     """Runs one capture session (new or resumed). Signals: ``progress(Progress)``,
-    ``finished_result(status, reason, scores)``, ``failed(message)`` (a problem before the
-    session ran, e.g. bad options), ``session_ready(path)``."""
+    ``finished_result(status, reason, result)`` (``result`` the
+    :class:`polrig.capture.SessionResult`; any error once the session exists ends here, as
+    an ``interrupted`` result), ``failed(message)`` (a refusal before the session exists:
+    bad options, devices not connected or busy; nothing written), ``session_ready(path)``
+    (the session exists and the run starts)."""
 
     progress = Signal(object)
     finished_result = Signal(str, str, object)
@@ -111,21 +119,30 @@ class CaptureWorker(QThread):
             args.poses = args.mode = args.states = args.exposure = args.demosaic = args.mirror_average = None
             args.frames = args.dark_frames = None
         prepared = prepare_capture(args)  # the CLI's validation, before any device moves
-        with self.locks.hold(timeout_s=10.0, who="capture"):
-            closed = [k for k, d in self.rig.devices.items() if not d.is_open]
-            if closed:
-                raise PolrigError(f"not connected: {', '.join(closed)}; connect the devices "
-                                  f"(Devices tab) before capturing")
-            session = open_session(prepared, self.rig, ["polrig", "gui"])
-            self.session = session
-            self.session_ready.emit(str(prepared.out))
-            processor = processing.make_processor(prepared.plan, prepared.calibration,
-                                                  processing.session_sensor_model(session))
-            self.result = capture.run_session(self.rig, session, processor=processor,
-                                              progress=self.progress.emit,
-                                              control=self.control)
-        r = self.result
-        self.finished_result.emit(r.status, r.reason or "", dict(r.scores))
+        try:
+            with self.locks.hold(timeout_s=10.0, who="capture"):
+                closed = [k for k, d in self.rig.devices.items() if not d.is_open]
+                if closed:
+                    raise PolrigError(f"not connected: {', '.join(closed)}; connect the "
+                                      f"devices (Devices tab) before capturing")
+                session = open_session(prepared, self.rig, ["polrig", "gui"])
+                self.session = session
+                self.session_ready.emit(str(prepared.out))
+                try:
+                    processor = processing.make_processor(
+                        prepared.plan, prepared.calibration,
+                        processing.session_sensor_model(session))
+                    result = capture.run_session(self.rig, session, processor=processor,
+                                                 progress=self.progress.emit,
+                                                 control=self.control)
+                except Exception as exc:  # noqa: BLE001 - the session exists: a stop to report
+                    result = capture.interrupted_result(session, exc)
+        except BaseException:
+            if self.session is None and prepared.resume_session is not None:
+                prepared.resume_session.unlock()  # refused before the run: the lock goes
+            raise
+        self.result = result
+        self.finished_result.emit(result.status, result.reason or "", result)
 
 
 class CapturePanel(QWidget):
@@ -144,6 +161,7 @@ class CapturePanel(QWidget):
         self.events: list[Progress] = []
         self.scores: dict[int, dict[str, Any]] = {}
         self.last_status = ""
+        self._request: CaptureRequest | None = None
         self._t_start = 0.0
         self._step0 = 0
 
@@ -255,6 +273,7 @@ class CapturePanel(QWidget):
         if self.is_running:
             self.message.emit("warning", "a capture is already running")
             return
+        self._request = req
         self.events.clear()
         self.scores.clear()
         self.thumbs.clear()
@@ -266,12 +285,16 @@ class CapturePanel(QWidget):
         w.progress.connect(self._progress)
         w.finished_result.connect(self._finished)
         w.failed.connect(self._failed)
+        w.session_ready.connect(self._session_ready)
         w.finished.connect(lambda: self._set_running(False))
         self.worker = w
         self._t_start, self._step0 = time.monotonic(), 0
         self._set_running(True)
         w.start()
-        self.message.emit("info", f"capture {'resumed' if req.resume else 'started'} in {req.out}")
+
+    def _session_ready(self, path: str) -> None:
+        resumed = self._request is not None and self._request.resume
+        self.message.emit("info", f"capture {'resumed' if resumed else 'started'} in {path}")
 
     def set_paused(self, paused: bool) -> None:
         if self.worker is None:
@@ -308,7 +331,11 @@ class CapturePanel(QWidget):
             self.progress.setValue(ev.step)
         if ev.kind == "capture-start" and not self._step0:
             self._t_start, self._step0 = time.monotonic(), max(ev.step, 0)
-        if ev.kind == "frame" and ev.total:
+        control = self.worker.control if self.worker is not None else None
+        if ev.kind == "frame" and ev.total and control is not None and (
+                control.pause.is_set() or control.stop.is_set()):
+            pass  # a frame that was on its way: "paused" / "stopping..." stays on the label
+        elif ev.kind == "frame" and ev.total:
             done = ev.step - self._step0
             el = time.monotonic() - self._t_start
             eta = el / done * (ev.total - ev.step) if done > 0 else float("nan")
@@ -347,11 +374,11 @@ class CapturePanel(QWidget):
                     self.message.emit("warning", f"thumbnail of pose {ev.pose_deg:g}: {exc}")
         self.thumbs.addItem(item)
 
-    def _finished(self, status: str, reason: str, _scores: object) -> None:
+    def _finished(self, status: str, reason: str, result: object) -> None:
         self.last_status = status
         if status == "complete":
-            self.eta.setText(f"session complete ({len(self.scores) or self.thumbs.count()} "
-                             f"captures)")
+            n = len(getattr(result, "completed", ())) or len(self.scores) or self.thumbs.count()
+            self.eta.setText(f"session complete ({n} captures)")
             self.message.emit("info", "capture: session complete")
         else:
             self.eta.setText(f"session {status}: {reason} (resume to continue)")

@@ -1,0 +1,123 @@
+"""The operator GUI when things go wrong (pytest-qt, offscreen, simulated rig): errors after a
+capture started, driver bugs in the status poll and the live view, manual moves (Stop, readouts,
+long moves, closing during one), SIGTERM/SIGINT, calibration Cancel, bad settings files, a
+capture started during a calibration, long exposures, the capture panel's messages and stale
+displays. Helpers and the ``window`` fixture are tests/test_gui.py's."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+pytest.importorskip("pytestqt")
+
+from PySide6.QtCore import Qt, QTimer  # noqa: E402
+
+from test_gui import close_window, make_window, wait_connected, wait_frames, window  # noqa: E402,F401
+
+pytestmark = [pytest.mark.gui, pytest.mark.timeout(120)]
+
+
+def messages(w, level: str | None = None) -> list[str]:
+    return [t for lvl, t in w.messages.messages if level is None or lvl == level]
+
+
+def run_capture(qtbot, w, out, poses: str = "0,90", timeout: int = 60000, **fields) -> None:
+    cp = w.capture
+    cp.poses.setText(poses)
+    cp.out.setText(str(out))
+    for name, value in fields.items():
+        getattr(cp, name).setText(value)
+    cp.start()
+    qtbot.waitUntil(lambda: not cp.is_running and cp.last_status != "running", timeout=timeout)
+
+
+# -- 1. an error after the session exists is a stop, reported as polrig capture reports it
+@pytest.mark.parametrize("error", ["file-system", "processing"])
+def test_error_after_the_session_exists_is_a_resumable_stop(qtbot, window, tmp_path,
+                                                            monkeypatch, error):
+    import polrig.processing
+    import polrig.session
+
+    out = tmp_path / "session"
+    if error == "file-system":  # not a full disk: an I/O error writing capture 2's first file
+        real = polrig.session.atomic_write_bytes
+
+        def write(path, data):
+            if "c001_" in str(path):
+                raise OSError(errno.EIO, "Input/output error", str(path))
+            real(path, data)
+        monkeypatch.setattr(polrig.session, "atomic_write_bytes", write)
+    else:  # a processing bug in capture 2
+        real_process = polrig.processing.Processor.process
+
+        def process(self, session, index):
+            if index == 1:
+                raise RuntimeError("processing bug")
+            return real_process(self, session, index)
+        monkeypatch.setattr(polrig.processing.Processor, "process", process)
+    wait_connected(qtbot, window)
+    run_capture(qtbot, window, out, "0,90,180")
+    cp = window.capture
+    assert cp.last_status == "interrupted", cp.eta.text()
+    assert "not started" not in cp.eta.text() and "resume to continue" in cp.eta.text()
+    err = messages(window, "error")[-1]
+    assert err.startswith("capture stopped: ")
+    assert ("Input/output error" if error == "file-system" else "RuntimeError: processing bug") in err
+    assert "completed captures are intact" in err and "Resume session in folder" in err
+    m = json.loads((out / "session.json").read_text())
+    assert m["status"] == "interrupted"
+    assert [c["status"] for c in m["captures"]] == ["complete", "failed", "pending"]
+    monkeypatch.undo()
+    cp.resume()  # the lock was released: the same window resumes it
+    qtbot.waitUntil(lambda: cp.last_status == "complete", timeout=60000)
+    assert cp.eta.text() == "session complete (3 captures)"  # (11) the whole session, not this run
+
+
+# -- 11. capture panel messages
+def test_a_non_finite_exposure_is_not_called_an_angle():
+    from polrig.capture import parse_float_list, parse_pose_spec
+    from polrig.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"invalid --exposure 'nan': 'nan' is not a finite number$"):
+        parse_float_list("nan", "--exposure", positive=True)
+    with pytest.raises(ConfigError, match=r"'inf' is not a finite angle$"):
+        parse_pose_spec("0,inf")
+
+
+def test_capture_panel_messages(qtbot, window, tmp_path):
+    from polrig.capture import Progress
+
+    cp = window.capture
+    run_capture(qtbot, window, tmp_path / "bad", "0:10:0")  # refused: nothing "started"
+    assert cp.last_status == "failed"
+    assert not any(t.startswith("capture started") for t in messages(window))
+    wait_connected(qtbot, window)
+    out = tmp_path / "session"
+    cp.poses.setText("0:360:45")
+    cp.out.setText(str(out))
+    cp.start()
+    qtbot.waitUntil(lambda: any(e.kind == "frame" for e in cp.events), timeout=30000)
+    assert f"capture started in {out}" in messages(window)
+    cp.pause_button.setChecked(True)
+    assert cp.eta.text() == "paused"
+    ev = cp.events[-1]  # a frame event that was on its way when Pause was pressed
+    cp._progress(Progress("frame", 0, ev.n_captures, ev.step + 1, ev.total, 0.0))
+    assert cp.eta.text() == "paused"
+    cp.pause_button.setChecked(False)
+    qtbot.waitUntil(lambda: any(e.kind == "capture-done" for e in cp.events), timeout=30000)
+    cp.stop()
+    qtbot.waitUntil(lambda: not cp.is_running, timeout=30000)
+    assert json.loads((out / "session.json").read_text())["captures"][0]["status"] == "complete"
+    cp.resume()
+    qtbot.waitUntil(lambda: cp.last_status == "complete", timeout=60000)
+    assert f"capture resumed in {out}" in messages(window)
+    assert cp.eta.text() == "session complete (8 captures)"
