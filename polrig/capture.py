@@ -39,7 +39,7 @@ import numpy as np
 
 from polrig.errors import (ConfigError, DeviceDisconnected, DeviceError, DeviceFault, DeviceTimeout,
                            ProtocolError)
-from polrig.hal import Frame
+from polrig.hal import Frame, grab_timeout_s
 from polrig.rawio import encode_mosaic
 from polrig.session import (COMPLETE, FAILED, INTERRUPTED, PENDING, RUNNING, SESSION_COMPLETE,
                             Session, SignalGuard, interruption_reason, is_disk_full)
@@ -252,11 +252,14 @@ class SessionResult:
 
 # -- device helpers -------------------------------------------------------------------------
 def grab_with_retry(camera, retries: int, on_retry: Callable[[str], None] | None = None) -> Frame:
-    """``camera.grab()``; a :class:`DeviceTimeout` is retried up to ``retries`` times (a
-    timed-out software-triggered grab delivered nothing, so grabbing again loses nothing)."""
+    """``camera.grab()`` with the timeout of the camera's current exposure
+    (:func:`polrig.hal.grab_timeout_s`: exposure + readout + margin, so a long exposure does
+    not time out by construction); a :class:`DeviceTimeout` is retried up to ``retries``
+    times (a timed-out software-triggered grab delivered nothing, so grabbing again loses
+    nothing)."""
     for attempt in range(retries + 1):
         try:
-            return camera.grab()
+            return camera.grab(timeout_s=grab_timeout_s(camera))
         except DeviceTimeout as exc:
             if attempt == retries:
                 raise DeviceTimeout(f"grab timed out {retries + 1} times: {exc}") from exc

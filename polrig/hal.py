@@ -26,6 +26,23 @@ from polrig.errors import FormatError
 DEFAULT_TIMEOUT_S = 10.0
 
 
+def grab_timeout_s(camera, margin_s: float = DEFAULT_TIMEOUT_S) -> float:
+    """Timeout of one :meth:`Camera.grab` at the camera's current exposure: the exposure, the
+    readout (``readout_us`` where the camera declares it) and ``margin_s`` on top (transfer,
+    triggering, a slow host). The one place every grab's timeout comes from (captures,
+    the live view), so that a long exposure never times out by construction. A camera that
+    cannot report its exposure (NaN, an error) gets ``margin_s`` alone."""
+    try:
+        exposure_us = float(camera.exposure_us)
+    except Exception:  # noqa: BLE001 - a camera that cannot say: the margin alone
+        exposure_us = 0.0
+    readout_us = getattr(camera, "readout_us", 0.0)
+    frame_us = sum(v for v in (exposure_us, readout_us)
+                   if isinstance(v, (int, float)) and math.isfinite(v) and v > 0)
+    return float(margin_s) + frame_us * 1e-6
+
+
+
 @dataclasses.dataclass(frozen=True)
 class FrameMeta:
     """Metadata of one raw frame, as the camera reported it.

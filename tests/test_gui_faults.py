@@ -82,6 +82,35 @@ def test_error_after_the_session_exists_is_a_resumable_stop(qtbot, window, tmp_p
     assert cp.eta.text() == "session complete (3 captures)"  # (11) the whole session, not this run
 
 
+# -- 10. grab timeouts follow the exposure
+def test_grab_timeout_follows_the_exposure():
+    from polrig import hal
+
+    class Cam:
+        exposure_us = 5e6
+    assert hal.grab_timeout_s(Cam()) == pytest.approx(hal.DEFAULT_TIMEOUT_S + 5.0)
+    assert hal.grab_timeout_s(Cam(), 2.0) == pytest.approx(7.0)
+    Cam.exposure_us = float("nan")  # a camera that cannot say
+    assert hal.grab_timeout_s(Cam(), 2.0) == pytest.approx(2.0)
+
+
+def test_a_long_exposure_reaches_the_live_view(qtbot, window):
+    wait_frames(qtbot, window, 2)
+    window.live.exposure.setValue(3_000_000.0)  # 3 s (simulated): beyond the old 2 s timeout
+    qtbot.waitUntil(lambda: window.live.last.exposure_us == 3_000_000.0, timeout=15000)
+    assert not any("no frame within" in t for t in messages(window, "error"))
+
+
+def test_a_capture_at_the_longest_exposure_completes(qtbot, window, tmp_path):
+    """The camera's longest exposure (10 s + readout: beyond the HAL's 10 s grab timeout),
+    accepted by the plan's validation, is acquired (it used to time out on every grab)."""
+    wait_connected(qtbot, window)
+    out = tmp_path / "session"
+    run_capture(qtbot, window, out, "0", exposure="10000000")
+    assert window.capture.last_status == "complete", window.capture.eta.text()
+    assert json.loads((out / "session.json").read_text())["status"] == "complete"
+
+
 # -- 11. capture panel messages
 def test_a_non_finite_exposure_is_not_called_an_angle():
     from polrig.capture import parse_float_list, parse_pose_spec

@@ -27,6 +27,11 @@ from polrig.errors import DeviceDisconnected, PolrigError
 from polrig.gui import pipeline
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import DeviceBusy, RigLocks
+from polrig.hal import grab_timeout_s
+
+#: What a live grab waits beyond the frame's exposure and readout, seconds (short: a camera
+#: that stopped delivering shows as a message soon).
+LIVE_GRAB_MARGIN_S = 2.0
 
 
 class LatestSlot:
@@ -246,7 +251,7 @@ class LiveWorker(QThread):
             if not cam.is_open:
                 return None
             self._apply_pending(cam)
-            frame = cam.grab(timeout_s=2.0)
+            frame = cam.grab(timeout_s=grab_timeout_s(cam, LIVE_GRAB_MARGIN_S))
         t0 = time.perf_counter()
         note = ""
         data = None
