@@ -150,3 +150,37 @@ def test_capture_panel_messages(qtbot, window, tmp_path):
     qtbot.waitUntil(lambda: cp.last_status == "complete", timeout=60000)
     assert f"capture resumed in {out}" in messages(window)
     assert cp.eta.text() == "session complete (8 captures)"
+
+
+# -- 12. stale displays
+def test_live_status_says_when_frames_stop(qtbot, window):
+    wait_connected(qtbot, window)
+    wait_frames(qtbot, window, 3)
+    assert window.fps_label.text().startswith("live ")
+    window.rig.sim.inject_fault("camera", "disconnect", after_calls=0)
+    qtbot.waitUntil(lambda: window.fps_label.text().startswith("live: no frames"),
+                    timeout=10000)
+    qtbot.waitUntil(lambda: "camera not connected" in window.fps_label.text(), timeout=10000)
+    window.devices.connect_device("camera")
+    qtbot.waitUntil(lambda: window.fps_label.text().startswith("live "), timeout=10000)
+
+
+def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, tmp_path):
+    from polrig.exr import write_mueller_exr
+    from polrig.gui.viewer import ViewerPanel
+
+    good = tmp_path / "good.exr"
+    write_mueller_exr(good, np.ones((3, 3, 3, 8, 8), np.float32))
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(good.read_bytes()[:200])
+    v = ViewerPanel()
+    qtbot.addWidget(v)
+    v.resize(800, 500)
+    v.show()
+    assert v.open_file(good)
+    v._hovered(2, 2)
+    assert v.view.image() is not None and v.readout.text() and v.histogram.counts.size
+    assert not v.open_file(bad)
+    assert v.view.image() is None and v.data is None and v.path is None
+    assert v.readout.text() == "" and v.histogram.counts.size == 0
+    assert "bad.exr" in v.view.placeholder

@@ -9,6 +9,11 @@ one-item slot: a newer item replaces one not taken yet (that frame is dropped an
 so nothing is ever queued without bound, and the UI thread never waits for a device or for
 inference; it only takes what is in the slot when ``frame_ready`` fires. Camera settings
 (exposure, gain) are handed to the worker and applied between frames.
+
+Neither stage ever ends on an error: a device fault, a processing error or an unexpected
+exception (a driver bug) becomes one message per distinct problem and ``stalled(reason)``
+(the panel replaces the frame-rate line with it), and the loop tries again. A grab's timeout
+follows the exposure (:func:`polrig.hal.grab_timeout_s`), so long exposures reach the view.
 """
 
 from __future__ import annotations
@@ -123,6 +128,8 @@ class LiveWorker(QThread):
 
     frame_ready = Signal()
     message = Signal(str, str)  # level, text
+    #: frames stopped coming: why (an error's text, "camera not connected"); once per reason
+    stalled = Signal(str)
 
     def __init__(self, rig, locks: RigLocks, settings: LiveSettings | None = None,
                  model_loader: Callable[[], Any] | None = None, parent=None):
@@ -144,6 +151,7 @@ class LiveWorker(QThread):
         self.meter = RateMeter()
         self.frames_processed = 0
         self._last_error = ""
+        self._stall_reason = ""
 
     # -- control from the UI thread
     def stop(self) -> None:
@@ -182,7 +190,7 @@ class LiveWorker(QThread):
                     continue
                 try:
                     result = self._render(*item)
-                except (PolrigError, ValueError) as exc:
+                except Exception as exc:  # noqa: BLE001 - never end the loop: report, go on
                     self._report(exc)
                     continue
                 self.frames_processed += 1
@@ -203,14 +211,16 @@ class LiveWorker(QThread):
             except DeviceBusy:
                 self._quit.wait(0.1)
                 continue
-            except (PolrigError, OSError, ValueError) as exc:
+            except Exception as exc:  # noqa: BLE001 - a driver bug too: report, try again
                 self._report(exc)
                 self._quit.wait(1.0 if isinstance(exc, DeviceDisconnected) else 0.3)
                 continue
             if item is None:
+                self._stall("camera not connected")
                 self._quit.wait(0.2)
                 continue
             self._last_error = ""
+            self._stall_reason = ""
             self._processed.put(item)  # an unrendered older frame is dropped
             self._processed_ready.set()
             s = self.settings
@@ -228,10 +238,18 @@ class LiveWorker(QThread):
         return self._single_shot_geometry
 
     def _report(self, exc: BaseException) -> None:
-        text = f"live view: {exc}"
+        detail = (str(exc) if isinstance(exc, (PolrigError, OSError, ValueError))
+                  else f"{type(exc).__name__}: {exc}")
+        text = f"live view: {detail}"
         if text != self._last_error:  # one message per distinct problem, not one per frame
             self._last_error = text
             self.message.emit("error", text)
+        self._stall(detail)
+
+    def _stall(self, reason: str) -> None:
+        if reason != self._stall_reason:
+            self._stall_reason = reason
+            self.stalled.emit(reason)
 
     def _apply_pending(self, cam) -> None:
         with self._pending_lock:
@@ -288,7 +306,7 @@ class LiveWorker(QThread):
         try:
             with self.locks.hold("stage", timeout_s=0.2, who="live view"):
                 return float(self.rig.stage.position_deg())
-        except (PolrigError, ValueError):
+        except Exception:  # noqa: BLE001 - any stage problem: angle 0
             return 0.0
 
     def _get_model(self):

@@ -108,6 +108,7 @@ class LivePanel(QWidget):
         self.view.hovered.connect(self._hovered)
         worker.frame_ready.connect(self._take_frame)
         worker.message.connect(self.message)
+        worker.stalled.connect(self._stalled)
 
     # -- settings
     def settings(self) -> LiveSettings:
@@ -134,6 +135,13 @@ class LivePanel(QWidget):
     def _pause_toggled(self, paused: bool) -> None:
         self.worker.pause(paused)
         self.pause_button.setText("Resume live" if paused else "Pause live")
+        if paused:
+            self.status.emit("live view paused")
+
+    def _stalled(self, reason: str) -> None:
+        """Frames stopped coming: the status line says why instead of the last frame rate."""
+        if not self.worker.paused:
+            self.status.emit(f"live: no frames - {reason}")
 
     def pause_for(self, reason: str, paused: bool) -> None:
         """Pause/resume for another task (a capture); the button shows why."""

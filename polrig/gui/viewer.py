@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import pathlib
 
+import numpy as np
+
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QComboBox, QFileDialog, QHBoxLayout, QLabel, QListWidget,
                                QListWidgetItem, QPushButton, QSplitter, QVBoxLayout, QWidget)
@@ -147,8 +149,11 @@ class ViewerPanel(QWidget):
     def open_file(self, path: str | pathlib.Path, kind: str = "exr") -> bool:
         try:
             data = load_exr(path) if kind == "exr" else load_raw(path, self.method.currentText())
-        except (PolrigError, OSError, ValueError) as exc:
-            self.message.emit("error", f"viewer: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a damaged file is a message, never a crash
+            text = (str(exc) if isinstance(exc, (PolrigError, OSError, ValueError))
+                    else f"{type(exc).__name__}: {exc}")
+            self.clear(f"cannot show {pathlib.Path(path).name}: {text}")
+            self.message.emit("error", f"viewer: {text}")
             return False
         self.path = pathlib.Path(path)
         self._kind = kind
@@ -165,6 +170,17 @@ class ViewerPanel(QWidget):
             self.open_file(self.path, "raw")
 
     # -- showing
+    def clear(self, placeholder: str = "") -> None:
+        """Show nothing (after a file that cannot be read): no image, histogram or readout
+        of an earlier file stays on screen."""
+        self.data = None
+        self.path = None
+        self.view.set_image(None)
+        if placeholder:
+            self.view.set_placeholder(placeholder)
+        self.histogram.set_data(np.zeros(0), np.zeros(1), "")
+        self.readout.setText("")
+
     def set_data(self, data: pipeline.PolarizationData) -> None:
         self.data = data
         keep = self.display.currentData()
