@@ -24,6 +24,12 @@ import numpy as np
 from polrig.errors import FormatError
 
 DEFAULT_TIMEOUT_S = 10.0
+#: Timeout of a motion (move or home) whose length is unknown, seconds (the HAL's default).
+DEFAULT_MOTION_TIMEOUT_S = 30.0
+#: Speed assumed for an axis that does not say how fast it turns (no ``speed_deg_s``
+#: attribute), deg/s: below the slowest stage polrig drives (K10CR1 default 10 deg/s), so a
+#: timeout derived from it is never too short.
+ASSUMED_AXIS_SPEED_DEG_S = 5.0
 
 
 def grab_timeout_s(camera, margin_s: float = DEFAULT_TIMEOUT_S) -> float:
@@ -41,6 +47,19 @@ def grab_timeout_s(camera, margin_s: float = DEFAULT_TIMEOUT_S) -> float:
                    if isinstance(v, (int, float)) and math.isfinite(v) and v > 0)
     return float(margin_s) + frame_us * 1e-6
 
+
+def motion_timeout_s(axis, distance_deg: float,
+                     margin_s: float = DEFAULT_MOTION_TIMEOUT_S) -> float:
+    """Timeout of a move of ``distance_deg`` on ``axis``: the time the move takes at the
+    axis's speed (``speed_deg_s`` where it declares one, else
+    :data:`ASSUMED_AXIS_SPEED_DEG_S`), 1.5 times for acceleration, plus ``margin_s``."""
+    speed = getattr(axis, "speed_deg_s", None)
+    if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
+        speed = ASSUMED_AXIS_SPEED_DEG_S
+    distance = abs(float(distance_deg))
+    if not math.isfinite(distance):
+        distance = 0.0
+    return float(margin_s) + 1.5 * distance / float(speed)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -82,6 +82,98 @@ def test_error_after_the_session_exists_is_a_resumable_stop(qtbot, window, tmp_p
     assert cp.eta.text() == "session complete (3 captures)"  # (11) the whole session, not this run
 
 
+# -- 2. a driver bug (an exception outside polrig's types) never ends a worker
+def test_driver_bug_in_status_poll_and_live_grab_is_a_message(qtbot, window):
+    wait_connected(qtbot, window)
+    wait_frames(qtbot, window, 3)
+    rig = window.rig
+    real_status, real_grab = rig.light.status, rig.camera.grab
+    calls = {"status": 0, "grab": 0}
+
+    def status():
+        calls["status"] += 1
+        if calls["status"] == 1:
+            raise RuntimeError("driver bug in light.status")
+        return real_status()
+
+    def grab(*a, **kw):
+        calls["grab"] += 1
+        if calls["grab"] == 1:
+            raise RuntimeError("driver bug in grab")
+        return real_grab(*a, **kw)
+
+    rig.light.status = status
+    qtbot.waitUntil(lambda: calls["status"] >= 2, timeout=10000)  # polled again: alive
+    assert window.devices.worker.isRunning()
+    assert any("RuntimeError: driver bug in light.status" in t for t in messages(window, "error"))
+    window.devices.move("stage", 10.0)
+    qtbot.waitUntil(lambda: "move stage to 10 deg: done" in messages(window), timeout=10000)
+    rig.camera.grab = grab
+    qtbot.waitUntil(lambda: calls["grab"] >= 1, timeout=10000)
+    wait_frames(qtbot, window, 3)  # the grab thread lives on
+    assert any("live view: RuntimeError: driver bug in grab" in t
+               for t in messages(window, "error"))
+    assert window.live_worker.isRunning()
+
+
+# -- 3. manual moves: Stop at once, readouts during the motion, long moves
+def test_stop_interrupts_a_manual_move_and_readouts_follow_it(qtbot, tmp_path):
+    w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=50.0)  # turntable 500 deg/s
+    try:
+        wait_connected(qtbot, w)
+        d = w.devices
+        qtbot.waitUntil(lambda: "position_deg" in d.last_status.get("turntable", {}),
+                        timeout=10000)
+        d.turntable.target.setValue(700.0)
+        d.turntable.move.click()  # ~1.5 s
+        qtbot.waitUntil(lambda: d.turntable.state.text() == "moving"
+                        and 20.0 < float(d.turntable.position.text().split()[0]) < 600.0,
+                        timeout=5000)
+        d.light_level.setValue(0.5)  # runs during the motion, not after it
+        qtbot.waitUntil(lambda: "light level 0.5: done" in messages(w), timeout=1000)
+        assert w.rig.turntable.is_busy()
+        t0 = time.monotonic()
+        d.turntable.stop.click()
+        qtbot.waitUntil(lambda: "stop turntable: done" in messages(w), timeout=2000)
+        assert time.monotonic() - t0 < 1.0
+        assert not w.rig.turntable.is_busy()
+        stopped = w.rig.turntable.position_deg()
+        assert 20.0 < stopped < 690.0
+        assert "move turntable to 700 deg: ended by stop turntable" in messages(w, "warning")
+        qtbot.waitUntil(lambda: d.turntable.state.text() == "open"
+                        and abs(float(d.turntable.position.text().split()[0]) - stopped) < 1e-3,
+                        timeout=3000)
+    finally:
+        close_window(qtbot, w)
+
+
+def test_a_long_move_gets_a_timeout_that_fits_it(qtbot, window):
+    wait_connected(qtbot, window)
+    window.devices.move("turntable", 720.0)  # 72 s at 10 deg/s: beyond the HAL's 30 s
+    qtbot.waitUntil(lambda: "move turntable to 720 deg: done" in messages(window), timeout=15000)
+    assert not any("did not end" in t for t in messages(window, "error"))
+    assert window.rig.turntable.position_deg() == pytest.approx(720.0)
+    from polrig.hal import motion_timeout_s
+
+    assert motion_timeout_s(window.rig.turntable, 720.0) == pytest.approx(30.0 + 1.5 * 72.0)
+    assert motion_timeout_s(object(), -10.0) == pytest.approx(30.0 + 1.5 * 10.0 / 5.0)
+
+
+# -- 8. closing during a manual move
+def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, tmp_path):
+    w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=10.0)  # 720 deg: ~7 s
+    wait_connected(qtbot, w)
+    w.devices.move("turntable", 720.0)
+    qtbot.waitUntil(lambda: w.rig.turntable.is_busy(), timeout=5000)
+    t0 = time.monotonic()
+    w.close()
+    qtbot.waitUntil(lambda: not w.isVisible(), timeout=10000)
+    assert time.monotonic() - t0 < 2.0
+    assert not w.devices.worker.isRunning() and not w.live_worker.isRunning()
+    world = w.rig.sim.world  # the motion was stopped before the rig closed
+    assert world.turntable_move.t_end_s <= world.clock.now() < 5.0 * 10.0
+
+
 # -- 10. grab timeouts follow the exposure
 def test_grab_timeout_follows_the_exposure():
     from polrig import hal

@@ -3,13 +3,24 @@
 Every device call runs in :class:`DeviceWorker` (a ``QThread`` working through a job queue),
 holding that device's lock (:class:`polrig.gui.rigaccess.RigLocks`); the UI thread only queues
 jobs and shows what comes back. Errors come back as readable messages (the typed
-:mod:`polrig.errors` text, which carries the device's own code), never as a frozen window.
+:mod:`polrig.errors` text, which carries the device's own code), never as a frozen window; an
+unexpected exception (a driver bug) in a job or in the status poll is a message too, and the
+worker keeps running.
+
+A manual move is started without waiting (``move_to(wait=False)``) and then followed by the
+worker between jobs (``is_busy`` and ``position_deg`` every :attr:`DeviceWorker.MOTION_POLL_S`),
+so the readouts move with the axis, other jobs (the light, the other axis) run during the
+motion, Stop runs at once (it goes before every queued job) and the timeout grows with the
+distance and the axis's speed (:func:`polrig.hal.motion_timeout_s`; when it runs out the axis
+is stopped). Homing has no non-blocking form in the HAL: it occupies the worker until it ends.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import queue
+import time
 from typing import Any, Callable
 
 from PySide6.QtCore import QThread, QTimer, Signal
@@ -18,6 +29,15 @@ from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QGridLayout, QGroupBox
 
 from polrig.errors import PolrigError
 from polrig.gui.rigaccess import DEVICE_KINDS, DeviceBusy, RigLocks
+from polrig.hal import motion_timeout_s
+
+
+def error_text(exc: BaseException) -> str:
+    """One line for a device call's exception: the typed polrig text as it is, anything else
+    (a driver bug) with its type."""
+    if isinstance(exc, (PolrigError, OSError, ValueError)):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
 
 
 @dataclasses.dataclass
@@ -26,28 +46,64 @@ class Job:
     what: str  # description for messages
     fn: Callable[[], Any]
     poll: bool = False
+    #: ``fn`` starts a motion and returns its timeout in seconds; the worker follows it
+    motion: bool = False
+    #: the job ends a motion of its axis in progress (stop, home, disconnect)
+    ends_motion: bool = False
+
+
+@dataclasses.dataclass
+class Motion:
+    """A move the worker follows until the axis is idle."""
+
+    kind: str
+    what: str
+    timeout_s: float
+    deadline: float  # time.monotonic()
+
+
+_WAKE = Job("", "wake", lambda: None)
 
 
 class DeviceWorker(QThread):
-    """Runs device jobs one after another off the UI thread.
+    """Runs device jobs one after another off the UI thread and follows the motions they
+    start.
 
-    ``done(what, result)``, ``failed(what, message)``; ``polled(status)`` carries the periodic
-    status dictionary ``{kind: {"open": bool, "position_deg"/"light": ...}}``.
+    ``done(what, result)``, ``failed(what, message)``, ``notice(level, text)``;
+    ``polled(status)`` carries the periodic status dictionary ``{kind: {"open": bool,
+    "position_deg"/"light": ...}}``; ``motion(kind, {"position_deg", "busy"})`` the position
+    of a moving axis. ``current`` is the job running now (``None`` when idle).
     """
 
     done = Signal(str, object)
     failed = Signal(str, str)
+    notice = Signal(str, str)
     polled = Signal(object)
+    motion = Signal(str, object)
+
+    #: How often a moving axis is asked where it is, seconds.
+    MOTION_POLL_S = 0.1
 
     def __init__(self, rig, locks: RigLocks, parent=None):
         super().__init__(parent)
         self.rig = rig
         self.locks = locks
         self.jobs: queue.Queue[Job | None] = queue.Queue()
+        self._urgent: collections.deque[Job] = collections.deque()
         self._poll_pending = False
+        self.motions: dict[str, Motion] = {}  # worker thread only
+        self.current: str | None = None
+        self._next_follow = 0.0
 
-    def submit(self, kind: str, what: str, fn: Callable[[], Any]) -> None:
-        self.jobs.put(Job(kind, what, fn))
+    def submit(self, kind: str, what: str, fn: Callable[[], Any], *, motion: bool = False,
+               ends_motion: bool = False) -> None:
+        self.jobs.put(Job(kind, what, fn, motion=motion, ends_motion=ends_motion))
+
+    def submit_urgent(self, kind: str, what: str, fn: Callable[[], Any]) -> None:
+        """Run ``fn`` before every job waiting in the queue (Stop); it ends the axis's
+        motion."""
+        self._urgent.append(Job(kind, what, fn, ends_motion=True))
+        self.jobs.put(_WAKE)
 
     def request_poll(self) -> None:
         """Queue one status poll unless one is already waiting (polls never pile up)."""
@@ -55,35 +111,128 @@ class DeviceWorker(QThread):
             self._poll_pending = True
             self.jobs.put(Job("", "poll", self._poll, poll=True))
 
-    def stop(self) -> None:
+    def stop(self, drop_queued: bool = False) -> None:
+        """End the thread after the job in progress (and the urgent ones); ``drop_queued``:
+        forget the jobs still waiting (closing the window). Axes still moving are stopped."""
+        if drop_queued:
+            try:
+                while True:
+                    self.jobs.get_nowait()
+            except queue.Empty:
+                pass
         self.jobs.put(None)
 
+    # -- the thread
     def run(self) -> None:
-        while True:
-            job = self.jobs.get()
-            if job is None:
-                return
-            if job.poll:
-                self._poll_pending = False
-                self.polled.emit(job.fn())
-                continue
+        try:
+            while True:
+                job = self._next_job()
+                if job is None:
+                    return
+                if job is not _WAKE:
+                    self._run_job(job)
+                if self.motions and time.monotonic() >= self._next_follow:
+                    self._follow_motions()
+        finally:
+            self._stop_motions()  # never leave an axis moving unattended
+
+    def _next_job(self) -> Job | None:
+        if self._urgent:
+            return self._urgent.popleft()
+        if not self.motions:
+            return self.jobs.get()
+        wait = max(0.0, self._next_follow - time.monotonic())
+        try:
+            return self.jobs.get(timeout=wait)
+        except queue.Empty:
+            return _WAKE
+
+    def _run_job(self, job: Job) -> None:
+        if job.poll:
+            self._poll_pending = False
             try:
-                with self.locks.hold(job.kind, timeout_s=2.0, who=job.what):
-                    result = job.fn()
-            except (PolrigError, OSError, ValueError) as exc:
-                self.failed.emit(job.what, str(exc))
-            except Exception as exc:  # noqa: BLE001 - a driver bug must not kill the thread
-                self.failed.emit(job.what, f"{type(exc).__name__}: {exc}")
+                status = job.fn()
+            except Exception as exc:  # noqa: BLE001 - a poll must never end the thread
+                self.failed.emit("status poll", error_text(exc))
+                return
+            self.polled.emit(status)
+            return
+        self.current = job.what
+        try:
+            with self.locks.hold(job.kind, timeout_s=2.0, who=job.what):
+                result = job.fn()
+        except Exception as exc:  # noqa: BLE001 - a driver bug must not kill the thread
+            self.failed.emit(job.what, error_text(exc))  # a motion goes on being followed
+        else:
+            if job.motion:
+                old = self.motions.pop(job.kind, None)
+                if old is not None:
+                    self.notice.emit("warning", f"{old.what}: replaced by {job.what}")
+                timeout = float(result)
+                self.motions[job.kind] = Motion(job.kind, job.what, timeout,
+                                                time.monotonic() + timeout)
+                self._next_follow = 0.0
+                self.notice.emit("info", f"{job.what}: moving")
             else:
+                if job.ends_motion:
+                    self._end_motion(job.kind, job.what)
                 self.done.emit(job.what, result)
+        finally:
+            self.current = None
+
+    def _end_motion(self, kind: str, by: str) -> None:
+        m = self.motions.pop(kind, None)
+        if m is not None:
+            self.notice.emit("warning", f"{m.what}: ended by {by}")
+
+    def _follow_motions(self) -> None:
+        """Ask each moving axis where it is; report the end of its motion, or stop it when
+        its timeout has run out."""
+        self._next_follow = time.monotonic() + self.MOTION_POLL_S
+        for kind, m in list(self.motions.items()):
+            dev = getattr(self.rig, kind)
+            try:
+                with self.locks.hold(kind, timeout_s=0.05, who=m.what):
+                    busy = bool(dev.is_busy())
+                    pos = float(dev.position_deg())
+            except DeviceBusy:
+                continue
+            except Exception as exc:  # noqa: BLE001 - the motion ends with a message
+                self.motions.pop(kind, None)
+                self.failed.emit(m.what, error_text(exc))
+                continue
+            self.motion.emit(kind, {"open": True, "position_deg": pos, "busy": busy})
+            if not busy:
+                self.motions.pop(kind, None)
+                self.done.emit(m.what, pos)
+            elif time.monotonic() > m.deadline:
+                self.motions.pop(kind, None)
+                why = f"motion did not end within {m.timeout_s:.0f} s (at {pos:.3f} deg)"
+                try:
+                    with self.locks.hold(kind, timeout_s=2.0, who=m.what):
+                        dev.stop()
+                    why += "; the axis was stopped"
+                except Exception as exc:  # noqa: BLE001
+                    why += f"; stopping it failed: {error_text(exc)}"
+                self.failed.emit(m.what, why)
+
+    def _stop_motions(self) -> None:
+        for kind, m in list(self.motions.items()):
+            try:
+                with self.locks.hold(kind, timeout_s=2.0, who="closing"):
+                    getattr(self.rig, kind).stop()
+            except Exception:  # noqa: BLE001 - closing: nothing more to do
+                pass
+        self.motions.clear()
 
     def _poll(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for kind in DEVICE_KINDS:
             dev = getattr(self.rig, kind)
-            st: dict[str, Any] = {"open": bool(dev.is_open)}
-            if dev.is_open:
-                try:
+            st: dict[str, Any] = {"open": False}
+            try:
+                st["open"] = bool(dev.is_open)
+                if st["open"]:
                     with self.locks.hold(kind, timeout_s=0.05, who="status poll"):
                         if kind in ("stage", "turntable"):
                             st["position_deg"] = float(dev.position_deg())
@@ -93,10 +242,10 @@ class DeviceWorker(QThread):
                         else:
                             st["exposure_us"] = float(dev.exposure_us)
                             st["gain_db"] = float(dev.gain_db)
-                except DeviceBusy as exc:
-                    st["busy_with"] = str(exc)
-                except (PolrigError, OSError, ValueError) as exc:
-                    st["error"] = str(exc)
+            except DeviceBusy as exc:
+                st["busy_with"] = str(exc)
+            except Exception as exc:  # noqa: BLE001 - a driver bug is a status, not a crash
+                st["error"] = error_text(exc)
             out[kind] = st
         return out
 
@@ -195,7 +344,9 @@ class DevicesPanel(QWidget):
 
         self.worker.done.connect(self._done)
         self.worker.failed.connect(self._failed)
+        self.worker.notice.connect(self.message)
         self.worker.polled.connect(self._polled)
+        self.worker.motion.connect(self._axis_update)
         self.timer = QTimer(self)
         self.timer.setInterval(poll_ms)
         self.timer.timeout.connect(self.worker.request_poll)
@@ -205,9 +356,17 @@ class DevicesPanel(QWidget):
         self.timer.start()
         self.worker.request_poll()
 
-    def shutdown(self, wait_ms: int = 5000) -> bool:
+    def begin_shutdown(self) -> None:
+        """Stop polling, forget queued jobs, stop moving axes and end the worker (after the
+        job in progress, if any: a homing runs to its end). Does not wait."""
         self.timer.stop()
-        self.worker.stop()
+        self.worker.stop(drop_queued=True)
+
+    def shutdown(self, wait_ms: int = 5000) -> bool:
+        if self.worker.isRunning():
+            self.begin_shutdown()
+        else:
+            self.timer.stop()
         return self.worker.wait(wait_ms)
 
     # -- actions (queue jobs; results arrive as signals)
@@ -218,7 +377,7 @@ class DevicesPanel(QWidget):
         self.worker.submit(kind, f"connect {kind}", self._dev(kind).open)
 
     def disconnect_device(self, kind: str) -> None:
-        self.worker.submit(kind, f"disconnect {kind}", self._dev(kind).close)
+        self.worker.submit(kind, f"disconnect {kind}", self._dev(kind).close, ends_motion=True)
 
     def connect_all(self) -> None:
         for kind in DEVICE_KINDS:
@@ -230,15 +389,24 @@ class DevicesPanel(QWidget):
             self.disconnect_device(kind)
 
     def move(self, kind: str, angle_deg: float) -> None:
+        """Start a move (not waiting for it: the worker follows it, see the module)."""
         dev = self._dev(kind)
-        self.worker.submit(kind, f"move {kind} to {angle_deg:g} deg",
-                           lambda: dev.move_to(angle_deg, wait=True))
+        angle_deg = float(angle_deg)
+
+        def start() -> float:
+            here = float(dev.position_deg())
+            dev.move_to(angle_deg, wait=False)
+            return motion_timeout_s(dev, angle_deg - here)
+
+        self.worker.submit(kind, f"move {kind} to {angle_deg:g} deg", start, motion=True)
 
     def home(self, kind: str) -> None:
-        self.worker.submit(kind, f"home {kind}", self._dev(kind).home)
+        self.worker.submit(kind, f"home {kind}", self._dev(kind).home, ends_motion=True)
 
     def stop_axis(self, kind: str) -> None:
-        self.worker.submit(kind, f"stop {kind}", self._dev(kind).stop)
+        """Stop the axis now: before any job waiting in the queue (a motion in progress does
+        not occupy the worker; a homing does, until it ends)."""
+        self.worker.submit_urgent(kind, f"stop {kind}", self._dev(kind).stop)
 
     def set_light_on(self, on: bool) -> None:
         self.worker.submit("light", f"light {'on' if on else 'off'}",
@@ -258,6 +426,13 @@ class DevicesPanel(QWidget):
         self.message.emit("error", f"{what} failed: {text}")
         self.worker.request_poll()
 
+    def _axis_update(self, kind: str, st: dict[str, Any]) -> None:
+        """An axis's state and position (from the status poll or a followed motion)."""
+        box = self.stage if kind == "stage" else self.turntable
+        box.state.setText("moving" if st.get("busy") else ("open" if st["open"] else "closed"))
+        if "position_deg" in st:
+            box.position.setText(f"{st['position_deg']:.3f} deg")
+
     def _polled(self, status: dict[str, Any]) -> None:
         self.last_status = status
         for kind, st in status.items():
@@ -272,11 +447,8 @@ class DevicesPanel(QWidget):
                 text += f" - {st['busy_with']}"
             self._poll_errors[kind] = st.get("error", "")
             lab.setText(text)
-        for kind, box in (("stage", self.stage), ("turntable", self.turntable)):
-            st = status[kind]
-            box.state.setText("moving" if st.get("busy") else ("open" if st["open"] else "closed"))
-            if "position_deg" in st:
-                box.position.setText(f"{st['position_deg']:.3f} deg")
+        for kind in ("stage", "turntable"):
+            self._axis_update(kind, status[kind])
         st = status["light"]
         if "level" in st:
             self.light_state.setText(", ".join(f"{k} {v}" for k, v in st.items() if k != "open"))

@@ -49,6 +49,7 @@ class MainWindow(QMainWindow):
         self.locks = RigLocks()
         self.qsettings = settings
         self._closing = False
+        self._close_when_devices_end = False
         src = getattr(rig, "source", None)
         self.setWindowTitle(f"polrig - {src or 'simulated rig'}")
 
@@ -158,6 +159,18 @@ class MainWindow(QMainWindow):
         self.binder.save()
         self.qsettings.setValue("window/geometry", self.saveGeometry())
         self.qsettings.sync()
+        self.live_worker.stop()
+        dw = self.devices.worker
+        self.devices.begin_shutdown()  # moving axes are stopped, queued jobs dropped
+        if dw.isRunning() and not dw.wait(200):  # a blocking call (a homing) in progress
+            self._closing = True
+            self.show_message("info", f"closing once '{dw.current or 'a device call'}' has "
+                                      f"ended...")
+            if not self._close_when_devices_end:
+                self._close_when_devices_end = True
+                dw.finished.connect(self.close)
+            event.ignore()
+            return
         self.shutdown()
         event.accept()
 
