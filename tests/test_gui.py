@@ -402,7 +402,8 @@ def test_polrig_gui_command(qtbot, tmp_path, capsys):
     seen = {}
 
     def close_when_live():
-        wins = [w for w in QApplication.topLevelWidgets() if isinstance(w, MainWindow)]
+        wins = [w for w in QApplication.topLevelWidgets()
+                if isinstance(w, MainWindow) and w.isVisible()]  # not another test's
         if wins and wins[0].live.frames_shown >= 3:
             seen["frames"] = wins[0].live.frames_shown
             wins[0].close()

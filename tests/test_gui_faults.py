@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pytestqt")
 
-from PySide6.QtCore import Qt, QTimer  # noqa: E402
+from PySide6.QtCore import QEvent, Qt, QTimer  # noqa: E402
 
 from test_gui import close_window, make_window, wait_connected, wait_frames, window  # noqa: E402,F401
 
@@ -157,6 +157,65 @@ def test_a_long_move_gets_a_timeout_that_fits_it(qtbot, window):
 
     assert motion_timeout_s(window.rig.turntable, 720.0) == pytest.approx(30.0 + 1.5 * 72.0)
     assert motion_timeout_s(object(), -10.0) == pytest.approx(30.0 + 1.5 * 10.0 / 5.0)
+
+
+# -- 4. SIGTERM and SIGINT close the GUI like its close button, with polrig's exit codes
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_polrig_gui_exits_on_sigterm_and_sigint(qtbot, tmp_path, capsys, signum):
+    from PySide6.QtWidgets import QApplication
+
+    from polrig.cli import main
+    from polrig.gui.main_window import MainWindow
+
+    out = tmp_path / "session"
+    seen = {"t0": time.monotonic()}
+
+    def step():
+        if "done" in seen:
+            return
+        QTimer.singleShot(20, step)  # first: a signal raised in here must not end the checks
+        wins = [w for w in QApplication.topLevelWidgets()
+                if isinstance(w, MainWindow) and w.isVisible()]
+        if not wins:
+            return
+        w = wins[0]
+        if time.monotonic() - seen["t0"] > 30:  # the signal was ignored: end the test
+            w.capture.stop()
+            w.close()
+        elif "killed" not in seen and signum == signal.SIGINT and w.live.frames_shown >= 2:
+            seen["killed"] = True
+            os.kill(os.getpid(), signum)
+        elif "started" not in seen and signum == signal.SIGTERM and all(
+                d.is_open for d in w.rig.devices.values()):
+            seen["started"] = True
+            w.capture.poses.setText("0:360:30")
+            w.capture.out.setText(str(out))
+            w.capture.start()
+        elif "killed" not in seen and any(e.kind == "frame" for e in w.capture.events):
+            seen["killed"] = True
+            seen["window"] = w
+            os.kill(os.getpid(), signum)  # during the capture
+
+    QTimer.singleShot(20, step)
+    rc = main(["gui", "--sim-size", "64x64", "--sim-clock-speed", "1000", "--settings",
+               str(tmp_path / "gui.ini")])
+    seen["done"] = True
+    stale = [w for w in QApplication.topLevelWidgets() if isinstance(w, MainWindow)
+             and not w.isVisible()]
+    err = capsys.readouterr().err
+    assert rc == 128 + signum, err
+    assert signal.getsignal(signal.SIGINT) is not None
+    if signum == signal.SIGTERM:
+        assert "polrig: terminated (SIGTERM)" in err
+        m = json.loads((out / "session.json").read_text())
+        assert m["status"] == "interrupted" and "pending" in [c["status"] for c in m["captures"]]
+        assert seen["window"].capture.last_status == "interrupted"
+    else:
+        assert "polrig: interrupted" in err
+    assert (tmp_path / "gui.ini").is_file()  # closed as the close button closes it
+    for w in stale:  # polrig gui's window: gone, as when the process ends
+        w.deleteLater()
+    QApplication.sendPostedEvents(None, QEvent.Type.DeferredDelete)
 
 
 # -- 8. closing during a manual move

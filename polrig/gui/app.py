@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import sys
-from typing import Any
+import threading
+from typing import Any, Iterator
 
 #: Simulated sensor size of the GUI's built-in rig (width x height). Smaller than a real
 #: IMX250 (2448x2048): the simulator renders every new pose, which at full size takes
@@ -60,4 +63,61 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
     window = MainWindow(rig, make_settings(settings_file), model_loader=model_loader(weights))
     window.show()
     window.start()
-    return int(app.exec())
+    with close_on_signals(window) as received:
+        code = int(app.exec())
+    if received:
+        from polrig.session import Interrupted
+
+        raise Interrupted(received[0])  # polrig's exit: 130 (SIGINT) / 143 (SIGTERM)
+    return code
+
+
+#: How often the event loop lets Python run its signal handlers, milliseconds.
+SIGNAL_CHECK_MS = 100
+
+
+@contextlib.contextmanager
+def close_on_signals(window, signals=(signal.SIGINT, signal.SIGTERM)) -> Iterator[list[int]]:
+    """While Qt's event loop runs: SIGINT and SIGTERM close ``window`` as its close button
+    does (a running capture is stopped and its session left ``interrupted``; the window
+    closes once it has). Yields the list of signals received (the first one decides the
+    exit code: :func:`run_gui` raises :class:`polrig.session.Interrupted` for it after the
+    window closed). A repeated signal does not cut the clean-up short.
+
+    The usual Qt approach: the Python handler only records the signal; a timer
+    (:data:`SIGNAL_CHECK_MS`) lets the interpreter run while Qt's C++ loop waits, and posts
+    the close to the event loop. Only in the main thread, and not for a signal that is
+    ignored (``SIG_IGN``). The previous handlers are restored afterwards."""
+    from PySide6.QtCore import QTimer
+
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    closing = [False]
+
+    def handler(signum, _frame) -> None:
+        received.append(int(signum))
+
+    def check() -> None:
+        if received and not closing[0]:
+            closing[0] = True
+            window.close()
+
+    old = {}
+    for sig in signals:
+        prev = signal.getsignal(sig)
+        if prev is signal.SIG_IGN:
+            continue
+        old[sig] = prev
+        signal.signal(sig, handler)
+    timer = QTimer()
+    timer.setInterval(SIGNAL_CHECK_MS)
+    timer.timeout.connect(check)
+    timer.start()
+    try:
+        yield received
+    finally:
+        timer.stop()
+        for sig, prev in old.items():
+            signal.signal(sig, prev if prev is not None else signal.SIG_DFL)
