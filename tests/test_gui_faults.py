@@ -218,6 +218,44 @@ def test_polrig_gui_exits_on_sigterm_and_sigint(qtbot, tmp_path, capsys, signum)
     QApplication.sendPostedEvents(None, QEvent.Type.DeferredDelete)
 
 
+# -- 5. calibration Cancel
+def test_calibration_cancel_stops_at_the_next_device_call_and_saves_nothing(qtbot, window,
+                                                                           tmp_path):
+    wait_connected(qtbot, window)
+    cal = window.calibration
+    folder = tmp_path / "cal"
+    cal.folder.setText(str(folder))
+    cal.steps.setCurrentRow(0)
+    real_grab = window.rig.camera.grab
+    grabs = {"n": 0, "after_cancel": 0}
+
+    def grab(*a, **kw):  # the operator presses Cancel while the first frame is taken
+        if window.locks.owner.get("camera") != "calibration":
+            return real_grab(*a, **kw)  # the live view's
+        grabs["n"] += 1
+        if cal.worker.cancelled.is_set():
+            grabs["after_cancel"] += 1
+        elif grabs["n"] == 1:
+            cal.worker.cancelled.set()
+        return real_grab(*a, **kw)
+
+    window.rig.camera.grab = grab
+    cal.run_selected()
+    qtbot.waitUntil(lambda: not cal.is_running, timeout=30000)
+    window.rig.camera.grab = real_grab
+    assert grabs == {"n": 1, "after_cancel": 0}
+    assert "CANCELLED: nothing was saved" in cal.report_view.toPlainText()
+    assert "calibration step intrinsics cancelled; nothing saved" in messages(window, "warning")[-1]
+    assert not (folder / "calibration.json").exists()
+    qtbot.waitUntil(lambda: not window.live_worker.paused, timeout=10000)
+    # the cancel button during a step whose log line comes first: stops there
+    cal.run_selected()
+    cal.worker.log.connect(lambda _t: cal.worker.cancelled.set(), Qt.ConnectionType.DirectConnection)
+    qtbot.waitUntil(lambda: not cal.is_running, timeout=30000)
+    assert "CANCELLED" in cal.report_view.toPlainText()
+    assert not (folder / "calibration.json").exists()
+
+
 # -- 8. closing during a manual move
 def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, tmp_path):
     w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=10.0)  # 720 deg: ~7 s

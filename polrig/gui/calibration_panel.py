@@ -12,6 +12,11 @@ stream into the panel, the report's text and PNGs are shown when it is done.
 Targets: on the simulated rig the procedure's ``mount(target, **fixture)`` swaps the simulated
 target (:func:`sim.targets.mount`, as ``polrig calibrate`` does); on hardware the panel asks the
 operator to mount it and waits for "Target in place" (the CLI waits for Enter).
+
+Cancel stops the step at its next device call, log line or target mount (the worker hands the
+procedures a rig whose device calls check for it first, :class:`CancellableRig`, and raises
+:class:`CalibrationCancelled` from its callbacks); nothing new is saved and the panel reports
+"cancelled". A device call already running (a turntable move, a grab) ends first.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from PySide6.QtWidgets import (QFormLayout, QHBoxLayout, QLabel, QLineEdit, QLis
                                QVBoxLayout, QWidget)
 
 from polrig.errors import PolrigError
-from polrig.gui.rigaccess import RigLocks
+from polrig.gui.rigaccess import DEVICE_KINDS, RigLocks
 from polrig.gui.widgets import ImageView
 
 STEP_LABELS = {"intrinsics": "Camera intrinsics (ChArUco board)",
@@ -45,6 +50,51 @@ def step_names() -> tuple[str, ...]:
     return tuple(STEPS) + ("all",)
 
 
+class CalibrationCancelled(PolrigError):
+    """The operator cancelled the calibration step."""
+
+
+class _CancellableDevice:
+    """A device whose every method call first calls ``check`` (which raises
+    :class:`CalibrationCancelled` once the step is cancelled); attributes pass through."""
+
+    def __init__(self, device, check) -> None:
+        object.__setattr__(self, "_device", device)
+        object.__setattr__(self, "_check", check)
+
+    def __getattr__(self, name: str):
+        attr = getattr(self._device, name)
+        if not callable(attr):
+            return attr
+        check = self._check
+
+        def call(*args, **kwargs):
+            check()
+            return attr(*args, **kwargs)
+        return call
+
+    def __setattr__(self, name: str, value) -> None:
+        setattr(self._device, name, value)
+
+
+class CancellableRig:
+    """``rig`` as the calibration procedures see it from the GUI: its devices
+    (``camera``, ``stage``, ``turntable``, ``light``, ``devices``) check ``check`` before
+    each call; everything else (``sim``, ``truth``, ``config``) is the rig's own."""
+
+    def __init__(self, rig, check) -> None:
+        self._rig = rig
+        self._check = check
+
+    def __getattr__(self, name: str):
+        attr = getattr(self._rig, name)
+        if name in DEVICE_KINDS:
+            return _CancellableDevice(attr, self._check)
+        if name == "devices":
+            return {k: _CancellableDevice(d, self._check) for k, d in attr.items()}
+        return attr
+
+
 def simulated_mount(rig):
     """The simulated rig's target swap when every device is simulated (else ``None``)."""
     if getattr(rig, "sim", None) is None or getattr(rig, "truth", None) is None:
@@ -59,12 +109,14 @@ def simulated_mount(rig):
 class CalibrationWorker(QThread):
     """Runs one step (or ``all``) into ``calset`` and writes the set and its report into
     ``folder``. Signals: ``log(text)``, ``mount_request(text)`` (hardware),
-    ``step_done(step, report_path)``, ``step_failed(step, message)``."""
+    ``step_done(step, report_path)``, ``step_failed(step, message)``, ``step_cancelled(step)``
+    (nothing saved)."""
 
     log = Signal(str)
     mount_request = Signal(str)
     step_done = Signal(str, str)
     step_failed = Signal(str, str)
+    step_cancelled = Signal(str)
 
     def __init__(self, rig, locks: RigLocks, calset, extras: dict, step: str,
                  folder: pathlib.Path, parent=None):
@@ -74,8 +126,14 @@ class CalibrationWorker(QThread):
         self.mounted = threading.Event()
         self.cancelled = threading.Event()
 
+    def check_cancelled(self) -> None:
+        """Raise :class:`CalibrationCancelled` once :attr:`cancelled` is set."""
+        if self.cancelled.is_set():
+            raise CalibrationCancelled("calibration cancelled by the operator")
+
     def _log(self, text: str) -> None:
         self.log.emit(text)
+        self.check_cancelled()
 
     def _ask_mount(self, target: str, **fixture: Any) -> None:
         where = ", ".join(f"{k}={v}" for k, v in fixture.items()) or "default position"
@@ -83,26 +141,36 @@ class CalibrationWorker(QThread):
         self.mount_request.emit(f"Mount the {target.replace('_', ' ')} ({where}), then press "
                                 f"'Target in place'.")
         while not self.mounted.wait(0.2):
-            if self.cancelled.is_set():
-                raise PolrigError("calibration cancelled by the operator")
+            self.check_cancelled()
 
     def run(self) -> None:
         from calibration import runner
         from calibration.report import write_report
 
         steps = list(runner.STEPS) if self.step == "all" else [self.step]
+        check = self.check_cancelled
         try:
             with self.locks.hold(timeout_s=10.0, who="calibration"):
-                mount = simulated_mount(self.rig)
-                runner.run_steps(steps, self.rig, mount or self._ask_mount, self.calset,
+                sim_mount = simulated_mount(self.rig)
+
+                def mount(target: str, **fixture: Any) -> None:
+                    check()
+                    (sim_mount or self._ask_mount)(target, **fixture)
+
+                runner.run_steps(steps, CancellableRig(self.rig, check), mount, self.calset,
                                  extras=self.extras, log=self._log)
+                check()
                 errors = None
-                if mount is not None:
+                if sim_mount is not None:
                     errors = runner.errors_against_truth(
                         self.calset, self.rig.truth.rig_parameters(),
                         self.rig.sim.world.sensor.analyzer)
+            check()  # the last moment a cancel keeps the folder as it was
             self.calset.save(self.folder)
             report = write_report(self.folder, self.calset, self.extras, errors)
+        except CalibrationCancelled:
+            self.step_cancelled.emit(self.step)
+            return
         except Exception as exc:  # noqa: BLE001 - calibration errors are typed; report all
             self.step_failed.emit(self.step, f"{type(exc).__name__}: {exc}")
             return
@@ -216,6 +284,7 @@ class CalibrationPanel(QWidget):
         w.mount_request.connect(self._mount_request)
         w.step_done.connect(self._done)
         w.step_failed.connect(self._failed)
+        w.step_cancelled.connect(self._cancelled)
         w.finished.connect(lambda: self._set_running(False))
         self.worker = w
         self._set_running(True)
@@ -243,8 +312,19 @@ class CalibrationPanel(QWidget):
             self.worker.mounted.set()
 
     def _cancel(self) -> None:
-        if self.worker is not None:
+        if self.worker is not None and self.is_running:
             self.worker.cancelled.set()
+            self.cancel_button.setEnabled(False)
+            self.prompt.setText("cancelling at the next device call...")
+
+    def _cancelled(self, step: str) -> None:
+        folder = self._loaded_from
+        self.report_view.setPlainText(f"step: {step}\n\nCANCELLED: nothing was saved; the "
+                                      f"calibration set in {folder} is as it was")
+        self.message.emit("warning", f"calibration step {step} cancelled; nothing saved in "
+                                     f"{folder}")
+        self.calset = None  # the folder's set is what counts: reloaded by the next step
+        self._loaded_from = None
 
     def _done(self, step: str, report: str) -> None:
         self.report_path = pathlib.Path(report)
