@@ -271,6 +271,39 @@ def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, t
     assert world.turntable_move.t_end_s <= world.clock.now() < 5.0 * 10.0
 
 
+# -- 9. a capture cannot start while a calibration step runs
+def test_capture_refused_at_once_while_a_calibration_step_runs(qtbot, window, tmp_path,
+                                                               monkeypatch):
+    from calibration import runner
+
+    release = threading.Event()
+
+    def slow_steps(steps, rig, mount, cs, **kw):
+        kw["log"]("step running")
+        release.wait(20)
+        return cs
+    monkeypatch.setattr(runner, "run_steps", slow_steps)
+    wait_connected(qtbot, window)
+    cal = window.calibration
+    cal.folder.setText(str(tmp_path / "cal"))
+    cal.run_selected()
+    qtbot.waitUntil(lambda: "step running" in cal.log_view.toPlainText(), timeout=10000)
+    try:
+        assert not window.capture_action.isEnabled()
+        window.capture.poses.setText("0")
+        window.capture.out.setText(str(tmp_path / "s"))
+        window.capture_action.trigger()  # Ctrl+R
+        window.capture.start()  # and the panel itself
+        assert not window.capture.is_running
+        assert "capture: cannot start while a calibration step runs" in messages(window, "error")
+        assert cal.isEnabled() and cal.cancel_button.isEnabled()
+        assert not (tmp_path / "s").exists()
+    finally:
+        release.set()
+    qtbot.waitUntil(lambda: not cal.is_running, timeout=20000)
+    assert window.capture_action.isEnabled() and window.capture.blocked_by == ""
+
+
 # -- 10. grab timeouts follow the exposure
 def test_grab_timeout_follows_the_exposure():
     from polrig import hal

@@ -191,6 +191,8 @@ class CalibrationPanel(QWidget):
         self._loaded_from: pathlib.Path | None = None
         self.worker: CalibrationWorker | None = None
         self._active = False
+        #: why a step cannot start now (set by the window while a capture runs)
+        self.blocked_by = ""
         self.report_path: pathlib.Path | None = None
         self.steps = QListWidget()
         for key in step_names():
@@ -268,6 +270,9 @@ class CalibrationPanel(QWidget):
     def run_step(self, step: str) -> None:
         if self.is_running:
             self.message.emit("warning", "a calibration step is already running")
+            return
+        if self.blocked_by:
+            self.message.emit("error", f"calibration: cannot start while {self.blocked_by} runs")
             return
         text = self.folder.text().strip()
         if not text:

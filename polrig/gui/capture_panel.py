@@ -161,6 +161,8 @@ class CapturePanel(QWidget):
         self.events: list[Progress] = []
         self.scores: dict[int, dict[str, Any]] = {}
         self.last_status = ""
+        #: why a capture cannot start now (set by the window while a calibration step runs)
+        self.blocked_by = ""
         self._request: CaptureRequest | None = None
         self._t_start = 0.0
         self._step0 = 0
@@ -272,6 +274,9 @@ class CapturePanel(QWidget):
     def _launch(self, req: CaptureRequest) -> None:
         if self.is_running:
             self.message.emit("warning", "a capture is already running")
+            return
+        if self.blocked_by:
+            self.message.emit("error", f"capture: cannot start while {self.blocked_by} runs")
             return
         self._request = req
         self.events.clear()

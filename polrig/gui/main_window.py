@@ -142,8 +142,12 @@ class MainWindow(QMainWindow):
         busy = running or self.capture.is_running or self.calibration.is_running
         self.live.pause_for(task, busy)
         self.devices.setEnabled(not busy)
-        self.capture.setEnabled(not (self.calibration.is_running))
-        self.calibration.setEnabled(not self.capture.is_running)
+        calibrating, capturing = self.calibration.is_running, self.capture.is_running
+        self.capture.setEnabled(not calibrating)
+        self.capture.blocked_by = "a calibration step" if calibrating else ""
+        self.capture_action.setEnabled(not calibrating)
+        self.calibration.setEnabled(not capturing)
+        self.calibration.blocked_by = "a capture" if capturing else ""
         if not busy and self._closing:
             self.close()
 
