@@ -256,6 +256,38 @@ def test_calibration_cancel_stops_at_the_next_device_call_and_saves_nothing(qtbo
     assert not (folder / "calibration.json").exists()
 
 
+# -- 6, 7. settings files edited by hand, or that cannot be written
+def test_bad_settings_values_are_skipped_and_lists_joined(qtbot, tmp_path, capsys):
+    ini = tmp_path / "s.ini"
+    ini.write_text("[capture]\nframes=99999999999\nposes=0,90,180\nstates=@Invalid()\n"
+                   "exposure=1000,2000\nmode=superfast\n[live]\nsaturation_overlay=maybe\n")
+    w = make_window(qtbot, ini, start=False)
+    cp = w.capture
+    assert cp.frames.value() == 1 and cp.mode.currentText() == "reference"
+    assert cp.poses.text() == "0,90,180" and cp.exposure.text() == "1000,2000"
+    assert cp.states.text() == "" and w.live.overlay.isChecked()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("polrig: warning: settings ")
+    for key in ("capture/frames", "capture/states", "capture/mode", "live/saturation_overlay"):
+        assert key in err[0]
+    assert "capture/poses" not in err[0]
+    assert any("skipped invalid values" in t for t in messages(w, "warning"))
+    w.close()
+    saved = ini.read_text().splitlines()
+    assert 'poses="0,90,180"' in saved and "frames=1" in saved  # as the widgets show them
+
+
+def test_settings_that_cannot_be_written_are_reported(qtbot, tmp_path, capsys):
+    (tmp_path / "a_file").write_text("x")
+    ini = tmp_path / "a_file" / "gui.ini"  # its folder is a file: cannot be created
+    w = make_window(qtbot, ini, start=False)
+    w.capture.poses.setText("0,1")
+    w.close()
+    err = capsys.readouterr().err
+    assert f"polrig: warning: settings could not be saved to {ini}" in err
+    assert err.count("could not be saved") == 1
+
+
 # -- 8. closing during a manual move
 def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, tmp_path):
     w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=10.0)  # 720 deg: ~7 s

@@ -3,12 +3,18 @@ dialog-free message area; the live frame rate in the status bar; settings and sh
 
 Device access is arbitrated by one :class:`polrig.gui.rigaccess.RigLocks`: while a capture or
 a calibration step runs, the live view is paused and the manual device controls are disabled
-(the task holds every device lock). Closing the window during a capture asks the capture to
-stop (the session is left ``interrupted`` and resumable) and closes once it has.
+(the task holds every device lock); while a calibration step runs a capture cannot start
+(Ctrl+R is disabled, the panel refuses at once) and the other way round. Closing the window
+during a capture asks the capture to stop (the session is left ``interrupted`` and resumable)
+and closes once it has; closing during a manual move stops the axes and closes at once
+(during a homing, once it has ended). Settings values the widgets cannot take are skipped and
+named, and a settings file that cannot be read or written is reported (a message and a line
+on stderr).
 """
 
 from __future__ import annotations
 
+import sys
 from typing import Any, Callable
 
 from PySide6.QtCore import QByteArray, Qt
@@ -49,6 +55,7 @@ class MainWindow(QMainWindow):
         self.locks = RigLocks()
         self.qsettings = settings
         self._closing = False
+        self._settings_saved = False
         self._close_when_devices_end = False
         src = getattr(rig, "source", None)
         self.setWindowTitle(f"polrig - {src or 'simulated rig'}")
@@ -98,7 +105,14 @@ class MainWindow(QMainWindow):
 
         self.binder = st.SettingsBinder(settings)
         self._bind_settings()
-        self.binder.restore()
+        bad = self.binder.restore()
+        problem = st.settings_problem(settings, "read")  # known once something was read
+        if problem:
+            self._settings_warning(problem)
+        elif bad:
+            self._settings_warning(
+                f"settings {settings.fileName()}: skipped invalid value{'s' if len(bad) > 1 else ''}"
+                f" of {', '.join(bad)} (the defaults are used)")
         geo = settings.value("window/geometry")
         if isinstance(geo, QByteArray):
             self.restoreGeometry(geo)
@@ -134,6 +148,15 @@ class MainWindow(QMainWindow):
         self.messages.add(level, text)
         self.statusBar().showMessage(text, 15000 if level == "error" else 5000)
 
+    def _settings_warning(self, text: str) -> None:
+        """A settings problem: in the messages and once on stderr (it may concern a file the
+        operator edited; the window may be closing)."""
+        self.show_message("warning", text)
+        try:
+            print(f"polrig: warning: {text}", file=sys.stderr, flush=True)
+        except (OSError, ValueError):
+            pass
+
     def _camera_values(self, exposure_us: float, gain_db: float) -> None:
         if not (self.live.exposure.hasFocus() or self.live.gain.hasFocus()):
             self.live.set_camera_values(exposure_us, gain_db)
@@ -160,9 +183,14 @@ class MainWindow(QMainWindow):
             self.show_message("info", "closing once the running task has stopped...")
             event.ignore()
             return
-        self.binder.save()
-        self.qsettings.setValue("window/geometry", self.saveGeometry())
-        self.qsettings.sync()
+        if not self._settings_saved:
+            self._settings_saved = True
+            self.binder.save()
+            self.qsettings.setValue("window/geometry", self.saveGeometry())
+            self.qsettings.sync()
+            problem = st.settings_problem(self.qsettings, "saved")
+            if problem:
+                self._settings_warning(problem)
         self.live_worker.stop()
         dw = self.devices.worker
         self.devices.begin_shutdown()  # moving axes are stopped, queued jobs dropped

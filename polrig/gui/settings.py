@@ -4,6 +4,12 @@ The default scope is organisation ``polrig``, application ``polrig-gui`` (the pl
 place: ``~/.config/polrig/polrig-gui.conf`` on Linux). :func:`make_settings` with a file path
 uses an INI file instead (``polrig gui --settings FILE``; the tests use a temporary one so
 that they never touch the user's settings).
+
+A file edited by hand may hold anything: a value a widget cannot take (not a number, out of
+its range, ``@Invalid()``) is skipped and named (:meth:`SettingsBinder.restore`), never a
+crash; an unquoted comma list (``poses=0,90,180``, which ``QSettings`` reads as a list) is
+joined back with commas. :func:`settings_problem` says when the file could not be read or
+written.
 """
 
 from __future__ import annotations
@@ -36,23 +42,68 @@ def combo_binding(combo) -> tuple[Callable[[], Any], Callable[[Any], None]]:
         if i < 0:
             try:  # QSettings INI files give numbers back as strings
                 i = combo.findData(int(v))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 i = -1
-        if i >= 0:
-            combo.setCurrentIndex(i)
+        if i < 0:
+            raise ValueError(f"not one of the choices: {v!r}")
+        combo.setCurrentIndex(i)
     return get, put
 
 
+def as_text(value: Any) -> str:
+    """A stored value as a line edit's text: strings and numbers as they are, a list (an
+    unquoted ``a,b,c`` in an INI file) joined with commas; ``ValueError`` for anything else
+    (``@Invalid()`` reads as ``None``, binary data)."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return str(value)
+    if isinstance(value, (list, tuple)) and all(isinstance(v, (str, int, float))
+                                                and not isinstance(v, bool) for v in value):
+        return ",".join(str(v) for v in value)
+    raise ValueError(f"not a text value: {value!r}")
+
+
 def text_binding(edit):
-    return edit.text, lambda v: edit.setText(str(v))
+    return edit.text, lambda v: edit.setText(as_text(v))
 
 
 def int_binding(spin):
-    return spin.value, lambda v: spin.setValue(int(v))
+    def put(v):
+        n = int(as_text(v).strip())
+        if not spin.minimum() <= n <= spin.maximum():
+            raise ValueError(f"{n} is outside [{spin.minimum()}, {spin.maximum()}]")
+        spin.setValue(n)
+    return spin.value, put
+
+
+_TRUE, _FALSE = (True, "true", "1", 1), (False, "false", "0", 0)
 
 
 def bool_binding(box):
-    return box.isChecked, lambda v: box.setChecked(v in (True, "true", "1", 1))
+    def put(v):
+        if v in _TRUE:
+            box.setChecked(True)
+        elif v in _FALSE:
+            box.setChecked(False)
+        else:
+            raise ValueError(f"not true or false: {v!r}")
+    return box.isChecked, put
+
+
+def settings_problem(settings: QSettings, action: str = "read") -> str:
+    """One line when ``settings`` could not be read (``action="read"``) or written
+    (``"saved"``), else ``""``: ``QSettings`` reports it only in :meth:`QSettings.status`."""
+    st = settings.status()
+    if st == QSettings.Status.NoError or (action != "read"
+                                          and st != QSettings.Status.AccessError):
+        return ""  # a file that did not parse is rewritten whole by the save
+    why = ("the file cannot be written (permissions, missing folder)"
+           if st == QSettings.Status.AccessError else "the file is not a valid settings file")
+    where = settings.fileName()
+    if action == "read":
+        return f"settings {where}: {why}; the defaults are used"
+    return f"settings could not be saved to {where}: {why}"
 
 
 class SettingsBinder:
@@ -71,12 +122,14 @@ class SettingsBinder:
         self.settings.sync()
 
     def restore(self) -> list[str]:
-        """Apply stored values; returns the keys that could not be applied."""
+        """Apply stored values; returns the keys whose values could not be applied (each
+        skipped: the widget keeps its default; whatever the file holds, never an
+        exception)."""
         bad = []
         for key, (_, put) in self.bindings.items():
-            if self.settings.contains(key):
-                try:
+            try:
+                if self.settings.contains(key):
                     put(self.settings.value(key))
-                except (TypeError, ValueError):
-                    bad.append(key)
+            except Exception:  # noqa: BLE001 - any value: OverflowError, lists, None...
+                bad.append(key)
         return bad
