@@ -385,6 +385,36 @@ def test_other_file_system_error_exits_1_with_the_resume_hint(tmp_path, capsys, 
                  "--no-progress"]) == 0
 
 
+def test_processing_error_mid_capture_exits_1_with_the_resume_hint(tmp_path, capsys, monkeypatch):
+    """A processing error (not a device fault, not a file-system error) once the session
+    exists: one line with the reason and the resume command, exit 1, the session interrupted
+    (it used to be a traceback), and the resume completes it."""
+    import polrig.processing
+
+    cfg = sim_config(tmp_path / "rig.toml")
+    real = polrig.processing.Processor.process
+    calls = []
+
+    def failing(self, session, index, revision=None):
+        calls.append(index)
+        if len(calls) == 2:
+            raise RuntimeError("solver blew up")
+        return real(self, session, index, revision)
+
+    out = tmp_path / "run"
+    with monkeypatch.context() as m:
+        m.setattr(polrig.processing.Processor, "process", failing)
+        rc = main(["capture", "--poses", "0,90", "--config", str(cfg), "--out", str(out),
+                   "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 1 and len(err.strip().splitlines()) == 1, err
+    assert "solver blew up" in err and f"polrig capture --out {out} --resume" in err
+    m = json.loads((out / "session.json").read_text())
+    assert m["status"] == "interrupted" and "RuntimeError" in m["status_reason"]
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0
+
+
 @pytest.mark.slow
 def test_second_writer_is_refused_and_sigterm_stops_like_ctrl_c(tmp_path, capsys):
     """While one ``polrig capture`` writes a session, a second ``--resume`` and a

@@ -199,7 +199,6 @@ def run(args: argparse.Namespace) -> int:
     import os
 
     from polrig import capture, processing
-    from polrig.errors import PolrigError
     from polrig.rig import open_rig
 
     prepared = prepare_capture(args)
@@ -216,12 +215,13 @@ def run(args: argparse.Namespace) -> int:
         try:
             result = capture.run_session(rig, session, processor=processor,
                                          progress=bar)
-        except OSError as exc:
-            # a file-system error other than a full disk: run_session marked the capture
-            # failed and the session interrupted; say so, with the way to continue
-            if os.environ.get("POLRIG_DEBUG") or isinstance(exc, PolrigError):
+        except Exception as exc:
+            # run_session handles device faults and a full disk itself; anything else raised
+            # once the session exists (another file-system error, a processing error) leaves
+            # it interrupted and resumable: say so, with the way to continue (as the GUI does)
+            if os.environ.get("POLRIG_DEBUG"):
                 raise
-            result = capture.SessionResult("interrupted", [], [], f"{type(exc).__name__}: {exc}")
+            result = capture.interrupted_result(session, exc)
         finally:
             bar.close()
     if result.status != "complete":
