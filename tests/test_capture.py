@@ -175,8 +175,10 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
     assert s2.capture(1)["attempts"] == 2
 
 
-@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 3),
-                                                  ("turntable", "timeout", 1), ("stage", "protocol", 3)])
+# stage calls: home, then per state position_deg (for the move's timeout) and move_to: call 5
+# is the second state's move
+@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 4),
+                                                  ("turntable", "timeout", 1), ("stage", "protocol", 4)])
 def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
     events = []
     with sim_rig() as rig:
@@ -186,6 +188,17 @@ def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, afte
     assert result.status == "complete"
     assert any(e.kind == "retry" for e in events)
     assert content(session) == content(reference_session)
+
+
+def test_a_long_turntable_move_gets_a_timeout_for_its_distance(tmp_path):
+    """0 -> 300 deg at the simulated turntable's 10 deg/s takes over 30 s: the move's timeout
+    grows with the distance (it failed twice against a fixed 30 s, re-homing in between)."""
+    events = []
+    with sim_rig() as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan((0.0, 300.0)))
+        result = run_session(rig, session, processor=proc, progress=events.append)
+    assert result.status == "complete"
+    assert not any(e.kind == "retry" for e in events)
 
 
 def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_session):
