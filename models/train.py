@@ -42,7 +42,7 @@ from models.pipnet import PIPNet, pipnet_loss
 from models.pbrdf_torch import image_blocks
 from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
 from polrig.errors import ConfigError, FormatError, PolrigError
-from polrig.rawio import atomic_write_bytes, atomic_write_text
+from polrig.rawio import atomic_write_bytes, atomic_write_text, check_output_folder
 
 STAGES = ("pipnet", "pmmnet", "direct")
 #: What each stage's network is called on (``_pick`` keys).
@@ -455,16 +455,6 @@ def _run_files(out: pathlib.Path) -> list[pathlib.Path]:
     return found
 
 
-def _check_out(out: pathlib.Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} is a file, not a folder")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise ConfigError(f"--out {out}: {parent} is a file, not a folder")
-            break
-
-
 def _run_epoch(model, step, t, idx_all, batch, opt, rng, where: str = "") -> tuple[float, dict[str, float]]:
     model.train()
     total, parts, count = 0.0, {}, 0
@@ -542,7 +532,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     if unknown:
         raise ConfigError(f"unknown training setting(s) {unknown}")
     out = pathlib.Path(out_dir)
-    _check_out(out)
+    check_output_folder(out)
     ckpt_path = out / "checkpoint.pt"
     state = None
     if resume:

@@ -27,7 +27,7 @@ import numpy as np
 from polrig.conventions import CONVENTIONS_VERSION
 from polrig.errors import ConfigError, FormatError
 from polrig.noise import SensorModel
-from polrig.rawio import atomic_write_bytes, atomic_write_text
+from polrig.rawio import atomic_write_bytes, atomic_write_text, check_output_folder
 from sim.generator import Generator
 from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
 from sim.render import render
@@ -258,14 +258,7 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
     families_for(holdout, families)  # a bad family list fails before anything is written
-    out = pathlib.Path(out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} is a file, not a folder")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise ConfigError(f"--out {out}: {parent} is a file, not a folder")
-            break
+    out = check_output_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     model = dataset_sensor_model()
     manifest = _manifest(out, count=count, width=width, height=height, seed=seed,

@@ -28,3 +28,14 @@ def real_dofp_dir() -> pathlib.Path:
     if not REAL_DOFP.is_dir():
         pytest.fail(f"real DoFP frames not found at {REAL_DOFP} (set POLRIG_SHARED)")
     return REAL_DOFP
+
+
+@pytest.fixture(scope="session")
+def tiny_train_data(tmp_path_factory) -> pathlib.Path:
+    """A 4-sample 32x32 training set (seed 0, 2 shards) for the training tests; read only
+    (tests that damage data copy it first)."""
+    from sim.dataset import generate_dataset
+
+    root = tmp_path_factory.mktemp("tiny_train") / "data"
+    generate_dataset(root, count=4, width=32, seed=0, shard_size=2, progress=False)
+    return root

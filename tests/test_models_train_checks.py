@@ -29,10 +29,8 @@ FAST = ["--epochs", "1", "--width", "8", "--batch-size", "2"]
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    root = tmp_path_factory.mktemp("checks")
-    generate_dataset(root / "data", count=4, width=32, seed=0, shard_size=2, progress=False)
-    return root / "data"
+def data(tiny_train_data):
+    return tiny_train_data
 
 
 @pytest.fixture(scope="module")

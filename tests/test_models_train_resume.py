@@ -30,10 +30,8 @@ QUIET = dict(echo=lambda s: None)
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    root = tmp_path_factory.mktemp("resume")
-    generate_dataset(root / "data", count=4, width=32, seed=0, shard_size=2, progress=False)
-    return root / "data"
+def data(tiny_train_data):
+    return tiny_train_data
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,6 @@ import pathlib
 import time
 
 from polrig.commands._device_args import finite_float, int_range, positive_float
-from polrig.errors import ConfigError
 
 
 def _states(text: str) -> list[float]:
@@ -105,14 +104,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_render(args: argparse.Namespace) -> int:
-    from polrig.rawio import write_raw
+    from polrig.rawio import check_output_folder, write_raw
     from sim.devices import create_sim_rig
     from sim.truth import write_truth
 
     t0 = time.perf_counter()
-    out = pathlib.Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} is a file, not a folder")
+    out = check_output_folder(args.out)
     # every option is checked (create_sim_rig) before anything is written
     rig = create_sim_rig({"scene": args.scene, "size": args.size, "seed": args.seed,
                           "sensor": args.sensor, "noise": not args.no_noise,
