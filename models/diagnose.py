@@ -171,7 +171,7 @@ def markdown(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from models._cli import run_main
-    from polrig.commands._device_args import int_range
+    from polrig.argcheck import int_range
 
     p = argparse.ArgumentParser(prog="python -m models.diagnose", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="dataset folder (`polrig sim dataset` output)")
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from polrig.commands._device_args import check_output_file
+    from polrig.argcheck import check_output_file
     from polrig.rawio import atomic_write_text
 
     if args.json:

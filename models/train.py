@@ -42,7 +42,8 @@ from models.pipnet import PIPNet, pipnet_loss
 from models.pbrdf_torch import image_blocks
 from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
 from polrig.errors import ConfigError, FormatError, PolrigError
-from polrig.rawio import atomic_write_bytes, atomic_write_text, check_output_folder
+from polrig.argcheck import check_output_folder
+from polrig.rawio import atomic_write_bytes, atomic_write_text
 
 STAGES = ("pipnet", "pmmnet", "direct")
 #: What each stage's network is called on (``_pick`` keys).

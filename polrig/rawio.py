@@ -80,23 +80,6 @@ def write_error(path: PathLike, exc: OSError) -> OSError:
     return new
 
 
-def check_output_folder(out: PathLike, flag: str = "--out") -> pathlib.Path:
-    """``out`` as a folder path that can be made: refuses (``ConfigError``, one line naming
-    ``flag``) a file at ``out`` or a file where one of its parent folders would be. Creates
-    nothing; call before any work."""
-    from polrig.errors import ConfigError
-
-    out = pathlib.Path(out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{flag} {out} is a file, not a folder")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise ConfigError(f"{flag} {out}: {parent} is a file, not a folder")
-            break
-    return out
-
-
 def temporary_sibling(path: PathLike) -> pathlib.Path:
     """A fresh hidden temporary name in the folder of ``path`` (for atomic replacement)."""
     p = pathlib.Path(path)

@@ -27,7 +27,8 @@ import numpy as np
 from polrig.conventions import CONVENTIONS_VERSION
 from polrig.errors import ConfigError, FormatError
 from polrig.noise import SensorModel
-from polrig.rawio import atomic_write_bytes, atomic_write_text, check_output_folder
+from polrig.argcheck import check_output_folder
+from polrig.rawio import atomic_write_bytes, atomic_write_text
 from sim.generator import Generator
 from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
 from sim.render import render

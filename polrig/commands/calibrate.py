@@ -23,7 +23,8 @@ import shlex
 import signal
 import sys
 
-from polrig.commands._device_args import add_config_argument, positive_float
+from polrig.argcheck import positive_float
+from polrig.commands._device_args import add_config_argument
 from polrig.errors import ConfigError, FormatError, PolrigError
 
 STEP_CHOICES = ("intrinsics", "turntable", "light", "stokes", "dofp", "all")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from polrig.commands._device_args import int_range
+from polrig.argcheck import int_range
 
 #: Where the tables go unless --out says otherwise: a scratch path, so that a run on another set
 #: or other weights never replaces the published tables in benchmarks/results/.

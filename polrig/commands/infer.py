@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from polrig.commands._device_args import (axis_vector, check_output_file, finite_float,
-                                          nonnegative_float, positive_float)
+from polrig.argcheck import (axis_vector, check_output_file, finite_float, nonnegative_float,
+                             positive_float)
 from polrig.errors import ConfigError
 
 

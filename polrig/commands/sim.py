@@ -17,7 +17,7 @@ import math
 import pathlib
 import time
 
-from polrig.commands._device_args import finite_float, int_range, positive_float
+from polrig.argcheck import finite_float, int_range, positive_float
 
 
 def _states(text: str) -> list[float]:
@@ -104,7 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_render(args: argparse.Namespace) -> int:
-    from polrig.rawio import check_output_folder, write_raw
+    from polrig.argcheck import check_output_folder
+    from polrig.rawio import write_raw
     from sim.devices import create_sim_rig
     from sim.truth import write_truth
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import pathlib
 
-from polrig.commands._device_args import (add_config_argument, add_timeout_argument,
-                                          check_output_file, identity, positive_float,
+from polrig.argcheck import check_output_file, positive_float
+from polrig.commands._device_args import (add_config_argument, add_timeout_argument, identity,
                                           refuse_existing)
 from polrig.errors import ConfigError
 

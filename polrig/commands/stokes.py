@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from polrig.analyzer import AnalyzerModel
-from polrig.commands._device_args import check_output_file, int_range, nonnegative_float
+from polrig.argcheck import check_output_file, int_range, nonnegative_float
 from polrig.demosaic import METHODS
 from polrig.errors import ConfigError
 from polrig.exr import colour_planes, write_stokes_exr

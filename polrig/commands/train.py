@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from polrig.commands._device_args import finite_float, int_range, positive_float
+from polrig.argcheck import finite_float, int_range, positive_float
 
 STAGE_NAMES = ("pipnet", "pmmnet", "direct")  # models.train.STAGES (not imported: torch is optional)
 _EPOCHS = int_range(1, 100_000)
