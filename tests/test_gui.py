@@ -292,6 +292,9 @@ def test_stop_shortcut_stops_a_capture(qtbot, window, tmp_path):
     qtbot.waitUntil(lambda: not window.capture.is_running, timeout=30000)
     assert json.loads((out / "session.json").read_text())["status"] == "interrupted"
     assert window.capture.last_status == "interrupted"
+    # the operator's own stop is news, not an error
+    stop_lines = [(lvl, t) for lvl, t in window.messages.messages if "stopped by the operator" in t]
+    assert stop_lines and all(lvl == "info" for lvl, _ in stop_lines), stop_lines
     keys = {s.toString() for s in window.stop_action.shortcuts()}
     assert keys == {"Esc", "Ctrl+."}
     assert window.capture_action.shortcut().toString() == "Ctrl+R"

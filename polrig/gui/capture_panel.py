@@ -350,8 +350,8 @@ class CapturePanel(QWidget):
         elif ev.kind == "retry":
             self.message.emit("warning", f"capture: {ev.message}")
         elif ev.kind == "capture-failed":
-            self.message.emit("error", f"capture {ev.capture_index + 1} pose {ev.pose_deg:g} "
-                                       f"deg: {ev.message}")
+            self.message.emit(self._stop_level(), f"capture {ev.capture_index + 1} pose "
+                                                  f"{ev.pose_deg:g} deg: {ev.message}")
         elif ev.kind == "capture-done":
             self._capture_done(ev)
 
@@ -387,8 +387,15 @@ class CapturePanel(QWidget):
             self.message.emit("info", "capture: session complete")
         else:
             self.eta.setText(f"session {status}: {reason} (resume to continue)")
-            self.message.emit("error", f"capture stopped: {reason}; completed captures are "
-                                       f"intact, use 'Resume session in folder' to continue")
+            self.message.emit(self._stop_level(), f"capture stopped: {reason}; completed "
+                                                  f"captures are intact, use 'Resume session "
+                                                  f"in folder' to continue")
+
+    def _stop_level(self) -> str:
+        """Message level of a capture that ended early: ``info`` when the operator asked for
+        the stop (Stop, closing the window), ``error`` otherwise."""
+        control = self.worker.control if self.worker is not None else None
+        return "info" if control is not None and control.stop.is_set() else "error"
 
     def _failed(self, text: str) -> None:
         self.last_status = "failed"
