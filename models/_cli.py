@@ -8,24 +8,20 @@ import os
 import sys
 from typing import Callable
 
-from polrig.errors import ConfigError, FormatError, PolrigError
+from polrig.errors import exit_code_for
 
 
 def run_main(prog: str, body: Callable[[], int | None]) -> int:
-    """``body()``'s exit code, or the exit code of the error it raised, printed as one line
-    ``PROG: error: ...`` on stderr."""
+    """``body()``'s exit code, or the exit code of the error it raised
+    (:func:`polrig.errors.exit_code_for`), printed as one line ``PROG: error: ...`` on stderr."""
     try:
         return int(body() or 0)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
-    except (ConfigError, FormatError, FileNotFoundError, FileExistsError, ValueError) as exc:
-        if os.environ.get("POLRIG_DEBUG"):
+    except Exception as exc:
+        code = exit_code_for(exc)
+        if code is None or os.environ.get("POLRIG_DEBUG"):
             raise
         print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
-    except (PolrigError, OSError) as exc:
-        if os.environ.get("POLRIG_DEBUG"):
-            raise
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 1
+        return code

@@ -21,9 +21,9 @@ import sys
 import threading
 
 from polrig import __version__
-from polrig.errors import ConfigError, DeviceError, FormatError, PolrigError
+from polrig.errors import EXIT_USAGE, exit_code_for
 
-EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_INTERRUPTED = 0, 130  # failure 1 and usage 2: polrig.errors.exit_code_for
 EXIT_TERMINATED = 128 + signal.SIGTERM  # 143
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # 141
 
@@ -64,16 +64,12 @@ def main(argv: list[str] | None = None) -> int:
             return 128 + signum
         except BrokenPipeError:
             return _broken_pipe()
-        except (ConfigError, FormatError, FileNotFoundError, FileExistsError, ValueError) as exc:
-            if os.environ.get("POLRIG_DEBUG"):
+        except Exception as exc:
+            code = exit_code_for(exc)
+            if code is None or os.environ.get("POLRIG_DEBUG"):
                 raise
             _error_line(f"polrig: error: {exc}")
-            return EXIT_USAGE
-        except (DeviceError, PolrigError, OSError) as exc:
-            if os.environ.get("POLRIG_DEBUG"):
-                raise
-            _error_line(f"polrig: error: {exc}")
-            return EXIT_FAILURE
+            return code
 
 
 def _error_line(line: str) -> None:

@@ -52,3 +52,22 @@ class ProtocolError(DeviceError):
 
 class DeviceDisconnected(DeviceError):
     """The transport to the device went away (cable pulled, port closed)."""
+
+
+#: Exit status of a command line that stopped on bad input (arguments, config, files).
+EXIT_USAGE = 2
+#: Exit status of a command line that failed while running (device, disk, processing).
+EXIT_FAILURE = 1
+
+
+def exit_code_for(exc: BaseException) -> int | None:
+    """The exit status a command line reports for ``exc`` (README, "CLI"): :data:`EXIT_USAGE`
+    for bad input (``ConfigError``, ``FormatError``, a missing or existing file, a
+    ``ValueError``), :data:`EXIT_FAILURE` for other polrig and OS errors, ``None`` for anything
+    else (a bug: let it propagate). One rule for ``polrig`` and the ``python -m models.*``
+    tools."""
+    if isinstance(exc, (ConfigError, FormatError, FileNotFoundError, FileExistsError, ValueError)):
+        return EXIT_USAGE
+    if isinstance(exc, (PolrigError, OSError)):
+        return EXIT_FAILURE
+    return None
