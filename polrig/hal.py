@@ -21,20 +21,16 @@ from typing import Any
 
 import numpy as np
 
-from polrig.errors import FormatError
+from polrig.errors import ConfigError, FormatError
 
 DEFAULT_TIMEOUT_S = 10.0
 #: Timeout of a motion (move or home) whose length is unknown, seconds (the HAL's default).
 DEFAULT_MOTION_TIMEOUT_S = 30.0
-#: Speed assumed for an axis that does not say how fast it turns (no ``speed_deg_s``
-#: attribute), deg/s: below the slowest stage polrig drives (K10CR1 default 10 deg/s), so a
-#: timeout derived from it is never too short.
-ASSUMED_AXIS_SPEED_DEG_S = 5.0
 
 
-def grab_timeout_s(camera, margin_s: float = DEFAULT_TIMEOUT_S) -> float:
+def grab_timeout_s(camera: "Camera", margin_s: float = DEFAULT_TIMEOUT_S) -> float:
     """Timeout of one :meth:`Camera.grab` at the camera's current exposure: the exposure, the
-    readout (``readout_us`` where the camera declares it) and ``margin_s`` on top (transfer,
+    readout (:attr:`CameraCapabilities.readout_us`) and ``margin_s`` on top (transfer,
     triggering, a slow host). The one place every grab's timeout comes from (captures,
     the live view), so that a long exposure never times out by construction. A camera that
     cannot report its exposure (NaN, an error) gets ``margin_s`` alone."""
@@ -42,24 +38,112 @@ def grab_timeout_s(camera, margin_s: float = DEFAULT_TIMEOUT_S) -> float:
         exposure_us = float(camera.exposure_us)
     except Exception:  # noqa: BLE001 - a camera that cannot say: the margin alone
         exposure_us = 0.0
-    readout_us = getattr(camera, "readout_us", 0.0)
-    frame_us = sum(v for v in (exposure_us, readout_us)
-                   if isinstance(v, (int, float)) and math.isfinite(v) and v > 0)
+    try:
+        readout_us = float(camera.capabilities.readout_us)
+    except Exception:  # noqa: BLE001 - a closed or failing camera: the exposure alone
+        readout_us = 0.0
+    frame_us = sum(v for v in (exposure_us, readout_us) if math.isfinite(v) and v > 0)
     return float(margin_s) + frame_us * 1e-6
 
 
-def motion_timeout_s(axis, distance_deg: float,
+def motion_timeout_s(axis: "RotationStage", distance_deg: float,
                      margin_s: float = DEFAULT_MOTION_TIMEOUT_S) -> float:
-    """Timeout of a move of ``distance_deg`` on ``axis``: the time the move takes at the
-    axis's speed (``speed_deg_s`` where it declares one, else
-    :data:`ASSUMED_AXIS_SPEED_DEG_S`), 1.5 times for acceleration, plus ``margin_s``."""
-    speed = getattr(axis, "speed_deg_s", None)
-    if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
-        speed = ASSUMED_AXIS_SPEED_DEG_S
+    """Timeout of a move of ``distance_deg`` on ``axis``: the axis's own
+    :meth:`RotationStage.calculate_timeout` hook (by default 1.5 times the profile's duration
+    at the declared :class:`AxisCapabilities`, plus ``margin_s``)."""
     distance = abs(float(distance_deg))
     if not math.isfinite(distance):
         distance = 0.0
-    return float(margin_s) + 1.5 * distance / float(speed)
+    return axis.calculate_timeout(distance, margin_s)
+
+
+#: Trigger modes a :class:`Camera` may support (:attr:`CameraCapabilities.trigger_modes`).
+TRIGGER_MODES = ("software", "free")
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraCapabilities:
+    """What a camera declares about itself, read from the device where it reports it
+    (GenICam node ranges, ``SensorReadoutTime`` or the frame rate), never probed by callers.
+
+    ``trigger_modes``: the acquisition modes it supports, a subset of ``("software",
+    "free")``: ``"software"`` exposes one frame per :meth:`Camera.grab`; ``"free"`` (free run)
+    streams frames, and a frame taken right after a setting change may still be exposed with
+    the old setting. ``exposure_range_us``: ``(min, max)`` exposure in microseconds.
+    ``readout_us``: time from the end of an exposure until the frame is delivered
+    (readout plus transfer) at the current ROI and pixel format, microseconds (0 where the
+    device does not say). ``settle_frames``: in free run, how many frames after a setting
+    change to discard before a frame is certainly exposed with the new setting (one in
+    flight plus one being read out on typical sensors).
+    """
+
+    trigger_modes: tuple[str, ...] = ("software", "free")
+    exposure_range_us: tuple[float, float] = (1.0, 10_000_000.0)
+    readout_us: float = 0.0
+    settle_frames: int = 2
+
+    def __post_init__(self) -> None:
+        modes = tuple(self.trigger_modes)
+        if not modes or any(m not in TRIGGER_MODES for m in modes):
+            raise ValueError(f"trigger modes must be a non-empty subset of {TRIGGER_MODES}, "
+                             f"got {modes!r}")
+        lo, hi = (float(v) for v in self.exposure_range_us)
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
+            raise ValueError(f"exposure range must be 0 <= min <= max, got {self.exposure_range_us!r}")
+        if not (math.isfinite(self.readout_us) and self.readout_us >= 0):
+            raise ValueError(f"readout time must be finite and >= 0 us, got {self.readout_us!r}")
+        if int(self.settle_frames) < 0:
+            raise ValueError(f"settle_frames must be >= 0, got {self.settle_frames!r}")
+        object.__setattr__(self, "trigger_modes", modes)
+        object.__setattr__(self, "exposure_range_us", (lo, hi))
+
+    @property
+    def preferred_trigger(self) -> str:
+        """``"software"`` where supported (one exposure per grab), else free run."""
+        return "software" if "software" in self.trigger_modes else "free"
+
+    def check_exposure(self, exposure_us: float) -> float:
+        """``exposure_us`` as a float, or :class:`polrig.errors.ConfigError` naming the
+        camera's range."""
+        e = float(exposure_us)
+        lo, hi = self.exposure_range_us
+        if not (math.isfinite(e) and lo <= e <= hi):
+            raise ConfigError(f"exposure {exposure_us!r} us is outside the camera's range "
+                              f"[{lo:g}, {hi:g}] us")
+        return e
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisCapabilities:
+    """What a rotation axis declares about its motion, from the controller's own velocity
+    parameters where it reports them (ELL14 ``gv``, K10CR1 ``MGMSG_MOT_REQ_VELPARAMS``, GRBL
+    ``$110..$113`` / ``$120..$123``).
+
+    ``speed_deg_s``: cruise (maximum) speed, deg/s. ``accel_deg_s2``: acceleration, deg/s^2
+    (``inf`` for a move that reaches full speed at once). ``range_deg``: ``(min, max)``
+    travel, or ``None`` for an axis that turns without limit.
+    """
+
+    speed_deg_s: float
+    accel_deg_s2: float = math.inf
+    range_deg: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speed_deg_s) and self.speed_deg_s > 0):
+            raise ValueError(f"axis speed must be finite and > 0 deg/s, got {self.speed_deg_s!r}")
+        if not (self.accel_deg_s2 > 0):
+            raise ValueError(f"axis acceleration must be > 0 deg/s^2, got {self.accel_deg_s2!r}")
+
+    def move_time_s(self, distance_deg: float) -> float:
+        """Duration of a move of ``distance_deg`` with a trapezoidal velocity profile
+        (triangular when the move is too short to reach full speed), seconds."""
+        d = abs(float(distance_deg))
+        v, a = float(self.speed_deg_s), float(self.accel_deg_s2)
+        if not math.isfinite(a):
+            return d / v
+        if d <= v * v / a:
+            return 2.0 * math.sqrt(d / a)
+        return d / v + v / a
 
 
 @dataclasses.dataclass(frozen=True)
@@ -243,9 +327,16 @@ class Camera(Device):
     @abc.abstractmethod
     def gain_db(self) -> float: ...
 
+    @property
+    @abc.abstractmethod
+    def capabilities(self) -> CameraCapabilities:
+        """What this camera supports, as the open device reports it (trigger modes, exposure
+        range, readout time at the current ROI and pixel format)."""
+
     @abc.abstractmethod
     def set_trigger(self, mode: str) -> None:
-        """``"software"`` (one frame per :meth:`grab`) or ``"free"`` (free run)."""
+        """``"software"`` (one frame per :meth:`grab`) or ``"free"`` (free run); only a mode
+        in :attr:`capabilities` ``.trigger_modes`` (else :class:`polrig.errors.ConfigError`)."""
 
     @property
     @abc.abstractmethod
@@ -262,6 +353,23 @@ class Camera(Device):
 
 class RotationStage(Device):
     """A motorized rotation stage carrying the illumination polarizer (angles in degrees)."""
+
+    @property
+    @abc.abstractmethod
+    def capabilities(self) -> AxisCapabilities:
+        """Speed, acceleration and travel of this axis, as its controller reports them."""
+
+    def move_time_s(self, from_deg: float, to_deg: float) -> float:
+        """Time a move from ``from_deg`` to ``to_deg`` takes, seconds (from
+        :attr:`capabilities`; a device with another profile overrides it)."""
+        return self.capabilities.move_time_s(float(to_deg) - float(from_deg))
+
+    def calculate_timeout(self, distance_deg: float,
+                          margin_s: float = DEFAULT_MOTION_TIMEOUT_S) -> float:
+        """Timeout for a move of ``distance_deg``: 1.5 times its duration (a slow start, a
+        loaded axis) plus ``margin_s``. The hook a device overrides when it knows better
+        (as ophyd-async's movables do)."""
+        return float(margin_s) + 1.5 * self.capabilities.move_time_s(distance_deg)
 
     @abc.abstractmethod
     def home(self, timeout_s: float = 60.0) -> None: ...

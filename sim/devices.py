@@ -171,11 +171,7 @@ class SimCamera(_SimDevice, hal.Camera):
 
     def set_exposure_us(self, exposure_us: float) -> None:
         self._call("set_exposure_us")
-        lo, hi = self.EXPOSURE_RANGE_US
-        e = float(exposure_us)
-        if not (lo <= e <= hi):
-            raise ConfigError(f"exposure must be in [{lo:g}, {hi:g}] us, got {exposure_us!r}")
-        self._exposure_us = e
+        self._exposure_us = self.capabilities.check_exposure(exposure_us)
 
     @property
     def exposure_us(self) -> float:
@@ -202,6 +198,14 @@ class SimCamera(_SimDevice, hal.Camera):
     @property
     def trigger(self) -> str:
         return self._trigger
+
+    @property
+    def capabilities(self) -> hal.CameraCapabilities:
+        """Both trigger modes, :attr:`EXPOSURE_RANGE_US`, the configured readout time; a
+        simulated frame is always exposed with the current settings (no frame to settle)."""
+        return hal.CameraCapabilities(trigger_modes=("software", "free"),
+                                      exposure_range_us=self.EXPOSURE_RANGE_US,
+                                      readout_us=self._readout_us, settle_frames=0)
 
     @property
     def layout(self) -> str:
@@ -262,6 +266,11 @@ class _SimAxis(_SimDevice):
             raise ConfigError(f"{name}: speed and acceleration must be > 0")
         self.speed_deg_s = float(speed_deg_s)
         self.accel_deg_s2 = float(accel_deg_s2)
+
+    @property
+    def capabilities(self) -> hal.AxisCapabilities:
+        """The configured speed and acceleration; the simulated axes turn without limit."""
+        return hal.AxisCapabilities(self.speed_deg_s, self.accel_deg_s2)
 
     @property
     def _move(self) -> Move:
