@@ -18,7 +18,7 @@ from polrig.mueller import polarizer_stokes
 from polrig.analyzer import AnalyzerModel, resolve_layout
 from polrig.reference import solve_reference
 from polrig.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
-from sim.devices import create_sim_rig
+from polrig.rig import open_rig
 
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
 #: the ideal rig, exactly known (zero calibration tolerances): its reported sigma is the
@@ -27,9 +27,11 @@ EXACT = processing.Calibration("ideal")
 
 
 def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
+    """The simulated rig as ``polrig capture`` opens it (:func:`polrig.rig.open_rig`);
+    ``rig.sim`` is the simulated rig underneath (fault injection, its clock)."""
     opts = {"size": (size, size), "sensor": "imx250mzr", "clock_speed": math.inf,
             "seed": seed, "scene": scene, "noise": noise, "hidden": dict(IDEAL), **kw}
-    return create_sim_rig(opts)
+    return open_rig(None, **opts)
 
 
 def start(rig, out: pathlib.Path, plan: CapturePlan, **kw) -> tuple[Session, processing.Processor]:
@@ -175,14 +177,18 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
     assert s2.capture(1)["attempts"] == 2
 
 
-# stage calls: home, then per state position_deg (for the move's timeout) and move_to: call 5
-# is the second state's move
-@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 4),
-                                                  ("turntable", "timeout", 1), ("stage", "protocol", 4)])
+# axis calls: position_deg (the plan's hardware time), [stage: home], then per move
+# position_deg (the move's timeout), move_to (wait=False: the turntable and the stage start
+# together), wait. Stage call 4 is the wait of the first move (with the turntable), call 6 the
+# second state's move_to; turntable call 2 is the first move's start, call 3 its wait.
+@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 6),
+                                                  ("turntable", "timeout", 2),
+                                                  ("turntable", "fault", 3),
+                                                  ("stage", "protocol", 4)])
 def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
     events = []
     with sim_rig() as rig:
-        rig.inject_fault(device, kind, after_calls=after)
+        rig.sim.inject_fault(device, kind, after_calls=after)
         session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc, progress=events.append)
     assert result.status == "complete"
@@ -204,7 +210,7 @@ def test_a_long_turntable_move_gets_a_timeout_for_its_distance(tmp_path):
 def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_session):
     out = tmp_path / "s"
     with sim_rig() as rig:
-        rig.inject_fault("camera", "disconnect", after_calls=9)
+        rig.sim.inject_fault("camera", "disconnect", after_calls=9)
         session, proc = start(rig, out, CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc)
     assert result.status == INTERRUPTED and "DeviceDisconnected" in result.reason
@@ -385,8 +391,8 @@ def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_
 def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
     """The rig a session resumes on must give comparable frames: same camera geometry and
     layout, devices, noise model and simulated world; a different clock speed is fine."""
-    from polrig.capture import check_resume_rig
     from polrig.errors import ConfigError
+    from polrig.records import check_resume_rig
 
     out = tmp_path / "s"
     with sim_rig() as rig:
@@ -403,7 +409,7 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
                          ({"seed": 6}, "simulated world"),
                          ({"scene": "box"}, "simulated world (scene)")]:
         with sim_rig(**kw) as rig:
-            with pytest.raises(ConfigError, match="--resume: .* was captured on a different rig") as info:
+            with pytest.raises(ConfigError, match=" was captured on a different rig: ") as info:
                 check_resume_rig(s, rig)
         assert expected in str(info.value), (kw, str(info.value))
     # a session from before rig.camera_frames: the geometry comes from its recorded raw frames
@@ -416,13 +422,15 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
 
 
 def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(tmp_path):
-    from polrig.capture import check_rig_for_plan
-    from polrig.errors import ConfigError
+    from polrig.plan import PlanError
+    from polrig.records import check_rig_for_plan
 
-    with sim_rig() as rig:
+    with sim_rig() as rig:  # the range the camera declares (CameraCapabilities), not a probe
         check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 4000.0)))
-        with pytest.raises(ConfigError, match=r"--exposure 1e\+12 us; this camera takes \[10, 1e\+07\] us"):
+        with pytest.raises(PlanError, match=r"exposure 1e\+12 us: outside the camera's range "
+                                            r"\[10, 1e\+07\] us") as info:
             check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 1e12)))
+    assert info.value.field == "exposures_us"
 
 
 def test_run_session_refuses_a_session_another_writer_holds(tmp_path):

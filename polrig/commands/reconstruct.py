@@ -37,12 +37,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from polrig import processing
-    from polrig.commands.capture import command_line
+    from polrig.commands.capture import command_line, options_named
+    from polrig.scoring import format_score
     from polrig.session import Session
 
     session = Session.open(args.session, lock=True)  # SessionBusy if another process writes it
     try:  # a calibration set that cannot be used: refused, the lock released, nothing written
-        calibration = processing.load_calibration(args.calibration)
+        with options_named():
+            calibration = processing.load_calibration(args.calibration)
     except BaseException:
         session.unlock()
         raise
@@ -58,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
             cap = session.capture(index)
             line = f"capture {index + 1} pose {cap['pose_deg']:g} deg: done"
             if score:
-                line += " | " + processing.format_score(score)
+                line += " | " + format_score(score)
             tqdm.write(line, file=sys.stdout)
 
         def on_failed(index: int, reason: str) -> None:
@@ -67,11 +69,12 @@ def run(args: argparse.Namespace) -> int:
             tqdm.write(f"capture {index + 1} pose {cap['pose_deg']:g} deg: failed ({reason})",
                        file=sys.stdout)
     try:
-        name = processing.reprocess_session(session, mode=args.mode, demosaic=args.demosaic,
-                                            mirror_average=args.mirror_average,
-                                            calibration=calibration,
-                                            command_line=command_line(args, "reconstruct"),
-                                            progress=progress, on_failed=on_failed)
+        with options_named():
+            name = processing.reprocess_session(
+                session, mode=args.mode, demosaic=args.demosaic,
+                mirror_average=args.mirror_average, calibration=calibration,
+                command_line=command_line(args, "reconstruct"), progress=progress,
+                on_failed=on_failed)
     finally:
         if bar is not None:
             bar.close()
