@@ -355,7 +355,8 @@ class _Run:
                 score = job.result()
             except Exception as exc:  # noqa: BLE001 - reported below, in this thread
                 self.jobs.pop(0)
-                with self.guard.deferred():
+                # best effort: on a full disk the manifest on disk says "acquired" already
+                with self.guard.deferred(), contextlib.suppress(OSError):
                     self.session.mark_acquired(index, f"processing failed: "
                                                       f"{type(exc).__name__}: {exc}")
                 raise _ProcessingFailed(index, exc) from exc
@@ -430,6 +431,10 @@ class _Run:
                 raise
             return self.result
         except _ProcessingFailed as exc:
+            if is_disk_full(exc.error):  # as when acquiring: a result, not an error
+                self.stop(f"disk full: {exc.error}", FAILED)
+                self.report_failed()
+                return self.result
             self.stop(str(exc), PENDING)
             raise exc.error from None
         except (DeviceError, OSError) as exc:

@@ -229,16 +229,19 @@ def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_sess
 
 def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
     out = tmp_path / "s"
-    writes = []
+    full = []
+
+    def progress(ev):  # the disk fills up once capture 0 is complete
+        if ev.kind == "capture-done" and ev.capture_index == 0:
+            full.append(True)
 
     def hook(path, data):
-        writes.append(path)
-        if len(writes) > 30:  # capture 0 complete, capture 1 half way
+        if full:  # from then on every write fails (capture 1's frames or its processing)
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
-        result = run_session(rig, session, processor=proc)
+        result = run_session(rig, session, processor=proc, progress=progress)
     assert result.status == INTERRUPTED and result.reason.startswith("disk full")
     s = Session.open(out)  # the manifest on disk is the last consistent one
     assert s.verify() == []
@@ -251,10 +254,13 @@ def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
 
 
 def test_stop_request_leaves_capture_pending(tmp_path):
+    """A stop requested once capture 0 is acquired (its processing under way in the
+    background) takes effect at the next checkpoint: capture 0's processing ends (complete),
+    capture 1 never starts."""
     control = CaptureControl()
 
     def progress(ev):
-        if ev.kind == "capture-done" and ev.capture_index == 0:
+        if ev.kind == "capture-acquired" and ev.capture_index == 0:
             control.stop.set()
 
     with sim_rig() as rig:
@@ -364,12 +370,13 @@ def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_
     error: the capture failed with the reason, the session interrupted, nothing unrecorded
     left; resume completes it. (It used to skip the clean-up: status stayed "running".)"""
     out = tmp_path / "s"
-    writes = []
+    raw_1 = []
 
-    def hook(path, data):
-        writes.append(path)
-        if len(writes) == 30:  # capture 0 complete, capture 1 half way
-            raise OSError(errno.EIO, "Input/output error", str(path))
+    def hook(path, data):  # capture 1's second raw frame (capture 0 acquired, maybe processing)
+        if "c001_pose090.0/raw/" in path.as_posix() and path.suffix == ".png":
+            raw_1.append(path)
+            if len(raw_1) == 2:
+                raise OSError(errno.EIO, "Input/output error", str(path))
 
     with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
@@ -508,3 +515,93 @@ def test_a_second_sigint_during_the_clean_up_does_not_cut_it_short(tmp_path):
     assert s.manifest["status_reason"] == "interrupted by the operator (Ctrl-C)"
     assert [c["status"] for c in s.captures] == [COMPLETE, PENDING, PENDING, PENDING]
     assert s.verify() == []
+
+
+class _SignalDuringProcessing(processing.Processor):
+    """The real processor; while processing capture 1 it waits until capture 2 is acquired
+    (the run is then waiting for capture 1's processing before handing capture 2 over) and
+    sends this process SIGINT, as an operator's Ctrl-C at that moment would."""
+
+    acquired_2 = None
+
+    def process(self, session, index, revision=None):
+        import os
+        import signal
+
+        if index == 1:
+            assert self.acquired_2.wait(60), "capture 2 was never acquired"
+            os.kill(os.getpid(), signal.SIGINT)
+        return super().process(session, index, revision)
+
+
+def test_sigint_while_a_pose_is_processed_in_the_background_then_resume(tmp_path,
+                                                                         reference_session):
+    """Processing overlaps acquisition: SIGINT arrives while capture 1 is processed in the
+    worker and capture 2 is acquired. Capture 1's processing ends (complete), capture 2 stays
+    "acquired", capture 3 was never started. The resume processes capture 2 without
+    acquiring it again (same raw files, sidecars included, one attempt, only capture 3's
+    frames grabbed) and the session is identical to an uninterrupted one."""
+    import threading
+
+    out = tmp_path / "s"
+    acquired_2 = threading.Event()
+
+    def progress(ev):
+        if ev.kind == "capture-acquired" and ev.capture_index == 2:
+            acquired_2.set()
+
+    with sim_rig() as rig:
+        plan = CapturePlan(POSES4)
+        session = create_session(out, rig, plan, calibration_id=EXACT.id)
+        proc = _SignalDuringProcessing(plan.mode, plan.demosaic, EXACT,
+                                       processing.session_sensor_model(session))
+        proc.acquired_2 = acquired_2
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert s.manifest["status_reason"] == "interrupted by the operator (Ctrl-C)"
+    assert [c["status"] for c in s.captures] == [COMPLETE, COMPLETE, "acquired", PENDING]
+    assert set(s.capture(2)["files"]) == {"raw", "truth_mueller"}  # no result, nothing partial
+    assert s.verify() == []
+    raw_2 = s.capture(2)["files"]["raw"]
+    frames = []
+    with sim_rig() as rig:
+        s2, result = resume(rig, out, progress=lambda ev: frames.append(ev)
+                            if ev.kind == "frame" else None)
+    assert result.status == "complete" and sorted(result.completed) == [0, 1, 2, 3]
+    assert {ev.capture_index for ev in frames} == {3} and len(frames) == 4  # capture 3 only
+    assert s2.capture(2)["files"]["raw"] == raw_2 and s2.capture(2)["attempts"] == 1
+    assert s2.verify() == []
+    assert content(s2) == content(reference_session)
+
+
+def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tmp_path,
+                                                                              reference_session):
+    """A processing error (in the worker) ends the run like before (session interrupted,
+    the error raised for the caller to report), but the capture keeps its raw frames as
+    "acquired" with the reason; the resume processes it without acquiring it again."""
+
+    class Failing(processing.Processor):
+        def process(self, session, index, revision=None):
+            if index == 1:
+                raise RuntimeError("solver blew up")
+            return super().process(session, index, revision)
+
+    out = tmp_path / "s"
+    with sim_rig() as rig:
+        plan = CapturePlan(POSES4)
+        session = create_session(out, rig, plan, calibration_id=EXACT.id)
+        proc = Failing(plan.mode, plan.demosaic, EXACT, processing.session_sensor_model(session))
+        with pytest.raises(RuntimeError, match="solver blew up"):
+            run_session(rig, session, processor=proc)
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED and "RuntimeError" in s.manifest["status_reason"]
+    assert s.capture(1)["status"] == "acquired"
+    assert "processing failed: RuntimeError: solver blew up" == s.capture(1)["reason"]
+    assert s.verify() == []
+    with sim_rig() as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert s2.capture(1)["attempts"] == 1
+    assert content(s2) == content(reference_session)
