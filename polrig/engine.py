@@ -293,10 +293,16 @@ def hardware_model(rig) -> HardwareModel:
 # -- calibration procedures: the same policy behind the HAL interfaces ----------------------
 class GuardedCamera(Camera):
     """``camera`` with every grab and setting going through ``executor``'s policy (retries,
-    free-run settle frames). Used by :class:`GuardedRig`."""
+    free-run settle frames). Used by :class:`GuardedRig`. Anything a driver offers beyond the
+    HAL is the wrapped camera's own (read through unchanged)."""
 
     def __init__(self, camera: Camera, executor: Executor):
         self._camera, self._executor = camera, executor
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(self._camera, name)
 
     def open(self) -> None:
         self._camera.open()
@@ -448,7 +454,8 @@ class GuardedRig:
     the same four devices, every grab, setting and move going through one
     :class:`Executor`'s fault policy, and pause/stop honoured before grabs and moves.
     ``truth``, ``config`` and ``source`` are the wrapped rig's. Build with
-    :meth:`around`; the camera is put in its preferred trigger mode."""
+    :meth:`around` (``rig``: a :class:`polrig.rig.Rig`); the camera is put in its preferred
+    trigger mode."""
 
     camera: GuardedCamera
     stage: GuardedAxis
@@ -458,6 +465,7 @@ class GuardedRig:
     truth: Any = None
     config: Any = None
     source: Any = None
+    sim: Any = None
 
     @property
     def devices(self) -> dict[str, Any]:
@@ -477,4 +485,4 @@ class GuardedRig:
                    GuardedAxis("stage", rig.stage, executor),
                    GuardedAxis("turntable", rig.turntable, executor),
                    GuardedLight(rig.light, executor), executor,
-                   truth=rig.truth, config=rig.config, source=rig.source)
+                   truth=rig.truth, config=rig.config, source=rig.source, sim=rig.sim)
