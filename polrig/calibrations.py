@@ -90,7 +90,7 @@ class Calibration:
     def area_offset(self) -> tuple[int, int]:
         """Sensor position ``(x, y)`` of the calibrated area's first pixel (the analyzer
         model's pixel (0, 0)); (0, 0) without a calibrated geometry."""
-        area = getattr(self.sensor, "area", None)
+        area = None if self.sensor is None else self.sensor.area
         return (0, 0) if area is None else (int(area[2]), int(area[3]))
 
     def incident_stokes(self, states_deg: Sequence[float]) -> np.ndarray:
@@ -128,7 +128,7 @@ def load_calibration(path: str | os.PathLike | None, *, session: Session | None 
         cs = calibset.load(p)
         a_tol, g_tol = calibset.tolerances(cs, NOMINAL_ANALYZER_TOLERANCE,
                                            NOMINAL_GENERATOR_TOLERANCE)
-        cal = Calibration(cs.id, cs.incident_stokes, getattr(cs, "analyzer", None),
+        cal = Calibration(cs.id, cs.incident_stokes, cs.analyzer,
                           *calibration_geometry(cs), analyzer_tolerance=a_tol,
                           generator_tolerance=g_tol, sensor=cs.sensor_geometry(),
                           source=str(p))
@@ -148,11 +148,11 @@ def calibration_geometry(cs) -> tuple[tuple[float, float, float, float] | None,
     ``camera`` section), and the stage zero axis from the generator step, else from the
     turntable axis and the light position (:func:`calibration.rigframes.stage_zero_axis_cam`,
     the rig's definition)."""
-    has = getattr(cs, "has", lambda section: False)
+    has = cs.has
     intrinsics = axis = None
     if has("intrinsics"):
         k = np.asarray(cs.intrinsics["K"], np.float64)
-        geo = cs.sensor_geometry() if hasattr(cs, "sensor_geometry") else None
+        geo = cs.sensor_geometry()
         ox, oy = (0, 0) if geo is None or geo.area is None else geo.area[2:]
         intrinsics = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]) + ox, float(k[1, 2]) + oy)
     if has("generator") and "stage_zero_axis_cam" in cs.params.get("generator", {}):

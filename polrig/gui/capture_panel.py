@@ -328,6 +328,9 @@ class CapturePanel(QWidget):
             self.progress.setValue(ev.step)
         if ev.kind == "capture-start" and not self._step0:
             self._t_start, self._step0 = time.monotonic(), max(ev.step, 0)
+        if ev.kind == "capture-start" and ev.hardware_s:  # the plan's time, from the first event
+            self.eta.setText(f"capture {ev.capture_index + 1}/{ev.n_captures}, pose "
+                             f"{ev.pose_deg:g} deg, ETA {_fmt_s(self._eta_s(ev))}")
         control = self.worker.control if self.worker is not None else None
         if ev.kind == "frame" and ev.total and control is not None and (
                 control.pause.is_set() or control.stop.is_set()):
