@@ -12,8 +12,8 @@ timeouts from the hardware's declared capabilities) and subscribes to its events
   truth is recorded (``processor.after_acquire``) and the capture is marked ``acquired``;
 * the **processing worker** (one thread: numpy and the solver release the GIL) processes
   capture ``k`` while capture ``k + 1`` is acquired; at most one capture is processed and one
-  acquired at a time (before a capture is handed to the worker, the previous one's processing
-  has ended), so memory stays bounded;
+  acquired at a time (by default a capture is handed to the worker once the previous one's
+  processing has ended: ``max_queued``), so memory stays bounded;
 * **progress** (:class:`Progress` events, with the plan's remaining hardware time for an
   ETA from the first event) goes to the caller's callback, always from the calling thread.
 
@@ -221,13 +221,19 @@ class _ProcessingFailed(Exception):
 # -- the run ------------------------------------------------------------------------------------
 def run_session(rig, session: Session, *, processor=None,
                 progress: ProgressCallback | None = None,
-                control: CaptureControl | None = None) -> SessionResult:
+                control: CaptureControl | None = None,
+                max_queued: int = 1) -> SessionResult:
     """Acquire and process every capture of ``session`` that is not complete yet.
 
     ``processor`` (normally :func:`polrig.processing.make_processor`'s result) has
     ``after_acquire(session, index, rig)`` (run while the rig is still at the pose: the
     simulated rig's ground truth) and ``process(session, index) -> score dict or None`` (run
     in the worker thread); without one, an acquired capture is complete.
+
+    ``max_queued``: how many acquired captures may wait for or be in processing while the
+    next one is acquired (one worker thread processes them in order; a capture is loaded from
+    its files when its processing starts, so only that one is in memory). With the default 1
+    a capture is handed over once the previous one's processing has ended.
 
     The session's lock is taken (if this object does not hold it yet; :class:`SessionBusy`
     when another process writes the session) and released when the run ends. In the main
@@ -240,7 +246,7 @@ def run_session(rig, session: Session, *, processor=None,
     session.lock()
     try:
         with SignalGuard() as guard:
-            return _Run(rig, session, processor, progress, control, guard).run()
+            return _Run(rig, session, processor, progress, control, guard, max_queued).run()
     finally:
         session.unlock()
 
@@ -249,7 +255,10 @@ class _Run:
     """One :func:`run_session` call: the executor, its subscribers and the worker."""
 
     def __init__(self, rig, session: Session, processor, progress, control,
-                 guard: SignalGuard):
+                 guard: SignalGuard, max_queued: int = 1):
+        if int(max_queued) < 1:
+            raise ValueError(f"max_queued must be >= 1, got {max_queued!r}")
+        self.max_queued = int(max_queued)
         self.rig, self.session, self.processor = rig, session, processor
         self.progress, self.guard = progress, guard
         self.control = control or CaptureControl()
@@ -331,7 +340,7 @@ class _Run:
             self.session.complete_capture(index, None)
             self.finished(index, None)
             return
-        self.collect(block=True)
+        self.collect(block=True, keep=self.max_queued - 1)
         if self.pool is None:
             self.pool = concurrent.futures.ThreadPoolExecutor(1, "polrig-processing")
         self.jobs.append((index, self.pool.submit(self.process, index)))
@@ -345,11 +354,11 @@ class _Run:
         session.complete_capture(index, score)
         return score
 
-    def collect(self, *, block: bool) -> None:
-        """Report the captures whose processing ended (all of them when ``block``); a
-        processing error is raised as :class:`_ProcessingFailed` (the capture stays
-        ``acquired`` with the reason)."""
-        while self.jobs and (block or self.jobs[0][1].done()):
+    def collect(self, *, block: bool, keep: int = 0) -> None:
+        """Report the captures whose processing ended (when ``block``, wait until at most
+        ``keep`` remain); a processing error is raised as :class:`_ProcessingFailed` (the
+        capture stays ``acquired`` with the reason)."""
+        while len(self.jobs) > keep and (block or self.jobs[0][1].done()):
             index, job = self.jobs[0]  # popped once it ended: a signal may cut the wait short
             try:
                 score = job.result()

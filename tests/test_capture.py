@@ -605,3 +605,19 @@ def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tm
     assert result.status == "complete"
     assert s2.capture(1)["attempts"] == 1
     assert content(s2) == content(reference_session)
+
+
+def test_a_deeper_processing_queue_gives_the_same_session(tmp_path, reference_session):
+    """``max_queued=3``: acquisition runs ahead of processing (captures wait, in order, for
+    the one worker); the session is the same as with the default hand-over."""
+    events = []
+    with sim_rig() as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
+        result = run_session(rig, session, processor=proc, max_queued=3,
+                             progress=events.append)
+    assert result.status == "complete"
+    done = [e.capture_index for e in events if e.kind == "capture-done"]
+    assert done == [0, 1, 2, 3]
+    assert content(session) == content(reference_session)
+    with pytest.raises(ValueError, match="max_queued"):
+        run_session(rig, session, max_queued=0)

@@ -185,7 +185,9 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
 
     def faulty_open(*a, **kw):
         rig = real_open(*a, **kw)
-        rig.sim.inject_fault("stage", "disconnect", after_calls=6)
+        # stage calls: position (hardware time), home, then per move position, move_to, wait;
+        # call 15 starts capture 1's first move (with the turntable)
+        rig.sim.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
     monkeypatch.setattr(polrig.rig, "open_rig", faulty_open)
@@ -319,7 +321,9 @@ def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "
 
     def faulty_open(*a, **kw):
         rig = real_open(*a, **kw)
-        rig.sim.inject_fault("stage", "disconnect", after_calls=6)
+        # stage calls: position (hardware time), home, then per move position, move_to, wait;
+        # call 15 starts capture 1's first move (with the turntable)
+        rig.sim.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
     out = tmp_path / "run"
@@ -327,7 +331,9 @@ def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "
         m.setattr(polrig.rig, "open_rig", faulty_open)
         assert main(["capture", "--poses", poses, "--config", str(cfg), "--out", str(out),
                      "--no-progress"]) == 1
-    assert Session.open(out).manifest["status"] == "interrupted"
+    s = Session.open(out)
+    assert s.manifest["status"] == "interrupted"
+    assert [c["status"] for c in s.captures][:2] == ["complete", "failed"]
     return out
 
 
