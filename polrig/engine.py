@@ -32,6 +32,7 @@ before every move and before every grab (:class:`StopRequested` ends the run the
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from typing import Any, Callable, Iterable, Union
 
@@ -190,9 +191,11 @@ class Executor:
         return self.retried("camera grab", lambda: camera.grab(timeout_s=grab_timeout_s(camera)))
 
     def set_exposure(self, exposure_us: float) -> None:
-        """Set the exposure (nothing when it is set already: no settle frames needed)."""
+        """Set the exposure (nothing when it is set already: no settle frames needed; a
+        camera without exposure control reports NaN, and NaN asked of it is no change)."""
         camera: Camera = self.rig.camera
-        if float(camera.exposure_us) == float(exposure_us):
+        current, target = float(camera.exposure_us), float(exposure_us)
+        if current == target or (math.isnan(current) and math.isnan(target)):
             return
         self.retried("camera setting", lambda: camera.set_exposure_us(float(exposure_us)))
         self._unsettled = True

@@ -357,7 +357,8 @@ def step_durations(steps: Sequence[Step], model: HardwareModel) -> list[float]:
     """Hardware time of each step, seconds: a :class:`Move` lasts as long as its slowest
     axis (the axes move together), :class:`Home` a move to 0, a :class:`Grab` its exposure
     plus readout (and the settle frames it discards in free run after a setting change or a
-    move); other steps 0."""
+    move; a NaN exposure, of a camera without exposure control, counts as 0); other steps
+    0."""
     pos = dict(model.positions_deg)
     exposure = float(model.exposure_us)
     unsettled = True
@@ -373,13 +374,15 @@ def step_durations(steps: Sequence[Step], model: HardwareModel) -> list[float]:
             pos[step.axis] = 0.0
             unsettled = True
         elif isinstance(step, SetExposure):
-            if float(step.exposure_us) != exposure:
-                exposure, unsettled = float(step.exposure_us), True
+            new = float(step.exposure_us)
+            if new != exposure and not (math.isnan(new) and math.isnan(exposure)):
+                exposure, unsettled = new, True
         elif isinstance(step, SetLight):
             unsettled = True
         elif isinstance(step, Grab):
             frames = 1 + (int(model.settle_frames) if unsettled else 0)
-            t = frames * (exposure + float(model.readout_us)) * 1e-6
+            known = exposure if math.isfinite(exposure) else 0.0  # NaN: no exposure control
+            t = frames * (known + float(model.readout_us)) * 1e-6
             unsettled = False
         out.append(t)
     return out

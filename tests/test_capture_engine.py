@@ -118,6 +118,36 @@ def test_free_run_discards_the_settle_frames_after_a_move_or_a_setting():
         assert kept == [3, 4, 5, 8]
 
 
+class NoExposureControl(FreeRunCamera):
+    """A free-running camera without exposure control (it reports NaN, as the GenICam
+    emulator's camera does)."""
+
+    @property
+    def exposure_us(self) -> float:
+        return float("nan")
+
+    def set_exposure_us(self, exposure_us: float) -> None:
+        raise AssertionError("a camera without exposure control is never asked to set it")
+
+
+def test_a_camera_without_exposure_control_is_never_asked_to_set_it():
+    from polrig.plan import session_steps, step_durations
+    from polrig.engine import hardware_model
+
+    with open_rig(None, **SIM) as rig:
+        rig.camera = NoExposureControl(rig.sim.world, rig.sim.faults)
+        rig.camera.open()
+        plan = CapturePlan((0.0,))
+        steps = session_steps(plan, [0], (rig.camera.exposure_us,))
+        d = step_durations(steps, hardware_model(rig))
+        assert all(math.isfinite(v) for v in d) and sum(d) > 0
+        kept = []
+        ex = Executor(rig)
+        ex.subscribe(lambda e: kept.append(e) if isinstance(e, FrameGrabbed) else None)
+        ex.run(steps)
+        assert len(kept) == 4
+
+
 def test_stop_and_pause_at_checkpoints():
     with open_rig(None, **SIM) as rig:
         control = CaptureControl()
