@@ -116,3 +116,23 @@ def test_infer_of_a_sim_render_is_in_the_unit_of_its_truth(tmp_path, capsys):
     m00 = np.median(got.mueller[:, 0, 0][:, got.extra["mask"] > 0], axis=1)
     t00 = np.median(truth.mueller[:, 0, 0][:, truth.extra["mask"] > 0], axis=1)
     np.testing.assert_allclose(m00, t00, rtol=0.2)
+
+
+def test_infer_writes_masked_previews_and_counts_the_masked_pixels(frame, tmp_path, capsys):
+    """Previews next to the EXR (grid with tile labels and colour bar, polarizance DoLP/AoLP
+    with legends); background and pixels below --min-snr are black and counted."""
+    import cv2
+
+    capsys.readouterr()
+    out = tmp_path / "m.exr"
+    assert main(["infer", str(frame), "--state-deg", "0", "--out", str(out)]) == 0
+    line = capsys.readouterr().out
+    assert "masked " in line and " of 512 pixels" in line and "m_grid.png" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.exr", "m_aolp.png", "m_dolp.png",
+                                                          "m_grid.png"]
+    grid = cv2.imread(str(tmp_path / "m_grid.png"))
+    assert min(grid.shape[:2]) >= 3 * 256  # 32x16 tiles enlarged to be read
+    # a folder where a preview goes is refused before the network runs
+    (tmp_path / "n_dolp.png").mkdir()
+    assert main(["infer", str(frame), "--state-deg", "0", "--out", str(tmp_path / "n.exr")]) == 2
+    assert not (tmp_path / "n.exr").exists()

@@ -62,6 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "two answers (models/mirror.py): a few per cent lower error for twice the "
                         "network time (models/MODEL_CARD.md, 'Mirror averaging')")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
+    p.add_argument("--min-snr", type=nonnegative_float, default=None, metavar="K",
+                   help="in the previews (OUT_grid.png, OUT_dolp.png, OUT_aolp.png), mask pixels "
+                        "whose measured S0 is below K noise standard deviations (default 3, "
+                        "polrig.preview.DEFAULT_MIN_SNR; 0 masks only background and clipped pixels)")
     p.set_defaults(func=run)
 
 
@@ -74,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
     from polrig import processing
     from polrig.commands._units import adc_factor
+    from polrig.preview import (BACKGROUND, DEFAULT_MIN_SNR, SATURATED, mask_summary, s0_snr,
+                                write_result_previews)
     from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
     from polrig.rig import load_rig_config
 
@@ -81,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
     check_output_file(out)
+    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in ("_grid.png", "_dolp.png", "_aolp.png")]
+    for preview_path in previews:
+        check_output_file(preview_path, "--out preview")
     frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
     layout = args.layout or frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
@@ -106,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--sigma: {model.uncertainty_problem}; {how_to_calibrate(model.weights_dir)}")
     # the file's DN -> ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16): the
     # result is in the unit of the noise model, the truth of a simulated capture and a session
-    _, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
+    sensor, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
     raw_adc = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
     mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=args.demosaic,
                                black_level_dn=black * to_adc, scale=args.scale,
@@ -116,9 +125,16 @@ def run(args: argparse.Namespace) -> int:
                                          "layout": str(layout), "demosaic": args.demosaic,
                                          "saturation_dn": saturation, "mirror_average": args.mirror_average,
                                          "units": UNITS, "adc_dn_per_file_dn": to_adc})
+    # previews: the measured S0 against its noise sigma decides what is signal
+    snr = s0_snr(aux["stokes"][:, 0], sensor, frame.meta.exposure_us)
+    flags = (np.where(np.asarray(aux["mask"], bool), 0, BACKGROUND)
+             | np.where(aux["saturated"], SATURATED, 0)).astype(np.uint8)[None] | np.zeros(snr.shape, np.uint8)
+    min_snr = DEFAULT_MIN_SNR if args.min_snr is None else args.min_snr
+    write_result_previews(mueller, out.parent, stem=out.stem, flags=flags, snr=snr, min_snr=min_snr)
     t = aux["timings_s"]
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
-          f"network {1e3 * t['network']:.1f} ms")
+          f"network {1e3 * t['network']:.1f} ms; {mask_summary(flags, snr, min_snr)}; previews "
+          f"{', '.join(p.name for p in previews)}")
     n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
     if n_clipped:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
