@@ -76,3 +76,179 @@ def random_material(rng: np.random.Generator, *, name: str = "random") -> Materi
     eta = float(rng.uniform(1.3, 1.8))
     ks = 0.0 if rng.random() < 0.1 else 1.0
     return Material(name, tuple(kd), alpha, eta, ks)
+
+
+# ---------------------------------------------------------------------------------------------
+# Materials beyond the initialization's family (issue 23): evaluated by sim.surface_bsdf
+
+#: Refractive index of the thin retarding film (enters only its internal propagation angle).
+FILM_INDEX = 1.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Texture:
+    """A smooth scalar pattern over an object's local frame (metres), values in
+    ``[low, high]``: ``low + (high - low) (1 + sin(2 pi u / period_m + phase)) / 2`` with
+    ``u = p . axis`` (``kind = "stripes"``) or ``u = |p - (p . axis) axis|`` (``"rings"``,
+    distance from the axis through the local origin)."""
+
+    low: float
+    high: float
+    period_m: float = 0.02
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    phase: float = 0.0
+    kind: str = "stripes"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("stripes", "rings"):
+            raise ValueError(f"texture kind must be 'stripes' or 'rings', got {self.kind!r}")
+        if not (self.period_m > 0 and np.isfinite(self.period_m)):
+            raise ValueError(f"texture period_m must be > 0, got {self.period_m}")
+        if not (np.isfinite(self.low) and np.isfinite(self.high)):
+            raise ValueError("texture low and high must be finite")
+        a = np.asarray(self.axis, float).reshape(3)
+        if not np.linalg.norm(a) > 0:
+            raise ValueError("texture axis must be non-zero")
+        object.__setattr__(self, "axis", tuple(float(v) for v in a / np.linalg.norm(a)))
+
+    def __call__(self, p_local: np.ndarray) -> np.ndarray:
+        """Values ``(N,)`` at local points ``(N, 3)``."""
+        a = np.asarray(self.axis)
+        u = p_local @ a
+        if self.kind == "rings":
+            u = np.linalg.norm(p_local - u[:, None] * a, axis=1)
+        w = 0.5 * (1.0 + np.sin(2.0 * np.pi * u / self.period_m + self.phase))
+        return self.low + (self.high - self.low) * w
+
+
+@dataclasses.dataclass(frozen=True)
+class SurfaceMaterial:
+    """A microfacet surface outside the Baek 2018 dielectric family of :class:`Material`.
+
+    * ``eta_rgb``: relative index per colour (R, G, B at :data:`sim.optical_data.WAVELENGTHS_NM`),
+      complex ``n + i k`` for a conductor (``k > 0``, no diffuse term), real and varying for a
+      dispersive dielectric (:mod:`sim.optical_data`).
+    * ``alpha`` / ``alpha_v``: roughness along the surface tangent / across it (``alpha_v``
+      ``None``: isotropic); ``distribution`` ``"ggx"`` or ``"beckmann"`` (anisotropic forms of
+      Walter et al. 2007 and Heitz, JCGT 3(2) 2014, as Mitsuba 3's ``MicrofacetDistribution``).
+    * ``kd``, ``ks``: diffuse albedo per colour and specular weight as in :class:`Material`.
+    * ``polarized_fraction``: fraction ``p0`` of the polarized part that survives at normal
+      incidence and exitance; along a path it is ``p0 ** ((1/cos_i + 1/cos_o) / 2)`` (path
+      length through a depolarizing layer), so the degree of polarization falls below the
+      Fresnel prediction and more so towards grazing. ``1``: no depolarization.
+    * ``retardance_rad``: normal-incidence retardance of a thin birefringent film over the
+      surface at 532 nm (``0``: no film); ``fast_axis_deg``: its fast axis from the surface
+      tangent towards the bitangent.
+    * ``tangent_axis``: local direction whose projection on the tangent plane is the tangent.
+    * Textures (:class:`Texture`, functions of the object's local point): ``kd_texture`` and
+      ``alpha_texture`` multiply ``kd`` and both roughnesses, ``eta_texture`` is added to the
+      real part of ``eta_rgb``, ``retardance_texture`` multiplies the retardance and
+      ``fast_axis_texture`` adds degrees to the fast axis.
+    """
+
+    name: str
+    eta_rgb: tuple[complex, complex, complex]
+    alpha: float
+    alpha_v: float | None = None
+    kd: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ks: float = 1.0
+    distribution: str = "ggx"
+    polarized_fraction: float = 1.0
+    retardance_rad: float = 0.0
+    fast_axis_deg: float = 0.0
+    tangent_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    kd_texture: Texture | None = None
+    alpha_texture: Texture | None = None
+    eta_texture: Texture | None = None
+    retardance_texture: Texture | None = None
+    fast_axis_texture: Texture | None = None
+
+    def __post_init__(self) -> None:
+        eta = tuple(complex(v) for v in np.asarray(self.eta_rgb, complex).reshape(3))
+        if not all(np.isfinite(e) and e.real > 0 and e.imag >= 0 for e in eta):
+            raise ValueError(f"material {self.name}: eta_rgb must have real part > 0 and "
+                             f"imaginary part >= 0, got {eta}")
+        conductor = any(e.imag > 0 for e in eta)
+        if not conductor and not all(e.real > 1.0 for e in eta):
+            raise ValueError(f"material {self.name}: a dielectric's eta must be > 1, got {eta}")
+        kd = tuple(float(v) for v in np.asarray(self.kd, float).reshape(3))
+        if not all(0.0 <= v <= 1.0 for v in kd):
+            raise ValueError(f"material {self.name}: kd must be in [0, 1], got {kd}")
+        if conductor and max(kd) > 0:
+            raise ValueError(f"material {self.name}: a conductor has no diffuse term (kd must be 0)")
+        for label, a in (("alpha", self.alpha), ("alpha_v", self.alpha_v)):
+            if a is not None and not (a > 0.0 and np.isfinite(a)):
+                raise ValueError(f"material {self.name}: {label} must be > 0, got {a}")
+        if self.distribution not in ("ggx", "beckmann"):
+            raise ValueError(f"material {self.name}: distribution must be 'ggx' or 'beckmann', "
+                             f"got {self.distribution!r}")
+        if not (0.0 <= self.polarized_fraction <= 1.0):
+            raise ValueError(f"material {self.name}: polarized_fraction must be in [0, 1], "
+                             f"got {self.polarized_fraction}")
+        if not (self.ks >= 0.0 and np.isfinite(self.retardance_rad) and np.isfinite(self.fast_axis_deg)):
+            raise ValueError(f"material {self.name}: ks must be >= 0, retardance and fast axis finite")
+        tex_lo = {k: (getattr(self, k).low, getattr(self, k).high) for k in
+                  ("kd_texture", "alpha_texture", "eta_texture") if getattr(self, k) is not None}
+        lo_hi = lambda k, d: (min(tex_lo.get(k, d)), max(tex_lo.get(k, d)))  # noqa: E731
+        if lo_hi("alpha_texture", (1, 1))[0] <= 0 or max(kd) * lo_hi("kd_texture", (1, 1))[1] > 1 \
+                or lo_hi("kd_texture", (1, 1))[0] < 0:
+            raise ValueError(f"material {self.name}: textures must keep alpha > 0 and kd in [0, 1]")
+        if min(e.real for e in eta) + lo_hi("eta_texture", (0, 0))[0] <= (0.0 if conductor else 1.0):
+            raise ValueError(f"material {self.name}: the eta texture must keep eta > "
+                             f"{'0' if conductor else '1'}")
+        t = np.asarray(self.tangent_axis, float).reshape(3)
+        if not np.linalg.norm(t) > 0:
+            raise ValueError(f"material {self.name}: tangent_axis must be non-zero")
+        object.__setattr__(self, "eta_rgb", eta)
+        object.__setattr__(self, "kd", kd)
+        object.__setattr__(self, "tangent_axis", tuple(float(v) for v in t / np.linalg.norm(t)))
+
+    @property
+    def conductor(self) -> bool:
+        return any(e.imag > 0 for e in self.eta_rgb)
+
+    @property
+    def eta(self) -> float:
+        """Nominal real index (green channel's real part), for per-pixel truth images."""
+        return self.eta_rgb[1].real
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        out = []
+        if self.ks > 0.0:
+            out.append("specular")
+        if max(self.kd) > 0.0:
+            out.append("diffuse")
+        return tuple(out)
+
+    def parameters(self, p_local: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-point parameters at local points ``(N, 3)``: ``eta`` ``(N, 3)`` complex,
+        ``kd`` ``(N, 3)``, ``alpha_u``, ``alpha_v``, ``ks``, ``polarized_fraction``,
+        ``retardance_rad`` (green, normal incidence), ``fast_axis_rad`` ``(N,)``."""
+        n = len(p_local)
+
+        def tex(t: Texture | None, neutral: float) -> np.ndarray:
+            return np.full(n, neutral) if t is None else np.asarray(t(p_local), float)
+
+        a_scale = tex(self.alpha_texture, 1.0)
+        eta = np.broadcast_to(np.asarray(self.eta_rgb, complex), (n, 3)) + tex(self.eta_texture, 0.0)[:, None]
+        alpha_v = self.alpha if self.alpha_v is None else self.alpha_v
+        return {
+            "eta": eta, "kd": np.asarray(self.kd)[None, :] * tex(self.kd_texture, 1.0)[:, None],
+            "alpha_u": self.alpha * a_scale, "alpha_v": alpha_v * a_scale,
+            "ks": np.full(n, float(self.ks)), "polarized_fraction": np.full(n, float(self.polarized_fraction)),
+            "retardance_rad": self.retardance_rad * tex(self.retardance_texture, 1.0),
+            "fast_axis_rad": np.deg2rad(self.fast_axis_deg + tex(self.fast_axis_texture, 0.0)),
+        }
+
+    def to_json(self) -> dict:
+        d = {"name": self.name, "model": "surface",
+             "eta_rgb": [[e.real, e.imag] for e in self.eta_rgb], "alpha": self.alpha,
+             "alpha_v": self.alpha_v, "kd": list(self.kd), "ks": self.ks,
+             "distribution": self.distribution, "polarized_fraction": self.polarized_fraction,
+             "retardance_rad": self.retardance_rad, "fast_axis_deg": self.fast_axis_deg,
+             "tangent_axis": list(self.tangent_axis)}
+        for k in ("kd_texture", "alpha_texture", "eta_texture", "retardance_texture", "fast_axis_texture"):
+            t = getattr(self, k)
+            d[k] = None if t is None else dataclasses.asdict(t)
+        return d
