@@ -26,7 +26,9 @@ import time
 import numpy as np
 
 from polrig.pbrdf import linear_rig_mueller
+from sim import surface_bsdf
 from sim.geometry import rows_times, unit
+from sim.materials import SurfaceMaterial
 from sim.scene import Scene
 
 #: Offset of shadow-ray origins along the geometric normal (metres).
@@ -207,14 +209,16 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
     ks_tab = np.array([m.ks for m in mats])
     kd = kd_tab[mat_index]
     alpha, eta, ks = al_tab[mat_index], eta_tab[mat_index], ks_tab[mat_index]
+    surface = _surface_parameters(scene, turntable_deg, mat_index, p_loc[idx], kd, alpha, eta, ks)
+    baek = ~np.isin(mat_index, list(surface))  # pixels of the Baek-family Material
 
     zero_axis = scene.stage_zero_axis
     cam_x = cam.R[0]
     lit_sel = np.nonzero(lit)[0]  # positions in the hit arrays of the lit pixels
     brdf_px = np.zeros((lit_sel.size, 3, 3, 3))
     if skip_terms:
-        spec_sel = np.nonzero(ks[lit_sel] > 0)[0]  # positions in lit_sel
-        diff_sel = np.nonzero(kd[lit_sel].max(axis=1) > 0)[0]
+        spec_sel = np.nonzero((ks[lit_sel] > 0) & baek[lit_sel])[0]  # positions in lit_sel
+        diff_sel = np.nonzero((kd[lit_sel].max(axis=1) > 0) & baek[lit_sel])[0]
     else:  # the brute-force reference for the benchmark: every term on every pixel
         spec_sel = diff_sel = None
         ns_f, wi_f, wo_f = _full_directions(cam, d_all, idx, ns, wi, wo, scene)
@@ -245,6 +249,20 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
         q = slice(None) if diff_sel is None else diff_sel
         brdf_px[q] += kd[lit_sel][q, :, None, None] * md[:, None]
     tim["diffuse"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    n_surface = 0
+    for k, (prm, t_ref, micro) in surface.items():
+        q = np.nonzero(mat_index[lit_sel] == k)[0]  # positions in lit_sel
+        if not q.size:
+            continue
+        sel = np.searchsorted(prm["hit_positions"], lit_sel[q])
+        pl = lit_sel[q]
+        m = surface_bsdf.evaluate(ns[pl], t_ref, wi[pl], wo[pl],
+                                  {key: v[sel] for key, v in prm.items() if key != "hit_positions"},
+                                  distribution=micro, refs=(zero_axis, cam_x))
+        brdf_px[q] = m[..., :3, :3]
+        n_surface += q.size
+    tim["surface"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     n_pix = h * w
@@ -272,9 +290,34 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
         counts={"pixels": n_pix, "hit": int(idx.size), "lit": int(lit.sum()),
                 "shadowed": int((facing & shadowed).sum()),
                 "specular_evals": int(n_pix if spec_sel is None else spec_sel.size),
-                "diffuse_evals": int(n_pix if diff_sel is None else diff_sel.size)})
+                "diffuse_evals": int(n_pix if diff_sel is None else diff_sel.size),
+                "surface_evals": n_surface})
     tim["assemble"] = time.perf_counter() - t0
     return res
+
+
+def _surface_parameters(scene: Scene, turntable_deg: float, mat_index: np.ndarray,
+                        p_local: np.ndarray, kd: np.ndarray, alpha: np.ndarray, eta: np.ndarray,
+                        ks: np.ndarray) -> dict[int, tuple[dict, np.ndarray, str]]:
+    """Per-point parameters of the hit pixels of every :class:`SurfaceMaterial` (textures
+    evaluated at the local points ``p_local`` ``(N, 3)``), keyed by material index:
+    ``(params incl. "hit_positions", world tangent reference (3,), distribution)``. Writes the
+    nominal per-pixel truth (``kd``, ``alpha`` along the tangent, real green ``eta``, ``ks``)
+    into the given arrays in place."""
+    out = {}
+    k = 0
+    for ob in scene.objects:
+        r, _ = ob.world_pose(scene.turntable, turntable_deg)
+        for mat in ob.materials:
+            if isinstance(mat, SurfaceMaterial):
+                pos = np.nonzero(mat_index == k)[0]
+                prm = mat.parameters(p_local[pos])
+                kd[pos], alpha[pos], ks[pos] = prm["kd"], prm["alpha_u"], prm["ks"]
+                eta[pos] = prm["eta"][:, 1].real
+                prm["hit_positions"] = pos
+                out[k] = (prm, r @ np.asarray(mat.tangent_axis), mat.distribution)
+            k += 1
+    return out
 
 
 def _full(fill: float, idx: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:

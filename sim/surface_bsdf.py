@@ -68,7 +68,7 @@ def tangent_frame(n: np.ndarray, t_ref: np.ndarray) -> tuple[np.ndarray, np.ndar
     t_ref = np.broadcast_to(t_ref, n.shape)
     t = t_ref - fr.dot(t_ref, n)[:, None] * n
     length = np.linalg.norm(t, axis=1)
-    bad = length < 1e-9
+    bad = length < 1e-6  # reference within ~1e-6 rad of the normal: no defined tangent
     if np.any(bad):
         t[bad] = fr.stokes_basis_unit(n[bad])
         length[bad] = 1.0
