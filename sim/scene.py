@@ -284,12 +284,21 @@ def _material_scene_objects(name: str, c: np.ndarray) -> list[SceneObject]:
             ("chrome", [-0.025, 0.04, 0.03]))] + [
             SceneObject("copper", Sphere(0.022), (SurfaceMaterial("copper", conductor_rgb("copper"), 0.1),),
                         [0.025, 0.04, 0.03]), _floor()]
+    if name == "corner":  # a metal wall and a glossy floor that light each other
+        wall = SceneObject("wall", Rectangle(0.06, 0.05), (sm["aluminium"],), [0.0, 0.045, 0.05],
+                           rotation=_tilt(90.0, 0.0), on_turntable=False)
+        return [_floor("plastic_white"), wall,
+                SceneObject("sphere", Sphere(0.025), (get_material("plastic_red"),), [0.0, 0.0, 0.025])]
+    if name == "crater":  # a concave dish that lights itself
+        h, g = gaussian_bumps([[0.0, 0.0]], [0.02], [-0.02])
+        return [SceneObject("dish", HeightField(0.045, 0.045, -0.021, 0.001, h, g), (sm["gold"],),
+                            [0.0, 0.0, 0.04], rotation=_tilt(25.0, 0.0))]
     raise ValueError(name)  # pragma: no cover - MATERIAL_SCENES is exhaustive
 
 
 #: Scenes with materials outside the Baek 2018 family (:class:`SurfaceMaterial`).
 MATERIAL_SCENES = ("gold_sphere", "chrome_sphere", "brushed_cylinder", "dispersive_sphere",
-                   "film_plane", "textured_blob", "metals")
+                   "film_plane", "textured_blob", "metals", "corner", "crater")
 
 SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_sphere",
           "plane", "box", "cylinder", "multi", "heightfield", "normalmap", "blob",

@@ -149,8 +149,9 @@ def _chunk(n, t_ref, wi, wo, prm, distribution, refs) -> np.ndarray:
     if not np.any(ok):
         return out
     if not np.all(ok):
+        refs_ok = None if refs is None else tuple(r if r.ndim == 1 else r[ok] for r in refs)
         sub = _chunk(n[ok], t_ref if t_ref.ndim == 1 else t_ref[ok], wi[ok], wo[ok],
-                     {k: v[ok] for k, v in prm.items()}, distribution, refs)
+                     {k: v[ok] for k, v in prm.items()}, distribution, refs_ok)
         out[ok] = sub
         return out
     k_in = -wi
@@ -203,7 +204,7 @@ def evaluate(normal, tangent_ref, wi, wo, params: dict[str, np.ndarray], *,
     ``(3,)`` or ``(P, 3)`` tangent reference (projected on the surface); ``params``: the
     per-point arrays of :meth:`sim.materials.SurfaceMaterial.parameters` (``P`` rows);
     ``refs``: ``None`` for Mitsuba's default Stokes bases or ``(stage_zero_axis,
-    camera_x_axis)`` for the rig frames (module docstring).
+    camera_x_axis)`` for the rig frames (module docstring), each ``(3,)`` or ``(P, 3)``.
     """
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"distribution must be one of {DISTRIBUTIONS}, got {distribution!r}")
@@ -217,9 +218,12 @@ def evaluate(normal, tangent_ref, wi, wo, params: dict[str, np.ndarray], *,
     prm = {k: np.broadcast_to(np.asarray(params[k]), (len(n),) + np.shape(params[k])[1:])
            for k in PARAM_KEYS}
     prm["eta"] = prm["eta"].astype(complex)
+    if refs is not None:
+        refs = tuple(np.asarray(r, float) for r in refs)
     out = np.zeros((len(n), 3, 4, 4))
     for lo in range(0, len(n), CHUNK):
         sl = slice(lo, lo + CHUNK)
+        refs_c = None if refs is None else tuple(r if r.ndim == 1 else r[sl] for r in refs)
         out[sl] = _chunk(n[sl], t_ref if t_ref.ndim == 1 else t_ref[sl], wi[sl], wo[sl],
-                         {k: v[sl] for k, v in prm.items()}, distribution, refs)
+                         {k: v[sl] for k, v in prm.items()}, distribution, refs_c)
     return out
