@@ -246,7 +246,7 @@ def surface_presets() -> dict[str, SurfaceMaterial]:
         SurfaceMaterial("chrome", cond("chrome"), 0.03),
         SurfaceMaterial("silver", cond("silver"), 0.08),
         SurfaceMaterial("aluminium", cond("aluminium"), 0.2),
-        SurfaceMaterial("brushed_copper", cond("copper"), 0.06, 0.35, distribution="beckmann"),
+        SurfaceMaterial("brushed_copper", cond("copper"), 0.12, 0.5, distribution="beckmann"),
         SurfaceMaterial("polycarbonate_red", dielectric_rgb("polycarbonate"), 0.1, kd=(0.6, 0.08, 0.05)),
         SurfaceMaterial("stressed_pmma", dielectric_rgb("pmma"), 0.15, kd=(0.3, 0.5, 0.6),
                         retardance_rad=1.8, tangent_axis=(1.0, 0.0, 0.0),
