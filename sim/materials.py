@@ -252,3 +252,101 @@ class SurfaceMaterial:
             t = getattr(self, k)
             d[k] = None if t is None else dataclasses.asdict(t)
         return d
+
+
+# ---------------------------------------------------------------------------------------------
+# Random materials of the dataset mixes (issue 23, item 4)
+
+#: Kinds of random material: ``baek`` is the initialization's family (:func:`random_material`);
+#: the others are outside it (:func:`random_surface_material`).
+MATERIAL_KINDS = ("baek", "conductor", "dispersive", "anisotropic", "film", "depolarizing")
+#: Named mixes: kind -> probability. ``baek`` is the default (datasets as before); ``train``
+#: is the training mix; ``heldout`` draws only the kinds the training mix leaves out (a thin
+#: retarding film, partial depolarization with textures); a single kind is also a mix.
+MATERIAL_MIXES: dict[str, dict[str, float]] = {
+    "baek": {"baek": 1.0},
+    "train": {"baek": 0.4, "conductor": 0.2, "dispersive": 0.2, "anisotropic": 0.2},
+    "heldout": {"film": 0.5, "depolarizing": 0.5},
+    **{k: {k: 1.0} for k in MATERIAL_KINDS if k != "baek"},
+}
+#: Fraunhofer d, F and C lines (nm) of the Abbe number.
+_LINES_NM = (587.5618, 486.1327, 656.2725)
+
+
+def cauchy_rgb(n_d: float, abbe: float) -> tuple[float, float, float]:
+    """Real index per channel of a two-term Cauchy dielectric ``n = A + B / lambda^2`` with
+    refractive index ``n_d`` and Abbe number ``V_d = (n_d - 1) / (n_F - n_C)`` (the catalogue
+    parametrisation of optical glasses and plastics)."""
+    from sim.optical_data import WAVELENGTHS_NM
+    ld, lf, lc = _LINES_NM
+    b = (n_d - 1.0) / abbe / (1.0 / lf ** 2 - 1.0 / lc ** 2)
+    a = n_d - b / ld ** 2
+    return tuple(float(a + b / lam ** 2) for lam in WAVELENGTHS_NM)  # type: ignore[return-value]
+
+
+def _random_texture(rng: np.random.Generator, low: float, high: float) -> Texture:
+    axis = rng.normal(size=3)
+    return Texture(low, high, float(rng.uniform(0.01, 0.05)), tuple(axis / np.linalg.norm(axis)),
+                   float(rng.uniform(0, 2 * np.pi)), str(rng.choice(["stripes", "rings"])))
+
+
+def random_surface_material(rng: np.random.Generator, kind: str, base: Material,
+                            *, name: str = "random") -> SurfaceMaterial:
+    """A random material of ``kind`` (:data:`MATERIAL_KINDS` other than ``baek``) built on the
+    dielectric ``base`` (its kd, alpha, eta):
+
+    * ``conductor``: a metal of :data:`sim.optical_data.CONDUCTORS`, log-uniform alpha in
+      [0.02, 0.6], GGX or Beckmann;
+    * ``dispersive``: the base with a Cauchy dispersion of Abbe number uniform in [20, 65]
+      (:func:`cauchy_rgb`; ``n_d`` = the base eta);
+    * ``anisotropic``: the base with ``alpha_u, alpha_v = alpha exp(+-u)``, ``u`` uniform in
+      [0.3, 1.2], Beckmann or GGX, random tangent;
+    * ``film``: the base under a retarding film of retardance uniform in [0.3, 3] rad with a
+      random fast axis, both varying over the object (textures);
+    * ``depolarizing``: the base with polarized fraction uniform in [0.3, 0.9] and kd, alpha
+      and eta textures.
+    """
+    eta3 = (base.eta,) * 3
+    tangent = tuple(rng.normal(size=3))
+    if kind == "conductor":
+        from sim.optical_data import CONDUCTORS
+        metal = str(rng.choice(list(CONDUCTORS)))
+        alpha = float(np.exp(rng.uniform(np.log(0.02), np.log(0.6))))
+        return SurfaceMaterial(f"{name}_{metal}", CONDUCTORS[metal], alpha,
+                               distribution=str(rng.choice(["ggx", "beckmann"])))
+    if kind == "dispersive":
+        return SurfaceMaterial(name, cauchy_rgb(base.eta, float(rng.uniform(20, 65))), base.alpha,
+                               kd=base.kd, ks=base.ks)
+    if kind == "anisotropic":
+        u = float(rng.uniform(0.3, 1.2))
+        return SurfaceMaterial(name, eta3, base.alpha * np.exp(u), base.alpha * np.exp(-u), kd=base.kd,
+                               ks=base.ks, distribution=str(rng.choice(["ggx", "beckmann"])),
+                               tangent_axis=tangent)
+    if kind == "film":
+        return SurfaceMaterial(name, eta3, base.alpha, kd=base.kd, ks=base.ks,
+                               retardance_rad=float(rng.uniform(0.3, 3.0)),
+                               fast_axis_deg=float(rng.uniform(0, 180)), tangent_axis=tangent,
+                               retardance_texture=_random_texture(rng, 0.3, 1.0),
+                               fast_axis_texture=_random_texture(rng, -30.0, 30.0))
+    if kind == "depolarizing":
+        kd_hi = 1.0 / max(max(base.kd), 1e-6)
+        return SurfaceMaterial(name, eta3, base.alpha, kd=base.kd, ks=base.ks,
+                               polarized_fraction=float(rng.uniform(0.3, 0.9)), tangent_axis=tangent,
+                               kd_texture=_random_texture(rng, 0.4, min(1.0, kd_hi)),
+                               alpha_texture=_random_texture(rng, 0.5, 2.0),
+                               eta_texture=_random_texture(rng, -0.2, 0.2))
+    raise ValueError(f"unknown material kind {kind!r}; known: {', '.join(MATERIAL_KINDS[1:])}")
+
+
+def random_mix_material(rng: np.random.Generator, mix: str, base: Material) -> Material | SurfaceMaterial:
+    """A material drawn from the named ``mix`` (:data:`MATERIAL_MIXES`); ``baek`` returns
+    ``base`` itself and draws nothing from ``rng``."""
+    try:
+        probs = MATERIAL_MIXES[mix]
+    except KeyError:
+        raise ValueError(f"unknown material mix {mix!r}; known: {', '.join(MATERIAL_MIXES)}") from None
+    kinds = list(probs)
+    if kinds == ["baek"]:
+        return base
+    kind = kinds[int(rng.choice(len(kinds), p=np.array([probs[k] for k in kinds])))]
+    return base if kind == "baek" else random_surface_material(rng, kind, base, name=base.name)

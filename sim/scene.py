@@ -19,7 +19,8 @@ from typing import Callable
 import numpy as np
 
 from sim.geometry import PinholeCamera, PointLight, TurntableGeometry, look_at, unit
-from sim.materials import Material, SurfaceMaterial, Texture, get_material, random_material
+from sim.materials import (Material, SurfaceMaterial, Texture, get_material, random_material,
+                           random_mix_material)
 from sim.optical_data import conductor_rgb, dielectric_rgb
 from sim.shapes import (Blob, Box, Cylinder, HeightField, Rectangle, Shape, Sphere, Torus,
                         gaussian_bumps, wave_normal_map)
@@ -330,14 +331,25 @@ HOLDOUT_FAMILIES = ("heightfield", "plane")
 
 
 def random_scene(rng: np.random.Generator, width: int, height: int,
-                 family: int) -> Scene:
+                 family: int, *, material_mix: str = "baek",
+                 material_rng: np.random.Generator | None = None) -> Scene:
     """A randomized scene of shape family ``FAMILIES[family]``: random size, pose, material
     (one material per scene, so one roughness per image), light position and colour. The
     camera is the default one with ``RANDOM_FOCAL_PER_PX``; the stage zero axis is the
     camera's up direction (``-Y``), so that the rig frames are fixed in the camera frame
-    across samples."""
+    across samples.
+
+    ``material_mix`` (:data:`sim.materials.MATERIAL_MIXES`, default ``"baek"``: the
+    initialization's family, as before) replaces the Baek material by one drawn from the mix
+    with ``material_rng`` (required for other mixes), built on the Baek material drawn from
+    ``rng``; ``rng`` is consumed exactly as for ``"baek"``, so the geometry, light and pose of
+    a sample are the same in every mix (paired comparisons)."""
     fam = FAMILIES[family]
     mat = random_material(rng)
+    if material_mix != "baek":
+        if material_rng is None:
+            raise ValueError("random_scene: a material_mix other than 'baek' needs material_rng")
+        mat = random_mix_material(material_rng, material_mix, mat)
     rot = _tilt(rng.uniform(-40, 40), rng.uniform(0, 360))
     c = np.array([0.0, 0.0, OBJECT_Z_M]) + rng.uniform(-0.01, 0.01, 3)
     if fam == "sphere":

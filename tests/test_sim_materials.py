@@ -337,3 +337,49 @@ def test_dispersion_breaks_the_polarization_colour_decoupling():
     m = np.moveaxis(r.brdf[..., r.lit], -1, 0).astype(np.float64)  # (N, 3, 3, 3)
     pol = np.hypot(m[:, :, 1, 0], m[:, :, 2, 0]) / m[:, :, 0, 0]
     assert np.abs(pol[:, 2] - pol[:, 0]).max() > 1e-3
+
+
+# --------------------------------------------------------------------------- dataset mixes
+def test_cauchy_dielectric_has_the_requested_index_and_abbe_number():
+    from sim.materials import _LINES_NM, cauchy_rgb
+    for n_d, v in ((1.5168, 64.17), (1.585, 30.0), (1.7, 20.0)):
+        r, g, b = cauchy_rgb(n_d, v)
+        assert 1 < r < g < b
+        # the two-term form through the three channels, evaluated at the d, F, C lines
+        lam = np.array(_LINES_NM)
+        a_b = np.polyfit(1 / np.array(WAVELENGTHS_NM) ** 2, [r, g, b], 1)
+        nd, nf, nc = np.polyval(a_b, 1 / lam ** 2)
+        assert nd == pytest.approx(n_d, abs=1e-9) and (nd - 1) / (nf - nc) == pytest.approx(v, rel=1e-9)
+    bk7 = dielectric_rgb("bk7")
+    np.testing.assert_allclose(cauchy_rgb(1.5168, 64.17), bk7, atol=2e-4)  # Cauchy ~ Sellmeier
+
+
+@pytest.mark.parametrize("mix", ["train", "heldout", "conductor", "dispersive", "anisotropic", "film",
+                                 "depolarizing"])
+def test_material_mixes_keep_the_geometry_and_give_realizable_truth(mix):
+    """A mix changes only the material: ``rng`` is consumed as in the default mix, so the
+    scene's geometry, light and camera are those of the Baek sample; the truth is realizable."""
+    from sim.materials import MATERIAL_MIXES
+    from sim.scene import FAMILIES, random_scene
+    kinds = set()
+    for i in range(8):
+        rng_base, rng = np.random.default_rng([5, i]), np.random.default_rng([5, i])
+        base = random_scene(rng_base, 48, 48, i % len(FAMILIES))
+        sc = random_scene(rng, 48, 48, i % len(FAMILIES), material_mix=mix,
+                          material_rng=np.random.default_rng([5, i, 2]))
+        assert rng.random() == rng_base.random()  # the sample's own stream is untouched
+        np.testing.assert_array_equal(sc.light.position_m, base.light.position_m)
+        assert [o.shape.to_json() for o in sc.objects] == [o.shape.to_json() for o in base.objects]
+        mat = sc.objects[0].materials[0]
+        kinds.add(type(mat).__name__)
+        r = render(sc, 30.0)
+        m = np.moveaxis(r.brdf[..., r.lit], -1, 0).reshape(-1, 3, 3).astype(np.float64)
+        m = m[np.abs(m).max(axis=(1, 2)) > 0]
+        if len(m):
+            assert rz.pass_rate(rz.is_physical_linear(m, rtol=1e-6)) == 1.0
+            assert rz.pass_rate(rz.is_physical_linear(m, test="gk")) == 1.0
+    assert "SurfaceMaterial" in kinds
+    if "baek" not in MATERIAL_MIXES[mix]:
+        assert kinds == {"SurfaceMaterial"}
+    with pytest.raises(ValueError, match="material_rng"):
+        random_scene(np.random.default_rng(0), 48, 48, 0, material_mix=mix)
