@@ -132,10 +132,11 @@ class SurfaceMaterial:
       ``None``: isotropic); ``distribution`` ``"ggx"`` or ``"beckmann"`` (anisotropic forms of
       Walter et al. 2007 and Heitz, JCGT 3(2) 2014, as Mitsuba 3's ``MicrofacetDistribution``).
     * ``kd``, ``ks``: diffuse albedo per colour and specular weight as in :class:`Material`.
-    * ``polarized_fraction``: fraction ``p0`` of the polarized part that survives at normal
-      incidence and exitance; along a path it is ``p0 ** ((1/cos_i + 1/cos_o) / 2)`` (path
-      length through a depolarizing layer), so the degree of polarization falls below the
-      Fresnel prediction and more so towards grazing. ``1``: no depolarization.
+    * ``polarized_fraction``: fraction ``p0`` of the polarized part that survives the way in
+      and out of a depolarizing layer at normal incidence and exitance; each pass keeps
+      ``p0 ** (1 / (2 cos theta))`` (path length through the layer), so the degree of
+      polarization falls below the Fresnel prediction and more so towards grazing
+      (:mod:`sim.surface_bsdf`). ``1``: no depolarization.
     * ``retardance_rad``: normal-incidence retardance of a thin birefringent film over the
       surface at 532 nm (``0``: no film); ``fast_axis_deg``: its fast axis from the surface
       tangent towards the bitangent.

@@ -5,7 +5,7 @@ film, per colour channel, as full 4x4 Mueller matrices times ``cos(theta_i)`` (1
 Model, for ``wi`` (surface -> light), ``wo`` (surface -> camera), shading normal ``n`` and the
 surface tangent ``t`` (bitangent ``b = n x t``), per colour ``c``::
 
-    M_c = R_out . P . (ks Ms_c + kd_c Md_c) . R_in
+    M_c = R_out . P_out . (ks Ms_c + kd_c Md_c) . P_in . R_in
 
 * ``Ms_c = F(h . wi; eta_c) D(h) G(wi, wo) / (4 cos theta_o)``: the microfacet specular term
   of :mod:`polrig.pbrdf` with the complex-index Fresnel matrix
@@ -17,9 +17,12 @@ surface tangent ``t`` (bitangent ``b = n x t``), per colour ``c``::
 * ``Md_c = T_out(theta_o; eta_c) . depolarizer . T_in(theta_i; eta_c) cos(theta_i) / pi``: the
   Baek 2018 diffuse term (dielectrics only) with the index of the channel, so that the
   polarization of the diffuse light now depends on colour (dispersion).
-* ``P = diag(1, p, p, p)`` (:func:`polrig.mueller.partial_depolarizer`) with
-  ``p = p0 ** ((1 / cos theta_i + 1 / cos theta_o) / 2)``: a depolarizing layer whose
-  polarization memory decays with the path length through it (phenomenological).
+* ``P_in``, ``P_out = diag(1, p, p, p)`` (:func:`polrig.mueller.partial_depolarizer`) with
+  ``p = p0 ** (1 / (2 cos theta))`` for the pass in (``theta_i``) and out (``theta_o``): a
+  depolarizing layer crossed twice whose polarization memory decays with the path length
+  through it (phenomenological); the linear-to-linear elements are scaled by
+  ``p0 ** ((1 / cos theta_i + 1 / cos theta_o) / 2)``, the polarizance and diattenuation by
+  the out and in factors. One factor per pass keeps the BRDF reciprocal (tested).
 * ``R_in``, ``R_out``: a thin birefringent film over the surface, index matched (no Fresnel
   term of its own), fast axis ``f = cos(a) t + sin(a) b`` in the surface plane; each pass is
   the linear retarder :func:`polrig.mueller.retarder_at` with the fast axis at the angle of
@@ -185,8 +188,8 @@ def _chunk(n, t_ref, wi, wo, prm, distribution, refs) -> np.ndarray:
             out[:, c] += _to_frames(md, s_in, s_out, frame_in, frame_out) * kd[:, c, None, None]
     p0 = prm["polarized_fraction"]
     if np.any(p0 < 1):
-        pf = p0 ** (0.5 * (1.0 / cos_i + 1.0 / cos_o))
-        out[:, :, 1:, :] *= pf[:, None, None, None]
+        out[:, :, 1:, :] *= (p0 ** (0.5 / cos_o))[:, None, None, None]
+        out[:, :, :, 1:] *= (p0 ** (0.5 / cos_i))[:, None, None, None]
     d0 = prm["retardance_rad"]
     if np.any(d0 != 0):
         a = prm["fast_axis_rad"]

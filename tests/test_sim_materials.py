@@ -234,7 +234,8 @@ materials = st.builds(
 def test_every_material_is_realizable_and_layers_keep_the_unpolarized_response(mat, seed, min_cos):
     """The 4x4 matrices pass the coherency and Givens-Kostinski tests (grazing directions
     included); the film and the depolarizing layer leave ``m00`` (unpolarized in, intensity
-    out) unchanged, the depolarizing layer scales the polarizance by ``p``, and a film of zero
+    out) unchanged, the depolarizing layer scales the polarizance and the diattenuation by its
+    out and in factors and the linear couplings by both, and a film of zero
     retardance or a layer with ``p0 = 1`` changes nothing."""
     rng = np.random.default_rng(seed)
     n, wi, wo = _directions(rng, 48, min_cos)
@@ -250,8 +251,12 @@ def test_every_material_is_realizable_and_layers_keep_the_unpolarized_response(m
     np.testing.assert_allclose(m[..., 0, 0], mb[..., 0, 0], rtol=1e-9, atol=1e-12 * np.abs(mb).max())
     no_film = dataclasses.replace(mat, retardance_rad=0.0)
     mf = sb.evaluate(n, t, wi, wo, _params(no_film, 48), distribution=mat.distribution)
-    p = mat.polarized_fraction ** (0.5 * (1 / np.sum(n * wi, 1) + 1 / np.sum(n * wo, 1)))
-    np.testing.assert_allclose(mu.polarizance(mf), p[:, None] * mu.polarizance(mb), atol=1e-9)
+    p_in = mat.polarized_fraction ** (0.5 / np.sum(n * wi, 1))
+    p_out = mat.polarized_fraction ** (0.5 / np.sum(n * wo, 1))
+    np.testing.assert_allclose(mu.polarizance(mf), p_out[:, None] * mu.polarizance(mb), atol=1e-9)
+    np.testing.assert_allclose(mu.diattenuation(mf), p_in[:, None] * mu.diattenuation(mb), atol=1e-9)
+    np.testing.assert_allclose(mf[..., 1:3, 1:3], (p_in * p_out)[:, None, None, None] * mb[..., 1:3, 1:3],
+                               atol=1e-12 * np.abs(mb).max())
     if mat.polarized_fraction == 1.0:
         np.testing.assert_allclose(mf, mb, atol=0)
 
@@ -383,3 +388,32 @@ def test_material_mixes_keep_the_geometry_and_give_realizable_truth(mix):
         assert kinds == {"SurfaceMaterial"}
     with pytest.raises(ValueError, match="material_rng"):
         random_scene(np.random.default_rng(0), 48, 48, 0, material_mix=mix)
+
+
+@pytest.mark.parametrize("kind", ["conductor_aniso", "dispersive", "film", "depolarizing"])
+def test_reciprocity_of_the_new_materials(kind):
+    """Reversing the path with each physical x axis kept gives ``Q M^T Q`` with
+    ``Q = diag(1, 1, -1, 1)`` (Hovenier 1969, as tests/test_pbrdf.py for the Baek model), the
+    cosines divided out: holds for complex indices, anisotropy, dispersion, the film (a
+    reciprocal retarder seen from the other side) and the depolarizing layer."""
+    from polrig import frames
+    q = np.diag([1.0, 1.0, -1.0, 1.0])
+    mats = {"conductor_aniso": SurfaceMaterial("c", CONDUCTORS["copper"], 0.1, 0.5, distribution="beckmann"),
+            "dispersive": SurfaceMaterial("d", dielectric_rgb("polycarbonate"), 0.3, kd=(0.5, 0.3, 0.2)),
+            "film": SurfaceMaterial("f", CONDUCTORS["gold"], 0.3, retardance_rad=1.3, fast_axis_deg=25.0),
+            "depolarizing": SurfaceMaterial("p", (1.5, 1.5, 1.5), 0.3, kd=(0.4, 0.4, 0.4), polarized_fraction=0.5)}
+    mat = mats[kind]
+    rng = np.random.default_rng(31)
+    n, wi, wo = _directions(rng, 500, 0.02)
+    t = rng.normal(size=3)
+    prm = _params(mat, 500)
+    fwd = sb.evaluate(n, t, wi, wo, prm, distribution=mat.distribution)
+    rev = sb.evaluate(n, t, wo, wi, prm, distribution=mat.distribution)
+    sb_ = frames.stokes_basis
+    rev = frames.rotate_mueller_basis(rev[:, :, None], -wo[:, None, None], sb_(-wo)[:, None, None], sb_(wo)[:, None, None],
+                                      wi[:, None, None], sb_(wi)[:, None, None], sb_(-wi)[:, None, None])[:, :, 0]
+    cos_i = np.sum(n * wi, 1)[:, None, None, None]
+    cos_o = np.sum(n * wo, 1)[:, None, None, None]
+    lhs = rev / cos_o
+    rhs = q @ np.swapaxes(fwd, -1, -2) @ q / cos_i
+    np.testing.assert_allclose(lhs, rhs, atol=1e-10 * np.abs(rhs).max())
