@@ -15,6 +15,14 @@ Radiometry (``docs/conventions.md``, "Radiometric units"): ``brdf`` is the pBRDF
 (1/m^2); the radiance leaving a pixel's surface point towards the camera, per unit radiant
 intensity of the light and per unit normalised incident Stokes, is ``brdf * inv_r2``
 (:meth:`RenderResult.radiance_mueller`). :mod:`sim.world` turns it into DN.
+
+Materials outside the Baek family (:class:`sim.materials.SurfaceMaterial`: conductors,
+dispersive dielectrics, anisotropic roughness, films, depolarizing layers, textures) are
+evaluated per colour by :func:`sim.surface_bsdf.evaluate` (4x4, then the linear block);
+Baek-family pixels take the path above unchanged. ``indirect_samples > 0`` adds one bounce of
+interreflected light (:mod:`sim.interreflection`) to :meth:`RenderResult.radiance_mueller`
+and :meth:`RenderResult.radiance_state`; ``brdf`` stays the direct term. Ray casting is
+:mod:`sim.raycast`.
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ from sim import surface_bsdf
 from sim.geometry import rows_times, unit
 from sim.interreflection import one_bounce
 from sim.materials import SurfaceMaterial
-from sim.raycast import SHADOW_EPS_M, light_visibility, surface_hits
+from sim.raycast import light_visibility, surface_hits
 from sim.scene import Scene
 
 
