@@ -101,8 +101,8 @@ class GrblTurntable(SerialDevice, Turntable):
                                 firmware=self._banner, port=self.port,
                                 extra={"build": [l for l in lines if l.startswith("[")],
                                        "axis": self.axis})
+        self.status()  # checks the axis is in the status report
         self._caps = self._axis_capabilities(self.settings())
-        self.status()
 
     @property
     def capabilities(self) -> AxisCapabilities:

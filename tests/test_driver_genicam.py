@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from drivers.genicam_camera import GenicamCamera, gentl_paths_from_env, list_gentl_devices
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, FormatError
+from polrig import hal
+from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceNotFound,
+                           DeviceTimeout, FormatError)
 from polrig.layouts import get_layout
 
 pytestmark = pytest.mark.timeout(60)
@@ -82,8 +84,10 @@ def test_missing_features_are_named(cam):
     assert np.isnan(cam.exposure_us)
     with pytest.raises(DeviceFault, match="ExposureTime"):
         cam.set_exposure_us(1000.0)
-    with pytest.raises(DeviceFault, match="TriggerMode"):
+    with pytest.raises(ConfigError, match="no TriggerMode/TriggerSoftware feature"):
         cam.set_trigger("software")
+    with pytest.raises(ConfigError, match="'sometimes' is not supported"):
+        cam.set_trigger("sometimes")
     with pytest.raises(DeviceFault, match="not offered"):
         cam.set_pixel_format("Mono12p")
     with pytest.raises(DeviceFault, match="Width"):
@@ -187,3 +191,46 @@ def test_non_positive_frame_timeouts_are_refused(cam, timeout):
             call(timeout)
     assert time.monotonic() - t0 < 0.5
     assert cam.grab(timeout_s=2.0).raw.shape == (100, 120)
+
+
+# -- capabilities, as the Viky producer's node map declares them -------------------------
+def test_capabilities_of_a_camera_without_trigger_or_exposure_features(cam):
+    """Viky has no TriggerMode/TriggerSoftware and no ExposureTime[Abs]: free run only, no
+    exposure control (a plan's exposure is refused), the readout is one frame period at its
+    AcquisitionFrameRate (it has no SensorReadoutTime or ResultingFrameRate)."""
+    nm = cam._ia.remote_device.node_map
+    assert not any(nm.has_node(n) for n in ("TriggerMode", "TriggerSoftware", "ExposureTime",
+                                            "ExposureTimeAbs", "SensorReadoutTime",
+                                            "ResultingFrameRate"))
+    caps = cam.capabilities
+    assert isinstance(caps, hal.CameraCapabilities)
+    assert caps.trigger_modes == ("free",) and caps.preferred_trigger == "free"
+    assert caps.exposure_range_us == (0.0, 0.0)
+    with pytest.raises(ConfigError, match=r"outside the camera's range \[0, 0\]"):
+        caps.check_exposure(1000.0)
+    assert nm.get_node("AcquisitionFrameRate").value == pytest.approx(200.0)
+    assert caps.readout_us == pytest.approx(1e6 / 200.0)
+    assert caps.settle_frames == 2
+    cam.set_trigger("free")  # free run works without TriggerMode
+    assert cam.trigger == "free" and cam.grab(timeout_s=2.0).raw.shape == (100, 120)
+
+
+def test_capabilities_follow_the_settings(cam):
+    """The readout is re-read after a setting changes (here the frame rate), and the grab
+    timeout of the HAL follows it."""
+    cam.set_frame_rate_hz(20.0)
+    assert cam.capabilities.readout_us == pytest.approx(50_000.0)
+    assert hal.grab_timeout_s(cam, 1.0) == pytest.approx(1.0 + 0.05)  # no exposure: NaN
+    cam.set_frame_rate_hz(200.0)
+    assert cam.capabilities.readout_us == pytest.approx(5_000.0)
+
+
+def test_a_configured_software_trigger_is_refused_on_open(viky):
+    """A rig configuration asking a free-run-only camera for software trigger fails on
+    open with one line (and leaves the camera closed)."""
+    c = GenicamCamera(viky, serial="0", pixel_format="Mono8", trigger="software")
+    with pytest.raises(ConfigError, match="'software' is not supported"):
+        c.open()
+    assert not c.is_open
+    with GenicamCamera(viky, serial="0", pixel_format="Mono8") as again:
+        assert again.capabilities.trigger_modes == ("free",)
