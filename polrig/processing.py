@@ -375,6 +375,12 @@ def adc_scale(model: SensorModel, bit_depth: int) -> float:
     return 2.0 ** (int(model.bit_depth) - int(bit_depth))
 
 
+def delivered_top_code_dn(model: SensorModel, bit_depth: int) -> float:
+    """The largest code of frames delivered with ``bit_depth`` bits, in ADC DN
+    (``(2**bit_depth - 1) * adc_scale``): where such a frame clips."""
+    return float((1 << int(bit_depth)) - 1) * adc_scale(model, bit_depth)
+
+
 # -- array level -------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class StateRadiance:
@@ -388,7 +394,8 @@ class StateRadiance:
 
 def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Sequence[float],
                    model: SensorModel, *, black_level_dn: float = 0.0,
-                   darks: Sequence[Sequence[np.ndarray]] | None = None) -> StateRadiance:
+                   darks: Sequence[Sequence[np.ndarray]] | None = None,
+                   top_code_dn: float = math.inf) -> StateRadiance:
     """Mean black-subtracted mosaic of one polarizer state.
 
     ``brackets[e]``: the K raw frames ``(H, W)`` taken at ``exposures_us[e]``; ``darks[e]``:
@@ -396,10 +403,13 @@ def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Seque
     only). A sample is excluded when any of its frames reaches the saturation level
     (``black + model.saturation_dn``); several exposures are merged by
     :func:`polrig.reference.merge_hdr` at ``exposures_us[0]`` (the reference exposure).
+    ``top_code_dn``: the largest value the delivered pixel format holds, in ADC DN
+    (:func:`delivered_top_code_dn`); a sample there is saturated too (a Mono8 readout of a
+    12-bit ADC clips at 255 * 16 = 4080 DN, below the ADC's own saturation threshold).
     """
     if len(brackets) != len(exposures_us) or not brackets:
         raise ValueError("one list of frames per exposure is needed")
-    sat_raw = black_level_dn + model.saturation_dn
+    sat_raw = min(black_level_dn + model.saturation_dn, float(top_code_dn))
     means, variances, sats = [], [], []
     for e, frames in enumerate(brackets):
         f = np.asarray(frames, dtype=np.float64)
@@ -684,7 +694,7 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     for per_state in cf.frames:
         states.append(state_radiance(
             [[adc(f) for f in lst] for lst in per_state], cf.exposures_us, model,
-            black_level_dn=black,
+            black_level_dn=black, top_code_dn=delivered_top_code_dn(model, first.meta.bit_depth),
             darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
     analyzer = calibration.analyzer
     if analyzer is not None:  # the frame's readout within the calibrated area
@@ -840,7 +850,9 @@ class Processor:
                                cf.exposures_us, self.sensor_model,
                                black_level_dn=float(first.meta.black_level_dn) * scale,
                                darks=[[adc(f) for f in d] for d in cf.darks]
-                               if any(len(d) for d in cf.darks) else None)
+                               if any(len(d) for d in cf.darks) else None,
+                               top_code_dn=delivered_top_code_dn(self.sensor_model,
+                                                                 first.meta.bit_depth))
         measured, variance, valid, _ = analyzer_stack(state, lay, self.demosaic)
         s_in = self.calibration.incident_stokes(cf.states_deg[:1])
         if geometry is None:  # the calibration's geometry only
