@@ -205,6 +205,44 @@ _FRAME_RATE_FEATURES = ("ResultingFrameRate", "AcquisitionFrameRate")
 FREE_RUN_SETTLE_FRAMES = 2
 
 
+def exposure_feature(node_map) -> str | None:
+    """The node map's exposure feature: ``ExposureTime``, else ``ExposureTimeAbs``; None
+    when it has neither."""
+    return next((n for n in _EXPOSURE_FEATURES if node_map.has_node(n)), None)
+
+
+def capabilities_from_node_map(node_map) -> CameraCapabilities:
+    """What a GenICam node map (``has_node``/``get_node``, as GenApi's ``NodeMap``) declares,
+    by the rules of the module notes. ValueError for a range the camera cannot mean."""
+    software = node_map.has_node("TriggerMode") and node_map.has_node("TriggerSoftware")
+    exposure = exposure_feature(node_map)
+    if exposure is None:
+        exposure_range = (0.0, 0.0)  # no exposure control
+    else:
+        node = node_map.get_node(exposure)
+        exposure_range = (float(node.min), float(node.max))
+    readout = _float_feature(node_map, "SensorReadoutTime")
+    if readout is None or readout < 0:
+        rates = (_float_feature(node_map, n) for n in _FRAME_RATE_FEATURES)
+        fps = next((r for r in rates if r is not None and r > 0), None)
+        readout = 1e6 / fps if fps is not None else 0.0
+    return CameraCapabilities(trigger_modes=("software", "free") if software else ("free",),
+                              exposure_range_us=exposure_range, readout_us=readout,
+                              settle_frames=FREE_RUN_SETTLE_FRAMES)
+
+
+def _float_feature(node_map, name: str) -> float | None:
+    """The value of a numeric feature, or None where the node map lacks it or cannot read it
+    now (a node not readable in the current state)."""
+    if not node_map.has_node(name):
+        return None
+    try:
+        value = float(node_map.get_node(name).value)
+    except (_genapi().GenericException, TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
 class GenicamCamera(Camera):
     """A GenICam camera selected by ``serial`` (or ``index``) from the producer ``cti``.
 
@@ -418,10 +456,7 @@ class GenicamCamera(Camera):
     def _exposure_feature(self) -> str:
         """``ExposureTime``, else ``ExposureTimeAbs``; the SFNC name when it has neither
         (so that setting it names the missing feature)."""
-        for name in _EXPOSURE_FEATURES:
-            if self.has_feature(name):
-                return name
-        return _EXPOSURE_FEATURES[0]
+        return exposure_feature(self._require().remote_device.node_map) or _EXPOSURE_FEATURES[0]
 
     def set_exposure_us(self, exposure_us: float) -> None:
         self._set(self._exposure_feature(), float(exposure_us))
@@ -450,43 +485,11 @@ class GenicamCamera(Camera):
         return self._caps
 
     def _read_capabilities(self) -> CameraCapabilities:
-        software = self.has_feature("TriggerMode") and self.has_feature("TriggerSoftware")
-        modes = ("software", "free") if software else ("free",)
-        return CameraCapabilities(trigger_modes=modes, exposure_range_us=self._exposure_range(),
-                                  readout_us=self._readout_us(),
-                                  settle_frames=FREE_RUN_SETTLE_FRAMES)
-
-    def _exposure_range(self) -> tuple[float, float]:
-        for name in _EXPOSURE_FEATURES:
-            if self.has_feature(name):
-                node = self._node(name)
-                lo, hi = float(node.min), float(node.max)
-                if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
-                    raise DeviceFault(f"camera reports an exposure range [{lo:g}, {hi:g}] us",
-                                      device=self.name, code=name, text="invalid range")
-                return lo, hi
-        return 0.0, 0.0  # no exposure control
-
-    def _readout_us(self) -> float:
-        readout = self._float_feature("SensorReadoutTime")
-        if readout is not None and readout >= 0:
-            return readout
-        for name in _FRAME_RATE_FEATURES:
-            fps = self._float_feature(name)
-            if fps is not None and fps > 0:
-                return 1e6 / fps
-        return 0.0
-
-    def _float_feature(self, name: str) -> float | None:
-        """The value of a numeric feature, or None where the camera lacks it or cannot read
-        it now (a node that is not readable in the current state)."""
-        if not self.has_feature(name):
-            return None
         try:
-            value = float(self._node(name).value)
-        except (_genapi().GenericException, TypeError, ValueError):
-            return None
-        return value if math.isfinite(value) else None
+            return capabilities_from_node_map(self._require().remote_device.node_map)
+        except ValueError as exc:
+            raise DeviceFault(f"camera declares impossible capabilities: {exc}",
+                              device=self.name, code="capabilities", text=str(exc)) from None
 
     def set_trigger(self, mode: str) -> None:
         """``"free"`` or ``"software"``, whichever :attr:`capabilities` lists (else

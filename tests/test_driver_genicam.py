@@ -234,3 +234,79 @@ def test_a_configured_software_trigger_is_refused_on_open(viky):
     assert not c.is_open
     with GenicamCamera(viky, serial="0", pixel_format="Mono8") as again:
         assert again.capabilities.trigger_modes == ("free",)
+
+
+# -- capabilities from GenApi node maps of cameras Viky does not imitate -------------------
+# Camera descriptions (GenApi XML, schema 1.1) evaluated by the real GenApi of the genicam
+# wheel; values are constants (no register port needed), feature names per SFNC.
+_XML_HEAD = (
+    '<?xml version="1.0" encoding="utf-8"?>'
+    '<RegisterDescription ModelName="Test" VendorName="polrig" ToolTip="" StandardNameSpace='
+    '"None" SchemaMajorVersion="1" SchemaMinorVersion="1" SchemaSubMinorVersion="0" '
+    'MajorVersion="1" MinorVersion="0" SubMinorVersion="0" ProductGuid="11111111-2222-3333-'
+    '4444-555555555555" VersionGuid="11111111-2222-3333-4444-555555555556" xmlns="http://www.'
+    'genicam.org/GenApi/Version_1_1" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" '
+    'xsi:schemaLocation="http://www.genicam.org/GenApi/Version_1_1 http://www.genicam.org/'
+    'GenApi/GenApiSchema_Version_1_1.xsd">')
+
+
+def _float(name, value, lo=0.0, hi=1e9):
+    return (f'<Float Name="{name}" NameSpace="Standard"><Value>{value}</Value><Min>{lo}</Min>'
+            f'<Max>{hi}</Max></Float>')
+
+
+_TRIGGER_MODE = ('<Enumeration Name="TriggerMode" NameSpace="Standard"><EnumEntry Name="Off">'
+                 '<Value>0</Value></EnumEntry><EnumEntry Name="On"><Value>1</Value></EnumEntry>'
+                 '<Value>0</Value></Enumeration>')
+_TRIGGER_SOFTWARE = ('<Command Name="TriggerSoftware" NameSpace="Standard"><Value>0</Value>'
+                     '<CommandValue>1</CommandValue></Command>')
+
+
+def node_map(*nodes: str):
+    from genicam.genapi import NodeMap
+
+    names = [n.split('Name="')[1].split('"')[0] for n in nodes]
+    root = ('<Category Name="Root" NameSpace="Standard">'
+            + "".join(f"<pFeature>{n}</pFeature>" for n in names) + "</Category>")
+    nm = NodeMap()
+    nm.load_xml_from_string(_XML_HEAD + root + "".join(nodes) + "</RegisterDescription>")
+    return nm
+
+
+def test_capabilities_of_an_sfnc_camera():
+    """TriggerMode + TriggerSoftware: both modes, software preferred; the ExposureTime range;
+    SensorReadoutTime wins over the frame period."""
+    from drivers.genicam_camera import capabilities_from_node_map
+
+    nm = node_map(_TRIGGER_MODE, _TRIGGER_SOFTWARE, _float("ExposureTime", 10000, 20, 3e7),
+                  _float("SensorReadoutTime", 8000), _float("AcquisitionFrameRate", 20))
+    caps = capabilities_from_node_map(nm)
+    assert caps.trigger_modes == ("software", "free") and caps.preferred_trigger == "software"
+    assert caps.exposure_range_us == (20.0, 3e7) and caps.readout_us == 8000.0
+    caps.check_exposure(20.0)
+    with pytest.raises(ConfigError, match=r"\[20, 3e\+07\]"):
+        caps.check_exposure(19.0)
+
+
+def test_capabilities_of_an_older_gige_camera():
+    """ExposureTimeAbs (pre-SFNC 2.0); a TriggerMode without TriggerSoftware is no software
+    trigger; the readout is one period at the ResultingFrameRate (the rate it runs at),
+    not the AcquisitionFrameRate asked for."""
+    from drivers.genicam_camera import capabilities_from_node_map, exposure_feature
+
+    nm = node_map(_TRIGGER_MODE, _float("ExposureTimeAbs", 5000, 35, 1e6),
+                  _float("AcquisitionFrameRate", 30), _float("ResultingFrameRate", 22.5))
+    caps = capabilities_from_node_map(nm)
+    assert exposure_feature(nm) == "ExposureTimeAbs"
+    assert caps.trigger_modes == ("free",) and caps.exposure_range_us == (35.0, 1e6)
+    assert caps.readout_us == pytest.approx(1e6 / 22.5)
+
+
+def test_capabilities_of_a_camera_that_says_nothing():
+    from drivers.genicam_camera import capabilities_from_node_map, exposure_feature
+
+    nm = node_map(_float("Gain", 0.0))
+    caps = capabilities_from_node_map(nm)
+    assert exposure_feature(nm) is None
+    assert caps.trigger_modes == ("free",) and caps.exposure_range_us == (0.0, 0.0)
+    assert caps.readout_us == 0.0 and caps.settle_frames == 2
