@@ -28,6 +28,8 @@ from drivers.emulators.ell14 import Ell14Emulator
 from drivers.emulators.grbl import GrblEmulator
 from polrig.cli import main
 from polrig.exr import read_mueller_exr
+from polrig.noise import SensorModel
+from polrig.processing import adc_scale, state_radiance
 from polrig.rawio import read_raw
 from polrig.reference import SATURATED
 
@@ -95,3 +97,34 @@ def test_reference_capture_on_the_emulated_rig(tmp_path, monkeypatch, capsys):
         assert all_clipped.mean() > 0.9  # the white test pattern
         assert (mask[all_clipped] & SATURATED).all()
         assert not (mask[~any_clipped] & SATURATED).any()
+
+
+# -- Mono8 of a 12-bit ADC through the radiometry: clipping and rounding ------------------
+@pytest.mark.parametrize("signal_dn", [300.0, 1000.0])
+def test_mono8_noise_is_predicted_with_its_rounding(signal_dn):
+    """Flat fields from the 12-bit noise model, delivered as Mono8 (the ADC's top 8 bits, as
+    a camera's Mono8 output of a 12-bit sensor): the variance the radiometry predicts
+    matches the variance of the samples, rounding to 16-DN codes included (without it the
+    prediction is 17 % low at 300 DN)."""
+    model = SensorModel()
+    rng = np.random.default_rng(7)
+    raw12 = model.sample_raw(np.full((200, 200), signal_dn * model.gain_e_per_dn), rng, 1000.0)
+    mono8 = (raw12 >> 4).astype(np.uint8)
+    step = adc_scale(model, 8)
+    assert step == 16.0
+    state = state_radiance([[mono8.astype(np.float64) * step]], [1000.0], model,
+                           code_step_dn=step)
+    measured = float(np.var(state.signal_dn))
+    predicted = float(np.mean(state.variance_dn2))
+    assert predicted == pytest.approx(measured, rel=0.05)
+    assert not state.excluded.any()
+
+
+def test_mono8_top_code_is_saturated():
+    """Code 255 of Mono8 is 4080 DN, below the 12-bit saturation threshold (4095 - 5 read
+    noise sigmas - 1): such samples are clipped all the same and excluded."""
+    model = SensorModel()
+    assert 255 * 16 < model.saturation_dn
+    frame = np.array([[255, 254], [0, 128]], dtype=np.float64) * 16
+    state = state_radiance([[frame]], [1000.0], model, code_step_dn=16.0)
+    assert state.excluded.tolist() == [[True, False], [False, False]]
