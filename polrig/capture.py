@@ -351,11 +351,10 @@ def rig_record(rig) -> dict[str, Any]:
 def check_rig_for_plan(rig, plan: CapturePlan, *, resume: bool = False) -> None:
     """Refuse (:class:`ConfigError`, one line) a plan this rig's camera cannot acquire, before
     any session file is written: an exposure outside the camera's declared range
-    (``EXPOSURE_RANGE_US`` of its driver, where it declares one)."""
-    rng = getattr(rig.camera, "EXPOSURE_RANGE_US", None)
-    if rng is None or not plan.exposures_us:
+    (:attr:`polrig.hal.CameraCapabilities.exposure_range_us`)."""
+    if not plan.exposures_us:
         return
-    lo, hi = (float(v) for v in rng)
+    lo, hi = rig.camera.capabilities.exposure_range_us
     for e in plan.exposures_us:
         if not lo <= e <= hi:
             what = ("--resume: the session's plan asks for an exposure of" if resume
@@ -698,10 +697,21 @@ def _stop_cleanly(session: Session, index: int, reason: str, *, capture_status: 
 
 def _prepare_rig(rig, plan: CapturePlan) -> None:
     cam = rig.camera
-    if hasattr(cam, "set_trigger"):
-        cam.set_trigger("software")
+    cam.set_trigger(cam.capabilities.preferred_trigger)
     rig.light.set_on(True)
     rig.stage.home()
+
+
+def _grab_settled(rig, plan: CapturePlan, settle: bool,
+                  on_retry: Callable[[str], None]) -> Frame:
+    """One frame exposed entirely after the last change: in free run, after a motion or a
+    setting change (``settle``), the camera's declared
+    :attr:`~polrig.hal.CameraCapabilities.settle_frames` frames are discarded first."""
+    caps = rig.camera.capabilities
+    if settle and caps.preferred_trigger == "free":
+        for _ in range(caps.settle_frames):
+            grab_with_retry(rig.camera, plan.grab_retries, on_retry)
+    return grab_with_retry(rig.camera, plan.grab_retries, on_retry)
 
 
 def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
@@ -713,10 +723,18 @@ def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
     control.checkpoint()
     move_with_rehome(rig.turntable, cap["pose_deg"], "turntable", on_retry)
     exposures = plan.exposures_us or (float(rig.camera.exposure_us),)
+    changed = [True]  # something moved or changed since the last frame (free-run settling)
 
     def set_exposure(exposure_us: float) -> None:
-        if float(rig.camera.exposure_us) != exposure_us:
+        current = float(rig.camera.exposure_us)
+        if current != exposure_us and not (math.isnan(current) and math.isnan(exposure_us)):
             set_with_retry(rig.camera.set_exposure_us, exposure_us, plan.grab_retries, on_retry)
+            changed[0] = True
+
+    def grab() -> Frame:
+        frame = _grab_settled(rig, plan, changed[0], on_retry)
+        changed[0] = False
+        return frame
 
     if plan.dark_frames:
         rig.light.set_on(False)
@@ -725,7 +743,7 @@ def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
                 set_exposure(exposure_us)
                 for k in range(plan.dark_frames):
                     control.checkpoint()
-                    frame = grab_with_retry(rig.camera, plan.grab_retries, on_retry)
+                    frame = grab()
                     image, meta = _frame_bytes(frame)
                     session.add_file(index, "dark", dark_relpath(folder, e, k), image,
                                      sidecar=meta, exposure_us=exposure_us, exposure_index=e,
@@ -733,14 +751,16 @@ def _acquire_capture(rig, session: Session, plan: CapturePlan, index: int,
                     frame_done()
         finally:
             rig.light.set_on(True)
+            changed[0] = True
     for j, state_deg in enumerate(plan.acquired_states_deg()):
         control.checkpoint()
         move_with_rehome(rig.stage, state_deg, "polarizer stage", on_retry)
+        changed[0] = True
         for e, exposure_us in enumerate(exposures):
             set_exposure(exposure_us)
             for k in range(plan.frames_per_state):
                 control.checkpoint()
-                frame = grab_with_retry(rig.camera, plan.grab_retries, on_retry)
+                frame = grab()
                 image, meta = _frame_bytes(frame)
                 session.add_file(index, "raw", raw_relpath(folder, j, state_deg, e, k), image,
                                  sidecar=meta, state_index=j, state_deg=state_deg,
