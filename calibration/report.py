@@ -1,8 +1,8 @@
 """Calibration report: ``report.md`` with every result, its uncertainty and (simulated rig) its
 error against the hidden truth, plus PNG plots (residuals, per-pixel maps).
 
-Per-pixel maps are written with OpenCV (always available); residual plots use matplotlib when
-it is installed (``pip install polrig[bench]``) and are listed as skipped otherwise.
+Per-pixel maps are written with OpenCV; residual plots with matplotlib (a dependency of
+polrig, Agg backend: no display needed).
 """
 
 from __future__ import annotations
@@ -30,13 +30,11 @@ def map_png(path: pathlib.Path, values: np.ndarray, lo: float, hi: float) -> Non
 
 
 def _plots(out: pathlib.Path, extras: dict[str, Any]) -> list[str]:
-    try:
-        import matplotlib
+    import matplotlib
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return ["(residual plots skipped: matplotlib not installed)"]
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     lines = []
     jr = extras.get("turntable")
     if jr is not None and len(jr.residuals_px):

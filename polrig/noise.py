@@ -13,8 +13,11 @@ DN per electron, adds the black level (offset) and rounds (uniform quantisation 
 
 The pixel well holds at most ``full_well_e`` electrons and the ADC codes ``0 .. 2**bit_depth - 1``;
 both clip. Default values describe the Sony IMX250MZR/MYR class (about 10.5 ke- full well,
-2.3 e- read noise, 12-bit ADC; see ``../shared/reference/facts.md``); set them from your
-camera's EMVA 1288 datasheet. Units: electrons ``*_e``, digital numbers ``*_dn``,
+2.3 e- read noise, 12-bit ADC); set them from your camera's EMVA 1288 datasheet. Published
+figures for cameras with the IMX250: full well 10.7 ke- (Teledyne DALSA Genie Nano M2450
+specification, 12-bit design); SNRmax 40.3 dB (= sqrt of about 10.7 ke-) and dynamic range
+71.2 dB (read noise about 2.9 e-) measured per EMVA 1288 on the MATRIX VISION
+mvBlueFOX3-2051; 12-bit ADC in both. Units: electrons ``*_e``, digital numbers ``*_dn``,
 exposure in microseconds (``docs/conventions.md``).
 """
 

@@ -69,7 +69,7 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     for per_state in cf.frames:
         states.append(state_radiance(
             [[adc(f) for f in lst] for lst in per_state], cf.exposures_us, model,
-            black_level_dn=black,
+            black_level_dn=black, code_step_dn=scale,
             darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
     analyzer = calibration.analyzer
     if analyzer is not None:  # the frame's readout within the calibrated area
@@ -228,7 +228,8 @@ class Processor:
                                cf.exposures_us, self.sensor_model,
                                black_level_dn=float(first.meta.black_level_dn) * scale,
                                darks=[[adc(f) for f in d] for d in cf.darks]
-                               if any(len(d) for d in cf.darks) else None)
+                               if any(len(d) for d in cf.darks) else None,
+                               code_step_dn=scale)
         measured, variance, valid, _ = analyzer_stack(state, lay, self.demosaic)
         s_in = self.calibration.incident_stokes(cf.states_deg[:1])
         if geometry is None:  # the calibration's geometry only

@@ -51,7 +51,8 @@ class StateRadiance:
 
 def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Sequence[float],
                    model: SensorModel, *, black_level_dn: float = 0.0,
-                   darks: Sequence[Sequence[np.ndarray]] | None = None) -> StateRadiance:
+                   darks: Sequence[Sequence[np.ndarray]] | None = None,
+                   code_step_dn: float = 1.0) -> StateRadiance:
     """Mean black-subtracted mosaic of one polarizer state.
 
     ``brackets[e]``: the K raw frames ``(H, W)`` taken at ``exposures_us[e]``; ``darks[e]``:
@@ -59,10 +60,20 @@ def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Seque
     only). A sample is excluded when any of its frames reaches the saturation level
     (``black + model.saturation_dn``); several exposures are merged by
     :func:`polrig.reference.merge_hdr` at ``exposures_us[0]`` (the reference exposure).
+
+    ``code_step_dn``: ADC DN per code of the delivered frames (:func:`adc_scale`; 16 for
+    Mono8 from a 12-bit ADC). A frame with fewer bits than the ADC clips at its own top code,
+    ``(2**bits - 1) * step = 2**adc_bits - step`` DN (4080 for Mono8), which is below the
+    ADC's saturation threshold: samples there are saturated too. Its coarser codes add
+    rounding variance: ``step**2 / 12`` in all, ``(step**2 - 1) / 12`` beyond the ADC's own
+    ``1/12`` the noise model holds (per frame; not carried into an HDR merge, which takes
+    the model's variance).
     """
     if len(brackets) != len(exposures_us) or not brackets:
         raise ValueError("one list of frames per exposure is needed")
-    sat_raw = black_level_dn + model.saturation_dn
+    step = float(code_step_dn)
+    sat_raw = min(black_level_dn + model.saturation_dn, model.max_code_dn + 1.0 - step)
+    requantization = max(step * step - 1.0, 0.0) / 12.0
     means, variances, sats = [], [], []
     for e, frames in enumerate(brackets):
         f = np.asarray(frames, dtype=np.float64)
@@ -76,11 +87,12 @@ def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Seque
             dark_var = model.variance_dn2(0.0, exposures_us[e], d.shape[0])
             signal = mean - offset
             # the dark mean already holds the mean dark signal: the photo-signal is what is left
-            var = model.variance_dn2(signal, exposures_us[e], k) + dark_var
+            var = (model.variance_dn2(signal, exposures_us[e], k) + dark_var
+                   + requantization / k + requantization / d.shape[0])
         else:
             dark_dn = model.dark_electrons(exposures_us[e]) / model.gain_e_per_dn
             signal = mean - black_level_dn - dark_dn
-            var = model.variance_dn2(signal, exposures_us[e], k)
+            var = model.variance_dn2(signal, exposures_us[e], k) + requantization / k
         means.append(signal)
         variances.append(var)
         sats.append(sat)

@@ -224,20 +224,10 @@ class SimCamera(_SimDevice, hal.Camera):
         t_mid = t_start + 0.5 * self._exposure_us * 1e-6
         stage = self._world.stage_move.position(t_mid)
         table = self._world.turntable_move.position(t_mid)
-        rng = self._world.grab_rng((table, stage, self._exposure_us, self._gain_db,
-                                    *self._roi, self._world.light_on,
-                                    self._world.light_level))
-        raw_adc = self._world.raw(turntable_deg=table, stage_deg=stage,
-                                  exposure_us=self._exposure_us, gain_db=self._gain_db,
-                                  roi=self._roi, rng=rng)
+        raw = self._expose(table, stage)
         clock.sleep(frame_s)
         fmt = get_pixel_format(self._pixel_format)
-        # The ADC delivers sensor_model.bit_depth bits; wider formats carry the code shifted
-        # left (12-bit ADC, 16-bit format: code << 4), narrower ones rounded to their bits.
-        adc_bits = int(self._world.sensor.model.bit_depth)
-        shift = fmt.bits - adc_bits
-        adc = np.clip(np.rint(raw_adc), 0, 2 ** adc_bits - 1)  # noise off: the rounded mean
-        raw = np.clip(np.rint(adc * 2.0 ** shift), 0, 2 ** fmt.bits - 1).astype(fmt.dtype)
+        shift = fmt.bits - int(self._world.sensor.model.bit_depth)
         self._frame_id += 1
         w, h, ox, oy = self._roi
         black = self._world.sensor.model.black_level_dn * 2.0 ** shift
@@ -250,6 +240,23 @@ class SimCamera(_SimDevice, hal.Camera):
                                         "light_on": self._world.light_on,
                                         "noise": self._world.noise}})
         return Frame(raw=raw, meta=meta)
+
+    def _expose(self, turntable_deg: float, stage_deg: float) -> np.ndarray:
+        """The raw mosaic ``(h, w)`` of the ROI in the current pixel format's dtype, rendered
+        by the world at these axis angles with the current settings and the grab's noise."""
+        rng = self._world.grab_rng((turntable_deg, stage_deg, self._exposure_us, self._gain_db,
+                                    *self._roi, self._world.light_on,
+                                    self._world.light_level))
+        raw_adc = self._world.raw(turntable_deg=turntable_deg, stage_deg=stage_deg,
+                                  exposure_us=self._exposure_us, gain_db=self._gain_db,
+                                  roi=self._roi, rng=rng)
+        fmt = get_pixel_format(self._pixel_format)
+        # The ADC delivers sensor_model.bit_depth bits; wider formats carry the code shifted
+        # left (12-bit ADC, 16-bit format: code << 4), narrower ones rounded to their bits.
+        adc_bits = int(self._world.sensor.model.bit_depth)
+        shift = fmt.bits - adc_bits
+        adc = np.clip(np.rint(raw_adc), 0, 2 ** adc_bits - 1)  # noise off: the rounded mean
+        return np.clip(np.rint(adc * 2.0 ** shift), 0, 2 ** fmt.bits - 1).astype(fmt.dtype)
 
 
 # ----------------------------------------------------------------------- stage, turntable

@@ -16,8 +16,8 @@ units"):
    (:class:`polrig.noise.SensorModel`), or, with noise off, the exact float mean.
 
 A mono sensor (IMX250MZR) integrates the three colour radiances with ``mono_weights``.
-Defaults follow the IMX250MZR/MYR class (``../shared/reference/facts.md``: ~10.5 ke- full
-well, ~2.3 e- read noise, 12-bit ADC).
+Defaults follow the IMX250MZR/MYR class (~10.5 ke- full well, ~2.3 e- read noise, 12-bit
+ADC; the published figures are cited in :mod:`polrig.noise`).
 """
 
 from __future__ import annotations

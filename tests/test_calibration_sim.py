@@ -104,8 +104,10 @@ def test_calibration_set_files_and_report(calibrated):
     np.testing.assert_allclose(back.turntable_axis["axis_cam"], cs.turntable_axis["axis_cam"])
     report = (out / "report.md").read_text()
     assert cs.id in report and "hidden truth" in report
-    for png in ("dofp_angle_error.png", "dofp_gain.png", "dofp_diattenuation.png"):
+    for png in ("dofp_angle_error.png", "dofp_gain.png", "dofp_diattenuation.png",
+                "geometry_residuals.png", "light_rays.png", "offset_histogram.png"):
         assert (out / png).stat().st_size > 100
+    assert "skipped" not in report  # residual plots on a default install (issue 21 item 10)
 
 
 def test_calibrated_reference_acquisition_is_3x_more_accurate(calibrated):

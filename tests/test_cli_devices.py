@@ -211,3 +211,15 @@ def test_snap_never_replaces_a_raw_frame(tmp_path, capsys):
     (tmp_path / "folder.png").mkdir()
     rc, _, err = run(capsys, "snap", "--out", str(tmp_path / "folder.png"), "--config", cfg)
     assert rc == 2 and f"--out {tmp_path / 'folder.png'} is a directory" in err
+
+
+@pytest.mark.parametrize("axis,angle", [("stage", "1e9"), ("stage", "-361"),
+                                        ("turntable", "36001")])
+def test_move_beyond_the_capture_limits_is_refused_before_moving(tmp_path, capsys, axis, angle):
+    """``polrig move stage 1e9`` used to be accepted, move for 60 s and then time out; now it
+    gets the limits ``polrig capture`` applies to --states / --poses (exit 2, one line)."""
+    cfg = config(tmp_path, '[sim]\nsize = "32x32"\nclock_speed = inf\n')
+    rc, out, err = run(capsys, "move", axis, angle, "--config", cfg)
+    assert rc == 2 and out == ""
+    assert err.startswith(f"polrig: error: DEG {float(angle):g}: a {axis} angle must be within +-")
+    assert len(err.strip().splitlines()) == 1

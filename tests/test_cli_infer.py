@@ -97,3 +97,42 @@ def test_a_calibration_set_covering_the_frame_is_used(frame, tmp_path, capsys):
     set_calibrated_on(tmp_path / "cal", (256, 128))  # the frame is its corner (an ROI)
     assert main(["infer", str(frame), "--state-deg", "0", "--calibration", str(tmp_path / "cal"),
                  "--out", str(tmp_path / "m.exr")]) == 0
+
+
+def test_infer_of_a_sim_render_is_in_the_unit_of_its_truth(tmp_path, capsys):
+    """``sim render`` writes Mono16 frames (12-bit codes times 16, black level 256) and its truth
+    in 12-bit ADC DN; ``infer`` used to report m00 16 times the truth's. Results are in ADC DN
+    (polrig.processing.adc_scale): the median m00 of the object, per colour, matches the
+    truth's within the network's error (a few per cent; a unit error is a factor 16)."""
+    from polrig.exr import read_mueller_exr
+
+    render = tmp_path / "r"
+    assert main(["sim", "render", "--size", "128x128", "--states", "0", "--out", str(render)]) == 0
+    out = tmp_path / "i.exr"
+    assert main(["infer", str(render / "pose0000p00_state00.png"), "--state-deg", "0",
+                 "--out", str(out)]) == 0
+    got, truth = read_mueller_exr(out), read_mueller_exr(render / "truth_pose0000p00_mueller.exr")
+    assert "ADC DN" in got.metadata["units"]
+    m00 = np.median(got.mueller[:, 0, 0][:, got.extra["mask"] > 0], axis=1)
+    t00 = np.median(truth.mueller[:, 0, 0][:, truth.extra["mask"] > 0], axis=1)
+    np.testing.assert_allclose(m00, t00, rtol=0.2)
+
+
+def test_infer_writes_masked_previews_and_counts_the_masked_pixels(frame, tmp_path, capsys):
+    """Previews next to the EXR (grid with tile labels and colour bar, polarizance DoLP/AoLP
+    with legends); background and pixels below --min-snr are black and counted."""
+    import cv2
+
+    capsys.readouterr()
+    out = tmp_path / "m.exr"
+    assert main(["infer", str(frame), "--state-deg", "0", "--out", str(out)]) == 0
+    line = capsys.readouterr().out
+    assert "masked " in line and " of 512 pixels" in line and "m_grid.png" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.exr", "m_aolp.png", "m_dolp.png",
+                                                          "m_grid.png"]
+    grid = cv2.imread(str(tmp_path / "m_grid.png"))
+    assert min(grid.shape[:2]) >= 3 * 256  # 32x16 tiles enlarged to be read
+    # a folder where a preview goes is refused before the network runs
+    (tmp_path / "n_dolp.png").mkdir()
+    assert main(["infer", str(frame), "--state-deg", "0", "--out", str(tmp_path / "n.exr")]) == 2
+    assert not (tmp_path / "n.exr").exists()

@@ -42,7 +42,8 @@ def test_stokes_command_writes_exr_and_previews(tmp_path, method, capsys):
     assert back.stokes.shape == (1, 3, h, w)
     assert back.conventions == "1"
     inner = back.stokes[0, :, 3:-3, 3:-3]
-    np.testing.assert_allclose(inner[0], 2000, rtol=1e-3)
+    np.testing.assert_allclose(inner[0], 2000 / 16, rtol=1e-3)  # a 16-bit file: 16 DN per ADC DN
+    assert "ADC DN" in back.metadata["units"]
     aolp = back.extra["aolp_deg.Y"][3:-3, 3:-3]
     np.testing.assert_allclose(aolp, 30.0, atol=0.1)
     np.testing.assert_allclose(back.extra["dolp.Y"][3:-3, 3:-3], 0.6, atol=2e-3)
@@ -51,7 +52,8 @@ def test_stokes_command_writes_exr_and_previews(tmp_path, method, capsys):
     assert back.metadata["processing"]["demosaic"] == method
     for suffix in ("_dolp.png", "_aolp.png"):
         img = cv2.imread(str(tmp_path / f"out{suffix}"), cv2.IMREAD_UNCHANGED)
-        assert img.shape == (h, w, 3) and img.dtype == np.uint8
+        assert img.shape[:2] == (h, img.shape[1]) and img.shape[1] > w  # legend on the right
+        assert img.dtype == np.uint8
     assert "wrote" in capsys.readouterr().out
 
 
@@ -213,13 +215,81 @@ def test_calibrated_analyzer_file(tmp_path):
     model.save(tmp_path / "analyzer.npz")
     s = np.array([1000.0, 250.0, -300.0])
     raw = model.mosaic(np.broadcast_to(s[None, :, None, None], (1, 3, 16, 16)))
-    np.save(tmp_path / "raw.npy", np.round(raw * 16).astype(np.uint16))  # headroom for 16 bit
+    np.save(tmp_path / "raw.npy", np.round(raw * 16).astype(np.uint16))  # 12-bit ADC in 16 bits
     out = tmp_path / "o.exr"
     assert main(["stokes", str(tmp_path / "raw.npy"), "--demosaic", "superpixel",
                  "--analyzer", str(tmp_path / "analyzer.npz"), "--out", str(out)]) == 0
-    got = read_stokes_exr(out).stokes[0].reshape(3, -1).T / 16
+    got = read_stokes_exr(out).stokes[0].reshape(3, -1).T  # ADC DN: the file's / 16
     np.testing.assert_allclose(got, np.broadcast_to(s, got.shape), atol=0.1)
     assert main(["stokes", str(tmp_path / "raw.npy"), "--demosaic", "superpixel",
                  "--out", str(tmp_path / "plain.exr")]) == 0
-    plain = read_stokes_exr(tmp_path / "plain.exr").stokes[0].reshape(3, -1).T / 16
+    plain = read_stokes_exr(tmp_path / "plain.exr").stokes[0].reshape(3, -1).T
     assert np.abs(plain - s).max() > 10  # the calibration matters
+
+
+def _half_dark_frame(tmp_path, layout="imx250mzr"):
+    """A 12-bit frame with a sidecar (black level 64): the left half a polarized object
+    (S0 2000 DN, DoLP 0.3), the right half background, both with the sensor's noise."""
+    from polrig.noise import SensorModel
+
+    model = SensorModel(black_level_dn=64.0)
+    mean = _polarized_raw(layout, (32, 64), dolp=0.3, s0=2000).astype(np.float64)
+    mean[:, 32:] = 0.0
+    raw = model.sample_raw(mean * model.gain_e_per_dn, np.random.default_rng(5), 1000.0)
+    meta = FrameMeta(frame_id=1, timestamp_s=0.0, exposure_us=1000.0, gain_db=0.0,
+                     pixel_format="Mono12", layout=layout, bit_depth=12, black_level_dn=64.0)
+    src = tmp_path / "half.png"
+    write_raw(src, Frame(raw, meta))
+    return src
+
+
+def test_background_noise_is_masked_in_the_previews_and_counted(tmp_path, capsys):
+    """Dark background used to show as full-scale DoLP speckle; now pixels whose S0 is below
+    --min-snr noise sigmas (noise model) are black in the previews and counted."""
+    src = _half_dark_frame(tmp_path)
+    out = tmp_path / "o.exr"
+    assert main(["stokes", str(src), "--demosaic", "superpixel", "--out", str(out)]) == 0
+    line = capsys.readouterr().out
+    assert "masked 256 of 512 pixels (dark 256 below SNR 3)" in line  # 16x32 output, right half
+    assert "clipped at" not in line
+    dolp = cv2.imread(str(tmp_path / "o_dolp.png"))[:, :32]  # the image left of its legend
+    assert (dolp[:, 16:] == 0).all() and (dolp[:, :16] > 0).all()
+    snr = read_stokes_exr(out).extra["snr.Y"]
+    assert (snr[:, :16] > 50).all() and (np.abs(snr[:, 16:]) < 5).all()
+    # --min-snr 0 masks nothing that has signal: the background's positive noise shows again
+    assert main(["stokes", str(src), "--demosaic", "superpixel", "--min-snr", "0",
+                 "--out", str(tmp_path / "z.exr")]) == 0
+    shown = capsys.readouterr().out
+    assert "masked 256 of 512" not in shown
+    assert cv2.imread(str(tmp_path / "z_dolp.png"))[:, 16:32].max() > 0
+
+
+def test_summary_says_what_it_counts(tmp_path, capsys):
+    """"DoLP clipped at 0" meant zero pixels were clipped; the line now names its counts."""
+    raw = tmp_path / "raw.png"
+    cv2.imwrite(str(raw), _polarized_raw())
+    assert main(["stokes", str(raw), "--layout", "imx250mzr", "--out", str(tmp_path / "o.exr")]) == 0
+    line = capsys.readouterr().out
+    assert "clipped at" not in line and "masked 0 of 1280 pixels" in line
+
+
+def test_layout_contradicting_the_sidecar_is_refused(tmp_path, capsys):
+    src = _half_dark_frame(tmp_path, "imx250myr")
+    assert main(["stokes", str(src), "--layout", "imx250mzr", "--out", str(tmp_path / "o.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"polrig: error: --layout imx250mzr contradicts the sidecar of {src}, which "
+                   f"says imx250myr; drop --layout (or fix the sidecar)\n")
+    assert not (tmp_path / "o.exr").exists()
+    assert main(["stokes", str(src), "--layout", "imx250myr", "--out", str(tmp_path / "o.exr")]) == 0
+
+
+def test_a_text_file_as_analyzer_is_polrigs_own_one_line_error(tmp_path, capsys):
+    raw = tmp_path / "raw.png"
+    cv2.imwrite(str(raw), _polarized_raw())
+    notes = tmp_path / "notes.txt"
+    notes.write_text("calibrated on Monday\n")
+    assert main(["stokes", str(raw), "--analyzer", str(notes), "--out", str(tmp_path / "o.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"polrig: error: --analyzer {notes}: not a polrig analyzer model (an .npz "
+                   f"file written by polrig calibrate)\n")
+    assert "pickle" not in err

@@ -13,12 +13,22 @@ from polrig.argcheck import (axis_vector, check_output_file, finite_float, nonne
                              positive_float)
 from polrig.errors import ConfigError
 
+#: What the numbers of a ``polrig infer`` EXR are (also written into its header).
+UNITS = ("Mueller elements in ADC DN per unit incident S0 (the raw file's values times "
+         "2**(ADC bits - file bits), polrig.processing.adc_scale: a Mono16 frame of a 12-bit "
+         "ADC counts 16 file DN per ADC DN), as the noise model, a session and a simulated "
+         "capture's truth")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("infer", help="single-shot Mueller EXR from one raw frame (ONNX model)",
                        description="Reconstruct the 3x3 linear Mueller image of one DoFP raw frame "
                                    "(16-bit PNG/TIFF/.npy + optional JSON sidecar) captured under a "
-                                   "known polarizer state, with the single-shot network.")
+                                   "known polarizer state, with the single-shot network. The "
+                                   "result is in ADC DN (the file's values times 2^(ADC bits - "
+                                   "file bits): 1/16 for a Mono16 frame of a 12-bit ADC; the ADC "
+                                   "from --config's sensor model, default 12 bits), the unit of a "
+                                   "session's results and a simulated capture's truth.")
     p.add_argument("raw", help="raw frame file")
     p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
     p.add_argument("--state-deg", type=finite_float, required=True, help="polarizer stage angle of the capture (deg)")
@@ -28,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--black-level", type=nonnegative_float, default=None,
                    help="black level in DN, >= 0 and below the saturation level (default: the sidecar's)")
     p.add_argument("--scale", type=positive_float, default=None,
-                   help="DN per normalised unit, > 0 (default: from the image)")
+                   help="ADC DN per normalised unit, > 0 (default: from the image)")
     p.add_argument("--calibration", default=None,
                    help="calibration set folder: its camera intrinsics and stage zero axis "
                         "are used (a set of another sensor layout, or whose calibrated area "
@@ -52,6 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "two answers (models/mirror.py): a few per cent lower error for twice the "
                         "network time (models/MODEL_CARD.md, 'Mirror averaging')")
     p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
+    p.add_argument("--min-snr", type=nonnegative_float, default=None, metavar="K",
+                   help="in the previews (OUT_grid.png, OUT_dolp.png, OUT_aolp.png), mask pixels "
+                        "whose measured S0 is below K noise standard deviations (default 3, "
+                        "polrig.preview.DEFAULT_MIN_SNR; 0 masks only background and clipped pixels)")
     p.set_defaults(func=run)
 
 
@@ -63,7 +77,10 @@ def run(args: argparse.Namespace) -> int:
 
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
     from polrig import calibrations
+    from polrig.commands._units import adc_factor
     from polrig.commands.capture import options_named
+    from polrig.preview import (BACKGROUND, DEFAULT_MIN_SNR, SATURATED, mask_summary, s0_snr,
+                                write_result_previews)
     from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
     from polrig.rig import load_rig_config
 
@@ -71,6 +88,9 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
     check_output_file(out)
+    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in ("_grid.png", "_dolp.png", "_aolp.png")]
+    for preview_path in previews:
+        check_output_file(preview_path, "--out preview")
     frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
     layout = args.layout or frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
@@ -95,15 +115,28 @@ def run(args: argparse.Namespace) -> int:
         from models.uncertainty import how_to_calibrate
 
         raise ConfigError(f"--sigma: {model.uncertainty_problem}; {how_to_calibrate(model.weights_dir)}")
-    mueller, aux = infer_frame(frame.raw, layout, args.state_deg, model, demosaic_method=args.demosaic,
-                               black_level_dn=black, scale=args.scale, saturation_dn=saturation,
+    # the file's DN -> ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16): the
+    # result is in the unit of the noise model, the truth of a simulated capture and a session
+    sensor, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
+    raw_adc = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
+    mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=args.demosaic,
+                               black_level_dn=black * to_adc, scale=args.scale,
+                               saturation_dn=saturation * to_adc,
                                with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
                                          "layout": str(layout), "demosaic": args.demosaic,
-                                         "saturation_dn": saturation, "mirror_average": args.mirror_average})
+                                         "saturation_dn": saturation, "mirror_average": args.mirror_average,
+                                         "units": UNITS, "adc_dn_per_file_dn": to_adc})
+    # previews: the measured S0 against its noise sigma decides what is signal
+    snr = s0_snr(aux["stokes"][:, 0], sensor, frame.meta.exposure_us)
+    flags = (np.where(np.asarray(aux["mask"], bool), 0, BACKGROUND)
+             | np.where(aux["saturated"], SATURATED, 0)).astype(np.uint8)[None] | np.zeros(snr.shape, np.uint8)
+    min_snr = DEFAULT_MIN_SNR if args.min_snr is None else args.min_snr
+    write_result_previews(mueller, out.parent, stem=out.stem, flags=flags, snr=snr, min_snr=min_snr)
     t = aux["timings_s"]
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
-          f"network {1e3 * t['network']:.1f} ms")
+          f"network {1e3 * t['network']:.1f} ms; {mask_summary(flags, snr, min_snr)}; previews "
+          f"{', '.join(p.name for p in previews)}")
     n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
     if n_clipped:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "

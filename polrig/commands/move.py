@@ -25,8 +25,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from polrig.rig import open_device
 
+    from polrig.capture import MAX_POSE_DEG, MAX_STATE_DEG
+
     if not math.isfinite(args.angle_deg):
         raise ConfigError(f"DEG must be a finite angle, got {args.angle_deg}")
+    # the limits `polrig capture` applies to --states and --poses: beyond them a value is a
+    # typo that would send the axis on a long move that ends in a timeout
+    limit = MAX_STATE_DEG if args.device == "stage" else MAX_POSE_DEG
+    if abs(args.angle_deg) > limit:
+        raise ConfigError(f"DEG {args.angle_deg:g}: a {args.device} angle must be within "
+                          f"+-{limit:g} deg (the limit polrig capture applies)")
     with open_device(args.config, args.device) as dev:
         dev.move_to(args.angle_deg, wait=not args.no_wait, timeout_s=args.timeout)
         if args.no_wait:

@@ -27,6 +27,78 @@ def check_qt_binding(pyside_version: str, python: tuple[int, int]) -> None:
                           " install another version: pip install 'PySide6-Essentials!=6.12.0'")
 
 
+#: Debian/Ubuntu package of each shared library that Qt's xcb platform plugin (the X11 window
+#: of ``polrig gui``) links and a bare system may lack (Qt for X11 requirements,
+#: https://doc.qt.io/qt-6/linux-requirements.html; package names from Debian's packages).
+XCB_PACKAGES: dict[str, str] = {
+    "libxcb-cursor.so.0": "libxcb-cursor0", "libxcb-icccm.so.4": "libxcb-icccm4",
+    "libxcb-image.so.0": "libxcb-image0", "libxcb-keysyms.so.1": "libxcb-keysyms1",
+    "libxcb-randr.so.0": "libxcb-randr0", "libxcb-render-util.so.0": "libxcb-render-util0",
+    "libxcb-shape.so.0": "libxcb-shape0", "libxcb-xinerama.so.0": "libxcb-xinerama0",
+    "libxcb-xkb.so.1": "libxcb-xkb1", "libxkbcommon-x11.so.0": "libxkbcommon-x11-0",
+    "libxkbcommon.so.0": "libxkbcommon0", "libxcb-util.so.1": "libxcb-util1",
+    "libxcb-xfixes.so.0": "libxcb-xfixes0", "libxcb-sync.so.1": "libxcb-sync1",
+    "libxcb-shm.so.0": "libxcb-shm0", "libxcb-render.so.0": "libxcb-render0",
+    "libX11-xcb.so.1": "libx11-xcb1", "libxcb.so.1": "libxcb1", "libX11.so.6": "libx11-6",
+    "libEGL.so.1": "libegl1", "libGL.so.1": "libgl1", "libOpenGL.so.0": "libopengl0",
+    "libfontconfig.so.1": "libfontconfig1", "libfreetype.so.6": "libfreetype6",
+    "libdbus-1.so.3": "libdbus-1-3", "libglib-2.0.so.0": "libglib2.0-0",
+}
+
+
+def ldd_missing(ldd_output: str) -> list[str]:
+    """The libraries ``ldd`` reports as ``not found``, in order, each once."""
+    out: list[str] = []
+    for line in ldd_output.splitlines():
+        name, _, where = line.strip().partition("=>")
+        if where.strip() == "not found" and name.strip() not in out:
+            out.append(name.strip())
+    return out
+
+
+def missing_xcb_libraries() -> list[str]:
+    """Shared libraries that PySide6's xcb platform plugin needs and the system lacks (``ldd``
+    of ``Qt/plugins/platforms/libqxcb.so``); ``[]`` when none are missing or when this cannot
+    be checked (not Linux, no ``ldd``, no plugin)."""
+    import pathlib
+    import shutil
+    import subprocess
+
+    if not sys.platform.startswith("linux") or shutil.which("ldd") is None:
+        return []
+    try:
+        import PySide6
+    except ImportError:
+        return []
+    plugin = pathlib.Path(PySide6.__file__).parent / "Qt" / "plugins" / "platforms" / "libqxcb.so"
+    if not plugin.is_file():
+        return []
+    try:
+        res = subprocess.run(["ldd", str(plugin)], capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return ldd_missing(res.stdout)
+
+
+def check_qt_platform(environ=os.environ) -> None:
+    """Before Qt starts: with the X11 (xcb) platform, a missing system library aborts the
+    process (SIGABRT, exit 134) with Qt's own hint; instead :class:`polrig.errors.PolrigError`
+    (exit 1) names the missing libraries and the ``apt-get install`` line that adds them."""
+    platform = environ.get("QT_QPA_PLATFORM", "")
+    if platform and not platform.startswith("xcb"):
+        return  # offscreen, wayland, vnc...: not the xcb plugin
+    if not platform and environ.get("WAYLAND_DISPLAY") and not environ.get("DISPLAY"):
+        return
+    missing = missing_xcb_libraries()
+    if missing:
+        from polrig.errors import PolrigError
+
+        packages = " ".join(dict.fromkeys(XCB_PACKAGES.get(m, m) for m in missing))
+        raise PolrigError(f"Qt's X11 (xcb) platform plugin cannot load: {', '.join(missing)} "
+                          f"not found; on Debian/Ubuntu: sudo apt-get install {packages} "
+                          f"(README, 'Operator GUI')")
+
+
 def sim_options(size: str = DEFAULT_SIM_SIZE, clock_speed: float = 1.0) -> dict[str, Any]:
     return {"size": size, "clock_speed": clock_speed}
 
@@ -52,6 +124,7 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
     from PySide6.QtWidgets import QApplication
 
     check_qt_binding(PySide6.__version__, sys.version_info[:2])
+    check_qt_platform()
     from polrig.gui.main_window import MainWindow
     from polrig.gui.settings import make_settings
     from polrig.rig import build_rig, load_rig_config

@@ -98,7 +98,7 @@ class CalibrationWorker(QThread):
         self.check_cancelled()
 
     def _ask_mount(self, target: str, **fixture: Any) -> None:
-        where = ", ".join(f"{k}={v}" for k, v in fixture.items()) or "default position"
+        where = fixture_words(fixture) or "default position"
         self.mounted.clear()
         self.mount_request.emit(f"Mount the {target.replace('_', ' ')} ({where}), then press "
                                 f"'Target in place'.")
@@ -162,6 +162,10 @@ class CalibrationPanel(QWidget):
             item.setData(Qt.ItemDataRole.UserRole, key)
             self.steps.addItem(item)
         self.steps.setCurrentRow(0)
+        # every step visible without scrolling (the list used to be clipped)
+        rows = self.steps.count()
+        self.steps.setMinimumHeight(self.steps.sizeHintForRow(0) * rows
+                                    + 2 * self.steps.frameWidth() + 4)
         self.folder = QLineEdit()
         self.folder.setPlaceholderText("calibration set folder (created or updated)")
         self.run_button = QPushButton("Run selected step")
@@ -316,3 +320,21 @@ class CalibrationPanel(QWidget):
     def _failed(self, step: str, text: str) -> None:
         self.report_view.setPlainText(f"step: {step}\n\nFAILED: {text}")
         self.message.emit("error", f"calibration step {step} failed: {text}")
+
+
+def fixture_words(fixture: dict[str, Any]) -> str:
+    """A target's fixture position in words: ``{"distance_m": 0.3, "tilt_deg": 10}`` ->
+    ``"distance 0.3 m, tilt 10 deg"`` (units from the key's suffix), not a Python dict."""
+    out = []
+    for key, value in fixture.items():
+        name, unit = key, ""
+        for suffix, u in (("_deg", "deg"), ("_mm", "mm"), ("_m", "m"), ("_us", "us")):
+            if key.endswith(suffix):
+                name, unit = key[: -len(suffix)], u
+                break
+        if isinstance(value, (list, tuple)):
+            value = ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
+        elif isinstance(value, float):
+            value = f"{value:g}"
+        out.append(f"{name.replace('_', ' ')} {value}" + (f" {unit}" if unit else ""))
+    return ", ".join(out)

@@ -451,7 +451,7 @@ class DevicesPanel(QWidget):
             self._axis_update(kind, status[kind])
         st = status["light"]
         if "level" in st:
-            self.light_state.setText(", ".join(f"{k} {v}" for k, v in st.items() if k != "open"))
+            self.light_state.setText(light_words(st))
             self.light_on.setChecked(bool(st.get("on")))
             self.light_level.blockSignals(True)
             self.light_level.setValue(float(st["level"]))
@@ -463,3 +463,21 @@ class DevicesPanel(QWidget):
             self.camera_values.emit(st["exposure_us"], st["gain_db"])
         elif not st["open"]:
             self.camera_state.setText("closed")
+
+
+def light_words(status: dict[str, Any]) -> str:
+    """The light's polled status in words: ``"on, level 0.500"`` (booleans as on/off, never
+    ``"on True"``)."""
+    parts = []
+    for key, value in status.items():
+        if key == "open":
+            continue
+        if key == "on":
+            parts.insert(0, "on" if value else "off")
+        elif isinstance(value, bool):
+            parts.append(f"{key.replace('_', ' ')} {'yes' if value else 'no'}")
+        elif isinstance(value, float):
+            parts.append(f"{key.replace('_', ' ')} {value:.3f}")
+        else:
+            parts.append(f"{key.replace('_', ' ')} {value}")
+    return ", ".join(parts)

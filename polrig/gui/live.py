@@ -81,6 +81,9 @@ class LiveSettings:
     #: Threads of the strip-parallel Stokes step (0: automatic, see
     #: :func:`polrig.gui.pipeline.stokes_from_raw_strips`; 1: one core call).
     strip_workers: int = 0
+    #: DoLP, AoLP and ``m_ij / m00`` are masked where ``S0`` is below this many noise
+    #: standard deviations (:data:`polrig.preview.DEFAULT_MIN_SNR`; 0: off).
+    min_snr: float = pipeline.preview.DEFAULT_MIN_SNR
 
 
 @dataclasses.dataclass
@@ -283,7 +286,7 @@ class LiveWorker(QThread):
                                               mirror_average=s.mirror_average)
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
-                                          source="live")
+                                          source="live", model=self._sensor_model())
         return frame.meta, data, note, time.perf_counter() - t0
 
     def _render(self, meta, data, note: str, process_s: float) -> LiveResult:
@@ -291,6 +294,7 @@ class LiveWorker(QThread):
         t0 = time.perf_counter()
         s = dataclasses.replace(self.settings)
         display = s.display if s.display in data.available() else "aolp_dolp"
+        data.min_snr = s.min_snr
         step = pipeline.display_step(data, display, s.max_display_px)
         rgb = pipeline.render(data, display, s.colour, saturation_overlay=s.saturation_overlay,
                               step=step)
@@ -300,6 +304,14 @@ class LiveWorker(QThread):
         return LiveResult(image, data, display, s.colour, meta.frame_id, meta.exposure_us,
                           meta.gain_db, hist, process_s + time.perf_counter() - t0,
                           self.meter.rate(), note, step)
+
+    def _sensor_model(self):
+        """The camera's noise model (:func:`polrig.processing.sensor_model_of`), read once."""
+        if getattr(self, "_model_of_rig", None) is None:
+            from polrig.processing import sensor_model_of
+
+            self._model_of_rig = sensor_model_of(self.rig)
+        return self._model_of_rig
 
     def _stage_angle(self) -> float:
         """The polarizer stage angle for single-shot inference (0 if it cannot be read)."""

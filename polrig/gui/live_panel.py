@@ -12,7 +12,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
 
 from polrig.gui import pipeline
 from polrig.gui.live import LiveResult, LiveSettings, LiveWorker
-from polrig.gui.widgets import HistogramWidget, ImageView
+from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box
 
 DEMOSAIC_METHODS = ("superpixel", "bilinear", "newton")
 
@@ -33,6 +33,7 @@ class LivePanel(QWidget):
         super().__init__(parent)
         self.worker = worker
         self.frames_shown = 0
+        self.paused_text = ""
         self.last: LiveResult | None = None
         self._hover = (-1, -1)
 
@@ -56,6 +57,7 @@ class LivePanel(QWidget):
         self.overlay = QCheckBox("saturation overlay (red)")
         self.overlay.setChecked(True)
         self.mirror_average = QCheckBox("Mueller: mirror-average the network (twice the time)")
+        self.min_snr = min_snr_box()
         self.pause_button = QPushButton("Pause live")
         self.pause_button.setCheckable(True)
 
@@ -65,20 +67,17 @@ class LivePanel(QWidget):
         form.addRow("Demosaic", self.method)
         form.addRow("Exposure", self.exposure)
         form.addRow("Gain", self.gain)
+        form.addRow("Mask below SNR", self.min_snr)
         form.addRow(self.overlay)
         form.addRow(self.mirror_average)
         form.addRow(self.pause_button)
-        self.readout = QLabel("move the cursor over the image")
-        self.readout.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
-        self.readout.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
-        self.readout.setStyleSheet("font-family: monospace; font-size: 9pt")
-        self.readout.setWordWrap(False)
+        self.readout = ReadoutLabel("move the cursor over the image")
         self.histogram = HistogramWidget()
         side = QVBoxLayout()
         side.addLayout(form)
         side.addWidget(QLabel("Histogram"))
         side.addWidget(self.histogram)
-        side.addWidget(self.readout, 1)
+        side.addWidget(self.readout.area, 1)
         side_w = QWidget()
         side_w.setLayout(side)
         side_w.setMaximumWidth(520)
@@ -97,6 +96,8 @@ class LivePanel(QWidget):
         self.method.setCurrentText(s.method)
         self.overlay.setChecked(s.saturation_overlay)
         self.mirror_average.setChecked(s.mirror_average)
+        self.min_snr.setValue(s.min_snr)
+        self.min_snr.valueChanged.connect(self._settings_changed)
         self.display.currentIndexChanged.connect(self._settings_changed)
         self.colour.currentIndexChanged.connect(self._settings_changed)
         self.method.currentIndexChanged.connect(self._settings_changed)
@@ -131,12 +132,19 @@ class LivePanel(QWidget):
         s.method = self.method.currentText()
         s.saturation_overlay = self.overlay.isChecked()
         s.mirror_average = self.mirror_average.isChecked()
+        s.min_snr = self.min_snr.value()
 
     def _pause_toggled(self, paused: bool) -> None:
         self.worker.pause(paused)
         self.pause_button.setText("Resume live" if paused else "Pause live")
-        if paused:
-            self.status.emit("live view paused")
+        self._show_paused("live view paused (Resume live to continue)" if paused else "")
+
+    def _show_paused(self, text: str) -> None:
+        """Say on the image and in the status line that the view is paused (the image is the
+        last frame, not a live one; the frame rate is not shown); "" when live again."""
+        self.paused_text = text
+        self.view.set_banner(text.upper().split(" (")[0] if text else "")
+        self.status.emit(text if text else "live: resuming...")
 
     def _stalled(self, reason: str) -> None:
         """Frames stopped coming: the status line says why instead of the last frame rate."""
@@ -148,12 +156,16 @@ class LivePanel(QWidget):
         self.worker.pause(paused or self.pause_button.isChecked())
         self.pause_button.setEnabled(not paused)
         if paused:
-            self.status.emit(f"live view paused: {reason}")
+            self._show_paused(f"live view paused: {reason} running")
+        elif self.pause_button.isChecked():
+            self._show_paused("live view paused (Resume live to continue)")
+        else:
+            self._show_paused("")
 
     # -- frames
     def _take_frame(self) -> None:
         res = self.worker.slot.take()
-        if res is None:
+        if res is None or self.worker.paused:  # a frame finished as the view paused: dropped
             return
         self.last = res
         self.frames_shown += 1

@@ -146,7 +146,12 @@ class MainWindow(QMainWindow):
 
     def show_message(self, level: str, text: str) -> None:
         self.messages.add(level, text)
-        self.statusBar().showMessage(text, 15000 if level == "error" else 5000)
+        # elided to the room left of the live line (permanent): the two never overlap; the
+        # whole text is in the messages dock
+        bar = self.statusBar()
+        room = max(80, bar.width() - self.fps_label.sizeHint().width() - 40)
+        short = bar.fontMetrics().elidedText(text, Qt.TextElideMode.ElideRight, room)
+        bar.showMessage(short, 15000 if level == "error" else 5000)
 
     def _settings_warning(self, text: str) -> None:
         """A settings problem: in the messages and once on stderr (it may concern a file the

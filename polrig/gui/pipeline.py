@@ -6,6 +6,10 @@ DoLP, AoLP), :func:`models.runtime.infer_frame` (single-shot Mueller images) and
 of :mod:`polrig.preview`. Conventions (AoLP in degrees in [0, 180), DoLP in [0, 1], arrays
 plane-first) are those of ``docs/conventions.md``.
 
+Masks (:mod:`polrig.preview`, "Masks"): every display hides DoLP, AoLP and ``m_ij / m00``
+where the data's reason bits say so (saturated, invalid, outside the object, ...) or its
+signal is below ``min_snr`` noise standard deviations; the readout says why a pixel is masked.
+
 The only additions are for speed and interaction: :func:`stokes_from_raw_strips` runs the
 superpixel pipeline on horizontal strips in threads (superpixel output pixels depend only on
 their own layout cell, so the result is identical to one call), a sub-sampled white point
@@ -24,6 +28,7 @@ import numpy as np
 from polrig import preview
 from polrig.analyzer import layout_name_at, resolve_layout
 from polrig.hal import Frame
+from polrig.noise import SensorModel
 from polrig.stokes import StokesImages, aolp_deg, dolp, stokes_from_raw, stokes_validity
 
 #: Display modes (key -> label shown in the GUI).
@@ -49,7 +54,10 @@ class PolarizationData:
 
     ``stokes`` ``(C, 3, H, W)`` DN; ``valid``/``saturated``/``dolp``/``aolp_deg`` ``(C, H, W)``;
     ``mueller`` ``(C, 3, 3, H', W')`` (DN per unit incident S0); ``raw`` ``(H_raw, W_raw)``
-    with its ``bit_depth`` and ``black_level_dn``.
+    with its ``bit_depth`` and ``black_level_dn``. ``flags`` (reason bits,
+    :data:`polrig.preview.MASK_REASONS`) and ``snr`` (signal over its noise sigma, NaN where
+    unknown) ``(C, H, W)`` at the output resolution, and ``min_snr`` decide what is masked
+    (:func:`shown`).
     """
 
     stokes: np.ndarray | None = None
@@ -62,6 +70,9 @@ class PolarizationData:
     bit_depth: int = 16
     black_level_dn: float = 0.0
     source: str = ""
+    flags: np.ndarray | None = None
+    snr: np.ndarray | None = None
+    min_snr: float = preview.DEFAULT_MIN_SNR
     _views: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
@@ -86,26 +97,70 @@ class PolarizationData:
 
     @classmethod
     def from_stokes_images(cls, s: StokesImages, frame: Frame | None = None,
-                           source: str = "") -> "PolarizationData":
+                           source: str = "", model: SensorModel | None = None) -> "PolarizationData":
+        """From :func:`polrig.stokes.stokes_from_raw`'s result; with the ``frame``, the SNR of
+        ``S0`` from the noise ``model`` (default: the IMX250 model) in the ADC's DN."""
         d = cls(stokes=s.stokes, valid=s.valid, saturated=s.saturated, dolp=s.dolp,
                 aolp_deg=s.aolp_deg, source=source)
+        d.flags = (np.where(s.saturated, preview.SATURATED, 0)
+                   | np.where(~s.valid & ~s.saturated, preview.DARK, 0)).astype(np.uint8)
         if frame is not None:
             d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
             d.black_level_dn = float(frame.meta.black_level_dn)
+            d.snr = frame_snr(s.stokes[:, 0], frame, model)
         return d
 
     @classmethod
-    def from_stokes(cls, stokes: np.ndarray, source: str = "") -> "PolarizationData":
+    def from_stokes(cls, stokes: np.ndarray, source: str = "",
+                    planes: dict | None = None) -> "PolarizationData":
         """From Stokes images ``(C, 3, H, W)`` (e.g. a Stokes EXR): masks, DoLP and AoLP by
-        :mod:`polrig.stokes`."""
+        :mod:`polrig.stokes`; ``planes`` (the EXR's other planes: ``valid``, ``saturated``,
+        ``snr.*``) add the file's masks (:func:`polrig.preview.exr_masks`)."""
         s = np.nan_to_num(np.asarray(stokes, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         valid = stokes_validity(np.asarray(stokes, np.float32))
-        return cls(stokes=s, valid=valid, saturated=np.zeros_like(valid), dolp=dolp(s, valid),
-                   aolp_deg=aolp_deg(s, valid), source=source)
+        flags, snr = preview.exr_masks(planes or {}, s.shape[0], s[:, 0])
+        saturated = (flags & preview.SATURATED) > 0
+        valid &= flags == 0
+        return cls(stokes=s, valid=valid, saturated=saturated, dolp=dolp(s, valid),
+                   aolp_deg=aolp_deg(s, valid), source=source, flags=flags, snr=snr)
 
     @classmethod
-    def from_mueller(cls, mueller: np.ndarray, source: str = "") -> "PolarizationData":
-        return cls(mueller=np.asarray(mueller, np.float32), source=source)
+    def from_mueller(cls, mueller: np.ndarray, source: str = "",
+                     planes: dict | None = None) -> "PolarizationData":
+        """From a Mueller image ``(C, 3, 3, H, W)``; ``planes`` (the EXR's other planes) give
+        its masks and SNR (:func:`polrig.preview.exr_masks`)."""
+        m = np.asarray(mueller, np.float32)
+        flags, snr = preview.exr_masks(planes or {}, m.shape[0], m[:, 0, 0])
+        return cls(mueller=m, source=source, flags=flags, snr=snr)
+
+
+def frame_snr(s0: np.ndarray, frame: Frame, model: SensorModel | None = None) -> np.ndarray:
+    """``S0 / sigma(S0)`` ``(C, H, W)`` of black-subtracted ``S0`` in the frame's DN
+    (converted to the ADC's DN of ``model`` first, :func:`polrig.processing.adc_scale`)."""
+    model = model or SensorModel()
+    to_adc = 2.0 ** (int(model.bit_depth) - int(frame.meta.bit_depth))
+    return preview.s0_snr(np.asarray(s0, np.float64) * to_adc, model, frame.meta.exposure_us)
+
+
+def shown(data: PolarizationData, colour: int = LUMINANCE) -> np.ndarray | None:
+    """``(H, W)`` True where ``colour`` (the luminance: every colour) is shown, i.e. not masked
+    (:func:`polrig.preview.display_valid` at ``data.min_snr``); None without masks."""
+    v = preview.display_valid(data.flags, data.snr, data.min_snr)
+    if v is None:
+        return None
+    if colour == LUMINANCE or v.shape[0] == 1:
+        return v.all(axis=0)
+    return v[min(colour, v.shape[0] - 1)]
+
+
+def mask_reason(data: PolarizationData, c: int, v: int, u: int) -> str:
+    """Why colour ``c`` of output pixel ``(u, v)`` is masked, in words ("" when it is not)."""
+    if data.flags is None and data.snr is None:
+        return ""
+    flags = None if data.flags is None else data.flags[c, v, u]
+    snr = None if data.snr is None else data.snr[c, v, u]
+    code = preview.display_flags(flags, snr, data.min_snr)
+    return preview.reason_text(int(code), None if snr is None else float(snr), data.min_snr)
 
 
 # -- processing a raw frame --------------------------------------------------------------------
@@ -166,12 +221,13 @@ class _pool:
 
 
 def process_frame(frame: Frame, method: str = "superpixel", *, workers: int | None = None,
-                  source: str = "") -> PolarizationData:
-    """Raw frame -> :class:`PolarizationData` (Stokes, masks, DoLP, AoLP; ideal analyzers)."""
+                  source: str = "", model: SensorModel | None = None) -> PolarizationData:
+    """Raw frame -> :class:`PolarizationData` (Stokes, masks, DoLP, AoLP; ideal analyzers;
+    the SNR from the noise ``model``, default the IMX250 one)."""
     s = stokes_from_raw_strips(frame.raw, frame_layout(frame), method,
                                black_level_dn=frame.meta.black_level_dn,
                                bit_depth=frame.meta.bit_depth, workers=workers)
-    return PolarizationData.from_stokes_images(s, frame, source)
+    return PolarizationData.from_stokes_images(s, frame, source, model)
 
 
 def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpixel",
@@ -195,6 +251,9 @@ def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpix
     d.mueller = mueller
     d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
     d.black_level_dn = float(frame.meta.black_level_dn)
+    d.snr = frame_snr(aux["stokes"][:, 0], frame)
+    d.flags = d.flags | np.where(np.asarray(aux["mask"], bool), 0,
+                                 preview.BACKGROUND).astype(np.uint8)[None]
     return d
 
 
@@ -274,7 +333,7 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
     elif display == "mueller":
         return preview.mueller_grid(data.mueller, colour=None if colour == LUMINANCE else
                                     min(colour, data.mueller.shape[0] - 1),
-                                    border_px=GRID_BORDER_PX)
+                                    border_px=GRID_BORDER_PX, valid=shown(data, colour))
     elif display == "s0" and data.stokes is None:  # Mueller only: m00
         m00 = _pick(data.mueller[:, 0, 0], colour)[k, k]
         rgb = preview.tone_map(m00, white=fast_white(m00))
@@ -287,6 +346,9 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
             sat = data.saturated[:, k, k].any(axis=0)
     else:
         _, d, a, valid = (v[k, k] for v in channel_view(data, colour))
+        ok = shown(data, colour)
+        if ok is not None:
+            valid = valid & ok[k, k]
         if display == "dolp":
             rgb = preview.dolp_colormap(d, valid=valid)
         elif display == "aolp":
@@ -317,6 +379,9 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
         label = "m00 (DN per unit S0)"
     else:
         s0, d, a, valid = (v[k, k] for v in channel_view(data, colour))
+        ok = shown(data, colour)
+        if ok is not None and display != "s0":
+            valid = valid & ok[k, k]
         q = {"s0": s0, "dolp": d}.get(display, a)
         x = q[valid]
         rng = {"dolp": (0.0, 1.0), "aolp": (0.0, 180.0), "aolp_dolp": (0.0, 180.0)}.get(
@@ -365,7 +430,7 @@ def readout(data: PolarizationData, display: str, x: int, y: int) -> str:
     if data.mueller is not None:
         hm, wm = data.mueller.shape[-2:]
         if 0 <= v < hm and 0 <= u < wm:
-            lines.append(_mueller_lines(data.mueller, u, v))
+            lines.append(_mueller_lines(data, u, v))
     return "\n".join(lines)
 
 
@@ -377,19 +442,28 @@ def _stokes_lines(data: PolarizationData, u: int, v: int) -> str:
     out = [f"pixel (u={u}, v={v})"]
     for c, name in enumerate(_colour_names(data.stokes.shape[0])):
         s = data.stokes[c, :, v, u]
-        flag = "" if data.valid[c, v, u] else ("  saturated" if data.saturated[c, v, u]
-                                               else "  invalid")
-        out.append(f"{name}: S=({s[0]:.1f}, {s[1]:.1f}, {s[2]:.1f}) DN  DoLP {data.dolp[c, v, u]:.3f}"
-                   f"  AoLP {data.aolp_deg[c, v, u]:.1f} deg{flag}")
+        why = mask_reason(data, c, v, u)
+        if not why and not data.valid[c, v, u]:
+            why = "saturated" if data.saturated[c, v, u] else "invalid"
+        out.append(f"{name}: S=({s[0]:.1f}, {s[1]:.1f}, {s[2]:.1f}) DN")
+        out.append(f"   DoLP {data.dolp[c, v, u]:.3f}  AoLP {data.aolp_deg[c, v, u]:.1f} deg")
+        if why:
+            out.append(f"   MASKED: {why}")
     return "\n".join(out)
 
 
-def _mueller_lines(mueller: np.ndarray, u: int, v: int) -> str:
+def _mueller_lines(data: PolarizationData, u: int, v: int) -> str:
+    mueller = data.mueller
     out = [f"Mueller at (u={u}, v={v}): m00 in DN per unit S0, then M / m00"]
+    same_grid = data.flags is not None and data.flags.shape[-2:] == mueller.shape[-2:]
     for c, name in enumerate(_colour_names(mueller.shape[0])):
         m = mueller[c, :, :, v, u]
         m00 = float(m[0, 0])
         out.append(f"{name}: m00 = {m00:.4g}")
+        why = mask_reason(data, c, v, u) if same_grid else ""
+        if why:
+            out.append(f"   MASKED: {why}")
+            continue
         if not (m00 > 0 and np.isfinite(m).all()):
             out.append("   (no valid matrix here)")
             continue

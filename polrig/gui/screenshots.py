@@ -71,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
         written.append(path)
 
     w.tabs.setCurrentWidget(w.live)
+    # the exposure box shows the camera's value (from the device poll), as the status line does
+    _wait(app, lambda: w.live.last is not None
+          and abs(w.live.exposure.value() - w.live.last.exposure_us) < 0.5, 120,
+          "the camera's exposure in the live panel")
     for display, name in (("dolp", "live_dolp.png"), ("aolp_dolp", "live_aolp.png")):
         w.live.set_display(display)
         _wait(app, lambda: w.live.last is not None and w.live.last.display == display

@@ -13,27 +13,31 @@ import pathlib
 import numpy as np
 
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QComboBox, QFileDialog, QHBoxLayout, QLabel, QListWidget,
-                               QListWidgetItem, QPushButton, QSplitter, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFileDialog, QHBoxLayout, QLabel,
+                               QListWidget, QListWidgetItem, QPushButton, QSplitter,
+                               QVBoxLayout, QWidget)
 
 from polrig.errors import FormatError, PolrigError
 from polrig.gui import pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
 from polrig.gui.qtimage import to_qimage
-from polrig.gui.widgets import HistogramWidget, ImageView
+from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box
 
 
 def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
     """A Mueller or a Stokes EXR as :class:`pipeline.PolarizationData` (kind from its
-    channels); :class:`polrig.errors.FormatError` for anything else."""
+    channels), with the file's masks (``valid``, ``saturated``, ``mask``, SNR planes:
+    :func:`polrig.preview.exr_masks`); :class:`polrig.errors.FormatError` for anything else."""
     from polrig.exr import read_exr, read_mueller_exr, read_stokes_exr
 
     path = pathlib.Path(path)
     planes = read_exr(path).planes
     if any(k.startswith("M00.") for k in planes):
-        return pipeline.PolarizationData.from_mueller(read_mueller_exr(path).mueller, str(path))
+        img = read_mueller_exr(path)
+        return pipeline.PolarizationData.from_mueller(img.mueller, str(path), img.extra)
     if any(k.startswith("S0.") for k in planes):
-        return pipeline.PolarizationData.from_stokes(read_stokes_exr(path).stokes, str(path))
+        img = read_stokes_exr(path)
+        return pipeline.PolarizationData.from_stokes(img.stokes, str(path), img.extra)
     raise FormatError(f"{path}: neither a Mueller (M00.*) nor a Stokes (S0.*) EXR")
 
 
@@ -92,9 +96,9 @@ class ViewerPanel(QWidget):
         self.method.currentIndexChanged.connect(self._reload)
         self.view = ImageView(placeholder="open a session folder or a Mueller/Stokes EXR")
         self.view.hovered.connect(self._hovered)
-        self.readout = QLabel("")
-        self.readout.setStyleSheet("font-family: monospace; font-size: 9pt")
-        self.readout.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
+        self.readout = ReadoutLabel("")
+        self.min_snr = min_snr_box()
+        self.min_snr.valueChanged.connect(self.refresh)
         self.histogram = HistogramWidget()
 
         left = QVBoxLayout()
@@ -104,11 +108,12 @@ class ViewerPanel(QWidget):
         left.addLayout(row)
         left.addWidget(self.entries, 1)
         for label, w in (("Display", self.display), ("Colour", self.colour),
-                         ("Demosaic (raw frames)", self.method)):
+                         ("Demosaic (raw frames)", self.method),
+                         ("Mask below signal-to-noise", self.min_snr)):
             left.addWidget(QLabel(label))
             left.addWidget(w)
         left.addWidget(self.histogram)
-        left.addWidget(self.readout, 1)
+        left.addWidget(self.readout.area, 1)
         lw = QWidget()
         lw.setLayout(left)
         lw.setMaximumWidth(520)
@@ -203,6 +208,7 @@ class ViewerPanel(QWidget):
         if self.data is None or self.display.currentData() is None:
             return
         display, colour = self.display.currentData(), self.colour.currentData()
+        self.data.min_snr = self.min_snr.value()
         try:
             rgb = pipeline.render(self.data, display, colour, saturation_overlay=True)
             self.histogram.set_data(*pipeline.histogram(self.data, display, colour))
@@ -213,4 +219,5 @@ class ViewerPanel(QWidget):
 
     def _hovered(self, x: int, y: int) -> None:
         if self.data is not None and x >= 0:
+            self.data.min_snr = self.min_snr.value()
             self.readout.setText(pipeline.readout(self.data, self.display.currentData(), x, y))

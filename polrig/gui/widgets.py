@@ -7,7 +7,43 @@ import time
 import numpy as np
 from PySide6.QtCore import QPoint, QRect, Qt, Signal
 from PySide6.QtGui import QColor, QImage, QPainter, QPen
-from PySide6.QtWidgets import QPlainTextEdit, QSizePolicy, QWidget
+from PySide6.QtWidgets import (QDoubleSpinBox, QFrame, QLabel, QPlainTextEdit, QScrollArea,
+                               QSizePolicy, QWidget)
+
+from polrig.preview import DEFAULT_MIN_SNR
+
+
+def min_snr_box() -> QDoubleSpinBox:
+    """The "mask below signal-to-noise" control: DoLP, AoLP and ``m_ij / m00`` are masked
+    where ``S0`` (``m00``) is below this many noise standard deviations (0: off)."""
+    box = QDoubleSpinBox()
+    box.setRange(0.0, 1000.0)
+    box.setDecimals(1)
+    box.setSingleStep(0.5)
+    box.setValue(DEFAULT_MIN_SNR)
+    box.setSuffix(" sigma")
+    box.setKeyboardTracking(False)
+    box.setToolTip("mask DoLP, AoLP and the normalised Mueller elements where S0 (m00) is "
+                   "below this many noise standard deviations; 0 masks only what the data "
+                   "marks (saturated, invalid, background)")
+    return box
+
+
+class ReadoutLabel(QLabel):
+    """The cursor readout: monospace, selectable, inside a scroll area (:attr:`area`, the
+    widget to put in a layout) so that no line is ever cut off at any window size."""
+
+    def __init__(self, text: str = "", parent=None):
+        super().__init__(text, parent)
+        self.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.setAlignment(Qt.AlignmentFlag.AlignTop | Qt.AlignmentFlag.AlignLeft)
+        self.setStyleSheet("font-family: monospace; font-size: 9pt")
+        self.setWordWrap(False)
+        self.area = QScrollArea()
+        self.area.setWidgetResizable(True)
+        self.area.setFrameShape(QFrame.Shape.NoFrame)
+        self.area.setWidget(self)
+        self.area.setMinimumHeight(120)
 
 
 class ImageView(QWidget):
@@ -26,6 +62,13 @@ class ImageView(QWidget):
         self.setMinimumSize(160, 120)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.images_shown = 0
+        self.banner = ""
+
+    def set_banner(self, text: str) -> None:
+        """A line drawn across the top of the image (e.g. "PAUSED: capture running"); ""
+        removes it."""
+        self.banner = text
+        self.update()
 
     def set_image(self, image: QImage | None) -> None:
         self._image = image
@@ -59,6 +102,14 @@ class ImageView(QWidget):
         p.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform,
                         t.width() < self._image.width())
         p.drawImage(t, self._image)
+        if self.banner:
+            bar = QRect(0, 0, self.width(), 28)
+            p.fillRect(bar, QColor(200, 120, 0, 220))
+            p.setPen(QColor(0, 0, 0))
+            f = p.font()
+            f.setBold(True)
+            p.setFont(f)
+            p.drawText(bar, Qt.AlignmentFlag.AlignCenter, self.banner)
 
     def map_to_image(self, pos: QPoint) -> tuple[int, int]:
         if self._image is None:
