@@ -51,7 +51,7 @@ from polrig.session import (ACQUIRED, ACQUISITION_ROLES, COMPLETE, FAILED, INTER
                             MANIFEST_NAME, PENDING, RUNNING, SESSION_COMPLETE, Session,
                             SignalGuard, folder_is_empty, interruption_reason, is_disk_full)
 from polrig.sessionio import (check_resume_space, create_session,  # noqa: F401 (re-exported)
-                              dark_relpath, frame_bytes, raw_relpath)
+                              dark_relpath, frame_bytes, manifest_exposure_us, raw_relpath)
 
 __all__ = ["CaptureControl", "CapturePlan", "CaptureRequest", "PreparedCapture", "Progress",
            "SessionResult", "StopRequested", "check_resume_space", "create_session",
@@ -310,14 +310,16 @@ class _Run:
         if tag.role == "dark":
             self.session.add_file(tag.capture, "dark",
                                   dark_relpath(cap["name"], tag.exposure_index, tag.frame),
-                                  image, sidecar=meta, exposure_us=tag.exposure_us,
+                                  image, sidecar=meta,
+                                  exposure_us=manifest_exposure_us(tag.exposure_us),
                                   exposure_index=tag.exposure_index, frame=tag.frame)
         else:
             self.session.add_file(tag.capture, "raw",
                                   raw_relpath(cap["name"], tag.state_index, tag.state_deg,
                                               tag.exposure_index, tag.frame),
                                   image, sidecar=meta, state_index=tag.state_index,
-                                  state_deg=tag.state_deg, exposure_us=tag.exposure_us,
+                                  state_deg=tag.state_deg,
+                                  exposure_us=manifest_exposure_us(tag.exposure_us),
                                   exposure_index=tag.exposure_index, frame=tag.frame)
         self.step += 1
         self.emit("frame", tag.capture)

@@ -24,6 +24,7 @@ variance divided by ``n`` (exact); interpolating demosaics get the interpolated 
 from __future__ import annotations
 
 import contextlib
+import math
 import pathlib
 from typing import Any, Callable, Sequence
 
@@ -55,6 +56,14 @@ from polrig.sessionio import (CaptureFrames, exr_bytes,  # noqa: F401 (re-export
                               load_capture_frames, read_verified_frame)
 
 
+def noise_exposures_us(cf: CaptureFrames) -> list[float]:
+    """The capture's exposures as the noise model takes them: a camera without exposure
+    control reports none (recorded as unknown, NaN here); its dark current cannot be modelled
+    then and counts as 0 us of it (dark frames, when taken, still subtract what there is; a
+    bracket needs exposure control anyway)."""
+    return [e if math.isfinite(e) else 0.0 for e in cf.exposures_us]
+
+
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
                       method: str
                       ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
@@ -68,7 +77,7 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     states = []
     for per_state in cf.frames:
         states.append(state_radiance(
-            [[adc(f) for f in lst] for lst in per_state], cf.exposures_us, model,
+            [[adc(f) for f in lst] for lst in per_state], noise_exposures_us(cf), model,
             black_level_dn=black, code_step_dn=scale,
             darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
     analyzer = calibration.analyzer
@@ -191,7 +200,8 @@ class Processor:
             files["mask"] = {"part_of": "mueller", "path": rec["path"],
                              "channels": "mask.{colour} (reason bits, 0 = valid)"}
         score = self.score(session, index, result, lay, s_in,
-                           states if self.mode == "reference" else None, cf.exposures_us[0],
+                           states if self.mode == "reference" else None,
+                           noise_exposures_us(cf)[0],
                            truth_path=truth_path)
         with session.mutex:
             if revision is not None:
@@ -225,7 +235,7 @@ class Processor:
         scale = adc_scale(self.sensor_model, first.meta.bit_depth)
         adc = lambda f: f.raw.astype(np.float64) * scale  # noqa: E731
         state = state_radiance([[adc(f) for f in lst] for lst in cf.frames[0]],
-                               cf.exposures_us, self.sensor_model,
+                               noise_exposures_us(cf), self.sensor_model,
                                black_level_dn=float(first.meta.black_level_dn) * scale,
                                darks=[[adc(f) for f in d] for d in cf.darks]
                                if any(len(d) for d in cf.darks) else None,

@@ -679,6 +679,9 @@ def _check_file_record(role: str, rec: Any) -> None:
     for key in _FRAME_ATTRS.get(role.rsplit("/", 1)[-1], ()):
         if key in _INDEX_ATTRS:
             _need(rec, key, lambda v: _is_int(v) and v >= 0, "an index >= 0")
+        elif key == "exposure_us":  # null: a camera without exposure control reports none
+            _need(rec, key, lambda v: v is None or (_is_number(v) and math.isfinite(v)),
+                  "a finite number or null")
         else:
             _need(rec, key, lambda v: _is_number(v) and math.isfinite(v), "a finite number")
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import pathlib
 import tempfile
 from typing import Any, Callable
@@ -100,6 +101,20 @@ class CaptureFrames:
         return self.frames[0][0][0]
 
 
+def recorded_exposure_us(record: dict[str, Any]) -> float:
+    """A frame record's exposure in microseconds; NaN where it is unknown (``null``: a camera
+    without exposure control)."""
+    value = record["exposure_us"]
+    return float("nan") if value is None else float(value)
+
+
+def manifest_exposure_us(exposure_us: float) -> float | None:
+    """An exposure as a frame record stores it: ``None`` (JSON ``null``) when the camera does
+    not report one (NaN), so the manifest stays standard JSON."""
+    e = float(exposure_us)
+    return e if math.isfinite(e) else None
+
+
 def load_capture_frames(session: Session, index: int) -> CaptureFrames:
     """Every raw and dark frame of capture ``index``, checksums verified."""
     files = session.capture(index)["files"]
@@ -114,7 +129,7 @@ def load_capture_frames(session: Session, index: int) -> CaptureFrames:
                                                    for _ in range(n_states)]
     for r in raw:
         states[r["state_index"]] = float(r["state_deg"])
-        exposures[r["exposure_index"]] = float(r["exposure_us"])
+        exposures[r["exposure_index"]] = recorded_exposure_us(r)
         frames[r["state_index"]][r["exposure_index"]].append((r["frame"],
                                                               read_verified_frame(session, r)))
     darks: list[list[tuple[int, Frame]]] = [[] for _ in range(n_exp)]

@@ -148,6 +148,38 @@ def test_a_camera_without_exposure_control_is_never_asked_to_set_it():
         assert len(kept) == 4
 
 
+def test_a_session_on_a_camera_without_exposure_control_reopens_and_has_results(tmp_path):
+    """Frame records store the unknown exposure as null (standard JSON; it used to be NaN,
+    which made the manifest invalid: polrig info and --resume refused the session), and
+    processing models no dark current for it instead of propagating NaN into every sigma."""
+    from polrig.exr import read_mueller_exr
+    from polrig.session import Session
+
+    plan = CapturePlan((0.0,))
+    cal = processing.Calibration("ideal")
+    valid = {}
+    for name, camera in (("plain", None), ("no-exposure", NoExposureControl)):
+        with open_rig(None, **SIM) as rig:
+            if camera is not None:
+                rig.camera = camera(rig.sim.world, rig.sim.faults)
+                rig.camera.open()
+            out = tmp_path / name
+            session = create_session(out, rig, plan, calibration_id=cal.id)
+            proc = processing.make_processor(plan, cal, processing.session_sensor_model(session))
+            assert run_session(rig, session, processor=proc).status == "complete"
+        s = Session.open(out)  # validates the manifest
+        assert s.verify() == []
+        m = read_mueller_exr(out / s.capture(0)["files"]["mueller"]["path"])
+        masks = [v for k, v in m.extra.items() if k.startswith("mask.")]
+        sigmas = [v for k, v in m.extra.items() if k.startswith("sigma.M00.")]
+        valid[name] = sum(int((mk == 0).sum()) for mk in masks)
+        assert all(np.isfinite(sg[mk == 0]).all() for mk, sg in zip(masks, sigmas))
+    assert {r["exposure_us"] for r in s.capture(0)["files"]["raw"]} == {None}
+    # the same pixels are valid as with a camera that reports its exposure (20 ms: its dark
+    # current is a fraction of an electron); NaN had invalidated every one of them
+    assert valid["no-exposure"] > 0 and abs(valid["no-exposure"] - valid["plain"]) <= 2
+
+
 def test_stop_and_pause_at_checkpoints():
     with open_rig(None, **SIM) as rig:
         control = CaptureControl()
