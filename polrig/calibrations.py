@@ -109,7 +109,7 @@ def nominal_calibration() -> Calibration:
 
 def load_calibration(path: str | os.PathLike | None, *, session: Session | None = None
                      ) -> Calibration:
-    """The calibration named by ``--calibration`` (``None``: nominal).
+    """The calibration set in folder ``path`` (``None``: the nominal calibration).
 
     For a resumed ``session`` the calibration must be the one it was started with.
     """

@@ -44,8 +44,8 @@ from polrig.engine import (CaptureControl, CheckpointReached, Executor, FaultPol
                            FrameGrabbed, Retried, StepDone, StopRequested, hardware_model)
 from polrig.errors import DeviceError
 from polrig.plan import (DEFAULT_STATES_DEG, CapturePlan, PlanError,  # noqa: F401 (re-exported)
-                         parse_float_list, parse_pose_spec, planned_bytes, session_steps,
-                         step_durations)
+                         capture_steps, parse_float_list, parse_pose_spec, planned_bytes,
+                         setup_steps, step_durations)
 from polrig.records import check_resume_rig, check_rig_for_plan
 from polrig.session import (ACQUIRED, ACQUISITION_ROLES, COMPLETE, FAILED, INTERRUPTED,
                             MANIFEST_NAME, PENDING, RUNNING, SESSION_COMPLETE, Session,
@@ -139,8 +139,8 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
             raise PlanError("out", "exists and is not a folder", subject=str(out),
                             what="output")
         if not folder_is_empty(out):
-            raise PlanError("out", "folder is not empty; resume the session in it, or choose "
-                                   "a new folder", subject=str(out), what="output")
+            raise PlanError("out", "folder is not empty; choose a new folder, or resume the "
+                                   "session in it", subject=str(out), what="output")
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration)  # states conditioning, single-shot model
     return PreparedCapture(out, plan, calibration, session)
@@ -398,12 +398,15 @@ class _Run:
         session, plan = self.session, self.plan
         try:
             session.set_status(RUNNING)
-            steps = []
+            setup, body = [], []
             if self.to_acquire:
                 exposures = plan.exposures_us or (float(self.rig.camera.exposure_us),)
-                steps = session_steps(plan, self.to_acquire, exposures)
-                self.durations = step_durations(steps, hardware_model(self.rig))
-                self.hardware_s = self.hardware_left_s = sum(self.durations)
+                setup = setup_steps()
+                body = [step for i in self.to_acquire
+                        for step in capture_steps(plan, i, exposures)]
+                durations = step_durations(setup + body, hardware_model(self.rig))
+                self.hardware_s = self.hardware_left_s = sum(durations)
+                setup_s, self.durations = durations[:len(setup)], durations[len(setup):]
             with session.mutex:
                 session.manifest.setdefault("hardware_time_s", round(self.hardware_s, 3))
                 session.log("run planned", to_acquire=self.to_acquire,
@@ -413,12 +416,11 @@ class _Run:
                                 control=self.control, subscribers=[self.on_event])
             for index in self.to_process:  # acquired before: processed, not acquired again
                 self.submit(index)
-            if steps:
-                setup, body = steps[:3], steps[3:]
+            if body:
                 try:
-                    for i, step in enumerate(setup):
+                    for step, seconds in zip(setup, setup_s):
                         executor.execute(step)
-                        self.hardware_left_s -= self.durations[i]
+                        self.hardware_left_s -= seconds
                 except DeviceError as exc:
                     reason = f"rig preparation failed: {exc}"
                     error = self.drain()
@@ -428,8 +430,7 @@ class _Run:
                         raise error.error
                     return SessionResult(INTERRUPTED, self.result.completed, [], str(exc),
                                          self.result.scores)
-                self.durations = self.durations[3:]
-                executor.run(body)
+                executor.run(body)  # StepDone indices count from 0 again: self.durations
             self.collect(block=True)
             with self.guard.deferred():
                 session.set_status(SESSION_COMPLETE)

@@ -151,7 +151,7 @@ class CapturePlan:
                     and abs(state) <= MAX_STATE_DEG):
                 raise PlanError("states_deg", f"not a polarizer angle within "
                                               f"+-{MAX_STATE_DEG:g} deg",
-                                subject=f"{state!r} deg", what="polarizer state")
+                                subject=f"{state:g} deg", what="polarizer state")
         if self.frames_per_state < 1:
             raise PlanError("frames_per_state", f"frames per state must be >= 1, got "
                                                 f"{self.frames_per_state}")

@@ -602,8 +602,8 @@ def is_disk_full(exc: BaseException) -> bool:
 
 
 def _not_empty(root: pathlib.Path) -> FileExistsError:
-    return FileExistsError(f"{root}: output folder is not empty; pass --resume to continue the "
-                           f"session in it, or choose a new folder")
+    return FileExistsError(f"{root}: output folder is not empty; choose a new folder, or resume "
+                           f"the session in it")
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any]:

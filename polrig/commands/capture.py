@@ -68,7 +68,7 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "calibration": "--calibration", "out": "--out"}
 #: What the command line adds to an error about a field.
-HINTS = {"out": "pass --resume to continue the session in it"}
+HINTS = {"out": "--resume"}
 
 
 @contextlib.contextmanager
@@ -199,8 +199,8 @@ class _ProgressPrinter:
             self.bar = tqdm(total=ev.total, unit="frame", file=sys.stderr, dynamic_ncols=True,
                             desc="capture")
         if self.bar is not None and ev.hardware_s:
-            self.bar.set_postfix_str(f"pose {ev.pose_deg:g} deg, hardware "
-                                     f"{ev.hardware_left_s:.0f}/{ev.hardware_s:.0f} s left",
+            self.bar.set_postfix_str(f"pose {ev.pose_deg:g} deg, hardware time left "
+                                     f"{ev.hardware_left_s:.0f} s of {ev.hardware_s:.0f} s",
                                      refresh=False)
         if ev.kind == "frame" and self.bar is not None:
             self.bar.update(ev.step - self.bar.n)
