@@ -475,8 +475,8 @@ class _Run:
         (signals deferred meanwhile), the capture being acquired is left ``capture_status``
         (``pending`` or ``failed``) without unrecorded files, the session ``interrupted``."""
         with self.guard.deferred():
-            error = self.drain()
-            if error is not None and not reason.startswith("processing"):
+            error = self.drain()  # another capture's processing may fail meanwhile: say so
+            if error is not None:
                 reason = f"{reason}; processing of capture {error.index} failed too ({error})"
             index = self.current
             if index is not None:
