@@ -90,6 +90,9 @@ class CaptureRequest:
         fields = self.plan_fields()
         if "poses_deg" not in fields:
             raise PlanError("poses_deg", "no poses given (e.g. 0:360:90)")
+        if fields.get("mode") == "single-shot" and len(fields.get("states_deg", ())) > 1:
+            raise PlanError("states_deg", "the single-shot method captures one polarizer "
+                                          "state per pose; give one state (e.g. 0)")
         return CapturePlan(**fields)
 
 

@@ -165,8 +165,13 @@ class CapturePlan:
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
                                           f"states, got {len(self.states_deg)}")
+        if self.mode == "single-shot" and not self.states_deg:
+            raise PlanError("states_deg", "the single-shot method needs one polarizer state")
         object.__setattr__(self, "poses_deg", tuple(float(p) for p in self.poses_deg))
-        object.__setattr__(self, "states_deg", tuple(float(s) for s in self.states_deg))
+        # single-shot captures one state per pose: the plan records the state it captures
+        # (older sessions listed the default four; only the first was ever captured)
+        states = self.states_deg[:1] if self.mode == "single-shot" else self.states_deg
+        object.__setattr__(self, "states_deg", tuple(float(s) for s in states))
         object.__setattr__(self, "exposures_us", tuple(float(e) for e in self.exposures_us))
 
     def to_json(self) -> dict[str, Any]:
@@ -183,12 +188,12 @@ class CapturePlan:
 
     def frames_per_pose(self) -> int:
         n_exp = max(1, len(self.exposures_us))
-        n_states = len(self.states_deg) if self.mode == "reference" else 1
+        n_states = len(self.states_deg)
         return n_exp * (n_states * self.frames_per_state + self.dark_frames)
 
     def acquired_states_deg(self) -> tuple[float, ...]:
-        """Stage angles visited per pose (single-shot uses only the first state)."""
-        return self.states_deg if self.mode == "reference" else self.states_deg[:1]
+        """Stage angles visited per pose (single-shot: its one state)."""
+        return self.states_deg
 
 
 def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,

@@ -77,6 +77,9 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     (["--poses", "0", "--states", "0,45,90,1e300"], "--states 1e+300 deg: not a polarizer angle"),
     (["--poses", "0", "--config", "/nonexistent/rig.toml"], "no such file"),
     (["--poses", "0", "--mode", "single-shot"], "single-shot"),
+    # single-shot captures one state: several are refused, not recorded as if captured
+    (["--poses", "0", "--mode", "single-shot", "--states", "0,45"],
+     "--states: the single-shot method captures one polarizer state per pose"),
     (["--poses", "0", "--mirror-average"], "--mirror-average: mirror averaging applies to the single-shot mode only"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
@@ -214,6 +217,7 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
     assert main(["capture", "--poses", "0,180", "--mode", "single-shot", "--config", str(cfg),
                  "--out", str(out), "--no-progress"]) == 0
     s = Session.open(out)
+    assert s.plan["states_deg"] == [0.0]  # the plan records the one state captured
     for cap in s.captures:
         assert len(cap["files"]["raw"]) == 1  # one state, one frame
         assert cap["score"]["pixels_compared"] > 0 and cap["score"]["psnr_db"] > 20
