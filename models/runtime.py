@@ -47,12 +47,13 @@ import time
 import numpy as np
 
 from models import mirror
+from models.size import SIZE_MULTIPLE
+from models.uncertainty import UncertaintyModel, calibration_for_graph
 from polrig import frames
 from polrig.errors import FormatError
 from polrig.stokes import stokes_from_analyzers
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
-SIZE_MULTIPLE = 8
 #: Percentile of the analyzer values in the mask that the normalisation maps to 1 (sim.dataset).
 SCALE_PERCENTILE = 99.5
 #: Stage zero axis of the simulated rig in the camera frame (sim.dataset manifest), used when
@@ -194,7 +195,8 @@ def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.n
 class SingleShotModel:
     """onnxruntime session of the shipped single-shot graph (and optionally the baseline)."""
 
-    def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty=None, uncertainty_problem: str = ""):
+    def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty: UncertaintyModel | None = None,
+                 uncertainty_problem: str = ""):
         self.session = session
         self.meta = meta
         self.weights_dir = weights_dir
@@ -239,8 +241,6 @@ class SingleShotModel:
         except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
             raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc
-        from models.uncertainty import calibration_for_graph
-
         return cls(sess, meta, wd, *calibration_for_graph(wd, graph))
 
     def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
