@@ -90,7 +90,7 @@ def lift(mueller: np.ndarray, mask: np.ndarray, stokes: np.ndarray, stokes_full:
             _upsample_into(np.where(m, stokes[ci, r], 0.0), period, seen)
             cv2.multiply(seen, norm, dst=seen)
             cv2.subtract(np.asarray(stokes_full[ci, r], np.float32), seen, dst=detail)
-            np.nan_to_num(detail, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+            cv2.patchNaNs(detail, 0.0)  # a clipped sample's support: no detail (NaN, never inf, from the demosaic)
             cv2.multiply(detail, inside_f, dst=detail)  # background stays 0
             for k in range(3):
                 plane = out[ci, r, k]

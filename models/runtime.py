@@ -537,12 +537,14 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
 
 
 def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None, *,
-                     with_normal: bool = False):
+                     with_normal: bool = False, compress: bool = False):
     """Mueller EXR (``M{r}{c}.{R,G,B}``) with a ``mask`` plane (1 = object), a ``saturated``
     plane where ``aux`` has one (1 = clipped raw data, :func:`infer_frame`), the calibrated
     standard deviations ``sigma.M{r}{c}.{R,G,B}`` where ``aux`` has them, the estimated
     ``normal.{X,Y,Z}`` with ``with_normal``, and the model's scalars in the header
-    (:func:`polrig.exr.write_mueller_exr`)."""
+    (:func:`polrig.exr.write_mueller_exr`). Uncompressed unless ``compress`` (ZIP): measured on
+    a 512x512 colour result, ZIP wrote 26.8 MB in 819 ms, uncompressed 29.4 MB in 69 ms (the
+    single-shot targets are per frame; noisy float32 planes hardly compress)."""
     from polrig.exr import element_planes, write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
@@ -562,4 +564,4 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
             "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes,
             "execution_provider": aux.get("provider")}
     meta.update(metadata or {})
-    return write_mueller_exr(path, mueller, extra=extra, metadata=meta)
+    return write_mueller_exr(path, mueller, extra=extra, metadata=meta, compress=compress)

@@ -177,3 +177,20 @@ def test_infer_refuses_what_cannot_run_in_one_line(frame, tmp_path, capsys, argv
     assert main(["infer", str(frame), "--state-deg", "0", "--out", str(out), *argv]) == 2
     err = capsys.readouterr().err.strip()
     assert needle in err and "\n" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_result_exr_round_trips_bit_exactly_compressed_or_not(tmp_path, compress):
+    """Single-shot EXRs are written uncompressed by default (ZIP on request): both lossless."""
+    from models.runtime import write_result_exr
+    from polrig.exr import read_mueller_exr
+
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(3, 3, 3, 8, 12)).astype(np.float32)
+    m[0, 1, 2, 3, 4] = np.nan
+    aux = {"mask": rng.random((8, 12)) > 0.3, "provider": devices.CPU}
+    path = write_result_exr(tmp_path / "m.exr", m, aux, compress=compress)
+    back = read_mueller_exr(path)
+    np.testing.assert_array_equal(back.mueller, m)
+    np.testing.assert_array_equal(back.extra["mask"] > 0, aux["mask"])
+    assert back.metadata["execution_provider"] == devices.CPU
