@@ -194,3 +194,19 @@ def test_result_exr_round_trips_bit_exactly_compressed_or_not(tmp_path, compress
     np.testing.assert_array_equal(back.mueller, m)
     np.testing.assert_array_equal(back.extra["mask"] > 0, aux["mask"])
     assert back.metadata["execution_provider"] == devices.CPU
+
+
+def test_the_accuracy_tool_samples_a_mosaic_the_superpixel_demosaic_inverts():
+    """:func:`models.evaluate_full_resolution.mosaic` keeps each pixel's own (colour, angle)
+    image: analyzer images constant per cell come back exactly from the superpixel demosaic,
+    and :func:`cell_mean` is that demosaic's averaging."""
+    from models.evaluate_full_resolution import cell_mean, mosaic
+    from polrig.analyzer import resolve_layout
+    from polrig.demosaic import demosaic_float
+
+    lay = resolve_layout("imx250myr")
+    rng = np.random.default_rng(5)
+    cells = rng.uniform(0, 1, (3, 4, 6, 5)).astype(np.float32)
+    analyzer = np.repeat(np.repeat(cells, 4, axis=-2), 4, axis=-1)  # (3, 4, 24, 20)
+    np.testing.assert_allclose(demosaic_float(mosaic(analyzer, lay), lay, "superpixel"), cells, atol=1e-6)
+    np.testing.assert_allclose(cell_mean(analyzer, (4, 4)), cells, atol=1e-6)
