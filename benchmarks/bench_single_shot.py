@@ -200,8 +200,8 @@ def anatomy(rounds: int, threads: int | None) -> dict[str, float]:
     return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
 
 
-def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> str:
-    """The cases table (module docstring) as Markdown."""
+def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> tuple[str, dict]:
+    """The cases table (module docstring) as Markdown, and the measurements it was made from."""
     model = SingleShotModel.load(weights, threads=threads, spinning=spinning)
     rng = np.random.default_rng(0)
     warm: dict[str, list[dict]] = {c[0]: [] for c in CASES}
@@ -221,26 +221,33 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
                 print(f"round {r + 1}/{rounds} {label}: warm {1e3 * warm[label][-1]['total']:.0f} ms, "
                       f"cold {1e3 * cold[label][-1]['wall']:.0f} ms, {cold[label][-1]['peak_mb']:.0f} MB", flush=True)
         anat = anatomy(rounds, threads) if with_anatomy else None
-    med = lambda rows, k: statistics.median(x[k] for x in rows)  # noqa: E731
-    provider = model.provider
-    lines = [f"Device: {provider} (onnxruntime {__import__('onnxruntime').__version__}), {threads or physical_cores()} "
-             f"intra-op thread(s), spinning {'on' if spinning else 'off'}; {physical_cores()} physical core(s). Medians "
-             f"over {rounds} interleaved round(s) after one warm-up; times in ms. Warm: in process; cold: the one-shot "
+    raw = {"provider": model.provider, "onnxruntime": __import__("onnxruntime").__version__,
+           "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
+           "warm": warm, "cold": cold, "anatomy": anat}
+    return render(raw), raw
+
+
+def render(raw: dict) -> str:
+    """The Markdown table of :func:`speed`'s measurements ``raw`` (also saved as JSON)."""
+    med = lambda rows, k: statistics.median(x.get(k, 0.0) for x in rows)  # noqa: E731
+    lines = [f"Device: {raw['provider']} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
+             f"spinning {'on' if raw['spinning'] else 'off'}; {raw['cores']} physical core(s). Medians over "
+             f"{raw['rounds']} interleaved round(s) after one warm-up; times in ms. Warm: in process; cold: the one-shot "
              f"CLI `polrig infer` in a fresh process (imports, session, first run, EXR).", "",
              "| case | output | warm total | warm without EXR | networks | full-res lift | EXR | **cold (CLI)** | "
              "cold peak MB | target |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for label, *_ in CASES:
-        w, c = warm[label], cold[label]
+    for label, w in raw["warm"].items():
+        c = raw["cold"][label]
         target = TARGETS_MS.get(label)
-        lift = statistics.median(x.get("full_resolution", 0.0) for x in w)
-        lines.append(f"| {label} | {w[0]['net']} | {1e3 * med(w, 'total'):.0f} | {1e3 * (med(w, 'total') - med(w, 'exr')):.0f} | "
-                     f"{1e3 * med(w, 'network'):.0f} | {1e3 * lift:.0f} | {1e3 * med(w, 'exr'):.0f} | "
-                     f"**{1e3 * med(c, 'wall'):.0f}** | {med(c, 'peak_mb'):.0f} | "
-                     "; ".join(x for x in (f"<= {target} ms" if target else "",
-                                                  "<= 2048 MB" if label.startswith("full sensor") else "") if x) + " |")
+        goals = ([f"<= {target} ms"] if target else []) + (["<= 2048 MB"] if label.startswith("full sensor") else [])
+        lines.append(f"| {label} | {w[0]['net']} | {1e3 * med(w, 'total'):.0f} | "
+                     f"{1e3 * (med(w, 'total') - med(w, 'exr')):.0f} | {1e3 * med(w, 'network'):.0f} | "
+                     f"{1e3 * med(w, 'full_resolution'):.0f} | {1e3 * med(w, 'exr'):.0f} | "
+                     f"**{1e3 * med(c, 'wall'):.0f}** | {med(c, 'peak_mb'):.0f} | {'; '.join(goals)} |")
+    anat = raw.get("anatomy")
     if anat:
-        lines += ["", f"Where a cold run's time goes (fresh processes, medians of {rounds}; one network pass on "
-                  "1224x1024x3, the mono full sensor's grid):", "", "| step | ms |", "|---|---|"]
+        lines += ["", f"Where a cold run's time goes (fresh processes, medians of {raw['rounds']}; one network pass "
+                  "on 1224x1024x3, the mono full sensor's grid):", "", "| step | ms |", "|---|---|"]
         lines += [f"| {k} | {1e3 * v:.0f} |" for k, v in anat.items() if k != "peak_mb"]
         lines.append(f"| peak memory | {anat['peak_mb']:.0f} MB |")
     return "\n".join(lines)
@@ -357,9 +364,12 @@ def main(argv=None) -> int:
                         "excluded, as for the reference mode).")
             pathlib.Path(args.out).write_text(head + "\n\n" + table + "\n")
         return 0
-    table = speed(args.rounds, args.threads, args.spinning, args.weights, args.anatomy)
+    table, raw = speed(args.rounds, args.threads, args.spinning, args.weights, args.anatomy)
     print(table)
     out = pathlib.Path(args.out) if args.out else REPO / "benchmarks" / "results" / "single_shot_speed.md"
+    import json
+
+    out.with_suffix(".json").write_text(json.dumps(raw, indent=1) + "\n")
     out.write_text("# Single-shot inference speed\n\n`python benchmarks/bench_single_shot.py"
                    f"{' --anatomy' if args.anatomy else ''} --rounds {args.rounds}`\n\n" + table + "\n")
     print(f"wrote {out}")

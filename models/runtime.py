@@ -330,6 +330,7 @@ class SingleShotModel:
             theta = 0.5 * np.arctan2(s2, c2)
             if prev is not None and np.all(np.abs(np.rad2deg(np.angle(np.exp(2j * (theta - prev))))) / 2 < tolerance_deg):
                 break
+            out = None  # the previous pass's outputs go before the next pass allocates (peak memory)
             out = self.run_normalised(analyzer, mask, rotate_stokes(s_in, c2, s2).astype(np.float32), wo, model_axis)
             prev = theta
             if rotate_with is not None or "wi" not in out:
