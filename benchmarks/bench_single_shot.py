@@ -202,6 +202,9 @@ def anatomy(rounds: int, threads: int | None) -> dict[str, float]:
 
 def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> tuple[str, dict]:
     """The cases table (module docstring) as Markdown, and the measurements it was made from."""
+    import os
+
+    load_start = os.getloadavg()[0]
     model = SingleShotModel.load(weights, threads=threads, spinning=spinning)
     rng = np.random.default_rng(0)
     warm: dict[str, list[dict]] = {c[0]: [] for c in CASES}
@@ -223,7 +226,7 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
         anat = anatomy(rounds, threads) if with_anatomy else None
     raw = {"provider": model.provider, "onnxruntime": __import__("onnxruntime").__version__,
            "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
-           "warm": warm, "cold": cold, "anatomy": anat}
+           "warm": warm, "cold": cold, "anatomy": anat, "load_average": [load_start, os.getloadavg()[0]]}
     return render(raw), raw
 
 
@@ -233,7 +236,9 @@ def render(raw: dict) -> str:
     lines = [f"Device: {raw['provider']} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
              f"spinning {'on' if raw['spinning'] else 'off'}; {raw['cores']} physical core(s). Medians over "
              f"{raw['rounds']} interleaved round(s) after one warm-up; times in ms. Warm: in process; cold: the one-shot "
-             f"CLI `polrig infer` in a fresh process (imports, session, first run, EXR).", "",
+             f"CLI `polrig infer` in a fresh process (imports, session, first run, EXR)."
+             + (" Load average (1 min) at the start and the end: {:.1f}, {:.1f} (the machine's other jobs: times grow "
+                "with it).".format(*raw["load_average"]) if raw.get("load_average") else ""), "",
              "| case | output | warm total | warm without EXR | networks | full-res lift | EXR | **cold (CLI)** | "
              "cold peak MB | target |", "|---|---|---|---|---|---|---|---|---|---|"]
     for label, w in raw["warm"].items():

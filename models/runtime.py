@@ -493,7 +493,8 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     ``resolution="full"``: the Mueller image at the raw frame's resolution ``(H, W)``: the
     networks run on the superpixel grid and :func:`models.full_resolution.lift` adds the
     measured detail of the full-resolution ``demosaic_method`` (``bilinear`` or ``newton``;
-    ``superpixel`` is refused). ``mask``, ``stokes`` and ``saturated`` are then full-resolution;
+    ``superpixel`` is refused; a given ``mask`` is on the networks' grid). ``mask``, ``stokes``
+    and ``saturated`` of ``aux`` are then full-resolution;
     ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the networks' grid under
     ``aux["network_grid"]``. The uncertainty is calibrated on the networks' grid only:
     ``with_sigma`` is refused (ValueError)."""
