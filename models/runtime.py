@@ -69,6 +69,10 @@ MAX_INPUT_LEVEL = 100.0
 MASK_NOISE_SIGMAS = 6.0
 #: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
 DEFAULT_FOCAL_PER_PX = 2.5
+#: Colours x pixels of one network pass above which a run gives its memory arena back
+#: (:class:`SingleShotModel`): the mono full sensor (3 x 1224 x 1024) does, the colour sensor's
+#: superpixel grid (3 x 612 x 512) does not.
+SHRINK_ARENA_ABOVE = 2_000_000
 #: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
 COLOUR_OUTPUTS = ("mueller", "mueller_init", "kd", "mueller_disagreement")
 
@@ -219,13 +223,14 @@ class SingleShotModel:
         self.colours = int(meta.get("colours", 3))
         import onnxruntime as ort
 
-        #: Every run hands the CPU arena's memory back when it ends (onnxruntime's
-        #: ``memory.enable_memory_arena_shrinkage``): the arena otherwise keeps its largest
-        #: size (1.5 GB at the mono full sensor's 1224x1024x3) while the Mueller image is
-        #: post-processed beside it. Measured in-process peak at that size 2367 -> 1814 MB, time
-        #: within the busy machine's spread.
-        self._run_options = ort.RunOptions()
-        self._run_options.add_run_config_entry("memory.enable_memory_arena_shrinkage", "cpu:0")
+        #: Runs on more than :data:`SHRINK_ARENA_ABOVE` values per image hand the CPU arena's
+        #: memory back when they end (onnxruntime's ``memory.enable_memory_arena_shrinkage``):
+        #: the arena otherwise keeps its largest size (1.5 GB at the mono full sensor's
+        #: 1224x1024x3) while the Mueller image is post-processed beside it. Measured at that
+        #: size (busy machine): peak 2224 -> 1702 MB, about 0.3 s more system time per frame
+        #: (the next pass faults its pages in again), so smaller images keep their arena.
+        self._shrink = ort.RunOptions()
+        self._shrink.add_run_config_entry("memory.enable_memory_arena_shrinkage", "cpu:0")
 
     @classmethod
     def load(cls, weights_dir: str | os.PathLike | None = None, *, graph: str = "single_shot.onnx",
@@ -279,8 +284,9 @@ class SingleShotModel:
                        stage_zero_axis: np.ndarray) -> dict[str, np.ndarray]:
         """One graph call on batched, normalised, padded inputs (names as :mod:`models.export`)."""
         feed = {"analyzer": analyzer, "mask": mask, "s_in": s_in, "wo": wo, "stage_zero_axis": stage_zero_axis}
+        large = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
         outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names},
-                                self._run_options)
+                                self._shrink if large else None)
         return dict(zip(self.output_names, outs))
 
     @property
