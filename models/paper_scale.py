@@ -26,9 +26,10 @@ One run, in order, each phase inside its share of the budget:
 seeds and counts, verdict). Datasets, probe runs and the checkpoint stay in ``--work`` (a
 temporary folder by default, removed at the end).
 
-Device: PyTorch trains on the CPU here: :mod:`models.train` has no device option yet, so on a
-GPU machine this entry point runs as on a CPU (``run.json`` records the hardware and that the
-training ran on the CPU). The width defaults to :data:`DEFAULT_WIDTH`.
+Device: PyTorch trains on the CUDA GPU where it sees one (:attr:`models.train.TrainConfig.device`;
+the data generation and the evaluation stay on the CPU cores), else on the CPU; ``run.json``
+records which, with the hardware. The CUDA path has not run on a GPU yet (none was available to
+this work): it is tested on the CPU only. The width defaults to :data:`DEFAULT_WIDTH`.
 """
 
 from __future__ import annotations
@@ -134,7 +135,7 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     from models.train import TrainConfig, train
 
     t0 = time.perf_counter()
-    base = TrainConfig(width=width, seed=seed, threads=max(1, os.cpu_count() or 1))
+    base = TrainConfig(width=width, seed=seed, threads=max(1, os.cpu_count() or 1), device=training_device())
     n = _count(work / "train")
     probe_seconds = None
     if epochs is None:
@@ -180,12 +181,19 @@ def evaluate_against_shipped(work: pathlib.Path, weights: pathlib.Path, out: pat
     return {"matrix_psnr_db": scores, "ship": bool(ship)}
 
 
+def training_device() -> str:
+    """``cuda`` where PyTorch sees a CUDA GPU, else ``cpu`` (:attr:`models.train.TrainConfig.device`)."""
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def hardware() -> dict:
     """What ran it: CPU, cores, and the GPU torch sees (if any)."""
     import torch
 
     info = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpu_cores": os.cpu_count(), "torch": torch.__version__, "training_device": "cpu"}
+            "cpu_cores": os.cpu_count(), "torch": torch.__version__, "training_device": training_device()}
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(0)
     return info

@@ -50,3 +50,21 @@ def test_a_full_output_folder_is_refused_before_any_work(tmp_path, capsys):
     assert paper_scale.main(["--out", str(tmp_path), "--size", "32"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert paper_scale.main(["--out", str(tmp_path / "new"), "--size", "36"]) == 2
+
+
+def test_training_device_is_checked_before_any_work(tmp_path):
+    """``TrainConfig.device``: cpu or cuda; cuda where PyTorch sees no GPU is a one-line
+    ConfigError before anything is read or written (the paper-scale run picks cuda only where
+    ``torch.cuda.is_available()``)."""
+    import torch
+
+    from models.train import TrainConfig, train
+    from polrig.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="device must be cpu or cuda"):
+        train(tmp_path / "nodata", tmp_path / "out", TrainConfig(device="tpu"), export=False, echo=lambda s: None)
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA GPU"):
+            train(tmp_path / "nodata", tmp_path / "out", TrainConfig(device="cuda"), export=False, echo=lambda s: None)
+        assert paper_scale.training_device() == "cpu"
+    assert not (tmp_path / "out").exists()
