@@ -16,12 +16,13 @@ grid it was inferred on. No learned parameter: the physics path (PIPNet -> pBRDF
 unchanged.
 
 Why not the networks on the full-resolution demosaic: the full colour sensor is 5 Mpx x 3
-colours, about 16 times the superpixel grid's work, measured at about 3.5 s and 1.5 GB per
-1.25 Mpx x 3 pass on this 2-core machine (two passes per frame for the incident-frame
-refinement, :meth:`models.runtime.SingleShotModel.run_rig_frame`), i.e. tens of seconds and
-several GB at 5 Mpx, against the 3 s / 2 GB target; and the networks never saw an object at
-twice its superpixel size (the U-Net's receptive field covers half as much of it). That route
-stays available as ``polrig infer --demosaic bilinear`` (networks on the full demosaic, resized
+colours, 16 times the superpixel grid's work and four times the mono full sensor's grid, one
+pass of which already holds 1.5 GB of activations; at 512x512 the networks on the bilinear
+demosaic took 0.5-0.7 s of CPU per frame against 0.07-0.12 s for this route, at the same
+accuracy (``benchmarks/results/single_shot_speed.md``, ``single_shot_full_resolution.md``, busy
+2-core machine); and the networks never saw an object at four times its superpixel size in
+pixels (the U-Net's receptive field covers a quarter as much of it). That route stays
+available as ``polrig infer --demosaic bilinear`` (networks on the full demosaic, resized
 to ``max_pixels``).
 """
 
