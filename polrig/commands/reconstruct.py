@@ -30,6 +30,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
                    help="single-shot: average the network's answers for each frame and its mirror "
                         "image (default: the session's choice)")
+    p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
+                   help="single-shot output resolution: superpixel or full (the raw frame's; "
+                        "default: the session's)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
+                   help="where the single-shot network runs: auto (default), cpu or cuda (refused "
+                        "when unavailable); the provider used is recorded in each result's header")
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -74,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
                 session, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, calibration=calibration,
                 command_line=command_line(args, "reconstruct"), progress=progress,
-                on_failed=on_failed)
+                on_failed=on_failed, resolution=args.resolution, device=args.device or "auto")
     finally:
         if bar is not None:
             bar.close()
