@@ -1,376 +1,423 @@
-"""Compiled per-pixel kernels of :func:`polrig.reference.solve_reference` (numba).
+"""Compiled kernels of :func:`polrig.reference.solve_reference` (numba).
 
 The model, the masks and the calibration-uncertainty propagation are documented in
-:mod:`polrig.reference`; this module only evaluates them, one pixel at a time, fused: each
-pixel's ``4 N`` samples are read once (float32 or float64, any strides, converted to float64
-in registers), and everything else lives in a few hundred bytes of scratch per thread.
+:mod:`polrig.reference`; this module evaluates them fused, in blocks of :data:`LANES`
+neighbouring pixels of one image row: each pixel's ``4 N`` samples are read once (float32 or
+float64, converted to float64 on load) and all intermediate values live in per-thread scratch
+arrays laid out lanes-last, so that every arithmetic loop runs over the lanes with a constant
+trip count and compiles to SIMD code (the per-pixel 9x9 algebra itself is too small and too
+sequential to vectorise: a scalar version of the same kernel ran 3-4x slower).
 
-Per pixel (analyzer rows ``a_j``, states ``s_k``, weights ``w_kj = 1 / var_kj``, used samples
-only):
+Per pixel (analyzer rows ``a_j``, states ``s_k``, weights ``w_kj = 1 / var_kj``, 0 for
+excluded samples):
 
 * ``T_j = sum_k w_kj s_k s_k^T`` (3x3) and ``r_j = sum_k w_kj I_kj s_k``; the normal matrix
   is the Kronecker sum ``D^T W D = sum_j (a_j a_j^T) (x) T_j`` (45 distinct entries from four
-  3x3 blocks, ~0.4 kflop) and ``D^T W I = sum_j a_j (x) r_j``;
+  3x3 blocks) and ``D^T W I = sum_j a_j (x) r_j``;
 * equilibration ``d_i = 1 / sqrt(A_ii)``, Cholesky ``L L^T = diag(d) A diag(d)`` (a pivot
-  ``<= 1e-12`` makes the pixel ILL_CONDITIONED) and the explicit inverse factor ``L^-1``;
+  ``<= 1e-12`` makes the pixel ILL_CONDITIONED), the inverse factor ``L^-1``;
   ``x = d L^-T L^-1 d b`` and ``sigma_noise_i = d_i |(L^-1)_{:, i}|``;
 * calibration right-hand sides without forming the 4N-vectors ``e_p``: an analyzer parameter
   of row ``j`` gives ``D^T W e = a_j (x) (T_j M^T da_j)``, a generator one
   ``sum_j a_j (x) sum_k w_kj (a_j . M ds_k) s_k``; each is solved with the same ``L^-1``.
 
-Every pixel is computed by the same sequence of IEEE operations whatever the thread or tile it
-falls in (no fastmath, no reductions across pixels), so results are bit-identical for any
-thread count and tiling. ``cache=True`` keeps the compiled machine code on disk (numba's cache:
-``__pycache__`` next to this file, else the user cache directory, or ``NUMBA_CACHE_DIR``);
-where no cache directory is writable the kernels are compiled in memory at each first call.
+Determinism: no fastmath (IEEE semantics, so SIMD and scalar code give the same bits), no
+reductions across pixels, and a pixel's lane is fixed by its column alone; the results are
+bit-identical for any thread count and tiling. ``cache=True`` keeps the machine code on disk
+(numba's cache: ``__pycache__`` next to this file, else the user cache directory, or
+``NUMBA_CACHE_DIR``); where none is writable the kernels are compiled at each first call.
+``error_model="numpy"``: a division by zero gives inf/NaN (masked afterwards) instead of a
+branch and an exception, which SIMD code cannot have.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
-from numba import njit, prange
+import numba
+from numba import njit
 
 log = logging.getLogger(__name__)
 
-# mask bits, as in polrig.reference (this module must not import it: it is imported from there)
+# mask bits, as in polrig.reference (which imports this module, not the other way round)
 _DARK = 1
 _SATURATED = 2
 _ILL_CONDITIONED = 4
 _NONFINITE = 8
 #: smallest pivot of the equilibrated (unit-diagonal) normal matrix that counts as positive
 PIVOT_EPS = 1e-12
-#: pixels per block of the parallel loop (scratch arrays are allocated once per block)
-_BLOCK = 256
+#: pixels of one row solved together (the SIMD width of every loop; a partial block at the
+#: end of a row is padded with copies of its last pixel, which are not written)
+LANES = 64
 
 
-def _jit(parallel: bool = False):
-    """``numba.njit`` with ``cache=True``, falling back to an uncached kernel (compiled at each
-    process's first call) where numba finds no writable cache directory."""
+def _jit():
+    """``numba.njit`` (nogil: the caller runs tiles on threads) with ``cache=True``, falling
+    back to an uncached kernel (compiled at each process's first call) where numba finds no
+    writable cache directory."""
+    opts = dict(nogil=True, error_model="numpy")
+
     def deco(fn):
         try:
-            return njit(cache=True, nogil=True, parallel=parallel)(fn)
+            return njit(cache=True, **opts)(fn)
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
             log.debug("numba cache unavailable for %s (%s); compiling in memory", fn.__name__, exc)
-            return njit(cache=False, nogil=True, parallel=parallel)(fn)
+            return njit(cache=False, **opts)(fn)
     return deco
 
 
-@_jit(parallel=True)
-def sample_patterns(meas, var, valid, has_valid, g0, keys):  # pragma: no cover - compiled
-    """Bit patterns of the used samples of pixels ``g0 .. g0 + len(keys)`` (flat index over
-    colour, row, column): bit ``r = 4 k + j`` of ``keys[i, r // 64]`` is set when sample
-    ``(k, j)`` is valid, finite and has a finite positive variance."""
+#: threads the solve runs tiles on (numba's setting: the CPU count, or NUMBA_NUM_THREADS)
+THREADS = max(1, int(numba.config.NUMBA_NUM_THREADS))
+
+
+@_jit()
+def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, mv, flags, nok,
+              arow, keys):  # pragma: no cover - compiled
+    """Read image rows ``y0 .. y1`` of colour ``c`` into block-major float64 buffers (pixel
+    ``p`` of the tile, row-major, is lane ``p % LANES`` of block ``p // LANES``; lanes past
+    the tile's end get weight 0): ``w`` ``(B, 4N, LANES)`` the weights ``1 / var`` (0 for an
+    excluded sample), ``mv`` the values (0 when excluded), ``flags`` ``(B, LANES)``
+    SATURATED / NONFINITE exclusion bits, ``nok`` the number of used samples, ``keys``
+    ``(P, words)`` the used-sample bit patterns (bit ``r = 4 k + j``); with
+    ``per_pixel_rows`` also ``arow`` ``(B, 4, 3, LANES)`` from ``rows`` ``(C', 4, 3, H', W')``
+    (``C'``, ``H'``, ``W'`` the image's or 1). ``meas``, ``var``, ``valid``:
+    ``(N, C, 4, H, W)`` (``valid`` read only with ``has_valid``)."""
     n = meas.shape[0]
-    height, width = meas.shape[3], meas.shape[4]
-    hw = height * width
-    for i in prange(keys.shape[0]):
-        g = g0 + i
-        c = g // hw
-        p = g - c * hw
-        y = p // width
-        x = p - y * width
-        for wd in range(keys.shape[1]):
-            keys[i, wd] = 0
-        for k in range(n):
-            for j in range(4):
-                m = meas[k, c, j, y, x]
-                v = var[k, c, j, y, x]
-                if has_valid and not valid[k, c, j, y, x]:
-                    continue
-                if math.isfinite(m) and math.isfinite(v) and v > 0:
+    width = meas.shape[4]
+    count = (y1 - y0) * width
+    w[...] = 0.0
+    mv[...] = 0.0
+    flags[...] = 0
+    nok[...] = 0
+    keys[...] = 0
+    for yy in range(y0, y1):
+        for xx in range(width):
+            p = (yy - y0) * width + xx
+            b = p // LANES
+            q = p - b * LANES
+            for k in range(n):
+                for j in range(4):
+                    m = np.float64(meas[k, c, j, yy, xx])
+                    v = np.float64(var[k, c, j, yy, xx])
+                    given = valid[k, c, j, yy, xx] if has_valid else True
+                    good = (abs(m) < np.inf) & (abs(v) < np.inf) & (v > 0)
                     r = 4 * k + j
-                    keys[i, r >> 6] |= np.int64(1) << np.int64(r & 63)
+                    if given and good:
+                        w[b, r, q] = 1.0 / v
+                        mv[b, r, q] = m
+                        nok[b, q] += 1
+                        keys[p, r >> 6] |= np.int64(1) << np.int64(r & 63)
+                    elif given:
+                        flags[b, q] |= _NONFINITE
+                    else:
+                        flags[b, q] |= _SATURATED
+    if per_pixel_rows:
+        rc = c if rows.shape[0] > 1 else 0
+        for p in range(arow.shape[0] * LANES):
+            b = p // LANES
+            q = p - b * LANES
+            pp = min(p, count - 1)  # padding lanes: the last pixel's rows
+            yy = y0 + pp // width
+            xx = pp - (yy - y0) * width
+            ry = yy if rows.shape[3] > 1 else 0
+            rx = xx if rows.shape[4] > 1 else 0
+            for j in range(4):
+                for a in range(3):
+                    arow[b, j, a, q] = rows[rc, j, a, ry, rx]
 
 
 @_jit()
-def _cholesky_inverse(amat, dsc, low, linv):  # pragma: no cover - compiled
-    """Equilibrate the lower triangle of ``amat`` (``dsc``: 1 / sqrt(diagonal)), factor it
-    (``low``) and invert the factor (``linv``). False when a pivot is not above PIVOT_EPS."""
-    for jj in range(9):
-        acc = amat[jj, jj] * dsc[jj] * dsc[jj]
-        for kk in range(jj):
-            acc -= low[jj, kk] * low[jj, kk]
-        if not acc > PIVOT_EPS:
-            return False
-        ljj = math.sqrt(acc)
-        low[jj, jj] = ljj
-        for ii in range(jj + 1, 9):
-            acc = amat[ii, jj] * dsc[ii] * dsc[jj]
-            for kk in range(jj):
-                acc -= low[ii, kk] * low[jj, kk]
-            low[ii, jj] = acc / ljj
-    for ii in range(9):
-        linv[ii, ii] = 1.0 / low[ii, ii]
-        for ll in range(ii):
-            acc = 0.0
-            for kk in range(ll, ii):
-                acc += low[ii, kk] * linv[kk, ll]
-            linv[ii, ll] = -acc / low[ii, ii]
-    return True
-
+def store_tile(c, y0, y1, x, sg, sn, res, flags, nok, with_cal, mueller, sigma, sigma_noise,
+               residual, mask, n_used):  # pragma: no cover - compiled
+    """Write a tile's block-major results (:func:`solve_blocks`) into the output images,
+    rows ``y0 .. y1`` of colour ``c`` (converted to the outputs' dtype)."""
+    width = mueller.shape[4]
+    for yy in range(y0, y1):
+        for xx in range(width):
+            p = (yy - y0) * width + xx
+            b = p // LANES
+            q = p - b * LANES
+            for ll in range(9):
+                ia = ll // 3
+                mueller[c, ia, ll - 3 * ia, yy, xx] = x[b, ll, q]
+                sigma[c, ia, ll - 3 * ia, yy, xx] = sg[b, ll, q]
+                if with_cal:
+                    sigma_noise[c, ia, ll - 3 * ia, yy, xx] = sn[b, ll, q]
+            residual[c, yy, xx] = res[b, q]
+            mask[c, yy, xx] = flags[b, q]
+            n_used[c, yy, xx] = min(nok[b, q], 65535)
 
 @_jit()
-def _apply_inverse(linv, dsc, b, tmp, out):  # pragma: no cover - compiled
-    """``out = diag(dsc) L^-T L^-1 diag(dsc) b`` (the solution of the unequilibrated system)."""
-    for ii in range(9):
-        acc = 0.0
-        for ll in range(ii + 1):
-            acc += linv[ii, ll] * (b[ll] * dsc[ll])
-        tmp[ii] = acc
-    for ll in range(9):
-        acc = 0.0
-        for ii in range(ll, 9):
-            acc += linv[ii, ll] * tmp[ii]
-        out[ll] = acc * dsc[ll]
-
-
-@_jit()
-def _calibration_variance(s, ds_gen, cal_sd, ok, w, arow, t, x, linv, dsc, e, tmp, z, acc
-                          ):  # pragma: no cover - compiled
-    """``acc_i = sum_p (G sigma_p e_p)_i^2`` over the 12 analyzer and 2 generator parameters
-    (:mod:`polrig.reference`, "Calibration uncertainty"); ``x`` is the estimate vec(M)."""
+def _normal_equations(s, w, mv, arow, t, rj, amat, rhs):  # pragma: no cover - compiled
+    """``T_j``, ``r_j``, then the lower triangle of ``D^T W D`` and ``D^T W I`` per lane."""
+    d9, nl = rhs.shape
     n = s.shape[0]
-    for ii in range(9):
-        acc[ii] = 0.0
+    t[...] = 0.0
+    rj[...] = 0.0
     for j in range(4):
-        a0, a1, a2 = arow[j, 0], arow[j, 1], arow[j, 2]
-        nrm = math.sqrt(a1 * a1 + a2 * a2)
-        for q in range(3):
-            sd = cal_sd[q]
+        for k in range(n):
+            r = 4 * k + j
+            s0, s1, s2 = s[k, 0], s[k, 1], s[k, 2]
+            for q in range(nl):
+                wr = w[r, q]
+                wm = wr * mv[r, q]
+                rj[j, 0, q] += wm * s0
+                rj[j, 1, q] += wm * s1
+                rj[j, 2, q] += wm * s2
+                t[j, 0, 0, q] += wr * s0 * s0
+                t[j, 1, 0, q] += wr * s1 * s0
+                t[j, 1, 1, q] += wr * s1 * s1
+                t[j, 2, 0, q] += wr * s2 * s0
+                t[j, 2, 1, q] += wr * s2 * s1
+                t[j, 2, 2, q] += wr * s2 * s2
+        for b in range(3):
+            for d in range(b):
+                for q in range(nl):
+                    t[j, d, b, q] = t[j, b, d, q]
+    for ii in range(d9):
+        ia = ii // 3
+        ib = ii - 3 * ia
+        for ll in range(ii + 1):
+            la = ll // 3
+            lb = ll - 3 * la
+            for q in range(nl):
+                amat[ii, ll, q] = (arow[0, ia, q] * arow[0, la, q] * t[0, ib, lb, q]
+                                   + arow[1, ia, q] * arow[1, la, q] * t[1, ib, lb, q]
+                                   + arow[2, ia, q] * arow[2, la, q] * t[2, ib, lb, q]
+                                   + arow[3, ia, q] * arow[3, la, q] * t[3, ib, lb, q])
+        for q in range(nl):
+            rhs[ii, q] = (arow[0, ia, q] * rj[0, ib, q] + arow[1, ia, q] * rj[1, ib, q]
+                          + arow[2, ia, q] * rj[2, ib, q] + arow[3, ia, q] * rj[3, ib, q])
+
+
+@_jit()
+def _invert(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
+    """Per lane, in place: ``amat`` (lower triangle of the normal matrix ``A``) becomes the
+    full symmetric ``A^-1``, through equilibration ``dsc = 1 / sqrt(diag A)``, the Cholesky
+    factor ``low`` of the equilibrated matrix (``rl`` its reciprocal diagonal) and its inverse
+    (overwriting ``low``). ``bad`` where a pivot is not above PIVOT_EPS (that lane's results
+    are meaningless)."""
+    d9, nl = dsc.shape
+    for ii in range(d9):
+        for q in range(nl):
+            dg = amat[ii, ii, q]
+            dsc[ii, q] = 1.0 / np.sqrt(dg) if dg > 0 else 1.0
+    for q in range(nl):
+        bad[q] = False
+    for jj in range(d9):
+        for q in range(nl):
+            rl[jj, q] = amat[jj, jj, q] * dsc[jj, q] * dsc[jj, q]  # the pivot, accumulated
+        for kk in range(jj):
+            for q in range(nl):
+                rl[jj, q] -= low[jj, kk, q] * low[jj, kk, q]
+        for q in range(nl):
+            piv = rl[jj, q]
+            fine = piv > PIVOT_EPS
+            bad[q] |= not fine
+            ljj = np.sqrt(piv) if fine else 1.0
+            low[jj, jj, q] = ljj
+            rl[jj, q] = 1.0 / ljj
+        for ii in range(jj + 1, d9):
+            for q in range(nl):
+                low[ii, jj, q] = amat[ii, jj, q] * dsc[ii, q] * dsc[jj, q]
+            for kk in range(jj):
+                for q in range(nl):
+                    low[ii, jj, q] -= low[ii, kk, q] * low[jj, kk, q]
+            for q in range(nl):
+                low[ii, jj, q] *= rl[jj, q]
+    # L^-1 in place, row by row (row ii needs rows < ii of L^-1 and row ii of L)
+    for ii in range(d9):
+        for ll in range(ii):
+            for q in range(nl):
+                amat[0, ll, q] = low[ii, ll, q] * low[ll, ll, q]  # scratch: L_il (L^-1)_ll
+            for kk in range(ll + 1, ii):
+                for q in range(nl):
+                    amat[0, ll, q] += low[ii, kk, q] * low[kk, ll, q]
+        for ll in range(ii):
+            for q in range(nl):
+                low[ii, ll, q] = -amat[0, ll, q] * rl[ii, q]
+        for q in range(nl):
+            low[ii, ii, q] = rl[ii, q]
+    # A^-1 = diag(dsc) L^-T L^-1 diag(dsc)
+    for ii in range(d9):
+        for ll in range(ii + 1):
+            for q in range(nl):
+                amat[ii, ll, q] = low[ii, ii, q] * low[ii, ll, q]
+            for kk in range(ii + 1, d9):
+                for q in range(nl):
+                    amat[ii, ll, q] += low[kk, ii, q] * low[kk, ll, q]
+            for q in range(nl):
+                amat[ii, ll, q] *= dsc[ii, q] * dsc[ll, q]
+                amat[ll, ii, q] = amat[ii, ll, q]
+
+
+@_jit()
+def _matvec(ainv, b, out):  # pragma: no cover - compiled
+    """``out = A^-1 b`` per lane."""
+    d9, nl = b.shape
+    for ii in range(d9):
+        for q in range(nl):
+            out[ii, q] = ainv[ii, 0, q] * b[0, q]
+        for ll in range(1, d9):
+            for q in range(nl):
+                out[ii, q] += ainv[ii, ll, q] * b[ll, q]
+
+
+@_jit()
+def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, acc
+                          ):  # pragma: no cover - compiled
+    """``acc_i = sum_p (G sigma_p e_p)_i^2`` per lane over the 12 analyzer and 2 generator
+    parameters (:mod:`polrig.reference`, "Calibration uncertainty"); ``x`` the estimate,
+    ``ainv`` the full ``A^-1``. An analyzer parameter of row ``j`` has
+    ``G e = A^-1 (a_j (x) T_j M^T da) = P_j T_j M^T da`` with ``P_j = A^-1 (a_j (x) I_3)``."""
+    d9, nl = x.shape
+    n = s.shape[0]
+    acc[...] = 0.0
+    for j in range(4):
+        if cal_sd[0] == 0.0 and cal_sd[1] == 0.0 and cal_sd[2] == 0.0:
+            break
+        for ii in range(d9):
+            for b in range(3):
+                for q in range(nl):
+                    pj[ii, b, q] = (ainv[ii, b, q] * arow[j, 0, q]
+                                    + ainv[ii, 3 + b, q] * arow[j, 1, q]
+                                    + ainv[ii, 6 + b, q] * arow[j, 2, q])
+        for par in range(3):
+            sd = cal_sd[par]
             if sd == 0.0:
                 continue
-            if q == 0:  # relative gain: da = a
-                d0, d1, d2 = a0, a1, a2
-            elif q == 1:  # orientation, per rad
-                d0, d1, d2 = 0.0, -2.0 * a2, 2.0 * a1
-            elif nrm > 0:  # diattenuation: a_0 (0, cos 2t, sin 2t)
-                d0, d1, d2 = 0.0, a0 * (a1 / nrm), a0 * (a2 / nrm)
-            else:
-                d0, d1, d2 = 0.0, 0.0, 0.0
-            # u = M^T da, v = T_j u, e = sd a_j (x) v
-            u0 = d0 * x[0] + d1 * x[3] + d2 * x[6]
-            u1 = d0 * x[1] + d1 * x[4] + d2 * x[7]
-            u2 = d0 * x[2] + d1 * x[5] + d2 * x[8]
-            for b in range(3):
-                vb = (t[j, b, 0] * u0 + t[j, b, 1] * u1 + t[j, b, 2] * u2) * sd
-                e[b] = arow[j, 0] * vb
-                e[3 + b] = arow[j, 1] * vb
-                e[6 + b] = arow[j, 2] * vb
-            _apply_inverse(linv, dsc, e, tmp, z)
-            for ii in range(9):
-                acc[ii] += z[ii] * z[ii]
+            for q in range(nl):
+                a0, a1, a2 = arow[j, 0, q], arow[j, 1, q], arow[j, 2, q]
+                if par == 0:  # relative gain: da = a
+                    d0, d1, d2 = a0, a1, a2
+                elif par == 1:  # orientation, per rad
+                    d0, d1, d2 = 0.0, -2.0 * a2, 2.0 * a1
+                else:  # diattenuation: a_0 (0, cos 2t, sin 2t)
+                    nrm = np.sqrt(a1 * a1 + a2 * a2)
+                    f = a0 / nrm if nrm > 0 else 0.0
+                    d0, d1, d2 = 0.0, f * a1, f * a2
+                # u = M^T da, e = sd T_j u
+                u0 = d0 * x[0, q] + d1 * x[3, q] + d2 * x[6, q]
+                u1 = d0 * x[1, q] + d1 * x[4, q] + d2 * x[7, q]
+                u2 = d0 * x[2, q] + d1 * x[5, q] + d2 * x[8, q]
+                e[0, q] = (t[j, 0, 0, q] * u0 + t[j, 0, 1, q] * u1 + t[j, 0, 2, q] * u2) * sd
+                e[1, q] = (t[j, 1, 0, q] * u0 + t[j, 1, 1, q] * u1 + t[j, 1, 2, q] * u2) * sd
+                e[2, q] = (t[j, 2, 0, q] * u0 + t[j, 2, 1, q] * u1 + t[j, 2, 2, q] * u2) * sd
+            for ii in range(d9):
+                for q in range(nl):
+                    zi = pj[ii, 0, q] * e[0, q] + pj[ii, 1, q] * e[1, q] + pj[ii, 2, q] * e[2, q]
+                    acc[ii, q] += zi * zi
     for gq in range(2):
         sd = cal_sd[3 + gq]
         if sd == 0.0:
             continue
-        for ii in range(9):
-            e[ii] = 0.0
+        e[...] = 0.0
         for j in range(4):
-            # h = M^T a_j; e_kj = w_kj (h . ds_k); e += a_j (x) sum_k e_kj s_k
-            h0 = arow[j, 0] * x[0] + arow[j, 1] * x[3] + arow[j, 2] * x[6]
-            h1 = arow[j, 0] * x[1] + arow[j, 1] * x[4] + arow[j, 2] * x[7]
-            h2 = arow[j, 0] * x[2] + arow[j, 1] * x[5] + arow[j, 2] * x[8]
-            v0 = 0.0
-            v1 = 0.0
-            v2 = 0.0
+            for q in range(nl):  # u = M^T a_j
+                u[0, q] = arow[j, 0, q] * x[0, q] + arow[j, 1, q] * x[3, q] + arow[j, 2, q] * x[6, q]
+                u[1, q] = arow[j, 0, q] * x[1, q] + arow[j, 1, q] * x[4, q] + arow[j, 2, q] * x[7, q]
+                u[2, q] = arow[j, 0, q] * x[2, q] + arow[j, 1, q] * x[5, q] + arow[j, 2, q] * x[8, q]
             for k in range(n):
                 r = 4 * k + j
-                if ok[r]:
-                    ekj = w[r] * (h0 * ds_gen[gq, k, 0] + h1 * ds_gen[gq, k, 1]
-                                  + h2 * ds_gen[gq, k, 2])
-                    v0 += ekj * s[k, 0]
-                    v1 += ekj * s[k, 1]
-                    v2 += ekj * s[k, 2]
-            for a in range(3):
-                e[3 * a] += arow[j, a] * v0
-                e[3 * a + 1] += arow[j, a] * v1
-                e[3 * a + 2] += arow[j, a] * v2
-        for ii in range(9):
-            e[ii] *= sd
-        _apply_inverse(linv, dsc, e, tmp, z)
-        for ii in range(9):
-            acc[ii] += z[ii] * z[ii]
+                g0, g1, g2 = ds_gen[gq, k, 0], ds_gen[gq, k, 1], ds_gen[gq, k, 2]
+                s0, s1, s2 = s[k, 0] * sd, s[k, 1] * sd, s[k, 2] * sd
+                for q in range(nl):  # e += a_j (x) w_kj (u . ds_k) sd s_k
+                    ekj = w[r, q] * (u[0, q] * g0 + u[1, q] * g1 + u[2, q] * g2)
+                    for a in range(3):
+                        ea = arow[j, a, q] * ekj
+                        e[3 * a, q] += ea * s0
+                        e[3 * a + 1, q] += ea * s1
+                        e[3 * a + 2, q] += ea * s2
+        _matvec(ainv, e, z)
+        for ii in range(d9):
+            for q in range(nl):
+                acc[ii, q] += z[ii, q] * z[ii, q]
 
 
-@_jit(parallel=True)
-def solve_pixels(s, ds_gen, meas, var, valid, has_valid, rows, cond, g0, max_condition,
-                 min_snr, out_max, cal_sd, with_cal, mueller, sigma, sigma_noise, residual,
-                 mask, n_used):  # pragma: no cover - compiled
-    """Solve pixels ``g0 .. g0 + len(cond)`` (flat index over colour, row, column) and write
-    their outputs.
+@_jit()
+def solve_blocks(s, ds_gen, w, mv, arow, nok, flags, lanes, min_snr, out_max, cal_sd, with_cal,
+                 x_out, sg_out, sn_out, res_out):  # pragma: no cover - compiled
+    """Solve the blocks of a tile loaded by :func:`load_tile` as if every pixel's used samples
+    determined M (the caller masks those whose used design is too ill-conditioned).
 
     ``s`` ``(N, 3)``; ``ds_gen`` ``(2, N, 3)`` the generator state derivatives (zero offset
-    per rad, 1/ER); ``meas``, ``var`` ``(N, C, 4, H, W)``; ``valid`` the same shape (read only
-    with ``has_valid``); ``rows`` ``(C' , 4, 3, H', W')`` with ``C'``, ``H'``, ``W'`` either the
-    image's or 1 (broadcast); ``cond`` the condition number of each pixel's used design;
-    ``out_max`` the largest magnitude the output dtype holds; ``cal_sd`` the 5 calibration
-    standard deviations (used with ``with_cal``). Outputs ``mueller``, ``sigma``,
-    ``sigma_noise`` ``(C, 3, 3, H, W)`` (``sigma_noise`` written only with ``with_cal``),
-    ``residual``, ``mask``, ``n_used`` ``(C, H, W)``, zero-initialised by the caller
-    (unsolved pixels are not written).
+    per rad, 1/ER); ``arow`` ``(B, 4, 3, L)`` per pixel or ``(1, 4, 3, L)`` shared;
+    ``lanes`` = ``L`` (passed at run time: a constant trip count makes LLVM unroll every loop,
+    which multiplies the compile time and defeats the vectoriser); ``out_max`` the largest
+    magnitude the output dtype holds; ``cal_sd`` the 5 calibration standard deviations (used
+    with ``with_cal``). Writes ``x_out``, ``sg_out``, ``sn_out`` ``(B, 9, L)`` (estimate,
+    total and noise sigma), ``res_out`` ``(B, L)`` and ``flags`` (DARK, ILL_CONDITIONED added);
+    an unsolved pixel (singular, or an output not finite or beyond ``out_max``) gets zeros.
+    All arrays float64 (int64 ``nok``, ``flags``): one compiled variant serves every input and
+    output dtype.
     """
     n = s.shape[0]
-    nr = 4 * n
-    height, width = meas.shape[3], meas.shape[4]
-    hw = height * width
-    count = cond.shape[0]
-    row_c = rows.shape[0] > 1
-    row_y = rows.shape[3] > 1
-    row_x = rows.shape[4] > 1
-    for blk in prange((count + _BLOCK - 1) // _BLOCK):
-        w = np.empty(nr)
-        mv = np.empty(nr)
-        ok = np.empty(nr, np.bool_)
-        arow = np.empty((4, 3))
-        t = np.empty((4, 3, 3))
-        rj = np.empty((4, 3))
-        amat = np.empty((9, 9))
-        low = np.empty((9, 9))
-        linv = np.empty((9, 9))
-        dsc = np.empty(9)
-        rhs = np.empty(9)
-        x = np.empty(9)
-        sn = np.empty(9)
-        sg = np.empty(9)
-        e = np.empty(9)
-        tmp = np.empty(9)
-        z = np.empty(9)
-        acc = np.empty(9)
-        for i in range(blk * _BLOCK, min(count, (blk + 1) * _BLOCK)):
-            g = g0 + i
-            c = g // hw
-            p = g - c * hw
-            yy = p // width
-            xx = p - yy * width
-            # -- samples: used ones, exclusion flags
-            flags = 0
-            nok = 0
-            for k in range(n):
-                for j in range(4):
-                    r = 4 * k + j
-                    m = meas[k, c, j, yy, xx]
-                    v = var[k, c, j, yy, xx]
-                    given = valid[k, c, j, yy, xx] if has_valid else True
-                    good = math.isfinite(m) and math.isfinite(v) and v > 0
-                    if not given:
-                        flags |= _SATURATED
-                    elif not good:
-                        flags |= _NONFINITE
-                    if given and good:
-                        ok[r] = True
-                        w[r] = 1.0 / np.float64(v)
-                        mv[r] = m
-                        nok += 1
-                    else:
-                        ok[r] = False
-                        w[r] = 0.0
-                        mv[r] = 0.0
-            n_used[c, yy, xx] = min(nok, 65535)
-            if not cond[i] <= max_condition:
-                mask[c, yy, xx] = flags | _ILL_CONDITIONED
-                continue
-            # -- normal equations, Kronecker form
-            rc = c if row_c else 0
-            ry = yy if row_y else 0
-            rx = xx if row_x else 0
+    nl = lanes
+    d9 = 9 if lanes > 0 else 0  # a run-time bound, as ``lanes``
+    bad = np.empty(nl, np.bool_)
+    t = np.empty((4, 3, 3, nl))
+    rj = np.empty((4, 3, nl))
+    amat = np.empty((d9, d9, nl))
+    low = np.empty((d9, d9, nl))
+    pj = np.empty((d9, 3, nl))
+    vec = np.empty((8, d9, nl))
+    dsc, rl, rhs, e, z, acc, u, chi2 = (vec[0], vec[1], vec[2], vec[3], vec[4], vec[5],
+                                        vec[6], vec[7])
+    per_pixel = arow.shape[0] > 1
+    for blk in range(w.shape[0]):
+        wb = w[blk]
+        mb = mv[blk]
+        ab = arow[blk if per_pixel else 0]
+        x = x_out[blk]
+        sn = sn_out[blk]
+        sg = sg_out[blk]
+        _normal_equations(s, wb, mb, ab, t, rj, amat, rhs)
+        _invert(amat, dsc, low, rl, bad)
+        _matvec(amat, rhs, x)
+        for ll in range(d9):
+            for q in range(nl):
+                sn[ll, q] = np.sqrt(amat[ll, ll, q])
+        if with_cal:
+            _calibration_variance(s, ds_gen, cal_sd, wb, ab, t, x, amat, pj, e, z, u, acc)
+            for ll in range(d9):
+                for q in range(nl):
+                    sg[ll, q] = np.sqrt(sn[ll, q] * sn[ll, q] + acc[ll, q])
+        else:
+            for ll in range(d9):
+                for q in range(nl):
+                    sg[ll, q] = sn[ll, q]
+        # residual chi^2 (excluded samples have w = 0)
+        for q in range(nl):
+            chi2[0, q] = 0.0
+        for k in range(n):
+            s0, s1, s2 = s[k, 0], s[k, 1], s[k, 2]
+            for q in range(nl):
+                u[0, q] = x[0, q] * s0 + x[1, q] * s1 + x[2, q] * s2
+                u[1, q] = x[3, q] * s0 + x[4, q] * s1 + x[5, q] * s2
+                u[2, q] = x[6, q] * s0 + x[7, q] * s1 + x[8, q] * s2
             for j in range(4):
-                for a in range(3):
-                    arow[j, a] = rows[rc, j, a, ry, rx]
-                t00 = t10 = t11 = t20 = t21 = t22 = 0.0
-                r0 = r1 = r2 = 0.0
-                for k in range(n):
-                    r = 4 * k + j
-                    if ok[r]:
-                        s0, s1, s2 = s[k, 0], s[k, 1], s[k, 2]
-                        wr = w[r]
-                        wm = wr * mv[r]
-                        r0 += wm * s0
-                        r1 += wm * s1
-                        r2 += wm * s2
-                        w0 = wr * s0
-                        w1 = wr * s1
-                        w2 = wr * s2
-                        t00 += w0 * s0
-                        t10 += w1 * s0
-                        t11 += w1 * s1
-                        t20 += w2 * s0
-                        t21 += w2 * s1
-                        t22 += w2 * s2
-                t[j, 0, 0] = t00
-                t[j, 1, 0] = t[j, 0, 1] = t10
-                t[j, 1, 1] = t11
-                t[j, 2, 0] = t[j, 0, 2] = t20
-                t[j, 2, 1] = t[j, 1, 2] = t21
-                t[j, 2, 2] = t22
-                rj[j, 0] = r0
-                rj[j, 1] = r1
-                rj[j, 2] = r2
-            for ii in range(9):
-                ia = ii // 3
-                ib = ii - 3 * ia
-                for ll in range(ii + 1):
-                    la = ll // 3
-                    lb = ll - 3 * la
-                    sacc = 0.0
-                    for j in range(4):
-                        sacc += arow[j, ia] * arow[j, la] * t[j, ib, lb]
-                    amat[ii, ll] = sacc
-                sacc = 0.0
-                for j in range(4):
-                    sacc += arow[j, ia] * rj[j, ib]
-                rhs[ii] = sacc
-            for ii in range(9):
-                dg = amat[ii, ii]
-                dsc[ii] = 1.0 / math.sqrt(dg) if dg > 0 else 1.0
-            if not _cholesky_inverse(amat, dsc, low, linv):
-                mask[c, yy, xx] = flags | _ILL_CONDITIONED
-                continue
-            _apply_inverse(linv, dsc, rhs, tmp, x)
-            for ll in range(9):
-                sacc = 0.0
-                for ii in range(ll, 9):
-                    sacc += linv[ii, ll] * linv[ii, ll]
-                sn[ll] = dsc[ll] * math.sqrt(sacc)
-            if with_cal:
-                _calibration_variance(s, ds_gen, cal_sd, ok, w, arow, t, x, linv, dsc, e, tmp,
-                                      z, acc)
-                for ll in range(9):
-                    sg[ll] = math.sqrt(sn[ll] * sn[ll] + acc[ll])
+                r = 4 * k + j
+                for q in range(nl):
+                    dv = mb[r, q] - (ab[j, 0, q] * u[0, q] + ab[j, 1, q] * u[1, q]
+                                     + ab[j, 2, q] * u[2, q])
+                    wr = wb[r, q]
+                    chi2[0, q] += wr * dv * dv if wr > 0 else 0.0
+        # solved, finite and representable in the output dtype: else unsolved (zeros)
+        for q in range(nl):
+            dof = nok[blk, q] - 9
+            res = chi2[0, q] / dof if dof > 0 else 0.0
+            fine = (not bad[q]) & (abs(res) <= out_max)
+            for ll in range(d9):
+                fine &= (abs(x[ll, q]) <= out_max) & (sg[ll, q] <= out_max)
+            if fine:
+                res_out[blk, q] = res
+                if not x[0, q] >= min_snr * sg[0, q]:
+                    flags[blk, q] |= _DARK
             else:
-                for ll in range(9):
-                    sg[ll] = sn[ll]
-            # -- residual chi^2 / dof
-            chi2 = 0.0
-            for k in range(n):
-                s0, s1, s2 = s[k, 0], s[k, 1], s[k, 2]
-                ms0 = x[0] * s0 + x[1] * s1 + x[2] * s2
-                ms1 = x[3] * s0 + x[4] * s1 + x[5] * s2
-                ms2 = x[6] * s0 + x[7] * s1 + x[8] * s2
-                for j in range(4):
-                    r = 4 * k + j
-                    if ok[r]:
-                        dv = mv[r] - (arow[j, 0] * ms0 + arow[j, 1] * ms1 + arow[j, 2] * ms2)
-                        chi2 += w[r] * dv * dv
-            dof = nok - 9
-            res = chi2 / dof if dof > 0 else 0.0
-            # -- every output finite and representable in the output dtype, else unsolved
-            fine = abs(res) <= out_max
-            for ll in range(9):
-                fine = fine and abs(x[ll]) <= out_max and sg[ll] <= out_max
-            if not fine:
-                mask[c, yy, xx] = flags | _ILL_CONDITIONED
-                continue
-            if not x[0] >= min_snr * sg[0]:
-                flags |= _DARK
-            mask[c, yy, xx] = flags
-            residual[c, yy, xx] = res
-            for ll in range(9):
-                ia = ll // 3
-                ib = ll - 3 * ia
-                mueller[c, ia, ib, yy, xx] = x[ll]
-                sigma[c, ia, ib, yy, xx] = sg[ll]
-                if with_cal:
-                    sigma_noise[c, ia, ib, yy, xx] = sn[ll]
+                flags[blk, q] |= _ILL_CONDITIONED
+                res_out[blk, q] = 0.0
+                for ll in range(d9):
+                    x[ll, q] = 0.0
+                    sg[ll, q] = 0.0
+                    sn[ll, q] = 0.0

@@ -77,7 +77,9 @@ sides make the solve about 2-3x slower; an exact calibration (zero tolerances) s
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -299,7 +301,7 @@ def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarr
 # ---------------------------------------------------------------------------- solve
 #: pixels per tile of the solve: the sample patterns of a tile are classified together, and
 #: the only per-tile allocation is its 8 bytes per pixel of pattern keys
-DEFAULT_TILE_PIXELS = 1 << 16
+DEFAULT_TILE_PIXELS = 4096
 
 
 def _solve_options(max_condition, min_snr, dtype, chunk_pixels) -> tuple[float, float, np.dtype, int]:
@@ -363,8 +365,8 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     in deg, ``1/ER``): 1-sigma uncertainty of ``analyzer_rows`` and ``s_in``, propagated into
     ``sigma`` (module docstring); ``None`` or zeros: exact, ``sigma`` is the noise part alone.
 
-    ``chunk_pixels``: pixels per tile (memory beyond the outputs: 8 bytes per pixel of a
-    tile; results do not depend on it). ``dtype``: float32 (the conventions) or float64, of
+    ``chunk_pixels``: pixels per tile, rounded to whole image rows (memory beyond the
+    outputs: 16 bytes per pixel of a tile; results do not depend on it). ``dtype``: float32 (the conventions) or float64, of
     the ``mueller``, ``sigma`` and ``residual`` outputs; a pixel whose estimate, sigma or
     residual does not fit it (float32 overflow) is ``ILL_CONDITIONED`` with zero outputs.
 
@@ -399,13 +401,12 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
         if valid.shape != meas.shape:
             raise ValueError(f"valid shape {valid.shape} differs from measured {meas.shape}")
     _, n_col, _, h, w = meas.shape
-    if shared:
-        rows = _shared_rows(analyzer_rows)[None, :, :, None, None]
-    else:
-        rows = _analyzer_planes(analyzer_rows, n_col, (h, w))  # checks the shape
+    a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
+    pixel_rows = None
+    if not shared:
+        _analyzer_planes(analyzer_rows, n_col, (h, w))  # checks the shape
         a = np.asarray(analyzer_rows)
-        rows = _float_samples(a if a.ndim == 5 else a[None])
-    design = design_matrix(s, rows[0, :, :, 0, 0] if shared else None)  # of the conditions
+        pixel_rows = _float_samples(a if a.ndim == 5 else a[None])
 
     mueller = np.zeros((n_col, 3, 3, h, w), dtype)
     sigma = np.zeros_like(mueller)
@@ -414,28 +415,94 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     mask = np.zeros((n_col, h, w), np.uint8)
     pix_cond = np.zeros((n_col, h, w), np.float32)
     n_used = np.zeros((n_col, h, w), np.uint16)
-    total = n_col * h * w
-    if total:
+    if n_col * h * w:
         from polrig import _reference_kernel as kern  # numba: imported on first use
 
-        meas = _float_samples(meas)
-        var = _float_samples(var)
-        has_valid = valid is not None
-        valid_arr = valid if has_valid else np.ones((1, 1, 1, 1, 1), bool)
-        ds_gen = _generator_derivatives(s)
-        out_max = float(np.finfo(dtype).max)
-        patterns = _PatternConditions(design, cond_all)
-        for g0 in range(0, total, tile):
-            cnt = min(tile, total - g0)
-            keys = np.empty((cnt, patterns.n_words), np.int64)
-            kern.sample_patterns(meas, var, valid_arr, has_valid, g0, keys)
-            cond = patterns.conditions(keys)
-            kern.solve_pixels(s, ds_gen, meas, var, valid_arr, has_valid, rows, cond, g0,
-                              max_condition, min_snr, out_max, cal_sd, with_cal, mueller,
-                              sigma, sigma_noise, residual, mask, n_used)
-            pix_cond.reshape(-1)[g0:g0 + cnt] = cond
+        run = _TileRun(kern, s, _float_samples(meas), _float_samples(var), valid, a_shared,
+                       pixel_rows, cond_all, max_condition, min_snr,
+                       float(np.finfo(dtype).max), cal_sd, with_cal,
+                       (mueller, sigma, sigma_noise, residual, mask, pix_cond, n_used))
+        rows_per_tile = max(1, tile // w)
+        tiles = [(c, y0, min(h, y0 + rows_per_tile))
+                 for c in range(n_col) for y0 in range(0, h, rows_per_tile)]
+        n_threads = min(len(tiles), kern.THREADS)
+        if n_threads > 1:
+            with ThreadPoolExecutor(n_threads, thread_name_prefix="reference-solve") as pool:
+                for _ in pool.map(run, tiles):
+                    pass
+        else:
+            for t in tiles:
+                run(t)
     return ReferenceResult(mueller, sigma, residual, mask, cond_all, pix_cond, n_used,
                            sigma_noise if with_cal else None)
+
+
+class _TileRun:
+    """Solve one tile (rows ``y0 .. y1`` of colour ``c``) into the output images: load the
+    samples into block-major float64 buffers (one set per thread, reused), solve, store,
+    then mask the pixels whose used design is too ill-conditioned (:class:`_PatternConditions`).
+    Called from several threads at once: tiles write disjoint parts of the outputs."""
+
+    def __init__(self, kern, s, meas, var, valid, a_shared, pixel_rows, cond_all,
+                 max_condition, min_snr, out_max, cal_sd, with_cal, outputs) -> None:
+        self.kern = kern
+        self.s = s
+        self.ds_gen = _generator_derivatives(s)
+        self.meas, self.var = meas, var
+        self.has_valid = valid is not None
+        self.valid = np.ascontiguousarray(valid) if self.has_valid else np.ones((1,) * 5, bool)
+        self.per_pixel = pixel_rows is not None
+        self.rows = pixel_rows if self.per_pixel else np.zeros((1,) * 5)
+        lanes = kern.LANES
+        self.shared_arow = np.repeat(a_shared.reshape(1, 4, 3, 1), lanes, -1)
+        # condition numbers with the shared (for per-pixel rows: the ideal) analyzer
+        self.patterns = _PatternConditions(design_matrix(s, a_shared), cond_all)
+        self.max_condition, self.min_snr, self.out_max = max_condition, min_snr, out_max
+        self.cal_sd, self.with_cal = cal_sd, with_cal
+        self.outputs = outputs
+        self.local = threading.local()
+
+    def _buffers(self, n_blocks: int) -> dict[str, np.ndarray]:
+        buf = getattr(self.local, "buf", None)
+        if buf is None or len(buf["w"]) < n_blocks:
+            lanes, nr = self.kern.LANES, 4 * len(self.s)
+            buf = {"w": np.empty((n_blocks, nr, lanes)), "mv": np.empty((n_blocks, nr, lanes)),
+                   "flags": np.empty((n_blocks, lanes), np.int64),
+                   "nok": np.empty((n_blocks, lanes), np.int64),
+                   "arow": np.empty((n_blocks if self.per_pixel else 0, 4, 3, lanes)),
+                   "keys": np.empty((n_blocks * lanes, self.patterns.n_words), np.int64),
+                   "x": np.empty((n_blocks, 9, lanes)), "sg": np.empty((n_blocks, 9, lanes)),
+                   "sn": np.empty((n_blocks, 9, lanes)), "res": np.empty((n_blocks, lanes))}
+            self.local.buf = buf
+        return {k: v[:n_blocks] if k != "keys" else v for k, v in buf.items()}
+
+    def __call__(self, tile: tuple[int, int, int]) -> None:
+        c, y0, y1 = tile
+        kern = self.kern
+        mueller, sigma, sigma_noise, residual, mask, pix_cond, n_used = self.outputs
+        width = mueller.shape[-1]
+        count = (y1 - y0) * width
+        b = self._buffers(-(-count // kern.LANES))
+        keys = b["keys"][:count]
+        arow = b["arow"] if self.per_pixel else self.shared_arow
+        kern.load_tile(self.meas, self.var, self.valid, self.has_valid, self.rows,
+                       self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], b["nok"], arow,
+                       keys)
+        kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, b["nok"], b["flags"],
+                          kern.LANES, self.min_snr, self.out_max, self.cal_sd, self.with_cal,
+                          b["x"], b["sg"], b["sn"], b["res"])
+        kern.store_tile(c, y0, y1, b["x"], b["sg"], b["sn"], b["res"], b["flags"], b["nok"],
+                        self.with_cal, mueller, sigma, sigma_noise, residual, mask, n_used)
+        cond = self.patterns.conditions(keys)
+        pix_cond[c, y0:y1] = cond.reshape(y1 - y0, width)
+        unsolved = np.flatnonzero(~(cond <= self.max_condition))
+        if unsolved.size:  # too few or too ill-conditioned samples: zeros, ILL_CONDITIONED
+            yy, xx = np.divmod(unsolved, width)
+            yy += y0
+            mask[c, yy, xx] = mask[c, yy, xx] & ~np.uint8(DARK) | ILL_CONDITIONED
+            for arr in (mueller, sigma, sigma_noise):
+                arr[c, :, :, yy, xx] = 0
+            residual[c, yy, xx] = 0
 
 
 def _generator_derivatives(s: np.ndarray) -> np.ndarray:
@@ -453,7 +520,7 @@ def _generator_derivatives(s: np.ndarray) -> np.ndarray:
 
 class _PatternConditions:
     """Condition number of each pixel's used design from its sample pattern (bit ``4 k + j``
-    set: sample used; :func:`polrig._reference_kernel.sample_patterns`). All samples used:
+    set: sample used; :func:`polrig._reference_kernel.load_tile`). All samples used:
     the state set's; any other pattern: the SVD of its rows of the shared design (for
     per-pixel analyzer rows: the ideal analyzer's), computed once per pattern and cached; fewer
     than 9 samples: ``inf``."""
