@@ -244,14 +244,27 @@ def condition_number(s_in: np.ndarray, analyzer_rows: np.ndarray | None = None) 
     return _cond_from_singular(np.linalg.svd(d, compute_uv=False))
 
 
+def _max_condition(value) -> float:
+    """``max_condition`` as a float >= 1 (``inf``: no limit), else a one-line ConfigError."""
+    try:
+        limit = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"max_condition must be a number, got {value!r}") from None
+    if not limit >= 1.0:  # NaN fails too
+        raise ConfigError(f"max_condition must be >= 1 (a condition number is at least 1; inf: "
+                          f"no limit), got {value!r}")
+    return limit
+
+
 def validate_states(s_in: np.ndarray, max_condition: float = DEFAULT_MAX_CONDITION,
                     analyzer_rows: np.ndarray | None = None) -> float:
     """Check a polarizer state set; return its condition number.
 
     Raises :class:`polrig.errors.ConfigError` (a ``ValueError``) with one clear line for fewer
-    than 3 states, non-finite states, collinear states (rank < 3) or a condition number above
-    ``max_condition``.
+    than 3 states, non-finite states, collinear states (rank < 3), a condition number above
+    ``max_condition``, or a ``max_condition`` that is not a number >= 1 (``inf``: no limit).
     """
+    max_condition = _max_condition(max_condition)
     s = _states(s_in)
     if len(s) < 3:
         raise ConfigError(f"need at least 3 polarizer states, got {len(s)}")
@@ -306,13 +319,7 @@ DEFAULT_TILE_PIXELS = 4096
 
 def _solve_options(max_condition, min_snr, dtype, chunk_pixels) -> tuple[float, float, np.dtype, int]:
     """Check the scalar options of :func:`solve_reference` (one-line ConfigError each)."""
-    try:
-        max_condition = float(max_condition)
-    except (TypeError, ValueError):
-        raise ConfigError(f"max_condition must be a number, got {max_condition!r}") from None
-    if not max_condition >= 1.0:  # NaN fails too
-        raise ConfigError(f"max_condition must be >= 1 (a condition number is at least 1; inf: "
-                          f"no limit), got {max_condition!r}")
+    max_condition = _max_condition(max_condition)
     try:
         min_snr = float(min_snr)
     except (TypeError, ValueError):
