@@ -72,81 +72,78 @@ THREADS = max(1, int(numba.config.NUMBA_NUM_THREADS))
 
 
 @_jit()
-def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, mv, flags, nok,
-              arow, keys):  # pragma: no cover - compiled
-    """Read image rows ``y0 .. y1`` of colour ``c`` into block-major float64 buffers (pixel
-    ``p`` of the tile, row-major, is lane ``p % LANES`` of block ``p // LANES``; lanes past
-    the tile's end get weight 0): ``w`` ``(B, 4N, LANES)`` the weights ``1 / var`` (0 for an
-    excluded sample), ``mv`` the values (0 when excluded), ``flags`` ``(B, LANES)``
-    SATURATED / NONFINITE exclusion bits, ``nok`` the number of used samples, ``keys``
-    ``(P, words)`` the used-sample bit patterns (bit ``r = 4 k + j``); with
-    ``per_pixel_rows`` also ``arow`` ``(B, 4, 3, LANES)`` from ``rows`` ``(C', 4, 3, H', W')``
-    (``C'``, ``H'``, ``W'`` the image's or 1). ``meas``, ``var``, ``valid``:
-    ``(N, C, 4, H, W)`` (``valid`` read only with ``has_valid``)."""
+def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, mv, flags, arow
+              ):  # pragma: no cover - compiled
+    """Read image rows ``y0 .. y1`` of colour ``c`` into block-major float64 buffers: each
+    image row is ``ceil(W / LANES)`` blocks, column ``x`` is lane ``x % LANES`` of the row's
+    block ``x // LANES``; lanes past the row's end keep weight 0 (the caller zeroes them
+    once). ``w`` ``(B, 4N, LANES)`` the weights ``1 / var`` (0 for an excluded sample), ``mv``
+    the values (0 when excluded), ``flags`` ``(B, LANES)`` SATURATED / NONFINITE exclusion
+    bits; with ``per_pixel_rows`` also ``arow`` ``(B, 4, 3, LANES)`` from ``rows``
+    ``(C', 4, 3, H', W')`` (``C'``, ``H'``, ``W'`` the image's or 1). ``meas``, ``var``,
+    ``valid``: ``(N, C, 4, H, W)`` (``valid`` read only with ``has_valid``)."""
     n = meas.shape[0]
     width = meas.shape[4]
-    count = (y1 - y0) * width
-    w[...] = 0.0
-    mv[...] = 0.0
-    flags[...] = 0
-    nok[...] = 0
-    keys[...] = 0
+    nbr = (width + LANES - 1) // LANES
+    rc = c if rows.shape[0] > 1 else 0
     for yy in range(y0, y1):
-        for xx in range(width):
-            p = (yy - y0) * width + xx
-            b = p // LANES
-            q = p - b * LANES
+        ry = yy if rows.shape[3] > 1 else 0
+        for xb in range(nbr):
+            b = (yy - y0) * nbr + xb
+            x0 = xb * LANES
+            nb = min(LANES, width - x0)
+            for q in range(nb):
+                flags[b, q] = 0
             for k in range(n):
                 for j in range(4):
-                    m = np.float64(meas[k, c, j, yy, xx])
-                    v = np.float64(var[k, c, j, yy, xx])
-                    given = valid[k, c, j, yy, xx] if has_valid else True
-                    good = (abs(m) < np.inf) & (abs(v) < np.inf) & (v > 0)
                     r = 4 * k + j
-                    if given and good:
-                        w[b, r, q] = 1.0 / v
-                        mv[b, r, q] = m
-                        nok[b, q] += 1
-                        keys[p, r >> 6] |= np.int64(1) << np.int64(r & 63)
-                    elif given:
-                        flags[b, q] |= _NONFINITE
-                    else:
-                        flags[b, q] |= _SATURATED
-    if per_pixel_rows:
-        rc = c if rows.shape[0] > 1 else 0
-        for p in range(arow.shape[0] * LANES):
-            b = p // LANES
-            q = p - b * LANES
-            pp = min(p, count - 1)  # padding lanes: the last pixel's rows
-            yy = y0 + pp // width
-            xx = pp - (yy - y0) * width
-            ry = yy if rows.shape[3] > 1 else 0
-            rx = xx if rows.shape[4] > 1 else 0
-            for j in range(4):
-                for a in range(3):
-                    arow[b, j, a, q] = rows[rc, j, a, ry, rx]
+                    for q in range(nb):
+                        xx = x0 + q
+                        m = np.float64(meas[k, c, j, yy, xx])
+                        v = np.float64(var[k, c, j, yy, xx])
+                        given = valid[k, c, j, yy, xx] if has_valid else True
+                        good = (abs(m) < np.inf) & (abs(v) < np.inf) & (v > 0)
+                        use = given & good
+                        w[b, r, q] = 1.0 / v if use else 0.0
+                        mv[b, r, q] = m if use else 0.0
+                        flags[b, q] |= ((0 if given else _SATURATED)
+                                        | (_NONFINITE if given & (not good) else 0))
+            if per_pixel_rows:
+                for j in range(4):
+                    for a in range(3):
+                        for q in range(nb):
+                            rx = x0 + q if rows.shape[4] > 1 else 0
+                            arow[b, j, a, q] = rows[rc, j, a, ry, rx]
 
 
 @_jit()
 def store_tile(c, y0, y1, x, sg, sn, res, flags, nok, with_cal, mueller, sigma, sigma_noise,
                residual, mask, n_used):  # pragma: no cover - compiled
-    """Write a tile's block-major results (:func:`solve_blocks`) into the output images,
-    rows ``y0 .. y1`` of colour ``c`` (converted to the outputs' dtype)."""
+    """Write a tile's block-major results (:func:`solve_blocks`, layout of
+    :func:`load_tile`) into the output images, rows ``y0 .. y1`` of colour ``c`` (converted
+    to the outputs' dtype)."""
     width = mueller.shape[4]
+    nbr = (width + LANES - 1) // LANES
     for yy in range(y0, y1):
-        for xx in range(width):
-            p = (yy - y0) * width + xx
-            b = p // LANES
-            q = p - b * LANES
+        for xb in range(nbr):
+            b = (yy - y0) * nbr + xb
+            x0 = xb * LANES
+            nb = min(LANES, width - x0)
             for ll in range(9):
                 ia = ll // 3
-                mueller[c, ia, ll - 3 * ia, yy, xx] = x[b, ll, q]
-                sigma[c, ia, ll - 3 * ia, yy, xx] = sg[b, ll, q]
+                ib = ll - 3 * ia
+                for q in range(nb):
+                    mueller[c, ia, ib, yy, x0 + q] = x[b, ll, q]
+                for q in range(nb):
+                    sigma[c, ia, ib, yy, x0 + q] = sg[b, ll, q]
                 if with_cal:
-                    sigma_noise[c, ia, ll - 3 * ia, yy, xx] = sn[b, ll, q]
-            residual[c, yy, xx] = res[b, q]
-            mask[c, yy, xx] = flags[b, q]
-            n_used[c, yy, xx] = min(nok[b, q], 65535)
+                    for q in range(nb):
+                        sigma_noise[c, ia, ib, yy, x0 + q] = sn[b, ll, q]
+            for q in range(nb):
+                residual[c, yy, x0 + q] = res[b, q]
+                mask[c, yy, x0 + q] = flags[b, q]
+                n_used[c, yy, x0 + q] = min(nok[b, q], 65535)
+
 
 @_jit()
 def _normal_equations(s, w, mv, arow, t, rj, amat, rhs):  # pragma: no cover - compiled
@@ -192,12 +189,12 @@ def _normal_equations(s, w, mv, arow, t, rj, amat, rhs):  # pragma: no cover - c
 
 
 @_jit()
-def _invert(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
-    """Per lane, in place: ``amat`` (lower triangle of the normal matrix ``A``) becomes the
-    full symmetric ``A^-1``, through equilibration ``dsc = 1 / sqrt(diag A)``, the Cholesky
-    factor ``low`` of the equilibrated matrix (``rl`` its reciprocal diagonal) and its inverse
-    (overwriting ``low``). ``bad`` where a pivot is not above PIVOT_EPS (that lane's results
-    are meaningless)."""
+def _factor(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
+    """Per lane: equilibration ``dsc = 1 / sqrt(diag A)`` of the normal matrix ``A`` (lower
+    triangle in ``amat``, used as scratch afterwards), the Cholesky factor of the
+    equilibrated matrix and then its inverse ``L^-1`` in ``low`` (``rl``: the reciprocal
+    diagonal of ``L``). ``bad`` where a pivot is not above PIVOT_EPS (that lane's results are
+    meaningless)."""
     d9, nl = dsc.shape
     for ii in range(d9):
         for q in range(nl):
@@ -239,7 +236,13 @@ def _invert(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
                 low[ii, ll, q] = -amat[0, ll, q] * rl[ii, q]
         for q in range(nl):
             low[ii, ii, q] = rl[ii, q]
-    # A^-1 = diag(dsc) L^-T L^-1 diag(dsc)
+
+
+@_jit()
+def _inverse(low, dsc, amat):  # pragma: no cover - compiled
+    """Per lane, the full symmetric ``A^-1 = diag(dsc) L^-T L^-1 diag(dsc)`` into ``amat``
+    (``low``: ``L^-1``)."""
+    d9, nl = dsc.shape
     for ii in range(d9):
         for ll in range(ii + 1):
             for q in range(nl):
@@ -250,6 +253,26 @@ def _invert(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
             for q in range(nl):
                 amat[ii, ll, q] *= dsc[ii, q] * dsc[ll, q]
                 amat[ll, ii, q] = amat[ii, ll, q]
+
+
+@_jit()
+def _triangular_solve(linv, dsc, b, tmp, out):  # pragma: no cover - compiled
+    """``out = diag(dsc) L^-T L^-1 diag(dsc) b`` per lane, with the inverse factor."""
+    d9, nl = b.shape
+    for ii in range(d9):
+        for q in range(nl):
+            tmp[ii, q] = 0.0
+        for ll in range(ii + 1):
+            for q in range(nl):
+                tmp[ii, q] += linv[ii, ll, q] * (b[ll, q] * dsc[ll, q])
+    for ll in range(d9):
+        for q in range(nl):
+            out[ll, q] = 0.0
+        for ii in range(ll, d9):
+            for q in range(nl):
+                out[ll, q] += linv[ii, ll, q] * tmp[ii, q]
+        for q in range(nl):
+            out[ll, q] *= dsc[ll, q]
 
 
 @_jit()
@@ -336,8 +359,8 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, a
 
 
 @_jit()
-def solve_blocks(s, ds_gen, w, mv, arow, nok, flags, lanes, min_snr, out_max, cal_sd, with_cal,
-                 x_out, sg_out, sn_out, res_out):  # pragma: no cover - compiled
+def solve_blocks(s, ds_gen, w, mv, arow, flags, lanes, min_snr, out_max, cal_sd, with_cal,
+                 x_out, sg_out, sn_out, res_out, nok, keys):  # pragma: no cover - compiled
     """Solve the blocks of a tile loaded by :func:`load_tile` as if every pixel's used samples
     determined M (the caller masks those whose used design is too ill-conditioned).
 
@@ -347,7 +370,9 @@ def solve_blocks(s, ds_gen, w, mv, arow, nok, flags, lanes, min_snr, out_max, ca
     which multiplies the compile time and defeats the vectoriser); ``out_max`` the largest
     magnitude the output dtype holds; ``cal_sd`` the 5 calibration standard deviations (used
     with ``with_cal``). Writes ``x_out``, ``sg_out``, ``sn_out`` ``(B, 9, L)`` (estimate,
-    total and noise sigma), ``res_out`` ``(B, L)`` and ``flags`` (DARK, ILL_CONDITIONED added);
+    total and noise sigma), ``res_out`` ``(B, L)``, ``flags`` (DARK, ILL_CONDITIONED added),
+    ``nok`` ``(B, L)`` the number of used samples and ``keys`` ``(words, B * L)`` their bit
+    patterns (bit ``r = 4 k + j`` of word ``r // 64``);
     an unsolved pixel (singular, or an output not finite or beyond ``out_max``) gets zeros.
     All arrays float64 (int64 ``nok``, ``flags``): one compiled variant serves every input and
     output dtype.
@@ -356,6 +381,7 @@ def solve_blocks(s, ds_gen, w, mv, arow, nok, flags, lanes, min_snr, out_max, ca
     nl = lanes
     d9 = 9 if lanes > 0 else 0  # a run-time bound, as ``lanes``
     bad = np.empty(nl, np.bool_)
+    fine = np.empty(nl, np.bool_)
     t = np.empty((4, 3, 3, nl))
     rj = np.empty((4, 3, nl))
     amat = np.empty((d9, d9, nl))
@@ -372,22 +398,42 @@ def solve_blocks(s, ds_gen, w, mv, arow, nok, flags, lanes, min_snr, out_max, ca
         x = x_out[blk]
         sn = sn_out[blk]
         sg = sg_out[blk]
-        _normal_equations(s, wb, mb, ab, t, rj, amat, rhs)
-        _invert(amat, dsc, low, rl, bad)
-        _matvec(amat, rhs, x)
-        for ll in range(d9):
+        for q in range(nl):
+            nok[blk, q] = 0
+        for wd in range(keys.shape[0]):
             for q in range(nl):
-                sn[ll, q] = np.sqrt(amat[ll, ll, q])
+                keys[wd, blk * nl + q] = 0
+        for r in range(4 * n):
+            wd = r >> 6
+            bit = np.int64(1) << np.int64(r & 63)
+            for q in range(nl):
+                use = wb[r, q] > 0
+                nok[blk, q] += 1 if use else 0
+                keys[wd, blk * nl + q] |= bit if use else 0
+        _normal_equations(s, wb, mb, ab, t, rj, amat, rhs)
+        _factor(amat, dsc, low, rl, bad)
         if with_cal:
+            _inverse(low, dsc, amat)
+            _matvec(amat, rhs, x)
+            for ll in range(d9):
+                for q in range(nl):
+                    sn[ll, q] = np.sqrt(amat[ll, ll, q])
             _calibration_variance(s, ds_gen, cal_sd, wb, ab, t, x, amat, pj, e, z, u, acc)
             for ll in range(d9):
                 for q in range(nl):
                     sg[ll, q] = np.sqrt(sn[ll, q] * sn[ll, q] + acc[ll, q])
         else:
+            _triangular_solve(low, dsc, rhs, e, x)
             for ll in range(d9):
                 for q in range(nl):
+                    acc[ll, q] = 0.0
+                for ii in range(ll, d9):
+                    for q in range(nl):
+                        acc[ll, q] += low[ii, ll, q] * low[ii, ll, q]
+                for q in range(nl):
+                    sn[ll, q] = dsc[ll, q] * np.sqrt(acc[ll, q])
                     sg[ll, q] = sn[ll, q]
-        # residual chi^2 (excluded samples have w = 0)
+        # residual chi^2 / dof (excluded samples have w = 0) in chi2[0]
         for q in range(nl):
             chi2[0, q] = 0.0
         for k in range(n):
@@ -407,17 +453,19 @@ def solve_blocks(s, ds_gen, w, mv, arow, nok, flags, lanes, min_snr, out_max, ca
         for q in range(nl):
             dof = nok[blk, q] - 9
             res = chi2[0, q] / dof if dof > 0 else 0.0
-            fine = (not bad[q]) & (abs(res) <= out_max)
-            for ll in range(d9):
-                fine &= (abs(x[ll, q]) <= out_max) & (sg[ll, q] <= out_max)
-            if fine:
-                res_out[blk, q] = res
-                if not x[0, q] >= min_snr * sg[0, q]:
-                    flags[blk, q] |= _DARK
-            else:
-                flags[blk, q] |= _ILL_CONDITIONED
-                res_out[blk, q] = 0.0
-                for ll in range(d9):
-                    x[ll, q] = 0.0
-                    sg[ll, q] = 0.0
-                    sn[ll, q] = 0.0
+            chi2[0, q] = res
+            fine[q] = (not bad[q]) & (abs(res) <= out_max)
+        for ll in range(d9):
+            for q in range(nl):
+                fine[q] &= (abs(x[ll, q]) <= out_max) & (sg[ll, q] <= out_max)
+        for q in range(nl):
+            ok = fine[q]
+            dark = not x[0, q] >= min_snr * sg[0, q]
+            flags[blk, q] |= (_DARK if dark else 0) if ok else _ILL_CONDITIONED
+            res_out[blk, q] = chi2[0, q] if ok else 0.0
+        for ll in range(d9):
+            for q in range(nl):
+                ok = fine[q]
+                x[ll, q] = x[ll, q] if ok else 0.0
+                sg[ll, q] = sg[ll, q] if ok else 0.0
+                sn[ll, q] = sn[ll, q] if ok else 0.0

@@ -470,36 +470,40 @@ class _TileRun:
         self.local = threading.local()
 
     def _buffers(self, n_blocks: int) -> dict[str, np.ndarray]:
+        """This thread's tile buffers, at least ``n_blocks`` blocks (zeroed when allocated:
+        lanes past a row's end are never written and must keep weight 0)."""
         buf = getattr(self.local, "buf", None)
         if buf is None or len(buf["w"]) < n_blocks:
             lanes, nr = self.kern.LANES, 4 * len(self.s)
-            buf = {"w": np.empty((n_blocks, nr, lanes)), "mv": np.empty((n_blocks, nr, lanes)),
-                   "flags": np.empty((n_blocks, lanes), np.int64),
-                   "nok": np.empty((n_blocks, lanes), np.int64),
-                   "arow": np.empty((n_blocks if self.per_pixel else 0, 4, 3, lanes)),
-                   "keys": np.empty((n_blocks * lanes, self.patterns.n_words), np.int64),
-                   "x": np.empty((n_blocks, 9, lanes)), "sg": np.empty((n_blocks, 9, lanes)),
-                   "sn": np.empty((n_blocks, 9, lanes)), "res": np.empty((n_blocks, lanes))}
+            buf = {"w": np.zeros((n_blocks, nr, lanes)), "mv": np.zeros((n_blocks, nr, lanes)),
+                   "flags": np.zeros((n_blocks, lanes), np.int64),
+                   "nok": np.zeros((n_blocks, lanes), np.int64),
+                   "arow": np.zeros((n_blocks if self.per_pixel else 0, 4, 3, lanes)),
+                   "keys": np.zeros((self.patterns.n_words, n_blocks * lanes), np.int64),
+                   "x": np.zeros((n_blocks, 9, lanes)), "sg": np.zeros((n_blocks, 9, lanes)),
+                   "sn": np.zeros((n_blocks, 9, lanes)), "res": np.zeros((n_blocks, lanes))}
             self.local.buf = buf
-        return {k: v[:n_blocks] if k != "keys" else v for k, v in buf.items()}
+        return {k: v[:, :n_blocks * self.kern.LANES] if k == "keys" else v[:n_blocks]
+                for k, v in buf.items()}
 
     def __call__(self, tile: tuple[int, int, int]) -> None:
         c, y0, y1 = tile
         kern = self.kern
+        lanes = kern.LANES
         mueller, sigma, sigma_noise, residual, mask, pix_cond, n_used = self.outputs
         width = mueller.shape[-1]
-        count = (y1 - y0) * width
-        b = self._buffers(-(-count // kern.LANES))
-        keys = b["keys"][:count]
+        per_row = -(-width // lanes)
+        b = self._buffers((y1 - y0) * per_row)
         arow = b["arow"] if self.per_pixel else self.shared_arow
         kern.load_tile(self.meas, self.var, self.valid, self.has_valid, self.rows,
-                       self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], b["nok"], arow,
-                       keys)
-        kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, b["nok"], b["flags"],
-                          kern.LANES, self.min_snr, self.out_max, self.cal_sd, self.with_cal,
-                          b["x"], b["sg"], b["sn"], b["res"])
+                       self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], arow)
+        kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, b["flags"], lanes,
+                          self.min_snr, self.out_max, self.cal_sd, self.with_cal, b["x"],
+                          b["sg"], b["sn"], b["res"], b["nok"], b["keys"])
         kern.store_tile(c, y0, y1, b["x"], b["sg"], b["sn"], b["res"], b["flags"], b["nok"],
                         self.with_cal, mueller, sigma, sigma_noise, residual, mask, n_used)
+        keys = b["keys"].reshape(-1, y1 - y0, per_row * lanes)[:, :, :width].reshape(
+            -1, (y1 - y0) * width).T
         cond = self.patterns.conditions(keys)
         pix_cond[c, y0:y1] = cond.reshape(y1 - y0, width)
         unsolved = np.flatnonzero(~(cond <= self.max_condition))
