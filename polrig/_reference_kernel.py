@@ -412,26 +412,25 @@ def solve_blocks(s, ds_gen, w, mv, arow, flags, lanes, min_snr, out_max, cal_sd,
                 keys[wd, blk * nl + q] |= bit if use else 0
         _normal_equations(s, wb, mb, ab, t, rj, amat, rhs)
         _factor(amat, dsc, low, rl, bad)
+        # estimate and noise sigma: the same operations with and without the calibration term
+        _triangular_solve(low, dsc, rhs, e, x)
+        for ll in range(d9):
+            for q in range(nl):
+                acc[ll, q] = 0.0
+            for ii in range(ll, d9):
+                for q in range(nl):
+                    acc[ll, q] += low[ii, ll, q] * low[ii, ll, q]
+            for q in range(nl):
+                sn[ll, q] = dsc[ll, q] * np.sqrt(acc[ll, q])
         if with_cal:
             _inverse(low, dsc, amat)
-            _matvec(amat, rhs, x)
-            for ll in range(d9):
-                for q in range(nl):
-                    sn[ll, q] = np.sqrt(amat[ll, ll, q])
             _calibration_variance(s, ds_gen, cal_sd, wb, ab, t, x, amat, pj, e, z, u, acc)
             for ll in range(d9):
                 for q in range(nl):
                     sg[ll, q] = np.sqrt(sn[ll, q] * sn[ll, q] + acc[ll, q])
         else:
-            _triangular_solve(low, dsc, rhs, e, x)
             for ll in range(d9):
                 for q in range(nl):
-                    acc[ll, q] = 0.0
-                for ii in range(ll, d9):
-                    for q in range(nl):
-                        acc[ll, q] += low[ii, ll, q] * low[ii, ll, q]
-                for q in range(nl):
-                    sn[ll, q] = dsc[ll, q] * np.sqrt(acc[ll, q])
                     sg[ll, q] = sn[ll, q]
         # residual chi^2 / dof (excluded samples have w = 0) in chi2[0]
         for q in range(nl):
