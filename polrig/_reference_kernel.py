@@ -341,17 +341,25 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, a
                 u[0, q] = arow[j, 0, q] * x[0, q] + arow[j, 1, q] * x[3, q] + arow[j, 2, q] * x[6, q]
                 u[1, q] = arow[j, 0, q] * x[1, q] + arow[j, 1, q] * x[4, q] + arow[j, 2, q] * x[7, q]
                 u[2, q] = arow[j, 0, q] * x[2, q] + arow[j, 1, q] * x[5, q] + arow[j, 2, q] * x[8, q]
+            for q in range(nl):  # v = sum_k w_kj (u . ds_k) sd s_k
+                u[3, q] = 0.0
+                u[4, q] = 0.0
+                u[5, q] = 0.0
             for k in range(n):
                 r = 4 * k + j
                 g0, g1, g2 = ds_gen[gq, k, 0], ds_gen[gq, k, 1], ds_gen[gq, k, 2]
                 s0, s1, s2 = s[k, 0] * sd, s[k, 1] * sd, s[k, 2] * sd
-                for q in range(nl):  # e += a_j (x) w_kj (u . ds_k) sd s_k
+                for q in range(nl):
                     ekj = w[r, q] * (u[0, q] * g0 + u[1, q] * g1 + u[2, q] * g2)
-                    for a in range(3):
-                        ea = arow[j, a, q] * ekj
-                        e[3 * a, q] += ea * s0
-                        e[3 * a + 1, q] += ea * s1
-                        e[3 * a + 2, q] += ea * s2
+                    u[3, q] += ekj * s0
+                    u[4, q] += ekj * s1
+                    u[5, q] += ekj * s2
+            for a in range(3):  # e += a_j (x) v
+                for q in range(nl):
+                    aj = arow[j, a, q]
+                    e[3 * a, q] += aj * u[3, q]
+                    e[3 * a + 1, q] += aj * u[4, q]
+                    e[3 * a + 2, q] += aj * u[5, q]
         _matvec(ainv, e, z)
         for ii in range(d9):
             for q in range(nl):
