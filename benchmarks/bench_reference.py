@@ -1,6 +1,7 @@
 """Speed of the N-state reference solve (polrig.reference) against the previous numpy
 implementation (polrig._reference_numpy), the numba compile time, and the realizability tools;
-prints tables and writes the solve table into ``benchmarks/results/reference.md``.
+prints tables and writes the solve table into ``benchmarks/results/reference.md`` (its own
+section per image size; the rest of the file is left as it is).
 
 Usage: ``python -m benchmarks reference`` or ``python benchmarks/bench_reference.py
 [--size 512x612] [--colours 3] [--rounds 3] [--no-numpy] [--no-write]``.
@@ -41,7 +42,6 @@ from polrig.stokes import ideal_analyzer_matrix
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "reference.md"
-BEGIN, END = "<!-- bench_reference: begin -->", "<!-- bench_reference: end -->"
 A_TOL = (0.01, 0.5, 0.02)
 G_TOL = (2.0, 0.006)
 
@@ -184,12 +184,15 @@ def main() -> None:
     if args.no_write:
         return
     cmd = " ".join(["python benchmarks/bench_reference.py"] + sys.argv[1:])
-    section = (f"{BEGIN}\n## Solve speed\n\n`{cmd}`: {head}.\n\n{table}\n"
+    # one section per image size, replaced by the next run at that size
+    begin = f"<!-- bench_reference {h}x{w}: begin -->"
+    end = f"<!-- bench_reference {h}x{w}: end -->"
+    section = (f"{begin}\n## Solve speed, {h} x {w}\n\n`{cmd}`: {head}.\n\n{table}\n"
                + (f"\nFirst call in a fresh process (numba compile; cached on disk after the "
-                  f"first):\n\n{ctable}\n" if ctable else "") + f"{END}\n")
+                  f"first):\n\n{ctable}\n" if ctable else "") + f"{end}\n")
     text = RESULTS.read_text() if RESULTS.is_file() else "# Reference solve\n"
-    if BEGIN in text and END in text:
-        text = text[: text.index(BEGIN)] + section + text[text.index(END) + len(END) + 1:]
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + section + text[text.index(end) + len(end) + 1:]
     else:
         text = text.rstrip("\n") + "\n\n" + section
     RESULTS.write_text(text)

@@ -33,6 +33,7 @@ branch and an exception, which SIMD code cannot have.
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import numba
@@ -67,8 +68,10 @@ def _jit():
     return deco
 
 
-#: threads the solve runs tiles on (numba's setting: the CPU count, or NUMBA_NUM_THREADS)
-THREADS = max(1, int(numba.config.NUMBA_NUM_THREADS))
+#: threads the solve runs tiles on: numba's setting (NUMBA_NUM_THREADS, default the CPU
+#: count), at most the CPUs this process may run on
+THREADS = max(1, min(int(numba.config.NUMBA_NUM_THREADS), len(os.sched_getaffinity(0))
+                     if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
 
 
 @_jit()
