@@ -1,12 +1,20 @@
 """Compiled kernels of :func:`polrig.reference.solve_reference` (numba).
 
 The model, the masks and the calibration-uncertainty propagation are documented in
-:mod:`polrig.reference`; this module evaluates them fused, in blocks of :data:`LANES`
-neighbouring pixels of one image row: each pixel's ``4 N`` samples are read once (float32 or
-float64, converted to float64 on load) and all intermediate values live in per-thread scratch
-arrays laid out lanes-last, so that every arithmetic loop runs over the lanes with a constant
-trip count and compiles to SIMD code (the per-pixel 9x9 algebra itself is too small and too
-sequential to vectorise: a scalar version of the same kernel ran 3-4x slower).
+:mod:`polrig.reference`; this module evaluates them for one tile of image rows at a time, in
+three kernels the caller runs in turn on a thread (they release the GIL):
+
+* :func:`load_tile` reads the tile's samples once (float32 or float64, any strides; the only
+  kernel, with :func:`store_tile`, that is compiled again for other input dtypes) into
+  block-major float64 buffers: blocks of :data:`LANES` neighbouring pixels of one row,
+  laid out lanes-last;
+* :func:`solve_blocks` does all the arithmetic on those buffers. Every loop runs over the
+  lanes, so it compiles to SIMD code (the per-pixel 9x9 algebra is too small and too
+  sequential to vectorise by itself: a scalar per-pixel version of this kernel was 2-3x
+  slower). Its signature is fixed (float64 buffers): it is compiled once, whatever the input
+  and output dtypes. The lane count is a run-time argument: with a constant trip count LLVM
+  unrolls every loop, which multiplied the compile time and defeated the vectoriser;
+* :func:`store_tile` writes the results into the output images (float32 or float64).
 
 Per pixel (analyzer rows ``a_j``, states ``s_k``, weights ``w_kj = 1 / var_kj``, 0 for
 excluded samples):
@@ -17,15 +25,18 @@ excluded samples):
 * equilibration ``d_i = 1 / sqrt(A_ii)``, Cholesky ``L L^T = diag(d) A diag(d)`` (a pivot
   ``<= 1e-12`` makes the pixel ILL_CONDITIONED), the inverse factor ``L^-1``;
   ``x = d L^-T L^-1 d b`` and ``sigma_noise_i = d_i |(L^-1)_{:, i}|``;
-* calibration right-hand sides without forming the 4N-vectors ``e_p``: an analyzer parameter
-  of row ``j`` gives ``D^T W e = a_j (x) (T_j M^T da_j)``, a generator one
-  ``sum_j a_j (x) sum_k w_kj (a_j . M ds_k) s_k``; each is solved with the same ``L^-1``.
+* with calibration tolerances, the explicit ``A^-1`` and the 14 calibration right-hand sides
+  without forming the 4N-vectors ``e_p``: an analyzer parameter of row ``j`` gives
+  ``D^T W e = a_j (x) (T_j M^T da_j)``, solved as ``P_j (T_j M^T da_j)`` with
+  ``P_j = A^-1 (a_j (x) I_3)`` shared by the row's three parameters; a generator parameter
+  gives ``sum_j a_j (x) sum_k w_kj (a_j . M ds_k) s_k``.
 
-Determinism: no fastmath (IEEE semantics, so SIMD and scalar code give the same bits), no
-reductions across pixels, and a pixel's lane is fixed by its column alone; the results are
-bit-identical for any thread count and tiling. ``cache=True`` keeps the machine code on disk
-(numba's cache: ``__pycache__`` next to this file, else the user cache directory, or
-``NUMBA_CACHE_DIR``); where none is writable the kernels are compiled at each first call.
+Determinism: no fastmath (IEEE semantics: SIMD and scalar code give the same bits), no
+reductions across pixels, and the estimate and noise sigma are computed by the same
+operations with and without the calibration term; results are bit-identical for any thread
+count and tile size. ``cache=True`` keeps the machine code on disk (numba's cache:
+``__pycache__`` next to this file, else the user cache directory, or ``NUMBA_CACHE_DIR``);
+where none is writable the kernels are compiled at each process's first call.
 ``error_model="numpy"``: a division by zero gives inf/NaN (masked afterwards) instead of a
 branch and an exception, which SIMD code cannot have.
 """
@@ -35,8 +46,8 @@ from __future__ import annotations
 import logging
 import os
 
-import numpy as np
 import numba
+import numpy as np
 from numba import njit
 
 log = logging.getLogger(__name__)

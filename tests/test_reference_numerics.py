@@ -134,6 +134,11 @@ def test_float32_output_agrees_and_extreme_samples_give_the_same_masks():
     assert all(counts[k] > 0 for k in ("dark", "saturated", "ill_conditioned", "nonfinite"))
 
 
+def test_kernel_mask_bits_are_the_public_ones():
+    assert (kern._DARK, kern._SATURATED, kern._ILL_CONDITIONED, kern._NONFINITE) == (
+        ref.DARK, ref.SATURATED, ref.ILL_CONDITIONED, ref.NONFINITE)
+
+
 # ---------------------------------------------------------------------------- determinism
 def test_bit_identical_for_any_tile_size_and_thread_count(monkeypatch):
     rng = np.random.default_rng(8)
