@@ -95,11 +95,13 @@ def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, m
     the values (0 when excluded), ``flags`` ``(B, LANES)`` SATURATED / NONFINITE exclusion
     bits; with ``per_pixel_rows`` also ``arow`` ``(B, 4, 3, LANES)`` from ``rows``
     ``(C', 4, 3, H', W')`` (``C'``, ``H'``, ``W'`` the image's or 1). ``meas``, ``var``,
-    ``valid``: ``(N, C, 4, H, W)`` (``valid`` read only with ``has_valid``)."""
+    ``valid``: ``(N, C, 4, H, W)`` (``valid`` read only with ``has_valid``). Returns the
+    number of pixels with an excluded sample (0: every pixel uses all its samples)."""
     n = meas.shape[0]
     width = meas.shape[4]
     nbr = (width + LANES - 1) // LANES
     rc = c if rows.shape[0] > 1 else 0
+    partial = 0
     for yy in range(y0, y1):
         ry = yy if rows.shape[3] > 1 else 0
         for xb in range(nbr):
@@ -122,12 +124,15 @@ def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, m
                         mv[b, r, q] = m if use else 0.0
                         flags[b, q] |= ((0 if given else _SATURATED)
                                         | (_NONFINITE if given & (not good) else 0))
+            for q in range(nb):
+                partial += 1 if flags[b, q] != 0 else 0
             if per_pixel_rows:
                 for j in range(4):
                     for a in range(3):
                         for q in range(nb):
                             rx = x0 + q if rows.shape[4] > 1 else 0
                             arow[b, j, a, q] = rows[rc, j, a, ry, rx]
+    return partial
 
 
 @_jit()

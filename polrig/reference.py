@@ -520,13 +520,16 @@ class _TileRun:
         per_row = -(-width // lanes)
         b = self._buffers((y1 - y0) * per_row)
         arow = b["arow"] if self.per_pixel else self.shared_arow
-        kern.load_tile(self.meas, self.var, self.valid, self.has_valid, self.rows,
-                       self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], arow)
+        partial = kern.load_tile(self.meas, self.var, self.valid, self.has_valid, self.rows,
+                                 self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], arow)
         kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, b["flags"], lanes,
                           self.min_snr, self.out_max, self.cal_sd, self.with_cal, b["x"],
                           b["sg"], b["sn"], b["res"], b["nok"], b["keys"])
         kern.store_tile(c, y0, y1, b["x"], b["sg"], b["sn"], b["res"], b["flags"], b["nok"],
                         self.with_cal, mueller, sigma, sigma_noise, residual, mask, n_used)
+        if not partial:  # every pixel uses all its samples: the state set's condition
+            pix_cond[c, y0:y1] = self.patterns.cond_all
+            return
         keys = b["keys"].reshape(-1, y1 - y0, per_row * lanes)[:, :, :width].reshape(
             -1, (y1 - y0) * width).T
         cond = self.patterns.conditions(keys)
