@@ -295,18 +295,6 @@ def _triangular_solve(linv, dsc, b, tmp, out):  # pragma: no cover - compiled
 
 
 @_jit()
-def _matvec(ainv, b, out):  # pragma: no cover - compiled
-    """``out = A^-1 b`` per lane."""
-    d9, nl = b.shape
-    for ii in range(d9):
-        for q in range(nl):
-            out[ii, q] = ainv[ii, 0, q] * b[0, q]
-        for ll in range(1, d9):
-            for q in range(nl):
-                out[ii, q] += ainv[ii, ll, q] * b[ll, q]
-
-
-@_jit()
 def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, acc
                           ):  # pragma: no cover - compiled
     """``acc_i = sum_p (G sigma_p e_p)_i^2`` per lane over the 12 analyzer and 2 generator
@@ -316,8 +304,9 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, a
     d9, nl = x.shape
     n = s.shape[0]
     acc[...] = 0.0
+    sg_gain, sg_ang, sg_dia = cal_sd[0], cal_sd[1], cal_sd[2]
     for j in range(4):
-        if cal_sd[0] == 0.0 and cal_sd[1] == 0.0 and cal_sd[2] == 0.0:
+        if sg_gain == 0.0 and sg_ang == 0.0 and sg_dia == 0.0:
             break
         for ii in range(d9):
             for b in range(3):
@@ -325,64 +314,82 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, a
                     pj[ii, b, q] = (ainv[ii, b, q] * arow[j, 0, q]
                                     + ainv[ii, 3 + b, q] * arow[j, 1, q]
                                     + ainv[ii, 6 + b, q] * arow[j, 2, q])
-        for par in range(3):
-            sd = cal_sd[par]
-            if sd == 0.0:
-                continue
-            for q in range(nl):
-                a0, a1, a2 = arow[j, 0, q], arow[j, 1, q], arow[j, 2, q]
-                if par == 0:  # relative gain: da = a
-                    d0, d1, d2 = a0, a1, a2
-                elif par == 1:  # orientation, per rad
-                    d0, d1, d2 = 0.0, -2.0 * a2, 2.0 * a1
-                else:  # diattenuation: a_0 (0, cos 2t, sin 2t)
-                    nrm = np.sqrt(a1 * a1 + a2 * a2)
-                    f = a0 / nrm if nrm > 0 else 0.0
-                    d0, d1, d2 = 0.0, f * a1, f * a2
-                # u = M^T da, e = sd T_j u
-                u0 = d0 * x[0, q] + d1 * x[3, q] + d2 * x[6, q]
-                u1 = d0 * x[1, q] + d1 * x[4, q] + d2 * x[7, q]
-                u2 = d0 * x[2, q] + d1 * x[5, q] + d2 * x[8, q]
-                e[0, q] = (t[j, 0, 0, q] * u0 + t[j, 0, 1, q] * u1 + t[j, 0, 2, q] * u2) * sd
-                e[1, q] = (t[j, 1, 0, q] * u0 + t[j, 1, 1, q] * u1 + t[j, 1, 2, q] * u2) * sd
-                e[2, q] = (t[j, 2, 0, q] * u0 + t[j, 2, 1, q] * u1 + t[j, 2, 2, q] * u2) * sd
-            for ii in range(d9):
-                for q in range(nl):
-                    zi = pj[ii, 0, q] * e[0, q] + pj[ii, 1, q] * e[1, q] + pj[ii, 2, q] * e[2, q]
-                    acc[ii, q] += zi * zi
-    for gq in range(2):
-        sd = cal_sd[3 + gq]
-        if sd == 0.0:
-            continue
-        e[...] = 0.0
-        for j in range(4):
-            for q in range(nl):  # u = M^T a_j
-                u[0, q] = arow[j, 0, q] * x[0, q] + arow[j, 1, q] * x[3, q] + arow[j, 2, q] * x[6, q]
-                u[1, q] = arow[j, 0, q] * x[1, q] + arow[j, 1, q] * x[4, q] + arow[j, 2, q] * x[7, q]
-                u[2, q] = arow[j, 0, q] * x[2, q] + arow[j, 1, q] * x[5, q] + arow[j, 2, q] * x[8, q]
-            for q in range(nl):  # v = sum_k w_kj (u . ds_k) sd s_k
-                u[3, q] = 0.0
-                u[4, q] = 0.0
-                u[5, q] = 0.0
-            for k in range(n):
-                r = 4 * k + j
-                g0, g1, g2 = ds_gen[gq, k, 0], ds_gen[gq, k, 1], ds_gen[gq, k, 2]
-                s0, s1, s2 = s[k, 0] * sd, s[k, 1] * sd, s[k, 2] * sd
-                for q in range(nl):
-                    ekj = w[r, q] * (u[0, q] * g0 + u[1, q] * g1 + u[2, q] * g2)
-                    u[3, q] += ekj * s0
-                    u[4, q] += ekj * s1
-                    u[5, q] += ekj * s2
-            for a in range(3):  # e += a_j (x) v
-                for q in range(nl):
-                    aj = arow[j, a, q]
-                    e[3 * a, q] += aj * u[3, q]
-                    e[3 * a + 1, q] += aj * u[4, q]
-                    e[3 * a + 2, q] += aj * u[5, q]
-        _matvec(ainv, e, z)
+        # e[3 p + b] = sd_p (T_j M^T da_p)_b for gain, orientation (per rad), diattenuation
+        for q in range(nl):
+            a0, a1, a2 = arow[j, 0, q], arow[j, 1, q], arow[j, 2, q]
+            nrm = np.sqrt(a1 * a1 + a2 * a2)
+            f = a0 / nrm if nrm > 0 else 0.0
+            # M^T a (gain) and M^T (0, c, s) for the orientation (0, -2 a2, 2 a1) and the
+            # diattenuation f (0, a1, a2) derivatives
+            g0 = a0 * x[0, q] + a1 * x[3, q] + a2 * x[6, q]
+            g1 = a0 * x[1, q] + a1 * x[4, q] + a2 * x[7, q]
+            g2 = a0 * x[2, q] + a1 * x[5, q] + a2 * x[8, q]
+            o0 = 2.0 * (a1 * x[6, q] - a2 * x[3, q])
+            o1 = 2.0 * (a1 * x[7, q] - a2 * x[4, q])
+            o2 = 2.0 * (a1 * x[8, q] - a2 * x[5, q])
+            h0 = f * (a1 * x[3, q] + a2 * x[6, q])
+            h1 = f * (a1 * x[4, q] + a2 * x[7, q])
+            h2 = f * (a1 * x[5, q] + a2 * x[8, q])
+            for b in range(3):
+                tb0, tb1, tb2 = t[j, b, 0, q], t[j, b, 1, q], t[j, b, 2, q]
+                e[b, q] = (tb0 * g0 + tb1 * g1 + tb2 * g2) * sg_gain
+                e[3 + b, q] = (tb0 * o0 + tb1 * o1 + tb2 * o2) * sg_ang
+                e[6 + b, q] = (tb0 * h0 + tb1 * h1 + tb2 * h2) * sg_dia
         for ii in range(d9):
             for q in range(nl):
-                acc[ii, q] += z[ii, q] * z[ii, q]
+                p0, p1, p2 = pj[ii, 0, q], pj[ii, 1, q], pj[ii, 2, q]
+                z0 = p0 * e[0, q] + p1 * e[1, q] + p2 * e[2, q]
+                z1 = p0 * e[3, q] + p1 * e[4, q] + p2 * e[5, q]
+                z2 = p0 * e[6, q] + p1 * e[7, q] + p2 * e[8, q]
+                acc[ii, q] += z0 * z0 + z1 * z1 + z2 * z2
+    sg_zero, sg_er = cal_sd[3], cal_sd[4]
+    if sg_zero == 0.0 and sg_er == 0.0:
+        return
+    # right-hand sides of the stage zero offset (e) and 1/ER (z), both at once
+    for ii in range(d9):
+        for q in range(nl):
+            e[ii, q] = 0.0
+            z[ii, q] = 0.0
+    for j in range(4):
+        for q in range(nl):  # u = M^T a_j; v, v' = sum_k w_kj (u . ds_k) sd s_k
+            u[0, q] = arow[j, 0, q] * x[0, q] + arow[j, 1, q] * x[3, q] + arow[j, 2, q] * x[6, q]
+            u[1, q] = arow[j, 0, q] * x[1, q] + arow[j, 1, q] * x[4, q] + arow[j, 2, q] * x[7, q]
+            u[2, q] = arow[j, 0, q] * x[2, q] + arow[j, 1, q] * x[5, q] + arow[j, 2, q] * x[8, q]
+            for b in range(3, 9):
+                u[b, q] = 0.0
+        for k in range(n):
+            r = 4 * k + j
+            f0, f1, f2 = (ds_gen[0, k, 0] * sg_zero, ds_gen[0, k, 1] * sg_zero,
+                          ds_gen[0, k, 2] * sg_zero)
+            h0, h1, h2 = ds_gen[1, k, 0] * sg_er, ds_gen[1, k, 1] * sg_er, ds_gen[1, k, 2] * sg_er
+            s0, s1, s2 = s[k, 0], s[k, 1], s[k, 2]
+            for q in range(nl):
+                wr = w[r, q]
+                ez = wr * (u[0, q] * f0 + u[1, q] * f1 + u[2, q] * f2)
+                ee = wr * (u[0, q] * h0 + u[1, q] * h1 + u[2, q] * h2)
+                u[3, q] += ez * s0
+                u[4, q] += ez * s1
+                u[5, q] += ez * s2
+                u[6, q] += ee * s0
+                u[7, q] += ee * s1
+                u[8, q] += ee * s2
+        for a in range(3):  # += a_j (x) v
+            for q in range(nl):
+                aj = arow[j, a, q]
+                e[3 * a, q] += aj * u[3, q]
+                e[3 * a + 1, q] += aj * u[4, q]
+                e[3 * a + 2, q] += aj * u[5, q]
+                z[3 * a, q] += aj * u[6, q]
+                z[3 * a + 1, q] += aj * u[7, q]
+                z[3 * a + 2, q] += aj * u[8, q]
+    for ii in range(d9):  # acc += (A^-1 e)^2 + (A^-1 z)^2
+        for q in range(nl):
+            ge = 0.0
+            gz = 0.0
+            for ll in range(9):
+                ge += ainv[ii, ll, q] * e[ll, q]
+                gz += ainv[ii, ll, q] * z[ll, q]
+            acc[ii, q] += ge * ge + gz * gz
 
 
 @_jit()
