@@ -165,8 +165,10 @@ def store_tile(c, y0, y1, x, sg, sn, res, flags, nok, with_cal, mueller, sigma, 
 
 
 @_jit()
-def _normal_equations(s, w, mv, arow, t, rj, amat, rhs):  # pragma: no cover - compiled
-    """``T_j``, ``r_j``, then the lower triangle of ``D^T W D`` and ``D^T W I`` per lane."""
+def _normal_equations(s, w, mv, arow, per_pixel_rows, t, rj, amat, rhs
+                      ):  # pragma: no cover - compiled
+    """``T_j``, ``r_j``, then the lower triangle of ``D^T W D`` and ``D^T W I`` per lane
+    (``arow`` ``(4, 3, L)``: the same in every lane unless ``per_pixel_rows``)."""
     d9, nl = rhs.shape
     n = s.shape[0]
     t[...] = 0.0
@@ -197,11 +199,20 @@ def _normal_equations(s, w, mv, arow, t, rj, amat, rhs):  # pragma: no cover - c
         for ll in range(ii + 1):
             la = ll // 3
             lb = ll - 3 * la
-            for q in range(nl):
-                amat[ii, ll, q] = (arow[0, ia, q] * arow[0, la, q] * t[0, ib, lb, q]
-                                   + arow[1, ia, q] * arow[1, la, q] * t[1, ib, lb, q]
-                                   + arow[2, ia, q] * arow[2, la, q] * t[2, ib, lb, q]
-                                   + arow[3, ia, q] * arow[3, la, q] * t[3, ib, lb, q])
+            if per_pixel_rows:
+                for q in range(nl):
+                    amat[ii, ll, q] = (arow[0, ia, q] * arow[0, la, q] * t[0, ib, lb, q]
+                                       + arow[1, ia, q] * arow[1, la, q] * t[1, ib, lb, q]
+                                       + arow[2, ia, q] * arow[2, la, q] * t[2, ib, lb, q]
+                                       + arow[3, ia, q] * arow[3, la, q] * t[3, ib, lb, q])
+            else:  # the same products, with the lane-independent factors hoisted
+                c0 = arow[0, ia, 0] * arow[0, la, 0]
+                c1 = arow[1, ia, 0] * arow[1, la, 0]
+                c2 = arow[2, ia, 0] * arow[2, la, 0]
+                c3 = arow[3, ia, 0] * arow[3, la, 0]
+                for q in range(nl):
+                    amat[ii, ll, q] = (c0 * t[0, ib, lb, q] + c1 * t[1, ib, lb, q]
+                                       + c2 * t[2, ib, lb, q] + c3 * t[3, ib, lb, q])
         for q in range(nl):
             rhs[ii, q] = (arow[0, ia, q] * rj[0, ib, q] + arow[1, ia, q] * rj[1, ib, q]
                           + arow[2, ia, q] * rj[2, ib, q] + arow[3, ia, q] * rj[3, ib, q])
@@ -295,8 +306,8 @@ def _triangular_solve(linv, dsc, b, tmp, out):  # pragma: no cover - compiled
 
 
 @_jit()
-def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, acc
-                          ):  # pragma: no cover - compiled
+def _calibration_variance(s, ds_gen, cal_sd, w, arow, per_pixel_rows, t, x, ainv, pj, e, z, u,
+                          acc):  # pragma: no cover - compiled
     """``acc_i = sum_p (G sigma_p e_p)_i^2`` per lane over the 12 analyzer and 2 generator
     parameters (:mod:`polrig.reference`, "Calibration uncertainty"); ``x`` the estimate,
     ``ainv`` the full ``A^-1``. An analyzer parameter of row ``j`` has
@@ -308,12 +319,18 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, a
     for j in range(4):
         if sg_gain == 0.0 and sg_ang == 0.0 and sg_dia == 0.0:
             break
+        c0, c1, c2 = arow[j, 0, 0], arow[j, 1, 0], arow[j, 2, 0]
         for ii in range(d9):
             for b in range(3):
-                for q in range(nl):
-                    pj[ii, b, q] = (ainv[ii, b, q] * arow[j, 0, q]
-                                    + ainv[ii, 3 + b, q] * arow[j, 1, q]
-                                    + ainv[ii, 6 + b, q] * arow[j, 2, q])
+                if per_pixel_rows:
+                    for q in range(nl):
+                        pj[ii, b, q] = (ainv[ii, b, q] * arow[j, 0, q]
+                                        + ainv[ii, 3 + b, q] * arow[j, 1, q]
+                                        + ainv[ii, 6 + b, q] * arow[j, 2, q])
+                else:  # the same products, lane-independent factors hoisted
+                    for q in range(nl):
+                        pj[ii, b, q] = (ainv[ii, b, q] * c0 + ainv[ii, 3 + b, q] * c1
+                                        + ainv[ii, 6 + b, q] * c2)
         # e[3 p + b] = sd_p (T_j M^T da_p)_b for gain, orientation (per rad), diattenuation
         for q in range(nl):
             a0, a1, a2 = arow[j, 0, q], arow[j, 1, q], arow[j, 2, q]
@@ -393,13 +410,15 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, t, x, ainv, pj, e, z, u, a
 
 
 @_jit()
-def solve_blocks(s, ds_gen, w, mv, arow, flags, lanes, min_snr, out_max, cal_sd, with_cal,
-                 x_out, sg_out, sn_out, res_out, nok, keys):  # pragma: no cover - compiled
+def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, out_max, cal_sd,
+                 with_cal, x_out, sg_out, sn_out, res_out, nok, keys
+                 ):  # pragma: no cover - compiled
     """Solve the blocks of a tile loaded by :func:`load_tile` as if every pixel's used samples
     determined M (the caller masks those whose used design is too ill-conditioned).
 
     ``s`` ``(N, 3)``; ``ds_gen`` ``(2, N, 3)`` the generator state derivatives (zero offset
-    per rad, 1/ER); ``arow`` ``(B, 4, 3, L)`` per pixel or ``(1, 4, 3, L)`` shared;
+    per rad, 1/ER); ``arow`` ``(B, 4, 3, L)`` with ``per_pixel_rows``, else ``(1, 4, 3, L)``
+    the same rows in every lane;
     ``lanes`` = ``L`` (passed at run time: a constant trip count makes LLVM unroll every loop,
     which multiplies the compile time and defeats the vectoriser); ``out_max`` the largest
     magnitude the output dtype holds; ``cal_sd`` the 5 calibration standard deviations (used
@@ -424,11 +443,10 @@ def solve_blocks(s, ds_gen, w, mv, arow, flags, lanes, min_snr, out_max, cal_sd,
     vec = np.empty((8, d9, nl))
     dsc, rl, rhs, e, z, acc, u, chi2 = (vec[0], vec[1], vec[2], vec[3], vec[4], vec[5],
                                         vec[6], vec[7])
-    per_pixel = arow.shape[0] > 1
     for blk in range(w.shape[0]):
         wb = w[blk]
         mb = mv[blk]
-        ab = arow[blk if per_pixel else 0]
+        ab = arow[blk if per_pixel_rows else 0]
         x = x_out[blk]
         sn = sn_out[blk]
         sg = sg_out[blk]
@@ -444,7 +462,7 @@ def solve_blocks(s, ds_gen, w, mv, arow, flags, lanes, min_snr, out_max, cal_sd,
                 use = wb[r, q] > 0
                 nok[blk, q] += 1 if use else 0
                 keys[wd, blk * nl + q] |= bit if use else 0
-        _normal_equations(s, wb, mb, ab, t, rj, amat, rhs)
+        _normal_equations(s, wb, mb, ab, per_pixel_rows, t, rj, amat, rhs)
         _factor(amat, dsc, low, rl, bad)
         # estimate and noise sigma: the same operations with and without the calibration term
         _triangular_solve(low, dsc, rhs, e, x)
@@ -458,7 +476,8 @@ def solve_blocks(s, ds_gen, w, mv, arow, flags, lanes, min_snr, out_max, cal_sd,
                 sn[ll, q] = dsc[ll, q] * np.sqrt(acc[ll, q])
         if with_cal:
             _inverse(low, dsc, amat)
-            _calibration_variance(s, ds_gen, cal_sd, wb, ab, t, x, amat, pj, e, z, u, acc)
+            _calibration_variance(s, ds_gen, cal_sd, wb, ab, per_pixel_rows, t, x, amat, pj, e,
+                                  z, u, acc)
             for ll in range(d9):
                 for q in range(nl):
                     sg[ll, q] = np.sqrt(sn[ll, q] * sn[ll, q] + acc[ll, q])

@@ -522,9 +522,10 @@ class _TileRun:
         arow = b["arow"] if self.per_pixel else self.shared_arow
         partial = kern.load_tile(self.meas, self.var, self.valid, self.has_valid, self.rows,
                                  self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], arow)
-        kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, b["flags"], lanes,
-                          self.min_snr, self.out_max, self.cal_sd, self.with_cal, b["x"],
-                          b["sg"], b["sn"], b["res"], b["nok"], b["keys"])
+        kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, self.per_pixel,
+                          b["flags"], lanes, self.min_snr, self.out_max, self.cal_sd,
+                          self.with_cal, b["x"], b["sg"], b["sn"], b["res"], b["nok"],
+                          b["keys"])
         kern.store_tile(c, y0, y1, b["x"], b["sg"], b["sn"], b["res"], b["flags"], b["nok"],
                         self.with_cal, mueller, sigma, sigma_noise, residual, mask, n_used)
         if not partial:  # every pixel uses all its samples: the state set's condition
