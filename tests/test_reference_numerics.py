@@ -156,6 +156,18 @@ def test_bit_identical_for_any_tile_size_and_thread_count(monkeypatch):
             assert getattr(r, name).tobytes() == getattr(runs[0], name).tobytes(), name
 
 
+def test_shared_rows_and_the_same_rows_per_pixel_agree_bit_for_bit():
+    rng = np.random.default_rng(9)
+    s = states(0, 45, 90, 135)
+    meas, var, valid = noisy_capture(rng, s, 2, 5, 70, exclude=0.05)
+    rows = np.broadcast_to(ideal_analyzer_matrix()[None, :, :, None, None], (2, 4, 3, 5, 70))
+    kw = dict(analyzer_tolerance=A_TOL, generator_tolerance=G_TOL, dtype=np.float64)
+    shared = ref.solve_reference(s, meas, var, valid, **kw)
+    per_pixel = ref.solve_reference(s, meas, var, valid, rows, **kw)
+    for name in ("mueller", "sigma", "sigma_noise", "residual", "mask", "pixel_condition"):
+        assert getattr(shared, name).tobytes() == getattr(per_pixel, name).tobytes(), name
+
+
 def test_float32_inputs_are_not_copied():
     """A float32 capture is read in place: the solve allocates its outputs plus per-thread
     tile buffers, far less than one float64 copy of the samples."""
