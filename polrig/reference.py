@@ -59,8 +59,8 @@ determine ``M`` well. ``ILL_CONDITIONED`` means the remaining samples do not (co
 of the remaining design above ``max_condition``, fewer than 9 samples, or a normal matrix that
 is not positive definite to working precision), or that the estimate, its sigma or the
 residual is not finite or does not fit the output dtype (e.g. beyond float32's 3.4e38): its
-Mueller matrix, sigma and residual are 0 (finite, never NaN or inf). ``DARK`` means ``m00`` is below ``min_snr`` times
-its own standard deviation; the estimate is kept.
+Mueller matrix, sigma and residual are 0 (finite, never NaN or inf). ``DARK`` means ``m00``
+is below ``min_snr`` times its own standard deviation; the estimate is kept.
 
 **Calibration uncertainty** (:func:`solve_reference` ``analyzer_tolerance`` /
 ``generator_tolerance``). The solve assumes analyzer rows ``A0`` and incident states ``S``; the
@@ -337,12 +337,14 @@ def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarr
 
 
 # ---------------------------------------------------------------------------- solve
-#: pixels per tile of the solve: the sample patterns of a tile are classified together, and
-#: the only per-tile allocation is its 8 bytes per pixel of pattern keys
+#: pixels per tile of the solve (rounded to whole rows): big enough to amortise the per-tile
+#: Python work, small enough for the tile buffers to stay in L2 (measured: 1024 px 1.5x,
+#: 16384 px 1.05x, 65536 px 1.15x the CPU time of 4096 px)
 DEFAULT_TILE_PIXELS = 4096
 
 
-def _solve_options(max_condition, min_snr, dtype, chunk_pixels) -> tuple[float, float, np.dtype, int]:
+def _solve_options(max_condition, min_snr, dtype, chunk_pixels
+                   ) -> tuple[float, float, np.dtype, int]:
     """Check the scalar options of :func:`solve_reference` (one-line ConfigError each)."""
     max_condition = _max_condition(max_condition)
     try:
@@ -397,13 +399,17 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     in deg, ``1/ER``): 1-sigma uncertainty of ``analyzer_rows`` and ``s_in``, propagated into
     ``sigma`` (module docstring); ``None`` or zeros: exact, ``sigma`` is the noise part alone.
 
-    ``chunk_pixels``: pixels per tile, rounded to whole image rows (memory beyond the
-    outputs: 16 bytes per pixel of a tile; results do not depend on it). ``dtype``: float32 (the conventions) or float64, of
-    the ``mueller``, ``sigma`` and ``residual`` outputs; a pixel whose estimate, sigma or
-    residual does not fit it (float32 overflow) is ``ILL_CONDITIONED`` with zero outputs.
+    ``chunk_pixels``: pixels per tile, rounded to whole image rows (the memory beyond the
+    outputs is about 600 bytes per pixel of a tile and thread: float64 tile buffers; the
+    default keeps them in the CPU's L2 cache). ``dtype``: float32 (the conventions) or
+    float64, of the ``mueller``, ``sigma`` and ``residual`` outputs; a pixel whose estimate,
+    sigma or residual does not fit it (float32 overflow) is ``ILL_CONDITIONED`` with zero
+    outputs.
 
     Results are bit-identical for any ``chunk_pixels`` and thread count (each pixel is solved
-    by one fixed sequence of float64 operations, :mod:`polrig._reference_kernel`).
+    by one fixed sequence of float64 operations, :mod:`polrig._reference_kernel`). Tiles run
+    on ``polrig._reference_kernel.THREADS`` threads (``NUMBA_NUM_THREADS``, default the
+    CPUs this process may use).
 
     Raises :class:`polrig.errors.ConfigError` for a bad state set (fewer than 3, collinear,
     condition number above ``max_condition``) or a bad option (``max_condition``,
