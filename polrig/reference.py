@@ -466,8 +466,14 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
         n_threads = min(len(tiles), kern.THREADS)
         if n_threads > 1:
             with ThreadPoolExecutor(n_threads, thread_name_prefix="reference-solve") as pool:
-                for _ in pool.map(run, tiles):
-                    pass
+                futures = [pool.submit(run, t) for t in tiles]
+                try:
+                    for f in futures:
+                        f.result()
+                except BaseException:  # an error or Ctrl-C: do not solve the remaining tiles
+                    for f in futures:
+                        f.cancel()
+                    raise
         else:
             for t in tiles:
                 run(t)
