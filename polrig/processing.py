@@ -1,14 +1,7 @@
 """Turn a capture's raw frames into Mueller images (with uncertainty and mask), and score them.
 
-Array level (pure functions, ``docs/conventions.md`` layouts and units):
-
-* :func:`state_radiance` -- K frames (and an exposure bracket) of one polarizer state ->
-  black/dark-subtracted mean mosaic in DN at the reference exposure, its variance from the
-  sensor noise model, and the samples to exclude (saturated).
-* :func:`analyzer_stack` -- demosaic mosaics, variances and exclusions into analyzer images
-  ``(C, 4, H', W')``.
-* :func:`reference_from_frames` -- all states -> :class:`polrig.reference.ReferenceResult`.
-* :func:`score_against_truth` -- error of a result against a truth Mueller image.
+Array level: :mod:`polrig.radiometry` (state radiance, demosaic, solve) and
+:mod:`polrig.scoring` (truth on the output grid, score); their names are re-exported here.
 
 Session level: :class:`Processor` (used by :func:`polrig.capture.run_session`) reads a
 capture's raw frames back from the session (checksums verified), solves, writes
@@ -28,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import os
 import pathlib
 import tempfile
@@ -37,15 +29,18 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from polrig.analyzer import AnalyzerModel, resolve_layout
-from polrig.demosaic import class_positions, demosaic_float
+from polrig.demosaic import demosaic_float
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.hal import Frame
 from polrig.layouts import MosaicLayout
 from polrig.mueller import polarizer_stokes
 from polrig.noise import SensorModel
+from polrig.radiometry import (StateRadiance, adc_scale, analyzer_stack,  # noqa: F401 (re-exported)
+                               reference_from_frames, state_radiance)
 from polrig.rawio import read_raw
-from polrig.reference import (ReferenceResult, reason_names, solve_reference,
-                              validate_states, merge_hdr)
+from polrig.reference import ReferenceResult, reason_names, validate_states
+from polrig.scoring import (_psnr_db, format_score, score_against_truth,  # noqa: F401 (re-exported)
+                            truth_on_output_grid)
 from polrig.session import (COMPLETE, FAILED, PENDING, Session, SignalGuard,
                             interruption_reason, sha256_file)
 
@@ -366,233 +361,6 @@ def sensor_model_of(rig) -> SensorModel:
     if isinstance(sm, dict):
         return SensorModel(**sm)
     return SensorModel()
-
-
-def adc_scale(model: SensorModel, bit_depth: int) -> float:
-    """Factor from the DN of frames delivered with ``bit_depth`` bits to the DN of the ADC the
-    noise model describes (a 12-bit ADC read out as Mono16 delivers values times 16: the
-    factor is 1/16). Results are always in ADC DN, whatever the pixel format."""
-    return 2.0 ** (int(model.bit_depth) - int(bit_depth))
-
-
-# -- array level -------------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True)
-class StateRadiance:
-    """One state's mosaic ``(H, W)``: ``signal_dn`` (black/dark-subtracted, at the reference
-    exposure), ``variance_dn2`` and ``excluded`` (bool, saturated in every exposure)."""
-
-    signal_dn: np.ndarray
-    variance_dn2: np.ndarray
-    excluded: np.ndarray
-
-
-def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Sequence[float],
-                   model: SensorModel, *, black_level_dn: float = 0.0,
-                   darks: Sequence[Sequence[np.ndarray]] | None = None) -> StateRadiance:
-    """Mean black-subtracted mosaic of one polarizer state.
-
-    ``brackets[e]``: the K raw frames ``(H, W)`` taken at ``exposures_us[e]``; ``darks[e]``:
-    dark frames at that exposure (light off) or ``None``/empty (subtract ``black_level_dn``
-    only). A sample is excluded when any of its frames reaches the saturation level
-    (``black + model.saturation_dn``); several exposures are merged by
-    :func:`polrig.reference.merge_hdr` at ``exposures_us[0]`` (the reference exposure).
-    """
-    if len(brackets) != len(exposures_us) or not brackets:
-        raise ValueError("one list of frames per exposure is needed")
-    sat_raw = black_level_dn + model.saturation_dn
-    means, variances, sats = [], [], []
-    for e, frames in enumerate(brackets):
-        f = np.asarray(frames, dtype=np.float64)
-        k = f.shape[0]
-        mean = f.mean(axis=0)
-        sat = (f >= sat_raw).any(axis=0)
-        dark_list = darks[e] if darks else None
-        if dark_list is not None and len(dark_list):
-            d = np.asarray(dark_list, dtype=np.float64)
-            offset = d.mean(axis=0)
-            dark_var = model.variance_dn2(0.0, exposures_us[e], d.shape[0])
-            signal = mean - offset
-            # the dark mean already holds the mean dark signal: the photo-signal is what is left
-            var = model.variance_dn2(signal, exposures_us[e], k) + dark_var
-        else:
-            dark_dn = model.dark_electrons(exposures_us[e]) / model.gain_e_per_dn
-            signal = mean - black_level_dn - dark_dn
-            var = model.variance_dn2(signal, exposures_us[e], k)
-        means.append(signal)
-        variances.append(var)
-        sats.append(sat)
-    if len(brackets) == 1:
-        return StateRadiance(means[0], variances[0], sats[0])
-    # merge_hdr excludes samples >= saturation_dn: mark the saturated ones that way
-    marked = [np.where(s, np.inf, m) for m, s in zip(means, sats)]
-    radiance, variance, valid = merge_hdr(list(zip(marked, exposures_us)), model.saturation_dn,
-                                          model, reference_exposure_us=exposures_us[0],
-                                          n_frames=len(brackets[0]))
-    return StateRadiance(radiance, variance, ~valid)
-
-
-def analyzer_stack(state: StateRadiance, layout: MosaicLayout, method: str,
-                   analyzer: AnalyzerModel | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """Demosaic one state: ``(measured, variance, valid, rows)``, the first three
-    ``(C, 4, H', W')`` and ``rows`` ``(C, 4, 3, H', W')`` (``None`` for the ideal analyzer).
-
-    A calibrated ``analyzer`` (of this readout) has its offsets removed from the signal and its
-    per-pixel rows carried to the output grid by the same demosaic.
-    """
-    signal = np.asarray(state.signal_dn, dtype=np.float64)
-    rows = None
-    if analyzer is not None:
-        if analyzer.shape != signal.shape:
-            raise ValueError(f"analyzer model {analyzer.shape} does not match frames "
-                             f"{signal.shape}")
-        signal = signal - analyzer.offset_dn
-        r = analyzer.rows()
-        rows = np.stack([demosaic_float(r[..., i].astype(np.float32), layout, method)
-                         for i in range(3)], axis=2)
-    measured = demosaic_float(signal.astype(np.float32), layout, method)
-    variance = demosaic_float(np.asarray(state.variance_dn2, np.float32), layout, method)
-    if method == "superpixel":
-        counts = np.zeros((layout.n_colours, 4), np.float32)
-        for (c, k), pos in class_positions(layout).items():
-            counts[c, k] = len(pos)
-        variance = variance / counts[:, :, None, None]
-    bad = demosaic_float(state.excluded.astype(np.float32), layout, method)
-    valid = ~(bad > 0)
-    return measured, variance, valid, rows
-
-
-def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
-                          layout: str | MosaicLayout, method: str = "superpixel",
-                          analyzer: AnalyzerModel | None = None, *,
-                          analyzer_tolerance: Sequence[float] | None = None,
-                          generator_tolerance: Sequence[float] | None = None
-                          ) -> ReferenceResult:
-    """The reference solve of all states (see :func:`polrig.reference.solve_reference`;
-    the tolerances are the calibration's, :class:`Calibration`)."""
-    lay = resolve_layout(layout)
-    parts = [analyzer_stack(s, lay, method, analyzer) for s in states]
-    measured = np.stack([p[0] for p in parts])
-    variance = np.stack([p[1] for p in parts])
-    valid = np.stack([p[2] for p in parts])
-    rows = parts[0][3]
-    return solve_reference(s_in, measured, variance, valid, rows,
-                           analyzer_tolerance=analyzer_tolerance,
-                           generator_tolerance=generator_tolerance)
-
-
-# -- truth and score ---------------------------------------------------------------------------
-def truth_on_output_grid(truth_mueller: np.ndarray, layout: MosaicLayout, method: str,
-                         s_in: np.ndarray, weights_like: Sequence[StateRadiance] | None = None,
-                         model: SensorModel | None = None, exposure_us: float | None = None
-                         ) -> np.ndarray:
-    """The truth as a perfect rig at this resolution measures it: the noise-free estimate
-    from the per-pixel truth Mueller image ``(C, 3, 3, H, W)`` (each sensor pixel sees its own
-    pixel's matrix, ideal analyzers, incident states ``s_in``), demosaiced with ``method`` and
-    solved exactly as a capture is processed. Returns ``(C, 3, 3, H', W')``.
-
-    The weights matter where the truth varies inside a pixel's support (the estimate mixes
-    the matrices of the pixels it draws on): ``weights_like`` (the capture's own states) gives
-    the sample variances and exclusions to use, so that the result is the expectation of that
-    capture's estimator; without it the noise model's variance of the noise-free signal at
-    ``exposure_us`` is used. Where the truth is uniform over a pixel's support the result is
-    the truth itself, whatever the weights.
-    """
-    t = np.asarray(truth_mueller, dtype=np.float64)
-    h, w = t.shape[-2:]
-    ideal = AnalyzerModel.ideal(layout, (h, w))
-    states = []
-    for k, s in enumerate(np.asarray(s_in, dtype=np.float64)):
-        mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", t, s))
-        if weights_like is not None:
-            like = weights_like[k]
-            states.append(StateRadiance(mosaic, like.variance_dn2, like.excluded))
-        else:
-            if model is None or exposure_us is None:
-                raise ValueError("give weights_like, or model and exposure_us")
-            states.append(StateRadiance(mosaic, model.variance_dn2(mosaic, exposure_us),
-                                        np.zeros(mosaic.shape, bool)))
-    return reference_from_frames(states, s_in, layout, method).mueller
-
-
-def score_against_truth(result: ReferenceResult, truth: np.ndarray,
-                        object_mask: np.ndarray | None = None) -> dict[str, Any]:
-    """Error of ``result`` against ``truth`` ``(C, 3, 3, H, W)`` on the same grid (normally
-    :func:`truth_on_output_grid`) over the pixels valid in the result (mask 0) and inside
-    ``object_mask`` ``(H, W)`` if given.
-
-    ``rmse``/``mae`` (DN per unit S0) over the 9 elements; ``psnr_db`` = 20 log10(peak / rmse)
-    with ``peak`` the largest truth ``m00`` compared (``|m_ij| <= m00`` for a physical matrix:
-    the matrix PSNR in the units of the data; ``inf`` for an exact result, ``None`` where the
-    truth is dark over every compared pixel, e.g. an object turned so that only its unlit back
-    faces the camera: the PSNR has no peak then, and ``rmse`` still says how far from 0 the
-    result is); ``within_2sigma``: fraction of elements with
-    ``|error| <= 2 sigma`` (0.954 for Gaussian errors when sigma is right);
-    ``chi2_per_element``: mean ``(error / sigma)^2`` (1 when sigma is right); ``mean_sigma``:
-    root-mean-square reported sigma (noise and calibration), the predicted error (comparable with
-    ``rmse``); ``realizable``: pass rate of the coherency test
-    (:func:`polrig.realizability.is_physical_linear`) of the measured matrices.
-    """
-    from polrig.realizability import is_physical_linear
-
-    m = np.asarray(result.mueller, np.float64)
-    s = np.asarray(result.sigma, np.float64)
-    t = np.asarray(truth, np.float64)
-    if m.shape != t.shape:
-        raise ValueError(f"result {m.shape} and truth {t.shape} differ in shape")
-    use = result.valid.copy()
-    if object_mask is not None:
-        use &= np.asarray(object_mask, bool)[None]
-    n = int(use.sum())
-    out: dict[str, Any] = {"pixels_compared": n,
-                           "pixels_valid": int(result.valid.sum()),
-                           "pixels_total": int(result.valid.size),
-                           "mask_counts": result.reason_counts(),
-                           "condition_number": (float(result.condition_number)
-                                                if math.isfinite(result.condition_number)
-                                                else None)}
-    keys = ("rmse", "mae", "psnr_db", "within_2sigma", "chi2_per_element", "mean_sigma",
-            "peak_m00", "realizable")
-    out.update({k: None for k in keys})
-    if n == 0:
-        return out
-    err = (m - t).transpose(1, 2, 0, 3, 4)[:, :, use]  # (3, 3, n)
-    sig = s.transpose(1, 2, 0, 3, 4)[:, :, use]
-    peak = float(np.abs(t[:, 0, 0][use]).max())
-    rmse = float(np.sqrt(np.mean(err**2)))
-    pos = sig > 0
-    mats = m.transpose(0, 3, 4, 1, 2)[use]  # (n, 3, 3)
-    out.update(
-        rmse=rmse, mae=float(np.mean(np.abs(err))),
-        psnr_db=_psnr_db(peak, rmse),
-        within_2sigma=float(np.mean(np.abs(err[pos]) <= 2 * sig[pos])) if pos.any() else None,
-        chi2_per_element=float(np.mean((err[pos] / sig[pos]) ** 2)) if pos.any() else None,
-        mean_sigma=float(np.sqrt(np.mean(sig**2))) if pos.any() else None, peak_m00=peak,
-        realizable=float(np.mean(is_physical_linear(mats))))
-    return out
-
-
-def _psnr_db(peak: float, rmse: float) -> float | None:
-    """``20 log10(peak / rmse)``; ``inf`` when ``rmse`` is 0, ``None`` when ``peak`` is 0."""
-    if peak <= 0.0:
-        return None
-    return float(20 * math.log10(peak / rmse)) if rmse > 0 else float("inf")
-
-
-def format_score(score: dict[str, Any]) -> str:
-    """One line for a score dict (``polrig capture`` and ``polrig info``)."""
-    if not score or score.get("rmse") is None:
-        return "no pixels to score"
-    psnr = score["psnr_db"]
-    parts = [f"RMSE {score['rmse']:.4g}", f"MAE {score['mae']:.4g}",
-             "PSNR n/a (dark truth)" if psnr is None else f"PSNR {psnr:.1f} dB" if math.isfinite(psnr) else "PSNR inf"]
-    if score.get("mean_sigma") is not None:
-        parts.append(f"mean sigma {score['mean_sigma']:.4g}")
-    if score.get("within_2sigma") is not None:
-        parts.append(f"{100 * score['within_2sigma']:.1f}% within 2 sigma")
-    parts.append(f"realizable {100 * score['realizable']:.1f}%")
-    parts.append(f"{score['pixels_compared']} px")
-    return ", ".join(parts)
 
 
 # -- session level -------------------------------------------------------------------------------
