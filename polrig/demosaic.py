@@ -45,6 +45,7 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import os
+import threading
 
 import cv2
 import numpy as np
@@ -208,19 +209,26 @@ def _tent(period: int) -> np.ndarray:
 
 
 _PLAN_CACHE: dict[tuple, tuple] = {}
+_PLAN_LOCK = threading.Lock()
+#: Plans kept: a frame stream reuses one shape; a banded image has three (first, middle, last
+#: band) per layout.
+_PLAN_CACHE_SIZE = 4
 
 
 def _bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
     """Per class: the cell positions and the normalisation (1-D row/col reciprocals for
     separable class lattices, a full plane otherwise, ``None`` when it is exactly 1).
-    Memoised per layout pattern and image shape (the last two: a frame stream reuses one)."""
+    Memoised per layout pattern and image shape (the last few: a frame stream reuses one)."""
     key = (layout.angle_deg.tobytes(), layout.colour.tobytes(), layout.period,
            layout.n_colours, tuple(shape))
-    plan = _PLAN_CACHE.get(key)
+    with _PLAN_LOCK:  # bands of one image are demosaiced on several threads
+        plan = _PLAN_CACHE.get(key)
     if plan is None:
-        if len(_PLAN_CACHE) >= 2:  # colour plans hold full-size planes: keep few
-            _PLAN_CACHE.pop(next(iter(_PLAN_CACHE)))
-        plan = _PLAN_CACHE[key] = _make_bilinear_plan(layout, tuple(shape))
+        plan = _make_bilinear_plan(layout, tuple(shape))
+        with _PLAN_LOCK:
+            while len(_PLAN_CACHE) >= _PLAN_CACHE_SIZE:  # colour plans hold full-size planes
+                _PLAN_CACHE.pop(next(iter(_PLAN_CACHE)))
+            _PLAN_CACHE[key] = plan
     return plan
 
 

@@ -27,7 +27,9 @@ uncertainty planes may be kept in half precision (``uncertainty_dtype``).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 from typing import Sequence
 
 import numpy as np
@@ -52,6 +54,9 @@ def adc_scale(model: SensorModel, bit_depth: int) -> float:
 BAND_PIXELS = 2 ** 18
 #: Raw rows per band of :func:`state_radiance` (its float64 temporaries stay small).
 STATE_BAND_ROWS = 256
+#: Default band threads of :func:`reference_from_frames` (the CPU count, at most 4: the
+#: demosaic and the solve release the GIL; memory grows by one band per thread).
+WORKERS = min(4, os.cpu_count() or 1)
 #: Dtypes the uncertainty planes (``sigma``, ``sigma_noise``, ``residual``) may be kept in.
 UNCERTAINTY_DTYPES = (np.float32, np.float16)
 
@@ -158,7 +163,10 @@ def _demosaic_state(signal: np.ndarray, variance: np.ndarray, excluded: np.ndarr
     var = demosaic_float(np.asarray(variance, np.float32), layout, method)
     if method == "superpixel":
         var /= _superpixel_counts(layout)
-    bad = demosaic_float(np.asarray(excluded).astype(np.float32), layout, method)
+    excluded = np.asarray(excluded)
+    if not excluded.any():  # nothing to spread: every output sample is valid
+        return measured, var, np.ones(measured.shape, bool)
+    bad = demosaic_float(excluded.astype(np.float32), layout, method)
     return measured, var, ~(bad > 0)
 
 
@@ -200,8 +208,8 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           analyzer_tolerance: Sequence[float] | None = None,
                           generator_tolerance: Sequence[float] | None = None,
                           band_pixels: int = BAND_PIXELS,
-                          uncertainty_dtype: type | np.dtype | str = np.float32
-                          ) -> ReferenceResult:
+                          uncertainty_dtype: type | np.dtype | str = np.float32,
+                          workers: int | None = None) -> ReferenceResult:
     """The reference solve of all states (see :func:`polrig.reference.solve_reference`;
     the tolerances are the calibration's, :class:`polrig.processing.Calibration`).
 
@@ -210,7 +218,8 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     its own; per-pixel results do not depend on the banding. ``uncertainty_dtype``
     (``float32`` or ``float16``): of the result's ``sigma``, ``sigma_noise`` and ``residual``
     (half precision, 11 significant bits, halves their memory and file size; ``mueller`` stays
-    float32).
+    float32; values above 65504 become ``inf``). ``workers``: bands in flight on threads
+    (default :data:`WORKERS`; 1: sequential); the result does not depend on it.
     """
     lay = resolve_layout(layout)
     unc = np.dtype(uncertainty_dtype)
@@ -228,10 +237,10 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     n, c = len(states), lay.n_colours
     h_out, w_out = output_shape(lay, shape, method)
     band_rows = max(1, int(band_pixels) // max(1, w_out * c))
-    out: dict[str, np.ndarray] = {}
-    shared_sigma = True
-    cond = float("nan")
-    for o0, o1, e0, e1 in row_bands(lay, shape, method, band_rows):
+    bands = row_bands(lay, shape, method, band_rows)
+
+    def solve_band(band: tuple[int, int, int, int]) -> ReferenceResult:
+        o0, o1, e0, e1 = band
         a = 0 if method == "superpixel" else o0 - e0
         rows = o1 - o0
         meas = np.empty((n, c, 4, rows, w_out), np.float32)
@@ -239,22 +248,39 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
         valid = np.empty(meas.shape, bool)
         offset = a_rows = None
         if analyzer is not None:
-            band = analyzer.crop(0, e0, shape[1], e1 - e0)
-            offset = band.offset_dn
-            a_rows = _demosaic_rows(band.rows(), lay, method)[..., a:a + rows, :]
+            part = analyzer.crop(0, e0, shape[1], e1 - e0)
+            offset = part.offset_dn
+            a_rows = _demosaic_rows(part.rows(), lay, method)[..., a:a + rows, :]
         for k, st in enumerate(states):
             m, v, ok = _demosaic_state(st.signal_dn[e0:e1], st.variance_dn2[e0:e1],
                                        st.excluded[e0:e1], lay, method, offset)
             meas[k], var[k], valid[k] = (p[:, :, a:a + rows] for p in (m, v, ok))
-        res = solve_reference(s_in, meas, var, valid, a_rows,
-                              analyzer_tolerance=analyzer_tolerance,
-                              generator_tolerance=generator_tolerance)
-        if not out:
-            cond = res.condition_number
-            shared_sigma = res.sigma_noise is res.sigma
-            out = _allocate(res, (h_out, w_out), unc, shared_sigma)
-        for name, arr in out.items():
-            arr[..., o0:o1, :] = getattr(res, name)
+        return solve_reference(s_in, meas, var, valid, a_rows,
+                               analyzer_tolerance=analyzer_tolerance,
+                               generator_tolerance=generator_tolerance)
+
+    # the first band alone (it raises for a bad state set before any other work, and gives
+    # the result's layout); the others on a few threads (OpenCV and numpy release the GIL;
+    # each band stores its own rows as soon as it is solved: at most ``workers`` in flight)
+    first = solve_band(bands[0])
+    cond = first.condition_number
+    shared_sigma = first.sigma_noise is first.sigma
+    out = _allocate(first, (h_out, w_out), unc, shared_sigma)
+
+    def store(band: tuple[int, int, int, int], res: ReferenceResult) -> None:
+        with np.errstate(over="ignore"):  # above the half range: inf
+            for name, arr in out.items():
+                arr[..., band[0]:band[1], :] = getattr(res, name)
+
+    store(bands[0], first)
+    rest = bands[1:]
+    n_workers = max(1, min(len(rest), int(WORKERS if workers is None else workers)))
+    if n_workers == 1:
+        for band in rest:
+            store(band, solve_band(band))
+    else:
+        with concurrent.futures.ThreadPoolExecutor(n_workers) as pool:
+            list(pool.map(lambda band: store(band, solve_band(band)), rest))
     return ReferenceResult(out["mueller"], out["sigma"], out["residual"], out["mask"], cond,
                            out["pixel_condition"], out["n_samples"],
                            None if shared_sigma else out["sigma_noise"])

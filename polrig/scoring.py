@@ -52,7 +52,7 @@ def truth_on_output_grid(truth_mueller: np.ndarray, layout: MosaicLayout, method
     capture's estimator; without it the noise model's variance of the noise-free signal at
     ``exposure_us`` is used. Where the truth is uniform over a pixel's support the result is
     the truth itself, whatever the weights (and it is taken as such, without a solve).
-    Computed in bands of about ``band_pixels`` output pixels.
+    Computed in bands of about ``band_pixels`` truth pixels (times colours).
     """
     t = np.asarray(truth_mueller)
     h, w = t.shape[-2:]
@@ -80,8 +80,9 @@ def _truth_bands(t: np.ndarray, layout: MosaicLayout, method: str, s_in: np.ndar
     if weights_like is not None and (len(weights_like) != len(s) or any(
             np.shape(st.variance_dn2) != (h, w) for st in weights_like)):
         raise ValueError(f"weights_like must hold {len(s)} states of shape {(h, w)}")
-    w_out = output_shape(layout, (h, w), method)[1]
-    band_rows = max(1, int(band_pixels) // max(1, w_out * c))
+    # bands of about band_pixels truth pixels (times colours): the truth is full resolution
+    rows_in = max(1, int(band_pixels) // max(1, w * c))
+    band_rows = max(1, rows_in // layout.period[0]) if method == "superpixel" else rows_in
     for o0, o1, e0, e1 in row_bands(layout, (h, w), method, band_rows):
         a = 0 if method == "superpixel" else o0 - e0
         rows = o1 - o0
@@ -91,7 +92,7 @@ def _truth_bands(t: np.ndarray, layout: MosaicLayout, method: str, s_in: np.ndar
         band = value.astype(np.float32)
         todo = ~uniform.all(axis=0)  # (rows, W'): solved, for every colour at once
         if todo.any():
-            est = _noise_free_estimate(tb.astype(np.float64), layout, method, s,
+            est = _noise_free_estimate(tb, layout, method, s,
                                        weights_like, model, exposure_us, e0, e1, a, rows, todo)
             band[..., todo] = np.where(uniform[:, None, None][..., todo], band[..., todo], est)
         yield o0, o1, e0, e1, band
@@ -139,7 +140,7 @@ def _noise_free_estimate(t: np.ndarray, layout: MosaicLayout, method: str, s: np
     h = e1 - e0
     ideal = AnalyzerModel.ideal(layout, (h, t.shape[-1]))
     parts = []
-    for k, sk in enumerate(s):
+    for k, sk in enumerate(s):  # float64 s: the mosaic in float64 whatever the truth's dtype
         mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", t, sk))
         if weights_like is not None:
             like = weights_like[k]
