@@ -166,6 +166,40 @@ def run_pose(data: pathlib.Path, layout_name: str, method: str, score: bool,
     return out
 
 
+EXR_CHOICES = (("all planes, float32", RESULT_GROUPS := ("mueller", "sigma", "sigma_noise",
+                                                          "mask", "residual"), "float"),
+               ("all planes, half uncertainty", RESULT_GROUPS, "half"),
+               ("mueller + sigma + mask, half", ("mueller", "sigma", "mask"), "half"),
+               ("mueller + mask", ("mueller", "mask"), "float"))
+
+
+def run_exr_choices(data: pathlib.Path, layout_name: str, method: str) -> list[dict]:
+    """One solve, then the EXR written with each plane choice and compression."""
+    from polrig import radiometry
+    from polrig.exr import result_planes, write_mueller_exr
+    from polrig.mueller import polarizer_stokes
+    from polrig.noise import SensorModel
+
+    frames = np.load(data / f"{layout_name}_frames.npy")
+    states = [radiometry.state_radiance([[f]], [EXPOSURE_US], SensorModel(),
+                                        black_level_dn=BLACK_DN) for f in frames]
+    result = radiometry.reference_from_frames(
+        states, polarizer_stokes(np.deg2rad(STATES_DEG), intensity=1.0), layout_name, method,
+        analyzer_tolerance=ANALYZER_TOL, generator_tolerance=GENERATOR_TOL)
+    out = []
+    with tempfile.TemporaryDirectory(prefix="polrig-bench-") as d:
+        for label, planes, unc in EXR_CHOICES:
+            for comp in ("zip", "piz", "none"):
+                p = pathlib.Path(d) / "mueller.exr"
+                t0 = time.perf_counter()
+                write_mueller_exr(p, result.mueller, compression=comp,
+                                  extra=result_planes(result, planes=planes, uncertainty=unc))
+                out.append(dict(label=label, compression=comp, exr_bytes=p.stat().st_size,
+                                exr_s=time.perf_counter() - t0))
+                p.unlink()
+    return out
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident set in MB (``VmHWM``; ``ru_maxrss`` where there is no
     ``/proc``)."""
@@ -200,8 +234,11 @@ def main(argv: list[str] | None = None) -> int:
     ns = ap.parse_args(argv)
     if ns.child:
         a = json.loads(ns.child)
-        print(json.dumps(run_pose(pathlib.Path(a[0]), a[1], a[2], a[3], tuple(a[4]), a[5],
-                                  a[6])))
+        if a[0] == "exr":
+            print(json.dumps(run_exr_choices(pathlib.Path(a[1]), a[2], a[3])))
+        else:
+            print(json.dumps(run_pose(pathlib.Path(a[0]), a[1], a[2], a[3], tuple(a[4]), a[5],
+                                      a[6])))
         return 0
     w, h = (int(x) for x in ns.size.lower().split("x"))
     layouts = [LAYOUTS[k] for k in ns.layouts.split(",")]
@@ -216,28 +253,22 @@ def main(argv: list[str] | None = None) -> int:
             np.save(data / f"{lay}_object.npy", obj)
             np.save(data / f"{lay}_frames.npy", make_frames(truth, lay))
             del truth, obj
-        for lay in layouts:
-            for method in methods:
-                for score in ([False] if ns.no_score else [False, True]):
-                    runs = [child([d, lay, method, score, all_planes, "float", "zip"])
-                            for _ in range(max(1, ns.rounds))]
-                    med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
-                    rows.append((lay, method, score, med))
-                    print(lay, method, "with score" if score else "processing",
-                          json.dumps({k: round(v, 3) for k, v in med.items()}), flush=True)
-        if ns.exr_choices:
-            choices = [("all planes, float32", all_planes, "float"),
-                       ("all planes, half uncertainty", all_planes, "half"),
-                       ("mueller + sigma (half) + mask", ["mueller", "sigma", "mask"], "half"),
-                       ("mueller + mask", ["mueller", "mask"], "float")]
-            for lay in layouts[:1]:
-                for method in ("bilinear", "superpixel"):
-                    for label, planes, unc in choices:
-                        for comp in ("zip", "none"):
-                            r = child([d, lay, method, False, planes, unc, comp])
-                            exr_rows.append((lay, method, label, comp, r))
-                            print(lay, method, label, comp, r["exr_bytes"],
-                                  round(r["exr_s"], 2), round(r["peak_rss_mb"]), flush=True)
+        configs = [(lay, method, "float") for lay in layouts for method in methods]
+        if LAYOUTS["colour"] in layouts and "bilinear" in methods:
+            configs.append((LAYOUTS["colour"], "bilinear", "half"))
+        for lay, method, unc in configs:
+            for score in ([False] if ns.no_score else [False, True]):
+                runs = [child([d, lay, method, score, all_planes, unc, "zip"])
+                        for _ in range(max(1, ns.rounds))]
+                med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+                rows.append((lay, method, unc, score, med))
+                print(lay, method, unc, "with score" if score else "processing",
+                      json.dumps({k: round(v, 3) for k, v in med.items()}), flush=True)
+        if ns.exr_choices and LAYOUTS["colour"] in layouts:
+            for method in ("bilinear", "superpixel"):
+                for r in child(["exr", d, LAYOUTS["colour"], method]):
+                    exr_rows.append((LAYOUTS["colour"], method, r))
+                    print(method, json.dumps(r), flush=True)
     write_tables(rows, exr_rows, (w, h), ns.rounds)
     return 0
 
@@ -248,30 +279,27 @@ def write_tables(rows, exr_rows, size, rounds) -> None:
              f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
              f"{platform.node()}, {os.cpu_count()} CPUs, {platform.python_version()}; median "
              f"of {rounds} process(es) per row. 4 states, K = 1, nominal calibration, EXR with "
-             f"all planes float32 (ZIP). Times in s, peak = peak RSS of the process in MB.",
+             f"all planes (ZIP), uncertainty planes in float32 or half. Times in s; peak = "
+             f"peak RSS (VmHWM) of the process in MB.",
              "",
-             "| layout | demosaic | run | radiance | solve (tiled) | of which solve_reference "
-             "| EXR write | EXR MB | score | total | peak MB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for lay, method, score, r in rows:
+             "| layout | demosaic | uncertainty | run | radiance | solve (tiled) | of which "
+             "solve_reference | EXR write | EXR MB | score | total | peak MB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for lay, method, unc, score, r in rows:
         total = r["radiance_s"] + r["solve_total_s"] + r["exr_s"] + r.get("score_s", 0.0)
+        score_s = f"{r['score_s']:.2f}" if score else "-"
         lines.append(
-            f"| {lay} | {method} | {'with score' if score else 'processing'} | "
+            f"| {lay} | {method} | {unc} | {'with score' if score else 'processing'} | "
             f"{r['radiance_s']:.2f} | {r['solve_total_s']:.2f} | {r['solve_reference_s']:.2f} | "
-            f"{r['exr_s']:.2f} | {r['exr_bytes'] / 1e6:.0f} | "
-            f"{r['score_s']:.2f} | " if score else
-            f"| {lay} | {method} | processing | {r['radiance_s']:.2f} | "
-            f"{r['solve_total_s']:.2f} | {r['solve_reference_s']:.2f} | {r['exr_s']:.2f} | "
-            f"{r['exr_bytes'] / 1e6:.0f} | - | ")
-        lines[-1] += f"{total:.2f} | {r['peak_rss_mb']:.0f} |"
+            f"{r['exr_s']:.2f} | {r['exr_bytes'] / 1e6:.0f} | {score_s} | {total:.2f} | "
+            f"{r['peak_rss_mb']:.0f} |")
     if exr_rows:
-        lines += ["", "## EXR bytes per pose by plane choice", "",
-                  "| layout | demosaic | planes | compression | bytes | MB | write s | peak MB |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for lay, method, label, comp, r in exr_rows:
-            lines.append(f"| {lay} | {method} | {label} | {comp} | {r['exr_bytes']} | "
-                         f"{r['exr_bytes'] / 1e6:.0f} | {r['exr_s']:.2f} | "
-                         f"{r['peak_rss_mb']:.0f} |")
+        lines += ["", "## EXR bytes per pose by plane choice (one result, written each way)", "",
+                  "| layout | demosaic | planes | compression | bytes | MB | write s |",
+                  "|---|---|---|---|---|---|---|"]
+        for lay, method, r in exr_rows:
+            lines.append(f"| {lay} | {method} | {r['label']} | {r['compression']} | "
+                         f"{r['exr_bytes']} | {r['exr_bytes'] / 1e6:.0f} | {r['exr_s']:.2f} |")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
