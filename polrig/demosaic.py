@@ -216,8 +216,10 @@ _PLAN_CACHE_SIZE = 4
 
 
 def _bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
-    """Per class: the cell positions and the normalisation (1-D row/col reciprocals for
-    separable class lattices, a full plane otherwise, ``None`` when it is exactly 1).
+    """Per class: the cell positions and the normalisation, ``None`` when it is exactly 1:
+    for a separable class lattice ``((rows, factors (k, 1)), (cols, factors (1, m)))`` (the
+    rows and columns whose factor differs from 1: the borders), otherwise
+    ``((slice(None), plane),)``, a full plane.
     Memoised per layout pattern and image shape (the last few: a frame stream reuses one)."""
     key = (layout.angle_deg.tobytes(), layout.colour.tobytes(), layout.period,
            layout.n_colours, tuple(shape))
@@ -247,14 +249,16 @@ def _make_bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
             dc = cv2.filter2D(mc, -1, kx[None, :], borderType=_BORDER)[0]
             norm = None
             if not (np.allclose(dr, 1, atol=1e-6) and np.allclose(dc, 1, atol=1e-6)):
-                norm = ((1.0 / dr).astype(np.float32)[:, None],
-                        (1.0 / dc).astype(np.float32)[None, :])
+                # only the rows and columns whose factor is not exactly 1 (the borders)
+                rn, cn = (1.0 / dr).astype(np.float32), (1.0 / dc).astype(np.float32)
+                ri, ci = np.flatnonzero(rn != 1), np.flatnonzero(cn != 1)
+                norm = ((ri, rn[ri][:, None]), (ci, cn[ci][None, :]))
         else:
             m = np.zeros((h, w), np.float32)
             for r, q in pos:
                 m[r::ph, q::pw] = 1
             d = cv2.sepFilter2D(m, -1, kx, ky, borderType=_BORDER)
-            norm = ((1.0 / d).astype(np.float32),)
+            norm = ((slice(None), (1.0 / d).astype(np.float32)),)
         plan[cls] = (pos, norm)
     return ky, kx, plan
 
@@ -270,8 +274,10 @@ def _bilinear(x: np.ndarray, layout: MosaicLayout) -> np.ndarray:
             sparse[r::ph, q::pw] = x[r::ph, q::pw]
         cv2.sepFilter2D(sparse, -1, kx, ky, dst=out[c, k], borderType=_BORDER)
         if norm is not None:
-            for n in norm:
-                out[c, k] *= n
+            (ri, rn), *cols = norm
+            out[c, k][ri] *= rn
+            for ci, cn in cols:
+                out[c, k][:, ci] *= cn
     return out
 
 
