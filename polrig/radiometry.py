@@ -30,6 +30,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import os
+import threading
 from typing import Sequence
 
 import numpy as np
@@ -57,6 +58,7 @@ STATE_BAND_ROWS = 256
 #: Default band threads of :func:`reference_from_frames` (the CPU count, at most 4: the
 #: demosaic and the solve release the GIL; memory grows by one band per thread).
 WORKERS = min(4, os.cpu_count() or 1)
+_SOLVE_LOCK = threading.Lock()
 #: Dtypes the uncertainty planes (``sigma``, ``sigma_noise``, ``residual``) may be kept in.
 UNCERTAINTY_DTYPES = (np.float32, np.float16)
 
@@ -219,7 +221,9 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     (``float32`` or ``float16``): of the result's ``sigma``, ``sigma_noise`` and ``residual``
     (half precision, 11 significant bits, halves their memory and file size; ``mueller`` stays
     float32; values above 65504 become ``inf``). ``workers``: bands in flight on threads
-    (default :data:`WORKERS`; 1: sequential); the result does not depend on it.
+    (default :data:`WORKERS`; 1: sequential): band demosaics overlap each other and the solve
+    of another band, the :func:`~polrig.reference.solve_reference` calls are serialised; the
+    result does not depend on it.
     """
     lay = resolve_layout(layout)
     unc = np.dtype(uncertainty_dtype)
@@ -255,13 +259,17 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
             m, v, ok = _demosaic_state(st.signal_dn[e0:e1], st.variance_dn2[e0:e1],
                                        st.excluded[e0:e1], lay, method, offset)
             meas[k], var[k], valid[k] = (p[:, :, a:a + rows] for p in (m, v, ok))
-        return solve_reference(s_in, meas, var, valid, a_rows,
-                               analyzer_tolerance=analyzer_tolerance,
-                               generator_tolerance=generator_tolerance)
+        with _SOLVE_LOCK:  # one solve at a time: the solver may run threads of its own
+            return solve_reference(s_in, meas, var, valid, a_rows,
+                                   analyzer_tolerance=analyzer_tolerance,
+                                   generator_tolerance=generator_tolerance)
 
     # the first band alone (it raises for a bad state set before any other work, and gives
-    # the result's layout); the others on a few threads (OpenCV and numpy release the GIL;
-    # each band stores its own rows as soon as it is solved: at most ``workers`` in flight)
+    # the result's layout); the others on a few threads: their demosaics run side by side
+    # (OpenCV and numpy release the GIL) and beside the solve of another band, the solves one
+    # after the other (a parallel solver kernel, e.g. numba's workqueue layer, must not be
+    # entered from two threads at once); each band stores its own rows as soon as it is
+    # solved: at most ``workers`` bands in flight
     first = solve_band(bands[0])
     cond = first.condition_number
     shared_sigma = first.sigma_noise is first.sigma

@@ -102,6 +102,19 @@ def test_band_boundaries_at_every_row_offset(layout, method):
             assert (banded.sigma_noise is banded.sigma) == (not kw)
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_threads_change_nothing(method):
+    """Bands on 1, 2 or 5 threads (demosaics side by side, solves serialised)."""
+    rng = np.random.default_rng(21)
+    layout = IMX250MYR.shifted(2, 1)
+    states = _states(rng, (50, 22), layout)
+    analyzer = _calibrated(rng, layout, (50, 22))
+    runs = [reference_from_frames(states, S_IN, layout, method, analyzer, band_pixels=150,
+                                  workers=k, **TOL) for k in (1, 2, 5)]
+    for r in runs[1:]:
+        _assert_identical(r, runs[0])
+
+
 def test_half_precision_uncertainty_planes():
     rng = np.random.default_rng(3)
     states = _states(rng, (24, 20), IMX250MYR)
