@@ -109,36 +109,48 @@ def _uniform_support(t: np.ndarray, layout: MosaicLayout, method: str
     """``(uniform, value)`` of a truth band ``(C, 3, 3, h, W)``: ``uniform`` ``(C, h', W')``
     where all 9 elements of colour ``c`` are the same finite numbers over the output pixel's
     demosaic support (:func:`polrig.demosaic.support_radius`), and ``value`` ``(C, 3, 3, h',
-    W')`` the truth there (the cell's first pixel for ``superpixel``)."""
+    W')`` the truth there (the cell's first pixel for ``superpixel``).
+
+    Per plane a max and a min filter over the support (OpenCV morphology); ``superpixel``
+    takes them over the cell (kernel anchored at its top-left pixel) at every cell origin."""
     c = t.shape[0]
     if method == "superpixel":
         ph, pw = layout.period
         hh, ww = t.shape[-2] // ph, t.shape[-1] // pw
-        first = t[..., 0:hh * ph:ph, 0:ww * pw:pw]
-        same = np.ones(first.shape, bool)
-        for r in range(ph):
-            for q in range(pw):
-                if r or q:  # NaN differs from itself: not uniform
-                    same &= t[..., r:hh * ph:ph, q:ww * pw:pw] == first
-        return same.all(axis=(1, 2)), first
-    ry, rx = support_radius(layout, method)
-    kernel = np.ones((2 * ry + 1, 2 * rx + 1), np.uint8)
-    uniform = np.ones((c,) + t.shape[-2:], bool)
+        kernel, anchor = np.ones((ph, pw), np.uint8), (0, 0)
+        pick = (slice(0, hh * ph, ph), slice(0, ww * pw, pw))
+    else:
+        ry, rx = support_radius(layout, method)
+        kernel, anchor = np.ones((2 * ry + 1, 2 * rx + 1), np.uint8), (rx, ry)
+        pick = (slice(None), slice(None))
+    uniform = None
     for ci in range(c):
+        flat = None
         for i in range(3):
             for j in range(3):
                 p = t[ci, i, j]
                 if p.dtype not in (np.float32, np.float64):
                     p = p.astype(np.float64)
-                finite = np.isfinite(p)
-                if not finite.all():  # a non-finite pixel spoils its neighbourhood
-                    uniform[ci] &= cv2.erode(finite.view(np.uint8), kernel,
-                                             borderType=cv2.BORDER_REPLICATE).astype(bool)
-                    p = np.where(finite, p, 0).astype(p.dtype)
-                hi = cv2.dilate(p, kernel, borderType=cv2.BORDER_REPLICATE)
-                lo = cv2.erode(p, kernel, borderType=cv2.BORDER_REPLICATE)
-                uniform[ci] &= hi == lo
-    return uniform, t
+                same = _flat(p, kernel, anchor)[pick]
+                flat = same if flat is None else flat & same
+        if uniform is None:
+            uniform = np.empty((c,) + flat.shape, bool)
+        uniform[ci] = flat
+    return uniform, t[(Ellipsis,) + pick]
+
+
+def _flat(p: np.ndarray, kernel: np.ndarray, anchor: tuple[int, int]) -> np.ndarray:
+    """Where plane ``p`` holds one finite value over the ``kernel`` window (bool)."""
+    finite = np.isfinite(p)
+    ok = None
+    if not finite.all():  # a non-finite pixel spoils its neighbourhood
+        ok = cv2.erode(finite.view(np.uint8), kernel, anchor=anchor,
+                       borderType=cv2.BORDER_REPLICATE).astype(bool)
+        p = np.where(finite, p, 0).astype(p.dtype)
+    hi = cv2.dilate(p, kernel, anchor=anchor, borderType=cv2.BORDER_REPLICATE)
+    lo = cv2.erode(p, kernel, anchor=anchor, borderType=cv2.BORDER_REPLICATE)
+    same = hi == lo
+    return same if ok is None else same & ok
 
 
 def _noise_free_estimate(t: np.ndarray, layout: MosaicLayout, method: str, s: np.ndarray,
@@ -149,9 +161,14 @@ def _noise_free_estimate(t: np.ndarray, layout: MosaicLayout, method: str, s: np
     shape = t.shape[-2:]
     # each sensor pixel's own colour's matrix, and the ideal analyzer rows (a band starts at
     # the layout's phase: the rows are the cell's, tiled), as AnalyzerModel.mosaic has them
-    own = t[0] if layout.n_colours == 1 else np.take_along_axis(
-        t, layout.colour_map(shape)[None, None, None], axis=0)[0]
     ph, pw = layout.period
+    if layout.n_colours == 1:
+        own = t[0]
+    else:
+        own = np.empty(t.shape[1:], t.dtype)
+        for r in range(ph):
+            for q in range(pw):
+                own[..., r::ph, q::pw] = t[layout.colour[r, q], ..., r::ph, q::pw]
     cell = AnalyzerModel.ideal(layout, (ph, pw)).rows()
     r = np.tile(cell, (-(-shape[0] // ph), -(-shape[1] // pw), 1))[:shape[0], :shape[1]]
     parts = []

@@ -216,3 +216,20 @@ def test_realizability_of_a_large_result_is_a_regular_subsample(monkeypatch):
     assert math.isclose(full["realizable"], 2 / 3)
     assert math.isclose(sampled["realizable"], 2 / 3, abs_tol=1 / 45)
     assert sampled["rmse"] == full["rmse"]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_non_finite_truth_pixel_is_never_taken_as_uniform(method):
+    """A NaN in the truth makes its neighbourhood non-uniform: those pixels go through the
+    solve (as the definition does), and are not replaced by a finite neighbour's matrix."""
+    layout = IMX250MZR
+    t = _scene(1)
+    t[0, 1, 1, 8, 40] = np.nan
+    rng = np.random.default_rng(2)
+    like = _capture(np.nan_to_num(t), layout, rng)
+    got = truth_on_output_grid(t, layout, method, S_IN, like)
+    ref = _definition(t, layout, method, like)
+    y, x = (4, 20) if method == "superpixel" else (8, 40)
+    np.testing.assert_allclose(got[..., y, x], ref.mueller[..., y, x], rtol=0,
+                               atol=1e-9 * np.nanmax(t))
+    assert not ref.valid[0, y, x]  # the solve flags the non-finite sample
