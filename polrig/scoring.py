@@ -36,9 +36,9 @@ from polrig.reference import ReferenceResult, solve_reference
 SCORE_BAND_ROWS = 64
 #: Pixels (times colours) up to which the realizability pass rate tests every compared pixel;
 #: a larger result tests every k-th one in scan order, at least half this many (the pass rate's
-#: binomial standard error stays below 0.2 %): the eigenvalue search of the test costs more
-#: than the rest of the score at full sensor.
-REALIZABILITY_SAMPLES = 2 ** 17
+#: binomial standard error stays below 0.4 %): the eigenvalue search of the test (about 13 us
+#: a pixel) would cost more than the rest of the score at full sensor.
+REALIZABILITY_SAMPLES = 2 ** 15
 
 
 # -- truth and score ---------------------------------------------------------------------------
