@@ -228,8 +228,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=1, help="processes per configuration "
                     "(median reported)")
     ap.add_argument("--no-score", action="store_true", help="skip the runs with scoring")
+    ap.add_argument("--uncertainty", choices=("float", "half", "both"), default="both",
+                    help="uncertainty planes of the runs (both: float32 for every row, half for "
+                         "colour bilinear as well)")
     ap.add_argument("--exr-choices", action="store_true",
                     help="also report EXR bytes/time per plane choice and compression")
+    ap.add_argument("--results", type=pathlib.Path, default=RESULTS,
+                    help=f"markdown file to write (default {RESULTS.relative_to(REPO)})")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ns = ap.parse_args(argv)
     if ns.child:
@@ -253,9 +258,10 @@ def main(argv: list[str] | None = None) -> int:
             np.save(data / f"{lay}_object.npy", obj)
             np.save(data / f"{lay}_frames.npy", make_frames(truth, lay))
             del truth, obj
-        configs = [(lay, method, "float") for lay in layouts for method in methods]
-        if LAYOUTS["colour"] in layouts and "bilinear" in methods:
-            configs.append((LAYOUTS["colour"], "bilinear", "half"))
+        configs = [(lay, method, unc) for unc in ("float", "half") for lay in layouts
+                   for method in methods if ns.uncertainty in (unc, "both")
+                   and (unc == "float" or ns.uncertainty == "half"
+                        or (lay, method) == (LAYOUTS["colour"], "bilinear"))]
         for lay, method, unc in configs:
             for score in ([False] if ns.no_score else [False, True]):
                 runs = [child([d, lay, method, score, all_planes, unc, "zip"])
@@ -269,11 +275,11 @@ def main(argv: list[str] | None = None) -> int:
                 for r in child(["exr", d, LAYOUTS["colour"], method]):
                     exr_rows.append((LAYOUTS["colour"], method, r))
                     print(method, json.dumps(r), flush=True)
-    write_tables(rows, exr_rows, (w, h), ns.rounds)
+    write_tables(rows, exr_rows, (w, h), ns.rounds, ns.results)
     return 0
 
 
-def write_tables(rows, exr_rows, size, rounds) -> None:
+def write_tables(rows, exr_rows, size, rounds, path: pathlib.Path = RESULTS) -> None:
     lines = [f"# Per-pose processing at {size[0]}x{size[1]}",
              "",
              f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
@@ -282,7 +288,7 @@ def write_tables(rows, exr_rows, size, rounds) -> None:
              f"all planes (ZIP), uncertainty planes in float32 or half. Times in s; peak = "
              f"peak RSS (VmHWM) of the process in MB.",
              "",
-             "| layout | demosaic | uncertainty | run | radiance | solve (tiled) | of which "
+             "| layout | demosaic | uncertainty | run | radiance | demosaic + solve (tiled) | of which "
              "solve_reference | EXR write | EXR MB | score | total | peak MB |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lay, method, unc, score, r in rows:
@@ -300,8 +306,8 @@ def write_tables(rows, exr_rows, size, rounds) -> None:
         for lay, method, r in exr_rows:
             lines.append(f"| {lay} | {method} | {r['label']} | {r['compression']} | "
                          f"{r['exr_bytes']} | {r['exr_bytes'] / 1e6:.0f} | {r['exr_s']:.2f} |")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines) + "\n")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
