@@ -582,4 +582,4 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
             "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes,
             "execution_provider": aux.get("provider")}
     meta.update(metadata or {})
-    return write_mueller_exr(path, mueller, extra=extra, metadata=meta, compress=compress)
+    return write_mueller_exr(path, mueller, extra=extra, metadata=meta, compression="zip" if compress else "none")

@@ -45,6 +45,7 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import os
+import threading
 
 import cv2
 import numpy as np
@@ -86,6 +87,63 @@ def output_shape(layout: MosaicLayout, shape: tuple[int, int], method: str) -> t
     return tuple(shape)  # type: ignore[return-value]
 
 
+def check_mosaic_shape(layout: MosaicLayout, shape: tuple[int, int]) -> None:
+    """``ValueError`` unless a raw mosaic of ``shape`` holds at least one layout cell."""
+    ph, pw = layout.period
+    if len(shape) != 2 or shape[0] < ph or shape[1] < pw:
+        raise ValueError(f"raw mosaic {tuple(shape)} is smaller than one {ph}x{pw} layout cell")
+
+
+def support_radius(layout: MosaicLayout, method: str) -> tuple[int, int]:
+    """``(rows, cols)``: how far (in raw pixels) the full-resolution output at a pixel reaches
+    into the mosaic (``0`` for ``superpixel``, whose output pixel is exactly its cell).
+
+    ``bilinear``: the tent of half-width equal to the period reaches ``period - 1``;
+    ``newton``: :data:`NEWTON_RADIUS`, plus the ``bilinear`` Bayer step of a colour layout.
+    """
+    _check_method(method)
+    ph, pw = layout.period
+    if method == "superpixel":
+        return 0, 0
+    if method == "bilinear":
+        return ph - 1, pw - 1
+    bayer = (ph - 1, pw - 1) if layout.n_colours > 1 else (0, 0)
+    return NEWTON_RADIUS + bayer[0], NEWTON_RADIUS + bayer[1]
+
+
+def halo_rows(layout: MosaicLayout, method: str) -> int:
+    """Rows of context a band of full-resolution output rows needs above and below it for
+    :func:`demosaic_float` of the band to equal the rows of the whole image's demosaic: the
+    row :func:`support_radius` rounded up to a whole number of layout periods (a band that
+    starts on a period boundary sees the layout at its own phase). 0 for ``superpixel``."""
+    r = support_radius(layout, method)[0]
+    ph = layout.period[0]
+    return -(-r // ph) * ph
+
+
+def row_bands(layout: MosaicLayout, shape: tuple[int, int], method: str, band_rows: int
+              ) -> list[tuple[int, int, int, int]]:
+    """Row bands for demosaicing a mosaic of ``shape`` piecewise: ``(o0, o1, e0, e1)`` with
+    output rows ``o0:o1`` (of :func:`output_shape`) computed exactly from the mosaic rows
+    ``e0:e1`` -- they are rows ``o0 - e0 // ph : ...`` (``superpixel``, ``ph`` the layout's row
+    period) or ``o0 - e0 : o1 - e0`` (full-resolution methods) of ``demosaic_float(x[e0:e1])``.
+
+    ``band_rows``: output rows per band (rounded up to a whole number of periods for the
+    full-resolution methods, so that every band starts at the layout's phase).
+    """
+    check_mosaic_shape(layout, shape)
+    ph = layout.period[0]
+    h_out = output_shape(layout, shape, method)[0]
+    step = max(1, int(band_rows))
+    if method == "superpixel":
+        return [(o0, min(h_out, o0 + step), o0 * ph, min(h_out, o0 + step) * ph)
+                for o0 in range(0, h_out, step)]
+    step = -(-step // ph) * ph
+    halo = halo_rows(layout, method)
+    return [(o0, min(h_out, o0 + step), max(0, o0 - halo), min(h_out, o0 + step + halo))
+            for o0 in range(0, h_out, step)]
+
+
 def demosaic(raw: np.ndarray, layout: MosaicLayout, method: str = "superpixel", *,
              black_level_dn: float = 0.0, dark: np.ndarray | None = None) -> np.ndarray:
     """Analyzer images ``(C, 4, H', W')`` float32 (DN) of a raw mosaic ``(H, W)``.
@@ -101,9 +159,7 @@ def demosaic_float(x: np.ndarray, layout: MosaicLayout, method: str) -> np.ndarr
     """:func:`demosaic` of an already pre-processed float32 mosaic (no copy of ``x`` made
     where avoidable; ``x`` is not modified)."""
     _check_method(method)
-    ph, pw = layout.period
-    if x.shape[0] < ph or x.shape[1] < pw:
-        raise ValueError(f"raw mosaic {x.shape} is smaller than one {ph}x{pw} layout cell")
+    check_mosaic_shape(layout, x.shape)
     if x.dtype != np.float32:
         x = x.astype(np.float32)
     with np.errstate(all="ignore"):  # non-finite input is expected and masked downstream
@@ -153,19 +209,28 @@ def _tent(period: int) -> np.ndarray:
 
 
 _PLAN_CACHE: dict[tuple, tuple] = {}
+_PLAN_LOCK = threading.Lock()
+#: Plans kept: a frame stream reuses one shape; a banded image has three (first, middle, last
+#: band) per layout.
+_PLAN_CACHE_SIZE = 4
 
 
 def _bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
-    """Per class: the cell positions and the normalisation (1-D row/col reciprocals for
-    separable class lattices, a full plane otherwise, ``None`` when it is exactly 1).
-    Memoised per layout pattern and image shape (the last two: a frame stream reuses one)."""
+    """Per class: the cell positions and the normalisation, ``None`` when it is exactly 1:
+    for a separable class lattice ``((rows, factors (k, 1)), (cols, factors (1, m)))`` (the
+    rows and columns whose factor differs from 1: the borders), otherwise
+    ``((slice(None), plane),)``, a full plane.
+    Memoised per layout pattern and image shape (the last few: a frame stream reuses one)."""
     key = (layout.angle_deg.tobytes(), layout.colour.tobytes(), layout.period,
            layout.n_colours, tuple(shape))
-    plan = _PLAN_CACHE.get(key)
+    with _PLAN_LOCK:  # bands of one image are demosaiced on several threads
+        plan = _PLAN_CACHE.get(key)
     if plan is None:
-        if len(_PLAN_CACHE) >= 2:  # colour plans hold full-size planes: keep few
-            _PLAN_CACHE.pop(next(iter(_PLAN_CACHE)))
-        plan = _PLAN_CACHE[key] = _make_bilinear_plan(layout, tuple(shape))
+        plan = _make_bilinear_plan(layout, tuple(shape))
+        with _PLAN_LOCK:
+            while len(_PLAN_CACHE) >= _PLAN_CACHE_SIZE:  # colour plans hold full-size planes
+                _PLAN_CACHE.pop(next(iter(_PLAN_CACHE)))
+            _PLAN_CACHE[key] = plan
     return plan
 
 
@@ -184,14 +249,16 @@ def _make_bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
             dc = cv2.filter2D(mc, -1, kx[None, :], borderType=_BORDER)[0]
             norm = None
             if not (np.allclose(dr, 1, atol=1e-6) and np.allclose(dc, 1, atol=1e-6)):
-                norm = ((1.0 / dr).astype(np.float32)[:, None],
-                        (1.0 / dc).astype(np.float32)[None, :])
+                # only the rows and columns whose factor is not exactly 1 (the borders)
+                rn, cn = (1.0 / dr).astype(np.float32), (1.0 / dc).astype(np.float32)
+                ri, ci = np.flatnonzero(rn != 1), np.flatnonzero(cn != 1)
+                norm = ((ri, rn[ri][:, None]), (ci, cn[ci][None, :]))
         else:
             m = np.zeros((h, w), np.float32)
             for r, q in pos:
                 m[r::ph, q::pw] = 1
             d = cv2.sepFilter2D(m, -1, kx, ky, borderType=_BORDER)
-            norm = ((1.0 / d).astype(np.float32),)
+            norm = ((slice(None), (1.0 / d).astype(np.float32)),)
         plan[cls] = (pos, norm)
     return ky, kx, plan
 
@@ -207,8 +274,10 @@ def _bilinear(x: np.ndarray, layout: MosaicLayout) -> np.ndarray:
             sparse[r::ph, q::pw] = x[r::ph, q::pw]
         cv2.sepFilter2D(sparse, -1, kx, ky, dst=out[c, k], borderType=_BORDER)
         if norm is not None:
-            for n in norm:
-                out[c, k] *= n
+            (ri, rn), *cols = norm
+            out[c, k][ri] *= rn
+            for ci, cn in cols:
+                out[c, k][:, ci] *= cn
     return out
 
 

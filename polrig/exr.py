@@ -2,10 +2,19 @@
 
 Channel names follow ``docs/conventions.md`` (Mitsuba 3's ``stokes`` integrator naming):
 Stokes ``S{k}.{R,G,B}`` (mono ``S{k}.Y``), Mueller ``M{row}{col}.{R,G,B}`` (mono ``.Y``), all
-float32, one scan-line part, ZIP compression or none (``compress``; both lossless: a float32 round
-trip is bit-exact, NaN payloads included). Any number of extra ``(H, W)`` planes can ride along under their own
-channel names (``mask``, ``dolp.R``, ``sigma.M00.R``, ...); :func:`colour_planes` names the
-planes of a ``(C, H, W)`` array. Boolean planes are stored as float32 0/1.
+float32, one scan-line part, ZIP compression by default (lossless: a float32 round trip is
+bit-exact, NaN payloads included; ``compression="none"`` writes faster and larger files,
+``"piz"`` is OpenEXR's wavelet coder). Any number of extra ``(H, W)`` planes can ride along
+under their own channel names (``mask``, ``dolp.R``, ``sigma.M00.R``, ...);
+:func:`colour_planes` names the planes of a ``(C, H, W)`` array. Boolean planes are stored as
+float32 0/1; a float16 plane is stored as an OpenEXR ``HALF`` channel (the readers return
+every channel as float32 either way).
+
+A reconstruction's planes (:func:`result_planes`): the Mueller channels always; ``sigma``,
+``sigma_noise``, ``mask`` and ``residual`` by choice (:data:`RESULT_PLANES`), the uncertainty
+planes in float32 or half precision (``uncertainty="half"``: 11 significant bits, ample for a
+standard deviation; values above 65504 become ``inf``). Bytes per full-sensor colour pose:
+``benchmarks/bench_pose.py``.
 
 Header attributes: ``polrig:conventions`` (:data:`polrig.conventions.CONVENTIONS_VERSION`),
 ``polrig:kind`` (``"stokes"`` or ``"mueller"``) and one string attribute ``polrig:<key>`` per
@@ -25,7 +34,7 @@ import dataclasses
 import json
 import os
 import pathlib
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 import OpenEXR
@@ -34,8 +43,19 @@ from polrig.conventions import CONVENTIONS_VERSION, MONO, RGB
 from polrig.errors import FormatError
 from polrig.rawio import check_input_file, temporary_sibling, write_error
 
+if TYPE_CHECKING:  # only for the annotation: exr does not need the solver
+    from polrig.reference import ReferenceResult
+
 PathLike = str | os.PathLike
 _PREFIX = "polrig:"
+
+#: Compression choices of :func:`write_exr` (OpenEXR's names, lower case).
+COMPRESSIONS = {"zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
+                "none": OpenEXR.NO_COMPRESSION}
+#: Plane groups of a reconstruction (:func:`result_planes`); ``mueller`` is always written.
+RESULT_PLANES = ("mueller", "sigma", "sigma_noise", "mask", "residual")
+#: Precision choices of the uncertainty planes (``sigma``, ``sigma_noise``, ``residual``).
+UNCERTAINTY_PRECISIONS = {"float": np.float32, "half": np.float16}
 
 
 def channel_suffixes(n_colours: int) -> tuple[str, ...]:
@@ -107,20 +127,23 @@ class MuellerExr:
 
 # -- writing ---------------------------------------------------------------------------------
 def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | None = None,
-              metadata: Mapping[str, Any] | None = None, compress: bool = True) -> pathlib.Path:
-    """Write ``(H, W)`` planes as float32 channels plus polrig header metadata, atomically.
-    ``compress``: ZIP (lossless); False writes them uncompressed (float32 images of measured
-    data shrink by only about a tenth under ZIP, for about 12 times the writing time)."""
+              metadata: Mapping[str, Any] | None = None,
+              compression: str = "zip") -> pathlib.Path:
+    """Write ``(H, W)`` planes as float32 channels (float16 planes as ``HALF`` channels) plus
+    polrig header metadata, atomically. ``compression``: one of :data:`COMPRESSIONS`."""
     path = pathlib.Path(path)
     if not planes:
         raise ValueError("an EXR file needs at least one channel")
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"unknown EXR compression {compression!r}; use one of "
+                         f"{', '.join(COMPRESSIONS)}")
     chans: dict[str, np.ndarray] = {}
     shape = None
     for name, p in planes.items():
         a = np.asarray(p)
         if a.dtype == bool:
             a = a.astype(np.float32)
-        a = np.ascontiguousarray(a, dtype=np.float32)
+        a = np.ascontiguousarray(a, dtype=np.float16 if a.dtype == np.float16 else np.float32)
         if a.ndim != 2:
             raise ValueError(f"channel {name!r}: planes must be 2-D, got shape {a.shape}")
         if shape is None:
@@ -128,7 +151,7 @@ def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | N
         elif a.shape != shape:
             raise ValueError(f"channel {name!r} has shape {a.shape}, others {shape}")
         chans[str(name)] = a
-    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION if compress else OpenEXR.NO_COMPRESSION,
+    header: dict[str, Any] = {"compression": COMPRESSIONS[compression],
                               "type": OpenEXR.scanlineimage,
                               _PREFIX + "conventions": CONVENTIONS_VERSION}
     if kind:
@@ -196,8 +219,10 @@ def write_stokes_exr(path: PathLike, stokes: np.ndarray, *,
 
 def write_mueller_exr(path: PathLike, mueller: np.ndarray, *,
                       extra: Mapping[str, np.ndarray] | None = None,
-                      metadata: Mapping[str, Any] | None = None, compress: bool = True) -> pathlib.Path:
-    """Write Mueller images ``(C, 3, 3, H, W)`` as ``M{row}{col}.{R,G,B|Y}`` plus ``extra``.
+                      metadata: Mapping[str, Any] | None = None,
+                      compression: str = "zip") -> pathlib.Path:
+    """Write Mueller images ``(C, 3, 3, H, W)`` as ``M{row}{col}.{R,G,B|Y}`` plus ``extra``
+    (e.g. :func:`result_planes`).
 
     Typical ``metadata`` keys: ``incident_state``, ``calibration_id``, ``capture``.
     """
@@ -209,7 +234,39 @@ def write_mueller_exr(path: PathLike, mueller: np.ndarray, *,
         for c in range(3):
             planes.update(colour_planes(f"M{r}{c}", m[:, r, c]))
     _merge_extra(planes, extra)
-    return write_exr(path, planes, kind="mueller", metadata=metadata, compress=compress)
+    return write_exr(path, planes, kind="mueller", metadata=metadata, compression=compression)
+
+
+def result_planes(result: "ReferenceResult", *, planes: Sequence[str] = RESULT_PLANES,
+                  uncertainty: str = "float") -> dict[str, np.ndarray]:
+    """The extra planes of a reconstruction's Mueller EXR (the Mueller channels themselves go
+    through :func:`write_mueller_exr`): of the groups in ``planes`` (:data:`RESULT_PLANES`;
+    ``"mueller"`` may be named and is always written), ``sigma.M{rc}.{colour}`` and
+    ``sigma_noise.M{rc}.{colour}`` (standard deviations), ``mask.{colour}`` (reason bits) and
+    ``residual.{colour}`` (chi^2 per dof). ``uncertainty``: ``"float"`` (float32) or ``"half"``
+    (float16 ``sigma``, ``sigma_noise``, ``residual`` and ``mask``; the reason bits are small
+    integers, exact in half precision). No copy is made of planes already in that precision.
+    """
+    unknown = [p for p in planes if p not in RESULT_PLANES]
+    if unknown:
+        raise ValueError(f"unknown EXR plane group(s) {', '.join(map(repr, unknown))}; choose "
+                         f"from {', '.join(RESULT_PLANES)}")
+    if uncertainty not in UNCERTAINTY_PRECISIONS:
+        raise ValueError(f"unknown uncertainty precision {uncertainty!r}; use "
+                         f"{' or '.join(UNCERTAINTY_PRECISIONS)}")
+    dtype = UNCERTAINTY_PRECISIONS[uncertainty]
+    as_dtype = lambda a: np.asarray(a).astype(dtype, copy=False)  # noqa: E731
+    out: dict[str, np.ndarray] = {}
+    with np.errstate(over="ignore"):  # a sigma above the half range is inf: unbounded
+        if "sigma" in planes:
+            out.update(element_planes("sigma", as_dtype(result.sigma)))
+        if "sigma_noise" in planes:
+            out.update(element_planes("sigma_noise", as_dtype(result.sigma_noise)))
+        if "mask" in planes:
+            out.update(colour_planes("mask", as_dtype(result.mask)))
+        if "residual" in planes:
+            out.update(colour_planes("residual", as_dtype(result.residual)))
+    return out
 
 
 def _merge_extra(planes: dict[str, np.ndarray], extra: Mapping[str, np.ndarray] | None) -> None:
@@ -282,13 +339,16 @@ def read_stokes_exr(path: PathLike) -> StokesExr:
 
 
 def read_mueller_exr(path: PathLike) -> MuellerExr:
-    """Read a Mueller EXR: ``mueller`` ``(C, 3, 3, H, W)`` float32, others in ``extra``."""
+    """Read a Mueller EXR: ``mueller`` ``(C, 3, 3, H, W)`` float32, others in ``extra``
+    (whatever optional planes the file has: ``sigma``, ``mask``, ... may be absent)."""
     img = read_exr(path)
     c = _n_colours(img, "M00")
     names = mueller_channels(c)
     _require(img, names)
     sfx = channel_suffixes(c)
-    mueller = np.stack([np.stack([np.stack([img.planes[f"M{r}{q}.{s}"] for q in range(3)])
-                                  for r in range(3)]) for s in sfx])
-    extra = {k: v for k, v in img.planes.items() if k not in set(names)}
-    return MuellerExr(mueller, extra, img.metadata, img.conventions)
+    mueller = np.empty((c, 3, 3) + img.shape, np.float32)
+    for i, s in enumerate(sfx):  # moved plane by plane: no second full-size copy at once
+        for r in range(3):
+            for q in range(3):
+                mueller[i, r, q] = img.planes.pop(f"M{r}{q}.{s}")
+    return MuellerExr(mueller, img.planes, img.metadata, img.conventions)

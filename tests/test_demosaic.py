@@ -8,7 +8,8 @@ import pytest
 
 from _dofp_scenes import analyzer_truth, cell_constant, smooth_stokes
 from polrig.analyzer import AnalyzerModel
-from polrig.demosaic import METHODS, demosaic, demosaic_combined, output_shape
+from polrig.demosaic import (METHODS, demosaic, demosaic_combined, demosaic_float, output_shape,
+                             row_bands, support_radius)
 from polrig.layouts import IMX250MYR, IMX250MZR, MosaicLayout, get_layout
 from polrig.stokes import ideal_inverse
 
@@ -217,3 +218,45 @@ def test_newton_strips_equal_the_whole_image(monkeypatch):
         strips = demosaic(raw, layout, "newton")
         monkeypatch.undo()
         np.testing.assert_array_equal(strips, whole)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("layout", [IMX250MZR, get_layout("imx250mzr", 1, 1), IMX250MYR,
+                                    get_layout("imx250myr", 3, 2)])
+@pytest.mark.parametrize("height", [4, 37, 64])
+def test_row_bands_reproduce_the_whole_demosaic_bit_for_bit(layout, method, height):
+    """Bands of every size: each band's rows, demosaiced from its halo-extended mosaic rows,
+    are the whole image's rows exactly (the halo covers the method's support; bands start on
+    a period boundary, so each sees the layout at its own phase)."""
+    rng = np.random.default_rng(height)
+    x = rng.uniform(0, 4000, (height, 30)).astype(np.float32)
+    x[height // 2, 7] = np.nan  # non-finite input spreads the same way in bands
+    whole = demosaic_float(x, layout, method)
+    ph = layout.period[0]
+    for band_rows in (1, 2, 5, 9, 1000):
+        bands = row_bands(layout, x.shape, method, band_rows)
+        covered = np.concatenate([np.arange(o0, o1) for o0, o1, _, _ in bands])
+        np.testing.assert_array_equal(covered, np.arange(whole.shape[2]))
+        for o0, o1, e0, e1 in bands:
+            assert e0 % ph == 0 and 0 <= e0 and e1 <= height
+            part = demosaic_float(x[e0:e1], layout, method)
+            a = 0 if method == "superpixel" else o0 - e0
+            np.testing.assert_array_equal(part[:, :, a:a + o1 - o0], whole[:, :, o0:o1])
+
+
+@pytest.mark.parametrize("method", ["bilinear", "newton"])
+@pytest.mark.parametrize("layout", [IMX250MZR, IMX250MYR])
+def test_support_radius_bounds_the_reach_of_one_pixel(layout, method):
+    """A change of one raw pixel changes the output only within the support radius (the
+    bound the truth scoring relies on to call a pixel's support uniform)."""
+    ry, rx = support_radius(layout, method)
+    rng = np.random.default_rng(1)
+    x = rng.uniform(100, 200, (64, 64)).astype(np.float32)
+    y = x.copy()
+    y[31, 30] += 1000
+    diff = (demosaic_float(x, layout, method) != demosaic_float(y, layout, method)).any(axis=(0, 1))
+    rows, cols = np.nonzero(diff)
+    assert diff[31, 30]
+    assert rows.min() >= 31 - ry and rows.max() <= 31 + ry
+    assert cols.min() >= 30 - rx and cols.max() <= 30 + rx
+    assert support_radius(layout, "superpixel") == (0, 0)

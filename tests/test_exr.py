@@ -152,3 +152,80 @@ def test_writing_onto_a_folder_names_the_folder(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["d.exr"]
     with pytest.raises(FormatError, match="is a directory"):
         read_exr(tmp_path / "d.exr")
+
+
+# -- plane choices: half-precision uncertainty, plane selection, compression --------------------
+from polrig.exr import RESULT_PLANES, result_planes  # noqa: E402
+from polrig.reference import ReferenceResult  # noqa: E402
+
+
+def _result(c=3, h=6, w=5, seed=0) -> ReferenceResult:
+    rng = np.random.default_rng(seed)
+    m = rng.normal(0, 100, (c, 3, 3, h, w)).astype(np.float32)
+    sigma = rng.uniform(0.01, 50, m.shape).astype(np.float32)
+    sigma[0, 0, 0, 0, 0] = np.inf
+    sigma[0, 0, 1, 0, 0] = 1e6  # above the half range: inf in half precision
+    mask = rng.integers(0, 64, (c, h, w)).astype(np.uint8)
+    res = rng.uniform(0, 3, (c, h, w)).astype(np.float32)
+    return ReferenceResult(m, sigma, res, mask, 2.0, np.ones((c, h, w), np.float32),
+                           np.full((c, h, w), 16, np.uint16), sigma_noise=0.5 * sigma)
+
+
+def _channel_types(path) -> dict[str, str]:
+    f = OpenEXR.File(str(path), separate_channels=True)
+    return {name: ch.pixels.dtype.name for name, ch in f.channels().items()}
+
+
+@pytest.mark.parametrize("c", [1, 3])
+def test_half_uncertainty_planes_are_half_channels_and_read_back_as_float32(tmp_path, c):
+    r = _result(c)
+    p = write_mueller_exr(tmp_path / "m.exr", r.mueller,
+                          extra=result_planes(r, uncertainty="half"))
+    types = _channel_types(p)
+    sfx = "Y" if c == 1 else "G"
+    assert types[f"M01.{sfx}"] == "float32"
+    for name in (f"sigma.M01.{sfx}", f"sigma_noise.M22.{sfx}", f"mask.{sfx}", f"residual.{sfx}"):
+        assert types[name] == "float16", name
+    back = read_mueller_exr(p)
+    np.testing.assert_array_equal(_bits(back.mueller), _bits(r.mueller))
+    sig = back.extra[f"sigma.M00.{'Y' if c == 1 else 'R'}"]
+    assert sig.dtype == np.float32
+    np.testing.assert_array_equal(sig, r.sigma[0, 0, 0].astype(np.float16).astype(np.float32))
+    assert np.isinf(sig[0, 0]) and np.isinf(back.extra[f"sigma.M01.{'Y' if c == 1 else 'R'}"][0, 0])
+    np.testing.assert_array_equal(back.extra[f"mask.{sfx}"], r.mask[c // 2].astype(np.float32))
+    rel = np.abs(back.extra[f"residual.{sfx}"] / r.residual[c // 2] - 1)
+    assert rel.max() <= 2 ** -11
+
+
+def test_plane_selection_writes_exactly_the_chosen_groups(tmp_path):
+    r = _result(3)
+    full = result_planes(r)
+    assert all(a.dtype == np.float32 for a in full.values())
+    assert {k.split(".")[0] for k in full} == set(RESULT_PLANES) - {"mueller"}
+    assert len(full) == 2 * 27 + 3 + 3
+    chosen = result_planes(r, planes=("mueller", "mask"))
+    assert set(chosen) == {"mask.R", "mask.G", "mask.B"}
+    assert result_planes(r, planes=()) == {}
+    p = write_mueller_exr(tmp_path / "m.exr", r.mueller, extra=chosen)
+    back = read_mueller_exr(p)  # a file without the uncertainty planes still reads
+    assert set(back.extra) == set(chosen)
+    np.testing.assert_array_equal(back.mueller, r.mueller)
+    with pytest.raises(ValueError, match="unknown EXR plane group.*'sigmas'"):
+        result_planes(r, planes=("sigmas",))
+    with pytest.raises(ValueError, match="unknown uncertainty precision"):
+        result_planes(r, uncertainty="double")
+
+
+@pytest.mark.parametrize("compression", ["zip", "piz", "none"])
+def test_every_compression_round_trips_bit_exact(tmp_path, compression):
+    r = _result(3, h=17, w=11, seed=4)
+    m = _nasty(np.random.default_rng(2), r.mueller.shape)
+    extra = result_planes(r, uncertainty="half")
+    p = write_mueller_exr(tmp_path / "m.exr", m, extra=extra, compression=compression)
+    back = read_mueller_exr(p)
+    np.testing.assert_array_equal(_bits(back.mueller), _bits(m))
+    for k, v in extra.items():
+        np.testing.assert_array_equal(back.extra[k], v.astype(np.float32))
+    with pytest.raises(ValueError, match="unknown EXR compression 'lzma'"):
+        write_mueller_exr(tmp_path / "x.exr", m, compression="lzma")
+    assert not (tmp_path / "x.exr").exists()
