@@ -124,7 +124,7 @@ class DaskRunner:
 
         timeout = timeout or dask.config.get("distributed.comm.timeouts.connect")
         try:
-            client = Client(address, timeout=timeout, set_as_default=False)
+            client = Client(address, timeout=timeout)
         except (OSError, ValueError, TypeError) as exc:  # TimeoutError is an OSError
             why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler "

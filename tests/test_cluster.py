@@ -5,6 +5,7 @@ data, an unreachable scheduler, the extra not installed) against the manifest on
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import shutil
@@ -270,3 +271,70 @@ def test_without_the_extra_the_options_say_how_to_install_it(argv, archive, tmp_
         f"{cluster.INSTALL_HINT}"]
     assert {p: p.stat().st_mtime_ns for p in d.rglob("*")} == before
     assert not (tmp_path / "data").exists()
+
+
+def _readme_block() -> list[str]:
+    """The README's "scheduler and two workers on this machine" command lines."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Scale-out on a cluster (Dask)"):]
+    for block in section.split("```bash\n")[1:]:
+        body = block.split("```")[0]
+        if "dask scheduler --host" in body:
+            return [ln for ln in body.splitlines() if ln.strip()]
+    raise AssertionError("README: no 'dask scheduler' example in the scale-out section")
+
+
+@pytest.mark.slow
+def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
+    """The README's lines run as they are written, with real ``dask scheduler`` and
+    ``dask worker`` processes on the loopback interface (a free port instead of 8786, the
+    archive's two sessions instead of ``runs/demo``): the archive is reprocessed with the
+    serial bytes, in bounded time, and every process is stopped afterwards."""
+    import shlex
+
+    lines = _readme_block()
+    assert lines[0].startswith("dask scheduler") and lines[-1].startswith("kill %1 %2 %3")
+    assert sum(ln.startswith("dask worker") for ln in lines) == 2
+    serial = _serial(archive, tmp_path / "serial")
+    dist = _copies(archive, tmp_path / "dist")
+    port = str(_free_port())
+    env = {**ENV, "DASK_TEMPORARY_DIRECTORY": str(tmp_path / "scratch")}
+    background: list[subprocess.Popen] = []
+    try:
+        for line in lines[:-1]:
+            argv = []
+            for tok in shlex.split(line.rstrip(" &")):
+                tok = tok.replace("8786", port)
+                if tok == "runs/demo":
+                    argv += [str(d) for d in dist]
+                elif tok == "dask":
+                    argv += [sys.executable, "-m", "dask"]
+                elif tok == "polrig":
+                    argv += [sys.executable, "-m", "polrig.cli"]
+                else:
+                    argv.append(tok)
+            assert "127.0.0.1" in " ".join(argv)  # loopback only
+            if line.rstrip().endswith("&"):
+                background.append(subprocess.Popen(argv, env=env, cwd=tmp_path,
+                                                   stdout=subprocess.DEVNULL,
+                                                   stderr=subprocess.DEVNULL,
+                                                   start_new_session=True))
+            else:
+                r = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True,
+                                   timeout=240)
+                assert r.returncode == 0, r.stderr
+                assert r.stdout.count("revision rev1 written to") == 2
+    finally:  # the README's 'kill %1 %2 %3', and whatever those processes started
+        for p in reversed(background):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in reversed(background):
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=20)
+    for s, d in zip(serial, dist):
+        assert _results(d) == _results(s)
+        _no_leftovers(d)
