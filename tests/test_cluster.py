@@ -176,7 +176,7 @@ def _spawn(argv: list[str]) -> subprocess.Popen:
 
 
 @pytest.mark.slow
-def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, tmp_path):
+def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, tmp_path, capsys):
     serial = _serial([slow_session], tmp_path / "serial", demosaic="bilinear")[0]
     d = _copies([slow_session], tmp_path / "dist")[0]
     proc = _spawn(["reconstruct", str(d), "--workers", "2", "--demosaic", "bilinear"])
@@ -199,6 +199,7 @@ def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, tmp_
     kept = {k: v for k, v in _results(d).items() if v[0] == "complete"}
     assert main(["reconstruct", str(d), "--workers", "2", "--demosaic", "bilinear",
                  "--no-progress"]) == 0
+    assert f"revision rev1 continued in {d}" in capsys.readouterr().out
     s = Session.open(d)
     assert [r["name"] for r in s.manifest["revisions"]] == ["rev1"]
     assert s.manifest["history"][-1]["event"] == "revision continued"

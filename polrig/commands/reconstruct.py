@@ -119,8 +119,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         _close(bar, runner)
     for b in batches:
-        verb = "continued" if b.continued else "written"
-        print(f"revision {b.revision} {verb} to {b.session.root}")
+        verb = "continued in" if b.continued else "written to"
+        print(f"revision {b.revision} {verb} {b.session.root}")
     return 0
 
 
