@@ -96,15 +96,16 @@ class DaskRunner:
     @classmethod
     def local(cls, n_workers: int) -> "DaskRunner":
         """A ``LocalCluster`` of ``n_workers`` worker processes with one thread each, on the
-        loopback interface, no dashboard (Dask's nanny sets ``OMP_NUM_THREADS`` and friends to
-        1 in each worker, ``distributed.nanny.pre-spawn-environ``)."""
+        loopback interface (the scheduler's HTTP server too, on a free port: it always starts
+        one, and 8787 may be taken); Dask's nanny sets ``OMP_NUM_THREADS`` and friends to 1 in
+        each worker (``distributed.nanny.pre-spawn-environ``)."""
         require_distributed("--workers")
         from distributed import Client, LocalCluster
 
         if n_workers < 1:
             raise ConfigError(f"--workers {n_workers}: need at least 1")
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None,
+                               host="127.0.0.1", dashboard_address="127.0.0.1:0",
                                silence_logs=logging.ERROR)
         try:
             client = Client(cluster)

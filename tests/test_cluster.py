@@ -314,7 +314,11 @@ def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
                     argv += [sys.executable, "-m", "polrig.cli"]
                 else:
                     argv.append(tok)
-            assert "127.0.0.1" in " ".join(argv)  # loopback only
+            # loopback only: every address a process listens on or connects to
+            assert all(a.startswith(("127.0.0.1", "tcp://127.0.0.1")) for a in
+                       [argv[i + 1] for i, t in enumerate(argv)
+                        if t in ("--host", "--dashboard-address", "--scheduler")]
+                       + [t for t in argv if t.startswith("tcp://")]), argv
             if line.rstrip().endswith("&"):
                 background.append(subprocess.Popen(argv, env=env, cwd=tmp_path,
                                                    stdout=subprocess.DEVNULL,
