@@ -138,7 +138,8 @@ class DaskRunner:
         from distributed import as_completed
 
         tag = uuid.uuid4().hex[:8]
-        futures = {self.client.submit(fn, job, key=f"{fn.__name__}-{tag}-{i}", pure=False): job
+        futures = {self.client.submit(one_core, fn, job, key=f"{fn.__name__}-{tag}-{i}",
+                                      pure=False): job
                    for i, job in enumerate(jobs)}
         try:
             for fut in as_completed(list(futures)):
@@ -153,6 +154,16 @@ class DaskRunner:
         if self.cluster is not None:
             with contextlib.suppress(Exception):
                 self.cluster.close()
+
+
+def one_core(fn: Callable[[Any], Any], job: Any) -> Any:
+    """``fn(job)`` on one core: OpenCV's own thread pool (the demosaics' filters) limited to
+    one thread in this worker process, as the nanny limits OpenMP/BLAS
+    (``distributed.nanny.pre-spawn-environ``); a task is one core's work."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    return fn(job)
 
 
 def open_runner(workers: int | None, scheduler: str | None) -> Runner:
