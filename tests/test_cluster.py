@@ -245,10 +245,14 @@ def test_unreachable_scheduler_is_one_line_exit_2_before_anything_is_written(arc
     with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
         assert main(["reconstruct", str(d), "--scheduler",
                      f"tcp://127.0.0.1:{_free_port()}"]) == 2
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1, err
-    assert "cannot reach the Dask scheduler" in err
-    assert {p: p.read_bytes() for p in d.rglob("*") if p.is_file()} == before
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1, err
+        assert "cannot reach the Dask scheduler" in err
+        assert {p: p.read_bytes() for p in d.rglob("*") if p.is_file()} == before
+        assert main(["sim", "dataset", "--count", "2", "--size", "16", "--out",
+                     str(tmp_path / "data"), "--scheduler", f"127.0.0.1:{_free_port()}"]) == 2
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()
 
 
 @pytest.mark.parametrize("argv", [["reconstruct", "S", "--workers", "2"],
