@@ -73,26 +73,75 @@ def records(session_dir: pathlib.Path, revision: str) -> list[tuple[str, str]]:
             for c in s.captures]
 
 
-def run_once(archive: pathlib.Path, work: pathlib.Path, runner, tag: str):
+def reconstruct_timed(d: pathlib.Path, runner, cpu_now) -> tuple[float, float, int, int]:
+    """``cluster.reconstruct`` of session ``d`` on ``runner``: wall seconds, CPU seconds
+    (``cpu_now()`` before and after: every thread of the processes doing the work), bytes the
+    calling process read (``rchar``), captures."""
     from polrig import cluster
 
+    r0, c0, t0 = _rchar(), cpu_now(), time.perf_counter()
+    batches = cluster.reconstruct([d], runner)
+    dt, cpu, read = time.perf_counter() - t0, cpu_now() - c0, _rchar() - r0
+    return dt, cpu, read, len(batches[0].todo)
+
+
+def serial_child(d: pathlib.Path) -> None:
+    """Child-process mode (``--serial-child DIR``): warm the imports with one solve that
+    writes nothing, then reconstruct ``DIR`` serially; print the timings as JSON."""
+    import json
+
+    from polrig import cluster, processing
+    from polrig.session import Session
+
+    s = Session.open(d)
+    _, proc, done = processing.revision_plan(s, None, None, None, None)
+    proc.solve(s, done[0], None)
+    dt, cpu, read, n = reconstruct_timed(d, cluster.SerialRunner(), time.process_time)
+    print(json.dumps({"seconds": dt, "cpu": cpu, "read": read, "n": n}))
+
+
+def serial_config(threads: int | None):
+    """A serial run in a child process (its own BLAS/OpenMP thread count: ``threads`` sets
+    ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS``; ``None`` the defaults)."""
+    import json
+    import subprocess
+
+    def run(d: pathlib.Path):
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        if threads is not None:
+            env.update({k: str(threads) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                                   "MKL_NUM_THREADS")})
+        r = subprocess.run([sys.executable, __file__, "--serial-child", str(d)], env=env,
+                           capture_output=True, text=True, check=True)
+        o = json.loads(r.stdout.strip().splitlines()[-1])
+        return o["seconds"], o["cpu"], o["read"], o["n"]
+    return run
+
+
+def dask_config(runner):
+    def cpu_now() -> float:
+        return sum(runner.client.run(time.process_time).values())
+
+    return lambda d: reconstruct_timed(d, runner, cpu_now)
+
+
+def run_once(archive: pathlib.Path, work: pathlib.Path, config, tag: str):
     d = work / tag
     shutil.copytree(archive, d)
-    r0 = _rchar()
-    t0 = time.perf_counter()
-    batches = cluster.reconstruct([d], runner)
-    dt = time.perf_counter() - t0
-    read = _rchar() - r0
-    rec = records(d, batches[0].revision)
-    n = len(batches[0].todo)
+    dt, cpu, read, n = config(d)
+    rec = records(d, "rev1")
     shutil.rmtree(d)
-    return n / dt, dt / n, read, rec
+    return n / dt, dt / n, cpu / n, read, rec
 
 
 def _peak_rss_bytes() -> int:
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """This process's peak resident memory, ``VmHWM`` of ``/proc/self/status`` (not
+    ``ru_maxrss``: Linux carries a forked parent's peak across ``exec`` into it, so a spawned
+    worker would report the client's memory)."""
+    for line in pathlib.Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    return -1
 
 
 def noop(x):
@@ -110,12 +159,16 @@ def roundtrip_s(runner, n: int = 100) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--serial-child", metavar="DIR", help=argparse.SUPPRESS)
     ap.add_argument("--size", default="512x512", help="sensor WxH (default 512x512; the "
                     "IMX250's full sensor is 2448x2048)")
     ap.add_argument("--captures", type=int, default=8, help="captures in the session")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
+    if args.serial_child:
+        serial_child(pathlib.Path(args.serial_child))
+        return 0
     from polrig import cluster
     from polrig.session import Session, format_bytes
 
@@ -128,43 +181,49 @@ def main(argv=None) -> int:
               f"{time.perf_counter() - t:.1f} s", flush=True)
         s = Session.open(archive)
         raw_bytes = sum(r["bytes"] for c in s.captures for r in c["files"]["raw"]) / len(s.captures)
-        runners = {"serial": cluster.SerialRunner()}
+        runners = {}
         startup = {}
         for n in (1, 2):
             t = time.perf_counter()
-            runners[f"{n} worker{'s' if n > 1 else ''}"] = cluster.DaskRunner.local(n)
+            runners[n] = cluster.DaskRunner.local(n)
             startup[n] = time.perf_counter() - t
         import logging
 
         logging.getLogger("distributed").setLevel(logging.ERROR)
-        rt = roundtrip_s(runners["1 worker"])
+        rt = roundtrip_s(runners[1])
         # warm-up: imports and first-call costs in every worker process
-        for name, r in runners.items():
-            warm = tmp / f"warm-{name.replace(' ', '')}"
+        for n, r in runners.items():
+            warm = tmp / f"warm-{n}"
             shutil.copytree(archive, warm)
             ws = Session.open(warm, lock=True)
             b = cluster.prepare([ws])
-            b[0].todo = b[0].todo[:1]
+            b[0].todo = b[0].todo[:n]
             cluster.run_batch(b, r)
             ws.unlock()
             shutil.rmtree(warm)
-        names = list(runners)
+        configs = {"serial (default BLAS threads)": serial_config(None),
+                   "serial, 1 thread": serial_config(1),
+                   "1 worker": dask_config(runners[1]),
+                   "2 workers": dask_config(runners[2])}
+        names = list(configs)
         rates = {n: [] for n in names}
         per = {n: [] for n in names}
+        cpus = {n: [] for n in names}
         reads = {n: [] for n in names}
         ref = None
         for k in range(args.rounds):
             order = names[k % len(names):] + names[:k % len(names)]
             for name in order:
-                rate, sec, read, rec = run_once(archive, tmp, runners[name], f"r{k}")
+                rate, sec, cpu, read, rec = run_once(archive, tmp, configs[name], f"r{k}")
                 if ref is None:
                     ref = rec
                 assert rec == ref, f"{name}: result files differ from the first run's"
                 rates[name].append(rate)
                 per[name].append(sec)
                 reads[name].append(read)
+                cpus[name].append(cpu)
                 print(f"round {k + 1} {name}: {rate:.3f} captures/s ({sec:.2f} s/capture, "
-                      f"client read {read / 1e6:.1f} MB)", flush=True)
+                      f"CPU {cpu:.2f} s/capture, read {read / 1e6:.1f} MB)", flush=True)
         # bytes of one task and one result, as Dask pickles them
         job = cluster.jobs_of(cluster.SessionBatch(s, "rev1", {"mode": "reference",
                                                                "demosaic": "superpixel",
@@ -180,7 +239,8 @@ def main(argv=None) -> int:
         bs.unlock()
         outcome = cluster.run_capture(cluster.jobs_of(bb[0], None)[0])
         job_b, out_b = len(cloudpickle.dumps(job)), len(pickle.dumps(outcome))
-        rss = max(runners["2 workers"].client.run(_peak_rss_bytes).values())
+        rss = {f"{n} worker(s)": sorted(runners[n].client.run(_peak_rss_bytes).values())
+               for n in runners}
         for r in runners.values():
             r.close()
     finally:
@@ -198,21 +258,22 @@ def main(argv=None) -> int:
         f"{platform.python_version()}; load average {load0[0]:.1f} before, {load1[0]:.1f} after "
         f"(the machine is shared with other work: absolute numbers and ratios move with it).",
         "",
-        "| configuration | captures/s (median) | best | s/capture (median) | vs 1 worker | vs serial | client read per run |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| configuration | captures/s (median) | best | s/capture (median) | CPU s/capture (median) | vs 1 worker | vs serial | read by the polrig process per run |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    serial = med["serial (default BLAS threads)"]
     for n in names:
         lines.append(f"| {n} | {med[n]:.3f} | {max(rates[n]):.3f} | "
-                     f"{statistics.median(per[n]):.2f} | {med[n] / one:.2f}x | "
-                     f"{med[n] / med['serial']:.2f}x | "
+                     f"{statistics.median(per[n]):.2f} | {statistics.median(cpus[n]):.2f} | "
+                     f"{med[n] / one:.2f}x | {med[n] / serial:.2f}x | "
                      f"{format_bytes(statistics.median(reads[n]))} |")
-    overhead = statistics.median(per["1 worker"]) - statistics.median(per["serial"])
+    overhead = statistics.median(per["1 worker"]) - statistics.median(per["serial, 1 thread"])
     lines += [
         "",
         f"- Cluster start-up (not in the rates): 1 worker {startup[1]:.1f} s, 2 workers "
         f"{startup[2]:.1f} s.",
         f"- Per-task overhead: an empty task's round trip {rt * 1e3:.1f} ms (median of 100); "
-        f"1 worker minus serial per capture {overhead * 1e3:+.0f} ms (round trip, the worker "
+        f"1 worker minus serial (1 thread) per capture {overhead * 1e3:+.0f} ms (round trip, the worker "
         f"opening the session manifest, process boundary; noise of the shared machine "
         f"included).",
         f"- Bytes per capture between client and workers: task {job_b} B, result "
@@ -220,9 +281,15 @@ def main(argv=None) -> int:
         f"from the shared file system. The client's own reads per run (files and sockets, "
         f"`rchar`) are in the table: serial reads every raw frame, the cluster runs read the "
         f"manifest and the small messages.",
+        "- CPU s/capture: CPU time of every thread of the processes doing the work (the serial "
+        "child process; the Dask worker processes), per capture. Serial runs in a child "
+        "process with the default thread counts, or with OMP/OpenBLAS/MKL limited to 1 "
+        "thread as Dask's nanny limits its workers.",
         "- Result files: the same SHA-256 in every configuration and round.",
-        f"- Peak resident memory of a worker process: {format_bytes(rss)} (the most that one "
-        f"single-threaded worker needs at this size: workers per node <= memory / this).",
+        "- Peak resident memory of each worker process over the whole benchmark (warm-up, "
+        "rounds; `VmHWM`): " + "; ".join(f"{n}: " + ", ".join(format_bytes(b) for b in v)
+                                            for n, v in rss.items()) +
+        " (what a worker needs at this size: workers per node <= memory / this).",
     ]
     text = "\n".join(lines) + "\n"
     print(text)
