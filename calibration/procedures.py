@@ -86,8 +86,9 @@ TOO_DARK_FRACTION = 0.25
 
 def exposure_range_us(camera) -> tuple[float, float]:
     """``(shortest, longest)`` exposure the procedures use on ``camera``: its declared range
-    (``EXPOSURE_RANGE_US``), the longest capped at :data:`MAX_EXPOSURE_US`."""
-    lo, hi = getattr(camera, "EXPOSURE_RANGE_US", (10.0, 1e7))
+    (:attr:`polrig.hal.CameraCapabilities.exposure_range_us`), the longest capped at
+    :data:`MAX_EXPOSURE_US`."""
+    lo, hi = camera.capabilities.exposure_range_us
     return float(lo), min(float(hi), MAX_EXPOSURE_US)
 
 

@@ -34,6 +34,7 @@ from calibration.charuco import BoardSpec
 from calibration.errors import CalibrationError
 from polrig import frames as fr
 from polrig.analyzer import AnalyzerModel
+from polrig.engine import CaptureControl, GuardedRig
 
 STEPS = ("intrinsics", "turntable", "light", "stokes", "dofp")
 
@@ -144,9 +145,17 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
               options: Options | None = None, log: Callable[[str], None] = print,
               extras: dict[str, Any] | None = None,
               on_step_done: Callable[[str], None] | None = None,
-              set_name: str = "the calibration set") -> CalibrationSet:
+              set_name: str = "the calibration set",
+              control: CaptureControl | None = None) -> CalibrationSet:
     """Run ``steps`` (names from :data:`STEPS`, in the given order) and store the results in
     ``cs``. ``extras`` (optional dict) receives the raw results for reports.
+
+    The procedures drive ``rig`` through :class:`polrig.engine.GuardedRig`: every grab,
+    camera setting, light switch and move goes through the same fault policy as a capture
+    (:class:`polrig.engine.Executor`: retried grab timeouts, one re-homed retry per move,
+    timeouts from the declared capabilities, free-run settle frames; each retry is a ``log``
+    line), and ``control`` (a :class:`polrig.engine.CaptureControl`) pauses or stops them
+    before a grab or a move (:class:`polrig.engine.StopRequested`).
 
     Before anything moves, a set calibrated on another camera readout is refused
     (:func:`check_set_fits_camera`, ``set_name`` names it). After each step, the results of
@@ -162,6 +171,7 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
             raise ValueError(f"unknown calibration step {step!r}; one of {', '.join(STEPS)}, all")
     check_set_fits_camera(cs, rig, set_name)
     camera = SensorGeometry.of_rig(rig).to_json()
+    rig = GuardedRig.around(rig, control=control, on_retry=lambda m: log(f"retry: {m}"))
     for i, step in enumerate(steps):
         later = steps[i + 1:]
 

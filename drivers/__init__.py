@@ -13,4 +13,17 @@ module             device                      transport / protocol
 
 Every blocking call takes a timeout; failures are typed (:mod:`polrig.errors`). Each driver
 is tested against an emulator in :mod:`drivers.emulators` that speaks the same bytes.
+
+Each declares its :attr:`~polrig.hal.Camera.capabilities` from what the device reports,
+read on open (cheap to ask):
+
+=================  =============================================================================
+module             capabilities from
+=================  =============================================================================
+``genicam_camera`` ``TriggerMode``/``TriggerSoftware`` (software trigger, else free run only),
+                   ``ExposureTime[Abs]`` min/max, ``SensorReadoutTime`` or one frame period
+``ell14``          ``gv`` (velocity, percent of the ELL14's 430 deg/s)
+``k10cr1``         ``MOT_REQ_VELPARAMS`` (maximum velocity, acceleration)
+``grbl``           ``$$``: ``$11k`` rate, ``$12k`` acceleration, ``$13k`` travel (soft limits)
+=================  =============================================================================
 """

@@ -24,6 +24,9 @@ HW_RESPONSE = 0x0080
 HW_RICHRESPONSE = 0x0081
 MOD_IDENTIFY = 0x0223
 MOD_SET_CHANENABLESTATE = 0x0210
+MOT_SET_VELPARAMS = 0x0413
+MOT_REQ_VELPARAMS = 0x0414
+MOT_GET_VELPARAMS = 0x0415
 MOT_REQ_POSCOUNTER = 0x0411
 MOT_GET_POSCOUNTER = 0x0412
 MOT_REQ_STATUSBITS = 0x0429
@@ -41,6 +44,7 @@ MOT_ACK_DCSTATUSUPDATE = 0x0492
 #: data-packet length of every message the host may receive (None: header only)
 REPLY_DATA_LEN: dict[int, int | None] = {
     HW_GET_INFO: 84, HW_RESPONSE: None, HW_RICHRESPONSE: 68, MOT_GET_POSCOUNTER: 6,
+    MOT_GET_VELPARAMS: 14,
     MOT_GET_STATUSBITS: 6, MOT_MOVE_HOMED: None, MOT_MOVE_COMPLETED: 14,
     MOT_MOVE_STOPPED: 14, MOT_GET_STATUSUPDATE: 14,
 }
@@ -53,6 +57,35 @@ STATUS_HOMED = 1 << 10
 STATUS_MOTION_ERROR = 1 << 14
 STATUS_ENABLED = 1 << 31
 STATUS_MOVING = STATUS_MOVING_REV | STATUS_MOVING_FWD | STATUS_HOMING
+
+#: Velocity parameters (``MOT_SET/REQ/GET_VELPARAMS``, data ``<H channel> <i minimum velocity>
+#: <i acceleration> <i maximum velocity>``, 14 bytes) are in the controller's own units. For
+#: the Trinamic-based stepper controllers (K10CR1, KST101, BSC20x, ...) the APT protocol's
+#: "conversion between position, velocity and acceleration" section gives
+#: velocity = micro-steps/s * 53.68 and acceleration = micro-steps/s^2 / 90.9 (QMI's K10CR1
+#: driver, tested on the device, uses the same: 7329109 per deg/s and 1502 per deg/s^2 at
+#: 409600/3 micro-steps per degree).
+VELOCITY_PER_STEP_S = 53.68
+ACCELERATION_STEPS_S2_PER_UNIT = 90.9
+VELPARAMS_FORMAT = "<Hiii"
+
+
+def velocity_from_apt(value: int, steps_per_unit: float) -> float:
+    """APT velocity units -> real units per second (``steps_per_unit`` micro-steps each)."""
+    return value / VELOCITY_PER_STEP_S / steps_per_unit
+
+
+def acceleration_from_apt(value: int, steps_per_unit: float) -> float:
+    """APT acceleration units -> real units per second squared."""
+    return value * ACCELERATION_STEPS_S2_PER_UNIT / steps_per_unit
+
+
+def velocity_to_apt(units_s: float, steps_per_unit: float) -> int:
+    return round(units_s * steps_per_unit * VELOCITY_PER_STEP_S)
+
+
+def acceleration_to_apt(units_s2: float, steps_per_unit: float) -> int:
+    return round(units_s2 * steps_per_unit / ACCELERATION_STEPS_S2_PER_UNIT)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,6 +22,13 @@ A status that is not two hex digits is a :class:`ProtocolError` naming the reply
 
 Angles: degrees in ``[0, 360)``; see ``docs/conventions.md`` for the stage zero axis
 (``zero_offset_deg`` maps the device's home to the rig's zero axis).
+
+Capabilities (:attr:`Ell14Stage.capabilities`, read on open): ``gv`` -> ``GV`` with two hex
+digits, the velocity as a percentage of the maximum (ELLx protocol manual, "get velocity";
+``sv`` sets it, 1..100 = 0x01..0x64); the ELL14's maximum speed is 430 deg/s (Thorlabs ELL14
+specifications, "maximum rotation speed 430 deg/s"), so the axis declares ``430 * gv / 100``
+deg/s. The piezo resonant motor reaches its speed at once (no acceleration ramp is
+specified or settable): acceleration ``inf``. Travel: continuous rotation (no limits).
 """
 
 from __future__ import annotations
@@ -29,10 +36,13 @@ from __future__ import annotations
 import time
 
 from drivers._serial import SerialDevice, SerialLink, wrap_deg
-from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import DeviceInfo, RotationStage
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.hal import AxisCapabilities, DeviceInfo, RotationStage
 
 BAUDRATE = 9600
+#: ELL14 maximum rotation speed, deg/s (Thorlabs ELL14 specifications); ``gv`` is a
+#: percentage of it
+MAX_SPEED_DEG_S = 430.0
 STATUS_TEXT = {
     0: "OK", 1: "communication time-out", 2: "mechanical time-out",
     3: "command error or not supported", 4: "value out of range", 5: "module isolated",
@@ -67,10 +77,28 @@ class Ell14Stage(SerialDevice, RotationStage):
         self._info: DeviceInfo | None = None
         self.pulses_per_deg = 0.0
         self._move_pending = False
+        self._caps: AxisCapabilities | None = None
 
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
         self._identify()
+        self._caps = AxisCapabilities(speed_deg_s=MAX_SPEED_DEG_S * self.velocity_percent() / 100)
+
+    @property
+    def capabilities(self) -> AxisCapabilities:
+        """Speed from the device's ``gv`` velocity (read on open), instant acceleration,
+        continuous travel."""
+        if self._caps is None:
+            raise DeviceDisconnected("stage is not open (open it first)", device=self._link.device)
+        return self._caps
+
+    def velocity_percent(self) -> int:
+        """``gv``: the velocity as a percentage (1..100) of the maximum speed."""
+        payload = self._query("gv", "GV")
+        if len(payload) != 2 or not set(payload) <= _HEX or not 0 < int(payload, 16) <= 100:
+            raise ProtocolError(f"malformed velocity reply {self.address + 'GV' + payload!r} "
+                                "(expected two hex digits, 01..64)", device=self._link.device)
+        return int(payload, 16)
 
     def close(self) -> None:
         self._link.close()

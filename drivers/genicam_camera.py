@@ -29,6 +29,31 @@ shared library that is not a producer).
 
 Every timeout must be a positive number of seconds: harvesters treats ``fetch(timeout=0)``
 or less as "wait forever", so those are refused with ValueError.
+
+Capabilities (:attr:`GenicamCamera.capabilities`, read from the node map on open and again
+after every setting this driver changes, so that reading them costs nothing):
+
+- trigger modes: free run always; ``"software"`` when the node map has ``TriggerMode`` and
+  ``TriggerSoftware`` (SFNC). A camera without them (the genicam wheel's Viky producer)
+  streams in free run only, and :meth:`GenicamCamera.set_trigger` refuses ``"software"``
+  with :class:`polrig.errors.ConfigError`.
+- exposure range: the ``min``/``max`` of ``ExposureTime`` (SFNC, microseconds), else of
+  ``ExposureTimeAbs`` (the pre-SFNC 2.0 GigE name, also microseconds). A camera with
+  neither has no exposure control: it declares ``(0, 0)``, so every exposure a plan asks
+  for is refused before anything is acquired.
+- readout: ``SensorReadoutTime`` (SFNC, microseconds) where the camera has it; else one
+  frame period at the frame rate the camera reports (``ResultingFrameRate``, the rate it
+  really runs at, else ``AcquisitionFrameRate``, the rate asked for): ``1e6 / fps``
+  microseconds. Assumption: with overlapped exposure and readout a frame is delivered at
+  most one frame period after its exposure ends (readout and transfer take no longer than
+  the period, or the camera could not keep that rate), so the period bounds the readout
+  plus transfer; nothing is subtracted for the exposure, which may overlap the previous
+  readout entirely. A camera reporting neither: 0.
+- settle frames (free run): 2. When a setting changes (or the rig moves) during free run,
+  one frame is being exposed, and began before the change, and the one before it may be
+  in readout or transfer and not yet queued on the host (:meth:`GenicamCamera.grab`
+  discards only frames already queued). The second frame begun after the change is the
+  first one certainly exposed entirely with the new setting and the new scene.
 """
 
 from __future__ import annotations
@@ -45,8 +70,9 @@ from typing import Any, Iterator
 import numpy as np
 
 from polrig import pixelformats
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, FormatError
-from polrig.hal import DEFAULT_TIMEOUT_S, Camera, DeviceInfo, Frame, FrameMeta
+from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceNotFound,
+                           DeviceTimeout, FormatError)
+from polrig.hal import DEFAULT_TIMEOUT_S, Camera, CameraCapabilities, DeviceInfo, Frame, FrameMeta
 from polrig.layouts import get_layout
 
 
@@ -171,6 +197,50 @@ def gentl_paths_from_env() -> list[str]:
 
 #: features that change the payload size: the stream is stopped while they are set
 _PAYLOAD_FEATURES = frozenset({"PixelFormat", "Width", "Height"})
+#: exposure features, SFNC name first (both in microseconds)
+_EXPOSURE_FEATURES = ("ExposureTime", "ExposureTimeAbs")
+#: frame-rate features: the rate the camera runs at, then the rate asked for (Hz)
+_FRAME_RATE_FEATURES = ("ResultingFrameRate", "AcquisitionFrameRate")
+#: free run: frames to discard after a setting change (see the module notes)
+FREE_RUN_SETTLE_FRAMES = 2
+
+
+def exposure_feature(node_map) -> str | None:
+    """The node map's exposure feature: ``ExposureTime``, else ``ExposureTimeAbs``; None
+    when it has neither."""
+    return next((n for n in _EXPOSURE_FEATURES if node_map.has_node(n)), None)
+
+
+def capabilities_from_node_map(node_map) -> CameraCapabilities:
+    """What a GenICam node map (``has_node``/``get_node``, as GenApi's ``NodeMap``) declares,
+    by the rules of the module notes. ValueError for a range the camera cannot mean."""
+    software = node_map.has_node("TriggerMode") and node_map.has_node("TriggerSoftware")
+    exposure = exposure_feature(node_map)
+    if exposure is None:
+        exposure_range = (0.0, 0.0)  # no exposure control
+    else:
+        node = node_map.get_node(exposure)
+        exposure_range = (float(node.min), float(node.max))
+    readout = _float_feature(node_map, "SensorReadoutTime")
+    if readout is None or readout < 0:
+        rates = (_float_feature(node_map, n) for n in _FRAME_RATE_FEATURES)
+        fps = next((r for r in rates if r is not None and r > 0), None)
+        readout = 1e6 / fps if fps is not None else 0.0
+    return CameraCapabilities(trigger_modes=("software", "free") if software else ("free",),
+                              exposure_range_us=exposure_range, readout_us=readout,
+                              settle_frames=FREE_RUN_SETTLE_FRAMES)
+
+
+def _float_feature(node_map, name: str) -> float | None:
+    """The value of a numeric feature, or None where the node map lacks it or cannot read it
+    now (a node not readable in the current state)."""
+    if not node_map.has_node(name):
+        return None
+    try:
+        value = float(node_map.get_node(name).value)
+    except (_genapi().GenericException, TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
 
 
 class GenicamCamera(Camera):
@@ -203,6 +273,7 @@ class GenicamCamera(Camera):
         self._producer: _SharedProducer | None = None
         self._ia = None
         self._info: DeviceInfo | None = None
+        self._caps: CameraCapabilities | None = None
         self.name = f"genicam {self.serial or self.index or ''}".strip()
 
     # -- life cycle ------------------------------------------------------------------------
@@ -255,6 +326,7 @@ class GenicamCamera(Camera):
                 if p is not chosen:
                     p.release()
         self._producer, self._ia = chosen, ia
+        self._caps = None
         self._info = DeviceInfo(kind=self.kind, driver="genicam", model=d.model or "",
                                 serial=d.serial_number or "", firmware=d.version or "",
                                 port=d.id_ or "", extra={"vendor": d.vendor,
@@ -277,6 +349,7 @@ class GenicamCamera(Camera):
             raise
 
     def close(self) -> None:
+        self._caps = None
         ia, self._ia = self._ia, None
         producer, self._producer = self._producer, None
         if ia is not None:
@@ -314,8 +387,11 @@ class GenicamCamera(Camera):
         return nm.get_node(name)
 
     def _set(self, name: str, value: Any) -> None:
-        """Set a feature; if the camera locks it while streaming, stop, set and restart."""
+        """Set a feature; if the camera locks it while streaming, stop, set and restart.
+        Any setting may change what the camera declares (the readout time follows the ROI,
+        pixel format and frame rate): the capabilities are read again when next asked."""
         node = self._node(name)
+        self._caps = None
         genapi = _genapi()
         ia = self._require()
         if name in _PAYLOAD_FEATURES and ia.is_acquiring():
@@ -377,12 +453,17 @@ class GenicamCamera(Camera):
         return (int(self._get("Width")), int(self._get("Height")),
                 int(self._get("OffsetX", 0)), int(self._get("OffsetY", 0)))
 
+    def _exposure_feature(self) -> str:
+        """``ExposureTime``, else ``ExposureTimeAbs``; the SFNC name when it has neither
+        (so that setting it names the missing feature)."""
+        return exposure_feature(self._require().remote_device.node_map) or _EXPOSURE_FEATURES[0]
+
     def set_exposure_us(self, exposure_us: float) -> None:
-        self._set("ExposureTime", float(exposure_us))
+        self._set(self._exposure_feature(), float(exposure_us))
 
     @property
     def exposure_us(self) -> float:
-        return float(self._get("ExposureTime", float("nan")))
+        return float(self._get(self._exposure_feature(), float("nan")))
 
     def set_gain_db(self, gain_db: float) -> None:
         self._set("Gain", float(gain_db))
@@ -394,9 +475,31 @@ class GenicamCamera(Camera):
     def set_frame_rate_hz(self, rate_hz: float) -> None:
         self._set("AcquisitionFrameRate", float(rate_hz))
 
+    # -- capabilities ----------------------------------------------------------------------
+    @property
+    def capabilities(self) -> CameraCapabilities:
+        """What the node map declares (module notes); read once, again after a setting
+        changed."""
+        if self._caps is None:
+            self._caps = self._read_capabilities()
+        return self._caps
+
+    def _read_capabilities(self) -> CameraCapabilities:
+        try:
+            return capabilities_from_node_map(self._require().remote_device.node_map)
+        except ValueError as exc:
+            raise DeviceFault(f"camera declares impossible capabilities: {exc}",
+                              device=self.name, code="capabilities", text=str(exc)) from None
+
     def set_trigger(self, mode: str) -> None:
-        if mode not in ("free", "software"):
-            raise ValueError(f"trigger mode must be 'free' or 'software', got {mode!r}")
+        """``"free"`` or ``"software"``, whichever :attr:`capabilities` lists (else
+        :class:`ConfigError`). Free run works on a camera without ``TriggerMode``."""
+        modes = self.capabilities.trigger_modes
+        if mode not in modes:
+            missing = (" (the camera has no TriggerMode/TriggerSoftware feature)"
+                       if mode == "software" else "")
+            raise ConfigError(f"trigger mode {mode!r} is not supported by camera "
+                              f"{self.name}{missing}; it supports {', '.join(modes)}")
         if mode == "software":
             self._set("TriggerSelector", "FrameStart") if self.has_feature("TriggerSelector") else None
             self._set("TriggerMode", "On")

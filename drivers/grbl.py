@@ -34,16 +34,27 @@ interface.md) has not ended: :meth:`wait` keeps waiting, because GRBL resumes it
 start (``~``) once the operator allows, and at its deadline the timeout names the state. A
 controller that cannot move at all (``Sleep``, check mode ``Check``) raises
 :class:`DeviceFault` at once.
+
+Capabilities (:attr:`GrblTurntable.capabilities`, read on open with ``$$``, commands.md
+"Grbl Settings"): for the configured axis, number ``k`` of ``axes``, its maximum rate
+``$11k`` (units/min; a configured G1 ``rate_per_min`` caps it) and acceleration ``$12k``
+(units/s^2), times ``degrees_per_unit``. With soft limits on (``$20=1``) the travel is the
+machine window of a default GRBL 1.1 build, ``[-$13k, 0]`` units (settings.c stores the
+travel negated, system.c ``system_check_travel_limits`` checks ``max_travel <= target <= 0``
+unless the firmware was built with ``HOMING_FORCE_SET_ORIGIN``); without soft limits the
+axis turns without limit (``None``). A ``$$`` listing without the axis's settings (a
+3-axis build asked for axis A) is a :class:`ProtocolError` naming them.
 """
 
 from __future__ import annotations
 
+import math
 import time
 
 from drivers._serial import SerialDevice, SerialLink
 from drivers.grbl_codes import ALARMS, CRITICAL_ALARMS, CRITICAL_MESSAGE, ERRORS, SUBSTATES
 from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import DeviceInfo, Turntable
+from polrig.hal import AxisCapabilities, DeviceInfo, Turntable
 
 BAUDRATE = 115200
 SOFT_RESET = b"\x18"
@@ -76,6 +87,7 @@ class GrblTurntable(SerialDevice, Turntable):
         self.last_alarm: int | str | None = None
         # halted after a critical alarm: GRBL ignores everything but a soft reset
         self.halted = False
+        self._caps: AxisCapabilities | None = None
 
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
@@ -89,7 +101,57 @@ class GrblTurntable(SerialDevice, Turntable):
                                 firmware=self._banner, port=self.port,
                                 extra={"build": [l for l in lines if l.startswith("[")],
                                        "axis": self.axis})
-        self.status()
+        self.status()  # checks the axis is in the status report
+        self._caps = self._axis_capabilities(self.settings())
+
+    @property
+    def capabilities(self) -> AxisCapabilities:
+        """Speed, acceleration and travel of the turntable axis from ``$$`` (read on open)."""
+        if self._caps is None:
+            raise DeviceDisconnected("device is not open (open it first)",
+                                     device=self._link.device)
+        return self._caps
+
+    def settings(self) -> dict[int, float]:
+        """``$$``: every ``$N=value`` setting line (GRBL 1.1 prints no comments)."""
+        out: dict[int, float] = {}
+        for line in self._command("$$"):
+            key, sep, value = line.partition("=")
+            try:
+                if not (sep and key.startswith("$")):
+                    raise ValueError
+                out[int(key[1:])] = float(value)
+            except ValueError:
+                self._resync()
+                raise ProtocolError(f"malformed settings line {line!r} in the reply to '$$'",
+                                    device=self._link.device) from None
+        return out
+
+    def _axis_capabilities(self, settings: dict[int, float]) -> AxisCapabilities:
+        k = self.axis_index
+        keys = {"rate": 110 + k, "accel": 120 + k}
+        if settings.get(20):
+            keys["travel"] = 130 + k
+        missing = [f"${n}" for n in keys.values() if n not in settings]
+        if missing:
+            raise ProtocolError(f"the controller's settings ($$) have no {', '.join(missing)} "
+                                f"for axis {self.axis} (number {k + 1} of the configured axes "
+                                f"{self.axes!r}): a build without that axis?",
+                                device=self._link.device)
+        rate = settings[keys["rate"]]
+        if self.rate_per_min:
+            rate = min(rate, float(self.rate_per_min))
+        dpu = abs(self.degrees_per_unit)
+        speed, accel = rate / 60.0 * dpu, settings[keys["accel"]] * dpu
+        if not (speed > 0 and accel > 0 and math.isfinite(speed) and math.isfinite(accel)):
+            raise ProtocolError(f"axis {self.axis} settings give maximum rate {rate:g} units/min"
+                                f" and acceleration {settings[keys['accel']]:g} units/s^2: "
+                                "both must be > 0", device=self._link.device)
+        travel = None
+        if "travel" in keys:
+            ends = sorted((-settings[keys["travel"]] * self.degrees_per_unit, 0.0))
+            travel = (ends[0], ends[1])
+        return AxisCapabilities(speed_deg_s=speed, accel_deg_s2=accel, range_deg=travel)
 
     def close(self) -> None:
         self._link.close()
@@ -186,7 +248,8 @@ class GrblTurntable(SerialDevice, Turntable):
                 self._alarm(line)
 
     def _command(self, line: str, timeout_s: float | None = None) -> list[str]:
-        """Send one line; return the lines before ``ok``; ``error:N``/``ALARM:N`` raise."""
+        """Send one line; return the lines before ``ok`` (``[...]`` messages, ``$N=value``
+        settings); ``error:N``/``ALARM:N`` raise."""
         self._drain_pending()
         self._link.write(line.encode("ascii") + b"\n")
         stated = timeout_s or self.reply_timeout_s
@@ -208,7 +271,7 @@ class GrblTurntable(SerialDevice, Turntable):
                 raise self._alarm_fault()
             if reply.startswith("Grbl "):
                 raise self._reset_seen(reply, repr(line))
-            if reply and not reply.startswith(("<", "[")):
+            if reply and not reply.startswith(("<", "[", "$")):  # $N=value: a $$ listing
                 self._resync()
                 raise ProtocolError(f"unexpected reply {reply!r} to {line!r}",
                                     device=self._link.device)

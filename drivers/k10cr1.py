@@ -25,6 +25,11 @@ limit switch, the controller's own stop, another program): :class:`DeviceFault` 
 position it stopped at. When no message comes for a while, :meth:`wait` asks the status
 bits: a controller that no longer moves has finished, and its end-of-motion message was
 lost on the line (with the motion-error bit set that is a :class:`DeviceFault`).
+
+Capabilities (:attr:`K10cr1Stage.capabilities`, read on open): ``MOT_REQ_VELPARAMS`` ->
+``MOT_GET_VELPARAMS`` (maximum velocity and acceleration in APT units, converted as
+:mod:`drivers.apt` documents: velocity / 53.68, acceleration * 90.9, per micro-step); the
+stage turns without limit (``range_deg`` None).
 """
 
 from __future__ import annotations
@@ -35,8 +40,8 @@ import time
 
 from drivers import apt
 from drivers._serial import SerialDevice, SerialLink, wrap_deg
-from polrig.errors import DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import DeviceInfo, RotationStage, Turntable
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.hal import AxisCapabilities, DeviceInfo, RotationStage, Turntable
 
 BAUDRATE = 115200
 STEPS_PER_DEG = 409600 / 3
@@ -64,12 +69,36 @@ class K10cr1Stage(SerialDevice, RotationStage):
         self._pending = False  # a motion whose end-of-motion message has not been read
         self._stopping = False  # stop() is waiting for its MOT_MOVE_STOPPED
         self._interrupted: tuple[int | None] | None = None  # (steps,) of an unasked stop
+        self._caps: AxisCapabilities | None = None
 
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
         self._send(apt.AptMessage(apt.HW_STOP_UPDATEMSGS))
         self._identify()
         self._send(apt.AptMessage(apt.MOD_SET_CHANENABLESTATE, 1, 0x01))
+        speed, accel = self.velocity_params()
+        self._caps = AxisCapabilities(speed_deg_s=speed, accel_deg_s2=accel)
+
+    @property
+    def capabilities(self) -> AxisCapabilities:
+        """Maximum velocity and acceleration from ``MOT_GET_VELPARAMS`` (read on open);
+        unlimited travel."""
+        if self._caps is None:
+            raise DeviceDisconnected("stage is not open (open it first)", device=self._link.device)
+        return self._caps
+
+    def velocity_params(self) -> tuple[float, float]:
+        """``(maximum velocity deg/s, acceleration deg/s^2)`` as the controller reports them
+        (``MOT_REQ_VELPARAMS``)."""
+        data = self._request(apt.AptMessage(apt.MOT_REQ_VELPARAMS, 1), apt.MOT_GET_VELPARAMS)
+        _chan, _min_vel, accel, max_vel = struct.unpack(apt.VELPARAMS_FORMAT, data)
+        speed = apt.velocity_from_apt(max_vel, STEPS_PER_DEG)
+        acceleration = apt.acceleration_from_apt(accel, STEPS_PER_DEG)
+        if not (speed > 0 and acceleration > 0):
+            raise ProtocolError(f"MOT_GET_VELPARAMS gives maximum velocity {max_vel} and "
+                                f"acceleration {accel} (APT units): both must be > 0",
+                                device=self._link.device)
+        return speed, acceleration
 
     def close(self) -> None:
         self._pending = False

@@ -42,7 +42,7 @@ from __future__ import annotations
 import dataclasses
 import tomllib
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from polrig.errors import ConfigError
 
@@ -153,6 +153,10 @@ class RigConfig(dict):
         return self.get("sensor_model")
 
 
+#: ``(table, where) -> None``: checks the ``[sim]`` table (:func:`validate_config`).
+SimTableCheck = Callable[[dict[str, Any], str], None]
+
+
 def _show(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
@@ -166,8 +170,13 @@ def _closest(word: str, options: list[str]) -> str:
 
 
 def validate_config(data: Mapping[str, Any], registry: Mapping[str, DriverSpec], *,
-                    source: str | Path | None = None) -> RigConfig:
-    """Check parsed TOML ``data`` against the driver ``registry``; return a :class:`RigConfig`."""
+                    source: str | Path | None = None,
+                    sim_check: SimTableCheck | None = None) -> RigConfig:
+    """Check parsed TOML ``data`` against the driver ``registry``; return a :class:`RigConfig`.
+
+    ``sim_check(table, where)``: the simulated rig's own option parser for the ``[sim]``
+    table (supplied by :mod:`polrig.rig`, which may import ``sim``; this core module does
+    not), raising :class:`ConfigError` messages that start with ``where``."""
     where = f"{source}: " if source else ""
     out = RigConfig()
     out.source = Path(source) if source else None
@@ -228,8 +237,8 @@ def validate_config(data: Mapping[str, Any], registry: Mapping[str, DriverSpec],
             out[extra] = dict(data[extra])
     if "sensor_model" in out:
         out["sensor_model"] = _check_sensor_model(out["sensor_model"], where)
-    if "sim" in out:
-        _check_sim(out["sim"], where)
+    if "sim" in out and sim_check is not None:
+        sim_check(out["sim"], f"{where}[sim] ")
     if "nominal_geometry" in out:
         out["nominal_geometry"] = _check_geometry(out["nominal_geometry"], where)
     return out
@@ -330,16 +339,9 @@ def _check_sensor_model(table: dict[str, Any], where: str) -> dict[str, Any]:
     return check_sensor_model(table, f"{where}[sensor_model] ")
 
 
-def _check_sim(table: dict[str, Any], where: str) -> None:
-    """The ``[sim]`` table through the simulated rig's own option parser (the one place
-    its options are checked), so errors name the table and key before anything runs."""
-    from sim.options import parse_options
-
-    parse_options(table, where=f"{where}[sim] ")
-
-
-def load_config(path: str | Path, registry: Mapping[str, DriverSpec]) -> RigConfig:
-    """Read and validate a rig TOML file."""
+def load_config(path: str | Path, registry: Mapping[str, DriverSpec], *,
+                sim_check: SimTableCheck | None = None) -> RigConfig:
+    """Read and validate a rig TOML file (``sim_check``: see :func:`validate_config`)."""
     path = Path(path)
     try:
         text = path.read_bytes().decode("utf-8")
@@ -351,4 +353,4 @@ def load_config(path: str | Path, registry: Mapping[str, DriverSpec]) -> RigConf
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    return validate_config(data, registry, source=path)
+    return validate_config(data, registry, source=path, sim_check=sim_check)

@@ -64,10 +64,41 @@ def diattenuator(tx: ArrayLike, ty: ArrayLike) -> np.ndarray:
 
 
 def linear_retarder(phase_rad: ArrayLike) -> np.ndarray:
-    """Linear retarder with its fast axis along ``x`` and retardance ``phase_rad``."""
+    """Linear retarder with its fast axis along ``x`` and retardance ``phase_rad``:
+    ``[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, cos d, sin d], [0, 0, -sin d, cos d]]``
+    (D. H. Goldstein, *Polarized Light*, 3rd ed., eq. 6.43; Mitsuba 3
+    ``mueller::linear_retarder``). This is the sign of :func:`specular_reflection`'s
+    retardance block (``docs/conventions.md``: ``S3`` as in Mitsuba 3), so films and metals
+    compose consistently; ``jones_to_mueller(diag(1, exp(i d)))`` is this matrix."""
     s, c = np.sin(phase_rad), np.cos(phase_rad)
     one, z = np.ones(np.shape(s)), np.zeros(np.shape(s))
-    return _stack([[one, z, z, z], [z, one, z, z], [z, z, c, -s], [z, z, s, c]], np.shape(s))
+    return _stack([[one, z, z, z], [z, one, z, z], [z, z, c, s], [z, z, -s, c]], np.shape(s))
+
+
+def retarder_at(fast_axis_rad: ArrayLike, retardance_rad: ArrayLike) -> np.ndarray:
+    """Linear retarder with its fast axis at ``fast_axis_rad`` (from ``x`` towards ``y``) and
+    retardance ``retardance_rad`` (the phase the slow axis gains over the fast one; Jones
+    ``diag(1, exp(i d))`` in the axes of the plate, as :func:`linear_retarder`):
+    ``R(-a) LR(d) R(a)``.
+
+    Identities (tested): ``d = 0`` is the identity; ``d = pi`` (half-wave plate) mirrors the
+    linear polarization angle about the fast axis; ``retarder_at(a, d) @ retarder_at(a, e) =
+    retarder_at(a, d + e)``; the matrix is orthogonal with ``m00 = 1`` (non-depolarizing,
+    no diattenuation). Mitsuba 3 ``mueller::rotated_element(a, mueller::linear_retarder(d))``.
+    """
+    return rotated_element(fast_axis_rad, linear_retarder(retardance_rad))
+
+
+def partial_depolarizer(polarized_fraction: ArrayLike) -> np.ndarray:
+    """Isotropic partial depolarizer ``diag(1, p, p, p)`` keeping a fraction ``p`` in
+    ``[0, 1]`` of the polarized part (``p = 1``: identity, ``p = 0``: ideal depolarizer).
+    A convex sum ``p I + (1 - p) depolarizer(1)`` of realizable matrices, so realizable."""
+    p = np.asarray(polarized_fraction, dtype=np.float64)
+    out = np.zeros(p.shape + (4, 4))
+    out[..., 0, 0] = 1.0
+    for i in (1, 2, 3):
+        out[..., i, i] = p
+    return out
 
 
 def rotator(angle_rad: ArrayLike) -> np.ndarray:
@@ -228,14 +259,18 @@ def estimate_linear(s_in: np.ndarray, s_out: np.ndarray,
 def jones_to_mueller(jones: np.ndarray) -> np.ndarray:
     """Non-depolarizing Mueller matrix ``(..., 4, 4)`` of Jones matrices ``(..., 2, 2)``.
 
-    ``m_ij = 1/2 tr(sigma_i J sigma_j J^H)`` with the Pauli matrices in Stokes order
-    (:data:`polrig.realizability.PAULI`: ``sigma_3 = [[0, -i], [i, 0]]``), which makes
-    ``jones_to_mueller(diag(1, exp(i d)))`` equal :func:`linear_retarder` ``(d)`` and the Stokes
-    vector of a field ``E`` equal ``(E^H sigma_i E)``. Reference: R. A. Chipman, W. S. T. Lam,
-    G. Young, *Polarized Light and Optical Systems* (CRC 2018), ch. 6.
+    ``m_ij = 1/2 tr(sigma_i J sigma_j J^H)`` with the Pauli matrices in Stokes order and
+    ``sigma_3 = [[0, i], [-i, 0]]``, the sign that makes the Stokes vector of a field ``E``
+    ``(E^H sigma_i E)`` follow Mitsuba 3's ``S3`` (``docs/conventions.md``): then
+    ``jones_to_mueller(diag(1, exp(i d)))`` is :func:`linear_retarder` ``(d)`` and
+    ``jones_to_mueller(diag(r_s, r_p))`` is :func:`specular_reflection` (tested), for the
+    ``exp(-i omega t)`` time dependence in which a conductor's index is ``n + i k``.
+    (:data:`polrig.realizability.PAULI` has the opposite ``sigma_3``; realizability does not
+    depend on that sign: it maps ``M`` of ``J`` to ``M`` of ``conj(J)``.) Reference: R. A.
+    Chipman, W. S. T. Lam, G. Young, *Polarized Light and Optical Systems* (CRC 2018), ch. 6.
     """
     j = np.asarray(jones, dtype=np.complex128)
-    pauli = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1j], [1j, 0]]])
+    pauli = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, 1j], [-1j, 0]]])
     return 0.5 * np.einsum("iab,...bc,jcd,...ad->...ij", pauli, j, pauli, j.conj()).real
 
 

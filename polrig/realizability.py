@@ -21,9 +21,11 @@ Two notions of "physical":
   Stokes-Stokes but not a convex sum of Jones matrices).
 
 Pauli basis (same order as the Stokes components, so that ``m_ij = 1/2 tr(sigma_i J sigma_j
-J^H)`` for a Jones matrix ``J``, see :func:`polrig.mueller.jones_to_mueller`):
-``sigma_0 = I``, ``sigma_1 = diag(1, -1)``, ``sigma_2 = [[0, 1], [1, 0]]``,
-``sigma_3 = [[0, -i], [i, 0]]``. ``trace(H) = m00``. The construction was checked against the
+J^H)`` for a Jones matrix ``J``): ``sigma_0 = I``, ``sigma_1 = diag(1, -1)``,
+``sigma_2 = [[0, 1], [1, 0]]``, ``sigma_3 = [[0, -i], [i, 0]]``. This ``sigma_3`` is the
+opposite of :func:`polrig.mueller.jones_to_mueller`'s (which follows Mitsuba 3's ``S3``): with
+it ``M`` of ``J`` is ``M`` of ``conj(J)`` there, and every test here is independent of the sign
+(``H`` changes to its complex conjugate, with the same eigenvalues). ``trace(H) = m00``. The construction was checked against the
 Hermitian matrix of usnistgov pySCATMECH ``mueller.py`` (``MuellerToHermitian``, a different
 basis whose eigenvalues are exactly twice those of ``H``); the test suite repeats that check.
 

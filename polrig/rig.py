@@ -223,11 +223,19 @@ def open_device(config_path: str | Path | None, kind: str, **sim_options: Any) -
     return dev
 
 
+def check_sim_table(table: dict[str, Any], where: str) -> None:
+    """The ``[sim]`` table through the simulated rig's own option parser (the one place its
+    options are checked), so errors name the table and key before anything runs."""
+    from sim.options import parse_options
+
+    parse_options(table, where=where)
+
+
 def load_rig_config(config_path: str | Path | None) -> RigConfig:
     """The validated configuration (the all-simulated one when ``config_path`` is None)."""
     if config_path is None:
-        return validate_config({}, DRIVERS)
-    return load_config(config_path, DRIVERS)
+        return validate_config({}, DRIVERS, sim_check=check_sim_table)
+    return load_config(config_path, DRIVERS, sim_check=check_sim_table)
 
 
 def open_rig(config_path: str | Path | None = None, **sim_options: Any) -> Rig:

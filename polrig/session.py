@@ -57,13 +57,17 @@ MANIFEST_NAME = "session.json"
 #: (the file stays; its content is the holder's process id, for the error message only).
 LOCK_NAME = "session.lock"
 
-# capture status
-PENDING, COMPLETE, FAILED = "pending", "complete", "failed"
+# capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
+# processing not done yet (a resume processes it without acquiring it again)
+PENDING, ACQUIRED, COMPLETE, FAILED = "pending", "acquired", "complete", "failed"
 # session status
 RUNNING, SESSION_COMPLETE, INTERRUPTED = "running", "complete", "interrupted"
 
 #: Roles whose manifest entry is a list of files (one per frame); every other role is one file.
 LIST_ROLES = ("raw", "dark")
+#: Roles a capture's acquisition writes (raw and dark frames, the simulated rig's truth taken
+#: at the pose); every other role is a result of processing them.
+ACQUISITION_ROLES = ("raw", "dark", "truth_mueller")
 
 WriteHook = Callable[[pathlib.Path, bytes], None]
 
@@ -222,6 +226,9 @@ class Session:
         self.write_hook = write_hook
         self._lock_fd: int | None = None
         self._lock_release: Callable[[], Any] | None = None
+        #: held while the manifest is changed or saved: a capture's processing (a worker
+        #: thread) and the next capture's acquisition write the same manifest
+        self.mutex = threading.RLock()
 
     # -- creation -------------------------------------------------------------------------
     @classmethod
@@ -352,7 +359,8 @@ class Session:
     def reload(self) -> None:
         """Replace the in-memory manifest by the one on disk (after a failed save the disk
         copy is the consistent one: every file it names exists completely)."""
-        self.manifest = read_manifest(self.root / MANIFEST_NAME)
+        with self.mutex:
+            self.manifest = read_manifest(self.root / MANIFEST_NAME)
 
     @property
     def captures(self) -> list[dict[str, Any]]:
@@ -370,21 +378,24 @@ class Session:
 
     def save(self) -> None:
         """Rewrite ``session.json`` atomically (goes through ``write_hook`` too)."""
-        self.manifest["updated"] = utc_now()
-        data = (json.dumps(self.manifest, indent=1, sort_keys=False) + "\n").encode("utf-8")
-        self._write(self.root / MANIFEST_NAME, data)
+        with self.mutex:
+            self.manifest["updated"] = utc_now()
+            data = (json.dumps(self.manifest, indent=1, sort_keys=False) + "\n").encode("utf-8")
+            self._write(self.root / MANIFEST_NAME, data)
 
     def log(self, event: str, **fields: Any) -> None:
         """Append an event to the manifest's ``history`` (saved with the next :meth:`save`)."""
-        self.manifest.setdefault("history", []).append({"time": utc_now(), "event": event,
-                                                        **fields})
+        with self.mutex:
+            self.manifest.setdefault("history", []).append({"time": utc_now(), "event": event,
+                                                            **fields})
 
     def set_status(self, status: str, reason: str | None = None, *, save: bool = True) -> None:
-        self.manifest["status"] = status
-        self.manifest["status_reason"] = reason
-        self.log(f"session {status}", reason=reason)
-        if save:
-            self.save()
+        with self.mutex:
+            self.manifest["status"] = status
+            self.manifest["status_reason"] = reason
+            self.log(f"session {status}", reason=reason)
+            if save:
+                self.save()
 
     # -- files ----------------------------------------------------------------------------
     def _write(self, path: pathlib.Path, data: bytes) -> None:
@@ -419,15 +430,16 @@ class Session:
             side = self.write_new_file(relpath + ".json", sidecar)
             record["meta_path"], record["meta_sha256"] = side["path"], side["sha256"]
         record.update(attrs)
-        cap = self.capture(index)
-        files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
-        if role in LIST_ROLES:
-            files.setdefault(role, []).append(record)
-        else:
-            if role in files:
-                raise FileExistsError(f"capture {index} already has a {role!r} file")
-            files[role] = record
-        self.save()
+        with self.mutex:
+            cap = self.capture(index)
+            files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
+            if role in LIST_ROLES:
+                files.setdefault(role, []).append(record)
+            else:
+                if role in files:
+                    raise FileExistsError(f"capture {index} already has a {role!r} file")
+                files[role] = record
+            self.save()
         return record
 
     def iter_file_records(self, capture: dict[str, Any] | None = None
@@ -460,13 +472,15 @@ class Session:
         file it wrote, recorded or not), reset its entry to pending, save the manifest.
         Refuses a complete capture."""
         cap = self.capture(index)
-        if cap["status"] == COMPLETE:
-            raise SessionError(f"capture {index} is complete; it is never captured again")
+        if cap["status"] in (COMPLETE, ACQUIRED):
+            raise SessionError(f"capture {index} is {cap['status']}; it is never captured again")
         folder = self.capture_dir(index)
         # forget the records first: the manifest never names a file that is gone
-        cap.update(status=PENDING, reason=None, files={}, score=None, revisions={},
-                   started=utc_now(), finished=None, attempts=int(cap.get("attempts", 0)) + 1)
-        self.save()
+        with self.mutex:
+            cap.update(status=PENDING, reason=None, files={}, score=None, revisions={},
+                       started=utc_now(), finished=None,
+                       attempts=int(cap.get("attempts", 0)) + 1)
+            self.save()
         if folder.exists():
             shutil.rmtree(folder)
 
@@ -484,20 +498,53 @@ class Session:
                 removed.append(self.relpath(p))
         return removed
 
+    def mark_acquired(self, index: int, reason: str | None = None) -> None:
+        """Capture ``index`` has all its raw frames (and truth) recorded; processing them is
+        what is left (``reason``: why it is not done, after a failed or interrupted
+        processing)."""
+        with self.mutex:
+            self.capture(index).update(status=ACQUIRED, reason=reason)
+            self.save()
+
+    def reset_results(self, index: int) -> list[str]:
+        """Forget and delete whatever processing of capture ``index`` recorded (every role
+        but :data:`ACQUISITION_ROLES`), so it can be processed again from its raw frames.
+        Returns the deleted paths."""
+        with self.mutex:
+            files = self.capture(index)["files"]
+            gone = [role for role in files if role not in ACQUISITION_ROLES]
+            paths = [rec["path"] for role in gone
+                     for rec in (files[role] if isinstance(files[role], list) else [files[role]])
+                     if "part_of" not in rec]
+            for role in gone:
+                del files[role]
+            self.capture(index)["score"] = None
+            self.save()
+        for rel in paths:
+            with contextlib.suppress(FileNotFoundError):
+                (self.root / rel).unlink()
+        return paths
+
     def complete_capture(self, index: int, score: dict[str, Any] | None = None) -> None:
-        cap = self.capture(index)
-        cap.update(status=COMPLETE, reason=None, finished=utc_now(), score=score)
-        self.save()
+        with self.mutex:
+            cap = self.capture(index)
+            cap.update(status=COMPLETE, reason=None, finished=utc_now(), score=score)
+            self.save()
 
     def fail_capture(self, index: int, reason: str, *, save: bool = True) -> None:
-        cap = self.capture(index)
-        cap.update(status=FAILED, reason=reason, finished=utc_now())
-        if save:
-            self.save()
+        with self.mutex:
+            cap = self.capture(index)
+            cap.update(status=FAILED, reason=reason, finished=utc_now())
+            if save:
+                self.save()
 
     def next_pending(self) -> list[int]:
         """Indices of the captures that are not complete, in plan order."""
         return [c["index"] for c in self.captures if c["status"] != COMPLETE]
+
+    def acquired(self) -> list[int]:
+        """Indices of the captures acquired but not processed, in plan order."""
+        return [c["index"] for c in self.captures if c["status"] == ACQUIRED]
 
     # -- revisions (re-processing) --------------------------------------------------------
     def new_revision(self, settings: dict[str, Any], command_line: list[str] | None = None) -> str:
@@ -555,8 +602,8 @@ def is_disk_full(exc: BaseException) -> bool:
 
 
 def _not_empty(root: pathlib.Path) -> FileExistsError:
-    return FileExistsError(f"{root}: output folder is not empty; pass --resume to continue the "
-                           f"session in it, or choose a new folder")
+    return FileExistsError(f"{root}: output folder is not empty; choose a new folder, or resume "
+                           f"the session in it")
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any]:
@@ -572,7 +619,7 @@ def read_manifest(path: str | os.PathLike) -> dict[str, Any]:
 
 
 # -- manifest structure --------------------------------------------------------------------------
-CAPTURE_STATUSES = (PENDING, COMPLETE, FAILED)
+CAPTURE_STATUSES = (PENDING, ACQUIRED, COMPLETE, FAILED)
 SESSION_STATUSES = (RUNNING, SESSION_COMPLETE, INTERRUPTED)
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 #: per-role attributes of a frame record (docs/session-schema.md, "Files by role")
@@ -632,6 +679,9 @@ def _check_file_record(role: str, rec: Any) -> None:
     for key in _FRAME_ATTRS.get(role.rsplit("/", 1)[-1], ()):
         if key in _INDEX_ATTRS:
             _need(rec, key, lambda v: _is_int(v) and v >= 0, "an index >= 0")
+        elif key == "exposure_us":  # null: a camera without exposure control reports none
+            _need(rec, key, lambda v: v is None or (_is_number(v) and math.isfinite(v)),
+                  "a finite number or null")
         else:
             _need(rec, key, lambda v: _is_number(v) and math.isfinite(v), "a finite number")
 

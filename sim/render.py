@@ -15,6 +15,14 @@ Radiometry (``docs/conventions.md``, "Radiometric units"): ``brdf`` is the pBRDF
 (1/m^2); the radiance leaving a pixel's surface point towards the camera, per unit radiant
 intensity of the light and per unit normalised incident Stokes, is ``brdf * inv_r2``
 (:meth:`RenderResult.radiance_mueller`). :mod:`sim.world` turns it into DN.
+
+Materials outside the Baek family (:class:`sim.materials.SurfaceMaterial`: conductors,
+dispersive dielectrics, anisotropic roughness, films, depolarizing layers, textures) are
+evaluated per colour by :func:`sim.surface_bsdf.evaluate` (4x4, then the linear block);
+Baek-family pixels take the path above unchanged. ``indirect_samples > 0`` adds one bounce of
+interreflected light (:mod:`sim.interreflection`) to :meth:`RenderResult.radiance_mueller`
+and :meth:`RenderResult.radiance_state`; ``brdf`` stays the direct term. Ray casting is
+:mod:`sim.raycast`.
 """
 
 from __future__ import annotations
@@ -26,11 +34,13 @@ import time
 import numpy as np
 
 from polrig.pbrdf import linear_rig_mueller
+from sim import surface_bsdf
 from sim.geometry import rows_times, unit
+from sim.interreflection import one_bounce
+from sim.materials import SurfaceMaterial
+from sim.raycast import light_visibility, surface_hits
 from sim.scene import Scene
 
-#: Offset of shadow-ray origins along the geometric normal (metres).
-SHADOW_EPS_M = 1e-5
 
 
 @dataclasses.dataclass
@@ -64,6 +74,8 @@ class RenderResult:
     inv_r2_lit: np.ndarray    # (N,) float32 1/m^2 at the lit pixels
     timings_s: dict[str, float]
     counts: dict[str, int]
+    indirect_index: np.ndarray | None = None  # (K,) flat pixel indices with indirect light
+    indirect: np.ndarray | None = None        # (K, 3, 3, 3) float32 indirect radiance Mueller
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -82,10 +94,21 @@ class RenderResult:
         """pBRDF times cos ``(3, 3, 3, H, W)`` float32 (1/sr), zero where not lit."""
         return self._scatter(self.brdf_lit)
 
+    def _add_indirect(self, img: np.ndarray, values: np.ndarray | None) -> np.ndarray:
+        """``img`` ``(*k, H, W)`` plus indirect ``values`` ``(K, *k)`` at their pixels."""
+        if self.indirect_index is None or values is None:
+            return img
+        h, w = self.shape
+        flat = img.reshape(img.shape[:-2] + (h * w,))
+        flat[..., self.indirect_index] += np.moveaxis(values, 0, -1).astype(np.float32)
+        return flat.reshape(img.shape)
+
     def radiance_mueller(self) -> np.ndarray:
-        """``brdf * inv_r2`` ``(3, 3, 3, H, W)`` float32: emergent radiance per unit radiant
+        """``brdf * inv_r2`` (plus the one-bounce indirect light when rendered with
+        ``indirect_samples``) ``(3, 3, 3, H, W)`` float32: emergent radiance per unit radiant
         intensity of the light and per unit normalised incident Stokes."""
-        return self._scatter(self.brdf_lit * self.inv_r2_lit[:, None, None, None])
+        return self._add_indirect(self._scatter(self.brdf_lit * self.inv_r2_lit[:, None, None, None]),
+                                  self.indirect)
 
     def radiance_state(self, s_in: np.ndarray) -> np.ndarray:
         """Emergent radiance Stokes image ``(3, 3, H, W)`` float32 (colour, S0..S2) per unit
@@ -94,60 +117,18 @@ class RenderResult:
         s = np.asarray(s_in, dtype=np.float32)
         m = self.brdf_lit
         out = (m[..., 0] * s[0] + m[..., 1] * s[1] + m[..., 2] * s[2]) * self.inv_r2_lit[:, None, None]
-        return self._scatter(out)
-
-
-def _nearest_hit(scene: Scene, turntable_deg: float, o: np.ndarray, d: np.ndarray,
-                 t_max: np.ndarray | None = None, any_hit: bool = False):
-    """Nearest hit over all objects of rays ``o``, ``d`` ``(N, 3)`` (world). Returns
-    ``(t, object index, normal world (N, 3), local point (N, 3))``; with ``any_hit`` only
-    whether some object is hit before ``t_max``."""
-    n = d.shape[0]
-    t_best = np.full(n, np.inf) if t_max is None else np.asarray(t_max, float).copy()
-    obj = np.full(n, -1, dtype=np.int64)
-    nrm = np.zeros((n, 3))
-    p_loc = np.zeros((n, 3))
-    for k, ob in enumerate(scene.objects):
-        r, t = ob.world_pose(scene.turntable, turntable_deg)
-        cand = _bound_candidates(o, d, t, ob.shape.bound_radius_m, t_best)
-        if cand is not None and cand.size == 0:
-            continue
-        oc = o if cand is None else o[cand]
-        dc = d if cand is None else d[cand]
-        ol = rows_times(oc - t, r)  # R^T (o - t) for row vectors
-        dl = rows_times(dc, r)
-        th, nh = ob.shape.intersect(ol, dl)
-        closer = th < (t_best if cand is None else t_best[cand])
-        if not np.any(closer):
-            continue
-        sel = np.nonzero(closer)[0] if cand is None else cand[closer]
-        t_best[sel] = th[closer]
-        obj[sel] = k
-        if any_hit:
-            continue
-        nrm[sel] = rows_times(nh[closer], r.T)
-        p_loc[sel] = ol[closer] + th[closer, None] * dl[closer]
-    return t_best, obj, nrm, p_loc
-
-
-def _bound_candidates(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radius: float,
-                      t_best: np.ndarray) -> np.ndarray | None:
-    """Indices of the rays ``o + t d`` (``(N, 3)``, unit ``d``) that come within ``radius`` of
-    ``centre`` before ``t_best`` (``None``: all rays, for unbounded shapes)."""
-    if not np.isfinite(radius):
-        return None
-    oc = centre - o
-    tca = np.einsum("ij,ij->i", oc, d)
-    oc2 = np.einsum("ij,ij->i", oc, oc)
-    r2 = radius * radius * (1.0 + 1e-9) + 1e-18
-    inside = oc2 <= r2
-    near = (oc2 - tca * tca <= r2) & (tca + radius >= 0) & (tca - radius < t_best)
-    return np.nonzero(near | inside)[0]
+        ind = None if self.indirect is None else self.indirect @ s
+        return self._add_indirect(self._scatter(out), ind)
 
 
 def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx",
-           skip_terms: bool = True) -> RenderResult:
+           skip_terms: bool = True, indirect_samples: int = 0, indirect_seed: int = 0) -> RenderResult:
     """Ray-cast ``scene`` with its objects turned to ``turntable_deg``.
+
+    ``indirect_samples > 0`` adds one bounce of indirect light between the surfaces
+    (:func:`sim.interreflection.one_bounce`, that many Monte Carlo samples per visible pixel,
+    seeded by ``indirect_seed`` and the pose) to every visible pixel, lit or in shadow; the
+    default 0 renders direct light only, exactly as before.
 
     ``skip_terms=False`` evaluates both pBRDF terms on every pixel (mask or not, lit or not)
     and is only there to measure what skipping saves (``benchmarks/bench_sim.py``); the result
@@ -160,43 +141,14 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
     d_all = cam.ray_directions().reshape(-1, 3)
     origin = cam.centre_m
     o_all = np.broadcast_to(origin, d_all.shape)
-    t_hit, obj, n_geo, p_loc = _nearest_hit(scene, turntable_deg, o_all, d_all)
-    hit = np.isfinite(t_hit)
-    idx = np.nonzero(hit)[0]
-    d = d_all[idx]
-    p = origin + t_hit[idx, None] * d
-    wo = -d
-    ng = unit(n_geo[idx])
-    # shading normals and materials per object
-    ns = ng.copy()
-    mat_index = np.zeros(idx.size, dtype=np.int64)
-    mat_base = np.cumsum([0] + [len(o.materials) for o in scene.objects])
-    ob_hit = obj[idx]
-    for k, ob in enumerate(scene.objects):
-        sel = ob_hit == k
-        if not np.any(sel):
-            continue
-        r, _ = ob.world_pose(scene.turntable, turntable_deg)
-        nl = rows_times(ng[sel], r)  # back to local
-        ns[sel] = unit(rows_times(ob.shape.shading_normal(p_loc[idx][sel], nl), r.T))
-        mat_index[sel] = mat_base[k] + ob.material_index(p_loc[idx][sel])
-    flip = np.einsum("ij,ij->i", ng, wo) < 0  # two-sided surfaces face the camera
-    ng[flip] *= -1
-    ns[flip] *= -1
+    hits = surface_hits(scene, turntable_deg, o_all, d_all)
+    idx, p, ng, ns, mat_index, ob_hit = hits.index, hits.p, hits.ng, hits.ns, hits.mat_index, hits.obj
+    p_loc = hits.p_local
+    wo = -d_all[idx]
     tim["intersection"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    to_light = scene.light.position_m - p
-    dist = np.linalg.norm(to_light, axis=1)
-    wi = to_light / dist[:, None]
-    facing = (np.einsum("ij,ij->i", ng, wi) > 0) & (np.einsum("ij,ij->i", ns, wi) > 0)
-    shadowed = np.zeros(idx.size, dtype=bool)
-    f_idx = np.nonzero(facing)[0]
-    if f_idx.size:
-        so = p[f_idx] + SHADOW_EPS_M * ng[f_idx]
-        ts, _, _, _ = _nearest_hit(scene, turntable_deg, so, wi[f_idx],
-                                   t_max=dist[f_idx] - SHADOW_EPS_M, any_hit=True)
-        shadowed[f_idx] = np.isfinite(ts) & (ts < dist[f_idx] - SHADOW_EPS_M)
+    wi, dist, facing, shadowed = light_visibility(scene, turntable_deg, p, ng, ns)
     lit = facing & ~shadowed
     tim["shadow"] = time.perf_counter() - t0
 
@@ -207,14 +159,16 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
     ks_tab = np.array([m.ks for m in mats])
     kd = kd_tab[mat_index]
     alpha, eta, ks = al_tab[mat_index], eta_tab[mat_index], ks_tab[mat_index]
+    surface = _surface_parameters(scene, turntable_deg, mat_index, p_loc, kd, alpha, eta, ks)
+    baek = ~np.isin(mat_index, list(surface))  # pixels of the Baek-family Material
 
     zero_axis = scene.stage_zero_axis
     cam_x = cam.R[0]
     lit_sel = np.nonzero(lit)[0]  # positions in the hit arrays of the lit pixels
     brdf_px = np.zeros((lit_sel.size, 3, 3, 3))
     if skip_terms:
-        spec_sel = np.nonzero(ks[lit_sel] > 0)[0]  # positions in lit_sel
-        diff_sel = np.nonzero(kd[lit_sel].max(axis=1) > 0)[0]
+        spec_sel = np.nonzero((ks[lit_sel] > 0) & baek[lit_sel])[0]  # positions in lit_sel
+        diff_sel = np.nonzero((kd[lit_sel].max(axis=1) > 0) & baek[lit_sel])[0]
     else:  # the brute-force reference for the benchmark: every term on every pixel
         spec_sel = diff_sel = None
         ns_f, wi_f, wo_f = _full_directions(cam, d_all, idx, ns, wi, wo, scene)
@@ -245,6 +199,28 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
         q = slice(None) if diff_sel is None else diff_sel
         brdf_px[q] += kd[lit_sel][q, :, None, None] * md[:, None]
     tim["diffuse"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    n_surface = 0
+    for k, (prm, t_ref, micro) in surface.items():
+        q = np.nonzero(mat_index[lit_sel] == k)[0]  # positions in lit_sel
+        if not q.size:
+            continue
+        sel = np.searchsorted(prm["hit_positions"], lit_sel[q])
+        pl = lit_sel[q]
+        m = surface_bsdf.evaluate(ns[pl], t_ref, wi[pl], wo[pl],
+                                  {key: v[sel] for key, v in prm.items() if key != "hit_positions"},
+                                  distribution=micro, refs=(zero_axis, cam_x))
+        brdf_px[q] = m[..., :3, :3]
+        n_surface += q.size
+    tim["surface"] = time.perf_counter() - t0
+    ind_index = ind_values = None
+    if indirect_samples > 0:
+        t0 = time.perf_counter()
+        ind = one_bounce(scene, turntable_deg, p, ng, ns, wo, mat_index, p_loc,
+                         samples=int(indirect_samples), seed=indirect_seed, distribution=distribution)
+        keep = np.nonzero(np.abs(ind).max(axis=(1, 2, 3)) > 0)[0]
+        ind_index, ind_values = idx[keep], ind[keep].astype(np.float32)
+        tim["indirect"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     n_pix = h * w
@@ -256,7 +232,9 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
                            (0, 1), (-2, -1)) if values.ndim > 1 else out.reshape(h, w)
 
     to_cam = cam.R.T  # row vectors: v_cam = v_world @ R^T
-    mask = hit.reshape(h, w)
+    mask = np.zeros(n_pix, bool)
+    mask[idx] = True
+    mask = mask.reshape(h, w)
     p_cam_z = rows_times(p, to_cam)[:, 2] + cam.t[2]
     res = RenderResult(
         turntable_deg=float(turntable_deg), mask=mask,
@@ -272,9 +250,36 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
         counts={"pixels": n_pix, "hit": int(idx.size), "lit": int(lit.sum()),
                 "shadowed": int((facing & shadowed).sum()),
                 "specular_evals": int(n_pix if spec_sel is None else spec_sel.size),
-                "diffuse_evals": int(n_pix if diff_sel is None else diff_sel.size)})
+                "diffuse_evals": int(n_pix if diff_sel is None else diff_sel.size),
+                "surface_evals": n_surface,
+                "indirect_pixels": 0 if ind_index is None else int(ind_index.size)},
+        indirect_index=ind_index, indirect=ind_values)
     tim["assemble"] = time.perf_counter() - t0
     return res
+
+
+def _surface_parameters(scene: Scene, turntable_deg: float, mat_index: np.ndarray,
+                        p_local: np.ndarray, kd: np.ndarray, alpha: np.ndarray, eta: np.ndarray,
+                        ks: np.ndarray) -> dict[int, tuple[dict, np.ndarray, str]]:
+    """Per-point parameters of the hit pixels of every :class:`SurfaceMaterial` (textures
+    evaluated at the local points ``p_local`` ``(N, 3)``), keyed by material index:
+    ``(params incl. "hit_positions", world tangent reference (3,), distribution)``. Writes the
+    nominal per-pixel truth (``kd``, ``alpha`` along the tangent, real green ``eta``, ``ks``)
+    into the given arrays in place."""
+    out = {}
+    k = 0
+    for ob in scene.objects:
+        r, _ = ob.world_pose(scene.turntable, turntable_deg)
+        for mat in ob.materials:
+            if isinstance(mat, SurfaceMaterial):
+                pos = np.nonzero(mat_index == k)[0]
+                prm = mat.parameters(p_local[pos])
+                kd[pos], alpha[pos], ks[pos] = prm["kd"], prm["alpha_u"], prm["ks"]
+                eta[pos] = prm["eta"][:, 1].real
+                prm["hit_positions"] = pos
+                out[k] = (prm, r @ np.asarray(mat.tangent_axis), mat.distribution)
+            k += 1
+    return out
 
 
 def _full(fill: float, idx: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:

@@ -19,7 +19,9 @@ from typing import Callable
 import numpy as np
 
 from sim.geometry import PinholeCamera, PointLight, TurntableGeometry, look_at, unit
-from sim.materials import Material, get_material, random_material
+from sim.materials import (Material, SurfaceMaterial, Texture, get_material, random_material,
+                           random_mix_material)
+from sim.optical_data import conductor_rgb, dielectric_rgb
 from sim.shapes import (Blob, Box, Cylinder, HeightField, Rectangle, Shape, Sphere, Torus,
                         gaussian_bumps, wave_normal_map)
 
@@ -33,7 +35,7 @@ class SceneObject:
 
     name: str
     shape: Shape
-    materials: tuple[Material, ...]
+    materials: tuple[Material | SurfaceMaterial, ...]
     position_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     rotation: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
     region: RegionFn | None = None
@@ -87,7 +89,7 @@ class Scene:
                            np.asarray(self.illumination_target_m, float).reshape(3))
 
     @property
-    def materials(self) -> list[Material]:
+    def materials(self) -> list[Material | SurfaceMaterial]:
         return [m for o in self.objects for m in o.materials]
 
     def with_camera(self, camera: PinholeCamera) -> "Scene":
@@ -232,11 +234,76 @@ def _scene_objects(name: str) -> list[SceneObject]:
     if name == "normalmap":
         return [SceneObject("panel", Rectangle(0.06, 0.06, normal_map=wave_normal_map()),
                             (m("plastic_white"),), c, rotation=_tilt(70.0, 0.0))]
+    if name in MATERIAL_SCENES:
+        return _material_scene_objects(name, c)
     raise ValueError(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
 
 
+def surface_presets() -> dict[str, SurfaceMaterial]:
+    """Named :class:`SurfaceMaterial` presets of the material scenes (issue 23)."""
+    cond = conductor_rgb
+    return {m.name: m for m in (
+        SurfaceMaterial("gold", cond("gold"), 0.12),
+        SurfaceMaterial("chrome", cond("chrome"), 0.03),
+        SurfaceMaterial("silver", cond("silver"), 0.08),
+        SurfaceMaterial("aluminium", cond("aluminium"), 0.2),
+        SurfaceMaterial("brushed_copper", cond("copper"), 0.12, 0.5, distribution="beckmann"),
+        SurfaceMaterial("polycarbonate_red", dielectric_rgb("polycarbonate"), 0.1, kd=(0.6, 0.08, 0.05)),
+        SurfaceMaterial("stressed_pmma", dielectric_rgb("pmma"), 0.15, kd=(0.3, 0.5, 0.6),
+                        retardance_rad=1.8, tangent_axis=(1.0, 0.0, 0.0),
+                        retardance_texture=Texture(0.2, 1.0, 0.03, (0, 0, 1), kind="rings"),
+                        fast_axis_texture=Texture(-40.0, 40.0, 0.04, (1, 0, 0))),
+        SurfaceMaterial("painted", dielectric_rgb("bk7"), 0.25, kd=(0.5, 0.45, 0.2),
+                        distribution="beckmann", polarized_fraction=0.6,
+                        kd_texture=Texture(0.3, 1.0, 0.025, (1, 0.3, 0)),
+                        alpha_texture=Texture(0.2, 2.0, 0.03, (0, 1, 0.5)),
+                        eta_texture=Texture(-0.1, 0.25, 0.035, (0.2, 0, 1))),
+    )}
+
+
+def _material_scene_objects(name: str, c: np.ndarray) -> list[SceneObject]:
+    sm = surface_presets()
+    if name == "gold_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (sm["gold"],), c)]
+    if name == "chrome_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (sm["chrome"],), c)]
+    if name == "brushed_cylinder":
+        return [SceneObject("cylinder", Cylinder(0.035, 0.05), (sm["brushed_copper"],),
+                            c + [0.0, 0.0, -0.005])]
+    if name == "dispersive_sphere":
+        return [SceneObject("sphere", Sphere(0.05), (sm["polycarbonate_red"],), c)]
+    if name == "film_plane":
+        return [SceneObject("plane", Rectangle(0.06, 0.06), (sm["stressed_pmma"],), c,
+                            rotation=_tilt(70.0, 20.0))]
+    if name == "textured_blob":
+        return [SceneObject("blob", Blob(0.045, ((1.0, 0.2, 0.3), (-0.4, 1.0, 0.2), (0.1, -0.3, 1.0)),
+                                         (0.5, 0.4, 0.35), (0.3, -0.25, 0.2)),
+                            (sm["painted"],), c, rotation=_tilt(20.0, 30.0))]
+    if name == "metals":
+        return [SceneObject(n, Sphere(0.022), (sm[n],), p) for n, p in (
+            ("gold", [-0.05, 0.0, 0.03]), ("silver", [0.0, 0.0, 0.03]), ("aluminium", [0.05, 0.0, 0.03]),
+            ("chrome", [-0.025, 0.04, 0.03]))] + [
+            SceneObject("copper", Sphere(0.022), (SurfaceMaterial("copper", conductor_rgb("copper"), 0.1),),
+                        [0.025, 0.04, 0.03]), _floor()]
+    if name == "corner":  # a metal wall and a glossy floor that light each other
+        wall = SceneObject("wall", Rectangle(0.06, 0.05), (sm["aluminium"],), [0.0, 0.045, 0.05],
+                           rotation=_tilt(90.0, 0.0), on_turntable=False)
+        return [_floor("plastic_white"), wall,
+                SceneObject("sphere", Sphere(0.025), (get_material("plastic_red"),), [0.0, 0.0, 0.025])]
+    if name == "crater":  # a concave dish that lights itself
+        h, g = gaussian_bumps([[0.0, 0.0]], [0.02], [-0.02])
+        return [SceneObject("dish", HeightField(0.045, 0.045, -0.021, 0.001, h, g), (sm["gold"],),
+                            [0.0, 0.0, 0.04], rotation=_tilt(25.0, 0.0))]
+    raise ValueError(name)  # pragma: no cover - MATERIAL_SCENES is exhaustive
+
+
+#: Scenes with materials outside the Baek 2018 family (:class:`SurfaceMaterial`).
+MATERIAL_SCENES = ("gold_sphere", "chrome_sphere", "brushed_cylinder", "dispersive_sphere",
+                   "film_plane", "textured_blob", "metals", "corner", "crater")
+
 SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_sphere",
-          "plane", "box", "cylinder", "multi", "heightfield", "normalmap", "blob", "torus")
+          "plane", "box", "cylinder", "multi", "heightfield", "normalmap", "blob",
+          "torus") + MATERIAL_SCENES
 
 
 def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
@@ -264,14 +331,25 @@ HOLDOUT_FAMILIES = ("heightfield", "plane")
 
 
 def random_scene(rng: np.random.Generator, width: int, height: int,
-                 family: int) -> Scene:
+                 family: int, *, material_mix: str = "baek",
+                 material_rng: np.random.Generator | None = None) -> Scene:
     """A randomized scene of shape family ``FAMILIES[family]``: random size, pose, material
     (one material per scene, so one roughness per image), light position and colour. The
     camera is the default one with ``RANDOM_FOCAL_PER_PX``; the stage zero axis is the
     camera's up direction (``-Y``), so that the rig frames are fixed in the camera frame
-    across samples."""
+    across samples.
+
+    ``material_mix`` (:data:`sim.materials.MATERIAL_MIXES`, default ``"baek"``: the
+    initialization's family, as before) replaces the Baek material by one drawn from the mix
+    with ``material_rng`` (required for other mixes), built on the Baek material drawn from
+    ``rng``; ``rng`` is consumed exactly as for ``"baek"``, so the geometry, light and pose of
+    a sample are the same in every mix (paired comparisons)."""
     fam = FAMILIES[family]
     mat = random_material(rng)
+    if material_mix != "baek":
+        if material_rng is None:
+            raise ValueError("random_scene: a material_mix other than 'baek' needs material_rng")
+        mat = random_mix_material(material_rng, material_mix, mat)
     rot = _tilt(rng.uniform(-40, 40), rng.uniform(0, 360))
     c = np.array([0.0, 0.0, OBJECT_Z_M]) + rng.uniform(-0.01, 0.01, 3)
     if fam == "sphere":

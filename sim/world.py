@@ -62,7 +62,7 @@ class SimWorld:
 
     def __init__(self, scene: Scene, sensor: DoFPSensor, generator: Generator, *,
                  clock: SimClock | None = None, seed: int = 0, noise: bool = True,
-                 distribution: str = "ggx") -> None:
+                 distribution: str = "ggx", indirect_samples: int = 0) -> None:
         if sensor.shape != (scene.camera.height, scene.camera.width):
             raise ValueError(f"sensor {sensor.shape[::-1]} and camera "
                              f"{scene.camera.width}x{scene.camera.height} sizes differ")
@@ -74,6 +74,10 @@ class SimWorld:
         self.rng = np.random.default_rng(self.seed)
         self.noise = bool(noise)
         self.distribution = distribution
+        if int(indirect_samples) < 0:
+            raise ValueError(f"indirect_samples must be >= 0, got {indirect_samples}")
+        #: Monte Carlo samples per pixel of one-bounce interreflections (0: direct light only).
+        self.indirect_samples = int(indirect_samples)
         self.light_on = True
         self.light_level = 1.0
         self.stage_move = Move(0.0, 0.0, 0.0, 1.0, 1.0)
@@ -152,7 +156,8 @@ class SimWorld:
 
         def make() -> RenderResult:
             self.render_count += 1
-            return render(self.scene, key, distribution=self.distribution)
+            return render(self.scene, key, distribution=self.distribution,
+                          indirect_samples=self.indirect_samples, indirect_seed=self.seed)
 
         with self._lock:
             return self._poses.get(key, make)

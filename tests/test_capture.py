@@ -18,7 +18,7 @@ from polrig.mueller import polarizer_stokes
 from polrig.analyzer import AnalyzerModel, resolve_layout
 from polrig.reference import solve_reference
 from polrig.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
-from sim.devices import create_sim_rig
+from polrig.rig import open_rig
 
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
 #: the ideal rig, exactly known (zero calibration tolerances): its reported sigma is the
@@ -27,9 +27,11 @@ EXACT = processing.Calibration("ideal")
 
 
 def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
+    """The simulated rig as ``polrig capture`` opens it (:func:`polrig.rig.open_rig`);
+    ``rig.sim`` is the simulated rig underneath (fault injection, its clock)."""
     opts = {"size": (size, size), "sensor": "imx250mzr", "clock_speed": math.inf,
             "seed": seed, "scene": scene, "noise": noise, "hidden": dict(IDEAL), **kw}
-    return create_sim_rig(opts)
+    return open_rig(None, **opts)
 
 
 def start(rig, out: pathlib.Path, plan: CapturePlan, **kw) -> tuple[Session, processing.Processor]:
@@ -175,14 +177,18 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
     assert s2.capture(1)["attempts"] == 2
 
 
-# stage calls: home, then per state position_deg (for the move's timeout) and move_to: call 5
-# is the second state's move
-@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 4),
-                                                  ("turntable", "timeout", 1), ("stage", "protocol", 4)])
+# axis calls: position_deg (the plan's hardware time), [stage: home], then per move
+# position_deg (the move's timeout), move_to (wait=False: the turntable and the stage start
+# together), wait. Stage call 4 is the wait of the first move (with the turntable), call 6 the
+# second state's move_to; turntable call 2 is the first move's start, call 3 its wait.
+@pytest.mark.parametrize("device, kind, after", [("camera", "timeout", 5), ("stage", "fault", 6),
+                                                  ("turntable", "timeout", 2),
+                                                  ("turntable", "fault", 3),
+                                                  ("stage", "protocol", 4)])
 def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
     events = []
     with sim_rig() as rig:
-        rig.inject_fault(device, kind, after_calls=after)
+        rig.sim.inject_fault(device, kind, after_calls=after)
         session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc, progress=events.append)
     assert result.status == "complete"
@@ -204,7 +210,7 @@ def test_a_long_turntable_move_gets_a_timeout_for_its_distance(tmp_path):
 def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_session):
     out = tmp_path / "s"
     with sim_rig() as rig:
-        rig.inject_fault("camera", "disconnect", after_calls=9)
+        rig.sim.inject_fault("camera", "disconnect", after_calls=9)
         session, proc = start(rig, out, CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc)
     assert result.status == INTERRUPTED and "DeviceDisconnected" in result.reason
@@ -223,16 +229,19 @@ def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_sess
 
 def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
     out = tmp_path / "s"
-    writes = []
+    full = []
+
+    def progress(ev):  # the disk fills up once capture 0 is complete
+        if ev.kind == "capture-done" and ev.capture_index == 0:
+            full.append(True)
 
     def hook(path, data):
-        writes.append(path)
-        if len(writes) > 30:  # capture 0 complete, capture 1 half way
+        if full:  # from then on every write fails (capture 1's frames or its processing)
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
-        result = run_session(rig, session, processor=proc)
+        result = run_session(rig, session, processor=proc, progress=progress)
     assert result.status == INTERRUPTED and result.reason.startswith("disk full")
     s = Session.open(out)  # the manifest on disk is the last consistent one
     assert s.verify() == []
@@ -245,10 +254,13 @@ def test_disk_full_stops_cleanly_then_resumes(tmp_path, reference_session):
 
 
 def test_stop_request_leaves_capture_pending(tmp_path):
+    """A stop requested once capture 0 is acquired (its processing under way in the
+    background) takes effect at the next checkpoint: capture 0's processing ends (complete),
+    capture 1 never starts."""
     control = CaptureControl()
 
     def progress(ev):
-        if ev.kind == "capture-done" and ev.capture_index == 0:
+        if ev.kind == "capture-acquired" and ev.capture_index == 0:
             control.stop.set()
 
     with sim_rig() as rig:
@@ -358,12 +370,13 @@ def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_
     error: the capture failed with the reason, the session interrupted, nothing unrecorded
     left; resume completes it. (It used to skip the clean-up: status stayed "running".)"""
     out = tmp_path / "s"
-    writes = []
+    raw_1 = []
 
-    def hook(path, data):
-        writes.append(path)
-        if len(writes) == 30:  # capture 0 complete, capture 1 half way
-            raise OSError(errno.EIO, "Input/output error", str(path))
+    def hook(path, data):  # capture 1's second raw frame (capture 0 acquired, maybe processing)
+        if "c001_pose090.0/raw/" in path.as_posix() and path.suffix == ".png":
+            raw_1.append(path)
+            if len(raw_1) == 2:
+                raise OSError(errno.EIO, "Input/output error", str(path))
 
     with sim_rig() as rig:
         session, proc = start(rig, out, CapturePlan(POSES4), write_hook=hook)
@@ -385,8 +398,8 @@ def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_
 def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
     """The rig a session resumes on must give comparable frames: same camera geometry and
     layout, devices, noise model and simulated world; a different clock speed is fine."""
-    from polrig.capture import check_resume_rig
     from polrig.errors import ConfigError
+    from polrig.records import check_resume_rig
 
     out = tmp_path / "s"
     with sim_rig() as rig:
@@ -403,7 +416,7 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
                          ({"seed": 6}, "simulated world"),
                          ({"scene": "box"}, "simulated world (scene)")]:
         with sim_rig(**kw) as rig:
-            with pytest.raises(ConfigError, match="--resume: .* was captured on a different rig") as info:
+            with pytest.raises(ConfigError, match=" was captured on a different rig: ") as info:
                 check_resume_rig(s, rig)
         assert expected in str(info.value), (kw, str(info.value))
     # a session from before rig.camera_frames: the geometry comes from its recorded raw frames
@@ -416,13 +429,15 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
 
 
 def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(tmp_path):
-    from polrig.capture import check_rig_for_plan
-    from polrig.errors import ConfigError
+    from polrig.plan import PlanError
+    from polrig.records import check_rig_for_plan
 
-    with sim_rig() as rig:
+    with sim_rig() as rig:  # the range the camera declares (CameraCapabilities), not a probe
         check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 4000.0)))
-        with pytest.raises(ConfigError, match=r"--exposure 1e\+12 us; this camera takes \[10, 1e\+07\] us"):
+        with pytest.raises(PlanError, match=r"exposure 1e\+12 us: outside the camera's range "
+                                            r"\[10, 1e\+07\] us") as info:
             check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 1e12)))
+    assert info.value.field == "exposures_us"
 
 
 def test_run_session_refuses_a_session_another_writer_holds(tmp_path):
@@ -500,3 +515,109 @@ def test_a_second_sigint_during_the_clean_up_does_not_cut_it_short(tmp_path):
     assert s.manifest["status_reason"] == "interrupted by the operator (Ctrl-C)"
     assert [c["status"] for c in s.captures] == [COMPLETE, PENDING, PENDING, PENDING]
     assert s.verify() == []
+
+
+class _SignalDuringProcessing(processing.Processor):
+    """The real processor; while processing capture 1 it waits until capture 2 is acquired
+    (the run is then waiting for capture 1's processing before handing capture 2 over) and
+    sends this process SIGINT, as an operator's Ctrl-C at that moment would."""
+
+    acquired_2 = None
+
+    def process(self, session, index, revision=None):
+        import os
+        import signal
+
+        if index == 1:
+            assert self.acquired_2.wait(60), "capture 2 was never acquired"
+            os.kill(os.getpid(), signal.SIGINT)
+        return super().process(session, index, revision)
+
+
+def test_sigint_while_a_pose_is_processed_in_the_background_then_resume(tmp_path,
+                                                                         reference_session):
+    """Processing overlaps acquisition: SIGINT arrives while capture 1 is processed in the
+    worker and capture 2 is acquired. Capture 1's processing ends (complete), capture 2 stays
+    "acquired", capture 3 was never started. The resume processes capture 2 without
+    acquiring it again (same raw files, sidecars included, one attempt, only capture 3's
+    frames grabbed) and the session is identical to an uninterrupted one."""
+    import threading
+
+    out = tmp_path / "s"
+    acquired_2 = threading.Event()
+
+    def progress(ev):
+        if ev.kind == "capture-acquired" and ev.capture_index == 2:
+            acquired_2.set()
+
+    with sim_rig() as rig:
+        plan = CapturePlan(POSES4)
+        session = create_session(out, rig, plan, calibration_id=EXACT.id)
+        proc = _SignalDuringProcessing(plan.mode, plan.demosaic, EXACT,
+                                       processing.session_sensor_model(session))
+        proc.acquired_2 = acquired_2
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert s.manifest["status_reason"] == "interrupted by the operator (Ctrl-C)"
+    assert [c["status"] for c in s.captures] == [COMPLETE, COMPLETE, "acquired", PENDING]
+    assert set(s.capture(2)["files"]) == {"raw", "truth_mueller"}  # no result, nothing partial
+    assert s.verify() == []
+    raw_2 = s.capture(2)["files"]["raw"]
+    frames = []
+    with sim_rig() as rig:
+        s2, result = resume(rig, out, progress=lambda ev: frames.append(ev)
+                            if ev.kind == "frame" else None)
+    assert result.status == "complete" and sorted(result.completed) == [0, 1, 2, 3]
+    assert {ev.capture_index for ev in frames} == {3} and len(frames) == 4  # capture 3 only
+    assert s2.capture(2)["files"]["raw"] == raw_2 and s2.capture(2)["attempts"] == 1
+    assert s2.verify() == []
+    assert content(s2) == content(reference_session)
+
+
+def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tmp_path,
+                                                                              reference_session):
+    """A processing error (in the worker) ends the run like before (session interrupted,
+    the error raised for the caller to report), but the capture keeps its raw frames as
+    "acquired" with the reason; the resume processes it without acquiring it again."""
+
+    class Failing(processing.Processor):
+        def process(self, session, index, revision=None):
+            if index == 1:
+                raise RuntimeError("solver blew up")
+            return super().process(session, index, revision)
+
+    out = tmp_path / "s"
+    with sim_rig() as rig:
+        plan = CapturePlan(POSES4)
+        session = create_session(out, rig, plan, calibration_id=EXACT.id)
+        proc = Failing(plan.mode, plan.demosaic, EXACT, processing.session_sensor_model(session))
+        with pytest.raises(RuntimeError, match="solver blew up"):
+            run_session(rig, session, processor=proc)
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED and "RuntimeError" in s.manifest["status_reason"]
+    assert s.capture(1)["status"] == "acquired"
+    assert "processing failed: RuntimeError: solver blew up" == s.capture(1)["reason"]
+    assert s.verify() == []
+    with sim_rig() as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert s2.capture(1)["attempts"] == 1
+    assert content(s2) == content(reference_session)
+
+
+def test_a_deeper_processing_queue_gives_the_same_session(tmp_path, reference_session):
+    """``max_queued=3``: acquisition runs ahead of processing (captures wait, in order, for
+    the one worker); the session is the same as with the default hand-over."""
+    events = []
+    with sim_rig() as rig:
+        session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
+        result = run_session(rig, session, processor=proc, max_queued=3,
+                             progress=events.append)
+    assert result.status == "complete"
+    done = [e.capture_index for e in events if e.kind == "capture-done"]
+    assert done == [0, 1, 2, 3]
+    assert content(session) == content(reference_session)
+    with pytest.raises(ValueError, match="max_queued"):
+        run_session(rig, session, max_queued=0)

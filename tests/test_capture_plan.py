@@ -5,8 +5,10 @@ from __future__ import annotations
 import pytest
 from hypothesis import given, strategies as st
 
-from polrig.capture import CapturePlan, parse_float_list, parse_pose_spec, planned_bytes
 from polrig.errors import ConfigError
+from polrig.plan import (CapturePlan, Checkpoint, Grab, HardwareModel, Home, Move, PlanError,
+                         SetExposure, SetLight, SetTrigger, capture_steps, parse_float_list,
+                         parse_pose_spec, planned_bytes, session_steps, step_durations)
 
 
 def test_range_is_stop_exclusive():
@@ -37,9 +39,10 @@ def test_range_count_matches_python_range(start, count, step):
 
 
 def test_float_list():
-    assert parse_float_list("0,45,90", "--states") == (0.0, 45.0, 90.0)
-    with pytest.raises(ConfigError, match="--exposure"):
-        parse_float_list("100,-1", "--exposure", positive=True)
+    assert parse_float_list("0,45,90", "states") == (0.0, 45.0, 90.0)
+    with pytest.raises(PlanError, match="invalid exposures '100,-1': values must be > 0") as e:
+        parse_float_list("100,-1", "exposures", positive=True, field="exposures_us")
+    assert e.value.field == "exposures_us"
 
 
 def test_plan_validation_and_json_round_trip():
@@ -47,18 +50,23 @@ def test_plan_validation_and_json_round_trip():
                     dark_frames=2)
     assert CapturePlan.from_json(p.to_json()) == p
     assert p.frames_per_pose() == 2 * (3 * 4 + 2)
-    with pytest.raises(ConfigError, match="at least 3"):
-        CapturePlan((0,), states_deg=(0, 90))
-    with pytest.raises(ConfigError, match="--frames"):
-        CapturePlan((0,), frames_per_state=0)
-    with pytest.raises(ConfigError, match="--mode"):
-        CapturePlan((0,), mode="magic")
+    # errors name the plan field (for the command line to name its option), not a flag
+    for kw, field, text in [({"states_deg": (0, 90)}, "states_deg", "at least 3"),
+                            ({"frames_per_state": 0}, "frames_per_state", "frames per state"),
+                            ({"mode": "magic"}, "mode", "capture mode must be one of"),
+                            ({"dark_frames": -1}, "dark_frames", "dark frames must be >= 0"),
+                            ({"mirror_average": True}, "mirror_average", "single-shot mode only")]:
+        with pytest.raises(PlanError, match=text) as e:
+            CapturePlan((0,), **kw)
+        assert e.value.field == field and "--" not in str(e.value)
+    assert issubclass(PlanError, ConfigError)
     # absurd angles are refused before anything is written (a pose of 1e308 deg made a
     # capture folder name too long for the file system once the session existed)
     with pytest.raises(ConfigError, match="invalid pose spec: pose 1e\\+308 deg"):
         CapturePlan((0, 1e308))
-    with pytest.raises(ConfigError, match="--states: 400"):
+    with pytest.raises(PlanError, match="polarizer state 400 deg: not a polarizer angle") as e:
         CapturePlan((0,), states_deg=(0, 45, 90, 400))
+    assert (e.value.field, e.value.subject) == ("states_deg", "400 deg")
     assert CapturePlan((-36000, 36000), states_deg=(-360, 0, 90, 360)).poses_deg[0] == -36000.0
     # single-shot needs one state only
     assert CapturePlan((0,), mode="single-shot", states_deg=(0,)).frames_per_pose() == 1
@@ -72,3 +80,80 @@ def test_planned_bytes_grows_with_everything():
     assert planned_bytes(p, 2, 64, 64, 3) > base
     assert base > 2 * 4 * 64 * 64 * 2  # at least the raw frames
     assert planned_bytes(p, 2, 64, 64, 1, (2, 2)) < base  # superpixel results are smaller
+
+
+# -- the plan as a list of device steps (no rig) -------------------------------------------------
+def grabs(steps):
+    return [s.tag for s in steps if isinstance(s, Grab)]
+
+
+def test_a_pose_is_a_list_of_steps_with_the_turntable_and_stage_moving_together():
+    plan = CapturePlan((0.0, 90.0), frames_per_state=2, exposures_us=(1000.0, 4000.0),
+                       dark_frames=1)
+    steps = capture_steps(plan, 0, plan.exposures_us)
+    assert steps[0] == Checkpoint("capture-start", 0)
+    assert steps[1] == Move((("turntable", 0.0), ("stage", 0.0)))  # one move, both axes
+    assert steps[2] == SetLight(False) and SetLight(True) in steps
+    assert steps[-2:] == [SetExposure(1000.0), Checkpoint("capture-acquired", 0)]
+    # three stage moves for four states: the first state was reached with the turntable
+    assert [s for s in steps if isinstance(s, Move)][1:] == [
+        Move((("stage", a),)) for a in (45.0, 90.0, 135.0)]
+    tags = grabs(steps)
+    assert len(tags) == plan.frames_per_pose() == 2 * (4 * 2 + 1)
+    assert [(t.exposure_index, t.frame) for t in tags if t.role == "dark"] == [(0, 0), (1, 0)]
+    raw = [(t.state_index, t.state_deg, t.exposure_index, t.frame) for t in tags if t.role == "raw"]
+    assert raw[:4] == [(0, 0.0, 0, 0), (0, 0.0, 0, 1), (0, 0.0, 1, 0), (0, 0.0, 1, 1)]
+    assert len(set(raw)) == len(raw) == 16
+    assert all(t.capture == 0 and t.pose_deg == 0.0 for t in tags)
+
+
+def test_state_order_is_serpentine_and_frames_keep_the_plans_state_index():
+    """Pose k visits 0, 45, 90, 135, pose k + 1 135, 90, 45, 0: the stage never travels back
+    idle, and the frames of a state carry its index in the plan whatever the order."""
+    plan = CapturePlan((0.0, 90.0, 180.0))
+    steps = session_steps(plan, [0, 1, 2], (20000.0,))
+    assert steps[:3] == [SetTrigger(None), SetLight(True), Home("stage")]
+    stage_path = [dict(s.targets)["stage"] for s in steps if isinstance(s, Move)]
+    assert stage_path == [0, 45, 90, 135, 135, 90, 45, 0, 0, 45, 90, 135]
+    turns = [dict(s.targets)["turntable"] for s in steps
+             if isinstance(s, Move) and "turntable" in dict(s.targets)]
+    assert turns == [0.0, 90.0, 180.0]
+    order = [(t.capture, t.state_index, t.state_deg) for t in grabs(steps)]
+    assert order[4:8] == [(1, 3, 135.0), (1, 2, 90.0), (1, 1, 45.0), (1, 0, 0.0)]
+    # the same tags as plan order, whatever the order: files and results do not depend on it
+    assert sorted(order) == sorted((c, j, a) for c in range(3) for j, a in enumerate(plan.states_deg))
+    # a resumed odd pose keeps its own order (it depends on the pose, not on what is left)
+    assert grabs(capture_steps(plan, 1, (20000.0,))) == grabs(steps)[4:8]
+
+
+def test_single_shot_visits_one_state():
+    plan = CapturePlan((0.0, 90.0), mode="single-shot", states_deg=(30.0,))
+    steps = session_steps(plan, [0, 1], (1000.0,))
+    assert [(t.state_index, t.state_deg) for t in grabs(steps)] == [(0, 30.0), (0, 30.0)]
+    assert not [s for s in steps if isinstance(s, Move) and len(s.targets) == 1]
+
+
+def _model(settle=0, readout_us=10000.0):
+    speeds = {"stage": 20.0, "turntable": 10.0}
+    return HardwareModel(lambda a, f, t: abs(t - f) / speeds[a], readout_us, settle,
+                         {"stage": 0.0, "turntable": 0.0}, 20000.0)
+
+
+def test_hardware_time_is_motion_plus_exposure_plus_readout_with_overlapped_axes():
+    """Closed form for two poses of four states at constant speed (stage 20 deg/s, turntable
+    10 deg/s): the stage sweeps 135 deg per pose (serpentine: never back), the turntable's
+    90 deg turn hides the stage's move to the first state; each frame 20 ms + 10 ms."""
+    plan = CapturePlan((0.0, 90.0))
+    steps = session_steps(plan, [0, 1], (20000.0,))
+    d = step_durations(steps, _model())
+    assert len(d) == len(steps)
+    motion = 135 / 20 + 90 / 10 + 135 / 20  # pose 0 sweep, the turn (stage stays), pose 1 sweep
+    assert sum(d) == pytest.approx(motion + 8 * 0.030)
+    # plan order at every pose would add the stage's 135 deg return each time (but the first)
+    moves = [s for s in steps if isinstance(s, Move)]
+    assert max(d[steps.index(m)] for m in moves if len(m.targets) == 2) == pytest.approx(9.0)
+    # free run: settle frames after every move or setting change, none between repeats
+    free = step_durations(session_steps(CapturePlan((0.0,), frames_per_state=3), [0], (20000.0,)),
+                          _model(settle=2))
+    frames = [t for t in free if 0 < t < 1]
+    assert frames.count(pytest.approx(0.090)) == 4 and frames.count(pytest.approx(0.030)) == 8

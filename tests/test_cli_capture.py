@@ -70,14 +70,14 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     (["--poses", "0", "--frames", "0"], "--frames"),
     (["--poses", "0", "--exposure", "-5"], "--exposure"),
     # checked before the session is created (they used to leave a session.json behind)
-    (["--poses", "0", "--exposure", "1e12"], "--exposure 1e+12 us; this camera takes [10, 1e+07] us"),
-    (["--poses", "0", "--exposure", "1000,5"], "--exposure 5 us; this camera takes"),
+    (["--poses", "0", "--exposure", "1e12"], "--exposure 1e+12 us: outside the camera's range [10, 1e+07] us"),
+    (["--poses", "0", "--exposure", "1000,5"], "--exposure 5 us: outside the camera's range"),
     (["--poses", "1e308,1e308"], "invalid pose spec: pose 1e+308 deg is not a finite angle"),
     (["--poses", "0,40000"], "within +-36000 deg"),
-    (["--poses", "0", "--states", "0,45,90,1e300"], "--states: 1e+300 deg is not a polarizer angle"),
+    (["--poses", "0", "--states", "0,45,90,1e300"], "--states 1e+300 deg: not a polarizer angle"),
     (["--poses", "0", "--config", "/nonexistent/rig.toml"], "no such file"),
     (["--poses", "0", "--mode", "single-shot"], "single-shot"),
-    (["--poses", "0", "--mirror-average"], "--mirror-average applies to --mode single-shot only"),
+    (["--poses", "0", "--mirror-average"], "--mirror-average: mirror averaging applies to the single-shot mode only"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
     if "single-shot" in args:  # no model installed: point the runtime at an empty folder
@@ -185,7 +185,9 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
 
     def faulty_open(*a, **kw):
         rig = real_open(*a, **kw)
-        rig.sim.inject_fault("stage", "disconnect", after_calls=6)
+        # stage calls: position (hardware time), home, then per move position, move_to, wait;
+        # call 15 starts capture 1's first move (with the turntable)
+        rig.sim.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
     monkeypatch.setattr(polrig.rig, "open_rig", faulty_open)
@@ -221,7 +223,7 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
     capsys.readouterr()
     assert main(["reconstruct", str(out), "--mode", "reference", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "captured in single-shot mode" in err and "--mode single-shot" in err and len(err.strip().splitlines()) == 1
+    assert "captured in single-shot mode" in err and "the single-shot method" in err and len(err.strip().splitlines()) == 1
     assert (out / "session.json").read_bytes() == before
 
 
@@ -306,7 +308,7 @@ def test_reconstruct_refuses_mirror_average_with_the_reference_method(tmp_path, 
     capsys.readouterr()
     assert main(["reconstruct", str(out), "--mirror-average", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "--mirror-average applies to --mode single-shot only" in err and len(err.strip().splitlines()) == 1
+    assert "--mirror-average: mirror averaging applies to the single-shot mode only" in err and len(err.strip().splitlines()) == 1
     assert (out / "session.json").read_bytes() == before  # no revision recorded
 
 
@@ -319,7 +321,9 @@ def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "
 
     def faulty_open(*a, **kw):
         rig = real_open(*a, **kw)
-        rig.sim.inject_fault("stage", "disconnect", after_calls=6)
+        # stage calls: position (hardware time), home, then per move position, move_to, wait;
+        # call 15 starts capture 1's first move (with the turntable)
+        rig.sim.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
     out = tmp_path / "run"
@@ -327,7 +331,9 @@ def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "
         m.setattr(polrig.rig, "open_rig", faulty_open)
         assert main(["capture", "--poses", poses, "--config", str(cfg), "--out", str(out),
                      "--no-progress"]) == 1
-    assert Session.open(out).manifest["status"] == "interrupted"
+    s = Session.open(out)
+    assert s.manifest["status"] == "interrupted"
+    assert [c["status"] for c in s.captures][:2] == ["complete", "failed"]
     return out
 
 

@@ -271,3 +271,23 @@ def test_end_of_move_reply_that_stops_midway(stage, emu):
         stage.move_to(40.0, timeout_s=5)
     assert time.monotonic() - t0 < 1.5
     assert stage.position_deg() == pytest.approx(40.0, abs=PULSE_DEG)
+
+
+# -- capabilities from the device's velocity (gv) ----------------------------------------
+@pytest.mark.parametrize("percent", [100, 25])
+def test_capabilities_from_the_velocity_setting(emu, percent):
+    """The speed is the ``gv`` percentage of the ELL14's 430 deg/s, read on open; the piezo
+    motor has no acceleration ramp; the mount turns without limit."""
+    emu.velocity_percent = percent
+    with Ell14Stage(emu.port, reply_timeout_s=0.5) as s:
+        caps = s.capabilities
+        assert caps.speed_deg_s == pytest.approx(430.0 * percent / 100)
+        assert caps.accel_deg_s2 == float("inf") and caps.range_deg is None
+        assert s.move_time_s(10.0, 100.0) == pytest.approx(90.0 / caps.speed_deg_s)
+        n = emu.received.count(b"0gv")
+        assert s.capabilities is caps and emu.received.count(b"0gv") == n  # cached
+
+
+def test_capabilities_need_an_open_stage(emu):
+    with pytest.raises(DeviceDisconnected, match="not open"):
+        Ell14Stage(emu.port).capabilities

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from drivers.genicam_camera import GenicamCamera, gentl_paths_from_env, list_gentl_devices
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, FormatError
+from polrig import hal
+from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceNotFound,
+                           DeviceTimeout, FormatError)
 from polrig.layouts import get_layout
 
 pytestmark = pytest.mark.timeout(60)
@@ -82,8 +84,10 @@ def test_missing_features_are_named(cam):
     assert np.isnan(cam.exposure_us)
     with pytest.raises(DeviceFault, match="ExposureTime"):
         cam.set_exposure_us(1000.0)
-    with pytest.raises(DeviceFault, match="TriggerMode"):
+    with pytest.raises(ConfigError, match="no TriggerMode/TriggerSoftware feature"):
         cam.set_trigger("software")
+    with pytest.raises(ConfigError, match="'sometimes' is not supported"):
+        cam.set_trigger("sometimes")
     with pytest.raises(DeviceFault, match="not offered"):
         cam.set_pixel_format("Mono12p")
     with pytest.raises(DeviceFault, match="Width"):
@@ -187,3 +191,122 @@ def test_non_positive_frame_timeouts_are_refused(cam, timeout):
             call(timeout)
     assert time.monotonic() - t0 < 0.5
     assert cam.grab(timeout_s=2.0).raw.shape == (100, 120)
+
+
+# -- capabilities, as the Viky producer's node map declares them -------------------------
+def test_capabilities_of_a_camera_without_trigger_or_exposure_features(cam):
+    """Viky has no TriggerMode/TriggerSoftware and no ExposureTime[Abs]: free run only, no
+    exposure control (a plan's exposure is refused), the readout is one frame period at its
+    AcquisitionFrameRate (it has no SensorReadoutTime or ResultingFrameRate)."""
+    nm = cam._ia.remote_device.node_map
+    assert not any(nm.has_node(n) for n in ("TriggerMode", "TriggerSoftware", "ExposureTime",
+                                            "ExposureTimeAbs", "SensorReadoutTime",
+                                            "ResultingFrameRate"))
+    caps = cam.capabilities
+    assert isinstance(caps, hal.CameraCapabilities)
+    assert caps.trigger_modes == ("free",) and caps.preferred_trigger == "free"
+    assert caps.exposure_range_us == (0.0, 0.0)
+    with pytest.raises(ConfigError, match=r"outside the camera's range \[0, 0\]"):
+        caps.check_exposure(1000.0)
+    assert nm.get_node("AcquisitionFrameRate").value == pytest.approx(200.0)
+    assert caps.readout_us == pytest.approx(1e6 / 200.0)
+    assert caps.settle_frames == 2
+    cam.set_trigger("free")  # free run works without TriggerMode
+    assert cam.trigger == "free" and cam.grab(timeout_s=2.0).raw.shape == (100, 120)
+
+
+def test_capabilities_follow_the_settings(cam):
+    """The readout is re-read after a setting changes (here the frame rate), and the grab
+    timeout of the HAL follows it."""
+    cam.set_frame_rate_hz(20.0)
+    assert cam.capabilities.readout_us == pytest.approx(50_000.0)
+    assert hal.grab_timeout_s(cam, 1.0) == pytest.approx(1.0 + 0.05)  # no exposure: NaN
+    cam.set_frame_rate_hz(200.0)
+    assert cam.capabilities.readout_us == pytest.approx(5_000.0)
+
+
+def test_a_configured_software_trigger_is_refused_on_open(viky):
+    """A rig configuration asking a free-run-only camera for software trigger fails on
+    open with one line (and leaves the camera closed)."""
+    c = GenicamCamera(viky, serial="0", pixel_format="Mono8", trigger="software")
+    with pytest.raises(ConfigError, match="'software' is not supported"):
+        c.open()
+    assert not c.is_open
+    with GenicamCamera(viky, serial="0", pixel_format="Mono8") as again:
+        assert again.capabilities.trigger_modes == ("free",)
+
+
+# -- capabilities from GenApi node maps of cameras Viky does not imitate -------------------
+# Camera descriptions (GenApi XML, schema 1.1) evaluated by the real GenApi of the genicam
+# wheel; values are constants (no register port needed), feature names per SFNC.
+_XML_HEAD = (
+    '<?xml version="1.0" encoding="utf-8"?>'
+    '<RegisterDescription ModelName="Test" VendorName="polrig" ToolTip="" StandardNameSpace='
+    '"None" SchemaMajorVersion="1" SchemaMinorVersion="1" SchemaSubMinorVersion="0" '
+    'MajorVersion="1" MinorVersion="0" SubMinorVersion="0" ProductGuid="11111111-2222-3333-'
+    '4444-555555555555" VersionGuid="11111111-2222-3333-4444-555555555556" xmlns="http://www.'
+    'genicam.org/GenApi/Version_1_1" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" '
+    'xsi:schemaLocation="http://www.genicam.org/GenApi/Version_1_1 http://www.genicam.org/'
+    'GenApi/GenApiSchema_Version_1_1.xsd">')
+
+
+def _float(name, value, lo=0.0, hi=1e9):
+    return (f'<Float Name="{name}" NameSpace="Standard"><Value>{value}</Value><Min>{lo}</Min>'
+            f'<Max>{hi}</Max></Float>')
+
+
+_TRIGGER_MODE = ('<Enumeration Name="TriggerMode" NameSpace="Standard"><EnumEntry Name="Off">'
+                 '<Value>0</Value></EnumEntry><EnumEntry Name="On"><Value>1</Value></EnumEntry>'
+                 '<Value>0</Value></Enumeration>')
+_TRIGGER_SOFTWARE = ('<Command Name="TriggerSoftware" NameSpace="Standard"><Value>0</Value>'
+                     '<CommandValue>1</CommandValue></Command>')
+
+
+def node_map(*nodes: str):
+    from genicam.genapi import NodeMap
+
+    names = [n.split('Name="')[1].split('"')[0] for n in nodes]
+    root = ('<Category Name="Root" NameSpace="Standard">'
+            + "".join(f"<pFeature>{n}</pFeature>" for n in names) + "</Category>")
+    nm = NodeMap()
+    nm.load_xml_from_string(_XML_HEAD + root + "".join(nodes) + "</RegisterDescription>")
+    return nm
+
+
+def test_capabilities_of_an_sfnc_camera():
+    """TriggerMode + TriggerSoftware: both modes, software preferred; the ExposureTime range;
+    SensorReadoutTime wins over the frame period."""
+    from drivers.genicam_camera import capabilities_from_node_map
+
+    nm = node_map(_TRIGGER_MODE, _TRIGGER_SOFTWARE, _float("ExposureTime", 10000, 20, 3e7),
+                  _float("SensorReadoutTime", 8000), _float("AcquisitionFrameRate", 20))
+    caps = capabilities_from_node_map(nm)
+    assert caps.trigger_modes == ("software", "free") and caps.preferred_trigger == "software"
+    assert caps.exposure_range_us == (20.0, 3e7) and caps.readout_us == 8000.0
+    caps.check_exposure(20.0)
+    with pytest.raises(ConfigError, match=r"\[20, 3e\+07\]"):
+        caps.check_exposure(19.0)
+
+
+def test_capabilities_of_an_older_gige_camera():
+    """ExposureTimeAbs (pre-SFNC 2.0); a TriggerMode without TriggerSoftware is no software
+    trigger; the readout is one period at the ResultingFrameRate (the rate it runs at),
+    not the AcquisitionFrameRate asked for."""
+    from drivers.genicam_camera import capabilities_from_node_map, exposure_feature
+
+    nm = node_map(_TRIGGER_MODE, _float("ExposureTimeAbs", 5000, 35, 1e6),
+                  _float("AcquisitionFrameRate", 30), _float("ResultingFrameRate", 22.5))
+    caps = capabilities_from_node_map(nm)
+    assert exposure_feature(nm) == "ExposureTimeAbs"
+    assert caps.trigger_modes == ("free",) and caps.exposure_range_us == (35.0, 1e6)
+    assert caps.readout_us == pytest.approx(1e6 / 22.5)
+
+
+def test_capabilities_of_a_camera_that_says_nothing():
+    from drivers.genicam_camera import capabilities_from_node_map, exposure_feature
+
+    nm = node_map(_float("Gain", 0.0))
+    caps = capabilities_from_node_map(nm)
+    assert exposure_feature(nm) is None
+    assert caps.trigger_modes == ("free",) and caps.exposure_range_us == (0.0, 0.0)
+    assert caps.readout_us == 0.0 and caps.settle_frames == 2

@@ -146,7 +146,7 @@ def test_not_a_grbl_and_release(tmp_path, emu):
 
 
 def test_soft_limit_alarm(tmp_path):
-    with GrblEmulator(link=tmp_path / "g", speed_factor=20, soft_limits=(-360.0, 360.0)) as emu, \
+    with GrblEmulator(link=tmp_path / "g", speed_factor=20, max_travel=720.0) as emu, \
             GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
         t.home(timeout_s=5)
         with pytest.raises(DeviceFault) as ei:
@@ -227,7 +227,7 @@ def test_alarm_that_arrived_between_calls_is_raised(table, emu):
 
 
 def test_soft_limit_halts_until_reset(tmp_path):
-    with GrblEmulator(link=tmp_path / "g", speed_factor=20, soft_limits=(-360.0, 360.0)) as emu, \
+    with GrblEmulator(link=tmp_path / "g", speed_factor=20, max_travel=720.0) as emu, \
             GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
         t.home(timeout_s=5)
         with pytest.raises(DeviceFault) as ei:
@@ -367,3 +367,53 @@ def test_timeouts_name_the_configured_timeout(tmp_path):
         emu.inject("no_reply")
         with pytest.raises(DeviceTimeout, match=r"no GRBL banner within 0\.5 s$"):
             t.open()
+
+
+# -- capabilities from the settings ($$) ---------------------------------------------------
+def test_capabilities_from_the_axis_settings(tmp_path):
+    """$113 (units/min) and $123 (units/s^2) of axis A, times degrees_per_unit; no soft
+    limits: no travel limit. Read once, on open."""
+    with GrblEmulator(link=tmp_path / "g", speed_factor=20, max_rate_per_min=1800.0,
+                      accel_per_s2=40.0) as emu:
+        emu.settings[112] = 60.0  # another axis's rate does not matter
+        with GrblTurntable(emu.port, reply_timeout_s=0.5, degrees_per_unit=2.0) as t:
+            caps = t.capabilities
+            assert caps.speed_deg_s == pytest.approx(1800.0 / 60 * 2.0)
+            assert caps.accel_deg_s2 == pytest.approx(80.0) and caps.range_deg is None
+            n = emu.received.count(b"$$\n")
+            assert n == 1 and t.capabilities is caps and emu.received.count(b"$$\n") == 1
+        with GrblTurntable(emu.port, reply_timeout_s=0.5, rate_per_min=600.0) as t:
+            assert t.capabilities.speed_deg_s == pytest.approx(10.0)  # the G1 feed caps it
+
+
+def test_declared_travel_is_where_the_soft_limits_are(tmp_path):
+    """With soft limits ($20=1) the declared range is GRBL's machine window [-$13k, 0]:
+    the controller moves to both ends and raises the soft-limit alarm just beyond."""
+    with GrblEmulator(link=tmp_path / "g", speed_factor=50, max_travel=90.0) as emu, \
+            GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
+        lo, hi = t.capabilities.range_deg
+        assert (lo, hi) == (-90.0, 0.0)
+        t.home(timeout_s=5)
+        t.move_to(lo, timeout_s=5)
+        t.move_to(hi, timeout_s=5)
+        with pytest.raises(DeviceFault) as ei:
+            t.move_to(hi + 1.0)
+        assert ei.value.code == 2
+        t.home(timeout_s=5)
+        with pytest.raises(DeviceFault) as ei:
+            t.move_to(lo - 1.0)
+        assert ei.value.code == 2
+
+
+def test_a_build_without_the_axis_settings(tmp_path):
+    """A listing without the axis's $11k/$12k (a 3-axis build asked for axis A) is refused
+    on open, naming the settings; the port is released."""
+    with GrblEmulator(link=tmp_path / "g") as emu:
+        for n in (113, 123, 133):
+            del emu.settings[n]
+        t = GrblTurntable(emu.port, reply_timeout_s=0.5)
+        with pytest.raises(ProtocolError, match=r"no \$113, \$123 for axis A"):
+            t.open()
+        assert not t.is_open
+        with serial.Serial(emu.port, 115200, exclusive=True):
+            pass

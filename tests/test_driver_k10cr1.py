@@ -208,3 +208,28 @@ def test_request_timeout_names_the_configured_timeout(stage, emu):
     with pytest.raises(DeviceTimeout, match=r"no APT header within 0\.5 s$"):
         stage.status_bits()
     assert stage.status_bits() & apt.STATUS_ENABLED
+
+
+# -- capabilities from MOT_GET_VELPARAMS ---------------------------------------------------
+def test_capabilities_from_the_velocity_parameters(emu):
+    """Maximum velocity and acceleration as the controller reports them (APT units
+    converted per the protocol document), read once on open."""
+    with K10cr1Stage(emu.port, reply_timeout_s=0.5) as s:
+        caps = s.capabilities
+        assert caps.speed_deg_s == pytest.approx(10.0, rel=1e-6)
+        assert caps.accel_deg_s2 == pytest.approx(10.0, rel=1e-4)
+        assert caps.range_deg is None
+        # trapezoid: 1 s to full speed (5 deg), 80 deg cruising, 1 s to stop
+        assert s.move_time_s(0.0, 90.0) == pytest.approx(10.0, rel=1e-4)
+    emu.max_velocity, emu.acceleration = 18322773, 751  # 2.5 deg/s, 0.5 deg/s^2 (APT units)
+    with K10cr1Stage(emu.port, reply_timeout_s=0.5) as s:
+        assert s.capabilities.speed_deg_s == pytest.approx(2.5, rel=1e-5)
+        assert s.capabilities.accel_deg_s2 == pytest.approx(0.5, rel=1e-3)
+        assert s.calculate_timeout(90.0, 5.0) == pytest.approx(
+            5.0 + 1.5 * (90.0 / 2.5 + 2.5 / 0.5), rel=1e-3)
+
+
+def test_zero_velocity_parameters_are_a_protocol_error(emu):
+    emu.max_velocity = 0
+    with pytest.raises(ProtocolError, match="maximum velocity 0"):
+        K10cr1Stage(emu.port, reply_timeout_s=0.5).open()

@@ -19,7 +19,8 @@ from polrig.errors import DeviceDisconnected
 pytestmark = pytest.mark.timeout(20)
 
 AXIS_CALLS = ["info()", "position_deg()", "move_to(5.0)", "move_to(5.0, wait=False)", "home()",
-              "is_busy()", "stop()"]
+              "is_busy()", "stop()", "capabilities", "move_time_s(0.0, 90.0)",
+              "calculate_timeout(90.0)"]
 CASES = (
     [("ell14", lambda p: Ell14Stage(p), c) for c in AXIS_CALLS + ["status_code()"]]
     + [("k10cr1", lambda p: K10cr1Stage(p), c) for c in AXIS_CALLS + ["status_bits()"]]
@@ -28,7 +29,7 @@ CASES = (
        for c in ["info()", "set_on(True)", "set_level(0.5)", "status()"]]
     + [("genicam", lambda p: GenicamCamera(p), c)
        for c in ["info()", "grab(1.0)", "fetch(1.0)", "roi", "pixel_format", "start()",
-                 "set_exposure_us(100.0)", "set_trigger('free')"]]
+                 "set_exposure_us(100.0)", "set_trigger('free')", "capabilities"]]
 )
 
 

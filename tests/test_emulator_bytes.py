@@ -151,7 +151,7 @@ def test_grbl_limit_alarm_blocks_everything_until_reset():
     """grbl/grbl protocol.c protocol_exec_rt_system: after a hard or soft limit the alarm and
     [MSG:Reset to continue] are printed, then everything but 0x18 is ignored, `?` too; the
     reset brings the banner and the Alarm lock."""
-    with GrblEmulator(speed_factor=50, soft_limits=(-10.0, 10.0)) as emu, \
+    with GrblEmulator(speed_factor=50, max_travel=10.0) as emu, \
             serial.Serial(emu.port, 115200, timeout=0.2) as ser:
         ser.write(b"$X\n")
         assert lines(ser, 2)[-1] == b"ok\r\n"
@@ -222,3 +222,68 @@ def test_emulator_help_names_its_own_link(module, capsys, monkeypatch):
         importlib.import_module(f"drivers.emulators.{module}").main(["--help"])
     out = capsys.readouterr().out
     assert path in out and out.count("/tmp/") == 1
+
+
+# -- the velocity parameters the drivers' capabilities come from --------------------------
+def test_ell14_velocity_query():
+    """ELLx protocol manual: ``gv`` -> ``GV`` + two hex digits, percent of the maximum
+    speed (0x64 = 100 %); ``sv`` sets it (``GS00``), out of 1..100 is ``GS04``."""
+    with Ell14Emulator(speed_factor=10) as emu, \
+            serial.Serial(emu.port, 9600, timeout=0.2) as ser:
+        ser.write(b"0gv")
+        assert lines(ser, 1) == [b"0GV64\r\n"]
+        ser.write(b"0sv32")
+        assert lines(ser, 1) == [b"0GS00\r\n"]
+        ser.write(b"0gv")
+        assert lines(ser, 1) == [b"0GV32\r\n"]
+        ser.write(b"0sv00")
+        assert lines(ser, 1) == [b"0GS04\r\n"]
+        assert emu.velocity_percent == 50
+
+
+def test_k10cr1_velocity_parameters_frames():
+    """APT MOT_REQ_VELPARAMS 0x0414 (header only, param1 = channel) -> MOT_GET_VELPARAMS
+    0x0415 with 14 data bytes <H channel, i min velocity, i acceleration, i max velocity>;
+    MOT_SET_VELPARAMS 0x0413 carries the same 14 bytes. Power-up values 10 deg/s and
+    10 deg/s^2 in APT units for 409600/3 micro-steps per degree (velocity * 53.68,
+    acceleration / 90.9, written out here instead of taken from drivers.apt)."""
+    with K10cr1Emulator(speed_factor=100) as emu, \
+            serial.Serial(emu.port, 115200, rtscts=True, timeout=0.5) as ser:
+        ser.write(bytes([0x14, 0x04, 0x01, 0x00, 0x50, 0x01]))
+        assert ser.read(6) == bytes([0x15, 0x04, 14, 0x00, 0x81, 0x50])
+        chan, vmin, accel, vmax = struct.unpack("<Hiii", ser.read(14))
+        assert (chan, vmin) == (1, 0)
+        assert vmax == 73291093 and accel == 15020  # 10 deg/s, 10 deg/s^2
+        ser.write(bytes([0x13, 0x04, 14, 0x00, 0xD0, 0x01])
+                  + struct.pack("<Hiii", 1, 0, 7510, 36645547))  # 5 deg/s^2, 5 deg/s
+        ser.write(bytes([0x14, 0x04, 0x01, 0x00, 0x50, 0x01]))
+        assert ser.read(6) == bytes([0x15, 0x04, 14, 0x00, 0x81, 0x50])
+        assert struct.unpack("<Hiii", ser.read(14)) == (1, 0, 7510, 36645547)
+
+
+def test_grbl_settings_listing():
+    """commands.md: ``$$`` prints ``$N=value`` lines then ``ok``; ``$N=value`` sets one
+    (``error:3`` for a setting GRBL does not have); ``$$`` is refused during a motion
+    (``error:8``, system.c)."""
+    with GrblEmulator(speed_factor=1, homing_enabled=False, max_rate_per_min=1200.0,
+                      accel_per_s2=30.0) as emu, \
+            serial.Serial(emu.port, 115200, timeout=0.2) as ser:
+        ser.write(b"$$\n")
+        listing = lines(ser, 200, 1.0)
+        assert listing[-1] == b"ok\r\n"
+        settings = dict(l.strip().decode().lstrip("$").split("=") for l in listing[:-1])
+        assert settings["20"] == "0" and settings["22"] == "0" and settings["10"] == "1"
+        assert settings["113"] == "1200.000" and settings["123"] == "30.000"
+        assert {"110", "111", "112", "130", "131", "132", "133"} <= set(settings)
+        ser.write(b"$113=600\n")
+        assert lines(ser, 1) == [b"ok\r\n"]
+        ser.write(b"$999=1\n")
+        assert lines(ser, 1) == [b"error:3\r\n"]
+        ser.write(b"$113=fast\n")
+        assert lines(ser, 1) == [b"error:2\r\n"]
+        ser.write(b"$$\n")
+        assert b"$113=600.000\r\n" in lines(ser, 200, 1.0)
+        ser.write(b"G0 A100\n")  # 10 s at 600 units/min
+        assert lines(ser, 1) == [b"ok\r\n"]
+        ser.write(b"$$\n")
+        assert lines(ser, 1) == [b"error:8\r\n"]

@@ -232,3 +232,21 @@ def test_specular_reflection_agrees_with_the_pbrdf_fast_path():
     for eta in (0.5, 0.8, 1.33, 1.5, 2.4):
         np.testing.assert_allclose(mu.specular_reflection(cos_i, eta),
                                    pbrdf.fresnel_reflection_sp(cos_i, eta), atol=1e-12)
+
+
+@pytest.mark.parametrize("angle, phase", [(0.0, 0.7), (0.4, 0.7), (-1.1, np.pi), (2.0, np.pi / 2), (0.3, 0.0)])
+def test_retarder_matches_mitsuba_and_composes_with_fresnel_in_one_convention(angle, phase):
+    """``retarder_at`` is Mitsuba 3's ``rotated_element(a, linear_retarder(d))`` (Goldstein
+    eq. 6.43: the S3 sign of docs/conventions.md), and ``jones_to_mueller`` maps the Jones
+    matrices of a retarder and of a Fresnel reflector onto ``linear_retarder`` and
+    ``specular_reflection`` alike, so that films over metals compose in one convention."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_spectral_polarized")
+    ref = np.array(mi.mueller.rotated_element(mi.Float(angle), mi.mueller.linear_retarder(mi.Float(phase))))
+    np.testing.assert_allclose(mu.retarder_at(angle, phase), ref.reshape(4, 4), atol=2e-6)
+    np.testing.assert_allclose(mu.jones_to_mueller(np.diag([1.0, np.exp(1j * phase)])), mu.linear_retarder(phase),
+                               atol=1e-12)
+    for eta in (0.2 + 3j, 1.5, 0.6):
+        rs, rp = mu._fresnel_amplitudes(0.4, eta)
+        np.testing.assert_allclose(mu.jones_to_mueller(np.diag([rs, rp])), mu.specular_reflection(0.4, eta),
+                                   atol=1e-12)

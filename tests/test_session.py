@@ -36,7 +36,8 @@ def test_create_lists_one_pending_capture_per_pose(tmp_path):
 def test_refuses_non_empty_folder(tmp_path):
     (tmp_path / "s").mkdir()
     (tmp_path / "s" / "keep.txt").write_text("precious")
-    with pytest.raises(FileExistsError, match="--resume"):
+    with pytest.raises(FileExistsError, match="not empty; choose a new folder, or resume the "
+                                              "session in it"):
         make(tmp_path)
     assert (tmp_path / "s" / "keep.txt").read_text() == "precious"
 

@@ -14,7 +14,7 @@ from polrig.realizability import is_physical_linear, pass_rate
 from sim.geometry import PinholeCamera, PointLight, look_at, rotation_about_axis, unit
 from sim.materials import PRESETS, Material, get_material
 from sim.render import render
-from sim.scene import SCENES, SceneObject, make_scene
+from sim.scene import MATERIAL_SCENES, SCENES, SceneObject, make_scene
 from sim.shapes import Blob, Box, Cylinder, HeightField, Rectangle, Sphere, Torus, gaussian_bumps
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
@@ -227,8 +227,12 @@ def test_every_rendered_truth_mueller_is_realizable(record_property):
         r = render(make_scene(name, 40, 40), 33.0)
         m = np.moveaxis(r.brdf[..., r.lit], -1, 0).reshape(-1, 3, 3).astype(np.float64)
         assert len(m) > 20, name
+        # Metals and films are non-depolarizing matrices on the boundary of the realizable set
+        # with circular couplings: their float32 truth needs float32's tolerance (the float64
+        # 4x4 matrices pass at 1e-9: tests/test_sim_materials.py).
+        rtol = 1e-6 if name in MATERIAL_SCENES else None
         for test in ("coherency", "gk"):
-            rates[(name, test)] = pass_rate(is_physical_linear(m, test=test))
+            rates[(name, test)] = pass_rate(is_physical_linear(m, test=test, rtol=rtol))
     summary = {f"{k[0]}/{k[1]}": v for k, v in rates.items()}
     record_property("realizability_pass_rates", summary)
     print("realizability pass rates:", summary)

@@ -9,8 +9,18 @@ pushed when an alarm fires. With homing enabled (``$22=1``) the controller start
 the Alarm state, as real GRBL does. Moves queue in a planner (G0 at the axis maximum rate,
 G1 at the F feed rate, units per minute), run one after another; ``G90``/``G91`` modes.
 
+Settings (commands.md, "Grbl Settings"): ``$$`` prints every ``$N=value`` line, ``$N=value``
+sets one (``error:3`` for a number GRBL does not have, ``error:2`` for a bad value; ``$$``
+while a motion runs or is held is ``error:8``, as system.c blocks it). The axes' maximum
+rates ``$110..$113`` (units/min) limit G0 and G1; their accelerations ``$120..$123``
+(units/s^2) are reported but moves here run at constant speed; ``$130..$133`` is the
+maximum travel (units). Soft limits (``$20=1``, needs homing ``$22=1``) confine every
+axis to the machine travel of a default GRBL 1.1 build, ``[-$13x, 0]`` (settings.c stores
+the travel negated; system.c ``system_check_travel_limits`` without
+``HOMING_FORCE_SET_ORIGIN``): ``max_travel`` switches them on with that travel.
+
 Faults: see :mod:`drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
-(``ALARM:1``, motion aborted, position lost: re-home). With ``soft_limits`` a target outside
+(``ALARM:1``, motion aborted, position lost: re-home). With soft limits on, a target outside
 the travel raises ``ALARM:2`` (soft limit) before any motion, as GRBL 1.1 does. Both are
 critical alarms: like grbl/grbl ``grbl/protocol.c`` (``protocol_exec_rt_system``) the
 controller prints ``[MSG:Reset to continue]`` and then ignores every byte, ``?`` included,
@@ -32,6 +42,18 @@ from drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 AXES = "XYZA"
+#: GRBL 1.1 settings of a 4-axis build, with this emulator's power-up values
+DEFAULT_SETTINGS: dict[int, float] = {
+    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
+    20: 0, 21: 0, 22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0,
+    32: 0,
+    **{100 + i: 250.0 for i in range(len(AXES))},   # steps per unit
+    **{110 + i: 3600.0 for i in range(len(AXES))},  # maximum rate, units/min
+    **{120 + i: 100.0 for i in range(len(AXES))},   # acceleration, units/s^2
+    **{130 + i: 360.0 for i in range(len(AXES))},   # maximum travel, units
+}
+#: integer-valued settings (printed without decimals, as GRBL does)
+_INTEGER_SETTINGS = frozenset({0, 2, 3, 4, 5, 6, 10, 13, 20, 21, 22, 23, 26, 30, 31, 32})
 _WORD = re.compile(r"([A-Z])([-+]?[0-9]*\.?[0-9]*)")
 
 
@@ -42,13 +64,18 @@ class GrblEmulator(PtyEmulator):
     FAULTS = PtyEmulator.FAULTS + ("reset",)
 
     def __init__(self, *, link=None, speed_factor: float = 1.0, homing_enabled: bool = True,
-                 max_rate_per_min: float = 3600.0, homing_s: float = 1.0,
-                 soft_limits: tuple[float, float] | None = None):
+                 max_rate_per_min: float = 3600.0, accel_per_s2: float = 100.0,
+                 homing_s: float = 1.0, max_travel: float | None = None):
         super().__init__(link=link, speed_factor=speed_factor)
-        self.homing_enabled = homing_enabled
-        self.max_rate = max_rate_per_min  # axis units per minute ($110..$113)
+        self.settings = dict(DEFAULT_SETTINGS)
+        for i in range(len(AXES)):
+            self.settings[110 + i] = float(max_rate_per_min)
+            self.settings[120 + i] = float(accel_per_s2)
+            if max_travel is not None:
+                self.settings[130 + i] = float(max_travel)
+        self.settings[22] = 1 if homing_enabled else 0
+        self.settings[20] = 1 if max_travel is not None else 0
         self.homing_s = homing_s
-        self.soft_limits = soft_limits  # ($20=1, $130..: machine travel) on every axis
         self.pos = [0.0] * len(AXES)
         self.state = "Alarm" if homing_enabled else "Idle"
         self.absolute = True
@@ -59,9 +86,46 @@ class GrblEmulator(PtyEmulator):
         self.move_start_pos: list[float] | None = None
         self.homing_until = 0.0
         self.critical = False  # halted after a hard/soft limit until a soft reset
-        self.status_mask = 1  # $10: bit 0 set reports MPos, clear reports WPos
         self._fails = False
         self._line = bytearray()
+
+    # -- settings ($$) ----------------------------------------------------------------------
+    @property
+    def homing_enabled(self) -> bool:
+        return bool(self.settings[22])
+
+    @property
+    def status_mask(self) -> int:
+        """``$10``: bit 0 set reports MPos, clear reports WPos."""
+        return int(self.settings[10])
+
+    @property
+    def max_rate(self) -> float:
+        """The slowest axis maximum rate (units/min) of ``$110..``: the rate of G0 moves."""
+        return min(self.settings[110 + i] for i in range(len(AXES)))
+
+    def _settings_lines(self) -> bytes:
+        out = []
+        for n in sorted(self.settings):
+            v = self.settings[n]
+            out.append(f"${n}={int(v)}" if n in _INTEGER_SETTINGS else f"${n}={v:.3f}")
+        return "".join(line + "\r\n" for line in out).encode()
+
+    def _set_setting(self, cmd: str) -> None:
+        key, _, value = cmd.partition("=")
+        if not key.isdigit() or int(key) not in self.settings:
+            self._error(3)
+            return
+        try:
+            v = float(value)
+        except ValueError:
+            self._error(2)
+            return
+        if v < 0 or (int(key) in _INTEGER_SETTINGS and v != int(v)):
+            self._error(2)
+            return
+        self.settings[int(key)] = v
+        self._ok()
 
     def start(self):
         super().start()
@@ -240,13 +304,14 @@ class GrblEmulator(PtyEmulator):
                 else:
                     self.state = "Home"
                     self.homing_until = now + self.homing_s / self.speed_factor
-            elif cmd.startswith("10="):
-                try:
-                    self.status_mask = int(cmd[3:])
-                except ValueError:
-                    self._error(2)
+            elif cmd == "$":
+                if self.state in ("Run", "Home") or self.state.startswith("Hold"):
+                    self._error(8)  # system.c: blocked during a cycle, takes too long to print
                     return
+                self.send(self._settings_lines())
                 self._ok()
+            elif "=" in cmd and cmd.partition("=")[0].isdigit():
+                self._set_setting(cmd)
             elif cmd == "SLP":
                 # $SLP: de-energize and sleep; the only way out is a reset (commands.md)
                 self.move, self.queue = None, []
@@ -310,14 +375,17 @@ class GrblEmulator(PtyEmulator):
             self._error(22)
             return
         self.absolute, self.feed_rate, self.motion_mode = absolute, feed, motion
-        if has_axis and self.soft_limits is not None:
-            lo, hi = self.soft_limits
-            if any(not lo <= t <= hi for t in target):
+        if has_axis and self.settings[20]:
+            if any(not -self.settings[130 + i] <= t <= 0 for i, t in enumerate(target)):
                 # GRBL 1.1: a G-code target beyond the machine travel is a soft-limit alarm
                 self._alarm(2)
                 return
         if has_axis:
-            self.queue.append((target, self.max_rate if motion == 0 else min(feed, self.max_rate)))
+            start = list(self.queue[-1][0]) if self.queue else (
+                [m.target for m in self.move] if self.move else list(self.pos))
+            moving = [i for i, (a, b) in enumerate(zip(start, target)) if a != b] or [0]
+            top = min(self.settings[110 + i] for i in moving)  # each axis's $11x limits
+            self.queue.append((target, top if motion == 0 else min(feed, top)))
             self._begin_next(now)
         self._ok()
 

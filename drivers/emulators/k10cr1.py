@@ -1,8 +1,10 @@
 """Emulator of a Thorlabs K10CR1 rotation stage speaking APT binary frames on a pty.
 
 Protocol: Thorlabs "APT Communications Protocol" (see :mod:`drivers.apt`). State machine:
-position in micro-steps (409600/3 per degree), moves at a maximum of 10 deg/s (K10CR1
-specification) times ``speed_factor``, homing to 0 with ``MOT_MOVE_HOMED`` at the end, moves
+position in micro-steps (409600/3 per degree), moves at the maximum velocity of its velocity
+parameters (``MOT_SET/REQ/GET_VELPARAMS``, APT units; power-up values 10 deg/s and 10
+deg/s^2, the K10CR1's specified maximum speed and Kinesis' default acceleration) times
+``speed_factor``, at constant speed (the acceleration is reported, not simulated), homing to 0 with ``MOT_MOVE_HOMED`` at the end, moves
 with ``MOT_MOVE_COMPLETED`` carrying position and status bits, ``MOT_MOVE_STOP`` with
 ``MOT_MOVE_STOPPED``, status bits (moving, homing, homed, motion error, enabled), the channel
 enable state (a disabled channel ignores moves and reports an error), ``HW_GET_INFO``.
@@ -29,6 +31,7 @@ from drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
 
 STEPS_PER_DEG = 409600 / 3
 MAX_SPEED_DEG_S = 10.0
+ACCELERATION_DEG_S2 = 10.0
 ERROR_MOTION = (10002, "Motion error: position error exceeded limit, motor stopped")
 ERROR_DISABLED = (10001, "Channel is disabled: enable it before moving")
 
@@ -45,6 +48,8 @@ class K10cr1Emulator(PtyEmulator):
         self.homed = homed
         self.enabled = True
         self.motion_error = False
+        self.max_velocity = apt.velocity_to_apt(MAX_SPEED_DEG_S, STEPS_PER_DEG)  # APT units
+        self.acceleration = apt.acceleration_to_apt(ACCELERATION_DEG_S2, STEPS_PER_DEG)
         self.move: LinearMove | None = None
         self._move_fails = False
         self._move_stops = False
@@ -97,7 +102,8 @@ class K10cr1Emulator(PtyEmulator):
                       ERROR_DISABLED[0], ERROR_DISABLED[1].encode()))
             return
         self.motion_error = False
-        speed = MAX_SPEED_DEG_S * STEPS_PER_DEG * self.speed_factor
+        speed = (apt.velocity_from_apt(self.max_velocity, STEPS_PER_DEG) * STEPS_PER_DEG
+                 * self.speed_factor)
         self.move = LinearMove(self.position_steps, target, speed, now, kind)
         self._move_fails = self.take_fault("error_mid_move")
         self._move_stops = self.take_fault("stop_mid_move")
@@ -163,6 +169,13 @@ class K10cr1Emulator(PtyEmulator):
         elif msg_id == apt.MOT_REQ_POSCOUNTER:
             self._msg(apt.MOT_GET_POSCOUNTER,
                       data=struct.pack("<Hi", 1, int(round(self.position_steps))))
+        elif msg_id == apt.MOT_REQ_VELPARAMS:
+            self._msg(apt.MOT_GET_VELPARAMS, data=struct.pack(
+                apt.VELPARAMS_FORMAT, 1, 0, self.acceleration, self.max_velocity))
+        elif msg_id == apt.MOT_SET_VELPARAMS and data is not None and len(data) == 14:
+            _, _, accel, max_vel = struct.unpack(apt.VELPARAMS_FORMAT, data)
+            if accel > 0 and max_vel > 0:
+                self.acceleration, self.max_velocity = accel, max_vel
         elif msg_id == apt.MOT_MOVE_HOME:
             self._start(0.0, now, "home")
         elif msg_id in (apt.MOT_MOVE_ABSOLUTE, apt.MOT_MOVE_RELATIVE) and data is not None \

@@ -1,7 +1,9 @@
 """``polrig capture``: reference (or single-shot) captures over turntable poses into a session.
 
-Thin shell over :mod:`polrig.capture` (acquisition), :mod:`polrig.processing` (results) and
-:mod:`polrig.session` (files). Bad input (pose spec, states, output folder, config) is
+Thin shell over :mod:`polrig.capture` (the request, acquisition), :mod:`polrig.processing`
+(results) and :mod:`polrig.session` (files): the options become a typed
+:class:`polrig.capture.CaptureRequest` (the GUI builds the same), and library errors, which
+name the plan field they are about, are reported naming the option (:func:`options_named`). Bad input (pose spec, states, output folder, config) is
 rejected before any device is opened or any file is written; what needs the opened rig (the
 camera's exposure range, on ``--resume`` the same rig as the session's) is checked before
 any file is written. A session being written by another process is refused (its lock).
@@ -10,9 +12,10 @@ any file is written. A session being written by another process is refused (its 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import contextlib
 import pathlib
 import sys
+from typing import Iterator
 
 from polrig.errors import ConfigError
 
@@ -58,45 +61,59 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def build_plan(args: argparse.Namespace):
-    """The :class:`CapturePlan` the arguments ask for (defaults filled in)."""
-    from polrig.capture import DEFAULT_STATES_DEG, CapturePlan, parse_float_list, parse_pose_spec
+#: The option that sets each :class:`polrig.capture.CaptureRequest` field (library errors
+#: name the field, :class:`polrig.plan.PlanError`; the command line names its option).
+FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
+         "frames_per_state": "--frames", "exposures_us": "--exposure",
+         "dark_frames": "--dark-frames", "demosaic": "--demosaic",
+         "mirror_average": "--mirror-average", "calibration": "--calibration", "out": "--out"}
+#: What the command line adds to an error about a field.
+HINTS = {"out": "--resume"}
 
-    if not args.poses:
+
+@contextlib.contextmanager
+def options_named(flags: dict[str, str] = FLAGS) -> Iterator[None]:
+    """Re-raise a :class:`polrig.plan.PlanError` as a one-line :class:`ConfigError` naming
+    the option of its field: ``--states 0,5,10: the states ...``."""
+    from polrig.plan import PlanError
+
+    try:
+        yield
+    except PlanError as exc:
+        flag = flags.get(exc.field)
+        if flag is None:
+            raise
+        text = (f"{flag} {exc.subject}: {exc.detail}" if exc.subject is not None
+                else f"{flag}: {exc.detail}")
+        if exc.field in HINTS:
+            text += f" ({HINTS[exc.field]})"
+        raise ConfigError(text) from None
+
+
+def build_request(args: argparse.Namespace):
+    """The :class:`polrig.capture.CaptureRequest` the options ask for (``None`` where an
+    option is not given)."""
+    from polrig.capture import CaptureRequest
+    from polrig.plan import parse_float_list, parse_pose_spec
+
+    if not args.resume and not args.poses:
         raise ConfigError("--poses is required (e.g. --poses 0:360:90)")
-    return CapturePlan(
-        poses_deg=parse_pose_spec(args.poses),
-        mode=args.mode or "reference",
-        states_deg=(parse_float_list(args.states, "--states") if args.states
-                    else DEFAULT_STATES_DEG),
-        frames_per_state=1 if args.frames is None else args.frames,
-        exposures_us=(parse_float_list(args.exposure, "--exposure", positive=True)
-                      if args.exposure else ()),
-        dark_frames=0 if args.dark_frames is None else args.dark_frames,
-        demosaic=args.demosaic or "superpixel",
-        mirror_average=bool(args.mirror_average))
-
-
-def check_resume_args(args: argparse.Namespace, stored) -> None:
-    """On ``--resume`` the plan comes from the manifest; options that contradict it are
-    refused (a resumed session must be the same session)."""
-    from polrig.capture import parse_float_list, parse_pose_spec
-
-    given = {
-        "poses_deg": parse_pose_spec(args.poses) if args.poses else None,
-        "mode": args.mode,
-        "states_deg": parse_float_list(args.states, "--states") if args.states else None,
-        "frames_per_state": args.frames,
-        "exposures_us": (parse_float_list(args.exposure, "--exposure", positive=True)
-                         if args.exposure else None),
-        "dark_frames": args.dark_frames,
-        "demosaic": args.demosaic,
-        "mirror_average": args.mirror_average,
-    }
-    for key, value in given.items():
-        if value is not None and value != getattr(stored, key):
-            raise ConfigError(f"--resume: the session was planned with {key}="
-                              f"{getattr(stored, key)!r}, the command line asks for {value!r}")
+    with options_named():
+        return CaptureRequest(
+            out=pathlib.Path(args.out),
+            poses_deg=parse_pose_spec(args.poses) if args.poses else None,
+            mode=args.mode,
+            states_deg=(parse_float_list(args.states, "--states", field="states_deg")
+                        if args.states else None),
+            frames_per_state=args.frames,
+            exposures_us=(parse_float_list(args.exposure, "--exposure", positive=True,
+                                           field="exposures_us") if args.exposure else None),
+            dark_frames=args.dark_frames,
+            demosaic=args.demosaic,
+            mirror_average=args.mirror_average,
+            config=pathlib.Path(args.config) if args.config else None,
+            calibration=pathlib.Path(args.calibration) if args.calibration else None,
+            resume=bool(args.resume))
 
 
 def command_line(args: argparse.Namespace, command: str = "capture") -> list[str]:
@@ -114,85 +131,21 @@ def command_line(args: argparse.Namespace, command: str = "capture") -> list[str
     return out
 
 
-@dataclasses.dataclass
-class PreparedCapture:
-    """A validated capture request: nothing opened, nothing written yet."""
+def prepare_capture(args: argparse.Namespace):
+    """:func:`polrig.capture.prepare_capture` of the options' request, errors naming the
+    options (nothing opened, nothing written)."""
+    from polrig import capture
 
-    out: pathlib.Path
-    plan: object  # polrig.capture.CapturePlan
-    calibration: object  # polrig.processing.Calibration
-    resume_session: object | None  # the polrig.session.Session to continue, or None
-
-
-def prepare_capture(args: argparse.Namespace) -> PreparedCapture:
-    """Validate a capture request before any device opens or any file is written.
-
-    ``args`` holds the ``polrig capture`` options (the GUI's capture panel builds the same
-    namespace). Raises ``FileNotFoundError``/``FileExistsError``/:class:`ConfigError` with
-    one-line messages naming the option.
-    """
-    from polrig import capture, processing
-    from polrig.session import Session, folder_is_empty
-
-    out = pathlib.Path(args.out)
-    if getattr(args, "config", None) and not pathlib.Path(args.config).is_file():
-        raise FileNotFoundError(f"--config {args.config}: no such file")
-    session = None
-    if args.resume:
-        if not (out / "session.json").is_file():
-            raise FileNotFoundError(f"--resume: {out} holds no session to resume")
-        # opened for writing: its lock first (SessionBusy if another process writes it), so
-        # the manifest read here is the one this run continues
-        session = Session.open(out, lock=True)
-        try:
-            plan = capture.CapturePlan.from_json(session.plan)
-            check_resume_args(args, plan)
-            calibration = processing.load_calibration(args.calibration, session=session)
-            processing.check_plan(plan, calibration)  # states conditioning, single-shot model
-        except BaseException:
-            session.unlock()
-            raise
-    else:
-        plan = build_plan(args)
-        if out.exists() and not out.is_dir():
-            raise FileExistsError(f"--out {out}: exists and is not a folder")
-        if not folder_is_empty(out):
-            raise FileExistsError(f"--out {out}: folder is not empty; pass --resume to continue "
-                                  f"the session in it, or choose a new folder")
-        calibration = processing.load_calibration(args.calibration)
-        processing.check_plan(plan, calibration)  # states conditioning, single-shot model
-    return PreparedCapture(out, plan, calibration, session)
+    with options_named():
+        return capture.prepare_capture(build_request(args))
 
 
-def open_session(prepared: PreparedCapture, rig, command_line: list[str]):
-    """The session to run on ``rig``: the resumed one (after checking that ``rig`` is the
-    rig it was captured on and the free disk space for what is left) or a new one created in
-    ``prepared.out``. The calibration set must have been calibrated on this camera (same
-    sensor and layout, the readout inside the calibrated area,
-    :func:`polrig.processing.check_calibration_fits_rig`) and the plan is checked against the
-    rig's camera (:func:`polrig.capture.check_rig_for_plan`), both before any device moves; a
-    refusal writes nothing. The session returned holds its lock until
-    :func:`polrig.capture.run_session` ends."""
-    from polrig import capture, processing
+def open_session(prepared, rig, command_line: list[str]):
+    """:func:`polrig.capture.open_session`, errors naming the options."""
+    from polrig import capture
 
-    if prepared.resume_session is not None:
-        session = prepared.resume_session
-        try:
-            session.lock()  # no-op when prepare_capture took it
-            capture.check_resume_rig(session, rig)
-            processing.check_calibration_fits_rig(prepared.calibration, rig)
-            capture.check_rig_for_plan(rig, prepared.plan, resume=True)
-            capture.check_resume_space(session, rig, len(session.next_pending()))
-        except BaseException:
-            session.unlock()
-            raise
-        session.log("resume command", command_line=command_line)
-        return session
-    processing.check_calibration_fits_rig(prepared.calibration, rig)
-    capture.check_rig_for_plan(rig, prepared.plan)
-    return capture.create_session(prepared.out, rig, prepared.plan,
-                                  calibration_id=prepared.calibration.id,
-                                  command_line=command_line)
+    with options_named():
+        return capture.open_session(prepared, rig, command_line)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -206,15 +159,15 @@ def run(args: argparse.Namespace) -> int:
     with open_rig(args.config) as rig:
         session = open_session(prepared, rig, command_line(args))
         try:
-            processor = processing.make_processor(plan, calibration,
-                                                  processing.session_sensor_model(session))
+            with options_named():
+                processor = processing.make_processor(plan, calibration,
+                                                      processing.session_sensor_model(session))
         except BaseException:
             session.unlock()
             raise
         bar = _ProgressPrinter(enabled=not args.no_progress)
         try:
-            result = capture.run_session(rig, session, processor=processor,
-                                         progress=bar)
+            result = capture.run_session(rig, session, processor=processor, progress=bar)
         except Exception as exc:
             # run_session handles device faults and a full disk itself; anything else raised
             # once the session exists (another file-system error, a processing error) leaves
@@ -245,15 +198,18 @@ class _ProgressPrinter:
         if self.bar is None and self.enabled and ev.total:
             self.bar = tqdm(total=ev.total, unit="frame", file=sys.stderr, dynamic_ncols=True,
                             desc="capture")
+        if self.bar is not None and ev.hardware_s:
+            self.bar.set_postfix_str(f"pose {ev.pose_deg:g} deg, hardware time left "
+                                     f"{ev.hardware_left_s:.0f} s of {ev.hardware_s:.0f} s",
+                                     refresh=False)
         if ev.kind == "frame" and self.bar is not None:
             self.bar.update(ev.step - self.bar.n)
-            self.bar.set_postfix_str(f"pose {ev.pose_deg:g} deg", refresh=False)
         elif ev.kind == "retry":
             self._write(f"retry: {ev.message}", sys.stderr)
         elif ev.kind == "capture-done":
             line = f"capture {ev.capture_index + 1}/{ev.n_captures} pose {ev.pose_deg:g} deg: done"
             if ev.score:
-                from polrig.processing import format_score
+                from polrig.scoring import format_score
 
                 line += " | " + format_score(ev.score)
             self._write(line, sys.stdout)

@@ -76,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
-    from polrig import processing
+    from polrig import calibrations
     from polrig.commands._units import adc_factor
+    from polrig.commands.capture import options_named
     from polrig.preview import (BACKGROUND, DEFAULT_MIN_SNR, SATURATED, mask_summary, s0_snr,
                                 write_result_previews)
     from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
@@ -97,15 +98,16 @@ def run(args: argparse.Namespace) -> int:
     if not black < saturation:
         source = "--black-level" if args.black_level is not None else "the sidecar's black level"
         raise ConfigError(f"{source} {black:g} DN is not below the saturation level {saturation:g} DN")
-    calibration = processing.load_calibration(args.calibration)
-    # a set from another sensor (layout) or one that does not cover this frame: refused
-    h, w = frame.raw.shape[-2:]
-    processing.check_calibration_fits(calibration, layout=layout,
-                                      readout=(w, h, *frame.meta.offset_xy),
-                                      what=f"{args.raw}", phase=False)
+    with options_named():
+        calibration = calibrations.load_calibration(args.calibration)
+        # a set from another sensor (layout) or one that does not cover this frame: refused
+        h, w = frame.raw.shape[-2:]
+        calibrations.check_calibration_fits(calibration, layout=layout,
+                                            readout=(w, h, *frame.meta.offset_xy),
+                                            what=f"{args.raw}", phase=False)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
-    geometry = processing.single_shot_geometry(calibration, load_rig_config(args.config))
-    kwargs = processing.single_shot_kwargs(geometry, frame, args.demosaic)
+    geometry = calibrations.single_shot_geometry(calibration, load_rig_config(args.config))
+    kwargs = calibrations.single_shot_kwargs(geometry, frame, args.demosaic)
     if args.stage_zero_axis is not None:
         kwargs["stage_zero_axis"] = args.stage_zero_axis
     model = SingleShotModel.load(args.weights)

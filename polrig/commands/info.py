@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from polrig.processing import format_score
+    from polrig.scoring import format_score
     from polrig.session import Session
 
     s = Session.open(args.session)

@@ -65,7 +65,9 @@ def _command_line(args: argparse.Namespace, paths: list[str]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from polrig import cluster, processing
+    from polrig.commands.capture import options_named
     from polrig.errors import ConfigError
+    from polrig.scoring import format_score
 
     paths = list(args.sessions)
     if args.from_list:
@@ -97,16 +99,18 @@ def run(args: argparse.Namespace) -> int:
         where = f"{batch.session.root.name}: " if many else ""
         line = f"{where}capture {index + 1} pose {cap['pose_deg']:g} deg: "
         if reason is None:
-            line += "done" + (" | " + processing.format_score(score) if score else "")
+            line += "done" + (" | " + format_score(score) if score else "")
         else:
             line += f"failed ({reason})"
         tqdm.write(line, file=sys.stdout)
 
     try:
-        batches = cluster.reconstruct(
-            paths, runner, mode=args.mode, demosaic=args.demosaic,
-            mirror_average=args.mirror_average, calibration_path=args.calibration,
-            command_line=_command_line(args, paths), on_start=on_start, on_capture=on_capture)
+        with options_named():  # a plan error names its option (--mode, --mirror-average...)
+            batches = cluster.reconstruct(
+                paths, runner, mode=args.mode, demosaic=args.demosaic,
+                mirror_average=args.mirror_average, calibration_path=args.calibration,
+                command_line=_command_line(args, paths), on_start=on_start,
+                on_capture=on_capture)
     except cluster.BatchIncomplete as exc:
         _close(bar, runner)
         if len(paths) == 1:  # one session: the serial command's own one-line error

@@ -13,9 +13,11 @@ Targets: on the simulated rig the procedure's ``mount(target, **fixture)`` swaps
 target (:func:`sim.targets.mount`, as ``polrig calibrate`` does); on hardware the panel asks the
 operator to mount it and waits for "Target in place" (the CLI waits for Enter).
 
-Cancel stops the step at its next device call, log line or target mount (the worker hands the
-procedures a rig whose device calls check for it first, :class:`CancellableRig`, and raises
-:class:`CalibrationCancelled` from its callbacks); nothing new is saved and the panel reports
+The procedures run through the same executor as a capture (:func:`calibration.runner.run_steps`
+drives the rig through :class:`polrig.engine.GuardedRig`: the capture's fault policy, retries
+logged). Cancel stops the step at its next grab or move (the worker's cancel event is the
+executor's stop request, :class:`polrig.engine.CaptureControl`), log line or target mount
+(:class:`CalibrationCancelled` from its callbacks); nothing new is saved and the panel reports
 "cancelled". A device call already running (a turntable move, a grab) ends first.
 """
 
@@ -31,8 +33,9 @@ from PySide6.QtWidgets import (QFormLayout, QHBoxLayout, QLabel, QLineEdit, QLis
                                QListWidgetItem, QPlainTextEdit, QPushButton, QSplitter,
                                QVBoxLayout, QWidget)
 
+from polrig.engine import CaptureControl, StopRequested
 from polrig.errors import PolrigError
-from polrig.gui.rigaccess import DEVICE_KINDS, RigLocks
+from polrig.gui.rigaccess import RigLocks
 from polrig.gui.widgets import ImageView
 
 STEP_LABELS = {"intrinsics": "Camera intrinsics (ChArUco board)",
@@ -54,50 +57,9 @@ class CalibrationCancelled(PolrigError):
     """The operator cancelled the calibration step."""
 
 
-class _CancellableDevice:
-    """A device whose every method call first calls ``check`` (which raises
-    :class:`CalibrationCancelled` once the step is cancelled); attributes pass through."""
-
-    def __init__(self, device, check) -> None:
-        object.__setattr__(self, "_device", device)
-        object.__setattr__(self, "_check", check)
-
-    def __getattr__(self, name: str):
-        attr = getattr(self._device, name)
-        if not callable(attr):
-            return attr
-        check = self._check
-
-        def call(*args, **kwargs):
-            check()
-            return attr(*args, **kwargs)
-        return call
-
-    def __setattr__(self, name: str, value) -> None:
-        setattr(self._device, name, value)
-
-
-class CancellableRig:
-    """``rig`` as the calibration procedures see it from the GUI: its devices
-    (``camera``, ``stage``, ``turntable``, ``light``, ``devices``) check ``check`` before
-    each call; everything else (``sim``, ``truth``, ``config``) is the rig's own."""
-
-    def __init__(self, rig, check) -> None:
-        self._rig = rig
-        self._check = check
-
-    def __getattr__(self, name: str):
-        attr = getattr(self._rig, name)
-        if name in DEVICE_KINDS:
-            return _CancellableDevice(attr, self._check)
-        if name == "devices":
-            return {k: _CancellableDevice(d, self._check) for k, d in attr.items()}
-        return attr
-
-
 def simulated_mount(rig):
     """The simulated rig's target swap when every device is simulated (else ``None``)."""
-    if getattr(rig, "sim", None) is None or getattr(rig, "truth", None) is None:
+    if rig.sim is None or rig.truth is None:
         return None
     from sim import targets
 
@@ -157,8 +119,8 @@ class CalibrationWorker(QThread):
                     check()
                     (sim_mount or self._ask_mount)(target, **fixture)
 
-                runner.run_steps(steps, CancellableRig(self.rig, check), mount, self.calset,
-                                 extras=self.extras, log=self._log)
+                runner.run_steps(steps, self.rig, mount, self.calset, extras=self.extras,
+                                 log=self._log, control=CaptureControl(stop=self.cancelled))
                 check()
                 errors = None
                 if sim_mount is not None:
@@ -168,7 +130,7 @@ class CalibrationWorker(QThread):
             check()  # the last moment a cancel keeps the folder as it was
             self.calset.save(self.folder)
             report = write_report(self.folder, self.calset, self.extras, errors)
-        except CalibrationCancelled:
+        except (CalibrationCancelled, StopRequested):
             self.step_cancelled.emit(self.step)
             return
         except Exception as exc:  # noqa: BLE001 - calibration errors are typed; report all

@@ -1,10 +1,12 @@
 """Capture panel: the options of ``polrig capture``, start/pause/stop/resume, progress with
 ETA, thumbnails of finished poses and (simulated rig) the score against truth.
 
-:class:`CaptureWorker` runs exactly what ``polrig capture`` runs (:mod:`polrig.commands.capture`
-builds the plan, :mod:`polrig.processing` the calibration and processor,
-:func:`polrig.capture.run_session` acquires and processes) in a ``QThread`` holding every device
-lock. Pause and stop go through :class:`polrig.capture.CaptureControl`; a stop (or closing the
+The form becomes a typed :class:`polrig.capture.CaptureRequest` (as ``polrig capture``'s
+options do) and :class:`CaptureWorker` runs exactly what ``polrig capture`` runs
+(:func:`polrig.capture.prepare_capture` validates it, :mod:`polrig.processing` builds the
+processor, :func:`polrig.capture.run_session` acquires and processes) in a ``QThread``
+holding every device lock. The ETA comes from the plan's hardware time from the first
+event, scaled by the observed pace once frames arrive. Pause and stop go through :class:`polrig.capture.CaptureControl`; a stop (or closing the
 window) leaves the session ``interrupted`` and resumable. Once the session exists, every way a
 run can end is reported like ``polrig capture`` reports it: complete, or stopped with the
 reason (a device fault, a full disk, any other file-system error, a processing error:
@@ -15,8 +17,6 @@ options, devices not connected, devices busy) is "not started".
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import pathlib
 import time
 from typing import Any
@@ -28,38 +28,12 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFileDialog, QFormLayout, Q
                                QLabel, QLineEdit, QListWidget, QListWidgetItem, QProgressBar,
                                QPushButton, QSpinBox, QVBoxLayout, QWidget)
 
-from polrig.capture import CaptureControl, Progress
+from polrig.capture import CaptureControl, CaptureRequest, Progress
 from polrig.errors import PolrigError
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import RigLocks
 
 THUMB_PX = 128
-
-
-@dataclasses.dataclass
-class CaptureRequest:
-    """The ``polrig capture`` options as the panel holds them (strings as typed)."""
-
-    out: str
-    poses: str = "0:360:90"
-    mode: str = "reference"
-    states: str = ""
-    frames: int = 1
-    exposure: str = ""
-    dark_frames: int = 0
-    demosaic: str = "superpixel"
-    mirror_average: bool = False
-    calibration: str = ""
-    resume: bool = False
-
-    def namespace(self) -> argparse.Namespace:
-        """The argparse namespace ``polrig capture`` would build from the same options."""
-        return argparse.Namespace(
-            poses=self.poses or None, mode=self.mode or None, states=self.states or None,
-            frames=self.frames, exposure=self.exposure or None, dark_frames=self.dark_frames,
-            demosaic=self.demosaic or None, mirror_average=self.mirror_average or None,
-            calibration=self.calibration or None,
-            out=self.out, resume=self.resume, config=None, no_progress=True)
 
 
 def thumbnail_rgb(path: pathlib.Path, size: int = THUMB_PX) -> np.ndarray:
@@ -110,22 +84,15 @@ class CaptureWorker(QThread):
 
     def _run(self) -> None:
         from polrig import capture, processing
-        from polrig.commands.capture import open_session, prepare_capture
 
-        args = self.request.namespace()
-        if not args.out:
-            raise ValueError("choose an output folder for the session")
-        if args.resume:  # as `polrig capture --out DIR --resume`: the plan is the session's
-            args.poses = args.mode = args.states = args.exposure = args.demosaic = args.mirror_average = None
-            args.frames = args.dark_frames = None
-        prepared = prepare_capture(args)  # the CLI's validation, before any device moves
+        prepared = capture.prepare_capture(self.request)  # before any device moves
         try:
             with self.locks.hold(timeout_s=10.0, who="capture"):
                 closed = [k for k, d in self.rig.devices.items() if not d.is_open]
                 if closed:
                     raise PolrigError(f"not connected: {', '.join(closed)}; connect the "
                                       f"devices (Devices tab) before capturing")
-                session = open_session(prepared, self.rig, ["polrig", "gui"])
+                session = capture.open_session(prepared, self.rig, ["polrig", "gui"])
                 self.session = session
                 self.session_ready.emit(str(prepared.out))
                 try:
@@ -246,14 +213,31 @@ class CapturePanel(QWidget):
 
     # -- options
     def request(self, resume: bool = False) -> CaptureRequest:
-        return CaptureRequest(out=self.out.text().strip(), poses=self.poses.text().strip(),
-                              mode=self.mode.currentText(), states=self.states.text().strip(),
-                              frames=self.frames.value(), exposure=self.exposure.text().strip(),
-                              dark_frames=self.dark_frames.value(),
-                              demosaic=self.demosaic.currentText(),
-                              mirror_average=(self.mode.currentText() == "single-shot"
-                                              and self.mirror_average.isChecked()),
-                              calibration=self.calibration.text().strip(), resume=resume)
+        """The form as a typed request (:class:`polrig.capture.CaptureRequest`); on
+        ``resume`` only the folder and calibration: the plan is the session's. Raises
+        :class:`polrig.plan.PlanError` / ``ValueError`` (one line) for a field that does not
+        parse."""
+        from polrig.plan import parse_float_list, parse_pose_spec
+
+        out = self.out.text().strip()
+        if not out:
+            raise ValueError("choose an output folder for the session")
+        calibration = self.calibration.text().strip()
+        base = dict(out=pathlib.Path(out), resume=resume,
+                    calibration=pathlib.Path(calibration) if calibration else None)
+        if resume:
+            return CaptureRequest(**base)
+        states, exposure = self.states.text().strip(), self.exposure.text().strip()
+        mode = self.mode.currentText()
+        return CaptureRequest(
+            **base, poses_deg=parse_pose_spec(self.poses.text().strip()), mode=mode,
+            states_deg=(parse_float_list(states, "polarizer states", field="states_deg")
+                        if states else None),
+            frames_per_state=self.frames.value(),
+            exposures_us=(parse_float_list(exposure, "exposures", positive=True,
+                                           field="exposures_us") if exposure else None),
+            dark_frames=self.dark_frames.value(), demosaic=self.demosaic.currentText(),
+            mirror_average=mode == "single-shot" and self.mirror_average.isChecked())
 
     def _browse(self) -> None:
         path = QFileDialog.getExistingDirectory(self, "Session folder", self.out.text())
@@ -266,10 +250,18 @@ class CapturePanel(QWidget):
         return self._active
 
     def start(self) -> None:
-        self._launch(self.request(resume=False))
+        self._launch_form(resume=False)
 
     def resume(self) -> None:
-        self._launch(self.request(resume=True))
+        self._launch_form(resume=True)
+
+    def _launch_form(self, resume: bool) -> None:
+        try:
+            req = self.request(resume=resume)
+        except (PolrigError, ValueError) as exc:  # a field that does not parse: not started
+            self._failed(str(exc))
+            return
+        self._launch(req)
 
     def _launch(self, req: CaptureRequest) -> None:
         if self.is_running:
@@ -336,14 +328,15 @@ class CapturePanel(QWidget):
             self.progress.setValue(ev.step)
         if ev.kind == "capture-start" and not self._step0:
             self._t_start, self._step0 = time.monotonic(), max(ev.step, 0)
+        if ev.kind == "capture-start" and ev.hardware_s:  # the plan's time, from the first event
+            self.eta.setText(f"capture {ev.capture_index + 1}/{ev.n_captures}, pose "
+                             f"{ev.pose_deg:g} deg, ETA {_fmt_s(self._eta_s(ev))}")
         control = self.worker.control if self.worker is not None else None
         if ev.kind == "frame" and ev.total and control is not None and (
                 control.pause.is_set() or control.stop.is_set()):
             pass  # a frame that was on its way: "paused" / "stopping..." stays on the label
         elif ev.kind == "frame" and ev.total:
-            done = ev.step - self._step0
-            el = time.monotonic() - self._t_start
-            eta = el / done * (ev.total - ev.step) if done > 0 else float("nan")
+            eta = self._eta_s(ev)
             self.eta.setText(f"capture {ev.capture_index + 1}/{ev.n_captures}, pose "
                              f"{ev.pose_deg:g} deg, frame {ev.step}/{ev.total}, ETA "
                              f"{_fmt_s(eta)}")
@@ -355,8 +348,19 @@ class CapturePanel(QWidget):
         elif ev.kind == "capture-done":
             self._capture_done(ev)
 
+    def _eta_s(self, ev: Progress) -> float:
+        """Remaining time: the plan's remaining hardware time (known from the first event),
+        scaled by the pace observed so far (processing, a slow host) once frames arrive."""
+        done_hw = ev.hardware_s - ev.hardware_left_s
+        el = time.monotonic() - self._t_start
+        if ev.hardware_s > 0:
+            pace = el / done_hw if done_hw > 0 and el > 0 else 1.0
+            return ev.hardware_left_s * max(pace, 1.0)
+        done = ev.step - self._step0
+        return el / done * (ev.total - ev.step) if done > 0 else float("nan")
+
     def _capture_done(self, ev: Progress) -> None:
-        from polrig.processing import format_score
+        from polrig.scoring import format_score
 
         text = f"pose {ev.pose_deg:g} deg"
         if ev.score:

@@ -1,0 +1,242 @@
+"""The acquisition engine (polrig.engine) on the simulated rig: its fault policy, tested once
+here and used by captures and calibration procedures alike; axes moving together; free-run
+settle frames; pause/stop at checkpoints; the plan's hardware time against the simulated
+rig's own clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from polrig import hal, processing
+from polrig.capture import CapturePlan, create_session, run_session
+from polrig.engine import (CaptureControl, Executor, FaultPolicy, FrameGrabbed, GuardedRig,
+                           Retried, StopRequested)
+from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.plan import Checkpoint, FrameTag, Grab, Move, SetExposure, SetTrigger
+from polrig.rig import open_rig
+from sim.devices import SimCamera
+
+SIM = {"size": (32, 32), "clock_speed": math.inf, "seed": 3}
+EXPECTED = {"fault": DeviceFault, "protocol": ProtocolError, "timeout": DeviceTimeout}
+
+
+def events_of(executor: Executor) -> list:
+    seen: list = []
+    executor.subscribe(seen.append)
+    return seen
+
+
+def grab_step(i: int = 0) -> Grab:
+    return Grab(FrameTag(0, 0.0, "raw", 0, 20000.0, i, 0, 0.0))
+
+
+# -- the fault policy ---------------------------------------------------------------------------
+def test_a_timed_out_grab_is_retried_then_given_up():
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig, policy=FaultPolicy(grab_retries=2))
+        seen = events_of(ex)
+        rig.sim.inject_fault("camera", "timeout", after_calls=0)
+        ex.execute(grab_step())
+        retries = [e for e in seen if isinstance(e, Retried)]
+        assert len(retries) == 1 and "camera grab timed out" in retries[0].message
+        assert [type(e) for e in seen] == [Retried, FrameGrabbed]
+        for k in range(3):  # three timeouts in a row: retries exhausted
+            rig.sim.inject_fault("camera", "timeout", after_calls=k)
+        with pytest.raises(DeviceTimeout, match="timed out 3 times"):
+            ex.execute(grab_step(1))
+
+
+@pytest.mark.parametrize("kind", ["fault", "protocol", "timeout"])
+def test_a_failed_move_is_retried_once_after_homing(kind):
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig)
+        seen = events_of(ex)
+        rig.sim.inject_fault("stage", kind, after_calls=1)  # position, then move_to
+        ex.execute(Move((("stage", 60.0),)))
+        assert rig.stage.position_deg() == pytest.approx(60.0)
+        assert any("re-homing and retrying once" in e.message for e in seen
+                   if isinstance(e, Retried))
+        # a second failure (the retried move, after position, move_to and home) is raised
+        rig.sim.inject_fault("stage", kind, after_calls=1)
+        rig.sim.inject_fault("stage", kind, after_calls=3)
+        with pytest.raises(EXPECTED[kind]):
+            ex.execute(Move((("stage", 10.0),)))
+
+
+def test_a_disconnection_is_never_retried():
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig)
+        seen = events_of(ex)
+        rig.sim.inject_fault("turntable", "disconnect", after_calls=1)
+        with pytest.raises(DeviceDisconnected):
+            ex.execute(Move((("turntable", 30.0), ("stage", 45.0))))
+        assert not [e for e in seen if isinstance(e, Retried)]
+
+
+def test_axes_of_one_move_turn_together():
+    """Turntable 0 -> 90 deg (10 deg/s, 20 deg/s^2) and stage 0 -> 135 deg (20 deg/s,
+    100 deg/s^2) in one Move take as long as the slower of the two, not their sum (the
+    simulated clock measures it)."""
+    with open_rig(None, **SIM) as rig:
+        clock = rig.sim.world.clock
+        ex = Executor(rig)
+        t_turn = rig.turntable.move_time_s(0.0, 90.0)
+        t_stage = rig.stage.move_time_s(0.0, 135.0)
+        t0 = clock.now()
+        ex.execute(Move((("turntable", 90.0), ("stage", 135.0))))
+        assert clock.now() - t0 == pytest.approx(max(t_turn, t_stage), rel=1e-6)
+        assert t_turn + t_stage > 1.5 * max(t_turn, t_stage)
+        assert rig.turntable.position_deg() == pytest.approx(90.0)
+        assert rig.stage.position_deg() == pytest.approx(135.0)
+
+
+class FreeRunCamera(SimCamera):
+    """The simulated camera declaring free run only, with two frames to settle (as a GenICam
+    camera without TriggerMode does): what the executor must honour."""
+
+    @property
+    def capabilities(self) -> hal.CameraCapabilities:
+        return hal.CameraCapabilities(("free",), self.EXPOSURE_RANGE_US, 13000.0, 2)
+
+
+def test_free_run_discards_the_settle_frames_after_a_move_or_a_setting():
+    with open_rig(None, **SIM) as rig:
+        rig.camera = FreeRunCamera(rig.sim.world, rig.sim.faults)
+        rig.camera.open()
+        ex = Executor(rig)
+        kept = []
+        ex.subscribe(lambda e: kept.append(e.frame.meta.frame_id)
+                     if isinstance(e, FrameGrabbed) else None)
+        ex.run([SetTrigger(None), Move((("stage", 45.0),)), grab_step(0), grab_step(1),
+                SetExposure(20000.0),  # the exposure it has: no change, nothing to settle
+                grab_step(2), SetExposure(30000.0), grab_step(3)])
+        assert ex.trigger == "free" and rig.camera.trigger == "free"
+        # 2 discarded + kept, kept, kept, 2 discarded + kept
+        assert kept == [3, 4, 5, 8]
+
+
+class NoExposureControl(FreeRunCamera):
+    """A free-running camera without exposure control (it reports NaN, as the GenICam
+    emulator's camera does)."""
+
+    @property
+    def exposure_us(self) -> float:
+        return float("nan")
+
+    def set_exposure_us(self, exposure_us: float) -> None:
+        raise AssertionError("a camera without exposure control is never asked to set it")
+
+
+def test_a_camera_without_exposure_control_is_never_asked_to_set_it():
+    from polrig.plan import session_steps, step_durations
+    from polrig.engine import hardware_model
+
+    with open_rig(None, **SIM) as rig:
+        rig.camera = NoExposureControl(rig.sim.world, rig.sim.faults)
+        rig.camera.open()
+        plan = CapturePlan((0.0,))
+        steps = session_steps(plan, [0], (rig.camera.exposure_us,))
+        d = step_durations(steps, hardware_model(rig))
+        assert all(math.isfinite(v) for v in d) and sum(d) > 0
+        kept = []
+        ex = Executor(rig)
+        ex.subscribe(lambda e: kept.append(e) if isinstance(e, FrameGrabbed) else None)
+        ex.run(steps)
+        assert len(kept) == 4
+
+
+def test_a_session_on_a_camera_without_exposure_control_reopens_and_has_results(tmp_path):
+    """Frame records store the unknown exposure as null (standard JSON; it used to be NaN,
+    which made the manifest invalid: polrig info and --resume refused the session), and
+    processing models no dark current for it instead of propagating NaN into every sigma."""
+    from polrig.exr import read_mueller_exr
+    from polrig.session import Session
+
+    plan = CapturePlan((0.0,))
+    cal = processing.Calibration("ideal")
+    valid = {}
+    for name, camera in (("plain", None), ("no-exposure", NoExposureControl)):
+        with open_rig(None, **SIM) as rig:
+            if camera is not None:
+                rig.camera = camera(rig.sim.world, rig.sim.faults)
+                rig.camera.open()
+            out = tmp_path / name
+            session = create_session(out, rig, plan, calibration_id=cal.id)
+            proc = processing.make_processor(plan, cal, processing.session_sensor_model(session))
+            assert run_session(rig, session, processor=proc).status == "complete"
+        s = Session.open(out)  # validates the manifest
+        assert s.verify() == []
+        m = read_mueller_exr(out / s.capture(0)["files"]["mueller"]["path"])
+        masks = [v for k, v in m.extra.items() if k.startswith("mask.")]
+        sigmas = [v for k, v in m.extra.items() if k.startswith("sigma.M00.")]
+        valid[name] = sum(int((mk == 0).sum()) for mk in masks)
+        assert all(np.isfinite(sg[mk == 0]).all() for mk, sg in zip(masks, sigmas))
+    assert {r["exposure_us"] for r in s.capture(0)["files"]["raw"]} == {None}
+    # the same pixels are valid as with a camera that reports its exposure (20 ms: its dark
+    # current is a fraction of an electron); NaN had invalidated every one of them
+    assert valid["no-exposure"] > 0 and abs(valid["no-exposure"] - valid["plain"]) <= 2
+
+
+def test_stop_and_pause_at_checkpoints():
+    with open_rig(None, **SIM) as rig:
+        control = CaptureControl()
+        ex = Executor(rig, control=control)
+        ex.execute(Checkpoint("capture-start", 0))
+        control.stop.set()
+        with pytest.raises(StopRequested):
+            ex.execute(Checkpoint("capture-start", 1))
+        with pytest.raises(StopRequested):  # and before a grab or a move
+            ex.execute(grab_step())
+
+
+# -- the same policy for calibration procedures -------------------------------------------------
+def test_calibration_procedures_get_the_capture_fault_policy():
+    """A procedure written against the HAL (calibration.procedures) drives a GuardedRig: a
+    camera timeout and a garbled stage reply are recovered exactly as in a capture, and each
+    retry is reported."""
+    from calibration import procedures
+
+    with open_rig(None, **SIM) as rig:
+        lines = []
+        guarded = GuardedRig.around(rig, on_retry=lines.append)
+        rig.sim.inject_fault("camera", "timeout", after_calls=0)
+        raw, meta = procedures.grab_mean(guarded.camera, 2)
+        assert raw.shape == (32, 32) and np.isfinite(raw).all()
+        rig.sim.inject_fault("stage", "protocol", after_calls=1)
+        procedures._move(guarded.stage, 90.0)  # the procedures' own move helper
+        assert rig.stage.position_deg() == pytest.approx(90.0)
+        assert any("camera grab timed out" in s for s in lines)
+        assert any("re-homing" in s for s in lines)
+        control = CaptureControl()
+        stopping = GuardedRig.around(rig, control=control)
+        control.stop.set()
+        with pytest.raises(StopRequested):
+            stopping.camera.grab()
+
+
+# -- hardware time ------------------------------------------------------------------------------
+def test_the_plans_hardware_time_is_the_simulated_rigs_clock(tmp_path):
+    """The hardware time computed before the run (motion with the axes' declared profiles,
+    exposure + readout per frame) is what the simulated rig's clock measures over the run,
+    is on the first progress event, and is recorded in the manifest."""
+    plan = CapturePlan((0.0, 90.0, 180.0), frames_per_state=2)
+    cal = processing.Calibration("ideal")
+    events = []
+    with open_rig(None, **SIM) as rig:
+        clock = rig.sim.world.clock
+        session = create_session(tmp_path / "s", rig, plan, calibration_id=cal.id)
+        t0 = clock.now()
+        result = run_session(rig, session, progress=events.append)
+        elapsed = clock.now() - t0
+    assert result.status == "complete"
+    first = events[0]
+    assert first.kind == "capture-start" and first.hardware_s > 0
+    assert first.hardware_s == pytest.approx(elapsed, rel=1e-3)
+    assert events[-1].hardware_left_s == pytest.approx(0.0, abs=1e-6)
+    assert session.manifest["hardware_time_s"] == pytest.approx(first.hardware_s, abs=1e-3)
+    # 24 frames of 20 ms + 13 ms; motion: stage 135 deg per pose (serpentine), two 90 deg turns
+    frames_s = 24 * 0.033
+    assert first.hardware_s > frames_s + 2 * 9.0
