@@ -228,6 +228,7 @@ def main(argv=None) -> int:
         job = cluster.jobs_of(cluster.SessionBatch(s, "rev1", {"mode": "reference",
                                                                "demosaic": "superpixel",
                                                                "mirror_average": False,
+                                                               "resolution": "superpixel",
                                                                "calibration_id": "nominal"},
                                                    [0]), None)[0]
         import cloudpickle

@@ -1,22 +1,30 @@
-"""Latency and throughput of the whole single-shot path on this machine.
+"""Latency, throughput and memory of the whole single-shot path on this machine, warm and cold.
 
 Path per frame: decode the raw file (16-bit PNG, :func:`polrig.rawio.read_raw`), demosaic,
-Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call, :func:`models.runtime.infer_frame`),
-Mueller EXR (:func:`models.runtime.write_result_exr`). Raw frames are IMX250MYR (colour)
-mosaics of a lit sphere rendered with the pBRDF (content matters little for speed, the mask does
-for nothing: every pixel runs through the networks); the full sensor is also timed as a mono
-IMX250MZR frame ("mono" rows), whose superpixel analyzer images are half the raw size per
-axis (1224x1024), four times the colour sensor's.
+Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call per pass,
+:func:`models.runtime.infer_frame`), Mueller EXR (:func:`models.runtime.write_result_exr`). Raw
+frames are IMX250MYR (colour) mosaics of a lit sphere (content matters little for speed); the
+full sensor is also timed as a mono IMX250MZR frame (superpixel analyzer images 1224x1024, four
+times the colour sensor's).
 
-Sizes are **raw sensor sizes** (256x256, 512x512, full 2448x2048). With the default
-``superpixel`` demosaic the colour sensor's native analyzer images are a quarter of that per
-axis (64x64, 128x128, 612x512); with ``bilinear`` the network runs at the raw size (the full
-sensor then exceeds the runtime's ``max_pixels`` and is resized, see :mod:`models.runtime`).
+Cases (issue 22's targets): 512x512 raw -> 512x512 Mueller (``--resolution full``: networks on
+the superpixel grid plus the measured detail, :mod:`models.full_resolution`; and the networks on
+the bilinear demosaic, the older route), 512x512 superpixel, full sensor colour superpixel, full
+sensor colour full resolution, full sensor mono superpixel.
 
-Usage: ``python benchmarks/bench_single_shot.py [--repeat N] [--threads T] [--out FILE]``
+Columns: **warm**: in process, the model loaded once, median of the runs after one warm-up
+(decode to EXR, and without the EXR write), with the geometry ``polrig infer`` uses without a
+calibration (the default rig's, whose stage zero axis is not the training rig's: two network
+passes, as on a real rig); **cold**: the one-shot CLI (``python -m polrig.cli
+infer ...`` in a fresh process, what a user types), wall-clock median, with the child's peak
+resident memory (``wait4`` rusage). Rounds interleave the cases (warm and cold alternate) so a
+busy machine's load spreads over all of them; the table says how many rounds. ``--anatomy``
+also times, in fresh processes, where a cold run's time goes: imports, session creation, the
+first and a second network pass at the full-sensor mono size. The device each ran on (the
+onnxruntime provider) is printed with the table.
+
+Usage: ``python benchmarks/bench_single_shot.py [--rounds N] [--threads T] [--out FILE] [--anatomy]``
 (or ``python -m benchmarks single_shot``; default ``--out benchmarks/results/single_shot_speed.md``).
-The superpixel sizes are also timed mirror-averaged (:mod:`models.mirror`: the networks run on
-the frame and on its mirror image), the slower, more accurate alternative.
 
 ``--rig-scenes sphere,box,...`` instead scores ``polrig capture --mode single-shot`` on the
 default simulated rig (256x256 raw, virtual clock, nominal calibration: the simulator's design
@@ -52,11 +60,20 @@ from polrig.hal import Frame, FrameMeta  # noqa: E402
 from polrig.layouts import get_layout  # noqa: E402
 from polrig.rawio import read_raw, write_raw  # noqa: E402
 
-SIZES = ((256, 256), (512, 512), (2048, 2448))
 COLOUR, MONO = "imx250myr", "imx250mzr"
-#: Mono sensor rows (the IMX250MZR of ``../shared/data/real-dofp``): its superpixel analyzer
-#: images are half the raw size per axis, four times the colour sensor's pixels.
-MONO_SIZES = ((2048, 2448),)
+FULL = (2048, 2448)
+#: (label, raw shape (H, W), layout, infer options): issue 22's cases.
+CASES = (
+    ("512x512 -> 512x512 (full resolution)", (512, 512), COLOUR, ["--resolution", "full"]),
+    ("512x512 -> 512x512 (networks on bilinear)", (512, 512), COLOUR, ["--demosaic", "bilinear"]),
+    ("512x512 superpixel (128x128)", (512, 512), COLOUR, []),
+    ("full sensor colour superpixel (612x512)", FULL, COLOUR, []),
+    ("full sensor colour full resolution (2448x2048)", FULL, COLOUR, ["--resolution", "full"]),
+    ("full sensor mono superpixel (1224x1024)", FULL, MONO, []),
+)
+#: Issue 22's CPU targets (ms, MB): warm/cold totals and the full-sensor peak.
+TARGETS_MS = {CASES[0][0]: 150, CASES[3][0]: 300, CASES[4][0]: 3000}
+PEAK_TARGET_MB = 2048
 
 
 def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator, layout: str = COLOUR) -> np.ndarray:
@@ -75,34 +92,202 @@ def synthetic_raw(shape: tuple[int, int], rng: np.random.Generator, layout: str 
     return np.clip(noisy, 0, 4095).astype(np.uint16)
 
 
-def bench(size, method, model, repeat, tmp: pathlib.Path, rng, mirror_average: bool = False,
-          layout: str = COLOUR) -> dict:
-    raw = synthetic_raw(size, rng, layout)
+def write_case_raw(shape, layout: str, path: pathlib.Path, rng) -> pathlib.Path:
+    raw = synthetic_raw(shape, rng, layout)
     meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
                      layout=layout, bit_depth=12, black_level_dn=64.0)
-    src = tmp / f"raw_{size[0]}x{size[1]}.png"
-    write_raw(src, Frame(raw=raw, meta=meta))
-    out = tmp / "out.exr"
-    rows = []
-    for i in range(repeat + 1):  # the first run warms up caches and the session
-        t0 = time.perf_counter()
-        frame = read_raw(src)
-        t1 = time.perf_counter()
-        mueller, aux = infer_frame(frame.raw, frame.meta.layout, 0.0, model, demosaic_method=method,
-                                   black_level_dn=frame.meta.black_level_dn, mirror_average=mirror_average)
-        t2 = time.perf_counter()
-        write_result_exr(out, mueller, aux)
-        t3 = time.perf_counter()
-        if i:
-            tt = aux["timings_s"]
-            rows.append({"decode": t1 - t0, "demosaic": tt["demosaic"], "stokes": tt["stokes"],
-                         "prepare": tt["prepare"], "network": tt["network"], "finish": tt["finish"],
-                         "exr": t3 - t2, "total": t3 - t0})
-    med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
-    label = f"{method}, mirror-averaged" if mirror_average else method
-    sensor = " mono" if layout == MONO else ""
-    return {"raw": f"{size[1]}x{size[0]}{sensor}", "method": label, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}",
-            **med, "fps": 1.0 / med["total"]}
+    write_raw(path, Frame(raw=raw, meta=meta))
+    return path
+
+
+def _options(argv: list[str]) -> dict:
+    """:func:`infer_frame` keyword arguments of ``polrig infer`` options (the ones CASES use)."""
+    opts = dict(zip(argv[::2], argv[1::2]))
+    resolution = opts.get("--resolution", "superpixel")
+    method = opts.get("--demosaic", "bilinear" if resolution == "full" else "superpixel")
+    return {"resolution": resolution, "demosaic_method": method}
+
+
+def warm_once(src: pathlib.Path, argv: list[str], model, out: pathlib.Path) -> dict:
+    """One in-process frame, decode to EXR, as ``polrig infer`` does it (seconds per step)."""
+    c0, t0 = _cpu_s(), time.perf_counter()
+    frame = read_raw(src)
+    t1 = time.perf_counter()
+    mueller, aux = infer_frame(frame.raw, frame.meta.layout, 0.0, model, black_level_dn=frame.meta.black_level_dn,
+                               saturation_dn=4095.0, **_options(argv), **_rig_geometry(frame, _options(argv)))
+    t2 = time.perf_counter()
+    write_result_exr(out, mueller, aux)
+    t3 = time.perf_counter()
+    return {**{k: v for k, v in aux["timings_s"].items()}, "decode": t1 - t0, "compute": t2 - t1, "exr": t3 - t2,
+            "total": t3 - t0, "cpu": _cpu_s() - c0, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}"}
+
+
+def _rig_geometry(frame, options: dict) -> dict:
+    """The geometry ``polrig infer`` uses without a calibration (the default rig's nominal
+    stage zero axis and intrinsics, :func:`polrig.processing.single_shot_geometry`), so warm and
+    cold runs do the same work: that axis differs from the training rig's, so the runtime makes
+    its two passes (the incident-frame refinement, :meth:`SingleShotModel.run_rig_frame`)."""
+    from polrig import processing
+    from polrig.rig import load_rig_config
+
+    geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
+    grid = "superpixel" if options["resolution"] == "full" else options["demosaic_method"]
+    return processing.single_shot_kwargs(geometry, frame, grid)
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + system, all threads) this process has used: on a machine shared with
+    other jobs the work done, which wall-clock time is not (on an idle machine a frame takes
+    between this over the threads used and this)."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+#: ``python -m polrig.cli ARGS`` as a one-shot process that reports its own peak resident memory
+#: (``VmHWM`` of its address space: a child's ``wait4`` maximum would include the benchmark
+#: process's own peak, which Linux carries through fork and exec).
+COLD = """
+import sys
+from polrig.cli import main
+try:
+    code = main(sys.argv[1:])
+finally:
+    hwm = next(line for line in open("/proc/self/status") if line.startswith("VmHWM"))
+    print("VMHWM_KB", hwm.split()[1], file=sys.stderr)
+sys.exit(code)
+"""
+
+
+def _child_env() -> dict:
+    """The environment of a one-shot run: this checkout first on the path, and bytecode caching
+    as an installed package has it (a development shell's PYTHONDONTWRITEBYTECODE would make
+    every cold start compile all of polrig again)."""
+    import os
+
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
+def cold_once(src: pathlib.Path, argv: list[str], out: pathlib.Path) -> dict:
+    """``polrig infer`` in a fresh process (the CLI's own ``main``, as ``python -m polrig.cli``
+    runs it): wall seconds and the process's peak resident memory."""
+    import subprocess
+
+    cmd = [sys.executable, "-c", COLD, "infer", str(src), "--state-deg", "0", "--saturation-dn", "4095",
+           "--out", str(out), *argv]
+    import resource
+
+    env = _child_env()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    if proc.returncode or not out.is_file():
+        raise RuntimeError(f"cold run failed: {' '.join(cmd[3:])}: {proc.stderr.strip()[-300:]}")
+    out.unlink()
+    kb = next(float(line.split()[1]) for line in proc.stderr.splitlines() if line.startswith("VMHWM_KB"))
+    return {"wall": wall, "cpu": cpu, "peak_mb": kb / 1024.0}
+
+
+ANATOMY = """
+import json, sys, time
+t0 = time.perf_counter()
+import numpy as np
+import onnxruntime
+t1 = time.perf_counter()
+import polrig.cli
+from models.runtime import SingleShotModel, view_directions
+t2 = time.perf_counter()
+m = SingleShotModel.load(threads=THREADS)
+t3 = time.perf_counter()
+h, w = 1024, 1224
+rng = np.random.default_rng(0)
+feed = (rng.random((1, 3, 4, h, w), dtype=np.float32), np.ones((1, 1, h, w), np.float32),
+        np.array([[0.5, 0.5, 0.0]], np.float32), view_directions((h, w))[None], np.array([[0.0, -1.0, 0.0]], np.float32))
+runs = []
+for _ in range(3):
+    t = time.perf_counter(); m.run_normalised(*feed); runs.append(time.perf_counter() - t)
+print(json.dumps({"import numpy+onnxruntime": t1 - t0, "import polrig.cli+models.runtime": t2 - t1,
+                  "session creation": t3 - t2, "first pass": runs[0], "second pass": runs[1], "third pass": runs[2],
+                  "peak_mb": float(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1]) / 1024}))
+"""
+
+
+def anatomy(rounds: int, threads: int | None) -> dict[str, float]:
+    """Medians over ``rounds`` fresh processes of where a cold run's time goes (ANATOMY)."""
+    import json
+    import subprocess
+
+    env = _child_env()
+    rows = [json.loads(subprocess.run([sys.executable, "-c", ANATOMY.replace("THREADS", repr(threads))],
+                                      capture_output=True, text=True, check=True, env=env, cwd=REPO).stdout)
+            for _ in range(rounds)]
+    return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+
+
+def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> tuple[str, dict]:
+    """The cases table (module docstring) as Markdown, and the measurements it was made from."""
+    import os
+
+    load_start = os.getloadavg()[0]
+    model = SingleShotModel.load(weights, threads=threads, spinning=spinning)
+    rng = np.random.default_rng(0)
+    warm: dict[str, list[dict]] = {c[0]: [] for c in CASES}
+    cold: dict[str, list[dict]] = {c[0]: [] for c in CASES}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = pathlib.Path(d)
+        raws = {}
+        for label, shape, layout, argv in CASES:
+            key = (shape, layout)
+            if key not in raws:
+                raws[key] = write_case_raw(shape, layout, tmp / f"raw_{layout}_{shape[1]}x{shape[0]}.png", rng)
+            warm_once(raws[key], argv, model, tmp / "warm.exr")  # warm-up: sessions, plans, caches
+        for r in range(rounds):
+            for label, shape, layout, argv in CASES:
+                warm[label].append(warm_once(raws[(shape, layout)], argv, model, tmp / "warm.exr"))
+                cold[label].append(cold_once(raws[(shape, layout)], argv, tmp / "cold.exr"))
+                print(f"round {r + 1}/{rounds} {label}: warm {1e3 * warm[label][-1]['total']:.0f} ms, "
+                      f"cold {1e3 * cold[label][-1]['wall']:.0f} ms, {cold[label][-1]['peak_mb']:.0f} MB", flush=True)
+        anat = anatomy(rounds, threads) if with_anatomy else None
+    raw = {"provider": model.provider, "onnxruntime": __import__("onnxruntime").__version__,
+           "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
+           "warm": warm, "cold": cold, "anatomy": anat, "load_average": [load_start, os.getloadavg()[0]]}
+    return render(raw), raw
+
+
+def render(raw: dict) -> str:
+    """The Markdown table of :func:`speed`'s measurements ``raw`` (also saved as JSON)."""
+    med = lambda rows, k: statistics.median(x.get(k, 0.0) for x in rows)  # noqa: E731
+    lines = [f"Device: {raw['provider']} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
+             f"spinning {'on' if raw['spinning'] else 'off'}; {raw['cores']} physical core(s). Medians over "
+             f"{raw['rounds']} interleaved round(s) after one warm-up; times in ms. Warm: in process; cold: the one-shot "
+             f"CLI `polrig infer` in a fresh process (imports, session, first run, EXR). Warm CPU time: user + "
+             f"system seconds of all threads per frame (the work done; on a shared machine wall time also holds the "
+             f"waiting)."
+             + (" Load average (1 min) at the start and the end: {:.1f}, {:.1f} (the machine's other jobs: times grow "
+                "with it).".format(*raw["load_average"]) if raw.get("load_average") else ""), "",
+             "| case | output | warm total | warm without EXR | networks | full-res lift | EXR | warm CPU time | "
+             "**cold (CLI)** | cold CPU time | cold peak MB | target |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for label, w in raw["warm"].items():
+        c = raw["cold"][label]
+        target = TARGETS_MS.get(label)
+        goals = ([f"<= {target} ms"] if target else []) + (["<= 2048 MB"] if label.startswith("full sensor") else [])
+        lines.append(f"| {label} | {w[0]['net']} | {1e3 * med(w, 'total'):.0f} | "
+                     f"{1e3 * (med(w, 'total') - med(w, 'exr')):.0f} | {1e3 * med(w, 'network'):.0f} | "
+                     f"{1e3 * med(w, 'full_resolution'):.0f} | {1e3 * med(w, 'exr'):.0f} | {1e3 * med(w, 'cpu'):.0f} | "
+                     f"**{1e3 * med(c, 'wall'):.0f}** | {1e3 * med(c, 'cpu'):.0f} | {med(c, 'peak_mb'):.0f} | {'; '.join(goals)} |")
+    anat = raw.get("anatomy")
+    if anat:
+        lines += ["", f"Where a cold run's time goes (fresh processes, medians of {raw['rounds']}; one network pass "
+                  "on 1224x1024x3, the mono full sensor's grid):", "", "| step | ms |", "|---|---|"]
+        lines += [f"| {k} | {1e3 * v:.0f} |" for k, v in anat.items() if k != "peak_mb"]
+        lines.append(f"| peak memory | {anat['peak_mb']:.0f} MB |")
+    return "\n".join(lines)
 
 
 RIG_SCENES = "sphere,rough_sphere,checker_sphere,box,multi,heightfield,plane,normalmap"
@@ -178,9 +363,9 @@ def rig_scene_table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds of every case (default 3)")
+    ap.add_argument("--anatomy", action="store_true", help="also time a cold run's steps in fresh processes")
     ap.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: physical cores)")
-    ap.add_argument("--methods", default="superpixel,bilinear")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped models/weights)")
     ap.add_argument("--spinning", action="store_true", help="let onnxruntime worker threads spin")
     ap.add_argument("--mirror-average", action="store_true",
@@ -216,34 +401,14 @@ def main(argv=None) -> int:
                         "excluded, as for the reference mode).")
             pathlib.Path(args.out).write_text(head + "\n\n" + table + "\n")
         return 0
-    model = SingleShotModel.load(args.weights, threads=args.threads, spinning=args.spinning)
-    rng = np.random.default_rng(0)
-    results = []
-    with tempfile.TemporaryDirectory() as d:
-        for method in args.methods.split(","):
-            passes = (False, True) if method == "superpixel" else (False,)  # mirror averaging off / on
-            jobs = [(size, COLOUR, mirror) for size in SIZES for mirror in passes]
-            if method == "superpixel":
-                jobs += [(size, MONO, mirror) for size in MONO_SIZES for mirror in passes]
-            for size, layout, mirror_average in jobs:
-                all_repeats = size[0] * size[1] <= 512 * 512 or method == "superpixel"  # the slow bilinear sizes get half
-                reps = args.repeat if all_repeats else max(2, args.repeat // 2)
-                results.append(bench(size, method, model, reps, pathlib.Path(d), rng, mirror_average, layout))
-                r = results[-1]
-                print(f"{r['raw']:>10s} {r['method']:10s} net {r['net']:>9s}  total {1e3 * r['total']:7.1f} ms",
-                      flush=True)
-    threads = args.threads or physical_cores()
-    lines = [f"onnxruntime intra-op threads: {threads}, spinning {'on' if args.spinning else 'off'}; median of the runs after one warm-up; times in ms.", "",
-             "| raw size | demosaic | network size | decode | demosaic | Stokes | prepare | networks + pBRDF | finish | EXR | **total** | frames/s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in results:
-        lines.append(f"| {r['raw']} | {r['method']} | {r['net']} | " + " | ".join(
-            f"{1e3 * r[k]:.1f}" for k in ("decode", "demosaic", "stokes", "prepare", "network", "finish", "exr"))
-            + f" | **{1e3 * r['total']:.1f}** | {r['fps']:.1f} |")
-    table = "\n".join(lines)
+    table, raw = speed(args.rounds, args.threads, args.spinning, args.weights, args.anatomy)
     print(table)
     out = pathlib.Path(args.out) if args.out else REPO / "benchmarks" / "results" / "single_shot_speed.md"
-    out.write_text("# Single-shot inference speed\n\n" + table + "\n")
+    import json
+
+    out.with_suffix(".json").write_text(json.dumps(raw, indent=1) + "\n")
+    out.write_text("# Single-shot inference speed\n\n`python benchmarks/bench_single_shot.py"
+                   f"{' --anatomy' if args.anatomy else ''} --rounds {args.rounds}`\n\n" + table + "\n")
     print(f"wrote {out}")
     return 0
 

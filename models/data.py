@@ -22,6 +22,7 @@ import zlib
 
 import numpy as np
 
+from models.size import SIZE_MULTIPLE
 from polrig.errors import ConfigError, FormatError
 
 #: Arrays every shard must hold.
@@ -159,10 +160,8 @@ def lit_samples(ds: Dataset) -> list[int]:
 
 def check_network_size(ds: Dataset, folder) -> None:
     """:class:`ConfigError` unless the images' sides are multiples of the networks' size
-    multiple (:data:`models.runtime.SIZE_MULTIPLE`): the graphs run on whole images without
+    multiple (:data:`models.size.SIZE_MULTIPLE`): the graphs run on whole images without
     padding in training and evaluation."""
-    from models.runtime import SIZE_MULTIPLE
-
     h, w = ds.shape
     if h % SIZE_MULTIPLE or w % SIZE_MULTIPLE:
         raise ConfigError(f"{folder}: images are {w}x{h} pixels; the networks need sides that are "

@@ -37,7 +37,7 @@ import sys
 import numpy as np
 
 from models.data import check_network_size, lit_samples, load_dataset
-from models.evaluate import _network_inputs, forward_l2
+from models.evaluate import network_inputs, forward_l2
 from models.runtime import WEIGHTS_DIR, SingleShotModel
 from polrig.errors import ConfigError
 from sim.scene import FAMILIES
@@ -123,7 +123,7 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
     for i in lit:
         mask = ds["mask"][i] > 0
         truth = ds["mueller"][i]
-        out = full.run_rig_frame(*_network_inputs(ds, i))
+        out = full.run_rig_frame(*network_inputs(ds, i))
         sample = {k: ds[k][i] for k in ("analyzer", "mask", "wo", "alpha", "stage_zero_axis", "s_in")}
         n_pip, w_pip = out["normal"][0], out["wi"][0]
         n_true, w_true = ds["normal"][i], ds["wi"][i]
@@ -131,7 +131,7 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
              "light_err_deg": float(_angle_deg(w_pip[:, mask].mean(1)[:, None], w_true[:, mask].mean(1)[:, None])[0]),
              "full": forward_l2(out["mueller"][0], truth, mask)}
         if direct is not None:
-            r["direct"] = forward_l2(direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0],
+            r["direct"] = forward_l2(direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0],
                                      truth, mask)
         mean_true = w_true[:, mask].mean(1)[:, None]
         fits = {}

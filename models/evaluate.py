@@ -213,7 +213,7 @@ def reference_four_state(ds: Dataset, i: int, noise: tuple[float, float], rng: n
     return (res.mueller * (ds["mask"][i] > 0)).astype(np.float32)
 
 
-def _network_inputs(ds: Dataset, i: int) -> tuple:
+def network_inputs(ds: Dataset, i: int) -> tuple:
     return (ds["analyzer"][i][None], ds["mask"][i][None, None], ds["s_in"][i][None], ds["wo"][i][None],
             ds["stage_zero_axis"][i][None])
 
@@ -301,24 +301,24 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
             continue
         preds = {}
         t = time.perf_counter()
-        out = full.run_rig_frame(*_network_inputs(ds, i))
+        out = full.run_rig_frame(*network_inputs(ds, i))
         times["full"] += time.perf_counter() - t
         preds["full"], preds["pipnet_pbrdf"] = out["mueller"][0], out["mueller_init"][0]
         t = time.perf_counter()
         preds["bestfit_pbrdf"] = bestfit_pbrdf(ds, i)
         times["bestfit_pbrdf"] += time.perf_counter() - t
         t = time.perf_counter()
-        preds["direct"] = direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0]
+        preds["direct"] = direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0]
         times["direct"] += time.perf_counter() - t
         t = time.perf_counter()
         preds["reference4"] = reference_four_state(ds, i, noise, rng)
         times["reference4"] += time.perf_counter() - t
         t = time.perf_counter()  # models.mirror: the capture and its mirror image, averaged
-        out_m = full.run_rig_frame(*_network_inputs(ds, i), mirror_average=True)
+        out_m = full.run_rig_frame(*network_inputs(ds, i), mirror_average=True)
         preds["full_mirror"] = out_m["mueller"][0]
         times["full_mirror"] += time.perf_counter() - t
         t = time.perf_counter()
-        preds["direct_mirror"] = direct.run_rig_frame(*_network_inputs(ds, i), rotate_with=out_m["wi"],
+        preds["direct_mirror"] = direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out_m["wi"],
                                                       mirror_average=True)["mueller"][0]
         times["direct_mirror"] += time.perf_counter() - t
         lit = (ds["lit"][i] > 0) if "lit" in ds.arrays else None

@@ -14,8 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-#: Height and width of network inputs must be multiples of this (three stride-2 stages).
-SIZE_MULTIPLE = 8
+from models.size import SIZE_MULTIPLE  # noqa: F401  (re-exported: the training modules read it here)
 
 
 def conv_bn_relu(cin: int, cout: int, stride: int = 1) -> nn.Sequential:

@@ -163,7 +163,7 @@ def specular_diffuse_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Te
     broadcastable to ``(...)``; ``stage_zero_axis``, ``camera_x_axis``: ``(..., 3)`` or ``(3,)``.
     Pixels facing away from the light or the camera (``cos <= 0``) get zero blocks.
     """
-    alpha = torch.as_tensor(alpha, dtype=normal.dtype)[..., None]
+    alpha = torch.as_tensor(alpha, dtype=normal.dtype, device=normal.device)[..., None]
     spec, diff = _blocks9(normal, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta, -1)
     shape = torch.broadcast_shapes(*[t.shape for t in spec + diff])[:-1]
     as33 = lambda parts: torch.cat([p.expand(shape + (1,)) for p in parts], -1).reshape(shape + (3, 3))  # noqa: E731

@@ -188,7 +188,7 @@ def mueller_loss(pred: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) ->
     """``L1(M) + L_Stokes`` over the mask for Mueller images ``(B, C, 3, 3, H, W)``."""
     b, c, _, _, h, w = pred.shape
     l1 = masked_mean((pred - truth).abs().reshape(b, -1, h, w), mask)
-    probes = torch.tensor(PROBE_STATES, dtype=pred.dtype)
+    probes = torch.tensor(PROBE_STATES, dtype=pred.dtype, device=pred.device)
     diff = pred - truth
     ls = pred.new_zeros(())
     for s in probes:

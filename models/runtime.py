@@ -46,13 +46,14 @@ import time
 
 import numpy as np
 
-from models import mirror
+from models import devices, mirror
+from models.size import SIZE_MULTIPLE
+from models.uncertainty import UncertaintyModel, calibration_for_graph
 from polrig import frames
 from polrig.errors import FormatError
 from polrig.stokes import stokes_from_analyzers
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
-SIZE_MULTIPLE = 8
 #: Percentile of the analyzer values in the mask that the normalisation maps to 1 (sim.dataset).
 SCALE_PERCENTILE = 99.5
 #: Stage zero axis of the simulated rig in the camera frame (sim.dataset manifest), used when
@@ -68,6 +69,10 @@ MAX_INPUT_LEVEL = 100.0
 MASK_NOISE_SIGMAS = 6.0
 #: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
 DEFAULT_FOCAL_PER_PX = 2.5
+#: Colours x pixels of one network pass above which a run gives its memory arena back
+#: (:class:`SingleShotModel`): the mono full sensor (3 x 1224 x 1024) does, the colour sensor's
+#: superpixel grid (3 x 612 x 512) does not.
+SHRINK_ARENA_ABOVE = 2_000_000
 #: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
 COLOUR_OUTPUTS = ("mueller", "mueller_init", "kd", "mueller_disagreement")
 
@@ -132,10 +137,18 @@ def rotate_stokes(s: np.ndarray, cos2, sin2) -> np.ndarray:
 def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray) -> np.ndarray:
     """``M R(theta)`` per pixel for a plane-first Mueller image ``(..., 3, 3, H, W)`` and
     ``cos2``/``sin2`` broadcastable to ``(..., H, W)``: the model-frame matrix re-expressed in
-    the rig's incident frame (columns 1 and 2 mix, :func:`polrig.frames.rotate_cols`)."""
-    mm = np.moveaxis(np.asarray(m), (-4, -3), (-2, -1))  # (..., H, W, 3, 3)
-    out = frames.rotate_cols(mm, cos2, -np.asarray(sin2))  # m @ R(-theta)^T = m @ R(theta)
-    return np.moveaxis(out, (-2, -1), (-4, -3)).astype(np.asarray(m).dtype)
+    the rig's incident frame (columns 1 and 2 mix as in :func:`polrig.frames.rotate_cols` with
+    ``-theta``: ``c1' = c c1 - s c2``, ``c2' = c c2 + s c1``). Computed in ``m``'s own dtype on
+    the plane-first layout (no float64 copy, no transposes: a full-sensor image is 4-20 x 10^7
+    values)."""
+    m = np.asarray(m)
+    c = np.expand_dims(np.asarray(cos2, m.dtype), -3)  # (..., 1, H, W): same for every row
+    s = np.expand_dims(np.asarray(sin2, m.dtype), -3)
+    c1, c2 = m[..., :, 1, :, :], m[..., :, 2, :, :]
+    out = m.copy()
+    out[..., :, 1, :, :] = c * c1 - s * c2
+    out[..., :, 2, :, :] = c * c2 + s * c1
+    return out
 
 
 def stokes_s0(analyzer: np.ndarray) -> np.ndarray:
@@ -194,7 +207,8 @@ def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.n
 class SingleShotModel:
     """onnxruntime session of the shipped single-shot graph (and optionally the baseline)."""
 
-    def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty=None, uncertainty_problem: str = ""):
+    def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty: UncertaintyModel | None = None,
+                 uncertainty_problem: str = ""):
         self.session = session
         self.meta = meta
         self.weights_dir = weights_dir
@@ -202,21 +216,44 @@ class SingleShotModel:
         self.uncertainty = uncertainty
         #: Why :attr:`uncertainty` is None (no file, another graph's, unreadable); "" when it is set.
         self.uncertainty_problem = uncertainty_problem
+        #: The execution provider that runs the graph (``CPUExecutionProvider``, ``CUDAExecutionProvider``).
+        self.provider = devices.used_device(session.get_providers())
         self.input_names = [i.name for i in session.get_inputs()]
         self.output_names = [o.name for o in session.get_outputs()]
         self.colours = int(meta.get("colours", 3))
+        import onnxruntime as ort
+
+        #: Runs on more than :data:`SHRINK_ARENA_ABOVE` values per image hand the CPU arena's
+        #: memory back when they end (onnxruntime's ``memory.enable_memory_arena_shrinkage``):
+        #: the arena otherwise keeps its largest size (1.5 GB at the mono full sensor's
+        #: 1224x1024x3) while the Mueller image is post-processed beside it. Measured at that
+        #: size (busy machine): peak 2224 -> 1702 MB, about 0.3 s more system time per frame
+        #: (the next pass faults its pages in again), so smaller images keep their arena.
+        self._shrink = ort.RunOptions()
+        self._shrink.add_run_config_entry("memory.enable_memory_arena_shrinkage", "cpu:0")
 
     @classmethod
     def load(cls, weights_dir: str | os.PathLike | None = None, *, graph: str = "single_shot.onnx",
-             threads: int | None = None, spinning: bool = False) -> "SingleShotModel":
+             threads: int | None = None, spinning: bool = False, device: str = "auto") -> "SingleShotModel":
         """Open ``graph`` in ``weights_dir`` (default: the shipped ``models/weights``).
 
         ``threads``: intra-op threads (default :func:`physical_cores`). ``spinning``: let idle
         worker threads busy-wait between operators (onnxruntime's default); off by default
         because on a shared or oversubscribed CPU spinning threads steal the cores the other
-        threads need (see ``benchmarks/bench_single_shot.py`` for both settings)."""
+        threads need (see ``benchmarks/bench_single_shot.py`` for both settings). ``device``:
+        ``auto`` (CUDA where this onnxruntime offers it, else the CPU), ``cpu`` or ``cuda``
+        (:mod:`models.devices`; a forced ``cuda`` that cannot run raises
+        :class:`models.devices.DeviceUnavailable`); :attr:`provider` is the one really used.
+
+        Memory: onnxruntime's memory-pattern planning is off. With dynamic image sizes it plans
+        one block for the whole graph at the first run of each new shape; without it the
+        activations are allocated and freed as the graph runs (measured at 1224x1024x3, the mono
+        full sensor: peak 1.5 GB instead of 2.2 GB, first run no slower;
+        ``benchmarks/results/single_shot_speed.md``). The CPU arena stays on (off, runs were
+        slower and the peak higher)."""
         import onnxruntime as ort
 
+        providers = devices.choose_providers(device, ort.get_available_providers())
         wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
         path = wd / graph
         if not path.is_file():
@@ -233,21 +270,23 @@ class SingleShotModel:
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.enable_mem_pattern = False
         opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         try:
-            sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            sess = ort.InferenceSession(str(path), opts, providers=providers)
         except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
             raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc
-        from models.uncertainty import calibration_for_graph
-
+        devices.check_session(device, providers, sess.get_providers())
         return cls(sess, meta, wd, *calibration_for_graph(wd, graph))
 
     def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
                        stage_zero_axis: np.ndarray) -> dict[str, np.ndarray]:
         """One graph call on batched, normalised, padded inputs (names as :mod:`models.export`)."""
         feed = {"analyzer": analyzer, "mask": mask, "s_in": s_in, "wo": wo, "stage_zero_axis": stage_zero_axis}
-        outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names})
+        large = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
+        outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names},
+                                self._shrink if large else None)
         return dict(zip(self.output_names, outs))
 
     @property
@@ -297,6 +336,7 @@ class SingleShotModel:
             theta = 0.5 * np.arctan2(s2, c2)
             if prev is not None and np.all(np.abs(np.rad2deg(np.angle(np.exp(2j * (theta - prev))))) / 2 < tolerance_deg):
                 break
+            out = None  # the previous pass's outputs go before the next pass allocates (peak memory)
             out = self.run_normalised(analyzer, mask, rotate_stokes(s_in, c2, s2).astype(np.float32), wo, model_axis)
             prev = theta
             if rotate_with is not None or "wi" not in out:
@@ -312,7 +352,7 @@ class SingleShotModel:
         for key in ("mueller", "mueller_init"):
             if key in out:
                 ndim = out[key].ndim  # (B, C, 3, 3, H, W)
-                shape = (b,) + (1,) * (ndim - 3) + cp.shape[1:]
+                shape = (b,) + (1,) * (ndim - 5) + cp.shape[1:]
                 out[key] = rotate_incident_columns(out[key], cp.reshape(shape), sp.reshape(shape))
         out["incident_rotation_deg"] = np.rad2deg(prev).astype(np.float32)
         return out
@@ -426,7 +466,7 @@ class SingleShotModel:
             aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes_from_analyzers(a[:mueller.shape[0]]),
                                                   disagreement)
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
-                    "incident_rotation_deg": rotation_deg,
+                    "incident_rotation_deg": rotation_deg, "provider": self.provider,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
         return mueller, aux
 
@@ -443,7 +483,8 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
                 demosaic_method: str = "superpixel", black_level_dn: float = 0.0,
                 mask: np.ndarray | None = None, scale: float | None = None,
                 stage_zero_axis=None, intrinsics=None, saturation_dn: float | None = None,
-                with_sigma: bool = False, mirror_average: bool = False) -> tuple[np.ndarray, dict]:
+                with_sigma: bool = False, mirror_average: bool = False,
+                resolution: str = "superpixel") -> tuple[np.ndarray, dict]:
     """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
     demosaic (:func:`polrig.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
     sampling: a quarter of the raw size per axis for the colour IMX250MYR), then
@@ -453,25 +494,59 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     ``saturated`` ``(H', W')`` bool: output pixels with a clipped raw sample in their demosaic
     support (the network's estimate there comes from clipped data; its ``sigma`` is infinite
     there, as in a session's single-shot EXR); ``with_sigma``: as
-    :meth:`SingleShotModel.reconstruct`, as is ``mirror_average``."""
-    from polrig.analyzer import resolve_layout
-    from polrig.demosaic import demosaic, demosaic_float
+    :meth:`SingleShotModel.reconstruct`, as is ``mirror_average``.
 
+    ``resolution="full"``: the Mueller image at the raw frame's resolution ``(H, W)``: the
+    networks run on the superpixel grid and :func:`models.full_resolution.lift` adds the
+    measured detail of the full-resolution ``demosaic_method`` (``bilinear`` or ``newton``;
+    ``superpixel`` is refused; a given ``mask`` is on the networks' grid). ``mask``, ``stokes``
+    and ``saturated`` of ``aux`` are then full-resolution;
+    ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the networks' grid under
+    ``aux["network_grid"]``. The uncertainty is calibrated on the networks' grid only:
+    ``with_sigma`` is refused (ValueError)."""
+    from models import full_resolution
+    from polrig.analyzer import resolve_layout
+    from polrig.demosaic import demosaic, demosaic_float, preprocess
+
+    if resolution not in full_resolution.RESOLUTIONS:
+        raise ValueError(f"resolution must be one of {', '.join(full_resolution.RESOLUTIONS)}, got {resolution!r}")
+    full = resolution == "full"
+    if full and demosaic_method == "superpixel":
+        raise ValueError("full resolution takes its detail from a full-resolution demosaic (bilinear or newton), "
+                         "not superpixel")
+    if full and with_sigma:
+        raise ValueError("the uncertainty is calibrated at the networks' (superpixel) resolution only: "
+                         "no sigma at full resolution")
     t0 = time.perf_counter()
     lay = resolve_layout(layout)
-    analyzer = demosaic(raw, lay, demosaic_method, black_level_dn=black_level_dn)
+    analyzer = demosaic(raw, lay, "superpixel" if full else demosaic_method, black_level_dn=black_level_dn)
     clipped = None
-    if saturation_dn is not None:
+    if saturation_dn is not None and not full:
         clipped = demosaic_float((np.asarray(raw) >= saturation_dn).astype(np.float32), lay,
                                  demosaic_method).max(axis=(0, 1)) > 0
     t1 = time.perf_counter()
     stokes = stokes_from_analyzers(analyzer)
     t2 = time.perf_counter()
-    mueller, aux = model.reconstruct(analyzer, incident_stokes(state_deg), mask=mask, scale=scale,
+    s_in = incident_stokes(state_deg)
+    mueller, aux = model.reconstruct(analyzer, s_in, mask=mask, scale=scale,
                                      stage_zero_axis=stage_zero_axis, intrinsics=intrinsics,
                                      with_sigma=with_sigma, mirror_average=mirror_average)
+    timings = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
+    if full:
+        t3 = time.perf_counter()
+        x = preprocess(raw, black_level_dn=black_level_dn)
+        if saturation_dn is not None:  # clipped samples go NaN: the demosaic marks their support
+            x[np.asarray(raw) >= saturation_dn] = np.nan
+        stokes_full = stokes_from_analyzers(demosaic_float(x, lay, demosaic_method))
+        del x
+        if saturation_dn is not None:
+            clipped = ~np.all(np.isfinite(stokes_full), axis=(0, 1))
+        grid = {k: aux.pop(k) for k in ("normal", "kd", "wi", "mueller_init") if k in aux}
+        mueller, aux["mask"] = full_resolution.lift(mueller, aux["mask"], stokes, stokes_full, s_in, lay.period)
+        aux["network_grid"], stokes = grid, stokes_full
+        timings["full_resolution"] = time.perf_counter() - t3
     aux["stokes"] = stokes
-    aux["timings_s"] = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
+    aux["timings_s"] = timings
     if clipped is not None:
         aux["saturated"] = clipped
         if "sigma" in aux:  # the estimate there comes from clipped data: no error bound
@@ -480,12 +555,14 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
 
 
 def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None, *,
-                     with_normal: bool = False):
+                     with_normal: bool = False, compress: bool = False):
     """Mueller EXR (``M{r}{c}.{R,G,B}``) with a ``mask`` plane (1 = object), a ``saturated``
     plane where ``aux`` has one (1 = clipped raw data, :func:`infer_frame`), the calibrated
     standard deviations ``sigma.M{r}{c}.{R,G,B}`` where ``aux`` has them, the estimated
     ``normal.{X,Y,Z}`` with ``with_normal``, and the model's scalars in the header
-    (:func:`polrig.exr.write_mueller_exr`)."""
+    (:func:`polrig.exr.write_mueller_exr`). Uncompressed unless ``compress`` (ZIP): measured on
+    a 512x512 colour result, ZIP wrote 26.8 MB in 819 ms, uncompressed 29.4 MB in 69 ms (the
+    single-shot targets are per frame; noisy float32 planes hardly compress)."""
     from polrig.exr import element_planes, write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
@@ -502,6 +579,7 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
     if "sigma" in aux:
         planes["sigma.M{rc}"] = "calibrated standard deviation of M{rc} (models/uncertainty.py); inf where saturated"
     meta = {"method": "single-shot", "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
-            "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes}
+            "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes,
+            "execution_provider": aux.get("provider")}
     meta.update(metadata or {})
-    return write_mueller_exr(path, mueller, extra=extra, metadata=meta)
+    return write_mueller_exr(path, mueller, extra=extra, metadata=meta, compress=compress)

@@ -91,6 +91,11 @@ class TrainConfig:
     #: (:mod:`models.mirror`: an exact symmetry of the physics; 0: none)
     mirror_fraction: float = 0.0
     threads: int = 2
+    #: Where PyTorch trains: "cpu" or "cuda" (the dataset, the networks and the optimizers live
+    #: there; random draws stay on the CPU's generators, so a run's augmentations do not depend
+    #: on the device; the export runs on CPU copies). On CUDA a resumed run is not bit-identical
+    #: to an uninterrupted one (cuDNN's kernels are not deterministic).
+    device: str = "cpu"
     seed: int = 0
     val_fraction: float = 0.05
     limit: int | None = None
@@ -125,7 +130,8 @@ def window_crop(mask: torch.Tensor, fraction: float, generator: torch.Generator,
     pick = torch.rand(b, generator=generator) < fraction
     sides = torch.rand(b, 2, generator=generator) * (max_side - min_side) + min_side
     corner = torch.rand(b, 2, generator=generator)
-    rows, cols = torch.arange(h, dtype=mask.dtype), torch.arange(w, dtype=mask.dtype)
+    rows = torch.arange(h, dtype=mask.dtype, device=mask.device)
+    cols = torch.arange(w, dtype=mask.dtype, device=mask.device)
     for i in torch.nonzero(pick)[:, 0].tolist():
         hh, ww = max(1, int(sides[i, 0] * h)), max(1, int(sides[i, 1] * w))
         r0, c0 = int(corner[i, 0] * (h - hh + 1)), int(corner[i, 1] * (w - ww + 1))
@@ -162,14 +168,14 @@ def perturbed_geometry(normal: torch.Tensor, wi: torch.Tensor, generator: torch.
     def random_rotations(max_deg: float) -> torch.Tensor:
         axis = torch.nn.functional.normalize(torch.randn(b, 3, generator=generator, dtype=normal.dtype), dim=1)
         angle = torch.rand(b, generator=generator, dtype=normal.dtype) * np.deg2rad(max_deg)
-        return rotation_matrices(axis, angle)
+        return rotation_matrices(axis, angle).to(normal.device)
 
     turn = random_rotations(rotation_deg)
     n = torch.einsum("bij,bjhw->bihw", turn, normal)
     noise = torch.nn.functional.interpolate(
-        torch.randn(b, 3, PERTURB_GRID, PERTURB_GRID, generator=generator, dtype=normal.dtype), size=(h, w),
-        mode="bilinear", align_corners=False)
-    n = n + noise * PERTURB_NOISE * torch.rand(b, 1, 1, 1, generator=generator, dtype=normal.dtype)
+        torch.randn(b, 3, PERTURB_GRID, PERTURB_GRID, generator=generator, dtype=normal.dtype).to(normal.device),
+        size=(h, w), mode="bilinear", align_corners=False)
+    n = n + noise * PERTURB_NOISE * torch.rand(b, 1, 1, 1, generator=generator, dtype=normal.dtype).to(normal.device)
     light = torch.einsum("bij,bjhw->bihw", random_rotations(light_deg) @ turn, wi)
     return (torch.nn.functional.normalize(n, dim=1, eps=1e-6),
             torch.nn.functional.normalize(light, dim=1, eps=1e-6))
@@ -182,7 +188,7 @@ def geometry_toward_view(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tenso
     is the error PIPNet makes on shapes it has not seen: its normals and its light both lie too
     close to the camera (on heightfields, mean normal z about -0.7 where the truth is -0.4).
     An augmentation for PMMNet's training (not in the paper)."""
-    t = torch.rand(normal.shape[0], 1, 1, 1, generator=generator, dtype=normal.dtype) * max_pull
+    t = torch.rand(normal.shape[0], 1, 1, 1, generator=generator, dtype=normal.dtype).to(normal.device) * max_pull
     pull = lambda v: torch.nn.functional.normalize(v + t * (wo - v), dim=1, eps=1e-6)  # noqa: E731
     return pull(normal), pull(wi)
 
@@ -220,11 +226,12 @@ def _pick(t: dict[str, torch.Tensor], idx: torch.Tensor, keys, mirrored: torch.T
           ) -> list[torch.Tensor]:
     """``t[k][idx]`` for each key; the samples flagged in ``mirrored`` (bool, per ``idx``) as
     their mirror image (:data:`MIRROR_OF`)."""
-    out = [t[k][idx] for k in keys]
+    out = [t[k][idx.to(t[k].device)] for k in keys]
     if mirrored is None or not bool(mirrored.any()):
         return out
     for x, k in zip(out, keys):
-        x[mirrored] = MIRROR_OF[k](x[mirrored])  # x is a copy (advanced indexing)
+        flip = mirrored.to(x.device)
+        x[flip] = MIRROR_OF[k](x[flip])  # x is a copy (advanced indexing)
     return out
 
 
@@ -276,6 +283,7 @@ def pmmnet_step(model: PMMNet, t, idx, perturb: tuple[float, float, float, float
                      else geometry_toward_view(n, wi, wo, gen, toward_view))
             with torch.no_grad():
                 ms_p, md_p = image_blocks(n, wi, wo, alpha, axis)
+            sel = sel.to(m.device)
             ms[sel], md[sel] = ms_p * m[sel][:, None], md_p * m[sel][:, None]
     return mueller_loss(model(a, m, s, ms, md, kd)["mueller"], mu, m)
 
@@ -429,6 +437,11 @@ def _check_config(config: TrainConfig, stages: tuple[str, ...], epochs: dict[str
         raise bad("width", config.width, "a multiple of 4, >= 4 (the attention heads split the channels)")
     if config.limit is not None and not (is_int(config.limit) and config.limit >= 1):
         raise bad("limit", config.limit, "an integer >= 1")
+    if config.device not in ("cpu", "cuda"):
+        raise bad("device", config.device, "cpu or cuda")
+    if config.device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device cuda: PyTorch sees no CUDA GPU here (torch.cuda.is_available() is False); "
+                          "train with device cpu")
     for name, low, high in (("lr", 0.0, 1.0), ("decay_start", 0.0, 1.0), ("lr_final_fraction", 0.0, 1.0),
                             ("crop_fraction", 0.0, 1.0), ("sfp_supervision", 0.0, math.inf),
                             ("init_perturb_fraction", 0.0, 1.0), ("init_perturb_deg", 0.0, 180.0),
@@ -622,7 +635,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                           f"({', '.join(diff)} differ; it trained on {state.get('data', 'another folder')})")
     ds = load_dataset(data_dir, config.limit)
     check_network_size(ds, data_dir)
-    t = _tensors(ds)
+    device = torch.device(config.device)
+    t = {k: v.to(device) for k, v in _tensors(ds).items()}
     n = len(ds)
     colours = ds["analyzer"].shape[1]
     torch.set_num_threads(config.threads)
@@ -634,6 +648,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
 
     models = {"pipnet": PIPNet(colours, config.width, config.sfp_prior), "pmmnet": PMMNet(colours, config.width),
               "direct": DirectStokesToMM(colours, config.width)}
+    models = {k: m.to(device) for k, m in models.items()}  # before the optimizers see the parameters
     steps = {"pipnet": pipnet_step, "pmmnet": pmmnet_step, "direct": direct_step}
     opts = {k: torch.optim.Adam(m.parameters(), lr=config.lr) for k, m in models.items()}
     times = {k: 0.0 for k in STAGES}
@@ -782,8 +797,9 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     if export:
         from models.export import export_all
 
-        sample = {k: t[k][val_idx[:2] if n_val else train_idx[:2]] for k in
-                  ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")}
+        pick = (val_idx[:2] if n_val else train_idx[:2]).to(device)
+        sample = {k: t[k][pick].cpu() for k in ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")}
+        models = {k: m.cpu() for k, m in models.items()}  # the export and its check run on the CPU
         frames = ds.manifest.get("frames", {})
         extra = {"stage_zero_axis_camera": [float(x) for x in t["stage_zero_axis"][0]],
                  "camera_x_axis_camera": frames.get("camera_x_axis_camera", [1.0, 0.0, 0.0]),

@@ -280,15 +280,16 @@ def single_shot_kwargs(geometry: dict[str, Any], frame: Frame, method: str = "su
     return {"stage_zero_axis": geometry.get("stage_zero_axis_camera"), "intrinsics": intrinsics}
 
 
-def check_plan(plan, calibration: Calibration) -> float | None:
+def check_plan(plan, calibration: Calibration, device: str = "auto") -> float | None:
     """Reject a plan that cannot give a result, before any device moves.
 
     Reference mode: the incident states must determine the Mueller block (at least 3, not
     collinear, condition number below :data:`polrig.reference.DEFAULT_MAX_CONDITION`);
-    returns the condition number. Single-shot: a model must be installed.
+    returns the condition number. Single-shot: a model must be installed and open on
+    ``device`` (a forced ``cuda`` that cannot run: :class:`models.devices.DeviceUnavailable`).
     """
     if plan.mode == "single-shot":
-        single_shot_model()
+        single_shot_model(device)
         return None
     try:
         return validate_states(calibration.incident_stokes(plan.states_deg))
@@ -298,9 +299,12 @@ def check_plan(plan, calibration: Calibration) -> float | None:
                         what="polarizer states") from None
 
 
-def single_shot_model():
-    """The installed single-shot model; :class:`polrig.plan.PlanError` (of ``mode``, one
-    line) when there is none."""
+def single_shot_model(device: str = "auto"):
+    """The installed single-shot model on ``device`` (``auto``, ``cpu`` or ``cuda``:
+    :meth:`models.runtime.SingleShotModel.load`; its ``provider`` is the one used);
+    :class:`polrig.plan.PlanError` (of ``mode``, one line) when there is none, and
+    :class:`models.devices.DeviceUnavailable` (a one-line :class:`ConfigError`) for a forced
+    ``cuda`` that cannot run."""
     try:
         from models.runtime import SingleShotModel  # type: ignore[import-not-found]
     except ImportError:
@@ -308,7 +312,7 @@ def single_shot_model():
                                 "missing); use the reference method",
                         subject="single-shot", what="mode") from None
     try:
-        return SingleShotModel.load()
+        return SingleShotModel.load(device=device)
     except (FileNotFoundError, OSError, FormatError) as exc:
         raise PlanError("mode", f"no single-shot model is installed ({exc}); use the "
                                 f"reference method", subject="single-shot", what="mode") from None

@@ -75,14 +75,19 @@ class CaptureRequest:
     dark_frames: int | None = None
     demosaic: str | None = None
     mirror_average: bool | None = None
+    resolution: str | None = None
     config: pathlib.Path | None = None
     calibration: pathlib.Path | None = None
     resume: bool = False
+    #: where the single-shot network runs (``auto``, ``cpu``, ``cuda``: :mod:`models.devices`):
+    #: a run option, not part of the plan (a resumed session may run on another device); the
+    #: provider used is recorded in each result's header
+    device: str = "auto"
 
     def plan_fields(self) -> dict[str, Any]:
         """The :class:`polrig.plan.CapturePlan` fields this request gives (not ``None``)."""
         names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
-                 "dark_frames", "demosaic", "mirror_average")
+                 "dark_frames", "demosaic", "mirror_average", "resolution")
         return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
     def plan(self) -> CapturePlan:
@@ -90,6 +95,9 @@ class CaptureRequest:
         fields = self.plan_fields()
         if "poses_deg" not in fields:
             raise PlanError("poses_deg", "no poses given (e.g. 0:360:90)")
+        if fields.get("mode") == "single-shot" and len(fields.get("states_deg", ())) > 1:
+            raise PlanError("states_deg", "the single-shot method captures one polarizer "
+                                          "state per pose; give one state (e.g. 0)")
         return CapturePlan(**fields)
 
 
@@ -129,7 +137,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                     raise PlanError(key, f"the session was planned with {key}="
                                          f"{getattr(plan, key)!r}, this run asks for {value!r}")
             calibration = load_calibration(request.calibration, session=session)
-            check_plan(plan, calibration)  # states conditioning, single-shot model
+            check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
         except BaseException:
             session.unlock()
             raise
@@ -142,7 +150,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
             raise PlanError("out", "folder is not empty; choose a new folder, or resume the "
                                    "session in it", subject=str(out), what="output")
         calibration = load_calibration(request.calibration)
-        check_plan(plan, calibration)  # states conditioning, single-shot model
+        check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
     return PreparedCapture(out, plan, calibration, session)
 
 

@@ -182,7 +182,8 @@ def open_runner(workers: int | None, scheduler: str | None) -> Runner:
 @dataclasses.dataclass(frozen=True)
 class CaptureJob:
     """One task: capture ``index`` of the session in ``root`` (an absolute path the workers
-    see too) into ``revision`` with the revision's settings; ``calibration`` is the
+    see too) into ``revision`` with the revision's settings; ``device`` where a single-shot
+    network runs on the worker (``auto``, ``cpu``, ``cuda``); ``calibration`` is the
     calibration set's folder (absolute) or ``None`` for the nominal one."""
 
     root: str
@@ -191,6 +192,8 @@ class CaptureJob:
     mode: str
     demosaic: str
     mirror_average: bool
+    resolution: str
+    device: str
     calibration: str | None
     calibration_id: str
 
@@ -217,15 +220,15 @@ def _processor(job: CaptureJob, session: Session):
     from polrig import processing
 
     sensor = processing.session_sensor_model(session)
-    key = (job.mode, job.demosaic, job.mirror_average, job.calibration, job.calibration_id,
-           repr(sensor))
+    key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.device,
+           job.calibration, job.calibration_id, repr(sensor))
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
             raise ConfigError(f"{job.calibration}: calibration set {cal.id!r} on this worker, "
                               f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
-                                                job.mirror_average)
+                                                job.mirror_average, job.resolution, job.device)
     return _PROCESSORS[key]
 
 
@@ -260,12 +263,14 @@ def run_capture(job: CaptureJob) -> CaptureOutcome:
 @dataclasses.dataclass
 class SessionBatch:
     """One session's part of a batch: its revision (new or ``continued``), the captures
-    submitted and those that ``failed`` (``(index, reason)``)."""
+    submitted and those that ``failed`` (``(index, reason)``); ``device`` where single-shot
+    networks run (not a setting of the result)."""
 
     session: Session
     revision: str
     settings: dict[str, Any]
     todo: list[int]
+    device: str = "auto"
     continued: bool = False
     failed: list[tuple[int, str]] = dataclasses.field(default_factory=list)
     finished: int = 0
@@ -326,7 +331,8 @@ def open_sessions(paths: Iterable[str | os.PathLike]) -> list[Session]:
 
 
 def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: str | None = None,
-            mirror_average: bool | None = None, calibration=None,
+            mirror_average: bool | None = None, resolution: str | None = None,
+            device: str = "auto", calibration=None,
             command_line: list[str] | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
@@ -334,8 +340,8 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
     new one. Leftover files of earlier attempts in the revision's folders are removed."""
     from polrig import processing
 
-    plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration)
-             for s in sessions]
+    plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
+                                      resolution, device) for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
         cont = _continuable(s, settings, done)
@@ -347,7 +353,7 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
         for i in todo:
             s.start_revision(i, name)
         s.save()
-        batch = SessionBatch(s, name, settings, todo, continued=cont is not None)
+        batch = SessionBatch(s, name, settings, todo, device, continued=cont is not None)
         discard_leftovers(batch)
         batches.append(batch)
     return batches
@@ -357,7 +363,8 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
     st = batch.settings
     cal = None if calibration_path is None else str(pathlib.Path(calibration_path).resolve())
     return [CaptureJob(str(batch.session.root.resolve()), i, batch.revision, st["mode"],
-                       st["demosaic"], bool(st["mirror_average"]), cal, st["calibration_id"])
+                       st["demosaic"], bool(st["mirror_average"]), st["resolution"],
+                       batch.device, cal, st["calibration_id"])
             for i in batch.todo]
 
 
@@ -451,7 +458,8 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 
 
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
-                mirror_average=None, calibration_path: str | None = None,
+                mirror_average=None, resolution=None, device: str = "auto",
+                calibration_path: str | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
                 on_capture=None) -> list[SessionBatch]:
@@ -465,7 +473,8 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
     sessions = open_sessions(paths)
     try:
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
-                          calibration=calibration, command_line=command_line)
+                          resolution=resolution, device=device, calibration=calibration,
+                          command_line=command_line)
         if on_start:
             on_start(batches)
         run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)

@@ -43,6 +43,12 @@ AXES = ("stage", "turntable")
 
 
 MIRROR_SINGLE_SHOT_ONLY = "mirror averaging applies to the single-shot mode only"
+#: Output resolutions of the single-shot method (:mod:`models.full_resolution`): the networks'
+#: superpixel grid or the raw frame's own.
+RESOLUTIONS = ("superpixel", "full")
+FULL_RESOLUTION_SINGLE_SHOT_ONLY = ("only the single-shot method has a full-resolution output (the "
+                                    "reference method's resolution is its demosaic: bilinear or "
+                                    "newton give the raw frame's size)")
 
 
 class PlanError(ConfigError):
@@ -134,6 +140,10 @@ class CapturePlan:
     #: single-shot: average the network's answers for the capture and its mirror image
     #: (:mod:`models.mirror`)
     mirror_average: bool = False
+    #: single-shot output resolution: ``superpixel`` (the networks' grid) or ``full`` (the raw
+    #: frame's: :func:`models.full_resolution.lift` with the detail of ``demosaic``, bilinear
+    #: where that is ``superpixel``)
+    resolution: str = "superpixel"
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -162,11 +172,22 @@ class CapturePlan:
                                             f"{self.exposures_us}")
         if self.mirror_average and self.mode != "single-shot":
             raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
+        if self.resolution not in RESOLUTIONS:
+            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
+                            subject=repr(self.resolution), what="resolution")
+        if self.resolution == "full" and self.mode != "single-shot":
+            raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
+                            what="resolution")
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
                                           f"states, got {len(self.states_deg)}")
+        if self.mode == "single-shot" and not self.states_deg:
+            raise PlanError("states_deg", "the single-shot method needs one polarizer state")
         object.__setattr__(self, "poses_deg", tuple(float(p) for p in self.poses_deg))
-        object.__setattr__(self, "states_deg", tuple(float(s) for s in self.states_deg))
+        # single-shot captures one state per pose: the plan records the state it captures
+        # (older sessions listed the default four; only the first was ever captured)
+        states = self.states_deg[:1] if self.mode == "single-shot" else self.states_deg
+        object.__setattr__(self, "states_deg", tuple(float(s) for s in states))
         object.__setattr__(self, "exposures_us", tuple(float(e) for e in self.exposures_us))
 
     def to_json(self) -> dict[str, Any]:
@@ -183,12 +204,12 @@ class CapturePlan:
 
     def frames_per_pose(self) -> int:
         n_exp = max(1, len(self.exposures_us))
-        n_states = len(self.states_deg) if self.mode == "reference" else 1
+        n_states = len(self.states_deg)
         return n_exp * (n_states * self.frames_per_state + self.dark_frames)
 
     def acquired_states_deg(self) -> tuple[float, ...]:
-        """Stage angles visited per pose (single-shot uses only the first state)."""
-        return self.states_deg if self.mode == "reference" else self.states_deg[:1]
+        """Stage angles visited per pose (single-shot: its one state)."""
+        return self.states_deg
 
 
 def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
@@ -199,7 +220,7 @@ def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
     ``(ph, pw)``, which ``superpixel`` divides the size by) and the truth EXR (9 + 1 planes
     per colour) at full size; 5 % and 1 MiB (manifest) on top."""
     raw = plan.frames_per_pose() * (2 * width * height + 4096)
-    if plan.demosaic == "superpixel":
+    if plan.demosaic == "superpixel" and plan.resolution != "full":
         out_px = (height // cell[0]) * (width // cell[1])
     else:
         out_px = width * height

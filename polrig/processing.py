@@ -43,7 +43,8 @@ from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.layouts import MosaicLayout
 from polrig.mueller import polarizer_stokes
 from polrig.noise import SensorModel
-from polrig.plan import MIRROR_SINGLE_SHOT_ONLY, MODES, CapturePlan, PlanError
+from polrig.plan import (FULL_RESOLUTION_SINGLE_SHOT_ONLY, MIRROR_SINGLE_SHOT_ONLY, MODES,
+                         RESOLUTIONS, CapturePlan, PlanError)
 from polrig.radiometry import (StateRadiance, adc_scale, analyzer_stack,  # noqa: F401 (re-exported)
                                reference_from_frames, state_radiance)
 from polrig.records import (sensor_model_of, session_frame_geometry,  # noqa: F401 (re-exported)
@@ -137,16 +138,28 @@ class Processor:
     ``mode``/``demosaic`` as in the plan; ``sensor_model`` the camera's noise model;
     ``mirror_average``: single-shot runs the network on the capture and on its mirror image and
     averages (:mod:`models.mirror`; twice the network time, a few per cent lower error).
+    ``resolution``: single-shot output at the networks' ``superpixel`` grid or the raw frame's
+    (``full``, :func:`models.full_resolution.lift`; a :class:`PlanError` of ``resolution`` with
+    the reference mode). ``device``: where the network runs (``auto``, ``cpu``, ``cuda``;
+    :mod:`models.devices`), a run option, not part of the plan; the provider used is recorded.
     """
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
-                 sensor_model: SensorModel, mirror_average: bool = False):
+                 sensor_model: SensorModel, mirror_average: bool = False,
+                 resolution: str = "superpixel", device: str = "auto"):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use reference or single-shot")
         if mirror_average and mode != "single-shot":
             raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
+        if resolution not in RESOLUTIONS:
+            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
+                            subject=repr(resolution), what="resolution")
+        if resolution == "full" and mode != "single-shot":
+            raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
+                            what="resolution")
         # single-shot: the installed network, or the one-line "no model installed" error
-        self.model = single_shot_model() if mode == "single-shot" else None
+        self.model = single_shot_model(device) if mode == "single-shot" else None
+        self.resolution = resolution
         self.mode = mode
         self.demosaic = demosaic
         self.mirror_average = bool(mirror_average)
@@ -234,6 +247,7 @@ class Processor:
                 "stage_zero_axis_camera": geometry["stage_zero_axis_camera"],
                 "sources": geometry["sources"]}
             meta["mirror_average"] = self.mirror_average
+            self.single_shot_header(meta)
         data = exr_bytes(lambda p: write_mueller_exr(p, result.mueller, extra=extra,
                                                       metadata=meta))
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
@@ -261,7 +275,13 @@ class Processor:
         ``geometry`` (:func:`single_shot_geometry`; default: from the calibration alone): the
         intrinsics, carried to the analyzer grid (:func:`analyzer_grid_intrinsics`), and the
         stage zero axis the incident state is expressed about; without them the model assumes
-        its training rig's, which on another rig puts the result in the wrong incident frame."""
+        its training rig's, which on another rig puts the result in the wrong incident frame.
+
+        ``resolution="full"``: the networks run on the superpixel stack and their Mueller image
+        is lifted to the raw grid with the measured detail of :attr:`output_demosaic`
+        (:func:`models.full_resolution.lift`); the ``dark`` and ``saturated`` bits come from that
+        full-resolution stack, the intrinsics are carried to the superpixel grid the networks
+        see, and ``sigma`` is NaN (the model's uncertainty is calibrated on its own grid only)."""
         from polrig.reference import DARK, MIN_SNR, SATURATED
 
         first = cf.first
@@ -274,15 +294,29 @@ class Processor:
                                darks=[[adc(f) for f in d] for d in cf.darks]
                                if any(len(d) for d in cf.darks) else None,
                                code_step_dn=scale)
-        measured, variance, valid, _ = analyzer_stack(state, lay, self.demosaic)
+        full = self.resolution == "full"
+        # the networks' input: the superpixel grid at full resolution (the grid they were
+        # trained on), else the plan's demosaic
+        measured, variance, valid, _ = analyzer_stack(state, lay, "superpixel" if full else self.demosaic)
         s_in = self.calibration.incident_stokes(cf.states_deg[:1])
         if geometry is None:  # the calibration's geometry only
             geometry = {"intrinsics": self.calibration.intrinsics,
                         "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
-        mueller, aux = self.model.reconstruct(np.where(valid, measured, np.nan), s_in[0], with_sigma=True,
+        network_input = np.where(valid, measured, np.nan)
+        mueller, aux = self.model.reconstruct(network_input, s_in[0], with_sigma=not full,
                                               mirror_average=self.mirror_average,
-                                              **single_shot_kwargs(geometry, first, self.demosaic))
+                                              **single_shot_kwargs(geometry, first,
+                                                                   "superpixel" if full else self.demosaic))
         obj = np.asarray(aux["mask"], bool)
+        if full:  # the measured detail of the full-resolution demosaic (models/full_resolution.py)
+            from models.full_resolution import lift
+            from polrig.stokes import stokes_from_analyzers
+
+            stokes_sp = stokes_from_analyzers(network_input)  # NaN where clipped: no detail there
+            measured, variance, valid, _ = analyzer_stack(state, lay, self.output_demosaic)
+            stokes_full = stokes_from_analyzers(np.where(valid, measured, np.nan))
+            mueller, obj = lift(mueller, obj, stokes_sp, stokes_full, s_in[0], lay.period)
+            del stokes_sp, stokes_full
         c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
         s0, s0_sigma = 0.5 * measured.sum(axis=1), 0.5 * np.sqrt(variance.sum(axis=1))  # (C, H, W)
         with np.errstate(invalid="ignore"):
@@ -290,12 +324,39 @@ class Processor:
         clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
         mask = (np.where(dark, DARK, 0) | np.where(clipped, SATURATED, 0)).astype(np.uint8)
         zeros = np.zeros((c, h, w), np.float32)
-        sigma = np.asarray(aux.get("sigma", np.zeros_like(mueller)), np.float32)
-        sigma = np.where(clipped[:, None, None], np.float32(np.inf), sigma)
-        result = ReferenceResult(mueller.astype(np.float32), sigma, zeros, mask, float("nan"),
+        if full:  # not calibrated at this resolution: NaN planes (the header says so)
+            sigma = np.broadcast_to(np.float32(np.nan), mueller.shape)
+        else:
+            sigma = np.asarray(aux.get("sigma", np.zeros_like(mueller)), np.float32)
+            sigma = np.where(clipped[:, None, None], np.float32(np.inf), sigma)
+        result = ReferenceResult(mueller.astype(np.float32, copy=False), sigma, zeros, mask, float("nan"),
                                  zeros + np.inf, np.zeros((c, h, w), np.uint16),
-                                 sigma_noise=np.zeros_like(sigma))
+                                 sigma_noise=(np.broadcast_to(np.float32(0), mueller.shape) if full
+                                              else np.zeros_like(sigma)))
         return result, s_in, lay, None
+
+    @property
+    def output_demosaic(self) -> str:
+        """The demosaic of the result's grid: the plan's, except at full resolution, where the
+        detail comes from a full-resolution one (the plan's if it is one, else ``bilinear``)."""
+        if self.resolution == "full" and self.demosaic == "superpixel":
+            return "bilinear"
+        return self.demosaic
+
+    def single_shot_header(self, meta: dict[str, Any]) -> None:
+        """Add the single-shot settings to a result EXR's header ``meta`` (in place): the
+        resolution, the execution provider that ran the network, and at full resolution the
+        grids (networks on ``superpixel``, detail from :attr:`output_demosaic`) and the
+        ``sigma`` planes' meaning there (NaN: not calibrated at full resolution)."""
+        meta["resolution"] = self.resolution
+        meta["execution_provider"] = self.model.provider
+        if self.resolution == "full":
+            meta["network_demosaic"] = "superpixel"
+            meta["output_demosaic"] = self.output_demosaic
+            meta["planes"] = dict(meta.get("planes", {}), **{
+                "sigma.M{rc}": "NaN: the single-shot model's uncertainty is calibrated at the "
+                               "networks' (superpixel) resolution only, not at full resolution",
+                "sigma_noise.M{rc}": "0 (not modelled for the single-shot method)"})
 
     @staticmethod
     def _verified_truth(session: Session, index: int) -> pathlib.Path | None:
@@ -325,20 +386,23 @@ class Processor:
             return None
         img = read_mueller_exr(path)
         if states is None:  # single-shot: the truth at this resolution, nominal 4-state weights
-            t = truth_on_output_grid(img.mueller, layout, self.demosaic,
+            t = truth_on_output_grid(img.mueller, layout, self.output_demosaic,
                                      polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
                                      model=self.sensor_model, exposure_us=exposure_us)
         else:
             t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, states)
         obj = img.extra.get("object_mask")
         if obj is not None:  # output pixels whose whole support lies on the object
-            support = demosaic_float(np.asarray(obj, np.float32), layout, self.demosaic)
+            support = demosaic_float(np.asarray(obj, np.float32), layout, self.output_demosaic)
             obj = support.min(axis=(0, 1)) >= 1.0
         return score_against_truth(result, t, obj)
 
 
-def make_processor(plan, calibration: Calibration, sensor_model: SensorModel) -> Processor:
-    return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average)
+def make_processor(plan, calibration: Calibration, sensor_model: SensorModel,
+                   device: str = "auto") -> Processor:
+    """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
+    return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
+                     plan.resolution, device)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -360,9 +424,14 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       mirror_average: bool | None = None, calibration: Calibration | None = None,
                       command_line: list[str] | None = None,
                       progress: Callable[[int, dict[str, Any] | None], None] | None = None,
-                      on_failed: Callable[[int, str], None] | None = None) -> str:
+                      on_failed: Callable[[int, str], None] | None = None,
+                      resolution: str | None = None, device: str = "auto") -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
+
+    ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
+    stays single-shot, else ``superpixel``) is recorded with the revision; ``device`` (where
+    the network runs) is not a setting of the result: the provider used is in its header.
 
     A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
     is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
@@ -377,32 +446,36 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         if not was_locked:
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed)
+                          progress, on_failed, resolution, device)
     finally:
         if not was_locked:
             session.unlock()
 
 
 def revision_plan(session: Session, mode: str | None, demosaic: str | None,
-                  mirror_average: bool | None, calibration: Calibration | None
+                  mirror_average: bool | None, calibration: Calibration | None,
+                  resolution: str | None = None, device: str = "auto"
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
-    revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``calibration_id``;
-    ``None`` arguments take the session's), its :class:`Processor` and the indices of the
-    complete captures to process. Shared by :func:`reprocess_session` and
-    :mod:`polrig.cluster`."""
+    revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
+    ``calibration_id``; ``None`` arguments take the session's), its :class:`Processor` (on
+    ``device``) and the indices of the complete captures to process. Shared by
+    :func:`reprocess_session` and :mod:`polrig.cluster`."""
     plan = session.plan
     mode = mode or plan["mode"]
     demosaic = demosaic or plan.get("demosaic", "superpixel")
     if mirror_average is None:  # the session's choice where it was single-shot already
         mirror_average = bool(plan.get("mirror_average", False)) and mode == "single-shot"
+    if resolution is None:  # the session's where it stays single-shot
+        resolution = plan.get("resolution", "superpixel") if mode == "single-shot" else "superpixel"
     calibration = calibration or nominal_calibration()
     if calibration.sensor is not None:  # before a revision exists: nothing recorded
         layout, readout, size = session_frame_geometry(session)
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
-    processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average)
+    processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
+                          resolution, device)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
@@ -415,13 +488,13 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                               f"capture again with the reference method)")
         validate_states(calibration.incident_stokes(acquired))
     return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
-             "calibration_id": calibration.id}, processor, done)
+             "resolution": resolution, "calibration_id": calibration.id}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
-               progress, on_failed) -> str:
+               progress, on_failed, resolution=None, device="auto") -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
-                                              calibration)
+                                              calibration, resolution, device)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

@@ -55,7 +55,9 @@ def test_plan_validation_and_json_round_trip():
                             ({"frames_per_state": 0}, "frames_per_state", "frames per state"),
                             ({"mode": "magic"}, "mode", "capture mode must be one of"),
                             ({"dark_frames": -1}, "dark_frames", "dark frames must be >= 0"),
-                            ({"mirror_average": True}, "mirror_average", "single-shot mode only")]:
+                            ({"mirror_average": True}, "mirror_average", "single-shot mode only"),
+                            ({"resolution": "full"}, "resolution", "only the single-shot method"),
+                            ({"resolution": "half"}, "resolution", "superpixel, full")]:
         with pytest.raises(PlanError, match=text) as e:
             CapturePlan((0,), **kw)
         assert e.value.field == field and "--" not in str(e.value)
@@ -70,6 +72,19 @@ def test_plan_validation_and_json_round_trip():
     assert CapturePlan((-36000, 36000), states_deg=(-360, 0, 90, 360)).poses_deg[0] == -36000.0
     # single-shot needs one state only
     assert CapturePlan((0,), mode="single-shot", states_deg=(0,)).frames_per_pose() == 1
+
+
+def test_single_shot_resolution_is_planned_and_older_plans_read_as_superpixel():
+    full = CapturePlan((0,), mode="single-shot", resolution="full")
+    assert CapturePlan.from_json(full.to_json()) == full and full.to_json()["resolution"] == "full"
+    old = CapturePlan((0,), mode="single-shot").to_json()
+    del old["resolution"]  # a session written before the field existed
+    assert CapturePlan.from_json(old).resolution == "superpixel"
+    # the result EXR of a full-resolution plan is at the raw size: 16 times the 4x4-cell grid's
+    sp = CapturePlan((0,), mode="single-shot")
+    assert planned_bytes(full, 1, 64, 64, 3, (4, 4)) > planned_bytes(sp, 1, 64, 64, 3, (4, 4))
+    assert (planned_bytes(full, 1, 64, 64, 3, (4, 4))
+            == planned_bytes(CapturePlan((0,), mode="single-shot", demosaic="bilinear"), 1, 64, 64, 3, (4, 4)))
 
 
 def test_planned_bytes_grows_with_everything():

@@ -77,6 +77,9 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     (["--poses", "0", "--states", "0,45,90,1e300"], "--states 1e+300 deg: not a polarizer angle"),
     (["--poses", "0", "--config", "/nonexistent/rig.toml"], "no such file"),
     (["--poses", "0", "--mode", "single-shot"], "single-shot"),
+    # single-shot captures one state: several are refused, not recorded as if captured
+    (["--poses", "0", "--mode", "single-shot", "--states", "0,45"],
+     "--states: the single-shot method captures one polarizer state per pose"),
     (["--poses", "0", "--mirror-average"], "--mirror-average: mirror averaging applies to the single-shot mode only"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
@@ -214,6 +217,7 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
     assert main(["capture", "--poses", "0,180", "--mode", "single-shot", "--config", str(cfg),
                  "--out", str(out), "--no-progress"]) == 0
     s = Session.open(out)
+    assert s.plan["states_deg"] == [0.0]  # the plan records the one state captured
     for cap in s.captures:
         assert len(cap["files"]["raw"]) == 1  # one state, one frame
         assert cap["score"]["pixels_compared"] > 0 and cap["score"]["psnr_db"] > 20
@@ -509,3 +513,81 @@ def test_info_into_a_closed_pipe_exits_quietly(tmp_path):
                           stderr=subprocess.PIPE, text=True, cwd=REPO, timeout=60)
     os.close(w)
     assert proc.returncode == 141 and proc.stderr == "", proc.stderr
+
+
+@pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
+def test_single_shot_full_resolution_capture_and_reconstruct(tmp_path, capsys):
+    """``--resolution full`` (issue 22 item 1): the plan records it, the Mueller EXR has the raw
+    frame's size with a score against the truth on that grid, sigma NaN (not calibrated there)
+    and the provider and resolution in its header; ``reconstruct --resolution superpixel``
+    writes the networks' grid, whose cells the full-resolution image averages back to."""
+    from polrig.exr import read_mueller_exr
+
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[sim]\nsize = "128x128"\nclock_speed = inf\nseed = 3\n')
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", "single-shot", "--resolution", "full",
+                 "--device", "cpu", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    s = Session.open(out)
+    assert s.plan["resolution"] == "full"
+    score = s.captures[0]["score"]
+    assert score["psnr_db"] > 25 and score["within_2sigma"] is None  # no sigma to judge
+    full = read_mueller_exr(out / s.capture(0)["files"]["mueller"]["path"])
+    assert full.mueller.shape == (3, 3, 3, 128, 128)
+    md = full.metadata
+    assert md["resolution"] == "full" and md["execution_provider"] == "CPUExecutionProvider"
+    assert md["output_demosaic"] == "bilinear" and "NaN" in md["planes"]["sigma.M{rc}"]
+    assert np.all(np.isnan(full.extra["sigma.M00.R"]))
+    valid = full.extra["mask.G"] == 0
+    assert score["pixels_compared"] > 32 * 32  # scored on the raw grid (superpixel: 529 of 32x32)
+    assert np.all(np.isfinite(full.mueller[..., valid]))
+    capsys.readouterr()
+    assert main(["reconstruct", str(out), "--resolution", "superpixel", "--no-progress"]) == 0
+    s = Session.open(out)
+    assert [r["resolution"] for r in s.manifest["revisions"]] == ["superpixel"]
+    sp = read_mueller_exr(out / s.capture(0)["revisions"]["rev1"]["files"]["mueller"]["path"])
+    assert sp.mueller.shape == (3, 3, 3, 32, 32) and sp.metadata["resolution"] == "superpixel"
+    # the lifted image averaged over each 4x4 cell is close to the networks' answer on the grid
+    cells = full.mueller.reshape(3, 3, 3, 32, 4, 32, 4).mean(axis=(-3, -1))
+    obj = (sp.extra["mask.G"] == 0) & valid.reshape(32, 4, 32, 4).all(axis=(1, 3))
+    err = np.abs(cells - sp.mueller)[..., obj].mean() / np.abs(sp.mueller[..., obj]).mean()
+    assert obj.sum() > 100 and err < 0.25, err
+    # and back to full resolution from the raw frames: the same image as the capture's
+    assert main(["reconstruct", str(out), "--resolution", "full", "--no-progress"]) == 0
+    s = Session.open(out)
+    again = read_mueller_exr(out / s.capture(0)["revisions"]["rev2"]["files"]["mueller"]["path"])
+    np.testing.assert_array_equal(again.mueller, full.mueller)
+
+
+@pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
+def test_full_resolution_with_the_reference_method_or_an_absent_cuda_is_refused(tmp_path, capsys):
+    """``--resolution full`` with the reference method, and ``--device cuda`` where onnxruntime
+    has no CUDA: one line naming the option, exit 2, nothing written (no session folder, no
+    revision)."""
+    import onnxruntime as ort
+
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[sim]\nsize = "64x64"\nclock_speed = inf\nseed = 3\n')
+    out = tmp_path / "ref"
+    capsys.readouterr()
+    assert main(["capture", "--poses", "0", "--resolution", "full", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--resolution full" in err and "single-shot" in err
+    assert not out.exists()
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        assert main(["capture", "--poses", "0", "--mode", "single-shot", "--device", "cuda",
+                     "--config", str(cfg), "--out", str(out), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--device cuda" in err
+        assert not out.exists()
+    ss = tmp_path / "ss"
+    assert main(["capture", "--poses", "0", "--mode", "single-shot", "--config", str(cfg),
+                 "--out", str(ss), "--no-progress"]) == 0
+    before = (ss / "session.json").read_bytes()
+    capsys.readouterr()
+    assert main(["reconstruct", str(ss), "--mode", "reference", "--resolution", "full",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--resolution full" in err
+    assert (ss / "session.json").read_bytes() == before

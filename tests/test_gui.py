@@ -163,6 +163,12 @@ def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
         before = w.live.last
         qtbot.waitUntil(lambda: w.live.last is not before and w.live.last.display == "mueller", timeout=30000)
         assert np.all(np.isfinite(w.live.last.data.mueller))
+        # full resolution (models.full_resolution): the grid of the sensor's own 64x64 pixels
+        w.live.resolution.setCurrentText("full")
+        assert w.live_worker.settings.resolution == "full"
+        qtbot.waitUntil(lambda: w.live.last.display == "mueller"
+                        and w.live.last.data.mueller.shape[-2:] == (64, 64), timeout=30000)
+        assert from_qimage(w.live.last.image).shape[0] == 3 * 64 + 4 * b
     finally:
         close_window(qtbot, w)
 
@@ -325,6 +331,9 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.capture.out.setText(str(tmp_path / "x"))
     w.live.colour.setCurrentIndex(2)
     w.live.mirror_average.setChecked(True)
+    w.capture.resolution.setCurrentText("full")
+    w.capture.device.setCurrentText("cpu")
+    w.live.resolution.setCurrentText("full")
     w.close()
     assert ini.is_file()
     w2 = make_window(qtbot, ini, start=False)
@@ -334,6 +343,9 @@ def test_settings_are_remembered(qtbot, tmp_path):
     assert w2.capture.mode.currentText() == "single-shot"
     assert w2.capture.mirror_average.isEnabled() and w2.capture.mirror_average.isChecked()
     assert w2.capture.request().mirror_average
+    assert w2.capture.resolution.isEnabled() and w2.capture.request().resolution == "full"
+    assert w2.capture.request().device == "cpu"
+    assert w2.live_worker.settings.resolution == "full"
     assert w2.capture.out.text() == str(tmp_path / "x")
     assert w2.live.colour.currentIndex() == 2
     assert w2.live.mirror_average.isChecked() and w2.live_worker.settings.mirror_average

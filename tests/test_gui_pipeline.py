@@ -4,6 +4,7 @@ readout shows the core's numbers, the latest-frame slot never holds more than on
 
 from __future__ import annotations
 
+import pathlib
 import threading
 
 import numpy as np
@@ -13,6 +14,8 @@ from polrig.gui import pipeline
 from polrig.gui.live import LatestSlot, RateMeter
 from polrig.hal import Frame, FrameMeta
 from polrig.stokes import stokes_from_raw
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _frame(raw: np.ndarray, layout: str, bit_depth: int = 12, black: float = 16.0) -> Frame:
@@ -123,3 +126,38 @@ def test_rate_meter():
     for k in range(11):
         m.tick(100.0 + 0.05 * k)
     assert m.rate() == pytest.approx(20.0)
+
+
+@pytest.mark.skipif(not (REPO / "models" / "weights" / "single_shot.onnx").is_file(),
+                    reason="no single-shot model in models/weights")
+def test_live_mueller_grid_at_full_resolution_has_the_sensor_size():
+    """The live view's single-shot Mueller grid (issue 22 item 1): at ``full`` resolution the
+    Mueller image, its Stokes images and masks have the simulated sensor's size (the networks'
+    grid is a quarter of it per axis on the colour sensor), the grid renders 3x3 of them, and
+    the detail keeps the networks' cell averages."""
+    from models.runtime import SingleShotModel
+    from polrig.calibrations import nominal_calibration, single_shot_geometry
+    from polrig.rig import build_rig, load_rig_config
+
+    rig = build_rig(load_rig_config(None), {"size": "128x96", "clock_speed": 1000.0})
+    rig.open()
+    try:
+        frame = rig.camera.grab(timeout_s=10.0)
+    finally:
+        rig.close()
+    model = SingleShotModel.load(threads=1, device="cpu")
+    geometry = single_shot_geometry(nominal_calibration(), rig.config)
+    sp = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry)
+    full = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution="full")
+    assert sp.mueller.shape == (3, 3, 3, 24, 32)
+    assert full.mueller.shape == (3, 3, 3, 96, 128) and full.stokes.shape[-2:] == (96, 128)
+    assert full.snr.shape[-2:] == (96, 128) and full.flags.shape[-2:] == (96, 128)
+    grid = pipeline.render(full, "mueller")
+    b = pipeline.GRID_BORDER_PX
+    assert grid.shape[0] == 3 * 96 + 4 * b and grid.shape[1] > 3 * 128 + 4 * b  # + colour bar
+    obj = (full.flags[0] & pipeline.preview.BACKGROUND) == 0
+    cells = obj.reshape(24, 4, 32, 4).all(axis=(1, 3))
+    assert cells.sum() > 10
+    avg = full.mueller.reshape(3, 3, 3, 24, 4, 32, 4).mean(axis=(-3, -1))
+    err = np.abs(avg - sp.mueller)[..., cells].mean() / np.abs(sp.mueller[..., cells]).mean()
+    assert err < 0.25, err

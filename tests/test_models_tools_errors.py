@@ -1,5 +1,5 @@
 """The model tools on bad input: ``polrig infer --sigma`` without a calibration of its graph,
-``python -m models.uncertainty`` and ``python -m models.diagnose`` with missing folders, sets
+``python -m models.uncertainty_fit`` and ``python -m models.diagnose`` with missing folders, sets
 without a lit sample, absurd limits, damaged or foreign calibration files and unwritable
 outputs. One line naming the problem, exit 2, before the work."""
 
@@ -65,7 +65,7 @@ def test_infer_sigma_without_a_calibration_of_the_graph_is_refused(frame, tmp_pa
     capsys.readouterr()
     assert main(argv + ["--sigma", "--out", str(tmp_path / "s.exr")]) == 2
     err = capsys.readouterr().err.strip()
-    assert needle in err and "python -m models.uncertainty" in err and "\n" not in err
+    assert needle in err and "python -m models.uncertainty_fit" in err and "\n" not in err
     assert not (tmp_path / "s.exr").exists()
     assert main(argv + ["--out", str(tmp_path / "plain.exr")]) == 0  # without --sigma nothing is missing
 
@@ -85,10 +85,10 @@ def _tool(module: str, capsys, *argv) -> tuple[int, str]:
 def test_diagnose_and_uncertainty_bad_input_is_one_line(sets, tmp_path, capsys, case):
     lit, dark = sets
     module, argv, needle = {
-        "no-weights": ("uncertainty", ["--weights", tmp_path / "nowhere", "--check", lit], "nowhere not found"),
+        "no-weights": ("uncertainty_fit", ["--weights", tmp_path / "nowhere", "--check", lit], "nowhere not found"),
         "no-data": ("diagnose", ["--data", tmp_path / "nowhere"], "nowhere not found"),
         "dark": ("diagnose", ["--data", dark], "no sample with a lit object pixel"),
-        "dark-check": ("uncertainty", ["--check", dark], "no sample with a lit object pixel"),
+        "dark-check": ("uncertainty_fit", ["--check", dark], "no sample with a lit object pixel"),
         "limit-0": ("diagnose", ["--data", lit, "--limit", "0"], "--limit"),
         "limit-negative": ("diagnose", ["--data", lit, "--limit", "-1"], "--limit"),
         "json-nodir": ("diagnose", ["--data", lit, "--json", tmp_path / "nodir" / "x.json"], "nodir"),
@@ -110,7 +110,7 @@ def test_a_limit_is_the_first_samples_or_refused():
 def test_uncertainty_says_why_a_calibration_does_not_apply(sets, tmp_path, capsys, calibration, needle):
     lit, _ = sets
     wd = _weights(tmp_path, calibration)
-    code, err = _tool("uncertainty", capsys, "--weights", wd, "--check", lit)
+    code, err = _tool("uncertainty_fit", capsys, "--weights", wd, "--check", lit)
     assert code == 2 and needle in err and "--write" in err and "\n" not in err
 
 
@@ -119,7 +119,7 @@ def test_uncertainty_checks_a_matching_calibration_and_diagnose_skips_the_unlit_
 
     lit, _ = sets
     wd = _weights(tmp_path, "same")
-    code, err = _tool("uncertainty", capsys, "--weights", wd, "--check", lit)
+    code, err = _tool("uncertainty_fit", capsys, "--weights", wd, "--check", lit)
     assert code == 0, err
     result = diagnose(lit, wd, echo=lambda s: None)
     assert result["all"]["samples"] == 7 and np.isfinite(result["all"]["full"])

@@ -271,7 +271,7 @@ def test_fine_tune_from_a_weights_folder(trained, tmp_path):
     data, and the networks taken unchanged export to graphs computing what the donor's do."""
     import onnxruntime as ort
 
-    from models.evaluate import _network_inputs
+    from models.evaluate import network_inputs
 
     root, data, _ = trained
     said = []
@@ -282,7 +282,7 @@ def test_fine_tune_from_a_weights_folder(trained, tmp_path):
     assert [r["stage"] for r in rows] == ["pmmnet"] * TINY.pmmnet_epochs
     assert summary["config"]["pipnet_epochs"] == TINY.pipnet_epochs  # the donor's lineage is kept
     ds = load_dataset(data)
-    feed = dict(zip(("analyzer", "mask", "s_in", "wo", "stage_zero_axis"), _network_inputs(ds, 0)))
+    feed = dict(zip(("analyzer", "mask", "s_in", "wo", "stage_zero_axis"), network_inputs(ds, 0)))
 
     def run(weights, graph):
         sess = ort.InferenceSession(str(weights / graph), providers=["CPUExecutionProvider"])

@@ -1,4 +1,5 @@
-"""Calibrated uncertainty of single-shot Mueller images (:mod:`models.uncertainty`).
+"""Calibrated uncertainty of single-shot Mueller images (:mod:`models.uncertainty`, the runtime
+part, and :mod:`models.uncertainty_fit`, the fitting tool).
 
 Checked: the observed-frame rotation against its definition (property test over the incident
 angle and degree of polarization), that :func:`calibrate` recovers a known heteroscedastic
@@ -18,6 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from models import uncertainty as unc
+from models import uncertainty_fit as fit
 from polrig.mueller import polarizer_stokes
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -66,10 +68,10 @@ def _synthetic_samples(coef: np.ndarray, rng: np.random.Generator, n: int = 12, 
         stokes = np.einsum("crkhw,k->crhw", pred, s_in) + miss
         r = unc.misfit(pred, s_in, stokes, scale)
         np.testing.assert_allclose(r, r_target, rtol=1e-9)
-        sig = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", unc._design(q, r), coef)
+        sig = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", unc.feature_rows(q, r), coef)
         truth_obs = m_obs + rng.normal(size=m_obs.shape) * sig
         truth = unc.to_observed_frame(truth_obs, rot.T)
-        samples.append(unc.Sample(pred, truth, s_in, mask, np.zeros((3, size, size), bool), stokes))
+        samples.append(fit.Sample(pred, truth, s_in, mask, np.zeros((3, size, size), bool), stokes))
     return samples
 
 
@@ -84,12 +86,12 @@ def test_calibration_recovers_a_known_error_model():
     coef[1:, 1:, 1] = 0.15  # the lower-right block grows with the polarization strength
     coef[:, 2, 3] = 0.8  # the unobserved column grows with the misfit of the observed state
     rng = np.random.default_rng(1)
-    fitted, info = unc.calibrate(_synthetic_samples(coef, rng))
+    fitted, info = fit.calibrate(_synthetic_samples(coef, rng))
     assert info["pixels"] > 10_000
     big = coef > 0.03
     np.testing.assert_allclose(fitted[big], coef[big], rtol=0.2)
     model = unc.UncertaintyModel(fitted)
-    cov = unc.coverage(model, _synthetic_samples(coef, rng))  # fresh draws
+    cov = fit.coverage(model, _synthetic_samples(coef, rng))  # fresh draws
     assert abs(cov["within_2sigma"] - unc.COVERAGE) < 0.01
     assert np.all(np.abs(np.asarray(cov["within_2sigma_per_element"]) - unc.COVERAGE) < 0.02)
     # a model that ignores the polarization strength misses the specular pixels, one that
@@ -97,7 +99,7 @@ def test_calibration_recovers_a_known_error_model():
     for ignored in ([1, 2], [3]):
         flat = fitted.copy()
         flat[..., ignored] = 0.0
-        cov = unc.coverage(unc.UncertaintyModel(flat), _synthetic_samples(coef, rng))
+        cov = fit.coverage(unc.UncertaintyModel(flat), _synthetic_samples(coef, rng))
         assert min(cov["within_2sigma_per_element"][r][2] for r in range(3)) < 0.93
 
 
@@ -117,16 +119,16 @@ def test_mirror_term_adds_the_scaled_disagreement_and_its_calibration_recovers_k
         g = model.sigma(s.pred, s.s_in, s.mask, s.stokes).astype(np.float64)
         h = g * rng.lognormal(-1.0, 1.0, g.shape)  # disagreements from far below to far above sigma
         truth = s.pred + rng.normal(size=g.shape) * k_true * h + (s.truth - s.pred)
-        mirrored.append(unc.Sample(s.pred, truth, s.s_in, s.mask, s.clipped, s.stokes, h))
-    k = unc.calibrate_mirror(model, mirrored)
+        mirrored.append(fit.Sample(s.pred, truth, s.s_in, s.mask, s.clipped, s.stokes, h))
+    k = fit.calibrate_mirror(model, mirrored)
     assert k == pytest.approx(k_true, rel=0.15)
     with_term = unc.UncertaintyModel(coef, mirror_k=k)
     s = mirrored[0]
     np.testing.assert_allclose(with_term.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement),
                                np.sqrt(model.sigma(s.pred, s.s_in, s.mask, s.stokes).astype(np.float64) ** 2
                                        + (k * s.disagreement) ** 2), rtol=1e-5)
-    e, g, h = unc._pooled(with_term, mirrored, mirror_term=False)
-    top = h / g >= np.quantile(h / g, 1 - unc.MIRROR_TOP)
+    e, g, h = fit._pooled(with_term, mirrored, mirror_term=False)
+    top = h / g >= np.quantile(h / g, 1 - fit.MIRROR_TOP)
     assert np.mean(e[top] <= 2 * np.sqrt(g[top] ** 2 + (k * h[top]) ** 2)) > 0.94
     assert np.mean(e[top] <= 2 * g[top]) < 0.6
     with pytest.raises(ValueError, match="disagreement"):
@@ -213,8 +215,8 @@ def test_shipped_calibration_covers_a_fresh_simulated_set(tmp_path):
     for holdout in (False, True):
         out = tmp_path / f"set{holdout}"
         generate_dataset(out, count=16, width=64, seed=4242, holdout=holdout, progress=False)
-        samples += unc.dataset_samples(out, net)
-    cov = unc.coverage(net.uncertainty, samples)
+        samples += fit.dataset_samples(out, net)
+    cov = fit.coverage(net.uncertainty, samples)
     assert 0.88 <= cov["within_2sigma"] <= 0.99
 
 

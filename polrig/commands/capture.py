@@ -51,6 +51,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
                    help="demosaic method for processing (default superpixel: no interpolated "
                         "values, exact propagated uncertainty)")
+    p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
+                   help="single-shot output resolution: superpixel (the networks' grid, default) or "
+                        "full (the raw frame's: the networks' answer with the measured detail of a "
+                        "full-resolution demosaic, --demosaic bilinear unless newton is given; no "
+                        "sigma at full resolution; models/full_resolution.py)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
+                   help="where the single-shot network runs: auto (CUDA where onnxruntime offers it, "
+                        "else the CPU; default), cpu or cuda (refused when unavailable); the provider "
+                        "used is recorded in each result's header")
     p.add_argument("--config", help="rig configuration TOML (default: the simulated rig)")
     p.add_argument("--calibration", help="calibration set folder (default: nominal ideal "
                                          "polarizer and analyzer, calibration id 'nominal')")
@@ -66,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "frames_per_state": "--frames", "exposures_us": "--exposure",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
-         "mirror_average": "--mirror-average", "calibration": "--calibration", "out": "--out"}
+         "mirror_average": "--mirror-average", "resolution": "--resolution",
+         "calibration": "--calibration", "out": "--out"}
 #: What the command line adds to an error about a field.
 HINTS = {"out": "--resume"}
 
@@ -111,6 +121,8 @@ def build_request(args: argparse.Namespace):
             dark_frames=args.dark_frames,
             demosaic=args.demosaic,
             mirror_average=args.mirror_average,
+            resolution=args.resolution,
+            device=args.device or "auto",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
             resume=bool(args.resume))
@@ -161,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             with options_named():
                 processor = processing.make_processor(plan, calibration,
-                                                      processing.session_sensor_model(session))
+                                                      processing.session_sensor_model(session),
+                                                      device=args.device or "auto")
         except BaseException:
             session.unlock()
             raise

@@ -21,6 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulated seconds per real second (default 1: real time)")
     p.add_argument("--weights", default=None, metavar="DIR",
                    help="single-shot model folder (default: the shipped models/weights)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="where the live view's single-shot network runs: auto (CUDA where "
+                        "onnxruntime offers it, else the CPU; default), cpu or cuda (refused when "
+                        "unavailable, before the window opens)")
     p.add_argument("--settings", default=None, metavar="FILE",
                    help="INI file for the remembered settings (default: the user's "
                         "polrig/polrig-gui settings)")
@@ -33,7 +37,13 @@ def run(args: argparse.Namespace) -> int:
     from sim.options import parse_size
 
     w, h = parse_size(args.sim_size)  # bad sizes: a one-line ConfigError before Qt starts
+    if args.device == "cuda":  # refused before Qt starts (models.devices.DeviceUnavailable, exit 2)
+        import onnxruntime as ort
+
+        from models.devices import choose_providers
+
+        choose_providers(args.device, ort.get_available_providers())
     from polrig.gui.app import run_gui
 
     return run_gui(args.config, sim_size=f"{w}x{h}", sim_clock_speed=args.sim_clock_speed,
-                   weights=args.weights, settings_file=args.settings)
+                   weights=args.weights, device=args.device, settings_file=args.settings)

@@ -33,8 +33,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
     p.add_argument("--state-deg", type=finite_float, required=True, help="polarizer stage angle of the capture (deg)")
     p.add_argument("--out", required=True, help="output EXR path")
-    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default="superpixel",
-                   help="demosaic method (default superpixel: the sensor's native sampling)")
+    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+                   help="demosaic method (default superpixel: the sensor's native sampling; bilinear "
+                        "with --resolution full). bilinear/newton at the default resolution run the "
+                        "networks on the full-resolution demosaic (slow: resized to 1.5 Mpx)")
+    p.add_argument("--resolution", choices=("superpixel", "full"), default="superpixel",
+                   help="output resolution: superpixel (the networks' grid, default) or full (the raw "
+                        "frame's: the networks on the superpixel grid plus the measured detail of a "
+                        "full-resolution demosaic, models/full_resolution.py)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="where the networks run: auto (CUDA when onnxruntime offers it, else the CPU; "
+                        "default), cpu, or cuda (refused when unavailable). The provider used is "
+                        "printed and recorded in the EXR header")
     p.add_argument("--black-level", type=nonnegative_float, default=None,
                    help="black level in DN, >= 0 and below the saturation level (default: the sidecar's)")
     p.add_argument("--scale", type=positive_float, default=None,
@@ -84,6 +94,13 @@ def run(args: argparse.Namespace) -> int:
     from polrig.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
     from polrig.rig import load_rig_config
 
+    method = args.demosaic or ("bilinear" if args.resolution == "full" else "superpixel")
+    if args.resolution == "full" and method == "superpixel":
+        raise ConfigError("--resolution full takes its detail from a full-resolution demosaic: "
+                          "--demosaic bilinear or newton, not superpixel")
+    if args.resolution == "full" and args.sigma:
+        raise ConfigError("--sigma: the uncertainty is calibrated at the networks' (superpixel) resolution "
+                          "only; leave out --resolution full or --sigma")
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
@@ -107,10 +124,11 @@ def run(args: argparse.Namespace) -> int:
                                             what=f"{args.raw}", phase=False)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
     geometry = calibrations.single_shot_geometry(calibration, load_rig_config(args.config))
-    kwargs = calibrations.single_shot_kwargs(geometry, frame, args.demosaic)
+    kwargs = calibrations.single_shot_kwargs(geometry, frame,
+                                             "superpixel" if args.resolution == "full" else method)
     if args.stage_zero_axis is not None:
         kwargs["stage_zero_axis"] = args.stage_zero_axis
-    model = SingleShotModel.load(args.weights)
+    model = SingleShotModel.load(args.weights, device=args.device)
     if args.sigma and model.uncertainty is None:  # before the work: --sigma would silently write no planes
         from models.uncertainty import how_to_calibrate
 
@@ -119,12 +137,14 @@ def run(args: argparse.Namespace) -> int:
     # result is in the unit of the noise model, the truth of a simulated capture and a session
     sensor, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
     raw_adc = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
-    mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=args.demosaic,
+    mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=method,
+                               resolution=args.resolution,
                                black_level_dn=black * to_adc, scale=args.scale,
                                saturation_dn=saturation * to_adc,
                                with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
-                                         "layout": str(layout), "demosaic": args.demosaic,
+                                         "layout": str(layout), "demosaic": method,
+                                         "resolution": args.resolution,
                                          "saturation_dn": saturation, "mirror_average": args.mirror_average,
                                          "units": UNITS, "adc_dn_per_file_dn": to_adc})
     # previews: the measured S0 against its noise sigma decides what is signal
@@ -137,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
           f"network {1e3 * t['network']:.1f} ms; {mask_summary(flags, snr, min_snr)}; previews "
           f"{', '.join(p.name for p in previews)}")
+    print(f"networks ran on {model.provider}")
     n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
     if n_clipped:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "

@@ -43,6 +43,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
                    help="single-shot: average the network's answers for each frame and its mirror "
                         "image (default: the session's choice)")
+    p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
+                   help="single-shot output resolution: superpixel or full (the raw frame's; "
+                        "default: the session's)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
+                   help="where the single-shot network runs: auto (default), cpu or cuda (refused "
+                        "when unavailable); the provider used is recorded in each result's header")
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
@@ -108,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
         with options_named():  # a plan error names its option (--mode, --mirror-average...)
             batches = cluster.reconstruct(
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
-                mirror_average=args.mirror_average, calibration_path=args.calibration,
+                mirror_average=args.mirror_average, resolution=args.resolution,
+                device=args.device or "auto", calibration_path=args.calibration,
                 command_line=_command_line(args, paths), on_start=on_start,
                 on_capture=on_capture)
     except cluster.BatchIncomplete as exc:

@@ -103,21 +103,22 @@ def sim_options(size: str = DEFAULT_SIM_SIZE, clock_speed: float = 1.0) -> dict[
     return {"size": size, "clock_speed": clock_speed}
 
 
-def model_loader(weights: str | None = None):
-    """A function loading the single-shot model (the CLI's message when none is installed)."""
+def model_loader(weights: str | None = None, device: str = "auto"):
+    """A function loading the single-shot model on ``device`` (``auto``, ``cpu``, ``cuda``:
+    :mod:`models.devices`; the CLI's message when none is installed)."""
     def load():
         from polrig import processing
 
         if weights is None:
-            return processing.single_shot_model()
+            return processing.single_shot_model(device)
         from models.runtime import SingleShotModel
 
-        return SingleShotModel.load(weights)
+        return SingleShotModel.load(weights, device=device)
     return load
 
 
 def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_SIM_SIZE,
-            sim_clock_speed: float = 1.0, weights: str | None = None,
+            sim_clock_speed: float = 1.0, weights: str | None = None, device: str = "auto",
             settings_file: str | None = None, argv: list[str] | None = None) -> int:
     """Open the rig (simulated unless ``config``) and run the GUI until its window closes."""
     import PySide6
@@ -133,7 +134,7 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
     rig = build_rig(config_data, sim_options(sim_size, sim_clock_speed))
     app = QApplication.instance() or QApplication(argv or sys.argv[:1])
     app.setApplicationName("polrig")
-    window = MainWindow(rig, make_settings(settings_file), model_loader=model_loader(weights))
+    window = MainWindow(rig, make_settings(settings_file), model_loader=model_loader(weights, device))
     window.show()
     window.start()
     with close_on_signals(window) as received:

@@ -98,7 +98,7 @@ class CaptureWorker(QThread):
                 try:
                     processor = processing.make_processor(
                         prepared.plan, prepared.calibration,
-                        processing.session_sensor_model(session))
+                        processing.session_sensor_model(session), device=self.request.device)
                     result = capture.run_session(self.rig, session, processor=processor,
                                                  progress=self.progress.emit,
                                                  control=self.control)
@@ -142,8 +142,20 @@ class CapturePanel(QWidget):
         self.mirror_average = QCheckBox("Mirror-average the network (single-shot: twice the network time, "
                                         "a few per cent lower error)")
         self.mirror_average.setEnabled(False)
-        self.mode.currentTextChanged.connect(
-            lambda m: self.mirror_average.setEnabled(m == "single-shot"))
+        self.resolution = QComboBox()
+        self.resolution.addItems(["superpixel", "full"])
+        self.resolution.setToolTip("single-shot output: the networks' superpixel grid, or the raw "
+                                   "frame's full resolution (detail from the demosaic, bilinear "
+                                   "where it is superpixel; no sigma)")
+        self.resolution.setEnabled(False)
+        self.device = QComboBox()
+        self.device.addItems(["auto", "cpu", "cuda"])
+        self.device.setToolTip("where the single-shot network runs (auto: CUDA where onnxruntime "
+                               "offers it); the provider used is recorded in each result")
+        self.device.setEnabled(False)
+        for w in (self.mirror_average, self.resolution, self.device):
+            self.mode.currentTextChanged.connect(
+                lambda m, w=w: w.setEnabled(m == "single-shot"))
         self.states = QLineEdit()
         self.states.setPlaceholderText("0,45,90,135")
         self.frames = QSpinBox()
@@ -166,6 +178,8 @@ class CapturePanel(QWidget):
         form.addRow("Poses (deg)", self.poses)
         form.addRow("Mode", self.mode)
         form.addRow("", self.mirror_average)
+        form.addRow("Resolution", self.resolution)
+        form.addRow("Network device", self.device)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
         form.addRow("Exposure(s)", self.exposure)
@@ -224,7 +238,8 @@ class CapturePanel(QWidget):
             raise ValueError("choose an output folder for the session")
         calibration = self.calibration.text().strip()
         base = dict(out=pathlib.Path(out), resume=resume,
-                    calibration=pathlib.Path(calibration) if calibration else None)
+                    calibration=pathlib.Path(calibration) if calibration else None,
+                    device=self.device.currentText())
         if resume:
             return CaptureRequest(**base)
         states, exposure = self.states.text().strip(), self.exposure.text().strip()
@@ -237,7 +252,8 @@ class CapturePanel(QWidget):
             exposures_us=(parse_float_list(exposure, "exposures", positive=True,
                                            field="exposures_us") if exposure else None),
             dark_frames=self.dark_frames.value(), demosaic=self.demosaic.currentText(),
-            mirror_average=mode == "single-shot" and self.mirror_average.isChecked())
+            mirror_average=mode == "single-shot" and self.mirror_average.isChecked(),
+            resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel")
 
     def _browse(self) -> None:
         path = QFileDialog.getExistingDirectory(self, "Session folder", self.out.text())

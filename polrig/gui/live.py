@@ -74,6 +74,9 @@ class LiveSettings:
     #: Mueller display: average the network's answers for the frame and its mirror image
     #: (:mod:`models.mirror`; twice the network time)
     mirror_average: bool = False
+    #: Mueller display: ``superpixel`` (the networks' grid) or ``full`` (the raw frame's size,
+    #: :mod:`models.full_resolution`)
+    resolution: str = "superpixel"
     max_fps: float = 30.0
     #: Longest side of the displayed image in pixels (0: full resolution); see
     #: :func:`polrig.gui.pipeline.display_step`. Processing is always at full resolution.
@@ -283,7 +286,8 @@ class LiveWorker(QThread):
             else:
                 data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
                                               source="live", geometry=self._geometry(),
-                                              mirror_average=s.mirror_average)
+                                              mirror_average=s.mirror_average,
+                                              resolution=s.resolution)
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
                                           source="live", model=self._sensor_model())

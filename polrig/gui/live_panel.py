@@ -57,6 +57,11 @@ class LivePanel(QWidget):
         self.overlay = QCheckBox("saturation overlay (red)")
         self.overlay.setChecked(True)
         self.mirror_average = QCheckBox("Mueller: mirror-average the network (twice the time)")
+        self.resolution = QComboBox()
+        self.resolution.addItems(["superpixel", "full"])
+        self.resolution.setToolTip("Mueller display: the networks' superpixel grid, or the raw frame's "
+                                   "full resolution (the measured detail of the demosaic, bilinear "
+                                   "where the demosaic is superpixel)")
         self.min_snr = min_snr_box()
         self.pause_button = QPushButton("Pause live")
         self.pause_button.setCheckable(True)
@@ -70,6 +75,7 @@ class LivePanel(QWidget):
         form.addRow("Mask below SNR", self.min_snr)
         form.addRow(self.overlay)
         form.addRow(self.mirror_average)
+        form.addRow("Mueller resolution", self.resolution)
         form.addRow(self.pause_button)
         self.readout = ReadoutLabel("move the cursor over the image")
         self.histogram = HistogramWidget()
@@ -96,6 +102,7 @@ class LivePanel(QWidget):
         self.method.setCurrentText(s.method)
         self.overlay.setChecked(s.saturation_overlay)
         self.mirror_average.setChecked(s.mirror_average)
+        self.resolution.setCurrentText(s.resolution)
         self.min_snr.setValue(s.min_snr)
         self.min_snr.valueChanged.connect(self._settings_changed)
         self.display.currentIndexChanged.connect(self._settings_changed)
@@ -103,6 +110,7 @@ class LivePanel(QWidget):
         self.method.currentIndexChanged.connect(self._settings_changed)
         self.overlay.toggled.connect(self._settings_changed)
         self.mirror_average.toggled.connect(self._settings_changed)
+        self.resolution.currentIndexChanged.connect(self._settings_changed)
         self.exposure.valueChanged.connect(lambda v: self.worker.set_camera(exposure_us=v))
         self.gain.valueChanged.connect(lambda v: self.worker.set_camera(gain_db=v))
         self.pause_button.toggled.connect(self._pause_toggled)
@@ -132,6 +140,7 @@ class LivePanel(QWidget):
         s.method = self.method.currentText()
         s.saturation_overlay = self.overlay.isChecked()
         s.mirror_average = self.mirror_average.isChecked()
+        s.resolution = self.resolution.currentText()
         s.min_snr = self.min_snr.value()
 
     def _pause_toggled(self, paused: bool) -> None:

@@ -126,11 +126,14 @@ class MainWindow(QMainWindow):
         b.bind("live/demosaic", st.combo_binding(lp.method))
         b.bind("live/saturation_overlay", st.bool_binding(lp.overlay))
         b.bind("live/mirror_average", st.bool_binding(lp.mirror_average))
+        b.bind("live/resolution", st.combo_binding(lp.resolution))
         for key, w in (("poses", cp.poses), ("states", cp.states), ("exposure", cp.exposure),
                        ("calibration", cp.calibration), ("out", cp.out)):
             b.bind(f"capture/{key}", st.text_binding(w))
         b.bind("capture/mode", st.combo_binding(cp.mode))
         b.bind("capture/mirror_average", st.bool_binding(cp.mirror_average))
+        b.bind("capture/resolution", st.combo_binding(cp.resolution))
+        b.bind("capture/device", st.combo_binding(cp.device))
         b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
         b.bind("capture/frames", st.int_binding(cp.frames))
         b.bind("capture/dark_frames", st.int_binding(cp.dark_frames))

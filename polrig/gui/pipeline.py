@@ -232,9 +232,14 @@ def process_frame(frame: Frame, method: str = "superpixel", *, workers: int | No
 
 def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpixel",
                   source: str = "", geometry: dict | None = None,
-                  mirror_average: bool = False) -> PolarizationData:
+                  mirror_average: bool = False, resolution: str = "superpixel") -> PolarizationData:
     """Single-shot Mueller image of a frame taken with the polarizer at ``state_deg``
     (:func:`models.runtime.infer_frame`), with the Stokes images it computed on the way.
+
+    ``resolution``: ``superpixel`` (the networks' grid, ``method`` the networks' input) or
+    ``full`` (the raw frame's size: :mod:`models.full_resolution`, the detail from ``method``,
+    ``bilinear`` where that is ``superpixel``); the Stokes images, masks and SNR are then at
+    the raw size as well.
 
     ``geometry``: the rig's single-shot geometry (intrinsics, stage zero axis) from
     :func:`polrig.processing.single_shot_geometry`, exactly as capture processing uses it;
@@ -243,10 +248,13 @@ def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpix
     from models.runtime import infer_frame
     from polrig.processing import single_shot_kwargs
 
-    kwargs = single_shot_kwargs(geometry, frame, method) if geometry else {}
+    full = resolution == "full"
+    if full and method == "superpixel":  # the detail comes from a full-resolution demosaic
+        method = "bilinear"
+    kwargs = single_shot_kwargs(geometry, frame, "superpixel" if full else method) if geometry else {}
     mueller, aux = infer_frame(frame.raw, frame_layout(frame), state_deg, model,
                                demosaic_method=method, black_level_dn=frame.meta.black_level_dn,
-                               mirror_average=mirror_average, **kwargs)
+                               mirror_average=mirror_average, resolution=resolution, **kwargs)
     d = PolarizationData.from_stokes(aux["stokes"], source)
     d.mueller = mueller
     d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)

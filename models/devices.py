@@ -1,0 +1,78 @@
+"""Which onnxruntime execution provider runs the single-shot graph (CPU or CUDA).
+
+``auto`` takes CUDA when the installed onnxruntime offers it (the ``gpu`` extra installs
+``onnxruntime-gpu``, which does) and the CPU otherwise; ``cpu`` and ``cuda`` force one. A forced
+``cuda`` that this onnxruntime cannot offer is refused before any work (:class:`DeviceUnavailable`,
+one line, exit 2). The CPU provider always follows CUDA in the list: onnxruntime assigns an
+operator CUDA has no kernel for to the next provider, and a CUDA provider that fails to start
+(no driver, a library missing) leaves the session on the CPU with only a warning, so the
+provider a session *actually* uses is read back from it (:func:`used_device`) and a forced
+``cuda`` session that ended on the CPU is refused as well (:func:`check_session`).
+
+Pure functions of the provider lists, so the selection and fallback logic is tested on a
+CPU-only machine with the real ``onnxruntime.get_available_providers()`` and real sessions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from polrig.errors import ConfigError
+
+CPU = "CPUExecutionProvider"
+CUDA = "CUDAExecutionProvider"
+#: ``--device`` choices and the provider each names (``auto``: the first available of CUDA, CPU).
+DEVICES = {"cpu": CPU, "cuda": CUDA}
+CHOICES = ("auto", *DEVICES)
+
+
+class DeviceUnavailable(ConfigError):
+    """A forced device that this onnxruntime cannot run on (exit 2)."""
+
+
+def choose_providers(device: str, available: Sequence[str]) -> list[str]:
+    """Providers to open a session with, in priority order, for ``device`` (``auto``, ``cpu`` or
+    ``cuda``) given onnxruntime's ``available`` providers (``get_available_providers()``).
+
+    ``auto``: ``[CUDA, CPU]`` when CUDA is available, else ``[CPU]``; ``cpu``: ``[CPU]``;
+    ``cuda``: ``[CUDA, CPU]`` (CPU for the operators CUDA lacks), :class:`DeviceUnavailable` when
+    CUDA is not available. ``ValueError`` for another ``device``."""
+    if device not in CHOICES:
+        raise ValueError(f"device must be one of {', '.join(CHOICES)}, got {device!r}")
+    have = set(available)
+    if device == "cpu":
+        return [CPU]
+    if CUDA in have:
+        return [CUDA, CPU]
+    if device == "cuda":
+        raise DeviceUnavailable(
+            "--device cuda: this onnxruntime has no CUDA execution provider (available: "
+            f"{', '.join(available) or 'none'}); install the gpu extra (pip uninstall onnxruntime && "
+            "pip install 'polrig[gpu]') on a machine with an NVIDIA driver, or use --device cpu")
+    return [CPU]
+
+
+def used_device(session_providers: Sequence[str]) -> str:
+    """The provider that runs a session's graph: the first of the providers the session reports
+    (``InferenceSession.get_providers()``: the ones it really registered, in priority order)."""
+    if not session_providers:
+        raise ValueError("a session with no execution provider")
+    return session_providers[0]
+
+
+def check_session(device: str, requested: Sequence[str], session_providers: Sequence[str]) -> str:
+    """The provider a session opened with ``requested`` really uses; :class:`DeviceUnavailable`
+    when ``device`` forced CUDA and the session fell back to the CPU (CUDA listed as available
+    but failing to start: no driver, a missing CUDA or cuDNN library). With ``auto`` such a
+    fallback is accepted: the CPU runs it, and the provider used says so."""
+    used = used_device(session_providers)
+    if device == "cuda" and used != CUDA:
+        raise DeviceUnavailable(f"--device cuda: the CUDA execution provider did not start (the session runs on "
+                                f"{used}; requested {', '.join(requested)}): check the NVIDIA driver and the "
+                                "CUDA/cuDNN libraries onnxruntime-gpu needs, or use --device cpu")
+    return used
+
+
+def short_name(provider: str) -> str:
+    """``cuda`` / ``cpu`` / the provider's own name for another one (for one-line reports)."""
+    return {v: k for k, v in DEVICES.items()}.get(provider, provider)

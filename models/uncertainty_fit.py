@@ -1,0 +1,280 @@
+"""The fitting tool of the single-shot uncertainty (:mod:`models.uncertainty`, whose module
+docstring describes the error model; that module is the runtime part).
+
+Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
+``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
+the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly
+``COVERAGE`` of the calibration errors lie within ``2 sigma``, the fraction a right Gaussian
+sigma covers; ``k`` (:func:`calibrate_mirror`) so that the tenth of the mirror-averaged
+calibration elements whose disagreement is largest against ``sigma`` is covered as well.
+Pixels with a clipped
+analyzer sample are left out: a clipped highlight's magnitude is unknown, and
+:mod:`polrig.processing` reports infinite sigma there.
+
+``python -m models.uncertainty_fit --data DIR [DIR ...] --write`` runs the shipped graph on
+``polrig sim dataset`` folders, calibrates and writes ``models/weights/uncertainty.json`` (with
+the SHA-256 of the graph it belongs to); ``--check DIR ...`` prints the coverage on other sets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from models.uncertainty import (COVERAGE, FILE_NAME, N_FEATURES, P_MIN, UncertaintyModel, feature_rows,
+                                calibration_for_graph, features, graph_sha256, how_to_calibrate, misfit,
+                                observed_frame_rotation, to_observed_frame)
+from polrig.errors import ConfigError, FormatError
+
+#: Bins of :func:`calibrate`: quantiles of the polarization strength ``q``, then within each
+#: quantiles of the misfit ``r``.
+Q_BINS = 12
+R_BINS = 6
+#: Fraction of elements, those whose mirror disagreement is largest against ``sigma``, whose
+#: coverage :func:`calibrate_mirror` sets.
+MIRROR_TOP = 0.1
+
+
+@dataclasses.dataclass
+class Sample:
+    """One prediction with its truth: ``pred``/``truth`` ``(C, 3, 3, H, W)``, ``s_in`` (3,),
+    ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample,
+    ``stokes`` ``(C, 3, H, W)`` the measured Stokes images the prediction was made from;
+    ``disagreement`` (like ``pred``) for a mirror-averaged prediction, else None."""
+
+    pred: np.ndarray
+    truth: np.ndarray
+    s_in: np.ndarray
+    mask: np.ndarray
+    clipped: np.ndarray
+    stokes: np.ndarray
+    disagreement: np.ndarray | None = None
+
+
+def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``(|error'| / scale (N, 3, 3), q (N,), r (N,), p (N,))`` over unclipped object pixels."""
+    ratios, qs, rs, ps = [], [], [], []
+    for s in samples:
+        rot, p = observed_frame_rotation(s.s_in)
+        pred = np.asarray(s.pred, np.float64)
+        pred_obs, truth = to_observed_frame(pred, rot), to_observed_frame(np.asarray(s.truth, np.float64), rot)
+        scale, q = features(pred_obs, s.mask)
+        r = misfit(pred, s.s_in, np.asarray(s.stokes, np.float64), scale)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.isfinite(r)  # (C, H, W)
+        err = np.abs(pred_obs - truth) / scale[:, None, None]
+        ratios.append(np.moveaxis(err, (1, 2), (-2, -1))[use])
+        qs.append(q[use])
+        rs.append(r[use])
+        ps.append(np.full(int(use.sum()), p))
+    return np.concatenate(ratios), np.concatenate(qs), np.concatenate(rs), np.concatenate(ps)
+
+
+def _quantile_bins(x: np.ndarray, n: int) -> np.ndarray:
+    """Index ``0..n-1`` of each value's bin among ``n`` bins of equal count."""
+    edges = np.quantile(x, np.linspace(0.0, 1.0, n + 1))
+    return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n - 1)
+
+
+def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
+    """Coefficients ``(3, 3, N_FEATURES)`` (module docstring) and a summary of the fit."""
+    ratio, q, r, p = _observed_errors(samples)
+    polarized = p >= P_MIN
+    ratio, q, r = ratio[polarized], q[polarized], r[polarized]
+    n_bins = Q_BINS * R_BINS
+    if len(q) < 100 * n_bins:
+        raise ValueError(f"too few calibration pixels ({len(q)}) for {n_bins} bins")
+    which = np.empty(len(q), np.int64)
+    q_bin = _quantile_bins(q, Q_BINS)
+    for b in range(Q_BINS):
+        sel = np.flatnonzero(q_bin == b)
+        which[sel] = b * R_BINS + _quantile_bins(r[sel], R_BINS)
+    bins = [np.flatnonzero(which == b) for b in range(n_bins)]
+    bins = [i for i in bins if len(i)]
+    x = feature_rows(np.array([np.median(q[i]) for i in bins]), np.array([np.median(r[i]) for i in bins]))
+    weight = np.sqrt([float(len(i)) for i in bins])
+    weighted = x * weight[:, None]
+    full_design = feature_rows(q, r)
+    coef = np.zeros((3, 3, N_FEATURES))
+    for row in range(3):
+        for k in range(3):
+            y = np.array([np.quantile(ratio[i, row, k], COVERAGE) / 2.0 for i in bins])
+            coef[row, k] = _nonnegative_lstsq(weighted, y * weight)
+            # exact coverage on the calibration pixels
+            sig = full_design @ coef[row, k]
+            coef[row, k] *= np.quantile(ratio[:, row, k] / np.maximum(sig, 1e-12), COVERAGE) / 2.0
+    return coef, {"pixels": int(len(q)), "q_bins": Q_BINS, "r_bins": R_BINS}
+
+
+def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least squares with every coefficient >= 0, by trying each active set (a few unknowns)."""
+    best, best_res = np.zeros(a.shape[1]), np.inf
+    n = a.shape[1]
+    for subset in range(1, 2**n):
+        cols = [j for j in range(n) if subset >> j & 1]
+        sol, *_ = np.linalg.lstsq(a[:, cols], b, rcond=None)
+        if np.any(sol < 0):
+            continue
+        full = np.zeros(n)
+        full[cols] = sol
+        res = float(np.sum((a @ full - b) ** 2))
+        if res < best_res:
+            best, best_res = full, res
+    return best
+
+
+def _pooled(model: UncertaintyModel, samples: Iterable[Sample], mirror_term: bool = True
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``|error|``, ``sigma`` (with the mirror term where a sample has a disagreement,
+    unless ``mirror_term`` is False) and disagreement (0 where none) ``(N, 3, 3)``, rig frame,
+    over unclipped object pixels of ``samples`` with a finite sigma."""
+    errs, sigs, dis = [], [], []
+    for s in samples:
+        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement if mirror_term else None)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
+        h = np.zeros_like(sig) if s.disagreement is None else s.disagreement
+        for out, x in ((errs, np.abs(np.asarray(s.pred, np.float64) - s.truth)), (sigs, sig), (dis, h)):
+            out.append(np.moveaxis(np.asarray(x, np.float64), (1, 2), (-2, -1))[use])
+    return np.concatenate(errs), np.concatenate(sigs), np.concatenate(dis)
+
+
+def calibrate_mirror(model: UncertaintyModel, samples: Iterable[Sample]) -> float:
+    """``k`` of ``sigma_avg^2 = sigma^2 + (k h)^2`` (module docstring): the smallest ``k`` for
+    which ``COVERAGE`` of the :data:`MIRROR_TOP` elements with the largest ``h / sigma`` lie
+    within ``2 sigma_avg``, on mirror-averaged ``samples`` (bisection; 0 if already covered)."""
+    e, g, h = _pooled(model, samples, mirror_term=False)
+    ratio = h / np.maximum(g, 1e-30)
+    top = ratio >= np.quantile(ratio, 1.0 - MIRROR_TOP)
+    e, g, h = e[top], g[top], h[top]
+    covered = lambda k: float(np.mean(e <= 2.0 * np.sqrt(g**2 + (k * h) ** 2)))  # noqa: E731
+    if covered(0.0) >= COVERAGE:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while covered(hi) < COVERAGE:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e3:
+            raise ValueError("the mirror disagreement does not explain the errors (k > 1000)")
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if covered(mid) >= COVERAGE else (mid, hi)
+    return hi
+
+
+def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, float]:
+    """In the rig's frame: fraction of elements within ``2 sigma`` (all, and per element), the
+    RMS error over the RMS sigma, over unclipped object pixels of ``samples`` (with the mirror
+    term for mirror-averaged samples)."""
+    e_all, g_all, _ = _pooled(model, samples)
+    inside_all = e_all <= 2.0 * g_all
+    return {"within_2sigma": float(inside_all.mean()),
+            "within_2sigma_per_element": np.round(inside_all.mean(0), 3).tolist(),
+            "rms_error_over_rms_sigma": float(np.sqrt(np.mean(e_all**2) / np.mean(g_all.astype(np.float64) ** 2))),
+            "pixels": int(len(e_all))}
+
+
+def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: bool = False) -> list[Sample]:
+    """Run ``model`` (:class:`models.runtime.SingleShotModel`; mirror-averaged with
+    ``mirror_average``) on a ``polrig sim dataset`` folder -> samples with the truth (samples
+    without a lit object pixel are skipped, as in :mod:`models.evaluate`). A sample's pixel is
+    clipped where an analyzer value reached the sensor's saturation level
+    (:attr:`polrig.noise.SensorModel.saturation_dn` of the set's sensor model, as
+    :mod:`polrig.processing` flags it)."""
+    from models.data import load_dataset
+    from models.evaluate import network_inputs
+    from polrig.noise import SensorModel
+    from polrig.stokes import stokes_from_analyzers
+
+    from models.data import check_network_size, lit_samples
+
+    ds = load_dataset(data_dir, limit)
+    check_network_size(ds, data_dir)
+    try:
+        sensor = SensorModel(**ds.manifest["noise"]["sensor_model"]) if "noise" in ds.manifest else SensorModel()
+    except (TypeError, ValueError, KeyError) as exc:
+        raise FormatError(f"{data_dir}/manifest.json: no usable noise.sensor_model ({exc})") from None
+    lit = lit_samples(ds)
+    if not lit:
+        raise ConfigError(f"{data_dir}: no sample with a lit object pixel ({len(ds)} sample(s), nothing to "
+                          f"calibrate or check on)")
+    out = []
+    for i in lit:
+        mask = ds["mask"][i] > 0
+        truth = ds["mueller"][i]
+        res = model.run_rig_frame(*network_inputs(ds, i), mirror_average=mirror_average)
+        dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
+        clipped = dn.max(axis=1) >= sensor.saturation_dn
+        out.append(Sample(res["mueller"][0], truth, ds["s_in"][i], mask, clipped,
+                          stokes_from_analyzers(ds["analyzer"][i]),
+                          res["mueller_disagreement"][0] if mirror_average else None))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from models._cli import run_main
+
+    ap = argparse.ArgumentParser(prog="python -m models.uncertainty_fit", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", nargs="*", default=[], help="calibration sets (`polrig sim dataset` folders)")
+    ap.add_argument("--check", nargs="*", default=[], help="sets to report the coverage on")
+    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
+    ap.add_argument("--write", action="store_true", help=f"write {FILE_NAME} into the weights folder")
+    args = ap.parse_args(argv)
+    return run_main(ap.prog, lambda: _main(args))
+
+
+def _main(args: argparse.Namespace) -> int:
+    from models.data import read_manifest
+    from models.runtime import WEIGHTS_DIR, SingleShotModel
+    from polrig.rawio import atomic_write_text, temporary_sibling
+
+    wd = pathlib.Path(args.weights) if args.weights else WEIGHTS_DIR
+    if not wd.is_dir():
+        raise FileNotFoundError(f"weights folder {wd} not found")
+    for d in (*args.data, *args.check):  # every set, before the first is run
+        read_manifest(d)
+    if args.write:
+        if not args.data and not args.check:
+            raise ConfigError("--write needs --data (to calibrate) or --check (to record the coverage)")
+        try:  # the weights folder takes the file: found out now, not after the calibration
+            probe = temporary_sibling(wd / FILE_NAME)
+            probe.open("x").close()
+            probe.unlink()
+        except OSError as exc:
+            raise ConfigError(f"--write: cannot write in {wd} ({exc.strerror or exc})") from None
+    net = SingleShotModel.load(wd)
+    if args.data:
+        cal = [s for d in args.data for s in dataset_samples(d, net)]
+        coef, info = calibrate(cal)
+        model = UncertaintyModel(coef, graph_sha256(wd / "single_shot.onnx"),
+                                 dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)))
+        model.calibration["coverage"] = coverage(model, cal)
+        mirrored = [s for d in args.data for s in dataset_samples(d, net, mirror_average=True)]
+        model.mirror_k = calibrate_mirror(model, mirrored)
+        model.calibration["coverage_mirror_averaged"] = coverage(model, mirrored)
+        print(json.dumps(model.to_json(), indent=1))
+        if args.write:
+            atomic_write_text(wd / FILE_NAME, json.dumps(model.to_json(), indent=1) + "\n")
+    else:
+        model, why = calibration_for_graph(wd, "single_shot.onnx")
+        if model is None:
+            raise ConfigError(f"{why}; {how_to_calibrate(wd)}")
+    checks = {}
+    for d in args.check:
+        for suffix, mirror_average in (("", False), (" mirror-averaged", True)):
+            checks[pathlib.Path(d).name + suffix] = c = coverage(model, dataset_samples(d, net, mirror_average=mirror_average))
+            print(f"{pathlib.Path(d).name}{suffix}: within 2 sigma {c['within_2sigma']:.3f}, "
+                  f"per element {c['within_2sigma_per_element']}, RMS error / RMS sigma "
+                  f"{c['rms_error_over_rms_sigma']:.2f}, {c['pixels']} values")
+    if args.write and checks:
+        data = json.loads((wd / FILE_NAME).read_text())  # the calibration just written or checked above
+        data["checks"] = checks
+        atomic_write_text(wd / FILE_NAME, json.dumps(data, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
