@@ -268,15 +268,15 @@ def main(argv=None) -> int:
                      f"{statistics.median(per[n]):.2f} | {statistics.median(cpus[n]):.2f} | "
                      f"{med[n] / one:.2f}x | {med[n] / serial:.2f}x | "
                      f"{format_bytes(statistics.median(reads[n]))} |")
-    overhead = statistics.median(per["1 worker"]) - statistics.median(per["serial, 1 thread"])
+    overhead = statistics.median(cpus["1 worker"]) - statistics.median(cpus["serial, 1 thread"])
     lines += [
         "",
         f"- Cluster start-up (not in the rates): 1 worker {startup[1]:.1f} s, 2 workers "
         f"{startup[2]:.1f} s.",
         f"- Per-task overhead: an empty task's round trip {rt * 1e3:.1f} ms (median of 100); "
-        f"1 worker minus serial (1 thread) per capture {overhead * 1e3:+.0f} ms (round trip, the worker "
-        f"opening the session manifest, process boundary; noise of the shared machine "
-        f"included).",
+        f"CPU per capture of 1 worker minus serial (1 thread) {overhead * 1e3:+.0f} ms (the "
+        f"worker opening the session manifest, Dask's own threads; wall-clock differences are "
+        f"not overhead: the client records one capture while the worker solves the next).",
         f"- Bytes per capture between client and workers: task {job_b} B, result "
         f"{out_b} B; the capture's raw frames are {format_bytes(raw_bytes)}, read by the worker "
         f"from the shared file system. The client's own reads per run (files and sockets, "
