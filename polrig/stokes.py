@@ -248,13 +248,23 @@ def _planes(x: np.ndarray) -> np.ndarray:
     return x.reshape(-1, x.shape[-1])
 
 
+def _empty_result(s: np.ndarray) -> np.ndarray | None:
+    """Zeros ``(C, H, W)`` float32 for Stokes images ``(C, 3, H, W)`` without pixels (OpenCV's
+    element-wise calls return None for empty input), else None."""
+    return np.zeros(s.shape[:1] + s.shape[2:], np.float32) if s[:, 0].size == 0 else None
+
+
 def dolp_with_overshoot(stokes: np.ndarray, valid: np.ndarray | None = None
                         ) -> tuple[np.ndarray, int]:
     """DoLP ``sqrt(S1^2 + S2^2) / S0`` ``(C, H, W)`` float32 in [0, 1] and the number of valid
     pixels where noise pushed it above 1 (clipped to 1 there). 0 where invalid, and also where
     a caller's ``valid`` lets through a pixel with ``S0 <= 0`` or a non-finite value (negative
-    or NaN quotients), so the range holds whatever mask is passed."""
+    or NaN quotients), so the range holds whatever mask is passed. Images without pixels
+    (``C``, ``H`` or ``W`` = 0) give an empty array of that shape."""
     s = np.asarray(stokes, dtype=np.float32)
+    empty = _empty_result(s)
+    if empty is not None:
+        return empty, 0
     if valid is None:
         valid = stokes_validity(s)
     mag = cv2.magnitude(_planes(s[:, 1]), _planes(s[:, 2]))
@@ -284,8 +294,12 @@ def aolp_deg(stokes: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """AoLP ``atan2(S2, S1) / 2`` in degrees in [0, 180) ``(C, H, W)`` float32, 0 where invalid.
 
     Computed with ``cv2.phase`` (absolute error below 0.01 deg, measured against ``arctan2``).
+    Images without pixels give an empty array of that shape.
     """
     s = np.asarray(stokes, dtype=np.float32)
+    empty = _empty_result(s)
+    if empty is not None:
+        return empty
     if valid is None:
         valid = stokes_validity(s)
     shape = s.shape[:1] + s.shape[2:]
@@ -300,7 +314,8 @@ def aolp_deg(stokes: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 def polarized_split(stokes: np.ndarray, valid: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
     """``(unpolarized, polarized)`` intensities ``(C, H, W)``: polarized = DoLP * S0 (DoLP
-    clipped to [0, 1]), unpolarized = S0 - polarized; both 0 where invalid."""
+    clipped to [0, 1]), unpolarized = S0 - polarized; both 0 where invalid (empty arrays for
+    images without pixels)."""
     s = np.asarray(stokes, dtype=np.float32)
     if valid is None:
         valid = stokes_validity(s)

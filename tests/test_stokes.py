@@ -269,3 +269,16 @@ def test_strip_wise_bilinear_equals_whole_image_computation(monkeypatch, phase):
     np.testing.assert_array_equal(res.valid, valid)
     np.testing.assert_allclose(res.dolp, dolp(s, valid), atol=1e-6)
     np.testing.assert_allclose(res.aolp_deg, aolp_deg(s, valid), atol=1e-3)
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 0, 5), (0, 3, 4, 4), (2, 3, 4, 0), (0, 3, 0, 0)])
+def test_images_without_pixels_give_empty_results(shape):
+    """OpenCV returns None for empty planes: DoLP, AoLP and the polarized split return empty
+    float32 arrays of shape (C, H, W) instead (issue 20, item 8)."""
+    s = np.zeros(shape, np.float32)
+    out_shape = shape[:1] + shape[2:]
+    d, n_over = dolp_with_overshoot(s)
+    assert d.shape == out_shape and d.dtype == np.float32 and n_over == 0
+    for arr in (dolp(s), aolp_deg(s), *polarized_split(s),
+                dolp(s, np.zeros(out_shape, bool)), aolp_deg(s, np.zeros(out_shape, bool))):
+        assert arr.shape == out_shape and arr.dtype == np.float32
