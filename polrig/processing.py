@@ -24,6 +24,7 @@ variance divided by ``n`` (exact); interpolating demosaics get the interpolated 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import pathlib
 from typing import Any, Callable, Sequence
@@ -95,6 +96,42 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     return result, s_in, lay, states
 
 
+@dataclasses.dataclass(frozen=True)
+class CaptureResult:
+    """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
+    ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``data`` the EXR's
+    bytes, ``score`` against the simulator's truth (``None`` without a truth file)."""
+
+    relpath: str
+    data: bytes
+    score: dict[str, Any] | None
+
+
+def record_result(session: Session, index: int, revision: str | None, record: dict[str, Any],
+                  score: dict[str, Any] | None) -> None:
+    """Record capture ``index``'s written ``mueller.exr`` (``record``: ``path``, ``sha256``,
+    ``bytes``, as :meth:`Session.write_new_file` returns) with its ``uncertainty`` and ``mask``
+    views, and in ``revision`` (if given) its score and status ``complete``; save the manifest
+    (under ``session.mutex``: the next capture's acquisition writes the manifest meanwhile).
+    The one place a result enters a manifest: the serial :meth:`Processor.process` and the
+    client of :mod:`polrig.cluster` (whose workers write the files) both call it."""
+    with session.mutex:
+        cap = session.capture(index)
+        files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
+        if "mueller" in files:
+            raise FileExistsError(f"capture {index} already has a 'mueller' file")
+        files["mueller"] = dict(record)
+        files["uncertainty"] = {"part_of": "mueller", "path": record["path"],
+                                "channels": "sigma.M{row}{col}.{colour}, "
+                                            "sigma_noise.M{row}{col}.{colour}, "
+                                            "residual.{colour}"}
+        files["mask"] = {"part_of": "mueller", "path": record["path"],
+                         "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        if revision is not None:
+            cap["revisions"][revision].update(status=COMPLETE, score=score)
+        session.save()
+
+
 class Processor:
     """Processing of captures inside a session (see :func:`polrig.capture.run_session`).
 
@@ -150,7 +187,18 @@ class Processor:
     def process(self, session: Session, index: int, revision: str | None = None
                 ) -> dict[str, Any] | None:
         """Solve capture ``index`` from its raw files; write the result files (into
-        ``revision`` if given); return the score against the truth (simulated rig) or None."""
+        ``revision`` if given); return the score against the truth (simulated rig) or None.
+        :meth:`solve` and :func:`record_result`, with the file written in between."""
+        out = self.solve(session, index, revision)
+        rec = session.write_new_file(out.relpath, out.data)
+        record_result(session, index, revision, rec, out.score)
+        return out.score
+
+    def solve(self, session: Session, index: int, revision: str | None = None
+              ) -> "CaptureResult":
+        """Capture ``index`` solved from its raw files (checksums verified), as the bytes of
+        its ``mueller.exr`` (for ``revision`` if given) and its score; writes nothing, so a
+        worker of :mod:`polrig.cluster` can run it on a session another process writes."""
         from polrig import __version__
         from polrig.exr import colour_planes, element_planes, write_mueller_exr
 
@@ -203,25 +251,11 @@ class Processor:
         data = exr_bytes(lambda p: write_mueller_exr(p, result.mueller, extra=extra,
                                                       metadata=meta))
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
-        rec = session.add_file(index, "mueller", f"{folder}/mueller.exr", data,
-                               revision=revision)
-        with session.mutex:  # the next capture's acquisition writes the manifest meanwhile
-            files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
-            files["uncertainty"] = {"part_of": "mueller", "path": rec["path"],
-                                    "channels": "sigma.M{row}{col}.{colour}, "
-                                                "sigma_noise.M{row}{col}.{colour}, "
-                                                "residual.{colour}"}
-            files["mask"] = {"part_of": "mueller", "path": rec["path"],
-                             "channels": "mask.{colour} (reason bits, 0 = valid)"}
         score = self.score(session, index, result, lay, s_in,
                            states if self.mode == "reference" else None,
                            noise_exposures_us(cf)[0],
                            truth_path=truth_path)
-        with session.mutex:
-            if revision is not None:
-                cap["revisions"][revision].update(status=COMPLETE, score=score)
-            session.save()
-        return score
+        return CaptureResult(f"{folder}/mueller.exr", data, score)
 
     def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
@@ -418,8 +452,16 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
             session.unlock()
 
 
-def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
-               progress, on_failed, resolution=None, device="auto") -> str:
+def revision_plan(session: Session, mode: str | None, demosaic: str | None,
+                  mirror_average: bool | None, calibration: Calibration | None,
+                  resolution: str | None = None, device: str = "auto"
+                  ) -> tuple[dict[str, Any], Processor, list[int]]:
+    """What a new revision of ``session`` records and needs, checked before it exists (an
+    impossible request records nothing): ``(settings, processor, captures)`` -- the
+    revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
+    ``calibration_id``; ``None`` arguments take the session's), its :class:`Processor` (on
+    ``device``) and the indices of the complete captures to process. Shared by
+    :func:`reprocess_session` and :mod:`polrig.cluster`."""
     plan = session.plan
     mode = mode or plan["mode"]
     demosaic = demosaic or plan.get("demosaic", "superpixel")
@@ -445,12 +487,17 @@ def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, co
                               f"needs at least 3 (reconstruct with the single-shot method, or "
                               f"capture again with the reference method)")
         validate_states(calibration.incident_stokes(acquired))
+    return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
+             "resolution": resolution, "calibration_id": calibration.id}, processor, done)
+
+
+def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
+               progress, on_failed, resolution=None, device="auto") -> str:
+    settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
+                                              calibration, resolution, device)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
-        name = session.new_revision({"mode": mode, "demosaic": demosaic,
-                                     "mirror_average": mirror_average,
-                                     "resolution": resolution,
-                                     "calibration_id": calibration.id}, command_line)
+        name = session.new_revision(settings, command_line)
         for index in done:
             session.start_revision(index, name)
             try:

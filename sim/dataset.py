@@ -20,7 +20,7 @@ import dataclasses
 import json
 import pathlib
 import zipfile
-from typing import Any, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -236,14 +236,20 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
                      height: int | None = None, seed: int = 0, holdout: bool = False,
                      shard_size: int = 16, compress: bool = True, progress: bool = True,
                      max_shards: int | None = None, stage_zero_axes: str = "random",
-                     families: Sequence[str] | None = None) -> dict[str, int]:
+                     families: Sequence[str] | None = None,
+                     runner: Callable[[Callable, list], Iterator[tuple[Any, Any]]] | None = None
+                     ) -> dict[str, int]:
     """Write (or resume) a dataset; returns ``{"written": shards made, "skipped": shards
     already complete}``. ``max_shards`` stops after that many new shards (for tests and
     partial runs). ``stage_zero_axes``: how each sample's polarizer stage zero axis is chosen
     (:data:`STAGE_ZERO_AXES`). ``families``: shape families to draw from (default: every
     family of the chosen side, :func:`families_for`). A folder holding a different dataset
     raises :class:`ConfigError`, as do sides that are not multiples of :data:`SIZE_MULTIPLE`, a
-    negative seed and an ``out`` that is (or lies in) a file; all before anything is written."""
+    negative seed and an ``out`` that is (or lies in) a file; all before anything is written.
+    ``runner(fn, jobs)`` (e.g. :meth:`polrig.cluster.DaskRunner.map_unordered`) runs
+    :func:`write_shard` on every :class:`ShardJob` elsewhere and yields ``(job, samples)`` as
+    each finishes; each shard is the same bytes as in the serial run (default: this process,
+    one shard after the other)."""
     from tqdm import tqdm
 
     height = width if height is None else int(height)
@@ -290,25 +296,62 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         if shard_complete(out / shard_name(k), n_k):
             skipped += 1
         else:
-            todo.append((k, n_k))
-    bar = tqdm(total=count, initial=count - sum(n for _, n in todo), unit="sample",
-               disable=not progress, desc=f"sim dataset -> {out.name}")
+            todo.append(ShardJob(str(out.resolve()), k, k * shard_size, n_k, seed, width, height,
+                                 bool(holdout), stage_zero_axes,
+                                 None if families is None else tuple(families), compress))
+    initial = count - sum(j.n for j in todo)
+    if max_shards is not None:
+        todo = todo[:max_shards]
+    bar = tqdm(total=count, initial=initial, unit="sample", disable=not progress,
+               desc=f"sim dataset -> {out.name}")
     try:
-        for k, n_k in todo:
-            if max_shards is not None and written >= max_shards:
-                break
-            samples = []
-            for i in range(k * shard_size, k * shard_size + n_k):
-                samples.append(make_sample(i, seed=seed, width=width, height=height,
-                                           holdout=holdout, model=model,
-                                           stage_zero_axes=stage_zero_axes,
-                                           families=families))
-                bar.update(1)
-            atomic_write_bytes(out / shard_name(k), _shard_bytes(samples, compress))
-            written += 1
+        if runner is None:
+            for job in todo:
+                write_shard(job, on_sample=lambda: bar.update(1))
+                written += 1
+        else:  # shards as tasks; a sample's numbers depend on its index only
+            for job, n in runner(write_shard, todo):
+                bar.update(n)
+                written += 1
     finally:
         bar.close()
+        for tmp in out.glob(".shard-*.tmp*"):  # of a worker killed mid-write
+            tmp.unlink(missing_ok=True)
     return {"written": written, "skipped": skipped}
+
+
+@dataclasses.dataclass(frozen=True)
+class ShardJob:
+    """One shard to make: ``n`` samples from index ``start`` into ``out/shard_name(k)``,
+    with the dataset's parameters (:func:`generate_dataset`)."""
+
+    out: str
+    k: int
+    start: int
+    n: int
+    seed: int
+    width: int
+    height: int
+    holdout: bool
+    stage_zero_axes: str
+    families: tuple[str, ...] | None
+    compress: bool
+
+
+def write_shard(job: ShardJob, on_sample: Callable[[], Any] | None = None) -> int:
+    """Make shard ``job.k`` and write it atomically (temporary file + rename); returns its
+    sample count. Runs in this process or as a task on a worker that sees ``job.out``."""
+    model = dataset_sensor_model()
+    samples = []
+    for i in range(job.start, job.start + job.n):
+        samples.append(make_sample(i, seed=job.seed, width=job.width, height=job.height,
+                                   holdout=job.holdout, model=model,
+                                   stage_zero_axes=job.stage_zero_axes, families=job.families))
+        if on_sample is not None:
+            on_sample()
+    atomic_write_bytes(pathlib.Path(job.out) / shard_name(job.k), _shard_bytes(samples,
+                                                                             job.compress))
+    return job.n
 
 
 def load_shard(path: str | pathlib.Path) -> dict[str, np.ndarray]:

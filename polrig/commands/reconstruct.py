@@ -1,14 +1,20 @@
-"""``polrig reconstruct SESSION``: re-process a session's raw frames into a new revision.
+"""``polrig reconstruct SESSION... | --from-list FILE``: re-process sessions' raw frames into new revisions.
 
 Raw frames are read (their checksums verified first) and never modified; results go to
-``<capture>/<revision>/`` and the manifest records the revision's settings. The session's
+``<capture>/<revision>/`` and the manifest records the revision's settings. Every session's
 lock is held while it runs (a session another process writes is refused, exit 1). A capture
 whose files are damaged is marked ``failed`` in the revision with its reason and the others
 are processed; the command then exits 1 with one line naming the failed captures (as
 ``polrig info`` exits 1 on the same damage). A ``--calibration`` set that was not calibrated
-on the session's camera (sensor size, layout, or a readout outside its calibrated area) is
-refused before a revision exists (exit 2,
+on a session's camera (sensor size, layout, or a readout outside its calibrated area) is
+refused before any revision exists (exit 2,
 :func:`polrig.processing.check_calibration_fits`).
+
+Serial in this process by default; ``--workers N`` runs one task per capture on a local Dask
+cluster of N single-threaded worker processes, ``--scheduler ADDRESS`` on a running Dask
+scheduler's workers (:mod:`polrig.cluster`; the ``cluster`` extra). The results are the
+same bytes either way. After Ctrl-C, running the same command again continues the
+interrupted revisions with the captures still pending.
 """
 
 from __future__ import annotations
@@ -16,17 +22,24 @@ from __future__ import annotations
 import argparse
 import sys
 
+from polrig.argcheck import int_range
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "reconstruct", help="re-process a session's raw frames (new calibration/model/demosaic)",
-        description="Re-process every complete capture of a session from its raw frames into "
-                    "a new revision (rev1, rev2, ...); raw data is never touched.")
-    p.add_argument("session", help="session folder (holds session.json)")
+        "reconstruct", help="re-process sessions' raw frames (new calibration/model/demosaic)",
+        description="Re-process every complete capture of one or more sessions from their raw "
+                    "frames into a new revision each (rev1, rev2, ...); raw data is never "
+                    "touched. Serial by default; --workers/--scheduler run one Dask task per "
+                    "capture (pip install 'polrig[cluster]').")
+    p.add_argument("sessions", nargs="*", metavar="SESSION",
+                   help="session folder(s) (each holds session.json)")
+    p.add_argument("--from-list", metavar="FILE",
+                   help="text file listing session folders, one per line (# comments)")
     p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
-                   help="reconstruction method (default: the session's)")
+                   help="reconstruction method (default: each session's)")
     p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
-                   help="demosaic method (default: the session's)")
+                   help="demosaic method (default: each session's)")
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
                    help="single-shot: average the network's answers for each frame and its mirror "
                         "image (default: the session's choice)")
@@ -37,53 +50,92 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="where the single-shot network runs: auto (default), cpu or cuda (refused "
                         "when unavailable); the provider used is recorded in each result's header")
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
+                       help="run on a local Dask cluster of N single-threaded worker processes")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="run on the workers of a running Dask scheduler "
+                            "(tcp://host:8786); the session folders must be at the same "
+                            "path on every worker")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from polrig import processing
-    from polrig.commands.capture import command_line, options_named
-    from polrig.scoring import format_score
-    from polrig.session import Session
+def _command_line(args: argparse.Namespace, paths: list[str]) -> list[str]:
+    from polrig.commands.capture import command_line
 
-    session = Session.open(args.session, lock=True)  # SessionBusy if another process writes it
-    try:  # a calibration set that cannot be used: refused, the lock released, nothing written
-        with options_named():
-            calibration = processing.load_calibration(args.calibration)
-    except BaseException:
-        session.unlock()
-        raise
-    progress = on_failed = bar = None
-    if not args.no_progress:
+    ns = argparse.Namespace(**{k: v for k, v in vars(args).items()
+                               if k not in ("sessions", "no_progress")})
+    return command_line(ns, "reconstruct") + list(paths)
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig import cluster, processing
+    from polrig.commands.capture import options_named
+    from polrig.errors import ConfigError
+    from polrig.scoring import format_score
+
+    paths = list(args.sessions)
+    if args.from_list:
+        paths += cluster.read_session_list(args.from_list)
+    if not paths:
+        raise ConfigError("name at least one SESSION folder or --from-list FILE")
+    # the executor first: an unreachable scheduler or a missing extra stops before anything
+    # is opened or written
+    runner = cluster.open_runner(args.workers, args.scheduler)
+    bar = None
+    many = len(paths) > 1
+
+    def on_start(batches) -> None:
+        nonlocal bar
+        if args.no_progress:
+            return
         from tqdm import tqdm
 
-        bar = tqdm(total=sum(c["status"] == "complete" for c in session.captures),
-                   unit="capture", file=sys.stderr, desc="reconstruct", dynamic_ncols=True)
+        bar = tqdm(total=sum(len(b.todo) for b in batches), unit="capture", file=sys.stderr,
+                   desc="reconstruct", dynamic_ncols=True)
 
-        def progress(index: int, score) -> None:
-            bar.update(1)
-            cap = session.capture(index)
-            line = f"capture {index + 1} pose {cap['pose_deg']:g} deg: done"
-            if score:
-                line += " | " + format_score(score)
-            tqdm.write(line, file=sys.stdout)
+    def on_capture(batch, index: int, score, reason) -> None:
+        if bar is None:
+            return
+        from tqdm import tqdm
 
-        def on_failed(index: int, reason: str) -> None:
-            bar.update(1)
-            cap = session.capture(index)
-            tqdm.write(f"capture {index + 1} pose {cap['pose_deg']:g} deg: failed ({reason})",
-                       file=sys.stdout)
+        bar.update(1)
+        cap = batch.session.capture(index)
+        where = f"{batch.session.root.name}: " if many else ""
+        line = f"{where}capture {index + 1} pose {cap['pose_deg']:g} deg: "
+        if reason is None:
+            line += "done" + (" | " + format_score(score) if score else "")
+        else:
+            line += f"failed ({reason})"
+        tqdm.write(line, file=sys.stdout)
+
     try:
-        with options_named():
-            name = processing.reprocess_session(
-                session, mode=args.mode, demosaic=args.demosaic,
-                mirror_average=args.mirror_average, calibration=calibration,
-                command_line=command_line(args, "reconstruct"), progress=progress,
-                on_failed=on_failed, resolution=args.resolution, device=args.device or "auto")
+        with options_named():  # a plan error names its option (--mode, --mirror-average...)
+            batches = cluster.reconstruct(
+                paths, runner, mode=args.mode, demosaic=args.demosaic,
+                mirror_average=args.mirror_average, resolution=args.resolution,
+                device=args.device or "auto", calibration_path=args.calibration,
+                command_line=_command_line(args, paths), on_start=on_start,
+                on_capture=on_capture)
+    except cluster.BatchIncomplete as exc:
+        _close(bar, runner)
+        if len(paths) == 1:  # one session: the serial command's own one-line error
+            b = next(b for b in exc.batches if b.failed)
+            raise processing.ReconstructIncomplete(b.session, b.revision, b.failed,
+                                                   len(b.todo)) from None
+        for line in exc.lines:
+            print(line, file=sys.stdout)
+        raise
     finally:
-        if bar is not None:
-            bar.close()
-        session.unlock()
-    print(f"revision {name} written to {session.root}")
+        _close(bar, runner)
+    for b in batches:
+        verb = "continued in" if b.continued else "written to"
+        print(f"revision {b.revision} {verb} {b.session.root}")
     return 0
+
+
+def _close(bar, runner) -> None:
+    if bar is not None:
+        bar.close()
+    runner.close()

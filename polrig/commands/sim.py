@@ -99,6 +99,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--no-compress", action="store_true", help="store shards uncompressed")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--out", required=True, help="output folder")
+    where = d.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
+                       help="make shards as tasks on a local Dask cluster of N single-threaded "
+                            "worker processes (pip install 'polrig[cluster]')")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="make shards as tasks on the workers of a running Dask scheduler "
+                            "(tcp://host:8786); --out must be at the same path on every worker")
     d.set_defaults(func=run_dataset)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
@@ -171,13 +178,20 @@ def _refuse_to_replace(out: pathlib.Path, frame_names: list[str], pose_name: str
 
 
 def run_dataset(args: argparse.Namespace) -> int:
+    from polrig.cluster import open_runner
     from sim.dataset import generate_dataset
 
     t0 = time.perf_counter()
-    res = generate_dataset(args.out, count=args.count, width=args.size, seed=args.seed,
-                           holdout=args.holdout, shard_size=args.shard_size,
-                           compress=not args.no_compress, progress=not args.quiet,
-                           stage_zero_axes=args.stage_zero_axes, families=args.families)
+    runner = open_runner(args.workers, args.scheduler)  # unreachable: exit 2, nothing written
+    try:
+        res = generate_dataset(args.out, count=args.count, width=args.size, seed=args.seed,
+                               holdout=args.holdout, shard_size=args.shard_size,
+                               compress=not args.no_compress, progress=not args.quiet,
+                               stage_zero_axes=args.stage_zero_axes, families=args.families,
+                               runner=None if args.workers is None and args.scheduler is None
+                               else runner.map_unordered)
+    finally:
+        runner.close()
     print(f"polrig sim dataset: {res['written']} shard(s) written, {res['skipped']} already "
           f"complete -> {args.out} in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -1,0 +1,349 @@
+"""``polrig reconstruct`` on Dask distributed (:mod:`polrig.cluster`): real worker processes on
+the loopback interface, results compared byte for byte with the serial
+:func:`polrig.processing.reprocess_session`; faults (a SIGKILLed worker, Ctrl-C, damaged raw
+data, an unreachable scheduler, the extra not installed) against the manifest on disk."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+pytest.importorskip("distributed")
+
+from polrig import cluster, processing  # noqa: E402
+from polrig.cli import main  # noqa: E402
+from polrig.session import Session  # noqa: E402
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
+    [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+
+
+def _capture(tmp: pathlib.Path, name: str, size: str, poses: str) -> pathlib.Path:
+    cfg = tmp / f"{name}.toml"
+    cfg.write_text(f'[sim]\nsize = "{size}"\nsensor = "imx250mzr"\nclock_speed = inf\n'
+                   f'seed = 11\nscene = "box"\nnoise = true\n')
+    out = tmp / name
+    assert main(["capture", "--poses", poses, "--config", str(cfg), "--out", str(out),
+                 "--no-progress"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory) -> list[pathlib.Path]:
+    """Two small sessions (64x64, 4 and 3 poses): the multi-session archive; read only."""
+    tmp = tmp_path_factory.mktemp("archive")
+    return [_capture(tmp, "a", "64x64", "0:360:90"), _capture(tmp, "b", "64x64", "45,135,225")]
+
+
+@pytest.fixture(scope="module")
+def slow_session(tmp_path_factory) -> pathlib.Path:
+    """A 128x128 session of 6 poses whose bilinear solve takes a good fraction of a second
+    per capture: long enough to kill a worker or press Ctrl-C mid-batch; read only."""
+    return _capture(tmp_path_factory.mktemp("slow"), "slow", "128x128", "0:360:60")
+
+
+def _copies(sessions, dest: pathlib.Path) -> list[pathlib.Path]:
+    dest.mkdir(parents=True, exist_ok=True)
+    out = []
+    for s in sessions:
+        shutil.copytree(s, dest / s.name)
+        out.append(dest / s.name)
+    return out
+
+
+def _serial(sessions, dest: pathlib.Path, **kw) -> list[pathlib.Path]:
+    """The serial reference: :func:`polrig.processing.reprocess_session` on copies."""
+    copies = _copies(sessions, dest)
+    for c in copies:
+        processing.reprocess_session(Session.open(c), **kw)
+    return copies
+
+
+def _results(session_dir: pathlib.Path, revision: str = "rev1") -> dict:
+    """Per capture: revision status, the result's record (path, sha256, bytes), its score
+    and the file's bytes."""
+    s = Session.open(session_dir)
+    out = {}
+    for cap in s.captures:
+        rev = cap["revisions"][revision]
+        rec = rev["files"].get("mueller")
+        out[cap["name"]] = (rev["status"], rec and {k: rec[k] for k in ("path", "sha256", "bytes")},
+                            rev["score"],
+                            rec and (session_dir / rec["path"]).read_bytes())
+    return out
+
+
+def _no_leftovers(session_dir: pathlib.Path) -> None:
+    s = Session.open(session_dir)
+    assert s.verify() == [], s.verify()  # also: no file the manifest does not record
+    assert not [p for p in session_dir.rglob("*.tmp*")]
+
+
+def test_two_local_workers_are_bit_identical_to_serial(archive, tmp_path, capsys):
+    serial = _serial(archive, tmp_path / "serial", demosaic="bilinear")
+    dist = _copies(archive, tmp_path / "dist")
+    assert main(["reconstruct", *map(str, dist), "--workers", "2", "--demosaic", "bilinear"]) == 0
+    out, err = capsys.readouterr()
+    assert out.count(": done") == 7 and "a: capture 4 pose 270 deg: done" in out
+    assert "revision rev1 written to" in out
+    assert "7/7" in err and "capture/s" in err  # one bar over both sessions, with its rate
+    for s, d in zip(serial, dist):
+        assert _results(d) == _results(s)
+        assert all(v[0] == "complete" for v in _results(d).values())
+        _no_leftovers(d)
+        rev = Session.open(d).manifest["revisions"][-1]
+        assert rev["demosaic"] == "bilinear" and "--workers" in rev["command_line"]
+
+
+def test_from_list_and_serial_command_match_the_library(archive, tmp_path):
+    serial = _serial(archive, tmp_path / "serial")
+    dist = _copies(archive, tmp_path / "listed")
+    lst = tmp_path / "listed" / "sessions.txt"
+    lst.write_text("# the archive\n" + "\n".join(d.name for d in dist) + "\n\n")
+    assert main(["reconstruct", "--from-list", str(lst), "--no-progress"]) == 0
+    for s, d in zip(serial, dist):
+        assert _results(d) == _results(s)
+
+
+def test_a_worker_killed_mid_task_is_rerun_and_the_batch_is_identical(slow_session, tmp_path):
+    """SIGKILL of a worker process while the scheduler says it is running a task: Dask reruns
+    the task elsewhere; every capture completes with the serial bytes, nothing half-written
+    or temporary is left."""
+    serial = _serial([slow_session], tmp_path / "serial", demosaic="bilinear")[0]
+    dist = _copies([slow_session], tmp_path / "dist")[0]
+    runner = cluster.DaskRunner.local(2)
+    killed: list[int] = []
+
+    def killer():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            busy = [w for w, keys in runner.client.processing().items() if keys]
+            if busy:
+                pid = runner.client.run(os.getpid, workers=[busy[0]])[busy[0]]
+                time.sleep(0.15)  # into the task
+                if runner.client.processing().get(busy[0]):
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+            time.sleep(0.02)
+
+    t = threading.Thread(target=killer, daemon=True)
+    try:
+        t.start()
+        cluster.reconstruct([dist], runner, demosaic="bilinear")
+    finally:
+        t.join(timeout=5)
+        runner.close()
+    assert killed, "no worker was caught running a task"
+    assert _results(dist) == _results(serial)
+    _no_leftovers(dist)
+
+
+def test_leftover_temporary_files_of_a_dead_worker_are_removed(archive, tmp_path):
+    """A worker killed while writing leaves ``.mueller.exr.<id>.tmp.exr`` in the revision
+    folder, and one killed after its rename an unrecorded ``mueller.exr``: the client removes
+    the first and the rerun replaces the second; the revision ends complete and intact."""
+    d = _copies(archive[:1], tmp_path)[0]
+    s = Session.open(d, lock=True)
+    try:
+        batches = cluster.prepare([s], command_line=["test"])
+        folder = d / s.capture(0)["name"] / batches[0].revision
+        folder.mkdir()
+        (folder / ".mueller.exr.0123456789ab.tmp.exr").write_bytes(b"half")
+        (folder / "mueller.exr").write_bytes(b"an attempt the client never heard of")
+        cluster.run_batch(batches, cluster.SerialRunner())
+    finally:
+        s.unlock()
+    assert sorted(p.name for p in folder.iterdir()) == ["mueller.exr"]
+    assert all(c["revisions"]["rev1"]["status"] == "complete" for c in Session.open(d).captures)
+    _no_leftovers(d)
+
+
+def _spawn(argv: list[str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "polrig.cli", *argv], env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, tmp_path, capsys):
+    serial = _serial([slow_session], tmp_path / "serial", demosaic="bilinear")[0]
+    d = _copies([slow_session], tmp_path / "dist")[0]
+    proc = _spawn(["reconstruct", str(d), "--workers", "2", "--demosaic", "bilinear"])
+    try:
+        line = proc.stdout.readline()  # the first finished capture
+        assert ": done" in line, line + proc.stderr.read()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip().endswith("polrig: interrupted")
+    revs = [c["revisions"]["rev1"] for c in Session.open(d).captures]
+    done = [r for r in revs if r["status"] == "complete"]
+    pending = [r for r in revs if r["status"] == "pending"]
+    assert done and pending and len(done) + len(pending) == 6
+    assert {r["reason"] for r in pending} == {"interrupted by the operator (Ctrl-C)"}
+    _no_leftovers(d)
+    kept = {k: v for k, v in _results(d).items() if v[0] == "complete"}
+    assert main(["reconstruct", str(d), "--workers", "2", "--demosaic", "bilinear",
+                 "--no-progress"]) == 0
+    assert f"revision rev1 continued in {d}" in capsys.readouterr().out
+    s = Session.open(d)
+    assert [r["name"] for r in s.manifest["revisions"]] == ["rev1"]
+    assert s.manifest["history"][-1]["event"] == "revision continued"
+    assert _results(d) == _results(serial)
+    assert all(_results(d)[k] == v for k, v in kept.items())
+    _no_leftovers(d)
+
+
+def test_damaged_captures_are_marked_failed_and_summarised_by_session(archive, tmp_path, capsys):
+    a, b = _copies(archive, tmp_path)
+    for s, i in ((a, 1), (b, 2)):
+        (s / Session.open(s).capture(i)["files"]["raw"][0]["path"]).unlink()
+    assert main(["reconstruct", str(a), str(b), "--workers", "2", "--no-progress"]) == 1
+    out, err = capsys.readouterr()
+    assert len(err.strip().splitlines()) == 1, err
+    assert ("polrig: error: 2 capture(s) failed in 2 of 2 session(s) (a rev1: 1, b rev1: 1); "
+            "the others are complete") in err
+    assert f"{a}: revision rev1: 1 of 4 capture(s) failed: capture 1 (c001_pose090.0): " \
+           f"FileNotFoundError" in out
+    assert [c["revisions"]["rev1"]["status"] for c in Session.open(a).captures] == [
+        "complete", "failed", "complete", "complete"]
+    assert "FileNotFoundError" in Session.open(b).capture(2)["revisions"]["rev1"]["reason"]
+    # one session: the serial command's own line
+    c = _copies(archive[:1], tmp_path / "one")[0]
+    (c / Session.open(c).capture(0)["files"]["raw"][0]["path"]).unlink()
+    assert main(["reconstruct", str(c), "--workers", "1", "--no-progress"]) == 1
+    assert ("polrig: error: revision rev1: 1 of 4 capture(s) failed, the others are complete: "
+            "capture 0 (c000_pose000.0): FileNotFoundError") in capsys.readouterr().err
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_one_line_exit_2_before_anything_is_written(archive, tmp_path,
+                                                                             capsys):
+    import dask
+
+    d = _copies(archive[:1], tmp_path)[0]
+    before = {p: p.read_bytes() for p in d.rglob("*") if p.is_file()}
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+        assert main(["reconstruct", str(d), "--scheduler",
+                     f"tcp://127.0.0.1:{_free_port()}"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1, err
+        assert "cannot reach the Dask scheduler" in err
+        assert {p: p.read_bytes() for p in d.rglob("*") if p.is_file()} == before
+        assert main(["sim", "dataset", "--count", "2", "--size", "16", "--out",
+                     str(tmp_path / "data"), "--scheduler", f"127.0.0.1:{_free_port()}"]) == 2
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()
+
+
+@pytest.mark.parametrize("argv", [["reconstruct", "S", "--workers", "2"],
+                                  ["reconstruct", "S", "--scheduler", "tcp://127.0.0.1:1"],
+                                  ["sim", "dataset", "--count", "2", "--size", "16",
+                                   "--out", "D", "--workers", "2"]])
+def test_without_the_extra_the_options_say_how_to_install_it(argv, archive, tmp_path):
+    """Dask made unimportable in a child process (``sys.modules['distributed'] = None``, as
+    when the extra is not installed): exit 2, one line naming the extra; nothing written."""
+    d = _copies(archive[:1], tmp_path)[0]
+    argv = [str(d) if a == "S" else str(tmp_path / "data") if a == "D" else a for a in argv]
+    before = {p: p.stat().st_mtime_ns for p in d.rglob("*")}
+    code = ("import sys; sys.modules['distributed'] = None\n"
+            f"from polrig.cli import main; sys.exit(main({argv!r}))")
+    r = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [
+        f"polrig: error: {argv[argv.index('--workers') if '--workers' in argv else argv.index('--scheduler')]}"
+        f" needs Dask distributed, which is not installed; install the cluster extra: "
+        f"{cluster.INSTALL_HINT}"]
+    assert {p: p.stat().st_mtime_ns for p in d.rglob("*")} == before
+    assert not (tmp_path / "data").exists()
+
+
+def _readme_block() -> list[str]:
+    """The README's "scheduler and two workers on this machine" command lines."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Scale-out on a cluster (Dask)"):]
+    for block in section.split("```bash\n")[1:]:
+        body = block.split("```")[0]
+        if "dask scheduler --host" in body:
+            return [ln for ln in body.splitlines() if ln.strip()]
+    raise AssertionError("README: no 'dask scheduler' example in the scale-out section")
+
+
+@pytest.mark.slow
+def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
+    """The README's lines run as they are written, with real ``dask scheduler`` and
+    ``dask worker`` processes on the loopback interface (a free port instead of 8786, the
+    archive's two sessions instead of ``runs/demo``): the archive is reprocessed with the
+    serial bytes, in bounded time, and every process is stopped afterwards."""
+    import shlex
+
+    lines = _readme_block()
+    assert lines[0].startswith("dask scheduler") and lines[-1].startswith("kill %1 %2 %3")
+    assert sum(ln.startswith("dask worker") for ln in lines) == 2
+    serial = _serial(archive, tmp_path / "serial")
+    dist = _copies(archive, tmp_path / "dist")
+    port = str(_free_port())
+    env = {**ENV, "DASK_TEMPORARY_DIRECTORY": str(tmp_path / "scratch")}
+    background: list[subprocess.Popen] = []
+    try:
+        for line in lines[:-1]:
+            argv = []
+            for tok in shlex.split(line.rstrip(" &")):
+                tok = tok.replace("8786", port)
+                if tok == "runs/demo":
+                    argv += [str(d) for d in dist]
+                elif tok == "dask":
+                    argv += [sys.executable, "-m", "dask"]
+                elif tok == "polrig":
+                    argv += [sys.executable, "-m", "polrig.cli"]
+                else:
+                    argv.append(tok)
+            # loopback only: every address a process listens on or connects to
+            assert all(a.startswith(("127.0.0.1", "tcp://127.0.0.1")) for a in
+                       [argv[i + 1] for i, t in enumerate(argv)
+                        if t in ("--host", "--dashboard-address", "--scheduler")]
+                       + [t for t in argv if t.startswith("tcp://")]), argv
+            if line.rstrip().endswith("&"):
+                background.append(subprocess.Popen(argv, env=env, cwd=tmp_path,
+                                                   stdout=subprocess.DEVNULL,
+                                                   stderr=subprocess.DEVNULL,
+                                                   start_new_session=True))
+            else:
+                r = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True,
+                                   timeout=240)
+                assert r.returncode == 0, r.stderr
+                assert r.stdout.count("revision rev1 written to") == 2
+    finally:  # the README's 'kill %1 %2 %3', and whatever those processes started
+        for p in reversed(background):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in reversed(background):
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=20)
+    for s, d in zip(serial, dist):
+        assert _results(d) == _results(s)
+        _no_leftovers(d)
