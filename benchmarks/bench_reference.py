@@ -1,6 +1,6 @@
 """Speed of the N-state reference solve (polrig.reference) against the previous numpy
 implementation (polrig._reference_numpy), the numba compile time, and the realizability tools;
-prints tables and writes the solve table into ``benchmarks/results/reference.md`` (its own
+prints tables and writes the solve table into ``benchmarks/results/reference_solve.md`` (its own
 section per image size; the rest of the file is left as it is).
 
 Usage: ``python -m benchmarks reference`` or ``python benchmarks/bench_reference.py
@@ -42,7 +42,7 @@ from polrig.noise import SensorModel
 from polrig.stokes import ideal_analyzer_matrix
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results" / "reference.md"
+RESULTS = REPO / "benchmarks" / "results" / "reference_solve.md"
 A_TOL = (0.01, 0.5, 0.02)
 G_TOL = (2.0, 0.006)
 
