@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from polrig.rig import open_device
 
-    from polrig.capture import MAX_POSE_DEG, MAX_STATE_DEG
+    from polrig.plan import MAX_POSE_DEG, MAX_STATE_DEG
 
     if not math.isfinite(args.angle_deg):
         raise ConfigError(f"DEG must be a finite angle, got {args.angle_deg}")
