@@ -20,7 +20,7 @@ from calibration.runner import run_steps
 from drivers.emulators.ell14 import Ell14Emulator
 from drivers.emulators.grbl import GrblEmulator
 from polrig.engine import GuardedRig
-from polrig.errors import DeviceFault
+from polrig.errors import DeviceFault, DeviceTimeout
 from polrig.rig import open_rig
 
 pytestmark = pytest.mark.timeout(60)
@@ -102,3 +102,11 @@ def test_a_calibration_step_on_hardware_asks_for_every_mount_then_fails_readably
         retries = [ln for ln in lines if ln.startswith("retry:")]
         assert len(retries) == 1 and "Alarm" in retries[0]  # the startup alarm, re-homed once
         assert sum("board mounted" in ln for ln in lines) == len(INTRINSIC_MOUNTS)
+
+
+def test_a_guarded_home_waits_no_longer_than_the_callers_timeout(tmp_path):
+    with GrblEmulator(link=tmp_path / "grbl", speed_factor=1, homing_s=30.0) as grbl:
+        with open_rig(grbl_rig(tmp_path, grbl), size=(32, 24)) as rig:
+            guarded = GuardedRig.around(rig)
+            with pytest.raises(DeviceTimeout):
+                guarded.turntable.home(timeout_s=0.5)  # a 30 s homing cycle
