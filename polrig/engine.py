@@ -224,8 +224,13 @@ class Executor:
         """The rig's axis called ``name`` (``"stage"`` or ``"turntable"``)."""
         return self.rig.devices[name]
 
-    def home(self, name: str) -> None:
-        self.axis(name).home()
+    def home(self, name: str, timeout_s: float | None = None) -> None:
+        """Home axis ``name`` (within ``timeout_s``; ``None``: the axis's default)."""
+        axis = self.axis(name)
+        if timeout_s is None:
+            axis.home()
+        else:
+            axis.home(timeout_s=float(timeout_s))
         self._unsettled = True
 
     def move(self, targets: dict[str, float]) -> None:
@@ -397,7 +402,7 @@ class GuardedAxis(RotationStage):
         return self._axis.calculate_timeout(distance_deg, margin_s)
 
     def home(self, timeout_s: float = 60.0) -> None:
-        self._executor.home(self._name)
+        self._executor.home(self._name, timeout_s)
 
     def move_to(self, angle_deg: float, *, wait: bool = True, timeout_s: float = 30.0) -> None:
         """Under the policy; ``wait=False`` starts the move only (no retry: nothing waits

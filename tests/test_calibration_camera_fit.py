@@ -10,7 +10,6 @@ to a mono sensor, or find a too small set only after acquiring.)
 
 from __future__ import annotations
 
-import argparse
 import json
 import pathlib
 
@@ -79,12 +78,12 @@ def test_the_same_camera_is_accepted(tmp_path, capsys):
 
 
 def _prepared(tmp_path, cal):
+    from polrig.cli import build_parser
     from polrig.commands.capture import prepare_capture
 
-    ns = argparse.Namespace(out=str(tmp_path / "s"), poses="0", mode=None, states=None,
-                            frames=None, exposure=None, dark_frames=None, demosaic=None,
-                            mirror_average=None, config=None, calibration=str(cal),
-                            resume=False)
+    # the command's own parser: every option the command reads has its default
+    ns = build_parser().parse_args(["capture", "--out", str(tmp_path / "s"), "--poses", "0",
+                                    "--calibration", str(cal)])
     return prepare_capture(ns)
 
 

@@ -15,6 +15,7 @@ pytest.importorskip("pytestqt")
 
 from polrig.gui.latency import EventLoopProbe  # noqa: E402
 
+from calibration.procedures import INTRINSIC_MOUNTS  # noqa: E402
 from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator  # noqa: E402
 from drivers.emulators.grbl import GrblEmulator  # noqa: E402
 from polrig.gui.main_window import MainWindow  # noqa: E402
@@ -99,7 +100,8 @@ def test_gui_drives_emulated_hardware(qtbot, tmp_path):
 def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_path):
     """All four devices real drivers (the camera is the GenTL test producer shipped with the
     genicam wheel): live frames through harvesters, and a calibration step asks the operator
-    to mount the board, waits for "Target in place", and ends with a readable message."""
+    to mount the board at each fixture pose, waits for "Target in place" each time, and ends
+    with a readable message."""
     import genicam
 
     viky = pathlib.Path(genicam.__file__).parent / "viky.cti"
@@ -129,16 +131,25 @@ def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_p
             cal = w.calibration
             cal.folder.setText(str(tmp_path / "cal"))
             cal.run_step("intrinsics")
-            qtbot.waitUntil(lambda: cal.mounted_button.isEnabled(), timeout=20000)
-            assert "Mount the charuco" in cal.prompt.text()
-            assert w.live_worker.paused and not w.devices.isEnabled()
-            cal.mounted_button.click()
+            # no board in the test pattern: the step asks for every fixture mount in turn
+            # (each mount's views are all skipped) and then fails for want of views
+            prompts = []
+            for _ in INTRINSIC_MOUNTS:
+                qtbot.waitUntil(lambda: cal.mounted_button.isEnabled(), timeout=20000)
+                prompts.append(cal.prompt.text())
+                assert w.live_worker.paused and not w.devices.isEnabled()
+                cal.mounted_button.click()
             qtbot.waitUntil(lambda: not cal.is_running, timeout=40000)
+            assert all("Mount the charuco" in p for p in prompts)
+            assert len(set(prompts)) == len(INTRINSIC_MOUNTS)  # one prompt per mount
+            # GRBL starts locked in alarm: the fault policy's one re-homed retry recovers it
+            log = cal.log_view.toPlainText()
+            assert log.count("re-homing and retrying once") == 1 and "Alarm" in log
             report = cal.report_view.toPlainText()
-            assert "FAILED" in report  # no board in the test pattern, GRBL locked in alarm
+            assert "FAILED" in report
             failure = next(t for lvl, t in w.messages.messages
                            if lvl == "error" and "calibration step intrinsics failed" in t)
-            assert "Traceback" not in failure
+            assert "Traceback" not in failure and "board views" in failure
             qtbot.waitUntil(lambda: not w.live_worker.paused, timeout=10000)
         finally:
             w.close()
