@@ -151,6 +151,24 @@ class IntrinsicsRun:
     skipped: list[str]
 
 
+def fixture_words(fixture: dict[str, Any]) -> str:
+    """A target's fixture position in words: ``{"distance_m": 0.3, "tilt_deg": 10}`` ->
+    ``"distance 0.3 m, tilt 10 deg"`` (units from the key's suffix), not a Python dict."""
+    out = []
+    for key, value in fixture.items():
+        name, unit = key, ""
+        for suffix, u in (("_deg", "deg"), ("_mm", "mm"), ("_m", "m"), ("_us", "us")):
+            if key.endswith(suffix):
+                name, unit = key[: -len(suffix)], u
+                break
+        if isinstance(value, (list, tuple)):
+            value = ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
+        elif isinstance(value, float):
+            value = f"{value:g}"
+        out.append(f"{name.replace('_', ' ')} {value}" + (f" {unit}" if unit else ""))
+    return ", ".join(out)
+
+
 def capture_board_views(rig, mount: Mount, spec: charuco.BoardSpec, mounts, angles_deg,
                         log: Log = _noop) -> tuple[list, list[str]]:
     """Board views over fixture mounts and turntable angles; views where the board is not
@@ -159,7 +177,7 @@ def capture_board_views(rig, mount: Mount, spec: charuco.BoardSpec, mounts, angl
     cam = rig.camera
     for i, m in enumerate(mounts):
         mount("charuco", **m)
-        log(f"board mounted {m}")
+        log(f"board mounted: {fixture_words(m) or 'default position'}")
         _move(rig.turntable, 0.0)
         auto_expose(cam, percentile=99.0, target=0.7)
         for a in angles_deg:
@@ -167,7 +185,7 @@ def capture_board_views(rig, mount: Mount, spec: charuco.BoardSpec, mounts, angl
             try:
                 views.append((i, float(a), charuco.detect(spec, _board_image(cam))))
             except BoardNotFound as exc:
-                skipped.append(f"{m} @ {a} deg: {exc}")
+                skipped.append(f"{fixture_words(m) or 'default position'} at {a:g} deg: {exc}")
     return views, skipped
 
 
@@ -283,7 +301,8 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
                                                                            scales=scales),
                                    edge_image=sil / scales)
         except SphereNotFound as exc:
-            log(f"light: sphere {m} at turntable {a} deg skipped: {exc}")
+            log(f"light: sphere at {fixture_words(m) or 'default position'}, turntable "
+                f"{a:g} deg, skipped: {exc}")
             continue
         obs.append(ob)
     fit = light.fit_light_position(obs, radius_m, K, dist)

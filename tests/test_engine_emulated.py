@@ -102,6 +102,8 @@ def test_a_calibration_step_on_hardware_asks_for_every_mount_then_fails_readably
         retries = [ln for ln in lines if ln.startswith("retry:")]
         assert len(retries) == 1 and "Alarm" in retries[0]  # the startup alarm, re-homed once
         assert sum("board mounted" in ln for ln in lines) == len(INTRINSIC_MOUNTS)
+        # fixture positions in words, never a Python dict (issue 21 item 10)
+        assert not any("{" in ln for ln in lines if "board mounted" in ln), lines
 
 
 def test_a_guarded_home_waits_no_longer_than_the_callers_timeout(tmp_path):

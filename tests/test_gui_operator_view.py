@@ -108,7 +108,7 @@ def test_a_paused_live_view_says_so(qtbot, tmp_path):
 
 
 def test_light_and_fixture_positions_read_as_words():
-    from polrig.gui.calibration_panel import fixture_words
+    from calibration.procedures import fixture_words
     from polrig.gui.devices import light_words
 
     assert light_words({"open": True, "on": True, "level": 0.5}) == "on, level 0.500"

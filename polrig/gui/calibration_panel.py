@@ -33,6 +33,7 @@ from PySide6.QtWidgets import (QFormLayout, QHBoxLayout, QLabel, QLineEdit, QLis
                                QListWidgetItem, QPlainTextEdit, QPushButton, QSplitter,
                                QVBoxLayout, QWidget)
 
+from calibration.procedures import fixture_words  # noqa: F401 (re-exported)
 from polrig.engine import CaptureControl, StopRequested
 from polrig.errors import PolrigError
 from polrig.gui.rigaccess import RigLocks
@@ -320,21 +321,3 @@ class CalibrationPanel(QWidget):
     def _failed(self, step: str, text: str) -> None:
         self.report_view.setPlainText(f"step: {step}\n\nFAILED: {text}")
         self.message.emit("error", f"calibration step {step} failed: {text}")
-
-
-def fixture_words(fixture: dict[str, Any]) -> str:
-    """A target's fixture position in words: ``{"distance_m": 0.3, "tilt_deg": 10}`` ->
-    ``"distance 0.3 m, tilt 10 deg"`` (units from the key's suffix), not a Python dict."""
-    out = []
-    for key, value in fixture.items():
-        name, unit = key, ""
-        for suffix, u in (("_deg", "deg"), ("_mm", "mm"), ("_m", "m"), ("_us", "us")):
-            if key.endswith(suffix):
-                name, unit = key[: -len(suffix)], u
-                break
-        if isinstance(value, (list, tuple)):
-            value = ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
-        elif isinstance(value, float):
-            value = f"{value:g}"
-        out.append(f"{name.replace('_', ' ')} {value}" + (f" {unit}" if unit else ""))
-    return ", ".join(out)
