@@ -161,3 +161,22 @@ def test_missing_qt_system_libraries_are_named_with_their_packages(tmp_path):
     assert res.returncode == 1, res.stderr
     assert res.stderr.startswith("polrig: error: Qt's X11 (xcb) platform plugin cannot load: ")
     assert "sudo apt-get install " in res.stderr and missing[0] in res.stderr
+
+
+def test_a_refused_capture_start_shows_no_frame_count(qtbot, tmp_path):
+    """A start refused by the form (a state that is no angle) leaves the bar saying "not
+    started", not Qt's default "0 / 100 frames" (issue 21 item 10)."""
+    from test_gui import close_window, make_window
+
+    w = make_window(qtbot, tmp_path / "gui.ini")
+    try:
+        cp = w.capture
+        assert "100" not in cp.progress.text()
+        cp.out.setText(str(tmp_path / "s"))
+        cp.states.setText("0,45,ninety")
+        cp.start()
+        assert not cp.is_running and cp.last_status == "failed"
+        assert cp.progress.text() == "not started" and "100" not in cp.progress.text()
+        assert not (tmp_path / "s").exists()
+    finally:
+        close_window(qtbot, w)

@@ -203,7 +203,7 @@ class CapturePanel(QWidget):
         for b in (self.start_button, self.pause_button, self.stop_button, self.resume_button):
             buttons.addWidget(b)
         self.progress = QProgressBar()
-        self.progress.setFormat("%v / %m frames")
+        self._progress_idle("no capture yet")
         self.eta = QLabel("idle")
         self.score = QLabel("")
         self.score.setWordWrap(True)
@@ -291,7 +291,7 @@ class CapturePanel(QWidget):
         self.scores.clear()
         self.thumbs.clear()
         self.score.setText("")
-        self.progress.setValue(0)
+        self._progress_idle("starting...")
         self.eta.setText("starting...")
         self.last_status = "running"
         w = CaptureWorker(self.rig, self.locks, req, self)
@@ -337,9 +337,16 @@ class CapturePanel(QWidget):
         self.running.emit(running)
 
     # -- events from the worker
+    def _progress_idle(self, text: str) -> None:
+        """The bar when no capture runs: empty, saying why (not a made-up '0 / 100 frames')."""
+        self.progress.setRange(0, 1)
+        self.progress.setValue(0)
+        self.progress.setFormat(text)
+
     def _progress(self, ev: Progress) -> None:
         self.events.append(ev)
         if ev.total:
+            self.progress.setFormat("%v / %m frames")
             self.progress.setMaximum(ev.total)
             self.progress.setValue(ev.step)
         if ev.kind == "capture-start" and not self._step0:
@@ -420,6 +427,8 @@ class CapturePanel(QWidget):
     def _failed(self, text: str) -> None:
         self.last_status = "failed"
         self.eta.setText(f"not started: {text}")
+        if not self.events:  # refused before the first frame: no count to show
+            self._progress_idle("not started")
         self.message.emit("error", f"capture: {text}")
 
 
