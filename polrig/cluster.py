@@ -212,8 +212,8 @@ class CaptureJob:
 @dataclasses.dataclass(frozen=True)
 class CaptureOutcome:
     """What a worker sends back: the written files' ``record`` s by role (``mueller`` and its
-    previews: ``path``, ``sha256``, ``bytes``) and ``score``, or the ``reason`` it failed (``disk_full`` for a full disk);
-    ``seconds`` the time the task took on the worker."""
+    previews: ``path``, ``sha256``, ``bytes``) and ``score``, or the ``reason`` it failed
+    (``disk_full`` for a full disk); ``seconds`` the time the task took on the worker."""
 
     record: dict[str, dict[str, Any]] | None
     score: dict[str, Any] | None
@@ -474,8 +474,8 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
     """``polrig reconstruct SESSION...`` on ``runner`` (:func:`open_runner`): every session
     opened and locked, checked (:func:`prepare`), its captures run (:func:`run_batch`),
     locks released. ``exr``: the result files' format (fields of
-    :class:`polrig.plan.ExrChoice`; ``None`` values: each session's). ``on_start(batches)`` is called once the revisions exist (a progress
-    bar's total). Returns the batches; :class:`BatchIncomplete` if captures failed."""
+    :class:`polrig.plan.ExrChoice`; ``None`` values: each session's). ``on_start(batches)``
+    is called once the revisions exist (a progress bar's total). Returns the batches; :class:`BatchIncomplete` if captures failed."""
     from polrig import processing
 
     calibration = processing.load_calibration(calibration_path)

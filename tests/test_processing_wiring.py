@@ -4,7 +4,6 @@ written in place and hashed from disk, and PNG previews next to every result."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 
@@ -189,7 +188,8 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
     s = Session.open(s.root)
     settings = {r["name"]: r for r in s.manifest["revisions"]}
     assert settings[rev1]["exr_planes"] == ["mueller", "mask"]
-    assert (settings[rev1]["exr_uncertainty"], settings[rev1]["exr_compression"]) == ("half", "none")
+    assert (settings[rev1]["exr_uncertainty"],
+            settings[rev1]["exr_compression"]) == ("half", "none")
     assert settings[rev2]["exr_planes"] == list(ExrChoice().planes)
     assert settings[rev2]["exr_uncertainty"] == "half"
     for cap in s.captures:
