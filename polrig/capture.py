@@ -43,7 +43,7 @@ from polrig.calibrations import (Calibration, check_calibration_fits_rig, check_
 from polrig.engine import (CaptureControl, CheckpointReached, Executor, FaultPolicy,
                            FrameGrabbed, Retried, StepDone, StopRequested, hardware_model)
 from polrig.errors import DeviceError
-from polrig.plan import (DEFAULT_STATES_DEG, CapturePlan, PlanError,  # noqa: F401 (re-exported)
+from polrig.plan import (DEFAULT_STATES_DEG, CapturePlan, ExrChoice, PlanError,  # noqa: F401 (re-exported)
                          capture_steps, parse_float_list, parse_pose_spec, planned_bytes,
                          setup_steps, step_durations)
 from polrig.records import check_resume_rig, check_rig_for_plan
@@ -76,6 +76,11 @@ class CaptureRequest:
     demosaic: str | None = None
     mirror_average: bool | None = None
     resolution: str | None = None
+    #: the result EXR's plane groups, uncertainty precision and compression
+    #: (:class:`polrig.plan.ExrChoice`)
+    exr_planes: tuple[str, ...] | None = None
+    exr_uncertainty: str | None = None
+    exr_compression: str | None = None
     config: pathlib.Path | None = None
     calibration: pathlib.Path | None = None
     resume: bool = False
@@ -87,8 +92,12 @@ class CaptureRequest:
     def plan_fields(self) -> dict[str, Any]:
         """The :class:`polrig.plan.CapturePlan` fields this request gives (not ``None``)."""
         names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
-                 "dark_frames", "demosaic", "mirror_average", "resolution")
-        return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
+                 "dark_frames", "demosaic", "mirror_average", "resolution", "exr_planes",
+                 "exr_uncertainty", "exr_compression")
+        fields = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
+        if "exr_planes" in fields:  # as the plan holds them (mueller always, in order)
+            fields["exr_planes"] = ExrChoice(planes=fields["exr_planes"]).planes
+        return fields
 
     def plan(self) -> CapturePlan:
         """The plan of a new session: the given fields, defaults for the others."""

@@ -11,7 +11,8 @@ Roles (the session's one-writer rule holds):
   share with the client, read and verify the raw frames themselves (raw data never travels
   through the client), solve (:meth:`polrig.processing.Processor.solve`) and write the
   result file under a temporary name in its final folder, then rename it
-  (:func:`polrig.rawio.atomic_write_bytes`); they return the file's record and the score
+  (:func:`polrig.processing.write_result_files`, previews included); they return the files'
+  records and the score
   (a few hundred bytes).
 
 Faults: a worker that dies mid-task has its task rerun on another worker by Dask (the rerun
@@ -41,9 +42,8 @@ import uuid
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 from polrig.errors import ConfigError, PolrigError
-from polrig.rawio import atomic_write_bytes
 from polrig.session import (COMPLETE, FAILED, PENDING, Session, SignalGuard,
-                            interruption_reason, is_disk_full, sha256_bytes)
+                            interruption_reason, is_disk_full)
 
 INSTALL_HINT = "pip install 'polrig[cluster]' (or: pip install 'dask[distributed]')"
 
@@ -196,15 +196,26 @@ class CaptureJob:
     device: str
     calibration: str | None
     calibration_id: str
+    exr_planes: tuple[str, ...] = ()
+    exr_uncertainty: str = "float"
+    exr_compression: str = "zip"
+
+    @property
+    def exr(self):
+        """The result files' format (:class:`polrig.plan.ExrChoice`)."""
+        from polrig.plan import ExrChoice
+
+        return ExrChoice(self.exr_planes or ExrChoice().planes, self.exr_uncertainty,
+                         self.exr_compression)
 
 
 @dataclasses.dataclass(frozen=True)
 class CaptureOutcome:
-    """What a worker sends back: the written file's ``record`` (``path``, ``sha256``,
-    ``bytes``) and ``score``, or the ``reason`` it failed (``disk_full`` for a full disk);
-    ``seconds`` the time the task took on the worker."""
+    """What a worker sends back: the written files' ``record`` s by role (``mueller`` and its
+    previews: ``path``, ``sha256``, ``bytes``) and ``score``, or the ``reason`` it failed
+    (``disk_full`` for a full disk); ``seconds`` the time the task took on the worker."""
 
-    record: dict[str, Any] | None
+    record: dict[str, dict[str, Any]] | None
     score: dict[str, Any] | None
     reason: str | None
     disk_full: bool
@@ -221,27 +232,16 @@ def _processor(job: CaptureJob, session: Session):
 
     sensor = processing.session_sensor_model(session)
     key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.device,
-           job.calibration, job.calibration_id, repr(sensor))
+           job.calibration, job.calibration_id, repr(sensor), job.exr)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
             raise ConfigError(f"{job.calibration}: calibration set {cal.id!r} on this worker, "
                               f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
-                                                job.mirror_average, job.resolution, job.device)
+                                                job.mirror_average, job.resolution, job.device,
+                                                job.exr)
     return _PROCESSORS[key]
-
-
-def write_result(root: pathlib.Path, relpath: str, data: bytes) -> dict[str, Any]:
-    """Write a result file to ``root/relpath`` under a temporary name in its folder, then
-    rename it (:func:`polrig.rawio.atomic_write_bytes`); returns its record. A file already
-    there is a result the manifest does not record (the client only submits captures not
-    complete in the revision): the unrecorded output of an attempt that died before the
-    client heard of it, replaced by this one's identical bytes."""
-    path = root / relpath
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, data)
-    return {"path": relpath, "sha256": sha256_bytes(data), "bytes": len(data)}
 
 
 def run_capture(job: CaptureJob) -> CaptureOutcome:
@@ -251,8 +251,14 @@ def run_capture(job: CaptureJob) -> CaptureOutcome:
     t0 = time.perf_counter()
     try:
         session = Session.open(job.root)  # read-only: the client holds the lock and writes
-        out = _processor(job, session).solve(session, job.index, job.revision)
-        record = write_result(session.root, out.relpath, out.data)
+        from polrig import processing
+
+        proc = _processor(job, session)
+        out = proc.solve(session, job.index, job.revision)
+        # a file already there is a result the manifest does not record (the client only
+        # submits captures not complete in the revision): the unrecorded output of an attempt
+        # that died before the client heard of it, replaced by this one's identical bytes
+        record = processing.write_result_files(session.root, out, proc.exr, replace=True)
     except Exception as exc:
         return CaptureOutcome(None, None, f"{type(exc).__name__}: {exc}", is_disk_full(exc),
                               time.perf_counter() - t0)
@@ -333,7 +339,8 @@ def open_sessions(paths: Iterable[str | os.PathLike]) -> list[Session]:
 def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: str | None = None,
             mirror_average: bool | None = None, resolution: str | None = None,
             device: str = "auto", calibration=None,
-            command_line: list[str] | None = None) -> list[SessionBatch]:
+            command_line: list[str] | None = None,
+            exr: dict[str, Any] | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
@@ -341,7 +348,7 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
     from polrig import processing
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device) for s in sessions]
+                                      resolution, device, exr) for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
         cont = _continuable(s, settings, done)
@@ -364,7 +371,8 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
     cal = None if calibration_path is None else str(pathlib.Path(calibration_path).resolve())
     return [CaptureJob(str(batch.session.root.resolve()), i, batch.revision, st["mode"],
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
-                       batch.device, cal, st["calibration_id"])
+                       batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
+                       st["exr_uncertainty"], st["exr_compression"])
             for i in batch.todo]
 
 
@@ -417,7 +425,7 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                         b.finished += 1
                         if out.reason is None:
                             processing.record_result(b.session, job.index, job.revision,
-                                                     out.record, out.score)
+                                                     out.record, out.score, job.exr)
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)
@@ -459,14 +467,15 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
                 mirror_average=None, resolution=None, device: str = "auto",
-                calibration_path: str | None = None,
+                calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
                 on_capture=None) -> list[SessionBatch]:
     """``polrig reconstruct SESSION...`` on ``runner`` (:func:`open_runner`): every session
     opened and locked, checked (:func:`prepare`), its captures run (:func:`run_batch`),
-    locks released. ``on_start(batches)`` is called once the revisions exist (a progress
-    bar's total). Returns the batches; :class:`BatchIncomplete` if captures failed."""
+    locks released. ``exr``: the result files' format (fields of
+    :class:`polrig.plan.ExrChoice`; ``None`` values: each session's). ``on_start(batches)``
+    is called once the revisions exist (a progress bar's total). Returns the batches; :class:`BatchIncomplete` if captures failed."""
     from polrig import processing
 
     calibration = processing.load_calibration(calibration_path)
@@ -474,7 +483,7 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
     try:
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
                           resolution=resolution, device=device, calibration=calibration,
-                          command_line=command_line)
+                          command_line=command_line, exr=exr)
         if on_start:
             on_start(batches)
         run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)

@@ -29,6 +29,7 @@ import math
 from typing import Any, Callable, Iterable, Sequence, Union
 
 from polrig.errors import ConfigError
+from polrig.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
 
 MODES = ("reference", "single-shot")
 DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
@@ -115,6 +116,51 @@ def parse_float_list(spec: str, name: str, *, positive: bool = False,
     return values
 
 
+# -- the result file's format -----------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ExrChoice:
+    """What a result ``mueller.exr`` holds and how it is stored (:func:`polrig.exr.result_planes`,
+    :func:`polrig.exr.write_exr`): ``planes`` the plane groups (:data:`polrig.exr.RESULT_PLANES`;
+    ``mueller`` is always written, the groups are kept in that order), ``uncertainty``
+    ``"float"`` (float32) or ``"half"`` (float16 ``sigma``, ``sigma_noise``, ``residual`` and
+    ``mask``), ``compression`` ``"zip"``, ``"piz"`` or ``"none"``. Bytes per full-sensor colour
+    pose of each choice: ``benchmarks/results/pose.md``."""
+
+    planes: tuple[str, ...] = RESULT_PLANES
+    uncertainty: str = "float"
+    compression: str = "zip"
+
+    def __post_init__(self) -> None:
+        planes = tuple(self.planes)
+        unknown = [p for p in planes if p not in RESULT_PLANES]
+        if unknown:
+            raise PlanError("exr_planes", f"choose from {', '.join(RESULT_PLANES)}",
+                            subject=", ".join(map(str, unknown)), what="EXR plane group")
+        if self.uncertainty not in UNCERTAINTY_PRECISIONS:
+            raise PlanError("exr_uncertainty", f"use {' or '.join(UNCERTAINTY_PRECISIONS)}",
+                            subject=repr(self.uncertainty), what="uncertainty precision")
+        if self.compression not in COMPRESSIONS:
+            raise PlanError("exr_compression", f"use one of {', '.join(COMPRESSIONS)}",
+                            subject=repr(self.compression), what="EXR compression")
+        object.__setattr__(self, "planes", tuple(p for p in RESULT_PLANES
+                                                 if p == "mueller" or p in planes))
+
+    @classmethod
+    def of_plan(cls, plan: dict[str, Any]) -> "ExrChoice":
+        """The choice a plan's JSON records (a session older than these fields: the defaults)."""
+        d = cls()
+        return cls(tuple(plan.get("exr_planes") or d.planes),
+                   plan.get("exr_uncertainty") or d.uncertainty,
+                   plan.get("exr_compression") or d.compression)
+
+    def bytes_per_pixel(self) -> int:
+        """Uncompressed bytes per output pixel and colour."""
+        unc = 2 if self.uncertainty == "half" else 4
+        per = {"mueller": 9 * 4, "sigma": 9 * unc, "sigma_noise": 9 * unc, "mask": unc,
+               "residual": unc}
+        return sum(per[p] for p in self.planes)
+
+
 # -- the plan -------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class CapturePlan:
@@ -144,8 +190,14 @@ class CapturePlan:
     #: frame's: :func:`models.full_resolution.lift` with the detail of ``demosaic``, bilinear
     #: where that is ``superpixel``)
     resolution: str = "superpixel"
+    #: the result EXR's plane groups, uncertainty precision and compression (:class:`ExrChoice`)
+    exr_planes: tuple[str, ...] = RESULT_PLANES
+    exr_uncertainty: str = "float"
+    exr_compression: str = "zip"
 
     def __post_init__(self) -> None:
+        exr = ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
+        object.__setattr__(self, "exr_planes", exr.planes)
         if self.mode not in MODES:
             raise PlanError("mode", f"capture mode must be one of {', '.join(MODES)}, got "
                                     f"{self.mode!r}")
@@ -192,7 +244,7 @@ class CapturePlan:
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        for k in ("poses_deg", "states_deg", "exposures_us"):
+        for k in ("poses_deg", "states_deg", "exposures_us", "exr_planes"):
             d[k] = list(d[k])
         return d
 
@@ -201,6 +253,11 @@ class CapturePlan:
         fields = {f.name for f in dataclasses.fields(cls)}
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in fields}
         return cls(**kw)
+
+    @property
+    def exr(self) -> ExrChoice:
+        """The result EXR's format."""
+        return ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
 
     def frames_per_pose(self) -> int:
         n_exp = max(1, len(self.exposures_us))
@@ -215,8 +272,8 @@ class CapturePlan:
 def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
                   n_colours: int, cell: tuple[int, int] = (1, 1)) -> int:
     """Upper estimate of the disk space ``n_poses`` captures of ``plan`` take: uncompressed
-    16-bit raw frames (+ sidecars), the float32 result EXR (9 Mueller + 9 sigma + mask +
-    residual planes per colour) at the demosaic's output size (``cell`` = the layout period
+    16-bit raw frames (+ sidecars), the result EXR uncompressed (its planes at their precision,
+    :meth:`ExrChoice.bytes_per_pixel`) at the demosaic's output size (``cell`` = the layout period
     ``(ph, pw)``, which ``superpixel`` divides the size by) and the truth EXR (9 + 1 planes
     per colour) at full size; 5 % and 1 MiB (manifest) on top."""
     raw = plan.frames_per_pose() * (2 * width * height + 4096)
@@ -224,7 +281,7 @@ def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
         out_px = (height // cell[0]) * (width // cell[1])
     else:
         out_px = width * height
-    exr = n_colours * 4 * (20 * out_px + 10 * width * height) + 2 * 65536
+    exr = n_colours * (plan.exr.bytes_per_pixel() * out_px + 40 * width * height) + 2 * 65536
     return int(n_poses * (raw + exr) * 1.05) + (1 << 20)
 
 

@@ -24,10 +24,11 @@ variance divided by ``n`` (exact); interpolating demosaics get the interpolated 
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import math
 import pathlib
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -38,23 +39,22 @@ from polrig.calibrations import (NOMINAL_ANALYZER_TOLERANCE,  # noqa: F401 (re-e
                                  check_plan, frame_layout, load_calibration,
                                  nominal_calibration, single_shot_geometry, single_shot_kwargs,
                                  single_shot_model)
-from polrig.demosaic import demosaic_float
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.layouts import MosaicLayout
 from polrig.mueller import polarizer_stokes
 from polrig.noise import SensorModel
 from polrig.plan import (FULL_RESOLUTION_SINGLE_SHOT_ONLY, MIRROR_SINGLE_SHOT_ONLY, MODES,
-                         RESOLUTIONS, CapturePlan, PlanError)
+                         RESOLUTIONS, CapturePlan, ExrChoice, PlanError)
 from polrig.radiometry import (StateRadiance, adc_scale, analyzer_stack,  # noqa: F401 (re-exported)
                                reference_from_frames, state_radiance)
 from polrig.records import (sensor_model_of, session_frame_geometry,  # noqa: F401 (re-exported)
                             session_sensor_model)
 from polrig.reference import ReferenceResult, reason_names, validate_states
 from polrig.scoring import (_psnr_db, format_score, score_against_truth,  # noqa: F401 (re-exported)
-                            truth_on_output_grid)
+                            score_on_output_grid, truth_on_output_grid)
 from polrig.session import (COMPLETE, FAILED, PENDING, Session, SignalGuard,
                             interruption_reason, is_disk_full, sha256_file)
-from polrig.sessionio import (CaptureFrames, exr_bytes,  # noqa: F401 (re-exported)
+from polrig.sessionio import (CaptureFrames,  # noqa: F401 (re-exported)
                               load_capture_frames, read_verified_frame)
 
 
@@ -67,9 +67,11 @@ def noise_exposures_us(cf: CaptureFrames) -> list[float]:
 
 
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
-                      method: str
+                      method: str, uncertainty_dtype: type = np.float32
                       ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
-    """Reference solve of one capture's frames: ``(result, s_in, layout, states)``."""
+    """Reference solve of one capture's frames: ``(result, s_in, layout, states)``;
+    ``uncertainty_dtype`` of its ``sigma``, ``sigma_noise`` and ``residual`` (float16 halves
+    their memory: :func:`polrig.radiometry.reference_from_frames`)."""
     first = cf.first
     lay = frame_layout(first)
     scale = adc_scale(model, first.meta.bit_depth)
@@ -92,44 +94,142 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     s_in = calibration.incident_stokes(cf.states_deg)
     result = reference_from_frames(states, s_in, lay, method, analyzer,
                                    analyzer_tolerance=calibration.analyzer_tolerance,
-                                   generator_tolerance=calibration.generator_tolerance)
+                                   generator_tolerance=calibration.generator_tolerance,
+                                   uncertainty_dtype=uncertainty_dtype)
     return result, s_in, lay, states
+
+
+#: Roles of a result's PNG previews (:func:`polrig.preview.write_result_previews`), by the
+#: suffix of their file name (``mueller_grid.png``...).
+PREVIEW_ROLES = {"preview_grid": "grid", "preview_dolp": "dolp", "preview_aolp": "aolp"}
+#: Largest preview tile side, pixels: larger results are previewed every ``k``-th pixel
+#: (:func:`preview_stride`), so a full-sensor preview costs a fraction of a second, not seconds.
+PREVIEW_MAX_PX = 1024
+#: The channels of the manifest's ``uncertainty`` view, per plane group.
+_UNCERTAINTY_CHANNELS = {"sigma": "sigma.M{row}{col}.{colour}",
+                         "sigma_noise": "sigma_noise.M{row}{col}.{colour}",
+                         "residual": "residual.{colour}"}
 
 
 @dataclasses.dataclass(frozen=True)
 class CaptureResult:
     """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
-    ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``data`` the EXR's
-    bytes, ``score`` against the simulator's truth (``None`` without a truth file)."""
+    ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
+    arrays, ``metadata`` the EXR header's polrig entries, ``score`` against the simulator's
+    truth (``None`` without a truth file). :func:`write_result_files` writes it."""
 
     relpath: str
-    data: bytes
+    result: ReferenceResult
+    metadata: dict[str, Any]
     score: dict[str, Any] | None
 
 
-def record_result(session: Session, index: int, revision: str | None, record: dict[str, Any],
-                  score: dict[str, Any] | None) -> None:
-    """Record capture ``index``'s written ``mueller.exr`` (``record``: ``path``, ``sha256``,
-    ``bytes``, as :meth:`Session.write_new_file` returns) with its ``uncertainty`` and ``mask``
-    views, and in ``revision`` (if given) its score and status ``complete``; save the manifest
-    (under ``session.mutex``: the next capture's acquisition writes the manifest meanwhile).
-    The one place a result enters a manifest: the serial :meth:`Processor.process` and the
-    client of :mod:`polrig.cluster` (whose workers write the files) both call it."""
+def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
+                       replace: bool = False) -> dict[str, dict[str, Any]]:
+    """Write ``out``'s ``mueller.exr`` (the planes and compression of ``exr``) and its PNG
+    previews next to it (``mueller_grid.png``, ``mueller_dolp.png``, ``mueller_aolp.png``:
+    :func:`polrig.preview.write_result_previews`, from the arrays in memory, every
+    :func:`preview_stride`-th pixel beyond :data:`PREVIEW_MAX_PX`) under ``root``,
+    each atomically (temporary name in its folder, then renamed); return their records by
+    role (``mueller`` and :data:`PREVIEW_ROLES`: ``path``, ``sha256`` hashed from the file
+    as it lies on disk, streamed, ``bytes``). The file's bytes are never held in memory.
+
+    ``replace=False`` refuses (``FileExistsError``) a result file already there (session data
+    is never overwritten); a worker of :mod:`polrig.cluster` passes ``True``: a file there is
+    the unrecorded output of an attempt that died, replaced by identical bytes. The one
+    writer of result files, serial (:meth:`Processor.process`) and distributed alike."""
+    from polrig.exr import result_planes, write_mueller_exr
+    from polrig.preview import write_result_previews
+
+    path = _new_result_path(root, out.relpath, replace)
+    res = out.result
+    rel = pathlib.PurePosixPath(out.relpath).parent
+    previews = {role: path.with_name(f"{path.stem}_{suffix}.png")
+                for role, suffix in PREVIEW_ROLES.items()}
+    written = {"mueller": path, **previews}
+    try:
+        write_mueller_exr(path, res.mueller,
+                          extra=result_planes(res, planes=exr.planes, uncertainty=exr.uncertainty),
+                          metadata=out.metadata, compression=exr.compression)
+        k = preview_stride(res.mueller.shape[-2:])
+        made = write_result_previews(res.mueller[..., ::k, ::k], path.parent, stem=path.stem,
+                                     flags=res.mask[..., ::k, ::k])
+        if sorted(made) != sorted(previews.values()):  # pragma: no cover - preview's contract
+            raise RuntimeError(f"previews {made} are not the expected {previews}")
+        return {role: file_record(root, (rel / p.name).as_posix())
+                for role, p in written.items()}
+    except BaseException:  # no partial result left behind (each file is whole or absent)
+        remove_files(written.values())
+        raise
+
+
+def preview_stride(shape: tuple[int, int], max_px: int = PREVIEW_MAX_PX) -> int:
+    """The pixel step ``k`` that brings an ``(H, W)`` image within ``max_px`` on its longer
+    side (nearest-neighbour decimation of the previews; 1 for images already that small)."""
+    return max(1, math.ceil(max(shape) / max_px))
+
+
+def remove_files(paths) -> None:
+    """Delete ``paths`` where they exist (best effort: a failure to delete is ignored)."""
+    for p in paths:
+        with contextlib.suppress(OSError):
+            pathlib.Path(p).unlink(missing_ok=True)
+
+
+def _new_result_path(root: pathlib.Path, relpath: str, replace: bool = False) -> pathlib.Path:
+    """``root/relpath`` with its folder made; ``FileExistsError`` if a file is there (unless
+    ``replace``): session data is never overwritten."""
+    path = pathlib.Path(root) / relpath
+    if path.exists() and not replace:
+        raise FileExistsError(f"{path}: refusing to overwrite session data")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
+    """The manifest record (``path``, ``sha256``, ``bytes``) of a file written under ``root``,
+    hashed by streaming it from disk (:func:`polrig.session.sha256_file`)."""
+    path = pathlib.Path(root) / relpath
+    return {"path": pathlib.PurePosixPath(relpath).as_posix(), "sha256": sha256_file(path),
+            "bytes": path.stat().st_size}
+
+
+def record_result(session: Session, index: int, revision: str | None,
+                  records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
+                  exr: ExrChoice = ExrChoice()) -> None:
+    """Record capture ``index``'s written result files (``records`` by role, as
+    :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
+    file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
+    not written), and in ``revision`` (if given) its score and status ``complete``; save the
+    manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
+    meanwhile). The one place a result enters a manifest: the serial
+    :meth:`Processor.process` and the client of :mod:`polrig.cluster` (whose workers write
+    the files) both call it."""
     with session.mutex:
         cap = session.capture(index)
-        files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
-        if "mueller" in files:
-            raise FileExistsError(f"capture {index} already has a 'mueller' file")
-        files["mueller"] = dict(record)
-        files["uncertainty"] = {"part_of": "mueller", "path": record["path"],
-                                "channels": "sigma.M{row}{col}.{colour}, "
-                                            "sigma_noise.M{row}{col}.{colour}, "
-                                            "residual.{colour}"}
-        files["mask"] = {"part_of": "mueller", "path": record["path"],
-                         "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        entry = cap if revision is None else cap["revisions"][revision]
+        files = entry["files"]
+        clash = [role for role in records if role in files]
+        if clash:
+            raise FileExistsError(f"capture {index} already has a {clash[0]!r} file")
+        before = copy.deepcopy(entry)
+        path = records["mueller"]["path"]
+        files.update({role: dict(rec) for role, rec in records.items()})
+        sigma = [c for p, c in _UNCERTAINTY_CHANNELS.items() if p in exr.planes]
+        if sigma:
+            files["uncertainty"] = {"part_of": "mueller", "path": path,
+                                    "channels": ", ".join(sigma)}
+        if "mask" in exr.planes:
+            files["mask"] = {"part_of": "mueller", "path": path,
+                             "channels": "mask.{colour} (reason bits, 0 = valid)"}
         if revision is not None:
-            cap["revisions"][revision].update(status=COMPLETE, score=score)
-        session.save()
+            entry.update(status=COMPLETE, score=score)
+        try:
+            session.save()
+        except BaseException:  # not recorded after all: the manifest in memory says so too
+            entry.clear()
+            entry.update(before)
+            raise
 
 
 class Processor:
@@ -142,11 +242,14 @@ class Processor:
     (``full``, :func:`models.full_resolution.lift`; a :class:`PlanError` of ``resolution`` with
     the reference mode). ``device``: where the network runs (``auto``, ``cpu``, ``cuda``;
     :mod:`models.devices`), a run option, not part of the plan; the provider used is recorded.
+    ``exr``: the result file's planes, precision and compression (the plan's
+    :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
     """
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
-                 resolution: str = "superpixel", device: str = "auto"):
+                 resolution: str = "superpixel", device: str = "auto",
+                 exr: ExrChoice = ExrChoice()):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use reference or single-shot")
         if mirror_average and mode != "single-shot":
@@ -165,6 +268,7 @@ class Processor:
         self.mirror_average = bool(mirror_average)
         self.calibration = calibration
         self.sensor_model = sensor_model
+        self.exr = exr
 
     # called by run_session while the rig is still at the pose
     def after_acquire(self, session: Session, index: int, rig) -> None:
@@ -180,9 +284,18 @@ class Processor:
                 "exposure_us": gt.get("exposure_us"), "gain_db": gt.get("gain_db")}
         from polrig.exr import write_mueller_exr
 
-        data = exr_bytes(lambda p: write_mueller_exr(p, gt["mueller"], extra=planes,
-                                                      metadata=meta))
-        session.add_file(index, "truth_mueller", f"{cap['name']}/truth_mueller.exr", data)
+        relpath = f"{cap['name']}/truth_mueller.exr"
+        path = _new_result_path(session.root, relpath)
+        write_mueller_exr(path, gt["mueller"], extra=planes, metadata=meta)  # atomic
+        with session.mutex:
+            files = session.capture(index)["files"]
+            files["truth_mueller"] = file_record(session.root, relpath)
+            try:
+                session.save()
+            except BaseException:  # not recorded: neither in memory nor on disk
+                del files["truth_mueller"]
+                remove_files([path])
+                raise
 
     def process(self, session: Session, index: int, revision: str | None = None
                 ) -> dict[str, Any] | None:
@@ -190,17 +303,21 @@ class Processor:
         ``revision`` if given); return the score against the truth (simulated rig) or None.
         :meth:`solve` and :func:`record_result`, with the file written in between."""
         out = self.solve(session, index, revision)
-        rec = session.write_new_file(out.relpath, out.data)
-        record_result(session, index, revision, rec, out.score)
+        records = write_result_files(session.root, out, self.exr)
+        try:
+            record_result(session, index, revision, records, out.score, self.exr)
+        except BaseException:  # not recorded (a full disk...): no unrecorded file left
+            remove_files(session.root / r["path"] for r in records.values())
+            raise
         return out.score
 
     def solve(self, session: Session, index: int, revision: str | None = None
               ) -> "CaptureResult":
-        """Capture ``index`` solved from its raw files (checksums verified), as the bytes of
-        its ``mueller.exr`` (for ``revision`` if given) and its score; writes nothing, so a
-        worker of :mod:`polrig.cluster` can run it on a session another process writes."""
+        """Capture ``index`` solved from its raw files (checksums verified): the arrays and
+        header of its ``mueller.exr`` (for ``revision`` if given) and its score; writes
+        nothing (:func:`write_result_files` does), so a worker of :mod:`polrig.cluster` can
+        run it on a session another process writes."""
         from polrig import __version__
-        from polrig.exr import colour_planes, element_planes, write_mueller_exr
 
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
@@ -215,11 +332,9 @@ class Processor:
                 None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
             result, s_in, lay, states = self.single_shot(cf, geometry)
         else:
+            unc = np.float16 if self.exr.uncertainty == "half" else np.float32
             result, s_in, lay, states = process_reference(cf, self.calibration,
-                                                          self.sensor_model, self.demosaic)
-        extra = element_planes("sigma", result.sigma) | element_planes("sigma_noise", result.sigma_noise)
-        extra.update(colour_planes("mask", result.mask.astype(np.float32)))
-        extra.update(colour_planes("residual", result.residual))
+                                                          self.sensor_model, self.demosaic, unc)
         meta = {
             "calibration_id": self.calibration.id, "mode": self.mode, "demosaic": self.demosaic,
             "pose_deg": cap["pose_deg"], "states_deg": cf.states_deg,
@@ -238,6 +353,7 @@ class Processor:
                        "sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor "
                                             "noise model alone",
                        "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"},
+            "uncertainty_precision": self.exr.uncertainty,
             "software": f"polrig {__version__}", "capture": cap["name"],
             "revision": revision or "capture",
         }
@@ -248,14 +364,14 @@ class Processor:
                 "sources": geometry["sources"]}
             meta["mirror_average"] = self.mirror_average
             self.single_shot_header(meta)
-        data = exr_bytes(lambda p: write_mueller_exr(p, result.mueller, extra=extra,
-                                                      metadata=meta))
+        meta["planes"] = {k: v for k, v in meta["planes"].items()
+                          if k.split(".", 1)[0] in self.exr.planes}
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
         score = self.score(session, index, result, lay, s_in,
                            states if self.mode == "reference" else None,
                            noise_exposures_us(cf)[0],
                            truth_path=truth_path)
-        return CaptureResult(f"{folder}/mueller.exr", data, score)
+        return CaptureResult(f"{folder}/mueller.exr", result, meta, score)
 
     def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
@@ -385,24 +501,21 @@ class Processor:
         if path is None:
             return None
         img = read_mueller_exr(path)
+        obj = img.extra.get("object_mask")  # output pixels whose whole support lies on it
         if states is None:  # single-shot: the truth at this resolution, nominal 4-state weights
-            t = truth_on_output_grid(img.mueller, layout, self.output_demosaic,
-                                     polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
-                                     model=self.sensor_model, exposure_us=exposure_us)
-        else:
-            t = truth_on_output_grid(img.mueller, layout, self.demosaic, s_in, states)
-        obj = img.extra.get("object_mask")
-        if obj is not None:  # output pixels whose whole support lies on the object
-            support = demosaic_float(np.asarray(obj, np.float32), layout, self.output_demosaic)
-            obj = support.min(axis=(0, 1)) >= 1.0
-        return score_against_truth(result, t, obj)
+            return score_on_output_grid(
+                result, img.mueller, layout, self.output_demosaic,
+                polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1), None,
+                model=self.sensor_model, exposure_us=exposure_us, object_mask=obj)
+        return score_on_output_grid(result, img.mueller, layout, self.demosaic, s_in, states,
+                                    object_mask=obj)
 
 
 def make_processor(plan, calibration: Calibration, sensor_model: SensorModel,
                    device: str = "auto") -> Processor:
     """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
-                     plan.resolution, device)
+                     plan.resolution, device, plan.exr)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -425,13 +538,17 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       command_line: list[str] | None = None,
                       progress: Callable[[int, dict[str, Any] | None], None] | None = None,
                       on_failed: Callable[[int, str], None] | None = None,
-                      resolution: str | None = None, device: str = "auto") -> str:
+                      resolution: str | None = None, device: str = "auto",
+                      exr: Mapping[str, Any] | None = None) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
     ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
     stays single-shot, else ``superpixel``) is recorded with the revision; ``device`` (where
     the network runs) is not a setting of the result: the provider used is in its header.
+    ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
+    ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
+    revision.
 
     A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
     is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
@@ -446,7 +563,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         if not was_locked:
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed, resolution, device)
+                          progress, on_failed, resolution, device, exr)
     finally:
         if not was_locked:
             session.unlock()
@@ -454,12 +571,15 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
 
 def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   mirror_average: bool | None, calibration: Calibration | None,
-                  resolution: str | None = None, device: str = "auto"
+                  resolution: str | None = None, device: str = "auto",
+                  exr: Mapping[str, Any] | None = None
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
     revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
-    ``calibration_id``; ``None`` arguments take the session's), its :class:`Processor` (on
+    ``calibration_id``, ``exr_planes``, ``exr_uncertainty``, ``exr_compression``; ``None``
+    arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
+    take the session's), its :class:`Processor` (on
     ``device``) and the indices of the complete captures to process. Shared by
     :func:`reprocess_session` and :mod:`polrig.cluster`."""
     plan = session.plan
@@ -469,13 +589,15 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         mirror_average = bool(plan.get("mirror_average", False)) and mode == "single-shot"
     if resolution is None:  # the session's where it stays single-shot
         resolution = plan.get("resolution", "superpixel") if mode == "single-shot" else "superpixel"
+    choice = dataclasses.replace(ExrChoice.of_plan(plan),
+                                 **{k: v for k, v in (exr or {}).items() if v is not None})
     calibration = calibration or nominal_calibration()
     if calibration.sensor is not None:  # before a revision exists: nothing recorded
         layout, readout, size = session_frame_geometry(session)
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device)
+                          resolution, device, choice)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
@@ -488,13 +610,15 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                               f"capture again with the reference method)")
         validate_states(calibration.incident_stokes(acquired))
     return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
-             "resolution": resolution, "calibration_id": calibration.id}, processor, done)
+             "resolution": resolution, "calibration_id": calibration.id,
+             "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
+             "exr_compression": choice.compression}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
-               progress, on_failed, resolution=None, device="auto") -> str:
+               progress, on_failed, resolution=None, device="auto", exr=None) -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
-                                              calibration, resolution, device)
+                                              calibration, resolution, device, exr)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

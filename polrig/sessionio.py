@@ -12,9 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import pathlib
-import tempfile
-from typing import Any, Callable
+from typing import Any
 
 from polrig.errors import FormatError
 from polrig.hal import Frame
@@ -62,15 +60,6 @@ def check_resume_space(session: Session, rig, n_captures: int) -> None:
     check_free_space(session.root,
                      planned_bytes(plan, n_captures, width, height, colours, cell))
     session.log("resumed", remaining=n_captures)
-
-
-def exr_bytes(writer: Callable[[pathlib.Path], Any]) -> bytes:
-    """Bytes of an EXR written by ``writer(path)`` to a scratch folder (the session then writes
-    them atomically, checksummed, under their final name)."""
-    with tempfile.TemporaryDirectory(prefix="polrig-exr-") as d:
-        p = pathlib.Path(d) / "image.exr"
-        writer(p)
-        return p.read_bytes()
 
 
 def read_verified_frame(session: Session, record: dict[str, Any]) -> Frame:

@@ -48,7 +48,8 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
         assert cap["score"]["within_2sigma"] > 0.9
     assert main(["info", str(out)]) == 0
     info = capsys.readouterr().out
-    assert "4 complete" in info and "checksums: all 40 files verified" in info
+    # 40 frame, sidecar, truth and result files, and 3 previews per capture
+    assert "4 complete" in info and "checksums: all 52 files verified" in info
     assert main(["reconstruct", str(out), "--demosaic", "bilinear", "--no-progress"]) == 0
     s = Session.open(out)
     assert s.manifest["revisions"][0]["name"] == "rev1"

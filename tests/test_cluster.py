@@ -164,7 +164,8 @@ def test_leftover_temporary_files_of_a_dead_worker_are_removed(archive, tmp_path
         cluster.run_batch(batches, cluster.SerialRunner())
     finally:
         s.unlock()
-    assert sorted(p.name for p in folder.iterdir()) == ["mueller.exr"]
+    assert sorted(p.name for p in folder.iterdir()) == ["mueller.exr", "mueller_aolp.png",
+                                                         "mueller_dolp.png", "mueller_grid.png"]
     assert all(c["revisions"]["rev1"]["status"] == "complete" for c in Session.open(d).captures)
     _no_leftovers(d)
 

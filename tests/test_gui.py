@@ -213,6 +213,27 @@ def test_capture_needs_connected_devices(qtbot, tmp_path):
         close_window(qtbot, w)
 
 
+def test_capture_form_asks_for_the_result_exr_format(qtbot, window, tmp_path):
+    """The form's result planes, precision and compression reach the typed request and the
+    plan it makes; an unknown plane group is a one-line plan error naming the field."""
+    cp = window.capture
+    cp.poses.setText("0")
+    cp.out.setText(str(tmp_path / "s"))
+    assert cp.request().plan().exr_planes == ("mueller", "sigma", "sigma_noise", "mask",
+                                              "residual")  # the defaults, as the CLI's
+    cp.exr_planes.setText("sigma, mask")
+    cp.exr_uncertainty.setCurrentText("half")
+    cp.exr_compression.setCurrentText("none")
+    plan = cp.request().plan()
+    assert (plan.exr_planes, plan.exr_uncertainty, plan.exr_compression) == (
+        ("mueller", "sigma", "mask"), "half", "none")
+    cp.exr_planes.setText("sigma,dolp")
+    from polrig.plan import PlanError
+    with pytest.raises(PlanError, match="dolp") as info:
+        cp.request().plan()
+    assert info.value.field == "exr_planes"
+
+
 def test_bad_capture_options_are_a_message(qtbot, window, tmp_path):
     window.capture.poses.setText("0:10:0")
     window.capture.out.setText(str(tmp_path / "s"))

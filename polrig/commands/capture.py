@@ -56,6 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "full (the raw frame's: the networks' answer with the measured detail of a "
                         "full-resolution demosaic, --demosaic bilinear unless newton is given; no "
                         "sigma at full resolution; models/full_resolution.py)")
+    add_exr_options(p, "default: mueller,sigma,sigma_noise,mask,residual (all)",
+                    "default float", "default zip")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
                    help="where the single-shot network runs: auto (CUDA where onnxruntime offers it, "
                         "else the CPU; default), cpu or cuda (refused when unavailable); the provider "
@@ -70,12 +72,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def add_exr_options(p: argparse.ArgumentParser, planes_default: str, unc_default: str,
+                    comp_default: str) -> None:
+    """``--exr-planes``, ``--exr-uncertainty``, ``--exr-compression``: the result EXR's format
+    (:class:`polrig.plan.ExrChoice`; ``capture`` and ``reconstruct`` share them)."""
+    from polrig.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+
+    p.add_argument("--exr-planes", metavar="LIST", default=None,
+                   help="plane groups of each result EXR, comma separated, from "
+                        f"{','.join(RESULT_PLANES)} (mueller always written; {planes_default})")
+    p.add_argument("--exr-uncertainty", choices=tuple(UNCERTAINTY_PRECISIONS), default=None,
+                   help="precision of the sigma, sigma_noise, residual and mask planes: float "
+                        f"(float32) or half (float16, half the bytes; {unc_default})")
+    p.add_argument("--exr-compression", choices=tuple(COMPRESSIONS), default=None,
+                   help="EXR compression: zip (lossless, smaller), piz (wavelet, lossless) or "
+                        f"none (fastest write, largest file; {comp_default})")
+
+
+def exr_planes_option(text: str | None) -> tuple[str, ...] | None:
+    """``--exr-planes a,b`` as a tuple of plane groups (``None`` where not given)."""
+    if text is None:
+        return None
+    return tuple(t.strip() for t in text.split(",") if t.strip())
+
+
 #: The option that sets each :class:`polrig.capture.CaptureRequest` field (library errors
 #: name the field, :class:`polrig.plan.PlanError`; the command line names its option).
 FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "frames_per_state": "--frames", "exposures_us": "--exposure",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "resolution": "--resolution",
+         "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
+         "exr_compression": "--exr-compression",
          "calibration": "--calibration", "out": "--out"}
 #: What the command line adds to an error about a field.
 HINTS = {"out": "--resume"}
@@ -122,6 +150,9 @@ def build_request(args: argparse.Namespace):
             demosaic=args.demosaic,
             mirror_average=args.mirror_average,
             resolution=args.resolution,
+            exr_planes=exr_planes_option(args.exr_planes),
+            exr_uncertainty=args.exr_uncertainty,
+            exr_compression=args.exr_compression,
             device=args.device or "auto",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,

@@ -26,6 +26,8 @@ from polrig.argcheck import int_range
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from polrig.commands.capture import add_exr_options
+
     p = sub.add_parser(
         "reconstruct", help="re-process sessions' raw frames (new calibration/model/demosaic)",
         description="Re-process every complete capture of one or more sessions from their raw "
@@ -49,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
                    help="where the single-shot network runs: auto (default), cpu or cuda (refused "
                         "when unavailable); the provider used is recorded in each result's header")
+    add_exr_options(p, "default: the session's", "default: the session's",
+                    "default: the session's")
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
@@ -71,7 +75,7 @@ def _command_line(args: argparse.Namespace, paths: list[str]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from polrig import cluster, processing
-    from polrig.commands.capture import options_named
+    from polrig.commands.capture import exr_planes_option, options_named
     from polrig.errors import ConfigError
     from polrig.scoring import format_score
 
@@ -116,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
                 device=args.device or "auto", calibration_path=args.calibration,
+                exr={"planes": exr_planes_option(args.exr_planes),
+                     "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
                 command_line=_command_line(args, paths), on_start=on_start,
                 on_capture=on_capture)
     except cluster.BatchIncomplete as exc:

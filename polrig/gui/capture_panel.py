@@ -166,6 +166,17 @@ class CapturePanel(QWidget):
         self.dark_frames.setRange(0, 1000)
         self.demosaic = QComboBox()
         self.demosaic.addItems(["superpixel", "bilinear", "newton"])
+        from polrig.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+
+        self.exr_planes = QLineEdit(",".join(RESULT_PLANES))
+        self.exr_planes.setToolTip("plane groups of each result EXR, comma separated (mueller "
+                                   "always written)")
+        self.exr_uncertainty = QComboBox()
+        self.exr_uncertainty.addItems(list(UNCERTAINTY_PRECISIONS))
+        self.exr_uncertainty.setToolTip("precision of the sigma, sigma_noise, residual and mask "
+                                        "planes: float32, or half (half the bytes)")
+        self.exr_compression = QComboBox()
+        self.exr_compression.addItems(list(COMPRESSIONS))
         self.calibration = QLineEdit()
         self.calibration.setPlaceholderText("nominal")
         self.out = QLineEdit()
@@ -185,6 +196,9 @@ class CapturePanel(QWidget):
         form.addRow("Exposure(s)", self.exposure)
         form.addRow("Dark frames", self.dark_frames)
         form.addRow("Demosaic", self.demosaic)
+        form.addRow("Result planes", self.exr_planes)
+        form.addRow("Uncertainty precision", self.exr_uncertainty)
+        form.addRow("EXR compression", self.exr_compression)
         form.addRow("Calibration set", self.calibration)
         form.addRow("Output folder", out_row)
         opts = QGroupBox("Capture options (as polrig capture)")
@@ -253,7 +267,10 @@ class CapturePanel(QWidget):
                                            field="exposures_us") if exposure else None),
             dark_frames=self.dark_frames.value(), demosaic=self.demosaic.currentText(),
             mirror_average=mode == "single-shot" and self.mirror_average.isChecked(),
-            resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel")
+            resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel",
+            exr_planes=tuple(p.strip() for p in self.exr_planes.text().split(",") if p.strip()),
+            exr_uncertainty=self.exr_uncertainty.currentText(),
+            exr_compression=self.exr_compression.currentText())
 
     def _browse(self) -> None:
         path = QFileDialog.getExistingDirectory(self, "Session folder", self.out.text())
