@@ -55,6 +55,11 @@ STATES = (0.0, 45.0, 90.0, 135.0)
 EXPOSURE_US = 20000.0
 SENSORS = {"colour": "imx250myr", "mono": "imx250mzr"}
 METHODS = ("superpixel", "bilinear", "newton")
+#: The EXR choice of the timed rows (README "CLI": --exr-uncertainty half --exr-compression
+#: none): half-float uncertainty planes, no compression. The defaults (float32, ZIP) are timed
+#: in their own rows: ZIP of full-resolution float planes costs more than the processing.
+FAST_EXR = {"uncertainty": "half", "compression": "none"}
+DEFAULT_EXR: dict = {}
 
 
 def peak_rss_mb() -> float:
@@ -111,7 +116,7 @@ def make_capture(folder: pathlib.Path, sensor: str) -> pathlib.Path:
     return folder
 
 
-def run_case(session_dir: pathlib.Path, method: str, score: bool) -> dict:
+def run_case(session_dir: pathlib.Path, method: str, score: bool, exr: dict) -> dict:
     """One reconstruct of the session's capture (in this process); wall seconds and bytes of
     the Mueller EXR."""
     from polrig import processing
@@ -122,7 +127,7 @@ def run_case(session_dir: pathlib.Path, method: str, score: bool) -> dict:
         if not score:  # a copy of the session without its truth file record: nothing to score
             session.captures[0]["files"].pop("truth_mueller", None)
         t0 = time.perf_counter()
-        revision = processing.reprocess_session(session, demosaic=method)
+        revision = processing.reprocess_session(session, demosaic=method, exr=exr)
         wall = time.perf_counter() - t0
         files = session.captures[0]["revisions"][revision]["files"]
         size = (session.root / files["mueller"]["path"]).stat().st_size
@@ -148,7 +153,10 @@ def pose_hardware_s() -> float:
 
 
 def pose_table(rounds: int) -> str:
-    cases = [(lay, m, True) for lay in SENSORS for m in METHODS] + [("colour", "bilinear", False)]
+    fast, default = "fast", "default"
+    cases = ([(lay, m, True, fast) for lay in SENSORS for m in METHODS]
+             + [("colour", m, False, fast) for m in ("superpixel", "bilinear")]
+             + [("colour", m, True, default) for m in ("superpixel", "bilinear")])
     runs: dict[tuple, list[dict]] = {c: [] for c in cases}
     with tempfile.TemporaryDirectory(prefix="polrig-bench-") as tmp:
         sessions = {}
@@ -159,39 +167,44 @@ def pose_table(rounds: int) -> str:
         sessions["colour-noscore"] = pathlib.Path(tmp) / "colour-noscore"
         shutil.copytree(sessions["colour"], sessions["colour-noscore"])
         for r in range(rounds):
-            for lay, method, score in cases:
+            for lay, method, score, choice in cases:
                 out = subprocess.run(
                     [sys.executable, __file__, "--case",
                      str(sessions[lay if score else f"{lay}-noscore"]), method,
-                     "score" if score else "noscore"],
+                     "score" if score else "noscore", choice],
                     cwd=REPO, capture_output=True, text=True, check=True)
                 res = json.loads(out.stdout.strip().splitlines()[-1])
-                runs[(lay, method, score)].append(res)
+                runs[(lay, method, score, choice)].append(res)
                 print(f"  round {r + 1}: {lay:6s} {method:10s} {'score' if score else 'no score'}"
-                      f" {res['wall_s']:6.2f} s {res['peak_mb']:7.0f} MiB", flush=True)
+                      f" {choice:7s} {res['wall_s']:6.2f} s {res['peak_mb']:7.0f} MiB", flush=True)
     hw = pose_hardware_s()
     lines = [f"Hardware time of one pose (30 deg turn, 4 states, 20 ms exposure, 13 ms readout): "
              f"{hw:.2f} s.", "",
-             "| sensor | demosaic | score | processing per pose (s) | / hardware | peak memory (MiB) "
-             "| Mueller EXR (MB) |", "|---|---|---|---|---|---|---|"]
-    for (lay, method, score), rs in runs.items():
+             "EXR choice 'fast': half-float uncertainty planes, no compression "
+             "(`--exr-uncertainty half --exr-compression none`); 'default': float32, ZIP.", "",
+             "| sensor | demosaic | score | EXR | processing per pose (s) | / hardware | peak memory "
+             "(MiB) | Mueller EXR (MB) |", "|---|---|---|---|---|---|---|---|"]
+    for (lay, method, score, choice), rs in runs.items():
         wall = statistics.median(x["wall_s"] for x in rs)
         peak = statistics.median(x["peak_mb"] for x in rs)
         mb = rs[-1]["exr_bytes"] / 1e6
-        lines.append(f"| {lay} | {method} | {'yes' if score else 'no'} | {wall:.2f} | "
+        lines.append(f"| {lay} | {method} | {'yes' if score else 'no'} | {choice} | {wall:.2f} | "
                      f"{wall / hw:.2f} | {peak:.0f} | {mb:.0f} |")
     return "\n".join(lines)
 
 
 # -- table 2: a turntable session ----------------------------------------------------------------
-def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: float) -> dict:
+def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: float,
+                     exr: dict) -> dict:
     from polrig import capture, processing
 
     with tempfile.TemporaryDirectory(prefix="polrig-bench-") as tmp:
         out = pathlib.Path(tmp) / "s"
         poses = tuple(360.0 * i / n_poses for i in range(n_poses))
         req = capture.CaptureRequest(out=out, poses_deg=poses, mode="reference",
-                                     states_deg=STATES, frames_per_state=1, demosaic=method)
+                                     states_deg=STATES, frames_per_state=1, demosaic=method,
+                                     exr_uncertainty=exr.get("uncertainty"),
+                                     exr_compression=exr.get("compression"))
         prepared = capture.prepare_capture(req)
         rig = replay_rig("imx250myr", clock_speed)
         try:
@@ -202,7 +215,7 @@ def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: f
             t0, c0 = time.perf_counter(), clock.now()
             result = capture.run_session(rig, session, processor=proc if overlapped else None)
             if not overlapped:
-                processing.reprocess_session(session, demosaic=method)
+                processing.reprocess_session(session, demosaic=method, exr=exr)
             wall = time.perf_counter() - t0
             sim_s = clock.now() - c0
         finally:
@@ -214,19 +227,22 @@ def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: f
             "peak_mb": peak_rss_mb()}
 
 
-def session_table(n_poses: int, clock_speed: float) -> str:
+def session_table(n_poses: int, clock_speed: float,
+                  methods: tuple[str, ...] = ("superpixel", "bilinear"),
+                  exr_choice: str = "fast") -> str:
     w, h = _size()
     lines = [f"{n_poses} poses over 360 deg, colour IMX250MYR {w}x{h}, 4 states, K = 1, "
              f"simulated motion at {clock_speed:g}x real time (hardware time in wall seconds), "
-             f"frames replayed.", "",
+             f"frames replayed; EXR choice '{exr_choice}' (see above).", "",
              "| demosaic | processing | wall (s) | hardware (s) | wall / hardware | target |",
              "|---|---|---|---|---|---|"]
     targets = {"superpixel": 1.1, "bilinear": 1.5}
-    for method in ("superpixel", "bilinear"):
+    for method in methods:
         for overlapped in (True, False):
             out = subprocess.run(
                 [sys.executable, __file__, "--session-case", method,
-                 "overlap" if overlapped else "after", str(n_poses), str(clock_speed)],
+                 "overlap" if overlapped else "after", str(n_poses), str(clock_speed),
+                 exr_choice],
                 cwd=REPO, capture_output=True, text=True, check=True)
             res = json.loads(out.stdout.strip().splitlines()[-1])
             hardware_wall_s = res["hardware_s"] / clock_speed  # the clock runs faster
@@ -247,20 +263,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clock-speed", type=float, default=1.0)
     ap.add_argument("--skip-session", action="store_true")
     ap.add_argument("--skip-pose", action="store_true")
+    ap.add_argument("--methods", default="superpixel,bilinear",
+                    help="demosaic methods of the session table (comma-separated)")
+    ap.add_argument("--out", default="throughput.md", help="results file name in benchmarks/results")
     ap.add_argument("--size", help="WxH instead of the full 2448x2048 sensor (a quick trial)")
-    ap.add_argument("--case", nargs=3, metavar=("SESSION", "METHOD", "SCORE"),
+    ap.add_argument("--exr", choices=("fast", "default"), default="fast",
+                    help="EXR choice of the session table (default: fast)")
+    ap.add_argument("--case", nargs=4, metavar=("SESSION", "METHOD", "SCORE", "EXR"),
                     help=argparse.SUPPRESS)
-    ap.add_argument("--session-case", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--session-case", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.size:
         os.environ["POLRIG_BENCH_SIZE"] = args.size  # the child processes inherit it
     if args.case:
-        session, method, score = args.case
-        print(json.dumps(run_case(pathlib.Path(session), method, score == "score")))
+        session, method, score, choice = args.case
+        exr = FAST_EXR if choice == "fast" else DEFAULT_EXR
+        print(json.dumps(run_case(pathlib.Path(session), method, score == "score", exr)))
         return 0
     if args.session_case:
-        method, mode, n, speed = args.session_case
-        print(json.dumps(run_session_case(method, mode == "overlap", int(n), float(speed))))
+        method, mode, n, speed, choice = args.session_case
+        exr = FAST_EXR if choice == "fast" else DEFAULT_EXR
+        print(json.dumps(run_session_case(method, mode == "overlap", int(n), float(speed), exr)))
         return 0
     w, h = _size()
     head = (f"Sensor {w}x{h}. Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -272,11 +295,13 @@ def main(argv: list[str] | None = None) -> int:
         parts += ["## Per-pose processing", "", pose_table(args.rounds), ""]
     if not args.skip_session:
         print("turntable session:", flush=True)
-        parts += ["## Turntable session", "", session_table(args.poses, args.clock_speed), ""]
+        parts += ["## Turntable session", "", session_table(args.poses, args.clock_speed,
+                                                          tuple(args.methods.split(",")),
+                                                          args.exr), ""]
     text = "\n".join(parts)
     print(text)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "throughput.md").write_text(text + "\n")
+    (RESULTS / args.out).write_text(text + "\n")
     return 0
 
 
