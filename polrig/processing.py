@@ -13,12 +13,7 @@ capture's raw frames back from the session (checksums verified), solves, writes
 simulated rig ``truth_mueller.exr`` and a score; :func:`reprocess_session` does the same into
 a new revision for ``polrig reconstruct``.
 
-Uncertainty propagation: per raw sample the model variance
-(:meth:`polrig.noise.SensorModel.variance_dn2` at the measured mean signal, divided by K;
-plus the variance of the subtracted dark mean), HDR-merged by :func:`polrig.reference.merge_hdr`;
-the ``superpixel`` demosaic averages ``n`` same-class pixels, so the variance is the mean
-variance divided by ``n`` (exact); interpolating demosaics get the interpolated variance
-(an approximation: it ignores the correlation the interpolation creates).
+Uncertainty propagation from the raw samples to the result: :mod:`polrig.radiometry`.
 """
 
 from __future__ import annotations

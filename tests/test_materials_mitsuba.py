@@ -19,26 +19,14 @@ mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 mi.set_variant("scalar_spectral_polarized")
 
+from _sampling import random_unit as _random_unit  # noqa: E402
+
 from polrig import frames  # noqa: E402
 from sim import surface_bsdf as sb  # noqa: E402
 from sim.materials import SurfaceMaterial  # noqa: E402
 from sim.optical_data import CONDUCTORS, MITSUBA_NAMES, WAVELENGTHS_NM, dielectric_rgb  # noqa: E402
 
 REL_TOL = 1e-4
-MIN_COS = 0.05
-
-
-def _random_unit(rng, around=None, min_cos=MIN_COS):
-    while True:
-        v = rng.normal(size=3)
-        v /= np.linalg.norm(v)
-        if around is None:
-            return v
-        c = v @ around
-        if c < 0:
-            v, c = -v, -c
-        if c >= min_cos:
-            return v
 
 
 def _v(v):
