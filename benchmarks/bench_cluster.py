@@ -225,11 +225,17 @@ def main(argv=None) -> int:
                 print(f"round {k + 1} {name}: {rate:.3f} captures/s ({sec:.2f} s/capture, "
                       f"CPU {cpu:.2f} s/capture, read {read / 1e6:.1f} MB)", flush=True)
         # bytes of one task and one result, as Dask pickles them
+        from polrig.plan import ExrChoice
+
+        exr0 = ExrChoice()
         job = cluster.jobs_of(cluster.SessionBatch(s, "rev1", {"mode": "reference",
                                                                "demosaic": "superpixel",
                                                                "mirror_average": False,
                                                                "resolution": "superpixel",
-                                                               "calibration_id": "nominal"},
+                                                               "calibration_id": "nominal",
+                                                               "exr_planes": list(exr0.planes),
+                                                               "exr_uncertainty": exr0.uncertainty,
+                                                               "exr_compression": exr0.compression},
                                                    [0]), None)[0]
         import cloudpickle
 
