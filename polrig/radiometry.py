@@ -279,9 +279,9 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     # the first band alone (it raises for a bad state set before any other work, and gives
     # the result's layout); the others on a few threads: their demosaics run side by side
     # (OpenCV and numpy release the GIL) and beside the solve of another band, the solves one
-    # after the other (a parallel solver kernel, e.g. numba's workqueue layer, must not be
-    # entered from two threads at once); each band stores its own rows as soon as it is
-    # solved: at most ``workers`` bands in flight
+    # after the other (solve_reference already spreads one band's tiles over the CPUs on its
+    # own thread pool: two solves at once would only oversubscribe them); each band stores
+    # its own rows as soon as it is solved: at most ``workers`` bands in flight
     first = solve_band(bands[0])
     cond = first.condition_number
     shared_sigma = first.sigma_noise is first.sigma
