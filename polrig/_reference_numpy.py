@@ -15,7 +15,7 @@ import numpy as np
 from polrig.reference import (DARK, DEFAULT_MAX_CONDITION, ILL_CONDITIONED, MIN_SNR, NONFINITE,
                               SATURATED, AnalyzerTolerance, GeneratorTolerance, ReferenceResult,
                               _analyzer_planes, _cond_from_singular, _shared_rows, _states,
-                              _tolerance, validate_states)
+                              _tolerance, check_samples, validate_states)
 from polrig.stokes import ideal_analyzer_matrix
 
 __all__ = ["solve_reference_numpy"]
@@ -40,16 +40,7 @@ def solve_reference_numpy(s_in: np.ndarray, measured: np.ndarray, variance: np.n
     cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
     s = _states(s_in)
     n = len(s)
-    meas = np.asarray(measured)
-    if meas.ndim != 5 or meas.shape[0] != n or meas.shape[2] != 4:
-        raise ValueError(f"measured must have shape (N={n}, C, 4, H, W), got {meas.shape}")
-    var = np.asarray(variance)
-    if var.shape != meas.shape:
-        raise ValueError(f"variance shape {var.shape} differs from measured {meas.shape}")
-    if valid is not None:
-        valid = np.asarray(valid, dtype=bool)
-        if valid.shape != meas.shape:
-            raise ValueError(f"valid shape {valid.shape} differs from measured {meas.shape}")
+    meas, var, valid = check_samples(n, measured, variance, valid)
     _, n_col, _, h, w = meas.shape
     a_planes = _analyzer_planes(analyzer_rows, n_col, (h, w))
     a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()

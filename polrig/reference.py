@@ -336,6 +336,23 @@ def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarr
                          f"size {tuple(hw)}") from None
 
 
+def check_samples(n_states: int, measured, variance, valid=None):
+    """``(measured, variance, valid)`` as arrays after checking their shapes: ``measured``
+    ``(N, C, 4, H, W)`` with ``N = n_states``, ``variance`` and ``valid`` (optional, bool) the
+    same shape; ``ValueError`` naming the mismatch otherwise. No copy of float input."""
+    meas = np.asarray(measured)
+    if meas.ndim != 5 or meas.shape[0] != n_states or meas.shape[2] != 4:
+        raise ValueError(f"measured must have shape (N={n_states}, C, 4, H, W), got {meas.shape}")
+    var = np.asarray(variance)
+    if var.shape != meas.shape:
+        raise ValueError(f"variance shape {var.shape} differs from measured {meas.shape}")
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        if valid.shape != meas.shape:
+            raise ValueError(f"valid shape {valid.shape} differs from measured {meas.shape}")
+    return meas, var, valid
+
+
 # ---------------------------------------------------------------------------- solve
 #: pixels per tile of the solve (rounded to whole rows): big enough to amortise the per-tile
 #: Python work, small enough for the tile buffers to stay in L2 (measured: 1024 px 1.5x,
@@ -428,16 +445,7 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
     s = _states(s_in)
     n = len(s)
-    meas = np.asarray(measured)
-    if meas.ndim != 5 or meas.shape[0] != n or meas.shape[2] != 4:
-        raise ValueError(f"measured must have shape (N={n}, C, 4, H, W), got {meas.shape}")
-    var = np.asarray(variance)
-    if var.shape != meas.shape:
-        raise ValueError(f"variance shape {var.shape} differs from measured {meas.shape}")
-    if valid is not None:
-        valid = np.asarray(valid, dtype=bool)
-        if valid.shape != meas.shape:
-            raise ValueError(f"valid shape {valid.shape} differs from measured {meas.shape}")
+    meas, var, valid = check_samples(n, measured, variance, valid)
     _, n_col, _, h, w = meas.shape
     a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
     pixel_rows = None
