@@ -13,6 +13,17 @@ import dataclasses
 import numpy as np
 
 
+
+def pbrdf_components(ks: float, kd) -> tuple[str, ...]:
+    """The pBRDF terms a material with specular weight ``ks`` and diffuse albedo ``kd`` (RGB)
+    actually has: ``"specular"`` where ``ks > 0``, ``"diffuse"`` where some ``kd > 0``."""
+    out = []
+    if ks > 0.0:
+        out.append("specular")
+    if max(kd) > 0.0:
+        out.append("diffuse")
+    return tuple(out)
+
 @dataclasses.dataclass(frozen=True)
 class Material:
     name: str
@@ -36,12 +47,7 @@ class Material:
     @property
     def components(self) -> tuple[str, ...]:
         """pBRDF terms with a non-zero weight (``"specular"``, ``"diffuse"``)."""
-        out = []
-        if self.ks > 0.0:
-            out.append("specular")
-        if max(self.kd) > 0.0:
-            out.append("diffuse")
-        return tuple(out)
+        return pbrdf_components(self.ks, self.kd)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self) | {"kd": list(self.kd)}
@@ -215,12 +221,8 @@ class SurfaceMaterial:
 
     @property
     def components(self) -> tuple[str, ...]:
-        out = []
-        if self.ks > 0.0:
-            out.append("specular")
-        if max(self.kd) > 0.0:
-            out.append("diffuse")
-        return tuple(out)
+        """pBRDF terms with a non-zero weight (``"specular"``, ``"diffuse"``)."""
+        return pbrdf_components(self.ks, self.kd)
 
     def parameters(self, p_local: np.ndarray) -> dict[str, np.ndarray]:
         """Per-point parameters at local points ``(N, 3)``: ``eta`` ``(N, 3)`` complex,
