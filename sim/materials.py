@@ -13,7 +13,6 @@ import dataclasses
 import numpy as np
 
 
-
 def pbrdf_components(ks: float, kd) -> tuple[str, ...]:
     """The pBRDF terms a material with specular weight ``ks`` and diffuse albedo ``kd`` (RGB)
     actually has: ``"specular"`` where ``ks > 0``, ``"diffuse"`` where some ``kd > 0``."""
@@ -23,6 +22,7 @@ def pbrdf_components(ks: float, kd) -> tuple[str, ...]:
     if max(kd) > 0.0:
         out.append("diffuse")
     return tuple(out)
+
 
 @dataclasses.dataclass(frozen=True)
 class Material:
