@@ -102,6 +102,20 @@ def microfacet_d(cos_h, alpha, distribution: str = "ggx") -> np.ndarray:
     return np.where(ok, res, 0.0)
 
 
+def smith_g1_of_a2t2(a2t2: np.ndarray, distribution: str) -> np.ndarray:
+    """Smith ``G1`` as a function of ``a^2 tan^2`` of the direction (the squared roughness
+    projected on its azimuth for an anisotropic surface, Heitz 2014): GGX
+    ``2 / (1 + sqrt(1 + a2t2))``, Beckmann Walter et al.'s rational approximation with
+    ``b = 1 / sqrt(a2t2)`` (see :func:`smith_g1`). ``inf``/``nan`` where ``a2t2`` is 0 or
+    undefined: the callers decide those cases."""
+    a2t2 = np.asarray(a2t2, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if distribution == "ggx":
+            return 2.0 / (1.0 + np.sqrt(1.0 + a2t2))
+        b = 1.0 / np.sqrt(a2t2)
+        return np.where(b >= 1.6, 1.0, (3.535 * b + 2.181 * b * b) / (1.0 + 2.276 * b + 2.577 * b * b))
+
+
 def smith_g1(cos_v, cos_vh, alpha, distribution: str = "ggx") -> np.ndarray:
     """Smith masking ``G1(v, h)`` for a direction at ``cos_v = n . v`` and ``cos_vh = v . h``.
 
@@ -116,12 +130,7 @@ def smith_g1(cos_v, cos_vh, alpha, distribution: str = "ggx") -> np.ndarray:
     a2 = np.square(np.maximum(np.asarray(alpha, dtype=np.float64), ALPHA_MIN))
     s2 = np.maximum(1.0 - cv * cv, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t2a2 = a2 * s2 / (cv * cv)
-        if d == "ggx":
-            g = 2.0 / (1.0 + np.sqrt(1.0 + t2a2))
-        else:
-            b = 1.0 / np.sqrt(t2a2)
-            g = np.where(b >= 1.6, 1.0, (3.535 * b + 2.181 * b * b) / (1.0 + 2.276 * b + 2.577 * b * b))
+        g = smith_g1_of_a2t2(a2 * s2 / (cv * cv), d)
     g = np.where(s2 == 0.0, 1.0, g)
     g = np.where(np.asarray(cos_vh) * cv <= 0.0, 0.0, g)
     return np.where(np.isfinite(g), g, 0.0)

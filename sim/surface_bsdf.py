@@ -47,7 +47,7 @@ import numpy as np
 
 from polrig import frames as fr
 from polrig import mueller as mu
-from polrig.pbrdf import ALPHA_MIN, DISTRIBUTIONS
+from polrig.pbrdf import ALPHA_MIN, DISTRIBUTIONS, smith_g1_of_a2t2
 from sim.materials import FILM_INDEX
 from sim.optical_data import WAVELENGTHS_NM
 
@@ -107,12 +107,7 @@ def smith_g1(v_local: np.ndarray, h_local: np.ndarray, alpha_u, alpha_v,
     xy = np.square(au * v_local[:, 0]) + np.square(av * v_local[:, 1])
     vz = v_local[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        t2 = xy / (vz * vz)
-        if distribution == "ggx":
-            g = 2.0 / (1.0 + np.sqrt(1.0 + t2))
-        else:
-            a = 1.0 / np.sqrt(t2)
-            g = np.where(a >= 1.6, 1.0, (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a))
+        g = smith_g1_of_a2t2(xy / (vz * vz), distribution)
     g = np.where(xy == 0.0, 1.0, g)
     g = np.where(fr.dot(v_local, h_local) * vz <= 0.0, 0.0, g)
     return np.where(np.isfinite(g), g, 0.0)
