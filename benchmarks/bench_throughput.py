@@ -60,6 +60,7 @@ METHODS = ("superpixel", "bilinear", "newton")
 #: in their own rows: ZIP of full-resolution float planes costs more than the processing.
 FAST_EXR = {"uncertainty": "half", "compression": "none"}
 DEFAULT_EXR: dict = {}
+EXR_CHOICES = {"fast": FAST_EXR, "default": DEFAULT_EXR}
 
 
 def peak_rss_mb() -> float:
@@ -97,14 +98,16 @@ def replay_rig(sensor: str, clock_speed: float):
 
 
 # -- table 1: per-pose processing ----------------------------------------------------------------
-def make_capture(folder: pathlib.Path, sensor: str) -> pathlib.Path:
+def make_capture(folder: pathlib.Path, sensor: str, exr: dict) -> pathlib.Path:
     """A one-pose reference session at full sensor on the (rendering) simulated rig, with its
-    truth recorded; processed once with the superpixel demosaic."""
+    truth recorded (compressed as the EXR choice ``exr`` says, as a capture with that choice
+    writes it); processed once with the superpixel demosaic."""
     from polrig import capture, processing
     from polrig.rig import open_rig
 
     req = capture.CaptureRequest(out=folder, poses_deg=(0.0,), mode="reference",
-                                 states_deg=STATES, frames_per_state=1)
+                                 states_deg=STATES, frames_per_state=1,
+                                 exr_compression=exr.get("compression", "zip"))
     prepared = capture.prepare_capture(req)
     with open_rig(None, **_sim_options(sensor, math.inf)) as rig:
         session = capture.open_session(prepared, rig, ["bench_throughput"])
@@ -158,17 +161,18 @@ def pose_table(rounds: int) -> str:
     runs: dict[tuple, list[dict]] = {c: [] for c in cases}
     with tempfile.TemporaryDirectory(prefix="polrig-bench-") as tmp:
         sessions = {}
-        for lay, sensor in SENSORS.items():
+        for lay, choice in [(lay, fast) for lay in SENSORS] + [("colour", default)]:
             t0 = time.perf_counter()
-            sessions[lay] = make_capture(pathlib.Path(tmp) / lay, sensor)
-            print(f"  setup {lay}: {time.perf_counter() - t0:.1f} s", flush=True)
-        sessions["colour-noscore"] = pathlib.Path(tmp) / "colour-noscore"
-        shutil.copytree(sessions["colour"], sessions["colour-noscore"])
+            sessions[lay, choice] = make_capture(pathlib.Path(tmp) / f"{lay}-{choice}",
+                                                 SENSORS[lay], EXR_CHOICES[choice])
+            print(f"  setup {lay} {choice}: {time.perf_counter() - t0:.1f} s", flush=True)
+        # the unscored rows reprocess a copy whose manifest loses its truth record
+        noscore = shutil.copytree(sessions["colour", fast], pathlib.Path(tmp) / "colour-noscore")
         for r in range(rounds):
             for lay, method, score, choice in cases:
                 out = subprocess.run(
                     [sys.executable, __file__, "--case",
-                     str(sessions[lay if score else f"{lay}-noscore"]), method,
+                     str(sessions[lay, choice] if score else noscore), method,
                      "score" if score else "noscore", choice],
                     cwd=REPO, capture_output=True, text=True, check=True)
                 res = json.loads(out.stdout.strip().splitlines()[-1])

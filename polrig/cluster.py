@@ -11,8 +11,8 @@ Roles (the session's one-writer rule holds):
   share with the client, read and verify the raw frames themselves (raw data never travels
   through the client), solve (:meth:`polrig.processing.Processor.solve`) and write the
   result file under a temporary name in its final folder, then rename it
-  (:func:`polrig.processing.write_result_files`, previews included); they return the files'
-  records and the score
+  (:func:`polrig.processing.write_and_score`, previews included), then score it against
+  the simulator's truth if the capture has one; they return the files' records and the score
   (a few hundred bytes).
 
 Faults: a worker that dies mid-task has its task rerun on another worker by Dask (the rerun
@@ -254,15 +254,15 @@ def run_capture(job: CaptureJob) -> CaptureOutcome:
         from polrig import processing
 
         proc = _processor(job, session)
-        out = proc.solve(session, job.index, job.revision)
         # a file already there is a result the manifest does not record (the client only
         # submits captures not complete in the revision): the unrecorded output of an attempt
         # that died before the client heard of it, replaced by this one's identical bytes
-        record = processing.write_result_files(session.root, out, proc.exr, replace=True)
+        record, score = processing.write_and_score(
+            session.root, proc.solve(session, job.index, job.revision), proc.exr, replace=True)
     except Exception as exc:
         return CaptureOutcome(None, None, f"{type(exc).__name__}: {exc}", is_disk_full(exc),
                               time.perf_counter() - t0)
-    return CaptureOutcome(record, out.score, None, False, time.perf_counter() - t0)
+    return CaptureOutcome(record, score, None, False, time.perf_counter() - t0)
 
 
 # -- the client ----------------------------------------------------------------------------------

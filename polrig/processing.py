@@ -44,7 +44,7 @@ from polrig.radiometry import (StateRadiance, adc_scale, analyzer_stack,  # noqa
                                reference_from_frames, state_radiance)
 from polrig.records import (sensor_model_of, session_frame_geometry,  # noqa: F401 (re-exported)
                             session_sensor_model)
-from polrig.reference import ReferenceResult, reason_names, validate_states
+from polrig.reference import MuellerEstimate, ReferenceResult, reason_names, validate_states
 from polrig.scoring import (_psnr_db, format_score, score_against_truth,  # noqa: F401 (re-exported)
                             score_on_output_grid, truth_on_output_grid)
 from polrig.session import (COMPLETE, FAILED, PENDING, Session, SignalGuard,
@@ -107,16 +107,46 @@ _UNCERTAINTY_CHANNELS = {"sigma": "sigma.M{row}{col}.{colour}",
 
 
 @dataclasses.dataclass(frozen=True)
+class TruthScore:
+    """How to score a capture's result against the simulator's truth file ``truth_path``
+    (already verified): the truth as a perfect rig at the output resolution measures it
+    (:func:`polrig.scoring.score_on_output_grid`: ``layout``, demosaic ``method``, incident
+    states ``s_in`` ``(N, 3)``, the capture's own ``states`` as weights, or for the
+    single-shot method ``None`` with the noise ``model`` at ``exposure_us``)."""
+
+    truth_path: pathlib.Path
+    layout: MosaicLayout
+    method: str
+    s_in: np.ndarray
+    states: Sequence[StateRadiance] | None = None
+    model: SensorModel | None = None
+    exposure_us: float | None = None
+
+    def run(self, estimate: MuellerEstimate | ReferenceResult) -> dict[str, Any]:
+        """The score (:func:`polrig.scoring.score_against_truth`'s keys) of ``estimate``;
+        the truth file is read a band of rows at a time (:class:`polrig.exr.MuellerRows`),
+        its ``object_mask`` plane whole."""
+        from polrig.exr import MuellerRows
+
+        with MuellerRows(self.truth_path) as truth:
+            obj = truth.plane("object_mask")  # output pixels whose whole support lies on it
+            return score_on_output_grid(estimate, truth, self.layout, self.method, self.s_in,
+                                        self.states, model=self.model,
+                                        exposure_us=self.exposure_us, object_mask=obj)
+
+
+@dataclasses.dataclass
 class CaptureResult:
     """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
     ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
-    arrays, ``metadata`` the EXR header's polrig entries, ``score`` against the simulator's
-    truth (``None`` without a truth file). :func:`write_result_files` writes it."""
+    arrays, ``metadata`` the EXR header's polrig entries, ``truth`` how to score it against
+    the simulator's truth (``None`` without a truth file). :func:`write_and_score` writes
+    and scores it."""
 
     relpath: str
-    result: ReferenceResult
+    result: ReferenceResult | MuellerEstimate
     metadata: dict[str, Any]
-    score: dict[str, Any] | None
+    truth: TruthScore | None
 
 
 def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
@@ -155,6 +185,30 @@ def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *
                 for role, p in written.items()}
     except BaseException:  # no partial result left behind (each file is whole or absent)
         remove_files(written.values())
+        raise
+
+
+def write_and_score(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
+                    replace: bool = False
+                    ) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None]:
+    """Write ``out``'s result files (:func:`write_result_files`), then score it against the
+    truth (``out.truth``; ``None`` without one); return the files' records and the score.
+
+    Consumes ``out``: once the files are written, ``out.result`` is replaced by its
+    :class:`polrig.reference.MuellerEstimate`, so that the diagnostic planes are released
+    before the truth is read (the peak memory of a scored full-sensor pose is the solve's,
+    not the solve's plus the truth's). A score that fails removes the files just written.
+    The serial :meth:`Processor.process` and the workers of :mod:`polrig.cluster` both call
+    it."""
+    records = write_result_files(root, out, exr, replace=replace)
+    if out.truth is None:
+        return records, None
+    if isinstance(out.result, ReferenceResult):
+        out.result = out.result.estimate()
+    try:
+        return records, out.truth.run(out.result)
+    except BaseException:
+        remove_files(pathlib.Path(root) / r["path"] for r in records.values())
         raise
 
 
@@ -268,7 +322,9 @@ class Processor:
     # called by run_session while the rig is still at the pose
     def after_acquire(self, session: Session, index: int, rig) -> None:
         """The simulated rig's ground truth of capture ``index`` (``truth_mueller.exr``),
-        taken while the rig is still at its pose; nothing on real hardware."""
+        taken while the rig is still at its pose, compressed as the plan's result files
+        (``exr_compression``: ``none`` writes and reads it fastest); nothing on real
+        hardware."""
         if rig.truth is None:
             return
         gt = rig.truth.ground_truth()
@@ -281,7 +337,8 @@ class Processor:
 
         relpath = f"{cap['name']}/truth_mueller.exr"
         path = _new_result_path(session.root, relpath)
-        write_mueller_exr(path, gt["mueller"], extra=planes, metadata=meta)  # atomic
+        write_mueller_exr(path, gt["mueller"], extra=planes, metadata=meta,  # atomic
+                          compression=self.exr.compression)
         with session.mutex:
             files = session.capture(index)["files"]
             files["truth_mueller"] = file_record(session.root, relpath)
@@ -296,20 +353,21 @@ class Processor:
                 ) -> dict[str, Any] | None:
         """Solve capture ``index`` from its raw files; write the result files (into
         ``revision`` if given); return the score against the truth (simulated rig) or None.
-        :meth:`solve` and :func:`record_result`, with the file written in between."""
-        out = self.solve(session, index, revision)
-        records = write_result_files(session.root, out, self.exr)
+        :meth:`solve` and :func:`record_result`, with the file written and scored in between
+        (:func:`write_and_score`)."""
+        records, score = write_and_score(session.root, self.solve(session, index, revision),
+                                         self.exr)
         try:
-            record_result(session, index, revision, records, out.score, self.exr)
+            record_result(session, index, revision, records, score, self.exr)
         except BaseException:  # not recorded (a full disk...): no unrecorded file left
             remove_files(session.root / r["path"] for r in records.values())
             raise
-        return out.score
+        return score
 
     def solve(self, session: Session, index: int, revision: str | None = None
               ) -> "CaptureResult":
         """Capture ``index`` solved from its raw files (checksums verified): the arrays and
-        header of its ``mueller.exr`` (for ``revision`` if given) and its score; writes
+        header of its ``mueller.exr`` (for ``revision`` if given) and how to score it; writes
         nothing (:func:`write_result_files` does), so a worker of :mod:`polrig.cluster` can
         run it on a session another process writes."""
         from polrig import __version__
@@ -362,11 +420,10 @@ class Processor:
         meta["planes"] = {k: v for k, v in meta["planes"].items()
                           if k.split(".", 1)[0] in self.exr.planes}
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
-        score = self.score(session, index, result, lay, s_in,
-                           states if self.mode == "reference" else None,
-                           noise_exposures_us(cf)[0],
-                           truth_path=truth_path)
-        return CaptureResult(f"{folder}/mueller.exr", result, meta, score)
+        truth = None if truth_path is None else self.truth_score(
+            truth_path, lay, s_in, states if self.mode == "reference" else None,
+            noise_exposures_us(cf)[0])
+        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth)
 
     def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
                     ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
@@ -484,26 +541,17 @@ class Processor:
                               f"or corrupt truth file)")
         return path
 
-    def score(self, session: Session, index: int, result: ReferenceResult,
-              layout: MosaicLayout, s_in: np.ndarray,
-              states: Sequence[StateRadiance] | None, exposure_us: float,
-              truth_path: pathlib.Path | None = None) -> dict[str, Any] | None:
-        """Score against the capture's truth file (simulated rig), or None without one.
-        ``truth_path``: the truth file already verified by the caller."""
-        from polrig.exr import read_mueller_exr
-
-        path = truth_path or self._verified_truth(session, index)
-        if path is None:
-            return None
-        img = read_mueller_exr(path)
-        obj = img.extra.get("object_mask")  # output pixels whose whole support lies on it
-        if states is None:  # single-shot: the truth at this resolution, nominal 4-state weights
-            return score_on_output_grid(
-                result, img.mueller, layout, self.output_demosaic,
-                polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1), None,
-                model=self.sensor_model, exposure_us=exposure_us, object_mask=obj)
-        return score_on_output_grid(result, img.mueller, layout, self.demosaic, s_in, states,
-                                    object_mask=obj)
+    def truth_score(self, truth_path: pathlib.Path, layout: MosaicLayout, s_in: np.ndarray,
+                    states: Sequence[StateRadiance] | None, exposure_us: float) -> TruthScore:
+        """How to score a capture of this processor against its (verified) truth file: with
+        the capture's own ``states`` as weights (reference), or for the single-shot method
+        (``states=None``) at its output resolution with nominal four-state weights and the
+        noise model at ``exposure_us``."""
+        if states is None:
+            return TruthScore(truth_path, layout, self.output_demosaic,
+                              polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
+                              None, self.sensor_model, exposure_us)
+        return TruthScore(truth_path, layout, self.demosaic, s_in, states)
 
 
 def make_processor(plan, calibration: Calibration, sensor_model: SensorModel,

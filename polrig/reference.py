@@ -180,6 +180,31 @@ def _tolerance(value, cls, what: str):
     return tol
 
 
+def reason_counts(mask: np.ndarray) -> dict[str, int]:
+    """Number of pixels (over colours) of a reason-bit ``mask`` with each bit set."""
+    return {name: int(np.count_nonzero(mask & bit)) for bit, name in REASONS.items()}
+
+
+@dataclass(frozen=True, eq=False)
+class MuellerEstimate:
+    """The estimate of a result without its diagnostics: ``mueller`` and ``sigma``
+    ``(C, 3, 3, H, W)``, ``mask`` ``(C, H, W)`` reason bits and the state set's
+    ``condition_number`` (:class:`ReferenceResult`), all a score against a truth reads
+    (:mod:`polrig.scoring`). Scoring after the result file is written keeps only this, so
+    that the diagnostic planes (``sigma_noise``, ``residual``, ``pixel_condition``,
+    ``n_samples``: about 0.4 GB of a full-sensor colour result at full resolution) are
+    released first."""
+
+    mueller: np.ndarray
+    sigma: np.ndarray
+    mask: np.ndarray
+    condition_number: float
+
+    def reason_counts(self) -> dict[str, int]:
+        """Number of pixels (over colours) with each reason bit set."""
+        return reason_counts(self.mask)
+
+
 @dataclass(frozen=True, eq=False)
 class ReferenceResult:
     """Output of :func:`solve_reference` (image stacks plane-first, ``docs/conventions.md``).
@@ -221,7 +246,11 @@ class ReferenceResult:
 
     def reason_counts(self) -> dict[str, int]:
         """Number of pixels (over colours) with each reason bit set."""
-        return {name: int(np.count_nonzero(self.mask & bit)) for bit, name in REASONS.items()}
+        return reason_counts(self.mask)
+
+    def estimate(self) -> MuellerEstimate:
+        """The estimate part (the same arrays, not copies): :class:`MuellerEstimate`."""
+        return MuellerEstimate(self.mueller, self.sigma, self.mask, self.condition_number)
 
 
 # ---------------------------------------------------------------------------- design

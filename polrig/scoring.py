@@ -30,7 +30,13 @@ from polrig.demosaic import demosaic_float, output_shape, row_bands, support_rad
 from polrig.layouts import MosaicLayout
 from polrig.noise import SensorModel
 from polrig.radiometry import BAND_PIXELS, StateRadiance, _demosaic_state
-from polrig.reference import ReferenceResult, solve_reference
+from polrig.exr import MuellerRows
+from polrig.reference import MuellerEstimate, ReferenceResult, solve_reference
+
+#: A truth Mueller image ``(C, 3, 3, H, W)``: in memory, or a file read band by band.
+Truth = np.ndarray | MuellerRows
+#: What a score reads of a result: its estimate (the diagnostics are not needed).
+Scored = MuellerEstimate | ReferenceResult
 
 #: Output rows per band of :func:`score_against_truth` over full-size arrays.
 SCORE_BAND_ROWS = 64
@@ -42,7 +48,7 @@ REALIZABILITY_SAMPLES = 2 ** 15
 
 
 # -- truth and score ---------------------------------------------------------------------------
-def truth_on_output_grid(truth_mueller: np.ndarray, layout: LayoutLike, method: str,
+def truth_on_output_grid(truth_mueller: Truth, layout: LayoutLike, method: str,
                          s_in: np.ndarray, weights_like: Sequence[StateRadiance] | None = None,
                          model: SensorModel | None = None, exposure_us: float | None = None,
                          *, band_pixels: int = BAND_PIXELS) -> np.ndarray:
@@ -57,9 +63,10 @@ def truth_on_output_grid(truth_mueller: np.ndarray, layout: LayoutLike, method: 
     capture's estimator; without it the noise model's variance of the noise-free signal at
     ``exposure_us`` is used. Where the truth is uniform over a pixel's support the result is
     the truth itself, whatever the weights (and it is taken as such, without a solve).
-    Computed in bands of about ``band_pixels`` truth pixels (times colours).
+    Computed in bands of about ``band_pixels`` truth pixels (times colours); a
+    :class:`polrig.exr.MuellerRows` truth is read band by band.
     """
-    t = np.asarray(truth_mueller)
+    t = _as_truth(truth_mueller)
     layout = resolve_layout(layout)
     h, w = t.shape[-2:]
     h_out, w_out = output_shape(layout, (h, w), method)
@@ -70,7 +77,16 @@ def truth_on_output_grid(truth_mueller: np.ndarray, layout: LayoutLike, method: 
     return out
 
 
-def _truth_bands(t: np.ndarray, layout: MosaicLayout, method: str, s_in: np.ndarray,
+def _as_truth(truth: Truth) -> Truth:
+    return truth if isinstance(truth, MuellerRows) else np.asarray(truth)
+
+
+def _truth_rows(t: Truth, e0: int, e1: int) -> np.ndarray:
+    """Truth rows ``e0:e1``, ``(C, 3, 3, e1 - e0, W)``."""
+    return t.rows(e0, e1) if isinstance(t, MuellerRows) else t[..., e0:e1, :]
+
+
+def _truth_bands(t: Truth, layout: MosaicLayout, method: str, s_in: np.ndarray,
                  weights_like: Sequence[StateRadiance] | None, model: SensorModel | None,
                  exposure_us: float | None, band_pixels: int):
     """Yield ``(o0, o1, e0, e1, truth of output rows o0:o1)`` (``e0:e1``: the truth rows it
@@ -79,7 +95,7 @@ def _truth_bands(t: np.ndarray, layout: MosaicLayout, method: str, s_in: np.ndar
         raise ValueError("give weights_like, or model and exposure_us")
     h, w = t.shape[-2:]
     c = layout.n_colours
-    if t.ndim != 5 or t.shape[:3] != (c, 3, 3):
+    if len(t.shape) != 5 or t.shape[:3] != (c, 3, 3):
         raise ValueError(f"truth must have shape ({c}, 3, 3, H, W) for layout {layout.name}, "
                          f"got {t.shape}")
     s = np.asarray(s_in, dtype=np.float64)
@@ -92,7 +108,7 @@ def _truth_bands(t: np.ndarray, layout: MosaicLayout, method: str, s_in: np.ndar
     for o0, o1, e0, e1 in row_bands(layout, (h, w), method, band_rows):
         a = 0 if method == "superpixel" else o0 - e0
         rows = o1 - o0
-        tb = t[..., e0:e1, :]
+        tb = _truth_rows(t, e0, e1)
         uniform, value = _uniform_support(tb, layout, method)
         uniform, value = uniform[..., a:a + rows, :], value[..., a:a + rows, :]
         band = value.astype(np.float32)
@@ -186,7 +202,7 @@ def _noise_free_estimate(t: np.ndarray, layout: MosaicLayout, method: str, s: np
     return solve_reference(s, meas, var, valid).mueller[:, :, :, 0]
 
 
-def score_on_output_grid(result: ReferenceResult, truth_mueller: np.ndarray,
+def score_on_output_grid(result: Scored, truth_mueller: Truth,
                          layout: LayoutLike, method: str, s_in: np.ndarray,
                          weights_like: Sequence[StateRadiance] | None = None,
                          model: SensorModel | None = None, exposure_us: float | None = None,
@@ -194,12 +210,13 @@ def score_on_output_grid(result: ReferenceResult, truth_mueller: np.ndarray,
                          band_pixels: int = BAND_PIXELS) -> dict[str, Any]:
     """:func:`score_against_truth` of ``result`` against :func:`truth_on_output_grid` of the
     full-resolution ``truth_mueller``, band by band (same numbers up to the summation order,
-    without the full-size truth on the output grid).
+    without the full-size truth on the output grid, and, for a
+    :class:`polrig.exr.MuellerRows` truth, without the whole truth in memory).
 
     ``object_mask`` ``(H, W)`` (full resolution, e.g. the simulator's): the output pixels whose
     whole demosaic support lies on the object are compared.
     """
-    t = np.asarray(truth_mueller)
+    t = _as_truth(truth_mueller)
     layout = resolve_layout(layout)
     h, w = t.shape[-2:]
     expect = (layout.n_colours, 3, 3) + output_shape(layout, (h, w), method)
@@ -221,13 +238,13 @@ def score_on_output_grid(result: ReferenceResult, truth_mueller: np.ndarray,
     return sums.score(result)
 
 
-def _rows(result: ReferenceResult, o0: int, o1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _rows(result: Scored, o0: int, o1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(mueller, sigma, valid)`` of output rows ``o0:o1``."""
     return (result.mueller[..., o0:o1, :], result.sigma[..., o0:o1, :],
             result.mask[..., o0:o1, :] == 0)
 
 
-def _realizability_stride(result: ReferenceResult) -> int:
+def _realizability_stride(result: Scored) -> int:
     """Every how many compared pixels the realizability test runs: all of them up to
     :data:`REALIZABILITY_SAMPLES` output pixels, a regular subsample beyond."""
     return max(1, -(-int(np.size(result.mask)) // REALIZABILITY_SAMPLES))
@@ -274,7 +291,7 @@ class _ScoreSums:
         self.n_tested += int(pick.sum())
         self.realizable += int(np.count_nonzero(is_physical_linear(m[:, :, pick].transpose(2, 0, 1))))
 
-    def score(self, result: ReferenceResult) -> dict[str, Any]:
+    def score(self, result: Scored) -> dict[str, Any]:
         out: dict[str, Any] = {"pixels_compared": self.n,
                                "pixels_valid": int(np.count_nonzero(result.mask == 0)),
                                "pixels_total": int(result.mask.size),
@@ -299,7 +316,7 @@ class _ScoreSums:
         return out
 
 
-def score_against_truth(result: ReferenceResult, truth: np.ndarray,
+def score_against_truth(result: Scored, truth: np.ndarray,
                         object_mask: np.ndarray | None = None) -> dict[str, Any]:
     """Error of ``result`` against ``truth`` ``(C, 3, 3, H, W)`` on the same grid (normally
     :func:`truth_on_output_grid`) over the pixels valid in the result (mask 0) and inside

@@ -8,7 +8,7 @@ import pytest
 
 from polrig.conventions import CONVENTIONS_VERSION
 from polrig.errors import FormatError
-from polrig.exr import (colour_planes, mueller_channels, read_exr, read_mueller_exr,
+from polrig.exr import (MuellerRows, colour_planes, mueller_channels, read_exr, read_mueller_exr,
                         read_stokes_exr, write_exr, write_mueller_exr, write_stokes_exr)
 
 
@@ -229,3 +229,37 @@ def test_every_compression_round_trips_bit_exact(tmp_path, compression):
     with pytest.raises(ValueError, match="unknown EXR compression 'lzma'"):
         write_mueller_exr(tmp_path / "x.exr", m, compression="lzma")
     assert not (tmp_path / "x.exr").exists()
+
+
+@pytest.mark.parametrize("c,uncertainty", [(1, "float"), (3, "half")])
+def test_mueller_rows_are_the_rows_of_the_whole_file(tmp_path, c, uncertainty):
+    """A band of rows read from the file alone equals those rows of the whole read, at every
+    band boundary (bands clipped at the bottom, empty bands), for float and half channels."""
+    rng = np.random.default_rng(c)
+    m = _nasty(rng, (c, 3, 3, 37, 11))
+    obj = rng.random((37, 11)) > 0.5
+    half = {"Mhalf.Y": rng.random((37, 11)).astype(np.float16)}
+    p = write_mueller_exr(tmp_path / "m.exr", m, extra={"object_mask": obj, **half},
+                          metadata={"pose_deg": 30.0}, compression="zip")
+    whole = read_mueller_exr(p)
+    with MuellerRows(p) as rows:
+        assert rows.shape == m.shape and rows.metadata["pose_deg"] == 30.0
+        for r0, r1 in [(0, 16), (16, 32), (32, 48), (5, 6), (36, 37), (10, 10)]:
+            band = rows.rows(r0, r1)
+            assert band.dtype == np.float32
+            assert np.array_equal(_bits(band), _bits(whole.mueller[..., r0:r1, :]))
+        assert np.array_equal(rows.plane("object_mask"), whole.extra["object_mask"])
+        assert np.array_equal(rows.plane("Mhalf.Y"), whole.extra["Mhalf.Y"])
+        assert rows.plane("nothing") is None
+
+
+def test_mueller_rows_one_line_errors(tmp_path):
+    bad = tmp_path / "x.exr"
+    bad.write_bytes(b"not an exr file at all")
+    with pytest.raises(FormatError, match="not an OpenEXR file"):
+        MuellerRows(bad)
+    p = write_exr(tmp_path / "s.exr", {f"M00.{k}": np.zeros((4, 4), np.float32) for k in "RGB"})
+    with pytest.raises(FormatError, match="missing channels M01.R"):
+        MuellerRows(p)
+    with pytest.raises(FormatError, match="M00.R/G/B or M00.Y"):
+        MuellerRows(write_exr(tmp_path / "t.exr", {"S0.Y": np.zeros((4, 4), np.float32)}))

@@ -18,7 +18,9 @@ from polrig.cli import main
 from polrig.demosaic import demosaic_float
 from polrig.exr import read_exr, read_mueller_exr
 from polrig.mueller import polarizer_stokes
+from polrig.errors import FormatError
 from polrig.plan import ExrChoice, PlanError
+from polrig.reference import MuellerEstimate
 from polrig.rig import open_rig
 from polrig.scoring import score_against_truth, truth_on_output_grid
 from polrig.session import COMPLETE, Session, sha256_file
@@ -68,7 +70,8 @@ def test_session_score_equals_the_two_step_score(tmp_path, method):
         result, s_in, lay, states = processing.process_reference(cf, EXACT, proc.sensor_model,
                                                                  method)
         exposure = processing.noise_exposures_us(cf)[0]
-        new = proc.score(s, index, result, lay, s_in, states, exposure)
+        new = proc.truth_score(proc._verified_truth(s, index), lay, s_in, states,
+                               exposure).run(result.estimate())
         old = two_step_score(proc, s, index, result, lay, s_in, states, exposure)
         assert 0 < new["pixels_compared"] < result.mueller[0, 0, 0].size  # the mask matters
         assert new.keys() == old.keys()
@@ -91,7 +94,7 @@ def test_single_shot_score_uses_the_nominal_weights_on_the_output_grid(tmp_path)
     result, s_in, lay, _ = processing.process_reference(cf, EXACT, proc.sensor_model,
                                                         "superpixel")
     exposure = processing.noise_exposures_us(cf)[0]
-    new = proc.score(s, 0, result, lay, s_in, None, exposure)
+    new = proc.truth_score(proc._verified_truth(s, 0), lay, s_in, None, exposure).run(result)
     old = two_step_score(proc, s, 0, result, lay, s_in, None, exposure)
     assert new["pixels_compared"] == old["pixels_compared"] > 0
     for key in ("rmse", "mae", "realizable", "mean_sigma", "within_2sigma"):
@@ -202,6 +205,48 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
         chans = _channels(s.root / cap["revisions"][rev1]["files"]["mueller"]["path"])
         assert {v for k, v in chans.items() if k.startswith("mask.")} == {"float16"}
     assert s.verify() == []
+
+
+def test_the_truth_file_is_compressed_as_the_plan_says(tmp_path):
+    """The simulator's truth follows the plan's ``exr_compression`` (the fast choice writes
+    and reads it uncompressed) and scores the same either way."""
+    scores = {}
+    for comp in ("none", "zip"):
+        s = capture(tmp_path / comp, CapturePlan((0.0,), exr_compression=comp))
+        chans = _channels(s.root / s.capture(0)["files"]["truth_mueller"]["path"])
+        assert ("NO_COMPRESSION" if comp == "none" else "ZIP") in chans["<compression>"]
+        scores[comp] = s.capture(0)["score"]
+    assert scores["none"] == scores["zip"]
+
+
+def test_write_and_score_releases_the_diagnostics_and_cleans_up_a_failed_score(tmp_path):
+    """The file is written from the whole result; the score runs on its estimate alone (the
+    diagnostic planes already released) and equals the score of the whole result; a score
+    that fails (a truth file damaged after the check) leaves no result file behind."""
+    s = capture(tmp_path / "s", CapturePlan((0.0,)))
+    s.lock()
+    try:
+        rev = s.new_revision({"mode": "reference"})
+        s.start_revision(0, rev)
+        proc = processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
+                                         processing.session_sensor_model(s))
+        out = proc.solve(s, 0, rev)
+        whole = out.truth.run(out.result)
+        records, score = processing.write_and_score(s.root, out, proc.exr)
+        assert isinstance(out.result, MuellerEstimate)
+        assert score == whole and score["pixels_compared"] > 0
+        chans = _channels(s.root / records["mueller"]["path"])
+        assert "residual.R" in chans and "sigma_noise.M00.R" in chans  # written before release
+        processing.remove_files(s.root / r["path"] for r in records.values())
+
+        out = proc.solve(s, 0, rev)
+        truth = out.truth.truth_path
+        truth.write_bytes(truth.read_bytes()[:4096])  # truncated after the checksum check
+        with pytest.raises(FormatError, match="truth_mueller.exr"):
+            processing.write_and_score(s.root, out, proc.exr)
+        assert not any((s.capture_dir(0) / rev).glob("mueller*"))
+    finally:
+        s.unlock()
 
 
 def test_a_result_not_recorded_leaves_no_file(tmp_path):
