@@ -158,6 +158,8 @@ class LiveWorker(QThread):
         self.frames_processed = 0
         self._last_error = ""
         self._stall_reason = ""
+        self._single_shot_geometry: dict | None = None  # computed at first use
+        self._model_of_rig: Any = None  # read at first use
 
     # -- control from the UI thread
     def stop(self) -> None:
@@ -236,11 +238,11 @@ class LiveWorker(QThread):
 
     def _geometry(self) -> dict:
         """Single-shot geometry of this rig (nominal calibration), computed once."""
-        if getattr(self, "_single_shot_geometry", None) is None:
+        if self._single_shot_geometry is None:
             from polrig import processing
 
             self._single_shot_geometry = processing.single_shot_geometry(
-                processing.nominal_calibration(), getattr(self.rig, "config", None))
+                processing.nominal_calibration(), self.rig.config)
         return self._single_shot_geometry
 
     def _report(self, exc: BaseException) -> None:
@@ -311,7 +313,7 @@ class LiveWorker(QThread):
 
     def _sensor_model(self):
         """The camera's noise model (:func:`polrig.processing.sensor_model_of`), read once."""
-        if getattr(self, "_model_of_rig", None) is None:
+        if self._model_of_rig is None:
             from polrig.processing import sensor_model_of
 
             self._model_of_rig = sensor_model_of(self.rig)

@@ -57,8 +57,7 @@ class MainWindow(QMainWindow):
         self._closing = False
         self._settings_saved = False
         self._close_when_devices_end = False
-        src = getattr(rig, "source", None)
-        self.setWindowTitle(f"polrig - {src or 'simulated rig'}")
+        self.setWindowTitle(f"polrig - {rig.source or 'simulated rig'}")
 
         self.live_worker = LiveWorker(rig, self.locks, LiveSettings(max_fps=live_max_fps),
                                       model_loader)
