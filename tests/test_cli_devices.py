@@ -10,7 +10,6 @@ import textwrap
 import time
 from pathlib import Path
 
-import genicam
 import numpy as np
 import pytest
 
@@ -20,9 +19,9 @@ from drivers.emulators.grbl import GrblEmulator
 from drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
 from polrig.cli import main
 from polrig.rawio import read_raw
+from _genicam import VIKY, viky_camera
 
 pytestmark = pytest.mark.timeout(30)
-VIKY = Path(genicam.__file__).parent / "viky.cti"
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -109,14 +108,7 @@ def test_light_on_off(tmp_path, capsys):
 
 def test_snap_from_viky(tmp_path, capsys):
     cfg = config(tmp_path, f"""
-        [camera]
-        driver = "genicam"
-        cti = "{VIKY}"
-        serial = "0"
-        pixel_format = "Mono8"
-        frame_rate_hz = 200.0
-        roi = [128, 100, 0, 0]
-        layout = "imx250mzr"
+        {viky_camera()}
         """)
     out_file = tmp_path / "frame.png"
     rc, out, err = run(capsys, "snap", "--out", str(out_file), "--config", cfg)

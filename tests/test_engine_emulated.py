@@ -11,7 +11,6 @@ from __future__ import annotations
 import textwrap
 from pathlib import Path
 
-import genicam
 import pytest
 
 from calibration.calset import CalibrationSet
@@ -22,9 +21,9 @@ from drivers.emulators.grbl import GrblEmulator
 from polrig.engine import GuardedRig
 from polrig.errors import DeviceFault, DeviceTimeout
 from polrig.rig import open_rig
+from _genicam import VIKY, viky_camera
 
 pytestmark = pytest.mark.timeout(60)
-VIKY = Path(genicam.__file__).parent / "viky.cti"
 
 
 def grbl_rig(tmp_path, grbl, extra: str = "") -> Path:
@@ -73,14 +72,7 @@ def test_a_calibration_step_on_hardware_asks_for_every_mount_then_fails_readably
     with Ell14Emulator(link=tmp_path / "ell14", speed_factor=8) as ell, \
             GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as grbl:
         path = grbl_rig(tmp_path, grbl, f"""
-            [camera]
-            driver = "genicam"
-            cti = "{VIKY}"
-            serial = "0"
-            pixel_format = "Mono8"
-            frame_rate_hz = 200.0
-            roi = [128, 100, 0, 0]
-            layout = "imx250mzr"
+            {viky_camera()}
             [stage]
             driver = "ell14"
             port = "{ell.port}"

@@ -21,6 +21,7 @@ from drivers.emulators.grbl import GrblEmulator  # noqa: E402
 from polrig.gui.main_window import MainWindow  # noqa: E402
 from polrig.gui.settings import make_settings  # noqa: E402
 from polrig.rig import build_rig, load_rig_config  # noqa: E402
+from _genicam import VIKY, viky_camera  # noqa: E402
 
 pytestmark = [pytest.mark.gui, pytest.mark.timeout(60)]
 
@@ -102,22 +103,12 @@ def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_p
     genicam wheel): live frames through harvesters, and a calibration step asks the operator
     to mount the board at each fixture pose, waits for "Target in place" each time, and ends
     with a readable message."""
-    import genicam
-
-    viky = pathlib.Path(genicam.__file__).parent / "viky.cti"
-    if not viky.is_file():
+    if not VIKY.is_file():
         pytest.skip("genicam test producer viky.cti not installed")
     with Ell14Emulator(link=tmp_path / "ell14", speed_factor=8) as ell, \
             GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as grbl:
         cfg = _rig_toml(tmp_path, ell, grbl, f"""
-            [camera]
-            driver = "genicam"
-            cti = "{viky}"
-            serial = "0"
-            pixel_format = "Mono8"
-            frame_rate_hz = 200.0
-            roi = [128, 100, 0, 0]
-            layout = "imx250mzr"
+            {viky_camera()}
         """)
         rig = build_rig(load_rig_config(cfg))
         assert rig.sim is None

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import textwrap
-from pathlib import Path
 
-import genicam
 import pytest
 import serial
 
@@ -19,9 +17,9 @@ from drivers.k10cr1 import K10cr1Turntable
 from polrig import hal
 from polrig.errors import DeviceNotFound
 from polrig.rig import open_rig
+from _genicam import viky_camera
 
 pytestmark = pytest.mark.timeout(30)
-VIKY = Path(genicam.__file__).parent / "viky.cti"
 
 
 @pytest.fixture
@@ -40,13 +38,7 @@ def write(tmp_path, text):
 
 def test_real_rig_against_emulators(tmp_path, emulators):
     path = write(tmp_path, f"""
-        [camera]
-        driver = "genicam"
-        cti = "{VIKY}"
-        serial = "2"
-        pixel_format = "Mono8"
-        frame_rate_hz = 200.0
-        roi = [100, 100, 0, 0]
+        {viky_camera(serial="2", roi=(100, 100), layout=None)}
         [stage]
         driver = "ell14"
         port = "{emulators['ell14'].port}"
