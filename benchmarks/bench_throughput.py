@@ -23,7 +23,9 @@ state, nominal calibration:
    hardware <= 1.1 with the superpixel demosaic, <= 1.5 with bilinear.
 
 Everything runs in process except where a child is named; these are warm figures of the
-library calls, not one-shot CLI runs (``polrig capture`` adds about a second of start-up).
+library calls (each per-pose child loads the compiled solver with a few-pixel solve before
+its clock starts, as every pose after a session's first finds it), not one-shot CLI runs
+(``polrig capture`` adds about a second of start-up).
 
 Usage: ``python benchmarks/bench_throughput.py [--rounds 3] [--poses 12] [--skip-session]
 [--skip-pose]`` (or ``python -m benchmarks throughput``). Writes
@@ -119,12 +121,27 @@ def make_capture(folder: pathlib.Path, sensor: str, exr: dict) -> pathlib.Path:
     return folder
 
 
+def warm_up() -> None:
+    """Import the solver and load its compiled kernel from the cache with a solve of a few
+    pixels, as any pose after a session's first finds them (a per-process cost of about
+    0.3-0.5 s, not a per-pose one)."""
+    import numpy as np
+
+    from polrig.mueller import polarizer_stokes
+    from polrig.reference import solve_reference
+
+    s = polarizer_stokes(np.deg2rad(STATES), intensity=1)
+    meas = np.ones((len(STATES), 1, 4, 2, 2))
+    solve_reference(s, meas, meas, np.ones(meas.shape, bool))
+
+
 def run_case(session_dir: pathlib.Path, method: str, score: bool, exr: dict) -> dict:
     """One reconstruct of the session's capture (in this process); wall seconds and bytes of
     the Mueller EXR."""
     from polrig import processing
     from polrig.session import Session
 
+    warm_up()
     session = Session.open(session_dir, lock=True)
     try:
         if not score:  # a copy of the session without its truth file record: nothing to score
