@@ -27,7 +27,9 @@ from calibration.errors import (BoardNotFound, CalibrationError, SceneTooDark, S
 from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
                                    wrap_deg)
 from polrig import hal
-from polrig.analyzer import AnalyzerModel, layout_name_at
+from calibration.mirror import (DEFAULT_MIRROR_METAL, DEFAULT_SPHERE_METAL, MirrorMetal,
+                               mirror_mueller)
+from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 
 Mount = Callable[..., None]
 Log = Callable[[str], None]
@@ -255,14 +257,28 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
 def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: float, *,
               angles_deg=LIGHT_ANGLES_DEG, mounts=LIGHT_MOUNTS,
               intrinsics_std_px: np.ndarray | None = None,
-              dist_std: np.ndarray | None = None, log: Log = _noop) -> light.LightFit:
+              dist_std: np.ndarray | None = None, sphere_metal: MirrorMetal | None = None,
+              log: Log = _noop) -> light.LightFit:
     """Chrome sphere on the turntable at several angles -> light position (camera frame).
+
+    The ball is a real metal (``sphere_metal``, default
+    :data:`calibration.mirror.DEFAULT_SPHERE_METAL`), not grey: on a colour sensor its
+    highlight's colour classes are divided by the metal's normal-incidence reflectance per
+    colour on top of the white backdrop's class levels. Otherwise the colour quadrants of
+    the mosaic cell differ by several percent inside a highlight of a few pixels (chrome: 64,
+    67, 70 % for R, G, B), a fixed pattern that pulls the centroid towards the brighter
+    colour (on the simulated rig about 1 mm of bias in the light's depth at 0.5 m; the
+    highlight is too small to measure its colour from the data, which scatters by +-40 %).
+    The backdrop is taken as grey (white).
 
     The sphere is mounted at each of ``mounts`` (heights) in turn. Per angle: a long exposure (background at mid scale) for the silhouette and a short one
     (highlight below saturation) for the highlight, each the sum of stage angles 0 and 90 deg
     so that the light is unpolarized and the mosaic does not bias the centroid."""
     cam = rig.camera
     lay = _layout(cam)
+    mosaic = resolve_layout(lay)
+    metal = MirrorMetal.named(DEFAULT_SPHERE_METAL) if sphere_metal is None else sphere_metal
+    sphere_rgb = metal.reflectance_rgb()
     obs = []
     for m, a in [(m, a) for m in mounts for a in angles_deg]:
         if a == angles_deg[0]:
@@ -295,10 +311,13 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             raise SphereSaturated(f"sphere highlight saturated even at {cam.exposure_us:g} us "
                                   f"exposure; lower the light level or use a smaller sphere")
         scales = charuco.class_scales(sil, lay)
+        hl_scales = scales
+        if mosaic.is_colour:  # a metal ball is not grey: its colour is not the backdrop's
+            hl_scales = scales * sphere_rgb[mosaic.colour_map(hil.shape)]
         try:
             ob = light.find_sphere(charuco.intensity_image(sil, lay, scales=scales),
                                    highlight_image=charuco.intensity_image(hil, lay,
-                                                                           scales=scales),
+                                                                           scales=hl_scales),
                                    edge_image=sil / scales)
         except SphereNotFound as exc:
             log(f"light: sphere at {fixture_words(m) or 'default position'}, turntable "
@@ -520,13 +539,16 @@ class DofpRun:
 
 def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_axis,
                   generator: GeneratorModel, stage_angles_deg, alpha: float = 0.3,
-                  eta: float = 1000.0) -> np.ndarray:
-    """Relative Stokes ``(K, 3, H, W)`` reaching each pixel from a rough ideal-metal plate:
-    the plate's pBRDF Mueller matrix (:func:`polrig.pbrdf.linear_rig_mueller`, specular term
-    only) in the rig frames, normalised by ``m00``, times the generator's incident states; and
-    the modelled relative radiance ``(H, W)`` (``m00 / r^2``) of each pixel."""
-    from polrig.pbrdf import linear_rig_mueller
-
+                  metal: MirrorMetal | None = None,
+                  channel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Relative Stokes ``(K, 3, H, W)`` reaching each pixel from the rough metal plate: the
+    plate's Mueller matrix (:func:`calibration.mirror.mirror_mueller`: complex-index Fresnel
+    reflection of ``metal``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`, with its
+    diattenuation and retardance) in the rig frames, normalised by ``m00``, times the
+    generator's incident states; and the modelled relative radiance ``(H, W)``
+    (``m00 / r^2``) of each pixel. ``channel`` ``(H, W)``: each pixel's colour channel
+    (``None``: mono sensor)."""
+    metal = MirrorMetal.named(DEFAULT_MIRROR_METAL) if metal is None else metal
     h, w = shape
     rays = rigframes.pixel_rays_grid(K, dist, shape).reshape(-1, 3)
     P = rigframes.intersect_plane(rays, plane_point, plane_normal)
@@ -534,18 +556,14 @@ def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_a
     P = np.where(ok[:, None], P, rays)
     wi = light_cam_m - P
     wi /= np.linalg.norm(wi, axis=1, keepdims=True)
-    wo = -rays
-    n = np.broadcast_to(plane_normal, rays.shape)
-    m = linear_rig_mueller(n, wi, wo, kd=0.0, alpha=alpha, eta=eta, ks=1.0,
-                           components=("specular",), stage_zero_axis=zero_axis,
-                           camera_x_axis=np.array([1.0, 0.0, 0.0]))
-    m = np.asarray(m, dtype=np.float64).reshape(-1, 3, 3)
-    m00 = m[:, 0, 0]
+    m, m00 = mirror_mueller(plane_normal, wi, -rays, metal, alpha=alpha,
+                            stage_zero_axis=zero_axis, camera_x_axis=np.array([1.0, 0.0, 0.0]),
+                            channel=None if channel is None else np.asarray(channel).reshape(-1))
     good = ok & (m00 > 0)
-    m = np.where(good[:, None, None], m / np.where(good, m00, 1.0)[:, None, None], np.nan)
+    m = np.where(good[:, None, None], m, np.nan)
     s_in = generator.incident_stokes(np.asarray(stage_angles_deg, float))  # (K, 3)
     st = np.einsum("pij,kj->kip", m, s_in)
-    # modelled radiance factor (pBRDF m00 times inverse-square falloff), for the flat field
+    # modelled radiance factor (mirror m00 times inverse-square falloff), for the flat field
     r2 = np.sum((light_cam_m - P) ** 2, axis=1)
     radiance = np.where(good, m00 / r2, np.nan).reshape(h, w)
     return st.reshape(len(s_in), 3, h, w), radiance
@@ -555,15 +573,17 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
              zero_offset_deg: float, *, stage_angles_deg=STAGE_ANGLES_DEG,
              frames_per_angle: int = 6, sensor_diattenuation: float = DEFAULT_SENSOR_DIATTENUATION,
              mounts=INTRINSIC_MOUNTS, mount_index: int = DOFP_MOUNT_INDEX, dark_frames: int = 8,
-             log: Log = _noop) -> DofpRun:
+             mirror: MirrorMetal | None = None, log: Log = _noop) -> DofpRun:
     """Per-pixel analyzer calibration from the polished plate under the rotating polarizer.
 
     The plate sits in the board fixture; its pose is the board pose of the same fixture from
     the joint bundle adjustment (``geometry``, mount ``mount_index``), turned to the
     turntable angle that centres the specular lobe. A dark frame (light off) gives the
     offsets; the stage
-    sweep, with the generator's offset and the plate's Mueller matrix in the rig frames, gives
-    each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
+    sweep, with the generator's offset and the plate's Mueller matrix in the rig frames (the
+    metal ``mirror``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`: its
+    diattenuation and retardance at each pixel's angle of incidence,
+    :mod:`calibration.mirror`), gives each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
     diattenuation times the generator DoLP; the generator's extinction ratio follows from the
     mean modulation and ``sensor_diattenuation`` (see
     :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
@@ -603,8 +623,11 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     full = _full_scale(meta)
     sat = (np.max(frames + dark, axis=0) >= 0.98 * full)
     zero = rigframes.stage_zero_axis_cam(light_cam_m, axis.point_cam_m, axis.axis_cam)
+    lay = resolve_layout(_layout(cam))
+    channel = lay.colour_map(frames.shape[1:]) if lay.is_colour else None
     states, radiance = mirror_states(K, dist, frames.shape[1:], pb, nb, light_cam_m, zero,
-                                     GeneratorModel(zero_offset_deg, np.inf), th)
+                                     GeneratorModel(zero_offset_deg, np.inf), th,
+                                     metal=mirror, channel=channel)
     states = np.where(np.isfinite(states), states, 0.0)
     fit = dofp.fit_analyzer_rows(frames, states)
     # flat field: divide the fitted scale by the modelled radiance first, so the smooth fit
@@ -628,5 +651,6 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     gen = GeneratorModel(zero_offset_deg, er, 0.0, er_std)
     log(f"dofp: {int(fit.valid.sum())} pixels, median angle std "
         f"{np.median(fit.angle_std_deg[fit.valid]):.3f} deg, generator DoLP {d_gen:.5f} "
-        f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation})")
+        f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation}; "
+        f"{(mirror or MirrorMetal.named(DEFAULT_MIRROR_METAL)).name} mirror)")
     return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us)
