@@ -535,6 +535,10 @@ class DofpRun:
     flat_scale: np.ndarray
     turntable_deg: float
     exposure_us: float
+    #: angle of incidence on the plate's microfacets at the plate centre (deg): half the angle
+    #: between the directions to the light and to the camera; the metal's departure from an
+    #: ideal mirror grows as its square (:mod:`calibration.mirror`)
+    mirror_incidence_deg: float = 0.0
 
 
 def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_axis,
@@ -608,6 +612,9 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     _move(rig.turntable, best)
     R, t = geometry.pose_at(mount_index, best)
     pb, nb = rigframes.board_plane(R, t)
+    to_light = (light_cam_m - pb) / np.linalg.norm(light_cam_m - pb)
+    incidence = 0.5 * float(np.degrees(np.arccos(np.clip(to_light @ (-pb / np.linalg.norm(pb)),
+                                                         -1.0, 1.0))))
     mount("mirror_plate", **fixture)
     _move(rig.stage, 0.0)
     auto_expose(cam, percentile=99.0, target=0.75)
@@ -652,5 +659,6 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     log(f"dofp: {int(fit.valid.sum())} pixels, median angle std "
         f"{np.median(fit.angle_std_deg[fit.valid]):.3f} deg, generator DoLP {d_gen:.5f} "
         f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation}; "
-        f"{(mirror or MirrorMetal.named(DEFAULT_MIRROR_METAL)).name} mirror)")
-    return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us)
+        f"{(mirror or MirrorMetal.named(DEFAULT_MIRROR_METAL)).name} mirror at {incidence:.1f} deg "
+        f"incidence)")
+    return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us, incidence)

@@ -286,7 +286,7 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
                 "modulation_std_median": float(np.median(f.modulation_std[v])),
                 "residual_rms_dn_median": float(np.median(f.residual_rms_dn[v])),
                 "sensor_diattenuation_reference": o.sensor_diattenuation,
-                "mirror": o.mirror.to_json(),
+                "mirror": o.mirror.to_json(), "mirror_incidence_deg": dr.mirror_incidence_deg,
                 "stage_angles_deg": list(o.stage_angles_deg),
                 "frames_per_angle": o.dofp_frames_per_angle}
             extras["dofp"] = dr
