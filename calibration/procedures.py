@@ -254,6 +254,19 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
 
 
 # --------------------------------------------------------------------------- light
+def highlight_scales(scales: np.ndarray, layout, metal: MirrorMetal) -> np.ndarray:
+    """Class levels ``(H, W)`` for a metal ball's highlight: the white backdrop's
+    (:func:`calibration.charuco.class_scales` of the silhouette frame) times, on a colour
+    sensor, the metal's normal-incidence reflectance of each pixel's colour
+    (:meth:`calibration.mirror.MirrorMetal.reflectance_rgb`), so that the highlight of a
+    coloured metal is grey after division (:func:`run_light`). ``layout``: the readout's
+    layout (name or :class:`polrig.layouts.MosaicLayout`)."""
+    mosaic = resolve_layout(layout)
+    if not mosaic.is_colour:
+        return scales
+    return scales * metal.reflectance_rgb()[mosaic.colour_map(np.shape(scales))]
+
+
 def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: float, *,
               angles_deg=LIGHT_ANGLES_DEG, mounts=LIGHT_MOUNTS,
               intrinsics_std_px: np.ndarray | None = None,
@@ -276,9 +289,7 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
     so that the light is unpolarized and the mosaic does not bias the centroid."""
     cam = rig.camera
     lay = _layout(cam)
-    mosaic = resolve_layout(lay)
     metal = MirrorMetal.named(DEFAULT_SPHERE_METAL) if sphere_metal is None else sphere_metal
-    sphere_rgb = metal.reflectance_rgb()
     obs = []
     for m, a in [(m, a) for m in mounts for a in angles_deg]:
         if a == angles_deg[0]:
@@ -311,9 +322,7 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             raise SphereSaturated(f"sphere highlight saturated even at {cam.exposure_us:g} us "
                                   f"exposure; lower the light level or use a smaller sphere")
         scales = charuco.class_scales(sil, lay)
-        hl_scales = scales
-        if mosaic.is_colour:  # a metal ball is not grey: its colour is not the backdrop's
-            hl_scales = scales * sphere_rgb[mosaic.colour_map(hil.shape)]
+        hl_scales = highlight_scales(scales, lay, metal)
         try:
             ob = light.find_sphere(charuco.intensity_image(sil, lay, scales=scales),
                                    highlight_image=charuco.intensity_image(hil, lay,

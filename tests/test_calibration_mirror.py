@@ -271,3 +271,44 @@ def test_incident_stokes_through_a_metal_mirror_needs_its_retardance_and_diatten
     d_al, a_al, s_al = errs[DEFAULT_MIRROR_METAL]
     assert d_ideal > 0.015 and a_ideal > 0.5 and s_ideal > 0.01
     assert d_al < 1e-4 and a_al < 0.01 and s_al < 1e-4
+
+
+def test_highlight_scales_remove_a_coloured_balls_mosaic_pattern_from_the_centroid():
+    """A chrome ball is not grey (R, G, B reflectance 0.64, 0.67, 0.70): divided by the white
+    backdrop's class levels alone, its highlight keeps a colour pattern of the 4x4 mosaic cell
+    that moves the centroid of a 1.2 px highlight by 0.014 px RMS over sub-pixel positions;
+    with the metal's colour in the highlight's class levels
+    (:func:`calibration.procedures.highlight_scales`) it is as accurate as a grey ball's."""
+    from calibration import charuco, light, procedures
+    from polrig.layouts import IMX250MYR
+
+    shape, centre, radius = (120, 160), (80.3, 60.7), 20.0
+    vv, uu = np.mgrid[0:shape[0], 0:shape[1]]
+    backdrop = np.full(shape, 2000.0) - 3 * vv
+    inside = (uu - centre[0]) ** 2 + (vv - centre[1]) ** 2 <= radius ** 2
+    backdrop[inside] = 20.0
+    chrome = MirrorMetal.named("chrome")
+    colour = chrome.reflectance_rgb()[IMX250MYR.colour_map(shape)]
+    ones = np.ones(shape)
+    errors: dict[str, list] = {"grey ball": [], "chrome, backdrop levels": [],
+                               "chrome, with its colour": []}
+    for du in np.arange(0.0, 4.0, 0.5):
+        for dv in np.arange(0.0, 4.0, 0.5):
+            hl = np.array([84.13 + du, 54.07 + dv])
+            spot = 3000.0 * np.exp(-((uu - hl[0]) ** 2 + (vv - hl[1]) ** 2) / (2 * 1.2 ** 2))
+            sil = charuco.intensity_image(backdrop + spot * inside, "imx250myr", scales=ones)
+            for name, raw, scales in (
+                    ("grey ball", backdrop + spot * inside, ones),
+                    ("chrome, backdrop levels", backdrop + spot * inside * colour, ones),
+                    ("chrome, with its colour", backdrop + spot * inside * colour,
+                     procedures.highlight_scales(ones, "imx250myr", chrome))):
+                ob = light.find_sphere(sil, highlight_image=charuco.intensity_image(
+                    raw, "imx250myr", scales=scales))
+                errors[name].append(ob.highlight_px - hl)
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
+    print(rms)
+    assert rms["chrome, backdrop levels"] > 0.01
+    assert rms["chrome, with its colour"] < 0.5 * rms["chrome, backdrop levels"]
+    assert rms["chrome, with its colour"] < 1.1 * rms["grey ball"] + 1e-3
+    # mono sensors have no colour classes: the backdrop's levels are used as they are
+    assert procedures.highlight_scales(ones, "imx250mzr", chrome) is ones
