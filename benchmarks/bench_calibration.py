@@ -31,7 +31,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=8, help="frames per state, evaluation")
     ap.add_argument("--light", default=None, metavar="X,Y,Z",
                     help="hidden light position (world metres) instead of the default rig's; "
-                         "e.g. 0.5,0,0.1 puts the DoFP plate at about 43 deg incidence; the "
+                         "e.g. 0.5,0,0.1 puts the DoFP plate at about 42 deg incidence; the "
                          "tables then go to calibration_light.md")
     args = ap.parse_args()
     hidden = {} if args.light is None else {
@@ -97,7 +97,8 @@ def main() -> None:
     where = "" if args.light is None else f", light moved to {args.light} m (world)"
     emit(f"Simulated rig {args.size} (colour IMX250MYR layout){where}, seed {args.seed}, default noise, "
          f"calibration set {cid}; load average {load:.1f} on {os.cpu_count()} cores. Targets: "
-         f"chrome (Cr) sphere, bare aluminium DoFP plate, modelled as such unless a row says "
+         f"chrome (Cr) sphere, bare aluminium DoFP plate (at "
+         f"{cs.params['dofp']['mirror_incidence_deg']:.1f} deg incidence), modelled as such unless a row says "
          f"otherwise (the ideal-mirror rows rerun the DoFP step with the plate taken as an ideal "
          f"mirror, the assumption before the targets became real metals).\n")
     emit("| quantity | error vs truth | reported uncertainty | limit | step time (s) |")

@@ -204,7 +204,7 @@ def test_simulated_targets_are_real_conductors():
 
 
 def _incident_stokes_through_the_mirror(metal_names):
-    """Light 43 deg from the plate normal (light moved beside the camera); per colour pixel,
+    """Light at 41-45 deg incidence on the plate (light moved beside the camera); per colour pixel,
     the noise-free raw DN of each stage state is ``a_p . (r_p M_p S_in)`` with the hidden
     analyzer rows ``a_p`` and radiance ``r_p``; the least-squares ``S_in`` over all pixels
     with each mirror model ``M_p``. Returns ``{name: (estimates (K, 3), truth (K, 3))}`` and
