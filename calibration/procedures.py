@@ -26,9 +26,9 @@ from calibration.errors import (BoardNotFound, CalibrationError, SceneTooDark, S
                                 SphereSaturated, TooFewAngles)
 from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
                                    wrap_deg)
-from polrig import hal
 from calibration.mirror import (DEFAULT_MIRROR_METAL, DEFAULT_SPHERE_METAL, MirrorMetal,
                                mirror_mueller)
+from polrig import hal
 from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 
 Mount = Callable[..., None]
@@ -596,11 +596,12 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     sweep, with the generator's offset and the plate's Mueller matrix in the rig frames (the
     metal ``mirror``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`: its
     diattenuation and retardance at each pixel's angle of incidence,
-    :mod:`calibration.mirror`), gives each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
-    diattenuation times the generator DoLP; the generator's extinction ratio follows from the
+    :mod:`calibration.mirror`), gives each pixel's analyzer row (:mod:`calibration.dofp`).
+    The fitted modulation is the pixel's diattenuation times the generator DoLP; the generator's extinction ratio follows from the
     mean modulation and ``sensor_diattenuation`` (see
     :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
     th = check_stage_angles(stage_angles_deg)
+    mirror = MirrorMetal.named(DEFAULT_MIRROR_METAL) if mirror is None else mirror
     K, dist, axis = geometry.K, geometry.dist, geometry.axis
     if mount_index >= len(geometry.mount_poses):
         raise CalibrationError(f"the geometric calibration has no pose for board mount "
@@ -668,6 +669,5 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     log(f"dofp: {int(fit.valid.sum())} pixels, median angle std "
         f"{np.median(fit.angle_std_deg[fit.valid]):.3f} deg, generator DoLP {d_gen:.5f} "
         f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation}; "
-        f"{(mirror or MirrorMetal.named(DEFAULT_MIRROR_METAL)).name} mirror at {incidence:.1f} deg "
-        f"incidence)")
+        f"{mirror.name} mirror at {incidence:.1f} deg incidence)")
     return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us, incidence)
