@@ -1,9 +1,11 @@
 """Calibrate the simulated rig and print every error against its hidden truth, the run time of
 each step, and how much the calibration improves reference Mueller acquisition.
 
-Usage: ``python benchmarks/bench_calibration.py [--size 320x240] [--seed 0]``.
+Usage: ``python benchmarks/bench_calibration.py [--size 320x240] [--seed 0] [--light X,Y,Z]``.
 Prints Markdown tables and writes them to ``benchmarks/results/calibration.md`` (quoted in
-``docs/calibration.md``).
+``docs/calibration.md``; ``calibration_light.md`` with ``--light``). The DoFP step is run a
+second time with the aluminium plate taken as an ideal mirror (the model before the targets
+became real metals), to show what modelling its diattenuation and retardance buys.
 """
 
 from __future__ import annotations

@@ -51,9 +51,10 @@ IDEAL = "ideal"
 
 @dataclasses.dataclass(frozen=True)
 class MirrorMetal:
-    """The metal of a calibration mirror (the DoFP plate, the light calibration's ball): ``name`` and complex index ``n + i k`` per colour
-    channel (R, G, B at :data:`polrig.conductors.WAVELENGTHS_NM`), or the ideal mirror
-    (``name == "ideal"``, ``eta_rgb`` ``None``)."""
+    """The metal of a calibration mirror (the DoFP plate, the light calibration's ball):
+    ``name`` and complex index ``n + i k`` per colour channel (R, G, B at
+    :data:`polrig.conductors.WAVELENGTHS_NM`), or the ideal mirror (``name == "ideal"``,
+    ``eta_rgb`` ``None``)."""
 
     name: str
     eta_rgb: tuple[complex, complex, complex] | None

@@ -597,9 +597,9 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     metal ``mirror``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`: its
     diattenuation and retardance at each pixel's angle of incidence,
     :mod:`calibration.mirror`), gives each pixel's analyzer row (:mod:`calibration.dofp`).
-    The fitted modulation is the pixel's diattenuation times the generator DoLP; the generator's extinction ratio follows from the
-    mean modulation and ``sensor_diattenuation`` (see
-    :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
+    The fitted modulation is the pixel's diattenuation times the generator DoLP; the
+    generator's extinction ratio follows from the mean modulation and
+    ``sensor_diattenuation`` (see :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
     th = check_stage_angles(stage_angles_deg)
     mirror = MirrorMetal.named(DEFAULT_MIRROR_METAL) if mirror is None else mirror
     K, dist, axis = geometry.K, geometry.dist, geometry.axis
