@@ -13,11 +13,11 @@ use the same specular term; the simulator renders the plate with it
 
 A real metal is no ideal mirror: with ``r_s``, ``r_p`` the complex amplitudes the s/p block is
 ``[[a, b, 0], [b, a, 0], [0, 0, c cos d]]`` (``a, b = (Rs +- Rp) / 2``, ``c = sqrt(Rs Rp)``,
-``d`` the s-p phase difference). ``b / a`` is the mirror's diattenuation and ``c cos d / a``
-its loss of linear polarization: the retardance turns part of ``S2`` (in the s/p basis) into
+``d`` the s-p phase difference). ``b / a`` is the mirror's diattenuation and
+``1 - |c cos d| / a`` the part of ``S2`` (in the s/p basis) that the retardance turns into
 ``S3``, which a linear DoFP analyzer cannot see. An ideal mirror (``Rs = Rp = 1``, ``d = pi``,
-the handedness flip) is ``diag(1, 1, -1)``. For aluminium at the simulated rig's 11 deg the
-departure is about 1e-3 (diattenuation) and 1e-4 (``m22``); at 45 deg 0.03 and 0.02.
+the handedness flip) is ``diag(1, 1, -1)``. For aluminium at the simulated rig's 11.6 deg the
+departure is 0.0016 (diattenuation) and 1e-4 (``m22``); at 45 deg 0.03 and 0.02.
 
 The metal is a calibration input (:class:`MirrorMetal`; default :data:`DEFAULT_MIRROR_METAL`
 from :data:`polrig.conductors.CONDUCTORS`). A colour sensor's pixel uses its channel's index;

@@ -15,8 +15,8 @@
 * ``white_plate``: a matte white plate in the same fixture (flat field, unpolarizing);
 * ``chrome_sphere``: a chrome ball of known radius off the turntable axis, in front of a matte
   white backdrop (so that its silhouette is a dark disc), for the light position; chrome is
-  the real conductor ``Cr`` (:data:`CHROME`, normal-incidence reflectance 0.55 to 0.6 over
-  R, G, B, partly polarizing at oblique incidence), not an ideal mirror.
+  the real conductor ``Cr`` (:data:`CHROME`, normal-incidence reflectance 0.64, 0.67 and
+  0.70 for R, G and B, partly polarizing at oblique incidence), not an ideal mirror.
 
 Both metals render through :class:`sim.materials.SurfaceMaterial` (:mod:`sim.surface_bsdf`).
 
