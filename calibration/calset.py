@@ -43,6 +43,7 @@ import numpy as np
 
 from calibration.errors import CalibrationError
 from calibration.generator import GeneratorModel
+from calibration.mirror import MirrorMetal
 from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 from polrig.errors import FormatError
 
@@ -505,6 +506,12 @@ def _validate_params(p: dict[str, Any]) -> None:
         if "sensor_diattenuation_reference" in s:
             _number(s["sensor_diattenuation_reference"], "dofp.sensor_diattenuation_reference",
                     lo=0.0, hi=1.0, lo_open=True)
+        if "mirror" in s:
+            try:
+                MirrorMetal.from_json(_dict(s["mirror"], "dofp.mirror"))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise _Invalid(f"dofp.mirror: expected {{\"name\": ..., \"eta_rgb\": [[n, k] x 3] "
+                               f"or null}}, got {_show(s['mirror'])} ({exc})") from None
 
 
 def _validate_pixels(cs: CalibrationSet) -> None:

@@ -114,18 +114,22 @@ def mueller_rmse(estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> f
 
 
 def compare_models(rig, cs: CalibrationSet, truth_mueller: np.ndarray, truth_mask: np.ndarray,
-                   states_deg=DEFAULT_STATES_DEG, frames: int = 8) -> dict[str, float]:
+                   states_deg=DEFAULT_STATES_DEG, frames: int = 8,
+                   others: dict[str, CalibrationSet] | None = None) -> dict[str, float]:
     """Relative Mueller RMSE of reference acquisition with (a) the ideal analyzer and the
     nominal generator, (b) the ideal analyzer and the calibrated generator, (c) the full
-    calibration. ``truth_mueller`` ``(C, 3, 3, h, w)`` on the superpixel grid and
-    ``truth_mask`` ``(h, w)``."""
+    calibration, and (d) each of ``others`` (named calibration sets, e.g. one calibrated with
+    another model; key ``"calibrated:NAME"``), all from the same frames. ``truth_mueller``
+    ``(C, 3, 3, h, w)`` on the superpixel grid and ``truth_mask`` ``(h, w)``."""
     raw, metas = capture_states(rig, states_deg, frames)
     w, h, ox, oy = rig.camera.roi
     layout = layout_name_at(rig.camera.layout, ox, oy)
     res = {}
-    for name, gen, an in (("ideal", GeneratorModel(0.0, np.inf), None),
-                          ("ideal_analyzer_calibrated_generator", cs.generator, None),
-                          ("calibrated", cs.generator, cs.analyzer_model)):
+    runs = [("ideal", GeneratorModel(0.0, np.inf), None),
+            ("ideal_analyzer_calibrated_generator", cs.generator, None),
+            ("calibrated", cs.generator, cs.analyzer_model)]
+    runs += [(f"calibrated:{k}", o.generator, o.analyzer_model) for k, o in (others or {}).items()]
+    for name, gen, an in runs:
         r = solve_mueller(raw, layout, states_deg, generator=gen, analyzer=an, frames=frames)
         m = truth_mask & np.all(r.mask == 0, axis=0)
         res[name] = mueller_rmse(r.mueller, truth_mueller, m)

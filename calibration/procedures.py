@@ -26,8 +26,10 @@ from calibration.errors import (BoardNotFound, CalibrationError, SceneTooDark, S
                                 SphereSaturated, TooFewAngles)
 from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
                                    wrap_deg)
+from calibration.mirror import (DEFAULT_MIRROR_METAL, DEFAULT_SPHERE_METAL, MirrorMetal,
+                               mirror_mueller)
 from polrig import hal
-from polrig.analyzer import AnalyzerModel, layout_name_at
+from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 
 Mount = Callable[..., None]
 Log = Callable[[str], None]
@@ -252,17 +254,42 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
 
 
 # --------------------------------------------------------------------------- light
+def highlight_scales(scales: np.ndarray, layout, metal: MirrorMetal) -> np.ndarray:
+    """Class levels ``(H, W)`` for a metal ball's highlight: the white backdrop's
+    (:func:`calibration.charuco.class_scales` of the silhouette frame) times, on a colour
+    sensor, the metal's normal-incidence reflectance of each pixel's colour
+    (:meth:`calibration.mirror.MirrorMetal.reflectance_rgb`), so that the highlight of a
+    coloured metal is grey after division (:func:`run_light`). ``layout``: the readout's
+    layout (name or :class:`polrig.layouts.MosaicLayout`)."""
+    mosaic = resolve_layout(layout)
+    if not mosaic.is_colour:
+        return scales
+    return scales * metal.reflectance_rgb()[mosaic.colour_map(np.shape(scales))]
+
+
 def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: float, *,
               angles_deg=LIGHT_ANGLES_DEG, mounts=LIGHT_MOUNTS,
               intrinsics_std_px: np.ndarray | None = None,
-              dist_std: np.ndarray | None = None, log: Log = _noop) -> light.LightFit:
+              dist_std: np.ndarray | None = None, sphere_metal: MirrorMetal | None = None,
+              log: Log = _noop) -> light.LightFit:
     """Chrome sphere on the turntable at several angles -> light position (camera frame).
+
+    The ball is a real metal (``sphere_metal``, default
+    :data:`calibration.mirror.DEFAULT_SPHERE_METAL`), not grey: on a colour sensor its
+    highlight's colour classes are divided by the metal's normal-incidence reflectance per
+    colour on top of the white backdrop's class levels. Otherwise the colour quadrants of
+    the mosaic cell differ by several percent inside a highlight of a few pixels (chrome: 64,
+    67, 70 % for R, G, B), a fixed pattern that pulls the centroid towards the brighter
+    colour (on the simulated rig about 1 mm of bias in the light's depth at 0.5 m; the
+    highlight is too small to measure its colour from the data, which scatters by +-40 %).
+    The backdrop is taken as grey (white).
 
     The sphere is mounted at each of ``mounts`` (heights) in turn. Per angle: a long exposure (background at mid scale) for the silhouette and a short one
     (highlight below saturation) for the highlight, each the sum of stage angles 0 and 90 deg
     so that the light is unpolarized and the mosaic does not bias the centroid."""
     cam = rig.camera
     lay = _layout(cam)
+    metal = MirrorMetal.named(DEFAULT_SPHERE_METAL) if sphere_metal is None else sphere_metal
     obs = []
     for m, a in [(m, a) for m in mounts for a in angles_deg]:
         if a == angles_deg[0]:
@@ -295,10 +322,11 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
             raise SphereSaturated(f"sphere highlight saturated even at {cam.exposure_us:g} us "
                                   f"exposure; lower the light level or use a smaller sphere")
         scales = charuco.class_scales(sil, lay)
+        hl_scales = highlight_scales(scales, lay, metal)
         try:
             ob = light.find_sphere(charuco.intensity_image(sil, lay, scales=scales),
                                    highlight_image=charuco.intensity_image(hil, lay,
-                                                                           scales=scales),
+                                                                           scales=hl_scales),
                                    edge_image=sil / scales)
         except SphereNotFound as exc:
             log(f"light: sphere at {fixture_words(m) or 'default position'}, turntable "
@@ -516,17 +544,24 @@ class DofpRun:
     flat_scale: np.ndarray
     turntable_deg: float
     exposure_us: float
+    #: angle of incidence on the plate's microfacets at the plate centre (deg): half the angle
+    #: between the directions to the light and to the camera; the metal's departure from an
+    #: ideal mirror grows as its square (:mod:`calibration.mirror`)
+    mirror_incidence_deg: float = 0.0
 
 
 def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_axis,
                   generator: GeneratorModel, stage_angles_deg, alpha: float = 0.3,
-                  eta: float = 1000.0) -> np.ndarray:
-    """Relative Stokes ``(K, 3, H, W)`` reaching each pixel from a rough ideal-metal plate:
-    the plate's pBRDF Mueller matrix (:func:`polrig.pbrdf.linear_rig_mueller`, specular term
-    only) in the rig frames, normalised by ``m00``, times the generator's incident states; and
-    the modelled relative radiance ``(H, W)`` (``m00 / r^2``) of each pixel."""
-    from polrig.pbrdf import linear_rig_mueller
-
+                  metal: MirrorMetal | None = None,
+                  channel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Relative Stokes ``(K, 3, H, W)`` reaching each pixel from the rough metal plate: the
+    plate's Mueller matrix (:func:`calibration.mirror.mirror_mueller`: complex-index Fresnel
+    reflection of ``metal``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`, with its
+    diattenuation and retardance) in the rig frames, normalised by ``m00``, times the
+    generator's incident states; and the modelled relative radiance ``(H, W)``
+    (``m00 / r^2``) of each pixel. ``channel`` ``(H, W)``: each pixel's colour channel
+    (``None``: mono sensor)."""
+    metal = MirrorMetal.named(DEFAULT_MIRROR_METAL) if metal is None else metal
     h, w = shape
     rays = rigframes.pixel_rays_grid(K, dist, shape).reshape(-1, 3)
     P = rigframes.intersect_plane(rays, plane_point, plane_normal)
@@ -534,18 +569,14 @@ def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_a
     P = np.where(ok[:, None], P, rays)
     wi = light_cam_m - P
     wi /= np.linalg.norm(wi, axis=1, keepdims=True)
-    wo = -rays
-    n = np.broadcast_to(plane_normal, rays.shape)
-    m = linear_rig_mueller(n, wi, wo, kd=0.0, alpha=alpha, eta=eta, ks=1.0,
-                           components=("specular",), stage_zero_axis=zero_axis,
-                           camera_x_axis=np.array([1.0, 0.0, 0.0]))
-    m = np.asarray(m, dtype=np.float64).reshape(-1, 3, 3)
-    m00 = m[:, 0, 0]
+    m, m00 = mirror_mueller(plane_normal, wi, -rays, metal, alpha=alpha,
+                            stage_zero_axis=zero_axis, camera_x_axis=np.array([1.0, 0.0, 0.0]),
+                            channel=None if channel is None else np.asarray(channel).reshape(-1))
     good = ok & (m00 > 0)
-    m = np.where(good[:, None, None], m / np.where(good, m00, 1.0)[:, None, None], np.nan)
+    m = np.where(good[:, None, None], m, np.nan)
     s_in = generator.incident_stokes(np.asarray(stage_angles_deg, float))  # (K, 3)
     st = np.einsum("pij,kj->kip", m, s_in)
-    # modelled radiance factor (pBRDF m00 times inverse-square falloff), for the flat field
+    # modelled radiance factor (mirror m00 times inverse-square falloff), for the flat field
     r2 = np.sum((light_cam_m - P) ** 2, axis=1)
     radiance = np.where(good, m00 / r2, np.nan).reshape(h, w)
     return st.reshape(len(s_in), 3, h, w), radiance
@@ -555,19 +586,22 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
              zero_offset_deg: float, *, stage_angles_deg=STAGE_ANGLES_DEG,
              frames_per_angle: int = 6, sensor_diattenuation: float = DEFAULT_SENSOR_DIATTENUATION,
              mounts=INTRINSIC_MOUNTS, mount_index: int = DOFP_MOUNT_INDEX, dark_frames: int = 8,
-             log: Log = _noop) -> DofpRun:
+             mirror: MirrorMetal | None = None, log: Log = _noop) -> DofpRun:
     """Per-pixel analyzer calibration from the polished plate under the rotating polarizer.
 
     The plate sits in the board fixture; its pose is the board pose of the same fixture from
     the joint bundle adjustment (``geometry``, mount ``mount_index``), turned to the
     turntable angle that centres the specular lobe. A dark frame (light off) gives the
     offsets; the stage
-    sweep, with the generator's offset and the plate's Mueller matrix in the rig frames, gives
-    each pixel's analyzer row (:mod:`calibration.dofp`). The fitted modulation is the pixel's
-    diattenuation times the generator DoLP; the generator's extinction ratio follows from the
-    mean modulation and ``sensor_diattenuation`` (see
-    :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
+    sweep, with the generator's offset and the plate's Mueller matrix in the rig frames (the
+    metal ``mirror``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`: its
+    diattenuation and retardance at each pixel's angle of incidence,
+    :mod:`calibration.mirror`), gives each pixel's analyzer row (:mod:`calibration.dofp`).
+    The fitted modulation is the pixel's diattenuation times the generator DoLP; the
+    generator's extinction ratio follows from the mean modulation and
+    ``sensor_diattenuation`` (see :data:`DEFAULT_SENSOR_DIATTENUATION`)."""
     th = check_stage_angles(stage_angles_deg)
+    mirror = MirrorMetal.named(DEFAULT_MIRROR_METAL) if mirror is None else mirror
     K, dist, axis = geometry.K, geometry.dist, geometry.axis
     if mount_index >= len(geometry.mount_poses):
         raise CalibrationError(f"the geometric calibration has no pose for board mount "
@@ -588,6 +622,9 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     _move(rig.turntable, best)
     R, t = geometry.pose_at(mount_index, best)
     pb, nb = rigframes.board_plane(R, t)
+    to_light = (light_cam_m - pb) / np.linalg.norm(light_cam_m - pb)
+    incidence = 0.5 * float(np.degrees(np.arccos(np.clip(to_light @ (-pb / np.linalg.norm(pb)),
+                                                         -1.0, 1.0))))
     mount("mirror_plate", **fixture)
     _move(rig.stage, 0.0)
     auto_expose(cam, percentile=99.0, target=0.75)
@@ -603,8 +640,11 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     full = _full_scale(meta)
     sat = (np.max(frames + dark, axis=0) >= 0.98 * full)
     zero = rigframes.stage_zero_axis_cam(light_cam_m, axis.point_cam_m, axis.axis_cam)
+    lay = resolve_layout(_layout(cam))
+    channel = lay.colour_map(frames.shape[1:]) if lay.is_colour else None
     states, radiance = mirror_states(K, dist, frames.shape[1:], pb, nb, light_cam_m, zero,
-                                     GeneratorModel(zero_offset_deg, np.inf), th)
+                                     GeneratorModel(zero_offset_deg, np.inf), th,
+                                     metal=mirror, channel=channel)
     states = np.where(np.isfinite(states), states, 0.0)
     fit = dofp.fit_analyzer_rows(frames, states)
     # flat field: divide the fitted scale by the modelled radiance first, so the smooth fit
@@ -628,5 +668,6 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     gen = GeneratorModel(zero_offset_deg, er, 0.0, er_std)
     log(f"dofp: {int(fit.valid.sum())} pixels, median angle std "
         f"{np.median(fit.angle_std_deg[fit.valid]):.3f} deg, generator DoLP {d_gen:.5f} "
-        f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation})")
-    return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us)
+        f"(extinction ratio {er:.0f} ± {er_std:.0f}, referred to sensor D={sensor_diattenuation}; "
+        f"{mirror.name} mirror at {incidence:.1f} deg incidence)")
+    return DofpRun(model, fit, gen, dark, fit.scale, best, cam.exposure_us, incidence)

@@ -102,7 +102,11 @@ def write_report(directory: str | pathlib.Path, cs: CalibrationSet,
         md += ["## Light position\n", f"- position (camera frame, m): "
                f"{np.round(L['position_cam_m'], 5).tolist()} ± {np.round(L['std_m'], 5).tolist()}",
                f"- reflected rays: {len(L['ray_distances_m'])}, miss distances (mm): "
-               f"{np.round(np.asarray(L['ray_distances_m']) * 1000, 2).tolist()}", ""]
+               f"{np.round(np.asarray(L['ray_distances_m']) * 1000, 2).tolist()}"]
+        if "sphere_metal" in L:
+            md.append(f"- mirror ball: {L['sphere_metal']['name']} (its colour divides the "
+                      f"highlight's colour classes)")
+        md.append("")
     if "generator" in p:
         g = p["generator"]
         md += ["## Generator (incident Stokes states)\n",
@@ -129,6 +133,9 @@ def write_report(directory: str | pathlib.Path, cs: CalibrationSet,
                f"median 1-sigma {d.get('angle_std_deg_median', float('nan')):.3f} deg",
                f"- gain: std {a.gain[v].std():.4f}; diattenuation: mean {a.diattenuation[v].mean():.4f}, "
                f"std {a.diattenuation[v].std():.4f}",
+               *([f"- plate modelled as {d['mirror']['name']} (diattenuation and retardance of "
+                  f"its Fresnel reflection) at {d.get('mirror_incidence_deg', float('nan')):.1f} "
+                  f"deg incidence"] if "mirror" in d else []),
                "", "Maps (viridis): orientation minus nominal (-1.5..1.5 deg) ![](dofp_angle_error.png), "
                "gain (0.97..1.03) ![](dofp_gain.png), diattenuation (0.97..1) "
                "![](dofp_diattenuation.png), orientation 1 sigma (0..0.3 deg) ![](dofp_angle_std.png)", ""]

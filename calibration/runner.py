@@ -32,6 +32,7 @@ from calibration import turntable as tt
 from calibration.calset import CalibrationSet, SensorGeometry
 from calibration.charuco import BoardSpec
 from calibration.errors import CalibrationError
+from calibration.mirror import DEFAULT_MIRROR_METAL, DEFAULT_SPHERE_METAL, MirrorMetal
 from polrig import frames as fr
 from polrig.analyzer import AnalyzerModel
 from polrig.engine import CaptureControl, GuardedRig
@@ -68,12 +69,19 @@ class Options:
 
     board: BoardSpec = dataclasses.field(default_factory=lambda: BoardSpec(8, 6, 0.025, 0.018))
     sphere_radius_m: float = 0.03
+    #: the light calibration ball's metal (its colour, :func:`calibration.procedures.run_light`)
+    sphere_metal: MirrorMetal = dataclasses.field(
+        default_factory=lambda: MirrorMetal.named(DEFAULT_SPHERE_METAL))
     sensor_diattenuation: float = pr.DEFAULT_SENSOR_DIATTENUATION
     #: radial distortion model: "none", "k1" (default: the rig's lens covers about 25 deg, where
     #: k2 is not determined by the board views and only adds noise), "k1k2", "full"
     distortion: str = "k1"
     stage_angles_deg: tuple[float, ...] = pr.STAGE_ANGLES_DEG
     dofp_frames_per_angle: int = 6
+    #: the DoFP plate's metal (complex index per colour; :mod:`calibration.mirror`): its
+    #: diattenuation and retardance enter the states the analyzer is fitted to
+    mirror: MirrorMetal = dataclasses.field(
+        default_factory=lambda: MirrorMetal.named(DEFAULT_MIRROR_METAL))
 
 
 def _geometry(cs: CalibrationSet) -> tt.JointRigResult:
@@ -223,9 +231,11 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
             intr = cs.intrinsics
             lf = pr.run_light(rig, mount, intr["K"], intr["dist"], o.sphere_radius_m,
                               intrinsics_std_px=intr.get("std_fx_fy_cx_cy_px"),
-                              dist_std=intr.get("std_dist"), log=log)
+                              dist_std=intr.get("std_dist"), sphere_metal=o.sphere_metal,
+                              log=log)
             invalidate()
-            cs.params["light"] = {**lf.to_json(), "sphere_radius_m": o.sphere_radius_m}
+            cs.params["light"] = {**lf.to_json(), "sphere_radius_m": o.sphere_radius_m,
+                                  "sphere_metal": o.sphere_metal.to_json()}
             extras["light"] = lf
         elif step == "stokes":
             geo = _geometry(cs)
@@ -251,7 +261,8 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
             dr = pr.run_dofp(rig, mount, geo, cs.light_position_m, gen.zero_offset_deg,
                              stage_angles_deg=o.stage_angles_deg,
                              frames_per_angle=o.dofp_frames_per_angle,
-                             sensor_diattenuation=o.sensor_diattenuation, log=log)
+                             sensor_diattenuation=o.sensor_diattenuation, mirror=o.mirror,
+                             log=log)
             invalidate()
             cs.analyzer = dr.analyzer
             f = dr.fit
@@ -275,6 +286,7 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
                 "modulation_std_median": float(np.median(f.modulation_std[v])),
                 "residual_rms_dn_median": float(np.median(f.residual_rms_dn[v])),
                 "sensor_diattenuation_reference": o.sensor_diattenuation,
+                "mirror": o.mirror.to_json(), "mirror_incidence_deg": dr.mirror_incidence_deg,
                 "stage_angles_deg": list(o.stage_angles_deg),
                 "frames_per_angle": o.dofp_frames_per_angle}
             extras["dofp"] = dr

@@ -5,13 +5,20 @@
   at the turntable centre: a two-sided
   :class:`sim.shapes.Rectangle` whose per-region materials (matte black / matte white
   dielectric, Baek diffuse only) follow the board image;
-* ``mirror_plate``: a polished metal plate in the same fixture (pBRDF specular only with a very
-  large ``eta``: an ideal, non-depolarizing mirror whose GGX lobe of roughness 0.3 spreads the
-  reflected light of the polarizer over the whole image), the polarized flat field of the DoFP
-  calibration;
+* ``mirror_plate``: a polished aluminium plate in the same fixture (:data:`MIRROR_ALUMINIUM`:
+  a real conductor with the complex index of :data:`sim.optical_data.CONDUCTORS` per colour,
+  so with the diattenuation and retardance of its Fresnel reflection; a non-depolarizing GGX
+  lobe of roughness 0.3 spreads the reflected light of the polarizer over the whole image),
+  the polarized flat field of the DoFP calibration. Aluminium because it is the usual bare
+  front-surface mirror metal, and the calibration's default
+  (:data:`calibration.mirror.DEFAULT_MIRROR_METAL`, tested equal);
 * ``white_plate``: a matte white plate in the same fixture (flat field, unpolarizing);
 * ``chrome_sphere``: a chrome ball of known radius off the turntable axis, in front of a matte
-  white backdrop (so that its silhouette is a dark disc), for the light position.
+  white backdrop (so that its silhouette is a dark disc), for the light position; chrome is
+  the real conductor ``Cr`` (:data:`CHROME`, normal-incidence reflectance 0.64, 0.67 and
+  0.70 for R, G and B, partly polarizing at oblique incidence), not an ideal mirror.
+
+Both metals render through :class:`sim.materials.SurfaceMaterial` (:mod:`sim.surface_bsdf`).
 
 The fixture's pose (tilt back from vertical, yaw on the turntable) is shared by the plates and
 the board so that a board pose measured at a turntable angle is the plate pose there, as with a
@@ -31,7 +38,8 @@ from typing import Any
 import numpy as np
 
 from sim.geometry import rotation_about_axis
-from sim.materials import Material
+from sim.materials import Material, SurfaceMaterial
+from sim.optical_data import conductor_rgb
 from sim.scene import OBJECT_Z_M, Scene, SceneObject
 from sim.shapes import Rectangle, Sphere
 
@@ -39,9 +47,10 @@ TARGETS = ("charuco", "mirror_plate", "white_plate", "chrome_sphere")
 
 BOARD_BLACK = Material("board_black", (0.03, 0.03, 0.03), 0.5, 1.5, ks=0.0)
 BOARD_WHITE = Material("board_white", (0.85, 0.85, 0.85), 0.5, 1.5, ks=0.0)
-#: An ideal metal: ``eta`` so large that Rs = Rp = 1 to 1e-3 (non-depolarizing mirror).
-POLISHED_METAL = Material("polished_metal", (0.0, 0.0, 0.0), 0.3, 1000.0, ks=1.0)
-CHROME = Material("chrome", (0.0, 0.0, 0.0), 0.04, 1000.0, ks=1.0)
+#: The DoFP plate: polished (GGX roughness 0.3) bare aluminium.
+MIRROR_ALUMINIUM = SurfaceMaterial("mirror_aluminium", conductor_rgb("aluminium"), 0.3)
+#: The light-calibration ball: polished chrome (GGX roughness 0.04).
+CHROME = SurfaceMaterial("chrome", conductor_rgb("chrome"), 0.04)
 WHITE = Material("matte_white", (0.8, 0.8, 0.8), 0.5, 1.5, ks=0.0)
 
 #: Default geometry of the targets (metres, degrees).
@@ -119,7 +128,7 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
                             rotation=rot, region=board_region(img, sq, hx, hy))]
     if name in ("mirror_plate", "white_plate"):
         half = float(o["plate_half_m"])
-        mat = POLISHED_METAL if name == "mirror_plate" else WHITE
+        mat = MIRROR_ALUMINIUM if name == "mirror_plate" else WHITE
         return [SceneObject(name, Rectangle(half, half), (mat,), centre, rotation=rot)]
     if name == "chrome_sphere":
         r = float(o["sphere_radius_m"])

@@ -93,6 +93,10 @@ def test_dofp_orientation_gain_and_better_than_nominal(calibrated):
     assert d["angle_rms_error_deg"] < d["ideal_model_angle_rms_error_deg"] / 3
     assert d["gain_rms_rel_error"] < d["ideal_model_gain_rms_rel_error"] / 3
     assert cs.dofp_maps["valid"].mean() > 0.95
+    # the targets' metals the calibration modelled are recorded (calibration.mirror)
+    assert cs.params["dofp"]["mirror"]["name"] == "aluminium"
+    assert 5.0 < cs.params["dofp"]["mirror_incidence_deg"] < 20.0
+    assert cs.params["light"]["sphere_metal"]["name"] == "chrome"
 
 
 def test_calibration_set_files_and_report(calibrated):

@@ -99,3 +99,17 @@ def test_a_step_refuses_a_set_of_another_camera_before_acquiring(tmp_path, capsy
                           f"sensor 64x48 imx250myr, readout 64x48 at (0, 0) {why}")
     assert time.monotonic() - t0 < 5
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_an_unknown_target_metal_is_refused_at_once(tmp_path, capsys):
+    """``--mirror-metal`` / ``--sphere-metal`` name a tabulated metal (or ``ideal``); a typo
+    is refused in one line before the rig opens, and nothing is written."""
+    for flag in ("--mirror-metal", "--sphere-metal"):
+        t0 = time.monotonic()
+        rc = main(["calibrate", "dofp", flag, "tin", "--size", "64x48",
+                   "--out", str(tmp_path / "cal")])
+        out, err = capsys.readouterr()
+        assert rc == 2 and out == "" and time.monotonic() - t0 < 5
+        assert err == (f"polrig: error: {flag}: unknown mirror metal 'tin'; known: gold, silver, "
+                       f"copper, aluminium, chrome, ideal\n")
+        assert not (tmp_path / "cal").exists()

@@ -48,6 +48,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-diattenuation", type=positive_float, default=None, metavar="D",
                    help="mean micro-polarizer diattenuation of the camera (datasheet), the "
                         "reference of the generator's extinction ratio")
+    p.add_argument("--mirror-metal", default=None, metavar="METAL",
+                   help="metal of the DoFP step's polished plate, whose diattenuation and "
+                        "retardance the analyzer fit models: aluminium (default), silver, gold, "
+                        "copper, chrome, or ideal (no diattenuation or retardance)")
+    p.add_argument("--sphere-metal", default=None, metavar="METAL",
+                   help="metal of the light step's mirror ball (its colour on a colour "
+                        "sensor): chrome (default), aluminium, silver, gold, copper, ideal")
     p.add_argument("--board-png", type=pathlib.Path, default=None, metavar="FILE",
                    help="also write the printable ChArUco board to FILE")
     p.add_argument("--dpi", type=positive_float, default=300.0,
@@ -112,6 +119,9 @@ def _continue_command(args: argparse.Namespace, step: str) -> str:
             cmd += ["--seed", str(args.seed)]
     if args.sensor_diattenuation is not None:
         cmd += ["--sensor-diattenuation", f"{args.sensor_diattenuation:g}"]
+    for flag, value in (("--mirror-metal", args.mirror_metal), ("--sphere-metal", args.sphere_metal)):
+        if value is not None:
+            cmd += [flag, value]
     return shlex.join(cmd + ["--out", str(args.out)])
 
 
@@ -170,6 +180,15 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--sensor-diattenuation must be in (0.5, 1], got "
                              f"{args.sensor_diattenuation}")
         opts.sensor_diattenuation = float(args.sensor_diattenuation)
+    from calibration.mirror import MirrorMetal
+
+    for flag, value, field in (("--mirror-metal", args.mirror_metal, "mirror"),
+                               ("--sphere-metal", args.sphere_metal, "sphere_metal")):
+        if value is not None:
+            try:
+                setattr(opts, field, MirrorMetal.named(value))
+            except ValueError as exc:
+                raise ConfigError(f"{flag}: {exc}") from None
     if args.board_png is not None:
         write_board_png(opts.board, args.board_png, args.dpi)
         print(f"board: {args.board_png} ({opts.board.squares_x}x{opts.board.squares_y} squares of "
