@@ -53,9 +53,14 @@ def bin_cells(img: np.ndarray, factor: int) -> np.ndarray:
     repeats the edge there). Cell ``i`` covers ``[factor i, factor i + factor)``, its centre at
     ``factor i + (factor - 1) / 2``, where :func:`upsample` puts it back."""
     f = int(factor)
-    h, w = img.shape[-2] // f, img.shape[-1] // f
-    x = np.asarray(img, np.float32)[..., : h * f, : w * f].reshape(img.shape[:-2] + (h, f, w, f))
-    return x.mean(axis=(-3, -1), dtype=np.float32)
+    x = np.asarray(img, np.float32)
+    h, w = x.shape[-2] // f, x.shape[-1] // f
+    out = np.zeros(x.shape[:-2] + (h, w), np.float32)
+    for i in range(f):  # f^2 strided adds: a tenth of np.mean over reshaped cell axes here
+        for j in range(f):
+            out += x[..., i: h * f: f, j: w * f: f]
+    out *= np.float32(1.0 / (f * f))
+    return out
 
 
 def binned_intrinsics(intrinsics, factor: int):
