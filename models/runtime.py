@@ -143,20 +143,23 @@ def rotate_stokes(s: np.ndarray, cos2, sin2) -> np.ndarray:
     return np.stack(parts, -1)
 
 
-def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray) -> np.ndarray:
+def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray, *,
+                            overwrite: bool = False) -> np.ndarray:
     """``M R(theta)`` per pixel for a plane-first Mueller image ``(..., 3, 3, H, W)`` and
     ``cos2``/``sin2`` broadcastable to ``(..., H, W)``: the model-frame matrix re-expressed in
     the rig's incident frame (columns 1 and 2 mix as in :func:`polrig.frames.rotate_cols` with
     ``-theta``: ``c1' = c c1 - s c2``, ``c2' = c c2 + s c1``). Computed in ``m``'s own dtype on
     the plane-first layout (no float64 copy, no transposes: a full-sensor image is 4-20 x 10^7
-    values)."""
+    values). ``overwrite``: write the result into ``m`` (a writable array; the same numbers,
+    without copying the unchanged column)."""
     m = np.asarray(m)
     c = np.expand_dims(np.asarray(cos2, m.dtype), -3)  # (..., 1, H, W): same for every row
     s = np.expand_dims(np.asarray(sin2, m.dtype), -3)
     c1, c2 = m[..., :, 1, :, :], m[..., :, 2, :, :]
-    out = m.copy()
-    out[..., :, 1, :, :] = c * c1 - s * c2
-    out[..., :, 2, :, :] = c * c2 + s * c1
+    new1, new2 = c * c1 - s * c2, c * c2 + s * c1
+    out = m if overwrite else m.copy()
+    out[..., :, 1, :, :] = new1
+    out[..., :, 2, :, :] = new2
     return out
 
 
@@ -430,7 +433,7 @@ class SingleShotModel:
             if key in out:
                 ndim = out[key].ndim  # (B, C, 3, 3, H, W)
                 shape = (b,) + (1,) * (ndim - 5) + cp.shape[1:]
-                out[key] = rotate_incident_columns(out[key], cp.reshape(shape), sp.reshape(shape))
+                out[key] = rotate_incident_columns(out[key], cp.reshape(shape), sp.reshape(shape), overwrite=True)
         out["incident_rotation_deg"] = np.rad2deg(prev).astype(np.float32)
         return out
 

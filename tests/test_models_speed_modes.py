@@ -185,3 +185,16 @@ def test_polrig_infer_network_binning_flag(tmp_path):
     assert bad.stderr.strip().splitlines()[-1].endswith("argument --network-binning: invalid choice: 3 (choose from 1, 2)")
     both = run("--network-binning", "2", "--sigma")
     assert both.returncode == 2 and "--sigma" in both.stderr
+
+
+def test_rotating_the_incident_columns_in_place_gives_the_same_numbers():
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(2, 3, 3, 3, 7, 9)).astype(np.float32)
+    theta = rng.uniform(-np.pi, np.pi, size=(2, 1, 7, 9))
+    c2, s2 = np.cos(2 * theta), np.sin(2 * theta)
+    copied = runtime.rotate_incident_columns(m, c2, s2)
+    work = m.copy()
+    same = runtime.rotate_incident_columns(work, c2, s2, overwrite=True)
+    assert same is work
+    np.testing.assert_array_equal(same, copied)
+    np.testing.assert_array_equal(copied[..., 0, :, :], m[..., 0, :, :])  # column 0 untouched
