@@ -395,7 +395,12 @@ class SingleShotModel:
         wi = (np.broadcast_to(np.asarray(wi_guess, np.float64).reshape(-1, 3), (b, 3)) if wi_guess is not None
               else np.broadcast_to([0.0, 0.0, -1.0], (b, 3)))
         prev = None
-        small = probe_shape(analyzer.shape[-2:]) if probe and rotate_with is None and "wi" in self.output_names else None
+        # (a rig on the training axis needs no refinement: its angle is 0 whatever the light)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            same_axis = np.allclose(axis / np.linalg.norm(axis, axis=-1, keepdims=True),
+                                    self.model_axis / np.linalg.norm(self.model_axis), atol=1e-9)
+        small = (probe_shape(analyzer.shape[-2:]) if probe and not same_axis and rotate_with is None
+                 and "wi" in self.output_names else None)
         if small is not None:
             # The refinement needs only the image-wide mean ``wi``: it comes from a pass on the
             # area-reduced inputs (probe_shape), and the full-size graph runs once, at the

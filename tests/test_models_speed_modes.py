@@ -81,6 +81,15 @@ def test_probe_runs_the_full_size_graph_once_and_agrees_with_two_full_passes():
     assert abs(_psnr(probed, truth, mask) - _psnr(two, truth, mask)) < 1.5
 
 
+def test_a_rig_on_the_training_axis_runs_the_graph_once_without_a_probe():
+    cap = _capture(256, 11)
+    m = CountingModel.load()
+    m.sizes = []
+    m.reconstruct(cap["analyzer"], cap["s_in"], mask=cap["mask"] > 0, scale=1.0,
+                  stage_zero_axis=2.0 * m.model_axis)  # the same axis, any length
+    assert m.sizes == [(256, 256)]
+
+
 def test_small_inputs_keep_the_full_size_refinement(model):
     cap = _capture(64, 12)
     kw = {"mask": cap["mask"] > 0, "scale": 1.0, "stage_zero_axis": RIG_AXIS}
