@@ -24,6 +24,11 @@ accuracy (``benchmarks/results/single_shot_speed.md``, ``single_shot_full_resolu
 pixels (the U-Net's receptive field covers a quarter as much of it). That route stays
 available as ``polrig infer --demosaic bilinear`` (networks on the full demosaic, resized
 to ``max_pixels``).
+
+The same lift, with period 2, is the faster **network binning** mode (:func:`reconstruct_binned`,
+``polrig infer --network-binning 2``): the networks on the analyzer grid binned 2x2 and their
+answer lifted back to that grid with its own measured detail (accuracy and speed:
+``models/MODEL_CARD.md``, "Speed, warm and cold").
 """
 
 from __future__ import annotations

@@ -207,3 +207,24 @@ def test_rotating_the_incident_columns_in_place_gives_the_same_numbers():
     assert same is work
     np.testing.assert_array_equal(same, copied)
     np.testing.assert_array_equal(copied[..., 0, :, :], m[..., 0, :, :])  # column 0 untouched
+
+
+def test_evaluate_speed_modes_scores_a_held_out_set_and_refuses_a_bad_size(tmp_path):
+    """``python -m models.evaluate_speed_modes`` end to end on a 2-sample 256x256 set (its
+    superpixel grid 64x64, binned 32x32; the probe engages on the 256x256 analyzer images)."""
+    from models.evaluate_speed_modes import METHODS, evaluate_set, main
+    from sim.dataset import generate_dataset
+
+    data = tmp_path / "set"
+    generate_dataset(data, count=2, width=256, seed=3, holdout=True, progress=False)
+    res = evaluate_set(data)
+    assert res["probe_shape"] == (128, 128) and res["samples"] == len(res["per_sample"]) >= 1
+    assert all(np.isfinite(res["matrix_psnr_db"][m]) and res["matrix_psnr_db"][m] > 15 for m in METHODS)
+    out = tmp_path / "modes.md"
+    assert main(["--data", str(data), "--out", str(out)]) == 0
+    assert "binning 2" in out.read_text() and out.with_suffix(".json").is_file()
+    small = tmp_path / "small"
+    generate_dataset(small, count=1, width=96, seed=3, progress=False)
+    proc = subprocess.run([sys.executable, "-m", "models.evaluate_speed_modes", "--data", str(small)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "multiples of 64" in proc.stderr
