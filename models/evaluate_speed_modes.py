@@ -11,7 +11,9 @@ true ``|m|`` on the object):
   quarter of the set's size per axis), and reconstructed there by the networks (binning 1, the
   default) and by the networks on that grid binned 2x2 then lifted back (binning 2); both are
   scored against the truth averaged over each 4x4 cell, on pixels whose 8x8 raw block lies
-  wholly on the object (edge blocks mix object and background in both).
+  wholly on the object (edge blocks mix object and background in both). Both are also lifted
+  to the raw grid with the bilinear demosaic's detail (:func:`models.full_resolution.lift`, the
+  full-resolution route) and scored against the full-resolution truth on the same blocks.
 * **light-direction probe** (:func:`models.runtime.probe_shape`): the networks on the set's own
   analyzer images (so sets of 256x256 or more take the probe), once with the probe (the
   runtime's route: reduced passes for the incident-frame angle, then one full-size pass) and
@@ -33,10 +35,12 @@ from models import runtime
 from models.data import check_network_size, lit_samples, load_dataset
 from models.evaluate import psnr
 from models.evaluate_full_resolution import LAYOUT, cell_mean, mosaic
-from models.full_resolution import reconstruct_binned
+from models.full_resolution import lift, reconstruct_binned
 from models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.stokes import stokes_from_analyzers
 
-METHODS = ("superpixel", "superpixel_binning_2", "two_full_passes", "probe")
+METHODS = ("superpixel", "superpixel_binning_2", "full_resolution", "full_resolution_binning_2",
+           "two_full_passes", "probe")
 
 
 def score_sample(model: SingleShotModel, ds, i: int, layout) -> dict[str, float]:
@@ -54,9 +58,17 @@ def score_sample(model: SingleShotModel, ds, i: int, layout) -> dict[str, float]
     whole = cell_mean(mask_full.astype(np.float32), block) == 1.0  # 8x8 raw blocks wholly on the object
     whole_sp = np.zeros(mask_sp.shape, bool)
     whole_sp[: 2 * whole.shape[0], : 2 * whole.shape[1]] = np.repeat(np.repeat(whole, 2, 0), 2, 1)
-    m1, _ = model.reconstruct(sp, s_in, mask=mask_sp, scale=1.0, stage_zero_axis=axis)
-    m2, _ = reconstruct_binned(model, sp, s_in, 2, mask=mask_sp, scale=1.0, stage_zero_axis=axis)
+    m1, aux1 = model.reconstruct(sp, s_in, mask=mask_sp, scale=1.0, stage_zero_axis=axis)
+    m2, aux2 = reconstruct_binned(model, sp, s_in, 2, mask=mask_sp, scale=1.0, stage_zero_axis=axis)
     out = {"superpixel": psnr(m1, truth_sp, whole_sp, peak), "superpixel_binning_2": psnr(m2, truth_sp, whole_sp, peak)}
+    s_sp, s_full = stokes_from_analyzers(sp), stokes_from_analyzers(demosaic_float(mosaic(ds["analyzer"][i], layout),
+                                                                                   layout, "bilinear"))
+    whole_full = np.zeros(mask_full.shape, bool)
+    whole_full[: block[0] * whole.shape[0], : block[1] * whole.shape[1]] = np.repeat(np.repeat(whole, block[0], 0),
+                                                                                       block[1], 1)
+    for name, m, aux in (("full_resolution", m1, aux1), ("full_resolution_binning_2", m2, aux2)):
+        lifted, _ = lift(m, aux["mask"], s_sp, s_full, s_in, period)
+        out[name] = psnr(lifted, truth, whole_full, peak)
     probe, _ = model.reconstruct(ds["analyzer"][i], s_in, mask=mask_full, scale=1.0, stage_zero_axis=axis)
     two, _ = model.reconstruct(ds["analyzer"][i], s_in, mask=mask_full, scale=1.0, stage_zero_axis=axis, probe=False)
     out["probe"] = psnr(probe, truth, mask_full, peak)
@@ -84,14 +96,14 @@ def evaluate_set(data_dir, weights_dir=None, limit: int | None = None) -> dict:
 
 
 def markdown(results: Sequence[dict]) -> str:
-    lines = ["| set | samples | size | superpixel grid | superpixel (default) | **binning 2** | difference | "
-             "two full passes | **probe** | difference |", "|---|---|---|---|---|---|---|---|---|---|"]
+    pairs = (("superpixel", "superpixel_binning_2"), ("full_resolution", "full_resolution_binning_2"),
+             ("two_full_passes", "probe"))
+    lines = ["| set | samples | size | superpixel (default) | **binning 2** | difference | full resolution (default) | "
+             "**binning 2** | difference | two full passes | **probe** | difference |", "|---" * 12 + "|"]
     for r in results:
         p, (h, w) = r["matrix_psnr_db"], r["resolution"]
-        lines.append(f"| {pathlib.Path(r['data']).name} | {r['samples']} | {w}x{h} | {w // 4}x{h // 4} | "
-                     f"{p['superpixel']:.2f} | **{p['superpixel_binning_2']:.2f}** | "
-                     f"{p['superpixel_binning_2'] - p['superpixel']:+.2f} | {p['two_full_passes']:.2f} | "
-                     f"**{p['probe']:.2f}** | {p['probe'] - p['two_full_passes']:+.2f} |")
+        cells = [f"{p[a]:.2f} | **{p[b]:.2f}** | {p[b] - p[a]:+.2f}" for a, b in pairs]
+        lines.append(f"| {pathlib.Path(r['data']).name} | {r['samples']} | {w}x{h} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
