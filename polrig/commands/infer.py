@@ -41,7 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output resolution: superpixel (the networks' grid, default) or full (the raw "
                         "frame's: the networks on the superpixel grid plus the measured detail of a "
                         "full-resolution demosaic, models/full_resolution.py)")
-    p.add_argument("--network-binning", type=int, choices=(1, 2), default=1,
+    from models.full_resolution import BINNINGS
+
+    p.add_argument("--network-binning", type=int, choices=BINNINGS, default=1,
                    help="1 (default): the networks on the analyzer grid; 2: a faster mode, the networks on "
                         "that grid binned 2x2 (a quarter of the work) and the answer lifted back with the "
                         "grid's measured detail (models/full_resolution.py; its accuracy in "
