@@ -24,7 +24,9 @@ infer ...`` in a fresh process, what a user types), wall-clock median, with the 
 resident memory (``wait4`` rusage). Rounds interleave the cases (warm and cold alternate) so a
 busy machine's load spreads over all of them; the table says how many rounds. ``--anatomy``
 also times, in fresh processes, where a cold run's time goes: imports, session creation, the
-first and a second network pass at the full-sensor mono size. The device each ran on (the
+first and a second network pass at the full-sensor mono size; and the one-shot CLI's own steps
+for the full colour sensor at full resolution (its functions wrapped where they run: decode,
+session, reconstruction, EXR, the previews' S0 SNR and PNGs, the rest). The device each ran on (the
 onnxruntime provider) is printed with the table.
 
 Usage: ``python benchmarks/bench_single_shot.py [--rounds N] [--threads T] [--out FILE] [--anatomy]``
@@ -240,6 +242,55 @@ def anatomy(rounds: int, threads: int | None) -> dict[str, float]:
     return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
 
 
+#: The one-shot CLI in a fresh process with its steps timed where they run (the CLI's own
+#: functions wrapped, nothing re-implemented): CPU seconds (all threads) and wall per step.
+COLD_STEPS = """
+import json, sys, time
+w0, c0 = time.perf_counter(), time.process_time()
+steps = {}
+def timed(owner, name, label):
+    fn = getattr(owner, name)
+    def wrapper(*a, **k):
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            return fn(*a, **k)
+        finally:
+            prev = steps.get(label, (0.0, 0.0))
+            steps[label] = (prev[0] + time.process_time() - c, prev[1] + time.perf_counter() - w)
+    setattr(owner, name, wrapper)
+import numpy, onnxruntime
+steps["import numpy+onnxruntime"] = (time.process_time() - c0, time.perf_counter() - w0)
+import models.runtime as rt, polrig.preview as pv, polrig.rawio as rio, polrig.cli as cli
+timed(rt.SingleShotModel, "load", "session creation")
+timed(rio, "read_raw", "decode")
+timed(rt, "infer_frame", "reconstruction")
+timed(rt, "write_result_exr", "EXR")
+timed(pv, "s0_snr", "previews: S0 SNR")
+timed(pv, "write_result_previews", "previews: PNGs")
+cli.main(sys.argv[1:])
+total = (time.process_time() - c0, time.perf_counter() - w0)
+steps["rest (imports, parser, checks)"] = tuple(t - sum(v[i] for v in steps.values()) for i, t in enumerate(total))
+steps["total"] = total
+print(json.dumps(steps))
+"""
+
+
+def cold_steps(src: pathlib.Path, argv: list[str], out: pathlib.Path, rounds: int) -> dict[str, tuple[float, float]]:
+    """Medians over ``rounds`` fresh processes of :data:`COLD_STEPS`: step -> (CPU s, wall s)."""
+    import json
+    import subprocess
+
+    rows = []
+    for _ in range(rounds):
+        cmd = [sys.executable, "-c", COLD_STEPS, "infer", str(src), "--state-deg", "0", "--saturation-dn", "4095",
+               "--out", str(out), *argv]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=_child_env(), cwd=REPO)
+        if proc.returncode:
+            raise RuntimeError(f"cold steps failed: {proc.stderr.strip()[-300:]}")
+        rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    return {k: tuple(statistics.median(r[k][i] for r in rows) for i in range(2)) for k in rows[0]}
+
+
 def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> tuple[str, dict]:
     """The cases table (module docstring) as Markdown, and the measurements it was made from."""
     import os
@@ -264,9 +315,12 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
                 print(f"round {r + 1}/{rounds} {label}: warm {1e3 * warm[label][-1]['total']:.0f} ms, "
                       f"cold {1e3 * cold[label][-1]['wall']:.0f} ms, {cold[label][-1]['peak_mb']:.0f} MB", flush=True)
         anat = anatomy(rounds, threads) if with_anatomy else None
+        label, shape, layout, argv = CASES[4]  # the full colour sensor at full resolution
+        steps = cold_steps(raws[(shape, layout)], argv, tmp / "steps.exr", rounds) if with_anatomy else None
     raw = {"provider": model.provider, "onnxruntime": __import__("onnxruntime").__version__,
            "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
-           "warm": warm, "cold": cold, "anatomy": anat, "load_average": [load_start, os.getloadavg()[0]]}
+           "warm": warm, "cold": cold, "anatomy": anat, "cold_steps": steps,
+           "cold_steps_case": CASES[4][0] if steps else None, "load_average": [load_start, os.getloadavg()[0]]}
     return render(raw), raw
 
 
@@ -297,6 +351,12 @@ def render(raw: dict) -> str:
                   "on 1224x1024x3, the mono full sensor's grid):", "", "| step | ms |", "|---|---|"]
         lines += [f"| {k} | {1e3 * v:.0f} |" for k, v in anat.items() if k != "peak_mb"]
         lines.append(f"| peak memory | {anat['peak_mb']:.0f} MB |")
+    steps = raw.get("cold_steps")
+    if steps:
+        lines += ["", f"Where the one-shot CLI's time goes for the {raw['cold_steps_case']} (fresh processes, medians of "
+                  f"{raw['rounds']}; the CLI's own functions timed where they run):", "",
+                  "| step | CPU ms | wall ms |", "|---|---|---|"]
+        lines += [f"| {k} | {1e3 * v[0]:.0f} | {1e3 * v[1]:.0f} |" for k, v in steps.items()]
     return "\n".join(lines)
 
 
