@@ -334,12 +334,15 @@ class SingleShotModel:
         return cls(sess, meta, wd, *calibration_for_graph(wd, graph))
 
     def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
-                       stage_zero_axis: np.ndarray) -> dict[str, np.ndarray]:
-        """One graph call on batched, normalised, padded inputs (names as :mod:`models.export`)."""
+                       stage_zero_axis: np.ndarray, *, release_arena: bool | None = None) -> dict[str, np.ndarray]:
+        """One graph call on batched, normalised, padded inputs (names as :mod:`models.export`).
+        ``release_arena``: hand the CPU arena's memory back when the run ends (None: for runs on
+        more than :data:`SHRINK_ARENA_ABOVE` colour-pixels)."""
         feed = {"analyzer": analyzer, "mask": mask, "s_in": s_in, "wo": wo, "stage_zero_axis": stage_zero_axis}
-        large = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
+        if release_arena is None:
+            release_arena = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
         outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names},
-                                self._shrink if large else None)
+                                self._shrink if release_arena else None)
         return dict(zip(self.output_names, outs))
 
     @property
@@ -350,7 +353,8 @@ class SingleShotModel:
     def run_rig_frame(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
                       stage_zero_axis: np.ndarray, *, wi_guess: np.ndarray | None = None,
                       tolerance_deg: float = 3.0, rotate_with: np.ndarray | None = None,
-                      mirror_average: bool = False, probe: bool = True) -> dict[str, np.ndarray]:
+                      mirror_average: bool = False, probe: bool = True,
+                      release_arena: bool | None = None) -> dict[str, np.ndarray]:
         """:meth:`run_normalised` for a rig whose stage zero axis ``(B, 3)`` (camera frame) may
         differ from the training one: the graph runs in the training frame and ``mueller``
         and ``mueller_init`` come back in the rig's frame (module docstring).
@@ -373,14 +377,16 @@ class SingleShotModel:
         refined angle: at the full colour sensor's 612x512 grid 1.06 passes instead of 2 (a rig on
         the training axis needs no refinement: one full-size pass). ``probe=False``: the full-size
         graph runs for the refinement too (the route before; ``models.evaluate_speed_modes``
-        compares the two)."""
+        compares the two). ``release_arena``: as :meth:`run_normalised`, for the full-size
+        passes."""
         if mirror_average:
             plain = self.run_rig_frame(analyzer, mask, s_in, wo, stage_zero_axis, wi_guess=wi_guess,
-                                       tolerance_deg=tolerance_deg, rotate_with=rotate_with, probe=probe)
+                                       tolerance_deg=tolerance_deg, rotate_with=rotate_with, probe=probe,
+                                       release_arena=release_arena)
             seen = self.run_rig_frame(mirror.analyzer(analyzer), mirror.image(mask), mirror.stokes(s_in),
                                       mirror.vector_image(wo), mirror.vectors(stage_zero_axis),
                                       wi_guess=None if wi_guess is None else mirror.vectors(wi_guess),
-                                      tolerance_deg=tolerance_deg, probe=probe,
+                                      tolerance_deg=tolerance_deg, probe=probe, release_arena=release_arena,
                                       rotate_with=None if rotate_with is None else mirror.vector_image(rotate_with))
             back = mirror.outputs(seen)
             out = mirror.average(plain, back)
@@ -416,7 +422,8 @@ class SingleShotModel:
             if prev is not None and _within(theta, prev, tolerance_deg):
                 break
             out = None  # the previous pass's outputs go before the next pass allocates (peak memory)
-            out = self.run_normalised(analyzer, mask, rotate_stokes(s_in, c2, s2).astype(np.float32), wo, model_axis)
+            out = self.run_normalised(analyzer, mask, rotate_stokes(s_in, c2, s2).astype(np.float32), wo, model_axis,
+                                      release_arena=release_arena)
             prev = theta
             if rotate_with is not None or "wi" not in out:
                 break
@@ -437,7 +444,8 @@ class SingleShotModel:
     def reconstruct(self, analyzer: np.ndarray, s_in, mask: np.ndarray | None = None, scale: float | None = None,
                     *, stage_zero_axis=None, intrinsics=None,
                     max_pixels: int = 1_500_000, with_sigma: bool = False,
-                    mirror_average: bool = False, probe: bool = True) -> tuple[np.ndarray, dict]:
+                    mirror_average: bool = False, probe: bool = True,
+                    release_arena: bool | None = None) -> tuple[np.ndarray, dict]:
         """Mueller image ``(C, 3, 3, H, W)`` float32 in DN per unit incident S0 from analyzer
         images ``(C, 4, H, W)`` in DN (black level removed) under the normalised incident
         state ``s_in`` ``(3,)`` (incident frame, ``docs/conventions.md``).
@@ -458,7 +466,7 @@ class SingleShotModel:
         the two passes' disagreement).
         ``mirror_average``: average the answers for the capture and its mirror image
         (:mod:`models.mirror`): a few per cent lower error for twice the network time.
-        ``probe``: as :meth:`run_rig_frame`.
+        ``probe``, ``release_arena``: as :meth:`run_rig_frame`.
         """
         t0 = time.perf_counter()
         a = np.asarray(analyzer, dtype=np.float32)
@@ -521,7 +529,7 @@ class SingleShotModel:
         t1 = time.perf_counter()
         out = self.run_rig_frame(an_p[None], mk_p[None, None], s[None], wo_p[None],
                                  np.asarray(stage_zero_axis, np.float64).reshape(1, 3),
-                                 mirror_average=mirror_average, probe=probe)
+                                 mirror_average=mirror_average, probe=probe, release_arena=release_arena)
         rotation_deg = float(out.pop("incident_rotation_deg")[0])
         t2 = time.perf_counter()
         crop = lambda x: x[0, ..., :hr, :wr]  # noqa: E731
@@ -619,14 +627,20 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     stokes = stokes_from_analyzers(analyzer)
     t2 = time.perf_counter()
     s_in = incident_stokes(state_deg)
+    # At full resolution the networks' arena goes back before the lift's 0.5-1 GB of planes: the
+    # full colour sensor's one-shot peak 1959 -> 1852 MB, no measurable time (the superpixel
+    # route keeps it: there the next frame's pass would fault it in again, +90 ms of CPU).
+    release = True if full else None
     if binning > 1:  # the networks on the binned grid, back to the analyzer grid with its measured detail
         mueller, aux = full_resolution.reconstruct_binned(model, analyzer, s_in, binning, mask=mask, stokes=stokes,
                                                           scale=scale, stage_zero_axis=stage_zero_axis,
-                                                          intrinsics=intrinsics, mirror_average=mirror_average)
+                                                          intrinsics=intrinsics, mirror_average=mirror_average,
+                                                          release_arena=release)
     else:
         mueller, aux = model.reconstruct(analyzer, s_in, mask=mask, scale=scale,
                                          stage_zero_axis=stage_zero_axis, intrinsics=intrinsics,
-                                         with_sigma=with_sigma, mirror_average=mirror_average)
+                                         with_sigma=with_sigma, mirror_average=mirror_average,
+                                         release_arena=release)
     timings = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
     if full:
         t3 = time.perf_counter()

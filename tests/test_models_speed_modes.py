@@ -46,10 +46,12 @@ class CountingModel(SingleShotModel):
     """The shipped session, recording the image size of every graph call."""
 
     sizes: list
+    released: list
 
-    def run_normalised(self, analyzer, *args):
+    def run_normalised(self, analyzer, *args, **kwargs):
         self.sizes.append(tuple(analyzer.shape[-2:]))
-        return super().run_normalised(analyzer, *args)
+        self.released.append(kwargs.get("release_arena"))
+        return super().run_normalised(analyzer, *args, **kwargs)
 
 
 @pytest.mark.parametrize("shape, expected", [((64, 64), None), ((128, 128), None), ((248, 512), None),
@@ -65,10 +67,10 @@ def test_probe_runs_the_full_size_graph_once_and_agrees_with_two_full_passes():
     mask = cap["mask"] > 0
     args = (cap["analyzer"], cap["s_in"])
     kw = {"mask": mask, "scale": 1.0, "stage_zero_axis": RIG_AXIS}
-    m.sizes = []
+    m.sizes, m.released = [], []
     probed, aux_p = m.reconstruct(*args, **kw)
     assert m.sizes == [(128, 128), (256, 256)]  # one reduced pass, then the full-size graph once
-    m.sizes = []
+    m.sizes, m.released = [], []
     two, aux_t = m.reconstruct(*args, probe=False, **kw)
     assert m.sizes == [(256, 256), (256, 256)]
     # The reduced passes' light direction is not the full-size one's (5-12 deg apart on such
@@ -82,7 +84,7 @@ def test_probe_runs_the_full_size_graph_once_and_agrees_with_two_full_passes():
 def test_a_rig_on_the_training_axis_runs_the_graph_once_without_a_probe():
     cap = _capture(256, 11)
     m = CountingModel.load()
-    m.sizes = []
+    m.sizes, m.released = [], []
     m.reconstruct(cap["analyzer"], cap["s_in"], mask=cap["mask"] > 0, scale=1.0,
                   stage_zero_axis=2.0 * m.model_axis)  # the same axis, any length
     assert m.sizes == [(256, 256)]
@@ -240,3 +242,14 @@ def test_binning_handles_odd_grids_and_mono_sensors(model, shape, layout):
     assert two.shape == one.shape and np.all(np.isfinite(two))
     inner = np.all(one != 0, axis=(0, 1, 2)) & aux["mask"]
     assert _psnr(two, one, inner) > 30.0  # measured 36-38 dB on these frames
+
+
+def test_full_resolution_hands_the_networks_arena_back_before_the_lift():
+    from benchmarks.bench_single_shot import synthetic_raw
+
+    m = CountingModel.load()
+    raw = synthetic_raw((256, 256), np.random.default_rng(0))
+    for resolution, method, released in (("superpixel", "superpixel", None), ("full", "bilinear", True)):
+        m.sizes, m.released = [], []
+        infer_frame(raw, "imx250myr", 0.0, m, black_level_dn=64.0, resolution=resolution, demosaic_method=method)
+        assert m.released and all(r is released for r in m.released)
