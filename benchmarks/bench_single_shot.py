@@ -10,7 +10,11 @@ times the colour sensor's).
 Cases (issue 22's targets): 512x512 raw -> 512x512 Mueller (``--resolution full``: networks on
 the superpixel grid plus the measured detail, :mod:`models.full_resolution`; and the networks on
 the bilinear demosaic, the older route), 512x512 superpixel, full sensor colour superpixel, full
-sensor colour full resolution, full sensor mono superpixel.
+sensor colour full resolution, full sensor mono superpixel; and the faster mode's full-sensor colour
+cases (``--network-binning 2``: the networks on the analyzer grid binned 2x2, lifted back with the
+grid's measured detail, :func:`models.full_resolution.reconstruct_binned`). The "lifts" column
+is the full-resolution lift plus the binning's lift; "networks" includes the reduced passes of
+the light-direction probe (:func:`models.runtime.probe_shape`).
 
 Columns: **warm**: in process, the model loaded once, median of the runs after one warm-up
 (decode to EXR, and without the EXR write), with the geometry ``polrig infer`` uses without a
@@ -20,7 +24,9 @@ infer ...`` in a fresh process, what a user types), wall-clock median, with the 
 resident memory (``wait4`` rusage). Rounds interleave the cases (warm and cold alternate) so a
 busy machine's load spreads over all of them; the table says how many rounds. ``--anatomy``
 also times, in fresh processes, where a cold run's time goes: imports, session creation, the
-first and a second network pass at the full-sensor mono size. The device each ran on (the
+first and a second network pass at the full-sensor mono size; and the one-shot CLI's own steps
+for the full colour sensor at full resolution (its functions wrapped where they run: decode,
+session, reconstruction, EXR, the previews' S0 SNR and PNGs, the rest). The device each ran on (the
 onnxruntime provider) is printed with the table.
 
 Usage: ``python benchmarks/bench_single_shot.py [--rounds N] [--threads T] [--out FILE] [--anatomy]``
@@ -70,9 +76,12 @@ CASES = (
     ("full sensor colour superpixel (612x512)", FULL, COLOUR, []),
     ("full sensor colour full resolution (2448x2048)", FULL, COLOUR, ["--resolution", "full"]),
     ("full sensor mono superpixel (1224x1024)", FULL, MONO, []),
+    ("full sensor colour superpixel, network binning 2", FULL, COLOUR, ["--network-binning", "2"]),
+    ("full sensor colour full resolution, network binning 2", FULL, COLOUR,
+     ["--resolution", "full", "--network-binning", "2"]),
 )
 #: Issue 22's CPU targets (ms, MB): warm/cold totals and the full-sensor peak.
-TARGETS_MS = {CASES[0][0]: 150, CASES[3][0]: 300, CASES[4][0]: 3000}
+TARGETS_MS = {CASES[0][0]: 150, CASES[3][0]: 300, CASES[4][0]: 3000, CASES[6][0]: 300, CASES[7][0]: 3000}
 PEAK_TARGET_MB = 2048
 
 
@@ -105,7 +114,8 @@ def _options(argv: list[str]) -> dict:
     opts = dict(zip(argv[::2], argv[1::2]))
     resolution = opts.get("--resolution", "superpixel")
     method = opts.get("--demosaic", "bilinear" if resolution == "full" else "superpixel")
-    return {"resolution": resolution, "demosaic_method": method}
+    return {"resolution": resolution, "demosaic_method": method,
+            "network_binning": int(opts.get("--network-binning", 1))}
 
 
 def warm_once(src: pathlib.Path, argv: list[str], model, out: pathlib.Path) -> dict:
@@ -118,7 +128,9 @@ def warm_once(src: pathlib.Path, argv: list[str], model, out: pathlib.Path) -> d
     t2 = time.perf_counter()
     write_result_exr(out, mueller, aux)
     t3 = time.perf_counter()
-    return {**{k: v for k, v in aux["timings_s"].items()}, "decode": t1 - t0, "compute": t2 - t1, "exr": t3 - t2,
+    lift = aux["timings_s"].get("full_resolution", 0.0) + aux["timings_s"].get("binning_lift", 0.0)
+    return {**{k: v for k, v in aux["timings_s"].items()}, "lift": lift, "decode": t1 - t0, "compute": t2 - t1,
+            "exr": t3 - t2,
             "total": t3 - t0, "cpu": _cpu_s() - c0, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}"}
 
 
@@ -132,7 +144,7 @@ def _rig_geometry(frame, options: dict) -> dict:
 
     geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
     grid = "superpixel" if options["resolution"] == "full" else options["demosaic_method"]
-    return processing.single_shot_kwargs(geometry, frame, grid)
+    return processing.single_shot_kwargs(geometry, frame, grid)  # on the analyzer grid (infer_frame bins them)
 
 
 def _cpu_s() -> float:
@@ -230,6 +242,55 @@ def anatomy(rounds: int, threads: int | None) -> dict[str, float]:
     return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
 
 
+#: The one-shot CLI in a fresh process with its steps timed where they run (the CLI's own
+#: functions wrapped, nothing re-implemented): CPU seconds (all threads) and wall per step.
+COLD_STEPS = """
+import json, sys, time
+w0, c0 = time.perf_counter(), time.process_time()
+steps = {}
+def timed(owner, name, label):
+    fn = getattr(owner, name)
+    def wrapper(*a, **k):
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            return fn(*a, **k)
+        finally:
+            prev = steps.get(label, (0.0, 0.0))
+            steps[label] = (prev[0] + time.process_time() - c, prev[1] + time.perf_counter() - w)
+    setattr(owner, name, wrapper)
+import numpy, onnxruntime
+steps["import numpy+onnxruntime"] = (time.process_time() - c0, time.perf_counter() - w0)
+import models.runtime as rt, polrig.preview as pv, polrig.rawio as rio, polrig.cli as cli
+timed(rt.SingleShotModel, "load", "session creation")
+timed(rio, "read_raw", "decode")
+timed(rt, "infer_frame", "reconstruction")
+timed(rt, "write_result_exr", "EXR")
+timed(pv, "s0_snr", "previews: S0 SNR")
+timed(pv, "write_result_previews", "previews: PNGs")
+cli.main(sys.argv[1:])
+total = (time.process_time() - c0, time.perf_counter() - w0)
+steps["rest (imports, parser, checks)"] = tuple(t - sum(v[i] for v in steps.values()) for i, t in enumerate(total))
+steps["total"] = total
+print(json.dumps(steps))
+"""
+
+
+def cold_steps(src: pathlib.Path, argv: list[str], out: pathlib.Path, rounds: int) -> dict[str, tuple[float, float]]:
+    """Medians over ``rounds`` fresh processes of :data:`COLD_STEPS`: step -> (CPU s, wall s)."""
+    import json
+    import subprocess
+
+    rows = []
+    for _ in range(rounds):
+        cmd = [sys.executable, "-c", COLD_STEPS, "infer", str(src), "--state-deg", "0", "--saturation-dn", "4095",
+               "--out", str(out), *argv]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=_child_env(), cwd=REPO)
+        if proc.returncode:
+            raise RuntimeError(f"cold steps failed: {proc.stderr.strip()[-300:]}")
+        rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    return {k: tuple(statistics.median(r[k][i] for r in rows) for i in range(2)) for k in rows[0]}
+
+
 def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> tuple[str, dict]:
     """The cases table (module docstring) as Markdown, and the measurements it was made from."""
     import os
@@ -254,9 +315,12 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
                 print(f"round {r + 1}/{rounds} {label}: warm {1e3 * warm[label][-1]['total']:.0f} ms, "
                       f"cold {1e3 * cold[label][-1]['wall']:.0f} ms, {cold[label][-1]['peak_mb']:.0f} MB", flush=True)
         anat = anatomy(rounds, threads) if with_anatomy else None
+        label, shape, layout, argv = CASES[4]  # the full colour sensor at full resolution
+        steps = cold_steps(raws[(shape, layout)], argv, tmp / "steps.exr", rounds) if with_anatomy else None
     raw = {"provider": model.provider, "onnxruntime": __import__("onnxruntime").__version__,
            "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
-           "warm": warm, "cold": cold, "anatomy": anat, "load_average": [load_start, os.getloadavg()[0]]}
+           "warm": warm, "cold": cold, "anatomy": anat, "cold_steps": steps,
+           "cold_steps_case": CASES[4][0] if steps else None, "load_average": [load_start, os.getloadavg()[0]]}
     return render(raw), raw
 
 
@@ -271,7 +335,7 @@ def render(raw: dict) -> str:
              f"waiting)."
              + (" Load average (1 min) at the start and the end: {:.1f}, {:.1f} (the machine's other jobs: times grow "
                 "with it).".format(*raw["load_average"]) if raw.get("load_average") else ""), "",
-             "| case | output | warm total | warm without EXR | networks | full-res lift | EXR | warm CPU time | "
+             "| case | output | warm total | warm without EXR | networks | lifts | EXR | warm CPU time | "
              "**cold (CLI)** | cold CPU time | cold peak MB | target |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, w in raw["warm"].items():
         c = raw["cold"][label]
@@ -279,7 +343,7 @@ def render(raw: dict) -> str:
         goals = ([f"<= {target} ms"] if target else []) + (["<= 2048 MB"] if label.startswith("full sensor") else [])
         lines.append(f"| {label} | {w[0]['net']} | {1e3 * med(w, 'total'):.0f} | "
                      f"{1e3 * (med(w, 'total') - med(w, 'exr')):.0f} | {1e3 * med(w, 'network'):.0f} | "
-                     f"{1e3 * med(w, 'full_resolution'):.0f} | {1e3 * med(w, 'exr'):.0f} | {1e3 * med(w, 'cpu'):.0f} | "
+                     f"{1e3 * med(w, 'lift'):.0f} | {1e3 * med(w, 'exr'):.0f} | {1e3 * med(w, 'cpu'):.0f} | "
                      f"**{1e3 * med(c, 'wall'):.0f}** | {1e3 * med(c, 'cpu'):.0f} | {med(c, 'peak_mb'):.0f} | {'; '.join(goals)} |")
     anat = raw.get("anatomy")
     if anat:
@@ -287,6 +351,12 @@ def render(raw: dict) -> str:
                   "on 1224x1024x3, the mono full sensor's grid):", "", "| step | ms |", "|---|---|"]
         lines += [f"| {k} | {1e3 * v:.0f} |" for k, v in anat.items() if k != "peak_mb"]
         lines.append(f"| peak memory | {anat['peak_mb']:.0f} MB |")
+    steps = raw.get("cold_steps")
+    if steps:
+        lines += ["", f"Where the one-shot CLI's time goes for the {raw['cold_steps_case']} (fresh processes, medians of "
+                  f"{raw['rounds']}; the CLI's own functions timed where they run):", "",
+                  "| step | CPU ms | wall ms |", "|---|---|---|"]
+        lines += [f"| {k} | {1e3 * v[0]:.0f} | {1e3 * v[1]:.0f} |" for k, v in steps.items()]
     return "\n".join(lines)
 
 

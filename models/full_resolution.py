@@ -24,6 +24,11 @@ accuracy (``benchmarks/results/single_shot_speed.md``, ``single_shot_full_resolu
 pixels (the U-Net's receptive field covers a quarter as much of it). That route stays
 available as ``polrig infer --demosaic bilinear`` (networks on the full demosaic, resized
 to ``max_pixels``).
+
+The same lift, with period 2, is the faster **network binning** mode (:func:`reconstruct_binned`,
+``polrig infer --network-binning 2``): the networks on the analyzer grid binned 2x2 and their
+answer lifted back to that grid with its own measured detail (accuracy and speed:
+``models/MODEL_CARD.md``, "Speed, warm and cold").
 """
 
 from __future__ import annotations
@@ -33,6 +38,44 @@ import numpy as np
 #: Resolutions of :func:`models.runtime.infer_frame`: ``superpixel`` (the networks' grid) or
 #: ``full`` (the raw frame's, this module).
 RESOLUTIONS = ("superpixel", "full")
+#: Network binnings of :func:`models.runtime.infer_frame` (``polrig infer --network-binning``):
+#: 1 runs the networks on the analyzer grid itself (default); 2 on that grid binned 2x2, with
+#: the answer lifted back to the analyzer grid by :func:`lift` (a quarter of the network work;
+#: its accuracy is in ``models/MODEL_CARD.md``, "Speed, warm and cold").
+BINNINGS = (1, 2)
+
+
+def check_binning(binning) -> int:
+    """``binning`` as an int when it is one of :data:`BINNINGS`, else ValueError (one line)."""
+    if isinstance(binning, bool) or not isinstance(binning, (int, np.integer)) or int(binning) not in BINNINGS:
+        raise ValueError(f"network binning must be one of {', '.join(map(str, BINNINGS))}, got {binning!r}")
+    return int(binning)
+
+
+def bin_cells(img: np.ndarray, factor: int) -> np.ndarray:
+    """Mean over ``factor x factor`` cells of planes ``(..., h, w)`` -> ``(..., h // factor,
+    w // factor)`` float32 (a partial last row or column of cells is dropped; :func:`lift`
+    repeats the edge there). Cell ``i`` covers ``[factor i, factor i + factor)``, its centre at
+    ``factor i + (factor - 1) / 2``, where :func:`upsample` puts it back."""
+    f = int(factor)
+    x = np.asarray(img, np.float32)
+    h, w = x.shape[-2] // f, x.shape[-1] // f
+    out = np.zeros(x.shape[:-2] + (h, w), np.float32)
+    for i in range(f):  # f^2 strided adds: a tenth of np.mean over reshaped cell axes here
+        for j in range(f):
+            out += x[..., i: h * f: f, j: w * f: f]
+    out *= np.float32(1.0 / (f * f))
+    return out
+
+
+def binned_intrinsics(intrinsics, factor: int):
+    """Pinhole ``(fx, fy, cx, cy)`` of a grid binned by ``factor`` (:func:`bin_cells`), or None
+    for None (the runtime's default camera, which scales with the grid)."""
+    if intrinsics is None:
+        return None
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    half = 0.5 * (factor - 1)
+    return fx / factor, fy / factor, (cx - half) / factor, (cy - half) / factor
 
 
 def upsample(img: np.ndarray, period: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
@@ -61,6 +104,33 @@ def _upsample_into(plane: np.ndarray, period: tuple[int, int], dst: np.ndarray) 
         dst[: h * ph, w * pw:] = dst[: h * ph, w * pw - 1: w * pw]
     if hh > h * ph:
         dst[h * ph:] = dst[h * ph - 1: h * ph]
+
+
+def reconstruct_binned(model, analyzer: np.ndarray, s_in, binning: int, *, mask: np.ndarray | None = None,
+                       intrinsics=None, stokes: np.ndarray | None = None, **kwargs) -> tuple[np.ndarray, dict]:
+    """The faster mode (:data:`BINNINGS`): ``model.reconstruct`` (a
+    :class:`models.runtime.SingleShotModel`) on analyzer images ``(C, 4, h, w)`` (DN) binned
+    ``binning x binning`` (:func:`bin_cells`), lifted back to ``(h, w)`` with the grid's own
+    measured detail (:func:`lift`, period ``binning``). ``mask`` ``(h, w)`` is binned (object
+    where more than half the cell is), ``intrinsics`` (of the ``(h, w)`` grid) rescaled;
+    ``stokes`` ``(C, 3, h, w)``: the analyzers' Stokes if the caller has them; the other keyword
+    arguments go to ``reconstruct`` unchanged. ``aux["mask"]`` is the lifted mask ``(h, w)``;
+    ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the binned grid under
+    ``aux["network_grid"]``; ``timings_s`` gains ``binning_lift``."""
+    import time
+
+    from polrig.stokes import stokes_from_analyzers
+
+    binning = check_binning(binning)
+    a = bin_cells(analyzer, binning)
+    m = None if mask is None else bin_cells(np.asarray(mask, np.float32), binning) > 0.5
+    mueller, aux = model.reconstruct(a, s_in, mask=m, intrinsics=binned_intrinsics(intrinsics, binning), **kwargs)
+    t0 = time.perf_counter()
+    aux["network_grid"] = {k: aux.pop(k) for k in ("normal", "kd", "wi", "mueller_init") if k in aux}
+    fine = stokes_from_analyzers(analyzer) if stokes is None else stokes
+    mueller, aux["mask"] = lift(mueller, aux["mask"], stokes_from_analyzers(a), fine, s_in, (binning, binning))
+    aux["timings_s"]["binning_lift"] = time.perf_counter() - t0
+    return mueller, aux
 
 
 def lift(mueller: np.ndarray, mask: np.ndarray, stokes: np.ndarray, stokes_full: np.ndarray, s_in,

@@ -134,11 +134,16 @@ def diverging(x: np.ndarray, *, vmax: float | None = None,
     if vmax is None:
         vmax = float(np.abs(v[finite]).max()) if finite.any() else 1.0
     vmax = vmax if vmax > 0 else 1.0
-    t = (np.clip(np.where(finite, v, 0) / vmax, -1, 1) + 1) * 0.5 * (len(_DIVERGING) - 1)
-    i = np.minimum(np.floor(t).astype(np.int64), len(_DIVERGING) - 2)
-    f = (t - i)[..., None]
-    rgb = _DIVERGING[i] * (1 - f) + _DIVERGING[i + 1] * f
-    return _mask_black(np.round(rgb).astype(np.uint8), valid)
+    out = np.empty(v.shape + (3,), np.uint8)
+    step = max(1, 2 ** 18 // max(1, v.shape[-1])) if v.ndim == 2 else 0
+    # in row blocks of (H, W) images: a full-sensor tile's intermediates would be ~400 MB at once
+    blocks = [np.s_[y0:y0 + step] for y0 in range(0, v.shape[0], step)] if step else [Ellipsis]
+    for b in blocks:
+        t = (np.clip(np.where(finite[b], v[b], 0) / vmax, -1, 1) + 1) * 0.5 * (len(_DIVERGING) - 1)
+        i = np.minimum(np.floor(t).astype(np.int64), len(_DIVERGING) - 2)
+        f = (t - i)[..., None]
+        out[b] = np.round(_DIVERGING[i] * (1 - f) + _DIVERGING[i + 1] * f)
+    return _mask_black(out, valid)
 
 
 def _font_scale(height: int) -> float:
@@ -418,11 +423,11 @@ def polarizance(mueller: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(dolp, aolp_deg)`` ``(C, H, W)`` of a Mueller image ``(C, 3, 3, H, W)``: of its first
     column, the Stokes vector it turns unpolarized light into (polarizance,
     ``sqrt(m10^2 + m20^2) / m00`` and ``atan2(m20, m10) / 2`` in [0, 180) degrees)."""
-    m = np.asarray(mueller, np.float64)
+    m = np.asarray(np.asarray(mueller)[:, :, 0], np.float64)  # the first column only: (C, 3, H, W)
     with np.errstate(all="ignore"):
-        d = np.hypot(m[:, 1, 0], m[:, 2, 0]) / m[:, 0, 0]
-        a = np.mod(np.degrees(0.5 * np.arctan2(m[:, 2, 0], m[:, 1, 0])), 180.0)
-    ok = np.isfinite(d) & (m[:, 0, 0] > 0)
+        d = np.hypot(m[:, 1], m[:, 2]) / m[:, 0]
+        a = np.mod(np.degrees(0.5 * np.arctan2(m[:, 2], m[:, 1])), 180.0)
+    ok = np.isfinite(d) & (m[:, 0] > 0)
     return (np.where(ok, np.clip(d, 0, 1), 0).astype(np.float32),
             np.where(ok, a, 0).astype(np.float32))
 
@@ -460,7 +465,7 @@ def write_result_previews(source, out_dir, *, stem: str | None = None,
                           None if snr is None else np.asarray(snr)[ci], min_snr)
     out_dir = pathlib.Path(out_dir)
     grid = mueller_grid(mueller, colour=ci, valid=valid, min_tile_px=PREVIEW_MIN_PX)
-    d, a = polarizance(mueller[[ci]])
+    d, a = polarizance(mueller[ci:ci + 1])
     dolp_img = upscale(dolp_gray(d[0], valid=valid), PREVIEW_MIN_PX)
     aolp_img = upscale(aolp_rgb(a[0], d[0], valid=valid), PREVIEW_MIN_PX)
     images = {f"{stem}_grid.png": grid,

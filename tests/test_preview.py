@@ -49,6 +49,18 @@ def test_diverging_is_blue_white_red():
     assert colorbar(100, width=64).shape == (100, 64, 3)
 
 
+def test_diverging_maps_a_large_image_pixel_by_pixel_across_its_row_blocks():
+    """A full-sensor-sized tile is mapped in row blocks (memory); every row gets the map's own
+    colours: -1 blue end, 0 white centre, +1 red end, NaN masked by ``valid``."""
+    h, w = 700, 2448  # more than two blocks of 2^18 pixels
+    x = np.zeros((h, w), np.float32)
+    x[:, 0], x[:, 1], x[::7, 2] = -1.0, 1.0, np.nan
+    rgb = diverging(x, vmax=1.0, valid=np.isfinite(x))
+    assert rgb.shape == (h, w, 3) and rgb.dtype == np.uint8
+    assert (rgb[:, 0] == [5, 48, 97]).all() and (rgb[:, 1] == [103, 0, 31]).all()
+    assert (rgb[:, 3:] == 247).all() and (rgb[::7, 2] == 0).all() and (rgb[1::7, 2] == 247).all()
+
+
 @pytest.mark.parametrize("shape", [(3, 3, 8, 10), (3, 3, 3, 8, 10)])
 def test_mueller_grid_layout(shape):
     m = np.zeros(shape, np.float32)

@@ -41,6 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output resolution: superpixel (the networks' grid, default) or full (the raw "
                         "frame's: the networks on the superpixel grid plus the measured detail of a "
                         "full-resolution demosaic, models/full_resolution.py)")
+    from models.full_resolution import BINNINGS
+
+    p.add_argument("--network-binning", type=int, choices=BINNINGS, default=1,
+                   help="1 (default): the networks on the analyzer grid; 2: a faster mode, the networks on "
+                        "that grid binned 2x2 (a quarter of the work) and the answer lifted back with the "
+                        "grid's measured detail (models/full_resolution.py; its accuracy in "
+                        "models/MODEL_CARD.md, 'Speed, warm and cold'); no --sigma")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                    help="where the networks run: auto (CUDA when onnxruntime offers it, else the CPU; "
                         "default), cpu, or cuda (refused when unavailable). The provider used is "
@@ -101,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
     if args.resolution == "full" and args.sigma:
         raise ConfigError("--sigma: the uncertainty is calibrated at the networks' (superpixel) resolution "
                           "only; leave out --resolution full or --sigma")
+    if args.network_binning > 1 and args.sigma:
+        raise ConfigError("--sigma: the uncertainty is calibrated on the unbinned analyzer grid only; leave out "
+                          "--network-binning or --sigma")
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
@@ -138,13 +148,14 @@ def run(args: argparse.Namespace) -> int:
     sensor, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
     raw_adc = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
     mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=method,
-                               resolution=args.resolution,
+                               resolution=args.resolution, network_binning=args.network_binning,
                                black_level_dn=black * to_adc, scale=args.scale,
                                saturation_dn=saturation * to_adc,
                                with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
                                          "layout": str(layout), "demosaic": method,
                                          "resolution": args.resolution,
+                                         "network_binning": args.network_binning,
                                          "saturation_dn": saturation, "mirror_average": args.mirror_average,
                                          "units": UNITS, "adc_dn_per_file_dn": to_adc})
     # previews: the measured S0 against its noise sigma decides what is signal
