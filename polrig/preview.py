@@ -432,9 +432,21 @@ def polarizance(mueller: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             np.where(ok, a, 0).astype(np.float32))
 
 
+#: Largest preview tile side, pixels: larger results are previewed every ``k``-th pixel
+#: (:func:`preview_stride`), so a full-sensor preview costs a fraction of a second, not seconds.
+PREVIEW_MAX_PX = 1024
+
+
+def preview_stride(shape: tuple[int, int], max_px: int = PREVIEW_MAX_PX) -> int:
+    """The pixel step ``k`` that brings an ``(H, W)`` image within ``max_px`` on its longer
+    side (nearest-neighbour decimation of the previews; 1 for images already that small)."""
+    return max(1, -(-max(shape) // int(max_px)))
+
+
 def write_result_previews(source, out_dir, *, stem: str | None = None,
                           min_snr: float = DEFAULT_MIN_SNR, flags: np.ndarray | None = None,
-                          snr: np.ndarray | None = None) -> list[pathlib.Path]:
+                          snr: np.ndarray | None = None,
+                          max_px: int = PREVIEW_MAX_PX) -> list[pathlib.Path]:
     """PNG previews next to a Mueller result: ``<stem>_grid.png`` (the 3x3 grid, tiles
     labelled, colour bar), ``<stem>_dolp.png`` and ``<stem>_aolp.png`` (polarizance, with
     their legends). Returns the paths written.
@@ -443,6 +455,8 @@ def write_result_previews(source, out_dir, *, stem: str | None = None,
     :func:`exr_masks`; ``stem`` defaults to the file's), or a Mueller array
     ``(C, 3, 3, H, W)`` with optional ``flags``/``snr`` ``(C, H, W)`` (``stem`` defaults to
     ``"mueller"``). Pixels masked in the green (or only) colour at ``min_snr`` are black.
+    Images larger than ``max_px`` on a side are previewed every :func:`preview_stride`-th
+    pixel (a full-sensor result in a fraction of a second, tiles of at most ``max_px``).
     Files are replaced atomically (:func:`polrig.rawio.atomic_write_bytes`)."""
     from polrig.rawio import atomic_write_bytes
 
@@ -460,6 +474,11 @@ def write_result_previews(source, out_dir, *, stem: str | None = None,
         stem = stem or "mueller"
     if mueller.ndim != 5 or mueller.shape[1:3] != (3, 3):
         raise ValueError(f"expected a (C, 3, 3, H, W) Mueller image, got {mueller.shape}")
+    k = preview_stride(mueller.shape[-2:], max_px)
+    if k > 1:
+        mueller = mueller[..., ::k, ::k]
+        flags = None if flags is None else np.asarray(flags)[..., ::k, ::k]
+        snr = None if snr is None else np.asarray(snr)[..., ::k, ::k]
     ci = 0 if mueller.shape[0] == 1 else 1  # green: the best-sampled Bayer colour
     valid = display_valid(None if flags is None else np.asarray(flags)[ci],
                           None if snr is None else np.asarray(snr)[ci], min_snr)

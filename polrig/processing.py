@@ -97,9 +97,6 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
 #: Roles of a result's PNG previews (:func:`polrig.preview.write_result_previews`), by the
 #: suffix of their file name (``mueller_grid.png``...).
 PREVIEW_ROLES = {"preview_grid": "grid", "preview_dolp": "dolp", "preview_aolp": "aolp"}
-#: Largest preview tile side, pixels: larger results are previewed every ``k``-th pixel
-#: (:func:`preview_stride`), so a full-sensor preview costs a fraction of a second, not seconds.
-PREVIEW_MAX_PX = 1024
 #: The channels of the manifest's ``uncertainty`` view, per plane group.
 _UNCERTAINTY_CHANNELS = {"sigma": "sigma.M{row}{col}.{colour}",
                          "sigma_noise": "sigma_noise.M{row}{col}.{colour}",
@@ -154,7 +151,7 @@ def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *
     """Write ``out``'s ``mueller.exr`` (the planes and compression of ``exr``) and its PNG
     previews next to it (``mueller_grid.png``, ``mueller_dolp.png``, ``mueller_aolp.png``:
     :func:`polrig.preview.write_result_previews`, from the arrays in memory, every
-    :func:`preview_stride`-th pixel beyond :data:`PREVIEW_MAX_PX`) under ``root``,
+    :func:`polrig.preview.preview_stride`-th pixel of a large result) under ``root``,
     each atomically (temporary name in its folder, then renamed); return their records by
     role (``mueller`` and :data:`PREVIEW_ROLES`: ``path``, ``sha256`` hashed from the file
     as it lies on disk, streamed, ``bytes``). The file's bytes are never held in memory.
@@ -176,9 +173,7 @@ def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *
         write_mueller_exr(path, res.mueller,
                           extra=result_planes(res, planes=exr.planes, uncertainty=exr.uncertainty),
                           metadata=out.metadata, compression=exr.compression)
-        k = preview_stride(res.mueller.shape[-2:])
-        made = write_result_previews(res.mueller[..., ::k, ::k], path.parent, stem=path.stem,
-                                     flags=res.mask[..., ::k, ::k])
+        made = write_result_previews(res.mueller, path.parent, stem=path.stem, flags=res.mask)
         if sorted(made) != sorted(previews.values()):  # pragma: no cover - preview's contract
             raise RuntimeError(f"previews {made} are not the expected {previews}")
         return {role: file_record(root, (rel / p.name).as_posix())
@@ -210,12 +205,6 @@ def write_and_score(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
     except BaseException:
         remove_files(pathlib.Path(root) / r["path"] for r in records.values())
         raise
-
-
-def preview_stride(shape: tuple[int, int], max_px: int = PREVIEW_MAX_PX) -> int:
-    """The pixel step ``k`` that brings an ``(H, W)`` image within ``max_px`` on its longer
-    side (nearest-neighbour decimation of the previews; 1 for images already that small)."""
-    return max(1, math.ceil(max(shape) / max_px))
 
 
 def remove_files(paths) -> None:

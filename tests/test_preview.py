@@ -159,3 +159,24 @@ def test_polarizance_and_result_previews(tmp_path):
     dolp = cv2.imread(str(tmp_path / "r_dolp.png"))
     assert dolp.shape[0] == 256 and dolp.shape[1] > 256  # enlarged 16x, legend on the right
     assert (dolp[:, 128:256] == 0).all() and (dolp[:, :128] > 100).all()
+
+
+def test_large_results_are_previewed_every_kth_pixel(tmp_path):
+    """A result larger than ``max_px`` is previewed from every k-th pixel, exactly as the
+    decimated arrays are (the same PNG bytes), flags and snr decimated with it."""
+    from polrig.preview import preview_stride, write_result_previews
+
+    rng = np.random.default_rng(5)
+    m = rng.uniform(-1, 1, (3, 3, 3, 250, 180)).astype(np.float32)
+    m[:, 0, 0] = rng.uniform(0.5, 1.0, (3, 250, 180))
+    flags = (rng.random((3, 250, 180)) < 0.1).astype(np.uint8)
+    snr = rng.uniform(0, 50, (3, 250, 180)).astype(np.float32)
+    assert preview_stride((250, 180), 100) == 3 and preview_stride((100, 100), 100) == 1
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    big = write_result_previews(m, tmp_path / "a", flags=flags, snr=snr, max_px=100)
+    small = write_result_previews(m[..., ::3, ::3], tmp_path / "b", flags=flags[..., ::3, ::3],
+                                  snr=snr[..., ::3, ::3], max_px=100)
+    assert [p.name for p in big] == [p.name for p in small]
+    for p, q in zip(big, small):
+        assert p.read_bytes() == q.read_bytes()
