@@ -188,8 +188,14 @@ def test_cli_flags_end_to_end(tmp_path, capsys):
     assert "materials: conductor there, baek asked" in capsys.readouterr().err
 
 
-def test_sim_option_indirect_samples_reaches_the_world():
+def test_sim_option_indirect_samples_reaches_the_world(tmp_path):
+    from polrig.rig import open_rig
+
     assert parse_options({})["indirect_samples"] == 0
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[sim]\nscene = "crater"\nsize = "32x32"\nindirect_samples = 2\nclock_speed = inf\n')
+    with open_rig(cfg) as rig:
+        assert rig.truth.rig_parameters()["indirect_samples"] == 2
     rig = create_sim_rig({"scene": "crater", "size": (32, 32), "indirect_samples": 3, "open": False,
                           "clock_speed": float("inf")})
     assert rig.world.indirect_samples == 3
