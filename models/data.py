@@ -6,7 +6,8 @@ analyzer images, ``mask`` (N,H,W), ``normal``/``kd``/``wi``/``wo`` (N,3,H,W) cam
 ``alpha`` (N,), ``s_in`` (N,3) normalised incident Stokes, ``mueller`` (N,C,3,3,H,W) on the
 analyzer's scale, ``family`` (N,), ``scale`` (N,) (DN per normalised unit), ``lit`` (N,H,W)
 object pixels that face the light and are not shadowed, ``eta`` (N,) the material's index of
-refraction (both optional). The stage zero
+refraction, ``material_kind`` (N,) the index of the material kind in the manifest's
+``materials.kinds`` (all optional). The stage zero
 axis in the camera frame comes from ``stage_zero_axis`` (N,3) in the shards, or from the
 manifest (one axis for the whole set: ``frames.stage_zero_axis_camera`` in the simulator's
 manifest, :mod:`sim.dataset`).
@@ -27,7 +28,7 @@ from polrig.errors import ConfigError, FormatError
 
 #: Arrays every shard must hold.
 REQUIRED = ("analyzer", "mask", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller")
-OPTIONAL = ("family", "scale", "stage_zero_axis", "lit", "eta")
+OPTIONAL = ("family", "scale", "stage_zero_axis", "lit", "eta", "material_kind")
 
 
 @dataclasses.dataclass
@@ -175,11 +176,20 @@ IDENTITY_KEYS = ("format", "version", "count", "width", "height", "seed", "holdo
 
 
 def dataset_identity(manifest: dict) -> dict:
-    """What identifies a dataset: :data:`IDENTITY_KEYS` of its manifest and its stage zero axis
-    rule (``frames.stage_zero_axes``)."""
+    """What identifies a dataset: :data:`IDENTITY_KEYS` of its manifest, its stage zero axis
+    rule (``frames.stage_zero_axes``) and, where not the default, its material mix
+    (``materials.mix`` other than ``"baek"``) and interreflections (``transport.indirect_samples``
+    > 0); the identity of a set made before those existed is unchanged."""
     ident = {k: manifest.get(k) for k in IDENTITY_KEYS}
     frames = manifest.get("frames")
     ident["stage_zero_axes"] = frames.get("stage_zero_axes") if isinstance(frames, dict) else None
+    mats, trans = manifest.get("materials"), manifest.get("transport")
+    mix = mats.get("mix", "baek") if isinstance(mats, dict) else "baek"
+    indirect = trans.get("indirect_samples", 0) if isinstance(trans, dict) else 0
+    if mix != "baek":
+        ident["material_mix"] = mix
+    if indirect:
+        ident["indirect_samples"] = indirect
     return ident
 
 

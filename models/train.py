@@ -630,7 +630,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                           f"on them would be scored on its own training shapes: train on a set made without --holdout")
     identity = dataset_identity(manifest)
     if state is not None and state.get("dataset") is not None and state["dataset"] != identity:
-        diff = [k for k in identity if identity[k] != state["dataset"].get(k)]
+        diff = [k for k in {**state["dataset"], **identity} if identity.get(k) != state["dataset"].get(k)]
         raise ConfigError(f"--resume: {data_dir} is not the dataset the run in {out} trains on "
                           f"({', '.join(diff)} differ; it trained on {state.get('data', 'another folder')})")
     ds = load_dataset(data_dir, config.limit)

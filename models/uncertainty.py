@@ -58,6 +58,10 @@ COVERAGE = 0.9545
 P_MIN = 0.05
 #: Scale floor, as a fraction of the image's 99th-percentile ``|m00|``.
 SCALE_FLOOR = 0.01
+#: Quantile of the calibration sets' misfit ``r`` beyond which a pixel is outside the
+#: calibration (:meth:`UncertaintyModel.beyond_calibration`); a key of
+#: ``calibration["misfit_quantiles"]``.
+MISFIT_LIMIT_QUANTILE = "0.99"
 #: Features of the error model (:func:`feature_rows`).
 N_FEATURES = 4
 FILE_NAME = "uncertainty.json"
@@ -105,6 +109,16 @@ def misfit(mueller: np.ndarray, s_in, stokes: np.ndarray, scale: np.ndarray) -> 
     return np.linalg.norm(rendered - stokes, axis=1) / (np.linalg.norm(s) * scale)
 
 
+def _features_and_misfit(m: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray):
+    """``(R, p, scale, q, r)`` of a Mueller image ``m`` ``(C, 3, 3, H, W)`` (float64) under
+    ``s_in`` with the measured Stokes images ``stokes`` ``(C, 3, H, W)``."""
+    if np.shape(stokes) != m.shape[:1] + (3,) + m.shape[-2:]:
+        raise ValueError(f"stokes must be {m.shape[:1] + (3,) + m.shape[-2:]}, got {np.shape(stokes)}")
+    rot, p = observed_frame_rotation(s_in)
+    scale, q = features(to_observed_frame(m, rot), object_mask)
+    return rot, p, scale, q, misfit(m, s_in, np.asarray(stokes, np.float64), scale)
+
+
 def feature_rows(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Feature rows ``[1, min(q,1), max(q - 1, 0), r]`` -> ``(..., N_FEATURES)``."""
     return np.stack([np.ones_like(q), np.minimum(q, 1.0), np.maximum(q - 1.0, 0.0), r], -1)
@@ -130,12 +144,7 @@ class UncertaintyModel:
         Mueller image). Non-finite where ``stokes`` is. ``disagreement`` (like ``mueller``): for
         a mirror-averaged image, ``|M_plain - M_mirror| / 2`` (module docstring)."""
         m = np.asarray(mueller, np.float64)
-        if np.shape(stokes) != m.shape[:1] + (3,) + m.shape[-2:]:
-            raise ValueError(f"stokes must be {m.shape[:1] + (3,) + m.shape[-2:]}, got {np.shape(stokes)}")
-        rot, p = observed_frame_rotation(s_in)
-        m_obs = to_observed_frame(m, rot)
-        scale, q = features(m_obs, object_mask)
-        r = misfit(m, s_in, np.asarray(stokes, np.float64), scale)
+        rot, p, scale, q, r = _features_and_misfit(m, s_in, object_mask, stokes)
         sig_obs = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", feature_rows(q, r), self.coefficients)
         if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
             sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
@@ -145,6 +154,32 @@ class UncertaintyModel:
                 raise ValueError(f"disagreement must be {m.shape}, got {np.shape(disagreement)}")
             var = var + (self.mirror_k * np.asarray(disagreement, np.float64)) ** 2
         return np.where(np.asarray(object_mask, bool), np.sqrt(var), 0.0).astype(np.float32)
+
+    @property
+    def misfit_limit(self) -> float | None:
+        """The :data:`MISFIT_LIMIT_QUANTILE` quantile of the misfit ``r`` over the calibration
+        sets' pixels (``calibration["misfit_quantiles"]``, recorded by
+        :mod:`models.uncertainty_fit`), or None where the calibration does not record it."""
+        q = self.calibration.get("misfit_quantiles")
+        try:
+            value = float(q[MISFIT_LIMIT_QUANTILE])
+        except (TypeError, KeyError, ValueError):
+            return None
+        return value if np.isfinite(value) and value > 0 else None
+
+    def beyond_calibration(self, mueller: np.ndarray, s_in, object_mask: np.ndarray,
+                           stokes: np.ndarray) -> np.ndarray | None:
+        """``(C, H, W)`` bool: object pixels whose misfit ``r`` exceeds :attr:`misfit_limit`
+        (arguments as :meth:`sigma`), None where the calibration records no limit. Such a
+        capture is outside what the sigma was calibrated on: on conductors, which the
+        networks never saw, 41 % of the pixels are, against 1 % by construction on the
+        calibration sets (``models/MODEL_CARD.md``, "Mismatched materials and
+        interreflections"), and the sigma of some elements covers 86 % instead of 95 %."""
+        limit = self.misfit_limit
+        if limit is None:
+            return None
+        r = _features_and_misfit(np.asarray(mueller, np.float64), s_in, object_mask, stokes)[4]
+        return np.asarray(object_mask, bool)[None] & ~(r <= limit)  # non-finite r counts as beyond
 
     def to_json(self) -> dict:
         return {"format": FORMAT, "version": VERSION, "graph_sha256": self.graph_sha256,

@@ -143,6 +143,23 @@ def _pooled(model: UncertaintyModel, samples: Iterable[Sample], mirror_term: boo
     return np.concatenate(errs), np.concatenate(sigs), np.concatenate(dis)
 
 
+#: Quantiles of the misfit ``r`` recorded with a calibration (``calibration["misfit_quantiles"]``;
+#: :data:`models.uncertainty.MISFIT_LIMIT_QUANTILE` is the one that flags a pixel).
+MISFIT_QUANTILES = (0.5, 0.9, 0.99)
+
+
+def misfit_values(samples: Iterable[Sample]) -> np.ndarray:
+    """The misfit ``r`` of every unclipped object pixel and colour of ``samples`` ``(N,)``
+    (finite values only; :func:`models.uncertainty.misfit`)."""
+    return _observed_errors(samples)[2]
+
+
+def misfit_quantiles(samples: Iterable[Sample]) -> dict[str, float]:
+    """``{str(quantile): r}`` over :data:`MISFIT_QUANTILES`."""
+    r = misfit_values(samples)
+    return {str(q): float(np.quantile(r, q)) for q in MISFIT_QUANTILES}
+
+
 def calibrate_mirror(model: UncertaintyModel, samples: Iterable[Sample]) -> float:
     """``k`` of ``sigma_avg^2 = sigma^2 + (k h)^2`` (module docstring): the smallest ``k`` for
     which ``COVERAGE`` of the :data:`MIRROR_TOP` elements with the largest ``h / sigma`` lie
@@ -252,6 +269,7 @@ def _main(args: argparse.Namespace) -> int:
         model = UncertaintyModel(coef, graph_sha256(wd / "single_shot.onnx"),
                                  dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)))
         model.calibration["coverage"] = coverage(model, cal)
+        model.calibration["misfit_quantiles"] = misfit_quantiles(cal)
         mirrored = [s for d in args.data for s in dataset_samples(d, net, mirror_average=True)]
         model.mirror_k = calibrate_mirror(model, mirrored)
         model.calibration["coverage_mirror_averaged"] = coverage(model, mirrored)

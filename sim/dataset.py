@@ -7,7 +7,10 @@ random generator), so shards can be made in any order, a crashed run resumes by 
 shards already complete, and every shard is written atomically (temporary file + rename).
 
 Each sample is one single-shot capture: a random scene (:func:`sim.scene.random_scene`: shape
-family, one material, light position and colour, turntable pose), one random polarizer state,
+family, one material drawn from a material mix (:data:`sim.materials.MATERIAL_MIXES`, default
+``"baek"``: the pBRDF family of the networks' initialization), light position and colour,
+turntable pose), optionally one bounce of interreflected light (``indirect_samples``), one
+random polarizer state,
 the full-resolution ideal-analyzer intensities per colour (0/45/90/135 deg) at ``H x W``
 with the sensor noise model (:class:`polrig.noise.SensorModel`) applied independently to every
 value, black level and mean dark signal removed, divided by a per-sample ``scale``. The ground
@@ -30,6 +33,7 @@ from polrig.noise import SensorModel
 from polrig.argcheck import check_output_folder
 from polrig.rawio import atomic_write_bytes, atomic_write_text
 from sim.generator import Generator
+from sim.materials import MATERIAL_KINDS, MATERIAL_MIXES, Material, SurfaceMaterial
 from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
 from sim.render import render
 from sim.scene import (FAMILIES, HOLDOUT_FAMILIES, RANDOM_FOCAL_PER_PX, Scene, default_camera,
@@ -65,6 +69,21 @@ SHARD_ARRAYS: dict[str, tuple[str, str]] = {
     "stage_deg": ("(N,)", "float32"),
     "lit": ("(N, H, W)", "uint8"),
     "stage_zero_axis": ("(N, 3)", "float32"),
+    "material_kind": ("(N,)", "int16"),
+}
+
+#: What the analytic model's best fit is given for a material outside the Baek family (the
+#: ``alpha``, ``eta`` and ``kd`` arrays of a sample; :func:`fit_parameters`), recorded in the
+#: manifest.
+GROUND_TRUTH_PARAMETERS = {
+    "kd": "per pixel: the diffuse albedo of the base (textures applied); 0 for a conductor",
+    "alpha": "isotropic equivalent: the median over the object pixels of the textured roughness, "
+             "sqrt(alpha_u alpha_v) for anisotropic roughness (GGX or Beckmann alike)",
+    "eta": "a real index: the base's eta (film, depolarizing, anisotropic; the median over the object "
+           "pixels where an eta texture varies it), the green channel (532 nm) for a dispersive "
+           "dielectric, and for a conductor the real dielectric index with the conductor's "
+           "normal-incidence reflectance in green, (1 + sqrt(R0)) / (1 - sqrt(R0)), "
+           "R0 = |(n - 1) / (n + 1)|^2 of the complex n at 532 nm",
 }
 
 #: How the polarizer stage zero axis of a sample is chosen (``stage_zero_axes``):
@@ -116,25 +135,99 @@ def sample_stage_zero_axis(scene: Scene, rng: np.random.Generator) -> np.ndarray
     return np.cos(t) * x + np.sin(t) * y
 
 
+def check_transport(material_mix: str, indirect_samples: int) -> None:
+    """:class:`ConfigError` (one line) unless ``material_mix`` names a mix of
+    :data:`sim.materials.MATERIAL_MIXES` and ``indirect_samples`` is an integer >= 0."""
+    if material_mix not in MATERIAL_MIXES:
+        raise ConfigError(f"material mix must be one of {', '.join(MATERIAL_MIXES)}, got {material_mix!r}")
+    if isinstance(indirect_samples, bool) or not isinstance(indirect_samples, (int, np.integer)) \
+            or indirect_samples < 0:
+        raise ConfigError(f"indirect_samples must be an integer >= 0, got {indirect_samples!r}")
+
+
+def material_kind(material: Material | SurfaceMaterial) -> str:
+    """The :data:`sim.materials.MATERIAL_KINDS` entry a material of a mix was drawn as
+    (:func:`sim.materials.random_surface_material` makes each kind distinguishable: a
+    conductor has a complex index, a film a retardance, a depolarizing layer a polarized
+    fraction below 1, anisotropic roughness two roughnesses, a dispersive dielectric an index
+    varying across the channels)."""
+    if isinstance(material, Material):
+        return "baek"
+    if material.conductor:
+        return "conductor"
+    if material.retardance_rad > 0:
+        return "film"
+    if material.polarized_fraction < 1:
+        return "depolarizing"
+    if material.alpha_v is not None:
+        return "anisotropic"
+    return "dispersive"
+
+
+def effective_eta(eta: complex) -> float:
+    """A real dielectric index with the normal-incidence reflectance of the (complex) index
+    ``eta``: ``(1 + sqrt(R0)) / (1 - sqrt(R0))``, ``R0 = |(eta - 1) / (eta + 1)|^2``; ``eta``
+    itself for a real index > 1."""
+    r = abs((complex(eta) - 1.0) / (complex(eta) + 1.0))
+    return float((1.0 + r) / (1.0 - r))
+
+
+def fit_parameters(material: SurfaceMaterial, res, mask: np.ndarray) -> tuple[float, float]:
+    """``(alpha, eta)`` of a :class:`SurfaceMaterial` sample for the image-wide parameters the
+    analytic model takes (:data:`GROUND_TRUTH_PARAMETERS`), from the rendered per-pixel
+    nominal truth ``res`` (:class:`sim.render.RenderResult`: ``alpha`` along the tangent with
+    textures, ``eta`` the green real part with textures) over ``mask``."""
+    if not mask.any():
+        return float(material.alpha), effective_eta(material.eta_rgb[1])
+    aniso = 1.0 if material.alpha_v is None else float(np.sqrt(material.alpha_v / material.alpha))
+    alpha = float(np.median(res.alpha[mask])) * aniso
+    if material.conductor:
+        return alpha, effective_eta(material.eta_rgb[1])
+    return alpha, float(np.median(res.eta[mask]))
+
+
+def indirect_seed_for(seed: int, holdout: bool, index: int) -> int:
+    """Seed of a sample's interreflection Monte Carlo (:func:`sim.render.render`'s
+    ``indirect_seed``), derived from ``(seed, holdout, index)`` only."""
+    return int(np.random.SeedSequence([int(seed), int(bool(holdout)), int(index), 3]).generate_state(1)[0])
+
+
 def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool = False,
                 model: SensorModel | None = None, stage_zero_axes: str = "random",
-                families: Sequence[str] | None = None) -> dict[str, Any]:
+                families: Sequence[str] | None = None, material_mix: str = "baek",
+                indirect_samples: int = 0) -> dict[str, Any]:
     """One sample (arrays without the ``N`` axis), deterministic in ``(seed, holdout, index)``
     (and ``stage_zero_axes``, see :data:`STAGE_ZERO_AXES`; the axis comes from its own random
     stream, so a ``"camera-up"`` sample equals the version-1 sample of the same index) and in
     ``families`` (the shape families drawn from, :func:`families_for`; version-1 sets used
-    ``sphere, box, cylinder, multi``)."""
+    ``sphere, box, cylinder, multi``).
+
+    ``material_mix`` (:data:`sim.materials.MATERIAL_MIXES`): the default ``"baek"`` gives the
+    samples as before, bit for bit; another mix replaces the material by one drawn from the mix
+    on its own random stream ``(seed, holdout, index, 2)``, built on the Baek material the
+    sample would have had, with the same geometry, light, pose, polarizer state and exposure
+    draw (paired sets). ``indirect_samples > 0`` adds one bounce of interreflected light
+    (:mod:`sim.interreflection`, that many Monte Carlo samples per pixel, seed
+    :func:`indirect_seed_for`) to the images and the truth alike. ``alpha`` and ``eta`` of a
+    material outside the Baek family are the image-wide values of
+    :data:`GROUND_TRUTH_PARAMETERS` (:func:`fit_parameters`); ``material_kind`` is the index
+    of its kind in :data:`sim.materials.MATERIAL_KINDS`."""
     if stage_zero_axes not in STAGE_ZERO_AXES:
         raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
+    check_transport(material_mix, indirect_samples)
     model = model or dataset_sensor_model()
     rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index)])
     fams = families_for(holdout, families)
     family = int(fams[rng.integers(len(fams))])
-    scene = random_scene(rng, width, height, family)
+    mat_rng = (None if material_mix == "baek"
+               else np.random.default_rng([int(seed), int(bool(holdout)), int(index), 2]))
+    scene = random_scene(rng, width, height, family, material_mix=material_mix, material_rng=mat_rng)
     if stage_zero_axes == "random":
         axis_rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index), 1])
         scene = dataclasses.replace(scene, stage_zero_axis=sample_stage_zero_axis(scene, axis_rng))
-    res = render(scene, float(rng.uniform(0.0, 360.0)))
+    material = scene.materials[0]  # the sample's one material (every object has it)
+    res = render(scene, float(rng.uniform(0.0, 360.0)), indirect_samples=int(indirect_samples),
+                 indirect_seed=indirect_seed_for(seed, holdout, index) if indirect_samples else 0)
     stage_deg = float(rng.uniform(0.0, 180.0))
     gen = Generator(0.0, float(np.exp(rng.uniform(np.log(200.0), np.log(3000.0)))))
     s_in = gen.incident_stokes(stage_deg)
@@ -153,8 +246,11 @@ def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool
     vals = analyzer[:, :, mask]
     scale = max(float(np.percentile(vals, SCALE_PERCENTILE)) if vals.size else 1.0, 1.0)
     lit = res.lit
-    alpha = float(res.alpha[mask][0]) if mask.any() else float(scene.materials[0].alpha)
-    eta = float(res.eta[mask][0]) if mask.any() else float(scene.materials[0].eta)
+    if isinstance(material, SurfaceMaterial):
+        alpha, eta = fit_parameters(material, res, mask)
+    else:
+        alpha = float(res.alpha[mask][0]) if mask.any() else float(scene.materials[0].alpha)
+        eta = float(res.eta[mask][0]) if mask.any() else float(scene.materials[0].eta)
     return {
         "analyzer": (analyzer / scale).astype(np.float32),
         "scale": np.float32(scale),
@@ -166,6 +262,7 @@ def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool
         "family": np.int16(family), "index": np.int64(index),
         "stage_deg": np.float32(stage_deg), "lit": lit.astype(np.uint8),
         "stage_zero_axis": (scene.camera.R @ scene.stage_zero_axis).astype(np.float32),
+        "material_kind": np.int16(MATERIAL_KINDS.index(material_kind(material))),
     }
 
 
@@ -194,7 +291,8 @@ def shard_complete(path: pathlib.Path, n_expected: int) -> bool:
 
 def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: int,
               holdout: bool, shard_size: int, compress: bool, model: SensorModel,
-              stage_zero_axes: str = "random", families: Sequence[str] | None = None) -> dict:
+              stage_zero_axes: str = "random", families: Sequence[str] | None = None,
+              material_mix: str = "baek", indirect_samples: int = 0) -> dict:
     cam = default_camera(width, height, focal_per_px=RANDOM_FOCAL_PER_PX)
     n_shards = -(-count // shard_size)
     return {
@@ -224,8 +322,28 @@ def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: i
                                    "inside the mask (all colours and angles), at least 1 DN",
                           "analyzer": "black-subtracted DN / scale",
                           "mueller": "DN per unit incident S0 / scale"},
+        "materials": {"mix": material_mix, "probabilities": MATERIAL_MIXES[material_mix],
+                      "kinds": list(MATERIAL_KINDS),
+                      "material_kind": "index into kinds per sample (shard array material_kind)",
+                      "rng": "(seed, holdout, index, 2); the geometry, light, pose, state and "
+                             "exposure are those of the same sample of the baek mix",
+                      "ground_truth_parameters": GROUND_TRUTH_PARAMETERS},
+        "transport": {"indirect_samples": int(indirect_samples),
+                      "bounces": 1 if indirect_samples else 0,
+                      "indirect": "sim.interreflection.one_bounce, Monte Carlo, seed "
+                                  "sim.dataset.indirect_seed_for(seed, holdout, index); in the "
+                                  "analyzer images and the mueller truth alike"},
         "arrays": {k: {"shape": v[0], "dtype": v[1]} for k, v in SHARD_ARRAYS.items()},
     }
+
+
+def recorded_transport(manifest: dict) -> tuple[str, int]:
+    """``(material mix, indirect samples)`` a manifest records (``("baek", 0)`` for sets made
+    before either existed)."""
+    mats, trans = manifest.get("materials"), manifest.get("transport")
+    mix = mats.get("mix", "baek") if isinstance(mats, dict) else "baek"
+    n = trans.get("indirect_samples", 0) if isinstance(trans, dict) else 0
+    return mix, n
 
 
 _RESUME_KEYS = ("format", "version", "count", "width", "height", "seed", "holdout",
@@ -236,14 +354,17 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
                      height: int | None = None, seed: int = 0, holdout: bool = False,
                      shard_size: int = 16, compress: bool = True, progress: bool = True,
                      max_shards: int | None = None, stage_zero_axes: str = "random",
-                     families: Sequence[str] | None = None,
+                     families: Sequence[str] | None = None, material_mix: str = "baek",
+                     indirect_samples: int = 0,
                      runner: Callable[[Callable, list], Iterator[tuple[Any, Any]]] | None = None
                      ) -> dict[str, int]:
     """Write (or resume) a dataset; returns ``{"written": shards made, "skipped": shards
     already complete}``. ``max_shards`` stops after that many new shards (for tests and
     partial runs). ``stage_zero_axes``: how each sample's polarizer stage zero axis is chosen
     (:data:`STAGE_ZERO_AXES`). ``families``: shape families to draw from (default: every
-    family of the chosen side, :func:`families_for`). A folder holding a different dataset
+    family of the chosen side, :func:`families_for`). ``material_mix`` and
+    ``indirect_samples``: see :func:`make_sample`; both are recorded in the manifest
+    (``materials``, ``transport``). A folder holding a different dataset (these two included)
     raises :class:`ConfigError`, as do sides that are not multiples of :data:`SIZE_MULTIPLE`, a
     negative seed and an ``out`` that is (or lies in) a file; all before anything is written.
     ``runner(fn, jobs)`` (e.g. :meth:`polrig.cluster.DaskRunner.map_unordered`) runs
@@ -265,12 +386,14 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
     families_for(holdout, families)  # a bad family list fails before anything is written
+    check_transport(material_mix, indirect_samples)
     out = check_output_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     model = dataset_sensor_model()
     manifest = _manifest(out, count=count, width=width, height=height, seed=seed,
                          holdout=holdout, shard_size=shard_size, compress=compress, model=model,
-                         stage_zero_axes=stage_zero_axes, families=families)
+                         stage_zero_axes=stage_zero_axes, families=families,
+                         material_mix=material_mix, indirect_samples=indirect_samples)
     mpath = out / "manifest.json"
     if mpath.is_file():
         try:
@@ -283,6 +406,11 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         diff = [k for k in _RESUME_KEYS if old.get(k) != manifest[k]]
         if old.get("frames", {}).get("stage_zero_axes", "camera-up") != stage_zero_axes:
             diff.append("stage_zero_axes")
+        old_mix, old_indirect = recorded_transport(old)
+        if old_mix != material_mix:
+            diff.append(f"materials: {old_mix} there, {material_mix} asked")
+        if old_indirect != indirect_samples:
+            diff.append(f"indirect samples: {old_indirect} there, {indirect_samples} asked")
         if diff:
             raise ConfigError(f"{out} holds a different dataset ({', '.join(diff)} differ); "
                               f"choose another --out")
@@ -298,7 +426,8 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         else:
             todo.append(ShardJob(str(out.resolve()), k, k * shard_size, n_k, seed, width, height,
                                  bool(holdout), stage_zero_axes,
-                                 None if families is None else tuple(families), compress))
+                                 None if families is None else tuple(families), compress,
+                                 material_mix, int(indirect_samples)))
     initial = count - sum(j.n for j in todo)
     if max_shards is not None:
         todo = todo[:max_shards]
@@ -336,6 +465,8 @@ class ShardJob:
     stage_zero_axes: str
     families: tuple[str, ...] | None
     compress: bool
+    material_mix: str = "baek"
+    indirect_samples: int = 0
 
 
 def write_shard(job: ShardJob, on_sample: Callable[[], Any] | None = None) -> int:
@@ -346,7 +477,9 @@ def write_shard(job: ShardJob, on_sample: Callable[[], Any] | None = None) -> in
     for i in range(job.start, job.start + job.n):
         samples.append(make_sample(i, seed=job.seed, width=job.width, height=job.height,
                                    holdout=job.holdout, model=model,
-                                   stage_zero_axes=job.stage_zero_axes, families=job.families))
+                                   stage_zero_axes=job.stage_zero_axes, families=job.families,
+                                   material_mix=job.material_mix,
+                                   indirect_samples=job.indirect_samples))
         if on_sample is not None:
             on_sample()
     atomic_write_bytes(pathlib.Path(job.out) / shard_name(job.k), _shard_bytes(samples,

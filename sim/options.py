@@ -19,6 +19,9 @@ key                    meaning                                          default
 ``stage_speed_deg_s``  polarizer stage speed                            ``20``
 ``turntable_speed_deg_s``  turntable speed                              ``10``
 ``distribution``       microfacet distribution ``ggx``/``beckmann``     ``"ggx"``
+``indirect_samples``   Monte Carlo samples per pixel of one bounce of   ``0``
+                       interreflected light (:mod:`sim.interreflection`;
+                       0: direct light only)
 ``open``               open the devices on creation                     ``True``
 ``hidden``             overrides of :data:`HIDDEN_DEFAULTS`             ``{}``
 ``sensor_model``       overrides of :class:`polrig.noise.SensorModel`   ``{}``
@@ -49,7 +52,8 @@ from sim.world import SimWorld
 DEFAULTS: dict[str, Any] = {
     "scene": "sphere", "size": (512, 512), "sensor": "imx250myr", "seed": 0, "noise": True,
     "clock_speed": 1.0, "exposure_us": 20000.0, "stage_speed_deg_s": 20.0,
-    "turntable_speed_deg_s": 10.0, "distribution": "ggx", "open": True, "hidden": {},
+    "turntable_speed_deg_s": 10.0, "distribution": "ggx", "indirect_samples": 0, "open": True,
+    "hidden": {},
     "sensor_model": {},
 }
 
@@ -244,6 +248,10 @@ def parse_options(options: Mapping[str, Any] | None, *, where: str = "") -> dict
         raise ConfigError(f"{where}distribution: must be one of {', '.join(DISTRIBUTIONS)}, got "
                           f"{_show(dist)}")
     opts["distribution"] = dist.lower()
+    n = opts["indirect_samples"]
+    if not (isinstance(n, (int, np.integer)) and not isinstance(n, bool) and 0 <= n <= 4096):
+        raise ConfigError(f"{where}indirect_samples: expected an integer in 0..4096, got {_show(n)}")
+    opts["indirect_samples"] = int(n)
     opts["noise"] = _bool(where, "noise", opts["noise"])
     opts["open"] = _bool(where, "open", opts["open"])
     return opts
@@ -274,4 +282,5 @@ def build_world(opts: dict[str, Any]) -> SimWorld:
     sensor = build_sensor(opts, rng)
     gen = Generator(float(hid["stage_zero_offset_deg"]), float(hid["extinction_ratio"]))
     return SimWorld(scene, sensor, gen, clock=SimClock(opts["clock_speed"]), seed=opts["seed"],
-                    noise=opts["noise"], distribution=opts["distribution"])
+                    noise=opts["noise"], distribution=opts["distribution"],
+                    indirect_samples=opts["indirect_samples"])

@@ -101,6 +101,8 @@ def rig_parameters(world: "SimWorld") -> dict[str, Any]:
         "distribution": world.distribution,
         "seed": world.seed,
         "noise": world.noise,
+        # recorded only when on, so renders of direct light read as before
+        **({"indirect_samples": world.indirect_samples} if world.indirect_samples else {}),
     }
 
 

@@ -31,3 +31,18 @@ def test_two_workers_write_the_serial_shards_and_resume(tmp_path, capsys):
     assert _shards(tmp_path / "dist") == serial
     assert sorted(p.name for p in (tmp_path / "dist").iterdir()) == [
         "manifest.json", "shard-00000.npz", "shard-00001.npz", "shard-00002.npz"]
+
+
+def test_workers_pass_the_material_mix_and_interreflections(tmp_path):
+    """``--materials`` and ``--indirect-samples`` reach the workers: the same bytes as serial."""
+    common = ["sim", "dataset", "--count", "4", "--size", "16", "--seed", "8", "--shard-size",
+              "2", "--quiet", "--materials", "train", "--indirect-samples", "2"]
+    assert main([*common, "--out", str(tmp_path / "serial")]) == 0
+    assert main([*common, "--out", str(tmp_path / "dist"), "--workers", "2"]) == 0
+    serial, dist = _shards(tmp_path / "serial"), _shards(tmp_path / "dist")
+    assert len(serial) == 2 and dist == serial
+    assert ((tmp_path / "dist" / "manifest.json").read_bytes()
+            == (tmp_path / "serial" / "manifest.json").read_bytes())
+    plain = tmp_path / "plain"
+    assert main([*common[:-4], "--out", str(plain)]) == 0
+    assert _shards(plain) != serial  # the options changed the samples

@@ -144,6 +144,7 @@ def test_shipped_example_config_is_valid():
     ('[sim]\nsize = "abc"', r"\[sim\] size must be 'WxH'"),
     ('[sim]\nscene = "teapot"', r"\[sim\] scene: unknown scene 'teapot'"),
     ('[sim]\ndistribution = "phong"', r"\[sim\] distribution: must be one of ggx, beckmann"),
+    ("[sim]\nindirect_samples = -2", r"\[sim\] indirect_samples: expected an integer in 0\.\.4096, got -2$"),
     ("[sim]\nnoise = 1", r"\[sim\] noise: expected true or false, got 1"),
     ("[sim]\nexposure_us = -5", r"\[sim\] exposure_us: must be > 0"),
     ("[sim]\nexposure_us = nan", r"\[sim\] exposure_us: must be a finite number"),

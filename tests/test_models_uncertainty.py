@@ -177,6 +177,34 @@ def test_sigma_is_zero_off_the_object_and_scales_with_the_matrix():
         model.sigma(m, s_in, mask, stokes[:, :2])
 
 
+def test_beyond_calibration_flags_pixels_whose_misfit_exceeds_the_recorded_limit():
+    """A prediction that reproduces its observation (r = 0) is inside; one whose observation
+    misses it by r = 0.5 at scale 2 is beyond a limit of 0.3 and not beyond 0.6; no recorded
+    quantiles, no flag; a misfit recorded by the fitting tool is its quantile of r."""
+    m = np.zeros((3, 3, 3, 3, 3))
+    m[:, 0, 0] = 2.0
+    m[:, 1, 1] = 0.5
+    mask = np.ones((3, 3), bool)
+    mask[0, 0] = False
+    s_in = [1.0, 0.6, 0.0]
+    stokes = _consistent_stokes(m, s_in)
+    stokes[1, 2, 1, 1] += 0.5 * np.linalg.norm(s_in) * 2.0  # colour G, pixel (1, 1): r = 0.5
+    coef = np.full((3, 3, unc.N_FEATURES), 0.05)
+    assert unc.UncertaintyModel(coef).beyond_calibration(m, s_in, mask, stokes) is None
+    for limit, expected in ((0.3, True), (0.6, False)):
+        model = unc.UncertaintyModel(coef, calibration={"misfit_quantiles": {unc.MISFIT_LIMIT_QUANTILE: limit}})
+        assert model.misfit_limit == limit
+        flag = model.beyond_calibration(m, s_in, mask, stokes)
+        assert flag.shape == (3, 3, 3) and bool(flag[1, 1, 1]) is expected
+        assert int(flag.sum()) == int(expected) and not flag[:, 0, 0].any()
+    stokes[0, 0, 2, 2] = np.nan  # a pixel with no measurement counts as beyond
+    assert model.beyond_calibration(m, s_in, mask, stokes)[0, 2, 2]
+    samples = [fit.Sample(m, m, np.asarray(s_in), mask, np.zeros((3, 3, 3), bool), stokes)]
+    r = fit.misfit_values(samples)
+    assert r.size == 3 * 8 - 1 and np.isclose(r.max(), 0.5)
+    assert fit.misfit_quantiles(samples)["0.5"] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_file_format_round_trip_and_bad_files(tmp_path):
     model = unc.UncertaintyModel(np.full((3, 3, unc.N_FEATURES), 0.01), "abc", {"pixels": 5})
     back = unc.UncertaintyModel.from_json(json.loads(json.dumps(model.to_json())))

@@ -5,8 +5,9 @@
 16-bit PNG + JSON sidecar, :func:`polrig.rawio.write_raw`) and writes the ground truth next to
 them (``truth.json``, ``truth_<name>.npz``, ``truth_<name>_mueller.exr``; ``docs/sim.md``).
 
-``polrig sim dataset --count N --size 256 --seed S --out DIR [--holdout]`` writes a sharded,
-resumable training set (:func:`sim.dataset.generate_dataset`).
+``polrig sim dataset --count N --size 256 --seed S --out DIR [--holdout] [--materials MIX]
+[--indirect-samples N]`` writes a sharded, resumable training set
+(:func:`sim.dataset.generate_dataset`; material mixes :data:`sim.materials.MATERIAL_MIXES`).
 """
 
 from __future__ import annotations
@@ -96,6 +97,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="polarizer stage zero axis per sample: drawn at random (default), or the "
                         "camera's up direction for every sample (version-1 sets such as the "
                         "shipped model's training set)")
+    from sim.materials import MATERIAL_MIXES
+
+    d.add_argument("--materials", default="baek", choices=tuple(MATERIAL_MIXES), metavar="MIX",
+                   help="material mix (docs/sim.md, 'Material mixes'): baek (default: the Baek "
+                        "2018 dielectric pBRDF of the networks' initialization, datasets as "
+                        "before); train (40%% baek, 20%% each conductor, dispersive, anisotropic: "
+                        "the training mix); heldout (50%% each film, depolarizing: kinds the "
+                        "training mix leaves out); or one kind alone: conductor (gold, silver, "
+                        "copper, aluminium, chrome, complex index per colour), dispersive (Cauchy "
+                        "dispersion, Abbe number 20-65), anisotropic (two roughnesses, GGX or "
+                        "Beckmann), film (textured retarding film over the base), depolarizing "
+                        "(polarized fraction 0.3-0.9, kd/alpha/eta textures). A sample's geometry, "
+                        "light and pose are the same in every mix")
+    d.add_argument("--indirect-samples", type=int_range(0, 4096), default=0, metavar="N",
+                   help="one bounce of interreflected light with N Monte Carlo samples per pixel "
+                        "in the images and the truth (default 0: direct light only)")
     d.add_argument("--no-compress", action="store_true", help="store shards uncompressed")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--out", required=True, help="output folder")
@@ -188,6 +205,8 @@ def run_dataset(args: argparse.Namespace) -> int:
                                holdout=args.holdout, shard_size=args.shard_size,
                                compress=not args.no_compress, progress=not args.quiet,
                                stage_zero_axes=args.stage_zero_axes, families=args.families,
+                               material_mix=args.materials,
+                               indirect_samples=args.indirect_samples,
                                runner=None if args.workers is None and args.scheduler is None
                                else runner.map_unordered)
     finally:
