@@ -463,7 +463,9 @@ class SingleShotModel:
         the reconstruction, so off by default), ``sigma`` ``(C, 3, 3, H, W)`` DN: the standard
         deviation of each element (calibrated on simulated held-out sets: about 95 % of the
         errors within 2 sigma, ``models/MODEL_CARD.md``; with ``mirror_average`` it grows with
-        the two passes' disagreement).
+        the two passes' disagreement) and, where the calibration records its misfit range,
+        ``beyond_calibration`` ``(C, H, W)`` bool: object pixels outside it, whose sigma may be
+        too small (:meth:`models.uncertainty.UncertaintyModel.beyond_calibration`).
         ``mirror_average``: average the answers for the capture and its mirror image
         (:mod:`models.mirror`): a few per cent lower error for twice the network time.
         ``probe``, ``release_arena``: as :meth:`run_rig_frame`.
@@ -549,8 +551,11 @@ class SingleShotModel:
             aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
         if with_sigma and self.uncertainty is not None:
             # the capture's own Stokes images, in DN like ``mueller`` (a mono frame is repeated: one copy)
-            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes_from_analyzers(a[:mueller.shape[0]]),
-                                                  disagreement)
+            stokes = stokes_from_analyzers(a[:mueller.shape[0]])
+            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes, disagreement)
+            beyond = self.uncertainty.beyond_calibration(mueller, s, m, stokes)
+            if beyond is not None:
+                aux["beyond_calibration"] = beyond
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
                     "incident_rotation_deg": rotation_deg, "provider": self.provider,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
@@ -673,13 +678,15 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
     (:func:`polrig.exr.write_mueller_exr`). Uncompressed unless ``compress`` (ZIP): measured on
     a 512x512 colour result, ZIP wrote 26.8 MB in 819 ms, uncompressed 29.4 MB in 69 ms (the
     single-shot targets are per frame; noisy float32 planes hardly compress)."""
-    from polrig.exr import element_planes, write_mueller_exr
+    from polrig.exr import colour_planes, element_planes, write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
     if "sigma" in aux:
         extra.update(element_planes("sigma", aux["sigma"]))
     if "saturated" in aux:
         extra["saturated"] = aux["saturated"].astype(np.float32)
+    if "beyond_calibration" in aux:
+        extra.update(colour_planes("beyond_calibration", aux["beyond_calibration"].astype(np.float32)))
     if with_normal and "normal" in aux:
         for k, name in enumerate("XYZ"):
             extra[f"normal.{name}"] = aux["normal"][k]
@@ -688,6 +695,9 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
         planes["saturated"] = "1 = a clipped raw sample in the pixel's demosaic support"
     if "sigma" in aux:
         planes["sigma.M{rc}"] = "calibrated standard deviation of M{rc} (models/uncertainty.py); inf where saturated"
+    if "beyond_calibration" in aux:
+        planes["beyond_calibration"] = ("1 = the pixel's misfit r lies beyond the 99th percentile of the sigma's "
+                                        "calibration sets: its sigma may be too small (models/uncertainty.py)")
     meta = {"method": "single-shot", "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
             "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes,
             "execution_provider": aux.get("provider")}

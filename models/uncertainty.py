@@ -124,6 +124,14 @@ def feature_rows(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(q), np.minimum(q, 1.0), np.maximum(q - 1.0, 0.0), r], -1)
 
 
+#: Fraction of an object's pixels (flagged in any colour) beyond the calibration's misfit range
+#: above which a reconstruction warns that its sigma may be too small. Measured with
+#: ``polrig infer --sigma`` on the default simulated rig at 256x256 and 512x512: plastic spheres
+#: (``sphere``, ``rough_sphere``, ``diffuse_sphere``) 4-14 %, ``chrome_sphere`` 43-51 %,
+#: ``gold_sphere`` 90-95 % (1 % per colour by construction on the calibration sets).
+BEYOND_WARN_FRACTION = 0.25
+
+
 @dataclasses.dataclass
 class UncertaintyModel:
     """Coefficients ``(3, 3, N_FEATURES)``: observed-frame element ``(r, k)``, feature ``j`` (module
@@ -166,6 +174,14 @@ class UncertaintyModel:
         except (TypeError, KeyError, ValueError):
             return None
         return value if np.isfinite(value) and value > 0 else None
+
+    @staticmethod
+    def beyond_fraction(beyond: np.ndarray, object_mask: np.ndarray) -> float:
+        """Fraction of the object's pixels flagged by :meth:`beyond_calibration` in any
+        colour (0 for an empty object)."""
+        obj = np.asarray(object_mask, bool)
+        n = int(obj.sum())
+        return float(np.count_nonzero(np.any(beyond, axis=0) & obj)) / n if n else 0.0
 
     def beyond_calibration(self, mueller: np.ndarray, s_in, object_mask: np.ndarray,
                            stokes: np.ndarray) -> np.ndarray | None:

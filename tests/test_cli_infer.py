@@ -136,3 +136,32 @@ def test_infer_writes_masked_previews_and_counts_the_masked_pixels(frame, tmp_pa
     (tmp_path / "n_dolp.png").mkdir()
     assert main(["infer", str(frame), "--state-deg", "0", "--out", str(tmp_path / "n.exr")]) == 2
     assert not (tmp_path / "n.exr").exists()
+
+
+def test_sigma_flags_pixels_beyond_its_calibration_on_a_metal(tmp_path, capsys):
+    """With ``--sigma`` the EXR has a ``beyond_calibration`` plane (object pixels whose misfit
+    lies beyond the sigma's calibration range) and its object fraction in the header; a gold
+    sphere, which the networks never saw, is flagged far more than a plastic one and warned
+    about, the plastic one is not warned about (4-14 % against 90-95 % measured,
+    :data:`models.uncertainty.BEYOND_WARN_FRACTION`)."""
+    from polrig.exr import read_mueller_exr
+    from models.uncertainty import BEYOND_WARN_FRACTION
+
+    fractions = {}
+    for scene in ("sphere", "gold_sphere"):
+        render = tmp_path / scene
+        assert main(["sim", "render", "--scene", scene, "--size", "256x256", "--states", "0",
+                     "--no-exr", "--out", str(render)]) == 0
+        out = tmp_path / f"{scene}.exr"
+        capsys.readouterr()
+        assert main(["infer", str(render / "pose0000p00_state00.png"), "--state-deg", "0",
+                     "--sigma", "--out", str(out)]) == 0
+        err = capsys.readouterr().err
+        exr = read_mueller_exr(out)
+        flagged = np.stack([exr.extra[f"beyond_calibration.{c}"] for c in "RGB"])
+        obj = exr.extra["mask"] > 0
+        assert not flagged[:, ~obj].any()  # object pixels only
+        fractions[scene] = exr.metadata["beyond_calibration_fraction"]
+        assert fractions[scene] == pytest.approx(np.any(flagged > 0, axis=0)[obj].mean())
+        assert ("beyond the misfit range" in err) == (fractions[scene] > BEYOND_WARN_FRACTION)
+    assert fractions["sphere"] < BEYOND_WARN_FRACTION < fractions["gold_sphere"]

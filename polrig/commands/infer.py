@@ -93,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from models.runtime import SingleShotModel, infer_frame, write_result_exr
+    from models.uncertainty import BEYOND_WARN_FRACTION, UncertaintyModel
     from polrig import calibrations
     from polrig.commands._units import adc_factor
     from polrig.commands.capture import options_named
@@ -152,7 +153,11 @@ def run(args: argparse.Namespace) -> int:
                                black_level_dn=black * to_adc, scale=args.scale,
                                saturation_dn=saturation * to_adc,
                                with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
+    beyond = None
+    if "beyond_calibration" in aux:
+        beyond = UncertaintyModel.beyond_fraction(aux["beyond_calibration"], aux["mask"])
     write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
+                                         "beyond_calibration_fraction": beyond,
                                          "layout": str(layout), "demosaic": method,
                                          "resolution": args.resolution,
                                          "network_binning": args.network_binning,
@@ -174,6 +179,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
               f"{saturation:g} DN (clipped); their Mueller estimate comes from clipped data (EXR plane "
               f"'saturated'); lower the exposure", file=sys.stderr)
+    if beyond is not None and beyond > BEYOND_WARN_FRACTION:
+        print(f"polrig infer: warning: {100 * beyond:.0f} % of the object's pixels lie beyond the misfit range "
+              f"the sigma was calibrated on (1 % by construction; e.g. a metal or a retarding film, which the "
+              f"networks never saw): their sigma may be too small (EXR plane 'beyond_calibration'; "
+              f"models/MODEL_CARD.md, 'Mismatched materials and interreflections')", file=sys.stderr)
     note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
     if note:
         print(f"polrig infer: note: {note}", file=sys.stderr)
