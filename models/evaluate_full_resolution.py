@@ -24,10 +24,7 @@ incident state, stage zero axis and the cell-averaged mask (as the runtime would
 
 from __future__ import annotations
 
-import argparse
-import json
 import pathlib
-import sys
 from collections.abc import Sequence
 
 import numpy as np
@@ -121,30 +118,14 @@ def markdown(results: Sequence[dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import run_main
+    from models._cli import held_out_main
 
-    ap = argparse.ArgumentParser(prog="python -m models.evaluate_full_resolution",
-                                 description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", nargs="+", required=True, help="held-out sets (`polrig sim dataset` folders)")
-    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
-    ap.add_argument("--limit", type=int, default=None, help="first N samples of each set")
-    ap.add_argument("--out", default=None, help="also write the table (Markdown) and the numbers (.json)")
-
-    def body() -> int:
-        results = [evaluate_set(d, args.weights, args.limit) for d in args.data]
-        table = markdown(results)
-        print(table)
-        if args.out:
-            out = pathlib.Path(args.out)
-            out.write_text("# Full-resolution single-shot against superpixel (matrix PSNR, dB)\n\n"
-                           "`python -m models.evaluate_full_resolution` (models/evaluate_full_resolution.py: "
-                           "method and scoring in its docstring).\n\n" + table + "\n")
-            out.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
-        return 0
-
-    args = ap.parse_args(argv)
-    return run_main(ap.prog, body)
+    return held_out_main(argv, "python -m models.evaluate_full_resolution", __doc__.split("\n\n")[0],
+                         evaluate_set, markdown,
+                         "# Full-resolution single-shot against superpixel (matrix PSNR, dB)\n\n"
+                         "`python -m models.evaluate_full_resolution` (models/evaluate_full_resolution.py: "
+                         "method and scoring in its docstring).")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -24,8 +24,6 @@ Networks get the set's incident state, stage zero axis and mask (cell-averaged o
 
 from __future__ import annotations
 
-import argparse
-import json
 import pathlib
 from collections.abc import Sequence
 
@@ -108,28 +106,13 @@ def markdown(results: Sequence[dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import run_main
+    from models._cli import held_out_main
 
-    ap = argparse.ArgumentParser(prog="python -m models.evaluate_speed_modes", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", nargs="+", required=True, help="held-out sets (`polrig sim dataset` folders)")
-    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
-    ap.add_argument("--limit", type=int, default=None, help="first N samples of each set")
-    ap.add_argument("--out", default=None, help="also write the table (Markdown) and the numbers (.json)")
-
-    def body() -> int:
-        results = [evaluate_set(d, args.weights, args.limit) for d in args.data]
-        table = markdown(results)
-        print(table)
-        if args.out:
-            out = pathlib.Path(args.out)
-            out.write_text("# Speed modes against the default route (matrix PSNR, dB)\n\n"
-                           "`python -m models.evaluate_speed_modes` (models/evaluate_speed_modes.py: what is "
-                           "compared and on which pixels)\n\n" + table + "\n")
-            out.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
-        return 0
-
-    args = ap.parse_args(argv)
-    return run_main(ap.prog, body)
+    return held_out_main(argv, "python -m models.evaluate_speed_modes", __doc__.split("\n\n")[0],
+                         evaluate_set, markdown,
+                         "# Speed modes against the default route (matrix PSNR, dB)\n\n"
+                         "`python -m models.evaluate_speed_modes` (models/evaluate_speed_modes.py: what is "
+                         "compared and on which pixels)")
 
 
 if __name__ == "__main__":
