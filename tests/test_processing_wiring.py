@@ -207,6 +207,15 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
     assert s.verify() == []
 
 
+def new_revision(s: Session) -> tuple[str, processing.Processor]:
+    """A new reference revision of locked session ``s`` with capture 0 started in it, and the
+    session plan's processor."""
+    rev = s.new_revision({"mode": "reference"})
+    s.start_revision(0, rev)
+    return rev, processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
+                                          processing.session_sensor_model(s))
+
+
 def test_the_truth_file_is_compressed_as_the_plan_says(tmp_path):
     """The simulator's truth follows the plan's ``exr_compression`` (the fast choice writes
     and reads it uncompressed) and scores the same either way."""
@@ -226,10 +235,7 @@ def test_write_and_score_releases_the_diagnostics_and_cleans_up_a_failed_score(t
     s = capture(tmp_path / "s", CapturePlan((0.0,)))
     s.lock()
     try:
-        rev = s.new_revision({"mode": "reference"})
-        s.start_revision(0, rev)
-        proc = processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
-                                         processing.session_sensor_model(s))
+        rev, proc = new_revision(s)
         out = proc.solve(s, 0, rev)
         whole = out.truth.run(out.result)
         records, score = processing.write_and_score(s.root, out, proc.exr)
@@ -256,10 +262,7 @@ def test_a_result_not_recorded_leaves_no_file(tmp_path):
     s = capture(tmp_path / "s", CapturePlan((0.0,)))
     s.lock()
     try:
-        rev = s.new_revision({"mode": "reference"})
-        s.start_revision(0, rev)
-        proc = processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
-                                         processing.session_sensor_model(s))
+        rev, proc = new_revision(s)
 
         def full(path, data):
             if path.name == "session.json":
