@@ -372,7 +372,8 @@ class Processor:
             geometry = single_shot_geometry(
                 self.calibration, config,
                 None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
-            result, s_in, lay, states = self.single_shot(cf, geometry)
+            result, s_in, lay, single_shot_meta = self.single_shot(cf, geometry)
+            states = None
         else:
             unc = np.float16 if self.exr.uncertainty == "half" else np.float32
             result, s_in, lay, states = process_reference(cf, self.calibration,
@@ -405,6 +406,7 @@ class Processor:
                 "stage_zero_axis_camera": geometry["stage_zero_axis_camera"],
                 "sources": geometry["sources"]}
             meta["mirror_average"] = self.mirror_average
+            meta.update(single_shot_meta)
             self.single_shot_header(meta)
         meta["planes"] = {k: v for k, v in meta["planes"].items()
                           if k.split(".", 1)[0] in self.exr.planes}
@@ -415,9 +417,13 @@ class Processor:
         return CaptureResult(f"{folder}/mueller.exr", result, meta, truth)
 
     def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
-                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, None]:
+                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, dict[str, Any]]:
         """One state through the installed network (:mod:`models.runtime`): averaged and
-        HDR-merged like the reference states, demosaiced, reconstructed. ``sigma`` is the
+        HDR-merged like the reference states, demosaiced, reconstructed; returns the result,
+        the incident state ``(1, 3)``, the layout and the result header's single-shot entries
+        (``beyond_calibration_fraction``: the object's fraction whose misfit lies beyond the
+        sigma's calibration range, :meth:`models.uncertainty.UncertaintyModel.beyond_fraction`;
+        ``None`` where not known, at full resolution or without a calibrated sigma). ``sigma`` is the
         model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
         against the simulator's truth, which sensor noise does not describe; 0 where the graph
         has no calibration), infinite for a colour with a clipped sample (the magnitude of a
@@ -490,7 +496,9 @@ class Processor:
                                  zeros + np.inf, np.zeros((c, h, w), np.uint16),
                                  sigma_noise=(np.broadcast_to(np.float32(0), mueller.shape) if full
                                               else np.zeros_like(sigma)))
-        return result, s_in, lay, None
+        beyond = aux.get("beyond_calibration")
+        fraction = None if beyond is None else self.model.uncertainty.beyond_fraction(beyond, aux["mask"])
+        return result, s_in, lay, {"beyond_calibration_fraction": fraction}
 
     @property
     def output_demosaic(self) -> str:

@@ -306,3 +306,19 @@ def test_cli_options_reach_the_plan_and_the_revision(tmp_path, capsys):
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "--exr-planes" in err and "dolp" in err, err
     assert len(Session.open(out).manifest["revisions"]) == 1  # nothing recorded
+
+
+def test_single_shot_captures_record_the_fraction_beyond_the_sigma_calibration(tmp_path):
+    """A single-shot capture's EXR header records the object's fraction whose misfit lies
+    beyond the sigma's calibration range: small on a plastic sphere, most of a gold one
+    (:data:`models.uncertainty.BEYOND_WARN_FRACTION` separates them)."""
+    pytest.importorskip("onnxruntime")
+    from models.uncertainty import BEYOND_WARN_FRACTION
+
+    got = {}
+    for scene in ("sphere", "gold_sphere"):
+        s = capture(tmp_path / scene, CapturePlan((0.0,), mode="single-shot"), size=256,
+                    scene=scene)
+        got[scene] = read_exr(s.root / s.capture(0)["files"]["mueller"]["path"]).metadata[
+            "beyond_calibration_fraction"]
+    assert 0 <= got["sphere"] < BEYOND_WARN_FRACTION < got["gold_sphere"] <= 1
