@@ -40,7 +40,7 @@ import dataclasses
 import json
 import os
 import pathlib
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Collection, Mapping, Sequence
 
 import numpy as np
 import OpenEXR
@@ -302,8 +302,7 @@ def read_exr(path: PathLike) -> ExrImage:
         chans = f.channels()
         planes = {name: np.asarray(c.pixels) for name, c in chans.items()}
     except (RuntimeError, ValueError, OSError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise FormatError(f"{path}: unreadable or truncated OpenEXR file ({msg})") from None
+        raise _unreadable(path, exc) from None
     if not planes:
         raise FormatError(f"{path}: OpenEXR file has no channels")
     for name, p in planes.items():
@@ -337,28 +336,36 @@ def _metadata(path: pathlib.Path, header: Mapping[str, Any]) -> dict[str, Any]:
     return metadata
 
 
-def _n_colours(img: ExrImage, first: str) -> int:
-    if all(f"{first}.{s}" in img.planes for s in RGB):
+def _unreadable(path: pathlib.Path, exc: Exception, what: str = "unreadable or truncated OpenEXR file"
+                ) -> FormatError:
+    """The one-line error of an OpenEXR read that failed: ``PATH: WHAT (first line of exc)``."""
+    msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return FormatError(f"{path}: {what} ({msg})")
+
+
+def _n_colours(path: pathlib.Path, channels: Collection[str], first: str) -> int:
+    """1 (mono, ``FIRST.Y``) or 3 (``FIRST.R/G/B``) colours of a file's ``channels``."""
+    if all(f"{first}.{s}" in channels for s in RGB):
         return 3
-    if f"{first}.Y" in img.planes:
+    if f"{first}.Y" in channels:
         return 1
-    present = sorted(img.planes)
-    raise FormatError(f"{img.path}: missing channels {first}.R/G/B or {first}.Y "
+    present = sorted(channels)
+    raise FormatError(f"{path}: missing channels {first}.R/G/B or {first}.Y "
                       f"(has: {', '.join(present[:12])}{' ...' if len(present) > 12 else ''})")
 
 
-def _require(img: ExrImage, names: list[str]) -> None:
-    missing = [n for n in names if n not in img.planes]
+def _require(path: pathlib.Path, channels: Collection[str], names: list[str]) -> None:
+    missing = [n for n in names if n not in channels]
     if missing:
-        raise FormatError(f"{img.path}: missing channels {', '.join(missing)}")
+        raise FormatError(f"{path}: missing channels {', '.join(missing)}")
 
 
 def read_stokes_exr(path: PathLike) -> StokesExr:
     """Read a Stokes EXR: ``stokes`` ``(C, 3, H, W)`` float32, other channels in ``extra``."""
     img = read_exr(path)
-    c = _n_colours(img, "S0")
+    c = _n_colours(img.path, img.planes, "S0")
     names = stokes_channels(c)
-    _require(img, names)
+    _require(img.path, img.planes, names)
     sfx = channel_suffixes(c)
     stokes = np.stack([np.stack([img.planes[f"S{k}.{s}"] for k in range(3)]) for s in sfx])
     extra = {k: v for k, v in img.planes.items() if k not in set(names)}
@@ -369,9 +376,9 @@ def read_mueller_exr(path: PathLike) -> MuellerExr:
     """Read a Mueller EXR: ``mueller`` ``(C, 3, 3, H, W)`` float32, others in ``extra``
     (whatever optional planes the file has: ``sigma``, ``mask``, ... may be absent)."""
     img = read_exr(path)
-    c = _n_colours(img, "M00")
+    c = _n_colours(img.path, img.planes, "M00")
     names = mueller_channels(c)
-    _require(img, names)
+    _require(img.path, img.planes, names)
     sfx = channel_suffixes(c)
     mueller = np.empty((c, 3, 3) + img.shape, np.float32)
     for i, s in enumerate(sfx):  # moved plane by plane: no second full-size copy at once
@@ -397,21 +404,14 @@ class MuellerRows:
             self._file = OpenEXR.InputFile(str(self.path))
             header = self._file.header()
         except (RuntimeError, ValueError, OSError) as exc:
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise FormatError(f"{self.path}: unreadable or truncated OpenEXR file ({msg})") from None
+            raise _unreadable(self.path, exc) from None
         try:
             self._channels = dict(header["channels"])
             box = header["dataWindow"]
             w, h = box.max.x - box.min.x + 1, box.max.y - box.min.y + 1
             self.metadata = _metadata(self.path, header)
-            self.conventions = header.get(_PREFIX + "conventions")
-            present = set(self._channels)
-            c = 3 if all(f"M00.{s}" in present for s in RGB) else 1 if "M00.Y" in present else 0
-            if c == 0:
-                raise FormatError(f"{self.path}: missing channels M00.R/G/B or M00.Y")
-            missing = [n for n in mueller_channels(c) if n not in present]
-            if missing:
-                raise FormatError(f"{self.path}: missing channels {', '.join(missing)}")
+            c = _n_colours(self.path, self._channels, "M00")
+            _require(self.path, self._channels, mueller_channels(c))
         except BaseException:
             self._file.close()
             raise
@@ -435,8 +435,7 @@ class MuellerRows:
         try:
             raws = self._file.channels(self._names, scanLine1=r0, scanLine2=r1 - 1)
         except (RuntimeError, ValueError, OSError) as exc:
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise FormatError(f"{self.path}: unreadable rows {r0}-{r1 - 1} ({msg})") from None
+            raise _unreadable(self.path, exc, f"unreadable rows {r0}-{r1 - 1}") from None
         flat = out.reshape((-1,) + out.shape[3:])
         for k, (raw, name) in enumerate(zip(raws, self._names)):
             flat[k] = self._decode(raw, name, r1 - r0)
@@ -449,8 +448,7 @@ class MuellerRows:
         try:
             raw = self._file.channel(name)
         except (RuntimeError, ValueError, OSError) as exc:
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise FormatError(f"{self.path}: unreadable channel {name} ({msg})") from None
+            raise _unreadable(self.path, exc, f"unreadable channel {name}") from None
         return self._decode(raw, name, self.shape[3]).copy()
 
     def close(self) -> None:
