@@ -196,17 +196,16 @@ class CaptureJob:
     device: str
     calibration: str | None
     calibration_id: str
-    exr_planes: tuple[str, ...] = ()
-    exr_uncertainty: str = "float"
-    exr_compression: str = "zip"
+    exr_planes: tuple[str, ...]
+    exr_uncertainty: str
+    exr_compression: str
 
     @property
     def exr(self):
         """The result files' format (:class:`polrig.plan.ExrChoice`)."""
         from polrig.plan import ExrChoice
 
-        return ExrChoice(self.exr_planes or ExrChoice().planes, self.exr_uncertainty,
-                         self.exr_compression)
+        return ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
 
 
 @dataclasses.dataclass(frozen=True)

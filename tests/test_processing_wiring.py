@@ -162,13 +162,18 @@ def test_mueller_only_has_no_uncertainty_view(tmp_path):
     assert "NO_COMPRESSION" in chans.pop("<compression>") and len(chans) == 9 * n
 
 
-def test_a_plan_without_the_fields_reads_back_with_the_defaults():
+def test_a_plan_without_the_fields_reads_back_with_the_choice_it_was_written_with():
+    """A session's plan older than the EXR fields was written with float32 uncertainty and
+    ZIP (LEGACY_EXR), not today's default (half, ZIP): it resumes to the same files."""
     old = CapturePlan((0.0,)).to_json()
     for key in ("exr_planes", "exr_uncertainty", "exr_compression"):
         del old[key]
     plan = CapturePlan.from_json(old)
-    assert plan.exr == ExrChoice() == ExrChoice.of_plan(old)
+    assert plan.exr == ExrChoice.of_plan(old) == ExrChoice(uncertainty="float", compression="zip")
+    assert plan.exr != ExrChoice() and ExrChoice().uncertainty == "half"
     assert plan.exr.planes == ("mueller", "sigma", "sigma_noise", "mask", "residual")
+    new = CapturePlan((0.0,))
+    assert CapturePlan.from_json(new.to_json()).exr == new.exr == ExrChoice()
 
 
 @pytest.mark.parametrize("field, value", [("exr_planes", ("mueller", "dolp")),
@@ -322,3 +327,12 @@ def test_single_shot_captures_record_the_fraction_beyond_the_sigma_calibration(t
         got[scene] = read_exr(s.root / s.capture(0)["files"]["mueller"]["path"]).metadata[
             "beyond_calibration_fraction"]
     assert 0 <= got["sphere"] < BEYOND_WARN_FRACTION < got["gold_sphere"] <= 1
+
+
+def test_capture_help_states_the_default_exr_choice(capsys):
+    """``polrig capture --help`` names ExrChoice's defaults (written out there, so that the
+    command line does not import the plan module at start-up)."""
+    with pytest.raises(SystemExit):
+        main(["capture", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"default {ExrChoice().uncertainty})" in text and f"default {ExrChoice().compression})" in text

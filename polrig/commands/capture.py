@@ -57,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "full-resolution demosaic, --demosaic bilinear unless newton is given; no "
                         "sigma at full resolution; models/full_resolution.py)")
     add_exr_options(p, "default: mueller,sigma,sigma_noise,mask,residual (all)",
-                    "default float", "default zip")
+                    "default half", "default zip")  # polrig.plan.ExrChoice (not imported: start-up)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
                    help="where the single-shot network runs: auto (CUDA where onnxruntime offers it, "
                         "else the CPU; default), cpu or cuda (refused when unavailable); the provider "

@@ -32,6 +32,7 @@ from polrig.capture import CaptureControl, CaptureRequest, Progress
 from polrig.errors import PolrigError
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import RigLocks
+from polrig.plan import ExrChoice
 
 THUMB_PX = 128
 
@@ -173,10 +174,12 @@ class CapturePanel(QWidget):
                                    "always written)")
         self.exr_uncertainty = QComboBox()
         self.exr_uncertainty.addItems(list(UNCERTAINTY_PRECISIONS))
+        self.exr_uncertainty.setCurrentText(ExrChoice().uncertainty)
         self.exr_uncertainty.setToolTip("precision of the sigma, sigma_noise, residual and mask "
                                         "planes: float32, or half (half the bytes)")
         self.exr_compression = QComboBox()
         self.exr_compression.addItems(list(COMPRESSIONS))
+        self.exr_compression.setCurrentText(ExrChoice().compression)
         self.calibration = QLineEdit()
         self.calibration.setPlaceholderText("nominal")
         self.out = QLineEdit()
