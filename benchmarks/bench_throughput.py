@@ -58,8 +58,8 @@ EXPOSURE_US = 20000.0
 SENSORS = {"colour": "imx250myr", "mono": "imx250mzr"}
 METHODS = ("superpixel", "bilinear", "newton")
 #: The EXR choice of the timed rows (README "CLI": --exr-uncertainty half --exr-compression
-#: none): half-float uncertainty planes, no compression. The defaults (float32, ZIP) are timed
-#: in their own rows: ZIP of full-resolution float planes costs more than the processing.
+#: none): half-float uncertainty planes, no compression. The default (half, ZIP) is timed in its
+#: own rows: ZIP of full-resolution planes costs about half as much as the processing.
 FAST_EXR = {"uncertainty": "half", "compression": "none"}
 DEFAULT_EXR: dict = {}
 EXR_CHOICES = {"fast": FAST_EXR, "default": DEFAULT_EXR}
@@ -200,7 +200,8 @@ def pose_table(rounds: int) -> str:
     lines = [f"Hardware time per pose (the session table's 12-pose plan: 30 deg turns, 4 serpentine "
              f"states, 20 ms exposure, 13 ms readout): {hw:.2f} s.", "",
              "EXR choice 'fast': half-float uncertainty planes, no compression "
-             "(`--exr-uncertainty half --exr-compression none`); 'default': float32, ZIP.", "",
+             "(`--exr-uncertainty half --exr-compression none`); 'default': the plan's default "
+             "(half-float uncertainty planes, ZIP).", "",
              "| sensor | demosaic | score | EXR | processing per pose (s) | / hardware | peak memory "
              "(MiB) | Mueller EXR (MB) |", "|---|---|---|---|---|---|---|---|"]
     for (lay, method, score, choice), rs in runs.items():
