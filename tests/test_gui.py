@@ -219,9 +219,14 @@ def test_capture_form_asks_for_the_result_exr_format(qtbot, window, tmp_path):
     cp = window.capture
     cp.poses.setText("0")
     cp.out.setText(str(tmp_path / "s"))
+    from polrig.plan import ExrChoice
+
+    assert cp.request().plan().exr == ExrChoice()  # the defaults, as the CLI's
     assert cp.request().plan().exr_planes == ("mueller", "sigma", "sigma_noise", "mask",
-                                              "residual")  # the defaults, as the CLI's
+                                              "residual")
     cp.exr_planes.setText("sigma, mask")
+    cp.exr_uncertainty.setCurrentText("float")
+    assert cp.request().plan().exr_uncertainty == "float"
     cp.exr_uncertainty.setCurrentText("half")
     cp.exr_compression.setCurrentText("none")
     plan = cp.request().plan()
