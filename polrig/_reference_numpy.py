@@ -13,10 +13,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from polrig.reference import (DARK, DEFAULT_MAX_CONDITION, ILL_CONDITIONED, MIN_SNR, NONFINITE,
-                              SATURATED, AnalyzerTolerance, GeneratorTolerance, ReferenceResult,
-                              _analyzer_planes, _cond_from_singular, _shared_rows, _states,
-                              _tolerance, check_samples, validate_states)
-from polrig.stokes import ideal_analyzer_matrix
+                              SATURATED, ReferenceResult, _analyzer_planes, _cond_from_singular,
+                              solve_inputs)
 
 __all__ = ["solve_reference_numpy"]
 
@@ -30,20 +28,13 @@ def solve_reference_numpy(s_in: np.ndarray, measured: np.ndarray, variance: np.n
                           chunk_pixels: int = 4096, dtype=np.float32) -> ReferenceResult:
     """The previous implementation of :func:`polrig.reference.solve_reference` (same
     arguments and results)."""
-    a_tol = _tolerance(analyzer_tolerance, AnalyzerTolerance, "analyzer")
-    g_tol = _tolerance(generator_tolerance, GeneratorTolerance, "generator")
-    # 1-sigma of the 3 analyzer parameters (gain, rad, D) and the 2 generator ones (rad, 1/ER)
-    cal_sd = (np.array([a_tol.gain_rel, np.deg2rad(a_tol.angle_deg), a_tol.diattenuation,
-                        np.deg2rad(g_tol.zero_offset_deg), g_tol.inverse_extinction])
-              if any(a_tol) or any(g_tol) else None)
-    shared = analyzer_rows is None or np.ndim(analyzer_rows) == 2
-    cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
-    s = _states(s_in)
+    (cal_sd, with_cal, shared, cond_all, s, meas, var, valid,
+     a_shared) = solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
+                              analyzer_tolerance, generator_tolerance)
+    cal_sd = cal_sd if with_cal else None
     n = len(s)
-    meas, var, valid = check_samples(n, measured, variance, valid)
     _, n_col, _, h, w = meas.shape
     a_planes = _analyzer_planes(analyzer_rows, n_col, (h, w))
-    a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
 
     mueller = np.zeros((n_col, 3, 3, h, w), dtype)
     sigma = np.zeros_like(mueller)

@@ -365,6 +365,39 @@ def _analyzer_planes(analyzer_rows, n_col: int, hw: tuple[int, int]) -> np.ndarr
                          f"size {tuple(hw)}") from None
 
 
+class SolveInputs(NamedTuple):
+    """The checked inputs of a reference solve (:func:`solve_inputs`)."""
+
+    cal_sd: np.ndarray  # (5,) 1-sigma of analyzer gain, angle (rad), D; generator angle (rad), 1/ER
+    with_cal: bool  # any of them > 0
+    shared: bool  # one analyzer for every pixel (rows None or (4, 3))
+    cond_all: float  # condition number of the whole state set
+    s: np.ndarray  # (N, 3) incident states
+    meas: np.ndarray  # (N, C, 4, H, W)
+    var: np.ndarray
+    valid: np.ndarray
+    a_shared: np.ndarray  # (4, 3) the shared analyzer rows (ideal ones with per-pixel rows)
+
+
+def solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
+                 analyzer_tolerance, generator_tolerance) -> SolveInputs:
+    """Check and normalise the arguments of :func:`solve_reference` (and of its numpy oracle,
+    :mod:`polrig._reference_numpy`): tolerances, state set (its condition number against
+    ``max_condition``), sample arrays (:func:`check_samples`), shared analyzer rows. Raises as
+    :func:`solve_reference` documents."""
+    a_tol = _tolerance(analyzer_tolerance, AnalyzerTolerance, "analyzer")
+    g_tol = _tolerance(generator_tolerance, GeneratorTolerance, "generator")
+    cal_sd = np.array([a_tol.gain_rel, np.deg2rad(a_tol.angle_deg), a_tol.diattenuation,
+                       np.deg2rad(g_tol.zero_offset_deg), g_tol.inverse_extinction])
+    shared = analyzer_rows is None or np.ndim(analyzer_rows) == 2
+    cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
+    s = _states(s_in)
+    meas, var, valid = check_samples(len(s), measured, variance, valid)
+    a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
+    return SolveInputs(cal_sd, bool(np.any(cal_sd > 0)), shared, cond_all, s, meas, var, valid,
+                       a_shared)
+
+
 def check_samples(n_states: int, measured, variance, valid=None):
     """``(measured, variance, valid)`` as arrays after checking their shapes: ``measured``
     ``(N, C, 4, H, W)`` with ``N = n_states``, ``variance`` and ``valid`` (optional, bool) the
@@ -464,19 +497,11 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     """
     max_condition, min_snr, dtype, tile = _solve_options(max_condition, min_snr, dtype,
                                                          chunk_pixels)
-    a_tol = _tolerance(analyzer_tolerance, AnalyzerTolerance, "analyzer")
-    g_tol = _tolerance(generator_tolerance, GeneratorTolerance, "generator")
-    # 1-sigma of the 3 analyzer parameters (gain, rad, D) and the 2 generator ones (rad, 1/ER)
-    cal_sd = np.array([a_tol.gain_rel, np.deg2rad(a_tol.angle_deg), a_tol.diattenuation,
-                       np.deg2rad(g_tol.zero_offset_deg), g_tol.inverse_extinction])
-    with_cal = bool(np.any(cal_sd > 0))
-    shared = analyzer_rows is None or np.ndim(analyzer_rows) == 2
-    cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
-    s = _states(s_in)
+    (cal_sd, with_cal, shared, cond_all, s, meas, var, valid,
+     a_shared) = solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
+                              analyzer_tolerance, generator_tolerance)
     n = len(s)
-    meas, var, valid = check_samples(n, measured, variance, valid)
     _, n_col, _, h, w = meas.shape
-    a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
     pixel_rows = None
     if not shared:
         _analyzer_planes(analyzer_rows, n_col, (h, w))  # checks the shape
