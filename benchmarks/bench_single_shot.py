@@ -184,13 +184,13 @@ def _child_env() -> dict:
     return env
 
 
-def cold_once(src: pathlib.Path, argv: list[str], out: pathlib.Path) -> dict:
-    """``polrig infer`` in a fresh process (the CLI's own ``main``, as ``python -m polrig.cli``
-    runs it): wall seconds and the process's peak resident memory."""
+def cold_once(src: pathlib.Path, argv: list[str], out: pathlib.Path, device: str = "auto") -> dict:
+    """``polrig infer --device DEVICE`` in a fresh process (the CLI's own ``main``, as ``python -m
+    polrig.cli`` runs it): wall seconds and the process's peak resident memory."""
     import subprocess
 
     cmd = [sys.executable, "-c", COLD, "infer", str(src), "--state-deg", "0", "--saturation-dn", "4095",
-           "--out", str(out), *argv]
+           "--device", device, "--out", str(out), *argv]
     import resource
 
     env = _child_env()
@@ -292,25 +292,50 @@ def cold_steps(src: pathlib.Path, argv: list[str], out: pathlib.Path, rounds: in
     return {k: tuple(statistics.median(r[k][i] for r in rows) for i in range(2)) for k in rows[0]}
 
 
-def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool) -> tuple[str, dict]:
-    """The cases table (module docstring) as Markdown, and the measurements it was made from."""
+def gpu_name() -> str | None:
+    """The NVIDIA GPU's name as ``nvidia-smi`` reports it (None where there is none)."""
+    import shutil
+    import subprocess
+
+    if shutil.which("nvidia-smi") is None:
+        return None
+    proc = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"],
+                          capture_output=True, text=True)
+    return proc.stdout.strip().splitlines()[0] if proc.returncode == 0 and proc.stdout.strip() else None
+
+
+def pick_cases(spec: str | None) -> tuple:
+    """The CASES a ``--cases`` value names: comma-separated 0-based indices (None: all)."""
+    if not spec:
+        return CASES
+    try:
+        picked = [CASES[int(k)] for k in spec.split(",")]
+    except (ValueError, IndexError):
+        raise SystemExit(f"--cases {spec!r}: comma-separated indices 0..{len(CASES) - 1}") from None
+    return tuple(picked)
+
+
+def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatomy: bool, device: str = "auto",
+          cases: tuple = CASES) -> tuple[str, dict]:
+    """The cases table (module docstring) as Markdown, and the measurements it was made from.
+    ``device``: where the networks run (``auto``, ``cpu``, ``cuda``; warm and cold alike)."""
     import os
 
     load_start = os.getloadavg()[0]
-    model = SingleShotModel.load(weights, threads=threads, spinning=spinning)
+    model = SingleShotModel.load(weights, threads=threads, spinning=spinning, device=device)
     rng = np.random.default_rng(0)
-    warm: dict[str, list[dict]] = {c[0]: [] for c in CASES}
-    cold: dict[str, list[dict]] = {c[0]: [] for c in CASES}
+    warm: dict[str, list[dict]] = {c[0]: [] for c in cases}
+    cold: dict[str, list[dict]] = {c[0]: [] for c in cases}
     with tempfile.TemporaryDirectory() as d:
         tmp = pathlib.Path(d)
         raws = {}
-        for label, shape, layout, argv in CASES:
+        for label, shape, layout, argv in cases:
             key = (shape, layout)
             if key not in raws:
                 raws[key] = write_case_raw(shape, layout, tmp / f"raw_{layout}_{shape[1]}x{shape[0]}.png", rng)
             warm_once(raws[key], argv, model, tmp / "warm.exr")  # warm-up: sessions, plans, caches
         for r in range(rounds):
-            for label, shape, layout, argv in CASES:
+            for label, shape, layout, argv in cases:
                 # a case writes a new file, as a user's run does: the previous case's output is
                 # deleted and written back before the clock starts (replacing a full-sensor
                 # EXR frees a gigabyte inside the next case's write: 140 ms of a 512x512
@@ -319,13 +344,16 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
                     (tmp / name).unlink(missing_ok=True)
                 os.sync()
                 warm[label].append(warm_once(raws[(shape, layout)], argv, model, tmp / "warm.exr"))
-                cold[label].append(cold_once(raws[(shape, layout)], argv, tmp / "cold.exr"))
+                cold[label].append(cold_once(raws[(shape, layout)], argv, tmp / "cold.exr", device))
                 print(f"round {r + 1}/{rounds} {label}: warm {1e3 * warm[label][-1]['total']:.0f} ms, "
                       f"cold {1e3 * cold[label][-1]['wall']:.0f} ms, {cold[label][-1]['peak_mb']:.0f} MB", flush=True)
         anat = anatomy(rounds, threads) if with_anatomy else None
         label, shape, layout, argv = CASES[4]  # the full colour sensor at full resolution
-        steps = cold_steps(raws[(shape, layout)], argv, tmp / "steps.exr", rounds) if with_anatomy else None
-    raw = {"provider": model.provider, "onnxruntime": __import__("onnxruntime").__version__,
+        if with_anatomy and (shape, layout) not in raws:
+            raws[(shape, layout)] = write_case_raw(shape, layout, tmp / "raw_steps.png", rng)
+        steps = cold_steps(raws[(shape, layout)], argv + ["--device", device], tmp / "steps.exr",
+                           rounds) if with_anatomy else None
+    raw = {"provider": model.provider, "gpu": gpu_name() if model.provider == "CUDAExecutionProvider" else None, "onnxruntime": __import__("onnxruntime").__version__,
            "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
            "warm": warm, "cold": cold, "anatomy": anat, "cold_steps": steps,
            "cold_steps_case": CASES[4][0] if steps else None, "load_average": [load_start, os.getloadavg()[0]]}
@@ -335,7 +363,8 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
 def render(raw: dict) -> str:
     """The Markdown table of :func:`speed`'s measurements ``raw`` (also saved as JSON)."""
     med = lambda rows, k: statistics.median(x.get(k, 0.0) for x in rows)  # noqa: E731
-    lines = [f"Device: {raw['provider']} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
+    gpu = f" on {raw['gpu']}" if raw.get("gpu") else ""
+    lines = [f"Device: {raw['provider']}{gpu} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
              f"spinning {'on' if raw['spinning'] else 'off'}; {raw['cores']} physical core(s). Medians over "
              f"{raw['rounds']} interleaved round(s) after one warm-up; times in ms. Warm: in process; cold: the one-shot "
              f"CLI `polrig infer` in a fresh process (imports, session, first run, EXR). Warm CPU time: user + "
@@ -446,6 +475,10 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: physical cores)")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped models/weights)")
     ap.add_argument("--spinning", action="store_true", help="let onnxruntime worker threads spin")
+    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                    help="where the networks run, warm and cold (default auto: CUDA where onnxruntime offers it)")
+    ap.add_argument("--cases", default=None, help="comma-separated case indices to time (default: all; 0-based, "
+                                                   "in the table's order)")
     ap.add_argument("--mirror-average", action="store_true",
                     help="with --rig-scenes: score captures with and without --mirror-average (models/mirror.py) "
                          "instead of the geometry variants")
@@ -479,7 +512,8 @@ def main(argv=None) -> int:
                         "excluded, as for the reference mode).")
             pathlib.Path(args.out).write_text(head + "\n\n" + table + "\n")
         return 0
-    table, raw = speed(args.rounds, args.threads, args.spinning, args.weights, args.anatomy)
+    table, raw = speed(args.rounds, args.threads, args.spinning, args.weights, args.anatomy, args.device,
+                       pick_cases(args.cases))
     print(table)
     out = pathlib.Path(args.out) if args.out else REPO / "benchmarks" / "results" / "single_shot_speed.md"
     import json

@@ -52,6 +52,17 @@ def choose_providers(device: str, available: Sequence[str]) -> list[str]:
     return [CPU]
 
 
+def load_cuda_libraries(ort_module) -> None:
+    """Load the CUDA and cuDNN libraries onnxruntime-gpu needs from NVIDIA's pip packages
+    (``nvidia-cuda-runtime``, ``nvidia-cudnn-cu13``, ...; the ``gpu`` extra installs them), before
+    a CUDA session opens. onnxruntime-gpu >= 1.21 offers ``preload_dlls`` for this; an older one,
+    or a machine whose CUDA is installed system-wide (found through the loader's paths), needs
+    nothing. Without it a pip-installed CUDA is not found and the CUDA provider fails to start."""
+    preload = getattr(ort_module, "preload_dlls", None)  # a version difference of onnxruntime, not ours
+    if preload is not None:
+        preload(cuda=True, cudnn=True, msvc=False)
+
+
 def used_device(session_providers: Sequence[str]) -> str:
     """The provider that runs a session's graph: the first of the providers the session reports
     (``InferenceSession.get_providers()``: the ones it really registered, in priority order)."""

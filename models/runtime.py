@@ -307,6 +307,8 @@ class SingleShotModel:
         import onnxruntime as ort
 
         providers = devices.choose_providers(device, ort.get_available_providers())
+        if devices.CUDA in providers:
+            devices.load_cuda_libraries(ort)
         wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
         path = wd / graph
         if not path.is_file():

@@ -1,0 +1,113 @@
+"""Frame rate of the GUI's live Mueller view at full sensor size, on each device the networks
+can run on, without Qt.
+
+Per frame, exactly what the live worker's processing stage does for the "Mueller 3x3" display
+(:mod:`polrig.gui.live`): :func:`polrig.gui.pipeline.infer_mueller` (demosaic, Stokes, the
+single-shot networks, :func:`models.runtime.infer_frame`) with the default rig's nominal
+geometry, then :func:`polrig.gui.pipeline.render` of the Mueller grid. Qt's part (QImage onto
+the view) is left out: ``benchmarks/bench_gui.py`` measures it with the Stokes displays, and it
+is the same for every device. Frames are 2448x2048 IMX250MYR mosaics of a lit sphere
+(:func:`benchmarks.bench_single_shot.synthetic_raw`), a new one each frame.
+
+Columns: per device and resolution, the median milliseconds of the inference and of the grid
+render over ``--frames`` frames after two warm-ups, and the frames per second they allow
+(1 / their sum; the live worker overlaps the render with the next frame's processing, so this
+is the lower bound). Devices: ``cpu`` and, where this onnxruntime offers it, ``cuda``; the
+GPU's name is printed. Issue 22's target: >= 20 fps at full sensor with the Mueller grid on one
+H100-class GPU.
+
+    python benchmarks/bench_live_mueller.py [--frames 10] [--devices cpu,cuda] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import statistics
+import sys
+import time
+
+import numpy as np
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from benchmarks.bench_single_shot import COLOUR, FULL, gpu_name, synthetic_raw  # noqa: E402
+from models import devices  # noqa: E402
+from polrig.hal import Frame, FrameMeta  # noqa: E402
+
+RESOLUTIONS = ("superpixel", "full")
+TARGET_FPS = 20.0
+
+
+def frames(n: int, rng: np.random.Generator) -> list[Frame]:
+    """``n`` different full-sensor colour frames (12-bit, black level 64 DN)."""
+    meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
+                     layout=COLOUR, bit_depth=12, black_level_dn=64.0)
+    return [Frame(raw=synthetic_raw(FULL, rng, COLOUR), meta=meta) for _ in range(n)]
+
+
+def run(device: str, resolution: str, shots: list[Frame], geometry: dict) -> dict:
+    """Median seconds of inference and grid render over ``shots`` (two warm-ups first)."""
+    from models.runtime import SingleShotModel
+    from polrig.gui import pipeline
+
+    model = SingleShotModel.load(device=device)
+    infer, render = [], []
+    for k, frame in enumerate([shots[0], shots[1 % len(shots)], *shots]):
+        t0 = time.perf_counter()
+        data = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution=resolution)
+        t1 = time.perf_counter()
+        pipeline.render(data, "mueller")
+        t2 = time.perf_counter()
+        if k >= 2:
+            infer.append(t1 - t0)
+            render.append(t2 - t1)
+    i, r = statistics.median(infer), statistics.median(render)
+    return {"device": device, "provider": model.provider, "resolution": resolution, "infer_s": i, "render_s": r,
+            "fps": 1.0 / (i + r), "frames": len(infer)}
+
+
+def table(rows: list[dict], gpu: str | None) -> str:
+    lines = [f"GPU: {gpu or 'none'}. Medians over {rows[0]['frames']} full-sensor colour frames after two "
+             "warm-ups, warm in process; Qt's display step not included.", "",
+             "| device (provider) | resolution | inference ms | Mueller grid render ms | fps | target |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        goal = f">= {TARGET_FPS:.0f} fps (GPU)" if r["device"] == "cuda" else ""
+        lines.append(f"| {r['device']} ({r['provider']}) | {r['resolution']} | {1e3 * r['infer_s']:.0f} | "
+                     f"{1e3 * r['render_s']:.0f} | {r['fps']:.1f} | {goal} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import onnxruntime as ort
+
+    from polrig import processing
+    from polrig.rig import load_rig_config
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=10, help="timed frames per row (default 10)")
+    ap.add_argument("--devices", default=None,
+                    help="comma-separated devices (default: cpu, and cuda where onnxruntime offers it)")
+    ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
+    args = ap.parse_args(argv)
+    have_cuda = devices.CUDA in ort.get_available_providers()
+    chosen = args.devices.split(",") if args.devices else (["cpu", "cuda"] if have_cuda else ["cpu"])
+    geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
+    shots = frames(max(args.frames, 2), np.random.default_rng(0))
+    rows = []
+    for device in chosen:
+        for resolution in RESOLUTIONS:
+            rows.append(run(device, resolution, shots, geometry))
+            print(f"{device} {resolution}: {rows[-1]['fps']:.1f} fps", flush=True)
+    text = table(rows, gpu_name() if "cuda" in chosen else None)
+    print(text)
+    if args.out:
+        pathlib.Path(args.out).write_text("# Live Mueller view at full sensor size\n\n`python "
+                                          "benchmarks/bench_live_mueller.py`\n\n" + text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
