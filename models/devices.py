@@ -52,6 +52,25 @@ def choose_providers(device: str, available: Sequence[str]) -> list[str]:
     return [CPU]
 
 
+#: Options of the CUDA provider. ``cudnn_conv_algo_search``: onnxruntime's default, EXHAUSTIVE,
+#: benchmarks every cuDNN algorithm of every convolution (``cudnnFindConvolutionForwardAlgorithmEx``)
+#: when it meets a new input shape; the single-shot graph sees two shapes per frame (the
+#: light-direction probe's reduced size and the frame's), and on an NVIDIA H200
+#: (onnxruntime-gpu 1.31.1, 2026-11-26, ``benchmarks/results/single_shot_cuda.md``) the networks
+#: took 1.1 s of a full-sensor superpixel frame warm, against 0.24 s for one repeated
+#: 1224x1024x3 pass and 1.2 s for its first. HEURISTIC asks cuDNN's heuristics
+#: (``cudnnGetConvolutionForwardAlgorithm_v7``) instead: no benchmarking run. Reference:
+#: onnxruntime's CUDA execution provider options (``OrtCUDAProviderOptions``).
+CUDA_OPTIONS = {"cudnn_conv_algo_search": "HEURISTIC"}
+
+
+def session_providers(providers: Sequence[str]) -> list[tuple[str, dict[str, str]]]:
+    """``providers`` (:func:`choose_providers`) with each one's options, as
+    ``onnxruntime.InferenceSession(providers=...)`` takes them (:data:`CUDA_OPTIONS` for CUDA,
+    none for the CPU)."""
+    return [(p, dict(CUDA_OPTIONS) if p == CUDA else {}) for p in providers]
+
+
 def load_cuda_libraries(ort_module) -> None:
     """Load the CUDA and cuDNN libraries onnxruntime-gpu needs from NVIDIA's pip packages
     (``nvidia-cuda-runtime``, ``nvidia-cudnn-cu13``, ...; the ``gpu`` extra installs them), before

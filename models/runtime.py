@@ -328,7 +328,7 @@ class SingleShotModel:
         opts.enable_mem_pattern = False
         opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         try:
-            sess = ort.InferenceSession(str(path), opts, providers=providers)
+            sess = ort.InferenceSession(str(path), opts, providers=devices.session_providers(providers))
         except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
             raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc

@@ -52,6 +52,17 @@ def test_a_forced_cuda_session_that_fell_back_to_the_cpu_is_refused_auto_accepts
     assert devices.check_session("auto", requested, [devices.CPU]) == devices.CPU
 
 
+def test_session_providers_give_cuda_heuristic_convolution_search_and_the_cpu_nothing():
+    """CUDA sessions ask cuDNN's heuristics for convolution algorithms (no benchmarking run at
+    each new input shape); the CPU provider gets no options, and the order is kept."""
+    assert devices.session_providers([devices.CUDA, devices.CPU]) == [
+        (devices.CUDA, {"cudnn_conv_algo_search": "HEURISTIC"}), (devices.CPU, {})]
+    assert devices.session_providers([devices.CPU]) == [(devices.CPU, {})]
+    # a fresh dict each time: a caller's edit cannot change the next session's options
+    devices.session_providers([devices.CUDA])[0][1]["x"] = "1"
+    assert devices.session_providers([devices.CUDA])[0][1] == devices.CUDA_OPTIONS
+
+
 def test_this_onnxruntime_auto_choice_opens_a_real_session():
     """The automatic choice on this machine's real onnxruntime gives a session whose first
     provider is the one chosen (CUDA on a GPU machine with the gpu extra, else the CPU)."""
