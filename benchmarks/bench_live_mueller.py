@@ -4,7 +4,9 @@ can run on, without Qt.
 Per frame, exactly what the live worker's processing stage does for the "Mueller 3x3" display
 (:mod:`polrig.gui.live`): :func:`polrig.gui.pipeline.infer_mueller` (demosaic, Stokes, the
 single-shot networks, :func:`models.runtime.infer_frame`) with the default rig's nominal
-geometry, then :func:`polrig.gui.pipeline.render` of the Mueller grid. Qt's part (QImage onto
+geometry, then :func:`polrig.gui.pipeline.render` of the Mueller grid decimated to the live
+view's display size (``--max-display-px``, default 1024; 0 renders the whole grid, as the view
+did before 2026-11-26). Qt's part (QImage onto
 the view) is left out: ``benchmarks/bench_gui.py`` measures it with the Stokes displays, and it
 is the same for every device. Frames are 2448x2048 IMX250MYR mosaics of a lit sphere
 (:func:`benchmarks.bench_single_shot.synthetic_raw`), a new one each frame.
@@ -47,8 +49,9 @@ def frames(n: int, rng: np.random.Generator) -> list[Frame]:
     return [Frame(raw=synthetic_raw(FULL, rng, COLOUR), meta=meta) for _ in range(n)]
 
 
-def run(device: str, resolution: str, shots: list[Frame], geometry: dict) -> dict:
-    """Median seconds of inference and grid render over ``shots`` (two warm-ups first)."""
+def run(device: str, resolution: str, shots: list[Frame], geometry: dict, max_px: int) -> dict:
+    """Median seconds of inference and grid render over ``shots`` (two warm-ups first); the grid
+    decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`)."""
     from models.runtime import SingleShotModel
     from polrig.gui import pipeline
 
@@ -58,18 +61,18 @@ def run(device: str, resolution: str, shots: list[Frame], geometry: dict) -> dic
         t0 = time.perf_counter()
         data = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution=resolution)
         t1 = time.perf_counter()
-        pipeline.render(data, "mueller")
+        pipeline.render(data, "mueller", step=pipeline.display_step(data, "mueller", max_px))
         t2 = time.perf_counter()
         if k >= 2:
             infer.append(t1 - t0)
             render.append(t2 - t1)
     i, r = statistics.median(infer), statistics.median(render)
     return {"device": device, "provider": model.provider, "resolution": resolution, "infer_s": i, "render_s": r,
-            "fps": 1.0 / (i + r), "frames": len(infer)}
+            "fps": 1.0 / (i + r), "frames": len(infer), "max_px": max_px}
 
 
 def table(rows: list[dict], gpu: str | None) -> str:
-    lines = [f"GPU: {gpu or 'none'}. Medians over {rows[0]['frames']} full-sensor colour frames after two "
+    lines = [f"GPU: {gpu or 'none'}. Grid long side: {rows[0]['max_px'] or 'whole'} px. Medians over {rows[0]['frames']} full-sensor colour frames after two "
              "warm-ups, warm in process; Qt's display step not included.", "",
              "| device (provider) | resolution | inference ms | Mueller grid render ms | fps | target |",
              "|---|---|---|---|---|---|"]
@@ -90,8 +93,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=10, help="timed frames per row (default 10)")
     ap.add_argument("--devices", default=None,
                     help="comma-separated devices (default: cpu, and cuda where onnxruntime offers it)")
+    ap.add_argument("--max-display-px", type=int, default=None,
+                    help="long side of the shown grid (default: the live view's; 0: the whole grid)")
     ap.add_argument("--out", default=None, help="also write the table to this Markdown file")
     args = ap.parse_args(argv)
+    if args.max_display_px is None:
+        from polrig.gui.pipeline import DEFAULT_MAX_DISPLAY_PX
+
+        args.max_display_px = DEFAULT_MAX_DISPLAY_PX
     have_cuda = devices.CUDA in ort.get_available_providers()
     chosen = args.devices.split(",") if args.devices else (["cpu", "cuda"] if have_cuda else ["cpu"])
     geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
@@ -99,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for device in chosen:
         for resolution in RESOLUTIONS:
-            rows.append(run(device, resolution, shots, geometry))
+            rows.append(run(device, resolution, shots, geometry, args.max_display_px))
             print(f"{device} {resolution}: {rows[-1]['fps']:.1f} fps", flush=True)
     text = table(rows, gpu_name() if "cuda" in chosen else None)
     print(text)

@@ -97,6 +97,32 @@ def test_mueller_grid_coordinates_and_readout():
         pipeline.render(data, "dolp")
 
 
+def test_decimated_mueller_grid_keeps_the_readout_on_the_data_pixel():
+    """A large Mueller image is shown decimated (every step-th pixel of each tile) so the grid
+    fits the display, and the cursor readout of a decimated tile pixel names the data pixel it
+    shows, at full resolution."""
+    h, w = 40, 60
+    m = np.zeros((1, 3, 3, h, w), np.float32)
+    m[0, 0, 0] = 2.0
+    m[0, 1, 2] = np.arange(w, dtype=np.float32)[None, :] / w - 0.5  # m12/m00 varies along u
+    data = pipeline.PolarizationData.from_mueller(m)
+    step = pipeline.display_step(data, "mueller", 60)  # three tiles of 60 px in 60 px: 1 in 3
+    assert step == 3
+    assert pipeline.display_step(data, "mueller", 0) == 1
+    grid = pipeline.render(data, "mueller", step=step)
+    full = pipeline.render(data, "mueller")
+    th, tw = -(-h // step), -(-w // step)
+    b = pipeline.GRID_BORDER_PX
+    assert grid.shape[0] == 3 * th + 4 * b and full.shape[0] == 3 * h + 4 * b
+    u_dec, v_dec = 7, 5
+    x, y = b + 2 * (tw + b) + u_dec, b + 1 * (th + b) + v_dec  # element m12 of the decimated grid
+    xf, yf = b + 2 * (w + b) + u_dec * step, b + 1 * (h + b) + v_dec * step  # the same data pixel, whole grid
+    assert np.array_equal(grid[y, x], full[yf, xf])
+    text = pipeline.readout(data, "mueller", x, y, step)
+    assert f"Mueller at (u={u_dec * step}, v={v_dec * step})" in text
+    assert text == pipeline.readout(data, "mueller", xf, yf)
+
+
 def test_latest_slot_holds_one_item_and_counts_drops():
     slot = LatestSlot()
     assert slot.put(1) is True and slot.put(2) is False and slot.put(3) is False

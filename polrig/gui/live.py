@@ -80,7 +80,7 @@ class LiveSettings:
     max_fps: float = 30.0
     #: Longest side of the displayed image in pixels (0: full resolution); see
     #: :func:`polrig.gui.pipeline.display_step`. Processing is always at full resolution.
-    max_display_px: int = 1024
+    max_display_px: int = pipeline.DEFAULT_MAX_DISPLAY_PX
     #: Threads of the strip-parallel Stokes step (0: automatic, see
     #: :func:`polrig.gui.pipeline.stokes_from_raw_strips`; 1: one core call).
     strip_workers: int = 0

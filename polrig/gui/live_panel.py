@@ -196,5 +196,4 @@ class LivePanel(QWidget):
         self._hover = (x, y)
         if self.last is None or x < 0:
             return
-        k = self.last.step
-        self.readout.setText(pipeline.readout(self.last.data, self.last.display, x * k, y * k))
+        self.readout.setText(pipeline.readout(self.last.data, self.last.display, x, y, self.last.step))

@@ -43,6 +43,8 @@ DISPLAYS: dict[str, str] = {
 #: Colour choice "luminance": the mean over the colour channels (a mono sensor has one channel).
 LUMINANCE = -1
 SATURATION_RGB = (255, 0, 0)
+#: Longest side of a live image on screen (pixels; :func:`display_step`), the live view's default.
+DEFAULT_MAX_DISPLAY_PX = 1024
 #: Border between the tiles of :func:`polrig.preview.mueller_grid` (pixels).
 GRID_BORDER_PX = 2
 
@@ -311,11 +313,15 @@ def display_shape(data: PolarizationData, display: str) -> tuple[int, int]:
 
 def display_step(data: PolarizationData, display: str, max_px: int) -> int:
     """Decimation step so that the displayed image has at most ``max_px`` pixels on its long
-    side (0: no limit). A screen shows no more pixels than it has; the data (and the cursor
-    readout) stay at full resolution. The Mueller grid is never decimated."""
-    if max_px <= 0 or display == "mueller":
+    side (0: no limit); for the Mueller grid, its three tiles side by side (borders and colour
+    bar aside). A screen shows no more pixels than it has; the data (and the cursor readout,
+    :func:`readout` with the same ``step``) stay at full resolution. At full sensor resolution
+    the grid is 7344 pixels wide: rendering it whole took 2.8 s a frame on 16 cores
+    (``benchmarks/results/live_mueller_h200.md``), decimated to 1024 a few milliseconds."""
+    if max_px <= 0:
         return 1
-    return max(1, -(-max(display_shape(data, display)) // int(max_px)))
+    long_side = max(display_shape(data, display)) * (3 if display == "mueller" else 1)
+    return max(1, -(-long_side // int(max_px)))
 
 
 def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
@@ -324,7 +330,8 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
 
     S0 of the luminance choice is the RGB composite of a colour sensor; saturated pixels are
     painted :data:`SATURATION_RGB` when ``saturation_overlay`` is set. ``step`` > 1 shows every
-    ``step``-th pixel in each direction (see :func:`display_step`; not for the Mueller grid).
+    ``step``-th pixel in each direction (see :func:`display_step`; for the Mueller grid, in each
+    tile).
     """
     if display not in data.available():
         raise ValueError(f"{DISPLAYS.get(display, display)} is not available for this data")
@@ -339,9 +346,10 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
         if saturation_overlay:
             sat = raw >= full
     elif display == "mueller":
-        return preview.mueller_grid(data.mueller, colour=None if colour == LUMINANCE else
+        ok = shown(data, colour)
+        return preview.mueller_grid(data.mueller[..., k, k], colour=None if colour == LUMINANCE else
                                     min(colour, data.mueller.shape[0] - 1),
-                                    border_px=GRID_BORDER_PX, valid=shown(data, colour))
+                                    border_px=GRID_BORDER_PX, valid=None if ok is None else ok[k, k])
     elif display == "s0" and data.stokes is None:  # Mueller only: m00
         m00 = _pick(data.mueller[:, 0, 0], colour)[k, k]
         rgb = preview.tone_map(m00, white=fast_white(m00))
@@ -411,14 +419,19 @@ def grid_to_pixel(x: int, y: int, shape: tuple[int, int]) -> tuple[int, int, int
     return r, c, u, v
 
 
-def readout(data: PolarizationData, display: str, x: int, y: int) -> str:
-    """Text of the values under the cursor at display pixel ``(x, y)``: Stokes, DoLP, AoLP per
-    colour, and the 3x3 Mueller matrix (normalised by ``m00`` too) where there is one."""
+def readout(data: PolarizationData, display: str, x: int, y: int, step: int = 1) -> str:
+    """Text of the values under the cursor at display pixel ``(x, y)`` of an image rendered with
+    ``step`` (:func:`render`): Stokes, DoLP, AoLP per colour, and the 3x3 Mueller matrix
+    (normalised by ``m00`` too) where there is one."""
+    k = max(1, int(step))
     if display == "mueller" and data.mueller is not None:
-        hit = grid_to_pixel(x, y, data.mueller.shape[-2:])
+        h, w = data.mueller.shape[-2:]
+        hit = grid_to_pixel(x, y, (-(-h // k), -(-w // k)))  # the decimated tiles' shape
         if hit is None:
             return ""
-        u, v = hit[2], hit[3]
+        u, v = hit[2] * k, hit[3] * k
+    elif k > 1:
+        return readout(data, display, x * k, y * k)
     elif display == "raw" and data.raw is not None:
         if not (0 <= y < data.raw.shape[0] and 0 <= x < data.raw.shape[1]):
             return ""
