@@ -21,6 +21,12 @@ PY=${PY:-python3}
 NV=$($PY -c "import glob, os, site; print(':'.join(sorted({os.path.dirname(p) for d in site.getsitepackages() for p in glob.glob(d + '/nvidia/*/lib/*.so*')})))" 2>/dev/null)
 export LD_LIBRARY_PATH="${NV}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 
+# OpenEXR (and any other wheel in .whl/) in its own folder, for every phase
+if compgen -G ".whl/*.whl" > /dev/null && [ ! -d /tmp/wheels ]; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/wheels .whl/*.whl
+fi
+export PYTHONPATH="$PYTHONPATH:/tmp/wheels"
+
 case "${1:-}" in
 start)
     budget=${2:-7.5}
@@ -50,9 +56,6 @@ finish)
     mkdir -p /tmp/site
     cat /root/ortparts/ort.tar.xz.* | $PY -c "import lzma, sys, tarfile; tarfile.open(fileobj=lzma.open(sys.stdin.buffer), mode='r|').extractall('/tmp/site')" \
         || { echo "UNPACK FAILED"; ls -la /root/ortparts; }
-    if compgen -G ".whl/*.whl" > /dev/null; then
-        $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-    fi
     # onnxruntime-gpu must shadow the image's CPU onnxruntime: /tmp/site before site-packages
     export PYTHONPATH="/tmp/site:$PYTHONPATH"
     $PY -c "import onnxruntime as o; print('onnxruntime', o.__version__, o.get_available_providers())"
