@@ -5,12 +5,22 @@
 #   benchmarks/gpu_check.sh start BUDGET_MIN   probe the machine, a tiny CUDA training run end to
 #                                              end, then the paper-scale run in the background
 #   benchmarks/gpu_check.sh part               keep the onnxruntime-gpu archive piece in .ortpart/
-#   benchmarks/gpu_check.sh finish             unpack onnxruntime-gpu (+ .whl/ wheels), wait for
-#                                              the training, time single-shot and the live
-#                                              Mueller view on CUDA and CPU, pack the results
+#   benchmarks/gpu_check.sh wait               until the background training has ended
+#   benchmarks/gpu_check.sh finish             unpack onnxruntime-gpu, wait for the training, time
+#                                              single-shot and the live Mueller view on CUDA and
+#                                              CPU, pack the results
 #
-# onnxruntime-gpu (a 200 MB xz tar of the unpacked wheel) travels in pieces, one per call, into
-# /root/ortparts; results go to $OUT (paper-scale.tar.gz, *.md, *.json, logs).
+# Wheels the image lacks travel in .whl/ (OpenEXR for cp312); onnxruntime-gpu (the wheel
+# unpacked, without its tools/transformers/quantization folders and the TensorRT provider, as
+# one xz tar of 200 MB) travels in four pieces of 50.8 MB (`split -b 50800000 -d -a 1`), one per
+# call in .ortpart/, into /root/ortparts: a call carries at most 64 MiB. Results go to $OUT
+# (paper-scale.tar.gz, results.tar.gz, the tables).
+#
+# As run on 2026-11-26 (NVIDIA H200, 15 minutes of device time): `start 7.5` (58 s, the machine
+# already started: its start took about 35 s), three `part` calls (a few seconds each; the last
+# followed by `wait`: 418 s), then `finish` (311 s; 3 rounds with --anatomy on CUDA, 10 live
+# frames per row, 2 CPU rounds): 866 s in all. A call may run 600 s at most, so `wait` must be
+# its own call; a machine left idle for 30 s is given back and everything on it is lost.
 set -u
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/gpu-out}
@@ -51,6 +61,10 @@ part)
     cp .ortpart/* /root/ortparts/ && ls -la /root/ortparts
     tail -5 /tmp/paper.log
     ;;
+wait)
+    while kill -0 "$(cat /tmp/paper.pid)" 2> /dev/null; do sleep 3; done
+    cat /tmp/paper.log
+    ;;
 finish)
     cp .ortpart/* /root/ortparts/ 2>/dev/null
     mkdir -p /tmp/site
@@ -75,6 +89,6 @@ finish)
     ls -la "$OUT"
     ;;
 *)
-    echo "usage: $0 start BUDGET_MIN | part | finish" >&2; exit 2
+    echo "usage: $0 start BUDGET_MIN | part | wait | finish" >&2; exit 2
     ;;
 esac
