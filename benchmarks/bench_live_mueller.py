@@ -38,7 +38,8 @@ from benchmarks.bench_single_shot import COLOUR, FULL, gpu_name, synthetic_raw  
 from models import devices  # noqa: E402
 from polrig.hal import Frame, FrameMeta  # noqa: E402
 
-RESOLUTIONS = ("superpixel", "full")
+#: (output resolution, network binning) rows: the live view's Mueller choices.
+VARIANTS = (("superpixel", 1), ("superpixel", 2), ("full", 1))
 TARGET_FPS = 20.0
 
 
@@ -49,7 +50,7 @@ def frames(n: int, rng: np.random.Generator) -> list[Frame]:
     return [Frame(raw=synthetic_raw(FULL, rng, COLOUR), meta=meta) for _ in range(n)]
 
 
-def run(device: str, resolution: str, shots: list[Frame], geometry: dict, max_px: int) -> dict:
+def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry: dict, max_px: int) -> dict:
     """Median seconds of inference and grid render over ``shots`` (two warm-ups first); the grid
     decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`)."""
     from models.runtime import SingleShotModel
@@ -59,7 +60,8 @@ def run(device: str, resolution: str, shots: list[Frame], geometry: dict, max_px
     infer, render = [], []
     for k, frame in enumerate([shots[0], shots[1 % len(shots)], *shots]):
         t0 = time.perf_counter()
-        data = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution=resolution)
+        data = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution=resolution,
+                                      network_binning=binning)
         t1 = time.perf_counter()
         pipeline.render(data, "mueller", step=pipeline.display_step(data, "mueller", max_px))
         t2 = time.perf_counter()
@@ -67,18 +69,19 @@ def run(device: str, resolution: str, shots: list[Frame], geometry: dict, max_px
             infer.append(t1 - t0)
             render.append(t2 - t1)
     i, r = statistics.median(infer), statistics.median(render)
-    return {"device": device, "provider": model.provider, "resolution": resolution, "infer_s": i, "render_s": r,
+    return {"device": device, "provider": model.provider, "resolution": resolution, "binning": binning, "infer_s": i, "render_s": r,
             "fps": 1.0 / (i + r), "frames": len(infer), "max_px": max_px}
 
 
 def table(rows: list[dict], gpu: str | None) -> str:
     lines = [f"GPU: {gpu or 'none'}. Grid long side: {rows[0]['max_px'] or 'whole'} px. Medians over {rows[0]['frames']} full-sensor colour frames after two "
              "warm-ups, warm in process; Qt's display step not included.", "",
-             "| device (provider) | resolution | inference ms | Mueller grid render ms | fps | target |",
-             "|---|---|---|---|---|---|"]
+             "| device (provider) | resolution | network binning | inference ms | Mueller grid render ms | fps | target |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
         goal = f">= {TARGET_FPS:.0f} fps (GPU)" if r["device"] == "cuda" else ""
-        lines.append(f"| {r['device']} ({r['provider']}) | {r['resolution']} | {1e3 * r['infer_s']:.0f} | "
+        lines.append(f"| {r['device']} ({r['provider']}) | {r['resolution']} | {r.get('binning', 1)} | "
+                     f"{1e3 * r['infer_s']:.0f} | "
                      f"{1e3 * r['render_s']:.0f} | {r['fps']:.1f} | {goal} |")
     return "\n".join(lines)
 
@@ -107,10 +110,13 @@ def main(argv: list[str] | None = None) -> int:
     shots = frames(max(args.frames, 2), np.random.default_rng(0))
     rows = []
     for device in chosen:
-        for resolution in RESOLUTIONS:
-            rows.append(run(device, resolution, shots, geometry, args.max_display_px))
-            print(f"{device} {resolution}: {rows[-1]['fps']:.1f} fps", flush=True)
-    text = table(rows, gpu_name() if "cuda" in chosen else None)
+        for resolution, binning in VARIANTS:
+            rows.append(run(device, resolution, binning, shots, geometry, args.max_display_px))
+            print(f"{device} {resolution} binning {binning}: {rows[-1]['fps']:.1f} fps", flush=True)
+    import os
+
+    text = (table(rows, gpu_name() if "cuda" in chosen else None)
+            + f"\n\n{os.cpu_count()} CPU core(s); load average (1 min) at the end: {os.getloadavg()[0]:.1f}.")
     print(text)
     if args.out:
         pathlib.Path(args.out).write_text("# Live Mueller view at full sensor size\n\n`python "

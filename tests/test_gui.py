@@ -169,6 +169,14 @@ def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
         qtbot.waitUntil(lambda: w.live.last.display == "mueller"
                         and w.live.last.data.mueller.shape[-2:] == (64, 64), timeout=30000)
         assert from_qimage(w.live.last.image).shape[0] == 3 * 64 + 4 * b
+        # the faster mode: the networks on the 16x16 grid binned to 8x8, the answer lifted back
+        w.live.binning.setCurrentIndex(w.live.binning.findData(2))
+        assert w.live_worker.settings.network_binning == 2
+        before = w.live.last
+        qtbot.waitUntil(lambda: w.live.last is not before and w.live.last.display == "mueller"
+                        and w.live_worker.settings.network_binning == 2, timeout=30000)
+        assert w.live.last.data.mueller.shape[-2:] == (64, 64)
+        assert np.all(np.isfinite(w.live.last.data.mueller))
     finally:
         close_window(qtbot, w)
 
@@ -360,6 +368,7 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.capture.resolution.setCurrentText("full")
     w.capture.device.setCurrentText("cpu")
     w.live.resolution.setCurrentText("full")
+    w.live.binning.setCurrentIndex(w.live.binning.findData(2))
     w.close()
     assert ini.is_file()
     w2 = make_window(qtbot, ini, start=False)
@@ -372,6 +381,7 @@ def test_settings_are_remembered(qtbot, tmp_path):
     assert w2.capture.resolution.isEnabled() and w2.capture.request().resolution == "full"
     assert w2.capture.request().device == "cpu"
     assert w2.live_worker.settings.resolution == "full"
+    assert w2.live_worker.settings.network_binning == 2
     assert w2.capture.out.text() == str(tmp_path / "x")
     assert w2.live.colour.currentIndex() == 2
     assert w2.live.mirror_average.isChecked() and w2.live_worker.settings.mirror_average

@@ -77,6 +77,9 @@ class LiveSettings:
     #: Mueller display: ``superpixel`` (the networks' grid) or ``full`` (the raw frame's size,
     #: :mod:`models.full_resolution`)
     resolution: str = "superpixel"
+    #: Mueller display: 2 runs the networks on the analyzer grid binned 2x2 (the faster mode,
+    #: :mod:`models.full_resolution`: about half the frame time at full sensor size); 1 on the grid
+    network_binning: int = 1
     max_fps: float = 30.0
     #: Longest side of the displayed image in pixels (0: full resolution); see
     #: :func:`polrig.gui.pipeline.display_step`. Processing is always at full resolution.
@@ -289,7 +292,7 @@ class LiveWorker(QThread):
                 data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
                                               source="live", geometry=self._geometry(),
                                               mirror_average=s.mirror_average,
-                                              resolution=s.resolution)
+                                              resolution=s.resolution, network_binning=s.network_binning)
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
                                           source="live", model=self._sensor_model())

@@ -126,6 +126,7 @@ class MainWindow(QMainWindow):
         b.bind("live/saturation_overlay", st.bool_binding(lp.overlay))
         b.bind("live/mirror_average", st.bool_binding(lp.mirror_average))
         b.bind("live/resolution", st.combo_binding(lp.resolution))
+        b.bind("live/network_binning", st.combo_binding(lp.binning))
         for key, w in (("poses", cp.poses), ("states", cp.states), ("exposure", cp.exposure),
                        ("calibration", cp.calibration), ("out", cp.out)):
             b.bind(f"capture/{key}", st.text_binding(w))

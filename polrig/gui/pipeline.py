@@ -234,7 +234,8 @@ def process_frame(frame: Frame, method: str = "superpixel", *, workers: int | No
 
 def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpixel",
                   source: str = "", geometry: dict | None = None,
-                  mirror_average: bool = False, resolution: str = "superpixel") -> PolarizationData:
+                  mirror_average: bool = False, resolution: str = "superpixel",
+                  network_binning: int = 1) -> PolarizationData:
     """Single-shot Mueller image of a frame taken with the polarizer at ``state_deg``
     (:func:`models.runtime.infer_frame`), with the Stokes images it computed on the way.
 
@@ -245,8 +246,9 @@ def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpix
 
     ``geometry``: the rig's single-shot geometry (intrinsics, stage zero axis) from
     :func:`polrig.processing.single_shot_geometry`, exactly as capture processing uses it;
-    ``None`` leaves the model's training geometry. ``mirror_average``: as
-    :func:`models.runtime.infer_frame`."""
+    ``None`` leaves the model's training geometry. ``mirror_average`` and ``network_binning``
+    (2: the faster mode, the networks on the analyzer grid binned 2x2,
+    :mod:`models.full_resolution`): as :func:`models.runtime.infer_frame`."""
     from models.runtime import infer_frame
     from polrig.processing import single_shot_kwargs
 
@@ -256,7 +258,8 @@ def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpix
     kwargs = single_shot_kwargs(geometry, frame, "superpixel" if full else method) if geometry else {}
     mueller, aux = infer_frame(frame.raw, frame_layout(frame), state_deg, model,
                                demosaic_method=method, black_level_dn=frame.meta.black_level_dn,
-                               mirror_average=mirror_average, resolution=resolution, **kwargs)
+                               mirror_average=mirror_average, resolution=resolution,
+                               network_binning=network_binning, **kwargs)
     d = PolarizationData.from_stokes(aux["stokes"], source)
     d.mueller = mueller
     d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
