@@ -96,6 +96,12 @@ def test_network_binning_is_planned_checked_and_older_plans_read_as_1():
     from polrig.plan import NETWORK_BINNINGS
 
     assert NETWORK_BINNINGS == BINNINGS
+    from polrig.cli import build_parser  # the options' choices are the plan's (not imported there)
+
+    sub = next(a for a in build_parser()._actions if a.choices and "capture" in a.choices).choices
+    for command in ("capture", "reconstruct"):
+        [opt] = [a for a in sub[command]._actions if "--network-binning" in a.option_strings]
+        assert tuple(opt.choices) == NETWORK_BINNINGS and opt.default is None
     binned = CapturePlan((0,), mode="single-shot", network_binning=2)
     assert CapturePlan.from_json(binned.to_json()) == binned and binned.to_json()["network_binning"] == 2
     old = CapturePlan((0,), mode="single-shot").to_json()
