@@ -281,8 +281,8 @@ class Processor:
     the reference mode). ``network_binning``: 1, or 2 for the single-shot networks on the
     analyzer grid binned 2x2 (:func:`models.full_resolution.reconstruct_binned`; about half the
     frame time at full sensor size, no calibrated sigma; a :class:`PlanError` of
-    ``network_binning`` with the reference mode). ``device``: where the network runs (``auto``, ``cpu``, ``cuda``;
-    :mod:`models.devices`), a run option, not part of the plan; the provider used is recorded.
+    ``network_binning`` with the reference mode). ``device``: where the network runs (``auto``,
+    ``cpu``, ``cuda``; :mod:`models.devices`), a run option, not part of the plan; the provider used is recorded.
     ``exr``: the result file's planes, precision and compression (the plan's
     :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
     """
@@ -428,8 +428,7 @@ class Processor:
         (``beyond_calibration_fraction``: the object's fraction whose misfit lies beyond the
         sigma's calibration range, :meth:`models.uncertainty.UncertaintyModel.beyond_fraction`;
         ``None`` where not known, at full resolution, with network binning or without a
-        calibrated sigma). ``sigma`` is the
-        model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
+        calibrated sigma). ``sigma`` is the model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
         against the simulator's truth, which sensor noise does not describe; 0 where the graph
         has no calibration), infinite for a colour with a clipped sample (the magnitude of a
         clipped highlight is unknown); ``sigma_noise`` is 0. The mask marks, as the reference solve does,
@@ -610,8 +609,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
 
     ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
     stays single-shot, else ``superpixel``) and ``network_binning`` (single-shot, 1 or 2; default:
-    the session's where it stays single-shot, else 1) are recorded with the revision; ``device`` (where
-    the network runs) is not a setting of the result: the provider used is in its header.
+    the session's where it stays single-shot, else 1) are recorded with the revision; ``device``
+    (where the network runs) is not a setting of the result: the provider used is in its header.
     ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
     ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
     revision.
@@ -643,8 +642,8 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
     revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
-    ``network_binning``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``, ``exr_compression``; ``None``
-    arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
+    ``network_binning``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
+    ``exr_compression``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
     take the session's), its :class:`Processor` (on
     ``device``) and the indices of the complete captures to process. Shared by
     :func:`reprocess_session` and :mod:`polrig.cluster`."""
