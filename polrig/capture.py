@@ -76,6 +76,8 @@ class CaptureRequest:
     demosaic: str | None = None
     mirror_average: bool | None = None
     resolution: str | None = None
+    #: single-shot network binning (1 or 2: :attr:`polrig.plan.CapturePlan.network_binning`)
+    network_binning: int | None = None
     #: the result EXR's plane groups, uncertainty precision and compression
     #: (:class:`polrig.plan.ExrChoice`)
     exr_planes: tuple[str, ...] | None = None
@@ -92,7 +94,8 @@ class CaptureRequest:
     def plan_fields(self) -> dict[str, Any]:
         """The :class:`polrig.plan.CapturePlan` fields this request gives (not ``None``)."""
         names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
-                 "dark_frames", "demosaic", "mirror_average", "resolution", "exr_planes",
+                 "dark_frames", "demosaic", "mirror_average", "resolution", "network_binning",
+                 "exr_planes",
                  "exr_uncertainty", "exr_compression")
         fields = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
         if "exr_planes" in fields:  # as the plan holds them (mueller always, in order)

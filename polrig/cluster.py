@@ -199,6 +199,8 @@ class CaptureJob:
     exr_planes: tuple[str, ...]
     exr_uncertainty: str
     exr_compression: str
+    #: single-shot network binning (1 or 2: :class:`polrig.processing.Processor`)
+    network_binning: int = 1
 
     @property
     def exr(self):
@@ -230,8 +232,8 @@ def _processor(job: CaptureJob, session: Session):
     from polrig import processing
 
     sensor = processing.session_sensor_model(session)
-    key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.device,
-           job.calibration, job.calibration_id, repr(sensor), job.exr)
+    key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
+           job.device, job.calibration, job.calibration_id, repr(sensor), job.exr)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
@@ -239,7 +241,7 @@ def _processor(job: CaptureJob, session: Session):
                               f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
                                                 job.mirror_average, job.resolution, job.device,
-                                                job.exr)
+                                                job.exr, job.network_binning)
     return _PROCESSORS[key]
 
 
@@ -299,6 +301,10 @@ class BatchIncomplete(PolrigError):
                          "); the others are complete")
 
 
+#: Revision settings newer than some revisions, as the ones without them were made.
+ABSENT_SETTINGS: dict[str, Any] = {"network_binning": 1}
+
+
 def _continuable(session: Session, settings: dict[str, Any], done: list[int]
                  ) -> tuple[str, list[int]] | None:
     """The session's last revision and its captures still to do, when it was made with
@@ -307,7 +313,7 @@ def _continuable(session: Session, settings: dict[str, Any], done: list[int]
     if not revisions:
         return None
     last = revisions[-1]
-    if any(last.get(k) != v for k, v in settings.items()):
+    if any(last.get(k, ABSENT_SETTINGS.get(k)) != v for k, v in settings.items()):
         return None
     name = last["name"]
     todo = [i for i in done
@@ -339,7 +345,8 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             mirror_average: bool | None = None, resolution: str | None = None,
             device: str = "auto", calibration=None,
             command_line: list[str] | None = None,
-            exr: dict[str, Any] | None = None) -> list[SessionBatch]:
+            exr: dict[str, Any] | None = None,
+            network_binning: int | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
@@ -347,7 +354,7 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
     from polrig import processing
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device, exr) for s in sessions]
+                                      resolution, device, exr, network_binning) for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
         cont = _continuable(s, settings, done)
@@ -371,7 +378,8 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
     return [CaptureJob(str(batch.session.root.resolve()), i, batch.revision, st["mode"],
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
-                       st["exr_uncertainty"], st["exr_compression"])
+                       st["exr_uncertainty"], st["exr_compression"],
+                       int(st.get("network_binning", 1)))
             for i in batch.todo]
 
 
@@ -466,6 +474,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
                 mirror_average=None, resolution=None, device: str = "auto",
+                network_binning: int | None = None,
                 calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
@@ -482,6 +491,7 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
     try:
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
                           resolution=resolution, device=device, calibration=calibration,
+                          network_binning=network_binning,
                           command_line=command_line, exr=exr)
         if on_start:
             on_start(batches)

@@ -50,6 +50,13 @@ RESOLUTIONS = ("superpixel", "full")
 FULL_RESOLUTION_SINGLE_SHOT_ONLY = ("only the single-shot method has a full-resolution output (the "
                                     "reference method's resolution is its demosaic: bilinear or "
                                     "newton give the raw frame's size)")
+#: Network binnings of the single-shot method (the values of
+#: :data:`models.full_resolution.BINNINGS`, not imported here: polrig core does not import the
+#: models package): 1 runs the networks on the analyzer grid, 2 on that grid binned 2x2 with the
+#: answer lifted back by the grid's measured detail (:func:`models.full_resolution.reconstruct_binned`).
+NETWORK_BINNINGS = (1, 2)
+NETWORK_BINNING_SINGLE_SHOT_ONLY = ("network binning applies to the single-shot method only (the "
+                                    "reference method runs no network)")
 
 
 class PlanError(ConfigError):
@@ -63,6 +70,19 @@ class PlanError(ConfigError):
         head = " ".join(p for p in (what, subject) if p)
         super().__init__(f"{head}: {detail}" if subject is not None else detail)
         self.field, self.detail, self.subject = field, detail, subject
+
+
+def check_network_binning(binning: Any, mode: str) -> int:
+    """``binning`` as an int when it is one of :data:`NETWORK_BINNINGS` and allowed in ``mode``
+    (anything but 1 is single-shot only); a one-line :class:`PlanError` of ``network_binning``
+    otherwise (shared by :class:`CapturePlan` and :class:`polrig.processing.Processor`)."""
+    if isinstance(binning, bool) or not isinstance(binning, int) or binning not in NETWORK_BINNINGS:
+        raise PlanError("network_binning", f"must be one of {', '.join(map(str, NETWORK_BINNINGS))}",
+                        subject=repr(binning), what="network binning")
+    if binning != 1 and mode != "single-shot":
+        raise PlanError("network_binning", NETWORK_BINNING_SINGLE_SHOT_ONLY, subject=str(binning),
+                        what="network binning")
+    return int(binning)
 
 
 # -- parsing command-line style specs ------------------------------------------------------
@@ -201,6 +221,10 @@ class CapturePlan:
     #: frame's: :func:`models.full_resolution.lift` with the detail of ``demosaic``, bilinear
     #: where that is ``superpixel``)
     resolution: str = "superpixel"
+    #: single-shot network binning (:data:`NETWORK_BINNINGS`): 2 runs the networks on the
+    #: analyzer grid binned 2x2 and lifts the answer back (about half the frame time at full
+    #: sensor size; no calibrated sigma: NaN planes). The output grid is ``resolution``'s either way
+    network_binning: int = 1
     #: the result EXR's plane groups, uncertainty precision and compression (:class:`ExrChoice`)
     exr_planes: tuple[str, ...] = RESULT_PLANES
     exr_uncertainty: str = ExrChoice.uncertainty
@@ -241,6 +265,7 @@ class CapturePlan:
         if self.resolution == "full" and self.mode != "single-shot":
             raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
                             what="resolution")
+        check_network_binning(self.network_binning, self.mode)
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
                                           f"states, got {len(self.states_deg)}")

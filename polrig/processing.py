@@ -39,7 +39,7 @@ from polrig.layouts import MosaicLayout
 from polrig.mueller import polarizer_stokes
 from polrig.noise import SensorModel
 from polrig.plan import (FULL_RESOLUTION_SINGLE_SHOT_ONLY, MIRROR_SINGLE_SHOT_ONLY, MODES,
-                         RESOLUTIONS, CapturePlan, ExrChoice, PlanError)
+                         RESOLUTIONS, CapturePlan, ExrChoice, PlanError, check_network_binning)
 from polrig.radiometry import (StateRadiance, adc_scale, analyzer_stack,  # noqa: F401 (re-exported)
                                reference_from_frames, state_radiance)
 from polrig.records import (sensor_model_of, session_frame_geometry,  # noqa: F401 (re-exported)
@@ -278,8 +278,11 @@ class Processor:
     averages (:mod:`models.mirror`; twice the network time, a few per cent lower error).
     ``resolution``: single-shot output at the networks' ``superpixel`` grid or the raw frame's
     (``full``, :func:`models.full_resolution.lift`; a :class:`PlanError` of ``resolution`` with
-    the reference mode). ``device``: where the network runs (``auto``, ``cpu``, ``cuda``;
-    :mod:`models.devices`), a run option, not part of the plan; the provider used is recorded.
+    the reference mode). ``network_binning``: 1, or 2 for the single-shot networks on the
+    analyzer grid binned 2x2 (:func:`models.full_resolution.reconstruct_binned`; about half the
+    frame time at full sensor size, no calibrated sigma; a :class:`PlanError` of
+    ``network_binning`` with the reference mode). ``device``: where the network runs (``auto``,
+    ``cpu``, ``cuda``; :mod:`models.devices`), a run option, not part of the plan; the provider used is recorded.
     ``exr``: the result file's planes, precision and compression (the plan's
     :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
     """
@@ -287,7 +290,7 @@ class Processor:
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
-                 exr: ExrChoice = ExrChoice()):
+                 exr: ExrChoice = ExrChoice(), network_binning: int = 1):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use reference or single-shot")
         if mirror_average and mode != "single-shot":
@@ -298,6 +301,7 @@ class Processor:
         if resolution == "full" and mode != "single-shot":
             raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
                             what="resolution")
+        self.network_binning = check_network_binning(network_binning, mode)
         # single-shot: the installed network, or the one-line "no model installed" error
         self.model = single_shot_model(device) if mode == "single-shot" else None
         self.resolution = resolution
@@ -423,8 +427,8 @@ class Processor:
         the incident state ``(1, 3)``, the layout and the result header's single-shot entries
         (``beyond_calibration_fraction``: the object's fraction whose misfit lies beyond the
         sigma's calibration range, :meth:`models.uncertainty.UncertaintyModel.beyond_fraction`;
-        ``None`` where not known, at full resolution or without a calibrated sigma). ``sigma`` is the
-        model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
+        ``None`` where not known, at full resolution, with network binning or without a
+        calibrated sigma). ``sigma`` is the model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
         against the simulator's truth, which sensor noise does not describe; 0 where the graph
         has no calibration), infinite for a colour with a clipped sample (the magnitude of a
         clipped highlight is unknown); ``sigma_noise`` is 0. The mask marks, as the reference solve does,
@@ -444,7 +448,13 @@ class Processor:
         is lifted to the raw grid with the measured detail of :attr:`output_demosaic`
         (:func:`models.full_resolution.lift`); the ``dark`` and ``saturated`` bits come from that
         full-resolution stack, the intrinsics are carried to the superpixel grid the networks
-        see, and ``sigma`` is NaN (the model's uncertainty is calibrated on its own grid only)."""
+        see, and ``sigma`` is NaN (the model's uncertainty is calibrated on its own grid only).
+
+        ``network_binning=2``: the networks run on the analyzer grid binned 2x2 and their answer
+        is lifted back to that grid with its measured detail
+        (:func:`models.full_resolution.reconstruct_binned`: the intrinsics rescaled, the mask
+        binned), then on to the raw grid at full resolution as above; ``sigma`` is NaN (calibrated
+        on the unbinned grid only)."""
         from polrig.reference import DARK, MIN_SNR, SATURATED
 
         first = cf.first
@@ -466,10 +476,17 @@ class Processor:
             geometry = {"intrinsics": self.calibration.intrinsics,
                         "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
         network_input = np.where(valid, measured, np.nan)
-        mueller, aux = self.model.reconstruct(network_input, s_in[0], with_sigma=not full,
-                                              mirror_average=self.mirror_average,
-                                              **single_shot_kwargs(geometry, first,
-                                                                   "superpixel" if full else self.demosaic))
+        kwargs = single_shot_kwargs(geometry, first, "superpixel" if full else self.demosaic)
+        uncalibrated = full or self.network_binning > 1  # no calibrated sigma on this route
+        if self.network_binning > 1:  # the networks on the binned grid, lifted back to this one
+            from models.full_resolution import reconstruct_binned
+
+            mueller, aux = reconstruct_binned(self.model, network_input, s_in[0], self.network_binning,
+                                              with_sigma=False, mirror_average=self.mirror_average,
+                                              **kwargs)
+        else:
+            mueller, aux = self.model.reconstruct(network_input, s_in[0], with_sigma=not full,
+                                                  mirror_average=self.mirror_average, **kwargs)
         obj = np.asarray(aux["mask"], bool)
         if full:  # the measured detail of the full-resolution demosaic (models/full_resolution.py)
             from models.full_resolution import lift
@@ -487,14 +504,14 @@ class Processor:
         clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
         mask = (np.where(dark, DARK, 0) | np.where(clipped, SATURATED, 0)).astype(np.uint8)
         zeros = np.zeros((c, h, w), np.float32)
-        if full:  # not calibrated at this resolution: NaN planes (the header says so)
+        if uncalibrated:  # not calibrated at this resolution or binning: NaN planes (the header says so)
             sigma = np.broadcast_to(np.float32(np.nan), mueller.shape)
         else:
             sigma = np.asarray(aux.get("sigma", np.zeros_like(mueller)), np.float32)
             sigma = np.where(clipped[:, None, None], np.float32(np.inf), sigma)
         result = ReferenceResult(mueller.astype(np.float32, copy=False), sigma, zeros, mask, float("nan"),
                                  zeros + np.inf, np.zeros((c, h, w), np.uint16),
-                                 sigma_noise=(np.broadcast_to(np.float32(0), mueller.shape) if full
+                                 sigma_noise=(np.broadcast_to(np.float32(0), mueller.shape) if uncalibrated
                                               else np.zeros_like(sigma)))
         beyond = aux.get("beyond_calibration")
         fraction = None if beyond is None else self.model.uncertainty.beyond_fraction(beyond, aux["mask"])
@@ -510,17 +527,23 @@ class Processor:
 
     def single_shot_header(self, meta: dict[str, Any]) -> None:
         """Add the single-shot settings to a result EXR's header ``meta`` (in place): the
-        resolution, the execution provider that ran the network, and at full resolution the
-        grids (networks on ``superpixel``, detail from :attr:`output_demosaic`) and the
-        ``sigma`` planes' meaning there (NaN: not calibrated at full resolution)."""
+        resolution, the network binning, the execution provider that ran the network, at full
+        resolution the grids (networks on ``superpixel``, detail from :attr:`output_demosaic`),
+        and where either is set the ``sigma`` planes' meaning there (NaN: not calibrated)."""
         meta["resolution"] = self.resolution
+        meta["network_binning"] = self.network_binning
         meta["execution_provider"] = self.model.provider
         if self.resolution == "full":
             meta["network_demosaic"] = "superpixel"
             meta["output_demosaic"] = self.output_demosaic
+        why = [w for w, on in (("at full resolution", self.resolution == "full"),
+                               (f"with network binning {self.network_binning}",
+                                self.network_binning > 1)) if on]
+        if why:
             meta["planes"] = dict(meta.get("planes", {}), **{
-                "sigma.M{rc}": "NaN: the single-shot model's uncertainty is calibrated at the "
-                               "networks' (superpixel) resolution only, not at full resolution",
+                "sigma.M{rc}": "NaN: the single-shot model's uncertainty is calibrated on the "
+                               "networks' unbinned (superpixel) grid only, not "
+                               + " or ".join(why),
                 "sigma_noise.M{rc}": "0 (not modelled for the single-shot method)"})
 
     @staticmethod
@@ -555,7 +578,7 @@ def make_processor(plan, calibration: Calibration, sensor_model: SensorModel,
                    device: str = "auto") -> Processor:
     """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
-                     plan.resolution, device, plan.exr)
+                     plan.resolution, device, plan.exr, plan.network_binning)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -579,13 +602,15 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       progress: Callable[[int, dict[str, Any] | None], None] | None = None,
                       on_failed: Callable[[int, str], None] | None = None,
                       resolution: str | None = None, device: str = "auto",
-                      exr: Mapping[str, Any] | None = None) -> str:
+                      exr: Mapping[str, Any] | None = None,
+                      network_binning: int | None = None) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
     ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
-    stays single-shot, else ``superpixel``) is recorded with the revision; ``device`` (where
-    the network runs) is not a setting of the result: the provider used is in its header.
+    stays single-shot, else ``superpixel``) and ``network_binning`` (single-shot, 1 or 2; default:
+    the session's where it stays single-shot, else 1) are recorded with the revision; ``device``
+    (where the network runs) is not a setting of the result: the provider used is in its header.
     ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
     ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
     revision.
@@ -603,7 +628,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         if not was_locked:
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed, resolution, device, exr)
+                          progress, on_failed, resolution, device, exr, network_binning)
     finally:
         if not was_locked:
             session.unlock()
@@ -612,13 +637,13 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
 def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   mirror_average: bool | None, calibration: Calibration | None,
                   resolution: str | None = None, device: str = "auto",
-                  exr: Mapping[str, Any] | None = None
+                  exr: Mapping[str, Any] | None = None, network_binning: int | None = None
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
     revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
-    ``calibration_id``, ``exr_planes``, ``exr_uncertainty``, ``exr_compression``; ``None``
-    arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
+    ``network_binning``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
+    ``exr_compression``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
     take the session's), its :class:`Processor` (on
     ``device``) and the indices of the complete captures to process. Shared by
     :func:`reprocess_session` and :mod:`polrig.cluster`."""
@@ -629,6 +654,8 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         mirror_average = bool(plan.get("mirror_average", False)) and mode == "single-shot"
     if resolution is None:  # the session's where it stays single-shot
         resolution = plan.get("resolution", "superpixel") if mode == "single-shot" else "superpixel"
+    if network_binning is None:  # the session's where it stays single-shot
+        network_binning = plan.get("network_binning", 1) if mode == "single-shot" else 1
     choice = dataclasses.replace(ExrChoice.of_plan(plan),
                                  **{k: v for k, v in (exr or {}).items() if v is not None})
     calibration = calibration or nominal_calibration()
@@ -637,7 +664,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device, choice)
+                          resolution, device, choice, network_binning)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
@@ -650,15 +677,17 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                               f"capture again with the reference method)")
         validate_states(calibration.incident_stokes(acquired))
     return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
-             "resolution": resolution, "calibration_id": calibration.id,
+             "resolution": resolution, "network_binning": processor.network_binning,
+             "calibration_id": calibration.id,
              "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
              "exr_compression": choice.compression}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
-               progress, on_failed, resolution=None, device="auto", exr=None) -> str:
+               progress, on_failed, resolution=None, device="auto", exr=None,
+               network_binning=None) -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
-                                              calibration, resolution, device, exr)
+                                              calibration, resolution, device, exr, network_binning)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

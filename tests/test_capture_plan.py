@@ -87,6 +87,41 @@ def test_single_shot_resolution_is_planned_and_older_plans_read_as_superpixel():
             == planned_bytes(CapturePlan((0,), mode="single-shot", demosaic="bilinear"), 1, 64, 64, 3, (4, 4)))
 
 
+def test_network_binning_is_planned_checked_and_older_plans_read_as_1():
+    """``network_binning`` (issue 22's faster single-shot mode): the plan's values are the
+    runtime's, it round-trips, a plan without it (a session from before it existed) reads back
+    as 1, bad values and the reference method are one-line errors naming the field, and the
+    result file's size does not change (the output grid is ``resolution``'s either way)."""
+    from models.full_resolution import BINNINGS
+    from polrig.plan import NETWORK_BINNINGS
+
+    assert NETWORK_BINNINGS == BINNINGS
+    from polrig.cli import build_parser  # the options' choices are the plan's (not imported there)
+
+    sub = next(a for a in build_parser()._actions if a.choices and "capture" in a.choices).choices
+    for command in ("capture", "reconstruct"):
+        [opt] = [a for a in sub[command]._actions if "--network-binning" in a.option_strings]
+        assert tuple(opt.choices) == NETWORK_BINNINGS and opt.default is None
+    binned = CapturePlan((0,), mode="single-shot", network_binning=2)
+    assert CapturePlan.from_json(binned.to_json()) == binned and binned.to_json()["network_binning"] == 2
+    old = CapturePlan((0,), mode="single-shot").to_json()
+    del old["network_binning"]  # a session written before the field existed
+    assert CapturePlan.from_json(old).network_binning == 1
+    for kw, text in [({"network_binning": 2}, "network binning 2: network binning applies to the "
+                                              "single-shot method only"),
+                     ({"mode": "single-shot", "network_binning": 3}, "network binning 3: must be one of 1, 2"),
+                     ({"mode": "single-shot", "network_binning": True}, "must be one of 1, 2"),
+                     ({"mode": "single-shot", "network_binning": "2"}, "network binning '2': must be one of")]:
+        with pytest.raises(PlanError, match=text) as e:
+            CapturePlan((0,), **kw)
+        assert e.value.field == "network_binning" and "\n" not in str(e.value)
+    assert CapturePlan((0,), network_binning=1).network_binning == 1  # 1 is every mode's
+    for res in ("superpixel", "full"):
+        one = CapturePlan((0,), mode="single-shot", resolution=res)
+        two = CapturePlan((0,), mode="single-shot", resolution=res, network_binning=2)
+        assert planned_bytes(two, 2, 64, 64, 3, (4, 4)) == planned_bytes(one, 2, 64, 64, 3, (4, 4))
+
+
 def test_planned_bytes_grows_with_everything():
     p = CapturePlan((0, 90))
     base = planned_bytes(p, 2, 64, 64, 1)

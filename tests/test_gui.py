@@ -367,6 +367,7 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.live.mirror_average.setChecked(True)
     w.capture.resolution.setCurrentText("full")
     w.capture.device.setCurrentText("cpu")
+    w.capture.binning.setCurrentIndex(w.capture.binning.findData(2))
     w.live.resolution.setCurrentText("full")
     w.live.binning.setCurrentIndex(w.live.binning.findData(2))
     w.close()
@@ -380,6 +381,12 @@ def test_settings_are_remembered(qtbot, tmp_path):
     assert w2.capture.request().mirror_average
     assert w2.capture.resolution.isEnabled() and w2.capture.request().resolution == "full"
     assert w2.capture.request().device == "cpu"
+    assert w2.capture.binning.isEnabled() and w2.capture.request().network_binning == 2
+    assert w2.capture.request().plan().network_binning == 2
+    # the reference method runs no network: the combo is off and the request asks for 1
+    w2.capture.mode.setCurrentText("reference")
+    assert not w2.capture.binning.isEnabled() and w2.capture.request().network_binning == 1
+    w2.capture.mode.setCurrentText("single-shot")
     assert w2.live_worker.settings.resolution == "full"
     assert w2.live_worker.settings.network_binning == 2
     assert w2.capture.out.text() == str(tmp_path / "x")

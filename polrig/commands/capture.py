@@ -56,6 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "full (the raw frame's: the networks' answer with the measured detail of a "
                         "full-resolution demosaic, --demosaic bilinear unless newton is given; no "
                         "sigma at full resolution; models/full_resolution.py)")
+    add_binning_option(p, "default 1")
     add_exr_options(p, "default: mueller,sigma,sigma_noise,mask,residual (all)",
                     "default half", "default zip")  # polrig.plan.ExrChoice (not imported: start-up)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
@@ -70,6 +71,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="continue the session in --out where it stopped")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
+    """``--network-binning {1,2}``: the single-shot networks on the analyzer grid or on that
+    grid binned 2x2 (:attr:`polrig.plan.CapturePlan.network_binning`; ``capture`` and
+    ``reconstruct`` share it)."""
+    p.add_argument("--network-binning", type=int, choices=(1, 2), default=None,  # plan.NETWORK_BINNINGS
+                   help="single-shot: 1 runs the networks on the analyzer grid; 2 on that grid binned "
+                        "2x2, the answer lifted back with the grid's measured detail: about half the "
+                        "frame time at full sensor size for -0.56..+0.03 dB on held-out sets "
+                        "(models/MODEL_CARD.md, 'Speed, warm and cold'); the output grid is the same, "
+                        f"but there is no sigma (NaN planes) ({default})")
 
 
 def add_exr_options(p: argparse.ArgumentParser, planes_default: str, unc_default: str,
@@ -102,6 +115,7 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "frames_per_state": "--frames", "exposures_us": "--exposure",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "resolution": "--resolution",
+         "network_binning": "--network-binning",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
          "exr_compression": "--exr-compression",
          "calibration": "--calibration", "out": "--out"}
@@ -150,6 +164,7 @@ def build_request(args: argparse.Namespace):
             demosaic=args.demosaic,
             mirror_average=args.mirror_average,
             resolution=args.resolution,
+            network_binning=args.network_binning,
             exr_planes=exr_planes_option(args.exr_planes),
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,

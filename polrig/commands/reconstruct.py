@@ -26,7 +26,7 @@ from polrig.argcheck import int_range
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polrig.commands.capture import add_exr_options
+    from polrig.commands.capture import add_binning_option, add_exr_options
 
     p = sub.add_parser(
         "reconstruct", help="re-process sessions' raw frames (new calibration/model/demosaic)",
@@ -48,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
                    help="single-shot output resolution: superpixel or full (the raw frame's; "
                         "default: the session's)")
+    add_binning_option(p, "default: the session's where it stays single-shot, else 1")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
                    help="where the single-shot network runs: auto (default), cpu or cuda (refused "
                         "when unavailable); the provider used is recorded in each result's header")
@@ -119,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
             batches = cluster.reconstruct(
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
+                network_binning=args.network_binning,
                 device=args.device or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},

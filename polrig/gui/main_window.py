@@ -133,6 +133,7 @@ class MainWindow(QMainWindow):
         b.bind("capture/mode", st.combo_binding(cp.mode))
         b.bind("capture/mirror_average", st.bool_binding(cp.mirror_average))
         b.bind("capture/resolution", st.combo_binding(cp.resolution))
+        b.bind("capture/network_binning", st.combo_binding(cp.binning))
         b.bind("capture/device", st.combo_binding(cp.device))
         b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
         b.bind("capture/frames", st.int_binding(cp.frames))
