@@ -527,11 +527,12 @@ class Processor:
 
     def single_shot_header(self, meta: dict[str, Any]) -> None:
         """Add the single-shot settings to a result EXR's header ``meta`` (in place): the
-        resolution, the network binning, the execution provider that ran the network, at full
+        resolution, the network binning (where it is not 1), the execution provider that ran the network, at full
         resolution the grids (networks on ``superpixel``, detail from :attr:`output_demosaic`),
         and where either is set the ``sigma`` planes' meaning there (NaN: not calibrated)."""
         meta["resolution"] = self.resolution
-        meta["network_binning"] = self.network_binning
+        if self.network_binning > 1:  # absent: 1 (a binning-1 result is byte-identical to one from before the option)
+            meta["network_binning"] = self.network_binning
         meta["execution_provider"] = self.model.provider
         if self.resolution == "full":
             meta["network_demosaic"] = "superpixel"
