@@ -148,11 +148,13 @@ def sample_seconds(counts: Sequence[int], seconds: Sequence[float]) -> tuple[flo
     """``(seconds per sample, start-up seconds)`` of a ``polrig sim dataset`` process from two
     processes run together, of ``counts`` samples that took ``seconds`` each: the slope and the
     intercept of the line through the two points (a slope of at least 1 ms; a start-up of at
-    least 0; the larger one alone, start-up 0, where the slope is not positive)."""
+    least 0). Where the slope is not positive (timing noise), the larger probe's seconds per
+    sample with no start-up: an upper bound."""
     (c0, c1), (s0, s1) = counts, seconds
     per = (s1 - s0) / (c1 - c0) if c1 != c0 else 0.0
     if per <= 0:
-        return max(max(s0, s1) / max(c0, c1), 1e-3), 0.0
+        big = max(range(2), key=lambda k: counts[k])
+        return max(seconds[big] / counts[big], 1e-3), 0.0
     per = max(per, 1e-3)
     return per, max(s0 - per * c0, 0.0)
 
