@@ -120,19 +120,31 @@ def test_planner_spends_the_budget_in_the_papers_shares_when_the_estimates_hold(
 
 def test_a_stage_that_finishes_early_leaves_its_time_to_the_next_ones():
     """The first GPU run's failure: a probe dominated by warm-up made PIPNet look 25 times
-    slower than it was. The re-plan at each stage hands the unused time on and corrects the
-    next estimates by what the finished stages really took."""
+    slower than it was, and its unused time was lost. The re-plan at each stage hands it on."""
     per_sample = {"pipnet": 1e-3, "pmmnet": 2e-3, "direct": 1e-3}
     clock = FakeClock()
     planner = paper_scale.StagePlanner(per_sample, 1000, clock.t + 600.0, clock=clock)
     first = planner.initial()
-    real = {k: 0.5 * v * 1000 for k, v in per_sample.items()}  # every epoch takes half the estimate
+    real = dict(pipnet=0.5, pmmnet=2.0, direct=1.0)  # PIPNet's epochs take half the estimate
     done = run_planner(planner, clock, real)
     assert done["pipnet"] == first["pipnet"] == 200
-    assert done["pmmnet"] > 1.8 * first["pmmnet"]  # the time PIPNet left, and epochs known to be shorter
-    assert planner.decisions[1]["correction"] == pytest.approx(0.5)
     assert planner.decisions[1]["seconds_left"] == pytest.approx(500.0)
+    assert planner.decisions[1]["correction"] == 1.0  # faster is not assumed of the next stages
+    assert done["pmmnet"] == 500 // 4 // 2 > first["pmmnet"] == 50  # a quarter of the 500 s left
+    assert done["direct"] == 500 - 2 * done["pmmnet"] > first["direct"] == 300  # and the rest
     assert planner.deadline - clock.t < real["direct"] + 1e-9  # nothing left unused but a part of an epoch
+
+
+def test_a_stage_that_runs_slower_makes_the_next_ones_planned_cautiously():
+    per_sample = dict.fromkeys(paper_scale.STAGE_SHARES, 1e-3)
+    clock = FakeClock()
+    planner = paper_scale.StagePlanner(per_sample, 1000, clock.t + 600.0, clock=clock)
+    done = run_planner(planner, clock, dict.fromkeys(per_sample, 1.5))  # every epoch 1.5 times the estimate
+    assert done["pipnet"] == 200
+    assert planner.decisions[1]["correction"] == pytest.approx(1.5)
+    assert planner.decisions[1]["seconds_left"] == pytest.approx(300.0)
+    assert done["pmmnet"] == int(300 / 4 / 1.5) and done["direct"] == int(225 / 1.5)
+    assert clock.t <= planner.deadline + 1e-9  # only PIPNet's own overrun, which nothing could foresee, is late
 
 
 def test_a_stage_that_overruns_takes_from_the_next_ones_but_each_keeps_an_epoch():
@@ -150,7 +162,8 @@ def test_estimate_correction_is_the_ratio_of_the_finished_stages_sums():
     assert paper_scale.estimate_correction(est, []) == 1.0
     assert paper_scale.estimate_correction(est, [("pipnet", 10, 30.0)]) == pytest.approx(1.5)
     assert paper_scale.estimate_correction(est, [("pipnet", 10, 10.0), ("pmmnet", 5, 50.0)]) == pytest.approx(1.5)
-    assert paper_scale.estimate_correction(est, [("pipnet", 10, 0.1)]) == 0.25
+    assert paper_scale.estimate_correction(est, [("pipnet", 10, 10.0)]) == 1.0  # faster: not assumed of the next
+    assert paper_scale.estimate_correction(est, [("pipnet", 10, 0.1)]) == 1.0
     assert paper_scale.estimate_correction(est, [("pipnet", 10, 1e4)]) == 4.0
 
 
