@@ -27,7 +27,10 @@ One run, in order, each phase planned inside the budget ``B``:
    epoch (the probe's seconds per sample-epoch times the samples, plus the checkpoint and log
    written after every epoch, times how much longer the finished stages took than so
    estimated, if they did), so whatever a stage did not use goes to the next ones and an
-   underestimate is corrected at the next stage. :data:`EXPORT_RESERVE_S` is kept for the export.
+   underestimate is corrected at the next stage. :data:`EXPORT_RESERVE_S` is kept for the
+   export. Where the time cannot give every stage :data:`MIN_EPOCHS` on all the samples, the
+   first samples that fit are used (a data share too large for the machine, e.g. training on
+   the CPU).
 3. **Export and check** (inside :func:`models.train.train`: ONNX, onnxruntime against PyTorch),
    then **evaluation** (until ``B`` less the margin) of the new graphs and of the shipped ones
    on both held-out sets (:func:`evaluate_against_shipped`) and the verdict: ship only if the
@@ -101,6 +104,11 @@ EXPORT_RESERVE_S = 10.0
 #: Training-time ratios of the stages (PIPNet : PMMNet as the paper's 40 : 20 epochs; the direct
 #: baseline as much as both), in the order :func:`models.train.train` runs them.
 STAGE_SHARES = {"pipnet": 2 / 6, "pmmnet": 1 / 6, "direct": 3 / 6}
+#: The fewest epochs a stage is planned on all the training samples: a tenth of the paper's 40 +
+#: 20 (the baseline as PMMNet), so that the learning rate decays (models.train.lr_at) and the
+#: samples are seen more than once. Where the budget cannot give them, the training uses the
+#: first samples that fit (:func:`samples_that_fit`; the data share was too large for the machine).
+MIN_EPOCHS = {"pipnet": 4, "pmmnet": 2, "direct": 2}
 #: The training probe: this many epochs of every stage on this many batches; the fastest epoch
 #: after the first is its time (the first pays the warm-up; the fastest is the one another job
 #: on the machine disturbed least).
@@ -307,6 +315,16 @@ class StagePlanner:
         return epochs
 
 
+def samples_that_fit(sample_epoch_s: Mapping[str, float], epoch_overhead_s: float, seconds: float,
+                     min_epochs: Mapping[str, int] = MIN_EPOCHS) -> int:
+    """The most samples on which every stage gets its ``min_epochs`` within its
+    :data:`STAGE_SHARES` share of ``seconds``, an epoch taking ``sample_epoch_s[stage]`` per
+    sample plus ``epoch_overhead_s`` (at least 0)."""
+    fit = min((STAGE_SHARES[k] * seconds / min_epochs[k] - epoch_overhead_s) / max(sample_epoch_s[k], 1e-12)
+              for k in STAGE_SHARES)
+    return max(int(fit), 0)
+
+
 def probe_epoch_seconds(work: pathlib.Path, base, samples: int,
                         clock: Clock = time.perf_counter) -> tuple[dict[str, float], float, int]:
     """``(seconds per sample-epoch of each stage, seconds per epoch besides, probe samples)``:
@@ -341,8 +359,9 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     """Phase 2 (module docstring): probe, train with a :class:`StagePlanner` (epochs ending
     :data:`EXPORT_RESERVE_S` before ``seconds`` are up), export into ``work/run``. ``epochs``:
     that many epochs of every stage instead (no probe, no plan). Returns the epochs, the probe,
-    the plan (each stage's decision and its wall seconds, the last one's with the export) and
-    the seconds taken."""
+    the samples used (fewer than made where :func:`samples_that_fit` says so), the plan (each
+    stage's decision and its wall seconds, the last one's with the export) and the seconds
+    taken."""
     from models.train import TrainConfig, train
 
     t0 = clock()
@@ -352,11 +371,18 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     planner = None
     if epochs is None:
         sample_epoch_s, overhead, probe_n = probe_epoch_seconds(work, base, n, clock)
-        planner = StagePlanner(sample_epoch_s, n, t0 + seconds - EXPORT_RESERVE_S, epoch_overhead_s=overhead,
-                               clock=clock, echo=echo)
+        deadline = t0 + seconds - EXPORT_RESERVE_S
+        fit = samples_that_fit(sample_epoch_s, overhead, deadline - clock())
+        if fit < n:  # at least a batch, or all of them where fewer
+            base = dataclasses.replace(base, limit=max(fit, min(n, base.batch_size)))
+            echo(f"training: {n} samples are too many for {', '.join(f'{v} {k}' for k, v in MIN_EPOCHS.items())} "
+                 f"epochs in the budget; the first {base.limit} are used (a smaller --data-share fits this machine)")
+            n = base.limit
+        planner = StagePlanner(sample_epoch_s, n, deadline, epoch_overhead_s=overhead, clock=clock, echo=echo)
         first = planner.initial()
         record["probe"] = {"samples": probe_n, "epochs": PROBE_EPOCHS, "seconds": clock() - t0,
                            "seconds_per_sample_epoch": sample_epoch_s, "epoch_overhead_s": overhead}
+        record["samples_used"] = n
         echo(f"training: {planner.deadline - clock():.0f} s for the epochs on {n} samples; probe (warm epoch): "
              + ", ".join(f"{k} {1e3 * v:.2f} ms" for k, v in sample_epoch_s.items())
              + f" per sample-epoch, {1e3 * overhead:.0f} ms per epoch besides; plan "
@@ -370,7 +396,8 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
         end = clock()
         record["plan"] = [dict({k: v for k, v in d.items() if k != "at"}, wall_s=wall)
                           for d, (_, _, wall) in zip(planner.decisions, planner.finished(end))]
-        echo(f"training: done with the export {t0 + seconds - end:.1f} s before its end")
+        late = end - (t0 + seconds)
+        echo(f"training: done with the export {abs(late):.1f} s {'after' if late > 0 else 'before'} its end")
     return {"epochs": done, **record, "epoch_seconds": summary["train_seconds"], "summary": summary,
             "seconds": clock() - t0}
 

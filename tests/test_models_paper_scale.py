@@ -312,3 +312,17 @@ def test_a_planned_training_probes_then_plans_every_stage(tmp_path):
     assert probe["samples"] == 6 and probe["epoch_overhead_s"] >= 0
     assert all(v > 0 for v in probe["seconds_per_sample_epoch"].values())
     assert (tmp_path / "run" / "weights" / "single_shot.onnx").is_file()
+
+
+def test_samples_that_fit_give_every_stage_its_fewest_epochs():
+    per_sample = {"pipnet": 1e-3, "pmmnet": 2e-3, "direct": 1e-3}
+    n = paper_scale.samples_that_fit(per_sample, 0.5, 600.0)
+    # PMMNet binds: its 100 s share in MIN_EPOCHS epochs of 0.5 s + n * 2 ms
+    assert n == int((600 / 6 / paper_scale.MIN_EPOCHS["pmmnet"] - 0.5) / 2e-3)
+    clock = FakeClock()
+    planner = paper_scale.StagePlanner(per_sample, n, clock.t + 600.0, epoch_overhead_s=0.5, clock=clock)
+    plan = planner.initial()
+    assert all(plan[k] >= paper_scale.MIN_EPOCHS[k] for k in plan)
+    planner = paper_scale.StagePlanner(per_sample, n + 100, clock.t + 600.0, epoch_overhead_s=0.5, clock=clock)
+    assert planner.initial()["pmmnet"] < paper_scale.MIN_EPOCHS["pmmnet"]
+    assert paper_scale.samples_that_fit(per_sample, 100.0, 600.0) == 0
