@@ -5,14 +5,12 @@
 One run, in order, each phase planned inside the budget ``B``:
 
 1. **Data** (``--data-share``, default :data:`DATA_SHARE` of ``B``): ``polrig sim dataset
-   --no-compress`` in one process per CPU core (``--jobs``), each its own seed, its shards moved
-   into one training set (no copy: :func:`merge_parts`); two held-out sets as in
-   ``models/MODEL_CARD.md``: unseen shapes (``--holdout``) and new scenes of the training shapes
-   (another seed), made alongside. Unless ``--train-samples`` gives it, the number of training
-   samples comes from two probe processes started together, of 1 and 3 samples: their
-   difference is the seconds per sample, the rest a process's start-up
-   (:func:`sample_seconds`, :func:`plan_train_samples`); the probes' samples are part of the
-   training set.
+   --no-compress`` in one process per CPU core (``--jobs``), each its own seed, making samples
+   until the data share is up (then stopped; the shards they finished are kept: each is
+   written whole and renamed into place), unless ``--train-samples`` gives the count; their
+   shards moved into one training set (no copy: :func:`merge_parts`). Two held-out sets as in
+   ``models/MODEL_CARD.md``, unseen shapes (``--holdout``) and new scenes of the training shapes
+   (another seed), are made alongside, whole.
 2. **Training** (what the data left, less the evaluation's reserve :data:`EVAL_SHARE` of ``B``
    and the final margin :func:`margin_seconds`): PIPNet, then PMMNet, then the direct
    Stokes->MM baseline (:func:`models.train.train`). The stages share the time as
@@ -44,7 +42,9 @@ One run, in order, each phase planned inside the budget ``B``:
 How the shares were chosen. The first GPU run (NVIDIA H200, 16 CPU cores, torch 2.11+cu130,
 ``--budget-min 7.5 --size 256``, width 16, with the planner before this one) made 905 training
 samples in 109 s (at most 0.12 s of wall time per sample on 16 processes: its data phase also
-decompressed and rewrote the parts into one set, which moving uncompressed shards now avoids);
+decompressed and rewrote the parts into one set, which moving uncompressed shards now avoids,
+and its sample count came from a one-sample probe that counted a process's start-up as a
+sample's cost, which stopping the processes at the share's end now avoids);
 a warm epoch on those samples took 1.0 s for PIPNet, 1.9 s for PMMNet and 0.75 s for the
 baseline (1.1, 2.1 and 0.83 ms per sample-epoch; ``log.csv``); the evaluation of all seven
 methods took 244 s (1.9 s per sample and graph set, 32 samples, two sets, new and shipped).
@@ -114,8 +114,10 @@ MIN_EPOCHS = {"pipnet": 4, "pmmnet": 2, "direct": 2}
 #: on the machine disturbed least).
 PROBE_EPOCHS = 3
 PROBE_BATCHES = 4
-#: The data probe: two processes of this many samples each, started together.
-DATA_PROBE_COUNTS = (1, 3)
+#: Without ``--train-samples`` each data process is asked for this many samples and stopped at
+#: the data share's end; shards of this many samples (a stop loses at most one shard's work).
+OPEN_COUNT = 100_000
+OPEN_SHARD_SIZE = 2
 #: What the verdict's evaluation scores (:func:`models.evaluate.evaluate` methods), and the
 #: fewest scored samples per held-out set whatever the time left.
 EVAL_METHODS = ("full", "direct")
@@ -124,84 +126,77 @@ DEFAULT_WIDTH = 16
 #: The output folder must stay small enough to bring back from a lent machine.
 MAX_OUT_BYTES = 16 * 2**20
 HOLDOUT_SETS = {"unseen_shapes": True, "new_scenes": False}  # name -> --holdout
-#: Seeds: the training parts take ``seed * 1000 + part``, the data probes ``seed * 1000 + 998``
-#: and ``+ 999``; the held-out sets their own.
+#: Seeds: the training parts take ``seed * 1000 + part``; the held-out sets their own.
 HOLDOUT_SEEDS = {"unseen_shapes": 900_001, "new_scenes": 900_002}
-PROBE_SEED_OFFSETS = (998, 999)
 
 Clock = Callable[[], float]
 
 
 # ----------------------------------------------------------------------------- phase 1: data
 
-def _sim_dataset(out: pathlib.Path, count: int, size: int, seed: int, holdout: bool) -> subprocess.Popen:
+def _sim_dataset(out: pathlib.Path, count: int, size: int, seed: int, holdout: bool,
+                 shard_size: int = 16) -> subprocess.Popen:
     """``polrig sim dataset`` (uncompressed shards) in a child process (its own CPU core)."""
     argv = [sys.executable, "-m", "polrig.cli", "sim", "dataset", "--count", str(count), "--size", str(size),
-            "--seed", str(seed), "--no-compress", "--quiet", "--out", str(out)] + (["--holdout"] if holdout else [])
+            "--seed", str(seed), "--shard-size", str(shard_size), "--no-compress", "--quiet",
+            "--out", str(out)] + (["--holdout"] if holdout else [])
     return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-def _wait(procs: Sequence[subprocess.Popen], clock: Clock = time.perf_counter) -> list[float]:
-    """Wait for every process; returns when each ended (``clock`` values, polled every 10 ms).
-    :class:`RuntimeError` with the last line of the first failure's stderr."""
-    ended: list[float | None] = [None] * len(procs)
-    while any(e is None for e in ended):
-        for k, p in enumerate(procs):
-            if ended[k] is None and p.poll() is not None:
-                ended[k] = clock()
-        if any(e is None for e in ended):
-            time.sleep(0.01)
+def _wait(procs: Sequence[subprocess.Popen], deadline: float | None = None,
+          clock: Clock = time.perf_counter) -> int:
+    """Wait for every process, or until ``deadline`` (a ``clock`` value), when the ones still
+    running are stopped (their finished shards stay: each is written whole and renamed into
+    place). Returns how many were stopped. :class:`RuntimeError` with the last line of the first
+    failure's stderr."""
+    while deadline is not None and any(p.poll() is None for p in procs) and clock() < deadline:
+        time.sleep(0.02)
+    stopped = [p for p in procs if p.poll() is None] if deadline is not None else []
+    for p in stopped:
+        p.terminate()
     for p in procs:
         _, err = p.communicate()
-        if p.returncode:
+        if p.returncode and p not in stopped:
             last = (err or "").strip().splitlines()[-1:] or [f"exit status {p.returncode}"]
             raise RuntimeError(f"polrig sim dataset failed: {last[0]}")
-    return [float(e) for e in ended]
+    return len(stopped)
 
 
-def sample_seconds(counts: Sequence[int], seconds: Sequence[float]) -> tuple[float, float]:
-    """``(seconds per sample, start-up seconds)`` of a ``polrig sim dataset`` process from two
-    processes run together, of ``counts`` samples that took ``seconds`` each: the slope and the
-    intercept of the line through the two points (a slope of at least 1 ms; a start-up of at
-    least 0). Where the slope is not positive (timing noise), the larger probe's seconds per
-    sample with no start-up: an upper bound."""
-    (c0, c1), (s0, s1) = counts, seconds
-    per = (s1 - s0) / (c1 - c0) if c1 != c0 else 0.0
-    if per <= 0:
-        big = max(range(2), key=lambda k: counts[k])
-        return max(seconds[big] / counts[big], 1e-3), 0.0
-    per = max(per, 1e-3)
-    return per, max(s0 - per * c0, 0.0)
+def shard_samples(path: pathlib.Path) -> int:
+    """Samples in a dataset shard, from its ``analyzer`` array's header (nothing else read)."""
+    import zipfile
 
+    import numpy as np
 
-def plan_train_samples(seconds: float, jobs: int, per_sample: float, startup: float, busy: float = 0.0) -> int:
-    """Training samples ``jobs`` processes make in ``seconds``: each pays ``startup`` once, then
-    ``per_sample`` a sample; ``busy`` core-seconds are taken by other work meanwhile (the
-    held-out sets still being made). At least 0."""
-    core_seconds = jobs * (seconds - startup) - busy
-    return max(0, int(core_seconds / per_sample))
+    with zipfile.ZipFile(path) as z, z.open("analyzer.npy") as f:
+        major, _ = np.lib.format.read_magic(f)
+        read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+        return int(read(f)[0][0])
 
 
 def merge_parts(parts: Sequence[pathlib.Path], out: pathlib.Path) -> int:
     """One dataset folder ``out`` from ``parts`` (``polrig sim dataset`` folders of the same size,
-    different seeds): their shard files moved (not copied) into ``out`` as
-    ``shard-PPP-SSSSS.npz``, so :func:`models.data.load_dataset` (shards sorted by name) reads
-    the parts' samples in order; the manifest is the first part's with the total count, the new
-    shard names, the union of the families present and the parts' seeds. Returns the count."""
+    different seeds, each possibly stopped before its count): the shard files they hold moved
+    (not copied) into ``out`` as ``shard-PPP-SSSSS.npz``, so :func:`models.data.load_dataset`
+    (shards sorted by name) reads the parts' samples in order; the manifest is the first part's
+    with the samples there are, the new shard names, the union of the families present and the
+    parts' seeds. Parts with no manifest (stopped while starting) hold nothing. Returns the count."""
     from models.data import read_manifest
 
     out.mkdir(parents=True, exist_ok=True)
+    parts = [p for p in parts if (p / "manifest.json").is_file()]
     manifests = [read_manifest(p) for p in parts]
     names: list[str] = []
+    count = 0
     for k, part in enumerate(parts):
         for j, shard in enumerate(sorted(part.glob("shard-*.npz"))):
             names.append(f"shard-{k:03d}-{j:05d}.npz")
+            count += shard_samples(shard)
             shard.rename(out / names[-1])
     families: list = []
     for m in manifests:
         families += [f for f in m.get("families_present") or [] if f not in families]
-    count = sum(int(m["count"]) for m in manifests)
-    manifest = dict(manifests[0], count=count, n_shards=len(names), shards=names,
+    manifest = dict(manifests[0] if manifests else {}, count=count, n_shards=len(names), shards=names,
                     merged_seeds=[m.get("seed") for m in manifests])
     if families:
         manifest["families_present"] = families
@@ -210,40 +205,37 @@ def merge_parts(parts: Sequence[pathlib.Path], out: pathlib.Path) -> int:
 
 
 def generate_data(work: pathlib.Path, *, size: int, seconds: float, jobs: int, seed: int,
-                  train_samples: int | None, holdout_samples: int, echo=print) -> dict:
+                  train_samples: int | None, holdout_samples: int, echo=print,
+                  clock: Clock = time.perf_counter) -> dict:
     """Phase 1 (module docstring): the training set ``work/train`` and the held-out sets
-    ``work/<name>``; returns counts, seeds, the probe and seconds."""
-    t0 = time.perf_counter()
+    ``work/<name>``; returns counts, seeds and seconds. Without ``train_samples`` every process
+    makes samples until ``seconds`` are up (shards of :data:`OPEN_SHARD_SIZE`)."""
+    t0 = clock()
     held = [_sim_dataset(work / name, holdout_samples, size, HOLDOUT_SEEDS[name] + seed, flag)
             for name, flag in HOLDOUT_SETS.items()]
-    parts: list[tuple[pathlib.Path, int, int]] = []  # folder, seed, count
-    probe: dict | None = None
     if train_samples is None:
-        probes = [(work / f"train-probe{c}", seed * 1000 + off, c) for c, off in zip(DATA_PROBE_COUNTS, PROBE_SEED_OFFSETS)]
-        ended = _wait([_sim_dataset(d, c, size, s, False) for d, s, c in probes])
-        per, startup = sample_seconds(DATA_PROBE_COUNTS, [e - t0 for e in ended])
-        now = time.perf_counter() - t0
-        held_left = sum(max(startup + holdout_samples * per - now, 0.0) for _ in held)
-        new = plan_train_samples(seconds - now, jobs, per, startup, held_left)
-        train_samples = sum(DATA_PROBE_COUNTS) + max(new, jobs)
-        parts += probes
-        probe = {"counts": list(DATA_PROBE_COUNTS), "seconds": [e - t0 for e in ended],
-                 "seconds_per_sample": per, "startup_s": startup}
-    made = sum(c for _, _, c in parts)
-    todo = max(train_samples - made, 0)
-    counts = [todo // jobs + (k < todo % jobs) for k in range(jobs)]
-    more = [(work / f"train-part{k}", seed * 1000 + k, c) for k, c in enumerate(counts) if c]
-    _wait([_sim_dataset(d, c, size, s, False) for d, s, c in more] + held)
-    parts += more
-    n = merge_parts([d for d, _, _ in parts], work / "train")
-    for d, _, _ in parts:
-        shutil.rmtree(d)
-    seconds_taken = time.perf_counter() - t0
-    echo(f"data: {n} training samples at {size}x{size} in {len(parts)} processes, "
-         f"{holdout_samples} per held-out set, {seconds_taken:.1f} s")
+        counts, shard_size, deadline = [OPEN_COUNT] * jobs, OPEN_SHARD_SIZE, t0 + seconds
+    else:
+        counts = [train_samples // jobs + (k < train_samples % jobs) for k in range(jobs)]
+        shard_size, deadline = 16, None
+    parts = [(work / f"train-part{k}", seed * 1000 + k) for k, c in enumerate(counts) if c]
+    procs = [_sim_dataset(d, c, size, s, False, shard_size) for (d, s), c in zip(parts, (c for c in counts if c))]
+    stopped = _wait(procs, deadline, clock)
+    made_s = clock() - t0
+    _wait(held)
+    n = merge_parts([d for d, _ in parts], work / "train")
+    for d, _ in parts:
+        if d.exists():  # a process stopped while starting made none
+            shutil.rmtree(d)
+    if n < 1:
+        raise RuntimeError(f"no training sample made in {made_s:.1f} s (a larger --budget-min or --data-share)")
+    seconds_taken = clock() - t0
+    echo(f"data: {n} training samples at {size}x{size} in {len(parts)} processes in {made_s:.1f} s"
+         f"{f' ({stopped} stopped at the data share)' if stopped else ''}, {holdout_samples} per held-out set; "
+         f"{seconds_taken:.1f} s")
     return {"train_samples": n, "holdout_samples": holdout_samples, "size": size, "jobs": jobs,
-            "train_seeds": [s for _, s, _ in parts], "holdout_seeds": {k: v + seed for k, v in HOLDOUT_SEEDS.items()},
-            "probe": probe, "seconds": seconds_taken}
+            "train_seeds": [s for _, s in parts], "holdout_seeds": {k: v + seed for k, v in HOLDOUT_SEEDS.items()},
+            "stopped_at_share": stopped, "train_seconds": made_s, "seconds": seconds_taken}
 
 
 # ----------------------------------------------------------------------------- phase 2: training

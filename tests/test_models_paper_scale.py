@@ -167,14 +167,25 @@ def test_estimate_correction_is_the_ratio_of_the_finished_stages_sums():
     assert paper_scale.estimate_correction(est, [("pipnet", 10, 1e4)]) == 4.0
 
 
-def test_the_data_probe_separates_start_up_from_the_seconds_per_sample():
-    per, startup = paper_scale.sample_seconds((1, 3), (2.2, 5.8))  # 1.8 s a sample, 0.4 s to start
-    assert per == pytest.approx(1.8) and startup == pytest.approx(0.4)
-    assert paper_scale.sample_seconds((1, 3), (3.0, 2.0)) == (pytest.approx(2.0 / 3), 0.0)  # noise: no slope
-    assert paper_scale.sample_seconds((1, 3), (5.0, 6.0))[1] == pytest.approx(4.5)
-    # 16 processes, 100 s: 0.4 s each to start, 32 core-seconds taken by the held-out sets
-    assert paper_scale.plan_train_samples(100.0, 16, 1.8, 0.4, 32.0) == int((16 * 99.6 - 32) / 1.8)
-    assert paper_scale.plan_train_samples(0.1, 16, 1.8, 0.4) == 0
+@pytest.mark.slow
+def test_the_data_processes_make_samples_until_the_share_is_up(tmp_path):
+    """Without a count, every process makes samples until the data share's end and is stopped;
+    the shards it finished are the training set (whole shards only), the held-out sets are
+    made whole."""
+    from models.data import load_dataset
+
+    data = paper_scale.generate_data(tmp_path, size=16, seconds=10.0, jobs=2, seed=0, train_samples=None,
+                                     holdout_samples=3, echo=lambda s: None)
+    assert data["stopped_at_share"] == 2 and data["train_seconds"] >= 10.0
+    n = data["train_samples"]
+    assert n >= 1 and n % paper_scale.OPEN_SHARD_SIZE == 0  # stopped processes leave whole shards
+    ds = load_dataset(tmp_path / "train")
+    assert len(ds) == n == json.loads((tmp_path / "train" / "manifest.json").read_text())["count"]
+    assert all(len(load_dataset(tmp_path / name)) == 3 for name in paper_scale.HOLDOUT_SETS)
+    assert not list(tmp_path.glob("train-part*"))
+    with pytest.raises(RuntimeError, match="no training sample"):
+        paper_scale.generate_data(tmp_path / "none", size=16, seconds=0.0, jobs=1, seed=0, train_samples=None,
+                                  holdout_samples=1, echo=lambda s: None)
 
 
 def test_each_held_out_set_gets_an_equal_part_of_the_evaluation_half_for_the_new_graphs():
