@@ -109,6 +109,9 @@ STAGE_SHARES = {"pipnet": 2 / 6, "pmmnet": 1 / 6, "direct": 3 / 6}
 #: samples are seen more than once. Where the budget cannot give them, the training uses the
 #: first samples that fit (:func:`samples_that_fit`; the data share was too large for the machine).
 MIN_EPOCHS = {"pipnet": 4, "pmmnet": 2, "direct": 2}
+#: :func:`samples_that_fit` plans the fewest epochs in this share of the time left, the rest kept
+#: for the loading, PMMNet's initialization and the estimates' errors.
+FIT_SHARE = 0.8
 #: The training probe: this many epochs of every stage on this many batches; the fastest epoch
 #: after the first is its time (the first pays the warm-up; the fastest is the one another job
 #: on the machine disturbed least).
@@ -154,11 +157,13 @@ def _wait(procs: Sequence[subprocess.Popen], deadline: float | None = None,
     stopped = [p for p in procs if p.poll() is None] if deadline is not None else []
     for p in stopped:
         p.terminate()
-    for p in procs:
+    failures = []
+    for p in procs:  # every one waited for before any error
         _, err = p.communicate()
         if p.returncode and p not in stopped:
-            last = (err or "").strip().splitlines()[-1:] or [f"exit status {p.returncode}"]
-            raise RuntimeError(f"polrig sim dataset failed: {last[0]}")
+            failures.append((err or "").strip().splitlines()[-1:] or [f"exit status {p.returncode}"])
+    if failures:
+        raise RuntimeError(f"polrig sim dataset failed: {failures[0][0]}")
     return len(stopped)
 
 
@@ -218,13 +223,16 @@ def generate_data(work: pathlib.Path, *, size: int, seconds: float, jobs: int, s
     else:
         counts = [train_samples // jobs + (k < train_samples % jobs) for k in range(jobs)]
         shard_size, deadline = 16, None
-    parts = [(work / f"train-part{k}", seed * 1000 + k) for k, c in enumerate(counts) if c]
-    procs = [_sim_dataset(d, c, size, s, False, shard_size) for (d, s), c in zip(parts, (c for c in counts if c))]
-    stopped = _wait(procs, deadline, clock)
+    parts = [(work / f"train-part{k}", seed * 1000 + k, c) for k, c in enumerate(counts) if c]
+    try:
+        stopped = _wait([_sim_dataset(d, c, size, s, False, shard_size) for d, s, c in parts], deadline, clock)
+    except BaseException:
+        _wait(held, clock(), clock)  # stop the held-out sets too
+        raise
     made_s = clock() - t0
     _wait(held)
-    n = merge_parts([d for d, _ in parts], work / "train")
-    for d, _ in parts:
+    n = merge_parts([d for d, _, _ in parts], work / "train")
+    for d, _, _ in parts:
         if d.exists():  # a process stopped while starting made none
             shutil.rmtree(d)
     if n < 1:
@@ -234,7 +242,7 @@ def generate_data(work: pathlib.Path, *, size: int, seconds: float, jobs: int, s
          f"{f' ({stopped} stopped at the data share)' if stopped else ''}, {holdout_samples} per held-out set; "
          f"{seconds_taken:.1f} s")
     return {"train_samples": n, "holdout_samples": holdout_samples, "size": size, "jobs": jobs,
-            "train_seeds": [s for _, s in parts], "holdout_seeds": {k: v + seed for k, v in HOLDOUT_SEEDS.items()},
+            "train_seeds": [s for _, s, _ in parts], "holdout_seeds": {k: v + seed for k, v in HOLDOUT_SEEDS.items()},
             "stopped_at_share": stopped, "train_seconds": made_s, "seconds": seconds_taken}
 
 
@@ -364,7 +372,7 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     if epochs is None:
         sample_epoch_s, overhead, probe_n = probe_epoch_seconds(work, base, n, clock)
         deadline = t0 + seconds - EXPORT_RESERVE_S
-        fit = samples_that_fit(sample_epoch_s, overhead, deadline - clock())
+        fit = samples_that_fit(sample_epoch_s, overhead, FIT_SHARE * (deadline - clock()))
         if fit < n:  # at least a batch, or all of them where fewer
             base = dataclasses.replace(base, limit=max(fit, min(n, base.batch_size)))
             echo(f"training: {n} samples are too many for {', '.join(f'{v} {k}' for k, v in MIN_EPOCHS.items())} "
