@@ -304,7 +304,8 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     streams.update({m: (np.random.default_rng([seed, 2, j]), np.random.default_rng([seed, 3, j]))
                     for j, m in enumerate(("full_mirror", "direct_mirror"))})
     per: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS if m in wanted}
-    times: dict[str, float] = {m: 0.0 for m in METHODS if m in wanted}
+    run_graphs = {"full"} | ({"full_mirror"} if wanted & {"full_mirror", "direct_mirror"} else set())
+    times: dict[str, float] = {m: 0.0 for m in METHODS if m in wanted | run_graphs}
     t_start = time.time()
     skipped = visited = 0
     for i in range(len(ds)):
@@ -319,7 +320,6 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
         preds = {}
         t = time.perf_counter()
         out = full.run_rig_frame(*network_inputs(ds, i))
-        times.setdefault("full", 0.0)
         times["full"] += time.perf_counter() - t
         preds["full"], preds["pipnet_pbrdf"] = out["mueller"][0], out["mueller_init"][0]
         if "bestfit_pbrdf" in wanted:
@@ -334,11 +334,10 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
             t = time.perf_counter()
             preds["reference4"] = reference_four_state(ds, i, noise, rng)
             times["reference4"] += time.perf_counter() - t
-        if wanted & {"full_mirror", "direct_mirror"}:
+        if "full_mirror" in run_graphs:
             t = time.perf_counter()  # models.mirror: the capture and its mirror image, averaged
             out_m = full.run_rig_frame(*network_inputs(ds, i), mirror_average=True)
             preds["full_mirror"] = out_m["mueller"][0]
-            times.setdefault("full_mirror", 0.0)
             times["full_mirror"] += time.perf_counter() - t
         if "direct_mirror" in wanted:
             t = time.perf_counter()
