@@ -17,9 +17,9 @@ One run, in order, each phase planned inside the budget ``B``:
    :data:`STAGE_SHARES`: PIPNet : PMMNet as the paper's 40 : 20 epochs (2:1), the baseline as
    much as both (the ablation is fair when it had the same time). A probe first trains every
    stage :data:`PROBE_EPOCHS` epochs on :data:`PROBE_BATCHES` batches and keeps the fastest
-   epoch after the first (:func:`probe_epoch_seconds`): the first epoch pays the warm-up (CUDA context,
-   first kernels, allocator; 0.85 s of a one-batch PIPNet epoch on the H200 below, where a warm
-   epoch of 57 batches took 1 s). Each stage's epochs are then chosen when it starts
+   epoch after the first (:func:`probe_epoch_seconds`): the first epoch pays the warm-up (CUDA
+   context, first kernels, allocator; 0.85 s of a one-batch PIPNet epoch on the H200 below,
+   where a warm epoch of 57 batches took 1 s). Each stage's epochs are then chosen when it starts
    (:class:`StagePlanner`, the ``plan_stage`` hook of :func:`models.train.train`): its share of
    the time really left (the shares of it and the stages after it), divided by its estimated
    epoch (the probe's seconds per sample-epoch times the samples, plus the checkpoint and log
@@ -63,11 +63,14 @@ training, a slower GPU), a smaller ``--data-share`` keeps the epochs up.
 
 ``OUT`` holds only what is worth bringing back (checked below :data:`MAX_OUT_BYTES`):
 ``weights/`` (graphs, ``model.json``), ``log.csv``, ``summary.json`` (the training run),
-``eval_<set>_<new|shipped>.md/.json``, ``run.json`` (hardware, budget, phase times, the data
-probe, the training probe and each stage's plan, the evaluated samples, the verdict). Datasets,
+``eval_<set>_<new|shipped>.md/.json``, ``run.json`` (hardware, budget, shares, phase times, the
+data processes stopped, the training probe, each stage's plan and wall time, the samples
+evaluated, the verdict). Datasets,
 probe runs and the checkpoint stay in ``--work`` (a temporary folder by default, removed at the
 end). The training set lives uncompressed on disk and whole in memory (and on the GPU): about
-13 MB per sample at 256x256.
+13 MB per sample at 256x256 on disk, 21 MB in training with PMMNet's initialization; samples
+beyond what the memory holds are not used (:func:`samples_that_fit_memory`: about 2600 on an
+80 GB GPU). The disk must hold them (about 17 GB for 1300 samples).
 
 Device: PyTorch trains on the CUDA GPU where it sees one (:attr:`models.train.TrainConfig.device`;
 the data generation and the evaluation stay on the CPU cores), else on the CPU; ``run.json``
@@ -112,6 +115,12 @@ MIN_EPOCHS = {"pipnet": 4, "pmmnet": 2, "direct": 2}
 #: :func:`samples_that_fit` plans the fewest epochs in this share of the time left, the rest kept
 #: for the loading, PMMNet's initialization and the estimates' errors.
 FIT_SHARE = 0.8
+#: Memory a training sample takes where it trains (and on the host while it loads), as a multiple
+#: of its bytes in an uncompressed shard: its arrays plus PMMNet's initialization (half as much
+#: again at 256x256: 27 planes on 52); and the share of the free memory the training set may fill
+#: (the rest: activations, the allocator, the loading's copies). More samples than fit are not used.
+SAMPLE_MEMORY_FACTOR = 1.6
+MEMORY_SHARE = 0.6
 #: The training probe: this many epochs of every stage on this many batches; the fastest epoch
 #: after the first is its time (the first pays the warm-up; the fastest is the one another job
 #: on the machine disturbed least).
@@ -325,6 +334,33 @@ def samples_that_fit(sample_epoch_s: Mapping[str, float], epoch_overhead_s: floa
     return max(int(fit), 0)
 
 
+def samples_that_fit_memory(sample_bytes: float, free_bytes: float) -> int:
+    """The most training samples of ``sample_bytes`` each (uncompressed on disk) that fit in
+    ``free_bytes`` of memory (:data:`SAMPLE_MEMORY_FACTOR`, :data:`MEMORY_SHARE`)."""
+    return max(int(MEMORY_SHARE * free_bytes / (SAMPLE_MEMORY_FACTOR * max(sample_bytes, 1.0))), 0)
+
+
+def available_memory(device: str) -> int:
+    """Bytes the training set can use: half the host's available memory (``MemAvailable``:
+    loading holds the shards and their concatenation at once), and on ``cuda`` at most the
+    GPU's free memory."""
+    host = None
+    try:
+        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                host = int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    if host is None:
+        host = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    free = host // 2
+    if device == "cuda":
+        import torch
+
+        free = min(free, int(torch.cuda.mem_get_info()[0]))
+    return free
+
+
 def probe_epoch_seconds(work: pathlib.Path, base, samples: int,
                         clock: Clock = time.perf_counter) -> tuple[dict[str, float], float, int]:
     """``(seconds per sample-epoch of each stage, seconds per epoch besides, probe samples)``:
@@ -359,7 +395,8 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     """Phase 2 (module docstring): probe, train with a :class:`StagePlanner` (epochs ending
     :data:`EXPORT_RESERVE_S` before ``seconds`` are up), export into ``work/run``. ``epochs``:
     that many epochs of every stage instead (no probe, no plan). Returns the epochs, the probe,
-    the samples used (fewer than made where :func:`samples_that_fit` says so), the plan (each
+    the samples used (the first ones, fewer than made where :func:`samples_that_fit_memory` or
+    :func:`samples_that_fit` say so), the plan (each
     stage's decision and its wall seconds, the last one's with the export) and the seconds
     taken."""
     from models.train import TrainConfig, train
@@ -368,21 +405,19 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     base = TrainConfig(width=width, seed=seed, threads=max(1, os.cpu_count() or 1), device=training_device())
     n = _count(work / "train")
     record: dict = {"probe": None, "plan": None}
+    fit = samples_that_fit_memory(folder_bytes(work / "train") / max(n, 1), available_memory(base.device))
+    base, n = _first_samples(base, n, fit, f"the training set does not fit in the {base.device}'s memory", echo)
     planner = None
     if epochs is None:
         sample_epoch_s, overhead, probe_n = probe_epoch_seconds(work, base, n, clock)
         deadline = t0 + seconds - EXPORT_RESERVE_S
         fit = samples_that_fit(sample_epoch_s, overhead, FIT_SHARE * (deadline - clock()))
-        if fit < n:  # at least a batch, or all of them where fewer
-            base = dataclasses.replace(base, limit=max(fit, min(n, base.batch_size)))
-            echo(f"training: {n} samples are too many for {', '.join(f'{v} {k}' for k, v in MIN_EPOCHS.items())} "
-                 f"epochs in the budget; the first {base.limit} are used (a smaller --data-share fits this machine)")
-            n = base.limit
+        base, n = _first_samples(base, n, fit, f"too many samples for {', '.join(f'{v} {k}' for k, v in MIN_EPOCHS.items())} "
+                                 f"epochs in the budget (a smaller --data-share fits this machine)", echo)
         planner = StagePlanner(sample_epoch_s, n, deadline, epoch_overhead_s=overhead, clock=clock, echo=echo)
         first = planner.initial()
         record["probe"] = {"samples": probe_n, "epochs": PROBE_EPOCHS, "seconds": clock() - t0,
                            "seconds_per_sample_epoch": sample_epoch_s, "epoch_overhead_s": overhead}
-        record["samples_used"] = n
         echo(f"training: {planner.deadline - clock():.0f} s for the epochs on {n} samples; probe (warm epoch): "
              + ", ".join(f"{k} {1e3 * v:.2f} ms" for k, v in sample_epoch_s.items())
              + f" per sample-epoch, {1e3 * overhead:.0f} ms per epoch besides; plan "
@@ -390,6 +425,7 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
         config = dataclasses.replace(base, **{f"{k}_epochs": v for k, v in first.items()})
     else:
         config = dataclasses.replace(base, **{f"{k}_epochs": epochs for k in STAGE_SHARES})
+    record["samples_used"] = n
     summary = train(work / "train", work / "run", config, echo=lambda s: None, plan_stage=planner)
     done = {k: int(summary["config"][f"{k}_epochs"]) for k in STAGE_SHARES}
     if planner is not None:
@@ -400,6 +436,16 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
         echo(f"training: done with the export {abs(late):.1f} s {'after' if late > 0 else 'before'} its end")
     return {"epochs": done, **record, "epoch_seconds": summary["train_seconds"], "summary": summary,
             "seconds": clock() - t0}
+
+
+def _first_samples(base, n: int, fit: int, why: str, echo) -> tuple:
+    """``(config, samples)``: ``base`` training on the first ``fit`` of ``n`` samples (at least a
+    batch, or all where fewer) where ``fit < n``, else as it is."""
+    if fit >= n:
+        return base, n
+    use = max(fit, min(n, base.batch_size))
+    echo(f"training: {why}; the first {use} of {n} samples are used")
+    return dataclasses.replace(base, limit=use), use
 
 
 def _count(folder: pathlib.Path) -> int:

@@ -337,3 +337,13 @@ def test_samples_that_fit_give_every_stage_its_fewest_epochs():
     planner = paper_scale.StagePlanner(per_sample, n + 100, clock.t + 600.0, epoch_overhead_s=0.5, clock=clock)
     assert planner.initial()["pmmnet"] < paper_scale.MIN_EPOCHS["pmmnet"]
     assert paper_scale.samples_that_fit(per_sample, 100.0, 600.0) == 0
+
+
+def test_samples_that_fit_memory_leave_room_for_the_initialization_and_the_rest():
+    mb = 2**20
+    # 13 MB a sample on disk (256x256), 78 GiB free: 0.6 * 78 GiB / (1.6 * 13 MB)
+    n = paper_scale.samples_that_fit_memory(13 * mb, 78 * 2**30)
+    assert n == int(paper_scale.MEMORY_SHARE * 78 * 2**30 / (paper_scale.SAMPLE_MEMORY_FACTOR * 13 * mb))
+    assert 2000 < n < 3000
+    assert paper_scale.samples_that_fit_memory(13 * mb, 0) == 0
+    assert paper_scale.available_memory("cpu") > 0
