@@ -51,6 +51,9 @@ def test_a_full_output_folder_is_refused_before_any_work(tmp_path, capsys):
     assert paper_scale.main(["--out", str(tmp_path), "--size", "32"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert paper_scale.main(["--out", str(tmp_path / "new"), "--size", "36"]) == 2
+    assert paper_scale.main(["--out", str(tmp_path / "new"), "--size", "32", "--data-share", "0.9"]) == 2
+    assert "--data-share 0.9: must be above 0 and below" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
 
 
 def test_training_device_is_checked_before_any_work(tmp_path):
