@@ -273,8 +273,22 @@ def _sample_metrics(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, s_in:
 
 def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | None = None, *,
              limit: int | None = None, seed: int = 0, realizability_pixels: int = 400,
+             methods: tuple[str, ...] = METHODS, deadline: float | None = None, min_samples: int = 1,
              echo=print) -> dict:
-    """Run every method on every sample; returns ``{"methods": {name: {metric: mean}}, ...}``."""
+    """Run every method on every sample; returns ``{"methods": {name: {metric: mean}}, ...}``.
+
+    ``methods``: a subset of :data:`METHODS` to score (default all; the full model's graph runs
+    whatever the subset, the direct baseline's rotation needs its light). A subset draws fewer
+    numbers from the shared random stream, so the realizability rates (random pixel samples)
+    and the reference's noise are not the same draws as in a full evaluation; every other
+    metric is. ``deadline`` (a :func:`time.perf_counter` value): no new sample is started once
+    it has passed and ``min_samples`` samples are scored; the samples are taken in order, so
+    ``limit = result["samples_visited"]`` scores exactly the same ones again (e.g. with other
+    weights)."""
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise ConfigError(f"unknown method(s) {unknown or 'none given'}; methods are {', '.join(METHODS)}")
+    wanted = set(methods)
     ds = load_dataset(data_dir, limit)
     check_network_size(ds, data_dir)
     if not lit_samples(ds):
@@ -282,18 +296,22 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
     full = SingleShotModel.load(wd)
     direct = SingleShotModel.load(wd, graph="direct.onnx")
-    noise = fit_noise_model(ds)
+    noise = fit_noise_model(ds) if "reference4" in wanted else None  # only the reference uses it
     rng = np.random.default_rng(seed)
     lit_rng = np.random.default_rng([seed, 1])  # its own stream: the other numbers do not depend on it
     # the mirror-averaged rows sample with streams of their own, so they leave the others' numbers as they were
     streams = {m: (rng, lit_rng) for m in METHODS}
     streams.update({m: (np.random.default_rng([seed, 2, j]), np.random.default_rng([seed, 3, j]))
                     for j, m in enumerate(("full_mirror", "direct_mirror"))})
-    per: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS}
-    times: dict[str, float] = {m: 0.0 for m in METHODS}
+    per: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS if m in wanted}
+    run_graphs = {"full"} | ({"full_mirror"} if wanted & {"full_mirror", "direct_mirror"} else set())
+    times: dict[str, float] = {m: 0.0 for m in METHODS if m in wanted | run_graphs}
     t_start = time.time()
-    skipped = 0
+    skipped = visited = 0
     for i in range(len(ds)):
+        if deadline is not None and visited - skipped >= min_samples and time.perf_counter() > deadline:
+            break
+        visited += 1
         mask = ds["mask"][i] > 0
         truth, s_in = ds["mueller"][i], ds["s_in"][i]
         if not has_lit_object(ds, i):
@@ -304,33 +322,40 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
         out = full.run_rig_frame(*network_inputs(ds, i))
         times["full"] += time.perf_counter() - t
         preds["full"], preds["pipnet_pbrdf"] = out["mueller"][0], out["mueller_init"][0]
-        t = time.perf_counter()
-        preds["bestfit_pbrdf"] = bestfit_pbrdf(ds, i)
-        times["bestfit_pbrdf"] += time.perf_counter() - t
-        t = time.perf_counter()
-        preds["direct"] = direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0]
-        times["direct"] += time.perf_counter() - t
-        t = time.perf_counter()
-        preds["reference4"] = reference_four_state(ds, i, noise, rng)
-        times["reference4"] += time.perf_counter() - t
-        t = time.perf_counter()  # models.mirror: the capture and its mirror image, averaged
-        out_m = full.run_rig_frame(*network_inputs(ds, i), mirror_average=True)
-        preds["full_mirror"] = out_m["mueller"][0]
-        times["full_mirror"] += time.perf_counter() - t
-        t = time.perf_counter()
-        preds["direct_mirror"] = direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out_m["wi"],
-                                                      mirror_average=True)["mueller"][0]
-        times["direct_mirror"] += time.perf_counter() - t
+        if "bestfit_pbrdf" in wanted:
+            t = time.perf_counter()
+            preds["bestfit_pbrdf"] = bestfit_pbrdf(ds, i)
+            times["bestfit_pbrdf"] += time.perf_counter() - t
+        if "direct" in wanted:
+            t = time.perf_counter()
+            preds["direct"] = direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out["wi"])["mueller"][0]
+            times["direct"] += time.perf_counter() - t
+        if "reference4" in wanted:
+            t = time.perf_counter()
+            preds["reference4"] = reference_four_state(ds, i, noise, rng)
+            times["reference4"] += time.perf_counter() - t
+        if "full_mirror" in run_graphs:
+            t = time.perf_counter()  # models.mirror: the capture and its mirror image, averaged
+            out_m = full.run_rig_frame(*network_inputs(ds, i), mirror_average=True)
+            preds["full_mirror"] = out_m["mueller"][0]
+            times["full_mirror"] += time.perf_counter() - t
+        if "direct_mirror" in wanted:
+            t = time.perf_counter()
+            preds["direct_mirror"] = direct.run_rig_frame(*network_inputs(ds, i), rotate_with=out_m["wi"],
+                                                          mirror_average=True)["mueller"][0]
+            times["direct_mirror"] += time.perf_counter() - t
         lit = (ds["lit"][i] > 0) if "lit" in ds.arrays else None
+        preds = {name: pred for name, pred in preds.items() if name in wanted}
         for name, pred in preds.items():
             per[name].append(_sample_metrics(pred.astype(np.float32), truth, mask, s_in, streams[name][0],
                                              realizability_pixels, lit, streams[name][1]))
-    n = len(per["full"])
-    methods = {m: {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} for m, rows in per.items() if rows}
+    n = len(next(iter(per.values())))
+    scores = {m: {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} for m, rows in per.items() if rows}
     families = sorted({int(f) for f in ds["family"]}) if "family" in ds.arrays else []
     result = {"data": str(data_dir), "samples": n, "skipped_unlit": skipped, "resolution": list(ds.shape), "families": families,
-              "noise_model": {"a": noise[0], "b": noise[1]}, "methods": methods,
-              "seconds_per_sample": {m: times[m] / max(n, 1) for m in METHODS},
+              "noise_model": None if noise is None else {"a": noise[0], "b": noise[1]}, "methods": scores,
+              "samples_visited": visited,
+              "seconds_per_sample": {m: times[m] / max(n, 1) for m in METHODS if m in times},
               "held_out_states_deg": list(HELD_OUT_STATES_DEG), "manifest": ds.manifest,
               "eval_seconds": time.time() - t_start}
     echo(markdown_tables(result))

@@ -504,7 +504,8 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
 def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
           *, resume: bool = False, export: bool = True, overrides: dict | None = None,
           init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] | None = None,
-          warm_start: bool = False, overwrite: bool = False, echo: Callable[[str], None] = print) -> dict:
+          warm_start: bool = False, overwrite: bool = False, echo: Callable[[str], None] = print,
+          plan_stage: Callable[[str, list[dict]], int] | None = None) -> dict:
     """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
@@ -530,7 +531,15 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     torch random states, the log rows, the dataset identity), then ``log.csv`` rewritten from
     those rows, so an interruption at any point loses at most the epoch in progress and a
     resumed run reproduces the straight run's log rows and weights exactly. A non-finite
-    training loss stops the run with :class:`TrainingError`."""
+    training loss stops the run with :class:`TrainingError`.
+
+    ``plan_stage(stage, log_rows)``, where given, sets the epochs of each stage that starts from
+    its first epoch (a resumed run's unfinished stage keeps its own): it is called just before
+    that stage's first epoch (after PMMNet's initialization, so the time that took has passed)
+    with the log rows so far (``epoch_s`` of every finished epoch), and returns an integer >= 1
+    that replaces the configured epochs (the checkpoints and the summary record it). A caller
+    with a wall-clock budget plans each stage from what the earlier ones really took
+    (:mod:`models.paper_scale`)."""
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
     if resume and overwrite:
@@ -740,6 +749,11 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                                               for b in _batches(len(calib), config.batch_size, None)])
                 echo(f"{stage}: batch-norm statistics of the recovered network set on {len(calib)} samples")
             recalibrate.discard(stage)
+            if plan_stage is not None and first == 0:
+                planned = plan_stage(stage, list(rows))
+                if isinstance(planned, bool) or not isinstance(planned, (int, np.integer)) or planned < 1:
+                    raise ValueError(f"plan_stage returned {planned!r} epochs for {stage} (an integer >= 1 expected)")
+                epochs[stage] = int(planned)
             for epoch in range(first, epochs[stage]):
                 lr = lr_at(config, epoch, epochs[stage])
                 for g in opt.param_groups:
