@@ -32,6 +32,7 @@ from polrig.capture import CaptureControl, CaptureRequest, Progress
 from polrig.errors import PolrigError
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import RigLocks
+from polrig.gui.widgets import network_binning_box
 from polrig.plan import ExrChoice
 
 THUMB_PX = 128
@@ -149,13 +150,7 @@ class CapturePanel(QWidget):
                                    "frame's full resolution (detail from the demosaic, bilinear "
                                    "where it is superpixel; no sigma)")
         self.resolution.setEnabled(False)
-        self.binning = QComboBox()  # polrig.plan.NETWORK_BINNINGS
-        self.binning.addItem("1 (the analyzer grid)", 1)
-        self.binning.addItem("2 (binned 2x2: faster)", 2)
-        self.binning.setToolTip("single-shot: the networks on the analyzer grid, or on that grid "
-                                "binned 2x2 and lifted back with its measured detail (about half "
-                                "the frame time at full sensor size, a fraction of a dB; the same "
-                                "output grid; no sigma)")
+        self.binning = network_binning_box("single-shot")
         self.binning.setEnabled(False)
         self.device = QComboBox()
         self.device.addItems(["auto", "cpu", "cuda"])

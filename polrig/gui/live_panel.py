@@ -12,7 +12,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
 
 from polrig.gui import pipeline
 from polrig.gui.live import LiveResult, LiveSettings, LiveWorker
-from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box
+from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box, network_binning_box
 
 DEMOSAIC_METHODS = ("superpixel", "bilinear", "newton")
 
@@ -62,13 +62,7 @@ class LivePanel(QWidget):
         self.resolution.setToolTip("Mueller display: the networks' superpixel grid, or the raw frame's "
                                    "full resolution (the measured detail of the demosaic, bilinear "
                                    "where the demosaic is superpixel)")
-        self.binning = QComboBox()
-        self.binning.addItem("1 (the analyzer grid)", 1)
-        self.binning.addItem("2 (binned 2x2: faster)", 2)
-        self.binning.setToolTip("Mueller display: the networks on the analyzer grid, or on that grid binned "
-                                "2x2 and lifted back with its measured detail (about half the frame time at "
-                                "full sensor size, a few tenths of a dB less accurate; the model card's "
-                                "\"Speed, warm and cold\")")
+        self.binning = network_binning_box("Mueller display")
         self.min_snr = min_snr_box()
         self.pause_button = QPushButton("Pause live")
         self.pause_button.setCheckable(True)

@@ -7,10 +7,25 @@ import time
 import numpy as np
 from PySide6.QtCore import QPoint, QRect, Qt, Signal
 from PySide6.QtGui import QColor, QImage, QPainter, QPen
-from PySide6.QtWidgets import (QDoubleSpinBox, QFrame, QLabel, QPlainTextEdit, QScrollArea,
+from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFrame, QLabel, QPlainTextEdit, QScrollArea,
                                QSizePolicy, QWidget)
 
 from polrig.preview import DEFAULT_MIN_SNR
+
+
+def network_binning_box(what: str) -> QComboBox:
+    """The single-shot network binning control (the item data: 1 or 2, as
+    :data:`polrig.plan.NETWORK_BINNINGS` and :data:`models.full_resolution.BINNINGS`): the
+    networks on the analyzer grid, or on that grid binned 2x2 (the faster mode). ``what``
+    starts the tool tip: what the choice applies to."""
+    box = QComboBox()
+    box.addItem("1 (the analyzer grid)", 1)
+    box.addItem("2 (binned 2x2: faster)", 2)
+    box.setToolTip(f"{what}: the networks on the analyzer grid, or on that grid binned 2x2 and lifted "
+                   "back with its measured detail (about half the frame time at full sensor size, a "
+                   "few tenths of a dB less accurate, the same output grid, no sigma; the model "
+                   "card's \"Speed, warm and cold\")")
+    return box
 
 
 def min_snr_box() -> QDoubleSpinBox:
