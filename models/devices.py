@@ -76,10 +76,16 @@ def load_cuda_libraries(ort_module) -> None:
     (``nvidia-cuda-runtime``, ``nvidia-cudnn-cu13``, ...; the ``gpu`` extra installs them), before
     a CUDA session opens. onnxruntime-gpu >= 1.21 offers ``preload_dlls`` for this; an older one,
     or a machine whose CUDA is installed system-wide (found through the loader's paths), needs
-    nothing. Without it a pip-installed CUDA is not found and the CUDA provider fails to start."""
+    nothing. Without it a pip-installed CUDA is not found and the CUDA provider fails to start.
+    What it reports (libraries it could not load) goes to stderr."""
+    import contextlib
+    import sys
+
     preload = getattr(ort_module, "preload_dlls", None)  # a version difference of onnxruntime, not ours
     if preload is not None:
-        preload(cuda=True, cudnn=True, msvc=False)
+        # it prints what it could not load on stdout, where a command's own output goes
+        with contextlib.redirect_stdout(sys.stderr):
+            preload(cuda=True, cudnn=True, msvc=False)
 
 
 def used_device(session_providers: Sequence[str]) -> str:

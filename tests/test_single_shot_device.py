@@ -63,6 +63,25 @@ def test_session_providers_give_cuda_heuristic_convolution_search_and_the_cpu_no
     assert devices.session_providers([devices.CUDA])[0][1] == devices.CUDA_OPTIONS
 
 
+def test_loading_cuda_libraries_reports_on_stderr_and_needs_nothing_from_an_older_onnxruntime(capsys):
+    """onnxruntime-gpu's ``preload_dlls`` is called with CUDA and cuDNN (not MSVC) and what it
+    prints lands on stderr, not in a command's output; an onnxruntime without it is left alone."""
+    import types
+
+    calls = []
+
+    def preload_dlls(**kw):
+        calls.append(kw)
+        print("Failed to load libcudart.so.13: not found")
+
+    devices.load_cuda_libraries(types.SimpleNamespace(preload_dlls=preload_dlls))
+    out, err = capsys.readouterr()
+    assert calls == [{"cuda": True, "cudnn": True, "msvc": False}]
+    assert out == "" and "libcudart" in err
+    devices.load_cuda_libraries(types.SimpleNamespace())  # onnxruntime < 1.21: nothing to do
+    assert capsys.readouterr() == ("", "")
+
+
 def test_this_onnxruntime_auto_choice_opens_a_real_session():
     """The automatic choice on this machine's real onnxruntime gives a session whose first
     provider is the one chosen (CUDA on a GPU machine with the gpu extra, else the CPU)."""
