@@ -10,6 +10,7 @@
 #                                              single-shot and the live Mueller view on CUDA and
 #                                              CPU, pack the results
 #
+# benchmarks/gpu_pieces.sh makes what travels (run it here first, with network access).
 # Wheels the image lacks travel in .whl/ (OpenEXR for cp312); onnxruntime-gpu (the wheel
 # unpacked, without its tools/transformers/quantization folders and the TensorRT provider, as
 # one xz tar of 200 MB) travels in four pieces of 50.8 MB (`split -b 50800000 -d -a 1`), one per
