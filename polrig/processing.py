@@ -137,13 +137,16 @@ class CaptureResult:
     """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
     ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
     arrays, ``metadata`` the EXR header's polrig entries, ``truth`` how to score it against
-    the simulator's truth (``None`` without a truth file). :func:`write_and_score` writes
-    and scores it."""
+    the simulator's truth (``None`` without a truth file), ``extra_planes`` further planes of
+    its EXR. :func:`write_and_score` writes and scores it."""
 
     relpath: str
     result: ReferenceResult | MuellerEstimate
     metadata: dict[str, Any]
     truth: TruthScore | None
+    #: planes written beside :func:`polrig.exr.result_planes`' (name -> ``(H, W)`` array): the
+    #: single-shot ``beyond_calibration.{colour}`` flags, with the ``sigma`` group
+    extra_planes: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
@@ -171,7 +174,8 @@ def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *
     written = {"mueller": path, **previews}
     try:
         write_mueller_exr(path, res.mueller,
-                          extra=result_planes(res, planes=exr.planes, uncertainty=exr.uncertainty),
+                          extra={**result_planes(res, planes=exr.planes, uncertainty=exr.uncertainty),
+                                 **out.extra_planes},
                           metadata=out.metadata, compression=exr.compression)
         made = write_result_previews(res.mueller, path.parent, stem=path.stem, flags=res.mask)
         if sorted(made) != sorted(previews.values()):  # pragma: no cover - preview's contract
@@ -268,6 +272,11 @@ def record_result(session: Session, index: int, revision: str | None,
             entry.clear()
             entry.update(before)
             raise
+
+
+#: The header's description of a single-shot result's ``beyond_calibration.{colour}`` planes.
+BEYOND_CALIBRATION_PLANE = ("1 = the pixel's misfit lies beyond the range the single-shot sigma was "
+                            "calibrated on (models/uncertainty.py): its sigma may be too small")
 
 
 class Processor:
@@ -376,12 +385,13 @@ class Processor:
             geometry = single_shot_geometry(
                 self.calibration, config,
                 None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
-            result, s_in, lay, single_shot_meta = self.single_shot(cf, geometry)
+            result, s_in, lay, single_shot_meta, extra_planes = self.single_shot(cf, geometry)
             states = None
         else:
             unc = np.float16 if self.exr.uncertainty == "half" else np.float32
             result, s_in, lay, states = process_reference(cf, self.calibration,
                                                           self.sensor_model, self.demosaic, unc)
+            extra_planes = {}
         meta = {
             "calibration_id": self.calibration.id, "mode": self.mode, "demosaic": self.demosaic,
             "pose_deg": cap["pose_deg"], "states_deg": cf.states_deg,
@@ -414,19 +424,28 @@ class Processor:
             self.single_shot_header(meta)
         meta["planes"] = {k: v for k, v in meta["planes"].items()
                           if k.split(".", 1)[0] in self.exr.planes}
+        if "sigma" not in self.exr.planes:  # the flags say how far to trust the sigma: with it only
+            extra_planes = {}
+        if extra_planes:
+            meta["planes"]["beyond_calibration"] = BEYOND_CALIBRATION_PLANE
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
         truth = None if truth_path is None else self.truth_score(
             truth_path, lay, s_in, states if self.mode == "reference" else None,
             noise_exposures_us(cf)[0])
-        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth)
+        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes)
 
     def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
-                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, dict[str, Any]]:
+                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, dict[str, Any],
+                               dict[str, np.ndarray]]:
         """One state through the installed network (:mod:`models.runtime`): averaged and
         HDR-merged like the reference states, demosaiced, reconstructed; returns the result,
-        the incident state ``(1, 3)``, the layout and the result header's single-shot entries
-        (``beyond_calibration_fraction``: the object's fraction whose misfit lies beyond the
-        sigma's calibration range, :meth:`models.uncertainty.UncertaintyModel.beyond_fraction`;
+        the incident state ``(1, 3)``, the layout, the result header's single-shot entries
+        and the EXR's further planes: ``beyond_calibration.{colour}`` (1 where the pixel's
+        misfit lies beyond the sigma's calibration range,
+        :meth:`models.uncertainty.UncertaintyModel.beyond_calibration`, in the uncertainty
+        planes' precision; none without a calibrated sigma). The header's
+        ``beyond_calibration_fraction`` is the object's fraction so flagged
+        (:meth:`models.uncertainty.UncertaintyModel.beyond_fraction`;
         ``None`` where not known, at full resolution, with network binning or without a
         calibrated sigma). ``sigma`` is the model's calibrated uncertainty (:mod:`models.uncertainty`: the network's error
         against the simulator's truth, which sensor noise does not describe; 0 where the graph
@@ -455,6 +474,7 @@ class Processor:
         (:func:`models.full_resolution.reconstruct_binned`: the intrinsics rescaled, the mask
         binned), then on to the raw grid at full resolution as above; ``sigma`` is NaN (calibrated
         on the unbinned grid only)."""
+        from polrig.exr import colour_planes
         from polrig.reference import DARK, MIN_SNR, SATURATED
 
         first = cf.first
@@ -515,7 +535,10 @@ class Processor:
                                               else np.zeros_like(sigma)))
         beyond = aux.get("beyond_calibration")
         fraction = None if beyond is None else self.model.uncertainty.beyond_fraction(beyond, aux["mask"])
-        return result, s_in, lay, {"beyond_calibration_fraction": fraction}
+        planes = {} if beyond is None else colour_planes(
+            "beyond_calibration", np.asarray(beyond).astype(np.float16 if self.exr.uncertainty == "half"
+                                                            else np.float32))
+        return result, s_in, lay, {"beyond_calibration_fraction": fraction}, planes
 
     @property
     def output_demosaic(self) -> str:

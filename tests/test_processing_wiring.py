@@ -320,13 +320,25 @@ def test_single_shot_captures_record_the_fraction_beyond_the_sigma_calibration(t
     pytest.importorskip("onnxruntime")
     from models.uncertainty import BEYOND_WARN_FRACTION
 
-    got = {}
+    got, counts = {}, {}
     for scene in ("sphere", "gold_sphere"):
         s = capture(tmp_path / scene, CapturePlan((0.0,), mode="single-shot"), size=256,
                     scene=scene)
-        got[scene] = read_exr(s.root / s.capture(0)["files"]["mueller"]["path"]).metadata[
-            "beyond_calibration_fraction"]
+        exr = read_exr(s.root / s.capture(0)["files"]["mueller"]["path"])
+        got[scene] = exr.metadata["beyond_calibration_fraction"]
+        # the per-pixel flags (as polrig infer --sigma writes them): 0 or 1, described in the header
+        flagged = np.stack([exr.planes[f"beyond_calibration.{c}"] for c in "RGB"])
+        assert set(np.unique(flagged)) <= {0.0, 1.0}
+        counts[scene] = int(np.any(flagged > 0, axis=0).sum())
+        assert "beyond_calibration" in exr.metadata["planes"]
     assert 0 <= got["sphere"] < BEYOND_WARN_FRACTION < got["gold_sphere"] <= 1
+    assert counts["gold_sphere"] > counts["sphere"]  # the flags are where the fraction says
+    # without the sigma group the flags are not written (they qualify the sigma)
+    s = capture(tmp_path / "nosigma", CapturePlan((0.0,), mode="single-shot", exr_planes=("mueller", "mask")),
+                size=256, scene="gold_sphere")
+    exr = read_exr(s.root / s.capture(0)["files"]["mueller"]["path"])
+    assert not any(k.startswith("beyond_calibration") for k in exr.planes)
+    assert "beyond_calibration" not in exr.metadata["planes"]
 
 
 def test_capture_help_states_the_default_exr_choice(capsys):
