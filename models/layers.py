@@ -6,6 +6,13 @@ full-resolution features come from a pixel-wise (1x1) layer over the upsampled d
 features concatenated with the input, so heads stay pixel-wise as in the paper while the
 cost per full-resolution pixel stays small. Input height and width must be multiples of
 :data:`SIZE_MULTIPLE` (the runtime pads).
+
+That pixel-wise layer (:class:`UpsampledConcatConv1x1`) is computed without building the
+full-resolution concatenation: a 1x1 convolution is a linear map across channels at each
+pixel and bilinear upsampling a linear map across pixels per channel with weights summing to
+1, so ``conv1x1(cat(up(d), x); W, b) = up(conv1x1(d; W[:, :k])) + conv1x1(x; W[:, k:], b)``
+(``k`` decoder channels). The decoder part runs at half resolution; the parameters are those
+of the one ``Conv2d`` (same state dict), and the result differs by float rounding only.
 """
 
 from __future__ import annotations
@@ -26,6 +33,22 @@ def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
 
+class UpsampledConcatConv1x1(nn.Conv2d):
+    """``Conv2d(low_channels + high_channels, out_channels, 1)`` applied to
+    ``cat([up(low, high), high], 1)`` without forming the concatenation (module docstring):
+    ``forward(low (B, low_channels, h, w), high (B, high_channels, H, W)) -> (B, out_channels,
+    H, W)``, ``up`` bilinear with ``align_corners=False``. Its weight and bias are the plain
+    convolution's, so checkpoints and graphs of the concatenating form load unchanged."""
+
+    def __init__(self, low_channels: int, high_channels: int, out_channels: int):
+        super().__init__(low_channels + high_channels, out_channels, 1)
+        self.low_channels = low_channels
+
+    def forward(self, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        k = self.low_channels
+        return F.conv2d(high, self.weight[:, k:], self.bias) + _up(F.conv2d(low, self.weight[:, :k]), high)
+
+
 class UNetBackbone(nn.Module):
     """U-Net encoder-decoder with additive skips. ``forward(x) -> (full-resolution features
     (B, width, H, W), bottleneck features (B, 4 width, H/8, W/8))``."""
@@ -41,7 +64,7 @@ class UNetBackbone(nn.Module):
         self.dec2 = conv_bn_relu(2 * w, 2 * w)
         self.lat2 = nn.Conv2d(2 * w, w, 1)
         self.dec1 = conv_bn_relu(w, w)
-        self.full = nn.Sequential(nn.Conv2d(w + in_channels, w, 1), nn.ReLU(inplace=True),
+        self.full = nn.Sequential(UpsampledConcatConv1x1(w, in_channels, w), nn.ReLU(inplace=True),
                                   nn.Conv2d(w, w, 1), nn.ReLU(inplace=True))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,7 +73,7 @@ class UNetBackbone(nn.Module):
         e3 = self.enc3(e2)
         d2 = self.dec2(_up(self.lat3(e3), e2) + e2)
         d1 = self.dec1(_up(self.lat2(d2), e1) + e1)
-        full = self.full(torch.cat([_up(d1, x), x], 1))
+        full = self.full[1:](self.full[0](d1, x))  # = self.full(torch.cat([_up(d1, x), x], 1))
         return full, e3
 
 

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from models.layers import UpsampledConcatConv1x1
 from polrig.errors import FormatError
 
 _TRACE_SIZE = 16
@@ -64,6 +65,22 @@ def _conv_order(model: nn.Module, inputs: tuple[torch.Tensor, ...]) -> list[str]
     return order
 
 
+def _split_convs(modules: dict[str, nn.Module], order: list[str], convs: list, init: dict) -> set[str]:
+    """Names of the :class:`models.layers.UpsampledConcatConv1x1` modules that the graph holds as
+    two Conv nodes (the split form): their graph weight has fewer input channels than the
+    module's. Graphs exported before the split have one Conv of the whole weight."""
+    splits, k = set(), 0
+    for name in order:
+        if k >= len(convs):
+            break
+        conv = modules[name]
+        if isinstance(conv, UpsampledConcatConv1x1) and init[convs[k].input[1]].shape[1] < conv.weight.shape[1]:
+            splits.add(name)
+            k += 1
+        k += 1
+    return splits
+
+
 def load_onnx_into(model: nn.Module, path: str | pathlib.Path, colours: int) -> None:
     """Set ``model``'s parameters and buffers from the ONNX graph at ``path`` that was exported
     from a network of the same architecture (module docstring). Raises :class:`FormatError`
@@ -79,14 +96,28 @@ def load_onnx_into(model: nn.Module, path: str | pathlib.Path, colours: int) -> 
     modules = dict(model.named_modules())
     order = _conv_order(model, _trace_inputs(colours))
     convs = [n for n in graph.node if n.op_type == "Conv"]
-    if len(order) != len(convs):
+    unstored = [n for n in convs if n.input[1] not in init]
+    if unstored:
+        raise FormatError(f"{path.name}: convolution {unstored[0].name} has no stored weight")
+    # an UpsampledConcatConv1x1 is one Conv node (of the concatenation) or two (split form)
+    splits = _split_convs(modules, order, convs, init)
+    if len(order) + len(splits) != len(convs):
         raise FormatError(f"{path.name}: {len(convs)} convolutions in the graph, {len(order)} in the network "
                           "(another architecture or width?)")
-    for name, node in zip(order, convs):
+    nodes = iter(convs)
+    for name in order:
         conv = modules[name]
-        if node.input[1] not in init:
-            raise FormatError(f"{path.name}: convolution {node.name or name} has no stored weight")
+        node = next(nodes)
         w = init[node.input[1]]
+        if name in splits:
+            # the decoder part (no bias, low_channels inputs) and the input part (bias), in graph order
+            pair = (node, next(nodes))
+            low = [n for n in pair if len(n.input) < 3]
+            high = [n for n in pair if len(n.input) > 2]
+            if len(low) != 1 or len(high) != 1:
+                raise FormatError(f"{path.name}: {name} is split in two convolutions, not one with and one "
+                                  "without a bias")
+            node, w = high[0], np.concatenate([init[low[0].input[1]], init[high[0].input[1]]], 1)
         if tuple(conv.weight.shape) != w.shape:
             raise FormatError(f"{path.name}: {name}.weight is {tuple(conv.weight.shape)} in the network, "
                               f"{w.shape} in the graph")

@@ -1,0 +1,136 @@
+"""models.layers: the U-Net's full-resolution 1x1 layer, computed without the full-resolution
+concatenation (decoder part at half resolution, then upsampled), equals the concatenating
+formulation ``conv1x1(cat(up(d), x))`` to float rounding, keeps the plain convolution's
+parameters, and graphs exported in the split form recover to the same parameters."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+torch = pytest.importorskip("torch")
+
+from torch import nn  # noqa: E402
+from torch.nn import functional as F  # noqa: E402
+
+from models.layers import UNetBackbone, UpsampledConcatConv1x1  # noqa: E402
+
+
+def _concatenating(conv: nn.Conv2d, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """The formulation the layer replaces: bilinear upsampling of ``low`` to ``high``'s size,
+    concatenation, one 1x1 convolution with the layer's own weight and bias (float64)."""
+    up = F.interpolate(low.double(), size=high.shape[-2:], mode="bilinear", align_corners=False)
+    return F.conv2d(torch.cat([up, high.double()], 1), conv.weight.double(), conv.bias.double())
+
+
+def _scale(t: torch.Tensor) -> float:
+    return max(1.0, float(t.detach().abs().max()))
+
+
+@settings(max_examples=40)
+@given(low_c=st.integers(1, 9), high_c=st.integers(1, 9), out_c=st.integers(1, 6),
+       h=st.integers(1, 9), w=st.integers(1, 9), up_h=st.integers(1, 19), up_w=st.integers(1, 19),
+       batch=st.integers(1, 2), magnitude=st.sampled_from([1e-3, 1.0, 1e3]), seed=st.integers(0, 2**16))
+def test_split_layer_equals_upsample_concat_conv(low_c, high_c, out_c, h, w, up_h, up_w, batch, magnitude, seed):
+    # any sizes (odd, even, not a multiple of the low grid, even shrinking): bilinear weights sum to 1
+    gen = torch.Generator().manual_seed(seed)
+    conv = UpsampledConcatConv1x1(low_c, high_c, out_c)
+    with torch.no_grad():
+        conv.bias.copy_(torch.randn(out_c, generator=gen))
+    low = magnitude * torch.randn(batch, low_c, h, w, generator=gen)
+    high = magnitude * torch.randn(batch, high_c, up_h, up_w, generator=gen)
+    with torch.no_grad():
+        got = conv(low, high)
+        ref = _concatenating(conv, low, high)
+    assert got.shape == (batch, out_c, up_h, up_w)
+    # float32 rounding relative to the magnitude of the summed terms (|W| |inputs| + |b|)
+    with torch.no_grad():
+        up = F.interpolate(low.double().abs(), size=high.shape[-2:], mode="bilinear", align_corners=False)
+        scale = float(F.conv2d(torch.cat([up, high.double().abs()], 1), conv.weight.double().abs(),
+                               conv.bias.double().abs()).max())
+    assert float((got.double() - ref).abs().max()) <= 1e-5 * scale
+
+
+def test_split_layer_has_the_plain_convolutions_parameters():
+    layer, plain = UpsampledConcatConv1x1(16, 31, 16), nn.Conv2d(47, 16, 1)
+    assert isinstance(layer, nn.Conv2d)  # models.recover finds it with the other convolutions
+    assert {k: tuple(v.shape) for k, v in layer.state_dict().items()} == \
+        {k: tuple(v.shape) for k, v in plain.state_dict().items()}
+    layer.load_state_dict(plain.state_dict())  # a checkpoint of the concatenating form loads as is
+    low, high = torch.randn(2, 16, 5, 6), torch.randn(2, 31, 10, 12)
+    with torch.no_grad():
+        assert torch.allclose(layer(low, high).double(), _concatenating(plain, low, high), atol=1e-5)
+
+
+def _backbone_concatenating(net: UNetBackbone, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``UNetBackbone.forward`` as it was written before the split (explicitly, float32)."""
+    def up(a, like):
+        return F.interpolate(a, size=like.shape[-2:], mode="bilinear", align_corners=False)
+    e1 = net.enc1(x)
+    e2 = net.enc2(e1)
+    e3 = net.enc3(e2)
+    d2 = net.dec2(up(net.lat3(e3), e2) + e2)
+    d1 = net.dec1(up(net.lat2(d2), e1) + e1)
+    first = net.full[0]
+    full = F.conv2d(torch.cat([up(d1, x), x], 1), first.weight, first.bias)
+    return net.full[1:](full), e3
+
+
+@pytest.mark.parametrize("size", [(8, 8), (16, 24), (17, 23), (33, 9), (40, 64)])
+@pytest.mark.parametrize("training", [False, True])
+def test_backbone_equals_the_concatenating_formulation(size, training):
+    torch.manual_seed(sum(size) + training)
+    net = UNetBackbone(7, 8)
+    for m in net.modules():  # non-trivial batch norms
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.3, 0.3)
+    net.train(training)
+    x = torch.randn(2, 7, *size, requires_grad=True)
+    full, e3 = net(x)
+    ref_full, ref_e3 = _backbone_concatenating(net, x)
+    assert full.shape == (2, 8, *size)
+    assert float((full - ref_full).detach().abs().max()) <= 1e-5 * _scale(ref_full)
+    assert torch.equal(e3, ref_e3)
+    # training computes the same gradients (float rounding)
+    g = torch.randn_like(full)
+    grads = torch.autograd.grad((full * g).sum(), [x, net.full[0].weight])
+    ref_grads = torch.autograd.grad((ref_full * g).sum(), [x, net.full[0].weight])
+    for a, b in zip(grads, ref_grads):
+        assert float((a - b).abs().max()) <= 1e-4 * _scale(b)
+
+
+def test_split_graphs_recover_to_the_same_parameters(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    import onnx
+
+    from models.export import export_all
+    from models.recover import networks_from_weights
+    from models.runtime import WEIGHTS_DIR
+
+    nets, meta = networks_from_weights(WEIGHTS_DIR)
+    gen = torch.Generator().manual_seed(3)
+    sample = {"analyzer": 0.2 + 0.6 * torch.rand(1, 3, 4, 16, 24, generator=gen), "mask": torch.ones(1, 1, 16, 24),
+              "s_in": torch.tensor([[1.0, 0.9, 0.1]]), "wo": torch.zeros(1, 3, 16, 24),
+              "stage_zero_axis": torch.tensor([[0.0, -1.0, 0.0]])}
+    sample["wo"][:, 2] = -1.0
+    export_all(nets["pipnet"], nets["pmmnet"], nets["direct"], tmp_path, sample,
+               {"training": meta["training"]})
+    # the split form: no full-resolution Concat feeds a Conv, one more Conv per backbone
+    graph = onnx.load(str(tmp_path / "direct.onnx")).graph
+    plain = onnx.load(str(WEIGHTS_DIR / "direct.onnx")).graph
+    assert sum(n.op_type == "Conv" for n in graph.node) == sum(n.op_type == "Conv" for n in plain.node) + 1
+    again, _ = networks_from_weights(tmp_path)
+    for name, net in nets.items():
+        before, after = net.state_dict(), again[name].state_dict()
+        assert list(before) == list(after)
+        for k in before:
+            assert torch.equal(before[k], after[k]), (name, k)
