@@ -69,13 +69,14 @@ def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry
             infer.append(t1 - t0)
             render.append(t2 - t1)
     i, r = statistics.median(infer), statistics.median(render)
-    return {"device": device, "provider": model.provider, "resolution": resolution, "binning": binning, "infer_s": i, "render_s": r,
-            "fps": 1.0 / (i + r), "frames": len(infer), "max_px": max_px}
+    return {"device": device, "provider": model.provider, "resolution": resolution, "binning": binning,
+            "infer_s": i, "render_s": r, "fps": 1.0 / (i + r), "frames": len(infer), "max_px": max_px}
 
 
 def table(rows: list[dict], gpu: str | None) -> str:
-    lines = [f"GPU: {gpu or 'none'}. Grid long side: {rows[0]['max_px'] or 'whole'} px. Medians over {rows[0]['frames']} full-sensor colour frames after two "
-             "warm-ups, warm in process; Qt's display step not included.", "",
+    lines = [f"GPU: {gpu or 'none'}. Grid long side: {rows[0]['max_px'] or 'whole'} px. Medians over "
+             f"{rows[0]['frames']} full-sensor colour frames after two warm-ups, warm in process; Qt's display "
+             "step not included.", "",
              "| device (provider) | resolution | network binning | inference ms | Mueller grid render ms | fps | target |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -353,7 +353,8 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
             raws[(shape, layout)] = write_case_raw(shape, layout, tmp / "raw_steps.png", rng)
         steps = cold_steps(raws[(shape, layout)], argv + ["--device", device], tmp / "steps.exr",
                            rounds) if with_anatomy else None
-    raw = {"provider": model.provider, "gpu": gpu_name() if model.provider == "CUDAExecutionProvider" else None, "onnxruntime": __import__("onnxruntime").__version__,
+    raw = {"provider": model.provider, "gpu": gpu_name() if model.provider == "CUDAExecutionProvider" else None,
+           "onnxruntime": __import__("onnxruntime").__version__,
            "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
            "warm": warm, "cold": cold, "anatomy": anat, "cold_steps": steps,
            "cold_steps_case": CASES[4][0] if steps else None, "load_average": [load_start, os.getloadavg()[0]]}
