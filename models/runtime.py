@@ -54,7 +54,8 @@ from models.size import SIZE_MULTIPLE
 from models.uncertainty import UncertaintyModel, calibration_for_graph
 from polrig import frames
 from polrig.errors import FormatError
-from polrig.stokes import stokes_from_analyzers
+from polrig.quantiles import tail_percentile
+from polrig.stokes import saturation_mask, stokes_from_analyzers
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
 #: Percentile of the analyzer values in the mask that the normalisation maps to 1 (sim.dataset).
@@ -62,6 +63,9 @@ SCALE_PERCENTILE = 99.5
 #: Stage zero axis of the simulated rig in the camera frame (sim.dataset manifest), used when
 #: neither the caller nor the model's ``model.json`` gives one.
 DEFAULT_STAGE_ZERO_AXIS = (0.0, -1.0, 0.0)
+#: Incident frames whose ``(cos theta, sin theta)`` before normalisation have a squared length
+#: below this (an axis within about 1e-7 rad of the illumination) are degenerate: ``theta = 0``.
+DEGENERATE_FRAME_SQ = 1e-14
 #: Fraction of the 99th percentile of S0 below which a pixel is background when no mask is given.
 MASK_FRACTION = 0.02
 #: Largest normalised level (the in-mask 99.5th percentile divided by a caller's ``scale``)
@@ -119,17 +123,50 @@ def view_directions(shape: tuple[int, int], intrinsics: tuple[float, float, floa
     return (-ray / np.linalg.norm(ray, axis=0, keepdims=True)).astype(np.float32)
 
 
-def incident_rotation(wi: np.ndarray, stage_zero_axis, model_axis) -> tuple[np.ndarray, np.ndarray]:
+def incident_rotation(wi: np.ndarray, stage_zero_axis, model_axis, *,
+                      vector_axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
     """``(cos 2theta, sin 2theta)`` of the basis change from the rig's incident frame (``x`` from
     ``stage_zero_axis``) to the model's (``x`` from ``model_axis``) for light arriving along
-    ``-wi`` ``(..., 3)`` (unit, surface -> light, camera frame): ``S_model = R(theta) S_rig``
-    and ``M_rig = M_model R(theta)`` (``docs/conventions.md``, "Stokes reference frames";
-    :func:`polrig.frames.rotation_cos_sin_2theta`). Axes ``(3,)`` or ``(..., 3)``, camera frame.
-    A degenerate frame (axis along the illumination) gives ``theta = 0``."""
-    k = -np.asarray(wi, np.float64)
-    x_rig = frames.basis_from_reference(k, np.asarray(stage_zero_axis, np.float64))
-    x_model = frames.basis_from_reference(k, np.asarray(model_axis, np.float64))
-    return frames.rotation_cos_sin_2theta(k, x_rig, x_model)
+    ``-wi`` (surface -> light, camera frame, vector components along ``vector_axis``: ``(..., 3)``
+    by default, ``vector_axis=1`` for plane-first images ``(B, 3, H, W)``): ``S_model = R(theta)
+    S_rig`` and ``M_rig = M_model R(theta)`` (``docs/conventions.md``, "Stokes reference
+    frames"; :func:`polrig.frames.rotation_cos_sin_2theta`). The axes are ``(3,)`` or
+    ``(B, 3)``, camera frame, any non-zero length. Computed in ``wi``'s floating dtype (float32
+    images stay float32). A degenerate frame (an axis along the illumination) gives
+    ``theta = 0``.
+
+    Closed form: with ``k = -wi`` and ``a``, ``b`` the two axes, the frames' ``x`` are ``a`` and
+    ``b`` made perpendicular to ``k`` (``u = a - (a.k) k / |k|^2``, likewise ``v``), and
+    ``theta`` turns ``u`` into ``v`` about ``k``: ``cos theta ~ u.v = a.b - (a.k)(b.k) / |k|^2``
+    and ``sin theta ~ k.(u x v) / |k| = k.(a x b) / |k|``, with the same positive factor
+    ``1 / (|u| |v|)``, which cancels in ``cos 2theta = (c^2 - s^2) / (c^2 + s^2)`` and
+    ``sin 2theta = 2 c s / (c^2 + s^2)``: three dot products per pixel, no normalisation
+    (``tests/test_single_shot_rig.py`` checks it against :mod:`polrig.frames`' Gram-Schmidt
+    frames and the pBRDF evaluated in both frames)."""
+    w = np.asarray(wi)
+    dtype = w.dtype if np.issubdtype(w.dtype, np.floating) else np.float64
+    k = [-np.take(w, i, axis=vector_axis).astype(dtype, copy=False) for i in range(3)]
+
+    def unit_axes(v) -> np.ndarray:
+        v = np.asarray(v, np.float64).reshape(-1, 3)
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    def per_batch(x: np.ndarray) -> np.ndarray:  # (B,) -> broadcastable against a component of k
+        return x.astype(dtype).reshape(x.shape[:1] + (1,) * (k[0].ndim - 1) if k[0].ndim else ())
+
+    a, b = unit_axes(stage_zero_axis), unit_axes(model_axis)
+    n = np.cross(a, b)
+    ka, kb, kn = (sum(k[i] * per_batch(v[:, i]) for i in range(3)) for v in (a, b, n))
+    kk = k[0] * k[0] + k[1] * k[1] + k[2] * k[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = per_batch(np.sum(a * b, axis=-1)) - ka * kb / kk
+        s = kn / np.sqrt(kk)
+        r2 = c * c + s * s
+        ok = np.isfinite(r2) & (r2 > DEGENERATE_FRAME_SQ)
+        r2 = np.where(ok, r2, 1.0)
+        cos2 = np.where(ok, (c * c - s * s) / r2, 1.0).astype(dtype, copy=False)
+        sin2 = np.where(ok, 2.0 * c * s / r2, 0.0).astype(dtype, copy=False)
+    return cos2, sin2
 
 
 def rotate_stokes(s: np.ndarray, cos2, sin2) -> np.ndarray:
@@ -152,11 +189,13 @@ def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray, *
     m = np.asarray(m)
     c = np.expand_dims(np.asarray(cos2, m.dtype), -3)  # (..., 1, H, W): same for every row
     s = np.expand_dims(np.asarray(sin2, m.dtype), -3)
-    c1, c2 = m[..., :, 1, :, :], m[..., :, 2, :, :]
-    new1, new2 = c * c1 - s * c2, c * c2 + s * c1
     out = m if overwrite else m.copy()
-    out[..., :, 1, :, :] = new1
-    out[..., :, 2, :, :] = new2
+    c1, c2 = out[..., :, 1, :, :], out[..., :, 2, :, :]  # views: updated in place
+    old1 = c1.copy()
+    np.multiply(c1, c, out=c1)
+    c1 -= s * c2
+    np.multiply(c2, c, out=c2)
+    c2 += s * old1
     return out
 
 
@@ -228,8 +267,8 @@ def default_mask(analyzer: np.ndarray, fraction: float = MASK_FRACTION) -> np.nd
     diff = np.diff(s0, axis=-1)
     diff = np.abs(diff[np.isfinite(diff)])
     noise = 1.4826 * float(np.median(diff)) / np.sqrt(2.0) if diff.size else 0.0
-    floor = float(np.percentile(vals, 1.0)) + MASK_NOISE_SIGMAS * noise
-    ref = float(np.percentile(vals, 99.0))
+    floor = tail_percentile(vals, 1.0) + MASK_NOISE_SIGMAS * noise
+    ref = tail_percentile(vals, 99.0)
     if not ref > floor:  # fewer than 1 % of the pixels lit: the percentile is background
         lit = vals[vals > floor]
         if lit.size:
@@ -243,10 +282,11 @@ def default_scale(analyzer: np.ndarray, mask: np.ndarray) -> float:
     of the simulator's dataset writer (:data:`sim.dataset.SCALE_PERCENTILE`), so the networks
     see their training distribution."""
     vals = np.asarray(analyzer)[:, :, mask]
-    vals = vals[np.isfinite(vals)]
+    if not np.isfinite(vals).all():
+        vals = vals[np.isfinite(vals)]
     if vals.size == 0:
         return 1.0
-    return max(float(np.percentile(vals, SCALE_PERCENTILE)), 1.0)
+    return max(tail_percentile(vals, SCALE_PERCENTILE), 1.0)
 
 
 def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.ndarray:
@@ -433,8 +473,8 @@ class SingleShotModel:
             if w_mean is None:
                 break
             wi = w_mean
-        w_pix = np.moveaxis(rotate_with if rotate_with is not None else out["wi"], 1, -1)  # (B, H, W, 3)
-        cp, sp = incident_rotation(w_pix, axis[:, None, None, :], self.model_axis)
+        w_pix = rotate_with if rotate_with is not None else out["wi"]  # (B, 3, H, W)
+        cp, sp = incident_rotation(w_pix, axis, self.model_axis, vector_axis=1)
         for key in ("mueller", "mueller_init"):
             if key in out:
                 ndim = out[key].ndim  # (B, C, 3, 3, H, W)
@@ -544,13 +584,13 @@ class SingleShotModel:
             res = {k: _resize(v, (h, w), cv2.INTER_LINEAR) for k, v in res.items()}
         if mono:
             res = {k: v.mean(axis=0, keepdims=True) if k in COLOUR_OUTPUTS else v for k, v in res.items()}
-        mueller = (res.pop("mueller") * sc * m).astype(np.float32)
+        to_dn = (sc * m).astype(np.float32)  # (H, W): normalised units -> DN, background 0
+        in_dn = lambda x: np.multiply(x, to_dn, dtype=np.float32)  # noqa: E731  (one pass, a new array)
+        mueller = in_dn(res.pop("mueller"))
         disagreement = res.pop("mueller_disagreement", None)
         if disagreement is not None:
-            disagreement = disagreement * sc * m
-        aux = {k: v.astype(np.float32) for k, v in res.items()}
-        if "mueller_init" in aux:
-            aux["mueller_init"] = (aux["mueller_init"] * sc * m).astype(np.float32)
+            disagreement = in_dn(disagreement)
+        aux = {k: in_dn(v) if k == "mueller_init" else v.astype(np.float32) for k, v in res.items()}
         if with_sigma and self.uncertainty is not None:
             # the capture's own Stokes images, in DN like ``mueller`` (a mono frame is repeated: one copy)
             stokes = stokes_from_analyzers(a[:mueller.shape[0]])
@@ -628,8 +668,7 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     analyzer = demosaic(raw, lay, "superpixel" if full else demosaic_method, black_level_dn=black_level_dn)
     clipped = None
     if saturation_dn is not None and not full:
-        clipped = demosaic_float((np.asarray(raw) >= saturation_dn).astype(np.float32), lay,
-                                 demosaic_method).max(axis=(0, 1)) > 0
+        clipped = saturation_mask(raw, lay, demosaic_method, saturation_dn).any(axis=0)
     t1 = time.perf_counter()
     stokes = stokes_from_analyzers(analyzer)
     t2 = time.perf_counter()

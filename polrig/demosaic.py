@@ -151,6 +151,15 @@ def demosaic(raw: np.ndarray, layout: MosaicLayout, method: str = "superpixel", 
     See the module docstring for the methods and output sizes (:func:`output_shape`).
     """
     _check_method(method)
+    if method == "superpixel" and dark is None:
+        # a cell's mean is taken straight from the raw samples and the black level removed from
+        # the mean: no float copy of the whole mosaic (the same numbers for integer raw data)
+        raw = np.asarray(raw)
+        if raw.ndim != 2:
+            raise ValueError(f"raw mosaic must be 2-D (H, W), got shape {raw.shape}")
+        check_mosaic_shape(layout, raw.shape)
+        with np.errstate(all="ignore"):
+            return _superpixel(raw, layout, black_level_dn)
     x = preprocess(raw, black_level_dn=black_level_dn, dark=dark)
     return demosaic_float(x, layout, method)
 
@@ -187,18 +196,22 @@ def class_positions(layout: MosaicLayout) -> dict[tuple[int, int], list[tuple[in
 
 
 # -- superpixel --------------------------------------------------------------------------------
-def _superpixel(x: np.ndarray, layout: MosaicLayout) -> np.ndarray:
+def _superpixel(x: np.ndarray, layout: MosaicLayout, black_level_dn: float = 0.0) -> np.ndarray:
+    """Cell means ``(C, 4, H / ph, W / pw)`` float32 of a mosaic ``x`` (any real dtype) minus
+    ``black_level_dn``."""
     ph, pw = layout.period
     h, w = x.shape[0] // ph, x.shape[1] // pw
     xc = x[: h * ph, : w * pw]
     out = np.empty((layout.n_colours, 4, h, w), np.float32)
     for (c, k), pos in class_positions(layout).items():
         r, q = pos[0]
-        np.copyto(out[c, k], xc[r::ph, q::pw])
+        np.copyto(out[c, k], xc[r::ph, q::pw], casting="unsafe")
         for r, q in pos[1:]:
             out[c, k] += xc[r::ph, q::pw]
         if len(pos) > 1:
             out[c, k] *= np.float32(1.0 / len(pos))
+    if black_level_dn:
+        out -= np.float32(black_level_dn)
     return out
 
 

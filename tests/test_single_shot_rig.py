@@ -58,6 +58,37 @@ def test_frame_change_matches_the_pbrdf_in_both_frames():
                                np.einsum("pij,pj->pi", m_mod, s_mod), atol=1e-9)
 
 
+def test_incident_rotation_closed_form_equals_the_gram_schmidt_frames():
+    """The closed form of :func:`models.runtime.incident_rotation` against the two frames built
+    by :mod:`polrig.frames` (Gram-Schmidt bases, their signed angle): per-row axes, one axis for
+    all, plane-first images (``vector_axis=1``, float32 kept), non-unit inputs; a degenerate
+    frame (the stage axis along the illumination) gives ``theta = 0``."""
+    from models.runtime import incident_rotation
+    from polrig import frames
+
+    rng = np.random.default_rng(12)
+    n = 500
+    wi = rng.normal(size=(n, 3)) * rng.uniform(0.2, 5.0, (n, 1))  # any length, any direction
+    axes_rig, axis_model = rng.normal(size=(n, 3)), rng.normal(size=3) * 3.0
+    k = -wi
+    want_c, want_s = frames.rotation_cos_sin_2theta(k, frames.basis_from_reference(k, axes_rig),
+                                                    frames.basis_from_reference(k, axis_model))
+    c2, s2 = incident_rotation(wi, axes_rig, axis_model)
+    np.testing.assert_allclose(c2, want_c, atol=1e-9)
+    np.testing.assert_allclose(s2, want_s, atol=1e-9)
+    # plane-first float32 images (B, 3, H, W) with one axis per image
+    img = np.moveaxis(wi.reshape(2, 10, 25, 3), -1, 1).astype(np.float32)
+    c2i, s2i = incident_rotation(img, axes_rig[:2], axis_model, vector_axis=1)
+    assert c2i.dtype == np.float32 and c2i.shape == (2, 10, 25)
+    ref_c, ref_s = incident_rotation(np.moveaxis(img, 1, -1).astype(np.float64),
+                                     axes_rig[:2, None, None, :], axis_model)
+    np.testing.assert_allclose(c2i, ref_c, atol=1e-5)  # float32 rounding
+    np.testing.assert_allclose(s2i, ref_s, atol=1e-5)
+    # degenerate: the stage zero axis along the illumination
+    c2d, s2d = incident_rotation(np.array([0.0, 0.0, -1.0]), [0.0, 0.0, 2.0], axis_model)
+    assert (float(c2d), float(s2d)) == (1.0, 0.0)
+
+
 def test_dataset_truth_in_a_random_frame_is_the_camera_up_truth_turned():
     """``sim.dataset`` draws the stage zero axis per sample from its own random stream: the
     same scene in the version-1 (camera-up) frame, turned by the frame change, is the truth."""
