@@ -129,9 +129,18 @@ class SensorModel:
         ``n_frames``. Non-finite signals give non-finite variances (mask them upstream).
         """
         s = np.clip(np.asarray(signal_dn, dtype=np.float64), 0.0, None)
+        per_dn, offset = self.variance_terms(exposure_us, n_frames)
+        return s * per_dn + offset
+
+    def variance_terms(self, exposure_us: float | np.ndarray,
+                       n_frames: int | np.ndarray = 1) -> tuple[np.ndarray, np.ndarray]:
+        """``(per_dn, offset)`` of the linear variance model: :meth:`variance_dn2` is
+        ``max(signal_dn, 0) * per_dn + offset`` (DN^2 per DN, DN^2), for callers that evaluate it
+        in their own dtype (e.g. float32 images)."""
         g = self.gain_e_per_dn
-        var = s / g + (self.dark_electrons(exposure_us) + self.read_noise_e**2) / g**2 + 1.0 / 12.0
-        return var / np.asarray(n_frames, dtype=np.float64)
+        n = np.asarray(n_frames, dtype=np.float64)
+        offset = ((self.dark_electrons(exposure_us) + self.read_noise_e**2) / g**2 + 1.0 / 12.0) / n
+        return 1.0 / g / n, offset
 
     # ------------------------------------------------------------------ sampling
     def sample_raw(self, mean_electrons: np.ndarray, rng: np.random.Generator,
