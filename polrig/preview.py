@@ -341,7 +341,7 @@ def display_flags(flags: np.ndarray | None, snr: np.ndarray | None,
     dark = _dark(flags, snr, min_snr)
     base = (np.zeros(np.shape(snr), np.uint8) if flags is None
             else np.asarray(flags, np.uint8) & np.uint8(~DARK & 0xFF))
-    return (base | np.where(dark, DARK, 0)).astype(np.uint8)
+    return base | np.where(dark, np.uint8(DARK), np.uint8(0))  # uint8 throughout (no int64 image)
 
 
 def reason_text(code: int, snr: float | None = None, min_snr: float = DEFAULT_MIN_SNR) -> str:
