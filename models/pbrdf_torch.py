@@ -129,7 +129,7 @@ def _blocks(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: i
     v = _Vec(dim)
     n, wi, wo = v.normalize(n), v.normalize(wi), v.normalize(wo)
     cos_i, cos_o = v.dot(n, wi), v.dot(n, wo)
-    visible = ((cos_i > 0) & (cos_o > 0)).to(n.dtype)
+    visible = (cos_i > 0).to(n.dtype) * (cos_o > 0).to(n.dtype)  # not &: onnxruntime's And is slow on images
     if weight is not None:
         visible = visible * weight
     k_in, k_out = -wi, wo
