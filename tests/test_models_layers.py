@@ -1,7 +1,7 @@
 """models.layers: the U-Net's full-resolution 1x1 layer, computed without the full-resolution
 concatenation (decoder part at half resolution, then upsampled), equals the concatenating
 formulation ``conv1x1(cat(up(d), x))`` to float rounding, keeps the plain convolution's
-parameters, and graphs exported in the split form recover to the same parameters."""
+parameters, and exported graphs of either form recover to the same parameters."""
 
 from __future__ import annotations
 
@@ -107,12 +107,14 @@ def test_backbone_equals_the_concatenating_formulation(size, training):
         assert float((a - b).abs().max()) <= 1e-4 * _scale(b)
 
 
-def test_split_graphs_recover_to_the_same_parameters(tmp_path):
+def test_exported_graphs_of_both_forms_recover_to_the_same_parameters(tmp_path):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
+    import shutil
+
     import onnx
 
-    from models.export import export_all
+    from models.export import _export, export_all
     from models.recover import networks_from_weights
     from models.runtime import WEIGHTS_DIR
 
@@ -124,13 +126,22 @@ def test_split_graphs_recover_to_the_same_parameters(tmp_path):
     sample["wo"][:, 2] = -1.0
     export_all(nets["pipnet"], nets["pmmnet"], nets["direct"], tmp_path, sample,
                {"training": meta["training"]})
-    # the split form: no full-resolution Concat feeds a Conv, one more Conv per backbone
-    graph = onnx.load(str(tmp_path / "direct.onnx")).graph
-    plain = onnx.load(str(WEIGHTS_DIR / "direct.onnx")).graph
-    assert sum(n.op_type == "Conv" for n in graph.node) == sum(n.op_type == "Conv" for n in plain.node) + 1
-    again, _ = networks_from_weights(tmp_path)
-    for name, net in nets.items():
-        before, after = net.state_dict(), again[name].state_dict()
-        assert list(before) == list(after)
-        for k in before:
-            assert torch.equal(before[k], after[k]), (name, k)
+    assert not any(m.concatenate for net in nets.values() for m in net.modules()
+                   if isinstance(m, UpsampledConcatConv1x1))  # the training form is restored
+    convs = lambda path: sum(n.op_type == "Conv" for n in onnx.load(str(path)).graph.node)  # noqa: E731
+    # export_all writes the concatenating form, one Conv per layer as in the shipped graphs; the
+    # split form has one more Conv per backbone
+    split = tmp_path / "split"
+    split.mkdir()
+    for name in ("single_shot.onnx", "model.json"):
+        shutil.copy(tmp_path / name, split / name)
+    _export(nets["direct"], sample, ("mueller",), split / "direct.onnx", concatenate=False)
+    assert convs(tmp_path / "direct.onnx") == convs(WEIGHTS_DIR / "direct.onnx")
+    assert convs(split / "direct.onnx") == convs(WEIGHTS_DIR / "direct.onnx") + 1
+    for folder in (tmp_path, split):
+        again, _ = networks_from_weights(folder)
+        for name, net in nets.items():
+            before, after = net.state_dict(), again[name].state_dict()
+            assert list(before) == list(after)
+            for k in before:
+                assert torch.equal(before[k], after[k]), (folder.name, name, k)
