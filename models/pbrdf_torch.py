@@ -4,10 +4,14 @@ The same math as :mod:`polrig.pbrdf` (the core numpy implementation; ``tests/tes
 checks the two agree to 1e-5 on random inputs), written with torch ops only so that it runs
 inside the training graph and exports to ONNX (no ``atan2``, no complex numbers: basis
 rotations use ``cos 2phi = c^2 - s^2``, ``sin 2phi = 2 c s`` from dot and cross products).
-The rotated matrices are written out in closed form element by element (no batched 3x3
-matmuls, no per-pixel stacks): the vector axis is a parameter, so the same code serves
-matrix-last arrays ``(..., 3)`` and plane-first images ``(B, 3, H, W)``, and the exported graph
-is a short chain of element-wise ops that onnxruntime runs fast.
+The rotated specular matrix is written out in closed form element by element and the rank-one
+diffuse matrix as one broadcast outer product ``u w^T`` (no batched 3x3 matmuls): the vector
+axis is a parameter, so the same code serves matrix-last arrays ``(..., 3)`` and plane-first
+images ``(B, 3, H, W)``, and the exported graph is a chain of element-wise ops. Written for
+onnxruntime's CPU kernels (measured, ``models/MODEL_CARD.md``): sums over the 3 vector
+components as Split + Add (its ReduceSum over 3 channels of an image is about 5 times slower),
+choices as {0, 1} blends (its Where and And are slow on images), the mask applied to the
+per-pixel scale factors rather than to the 9 elements.
 
 Conventions (``docs/conventions.md``): vectors are camera-frame unit vectors with the vector
 axis last, ``normal`` points out of the surface, ``wi`` from the surface towards the light,
@@ -148,7 +152,7 @@ def _blocks(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: i
     a = 0.5 * (rs * rs + rp * rp) * scalar
     b = 0.5 * (rs * rs - rp * rp) * scalar
     c = rs * rp * scalar
-    # R(co, so) [[a, b, 0], [b, a, 0], [0, 0, c]] (c on the 2x2 antisymmetric part) R(ci, si)
+    # R(co, so) F R(ci, si) with the Fresnel block F = [[a, b, 0], [b, a, 0], [0, 0, c]]
     a_ci, a_si, c_si, c_ci = a * ci, a * si, c * si, c * ci
     spec = [a, b * ci, b * si,
             co * b, co * a_ci - so * c_si, co * a_si + so * c_ci,
