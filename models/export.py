@@ -13,7 +13,9 @@ Shipped graphs (``models/weights/``):
 
 Inputs of both: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W), ``s_in`` (B,3),
 ``wo`` (B,3,H,W), ``stage_zero_axis`` (B,3); batch, height and width are dynamic (H and W
-multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter.
+multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter. The U-Nets'
+full-resolution 1x1 layers are written in their concatenating form, one Conv node each
+(:class:`models.layers.UpsampledConcatConv1x1`: training evaluates the split form).
 
 The check: each graph is run with onnxruntime on the export sample and compared with PyTorch;
 the export fails (:class:`ExportError`, nothing replaced in ``weights_dir``) when a network has
