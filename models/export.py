@@ -13,7 +13,9 @@ Shipped graphs (``models/weights/``):
 
 Inputs of both: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W), ``s_in`` (B,3),
 ``wo`` (B,3,H,W), ``stage_zero_axis`` (B,3); batch, height and width are dynamic (H and W
-multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter.
+multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter. The U-Nets'
+full-resolution 1x1 layers are written in their concatenating form, one Conv node each
+(:class:`models.layers.UpsampledConcatConv1x1`: training evaluates the split form).
 
 The check: each graph is run with onnxruntime on the export sample and compared with PyTorch;
 the export fails (:class:`ExportError`, nothing replaced in ``weights_dir``) when a network has
@@ -36,7 +38,7 @@ import warnings
 import numpy as np
 import torch
 
-from models.layers import SIZE_MULTIPLE
+from models.layers import SIZE_MULTIPLE, UpsampledConcatConv1x1
 from models.pmmnet import SINGLE_SHOT_OUTPUTS, DirectStokesToMM, SingleShotNet
 from models.pipnet import PIPNet
 from models.pmmnet import PMMNet
@@ -56,13 +58,32 @@ _DYNAMIC = {"analyzer": {0: "batch", 3: "height", 4: "width"}, "mask": {0: "batc
             "stage_zero_axis": {0: "batch"}}
 
 
+@contextlib.contextmanager
+def _upsampled_convs_concatenating(model: torch.nn.Module, concatenate: bool):
+    """Every :class:`models.layers.UpsampledConcatConv1x1` of ``model`` in the given form for
+    the duration (the previous forms restored after)."""
+    layers = [m for m in model.modules() if isinstance(m, UpsampledConcatConv1x1)]
+    before = [m.concatenate for m in layers]
+    for m in layers:
+        m.concatenate = concatenate
+    try:
+        yield
+    finally:
+        for m, b in zip(layers, before):
+            m.concatenate = b
+
+
 def _export(model: torch.nn.Module, sample: dict[str, torch.Tensor], outputs: tuple[str, ...],
-            path: pathlib.Path) -> None:
+            path: pathlib.Path, concatenate: bool = True) -> None:
+    """Export ``model`` to ``path``. ``concatenate``: the U-Net's full-resolution 1x1 layers in
+    their concatenating form (one Conv node each; :class:`models.layers.UpsampledConcatConv1x1`),
+    else in the split form (two)."""
     dyn = dict(_DYNAMIC)
     for name in outputs:
         dyn[name] = {0: "batch"}
     args = tuple(sample[k] for k in INPUTS)
-    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings(), \
+            _upsampled_convs_concatenating(model, concatenate):
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer notes
         torch.onnx.export(model, args, str(path), input_names=list(INPUTS), output_names=list(outputs),
                           opset_version=OPSET, dynamic_axes=dyn, dynamo=False, do_constant_folding=True)

@@ -38,13 +38,22 @@ class UpsampledConcatConv1x1(nn.Conv2d):
     ``cat([up(low, high), high], 1)`` without forming the concatenation (module docstring):
     ``forward(low (B, low_channels, h, w), high (B, high_channels, H, W)) -> (B, out_channels,
     H, W)``, ``up`` bilinear with ``align_corners=False``. Its weight and bias are the plain
-    convolution's, so checkpoints and graphs of the concatenating form load unchanged."""
+    convolution's, so checkpoints and graphs of the concatenating form load unchanged.
+
+    ``concatenate = True`` evaluates the concatenating form instead (the same function);
+    :func:`models.export.export_all` sets it while exporting: onnxruntime runs the two forms
+    at the same speed within the noise of this machine, and the concatenating form rounds as
+    the graphs shipped so far do (the split form moves PIPNet's normal by about 1e-5, which
+    the pBRDF's narrow specular lobes amplify to 1e-4 of the initialization's maximum)."""
 
     def __init__(self, low_channels: int, high_channels: int, out_channels: int):
         super().__init__(low_channels + high_channels, out_channels, 1)
         self.low_channels = low_channels
+        self.concatenate = False
 
     def forward(self, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        if self.concatenate:
+            return F.conv2d(torch.cat([_up(low, high), high], 1), self.weight, self.bias)
         k = self.low_channels
         return F.conv2d(high, self.weight[:, k:], self.bias) + _up(F.conv2d(low, self.weight[:, :k]), high)
 
@@ -98,14 +107,42 @@ def planes(v: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 
 def signed_log(x: torch.Tensor) -> torch.Tensor:
-    """``sign(x) log(1 + |x|)``: compresses specular peaks of Mueller inputs."""
-    return torch.sign(x) * torch.log1p(torch.abs(x))
+    """``sign(x) log(1 + |x|)``: compresses specular peaks of Mueller inputs. The sign is
+    ``1 - 2 [x < 0]`` (the same value; ``log(1 + |x|)`` is 0 where ``sign(x)`` is), which
+    onnxruntime computes faster than its Sign kernel."""
+    return torch.log1p(torch.abs(x)) * (1.0 - 2.0 * (x < 0).to(x.dtype))
+
+
+def sum_over(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sum over the short axis ``dim`` (kept with length 1) as a split and additions: the
+    same sum as ``x.sum(dim, keepdim=True)``, which onnxruntime runs several times slower
+    over a short axis of images (a strided reduction: 0.38 ms against 0.07 ms for 3 planes of
+    616x512 on 2 cores)."""
+    parts = torch.split(x, 1, dim)
+    total = parts[0]
+    for part in parts[1:]:
+        total = total + part
+    return total
+
+
+def normalize_channels(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """``F.normalize(x, dim=1, eps=eps)`` (``x / max(|x|, eps)`` over the channels of a
+    ``(B, K, H, W)`` image, K small) with the norm's sum written out (:func:`sum_over`)."""
+    return x / torch.sqrt(sum_over(x * x, 1)).clamp_min(eps)
+
+
+def softplus(x: torch.Tensor) -> torch.Tensor:
+    """``log(1 + exp(x))`` written as ``max(x, 0) + log(1 + exp(-|x|))`` (the same function,
+    without overflow). onnxruntime's Softplus kernel is about 4 times as slow as these
+    element-wise ops on images; above ``x = 20`` the two terms round to ``x`` in float32
+    exactly as ``F.softplus``'s threshold does."""
+    return x.clamp_min(0.0) + torch.log1p(torch.exp(-x.abs()))
 
 
 def apply_mueller(m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """``S_out = M S_in`` for Mueller images ``(B, C, 3, 3, H, W)`` and states ``(B, 3)``
     -> ``(B, C, 3, H, W)``."""
-    return (m * s[:, None, None, :, None, None]).sum(3)
+    return sum_over(m * s[:, None, None, :, None, None], 3).squeeze(3)
 
 
 class HighFrequencyAttention(nn.Module):
@@ -137,9 +174,12 @@ class MultiHeadChannelAttention(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, c, h, w = x.shape
         q, k, v = self.qkv(x).reshape(b, 3, self.heads, c // self.heads, h * w).unbind(1)
-        q = F.normalize(q, dim=-1)
-        k = F.normalize(k, dim=-1)
-        attn = torch.softmax((q @ k.transpose(-2, -1)) * self.temperature, dim=-1)
+        # F.normalize(q) @ F.normalize(k)^T with the norms divided out of the small c x c map
+        # (one division of (c/heads)^2 values per head rather than of every pixel's features)
+        norms_q = q.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # (B, heads, c/heads, 1)
+        norms_k = k.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        cosines = (q @ k.transpose(-2, -1)) / (norms_q * norms_k.transpose(-2, -1))
+        attn = torch.softmax(cosines * self.temperature, dim=-1)
         out = (attn @ v).reshape(b, c, h, w)
         return x + self.proj(out)
 

@@ -4,10 +4,14 @@ The same math as :mod:`polrig.pbrdf` (the core numpy implementation; ``tests/tes
 checks the two agree to 1e-5 on random inputs), written with torch ops only so that it runs
 inside the training graph and exports to ONNX (no ``atan2``, no complex numbers: basis
 rotations use ``cos 2phi = c^2 - s^2``, ``sin 2phi = 2 c s`` from dot and cross products).
-The rotated matrices are written out in closed form element by element (no batched 3x3
-matmuls, no per-pixel stacks): the vector axis is a parameter, so the same code serves
-matrix-last arrays ``(..., 3)`` and plane-first images ``(B, 3, H, W)``, and the exported graph
-is a short chain of element-wise ops that onnxruntime runs fast.
+The rotated specular matrix is written out in closed form element by element and the rank-one
+diffuse matrix as one broadcast outer product ``u w^T`` (no batched 3x3 matmuls): the vector
+axis is a parameter, so the same code serves matrix-last arrays ``(..., 3)`` and plane-first
+images ``(B, 3, H, W)``, and the exported graph is a chain of element-wise ops. Written for
+onnxruntime's CPU kernels (measured, ``models/MODEL_CARD.md``): sums over the 3 vector
+components as Split + Add (its ReduceSum over 3 channels of an image is about 5 times slower),
+choices as {0, 1} blends (its Where and And are slow on images), the mask applied to the
+per-pixel scale factors rather than to the 9 elements.
 
 Conventions (``docs/conventions.md``): vectors are camera-frame unit vectors with the vector
 axis last, ``normal`` points out of the surface, ``wi`` from the surface towards the light,
@@ -40,46 +44,57 @@ _DEGENERATE_SQ = 1e-14
 
 def cross(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
     """``a x b`` along axis ``dim`` written out with element-wise ops (ONNX has no Cross op)."""
-    c = lambda v, i: v.narrow(dim, i, 1)  # noqa: E731
-    return torch.cat([c(a, 1) * c(b, 2) - c(a, 2) * c(b, 1),
-                      c(a, 2) * c(b, 0) - c(a, 0) * c(b, 2),
-                      c(a, 0) * c(b, 1) - c(a, 1) * c(b, 0)], dim)
+    a0, a1, a2 = torch.split(a, 1, dim)
+    b0, b1, b2 = torch.split(b, 1, dim)
+    return torch.cat([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim)
 
 
 class _Vec:
-    """Vector helpers along axis ``dim`` (kept with length 1 by reductions)."""
+    """Vector helpers along axis ``dim`` (kept with length 1 by reductions).
+
+    Sums over the vector axis are a split and two additions rather than a reduction: on
+    ``(B, 3, H, W)`` images onnxruntime's ReduceSum over the 3 channels takes about 6 times
+    as long as Split + 2 Add (measured, ``models/MODEL_CARD.md``)."""
 
     def __init__(self, dim: int):
         self.dim = dim
 
-    def c(self, v: torch.Tensor, i: int) -> torch.Tensor:
-        return v.narrow(self.dim, i, 1)
+    def sum3(self, v: torch.Tensor) -> torch.Tensor:
+        """Sum of the 3 components of ``v`` (length 1 kept on axis ``dim``)."""
+        x, y, z = torch.split(v, 1, self.dim)
+        return x + y + z
 
     def dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return (a * b).sum(self.dim, keepdim=True)
+        return self.sum3(a * b)
 
     def cross(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return cross(a, b, self.dim)
 
-    def normalize(self, v: torch.Tensor) -> torch.Tensor:
-        return v / torch.sqrt(self.dot(v, v) + _EPS)
+    def normalize(self, v: torch.Tensor, squared_norm: torch.Tensor | None = None) -> torch.Tensor:
+        """``v / sqrt(|v|^2 + eps)``; ``squared_norm``: ``|v|^2`` where the caller has it."""
+        return v / torch.sqrt((self.dot(v, v) if squared_norm is None else squared_norm) + _EPS)
 
     def perpendicular(self, axis: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``axis`` made perpendicular to the unit vector ``k``, normalised."""
         return self.normalize(axis - self.dot(axis, k) * k)
 
-    def rotation_2phi(self, k, x_from, x_to) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(cos 2phi, sin 2phi)``, ``phi`` the angle from ``x_from`` to ``x_to`` about ``k``
-        (towards ``y = k x x_from``); ``R(phi) = [[1,0,0],[0,C,S],[0,-S,C]]`` maps Stokes in
-        the ``x_from`` basis to the ``x_to`` basis."""
-        c = self.dot(x_from, x_to)
-        s = self.dot(k, self.cross(x_from, x_to))
-        n2 = c * c + s * s + _EPS
-        return (c * c - s * s) / n2, 2.0 * c * s / n2
-
     def axis_or(self, raw: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
-        """``normalize(raw)``, or ``fallback`` where ``raw`` is (nearly) zero."""
-        return torch.where(self.dot(raw, raw) < _DEGENERATE_SQ, fallback, self.normalize(raw))
+        """``normalize(raw)``, or ``fallback`` where ``raw`` is (nearly) zero. Written as the
+        blend ``f fallback + (1 - f) normalize(raw)`` with ``f`` in {0, 1}, which picks one of
+        the two finite values exactly (onnxruntime's Where is slow on images)."""
+        r2 = self.dot(raw, raw)
+        f = (r2 < _DEGENERATE_SQ).to(raw.dtype)
+        return f * fallback + (1.0 - f) * self.normalize(raw, r2)
+
+
+def rotation_2phi(c: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(cos 2phi, sin 2phi)`` of the angle ``phi`` with ``(cos phi, sin phi)`` proportional
+    to ``(c, s)``. For a rotation about the unit vector ``k`` from the unit axis ``x_from`` to
+    ``x_to`` (towards ``y = k x x_from``) ``c = x_from . x_to`` and ``s = k . (x_from x x_to)
+    = y . x_to``; ``R(phi) = [[1,0,0],[0,C,S],[0,-S,C]]`` maps Stokes in the ``x_from`` basis
+    to the ``x_to`` basis."""
+    n2 = c * c + s * s + _EPS
+    return (c * c - s * s) / n2, 2.0 * c * s / n2
 
 
 def _fresnel_r(cos_i: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -107,37 +122,47 @@ def smith_g1(cos_w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     return 2.0 * c / (c + torch.sqrt(a2 + (1.0 - a2) * c * c) + _EPS)
 
 
-def _blocks9(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: int):
-    """Specular and diffuse blocks as two lists of 9 element tensors (row-major ``m_rc``),
-    each shaped like a dot product of the inputs (vector axis ``dim`` kept, length 1)."""
+def _blocks(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: int,
+            weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Specular and diffuse blocks with the matrix axes at ``dim`` and ``dim + 1`` (``dim = 1``:
+    ``(B, 3, 3, H, W)``; ``dim = -1``: ``(..., 3, 3)``), times ``weight`` (e.g. a mask)
+    where given. Vector inputs have the vector axis at ``dim``.
+
+    Rotation angles come from dot products with the frames' ``y`` axes, computed once per
+    frame: ``k . (x x t) = t . (k x x) = t . y`` and ``k . (t x x) = -t . y``."""
     v = _Vec(dim)
     n, wi, wo = v.normalize(n), v.normalize(wi), v.normalize(wo)
     cos_i, cos_o = v.dot(n, wi), v.dot(n, wo)
-    visible = ((cos_i > 0) & (cos_o > 0)).to(n.dtype)
+    visible = (cos_i > 0).to(n.dtype) * (cos_o > 0).to(n.dtype)  # not &: onnxruntime's And is slow on images
+    if weight is not None:
+        visible = visible * weight
     k_in, k_out = -wi, wo
     x_in = v.perpendicular(stage_zero_axis, k_in)
     x_out = v.perpendicular(camera_x_axis, k_out)
+    y_in, y_out = v.cross(k_in, x_in), v.cross(k_out, x_out)
 
     # Specular: Fresnel reflection at the half vector in the plane (wi, wo), s = wi x h.
     h = v.normalize(wi + wo)
     s_axis = v.axis_or(v.cross(wi, h), x_in)
-    ci, si = v.rotation_2phi(k_in, x_in, s_axis)
-    co, so = v.rotation_2phi(k_out, s_axis, x_out)
+    ci, si = rotation_2phi(v.dot(x_in, s_axis), v.dot(y_in, s_axis))
+    co, so = rotation_2phi(v.dot(s_axis, x_out), -v.dot(y_out, s_axis))
     rs, rp = _fresnel_r(v.dot(wi, h), eta)
     scalar = (ggx_d(v.dot(n, h), alpha) * smith_g1(cos_i, alpha) * smith_g1(cos_o, alpha)
               / (4.0 * cos_o.clamp_min(1e-6))) * visible
     a = 0.5 * (rs * rs + rp * rp) * scalar
     b = 0.5 * (rs * rs - rp * rp) * scalar
     c = rs * rp * scalar
+    # R(co, so) F R(ci, si) with the Fresnel block F = [[a, b, 0], [b, a, 0], [0, 0, c]]
+    a_ci, a_si, c_si, c_ci = a * ci, a * si, c * si, c * ci
     spec = [a, b * ci, b * si,
-            co * b, co * a * ci - so * c * si, co * a * si + so * c * ci,
-            -so * b, -so * a * ci - co * c * si, -so * a * si + co * c * ci]
+            co * b, co * a_ci - so * c_si, co * a_si + so * c_ci,
+            -so * b, -so * a_ci - co * c_si, -so * a_si + co * c_ci]
 
-    # Diffuse: rank one, (R_out T_out e0) (e0^T T_in R_in) cos_i / pi.
+    # Diffuse: rank one, (R_out T_out e0) (e0^T T_in R_in) cos_i / pi = u w^T.
     s_in = v.axis_or(v.cross(n, k_in), x_in)
     s_out = v.axis_or(v.cross(n, k_out), x_out)
-    ci_d, si_d = v.rotation_2phi(k_in, x_in, s_in)
-    co_d, so_d = v.rotation_2phi(k_out, s_out, x_out)
+    ci_d, si_d = rotation_2phi(v.dot(x_in, s_in), v.dot(y_in, s_in))
+    co_d, so_d = rotation_2phi(v.dot(s_out, x_out), -v.dot(y_out, s_out))
 
     def transmission_ab(cos_t):
         ts_r, tp_r = _fresnel_r(cos_t, eta)
@@ -147,10 +172,12 @@ def _blocks9(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: 
     a_i, b_i = transmission_ab(cos_i)
     a_o, b_o = transmission_ab(cos_o)
     scale = cos_i.clamp_min(0.0) / math.pi * visible
-    u = [a_o, co_d * b_o, -so_d * b_o]
-    w = [scale * a_i, scale * ci_d * b_i, scale * si_d * b_i]
-    diff = [u[r] * w[col] for r in range(3) for col in range(3)]
-    return spec, diff
+    u = torch.cat([a_o, co_d * b_o, -so_d * b_o], dim)
+    w = torch.cat([scale * a_i, scale * ci_d * b_i, scale * si_d * b_i], dim)
+    shape = torch.broadcast_shapes(*[t.shape for t in spec])
+    rows = dim if dim >= 0 else dim - 1  # the row axis of the block
+    spec_block = torch.cat([p if p.shape == shape else p.expand(shape) for p in spec], dim).unflatten(dim, (3, 3))
+    return spec_block, u.unsqueeze(rows + 1) * w.unsqueeze(rows)
 
 
 def specular_diffuse_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, *,
@@ -164,22 +191,19 @@ def specular_diffuse_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Te
     Pixels facing away from the light or the camera (``cos <= 0``) get zero blocks.
     """
     alpha = torch.as_tensor(alpha, dtype=normal.dtype, device=normal.device)[..., None]
-    spec, diff = _blocks9(normal, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta, -1)
-    shape = torch.broadcast_shapes(*[t.shape for t in spec + diff])[:-1]
-    as33 = lambda parts: torch.cat([p.expand(shape + (1,)) for p in parts], -1).reshape(shape + (3, 3))  # noqa: E731
-    return as33(spec), as33(diff)
+    return _blocks(normal, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta, -1)
 
 
 def image_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, alpha: torch.Tensor,
                  stage_zero_axis: torch.Tensor, camera_x_axis: torch.Tensor | None = None,
-                 eta: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+                 eta: float = 1.5, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Plane-first version for networks: ``normal``/``wi``/``wo`` ``(B, 3, H, W)``, ``alpha``
-    ``(B,)``, ``stage_zero_axis`` ``(B, 3)`` -> blocks ``(B, 3, 3, H, W)`` (ks = kd = 1)."""
+    ``(B,)``, ``stage_zero_axis`` ``(B, 3)`` -> blocks ``(B, 3, 3, H, W)`` (ks = kd = 1), each
+    times ``mask`` ``(B, 1, H, W)`` where given (applied to the per-pixel scale factors, before
+    the 9 elements are formed)."""
     if camera_x_axis is None:  # the camera X axis, built from the input so tracing keeps no constant tensor
         cam = torch.cat([torch.ones_like(normal[:1, :1, :1, :1]), torch.zeros_like(normal[:1, :2, :1, :1])], 1)
     else:
         cam = camera_x_axis.reshape(-1, 3, 1, 1)
-    spec, diff = _blocks9(normal, wi, wo, alpha[:, None, None, None], stage_zero_axis[:, :, None, None],
-                          cam, eta, 1)
-    b, _, h, w = normal.shape
-    return torch.cat(spec, 1).reshape(b, 3, 3, h, w), torch.cat(diff, 1).reshape(b, 3, 3, h, w)
+    return _blocks(normal, wi, wo, alpha[:, None, None, None], stage_zero_axis[:, :, None, None],
+                   cam, eta, 1, mask)

@@ -32,7 +32,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from models.layers import SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_stokes, planes, stokes_from_analyzer
+from models.layers import (SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_stokes, normalize_channels, planes,
+                           softplus, stokes_from_analyzer, sum_over)
 from models.pbrdf_torch import cross
 
 #: Roughness range the head can output (GGX alpha).
@@ -80,19 +81,21 @@ def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
     ``(cos 2phi, sin 2phi) = (S1, S2) / |S1, S2|`` as ``(1 + cos 2phi, sin 2phi)`` or
     ``(sin 2phi, 1 - cos 2phi)`` (both parallel to ``e``, the better conditioned one is used;
     the sign does not matter since both candidates are returned)."""
-    s = stokes.mean(1)  # (B, 3, H, W)
+    s = sum_over(stokes, 1)[:, 0] / stokes.shape[1]  # the mean over colours (B, 3, H, W)
     s0, s1, s2 = s[:, 0:1], s[:, 1:2], s[:, 2:3]
     zen = diffuse_zenith(torch.sqrt(s1 * s1 + s2 * s2) / s0.clamp_min(eps), eta)
     lin = torch.sqrt(s1 * s1 + s2 * s2 + eps * eps)
     c2, sn2 = s1 / lin, s2 / lin
-    first = c2 >= 0
-    ex = torch.where(first, 1.0 + c2, sn2)
-    ey = torch.where(first, sn2, 1.0 - c2)
-    k = F.normalize(wo, dim=1, eps=eps)
+    # the choice as a blend with a {0, 1} weight: picks the finite value exactly, and runs
+    # faster in onnxruntime than Where on images
+    first = (c2 >= 0).to(c2.dtype)
+    ex = first * (1.0 + c2) + (1.0 - first) * sn2
+    ey = first * sn2 + (1.0 - first) * (1.0 - c2)
+    k = normalize_channels(wo, eps)
     cam_x = torch.cat([torch.ones_like(k[:, :1]), torch.zeros_like(k[:, 1:])], 1)
-    x = F.normalize(cam_x - k[:, :1] * k, dim=1, eps=eps)
+    x = normalize_channels(cam_x - k[:, :1] * k, eps)
     y = cross(k, x)
-    e = F.normalize(ex * x + ey * y, dim=1, eps=eps)
+    e = normalize_channels(ex * x + ey * y, eps)
     along, across = torch.cos(zen) * k, torch.sin(zen) * e
     return along + across, along - across
 
@@ -130,18 +133,18 @@ class PIPNet(nn.Module):
         # Bias the normal towards the viewer and the light towards the upper hemisphere so an
         # untrained head starts from a plausible geometry.
         head = self.normal_head(feat)
-        normal = F.normalize(head[:, :3] + wo, dim=1, eps=1e-6)
+        normal = normalize_channels(head[:, :3] + wo, 1e-6)
         sfp = {}
         if self.sfp_prior:
             pick_logit = SELECT_SHARPNESS * ((n_plus - n_minus) * normal).sum(1, keepdim=True)
             pick = torch.sigmoid(pick_logit)
             n_sfp = pick * n_plus + (1.0 - pick) * n_minus
             trust = torch.sigmoid(head[:, 3:4])
-            normal = F.normalize(trust * n_sfp + (1.0 - trust) * normal, dim=1, eps=1e-6)
+            normal = normalize_channels(trust * n_sfp + (1.0 - trust) * normal, 1e-6)
             sfp = {"sfp_plus": n_plus, "sfp_minus": n_minus, "pick_logit": pick_logit,
                    "trust_logit": head[:, 3:4]}
-        wi = F.normalize(self.wi_head(feat) + wo, dim=1, eps=1e-6)
-        kd = F.softplus(self.kd_head(feat))
+        wi = normalize_channels(self.wi_head(feat) + wo, 1e-6)
+        kd = softplus(self.kd_head(feat))
         small_mask = F.avg_pool2d(mask, SIZE_MULTIPLE, SIZE_MULTIPLE)
         pooled = (bottleneck * small_mask).sum((2, 3)) / small_mask.sum((2, 3)).clamp_min(1e-6)
         alpha = ALPHA_MIN + (ALPHA_MAX - ALPHA_MIN) * torch.sigmoid(self.alpha_head(pooled)[:, 0])

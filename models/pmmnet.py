@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from models.layers import (HighFrequencyAttention, MultiHeadChannelAttention, UNetBackbone,
-                           apply_mueller, masked_mean, planes, signed_log, stokes_from_analyzer)
+                           apply_mueller, masked_mean, planes, signed_log, stokes_from_analyzer, sum_over)
 from models.pbrdf_torch import image_blocks
 from models.pipnet import PIPNet, pipnet_features
 
@@ -39,38 +39,59 @@ DIFFUSE_ELEMENTS = ((0, 0), (0, 1), (0, 2), (1, 0), (2, 0))
 PROBE_STATES = ((1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 0.0, 1.0))
 
 
+def _sum2(x: torch.Tensor) -> torch.Tensor:
+    """Sum of ``(B, C, 3, H, W)`` over colours and Stokes components -> ``(B, 1, H, W)``."""
+    return sum_over(sum_over(x, 2)[:, :, 0], 1)
+
+
+def renderings(ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
+               s_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two parts of the initialization's rendering of ``s_in``: ``a = Ms s_in`` (B,3,H,W)
+    and ``b_c = kd_c Md s_in`` (B,C,3,H,W), for blocks ``(B, 3, 3, H, W)``, ``kd`` (B,C,H,W)
+    and states ``(B, 3)``."""
+    s = s_in[:, None, :, None, None]
+    a = sum_over(ms * s, 2)[:, :, 0]
+    b = kd[:, :, None] * sum_over(md * s, 2)[:, None, :, 0]
+    return a, b
+
+
+def fit_gains_to(stokes: torch.Tensor, a: torch.Tensor, b: torch.Tensor, ridge: float = 0.05,
+                 eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`fit_gains` from the rendering parts ``a`` (B,3,H,W) and ``b`` (B,C,3,H,W) of
+    :func:`renderings` -> ``g_s`` (B,1,H,W), ``g_c`` (B,C,H,W)."""
+    r = a[:, None] + b  # rendering of the initialization
+    g0 = (_sum2(stokes * r) / (_sum2(r * r) + eps)).clamp_min(0.0)  # (B,1,H,W)
+    nb = sum_over(b * b, 2)[:, :, 0]  # (B,C,H,W)
+    lam = ridge * (sum_over(a * a, 1) + sum_over(nb, 1)) / 4.0 + eps
+    den_c = nb + lam
+    bs = sum_over(b * stokes, 2)[:, :, 0]
+    ba = sum_over(b * a[:, None], 2)[:, :, 0]
+    big_r = stokes - b * ((bs + lam * g0) / den_c)[:, :, None]
+    big_q = a[:, None] - b * (ba / den_c)[:, :, None]
+    p = (bs - g0 * nb) / den_c
+    q = ba / den_c
+    num = _sum2(big_r * big_q) + sum_over(lam * p * q, 1) + lam * g0
+    den = _sum2(big_q * big_q) + sum_over(lam * q * q, 1) + lam
+    g_s = (num / den).clamp_min(0.0)
+    g_c = ((bs - g_s * ba + lam * g0) / den_c).clamp_min(0.0)
+    return g_s, g_c
+
+
 def fit_gains(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
               s_in: torch.Tensor, ridge: float = 0.05, eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-pixel radiometric gains of the pBRDF fitted to the one measured state.
 
     The measured emergent Stokes ``S_c`` (``(B, C, 3, H, W)``) under ``s_in`` should be
     ``g_s a + g_c b_c`` with ``a = Ms s_in`` (specular, colour independent) and
-    ``b_c = kd_c Md s_in``: the light's fall-off and colour, the exposure and the true ``ks``
-    are unknown scale factors that PIPNet cannot see. Solved per pixel in closed form (variable
-    projection of the 4-unknown linear least squares over the ``3 C`` Stokes values) with a
-    ridge ``ridge * (|a|^2 + sum |b_c|^2) / 4`` towards the common gain ``g0`` (the least-squares
-    scale of the whole initialization), which keeps ill-separated pixels (specular and diffuse
-    light polarized alike, or no specular at all) at ``g0``. Returns ``g_s`` (B,1,H,W) and
-    ``g_c`` (B,C,H,W), both >= 0.
+    ``b_c = kd_c Md s_in`` (:func:`renderings`): the light's fall-off and colour, the exposure
+    and the true ``ks`` are unknown scale factors that PIPNet cannot see. Solved per pixel in
+    closed form (variable projection of the 4-unknown linear least squares over the ``3 C``
+    Stokes values) with a ridge ``ridge * (|a|^2 + sum |b_c|^2) / 4`` towards the common gain
+    ``g0`` (the least-squares scale of the whole initialization), which keeps ill-separated
+    pixels (specular and diffuse light polarized alike, or no specular at all) at ``g0``.
+    Returns ``g_s`` (B,1,H,W) and ``g_c`` (B,C,H,W), both >= 0.
     """
-    a = (ms * s_in[:, None, :, None, None]).sum(2)  # (B,3,H,W)
-    b = kd[:, :, None] * (md * s_in[:, None, :, None, None]).sum(2)[:, None]  # (B,C,3,H,W)
-    r = a[:, None] + b  # rendering of the initialization
-    g0 = ((stokes * r).sum((1, 2)) / ((r * r).sum((1, 2)) + eps)).clamp_min(0.0)[:, None]  # (B,1,H,W)
-    lam = ridge * ((a * a).sum(1, keepdim=True) + (b * b).sum((1, 2))[:, None]) / 4.0 + eps
-    nb = (b * b).sum(2)  # (B,C,H,W)
-    den_c = nb + lam
-    bs = (b * stokes).sum(2)
-    ba = (b * a[:, None]).sum(2)
-    big_r = stokes - b * ((bs + lam * g0) / den_c)[:, :, None]
-    big_q = a[:, None] - b * (ba / den_c)[:, :, None]
-    p = (bs - g0 * nb) / den_c
-    q = ba / den_c
-    num = (big_r * big_q).sum((1, 2))[:, None] + (lam * p * q).sum(1, keepdim=True) + lam * g0
-    den = (big_q * big_q).sum((1, 2))[:, None] + (lam * q * q).sum(1, keepdim=True) + lam
-    g_s = (num / den).clamp_min(0.0)
-    g_c = ((bs - g_s * ba + lam * g0) / den_c).clamp_min(0.0)
-    return g_s, g_c
+    return fit_gains_to(stokes, *renderings(ms, md, kd, s_in), ridge, eps)
 
 
 def gain_fitted_initialization(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
@@ -86,11 +107,18 @@ def gain_fitted_initialization(stokes: torch.Tensor, ms: torch.Tensor, md: torch
 
 def expand5(values: torch.Tensor, elements: tuple[tuple[int, int], ...]) -> torch.Tensor:
     """Place 5 channels ``(B, 5, H, W)`` at ``elements`` of a zero 3x3 -> ``(B, 3, 3, H, W)``."""
-    zero = torch.zeros_like(values[:, 0])
+    zero = torch.zeros_like(values[:, :1])
+    channels = torch.split(values, 1, 1)
     index = {e: i for i, e in enumerate(elements)}
-    rows = [torch.stack([values[:, index[(r, c)]] if (r, c) in index else zero for c in range(3)], 1)
-            for r in range(3)]
-    return torch.stack(rows, 1)
+    planes9 = [channels[index[(r, c)]] if (r, c) in index else zero for r in range(3) for c in range(3)]
+    return torch.cat(planes9, 1).unflatten(1, (3, 3))
+
+
+def compose(ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The masked Mueller image ``(Ms + kd_c Md) mask`` (B,C,3,3,H,W) of blocks (B,3,3,H,W),
+    albedos ``kd`` (B,C,H,W) and the mask (B,1,H,W), computed as ``Ms mask + (kd_c mask) Md``
+    (the mask applied to the 9-plane block and the C albedo planes, not to the 9 C result)."""
+    return (ms * mask[:, :, None])[:, None] + (kd * mask)[:, :, None, None] * md[:, None]
 
 
 def _zero_conv(cin: int, cout: int) -> nn.Conv2d:
@@ -120,9 +148,14 @@ class PMMNet(nn.Module):
     def forward(self, analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
                 ms_init: torch.Tensor, md_init: torch.Tensor, kd_init: torch.Tensor) -> dict[str, torch.Tensor]:
         stokes = stokes_from_analyzer(analyzer)
-        # Radiometric fit of the analytic initialization to the measured state (fit_gains).
-        ms_init, kd_init, m_init = gain_fitted_initialization(stokes, ms_init, md_init, kd_init, s_in)
-        rendered = apply_mueller(m_init, s_in)
+        # Radiometric fit of the analytic initialization to the measured state (fit_gains);
+        # its rendering of s_in is g_s a + g_c b (gain_fitted_initialization's Mueller image
+        # times s_in, without forming the 9 C planes of that image).
+        a, b = renderings(ms_init, md_init, kd_init, s_in)
+        g_s, g_c = fit_gains_to(stokes, a, b)
+        ms_init = ms_init * g_s[:, :, None]
+        kd_init = kd_init * g_c
+        rendered = g_s[:, None] * a[:, None] + g_c[:, :, None] * b
         x = torch.cat([stokes.flatten(1, 2), (stokes - rendered).flatten(1, 2),
                        signed_log(ms_init.flatten(1, 2)), signed_log(md_init.flatten(1, 2)),
                        kd_init, mask, planes(s_in, mask)], 1)
@@ -133,8 +166,7 @@ class PMMNet(nn.Module):
         ms = ks * ms_init + expand5(spec[:, :5], SPECULAR_ELEMENTS)
         md = md_init + expand5(diff[:, :5], DIFFUSE_ELEMENTS)
         kd = kd_init * torch.exp(diff[:, 5:].clamp(-6.0, 6.0))
-        mueller = (ms[:, None] + kd[:, :, None, None] * md[:, None]) * mask[:, :, None, None]
-        return {"mueller": mueller, "ms": ms, "md": md, "kd": kd}
+        return {"mueller": compose(ms, md, kd, mask), "ms": ms, "md": md, "kd": kd}
 
 
 class SingleShotNet(nn.Module):
@@ -152,12 +184,12 @@ class SingleShotNet(nn.Module):
 
     def initialization(self, analyzer, mask, s_in, wo, stage_zero_axis):
         p = self.pipnet(analyzer, mask, s_in, wo)
-        ms, md = image_blocks(p["normal"], p["wi"], wo, p["alpha"], stage_zero_axis)
-        return p, ms * mask[:, None], md * mask[:, None]
+        ms, md = image_blocks(p["normal"], p["wi"], wo, p["alpha"], stage_zero_axis, mask=mask)
+        return p, ms, md
 
     def forward(self, analyzer, mask, s_in, wo, stage_zero_axis):
         p, ms, md = self.initialization(analyzer, mask, s_in, wo, stage_zero_axis)
-        m_init = (ms[:, None] + p["kd"][:, :, None, None] * md[:, None]) * mask[:, :, None, None]
+        m_init = compose(ms, md, p["kd"], mask)
         r = self.pmmnet(analyzer, mask, s_in, ms, md, p["kd"])
         return r["mueller"], m_init, p["normal"], p["kd"], p["wi"], p["alpha"]
 

@@ -1,7 +1,7 @@
 """models.layers: the U-Net's full-resolution 1x1 layer, computed without the full-resolution
 concatenation (decoder part at half resolution, then upsampled), equals the concatenating
 formulation ``conv1x1(cat(up(d), x))`` to float rounding, keeps the plain convolution's
-parameters, and graphs exported in the split form recover to the same parameters."""
+parameters, and exported graphs of either form recover to the same parameters."""
 
 from __future__ import annotations
 
@@ -107,12 +107,14 @@ def test_backbone_equals_the_concatenating_formulation(size, training):
         assert float((a - b).abs().max()) <= 1e-4 * _scale(b)
 
 
-def test_split_graphs_recover_to_the_same_parameters(tmp_path):
+def test_exported_graphs_of_both_forms_recover_to_the_same_parameters(tmp_path):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
+    import shutil
+
     import onnx
 
-    from models.export import export_all
+    from models.export import _export, export_all
     from models.recover import networks_from_weights
     from models.runtime import WEIGHTS_DIR
 
@@ -124,13 +126,112 @@ def test_split_graphs_recover_to_the_same_parameters(tmp_path):
     sample["wo"][:, 2] = -1.0
     export_all(nets["pipnet"], nets["pmmnet"], nets["direct"], tmp_path, sample,
                {"training": meta["training"]})
-    # the split form: no full-resolution Concat feeds a Conv, one more Conv per backbone
-    graph = onnx.load(str(tmp_path / "direct.onnx")).graph
-    plain = onnx.load(str(WEIGHTS_DIR / "direct.onnx")).graph
-    assert sum(n.op_type == "Conv" for n in graph.node) == sum(n.op_type == "Conv" for n in plain.node) + 1
-    again, _ = networks_from_weights(tmp_path)
-    for name, net in nets.items():
-        before, after = net.state_dict(), again[name].state_dict()
-        assert list(before) == list(after)
-        for k in before:
-            assert torch.equal(before[k], after[k]), (name, k)
+    assert not any(m.concatenate for net in nets.values() for m in net.modules()
+                   if isinstance(m, UpsampledConcatConv1x1))  # the training form is restored
+    convs = lambda path: sum(n.op_type == "Conv" for n in onnx.load(str(path)).graph.node)  # noqa: E731
+    # export_all writes the concatenating form, one Conv per layer as in the shipped graphs; the
+    # split form has one more Conv per backbone
+    split = tmp_path / "split"
+    split.mkdir()
+    for name in ("single_shot.onnx", "model.json"):
+        shutil.copy(tmp_path / name, split / name)
+    _export(nets["direct"], sample, ("mueller",), split / "direct.onnx", concatenate=False)
+    assert convs(tmp_path / "direct.onnx") == convs(WEIGHTS_DIR / "direct.onnx")
+    assert convs(split / "direct.onnx") == convs(WEIGHTS_DIR / "direct.onnx") + 1
+    for folder in (tmp_path, split):
+        again, _ = networks_from_weights(folder)
+        for name, net in nets.items():
+            before, after = net.state_dict(), again[name].state_dict()
+            assert list(before) == list(after)
+            for k in before:
+                assert torch.equal(before[k], after[k]), (folder.name, name, k)
+
+
+# ----------------------------------------------------------------------------- element-wise rewrites
+# Each helper is an exact rewrite of a torch formulation that onnxruntime runs slowly: checked
+# against that formulation (float64, extremes included), values and gradients.
+
+_EXTREMES = [0.0, -0.0, 1e-30, -1e-30, 1e-7, -3.0, 19.9, 20.0, 20.1, 50.0, -50.0, 1e4, -1e4, 88.0, 100.0]
+
+
+@settings(max_examples=30)
+@given(shape=st.lists(st.integers(1, 4), min_size=2, max_size=5), seed=st.integers(0, 2**16),
+       magnitude=st.sampled_from([1e-6, 1.0, 1e6]))
+def test_sum_over_is_the_sum_over_the_axis(shape, seed, magnitude):
+    from models.layers import sum_over
+
+    x = torch.randn(*shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * magnitude
+    for dim in range(-len(shape), len(shape)):
+        got = sum_over(x, dim)
+        ref = x.sum(dim, keepdim=True)
+        assert got.shape == ref.shape
+        assert float((got - ref).abs().max()) <= 1e-12 * max(1.0, float(x.abs().max())) * shape[dim]
+
+
+def test_normalize_channels_is_f_normalize_including_zero_vectors():
+    from models.layers import normalize_channels
+
+    x = torch.randn(2, 3, 5, 7, dtype=torch.float64)
+    x[0, :, 0, 0] = 0.0  # below eps: both divide by eps
+    x[1, :, 1, 1] = torch.tensor([1e-9, -1e-9, 0.0], dtype=torch.float64)
+    x[1, :, 2, 2] = torch.tensor([1e200, 0.0, -1e200], dtype=torch.float64)
+    for eps in (1e-12, 1e-6):
+        torch.testing.assert_close(normalize_channels(x, eps), F.normalize(x, dim=1, eps=eps), rtol=1e-14, atol=0)
+
+
+def test_softplus_is_f_softplus_with_its_gradient():
+    from models.layers import softplus
+
+    x = torch.cat([torch.tensor(_EXTREMES, dtype=torch.float64), torch.linspace(-30, 30, 601, dtype=torch.float64)])
+    x.requires_grad_(True)
+    got, ref = softplus(x), F.softplus(x)
+    assert bool(torch.isfinite(got).all())
+    # F.softplus returns x itself above its threshold 20, where log1p(exp(-x)) < 2.1e-9
+    torch.testing.assert_close(got, ref, rtol=1e-15, atol=2.1e-9)
+    (g,) = torch.autograd.grad(got.sum(), x)
+    (g_ref,) = torch.autograd.grad(ref.sum(), x)
+    away = x.detach() != 0  # at exactly 0 the piecewise form's subgradient differs (measure zero)
+    torch.testing.assert_close(g[away], g_ref[away], rtol=1e-12, atol=2.1e-9)
+    # float32, as the graph runs it: equal to F.softplus to rounding, x itself above 20
+    x32 = x.detach().float()
+    torch.testing.assert_close(softplus(x32), F.softplus(x32), rtol=2e-7, atol=1e-7)
+    big = x32 > 20
+    assert torch.equal(softplus(x32)[big], x32[big])
+
+
+def test_signed_log_is_sign_times_log1p_including_zero_and_infinities():
+    from models.layers import signed_log
+
+    x = torch.tensor(_EXTREMES + [-1e-38, float("inf"), -float("inf"), 3.5, -3.5], dtype=torch.float32)
+    ref = torch.sign(x) * torch.log1p(torch.abs(x))
+    assert torch.equal(signed_log(x), ref)
+    assert torch.isnan(signed_log(torch.tensor([float("nan")]))).all()
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), heads=st.sampled_from([1, 2, 4]), size=st.integers(1, 6),
+       magnitude=st.sampled_from([1e-3, 1.0, 30.0]))
+def test_channel_attention_equals_the_normalize_then_multiply_form(seed, heads, size, magnitude):
+    from models.layers import MultiHeadChannelAttention
+
+    gen = torch.Generator().manual_seed(seed)
+    att = MultiHeadChannelAttention(8, heads).double()
+    with torch.no_grad():
+        for p in att.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen, dtype=torch.float64))
+    x = (torch.randn(2, 8, size, size + 1, generator=gen, dtype=torch.float64) * magnitude).requires_grad_(True)
+
+    def reference(x):  # the Restormer formulation: normalised q and k, then their product
+        b, c, h, w = x.shape
+        q, k, v = att.qkv(x).reshape(b, 3, heads, c // heads, h * w).unbind(1)
+        q, k = F.normalize(q, dim=-1), F.normalize(k, dim=-1)
+        attn = torch.softmax((q @ k.transpose(-2, -1)) * att.temperature, dim=-1)
+        return x + att.proj((attn @ v).reshape(b, c, h, w))
+
+    got, ref = att(x), reference(x)
+    torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-10 * _scale(ref))
+    g = torch.randn(got.shape, generator=gen, dtype=torch.float64)
+    grads = torch.autograd.grad((got * g).sum(), [x, att.temperature, att.qkv.weight])
+    ref_grads = torch.autograd.grad((ref * g).sum(), [x, att.temperature, att.qkv.weight])
+    for a, b in zip(grads, ref_grads):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-8 * _scale(b))

@@ -82,3 +82,20 @@ def test_gradients_are_finite_at_degenerate_geometry():
                                                  alpha=0.3, stage_zero_axis=[1.0, 0, 0], camera_x_axis=[1.0, 0, 0])
     np.testing.assert_allclose(ms.detach().numpy(), ref_s, atol=1e-6)
     np.testing.assert_allclose(md.detach().numpy(), ref_d, atol=1e-6)
+
+
+def test_image_blocks_mask_scales_every_element_for_any_mask():
+    # image_blocks(mask=m) applies the mask to the per-pixel scale factors; the blocks are the
+    # unmasked ones times m (also for non-binary m), as the single-shot graph composed them before
+    rng = np.random.default_rng(6)
+    b, h, w = 2, 4, 5
+    normal, wi, wo, _, _ = _random_geometry(rng, b * h * w)
+    img = lambda v: torch.as_tensor(v.reshape(b, h, w, 3).transpose(0, 3, 1, 2).copy())  # noqa: E731
+    alpha = torch.tensor([0.1, 0.6], dtype=torch.float64)
+    stage = torch.as_tensor(rng.normal(size=(b, 3)))
+    mask = torch.as_tensor(rng.uniform(size=(b, 1, h, w)))
+    mask[:, :, 0] = 0.0
+    ms, md = image_blocks(img(normal), img(wi), img(wo), alpha, stage)
+    ms_m, md_m = image_blocks(img(normal), img(wi), img(wo), alpha, stage, mask=mask)
+    torch.testing.assert_close(ms_m, ms * mask[:, None], rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(md_m, md * mask[:, None], rtol=1e-12, atol=1e-15)

@@ -1,5 +1,6 @@
 """PMMNet's physics pieces: the closed-form gain fit, the 5 -> 3x3 expansion, and the
-zero-initialised residuals (an untrained PMMNet returns the gain-fitted initialization)."""
+zero-initialised residuals (an untrained PMMNet returns the gain-fitted initialization); the
+rewritten gain fit, rendering and composition against their plain formulations."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.layers import apply_mueller  # noqa: E402
-from models.pmmnet import (DIFFUSE_ELEMENTS, SPECULAR_ELEMENTS, PMMNet, expand5,  # noqa: E402
-                           fit_gains)
+from models.pmmnet import (DIFFUSE_ELEMENTS, SPECULAR_ELEMENTS, PMMNet, compose, expand5,  # noqa: E402
+                           fit_gains, fit_gains_to, gain_fitted_initialization, renderings)
 
 
 def _random_blocks(b=2, h=5, w=6, seed=0):
@@ -79,3 +80,58 @@ def test_untrained_pmmnet_is_the_gain_fitted_initialization():
     # The ridge keeps the fit close to, not exactly at, the measurement (true gains 1.7, 0.6).
     rendered = apply_mueller(out["mueller"], s_in).detach()
     assert torch.linalg.norm(rendered - stokes) < 0.05 * torch.linalg.norm(stokes)
+
+
+def _fit_gains_reference(stokes, ms, md, kd, s_in, ridge=0.05, eps=1e-6):
+    """The closed form of :func:`models.pmmnet.fit_gains` written with plain reductions over
+    whole 3 C-plane images (the formulation the split-sum code replaces)."""
+    a = (ms * s_in[:, None, :, None, None]).sum(2)
+    b = kd[:, :, None] * (md * s_in[:, None, :, None, None]).sum(2)[:, None]
+    r = a[:, None] + b
+    g0 = ((stokes * r).sum((1, 2)) / ((r * r).sum((1, 2)) + eps)).clamp_min(0.0)[:, None]
+    lam = ridge * ((a * a).sum(1, keepdim=True) + (b * b).sum((1, 2))[:, None]) / 4.0 + eps
+    nb = (b * b).sum(2)
+    den_c = nb + lam
+    bs, ba = (b * stokes).sum(2), (b * a[:, None]).sum(2)
+    big_r = stokes - b * ((bs + lam * g0) / den_c)[:, :, None]
+    big_q = a[:, None] - b * (ba / den_c)[:, :, None]
+    p, q = (bs - g0 * nb) / den_c, ba / den_c
+    num = (big_r * big_q).sum((1, 2))[:, None] + (lam * p * q).sum(1, keepdim=True) + lam * g0
+    den = (big_q * big_q).sum((1, 2))[:, None] + (lam * q * q).sum(1, keepdim=True) + lam
+    g_s = (num / den).clamp_min(0.0)
+    return g_s, ((bs - g_s * ba + lam * g0) / den_c).clamp_min(0.0)
+
+
+@pytest.mark.parametrize("case", ["random", "no_specular", "dark", "huge"])
+def test_fit_gains_equals_the_reduction_formulation(case):
+    ms, md, kd, s_in = _random_blocks(seed=3)
+    stokes = torch.randn(2, 3, 3, 5, 6, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    if case == "no_specular":
+        ms = torch.zeros_like(ms)
+    elif case == "dark":
+        stokes = torch.zeros_like(stokes)
+    elif case == "huge":
+        ms, stokes = ms * 1e6, stokes * 1e6
+    for got, ref in zip(fit_gains(stokes, ms, md, kd, s_in), _fit_gains_reference(stokes, ms, md, kd, s_in)):
+        torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-12)
+
+
+def test_the_rendering_parts_give_the_gain_fitted_images_rendering():
+    """PMMNet renders the gain-fitted initialization as g_s a + g_c b (its fit's own parts)
+    instead of applying the 9 C-plane Mueller image to s_in: the same numbers."""
+    ms, md, kd, s_in = _random_blocks(seed=5)
+    stokes = torch.randn(2, 3, 3, 5, 6, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    _, _, m_init = gain_fitted_initialization(stokes, ms, md, kd, s_in)
+    a, b = renderings(ms, md, kd, s_in)
+    g_s, g_c = fit_gains_to(stokes, a, b)
+    torch.testing.assert_close(g_s[:, None] * a[:, None] + g_c[:, :, None] * b, apply_mueller(m_init, s_in),
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_compose_is_the_masked_mueller_image_for_any_mask():
+    ms, md, kd, _ = _random_blocks(seed=7)
+    mask = torch.rand(2, 1, 5, 6, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    mask[:, :, 0] = 0.0
+    mask[:, :, 1] = 1.0
+    expected = (ms[:, None] + kd[:, :, None, None] * md[:, None]) * mask[:, :, None, None]
+    torch.testing.assert_close(compose(ms, md, kd, mask), expected, rtol=1e-14, atol=1e-15)
