@@ -7,6 +7,7 @@
 #   benchmarks/gpu_check.sh part               keep the onnxruntime-gpu archive piece in .ortpart/
 #   benchmarks/gpu_check.sh wait               until the background training has ended
 #   benchmarks/gpu_check.sh finish             unpack onnxruntime-gpu, wait for the training, time
+#                                              one network pass per setting (bench_network_pass),
 #                                              single-shot and the live Mueller view on CUDA and
 #                                              CPU, pack the results
 #
@@ -78,6 +79,10 @@ finish)
     cat /tmp/paper.log | tail -20
     [ -d /tmp/paper ] && tar czf "$OUT/paper-scale.tar.gz" -C /tmp paper paper.log
     R=/tmp/results; mkdir -p $R
+    # first the one-pass diagnosis (about a minute): cuDNN searches, shape alternation, copies,
+    # PyTorch on the same GPU (benchmarks/bench_network_pass.py)
+    $PY benchmarks/bench_network_pass.py --devices cuda,cpu --rounds 10 --profile --out $R/network_pass.md \
+        > $R/network_pass.log 2>&1 || tail -20 $R/network_pass.log
     $PY benchmarks/bench_single_shot.py --device cuda --cases 0,3,4,6,7 --rounds 3 --anatomy \
         --out $R/single_shot_cuda.md > $R/bench_cuda.log 2>&1 || tail -20 $R/bench_cuda.log
     $PY benchmarks/bench_live_mueller.py --frames 10 --devices cuda,cpu --out $R/live_mueller.md \
