@@ -67,6 +67,8 @@ def feeds(shape: tuple[int, int], colours: int, seed: int = 0) -> dict[str, np.n
 def ort_session(provider: str, options: dict, threads: int, profile_dir: str | None = None):
     import onnxruntime as ort
 
+    if provider not in ort.get_available_providers():
+        raise RuntimeError(f"this onnxruntime offers no {provider} (it offers {', '.join(ort.get_available_providers())})")
     if provider == devices.CUDA:
         devices.load_cuda_libraries(ort)
     opts = ort.SessionOptions()
