@@ -52,7 +52,6 @@ import numpy as np
 from models import devices, mirror
 from models.size import SIZE_MULTIPLE
 from models.uncertainty import UncertaintyModel, calibration_for_graph
-from polrig import frames
 from polrig.errors import FormatError
 from polrig.quantiles import tail_percentile
 from polrig.stokes import saturation_mask, stokes_from_analyzers
