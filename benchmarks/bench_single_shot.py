@@ -83,7 +83,7 @@ CASES = (
     ("full sensor colour full resolution, network binning 2", FULL, COLOUR,
      ["--resolution", "full", "--network-binning", "2"]),
 )
-#: Issue 22's CPU targets (ms, MB): warm/cold totals and the full-sensor peak.
+#: Issue 22's CPU targets (ms, per frame: the warm raw -> Mueller column) and the full-sensor peak (MB).
 TARGETS_MS = {CASES[0][0]: 150, CASES[3][0]: 300, CASES[4][0]: 3000, CASES[6][0]: 300, CASES[7][0]: 3000}
 PEAK_TARGET_MB = 2048
 
