@@ -150,8 +150,18 @@ def lift(mueller: np.ndarray, mask: np.ndarray, stokes: np.ndarray, stokes_full:
     m = np.asarray(mask, bool)
     weight = upsample(m.astype(np.float32), period, shape)
     inside = weight > 0.5
-    norm = np.where(inside, 1.0 / np.maximum(weight, 1e-6), 0.0).astype(np.float32)
     inside_f = inside.astype(np.float32)
+    # The mask normalisation 1 / up(mask) (0 outside) changes only the band along the object's
+    # edge: inside, up(mask) is exactly 1 (the bilinear weights at an integer factor are exact
+    # binary fractions that sum to 1), and far outside up(M) is already 0. So it is applied to
+    # the band's pixels alone, not to every plane's 5 Mpx (the same numbers).
+    band = np.flatnonzero((weight > 0.0) & (weight < 1.0))
+    band_norm = np.where(inside.reshape(-1)[band], 1.0 / np.maximum(weight.reshape(-1)[band], 1e-6),
+                         0.0).astype(np.float32)
+
+    def normalise(plane: np.ndarray) -> None:
+        flat = plane.reshape(-1)
+        flat[band] *= band_norm
     out = np.empty((c, 3, 3) + shape, np.float32)
     seen = np.empty(shape, np.float32)
     detail = np.empty(shape, np.float32)
@@ -159,13 +169,13 @@ def lift(mueller: np.ndarray, mask: np.ndarray, stokes: np.ndarray, stokes_full:
         for r in range(3):
             # the measured detail of row r: full-resolution Stokes minus what the grid saw
             _upsample_into(np.where(m, stokes[ci, r], 0.0), period, seen)
-            cv2.multiply(seen, norm, dst=seen)
+            normalise(seen)
             cv2.subtract(np.asarray(stokes_full[ci, r], np.float32), seen, dst=detail)
             cv2.patchNaNs(detail, 0.0)  # a clipped sample's support: no detail (NaN, never inf, from the demosaic)
             cv2.multiply(detail, inside_f, dst=detail)  # background stays 0
             for k in range(3):
                 plane = out[ci, r, k]
                 _upsample_into(mueller[ci, r, k], period, plane)
-                cv2.multiply(plane, norm, dst=plane)
+                normalise(plane)
                 cv2.scaleAdd(detail, float(s[k] / (s @ s)), plane, dst=plane)
     return out, inside

@@ -117,17 +117,22 @@ def test_upsampling_a_ramp_at_cell_centres_is_exact(period):
     assert up.shape == shape
 
 
-def test_lift_reproduces_the_full_resolution_measurement_and_keeps_the_prior():
+@pytest.mark.parametrize("period, mask_kind", [((2, 2), "inner"), ((4, 4), "inner"), ((2, 2), "random"),
+                                               ((4, 4), "random")])
+def test_lift_reproduces_the_full_resolution_measurement_and_keeps_the_prior(period, mask_kind):
     """``M_full s_in = up(M s_in) + S_full - up(S)``: where the network reproduces its
     observation on the grid (``M s_in = S``) the lifted image reproduces the full-resolution
     measurement exactly; the part of the matrix orthogonal to ``s_in`` is the upsampled grid
-    answer; the background is 0."""
+    answer, normalised by the upsampled mask (along a ragged object edge too); the background
+    is 0."""
     rng = np.random.default_rng(1)
-    period, (h, w) = (2, 2), (8, 10)
-    shape = (2 * h, 2 * w)
+    (h, w) = (8, 10)
+    shape = (period[0] * h + 1, period[1] * w + 1)  # with a partial last cell
     s_in = np.array([0.5, 0.3, -0.2])
     mask = np.zeros((h, w), bool)
     mask[1:-1, 1:-1] = True
+    if mask_kind == "random":
+        mask = rng.random((h, w)) < 0.6
     m = rng.normal(size=(1, 3, 3, h, w)).astype(np.float32) * mask
     s_grid = np.einsum("crkhw,k->crhw", m, s_in).astype(np.float32)  # consistent: no misfit
     s_full = rng.normal(size=(1, 3) + shape).astype(np.float32)
