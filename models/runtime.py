@@ -54,7 +54,7 @@ from models.size import SIZE_MULTIPLE
 from models.uncertainty import UncertaintyModel, calibration_for_graph
 from polrig.errors import FormatError
 from polrig.quantiles import tail_percentile
-from polrig.stokes import saturation_mask, stokes_from_analyzers
+from polrig.stokes import ideal_inverse, saturation_mask, stokes_from_analyzers
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
 #: Percentile of the analyzer values in the mask that the normalisation maps to 1 (sim.dataset).
@@ -647,7 +647,7 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     default is in ``models/MODEL_CARD.md`` ("Speed, warm and cold")."""
     from models import full_resolution
     from polrig.analyzer import resolve_layout
-    from polrig.demosaic import demosaic, demosaic_float, preprocess
+    from polrig.demosaic import demosaic, demosaic_combined, preprocess
 
     if resolution not in full_resolution.RESOLUTIONS:
         raise ValueError(f"resolution must be one of {', '.join(full_resolution.RESOLUTIONS)}, got {resolution!r}")
@@ -692,7 +692,7 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
         x = preprocess(raw, black_level_dn=black_level_dn)
         if saturation_dn is not None:  # clipped samples go NaN: the demosaic marks their support
             x[np.asarray(raw) >= saturation_dn] = np.nan
-        stokes_full = stokes_from_analyzers(demosaic_float(x, lay, demosaic_method))
+        stokes_full = demosaic_combined(x, lay, demosaic_method, ideal_inverse())  # one colour at a time
         del x
         if saturation_dn is not None:
             clipped = ~np.all(np.isfinite(stokes_full), axis=(0, 1))

@@ -277,21 +277,31 @@ def _make_bilinear_plan(layout: MosaicLayout, shape: tuple[int, int]):
 
 
 def _bilinear(x: np.ndarray, layout: MosaicLayout) -> np.ndarray:
-    ph, pw = layout.period
-    ky, kx, plan = _bilinear_plan(layout, x.shape)
     out = np.empty((layout.n_colours, 4) + x.shape, np.float32)
     sparse = np.empty_like(x)
+    for c in range(layout.n_colours):
+        _bilinear_colour(x, layout, c, out[c], sparse)
+    return out
+
+
+def _bilinear_colour(x: np.ndarray, layout: MosaicLayout, colour: int, dst: np.ndarray,
+                     sparse: np.ndarray) -> None:
+    """The four analyzer images of one colour ``(4, H, W)`` into ``dst`` (``sparse``: an
+    ``(H, W)`` float32 scratch plane)."""
+    ph, pw = layout.period
+    ky, kx, plan = _bilinear_plan(layout, x.shape)
     for (c, k), (pos, norm) in plan.items():
+        if c != colour:
+            continue
         sparse.fill(0)
         for r, q in pos:
             sparse[r::ph, q::pw] = x[r::ph, q::pw]
-        cv2.sepFilter2D(sparse, -1, kx, ky, dst=out[c, k], borderType=_BORDER)
+        cv2.sepFilter2D(sparse, -1, kx, ky, dst=dst[k], borderType=_BORDER)
         if norm is not None:
             (ri, rn), *cols = norm
-            out[c, k][ri] *= rn
+            dst[k][ri] *= rn
             for ci, cn in cols:
-                out[c, k][:, ci] *= cn
-    return out
+                dst[k][:, ci] *= cn
 
 
 # -- fixed linear combinations of the analyzer images ------------------------------------------
@@ -314,6 +324,16 @@ def demosaic_combined(x: np.ndarray, layout: MosaicLayout, method: str,
         ky, kx, plan = _bilinear_plan(layout, x.shape)
         if all(norm is None for _, norm in plan.values()):
             return _bilinear_combined(x, layout, w, ky, kx, plan)
+        check_mosaic_shape(layout, x.shape)
+        # one colour's analyzer images at a time (a colour full sensor: 80 MB of scratch, not
+        # 240 MB of analyzer images), combined as _combine does
+        out = np.empty((layout.n_colours, w.shape[0]) + x.shape, np.float32)
+        scratch, sparse = np.empty((4,) + x.shape, np.float32), np.empty_like(x)
+        with np.errstate(all="ignore"):
+            for c in range(layout.n_colours):
+                _bilinear_colour(x, layout, c, scratch, sparse)
+                _combine_colour(scratch, w, out[c])
+        return out
     a = demosaic_float(x, layout, method)
     with np.errstate(all="ignore"):
         return _combine(a, w)
@@ -322,13 +342,20 @@ def demosaic_combined(x: np.ndarray, layout: MosaicLayout, method: str,
 def _combine(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     out = np.empty((a.shape[0], w.shape[0]) + a.shape[2:], np.float32)
     for c in range(a.shape[0]):
-        for j in range(w.shape[0]):
-            acc = out[c, j]
-            np.multiply(a[c, 0], w[j, 0], out=acc)
-            for k in range(1, 4):
-                if w[j, k]:
-                    acc += w[j, k] * a[c, k]
+        _combine_colour(a[c], w, out[c])
     return out
+
+
+def _combine_colour(a: np.ndarray, w: np.ndarray, out: np.ndarray) -> None:
+    """``out[j] = sum_k w[j, k] a[k]`` for one colour's analyzer images ``a`` ``(4, H, W)``
+    (in this order, float32; zero weights after the first skipped, as
+    :meth:`polrig.stokes.StokesSolver.solve` does for the ideal analyzer)."""
+    for j in range(w.shape[0]):
+        acc = out[j]
+        np.multiply(a[0], w[j, 0], out=acc)
+        for k in range(1, 4):
+            if w[j, k]:
+                acc += w[j, k] * a[k]
 
 
 def _bilinear_combined(x, layout, w, ky, kx, plan) -> np.ndarray:

@@ -103,6 +103,21 @@ def test_combined_equals_demosaic_then_combination(layout, method):
     np.testing.assert_allclose(demosaic_combined(x, layout, method, w), expect, atol=2e-4)
 
 
+def test_colour_bilinear_combined_one_colour_at_a_time_is_bitwise_the_full_route():
+    """The colour layout's combined bilinear route (one colour's analyzer images at a time) gives
+    exactly the Stokes of the full analyzer stack, clipped (NaN) samples' support included:
+    the full-resolution single-shot path marks clipped pixels by that NaN propagation."""
+    from polrig.stokes import stokes_from_analyzers
+
+    rng = np.random.default_rng(7)
+    x = rng.uniform(0, 100, (40, 48)).astype(np.float32)
+    x[rng.random(x.shape) < 0.01] = np.nan
+    got = demosaic_combined(x, IMX250MYR, "bilinear", ideal_inverse())
+    want = stokes_from_analyzers(demosaic_float(x, IMX250MYR, "bilinear"))
+    assert np.isnan(want).any()
+    np.testing.assert_array_equal(got, want)
+
+
 def test_black_level_and_dark_are_removed():
     rng = np.random.default_rng(5)
     raw = rng.integers(100, 4000, (8, 8)).astype(np.uint16)
