@@ -94,14 +94,23 @@ def fit_gains(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torc
     return fit_gains_to(stokes, *renderings(ms, md, kd, s_in), ridge, eps)
 
 
+def gain_fitted_rendering(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
+                          s_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The :func:`fit_gains` gains applied: the scaled specular block ``g_s Ms`` (B,3,3,H,W), the
+    scaled albedo ``g_c kd`` (B,C,H,W) and the gain-fitted initialization's rendering of
+    ``s_in``, ``g_s a + g_c b_c`` (B,C,3,H,W) (:func:`renderings`; the Mueller image of
+    :func:`gain_fitted_initialization` times ``s_in``, without forming its 9 C planes)."""
+    a, b = renderings(ms, md, kd, s_in)
+    g_s, g_c = fit_gains_to(stokes, a, b)
+    return ms * g_s[:, :, None], kd * g_c, g_s[:, None] * a[:, None] + g_c[:, :, None] * b
+
+
 def gain_fitted_initialization(stokes: torch.Tensor, ms: torch.Tensor, md: torch.Tensor, kd: torch.Tensor,
                                s_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The analytic initialization with the :func:`fit_gains` gains applied: the scaled specular
     block ``g_s Ms`` (B,3,3,H,W), the scaled albedo ``g_c kd`` (B,C,H,W) and the Mueller image
     ``g_s Ms + g_c kd Md`` (B,C,3,3,H,W) (unmasked)."""
-    g_s, g_c = fit_gains(stokes, ms, md, kd, s_in)
-    ms = ms * g_s[:, :, None]
-    kd = kd * g_c
+    ms, kd, _ = gain_fitted_rendering(stokes, ms, md, kd, s_in)
     return ms, kd, ms[:, None] + kd[:, :, None, None] * md[:, None]
 
 
@@ -148,14 +157,8 @@ class PMMNet(nn.Module):
     def forward(self, analyzer: torch.Tensor, mask: torch.Tensor, s_in: torch.Tensor,
                 ms_init: torch.Tensor, md_init: torch.Tensor, kd_init: torch.Tensor) -> dict[str, torch.Tensor]:
         stokes = stokes_from_analyzer(analyzer)
-        # Radiometric fit of the analytic initialization to the measured state (fit_gains);
-        # its rendering of s_in is g_s a + g_c b (gain_fitted_initialization's Mueller image
-        # times s_in, without forming the 9 C planes of that image).
-        a, b = renderings(ms_init, md_init, kd_init, s_in)
-        g_s, g_c = fit_gains_to(stokes, a, b)
-        ms_init = ms_init * g_s[:, :, None]
-        kd_init = kd_init * g_c
-        rendered = g_s[:, None] * a[:, None] + g_c[:, :, None] * b
+        # Radiometric fit of the analytic initialization to the measured state (fit_gains)
+        ms_init, kd_init, rendered = gain_fitted_rendering(stokes, ms_init, md_init, kd_init, s_in)
         x = torch.cat([stokes.flatten(1, 2), (stokes - rendered).flatten(1, 2),
                        signed_log(ms_init.flatten(1, 2)), signed_log(md_init.flatten(1, 2)),
                        kd_init, mask, planes(s_in, mask)], 1)
