@@ -38,6 +38,8 @@ import math
 
 import torch
 
+from models.layers import sum_over
+
 _EPS = 1e-12
 _DEGENERATE_SQ = 1e-14
 
@@ -52,20 +54,15 @@ def cross(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
 class _Vec:
     """Vector helpers along axis ``dim`` (kept with length 1 by reductions).
 
-    Sums over the vector axis are a split and two additions rather than a reduction: on
-    ``(B, 3, H, W)`` images onnxruntime's ReduceSum over the 3 channels takes about 6 times
-    as long as Split + 2 Add (measured, ``models/MODEL_CARD.md``)."""
+    Sums over the vector axis are a split and two additions rather than a reduction
+    (:func:`models.layers.sum_over`: on ``(B, 3, H, W)`` images onnxruntime's ReduceSum over
+    the 3 channels takes about 6 times as long as Split + 2 Add, ``models/MODEL_CARD.md``)."""
 
     def __init__(self, dim: int):
         self.dim = dim
 
-    def sum3(self, v: torch.Tensor) -> torch.Tensor:
-        """Sum of the 3 components of ``v`` (length 1 kept on axis ``dim``)."""
-        x, y, z = torch.split(v, 1, self.dim)
-        return x + y + z
-
     def dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return self.sum3(a * b)
+        return sum_over(a * b, self.dim)
 
     def cross(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return cross(a, b, self.dim)
