@@ -63,9 +63,7 @@ NEWTON_TAU = 5.8
 def preprocess(raw: np.ndarray, *, black_level_dn: float = 0.0,
                dark: np.ndarray | None = None) -> np.ndarray:
     """The raw mosaic as float32 DN with black level and dark frame removed (a new array)."""
-    raw = np.asarray(raw)
-    if raw.ndim != 2:
-        raise ValueError(f"raw mosaic must be 2-D (H, W), got shape {raw.shape}")
+    raw = _mosaic(raw)
     with np.errstate(over="ignore", invalid="ignore"):
         x = raw.astype(np.float32, copy=True)
     if dark is not None:
@@ -76,6 +74,14 @@ def preprocess(raw: np.ndarray, *, black_level_dn: float = 0.0,
     if black_level_dn:
         x -= np.float32(black_level_dn)
     return x
+
+
+def _mosaic(raw) -> np.ndarray:
+    """``raw`` as an array, ValueError unless it is 2-D ``(H, W)``."""
+    raw = np.asarray(raw)
+    if raw.ndim != 2:
+        raise ValueError(f"raw mosaic must be 2-D (H, W), got shape {raw.shape}")
+    return raw
 
 
 def output_shape(layout: MosaicLayout, shape: tuple[int, int], method: str) -> tuple[int, int]:
@@ -154,9 +160,7 @@ def demosaic(raw: np.ndarray, layout: MosaicLayout, method: str = "superpixel", 
     if method == "superpixel" and dark is None:
         # a cell's mean is taken straight from the raw samples and the black level removed from
         # the mean: no float copy of the whole mosaic (the same numbers for integer raw data)
-        raw = np.asarray(raw)
-        if raw.ndim != 2:
-            raise ValueError(f"raw mosaic must be 2-D (H, W), got shape {raw.shape}")
+        raw = _mosaic(raw)
         check_mosaic_shape(layout, raw.shape)
         with np.errstate(all="ignore"):
             return _superpixel(raw, layout, black_level_dn)
