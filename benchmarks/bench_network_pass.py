@@ -46,6 +46,7 @@ import numpy as np
 REPO = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from benchmarks.bench_single_shot import gpu_name  # noqa: E402
 from models import devices  # noqa: E402
 from models.runtime import WEIGHTS_DIR, physical_cores, probe_shape, view_directions  # noqa: E402
 from models.size import SIZE_MULTIPLE  # noqa: E402
@@ -160,15 +161,6 @@ def op_profile(provider: str, options: dict, frame: dict, threads: int) -> list[
             ms[op] += e["dur"] / 1000.0
             count[op] += 1
     return [(op, t, count[op]) for op, t in ms.most_common()]
-
-
-def gpu_name() -> str | None:
-    try:
-        import torch
-
-        return torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    except ImportError:  # torch is the train extra's: a machine without it has no name to print
-        return None
 
 
 def render(rows: list[tuple[str, dict]], shape: tuple[int, int], probe_hw: tuple[int, int], colours: int,
