@@ -2,12 +2,12 @@
 
 Sweeps the number of polarizer states N (3, 4, 6, 8, 12, evenly spread over 180 deg), the
 frames averaged per state K (1, 4, 16) and exposure bracketing (off, or a second exposure 4x
-longer merged to HDR) and runs each as a real one-pose capture session (polrig.capture: stage
+longer merged to HDR) and runs each as a real one-pose capture session (polrig.app.capture: stage
 moves at the simulated stage's speed, exposures and readouts take their time on the simulated
 clock; files written as in a real session). Reports
 
 * acquisition time in **simulated seconds** (stage motion, exposure, readout; not wall time),
-* Mueller error against the simulator's ground truth (``polrig.processing.score_against_truth``
+* Mueller error against the simulator's ground truth (``polrig.app.processing.score_against_truth``
   against the truth as a perfect rig at this resolution sees it): matrix PSNR, mean absolute
   error (DN per unit incident S0), realizability pass rate (coherency test),
 * the error the noise model predicts (root-mean-square of the reported sigma) next to the
@@ -18,7 +18,7 @@ an exact calibration (zero tolerances: a perfectly calibrated rig, so the sweep 
 noise, not calibration, and sigma is the noise model's alone); one extra row runs the default
 rig (stage zero offset 1.7 deg, extinction ratio 800, analyzer errors) with the nominal
 calibration, whose reported sigma adds the nominal calibration's declared uncertainty
-(``polrig.processing.NOMINAL_ANALYZER_TOLERANCE``, ``NOMINAL_GENERATOR_TOLERANCE``).
+(``polrig.app.processing.NOMINAL_ANALYZER_TOLERANCE``, ``NOMINAL_GENERATOR_TOLERANCE``).
 
 Usage: ``python benchmarks/bench_acquisition.py [--size 256] [--scene sphere]
 [--default-row-only]`` (or ``python -m benchmarks acquisition``; ``--default-row-only`` runs
@@ -40,9 +40,9 @@ import time
 REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from polrig import processing  # noqa: E402
-from polrig.capture import CapturePlan, create_session, run_session  # noqa: E402
-from polrig.rig import open_rig  # noqa: E402
+from polrig.app import processing  # noqa: E402
+from polrig.app.capture import CapturePlan, create_session, run_session  # noqa: E402
+from polrig.app.rig import open_rig  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}

@@ -18,12 +18,12 @@ import time
 
 import numpy as np
 
-import calibration
-from calibration import evaluate, procedures, runner
-from calibration.calset import CalibrationSet
-from calibration.mirror import IDEAL, MirrorMetal
-from polrig.rig import open_rig
-from sim import targets
+from polrig import calibration
+from polrig.app.rig import open_rig
+from polrig.calibration import evaluate, procedures, runner
+from polrig.calibration.calset import CalibrationSet
+from polrig.calibration.mirror import IDEAL, MirrorMetal
+from polrig.sim import targets
 
 
 def main() -> None:

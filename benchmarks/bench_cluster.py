@@ -1,5 +1,5 @@
 """``polrig reconstruct`` throughput on Dask: serial (this process) versus a ``LocalCluster`` of 1
-and 2 single-threaded worker processes (:mod:`polrig.cluster`), on one simulated session.
+and 2 single-threaded worker processes (:mod:`polrig.app.cluster`), on one simulated session.
 
 Per configuration and round, a fresh copy of the session is reconstructed (reference method,
 the session's demosaic) and timed from submission to the last manifest record; the clusters
@@ -66,7 +66,7 @@ def make_session(tmp: pathlib.Path, size: str, captures: int) -> pathlib.Path:
 
 
 def records(session_dir: pathlib.Path, revision: str) -> list[tuple[str, str]]:
-    from polrig.session import Session
+    from polrig.app.session import Session
 
     s = Session.open(session_dir)
     return [(c["name"], c["revisions"][revision]["files"]["mueller"]["sha256"])
@@ -77,7 +77,7 @@ def reconstruct_timed(d: pathlib.Path, runner, cpu_now) -> tuple[float, float, i
     """``cluster.reconstruct`` of session ``d`` on ``runner``: wall seconds, CPU seconds
     (``cpu_now()`` before and after: every thread of the processes doing the work), bytes the
     calling process read (``rchar``), captures."""
-    from polrig import cluster
+    from polrig.app import cluster
 
     r0, c0, t0 = _rchar(), cpu_now(), time.perf_counter()
     batches = cluster.reconstruct([d], runner)
@@ -90,8 +90,8 @@ def serial_child(d: pathlib.Path) -> None:
     writes nothing, then reconstruct ``DIR`` serially; print the timings as JSON."""
     import json
 
-    from polrig import cluster, processing
-    from polrig.session import Session
+    from polrig.app import cluster, processing
+    from polrig.app.session import Session
 
     s = Session.open(d)
     _, proc, done = processing.revision_plan(s, None, None, None, None)
@@ -169,8 +169,8 @@ def main(argv=None) -> int:
     if args.serial_child:
         serial_child(pathlib.Path(args.serial_child))
         return 0
-    from polrig import cluster
-    from polrig.session import Session, format_bytes
+    from polrig.app import cluster
+    from polrig.app.session import Session, format_bytes
 
     load0 = os.getloadavg()
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="bench-cluster-"))
@@ -225,7 +225,7 @@ def main(argv=None) -> int:
                 print(f"round {k + 1} {name}: {rate:.3f} captures/s ({sec:.2f} s/capture, "
                       f"CPU {cpu:.2f} s/capture, read {read / 1e6:.1f} MB)", flush=True)
         # bytes of one task and one result, as Dask pickles them
-        from polrig.plan import ExrChoice
+        from polrig.acquisition.plan import ExrChoice
 
         exr0 = ExrChoice()
         job = cluster.jobs_of(cluster.SessionBatch(s, "rev1", {"mode": "reference",

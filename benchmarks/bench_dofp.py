@@ -5,7 +5,7 @@ Usage: ``python benchmarks/bench_dofp.py [--rounds 7] [--width 2448 --height 204
 
 Work timed per frame, for polrig and for polanalyser 3.x (benchmark-only dependency, the
 same work in the same process): a raw 12-bit IMX250MZR mosaic (uint16) -> four analyzer images
-(demosaic) -> linear Stokes -> DoLP and AoLP. polrig's timing is ``polrig.stokes.stokes_from_raw``,
+(demosaic) -> linear Stokes -> DoLP and AoLP. polrig's timing is ``polrig.sensor.stokes.stokes_from_raw``,
 which also builds the validity/saturation masks and clips DoLP; polanalyser's is
 ``demosaicing(raw, COLOR_PolarMono)`` (OpenCV Bayer bilinear per analyzer pair),
 ``calcStokes(images, angles)``, ``cvtStokesToDoLP``, ``cvtStokesToAoLP``. Rounds interleave the
@@ -14,7 +14,7 @@ contenders (robust on a shared machine); the table gives the median frames per s
 Accuracy: two smooth-but-detailed synthetic full-resolution Stokes scenes (intensity sinusoids
 from 37 to 400 px periods, blurred disks, one saturated highlight; see :func:`scene`: DoLP/AoLP
 either as detailed as the intensity or slowly varying) are mosaicked with the ideal analyzer
-model (``polrig.analyzer``), rounded to 12 bits, and demosaiced back. The timed frame is the
+model (``polrig.sensor.analyzer``), rounded to 12 bits, and demosaiced back. The timed frame is the
 first scene's.
 PSNR of the four analyzer images (peak 4095 DN), of DoLP (peak 1) and of AoLP (wrapped error,
 peak 180 deg, where the true DoLP > 0.1) against the ground truth, 16-px border and saturated
@@ -38,10 +38,10 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from polrig.analyzer import AnalyzerModel  # noqa: E402
-from polrig.demosaic import METHODS, demosaic  # noqa: E402
-from polrig.layouts import ANALYZER_ANGLES_DEG, IMX250MZR  # noqa: E402
-from polrig.stokes import aolp_deg, dolp, stokes_from_analyzers, stokes_from_raw  # noqa: E402
+from polrig.sensor.analyzer import AnalyzerModel  # noqa: E402
+from polrig.sensor.demosaic import METHODS, demosaic  # noqa: E402
+from polrig.sensor.layouts import ANALYZER_ANGLES_DEG, IMX250MZR  # noqa: E402
+from polrig.sensor.stokes import aolp_deg, dolp, stokes_from_analyzers, stokes_from_raw  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results" / "dofp.md"
 FULL_SCALE = 4095.0

@@ -4,7 +4,7 @@ latest-frame slot, in its ``QThread``) and :class:`polrig.gui.live_panel.LivePan
 frames on the UI thread (QImage onto the image view, histogram, status line).
 
 The camera replays frames pre-rendered by the simulator at full size (:class:`ReplayCamera`,
-a :class:`polrig.hal.Camera`), so the numbers measure processing and display, not rendering.
+a :class:`polrig.acquisition.hal.Camera`), so the numbers measure processing and display, not rendering.
 The worker runs unthrottled (``max_fps=0``). Per row: frames processed per second by the
 worker, frames shown per second by the UI, frames dropped by the slot, median processing
 time, and the UI event loop's worst latency (a 10 ms ``QTimer``) during the run.
@@ -30,8 +30,9 @@ import numpy as np
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
-from polrig import hal  # noqa: E402
-from polrig.hal import DeviceInfo, Frame  # noqa: E402
+from polrig.acquisition import hal  # noqa: E402
+from polrig.acquisition.hal import DeviceInfo
+from polrig.sensor.frame import Frame
 
 FULL_SIZE = (2448, 2048)
 RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "gui.md"
@@ -104,7 +105,7 @@ class ReplayCamera(hal.Camera):
 def render_frames(sensor: str, n: int = 2) -> tuple[list[Frame], float]:
     """``n`` full-size frames of the simulated rig (stage at 0, 45, ... deg) and the seconds
     it took."""
-    from sim.devices import create_sim_rig
+    from polrig.sim.devices import create_sim_rig
 
     t = time.perf_counter()
     rig = create_sim_rig({"size": FULL_SIZE, "sensor": sensor, "clock_speed": float("inf")})

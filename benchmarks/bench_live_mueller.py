@@ -3,7 +3,7 @@ can run on, without Qt.
 
 Per frame, exactly what the live worker's processing stage does for the "Mueller 3x3" display
 (:mod:`polrig.gui.live`): :func:`polrig.gui.pipeline.infer_mueller` (demosaic, Stokes, the
-single-shot networks, :func:`models.runtime.infer_frame`) with the default rig's nominal
+single-shot networks, :func:`polrig.models.runtime.infer_frame`) with the default rig's nominal
 geometry, then :func:`polrig.gui.pipeline.render` of the Mueller grid decimated to the live
 view's display size (``--max-display-px``, default 1024; 0 renders the whole grid, as the view
 did before 2026-11-26). Qt's part (QImage onto
@@ -35,8 +35,8 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.bench_single_shot import COLOUR, FULL, gpu_name, synthetic_raw  # noqa: E402
-from models import devices  # noqa: E402
-from polrig.hal import Frame, FrameMeta  # noqa: E402
+from polrig.models import devices  # noqa: E402
+from polrig.sensor.frame import Frame, FrameMeta
 
 #: (output resolution, network binning) rows: the live view's Mueller choices.
 VARIANTS = (("superpixel", 1), ("superpixel", 2), ("full", 1))
@@ -53,8 +53,8 @@ def frames(n: int, rng: np.random.Generator) -> list[Frame]:
 def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry: dict, max_px: int) -> dict:
     """Median seconds of inference and grid render over ``shots`` (two warm-ups first); the grid
     decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`)."""
-    from models.runtime import SingleShotModel
     from polrig.gui import pipeline
+    from polrig.models.runtime import SingleShotModel
 
     model = SingleShotModel.load(device=device)
     infer, render = [], []
@@ -90,8 +90,8 @@ def table(rows: list[dict], gpu: str | None) -> str:
 def main(argv: list[str] | None = None) -> int:
     import onnxruntime as ort
 
-    from polrig import processing
-    from polrig.rig import load_rig_config
+    from polrig.app import processing
+    from polrig.app.rig import load_rig_config
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=10, help="timed frames per row (default 10)")

@@ -6,9 +6,9 @@ provider took 1.1 s of a full-sensor superpixel frame's networks, against 0.29 s
 machine's 16 CPU cores, and a repeated 1224x1024x3 pass 0.24 s. This separates the suspects the
 next GPU lease can settle in one call: cuDNN's algorithm search (each
 ``cudnn_conv_algo_search``), the alternation of the light-direction probe's and the frame's
-input shapes (:func:`models.runtime.probe_shape`), host <-> device copies (onnxruntime's I/O
+input shapes (:func:`polrig.models.runtime.probe_shape`), host <-> device copies (onnxruntime's I/O
 binding with inputs and outputs kept on the GPU), and onnxruntime itself (the same networks in
-PyTorch, recovered from the graph by :func:`models.recover.networks_from_weights`, on the same
+PyTorch, recovered from the graph by :func:`polrig.models.recover.networks_from_weights`, on the same
 device: the best alternative in the same run).
 
 Rows, each on the full colour sensor's superpixel grid (``--size``, default 612x512 padded to
@@ -47,9 +47,14 @@ REPO = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from benchmarks.bench_single_shot import gpu_name  # noqa: E402
-from models import devices  # noqa: E402
-from models.runtime import WEIGHTS_DIR, physical_cores, probe_shape, view_directions  # noqa: E402
-from models.size import SIZE_MULTIPLE  # noqa: E402
+from polrig.models import devices  # noqa: E402
+from polrig.models.runtime import (  # noqa: E402
+    WEIGHTS_DIR,
+    physical_cores,
+    probe_shape,
+    view_directions,
+)
+from polrig.models.size import SIZE_MULTIPLE  # noqa: E402
 
 #: cuDNN algorithm searches onnxruntime's CUDA provider offers (``cudnn_conv_algo_search``).
 CUDA_SEARCHES = ("HEURISTIC", "DEFAULT", "EXHAUSTIVE")
@@ -119,8 +124,8 @@ def ort_row(provider: str, options: dict, frame: dict, probe: dict, rounds: int,
 def torch_row(device: str, frame: dict, probe: dict, rounds: int, threads: int) -> dict:
     import torch
 
-    from models.pmmnet import SingleShotNet
-    from models.recover import networks_from_weights
+    from polrig.models.pmmnet import SingleShotNet
+    from polrig.models.recover import networks_from_weights
 
     torch.set_num_threads(threads)
     nets, _ = networks_from_weights(WEIGHTS_DIR)

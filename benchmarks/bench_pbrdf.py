@@ -1,4 +1,4 @@
-"""Timing of polrig.pbrdf on image-sized pixel stacks; prints a table.
+"""Timing of polrig.optics.pbrdf on image-sized pixel stacks; prints a table.
 
 Usage: ``python benchmarks/bench_pbrdf.py [--size 512] [--repeat 5]``. Times are the best of
 ``repeat`` runs (wall clock and process CPU time, float64). Scenes: ``lit`` has every pixel valid (normals facing a
@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from polrig import pbrdf
+from polrig.optics import pbrdf
 
 
 def _unit(v):
@@ -53,7 +53,7 @@ def main(argv=None) -> None:
     alpha = rng.uniform(0.05, 0.6, size=(n, n))
     kd_rgb = rng.uniform(size=(n, n, 3))
     axes = dict(stage_zero_axis=np.array([0.0, 1.0, 0.0]), camera_x_axis=np.array([1.0, 0.0, 0.0]))
-    print(f"polrig.pbrdf, {n}x{n} pixels, float64, best of {args.repeat}")
+    print(f"polrig.optics.pbrdf, {n}x{n} pixels, float64, best of {args.repeat}")
     a, b = rng.random(n * n), rng.random(n * n)
     ref = best_of(lambda: a * b, 50)[0]
     print(f"machine reference: one {n}x{n} float64 multiply takes {1e6 * ref:.0f} us "

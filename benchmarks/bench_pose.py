@@ -14,14 +14,14 @@ neighbouring pixels almost everywhere on the disk, the worst case of the truth s
 frames are its ideal-analyzer mosaics with the sensor model's noise.
 
 Each configuration (layout x demosaic) runs in a fresh process that loads the raw frames (and,
-for the scoring, the truth) and then does what ``polrig.processing`` does per pose:
+for the scoring, the truth) and then does what ``polrig.app.processing`` does per pose:
 
-* ``radiance``: :func:`polrig.radiometry.state_radiance` of the 4 states;
-* ``solve``: :func:`polrig.radiometry.reference_from_frames` (band-tiled demosaic and
-  :func:`polrig.reference.solve_reference`); the time inside ``solve_reference`` is given
+* ``radiance``: :func:`polrig.solve.radiometry.state_radiance` of the 4 states;
+* ``solve``: :func:`polrig.solve.radiometry.reference_from_frames` (band-tiled demosaic and
+  :func:`polrig.solve.reference.solve_reference`); the time inside ``solve_reference`` is given
   apart (``of which solve_reference``), since the solver itself is being replaced;
-* ``exr``: :func:`polrig.exr.write_mueller_exr` of the result with all planes (float32);
-* ``score``: :func:`polrig.scoring.score_on_output_grid` against the truth.
+* ``exr``: :func:`polrig.formats.exr.write_mueller_exr` of the result with all planes (float32);
+* ``score``: :func:`polrig.solve.scoring.score_on_output_grid` against the truth.
 
 Peak memory is the process's peak resident set (``VmHWM`` of ``/proc/self/status``, Linux;
 not ``ru_maxrss``, which Linux carries over ``exec`` from the parent), which includes the interpreter and libraries (about 100 MB), the raw frames and, for the scoring
@@ -59,7 +59,7 @@ EXPOSURE_US = 10000.0
 BLACK_DN = 64.0
 LAYOUTS = {"colour": "imx250myr", "mono": "imx250mzr"}
 METHODS = ("superpixel", "bilinear", "newton")
-#: nominal calibration tolerances (polrig.processing.NOMINAL_*_TOLERANCE)
+#: nominal calibration tolerances (polrig.app.processing.NOMINAL_*_TOLERANCE)
 ANALYZER_TOL = (0.01, 0.5, 0.02)
 GENERATOR_TOL = (2.0, 0.006)
 
@@ -67,7 +67,7 @@ GENERATOR_TOL = (2.0, 0.006)
 def scene(layout_name: str, h: int, w: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``(truth (C, 3, 3, H, W) float32, object mask (H, W) float32)``: background and a
     smoothly varying disk (DN per unit incident S0)."""
-    from polrig.analyzer import resolve_layout
+    from polrig.sensor.analyzer import resolve_layout
 
     c = resolve_layout(layout_name).n_colours
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -91,9 +91,9 @@ def scene(layout_name: str, h: int, w: int, seed: int = 0) -> tuple[np.ndarray, 
 
 def make_frames(truth: np.ndarray, layout_name: str, seed: int = 1) -> np.ndarray:
     """``(4, H, W)`` uint16 raw frames (12-bit, black level) of the 4 states."""
-    from polrig.analyzer import AnalyzerModel
-    from polrig.mueller import polarizer_stokes
-    from polrig.noise import SensorModel
+    from polrig.optics.mueller import polarizer_stokes
+    from polrig.sensor.analyzer import AnalyzerModel
+    from polrig.sensor.noise import SensorModel
 
     model = SensorModel()
     rng = np.random.default_rng(seed)
@@ -113,11 +113,11 @@ def make_frames(truth: np.ndarray, layout_name: str, seed: int = 1) -> np.ndarra
 def run_pose(data: pathlib.Path, layout_name: str, method: str, score: bool,
              planes: tuple[str, ...], uncertainty: str, compression: str) -> dict:
     """The per-pose work in this process; returns timings (s), peak RSS (MB), EXR bytes."""
-    from polrig import radiometry
-    from polrig.exr import result_planes, write_mueller_exr
-    from polrig.mueller import polarizer_stokes
-    from polrig.noise import SensorModel
-    from polrig.analyzer import resolve_layout
+    from polrig.formats.exr import result_planes, write_mueller_exr
+    from polrig.optics.mueller import polarizer_stokes
+    from polrig.sensor.analyzer import resolve_layout
+    from polrig.sensor.noise import SensorModel
+    from polrig.solve import radiometry
 
     solve_s = [0.0]
     inner = radiometry.solve_reference
@@ -154,7 +154,7 @@ def run_pose(data: pathlib.Path, layout_name: str, method: str, score: bool,
     out.update(radiance_s=t1 - t0, solve_total_s=t2 - t1, solve_reference_s=solve_s[0],
                exr_s=t3 - t2)
     if score:
-        from polrig.scoring import score_on_output_grid
+        from polrig.solve.scoring import score_on_output_grid
 
         truth = np.load(data / f"{layout_name}_truth.npy")
         obj = np.load(data / f"{layout_name}_object.npy")
@@ -175,10 +175,10 @@ EXR_CHOICES = (("all planes, float32", RESULT_GROUPS := ("mueller", "sigma", "si
 
 def run_exr_choices(data: pathlib.Path, layout_name: str, method: str) -> list[dict]:
     """One solve, then the EXR written with each plane choice and compression."""
-    from polrig import radiometry
-    from polrig.exr import result_planes, write_mueller_exr
-    from polrig.mueller import polarizer_stokes
-    from polrig.noise import SensorModel
+    from polrig.formats.exr import result_planes, write_mueller_exr
+    from polrig.optics.mueller import polarizer_stokes
+    from polrig.sensor.noise import SensorModel
+    from polrig.solve import radiometry
 
     frames = np.load(data / f"{layout_name}_frames.npy")
     states = [radiometry.state_radiance([[f]], [EXPOSURE_US], SensorModel(),

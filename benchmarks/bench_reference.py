@@ -1,5 +1,5 @@
-"""Speed of the N-state reference solve (polrig.reference) against the previous numpy
-implementation (polrig._reference_numpy), the numba compile time, and the realizability tools;
+"""Speed of the N-state reference solve (polrig.solve.reference) against the previous numpy
+implementation (polrig.solve._reference_numpy), the numba compile time, and the realizability tools;
 prints tables and writes the solve table into ``benchmarks/results/reference_solve.md`` (its own
 section per image size; the rest of the file is left as it is).
 
@@ -34,12 +34,12 @@ import time
 
 import numpy as np
 
-from polrig import mueller as mu
-from polrig import realizability as rz
-from polrig import reference as ref
-from polrig._reference_numpy import solve_reference_numpy
-from polrig.noise import SensorModel
-from polrig.stokes import ideal_analyzer_matrix
+from polrig.optics import mueller as mu
+from polrig.optics import realizability as rz
+from polrig.sensor.noise import SensorModel
+from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve import reference as ref
+from polrig.solve._reference_numpy import solve_reference_numpy
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "reference_solve.md"
@@ -50,8 +50,8 @@ COLD_START = """
 import time
 t0 = time.perf_counter()
 import numpy as np
-from polrig import reference as ref
-from polrig import mueller as mu
+from polrig.solve import reference as ref
+from polrig.optics import mueller as mu
 t1 = time.perf_counter()
 s = mu.polarizer_stokes(np.radians([0, 45, 90, 135]))
 meas = np.full((4, 3, 4, 16, 16), 100.0, np.float32)
@@ -133,7 +133,7 @@ def main() -> None:
             for im, fn in impls.items():
                 times[cn, im].append(timed(lambda: run(fn, data)))
     load = os.getloadavg()
-    import polrig._reference_kernel as kern
+    import polrig.solve._reference_kernel as kern
     head = (f"{c} colours x {h} x {w} ({px / 1e6:.2f} M colour pixels), 4 states, float32 "
             f"samples, 1 % saturated; median of {args.rounds} interleaved rounds; "
             f"{kern.THREADS} threads on {os.cpu_count()} CPUs; load average during the run "
@@ -155,7 +155,7 @@ def main() -> None:
     ctable = ""
     if not args.no_compile:
         ct = compile_times()
-        ctable = ("| numba cache | import polrig.reference s | first solve s |\n|---|---|---|\n"
+        ctable = ("| numba cache | import polrig.solve.reference s | first solve s |\n|---|---|---|\n"
                   + "\n".join(f"| {k} | {v[0]:.2f} | {v[1]:.2f} |" for k, v in ct.items()))
         print(f"# first call in a fresh process (load average {os.getloadavg()[0]:.1f})\n"
               f"{ctable}\n")

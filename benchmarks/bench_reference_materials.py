@@ -1,22 +1,22 @@
 """Coverage of the reference method's sigma on every material scene of the simulator.
 
 Issue 23's acceptance: the reference acquisition recovers the truth of every new scene family
-(:data:`sim.scene.MATERIAL_SCENES`: conductors, dispersive and retarding dielectrics,
+(:data:`polrig.sim.scene.MATERIAL_SCENES`: conductors, dispersive and retarding dielectrics,
 textures, anisotropic roughness, one-bounce interreflections for ``corner`` and ``crater``)
 within its reported sigma, 95 +- 1 % of the elements within 2 sigma. Two Baek-family scenes
 (``sphere``, ``rough_sphere``) run as controls.
 
-Each scene is captured as a real one-pose session (:mod:`polrig.capture` on the simulated
+Each scene is captured as a real one-pose session (:mod:`polrig.app.capture` on the simulated
 rig, ``N`` states evenly over 180 deg, ``K`` frames each, superpixel demosaic) and scored
 against the hidden truth as a perfect rig at this resolution sees it
-(:func:`polrig.scoring.truth_on_output_grid`, the capture's own weights) over the valid
+(:func:`polrig.solve.scoring.truth_on_output_grid`, the capture's own weights) over the valid
 object pixels, in two rigs:
 
 * **ideal rig, exact calibration** (no analyzer, stage or polarizer errors): the reported
   sigma is the sensor noise model's alone; this is the model-free claim.
 * **default rig, nominal calibration** (hidden analyzer errors, stage zero offset 1.7 deg,
   extinction ratio 800; processed with the nominal calibration, whose sigma adds the
-  declared tolerances: ``polrig.processing.NOMINAL_*_TOLERANCE``). Its calibration error is
+  declared tolerances: ``polrig.app.processing.NOMINAL_*_TOLERANCE``). Its calibration error is
   one draw, the *same* for every pixel of the capture, so the pooled coverage over the
   pixels of one capture is not a 95 % statistic for the calibration part: it is above 95 %
   wherever the calibration term dominates sigma (bright, strongly polarizing scenes: metals)
@@ -56,16 +56,16 @@ import numpy as np
 REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from polrig import processing  # noqa: E402
-from polrig.capture import CapturePlan, create_session, run_session  # noqa: E402
-from polrig.demosaic import demosaic_float  # noqa: E402
-from polrig.exr import read_mueller_exr  # noqa: E402
-from polrig.realizability import is_physical_linear  # noqa: E402
-from polrig.reference import ReferenceResult  # noqa: E402
-from polrig.rig import open_rig  # noqa: E402
-from polrig.scoring import truth_on_output_grid  # noqa: E402
-from polrig.sessionio import CaptureFrames, load_capture_frames  # noqa: E402
-from sim.scene import MATERIAL_SCENES  # noqa: E402
+from polrig.app import processing  # noqa: E402
+from polrig.app.capture import CapturePlan, create_session, run_session  # noqa: E402
+from polrig.app.rig import open_rig  # noqa: E402
+from polrig.app.sessionio import CaptureFrames, load_capture_frames  # noqa: E402
+from polrig.formats.exr import read_mueller_exr  # noqa: E402
+from polrig.optics.realizability import is_physical_linear  # noqa: E402
+from polrig.sensor.demosaic import demosaic_float  # noqa: E402
+from polrig.sim.scene import MATERIAL_SCENES  # noqa: E402
+from polrig.solve.reference import ReferenceResult  # noqa: E402
+from polrig.solve.scoring import truth_on_output_grid  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}

@@ -26,8 +26,8 @@ def _median(fn, repeat: int):
 
 
 def bench_terms(size: int, repeat: int) -> None:
-    from sim.render import render
-    from sim.scene import make_scene
+    from polrig.sim.render import render
+    from polrig.sim.scene import make_scene
 
     terms = ("intersection", "shadow", "specular", "diffuse", "assemble")
     print(f"\nRender terms at {size}x{size} (median of {repeat}; seconds)")
@@ -51,7 +51,7 @@ def bench_terms(size: int, repeat: int) -> None:
 
 
 def bench_sensor(size: int, repeat: int) -> None:
-    from sim import create_sim_rig
+    from polrig.sim import create_sim_rig
 
     rig = create_sim_rig({"size": (size, size), "clock_speed": float("inf")})
     w = rig.world

@@ -1,27 +1,27 @@
 """Latency, throughput and memory of the whole single-shot path on this machine, warm and cold.
 
-Path per frame: decode the raw file (16-bit PNG, :func:`polrig.rawio.read_raw`), demosaic,
+Path per frame: decode the raw file (16-bit PNG, :func:`polrig.formats.rawio.read_raw`), demosaic,
 Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call per pass,
-:func:`models.runtime.infer_frame`), Mueller EXR (:func:`models.runtime.write_result_exr`). Raw
+:func:`polrig.models.runtime.infer_frame`), Mueller EXR (:func:`polrig.models.runtime.write_result_exr`). Raw
 frames are IMX250MYR (colour) mosaics of a lit sphere (content matters little for speed); the
 full sensor is also timed as a mono IMX250MZR frame (superpixel analyzer images 1224x1024, four
 times the colour sensor's).
 
 Cases (issue 22's targets): 512x512 raw -> 512x512 Mueller (``--resolution full``: networks on
-the superpixel grid plus the measured detail, :mod:`models.full_resolution`; and the networks on
+the superpixel grid plus the measured detail, :mod:`polrig.models.full_resolution`; and the networks on
 the bilinear demosaic, the older route), 512x512 superpixel, full sensor colour superpixel, full
 sensor colour full resolution, full sensor mono superpixel; and the faster mode's full-sensor colour
 cases (``--network-binning 2``: the networks on the analyzer grid binned 2x2, lifted back with the
-grid's measured detail, :func:`models.full_resolution.reconstruct_binned`). The "lifts" column
+grid's measured detail, :func:`polrig.models.full_resolution.reconstruct_binned`). The "lifts" column
 is the full-resolution lift plus the binning's lift; "networks" includes the reduced passes of
-the light-direction probe (:func:`models.runtime.probe_shape`).
+the light-direction probe (:func:`polrig.models.runtime.probe_shape`).
 
 Columns: **warm**: in process, the model loaded once, median of the runs after one warm-up:
 **raw -> Mueller** (the raw frame in memory, as a camera delivers it, to the Mueller image in
 memory: the per-frame work issue 22's targets are for) and file to file (plus decoding the raw
 file and writing the EXR), with the geometry ``polrig infer`` uses without a
 calibration (the default rig's, whose stage zero axis is not the training rig's: two network
-passes, as on a real rig); **cold**: the one-shot CLI (``python -m polrig.cli
+passes, as on a real rig); **cold**: the one-shot CLI (``python -m polrig
 infer ...`` in a fresh process, what a user types), wall-clock median, with the child's peak
 resident memory (``wait4`` rusage). Rounds interleave the cases (warm and cold alternate) so a
 busy machine's load spreads over all of them; the table says how many rounds. ``--anatomy``
@@ -36,7 +36,7 @@ Usage: ``python benchmarks/bench_single_shot.py [--rounds N] [--threads T] [--ou
 
 ``--rig-scenes sphere,box,...`` instead scores ``polrig capture --mode single-shot`` on the
 default simulated rig (256x256 raw, virtual clock, nominal calibration: the simulator's design
-geometry), one capture per scene, with processing's own score (``polrig.processing``), three
+geometry), one capture per scene, with processing's own score (``polrig.app.processing``), three
 ways: the design stage zero axis (what processing does now), the training rig's axis (camera up,
 what processing did before it passed any geometry) and the design axis turned by 90 deg about
 the illumination axis (both through ``[nominal_geometry]``); ``--out`` writes that table.
@@ -45,7 +45,7 @@ without ``--mirror-average`` instead. ``--rig-poses 0:360:45`` captures each sce
 turntable poses instead of pose 0 only
 (one view of a scene says little: the same model differs by several dB from pose to pose);
 every column is then the mean matrix PSNR over the poses with a lit truth (an object turned
-with its unlit back to the camera has no PSNR, :func:`polrig.processing.score_against_truth`),
+with its unlit back to the camera has no PSNR, :func:`polrig.app.processing.score_against_truth`),
 and a second table gives the design-geometry PSNR per pose.
 """
 
@@ -64,10 +64,15 @@ import numpy as np
 REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from models.runtime import SingleShotModel, infer_frame, physical_cores, write_result_exr  # noqa: E402
-from polrig.hal import Frame, FrameMeta  # noqa: E402
-from polrig.layouts import get_layout  # noqa: E402
-from polrig.rawio import read_raw, write_raw  # noqa: E402
+from polrig.formats.rawio import read_raw, write_raw  # noqa: E402
+from polrig.models.runtime import (  # noqa: E402
+    SingleShotModel,
+    infer_frame,
+    physical_cores,
+    write_result_exr,
+)
+from polrig.sensor.frame import Frame, FrameMeta
+from polrig.sensor.layouts import get_layout  # noqa: E402
 
 COLOUR, MONO = "imx250myr", "imx250mzr"
 FULL = (2048, 2448)
@@ -139,11 +144,11 @@ def warm_once(src: pathlib.Path, argv: list[str], model, out: pathlib.Path) -> d
 
 def _rig_geometry(frame, options: dict) -> dict:
     """The geometry ``polrig infer`` uses without a calibration (the default rig's nominal
-    stage zero axis and intrinsics, :func:`polrig.processing.single_shot_geometry`), so warm and
+    stage zero axis and intrinsics, :func:`polrig.app.processing.single_shot_geometry`), so warm and
     cold runs do the same work: that axis differs from the training rig's, so the runtime makes
     its two passes (the incident-frame refinement, :meth:`SingleShotModel.run_rig_frame`)."""
-    from polrig import processing
-    from polrig.rig import load_rig_config
+    from polrig.app import processing
+    from polrig.app.rig import load_rig_config
 
     geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
     grid = "superpixel" if options["resolution"] == "full" else options["demosaic_method"]
@@ -160,7 +165,7 @@ def _cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-#: ``python -m polrig.cli ARGS`` as a one-shot process that reports its own peak resident memory
+#: ``python -m polrig ARGS`` as a one-shot process that reports its own peak resident memory
 #: (``VmHWM`` of its address space: a child's ``wait4`` maximum would include the benchmark
 #: process's own peak, which Linux carries through fork and exec).
 COLD = """
@@ -216,7 +221,7 @@ import numpy as np
 import onnxruntime
 t1 = time.perf_counter()
 import polrig.cli
-from models.runtime import SingleShotModel, view_directions
+from polrig.models.runtime import SingleShotModel, view_directions
 t2 = time.perf_counter()
 m = SingleShotModel.load(threads=THREADS)
 t3 = time.perf_counter()
@@ -227,7 +232,7 @@ feed = (rng.random((1, 3, 4, h, w), dtype=np.float32), np.ones((1, 1, h, w), np.
 runs = []
 for _ in range(3):
     t = time.perf_counter(); m.run_normalised(*feed); runs.append(time.perf_counter() - t)
-print(json.dumps({"import numpy+onnxruntime": t1 - t0, "import polrig.cli+models.runtime": t2 - t1,
+print(json.dumps({"import numpy+onnxruntime": t1 - t0, "import polrig.cli+polrig.models.runtime": t2 - t1,
                   "session creation": t3 - t2, "first pass": runs[0], "second pass": runs[1], "third pass": runs[2],
                   "peak_mb": float(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1]) / 1024}))
 """
@@ -263,7 +268,7 @@ def timed(owner, name, label):
     setattr(owner, name, wrapper)
 import numpy, onnxruntime
 steps["import numpy+onnxruntime"] = (time.process_time() - c0, time.perf_counter() - w0)
-import models.runtime as rt, polrig.preview as pv, polrig.rawio as rio, polrig.cli as cli
+import polrig.models.runtime as rt, polrig.app.preview as pv, polrig.formats.rawio as rio, polrig.cli as cli
 timed(rt.SingleShotModel, "load", "session creation")
 timed(rio, "read_raw", "decode")
 timed(rt, "infer_frame", "reconstruction")
@@ -416,10 +421,10 @@ def rig_scene_scores(scenes: list[str], tmp: pathlib.Path, poses: str = "0", mir
     import contextlib
     import io
 
+    from polrig.app.session import Session
     from polrig.cli import main as cli
-    from polrig.session import Session
-    from sim.geometry import TurntableGeometry
-    from sim.scene import default_camera, default_light, stage_zero_axis_for
+    from polrig.sim.geometry import TurntableGeometry
+    from polrig.sim.scene import default_camera, default_light, stage_zero_axis_for
 
     cam = default_camera(256, 256)
     x0, target = stage_zero_axis_for(default_light(), TurntableGeometry())
@@ -514,7 +519,7 @@ def main(argv=None) -> int:
                 head = ("# Single-shot captures on the default simulated rig: processing scores\n\n" + command
                         + "`polrig capture --mode single-shot` of each scene (256x256 raw, 64x64 analyzer grid, "
                         f"turntable poses {args.rig_poses}, seed 0, nominal calibration), mean over the poses with a lit "
-                        "truth of the matrix PSNR in dB from `polrig.processing.score_against_truth` (peak = largest "
+                        "truth of the matrix PSNR in dB from `polrig.app.processing.score_against_truth` (peak = largest "
                         "true m00 compared; pixels whose support lies on the object; pixels with saturated samples "
                         "excluded, as for the reference mode).")
             pathlib.Path(args.out).write_text(head + "\n\n" + table + "\n")

@@ -14,7 +14,7 @@ state, nominal calibration:
    processing without the truth score, so the score's own cost shows.
 2. **A 12-pose turntable session** with the simulated rig's realistic motion (the clock at
    real time: the turntable at 10 deg/s, the stage at 20 deg/s, 20 ms exposure, 13 ms
-   readout) whose camera replays frames rendered beforehand (:class:`sim.replay.ReplayCamera`:
+   readout) whose camera replays frames rendered beforehand (:class:`polrig.sim.replay.ReplayCamera`:
    the simulator's rendering is not counted as hardware). Wall time is compared with the
    plan's hardware time (``hardware_time_s`` of the session manifest) for the engine
    (processing of pose k overlapped with the acquisition of pose k + 1, serpentine state
@@ -89,8 +89,8 @@ def replay_rig(sensor: str, clock_speed: float):
     """The simulated rig at full sensor with a :class:`ReplayCamera` that has recorded one
     frame per polarizer state (rendered now, before any timing) and no truth provider (a
     real rig has none; the truth would be rendered at every pose)."""
-    from polrig.rig import open_rig
-    from sim.replay import ReplayCamera
+    from polrig.app.rig import open_rig
+    from polrig.sim.replay import ReplayCamera
 
     rig = open_rig(None, **_sim_options(sensor, clock_speed))
     cam = ReplayCamera(rig.sim.world, rig.sim.faults, exposure_us=EXPOSURE_US)
@@ -104,8 +104,8 @@ def make_capture(folder: pathlib.Path, sensor: str, exr: dict) -> pathlib.Path:
     """A one-pose reference session at full sensor on the (rendering) simulated rig, with its
     truth recorded (compressed as the EXR choice ``exr`` says, as a capture with that choice
     writes it); processed once with the superpixel demosaic."""
-    from polrig import capture, processing
-    from polrig.rig import open_rig
+    from polrig.app import capture, processing
+    from polrig.app.rig import open_rig
 
     req = capture.CaptureRequest(out=folder, poses_deg=(0.0,), mode="reference",
                                  states_deg=STATES, frames_per_state=1,
@@ -127,8 +127,8 @@ def warm_up() -> None:
     0.3-0.5 s, not a per-pose one)."""
     import numpy as np
 
-    from polrig.mueller import polarizer_stokes
-    from polrig.reference import solve_reference
+    from polrig.optics.mueller import polarizer_stokes
+    from polrig.solve.reference import solve_reference
 
     s = polarizer_stokes(np.deg2rad(STATES), intensity=1)
     meas = np.ones((len(STATES), 1, 4, 2, 2))
@@ -138,8 +138,8 @@ def warm_up() -> None:
 def run_case(session_dir: pathlib.Path, method: str, score: bool, exr: dict) -> dict:
     """One reconstruct of the session's capture (in this process); wall seconds and bytes of
     the Mueller EXR."""
-    from polrig import processing
-    from polrig.session import Session
+    from polrig.app import processing
+    from polrig.app.session import Session
 
     warm_up()
     session = Session.open(session_dir, lock=True)
@@ -160,9 +160,9 @@ def pose_hardware_s(n_poses: int = 12) -> float:
     """Hardware time per pose of the session table's plan on the simulated rig (``n_poses``
     poses over a turn, serpentine states, turntable and stage moving together, exposure and
     readout): the plan's whole hardware time divided by its poses."""
-    from polrig.engine import hardware_model
-    from polrig.plan import CapturePlan, session_steps, step_durations
-    from polrig.rig import open_rig
+    from polrig.acquisition.engine import hardware_model
+    from polrig.acquisition.plan import CapturePlan, session_steps, step_durations
+    from polrig.app.rig import open_rig
 
     with open_rig(None, **_sim_options("imx250myr", math.inf)) as rig:  # nothing is rendered
         plan = CapturePlan(tuple(360.0 * i / n_poses for i in range(n_poses)), states_deg=STATES)
@@ -216,7 +216,7 @@ def pose_table(rounds: int) -> str:
 # -- table 2: a turntable session ----------------------------------------------------------------
 def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: float,
                      exr: dict) -> dict:
-    from polrig import capture, processing
+    from polrig.app import capture, processing
 
     with tempfile.TemporaryDirectory(prefix="polrig-bench-") as tmp:
         out = pathlib.Path(tmp) / "s"

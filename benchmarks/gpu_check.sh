@@ -48,13 +48,13 @@ start)
     [ -d .ortpart ] && cp .ortpart/* /root/ortparts/
     t0=$(date +%s)
     rm -rf /tmp/smoke /tmp/paper
-    if ! $PY -m models.paper_scale --out /tmp/smoke --budget-min 1 --size 32 --width 8 --train-samples 8 \
+    if ! $PY -m polrig.models.paper_scale --out /tmp/smoke --budget-min 1 --size 32 --width 8 --train-samples 8 \
             --holdout-samples 2 --epochs 1 --jobs 4 > "$OUT/smoke.log" 2>&1; then
         echo "SMOKE FAILED"; tail -30 "$OUT/smoke.log"; exit 1
     fi
     tail -3 "$OUT/smoke.log"; grep -o '"training_device": "[a-z]*"' /tmp/smoke/run.json
     echo "smoke $(( $(date +%s) - t0 )) s"
-    setsid nohup $PY -m models.paper_scale --out /tmp/paper --budget-min "$budget" --size 256 \
+    setsid nohup $PY -m polrig.models.paper_scale --out /tmp/paper --budget-min "$budget" --size 256 \
         --work /tmp > /tmp/paper.log 2>&1 < /dev/null &
     echo $! > /tmp/paper.pid
     sleep 20; cat /tmp/paper.log

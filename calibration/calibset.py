@@ -1,12 +1,12 @@
-"""Alias of :mod:`calibration.calset` under the name :mod:`polrig.processing` imports
-(``calibration.calibset.load(DIR)``), plus :func:`tolerances`: the 1-sigma uncertainties of a
+"""Alias of :mod:`polrig.calibration.calset` under the name :mod:`polrig.app.processing` imports
+(``polrig.calibration.calibset.load(DIR)``), plus :func:`tolerances`: the 1-sigma uncertainties of a
 set that the reference solve propagates into its reported sigma."""
 
 from __future__ import annotations
 
 import math
 
-from calibration.calset import CalibrationSet, load
+from polrig.calibration.calset import CalibrationSet, load
 
 __all__ = ["CalibrationSet", "load", "tolerances", "CALIBRATED_GAIN_TOLERANCE"]
 
@@ -29,7 +29,7 @@ def tolerances(cs: CalibrationSet, nominal_analyzer: tuple[float, float, float],
                nominal_generator: tuple[float, float]
                ) -> tuple[tuple[float, float, float], tuple[float, float]]:
     """``(analyzer_tolerance, generator_tolerance)`` of a calibration set, in the form of
-    :class:`polrig.processing.Calibration`: ``(gain_rel, angle_deg, diattenuation)`` and
+    :class:`polrig.app.processing.Calibration`: ``(gain_rel, angle_deg, diattenuation)`` and
     ``(zero_offset_deg, inverse_extinction)``, 1 sigma.
 
     Analyzer (``dofp`` section): orientation = the median per-pixel ``angle_std_deg``,

@@ -7,7 +7,7 @@ Layout of a calibration set folder (format ``polrig-calibration``, version 1):
   ``intrinsics``, ``turntable``, ``fixtures``, ``light``, ``generator``, ``dofp``, each
   optional (a step that has not run is absent), plus ``id``, ``created_utc``,
   ``polrig_version`` and ``files`` (the ``.npz`` files that belong to the set);
-* ``analyzer.npz``: the per-pixel :class:`polrig.analyzer.AnalyzerModel` (``AnalyzerModel.save``);
+* ``analyzer.npz``: the per-pixel :class:`polrig.sensor.analyzer.AnalyzerModel` (``AnalyzerModel.save``);
 * ``dofp_maps.npz``: per-pixel maps of the DoFP fit (``dark_dn``, ``flat_scale``,
   ``angle_std_deg``, ``modulation_std``, ``residual_rms_dn``, ``valid``).
 
@@ -41,11 +41,14 @@ from typing import Any
 
 import numpy as np
 
-from calibration.errors import CalibrationError
-from calibration.generator import GeneratorModel
-from calibration.mirror import MirrorMetal
-from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
+from polrig import __version__
+from polrig.atomic import atomic_write_bytes, temporary_sibling
+from polrig.calibration.errors import CalibrationError
+from polrig.calibration.generator import GeneratorModel
+from polrig.calibration.mirror import MirrorMetal
 from polrig.errors import FormatError
+from polrig.optics.conventions import CONVENTIONS_VERSION
+from polrig.sensor.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 
 FORMAT = "polrig-calibration"
 VERSION = 1
@@ -258,9 +261,6 @@ class CalibrationSet:
         (full disk) leaves the earlier set as it was. ``.npz`` files of an earlier set that
         this one does not have are removed afterwards (``calibration.json`` lists the files
         of the set, ``files``, and :func:`load` reads only those)."""
-        from polrig import __version__
-        from polrig.conventions import CONVENTIONS_VERSION
-        from polrig.rawio import atomic_write_bytes, temporary_sibling
 
         d = pathlib.Path(directory)
         d.mkdir(parents=True, exist_ok=True)

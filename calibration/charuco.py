@@ -22,8 +22,9 @@ import zlib
 import cv2
 import numpy as np
 
-from calibration.errors import BoardNotFound
+from polrig.calibration.errors import BoardNotFound
 from polrig.errors import ConfigError
+from polrig.sensor.analyzer import resolve_layout
 
 _DICTIONARIES = {name[5:]: getattr(cv2.aruco, name) for name in dir(cv2.aruco)
                  if name.startswith("DICT_")}
@@ -261,7 +262,6 @@ def board_pose(detection: CharucoDetection, K: np.ndarray,
 def class_scales(raw: np.ndarray, layout, black_level_dn: float = 0.0) -> np.ndarray:
     """Relative level of every mosaic pixel ``(H, W)``: the median of its (colour, analyzer)
     class over the brighter half of ``raw`` (an unpolarized, grey-ish scene)."""
-    from polrig.analyzer import resolve_layout
 
     lay = resolve_layout(layout)
     a = np.asarray(raw, dtype=np.float64) - float(black_level_dn)
@@ -282,7 +282,7 @@ def intensity_image(raw: np.ndarray, layout, black_level_dn: float = 0.0,
     its level (:func:`class_scales` of this frame unless ``scales`` from another frame of the
     same scene are given), then a centred ``[1, 2, 1] / 4`` smoothing that suppresses what
     remains of the mosaic without shifting edges. ``layout``: a
-    :class:`polrig.layouts.MosaicLayout` or a name such as ``"imx250myr@0,1"``.
+    :class:`polrig.sensor.layouts.MosaicLayout` or a name such as ``"imx250myr@0,1"``.
     """
     a = np.asarray(raw, dtype=np.float64) - float(black_level_dn)
     a = np.where(np.isfinite(a), a, 0.0)

@@ -1,7 +1,7 @@
 """DoFP analyzer calibration: per-pixel gain, orientation and diattenuation.
 
 Model (Powell and Gruev, "Calibration methods for division-of-focal-plane polarimeters", Opt.
-Express 21(18):21039, 2013; :mod:`polrig.analyzer`): sensor pixel ``p`` reads
+Express 21(18):21039, 2013; :mod:`polrig.sensor.analyzer`): sensor pixel ``p`` reads
 ``I_p = a_p . S_p + o_p`` with ``a_p = g_p / 2 [1, D_p cos 2 t_p, D_p sin 2 t_p]``. Under a
 stage sweep the Stokes vector at pixel ``p`` is known up to a scalar radiance ``r_p``:
 ``S_p(theta_k) = r_p M_p S_in(theta_k)`` (``M_p`` the normalised Mueller matrix of the light
@@ -22,8 +22,8 @@ import dataclasses
 
 import numpy as np
 
-from calibration.errors import TooFewAngles
-from polrig.analyzer import AnalyzerModel, resolve_layout
+from polrig.calibration.errors import TooFewAngles
+from polrig.sensor.analyzer import AnalyzerModel, resolve_layout
 
 
 @dataclasses.dataclass(frozen=True)

@@ -3,7 +3,7 @@ incident states versus the nominal (ideal) ones.
 
 :func:`acquire_reference` drives a rig (HAL devices) through ``N`` stage angles, averages
 frames, demosaics them (superpixel) and solves the per-pixel 3x3 Mueller block with
-:func:`polrig.reference.solve_reference`, either with the ideal analyzer and the nominal
+:func:`polrig.solve.reference.solve_reference`, either with the ideal analyzer and the nominal
 generator (offset 0, ideal polarizer) or with a calibration set's per-pixel analyzer rows
 (carried to the superpixel grid by the same demosaic) and fitted generator. Units: DN per
 unit incident S0 (``docs/conventions.md``).
@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.calset import CalibrationSet
-from calibration.generator import GeneratorModel
-from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
-from polrig.demosaic import demosaic_float
-from polrig.reference import solve_reference
+from polrig.calibration.calset import CalibrationSet
+from polrig.calibration.generator import GeneratorModel
+from polrig.sensor.analyzer import AnalyzerModel, layout_name_at, resolve_layout
+from polrig.sensor.demosaic import demosaic_float
+from polrig.solve.reference import solve_reference
 
 DEFAULT_STATES_DEG = (0.0, 30.0, 60.0, 90.0, 120.0, 150.0)
 

@@ -4,7 +4,7 @@ The polarizer's transmission axis is at ``stage_angle_deg + zero_offset_deg`` fr
 frame's ``x`` axis (the stage zero axis, ``docs/conventions.md``), its extinction ratio is
 ``extinction_ratio`` (major / minor intensity transmittance). The normalised incident Stokes
 vector is that of unit unpolarized light after the polarizer,
-:func:`polrig.mueller.polarizer_stokes` with ``intensity=1`` (``S0 = (1 + 1/ER) / 2``;
+:func:`polrig.optics.mueller.polarizer_stokes` with ``intensity=1`` (``S0 = (1 + 1/ER) / 2``;
 ``docs/conventions.md``, "Radiometric units").
 
 The fit (:func:`fit_generator_from_angles`) takes, for many stage angles, the polarization
@@ -19,8 +19,8 @@ import dataclasses
 
 import numpy as np
 
-from calibration.errors import TooFewAngles
-from polrig.mueller import polarizer_stokes
+from polrig.calibration.errors import TooFewAngles
+from polrig.optics.mueller import polarizer_stokes
 
 
 def dolp_from_extinction_ratio(extinction_ratio) -> np.ndarray:

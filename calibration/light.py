@@ -26,7 +26,12 @@ import dataclasses
 import cv2
 import numpy as np
 
-from calibration.errors import CalibrationError, SphereNotFound, SphereSaturated, TooFewAngles
+from polrig.calibration.errors import (
+    CalibrationError,
+    SphereNotFound,
+    SphereSaturated,
+    TooFewAngles,
+)
 
 
 def pixel_rays(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:

@@ -1,15 +1,15 @@
 """The polished metal mirror of the DoFP calibration: its Mueller matrix in the rig frames.
 
-The DoFP step (:func:`calibration.procedures.run_dofp`) sees the generator's light after one
+The DoFP step (:func:`polrig.calibration.procedures.run_dofp`) sees the generator's light after one
 reflection off a rough metal plate. Per pixel the microfacet that reflects towards the camera
 has the half vector ``h = normalize(wi + wo)``, so the light path's Mueller matrix is the
 complex-index Fresnel reflection at ``cos theta = wi . h``
-(:func:`polrig.mueller.specular_reflection`, s/p bases with ``x = s = wi x h``) times the
+(:func:`polrig.optics.mueller.specular_reflection`, s/p bases with ``x = s = wi x h``) times the
 scalar microfacet weight ``D(h) G1(wi) G1(wo) / (4 cos theta_o)``, turned into the rig frames
 (incident: ``k = -wi``, ``x`` = stage zero axis; emergent: ``k = wo``, ``x`` = camera ``x``;
 ``docs/conventions.md``). Baek et al. 2018 (ACM TOG 37(6)) and Mitsuba 3 ``roughconductor``
 use the same specular term; the simulator renders the plate with it
-(:func:`sim.surface_bsdf.evaluate`, tested equal).
+(:func:`polrig.sim.surface_bsdf.evaluate`, tested equal).
 
 A real metal is no ideal mirror: with ``r_s``, ``r_p`` the complex amplitudes the s/p block is
 ``[[a, b, 0], [b, a, 0], [0, 0, c cos d]]`` (``a, b = (Rs +- Rp) / 2``, ``c = sqrt(Rs Rp)``,
@@ -20,9 +20,9 @@ the handedness flip) is ``diag(1, 1, -1)``. For aluminium at the simulated rig's
 departure is 0.0016 (diattenuation) and 1e-4 (``m22``); at 45 deg 0.03 and 0.02.
 
 The metal is a calibration input (:class:`MirrorMetal`; default :data:`DEFAULT_MIRROR_METAL`
-from :data:`polrig.conductors.CONDUCTORS`). A colour sensor's pixel uses its channel's index;
+from :data:`polrig.optics.conductors.CONDUCTORS`). A colour sensor's pixel uses its channel's index;
 a mono sensor the mean of the three channels' Mueller matrices (a flat light spectrum and
-equal channel weights, the simulated mono sensor's :data:`sim.sensor.MONO_WEIGHTS`).
+equal channel weights, the simulated mono sensor's :data:`polrig.sim.sensor.MONO_WEIGHTS`).
 """
 
 from __future__ import annotations
@@ -31,17 +31,17 @@ import dataclasses
 
 import numpy as np
 
-from polrig import frames as fr
-from polrig import mueller as mu
-from polrig.conductors import CONDUCTORS, conductor_rgb
-from polrig.pbrdf import microfacet_d, smith_g1
+from polrig.optics import bases as fr
+from polrig.optics import mueller as mu
+from polrig.optics.conductors import CONDUCTORS, conductor_rgb
+from polrig.optics.pbrdf import microfacet_d, smith_g1
 
 #: The front-surface mirror metal the DoFP step assumes unless told otherwise: aluminium, the
 #: usual bare first-surface mirror coating (broadband over the visible, stable in air under
 #: its few-nanometre native oxide, which this model neglects; silver tarnishes unless
 #: over-coated, and a dielectric over-coat adds its own retardance).
 DEFAULT_MIRROR_METAL = "aluminium"
-#: The metal of the light calibration's mirror ball (:func:`calibration.procedures.run_light`):
+#: The metal of the light calibration's mirror ball (:func:`polrig.calibration.procedures.run_light`):
 #: chrome, what polished steel balls sold as "chrome" spheres are plated with.
 DEFAULT_SPHERE_METAL = "chrome"
 #: Name of the ideal mirror (``Rs = Rp = 1``, no retardance): the old assumption, kept for
@@ -53,7 +53,7 @@ IDEAL = "ideal"
 class MirrorMetal:
     """The metal of a calibration mirror (the DoFP plate, the light calibration's ball):
     ``name`` and complex index ``n + i k`` per colour channel (R, G, B at
-    :data:`polrig.conductors.WAVELENGTHS_NM`), or the ideal mirror (``name == "ideal"``,
+    :data:`polrig.optics.conductors.WAVELENGTHS_NM`), or the ideal mirror (``name == "ideal"``,
     ``eta_rgb`` ``None``)."""
 
     name: str
@@ -73,7 +73,7 @@ class MirrorMetal:
 
     @classmethod
     def named(cls, name: str) -> "MirrorMetal":
-        """A metal of :data:`polrig.conductors.CONDUCTORS` or ``"ideal"``; ``ValueError``
+        """A metal of :data:`polrig.optics.conductors.CONDUCTORS` or ``"ideal"``; ``ValueError``
         naming the known ones otherwise."""
         if name == IDEAL:
             return cls(IDEAL, None)

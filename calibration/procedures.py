@@ -1,9 +1,9 @@
 """Guided calibration procedures that drive a rig through its HAL devices.
 
 Each procedure takes a rig-like object with ``camera``, ``stage``, ``turntable`` and ``light``
-(:mod:`polrig.hal` devices, as :func:`polrig.rig.open_rig` returns them) and a ``mount``
+(:mod:`polrig.acquisition.hal` devices, as :func:`polrig.app.rig.open_rig` returns them) and a ``mount``
 callback ``mount(target_name, **fixture)`` that asks the operator to put a calibration target
-in place (on the simulated rig it swaps the simulated target, :func:`sim.targets.mount`).
+in place (on the simulated rig it swaps the simulated target, :func:`polrig.sim.targets.mount`).
 Targets: ``"charuco"`` (board in the turntable fixture, with ``tilt_deg``/``roll_deg``),
 ``"mirror_plate"`` (polished metal plate in the same fixture), ``"chrome_sphere"`` (chrome
 ball of known radius off the turntable axis in front of a white backdrop). Procedures never
@@ -21,15 +21,29 @@ from typing import Any, Callable
 
 import numpy as np
 
-from calibration import charuco, dofp, light, rigframes, turntable
-from calibration.errors import (BoardNotFound, CalibrationError, SceneTooDark, SphereNotFound,
-                                SphereSaturated, TooFewAngles)
-from calibration.generator import (GeneratorModel, check_stage_angles, extinction_ratio_from_dolp,
-                                   wrap_deg)
-from calibration.mirror import (DEFAULT_MIRROR_METAL, DEFAULT_SPHERE_METAL, MirrorMetal,
-                               mirror_mueller)
-from polrig import hal
-from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
+from polrig.acquisition import hal
+from polrig.calibration import charuco, dofp, light, rigframes, turntable
+from polrig.calibration.errors import (
+    BoardNotFound,
+    CalibrationError,
+    SceneTooDark,
+    SphereNotFound,
+    SphereSaturated,
+    TooFewAngles,
+)
+from polrig.calibration.generator import (
+    GeneratorModel,
+    check_stage_angles,
+    extinction_ratio_from_dolp,
+    wrap_deg,
+)
+from polrig.calibration.mirror import (
+    DEFAULT_MIRROR_METAL,
+    DEFAULT_SPHERE_METAL,
+    MirrorMetal,
+    mirror_mueller,
+)
+from polrig.sensor.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 
 Mount = Callable[..., None]
 Log = Callable[[str], None]
@@ -77,9 +91,9 @@ def grab_mean(camera, n: int = 1) -> tuple[np.ndarray, Any]:
 
 
 #: Longest exposure the procedures set (us): half the grab timeout of the HAL
-#: (:data:`polrig.hal.DEFAULT_TIMEOUT_S`, which every ``camera.grab()`` here uses), so that a
+#: (:data:`polrig.acquisition.hal.DEFAULT_TIMEOUT_S`, which every ``camera.grab()`` here uses), so that a
 #: frame always arrives before the grab gives up. A scene still too dark there is reported
-#: (:class:`calibration.errors.SceneTooDark`) instead of timing out.
+#: (:class:`polrig.calibration.errors.SceneTooDark`) instead of timing out.
 MAX_EXPOSURE_US = 0.5 * hal.DEFAULT_TIMEOUT_S * 1e6
 #: :func:`auto_expose` gives up (:class:`SceneTooDark`) when, at :data:`MAX_EXPOSURE_US`, the
 #: measured level is below this fraction of its target.
@@ -88,7 +102,7 @@ TOO_DARK_FRACTION = 0.25
 
 def exposure_range_us(camera) -> tuple[float, float]:
     """``(shortest, longest)`` exposure the procedures use on ``camera``: its declared range
-    (:attr:`polrig.hal.CameraCapabilities.exposure_range_us`), the longest capped at
+    (:attr:`polrig.acquisition.hal.CameraCapabilities.exposure_range_us`), the longest capped at
     :data:`MAX_EXPOSURE_US`."""
     lo, hi = camera.capabilities.exposure_range_us
     return float(lo), min(float(hi), MAX_EXPOSURE_US)
@@ -212,7 +226,7 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
                   distortion: bool | int = True, log: Log = _noop) -> turntable.JointRigResult:
     """Turntable axis (and refined intrinsics) from board views at several turntable angles
     and fixture mounts: a linear axis estimate from one mount's PnP poses, then the joint
-    bundle adjustment :func:`calibration.turntable.refine_rig`. Reuses the views of
+    bundle adjustment :func:`polrig.calibration.turntable.refine_rig`. Reuses the views of
     ``intrinsics`` when given, otherwise captures them (with ``K``, ``dist`` as the start)."""
     if intrinsics is not None:
         views = intrinsics.views
@@ -256,11 +270,11 @@ def run_turntable(rig, mount: Mount, spec: charuco.BoardSpec, intrinsics: Intrin
 # --------------------------------------------------------------------------- light
 def highlight_scales(scales: np.ndarray, layout, metal: MirrorMetal) -> np.ndarray:
     """Class levels ``(H, W)`` for a metal ball's highlight: the white backdrop's
-    (:func:`calibration.charuco.class_scales` of the silhouette frame) times, on a colour
+    (:func:`polrig.calibration.charuco.class_scales` of the silhouette frame) times, on a colour
     sensor, the metal's normal-incidence reflectance of each pixel's colour
-    (:meth:`calibration.mirror.MirrorMetal.reflectance_rgb`), so that the highlight of a
+    (:meth:`polrig.calibration.mirror.MirrorMetal.reflectance_rgb`), so that the highlight of a
     coloured metal is grey after division (:func:`run_light`). ``layout``: the readout's
-    layout (name or :class:`polrig.layouts.MosaicLayout`)."""
+    layout (name or :class:`polrig.sensor.layouts.MosaicLayout`)."""
     mosaic = resolve_layout(layout)
     if not mosaic.is_colour:
         return scales
@@ -275,7 +289,7 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
     """Chrome sphere on the turntable at several angles -> light position (camera frame).
 
     The ball is a real metal (``sphere_metal``, default
-    :data:`calibration.mirror.DEFAULT_SPHERE_METAL`), not grey: on a colour sensor its
+    :data:`polrig.calibration.mirror.DEFAULT_SPHERE_METAL`), not grey: on a colour sensor its
     highlight's colour classes are divided by the metal's normal-incidence reflectance per
     colour on top of the white backdrop's class levels. Otherwise the colour quadrants of
     the mosaic cell differ by several percent inside a highlight of a few pixels (chrome: 64,
@@ -546,7 +560,7 @@ class DofpRun:
     exposure_us: float
     #: angle of incidence on the plate's microfacets at the plate centre (deg): half the angle
     #: between the directions to the light and to the camera; the metal's departure from an
-    #: ideal mirror grows as its square (:mod:`calibration.mirror`)
+    #: ideal mirror grows as its square (:mod:`polrig.calibration.mirror`)
     mirror_incidence_deg: float = 0.0
 
 
@@ -555,8 +569,8 @@ def mirror_states(K, dist, shape, plane_point, plane_normal, light_cam_m, zero_a
                   metal: MirrorMetal | None = None,
                   channel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Relative Stokes ``(K, 3, H, W)`` reaching each pixel from the rough metal plate: the
-    plate's Mueller matrix (:func:`calibration.mirror.mirror_mueller`: complex-index Fresnel
-    reflection of ``metal``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`, with its
+    plate's Mueller matrix (:func:`polrig.calibration.mirror.mirror_mueller`: complex-index Fresnel
+    reflection of ``metal``, default :data:`polrig.calibration.mirror.DEFAULT_MIRROR_METAL`, with its
     diattenuation and retardance) in the rig frames, normalised by ``m00``, times the
     generator's incident states; and the modelled relative radiance ``(H, W)``
     (``m00 / r^2``) of each pixel. ``channel`` ``(H, W)``: each pixel's colour channel
@@ -594,9 +608,9 @@ def run_dofp(rig, mount: Mount, geometry: turntable.JointRigResult, light_cam_m:
     turntable angle that centres the specular lobe. A dark frame (light off) gives the
     offsets; the stage
     sweep, with the generator's offset and the plate's Mueller matrix in the rig frames (the
-    metal ``mirror``, default :data:`calibration.mirror.DEFAULT_MIRROR_METAL`: its
+    metal ``mirror``, default :data:`polrig.calibration.mirror.DEFAULT_MIRROR_METAL`: its
     diattenuation and retardance at each pixel's angle of incidence,
-    :mod:`calibration.mirror`), gives each pixel's analyzer row (:mod:`calibration.dofp`).
+    :mod:`polrig.calibration.mirror`), gives each pixel's analyzer row (:mod:`polrig.calibration.dofp`).
     The fitted modulation is the pixel's diattenuation times the generator DoLP; the
     generator's extinction ratio follows from the mean modulation and
     ``sensor_diattenuation`` (see :data:`DEFAULT_SENSOR_DIATTENUATION`)."""

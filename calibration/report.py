@@ -14,8 +14,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.calset import CalibrationSet, _jsonable
-from polrig.analyzer import AnalyzerModel
+from polrig.calibration.calset import CalibrationSet, _jsonable
+from polrig.sensor.analyzer import AnalyzerModel
 
 
 def map_png(path: pathlib.Path, values: np.ndarray, lo: float, hi: float) -> None:

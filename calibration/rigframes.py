@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from polrig import frames as fr
+from polrig.calibration.light import pixel_rays
+from polrig.optics import bases as fr
 
 
 def stage_zero_axis_cam(light_cam_m: np.ndarray, axis_point_cam_m: np.ndarray,
@@ -29,7 +30,6 @@ def stage_zero_axis_cam(light_cam_m: np.ndarray, axis_point_cam_m: np.ndarray,
 
 def pixel_rays_grid(K: np.ndarray, dist: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
     """Unit camera rays ``(H, W, 3)`` through every pixel centre."""
-    from calibration.light import pixel_rays
 
     h, w = shape
     vv, uu = np.mgrid[0:h, 0:w]
@@ -50,7 +50,7 @@ def intersect_plane(rays: np.ndarray, point_m: np.ndarray, normal: np.ndarray) -
 
 def board_plane(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(point, front normal)`` of a board with pose ``p_cam = R p_board + t``: the board's
-    ``z`` points into the board (:mod:`calibration.charuco`), so the printed side faces
+    ``z`` points into the board (:mod:`polrig.calibration.charuco`), so the printed side faces
     ``-R[:, 2]``."""
     n = -np.asarray(R, float)[:, 2]
     if n @ np.asarray(t, float) > 0:  # make it face the camera

@@ -11,12 +11,12 @@ says it): when a step runs again on a set, the results of the steps that depend 
 (:func:`dependents`) are dropped from the set, with one log line, because they were computed
 from the result it replaces. A step refuses a set calibrated on another camera readout
 (:func:`check_set_fits_camera`) before it moves anything. Every step records the camera it
-ran on in the set's ``camera`` section (:class:`calibration.calset.SensorGeometry`).
+ran on in the set's ``camera`` section (:class:`polrig.calibration.calset.SensorGeometry`).
 
-Truth (simulated rig only): a plain dict as :meth:`sim.truth.SimTruth.rig_parameters` returns
-it, plus optionally the true per-pixel :class:`polrig.analyzer.AnalyzerModel`. Errors are
+Truth (simulated rig only): a plain dict as :meth:`polrig.sim.truth.SimTruth.rig_parameters` returns
+it, plus optionally the true per-pixel :class:`polrig.sensor.analyzer.AnalyzerModel`. Errors are
 reported in the calibration's own frames (camera frame; the stage zero axis defined from the
-calibrated turntable axis, :mod:`calibration.rigframes`): the hidden zero offset is converted
+calibrated turntable axis, :mod:`polrig.calibration.rigframes`): the hidden zero offset is converted
 into that frame before comparing.
 """
 
@@ -27,15 +27,19 @@ from typing import Any, Callable
 
 import numpy as np
 
-from calibration import procedures as pr
-from calibration import turntable as tt
-from calibration.calset import CalibrationSet, SensorGeometry
-from calibration.charuco import BoardSpec
-from calibration.errors import CalibrationError
-from calibration.mirror import DEFAULT_MIRROR_METAL, DEFAULT_SPHERE_METAL, MirrorMetal
-from polrig import frames as fr
-from polrig.analyzer import AnalyzerModel
-from polrig.engine import CaptureControl, GuardedRig
+from polrig.acquisition.engine import CaptureControl, GuardedRig
+from polrig.calibration import procedures as pr
+from polrig.calibration import turntable as tt
+from polrig.calibration.calset import CalibrationSet, SensorGeometry
+from polrig.calibration.charuco import BoardSpec
+from polrig.calibration.errors import CalibrationError
+from polrig.calibration.mirror import (
+    DEFAULT_MIRROR_METAL,
+    DEFAULT_SPHERE_METAL,
+    MirrorMetal,
+)
+from polrig.optics import bases as fr
+from polrig.sensor.analyzer import AnalyzerModel
 
 STEPS = ("intrinsics", "turntable", "light", "stokes", "dofp")
 
@@ -69,7 +73,7 @@ class Options:
 
     board: BoardSpec = dataclasses.field(default_factory=lambda: BoardSpec(8, 6, 0.025, 0.018))
     sphere_radius_m: float = 0.03
-    #: the light calibration ball's metal (its colour, :func:`calibration.procedures.run_light`)
+    #: the light calibration ball's metal (its colour, :func:`polrig.calibration.procedures.run_light`)
     sphere_metal: MirrorMetal = dataclasses.field(
         default_factory=lambda: MirrorMetal.named(DEFAULT_SPHERE_METAL))
     sensor_diattenuation: float = pr.DEFAULT_SENSOR_DIATTENUATION
@@ -78,7 +82,7 @@ class Options:
     distortion: str = "k1"
     stage_angles_deg: tuple[float, ...] = pr.STAGE_ANGLES_DEG
     dofp_frames_per_angle: int = 6
-    #: the DoFP plate's metal (complex index per colour; :mod:`calibration.mirror`): its
+    #: the DoFP plate's metal (complex index per colour; :mod:`polrig.calibration.mirror`): its
     #: diattenuation and retardance enter the states the analyzer is fitted to
     mirror: MirrorMetal = dataclasses.field(
         default_factory=lambda: MirrorMetal.named(DEFAULT_MIRROR_METAL))
@@ -158,12 +162,12 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
     """Run ``steps`` (names from :data:`STEPS`, in the given order) and store the results in
     ``cs``. ``extras`` (optional dict) receives the raw results for reports.
 
-    The procedures drive ``rig`` through :class:`polrig.engine.GuardedRig`: every grab,
+    The procedures drive ``rig`` through :class:`polrig.acquisition.engine.GuardedRig`: every grab,
     camera setting, light switch and move goes through the same fault policy as a capture
-    (:class:`polrig.engine.Executor`: retried grab timeouts, one re-homed retry per move,
+    (:class:`polrig.acquisition.engine.Executor`: retried grab timeouts, one re-homed retry per move,
     timeouts from the declared capabilities, free-run settle frames; each retry is a ``log``
-    line), and ``control`` (a :class:`polrig.engine.CaptureControl`) pauses or stops them
-    before a grab or a move (:class:`polrig.engine.StopRequested`).
+    line), and ``control`` (a :class:`polrig.acquisition.engine.CaptureControl`) pauses or stops them
+    before a grab or a move (:class:`polrig.acquisition.engine.StopRequested`).
 
     Before anything moves, a set calibrated on another camera readout is refused
     (:func:`check_set_fits_camera`, ``set_name`` names it). After each step, the results of

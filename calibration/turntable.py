@@ -4,7 +4,7 @@ A board fixed on the turntable has pose ``(R_i, t_i)`` (board -> camera) at turn
 ``a_i``. The relative motion ``R_i R_0^T`` is a rotation about the turntable axis ``w``, so
 ``(R_i R_0^T - I) w = 0`` for every view: ``w`` is the right singular vector of the stacked
 ``R_i R_0^T - I`` with the smallest singular value (its sign makes the rotations right-handed
-for increasing turntable angle, :class:`polrig.hal.Turntable`). A point ``c`` on the axis
+for increasing turntable angle, :class:`polrig.acquisition.hal.Turntable`). A point ``c`` on the axis
 satisfies ``(I - R_rel) c = t_i - R_rel t_0``, solved by linear least squares together with
 ``w . c = w . mean(t_i)`` (the point of the axis nearest to the board origins).
 
@@ -19,7 +19,8 @@ import dataclasses
 
 import numpy as np
 
-from calibration.errors import TooFewAngles
+from polrig.calibration.charuco import board_pose
+from polrig.calibration.errors import TooFewAngles
 
 
 def rotation_angle_deg(R: np.ndarray, axis: np.ndarray) -> float:
@@ -171,7 +172,7 @@ def refine_turntable_axis(detections, turntable_angles_deg, K: np.ndarray,
     c0 = initial.point_cam_m
     # initial board pose at angle 0 from the first view rotated back
     i0 = int(np.argmin(np.abs(ang)))
-    R_i0, t_i0, _ = __import__("calibration.charuco", fromlist=["board_pose"]).board_pose(
+    R_i0, t_i0, _ = __import__("polrig.calibration.charuco", fromlist=["board_pose"]).board_pose(
         detections[i0], K, dist)
     Rb = _axis_rotation(w0, -ang[i0])
     R0 = Rb @ R_i0
@@ -280,8 +281,6 @@ def refine_rig(views, K: np.ndarray, dist: np.ndarray, axis0: np.ndarray, point0
     axis far better than independent per-view poses (Zhang's method) do.
     """
     import cv2
-
-    from calibration.charuco import board_pose
 
     mounts = sorted({m for m, _, _ in views})
     midx = {m: i for i, m in enumerate(mounts)}

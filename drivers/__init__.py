@@ -1,5 +1,5 @@
-"""Real device drivers implementing :mod:`polrig.hal`, chosen by the rig configuration
-(:data:`polrig.rig.DRIVERS`).
+"""Real device drivers implementing :mod:`polrig.acquisition.hal`, chosen by the rig configuration
+(:data:`polrig.app.rig.DRIVERS`).
 
 =================  ==========================  ============================================
 module             device                      transport / protocol
@@ -12,9 +12,9 @@ module             device                      transport / protocol
 =================  ==========================  ============================================
 
 Every blocking call takes a timeout; failures are typed (:mod:`polrig.errors`). Each driver
-is tested against an emulator in :mod:`drivers.emulators` that speaks the same bytes.
+is tested against an emulator in :mod:`polrig.drivers.emulators` that speaks the same bytes.
 
-Each declares its :attr:`~polrig.hal.Camera.capabilities` from what the device reports,
+Each declares its :attr:`~polrig.acquisition.hal.Camera.capabilities` from what the device reports,
 read on open (cheap to ask):
 
 =================  =============================================================================

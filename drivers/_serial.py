@@ -27,7 +27,12 @@ import time
 
 import serial
 
-from polrig.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout, ProtocolError
+from polrig.errors import (
+    DeviceDisconnected,
+    DeviceNotFound,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 # what pyserial lets through when a port vanishes (tcdrain raises termios.error, not OSError)
 _LOST = (serial.SerialException, OSError, termios.error)

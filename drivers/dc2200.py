@@ -1,9 +1,9 @@
-"""Thorlabs DC2200 LED driver as the rig's point light (:class:`polrig.hal.Light`).
+"""Thorlabs DC2200 LED driver as the rig's point light (:class:`polrig.acquisition.hal.Light`).
 
 Transport: USB-TMC through pyusb (no VISA): vendor 0x1313, product 0x80C8, the USBTMC
 interface (class 0xFE, subclass 0x03) with one bulk-OUT and one bulk-IN endpoint. Framing
 per the USB-IF "USB Test and Measurement Class Specification" 1.0 (see
-:mod:`drivers.usbtmc`): commands go out as ``DEV_DEP_MSG_OUT``; a query is followed by
+:mod:`polrig.drivers.usbtmc`): commands go out as ``DEV_DEP_MSG_OUT``; a query is followed by
 ``REQUEST_DEV_DEP_MSG_IN`` and a bulk-IN read of ``DEV_DEP_MSG_IN`` (header checked: MsgID,
 bTag and its inverse, transfer size, EOM). After a timeout or a malformed reply the pipes are
 cleared with INITIATE_CLEAR / CHECK_CLEAR_STATUS and a CLEAR_FEATURE(ENDPOINT_HALT) on
@@ -30,7 +30,7 @@ take the USBTMC class request) :class:`DeviceNotFound`, a vanished device
 
 ``backend`` may be a pyusb backend object or the name of a module with ``get_backend()``
 (pyusb's convention, e.g. ``"usb.backend.libusb1"`` or the emulator
-``"drivers.emulators.dc2200"``); ``None`` lets pyusb pick libusb.
+``"polrig.drivers.emulators.dc2200"``); ``None`` lets pyusb pick libusb.
 """
 
 from __future__ import annotations
@@ -43,10 +43,15 @@ from typing import Any
 import usb.core
 import usb.util
 
-from drivers import usbtmc
-from polrig.errors import (DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout,
-                           ProtocolError)
-from polrig.hal import DeviceInfo, Light, check_level
+from polrig.acquisition.hal import DeviceInfo, Light, check_level
+from polrig.drivers import usbtmc
+from polrig.errors import (
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 VENDOR_ID, PRODUCT_ID = 0x1313, 0x80C8
 #: most ``SYST:ERR?`` reads after a setting (the first error included)

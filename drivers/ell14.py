@@ -1,4 +1,4 @@
-"""Thorlabs Elliptec ELL14 rotation mount as a :class:`polrig.hal.RotationStage`.
+"""Thorlabs Elliptec ELL14 rotation mount as a :class:`polrig.acquisition.hal.RotationStage`.
 
 Protocol: Thorlabs "ELLx modules protocol manual" (Elliptec communication protocol):
 RS-232 levels over the interface board's USB bridge, 9600 baud 8N1, no flow control,
@@ -35,9 +35,9 @@ from __future__ import annotations
 
 import time
 
-from drivers._serial import SerialDevice, SerialLink, wrap_deg
+from polrig.acquisition.hal import AxisCapabilities, DeviceInfo, RotationStage
+from polrig.drivers._serial import SerialDevice, SerialLink, wrap_deg
 from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import AxisCapabilities, DeviceInfo, RotationStage
 
 BAUDRATE = 9600
 #: ELL14 maximum rotation speed, deg/s (Thorlabs ELL14 specifications); ``gv`` is a

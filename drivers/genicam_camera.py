@@ -10,7 +10,7 @@ SFNC for buffer info (frame id, timestamp, image offset). Known pitfalls handled
 ``fetch()`` without a timeout can block forever (harvesters issues #348, #375), so every
 fetch has one; polarization pixel formats are not decoded by harvesters (#167, #316, #473),
 so the payload bytes are copied out of the buffer *before* it is re-queued and decoded by
-:mod:`polrig.pixelformats`.
+:mod:`polrig.sensor.pixelformats`.
 
 Features are set through the node map where the camera has them; asking for a missing one
 (e.g. ``ExposureTime`` on a simulated producer) raises :class:`DeviceFault` naming it.
@@ -69,11 +69,23 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from polrig import pixelformats
-from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceNotFound,
-                           DeviceTimeout, FormatError)
-from polrig.hal import DEFAULT_TIMEOUT_S, Camera, CameraCapabilities, DeviceInfo, Frame, FrameMeta
-from polrig.layouts import get_layout
+from polrig.acquisition.hal import (
+    DEFAULT_TIMEOUT_S,
+    Camera,
+    CameraCapabilities,
+    DeviceInfo,
+)
+from polrig.errors import (
+    ConfigError,
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    FormatError,
+)
+from polrig.sensor import pixelformats
+from polrig.sensor.frame import Frame, FrameMeta
+from polrig.sensor.layouts import get_layout
 
 
 def _gentl():

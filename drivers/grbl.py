@@ -2,7 +2,7 @@
 
 Protocol: grbl/grbl ``doc/markdown/interface.md`` and ``doc/markdown/commands.md`` (GRBL
 1.1): G-code lines are answered ``ok`` or ``error:N`` (texts from ``doc/csv``, see
-:mod:`drivers.grbl_codes`); real-time single bytes without newline: ``?`` status report
+:mod:`polrig.drivers.grbl_codes`); real-time single bytes without newline: ``?`` status report
 ``<State|MPos:...|...>``, ``!`` feed hold, ``~`` resume, ``0x18`` soft reset (answered by the
 ``Grbl 1.1x ['$' for help]`` banner); ``$H`` homing (``ok`` after the cycle), ``$X`` unlock,
 ``$I`` build info; ``ALARM:N`` lines are pushed asynchronously. ``ok`` acknowledges that a
@@ -13,7 +13,7 @@ default ``"XYZA"``) come from the rig configuration, and ``degrees_per_unit`` co
 axis units (GRBL's ``$10x`` steps per unit setting decides what one unit is) to degrees.
 Stopping uses feed hold then soft reset, which GRBL documents as the way to cancel a motion
 without losing position. Angles: degrees, counter-clockwise seen from above
-(``polrig.hal``).
+(``polrig.acquisition.hal``).
 
 Positions are what the ``?`` report gives: the machine position (``MPos``, GRBL's default
 ``$10=1``) or, with ``$10=0``, the work position (``WPos``); interface.md: GRBL reports one
@@ -51,10 +51,16 @@ from __future__ import annotations
 import math
 import time
 
-from drivers._serial import SerialDevice, SerialLink
-from drivers.grbl_codes import ALARMS, CRITICAL_ALARMS, CRITICAL_MESSAGE, ERRORS, SUBSTATES
+from polrig.acquisition.hal import AxisCapabilities, DeviceInfo, Turntable
+from polrig.drivers._serial import SerialDevice, SerialLink
+from polrig.drivers.grbl_codes import (
+    ALARMS,
+    CRITICAL_ALARMS,
+    CRITICAL_MESSAGE,
+    ERRORS,
+    SUBSTATES,
+)
 from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import AxisCapabilities, DeviceInfo, Turntable
 
 BAUDRATE = 115200
 SOFT_RESET = b"\x18"

@@ -1,8 +1,8 @@
-"""Thorlabs K10CR1 motorised rotation stage as a :class:`polrig.hal.RotationStage`.
+"""Thorlabs K10CR1 motorised rotation stage as a :class:`polrig.acquisition.hal.RotationStage`.
 
 Transport: FTDI USB serial (VID:PID 0403:FAF0), 115200 baud 8N1 with RTS/CTS handshake, as
 the Thorlabs "APT Communications Protocol" document prescribes for its USB controllers.
-Messages (see :mod:`drivers.apt`): ``HW_REQ_INFO``/``HW_GET_INFO`` (identity),
+Messages (see :mod:`polrig.drivers.apt`): ``HW_REQ_INFO``/``HW_GET_INFO`` (identity),
 ``MOD_SET_CHANENABLESTATE`` (enable channel 1), ``MOT_MOVE_HOME``/``MOT_MOVE_HOMED``,
 ``MOT_MOVE_ABSOLUTE``/``MOT_MOVE_COMPLETED``, ``MOT_MOVE_STOP``/``MOT_MOVE_STOPPED``,
 ``MOT_REQ_STATUSBITS``/``MOT_GET_STATUSBITS``, ``MOT_REQ_POSCOUNTER``/``MOT_GET_POSCOUNTER``;
@@ -28,7 +28,7 @@ lost on the line (with the motion-error bit set that is a :class:`DeviceFault`).
 
 Capabilities (:attr:`K10cr1Stage.capabilities`, read on open): ``MOT_REQ_VELPARAMS`` ->
 ``MOT_GET_VELPARAMS`` (maximum velocity and acceleration in APT units, converted as
-:mod:`drivers.apt` documents: velocity / 53.68, acceleration * 90.9, per micro-step); the
+:mod:`polrig.drivers.apt` documents: velocity / 53.68, acceleration * 90.9, per micro-step); the
 stage turns without limit (``range_deg`` None).
 """
 
@@ -38,10 +38,15 @@ import logging
 import struct
 import time
 
-from drivers import apt
-from drivers._serial import SerialDevice, SerialLink, wrap_deg
+from polrig.acquisition.hal import (
+    AxisCapabilities,
+    DeviceInfo,
+    RotationStage,
+    Turntable,
+)
+from polrig.drivers import apt
+from polrig.drivers._serial import SerialDevice, SerialLink, wrap_deg
 from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
-from polrig.hal import AxisCapabilities, DeviceInfo, RotationStage, Turntable
 
 BAUDRATE = 115200
 STEPS_PER_DEG = 409600 / 3

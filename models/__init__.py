@@ -1,14 +1,14 @@
 """Single-shot Mueller reconstruction (PIPNet + analytic pBRDF initialization + PMMNet).
 
 Runtime (onnxruntime only, never torch; imports nothing from evaluation or training):
-:mod:`models.runtime` (``SingleShotModel``, ``infer_frame``) with the shipped graphs in
-``models/weights/`` (``MODEL_CARD.md``), :mod:`models.devices` (CPU or CUDA execution provider),
-:mod:`models.full_resolution` (Mueller images at the raw frame's resolution),
-:mod:`models.uncertainty` (the calibrated error model), :mod:`models.mirror`, :mod:`models.size`.
-Training (``train`` extra, PyTorch): :mod:`models.pipnet`, :mod:`models.pmmnet`,
-:mod:`models.pbrdf_torch`, :mod:`models.layers`, :mod:`models.data`, :mod:`models.train`,
-:mod:`models.export`, :mod:`models.paper_scale` (a whole run in a wall-clock budget).
-Evaluation and fitting tools: :mod:`models.evaluate`, :mod:`models.evaluate_full_resolution`,
-:mod:`models.uncertainty_fit`, :mod:`models.diagnose`. ``tests/test_models_imports.py`` keeps
+:mod:`polrig.models.runtime` (``SingleShotModel``, ``infer_frame``) with the shipped graphs in
+``models/weights/`` (``MODEL_CARD.md``), :mod:`polrig.models.devices` (CPU or CUDA execution provider),
+:mod:`polrig.models.full_resolution` (Mueller images at the raw frame's resolution),
+:mod:`polrig.models.uncertainty` (the calibrated error model), :mod:`polrig.models.mirror`, :mod:`polrig.models.size`.
+Training (``train`` extra, PyTorch): :mod:`polrig.models.pipnet`, :mod:`polrig.models.pmmnet`,
+:mod:`polrig.models.pbrdf_torch`, :mod:`polrig.models.layers`, :mod:`polrig.models.data`, :mod:`polrig.models.train`,
+:mod:`polrig.models.export`, :mod:`polrig.models.paper_scale` (a whole run in a wall-clock budget).
+Evaluation and fitting tools: :mod:`polrig.models.evaluate`, :mod:`polrig.models.evaluate_full_resolution`,
+:mod:`polrig.models.uncertainty_fit`, :mod:`polrig.models.diagnose`. ``tests/test_models_imports.py`` keeps
 the package free of import cycles.
 """

@@ -1,4 +1,4 @@
-"""One-line errors for the ``python -m models.*`` tools, with the exit codes of ``polrig``
+"""One-line errors for the ``python -m polrig.models.*`` tools, with the exit codes of ``polrig``
 (README, "CLI"): 2 bad input (arguments, missing or damaged files, a set with nothing to
 score), 1 a failure while running, 130 Ctrl-C. ``POLRIG_DEBUG=1`` shows the traceback."""
 

@@ -10,7 +10,7 @@ refraction, ``material_kind`` (N,) the index of the material kind in the manifes
 ``materials.kinds`` (all optional). The stage zero
 axis in the camera frame comes from ``stage_zero_axis`` (N,3) in the shards, or from the
 manifest (one axis for the whole set: ``frames.stage_zero_axis_camera`` in the simulator's
-manifest, :mod:`sim.dataset`).
+manifest, :mod:`polrig.sim.dataset`).
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import zlib
 
 import numpy as np
 
-from models.size import SIZE_MULTIPLE
 from polrig.errors import ConfigError, FormatError
+from polrig.models.size import SIZE_MULTIPLE
 
 #: Arrays every shard must hold.
 REQUIRED = ("analyzer", "mask", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller")
@@ -147,7 +147,7 @@ def load_dataset(folder: str | pathlib.Path, limit: int | None = None) -> Datase
 def has_lit_object(ds: Dataset, i: int) -> bool:
     """Whether sample ``i`` has a lit object pixel: an object pixel whose true Mueller matrix is
     not zero. Samples without one (the object wholly in shadow, or no object) carry no signal,
-    only noise scaled by the 1 DN floor of ``scale``: :mod:`models.evaluate` does not score
+    only noise scaled by the 1 DN floor of ``scale``: :mod:`polrig.models.evaluate` does not score
     them, and nothing fitted to a set's signal (its noise model, an uncertainty calibration, the
     geometry diagnosis) may use them. The one rule every consumer shares."""
     mask = ds["mask"][i] > 0
@@ -161,7 +161,7 @@ def lit_samples(ds: Dataset) -> list[int]:
 
 def check_network_size(ds: Dataset, folder) -> None:
     """:class:`ConfigError` unless the images' sides are multiples of the networks' size
-    multiple (:data:`models.size.SIZE_MULTIPLE`): the graphs run on whole images without
+    multiple (:data:`polrig.models.size.SIZE_MULTIPLE`): the graphs run on whole images without
     padding in training and evaluation."""
     h, w = ds.shape
     if h % SIZE_MULTIPLE or w % SIZE_MULTIPLE:

@@ -1,23 +1,23 @@
 """Where does the single-shot error come from? A geometry ladder on a held-out set.
 
-``python -m models.diagnose --data DIR [--weights DIR]`` (needs the ``train`` extra: the
+``python -m polrig.models.diagnose --data DIR [--weights DIR]`` (needs the ``train`` extra: the
 analytic pBRDF and the gain fit are the training graph's own torch functions) runs the shipped
 graph on every sample and prints, per shape family:
 
 * PIPNet's geometry error: median angle (deg) between predicted and true unit normals over the
   object mask, and between the mean predicted and mean true light direction ``wi``;
-* the forward Stokes relative L2 (:mod:`models.evaluate`, 11 held-out incident states) of the
+* the forward Stokes relative L2 (:mod:`polrig.models.evaluate`, 11 held-out incident states) of the
   pBRDF initialization with the radiometric gains fitted to the one observed state
-  (:func:`models.pmmnet.fit_gains`, i.e. what an untrained PMMNet returns) on a ladder of
+  (:func:`polrig.models.pmmnet.fit_gains`, i.e. what an untrained PMMNet returns) on a ladder of
   geometries: PIPNet's normal and light; the true normal with PIPNet's light; PIPNet's normal
   with the true light; the true normal and light (eta = 1.5, as the network assumes); and the
   true normal, light and index of refraction; and the light direction fitted by
-  :func:`models.light_fit.fit_light_direction` on PIPNet's and on the true normals (with its
+  :func:`polrig.models.light_fit.fit_light_direction` on PIPNet's and on the true normals (with its
   angular error), which shows whether physics can recover the light once the normals are right;
 * the two diffuse shape-from-polarization candidates of every pixel
-  (:func:`models.pipnet.sfp_candidates`) with the true light, the candidate chosen by an
+  (:func:`polrig.models.pipnet.sfp_candidates`) with the true light, the candidate chosen by an
   oracle (the one nearer the true normal) and by Lambertian shading
-  (:func:`models.light_fit.shading_pick`: the one whose ``max(n.wi, 0)`` times one global
+  (:func:`polrig.models.light_fit.shading_pick`: the one whose ``max(n.wi, 0)`` times one global
   albedo explains the intensity better), each with its median normal error: how good the
   polarization's own normals are, and what choosing between them costs;
 * the full model's and the direct baseline's forward L2 for comparison.
@@ -36,11 +36,11 @@ import sys
 
 import numpy as np
 
-from models.data import check_network_size, lit_samples, load_dataset
-from models.evaluate import network_inputs, forward_l2
-from models.runtime import WEIGHTS_DIR, SingleShotModel
 from polrig.errors import ConfigError
-from sim.scene import FAMILIES
+from polrig.models.data import check_network_size, lit_samples, load_dataset
+from polrig.models.evaluate import forward_l2, network_inputs
+from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.sim.scene import FAMILIES
 
 RUNGS = ("pip_n+pip_wi", "true_n+pip_wi", "pip_n+true_wi", "pip_n+fit_wi", "true_n+fit_wi", "true_n+true_wi",
          "true_n+true_wi+true_eta", "sfp_oracle_n+true_wi", "sfp_shading_n+true_wi")
@@ -57,9 +57,9 @@ def gain_fitted_pbrdf(normal, wi, sample: dict, eta: float = 1.5) -> np.ndarray:
     to the sample's observed Stokes -> Mueller image ``(C, 3, 3, H, W)``."""
     import torch
 
-    from models.layers import stokes_from_analyzer
-    from models.pbrdf_torch import image_blocks
-    from models.pmmnet import gain_fitted_initialization
+    from polrig.models.layers import stokes_from_analyzer
+    from polrig.models.pbrdf_torch import image_blocks
+    from polrig.models.pmmnet import gain_fitted_initialization
 
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
     mask = t(sample["mask"])[:, None]
@@ -72,11 +72,15 @@ def gain_fitted_pbrdf(normal, wi, sample: dict, eta: float = 1.5) -> np.ndarray:
 
 
 def fitted_light(normal, sample: dict, pool: int = 2) -> np.ndarray:
-    """:func:`models.light_fit.fit_light_direction` on the given normals -> unit ``(3,)``."""
+    """:func:`polrig.models.light_fit.fit_light_direction` on the given normals -> unit ``(3,)``."""
     import torch
 
-    from models.layers import stokes_from_analyzer
-    from models.light_fit import fibonacci_directions, fit_light_direction, local_offsets
+    from polrig.models.layers import stokes_from_analyzer
+    from polrig.models.light_fit import (
+        fibonacci_directions,
+        fit_light_direction,
+        local_offsets,
+    )
 
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
     with torch.no_grad():
@@ -92,12 +96,12 @@ def sfp_geometries(sample: dict, normal: np.ndarray, wi: np.ndarray,
     """Geometries ``{rung: (normal (3, H, W), wi (3, H, W))}`` from the sample's own
     polarization under the true light ``wi``: its shape-from-polarization candidates chosen per
     pixel by an oracle (the one nearer the true ``normal``) and by Lambertian shading
-    (:func:`models.light_fit.shading_pick`)."""
+    (:func:`polrig.models.light_fit.shading_pick`)."""
     import torch
 
-    from models.layers import stokes_from_analyzer
-    from models.light_fit import shading_pick
-    from models.pipnet import sfp_candidates
+    from polrig.models.layers import stokes_from_analyzer
+    from polrig.models.light_fit import shading_pick
+    from polrig.models.pipnet import sfp_candidates
 
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
     with torch.no_grad():
@@ -112,7 +116,7 @@ def diagnose(data_dir, weights_dir=None, limit: int | None = None, echo=print) -
     """Run the ladder (module docstring); returns ``{family: {metric: mean}}`` and prints a table."""
     ds = load_dataset(data_dir, limit)
     check_network_size(ds, data_dir)
-    lit = lit_samples(ds)  # as models.evaluate: a sample without a lit object pixel has no signal
+    lit = lit_samples(ds)  # as polrig.models.evaluate: a sample without a lit object pixel has no signal
     if not lit:
         raise ConfigError(f"{data_dir}: no sample with a lit object pixel ({len(ds)} sample(s), nothing to diagnose)")
     wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
@@ -170,10 +174,10 @@ def markdown(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from models._cli import run_main
-    from polrig.argcheck import int_range
+    from polrig.formats.argcheck import int_range
+    from polrig.models._cli import run_main
 
-    p = argparse.ArgumentParser(prog="python -m models.diagnose", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m polrig.models.diagnose", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="dataset folder (`polrig sim dataset` output)")
     p.add_argument("--weights", default=None, help="folder with single_shot.onnx (default: shipped)")
     p.add_argument("--limit", type=int_range(1, 10**9), default=None, help="use at most the first this many samples")
@@ -183,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from polrig.argcheck import check_output_file
-    from polrig.rawio import atomic_write_text
+    from polrig.atomic import atomic_write_text
+    from polrig.formats.argcheck import check_output_file
 
     if args.json:
         check_output_file(pathlib.Path(args.json), "--json")  # before the work

@@ -1,8 +1,8 @@
 """Evaluate single-shot reconstruction on a held-out simulated set: the paper's two tables.
 
-``polrig evaluate --data DIR`` (or ``python -m models.evaluate``) runs seven methods on every
+``polrig evaluate --data DIR`` (or ``python -m polrig.models.evaluate``) runs seven methods on every
 sample of a dataset folder (``polrig sim dataset --holdout`` output: seeds and shape/material
-families never seen in training) with a lit object pixel (:func:`models.data.has_lit_object`;
+families never seen in training) with a lit object pixel (:func:`polrig.models.data.has_lit_object`;
 a set with none is refused) and writes a Markdown table (``--out``, default
 ``runs/evaluate/single_shot.md``; the published tables live in ``benchmarks/results/``) plus
 the numbers as JSON next to it (same name, ``.json``).
@@ -12,23 +12,23 @@ Methods (rows), all producing normalised Mueller images ``(C, 3, 3, H, W)``:
 * **Full model**: ``single_shot.onnx`` (PIPNet -> pBRDF -> PMMNet) through onnxruntime.
 * **PIPNet-pBRDF**: the same graph's ``mueller_init`` (analytic pBRDF on PIPNet's outputs,
   eta = 1.5, ks = 1, kd from PIPNet).
-* **Best-fit pBRDF (GT parameters)**: :func:`polrig.pbrdf.specular_diffuse_blocks` on the
+* **Best-fit pBRDF (GT parameters)**: :func:`polrig.optics.pbrdf.specular_diffuse_blocks` on the
   true normal, light and view directions and roughness (eta = 1.5), with one specular gain and
   one diffuse gain per colour (times the true kd) fitted per image to the true Mueller image by
   least squares: an upper bound of what the analytic model can do.
 * **Direct Stokes->MM**: ``direct.onnx``, the same backbone regressing 27 elements.
 * **Four-state reference (same noise)**: captures under polarizer states 0/45/90/135 deg
   rendered from the true Mueller image with the ideal analyzers
-  (:func:`polrig.reference.forward_measurements`), Gaussian noise of the variance the dataset's
+  (:func:`polrig.solve.reference.forward_measurements`), Gaussian noise of the variance the dataset's
   own single-shot images show (``var = a + b I``, fitted on the residuals of its samples with a
-  lit object pixel against the noise-free rendering, :func:`fit_noise_model`), solved by :func:`polrig.reference.solve_reference`.
+  lit object pixel against the noise-free rendering, :func:`fit_noise_model`), solved by :func:`polrig.solve.reference.solve_reference`.
 * **Full model, mirror-averaged** and **Direct Stokes->MM, mirror-averaged**: each graph run
   on the sample and on its left-right mirror image, the two answers averaged
-  (:mod:`models.mirror`); both networks get it, so the two rows compare like with like.
+  (:mod:`polrig.models.mirror`); both networks get it, so the two rows compare like with like.
 
 Incident frame: each sample's stage zero axis (``stage_zero_axis`` of the shards, which may
 differ from the training one) is handled by
-:meth:`models.runtime.SingleShotModel.run_rig_frame`: the graphs run in their training frame
+:meth:`polrig.models.runtime.SingleShotModel.run_rig_frame`: the graphs run in their training frame
 and the results are turned into the sample's frame (the direct baseline, which predicts no
 light direction, is turned with the full model's ``wi``); for a sample in the training frame
 this is exactly one plain graph call.
@@ -45,10 +45,10 @@ Table 2 (11 held-out incident states: linear polarizer at 8 + 16.36 k deg, k = 0
 unpolarized light, ``S = 0.5 [1, cos 2t, sin 2t]``): forward Stokes relative L2
 ``sqrt(sum |S_pred - S_true|^2 / sum |S_true|^2)`` over mask pixels, colours and states, DoLP
 MAE, AoLP error; GK and coherency (PSD) pass rates of the 3x3 blocks
-completed to 4x4 by :func:`polrig.realizability.complete_linear` (``max_min_eigenvalue``),
-tested with :func:`polrig.realizability.is_physical_gk` and
-:func:`polrig.realizability.is_physical_coherency`, before and after Cloude filtering of the
-completed matrix (:func:`polrig.realizability.cloude_filter`), on up to
+completed to 4x4 by :func:`polrig.optics.realizability.complete_linear` (``max_min_eigenvalue``),
+tested with :func:`polrig.optics.realizability.is_physical_gk` and
+:func:`polrig.optics.realizability.is_physical_coherency`, before and after Cloude filtering of the
+completed matrix (:func:`polrig.optics.realizability.cloude_filter`), on up to
 ``realizability_pixels`` random (pixel, colour) blocks per image of the whole object mask, and
 again (``gk_lit``, ``psd_lit``, before filtering) on blocks of its lit pixels only (``lit`` of the
 dataset: facing the light, not shadowed). In shadow the true matrix is zero and every method,
@@ -65,12 +65,20 @@ import time
 import cv2
 import numpy as np
 
-from models.data import Dataset, check_network_size, has_lit_object, lit_samples, load_dataset
-from models.runtime import WEIGHTS_DIR, SingleShotModel
-from polrig import pbrdf, realizability, reference
+from polrig.atomic import atomic_write_text, temporary_sibling
 from polrig.errors import ConfigError
-from polrig.mueller import polarizer_stokes
-from polrig.stokes import aolp_deg, dolp, ideal_analyzer_matrix
+from polrig.models.data import (
+    Dataset,
+    check_network_size,
+    has_lit_object,
+    lit_samples,
+    load_dataset,
+)
+from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.optics import pbrdf, realizability
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.stokes import aolp_deg, dolp, ideal_analyzer_matrix
+from polrig.solve import reference
 
 METHODS = ("full", "pipnet_pbrdf", "bestfit_pbrdf", "direct", "reference4", "full_mirror", "direct_mirror")
 METHOD_NAMES = {"full": "Full model (PIPNet + pBRDF + PMMNet)", "pipnet_pbrdf": "PIPNet-pBRDF alone",
@@ -145,7 +153,7 @@ def _dolp_aolp_errors(sp: np.ndarray, st: np.ndarray, mask: np.ndarray) -> tuple
 def fit_noise_model(ds: Dataset, limit: int = 64) -> tuple[float, float]:
     """``(a, b)`` of ``var = a + b I`` (normalised units) from the residual between the
     dataset's analyzer images and the noise-free rendering of its true Mueller images, over
-    the first ``limit`` samples with a lit object pixel (:func:`models.data.has_lit_object`,
+    the first ``limit`` samples with a lit object pixel (:func:`polrig.models.data.has_lit_object`,
     the samples :func:`evaluate` scores: an unlit sample is pure noise divided by the 1 DN
     floor of its ``scale``, hundreds of times the noise of a lit one in normalised units).
 
@@ -335,7 +343,7 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
             preds["reference4"] = reference_four_state(ds, i, noise, rng)
             times["reference4"] += time.perf_counter() - t
         if "full_mirror" in run_graphs:
-            t = time.perf_counter()  # models.mirror: the capture and its mirror image, averaged
+            t = time.perf_counter()  # polrig.models.mirror: the capture and its mirror image, averaged
             out_m = full.run_rig_frame(*network_inputs(ds, i), mirror_average=True)
             preds["full_mirror"] = out_m["mueller"][0]
             times["full_mirror"] += time.perf_counter() - t
@@ -394,7 +402,6 @@ def results_paths(out_md: str | pathlib.Path) -> tuple[pathlib.Path, pathlib.Pat
     JSON is the same name with ``.json``). :class:`ConfigError` (one line naming the path)
     unless both can be written: ``out_md`` ends in ``.md``, neither is a folder, and the folder
     exists (or can be made) and takes a new file. Call before the evaluation."""
-    from polrig.rawio import temporary_sibling
 
     out_md = pathlib.Path(out_md)
     if out_md.suffix.lower() != ".md":
@@ -420,7 +427,6 @@ def results_paths(out_md: str | pathlib.Path) -> tuple[pathlib.Path, pathlib.Pat
 def write_results(result: dict, out_md: str | pathlib.Path) -> None:
     """The tables as Markdown at ``out_md`` and the numbers as JSON next to it (same name,
     ``.json``; :func:`results_paths`), each written atomically."""
-    from polrig.rawio import atomic_write_text
 
     out_md, out_json = results_paths(out_md)
     out_md.parent.mkdir(parents=True, exist_ok=True)

@@ -1,18 +1,18 @@
 """Accuracy of full-resolution single-shot against superpixel on held-out sets (issue 22, item 1).
 
-``python -m models.evaluate_full_resolution --data DIR [DIR ...] [--out FILE.md]``
+``python -m polrig.models.evaluate_full_resolution --data DIR [DIR ...] [--out FILE.md]``
 
 Each sample of a ``polrig sim dataset`` folder (analyzer images and truth at the set's size,
 e.g. 256x256) is sampled into the raw mosaic a colour DoFP sensor (IMX250MYR layout, 4x4 cells)
 would record: raw pixel ``(y, x)`` keeps the analyzer image of its own colour and angle there.
 From that raw frame, three answers are scored against the truth with the matrix PSNR of
-:mod:`models.evaluate` (peak = the largest true ``|m|`` on the object, object pixels only):
+:mod:`polrig.models.evaluate` (peak = the largest true ``|m|`` on the object, object pixels only):
 
 * **superpixel**: the networks on the superpixel grid (a quarter of the raw size per axis),
   scored against the truth averaged over each 4x4 cell (the sensor's native resolution);
 * **superpixel, upsampled**: that answer bilinearly upsampled to the raw size (no detail),
   scored against the full-resolution truth;
-* **full resolution**: :func:`models.full_resolution.lift` with the bilinear demosaic's detail,
+* **full resolution**: :func:`polrig.models.full_resolution.lift` with the bilinear demosaic's detail,
   scored against the full-resolution truth;
 * **networks on bilinear**: the networks on the full-resolution bilinear demosaic (the older
   route, ``polrig infer --demosaic bilinear``), scored against the full-resolution truth.
@@ -29,11 +29,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from models.data import check_network_size, lit_samples, load_dataset
-from models.evaluate import psnr
-from models.full_resolution import lift, upsample
-from models.runtime import WEIGHTS_DIR, SingleShotModel
-from polrig.stokes import stokes_from_analyzers
+from polrig.models.data import check_network_size, lit_samples, load_dataset
+from polrig.models.evaluate import psnr
+from polrig.models.full_resolution import lift, upsample
+from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.sensor.stokes import stokes_from_analyzers
 
 LAYOUT = "imx250myr"
 METHODS = ("superpixel", "superpixel_upsampled", "full_resolution", "networks_on_bilinear")
@@ -42,7 +42,7 @@ METHODS = ("superpixel", "superpixel_upsampled", "full_resolution", "networks_on
 def mosaic(analyzer: np.ndarray, layout) -> np.ndarray:
     """Raw mosaic ``(H, W)`` that a DoFP sensor of ``layout`` records of analyzer images
     ``(C, 4, H, W)``: each pixel keeps its own (colour, angle) image's value there."""
-    from polrig.layouts import ANALYZER_ANGLES_DEG
+    from polrig.sensor.layouts import ANALYZER_ANGLES_DEG
 
     h, w = analyzer.shape[-2:]
     ph, pw = layout.period
@@ -64,7 +64,7 @@ def cell_mean(img: np.ndarray, period: tuple[int, int]) -> np.ndarray:
 
 def score_sample(model: SingleShotModel, ds, i: int, layout) -> dict[str, float]:
     """Matrix PSNR (dB) of the four answers (module docstring) for sample ``i``."""
-    from polrig.demosaic import demosaic_float
+    from polrig.sensor.demosaic import demosaic_float
 
     truth, s_in = ds["mueller"][i], ds["s_in"][i]
     period = layout.period
@@ -92,7 +92,7 @@ def score_sample(model: SingleShotModel, ds, i: int, layout) -> dict[str, float]
 
 def evaluate_set(data_dir, weights_dir=None, limit: int | None = None) -> dict:
     """Mean matrix PSNR per method over the lit samples of ``data_dir``."""
-    from polrig.analyzer import resolve_layout
+    from polrig.sensor.analyzer import resolve_layout
 
     ds = load_dataset(data_dir, limit)
     check_network_size(ds, data_dir)
@@ -118,12 +118,12 @@ def markdown(results: Sequence[dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import held_out_main
+    from polrig.models._cli import held_out_main
 
-    return held_out_main(argv, "python -m models.evaluate_full_resolution", __doc__.split("\n\n")[0],
+    return held_out_main(argv, "python -m polrig.models.evaluate_full_resolution", __doc__.split("\n\n")[0],
                          evaluate_set, markdown,
                          "# Full-resolution single-shot against superpixel (matrix PSNR, dB)\n\n"
-                         "`python -m models.evaluate_full_resolution` (models/evaluate_full_resolution.py: "
+                         "`python -m polrig.models.evaluate_full_resolution` (models/evaluate_full_resolution.py: "
                          "method and scoring in its docstring).")
 
 

@@ -1,20 +1,20 @@
 """Accuracy of the runtime's speed-ups against the default route on held-out sets (issue 22, item 2).
 
-``python -m models.evaluate_speed_modes --data DIR [DIR ...] [--out FILE.md]``
+``python -m polrig.models.evaluate_speed_modes --data DIR [DIR ...] [--out FILE.md]``
 
-Two comparisons, each scored with the matrix PSNR of :mod:`models.evaluate` (peak = the largest
+Two comparisons, each scored with the matrix PSNR of :mod:`polrig.models.evaluate` (peak = the largest
 true ``|m|`` on the object):
 
-* **network binning** (:func:`models.full_resolution.reconstruct_binned`, ``polrig infer
+* **network binning** (:func:`polrig.models.full_resolution.reconstruct_binned`, ``polrig infer
   --network-binning 2``): each sample is sampled into the IMX250MYR colour mosaic
-  (:func:`models.evaluate_full_resolution.mosaic`), demosaicked to the superpixel grid (a
+  (:func:`polrig.models.evaluate_full_resolution.mosaic`), demosaicked to the superpixel grid (a
   quarter of the set's size per axis), and reconstructed there by the networks (binning 1, the
   default) and by the networks on that grid binned 2x2 then lifted back (binning 2); both are
   scored against the truth averaged over each 4x4 cell, on pixels whose 8x8 raw block lies
   wholly on the object (edge blocks mix object and background in both). Both are also lifted
-  to the raw grid with the bilinear demosaic's detail (:func:`models.full_resolution.lift`, the
+  to the raw grid with the bilinear demosaic's detail (:func:`polrig.models.full_resolution.lift`, the
   full-resolution route) and scored against the full-resolution truth on the same blocks.
-* **light-direction probe** (:func:`models.runtime.probe_shape`): the networks on the set's own
+* **light-direction probe** (:func:`polrig.models.runtime.probe_shape`): the networks on the set's own
   analyzer images (so sets of 256x256 or more take the probe), once with the probe (the
   runtime's route: reduced passes for the incident-frame angle, then one full-size pass) and
   once with two full-size passes (the route before), scored against the truth on the object.
@@ -29,13 +29,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from models import runtime
-from models.data import check_network_size, lit_samples, load_dataset
-from models.evaluate import psnr
-from models.evaluate_full_resolution import LAYOUT, cell_mean, mosaic
-from models.full_resolution import lift, reconstruct_binned
-from models.runtime import WEIGHTS_DIR, SingleShotModel
-from polrig.stokes import stokes_from_analyzers
+from polrig.models import runtime
+from polrig.models.data import check_network_size, lit_samples, load_dataset
+from polrig.models.evaluate import psnr
+from polrig.models.evaluate_full_resolution import LAYOUT, cell_mean, mosaic
+from polrig.models.full_resolution import lift, reconstruct_binned
+from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+from polrig.sensor.stokes import stokes_from_analyzers
 
 METHODS = ("superpixel", "superpixel_binning_2", "full_resolution", "full_resolution_binning_2",
            "two_full_passes", "probe")
@@ -43,7 +43,7 @@ METHODS = ("superpixel", "superpixel_binning_2", "full_resolution", "full_resolu
 
 def score_sample(model: SingleShotModel, ds, i: int, layout) -> dict[str, float]:
     """Matrix PSNR (dB) of the four answers (module docstring) of sample ``i``."""
-    from polrig.demosaic import demosaic_float
+    from polrig.sensor.demosaic import demosaic_float
 
     truth, s_in, axis = ds["mueller"][i], ds["s_in"][i], ds["stage_zero_axis"][i]
     mask_full = ds["mask"][i] > 0
@@ -76,7 +76,7 @@ def score_sample(model: SingleShotModel, ds, i: int, layout) -> dict[str, float]
 
 def evaluate_set(data_dir, weights_dir=None, limit: int | None = None) -> dict:
     """Mean matrix PSNR per method over the lit samples of ``data_dir``."""
-    from polrig.analyzer import resolve_layout
+    from polrig.sensor.analyzer import resolve_layout
 
     ds = load_dataset(data_dir, limit)
     check_network_size(ds, data_dir)
@@ -106,12 +106,12 @@ def markdown(results: Sequence[dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import held_out_main
+    from polrig.models._cli import held_out_main
 
-    return held_out_main(argv, "python -m models.evaluate_speed_modes", __doc__.split("\n\n")[0],
+    return held_out_main(argv, "python -m polrig.models.evaluate_speed_modes", __doc__.split("\n\n")[0],
                          evaluate_set, markdown,
                          "# Speed modes against the default route (matrix PSNR, dB)\n\n"
-                         "`python -m models.evaluate_speed_modes` (models/evaluate_speed_modes.py: what is "
+                         "`python -m polrig.models.evaluate_speed_modes` (models/evaluate_speed_modes.py: what is "
                          "compared and on which pixels)")
 
 

@@ -2,20 +2,20 @@
 
 Shipped graphs (``models/weights/``):
 
-* ``single_shot.onnx``: PIPNet -> differentiable pBRDF (:mod:`models.pbrdf_torch`, eta = 1.5,
-  ks = 1) -> PMMNet as **one graph**. Chosen over "ONNX PIPNet -> numpy :mod:`polrig.pbrdf`
+* ``single_shot.onnx``: PIPNet -> differentiable pBRDF (:mod:`polrig.models.pbrdf_torch`, eta = 1.5,
+  ks = 1) -> PMMNet as **one graph**. Chosen over "ONNX PIPNet -> numpy :mod:`polrig.optics.pbrdf`
   -> ONNX PMMNet" for speed: one onnxruntime call, no float64 numpy pass over every pixel and
   no copies between sessions (the numpy pBRDF alone costs more than both networks at 512x512
-  on this CPU); the torch pBRDF is tested against :mod:`polrig.pbrdf` to 1e-5, so the physics is
+  on this CPU); the torch pBRDF is tested against :mod:`polrig.optics.pbrdf` to 1e-5, so the physics is
   the same. Outputs ``mueller``, ``mueller_init`` (PIPNet-pBRDF alone), ``normal``, ``kd``,
   ``wi``, ``alpha``.
 * ``direct.onnx``: the direct Stokes->MM ablation baseline (same backbone, no physics).
 
 Inputs of both: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W), ``s_in`` (B,3),
 ``wo`` (B,3,H,W), ``stage_zero_axis`` (B,3); batch, height and width are dynamic (H and W
-multiples of :data:`models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter. The U-Nets'
+multiples of :data:`polrig.models.layers.SIZE_MULTIPLE`). Opset 17, legacy TorchScript exporter. The U-Nets'
 full-resolution 1x1 layers are written in their concatenating form, one Conv node each
-(:class:`models.layers.UpsampledConcatConv1x1`: training evaluates the split form).
+(:class:`polrig.models.layers.UpsampledConcatConv1x1`: training evaluates the split form).
 
 The check: each graph is run with onnxruntime on the export sample and compared with PyTorch;
 the export fails (:class:`ExportError`, nothing replaced in ``weights_dir``) when a network has
@@ -38,12 +38,16 @@ import warnings
 import numpy as np
 import torch
 
-from models.layers import SIZE_MULTIPLE, UpsampledConcatConv1x1
-from models.pmmnet import SINGLE_SHOT_OUTPUTS, DirectStokesToMM, SingleShotNet
-from models.pipnet import PIPNet
-from models.pmmnet import PMMNet
+from polrig.atomic import atomic_write_text, temporary_sibling
 from polrig.errors import PolrigError
-from polrig.rawio import atomic_write_text, temporary_sibling
+from polrig.models.layers import SIZE_MULTIPLE, UpsampledConcatConv1x1
+from polrig.models.pipnet import PIPNet
+from polrig.models.pmmnet import (
+    SINGLE_SHOT_OUTPUTS,
+    DirectStokesToMM,
+    PMMNet,
+    SingleShotNet,
+)
 
 OPSET = 17
 #: Largest accepted ``max |onnx - torch|`` relative to ``max(1, max |output|)`` (module docstring).
@@ -60,7 +64,7 @@ _DYNAMIC = {"analyzer": {0: "batch", 3: "height", 4: "width"}, "mask": {0: "batc
 
 @contextlib.contextmanager
 def _upsampled_convs_concatenating(model: torch.nn.Module, concatenate: bool):
-    """Every :class:`models.layers.UpsampledConcatConv1x1` of ``model`` in the given form for
+    """Every :class:`polrig.models.layers.UpsampledConcatConv1x1` of ``model`` in the given form for
     the duration (the previous forms restored after)."""
     layers = [m for m in model.modules() if isinstance(m, UpsampledConcatConv1x1)]
     before = [m.concatenate for m in layers]
@@ -76,7 +80,7 @@ def _upsampled_convs_concatenating(model: torch.nn.Module, concatenate: bool):
 def _export(model: torch.nn.Module, sample: dict[str, torch.Tensor], outputs: tuple[str, ...],
             path: pathlib.Path, concatenate: bool = True) -> None:
     """Export ``model`` to ``path``. ``concatenate``: the U-Net's full-resolution 1x1 layers in
-    their concatenating form (one Conv node each; :class:`models.layers.UpsampledConcatConv1x1`),
+    their concatenating form (one Conv node each; :class:`polrig.models.layers.UpsampledConcatConv1x1`),
     else in the split form (two)."""
     dyn = dict(_DYNAMIC)
     for name in outputs:
@@ -154,12 +158,12 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
         for tmp, _ in written:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
-    # a calibration of earlier graphs in this folder belongs to them (models.uncertainty checks the hash)
+    # a calibration of earlier graphs in this folder belongs to them (polrig.models.uncertainty checks the hash)
     atomic_write_text(wd / "model.json", json.dumps(meta, indent=2))
     return report
 
 
 def _conventions_version() -> str:
-    from polrig.conventions import CONVENTIONS_VERSION
+    from polrig.optics.conventions import CONVENTIONS_VERSION
 
     return CONVENTIONS_VERSION

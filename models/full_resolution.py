@@ -35,10 +35,12 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Resolutions of :func:`models.runtime.infer_frame`: ``superpixel`` (the networks' grid) or
+from polrig.sensor.stokes import stokes_from_analyzers
+
+#: Resolutions of :func:`polrig.models.runtime.infer_frame`: ``superpixel`` (the networks' grid) or
 #: ``full`` (the raw frame's, this module).
 RESOLUTIONS = ("superpixel", "full")
-#: Network binnings of :func:`models.runtime.infer_frame` (``polrig infer --network-binning``):
+#: Network binnings of :func:`polrig.models.runtime.infer_frame` (``polrig infer --network-binning``):
 #: 1 runs the networks on the analyzer grid itself (default); 2 on that grid binned 2x2, with
 #: the answer lifted back to the analyzer grid by :func:`lift` (a quarter of the network work;
 #: its accuracy is in ``models/MODEL_CARD.md``, "Speed, warm and cold").
@@ -109,7 +111,7 @@ def _upsample_into(plane: np.ndarray, period: tuple[int, int], dst: np.ndarray) 
 def reconstruct_binned(model, analyzer: np.ndarray, s_in, binning: int, *, mask: np.ndarray | None = None,
                        intrinsics=None, stokes: np.ndarray | None = None, **kwargs) -> tuple[np.ndarray, dict]:
     """The faster mode (:data:`BINNINGS`): ``model.reconstruct`` (a
-    :class:`models.runtime.SingleShotModel`) on analyzer images ``(C, 4, h, w)`` (DN) binned
+    :class:`polrig.models.runtime.SingleShotModel`) on analyzer images ``(C, 4, h, w)`` (DN) binned
     ``binning x binning`` (:func:`bin_cells`), lifted back to ``(h, w)`` with the grid's own
     measured detail (:func:`lift`, period ``binning``). ``mask`` ``(h, w)`` is binned (object
     where more than half the cell is), ``intrinsics`` (of the ``(h, w)`` grid) rescaled;
@@ -118,8 +120,6 @@ def reconstruct_binned(model, analyzer: np.ndarray, s_in, binning: int, *, mask:
     ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the binned grid under
     ``aux["network_grid"]``; ``timings_s`` gains ``binning_lift``."""
     import time
-
-    from polrig.stokes import stokes_from_analyzers
 
     binning = check_binning(binning)
     a = bin_cells(analyzer, binning)

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from models.size import SIZE_MULTIPLE  # noqa: F401  (re-exported: the training modules read it here)
+from polrig.models.size import SIZE_MULTIPLE  # noqa: F401  (re-exported: the training modules read it here)
 
 
 def conv_bn_relu(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -41,7 +41,7 @@ class UpsampledConcatConv1x1(nn.Conv2d):
     convolution's, so checkpoints and graphs of the concatenating form load unchanged.
 
     ``concatenate = True`` evaluates the concatenating form instead (the same function);
-    :func:`models.export.export_all` sets it while exporting: onnxruntime runs the two forms
+    :func:`polrig.models.export.export_all` sets it while exporting: onnxruntime runs the two forms
     at the same speed within the noise of this machine, and the concatenating form rounds as
     the graphs shipped so far do (the split form moves PIPNet's normal by about 1e-5, which
     the pBRDF's narrow specular lobes amplify to 1e-4 of the initialization's maximum)."""

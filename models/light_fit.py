@@ -1,11 +1,11 @@
 """Global light direction by analysis-by-synthesis: which direction makes the pBRDF explain the
-one measured Stokes image best? (PyTorch; used by :mod:`models.diagnose`, not by the shipped
+one measured Stokes image best? (PyTorch; used by :mod:`polrig.models.diagnose`, not by the shipped
 graph: with PIPNet's normals on unseen shapes it does no better than PIPNet's own light, with
 the true normals it finds the light to about 9 deg, ``models/MODEL_CARD.md``.)
 
 The rig has one point light, so over an object a few centimetres across at 0.3-0.6 m the
 direction to it varies by a few degrees: one direction per image. For each of ``K`` candidate
-directions ``w`` the analytic pBRDF (:func:`models.pbrdf_torch.image_blocks`, eta = 1.5) on
+directions ``w`` the analytic pBRDF (:func:`polrig.models.pbrdf_torch.image_blocks`, eta = 1.5) on
 the given normals renders the unit specular and diffuse Stokes images under the known incident
 state, ``a = Ms(w) s_in`` and ``b = Md(w) s_in`` (``(B, 3, H, W)`` each), and the global gains
 of the model ``S_c = g_s a + g_c b`` (one specular gain, one diffuse gain per colour ``c``: one
@@ -28,7 +28,7 @@ prior). All ops are element-wise, reductions, ``ArgMin`` and ``Gather``, so it c
 an exported graph once the normals are good enough to make it worth it.
 
 :func:`shading_pick` chooses between two candidate normals per pixel by Lambertian shading
-under a given light (used by :mod:`models.diagnose` on the shape-from-polarization candidates).
+under a given light (used by :mod:`polrig.models.diagnose` on the shape-from-polarization candidates).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import math
 import torch
 from torch.nn import functional as F
 
-from models.pbrdf_torch import cross, image_blocks
+from polrig.models.pbrdf_torch import cross, image_blocks
 
 _EPS = 1e-12
 

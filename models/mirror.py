@@ -12,19 +12,19 @@ reflection, a field ``cos psi x + sin psi y`` maps to ``cos psi Px + sin psi Py`
 mirrored frames are ``(-Px, Py)`` in the emergent frame, whose ``x`` stays camera ``X``, and
 ``(Px, -Py)`` in the incident frame, since ``(Pk) x (Pa) = -P(k x a)``: either way the angle
 is ``-psi`` modulo 180 deg. ``tests/test_models_mirror.py`` checks this against
-:func:`polrig.pbrdf.linear_rig_mueller`.)
+:func:`polrig.optics.pbrdf.linear_rig_mueller`.)
 The analyzer at ``t`` becomes the one at ``-t``: 0 and 90 deg stay, 45 and 135 deg swap.
 
 The networks are not exactly mirror-equivariant (they learn from finite data), so running
 the graph on the capture and on its mirror image and averaging the two answers mapped back
-(:meth:`models.runtime.SingleShotModel.run_rig_frame` with ``mirror_average=True``) lowers
+(:meth:`polrig.models.runtime.SingleShotModel.run_rig_frame` with ``mirror_average=True``) lowers
 the error at twice the network time (measured in ``models/MODEL_CARD.md``, "Mirror
 averaging"). The average of two realizable Mueller matrices is realizable (the set of
 matrices with a positive semidefinite coherency matrix is convex).
 
-Every function takes the plane-first arrays of :mod:`models.runtime` (spatial axes last),
+Every function takes the plane-first arrays of :mod:`polrig.models.runtime` (spatial axes last),
 numpy arrays or torch tensors alike (training mirrors a random part of each batch,
-``models.train``; this module never imports torch), and is its own inverse.
+``polrig.models.train``; this module never imports torch), and is its own inverse.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def scalar(a):
     return a
 
 
-#: How each graph output (:mod:`models.export`) maps to the mirror image; scalars are unchanged.
+#: How each graph output (:mod:`polrig.models.export`) maps to the mirror image; scalars are unchanged.
 OUTPUTS = {"mueller": mueller_image, "mueller_init": mueller_image, "normal": vector_image,
            "wi": vector_image, "kd": image, "alpha": scalar}
 

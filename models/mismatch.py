@@ -1,14 +1,14 @@
 """Single-shot evaluation on sets the analytic model does not describe (issue 23, item 5).
 
-``python -m models.mismatch --data DIR --out benchmarks/results/single_shot_mismatch_NAME.md``
-runs the paper's tables of :func:`models.evaluate.evaluate` on a ``polrig sim dataset`` folder
+``python -m polrig.models.mismatch --data DIR --out benchmarks/results/single_shot_mismatch_NAME.md``
+runs the paper's tables of :func:`polrig.models.evaluate.evaluate` on a ``polrig sim dataset`` folder
 made with another material mix (``--materials``) or with interreflections
 (``--indirect-samples``), then the coverage of the calibrated single-shot sigma
-(:func:`models.uncertainty_fit.coverage`, plain and mirror-averaged) on the same samples, per
+(:func:`polrig.models.uncertainty_fit.coverage`, plain and mirror-averaged) on the same samples, per
 material kind where the set mixes kinds (with the full model's forward L2), and where the
-capture's misfit ``r`` (:func:`models.uncertainty.misfit`) lies against the range the sigma was
+capture's misfit ``r`` (:func:`polrig.models.uncertainty.misfit`) lies against the range the sigma was
 calibrated on (``misfit_quantiles`` of ``uncertainty.json``; the fraction of pixels that
-:meth:`models.uncertainty.UncertaintyModel.beyond_calibration` flags). The Markdown is the evaluation's
+:meth:`polrig.models.uncertainty.UncertaintyModel.beyond_calibration` flags). The Markdown is the evaluation's
 two tables followed by a coverage table; the JSON holds every number.
 """
 
@@ -22,9 +22,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+
 def _kinds(data_dir) -> tuple[list[str], np.ndarray | None]:
     """``(kind names, kind index per scored sample)`` of a set (None: no ``material_kind``)."""
-    from models.data import lit_samples, load_dataset
+    from polrig.models.data import lit_samples, load_dataset
 
     ds = load_dataset(data_dir)
     kinds = list((ds.manifest.get("materials") or {}).get("kinds") or [])
@@ -38,10 +39,14 @@ def sigma_checks(data_dir, weights_dir=None) -> dict:
     "per_kind": {kind: coverage}, "misfit": {quantile: r}, "misfit_calibration": {...} or None,
     "beyond_calibration_misfit": fraction of pixels whose r exceeds the calibration's 99th
     percentile}``."""
-    from models.runtime import WEIGHTS_DIR, SingleShotModel
-    from models.uncertainty import calibration_for_graph, how_to_calibrate
-    from models.uncertainty_fit import coverage, dataset_samples, misfit_quantiles
     from polrig.errors import ConfigError
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+    from polrig.models.uncertainty import calibration_for_graph, how_to_calibrate
+    from polrig.models.uncertainty_fit import (
+        coverage,
+        dataset_samples,
+        misfit_quantiles,
+    )
 
     wd = pathlib.Path(weights_dir) if weights_dir is not None else WEIGHTS_DIR
     model, why = calibration_for_graph(wd, "single_shot.onnx")
@@ -53,7 +58,7 @@ def sigma_checks(data_dir, weights_dir=None) -> dict:
            "mirror_averaged": coverage(model, dataset_samples(data_dir, net, mirror_average=True))}
     kinds, per_sample = _kinds(data_dir)
     if per_sample is not None and len(set(per_sample.tolist())) > 1:
-        from models.evaluate import forward_l2
+        from polrig.models.evaluate import forward_l2
 
         out["per_kind"] = {}
         for k in sorted(set(per_sample.tolist())):
@@ -69,7 +74,7 @@ def sigma_checks(data_dir, weights_dir=None) -> dict:
 
 def _coverage_by_flag(model, samples) -> dict:
     """Fraction of the unclipped object pixels (per colour) that
-    :meth:`~models.uncertainty.UncertaintyModel.beyond_calibration` flags, and the fraction of
+    :meth:`~polrig.models.uncertainty.UncertaintyModel.beyond_calibration` flags, and the fraction of
     elements within 2 sigma among the flagged and the other pixels."""
     counts = np.zeros((2, 2))  # [flagged?][inside?] elements
     beyond = n = 0
@@ -93,13 +98,13 @@ def _coverage_by_flag(model, samples) -> dict:
 
 def truth_realizability(data_dir, *, pixels: int = 400, seed: int = 0) -> dict[str, float]:
     """GK pass rate of the set's own true 3x3 blocks under the evaluation's completion
-    (:func:`models.evaluate._realizability`: ``max_min_eigenvalue`` m33, no Cloude filter), over
+    (:func:`polrig.models.evaluate._realizability`: ``max_min_eigenvalue`` m33, no Cloude filter), over
     the object mask and its lit pixels, averaged over the scored samples. Below 100 % where the
     truth's 4x4 matrix has a circular part (a conductor's or a film's retardance) that a
     completion from the linear block alone cannot restore: the realizability columns of the
     tables are then not a test of physical validity."""
-    from models.data import lit_samples, load_dataset
-    from models.evaluate import _realizability
+    from polrig.models.data import lit_samples, load_dataset
+    from polrig.models.evaluate import _realizability
 
     ds = load_dataset(data_dir)
     rng = np.random.default_rng(seed)
@@ -151,10 +156,10 @@ def run(data_dir, out_md, weights_dir=None, *, limit: int | None = None, seed: i
     """Evaluate ``data_dir`` and write ``out_md`` and its ``.json`` (module docstring).
     ``sigma_only``: keep the tables of the JSON already at ``out_md`` (same set) and redo only
     the sigma checks."""
-    from models.evaluate import evaluate, markdown_tables, results_paths
-    from models.data import read_manifest
+    from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
-    from polrig.rawio import atomic_write_text
+    from polrig.models.data import read_manifest
+    from polrig.models.evaluate import evaluate, markdown_tables, results_paths
 
     out_md, out_json = results_paths(out_md)
     manifest = read_manifest(data_dir)
@@ -175,7 +180,7 @@ def run(data_dir, out_md, weights_dir=None, *, limit: int | None = None, seed: i
     out_md.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_json, json.dumps(result, indent=2, default=str))
     atomic_write_text(out_md, "# Single-shot Mueller reconstruction: mismatched held-out set\n\n"
-                      f"Produced by `python -m models.mismatch` (models/mismatch.py; the tables are "
+                      f"Produced by `python -m polrig.models.mismatch` (models/mismatch.py; the tables are "
                       f"models/evaluate.py's, metric definitions in its docstring). Set: {what}.\n\n"
                       + markdown_tables(result) + "\n\n"
                       + f"The set's own truth passes GK under the same completion in {100 * tr['gk']:.1f} % of "
@@ -204,9 +209,9 @@ def summary_table(results: dict[str, dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import run_main
+    from polrig.models._cli import run_main
 
-    ap = argparse.ArgumentParser(prog="python -m models.mismatch", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m polrig.models.mismatch", description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", help="a `polrig sim dataset` folder")
     ap.add_argument("--out", help="Markdown file (the JSON goes next to it)")
     ap.add_argument("--summary", nargs="+", metavar="LABEL=JSON",

@@ -1,6 +1,6 @@
 """Unattended training of the single-shot networks within a wall-clock budget (issue 22, item 4).
 
-``python -m models.paper_scale --out DIR [--budget-min 8] [--size 256] [--width W] [--data-share F]``
+``python -m polrig.models.paper_scale --out DIR [--budget-min 8] [--size 256] [--width W] [--data-share F]``
 
 One run, in order, each phase planned inside the budget ``B``:
 
@@ -13,14 +13,14 @@ One run, in order, each phase planned inside the budget ``B``:
    (another seed), are made alongside, whole.
 2. **Training** (what the data left, less the evaluation's reserve :data:`EVAL_SHARE` of ``B``
    and the final margin :func:`margin_seconds`): PIPNet, then PMMNet, then the direct
-   Stokes->MM baseline (:func:`models.train.train`). The stages share the time as
+   Stokes->MM baseline (:func:`polrig.models.train.train`). The stages share the time as
    :data:`STAGE_SHARES`: PIPNet : PMMNet as the paper's 40 : 20 epochs (2:1), the baseline as
    much as both (the ablation is fair when it had the same time). A probe first trains every
    stage :data:`PROBE_EPOCHS` epochs on :data:`PROBE_BATCHES` batches and keeps the fastest
    epoch after the first (:func:`probe_epoch_seconds`): the first epoch pays the warm-up (CUDA
    context, first kernels, allocator; 0.85 s of a one-batch PIPNet epoch on the H200 below,
    where a warm epoch of 57 batches took 1 s). Each stage's epochs are then chosen when it starts
-   (:class:`StagePlanner`, the ``plan_stage`` hook of :func:`models.train.train`): its share of
+   (:class:`StagePlanner`, the ``plan_stage`` hook of :func:`polrig.models.train.train`): its share of
    the time really left (the shares of it and the stages after it), divided by its estimated
    epoch (the probe's seconds per sample-epoch times the samples, plus the checkpoint and log
    written after every epoch, times how much longer the finished stages took than so
@@ -29,7 +29,7 @@ One run, in order, each phase planned inside the budget ``B``:
    export. Where the time cannot give every stage :data:`MIN_EPOCHS` on all the samples, the
    first samples that fit are used (a data share too large for the machine, e.g. training on
    the CPU).
-3. **Export and check** (inside :func:`models.train.train`: ONNX, onnxruntime against PyTorch),
+3. **Export and check** (inside :func:`polrig.models.train.train`: ONNX, onnxruntime against PyTorch),
    then **evaluation** (until ``B`` less the margin) of the new graphs and of the shipped ones
    on both held-out sets (:func:`evaluate_against_shipped`) and the verdict: ship only if the
    new graphs beat the shipped ones' matrix PSNR of the full method on every held-out set. Only
@@ -72,7 +72,7 @@ end). The training set lives uncompressed on disk and whole in memory (and on th
 beyond what the memory holds are not used (:func:`samples_that_fit_memory`: about 2600 on an
 80 GB GPU). The disk must hold them (about 17 GB for 1300 samples).
 
-Device: PyTorch trains on the CUDA GPU where it sees one (:attr:`models.train.TrainConfig.device`;
+Device: PyTorch trains on the CUDA GPU where it sees one (:attr:`polrig.models.train.TrainConfig.device`;
 the data generation and the evaluation stay on the CPU cores), else on the CPU; ``run.json``
 records which, with the hardware. The width defaults to :data:`DEFAULT_WIDTH`.
 """
@@ -105,10 +105,10 @@ MIN_MARGIN_S = 2.0
 #: Seconds kept after the last epoch for the export and its onnxruntime check (CPU).
 EXPORT_RESERVE_S = 10.0
 #: Training-time ratios of the stages (PIPNet : PMMNet as the paper's 40 : 20 epochs; the direct
-#: baseline as much as both), in the order :func:`models.train.train` runs them.
+#: baseline as much as both), in the order :func:`polrig.models.train.train` runs them.
 STAGE_SHARES = {"pipnet": 2 / 6, "pmmnet": 1 / 6, "direct": 3 / 6}
 #: The fewest epochs a stage is planned on all the training samples: a tenth of the paper's 40 +
-#: 20 (the baseline as PMMNet), so that the learning rate decays (models.train.lr_at) and the
+#: 20 (the baseline as PMMNet), so that the learning rate decays (polrig.models.train.lr_at) and the
 #: samples are seen more than once. Where the budget cannot give them, the training uses the
 #: first samples that fit (:func:`samples_that_fit`; the data share was too large for the machine).
 MIN_EPOCHS = {"pipnet": 4, "pmmnet": 2, "direct": 2}
@@ -130,7 +130,7 @@ PROBE_BATCHES = 4
 #: the data share's end; shards of this many samples (a stop loses at most one shard's work).
 OPEN_COUNT = 100_000
 OPEN_SHARD_SIZE = 2
-#: What the verdict's evaluation scores (:func:`models.evaluate.evaluate` methods), and the
+#: What the verdict's evaluation scores (:func:`polrig.models.evaluate.evaluate` methods), and the
 #: fewest scored samples per held-out set whatever the time left.
 EVAL_METHODS = ("full", "direct")
 MIN_EVAL_SAMPLES = 8
@@ -149,7 +149,7 @@ Clock = Callable[[], float]
 def _sim_dataset(out: pathlib.Path, count: int, size: int, seed: int, holdout: bool,
                  shard_size: int = 16) -> subprocess.Popen:
     """``polrig sim dataset`` (uncompressed shards) in a child process (its own CPU core)."""
-    argv = [sys.executable, "-m", "polrig.cli", "sim", "dataset", "--count", str(count), "--size", str(size),
+    argv = [sys.executable, "-m", "polrig", "sim", "dataset", "--count", str(count), "--size", str(size),
             "--seed", str(seed), "--shard-size", str(shard_size), "--no-compress", "--quiet",
             "--out", str(out)] + (["--holdout"] if holdout else [])
     return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -191,11 +191,11 @@ def shard_samples(path: pathlib.Path) -> int:
 def merge_parts(parts: Sequence[pathlib.Path], out: pathlib.Path) -> int:
     """One dataset folder ``out`` from ``parts`` (``polrig sim dataset`` folders of the same size,
     different seeds, each possibly stopped before its count): the shard files they hold moved
-    (not copied) into ``out`` as ``shard-PPP-SSSSS.npz``, so :func:`models.data.load_dataset`
+    (not copied) into ``out`` as ``shard-PPP-SSSSS.npz``, so :func:`polrig.models.data.load_dataset`
     (shards sorted by name) reads the parts' samples in order; the manifest is the first part's
     with the samples there are, the new shard names, the union of the families present and the
     parts' seeds. Parts with no manifest (stopped while starting) hold nothing. Returns the count."""
-    from models.data import read_manifest
+    from polrig.models.data import read_manifest
 
     out.mkdir(parents=True, exist_ok=True)
     parts = [p for p in parts if (p / "manifest.json").is_file()]
@@ -285,7 +285,7 @@ def estimate_correction(epoch_estimates: Mapping[str, float], finished: Sequence
 
 
 class StagePlanner:
-    """The ``plan_stage`` hook of :func:`models.train.train` for epochs that must end by
+    """The ``plan_stage`` hook of :func:`polrig.models.train.train` for epochs that must end by
     ``deadline`` (a ``clock`` value). An epoch of a stage is estimated at
     ``sample_epoch_s[stage] * samples + epoch_overhead_s`` (the probe's warm compute, and the
     checkpoint and log written after every epoch), times :func:`estimate_correction` of the
@@ -368,7 +368,7 @@ def probe_epoch_seconds(work: pathlib.Path, base, samples: int,
     batch_size)`` samples (no export); the compute is the fastest epoch's ``epoch_s`` after the
     first (which pays the warm-up) per sample, the rest what the last stage's wall time holds
     beyond its epochs' ``epoch_s`` (checkpoint and log after every epoch), per epoch."""
-    from models.train import train
+    from polrig.models.train import train
 
     n = min(samples, PROBE_BATCHES * base.batch_size)
     config = dataclasses.replace(base, limit=n, pipnet_epochs=PROBE_EPOCHS, pmmnet_epochs=PROBE_EPOCHS,
@@ -399,7 +399,7 @@ def train_in_budget(work: pathlib.Path, *, seconds: float, width: int, seed: int
     :func:`samples_that_fit` say so), the plan (each
     stage's decision and its wall seconds, the last one's with the export) and the seconds
     taken."""
-    from models.train import TrainConfig, train
+    from polrig.models.train import TrainConfig, train
 
     t0 = clock()
     base = TrainConfig(width=width, seed=seed, threads=max(1, os.cpu_count() or 1), device=training_device())
@@ -468,8 +468,8 @@ def evaluate_against_shipped(work: pathlib.Path, weights: pathlib.Path, out: pat
     :func:`evaluation_deadline` shares it, at least :data:`MIN_EVAL_SAMPLES` samples each; the
     tables go to ``out/eval_<set>_<new|shipped>.md`` (+ ``.json``). ``ship`` is True only if
     the new graphs' matrix PSNR of the full method beats the shipped ones' on every set."""
-    from models.evaluate import evaluate, write_results
-    from models.runtime import WEIGHTS_DIR
+    from polrig.models.evaluate import evaluate, write_results
+    from polrig.models.runtime import WEIGHTS_DIR
 
     scores, samples, ship = {}, {}, True
     for k, name in enumerate(HOLDOUT_SETS):
@@ -491,7 +491,7 @@ def evaluate_against_shipped(work: pathlib.Path, weights: pathlib.Path, out: pat
 # ----------------------------------------------------------------------------- the run
 
 def training_device() -> str:
-    """``cuda`` where PyTorch sees a CUDA GPU, else ``cpu`` (:attr:`models.train.TrainConfig.device`)."""
+    """``cuda`` where PyTorch sees a CUDA GPU, else ``cpu`` (:attr:`polrig.models.train.TrainConfig.device`)."""
     import torch
 
     return "cuda" if torch.cuda.is_available() else "cpu"
@@ -533,7 +533,7 @@ def run(out: pathlib.Path, *, budget_s: float, size: int, width: int, jobs: int,
         train_samples: int | None, holdout_samples: int, epochs: int | None = None,
         work: pathlib.Path | None = None, data_share: float = DATA_SHARE, echo=print) -> dict:
     """The whole run (module docstring); returns ``run.json``'s content."""
-    from polrig.argcheck import check_output_folder
+    from polrig.formats.argcheck import check_output_folder
 
     check_data_share(data_share)
     out = check_output_folder(out)
@@ -572,10 +572,10 @@ def run(out: pathlib.Path, *, budget_s: float, size: int, width: int, jobs: int,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import run_main
-    from polrig.argcheck import int_range, positive_float
+    from polrig.formats.argcheck import int_range, positive_float
+    from polrig.models._cli import run_main
 
-    ap = argparse.ArgumentParser(prog="python -m models.paper_scale", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m polrig.models.paper_scale", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="output folder (new or empty)")
     ap.add_argument("--budget-min", type=positive_float, default=8.0, help="wall-clock budget in minutes (default 8)")
     ap.add_argument("--size", type=int_range(16, 4096), default=256, help="image side, a multiple of 8 (default 256)")

@@ -1,6 +1,6 @@
 """Differentiable microfacet pBRDF (Baek et al. 2018) in PyTorch, linear 3x3 blocks in rig frames.
 
-The same math as :mod:`polrig.pbrdf` (the core numpy implementation; ``tests/test_models_pbrdf.py``
+The same math as :mod:`polrig.optics.pbrdf` (the core numpy implementation; ``tests/test_models_pbrdf.py``
 checks the two agree to 1e-5 on random inputs), written with torch ops only so that it runs
 inside the training graph and exports to ONNX (no ``atan2``, no complex numbers: basis
 rotations use ``cos 2phi = c^2 - s^2``, ``sin 2phi = 2 c s`` from dot and cross products).
@@ -38,7 +38,7 @@ import math
 
 import torch
 
-from models.layers import sum_over
+from polrig.models.layers import sum_over
 
 _EPS = 1e-12
 _DEGENERATE_SQ = 1e-14
@@ -55,7 +55,7 @@ class _Vec:
     """Vector helpers along axis ``dim`` (kept with length 1 by reductions).
 
     Sums over the vector axis are a split and two additions rather than a reduction
-    (:func:`models.layers.sum_over`: on ``(B, 3, H, W)`` images onnxruntime's ReduceSum over
+    (:func:`polrig.models.layers.sum_over`: on ``(B, 3, H, W)`` images onnxruntime's ReduceSum over
     the 3 channels takes about 6 times as long as Split + 2 Add, ``models/MODEL_CARD.md``)."""
 
     def __init__(self, dim: int):
@@ -96,7 +96,7 @@ def rotation_2phi(c: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch
 
 def _fresnel_r(cos_i: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Real Fresnel amplitudes ``(r_s, r_p)`` from outside onto a dielectric ``eta > 1``
-    (Mitsuba 3 sign of ``r_p``, as :func:`polrig.mueller.specular_reflection`)."""
+    (Mitsuba 3 sign of ``r_p``, as :func:`polrig.optics.mueller.specular_reflection`)."""
     ci = cos_i.clamp(0.0, 1.0)
     sin2_t = (1.0 - ci * ci) / (eta * eta)
     ct = torch.sqrt((1.0 - sin2_t).clamp_min(0.0))
@@ -181,7 +181,7 @@ def specular_diffuse_blocks(normal: torch.Tensor, wi: torch.Tensor, wo: torch.Te
                             alpha: torch.Tensor, stage_zero_axis: torch.Tensor,
                             camera_x_axis: torch.Tensor, eta: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit specular (``ks = 1``) and diffuse (``kd = 1``) blocks ``(..., 3, 3)`` in the rig
-    frames, as :func:`polrig.pbrdf.specular_diffuse_blocks`.
+    frames, as :func:`polrig.optics.pbrdf.specular_diffuse_blocks`.
 
     ``normal``, ``wi``, ``wo``: ``(..., 3)`` (normalised here); ``alpha``: GGX roughness
     broadcastable to ``(...)``; ``stage_zero_axis``, ``camera_x_axis``: ``(..., 3)`` or ``(3,)``.

@@ -32,9 +32,18 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from models.layers import (SIZE_MULTIPLE, UNetBackbone, masked_mean, normalised_stokes, normalize_channels, planes,
-                           softplus, stokes_from_analyzer, sum_over)
-from models.pbrdf_torch import cross
+from polrig.models.layers import (
+    SIZE_MULTIPLE,
+    UNetBackbone,
+    masked_mean,
+    normalised_stokes,
+    normalize_channels,
+    planes,
+    softplus,
+    stokes_from_analyzer,
+    sum_over,
+)
+from polrig.models.pbrdf_torch import cross
 
 #: Roughness range the head can output (GGX alpha).
 ALPHA_MIN, ALPHA_MAX = 0.01, 1.0

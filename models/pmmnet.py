@@ -1,6 +1,6 @@
 """PMMNet (stage 2), the single-shot composite graph and the direct Stokes->MM baseline.
 
-PMMNet refines the analytic initialization ``M = ks Ms + kd_c Md`` (``models.pbrdf_torch``
+PMMNet refines the analytic initialization ``M = ks Ms + kd_c Md`` (``polrig.models.pbrdf_torch``
 evaluated on PIPNet's outputs, eta = 1.5, ks = 1) by residual learning under
 
 * polarization-colour decoupling: one wavelength-independent 3x3 block per component
@@ -27,10 +27,19 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from models.layers import (HighFrequencyAttention, MultiHeadChannelAttention, UNetBackbone,
-                           apply_mueller, masked_mean, planes, signed_log, stokes_from_analyzer, sum_over)
-from models.pbrdf_torch import image_blocks
-from models.pipnet import PIPNet, pipnet_features
+from polrig.models.layers import (
+    HighFrequencyAttention,
+    MultiHeadChannelAttention,
+    UNetBackbone,
+    apply_mueller,
+    masked_mean,
+    planes,
+    signed_log,
+    stokes_from_analyzer,
+    sum_over,
+)
+from polrig.models.pbrdf_torch import image_blocks
+from polrig.models.pipnet import PIPNet, pipnet_features
 
 #: Element positions (row, col) refined by each branch.
 SPECULAR_ELEMENTS = ((0, 0), (1, 1), (1, 2), (2, 1), (2, 2))

@@ -32,8 +32,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.layers import UpsampledConcatConv1x1
 from polrig.errors import FormatError
+from polrig.models.layers import UpsampledConcatConv1x1
 
 _TRACE_SIZE = 16
 
@@ -66,7 +66,7 @@ def _conv_order(model: nn.Module, inputs: tuple[torch.Tensor, ...]) -> list[str]
 
 
 def _split_convs(modules: dict[str, nn.Module], order: list[str], convs: list, init: dict) -> set[str]:
-    """Names of the :class:`models.layers.UpsampledConcatConv1x1` modules that the graph holds as
+    """Names of the :class:`polrig.models.layers.UpsampledConcatConv1x1` modules that the graph holds as
     two Conv nodes (the split form): their graph weight has fewer input channels than the
     module's. Graphs exported before the split have one Conv of the whole weight."""
     splits, k = set(), 0
@@ -150,9 +150,9 @@ def load_onnx_into(model: nn.Module, path: str | pathlib.Path, colours: int) -> 
 
 def networks_from_weights(weights_dir: str | pathlib.Path) -> tuple[dict[str, nn.Module], dict]:
     """``({"pipnet", "pmmnet", "direct"}: networks, model.json)`` of a weights folder
-    (:func:`models.export.export_all` output), in eval mode, computing what the graphs compute."""
-    from models.pipnet import PIPNet
-    from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet
+    (:func:`polrig.models.export.export_all` output), in eval mode, computing what the graphs compute."""
+    from polrig.models.pipnet import PIPNet
+    from polrig.models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet
 
     wd = pathlib.Path(weights_dir)
     meta_path = wd / "model.json"
@@ -170,7 +170,7 @@ def networks_from_weights(weights_dir: str | pathlib.Path) -> tuple[dict[str, nn
 
 def checkpoint_from_weights(weights_dir: str | pathlib.Path) -> dict:
     """A donor in the layout of a ``polrig train`` checkpoint (``config``, ``models``,
-    ``times``) for :func:`models.train.train`'s ``init_from``: the recovered networks, the
+    ``times``) for :func:`polrig.models.train.train`'s ``init_from``: the recovered networks, the
     training configuration and per-network epochs and CPU seconds that ``model.json`` records.
     ``recovered_from_onnx`` tells the trainer to :func:`recalibrate_batchnorm` before training
     a network."""

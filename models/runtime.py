@@ -1,7 +1,7 @@
 """Single-shot Mueller reconstruction with onnxruntime (never imports torch).
 
 :meth:`SingleShotModel.load` opens the shipped graph ``models/weights/single_shot.onnx``
-(PIPNet -> pBRDF -> PMMNet in one graph, see :mod:`models.export` for why one graph) and
+(PIPNet -> pBRDF -> PMMNet in one graph, see :mod:`polrig.models.export` for why one graph) and
 :meth:`SingleShotModel.reconstruct` turns one capture's analyzer images ``(C, 4, H, W)`` in DN
 under a known incident state ``s_in`` into a Mueller image ``(C, 3, 3, H, W)`` in DN per unit
 incident S0 (``docs/conventions.md``, "Radiometric units").
@@ -49,17 +49,21 @@ import time
 
 import numpy as np
 
-from models import devices, mirror
-from models.size import SIZE_MULTIPLE
-from models.uncertainty import UncertaintyModel, calibration_for_graph
 from polrig.errors import FormatError
-from polrig.quantiles import tail_percentile
-from polrig.stokes import ideal_inverse, saturation_mask, stokes_from_analyzers
+from polrig.formats.exr import colour_planes, element_planes, write_mueller_exr
+from polrig.models import devices, full_resolution, mirror
+from polrig.models.size import SIZE_MULTIPLE
+from polrig.models.uncertainty import UncertaintyModel, calibration_for_graph
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.analyzer import resolve_layout
+from polrig.sensor.demosaic import demosaic, demosaic_combined, preprocess
+from polrig.sensor.stokes import ideal_inverse, saturation_mask, stokes_from_analyzers
+from polrig.solve.quantiles import tail_percentile
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
-#: Percentile of the analyzer values in the mask that the normalisation maps to 1 (sim.dataset).
+#: Percentile of the analyzer values in the mask that the normalisation maps to 1 (polrig.sim.dataset).
 SCALE_PERCENTILE = 99.5
-#: Stage zero axis of the simulated rig in the camera frame (sim.dataset manifest), used when
+#: Stage zero axis of the simulated rig in the camera frame (polrig.sim.dataset manifest), used when
 #: neither the caller nor the model's ``model.json`` gives one.
 DEFAULT_STAGE_ZERO_AXIS = (0.0, -1.0, 0.0)
 #: Incident frames whose ``(cos theta, sin theta)`` before normalisation have a squared length
@@ -73,7 +77,7 @@ MAX_INPUT_LEVEL = 100.0
 #: Noise standard deviations above the darkest percentile of S0 that a small object's pixels
 #: must reach (:func:`default_mask`).
 MASK_NOISE_SIGMAS = 6.0
-#: Focal length of the simulated rig's camera in units of min(H, W) (sim.scene.default_camera).
+#: Focal length of the simulated rig's camera in units of min(H, W) (polrig.sim.scene.default_camera).
 DEFAULT_FOCAL_PER_PX = 2.5
 #: Colours x pixels of one network pass above which a run gives its memory arena back
 #: (:class:`SingleShotModel`): the mono full sensor (3 x 1224 x 1024) does, the colour sensor's
@@ -129,7 +133,7 @@ def incident_rotation(wi: np.ndarray, stage_zero_axis, model_axis, *,
     ``-wi`` (surface -> light, camera frame, vector components along ``vector_axis``: ``(..., 3)``
     by default, ``vector_axis=1`` for plane-first images ``(B, 3, H, W)``): ``S_model = R(theta)
     S_rig`` and ``M_rig = M_model R(theta)`` (``docs/conventions.md``, "Stokes reference
-    frames"; :func:`polrig.frames.rotation_cos_sin_2theta`). The axes are ``(3,)`` or
+    frames"; :func:`polrig.optics.bases.rotation_cos_sin_2theta`). The axes are ``(3,)`` or
     ``(B, 3)``, camera frame, any non-zero length. Computed in ``wi``'s floating dtype (float32
     images stay float32). A degenerate frame (an axis along the illumination) gives
     ``theta = 0``.
@@ -140,7 +144,7 @@ def incident_rotation(wi: np.ndarray, stage_zero_axis, model_axis, *,
     and ``sin theta ~ k.(u x v) / |k| = k.(a x b) / |k|``, with the same positive factor
     ``1 / (|u| |v|)``, which cancels in ``cos 2theta = (c^2 - s^2) / (c^2 + s^2)`` and
     ``sin 2theta = 2 c s / (c^2 + s^2)``: three dot products per pixel, no normalisation
-    (``tests/test_single_shot_rig.py`` checks it against :mod:`polrig.frames`' Gram-Schmidt
+    (``tests/test_single_shot_rig.py`` checks it against :mod:`polrig.optics.bases`' Gram-Schmidt
     frames and the pBRDF evaluated in both frames)."""
     w = np.asarray(wi)
     dtype = w.dtype if np.issubdtype(w.dtype, np.floating) else np.float64
@@ -180,7 +184,7 @@ def rotate_incident_columns(m: np.ndarray, cos2: np.ndarray, sin2: np.ndarray, *
                             overwrite: bool = False) -> np.ndarray:
     """``M R(theta)`` per pixel for a plane-first Mueller image ``(..., 3, 3, H, W)`` and
     ``cos2``/``sin2`` broadcastable to ``(..., H, W)``: the model-frame matrix re-expressed in
-    the rig's incident frame (columns 1 and 2 mix as in :func:`polrig.frames.rotate_cols` with
+    the rig's incident frame (columns 1 and 2 mix as in :func:`polrig.optics.bases.rotate_cols` with
     ``-theta``: ``c1' = c c1 - s c2``, ``c2' = c c2 + s c1``). Computed in ``m``'s own dtype on
     the plane-first layout (no float64 copy, no transposes: a full-sensor image is 4-20 x 10^7
     values). ``overwrite``: write the result into ``m`` (a writable array; the same numbers,
@@ -278,7 +282,7 @@ def default_mask(analyzer: np.ndarray, fraction: float = MASK_FRACTION) -> np.nd
 def default_scale(analyzer: np.ndarray, mask: np.ndarray) -> float:
     """Normalisation scale (DN per normalised unit) of a capture: the 99.5th percentile of the
     analyzer values (all colours and angles) inside the mask, at least 1 DN. This is the rule
-    of the simulator's dataset writer (:data:`sim.dataset.SCALE_PERCENTILE`), so the networks
+    of the simulator's dataset writer (:data:`polrig.sim.dataset.SCALE_PERCENTILE`), so the networks
     see their training distribution."""
     vals = np.asarray(analyzer)[:, :, mask]
     if not np.isfinite(vals).all():
@@ -304,7 +308,7 @@ class SingleShotModel:
         self.session = session
         self.meta = meta
         self.weights_dir = weights_dir
-        #: :class:`models.uncertainty.UncertaintyModel` calibrated for this graph, or None.
+        #: :class:`polrig.models.uncertainty.UncertaintyModel` calibrated for this graph, or None.
         self.uncertainty = uncertainty
         #: Why :attr:`uncertainty` is None (no file, another graph's, unreadable); "" when it is set.
         self.uncertainty_problem = uncertainty_problem
@@ -334,8 +338,8 @@ class SingleShotModel:
         because on a shared or oversubscribed CPU spinning threads steal the cores the other
         threads need (see ``benchmarks/bench_single_shot.py`` for both settings). ``device``:
         ``auto`` (CUDA where this onnxruntime offers it, else the CPU), ``cpu`` or ``cuda``
-        (:mod:`models.devices`; a forced ``cuda`` that cannot run raises
-        :class:`models.devices.DeviceUnavailable`); :attr:`provider` is the one really used.
+        (:mod:`polrig.models.devices`; a forced ``cuda`` that cannot run raises
+        :class:`polrig.models.devices.DeviceUnavailable`); :attr:`provider` is the one really used.
 
         Memory: onnxruntime's memory-pattern planning is off. With dynamic image sizes it plans
         one block for the whole graph at the first run of each new shape; without it the
@@ -376,7 +380,7 @@ class SingleShotModel:
 
     def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
                        stage_zero_axis: np.ndarray, *, release_arena: bool | None = None) -> dict[str, np.ndarray]:
-        """One graph call on batched, normalised, padded inputs (names as :mod:`models.export`).
+        """One graph call on batched, normalised, padded inputs (names as :mod:`polrig.models.export`).
         ``release_arena``: hand the CPU arena's memory back when the run ends (None: for runs on
         more than :data:`SHRINK_ARENA_ABOVE` colour-pixels)."""
         feed = {"analyzer": analyzer, "mask": mask, "s_in": s_in, "wo": wo, "stage_zero_axis": stage_zero_axis}
@@ -409,7 +413,7 @@ class SingleShotModel:
         the input rotation used.
 
         ``mirror_average``: run the capture and its left-right mirror image and average the two
-        answers mapped back (:mod:`models.mirror`; twice the network time); the result then
+        answers mapped back (:mod:`polrig.models.mirror`; twice the network time); the result then
         also holds ``mueller_disagreement``, half the two answers' absolute difference.
 
         ``probe`` (inputs whose short side is at least ``2 PROBE_SIDE``, :func:`probe_shape`):
@@ -417,7 +421,7 @@ class SingleShotModel:
         a short side of about :data:`PROBE_SIDE`, then the full-size graph runs once at the
         refined angle: at the full colour sensor's 612x512 grid 1.06 passes instead of 2 (a rig on
         the training axis needs no refinement: one full-size pass). ``probe=False``: the full-size
-        graph runs for the refinement too (the route before; ``models.evaluate_speed_modes``
+        graph runs for the refinement too (the route before; ``polrig.models.evaluate_speed_modes``
         compares the two). ``release_arena``: as :meth:`run_normalised`, for the full-size
         passes."""
         if mirror_average:
@@ -500,15 +504,15 @@ class SingleShotModel:
         analyzer image (default: the simulated rig's camera). Background pixels are 0.
         ``aux`` holds ``mueller_init`` (PIPNet-pBRDF, DN), ``normal``, ``kd``, ``wi``,
         ``alpha``, ``mask``, ``scale``, ``timings_s`` and, with ``with_sigma`` where the graph has
-        a calibrated uncertainty (:mod:`models.uncertainty`; about 11 ms at 128x128, a third of
+        a calibrated uncertainty (:mod:`polrig.models.uncertainty`; about 11 ms at 128x128, a third of
         the reconstruction, so off by default), ``sigma`` ``(C, 3, 3, H, W)`` DN: the standard
         deviation of each element (calibrated on simulated held-out sets: about 95 % of the
         errors within 2 sigma, ``models/MODEL_CARD.md``; with ``mirror_average`` it grows with
         the two passes' disagreement) and, where the calibration records its misfit range,
         ``beyond_calibration`` ``(C, H, W)`` bool: object pixels outside it, whose sigma may be
-        too small (:meth:`models.uncertainty.UncertaintyModel.beyond_calibration`).
+        too small (:meth:`polrig.models.uncertainty.UncertaintyModel.beyond_calibration`).
         ``mirror_average``: average the answers for the capture and its mirror image
-        (:mod:`models.mirror`): a few per cent lower error for twice the network time.
+        (:mod:`polrig.models.mirror`): a few per cent lower error for twice the network time.
         ``probe``, ``release_arena``: as :meth:`run_rig_frame`.
         """
         t0 = time.perf_counter()
@@ -532,7 +536,7 @@ class SingleShotModel:
         bad = ~np.isfinite(a)
         some_finite = ~np.all(bad, axis=(0, 1))
         if bad.any():
-            # Non-finite samples (saturated or defective: polrig.processing passes NaN for them)
+            # Non-finite samples (saturated or defective: polrig.app.processing passes NaN for them)
             # take the largest finite value of their colour: a saturated sample is at least that
             # bright, and the training data hold clipped highlights. Pixels with no finite
             # sample at all leave the mask.
@@ -606,7 +610,6 @@ class SingleShotModel:
 def incident_stokes(state_deg: float, extinction_ratio: float = float("inf")) -> np.ndarray:
     """Normalised incident Stokes ``(3,)`` of the polarizer at stage angle ``state_deg`` on
     unit unpolarized light (``S0 = 0.5`` for an ideal polarizer, ``docs/conventions.md``)."""
-    from polrig.mueller import polarizer_stokes
 
     return polarizer_stokes(np.deg2rad(float(state_deg)), extinction_ratio).astype(np.float32)
 
@@ -618,7 +621,7 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
                 with_sigma: bool = False, mirror_average: bool = False,
                 resolution: str = "superpixel", network_binning: int = 1) -> tuple[np.ndarray, dict]:
     """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
-    demosaic (:func:`polrig.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
+    demosaic (:func:`polrig.sensor.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
     sampling: a quarter of the raw size per axis for the colour IMX250MYR), then
     :meth:`SingleShotModel.reconstruct` under the state of the polarizer at ``state_deg``.
     ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings, and
@@ -629,7 +632,7 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     :meth:`SingleShotModel.reconstruct`, as is ``mirror_average``.
 
     ``resolution="full"``: the Mueller image at the raw frame's resolution ``(H, W)``: the
-    networks run on the superpixel grid and :func:`models.full_resolution.lift` adds the
+    networks run on the superpixel grid and :func:`polrig.models.full_resolution.lift` adds the
     measured detail of the full-resolution ``demosaic_method`` (``bilinear`` or ``newton``;
     ``superpixel`` is refused; a given ``mask`` is on the networks' grid). ``mask``, ``stokes``
     and ``saturated`` of ``aux`` are then full-resolution;
@@ -637,17 +640,14 @@ def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotMode
     ``aux["network_grid"]``. The uncertainty is calibrated on the networks' grid only:
     ``with_sigma`` is refused (ValueError).
 
-    ``network_binning=2`` (a faster mode, :data:`models.full_resolution.BINNINGS`): the networks
+    ``network_binning=2`` (a faster mode, :data:`polrig.models.full_resolution.BINNINGS`): the networks
     run on the demosaicked analyzer images binned 2x2 (a quarter of the pixels) and their
     Mueller image is lifted back to the analyzer grid with that grid's measured detail
-    (:func:`models.full_resolution.lift`, period 2; then to the raw grid as above with
+    (:func:`polrig.models.full_resolution.lift`, period 2; then to the raw grid as above with
     ``resolution="full"``). ``mask`` (on the analyzer grid) is binned too; the output mask is the
     binned one upsampled; ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the networks'
     grid under ``aux["network_grid"]``; ``with_sigma`` is refused. Its accuracy against the
     default is in ``models/MODEL_CARD.md`` ("Speed, warm and cold")."""
-    from models import full_resolution
-    from polrig.analyzer import resolve_layout
-    from polrig.demosaic import demosaic, demosaic_combined, preprocess
 
     if resolution not in full_resolution.RESOLUTIONS:
         raise ValueError(f"resolution must be one of {', '.join(full_resolution.RESOLUTIONS)}, got {resolution!r}")
@@ -715,10 +715,9 @@ def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None
     plane where ``aux`` has one (1 = clipped raw data, :func:`infer_frame`), the calibrated
     standard deviations ``sigma.M{r}{c}.{R,G,B}`` where ``aux`` has them, the estimated
     ``normal.{X,Y,Z}`` with ``with_normal``, and the model's scalars in the header
-    (:func:`polrig.exr.write_mueller_exr`). Uncompressed unless ``compress`` (ZIP): measured on
+    (:func:`polrig.formats.exr.write_mueller_exr`). Uncompressed unless ``compress`` (ZIP): measured on
     a 512x512 colour result, ZIP wrote 26.8 MB in 819 ms, uncompressed 29.4 MB in 69 ms (the
     single-shot targets are per frame; noisy float32 planes hardly compress)."""
-    from polrig.exr import colour_planes, element_planes, write_mueller_exr
 
     extra = {"mask": aux["mask"].astype(np.float32)}
     if "sigma" in aux:

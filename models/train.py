@@ -9,7 +9,7 @@ torch random states, the log rows and the dataset's identity are written atomica
 ``OUT/checkpoint.pt``, then ``OUT/log.csv`` (one row per epoch) is rewritten from those rows;
 ``resume=True`` continues from the checkpoint and reproduces the uninterrupted run exactly.
 ``OUT/summary.json`` records the run. At the end the graphs are exported with
-:func:`models.export.export_all` into ``OUT/weights`` and checked against PyTorch with
+:func:`polrig.models.export.export_all` into ``OUT/weights`` and checked against PyTorch with
 onnxruntime (a failed check is an error and replaces nothing).
 
 PMMNet trains on the PIPNet-pBRDF initialization of the frozen stage-1 network (computed
@@ -36,14 +36,20 @@ from typing import Callable
 import numpy as np
 import torch
 
-from models import mirror
-from models.data import Dataset, check_network_size, dataset_identity, load_dataset, read_manifest
-from models.pipnet import PIPNet, pipnet_loss
-from models.pbrdf_torch import image_blocks
-from models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
+from polrig.atomic import atomic_write_bytes, atomic_write_text
 from polrig.errors import ConfigError, FormatError, PolrigError
-from polrig.argcheck import check_output_folder
-from polrig.rawio import atomic_write_bytes, atomic_write_text
+from polrig.formats.argcheck import check_output_folder
+from polrig.models import mirror
+from polrig.models.data import (
+    Dataset,
+    check_network_size,
+    dataset_identity,
+    load_dataset,
+    read_manifest,
+)
+from polrig.models.pbrdf_torch import image_blocks
+from polrig.models.pipnet import PIPNet, pipnet_loss
+from polrig.models.pmmnet import DirectStokesToMM, PMMNet, SingleShotNet, mueller_loss
 
 STAGES = ("pipnet", "pmmnet", "direct")
 #: What each stage's network is called on (``_pick`` keys).
@@ -67,13 +73,13 @@ class TrainConfig:
     decay_start: float = 0.5
     lr_final_fraction: float = 0.05
     width: int = 16
-    #: PIPNet with the shape-from-polarization normal prior (models.pipnet, an addition to the paper)
+    #: PIPNet with the shape-from-polarization normal prior (polrig.models.pipnet, an addition to the paper)
     sfp_prior: bool = True
     #: Fraction of PIPNet and direct-baseline training samples shown through a random window
     #: (:func:`window_crop`; the same augmentation for both, so the ablation stays fair)
     crop_fraction: float = 0.7
     #: Weight of the direct supervision of the SfP prior's pick and trust
-    #: (:func:`models.pipnet.sfp_supervision_loss`; 0: the paper's loss only)
+    #: (:func:`polrig.models.pipnet.sfp_supervision_loss`; 0: the paper's loss only)
     sfp_supervision: float = 0.0
     #: Fraction of PMMNet training samples whose initialization is evaluated on PIPNet's
     #: geometry perturbed by :func:`perturbed_geometry` or :func:`geometry_toward_view`
@@ -88,7 +94,7 @@ class TrainConfig:
     #: rotation; 0: all get the rotation)
     init_perturb_toward_view: float = 0.7
     #: Fraction of the training samples of every stage shown as their left-right mirror image
-    #: (:mod:`models.mirror`: an exact symmetry of the physics; 0: none)
+    #: (:mod:`polrig.models.mirror`: an exact symmetry of the physics; 0: none)
     mirror_fraction: float = 0.0
     threads: int = 2
     #: Where PyTorch trains: "cpu" or "cuda" (the dataset, the networks and the optimizers live
@@ -160,7 +166,7 @@ def perturbed_geometry(normal: torch.Tensor, wi: torch.Tensor, generator: torch.
     """A wrong but plausible geometry ``(normal, wi)`` (B, 3, H, W) from a predicted one: both
     turned by one random rotation (angle uniform in ``[0, rotation_deg]`` about a uniform random
     axis), which keeps them consistent with each other as PIPNet's are on unseen shapes (its
-    normals about 39 deg and its light 27 deg off, ``models.diagnose``), then the normals bent
+    normals about 39 deg and its light 27 deg off, ``polrig.models.diagnose``), then the normals bent
     by smooth per-pixel noise (:data:`PERTURB_NOISE`) and the light turned by a further
     rotation of up to ``light_deg``. An augmentation for PMMNet's training (not in the paper)."""
     b, _, h, w = normal.shape
@@ -213,7 +219,7 @@ def _batches(n: int, batch: int, rng: np.random.Generator | None):
         yield torch.from_numpy(order[i:i + batch])
 
 
-#: How each training tensor maps to its sample's mirror image (:mod:`models.mirror`).
+#: How each training tensor maps to its sample's mirror image (:mod:`polrig.models.mirror`).
 MIRROR_OF = {"analyzer": mirror.analyzer, "mask": mirror.image, "s_in": mirror.stokes,
              "stage_zero_axis": mirror.vectors, "kd": mirror.image, "kd_init": mirror.image,
              "wo": mirror.vector_image, "normal": mirror.vector_image, "wi": mirror.vector_image,
@@ -312,7 +318,7 @@ def add_initialization(pipnet: PIPNet, t: dict[str, torch.Tensor], batch: int = 
 
 #: Columns of ``OUT/log.csv`` (one row per finished epoch).
 LOG_FIELDS = ("stage", "epoch", "lr", "train_loss", "val_loss", "epoch_s", "details")
-#: Files of a run in ``OUT`` (and the graphs :func:`models.export.export_all` writes into
+#: Files of a run in ``OUT`` (and the graphs :func:`polrig.models.export.export_all` writes into
 #: ``OUT/weights``, plus a calibration of them): what ``--overwrite`` removes first.
 RUN_FILES = ("checkpoint.pt", "log.csv", "summary.json")
 WEIGHT_FILES = ("single_shot.onnx", "direct.onnx", "model.json", "uncertainty.json")
@@ -398,10 +404,10 @@ def load_checkpoint(path: str | pathlib.Path, *, for_resume: bool = False) -> di
 
 def _load_donor(init_from: str | pathlib.Path) -> dict:
     """The networks to start from: a checkpoint, or a weights folder recovered from its ONNX
-    graphs (:mod:`models.recover`); one-line errors naming the file."""
+    graphs (:mod:`polrig.models.recover`); one-line errors naming the file."""
     path = pathlib.Path(init_from)
     if path.is_dir():
-        from models.recover import checkpoint_from_weights
+        from polrig.models.recover import checkpoint_from_weights
 
         try:
             return checkpoint_from_weights(path)
@@ -511,18 +517,18 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
     of the checkpoint's configuration (e.g. more epochs for the stage the checkpoint is in).
     ``init_from`` (a checkpoint of another run, or a weights folder such as ``models/weights``,
-    whose networks are recovered from its ONNX graphs by :mod:`models.recover`) with ``stages``
+    whose networks are recovered from its ONNX graphs by :mod:`polrig.models.recover`) with ``stages``
     (default: all) retrains only those stages from scratch and takes the other networks (and
     their training times and epochs) from it, e.g. a new PMMNet on a trained PIPNet; with
     ``warm_start`` the trained stages start from the donor's weights instead (fine-tuning with a
     fresh optimizer and learning-rate schedule; the batch norms of recovered networks first get
-    the statistics of the training data, :func:`models.recover.recalibrate_batchnorm`). Returns
+    the statistics of the training data, :func:`polrig.models.recover.recalibrate_batchnorm`). Returns
     the summary dict also written to ``OUT/summary.json``.
 
     Everything is checked before anything is written or trained: a folder holding another run
     is refused unless ``resume`` (continue it) or ``overwrite`` (its files are removed first);
     ``resume`` needs ``OUT/checkpoint.pt`` and the same dataset (manifest identity,
-    :func:`models.data.dataset_identity`), architecture, seed and samples, and cannot change the
+    :func:`polrig.models.data.dataset_identity`), architecture, seed and samples, and cannot change the
     epochs of a finished stage; a held-out set (``polrig sim dataset --holdout``) is refused;
     image sides must be multiples of the networks' size multiple; the export needs ``onnx`` and
     ``onnxruntime``.
@@ -539,7 +545,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     with the log rows so far (``epoch_s`` of every finished epoch), and returns an integer >= 1
     that replaces the configured epochs (the checkpoints and the summary record it). A caller
     with a wall-clock budget plans each stage from what the earlier ones really took
-    (:mod:`models.paper_scale`)."""
+    (:mod:`polrig.models.paper_scale`)."""
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
     if resume and overwrite:
@@ -741,8 +747,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                 add_initialization(models["pipnet"].eval(), t)
                 echo(f"pmmnet: PIPNet-pBRDF initialization of {n} samples in {time.time() - t_init:.1f}s")
             model, opt = models[stage], opts[stage]
-            if stage in recalibrate and first == 0:  # batch norms of a network recovered from ONNX (models.recover)
-                from models.recover import recalibrate_batchnorm
+            if stage in recalibrate and first == 0:  # batch norms of a network recovered from ONNX (polrig.models.recover)
+                from polrig.models.recover import recalibrate_batchnorm
 
                 calib = train_idx[:RECALIBRATION_SAMPLES]
                 recalibrate_batchnorm(model, [lambda i=calib[b]: model(*_pick(t, i, STAGE_INPUTS[stage]))
@@ -809,7 +815,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     if state is not None and state.get("init_from"):
         summary["init_from"] = state["init_from"]
     if export:
-        from models.export import export_all
+        from polrig.models.export import export_all
 
         pick = (val_idx[:2] if n_val else train_idx[:2]).to(device)
         sample = {k: t[k][pick].cpu() for k in ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")}

@@ -2,7 +2,7 @@
 
 One DoFP capture under one incident state ``s_in`` measures only ``M s_in``; the rest of the
 matrix comes from the network's learned prior, so its error cannot be propagated from the
-sensor noise as :mod:`polrig.reference` does. It is instead *calibrated*: an error model with
+sensor noise as :mod:`polrig.solve.reference` does. It is instead *calibrated*: an error model with
 a few coefficients is fitted to the shipped network's errors against the simulator's truth on a
 calibration set, and its coverage is checked on other held-out sets (``models/MODEL_CARD.md``,
 "Uncertainty").
@@ -32,13 +32,13 @@ The error model (numpy only: it runs at inference without torch):
   (nearly) unpolarized, ``p < P_MIN``, columns 1 and 2 are both unobserved and get the larger
   of their two sigmas.
 
-* **Mirror averaging** (:mod:`models.mirror`): the average of the answers for the capture
+* **Mirror averaging** (:mod:`polrig.models.mirror`): the average of the answers for the capture
   and its mirror image is scored by the same model, plus the two answers' disagreement
   ``h = |M_plain - M_mirror| / 2`` per element: ``sigma_avg^2 = sigma^2 + (k h)^2``. Where the
   two passes disagree the network is unsure (on the held-out sets coverage fell from 94-99 %
   to 71-83 % in the 1 % of elements that disagree most, measured against ``sigma``).
 
-The coefficients are fitted by :mod:`models.uncertainty_fit` (``python -m models.uncertainty_fit``,
+The coefficients are fitted by :mod:`polrig.models.uncertainty_fit` (``python -m polrig.models.uncertainty_fit``,
 the fitting tool: it runs the graph on simulated sets, so it imports the evaluation code; this
 module is the runtime part and imports nothing from evaluation or training).
 """
@@ -167,7 +167,7 @@ class UncertaintyModel:
     def misfit_limit(self) -> float | None:
         """The :data:`MISFIT_LIMIT_QUANTILE` quantile of the misfit ``r`` over the calibration
         sets' pixels (``calibration["misfit_quantiles"]``, recorded by
-        :mod:`models.uncertainty_fit`), or None where the calibration does not record it."""
+        :mod:`polrig.models.uncertainty_fit`), or None where the calibration does not record it."""
         q = self.calibration.get("misfit_quantiles")
         try:
             value = float(q[MISFIT_LIMIT_QUANTILE])
@@ -212,7 +212,7 @@ class UncertaintyModel:
         coef = np.asarray(data["coefficients"], np.float64)
         if coef.shape != (3, 3, N_FEATURES) or not np.all(np.isfinite(coef)) or np.any(coef < 0):
             raise ValueError(f"coefficients must be 3x3x{N_FEATURES} finite numbers >= 0, got shape {coef.shape} "
-                             "(an older calibration: run python -m models.uncertainty_fit again)")
+                             "(an older calibration: run python -m polrig.models.uncertainty_fit again)")
         k = float(data.get("mirror_disagreement_k", 0.0))
         if not (np.isfinite(k) and k >= 0):
             raise ValueError(f"mirror_disagreement_k must be a finite number >= 0, got {k}")
@@ -228,7 +228,7 @@ def calibration_for_graph(weights_dir: str | pathlib.Path, graph: str = "single_
     """``(model, "")`` when ``weights_dir`` holds a calibration of ``graph`` (same SHA-256, the
     current :data:`VERSION`), else ``(None, why not)``: no file, a file that cannot be read, a
     calibration of an older version, or one that belongs to another graph (a retrained graph has
-    no calibrated uncertainty until ``python -m models.uncertainty_fit`` runs)."""
+    no calibrated uncertainty until ``python -m polrig.models.uncertainty_fit`` runs)."""
     wd = pathlib.Path(weights_dir)
     path = wd / FILE_NAME
     if not path.is_file():
@@ -260,5 +260,5 @@ def load_for_graph(weights_dir: pathlib.Path, graph: str) -> UncertaintyModel | 
 
 
 def how_to_calibrate(weights_dir) -> str:
-    return (f"calibrate it with: python -m models.uncertainty_fit --weights {weights_dir} --data DIR [DIR ...] "
+    return (f"calibrate it with: python -m polrig.models.uncertainty_fit --weights {weights_dir} --data DIR [DIR ...] "
             f"--write (DIR: polrig sim dataset --holdout sets)")

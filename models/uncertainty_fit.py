@@ -1,4 +1,4 @@
-"""The fitting tool of the single-shot uncertainty (:mod:`models.uncertainty`, whose module
+"""The fitting tool of the single-shot uncertainty (:mod:`polrig.models.uncertainty`, whose module
 docstring describes the error model; that module is the runtime part).
 
 Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
@@ -9,9 +9,9 @@ sigma covers; ``k`` (:func:`calibrate_mirror`) so that the tenth of the mirror-a
 calibration elements whose disagreement is largest against ``sigma`` is covered as well.
 Pixels with a clipped
 analyzer sample are left out: a clipped highlight's magnitude is unknown, and
-:mod:`polrig.processing` reports infinite sigma there.
+:mod:`polrig.app.processing` reports infinite sigma there.
 
-``python -m models.uncertainty_fit --data DIR [DIR ...] --write`` runs the shipped graph on
+``python -m polrig.models.uncertainty_fit --data DIR [DIR ...] --write`` runs the shipped graph on
 ``polrig sim dataset`` folders, calibrates and writes ``models/weights/uncertainty.json`` (with
 the SHA-256 of the graph it belongs to); ``--check DIR ...`` prints the coverage on other sets.
 """
@@ -27,10 +27,22 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from models.uncertainty import (COVERAGE, FILE_NAME, N_FEATURES, P_MIN, UncertaintyModel, feature_rows,
-                                calibration_for_graph, features, graph_sha256, how_to_calibrate, misfit,
-                                observed_frame_rotation, to_observed_frame)
 from polrig.errors import ConfigError, FormatError
+from polrig.models.uncertainty import (
+    COVERAGE,
+    FILE_NAME,
+    N_FEATURES,
+    P_MIN,
+    UncertaintyModel,
+    calibration_for_graph,
+    feature_rows,
+    features,
+    graph_sha256,
+    how_to_calibrate,
+    misfit,
+    observed_frame_rotation,
+    to_observed_frame,
+)
 
 #: Bins of :func:`calibrate`: quantiles of the polarization strength ``q``, then within each
 #: quantiles of the misfit ``r``.
@@ -144,13 +156,13 @@ def _pooled(model: UncertaintyModel, samples: Iterable[Sample], mirror_term: boo
 
 
 #: Quantiles of the misfit ``r`` recorded with a calibration (``calibration["misfit_quantiles"]``;
-#: :data:`models.uncertainty.MISFIT_LIMIT_QUANTILE` is the one that flags a pixel).
+#: :data:`polrig.models.uncertainty.MISFIT_LIMIT_QUANTILE` is the one that flags a pixel).
 MISFIT_QUANTILES = (0.5, 0.9, 0.99)
 
 
 def misfit_values(samples: Iterable[Sample]) -> np.ndarray:
     """The misfit ``r`` of every unclipped object pixel and colour of ``samples`` ``(N,)``
-    (finite values only; :func:`models.uncertainty.misfit`)."""
+    (finite values only; :func:`polrig.models.uncertainty.misfit`)."""
     return _observed_errors(samples)[2]
 
 
@@ -195,18 +207,16 @@ def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, fl
 
 
 def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: bool = False) -> list[Sample]:
-    """Run ``model`` (:class:`models.runtime.SingleShotModel`; mirror-averaged with
+    """Run ``model`` (:class:`polrig.models.runtime.SingleShotModel`; mirror-averaged with
     ``mirror_average``) on a ``polrig sim dataset`` folder -> samples with the truth (samples
-    without a lit object pixel are skipped, as in :mod:`models.evaluate`). A sample's pixel is
+    without a lit object pixel are skipped, as in :mod:`polrig.models.evaluate`). A sample's pixel is
     clipped where an analyzer value reached the sensor's saturation level
-    (:attr:`polrig.noise.SensorModel.saturation_dn` of the set's sensor model, as
-    :mod:`polrig.processing` flags it)."""
-    from models.data import load_dataset
-    from models.evaluate import network_inputs
-    from polrig.noise import SensorModel
-    from polrig.stokes import stokes_from_analyzers
-
-    from models.data import check_network_size, lit_samples
+    (:attr:`polrig.sensor.noise.SensorModel.saturation_dn` of the set's sensor model, as
+    :mod:`polrig.app.processing` flags it)."""
+    from polrig.models.data import check_network_size, lit_samples, load_dataset
+    from polrig.models.evaluate import network_inputs
+    from polrig.sensor.noise import SensorModel
+    from polrig.sensor.stokes import stokes_from_analyzers
 
     ds = load_dataset(data_dir, limit)
     check_network_size(ds, data_dir)
@@ -232,9 +242,9 @@ def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: b
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models._cli import run_main
+    from polrig.models._cli import run_main
 
-    ap = argparse.ArgumentParser(prog="python -m models.uncertainty_fit", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m polrig.models.uncertainty_fit", description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", nargs="*", default=[], help="calibration sets (`polrig sim dataset` folders)")
     ap.add_argument("--check", nargs="*", default=[], help="sets to report the coverage on")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
@@ -244,9 +254,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from models.data import read_manifest
-    from models.runtime import WEIGHTS_DIR, SingleShotModel
-    from polrig.rawio import atomic_write_text, temporary_sibling
+    from polrig.atomic import atomic_write_text, temporary_sibling
+    from polrig.models.data import read_manifest
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
 
     wd = pathlib.Path(args.weights) if args.weights else WEIGHTS_DIR
     if not wd.is_dir():

@@ -64,7 +64,7 @@ def exit_code_for(exc: BaseException) -> int | None:
     """The exit status a command line reports for ``exc`` (README, "CLI"): :data:`EXIT_USAGE`
     for bad input (``ConfigError``, ``FormatError``, a missing or existing file, a
     ``ValueError``), :data:`EXIT_FAILURE` for other polrig and OS errors, ``None`` for anything
-    else (a bug: let it propagate). One rule for ``polrig`` and the ``python -m models.*``
+    else (a bug: let it propagate). One rule for ``polrig`` and the ``python -m polrig.models.*``
     tools."""
     if isinstance(exc, (ConfigError, FormatError, FileNotFoundError, FileExistsError, ValueError)):
         return EXIT_USAGE

@@ -6,13 +6,13 @@ Layout of a dataset folder (the schema is documented in ``docs/sim.md``, section
 random generator), so shards can be made in any order, a crashed run resumes by skipping the
 shards already complete, and every shard is written atomically (temporary file + rename).
 
-Each sample is one single-shot capture: a random scene (:func:`sim.scene.random_scene`: shape
-family, one material drawn from a material mix (:data:`sim.materials.MATERIAL_MIXES`, default
+Each sample is one single-shot capture: a random scene (:func:`polrig.sim.scene.random_scene`: shape
+family, one material drawn from a material mix (:data:`polrig.sim.materials.MATERIAL_MIXES`, default
 ``"baek"``: the pBRDF family of the networks' initialization), light position and colour,
 turntable pose), optionally one bounce of interreflected light (``indirect_samples``), one
 random polarizer state,
 the full-resolution ideal-analyzer intensities per colour (0/45/90/135 deg) at ``H x W``
-with the sensor noise model (:class:`polrig.noise.SensorModel`) applied independently to every
+with the sensor noise model (:class:`polrig.sensor.noise.SensorModel`) applied independently to every
 value, black level and mean dark signal removed, divided by a per-sample ``scale``. The ground
 truth Mueller image is in the same units. Vectors are in the camera frame.
 """
@@ -27,19 +27,31 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from polrig.conventions import CONVENTIONS_VERSION
+from polrig.atomic import atomic_write_bytes, atomic_write_text
 from polrig.errors import ConfigError, FormatError
-from polrig.noise import SensorModel
-from polrig.argcheck import check_output_folder
-from polrig.rawio import atomic_write_bytes, atomic_write_text
-from sim.generator import Generator
-from sim.materials import MATERIAL_KINDS, MATERIAL_MIXES, Material, SurfaceMaterial
-from sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
-from sim.render import render
-from sim.scene import (FAMILIES, HOLDOUT_FAMILIES, RANDOM_FOCAL_PER_PX, Scene, default_camera,
-                       random_scene, stage_zero_axis_for)
-from sim.truth import npz_bytes
-from sim.world import ideal_analyzer_images
+from polrig.formats.argcheck import check_output_folder
+from polrig.optics.conventions import CONVENTIONS_VERSION
+from polrig.sensor.noise import SensorModel
+from polrig.sim.generator import Generator
+from polrig.sim.materials import (
+    MATERIAL_KINDS,
+    MATERIAL_MIXES,
+    Material,
+    SurfaceMaterial,
+)
+from polrig.sim.options import HIDDEN_DEFAULTS, SENSOR_MODEL_DEFAULTS
+from polrig.sim.render import render
+from polrig.sim.scene import (
+    FAMILIES,
+    HOLDOUT_FAMILIES,
+    RANDOM_FOCAL_PER_PX,
+    Scene,
+    default_camera,
+    random_scene,
+    stage_zero_axis_for,
+)
+from polrig.sim.truth import npz_bytes
+from polrig.sim.world import ideal_analyzer_images
 
 DATASET_FORMAT = "polrig-sim-dataset"
 DATASET_VERSION = 1
@@ -47,7 +59,7 @@ DATASET_VERSION = 1
 DATASET_EXPOSURE_US = 10000.0
 #: Percentile of the analyzer values inside the mask that ``scale`` maps to 1.
 SCALE_PERCENTILE = 99.5
-#: Image sides must be multiples of this: the networks' size multiple (``models.runtime.SIZE_MULTIPLE``,
+#: Image sides must be multiples of this: the networks' size multiple (``polrig.models.runtime.SIZE_MULTIPLE``,
 #: three 2x downsamplings), which trains and evaluates on whole images without padding.
 SIZE_MULTIPLE = 8
 
@@ -88,7 +100,7 @@ GROUND_TRUTH_PARAMETERS = {
 
 #: How the polarizer stage zero axis of a sample is chosen (``stage_zero_axes``):
 #: ``"camera-up"`` -- the camera's up direction ``-Y`` for every sample (version-1 datasets);
-#: ``"random"`` -- per sample, the rig definition of :func:`sim.scene.stage_zero_axis_for`
+#: ``"random"`` -- per sample, the rig definition of :func:`polrig.sim.scene.stage_zero_axis_for`
 #: (horizontal, perpendicular to the illumination axis: the default rig and the lab rig) with
 #: probability :data:`RIG_AXIS_FRACTION`, else the camera up direction with probability
 #: :data:`CAMERA_UP_FRACTION`, else a direction perpendicular to the illumination axis at an
@@ -99,7 +111,7 @@ CAMERA_UP_FRACTION = 0.2
 
 
 def families_for(holdout: bool, names: Sequence[str] | None = None) -> tuple[int, ...]:
-    """Family ids (indices of :data:`sim.scene.FAMILIES`) of the training or held-out set:
+    """Family ids (indices of :data:`polrig.sim.scene.FAMILIES`) of the training or held-out set:
     every family of that side, or the subset ``names``. A name that is unknown or belongs to
     the other side raises :class:`ConfigError`, so no held-out family can leak into a
     training set."""
@@ -137,7 +149,7 @@ def sample_stage_zero_axis(scene: Scene, rng: np.random.Generator) -> np.ndarray
 
 def check_transport(material_mix: str, indirect_samples: int) -> None:
     """:class:`ConfigError` (one line) unless ``material_mix`` names a mix of
-    :data:`sim.materials.MATERIAL_MIXES` and ``indirect_samples`` is an integer >= 0."""
+    :data:`polrig.sim.materials.MATERIAL_MIXES` and ``indirect_samples`` is an integer >= 0."""
     if material_mix not in MATERIAL_MIXES:
         raise ConfigError(f"material mix must be one of {', '.join(MATERIAL_MIXES)}, got {material_mix!r}")
     if isinstance(indirect_samples, bool) or not isinstance(indirect_samples, (int, np.integer)) \
@@ -146,8 +158,8 @@ def check_transport(material_mix: str, indirect_samples: int) -> None:
 
 
 def material_kind(material: Material | SurfaceMaterial) -> str:
-    """The :data:`sim.materials.MATERIAL_KINDS` entry a material of a mix was drawn as
-    (:func:`sim.materials.random_surface_material` makes each kind distinguishable: a
+    """The :data:`polrig.sim.materials.MATERIAL_KINDS` entry a material of a mix was drawn as
+    (:func:`polrig.sim.materials.random_surface_material` makes each kind distinguishable: a
     conductor has a complex index, a film a retardance, a depolarizing layer a polarized
     fraction below 1, anisotropic roughness two roughnesses, a dispersive dielectric an index
     varying across the channels)."""
@@ -175,7 +187,7 @@ def effective_eta(eta: complex) -> float:
 def fit_parameters(material: SurfaceMaterial, res, mask: np.ndarray) -> tuple[float, float]:
     """``(alpha, eta)`` of a :class:`SurfaceMaterial` sample for the image-wide parameters the
     analytic model takes (:data:`GROUND_TRUTH_PARAMETERS`), from the rendered per-pixel
-    nominal truth ``res`` (:class:`sim.render.RenderResult`: ``alpha`` along the tangent with
+    nominal truth ``res`` (:class:`polrig.sim.render.RenderResult`: ``alpha`` along the tangent with
     textures, ``eta`` the green real part with textures) over ``mask``."""
     if not mask.any():
         return float(material.alpha), effective_eta(material.eta_rgb[1])
@@ -187,7 +199,7 @@ def fit_parameters(material: SurfaceMaterial, res, mask: np.ndarray) -> tuple[fl
 
 
 def indirect_seed_for(seed: int, holdout: bool, index: int) -> int:
-    """Seed of a sample's interreflection Monte Carlo (:func:`sim.render.render`'s
+    """Seed of a sample's interreflection Monte Carlo (:func:`polrig.sim.render.render`'s
     ``indirect_seed``), derived from ``(seed, holdout, index)`` only."""
     return int(np.random.SeedSequence([int(seed), int(bool(holdout)), int(index), 3]).generate_state(1)[0])
 
@@ -202,16 +214,16 @@ def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool
     ``families`` (the shape families drawn from, :func:`families_for`; version-1 sets used
     ``sphere, box, cylinder, multi``).
 
-    ``material_mix`` (:data:`sim.materials.MATERIAL_MIXES`): the default ``"baek"`` gives the
+    ``material_mix`` (:data:`polrig.sim.materials.MATERIAL_MIXES`): the default ``"baek"`` gives the
     samples as before, bit for bit; another mix replaces the material by one drawn from the mix
     on its own random stream ``(seed, holdout, index, 2)``, built on the Baek material the
     sample would have had, with the same geometry, light, pose, polarizer state and exposure
     draw (paired sets). ``indirect_samples > 0`` adds one bounce of interreflected light
-    (:mod:`sim.interreflection`, that many Monte Carlo samples per pixel, seed
+    (:mod:`polrig.sim.interreflection`, that many Monte Carlo samples per pixel, seed
     :func:`indirect_seed_for`) to the images and the truth alike. ``alpha`` and ``eta`` of a
     material outside the Baek family are the image-wide values of
     :data:`GROUND_TRUTH_PARAMETERS` (:func:`fit_parameters`); ``material_kind`` is the index
-    of its kind in :data:`sim.materials.MATERIAL_KINDS`."""
+    of its kind in :data:`polrig.sim.materials.MATERIAL_KINDS`."""
     if stage_zero_axes not in STAGE_ZERO_AXES:
         raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
     check_transport(material_mix, indirect_samples)
@@ -314,7 +326,7 @@ def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: i
                    "stage_zero_axes": stage_zero_axes,
                    "stage_zero_axis_varies": stage_zero_axes != "camera-up",
                    "camera_x_axis_camera": [1.0, 0.0, 0.0]},
-        "noise": {"model": "polrig.noise.SensorModel, independent per analyzer value",
+        "noise": {"model": "polrig.sensor.noise.SensorModel, independent per analyzer value",
                   "sensor_model": dataclasses.asdict(model),
                   "exposure_us_for_dark": DATASET_EXPOSURE_US,
                   "analyzer": "ideal (0/45/90/135 deg), full resolution per colour, no demosaicing"},
@@ -330,8 +342,8 @@ def _manifest(out: pathlib.Path, *, count: int, width: int, height: int, seed: i
                       "ground_truth_parameters": GROUND_TRUTH_PARAMETERS},
         "transport": {"indirect_samples": int(indirect_samples),
                       "bounces": 1 if indirect_samples else 0,
-                      "indirect": "sim.interreflection.one_bounce, Monte Carlo, seed "
-                                  "sim.dataset.indirect_seed_for(seed, holdout, index); in the "
+                      "indirect": "polrig.sim.interreflection.one_bounce, Monte Carlo, seed "
+                                  "polrig.sim.dataset.indirect_seed_for(seed, holdout, index); in the "
                                   "analyzer images and the mueller truth alike"},
         "arrays": {k: {"shape": v[0], "dtype": v[1]} for k, v in SHARD_ARRAYS.items()},
     }
@@ -367,7 +379,7 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     (``materials``, ``transport``). A folder holding a different dataset (these two included)
     raises :class:`ConfigError`, as do sides that are not multiples of :data:`SIZE_MULTIPLE`, a
     negative seed and an ``out`` that is (or lies in) a file; all before anything is written.
-    ``runner(fn, jobs)`` (e.g. :meth:`polrig.cluster.DaskRunner.map_unordered`) runs
+    ``runner(fn, jobs)`` (e.g. :meth:`polrig.app.cluster.DaskRunner.map_unordered`) runs
     :func:`write_shard` on every :class:`ShardJob` elsewhere and yields ``(job, samples)`` as
     each finishes; each shard is the same bytes as in the serial run (default: this process,
     one shard after the other)."""
@@ -382,7 +394,7 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
         raise ConfigError(f"dataset size {width}x{height} out of range (8..4096)")
     if width % SIZE_MULTIPLE or height % SIZE_MULTIPLE:
         raise ConfigError(f"dataset size {width}x{height}: the sides must be multiples of {SIZE_MULTIPLE} "
-                          f"(the networks' size multiple, models.runtime.SIZE_MULTIPLE)")
+                          f"(the networks' size multiple, polrig.models.runtime.SIZE_MULTIPLE)")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
     families_for(holdout, families)  # a bad family list fails before anything is written

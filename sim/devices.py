@@ -1,15 +1,15 @@
-"""Simulated devices implementing :mod:`polrig.hal` over one shared :class:`sim.world.SimWorld`.
+"""Simulated devices implementing :mod:`polrig.acquisition.hal` over one shared :class:`polrig.sim.world.SimWorld`.
 
-* :class:`SimCamera` (:class:`polrig.hal.Camera`): a DoFP camera (IMX250MYR colour or
+* :class:`SimCamera` (:class:`polrig.acquisition.hal.Camera`): a DoFP camera (IMX250MYR colour or
   IMX250MZR mono layout) with ROI (the offset shifts the mosaic phase), exposure, gain,
-  trigger mode and the mosaic pixel formats of :mod:`polrig.pixelformats`.
-* :class:`SimStage` (:class:`polrig.hal.RotationStage`): the polarizer stage; moving it
+  trigger mode and the mosaic pixel formats of :mod:`polrig.sensor.pixelformats`.
+* :class:`SimStage` (:class:`polrig.acquisition.hal.RotationStage`): the polarizer stage; moving it
   changes the incident Stokes state the camera sees.
-* :class:`SimTurntable` (:class:`polrig.hal.Turntable`): rotates the objects on it.
-* :class:`SimLight` (:class:`polrig.hal.Light`): its level scales the image linearly.
+* :class:`SimTurntable` (:class:`polrig.acquisition.hal.Turntable`): rotates the objects on it.
+* :class:`SimLight` (:class:`polrig.acquisition.hal.Light`): its level scales the image linearly.
 
-Motion and exposures take time on the world's :class:`sim.clock.SimClock` (trapezoidal
-profiles, :mod:`sim.motion`). :func:`create_sim_rig` builds the whole rig from an options
+Motion and exposures take time on the world's :class:`polrig.sim.clock.SimClock` (trapezoidal
+profiles, :mod:`polrig.sim.motion`). :func:`create_sim_rig` builds the whole rig from an options
 dict; :meth:`SimRig.inject_fault` makes a later call of one device raise a typed
 :mod:`polrig.errors` error, for testing the code that drives the rig.
 """
@@ -23,13 +23,21 @@ from typing import Any
 
 import numpy as np
 
-from polrig import hal
-from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceTimeout,
-                           FormatError, ProtocolError)
-from polrig.hal import DeviceInfo, Frame, FrameMeta
-from polrig.pixelformats import get_pixel_format
-from sim.motion import Move
-from sim.world import SimWorld
+from polrig.acquisition import hal
+from polrig.acquisition.hal import DeviceInfo
+from polrig.errors import (
+    ConfigError,
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceTimeout,
+    FormatError,
+    ProtocolError,
+)
+from polrig.sensor.frame import Frame, FrameMeta
+from polrig.sensor.pixelformats import get_pixel_format
+from polrig.sim.motion import Move
+from polrig.sim.truth import SimTruth
+from polrig.sim.world import SimWorld
 
 FAULT_KINDS = ("timeout", "fault", "disconnect", "protocol")
 DEVICE_KINDS = ("camera", "stage", "turntable", "light")
@@ -397,8 +405,6 @@ class SimRig:
 
     def __init__(self, world: SimWorld, options: dict[str, Any], *, camera_kw=None,
                  stage_kw=None, turntable_kw=None) -> None:
-        from sim.truth import SimTruth
-
         self.world = world
         self.options = options
         self.faults = FaultInjector()
@@ -406,7 +412,7 @@ class SimRig:
         self.stage = SimStage(world, self.faults, **(stage_kw or {}))
         self.turntable = SimTurntable(world, self.faults, **(turntable_kw or {}))
         self.light = SimLight(world, self.faults)
-        self.truth = SimTruth(self)
+        self.truth = SimTruth(world, self.camera)
 
     @property
     def devices(self) -> dict[str, _SimDevice]:
@@ -439,8 +445,8 @@ class SimRig:
 
 
 def create_sim_rig(options: dict[str, Any] | None = None) -> SimRig:
-    """Build (and open) a simulated rig. Options: see :func:`sim.options.parse_options`."""
-    from sim.options import build_world, parse_options
+    """Build (and open) a simulated rig. Options: see :func:`polrig.sim.options.parse_options`."""
+    from polrig.sim.options import build_world, parse_options
 
     opts = parse_options(options)
     world = build_world(opts)

@@ -9,8 +9,8 @@ simulated rig that calibration must find.
 
 Normalisation (``docs/conventions.md``, "Radiometric units"): :meth:`Generator.incident_stokes`
 is the Stokes vector of *unit* unpolarized light after the polarizer
-(:func:`polrig.mueller.polarizer_stokes` with ``intensity=1``, so ``S0 = (1 + 1/ER) / 2``);
-the light's radiant intensity and colour (:meth:`sim.geometry.PointLight.radiant_intensity_rgb`)
+(:func:`polrig.optics.mueller.polarizer_stokes` with ``intensity=1``, so ``S0 = (1 + 1/ER) / 2``);
+the light's radiant intensity and colour (:meth:`polrig.sim.geometry.PointLight.radiant_intensity_rgb`)
 are part of the image-plane Mueller matrix, not of ``S_in``.
 """
 
@@ -20,7 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from polrig.mueller import polarizer_stokes
+from polrig.optics.mueller import polarizer_stokes
 
 
 @dataclasses.dataclass(frozen=True)

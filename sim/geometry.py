@@ -136,7 +136,7 @@ class TurntableGeometry:
     """The turntable: unit ``axis`` (world, pointing up) through ``point_m``.
 
     A turntable angle rotates the objects on it right-handedly about ``axis`` (counter-
-    clockwise seen from above, as :class:`polrig.hal.Turntable` states).
+    clockwise seen from above, as :class:`polrig.acquisition.hal.Turntable` states).
     """
 
     axis: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))

@@ -1,6 +1,6 @@
 """One bounce of indirect light between the surfaces of a scene (issue 23, item 2).
 
-The direct renderer (:mod:`sim.render`) lights every surface point by the point light alone.
+The direct renderer (:mod:`polrig.sim.render`) lights every surface point by the point light alone.
 Concave objects and facing objects also light each other; this module adds the light that
 reaches a visible point ``p`` after exactly one reflection at another surface point ``q``
 (or another point of the same object):
@@ -9,8 +9,8 @@ reaches a visible point ``p`` after exactly one reflection at another surface po
                       M_p(omega -> camera) . M_q(light -> q -> p) I / |light - q|^2  d omega
 
 with ``M`` the polarized BRDF times the cosine of its incident direction (1/sr) evaluated as
-full 4x4 Mueller matrices by :mod:`sim.surface_bsdf` for every material (a Baek-family
-:class:`sim.materials.Material` is the equivalent :class:`SurfaceMaterial`; identical values,
+full 4x4 Mueller matrices by :mod:`polrig.sim.surface_bsdf` for every material (a Baek-family
+:class:`polrig.sim.materials.Material` is the equivalent :class:`SurfaceMaterial`; identical values,
 tested), so circular polarization created at ``q`` (a metal) is carried to ``p``. The
 intermediate beam ``q -> p`` has one Stokes frame on both sides (``x`` from the fixed
 reference :data:`BEAM_REFERENCE`, made perpendicular). The integral is estimated by Monte
@@ -32,11 +32,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from polrig import frames as fr
-from sim import surface_bsdf
-from sim.materials import Material, SurfaceMaterial
-from sim.raycast import SHADOW_EPS_M, light_visibility, surface_hits
-from sim.scene import Scene
+from polrig.optics import bases as fr
+from polrig.sim import surface_bsdf
+from polrig.sim.materials import Material, SurfaceMaterial
+from polrig.sim.raycast import SHADOW_EPS_M, light_visibility, surface_hits
+from polrig.sim.scene import Scene
 
 #: World reference for the ``x`` axis of the Stokes frame of the beam between two surfaces.
 BEAM_REFERENCE = np.array([0.267261, 0.534522, 0.801784])
@@ -56,7 +56,7 @@ def evaluate_materials(scene: Scene, turntable_deg: float, mat_index: np.ndarray
                        refs: tuple, distribution: str = "ggx") -> np.ndarray:
     """4x4 Mueller matrices times ``cos(theta_i)`` ``(P, 3, 4, 4)`` of the scene's materials at
     ``P`` points (material index into ``scene.materials``, local points for textures, world
-    normal and directions), Stokes frames from ``refs`` (:func:`sim.surface_bsdf.evaluate`)."""
+    normal and directions), Stokes frames from ``refs`` (:func:`polrig.sim.surface_bsdf.evaluate`)."""
     out = np.zeros((len(n), 3, 4, 4))
     k = 0
     for ob in scene.objects:
@@ -88,7 +88,7 @@ def one_bounce(scene: Scene, turntable_deg: float, p: np.ndarray, ng: np.ndarray
                wo: np.ndarray, mat_index: np.ndarray, p_local: np.ndarray, *, samples: int,
                seed: int = 0, distribution: str = "ggx") -> np.ndarray:
     """One-bounce indirect radiance Mueller blocks ``(M, 3, 3, 3)`` (colour, row, col; per unit
-    radiant intensity of the light, the units of :meth:`sim.render.RenderResult.radiance_mueller`)
+    radiant intensity of the light, the units of :meth:`polrig.sim.render.RenderResult.radiance_mueller`)
     at ``M`` visible points (world ``p``, normals facing the camera, ``wo`` towards the camera),
     in the rig frames (incident: stage zero axis, emergent: camera ``X``)."""
     if samples < 1:

@@ -1,4 +1,4 @@
-"""Materials of the simulator: parameters of the Baek et al. 2018 pBRDF (:mod:`polrig.pbrdf`).
+"""Materials of the simulator: parameters of the Baek et al. 2018 pBRDF (:mod:`polrig.optics.pbrdf`).
 
 A material is ``kd`` (diffuse albedo per colour R, G, B, in [0, 1]), ``alpha`` (microfacet
 roughness, GGX/Beckmann parameter), ``eta`` (real refractive index of the dielectric) and
@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+from polrig.sim.optical_data import CONDUCTORS, WAVELENGTHS_NM
 
 
 def pbrdf_components(ks: float, kd) -> tuple[str, ...]:
@@ -85,7 +87,7 @@ def random_material(rng: np.random.Generator, *, name: str = "random") -> Materi
 
 
 # ---------------------------------------------------------------------------------------------
-# Materials beyond the initialization's family (issue 23): evaluated by sim.surface_bsdf
+# Materials beyond the initialization's family (issue 23): evaluated by polrig.sim.surface_bsdf
 
 #: Refractive index of the thin retarding film (enters only its internal propagation angle).
 FILM_INDEX = 1.5
@@ -131,9 +133,9 @@ class Texture:
 class SurfaceMaterial:
     """A microfacet surface outside the Baek 2018 dielectric family of :class:`Material`.
 
-    * ``eta_rgb``: relative index per colour (R, G, B at :data:`sim.optical_data.WAVELENGTHS_NM`),
+    * ``eta_rgb``: relative index per colour (R, G, B at :data:`polrig.sim.optical_data.WAVELENGTHS_NM`),
       complex ``n + i k`` for a conductor (``k > 0``, no diffuse term), real and varying for a
-      dispersive dielectric (:mod:`sim.optical_data`).
+      dispersive dielectric (:mod:`polrig.sim.optical_data`).
     * ``alpha`` / ``alpha_v``: roughness along the surface tangent / across it (``alpha_v``
       ``None``: isotropic); ``distribution`` ``"ggx"`` or ``"beckmann"`` (anisotropic forms of
       Walter et al. 2007 and Heitz, JCGT 3(2) 2014, as Mitsuba 3's ``MicrofacetDistribution``).
@@ -142,7 +144,7 @@ class SurfaceMaterial:
       and out of a depolarizing layer at normal incidence and exitance; each pass keeps
       ``p0 ** (1 / (2 cos theta))`` (path length through the layer), so the degree of
       polarization falls below the Fresnel prediction and more so towards grazing
-      (:mod:`sim.surface_bsdf`). ``1``: no depolarization.
+      (:mod:`polrig.sim.surface_bsdf`). ``1``: no depolarization.
     * ``retardance_rad``: normal-incidence retardance of a thin birefringent film over the
       surface at 532 nm (``0``: no film); ``fast_axis_deg``: its fast axis from the surface
       tangent towards the bitangent.
@@ -280,7 +282,6 @@ def cauchy_rgb(n_d: float, abbe: float) -> tuple[float, float, float]:
     """Real index per channel of a two-term Cauchy dielectric ``n = A + B / lambda^2`` with
     refractive index ``n_d`` and Abbe number ``V_d = (n_d - 1) / (n_F - n_C)`` (the catalogue
     parametrisation of optical glasses and plastics)."""
-    from sim.optical_data import WAVELENGTHS_NM
     ld, lf, lc = _LINES_NM
     b = (n_d - 1.0) / abbe / (1.0 / lf ** 2 - 1.0 / lc ** 2)
     a = n_d - b / ld ** 2
@@ -298,7 +299,7 @@ def random_surface_material(rng: np.random.Generator, kind: str, base: Material,
     """A random material of ``kind`` (:data:`MATERIAL_KINDS` other than ``baek``) built on the
     dielectric ``base`` (its kd, alpha, eta):
 
-    * ``conductor``: a metal of :data:`sim.optical_data.CONDUCTORS`, log-uniform alpha in
+    * ``conductor``: a metal of :data:`polrig.sim.optical_data.CONDUCTORS`, log-uniform alpha in
       [0.02, 0.6], GGX or Beckmann;
     * ``dispersive``: the base with a Cauchy dispersion of Abbe number uniform in [20, 65]
       (:func:`cauchy_rgb`; ``n_d`` = the base eta);
@@ -312,7 +313,6 @@ def random_surface_material(rng: np.random.Generator, kind: str, base: Material,
     eta3 = (base.eta,) * 3
     tangent = tuple(rng.normal(size=3))
     if kind == "conductor":
-        from sim.optical_data import CONDUCTORS
         metal = str(rng.choice(list(CONDUCTORS)))
         alpha = float(np.exp(rng.uniform(np.log(0.02), np.log(0.6))))
         return SurfaceMaterial(f"{name}_{metal}", CONDUCTORS[metal], alpha,

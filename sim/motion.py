@@ -3,7 +3,7 @@
 A move from ``start_deg`` to ``target_deg`` accelerates at ``accel_deg_s2`` up to
 ``speed_deg_s``, cruises, and decelerates to rest (a triangular profile when the move is too
 short to reach full speed), as stepper/servo motion controllers do (e.g. the Thorlabs APT
-velocity profile: acceleration, maximum velocity). Times are :class:`sim.clock.SimClock`
+velocity profile: acceleration, maximum velocity). Times are :class:`polrig.sim.clock.SimClock`
 seconds.
 """
 

@@ -6,7 +6,7 @@ under white LED light). Every material whose optics depend on wavelength is eval
 exactly these wavelengths.
 
 **Conductors**: :data:`CONDUCTORS` (complex ``n + i k`` per channel of gold, silver,
-copper, aluminium and chrome, with their source) live in :mod:`polrig.conductors`, because
+copper, aluminium and chrome, with their source) live in :mod:`polrig.optics.conductors`, because
 the calibration models a metal mirror with them too; they are re-exported here.
 
 **Dispersive dielectrics** (:data:`DIELECTRICS`): Sellmeier equations
@@ -24,8 +24,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from polrig.conductors import (CONDUCTORS, MITSUBA_NAMES, WAVELENGTHS_NM,  # noqa: F401
-                               conductor_rgb)
+from polrig.optics.conductors import (  # noqa: F401
+    CONDUCTORS,
+    MITSUBA_NAMES,
+    WAVELENGTHS_NM,
+    conductor_rgb,
+)
 
 #: Sellmeier coefficients ``((B1, B2, B3), (C1, C2, C3))`` (``C`` in square micrometres).
 SELLMEIER: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {

@@ -3,13 +3,13 @@
 Top-level keys (all optional). :func:`parse_options` checks every value, nested ones too
 (``hidden.extinction_ratio``, ``sensor_model.full_well_e``), for type and range, and is the
 one place that does: a rig configuration's ``[sim]`` table goes through it when the
-configuration is validated (:func:`polrig.config.validate_config`). Unknown keys and bad
+configuration is validated (:func:`polrig.formats.config.validate_config`). Unknown keys and bad
 values raise :class:`polrig.errors.ConfigError` naming the key:
 
 =====================  ===============================================  =====================
 key                    meaning                                          default
 =====================  ===============================================  =====================
-``scene``              a name of :data:`sim.scene.SCENES`               ``"sphere"``
+``scene``              a name of :data:`polrig.sim.scene.SCENES`               ``"sphere"``
 ``size``               sensor ``(width, height)`` or ``"WxH"``          ``(512, 512)``
 ``sensor``             ``"imx250myr"`` (colour) or ``"imx250mzr"``      ``"imx250myr"``
 ``seed``               seeds the hidden analyzer errors and the noise   ``0``
@@ -20,11 +20,11 @@ key                    meaning                                          default
 ``turntable_speed_deg_s``  turntable speed                              ``10``
 ``distribution``       microfacet distribution ``ggx``/``beckmann``     ``"ggx"``
 ``indirect_samples``   Monte Carlo samples per pixel of one bounce of   ``0``
-                       interreflected light (:mod:`sim.interreflection`;
+                       interreflected light (:mod:`polrig.sim.interreflection`;
                        0: direct light only)
 ``open``               open the devices on creation                     ``True``
 ``hidden``             overrides of :data:`HIDDEN_DEFAULTS`             ``{}``
-``sensor_model``       overrides of :class:`polrig.noise.SensorModel`   ``{}``
+``sensor_model``       overrides of :class:`polrig.sensor.noise.SensorModel`   ``{}``
 =====================  ===============================================  =====================
 """
 
@@ -36,18 +36,18 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from polrig.analyzer import AnalyzerModel
-from polrig.config import check_sensor_model
 from polrig.errors import ConfigError
-from polrig.layouts import LAYOUTS
-from polrig.noise import SensorModel
-from polrig.pbrdf import DISTRIBUTIONS
-from sim.clock import SimClock
-from sim.generator import Generator
-from sim.geometry import TurntableGeometry, rotation_about_axis
-from sim.scene import SCENES, make_scene
-from sim.sensor import DoFPSensor, random_analyzer
-from sim.world import SimWorld
+from polrig.formats.config import check_sensor_model
+from polrig.optics.pbrdf import DISTRIBUTIONS
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.layouts import LAYOUTS
+from polrig.sensor.noise import SensorModel
+from polrig.sim.clock import SimClock
+from polrig.sim.generator import Generator
+from polrig.sim.geometry import TurntableGeometry, rotation_about_axis
+from polrig.sim.scene import SCENES, make_scene
+from polrig.sim.sensor import DoFPSensor, random_analyzer
+from polrig.sim.world import SimWorld
 
 DEFAULTS: dict[str, Any] = {
     "scene": "sphere", "size": (512, 512), "sensor": "imx250myr", "seed": 0, "noise": True,
@@ -66,7 +66,7 @@ HIDDEN_DEFAULTS: dict[str, Any] = {
     "turntable_axis": tuple(rotation_about_axis([1.0, 0.0, 0.0], 0.4) @ [0.0, 0.0, 1.0]),
     "turntable_point_m": (0.0015, -0.001, 0.0),
     "ideal_analyzer": False,
-    "analyzer": {},                    # keyword arguments of sim.sensor.random_analyzer
+    "analyzer": {},                    # keyword arguments of polrig.sim.sensor.random_analyzer
     "photons_per_radiance_us": 2.5,
     "colour_qe": (0.75, 1.0, 0.85),
 }
@@ -152,7 +152,7 @@ def _table(where: str, key: str, value: Any) -> dict[str, Any]:
 
 
 def _analyzer_kwargs(where: str, value: Any) -> dict[str, float]:
-    """Keyword arguments of :func:`sim.sensor.random_analyzer` (all numbers >= 0)."""
+    """Keyword arguments of :func:`polrig.sim.sensor.random_analyzer` (all numbers >= 0)."""
     table = _table(where, "hidden.analyzer", value)
     params = inspect.signature(random_analyzer).parameters
     known = sorted(k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY)

@@ -1,7 +1,7 @@
-"""Ray casting against the analytic shapes of a :class:`sim.scene.Scene` (world frame, metres):
+"""Ray casting against the analytic shapes of a :class:`polrig.sim.scene.Scene` (world frame, metres):
 nearest hits with shading normals and materials, and point-light visibility. Shared by the
-direct renderer (:mod:`sim.render`) and the one-bounce indirect light
-(:mod:`sim.interreflection`)."""
+direct renderer (:mod:`polrig.sim.render`) and the one-bounce indirect light
+(:mod:`polrig.sim.interreflection`)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim.geometry import rows_times, unit
-from sim.scene import Scene
+from polrig.sim.geometry import rows_times, unit
+from polrig.sim.scene import Scene
 
 #: Offset of shadow-ray origins along the geometric normal (metres).
 SHADOW_EPS_M = 1e-5

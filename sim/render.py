@@ -1,28 +1,28 @@
-"""Vectorised ray casting of a :class:`sim.scene.Scene` into per-pixel ground truth.
+"""Vectorised ray casting of a :class:`polrig.sim.scene.Scene` into per-pixel ground truth.
 
-One camera ray per pixel centre (:meth:`sim.geometry.PinholeCamera.ray_directions`), nearest
-analytic hit over all objects (:mod:`sim.shapes`), one shadow ray per lit pixel towards the
-point light against the same shapes, then the pBRDF (:func:`polrig.pbrdf.linear_rig_mueller`)
+One camera ray per pixel centre (:meth:`polrig.sim.geometry.PinholeCamera.ray_directions`), nearest
+analytic hit over all objects (:mod:`polrig.sim.shapes`), one shadow ray per lit pixel towards the
+point light against the same shapes, then the pBRDF (:func:`polrig.optics.pbrdf.linear_rig_mueller`)
 in the rig's Stokes frames (incident ``x`` = the stage zero axis, emergent ``x`` = the camera
 ``X`` axis; ``docs/conventions.md``). Only the terms a pixel needs are evaluated: nothing
 outside the mask or in shadow, no specular term for ``ks = 0`` materials, no diffuse term for
 ``kd = 0``; the specular term is colour independent and evaluated once, the diffuse one for
 unit albedo and scaled per colour (``M_c = ks Ms + kd_c Md``, the decomposition of
-:func:`polrig.pbrdf.specular_diffuse_blocks`).
+:func:`polrig.optics.pbrdf.specular_diffuse_blocks`).
 
 Radiometry (``docs/conventions.md``, "Radiometric units"): ``brdf`` is the pBRDF times
 ``cos(theta_i)`` (1/sr) and ``inv_r2`` the inverse-square falloff ``1 / |light - p|^2``
 (1/m^2); the radiance leaving a pixel's surface point towards the camera, per unit radiant
 intensity of the light and per unit normalised incident Stokes, is ``brdf * inv_r2``
-(:meth:`RenderResult.radiance_mueller`). :mod:`sim.world` turns it into DN.
+(:meth:`RenderResult.radiance_mueller`). :mod:`polrig.sim.world` turns it into DN.
 
-Materials outside the Baek family (:class:`sim.materials.SurfaceMaterial`: conductors,
+Materials outside the Baek family (:class:`polrig.sim.materials.SurfaceMaterial`: conductors,
 dispersive dielectrics, anisotropic roughness, films, depolarizing layers, textures) are
-evaluated per colour by :func:`sim.surface_bsdf.evaluate` (4x4, then the linear block);
+evaluated per colour by :func:`polrig.sim.surface_bsdf.evaluate` (4x4, then the linear block);
 Baek-family pixels take the path above unchanged. ``indirect_samples > 0`` adds one bounce of
-interreflected light (:mod:`sim.interreflection`) to :meth:`RenderResult.radiance_mueller`
+interreflected light (:mod:`polrig.sim.interreflection`) to :meth:`RenderResult.radiance_mueller`
 and :meth:`RenderResult.radiance_state`; ``brdf`` stays the direct term. Ray casting is
-:mod:`sim.raycast`.
+:mod:`polrig.sim.raycast`.
 """
 
 from __future__ import annotations
@@ -33,14 +33,13 @@ import time
 
 import numpy as np
 
-from polrig.pbrdf import linear_rig_mueller
-from sim import surface_bsdf
-from sim.geometry import rows_times, unit
-from sim.interreflection import one_bounce
-from sim.materials import SurfaceMaterial
-from sim.raycast import light_visibility, surface_hits
-from sim.scene import Scene
-
+from polrig.optics.pbrdf import linear_rig_mueller
+from polrig.sim import surface_bsdf
+from polrig.sim.geometry import rows_times, unit
+from polrig.sim.interreflection import one_bounce
+from polrig.sim.materials import SurfaceMaterial
+from polrig.sim.raycast import light_visibility, surface_hits
+from polrig.sim.scene import Scene
 
 
 @dataclasses.dataclass
@@ -126,7 +125,7 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
     """Ray-cast ``scene`` with its objects turned to ``turntable_deg``.
 
     ``indirect_samples > 0`` adds one bounce of indirect light between the surfaces
-    (:func:`sim.interreflection.one_bounce`, that many Monte Carlo samples per visible pixel,
+    (:func:`polrig.sim.interreflection.one_bounce`, that many Monte Carlo samples per visible pixel,
     seeded by ``indirect_seed`` and the pose) to every visible pixel, lit or in shadow; the
     default 0 renders direct light only, exactly as before.
 

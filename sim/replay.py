@@ -1,6 +1,6 @@
 """A simulated camera that replays frames rendered beforehand.
 
-:class:`ReplayCamera` behaves as :class:`sim.devices.SimCamera` in every respect the rig sees
+:class:`ReplayCamera` behaves as :class:`polrig.sim.devices.SimCamera` in every respect the rig sees
 (settings, trigger, timing on the world's clock: exposure plus readout per frame, the axes'
 positions at mid-exposure), but its frames are not rendered at grab time: they are rendered
 once by :meth:`ReplayCamera.record` (one raw mosaic per polarizer state) and each grab returns
@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from polrig.errors import ConfigError
-from sim.devices import SimCamera
+from polrig.sim.devices import SimCamera
 
 
 class ReplayCamera(SimCamera):

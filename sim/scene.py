@@ -1,7 +1,7 @@
 """Scenes of the simulator: objects (shape + pose + materials), the rig (camera, light,
 turntable, polarizer stage axis) and named presets.
 
-Units: metres, world frame ``+Z`` up (:mod:`sim.geometry`). An object's pose maps its local
+Units: metres, world frame ``+Z`` up (:mod:`polrig.sim.geometry`). An object's pose maps its local
 frame to the world at turntable angle 0; objects with ``on_turntable`` are additionally carried
 by the turntable rotation. Per-region materials: ``region(p_local) -> index`` into
 ``materials`` (``None``: one material).
@@ -18,12 +18,35 @@ from typing import Callable
 
 import numpy as np
 
-from sim.geometry import PinholeCamera, PointLight, TurntableGeometry, look_at, unit
-from sim.materials import (Material, SurfaceMaterial, Texture, get_material, random_material,
-                           random_mix_material)
-from sim.optical_data import conductor_rgb, dielectric_rgb
-from sim.shapes import (Blob, Box, Cylinder, HeightField, Rectangle, Shape, Sphere, Torus,
-                        gaussian_bumps, wave_normal_map)
+from polrig.sim.geometry import (
+    PinholeCamera,
+    PointLight,
+    TurntableGeometry,
+    look_at,
+    rotation_about_axis,
+    unit,
+)
+from polrig.sim.materials import (
+    Material,
+    SurfaceMaterial,
+    Texture,
+    get_material,
+    random_material,
+    random_mix_material,
+)
+from polrig.sim.optical_data import conductor_rgb, dielectric_rgb
+from polrig.sim.shapes import (
+    Blob,
+    Box,
+    Cylinder,
+    HeightField,
+    Rectangle,
+    Shape,
+    Sphere,
+    Torus,
+    gaussian_bumps,
+    wave_normal_map,
+)
 
 RegionFn = Callable[[np.ndarray], np.ndarray]
 
@@ -182,7 +205,6 @@ def _floor(material: str = "diffuse_grey") -> SceneObject:
 
 
 def _tilt(deg_x: float, deg_z: float) -> np.ndarray:
-    from sim.geometry import rotation_about_axis
     return rotation_about_axis([0, 0, 1], deg_z) @ rotation_about_axis([1, 0, 0], deg_x)
 
 
@@ -323,7 +345,7 @@ def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,
 FAMILIES = ("sphere", "box", "cylinder", "multi", "heightfield", "plane", "blob", "torus")
 #: Focal length of the dataset camera in units of min(width, height): the default rig's, so
 #: that networks trained on datasets see the geometry of ``polrig sim render`` captures
-#: (``models.runtime.DEFAULT_FOCAL_PER_PX`` relies on it).
+#: (``polrig.models.runtime.DEFAULT_FOCAL_PER_PX`` relies on it).
 RANDOM_FOCAL_PER_PX = 2.5
 
 #: Families kept out of the training set by ``polrig sim dataset`` (``--holdout`` makes them).
@@ -339,7 +361,7 @@ def random_scene(rng: np.random.Generator, width: int, height: int,
     camera's up direction (``-Y``), so that the rig frames are fixed in the camera frame
     across samples.
 
-    ``material_mix`` (:data:`sim.materials.MATERIAL_MIXES`, default ``"baek"``: the
+    ``material_mix`` (:data:`polrig.sim.materials.MATERIAL_MIXES`, default ``"baek"``: the
     initialization's family, as before) replaces the Baek material by one drawn from the mix
     with ``material_rng`` (required for other mixes), built on the Baek material drawn from
     ``rng``; ``rng`` is consumed exactly as for ``"baek"``, so the geometry, light and pose of

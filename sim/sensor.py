@@ -9,15 +9,15 @@ units"):
    the image-plane Mueller matrix (the simulator's ``truth_mueller``) is the radiance Mueller
    matrix times the light's radiant intensity times this response, so that the noise-free,
    black-subtracted Stokes image the sensor sees is ``S_out_DN = M @ S_in``;
-3. each pixel's analyzer (:class:`polrig.analyzer.AnalyzerModel`: orientation error,
+3. each pixel's analyzer (:class:`polrig.sensor.analyzer.AnalyzerModel`: orientation error,
    diattenuation, gain; Powell and Gruev, Opt. Express 21(18):21039, 2013) turns its colour's
-   Stokes vector into an intensity (:meth:`polrig.analyzer.AnalyzerModel.mosaic`);
+   Stokes vector into an intensity (:meth:`polrig.sensor.analyzer.AnalyzerModel.mosaic`);
 4. noise, dark current, black level, quantization and saturation
-   (:class:`polrig.noise.SensorModel`), or, with noise off, the exact float mean.
+   (:class:`polrig.sensor.noise.SensorModel`), or, with noise off, the exact float mean.
 
 A mono sensor (IMX250MZR) integrates the three colour radiances with ``mono_weights``.
 Defaults follow the IMX250MZR/MYR class (~10.5 ke- full well, ~2.3 e- read noise, 12-bit
-ADC; the published figures are cited in :mod:`polrig.noise`).
+ADC; the published figures are cited in :mod:`polrig.sensor.noise`).
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ import dataclasses
 
 import numpy as np
 
-from polrig.analyzer import AnalyzerModel
-from polrig.layouts import get_layout
-from polrig.noise import SensorModel
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.layouts import get_layout
+from polrig.sensor.noise import SensorModel
 
 #: Default relative quantum efficiency of the R, G, B pixels of the colour sensor.
 COLOUR_QE = (0.75, 1.0, 0.85)
@@ -129,7 +129,7 @@ class DoFPSensor:
                rng: np.random.Generator | None, noise: bool = True) -> np.ndarray:
         """Raw frame from a noise-free signal mosaic (black-subtracted DN at ``gain_db``).
 
-        ``noise=True``: ``uint16`` DN sampled by :meth:`polrig.noise.SensorModel.sample_raw`
+        ``noise=True``: ``uint16`` DN sampled by :meth:`polrig.sensor.noise.SensorModel.sample_raw`
         (shot, read and dark noise, black level, quantization, saturation), reproducible for
         a seeded ``rng``. ``noise=False``: the exact float64 mean (black level + signal + dark
         signal, saturating at full well and at the ADC range, not quantized).

@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from sim.geometry import unit
+from polrig.sim.geometry import unit
 
 T_MIN = 1e-6
 

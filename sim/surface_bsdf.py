@@ -1,4 +1,4 @@
-"""Polarized BRDF of :class:`sim.materials.SurfaceMaterial`: conductors, dispersive
+"""Polarized BRDF of :class:`polrig.sim.materials.SurfaceMaterial`: conductors, dispersive
 dielectrics, anisotropic GGX/Beckmann roughness, partial depolarization and a thin retarding
 film, per colour channel, as full 4x4 Mueller matrices times ``cos(theta_i)`` (1/sr).
 
@@ -8,8 +8,8 @@ surface tangent ``t`` (bitangent ``b = n x t``), per colour ``c``::
     M_c = R_out . P_out . (ks Ms_c + kd_c Md_c) . P_in . R_in
 
 * ``Ms_c = F(h . wi; eta_c) D(h) G(wi, wo) / (4 cos theta_o)``: the microfacet specular term
-  of :mod:`polrig.pbrdf` with the complex-index Fresnel matrix
-  :func:`polrig.mueller.specular_reflection` (conductors put retardance into ``m22, m23, m32,
+  of :mod:`polrig.optics.pbrdf` with the complex-index Fresnel matrix
+  :func:`polrig.optics.mueller.specular_reflection` (conductors put retardance into ``m22, m23, m32,
   m33``; Mitsuba 3 ``roughconductor``), the anisotropic GGX or Beckmann ``D`` and the separable
   Smith ``G`` with projected roughness ``(alpha_u^2 v_t^2 + alpha_v^2 v_b^2) / v_n^2``
   (Heitz, "Understanding the masking-shadowing function", JCGT 3(2), 2014; Walter et al.,
@@ -17,7 +17,7 @@ surface tangent ``t`` (bitangent ``b = n x t``), per colour ``c``::
 * ``Md_c = T_out(theta_o; eta_c) . depolarizer . T_in(theta_i; eta_c) cos(theta_i) / pi``: the
   Baek 2018 diffuse term (dielectrics only) with the index of the channel, so that the
   polarization of the diffuse light now depends on colour (dispersion).
-* ``P_in``, ``P_out = diag(1, p, p, p)`` (:func:`polrig.mueller.partial_depolarizer`) with
+* ``P_in``, ``P_out = diag(1, p, p, p)`` (:func:`polrig.optics.mueller.partial_depolarizer`) with
   ``p = p0 ** (1 / (2 cos theta))`` for the pass in (``theta_i``) and out (``theta_o``): a
   depolarizing layer crossed twice whose polarization memory decays with the path length
   through it (phenomenological); the linear-to-linear elements are scaled by
@@ -25,19 +25,19 @@ surface tangent ``t`` (bitangent ``b = n x t``), per colour ``c``::
   the out and in factors. One factor per pass keeps the BRDF reciprocal (tested).
 * ``R_in``, ``R_out``: a thin birefringent film over the surface, index matched (no Fresnel
   term of its own), fast axis ``f = cos(a) t + sin(a) b`` in the surface plane; each pass is
-  the linear retarder :func:`polrig.mueller.retarder_at` with the fast axis at the angle of
+  the linear retarder :func:`polrig.optics.mueller.retarder_at` with the fast axis at the angle of
   ``f`` in the beam's Stokes frame and retardance ``delta0 (532 nm / lambda_c) / cos theta_t``
-  (``cos theta_t`` inside the film of index :data:`sim.materials.FILM_INDEX`; constant
+  (``cos theta_t`` inside the film of index :data:`polrig.sim.materials.FILM_INDEX`; constant
   birefringence; R. A. Chipman, W. S. T. Lam, G. Young, *Polarized Light and Optical Systems*,
   CRC 2018, ch. 20 on retarders, to first order in the film's obliquity).
 
 With one real ``eta`` for every colour, isotropic roughness, ``p0 = 1`` and no film this is
-exactly :func:`polrig.pbrdf.mueller` (tested). Every factor is a realizable Mueller matrix and
+exactly :func:`polrig.optics.pbrdf.mueller` (tested). Every factor is a realizable Mueller matrix and
 sums and products of realizable matrices are realizable, so the truth is realizable.
 
 Stokes bases: incident ``k = -wi``, outgoing ``k = wo``; ``x`` is Mitsuba's default
-``stokes_basis(k)`` (``refs = None``, as :func:`polrig.pbrdf.mueller`) or the rig frames from
-``refs = (stage_zero_axis, camera_x_axis)`` (as :func:`polrig.pbrdf.linear_rig_mueller`).
+``stokes_basis(k)`` (``refs = None``, as :func:`polrig.optics.pbrdf.mueller`) or the rig frames from
+``refs = (stage_zero_axis, camera_x_axis)`` (as :func:`polrig.optics.pbrdf.linear_rig_mueller`).
 Invalid geometry (``wi`` or ``wo`` at or below the horizon) gives zero matrices.
 """
 
@@ -45,11 +45,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from polrig import frames as fr
-from polrig import mueller as mu
-from polrig.pbrdf import ALPHA_MIN, DISTRIBUTIONS, smith_g1_of_a2t2
-from sim.materials import FILM_INDEX
-from sim.optical_data import WAVELENGTHS_NM
+from polrig.optics import bases as fr
+from polrig.optics import mueller as mu
+from polrig.optics.pbrdf import ALPHA_MIN, DISTRIBUTIONS, smith_g1_of_a2t2
+from polrig.sim.materials import FILM_INDEX
+from polrig.sim.optical_data import WAVELENGTHS_NM
 
 #: Wavelength at which a film's ``retardance_rad`` is given (nm).
 RETARDANCE_REFERENCE_NM = 532.0
@@ -200,7 +200,7 @@ def evaluate(normal, tangent_ref, wi, wo, params: dict[str, np.ndarray], *,
 
     ``normal``, ``wi``, ``wo``: ``(P, 3)`` world vectors (normalised here); ``tangent_ref``:
     ``(3,)`` or ``(P, 3)`` tangent reference (projected on the surface); ``params``: the
-    per-point arrays of :meth:`sim.materials.SurfaceMaterial.parameters` (``P`` rows);
+    per-point arrays of :meth:`polrig.sim.materials.SurfaceMaterial.parameters` (``P`` rows);
     ``refs``: ``None`` for Mitsuba's default Stokes bases or ``(stage_zero_axis,
     camera_x_axis)`` for the rig frames (module docstring), each ``(3,)`` or ``(P, 3)``.
     """

@@ -1,24 +1,24 @@
-"""Calibration targets of the simulated rig, as :class:`sim.scene.SceneObject` s.
+"""Calibration targets of the simulated rig, as :class:`polrig.sim.scene.SceneObject` s.
 
 * ``charuco``: a ChArUco board (8 x 6 squares of 25 mm, 18 mm ``4X4_50`` markers: the default
-  board of ``calibration.runner.Options``, printed with OpenCV's own board image) on a fixture
+  board of ``polrig.calibration.runner.Options``, printed with OpenCV's own board image) on a fixture
   at the turntable centre: a two-sided
-  :class:`sim.shapes.Rectangle` whose per-region materials (matte black / matte white
+  :class:`polrig.sim.shapes.Rectangle` whose per-region materials (matte black / matte white
   dielectric, Baek diffuse only) follow the board image;
 * ``mirror_plate``: a polished aluminium plate in the same fixture (:data:`MIRROR_ALUMINIUM`:
-  a real conductor with the complex index of :data:`sim.optical_data.CONDUCTORS` per colour,
+  a real conductor with the complex index of :data:`polrig.sim.optical_data.CONDUCTORS` per colour,
   so with the diattenuation and retardance of its Fresnel reflection; a non-depolarizing GGX
   lobe of roughness 0.3 spreads the reflected light of the polarizer over the whole image),
   the polarized flat field of the DoFP calibration. Aluminium because it is the usual bare
   front-surface mirror metal, and the calibration's default
-  (:data:`calibration.mirror.DEFAULT_MIRROR_METAL`, tested equal);
+  (:data:`polrig.calibration.mirror.DEFAULT_MIRROR_METAL`, tested equal);
 * ``white_plate``: a matte white plate in the same fixture (flat field, unpolarizing);
 * ``chrome_sphere``: a chrome ball of known radius off the turntable axis, in front of a matte
   white backdrop (so that its silhouette is a dark disc), for the light position; chrome is
   the real conductor ``Cr`` (:data:`CHROME`, normal-incidence reflectance 0.64, 0.67 and
   0.70 for R, G and B, partly polarizing at oblique incidence), not an ideal mirror.
 
-Both metals render through :class:`sim.materials.SurfaceMaterial` (:mod:`sim.surface_bsdf`).
+Both metals render through :class:`polrig.sim.materials.SurfaceMaterial` (:mod:`polrig.sim.surface_bsdf`).
 
 The fixture's pose (tilt back from vertical, yaw on the turntable) is shared by the plates and
 the board so that a board pose measured at a turntable angle is the plate pose there, as with a
@@ -37,11 +37,11 @@ from typing import Any
 
 import numpy as np
 
-from sim.geometry import rotation_about_axis
-from sim.materials import Material, SurfaceMaterial
-from sim.optical_data import conductor_rgb
-from sim.scene import OBJECT_Z_M, Scene, SceneObject
-from sim.shapes import Rectangle, Sphere
+from polrig.sim.geometry import rotation_about_axis
+from polrig.sim.materials import Material, SurfaceMaterial
+from polrig.sim.optical_data import conductor_rgb
+from polrig.sim.scene import OBJECT_Z_M, Scene, SceneObject
+from polrig.sim.shapes import Rectangle, Sphere
 
 TARGETS = ("charuco", "mirror_plate", "white_plate", "chrome_sphere")
 
@@ -85,7 +85,7 @@ def board_image(squares_x: int, squares_y: int, square_m: float, marker_m: float
     (``cv2.aruco.CharucoBoard.generateImage``): exactly ``squares * pixels_per_square`` pixels
     on each side, so that image pixel ``(row, col)`` covers board ``x`` in
     ``[col, col + 1) * square_m / pixels_per_square`` (and ``y`` likewise, down the print).
-    The calibration side (:class:`calibration.charuco.BoardSpec`) describes the same board."""
+    The calibration side (:class:`polrig.calibration.charuco.BoardSpec`) describes the same board."""
     import cv2
 
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, f"DICT_{dictionary.upper()}"))
@@ -148,7 +148,7 @@ def target_scene(base: Scene, name: str, **kw) -> Scene:
 
 
 def mount(rig, name: str, **kw) -> None:
-    """Swap the target of a simulated rig (a :class:`sim.devices.SimRig` or anything with a
+    """Swap the target of a simulated rig (a :class:`polrig.sim.devices.SimRig` or anything with a
     ``world`` attribute): the world's scene gets the target's objects and its render caches are
     emptied. Camera, light, stage, turntable position and all hidden parameters are kept."""
     world = getattr(rig, "world", None)

@@ -3,7 +3,7 @@
 :meth:`SimTruth.ground_truth` gives the per-pixel truth for the camera's current ROI, exposure,
 gain, the light's level and the turntable's pose; :meth:`SimTruth.rig_parameters` the hidden
 parameters calibration has to recover. :func:`write_truth` writes them as ``truth.json`` plus
-one ``truth_<name>.npz`` and ``truth_<name>_mueller.exr`` (:mod:`polrig.exr`) per capture; the schema is documented in ``docs/sim.md``.
+one ``truth_<name>.npz`` and ``truth_<name>_mueller.exr`` (:mod:`polrig.formats.exr`) per capture; the schema is documented in ``docs/sim.md``.
 """
 
 from __future__ import annotations
@@ -12,16 +12,14 @@ import io
 import json
 import pathlib
 import zipfile
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from polrig.conventions import CONVENTIONS_VERSION
-from polrig.rawio import atomic_write_bytes, atomic_write_text
-
-if TYPE_CHECKING:  # pragma: no cover
-    from sim.devices import SimRig
-    from sim.world import Roi, SimWorld
+from polrig.atomic import atomic_write_bytes, atomic_write_text
+from polrig.formats.exr import colour_planes, read_mueller_exr, write_mueller_exr
+from polrig.optics.conventions import CONVENTIONS_VERSION
+from polrig.sim.world import Roi, SimWorld
 
 TRUTH_FORMAT = "polrig-sim-truth"
 TRUTH_VERSION = 1
@@ -31,7 +29,7 @@ PIXEL_KEYS = ("mueller", "mask", "lit", "shadow", "normal", "kd", "alpha", "eta"
               "wo", "depth_m", "position_m", "object_index", "material_index")
 
 
-def pose_truth(world: "SimWorld", *, turntable_deg: float, roi: "Roi", exposure_us: float,
+def pose_truth(world: SimWorld, *, turntable_deg: float, roi: Roi, exposure_us: float,
                gain_db: float) -> dict[str, Any]:
     """Per-pixel truth of a ROI at a turntable pose (see :meth:`SimTruth.ground_truth`)."""
     r = world.render_pose(turntable_deg)
@@ -52,11 +50,22 @@ def pose_truth(world: "SimWorld", *, turntable_deg: float, roi: "Roi", exposure_
     return out
 
 
-class SimTruth:
-    """Ground-truth provider of a :class:`sim.devices.SimRig`."""
+class CameraSettings(Protocol):
+    """What the truth needs of the simulated camera: its current readout and settings."""
 
-    def __init__(self, rig: "SimRig") -> None:
-        self._rig = rig
+    roi: Roi
+    exposure_us: float
+    gain_db: float
+
+
+class SimTruth:
+    """Ground truth of a simulated rig: its ``world`` seen through ``camera``'s current ROI,
+    exposure and gain (the :class:`polrig.sim.devices.SimRig` builds it; this module knows
+    nothing of the devices)."""
+
+    def __init__(self, world: SimWorld, camera: CameraSettings) -> None:
+        self._world = world
+        self._camera = camera
 
     def ground_truth(self, *, turntable_deg: float | None = None) -> dict[str, Any]:
         """Truth for the camera's current ROI, exposure and gain, the light's level and the
@@ -69,23 +78,23 @@ class SimTruth:
         ``depth_m`` ``(h, w)``; ``position_m`` ``(3, h, w)`` world metres; plus the scalars
         ``turntable_deg``, ``roi``, ``exposure_us``, ``gain_db``, ``light_level``, ``light_on``.
         """
-        cam = self._rig.camera
-        world = self._rig.world
+        cam = self._camera
+        world = self._world
         table = world.turntable_angle_deg() if turntable_deg is None else float(turntable_deg)
         return pose_truth(world, turntable_deg=table, roi=cam.roi, exposure_us=cam.exposure_us,
                           gain_db=cam.gain_db)
 
     def rig_parameters(self) -> dict[str, Any]:
         """Hidden parameters of the simulated rig, JSON-serialisable."""
-        return rig_parameters(self._rig.world)
+        return rig_parameters(self._world)
 
     def incident_stokes(self, stage_deg: float) -> np.ndarray:
         """True normalised incident Stokes ``(3,)`` at a stage reading."""
-        return self._rig.world.generator.incident_stokes(stage_deg)
+        return self._world.generator.incident_stokes(stage_deg)
 
 
-def rig_parameters(world: "SimWorld") -> dict[str, Any]:
-    """Hidden parameters of a :class:`sim.world.SimWorld` (see ``docs/sim.md``)."""
+def rig_parameters(world: SimWorld) -> dict[str, Any]:
+    """Hidden parameters of a :class:`polrig.sim.world.SimWorld` (see ``docs/sim.md``)."""
     sc = world.scene
     return {
         "light_position_m": sc.light.position_m.tolist(),
@@ -179,8 +188,7 @@ def _json_default(o: Any) -> Any:
 
 def _write_mueller_exr(d: pathlib.Path, name: str, truth: dict[str, Any]) -> str:
     """Write the truth Mueller image (``M{row}{col}.{R,G,B|Y}``) with the mask and the
-    normals as extra planes (:func:`polrig.exr.write_mueller_exr`)."""
-    from polrig.exr import colour_planes, write_mueller_exr
+    normals as extra planes (:func:`polrig.formats.exr.write_mueller_exr`)."""
 
     extra = {"mask": np.asarray(truth["mask"], np.float32)}
     extra.update(colour_planes("normal", np.asarray(truth["normal"], np.float32)))
@@ -202,7 +210,5 @@ def read_truth(directory: str | pathlib.Path, name: str | None = None) -> tuple[
     with np.load(d / entry["files"]["npz"], allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     if "mueller" not in arrays:
-        from polrig.exr import read_mueller_exr
-
         arrays["mueller"] = read_mueller_exr(d / entry["files"]["exr"]).mueller
     return index, arrays

@@ -2,7 +2,7 @@
 turntable, sensor and the simulated clock.
 
 Images are produced lazily and cached: a turntable pose is ray-cast once
-(:func:`sim.render.render`, kept in a small LRU cache); a polarizer state recombines the
+(:func:`polrig.sim.render.render`, kept in a small LRU cache); a polarizer state recombines the
 cached Mueller matrices of the lit pixels with the new incident Stokes vector
 (``S_out = M S_in``, 27 multiply-adds per lit pixel, also cached per state); exposure, gain and light level only scale it;
 noise is sampled per grab. Units and frames: ``docs/conventions.md``.
@@ -16,14 +16,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sim.clock import SimClock
-from sim.generator import Generator
-from sim.motion import Move
-from sim.render import RenderResult, render
-from sim.scene import Scene
-from sim.sensor import DoFPSensor
+from polrig.sim.clock import SimClock
+from polrig.sim.generator import Generator
+from polrig.sim.motion import Move
+from polrig.sim.render import RenderResult, render
+from polrig.sim.scene import Scene
+from polrig.sim.sensor import DoFPSensor
 
-Roi = tuple[int, int, int, int]  # (width, height, offset_x, offset_y), as polrig.hal.Camera.roi
+Roi = tuple[int, int, int, int]  # (width, height, offset_x, offset_y), as polrig.acquisition.hal.Camera.roi
 
 
 class _Lru:
@@ -56,7 +56,7 @@ def ideal_analyzer_images(stokes: np.ndarray) -> np.ndarray:
 class SimWorld:
     """State and image formation of the simulated rig.
 
-    Motion: ``stage_move`` and ``turntable_move`` are the current :class:`sim.motion.Move` of
+    Motion: ``stage_move`` and ``turntable_move`` are the current :class:`polrig.sim.motion.Move` of
     each axis (the simulated devices replace them); positions are read on ``clock``.
     """
 

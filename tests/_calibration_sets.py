@@ -6,8 +6,8 @@ import pathlib
 
 import numpy as np
 
-from calibration.calset import CalibrationSet
-from polrig.analyzer import AnalyzerModel, layout_name_at
+from polrig.calibration.calset import CalibrationSet
+from polrig.sensor.analyzer import AnalyzerModel, layout_name_at
 
 
 def set_calibrated_on(folder: pathlib.Path, size=(320, 240), layout: str = "imx250myr", *,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from polrig.layouts import ANALYZER_ANGLES_DEG
+from polrig.sensor.layouts import ANALYZER_ANGLES_DEG
 
 
 def smooth_stokes(n_colours: int, shape: tuple[int, int], *, freq: float = 0.05,

@@ -1,9 +1,10 @@
-"""Shared test fixtures. Paths to the shared real data live here."""
+"""Shared test fixtures, and the paths of the test data kept in the repository."""
 
 from __future__ import annotations
 
 import os
 import pathlib
+import signal
 
 import pytest
 
@@ -19,14 +20,26 @@ settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-SHARED = pathlib.Path(os.environ.get("POLRIG_SHARED", REPO.parent / "shared"))
-REAL_DOFP = SHARED / "data" / "real-dofp"
+#: Real IMX250MZR raw frames with their licence (tests/data/real-dofp/README.md).
+REAL_DOFP = REPO / "tests" / "data" / "real-dofp"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def sigint_raises_keyboard_interrupt():
+    """SIGINT raises ``KeyboardInterrupt`` here and in the processes the tests start, as in a
+    terminal. A shell starts a background job with SIGINT ignored, Python then keeps it ignored,
+    and children inherit that; the tests that deliver SIGINT (an operator's Ctrl-C) install the
+    handler they rely on instead of inheriting it (a child's exec resets a handler to the
+    default, so child processes get Python's own)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
 
 
 @pytest.fixture(scope="session")
 def real_dofp_dir() -> pathlib.Path:
     if not REAL_DOFP.is_dir():
-        pytest.fail(f"real DoFP frames not found at {REAL_DOFP} (set POLRIG_SHARED)")
+        pytest.fail(f"real DoFP frames not found at {REAL_DOFP} (they are part of the repository)")
     return REAL_DOFP
 
 
@@ -34,7 +47,7 @@ def real_dofp_dir() -> pathlib.Path:
 def tiny_train_data(tmp_path_factory) -> pathlib.Path:
     """A 4-sample 32x32 training set (seed 0, 2 shards) for the training tests; read only
     (tests that damage data copy it first)."""
-    from sim.dataset import generate_dataset
+    from polrig.sim.dataset import generate_dataset
 
     root = tmp_path_factory.mktemp("tiny_train") / "data"
     generate_dataset(root, count=4, width=32, seed=0, shard_size=2, progress=False)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polrig.analyzer import AnalyzerModel, layout_name_at, resolve_layout
 from polrig.errors import FormatError
-from polrig.layouts import IMX250MYR, IMX250MZR
+from polrig.sensor.analyzer import AnalyzerModel, layout_name_at, resolve_layout
+from polrig.sensor.layouts import IMX250MYR, IMX250MZR
 
 
 def _ideal_intensity(s: np.ndarray, angle_deg: float) -> np.ndarray:

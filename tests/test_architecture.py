@@ -1,102 +1,128 @@
-"""Imports flow one way (docs/architecture.md): ``drivers``, ``sim``, ``calibration`` and
-``models`` build on polrig's core modules and never import the app modules (rig, session,
-capture, processing, cli, commands, gui); ``models/runtime.py`` never imports torch; and no
-module imports a module that imports it back (module- or function-level, any package)."""
+"""The architecture of docs/architecture.md, checked on the code.
+
+* One import name: only ``polrig`` is a top-level package; the repository's ``drivers/``,
+  ``sim/``, ``calibration/`` and ``models/`` folders are ``polrig.drivers`` and so on, and no file
+  imports them (or a module's pre-layering path such as ``polrig.session``) by an old name.
+* Layers: every module belongs to one layer, and a module never imports a module of a higher
+  layer (module level, function level, or under ``if TYPE_CHECKING:``).
+* No module imports a module that imports it back, directly or through others.
+* ``polrig.models.runtime`` never imports torch (inference is onnxruntime only).
+"""
 
 from __future__ import annotations
 
 import ast
 import pathlib
+import re
+import sys
+import tomllib
 
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-APP = ("polrig.rig", "polrig.session", "polrig.capture", "polrig.processing", "polrig.records",
-       "polrig.sessionio", "polrig.calibrations", "polrig.cli",
-       "polrig.commands", "polrig.gui")
-LOWER = ("drivers", "sim", "calibration", "models")
+
+#: Where each import package lives in the repository.
+PACKAGE_DIRS = {"polrig": "polrig", "polrig.drivers": "drivers", "polrig.sim": "sim",
+                "polrig.calibration": "calibration", "polrig.models": "models"}
+
+#: The layers, bottom up (docs/architecture.md). A module's layer is that of the longest entry
+#: that is the module or one of its packages; ``polrig`` itself (the version) is the bottom.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("polrig", "polrig.errors", "polrig.atomic"),  # foundation: version, errors, atomic writes
+    ("polrig.optics",),
+    ("polrig.sensor",),
+    ("polrig.formats",),
+    ("polrig.solve",),
+    ("polrig.acquisition",),
+    ("polrig.drivers",),
+    ("polrig.sim",),
+    ("polrig.calibration",),
+    ("polrig.models",),
+    ("polrig.app",),
+    ("polrig.gui",),
+    ("polrig.cli", "polrig.__main__"),
+)
+
+#: Top-level names polrig used to install besides ``polrig``, and the pre-layering modules of
+#: ``polrig`` (each now lives in a layer's subpackage).
+OLD_TOP_LEVEL = ("drivers", "sim", "calibration", "models")
+OLD_POLRIG_MODULES = (
+    "conventions", "mueller", "conductors", "realizability", "frames", "pbrdf", "layouts",
+    "pixelformats", "demosaic", "stokes", "noise", "analyzer", "rawio", "exr", "config",
+    "argcheck", "radiometry", "reference", "_reference_kernel", "_reference_numpy", "scoring",
+    "quantiles", "hal", "plan", "engine", "rig", "session", "records", "sessionio",
+    "calibrations", "processing", "capture", "cluster", "preview", "commands")
 
 
-def _imports(path: pathlib.Path) -> list[tuple[int, str]]:
-    """``(line, module)`` of every import in ``path``, function-level imports included."""
+def _files() -> dict[str, pathlib.Path]:
+    """Module name -> file, for every module of the distribution."""
+    out = {}
+    for pkg, folder in PACKAGE_DIRS.items():
+        root = REPO / folder
+        for p in sorted(root.rglob("*.py")):
+            parts = list(p.relative_to(root).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            name = ".".join([pkg, *parts])
+            if pkg == "polrig" and any(name == k or name.startswith(k + ".")
+                                       for k in PACKAGE_DIRS if k != "polrig"):
+                continue
+            out[name] = p
+    return out
+
+
+def _imports(tree: ast.AST, name: str, is_pkg: bool) -> list[tuple[int, str]]:
+    """``(line, dotted name)`` of every import in ``tree`` (any depth, ``TYPE_CHECKING`` blocks
+    included; relative imports resolved against module ``name``); ``from pkg import x`` gives
+    ``pkg.x`` (the graph reads it as ``pkg`` where ``x`` is no module)."""
     found = []
-    for node in ast.walk(ast.parse(path.read_text("utf-8"), str(path))):
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
-            found.append((node.lineno, node.module))
-            found += [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = name.split(".") if is_pkg else name.split(".")[:-1]
+                anchor = anchor[:len(anchor) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            found += [(node.lineno, f"{base}.{a.name}") for a in node.names]
     return found
 
 
-@pytest.mark.parametrize("package", LOWER)
-def test_lower_packages_never_import_the_app(package):
-    bad = [f"{p.relative_to(REPO)}:{line} imports {mod}"
-           for p in sorted((REPO / package).rglob("*.py"))
-           for line, mod in _imports(p)
-           if any(mod == app or mod.startswith(app + ".") for app in APP)]
-    assert not bad, "\n".join(bad)
-
-
-def test_runtime_never_imports_torch():
-    mods = [m for _, m in _imports(REPO / "models" / "runtime.py")]
-    assert not [m for m in mods if m == "torch" or m.startswith("torch.")]
-
-
-# -- no import cycles ---------------------------------------------------------------------------
-PACKAGES = ("polrig", "drivers", "sim", "calibration", "models")
-
-
-def _module_name(path: pathlib.Path) -> str:
-    parts = list(path.relative_to(REPO).with_suffix("").parts)
-    if parts[-1] == "__init__":
-        parts.pop()
-    return ".".join(parts)
-
-
-def _runtime_nodes(tree: ast.AST):
-    """Every node of ``tree`` except those under ``if TYPE_CHECKING:`` (never imported at
-    run time)."""
-    todo = [tree]
-    while todo:
-        node = todo.pop()
-        yield node
-        for child in ast.iter_child_nodes(node):
-            if isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
-                todo.extend(child.orelse)
-                continue
-            todo.append(child)
-
-
-def import_graph() -> dict[str, set[str]]:
-    """Module -> the project modules it imports (module-level and function-level imports,
-    relative ones resolved; ``from pkg import name`` counts as importing ``pkg.name`` where
-    that is a module, else ``pkg``)."""
-    files = {_module_name(p): p for pkg in PACKAGES for p in sorted((REPO / pkg).rglob("*.py"))}
+def import_graph(files: dict[str, pathlib.Path] | None = None) -> dict[str, set[str]]:
+    """Module -> the project modules it imports (any depth, ``from pkg import name`` counts as
+    importing ``pkg.name`` where that is a module, else ``pkg``)."""
+    files = _files() if files is None else files
     graph: dict[str, set[str]] = {}
     for name, path in files.items():
-        is_pkg = path.name == "__init__.py"
-        edges: set[str] = set()
-        for node in _runtime_nodes(ast.parse(path.read_text("utf-8"), str(path))):
-            if isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                base = node.module or ""
-                if node.level:
-                    anchor = name.split(".") if is_pkg else name.split(".")[:-1]
-                    anchor = anchor[:len(anchor) - (node.level - 1)]
-                    base = ".".join(anchor + ([base] if base else []))
-                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in files else base
-                           for a in node.names]
-            else:
-                continue
-            for target in targets:
-                while target and target not in files:  # a name inside a module
-                    target = target.rpartition(".")[0]
-                if target and target != name:
-                    edges.add(target)
+        tree = ast.parse(path.read_text("utf-8"), str(path))
+        edges = set()
+        for _, target in _imports(tree, name, path.name == "__init__.py"):
+            while target and target not in files:  # a name inside a module
+                target = target.rpartition(".")[0]
+            if target and target != name:
+                edges.add(target)
         graph[name] = edges
     return graph
+
+
+def layer_of(module: str) -> int:
+    """Index into :data:`LAYERS` of ``module`` (KeyError for a module no layer holds)."""
+    best, rank = "", None
+    for i, names in enumerate(LAYERS):
+        for n in names:
+            matches = module == n if n == "polrig" else (module == n or module.startswith(n + "."))
+            if matches and len(n) > len(best):
+                best, rank = n, i
+    if rank is None:
+        raise KeyError(module)
+    return rank
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    return sorted(f"{a} (layer {layer_of(a)}) imports {b} (layer {layer_of(b)})"
+                  for a, targets in graph.items() for b in targets
+                  if b.startswith("polrig") and layer_of(b) > layer_of(a))
 
 
 def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -128,8 +154,6 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
             if len(comp) > 1:
                 out.append(sorted(comp))
 
-    import sys
-
     limit = sys.getrecursionlimit()
     sys.setrecursionlimit(max(limit, 10000))
     try:
@@ -141,23 +165,111 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return sorted(out)
 
 
+def old_name_imports(path: pathlib.Path) -> list[str]:
+    """Imports in ``path`` of an old top-level name or a pre-layering ``polrig`` module."""
+    old = re.compile(r"^(?:(?:%s)(?:\.|$)|polrig\.(?:%s)(?:\.|$))" % (
+        "|".join(OLD_TOP_LEVEL), "|".join(OLD_POLRIG_MODULES)))
+    bad = []
+    for line, mod in _imports(ast.parse(path.read_text("utf-8"), str(path)), "", False):
+        if old.match(mod):
+            bad.append(f"{path.relative_to(REPO)}:{line} imports {mod}")
+    return bad
+
+
+# -- the checkers themselves -------------------------------------------------------------------
 def test_the_cycle_finder_finds_cycles():
-    """The checker itself: a two-module and a three-module cycle are found, a chain is not."""
     graph = {"a": {"b"}, "b": {"a"}, "c": {"d"}, "d": {"e"}, "e": {"c"}, "f": {"a"}, "g": set()}
     assert import_cycles(graph) == [["a", "b"], ["c", "d", "e"]]
     assert import_cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
 
 
-def test_the_import_graph_sees_function_level_and_relative_imports():
+def test_the_layer_check_finds_an_upward_import():
+    graph = {"polrig.sensor.stokes": {"polrig.optics.mueller"},
+             "polrig.optics.mueller": {"polrig.app.processing"},
+             "polrig.app.processing": {"polrig.models.runtime", "polrig"}}
+    assert upward_imports(graph) == [
+        "polrig.optics.mueller (layer 1) imports polrig.app.processing (layer 10)"]
+    assert layer_of("polrig") == 0 and layer_of("polrig.errors") == 0
+    assert layer_of("polrig.cli.commands.capture") == layer_of("polrig.cli")
+    with pytest.raises(KeyError):
+        layer_of("polrig.newthing")
+
+
+def test_the_old_name_check_finds_old_names(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    f = tmp_path / "m.py"
+    f.write_text("import models.runtime as rt\nfrom sim import devices\n"
+                 "from polrig.session import Session\nfrom polrig import errors\n"
+                 "def f():\n    from calibration.calset import load\n"
+                 "from polrig.cli.commands import capture\nfrom polrig.app import session\n")
+    assert [b.split(" imports ")[1] for b in old_name_imports(f)] == [
+        "models.runtime", "sim.devices", "polrig.session.Session", "calibration.calset.load"]
+
+
+def test_the_import_graph_sees_every_kind_of_import():
     graph = import_graph()
-    assert "polrig.session" in graph["polrig.capture"]  # module level
-    assert "sim.options" in graph["polrig.rig"]  # function level (the [sim] table check)
-    assert "sim.devices" not in graph["sim.truth"]  # only under TYPE_CHECKING: never runs
-    assert "polrig.commands.capture" in graph["polrig.commands.reconstruct"]
+    assert "polrig.app.session" in graph["polrig.app.capture"]  # module level
+    assert "polrig.cli.commands.capture" in graph["polrig.cli.commands.reconstruct"]
+    # relative imports, under TYPE_CHECKING and inside functions
+    tree = ast.parse("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import q\n"
+                     "def f():\n    from .q import g\n")
+    assert {m for _, m in _imports(tree, "p", True)} >= {"p.q", "p.q.g"}
+
+
+# -- the code -----------------------------------------------------------------------------------
+def test_every_module_has_a_layer():
+    missing = [m for m in _files() if not _has_layer(m)]
+    assert not missing, f"modules no layer holds (add them to LAYERS and the docs): {missing}"
+
+
+def _has_layer(module: str) -> bool:
+    try:
+        layer_of(module)
+    except KeyError:
+        return False
+    return True
+
+
+def test_no_upward_import():
+    """A module never imports a module of a higher layer, at any depth."""
+    bad = upward_imports(import_graph())
+    assert not bad, "upward imports:\n" + "\n".join(bad)
 
 
 def test_no_import_cycle_between_modules():
-    """No module imports (directly or through others, at module or function level) a module
-    that imports it back, in any of polrig, drivers, sim, calibration, models."""
     cycles = import_cycles(import_graph())
     assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_no_file_imports_an_old_name():
+    """polrig, its packages, the tests and the benchmarks import only ``polrig.*`` names."""
+    roots = [*PACKAGE_DIRS.values(), "tests", "benchmarks"]
+    bad = [b for r in roots for p in sorted((REPO / r).rglob("*.py")) for b in old_name_imports(p)]
+    assert not bad, "\n".join(bad)
+
+
+def test_no_doc_or_script_runs_an_old_module_name():
+    """READMEs, docs, scripts and code name modules to run as ``python -m polrig...``."""
+    pattern = re.compile(r"-m\s+(?:%s)\." % "|".join(OLD_TOP_LEVEL))
+    paths = [p for p in REPO.rglob("*") if p.is_file() and ".git" not in p.parts
+             and ".venv" not in p.parts and "results" not in p.parts
+             and p.suffix in (".md", ".py", ".sh", ".toml", "")]
+    bad = [f"{p.relative_to(REPO)}: {m.group(0)}" for p in paths
+           for m in pattern.finditer(p.read_text("utf-8", errors="replace"))]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_package_list_is_every_package_folder():
+    """pyproject's explicit package list (the wheel's contents) names every folder with an
+    ``__init__.py`` under each package directory, and maps them under ``polrig``."""
+    conf = tomllib.loads((REPO / "pyproject.toml").read_text("utf-8"))["tool"]["setuptools"]
+    assert conf["package-dir"] == PACKAGE_DIRS
+    found = {m for m, p in _files().items() if p.name == "__init__.py"}
+    assert sorted(conf["packages"]) == sorted(found)
+
+
+def test_runtime_never_imports_torch():
+    path = _files()["polrig.models.runtime"]
+    mods = [m for _, m in _imports(ast.parse(path.read_text("utf-8")), "polrig.models.runtime",
+                                   False)]
+    assert not [m for m in mods if m == "torch" or m.startswith("torch.")]

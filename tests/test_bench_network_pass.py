@@ -3,7 +3,7 @@ known to work before a GPU lease spends minutes on it (benchmarks/gpu_check.sh).
 
 import pytest
 
-from models.runtime import WEIGHTS_DIR
+from polrig.models.runtime import WEIGHTS_DIR
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / "single_shot.onnx").is_file(), reason="no shipped graph")
 

@@ -15,12 +15,12 @@ import pathlib
 
 import numpy as np
 import pytest
-
 from _calibration_sets import set_calibrated_on
-from polrig import processing
-from polrig.analyzer import AnalyzerModel
+
+from polrig.app import processing
+from polrig.app.session import Session
 from polrig.cli import main
-from polrig.session import Session
+from polrig.sensor.analyzer import AnalyzerModel
 
 
 def rig_toml(path: pathlib.Path, size: str = "64x48", sensor: str = "imx250myr") -> pathlib.Path:
@@ -79,7 +79,7 @@ def test_the_same_camera_is_accepted(tmp_path, capsys):
 
 def _prepared(tmp_path, cal):
     from polrig.cli import build_parser
-    from polrig.commands.capture import prepare_capture
+    from polrig.cli.commands.capture import prepare_capture
 
     # the command's own parser: every option the command reads has its default
     ns = build_parser().parse_args(["capture", "--out", str(tmp_path / "s"), "--poses", "0",
@@ -90,9 +90,9 @@ def _prepared(tmp_path, cal):
 def test_a_readout_inside_the_calibrated_area_is_accepted_and_cropped(tmp_path):
     """A set calibrated on the whole 64x48 sensor serves a 32x24 ROI at (8, 4): the session
     is captured and processed with the analyzer model cropped to the ROI."""
-    from polrig import capture
-    from polrig.commands.capture import open_session
-    from polrig.rig import open_rig
+    from polrig.app import capture
+    from polrig.app.rig import open_rig
+    from polrig.cli.commands.capture import open_session
 
     cal = tmp_path / "cal"
     rng = np.random.default_rng(2)
@@ -123,9 +123,9 @@ def test_a_set_calibrated_on_a_roi_serves_only_readouts_inside_it(tmp_path, caps
     """A set calibrated on the 32x24 readout at (16, 8) of a 64x48 sensor: its intrinsics
     are carried to full-sensor pixels, a readout inside it is accepted (analyzer cropped at
     the offset relative to the calibrated area), one reaching outside is refused."""
-    from polrig.commands.capture import open_session
+    from polrig.app.rig import open_rig
+    from polrig.cli.commands.capture import open_session
     from polrig.errors import ConfigError
-    from polrig.rig import open_rig
 
     cal = tmp_path / "cal"
     rng = np.random.default_rng(3)
@@ -145,7 +145,7 @@ def test_a_set_calibrated_on_a_roi_serves_only_readouts_inside_it(tmp_path, caps
             open_session(_prepared(tmp_path, cal), rig, ["polrig", "capture"])
     assert not (tmp_path / "s").exists()
     # the analyzer of a readout at (24, 12) is the calibrated one at (8, 4)
-    from polrig.hal import Frame, FrameMeta
+    from polrig.sensor.frame import Frame, FrameMeta
 
     meta = FrameMeta(0, 0.0, 1000.0, 0.0, "BayerRG16", "imx250myr", 16, offset_xy=(24, 12))
     frames = [[[Frame(np.full((8, 16), 2000 + 100 * i, np.uint16), meta)]] for i in range(4)]

@@ -1,4 +1,4 @@
-"""The procedures' exposure search (:func:`calibration.procedures.auto_expose`) with the light
+"""The procedures' exposure search (:func:`polrig.calibration.procedures.auto_expose`) with the light
 off or far too dim: it stops at the longest exposure a grab can wait for and says the scene is
 too dark (it used to search up to 10 s, where the camera's grab timed out)."""
 
@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from calibration import procedures
-from calibration.errors import SceneTooDark
+from polrig.app.rig import open_rig
+from polrig.calibration import procedures
+from polrig.calibration.errors import SceneTooDark
 from polrig.cli import main
-from polrig.rig import open_rig
 
 
 def _sim(light: float):

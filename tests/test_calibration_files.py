@@ -8,12 +8,13 @@ import json
 
 import numpy as np
 import pytest
-
-from calibration import calset
 from _calibration_sets import small_set
-from calibration.calset import CalibrationSet
+
+from polrig.calibration import calset
+from polrig.calibration.calset import CalibrationSet
 from polrig.cli import main
 from polrig.errors import FormatError
+
 
 def _one_line_naming(exc_info, path) -> str:
     text = str(exc_info.value)
@@ -218,8 +219,8 @@ def test_a_failed_save_leaves_the_earlier_set(tmp_path):
     small_set().save(tmp_path)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     code = ("import numpy as np\n"
-            "from calibration.calset import CalibrationSet\n"
-            "from polrig.analyzer import AnalyzerModel\n"
+            "from polrig.calibration.calset import CalibrationSet\n"
+            "from polrig.sensor.analyzer import AnalyzerModel\n"
             "rng = np.random.default_rng(0)\n"
             "cs = CalibrationSet({'generator': {'zero_offset_deg': 2.0, 'extinction_ratio': 9.0}})\n"
             "g = rng.normal(1, 0.01, (256, 256))\n"

@@ -1,4 +1,4 @@
-"""The metal mirror of the DoFP calibration (calibration.mirror): its Mueller matrix against
+"""The metal mirror of the DoFP calibration (polrig.calibration.mirror): its Mueller matrix against
 closed forms (textbook complex Fresnel amplitudes, normal incidence, the pseudo-Brewster
 angle), against the simulator's rendering of the plate and Mitsuba 3, and the incident Stokes
 measured through it against the simulated rig's hidden generator."""
@@ -8,10 +8,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration import calset
-from calibration.mirror import DEFAULT_MIRROR_METAL, IDEAL, MirrorMetal, fresnel_sp, mirror_mueller
-from polrig import frames as fr
-from polrig.conductors import CONDUCTORS
+from polrig.calibration import calset
+from polrig.calibration.mirror import (
+    DEFAULT_MIRROR_METAL,
+    IDEAL,
+    MirrorMetal,
+    fresnel_sp,
+    mirror_mueller,
+)
+from polrig.optics import bases as fr
+from polrig.optics.conductors import CONDUCTORS
 
 
 def _textbook_rs_rp(theta, eta):
@@ -118,10 +124,10 @@ def test_rp_minimum_at_the_pseudo_brewster_angle_and_the_principal_angle(metal, 
 
 def test_mirror_model_is_the_simulated_plates_bsdf():
     """The calibration's model of the plate is the simulator's rendering of it (the hidden
-    truth's BSDF, :func:`sim.surface_bsdf.evaluate` of the ``mirror_plate`` target's
+    truth's BSDF, :func:`polrig.sim.surface_bsdf.evaluate` of the ``mirror_plate`` target's
     material) in the rig frames, per colour and as the mono sensor's channel mean."""
-    from sim import surface_bsdf as sb
-    from sim.targets import MIRROR_ALUMINIUM, target_objects
+    from polrig.sim import surface_bsdf as sb
+    from polrig.sim.targets import MIRROR_ALUMINIUM, target_objects
 
     assert target_objects("mirror_plate")[0].materials == (MIRROR_ALUMINIUM,)
     rng = np.random.default_rng(2)
@@ -193,8 +199,8 @@ def test_mirror_metal_is_a_checked_calibration_input():
 
 def test_simulated_targets_are_real_conductors():
     """The chrome sphere is Cr and the DoFP plate the calibration's default mirror metal."""
-    from sim.materials import SurfaceMaterial
-    from sim.targets import target_objects
+    from polrig.sim.materials import SurfaceMaterial
+    from polrig.sim.targets import target_objects
 
     sphere = target_objects("chrome_sphere")[0].materials[0]
     plate = target_objects("mirror_plate")[0].materials[0]
@@ -209,10 +215,10 @@ def _incident_stokes_through_the_mirror(metal_names):
     analyzer rows ``a_p`` and radiance ``r_p``; the least-squares ``S_in`` over all pixels
     with each mirror model ``M_p``. Returns ``{name: (estimates (K, 3), truth (K, 3))}`` and
     the median angle of incidence (deg)."""
-    from calibration import procedures
-    from calibration.runner import truth_in_camera
-    from polrig.rig import open_rig
-    from sim import targets
+    from polrig.app.rig import open_rig
+    from polrig.calibration import procedures
+    from polrig.calibration.runner import truth_in_camera
+    from polrig.sim import targets
 
     rig = open_rig(None, size="128x96", seed=0, clock_speed=float("inf"), noise=False,
                    hidden={"light_position_m": (0.5, 0.0, 0.1)})
@@ -278,9 +284,9 @@ def test_highlight_scales_remove_a_coloured_balls_mosaic_pattern_from_the_centro
     backdrop's class levels alone, its highlight keeps a colour pattern of the 4x4 mosaic cell
     that moves the centroid of a 1.2 px highlight by 0.014 px RMS over sub-pixel positions;
     with the metal's colour in the highlight's class levels
-    (:func:`calibration.procedures.highlight_scales`) it is as accurate as a grey ball's."""
-    from calibration import charuco, light, procedures
-    from polrig.layouts import IMX250MYR
+    (:func:`polrig.calibration.procedures.highlight_scales`) it is as accurate as a grey ball's."""
+    from polrig.calibration import charuco, light, procedures
+    from polrig.sensor.layouts import IMX250MYR
 
     shape, centre, radius = (120, 160), (80.3, 60.7), 20.0
     vv, uu = np.mgrid[0:shape[0], 0:shape[1]]
@@ -316,11 +322,11 @@ def test_highlight_scales_remove_a_coloured_balls_mosaic_pattern_from_the_centro
 
 def _true_geometry(truth: dict, mount: dict):
     """The simulated rig's hidden intrinsics, turntable axis and fixture pose as the
-    calibration's :class:`calibration.turntable.JointRigResult` (every mount index gets the
+    calibration's :class:`polrig.calibration.turntable.JointRigResult` (every mount index gets the
     pose of ``mount``), so a step runs without the errors of the earlier steps."""
-    from calibration import turntable as tt
-    from calibration.runner import truth_in_camera
-    from sim import targets
+    from polrig.calibration import turntable as tt
+    from polrig.calibration.runner import truth_in_camera
+    from polrig.sim import targets
 
     tc = truth_in_camera(truth)
     cam = truth["camera"]
@@ -328,7 +334,7 @@ def _true_geometry(truth: dict, mount: dict):
     k = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
     o = {**targets.DEFAULTS, **mount}
     rot = targets.fixture_rotation(o["tilt_deg"], o["yaw_deg"], o["roll_deg"])
-    # board frame: x right, y down the print, z into the board (calibration.charuco)
+    # board frame: x right, y down the print, z into the board (polrig.calibration.charuco)
     pose = (rc @ rot @ np.diag([1.0, -1.0, -1.0]), rc @ np.asarray(o["fixture_centre_m"]) + tcam)
     axis = tt.TurntableAxisResult(tc["axis_cam"], tc["axis_point_cam_m"], 0.0, np.zeros(3), 1.0,
                                   0.0, np.zeros(0), np.zeros(3), 0.0)
@@ -344,10 +350,10 @@ def test_dofp_step_and_reference_mueller_through_a_metal_plate_against_hidden_tr
     analyzer (orientations 0.57 deg, gains 1.9 % RMS off); a reference acquisition of the
     ``plane`` scene with that calibration is 7x worse than with the metal modelled, which
     meets the calibration limits (docs/calibration.md)."""
-    from calibration import evaluate, procedures
-    from calibration.calset import CalibrationSet
-    from polrig.rig import open_rig
-    from sim import targets
+    from polrig.app.rig import open_rig
+    from polrig.calibration import evaluate, procedures
+    from polrig.calibration.calset import CalibrationSet
+    from polrig.sim import targets
 
     sim = {"size": "320x240", "seed": 0, "clock_speed": float("inf"),
            "hidden": {"light_position_m": (0.5, 0.0, 0.1)}}

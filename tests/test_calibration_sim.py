@@ -9,14 +9,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import calibration
-from calibration import evaluate, procedures, runner
-from calibration.calset import CalibrationSet
-from calibration.errors import TooFewAngles
-from calibration.report import write_report
+from polrig import calibration
+from polrig.app.rig import open_rig
+from polrig.calibration import evaluate, procedures, runner
+from polrig.calibration.calset import CalibrationSet
+from polrig.calibration.errors import TooFewAngles
+from polrig.calibration.report import write_report
 from polrig.cli import main as polrig_main
-from polrig.rig import open_rig
-from sim import targets
+from polrig.sim import targets
 
 pytestmark = pytest.mark.slow
 
@@ -93,7 +93,7 @@ def test_dofp_orientation_gain_and_better_than_nominal(calibrated):
     assert d["angle_rms_error_deg"] < d["ideal_model_angle_rms_error_deg"] / 3
     assert d["gain_rms_rel_error"] < d["ideal_model_gain_rms_rel_error"] / 3
     assert cs.dofp_maps["valid"].mean() > 0.95
-    # the targets' metals the calibration modelled are recorded (calibration.mirror)
+    # the targets' metals the calibration modelled are recorded (polrig.calibration.mirror)
     assert cs.params["dofp"]["mirror"]["name"] == "aluminium"
     assert 5.0 < cs.params["dofp"]["mirror_incidence_deg"] < 20.0
     assert cs.params["light"]["sphere_metal"]["name"] == "chrome"

@@ -1,10 +1,11 @@
-"""The calibration steps' dependency graph (:data:`calibration.runner.DEPENDS_ON`): which
+"""The calibration steps' dependency graph (:data:`polrig.calibration.runner.DEPENDS_ON`): which
 results a re-run step drops. End to end on the simulated rig: test_calibration_sim.py."""
 
 from __future__ import annotations
 
 from _calibration_sets import small_set
-from calibration import runner
+
+from polrig.calibration import runner
 
 
 def test_the_dependency_graph_of_the_steps():

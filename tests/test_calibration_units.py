@@ -11,13 +11,23 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibration import calset, charuco, dofp, light, turntable
-from calibration.errors import (BoardNotFound, SphereNotFound, SphereSaturated, TooFewAngles)
-from calibration.generator import (GeneratorModel, check_stage_angles, dolp_from_extinction_ratio,
-                                   extinction_ratio_from_dolp, fit_generator_from_angles)
-from polrig.analyzer import AnalyzerModel
+from polrig.calibration import calset, charuco, dofp, light, turntable
+from polrig.calibration.errors import (
+    BoardNotFound,
+    SphereNotFound,
+    SphereSaturated,
+    TooFewAngles,
+)
+from polrig.calibration.generator import (
+    GeneratorModel,
+    check_stage_angles,
+    dolp_from_extinction_ratio,
+    extinction_ratio_from_dolp,
+    fit_generator_from_angles,
+)
 from polrig.errors import ConfigError, FormatError
-from polrig.mueller import polarizer_stokes
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.analyzer import AnalyzerModel
 
 
 # ------------------------------------------------------------------------------ generator
@@ -364,8 +374,8 @@ def test_find_sphere_tolerates_nonfinite_pixels():
 
 
 def test_simulated_board_is_the_calibration_default_board():
-    from calibration.runner import Options
-    from sim import targets
+    from polrig.calibration.runner import Options
+    from polrig.sim import targets
 
     spec = Options().board
     o = targets.DEFAULTS

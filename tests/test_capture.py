@@ -10,15 +10,15 @@ import pathlib
 import numpy as np
 import pytest
 
-from polrig import processing
-from polrig.capture import CaptureControl, CapturePlan, create_session, run_session
-from polrig.demosaic import demosaic
-from polrig.exr import read_mueller_exr
-from polrig.mueller import polarizer_stokes
-from polrig.analyzer import AnalyzerModel, resolve_layout
-from polrig.reference import solve_reference
-from polrig.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
-from polrig.rig import open_rig
+from polrig.app import processing
+from polrig.app.capture import CaptureControl, CapturePlan, create_session, run_session
+from polrig.app.rig import open_rig
+from polrig.app.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
+from polrig.formats.exr import read_mueller_exr
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.analyzer import AnalyzerModel, resolve_layout
+from polrig.sensor.demosaic import demosaic
+from polrig.solve.reference import solve_reference
 
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
 #: the ideal rig, exactly known (zero calibration tolerances): its reported sigma is the
@@ -27,7 +27,7 @@ EXACT = processing.Calibration("ideal")
 
 
 def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
-    """The simulated rig as ``polrig capture`` opens it (:func:`polrig.rig.open_rig`);
+    """The simulated rig as ``polrig capture`` opens it (:func:`polrig.app.rig.open_rig`);
     ``rig.sim`` is the simulated rig underneath (fault injection, its clock)."""
     opts = {"size": (size, size), "sensor": "imx250mzr", "clock_speed": math.inf,
             "seed": seed, "scene": scene, "noise": noise, "hidden": dict(IDEAL), **kw}
@@ -314,7 +314,7 @@ def test_dark_frames_and_hdr_bracket_keep_errors_within_sigma(tmp_path):
     assert result.status == "complete"
     files = session.capture(0)["files"]
     assert len(files["dark"]) == 4 and len(files["raw"]) == 16
-    from polrig.rawio import read_raw
+    from polrig.formats.rawio import read_raw
 
     dark = read_raw(session.root / files["dark"][0]["path"])
     assert dark.raw.mean() < 40  # black level 16 DN + read noise: the light was off
@@ -398,8 +398,8 @@ def test_other_file_system_error_stops_cleanly_then_resumes(tmp_path, reference_
 def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
     """The rig a session resumes on must give comparable frames: same camera geometry and
     layout, devices, noise model and simulated world; a different clock speed is fine."""
+    from polrig.app.records import check_resume_rig
     from polrig.errors import ConfigError
-    from polrig.records import check_resume_rig
 
     out = tmp_path / "s"
     with sim_rig() as rig:
@@ -429,8 +429,8 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
 
 
 def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(tmp_path):
-    from polrig.plan import PlanError
-    from polrig.records import check_rig_for_plan
+    from polrig.acquisition.plan import PlanError
+    from polrig.app.records import check_rig_for_plan
 
     with sim_rig() as rig:  # the range the camera declares (CameraCapabilities), not a probe
         check_rig_for_plan(rig, CapturePlan((0.0,), exposures_us=(1000.0, 4000.0)))
@@ -441,7 +441,7 @@ def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(t
 
 
 def test_run_session_refuses_a_session_another_writer_holds(tmp_path):
-    from polrig.session import SessionBusy
+    from polrig.app.session import SessionBusy
 
     out = tmp_path / "s"
     with sim_rig() as rig:

@@ -24,14 +24,14 @@ import genicam
 import numpy as np
 import pytest
 
-from drivers.emulators.ell14 import Ell14Emulator
-from drivers.emulators.grbl import GrblEmulator
+from polrig.app.processing import adc_scale, state_radiance
 from polrig.cli import main
-from polrig.exr import read_mueller_exr
-from polrig.noise import SensorModel
-from polrig.processing import adc_scale, state_radiance
-from polrig.rawio import read_raw
-from polrig.reference import SATURATED
+from polrig.drivers.emulators.ell14 import Ell14Emulator
+from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.formats.exr import read_mueller_exr
+from polrig.formats.rawio import read_raw
+from polrig.sensor.noise import SensorModel
+from polrig.solve.reference import SATURATED
 
 pytestmark = pytest.mark.timeout(120)
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""The acquisition engine (polrig.engine) on the simulated rig: its fault policy, tested once
+"""The acquisition engine (polrig.acquisition.engine) on the simulated rig: its fault policy, tested once
 here and used by captures and calibration procedures alike; axes moving together; free-run
 settle frames; pause/stop at checkpoints; the plan's hardware time against the simulated
 rig's own clock."""
@@ -10,14 +10,29 @@ import math
 import numpy as np
 import pytest
 
-from polrig import hal, processing
-from polrig.capture import CapturePlan, create_session, run_session
-from polrig.engine import (CaptureControl, Executor, FaultPolicy, FrameGrabbed, GuardedRig,
-                           Retried, StopRequested)
+from polrig.acquisition import hal
+from polrig.acquisition.engine import (
+    CaptureControl,
+    Executor,
+    FaultPolicy,
+    FrameGrabbed,
+    GuardedRig,
+    Retried,
+    StopRequested,
+)
+from polrig.acquisition.plan import (
+    Checkpoint,
+    FrameTag,
+    Grab,
+    Move,
+    SetExposure,
+    SetTrigger,
+)
+from polrig.app import processing
+from polrig.app.capture import CapturePlan, create_session, run_session
+from polrig.app.rig import open_rig
 from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
-from polrig.plan import Checkpoint, FrameTag, Grab, Move, SetExposure, SetTrigger
-from polrig.rig import open_rig
-from sim.devices import SimCamera
+from polrig.sim.devices import SimCamera
 
 SIM = {"size": (32, 32), "clock_speed": math.inf, "seed": 3}
 EXPECTED = {"fault": DeviceFault, "protocol": ProtocolError, "timeout": DeviceTimeout}
@@ -131,8 +146,8 @@ class NoExposureControl(FreeRunCamera):
 
 
 def test_a_camera_without_exposure_control_is_never_asked_to_set_it():
-    from polrig.plan import session_steps, step_durations
-    from polrig.engine import hardware_model
+    from polrig.acquisition.engine import hardware_model
+    from polrig.acquisition.plan import session_steps, step_durations
 
     with open_rig(None, **SIM) as rig:
         rig.camera = NoExposureControl(rig.sim.world, rig.sim.faults)
@@ -152,8 +167,8 @@ def test_a_session_on_a_camera_without_exposure_control_reopens_and_has_results(
     """Frame records store the unknown exposure as null (standard JSON; it used to be NaN,
     which made the manifest invalid: polrig info and --resume refused the session), and
     processing models no dark current for it instead of propagating NaN into every sigma."""
-    from polrig.exr import read_mueller_exr
-    from polrig.session import Session
+    from polrig.app.session import Session
+    from polrig.formats.exr import read_mueller_exr
 
     plan = CapturePlan((0.0,))
     cal = processing.Calibration("ideal")
@@ -194,10 +209,10 @@ def test_stop_and_pause_at_checkpoints():
 
 # -- the same policy for calibration procedures -------------------------------------------------
 def test_calibration_procedures_get_the_capture_fault_policy():
-    """A procedure written against the HAL (calibration.procedures) drives a GuardedRig: a
+    """A procedure written against the HAL (polrig.calibration.procedures) drives a GuardedRig: a
     camera timeout and a garbled stage reply are recovered exactly as in a capture, and each
     retry is reported."""
-    from calibration import procedures
+    from polrig.calibration import procedures
 
     with open_rig(None, **SIM) as rig:
         lines = []

@@ -3,12 +3,28 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
+from polrig.acquisition.plan import (
+    CapturePlan,
+    Checkpoint,
+    Grab,
+    HardwareModel,
+    Home,
+    Move,
+    PlanError,
+    SetExposure,
+    SetLight,
+    SetTrigger,
+    capture_steps,
+    parse_float_list,
+    parse_pose_spec,
+    planned_bytes,
+    session_steps,
+    step_durations,
+)
 from polrig.errors import ConfigError
-from polrig.plan import (CapturePlan, Checkpoint, Grab, HardwareModel, Home, Move, PlanError,
-                         SetExposure, SetLight, SetTrigger, capture_steps, parse_float_list,
-                         parse_pose_spec, planned_bytes, session_steps, step_durations)
 
 
 def test_range_is_stop_exclusive():
@@ -92,11 +108,13 @@ def test_network_binning_is_planned_checked_and_older_plans_read_as_1():
     runtime's, it round-trips, a plan without it (a session from before it existed) reads back
     as 1, bad values and the reference method are one-line errors naming the field, and the
     result file's size does not change (the output grid is ``resolution``'s either way)."""
-    from models.full_resolution import BINNINGS
-    from polrig.plan import NETWORK_BINNINGS
+    from polrig.acquisition.plan import NETWORK_BINNINGS
+    from polrig.models.full_resolution import BINNINGS
 
     assert NETWORK_BINNINGS == BINNINGS
-    from polrig.cli import build_parser  # the options' choices are the plan's (not imported there)
+    from polrig.cli import (
+        build_parser,  # the options' choices are the plan's (not imported there)
+    )
 
     sub = next(a for a in build_parser()._actions if a.choices and "capture" in a.choices).choices
     for command in ("capture", "reconstruct"):

@@ -8,8 +8,8 @@ import os
 import time
 
 import pytest
-
 from _calibration_sets import set_calibrated_on
+
 from polrig.cli import main
 
 
@@ -49,7 +49,7 @@ def test_a_read_only_folder_is_refused_at_once(tmp_path, capsys):
 def test_check_out_folder_on_a_read_only_filesystem(tmp_path, monkeypatch):
     """The same check goes through ``os.access``, which reports a read-only filesystem to
     root too; denied here by hand, since a test cannot mount one."""
-    from polrig.commands.calibrate import check_out_folder
+    from polrig.cli.commands.calibrate import check_out_folder
     from polrig.errors import ConfigError
 
     check_out_folder(tmp_path / "a" / "b")  # creatable: no error, and nothing created

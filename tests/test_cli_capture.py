@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
+from polrig.app.session import Session
 from polrig.cli import main
-from polrig.session import Session
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 MODEL_INSTALLED = (REPO / "models" / "weights" / "single_shot.onnx").is_file()
@@ -85,9 +85,9 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
     if "single-shot" in args:  # no model installed: point the runtime at an empty folder
-        import models.runtime
+        import polrig.models.runtime as runtime
 
-        monkeypatch.setattr(models.runtime, "WEIGHTS_DIR", tmp_path / "no-weights")
+        monkeypatch.setattr(runtime, "WEIGHTS_DIR", tmp_path / "no-weights")
     out = tmp_path / "out"
     rc = main(["capture", *args, "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err
@@ -128,7 +128,7 @@ def spawn_capture(cfg: pathlib.Path, out: pathlib.Path, poses: str = "0:360:90",
     background jobs with SIGINT ignored, and an ignored SIGINT is inherited: the child gets
     the default disposition so Python installs its Ctrl-C handler however the test runner was
     started."""
-    proc = subprocess.Popen([sys.executable, "-m", "polrig.cli", "capture", "--poses", poses,
+    proc = subprocess.Popen([sys.executable, "-m", "polrig", "capture", "--poses", poses,
                              "--config", str(cfg), "--out", str(out), "--no-progress", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=REPO,
@@ -179,13 +179,13 @@ def test_sigint_mid_session_then_resume_equals_uninterrupted(tmp_path):
 def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypatch):
     """A device that disconnects mid-session: exit 1 with the reason, the manifest names it,
     ``--resume`` completes the session with the same content as an uninterrupted run."""
-    import polrig.rig
+    import polrig.app.rig
 
     cfg = sim_config(tmp_path / "rig.toml", noise=True)
     ref = tmp_path / "ref"
     assert main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(ref),
                  "--no-progress"]) == 0
-    real_open = polrig.rig.open_rig
+    real_open = polrig.app.rig.open_rig
 
     def faulty_open(*a, **kw):
         rig = real_open(*a, **kw)
@@ -194,7 +194,7 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
         rig.sim.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
-    monkeypatch.setattr(polrig.rig, "open_rig", faulty_open)
+    monkeypatch.setattr(polrig.app.rig, "open_rig", faulty_open)
     out = tmp_path / "run"
     capsys.readouterr()
     rc = main(["capture", "--poses", "0,90,180", "--config", str(cfg), "--out", str(out),
@@ -204,7 +204,7 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
     m = json.loads((out / "session.json").read_text())
     assert m["status"] == "interrupted" and "connection lost" in m["status_reason"]
     assert [c["status"] for c in m["captures"]].count("failed") == 1
-    monkeypatch.setattr(polrig.rig, "open_rig", real_open)
+    monkeypatch.setattr(polrig.app.rig, "open_rig", real_open)
     assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume",
                  "--no-progress"]) == 0
     assert content(out) == content(ref)
@@ -234,9 +234,9 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
 
 @pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
 def test_single_shot_mirror_average_is_planned_recorded_and_reprocessable(tmp_path, capsys):
-    """``--mirror-average`` reaches the plan and the processing (models.mirror), a resumed
+    """``--mirror-average`` reaches the plan and the processing (polrig.models.mirror), a resumed
     session keeps it, and ``reconstruct --no-mirror-average`` writes a revision without it."""
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     cfg = tmp_path / "rig.toml"
     cfg.write_text('[sim]\nsize = "128x128"\nclock_speed = inf\nseed = 3\n')
@@ -298,7 +298,7 @@ def test_calibration_without_a_loader_is_a_clear_error(tmp_path, capsys):
                str(tmp_path / "out"), "--no-progress"])
     err = capsys.readouterr().err
     try:
-        from calibration import calibset  # noqa: F401
+        from polrig.calibration import calibset  # noqa: F401
     except ImportError:
         assert rc == 2 and "--calibration" in err and len(err.strip().splitlines()) == 1
     else:  # pragma: no cover - a loader exists: an empty folder is not a calibration set
@@ -320,9 +320,9 @@ def test_reconstruct_refuses_mirror_average_with_the_reference_method(tmp_path, 
 def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "0,90,180"
                         ) -> pathlib.Path:
     """A session left interrupted by a stage that disconnects during its second capture."""
-    import polrig.rig
+    import polrig.app.rig
 
-    real_open = polrig.rig.open_rig
+    real_open = polrig.app.rig.open_rig
 
     def faulty_open(*a, **kw):
         rig = real_open(*a, **kw)
@@ -333,7 +333,7 @@ def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "
 
     out = tmp_path / "run"
     with monkeypatch.context() as m:
-        m.setattr(polrig.rig, "open_rig", faulty_open)
+        m.setattr(polrig.app.rig, "open_rig", faulty_open)
         assert main(["capture", "--poses", poses, "--config", str(cfg), "--out", str(out),
                      "--no-progress"]) == 1
     s = Session.open(out)
@@ -368,10 +368,10 @@ def test_other_file_system_error_exits_1_with_the_resume_hint(tmp_path, capsys, 
     command, exit 1; the session says why it stopped (it used to stay "running")."""
     import errno
 
-    import polrig.session
+    import polrig.app.session
 
     cfg = sim_config(tmp_path / "rig.toml")
-    real_write = polrig.session.atomic_write_bytes
+    real_write = polrig.app.session.atomic_write_bytes
     calls = []
 
     def failing_write(path, data):
@@ -382,7 +382,7 @@ def test_other_file_system_error_exits_1_with_the_resume_hint(tmp_path, capsys, 
 
     out = tmp_path / "run"
     with monkeypatch.context() as m:
-        m.setattr(polrig.session, "atomic_write_bytes", failing_write)
+        m.setattr(polrig.app.session, "atomic_write_bytes", failing_write)
         rc = main(["capture", "--poses", "0,90", "--config", str(cfg), "--out", str(out),
                    "--no-progress"])
     err = capsys.readouterr().err
@@ -400,10 +400,10 @@ def test_processing_error_mid_capture_exits_1_with_the_resume_hint(tmp_path, cap
     """A processing error (not a device fault, not a file-system error) once the session
     exists: one line with the reason and the resume command, exit 1, the session interrupted
     (it used to be a traceback), and the resume completes it."""
-    import polrig.processing
+    import polrig.app.processing
 
     cfg = sim_config(tmp_path / "rig.toml")
-    real = polrig.processing.Processor.process
+    real = polrig.app.processing.Processor.process
     calls = []
 
     def failing(self, session, index, revision=None):
@@ -414,7 +414,7 @@ def test_processing_error_mid_capture_exits_1_with_the_resume_hint(tmp_path, cap
 
     out = tmp_path / "run"
     with monkeypatch.context() as m:
-        m.setattr(polrig.processing.Processor, "process", failing)
+        m.setattr(polrig.app.processing.Processor, "process", failing)
         rc = main(["capture", "--poses", "0,90", "--config", str(cfg), "--out", str(out),
                    "--no-progress"])
     err = capsys.readouterr().err
@@ -510,7 +510,7 @@ def test_info_into_a_closed_pipe_exits_quietly(tmp_path):
                  "--no-progress"]) == 0
     r, w = os.pipe()
     os.close(r)  # the reader is gone before polrig writes
-    proc = subprocess.run([sys.executable, "-m", "polrig.cli", "info", str(out)], stdout=w,
+    proc = subprocess.run([sys.executable, "-m", "polrig", "info", str(out)], stdout=w,
                           stderr=subprocess.PIPE, text=True, cwd=REPO, timeout=60)
     os.close(w)
     assert proc.returncode == 141 and proc.stderr == "", proc.stderr
@@ -522,7 +522,7 @@ def test_single_shot_full_resolution_capture_and_reconstruct(tmp_path, capsys):
     frame's size with a score against the truth on that grid, sigma NaN (not calibrated there)
     and the provider and resolution in its header; ``reconstruct --resolution superpixel``
     writes the networks' grid, whose cells the full-resolution image averages back to."""
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     cfg = tmp_path / "rig.toml"
     cfg.write_text('[sim]\nsize = "128x128"\nclock_speed = inf\nseed = 3\n')

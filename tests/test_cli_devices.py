@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from drivers.emulators import dc2200 as dc2200_emulator
-from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
-from drivers.emulators.grbl import GrblEmulator
-from drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
-from polrig.cli import main
-from polrig.rawio import read_raw
 from _genicam import VIKY, viky_camera
+
+from polrig.cli import main
+from polrig.drivers.emulators import dc2200 as dc2200_emulator
+from polrig.drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
+from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
+from polrig.formats.rawio import read_raw
 
 pytestmark = pytest.mark.timeout(30)
 REPO = Path(__file__).resolve().parents[1]
@@ -94,7 +94,7 @@ def test_bad_config_is_usage_error_before_opening(tmp_path, capsys):
 
 
 def test_light_on_off(tmp_path, capsys):
-    cfg = config(tmp_path, '[light]\ndriver = "dc2200"\nbackend = "drivers.emulators.dc2200"\n')
+    cfg = config(tmp_path, '[light]\ndriver = "dc2200"\nbackend = "polrig.drivers.emulators.dc2200"\n')
     rc, out, err = run(capsys, "light", "on", "--level", "0.4", "--config", cfg)
     assert rc == 0, err
     emu = dc2200_emulator.get_backend()
@@ -133,7 +133,7 @@ def test_devices_lists_configured_and_discovered(tmp_path, capsys, monkeypatch):
             port = "{emu.port}"
             [light]
             driver = "dc2200"
-            backend = "drivers.emulators.dc2200"
+            backend = "polrig.drivers.emulators.dc2200"
             """)
         rc, out, err = run(capsys, "devices", "--config", cfg)
         assert rc == 0, err
@@ -148,13 +148,13 @@ def test_emulator_cli_and_polrig_in_separate_processes(tmp_path):
     """A human's path: start the emulator from its CLI, point a config at the link."""
     link = tmp_path / "ell14"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    emu = subprocess.Popen([sys.executable, "-m", "drivers.emulators.ell14", "--link", str(link),
+    emu = subprocess.Popen([sys.executable, "-m", "polrig.drivers.emulators.ell14", "--link", str(link),
                             "--speed-factor", "4"], stdout=subprocess.PIPE, text=True, env=env)
     try:
         first = emu.stdout.readline()
         assert first.startswith("/dev/pts/") and f"(link {link})" in first
         cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{link}"\n')
-        res = subprocess.run([sys.executable, "-m", "polrig.cli", "move", "stage", "45",
+        res = subprocess.run([sys.executable, "-m", "polrig", "move", "stage", "45",
                               "--config", cfg], capture_output=True, text=True, env=env,
                              timeout=20)
         assert res.returncode == 0, res.stderr

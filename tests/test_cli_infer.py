@@ -102,9 +102,9 @@ def test_a_calibration_set_covering_the_frame_is_used(frame, tmp_path, capsys):
 def test_infer_of_a_sim_render_is_in_the_unit_of_its_truth(tmp_path, capsys):
     """``sim render`` writes Mono16 frames (12-bit codes times 16, black level 256) and its truth
     in 12-bit ADC DN; ``infer`` used to report m00 16 times the truth's. Results are in ADC DN
-    (polrig.processing.adc_scale): the median m00 of the object, per colour, matches the
+    (polrig.app.processing.adc_scale): the median m00 of the object, per colour, matches the
     truth's within the network's error (a few per cent; a unit error is a factor 16)."""
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     render = tmp_path / "r"
     assert main(["sim", "render", "--size", "128x128", "--states", "0", "--out", str(render)]) == 0
@@ -143,9 +143,9 @@ def test_sigma_flags_pixels_beyond_its_calibration_on_a_metal(tmp_path, capsys):
     lies beyond the sigma's calibration range) and its object fraction in the header; a gold
     sphere, which the networks never saw, is flagged far more than a plastic one and warned
     about, the plastic one is not warned about (4-14 % against 90-95 % measured,
-    :data:`models.uncertainty.BEYOND_WARN_FRACTION`)."""
-    from polrig.exr import read_mueller_exr
-    from models.uncertainty import BEYOND_WARN_FRACTION
+    :data:`polrig.models.uncertainty.BEYOND_WARN_FRACTION`)."""
+    from polrig.formats.exr import read_mueller_exr
+    from polrig.models.uncertainty import BEYOND_WARN_FRACTION
 
     fractions = {}
     for scene in ("sphere", "gold_sphere"):

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from polrig.analyzer import AnalyzerModel
 from polrig.cli import main
-from polrig.exr import read_stokes_exr
-from polrig.hal import Frame, FrameMeta
-from polrig.rawio import write_raw
+from polrig.formats.exr import read_stokes_exr
+from polrig.formats.rawio import write_raw
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.frame import Frame, FrameMeta
 
 
 def _polarized_raw(layout="imx250mzr", shape=(32, 40), aolp_deg=30.0, dolp=0.6, s0=2000.0,
@@ -197,10 +197,10 @@ def test_an_8_bit_frame_with_a_16_bit_sidecar_is_refused(tmp_path, capsys):
 
 
 def test_console_script_help_lists_stokes():
-    out = subprocess.run([sys.executable, "-m", "polrig.cli", "--help"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "polrig", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "stokes" in out
-    out = subprocess.run([sys.executable, "-m", "polrig.cli", "stokes", "--help"],
+    out = subprocess.run([sys.executable, "-m", "polrig", "stokes", "--help"],
                          capture_output=True, text=True, check=True).stdout
     for opt in ("--layout", "--demosaic", "--black-level", "--roi-offset", "--out"):
         assert opt in out
@@ -230,7 +230,7 @@ def test_calibrated_analyzer_file(tmp_path):
 def _half_dark_frame(tmp_path, layout="imx250mzr"):
     """A 12-bit frame with a sidecar (black level 64): the left half a polarized object
     (S0 2000 DN, DoLP 0.3), the right half background, both with the sensor's noise."""
-    from polrig.noise import SensorModel
+    from polrig.sensor.noise import SensorModel
 
     model = SensorModel(black_level_dn=64.0)
     mean = _polarized_raw(layout, (32, 64), dolp=0.3, s0=2000).astype(np.float64)

@@ -1,6 +1,6 @@
-"""``polrig reconstruct`` on Dask distributed (:mod:`polrig.cluster`): real worker processes on
+"""``polrig reconstruct`` on Dask distributed (:mod:`polrig.app.cluster`): real worker processes on
 the loopback interface, results compared byte for byte with the serial
-:func:`polrig.processing.reprocess_session`; faults (a SIGKILLed worker, Ctrl-C, damaged raw
+:func:`polrig.app.processing.reprocess_session`; faults (a SIGKILLed worker, Ctrl-C, damaged raw
 data, an unreachable scheduler, the extra not installed) against the manifest on disk."""
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from polrig import cluster, processing  # noqa: E402
+from polrig.app import cluster, processing  # noqa: E402
+from polrig.app.session import Session  # noqa: E402
 from polrig.cli import main  # noqa: E402
-from polrig.session import Session  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
@@ -63,7 +63,7 @@ def _copies(sessions, dest: pathlib.Path) -> list[pathlib.Path]:
 
 
 def _serial(sessions, dest: pathlib.Path, **kw) -> list[pathlib.Path]:
-    """The serial reference: :func:`polrig.processing.reprocess_session` on copies."""
+    """The serial reference: :func:`polrig.app.processing.reprocess_session` on copies."""
     copies = _copies(sessions, dest)
     for c in copies:
         processing.reprocess_session(Session.open(c), **kw)
@@ -171,7 +171,7 @@ def test_leftover_temporary_files_of_a_dead_worker_are_removed(archive, tmp_path
 
 
 def _spawn(argv: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "polrig.cli", *argv], env=ENV,
+    return subprocess.Popen([sys.executable, "-m", "polrig", *argv], env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
 
@@ -316,7 +316,7 @@ def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
                 elif tok == "dask":
                     argv += [sys.executable, "-m", "dask"]
                 elif tok == "polrig":
-                    argv += [sys.executable, "-m", "polrig.cli"]
+                    argv += [sys.executable, "-m", "polrig"]
                 else:
                     argv.append(tok)
             # loopback only: every address a process listens on or connects to

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from drivers.emulators.ell14 import Ell14Emulator
-from polrig.config import validate_config
+from polrig.app.rig import DRIVERS, load_rig_config, open_rig
+from polrig.drivers.emulators.ell14 import Ell14Emulator
 from polrig.errors import ConfigError
-from polrig.rig import DRIVERS, load_rig_config, open_rig
+from polrig.formats.config import validate_config
 
 pytestmark = pytest.mark.timeout(20)
 

@@ -5,13 +5,20 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from _dofp_scenes import analyzer_truth, cell_constant, smooth_stokes
-from polrig.analyzer import AnalyzerModel
-from polrig.demosaic import (METHODS, demosaic, demosaic_combined, demosaic_float, output_shape,
-                             row_bands, support_radius)
-from polrig.layouts import IMX250MYR, IMX250MZR, MosaicLayout, get_layout
-from polrig.stokes import ideal_inverse
+
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.demosaic import (
+    METHODS,
+    demosaic,
+    demosaic_combined,
+    demosaic_float,
+    output_shape,
+    row_bands,
+    support_radius,
+)
+from polrig.sensor.layouts import IMX250MYR, IMX250MZR, MosaicLayout, get_layout
+from polrig.sensor.stokes import ideal_inverse
 
 PHASES = [(0, 0), (1, 0), (0, 1), (1, 1), (2, 3), (3, 2)]
 
@@ -107,7 +114,7 @@ def test_colour_bilinear_combined_one_colour_at_a_time_is_bitwise_the_full_route
     """The colour layout's combined bilinear route (one colour's analyzer images at a time) gives
     exactly the Stokes of the full analyzer stack, clipped (NaN) samples' support included:
     the full-resolution single-shot path marks clipped pixels by that NaN propagation."""
-    from polrig.stokes import stokes_from_analyzers
+    from polrig.sensor.stokes import stokes_from_analyzers
 
     rng = np.random.default_rng(7)
     x = rng.uniform(0, 100, (40, 48)).astype(np.float32)
@@ -221,7 +228,7 @@ def test_newton_matches_a_per_pixel_statement_of_the_paper(phase):
 
 
 def test_newton_strips_equal_the_whole_image(monkeypatch):
-    import polrig.demosaic as dm
+    import polrig.sensor.demosaic as dm
 
     rng = np.random.default_rng(21)
     for layout in (IMX250MZR.shifted(1, 0), IMX250MYR.shifted(0, 3)):

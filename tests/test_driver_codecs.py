@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers import apt, usbtmc
-from drivers.ell14 import Ell14Stage
-from drivers.k10cr1 import STEPS_PER_DEG
+from polrig.drivers import apt, usbtmc
+from polrig.drivers.ell14 import Ell14Stage
+from polrig.drivers.k10cr1 import STEPS_PER_DEG
 
 angles = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False)
 

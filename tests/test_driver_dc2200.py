@@ -6,10 +6,16 @@ import time
 
 import pytest
 
-from drivers import usbtmc
-from drivers.dc2200 import Dc2200Light
-from drivers.emulators.dc2200 import Dc2200Emulator
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+from polrig.drivers import usbtmc
+from polrig.drivers.dc2200 import Dc2200Light
+from polrig.drivers.emulators.dc2200 import Dc2200Emulator
+from polrig.errors import (
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 pytestmark = pytest.mark.timeout(20)
 
@@ -111,8 +117,8 @@ def test_disconnect_and_reopen(light, emu):
 
 
 def test_backend_module_name():
-    from drivers.emulators import dc2200 as mod
-    with Dc2200Light(backend="drivers.emulators.dc2200") as lt:
+    from polrig.drivers.emulators import dc2200 as mod
+    with Dc2200Light(backend="polrig.drivers.emulators.dc2200") as lt:
         lt.set_level(0.1)
     assert mod.get_backend().brightness_percent == pytest.approx(10.0)
     with pytest.raises(DeviceNotFound):
@@ -131,7 +137,7 @@ def test_scpi_short_and_long_forms(light, emu):
 
 def test_error_queue_that_never_empties_is_bounded(light, emu):
     """SYST:ERR? always answers -241 (it was asked 300,000 times in 5 s, forever): the
-    drain stops after 32 reads (drivers.dc2200.MAX_ERROR_READS) and raises the errors read."""
+    drain stops after 32 reads (polrig.drivers.dc2200.MAX_ERROR_READS) and raises the errors read."""
     emu.inject("error_queue_stuck")
     n0 = len(emu.received)
     t0 = time.monotonic()

@@ -7,9 +7,15 @@ import time
 import pytest
 import serial
 
-from drivers.ell14 import Ell14Stage
-from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+from polrig.drivers.ell14 import Ell14Stage
+from polrig.drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
+from polrig.errors import (
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 pytestmark = pytest.mark.timeout(20)
 PULSE_DEG = 360.0 / PULSES_PER_REV

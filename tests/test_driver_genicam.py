@@ -9,11 +9,21 @@ import genicam
 import numpy as np
 import pytest
 
-from drivers.genicam_camera import GenicamCamera, gentl_paths_from_env, list_gentl_devices
-from polrig import hal
-from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceNotFound,
-                           DeviceTimeout, FormatError)
-from polrig.layouts import get_layout
+from polrig.acquisition import hal
+from polrig.drivers.genicam_camera import (
+    GenicamCamera,
+    gentl_paths_from_env,
+    list_gentl_devices,
+)
+from polrig.errors import (
+    ConfigError,
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    FormatError,
+)
+from polrig.sensor.layouts import get_layout
 
 pytestmark = pytest.mark.timeout(60)
 VIKY = str(Path(genicam.__file__).parent / "viky.cti")
@@ -276,7 +286,7 @@ def node_map(*nodes: str):
 def test_capabilities_of_an_sfnc_camera():
     """TriggerMode + TriggerSoftware: both modes, software preferred; the ExposureTime range;
     SensorReadoutTime wins over the frame period."""
-    from drivers.genicam_camera import capabilities_from_node_map
+    from polrig.drivers.genicam_camera import capabilities_from_node_map
 
     nm = node_map(_TRIGGER_MODE, _TRIGGER_SOFTWARE, _float("ExposureTime", 10000, 20, 3e7),
                   _float("SensorReadoutTime", 8000), _float("AcquisitionFrameRate", 20))
@@ -292,7 +302,10 @@ def test_capabilities_of_an_older_gige_camera():
     """ExposureTimeAbs (pre-SFNC 2.0); a TriggerMode without TriggerSoftware is no software
     trigger; the readout is one period at the ResultingFrameRate (the rate it runs at),
     not the AcquisitionFrameRate asked for."""
-    from drivers.genicam_camera import capabilities_from_node_map, exposure_feature
+    from polrig.drivers.genicam_camera import (
+        capabilities_from_node_map,
+        exposure_feature,
+    )
 
     nm = node_map(_TRIGGER_MODE, _float("ExposureTimeAbs", 5000, 35, 1e6),
                   _float("AcquisitionFrameRate", 30), _float("ResultingFrameRate", 22.5))
@@ -303,7 +316,10 @@ def test_capabilities_of_an_older_gige_camera():
 
 
 def test_capabilities_of_a_camera_that_says_nothing():
-    from drivers.genicam_camera import capabilities_from_node_map, exposure_feature
+    from polrig.drivers.genicam_camera import (
+        capabilities_from_node_map,
+        exposure_feature,
+    )
 
     nm = node_map(_float("Gain", 0.0))
     caps = capabilities_from_node_map(nm)

@@ -7,9 +7,15 @@ import time
 import pytest
 import serial
 
-from drivers.emulators.grbl import GrblEmulator
-from drivers.grbl import GrblTurntable
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.drivers.grbl import GrblTurntable
+from polrig.errors import (
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 pytestmark = pytest.mark.timeout(20)
 
@@ -298,7 +304,7 @@ def test_error_texts_follow_the_grbl_csv(table):
     """grbl/grbl doc/csv/error_codes_en_US.csv: 21 is the modal group violation (24 said
     so), and every code 1-17, 20-38 has its text (12-14, 17, 21, 23, 25-32, 34-38 printed
     'unknown error')."""
-    from drivers.grbl_codes import ERRORS
+    from polrig.drivers.grbl_codes import ERRORS
     assert sorted(ERRORS) == list(range(1, 18)) + list(range(20, 39))
     assert ERRORS[21] == "Modal group violation"
     assert ERRORS[24].startswith("Invalid gcode ID:24")

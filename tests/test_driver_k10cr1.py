@@ -7,10 +7,16 @@ import time
 import pytest
 import serial
 
-from drivers import apt
-from drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
-from drivers.k10cr1 import K10cr1Stage
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceNotFound, DeviceTimeout, ProtocolError
+from polrig.drivers import apt
+from polrig.drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
+from polrig.drivers.k10cr1 import K10cr1Stage
+from polrig.errors import (
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceNotFound,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 pytestmark = pytest.mark.timeout(20)
 STEP_DEG = 1 / STEPS_PER_DEG

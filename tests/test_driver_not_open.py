@@ -8,12 +8,12 @@ import time
 
 import pytest
 
-from drivers.dc2200 import Dc2200Light
-from drivers.ell14 import Ell14Stage
-from drivers.emulators.dc2200 import Dc2200Emulator
-from drivers.genicam_camera import GenicamCamera
-from drivers.grbl import GrblTurntable
-from drivers.k10cr1 import K10cr1Stage
+from polrig.drivers.dc2200 import Dc2200Light
+from polrig.drivers.ell14 import Ell14Stage
+from polrig.drivers.emulators.dc2200 import Dc2200Emulator
+from polrig.drivers.genicam_camera import GenicamCamera
+from polrig.drivers.grbl import GrblTurntable
+from polrig.drivers.k10cr1 import K10cr1Stage
 from polrig.errors import DeviceDisconnected
 
 pytestmark = pytest.mark.timeout(20)

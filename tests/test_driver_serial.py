@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from drivers._serial import MIN_INTER_BYTE_S, SerialLink
-from drivers.emulators._pty import PtyEmulator
+from polrig.drivers._serial import MIN_INTER_BYTE_S, SerialLink
+from polrig.drivers.emulators._pty import PtyEmulator
 from polrig.errors import DeviceTimeout, ProtocolError
 
 pytestmark = pytest.mark.timeout(20)

@@ -10,10 +10,10 @@ import pytest
 import serial
 import usb.core
 
-from drivers.emulators.dc2200 import Dc2200Emulator
-from drivers.emulators.ell14 import Ell14Emulator
-from drivers.emulators.grbl import GrblEmulator
-from drivers.emulators.k10cr1 import K10cr1Emulator
+from polrig.drivers.emulators.dc2200 import Dc2200Emulator
+from polrig.drivers.emulators.ell14 import Ell14Emulator
+from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.drivers.emulators.k10cr1 import K10cr1Emulator
 
 pytestmark = pytest.mark.timeout(20)
 
@@ -219,7 +219,7 @@ def test_emulator_help_names_its_own_link(module, capsys, monkeypatch):
     path = f"/tmp/polrig-{module}"
     assert f"--link {path}" in toml
     with pytest.raises(SystemExit):
-        importlib.import_module(f"drivers.emulators.{module}").main(["--help"])
+        importlib.import_module(f"polrig.drivers.emulators.{module}").main(["--help"])
     out = capsys.readouterr().out
     assert path in out and out.count("/tmp/") == 1
 
@@ -246,7 +246,7 @@ def test_k10cr1_velocity_parameters_frames():
     0x0415 with 14 data bytes <H channel, i min velocity, i acceleration, i max velocity>;
     MOT_SET_VELPARAMS 0x0413 carries the same 14 bytes. Power-up values 10 deg/s and
     10 deg/s^2 in APT units for 409600/3 micro-steps per degree (velocity * 53.68,
-    acceleration / 90.9, written out here instead of taken from drivers.apt)."""
+    acceleration / 90.9, written out here instead of taken from polrig.drivers.apt)."""
     with K10cr1Emulator(speed_factor=100) as emu, \
             serial.Serial(emu.port, 115200, rtscts=True, timeout=0.5) as ser:
         ser.write(bytes([0x14, 0x04, 0x01, 0x00, 0x50, 0x01]))

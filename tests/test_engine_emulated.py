@@ -1,8 +1,8 @@
-"""The engine's fault policy (polrig.engine) against real drivers and their emulators rather
+"""The engine's fault policy (polrig.acquisition.engine) against real drivers and their emulators rather
 than the simulated rig's injected faults: GRBL starts locked in its Alarm state (homing
 enabled), which the one re-homed retry of a move recovers; a move GRBL refuses again after
 the re-home (a soft limit) is raised after that one home; a calibration step driven through
-:class:`polrig.engine.GuardedRig` on the emulated rig with the GenTL test producer (no board
+:class:`polrig.acquisition.engine.GuardedRig` on the emulated rig with the GenTL test producer (no board
 in its test pattern) asks the operator for every fixture mount in turn and ends with a
 readable error."""
 
@@ -12,16 +12,16 @@ import textwrap
 from pathlib import Path
 
 import pytest
-
-from calibration.calset import CalibrationSet
-from calibration.procedures import INTRINSIC_MOUNTS
-from calibration.runner import run_steps
-from drivers.emulators.ell14 import Ell14Emulator
-from drivers.emulators.grbl import GrblEmulator
-from polrig.engine import GuardedRig
-from polrig.errors import DeviceFault, DeviceTimeout
-from polrig.rig import open_rig
 from _genicam import VIKY, viky_camera
+
+from polrig.acquisition.engine import GuardedRig
+from polrig.app.rig import open_rig
+from polrig.calibration.calset import CalibrationSet
+from polrig.calibration.procedures import INTRINSIC_MOUNTS
+from polrig.calibration.runner import run_steps
+from polrig.drivers.emulators.ell14 import Ell14Emulator
+from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.errors import DeviceFault, DeviceTimeout
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -78,7 +78,7 @@ def test_a_calibration_step_on_hardware_asks_for_every_mount_then_fails_readably
             port = "{ell.port}"
             [light]
             driver = "dc2200"
-            backend = "drivers.emulators.dc2200"
+            backend = "polrig.drivers.emulators.dc2200"
             """)
         with open_rig(path) as rig:
             asked: list[dict] = []

@@ -6,10 +6,19 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from polrig.conventions import CONVENTIONS_VERSION
 from polrig.errors import FormatError
-from polrig.exr import (MuellerRows, colour_planes, mueller_channels, read_exr, read_mueller_exr,
-                        read_stokes_exr, write_exr, write_mueller_exr, write_stokes_exr)
+from polrig.formats.exr import (
+    MuellerRows,
+    colour_planes,
+    mueller_channels,
+    read_exr,
+    read_mueller_exr,
+    read_stokes_exr,
+    write_exr,
+    write_mueller_exr,
+    write_stokes_exr,
+)
+from polrig.optics.conventions import CONVENTIONS_VERSION
 
 
 def _bits(a):
@@ -132,7 +141,7 @@ def test_a_failed_write_is_an_oserror_naming_the_file_and_leaves_nothing(tmp_pat
     from _cli_helpers import run_with_file_size_limit
 
     out = tmp_path / "s.exr"
-    code = ("import numpy as np\nfrom polrig.exr import write_stokes_exr\n"
+    code = ("import numpy as np\nfrom polrig.formats.exr import write_stokes_exr\n"
             "s = np.random.default_rng(0).random((3, 3, 64, 64)).astype(np.float32)\n"
             "try:\n"
             f"    write_stokes_exr({str(out)!r}, s)\n"
@@ -155,8 +164,8 @@ def test_writing_onto_a_folder_names_the_folder(tmp_path):
 
 
 # -- plane choices: half-precision uncertainty, plane selection, compression --------------------
-from polrig.exr import RESULT_PLANES, result_planes  # noqa: E402
-from polrig.reference import ReferenceResult  # noqa: E402
+from polrig.formats.exr import RESULT_PLANES, result_planes  # noqa: E402
+from polrig.solve.reference import ReferenceResult  # noqa: E402
 
 
 def _result(c=3, h=6, w=5, seed=0) -> ReferenceResult:

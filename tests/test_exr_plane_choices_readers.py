@@ -1,4 +1,4 @@
-"""Every reader of Mueller EXRs (the GUI viewer, the capture panel's thumbnail, sim.truth's
+"""Every reader of Mueller EXRs (the GUI viewer, the capture panel's thumbnail, polrig.sim.truth's
 reader path through read_mueller_exr) loads files written with any plane choice: half-float
 uncertainty planes, only some optional planes, or the Mueller channels alone."""
 
@@ -7,8 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polrig.exr import RESULT_PLANES, read_mueller_exr, result_planes, write_mueller_exr
-from polrig.reference import ReferenceResult
+from polrig.formats.exr import (
+    RESULT_PLANES,
+    read_mueller_exr,
+    result_planes,
+    write_mueller_exr,
+)
+from polrig.solve.reference import ReferenceResult
 
 CHOICES = [(RESULT_PLANES, "float"), (RESULT_PLANES, "half"), (("mueller", "mask"), "half"),
            (("mueller",), "float")]

@@ -1,4 +1,4 @@
-"""Stokes bases and basis changes (polrig.frames) against their definitions and physics."""
+"""Stokes bases and basis changes (polrig.optics.bases) against their definitions and physics."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from polrig import frames
-from polrig import mueller as mu
+from polrig.optics import bases as frames
+from polrig.optics import mueller as mu
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 vec = arrays(np.float64, (3,), elements=finite)
@@ -100,7 +100,7 @@ def test_rotate_stokes_basis_documented_example():
     # [1,0,1,0] in the basis [0.707,-0.707,0] (forward +z).
     r = frames.rotate_stokes_basis([0, 0, 1.0], [1.0, 0, 0], [np.sqrt(0.5), -np.sqrt(0.5), 0])
     np.testing.assert_allclose(r @ [1, 1, 0, 0], [1, 0, 1, 0], atol=1e-15)
-    # and it is polrig.mueller.rotator of the signed angle
+    # and it is polrig.optics.mueller.rotator of the signed angle
     ang = frames.rotation_angle([0, 0, 1.0], [1.0, 0, 0], [np.sqrt(0.5), -np.sqrt(0.5), 0])
     np.testing.assert_allclose(ang, -np.pi / 4)
     np.testing.assert_allclose(r, mu.rotator(ang), atol=1e-15)

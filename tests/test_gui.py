@@ -14,12 +14,12 @@ pytestqt = pytest.importorskip("pytestqt")
 
 from PySide6.QtCore import Qt, QTimer  # noqa: E402
 
+from polrig.app.rig import build_rig, load_rig_config  # noqa: E402
 from polrig.gui import pipeline  # noqa: E402
 from polrig.gui.latency import EventLoopProbe  # noqa: E402
 from polrig.gui.main_window import MainWindow  # noqa: E402
 from polrig.gui.qtimage import from_qimage  # noqa: E402
 from polrig.gui.settings import make_settings  # noqa: E402
-from polrig.rig import build_rig, load_rig_config  # noqa: E402
 
 pytestmark = pytest.mark.gui
 SIM = {"size": "64x64", "clock_speed": 1000.0}
@@ -121,9 +121,9 @@ def untrained_model_dir(tmp_path_factory):
     """A real single-shot ONNX graph exported from freshly initialised (untrained) networks:
     it exercises the live Mueller path end to end (its numbers are not a reconstruction)."""
     torch = pytest.importorskip("torch")
-    from models.export import export_all
-    from models.pipnet import PIPNet
-    from models.pmmnet import DirectStokesToMM, PMMNet
+    from polrig.models.export import export_all
+    from polrig.models.pipnet import PIPNet
+    from polrig.models.pmmnet import DirectStokesToMM, PMMNet
 
     torch.manual_seed(0)
     wo = torch.zeros(1, 3, 16, 16)
@@ -138,7 +138,7 @@ def untrained_model_dir(tmp_path_factory):
 
 @pytest.mark.slow
 def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
-    from models.runtime import SingleShotModel
+    from polrig.models.runtime import SingleShotModel
 
     w = make_window(qtbot, tmp_path / "gui.ini",
                     model_loader=lambda: SingleShotModel.load(untrained_model_dir, threads=1))
@@ -157,13 +157,13 @@ def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
         w.live._hovered(b + 8, b + 8)
         text = w.live.readout.text()
         assert "Mueller at (u=8, v=8)" in text and "G:" in text
-        # mirror averaging (models.mirror) reaches the worker and the live frames keep coming
+        # mirror averaging (polrig.models.mirror) reaches the worker and the live frames keep coming
         w.live.mirror_average.setChecked(True)
         assert w.live_worker.settings.mirror_average
         before = w.live.last
         qtbot.waitUntil(lambda: w.live.last is not before and w.live.last.display == "mueller", timeout=30000)
         assert np.all(np.isfinite(w.live.last.data.mueller))
-        # full resolution (models.full_resolution): the grid of the sensor's own 64x64 pixels
+        # full resolution (polrig.models.full_resolution): the grid of the sensor's own 64x64 pixels
         w.live.resolution.setCurrentText("full")
         assert w.live_worker.settings.resolution == "full"
         qtbot.waitUntil(lambda: w.live.last.display == "mueller"
@@ -227,7 +227,7 @@ def test_capture_form_asks_for_the_result_exr_format(qtbot, window, tmp_path):
     cp = window.capture
     cp.poses.setText("0")
     cp.out.setText(str(tmp_path / "s"))
-    from polrig.plan import ExrChoice
+    from polrig.acquisition.plan import ExrChoice
 
     assert cp.request().plan().exr == ExrChoice()  # the defaults, as the CLI's
     assert cp.request().plan().exr_planes == ("mueller", "sigma", "sigma_noise", "mask",
@@ -241,7 +241,7 @@ def test_capture_form_asks_for_the_result_exr_format(qtbot, window, tmp_path):
     assert (plan.exr_planes, plan.exr_uncertainty, plan.exr_compression) == (
         ("mueller", "sigma", "mask"), "half", "none")
     cp.exr_planes.setText("sigma,dolp")
-    from polrig.plan import PlanError
+    from polrig.acquisition.plan import PlanError
     with pytest.raises(PlanError, match="dolp") as info:
         cp.request().plan()
     assert info.value.field == "exr_planes"
@@ -287,8 +287,8 @@ def test_device_fault_shows_a_message_and_the_ui_stays_responsive(qtbot, window)
 
 
 def test_closing_during_capture_leaves_a_resumable_session(qtbot, tmp_path):
-    from polrig import capture, processing
-    from polrig.session import Session
+    from polrig.app import capture, processing
+    from polrig.app.session import Session
 
     w = make_window(qtbot, tmp_path / "gui.ini")
     out = tmp_path / "session"
@@ -396,8 +396,8 @@ def test_settings_are_remembered(qtbot, tmp_path):
 
 
 def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
-    from polrig import capture, processing
-    from polrig.exr import write_stokes_exr
+    from polrig.app import capture, processing
+    from polrig.formats.exr import write_stokes_exr
     from polrig.gui.viewer import ViewerPanel
 
     out = tmp_path / "session"

@@ -20,7 +20,6 @@ pytest.importorskip("PySide6")
 pytest.importorskip("pytestqt")
 
 from PySide6.QtCore import QEvent, Qt, QTimer  # noqa: E402
-
 from test_gui import close_window, make_window, wait_connected, wait_frames, window  # noqa: E402,F401
 
 pytestmark = [pytest.mark.gui, pytest.mark.timeout(120)]
@@ -44,26 +43,26 @@ def run_capture(qtbot, w, out, poses: str = "0,90", timeout: int = 60000, **fiel
 @pytest.mark.parametrize("error", ["file-system", "processing"])
 def test_error_after_the_session_exists_is_a_resumable_stop(qtbot, window, tmp_path,
                                                             monkeypatch, error):
-    import polrig.processing
-    import polrig.session
+    import polrig.app.processing
+    import polrig.app.session
 
     out = tmp_path / "session"
     if error == "file-system":  # not a full disk: an I/O error writing capture 2's first file
-        real = polrig.session.atomic_write_bytes
+        real = polrig.app.session.atomic_write_bytes
 
         def write(path, data):
             if "c001_" in str(path):
                 raise OSError(errno.EIO, "Input/output error", str(path))
             real(path, data)
-        monkeypatch.setattr(polrig.session, "atomic_write_bytes", write)
+        monkeypatch.setattr(polrig.app.session, "atomic_write_bytes", write)
     else:  # a processing bug in capture 2
-        real_process = polrig.processing.Processor.process
+        real_process = polrig.app.processing.Processor.process
 
         def process(self, session, index):
             if index == 1:
                 raise RuntimeError("processing bug")
             return real_process(self, session, index)
-        monkeypatch.setattr(polrig.processing.Processor, "process", process)
+        monkeypatch.setattr(polrig.app.processing.Processor, "process", process)
     wait_connected(qtbot, window)
     run_capture(qtbot, window, out, "0,90,180")
     cp = window.capture
@@ -160,7 +159,7 @@ def test_a_long_move_gets_a_timeout_that_fits_it(qtbot, window):
     qtbot.waitUntil(lambda: "move turntable to 720 deg: done" in messages(window), timeout=15000)
     assert not any("did not end" in t for t in messages(window, "error"))
     assert window.rig.turntable.position_deg() == pytest.approx(720.0)
-    from polrig.hal import motion_timeout_s
+    from polrig.acquisition.hal import motion_timeout_s
 
     # 1.5 times the trapezoidal profile at the axis's declared speed and acceleration
     assert motion_timeout_s(window.rig.turntable, 720.0) == pytest.approx(
@@ -324,7 +323,7 @@ def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, t
 # -- 9. a capture cannot start while a calibration step runs
 def test_capture_refused_at_once_while_a_calibration_step_runs(qtbot, window, tmp_path,
                                                                monkeypatch):
-    from calibration import runner
+    from polrig.calibration import runner
 
     release = threading.Event()
 
@@ -356,8 +355,8 @@ def test_capture_refused_at_once_while_a_calibration_step_runs(qtbot, window, tm
 
 # -- 10. grab timeouts follow the exposure
 def test_grab_timeout_follows_the_exposure():
-    from polrig import hal
-    from polrig.rig import open_rig
+    from polrig.acquisition import hal
+    from polrig.app.rig import open_rig
 
     with open_rig(None, size=(32, 24)) as rig:
         cam = rig.camera
@@ -392,7 +391,7 @@ def test_a_capture_at_the_longest_exposure_completes(qtbot, window, tmp_path):
 
 # -- 11. capture panel messages
 def test_a_non_finite_exposure_is_not_called_an_angle():
-    from polrig.capture import parse_float_list, parse_pose_spec
+    from polrig.app.capture import parse_float_list, parse_pose_spec
     from polrig.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"invalid --exposure 'nan': 'nan' is not a finite number$"):
@@ -402,7 +401,7 @@ def test_a_non_finite_exposure_is_not_called_an_angle():
 
 
 def test_capture_panel_messages(qtbot, window, tmp_path):
-    from polrig.capture import Progress
+    from polrig.app.capture import Progress
 
     cp = window.capture
     run_capture(qtbot, window, tmp_path / "bad", "0:10:0")  # refused: nothing "started"
@@ -445,7 +444,7 @@ def test_live_status_says_when_frames_stop(qtbot, window):
 
 
 def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, tmp_path):
-    from polrig.exr import write_mueller_exr
+    from polrig.formats.exr import write_mueller_exr
     from polrig.gui.viewer import ViewerPanel
 
     good = tmp_path / "good.exr"

@@ -13,15 +13,15 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pytestqt")
 
-from polrig.gui.latency import EventLoopProbe  # noqa: E402
+from _genicam import VIKY, viky_camera  # noqa: E402
 
-from calibration.procedures import INTRINSIC_MOUNTS  # noqa: E402
-from drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator  # noqa: E402
-from drivers.emulators.grbl import GrblEmulator  # noqa: E402
+from polrig.app.rig import build_rig, load_rig_config  # noqa: E402
+from polrig.calibration.procedures import INTRINSIC_MOUNTS  # noqa: E402
+from polrig.drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator  # noqa: E402
+from polrig.drivers.emulators.grbl import GrblEmulator  # noqa: E402
+from polrig.gui.latency import EventLoopProbe  # noqa: E402
 from polrig.gui.main_window import MainWindow  # noqa: E402
 from polrig.gui.settings import make_settings  # noqa: E402
-from polrig.rig import build_rig, load_rig_config  # noqa: E402
-from _genicam import VIKY, viky_camera  # noqa: E402
 
 pytestmark = [pytest.mark.gui, pytest.mark.timeout(60)]
 
@@ -38,7 +38,7 @@ def _rig_toml(tmp_path, ell, grbl, extra: str) -> pathlib.Path:
         port = "{grbl.port}"
         [light]
         driver = "dc2200"
-        backend = "drivers.emulators.dc2200"
+        backend = "polrig.drivers.emulators.dc2200"
     """))
     return cfg
 

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pytestqt")
 
-from polrig import preview  # noqa: E402
+from polrig.app import preview  # noqa: E402
 from polrig.cli import main  # noqa: E402
 from polrig.gui import pipeline  # noqa: E402
 from polrig.gui.qtimage import from_qimage  # noqa: E402
@@ -21,9 +21,9 @@ pytestmark = pytest.mark.gui
 def _stokes_exr_with_a_saturated_sky(tmp_path):
     """``polrig stokes`` of a 12-bit frame whose top rows are clipped (a saturated sky) and
     whose right half is background noise."""
-    from polrig.hal import Frame, FrameMeta
-    from polrig.noise import SensorModel
-    from polrig.rawio import write_raw
+    from polrig.formats.rawio import write_raw
+    from polrig.sensor.frame import Frame, FrameMeta
+    from polrig.sensor.noise import SensorModel
 
     model = SensorModel(black_level_dn=64.0)
     mean = np.full((32, 64), 1500.0)
@@ -108,7 +108,7 @@ def test_a_paused_live_view_says_so(qtbot, tmp_path):
 
 
 def test_light_and_fixture_positions_read_as_words():
-    from calibration.procedures import fixture_words
+    from polrig.calibration.procedures import fixture_words
     from polrig.gui.devices import light_words
 
     assert light_words({"open": True, "on": True, "level": 0.5}) == "on, level 0.500"
@@ -117,9 +117,9 @@ def test_light_and_fixture_positions_read_as_words():
 
 
 def test_calibration_step_list_is_not_clipped(qtbot):
+    from polrig.app.rig import build_rig, load_rig_config
     from polrig.gui.calibration_panel import CalibrationPanel
     from polrig.gui.rigaccess import RigLocks
-    from polrig.rig import build_rig, load_rig_config
 
     rig = build_rig(load_rig_config(None), {"size": "32x32"})
     p = CalibrationPanel(rig, RigLocks())
@@ -155,7 +155,7 @@ def test_missing_qt_system_libraries_are_named_with_their_packages(tmp_path):
         pytest.skip("every library of the Qt xcb plugin is installed here")
     env = {k: v for k, v in os.environ.items() if k not in ("QT_QPA_PLATFORM", "WAYLAND_DISPLAY")}
     env["DISPLAY"] = ":99"
-    res = subprocess.run([sys.executable, "-m", "polrig.cli", "gui", "--settings",
+    res = subprocess.run([sys.executable, "-m", "polrig", "gui", "--settings",
                           str(tmp_path / "g.ini")], capture_output=True, text=True, env=env,
                          timeout=120)
     assert res.returncode == 1, res.stderr

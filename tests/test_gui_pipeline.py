@@ -12,8 +12,8 @@ import pytest
 
 from polrig.gui import pipeline
 from polrig.gui.live import LatestSlot, RateMeter
-from polrig.hal import Frame, FrameMeta
-from polrig.stokes import stokes_from_raw
+from polrig.sensor.frame import Frame, FrameMeta
+from polrig.sensor.stokes import stokes_from_raw
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -161,9 +161,9 @@ def test_live_mueller_grid_at_full_resolution_has_the_sensor_size():
     Mueller image, its Stokes images and masks have the simulated sensor's size (the networks'
     grid is a quarter of it per axis on the colour sensor), the grid renders 3x3 of them, and
     the detail keeps the networks' cell averages."""
-    from models.runtime import SingleShotModel
-    from polrig.calibrations import nominal_calibration, single_shot_geometry
-    from polrig.rig import build_rig, load_rig_config
+    from polrig.app.calibrations import nominal_calibration, single_shot_geometry
+    from polrig.app.rig import build_rig, load_rig_config
+    from polrig.models.runtime import SingleShotModel
 
     rig = build_rig(load_rig_config(None), {"size": "128x96", "clock_speed": 1000.0})
     rig.open()

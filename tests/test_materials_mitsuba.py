@@ -1,7 +1,7 @@
-"""The simulator's materials beyond the Baek 2018 family (sim.surface_bsdf) agree with
+"""The simulator's materials beyond the Baek 2018 family (polrig.sim.surface_bsdf) agree with
 Mitsuba 3 (test dependency, ``scalar_spectral_polarized``): ``roughconductor`` with a complex
 index per colour (isotropic and anisotropic, GGX and Beckmann), ``conductor`` with Mitsuba's
-named tabulated metals at the channel wavelengths (the oracle of :mod:`sim.optical_data`),
+named tabulated metals at the channel wavelengths (the oracle of :mod:`polrig.sim.optical_data`),
 ``pplastic`` per colour for dispersive dielectrics, and compositions with Mitsuba's
 ``mueller`` retarder and depolarizer matrices for the thin film and depolarizing layer.
 
@@ -21,10 +21,15 @@ mi.set_variant("scalar_spectral_polarized")
 
 from _sampling import random_unit as _random_unit  # noqa: E402
 
-from polrig import frames  # noqa: E402
-from sim import surface_bsdf as sb  # noqa: E402
-from sim.materials import SurfaceMaterial  # noqa: E402
-from sim.optical_data import CONDUCTORS, MITSUBA_NAMES, WAVELENGTHS_NM, dielectric_rgb  # noqa: E402
+from polrig.optics import bases as frames  # noqa: E402
+from polrig.sim import surface_bsdf as sb  # noqa: E402
+from polrig.sim.materials import SurfaceMaterial  # noqa: E402
+from polrig.sim.optical_data import (  # noqa: E402
+    CONDUCTORS,
+    MITSUBA_NAMES,
+    WAVELENGTHS_NM,
+    dielectric_rgb,
+)
 
 REL_TOL = 1e-4
 
@@ -91,7 +96,7 @@ def test_retardance_of_a_conductor_appears_in_m22_m23_m32():
     """A conductor reflects with an s-p phase difference: in the s/p bases the lower block is
     ``sqrt(Rs Rp) [[cos d, -sin d], [sin d, cos d]]`` with ``sin d != 0``, unlike a dielectric
     (checked in Mitsuba's own bases against roughconductor above; here its size at 45 deg)."""
-    from polrig import mueller as mu
+    from polrig.optics import mueller as mu
 
     m = mu.specular_reflection(np.cos(np.radians(60.0)), CONDUCTORS["gold"][1])
     ref = np.array(mi.mueller.specular_reflection(mi.Float(np.cos(np.radians(60.0))),

@@ -1,4 +1,4 @@
-"""models.diagnose on a tiny generated set with freshly exported (untrained) graphs: every rung is
+"""polrig.models.diagnose on a tiny generated set with freshly exported (untrained) graphs: every rung is
 finite, and the true geometry beats PIPNet's untrained guess."""
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from models.diagnose import RUNGS, diagnose  # noqa: E402
-from models.export import export_all  # noqa: E402
-from models.pipnet import PIPNet  # noqa: E402
-from models.pmmnet import DirectStokesToMM, PMMNet  # noqa: E402
-from models.train import _tensors  # noqa: E402
-from models.data import load_dataset  # noqa: E402
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models.data import load_dataset  # noqa: E402
+from polrig.models.diagnose import RUNGS, diagnose  # noqa: E402
+from polrig.models.export import export_all  # noqa: E402
+from polrig.models.pipnet import PIPNet  # noqa: E402
+from polrig.models.pmmnet import DirectStokesToMM, PMMNet  # noqa: E402
+from polrig.models.train import _tensors  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 
 def test_diagnose_ladder_on_a_tiny_set(tmp_path):

@@ -1,4 +1,4 @@
-"""``polrig evaluate`` (models.evaluate) end to end on a tiny generated set with the shipped
+"""``polrig evaluate`` (polrig.models.evaluate) end to end on a tiny generated set with the shipped
 graphs: every method and metric is present and finite, the tables carry the lit-pixel
 realizability columns, and the metric helpers agree with their definitions."""
 
@@ -11,9 +11,9 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from models import evaluate as ev  # noqa: E402
-from polrig.mueller import polarizer_stokes  # noqa: E402
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models import evaluate as ev  # noqa: E402
+from polrig.optics.mueller import polarizer_stokes  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_forward_l2_of_a_scaled_matrix_is_the_scale_error():
 @pytest.fixture(scope="module")
 def with_unlit(tmp_path_factory):
     """8 held-out samples of 32x32 (seed 0): sample 5 has its object wholly in shadow."""
-    from models.data import load_dataset, lit_samples
+    from polrig.models.data import lit_samples, load_dataset
 
     data = tmp_path_factory.mktemp("unlit") / "data"
     generate_dataset(data, count=8, width=32, seed=0, holdout=True, shard_size=4, progress=False)
@@ -67,8 +67,8 @@ def with_unlit(tmp_path_factory):
 def _expected_variance(ds, x: float) -> float:
     """The simulator's own noise (manifest sensor model, EMVA 1288) at clean normalised level ``x``,
     averaged over the lit samples: ``var = x / (g scale) + ((mu_d + sigma_read^2) / g^2 + 1/12) / scale^2``."""
-    from models.data import lit_samples
-    from polrig.noise import SensorModel
+    from polrig.models.data import lit_samples
+    from polrig.sensor.noise import SensorModel
 
     noise = ds.manifest["noise"]
     sm = SensorModel(**noise["sensor_model"])
@@ -79,7 +79,7 @@ def _expected_variance(ds, x: float) -> float:
 
 
 def test_noise_model_leaves_out_unlit_samples_and_matches_the_simulator(with_unlit):
-    from models.data import lit_samples
+    from polrig.models.data import lit_samples
 
     _, ds = with_unlit
     a, b = ev.fit_noise_model(ds)
@@ -95,8 +95,8 @@ def test_evaluate_skips_the_unlit_sample(with_unlit):
 
 
 def test_a_set_without_a_lit_sample_is_refused(with_unlit, tmp_path, capsys):
-    from models.data import write_dataset
     from polrig.cli import main
+    from polrig.models.data import write_dataset
 
     _, ds = with_unlit
     dark = tmp_path / "dark"
@@ -108,8 +108,8 @@ def test_a_set_without_a_lit_sample_is_refused(with_unlit, tmp_path, capsys):
 
 
 def test_images_off_the_networks_size_multiple_are_refused(with_unlit, tmp_path, capsys):
-    from models.data import write_dataset
     from polrig.cli import main
+    from polrig.models.data import write_dataset
 
     _, ds = with_unlit
     crop = {k: (v[..., :28, :28] if v.ndim >= 3 and v.shape[-2:] == (32, 32) else v) for k, v in ds.arrays.items()}

@@ -13,11 +13,11 @@ import pathlib
 REPO = pathlib.Path(__file__).resolve().parents[1]
 MODELS = REPO / "models"
 #: What the runtime path may never reach: the evaluation and training code, and torch.
-NOT_AT_RUNTIME = ("models.evaluate", "models.train", "models.data", "models.uncertainty_fit",
-                  "models.diagnose", "models.export", "models.recover", "models.paper_scale",
-                  "models.pipnet", "models.pmmnet", "models.layers", "models.pbrdf_torch",
-                  "models.light_fit", "torch", "onnx")
-RUNTIME = ("models.runtime", "models.uncertainty", "models.mirror", "models.size", "models.devices")
+NOT_AT_RUNTIME = ("polrig.models.evaluate", "polrig.models.train", "polrig.models.data", "polrig.models.uncertainty_fit",
+                  "polrig.models.diagnose", "polrig.models.export", "polrig.models.recover", "polrig.models.paper_scale",
+                  "polrig.models.pipnet", "polrig.models.pmmnet", "polrig.models.layers", "polrig.models.pbrdf_torch",
+                  "polrig.models.light_fit", "torch", "onnx")
+RUNTIME = ("polrig.models.runtime", "polrig.models.uncertainty", "polrig.models.mirror", "polrig.models.size", "polrig.models.devices")
 
 
 def _module_names() -> dict[str, pathlib.Path]:
@@ -99,5 +99,5 @@ def test_the_runtime_path_reaches_no_evaluation_training_or_torch():
 
 def test_function_level_imports_are_edges(tmp_path):
     src = tmp_path / "x.py"
-    src.write_text("def f():\n    from models.evaluate import network_inputs\n    import torch.nn\n")
-    assert _imported(src, {"models.evaluate"}) == {"models.evaluate", "torch.nn"}
+    src.write_text("def f():\n    from polrig.models.evaluate import network_inputs\n    import torch.nn\n")
+    assert _imported(src, {"polrig.models.evaluate"}) == {"polrig.models.evaluate", "torch.nn"}

@@ -1,4 +1,4 @@
-"""models.layers: the U-Net's full-resolution 1x1 layer, computed without the full-resolution
+"""polrig.models.layers: the U-Net's full-resolution 1x1 layer, computed without the full-resolution
 concatenation (decoder part at half resolution, then upsampled), equals the concatenating
 formulation ``conv1x1(cat(up(d), x))`` to float rounding, keeps the plain convolution's
 parameters, and exported graphs of either form recover to the same parameters."""
@@ -18,7 +18,7 @@ torch = pytest.importorskip("torch")
 from torch import nn  # noqa: E402
 from torch.nn import functional as F  # noqa: E402
 
-from models.layers import UNetBackbone, UpsampledConcatConv1x1  # noqa: E402
+from polrig.models.layers import UNetBackbone, UpsampledConcatConv1x1  # noqa: E402
 
 
 def _concatenating(conv: nn.Conv2d, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
@@ -58,7 +58,7 @@ def test_split_layer_equals_upsample_concat_conv(low_c, high_c, out_c, h, w, up_
 
 def test_split_layer_has_the_plain_convolutions_parameters():
     layer, plain = UpsampledConcatConv1x1(16, 31, 16), nn.Conv2d(47, 16, 1)
-    assert isinstance(layer, nn.Conv2d)  # models.recover finds it with the other convolutions
+    assert isinstance(layer, nn.Conv2d)  # polrig.models.recover finds it with the other convolutions
     assert {k: tuple(v.shape) for k, v in layer.state_dict().items()} == \
         {k: tuple(v.shape) for k, v in plain.state_dict().items()}
     layer.load_state_dict(plain.state_dict())  # a checkpoint of the concatenating form loads as is
@@ -114,9 +114,9 @@ def test_exported_graphs_of_both_forms_recover_to_the_same_parameters(tmp_path):
 
     import onnx
 
-    from models.export import _export, export_all
-    from models.recover import networks_from_weights
-    from models.runtime import WEIGHTS_DIR
+    from polrig.models.export import _export, export_all
+    from polrig.models.recover import networks_from_weights
+    from polrig.models.runtime import WEIGHTS_DIR
 
     nets, meta = networks_from_weights(WEIGHTS_DIR)
     gen = torch.Generator().manual_seed(3)
@@ -158,7 +158,7 @@ _EXTREMES = [0.0, -0.0, 1e-30, -1e-30, 1e-7, -3.0, 19.9, 20.0, 20.1, 50.0, -50.0
 @given(shape=st.lists(st.integers(1, 4), min_size=2, max_size=5), seed=st.integers(0, 2**16),
        magnitude=st.sampled_from([1e-6, 1.0, 1e6]))
 def test_sum_over_is_the_sum_over_the_axis(shape, seed, magnitude):
-    from models.layers import sum_over
+    from polrig.models.layers import sum_over
 
     x = torch.randn(*shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * magnitude
     for dim in range(-len(shape), len(shape)):
@@ -169,7 +169,7 @@ def test_sum_over_is_the_sum_over_the_axis(shape, seed, magnitude):
 
 
 def test_normalize_channels_is_f_normalize_including_zero_vectors():
-    from models.layers import normalize_channels
+    from polrig.models.layers import normalize_channels
 
     x = torch.randn(2, 3, 5, 7, dtype=torch.float64)
     x[0, :, 0, 0] = 0.0  # below eps: both divide by eps
@@ -180,7 +180,7 @@ def test_normalize_channels_is_f_normalize_including_zero_vectors():
 
 
 def test_softplus_is_f_softplus_with_its_gradient():
-    from models.layers import softplus
+    from polrig.models.layers import softplus
 
     x = torch.cat([torch.tensor(_EXTREMES, dtype=torch.float64), torch.linspace(-30, 30, 601, dtype=torch.float64)])
     x.requires_grad_(True)
@@ -200,7 +200,7 @@ def test_softplus_is_f_softplus_with_its_gradient():
 
 
 def test_signed_log_is_sign_times_log1p_including_zero_and_infinities():
-    from models.layers import signed_log
+    from polrig.models.layers import signed_log
 
     x = torch.tensor(_EXTREMES + [-1e-38, float("inf"), -float("inf"), 3.5, -3.5], dtype=torch.float32)
     ref = torch.sign(x) * torch.log1p(torch.abs(x))
@@ -212,7 +212,7 @@ def test_signed_log_is_sign_times_log1p_including_zero_and_infinities():
 @given(seed=st.integers(0, 2**16), heads=st.sampled_from([1, 2, 4]), size=st.integers(1, 6),
        magnitude=st.sampled_from([1e-3, 1.0, 30.0]))
 def test_channel_attention_equals_the_normalize_then_multiply_form(seed, heads, size, magnitude):
-    from models.layers import MultiHeadChannelAttention
+    from polrig.models.layers import MultiHeadChannelAttention
 
     gen = torch.Generator().manual_seed(seed)
     att = MultiHeadChannelAttention(8, heads).double()

@@ -1,5 +1,5 @@
-"""Global light-direction fit (models.light_fit): closed-form gains against least squares, and a
-round trip through the core pBRDF (polrig.pbrdf renders, the torch fit recovers the light)."""
+"""Global light-direction fit (polrig.models.light_fit): closed-form gains against least squares, and a
+round trip through the core pBRDF (polrig.optics.pbrdf renders, the torch fit recovers the light)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.light_fit import (_residuals, fibonacci_directions, fit_light_direction, local_offsets,  # noqa: E402
-                              shading_pick)
-from models.pbrdf_torch import image_blocks  # noqa: E402
-from polrig import pbrdf  # noqa: E402
+from polrig.models.light_fit import (  # noqa: E402
+    _residuals,
+    fibonacci_directions,
+    fit_light_direction,
+    local_offsets,
+    shading_pick,
+)
+from polrig.models.pbrdf_torch import image_blocks  # noqa: E402
+from polrig.optics import pbrdf  # noqa: E402
 
 AXIS = np.array([0.0, -1.0, 0.0])
 

@@ -1,4 +1,4 @@
-"""models.mirror: the left-right mirror image of a capture is checked against the physics (the
+"""polrig.models.mirror: the left-right mirror image of a capture is checked against the physics (the
 pBRDF of the mirrored geometry is ``D M D``; the analyzer images of the mirrored matrix under
 the mirrored state are the mirrored analyzer images), every map is its own inverse, and the
 shipped graph answers a mirrored capture about as well as the capture itself, which only the
@@ -11,10 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from models import mirror
-from models.evaluate import forward_l2, render_analyzer
-from polrig import pbrdf
-from polrig.stokes import stokes_from_analyzers
+from polrig.models import mirror
+from polrig.models.evaluate import forward_l2, render_analyzer
+from polrig.optics import pbrdf
+from polrig.sensor.stokes import stokes_from_analyzers
 
 D = np.diag(mirror.STOKES_SIGN)
 P = np.diag(mirror.VECTOR_SIGN)
@@ -75,9 +75,9 @@ def test_every_map_is_its_own_inverse():
 
 def test_shipped_graph_answers_the_mirror_image_as_well_as_the_capture():
     pytest.importorskip("onnxruntime")
-    from models.runtime import SingleShotModel
-    from polrig import realizability
-    from sim.dataset import make_sample
+    from polrig.models.runtime import SingleShotModel
+    from polrig.optics import realizability
+    from polrig.sim.dataset import make_sample
 
     model = SingleShotModel.load()
     plain_err, seen_err, avg_err = [], [], []
@@ -105,9 +105,9 @@ def test_shipped_graph_answers_the_mirror_image_as_well_as_the_capture():
 
 def test_mirror_averaged_reconstruction_sigma_grows_with_the_disagreement():
     pytest.importorskip("onnxruntime")
-    from models.runtime import SingleShotModel
-    from polrig.stokes import stokes_from_analyzers
-    from sim.dataset import make_sample
+    from polrig.models.runtime import SingleShotModel
+    from polrig.sensor.stokes import stokes_from_analyzers
+    from polrig.sim.dataset import make_sample
 
     model = SingleShotModel.load()
     if model.uncertainty is None or model.uncertainty.mirror_k <= 0:

@@ -1,4 +1,4 @@
-"""``python -m models.mismatch``: the evaluation tables plus the sigma checks on a set with
+"""``python -m polrig.models.mismatch``: the evaluation tables plus the sigma checks on a set with
 materials outside the Baek family, end to end on a tiny set; one-line errors."""
 
 from __future__ import annotations
@@ -7,16 +7,16 @@ import json
 
 import pytest
 
-from models.runtime import WEIGHTS_DIR
-from models.uncertainty import FILE_NAME
+from polrig.models.runtime import WEIGHTS_DIR
+from polrig.models.uncertainty import FILE_NAME
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / "single_shot.onnx").is_file()
                                 or not (WEIGHTS_DIR / FILE_NAME).is_file(), reason="no shipped weights")
 
 
 def test_tables_coverage_per_kind_and_sigma_only(tmp_path, capsys):
-    from models import mismatch
-    from sim.dataset import generate_dataset
+    from polrig.models import mismatch
+    from polrig.sim.dataset import generate_dataset
 
     data = tmp_path / "mix"
     generate_dataset(data, count=6, width=64, seed=31, material_mix="heldout", progress=False)
@@ -51,7 +51,7 @@ def test_tables_coverage_per_kind_and_sigma_only(tmp_path, capsys):
     (["--summary", "a=missing.json"], "missing.json"),
 ])
 def test_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, argv, needle):
-    from models.mismatch import main
+    from polrig.models.mismatch import main
 
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2

@@ -1,4 +1,4 @@
-"""The paper-scale training entry point (:mod:`models.paper_scale`, issue 22 item 4) end to end
+"""The paper-scale training entry point (:mod:`polrig.models.paper_scale`, issue 22 item 4) end to end
 on the CPU at tiny scale: ``polrig sim dataset`` in two processes, the three stages, the ONNX
 export and check, the evaluation against the shipped graphs, one small output folder; and
 the budget arithmetic of the epoch plan."""
@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-from models import paper_scale  # noqa: E402
+from polrig.models import paper_scale  # noqa: E402
 
 
 def test_plan_epochs_scales_the_paper_schedule_to_the_budget():
@@ -41,7 +41,7 @@ def test_tiny_run_end_to_end(tmp_path, capsys):
     assert paper_scale.folder_bytes(out) < paper_scale.MAX_OUT_BYTES
     assert not list(tmp_path.glob("paper-scale-*"))  # the work folder is gone
     # the exported graph runs with the runtime
-    from models.runtime import SingleShotModel
+    from polrig.models.runtime import SingleShotModel
 
     assert SingleShotModel.load(out / "weights", threads=1).provider
 
@@ -62,8 +62,8 @@ def test_training_device_is_checked_before_any_work(tmp_path):
     ``torch.cuda.is_available()``)."""
     import torch
 
-    from models.train import TrainConfig, train
     from polrig.errors import ConfigError
+    from polrig.models.train import TrainConfig, train
 
     with pytest.raises(ConfigError, match="device must be cpu or cuda"):
         train(tmp_path / "nodata", tmp_path / "out", TrainConfig(device="tpu"), export=False, echo=lambda s: None)
@@ -95,7 +95,7 @@ class FakeClock:
 
 def run_planner(planner: paper_scale.StagePlanner, clock: FakeClock, real_epoch_s: dict[str, float],
                 extra_s: dict[str, float] | None = None) -> dict[str, int]:
-    """Drive ``planner`` as models.train does: each stage asks for its epochs when it starts,
+    """Drive ``planner`` as polrig.models.train does: each stage asks for its epochs when it starts,
     then takes ``epochs * real_epoch_s[stage]`` (+ ``extra_s``) seconds of the clock."""
     done = {}
     for stage in paper_scale.STAGE_SHARES:
@@ -175,7 +175,7 @@ def test_the_data_processes_make_samples_until_the_share_is_up(tmp_path):
     """Without a count, every process makes samples until the data share's end and is stopped;
     the shards it finished are the training set (whole shards only), the held-out sets are
     made whole."""
-    from models.data import load_dataset
+    from polrig.models.data import load_dataset
 
     data = paper_scale.generate_data(tmp_path, size=16, seconds=10.0, jobs=2, seed=0, train_samples=None,
                                      holdout_samples=3, echo=lambda s: None)
@@ -211,7 +211,7 @@ def test_the_data_share_is_checked():
 @pytest.fixture(scope="module")
 def holdout_sets(tmp_path_factory):
     """A work folder with both held-out sets (10 samples at 32x32 each), as phase 1 makes them."""
-    from sim.dataset import generate_dataset
+    from polrig.sim.dataset import generate_dataset
 
     work = tmp_path_factory.mktemp("work")
     for name, flag in paper_scale.HOLDOUT_SETS.items():
@@ -224,7 +224,7 @@ def test_the_verdicts_subset_scores_the_full_model_exactly_as_the_whole_evaluati
     """The methods subset and the deadline: matrix PSNR of the full model (the verdict's number)
     is the same as in the seven-method evaluation of the same samples, and ``limit =
     samples_visited`` repeats exactly the samples a deadline stopped at."""
-    from models.evaluate import METHODS, evaluate
+    from polrig.models.evaluate import METHODS, evaluate
 
     data = holdout_sets / "new_scenes"
     cut = evaluate(data, methods=paper_scale.EVAL_METHODS, deadline=0.0, min_samples=3, echo=lambda s: None)
@@ -241,8 +241,8 @@ def test_the_verdicts_subset_scores_the_full_model_exactly_as_the_whole_evaluati
 
 
 def test_an_unknown_method_is_refused(holdout_sets):
-    from models.evaluate import evaluate
     from polrig.errors import ConfigError
+    from polrig.models.evaluate import evaluate
 
     with pytest.raises(ConfigError, match="unknown method"):
         evaluate(holdout_sets / "new_scenes", methods=("full", "fancy"), echo=lambda s: None)
@@ -251,7 +251,7 @@ def test_an_unknown_method_is_refused(holdout_sets):
 def test_the_evaluation_stops_at_its_end_and_compares_the_same_samples(holdout_sets, tmp_path, monkeypatch):
     """With the budget's end already past, each set is scored on the minimum of samples only,
     the new and the shipped graphs on the same ones; with no end, on all of them."""
-    from models.runtime import WEIGHTS_DIR
+    from polrig.models.runtime import WEIGHTS_DIR
 
     monkeypatch.setattr(paper_scale, "MIN_EVAL_SAMPLES", 2)
     late = paper_scale.evaluate_against_shipped(holdout_sets, WEIGHTS_DIR, tmp_path, end=0.0, echo=lambda s: None)
@@ -269,8 +269,8 @@ def test_the_evaluation_stops_at_its_end_and_compares_the_same_samples(holdout_s
 
 
 def test_parts_are_moved_into_one_set_in_order(tmp_path):
-    from models.data import load_dataset
-    from sim.dataset import generate_dataset
+    from polrig.models.data import load_dataset
+    from polrig.sim.dataset import generate_dataset
 
     parts = [tmp_path / "a", tmp_path / "b"]
     for d, count, seed in zip(parts, (2, 5), (7, 8)):
@@ -287,10 +287,10 @@ def test_parts_are_moved_into_one_set_in_order(tmp_path):
 
 
 def test_train_asks_the_plan_for_each_stages_epochs(tmp_path):
-    """``models.train.train(plan_stage=...)``: called once per stage, in order, before its first
+    """``polrig.models.train.train(plan_stage=...)``: called once per stage, in order, before its first
     epoch with the log so far; its answer is what the stage runs and what the summary records."""
-    from models.train import TrainConfig, train
-    from sim.dataset import generate_dataset
+    from polrig.models.train import TrainConfig, train
+    from polrig.sim.dataset import generate_dataset
 
     generate_dataset(tmp_path / "data", count=4, width=16, seed=3, shard_size=4, progress=False)
     calls = []
@@ -314,7 +314,7 @@ def test_train_asks_the_plan_for_each_stages_epochs(tmp_path):
 def test_a_planned_training_probes_then_plans_every_stage(tmp_path):
     """The probe (warm epoch and per-epoch overhead) and the plan on a tiny set, end to end:
     every stage planned once, in order, with at least one epoch; what ran is what was planned."""
-    from sim.dataset import generate_dataset
+    from polrig.sim.dataset import generate_dataset
 
     generate_dataset(tmp_path / "train", count=6, width=16, seed=5, shard_size=3, compress=False, progress=False)
     got = paper_scale.train_in_budget(tmp_path, seconds=paper_scale.EXPORT_RESERVE_S + 6.0, width=4, seed=0,

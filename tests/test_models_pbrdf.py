@@ -1,4 +1,4 @@
-"""The differentiable torch pBRDF (models.pbrdf_torch) reproduces polrig.pbrdf."""
+"""The differentiable torch pBRDF (polrig.models.pbrdf_torch) reproduces polrig.optics.pbrdf."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.pbrdf_torch import image_blocks, specular_diffuse_blocks  # noqa: E402
-from polrig import pbrdf  # noqa: E402
+from polrig.models.pbrdf_torch import image_blocks, specular_diffuse_blocks  # noqa: E402
+from polrig.optics import pbrdf  # noqa: E402
 
 
 def _random_geometry(rng: np.random.Generator, n: int):

@@ -1,4 +1,4 @@
-"""PIPNet's shape-from-polarization prior (models.pipnet) against the core pBRDF's physics."""
+"""PIPNet's shape-from-polarization prior (polrig.models.pipnet) against the core pBRDF's physics."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.pipnet import PIPNet, diffuse_dolp, diffuse_zenith, sfp_candidates  # noqa: E402
-from polrig import pbrdf  # noqa: E402
+from polrig.models.pipnet import PIPNet, diffuse_dolp, diffuse_zenith, sfp_candidates  # noqa: E402
+from polrig.optics import pbrdf  # noqa: E402
 
 
 @pytest.mark.parametrize("eta", [1.3, 1.5, 1.8])
@@ -96,7 +96,7 @@ def test_pipnet_prior_takes_the_candidate_nearer_its_free_normal_as_trusted():
         net.normal_head.bias.copy_(torch.tensor([0.5, 0, 0, 30.0]))
         analyzer = torch.rand(2, 3, 4, 16, 16)
         out = net(analyzer, torch.ones(2, 1, 16, 16), torch.tensor([[1.0, 0.9, 0.1]] * 2), wo)
-        from models.layers import stokes_from_analyzer
+        from polrig.models.layers import stokes_from_analyzer
         plus, minus = sfp_candidates(stokes_from_analyzer(analyzer), wo)
     free = torch.nn.functional.normalize(wo + torch.tensor([0.5, 0, 0])[None, :, None, None], dim=1)
     margin = ((plus - minus) * free).sum(1, keepdim=True)
@@ -132,7 +132,7 @@ def test_sfp_supervision_targets_the_nearer_candidate_and_its_reliability():
     """The pick is pushed towards the candidate nearer the true normal and the trust towards
     'the nearer candidate is within TRUST_TARGET_DEG': confident right decisions cost almost
     nothing, confident wrong ones a lot; ties (equal dot products) are not supervised."""
-    from models.pipnet import TRUST_TARGET_DEG, sfp_supervision_loss
+    from polrig.models.pipnet import TRUST_TARGET_DEG, sfp_supervision_loss
 
     n = torch.nn.functional.normalize(torch.tensor([0.3, 0.0, -1.0]), dim=0)[None, :, None, None].expand(1, 3, 4, 4)
     near = n.clone()  # candidate equal to the truth
@@ -157,7 +157,7 @@ def test_sfp_supervision_targets_the_nearer_candidate_and_its_reliability():
 
 
 def test_pipnet_loss_adds_the_sfp_terms_only_when_asked():
-    from models.pipnet import pipnet_loss
+    from polrig.models.pipnet import pipnet_loss
 
     torch.manual_seed(2)
     net = PIPNet(3, 8, sfp_prior=True)

@@ -13,9 +13,18 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.layers import apply_mueller  # noqa: E402
-from models.pmmnet import (DIFFUSE_ELEMENTS, SPECULAR_ELEMENTS, PMMNet, compose, expand5,  # noqa: E402
-                           fit_gains, fit_gains_to, gain_fitted_initialization, renderings)
+from polrig.models.layers import apply_mueller  # noqa: E402
+from polrig.models.pmmnet import (  # noqa: E402
+    DIFFUSE_ELEMENTS,
+    SPECULAR_ELEMENTS,
+    PMMNet,
+    compose,
+    expand5,
+    fit_gains,
+    fit_gains_to,
+    gain_fitted_initialization,
+    renderings,
+)
 
 
 def _random_blocks(b=2, h=5, w=6, seed=0):
@@ -83,7 +92,7 @@ def test_untrained_pmmnet_is_the_gain_fitted_initialization():
 
 
 def _fit_gains_reference(stokes, ms, md, kd, s_in, ridge=0.05, eps=1e-6):
-    """The closed form of :func:`models.pmmnet.fit_gains` written with plain reductions over
+    """The closed form of :func:`polrig.models.pmmnet.fit_gains` written with plain reductions over
     whole 3 C-plane images (the formulation the split-sum code replaces)."""
     a = (ms * s_in[:, None, :, None, None]).sum(2)
     b = kd[:, :, None] * (md * s_in[:, None, :, None, None]).sum(2)[:, None]

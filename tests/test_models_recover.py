@@ -1,4 +1,4 @@
-"""models.recover: the shipped ONNX graphs turned back into PyTorch networks compute what the
+"""polrig.models.recover: the shipped ONNX graphs turned back into PyTorch networks compute what the
 graphs compute, batch-norm recalibration keeps that function, and a graph of another
 architecture is refused with a clear error."""
 
@@ -17,13 +17,17 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 
-from models.data import load_dataset  # noqa: E402
-from models.export import INPUTS, compare_with_onnxruntime  # noqa: E402
-from models.pmmnet import DirectStokesToMM, SingleShotNet  # noqa: E402
-from models.recover import load_onnx_into, networks_from_weights, recalibrate_batchnorm  # noqa: E402
-from models.runtime import WEIGHTS_DIR  # noqa: E402
 from polrig.errors import FormatError  # noqa: E402
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models.data import load_dataset  # noqa: E402
+from polrig.models.export import INPUTS, compare_with_onnxruntime  # noqa: E402
+from polrig.models.pmmnet import DirectStokesToMM, SingleShotNet  # noqa: E402
+from polrig.models.recover import (  # noqa: E402
+    load_onnx_into,
+    networks_from_weights,
+    recalibrate_batchnorm,
+)
+from polrig.models.runtime import WEIGHTS_DIR  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 
 @pytest.fixture(scope="module")

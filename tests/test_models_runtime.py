@@ -11,8 +11,14 @@ import sys
 import numpy as np
 import pytest
 
-from models.runtime import WEIGHTS_DIR, SingleShotModel, default_mask, default_scale, view_directions
-from polrig import realizability
+from polrig.models.runtime import (
+    WEIGHTS_DIR,
+    SingleShotModel,
+    default_mask,
+    default_scale,
+    view_directions,
+)
+from polrig.optics import realizability
 
 pytest.importorskip("onnxruntime")
 
@@ -24,7 +30,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def capture():
-    from sim.dataset import make_sample
+    from polrig.sim.dataset import make_sample
 
     return make_sample(3, seed=777, width=64, height=64, holdout=True)
 
@@ -73,7 +79,7 @@ def test_saturated_samples_given_as_nan_keep_their_pixels(model, capture):
     mask = capture["mask"] > 0
     analyzer = capture["analyzer"] * scale
     limit = np.percentile(analyzer[:, :, mask], 97)
-    saturated = np.where(analyzer > limit, np.nan, analyzer)  # as polrig.processing passes them
+    saturated = np.where(analyzer > limit, np.nan, analyzer)  # as polrig.app.processing passes them
     hit = np.any(np.isnan(saturated), axis=(0, 1)) & mask
     assert hit.sum() > 5
     mueller, aux = model.reconstruct(saturated, capture["s_in"], mask=mask, scale=scale)
@@ -164,7 +170,7 @@ def test_view_directions_point_back_to_the_camera():
 
 def _mosaic_from_analyzer(analyzer: np.ndarray) -> np.ndarray:
     """A raw IMX250MYR mosaic whose superpixel demosaic is ``analyzer`` (C, 4, h, w)."""
-    from polrig.layouts import get_layout
+    from polrig.sensor.layouts import get_layout
 
     lay = get_layout("imx250myr")
     _, _, h, w = analyzer.shape
@@ -178,9 +184,9 @@ def _mosaic_from_analyzer(analyzer: np.ndarray) -> np.ndarray:
 
 
 def test_polrig_infer_writes_the_exr_without_torch(tmp_path, capture):
-    from polrig.exr import read_mueller_exr
-    from polrig.hal import Frame, FrameMeta
-    from polrig.rawio import write_raw
+    from polrig.formats.exr import read_mueller_exr
+    from polrig.formats.rawio import write_raw
+    from polrig.sensor.frame import Frame, FrameMeta
 
     scale = float(capture["scale"])
     raw = np.clip(np.round(_mosaic_from_analyzer(capture["analyzer"] * scale) + 100), 0, 65535).astype(np.uint16)
@@ -206,7 +212,7 @@ def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
     """A raw block at the sensor's full scale: the output pixels built from it are marked in
     the EXR's ``saturated`` plane, and the command warns on stderr (exit 0, result written)."""
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     raw = np.clip(np.round(_mosaic_from_analyzer(capture["analyzer"] * float(capture["scale"])) + 100),
                   0, 4095).astype(np.uint16)
@@ -237,7 +243,7 @@ def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
     """``--sigma`` adds the calibrated standard deviations (finite, > 0 on the object, 0 off
     it); without it the EXR has no sigma planes (the speed path stays as benchmarked)."""
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     raw = np.clip(np.round(_mosaic_from_analyzer(capture["analyzer"] * float(capture["scale"])) + 100),
                   0, 4095).astype(np.uint16)
@@ -255,7 +261,7 @@ def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
             sig = exr.extra[f"sigma.M{r}{c}.G"]
             assert np.all(np.isfinite(sig)) and np.all(sig[obj] > 0) and np.all(sig[~obj] == 0)
     # mirror-averaged: recorded in the header, another estimate, its sigma at least as large where
-    # the two passes disagree (models.mirror, models.uncertainty)
+    # the two passes disagree (polrig.models.mirror, polrig.models.uncertainty)
     assert main(args + ["--sigma", "--mirror-average", "--out", str(tmp_path / "mirror.exr")]) == 0
     mir = read_mueller_exr(tmp_path / "mirror.exr")
     assert mir.metadata["mirror_average"] is True and exr.metadata["mirror_average"] is False
@@ -264,7 +270,7 @@ def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
 
 
 def test_runtime_module_does_not_import_torch():
-    code = ("import sys, numpy as np\nfrom models.runtime import SingleShotModel\n"
+    code = ("import sys, numpy as np\nfrom polrig.models.runtime import SingleShotModel\n"
             "m = SingleShotModel.load()\n"
             "out, aux = m.reconstruct(np.random.default_rng(0).uniform(0, 100, (3, 4, 24, 24)).astype('float32'), [0.5, 0.5, 0.0])\n"
             "assert np.all(np.isfinite(out))\n"

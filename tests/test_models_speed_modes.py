@@ -1,6 +1,6 @@
 """The runtime's speed-ups (issue 22 item 2): the light-direction probe of the incident-frame
-refinement (:func:`models.runtime.probe_shape`) and the network-binning mode
-(:func:`models.full_resolution.reconstruct_binned`, ``polrig infer --network-binning 2``):
+refinement (:func:`polrig.models.runtime.probe_shape`) and the network-binning mode
+(:func:`polrig.models.full_resolution.reconstruct_binned`, ``polrig infer --network-binning 2``):
 what runs, agreement with the default route on simulated captures within measured bounds, the
 cell geometry of the binning against closed forms, and clear errors for bad values."""
 
@@ -14,9 +14,20 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from models import full_resolution, runtime
-from models.full_resolution import bin_cells, binned_intrinsics, check_binning, reconstruct_binned, upsample
-from models.runtime import SingleShotModel, infer_frame, probe_shape, view_directions
+from polrig.models import full_resolution, runtime
+from polrig.models.full_resolution import (
+    bin_cells,
+    binned_intrinsics,
+    check_binning,
+    reconstruct_binned,
+    upsample,
+)
+from polrig.models.runtime import (
+    SingleShotModel,
+    infer_frame,
+    probe_shape,
+    view_directions,
+)
 
 pytest.importorskip("onnxruntime")
 
@@ -31,7 +42,7 @@ def model():
 
 
 def _capture(size: int, seed: int):
-    from sim.dataset import make_sample
+    from polrig.sim.dataset import make_sample
 
     return make_sample(1, seed=seed, width=size, height=size, holdout=False)
 
@@ -178,11 +189,11 @@ def test_infer_frame_takes_the_binning_and_refuses_it_with_sigma(model):
 
 def test_polrig_infer_network_binning_flag(tmp_path):
     from benchmarks.bench_single_shot import write_case_raw
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     src = write_case_raw((256, 256), "imx250myr", tmp_path / "frame.png", np.random.default_rng(1))
     out = tmp_path / "out.exr"
-    run = lambda *extra: subprocess.run([sys.executable, "-m", "polrig.cli", "infer", str(src), "--state-deg", "0",  # noqa: E731
+    run = lambda *extra: subprocess.run([sys.executable, "-m", "polrig", "infer", str(src), "--state-deg", "0",  # noqa: E731
                                          "--out", str(out), *extra], capture_output=True, text=True, timeout=180)
     proc = run("--network-binning", "2")
     assert proc.returncode == 0, proc.stderr
@@ -210,10 +221,10 @@ def test_rotating_the_incident_columns_in_place_gives_the_same_numbers():
 
 
 def test_evaluate_speed_modes_scores_a_held_out_set_and_refuses_a_bad_size(tmp_path):
-    """``python -m models.evaluate_speed_modes`` end to end on a 2-sample 256x256 set (its
+    """``python -m polrig.models.evaluate_speed_modes`` end to end on a 2-sample 256x256 set (its
     superpixel grid 64x64, binned 32x32; the probe engages on the 256x256 analyzer images)."""
-    from models.evaluate_speed_modes import METHODS, evaluate_set, main
-    from sim.dataset import generate_dataset
+    from polrig.models.evaluate_speed_modes import METHODS, evaluate_set, main
+    from polrig.sim.dataset import generate_dataset
 
     data = tmp_path / "set"
     generate_dataset(data, count=2, width=256, seed=3, holdout=True, progress=False)
@@ -225,7 +236,7 @@ def test_evaluate_speed_modes_scores_a_held_out_set_and_refuses_a_bad_size(tmp_p
     assert "binning 2" in out.read_text() and out.with_suffix(".json").is_file()
     small = tmp_path / "small"
     generate_dataset(small, count=1, width=96, seed=3, progress=False)
-    proc = subprocess.run([sys.executable, "-m", "models.evaluate_speed_modes", "--data", str(small)],
+    proc = subprocess.run([sys.executable, "-m", "polrig.models.evaluate_speed_modes", "--data", str(small)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "multiples of 64" in proc.stderr
 

@@ -1,5 +1,5 @@
 """The model tools on bad input: ``polrig infer --sigma`` without a calibration of its graph,
-``python -m models.uncertainty_fit`` and ``python -m models.diagnose`` with missing folders, sets
+``python -m polrig.models.uncertainty_fit`` and ``python -m polrig.models.diagnose`` with missing folders, sets
 without a lit sample, absurd limits, damaged or foreign calibration files and unwritable
 outputs. One line naming the problem, exit 2, before the work."""
 
@@ -13,9 +13,9 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from models.runtime import WEIGHTS_DIR  # noqa: E402
 from polrig.cli import main  # noqa: E402
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models.runtime import WEIGHTS_DIR  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def frame(tmp_path_factory):
 @pytest.fixture(scope="module")
 def sets(tmp_path_factory):
     """A held-out set of 8 scenes (sample 5 unlit) and one of that unlit sample alone."""
-    from models.data import load_dataset, write_dataset
+    from polrig.models.data import load_dataset, write_dataset
 
     root = tmp_path_factory.mktemp("sets")
     generate_dataset(root / "lit", count=8, width=32, seed=0, holdout=True, shard_size=4, progress=False)
@@ -65,7 +65,7 @@ def test_infer_sigma_without_a_calibration_of_the_graph_is_refused(frame, tmp_pa
     capsys.readouterr()
     assert main(argv + ["--sigma", "--out", str(tmp_path / "s.exr")]) == 2
     err = capsys.readouterr().err.strip()
-    assert needle in err and "python -m models.uncertainty_fit" in err and "\n" not in err
+    assert needle in err and "python -m polrig.models.uncertainty_fit" in err and "\n" not in err
     assert not (tmp_path / "s.exr").exists()
     assert main(argv + ["--out", str(tmp_path / "plain.exr")]) == 0  # without --sigma nothing is missing
 
@@ -98,7 +98,7 @@ def test_diagnose_and_uncertainty_bad_input_is_one_line(sets, tmp_path, capsys, 
 
 
 def test_a_limit_is_the_first_samples_or_refused():
-    from models.data import load_dataset
+    from polrig.models.data import load_dataset
 
     with pytest.raises(ValueError, match="limit"):
         load_dataset(".", -1)  # a negative slice used to drop the last sample silently
@@ -115,7 +115,7 @@ def test_uncertainty_says_why_a_calibration_does_not_apply(sets, tmp_path, capsy
 
 
 def test_uncertainty_checks_a_matching_calibration_and_diagnose_skips_the_unlit_sample(sets, tmp_path, capsys):
-    from models.diagnose import diagnose
+    from polrig.models.diagnose import diagnose
 
     lit, _ = sets
     wd = _weights(tmp_path, "same")

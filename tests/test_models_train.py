@@ -1,4 +1,4 @@
-"""The whole training path in seconds: a tiny simulated dataset (sim.dataset) -> PIPNet ->
+"""The whole training path in seconds: a tiny simulated dataset (polrig.sim.dataset) -> PIPNet ->
 PMMNet -> direct -> ONNX, resume, stage retraining, ONNX vs torch agreement, and the runtime on
 the exported graphs."""
 
@@ -17,10 +17,9 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from models.data import load_dataset  # noqa: E402
-from models.train import TrainConfig, lr_at, train  # noqa: E402
-
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models.data import load_dataset  # noqa: E402
+from polrig.models.train import TrainConfig, lr_at, train  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 TINY = TrainConfig(pipnet_epochs=2, pmmnet_epochs=2, direct_epochs=1, batch_size=2, width=8, val_fraction=0.25)
 
@@ -68,7 +67,7 @@ def test_resume_continues_after_the_last_epoch(trained, tmp_path):
 
 
 def test_runtime_on_exported_graph_is_finite_and_in_dn(trained):
-    from models.runtime import SingleShotModel
+    from polrig.models.runtime import SingleShotModel
 
     root, data, _ = trained
     ds = load_dataset(data)
@@ -126,7 +125,7 @@ def test_warm_start_fine_tunes_from_the_donor_weights(trained, tmp_path):
 
 
 def test_window_crop_cuts_rectangles_for_the_requested_fraction():
-    from models.train import window_crop
+    from polrig.models.train import window_crop
 
     mask = torch.ones(400, 1, 32, 32)
     gen = torch.Generator().manual_seed(0)
@@ -163,7 +162,7 @@ def test_sfp_supervision_is_logged_and_changes_the_training(trained, tmp_path):
 
 
 def test_rotation_matrices_are_rotations_by_the_angle():
-    from models.train import rotation_matrices
+    from polrig.models.train import rotation_matrices
 
     gen = torch.Generator().manual_seed(1)
     axis = torch.nn.functional.normalize(torch.randn(50, 3, generator=gen, dtype=torch.float64), dim=1)
@@ -182,7 +181,7 @@ def test_rotation_matrices_are_rotations_by_the_angle():
 
 
 def test_perturbed_geometry_turns_normals_and_light_together_within_the_bounds():
-    from models.train import perturbed_geometry
+    from polrig.models.train import perturbed_geometry
 
     gen = torch.Generator().manual_seed(2)
     normal = torch.nn.functional.normalize(torch.randn(64, 3, 8, 8, generator=gen, dtype=torch.float64), dim=1)
@@ -204,7 +203,7 @@ def test_perturbed_geometry_turns_normals_and_light_together_within_the_bounds()
 
 
 def test_geometry_toward_view_pulls_normal_and_light_by_one_fraction_per_image():
-    from models.train import geometry_toward_view
+    from polrig.models.train import geometry_toward_view
 
     gen = torch.Generator().manual_seed(3)
     unit = lambda x: torch.nn.functional.normalize(x, dim=1)  # noqa: E731
@@ -267,11 +266,11 @@ def test_cli_perturbation_flags_reach_the_run_config(trained, tmp_path):
 
 def test_fine_tune_from_a_weights_folder(trained, tmp_path):
     """``init_from`` a weights folder (the ONNX graphs only, as the repository ships them): the
-    networks are recovered (models.recover), the trained stage's batch norms are set on the
+    networks are recovered (polrig.models.recover), the trained stage's batch norms are set on the
     data, and the networks taken unchanged export to graphs computing what the donor's do."""
     import onnxruntime as ort
 
-    from models.evaluate import network_inputs
+    from polrig.models.evaluate import network_inputs
 
     root, data, _ = trained
     said = []
@@ -299,9 +298,9 @@ def test_mirrored_training_sample_is_the_simulated_mirror_scene(trained):
     """A mirrored training sample is what the simulator renders for the mirrored geometry: its
     truth is the pBRDF of the mirrored normals, light and view (the rendering is ``D M D``), and
     its analyzer images are the mirrored matrix rendered under the mirrored incident state."""
-    from models import train as tr
-    from models.evaluate import render_analyzer
-    from polrig import pbrdf
+    from polrig.models import train as tr
+    from polrig.models.evaluate import render_analyzer
+    from polrig.optics import pbrdf
 
     _, data, _ = trained
     ds = load_dataset(data)

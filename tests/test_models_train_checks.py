@@ -20,9 +20,9 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from models import train as tr  # noqa: E402
-from models.train import TrainConfig, lr_at, train  # noqa: E402
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models import train as tr  # noqa: E402
+from polrig.models.train import TrainConfig, lr_at, train  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 TINY = TrainConfig(pipnet_epochs=1, pmmnet_epochs=1, direct_epochs=1, batch_size=2, width=8, val_fraction=0.25)
 FAST = ["--epochs", "1", "--width", "8", "--batch-size", "2"]
@@ -128,7 +128,7 @@ def test_an_out_that_is_a_file_is_one_line(data, tmp_path, capsys):
 def test_an_unknown_stage_is_named(data, tmp_path, capsys):
     code, err = _cli(capsys, "--data", data, "--out", tmp_path / "run", "--stages", "pipnet,bogus")
     assert code == 2 and "'bogus'" in err.splitlines()[-1]
-    from polrig.commands.train import STAGE_NAMES
+    from polrig.cli.commands.train import STAGE_NAMES
 
     assert STAGE_NAMES == tr.STAGES
 
@@ -184,7 +184,7 @@ def test_a_donor_of_another_architecture_is_refused(data, run, tmp_path, capsys,
 
 
 def test_a_size_off_the_networks_multiple_is_refused_before_training(data, tmp_path, capsys):
-    from models.data import load_dataset, write_dataset
+    from polrig.models.data import load_dataset, write_dataset
 
     ds = load_dataset(data)
     crop = {k: (v[..., :28, :28] if v.ndim >= 3 and v.shape[-2:] == (32, 32) else v) for k, v in ds.arrays.items()}
@@ -213,7 +213,7 @@ def test_missing_onnx_is_refused_before_training_unless_no_export(data, tmp_path
 
 @pytest.mark.parametrize("diff, needle", [(float("nan"), "non-finite"), (0.5, "exceeds")])
 def test_a_failed_export_check_is_exit_1_and_replaces_nothing(data, tmp_path, capsys, monkeypatch, diff, needle):
-    import models.export as export
+    import polrig.models.export as export
 
     monkeypatch.setattr(export, "compare_with_onnxruntime", lambda *a, **k: diff)
     code, err = _cli(capsys, "--data", data, "--out", tmp_path / "run", *FAST)
@@ -223,14 +223,14 @@ def test_a_failed_export_check_is_exit_1_and_replaces_nothing(data, tmp_path, ca
 
 
 def test_non_finite_weights_are_not_exported(data, tmp_path):
-    from models.export import ExportError, export_all
-    from models.pipnet import PIPNet
-    from models.pmmnet import DirectStokesToMM, PMMNet
+    from polrig.models.export import ExportError, export_all
+    from polrig.models.pipnet import PIPNet
+    from polrig.models.pmmnet import DirectStokesToMM, PMMNet
 
     pip = PIPNet(3, 8, True)
     with torch.no_grad():
         next(pip.parameters()).fill_(float("nan"))
-    t = tr._tensors(__import__("models.data", fromlist=["load_dataset"]).load_dataset(data))
+    t = tr._tensors(__import__("polrig.models.data", fromlist=["load_dataset"]).load_dataset(data))
     sample = {k: t[k][:1] for k in ("analyzer", "mask", "s_in", "wo", "stage_zero_axis")}
     with pytest.raises(ExportError, match="non-finite weights"):
         export_all(pip, PMMNet(3, 8), DirectStokesToMM(3, 8), tmp_path / "w", sample)

@@ -19,9 +19,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models import train as tr  # noqa: E402
-from models.train import TrainConfig, train  # noqa: E402
-from sim.dataset import generate_dataset  # noqa: E402
+from polrig.models import train as tr  # noqa: E402
+from polrig.models.train import TrainConfig, train  # noqa: E402
+from polrig.sim.dataset import generate_dataset  # noqa: E402
 
 # every random stream of the trainer in use: window crops, mirrored samples, perturbed initializations
 TINY = TrainConfig(pipnet_epochs=2, pmmnet_epochs=2, direct_epochs=1, batch_size=2, width=8, val_fraction=0.25,
@@ -102,7 +102,7 @@ def test_ctrl_c_between_checkpoint_and_log_loses_and_duplicates_nothing(data, st
 
 def test_the_checkpoint_is_replaced_atomically(data, tmp_path, monkeypatch):
     """Ctrl-C while the second checkpoint is written leaves the first one whole (and no temporary file)."""
-    import polrig.rawio
+    import polrig.formats.rawio
 
     run = tmp_path / "run"
     real_replace = os.replace
@@ -115,10 +115,10 @@ def test_the_checkpoint_is_replaced_atomically(data, tmp_path, monkeypatch):
                 raise KeyboardInterrupt
         real_replace(src, dst)
 
-    monkeypatch.setattr(polrig.rawio.os, "replace", replace)
+    monkeypatch.setattr(polrig.formats.rawio.os, "replace", replace)
     with pytest.raises(KeyboardInterrupt):
         train(data, run, TINY, export=False, **QUIET)
-    monkeypatch.setattr(polrig.rawio.os, "replace", real_replace)
+    monkeypatch.setattr(polrig.formats.rawio.os, "replace", real_replace)
     ckpt = tr.load_checkpoint(run / "checkpoint.pt", for_resume=True)
     assert (ckpt["stage"], ckpt["epoch"]) == ("pipnet", 1)
     assert sorted(p.name for p in run.iterdir()) == ["checkpoint.pt", "log.csv"]

@@ -1,5 +1,5 @@
-"""Calibrated uncertainty of single-shot Mueller images (:mod:`models.uncertainty`, the runtime
-part, and :mod:`models.uncertainty_fit`, the fitting tool).
+"""Calibrated uncertainty of single-shot Mueller images (:mod:`polrig.models.uncertainty`, the runtime
+part, and :mod:`polrig.models.uncertainty_fit`, the fitting tool).
 
 Checked: the observed-frame rotation against its definition (property test over the incident
 angle and degree of polarization), that :func:`calibrate` recovers a known heteroscedastic
@@ -18,9 +18,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from models import uncertainty as unc
-from models import uncertainty_fit as fit
-from polrig.mueller import polarizer_stokes
+from polrig.models import uncertainty as unc
+from polrig.models import uncertainty_fit as fit
+from polrig.optics.mueller import polarizer_stokes
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 WEIGHTS_DIR = REPO / "models" / "weights"
@@ -233,8 +233,8 @@ def test_file_format_round_trip_and_bad_files(tmp_path):
 def test_shipped_calibration_covers_a_fresh_simulated_set(tmp_path):
     """The shipped graph carries its calibration, and on scenes it was not calibrated on
     (another seed, training and held-out families) about 95 % of the errors lie within 2 sigma."""
-    from models.runtime import SingleShotModel
-    from sim.dataset import generate_dataset
+    from polrig.models.runtime import SingleShotModel
+    from polrig.sim.dataset import generate_dataset
 
     net = SingleShotModel.load()
     assert net.uncertainty is not None, "uncertainty.json does not belong to the shipped graph"
@@ -250,9 +250,9 @@ def test_shipped_calibration_covers_a_fresh_simulated_set(tmp_path):
 
 @pytest.mark.skipif(not (WEIGHTS_DIR / unc.FILE_NAME).is_file(), reason="no shipped calibration")
 def test_single_shot_capture_reports_the_calibrated_sigma(tmp_path):
+    from polrig.app.session import Session
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
-    from polrig.session import Session
+    from polrig.formats.exr import read_mueller_exr
 
     cfg = tmp_path / "rig.toml"
     cfg.write_text('[sim]\nsize = "256x256"\nclock_speed = inf\nscene = "sphere"\n')

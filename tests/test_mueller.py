@@ -1,4 +1,4 @@
-"""Mueller algebra against closed forms, invariants and round trips (polrig.mueller)."""
+"""Mueller algebra against closed forms, invariants and round trips (polrig.optics.mueller)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from polrig import mueller as mu
-from polrig import pbrdf
+from polrig.optics import mueller as mu
+from polrig.optics import pbrdf
 
 finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 angles = st.floats(-2 * np.pi, 2 * np.pi, allow_nan=False)
@@ -226,7 +226,7 @@ def test_specular_reflection_matches_mitsuba_including_retardance(eta):
 
 
 def test_specular_reflection_agrees_with_the_pbrdf_fast_path():
-    from polrig import pbrdf
+    from polrig.optics import pbrdf
 
     cos_i = np.linspace(0.0, 1.0, 41)
     for eta in (0.5, 0.8, 1.33, 1.5, 2.4):

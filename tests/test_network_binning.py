@@ -12,13 +12,19 @@ import pathlib
 import numpy as np
 import pytest
 
-from polrig import processing
-from polrig.capture import CaptureControl, CapturePlan, CaptureRequest, create_session, run_session
+from polrig.acquisition.plan import PlanError
+from polrig.app import processing
+from polrig.app.capture import (
+    CaptureControl,
+    CapturePlan,
+    CaptureRequest,
+    create_session,
+    run_session,
+)
+from polrig.app.rig import open_rig
+from polrig.app.session import COMPLETE, PENDING, Session
 from polrig.cli import main
-from polrig.exr import read_mueller_exr
-from polrig.plan import PlanError
-from polrig.rig import open_rig
-from polrig.session import COMPLETE, PENDING, Session
+from polrig.formats.exr import read_mueller_exr
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 MODEL_INSTALLED = (REPO / "models" / "weights" / "single_shot.onnx").is_file()
@@ -167,9 +173,9 @@ def _content(root: pathlib.Path) -> list:
 def test_a_session_from_before_the_field_resumes_to_identical_results(tmp_path):
     """A single-shot session whose plan has no ``network_binning`` (written before it existed),
     stopped after its first pose and resumed as ``polrig capture --resume`` does (the request's
-    plan from the session, :func:`polrig.processing.make_processor`), is the same files as an
+    plan from the session, :func:`polrig.app.processing.make_processor`), is the same files as an
     uninterrupted session of today: it runs with binning 1."""
-    from polrig import capture
+    from polrig.app import capture
 
     cal = processing.load_calibration(None)
     plan = CapturePlan((0.0, 90.0), mode="single-shot")
@@ -216,14 +222,14 @@ def test_a_session_from_before_the_field_resumes_to_identical_results(tmp_path):
 
 @needs_model
 def test_cluster_jobs_carry_the_binning_and_old_revisions_continue(tmp_path):
-    """:mod:`polrig.cluster`: a job carries the revision's binning and the worker's processor is
+    """:mod:`polrig.app.cluster`: a job carries the revision's binning and the worker's processor is
     keyed by it (two binnings, two processors); ``reconstruct --workers 2 --network-binning 2`` is
-    byte for byte the serial :func:`polrig.processing.reprocess_session`; an interrupted revision
+    byte for byte the serial :func:`polrig.app.processing.reprocess_session`; an interrupted revision
     written before the setting existed (no ``network_binning``) is continued by a binning-1
     request, not by a binning-2 one."""
     import shutil
 
-    from polrig import cluster
+    from polrig.app import cluster
 
     cfg = sim_config(tmp_path / "rig.toml")
     src = tmp_path / "src"

@@ -1,4 +1,4 @@
-"""Sensor noise model against the EMVA 1288 photon transfer specification (polrig.noise)."""
+"""Sensor noise model against the EMVA 1288 photon transfer specification (polrig.sensor.noise)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from polrig.errors import ConfigError
-from polrig.noise import SensorModel
+from polrig.sensor.noise import SensorModel
 
 
 def test_defaults_and_derived_constants():

@@ -1,4 +1,4 @@
-"""polrig.pbrdf against closed forms, reciprocity, energy bounds, frame invariance and
+"""polrig.optics.pbrdf against closed forms, reciprocity, energy bounds, frame invariance and
 realizability (the Mitsuba comparison is in test_pbrdf_mitsuba.py)."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from polrig import frames, pbrdf, realizability
-from polrig import mueller as mu
+from polrig.optics import bases as frames
+from polrig.optics import mueller as mu
+from polrig.optics import pbrdf, realizability
 
 Z = np.array([0.0, 0.0, 1.0])
 Q = np.diag([1.0, 1.0, -1.0, 1.0])

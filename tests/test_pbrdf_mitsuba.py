@@ -1,11 +1,11 @@
-"""polrig.pbrdf agrees with Mitsuba 3's ``pplastic`` (Baek et al. 2018) in the same Stokes bases.
+"""polrig.optics.pbrdf agrees with Mitsuba 3's ``pplastic`` (Baek et al. 2018) in the same Stokes bases.
 
 Mitsuba (test dependency, variant ``scalar_spectral_polarized``) evaluates ``bsdf.eval`` in the
 shading frame with ``si.wi`` towards the camera and ``wo`` towards the light (radiance mode);
 the returned Mueller matrix follows the *actual light propagation*: from
 ``stokes_basis(-wo_light)`` to ``stokes_basis(wi_camera)`` (pplastic.cpp comment "light arrives
 along -wo_hat and leaves along +wi_hat"); ``si.to_world_mueller(M, -wo, si.wi)`` moves it to
-world bases, which is what ``polrig.pbrdf.mueller`` returns. Mitsuba computes in float32, so
+world bases, which is what ``polrig.optics.pbrdf.mueller`` returns. Mitsuba computes in float32, so
 configurations are kept at ``cos theta >= 0.05`` where float32 is well conditioned (closer to
 grazing, its internal-angle refraction loses digits; polrig evaluates in float64).
 """
@@ -21,7 +21,8 @@ mi.set_variant("scalar_spectral_polarized")
 
 from _sampling import random_unit as _random_unit  # noqa: E402
 
-from polrig import frames, pbrdf  # noqa: E402
+from polrig.optics import bases as frames  # noqa: E402
+from polrig.optics import pbrdf
 
 REL_TOL = 1e-4
 

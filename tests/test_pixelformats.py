@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polrig import pixelformats as pf
 from polrig.errors import FormatError
+from polrig.sensor import pixelformats as pf
 
 
 def test_mono12p_byte_layout_matches_pfnc():

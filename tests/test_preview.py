@@ -5,11 +5,26 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polrig.noise import SensorModel
-from polrig.preview import (BACKGROUND, DARK, SATURATED, aolp_rgb, colorbar, display_valid,
-                            diverging, dolp_colormap, dolp_gray, exr_masks, mask_summary,
-                            mueller_grid, polarizance, reason_text, s0_snr, tone_map,
-                            write_result_previews)
+from polrig.app.preview import (
+    BACKGROUND,
+    DARK,
+    SATURATED,
+    aolp_rgb,
+    colorbar,
+    display_valid,
+    diverging,
+    dolp_colormap,
+    dolp_gray,
+    exr_masks,
+    mask_summary,
+    mueller_grid,
+    polarizance,
+    reason_text,
+    s0_snr,
+    tone_map,
+    write_result_previews,
+)
+from polrig.sensor.noise import SensorModel
 
 
 def test_aolp_hue_wheel_and_dolp_value():
@@ -164,7 +179,7 @@ def test_polarizance_and_result_previews(tmp_path):
 def test_large_results_are_previewed_every_kth_pixel(tmp_path):
     """A result larger than ``max_px`` is previewed from every k-th pixel, exactly as the
     decimated arrays are (the same PNG bytes), flags and snr decimated with it."""
-    from polrig.preview import preview_stride, write_result_previews
+    from polrig.app.preview import preview_stride, write_result_previews
 
     rng = np.random.default_rng(5)
     m = rng.uniform(-1, 1, (3, 3, 3, 250, 180)).astype(np.float32)

@@ -1,4 +1,4 @@
-"""Single-shot geometry carried to the analyzer grid (polrig.processing) on frames too small
+"""Single-shot geometry carried to the analyzer grid (polrig.app.processing) on frames too small
 for one mosaic cell: one clear error for every caller, never a ZeroDivisionError."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from polrig.app.processing import analyzer_grid_intrinsics, single_shot_kwargs
 from polrig.cli import main
-from polrig.hal import Frame, FrameMeta
-from polrig.processing import analyzer_grid_intrinsics, single_shot_kwargs
+from polrig.sensor.frame import Frame, FrameMeta
 
 GEOMETRY = {"intrinsics": (640.0, 640.0, 127.5, 127.5), "stage_zero_axis_camera": (1.0, 0.0, 0.0)}
 
@@ -40,7 +40,7 @@ def test_an_empty_analyzer_grid_is_refused_not_divided_by():
 def test_infer_on_a_one_pixel_frame_is_one_line_exit_2(tmp_path, capsys):
     """``polrig infer`` on a 1x1 16-bit PNG: exit 2 and the line ``polrig stokes`` gives on the
     same file (a ZeroDivisionError traceback before)."""
-    from polrig.rawio import encode_mosaic
+    from polrig.formats.rawio import encode_mosaic
 
     raw = tmp_path / "one.png"
     raw.write_bytes(encode_mosaic(np.array([[1000]], np.uint16), ".png"))

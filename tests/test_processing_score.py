@@ -1,4 +1,4 @@
-"""Scoring a result against the simulator's truth (polrig.processing.score_against_truth)."""
+"""Scoring a result against the simulator's truth (polrig.app.processing.score_against_truth)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from polrig.processing import format_score, score_against_truth
-from polrig.reference import ReferenceResult
+from polrig.app.processing import format_score, score_against_truth
+from polrig.solve.reference import ReferenceResult
 
 
 def _result(mueller: np.ndarray, sigma: float = 0.1) -> ReferenceResult:
@@ -66,13 +66,13 @@ def test_object_mask_limits_the_pixels():
 # -- truth on the output grid and banded scoring ------------------------------------------------
 import pytest  # noqa: E402
 
-from polrig.analyzer import AnalyzerModel  # noqa: E402
-from polrig.demosaic import METHODS, demosaic_float  # noqa: E402
-from polrig.layouts import IMX250MYR, IMX250MZR  # noqa: E402
-from polrig.mueller import polarizer_stokes  # noqa: E402
-from polrig.noise import SensorModel  # noqa: E402
-from polrig.radiometry import StateRadiance, reference_from_frames  # noqa: E402
-from polrig.scoring import score_on_output_grid, truth_on_output_grid  # noqa: E402
+from polrig.optics.mueller import polarizer_stokes  # noqa: E402
+from polrig.sensor.analyzer import AnalyzerModel  # noqa: E402
+from polrig.sensor.demosaic import METHODS, demosaic_float  # noqa: E402
+from polrig.sensor.layouts import IMX250MYR, IMX250MZR  # noqa: E402
+from polrig.sensor.noise import SensorModel  # noqa: E402
+from polrig.solve.radiometry import StateRadiance, reference_from_frames  # noqa: E402
+from polrig.solve.scoring import score_on_output_grid, truth_on_output_grid  # noqa: E402
 
 S_IN = polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1.0)
 
@@ -203,7 +203,7 @@ def test_banded_score_sums_match_the_closed_form():
 def test_realizability_of_a_large_result_is_a_regular_subsample(monkeypatch):
     """Beyond REALIZABILITY_SAMPLES pixels every k-th compared pixel is tested: a pattern of
     one non-physical matrix in three keeps its pass rate of 2/3 under a stride of 2."""
-    import polrig.scoring as scoring
+    import polrig.solve.scoring as scoring
 
     h, w = 9, 10
     truth = _depolarizer(1.0, shape=(1, 3, 3, h, w))

@@ -12,18 +12,18 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from polrig import processing
-from polrig.capture import CapturePlan, create_session, run_session
+from polrig.acquisition.plan import ExrChoice, PlanError
+from polrig.app import processing
+from polrig.app.capture import CapturePlan, create_session, run_session
+from polrig.app.rig import open_rig
+from polrig.app.session import COMPLETE, Session, sha256_file
 from polrig.cli import main
-from polrig.demosaic import demosaic_float
-from polrig.exr import read_exr, read_mueller_exr
-from polrig.mueller import polarizer_stokes
 from polrig.errors import FormatError
-from polrig.plan import ExrChoice, PlanError
-from polrig.reference import MuellerEstimate
-from polrig.rig import open_rig
-from polrig.scoring import score_against_truth, truth_on_output_grid
-from polrig.session import COMPLETE, Session, sha256_file
+from polrig.formats.exr import read_exr, read_mueller_exr
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.demosaic import demosaic_float
+from polrig.solve.reference import MuellerEstimate
+from polrig.solve.scoring import score_against_truth, truth_on_output_grid
 
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
 EXACT = processing.Calibration("ideal")
@@ -316,9 +316,9 @@ def test_cli_options_reach_the_plan_and_the_revision(tmp_path, capsys):
 def test_single_shot_captures_record_the_fraction_beyond_the_sigma_calibration(tmp_path):
     """A single-shot capture's EXR header records the object's fraction whose misfit lies
     beyond the sigma's calibration range: small on a plastic sphere, most of a gold one
-    (:data:`models.uncertainty.BEYOND_WARN_FRACTION` separates them)."""
+    (:data:`polrig.models.uncertainty.BEYOND_WARN_FRACTION` separates them)."""
     pytest.importorskip("onnxruntime")
-    from models.uncertainty import BEYOND_WARN_FRACTION
+    from polrig.models.uncertainty import BEYOND_WARN_FRACTION
 
     got, counts = {}, {}
     for scene in ("sphere", "gold_sphere"):

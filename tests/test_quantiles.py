@@ -1,11 +1,11 @@
-"""polrig.quantiles.tail_percentile against np.percentile (the definition it claims)."""
+"""polrig.solve.quantiles.tail_percentile against np.percentile (the definition it claims)."""
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polrig.quantiles import MIN_SIZE, tail_percentile
+from polrig.solve.quantiles import MIN_SIZE, tail_percentile
 
 QS = (0.0, 0.5, 1.0, 5.0, 9.99, 10.0, 50.0, 90.0, 99.0, 99.5, 99.99, 100.0)
 

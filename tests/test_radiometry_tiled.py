@@ -1,4 +1,4 @@
-"""Band-tiled radiometry (polrig.radiometry): the banded state radiance and reference solve
+"""Band-tiled radiometry (polrig.solve.radiometry): the banded state radiance and reference solve
 give the same numbers as the whole image at once, for every layout, phase, demosaic method
 and band boundary; half-precision uncertainty planes; bad input."""
 
@@ -9,14 +9,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polrig.analyzer import AnalyzerModel
-from polrig.demosaic import METHODS
-from polrig.layouts import IMX250MYR, IMX250MZR
-from polrig.mueller import polarizer_stokes
-from polrig.noise import SensorModel
-from polrig.radiometry import (StateRadiance, analyzer_stack, reference_from_frames,
-                               state_radiance)
-from polrig.reference import solve_reference
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.demosaic import METHODS
+from polrig.sensor.layouts import IMX250MYR, IMX250MZR
+from polrig.sensor.noise import SensorModel
+from polrig.solve.radiometry import (
+    StateRadiance,
+    analyzer_stack,
+    reference_from_frames,
+    state_radiance,
+)
+from polrig.solve.reference import solve_reference
 
 S_IN = polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1.0)
 FIELDS = ("mueller", "sigma", "sigma_noise", "residual", "mask", "pixel_condition", "n_samples")

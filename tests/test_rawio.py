@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
+from polrig.atomic import atomic_write_bytes
 from polrig.errors import FormatError
-from polrig.hal import Frame, FrameMeta
-from polrig.rawio import (atomic_write_bytes, read_mosaic, read_raw, sidecar_path,
-                          write_raw)
+from polrig.formats.rawio import read_mosaic, read_raw, sidecar_path, write_raw
+from polrig.sensor.frame import Frame, FrameMeta
 
 META = FrameMeta(frame_id=3, timestamp_s=12.5, exposure_us=800.0, gain_db=1.5,
                  pixel_format="PolarizeMono12p", layout="imx250mzr", bit_depth=12,

@@ -1,4 +1,4 @@
-"""Real IMX250MZR frames (``../shared/data/real-dofp``, see its MANIFEST.md) end to end."""
+"""Real IMX250MZR frames (``tests/data/real-dofp``, see its README.md) end to end."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pathlib
 import numpy as np
 import pytest
 
-from polrig import pixelformats as pf
-from polrig.demosaic import METHODS
-from polrig.rawio import read_raw
-from polrig.stokes import stokes_from_raw
+from polrig.formats.rawio import read_raw
+from polrig.sensor import pixelformats as pf
+from polrig.sensor.demosaic import METHODS
+from polrig.sensor.stokes import stokes_from_raw
 
 FRAMES = ["polanalyser_polarizer_IMX250MZR_raw8.png", "polanalyser_carps_IMX250MZR_raw8.png",
           "polanalyser_fruits_IMX250MZR_raw8.png"]
@@ -132,7 +132,7 @@ def test_polrig_infer_on_a_real_mono_frame_without_sidecar(real_dofp_dir, tmp_pa
     assumed, reconstructs the one channel as a grey scene and writes a one-colour Mueller EXR
     at the superpixel resolution (it used to stop at "model expects 3 colour channel(s)")."""
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     out = tmp_path / "carps.exr"
     assert main(["infer", str(real_dofp_dir / FRAMES[1]), "--state-deg", "0", "--out", str(out)]) == 0

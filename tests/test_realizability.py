@@ -1,4 +1,4 @@
-"""Realizability tests and Cloude filtering (polrig.realizability)."""
+"""Realizability tests and Cloude filtering (polrig.optics.realizability)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from polrig import mueller as mu
-from polrig import realizability as rz
+from polrig.optics import mueller as mu
+from polrig.optics import realizability as rz
 
 SETTINGS = settings(max_examples=50, deadline=None)
 finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False, allow_subnormal=False)

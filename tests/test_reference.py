@@ -1,4 +1,4 @@
-"""N-state reference Mueller solve (polrig.reference): exactness, calibrated uncertainty,
+"""N-state reference Mueller solve (polrig.solve.reference): exactness, calibrated uncertainty,
 masks, state-set checks, frame averaging and HDR merging."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polrig import mueller as mu
-from polrig import reference as ref
 from polrig.errors import ConfigError
-from polrig.noise import SensorModel
-from polrig.stokes import ideal_analyzer_matrix
+from polrig.optics import mueller as mu
+from polrig.sensor.noise import SensorModel
+from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve import reference as ref
 
 
 def states(*angles_deg, er=np.inf):
@@ -303,7 +303,7 @@ def test_exact_calibration_gives_the_noise_sigma_and_tolerances_change_only_sigm
 @pytest.mark.parametrize("per_pixel_rows", [False, True])
 def test_calibration_sigma_of_the_unweighted_solve_is_the_closed_form(per_pixel_rows):
     """Equal weights: analyzer errors give dM = A0^+ dA M, generator errors
-    dM = M dS^T (S^+)^T (polrig.reference docstring); per-pixel ideal rows take the general
+    dM = M dS^T (S^+)^T (polrig.solve.reference docstring); per-pixel ideal rows take the general
     path and must agree."""
     rng = np.random.default_rng(7)
     m = rng.normal(size=(1, 3, 3, 6, 5))

@@ -1,5 +1,5 @@
-"""Calibration uncertainty in the reported sigma of reference captures (polrig.processing,
-polrig.reference): the default simulated rig (hidden analyzer errors, stage zero offset, finite
+"""Calibration uncertainty in the reported sigma of reference captures (polrig.app.processing,
+polrig.solve.reference): the default simulated rig (hidden analyzer errors, stage zero offset, finite
 extinction ratio) processed with the nominal calibration is covered by the reported sigma;
 result planes; tolerances of calibration sets."""
 
@@ -10,13 +10,13 @@ import math
 import numpy as np
 import pytest
 
-from calibration import calibset
-from calibration.calset import CalibrationSet
-from polrig import processing
-from polrig.analyzer import AnalyzerModel
-from polrig.capture import CapturePlan, create_session, run_session
-from polrig.exr import read_mueller_exr
-from polrig.rig import open_rig
+from polrig.app import processing
+from polrig.app.capture import CapturePlan, create_session, run_session
+from polrig.app.rig import open_rig
+from polrig.calibration import calibset
+from polrig.calibration.calset import CalibrationSet
+from polrig.formats.exr import read_mueller_exr
+from polrig.sensor.analyzer import AnalyzerModel
 
 POSES = (0.0, 90.0, 180.0, 270.0)
 

@@ -16,7 +16,7 @@ import sys
 
 import pytest
 
-from polrig.rig import open_rig
+from polrig.app.rig import open_rig
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location(

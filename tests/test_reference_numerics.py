@@ -1,5 +1,5 @@
-"""The compiled reference solve (polrig.reference, polrig._reference_kernel) against the
-previous numpy implementation (polrig._reference_numpy, the oracle); determinism; memory;
+"""The compiled reference solve (polrig.solve.reference, polrig.solve._reference_kernel) against the
+previous numpy implementation (polrig.solve._reference_numpy, the oracle); determinism; memory;
 option checks and output-range masking (issue 20, item 8); numba without a cache."""
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polrig import _reference_kernel as kern
-from polrig import mueller as mu
-from polrig import reference as ref
-from polrig._reference_numpy import solve_reference_numpy
 from polrig.errors import ConfigError
-from polrig.noise import SensorModel
-from polrig.stokes import ideal_analyzer_matrix
+from polrig.optics import mueller as mu
+from polrig.sensor.noise import SensorModel
+from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve import _reference_kernel as kern
+from polrig.solve import reference as ref
+from polrig.solve._reference_numpy import solve_reference_numpy
 
 A_TOL = (0.01, 0.5, 0.02)
 G_TOL = (2.0, 0.006)
@@ -265,8 +265,8 @@ def test_works_where_numba_has_no_cache_directory(tmp_path):
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     code = textwrap.dedent("""
         import numpy as np
-        from polrig import _reference_kernel as kern, reference as ref
-        from polrig import mueller as mu
+        from polrig.solve import _reference_kernel as kern, reference as ref
+        from polrig.optics import mueller as mu
         assert not kern.solve_blocks._cache.__class__.__name__.endswith("FunctionCache")
         s = mu.polarizer_stokes(np.radians([0, 45, 90, 135]))
         meas = ref.forward_measurements(np.eye(3)[None, :, :, None, None] * 100.0, s)

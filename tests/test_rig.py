@@ -6,18 +6,18 @@ import textwrap
 
 import pytest
 import serial
-
-from drivers.ell14 import Ell14Stage
-from drivers.emulators import dc2200 as dc2200_emulator
-from drivers.emulators.ell14 import Ell14Emulator
-from drivers.emulators.k10cr1 import K10cr1Emulator
-from drivers.grbl import GrblTurntable
-from drivers.emulators.grbl import GrblEmulator
-from drivers.k10cr1 import K10cr1Turntable
-from polrig import hal
-from polrig.errors import DeviceNotFound
-from polrig.rig import open_rig
 from _genicam import viky_camera
+
+from polrig.acquisition import hal
+from polrig.app.rig import open_rig
+from polrig.drivers.ell14 import Ell14Stage
+from polrig.drivers.emulators import dc2200 as dc2200_emulator
+from polrig.drivers.emulators.ell14 import Ell14Emulator
+from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.drivers.emulators.k10cr1 import K10cr1Emulator
+from polrig.drivers.grbl import GrblTurntable
+from polrig.drivers.k10cr1 import K10cr1Turntable
+from polrig.errors import DeviceNotFound
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -47,7 +47,7 @@ def test_real_rig_against_emulators(tmp_path, emulators):
         port = "{emulators['k10cr1'].port}"
         [light]
         driver = "dc2200"
-        backend = "drivers.emulators.dc2200"
+        backend = "polrig.drivers.emulators.dc2200"
         """)
     with open_rig(path) as rig:
         assert isinstance(rig.stage, Ell14Stage) and isinstance(rig.stage, hal.RotationStage)
@@ -96,7 +96,7 @@ def test_grbl_turntable_from_config(tmp_path, emulators):
 
 
 def test_simulated_rig_shares_one_world():
-    pytest.importorskip("sim.devices")
+    pytest.importorskip("polrig.sim.devices")
     with open_rig(None, size=(32, 24)) as rig:
         assert isinstance(rig.camera, hal.Camera) and isinstance(rig.light, hal.Light)
         assert isinstance(rig.turntable, hal.Turntable)
@@ -107,7 +107,7 @@ def test_simulated_rig_shares_one_world():
 
 
 def test_mixed_rig_one_sim_world(tmp_path, emulators):
-    pytest.importorskip("sim.devices")
+    pytest.importorskip("polrig.sim.devices")
     path = write(tmp_path, f"""
         [stage]
         driver = "ell14"

@@ -8,10 +8,22 @@ import pathlib
 
 import pytest
 
+from polrig.app.session import (
+    COMPLETE,
+    LOCK_NAME,
+    MANIFEST_NAME,
+    PENDING,
+    Interrupted,
+    Session,
+    SessionBusy,
+    SessionError,
+    SignalGuard,
+    check_free_space,
+    folder_is_empty,
+    interruption_reason,
+    sha256_file,
+)
 from polrig.errors import FormatError
-from polrig.session import (COMPLETE, LOCK_NAME, MANIFEST_NAME, PENDING, Interrupted, Session,
-                            SessionBusy, SessionError, SignalGuard, check_free_space,
-                            folder_is_empty, interruption_reason, sha256_file)
 
 PLAN = {"poses_deg": [0.0, 90.0], "mode": "reference", "states_deg": [0, 45, 90, 135]}
 #: what a raw frame record carries besides its file (docs/session-schema.md)
@@ -217,7 +229,7 @@ def test_the_lock_of_another_process_is_honoured(tmp_path):
     s = make(tmp_path)
     s.unlock()
     child = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from polrig.session import Session; "
+        "import sys, time; from polrig.app.session import Session; "
         f"s = Session.open({str(s.root)!r}, lock=True); print('locked', flush=True); time.sleep(60)")],
         stdout=subprocess.PIPE, text=True)
     try:

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from polrig.cli import main
-from sim.dataset import SIZE_MULTIPLE, generate_dataset
+from polrig.sim.dataset import SIZE_MULTIPLE, generate_dataset
 
 
 def _run(capsys, *argv) -> tuple[int, str]:
@@ -21,7 +21,7 @@ def _run(capsys, *argv) -> tuple[int, str]:
 
 
 def test_the_size_multiple_is_the_networks_one():
-    from models.runtime import SIZE_MULTIPLE as RUNTIME
+    from polrig.models.runtime import SIZE_MULTIPLE as RUNTIME
 
     assert SIZE_MULTIPLE == RUNTIME
 

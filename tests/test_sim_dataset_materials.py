@@ -1,4 +1,4 @@
-"""Datasets with the material mixes and interreflections of issue 23 (``sim.dataset``,
+"""Datasets with the material mixes and interreflections of issue 23 (``polrig.sim.dataset``,
 ``polrig sim dataset --materials MIX --indirect-samples N``, ``[sim] indirect_samples``)."""
 
 from __future__ import annotations
@@ -7,18 +7,30 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from polrig import realizability
 from polrig.cli import main
 from polrig.errors import ConfigError
-from polrig.noise import SensorModel
-from sim import create_sim_rig
-from sim.dataset import (effective_eta, generate_dataset, load_shard, make_sample, material_kind,
-                         shard_name)
-from sim.materials import MATERIAL_KINDS, MATERIAL_MIXES, random_material, random_surface_material
-from sim.options import parse_options
-from sim.world import ideal_analyzer_images
+from polrig.optics import realizability
+from polrig.sensor.noise import SensorModel
+from polrig.sim import create_sim_rig
+from polrig.sim.dataset import (
+    effective_eta,
+    generate_dataset,
+    load_shard,
+    make_sample,
+    material_kind,
+    shard_name,
+)
+from polrig.sim.materials import (
+    MATERIAL_KINDS,
+    MATERIAL_MIXES,
+    random_material,
+    random_surface_material,
+)
+from polrig.sim.options import parse_options
+from polrig.sim.world import ideal_analyzer_images
 
 SIZE = dict(width=24, height=24)
 #: Arrays that depend only on the sample's geometry, light, pose and polarizer state.
@@ -189,7 +201,7 @@ def test_cli_flags_end_to_end(tmp_path, capsys):
 
 
 def test_sim_option_indirect_samples_reaches_the_world(tmp_path):
-    from polrig.rig import open_rig
+    from polrig.app.rig import open_rig
 
     assert parse_options({})["indirect_samples"] == 0
     cfg = tmp_path / "rig.toml"

@@ -1,18 +1,24 @@
-"""Simulated devices obey polrig.hal and share one world (sim.devices)."""
+"""Simulated devices obey polrig.acquisition.hal and share one world (polrig.sim.devices)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from polrig import hal
-from polrig.errors import (ConfigError, DeviceDisconnected, DeviceFault, DeviceTimeout,
-                           FormatError, ProtocolError)
-from polrig.layouts import get_layout
-from polrig.mueller import estimate_linear
-from sim import create_sim_rig
-from sim.clock import SimClock
-from sim.motion import Move
+from polrig.acquisition import hal
+from polrig.errors import (
+    ConfigError,
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceTimeout,
+    FormatError,
+    ProtocolError,
+)
+from polrig.optics.mueller import estimate_linear
+from polrig.sensor.layouts import get_layout
+from polrig.sim import create_sim_rig
+from polrig.sim.clock import SimClock
+from polrig.sim.motion import Move
 
 VIRTUAL = float("inf")
 
@@ -249,7 +255,7 @@ def test_bad_options_give_config_errors():
 @pytest.mark.parametrize("sensor", ["imx250myr", "imx250mzr"])
 def test_noise_free_four_state_round_trip_recovers_the_truth(sensor):
     """Noise off: four polarizer states, per-pixel Stokes from the full-resolution analyzer
-    images, least-squares Mueller (polrig.mueller.estimate_linear) == truth to 1e-4."""
+    images, least-squares Mueller (polrig.optics.mueller.estimate_linear) == truth to 1e-4."""
     rig = _rig(scene="multi", size=(96, 64), sensor=sensor)
     w = rig.world
     states = (0.0, 45.0, 90.0, 135.0)
@@ -273,7 +279,7 @@ def test_noise_free_four_state_round_trip_recovers_the_truth(sensor):
 
 
 def test_swapping_the_scene_drops_cached_images():
-    from sim.scene import make_scene
+    from polrig.sim.scene import make_scene
 
     rig = _rig()
     before = rig.truth.ground_truth()["mask"].sum()
@@ -288,7 +294,7 @@ def test_noise_is_keyed_by_condition_and_repeat_index():
     """A resumed session re-grabs the same frames: noise depends on (seed, pose, state,
     exposure, repeat index, earlier visits of the state since the turntable moved), not on how
     many frames were grabbed before; a resumed capture starts again from its turntable move."""
-    from sim.devices import create_sim_rig
+    from polrig.sim.devices import create_sim_rig
 
     def grab_two(detour: bool):
         rig = create_sim_rig({"size": (64, 64), "clock_speed": float("inf"), "seed": 3})
@@ -312,7 +318,7 @@ def test_noise_is_keyed_by_condition_and_repeat_index():
 def test_a_state_visited_twice_gets_independent_noise():
     """``--states 0,45,0``: the second visit to 0 deg is a new exposure, not a copy of the
     first (identical frames made the reference solve count one noise sample twice)."""
-    from sim.devices import create_sim_rig
+    from polrig.sim.devices import create_sim_rig
 
     def sweep():
         rig = create_sim_rig({"size": (64, 64), "clock_speed": float("inf"), "seed": 3})

@@ -9,22 +9,28 @@ import pytest
 
 from polrig.cli import main
 from polrig.errors import ConfigError
-from polrig.exr import read_mueller_exr
-from polrig.noise import SensorModel
-from polrig.rawio import read_raw
-from polrig.reference import forward_measurements, solve_reference
-from sim import create_sim_rig
-from sim.dataset import (SHARD_ARRAYS, families_for, generate_dataset, load_shard, make_sample,
-                         shard_name)
-from sim.scene import FAMILIES, HOLDOUT_FAMILIES
-from sim.truth import read_truth, write_truth
-from sim.world import ideal_analyzer_images
+from polrig.formats.exr import read_mueller_exr
+from polrig.formats.rawio import read_raw
+from polrig.sensor.noise import SensorModel
+from polrig.sim import create_sim_rig
+from polrig.sim.dataset import (
+    SHARD_ARRAYS,
+    families_for,
+    generate_dataset,
+    load_shard,
+    make_sample,
+    shard_name,
+)
+from polrig.sim.scene import FAMILIES, HOLDOUT_FAMILIES
+from polrig.sim.truth import read_truth, write_truth
+from polrig.sim.world import ideal_analyzer_images
+from polrig.solve.reference import forward_measurements, solve_reference
 
 VIRTUAL = float("inf")
 
 
 def test_reference_solve_recovers_the_truth_from_noise_free_analyzer_images():
-    """Noise off: four states through the analyzers, polrig.reference's weighted solve of the
+    """Noise off: four states through the analyzers, polrig.solve.reference's weighted solve of the
     16 samples per pixel gives the truth Mueller image to 1e-4 relative."""
     rig = create_sim_rig({"scene": "checker_sphere", "size": (64, 48), "noise": False,
                           "clock_speed": VIRTUAL})

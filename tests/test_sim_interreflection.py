@@ -1,4 +1,4 @@
-"""One-bounce indirect light (sim.interreflection) against a deterministic quadrature of the
+"""One-bounce indirect light (polrig.sim.interreflection) against a deterministic quadrature of the
 same integral over the reflecting surface, and the rendered truth with interreflections:
 realizable, unchanged by default, and consistent between the Mueller image and the Stokes
 images the simulated camera sees."""
@@ -8,16 +8,27 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polrig import realizability as rz
-from sim.geometry import PinholeCamera, PointLight, TurntableGeometry, look_at, rotation_about_axis
-from sim.interreflection import BEAM_REFERENCE, as_surface, evaluate_materials, one_bounce
-from sim.materials import Material, SurfaceMaterial
-from sim.optical_data import CONDUCTORS
-from sim.render import render
-from sim.scene import Scene, SceneObject, make_scene
-from sim.shapes import Rectangle
-from sim import surface_bsdf
-from polrig import pbrdf
+from polrig.optics import pbrdf
+from polrig.optics import realizability as rz
+from polrig.sim import surface_bsdf
+from polrig.sim.geometry import (
+    PinholeCamera,
+    PointLight,
+    TurntableGeometry,
+    look_at,
+    rotation_about_axis,
+)
+from polrig.sim.interreflection import (
+    BEAM_REFERENCE,
+    as_surface,
+    evaluate_materials,
+    one_bounce,
+)
+from polrig.sim.materials import Material, SurfaceMaterial
+from polrig.sim.optical_data import CONDUCTORS
+from polrig.sim.render import render
+from polrig.sim.scene import Scene, SceneObject, make_scene
+from polrig.sim.shapes import Rectangle
 
 WALL_HALF = 0.03
 WALL_Y = 0.04

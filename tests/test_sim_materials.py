@@ -1,6 +1,6 @@
 """Materials beyond the Baek 2018 family against closed forms, identities and invariants:
-complex-index Fresnel (polrig.mueller), the retarder and partial depolarizer, the optical data
-tables, sim.surface_bsdf and the rendered truth of the material scenes (realizable, equal to
+complex-index Fresnel (polrig.optics.mueller), the retarder and partial depolarizer, the optical data
+tables, polrig.sim.surface_bsdf and the rendered truth of the material scenes (realizable, equal to
 the BSDF at the truth geometry). The Mitsuba 3 oracles are in tests/test_materials_mitsuba.py.
 """
 
@@ -11,14 +11,20 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from polrig import mueller as mu
-from polrig import pbrdf
-from polrig import realizability as rz
-from sim import surface_bsdf as sb
-from sim.materials import SurfaceMaterial, Texture
-from sim.optical_data import CONDUCTORS, SELLMEIER, WAVELENGTHS_NM, dielectric_rgb, sellmeier
-from sim.render import render
-from sim.scene import MATERIAL_SCENES, make_scene
+from polrig.optics import mueller as mu
+from polrig.optics import pbrdf
+from polrig.optics import realizability as rz
+from polrig.sim import surface_bsdf as sb
+from polrig.sim.materials import SurfaceMaterial, Texture
+from polrig.sim.optical_data import (
+    CONDUCTORS,
+    SELLMEIER,
+    WAVELENGTHS_NM,
+    dielectric_rgb,
+    sellmeier,
+)
+from polrig.sim.render import render
+from polrig.sim.scene import MATERIAL_SCENES, make_scene
 
 SETTINGS = settings(max_examples=60, deadline=None)
 G = np.diag([1.0, -1.0, -1.0, -1.0])
@@ -164,7 +170,7 @@ def test_surface_materials_validate():
         Texture(0, 1, kind="spots")
 
 
-# --------------------------------------------------------------------------- sim.surface_bsdf
+# --------------------------------------------------------------------------- polrig.sim.surface_bsdf
 def _directions(rng, p, min_cos=1e-3):
     def unit(v):
         return v / np.linalg.norm(v, axis=-1, keepdims=True)
@@ -348,7 +354,7 @@ def test_dispersion_breaks_the_polarization_colour_decoupling():
 
 # --------------------------------------------------------------------------- dataset mixes
 def test_cauchy_dielectric_has_the_requested_index_and_abbe_number():
-    from sim.materials import _LINES_NM, cauchy_rgb
+    from polrig.sim.materials import _LINES_NM, cauchy_rgb
     for n_d, v in ((1.5168, 64.17), (1.585, 30.0), (1.7, 20.0)):
         r, g, b = cauchy_rgb(n_d, v)
         assert 1 < r < g < b
@@ -366,8 +372,8 @@ def test_cauchy_dielectric_has_the_requested_index_and_abbe_number():
 def test_material_mixes_keep_the_geometry_and_give_realizable_truth(mix):
     """A mix changes only the material: ``rng`` is consumed as in the default mix, so the
     scene's geometry, light and camera are those of the Baek sample; the truth is realizable."""
-    from sim.materials import MATERIAL_MIXES
-    from sim.scene import FAMILIES, random_scene
+    from polrig.sim.materials import MATERIAL_MIXES
+    from polrig.sim.scene import FAMILIES, random_scene
     kinds = set()
     for i in range(8):
         rng_base, rng = np.random.default_rng([5, i]), np.random.default_rng([5, i])
@@ -398,7 +404,7 @@ def test_reciprocity_of_the_new_materials(kind):
     ``Q = diag(1, 1, -1, 1)`` (Hovenier 1969, as tests/test_pbrdf.py for the Baek model), the
     cosines divided out: holds for complex indices, anisotropy, dispersion, the film (a
     reciprocal retarder seen from the other side) and the depolarizing layer."""
-    from polrig import frames
+    from polrig.optics import bases as frames
     q = np.diag([1.0, 1.0, -1.0, 1.0])
     mats = {"conductor_aniso": SurfaceMaterial("c", CONDUCTORS["copper"], 0.1, 0.5, distribution="beckmann"),
             "dispersive": SurfaceMaterial("d", dielectric_rgb("polycarbonate"), 0.3, kd=(0.5, 0.3, 0.2)),

@@ -1,4 +1,4 @@
-"""Scene geometry and renderer of the simulator against closed forms (sim.shapes, sim.render)."""
+"""Scene geometry and renderer of the simulator against closed forms (polrig.sim.shapes, polrig.sim.render)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,28 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polrig.pbrdf import linear_rig_mueller
-from polrig.realizability import is_physical_linear, pass_rate
-from sim.geometry import PinholeCamera, PointLight, look_at, rotation_about_axis, unit
-from sim.materials import PRESETS, Material, get_material
-from sim.render import render
-from sim.scene import MATERIAL_SCENES, SCENES, SceneObject, make_scene
-from sim.shapes import Blob, Box, Cylinder, HeightField, Rectangle, Sphere, Torus, gaussian_bumps
+from polrig.optics.pbrdf import linear_rig_mueller
+from polrig.optics.realizability import is_physical_linear, pass_rate
+from polrig.sim.geometry import (
+    PinholeCamera,
+    PointLight,
+    look_at,
+    rotation_about_axis,
+    unit,
+)
+from polrig.sim.materials import PRESETS, Material, get_material
+from polrig.sim.render import render
+from polrig.sim.scene import MATERIAL_SCENES, SCENES, SceneObject, make_scene
+from polrig.sim.shapes import (
+    Blob,
+    Box,
+    Cylinder,
+    HeightField,
+    Rectangle,
+    Sphere,
+    Torus,
+    gaussian_bumps,
+)
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 
@@ -119,8 +134,8 @@ def test_height_field_hits_satisfy_the_height_function():
 
 def _sphere_floor_scene(w=96, h=72) -> tuple:
     """A sphere above a large floor, light above: shadow and mask have closed forms."""
-    from sim.scene import Scene
-    from sim.geometry import TurntableGeometry
+    from polrig.sim.geometry import TurntableGeometry
+    from polrig.sim.scene import Scene
     c = np.array([0.01, -0.005, 0.05])
     r_s = 0.03
     objs = (SceneObject("ball", Sphere(r_s), (get_material("plastic_red"),), c),
@@ -220,7 +235,7 @@ def test_term_skipping_changes_nothing_and_skips_work():
 
 def test_every_rendered_truth_mueller_is_realizable(record_property):
     """Pass rate of the Cloude/coherency and Givens-Kostinski tests over every lit pixel of
-    every named scene (small renders; the 3x3 blocks completed by polrig.realizability's
+    every named scene (small renders; the 3x3 blocks completed by polrig.optics.realizability's
     default max-min-eigenvalue completion)."""
     rates = {}
     for name in SCENES:

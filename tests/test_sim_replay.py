@@ -1,14 +1,14 @@
-"""The replay camera (sim.replay): recorded frames served with the simulated camera's timing."""
+"""The replay camera (polrig.sim.replay): recorded frames served with the simulated camera's timing."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from polrig import hal
+from polrig.acquisition import hal
 from polrig.errors import ConfigError
-from sim import create_sim_rig
-from sim.replay import ReplayCamera
+from polrig.sim import create_sim_rig
+from polrig.sim.replay import ReplayCamera
 
 STATES = (0.0, 45.0, 90.0, 135.0)
 

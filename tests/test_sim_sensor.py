@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polrig.analyzer import AnalyzerModel
-from polrig.noise import SensorModel
-from sim import create_sim_rig
-from sim.generator import Generator
-from sim.sensor import DoFPSensor, gain_factor, random_analyzer
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.noise import SensorModel
+from polrig.sim import create_sim_rig
+from polrig.sim.generator import Generator
+from polrig.sim.sensor import DoFPSensor, gain_factor, random_analyzer
 
 VIRTUAL = float("inf")
 

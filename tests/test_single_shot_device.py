@@ -1,7 +1,7 @@
 """Where the single-shot networks run (issue 22, item 3) and the full-resolution path (item 1),
-on a CPU-only machine: the provider selection and fallback rules of :mod:`models.devices` against
+on a CPU-only machine: the provider selection and fallback rules of :mod:`polrig.models.devices` against
 the real ``onnxruntime.get_available_providers()`` and real sessions, ``polrig infer --device``
-and ``--resolution full`` end to end, and :mod:`models.full_resolution` against closed forms
+and ``--resolution full`` end to end, and :mod:`polrig.models.full_resolution` against closed forms
 (upsampling of a linear ramp is exact, the lifted image reproduces the full-resolution
 measurement up to the network's own misfit, the support of a clipped sample)."""
 
@@ -12,9 +12,9 @@ import pytest
 
 ort = pytest.importorskip("onnxruntime")
 
-from models import devices  # noqa: E402
-from models.full_resolution import lift, upsample  # noqa: E402
-from models.runtime import WEIGHTS_DIR  # noqa: E402
+from polrig.models import devices  # noqa: E402
+from polrig.models.full_resolution import lift, upsample  # noqa: E402
+from polrig.models.runtime import WEIGHTS_DIR  # noqa: E402
 
 HAS_CUDA = devices.CUDA in ort.get_available_providers()
 HAS_WEIGHTS = (WEIGHTS_DIR / "single_shot.onnx").is_file()
@@ -87,7 +87,7 @@ def test_this_onnxruntime_auto_choice_opens_a_real_session():
     provider is the one chosen (CUDA on a GPU machine with the gpu extra, else the CPU)."""
     if not HAS_WEIGHTS:
         pytest.skip("no shipped graph")
-    from models.runtime import SingleShotModel
+    from polrig.models.runtime import SingleShotModel
 
     model = SingleShotModel.load(device="auto", threads=1)
     assert model.provider == devices.choose_providers("auto", ort.get_available_providers())[0]
@@ -154,8 +154,8 @@ def test_lift_reproduces_the_full_resolution_measurement_and_keeps_the_prior(per
 def test_nan_support_of_clipped_samples_is_the_clipped_indicator_support():
     """Full resolution marks clipped pixels by NaN propagation through the demosaic; it must
     be the support the superpixel path computes from the clipped indicator."""
-    from polrig.analyzer import resolve_layout
-    from polrig.demosaic import demosaic_float
+    from polrig.sensor.analyzer import resolve_layout
+    from polrig.sensor.demosaic import demosaic_float
 
     rng = np.random.default_rng(2)
     for name in ("imx250myr", "imx250mzr"):
@@ -181,7 +181,7 @@ def frame(tmp_path_factory):
 @pytest.mark.skipif(not HAS_WEIGHTS, reason="no shipped graph")
 def test_infer_records_the_provider_and_full_resolution_is_the_raw_size(frame, tmp_path, capsys):
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     sp, full = tmp_path / "sp.exr", tmp_path / "full.exr"
     assert main(["infer", str(frame), "--state-deg", "0", "--device", "cpu", "--out", str(sp)]) == 0
@@ -217,8 +217,8 @@ def test_infer_refuses_what_cannot_run_in_one_line(frame, tmp_path, capsys, argv
 @pytest.mark.parametrize("compress", [False, True])
 def test_result_exr_round_trips_bit_exactly_compressed_or_not(tmp_path, compress):
     """Single-shot EXRs are written uncompressed by default (ZIP on request): both lossless."""
-    from models.runtime import write_result_exr
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
+    from polrig.models.runtime import write_result_exr
 
     rng = np.random.default_rng(3)
     m = rng.normal(size=(3, 3, 3, 8, 12)).astype(np.float32)
@@ -232,12 +232,12 @@ def test_result_exr_round_trips_bit_exactly_compressed_or_not(tmp_path, compress
 
 
 def test_the_accuracy_tool_samples_a_mosaic_the_superpixel_demosaic_inverts():
-    """:func:`models.evaluate_full_resolution.mosaic` keeps each pixel's own (colour, angle)
+    """:func:`polrig.models.evaluate_full_resolution.mosaic` keeps each pixel's own (colour, angle)
     image: analyzer images constant per cell come back exactly from the superpixel demosaic,
     and :func:`cell_mean` is that demosaic's averaging."""
-    from models.evaluate_full_resolution import cell_mean, mosaic
-    from polrig.analyzer import resolve_layout
-    from polrig.demosaic import demosaic_float
+    from polrig.models.evaluate_full_resolution import cell_mean, mosaic
+    from polrig.sensor.analyzer import resolve_layout
+    from polrig.sensor.demosaic import demosaic_float
 
     lay = resolve_layout("imx250myr")
     rng = np.random.default_rng(5)

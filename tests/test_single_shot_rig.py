@@ -3,7 +3,7 @@
 The shipped networks were trained with the stage zero axis along the camera's up direction;
 the default simulated rig (and the lab rig) defines it as the horizontal direction
 perpendicular to the illumination axis, ~85 deg away. Checked here: the incident-frame change
-of :mod:`models.runtime` against the pBRDF itself, the geometry plumbing (calibration set ->
+of :mod:`polrig.models.runtime` against the pBRDF itself, the geometry plumbing (calibration set ->
 ``Calibration``, ``[nominal_geometry]`` table, the simulator's design values, intrinsics on the
 analyzer grid), and end to end that a default-rig capture scores near the held-out evaluation
 and clearly better than with a stage zero axis turned by 90 deg (what processing used to do).
@@ -17,8 +17,8 @@ import pathlib
 import numpy as np
 import pytest
 
-from polrig import pbrdf
 from polrig.errors import ConfigError
+from polrig.optics import pbrdf
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "single_shot.onnx"
@@ -30,12 +30,16 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-# -- incident-frame change (models.runtime) ---------------------------------------------------
+# -- incident-frame change (polrig.models.runtime) ---------------------------------------------------
 def test_frame_change_matches_the_pbrdf_in_both_frames():
     """``M_rig = M_model R(theta)`` and ``S_model = R(theta) S_rig`` with the angle of
-    :func:`models.runtime.incident_rotation`: the same pBRDF evaluated with two stage zero axes
+    :func:`polrig.models.runtime.incident_rotation`: the same pBRDF evaluated with two stage zero axes
     (random geometry, grazing angles included) agrees to rounding."""
-    from models.runtime import incident_rotation, rotate_incident_columns, rotate_stokes
+    from polrig.models.runtime import (
+        incident_rotation,
+        rotate_incident_columns,
+        rotate_stokes,
+    )
 
     rng = np.random.default_rng(4)
     n = 400
@@ -59,12 +63,12 @@ def test_frame_change_matches_the_pbrdf_in_both_frames():
 
 
 def test_incident_rotation_closed_form_equals_the_gram_schmidt_frames():
-    """The closed form of :func:`models.runtime.incident_rotation` against the two frames built
-    by :mod:`polrig.frames` (Gram-Schmidt bases, their signed angle): per-row axes, one axis for
+    """The closed form of :func:`polrig.models.runtime.incident_rotation` against the two frames built
+    by :mod:`polrig.optics.bases` (Gram-Schmidt bases, their signed angle): per-row axes, one axis for
     all, plane-first images (``vector_axis=1``, float32 kept), non-unit inputs; a degenerate
     frame (the stage axis along the illumination) gives ``theta = 0``."""
-    from models.runtime import incident_rotation
-    from polrig import frames
+    from polrig.models.runtime import incident_rotation
+    from polrig.optics import bases as frames
 
     rng = np.random.default_rng(12)
     n = 500
@@ -90,14 +94,14 @@ def test_incident_rotation_closed_form_equals_the_gram_schmidt_frames():
 
 
 def test_dataset_truth_in_a_random_frame_is_the_camera_up_truth_turned():
-    """``sim.dataset`` draws the stage zero axis per sample from its own random stream: the
+    """``polrig.sim.dataset`` draws the stage zero axis per sample from its own random stream: the
     same scene in the version-1 (camera-up) frame, turned by the frame change, is the truth."""
-    from models.runtime import incident_rotation, rotate_incident_columns
-    from sim.dataset import make_sample
+    from polrig.models.runtime import incident_rotation, rotate_incident_columns
+    from polrig.sim.dataset import make_sample
 
     up = make_sample(5, seed=9, width=32, height=32, stage_zero_axes="camera-up")
     rnd = make_sample(5, seed=9, width=32, height=32)
-    # camera up made perpendicular to the illumination axis (sim.scene.Scene), as rendered
+    # camera up made perpendicular to the illumination axis (polrig.sim.scene.Scene), as rendered
     assert up["stage_zero_axis"][1] < -0.5 and abs(up["stage_zero_axis"][0]) < 0.5
     for a in (up["stage_zero_axis"], rnd["stage_zero_axis"]):
         assert abs(np.linalg.norm(a) - 1) < 1e-5
@@ -115,8 +119,8 @@ def test_dataset_truth_in_a_random_frame_is_the_camera_up_truth_turned():
 
 @pytest.mark.skipif(not WEIGHTS.is_file(), reason="no single-shot model in models/weights")
 def test_run_rig_frame_in_the_training_frame_is_one_plain_call():
-    from models.runtime import SingleShotModel, view_directions
-    from sim.dataset import make_sample
+    from polrig.models.runtime import SingleShotModel, view_directions
+    from polrig.sim.dataset import make_sample
 
     model = SingleShotModel.load()
     smp = make_sample(1, seed=3, width=32, height=32, holdout=True, stage_zero_axes="camera-up")
@@ -133,8 +137,8 @@ def test_intrinsics_on_the_analyzer_grid():
     """A raw pixel centre ``u`` of a superpixel block ``j`` (``4 j .. 4 j + 3``) projects to
     grid ``j`` with the carried intrinsics; the simulator's design camera at 256x256 becomes
     the runtime's default camera of the 64x64 analyzer image; an ROI offset moves ``c``."""
-    from models.runtime import DEFAULT_FOCAL_PER_PX
-    from polrig.processing import analyzer_grid_intrinsics
+    from polrig.app.processing import analyzer_grid_intrinsics
+    from polrig.models.runtime import DEFAULT_FOCAL_PER_PX
 
     fx, fy, cx, cy = analyzer_grid_intrinsics((640.0, 640.0, 127.5, 127.5), (0, 0), (256, 256), (64, 64))
     assert (fx, fy, cx, cy) == (DEFAULT_FOCAL_PER_PX * 64, DEFAULT_FOCAL_PER_PX * 64, 31.5, 31.5)
@@ -149,8 +153,8 @@ def test_intrinsics_on_the_analyzer_grid():
 
 
 def test_single_shot_kwargs_follow_the_demosaic_and_the_roi():
-    from polrig.hal import Frame, FrameMeta
-    from polrig.processing import single_shot_kwargs
+    from polrig.app.processing import single_shot_kwargs
+    from polrig.sensor.frame import Frame, FrameMeta
 
     geo = {"intrinsics": (640.0, 640.0, 127.5, 127.5), "stage_zero_axis_camera": (1.0, 0.0, 0.0)}
     meta = FrameMeta(0, 0.0, 1000.0, 0.0, "Mono16", "imx250myr", 12, offset_xy=(16, 8))
@@ -163,8 +167,8 @@ def test_single_shot_kwargs_follow_the_demosaic_and_the_roi():
 
 
 def test_dataset_axes_are_read_per_sample_and_resume_checks_the_mode(tmp_path):
-    from models.data import load_dataset
-    from sim.dataset import generate_dataset
+    from polrig.models.data import load_dataset
+    from polrig.sim.dataset import generate_dataset
 
     generate_dataset(tmp_path / "d", count=3, width=16, seed=4, shard_size=2, progress=False)
     ds = load_dataset(tmp_path / "d")
@@ -180,9 +184,9 @@ def test_dataset_axes_are_read_per_sample_and_resume_checks_the_mode(tmp_path):
 
 
 def test_calibration_set_geometry_reaches_processing(tmp_path):
-    from calibration.calset import CalibrationSet
-    from calibration.rigframes import stage_zero_axis_cam
-    from polrig.processing import load_calibration, single_shot_geometry
+    from polrig.app.processing import load_calibration, single_shot_geometry
+    from polrig.calibration.calset import CalibrationSet
+    from polrig.calibration.rigframes import stage_zero_axis_cam
 
     k = [[1300.0, 0, 250.0], [0, 1290.0, 260.0], [0, 0, 1]]
     light = [0.3, -0.2, 0.1]
@@ -205,9 +209,9 @@ def test_calibration_set_geometry_reaches_processing(tmp_path):
 
 
 def test_nominal_geometry_table_and_simulator_design_values(tmp_path):
-    from polrig.processing import nominal_calibration, single_shot_geometry
-    from polrig.rig import load_rig_config, nominal_geometry
-    from sim import create_sim_rig
+    from polrig.app.processing import nominal_calibration, single_shot_geometry
+    from polrig.app.rig import load_rig_config, nominal_geometry
+    from polrig.sim import create_sim_rig
 
     sim = nominal_geometry(load_rig_config(None))
     assert sim["source"] == "simulator design geometry"
@@ -241,7 +245,7 @@ def test_nominal_geometry_table_and_simulator_design_values(tmp_path):
     ("stage_zero_axis = [0, 1, 0]", r"unknown key \(did you mean 'stage_zero_axis_camera'\?\)"),
 ])
 def test_bad_nominal_geometry_is_one_line(tmp_path, table, message):
-    from polrig.rig import load_rig_config
+    from polrig.app.rig import load_rig_config
 
     path = tmp_path / "rig.toml"
     path.write_text(f"[nominal_geometry]\n{table}\n")
@@ -259,8 +263,8 @@ def _held_out_matrix_psnr() -> float:
 def _design_axis_turned_90(size: int) -> list[float]:
     """The simulator's design stage zero axis turned by 90 deg about the design illumination
     axis (camera frame): the incident frame of the training rig, roughly."""
-    from sim.geometry import TurntableGeometry
-    from sim.scene import default_camera, default_light, stage_zero_axis_for
+    from polrig.sim.geometry import TurntableGeometry
+    from polrig.sim.scene import default_camera, default_light, stage_zero_axis_for
 
     cam = default_camera(size, size)
     x0, target = stage_zero_axis_for(default_light(), TurntableGeometry())
@@ -269,9 +273,9 @@ def _design_axis_turned_90(size: int) -> list[float]:
 
 
 def _capture_psnr(tmp_path, scene: str, extra: str = "") -> tuple[float, dict]:
+    from polrig.app.session import Session
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
-    from polrig.session import Session
+    from polrig.formats.exr import read_mueller_exr
 
     cfg = tmp_path / f"{scene}{len(extra)}.toml"
     cfg.write_text(f'[sim]\nsize = "256x256"\nclock_speed = inf\nscene = "{scene}"\n{extra}')
@@ -306,10 +310,10 @@ def test_object_turned_away_from_the_light_is_dark_not_scored_noise(tmp_path):
     noise. Single-shot marks it ``dark`` from the noise model, as the reference solve does
     (the network's relative object mask used to keep ~150 noise pixels, scored at 42 %
     realizable); at pose 0 the lit panel stays valid."""
+    from polrig.app.session import Session
     from polrig.cli import main
-    from polrig.exr import read_mueller_exr
-    from polrig.reference import DARK
-    from polrig.session import Session
+    from polrig.formats.exr import read_mueller_exr
+    from polrig.solve.reference import DARK
 
     cfg = tmp_path / "panel.toml"
     cfg.write_text('[sim]\nsize = "256x256"\nclock_speed = inf\nscene = "normalmap"\n')
@@ -333,7 +337,7 @@ def test_mono_sensor_capture_is_reconstructed_as_a_grey_scene(tmp_path):
     colour channel(s)". Its one channel now goes to the colour network as a grey scene and the
     colour outputs are averaged back: the capture writes a one-colour Mueller EXR that scores
     within :data:`HELD_OUT_MARGIN_DB` of the held-out matrix PSNR against the simulator's truth."""
-    from polrig.exr import read_mueller_exr
+    from polrig.formats.exr import read_mueller_exr
 
     psnr, meta = _capture_psnr(tmp_path, "sphere", 'sensor = "imx250mzr"\n')
     assert psnr >= _held_out_matrix_psnr() - HELD_OUT_MARGIN_DB

@@ -4,16 +4,25 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _dofp_scenes import cell_constant, smooth_stokes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from _dofp_scenes import cell_constant, smooth_stokes
-from polrig.analyzer import AnalyzerModel
-from polrig.demosaic import METHODS
-from polrig.layouts import IMX250MYR, IMX250MZR, get_layout
-from polrig.stokes import (StokesSolver, aolp_deg, dolp, dolp_with_overshoot, ideal_inverse,
-                           polarized_split, saturation_mask, stokes_from_analyzers,
-                           stokes_from_raw, stokes_validity)
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.demosaic import METHODS
+from polrig.sensor.layouts import IMX250MYR, IMX250MZR, get_layout
+from polrig.sensor.stokes import (
+    StokesSolver,
+    aolp_deg,
+    dolp,
+    dolp_with_overshoot,
+    ideal_inverse,
+    polarized_split,
+    saturation_mask,
+    stokes_from_analyzers,
+    stokes_from_raw,
+    stokes_validity,
+)
 
 ALL_PHASES = {"imx250mzr": [(x, y) for y in range(2) for x in range(2)],
               "imx250myr": [(x, y) for y in range(4) for x in range(4)]}
@@ -243,7 +252,7 @@ def test_validity_of_raw_stokes():
 @pytest.mark.parametrize("phase", [(0, 0), (1, 1)])
 def test_strip_wise_bilinear_equals_whole_image_computation(monkeypatch, phase):
     """The cache-friendly strip path gives the whole-image numbers (strip seams included)."""
-    import polrig.stokes as stokes_mod
+    import polrig.sensor.stokes as stokes_mod
 
     layout = IMX250MZR.shifted(*phase)
     rng = np.random.default_rng(13)
@@ -252,7 +261,7 @@ def test_strip_wise_bilinear_equals_whole_image_computation(monkeypatch, phase):
     raw[10, 10] = np.nan
     monkeypatch.setattr(stokes_mod, "STRIP_PIXELS", 4 * 30)  # 4-row strips
     res = stokes_from_raw(raw, layout, "bilinear", saturation_dn=4095.0, black_level_dn=10)
-    a = __import__("polrig.demosaic", fromlist=["demosaic"]).demosaic(
+    a = __import__("polrig.sensor.demosaic", fromlist=["demosaic"]).demosaic(
         raw, layout, "bilinear", black_level_dn=10)
     s = stokes_from_analyzers(a)
     finite = np.isfinite(s).all(axis=1)

@@ -190,7 +190,7 @@ class PtyEmulator:
 
 
 def run_cli(factory, description: str, argv: list[str] | None = None) -> None:
-    """``python -m drivers.emulators.<device> [--link PATH] [--speed-factor F]``.
+    """``python -m polrig.drivers.emulators.<device> [--link PATH] [--speed-factor F]``.
 
     Prints the pty path (and link) and serves until Ctrl-C.
     """

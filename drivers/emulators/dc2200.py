@@ -3,7 +3,7 @@
 The DC2200 driver's real pyusb calls (``usb.core.find``, ``set_configuration``,
 ``Device.write``/``read`` on the bulk endpoints, class control requests, string
 descriptors) go through this backend, which answers with the bytes a DC2200 would send:
-USBTMC framing (:mod:`drivers.usbtmc`) around SCPI. Identity: vendor 0x1313 (Thorlabs),
+USBTMC framing (:mod:`polrig.drivers.usbtmc`) around SCPI. Identity: vendor 0x1313 (Thorlabs),
 product 0x80C8 (DC2200), USBTMC interface class 0xFE/0x03/0x01 with bulk-OUT 0x02, bulk-IN
 0x81 and interrupt-IN 0x83 endpoints.
 
@@ -38,7 +38,7 @@ import types
 import usb.backend
 import usb.core
 
-from drivers import usbtmc
+from polrig.drivers import usbtmc
 
 VENDOR_ID, PRODUCT_ID = 0x1313, 0x80C8
 EP_OUT, EP_IN, EP_INT = 0x02, 0x81, 0x83
@@ -372,7 +372,7 @@ _SHARED: Dc2200Emulator | None = None
 
 def get_backend() -> Dc2200Emulator:
     """pyusb backend-module convention (like ``usb.backend.libusb1.get_backend``): a config
-    may name ``backend = "drivers.emulators.dc2200"`` to drive this emulator in-process."""
+    may name ``backend = "polrig.drivers.emulators.dc2200"`` to drive this emulator in-process."""
     global _SHARED
     if _SHARED is None:
         _SHARED = Dc2200Emulator()
@@ -384,15 +384,15 @@ def main(argv: list[str] | None = None) -> None:
     prove it answers by asking ``*IDN?`` through the real driver."""
     import argparse
 
-    from drivers.dc2200 import Dc2200Light
+    from polrig.drivers.dc2200 import Dc2200Light
 
     argparse.ArgumentParser(description="Emulated Thorlabs DC2200 (a pyusb backend). Point a "
                             "rig config at it with [light] driver = \"dc2200\", backend = "
-                            "\"drivers.emulators.dc2200\" (in-process only).").parse_args(argv)
+                            "\"polrig.drivers.emulators.dc2200\" (in-process only).").parse_args(argv)
     with Dc2200Light(backend=get_backend()) as light:
         info = light.info()
         print(f"emulated {info.model} serial {info.serial} firmware {info.firmware}; use "
-              f'backend = "drivers.emulators.dc2200" in the [light] table')
+              f'backend = "polrig.drivers.emulators.dc2200" in the [light] table')
 
 
 if __name__ == "__main__":

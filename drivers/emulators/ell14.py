@@ -17,7 +17,7 @@ reported once more by the next ``gs`` (then cleared), as the manual describes.
 ELL14: 143360 pulses per revolution (``IN`` travel 0x0168 = 360 deg, pulses 0x00023000),
 maximum speed about 430 deg/s.
 
-Faults: see :mod:`drivers.emulators._pty`; ``bad_status``: the next ``GS`` reply carries a
+Faults: see :mod:`polrig.drivers.emulators._pty`; ``bad_status``: the next ``GS`` reply carries a
 status that is not two hex digits (``GSQQ``); ``lost_end``: the reply that ends the next
 move is lost on the line (other replies, e.g. to ``gs`` during the move, still come). Reply variants a driver must accept (pylablib's
 elliptec.py takes a ``GS`` reply to a move as its end): ``end_with_status`` ends moves with
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 
-from drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
+from polrig.drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
 
 PULSES_PER_REV = 143360
 MAX_SPEED_DEG_S = 430.0

@@ -19,7 +19,7 @@ axis to the machine travel of a default GRBL 1.1 build, ``[-$13x, 0]`` (settings
 the travel negated; system.c ``system_check_travel_limits`` without
 ``HOMING_FORCE_SET_ORIGIN``): ``max_travel`` switches them on with that travel.
 
-Faults: see :mod:`drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
+Faults: see :mod:`polrig.drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
 (``ALARM:1``, motion aborted, position lost: re-home). With soft limits on, a target outside
 the travel raises ``ALARM:2`` (soft limit) before any motion, as GRBL 1.1 does. Both are
 critical alarms: like grbl/grbl ``grbl/protocol.c`` (``protocol_exec_rt_system``) the
@@ -38,7 +38,7 @@ from __future__ import annotations
 import re
 import time
 
-from drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
+from polrig.drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 AXES = "XYZA"

@@ -1,6 +1,6 @@
 """Emulator of a Thorlabs K10CR1 rotation stage speaking APT binary frames on a pty.
 
-Protocol: Thorlabs "APT Communications Protocol" (see :mod:`drivers.apt`). State machine:
+Protocol: Thorlabs "APT Communications Protocol" (see :mod:`polrig.drivers.apt`). State machine:
 position in micro-steps (409600/3 per degree), moves at the maximum velocity of its velocity
 parameters (``MOT_SET/REQ/GET_VELPARAMS``, APT units; power-up values 10 deg/s and 10
 deg/s^2, the K10CR1's specified maximum speed and Kinesis' default acceleration) times
@@ -9,7 +9,7 @@ with ``MOT_MOVE_COMPLETED`` carrying position and status bits, ``MOT_MOVE_STOP``
 ``MOT_MOVE_STOPPED``, status bits (moving, homing, homed, motion error, enabled), the channel
 enable state (a disabled channel ignores moves and reports an error), ``HW_GET_INFO``.
 
-Faults: see :mod:`drivers.emulators._pty`. ``error_mid_move`` stops the motor half way,
+Faults: see :mod:`polrig.drivers.emulators._pty`. ``error_mid_move`` stops the motor half way,
 sets the motion-error bit, clears the homed bit (the position is no longer trusted) and
 sends ``HW_RICHRESPONSE`` with an error code and text; the code values are this emulator's
 own (the protocol document leaves them device specific). ``garble`` corrupts the header
@@ -26,8 +26,8 @@ from __future__ import annotations
 import struct
 import time
 
-from drivers import apt
-from drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
+from polrig.drivers import apt
+from polrig.drivers.emulators._pty import LinearMove, PtyEmulator, run_cli
 
 STEPS_PER_DEG = 409600 / 3
 MAX_SPEED_DEG_S = 10.0

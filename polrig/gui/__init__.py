@@ -3,15 +3,15 @@
 Module map (imports flow downwards; only :mod:`polrig.gui.pipeline` is free of Qt):
 
 * :mod:`polrig.gui.pipeline` -- frames/EXRs -> :class:`PolarizationData` -> display images
-  (reuses :mod:`polrig.stokes` and :mod:`polrig.preview`), cursor readout, histograms.
+  (reuses :mod:`polrig.sensor.stokes` and :mod:`polrig.app.preview`), cursor readout, histograms.
 * :mod:`polrig.gui.rigaccess` -- one lock per device so that device calls from the worker
   threads never overlap.
 * :mod:`polrig.gui.widgets` -- image view with cursor tracking, histogram, message area.
 * :mod:`polrig.gui.live` -- live view widget and its worker ``QThread`` (latest-frame slot).
 * :mod:`polrig.gui.devices` -- devices panel and its worker thread.
 * :mod:`polrig.gui.capture_panel` -- capture panel and its worker thread
-  (:func:`polrig.capture.run_session`).
-* :mod:`polrig.gui.calibration_panel` -- the :mod:`calibration.procedures` step by step.
+  (:func:`polrig.app.capture.run_session`).
+* :mod:`polrig.gui.calibration_panel` -- the :mod:`polrig.calibration.procedures` step by step.
 * :mod:`polrig.gui.viewer` -- saved sessions and Mueller/Stokes EXRs.
 * :mod:`polrig.gui.main_window` -- the window, settings (``QSettings``), shortcuts.
 * :mod:`polrig.gui.app` -- :func:`run_gui` (what ``polrig gui`` calls).

@@ -9,6 +9,12 @@ import sys
 import threading
 from typing import Any, Iterator
 
+from polrig.app import processing
+from polrig.app.rig import build_rig, load_rig_config
+from polrig.app.session import Interrupted
+from polrig.errors import ConfigError, PolrigError
+from polrig.models.runtime import SingleShotModel
+
 #: Simulated sensor size of the GUI's built-in rig (width x height). Smaller than a real
 #: IMX250 (2448x2048): the simulator renders every new pose, which at full size takes
 #: seconds; ``polrig gui --sim-size 2448x2048`` gives the full size.
@@ -21,8 +27,6 @@ def check_qt_binding(pyside_version: str, python: tuple[int, int]) -> None:
     interpreter aborts ("deallocating None") after some thousand calls (measured here;
     6.11.3 is fine). :class:`polrig.errors.ConfigError` names the fix."""
     if pyside_version == "6.12.0" and tuple(python) < (3, 12):
-        from polrig.errors import ConfigError
-
         raise ConfigError("PySide6 6.12.0 crashes on Python < 3.12 (reference counting of None);"
                           " install another version: pip install 'PySide6-Essentials!=6.12.0'")
 
@@ -91,8 +95,6 @@ def check_qt_platform(environ=os.environ) -> None:
         return
     missing = missing_xcb_libraries()
     if missing:
-        from polrig.errors import PolrigError
-
         packages = " ".join(dict.fromkeys(XCB_PACKAGES.get(m, m) for m in missing))
         raise PolrigError(f"Qt's X11 (xcb) platform plugin cannot load: {', '.join(missing)} "
                           f"not found; on Debian/Ubuntu: sudo apt-get install {packages} "
@@ -105,14 +107,10 @@ def sim_options(size: str = DEFAULT_SIM_SIZE, clock_speed: float = 1.0) -> dict[
 
 def model_loader(weights: str | None = None, device: str = "auto"):
     """A function loading the single-shot model on ``device`` (``auto``, ``cpu``, ``cuda``:
-    :mod:`models.devices`; the CLI's message when none is installed)."""
+    :mod:`polrig.models.devices`; the CLI's message when none is installed)."""
     def load():
-        from polrig import processing
-
         if weights is None:
             return processing.single_shot_model(device)
-        from models.runtime import SingleShotModel
-
         return SingleShotModel.load(weights, device=device)
     return load
 
@@ -124,11 +122,11 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
     import PySide6
     from PySide6.QtWidgets import QApplication
 
+    from polrig.gui.main_window import MainWindow  # Qt: after the platform checks above
+    from polrig.gui.settings import make_settings
+
     check_qt_binding(PySide6.__version__, sys.version_info[:2])
     check_qt_platform()
-    from polrig.gui.main_window import MainWindow
-    from polrig.gui.settings import make_settings
-    from polrig.rig import build_rig, load_rig_config
 
     config_data = load_rig_config(config)  # configuration errors before any window opens
     rig = build_rig(config_data, sim_options(sim_size, sim_clock_speed))
@@ -140,8 +138,6 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
     with close_on_signals(window) as received:
         code = int(app.exec())
     if received:
-        from polrig.session import Interrupted
-
         raise Interrupted(received[0])  # polrig's exit: 130 (SIGINT) / 143 (SIGTERM)
     return code
 
@@ -155,7 +151,7 @@ def close_on_signals(window, signals=(signal.SIGINT, signal.SIGTERM)) -> Iterato
     """While Qt's event loop runs: SIGINT and SIGTERM close ``window`` as its close button
     does (a running capture is stopped and its session left ``interrupted``; the window
     closes once it has). Yields the list of signals received (the first one decides the
-    exit code: :func:`run_gui` raises :class:`polrig.session.Interrupted` for it after the
+    exit code: :func:`run_gui` raises :class:`polrig.app.session.Interrupted` for it after the
     window closed). A repeated signal does not cut the clean-up short.
 
     The usual Qt approach: the Python handler only records the signal; a timer

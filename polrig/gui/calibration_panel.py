@@ -1,22 +1,22 @@
 """Calibration panel: the steps of ``polrig calibrate``, one at a time, with their reports.
 
-The same core as the CLI: :func:`calibration.runner.run_steps` runs a step (in its order
+The same core as the CLI: :func:`polrig.calibration.runner.run_steps` runs a step (in its order
 intrinsics, turntable, light, stokes, dofp; a later step reads what the earlier ones stored in
-the :class:`calibration.calset.CalibrationSet`), the set is saved into the chosen folder
-(:meth:`CalibrationSet.save`) and :func:`calibration.report.write_report` writes
+the :class:`polrig.calibration.calset.CalibrationSet`), the set is saved into the chosen folder
+(:meth:`CalibrationSet.save`) and :func:`polrig.calibration.report.write_report` writes
 ``report.md`` and its PNG plots there; on the simulated rig the result is also scored against
-the simulator's hidden truth (:func:`calibration.runner.errors_against_truth`). A step runs in
+the simulator's hidden truth (:func:`polrig.calibration.runner.errors_against_truth`). A step runs in
 :class:`CalibrationWorker` (a ``QThread`` holding every device lock); the procedure's log lines
 stream into the panel, the report's text and PNGs are shown when it is done.
 
 Targets: on the simulated rig the procedure's ``mount(target, **fixture)`` swaps the simulated
-target (:func:`sim.targets.mount`, as ``polrig calibrate`` does); on hardware the panel asks the
+target (:func:`polrig.sim.targets.mount`, as ``polrig calibrate`` does); on hardware the panel asks the
 operator to mount it and waits for "Target in place" (the CLI waits for Enter).
 
-The procedures run through the same executor as a capture (:func:`calibration.runner.run_steps`
-drives the rig through :class:`polrig.engine.GuardedRig`: the capture's fault policy, retries
+The procedures run through the same executor as a capture (:func:`polrig.calibration.runner.run_steps`
+drives the rig through :class:`polrig.acquisition.engine.GuardedRig`: the capture's fault policy, retries
 logged). Cancel stops the step at its next grab or move (the worker's cancel event is the
-executor's stop request, :class:`polrig.engine.CaptureControl`), log line or target mount
+executor's stop request, :class:`polrig.acquisition.engine.CaptureControl`), log line or target mount
 (:class:`CalibrationCancelled` from its callbacks); nothing new is saved and the panel reports
 "cancelled". A device call already running (a turntable move, a grab) ends first.
 """
@@ -29,15 +29,30 @@ from typing import Any
 
 from PySide6.QtCore import Qt, QThread, Signal
 from PySide6.QtGui import QImage
-from PySide6.QtWidgets import (QFormLayout, QHBoxLayout, QLabel, QLineEdit, QListWidget,
-                               QListWidgetItem, QPlainTextEdit, QPushButton, QSplitter,
-                               QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QListWidget,
+    QListWidgetItem,
+    QPlainTextEdit,
+    QPushButton,
+    QSplitter,
+    QVBoxLayout,
+    QWidget,
+)
 
-from calibration.procedures import fixture_words  # noqa: F401 (re-exported)
-from polrig.engine import CaptureControl, StopRequested
+from polrig import calibration
+from polrig.acquisition.engine import CaptureControl, StopRequested
+from polrig.calibration import runner
+from polrig.calibration.procedures import fixture_words  # noqa: F401 (re-exported)
+from polrig.calibration.report import write_report
+from polrig.calibration.runner import STEPS
 from polrig.errors import PolrigError
 from polrig.gui.rigaccess import RigLocks
 from polrig.gui.widgets import ImageView
+from polrig.sim import targets
 
 STEP_LABELS = {"intrinsics": "Camera intrinsics (ChArUco board)",
                "turntable": "Turntable axis (board at several angles)",
@@ -48,8 +63,7 @@ STEP_LABELS = {"intrinsics": "Camera intrinsics (ChArUco board)",
 
 
 def step_names() -> tuple[str, ...]:
-    """The steps of :data:`calibration.runner.STEPS` and ``all``."""
-    from calibration.runner import STEPS
+    """The steps of :data:`polrig.calibration.runner.STEPS` and ``all``."""
 
     return tuple(STEPS) + ("all",)
 
@@ -62,7 +76,6 @@ def simulated_mount(rig):
     """The simulated rig's target swap when every device is simulated (else ``None``)."""
     if rig.sim is None or rig.truth is None:
         return None
-    from sim import targets
 
     def mount(name: str, **fixture: Any) -> None:
         targets.mount(rig.sim, name, **fixture)
@@ -107,9 +120,6 @@ class CalibrationWorker(QThread):
             self.check_cancelled()
 
     def run(self) -> None:
-        from calibration import runner
-        from calibration.report import write_report
-
         steps = list(runner.STEPS) if self.step == "all" else [self.step]
         check = self.check_cancelled
         try:
@@ -225,7 +235,6 @@ class CalibrationPanel(QWidget):
 
     def _calibration_set(self, folder: pathlib.Path):
         """The set in ``folder`` (loaded once; a new one if the folder holds none)."""
-        import calibration
 
         if self.calset is None or self._loaded_from != folder:
             self.extras = {}

@@ -1,16 +1,16 @@
 """Capture panel: the options of ``polrig capture``, start/pause/stop/resume, progress with
 ETA, thumbnails of finished poses and (simulated rig) the score against truth.
 
-The form becomes a typed :class:`polrig.capture.CaptureRequest` (as ``polrig capture``'s
+The form becomes a typed :class:`polrig.app.capture.CaptureRequest` (as ``polrig capture``'s
 options do) and :class:`CaptureWorker` runs exactly what ``polrig capture`` runs
-(:func:`polrig.capture.prepare_capture` validates it, :mod:`polrig.processing` builds the
-processor, :func:`polrig.capture.run_session` acquires and processes) in a ``QThread``
+(:func:`polrig.app.capture.prepare_capture` validates it, :mod:`polrig.app.processing` builds the
+processor, :func:`polrig.app.capture.run_session` acquires and processes) in a ``QThread``
 holding every device lock. The ETA comes from the plan's hardware time from the first
-event, scaled by the observed pace once frames arrive. Pause and stop go through :class:`polrig.capture.CaptureControl`; a stop (or closing the
+event, scaled by the observed pace once frames arrive. Pause and stop go through :class:`polrig.app.capture.CaptureControl`; a stop (or closing the
 window) leaves the session ``interrupted`` and resumable. Once the session exists, every way a
 run can end is reported like ``polrig capture`` reports it: complete, or stopped with the
 reason (a device fault, a full disk, any other file-system error, a processing error:
-:func:`polrig.capture.interrupted_result`) and the hint that the completed captures are intact
+:func:`polrig.app.capture.interrupted_result`) and the hint that the completed captures are intact
 and "Resume session in folder" continues; only a refusal before the session exists (bad
 options, devices not connected, devices busy) is "not started".
 """
@@ -24,16 +24,40 @@ from typing import Any
 import numpy as np
 from PySide6.QtCore import QSize, Qt, QThread, Signal
 from PySide6.QtGui import QIcon, QPixmap
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QFileDialog, QFormLayout, QGroupBox, QHBoxLayout,
-                               QLabel, QLineEdit, QListWidget, QListWidgetItem, QProgressBar,
-                               QPushButton, QSpinBox, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QFileDialog,
+    QFormLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QListWidget,
+    QListWidgetItem,
+    QProgressBar,
+    QPushButton,
+    QSpinBox,
+    QVBoxLayout,
+    QWidget,
+)
 
-from polrig.capture import CaptureControl, CaptureRequest, Progress
+from polrig.acquisition.plan import ExrChoice, parse_float_list, parse_pose_spec
+from polrig.app import capture, processing
+from polrig.app.capture import CaptureControl, CaptureRequest, Progress
+from polrig.app.preview import tone_map
 from polrig.errors import PolrigError
+from polrig.formats.exr import (
+    COMPRESSIONS,
+    RESULT_PLANES,
+    UNCERTAINTY_PRECISIONS,
+    read_mueller_exr,
+)
+from polrig.gui.pipeline import fast_white
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import RigLocks
 from polrig.gui.widgets import network_binning_box
-from polrig.plan import ExrChoice
+from polrig.solve.scoring import format_score
 
 THUMB_PX = 128
 
@@ -41,10 +65,6 @@ THUMB_PX = 128
 def thumbnail_rgb(path: pathlib.Path, size: int = THUMB_PX) -> np.ndarray:
     """A small preview of a capture's Mueller EXR: the tone-mapped ``m00`` (RGB), resized."""
     import cv2
-
-    from polrig.exr import read_mueller_exr
-    from polrig.gui.pipeline import fast_white
-    from polrig.preview import tone_map
 
     m00 = read_mueller_exr(path).mueller[:, 0, 0]
     rgb = tone_map(m00, white=fast_white(m00))
@@ -57,7 +77,7 @@ def thumbnail_rgb(path: pathlib.Path, size: int = THUMB_PX) -> np.ndarray:
 class CaptureWorker(QThread):
     """Runs one capture session (new or resumed). Signals: ``progress(Progress)``,
     ``finished_result(status, reason, result)`` (``result`` the
-    :class:`polrig.capture.SessionResult`; any error once the session exists ends here, as
+    :class:`polrig.app.capture.SessionResult`; any error once the session exists ends here, as
     an ``interrupted`` result), ``failed(message)`` (a refusal before the session exists:
     bad options, devices not connected or busy; nothing written), ``session_ready(path)``
     (the session exists and the run starts)."""
@@ -85,8 +105,6 @@ class CaptureWorker(QThread):
             self.failed.emit(f"{type(exc).__name__}: {exc}")
 
     def _run(self) -> None:
-        from polrig import capture, processing
-
         prepared = capture.prepare_capture(self.request)  # before any device moves
         try:
             with self.locks.hold(timeout_s=10.0, who="capture"):
@@ -170,7 +188,6 @@ class CapturePanel(QWidget):
         self.dark_frames.setRange(0, 1000)
         self.demosaic = QComboBox()
         self.demosaic.addItems(["superpixel", "bilinear", "newton"])
-        from polrig.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
 
         self.exr_planes = QLineEdit(",".join(RESULT_PLANES))
         self.exr_planes.setToolTip("plane groups of each result EXR, comma separated (mueller "
@@ -248,11 +265,10 @@ class CapturePanel(QWidget):
 
     # -- options
     def request(self, resume: bool = False) -> CaptureRequest:
-        """The form as a typed request (:class:`polrig.capture.CaptureRequest`); on
+        """The form as a typed request (:class:`polrig.app.capture.CaptureRequest`); on
         ``resume`` only the folder and calibration: the plan is the session's. Raises
-        :class:`polrig.plan.PlanError` / ``ValueError`` (one line) for a field that does not
+        :class:`polrig.acquisition.plan.PlanError` / ``ValueError`` (one line) for a field that does not
         parse."""
-        from polrig.plan import parse_float_list, parse_pose_spec
 
         out = self.out.text().strip()
         if not out:
@@ -408,8 +424,6 @@ class CapturePanel(QWidget):
         return el / done * (ev.total - ev.step) if done > 0 else float("nan")
 
     def _capture_done(self, ev: Progress) -> None:
-        from polrig.scoring import format_score
-
         text = f"pose {ev.pose_deg:g} deg"
         if ev.score:
             self.scores[ev.capture_index] = ev.score

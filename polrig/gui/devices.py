@@ -11,7 +11,7 @@ A manual move is started without waiting (``move_to(wait=False)``) and then foll
 worker between jobs (``is_busy`` and ``position_deg`` every :attr:`DeviceWorker.MOTION_POLL_S`),
 so the readouts move with the axis, other jobs (the light, the other axis) run during the
 motion, Stop runs at once (it goes before every queued job) and the timeout grows with the
-distance and the axis's speed (:func:`polrig.hal.motion_timeout_s`; when it runs out the axis
+distance and the axis's speed (:func:`polrig.acquisition.hal.motion_timeout_s`; when it runs out the axis
 is stopped). Homing has no non-blocking form in the HAL: it occupies the worker until it ends.
 """
 
@@ -24,12 +24,21 @@ import time
 from typing import Any, Callable
 
 from PySide6.QtCore import QThread, QTimer, Signal
-from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QGridLayout, QGroupBox, QHBoxLayout,
-                               QLabel, QPushButton, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QDoubleSpinBox,
+    QGridLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QVBoxLayout,
+    QWidget,
+)
 
+from polrig.acquisition.hal import motion_timeout_s
 from polrig.errors import PolrigError
 from polrig.gui.rigaccess import DEVICE_KINDS, DeviceBusy, RigLocks
-from polrig.hal import motion_timeout_s
 
 
 def error_text(exc: BaseException) -> str:

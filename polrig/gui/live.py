@@ -13,7 +13,7 @@ inference; it only takes what is in the slot when ``frame_ready`` fires. Camera 
 Neither stage ever ends on an error: a device fault, a processing error or an unexpected
 exception (a driver bug) becomes one message per distinct problem and ``stalled(reason)``
 (the panel replaces the frame-rate line with it), and the loop tries again. A grab's timeout
-follows the exposure (:func:`polrig.hal.grab_timeout_s`), so long exposures reach the view.
+follows the exposure (:func:`polrig.acquisition.hal.grab_timeout_s`), so long exposures reach the view.
 """
 
 from __future__ import annotations
@@ -28,11 +28,13 @@ import numpy as np
 from PySide6.QtCore import QThread, Signal
 from PySide6.QtGui import QImage
 
+from polrig.acquisition.hal import grab_timeout_s
+from polrig.app import processing
+from polrig.app.processing import sensor_model_of
 from polrig.errors import DeviceDisconnected, PolrigError
 from polrig.gui import pipeline
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import DeviceBusy, RigLocks
-from polrig.hal import grab_timeout_s
 
 #: What a live grab waits beyond the frame's exposure and readout, seconds (short: a camera
 #: that stopped delivering shows as a message soon).
@@ -72,13 +74,13 @@ class LiveSettings:
     method: str = "superpixel"
     saturation_overlay: bool = True
     #: Mueller display: average the network's answers for the frame and its mirror image
-    #: (:mod:`models.mirror`; twice the network time)
+    #: (:mod:`polrig.models.mirror`; twice the network time)
     mirror_average: bool = False
     #: Mueller display: ``superpixel`` (the networks' grid) or ``full`` (the raw frame's size,
-    #: :mod:`models.full_resolution`)
+    #: :mod:`polrig.models.full_resolution`)
     resolution: str = "superpixel"
     #: Mueller display: 2 runs the networks on the analyzer grid binned 2x2 (the faster mode,
-    #: :mod:`models.full_resolution`: about half the frame time at full sensor size); 1 on the grid
+    #: :mod:`polrig.models.full_resolution`: about half the frame time at full sensor size); 1 on the grid
     network_binning: int = 1
     max_fps: float = 30.0
     #: Longest side of the displayed image in pixels (0: full resolution); see
@@ -88,7 +90,7 @@ class LiveSettings:
     #: :func:`polrig.gui.pipeline.stokes_from_raw_strips`; 1: one core call).
     strip_workers: int = 0
     #: DoLP, AoLP and ``m_ij / m00`` are masked where ``S0`` is below this many noise
-    #: standard deviations (:data:`polrig.preview.DEFAULT_MIN_SNR`; 0: off).
+    #: standard deviations (:data:`polrig.app.preview.DEFAULT_MIN_SNR`; 0: off).
     min_snr: float = pipeline.preview.DEFAULT_MIN_SNR
 
 
@@ -132,7 +134,7 @@ class RateMeter:
 
 class LiveWorker(QThread):
     """Grab -> process -> render loop (see the module docstring). ``rig`` is a
-    :class:`polrig.rig.Rig`; ``model_loader`` returns the single-shot model (called in this
+    :class:`polrig.app.rig.Rig`; ``model_loader`` returns the single-shot model (called in this
     thread the first time the Mueller display is chosen; its exceptions become messages)."""
 
     frame_ready = Signal()
@@ -242,8 +244,6 @@ class LiveWorker(QThread):
     def _geometry(self) -> dict:
         """Single-shot geometry of this rig (nominal calibration), computed once."""
         if self._single_shot_geometry is None:
-            from polrig import processing
-
             self._single_shot_geometry = processing.single_shot_geometry(
                 processing.nominal_calibration(), self.rig.config)
         return self._single_shot_geometry
@@ -315,10 +315,8 @@ class LiveWorker(QThread):
                           self.meter.rate(), note, step)
 
     def _sensor_model(self):
-        """The camera's noise model (:func:`polrig.processing.sensor_model_of`), read once."""
+        """The camera's noise model (:func:`polrig.app.processing.sensor_model_of`), read once."""
         if self._model_of_rig is None:
-            from polrig.processing import sensor_model_of
-
             self._model_of_rig = sensor_model_of(self.rig)
         return self._model_of_rig
 

@@ -7,12 +7,28 @@ result from the worker's slot (never blocking) and shows it.
 from __future__ import annotations
 
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout,
-                               QLabel, QPushButton, QSplitter, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QDoubleSpinBox,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QSplitter,
+    QVBoxLayout,
+    QWidget,
+)
 
 from polrig.gui import pipeline
 from polrig.gui.live import LiveResult, LiveSettings, LiveWorker
-from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box, network_binning_box
+from polrig.gui.widgets import (
+    HistogramWidget,
+    ImageView,
+    ReadoutLabel,
+    min_snr_box,
+    network_binning_box,
+)
 
 DEMOSAIC_METHODS = ("superpixel", "bilinear", "newton")
 

@@ -30,14 +30,13 @@ from polrig.gui.live_panel import LivePanel
 from polrig.gui.rigaccess import RigLocks
 from polrig.gui.viewer import ViewerPanel
 from polrig.gui.widgets import MessageArea
+from polrig.sensor.analyzer import resolve_layout
 
 STOP_KEYS = ("Esc", "Ctrl+.")
 CAPTURE_KEY = "Ctrl+R"
 
 
 def _n_colours(rig) -> int:
-    from polrig.analyzer import resolve_layout
-
     try:
         return resolve_layout(rig.camera.layout).n_colours
     except Exception:  # noqa: BLE001 - a closed real camera may not know its layout yet
@@ -45,7 +44,7 @@ def _n_colours(rig) -> int:
 
 
 class MainWindow(QMainWindow):
-    """``MainWindow(rig, settings)``: ``rig`` from :func:`polrig.rig.build_rig` (opened by the
+    """``MainWindow(rig, settings)``: ``rig`` from :func:`polrig.app.rig.build_rig` (opened by the
     window's devices worker), ``settings`` a ``QSettings``. Call :meth:`start` after showing."""
 
     def __init__(self, rig, settings, *, model_loader: Callable[[], Any] | None = None,

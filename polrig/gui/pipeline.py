@@ -1,12 +1,12 @@
 """Display pipeline of the GUI, free of Qt: raw frames, Stokes and Mueller images -> uint8 RGB.
 
 Everything the live view, the viewer and the benchmark show goes through here, and all the
-numbers come from the core: :func:`polrig.stokes.stokes_from_raw` (demosaic, Stokes, masks,
-DoLP, AoLP), :func:`models.runtime.infer_frame` (single-shot Mueller images) and the colour maps
-of :mod:`polrig.preview`. Conventions (AoLP in degrees in [0, 180), DoLP in [0, 1], arrays
+numbers come from the core: :func:`polrig.sensor.stokes.stokes_from_raw` (demosaic, Stokes, masks,
+DoLP, AoLP), :func:`polrig.models.runtime.infer_frame` (single-shot Mueller images) and the colour maps
+of :mod:`polrig.app.preview`. Conventions (AoLP in degrees in [0, 180), DoLP in [0, 1], arrays
 plane-first) are those of ``docs/conventions.md``.
 
-Masks (:mod:`polrig.preview`, "Masks"): every display hides DoLP, AoLP and ``m_ij / m00``
+Masks (:mod:`polrig.app.preview`, "Masks"): every display hides DoLP, AoLP and ``m_ij / m00``
 where the data's reason bits say so (saturated, invalid, outside the object, ...) or its
 signal is below ``min_snr`` noise standard deviations; the readout says why a pixel is masked.
 
@@ -25,11 +25,19 @@ from typing import Any
 
 import numpy as np
 
-from polrig import preview
-from polrig.analyzer import layout_name_at, resolve_layout
-from polrig.hal import Frame
-from polrig.noise import SensorModel
-from polrig.stokes import StokesImages, aolp_deg, dolp, stokes_from_raw, stokes_validity
+from polrig.app import preview
+from polrig.app.processing import single_shot_kwargs
+from polrig.models.runtime import infer_frame
+from polrig.sensor.analyzer import layout_name_at, resolve_layout
+from polrig.sensor.frame import Frame
+from polrig.sensor.noise import SensorModel
+from polrig.sensor.stokes import (
+    StokesImages,
+    aolp_deg,
+    dolp,
+    stokes_from_raw,
+    stokes_validity,
+)
 
 #: Display modes (key -> label shown in the GUI).
 DISPLAYS: dict[str, str] = {
@@ -45,7 +53,7 @@ LUMINANCE = -1
 SATURATION_RGB = (255, 0, 0)
 #: Longest side of a live image on screen (pixels; :func:`display_step`), the live view's default.
 DEFAULT_MAX_DISPLAY_PX = 1024
-#: Border between the tiles of :func:`polrig.preview.mueller_grid` (pixels).
+#: Border between the tiles of :func:`polrig.app.preview.mueller_grid` (pixels).
 GRID_BORDER_PX = 2
 
 
@@ -57,7 +65,7 @@ class PolarizationData:
     ``stokes`` ``(C, 3, H, W)`` DN; ``valid``/``saturated``/``dolp``/``aolp_deg`` ``(C, H, W)``;
     ``mueller`` ``(C, 3, 3, H', W')`` (DN per unit incident S0); ``raw`` ``(H_raw, W_raw)``
     with its ``bit_depth`` and ``black_level_dn``. ``flags`` (reason bits,
-    :data:`polrig.preview.MASK_REASONS`) and ``snr`` (signal over its noise sigma, NaN where
+    :data:`polrig.app.preview.MASK_REASONS`) and ``snr`` (signal over its noise sigma, NaN where
     unknown) ``(C, H, W)`` at the output resolution, and ``min_snr`` decide what is masked
     (:func:`shown`).
     """
@@ -100,7 +108,7 @@ class PolarizationData:
     @classmethod
     def from_stokes_images(cls, s: StokesImages, frame: Frame | None = None,
                            source: str = "", model: SensorModel | None = None) -> "PolarizationData":
-        """From :func:`polrig.stokes.stokes_from_raw`'s result; with the ``frame``, the SNR of
+        """From :func:`polrig.sensor.stokes.stokes_from_raw`'s result; with the ``frame``, the SNR of
         ``S0`` from the noise ``model`` (default: the IMX250 model) in the ADC's DN."""
         d = cls(stokes=s.stokes, valid=s.valid, saturated=s.saturated, dolp=s.dolp,
                 aolp_deg=s.aolp_deg, source=source)
@@ -116,8 +124,8 @@ class PolarizationData:
     def from_stokes(cls, stokes: np.ndarray, source: str = "",
                     planes: dict | None = None) -> "PolarizationData":
         """From Stokes images ``(C, 3, H, W)`` (e.g. a Stokes EXR): masks, DoLP and AoLP by
-        :mod:`polrig.stokes`; ``planes`` (the EXR's other planes: ``valid``, ``saturated``,
-        ``snr.*``) add the file's masks (:func:`polrig.preview.exr_masks`)."""
+        :mod:`polrig.sensor.stokes`; ``planes`` (the EXR's other planes: ``valid``, ``saturated``,
+        ``snr.*``) add the file's masks (:func:`polrig.app.preview.exr_masks`)."""
         s = np.nan_to_num(np.asarray(stokes, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         valid = stokes_validity(np.asarray(stokes, np.float32))
         flags, snr = preview.exr_masks(planes or {}, s.shape[0], s[:, 0])
@@ -130,7 +138,7 @@ class PolarizationData:
     def from_mueller(cls, mueller: np.ndarray, source: str = "",
                      planes: dict | None = None) -> "PolarizationData":
         """From a Mueller image ``(C, 3, 3, H, W)``; ``planes`` (the EXR's other planes) give
-        its masks and SNR (:func:`polrig.preview.exr_masks`)."""
+        its masks and SNR (:func:`polrig.app.preview.exr_masks`)."""
         m = np.asarray(mueller, np.float32)
         flags, snr = preview.exr_masks(planes or {}, m.shape[0], m[:, 0, 0])
         return cls(mueller=m, source=source, flags=flags, snr=snr)
@@ -138,7 +146,7 @@ class PolarizationData:
 
 def frame_snr(s0: np.ndarray, frame: Frame, model: SensorModel | None = None) -> np.ndarray:
     """``S0 / sigma(S0)`` ``(C, H, W)`` of black-subtracted ``S0`` in the frame's DN
-    (converted to the ADC's DN of ``model`` first, :func:`polrig.processing.adc_scale`)."""
+    (converted to the ADC's DN of ``model`` first, :func:`polrig.app.processing.adc_scale`)."""
     model = model or SensorModel()
     to_adc = 2.0 ** (int(model.bit_depth) - int(frame.meta.bit_depth))
     return preview.s0_snr(np.asarray(s0, np.float64) * to_adc, model, frame.meta.exposure_us)
@@ -146,7 +154,7 @@ def frame_snr(s0: np.ndarray, frame: Frame, model: SensorModel | None = None) ->
 
 def shown(data: PolarizationData, colour: int = LUMINANCE) -> np.ndarray | None:
     """``(H, W)`` True where ``colour`` (the luminance: every colour) is shown, i.e. not masked
-    (:func:`polrig.preview.display_valid` at ``data.min_snr``); None without masks."""
+    (:func:`polrig.app.preview.display_valid` at ``data.min_snr``); None without masks."""
     v = preview.display_valid(data.flags, data.snr, data.min_snr)
     if v is None:
         return None
@@ -175,7 +183,7 @@ def frame_layout(frame: Frame) -> str:
 def stokes_from_raw_strips(raw: np.ndarray, layout: str, method: str = "superpixel", *,
                            black_level_dn: float = 0.0, bit_depth: int | None = None,
                            workers: int | None = None) -> StokesImages:
-    """:func:`polrig.stokes.stokes_from_raw` (ideal analyzers), the superpixel method split
+    """:func:`polrig.sensor.stokes.stokes_from_raw` (ideal analyzers), the superpixel method split
     into horizontal strips computed in ``workers`` threads (numpy and OpenCV release the GIL).
 
     Superpixel output pixels depend on their own layout cell only, so cutting at cell
@@ -237,20 +245,18 @@ def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpix
                   mirror_average: bool = False, resolution: str = "superpixel",
                   network_binning: int = 1) -> PolarizationData:
     """Single-shot Mueller image of a frame taken with the polarizer at ``state_deg``
-    (:func:`models.runtime.infer_frame`), with the Stokes images it computed on the way.
+    (:func:`polrig.models.runtime.infer_frame`), with the Stokes images it computed on the way.
 
     ``resolution``: ``superpixel`` (the networks' grid, ``method`` the networks' input) or
-    ``full`` (the raw frame's size: :mod:`models.full_resolution`, the detail from ``method``,
+    ``full`` (the raw frame's size: :mod:`polrig.models.full_resolution`, the detail from ``method``,
     ``bilinear`` where that is ``superpixel``); the Stokes images, masks and SNR are then at
     the raw size as well.
 
     ``geometry``: the rig's single-shot geometry (intrinsics, stage zero axis) from
-    :func:`polrig.processing.single_shot_geometry`, exactly as capture processing uses it;
+    :func:`polrig.app.processing.single_shot_geometry`, exactly as capture processing uses it;
     ``None`` leaves the model's training geometry. ``mirror_average`` and ``network_binning``
     (2: the faster mode, the networks on the analyzer grid binned 2x2,
-    :mod:`models.full_resolution`): as :func:`models.runtime.infer_frame`."""
-    from models.runtime import infer_frame
-    from polrig.processing import single_shot_kwargs
+    :mod:`polrig.models.full_resolution`): as :func:`polrig.models.runtime.infer_frame`."""
 
     full = resolution == "full"
     if full and method == "superpixel":  # the detail comes from a full-resolution demosaic
@@ -272,7 +278,7 @@ def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpix
 
 # -- rendering -----------------------------------------------------------------------------------
 def fast_white(x: np.ndarray, percentile: float = 99.5, max_samples: int = 1 << 16) -> float:
-    """White point for :func:`polrig.preview.tone_map`: the ``percentile`` of the finite
+    """White point for :func:`polrig.app.preview.tone_map`: the ``percentile`` of the finite
     positive values of a regular sub-sample of ``x`` (at most about ``max_samples`` values; a
     display needs no exact percentile of millions of pixels)."""
     flat = np.asarray(x).reshape(-1)
@@ -292,7 +298,7 @@ def _pick(planes: np.ndarray, colour: int) -> np.ndarray:
 def channel_view(data: PolarizationData, colour: int) -> tuple[np.ndarray, np.ndarray,
                                                                 np.ndarray, np.ndarray]:
     """``(s0, dolp, aolp_deg, valid)`` ``(H, W)`` of one colour, or of the luminance (the
-    mean Stokes vector over colours, DoLP/AoLP recomputed from it by :mod:`polrig.stokes`)."""
+    mean Stokes vector over colours, DoLP/AoLP recomputed from it by :mod:`polrig.sensor.stokes`)."""
     if data.stokes is None:
         raise ValueError("no Stokes images in this data")
     if colour != LUMINANCE or data.stokes.shape[0] == 1:
@@ -411,7 +417,7 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
 
 
 def grid_to_pixel(x: int, y: int, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
-    """A pixel ``(x, y)`` of :func:`polrig.preview.mueller_grid`'s image -> ``(row, col, u, v)``
+    """A pixel ``(x, y)`` of :func:`polrig.app.preview.mueller_grid`'s image -> ``(row, col, u, v)``
     of the element tile and the image pixel in it (``None`` on a border or the colour bar)."""
     h, w = shape
     b = GRID_BORDER_PX

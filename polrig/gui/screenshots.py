@@ -46,11 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
 
+    from polrig.app.rig import build_rig, load_rig_config
     from polrig.gui import pipeline
     from polrig.gui.app import model_loader
     from polrig.gui.main_window import MainWindow
     from polrig.gui.settings import make_settings
-    from polrig.rig import build_rig, load_rig_config
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

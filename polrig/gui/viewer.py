@@ -2,7 +2,7 @@
 
 A session folder lists its captures' files (Mueller EXR, truth EXR on the simulated rig, raw
 frames); a Mueller or Stokes EXR opens on its own. Files are read with the core readers
-(:mod:`polrig.session`, :mod:`polrig.exr`, :mod:`polrig.rawio`) and shown through
+(:mod:`polrig.app.session`, :mod:`polrig.formats.exr`, :mod:`polrig.formats.rawio`) and shown through
 :mod:`polrig.gui.pipeline` (a raw frame is processed like a live frame).
 """
 
@@ -11,13 +11,25 @@ from __future__ import annotations
 import pathlib
 
 import numpy as np
-
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFileDialog, QHBoxLayout, QLabel,
-                               QListWidget, QListWidgetItem, QPushButton, QSplitter,
-                               QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QComboBox,
+    QDoubleSpinBox,
+    QFileDialog,
+    QHBoxLayout,
+    QLabel,
+    QListWidget,
+    QListWidgetItem,
+    QPushButton,
+    QSplitter,
+    QVBoxLayout,
+    QWidget,
+)
 
+from polrig.app.session import Session
 from polrig.errors import FormatError, PolrigError
+from polrig.formats.exr import read_exr, read_mueller_exr, read_stokes_exr
+from polrig.formats.rawio import read_raw
 from polrig.gui import pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
 from polrig.gui.qtimage import to_qimage
@@ -27,8 +39,7 @@ from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr
 def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
     """A Mueller or a Stokes EXR as :class:`pipeline.PolarizationData` (kind from its
     channels), with the file's masks (``valid``, ``saturated``, ``mask``, SNR planes:
-    :func:`polrig.preview.exr_masks`); :class:`polrig.errors.FormatError` for anything else."""
-    from polrig.exr import read_exr, read_mueller_exr, read_stokes_exr
+    :func:`polrig.app.preview.exr_masks`); :class:`polrig.errors.FormatError` for anything else."""
 
     path = pathlib.Path(path)
     planes = read_exr(path).planes
@@ -43,7 +54,6 @@ def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
 
 def load_raw(path: str | pathlib.Path, method: str = "superpixel") -> pipeline.PolarizationData:
     """A raw frame (with its sidecar) processed like a live frame."""
-    from polrig.rawio import read_raw
 
     return pipeline.process_frame(read_raw(path, layout="imx250myr"), method, source=str(path))
 
@@ -51,7 +61,6 @@ def load_raw(path: str | pathlib.Path, method: str = "superpixel") -> pipeline.P
 def session_entries(root: str | pathlib.Path) -> list[tuple[str, str, pathlib.Path]]:
     """``(label, kind, path)`` of the viewable files of a session: per capture its Mueller
     EXR(s) (``exr``) and raw frames (``raw``), in plan order."""
-    from polrig.session import Session
 
     s = Session.open(root)
     out = []

@@ -7,15 +7,23 @@ import time
 import numpy as np
 from PySide6.QtCore import QPoint, QRect, Qt, Signal
 from PySide6.QtGui import QColor, QImage, QPainter, QPen
-from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFrame, QLabel, QPlainTextEdit, QScrollArea,
-                               QSizePolicy, QWidget)
+from PySide6.QtWidgets import (
+    QComboBox,
+    QDoubleSpinBox,
+    QFrame,
+    QLabel,
+    QPlainTextEdit,
+    QScrollArea,
+    QSizePolicy,
+    QWidget,
+)
 
-from polrig.preview import DEFAULT_MIN_SNR
+from polrig.app.preview import DEFAULT_MIN_SNR
 
 
 def network_binning_box(what: str) -> QComboBox:
     """The single-shot network binning control (the item data: 1 or 2, as
-    :data:`polrig.plan.NETWORK_BINNINGS` and :data:`models.full_resolution.BINNINGS`): the
+    :data:`polrig.acquisition.plan.NETWORK_BINNINGS` and :data:`polrig.models.full_resolution.BINNINGS`): the
     networks on the analyzer grid, or on that grid binned 2x2 (the faster mode). ``what``
     starts the tool tip: what the choice applies to."""
     box = QComboBox()

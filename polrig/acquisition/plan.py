@@ -1,0 +1,504 @@
+"""What a capture session acquires, as data: the :class:`CapturePlan`, the device steps it
+yields, and the hardware time those steps take. No device is touched here.
+
+A plan is turned into a flat list of device steps (:func:`capture_steps`): set the trigger,
+switch the light, home or move axes (several axes in one :class:`Move` move together), set
+the exposure, grab a frame with its :class:`FrameTag`, and :class:`Checkpoint` s where a run
+may pause or stop and where a pose is complete. :class:`polrig.acquisition.engine.Executor` runs such a
+list on a rig; a test can check a plan by reading the list, with no rig at all.
+
+Motion that wastes nothing: the turntable's move to pose ``k`` and the stage's move to that
+pose's first polarizer state are one :class:`Move` (both axes turn at once), and the state
+order alternates between poses (serpentine: pose 0 visits the states in plan order, pose 1
+in reverse, ...), so the stage never travels back idle. Frames stay tagged with the plan's
+state index, so raw file names and results do not depend on the order.
+
+:func:`step_durations` is the plan's hardware time per step (motion from each axis's
+:meth:`polrig.acquisition.hal.RotationStage.move_time_s`, exposure plus readout per frame, discarded
+free-run settle frames), computed before a capture starts. Angles in degrees, exposures in
+microseconds, times in seconds.
+
+Errors are :class:`PlanError` s naming the plan field (``states_deg``...), never a
+command-line flag: the command line maps fields to its options (:mod:`polrig.cli.commands.capture`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable, Iterable, Sequence, Union
+
+from polrig.errors import ConfigError
+from polrig.formats.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+
+MODES = ("reference", "single-shot")
+DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
+#: Largest turntable pose accepted, in degrees either way (100 turns): beyond it a pose is a
+#: typo, and its capture folder name (``c000_pose<angle>``) would outgrow the file system's.
+MAX_POSE_DEG = 36000.0
+#: Largest polarizer stage angle accepted, either way: a linear polarizer repeats every 180 deg,
+#: so anything beyond one turn is a typo (and would send the stage on a long, timed-out move).
+MAX_STATE_DEG = 360.0
+#: The motion axes a plan moves (names of the rig's :class:`polrig.acquisition.hal.RotationStage` s).
+AXES = ("stage", "turntable")
+
+
+MIRROR_SINGLE_SHOT_ONLY = "mirror averaging applies to the single-shot mode only"
+#: Output resolutions of the single-shot method (:mod:`polrig.models.full_resolution`): the networks'
+#: superpixel grid or the raw frame's own.
+RESOLUTIONS = ("superpixel", "full")
+FULL_RESOLUTION_SINGLE_SHOT_ONLY = ("only the single-shot method has a full-resolution output (the "
+                                    "reference method's resolution is its demosaic: bilinear or "
+                                    "newton give the raw frame's size)")
+#: Network binnings of the single-shot method (the values of
+#: :data:`polrig.models.full_resolution.BINNINGS`, not imported here: polrig core does not import the
+#: models package): 1 runs the networks on the analyzer grid, 2 on that grid binned 2x2 with the
+#: answer lifted back by the grid's measured detail (:func:`polrig.models.full_resolution.reconstruct_binned`).
+NETWORK_BINNINGS = (1, 2)
+NETWORK_BINNING_SINGLE_SHOT_ONLY = ("network binning applies to the single-shot method only (the "
+                                    "reference method runs no network)")
+
+
+class PlanError(ConfigError):
+    """A capture plan that cannot be acquired or processed. ``field`` names what it is about
+    (a :class:`CapturePlan` field such as ``"states_deg"``, or ``"calibration"``), for
+    callers that name their own option for it; ``subject`` the offending value as text
+    (``None``: the message says all), ``what`` what that value is. The message reads
+    ``"<what> <subject>: <detail>"`` (or ``detail`` alone)."""
+
+    def __init__(self, field: str, detail: str, *, subject: str | None = None, what: str = ""):
+        head = " ".join(p for p in (what, subject) if p)
+        super().__init__(f"{head}: {detail}" if subject is not None else detail)
+        self.field, self.detail, self.subject = field, detail, subject
+
+
+def check_network_binning(binning: Any, mode: str) -> int:
+    """``binning`` as an int when it is one of :data:`NETWORK_BINNINGS` and allowed in ``mode``
+    (anything but 1 is single-shot only); a one-line :class:`PlanError` of ``network_binning``
+    otherwise (shared by :class:`CapturePlan` and :class:`polrig.app.processing.Processor`)."""
+    if isinstance(binning, bool) or not isinstance(binning, int) or binning not in NETWORK_BINNINGS:
+        raise PlanError("network_binning", f"must be one of {', '.join(map(str, NETWORK_BINNINGS))}",
+                        subject=repr(binning), what="network binning")
+    if binning != 1 and mode != "single-shot":
+        raise PlanError("network_binning", NETWORK_BINNING_SINGLE_SHOT_ONLY, subject=str(binning),
+                        what="network binning")
+    return int(binning)
+
+
+# -- parsing command-line style specs ------------------------------------------------------
+def parse_pose_spec(spec: str) -> tuple[float, ...]:
+    """Turntable poses in degrees from ``"0,30,60"`` (a list) or ``"START:STOP:STEP"``
+    (a range, STOP exclusive like Python's ``range``: ``"0:360:90"`` is 0, 90, 180, 270).
+
+    Raises :class:`ConfigError` naming the spec for anything else (empty, non-numeric,
+    non-finite, zero step, a range that is empty).
+    """
+    text = str(spec).strip()
+    bad = f"invalid pose spec {spec!r}"
+    if not text:
+        raise PlanError("poses_deg", f"{bad}: give a list like 0,30,60 or a range START:STOP:STEP")
+    if ":" in text:
+        parts = text.split(":")
+        if len(parts) != 3:
+            raise PlanError("poses_deg", f"{bad}: a range is START:STOP:STEP (STOP exclusive), e.g. 0:360:30")
+        start, stop, step = (_number(p, bad, "angle", "poses_deg") for p in parts)
+        if step == 0:
+            raise PlanError("poses_deg", f"{bad}: STEP must not be 0")
+        count = math.ceil((stop - start) / step - 1e-9)
+        if count <= 0:
+            raise PlanError("poses_deg", f"{bad}: the range is empty (STOP is exclusive)")
+        if count > 100000:
+            raise PlanError("poses_deg", f"{bad}: {count} poses is too many")
+        return tuple(round(start + i * step, 9) for i in range(count))
+    return tuple(_number(p, bad, "angle", "poses_deg") for p in text.split(","))
+
+
+def _number(text: str, bad: str, what: str = "number", field: str = "") -> float:
+    """``text`` as a finite float; :class:`PlanError` (of ``field``) ``"{bad}: 'x' is not a
+    finite {what}"`` otherwise (``what``: "angle" for poses, "number" for any other value)."""
+    try:
+        v = float(text.strip())
+    except ValueError:
+        raise PlanError(field, f"{bad}: {text.strip()!r} is not a number") from None
+    if not math.isfinite(v):
+        raise PlanError(field, f"{bad}: {text.strip()!r} is not a finite {what}")
+    return v
+
+
+def parse_float_list(spec: str, name: str, *, positive: bool = False,
+                     field: str = "") -> tuple[float, ...]:
+    """``"0,45,90"`` -> floats; :class:`PlanError` (of ``field``) naming ``name`` (what the
+    list is, as the caller calls it) otherwise."""
+    bad = f"invalid {name} {spec!r}"
+    values = tuple(_number(p, bad, field=field) for p in str(spec).split(","))
+    if positive and any(v <= 0 for v in values):
+        raise PlanError(field, f"{bad}: values must be > 0")
+    return values
+
+
+# -- the result file's format -----------------------------------------------------------------
+#: The EXR choice of a plan written before the ``exr_*`` fields existed (float32 uncertainty
+#: planes, ZIP): a session's plan without them was captured with it.
+LEGACY_EXR: dict[str, str] = {"exr_uncertainty": "float", "exr_compression": "zip"}
+
+
+@dataclasses.dataclass(frozen=True)
+class ExrChoice:
+    """What a result ``mueller.exr`` holds and how it is stored (:func:`polrig.formats.exr.result_planes`,
+    :func:`polrig.formats.exr.write_exr`): ``planes`` the plane groups (:data:`polrig.formats.exr.RESULT_PLANES`;
+    ``mueller`` is always written, the groups are kept in that order), ``uncertainty``
+    ``"float"`` (float32) or ``"half"`` (float16 ``sigma``, ``sigma_noise``, ``residual`` and
+    ``mask``), ``compression`` ``"zip"``, ``"piz"`` or ``"none"``. Bytes per full-sensor colour
+    pose of each choice: ``benchmarks/results/pose.md``.
+
+    The default is half-precision uncertainty planes, ZIP: at full sensor a colour bilinear
+    result is 0.7 GB instead of 1.6 GB with float32 planes, written faster and solved in less
+    memory, and 11 significant bits are ample for a standard deviation. Plans written before
+    these fields existed were written with :data:`LEGACY_EXR` (:meth:`of_plan`,
+    :meth:`CapturePlan.from_json`), so their sessions resume to the same files."""
+
+    planes: tuple[str, ...] = RESULT_PLANES
+    uncertainty: str = "half"
+    compression: str = "zip"
+
+    def __post_init__(self) -> None:
+        planes = tuple(self.planes)
+        unknown = [p for p in planes if p not in RESULT_PLANES]
+        if unknown:
+            raise PlanError("exr_planes", f"choose from {', '.join(RESULT_PLANES)}",
+                            subject=", ".join(map(str, unknown)), what="EXR plane group")
+        if self.uncertainty not in UNCERTAINTY_PRECISIONS:
+            raise PlanError("exr_uncertainty", f"use {' or '.join(UNCERTAINTY_PRECISIONS)}",
+                            subject=repr(self.uncertainty), what="uncertainty precision")
+        if self.compression not in COMPRESSIONS:
+            raise PlanError("exr_compression", f"use one of {', '.join(COMPRESSIONS)}",
+                            subject=repr(self.compression), what="EXR compression")
+        object.__setattr__(self, "planes", tuple(p for p in RESULT_PLANES
+                                                 if p == "mueller" or p in planes))
+
+    @classmethod
+    def of_plan(cls, plan: dict[str, Any]) -> "ExrChoice":
+        """The choice a plan's JSON records (a session older than these fields:
+        :data:`LEGACY_EXR`, the choice it was written with)."""
+        plan = {**LEGACY_EXR, **{k: v for k, v in plan.items() if v}}
+        return cls(tuple(plan.get("exr_planes") or RESULT_PLANES), plan["exr_uncertainty"],
+                   plan["exr_compression"])
+
+    def bytes_per_pixel(self) -> int:
+        """Uncompressed bytes per output pixel and colour."""
+        unc = 2 if self.uncertainty == "half" else 4
+        per = {"mueller": 9 * 4, "sigma": 9 * unc, "sigma_noise": 9 * unc, "mask": unc,
+               "residual": unc}
+        return sum(per[p] for p in self.planes)
+
+
+# -- the plan -------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class CapturePlan:
+    """What a session acquires at every pose.
+
+    ``exposures_us`` empty means "the camera's current exposure"; more than one is an
+    exposure bracket merged to HDR (first entry = reference exposure of the result).
+    ``dark_frames`` per exposure, light off, per pose (0 = subtract the camera's black level
+    only). ``demosaic`` is the method used for processing (``superpixel`` by default: each
+    Mueller pixel then uses four physically measured analyzer values and no interpolated
+    ones, so the uncertainty propagated from the noise model is exact; interpolating methods
+    correlate neighbouring pixels and mix their Mueller matrices at edges).
+    """
+
+    poses_deg: tuple[float, ...]
+    mode: str = "reference"
+    states_deg: tuple[float, ...] = DEFAULT_STATES_DEG
+    frames_per_state: int = 1
+    exposures_us: tuple[float, ...] = ()
+    dark_frames: int = 0
+    demosaic: str = "superpixel"
+    grab_retries: int = 3
+    #: single-shot: average the network's answers for the capture and its mirror image
+    #: (:mod:`polrig.models.mirror`)
+    mirror_average: bool = False
+    #: single-shot output resolution: ``superpixel`` (the networks' grid) or ``full`` (the raw
+    #: frame's: :func:`polrig.models.full_resolution.lift` with the detail of ``demosaic``, bilinear
+    #: where that is ``superpixel``)
+    resolution: str = "superpixel"
+    #: single-shot network binning (:data:`NETWORK_BINNINGS`): 2 runs the networks on the
+    #: analyzer grid binned 2x2 and lifts the answer back (about half the frame time at full
+    #: sensor size; no calibrated sigma: NaN planes). The output grid is ``resolution``'s either way
+    network_binning: int = 1
+    #: the result EXR's plane groups, uncertainty precision and compression (:class:`ExrChoice`)
+    exr_planes: tuple[str, ...] = RESULT_PLANES
+    exr_uncertainty: str = ExrChoice.uncertainty
+    exr_compression: str = ExrChoice.compression
+
+    def __post_init__(self) -> None:
+        exr = ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
+        object.__setattr__(self, "exr_planes", exr.planes)
+        if self.mode not in MODES:
+            raise PlanError("mode", f"capture mode must be one of {', '.join(MODES)}, got "
+                                    f"{self.mode!r}")
+        if not self.poses_deg:
+            raise PlanError("poses_deg", "invalid pose spec: no poses")
+        for pose in self.poses_deg:
+            if not (isinstance(pose, (int, float)) and math.isfinite(pose)
+                    and abs(pose) <= MAX_POSE_DEG):
+                raise PlanError("poses_deg", f"invalid pose spec: pose {pose!r} deg is not a finite angle "
+                                  f"within +-{MAX_POSE_DEG:g} deg ({MAX_POSE_DEG / 360:g} turns)")
+        for state in self.states_deg:
+            if not (isinstance(state, (int, float)) and math.isfinite(state)
+                    and abs(state) <= MAX_STATE_DEG):
+                raise PlanError("states_deg", f"not a polarizer angle within "
+                                              f"+-{MAX_STATE_DEG:g} deg",
+                                subject=f"{state:g} deg", what="polarizer state")
+        if self.frames_per_state < 1:
+            raise PlanError("frames_per_state", f"frames per state must be >= 1, got "
+                                                f"{self.frames_per_state}")
+        if self.dark_frames < 0:
+            raise PlanError("dark_frames", f"dark frames must be >= 0, got {self.dark_frames}")
+        if any(not (e > 0 and math.isfinite(e)) for e in self.exposures_us):
+            raise PlanError("exposures_us", f"exposures must be > 0 microseconds, got "
+                                            f"{self.exposures_us}")
+        if self.mirror_average and self.mode != "single-shot":
+            raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
+        if self.resolution not in RESOLUTIONS:
+            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
+                            subject=repr(self.resolution), what="resolution")
+        if self.resolution == "full" and self.mode != "single-shot":
+            raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
+                            what="resolution")
+        check_network_binning(self.network_binning, self.mode)
+        if self.mode == "reference" and len(self.states_deg) < 3:
+            raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
+                                          f"states, got {len(self.states_deg)}")
+        if self.mode == "single-shot" and not self.states_deg:
+            raise PlanError("states_deg", "the single-shot method needs one polarizer state")
+        object.__setattr__(self, "poses_deg", tuple(float(p) for p in self.poses_deg))
+        # single-shot captures one state per pose: the plan records the state it captures
+        # (older sessions listed the default four; only the first was ever captured)
+        states = self.states_deg[:1] if self.mode == "single-shot" else self.states_deg
+        object.__setattr__(self, "states_deg", tuple(float(s) for s in states))
+        object.__setattr__(self, "exposures_us", tuple(float(e) for e in self.exposures_us))
+
+    def to_json(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        for k in ("poses_deg", "states_deg", "exposures_us", "exr_planes"):
+            d[k] = list(d[k])
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "CapturePlan":
+        """The plan a session's JSON records (one older than the EXR fields: written with
+        :data:`LEGACY_EXR`)."""
+        fields = {f.name for f in dataclasses.fields(cls)}
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in fields}
+        return cls(**{**LEGACY_EXR, **kw})
+
+    @property
+    def exr(self) -> ExrChoice:
+        """The result EXR's format."""
+        return ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
+
+    def frames_per_pose(self) -> int:
+        n_exp = max(1, len(self.exposures_us))
+        n_states = len(self.states_deg)
+        return n_exp * (n_states * self.frames_per_state + self.dark_frames)
+
+    def acquired_states_deg(self) -> tuple[float, ...]:
+        """Stage angles visited per pose (single-shot: its one state)."""
+        return self.states_deg
+
+
+def planned_bytes(plan: CapturePlan, n_poses: int, width: int, height: int,
+                  n_colours: int, cell: tuple[int, int] = (1, 1)) -> int:
+    """Upper estimate of the disk space ``n_poses`` captures of ``plan`` take: uncompressed
+    16-bit raw frames (+ sidecars), the result EXR uncompressed (its planes at their precision,
+    :meth:`ExrChoice.bytes_per_pixel`) at the demosaic's output size (``cell`` = the layout period
+    ``(ph, pw)``, which ``superpixel`` divides the size by) and the truth EXR (9 + 1 planes
+    per colour) at full size; 5 % and 1 MiB (manifest) on top."""
+    raw = plan.frames_per_pose() * (2 * width * height + 4096)
+    if plan.demosaic == "superpixel" and plan.resolution != "full":
+        out_px = (height // cell[0]) * (width // cell[1])
+    else:
+        out_px = width * height
+    exr = n_colours * (plan.exr.bytes_per_pixel() * out_px + 40 * width * height) + 2 * 65536
+    return int(n_poses * (raw + exr) * 1.05) + (1 << 20)
+
+
+# -- device steps -------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class FrameTag:
+    """Where a grabbed frame belongs: capture (pose) ``capture`` of the plan at ``pose_deg``;
+    ``role`` ``"raw"`` (polarizer state ``state_index`` of the plan's ``states_deg``, at
+    ``state_deg``) or ``"dark"`` (light off, no state); exposure ``exposure_index`` of the
+    bracket at ``exposure_us``; ``frame`` the repeat index ``0..K-1``."""
+
+    capture: int
+    pose_deg: float
+    role: str
+    exposure_index: int
+    exposure_us: float
+    frame: int
+    state_index: int | None = None
+    state_deg: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SetTrigger:
+    """Set the camera's trigger mode; ``None``: its preferred one
+    (:attr:`polrig.acquisition.hal.CameraCapabilities.preferred_trigger`)."""
+
+    mode: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SetLight:
+    on: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class Home:
+    axis: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Move:
+    """Move every axis of ``targets`` (``(axis, angle_deg)`` pairs) to its angle, all at
+    once, and wait until all have arrived."""
+
+    targets: tuple[tuple[str, float], ...]
+
+    def __post_init__(self) -> None:
+        axes = [a for a, _ in self.targets]
+        if not axes or len(set(axes)) != len(axes) or any(a not in AXES for a in axes):
+            raise ValueError(f"a move names each of {AXES} at most once, got {axes}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SetExposure:
+    exposure_us: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Grab:
+    tag: FrameTag
+
+
+@dataclasses.dataclass(frozen=True)
+class Checkpoint:
+    """A point where a run may pause or stop. ``label``: ``"capture-start"`` (before capture
+    ``capture`` moves anything) or ``"capture-acquired"`` (every frame of capture ``capture``
+    grabbed, the rig still at its pose)."""
+
+    label: str
+    capture: int | None = None
+
+
+Step = Union[SetTrigger, SetLight, Home, Move, SetExposure, Grab, Checkpoint]
+
+
+def state_order(plan: CapturePlan, capture: int) -> list[int]:
+    """Indices into ``plan.acquired_states_deg()`` in the order capture ``capture`` visits
+    them: plan order for even captures, reversed for odd ones (serpentine)."""
+    order = list(range(len(plan.acquired_states_deg())))
+    return order[::-1] if capture % 2 else order
+
+
+def setup_steps() -> list[Step]:
+    """Before the first capture: the camera's preferred trigger, light on, stage homed."""
+    return [SetTrigger(None), SetLight(True), Home("stage")]
+
+
+def capture_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float]) -> list[Step]:
+    """The device steps of capture ``capture`` (pose ``plan.poses_deg[capture]``).
+
+    ``exposures_us``: the bracket to use (``plan.exposures_us``, or the camera's current
+    exposure when the plan names none). Order: checkpoint; turntable to the pose and stage to
+    the first state together; dark frames per exposure with the light off (if planned); per
+    state (serpentine order, :func:`state_order`) a stage move (not for the first state: it is
+    there already) and ``K`` frames per exposure; the reference exposure again (the simulated
+    rig's truth is taken at it); checkpoint "capture-acquired"."""
+    pose = float(plan.poses_deg[capture])
+    states = plan.acquired_states_deg()
+    order = state_order(plan, capture)
+    exposures = [float(e) for e in exposures_us]
+    if not exposures:
+        raise ValueError("at least one exposure is needed")
+    steps: list[Step] = [Checkpoint("capture-start", capture),
+                         Move((("turntable", pose), ("stage", states[order[0]])))]
+    if plan.dark_frames:
+        steps.append(SetLight(False))
+        for e, exposure in enumerate(exposures):
+            steps.append(SetExposure(exposure))
+            steps += [Grab(FrameTag(capture, pose, "dark", e, exposure, k))
+                      for k in range(plan.dark_frames)]
+        steps.append(SetLight(True))
+    for n, j in enumerate(order):
+        if n:
+            steps.append(Move((("stage", states[j]),)))
+        for e, exposure in enumerate(exposures):
+            steps.append(SetExposure(exposure))
+            steps += [Grab(FrameTag(capture, pose, "raw", e, exposure, k, j, states[j]))
+                      for k in range(plan.frames_per_state)]
+    steps += [SetExposure(exposures[0]), Checkpoint("capture-acquired", capture)]
+    return steps
+
+
+def session_steps(plan: CapturePlan, captures: Iterable[int],
+                  exposures_us: Sequence[float]) -> list[Step]:
+    """:func:`setup_steps` then :func:`capture_steps` of each of ``captures`` in turn."""
+    steps = setup_steps()
+    for i in captures:
+        steps += capture_steps(plan, i, exposures_us)
+    return steps
+
+
+# -- hardware time ------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class HardwareModel:
+    """What the hardware time of a list of steps depends on.
+
+    ``move_time_s(axis, from_deg, to_deg)``: one axis's move duration
+    (:meth:`polrig.acquisition.hal.RotationStage.move_time_s`); ``readout_us``: per frame on top of its
+    exposure; ``settle_frames``: frames discarded after a setting change or a move (free run
+    only, else 0); ``positions_deg``: where the axes start; ``exposure_us``: the camera's
+    exposure at the start."""
+
+    move_time_s: Callable[[str, float, float], float]
+    readout_us: float
+    settle_frames: int
+    positions_deg: dict[str, float]
+    exposure_us: float
+
+
+def step_durations(steps: Sequence[Step], model: HardwareModel) -> list[float]:
+    """Hardware time of each step, seconds: a :class:`Move` lasts as long as its slowest
+    axis (the axes move together), :class:`Home` a move to 0, a :class:`Grab` its exposure
+    plus readout (and the settle frames it discards in free run after a setting change or a
+    move; a NaN exposure, of a camera without exposure control, counts as 0); other steps
+    0."""
+    pos = dict(model.positions_deg)
+    exposure = float(model.exposure_us)
+    unsettled = True
+    out = []
+    for step in steps:
+        t = 0.0
+        if isinstance(step, Move):
+            t = max(model.move_time_s(a, pos.get(a, 0.0), v) for a, v in step.targets)
+            pos.update(dict(step.targets))
+            unsettled = True
+        elif isinstance(step, Home):
+            t = model.move_time_s(step.axis, pos.get(step.axis, 0.0), 0.0)
+            pos[step.axis] = 0.0
+            unsettled = True
+        elif isinstance(step, SetExposure):
+            new = float(step.exposure_us)
+            if new != exposure and not (math.isnan(new) and math.isnan(exposure)):
+                exposure, unsettled = new, True
+        elif isinstance(step, SetLight):
+            unsettled = True
+        elif isinstance(step, Grab):
+            frames = 1 + (int(model.settle_frames) if unsettled else 0)
+            known = exposure if math.isfinite(exposure) else 0.0  # NaN: no exposure control
+            t = frames * (known + float(model.readout_us)) * 1e-6
+            unsettled = False
+        out.append(t)
+    return out

@@ -1,0 +1,600 @@
+"""Capture sessions over turntable poses: plan -> executor -> sinks, processing overlapped with
+acquisition. No printing.
+
+Used by ``polrig capture`` and the GUI alike (both build a :class:`CaptureRequest`).
+:func:`run_session` turns the session's plan into device steps (:mod:`polrig.acquisition.plan`), runs
+them with one :class:`polrig.acquisition.engine.Executor` (its fault policy: retries, re-homing,
+timeouts from the hardware's declared capabilities) and subscribes to its events:
+
+* the **session writer** writes every raw frame, atomically and checksummed, the moment it
+  is grabbed (:meth:`polrig.app.session.Session.add_file`), before anything processes it;
+* at a capture's "capture-acquired" checkpoint (the rig still at its pose) the simulated rig's
+  truth is recorded (``processor.after_acquire``) and the capture is marked ``acquired``;
+* the **processing worker** (one thread: numpy and the solver release the GIL) processes
+  capture ``k`` while capture ``k + 1`` is acquired; at most one capture is processed and one
+  acquired at a time (by default a capture is handed to the worker once the previous one's
+  processing has ended: ``max_queued``), so memory stays bounded;
+* **progress** (:class:`Progress` events, with the plan's remaining hardware time for an
+  ETA from the first event) goes to the caller's callback, always from the calling thread.
+
+Interruptions (Ctrl-C, SIGTERM, a stop request, a device fault, a full disk, another
+file-system error, a processing error) end the run cleanly: processing already under way is
+let finish (its capture becomes ``complete``, or stays ``acquired`` with the reason if it
+failed), a capture acquired but not processed yet stays ``acquired``, the capture being
+acquired is left ``pending`` (a stop, a signal) or marked ``failed`` (device or file-system
+error) with its unrecorded files removed, and the session is ``interrupted`` with the
+reason. :func:`run_session` on it again (``--resume``) processes the ``acquired`` captures
+without acquiring them again and acquires the others from scratch; since raw file names and
+processing are indexed by the plan's state index, and the simulated camera's noise is keyed
+by pose, state and repeat, the result is identical to an uninterrupted run. A second
+SIGINT/SIGTERM during the clean-up is ignored (:class:`polrig.app.session.SignalGuard`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import dataclasses
+import pathlib
+from typing import Any, Callable
+
+from polrig.acquisition.engine import (
+    CaptureControl,
+    CheckpointReached,
+    Executor,
+    FaultPolicy,
+    FrameGrabbed,
+    Retried,
+    StepDone,
+    StopRequested,
+    hardware_model,
+)
+from polrig.acquisition.plan import (  # noqa: F401 (re-exported)
+    DEFAULT_STATES_DEG,
+    CapturePlan,
+    ExrChoice,
+    PlanError,
+    capture_steps,
+    parse_float_list,
+    parse_pose_spec,
+    planned_bytes,
+    setup_steps,
+    step_durations,
+)
+from polrig.app.calibrations import (
+    Calibration,
+    check_calibration_fits_rig,
+    check_plan,
+    load_calibration,
+)
+from polrig.app.records import check_resume_rig, check_rig_for_plan
+from polrig.app.session import (
+    ACQUIRED,
+    ACQUISITION_ROLES,
+    COMPLETE,
+    FAILED,
+    INTERRUPTED,
+    MANIFEST_NAME,
+    PENDING,
+    RUNNING,
+    SESSION_COMPLETE,
+    Session,
+    SignalGuard,
+    folder_is_empty,
+    interruption_reason,
+    is_disk_full,
+)
+from polrig.app.sessionio import (  # noqa: F401 (re-exported)
+    check_resume_space,
+    create_session,
+    dark_relpath,
+    frame_bytes,
+    manifest_exposure_us,
+    raw_relpath,
+)
+from polrig.errors import DeviceError
+
+__all__ = ["CaptureControl", "CapturePlan", "CaptureRequest", "PreparedCapture", "Progress",
+           "SessionResult", "StopRequested", "check_resume_space", "create_session",
+           "interrupted_result", "open_session", "prepare_capture", "run_session"]
+
+
+# -- the request (GUI and command line) ---------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class CaptureRequest:
+    """What a capture is asked to do, typed (``polrig capture`` builds it from its options,
+    the GUI from its form). ``None`` means "not given": the default for a new session, the
+    session's own value on ``resume`` (where a value that contradicts the session's plan is
+    refused). Angles in degrees, exposures in microseconds."""
+
+    out: pathlib.Path
+    poses_deg: tuple[float, ...] | None = None
+    mode: str | None = None
+    states_deg: tuple[float, ...] | None = None
+    frames_per_state: int | None = None
+    exposures_us: tuple[float, ...] | None = None
+    dark_frames: int | None = None
+    demosaic: str | None = None
+    mirror_average: bool | None = None
+    resolution: str | None = None
+    #: single-shot network binning (1 or 2: :attr:`polrig.acquisition.plan.CapturePlan.network_binning`)
+    network_binning: int | None = None
+    #: the result EXR's plane groups, uncertainty precision and compression
+    #: (:class:`polrig.acquisition.plan.ExrChoice`)
+    exr_planes: tuple[str, ...] | None = None
+    exr_uncertainty: str | None = None
+    exr_compression: str | None = None
+    config: pathlib.Path | None = None
+    calibration: pathlib.Path | None = None
+    resume: bool = False
+    #: where the single-shot network runs (``auto``, ``cpu``, ``cuda``: :mod:`polrig.models.devices`):
+    #: a run option, not part of the plan (a resumed session may run on another device); the
+    #: provider used is recorded in each result's header
+    device: str = "auto"
+
+    def plan_fields(self) -> dict[str, Any]:
+        """The :class:`polrig.acquisition.plan.CapturePlan` fields this request gives (not ``None``)."""
+        names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
+                 "dark_frames", "demosaic", "mirror_average", "resolution", "network_binning",
+                 "exr_planes",
+                 "exr_uncertainty", "exr_compression")
+        fields = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
+        if "exr_planes" in fields:  # as the plan holds them (mueller always, in order)
+            fields["exr_planes"] = ExrChoice(planes=fields["exr_planes"]).planes
+        return fields
+
+    def plan(self) -> CapturePlan:
+        """The plan of a new session: the given fields, defaults for the others."""
+        fields = self.plan_fields()
+        if "poses_deg" not in fields:
+            raise PlanError("poses_deg", "no poses given (e.g. 0:360:90)")
+        if fields.get("mode") == "single-shot" and len(fields.get("states_deg", ())) > 1:
+            raise PlanError("states_deg", "the single-shot method captures one polarizer "
+                                          "state per pose; give one state (e.g. 0)")
+        return CapturePlan(**fields)
+
+
+@dataclasses.dataclass
+class PreparedCapture:
+    """A validated :class:`CaptureRequest`: nothing opened, nothing written yet."""
+
+    out: pathlib.Path
+    plan: CapturePlan
+    calibration: Calibration
+    resume_session: Session | None  # the session to continue, or None
+
+
+def prepare_capture(request: CaptureRequest) -> PreparedCapture:
+    """Validate ``request`` before any device opens or any file is written.
+
+    A new session: its plan, an output folder that is new or empty, the calibration set, a
+    plan that can give a result (:func:`polrig.app.calibrations.check_plan`). A resumed one: the
+    session is opened for writing (its lock taken: :class:`polrig.app.session.SessionBusy` if
+    another process writes it), the request must not contradict its plan, the calibration
+    must be the one it was captured with. Raises ``FileNotFoundError``/``FileExistsError``
+    or :class:`polrig.acquisition.plan.PlanError` (one line; ``field`` says what it is about).
+    """
+    out = pathlib.Path(request.out)
+    if request.config is not None and not pathlib.Path(request.config).is_file():
+        raise FileNotFoundError(f"rig configuration {request.config}: no such file")
+    session = None
+    if request.resume:
+        if not (out / MANIFEST_NAME).is_file():
+            raise FileNotFoundError(f"{out} holds no session to resume")
+        # opened for writing: its lock first, so the manifest read is the one this run continues
+        session = Session.open(out, lock=True)
+        try:
+            plan = CapturePlan.from_json(session.plan)
+            for key, value in request.plan_fields().items():
+                if value != getattr(plan, key):
+                    raise PlanError(key, f"the session was planned with {key}="
+                                         f"{getattr(plan, key)!r}, this run asks for {value!r}")
+            calibration = load_calibration(request.calibration, session=session)
+            check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
+        except BaseException:
+            session.unlock()
+            raise
+    else:
+        plan = request.plan()
+        if out.exists() and not out.is_dir():
+            raise PlanError("out", "exists and is not a folder", subject=str(out),
+                            what="output")
+        if not folder_is_empty(out):
+            raise PlanError("out", "folder is not empty; choose a new folder, or resume the "
+                                   "session in it", subject=str(out), what="output")
+        calibration = load_calibration(request.calibration)
+        check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
+    return PreparedCapture(out, plan, calibration, session)
+
+
+def open_session(prepared: PreparedCapture, rig, command_line: list[str]) -> Session:
+    """The session to run on ``rig``: the resumed one (after checking that ``rig`` is the
+    rig it was captured on, :func:`polrig.app.records.check_resume_rig`, and the free disk space
+    for what is left) or a new one created in ``prepared.out``. The calibration set must fit
+    the camera (:func:`polrig.app.calibrations.check_calibration_fits_rig`) and the plan's
+    exposures its range (:func:`polrig.app.records.check_rig_for_plan`), both before any device
+    moves; a refusal writes nothing. The session returned holds its lock until
+    :func:`run_session` ends."""
+    if prepared.resume_session is not None:
+        session = prepared.resume_session
+        try:
+            session.lock()  # no-op when prepare_capture took it
+            check_resume_rig(session, rig)
+            check_calibration_fits_rig(prepared.calibration, rig)
+            check_rig_for_plan(rig, prepared.plan)
+            check_resume_space(session, rig, len(session.next_pending()))
+        except BaseException:
+            session.unlock()
+            raise
+        session.log("resume command", command_line=command_line)
+        return session
+    check_calibration_fits_rig(prepared.calibration, rig)
+    check_rig_for_plan(rig, prepared.plan)
+    return create_session(prepared.out, rig, prepared.plan,
+                          calibration_id=prepared.calibration.id, command_line=command_line)
+
+
+# -- progress -----------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """One progress event. ``kind``: ``"capture-start"``, ``"frame"`` (a raw frame written),
+    ``"retry"``, ``"capture-acquired"`` (every frame of the capture written; it is handed to
+    processing), ``"capture-done"`` (processed; ``score`` set on the simulated rig),
+    ``"capture-failed"``, ``"session-done"``. ``step``/``total`` count the raw frames this run
+    acquires. ``hardware_s``: the plan's hardware time for this run (motion, exposure,
+    readout; :func:`polrig.acquisition.plan.step_durations`), known before the first frame;
+    ``hardware_left_s`` what is left of it."""
+
+    kind: str
+    capture_index: int
+    n_captures: int
+    step: int
+    total: int
+    pose_deg: float | None = None
+    message: str = ""
+    score: dict[str, Any] | None = None
+    hardware_s: float = 0.0
+    hardware_left_s: float = 0.0
+
+
+ProgressCallback = Callable[[Progress], None]
+
+
+@dataclasses.dataclass
+class SessionResult:
+    """How a run ended. ``status`` is the session status; ``reason`` why it stopped early."""
+
+    status: str
+    completed: list[int]
+    failed: list[int]
+    reason: str | None = None
+    scores: dict[int, dict[str, Any]] = dataclasses.field(default_factory=dict)
+
+
+class _ProcessingFailed(Exception):
+    """Internal: processing capture ``index`` raised ``error`` (in the worker)."""
+
+    def __init__(self, index: int, error: BaseException):
+        super().__init__(f"{type(error).__name__}: {error}")
+        self.index, self.error = index, error
+
+
+# -- the run ------------------------------------------------------------------------------------
+def run_session(rig, session: Session, *, processor=None,
+                progress: ProgressCallback | None = None,
+                control: CaptureControl | None = None,
+                max_queued: int = 1) -> SessionResult:
+    """Acquire and process every capture of ``session`` that is not complete yet.
+
+    ``processor`` (normally :func:`polrig.app.processing.make_processor`'s result) has
+    ``after_acquire(session, index, rig)`` (run while the rig is still at the pose: the
+    simulated rig's ground truth) and ``process(session, index) -> score dict or None`` (run
+    in the worker thread); without one, an acquired capture is complete.
+
+    ``max_queued``: how many acquired captures may wait for or be in processing while the
+    next one is acquired (one worker thread processes them in order; a capture is loaded from
+    its files when its processing starts, so only that one is in memory). With the default 1
+    a capture is handed over once the previous one's processing has ended.
+
+    The session's lock is taken (if this object does not hold it yet; :class:`SessionBusy`
+    when another process writes the session) and released when the run ends. In the main
+    thread SIGINT and SIGTERM stop the run like Ctrl-C. Returns how the run ended; raises
+    ``KeyboardInterrupt`` (:class:`polrig.app.session.Interrupted` for a signal) after leaving
+    the session consistent when interrupted, and re-raises a file-system error other than a
+    full disk, or an unexpected error (a processing error included), after leaving the
+    session interrupted.
+    """
+    session.lock()
+    try:
+        with SignalGuard() as guard:
+            return _Run(rig, session, processor, progress, control, guard, max_queued).run()
+    finally:
+        session.unlock()
+
+
+class _Run:
+    """One :func:`run_session` call: the executor, its subscribers and the worker."""
+
+    def __init__(self, rig, session: Session, processor, progress, control,
+                 guard: SignalGuard, max_queued: int = 1):
+        if int(max_queued) < 1:
+            raise ValueError(f"max_queued must be >= 1, got {max_queued!r}")
+        self.max_queued = int(max_queued)
+        self.rig, self.session, self.processor = rig, session, processor
+        self.progress, self.guard = progress, guard
+        self.control = control or CaptureControl()
+        self.plan = CapturePlan.from_json(session.plan)
+        self.n = len(session.captures)
+        self.to_process = session.acquired()
+        self.to_acquire = [i for i in session.next_pending() if i not in self.to_process]
+        self.total = len(self.to_acquire) * self.plan.frames_per_pose()
+        self.step = 0
+        self.current: int | None = None  # the capture being acquired
+        self.jobs: list[tuple[int, concurrent.futures.Future]] = []
+        self.pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self.durations: list[float] = []
+        self.hardware_s = self.hardware_left_s = 0.0
+        self.result = SessionResult(RUNNING, [c["index"] for c in session.captures
+                                              if c["status"] == COMPLETE], [])
+
+    # -- progress
+    def emit(self, kind: str, index: int, message: str = "", score=None) -> None:
+        if self.progress:
+            self.progress(Progress(kind, index, self.n, self.step, self.total,
+                                   self.session.capture(index)["pose_deg"], message, score,
+                                   self.hardware_s, self.hardware_left_s))
+
+    # -- the executor's subscribers
+    def on_event(self, ev) -> None:
+        if isinstance(ev, FrameGrabbed):
+            self.write_frame(ev)
+        elif isinstance(ev, StepDone):
+            self.hardware_left_s = max(0.0, self.hardware_left_s - self.durations[ev.index])
+            self.collect(block=False)
+        elif isinstance(ev, Retried):
+            self.emit("retry", self.current if self.current is not None else 0, ev.message)
+        elif isinstance(ev, CheckpointReached):
+            index = ev.checkpoint.capture
+            if ev.checkpoint.label == "capture-start":
+                self.collect(block=False)
+                self.session.restart_capture(index)
+                self.current = index
+                self.emit("capture-start", index)
+            elif ev.checkpoint.label == "capture-acquired":
+                self.acquired(index)
+
+    def write_frame(self, ev: FrameGrabbed) -> None:
+        """The session writer: every frame to disk, checksummed, as it arrives."""
+        tag = ev.tag
+        cap = self.session.capture(tag.capture)
+        image, meta = frame_bytes(ev.frame)
+        if tag.role == "dark":
+            self.session.add_file(tag.capture, "dark",
+                                  dark_relpath(cap["name"], tag.exposure_index, tag.frame),
+                                  image, sidecar=meta,
+                                  exposure_us=manifest_exposure_us(tag.exposure_us),
+                                  exposure_index=tag.exposure_index, frame=tag.frame)
+        else:
+            self.session.add_file(tag.capture, "raw",
+                                  raw_relpath(cap["name"], tag.state_index, tag.state_deg,
+                                              tag.exposure_index, tag.frame),
+                                  image, sidecar=meta, state_index=tag.state_index,
+                                  state_deg=tag.state_deg,
+                                  exposure_us=manifest_exposure_us(tag.exposure_us),
+                                  exposure_index=tag.exposure_index, frame=tag.frame)
+        self.step += 1
+        self.emit("frame", tag.capture)
+
+    def acquired(self, index: int) -> None:
+        """Every frame of ``index`` is written and the rig is still at its pose: its truth
+        (simulated rig), then it is handed to processing."""
+        if self.processor is not None:
+            self.processor.after_acquire(self.session, index, self.rig)
+        self.session.mark_acquired(index)
+        self.current = None
+        self.emit("capture-acquired", index)
+        self.submit(index)
+
+    # -- the processing worker
+    def submit(self, index: int) -> None:
+        """Hand ``index`` to the worker once the previous capture's processing has ended
+        (one capture processed while the next is acquired)."""
+        if self.processor is None:
+            self.session.complete_capture(index, None)
+            self.finished(index, None)
+            return
+        self.collect(block=True, keep=self.max_queued - 1)
+        if self.pool is None:
+            self.pool = concurrent.futures.ThreadPoolExecutor(1, "polrig-processing")
+        self.jobs.append((index, self.pool.submit(self.process, index)))
+
+    def process(self, index: int) -> dict[str, Any] | None:
+        """In the worker: process ``index`` from its raw files and mark it complete."""
+        session = self.session
+        if set(session.capture(index)["files"]) - set(ACQUISITION_ROLES):
+            session.reset_results(index)  # an earlier, interrupted processing's files
+        score = self.processor.process(session, index)
+        session.complete_capture(index, score)
+        return score
+
+    def collect(self, *, block: bool, keep: int = 0) -> None:
+        """Report the captures whose processing ended (when ``block``, wait until at most
+        ``keep`` remain); a processing error is raised as :class:`_ProcessingFailed` (the
+        capture stays ``acquired`` with the reason)."""
+        while len(self.jobs) > keep and (block or self.jobs[0][1].done()):
+            index, job = self.jobs[0]  # popped once it ended: a signal may cut the wait short
+            try:
+                score = job.result()
+            except Exception as exc:  # noqa: BLE001 - reported below, in this thread
+                self.jobs.pop(0)
+                # best effort: on a full disk the manifest on disk says "acquired" already
+                with self.guard.deferred(), contextlib.suppress(OSError):
+                    self.session.mark_acquired(index, f"processing failed: "
+                                                      f"{type(exc).__name__}: {exc}")
+                raise _ProcessingFailed(index, exc) from exc
+            self.jobs.pop(0)
+            self.finished(index, score)
+
+    def finished(self, index: int, score) -> None:
+        self.result.completed.append(index)
+        if score is not None:
+            self.result.scores[index] = score
+        self.emit("capture-done", index, score=score)
+
+    def drain(self) -> BaseException | None:
+        """After an interruption: let the processing under way end, report it; the first
+        processing error, if any, is returned."""
+        error = None
+        while self.jobs:
+            try:
+                self.collect(block=True)
+            except _ProcessingFailed as exc:
+                error = error or exc
+            except KeyboardInterrupt:  # pragma: no cover - signals are deferred here
+                continue
+        return error
+
+    # -- the run
+    def run(self) -> SessionResult:
+        session, plan = self.session, self.plan
+        try:
+            session.set_status(RUNNING)
+            setup, body = [], []
+            if self.to_acquire:
+                exposures = plan.exposures_us or (float(self.rig.camera.exposure_us),)
+                setup = setup_steps()
+                body = [step for i in self.to_acquire
+                        for step in capture_steps(plan, i, exposures)]
+                durations = step_durations(setup + body, hardware_model(self.rig))
+                self.hardware_s = self.hardware_left_s = sum(durations)
+                setup_s, self.durations = durations[:len(setup)], durations[len(setup):]
+            with session.mutex:
+                session.manifest.setdefault("hardware_time_s", round(self.hardware_s, 3))
+                session.log("run planned", to_acquire=self.to_acquire,
+                            to_process=self.to_process,
+                            hardware_time_s=round(self.hardware_s, 3))
+            executor = Executor(self.rig, policy=FaultPolicy(plan.grab_retries),
+                                control=self.control, subscribers=[self.on_event])
+            for index in self.to_process:  # acquired before: processed, not acquired again
+                self.submit(index)
+            if body:
+                try:
+                    for step, seconds in zip(setup, setup_s):
+                        executor.execute(step)
+                        self.hardware_left_s -= seconds
+                except DeviceError as exc:
+                    reason = f"rig preparation failed: {exc}"
+                    error = self.drain()
+                    with self.guard.deferred():
+                        session.set_status(INTERRUPTED, reason)
+                    if error is not None:
+                        raise error.error
+                    return SessionResult(INTERRUPTED, self.result.completed, [], str(exc),
+                                         self.result.scores)
+                executor.run(body)  # StepDone indices count from 0 again: self.durations
+            self.collect(block=True)
+            with self.guard.deferred():
+                session.set_status(SESSION_COMPLETE)
+        except (KeyboardInterrupt, StopRequested) as exc:
+            reason = (interruption_reason(exc) if isinstance(exc, KeyboardInterrupt)
+                      else "stopped by the operator")
+            self.stop(reason, PENDING)
+            self.report_failed()
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            return self.result
+        except _ProcessingFailed as exc:
+            if is_disk_full(exc.error):  # as when acquiring: a result, not an error
+                self.stop(f"disk full: {exc.error}", FAILED)
+                self.report_failed()
+                return self.result
+            self.stop(str(exc), PENDING)
+            raise exc.error from None
+        except (DeviceError, OSError) as exc:
+            if isinstance(exc, OSError) and not is_disk_full(exc):
+                # any other file-system error (permissions, I/O error, a name too long):
+                # leave the session consistent and resumable, then let the caller report it
+                self.stop(f"{type(exc).__name__}: {exc}", FAILED)
+                raise
+            kind = "disk full" if is_disk_full(exc) else type(exc).__name__
+            self.stop(f"{kind}: {exc}", FAILED)
+            self.report_failed()
+            return self.result
+        except Exception as exc:  # a bug or bad data while acquiring: record it, report it
+            self.stop(f"{type(exc).__name__}: {exc}", FAILED)
+            raise
+        finally:
+            if self.pool is not None:
+                self.pool.shutdown(wait=True)
+        self.result.status = SESSION_COMPLETE
+        last = self.to_acquire[-1] if self.to_acquire else (self.to_process or [0])[-1]
+        self.emit("session-done", last)
+        return self.result
+
+    def stop(self, reason: str, capture_status: str) -> None:
+        """Leave the session consistent after an interruption: processing under way ends
+        (signals deferred meanwhile), the capture being acquired is left ``capture_status``
+        (``pending`` or ``failed``) without unrecorded files, the session ``interrupted``."""
+        with self.guard.deferred():
+            error = self.drain()  # another capture's processing may fail meanwhile: say so
+            if error is not None:
+                reason = f"{reason}; processing of capture {error.index} failed too ({error})"
+            index = self.current
+            if index is not None:
+                _stop_cleanly(self.session, index, reason, capture_status=capture_status)
+                if capture_status == FAILED:
+                    self.result.failed.append(index)
+            else:
+                with contextlib.suppress(OSError):
+                    self.session.set_status(INTERRUPTED, reason)
+            self.result.status, self.result.reason = INTERRUPTED, reason
+
+    def report_failed(self) -> None:
+        """The "capture-failed" event of a run that ends with a result (not re-raised)."""
+        if self.current is not None:
+            with contextlib.suppress(Exception):  # a progress display must not stop the stop
+                self.emit("capture-failed", self.current, self.result.reason or "")
+
+
+def interrupted_result(session: Session, exc: BaseException) -> SessionResult:
+    """How a run ended that raised ``exc`` after ``session`` was opened: :func:`run_session`
+    re-raises a file-system error other than a full disk and an unexpected error (a
+    processing error) after leaving the session ``interrupted``; an error before the run (the
+    processor could not be built) leaves it as it was. Either way the session is
+    ``interrupted`` with the reason (written here where the run did not), its lock released,
+    and the result says so, for the caller to report as any other stop: the completed
+    captures are intact and a resume continues (``polrig capture``, the GUI)."""
+    reason = f"{type(exc).__name__}: {exc}"
+    if session.manifest.get("status") == INTERRUPTED:
+        reason = session.manifest.get("status_reason") or reason
+    else:
+        with contextlib.suppress(Exception):  # another writer, a failing disk: as it is
+            session.lock()
+            session.set_status(INTERRUPTED, reason)
+    session.unlock()
+    done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
+    failed = [c["index"] for c in session.captures if c["status"] == FAILED]
+    return SessionResult(INTERRUPTED, done, failed, reason)
+
+
+def _stop_cleanly(session: Session, index: int, reason: str, *, capture_status: str) -> None:
+    """Leave the session consistent after a stop: unrecorded files of capture ``index``
+    removed, its status set (unless it got complete or acquired meanwhile), session
+    ``interrupted`` with ``reason``. Saving may itself fail (a full disk): the manifest on
+    disk then still is the last consistent one, which is fine."""
+    try:
+        session.reload()  # what is on disk is what counts: a failed save may be missing
+        session.discard_unrecorded(index)
+    except OSError:
+        pass
+    cap = session.capture(index)
+    if cap["status"] in (COMPLETE, ACQUIRED):
+        pass  # the interruption came after it was saved as such: keep it
+    elif capture_status == FAILED:
+        session.fail_capture(index, reason, save=False)
+    else:
+        cap.update(status=PENDING, reason=reason)
+    try:
+        session.set_status(INTERRUPTED, reason)
+    except OSError:
+        pass

@@ -1,0 +1,528 @@
+"""Scale-out on Dask distributed: ``polrig reconstruct`` over many sessions, one task per capture.
+
+Roles (the session's one-writer rule holds):
+
+* **Client** (the ``polrig`` process): takes every session's lock, checks each request
+  before anything is recorded (:func:`polrig.app.processing.revision_plan`), creates (or
+  continues) each session's revision, submits one :class:`CaptureJob` per capture, and as
+  results arrive records them in the manifest (:func:`polrig.app.processing.record_result`) --
+  the only process that writes a ``session.json``.
+* **Workers** (:func:`run_capture`): open the session read-only from the file system they
+  share with the client, read and verify the raw frames themselves (raw data never travels
+  through the client), solve (:meth:`polrig.app.processing.Processor.solve`) and write the
+  result file under a temporary name in its final folder, then rename it
+  (:func:`polrig.app.processing.write_and_score`, previews included), then score it against
+  the simulator's truth if the capture has one; they return the files' records and the score
+  (a few hundred bytes).
+
+Faults: a worker that dies mid-task has its task rerun on another worker by Dask (the rerun
+writes the same bytes; a temporary file the dead one left is removed by the client when the
+batch ends, :func:`discard_leftovers`). A capture whose data is damaged comes back as a
+failure with its reason and is marked ``failed`` in its revision; the batch goes on.
+Ctrl-C/SIGTERM cancel the tasks not finished, leave their captures ``pending`` in the
+revision and keep the finished ones; running ``polrig reconstruct`` again with the same
+settings continues that revision with the captures still pending (:func:`prepare`).
+
+Executors (:class:`Runner`): :class:`SerialRunner` (in-process, the default) and
+:class:`DaskRunner` (a ``LocalCluster`` of single-threaded worker processes, or a running
+scheduler). ``dask[distributed]`` is the optional ``cluster`` extra
+(:func:`require_distributed`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import errno
+import logging
+import os
+import pathlib
+import time
+import uuid
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
+
+from polrig.acquisition.plan import ExrChoice
+from polrig.app import processing
+from polrig.app.session import (
+    COMPLETE,
+    FAILED,
+    PENDING,
+    Session,
+    SignalGuard,
+    interruption_reason,
+    is_disk_full,
+)
+from polrig.errors import ConfigError, PolrigError
+
+INSTALL_HINT = "pip install 'polrig[cluster]' (or: pip install 'dask[distributed]')"
+
+
+def require_distributed(option: str):
+    """The ``distributed`` module, or :class:`ConfigError` (exit 2) saying how to install
+    it when the ``cluster`` extra is missing; ``option`` names what needed it."""
+    try:
+        import distributed
+    except ImportError:
+        raise ConfigError(f"{option} needs Dask distributed, which is not installed; install "
+                          f"the cluster extra: {INSTALL_HINT}") from None
+    return distributed
+
+
+# -- executors ---------------------------------------------------------------------------------
+class Runner(Protocol):
+    """Runs ``fn(job)`` for every job and yields ``(job, result)`` as each finishes (any
+    order). Leaving the iteration early (an exception, Ctrl-C) cancels what has not run."""
+
+    description: str
+
+    def map_unordered(self, fn: Callable[[Any], Any], jobs: Sequence[Any]
+                      ) -> Iterator[tuple[Any, Any]]: ...
+
+    def close(self) -> None: ...
+
+
+class SerialRunner:
+    """In this process, one job after the other, in order (the default of every command)."""
+
+    description = "serial (this process)"
+
+    def map_unordered(self, fn, jobs):
+        for job in jobs:
+            yield job, fn(job)
+
+    def close(self) -> None:
+        pass
+
+
+class DaskRunner:
+    """Jobs as Dask tasks (``pure=False``: each runs once per submission; Dask reruns a task
+    whose worker died, up to ``distributed.scheduler.allowed-failures`` times). Build it with
+    :meth:`local` or :meth:`connect`."""
+
+    def __init__(self, client, cluster=None, description: str = "dask"):
+        self.client, self.cluster, self.description = client, cluster, description
+
+    @classmethod
+    def local(cls, n_workers: int) -> "DaskRunner":
+        """A ``LocalCluster`` of ``n_workers`` worker processes with one thread each, on the
+        loopback interface (the scheduler's HTTP server too, on a free port: it always starts
+        one, and 8787 may be taken); Dask's nanny sets ``OMP_NUM_THREADS`` and friends to 1 in
+        each worker (``distributed.nanny.pre-spawn-environ``)."""
+        require_distributed("--workers")
+        from distributed import Client, LocalCluster
+
+        if n_workers < 1:
+            raise ConfigError(f"--workers {n_workers}: need at least 1")
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                               silence_logs=logging.ERROR)
+        try:
+            client = Client(cluster)
+        except BaseException:
+            cluster.close()
+            raise
+        return cls(client, cluster, f"{n_workers} local worker process(es), 1 thread each")
+
+    @classmethod
+    def connect(cls, address: str, timeout: float | str | None = None) -> "DaskRunner":
+        """A client of the running scheduler at ``address`` (``tcp://host:8786``);
+        :class:`ConfigError` (one line, exit 2) if it cannot be reached within ``timeout``
+        (default: Dask's ``distributed.comm.timeouts.connect``)."""
+        require_distributed("--scheduler")
+        import dask
+        from distributed import Client
+
+        timeout = timeout or dask.config.get("distributed.comm.timeouts.connect")
+        try:
+            client = Client(address, timeout=timeout)
+        except (OSError, ValueError, TypeError) as exc:  # TimeoutError is an OSError
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler "
+                              f"({why}); start it with 'dask scheduler' or check the "
+                              f"address") from None
+        n = len(client.scheduler_info().get("workers", {}))
+        return cls(client, None, f"scheduler {address} ({n} worker(s) now)")
+
+    def map_unordered(self, fn, jobs):
+        from distributed import as_completed
+
+        tag = uuid.uuid4().hex[:8]
+        futures = {self.client.submit(one_core, fn, job, key=f"{fn.__name__}-{tag}-{i}",
+                                      pure=False): job
+                   for i, job in enumerate(jobs)}
+        try:
+            for fut in as_completed(list(futures)):
+                yield futures[fut], fut.result()
+        finally:  # early exit: pending tasks are cancelled (finished ones just released)
+            with contextlib.suppress(Exception):
+                self.client.cancel(list(futures))
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.client.close()
+        if self.cluster is not None:
+            with contextlib.suppress(Exception):
+                self.cluster.close()
+
+
+def one_core(fn: Callable[[Any], Any], job: Any) -> Any:
+    """``fn(job)`` on one core: OpenCV's own thread pool (the demosaics' filters) limited to
+    one thread in this worker process, as the nanny limits OpenMP/BLAS
+    (``distributed.nanny.pre-spawn-environ``); a task is one core's work."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    return fn(job)
+
+
+def open_runner(workers: int | None, scheduler: str | None) -> Runner:
+    """The runner that ``--workers N`` / ``--scheduler ADDRESS`` ask for (serial without
+    either; both is a :class:`ConfigError`)."""
+    if workers is not None and scheduler is not None:
+        raise ConfigError("--workers and --scheduler exclude each other")
+    if scheduler is not None:
+        return DaskRunner.connect(scheduler)
+    if workers is not None:
+        return DaskRunner.local(workers)
+    return SerialRunner()
+
+
+# -- one capture, on a worker --------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class CaptureJob:
+    """One task: capture ``index`` of the session in ``root`` (an absolute path the workers
+    see too) into ``revision`` with the revision's settings; ``device`` where a single-shot
+    network runs on the worker (``auto``, ``cpu``, ``cuda``); ``calibration`` is the
+    calibration set's folder (absolute) or ``None`` for the nominal one."""
+
+    root: str
+    index: int
+    revision: str
+    mode: str
+    demosaic: str
+    mirror_average: bool
+    resolution: str
+    device: str
+    calibration: str | None
+    calibration_id: str
+    exr_planes: tuple[str, ...]
+    exr_uncertainty: str
+    exr_compression: str
+    #: single-shot network binning (1 or 2: :class:`polrig.app.processing.Processor`)
+    network_binning: int = 1
+
+    @property
+    def exr(self):
+        """The result files' format (:class:`polrig.acquisition.plan.ExrChoice`)."""
+
+        return ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureOutcome:
+    """What a worker sends back: the written files' ``record`` s by role (``mueller`` and its
+    previews: ``path``, ``sha256``, ``bytes``) and ``score``, or the ``reason`` it failed
+    (``disk_full`` for a full disk); ``seconds`` the time the task took on the worker."""
+
+    record: dict[str, dict[str, Any]] | None
+    score: dict[str, Any] | None
+    reason: str | None
+    disk_full: bool
+    seconds: float
+
+
+_PROCESSORS: dict[tuple, Any] = {}  # per worker process: settings -> Processor
+
+
+def _processor(job: CaptureJob, session: Session):
+    """The worker's :class:`polrig.app.processing.Processor` for ``job`` (made once per settings
+    and session noise model: a single-shot network is loaded once per worker)."""
+
+    sensor = processing.session_sensor_model(session)
+    key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
+           job.device, job.calibration, job.calibration_id, repr(sensor), job.exr)
+    if key not in _PROCESSORS:
+        cal = processing.load_calibration(job.calibration)
+        if cal.id != job.calibration_id:
+            raise ConfigError(f"{job.calibration}: calibration set {cal.id!r} on this worker, "
+                              f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
+        _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
+                                                job.mirror_average, job.resolution, job.device,
+                                                job.exr, job.network_binning)
+    return _PROCESSORS[key]
+
+
+def run_capture(job: CaptureJob) -> CaptureOutcome:
+    """The task: solve one capture from its raw files and write its result file. Never
+    writes the manifest. A failure (damaged raw data, a full disk...) is returned with its
+    reason, not raised, so the client marks that capture and goes on."""
+    t0 = time.perf_counter()
+    try:
+        session = Session.open(job.root)  # read-only: the client holds the lock and writes
+        from polrig.app import processing
+
+        proc = _processor(job, session)
+        # a file already there is a result the manifest does not record (the client only
+        # submits captures not complete in the revision): the unrecorded output of an attempt
+        # that died before the client heard of it, replaced by this one's identical bytes
+        record, score = processing.write_and_score(
+            session.root, proc.solve(session, job.index, job.revision), proc.exr, replace=True)
+    except Exception as exc:
+        return CaptureOutcome(None, None, f"{type(exc).__name__}: {exc}", is_disk_full(exc),
+                              time.perf_counter() - t0)
+    return CaptureOutcome(record, score, None, False, time.perf_counter() - t0)
+
+
+# -- the client ----------------------------------------------------------------------------------
+@dataclasses.dataclass
+class SessionBatch:
+    """One session's part of a batch: its revision (new or ``continued``), the captures
+    submitted and those that ``failed`` (``(index, reason)``); ``device`` where single-shot
+    networks run (not a setting of the result)."""
+
+    session: Session
+    revision: str
+    settings: dict[str, Any]
+    todo: list[int]
+    device: str = "auto"
+    continued: bool = False
+    failed: list[tuple[int, str]] = dataclasses.field(default_factory=list)
+    finished: int = 0
+
+
+class BatchIncomplete(PolrigError):
+    """Captures of some sessions failed (the others are complete); one line per session in
+    :attr:`lines`, the message sums them up."""
+
+    def __init__(self, batches: Sequence[SessionBatch]):
+        self.batches = list(batches)
+        bad = [b for b in batches if b.failed]
+        self.lines = [f"{b.session.root}: revision {b.revision}: {len(b.failed)} of "
+                      f"{len(b.todo)} capture(s) failed: " +
+                      "; ".join(f"capture {i} ({b.session.capture(i)['name']}): {r}"
+                                for i, r in b.failed) for b in bad]
+        n = sum(len(b.failed) for b in bad)
+        super().__init__(f"{n} capture(s) failed in {len(bad)} of {len(batches)} session(s) "
+                         f"(" + ", ".join(f"{b.session.root.name} {b.revision}: "
+                                          f"{len(b.failed)}" for b in bad) +
+                         "); the others are complete")
+
+
+#: Revision settings newer than some revisions, as the ones without them were made.
+ABSENT_SETTINGS: dict[str, Any] = {"network_binning": 1}
+
+
+def _continuable(session: Session, settings: dict[str, Any], done: list[int]
+                 ) -> tuple[str, list[int]] | None:
+    """The session's last revision and its captures still to do, when it was made with
+    ``settings`` and was interrupted (captures of ``done`` pending or missing in it)."""
+    revisions = session.manifest.get("revisions") or []
+    if not revisions:
+        return None
+    last = revisions[-1]
+    if any(last.get(k, ABSENT_SETTINGS.get(k)) != v for k, v in settings.items()):
+        return None
+    name = last["name"]
+    todo = [i for i in done
+            if session.capture(i).get("revisions", {}).get(name, {}).get("status",
+                                                                         PENDING) == PENDING]
+    return (name, todo) if todo else None
+
+
+def open_sessions(paths: Iterable[str | os.PathLike]) -> list[Session]:
+    """Open every session for writing (each one's lock taken; all released again if one is
+    busy or damaged). Duplicates are refused."""
+    sessions: list[Session] = []
+    seen: set[pathlib.Path] = set()
+    try:
+        for p in paths:
+            real = pathlib.Path(p).resolve()
+            if real in seen:
+                raise ConfigError(f"{p}: session named twice")
+            seen.add(real)
+            sessions.append(Session.open(real, lock=True))
+    except BaseException:
+        for s in sessions:
+            s.unlock()
+        raise
+    return sessions
+
+
+def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: str | None = None,
+            mirror_average: bool | None = None, resolution: str | None = None,
+            device: str = "auto", calibration=None,
+            command_line: list[str] | None = None,
+            exr: dict[str, Any] | None = None,
+            network_binning: int | None = None) -> list[SessionBatch]:
+    """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
+    is recorded if one is impossible), then give each a revision: the last one continued when
+    it has the same settings and captures still ``pending`` (an interrupted batch), else a
+    new one. Leftover files of earlier attempts in the revision's folders are removed."""
+
+    plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
+                                      resolution, device, exr, network_binning) for s in sessions]
+    batches = []
+    for s, (settings, _processor_unused, done) in zip(sessions, plans):
+        cont = _continuable(s, settings, done)
+        if cont is not None:
+            name, todo = cont
+            s.log("revision continued", revision=name, command_line=list(command_line or []))
+        else:
+            name, todo = s.new_revision(settings, command_line), list(done)
+        for i in todo:
+            s.start_revision(i, name)
+        s.save()
+        batch = SessionBatch(s, name, settings, todo, device, continued=cont is not None)
+        discard_leftovers(batch)
+        batches.append(batch)
+    return batches
+
+
+def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJob]:
+    st = batch.settings
+    cal = None if calibration_path is None else str(pathlib.Path(calibration_path).resolve())
+    return [CaptureJob(str(batch.session.root.resolve()), i, batch.revision, st["mode"],
+                       st["demosaic"], bool(st["mirror_average"]), st["resolution"],
+                       batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
+                       st["exr_uncertainty"], st["exr_compression"],
+                       int(st.get("network_binning", 1)))
+            for i in batch.todo]
+
+
+def discard_leftovers(batch: SessionBatch) -> list[pathlib.Path]:
+    """Remove files in the revision folders of ``batch``'s captures that the manifest does
+    not record (temporary files of a worker killed mid-write, a result whose task was
+    cancelled after it wrote), and such folders left empty. Returns the files removed."""
+    s = batch.session
+    recorded = s.recorded_paths()
+    removed = []
+    for i in batch.todo:
+        folder = s.capture_dir(i) / batch.revision
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.rglob("*"), reverse=True):
+            if p.is_file() and s.relpath(p) not in recorded:
+                p.unlink()
+                removed.append(p)
+        for d in sorted((d for d in folder.rglob("*") if d.is_dir()), reverse=True) + [folder]:
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only empty ones go
+    return removed
+
+
+def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
+              calibration_path: str | None = None,
+              on_capture: Callable[[SessionBatch, int, dict | None, str | None], None]
+              | None = None) -> None:
+    """Run every batch's captures on ``runner`` and record each result as it arrives
+    (``on_capture(batch, index, score, reason)`` after each: ``reason`` is ``None`` for
+    success). Raises :class:`BatchIncomplete` at the end if captures failed; a full disk
+    stops the batch (``OSError``); Ctrl-C/SIGTERM (``KeyboardInterrupt``) cancel what is not
+    finished, whose captures stay ``pending`` with the reason. Temporary and unrecorded files
+    in the revisions' folders are removed whatever way it ends (after ``runner.close()``,
+    which the caller may not have done: call :meth:`Runner.close` first if it should be)."""
+
+    by_key = {}
+    jobs: list[CaptureJob] = []
+    for b in batches:
+        for job in jobs_of(b, calibration_path):
+            by_key[(job.root, job.index)] = b
+            jobs.append(job)
+    try:
+        with SignalGuard() as guard:
+            try:
+                for job, out in runner.map_unordered(run_capture, jobs):
+                    b = by_key[(job.root, job.index)]
+                    with guard.deferred():
+                        b.finished += 1
+                        if out.reason is None:
+                            processing.record_result(b.session, job.index, job.revision,
+                                                     out.record, out.score, job.exr)
+                        else:
+                            processing._mark_revision(b.session, job.index, job.revision,
+                                                      FAILED, out.reason)
+                            b.failed.append((job.index, out.reason))
+                    if on_capture:
+                        on_capture(b, job.index, out.score, out.reason)
+                    if out.disk_full:
+                        raise OSError(errno.ENOSPC, f"{b.session.root}: disk full while "
+                                                    f"writing capture {job.index}'s result "
+                                                    f"({out.reason})")
+            except KeyboardInterrupt as exc:
+                with guard.deferred():
+                    runner.close()  # local workers stop before their leftovers are removed
+                    _leave_pending(batches, interruption_reason(exc))
+                raise
+    finally:
+        for b in batches:
+            with contextlib.suppress(OSError):
+                discard_leftovers(b)
+    if any(b.failed for b in batches):
+        raise BatchIncomplete(batches)
+
+
+def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
+    """Give the captures not finished their interruption ``reason`` (status stays
+    ``pending``), one manifest save per session."""
+    for b in batches:
+        s = b.session
+        changed = False
+        for i in b.todo:
+            entry = s.capture(i).get("revisions", {}).get(b.revision)
+            if entry is not None and entry.get("status") == PENDING:
+                entry["reason"] = reason
+                changed = True
+        if changed:
+            with contextlib.suppress(OSError):
+                s.save()
+
+
+def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
+                mirror_average=None, resolution=None, device: str = "auto",
+                network_binning: int | None = None,
+                calibration_path: str | None = None, exr: dict[str, Any] | None = None,
+                command_line: list[str] | None = None,
+                on_start: Callable[[list[SessionBatch]], None] | None = None,
+                on_capture=None) -> list[SessionBatch]:
+    """``polrig reconstruct SESSION...`` on ``runner`` (:func:`open_runner`): every session
+    opened and locked, checked (:func:`prepare`), its captures run (:func:`run_batch`),
+    locks released. ``exr``: the result files' format (fields of
+    :class:`polrig.acquisition.plan.ExrChoice`; ``None`` values: each session's). ``on_start(batches)``
+    is called once the revisions exist (a progress bar's total). Returns the batches; :class:`BatchIncomplete` if captures failed."""
+
+    calibration = processing.load_calibration(calibration_path)
+    sessions = open_sessions(paths)
+    try:
+        batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
+                          resolution=resolution, device=device, calibration=calibration,
+                          network_binning=network_binning,
+                          command_line=command_line, exr=exr)
+        if on_start:
+            on_start(batches)
+        run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)
+        return batches
+    finally:
+        for s in sessions:
+            s.unlock()
+
+
+def read_session_list(path: str | os.PathLike) -> list[str]:
+    """Session folders listed in a text file, one per line (blank lines and ``#`` comments
+    skipped; relative paths are relative to the list's folder)."""
+    p = pathlib.Path(path)
+    try:
+        text = p.read_text("utf-8")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--from-list {p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--from-list {p}: cannot read it ({exc})") from None
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        q = pathlib.Path(line)
+        out.append(str(q if q.is_absolute() else p.parent / q))
+    if not out:
+        raise ConfigError(f"--from-list {p}: lists no session")
+    return out

@@ -1,0 +1,798 @@
+"""Turn a capture's raw frames into Mueller images (with uncertainty and mask), and score them.
+
+Array level: :mod:`polrig.solve.radiometry` (state radiance, demosaic, solve) and
+:mod:`polrig.solve.scoring` (truth on the output grid, score); their names are re-exported here.
+
+The array-level functions live in :mod:`polrig.solve.radiometry` and :mod:`polrig.solve.scoring`, the
+calibration and its geometry in :mod:`polrig.app.calibrations`, a session's frame files in
+:mod:`polrig.app.sessionio`; this module composes them.
+
+Session level: :class:`Processor` (used by :func:`polrig.app.capture.run_session`) reads a
+capture's raw frames back from the session (checksums verified), solves, writes
+``mueller.exr`` (Mueller channels plus ``sigma``, ``residual`` and ``mask`` planes), and on the
+simulated rig ``truth_mueller.exr`` and a score; :func:`reprocess_session` does the same into
+a new revision for ``polrig reconstruct``.
+
+Uncertainty propagation from the raw samples to the result: :mod:`polrig.solve.radiometry`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import math
+import pathlib
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from polrig import __version__
+from polrig.acquisition.plan import (
+    FULL_RESOLUTION_SINGLE_SHOT_ONLY,
+    MIRROR_SINGLE_SHOT_ONLY,
+    MODES,
+    RESOLUTIONS,
+    CapturePlan,
+    ExrChoice,
+    PlanError,
+    check_network_binning,
+)
+from polrig.app.calibrations import (  # noqa: F401 (re-exported)
+    NOMINAL_ANALYZER_TOLERANCE,
+    NOMINAL_CALIBRATION_ID,
+    NOMINAL_GENERATOR_TOLERANCE,
+    Calibration,
+    analyzer_grid_intrinsics,
+    calibration_geometry,
+    check_calibration_fits,
+    check_calibration_fits_rig,
+    check_plan,
+    frame_layout,
+    load_calibration,
+    nominal_calibration,
+    single_shot_geometry,
+    single_shot_kwargs,
+    single_shot_model,
+)
+from polrig.app.preview import write_result_previews
+from polrig.app.records import (  # noqa: F401 (re-exported)
+    sensor_model_of,
+    session_frame_geometry,
+    session_sensor_model,
+)
+from polrig.app.session import (
+    COMPLETE,
+    FAILED,
+    PENDING,
+    Session,
+    SignalGuard,
+    interruption_reason,
+    is_disk_full,
+    sha256_file,
+)
+from polrig.app.sessionio import CaptureFrames, load_capture_frames, read_verified_frame  # noqa: F401 (re-exported)
+from polrig.errors import ConfigError, FormatError, PolrigError
+from polrig.formats.exr import (
+    MuellerRows,
+    colour_planes,
+    result_planes,
+    write_mueller_exr,
+)
+from polrig.models.full_resolution import lift, reconstruct_binned
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.layouts import MosaicLayout
+from polrig.sensor.noise import SensorModel
+from polrig.sensor.stokes import stokes_from_analyzers
+from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
+    StateRadiance,
+    adc_scale,
+    analyzer_stack,
+    reference_from_frames,
+    state_radiance,
+)
+from polrig.solve.reference import (
+    DARK,
+    MIN_SNR,
+    SATURATED,
+    MuellerEstimate,
+    ReferenceResult,
+    reason_names,
+    validate_states,
+)
+from polrig.solve.scoring import (  # noqa: F401 (re-exported)
+    _psnr_db,
+    format_score,
+    score_against_truth,
+    score_on_output_grid,
+    truth_on_output_grid,
+)
+
+
+def noise_exposures_us(cf: CaptureFrames) -> list[float]:
+    """The capture's exposures as the noise model takes them: a camera without exposure
+    control reports none (recorded as unknown, NaN here); its dark current cannot be modelled
+    then and counts as 0 us of it (dark frames, when taken, still subtract what there is; a
+    bracket needs exposure control anyway)."""
+    return [e if math.isfinite(e) else 0.0 for e in cf.exposures_us]
+
+
+def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
+                      method: str, uncertainty_dtype: type = np.float32
+                      ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
+    """Reference solve of one capture's frames: ``(result, s_in, layout, states)``;
+    ``uncertainty_dtype`` of its ``sigma``, ``sigma_noise`` and ``residual`` (float16 halves
+    their memory: :func:`polrig.solve.radiometry.reference_from_frames`)."""
+    first = cf.first
+    lay = frame_layout(first)
+    scale = adc_scale(model, first.meta.bit_depth)
+    adc = lambda f: f.raw.astype(np.float64) * scale if scale != 1 else f.raw  # noqa: E731
+    black = float(first.meta.black_level_dn) * scale
+    have_darks = any(len(d) for d in cf.darks)
+    states = []
+    for per_state in cf.frames:
+        states.append(state_radiance(
+            [[adc(f) for f in lst] for lst in per_state], noise_exposures_us(cf), model,
+            black_level_dn=black, code_step_dn=scale,
+            darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
+    analyzer = calibration.analyzer
+    if analyzer is not None:  # the frame's readout within the calibrated area
+        h, w = first.raw.shape
+        ax, ay = calibration.area_offset
+        ox, oy = first.meta.offset_xy
+        if analyzer.shape != (h, w) or (calibration.sensor is not None and (ox, oy) != (ax, ay)):
+            analyzer = analyzer.crop(ox - ax, oy - ay, w, h)
+    s_in = calibration.incident_stokes(cf.states_deg)
+    result = reference_from_frames(states, s_in, lay, method, analyzer,
+                                   analyzer_tolerance=calibration.analyzer_tolerance,
+                                   generator_tolerance=calibration.generator_tolerance,
+                                   uncertainty_dtype=uncertainty_dtype)
+    return result, s_in, lay, states
+
+
+#: Roles of a result's PNG previews (:func:`polrig.app.preview.write_result_previews`), by the
+#: suffix of their file name (``mueller_grid.png``...).
+PREVIEW_ROLES = {"preview_grid": "grid", "preview_dolp": "dolp", "preview_aolp": "aolp"}
+#: The channels of the manifest's ``uncertainty`` view, per plane group.
+_UNCERTAINTY_CHANNELS = {"sigma": "sigma.M{row}{col}.{colour}",
+                         "sigma_noise": "sigma_noise.M{row}{col}.{colour}",
+                         "residual": "residual.{colour}"}
+
+
+@dataclasses.dataclass(frozen=True)
+class TruthScore:
+    """How to score a capture's result against the simulator's truth file ``truth_path``
+    (already verified): the truth as a perfect rig at the output resolution measures it
+    (:func:`polrig.solve.scoring.score_on_output_grid`: ``layout``, demosaic ``method``, incident
+    states ``s_in`` ``(N, 3)``, the capture's own ``states`` as weights, or for the
+    single-shot method ``None`` with the noise ``model`` at ``exposure_us``)."""
+
+    truth_path: pathlib.Path
+    layout: MosaicLayout
+    method: str
+    s_in: np.ndarray
+    states: Sequence[StateRadiance] | None = None
+    model: SensorModel | None = None
+    exposure_us: float | None = None
+
+    def run(self, estimate: MuellerEstimate | ReferenceResult) -> dict[str, Any]:
+        """The score (:func:`polrig.solve.scoring.score_against_truth`'s keys) of ``estimate``;
+        the truth file is read a band of rows at a time (:class:`polrig.formats.exr.MuellerRows`),
+        its ``object_mask`` plane whole."""
+
+        with MuellerRows(self.truth_path) as truth:
+            obj = truth.plane("object_mask")  # output pixels whose whole support lies on it
+            return score_on_output_grid(estimate, truth, self.layout, self.method, self.s_in,
+                                        self.states, model=self.model,
+                                        exposure_us=self.exposure_us, object_mask=obj)
+
+
+@dataclasses.dataclass
+class CaptureResult:
+    """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
+    ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
+    arrays, ``metadata`` the EXR header's polrig entries, ``truth`` how to score it against
+    the simulator's truth (``None`` without a truth file), ``extra_planes`` further planes of
+    its EXR. :func:`write_and_score` writes and scores it."""
+
+    relpath: str
+    result: ReferenceResult | MuellerEstimate
+    metadata: dict[str, Any]
+    truth: TruthScore | None
+    #: planes written beside :func:`polrig.formats.exr.result_planes`' (name -> ``(H, W)`` array): the
+    #: single-shot ``beyond_calibration.{colour}`` flags, with the ``sigma`` group
+    extra_planes: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+
+def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
+                       replace: bool = False) -> dict[str, dict[str, Any]]:
+    """Write ``out``'s ``mueller.exr`` (the planes and compression of ``exr``) and its PNG
+    previews next to it (``mueller_grid.png``, ``mueller_dolp.png``, ``mueller_aolp.png``:
+    :func:`polrig.app.preview.write_result_previews`, from the arrays in memory, every
+    :func:`polrig.app.preview.preview_stride`-th pixel of a large result) under ``root``,
+    each atomically (temporary name in its folder, then renamed); return their records by
+    role (``mueller`` and :data:`PREVIEW_ROLES`: ``path``, ``sha256`` hashed from the file
+    as it lies on disk, streamed, ``bytes``). The file's bytes are never held in memory.
+
+    ``replace=False`` refuses (``FileExistsError``) a result file already there (session data
+    is never overwritten); a worker of :mod:`polrig.app.cluster` passes ``True``: a file there is
+    the unrecorded output of an attempt that died, replaced by identical bytes. The one
+    writer of result files, serial (:meth:`Processor.process`) and distributed alike."""
+
+    path = _new_result_path(root, out.relpath, replace)
+    res = out.result
+    rel = pathlib.PurePosixPath(out.relpath).parent
+    previews = {role: path.with_name(f"{path.stem}_{suffix}.png")
+                for role, suffix in PREVIEW_ROLES.items()}
+    written = {"mueller": path, **previews}
+    try:
+        write_mueller_exr(path, res.mueller,
+                          extra={**result_planes(res, planes=exr.planes, uncertainty=exr.uncertainty),
+                                 **out.extra_planes},
+                          metadata=out.metadata, compression=exr.compression)
+        made = write_result_previews(res.mueller, path.parent, stem=path.stem, flags=res.mask)
+        if sorted(made) != sorted(previews.values()):  # pragma: no cover - preview's contract
+            raise RuntimeError(f"previews {made} are not the expected {previews}")
+        return {role: file_record(root, (rel / p.name).as_posix())
+                for role, p in written.items()}
+    except BaseException:  # no partial result left behind (each file is whole or absent)
+        remove_files(written.values())
+        raise
+
+
+def write_and_score(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
+                    replace: bool = False
+                    ) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None]:
+    """Write ``out``'s result files (:func:`write_result_files`), then score it against the
+    truth (``out.truth``; ``None`` without one); return the files' records and the score.
+
+    Consumes ``out``: once the files are written, ``out.result`` is replaced by its
+    :class:`polrig.solve.reference.MuellerEstimate`, so that the diagnostic planes are released
+    before the truth is read (the peak memory of a scored full-sensor pose is the solve's,
+    not the solve's plus the truth's). A score that fails removes the files just written.
+    The serial :meth:`Processor.process` and the workers of :mod:`polrig.app.cluster` both call
+    it."""
+    records = write_result_files(root, out, exr, replace=replace)
+    if out.truth is None:
+        return records, None
+    if isinstance(out.result, ReferenceResult):
+        out.result = out.result.estimate()
+    try:
+        return records, out.truth.run(out.result)
+    except BaseException:
+        remove_files(pathlib.Path(root) / r["path"] for r in records.values())
+        raise
+
+
+def remove_files(paths) -> None:
+    """Delete ``paths`` where they exist (best effort: a failure to delete is ignored)."""
+    for p in paths:
+        with contextlib.suppress(OSError):
+            pathlib.Path(p).unlink(missing_ok=True)
+
+
+def _new_result_path(root: pathlib.Path, relpath: str, replace: bool = False) -> pathlib.Path:
+    """``root/relpath`` with its folder made; ``FileExistsError`` if a file is there (unless
+    ``replace``): session data is never overwritten."""
+    path = pathlib.Path(root) / relpath
+    if path.exists() and not replace:
+        raise FileExistsError(f"{path}: refusing to overwrite session data")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
+    """The manifest record (``path``, ``sha256``, ``bytes``) of a file written under ``root``,
+    hashed by streaming it from disk (:func:`polrig.app.session.sha256_file`)."""
+    path = pathlib.Path(root) / relpath
+    return {"path": pathlib.PurePosixPath(relpath).as_posix(), "sha256": sha256_file(path),
+            "bytes": path.stat().st_size}
+
+
+def record_result(session: Session, index: int, revision: str | None,
+                  records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
+                  exr: ExrChoice = ExrChoice()) -> None:
+    """Record capture ``index``'s written result files (``records`` by role, as
+    :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
+    file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
+    not written), and in ``revision`` (if given) its score and status ``complete``; save the
+    manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
+    meanwhile). The one place a result enters a manifest: the serial
+    :meth:`Processor.process` and the client of :mod:`polrig.app.cluster` (whose workers write
+    the files) both call it."""
+    with session.mutex:
+        cap = session.capture(index)
+        entry = cap if revision is None else cap["revisions"][revision]
+        files = entry["files"]
+        clash = [role for role in records if role in files]
+        if clash:
+            raise FileExistsError(f"capture {index} already has a {clash[0]!r} file")
+        before = copy.deepcopy(entry)
+        path = records["mueller"]["path"]
+        files.update({role: dict(rec) for role, rec in records.items()})
+        sigma = [c for p, c in _UNCERTAINTY_CHANNELS.items() if p in exr.planes]
+        if sigma:
+            files["uncertainty"] = {"part_of": "mueller", "path": path,
+                                    "channels": ", ".join(sigma)}
+        if "mask" in exr.planes:
+            files["mask"] = {"part_of": "mueller", "path": path,
+                             "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        if revision is not None:
+            entry.update(status=COMPLETE, score=score)
+        try:
+            session.save()
+        except BaseException:  # not recorded after all: the manifest in memory says so too
+            entry.clear()
+            entry.update(before)
+            raise
+
+
+#: The header's description of a single-shot result's ``beyond_calibration.{colour}`` planes.
+BEYOND_CALIBRATION_PLANE = ("1 = the pixel's misfit lies beyond the range the single-shot sigma was "
+                            "calibrated on (models/uncertainty.py): its sigma may be too small")
+
+
+class Processor:
+    """Processing of captures inside a session (see :func:`polrig.app.capture.run_session`).
+
+    ``mode``/``demosaic`` as in the plan; ``sensor_model`` the camera's noise model;
+    ``mirror_average``: single-shot runs the network on the capture and on its mirror image and
+    averages (:mod:`polrig.models.mirror`; twice the network time, a few per cent lower error).
+    ``resolution``: single-shot output at the networks' ``superpixel`` grid or the raw frame's
+    (``full``, :func:`polrig.models.full_resolution.lift`; a :class:`PlanError` of ``resolution`` with
+    the reference mode). ``network_binning``: 1, or 2 for the single-shot networks on the
+    analyzer grid binned 2x2 (:func:`polrig.models.full_resolution.reconstruct_binned`; about half the
+    frame time at full sensor size, no calibrated sigma; a :class:`PlanError` of
+    ``network_binning`` with the reference mode). ``device``: where the network runs (``auto``,
+    ``cpu``, ``cuda``; :mod:`polrig.models.devices`), a run option, not part of the plan; the provider used is recorded.
+    ``exr``: the result file's planes, precision and compression (the plan's
+    :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
+    """
+
+    def __init__(self, mode: str, demosaic: str, calibration: Calibration,
+                 sensor_model: SensorModel, mirror_average: bool = False,
+                 resolution: str = "superpixel", device: str = "auto",
+                 exr: ExrChoice = ExrChoice(), network_binning: int = 1):
+        if mode not in MODES:
+            raise PlanError("mode", f"unknown mode {mode!r}; use reference or single-shot")
+        if mirror_average and mode != "single-shot":
+            raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
+        if resolution not in RESOLUTIONS:
+            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
+                            subject=repr(resolution), what="resolution")
+        if resolution == "full" and mode != "single-shot":
+            raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
+                            what="resolution")
+        self.network_binning = check_network_binning(network_binning, mode)
+        # single-shot: the installed network, or the one-line "no model installed" error
+        self.model = single_shot_model(device) if mode == "single-shot" else None
+        self.resolution = resolution
+        self.mode = mode
+        self.demosaic = demosaic
+        self.mirror_average = bool(mirror_average)
+        self.calibration = calibration
+        self.sensor_model = sensor_model
+        self.exr = exr
+
+    # called by run_session while the rig is still at the pose
+    def after_acquire(self, session: Session, index: int, rig) -> None:
+        """The simulated rig's ground truth of capture ``index`` (``truth_mueller.exr``),
+        taken while the rig is still at its pose, compressed as the plan's result files
+        (``exr_compression``: ``none`` writes and reads it fastest); nothing on real
+        hardware."""
+        if rig.truth is None:
+            return
+        gt = rig.truth.ground_truth()
+        cap = session.capture(index)
+        planes = {"object_mask": np.asarray(gt["mask"], np.float32)}
+        meta = {"source": "polrig simulated rig ground truth", "pose_deg": cap["pose_deg"],
+                "units": "DN per unit incident S0 (docs/conventions.md)",
+                "exposure_us": gt.get("exposure_us"), "gain_db": gt.get("gain_db")}
+
+        relpath = f"{cap['name']}/truth_mueller.exr"
+        path = _new_result_path(session.root, relpath)
+        write_mueller_exr(path, gt["mueller"], extra=planes, metadata=meta,  # atomic
+                          compression=self.exr.compression)
+        with session.mutex:
+            files = session.capture(index)["files"]
+            files["truth_mueller"] = file_record(session.root, relpath)
+            try:
+                session.save()
+            except BaseException:  # not recorded: neither in memory nor on disk
+                del files["truth_mueller"]
+                remove_files([path])
+                raise
+
+    def process(self, session: Session, index: int, revision: str | None = None
+                ) -> dict[str, Any] | None:
+        """Solve capture ``index`` from its raw files; write the result files (into
+        ``revision`` if given); return the score against the truth (simulated rig) or None.
+        :meth:`solve` and :func:`record_result`, with the file written and scored in between
+        (:func:`write_and_score`)."""
+        records, score = write_and_score(session.root, self.solve(session, index, revision),
+                                         self.exr)
+        try:
+            record_result(session, index, revision, records, score, self.exr)
+        except BaseException:  # not recorded (a full disk...): no unrecorded file left
+            remove_files(session.root / r["path"] for r in records.values())
+            raise
+        return score
+
+    def solve(self, session: Session, index: int, revision: str | None = None
+              ) -> "CaptureResult":
+        """Capture ``index`` solved from its raw files (checksums verified): the arrays and
+        header of its ``mueller.exr`` (for ``revision`` if given) and how to score it; writes
+        nothing (:func:`write_result_files` does), so a worker of :mod:`polrig.app.cluster` can
+        run it on a session another process writes."""
+
+        cap = session.capture(index)
+        cf = load_capture_frames(session, index)
+        truth_path = self._verified_truth(session, index)  # damaged truth: refused up front
+        geometry = None
+        if self.mode == "single-shot":
+            rig_info = session.manifest.get("rig", {}) or {}
+            config = rig_info.get("config")
+            size = ((config or {}).get("sim") or {}).get("size")
+            geometry = single_shot_geometry(
+                self.calibration, config,
+                None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
+            result, s_in, lay, single_shot_meta, extra_planes = self.single_shot(cf, geometry)
+            states = None
+        else:
+            unc = np.float16 if self.exr.uncertainty == "half" else np.float32
+            result, s_in, lay, states = process_reference(cf, self.calibration,
+                                                          self.sensor_model, self.demosaic, unc)
+            extra_planes = {}
+        meta = {
+            "calibration_id": self.calibration.id, "mode": self.mode, "demosaic": self.demosaic,
+            "pose_deg": cap["pose_deg"], "states_deg": cf.states_deg,
+            "incident_state": np.asarray(s_in).tolist(),
+            "exposure_us": cf.exposures_us[0], "exposures_us": cf.exposures_us,
+            "frames_per_state": len(cf.frames[0][0]), "dark_frames": len(cf.darks[0]),
+            "layout": lay.name, "condition_number": result.condition_number,
+            "units": "DN per unit incident S0 at exposure_us (docs/conventions.md)",
+            "mask_bits": {str(b): n for b, n in reason_names().items()},
+            "analyzer_tolerance": list(self.calibration.analyzer_tolerance),
+            "generator_tolerance": list(self.calibration.generator_tolerance),
+            "planes": {"sigma.M{rc}": ("standard deviation of M{rc}: sensor noise and "
+                                       "calibration uncertainty" if self.mode == "reference" else
+                                       "standard deviation of M{rc}: the single-shot model's "
+                                       "calibrated error (models/uncertainty.py); inf where clipped"),
+                       "sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor "
+                                            "noise model alone",
+                       "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"},
+            "uncertainty_precision": self.exr.uncertainty,
+            "software": f"polrig {__version__}", "capture": cap["name"],
+            "revision": revision or "capture",
+        }
+        if geometry is not None:
+            meta["single_shot_geometry"] = {
+                "intrinsics_full_sensor": geometry["intrinsics"],
+                "stage_zero_axis_camera": geometry["stage_zero_axis_camera"],
+                "sources": geometry["sources"]}
+            meta["mirror_average"] = self.mirror_average
+            meta.update(single_shot_meta)
+            self.single_shot_header(meta)
+        meta["planes"] = {k: v for k, v in meta["planes"].items()
+                          if k.split(".", 1)[0] in self.exr.planes}
+        if "sigma" not in self.exr.planes:  # the flags say how far to trust the sigma: with it only
+            extra_planes = {}
+        if extra_planes:
+            meta["planes"]["beyond_calibration"] = BEYOND_CALIBRATION_PLANE
+        folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
+        truth = None if truth_path is None else self.truth_score(
+            truth_path, lay, s_in, states if self.mode == "reference" else None,
+            noise_exposures_us(cf)[0])
+        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes)
+
+    def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
+                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, dict[str, Any],
+                               dict[str, np.ndarray]]:
+        """One state through the installed network (:mod:`polrig.models.runtime`): averaged and
+        HDR-merged like the reference states, demosaiced, reconstructed; returns the result,
+        the incident state ``(1, 3)``, the layout, the result header's single-shot entries
+        and the EXR's further planes: ``beyond_calibration.{colour}`` (1 where the pixel's
+        misfit lies beyond the sigma's calibration range,
+        :meth:`polrig.models.uncertainty.UncertaintyModel.beyond_calibration`, in the uncertainty
+        planes' precision; none without a calibrated sigma). The header's
+        ``beyond_calibration_fraction`` is the object's fraction so flagged
+        (:meth:`polrig.models.uncertainty.UncertaintyModel.beyond_fraction`;
+        ``None`` where not known, at full resolution, with network binning or without a
+        calibrated sigma). ``sigma`` is the model's calibrated uncertainty (:mod:`polrig.models.uncertainty`: the network's error
+        against the simulator's truth, which sensor noise does not describe; 0 where the graph
+        has no calibration), infinite for a colour with a clipped sample (the magnitude of a
+        clipped highlight is unknown); ``sigma_noise`` is 0. The mask marks, as the reference solve does,
+        ``dark`` pixels: background (outside the network's object mask) and, per colour, pixels
+        whose measured ``S0`` is below :data:`polrig.solve.reference.MIN_SNR` noise standard
+        deviations (the noise model's variance carried through the demosaic; an object turned
+        away from the light is all noise, and the network's relative object mask cannot tell);
+        and ``saturated`` pixels, of a colour with an excluded analyzer sample. The network's
+        estimate is kept in both.
+
+        ``geometry`` (:func:`single_shot_geometry`; default: from the calibration alone): the
+        intrinsics, carried to the analyzer grid (:func:`analyzer_grid_intrinsics`), and the
+        stage zero axis the incident state is expressed about; without them the model assumes
+        its training rig's, which on another rig puts the result in the wrong incident frame.
+
+        ``resolution="full"``: the networks run on the superpixel stack and their Mueller image
+        is lifted to the raw grid with the measured detail of :attr:`output_demosaic`
+        (:func:`polrig.models.full_resolution.lift`); the ``dark`` and ``saturated`` bits come from that
+        full-resolution stack, the intrinsics are carried to the superpixel grid the networks
+        see, and ``sigma`` is NaN (the model's uncertainty is calibrated on its own grid only).
+
+        ``network_binning=2``: the networks run on the analyzer grid binned 2x2 and their answer
+        is lifted back to that grid with its measured detail
+        (:func:`polrig.models.full_resolution.reconstruct_binned`: the intrinsics rescaled, the mask
+        binned), then on to the raw grid at full resolution as above; ``sigma`` is NaN (calibrated
+        on the unbinned grid only)."""
+
+        first = cf.first
+        lay = frame_layout(first)
+        scale = adc_scale(self.sensor_model, first.meta.bit_depth)
+        adc = lambda f: f.raw.astype(np.float64) * scale  # noqa: E731
+        state = state_radiance([[adc(f) for f in lst] for lst in cf.frames[0]],
+                               noise_exposures_us(cf), self.sensor_model,
+                               black_level_dn=float(first.meta.black_level_dn) * scale,
+                               darks=[[adc(f) for f in d] for d in cf.darks]
+                               if any(len(d) for d in cf.darks) else None,
+                               code_step_dn=scale)
+        full = self.resolution == "full"
+        # the networks' input: the superpixel grid at full resolution (the grid they were
+        # trained on), else the plan's demosaic
+        measured, variance, valid, _ = analyzer_stack(state, lay, "superpixel" if full else self.demosaic)
+        s_in = self.calibration.incident_stokes(cf.states_deg[:1])
+        if geometry is None:  # the calibration's geometry only
+            geometry = {"intrinsics": self.calibration.intrinsics,
+                        "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
+        network_input = np.where(valid, measured, np.nan)
+        kwargs = single_shot_kwargs(geometry, first, "superpixel" if full else self.demosaic)
+        uncalibrated = full or self.network_binning > 1  # no calibrated sigma on this route
+        if self.network_binning > 1:  # the networks on the binned grid, lifted back to this one
+            mueller, aux = reconstruct_binned(self.model, network_input, s_in[0], self.network_binning,
+                                              with_sigma=False, mirror_average=self.mirror_average,
+                                              **kwargs)
+        else:
+            mueller, aux = self.model.reconstruct(network_input, s_in[0], with_sigma=not full,
+                                                  mirror_average=self.mirror_average, **kwargs)
+        obj = np.asarray(aux["mask"], bool)
+        if full:  # the measured detail of the full-resolution demosaic (models/full_resolution.py)
+            stokes_sp = stokes_from_analyzers(network_input)  # NaN where clipped: no detail there
+            measured, variance, valid, _ = analyzer_stack(state, lay, self.output_demosaic)
+            stokes_full = stokes_from_analyzers(np.where(valid, measured, np.nan))
+            mueller, obj = lift(mueller, obj, stokes_sp, stokes_full, s_in[0], lay.period)
+            del stokes_sp, stokes_full
+        c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
+        s0, s0_sigma = 0.5 * measured.sum(axis=1), 0.5 * np.sqrt(variance.sum(axis=1))  # (C, H, W)
+        with np.errstate(invalid="ignore"):
+            dark = ~obj[None] | ~(s0 >= MIN_SNR * s0_sigma)
+        clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
+        mask = (np.where(dark, DARK, 0) | np.where(clipped, SATURATED, 0)).astype(np.uint8)
+        zeros = np.zeros((c, h, w), np.float32)
+        if uncalibrated:  # not calibrated at this resolution or binning: NaN planes (the header says so)
+            sigma = np.broadcast_to(np.float32(np.nan), mueller.shape)
+        else:
+            sigma = np.asarray(aux.get("sigma", np.zeros_like(mueller)), np.float32)
+            sigma = np.where(clipped[:, None, None], np.float32(np.inf), sigma)
+        result = ReferenceResult(mueller.astype(np.float32, copy=False), sigma, zeros, mask, float("nan"),
+                                 zeros + np.inf, np.zeros((c, h, w), np.uint16),
+                                 sigma_noise=(np.broadcast_to(np.float32(0), mueller.shape) if uncalibrated
+                                              else np.zeros_like(sigma)))
+        beyond = aux.get("beyond_calibration")
+        fraction = None if beyond is None else self.model.uncertainty.beyond_fraction(beyond, aux["mask"])
+        planes = {} if beyond is None else colour_planes(
+            "beyond_calibration", np.asarray(beyond).astype(np.float16 if self.exr.uncertainty == "half"
+                                                            else np.float32))
+        return result, s_in, lay, {"beyond_calibration_fraction": fraction}, planes
+
+    @property
+    def output_demosaic(self) -> str:
+        """The demosaic of the result's grid: the plan's, except at full resolution, where the
+        detail comes from a full-resolution one (the plan's if it is one, else ``bilinear``)."""
+        if self.resolution == "full" and self.demosaic == "superpixel":
+            return "bilinear"
+        return self.demosaic
+
+    def single_shot_header(self, meta: dict[str, Any]) -> None:
+        """Add the single-shot settings to a result EXR's header ``meta`` (in place): the
+        resolution, the network binning (where it is not 1), the execution provider that ran the network, at full
+        resolution the grids (networks on ``superpixel``, detail from :attr:`output_demosaic`),
+        and where either is set the ``sigma`` planes' meaning there (NaN: not calibrated)."""
+        meta["resolution"] = self.resolution
+        if self.network_binning > 1:  # absent: 1 (a binning-1 result is byte-identical to one from before the option)
+            meta["network_binning"] = self.network_binning
+        meta["execution_provider"] = self.model.provider
+        if self.resolution == "full":
+            meta["network_demosaic"] = "superpixel"
+            meta["output_demosaic"] = self.output_demosaic
+        why = [w for w, on in (("at full resolution", self.resolution == "full"),
+                               (f"with network binning {self.network_binning}",
+                                self.network_binning > 1)) if on]
+        if why:
+            meta["planes"] = dict(meta.get("planes", {}), **{
+                "sigma.M{rc}": "NaN: the single-shot model's uncertainty is calibrated on the "
+                               "networks' unbinned (superpixel) grid only, not "
+                               + " or ".join(why),
+                "sigma_noise.M{rc}": "0 (not modelled for the single-shot method)"})
+
+    @staticmethod
+    def _verified_truth(session: Session, index: int) -> pathlib.Path | None:
+        """The capture's truth EXR (simulated rig) after checking its SHA-256, or None
+        without one; a missing or changed file is a one-line error naming it."""
+        rec = session.capture(index)["files"].get("truth_mueller")
+        if rec is None:
+            return None
+        path = session.root / rec["path"]
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: truth file of the session is missing")
+        if sha256_file(path) != rec["sha256"]:
+            raise FormatError(f"{path}: SHA-256 does not match the session manifest (changed "
+                              f"or corrupt truth file)")
+        return path
+
+    def truth_score(self, truth_path: pathlib.Path, layout: MosaicLayout, s_in: np.ndarray,
+                    states: Sequence[StateRadiance] | None, exposure_us: float) -> TruthScore:
+        """How to score a capture of this processor against its (verified) truth file: with
+        the capture's own ``states`` as weights (reference), or for the single-shot method
+        (``states=None``) at its output resolution with nominal four-state weights and the
+        noise model at ``exposure_us``."""
+        if states is None:
+            return TruthScore(truth_path, layout, self.output_demosaic,
+                              polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
+                              None, self.sensor_model, exposure_us)
+        return TruthScore(truth_path, layout, self.demosaic, s_in, states)
+
+
+def make_processor(plan, calibration: Calibration, sensor_model: SensorModel,
+                   device: str = "auto") -> Processor:
+    """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
+    return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
+                     plan.resolution, device, plan.exr, plan.network_binning)
+
+
+class ReconstructIncomplete(PolrigError):
+    """Some captures of a :func:`reprocess_session` revision failed (damaged or missing
+    files); the others were processed. ``revision`` names it, ``failed`` lists
+    ``(capture index, reason)``."""
+
+    def __init__(self, session: Session, revision: str, failed: list[tuple[int, str]],
+                 attempted: int):
+        self.revision, self.failed = revision, failed
+        names = "; ".join(f"capture {i} ({session.capture(i)['name']}): {reason}"
+                          for i, reason in failed)
+        others = "" if len(failed) == attempted else ", the others are complete"
+        super().__init__(f"revision {revision}: {len(failed)} of {attempted} capture(s) "
+                         f"failed{others}: {names}")
+
+
+def reprocess_session(session: Session, *, mode: str | None = None, demosaic: str | None = None,
+                      mirror_average: bool | None = None, calibration: Calibration | None = None,
+                      command_line: list[str] | None = None,
+                      progress: Callable[[int, dict[str, Any] | None], None] | None = None,
+                      on_failed: Callable[[int, str], None] | None = None,
+                      resolution: str | None = None, device: str = "auto",
+                      exr: Mapping[str, Any] | None = None,
+                      network_binning: int | None = None) -> str:
+    """Re-process every complete capture from its raw frames into a new revision (raw data
+    and earlier results untouched). Returns the revision name.
+
+    ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
+    stays single-shot, else ``superpixel``) and ``network_binning`` (single-shot, 1 or 2; default:
+    the session's where it stays single-shot, else 1) are recorded with the revision; ``device``
+    (where the network runs) is not a setting of the result: the provider used is in its header.
+    ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
+    ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
+    revision.
+
+    A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
+    is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
+    called) and the others are processed; at the end :class:`ReconstructIncomplete` names
+    the failed captures. A full disk stops the revision (the capture is marked failed, the
+    error raised). The session's lock is held while it runs (:class:`SessionBusy` if another
+    process writes the session; the manifest is re-read under it); SIGINT/SIGTERM leave the
+    capture in progress ``pending`` in the revision and raise ``KeyboardInterrupt``."""
+    was_locked = session.locked
+    session.lock()
+    try:
+        if not was_locked:
+            session.reload()  # under the lock: the manifest no other writer changes any more
+        return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
+                          progress, on_failed, resolution, device, exr, network_binning)
+    finally:
+        if not was_locked:
+            session.unlock()
+
+
+def revision_plan(session: Session, mode: str | None, demosaic: str | None,
+                  mirror_average: bool | None, calibration: Calibration | None,
+                  resolution: str | None = None, device: str = "auto",
+                  exr: Mapping[str, Any] | None = None, network_binning: int | None = None
+                  ) -> tuple[dict[str, Any], Processor, list[int]]:
+    """What a new revision of ``session`` records and needs, checked before it exists (an
+    impossible request records nothing): ``(settings, processor, captures)`` -- the
+    revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
+    ``network_binning``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
+    ``exr_compression``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
+    take the session's), its :class:`Processor` (on
+    ``device``) and the indices of the complete captures to process. Shared by
+    :func:`reprocess_session` and :mod:`polrig.app.cluster`."""
+    plan = session.plan
+    mode = mode or plan["mode"]
+    demosaic = demosaic or plan.get("demosaic", "superpixel")
+    if mirror_average is None:  # the session's choice where it was single-shot already
+        mirror_average = bool(plan.get("mirror_average", False)) and mode == "single-shot"
+    if resolution is None:  # the session's where it stays single-shot
+        resolution = plan.get("resolution", "superpixel") if mode == "single-shot" else "superpixel"
+    if network_binning is None:  # the session's where it stays single-shot
+        network_binning = plan.get("network_binning", 1) if mode == "single-shot" else 1
+    choice = dataclasses.replace(ExrChoice.of_plan(plan),
+                                 **{k: v for k, v in (exr or {}).items() if v is not None})
+    calibration = calibration or nominal_calibration()
+    if calibration.sensor is not None:  # before a revision exists: nothing recorded
+        layout, readout, size = session_frame_geometry(session)
+        check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
+                               what=f"the camera of session {session.root}")
+    processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
+                          resolution, device, choice, network_binning)
+    done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
+    if not done:
+        raise ConfigError(f"{session.root}: no complete capture to reconstruct")
+    if mode == "reference":  # before a revision exists: an impossible request records nothing
+        acquired = CapturePlan.from_json(plan).acquired_states_deg()
+        if len(acquired) < 3:
+            raise ConfigError(f"{session.root}: captured in {plan['mode']} mode, "
+                              f"{len(acquired)} polarizer state per pose; the reference method "
+                              f"needs at least 3 (reconstruct with the single-shot method, or "
+                              f"capture again with the reference method)")
+        validate_states(calibration.incident_stokes(acquired))
+    return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
+             "resolution": resolution, "network_binning": processor.network_binning,
+             "calibration_id": calibration.id,
+             "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
+             "exr_compression": choice.compression}, processor, done)
+
+
+def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
+               progress, on_failed, resolution=None, device="auto", exr=None,
+               network_binning=None) -> str:
+    settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
+                                              calibration, resolution, device, exr, network_binning)
+    failed: list[tuple[int, str]] = []
+    with SignalGuard() as guard:
+        name = session.new_revision(settings, command_line)
+        for index in done:
+            session.start_revision(index, name)
+            try:
+                score = processor.process(session, index, revision=name)
+            except Exception as exc:  # this capture's data: record why, go on with the others
+                reason = f"{type(exc).__name__}: {exc}"
+                with guard.deferred():
+                    _mark_revision(session, index, name, FAILED, reason)
+                if is_disk_full(exc):
+                    raise
+                failed.append((index, reason))
+                if on_failed:
+                    on_failed(index, reason)
+                continue
+            except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM
+                with guard.deferred():
+                    _mark_revision(session, index, name, PENDING, interruption_reason(exc))
+                raise
+            if progress:
+                progress(index, score)
+    if failed:
+        raise ReconstructIncomplete(session, name, failed, len(done))
+    return name
+
+
+def _mark_revision(session: Session, index: int, revision: str, status: str,
+                   reason: str) -> None:
+    """Set capture ``index``'s entry of ``revision`` to ``status`` with ``reason`` and save
+    (best effort). Files it wrote stay recorded: each was written completely and checksummed.
+    The manifest on disk is what counts (after a failed save it is the consistent one)."""
+    with contextlib.suppress(OSError, FormatError):
+        session.reload()
+    entry = session.capture(index).setdefault("revisions", {}).setdefault(
+        revision, {"status": PENDING, "files": {}, "score": None})
+    entry.update(status=status, reason=reason)
+    with contextlib.suppress(OSError):
+        session.save()

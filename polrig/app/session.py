@@ -1,0 +1,809 @@
+"""Capture session folders that lose nothing: a ``session.json`` manifest plus checksummed files.
+
+A session is a folder holding everything one capture run produced (schema:
+``docs/session-schema.md``). Rules this module enforces:
+
+* Every file is written atomically (temporary file in the same folder, ``fsync``, rename,
+  ``fsync`` of the folder: :func:`polrig.atomic.atomic_write_bytes`) and recorded in the
+  manifest with its SHA-256 checksum; the manifest itself is rewritten atomically after
+  every file, so the manifest on disk always describes files that exist completely.
+* A session never overwrites data: :meth:`Session.create` refuses a non-empty folder and
+  :meth:`Session.add_file` refuses a path that exists.
+* Free disk space is checked against the planned size before a session starts or resumes.
+* A capture that did not finish stays ``pending`` (or ``failed`` with a reason);
+  :meth:`Session.restart_capture` removes whatever it had written so a resumed session
+  re-does it from scratch without duplicating files.
+* One writer at a time: a process that writes a session (capture, resume, reconstruct) holds
+  an exclusive ``flock`` on ``session.lock`` in the folder (:meth:`Session.lock`); a second
+  writer gets :class:`SessionBusy`. Readers (``polrig info``) take no lock.
+* A manifest is checked for structural damage (missing keys, wrong types, unsafe paths) in
+  one place, :func:`validate_manifest`, when it is opened: a :class:`FormatError` naming the
+  record, never a ``KeyError`` later.
+* :class:`SignalGuard` turns SIGINT and SIGTERM into :class:`Interrupted` (a
+  ``KeyboardInterrupt``) once, and ignores or defers further ones, so the clean-up that
+  writes the final manifest is not itself interrupted.
+
+``write_hook`` (a callable ``(path, data) -> None`` run before every write) lets tests
+inject write failures such as ``OSError(errno.ENOSPC)`` (a full disk).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import datetime as _dt
+import errno
+import fcntl
+import hashlib
+import json
+import math
+import os
+import pathlib
+import re
+import shutil
+import signal
+import threading
+import weakref
+from typing import Any, Callable, Iterator
+
+from polrig import __version__
+from polrig.atomic import atomic_write_bytes
+from polrig.errors import FormatError, PolrigError
+from polrig.optics.conventions import CONVENTIONS_VERSION
+
+SCHEMA_VERSION = 1
+MANIFEST_NAME = "session.json"
+#: Lock file of a session folder: a writer holds an exclusive ``flock`` on it for its whole run
+#: (the file stays; its content is the holder's process id, for the error message only).
+LOCK_NAME = "session.lock"
+
+# capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
+# processing not done yet (a resume processes it without acquiring it again)
+PENDING, ACQUIRED, COMPLETE, FAILED = "pending", "acquired", "complete", "failed"
+# session status
+RUNNING, SESSION_COMPLETE, INTERRUPTED = "running", "complete", "interrupted"
+
+#: Roles whose manifest entry is a list of files (one per frame); every other role is one file.
+LIST_ROLES = ("raw", "dark")
+#: Roles a capture's acquisition writes (raw and dark frames, the simulated rig's truth taken
+#: at the pose); every other role is a result of processing them.
+ACQUISITION_ROLES = ("raw", "dark", "truth_mueller")
+
+WriteHook = Callable[[pathlib.Path, bytes], None]
+
+
+class SessionError(PolrigError):
+    """A session folder cannot be used as asked (not enough disk space, inconsistent plan)."""
+
+
+class SessionBusy(SessionError):
+    """Another process is writing the session (it holds the session's lock)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM, raised by :class:`SignalGuard` (and by ``polrig``'s SIGTERM handler)
+    as a ``KeyboardInterrupt`` so every Ctrl-C path handles it. ``signum`` is the signal."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+    @property
+    def reason(self) -> str:
+        """What the session records as the reason it stopped."""
+        return interruption_reason(self)
+
+
+def interruption_reason(exc: BaseException) -> str:
+    """``status_reason`` of a session stopped by ``exc`` (a ``KeyboardInterrupt``)."""
+    signum = getattr(exc, "signum", signal.SIGINT)
+    if signum == signal.SIGINT:
+        return "interrupted by the operator (Ctrl-C)"
+    return f"terminated by {signal.Signals(signum).name}"
+
+
+class SignalGuard:
+    """Use as ``with SignalGuard() as guard:`` around work that must end in a clean manifest.
+
+    Inside the block (main thread only; elsewhere it does nothing) the first SIGINT or SIGTERM
+    raises :class:`Interrupted`; every later one is ignored until the block ends, so the
+    clean-up that follows the first is not interrupted by a second (an impatient double
+    Ctrl-C). Inside ``with guard.deferred():`` a signal is only recorded and raised when the
+    deferred section ends normally (and when the block ends, if still pending). A signal
+    whose disposition was "ignore" when the block started stays ignored.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.fired: int | None = None
+        self.pending: int | None = None
+        self._defer = 0
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "SignalGuard":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                old = signal.getsignal(sig)
+                if old is signal.SIG_IGN:
+                    continue
+                self._old[sig] = old
+                signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old if old is not None else signal.SIG_DFL)
+        self._old.clear()
+        if exc_type is None:
+            self._raise_pending()
+
+    def _handler(self, signum: int, frame) -> None:
+        if self.fired is not None:
+            return  # the first one is being handled: its clean-up must finish
+        if self._defer:
+            self.pending = self.pending or signum
+            return
+        self.fired = signum
+        raise Interrupted(signum)
+
+    def _raise_pending(self) -> None:
+        if self.pending is not None and self.fired is None:
+            self.fired, self.pending = self.pending, None
+            raise Interrupted(self.fired)
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        """A section no signal interrupts (writing the final manifest)."""
+        self._defer += 1
+        try:
+            yield
+        finally:
+            self._defer -= 1
+        if not self._defer:
+            self._raise_pending()
+
+
+def utc_now() -> str:
+    """Current UTC time as an ISO 8601 string with a ``Z`` suffix (second resolution)."""
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace(
+        "+00:00", "Z")
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | os.PathLike, chunk_bytes: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk_bytes):
+            h.update(block)
+    return h.hexdigest()
+
+
+def format_bytes(n: float) -> str:
+    """Human-readable byte count (``1.5 GiB``)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} B"  # pragma: no cover
+
+
+def check_free_space(folder: str | os.PathLike, required_bytes: int) -> int:
+    """Raise :class:`SessionError` unless the file system holding ``folder`` (or its nearest
+    existing parent) has ``required_bytes`` free. Returns the free byte count."""
+    p = pathlib.Path(folder).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    free = shutil.disk_usage(p).free
+    if required_bytes > free:
+        raise SessionError(f"not enough disk space for the session in {folder}: it needs about "
+                           f"{format_bytes(required_bytes)}, {format_bytes(free)} are free")
+    return free
+
+
+def folder_is_empty(folder: pathlib.Path) -> bool:
+    """``folder`` does not exist or holds nothing but a session lock file (left by a session
+    whose creation failed after taking the lock)."""
+    folder = pathlib.Path(folder)
+    return not folder.exists() or (folder.is_dir() and
+                                   all(p.name == LOCK_NAME for p in folder.iterdir()))
+
+
+class Session:
+    """An open session folder and its manifest (a JSON-compatible dict, ``self.manifest``).
+
+    Create one with :meth:`create` or :meth:`open`; do not build the manifest by hand.
+    Paths in the manifest are relative to :attr:`root` and use ``/``.
+    """
+
+    def __init__(self, root: pathlib.Path, manifest: dict[str, Any],
+                 write_hook: WriteHook | None = None):
+        self.root = pathlib.Path(root)
+        self.manifest = manifest
+        self.write_hook = write_hook
+        self._lock_fd: int | None = None
+        self._lock_release: Callable[[], Any] | None = None
+        #: held while the manifest is changed or saved: a capture's processing (a worker
+        #: thread) and the next capture's acquisition write the same manifest
+        self.mutex = threading.RLock()
+
+    # -- creation -------------------------------------------------------------------------
+    @classmethod
+    def create(cls, root: str | os.PathLike, *, plan: dict[str, Any], rig: dict[str, Any],
+               calibration_id: str, command_line: list[str] | None = None,
+               required_bytes: int = 0, write_hook: WriteHook | None = None) -> "Session":
+        """Start a new session in ``root`` (created; must not exist or be empty).
+
+        ``plan`` must hold ``poses_deg`` and ``mode`` (plus whatever else the capture plan
+        records); one pending capture is listed per pose. ``rig`` describes the rig
+        (config, devices). ``required_bytes`` is checked against the free disk space.
+        """
+        root = pathlib.Path(root)
+        if root.exists() and not root.is_dir():
+            raise FileExistsError(f"{root}: output path exists and is not a folder")
+        if not folder_is_empty(root):
+            raise _not_empty(root)
+        if "poses_deg" not in plan or "mode" not in plan:
+            raise ValueError("a session plan needs 'poses_deg' and 'mode'")
+        check_free_space(root, required_bytes)
+        now = utc_now()
+        manifest: dict[str, Any] = {
+            "schema_version": SCHEMA_VERSION,
+            "software": {"name": "polrig", "version": __version__},
+            "conventions_version": CONVENTIONS_VERSION,
+            "created": now,
+            "updated": now,
+            "status": RUNNING,
+            "status_reason": None,
+            "command_line": list(command_line or []),
+            "rig": copy.deepcopy(rig),
+            "calibration_id": calibration_id,
+            "plan": copy.deepcopy(plan),
+            "planned_bytes": int(required_bytes),
+            "captures": [
+                {"index": i, "name": capture_folder_name(i, pose), "pose_deg": float(pose),
+                 "mode": plan["mode"], "status": PENDING, "reason": None, "started": None,
+                 "finished": None, "attempts": 0, "files": {}, "score": None,
+                 "revisions": {}}
+                for i, pose in enumerate(plan["poses_deg"])],
+            "revisions": [],
+            "history": [{"time": now, "event": "created",
+                         "command_line": list(command_line or [])}],
+        }
+        created = not root.exists()
+        root.mkdir(parents=True, exist_ok=True)
+        session = cls(root, manifest, write_hook)
+        session.lock()  # held until the run ends (Session.unlock) or the object is gone
+        try:
+            if not folder_is_empty(root):  # another process got here first
+                raise _not_empty(root)
+            session.save()
+        except BaseException:
+            if not (root / MANIFEST_NAME).exists():
+                with contextlib.suppress(OSError):
+                    (root / LOCK_NAME).unlink()
+                    if created:
+                        root.rmdir()
+            session.unlock()
+            raise
+        return session
+
+    @classmethod
+    def open(cls, root: str | os.PathLike, *, write_hook: WriteHook | None = None,
+             lock: bool = False) -> "Session":
+        """Open an existing session; :class:`FormatError` if ``root`` holds no valid manifest
+        (:func:`validate_manifest`). ``lock``: open it for writing, taking the session's lock
+        first (:meth:`lock`; :class:`SessionBusy` if another process holds it), so the
+        manifest read is the one no other writer changes any more."""
+        root = pathlib.Path(root)
+        path = root / MANIFEST_NAME
+        if not root.is_dir():
+            raise FileNotFoundError(f"{root}: no such session folder")
+        if not path.is_file():
+            raise FormatError(f"{root}: not a polrig session (no {MANIFEST_NAME})")
+        session = cls(root, {}, write_hook)
+        if lock:
+            session.lock()
+        try:
+            session.manifest = read_manifest(path)
+        except BaseException:
+            session.unlock()
+            raise
+        return session
+
+    # -- the writer's lock -----------------------------------------------------------------
+    def lock(self) -> None:
+        """Take the session's exclusive lock (``flock`` on :data:`LOCK_NAME`; no-op if this
+        object holds it already). :class:`SessionBusy` (one line, with the holder's process
+        id) if another process writes the session. Released by :meth:`unlock`, when this
+        object is garbage-collected, or when the process ends (whatever way it ends)."""
+        if self._lock_fd is not None:
+            return
+        path = self.root / LOCK_NAME
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = ""
+            with contextlib.suppress(OSError, ValueError):
+                pid = int(os.pread(fd, 32, 0).decode("ascii").strip())
+                holder = f" (pid {pid})"
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise SessionBusy(f"{self.root}: the session is being written by another "
+                                  f"polrig process{holder}; wait until it ends or stop it, "
+                                  f"then try again") from None
+            raise
+        with contextlib.suppress(OSError):  # who holds it: for the message above only
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        self._lock_fd = fd
+        self._lock_release = weakref.finalize(self, os.close, fd)
+
+    def unlock(self) -> None:
+        """Release the lock taken by :meth:`lock` (no-op if not held). The lock file stays
+        (removing it would let two processes lock two different files)."""
+        if self._lock_release is not None:
+            self._lock_release()
+        self._lock_fd = self._lock_release = None
+
+    @property
+    def locked(self) -> bool:
+        """Whether this object holds the session's lock."""
+        return self._lock_fd is not None
+
+    # -- manifest -------------------------------------------------------------------------
+    def reload(self) -> None:
+        """Replace the in-memory manifest by the one on disk (after a failed save the disk
+        copy is the consistent one: every file it names exists completely)."""
+        with self.mutex:
+            self.manifest = read_manifest(self.root / MANIFEST_NAME)
+
+    @property
+    def captures(self) -> list[dict[str, Any]]:
+        return self.manifest["captures"]
+
+    @property
+    def plan(self) -> dict[str, Any]:
+        return self.manifest["plan"]
+
+    def capture(self, index: int) -> dict[str, Any]:
+        return self.captures[index]
+
+    def capture_dir(self, index: int) -> pathlib.Path:
+        return self.root / self.capture(index)["name"]
+
+    def save(self) -> None:
+        """Rewrite ``session.json`` atomically (goes through ``write_hook`` too)."""
+        with self.mutex:
+            self.manifest["updated"] = utc_now()
+            data = (json.dumps(self.manifest, indent=1, sort_keys=False) + "\n").encode("utf-8")
+            self._write(self.root / MANIFEST_NAME, data)
+
+    def log(self, event: str, **fields: Any) -> None:
+        """Append an event to the manifest's ``history`` (saved with the next :meth:`save`)."""
+        with self.mutex:
+            self.manifest.setdefault("history", []).append({"time": utc_now(), "event": event,
+                                                            **fields})
+
+    def set_status(self, status: str, reason: str | None = None, *, save: bool = True) -> None:
+        with self.mutex:
+            self.manifest["status"] = status
+            self.manifest["status_reason"] = reason
+            self.log(f"session {status}", reason=reason)
+            if save:
+                self.save()
+
+    # -- files ----------------------------------------------------------------------------
+    def _write(self, path: pathlib.Path, data: bytes) -> None:
+        if self.write_hook is not None:
+            self.write_hook(path, data)
+        atomic_write_bytes(path, data)
+
+    def relpath(self, path: pathlib.Path) -> str:
+        return pathlib.Path(path).relative_to(self.root).as_posix()
+
+    def write_new_file(self, relpath: str, data: bytes) -> dict[str, Any]:
+        """Write ``data`` to ``root/relpath`` (never over an existing file); return its
+        record ``{"path", "sha256", "bytes"}``. Does not touch the manifest."""
+        path = self.root / relpath
+        if path.exists():
+            raise FileExistsError(f"{path}: refusing to overwrite session data")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._write(path, data)
+        return {"path": pathlib.PurePosixPath(relpath).as_posix(), "sha256": sha256_bytes(data),
+                "bytes": len(data)}
+
+    def add_file(self, index: int, role: str, relpath: str, data: bytes, *,
+                 sidecar: bytes | None = None, revision: str | None = None,
+                 **attrs: Any) -> dict[str, Any]:
+        """Write one file of capture ``index`` under ``role`` and record it, then save the
+        manifest. ``sidecar`` (JSON metadata of a raw frame) is written next to it as
+        ``<file>.json`` and recorded in the same entry (``meta_path``, ``meta_sha256``).
+        ``revision`` files go to that revision's entry instead of the capture's own.
+        ``attrs`` (JSON-compatible) are stored in the entry (state angle, frame index...)."""
+        record = self.write_new_file(relpath, data)
+        if sidecar is not None:
+            side = self.write_new_file(relpath + ".json", sidecar)
+            record["meta_path"], record["meta_sha256"] = side["path"], side["sha256"]
+        record.update(attrs)
+        with self.mutex:
+            cap = self.capture(index)
+            files = cap["files"] if revision is None else cap["revisions"][revision]["files"]
+            if role in LIST_ROLES:
+                files.setdefault(role, []).append(record)
+            else:
+                if role in files:
+                    raise FileExistsError(f"capture {index} already has a {role!r} file")
+                files[role] = record
+            self.save()
+        return record
+
+    def iter_file_records(self, capture: dict[str, Any] | None = None
+                          ) -> Iterator[tuple[dict[str, Any], str, dict[str, Any]]]:
+        """Every ``(capture, role, record)`` of the session (or of one capture), revisions
+        included (their role is ``"<revision>/<role>"``). Entries with ``part_of`` (roles
+        stored as channels of another role's file) are not files of their own: skipped."""
+        caps = self.captures if capture is None else [capture]
+        for cap in caps:
+            groups = [("", cap["files"])] + [(f"{name}/", rev["files"])
+                                             for name, rev in cap.get("revisions", {}).items()]
+            for prefix, files in groups:
+                for role, entry in files.items():
+                    for rec in entry if isinstance(entry, list) else [entry]:
+                        if "part_of" in rec:  # a view into another role's file
+                            continue
+                        yield cap, prefix + role, rec
+
+    def recorded_paths(self, capture: dict[str, Any] | None = None) -> set[str]:
+        out: set[str] = set()
+        for _, _, rec in self.iter_file_records(capture):
+            out.add(rec["path"])
+            if "meta_path" in rec:
+                out.add(rec["meta_path"])
+        return out
+
+    # -- capture life cycle ---------------------------------------------------------------
+    def restart_capture(self, index: int) -> None:
+        """Prepare capture ``index`` to be captured from scratch: remove its folder (every
+        file it wrote, recorded or not), reset its entry to pending, save the manifest.
+        Refuses a complete capture."""
+        cap = self.capture(index)
+        if cap["status"] in (COMPLETE, ACQUIRED):
+            raise SessionError(f"capture {index} is {cap['status']}; it is never captured again")
+        folder = self.capture_dir(index)
+        # forget the records first: the manifest never names a file that is gone
+        with self.mutex:
+            cap.update(status=PENDING, reason=None, files={}, score=None, revisions={},
+                       started=utc_now(), finished=None,
+                       attempts=int(cap.get("attempts", 0)) + 1)
+            self.save()
+        if folder.exists():
+            shutil.rmtree(folder)
+
+    def discard_unrecorded(self, index: int) -> list[str]:
+        """Delete files in capture ``index``'s folder that the manifest does not record
+        (a file written just before an interruption, temporary files). Returns them."""
+        folder = self.capture_dir(index)
+        if not folder.exists():
+            return []
+        keep = self.recorded_paths(self.capture(index))
+        removed = []
+        for p in sorted(folder.rglob("*")):
+            if p.is_file() and self.relpath(p) not in keep:
+                p.unlink()
+                removed.append(self.relpath(p))
+        return removed
+
+    def mark_acquired(self, index: int, reason: str | None = None) -> None:
+        """Capture ``index`` has all its raw frames (and truth) recorded; processing them is
+        what is left (``reason``: why it is not done, after a failed or interrupted
+        processing)."""
+        with self.mutex:
+            self.capture(index).update(status=ACQUIRED, reason=reason)
+            self.save()
+
+    def reset_results(self, index: int) -> list[str]:
+        """Forget and delete whatever processing of capture ``index`` recorded (every role
+        but :data:`ACQUISITION_ROLES`), so it can be processed again from its raw frames.
+        Returns the deleted paths."""
+        with self.mutex:
+            files = self.capture(index)["files"]
+            gone = [role for role in files if role not in ACQUISITION_ROLES]
+            paths = [rec["path"] for role in gone
+                     for rec in (files[role] if isinstance(files[role], list) else [files[role]])
+                     if "part_of" not in rec]
+            for role in gone:
+                del files[role]
+            self.capture(index)["score"] = None
+            self.save()
+        for rel in paths:
+            with contextlib.suppress(FileNotFoundError):
+                (self.root / rel).unlink()
+        return paths
+
+    def complete_capture(self, index: int, score: dict[str, Any] | None = None) -> None:
+        with self.mutex:
+            cap = self.capture(index)
+            cap.update(status=COMPLETE, reason=None, finished=utc_now(), score=score)
+            self.save()
+
+    def fail_capture(self, index: int, reason: str, *, save: bool = True) -> None:
+        with self.mutex:
+            cap = self.capture(index)
+            cap.update(status=FAILED, reason=reason, finished=utc_now())
+            if save:
+                self.save()
+
+    def next_pending(self) -> list[int]:
+        """Indices of the captures that are not complete, in plan order."""
+        return [c["index"] for c in self.captures if c["status"] != COMPLETE]
+
+    def acquired(self) -> list[int]:
+        """Indices of the captures acquired but not processed, in plan order."""
+        return [c["index"] for c in self.captures if c["status"] == ACQUIRED]
+
+    # -- revisions (re-processing) --------------------------------------------------------
+    def new_revision(self, settings: dict[str, Any], command_line: list[str] | None = None) -> str:
+        """Register a re-processing revision (``rev1``, ``rev2``...) and return its name."""
+        n = len(self.manifest.setdefault("revisions", [])) + 1
+        name = f"rev{n}"
+        self.manifest["revisions"].append({"name": name, "created": utc_now(),
+                                           "command_line": list(command_line or []),
+                                           **copy.deepcopy(settings)})
+        self.save()
+        return name
+
+    def start_revision(self, index: int, revision: str) -> None:
+        cap = self.capture(index)
+        cap.setdefault("revisions", {})[revision] = {"status": PENDING, "files": {},
+                                                    "score": None}
+
+    # -- checks ---------------------------------------------------------------------------
+    def verify(self) -> list[str]:
+        """Re-check every recorded file: it exists and its SHA-256 matches. Returns one line
+        per problem (empty when the session is intact). Files in capture folders that the
+        manifest does not name are reported as well."""
+        problems: list[str] = []
+        checked: set[str] = set()
+        for cap, role, rec in self.iter_file_records():
+            pairs = [(rec["path"], rec["sha256"])]
+            if "meta_path" in rec:
+                pairs.append((rec["meta_path"], rec["meta_sha256"]))
+            for rel, digest in pairs:
+                if rel in checked:
+                    problems.append(f"{rel}: recorded twice")
+                    continue
+                checked.add(rel)
+                path = self.root / rel
+                if not path.is_file():
+                    problems.append(f"{rel}: missing (capture {cap['index']}, {role})")
+                elif sha256_file(path) != digest:
+                    problems.append(f"{rel}: SHA-256 mismatch (capture {cap['index']}, {role})")
+        for cap in self.captures:
+            folder = self.root / cap["name"]
+            if folder.exists():
+                for p in sorted(folder.rglob("*")):
+                    if p.is_file() and self.relpath(p) not in checked:
+                        problems.append(f"{self.relpath(p)}: not recorded in the manifest")
+        return problems
+
+
+def capture_folder_name(index: int, pose_deg: float) -> str:
+    """Folder of one capture: ``c003_pose090.0`` (index first, so names sort in plan order)."""
+    return f"c{index:03d}_pose{float(pose_deg):05.1f}".replace("-", "m")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def _not_empty(root: pathlib.Path) -> FileExistsError:
+    return FileExistsError(f"{root}: output folder is not empty; choose a new folder, or resume "
+                           f"the session in it")
+
+
+def read_manifest(path: str | os.PathLike) -> dict[str, Any]:
+    """The manifest in ``path`` (``session.json``), parsed and checked by
+    :func:`validate_manifest`; :class:`FormatError` (one line) otherwise."""
+    path = pathlib.Path(path)
+    try:
+        manifest = json.loads(path.read_text("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: not valid JSON ({exc})") from None
+    validate_manifest(manifest, str(path))
+    return manifest
+
+
+# -- manifest structure --------------------------------------------------------------------------
+CAPTURE_STATUSES = (PENDING, ACQUIRED, COMPLETE, FAILED)
+SESSION_STATUSES = (RUNNING, SESSION_COMPLETE, INTERRUPTED)
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+#: per-role attributes of a frame record (docs/session-schema.md, "Files by role")
+_FRAME_ATTRS = {"raw": ("state_index", "state_deg", "exposure_index", "exposure_us", "frame"),
+                "dark": ("exposure_index", "exposure_us", "frame")}
+_INDEX_ATTRS = ("state_index", "exposure_index", "frame")
+
+
+class _Bad(Exception):
+    """Internal: one structural problem, its message relative to the record being checked."""
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _need(d: dict[str, Any], key: str, ok: Callable[[Any], bool], what: str,
+          optional: bool = False) -> Any:
+    if key not in d:
+        if optional:
+            return None
+        raise _Bad(f"missing {key!r}")
+    if not ok(d[key]):
+        raise _Bad(f"{key!r} must be {what}, got {d[key]!r:.60}")
+    return d[key]
+
+
+def _safe_relpath(v: Any) -> bool:
+    """A ``/``-separated path inside the session folder (no absolute path, no ``..``)."""
+    if not isinstance(v, str) or not v or "\\" in v or "\0" in v or v.startswith("/"):
+        return False
+    return all(part not in ("", ".", "..") for part in v.split("/"))
+
+
+def _folder_name(v: Any) -> bool:
+    return _safe_relpath(v) and "/" not in v
+
+
+def _check_file_record(role: str, rec: Any) -> None:
+    if not isinstance(rec, dict):
+        raise _Bad("is not an object")
+    if "part_of" in rec:  # a view into another role's file
+        _need(rec, "path", _safe_relpath, "a relative path inside the session")
+        return
+    _need(rec, "path", _safe_relpath, "a relative path inside the session")
+    _need(rec, "sha256", lambda v: isinstance(v, str) and bool(_SHA256.fullmatch(v)),
+          "a SHA-256 hex digest")
+    _need(rec, "bytes", lambda v: _is_int(v) and v >= 0, "a byte count")
+    if "meta_path" in rec or "meta_sha256" in rec:
+        _need(rec, "meta_path", _safe_relpath, "a relative path inside the session")
+        _need(rec, "meta_sha256", lambda v: isinstance(v, str) and bool(_SHA256.fullmatch(v)),
+              "a SHA-256 hex digest")
+    for key in _FRAME_ATTRS.get(role.rsplit("/", 1)[-1], ()):
+        if key in _INDEX_ATTRS:
+            _need(rec, key, lambda v: _is_int(v) and v >= 0, "an index >= 0")
+        elif key == "exposure_us":  # null: a camera without exposure control reports none
+            _need(rec, key, lambda v: v is None or (_is_number(v) and math.isfinite(v)),
+                  "a finite number or null")
+        else:
+            _need(rec, key, lambda v: _is_number(v) and math.isfinite(v), "a finite number")
+
+
+def _check_files(files: Any, where: str) -> None:
+    if not isinstance(files, dict):
+        raise _Bad(f"{where}'files' must be an object, got {files!r:.60}")
+    for role, entry in files.items():
+        if role in LIST_ROLES:
+            if not isinstance(entry, list):
+                raise _Bad(f"{where}files {role!r} must be a list of file records")
+            records = [(f"{where}{role} file record {i}", rec) for i, rec in enumerate(entry)]
+        else:
+            records = [(f"{where}{role} file record", entry)]
+        for label, rec in records:
+            try:
+                _check_file_record(role, rec)
+            except _Bad as exc:
+                raise _Bad(f"{label}: {exc}") from None
+
+
+def _check_score(score: Any) -> None:
+    if score is None:
+        return
+    if not isinstance(score, dict):
+        raise _Bad(f"'score' must be an object or null, got {score!r:.60}")
+    if score.get("rmse") is None:
+        return  # "no pixels to score"
+    num_or_none = lambda v: v is None or _is_number(v)  # noqa: E731
+    for key in ("rmse", "mae", "realizable"):
+        _need(score, key, _is_number, "a number")
+    _need(score, "psnr_db", num_or_none, "a number or null")
+    _need(score, "pixels_compared", _is_int, "an integer")
+    for key in ("mean_sigma", "within_2sigma"):
+        _need(score, key, num_or_none, "a number or null", optional=True)
+
+
+def _check_capture(i: int, cap: Any) -> None:
+    if not isinstance(cap, dict):
+        raise _Bad("is not an object")
+    index = _need(cap, "index", _is_int, "an integer")
+    if index != i:
+        raise _Bad(f"'index' is {index}, but it is entry {i} of the list")
+    _need(cap, "name", _folder_name, "a folder name")
+    _need(cap, "pose_deg", lambda v: _is_number(v) and math.isfinite(v), "a finite number")
+    _need(cap, "status", lambda v: v in CAPTURE_STATUSES, f"one of {', '.join(CAPTURE_STATUSES)}")
+    _need(cap, "reason", lambda v: v is None or isinstance(v, str), "a string or null",
+          optional=True)
+    _need(cap, "attempts", lambda v: _is_int(v) and v >= 0, "a count", optional=True)
+    _check_files(_need(cap, "files", lambda v: True, "present"), "")
+    _check_score(cap.get("score"))
+    revisions = _need(cap, "revisions", lambda v: isinstance(v, dict), "an object",
+                      optional=True) or {}
+    for name, rev in revisions.items():
+        if not isinstance(rev, dict):
+            raise _Bad(f"revision {name!r} is not an object")
+        try:
+            _need(rev, "status", lambda v: v in CAPTURE_STATUSES,
+                  f"one of {', '.join(CAPTURE_STATUSES)}")
+            _check_files(_need(rev, "files", lambda v: True, "present"), "")
+            _check_score(rev.get("score"))
+        except _Bad as exc:
+            raise _Bad(f"revision {name!r}: {exc}") from None
+
+
+def validate_manifest(manifest: Any, where: str = MANIFEST_NAME) -> None:
+    """Check the structure of a session manifest (``docs/session-schema.md``): every key the
+    code reads is there with the right type, every file record has its path (relative, inside
+    the session) and checksum, capture folder names are plain names. Raises
+    :class:`FormatError` ``"<where>: capture 1 (c001_pose090.0): raw file record 2: missing
+    'sha256'"`` naming the first damaged record. The one place the manifest is checked:
+    code that reads an opened session may index what is checked here."""
+    if not isinstance(manifest, dict) or "captures" not in manifest:
+        raise FormatError(f"{where}: not a polrig session manifest")
+    version = manifest.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise FormatError(f"{where}: session schema version {version!r}, this polrig "
+                          f"reads version {SCHEMA_VERSION}")
+    context = ""
+    try:
+        m = manifest
+        _need(m, "status", lambda v: v in SESSION_STATUSES, f"one of {', '.join(SESSION_STATUSES)}")
+        _need(m, "status_reason", lambda v: v is None or isinstance(v, str), "a string or null",
+              optional=True)
+        for key in ("created", "updated", "calibration_id"):
+            _need(m, key, lambda v: isinstance(v, str), "a string")
+        _need(m, "conventions_version", lambda v: isinstance(v, (str, int, float)), "a version")
+        software = _need(m, "software", lambda v: isinstance(v, dict), "an object")
+        context = "software: "
+        _need(software, "version", lambda v: isinstance(v, str), "a string")
+        context = ""
+        _need(m, "rig", lambda v: isinstance(v, dict), "an object", optional=True)
+        _need(m, "command_line", lambda v: isinstance(v, list), "a list", optional=True)
+        _need(m, "history", lambda v: isinstance(v, list), "a list", optional=True)
+        plan = _need(m, "plan", lambda v: isinstance(v, dict), "an object")
+        context = "plan: "
+        poses = _need(plan, "poses_deg", lambda v: isinstance(v, list) and all(
+            _is_number(p) and math.isfinite(p) for p in v), "a list of finite numbers")
+        _need(plan, "mode", lambda v: isinstance(v, str), "a string")
+        for key in ("states_deg", "exposures_us"):
+            _need(plan, key, lambda v: isinstance(v, list) and all(
+                _is_number(p) and math.isfinite(p) for p in v), "a list of finite numbers",
+                optional=True)
+        for key in ("frames_per_state", "dark_frames", "grab_retries"):
+            _need(plan, key, _is_int, "an integer", optional=True)
+        _need(plan, "demosaic", lambda v: isinstance(v, str), "a string", optional=True)
+        _need(plan, "mirror_average", lambda v: isinstance(v, bool), "true or false",
+              optional=True)
+        context = ""
+        caps = _need(m, "captures", lambda v: isinstance(v, list), "a list")
+        if len(caps) != len(poses):
+            raise _Bad(f"{len(caps)} captures listed for the {len(poses)} poses of the plan")
+        for i, cap in enumerate(caps):
+            name = cap.get("name") if isinstance(cap, dict) else None
+            context = f"capture {i}" + (f" ({name})" if isinstance(name, str) else "") + ": "
+            _check_capture(i, cap)
+        context = ""
+        revisions = _need(m, "revisions", lambda v: isinstance(v, list), "a list", optional=True)
+        for i, rev in enumerate(revisions or []):
+            context = f"revision entry {i}: "
+            if not isinstance(rev, dict):
+                raise _Bad("is not an object")
+            _need(rev, "name", _folder_name, "a folder name")
+    except _Bad as exc:
+        raise FormatError(f"{where}: {context}{exc} (damaged session manifest)") from None

@@ -1,0 +1,45 @@
+"""Arguments and output shared by the commands: the single-device operator commands (move,
+home, light, snap, devices) use the ``--config``/``--timeout`` arguments; raw data is never
+replaced without ``--overwrite`` (:func:`refuse_existing`). Argument types and the other path
+checks are in :mod:`polrig.formats.argcheck`."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+from typing import Iterable
+
+from polrig.acquisition.hal import DeviceInfo
+from polrig.formats.argcheck import positive_float
+
+
+def add_config_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=pathlib.Path, default=None, metavar="FILE",
+                   help="rig configuration TOML (default: the simulated rig)")
+
+
+def add_timeout_argument(p: argparse.ArgumentParser, default_s: float) -> None:
+    p.add_argument("--timeout", type=positive_float, default=default_s, metavar="S",
+                   help=f"give up after S seconds (> 0; default {default_s:g})")
+
+
+def identity(info: DeviceInfo) -> str:
+    """``ELL14 serial 11400123, firmware 23 on /dev/ttyUSB0`` (what the device says)."""
+    parts = [info.model or info.driver]
+    if info.serial:
+        parts.append(f"serial {info.serial}")
+    if info.firmware:
+        parts.append(f"firmware {info.firmware}")
+    text = ", ".join(parts)
+    return f"{text} on {info.port}" if info.port else text
+
+
+def refuse_existing(paths: Iterable[pathlib.Path], flag: str = "--out",
+                    what: str = "file") -> None:
+    """:class:`FileExistsError` naming the first of ``paths`` that exists (raw data is never
+    replaced without ``--overwrite``)."""
+    for p in paths:
+        if os.path.lexists(p):
+            raise FileExistsError(f"{flag}: {p} already exists ({what}); choose another name "
+                                  f"or pass --overwrite")

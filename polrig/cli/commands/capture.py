@@ -1,0 +1,289 @@
+"""``polrig capture``: reference (or single-shot) captures over turntable poses into a session.
+
+Thin shell over :mod:`polrig.app.capture` (the request, acquisition), :mod:`polrig.app.processing`
+(results) and :mod:`polrig.app.session` (files): the options become a typed
+:class:`polrig.app.capture.CaptureRequest` (the GUI builds the same), and library errors, which
+name the plan field they are about, are reported naming the option (:func:`options_named`). Bad input (pose spec, states, output folder, config) is
+rejected before any device is opened or any file is written; what needs the opened rig (the
+camera's exposure range, on ``--resume`` the same rig as the session's) is checked before
+any file is written. A session being written by another process is refused (its lock).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import pathlib
+import sys
+from typing import Iterator
+
+from polrig.errors import ConfigError
+
+POSES_HELP = ("turntable poses in degrees: a list 0,30,60 or a range START:STOP:STEP with STOP "
+              "exclusive (0:360:90 = 0, 90, 180, 270)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "capture", help="capture Mueller images over turntable poses into a session folder",
+        description="Capture over turntable poses into a session folder (simulated rig unless "
+                    "--config names real hardware). Every raw frame is kept; each pose gets a "
+                    "Mueller EXR with uncertainty and mask planes. --poses: " + POSES_HELP + ". "
+                    "Interrupted sessions (Ctrl-C, device fault, full disk) continue with "
+                    "--out DIR --resume.")
+    p.add_argument("--poses", help=POSES_HELP + " (required unless --resume)")
+    p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
+                   help="reference: N polarizer states per pose (default); single-shot: the "
+                        "trained network")
+    p.add_argument("--mirror-average", action="store_true", default=None,
+                   help="single-shot: also run the network on each frame's left-right mirror image "
+                        "and average the two answers (a few per cent lower error, twice the network "
+                        "time; models/MODEL_CARD.md, 'Mirror averaging')")
+    p.add_argument("--states", help="polarizer stage angles in degrees (default 0,45,90,135; "
+                                    "at least 3 non-collinear states for the reference method)")
+    p.add_argument("--frames", type=int, default=None, help="frames averaged per state (default 1)")
+    p.add_argument("--exposure", help="exposure time(s) in microseconds; several (comma "
+                                      "separated) form an HDR bracket, the first is the "
+                                      "reference exposure (default: the camera's current one)")
+    p.add_argument("--dark-frames", type=int, default=None,
+                   help="dark frames (light off) per pose and exposure (default 0: subtract "
+                        "the camera's black level only)")
+    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+                   help="demosaic method for processing (default superpixel: no interpolated "
+                        "values, exact propagated uncertainty)")
+    p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
+                   help="single-shot output resolution: superpixel (the networks' grid, default) or "
+                        "full (the raw frame's: the networks' answer with the measured detail of a "
+                        "full-resolution demosaic, --demosaic bilinear unless newton is given; no "
+                        "sigma at full resolution; models/full_resolution.py)")
+    add_binning_option(p, "default 1")
+    add_exr_options(p, "default: mueller,sigma,sigma_noise,mask,residual (all)",
+                    "default half", "default zip")  # polrig.acquisition.plan.ExrChoice (not imported: start-up)
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
+                   help="where the single-shot network runs: auto (CUDA where onnxruntime offers it, "
+                        "else the CPU; default), cpu or cuda (refused when unavailable); the provider "
+                        "used is recorded in each result's header")
+    p.add_argument("--config", help="rig configuration TOML (default: the simulated rig)")
+    p.add_argument("--calibration", help="calibration set folder (default: nominal ideal "
+                                         "polarizer and analyzer, calibration id 'nominal')")
+    p.add_argument("--out", required=True, help="session folder (must be new or empty)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the session in --out where it stopped")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
+    """``--network-binning {1,2}``: the single-shot networks on the analyzer grid or on that
+    grid binned 2x2 (:attr:`polrig.acquisition.plan.CapturePlan.network_binning`; ``capture`` and
+    ``reconstruct`` share it)."""
+    p.add_argument("--network-binning", type=int, choices=(1, 2), default=None,  # plan.NETWORK_BINNINGS
+                   help="single-shot: 1 runs the networks on the analyzer grid; 2 on that grid binned "
+                        "2x2, the answer lifted back with the grid's measured detail: about half the "
+                        "frame time at full sensor size for -0.56..+0.03 dB on held-out sets "
+                        "(models/MODEL_CARD.md, 'Speed, warm and cold'); the output grid is the same, "
+                        f"but there is no sigma (NaN planes) ({default})")
+
+
+def add_exr_options(p: argparse.ArgumentParser, planes_default: str, unc_default: str,
+                    comp_default: str) -> None:
+    """``--exr-planes``, ``--exr-uncertainty``, ``--exr-compression``: the result EXR's format
+    (:class:`polrig.acquisition.plan.ExrChoice`; ``capture`` and ``reconstruct`` share them)."""
+    from polrig.formats.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+
+    p.add_argument("--exr-planes", metavar="LIST", default=None,
+                   help="plane groups of each result EXR, comma separated, from "
+                        f"{','.join(RESULT_PLANES)} (mueller always written; {planes_default})")
+    p.add_argument("--exr-uncertainty", choices=tuple(UNCERTAINTY_PRECISIONS), default=None,
+                   help="precision of the sigma, sigma_noise, residual and mask planes: float "
+                        f"(float32) or half (float16, half the bytes; {unc_default})")
+    p.add_argument("--exr-compression", choices=tuple(COMPRESSIONS), default=None,
+                   help="EXR compression: zip (lossless, smaller), piz (wavelet, lossless) or "
+                        f"none (fastest write, largest file; {comp_default})")
+
+
+def exr_planes_option(text: str | None) -> tuple[str, ...] | None:
+    """``--exr-planes a,b`` as a tuple of plane groups (``None`` where not given)."""
+    if text is None:
+        return None
+    return tuple(t.strip() for t in text.split(",") if t.strip())
+
+
+#: The option that sets each :class:`polrig.app.capture.CaptureRequest` field (library errors
+#: name the field, :class:`polrig.acquisition.plan.PlanError`; the command line names its option).
+FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
+         "frames_per_state": "--frames", "exposures_us": "--exposure",
+         "dark_frames": "--dark-frames", "demosaic": "--demosaic",
+         "mirror_average": "--mirror-average", "resolution": "--resolution",
+         "network_binning": "--network-binning",
+         "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
+         "exr_compression": "--exr-compression",
+         "calibration": "--calibration", "out": "--out"}
+#: What the command line adds to an error about a field.
+HINTS = {"out": "--resume"}
+
+
+@contextlib.contextmanager
+def options_named(flags: dict[str, str] = FLAGS) -> Iterator[None]:
+    """Re-raise a :class:`polrig.acquisition.plan.PlanError` as a one-line :class:`ConfigError` naming
+    the option of its field: ``--states 0,5,10: the states ...``."""
+    from polrig.acquisition.plan import PlanError
+
+    try:
+        yield
+    except PlanError as exc:
+        flag = flags.get(exc.field)
+        if flag is None:
+            raise
+        text = (f"{flag} {exc.subject}: {exc.detail}" if exc.subject is not None
+                else f"{flag}: {exc.detail}")
+        if exc.field in HINTS:
+            text += f" ({HINTS[exc.field]})"
+        raise ConfigError(text) from None
+
+
+def build_request(args: argparse.Namespace):
+    """The :class:`polrig.app.capture.CaptureRequest` the options ask for (``None`` where an
+    option is not given)."""
+    from polrig.acquisition.plan import parse_float_list, parse_pose_spec
+    from polrig.app.capture import CaptureRequest
+
+    if not args.resume and not args.poses:
+        raise ConfigError("--poses is required (e.g. --poses 0:360:90)")
+    with options_named():
+        return CaptureRequest(
+            out=pathlib.Path(args.out),
+            poses_deg=parse_pose_spec(args.poses) if args.poses else None,
+            mode=args.mode,
+            states_deg=(parse_float_list(args.states, "--states", field="states_deg")
+                        if args.states else None),
+            frames_per_state=args.frames,
+            exposures_us=(parse_float_list(args.exposure, "--exposure", positive=True,
+                                           field="exposures_us") if args.exposure else None),
+            dark_frames=args.dark_frames,
+            demosaic=args.demosaic,
+            mirror_average=args.mirror_average,
+            resolution=args.resolution,
+            network_binning=args.network_binning,
+            exr_planes=exr_planes_option(args.exr_planes),
+            exr_uncertainty=args.exr_uncertainty,
+            exr_compression=args.exr_compression,
+            device=args.device or "auto",
+            config=pathlib.Path(args.config) if args.config else None,
+            calibration=pathlib.Path(args.calibration) if args.calibration else None,
+            resume=bool(args.resume))
+
+
+def command_line(args: argparse.Namespace, command: str = "capture") -> list[str]:
+    """The command as the manifest records it, rebuilt from the parsed options (so that it
+    is the same whether polrig ran as a console script or in-process)."""
+    out = ["polrig", command]
+    for key, value in vars(args).items():
+        if key in ("func", "command", "session") or value is None or value is False:
+            continue
+        out.append("--" + key.replace("_", "-"))
+        if value is not True:
+            out.append(str(value))
+    if getattr(args, "session", None):
+        out.append(str(args.session))
+    return out
+
+
+def prepare_capture(args: argparse.Namespace):
+    """:func:`polrig.app.capture.prepare_capture` of the options' request, errors naming the
+    options (nothing opened, nothing written)."""
+    from polrig.app import capture
+
+    with options_named():
+        return capture.prepare_capture(build_request(args))
+
+
+def open_session(prepared, rig, command_line: list[str]):
+    """:func:`polrig.app.capture.open_session`, errors naming the options."""
+    from polrig.app import capture
+
+    with options_named():
+        return capture.open_session(prepared, rig, command_line)
+
+
+def run(args: argparse.Namespace) -> int:
+    import os
+
+    from polrig.app import capture, processing
+    from polrig.app.rig import open_rig
+
+    prepared = prepare_capture(args)
+    plan, calibration, out = prepared.plan, prepared.calibration, prepared.out
+    with open_rig(args.config) as rig:
+        session = open_session(prepared, rig, command_line(args))
+        try:
+            with options_named():
+                processor = processing.make_processor(plan, calibration,
+                                                      processing.session_sensor_model(session),
+                                                      device=args.device or "auto")
+        except BaseException:
+            session.unlock()
+            raise
+        bar = _ProgressPrinter(enabled=not args.no_progress)
+        try:
+            result = capture.run_session(rig, session, processor=processor, progress=bar)
+        except Exception as exc:
+            # run_session handles device faults and a full disk itself; anything else raised
+            # once the session exists (another file-system error, a processing error) leaves
+            # it interrupted and resumable: say so, with the way to continue (as the GUI does)
+            if os.environ.get("POLRIG_DEBUG"):
+                raise
+            result = capture.interrupted_result(session, exc)
+        finally:
+            bar.close()
+    if result.status != "complete":
+        print(f"polrig: error: capture stopped ({result.reason}); completed captures are "
+              f"intact, continue with: polrig capture --out {out} --resume", file=sys.stderr)
+        return 1
+    print(f"session complete: {len(result.completed)} captures in {out}")
+    return 0
+
+
+class _ProgressPrinter:
+    """tqdm bar on stderr (frames, with ETA) and one score line per capture on stdout."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.bar = None
+
+    def __call__(self, ev) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None and self.enabled and ev.total:
+            self.bar = tqdm(total=ev.total, unit="frame", file=sys.stderr, dynamic_ncols=True,
+                            desc="capture")
+        if self.bar is not None and ev.hardware_s:
+            self.bar.set_postfix_str(f"pose {ev.pose_deg:g} deg, hardware time left "
+                                     f"{ev.hardware_left_s:.0f} s of {ev.hardware_s:.0f} s",
+                                     refresh=False)
+        if ev.kind == "frame" and self.bar is not None:
+            self.bar.update(ev.step - self.bar.n)
+        elif ev.kind == "retry":
+            self._write(f"retry: {ev.message}", sys.stderr)
+        elif ev.kind == "capture-done":
+            line = f"capture {ev.capture_index + 1}/{ev.n_captures} pose {ev.pose_deg:g} deg: done"
+            if ev.score:
+                from polrig.solve.scoring import format_score
+
+                line += " | " + format_score(ev.score)
+            self._write(line, sys.stdout)
+        elif ev.kind == "capture-failed":
+            self._write(f"capture {ev.capture_index + 1}/{ev.n_captures} pose "
+                        f"{ev.pose_deg:g} deg: {ev.message}", sys.stderr)
+
+    def _write(self, line: str, stream) -> None:
+        if self.bar is not None:
+            from tqdm import tqdm
+
+            tqdm.write(line, file=stream)
+        else:
+            print(line, file=stream, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

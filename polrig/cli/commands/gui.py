@@ -1,0 +1,49 @@
+"""``polrig gui [--config FILE]``: the operator GUI (PySide6), see :mod:`polrig.gui`."""
+
+from __future__ import annotations
+
+import argparse
+
+from polrig.cli.commands._device_args import add_config_argument
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from polrig.gui.app import DEFAULT_SIM_SIZE  # light: no Qt import
+
+    p = sub.add_parser("gui", help="operator GUI: live view, devices, capture, calibration, viewer",
+                       description="Open the operator GUI on the rig (simulated unless --config "
+                                   "names real hardware).")
+    add_config_argument(p)
+    p.add_argument("--sim-size", default=DEFAULT_SIM_SIZE, metavar="WxH",
+                   help=f"sensor size of the simulated rig (default {DEFAULT_SIM_SIZE}; the "
+                        f"real IMX250 is 2448x2048, which renders slowly)")
+    p.add_argument("--sim-clock-speed", type=float, default=1.0, metavar="X",
+                   help="simulated seconds per real second (default 1: real time)")
+    p.add_argument("--weights", default=None, metavar="DIR",
+                   help="single-shot model folder (default: the shipped models/weights)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="where the live view's single-shot network runs: auto (CUDA where "
+                        "onnxruntime offers it, else the CPU; default), cpu or cuda (refused when "
+                        "unavailable, before the window opens)")
+    p.add_argument("--settings", default=None, metavar="FILE",
+                   help="INI file for the remembered settings (default: the user's "
+                        "polrig/polrig-gui settings)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.config is not None and not args.config.is_file():
+        raise FileNotFoundError(f"--config {args.config}: no such file")
+    from polrig.sim.options import parse_size
+
+    w, h = parse_size(args.sim_size)  # bad sizes: a one-line ConfigError before Qt starts
+    if args.device == "cuda":  # refused before Qt starts (polrig.models.devices.DeviceUnavailable, exit 2)
+        import onnxruntime as ort
+
+        from polrig.models.devices import choose_providers
+
+        choose_providers(args.device, ort.get_available_providers())
+    from polrig.gui.app import run_gui
+
+    return run_gui(args.config, sim_size=f"{w}x{h}", sim_clock_speed=args.sim_clock_speed,
+                   weights=args.weights, device=args.device, settings_file=args.settings)

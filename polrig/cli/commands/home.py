@@ -1,0 +1,31 @@
+"""``polrig home stage|turntable``: run the device's homing cycle and report the position."""
+
+from __future__ import annotations
+
+import argparse
+
+from polrig.cli.commands._device_args import (
+    add_config_argument,
+    add_timeout_argument,
+    identity,
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("home", help="home the polarizer stage or the turntable",
+                       description="Run the homing cycle of the polarizer stage or the object "
+                                   "turntable (needed after power-up, a motion error or an "
+                                   "alarm) and print the position the device reports.")
+    p.add_argument("device", choices=("stage", "turntable"), help="which axis")
+    add_config_argument(p)
+    add_timeout_argument(p, 120.0)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig.app.rig import open_device
+
+    with open_device(args.config, args.device) as dev:
+        dev.home(timeout_s=args.timeout)
+        print(f"{args.device}: homed, at {dev.position_deg():.4f} deg ({identity(dev.info())})")
+    return 0

@@ -1,0 +1,201 @@
+"""``polrig infer RAW --layout imx250myr --state-deg 0 --out OUT.exr``: single-shot Mueller
+image of one raw frame with the shipped ONNX model (onnxruntime only, no torch).
+
+Decode (:func:`polrig.formats.rawio.read_raw`), demosaic, Stokes, PIPNet -> pBRDF -> PMMNet
+(:func:`polrig.models.runtime.infer_frame`), EXR (:func:`polrig.models.runtime.write_result_exr`).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from polrig.errors import ConfigError
+from polrig.formats.argcheck import (
+    axis_vector,
+    check_output_file,
+    finite_float,
+    nonnegative_float,
+    positive_float,
+)
+
+#: What the numbers of a ``polrig infer`` EXR are (also written into its header).
+UNITS = ("Mueller elements in ADC DN per unit incident S0 (the raw file's values times "
+         "2**(ADC bits - file bits), polrig.app.processing.adc_scale: a Mono16 frame of a 12-bit "
+         "ADC counts 16 file DN per ADC DN), as the noise model, a session and a simulated "
+         "capture's truth")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("infer", help="single-shot Mueller EXR from one raw frame (ONNX model)",
+                       description="Reconstruct the 3x3 linear Mueller image of one DoFP raw frame "
+                                   "(16-bit PNG/TIFF/.npy + optional JSON sidecar) captured under a "
+                                   "known polarizer state, with the single-shot network. The "
+                                   "result is in ADC DN (the file's values times 2^(ADC bits - "
+                                   "file bits): 1/16 for a Mono16 frame of a 12-bit ADC; the ADC "
+                                   "from --config's sensor model, default 12 bits), the unit of a "
+                                   "session's results and a simulated capture's truth.")
+    p.add_argument("raw", help="raw frame file")
+    p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
+    p.add_argument("--state-deg", type=finite_float, required=True, help="polarizer stage angle of the capture (deg)")
+    p.add_argument("--out", required=True, help="output EXR path")
+    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+                   help="demosaic method (default superpixel: the sensor's native sampling; bilinear "
+                        "with --resolution full). bilinear/newton at the default resolution run the "
+                        "networks on the full-resolution demosaic (slow: resized to 1.5 Mpx)")
+    p.add_argument("--resolution", choices=("superpixel", "full"), default="superpixel",
+                   help="output resolution: superpixel (the networks' grid, default) or full (the raw "
+                        "frame's: the networks on the superpixel grid plus the measured detail of a "
+                        "full-resolution demosaic, models/full_resolution.py)")
+    from polrig.models.full_resolution import BINNINGS
+
+    p.add_argument("--network-binning", type=int, choices=BINNINGS, default=1,
+                   help="1 (default): the networks on the analyzer grid; 2: a faster mode, the networks on "
+                        "that grid binned 2x2 (a quarter of the work) and the answer lifted back with the "
+                        "grid's measured detail (models/full_resolution.py; its accuracy in "
+                        "models/MODEL_CARD.md, 'Speed, warm and cold'); no --sigma")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="where the networks run: auto (CUDA when onnxruntime offers it, else the CPU; "
+                        "default), cpu, or cuda (refused when unavailable). The provider used is "
+                        "printed and recorded in the EXR header")
+    p.add_argument("--black-level", type=nonnegative_float, default=None,
+                   help="black level in DN, >= 0 and below the saturation level (default: the sidecar's)")
+    p.add_argument("--scale", type=positive_float, default=None,
+                   help="ADC DN per normalised unit, > 0 (default: from the image)")
+    p.add_argument("--calibration", default=None,
+                   help="calibration set folder: its camera intrinsics and stage zero axis "
+                        "are used (a set of another sensor layout, or whose calibrated area "
+                        "does not cover the frame, is refused)")
+    p.add_argument("--config", default=None,
+                   help="rig configuration TOML: its [nominal_geometry] table (default: the "
+                        "simulated rig's design geometry), used where no calibration is given")
+    p.add_argument("--stage-zero-axis", type=axis_vector, default=None,
+                   help="polarizer stage zero axis in the camera frame, x,y,z (overrides the "
+                        "calibration / rig geometry)")
+    p.add_argument("--saturation-dn", type=positive_float, default=None,
+                   help="raw value (DN, black level included) at which the sensor clips (default: "
+                        "full scale of the frame's bit depth, 2^bits - 1; give 4095 for 12-bit data "
+                        "stored in 16-bit files without a sidecar)")
+    p.add_argument("--sigma", action="store_true",
+                   help="also write the model's calibrated standard deviation of every element "
+                        "(sigma.M{row}{col}.{colour} planes, models/uncertainty.py; costs about a "
+                        "third more time)")
+    p.add_argument("--mirror-average", action="store_true",
+                   help="also run the network on the frame's left-right mirror image and average the "
+                        "two answers (models/mirror.py): a few per cent lower error for twice the "
+                        "network time (models/MODEL_CARD.md, 'Mirror averaging')")
+    p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
+    p.add_argument("--min-snr", type=nonnegative_float, default=None, metavar="K",
+                   help="in the previews (OUT_grid.png, OUT_dolp.png, OUT_aolp.png), mask pixels "
+                        "whose measured S0 is below K noise standard deviations (default 3, "
+                        "polrig.app.preview.DEFAULT_MIN_SNR; 0 masks only background and clipped pixels)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import pathlib
+    import sys
+
+    import numpy as np
+
+    from polrig.app import calibrations
+    from polrig.app.preview import (
+        BACKGROUND,
+        DEFAULT_MIN_SNR,
+        SATURATED,
+        mask_summary,
+        s0_snr,
+        write_result_previews,
+    )
+    from polrig.app.rig import load_rig_config
+    from polrig.cli.commands._units import adc_factor
+    from polrig.cli.commands.capture import options_named
+    from polrig.formats.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
+    from polrig.models.runtime import SingleShotModel, infer_frame, write_result_exr
+    from polrig.models.uncertainty import BEYOND_WARN_FRACTION, UncertaintyModel
+
+    method = args.demosaic or ("bilinear" if args.resolution == "full" else "superpixel")
+    if args.resolution == "full" and method == "superpixel":
+        raise ConfigError("--resolution full takes its detail from a full-resolution demosaic: "
+                          "--demosaic bilinear or newton, not superpixel")
+    if args.resolution == "full" and args.sigma:
+        raise ConfigError("--sigma: the uncertainty is calibrated at the networks' (superpixel) resolution "
+                          "only; leave out --resolution full or --sigma")
+    if args.network_binning > 1 and args.sigma:
+        raise ConfigError("--sigma: the uncertainty is calibrated on the unbinned analyzer grid only; leave out "
+                          "--network-binning or --sigma")
+    out = pathlib.Path(args.out)
+    if out.suffix.lower() != ".exr":
+        raise ValueError(f"--out must be an .exr file, got {out}")
+    check_output_file(out)
+    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in ("_grid.png", "_dolp.png", "_aolp.png")]
+    for preview_path in previews:
+        check_output_file(preview_path, "--out preview")
+    frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
+    layout = args.layout or frame.meta.layout
+    black = frame.meta.black_level_dn if args.black_level is None else args.black_level
+    saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
+    if not black < saturation:
+        source = "--black-level" if args.black_level is not None else "the sidecar's black level"
+        raise ConfigError(f"{source} {black:g} DN is not below the saturation level {saturation:g} DN")
+    with options_named():
+        calibration = calibrations.load_calibration(args.calibration)
+        # a set from another sensor (layout) or one that does not cover this frame: refused
+        h, w = frame.raw.shape[-2:]
+        calibrations.check_calibration_fits(calibration, layout=layout,
+                                            readout=(w, h, *frame.meta.offset_xy),
+                                            what=f"{args.raw}", phase=False)
+    # the same geometry capture processing uses: calibration set, else the rig's nominal one
+    geometry = calibrations.single_shot_geometry(calibration, load_rig_config(args.config))
+    kwargs = calibrations.single_shot_kwargs(geometry, frame,
+                                             "superpixel" if args.resolution == "full" else method)
+    if args.stage_zero_axis is not None:
+        kwargs["stage_zero_axis"] = args.stage_zero_axis
+    model = SingleShotModel.load(args.weights, device=args.device)
+    if args.sigma and model.uncertainty is None:  # before the work: --sigma would silently write no planes
+        from polrig.models.uncertainty import how_to_calibrate
+
+        raise ConfigError(f"--sigma: {model.uncertainty_problem}; {how_to_calibrate(model.weights_dir)}")
+    # the file's DN -> ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16): the
+    # result is in the unit of the noise model, the truth of a simulated capture and a session
+    sensor, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
+    raw_adc = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
+    mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=method,
+                               resolution=args.resolution, network_binning=args.network_binning,
+                               black_level_dn=black * to_adc, scale=args.scale,
+                               saturation_dn=saturation * to_adc,
+                               with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
+    beyond = None
+    if "beyond_calibration" in aux:
+        beyond = UncertaintyModel.beyond_fraction(aux["beyond_calibration"], aux["mask"])
+    write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
+                                         "beyond_calibration_fraction": beyond,
+                                         "layout": str(layout), "demosaic": method,
+                                         "resolution": args.resolution,
+                                         "network_binning": args.network_binning,
+                                         "saturation_dn": saturation, "mirror_average": args.mirror_average,
+                                         "units": UNITS, "adc_dn_per_file_dn": to_adc})
+    # previews: the measured S0 against its noise sigma decides what is signal
+    snr = s0_snr(aux["stokes"][:, 0], sensor, frame.meta.exposure_us)
+    flags = (np.where(np.asarray(aux["mask"], bool), 0, BACKGROUND)
+             | np.where(aux["saturated"], SATURATED, 0)).astype(np.uint8)[None] | np.zeros(snr.shape, np.uint8)
+    min_snr = DEFAULT_MIN_SNR if args.min_snr is None else args.min_snr
+    write_result_previews(mueller, out.parent, stem=out.stem, flags=flags, snr=snr, min_snr=min_snr)
+    t = aux["timings_s"]
+    print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
+          f"network {1e3 * t['network']:.1f} ms; {mask_summary(flags, snr, min_snr)}; previews "
+          f"{', '.join(p.name for p in previews)}")
+    print(f"networks ran on {model.provider}")
+    n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
+    if n_clipped:
+        print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
+              f"{saturation:g} DN (clipped); their Mueller estimate comes from clipped data (EXR plane "
+              f"'saturated'); lower the exposure", file=sys.stderr)
+    if beyond is not None and beyond > BEYOND_WARN_FRACTION:
+        print(f"polrig infer: warning: {100 * beyond:.0f} % of the object's pixels lie beyond the misfit range "
+              f"the sigma was calibrated on (1 % by construction; e.g. a metal or a retarding film, which the "
+              f"networks never saw): their sigma may be too small (EXR plane 'beyond_calibration'; "
+              f"models/MODEL_CARD.md, 'Mismatched materials and interreflections')", file=sys.stderr)
+    note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
+    if note:
+        print(f"polrig infer: note: {note}", file=sys.stderr)
+    return 0

@@ -1,0 +1,78 @@
+"""``polrig info SESSION``: what a session holds, how each capture ended, its scores, and
+whether every file still matches its SHA-256 checksum (exit code 1 if not). A reader: it takes
+no lock (it may run while a capture writes the session). A structurally damaged manifest is
+one line naming the record (:func:`polrig.app.session.validate_manifest`, exit code 2)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="summarize a capture session and verify its checksums",
+                       description="Summarize a capture session (plan, captures, statuses, "
+                                   "scores, revisions) and re-check every file's SHA-256. "
+                                   "Exit code 1 if a file is missing or changed.")
+    p.add_argument("session", help="session folder (holds session.json)")
+    p.add_argument("--no-verify", action="store_true", help="skip the checksum verification")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig.app.session import Session
+    from polrig.solve.scoring import format_score
+
+    s = Session.open(args.session)
+    m = s.manifest
+    plan = m["plan"]
+    status = m["status"] + (f" ({m['status_reason']})" if m.get("status_reason") else "")
+    print(f"session {s.root}")
+    print(f"  status: {status}")
+    print(f"  created {m['created']}, updated {m['updated']}, polrig "
+          f"{m['software']['version']}, conventions v{m['conventions_version']}")
+    rig = m.get("rig", {})
+    print(f"  rig: {'simulated' if rig.get('simulated') else 'hardware'}; calibration: "
+          f"{m['calibration_id']}")
+    exposures = (",".join(f"{e:g}" for e in plan.get("exposures_us", [])) + " us"
+                 if plan.get("exposures_us") else "camera default")
+    print(f"  plan: mode {plan['mode']}, {len(plan['poses_deg'])} poses, states "
+          f"{','.join(f'{a:g}' for a in plan.get('states_deg', []))} deg, "
+          f"{plan.get('frames_per_state', 1)} frame(s)/state, exposure {exposures}, "
+          f"{plan.get('dark_frames', 0)} dark frame(s), demosaic {plan.get('demosaic')}")
+    counts: dict[str, int] = {}
+    for cap in s.captures:
+        counts[cap["status"]] = counts.get(cap["status"], 0) + 1
+    print("  captures: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())))
+    for cap in s.captures:
+        n_raw = len(cap["files"].get("raw", []))
+        n_dark = len(cap["files"].get("dark", []))
+        line = (f"    [{cap['index']:3d}] pose {cap['pose_deg']:7.2f} deg  {cap['status']:8s} "
+                f"{n_raw} raw, {n_dark} dark")
+        results = [r for r in ("mueller", "truth_mueller") if r in cap["files"]]
+        if results:
+            line += ", " + ", ".join(results)
+        if cap.get("reason"):
+            line += f"  ({cap['reason']})"
+        print(line)
+        if cap.get("score"):
+            print(f"          score: {format_score(cap['score'])}")
+        for name, rev in cap.get("revisions", {}).items():
+            extra = f"  score: {format_score(rev['score'])}" if rev.get("score") else ""
+            if rev.get("reason"):
+                extra += f"  ({rev['reason']})"
+            print(f"          {name}: {rev['status']}{extra}")
+    for rev in m.get("revisions", []):
+        settings = ", ".join(f"{k} {rev[k]}" for k in ("mode", "demosaic", "calibration_id")
+                             if k in rev)
+        print(f"  revision {rev['name']} ({rev['created']}): {settings}")
+    if args.no_verify:
+        return 0
+    problems = s.verify()
+    n_files = sum(1 + ("meta_path" in rec) for _, _, rec in s.iter_file_records())
+    if problems:
+        print(f"  checksums: {len(problems)} problem(s) in {n_files} recorded files:")
+        for line in problems:
+            print(f"    {line}")
+        return 1
+    print(f"  checksums: all {n_files} files verified (SHA-256)")
+    return 0

@@ -1,0 +1,197 @@
+"""``polrig stokes``: a raw DoFP mosaic -> Stokes EXR plus DoLP and AoLP PNG previews."""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+import numpy as np
+
+from polrig.app.preview import (
+    DARK,
+    DEFAULT_MIN_SNR,
+    SATURATED,
+    aolp_legend,
+    aolp_rgb,
+    display_valid,
+    dolp_gray,
+    dolp_legend,
+    mask_summary,
+    png_bytes,
+    s0_snr,
+    with_legend,
+)
+from polrig.atomic import atomic_write_bytes
+from polrig.errors import ConfigError, FormatError
+from polrig.formats.argcheck import check_output_file, int_range, nonnegative_float
+from polrig.formats.exr import colour_planes, write_stokes_exr
+from polrig.formats.rawio import (
+    DEFAULT_LAYOUT,
+    assumed_layout_note,
+    check_bit_depth,
+    read_raw,
+    sidecar_path,
+)
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.demosaic import METHODS
+from polrig.sensor.layouts import LAYOUTS
+
+#: What the extra planes of a ``polrig stokes`` EXR mean (also written into its header).
+STOKES_EXR_PLANES = {"valid": "1 = valid in every colour (finite, S0 > 0, no saturated sample in the demosaic support)",
+                     "saturated": "1 = a saturated raw sample in the demosaic support of some colour",
+                     "snr.{ch}": "S0 over its noise standard deviation (sensor noise model); "
+                                 "DoLP/AoLP of a pixel below --min-snr are background noise",
+                     "dolp.{ch}": "degree of linear polarization, 0 where invalid",
+                     "aolp_deg.{ch}": "angle of linear polarization in degrees [0, 180) (docs/conventions.md), 0 where invalid"}
+#: The unit of a ``polrig stokes`` EXR (also written into its header).
+STOKES_UNITS = ("S0..S2 in ADC DN (the raw file's values minus the black level, times "
+                "2**(ADC bits - file bits), polrig.app.processing.adc_scale)")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "stokes", help="turn a raw DoFP mosaic into a Stokes EXR with DoLP/AoLP previews",
+        description="Read a raw DoFP mosaic (16/8-bit PNG, TIFF or .npy; its .json sidecar, if "
+                    "present, supplies layout, ROI offset, bit depth and black level), "
+                    "demosaic it, compute linear Stokes images and write OUT.exr "
+                    "(channels S0..S2 per colour, plus mask and DoLP/AoLP planes) and "
+                    "OUT_dolp.png, OUT_aolp.png (AoLP as hue, DoLP as value; legends included). "
+                    "Stokes values are in ADC DN (a Mono16 file of a 12-bit ADC is divided by "
+                    "16). Pixels whose S0 is below --min-snr noise standard deviations are "
+                    "masked (black) in the previews and counted.")
+    p.add_argument("raw", type=pathlib.Path, metavar="RAW", help="raw mosaic file")
+    p.add_argument("--layout", choices=sorted(LAYOUTS), default=None,
+                   help="mosaic layout (default: from the sidecar, else imx250mzr, with a "
+                        "note); one that contradicts the sidecar's is refused")
+    p.add_argument("--demosaic", choices=METHODS, default="bilinear",
+                   help="demosaicing method (default: bilinear)")
+    p.add_argument("--black-level", type=nonnegative_float, default=None, metavar="N",
+                   help="black level in DN to subtract, >= 0 and below the full scale "
+                        "(default: from the sidecar, else 0)")
+    p.add_argument("--roi-offset", default=None, metavar="X,Y",
+                   help="sensor ROI offset of the frame, sets the mosaic phase (default: from "
+                        "the sidecar, else 0,0)")
+    p.add_argument("--bit-depth", type=int_range(1, 16), default=None, metavar="BITS",
+                   help="significant bits of the raw values, 1..16 (at most 8 for 8-bit "
+                        "files; no value above 2**BITS-1, the saturation level) (default: from "
+                        "the sidecar, else the file's dtype)")
+    p.add_argument("--analyzer", type=pathlib.Path, default=None, metavar="NPZ",
+                   help="calibrated per-pixel analyzer model (.npz) of this readout")
+    p.add_argument("--min-snr", type=nonnegative_float, default=DEFAULT_MIN_SNR, metavar="K",
+                   help=f"mask DoLP/AoLP where S0 is below K noise standard deviations of the "
+                        f"sensor noise model (default {DEFAULT_MIN_SNR:g}; 0 masks nothing)")
+    p.add_argument("--config", type=pathlib.Path, default=None, metavar="RIG.toml",
+                   help="rig configuration whose sensor model (ADC bits, gain, read noise) "
+                        "gives the unit and the noise (default: the IMX250 model, 12 bits)")
+    p.add_argument("--out", type=pathlib.Path, required=True, metavar="OUT.exr",
+                   help="output Stokes EXR")
+    p.set_defaults(func=run)
+
+
+def _parse_offset(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--roi-offset must be X,Y (two integers), got {text!r}") from None
+    if x < 0 or y < 0:
+        raise ConfigError(f"--roi-offset must not be negative, got {text!r}")
+    return x, y
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig.sensor.stokes import stokes_from_raw
+
+    out = args.out
+    if out.suffix.lower() != ".exr":
+        raise ConfigError(f"--out must name an .exr file, got {out}")
+    check_output_file(out)
+    stem = out.with_suffix("")
+    dolp_png = stem.with_name(stem.name + "_dolp.png")
+    aolp_png = stem.with_name(stem.name + "_aolp.png")
+    for preview in (dolp_png, aolp_png):
+        check_output_file(preview, "--out preview")
+    frame = read_raw(args.raw)
+    meta = frame.meta
+    if (args.layout and sidecar_path(args.raw).is_file()
+            and args.layout.lower() != meta.layout.split("@")[0].lower()):
+        raise ConfigError(f"--layout {args.layout} contradicts the sidecar of {args.raw}, which "
+                          f"says {meta.layout}; drop --layout (or fix the sidecar)")
+    layout_name = args.layout or meta.layout or DEFAULT_LAYOUT
+    if layout_name.split("@")[0].lower() not in LAYOUTS:
+        raise ConfigError(f"unknown layout {layout_name!r} (sidecar of {args.raw})")
+    ox, oy = _parse_offset(args.roi_offset) if args.roi_offset else tuple(meta.offset_xy)
+    black = meta.black_level_dn if args.black_level is None else args.black_level
+    if args.bit_depth is not None:
+        check_bit_depth(frame.raw, args.bit_depth, str(args.raw), label="--bit-depth",
+                        exact_dtype=False)
+    bits = args.bit_depth or meta.bit_depth  # read_raw checked the sidecar's against the data
+    if not black < 2 ** bits - 1:
+        source = "--black-level" if args.black_level is not None else "the sidecar's black level"
+        raise ConfigError(f"{source} {black:g} DN is not below the full scale {2 ** bits - 1} "
+                          f"DN of {bits}-bit data")
+    layout = f"{layout_name.split('@')[0].lower()}@{ox},{oy}"
+    analyzer = _load_analyzer(args.analyzer) if args.analyzer else None
+    from polrig.app.rig import load_rig_config
+    from polrig.cli.commands._units import adc_factor
+
+    model, to_adc = adc_factor(load_rig_config(args.config), bits)
+    res = stokes_from_raw(frame.raw, layout, args.demosaic, black_level_dn=black,
+                          analyzer=analyzer, bit_depth=bits)
+    stokes = res.stokes * np.float32(to_adc)  # file DN -> ADC DN (DoLP, AoLP unchanged)
+    snr = s0_snr(stokes[:, 0], model, meta.exposure_us)
+    # saturated, or no signal at all (S0 <= 0 or not finite: dark)
+    flags = (np.where(res.saturated, SATURATED, 0)
+             | np.where(~res.valid & ~res.saturated, DARK, 0)).astype(np.uint8)
+    extra = {"valid": res.valid.all(axis=0), "saturated": res.saturated.any(axis=0)}
+    extra.update(colour_planes("snr", np.nan_to_num(snr, nan=0.0)))
+    extra.update(colour_planes("dolp", res.dolp))
+    extra.update(colour_planes("aolp_deg", res.aolp_deg))
+    masked = mask_summary(flags, snr, args.min_snr)
+    metadata = {"capture": {"source": str(args.raw), "frame": meta.to_json()},
+                "planes": STOKES_EXR_PLANES, "units": STOKES_UNITS,
+                "processing": {"layout": res.layout, "demosaic": args.demosaic,
+                               "black_level_dn": black, "bit_depth": bits,
+                               "adc_dn_per_file_dn": to_adc,
+                               "analyzer": str(args.analyzer) if args.analyzer else "ideal",
+                               "dolp_overshoot": res.dolp_overshoot,
+                               "min_snr": args.min_snr,
+                               "masked_pixels": int((~res.valid).sum())}}
+    write_stokes_exr(out, stokes, extra=extra, metadata=metadata)
+    # previews show one colour plane: Y for mono, G (the best-sampled Bayer colour) for colour
+    c = res.stokes.shape[0]
+    ci = 0 if c == 1 else 1  # green: the best-sampled colour of a Bayer sensor
+    valid = display_valid(flags[ci], snr[ci], args.min_snr)
+    _write_png(dolp_png, with_legend(dolp_gray(res.dolp[ci], valid=valid),
+                                     dolp_legend(res.dolp.shape[-2])))
+    _write_png(aolp_png, with_legend(aolp_rgb(res.aolp_deg[ci], res.dolp[ci], valid=valid),
+                                     aolp_legend(res.dolp.shape[-2])))
+    shown = display_valid(flags, snr, args.min_snr)
+    with np.errstate(all="ignore"):
+        over = int((shown & (np.hypot(stokes[:, 1], stokes[:, 2]) > stokes[:, 0])).sum())
+    clipped = (f"; DoLP above 1 (noise) in {over} shown pixel-colour(s), drawn as 1"
+               if over else "")
+    print(f"wrote {out} ({res.stokes.shape[-1]}x{res.stokes.shape[-2]}, {c} colour plane(s), "
+          f"{args.demosaic}, ADC DN), {dolp_png.name}, {aolp_png.name}; {masked}{clipped}")
+    note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
+    if note:
+        print(f"polrig stokes: note: {note}", file=sys.stderr)
+    return 0
+
+
+def _load_analyzer(path: pathlib.Path) -> AnalyzerModel:
+    """The ``--analyzer`` model; a file that is not an .npz archive is one line in polrig's
+    words (numpy's own message for a text file is advice about unpickling it)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except IsADirectoryError:
+        raise ConfigError(f"--analyzer {path} is a directory; give the .npz file") from None
+    if head != b"PK\x03\x04":  # every .npz is a zip archive
+        raise FormatError(f"--analyzer {path}: not a polrig analyzer model (an .npz file "
+                          f"written by polrig calibrate)")
+    return AnalyzerModel.load(path)
+
+
+def _write_png(path: pathlib.Path, rgb: np.ndarray) -> None:
+    atomic_write_bytes(path, png_bytes(rgb))
