@@ -273,3 +273,124 @@ def test_runtime_never_imports_torch():
     mods = [m for _, m in _imports(ast.parse(path.read_text("utf-8")), "polrig.models.runtime",
                                    False)]
     assert not [m for m in mods if m == "torch" or m.startswith("torch.")]
+
+
+# -- the shells present, the app layer does ---------------------------------------------------------
+#: Module name prefixes of the shells (docs/architecture.md, "Shells").
+SHELLS = ("polrig.cli", "polrig.gui", "polrig.__main__")
+#: The steps of a capture that only :func:`polrig.app.capture.run_capture` takes: a shell that
+#: names one of them (under any name it is imported as, re-exports included) builds its own
+#: capture instead of calling the one capture call.
+CAPTURE_STEPS = (
+    "polrig.app.capture.prepare_capture", "polrig.app.capture.open_session",
+    "polrig.app.capture.run_session", "polrig.app.capture.interrupted_result",
+    "polrig.app.capture.PreparedCapture", "polrig.app.sessionio.create_session",
+    "polrig.app.sessionio.check_resume_space", "polrig.app.session.Session.create",
+    "polrig.app.processing.Processor", "polrig.app.processing.make_processor",
+    "polrig.app.records.check_resume_rig", "polrig.app.records.check_rig_for_plan",
+    "polrig.app.records.session_sensor_model",
+    "polrig.app.calibrations.check_calibration_fits_rig")
+
+
+def _resolve(dotted: str):
+    """The object ``dotted`` names (the longest importable module, then attributes), or
+    ``None`` where it names nothing."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return None
+        return getattr(obj, "__func__", obj)  # a classmethod: its function, one object
+    return None
+
+
+def _names_used(tree: ast.AST, name: str, is_pkg: bool) -> list[tuple[int, str]]:
+    """``(line, dotted name)`` of every project name a module's code refers to: imported names
+    (``from polrig.app.capture import run_session as rs``) and attribute chains on imported
+    modules (``capture.run_session``, ``polrig.app.capture.run_session``), resolved through
+    the module's imports (any depth)."""
+    aliases: dict[str, str] = {}
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.asname:
+                    aliases[a.asname] = a.name
+                else:
+                    aliases.setdefault(a.name.split(".")[0], a.name.split(".")[0])
+        elif isinstance(node, ast.ImportFrom):
+            for line, target in _imports(ast.Module(body=[node], type_ignores=[]), name, is_pkg):
+                local = next(a.asname or a.name for a in node.names
+                             if target.endswith("." + a.name))
+                aliases[local] = target
+                found.append((line, target))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            chain = []
+            inner = node
+            while isinstance(inner, ast.Attribute):
+                chain.append(inner.attr)
+                inner = inner.value
+            if isinstance(inner, ast.Name) and inner.id in aliases:
+                found.append((node.lineno, ".".join([aliases[inner.id], *reversed(chain)])))
+    return [(line, d) for line, d in found if d.startswith("polrig")]
+
+
+def capture_steps_used(path: pathlib.Path, module: str) -> list[str]:
+    """The capture steps (:data:`CAPTURE_STEPS`, compared as objects: a re-export is the same
+    step) that the code of ``module`` in ``path`` refers to."""
+    steps = {id(obj): dotted for dotted in CAPTURE_STEPS if (obj := _resolve(dotted)) is not None}
+    tree = ast.parse(path.read_text("utf-8"), str(path))
+    bad = []
+    for line, dotted in _names_used(tree, module, path.name == "__init__.py"):
+        obj = _resolve(dotted)
+        if obj is not None and id(obj) in steps:
+            bad.append(f"{path.relative_to(REPO)}:{line} uses {dotted} ({steps[id(obj)]})")
+    return sorted(set(bad))
+
+
+def test_the_shell_check_finds_a_shell_that_builds_its_own_capture(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    f = tmp_path / "m.py"
+    f.write_text("import polrig.app.capture\nimport polrig.app.session as ses\n"
+                 "from polrig.app import capture, processing as proc\n"
+                 "from polrig.app.capture import open_session as opened, run_capture\n"
+                 "from polrig.app.processing import session_sensor_model\n"
+                 "def f(request, rig):\n"
+                 "    p = capture.prepare_capture(request)\n"
+                 "    s = opened(p, rig, [])\n"
+                 "    proc.make_processor(p.plan, p.calibration, session_sensor_model(s))\n"
+                 "    polrig.app.capture.run_session(rig, s)\n"
+                 "    ses.Session.create\n"
+                 "    return run_capture(request, command_line=[])\n")
+    found = {b.split(" uses ")[1].split(" (")[0] for b in capture_steps_used(f, "polrig.cli.x")}
+    assert found == ({
+        "polrig.app.capture.prepare_capture", "polrig.app.capture.open_session",
+        "polrig.app.processing.make_processor", "polrig.app.processing.session_sensor_model",
+        "polrig.app.capture.run_session", "polrig.app.session.Session.create"}), found
+    g = tmp_path / "g.py"
+    g.write_text("from polrig.app.capture import run_capture, CaptureRequest\n"
+                 "from polrig.app import processing\nprocessing.adc_scale\n")
+    assert capture_steps_used(g, "polrig.gui.g") == []
+
+
+def test_every_shell_captures_through_the_one_capture_call():
+    """No module of ``polrig.cli`` or ``polrig.gui`` takes a capture's steps itself (prepare,
+    open the session, make the processor, run it, report a stop): each calls
+    :func:`polrig.app.capture.run_capture` and presents its events. ``polrig capture`` and the
+    GUI's capture panel do call it."""
+    files = {m: p for m, p in _files().items() if m.startswith(SHELLS)}
+    bad = [b for m, p in sorted(files.items()) for b in capture_steps_used(p, m)]
+    assert not bad, "a shell builds its own capture:\n" + "\n".join(bad)
+    for shell in ("polrig.cli.commands.capture", "polrig.gui.capture_panel"):
+        tree = ast.parse(files[shell].read_text("utf-8"))
+        used = {d for _, d in _names_used(tree, shell, False)}
+        assert "polrig.app.capture.run_capture" in used, shell

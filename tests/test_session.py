@@ -8,6 +8,7 @@ import pathlib
 
 import pytest
 
+from polrig.acquisition.plan import CapturePlan
 from polrig.app.session import (
     COMPLETE,
     LOCK_NAME,
@@ -25,21 +26,26 @@ from polrig.app.session import (
 )
 from polrig.errors import FormatError
 
-PLAN = {"poses_deg": [0.0, 90.0], "mode": "reference", "states_deg": [0, 45, 90, 135]}
+PLAN = CapturePlan((0.0, 90.0))
+#: a rig record (polrig.app.manifest.RigRecord) of a rig that says little about itself
+RIG = {"simulated": False, "config": None, "devices": {}, "sim_parameters": None,
+       "camera_frames": None, "sensor_model": None}
 #: what a raw frame record carries besides its file (docs/session-schema.md)
 FRAME = {"state_index": 0, "state_deg": 0.0, "exposure_index": 0, "exposure_us": 1000.0,
          "frame": 0}
 
 
 def make(tmp_path: pathlib.Path, **kw) -> Session:
-    return Session.create(tmp_path / "s", plan=PLAN, rig={"kind": "test"},
-                          calibration_id="nominal", command_line=["polrig", "capture"], **kw)
+    return Session.create(tmp_path / "s", plan=PLAN, rig=RIG, calibration_id="nominal",
+                          command_line=["polrig", "capture"], **kw)
 
 
 def test_create_lists_one_pending_capture_per_pose(tmp_path):
     s = make(tmp_path)
     m = json.loads((s.root / MANIFEST_NAME).read_text())
-    assert m["schema_version"] == 1 and m["calibration_id"] == "nominal"
+    assert m["schema_version"] == 2 and m["calibration_id"] == "nominal"
+    assert m["plan"]["poses_deg"] == [0.0, 90.0] and m["plan"]["exr_uncertainty"] == "half"
+    assert Session.open(s.root).plan == PLAN  # stored once, read back as the CapturePlan
     assert [c["pose_deg"] for c in m["captures"]] == [0.0, 90.0]
     assert all(c["status"] == PENDING for c in m["captures"])
     assert m["conventions_version"] and m["software"]["version"]
@@ -93,14 +99,14 @@ def test_never_overwrites(tmp_path):
 
 def test_disk_full_leaves_previous_manifest_and_no_partial_file(tmp_path):
     s = make(tmp_path)
-    s.add_file(0, "raw", "c000/raw/a.png", b"a", **FRAME)
+    s.add_file(0, "raw", "c000/raw/a.png", b"a", sidecar=b"{}", **FRAME)
 
     def full(path, data):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     s.write_hook = full
     with pytest.raises(OSError) as info:
-        s.add_file(0, "raw", "c000/raw/b.png", b"b", **FRAME)
+        s.add_file(0, "raw", "c000/raw/b.png", b"b", sidecar=b"{}", **FRAME)
     assert info.value.errno == errno.ENOSPC
     assert not (s.root / "c000/raw/b.png").exists()
     on_disk = Session.open(s.root)
@@ -112,7 +118,7 @@ def test_disk_full_leaves_previous_manifest_and_no_partial_file(tmp_path):
 def test_restart_removes_partial_capture_and_discard_unrecorded(tmp_path):
     s = make(tmp_path)
     s.capture(0)["name"] = "c000"
-    s.add_file(0, "raw", "c000/raw/a.png", b"a", **FRAME)
+    s.add_file(0, "raw", "c000/raw/a.png", b"a", sidecar=b"{}", **FRAME)
     (s.root / "c000/raw/orphan.png").write_bytes(b"o")  # written, crash before recording
     assert s.discard_unrecorded(0) == ["c000/raw/orphan.png"]
     s.restart_capture(0)
@@ -140,7 +146,12 @@ def test_open_rejects_non_sessions(tmp_path):
 def test_revisions_are_separate_entries(tmp_path):
     s = make(tmp_path)
     s.add_file(0, "mueller", "c000/mueller.exr", b"m0")
-    name = s.new_revision({"mode": "reference", "demosaic": "bilinear"})
+    with pytest.raises(ValueError, match="revision rev1: missing 'mirror_average'"):
+        s.new_revision({"mode": "reference", "demosaic": "bilinear"})
+    name = s.new_revision({"mode": "reference", "demosaic": "bilinear", "mirror_average": False,
+                           "resolution": "superpixel", "network_binning": 1,
+                           "calibration_id": "nominal", "exr_planes": ["mueller"],
+                           "exr_uncertainty": "half", "exr_compression": "zip"})
     s.start_revision(0, name)
     s.add_file(0, "mueller", f"c000/{name}/mueller.exr", b"m1", revision=name)
     roles = [role for _, role, _ in s.iter_file_records()]
@@ -169,13 +180,19 @@ def _damaged(tmp_path, change) -> pathlib.Path:
     (lambda m: m["captures"][0]["files"]["raw"][0].update(state_index="one"),
      "'state_index' must be an index >= 0"),
     (lambda m: m["captures"][0]["files"].update(raw={"path": "x"}),
-     "files 'raw' must be a list"),
+     "capture 0 (c000): 'raw' must be a list"),
     (lambda m: m["captures"][1].update(name="../outside"), "capture 1 (../outside): 'name' must be a folder name"),
     (lambda m: m["captures"][1].pop("status"), "capture 1 (c001_pose090.0): missing 'status'"),
     (lambda m: m["captures"][1].update(index=7), "'index' is 7, but it is entry 1"),
     (lambda m: m["captures"].pop(), "1 captures listed for the 2 poses"),
     (lambda m: m["plan"].pop("mode"), "plan: missing 'mode'"),
     (lambda m: m["plan"].update(exposures_us=["fast"]), "plan: 'exposures_us' must be a list"),
+    (lambda m: m["plan"].update(states_deg=[0, 90]), "plan: the reference method needs at least 3"),
+    (lambda m: m["captures"][0]["files"].update(bogus={}), "capture 0 (c000): unknown key 'bogus'"),
+    (lambda m: m["captures"][0]["files"]["raw"][0].update(exposure_us="long"),
+     "'exposure_us' must be a finite number or null"),
+    (lambda m: m["rig"].pop("camera_frames"), "rig: missing 'camera_frames'"),
+    (lambda m: m["revisions"].append({"name": "../x"}), "revision entry 0: 'name' must be a folder name"),
     (lambda m: m.pop("software"), "missing 'software'"),
     (lambda m: m.update(status="paused"), "'status' must be one of running, complete, interrupted"),
     (lambda m: m["captures"][0].update(score={"rmse": 1.0}), "capture 0 (c000): missing 'mae'"),

@@ -137,11 +137,6 @@ def parse_float_list(spec: str, name: str, *, positive: bool = False,
 
 
 # -- the result file's format -----------------------------------------------------------------
-#: The EXR choice of a plan written before the ``exr_*`` fields existed (float32 uncertainty
-#: planes, ZIP): a session's plan without them was captured with it.
-LEGACY_EXR: dict[str, str] = {"exr_uncertainty": "float", "exr_compression": "zip"}
-
-
 @dataclasses.dataclass(frozen=True)
 class ExrChoice:
     """What a result ``mueller.exr`` holds and how it is stored (:func:`polrig.formats.exr.result_planes`,
@@ -153,9 +148,9 @@ class ExrChoice:
 
     The default is half-precision uncertainty planes, ZIP: at full sensor a colour bilinear
     result is 0.7 GB instead of 1.6 GB with float32 planes, written faster and solved in less
-    memory, and 11 significant bits are ample for a standard deviation. Plans written before
-    these fields existed were written with :data:`LEGACY_EXR` (:meth:`of_plan`,
-    :meth:`CapturePlan.from_json`), so their sessions resume to the same files."""
+    memory, and 11 significant bits are ample for a standard deviation. Sessions from before
+    these fields existed were written with float32 planes: their manifests say so once
+    migrated (:data:`polrig.app.manifest.LEGACY_EXR`), so they resume to the same files."""
 
     planes: tuple[str, ...] = RESULT_PLANES
     uncertainty: str = "half"
@@ -175,14 +170,6 @@ class ExrChoice:
                             subject=repr(self.compression), what="EXR compression")
         object.__setattr__(self, "planes", tuple(p for p in RESULT_PLANES
                                                  if p == "mueller" or p in planes))
-
-    @classmethod
-    def of_plan(cls, plan: dict[str, Any]) -> "ExrChoice":
-        """The choice a plan's JSON records (a session older than these fields:
-        :data:`LEGACY_EXR`, the choice it was written with)."""
-        plan = {**LEGACY_EXR, **{k: v for k, v in plan.items() if v}}
-        return cls(tuple(plan.get("exr_planes") or RESULT_PLANES), plan["exr_uncertainty"],
-                   plan["exr_compression"])
 
     def bytes_per_pixel(self) -> int:
         """Uncompressed bytes per output pixel and colour."""
@@ -204,6 +191,9 @@ class CapturePlan:
     Mueller pixel then uses four physically measured analyzer values and no interpolated
     ones, so the uncertainty propagated from the noise model is exact; interpolating methods
     correlate neighbouring pixels and mix their Mueller matrices at edges).
+
+    A session's manifest stores the plan as its fields, every one of them, and reads it back
+    as a ``CapturePlan`` (:mod:`polrig.app.manifest`).
     """
 
     poses_deg: tuple[float, ...]
@@ -277,20 +267,6 @@ class CapturePlan:
         states = self.states_deg[:1] if self.mode == "single-shot" else self.states_deg
         object.__setattr__(self, "states_deg", tuple(float(s) for s in states))
         object.__setattr__(self, "exposures_us", tuple(float(e) for e in self.exposures_us))
-
-    def to_json(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        for k in ("poses_deg", "states_deg", "exposures_us", "exr_planes"):
-            d[k] = list(d[k])
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "CapturePlan":
-        """The plan a session's JSON records (one older than the EXR fields: written with
-        :data:`LEGACY_EXR`)."""
-        fields = {f.name for f in dataclasses.fields(cls)}
-        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in fields}
-        return cls(**{**LEGACY_EXR, **kw})
 
     @property
     def exr(self) -> ExrChoice:

@@ -1,7 +1,13 @@
 """Capture sessions over turntable poses: plan -> executor -> sinks, processing overlapped with
 acquisition. No printing.
 
-Used by ``polrig capture`` and the GUI alike (both build a :class:`CaptureRequest`).
+:func:`run_capture` is the one capture call: ``polrig capture`` and the GUI build a
+:class:`CaptureRequest` and present its events (:class:`SessionOpened`, :class:`Progress`);
+it validates the request (:func:`prepare_capture`), opens the rig, builds the processor,
+creates or resumes the session (:func:`open_session`), runs it (:func:`run_session`) and turns
+any stop once the session exists into a resumable result (:func:`interrupted_result`).
+``tests/test_architecture.py`` fails if a shell takes those steps itself.
+
 :func:`run_session` turns the session's plan into device steps (:mod:`polrig.acquisition.plan`), runs
 them with one :class:`polrig.acquisition.engine.Executor` (its fault policy: retries, re-homing,
 timeouts from the hardware's declared capabilities) and subscribes to its events:
@@ -36,7 +42,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import pathlib
-from typing import Any, Callable
+from typing import Any, Callable, ContextManager, Sequence, Union
 
 from polrig.acquisition.engine import (
     CaptureControl,
@@ -67,7 +73,13 @@ from polrig.app.calibrations import (
     check_plan,
     load_calibration,
 )
-from polrig.app.records import check_resume_rig, check_rig_for_plan
+from polrig.app.processing import make_processor
+from polrig.app.records import (
+    check_resume_rig,
+    check_rig_for_plan,
+    sensor_model_of,
+    session_sensor_model,
+)
 from polrig.app.session import (
     ACQUIRED,
     ACQUISITION_ROLES,
@@ -94,9 +106,10 @@ from polrig.app.sessionio import (  # noqa: F401 (re-exported)
 )
 from polrig.errors import DeviceError
 
-__all__ = ["CaptureControl", "CapturePlan", "CaptureRequest", "PreparedCapture", "Progress",
-           "SessionResult", "StopRequested", "check_resume_space", "create_session",
-           "interrupted_result", "open_session", "prepare_capture", "run_session"]
+__all__ = ["CaptureControl", "CaptureEvent", "CapturePlan", "CaptureRequest", "PreparedCapture",
+           "Progress", "SessionOpened", "SessionResult", "StopRequested", "check_resume_space",
+           "create_session", "interrupted_result", "open_session", "prepare_capture",
+           "run_capture", "run_session"]
 
 
 # -- the request (GUI and command line) ---------------------------------------------------------
@@ -184,7 +197,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
         # opened for writing: its lock first, so the manifest read is the one this run continues
         session = Session.open(out, lock=True)
         try:
-            plan = CapturePlan.from_json(session.plan)
+            plan = session.plan
             for key, value in request.plan_fields().items():
                 if value != getattr(plan, key):
                     raise PlanError(key, f"the session was planned with {key}="
@@ -243,7 +256,8 @@ class Progress:
     ``"capture-failed"``, ``"session-done"``. ``step``/``total`` count the raw frames this run
     acquires. ``hardware_s``: the plan's hardware time for this run (motion, exposure,
     readout; :func:`polrig.acquisition.plan.step_durations`), known before the first frame;
-    ``hardware_left_s`` what is left of it."""
+    ``hardware_left_s`` what is left of it. ``result``: of ``"capture-done"``, the capture's
+    result file (``mueller.exr``; ``None`` without processing)."""
 
     kind: str
     capture_index: int
@@ -255,9 +269,28 @@ class Progress:
     score: dict[str, Any] | None = None
     hardware_s: float = 0.0
     hardware_left_s: float = 0.0
+    result: pathlib.Path | None = None
 
 
 ProgressCallback = Callable[[Progress], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class SessionOpened:
+    """The session of a :func:`run_capture` exists (``resumed``: an existing one continues)
+    and its run starts: the request was valid, the rig is open and fits it, nothing was
+    refused. Every way the run ends from here is a :class:`SessionResult` (or Ctrl-C)."""
+
+    root: pathlib.Path
+    resumed: bool
+    n_captures: int
+
+
+#: What :func:`run_capture` tells its ``events`` callback, in the calling thread.
+CaptureEvent = Union[SessionOpened, Progress]
+#: Where :func:`run_capture` gets its rig: a callable returning a context manager that yields
+#: an open :class:`polrig.app.rig.Rig` (and closes or releases it at the end).
+RigSource = Callable[[], ContextManager[Any]]
 
 
 @dataclasses.dataclass
@@ -269,6 +302,75 @@ class SessionResult:
     failed: list[int]
     reason: str | None = None
     scores: dict[int, dict[str, Any]] = dataclasses.field(default_factory=dict)
+
+
+# -- the one capture call -----------------------------------------------------------------------
+def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
+                rig: RigSource | None = None,
+                events: Callable[[CaptureEvent], None] | None = None,
+                control: CaptureControl | None = None, reraise: bool = False) -> SessionResult:
+    """Run ``request`` end to end: the one capture call of every shell (``polrig capture``,
+    the GUI's capture panel), which only build the request and present the events.
+
+    1. :func:`prepare_capture`: the request is validated before any device opens or any file
+       is written (on ``resume`` the session is opened and its lock taken);
+    2. the rig: ``rig()`` (default :func:`polrig.app.rig.open_rig` of ``request.config``), a
+       context manager held for the whole run (the GUI's yields its open rig under its device
+       locks);
+    3. the processor (:func:`polrig.app.processing.make_processor` of the plan, the calibration,
+       the noise model the session records or will record, on ``request.device``);
+    4. :func:`open_session`: the rig must fit the plan and the calibration (on ``resume``: be
+       the rig the session was captured on; the disk space for what is left), then the
+       session is created or continued, and :class:`SessionOpened` is sent;
+    5. :func:`run_session` with ``events`` (its :class:`Progress`) and ``control`` (pause,
+       stop);
+    6. any error once the session exists (a file-system error, a processing error) leaves it
+       ``interrupted`` and resumable and comes back as that result with the reason
+       (:func:`interrupted_result`; ``reraise`` raises it instead, for a debugging run);
+       device faults, a full disk and a stop are results anyway. The session's lock is
+       released whatever way the call ends.
+
+    Before :class:`SessionOpened` a refusal is raised and nothing is written
+    (:class:`polrig.acquisition.plan.PlanError` naming the request's field,
+    ``FileNotFoundError``, ``FileExistsError``, :class:`polrig.errors.ConfigError`,
+    :class:`polrig.app.session.SessionBusy`, a device error while the rig opens). Ctrl-C and
+    SIGTERM (main thread) are raised as ``KeyboardInterrupt`` after the session is left
+    consistent and resumable. ``command_line`` is what the manifest records as the command.
+    """
+    prepared = prepare_capture(request)
+    session: Session | None = None
+    try:
+        with (rig or _configured_rig(request.config))() as opened:
+            sensor = (session_sensor_model(prepared.resume_session)
+                      if prepared.resume_session is not None else sensor_model_of(opened))
+            processor = make_processor(prepared.plan, prepared.calibration, sensor,
+                                       device=request.device)
+            session = open_session(prepared, opened, list(command_line))
+            try:
+                if events is not None:
+                    events(SessionOpened(session.root, prepared.resume_session is not None,
+                                         len(session.captures)))
+                return run_session(opened, session, processor=processor, progress=events,
+                                   control=control)
+            except Exception as exc:  # noqa: BLE001 - the session exists: a stop to report
+                if reraise:
+                    raise
+                return interrupted_result(session, exc)
+    finally:  # whatever way it ends (a refusal before the run too), the lock goes
+        for held in (session, prepared.resume_session):
+            if held is not None:
+                held.unlock()
+
+
+def _configured_rig(config: pathlib.Path | None) -> RigSource:
+    """The rig of ``config`` (the simulated rig without one), opened when the run starts."""
+
+    def source():
+        from polrig.app import rig as rigs  # looked up at call time (tests replace open_rig)
+
+        return rigs.open_rig(config)
+
+    return source
 
 
 class _ProcessingFailed(Exception):
@@ -323,7 +425,7 @@ class _Run:
         self.rig, self.session, self.processor = rig, session, processor
         self.progress, self.guard = progress, guard
         self.control = control or CaptureControl()
-        self.plan = CapturePlan.from_json(session.plan)
+        self.plan = session.plan
         self.n = len(session.captures)
         self.to_process = session.acquired()
         self.to_acquire = [i for i in session.next_pending() if i not in self.to_process]
@@ -338,11 +440,12 @@ class _Run:
                                               if c["status"] == COMPLETE], [])
 
     # -- progress
-    def emit(self, kind: str, index: int, message: str = "", score=None) -> None:
+    def emit(self, kind: str, index: int, message: str = "", score=None,
+             result: pathlib.Path | None = None) -> None:
         if self.progress:
             self.progress(Progress(kind, index, self.n, self.step, self.total,
                                    self.session.capture(index)["pose_deg"], message, score,
-                                   self.hardware_s, self.hardware_left_s))
+                                   self.hardware_s, self.hardware_left_s, result))
 
     # -- the executor's subscribers
     def on_event(self, ev) -> None:
@@ -439,7 +542,9 @@ class _Run:
         self.result.completed.append(index)
         if score is not None:
             self.result.scores[index] = score
-        self.emit("capture-done", index, score=score)
+        rec = self.session.capture(index)["files"].get("mueller")
+        self.emit("capture-done", index, score=score,
+                  result=None if rec is None else self.session.root / rec["path"])
 
     def drain(self) -> BaseException | None:
         """After an interruption: let the processing under way end, report it; the first
@@ -469,7 +574,8 @@ class _Run:
                 self.hardware_s = self.hardware_left_s = sum(durations)
                 setup_s, self.durations = durations[:len(setup)], durations[len(setup):]
             with session.mutex:
-                session.manifest.setdefault("hardware_time_s", round(self.hardware_s, 3))
+                if session.manifest["hardware_time_s"] is None:  # the first run's estimate
+                    session.manifest["hardware_time_s"] = round(self.hardware_s, 3)
                 session.log("run planned", to_acquire=self.to_acquire,
                             to_process=self.to_process,
                             hardware_time_s=round(self.hardware_s, 3))
@@ -565,8 +671,8 @@ def interrupted_result(session: Session, exc: BaseException) -> SessionResult:
     and the result says so, for the caller to report as any other stop: the completed
     captures are intact and a resume continues (``polrig capture``, the GUI)."""
     reason = f"{type(exc).__name__}: {exc}"
-    if session.manifest.get("status") == INTERRUPTED:
-        reason = session.manifest.get("status_reason") or reason
+    if session.manifest["status"] == INTERRUPTED:
+        reason = session.manifest["status_reason"] or reason
     else:
         with contextlib.suppress(Exception):  # another writer, a failing disk: as it is
             session.lock()

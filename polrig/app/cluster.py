@@ -308,24 +308,19 @@ class BatchIncomplete(PolrigError):
                          "); the others are complete")
 
 
-#: Revision settings newer than some revisions, as the ones without them were made.
-ABSENT_SETTINGS: dict[str, Any] = {"network_binning": 1}
-
-
 def _continuable(session: Session, settings: dict[str, Any], done: list[int]
                  ) -> tuple[str, list[int]] | None:
     """The session's last revision and its captures still to do, when it was made with
     ``settings`` and was interrupted (captures of ``done`` pending or missing in it)."""
-    revisions = session.manifest.get("revisions") or []
+    revisions = session.manifest["revisions"]
     if not revisions:
         return None
     last = revisions[-1]
-    if any(last.get(k, ABSENT_SETTINGS.get(k)) != v for k, v in settings.items()):
+    if any(last[k] != v for k, v in settings.items()):
         return None
     name = last["name"]
     todo = [i for i in done
-            if session.capture(i).get("revisions", {}).get(name, {}).get("status",
-                                                                         PENDING) == PENDING]
+            if session.capture(i)["revisions"].get(name, {}).get("status", PENDING) == PENDING]
     return (name, todo) if todo else None
 
 
@@ -384,8 +379,7 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
     return [CaptureJob(str(batch.session.root.resolve()), i, batch.revision, st["mode"],
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
-                       st["exr_uncertainty"], st["exr_compression"],
-                       int(st.get("network_binning", 1)))
+                       st["exr_uncertainty"], st["exr_compression"], st["network_binning"])
             for i in batch.todo]
 
 
@@ -468,7 +462,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
         s = b.session
         changed = False
         for i in b.todo:
-            entry = s.capture(i).get("revisions", {}).get(b.revision)
+            entry = s.capture(i)["revisions"].get(b.revision)
             if entry is not None and entry.get("status") == PENDING:
                 entry["reason"] = reason
                 changed = True

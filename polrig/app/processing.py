@@ -642,7 +642,7 @@ class Processor:
         return TruthScore(truth_path, layout, self.demosaic, s_in, states)
 
 
-def make_processor(plan, calibration: Calibration, sensor_model: SensorModel,
+def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
                    device: str = "auto") -> Processor:
     """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
@@ -716,15 +716,15 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
     ``device``) and the indices of the complete captures to process. Shared by
     :func:`reprocess_session` and :mod:`polrig.app.cluster`."""
     plan = session.plan
-    mode = mode or plan["mode"]
-    demosaic = demosaic or plan.get("demosaic", "superpixel")
+    mode = mode or plan.mode
+    demosaic = demosaic or plan.demosaic
     if mirror_average is None:  # the session's choice where it was single-shot already
-        mirror_average = bool(plan.get("mirror_average", False)) and mode == "single-shot"
+        mirror_average = plan.mirror_average and mode == "single-shot"
     if resolution is None:  # the session's where it stays single-shot
-        resolution = plan.get("resolution", "superpixel") if mode == "single-shot" else "superpixel"
+        resolution = plan.resolution if mode == "single-shot" else "superpixel"
     if network_binning is None:  # the session's where it stays single-shot
-        network_binning = plan.get("network_binning", 1) if mode == "single-shot" else 1
-    choice = dataclasses.replace(ExrChoice.of_plan(plan),
+        network_binning = plan.network_binning if mode == "single-shot" else 1
+    choice = dataclasses.replace(plan.exr,
                                  **{k: v for k, v in (exr or {}).items() if v is not None})
     calibration = calibration or nominal_calibration()
     if calibration.sensor is not None:  # before a revision exists: nothing recorded
@@ -737,9 +737,9 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
     if mode == "reference":  # before a revision exists: an impossible request records nothing
-        acquired = CapturePlan.from_json(plan).acquired_states_deg()
+        acquired = plan.acquired_states_deg()
         if len(acquired) < 3:
-            raise ConfigError(f"{session.root}: captured in {plan['mode']} mode, "
+            raise ConfigError(f"{session.root}: captured in {plan.mode} mode, "
                               f"{len(acquired)} polarizer state per pose; the reference method "
                               f"needs at least 3 (reconstruct with the single-shot method, or "
                               f"capture again with the reference method)")
@@ -791,8 +791,8 @@ def _mark_revision(session: Session, index: int, revision: str, status: str,
     The manifest on disk is what counts (after a failed save it is the consistent one)."""
     with contextlib.suppress(OSError, FormatError):
         session.reload()
-    entry = session.capture(index).setdefault("revisions", {}).setdefault(
-        revision, {"status": PENDING, "files": {}, "score": None})
+    entry = session.capture(index)["revisions"].setdefault(
+        revision, {"status": PENDING, "files": {}, "score": None, "reason": None})
     entry.update(status=status, reason=reason)
     with contextlib.suppress(OSError):
         session.save()

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from polrig.acquisition.plan import CapturePlan, PlanError
+from polrig.app.manifest import CameraFrames, RigRecord
 from polrig.app.session import Session
 from polrig.errors import ConfigError
 from polrig.formats.rawio import read_raw
@@ -31,7 +32,7 @@ def frame_geometry(rig) -> tuple[int, int, int, tuple[int, int]]:
     return int(width), int(height), lay.n_colours, tuple(lay.period)
 
 
-def camera_frames(rig) -> dict[str, Any]:
+def camera_frames(rig) -> CameraFrames:
     """What the rig's camera frames look like (the manifest's ``rig.camera_frames``): size,
     ROI offset (the mosaic phase), layout and colour count. Frames that differ in any of
     these cannot be processed or compared together."""
@@ -41,13 +42,15 @@ def camera_frames(rig) -> dict[str, Any]:
             "colours": int(resolve_layout(layout).n_colours)}
 
 
-def rig_record(rig) -> dict[str, Any]:
-    """The manifest's ``rig`` entry: :func:`describe_rig`, the camera's frame geometry
-    (:func:`camera_frames`) and the noise model used for the uncertainty."""
+def rig_record(rig) -> RigRecord:
+    """The manifest's ``rig`` entry (:class:`polrig.app.manifest.RigRecord`):
+    :func:`describe_rig`, the camera's frame geometry (:func:`camera_frames`) and the noise
+    model used for the uncertainty."""
     info = describe_rig(rig)
-    info["camera_frames"] = camera_frames(rig)
-    info["sensor_model"] = jsonable(dataclasses.asdict(sensor_model_of(rig)))
-    return info
+    return {"simulated": info["simulated"], "config": info.get("config"),
+            "devices": info["devices"], "sim_parameters": info.get("sim_parameters"),
+            "camera_frames": camera_frames(rig),
+            "sensor_model": jsonable(dataclasses.asdict(sensor_model_of(rig)))}
 
 
 def check_rig_for_plan(rig, plan: CapturePlan) -> None:
@@ -72,7 +75,7 @@ def _frames_text(f: dict[str, Any]) -> str:
             + (f" ({n} colour{'s' if n != 1 else ''})" if n is not None else ""))
 
 
-def recorded_camera_frames(session: Session) -> dict[str, Any] | None:
+def recorded_camera_frames(session: Session) -> CameraFrames | None:
     """:func:`camera_frames` of a session that predates ``rig.camera_frames``: from its first
     recorded raw frame, or ``None`` without one."""
 
@@ -132,7 +135,7 @@ def check_resume_rig(session: Session, rig) -> None:
     """Refuse (:class:`ConfigError`, one line) to resume ``session`` on a rig whose frames
     would not be comparable with the ones it holds (:func:`rig_differences`); nothing is
     written. Call before :func:`check_resume_space` and :func:`run_session`."""
-    stored = session.manifest.get("rig") or {}
+    stored = session.manifest["rig"]
     current = json.loads(json.dumps(rig_record(rig)))  # as the manifest would store it
     frames = None if stored.get("camera_frames") else recorded_camera_frames(session)
     diffs = rig_differences(stored, current, frames)
@@ -206,9 +209,9 @@ def session_frame_geometry(session: Session) -> tuple[str | None, tuple[int, int
     """``(layout, readout, sensor_size)`` of a session's frames, from its manifest
     (``rig.camera_frames``, else its first raw frame; the simulated sensor's size from
     ``rig.sim_parameters``); ``None`` where it does not say."""
-    rig = session.manifest.get("rig") or {}
-    frames = rig.get("camera_frames")
-    if not isinstance(frames, dict):  # a session older than rig.camera_frames
+    rig = session.manifest["rig"]
+    frames = rig["camera_frames"]
+    if frames is None:  # a session older than rig.camera_frames
         frames = recorded_camera_frames(session) or {}
     layout = frames.get("layout")
     readout = None
@@ -218,8 +221,7 @@ def session_frame_geometry(session: Session) -> tuple[str | None, tuple[int, int
     except (KeyError, TypeError, ValueError, IndexError):
         readout = None
     size = None
-    sensor = ((rig.get("sim_parameters") or {}).get("sensor") or {}) \
-        if rig.get("simulated") else {}
+    sensor = ((rig["sim_parameters"] or {}).get("sensor") or {}) if rig["simulated"] else {}
     try:
         h, w = sensor["shape"]
         size = (int(w), int(h))
@@ -232,5 +234,5 @@ def session_frame_geometry(session: Session) -> tuple[str | None, tuple[int, int
 
 def session_sensor_model(session: Session) -> SensorModel:
     """The noise model recorded in a session's manifest (IMX250 defaults if none)."""
-    fields = session.manifest.get("rig", {}).get("sensor_model")
+    fields = session.manifest["rig"]["sensor_model"]
     return SensorModel(**fields) if fields else SensorModel()

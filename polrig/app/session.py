@@ -16,9 +16,10 @@ A session is a folder holding everything one capture run produced (schema:
 * One writer at a time: a process that writes a session (capture, resume, reconstruct) holds
   an exclusive ``flock`` on ``session.lock`` in the folder (:meth:`Session.lock`); a second
   writer gets :class:`SessionBusy`. Readers (``polrig info``) take no lock.
-* A manifest is checked for structural damage (missing keys, wrong types, unsafe paths) in
-  one place, :func:`validate_manifest`, when it is opened: a :class:`FormatError` naming the
-  record, never a ``KeyError`` later.
+* The manifest is typed (:mod:`polrig.app.manifest`: one schema version, its plan a
+  :class:`polrig.acquisition.plan.CapturePlan`) and checked against its types when it is
+  opened (an older version migrated first): a :class:`FormatError` naming the record, never a
+  ``KeyError`` later.
 * :class:`SignalGuard` turns SIGINT and SIGTERM into :class:`Interrupted` (a
   ``KeyboardInterrupt``) once, and ignores or defers further ones, so the clean-up that
   writes the final manifest is not itself interrupted.
@@ -30,16 +31,12 @@ inject write failures such as ``OSError(errno.ENOSPC)`` (a full disk).
 from __future__ import annotations
 
 import contextlib
-import copy
-import datetime as _dt
 import errno
 import fcntl
 import hashlib
 import json
-import math
 import os
 import pathlib
-import re
 import shutil
 import signal
 import threading
@@ -47,27 +44,34 @@ import weakref
 from typing import Any, Callable, Iterator
 
 from polrig import __version__
+from polrig.acquisition.plan import CapturePlan
+from polrig.app import manifest as _schema
+from polrig.app.manifest import (  # noqa: F401 (re-exported: the statuses and roles)
+    ACQUIRED,
+    ACQUISITION_ROLES,
+    COMPLETE,
+    FAILED,
+    INTERRUPTED,
+    LIST_ROLES,
+    PENDING,
+    RUNNING,
+    SCHEMA_VERSION,
+    SESSION_COMPLETE,
+    CaptureRecord,
+    RevisionSettings,
+    RigRecord,
+    SessionManifest,
+    utc_now,
+)
 from polrig.atomic import atomic_write_bytes
 from polrig.errors import FormatError, PolrigError
+from polrig.formats import typedjson
 from polrig.optics.conventions import CONVENTIONS_VERSION
 
-SCHEMA_VERSION = 1
 MANIFEST_NAME = "session.json"
 #: Lock file of a session folder: a writer holds an exclusive ``flock`` on it for its whole run
 #: (the file stays; its content is the holder's process id, for the error message only).
 LOCK_NAME = "session.lock"
-
-# capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
-# processing not done yet (a resume processes it without acquiring it again)
-PENDING, ACQUIRED, COMPLETE, FAILED = "pending", "acquired", "complete", "failed"
-# session status
-RUNNING, SESSION_COMPLETE, INTERRUPTED = "running", "complete", "interrupted"
-
-#: Roles whose manifest entry is a list of files (one per frame); every other role is one file.
-LIST_ROLES = ("raw", "dark")
-#: Roles a capture's acquisition writes (raw and dark frames, the simulated rig's truth taken
-#: at the pose); every other role is a result of processing them.
-ACQUISITION_ROLES = ("raw", "dark", "truth_mueller")
 
 WriteHook = Callable[[pathlib.Path, bytes], None]
 
@@ -164,12 +168,6 @@ class SignalGuard:
             self._raise_pending()
 
 
-def utc_now() -> str:
-    """Current UTC time as an ISO 8601 string with a ``Z`` suffix (second resolution)."""
-    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace(
-        "+00:00", "Z")
-
-
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
@@ -213,16 +211,20 @@ def folder_is_empty(folder: pathlib.Path) -> bool:
 
 
 class Session:
-    """An open session folder and its manifest (a JSON-compatible dict, ``self.manifest``).
+    """An open session folder and its manifest (``self.manifest``, a
+    :class:`polrig.app.manifest.SessionManifest`; :attr:`plan` its plan).
 
     Create one with :meth:`create` or :meth:`open`; do not build the manifest by hand.
     Paths in the manifest are relative to :attr:`root` and use ``/``.
     """
 
-    def __init__(self, root: pathlib.Path, manifest: dict[str, Any],
+    def __init__(self, root: pathlib.Path, manifest: SessionManifest,
                  write_hook: WriteHook | None = None):
         self.root = pathlib.Path(root)
         self.manifest = manifest
+        #: the schema version of the manifest as it was read from disk (an older one is
+        #: migrated in memory; :meth:`save` writes :data:`SCHEMA_VERSION`)
+        self.stored_version = SCHEMA_VERSION
         self.write_hook = write_hook
         self._lock_fd: int | None = None
         self._lock_release: Callable[[], Any] | None = None
@@ -232,25 +234,26 @@ class Session:
 
     # -- creation -------------------------------------------------------------------------
     @classmethod
-    def create(cls, root: str | os.PathLike, *, plan: dict[str, Any], rig: dict[str, Any],
+    def create(cls, root: str | os.PathLike, *, plan: CapturePlan, rig: RigRecord,
                calibration_id: str, command_line: list[str] | None = None,
                required_bytes: int = 0, write_hook: WriteHook | None = None) -> "Session":
         """Start a new session in ``root`` (created; must not exist or be empty).
 
-        ``plan`` must hold ``poses_deg`` and ``mode`` (plus whatever else the capture plan
-        records); one pending capture is listed per pose. ``rig`` describes the rig
-        (config, devices). ``required_bytes`` is checked against the free disk space.
+        One pending capture is listed per pose of ``plan``. ``rig`` describes the rig
+        (:func:`polrig.app.records.rig_record`). ``required_bytes`` is checked against the
+        free disk space. The manifest is checked against its types before anything is
+        written (``ValueError`` naming the key).
         """
         root = pathlib.Path(root)
         if root.exists() and not root.is_dir():
             raise FileExistsError(f"{root}: output path exists and is not a folder")
         if not folder_is_empty(root):
             raise _not_empty(root)
-        if "poses_deg" not in plan or "mode" not in plan:
-            raise ValueError("a session plan needs 'poses_deg' and 'mode'")
+        if not isinstance(plan, CapturePlan):
+            raise TypeError(f"a session's plan is a CapturePlan, got {type(plan).__name__}")
         check_free_space(root, required_bytes)
         now = utc_now()
-        manifest: dict[str, Any] = {
+        manifest: SessionManifest = {
             "schema_version": SCHEMA_VERSION,
             "software": {"name": "polrig", "version": __version__},
             "conventions_version": CONVENTIONS_VERSION,
@@ -259,20 +262,21 @@ class Session:
             "status": RUNNING,
             "status_reason": None,
             "command_line": list(command_line or []),
-            "rig": copy.deepcopy(rig),
+            "rig": json.loads(json.dumps(rig)),
             "calibration_id": calibration_id,
-            "plan": copy.deepcopy(plan),
+            "plan": plan,
             "planned_bytes": int(required_bytes),
+            "hardware_time_s": None,
             "captures": [
                 {"index": i, "name": capture_folder_name(i, pose), "pose_deg": float(pose),
-                 "mode": plan["mode"], "status": PENDING, "reason": None, "started": None,
-                 "finished": None, "attempts": 0, "files": {}, "score": None,
-                 "revisions": {}}
-                for i, pose in enumerate(plan["poses_deg"])],
+                 "status": PENDING, "reason": None, "started": None, "finished": None,
+                 "attempts": 0, "files": {}, "score": None, "revisions": {}}
+                for i, pose in enumerate(plan.poses_deg)],
             "revisions": [],
             "history": [{"time": now, "event": "created",
                          "command_line": list(command_line or [])}],
         }
+        _schema.check_manifest(manifest)  # a programming error, before anything is written
         created = not root.exists()
         root.mkdir(parents=True, exist_ok=True)
         session = cls(root, manifest, write_hook)
@@ -295,8 +299,9 @@ class Session:
     def open(cls, root: str | os.PathLike, *, write_hook: WriteHook | None = None,
              lock: bool = False) -> "Session":
         """Open an existing session; :class:`FormatError` if ``root`` holds no valid manifest
-        (:func:`validate_manifest`). ``lock``: open it for writing, taking the session's lock
-        first (:meth:`lock`; :class:`SessionBusy` if another process holds it), so the
+        (:func:`read_manifest`; a manifest of an older schema version is migrated in memory,
+        :attr:`stored_version` says which it was, and the next :meth:`save` writes it in
+        this version). ``lock``: open it for writing, taking the session's lock first (:meth:`lock`; :class:`SessionBusy` if another process holds it), so the
         manifest read is the one no other writer changes any more."""
         root = pathlib.Path(root)
         path = root / MANIFEST_NAME
@@ -308,7 +313,7 @@ class Session:
         if lock:
             session.lock()
         try:
-            session.manifest = read_manifest(path)
+            session.manifest, session.stored_version = _read_manifest(path)
         except BaseException:
             session.unlock()
             raise
@@ -360,17 +365,18 @@ class Session:
         """Replace the in-memory manifest by the one on disk (after a failed save the disk
         copy is the consistent one: every file it names exists completely)."""
         with self.mutex:
-            self.manifest = read_manifest(self.root / MANIFEST_NAME)
+            self.manifest, self.stored_version = _read_manifest(self.root / MANIFEST_NAME)
 
     @property
-    def captures(self) -> list[dict[str, Any]]:
+    def captures(self) -> list[CaptureRecord]:
         return self.manifest["captures"]
 
     @property
-    def plan(self) -> dict[str, Any]:
+    def plan(self) -> CapturePlan:
+        """The session's plan, as it was read (or created): the one place it is kept."""
         return self.manifest["plan"]
 
-    def capture(self, index: int) -> dict[str, Any]:
+    def capture(self, index: int) -> CaptureRecord:
         return self.captures[index]
 
     def capture_dir(self, index: int) -> pathlib.Path:
@@ -380,14 +386,13 @@ class Session:
         """Rewrite ``session.json`` atomically (goes through ``write_hook`` too)."""
         with self.mutex:
             self.manifest["updated"] = utc_now()
-            data = (json.dumps(self.manifest, indent=1, sort_keys=False) + "\n").encode("utf-8")
-            self._write(self.root / MANIFEST_NAME, data)
+            self._write(self.root / MANIFEST_NAME, _schema.encode_manifest(self.manifest))
+            self.stored_version = SCHEMA_VERSION
 
     def log(self, event: str, **fields: Any) -> None:
         """Append an event to the manifest's ``history`` (saved with the next :meth:`save`)."""
         with self.mutex:
-            self.manifest.setdefault("history", []).append({"time": utc_now(), "event": event,
-                                                            **fields})
+            self.manifest["history"].append({"time": utc_now(), "event": event, **fields})
 
     def set_status(self, status: str, reason: str | None = None, *, save: bool = True) -> None:
         with self.mutex:
@@ -450,7 +455,7 @@ class Session:
         caps = self.captures if capture is None else [capture]
         for cap in caps:
             groups = [("", cap["files"])] + [(f"{name}/", rev["files"])
-                                             for name, rev in cap.get("revisions", {}).items()]
+                                             for name, rev in cap["revisions"].items()]
             for prefix, files in groups:
                 for role, entry in files.items():
                     for rec in entry if isinstance(entry, list) else [entry]:
@@ -479,7 +484,7 @@ class Session:
         with self.mutex:
             cap.update(status=PENDING, reason=None, files={}, score=None, revisions={},
                        started=utc_now(), finished=None,
-                       attempts=int(cap.get("attempts", 0)) + 1)
+                       attempts=cap["attempts"] + 1)
             self.save()
         if folder.exists():
             shutil.rmtree(folder)
@@ -548,19 +553,20 @@ class Session:
 
     # -- revisions (re-processing) --------------------------------------------------------
     def new_revision(self, settings: dict[str, Any], command_line: list[str] | None = None) -> str:
-        """Register a re-processing revision (``rev1``, ``rev2``...) and return its name."""
-        n = len(self.manifest.setdefault("revisions", [])) + 1
-        name = f"rev{n}"
-        self.manifest["revisions"].append({"name": name, "created": utc_now(),
-                                           "command_line": list(command_line or []),
-                                           **copy.deepcopy(settings)})
+        """Register a re-processing revision (``rev1``, ``rev2``...) with its ``settings``
+        (the fields of :class:`polrig.app.manifest.RevisionSettings` but the name, time and
+        command line; ``ValueError`` naming the key if they do not fit) and return its name."""
+        name = f"rev{len(self.manifest['revisions']) + 1}"
+        entry: RevisionSettings = typedjson.load(RevisionSettings, {
+            "name": name, "created": utc_now(), "command_line": list(command_line or []),
+            **json.loads(json.dumps(settings))}, context=f"revision {name}: ")
+        self.manifest["revisions"].append(entry)
         self.save()
         return name
 
     def start_revision(self, index: int, revision: str) -> None:
-        cap = self.capture(index)
-        cap.setdefault("revisions", {})[revision] = {"status": PENDING, "files": {},
-                                                    "score": None}
+        self.capture(index)["revisions"][revision] = {"status": PENDING, "files": {},
+                                                      "score": None, "reason": None}
 
     # -- checks ---------------------------------------------------------------------------
     def verify(self) -> list[str]:
@@ -606,204 +612,18 @@ def _not_empty(root: pathlib.Path) -> FileExistsError:
                            f"the session in it")
 
 
-def read_manifest(path: str | os.PathLike) -> dict[str, Any]:
-    """The manifest in ``path`` (``session.json``), parsed and checked by
-    :func:`validate_manifest`; :class:`FormatError` (one line) otherwise."""
+def read_manifest(path: str | os.PathLike) -> SessionManifest:
+    """The manifest in ``path`` (``session.json``), migrated from an older schema version if
+    it is one and checked against its types (:func:`polrig.app.manifest.parse`);
+    :class:`FormatError` (one line naming the file and the record) otherwise."""
+    return _read_manifest(path)[0]
+
+
+def _read_manifest(path: str | os.PathLike) -> tuple[SessionManifest, Any]:
+    """:func:`read_manifest` and the schema version the file holds."""
     path = pathlib.Path(path)
     try:
-        manifest = json.loads(path.read_text("utf-8"))
+        data = json.loads(path.read_text("utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
         raise FormatError(f"{path}: not valid JSON ({exc})") from None
-    validate_manifest(manifest, str(path))
-    return manifest
-
-
-# -- manifest structure --------------------------------------------------------------------------
-CAPTURE_STATUSES = (PENDING, ACQUIRED, COMPLETE, FAILED)
-SESSION_STATUSES = (RUNNING, SESSION_COMPLETE, INTERRUPTED)
-_SHA256 = re.compile(r"[0-9a-f]{64}")
-#: per-role attributes of a frame record (docs/session-schema.md, "Files by role")
-_FRAME_ATTRS = {"raw": ("state_index", "state_deg", "exposure_index", "exposure_us", "frame"),
-                "dark": ("exposure_index", "exposure_us", "frame")}
-_INDEX_ATTRS = ("state_index", "exposure_index", "frame")
-
-
-class _Bad(Exception):
-    """Internal: one structural problem, its message relative to the record being checked."""
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _need(d: dict[str, Any], key: str, ok: Callable[[Any], bool], what: str,
-          optional: bool = False) -> Any:
-    if key not in d:
-        if optional:
-            return None
-        raise _Bad(f"missing {key!r}")
-    if not ok(d[key]):
-        raise _Bad(f"{key!r} must be {what}, got {d[key]!r:.60}")
-    return d[key]
-
-
-def _safe_relpath(v: Any) -> bool:
-    """A ``/``-separated path inside the session folder (no absolute path, no ``..``)."""
-    if not isinstance(v, str) or not v or "\\" in v or "\0" in v or v.startswith("/"):
-        return False
-    return all(part not in ("", ".", "..") for part in v.split("/"))
-
-
-def _folder_name(v: Any) -> bool:
-    return _safe_relpath(v) and "/" not in v
-
-
-def _check_file_record(role: str, rec: Any) -> None:
-    if not isinstance(rec, dict):
-        raise _Bad("is not an object")
-    if "part_of" in rec:  # a view into another role's file
-        _need(rec, "path", _safe_relpath, "a relative path inside the session")
-        return
-    _need(rec, "path", _safe_relpath, "a relative path inside the session")
-    _need(rec, "sha256", lambda v: isinstance(v, str) and bool(_SHA256.fullmatch(v)),
-          "a SHA-256 hex digest")
-    _need(rec, "bytes", lambda v: _is_int(v) and v >= 0, "a byte count")
-    if "meta_path" in rec or "meta_sha256" in rec:
-        _need(rec, "meta_path", _safe_relpath, "a relative path inside the session")
-        _need(rec, "meta_sha256", lambda v: isinstance(v, str) and bool(_SHA256.fullmatch(v)),
-              "a SHA-256 hex digest")
-    for key in _FRAME_ATTRS.get(role.rsplit("/", 1)[-1], ()):
-        if key in _INDEX_ATTRS:
-            _need(rec, key, lambda v: _is_int(v) and v >= 0, "an index >= 0")
-        elif key == "exposure_us":  # null: a camera without exposure control reports none
-            _need(rec, key, lambda v: v is None or (_is_number(v) and math.isfinite(v)),
-                  "a finite number or null")
-        else:
-            _need(rec, key, lambda v: _is_number(v) and math.isfinite(v), "a finite number")
-
-
-def _check_files(files: Any, where: str) -> None:
-    if not isinstance(files, dict):
-        raise _Bad(f"{where}'files' must be an object, got {files!r:.60}")
-    for role, entry in files.items():
-        if role in LIST_ROLES:
-            if not isinstance(entry, list):
-                raise _Bad(f"{where}files {role!r} must be a list of file records")
-            records = [(f"{where}{role} file record {i}", rec) for i, rec in enumerate(entry)]
-        else:
-            records = [(f"{where}{role} file record", entry)]
-        for label, rec in records:
-            try:
-                _check_file_record(role, rec)
-            except _Bad as exc:
-                raise _Bad(f"{label}: {exc}") from None
-
-
-def _check_score(score: Any) -> None:
-    if score is None:
-        return
-    if not isinstance(score, dict):
-        raise _Bad(f"'score' must be an object or null, got {score!r:.60}")
-    if score.get("rmse") is None:
-        return  # "no pixels to score"
-    num_or_none = lambda v: v is None or _is_number(v)  # noqa: E731
-    for key in ("rmse", "mae", "realizable"):
-        _need(score, key, _is_number, "a number")
-    _need(score, "psnr_db", num_or_none, "a number or null")
-    _need(score, "pixels_compared", _is_int, "an integer")
-    for key in ("mean_sigma", "within_2sigma"):
-        _need(score, key, num_or_none, "a number or null", optional=True)
-
-
-def _check_capture(i: int, cap: Any) -> None:
-    if not isinstance(cap, dict):
-        raise _Bad("is not an object")
-    index = _need(cap, "index", _is_int, "an integer")
-    if index != i:
-        raise _Bad(f"'index' is {index}, but it is entry {i} of the list")
-    _need(cap, "name", _folder_name, "a folder name")
-    _need(cap, "pose_deg", lambda v: _is_number(v) and math.isfinite(v), "a finite number")
-    _need(cap, "status", lambda v: v in CAPTURE_STATUSES, f"one of {', '.join(CAPTURE_STATUSES)}")
-    _need(cap, "reason", lambda v: v is None or isinstance(v, str), "a string or null",
-          optional=True)
-    _need(cap, "attempts", lambda v: _is_int(v) and v >= 0, "a count", optional=True)
-    _check_files(_need(cap, "files", lambda v: True, "present"), "")
-    _check_score(cap.get("score"))
-    revisions = _need(cap, "revisions", lambda v: isinstance(v, dict), "an object",
-                      optional=True) or {}
-    for name, rev in revisions.items():
-        if not isinstance(rev, dict):
-            raise _Bad(f"revision {name!r} is not an object")
-        try:
-            _need(rev, "status", lambda v: v in CAPTURE_STATUSES,
-                  f"one of {', '.join(CAPTURE_STATUSES)}")
-            _check_files(_need(rev, "files", lambda v: True, "present"), "")
-            _check_score(rev.get("score"))
-        except _Bad as exc:
-            raise _Bad(f"revision {name!r}: {exc}") from None
-
-
-def validate_manifest(manifest: Any, where: str = MANIFEST_NAME) -> None:
-    """Check the structure of a session manifest (``docs/session-schema.md``): every key the
-    code reads is there with the right type, every file record has its path (relative, inside
-    the session) and checksum, capture folder names are plain names. Raises
-    :class:`FormatError` ``"<where>: capture 1 (c001_pose090.0): raw file record 2: missing
-    'sha256'"`` naming the first damaged record. The one place the manifest is checked:
-    code that reads an opened session may index what is checked here."""
-    if not isinstance(manifest, dict) or "captures" not in manifest:
-        raise FormatError(f"{where}: not a polrig session manifest")
-    version = manifest.get("schema_version")
-    if version != SCHEMA_VERSION:
-        raise FormatError(f"{where}: session schema version {version!r}, this polrig "
-                          f"reads version {SCHEMA_VERSION}")
-    context = ""
-    try:
-        m = manifest
-        _need(m, "status", lambda v: v in SESSION_STATUSES, f"one of {', '.join(SESSION_STATUSES)}")
-        _need(m, "status_reason", lambda v: v is None or isinstance(v, str), "a string or null",
-              optional=True)
-        for key in ("created", "updated", "calibration_id"):
-            _need(m, key, lambda v: isinstance(v, str), "a string")
-        _need(m, "conventions_version", lambda v: isinstance(v, (str, int, float)), "a version")
-        software = _need(m, "software", lambda v: isinstance(v, dict), "an object")
-        context = "software: "
-        _need(software, "version", lambda v: isinstance(v, str), "a string")
-        context = ""
-        _need(m, "rig", lambda v: isinstance(v, dict), "an object", optional=True)
-        _need(m, "command_line", lambda v: isinstance(v, list), "a list", optional=True)
-        _need(m, "history", lambda v: isinstance(v, list), "a list", optional=True)
-        plan = _need(m, "plan", lambda v: isinstance(v, dict), "an object")
-        context = "plan: "
-        poses = _need(plan, "poses_deg", lambda v: isinstance(v, list) and all(
-            _is_number(p) and math.isfinite(p) for p in v), "a list of finite numbers")
-        _need(plan, "mode", lambda v: isinstance(v, str), "a string")
-        for key in ("states_deg", "exposures_us"):
-            _need(plan, key, lambda v: isinstance(v, list) and all(
-                _is_number(p) and math.isfinite(p) for p in v), "a list of finite numbers",
-                optional=True)
-        for key in ("frames_per_state", "dark_frames", "grab_retries"):
-            _need(plan, key, _is_int, "an integer", optional=True)
-        _need(plan, "demosaic", lambda v: isinstance(v, str), "a string", optional=True)
-        _need(plan, "mirror_average", lambda v: isinstance(v, bool), "true or false",
-              optional=True)
-        context = ""
-        caps = _need(m, "captures", lambda v: isinstance(v, list), "a list")
-        if len(caps) != len(poses):
-            raise _Bad(f"{len(caps)} captures listed for the {len(poses)} poses of the plan")
-        for i, cap in enumerate(caps):
-            name = cap.get("name") if isinstance(cap, dict) else None
-            context = f"capture {i}" + (f" ({name})" if isinstance(name, str) else "") + ": "
-            _check_capture(i, cap)
-        context = ""
-        revisions = _need(m, "revisions", lambda v: isinstance(v, list), "a list", optional=True)
-        for i, rev in enumerate(revisions or []):
-            context = f"revision entry {i}: "
-            if not isinstance(rev, dict):
-                raise _Bad("is not an object")
-            _need(rev, "name", _folder_name, "a folder name")
-    except _Bad as exc:
-        raise FormatError(f"{where}: {context}{exc} (damaged session manifest)") from None
+    return _schema.parse(data, str(path)), data.get("schema_version")

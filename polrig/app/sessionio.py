@@ -16,6 +16,7 @@ from typing import Any
 
 from polrig.acquisition.plan import CapturePlan, planned_bytes
 from polrig.app.records import frame_geometry, rig_record
+from polrig.app.manifest import DarkFrameRecord, RawFrameRecord
 from polrig.app.session import Session, check_free_space, sha256_file
 from polrig.errors import FormatError
 from polrig.formats.rawio import encode_mosaic, read_raw
@@ -48,7 +49,7 @@ def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
     ends."""
     width, height, colours, cell = frame_geometry(rig)
     need = planned_bytes(plan, len(plan.poses_deg), width, height, colours, cell)
-    return Session.create(out, plan=plan.to_json(), rig=rig_record(rig),
+    return Session.create(out, plan=plan, rig=rig_record(rig),
                           calibration_id=calibration_id, command_line=command_line,
                           required_bytes=need, write_hook=write_hook)
 
@@ -56,17 +57,14 @@ def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
 def check_resume_space(session: Session, rig, n_captures: int) -> None:
     """Check the free disk space for ``n_captures`` more captures of ``session``."""
     width, height, colours, cell = frame_geometry(rig)
-    plan = CapturePlan.from_json(session.plan)
     check_free_space(session.root,
-                     planned_bytes(plan, n_captures, width, height, colours, cell))
+                     planned_bytes(session.plan, n_captures, width, height, colours, cell))
     session.log("resumed", remaining=n_captures)
 
 
-def read_verified_frame(session: Session, record: dict[str, Any]) -> Frame:
+def read_verified_frame(session: Session, record: RawFrameRecord | DarkFrameRecord) -> Frame:
     """Read one recorded raw frame after checking its (and its sidecar's) SHA-256."""
     for key, digest in (("path", "sha256"), ("meta_path", "meta_sha256")):
-        if key not in record:
-            continue
         path = session.root / record[key]
         if not path.is_file():
             raise FileNotFoundError(f"{path}: raw file of the session is missing")
@@ -90,7 +88,7 @@ class CaptureFrames:
         return self.frames[0][0][0]
 
 
-def recorded_exposure_us(record: dict[str, Any]) -> float:
+def recorded_exposure_us(record: RawFrameRecord | DarkFrameRecord) -> float:
     """A frame record's exposure in microseconds; NaN where it is unknown (``null``: a camera
     without exposure control)."""
     value = record["exposure_us"]

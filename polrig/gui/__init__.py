@@ -10,7 +10,7 @@ Module map (imports flow downwards; only :mod:`polrig.gui.pipeline` is free of Q
 * :mod:`polrig.gui.live` -- live view widget and its worker ``QThread`` (latest-frame slot).
 * :mod:`polrig.gui.devices` -- devices panel and its worker thread.
 * :mod:`polrig.gui.capture_panel` -- capture panel and its worker thread
-  (:func:`polrig.app.capture.run_session`).
+  (:func:`polrig.app.capture.run_capture`).
 * :mod:`polrig.gui.calibration_panel` -- the :mod:`polrig.calibration.procedures` step by step.
 * :mod:`polrig.gui.viewer` -- saved sessions and Mueller/Stokes EXRs.
 * :mod:`polrig.gui.main_window` -- the window, settings (``QSettings``), shortcuts.

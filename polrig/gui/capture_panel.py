@@ -2,24 +2,24 @@
 ETA, thumbnails of finished poses and (simulated rig) the score against truth.
 
 The form becomes a typed :class:`polrig.app.capture.CaptureRequest` (as ``polrig capture``'s
-options do) and :class:`CaptureWorker` runs exactly what ``polrig capture`` runs
-(:func:`polrig.app.capture.prepare_capture` validates it, :mod:`polrig.app.processing` builds the
-processor, :func:`polrig.app.capture.run_session` acquires and processes) in a ``QThread``
-holding every device lock. The ETA comes from the plan's hardware time from the first
-event, scaled by the observed pace once frames arrive. Pause and stop go through :class:`polrig.app.capture.CaptureControl`; a stop (or closing the
-window) leaves the session ``interrupted`` and resumable. Once the session exists, every way a
-run can end is reported like ``polrig capture`` reports it: complete, or stopped with the
-reason (a device fault, a full disk, any other file-system error, a processing error:
-:func:`polrig.app.capture.interrupted_result`) and the hint that the completed captures are intact
-and "Resume session in folder" continues; only a refusal before the session exists (bad
-options, devices not connected, devices busy) is "not started".
+options do) and :class:`CaptureWorker` runs it with the call ``polrig capture`` makes,
+:func:`polrig.app.capture.run_capture`, in a ``QThread``, on the window's rig with every
+device lock held, and shows its events. The ETA comes from the plan's hardware time from the
+first event, scaled by the observed pace once frames arrive. Pause and stop go through
+:class:`polrig.app.capture.CaptureControl`; a stop (or closing the window) leaves the session
+``interrupted`` and resumable. Once the session exists, every way a run can end is reported
+like ``polrig capture`` reports it: complete, or stopped with the reason (a device fault, a
+full disk, any other file-system error, a processing error) and the hint that the completed
+captures are intact and "Resume session in folder" continues; only a refusal before the
+session exists (bad options, devices not connected, devices busy) is "not started".
 """
 
 from __future__ import annotations
 
+import contextlib
 import pathlib
 import time
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from PySide6.QtCore import QSize, Qt, QThread, Signal
@@ -43,8 +43,8 @@ from PySide6.QtWidgets import (
 )
 
 from polrig.acquisition.plan import ExrChoice, parse_float_list, parse_pose_spec
-from polrig.app import capture, processing
-from polrig.app.capture import CaptureControl, CaptureRequest, Progress
+from polrig.app import capture
+from polrig.app.capture import CaptureControl, CaptureRequest, Progress, SessionOpened
 from polrig.app.preview import tone_map
 from polrig.errors import PolrigError
 from polrig.formats.exr import (
@@ -75,12 +75,12 @@ def thumbnail_rgb(path: pathlib.Path, size: int = THUMB_PX) -> np.ndarray:
 
 
 class CaptureWorker(QThread):
-    """Runs one capture session (new or resumed). Signals: ``progress(Progress)``,
-    ``finished_result(status, reason, result)`` (``result`` the
-    :class:`polrig.app.capture.SessionResult`; any error once the session exists ends here, as
-    an ``interrupted`` result), ``failed(message)`` (a refusal before the session exists:
-    bad options, devices not connected or busy; nothing written), ``session_ready(path)``
-    (the session exists and the run starts)."""
+    """Runs one capture session (new or resumed) with :func:`polrig.app.capture.run_capture`.
+    Signals: ``progress(Progress)``, ``finished_result(status, reason, result)`` (``result``
+    the :class:`polrig.app.capture.SessionResult`; any error once the session exists ends
+    here, as an ``interrupted`` result), ``failed(message)`` (a refusal before the session
+    exists: bad options, devices not connected or busy; nothing written),
+    ``session_ready(path)`` (the session exists and the run starts)."""
 
     progress = Signal(object)
     finished_result = Signal(str, str, object)
@@ -93,7 +93,6 @@ class CaptureWorker(QThread):
         self.locks = locks
         self.request = request
         self.control = CaptureControl()
-        self.session = None
         self.result = None
 
     def run(self) -> None:
@@ -105,31 +104,28 @@ class CaptureWorker(QThread):
             self.failed.emit(f"{type(exc).__name__}: {exc}")
 
     def _run(self) -> None:
-        prepared = capture.prepare_capture(self.request)  # before any device moves
-        try:
-            with self.locks.hold(timeout_s=10.0, who="capture"):
-                closed = [k for k, d in self.rig.devices.items() if not d.is_open]
-                if closed:
-                    raise PolrigError(f"not connected: {', '.join(closed)}; connect the "
-                                      f"devices (Devices tab) before capturing")
-                session = capture.open_session(prepared, self.rig, ["polrig", "gui"])
-                self.session = session
-                self.session_ready.emit(str(prepared.out))
-                try:
-                    processor = processing.make_processor(
-                        prepared.plan, prepared.calibration,
-                        processing.session_sensor_model(session), device=self.request.device)
-                    result = capture.run_session(self.rig, session, processor=processor,
-                                                 progress=self.progress.emit,
-                                                 control=self.control)
-                except Exception as exc:  # noqa: BLE001 - the session exists: a stop to report
-                    result = capture.interrupted_result(session, exc)
-        except BaseException:
-            if self.session is None and prepared.resume_session is not None:
-                prepared.resume_session.unlock()  # refused before the run: the lock goes
-            raise
+        result = capture.run_capture(self.request, command_line=["polrig", "gui"],
+                                     rig=self._held_rig, events=self._event,
+                                     control=self.control)
         self.result = result
         self.finished_result.emit(result.status, result.reason or "", result)
+
+    @contextlib.contextmanager
+    def _held_rig(self) -> Iterator[Any]:
+        """The window's rig for the run, with every device lock held and every device
+        connected (checked once the request is valid, before anything is written)."""
+        with self.locks.hold(timeout_s=10.0, who="capture"):
+            closed = [k for k, d in self.rig.devices.items() if not d.is_open]
+            if closed:
+                raise PolrigError(f"not connected: {', '.join(closed)}; connect the "
+                                  f"devices (Devices tab) before capturing")
+            yield self.rig
+
+    def _event(self, ev) -> None:
+        if isinstance(ev, SessionOpened):
+            self.session_ready.emit(str(ev.root))
+        else:
+            self.progress.emit(ev)
 
 
 class CapturePanel(QWidget):
@@ -434,15 +430,11 @@ class CapturePanel(QWidget):
         else:
             self.message.emit("info", f"capture {ev.capture_index + 1} ({text}) done")
         item = QListWidgetItem(text)
-        session = self.worker.session if self.worker else None
-        if session is not None:
-            rec = session.capture(ev.capture_index)["files"].get("mueller")
-            if rec is not None:
-                try:
-                    pix = QPixmap.fromImage(to_qimage(thumbnail_rgb(session.root / rec["path"])))
-                    item.setIcon(QIcon(pix))
-                except (OSError, PolrigError, ValueError) as exc:
-                    self.message.emit("warning", f"thumbnail of pose {ev.pose_deg:g}: {exc}")
+        if ev.result is not None:
+            try:
+                item.setIcon(QIcon(QPixmap.fromImage(to_qimage(thumbnail_rgb(ev.result)))))
+            except (OSError, PolrigError, ValueError) as exc:
+                self.message.emit("warning", f"thumbnail of pose {ev.pose_deg:g}: {exc}")
         self.thumbs.addItem(item)
 
     def _finished(self, status: str, reason: str, result: object) -> None:

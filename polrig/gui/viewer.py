@@ -69,11 +69,11 @@ def session_entries(root: str | pathlib.Path) -> list[tuple[str, str, pathlib.Pa
         files = cap["files"]
         for role in ("mueller", "truth_mueller"):
             rec = files.get(role)
-            if rec and "part_of" not in rec:
+            if rec is not None:
                 out.append((f"{head}: {role}.exr", "exr", s.root / rec["path"]))
-        for name, rev in cap.get("revisions", {}).items():
-            rec = rev.get("files", {}).get("mueller")
-            if rec and "part_of" not in rec:
+        for name, rev in cap["revisions"].items():
+            rec = rev["files"].get("mueller")
+            if rec is not None:
                 out.append((f"{head}: {name} mueller.exr", "exr", s.root / rec["path"]))
         for rec in files.get("raw", []):
             out.append((f"{head}: raw {pathlib.PurePosixPath(rec['path']).name}", "raw",

@@ -1,12 +1,13 @@
 """``polrig capture``: reference (or single-shot) captures over turntable poses into a session.
 
-Thin shell over :mod:`polrig.app.capture` (the request, acquisition), :mod:`polrig.app.processing`
-(results) and :mod:`polrig.app.session` (files): the options become a typed
-:class:`polrig.app.capture.CaptureRequest` (the GUI builds the same), and library errors, which
-name the plan field they are about, are reported naming the option (:func:`options_named`). Bad input (pose spec, states, output folder, config) is
-rejected before any device is opened or any file is written; what needs the opened rig (the
-camera's exposure range, on ``--resume`` the same rig as the session's) is checked before
-any file is written. A session being written by another process is refused (its lock).
+A shell over :func:`polrig.app.capture.run_capture`, the one capture call (the GUI makes the
+same): the options become a typed :class:`polrig.app.capture.CaptureRequest`, its events are
+shown (a progress bar, one line per capture), and library errors, which name the plan field
+they are about, are reported naming the option (:func:`options_named`). Bad input (pose spec,
+states, output folder, config) is rejected before any device is opened or any file is
+written; what needs the opened rig (the camera's exposure range, on ``--resume`` the same rig
+as the session's) is checked before any file is written. A session being written by another
+process is refused (its lock).
 """
 
 from __future__ import annotations
@@ -189,63 +190,33 @@ def command_line(args: argparse.Namespace, command: str = "capture") -> list[str
     return out
 
 
-def prepare_capture(args: argparse.Namespace):
-    """:func:`polrig.app.capture.prepare_capture` of the options' request, errors naming the
-    options (nothing opened, nothing written)."""
-    from polrig.app import capture
-
-    with options_named():
-        return capture.prepare_capture(build_request(args))
-
-
-def open_session(prepared, rig, command_line: list[str]):
-    """:func:`polrig.app.capture.open_session`, errors naming the options."""
-    from polrig.app import capture
-
-    with options_named():
-        return capture.open_session(prepared, rig, command_line)
-
-
 def run(args: argparse.Namespace) -> int:
     import os
 
-    from polrig.app import capture, processing
-    from polrig.app.rig import open_rig
+    from polrig.app import capture
 
-    prepared = prepare_capture(args)
-    plan, calibration, out = prepared.plan, prepared.calibration, prepared.out
-    with open_rig(args.config) as rig:
-        session = open_session(prepared, rig, command_line(args))
-        try:
-            with options_named():
-                processor = processing.make_processor(plan, calibration,
-                                                      processing.session_sensor_model(session),
-                                                      device=args.device or "auto")
-        except BaseException:
-            session.unlock()
-            raise
-        bar = _ProgressPrinter(enabled=not args.no_progress)
-        try:
-            result = capture.run_session(rig, session, processor=processor, progress=bar)
-        except Exception as exc:
-            # run_session handles device faults and a full disk itself; anything else raised
-            # once the session exists (another file-system error, a processing error) leaves
-            # it interrupted and resumable: say so, with the way to continue (as the GUI does)
-            if os.environ.get("POLRIG_DEBUG"):
-                raise
-            result = capture.interrupted_result(session, exc)
-        finally:
-            bar.close()
+    request = build_request(args)
+    bar = _ProgressPrinter(enabled=not args.no_progress)
+    try:
+        with options_named():
+            # POLRIG_DEBUG: an error once the session exists is raised (a traceback), not
+            # reported as a stop (the session is left interrupted and resumable either way)
+            result = capture.run_capture(request, command_line=command_line(args), events=bar,
+                                         reraise=bool(os.environ.get("POLRIG_DEBUG")))
+    finally:
+        bar.close()
     if result.status != "complete":
         print(f"polrig: error: capture stopped ({result.reason}); completed captures are "
-              f"intact, continue with: polrig capture --out {out} --resume", file=sys.stderr)
+              f"intact, continue with: polrig capture --out {request.out} --resume",
+              file=sys.stderr)
         return 1
-    print(f"session complete: {len(result.completed)} captures in {out}")
+    print(f"session complete: {len(result.completed)} captures in {request.out}")
     return 0
 
 
 class _ProgressPrinter:
-    """tqdm bar on stderr (frames, with ETA) and one score line per capture on stdout."""
+    """The events of :func:`polrig.app.capture.run_capture`: a tqdm bar on stderr (frames,
+    with ETA) and one score line per capture on stdout."""
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled
@@ -254,6 +225,10 @@ class _ProgressPrinter:
     def __call__(self, ev) -> None:
         from tqdm import tqdm
 
+        from polrig.app.capture import Progress
+
+        if not isinstance(ev, Progress):  # the session exists: nothing to show yet
+            return
         if self.bar is None and self.enabled and ev.total:
             self.bar = tqdm(total=ev.total, unit="frame", file=sys.stderr, dynamic_ncols=True,
                             desc="capture")

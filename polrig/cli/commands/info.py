@@ -1,7 +1,8 @@
 """``polrig info SESSION``: what a session holds, how each capture ended, its scores, and
 whether every file still matches its SHA-256 checksum (exit code 1 if not). A reader: it takes
-no lock (it may run while a capture writes the session). A structurally damaged manifest is
-one line naming the record (:func:`polrig.app.session.validate_manifest`, exit code 2)."""
+no lock (it may run while a capture writes the session) and writes nothing (a manifest of an
+older schema version is migrated in memory only). A structurally damaged manifest is one line
+naming the record (:func:`polrig.app.manifest.parse`, exit code 2)."""
 
 from __future__ import annotations
 
@@ -24,21 +25,23 @@ def run(args: argparse.Namespace) -> int:
 
     s = Session.open(args.session)
     m = s.manifest
-    plan = m["plan"]
-    status = m["status"] + (f" ({m['status_reason']})" if m.get("status_reason") else "")
+    plan = s.plan
+    status = m["status"] + (f" ({m['status_reason']})" if m["status_reason"] else "")
     print(f"session {s.root}")
     print(f"  status: {status}")
     print(f"  created {m['created']}, updated {m['updated']}, polrig "
           f"{m['software']['version']}, conventions v{m['conventions_version']}")
-    rig = m.get("rig", {})
-    print(f"  rig: {'simulated' if rig.get('simulated') else 'hardware'}; calibration: "
+    if s.stored_version != m["schema_version"]:  # migrated in memory: this command writes nothing
+        print(f"  schema: version {s.stored_version}, read as version {m['schema_version']} "
+              f"(the next capture --resume or reconstruct writes it so)")
+    print(f"  rig: {'simulated' if m['rig']['simulated'] else 'hardware'}; calibration: "
           f"{m['calibration_id']}")
-    exposures = (",".join(f"{e:g}" for e in plan.get("exposures_us", [])) + " us"
-                 if plan.get("exposures_us") else "camera default")
-    print(f"  plan: mode {plan['mode']}, {len(plan['poses_deg'])} poses, states "
-          f"{','.join(f'{a:g}' for a in plan.get('states_deg', []))} deg, "
-          f"{plan.get('frames_per_state', 1)} frame(s)/state, exposure {exposures}, "
-          f"{plan.get('dark_frames', 0)} dark frame(s), demosaic {plan.get('demosaic')}")
+    exposures = (",".join(f"{e:g}" for e in plan.exposures_us) + " us"
+                 if plan.exposures_us else "camera default")
+    print(f"  plan: mode {plan.mode}, {len(plan.poses_deg)} poses, states "
+          f"{','.join(f'{a:g}' for a in plan.states_deg)} deg, "
+          f"{plan.frames_per_state} frame(s)/state, exposure {exposures}, "
+          f"{plan.dark_frames} dark frame(s), demosaic {plan.demosaic}")
     counts: dict[str, int] = {}
     for cap in s.captures:
         counts[cap["status"]] = counts.get(cap["status"], 0) + 1
@@ -51,19 +54,18 @@ def run(args: argparse.Namespace) -> int:
         results = [r for r in ("mueller", "truth_mueller") if r in cap["files"]]
         if results:
             line += ", " + ", ".join(results)
-        if cap.get("reason"):
+        if cap["reason"]:
             line += f"  ({cap['reason']})"
         print(line)
-        if cap.get("score"):
+        if cap["score"]:
             print(f"          score: {format_score(cap['score'])}")
-        for name, rev in cap.get("revisions", {}).items():
-            extra = f"  score: {format_score(rev['score'])}" if rev.get("score") else ""
-            if rev.get("reason"):
+        for name, rev in cap["revisions"].items():
+            extra = f"  score: {format_score(rev['score'])}" if rev["score"] else ""
+            if rev["reason"]:
                 extra += f"  ({rev['reason']})"
             print(f"          {name}: {rev['status']}{extra}")
-    for rev in m.get("revisions", []):
-        settings = ", ".join(f"{k} {rev[k]}" for k in ("mode", "demosaic", "calibration_id")
-                             if k in rev)
+    for rev in m["revisions"]:
+        settings = ", ".join(f"{k} {rev[k]}" for k in ("mode", "demosaic", "calibration_id"))
         print(f"  revision {rev['name']} ({rev['created']}): {settings}")
     if args.no_verify:
         return 0

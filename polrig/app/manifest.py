@@ -1,0 +1,423 @@
+"""The session manifest (``session.json``) as types: one schema version, its reader derived from
+the types, and the migration from every older version (``docs/session-schema.md``).
+
+A manifest is a :class:`SessionManifest` (``TypedDict`` s for its JSON objects, so code reads
+it with keys a type checker knows) whose ``plan`` is the :class:`polrig.acquisition.plan.CapturePlan`
+itself: the plan is written once (:func:`encode`, the plan's own fields) and read back once, as
+a ``CapturePlan`` (:func:`parse`), never re-parsed from a dict. Every value is stated: a key
+another version left out is filled in by the migration from that version, with the value the
+session was written with, never by today's defaults when it is read.
+
+:func:`parse` reads any version this polrig knows: an older manifest is migrated in memory
+(:data:`MIGRATIONS`, one function per version, each to the next; the manifest's ``history``
+gains a ``schema migrated`` event) and then checked against the types with
+:func:`polrig.formats.typedjson.load`, plus the few rules a type cannot say (one capture per
+pose, each at its index). A problem is one :class:`polrig.errors.FormatError` line naming the
+file and the record: ``session.json: capture 1 (c001_pose090.0): raw file record 2: missing
+'sha256' (damaged session manifest)``. A migrated manifest is written in this version by the
+next writer that saves it (a capture resumed, a reconstruct); a reader (``polrig info``) writes
+nothing.
+"""
+
+# No ``from __future__ import annotations`` here: TypedDict reads Required/NotRequired from the
+# evaluated annotations (Python 3.11).
+
+import copy
+import dataclasses
+import datetime as _dt
+import json
+import re
+from typing import Annotated, Any, Callable, Literal, NotRequired, TypedDict
+
+from polrig.acquisition.plan import MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
+from polrig.errors import FormatError
+from polrig.formats.exr import RESULT_PLANES
+from polrig.formats.typedjson import FINITE, Check, Invalid, Label, encode, extra_keys, load
+
+#: The version of the manifest this polrig writes (``schema_version``).
+SCHEMA_VERSION = 2
+
+# capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
+# processing not done yet (a resume processes it without acquiring it again)
+PENDING, ACQUIRED, COMPLETE, FAILED = "pending", "acquired", "complete", "failed"
+# session status
+RUNNING, SESSION_COMPLETE, INTERRUPTED = "running", "complete", "interrupted"
+CAPTURE_STATUSES = (PENDING, ACQUIRED, COMPLETE, FAILED)
+SESSION_STATUSES = (RUNNING, SESSION_COMPLETE, INTERRUPTED)
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def safe_relpath(v: str) -> bool:
+    """A ``/``-separated path inside the session folder (no absolute path, no ``..``)."""
+    if not v or "\\" in v or "\0" in v or v.startswith("/"):
+        return False
+    return all(part not in ("", ".", "..") for part in v.split("/"))
+
+
+# -- values with a constraint beyond their type ------------------------------------------------
+RelPath = Annotated[str, Check(safe_relpath, "a relative path inside the session")]
+FolderName = Annotated[str, Check(lambda v: safe_relpath(v) and "/" not in v, "a folder name")]
+Sha256 = Annotated[str, Check(lambda v: bool(_SHA256.fullmatch(v)), "a SHA-256 hex digest")]
+Index = Annotated[int, Check(lambda v: v >= 0, "an index >= 0")]
+Count = Annotated[int, Check(lambda v: v >= 0, "a count")]
+ByteCount = Annotated[int, Check(lambda v: v >= 0, "a byte count")]
+Finite = Annotated[float, FINITE]
+CaptureStatus = Literal[CAPTURE_STATUSES]
+SessionStatus = Literal[SESSION_STATUSES]
+
+
+# -- files by role ------------------------------------------------------------------------------
+class FileRecord(TypedDict):
+    """A file of the session: ``path`` relative to the session folder, its SHA-256, its size."""
+
+    path: RelPath
+    sha256: Sha256
+    bytes: ByteCount
+
+
+class RawFrameRecord(TypedDict):
+    """A raw frame and its JSON sidecar (``meta_path``); ``state_index`` indexes the plan's
+    ``states_deg``; ``exposure_us`` null for a camera without exposure control."""
+
+    path: RelPath
+    sha256: Sha256
+    bytes: ByteCount
+    meta_path: RelPath
+    meta_sha256: Sha256
+    state_index: Index
+    state_deg: Finite
+    exposure_index: Index
+    exposure_us: Finite | None
+    frame: Index
+
+
+class DarkFrameRecord(TypedDict):
+    """A dark frame (light off) and its sidecar."""
+
+    path: RelPath
+    sha256: Sha256
+    bytes: ByteCount
+    meta_path: RelPath
+    meta_sha256: Sha256
+    exposure_index: Index
+    exposure_us: Finite | None
+    frame: Index
+
+
+class PlaneView(TypedDict):
+    """Planes inside the ``mueller`` file (no file, no checksum of their own)."""
+
+    part_of: Literal["mueller"]
+    path: RelPath
+    channels: str
+
+
+def _file(role: str) -> Any:
+    return Annotated[FileRecord, Label(f"{role} file record: ")]
+
+
+class CaptureFiles(TypedDict, total=False):
+    """A capture's (or a revision's) files by role; a role is absent until written."""
+
+    raw: Annotated[list[RawFrameRecord], Label(entry=lambda i, v: f"raw file record {i}: ")]
+    dark: Annotated[list[DarkFrameRecord], Label(entry=lambda i, v: f"dark file record {i}: ")]
+    truth_mueller: _file("truth_mueller")
+    mueller: _file("mueller")
+    preview_grid: _file("preview_grid")
+    preview_dolp: _file("preview_dolp")
+    preview_aolp: _file("preview_aolp")
+    uncertainty: Annotated[PlaneView, Label("uncertainty view: ")]
+    mask: Annotated[PlaneView, Label("mask view: ")]
+
+
+#: Roles whose entry is a list of files (one per frame); every other role is one record.
+LIST_ROLES = ("raw", "dark")
+#: Roles a capture's acquisition writes (raw and dark frames, the simulated rig's truth taken
+#: at the pose); every other role is a result of processing them.
+ACQUISITION_ROLES = ("raw", "dark", "truth_mueller")
+#: Roles that are views into another role's file.
+VIEW_ROLES = ("uncertainty", "mask")
+
+
+# -- captures -----------------------------------------------------------------------------------
+@extra_keys
+class Score(TypedDict):
+    """A result's error against the simulator's truth (:func:`polrig.solve.scoring.score_against_truth`;
+    ``rmse`` null: no pixel to score). Its keys belong to the scorer: more are kept as they are."""
+
+    rmse: float | None
+    mae: float | None
+    psnr_db: float | None
+    realizable: float | None
+    pixels_compared: int
+    pixels_valid: NotRequired[int]
+    pixels_total: NotRequired[int]
+    mask_counts: NotRequired[dict[str, int]]
+    condition_number: NotRequired[float | None]
+    within_2sigma: NotRequired[float | None]
+    chi2_per_element: NotRequired[float | None]
+    mean_sigma: NotRequired[float | None]
+    peak_m00: NotRequired[float | None]
+
+
+class RevisionResult(TypedDict):
+    """A capture's part of a ``polrig reconstruct`` revision."""
+
+    status: CaptureStatus
+    files: Annotated[CaptureFiles, Label("")]
+    score: Annotated[Score | None, Label("")]
+    reason: str | None
+
+
+class CaptureRecord(TypedDict):
+    """One pose of the plan: its folder ``name``, status, last attempt, files, score."""
+
+    index: Index
+    name: FolderName
+    pose_deg: Finite
+    status: CaptureStatus
+    reason: str | None
+    started: str | None
+    finished: str | None
+    attempts: Count
+    files: Annotated[CaptureFiles, Label("")]
+    score: Annotated[Score | None, Label("")]
+    revisions: Annotated[dict[str, RevisionResult], Label(entry=lambda k, v: f"revision {k!r}: ")]
+
+
+# -- the session --------------------------------------------------------------------------------
+class RevisionSettings(TypedDict):
+    """A ``polrig reconstruct`` revision: its name, when and how it was asked for, and the
+    settings its results were made with."""
+
+    name: FolderName
+    created: str
+    command_line: list[str]
+    mode: Literal[MODES]
+    demosaic: str
+    mirror_average: bool
+    resolution: Literal[RESOLUTIONS]
+    network_binning: Literal[NETWORK_BINNINGS]
+    calibration_id: str
+    exr_planes: list[str]
+    exr_uncertainty: str
+    exr_compression: str
+
+
+class CameraFrames(TypedDict):
+    """What the camera's raw frames look like: size, ROI offset (the mosaic phase), layout,
+    colours (:func:`polrig.app.records.camera_frames`)."""
+
+    width: int
+    height: int
+    offset_xy: list[int]
+    layout: str
+    colours: int
+
+
+class RigRecord(TypedDict):
+    """The rig a session was captured on (:func:`polrig.app.records.rig_record`): null where a
+    session from before a key existed did not record it."""
+
+    simulated: bool
+    config: dict[str, Any] | None
+    devices: dict[str, dict[str, Any]]
+    sim_parameters: dict[str, Any] | None
+    camera_frames: CameraFrames | None
+    sensor_model: dict[str, float] | None
+
+
+class Software(TypedDict):
+    name: str
+    version: str
+
+
+@extra_keys
+class HistoryEvent(TypedDict):
+    """An event (``created``, ``resumed``, ``session interrupted``...) and its details."""
+
+    time: str
+    event: str
+
+
+def _capture_label(i: int, cap: Any) -> str:
+    name = cap.get("name") if isinstance(cap, dict) else None
+    return f"capture {i}" + (f" ({name})" if isinstance(name, str) else "") + ": "
+
+
+class SessionManifest(TypedDict):
+    """``session.json``, schema version :data:`SCHEMA_VERSION` (``docs/session-schema.md``)."""
+
+    schema_version: Literal[SCHEMA_VERSION]
+    software: Software
+    conventions_version: str
+    created: str
+    updated: str
+    status: SessionStatus
+    status_reason: str | None
+    command_line: list[str]
+    rig: RigRecord
+    calibration_id: str
+    plan: CapturePlan
+    planned_bytes: ByteCount
+    #: the plan's hardware time, computed when the first run starts (null until then)
+    hardware_time_s: float | None
+    captures: Annotated[list[CaptureRecord], Label(entry=_capture_label)]
+    revisions: Annotated[list[RevisionSettings], Label(entry=lambda i, v: f"revision entry {i}: ")]
+    history: Annotated[list[HistoryEvent], Label(entry=lambda i, v: f"history entry {i}: ")]
+
+
+# -- writing and reading ------------------------------------------------------------------------
+def encode_manifest(manifest: SessionManifest) -> bytes:
+    """The bytes of ``session.json`` (the plan as its fields)."""
+    return (json.dumps(manifest, indent=1, default=encode) + "\n").encode("utf-8")
+
+
+def plan_json(plan: CapturePlan) -> dict[str, Any]:
+    """The plan as the manifest stores it (every field; lists for tuples)."""
+    return json.loads(json.dumps(plan, default=encode))
+
+
+def read_plan(data: Any, where: str = "plan") -> CapturePlan:
+    """A plan as the manifest stores it, read back (:class:`FormatError` naming the key)."""
+    try:
+        return load(CapturePlan, data, context="")
+    except Invalid as exc:
+        raise FormatError(f"{where}: {exc}") from None
+
+
+def check_manifest(manifest: SessionManifest) -> None:
+    """Check a manifest built in memory against the types (a new session's, before it is
+    written): :class:`polrig.formats.typedjson.Invalid` naming the key if it does not fit."""
+    _load(json.loads(encode_manifest(manifest)))
+
+
+def parse(data: Any, where: str = "session.json") -> SessionManifest:
+    """The manifest ``data`` (parsed JSON of any known version) migrated to this version and
+    checked against :class:`SessionManifest`; one :class:`FormatError` line otherwise."""
+    if not isinstance(data, dict) or "captures" not in data:
+        raise FormatError(f"{where}: not a polrig session manifest")
+    version = data.get("schema_version")
+    if version != SCHEMA_VERSION and version not in MIGRATIONS:
+        known = ", ".join(str(v) for v in [*sorted(MIGRATIONS), SCHEMA_VERSION])
+        raise FormatError(f"{where}: session schema version {version!r}, this polrig reads "
+                          f"versions {known}")
+    data = copy.deepcopy(data)
+    while data.get("schema_version") != SCHEMA_VERSION:
+        data = MIGRATIONS[data["schema_version"]](data)
+    try:
+        return _load(data)
+    except Invalid as exc:
+        raise FormatError(f"{where}: {exc} (damaged session manifest)") from None
+
+
+def _load(data: dict[str, Any]) -> SessionManifest:
+    manifest = load(SessionManifest, data)
+    poses = manifest["plan"].poses_deg
+    caps = manifest["captures"]
+    if len(caps) != len(poses):
+        raise Invalid(f"{len(caps)} captures listed for the {len(poses)} poses of the plan")
+    for i, cap in enumerate(caps):
+        if cap["index"] != i:
+            raise Invalid(f"{_capture_label(i, cap)}'index' is {cap['index']}, but it is entry "
+                          f"{i} of the list")
+    return manifest
+
+
+# -- migrations ---------------------------------------------------------------------------------
+#: Result files of plans and revisions from before the ``exr_*`` fields existed were written
+#: with float32 uncertainty planes and ZIP (today's default is half): the choice they were
+#: written with, so that such a session resumes and reprocesses to the same files.
+LEGACY_EXR: dict[str, Any] = {"exr_planes": list(RESULT_PLANES), "exr_uncertainty": "float",
+                              "exr_compression": "zip"}
+#: Plan fields a version-1 plan may lack (written before they existed), as it was captured.
+V1_PLAN_DEFAULTS: dict[str, Any] = {"mirror_average": False, "resolution": "superpixel",
+                                    "network_binning": 1, **LEGACY_EXR}
+#: The same for a version-1 revision's settings.
+V1_REVISION_DEFAULTS: dict[str, Any] = {"command_line": [], **V1_PLAN_DEFAULTS}
+
+
+def migrate_v1(m: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 (polrig up to the layered package, docs/session-schema.md of that time) to 2.
+
+    Keys version 1 left out (older sessions, or optional in it) are stated with the value the
+    session was written with: the plan's and revisions' ``mirror_average`` (false),
+    ``resolution`` (superpixel), ``network_binning`` (1), ``exr_*`` (:data:`LEGACY_EXR`) and
+    every other plan field at the value the plan had then; a capture's ``reason``,
+    ``started``, ``finished`` (null), ``attempts`` (0), ``score`` (null), ``revisions`` ({});
+    a revision result's ``reason`` (null); ``hardware_time_s``, ``rig.camera_frames``,
+    ``rig.sensor_model``, ``rig.config``, ``rig.sim_parameters`` (null: not recorded). A
+    capture's ``mode`` goes (it is the plan's, stored once); plan keys that are no plan field
+    any more go too, named in the ``schema migrated`` history event. Whatever is damaged is
+    left for the check that follows to name."""
+    m = dict(m, schema_version=2)
+    for key, value in (("status_reason", None), ("command_line", []), ("revisions", []),
+                       ("history", []), ("hardware_time_s", None)):
+        m.setdefault(key, value)
+    if isinstance(m.get("conventions_version"), (int, float)) and \
+            not isinstance(m.get("conventions_version"), bool):
+        m["conventions_version"] = str(m["conventions_version"])
+    rig = m.setdefault("rig", {})
+    if isinstance(rig, dict):
+        rig.setdefault("simulated", False)
+        rig.setdefault("devices", {})
+        for key in ("config", "sim_parameters", "camera_frames", "sensor_model"):
+            rig.setdefault(key, None)
+    dropped: dict[str, Any] = {}
+    plan = m.get("plan")
+    if isinstance(plan, dict):
+        fields = {f.name: f for f in dataclasses.fields(CapturePlan)}
+        dropped = {k: v for k, v in plan.items() if k not in fields}
+        plan = {k: v for k, v in plan.items() if k in fields}
+        for key, value in V1_PLAN_DEFAULTS.items():
+            if key not in plan or (key.startswith("exr_") and not plan[key]):
+                plan[key] = copy.deepcopy(value)
+        for name, f in fields.items():  # the oldest plans: the values of their time
+            if name not in plan and f.default is not dataclasses.MISSING:
+                plan[name] = list(f.default) if isinstance(f.default, tuple) else f.default
+        m["plan"] = plan
+    for cap in m.get("captures") if isinstance(m.get("captures"), list) else []:
+        if not isinstance(cap, dict):
+            continue
+        cap.pop("mode", None)
+        for key, value in (("reason", None), ("started", None), ("finished", None),
+                           ("attempts", 0), ("score", None), ("revisions", {})):
+            cap.setdefault(key, value)
+        _migrate_score_v1(cap)
+        for rev in cap["revisions"].values() if isinstance(cap["revisions"], dict) else []:
+            if isinstance(rev, dict):
+                rev.setdefault("reason", None)
+                rev.setdefault("score", None)
+                _migrate_score_v1(rev)
+    for rev in m["revisions"] if isinstance(m["revisions"], list) else []:
+        if isinstance(rev, dict):
+            for key, value in V1_REVISION_DEFAULTS.items():
+                if key not in rev or (key.startswith("exr_") and not rev[key]):
+                    rev[key] = copy.deepcopy(value)
+    if isinstance(m["history"], list):
+        event: dict[str, Any] = {"time": utc_now(), "event": "schema migrated",
+                                 "from_version": 1, "to_version": 2}
+        if dropped:
+            event["dropped_plan_keys"] = dropped
+        m["history"].append(event)
+    return m
+
+
+def _migrate_score_v1(entry: dict[str, Any]) -> None:
+    """Version 1 accepted a score with ``rmse`` null ("no pixels to score") and nothing else."""
+    score = entry.get("score")
+    if isinstance(score, dict) and score.get("rmse") is None:
+        for key in ("mae", "psnr_db", "realizable"):
+            score.setdefault(key, None)
+        score.setdefault("pixels_compared", 0)
+
+
+def utc_now() -> str:
+    """Current UTC time as an ISO 8601 string with a ``Z`` suffix (second resolution)."""
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace(
+        "+00:00", "Z")
+
+
+#: Version -> the function that migrates a manifest of that version to the next one.
+MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: migrate_v1}
