@@ -10,6 +10,7 @@ to a mono sensor, or find a too small set only after acquiring.)
 
 from __future__ import annotations
 
+import contextlib
 import json
 import pathlib
 
@@ -77,22 +78,35 @@ def test_the_same_camera_is_accepted(tmp_path, capsys):
     assert s.manifest["calibration_id"] == json.loads((cal / "calibration.json").read_text())["id"]
 
 
-def _prepared(tmp_path, cal):
+def _request(tmp_path, cal):
+    """The request ``polrig capture --poses 0 --calibration CAL --out S`` makes."""
     from polrig.cli import build_parser
-    from polrig.cli.commands.capture import prepare_capture
+    from polrig.cli.commands.capture import build_request
 
     # the command's own parser: every option the command reads has its default
     ns = build_parser().parse_args(["capture", "--out", str(tmp_path / "s"), "--poses", "0",
                                     "--calibration", str(cal)])
-    return prepare_capture(ns)
+    return build_request(ns)
+
+
+def _rig_with_roi(config: pathlib.Path, roi: tuple[int, int, int, int]):
+    """A rig source for :func:`polrig.app.capture.run_capture`: the rig of ``config`` with its
+    camera's readout set to ``roi`` (width, height, x, y)."""
+    from polrig.app.rig import open_rig
+
+    @contextlib.contextmanager
+    def source():
+        with open_rig(config) as rig:
+            rig.camera.set_roi(*roi)
+            yield rig
+
+    return source
 
 
 def test_a_readout_inside_the_calibrated_area_is_accepted_and_cropped(tmp_path):
     """A set calibrated on the whole 64x48 sensor serves a 32x24 ROI at (8, 4): the session
     is captured and processed with the analyzer model cropped to the ROI."""
     from polrig.app import capture
-    from polrig.app.rig import open_rig
-    from polrig.cli.commands.capture import open_session
 
     cal = tmp_path / "cal"
     rng = np.random.default_rng(2)
@@ -100,21 +114,18 @@ def test_a_readout_inside_the_calibrated_area_is_accepted_and_cropped(tmp_path):
     analyzer = AnalyzerModel("imx250myr", rng.normal(1, 0.01, (48, 64)), ideal.angle_deg,
                              ideal.diattenuation, ideal.offset_dn)
     set_calibrated_on(cal, (64, 48), analyzer=analyzer)
-    prepared = _prepared(tmp_path, cal)
-    with open_rig(rig_toml(tmp_path / "rig.toml")) as rig:
-        rig.camera.set_roi(32, 24, 8, 4)
-        session = open_session(prepared, rig, ["polrig", "capture"])
-        proc = processing.make_processor(prepared.plan, prepared.calibration,
-                                         processing.session_sensor_model(session))
-        result = capture.run_session(rig, session, processor=proc)
+    result = capture.run_capture(_request(tmp_path, cal), command_line=["polrig", "capture"],
+                                 rig=_rig_with_roi(rig_toml(tmp_path / "rig.toml"), (32, 24, 8, 4)))
     assert result.status == "complete"
-    cf = processing.load_capture_frames(Session.open(tmp_path / "s"), 0)
+    session = Session.open(tmp_path / "s")
+    cf = processing.load_capture_frames(session, 0)
     assert cf.first.raw.shape == (24, 32) and tuple(cf.first.meta.offset_xy) == (8, 4)
     # the calibrated analyzer cropped to the ROI: the same solve as with the crop given
-    crop = processing.Calibration(prepared.calibration.id, prepared.calibration.incident_stokes_fn,
+    calibration = processing.load_calibration(cal)
+    crop = processing.Calibration(calibration.id, calibration.incident_stokes_fn,
                                   analyzer.crop(8, 4, 32, 24))
     model = processing.session_sensor_model(session)
-    got = processing.process_reference(cf, prepared.calibration, model, "superpixel")[0]
+    got = processing.process_reference(cf, calibration, model, "superpixel")[0]
     want = processing.process_reference(cf, crop, model, "superpixel")[0]
     np.testing.assert_array_equal(got.mueller, want.mueller)
 
@@ -123,8 +134,8 @@ def test_a_set_calibrated_on_a_roi_serves_only_readouts_inside_it(tmp_path, caps
     """A set calibrated on the 32x24 readout at (16, 8) of a 64x48 sensor: its intrinsics
     are carried to full-sensor pixels, a readout inside it is accepted (analyzer cropped at
     the offset relative to the calibrated area), one reaching outside is refused."""
+    from polrig.app import capture
     from polrig.app.rig import open_rig
-    from polrig.cli.commands.capture import open_session
     from polrig.errors import ConfigError
 
     cal = tmp_path / "cal"
@@ -136,13 +147,15 @@ def test_a_set_calibrated_on_a_roi_serves_only_readouts_inside_it(tmp_path, caps
     cal_obj = processing.load_calibration(cal)
     assert cal_obj.intrinsics == (600.0, 600.0, 16.0 + 16, 12.0 + 8)  # full-sensor pixels
     assert cal_obj.area_offset == (16, 8)
-    with open_rig(rig_toml(tmp_path / "rig.toml")) as rig:
+    config = rig_toml(tmp_path / "rig.toml")
+    with open_rig(config) as rig:
         rig.camera.set_roi(16, 8, 24, 12)  # inside the calibrated area
         processing.check_calibration_fits_rig(cal_obj, rig)
-        rig.camera.set_roi(32, 24, 0, 0)  # the sensor's corner, outside it
-        with pytest.raises(ConfigError, match=r"readout 32x24 at \(0, 0\) \(the readout is not "
-                                              r"inside the calibrated area\)"):
-            open_session(_prepared(tmp_path, cal), rig, ["polrig", "capture"])
+    # the sensor's corner, outside it: refused before the session exists
+    with pytest.raises(ConfigError, match=r"readout 32x24 at \(0, 0\) \(the readout is not "
+                                          r"inside the calibrated area\)"):
+        capture.run_capture(_request(tmp_path, cal), command_line=["polrig", "capture"],
+                            rig=_rig_with_roi(config, (32, 24, 0, 0)))
     assert not (tmp_path / "s").exists()
     # the analyzer of a readout at (24, 12) is the calibrated one at (8, 4)
     from polrig.sensor.frame import Frame, FrameMeta

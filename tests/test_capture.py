@@ -43,8 +43,7 @@ def start(rig, out: pathlib.Path, plan: CapturePlan, **kw) -> tuple[Session, pro
 
 def resume(rig, out: pathlib.Path, **kw):
     session = Session.open(out)
-    plan = CapturePlan.from_json(session.plan)
-    proc = processing.make_processor(plan, EXACT,
+    proc = processing.make_processor(session.plan, EXACT,
                                      processing.session_sensor_model(session))
     return session, run_session(rig, session, processor=proc, **kw)
 
@@ -422,7 +421,7 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
     # a session from before rig.camera_frames: the geometry comes from its recorded raw frames
     with sim_rig() as rig:
         run_session(rig, s, processor=None)
-    del s.manifest["rig"]["camera_frames"]
+    s.manifest["rig"]["camera_frames"] = None  # as a migrated version-1 manifest says
     with sim_rig(size=32) as rig:
         with pytest.raises(ConfigError, match="camera frames 64x64 imx250mzr"):
             check_resume_rig(s, rig)

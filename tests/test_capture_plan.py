@@ -24,7 +24,8 @@ from polrig.acquisition.plan import (
     session_steps,
     step_durations,
 )
-from polrig.errors import ConfigError
+from polrig.app.manifest import migrate_v1, plan_json, read_plan
+from polrig.errors import ConfigError, FormatError
 
 
 def test_range_is_stop_exclusive():
@@ -64,7 +65,7 @@ def test_float_list():
 def test_plan_validation_and_json_round_trip():
     p = CapturePlan((0, 90), states_deg=(0, 60, 120), frames_per_state=4, exposures_us=(1000, 4000),
                     dark_frames=2)
-    assert CapturePlan.from_json(p.to_json()) == p
+    assert read_plan(plan_json(p)) == p
     assert p.frames_per_pose() == 2 * (3 * 4 + 2)
     # errors name the plan field (for the command line to name its option), not a flag
     for kw, field, text in [({"states_deg": (0, 90)}, "states_deg", "at least 3"),
@@ -92,10 +93,12 @@ def test_plan_validation_and_json_round_trip():
 
 def test_single_shot_resolution_is_planned_and_older_plans_read_as_superpixel():
     full = CapturePlan((0,), mode="single-shot", resolution="full")
-    assert CapturePlan.from_json(full.to_json()) == full and full.to_json()["resolution"] == "full"
-    old = CapturePlan((0,), mode="single-shot").to_json()
-    del old["resolution"]  # a session written before the field existed
-    assert CapturePlan.from_json(old).resolution == "superpixel"
+    assert read_plan(plan_json(full)) == full and plan_json(full)["resolution"] == "full"
+    old = plan_json(CapturePlan((0,), mode="single-shot"))
+    del old["resolution"]  # a session written before the field existed (schema version 1)
+    assert read_plan(migrate_v1({"plan": old, "captures": []})["plan"]).resolution == "superpixel"
+    with pytest.raises(FormatError, match="plan: missing 'resolution'"):  # version 2 states it
+        read_plan(old)
     # the result EXR of a full-resolution plan is at the raw size: 16 times the 4x4-cell grid's
     sp = CapturePlan((0,), mode="single-shot")
     assert planned_bytes(full, 1, 64, 64, 3, (4, 4)) > planned_bytes(sp, 1, 64, 64, 3, (4, 4))
@@ -121,10 +124,10 @@ def test_network_binning_is_planned_checked_and_older_plans_read_as_1():
         [opt] = [a for a in sub[command]._actions if "--network-binning" in a.option_strings]
         assert tuple(opt.choices) == NETWORK_BINNINGS and opt.default is None
     binned = CapturePlan((0,), mode="single-shot", network_binning=2)
-    assert CapturePlan.from_json(binned.to_json()) == binned and binned.to_json()["network_binning"] == 2
-    old = CapturePlan((0,), mode="single-shot").to_json()
-    del old["network_binning"]  # a session written before the field existed
-    assert CapturePlan.from_json(old).network_binning == 1
+    assert read_plan(plan_json(binned)) == binned and plan_json(binned)["network_binning"] == 2
+    old = plan_json(CapturePlan((0,), mode="single-shot"))
+    del old["network_binning"]  # a session written before the field existed (schema version 1)
+    assert read_plan(migrate_v1({"plan": old, "captures": []})["plan"]).network_binning == 1
     for kw, text in [({"network_binning": 2}, "network binning 2: network binning applies to the "
                                               "single-shot method only"),
                      ({"mode": "single-shot", "network_binning": 3}, "network binning 3: must be one of 1, 2"),

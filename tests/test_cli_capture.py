@@ -218,7 +218,7 @@ def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
     assert main(["capture", "--poses", "0,180", "--mode", "single-shot", "--config", str(cfg),
                  "--out", str(out), "--no-progress"]) == 0
     s = Session.open(out)
-    assert s.plan["states_deg"] == [0.0]  # the plan records the one state captured
+    assert s.plan.states_deg == (0.0,)  # the plan records the one state captured
     for cap in s.captures:
         assert len(cap["files"]["raw"]) == 1  # one state, one frame
         assert cap["score"]["pixels_compared"] > 0 and cap["score"]["psnr_db"] > 20
@@ -244,7 +244,7 @@ def test_single_shot_mirror_average_is_planned_recorded_and_reprocessable(tmp_pa
     assert main(["capture", "--poses", "0", "--mode", "single-shot", "--mirror-average", "--config", str(cfg),
                  "--out", str(out), "--no-progress"]) == 0
     s = Session.open(out)
-    assert s.plan["mirror_average"] is True and s.captures[0]["score"]["psnr_db"] > 20
+    assert s.plan.mirror_average is True and s.captures[0]["score"]["psnr_db"] > 20
     capsys.readouterr()
     assert main(["capture", "--poses", "0", "--mode", "single-shot", "--config", str(cfg), "--out", str(out),
                  "--resume", "--no-progress"]) == 0  # the stored plan holds, nothing left to do
@@ -530,7 +530,7 @@ def test_single_shot_full_resolution_capture_and_reconstruct(tmp_path, capsys):
     assert main(["capture", "--poses", "0", "--mode", "single-shot", "--resolution", "full",
                  "--device", "cpu", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
     s = Session.open(out)
-    assert s.plan["resolution"] == "full"
+    assert s.plan.resolution == "full"
     score = s.captures[0]["score"]
     assert score["psnr_db"] > 25 and score["within_2sigma"] is None  # no sigma to judge
     full = read_mueller_exr(out / s.capture(0)["files"]["mueller"]["path"])

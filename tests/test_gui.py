@@ -306,7 +306,7 @@ def test_closing_during_capture_leaves_a_resumable_session(qtbot, tmp_path):
     assert pending and session.verify() == []
     # resume with the core API, as `polrig capture --resume` does
     with build_rig(load_rig_config(None), SIM).open() as rig:
-        plan = capture.CapturePlan.from_json(session.plan)
+        plan = session.plan
         cal = processing.load_calibration(None, session=session)
         capture.check_resume_space(session, rig, len(pending))
         proc = processing.make_processor(plan, cal, processing.session_sensor_model(session))

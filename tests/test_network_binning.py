@@ -57,7 +57,7 @@ def test_capture_and_reconstruct_with_network_binning_2(tmp_path, capsys):
         assert main(["capture", "--poses", "0", "--mode", "single-shot", *extra, "--device", "cpu",
                      "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
     s1, s2 = Session.open(one), Session.open(two)
-    assert s1.plan["network_binning"] == 1 and s2.plan["network_binning"] == 2
+    assert s1.plan.network_binning == 1 and s2.plan.network_binning == 2
     assert "--network-binning" in s2.manifest["command_line"]
     a, b = result(one), result(two)
     assert a.mueller.shape == b.mueller.shape == (3, 3, 3, 32, 32)
@@ -197,17 +197,18 @@ def test_a_session_from_before_the_field_resumes_to_identical_results(tmp_path):
         run_session(rig, s, processor=proc, progress=stop_after_first, control=control)
     assert [c["status"] for c in Session.open(old).captures] == [COMPLETE, PENDING]
     manifest = json.loads((old / "session.json").read_text())
-    del manifest["plan"]["network_binning"]  # as a session from before the field
+    manifest["schema_version"] = 1  # as a session from before the field
+    del manifest["plan"]["network_binning"]
     (old / "session.json").write_text(json.dumps(manifest, indent=2))
-    prepared = capture.prepare_capture(CaptureRequest(out=old, resume=True, device="cpu"))
-    assert prepared.plan.network_binning == 1
-    with _sim_rig() as rig:
-        s = capture.open_session(prepared, rig, ["polrig", "capture", "--resume"])
-        proc = processing.make_processor(prepared.plan, prepared.calibration,
-                                         processing.session_sensor_model(s), "cpu")
-        assert run_session(rig, s, processor=proc).status == COMPLETE
+    assert Session.open(old).plan.network_binning == 1  # migrated: the value it was captured with
+    request = CaptureRequest(out=old, resume=True, device="cpu")
+    run = capture.run_capture(request, command_line=["polrig", "capture", "--resume"],
+                              rig=_sim_rig)
+    assert run.status == COMPLETE
     assert _content(old) == _content(ref)
-    assert "network_binning" not in Session.open(old).plan  # the session's record is left as it was
+    stored = json.loads((old / "session.json").read_text())  # written in version 2, stated
+    assert stored["schema_version"] == 2 and stored["plan"]["network_binning"] == 1
+    assert [h["from_version"] for h in stored["history"] if h["event"] == "schema migrated"] == [1]
     # and a reconstruct of it defaults to binning 1 too, recorded with the revision
     s = Session.open(old)
     s.lock()
@@ -251,10 +252,15 @@ def test_cluster_jobs_carry_the_binning_and_old_revisions_continue(tmp_path):
         # rev2 (binning 2) is pending: a binning-1 request makes a new revision ...
         [batch] = cluster.prepare(sessions, network_binning=1, device="cpu")
         assert (batch.revision, batch.continued) == ("rev3", False)
-        # ... but one written before the setting existed is binning 1: continued
+        # ... but one written before the setting existed (schema version 1) is binning 1:
+        # continued
         s = sessions[0]
-        del s.manifest["revisions"][-1]["network_binning"]
-        s.save()
+        m = json.loads((s.root / "session.json").read_text())
+        m["schema_version"] = 1
+        del m["revisions"][-1]["network_binning"]
+        (s.root / "session.json").write_text(json.dumps(m))
+        s.reload()
+        assert s.manifest["revisions"][-1]["network_binning"] == 1
         [batch] = cluster.prepare(sessions, network_binning=None, device="cpu")
         assert (batch.revision, batch.continued) == ("rev3", True)
         [batch] = cluster.prepare(sessions, network_binning=2, device="cpu")

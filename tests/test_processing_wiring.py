@@ -63,7 +63,7 @@ def two_step_score(proc: processing.Processor, session: Session, index: int, res
 @pytest.mark.parametrize("method", ["superpixel", "bilinear"])
 def test_session_score_equals_the_two_step_score(tmp_path, method):
     s = capture(tmp_path / "s", CapturePlan((0.0, 120.0), demosaic=method))
-    proc = processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
+    proc = processing.make_processor(s.plan, EXACT,
                                      processing.session_sensor_model(s))
     for index in (0, 1):
         cf = processing.load_capture_frames(s, index)
@@ -88,7 +88,7 @@ def test_single_shot_score_uses_the_nominal_weights_on_the_output_grid(tmp_path)
     model, scored band by band, equal the two-step score (a reference result stands in for
     the network's, the scoring does not care where it came from)."""
     s = capture(tmp_path / "s", CapturePlan((0.0,)))
-    proc = processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
+    proc = processing.make_processor(s.plan, EXACT,
                                      processing.session_sensor_model(s))
     cf = processing.load_capture_frames(s, 0)
     result, s_in, lay, _ = processing.process_reference(cf, EXACT, proc.sensor_model,
@@ -134,8 +134,8 @@ def test_exr_choice_is_planned_written_and_viewed(tmp_path):
                        exr_compression="piz")
     assert plan.exr_planes == ("mueller", "sigma")
     s = capture(tmp_path / "s", plan)
-    assert s.plan["exr_planes"] == ["mueller", "sigma"]
-    assert (s.plan["exr_uncertainty"], s.plan["exr_compression"]) == ("half", "piz")
+    assert s.plan.exr_planes == ("mueller", "sigma")
+    assert (s.plan.exr_uncertainty, s.plan.exr_compression) == ("half", "piz")
     files = s.capture(0)["files"]
     chans = _channels(s.root / files["mueller"]["path"])
     assert "PIZ" in chans.pop("<compression>")
@@ -163,17 +163,21 @@ def test_mueller_only_has_no_uncertainty_view(tmp_path):
 
 
 def test_a_plan_without_the_fields_reads_back_with_the_choice_it_was_written_with():
-    """A session's plan older than the EXR fields was written with float32 uncertainty and
-    ZIP (LEGACY_EXR), not today's default (half, ZIP): it resumes to the same files."""
-    old = CapturePlan((0.0,)).to_json()
+    """A session's plan older than the EXR fields (schema version 1) was written with float32
+    uncertainty and ZIP (LEGACY_EXR), not today's default (half, ZIP): its migration says so,
+    so it resumes to the same files. Version 2 states every field: none is defaulted."""
+    from polrig.app.manifest import LEGACY_EXR, migrate_v1, plan_json, read_plan
+
+    old = plan_json(CapturePlan((0.0,)))
     for key in ("exr_planes", "exr_uncertainty", "exr_compression"):
         del old[key]
-    plan = CapturePlan.from_json(old)
-    assert plan.exr == ExrChoice.of_plan(old) == ExrChoice(uncertainty="float", compression="zip")
+    plan = read_plan(migrate_v1({"plan": old, "captures": []})["plan"])
+    assert plan.exr == ExrChoice(uncertainty="float", compression="zip")
+    assert LEGACY_EXR["exr_uncertainty"] == "float"
     assert plan.exr != ExrChoice() and ExrChoice().uncertainty == "half"
     assert plan.exr.planes == ("mueller", "sigma", "sigma_noise", "mask", "residual")
     new = CapturePlan((0.0,))
-    assert CapturePlan.from_json(new.to_json()).exr == new.exr == ExrChoice()
+    assert read_plan(plan_json(new)).exr == new.exr == ExrChoice()
 
 
 @pytest.mark.parametrize("field, value", [("exr_planes", ("mueller", "dolp")),
@@ -215,9 +219,10 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
 def new_revision(s: Session) -> tuple[str, processing.Processor]:
     """A new reference revision of locked session ``s`` with capture 0 started in it, and the
     session plan's processor."""
-    rev = s.new_revision({"mode": "reference"})
+    settings, _, _ = processing.revision_plan(s, "reference", None, None, EXACT)
+    rev = s.new_revision(settings)
     s.start_revision(0, rev)
-    return rev, processing.make_processor(CapturePlan.from_json(s.plan), EXACT,
+    return rev, processing.make_processor(s.plan, EXACT,
                                           processing.session_sensor_model(s))
 
 
