@@ -1,0 +1,166 @@
+"""Sessions written by polrig before the typed manifest (schema version 1, commit 45517b4:
+``tests/data/sessions-v1/README.md``) open, show, resume and reprocess under schema version 2.
+
+The data folder is never changed: every test that writes works on a copy.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import shutil
+
+import numpy as np
+import pytest
+
+from polrig.acquisition.plan import CapturePlan
+from polrig.app.manifest import SCHEMA_VERSION
+from polrig.app.session import MANIFEST_NAME, Session
+from polrig.cli import main
+from polrig.errors import FormatError
+from polrig.formats.exr import read_mueller_exr
+
+DATA = pathlib.Path(__file__).resolve().parent / "data" / "sessions-v1"
+SESSIONS = ("reference", "single-shot", "interrupted")
+MODEL_INSTALLED = (pathlib.Path(__file__).resolve().parents[1] / "models" / "weights"
+                   / "single_shot.onnx").is_file()
+
+
+def snapshot(root: pathlib.Path) -> dict[pathlib.Path, bytes]:
+    return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def copy(name: str, tmp_path: pathlib.Path) -> pathlib.Path:
+    return shutil.copytree(DATA / name, tmp_path / name)
+
+
+def content(root: pathlib.Path) -> list:
+    """What must be identical between two runs (as tests/test_cli_capture.py compares them):
+    per capture its pose, status and every file's path and checksum (frame sidecars hold
+    clock timestamps: their presence only)."""
+    s = Session.open(root)
+    return [(c["pose_deg"], c["status"],
+             sorted((role, r["path"], r["sha256"], r.get("meta_path"))
+                    for _, role, r in s.iter_file_records(c)))
+            for c in s.captures]
+
+
+def test_the_data_is_version_1():
+    for name in SESSIONS:
+        assert json.loads((DATA / name / MANIFEST_NAME).read_text())["schema_version"] == 1
+    assert SCHEMA_VERSION == 2
+
+
+@pytest.mark.parametrize("name, poses, mode, statuses", [
+    ("reference", (0.0, 90.0), "reference", ["complete", "complete"]),
+    ("single-shot", (0.0,), "single-shot", ["complete"]),
+    ("interrupted", (0.0, 120.0, 240.0), "reference", ["complete", "pending", "pending"]),
+])
+def test_each_opens_under_the_new_manifest(name, poses, mode, statuses):
+    """Migrated in memory: the plan is a CapturePlan stating every field (the EXR choice these
+    sessions recorded), every record has its version-2 keys, the history says so; opening
+    writes nothing and every checksum still holds."""
+    before = snapshot(DATA / name)
+    s = Session.open(DATA / name)
+    assert s.stored_version == 1 and s.manifest["schema_version"] == 2
+    plan = s.plan
+    assert isinstance(plan, CapturePlan)
+    assert (plan.poses_deg, plan.mode, plan.network_binning, plan.resolution) == (
+        poses, mode, 1, "superpixel")
+    assert plan.states_deg == ((0.0,) if mode == "single-shot" else (0.0, 45.0, 90.0, 135.0))
+    assert (plan.exr_uncertainty, plan.exr_compression) == ("half", "zip")  # as recorded
+    assert [c["status"] for c in s.captures] == statuses
+    assert all("mode" not in c and c["revisions"] == {} for c in s.captures)  # the plan's
+    assert s.manifest["rig"]["camera_frames"]["layout"] == "imx250mzr"
+    assert s.manifest["hardware_time_s"] > 0
+    migrated = s.manifest["history"][-1]
+    assert (migrated["event"], migrated["from_version"], migrated["to_version"]) == (
+        "schema migrated", 1, 2)
+    assert s.verify() == []
+    assert snapshot(DATA / name) == before
+
+
+@pytest.mark.parametrize("name, n_files", [("reference", 26), ("single-shot", 7),
+                                           ("interrupted", 13)])
+def test_info_shows_them_and_writes_nothing(name, n_files, capsys):
+    before = snapshot(DATA / name)
+    assert main(["info", str(DATA / name)]) == 0
+    out = capsys.readouterr().out
+    assert "schema: version 1, read as version 2" in out
+    assert f"checksums: all {n_files} files verified (SHA-256)" in out
+    if name == "interrupted":
+        assert "status: interrupted (terminated by SIGTERM)" in out
+        assert "1 complete, 2 pending" in out
+    assert snapshot(DATA / name) == before
+
+
+def test_a_damaged_version_1_manifest_is_one_line_naming_the_record(tmp_path):
+    root = copy("reference", tmp_path)
+    m = json.loads((root / MANIFEST_NAME).read_text())
+    del m["captures"][1]["files"]["raw"][2]["sha256"]
+    (root / MANIFEST_NAME).write_text(json.dumps(m))
+    with pytest.raises(FormatError) as info:
+        Session.open(root)
+    text = str(info.value)
+    assert text == (f"{root / MANIFEST_NAME}: capture 1 (c001_pose090.0): raw file record 2: "
+                    f"missing 'sha256' (damaged session manifest)")
+
+
+def test_the_interrupted_session_resumes_to_an_uninterrupted_runs_result(tmp_path, capsys):
+    """``polrig capture --resume`` of the session interrupted under polrig 45517b4, on the fast
+    clock (the same simulated world): it completes, and its captures (the one 45517b4 wrote and
+    the two written now) are the files of an uninterrupted capture by today's polrig, byte for
+    byte. The manifest is then written in schema version 2."""
+    fast = DATA / "rig-fast.toml"
+    out = copy("interrupted", tmp_path)
+    assert main(["capture", "--config", str(fast), "--out", str(out), "--resume",
+                 "--no-progress"]) == 0
+    assert "session complete: 3 captures" in capsys.readouterr().out
+    ref = tmp_path / "uninterrupted"
+    assert main(["capture", "--poses", "0,120,240", "--mode", "reference", "--config", str(fast),
+                 "--out", str(ref), "--no-progress"]) == 0
+    assert content(out) == content(ref)
+    s = Session.open(out)
+    assert s.stored_version == 2 and s.verify() == []
+    assert s.manifest["status"] == "complete" and s.capture(1)["attempts"] == 2
+    events = [h["event"] for h in s.manifest["history"]]
+    assert events.index("session interrupted") < events.index("schema migrated") < \
+        events.index("resumed")
+    stored = json.loads((out / MANIFEST_NAME).read_text())
+    assert stored["schema_version"] == 2 and stored["plan"]["network_binning"] == 1
+
+
+def test_reconstruct_reprocesses_the_reference_session(tmp_path, capsys):
+    """``polrig reconstruct`` of the version-1 session: a revision whose results are the
+    capture's own (same settings, same raw frames), the manifest written in version 2."""
+    root = copy("reference", tmp_path)
+    assert main(["reconstruct", str(root), "--no-progress"]) == 0
+    assert f"revision rev1 written to {root}" in capsys.readouterr().out
+    s = Session.open(root)
+    assert s.stored_version == 2 and s.verify() == []
+    [rev] = s.manifest["revisions"]
+    assert (rev["name"], rev["mode"], rev["exr_uncertainty"]) == ("rev1", "reference", "half")
+    for cap in s.captures:
+        entry = cap["revisions"]["rev1"]
+        assert entry["status"] == "complete" and entry["score"] == cap["score"]
+        mine = read_mueller_exr(root / entry["files"]["mueller"]["path"])
+        theirs = read_mueller_exr(root / cap["files"]["mueller"]["path"])
+        np.testing.assert_array_equal(mine.mueller, theirs.mueller)
+        assert mine.metadata["revision"] == "rev1" and theirs.metadata["revision"] == "capture"
+
+
+@pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
+def test_reconstruct_reprocesses_the_single_shot_session(tmp_path, capsys):
+    root = copy("single-shot", tmp_path)
+    assert main(["reconstruct", str(root), "--device", "cpu", "--no-progress"]) == 0
+    s = Session.open(root)
+    assert s.stored_version == 2 and s.verify() == []
+    [rev] = s.manifest["revisions"]
+    assert (rev["mode"], rev["resolution"], rev["network_binning"]) == ("single-shot",
+                                                                         "superpixel", 1)
+    cap = s.capture(0)
+    entry = cap["revisions"]["rev1"]
+    assert entry["status"] == "complete" and entry["score"]["pixels_compared"] > 0
+    mine = read_mueller_exr(root / entry["files"]["mueller"]["path"]).mueller
+    theirs = read_mueller_exr(root / cap["files"]["mueller"]["path"]).mueller
+    np.testing.assert_array_equal(mine, theirs)
