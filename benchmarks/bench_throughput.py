@@ -104,18 +104,14 @@ def make_capture(folder: pathlib.Path, sensor: str, exr: dict) -> pathlib.Path:
     """A one-pose reference session at full sensor on the (rendering) simulated rig, with its
     truth recorded (compressed as the EXR choice ``exr`` says, as a capture with that choice
     writes it); processed once with the superpixel demosaic."""
-    from polrig.app import capture, processing
+    from polrig.app import capture
     from polrig.app.rig import open_rig
 
     req = capture.CaptureRequest(out=folder, poses_deg=(0.0,), mode="reference",
                                  states_deg=STATES, frames_per_state=1,
                                  exr_compression=exr.get("compression", "zip"))
-    prepared = capture.prepare_capture(req)
-    with open_rig(None, **_sim_options(sensor, math.inf)) as rig:
-        session = capture.open_session(prepared, rig, ["bench_throughput"])
-        proc = processing.make_processor(prepared.plan, prepared.calibration,
-                                         processing.session_sensor_model(session))
-        result = capture.run_session(rig, session, processor=proc)
+    result = capture.run_capture(req, command_line=["bench_throughput"],
+                                 rig=lambda: open_rig(None, **_sim_options(sensor, math.inf)))
     if result.status != "complete":
         raise RuntimeError(f"setup capture {result.status}: {result.reason}")
     return folder
@@ -242,7 +238,7 @@ def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: f
             rig.close()
         if result.status != "complete":
             raise RuntimeError(f"session {result.status}: {result.reason}")
-        hardware = float(session.manifest.get("hardware_time_s") or float("nan"))
+        hardware = float(session.manifest["hardware_time_s"] or float("nan"))
     return {"wall_s": wall, "hardware_s": hardware, "clock_s": sim_s / clock_speed,
             "peak_mb": peak_rss_mb()}
 
