@@ -7,6 +7,8 @@
   layer (module level, function level, or under ``if TYPE_CHECKING:``).
 * No module imports a module that imports it back, directly or through others.
 * ``polrig.models.runtime`` never imports torch (inference is onnxruntime only).
+* The shells present, the app layer does: no module of ``polrig.cli`` or ``polrig.gui`` takes
+  a capture's steps itself; each calls :func:`polrig.app.capture.run_capture`.
 """
 
 from __future__ import annotations
