@@ -42,7 +42,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import pathlib
-from typing import Any, Callable, ContextManager, Sequence, Union
+from typing import Any, Callable, Sequence
 
 from polrig.acquisition.engine import (
     CaptureControl,
@@ -287,10 +287,10 @@ class SessionOpened:
 
 
 #: What :func:`run_capture` tells its ``events`` callback, in the calling thread.
-CaptureEvent = Union[SessionOpened, Progress]
+CaptureEvent = SessionOpened | Progress
 #: Where :func:`run_capture` gets its rig: a callable returning a context manager that yields
 #: an open :class:`polrig.app.rig.Rig` (and closes or releases it at the end).
-RigSource = Callable[[], ContextManager[Any]]
+RigSource = Callable[[], contextlib.AbstractContextManager[Any]]
 
 
 @dataclasses.dataclass
@@ -352,7 +352,7 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
                                          len(session.captures)))
                 return run_session(opened, session, processor=processor, progress=events,
                                    control=control)
-            except Exception as exc:  # noqa: BLE001 - the session exists: a stop to report
+            except Exception as exc:  # the session exists: a stop to report
                 if reraise:
                     raise
                 return interrupted_result(session, exc)
@@ -366,7 +366,8 @@ def _configured_rig(config: pathlib.Path | None) -> RigSource:
     """The rig of ``config`` (the simulated rig without one), opened when the run starts."""
 
     def source():
-        from polrig.app import rig as rigs  # looked up at call time (tests replace open_rig)
+        # looked up at call time: tests replace polrig.app.rig.open_rig
+        from polrig.app import rig as rigs
 
         return rigs.open_rig(config)
 

@@ -32,7 +32,15 @@ from typing import Annotated, Any, Callable, Literal, NotRequired, TypedDict
 from polrig.acquisition.plan import MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
 from polrig.errors import FormatError
 from polrig.formats.exr import RESULT_PLANES
-from polrig.formats.typedjson import FINITE, Check, Invalid, Label, encode, extra_keys, load
+from polrig.formats.typedjson import (
+    FINITE,
+    Check,
+    Invalid,
+    Label,
+    encode,
+    extra_keys,
+    load,
+)
 
 #: The version of the manifest this polrig writes (``schema_version``).
 SCHEMA_VERSION = 2
@@ -415,7 +423,7 @@ def _migrate_score_v1(entry: dict[str, Any]) -> None:
 
 def utc_now() -> str:
     """Current UTC time as an ISO 8601 string with a ``Z`` suffix (second resolution)."""
-    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace(
+    return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace(
         "+00:00", "Z")
 
 

@@ -12,11 +12,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Any
 
 from polrig.acquisition.plan import CapturePlan, planned_bytes
-from polrig.app.records import frame_geometry, rig_record
 from polrig.app.manifest import DarkFrameRecord, RawFrameRecord
+from polrig.app.records import frame_geometry, rig_record
 from polrig.app.session import Session, check_free_space, sha256_file
 from polrig.errors import FormatError
 from polrig.formats.rawio import encode_mosaic, read_raw

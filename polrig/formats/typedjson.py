@@ -24,7 +24,7 @@ import types
 import typing
 from typing import Annotated, Any, Callable, Literal, Union
 
-__all__ = ["Check", "Invalid", "Label", "encode", "extra_keys", "load", "FINITE", "NON_NEGATIVE"]
+__all__ = ["FINITE", "NON_NEGATIVE", "Check", "Invalid", "Label", "encode", "extra_keys", "load"]
 
 
 class Invalid(ValueError):
@@ -193,7 +193,7 @@ def _inner(tp: Any, ctx: str, key: str) -> str:
     return ctx + f"{key}: "
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls, include_extras=True)
 
