@@ -307,13 +307,14 @@ def parse(data: Any, where: str = "session.json") -> SessionManifest:
     if not isinstance(data, dict) or "captures" not in data:
         raise FormatError(f"{where}: not a polrig session manifest")
     version = data.get("schema_version")
-    if version != SCHEMA_VERSION and version not in MIGRATIONS:
+    if type(version) is not int or (version != SCHEMA_VERSION and version not in MIGRATIONS):
         known = ", ".join(str(v) for v in [*sorted(MIGRATIONS), SCHEMA_VERSION])
         raise FormatError(f"{where}: session schema version {version!r}, this polrig reads "
                           f"versions {known}")
-    data = copy.deepcopy(data)
-    while data.get("schema_version") != SCHEMA_VERSION:
-        data = MIGRATIONS[data["schema_version"]](data)
+    if version != SCHEMA_VERSION:
+        data = copy.deepcopy(data)  # the caller's data stays as it was read
+        while data["schema_version"] != SCHEMA_VERSION:
+            data = MIGRATIONS[data["schema_version"]](data)
     try:
         return _load(data)
     except Invalid as exc:
@@ -416,7 +417,7 @@ def _migrate_score_v1(entry: dict[str, Any]) -> None:
     """Version 1 accepted a score with ``rmse`` null ("no pixels to score") and nothing else."""
     score = entry.get("score")
     if isinstance(score, dict) and score.get("rmse") is None:
-        for key in ("mae", "psnr_db", "realizable"):
+        for key in ("rmse", "mae", "psnr_db", "realizable"):
             score.setdefault(key, None)
         score.setdefault("pixels_compared", 0)
 

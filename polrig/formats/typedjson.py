@@ -83,7 +83,8 @@ def load(tp: Any, value: Any, *, context: str = "") -> Any:
 
 # -- the reader ---------------------------------------------------------------------------------
 def _fail(outer: str, name: str, what: str, value: Any) -> Invalid:
-    return Invalid(f"{outer}{name} must be {what}, got {_short(value)}")
+    subject = f"{outer}{name} " if name else outer  # an entry: named by its label
+    return Invalid(f"{subject}must be {what}, got {_short(value)}")
 
 
 def _short(value: Any) -> str:
@@ -247,9 +248,10 @@ def _load_list(tp, value, outer, name, inner, label) -> Any:
         raise _fail(outer, name, _phrase(tp), value)
     if _is_record(item):
         key = name.strip("'")
-        out = [_load(item, v, inner, f"entry {i}",
-                     inner + _entry_prefix(label, i, v, f"{key} {i}: "))
-               for i, v in enumerate(value)]
+        out = []
+        for i, v in enumerate(value):
+            prefix = inner + _entry_prefix(label, i, v, f"{key} {i}: ")
+            out.append(_load(item, v, prefix, "", prefix))
     else:  # a list of plain values: the list is named as a whole
         try:
             out = [_load(item, v, "", "", "") for v in value]
@@ -270,8 +272,11 @@ def _load_mapping(tp, value, outer, name, inner, label) -> dict:
         except Invalid:
             raise _fail(outer, name, _phrase(tp), value) from None
     key = name.strip("'")
-    return {k: _load(item, v, inner, repr(k), inner + _entry_prefix(label, k, v, f"{key} {k!r}: "))
-            for k, v in value.items()}
+    out = {}
+    for k, v in value.items():
+        prefix = inner + _entry_prefix(label, k, v, f"{key} {k!r}: ")
+        out[k] = _load(item, v, prefix, "", prefix)
+    return out
 
 
 # -- what a type is called in a message ---------------------------------------------------------
