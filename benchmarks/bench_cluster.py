@@ -244,7 +244,7 @@ def main(argv=None) -> int:
         bs = Session.open(wb, lock=True)
         bb = cluster.prepare([bs])
         bs.unlock()
-        outcome = cluster.run_capture(cluster.jobs_of(bb[0], None)[0])
+        outcome = cluster.process_job(cluster.jobs_of(bb[0], None)[0])
         job_b, out_b = len(cloudpickle.dumps(job)), len(pickle.dumps(outcome))
         rss = {f"{n} worker(s)": sorted(runners[n].client.run(_peak_rss_bytes).values())
                for n in runners}

@@ -7,7 +7,7 @@ Roles (the session's one-writer rule holds):
   continues) each session's revision, submits one :class:`CaptureJob` per capture, and as
   results arrive records them in the manifest (:func:`polrig.app.processing.record_result`) --
   the only process that writes a ``session.json``.
-* **Workers** (:func:`run_capture`): open the session read-only from the file system they
+* **Workers** (:func:`process_job`): open the session read-only from the file system they
   share with the client, read and verify the raw frames themselves (raw data never travels
   through the client), solve (:meth:`polrig.app.processing.Processor.solve`) and write the
   result file under a temporary name in its final folder, then rename it
@@ -252,7 +252,7 @@ def _processor(job: CaptureJob, session: Session):
     return _PROCESSORS[key]
 
 
-def run_capture(job: CaptureJob) -> CaptureOutcome:
+def process_job(job: CaptureJob) -> CaptureOutcome:
     """The task: solve one capture from its raw files and write its result file. Never
     writes the manifest. A failure (damaged raw data, a full disk...) is returned with its
     reason, not raised, so the client marks that capture and goes on."""
@@ -425,7 +425,7 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
     try:
         with SignalGuard() as guard:
             try:
-                for job, out in runner.map_unordered(run_capture, jobs):
+                for job, out in runner.map_unordered(process_job, jobs):
                     b = by_key[(job.root, job.index)]
                     with guard.deferred():
                         b.finished += 1
