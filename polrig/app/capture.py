@@ -543,7 +543,8 @@ class _Run:
         self.result.completed.append(index)
         if score is not None:
             self.result.scores[index] = score
-        rec = self.session.capture(index)["files"].get("mueller")
+        with self.session.mutex:  # the worker may be recording the next capture's files
+            rec = self.session.capture(index)["files"].get("mueller")
         self.emit("capture-done", index, score=score,
                   result=None if rec is None else self.session.root / rec["path"])
 
