@@ -620,3 +620,41 @@ def test_a_deeper_processing_queue_gives_the_same_session(tmp_path, reference_se
     assert content(session) == content(reference_session)
     with pytest.raises(ValueError, match="max_queued"):
         run_session(rig, session, max_queued=0)
+
+
+def test_run_capture_takes_a_request_end_to_end(tmp_path):
+    """The one capture call: its first event says the session exists, the rest are the run's
+    progress (a done capture names its result file); a stop is a result; a refusal before the
+    session exists is raised and leaves the session's lock free; a resume continues it."""
+    from polrig.acquisition.plan import PlanError
+    from polrig.app.capture import CaptureRequest, SessionOpened, run_capture
+
+    out = tmp_path / "s"
+    control = CaptureControl()
+    events = []
+
+    def on(ev):
+        events.append(ev)
+        if isinstance(ev, SessionOpened):
+            assert (out / "session.json").is_file()  # it exists when it is said to
+        elif ev.kind == "capture-acquired" and ev.capture_index == 0:
+            control.stop.set()
+
+    request = CaptureRequest(out=out, poses_deg=(0.0, 90.0))
+    result = run_capture(request, command_line=["test"], rig=sim_rig, events=on, control=control)
+    assert events[0] == SessionOpened(out, False, 2)
+    assert all(not isinstance(e, SessionOpened) for e in events[1:])
+    assert result.status == INTERRUPTED and result.reason == "stopped by the operator"
+    [done] = [e for e in events if getattr(e, "kind", "") == "capture-done"]
+    assert done.result == out / "c000_pose000.0" / "mueller.exr" and done.result.is_file()
+    before = (out / "session.json").read_bytes()
+    with pytest.raises(PlanError, match="planned with poses_deg"):
+        run_capture(CaptureRequest(out=out, poses_deg=(0.0,), resume=True), command_line=["x"],
+                    rig=sim_rig)
+    assert (out / "session.json").read_bytes() == before
+    Session.open(out, lock=True).unlock()  # not held by the refused call
+    events.clear()
+    result = run_capture(CaptureRequest(out=out, resume=True), command_line=["test", "--resume"],
+                         rig=sim_rig, events=events.append)
+    assert events[0] == SessionOpened(out, True, 2) and result.status == "complete"
+    assert [c["status"] for c in Session.open(out).captures] == [COMPLETE, COMPLETE]
