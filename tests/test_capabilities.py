@@ -1,8 +1,9 @@
 """Capabilities are declared, never probed (issue 30).
 
-* The camera declares its sensor size (:attr:`polrig.acquisition.hal.CameraCapabilities.sensor_size`):
-  the simulated camera its sensor's, a GenICam camera its ``SensorWidth``/``SensorHeight`` or
-  ``WidthMax``/``HeightMax`` (tests/test_driver_genicam.py); calibration reads it there.
+* The camera declares its sensor size
+  (:attr:`polrig.acquisition.hal.CameraCapabilities.sensor_size`): the simulated camera its
+  sensor's, a GenICam camera its ``SensorWidth``/``SensorHeight`` or ``WidthMax``/``HeightMax``
+  (tests/test_driver_genicam.py); calibration reads it there.
 * A rig's simulator truth is an optional, typed capability (``Rig.truth: RigTruth | None``),
   and so is the simulated devices' fault injection (``Rig.faults: FaultInjection | None``).
 * No module of the distribution asks an object whether it has one of these attributes

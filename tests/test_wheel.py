@@ -24,7 +24,6 @@ import re
 import shutil
 import subprocess
 import sys
-import sysconfig
 import textwrap
 import tomllib
 import zipfile
@@ -38,7 +37,8 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 USER_PACKAGES = ("models", "sim", "calibration", "drivers")
 #: A module of each of polrig's packages of those names: the user's package has one too,
 #: which fails on import (polrig importing the user's package instead of its own).
-TRAPS = {"models": "runtime", "sim": "devices", "calibration": "calset", "drivers": "genicam_camera"}
+TRAPS = {"models": "runtime", "sim": "devices", "calibration": "calset",
+         "drivers": "genicam_camera"}
 
 
 def _version(text: str) -> tuple[int, ...]:
@@ -49,7 +49,8 @@ def setuptools_folder() -> pathlib.Path:
     """The folder of the newest setuptools this environment can import (a virtual environment
     may hold an old one of its own before its dependencies' newer one), which must be at least
     the one ``[build-system] requires``."""
-    requires = tomllib.loads((REPO / "pyproject.toml").read_text("utf-8"))["build-system"]["requires"]
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text("utf-8"))
+    requires = pyproject["build-system"]["requires"]
     minimum = next(_version(r) for r in requires if re.match(r"setuptools\s*>=", r))
     found = [(_version(d.version), pathlib.Path(d.locate_file("")))
              for d in importlib.metadata.distributions(name="setuptools")]
@@ -104,7 +105,8 @@ def check_wheel_contents(wheel: pathlib.Path) -> None:
     assert top == {"polrig", info[0]}, f"top-level names besides polrig: {sorted(top)}"
     # every module of the distribution (tests/test_architecture.py's list), under polrig/
     for module, path in _files().items():
-        rel = "/".join(module.split(".")) + ("/__init__.py" if path.name == "__init__.py" else ".py")
+        tail = "/__init__.py" if path.name == "__init__.py" else ".py"
+        rel = "/".join(module.split(".")) + tail
         assert rel in names, f"{rel} ({path.relative_to(REPO)}) is not in the wheel"
     # the shipped model: its graphs, their JSON files and the model card
     weights = sorted(p.name for p in (REPO / "models" / "weights").iterdir()
