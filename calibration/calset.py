@@ -14,7 +14,8 @@ Layout of a calibration set folder (format ``polrig-calibration``, version 1):
 ``camera`` records the camera the set was calibrated on: its mosaic ``layout`` (at ROI offset
 0, 0), the ``readout`` ROI ``[width, height, offset_x, offset_y]`` every step used (the
 intrinsics' pixel coordinates and the analyzer model's pixels are those of this readout) and
-the full ``sensor_size`` ``[width, height]`` where the camera reports it (else ``null``). Sets
+the full ``sensor_size`` ``[width, height]`` where the camera declares it
+(:attr:`polrig.acquisition.hal.CameraCapabilities.sensor_size`; else ``null``). Sets
 written before this section existed were calibrated on the full sensor at offset 0, 0 (what
 the processing has always assumed): their geometry is the analyzer's or the intrinsics'
 image size (:meth:`CalibrationSet.sensor_geometry`).
