@@ -70,12 +70,6 @@ class SimTruth:
         self._world = world
         self._camera = camera
 
-    @property
-    def world(self) -> SimWorld:
-        """The simulated world itself (for the simulator's own tools and tests; a rig's
-        callers use the :class:`polrig.acquisition.hal.RigTruth` methods)."""
-        return self._world
-
     def ground_truth(self, *, turntable_deg: float | None = None) -> dict[str, Any]:
         """Truth for the camera's current ROI, exposure and gain, the light's level and the
         turntable's current angle (or ``turntable_deg``).
