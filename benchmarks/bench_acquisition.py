@@ -63,7 +63,7 @@ def run_case(n_states: int, k: int, bracket: bool, *, size: int, scene: str, see
     if ideal:
         opts["hidden"] = IDEAL
     with tempfile.TemporaryDirectory() as d, open_rig(None, **opts) as rig:
-        clock = rig.sim.world.clock
+        clock = rig.camera.world.clock
         session = create_session(pathlib.Path(d) / "s", rig, plan, calibration_id=cal.id)
         proc = processing.make_processor(plan, cal, processing.session_sensor_model(session))
         t0, w0 = clock.now(), time.perf_counter()

@@ -23,7 +23,6 @@ from polrig.app.rig import open_rig
 from polrig.calibration import evaluate, procedures, runner
 from polrig.calibration.calset import CalibrationSet
 from polrig.calibration.mirror import IDEAL, MirrorMetal
-from polrig.sim import targets
 
 
 def main() -> None:
@@ -42,14 +41,14 @@ def main() -> None:
     rig.open()
 
     def mount(name, **kw):
-        targets.mount(rig.sim, name, **kw)
+        rig.truth.mount_target(name, **kw)
 
     cs, extras, times = CalibrationSet(), {}, {}
     for step in runner.STEPS:
         t0 = time.perf_counter()
         runner.run_steps([step], rig, mount, cs, extras=extras, log=lambda s: None)
         times[step] = time.perf_counter() - t0
-    e = runner.errors_against_truth(cs, rig.truth.rig_parameters(), rig.sim.world.sensor.analyzer)
+    e = runner.errors_against_truth(cs, rig.truth.rig_parameters(), rig.truth.analyzer())
     # the same DoFP step with the plate taken as an ideal mirror (no diattenuation, no
     # retardance: the model before the plate became aluminium), on a copy of the set
     with tempfile.TemporaryDirectory() as tmp:
@@ -60,7 +59,7 @@ def main() -> None:
                      options=runner.Options(mirror=MirrorMetal.named(IDEAL)))
     times["dofp_ideal"] = time.perf_counter() - t0
     e_ideal = runner.errors_against_truth(cs_ideal, rig.truth.rig_parameters(),
-                                          rig.sim.world.sensor.analyzer)
+                                          rig.truth.analyzer())
     g = cs.generator
     L = cs.params["light"]
     rows = [
@@ -119,7 +118,7 @@ def main() -> None:
                       hidden=hidden)
         r2.open()
         if scene == "mirror_plate":
-            targets.mount(r2.sim, "mirror_plate", **procedures.INTRINSIC_MOUNTS[0])
+            r2.truth.mount_target("mirror_plate", **procedures.INTRINSIC_MOUNTS[0])
             r2.turntable.move_to(cs.params["dofp"]["turntable_deg"])
         procedures.auto_expose(r2.camera, percentile=99.9, target=0.45)
         gt = r2.truth.ground_truth()

@@ -101,7 +101,7 @@ def capture(scene: str, *, size: int, n_states: int, k: int, seed: int, ideal: b
     if ideal:
         opts["hidden"] = IDEAL
     with tempfile.TemporaryDirectory() as d, open_rig(None, **opts) as rig:
-        rig.sim.world.indirect_samples = indirect  # before the first render of the pose
+        rig.camera.world.indirect_samples = indirect  # before the first render of the pose
         session = create_session(pathlib.Path(d) / "s", rig, plan, calibration_id=cal.id)
         model = processing.session_sensor_model(session)
         proc = processing.make_processor(plan, cal, model)
@@ -112,7 +112,7 @@ def capture(scene: str, *, size: int, n_states: int, k: int, seed: int, ideal: b
         img = read_mueller_exr(session.root / session.capture(0)["name"] / "truth_mueller.exr")
         solved = [processing.process_reference(cf, cal, model, proc.demosaic)]
         if expectation:
-            solved.append(processing.process_reference(noise_free_frames(rig.sim.world, cf),
+            solved.append(processing.process_reference(noise_free_frames(rig.camera.world, cf),
                                                        cal, model, proc.demosaic))
     support = demosaic_float(np.asarray(img.extra["object_mask"], np.float32),
                              solved[0][2], proc.demosaic)

@@ -93,7 +93,7 @@ def replay_rig(sensor: str, clock_speed: float):
     from polrig.sim.replay import ReplayCamera
 
     rig = open_rig(None, **_sim_options(sensor, clock_speed))
-    cam = ReplayCamera(rig.sim.world, rig.sim.faults, exposure_us=EXPOSURE_US)
+    cam = ReplayCamera(rig.camera.world, rig.faults, exposure_us=EXPOSURE_US)
     cam.open()
     cam.record(STATES)
     return dataclasses.replace(rig, camera=cam, truth=None)
@@ -227,7 +227,7 @@ def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: f
             session = capture.open_session(prepared, rig, ["bench_throughput"])
             proc = processing.make_processor(prepared.plan, prepared.calibration,
                                              processing.session_sensor_model(session))
-            clock = rig.sim.world.clock
+            clock = rig.camera.world.clock
             t0, c0 = time.perf_counter(), clock.now()
             result = capture.run_session(rig, session, processor=proc if overlapped else None)
             if not overlapped:

@@ -14,7 +14,8 @@ Layout of a calibration set folder (format ``polrig-calibration``, version 1):
 ``camera`` records the camera the set was calibrated on: its mosaic ``layout`` (at ROI offset
 0, 0), the ``readout`` ROI ``[width, height, offset_x, offset_y]`` every step used (the
 intrinsics' pixel coordinates and the analyzer model's pixels are those of this readout) and
-the full ``sensor_size`` ``[width, height]`` where the camera reports it (else ``null``). Sets
+the full ``sensor_size`` ``[width, height]`` where the camera declares it
+(:attr:`polrig.acquisition.hal.CameraCapabilities.sensor_size`; else ``null``). Sets
 written before this section existed were calibrated on the full sensor at offset 0, 0 (what
 the processing has always assumed): their geometry is the analyzer's or the intrinsics'
 image size (:meth:`CalibrationSet.sensor_geometry`).
@@ -101,19 +102,13 @@ class SensorGeometry:
 
     @classmethod
     def of_rig(cls, rig) -> "SensorGeometry":
-        """The geometry of ``rig``'s camera as it reads out now: layout, ROI and, where known,
-        the sensor size (a simulated camera's sensor, or a camera with ``sensor_size``)."""
+        """The geometry of ``rig``'s camera as it reads out now: layout, ROI and the sensor
+        size where the camera declares it
+        (:attr:`polrig.acquisition.hal.CameraCapabilities.sensor_size`)."""
         cam = rig.camera
         w, h, ox, oy = (int(v) for v in cam.roi)
-        size = getattr(cam, "sensor_size", None)
-        if size is None:
-            cfg = getattr(rig, "config", None) or {}
-            sim = getattr(rig, "sim", None)
-            if sim is not None and (cfg.get("camera") or {}).get("driver", "sim") == "sim":
-                sh, sw = sim.world.sensor.shape
-                size = (sw, sh)
         return cls(layout_name_at(str(cam.layout), 0, 0), (w, h, ox, oy),
-                   None if size is None else (int(size[0]), int(size[1])))
+                   cam.capabilities.sensor_size)
 
     def to_json(self) -> dict[str, Any]:
         return {"layout": self.layout, "readout": None if self.area is None else list(self.area),

@@ -49,6 +49,10 @@ after every setting this driver changes, so that reading them costs nothing):
   the period, or the camera could not keep that rate), so the period bounds the readout
   plus transfer; nothing is subtracted for the exposure, which may overlap the previous
   readout entirely. A camera reporting neither: 0.
+- sensor size: ``SensorWidth`` x ``SensorHeight`` (SFNC: the sensor's effective pixels), else
+  ``WidthMax`` x ``HeightMax`` (SFNC: the largest image, after binning or decimation; polrig
+  never bins a DoFP sensor, whose neighbouring pixels carry different analyzers, so the two
+  agree); ``None`` for a camera with neither pair (the Viky producer).
 - settle frames (free run): 2. When a setting changes (or the rig moves) during free run,
   one frame is being exposed, and began before the change, and the one before it may be
   in readout or transfer and not yet queued on the host (:meth:`GenicamCamera.grab`
@@ -215,6 +219,8 @@ _EXPOSURE_FEATURES = ("ExposureTime", "ExposureTimeAbs")
 _FRAME_RATE_FEATURES = ("ResultingFrameRate", "AcquisitionFrameRate")
 #: free run: frames to discard after a setting change (see the module notes)
 FREE_RUN_SETTLE_FRAMES = 2
+#: full-sensor size features, (width, height) pairs in order of preference (SFNC names)
+_SENSOR_SIZE_FEATURES = (("SensorWidth", "SensorHeight"), ("WidthMax", "HeightMax"))
 
 
 def exposure_feature(node_map) -> str | None:
@@ -240,7 +246,19 @@ def capabilities_from_node_map(node_map) -> CameraCapabilities:
         readout = 1e6 / fps if fps is not None else 0.0
     return CameraCapabilities(trigger_modes=("software", "free") if software else ("free",),
                               exposure_range_us=exposure_range, readout_us=readout,
-                              settle_frames=FREE_RUN_SETTLE_FRAMES)
+                              settle_frames=FREE_RUN_SETTLE_FRAMES,
+                              sensor_size=sensor_size_from_node_map(node_map))
+
+
+def sensor_size_from_node_map(node_map) -> tuple[int, int] | None:
+    """``(width, height)`` of the full sensor from ``SensorWidth``/``SensorHeight``, else
+    ``WidthMax``/``HeightMax`` (the first pair the node map has and can read as whole
+    numbers >= 1); None where it has neither."""
+    for width_name, height_name in _SENSOR_SIZE_FEATURES:
+        size = (_float_feature(node_map, width_name), _float_feature(node_map, height_name))
+        if all(v is not None and v >= 1 and v == int(v) for v in size):
+            return int(size[0]), int(size[1])
+    return None
 
 
 def _float_feature(node_map, name: str) -> float | None:

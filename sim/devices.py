@@ -66,6 +66,11 @@ class FaultInjector:
         with self._lock:
             self._pending[device_kind].append(_Fault(kind, int(after_calls)))
 
+    def inject_fault(self, device_kind: str, kind: str = "timeout", after_calls: int = 0) -> None:
+        """:meth:`SimRig.inject_fault` (:class:`polrig.acquisition.hal.FaultInjection`: the
+        simulated rig's test-only capability, ``Rig.faults``)."""
+        self.add(device_kind, kind, after_calls)
+
     def step(self, device_kind: str) -> str | None:
         """Count one call; return the fault kind that fires on it, if any."""
         with self._lock:
@@ -99,6 +104,12 @@ class _SimDevice:
     @property
     def is_open(self) -> bool:
         return self._open
+
+    @property
+    def world(self) -> SimWorld:
+        """The simulated world this device is part of (for the simulator's own tools and
+        tests; the rig's callers see the HAL and the rig's declared capabilities only)."""
+        return self._world
 
     def info(self) -> DeviceInfo:
         return DeviceInfo(kind=self.kind, driver="sim", model=self._model(),
@@ -209,11 +220,14 @@ class SimCamera(_SimDevice, hal.Camera):
 
     @property
     def capabilities(self) -> hal.CameraCapabilities:
-        """Both trigger modes, :attr:`EXPOSURE_RANGE_US`, the configured readout time; a
-        simulated frame is always exposed with the current settings (no frame to settle)."""
+        """Both trigger modes, :attr:`EXPOSURE_RANGE_US`, the configured readout time, the
+        simulated sensor's size; a simulated frame is always exposed with the current settings
+        (no frame to settle)."""
+        h, w = self._world.sensor.shape
         return hal.CameraCapabilities(trigger_modes=("software", "free"),
                                       exposure_range_us=self.EXPOSURE_RANGE_US,
-                                      readout_us=self._readout_us, settle_frames=0)
+                                      readout_us=self._readout_us, settle_frames=0,
+                                      sensor_size=(int(w), int(h)))
 
     @property
     def layout(self) -> str:
@@ -401,7 +415,9 @@ class SimLight(_SimDevice, hal.Light):
 
 class SimRig:
     """The simulated rig: ``camera``, ``stage``, ``turntable``, ``light`` over one ``world``;
-    ``truth`` gives the hidden parameters and the per-capture ground truth."""
+    ``truth`` (:class:`polrig.acquisition.hal.RigTruth`) gives the hidden parameters and the
+    per-capture ground truth, ``faults`` (:class:`polrig.acquisition.hal.FaultInjection`) makes
+    the devices fail on purpose."""
 
     def __init__(self, world: SimWorld, options: dict[str, Any], *, camera_kw=None,
                  stage_kw=None, turntable_kw=None) -> None:
@@ -441,7 +457,7 @@ class SimRig:
         :class:`ProtocolError`, ``disconnect`` -> :class:`DeviceDisconnected` (and the device
         stays closed until :meth:`open`). Every HAL call except ``open``, ``close``,
         ``info``, ``is_open`` and the camera's read-only properties counts."""
-        self.faults.add(device_kind, kind, after_calls)
+        self.faults.inject_fault(device_kind, kind, after_calls)
 
 
 def create_sim_rig(options: dict[str, Any] | None = None) -> SimRig:

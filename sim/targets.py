@@ -42,6 +42,7 @@ from polrig.sim.materials import Material, SurfaceMaterial
 from polrig.sim.optical_data import conductor_rgb
 from polrig.sim.scene import OBJECT_Z_M, Scene, SceneObject
 from polrig.sim.shapes import Rectangle, Sphere
+from polrig.sim.world import SimWorld
 
 TARGETS = ("charuco", "mirror_plate", "white_plate", "chrome_sphere")
 
@@ -147,11 +148,9 @@ def target_scene(base: Scene, name: str, **kw) -> Scene:
     return dataclasses.replace(base, name=f"target:{name}", objects=tuple(target_objects(name, **kw)))
 
 
-def mount(rig, name: str, **kw) -> None:
-    """Swap the target of a simulated rig (a :class:`polrig.sim.devices.SimRig` or anything with a
-    ``world`` attribute): the world's scene gets the target's objects and its render caches are
-    emptied. Camera, light, stage, turntable position and all hidden parameters are kept."""
-    world = getattr(rig, "world", None)
-    if world is None:
-        raise ValueError("mount() needs a simulated rig (an object with a 'world')")
+def mount(world: SimWorld, name: str, **kw) -> None:
+    """Swap the target in a simulated ``world``: its scene gets the target's objects and its
+    render caches are emptied. Camera, light, stage, turntable position and all hidden
+    parameters are kept. A rig's callers reach it through the rig's declared truth,
+    :meth:`polrig.acquisition.hal.RigTruth.mount_target`."""
     world.set_scene(target_scene(world.scene, name, **kw))

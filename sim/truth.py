@@ -19,6 +19,8 @@ import numpy as np
 from polrig.atomic import atomic_write_bytes, atomic_write_text
 from polrig.formats.exr import colour_planes, read_mueller_exr, write_mueller_exr
 from polrig.optics.conventions import CONVENTIONS_VERSION
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sim import targets
 from polrig.sim.world import Roi, SimWorld
 
 TRUTH_FORMAT = "polrig-sim-truth"
@@ -61,7 +63,8 @@ class CameraSettings(Protocol):
 class SimTruth:
     """Ground truth of a simulated rig: its ``world`` seen through ``camera``'s current ROI,
     exposure and gain (the :class:`polrig.sim.devices.SimRig` builds it; this module knows
-    nothing of the devices)."""
+    nothing of the devices). It is the simulated rig's
+    :class:`polrig.acquisition.hal.RigTruth`."""
 
     def __init__(self, world: SimWorld, camera: CameraSettings) -> None:
         self._world = world
@@ -91,6 +94,14 @@ class SimTruth:
     def incident_stokes(self, stage_deg: float) -> np.ndarray:
         """True normalised incident Stokes ``(3,)`` at a stage reading."""
         return self._world.generator.incident_stokes(stage_deg)
+
+    def analyzer(self) -> AnalyzerModel:
+        """The simulated camera's true per-pixel analyzer (its sensor's)."""
+        return self._world.sensor.analyzer
+
+    def mount_target(self, name: str, **fixture: Any) -> None:
+        """Swap the simulated target in front of the camera (:func:`polrig.sim.targets.mount`)."""
+        targets.mount(self._world, name, **fixture)
 
 
 def rig_parameters(world: SimWorld) -> dict[str, Any]:

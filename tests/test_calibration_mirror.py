@@ -218,17 +218,16 @@ def _incident_stokes_through_the_mirror(metal_names):
     from polrig.app.rig import open_rig
     from polrig.calibration import procedures
     from polrig.calibration.runner import truth_in_camera
-    from polrig.sim import targets
 
     rig = open_rig(None, size="128x96", seed=0, clock_speed=float("inf"), noise=False,
                    hidden={"light_position_m": (0.5, 0.0, 0.1)})
     try:
-        targets.mount(rig.sim, "mirror_plate", tilt_deg=20.0)
+        rig.truth.mount_target("mirror_plate", tilt_deg=20.0)
         rig.turntable.move_to(40.0)
         procedures.auto_expose(rig.camera, percentile=99.5, target=0.5)
         gt = rig.truth.ground_truth()
         zero = truth_in_camera(rig.truth.rig_parameters())["stage_zero_axis_cam"]
-        ana = rig.sim.world.sensor.analyzer
+        ana = rig.truth.analyzer()
         rows, channel = ana.rows().reshape(-1, 3), ana.colour_map().reshape(-1)
         radiance = np.take_along_axis(gt["mueller"][:, 0, 0].reshape(3, -1), channel[None], 0)[0]
         n, wi, wo = (gt[k].reshape(3, -1).T.astype(float) for k in ("normal", "wi", "wo"))
@@ -353,7 +352,6 @@ def test_dofp_step_and_reference_mueller_through_a_metal_plate_against_hidden_tr
     from polrig.app.rig import open_rig
     from polrig.calibration import evaluate, procedures
     from polrig.calibration.calset import CalibrationSet
-    from polrig.sim import targets
 
     sim = {"size": "320x240", "seed": 0, "clock_speed": float("inf"),
            "hidden": {"light_position_m": (0.5, 0.0, 0.1)}}
@@ -363,11 +361,11 @@ def test_dofp_step_and_reference_mueller_through_a_metal_plate_against_hidden_tr
         geo, tc = _true_geometry(rig.truth.rig_parameters(), procedures.INTRINSIC_MOUNTS[0])
         sets, errs = {}, {}
         for name in (IDEAL, DEFAULT_MIRROR_METAL):
-            dr = procedures.run_dofp(rig, lambda n, **kw: targets.mount(rig.sim, n, **kw), geo,
+            dr = procedures.run_dofp(rig, lambda n, **kw: rig.truth.mount_target(n, **kw), geo,
                                      tc["light_cam_m"], tc["zero_offset_deg"],
                                      mirror=MirrorMetal.named(name))
             assert 40.0 < dr.mirror_incidence_deg < 48.0
-            truth_an, v = rig.sim.world.sensor.analyzer, dr.fit.valid
+            truth_an, v = rig.truth.analyzer(), dr.fit.valid
             errs[name] = (
                 float(np.sqrt(np.mean((dr.analyzer.angle_deg - truth_an.angle_deg)[v] ** 2))),
                 float(np.sqrt(np.mean((dr.analyzer.gain / truth_an.gain - 1)[v] ** 2))),

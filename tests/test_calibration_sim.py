@@ -16,7 +16,6 @@ from polrig.calibration.calset import CalibrationSet
 from polrig.calibration.errors import TooFewAngles
 from polrig.calibration.report import write_report
 from polrig.cli import main as polrig_main
-from polrig.sim import targets
 
 pytestmark = pytest.mark.slow
 
@@ -29,13 +28,13 @@ def calibrated(tmp_path_factory):
     rig.open()
 
     def mount(name, **kw):
-        targets.mount(rig.sim, name, **kw)
+        rig.truth.mount_target(name, **kw)
 
     cs, extras, lines = CalibrationSet(), {}, []
     runner.run_steps(runner.STEPS, rig, mount, cs, extras=extras, log=lines.append)
     print("\n".join(lines))
     errors = runner.errors_against_truth(cs, rig.truth.rig_parameters(),
-                                         rig.sim.world.sensor.analyzer)
+                                         rig.truth.analyzer())
     out = tmp_path_factory.mktemp("calset")
     cs.save(out)
     write_report(out, cs, extras, errors)

@@ -28,7 +28,7 @@ EXACT = processing.Calibration("ideal")
 
 def sim_rig(size=64, *, noise=True, scene="plane", seed=5, **kw):
     """The simulated rig as ``polrig capture`` opens it (:func:`polrig.app.rig.open_rig`);
-    ``rig.sim`` is the simulated rig underneath (fault injection, its clock)."""
+    ``rig.faults`` injects faults, ``rig.camera.world`` is the simulated world (its clock)."""
     opts = {"size": (size, size), "sensor": "imx250mzr", "clock_speed": math.inf,
             "seed": seed, "scene": scene, "noise": noise, "hidden": dict(IDEAL), **kw}
     return open_rig(None, **opts)
@@ -187,7 +187,7 @@ def test_ctrl_c_mid_capture_then_resume_gives_identical_session(tmp_path, refere
 def test_safe_faults_are_retried(tmp_path, reference_session, device, kind, after):
     events = []
     with sim_rig() as rig:
-        rig.sim.inject_fault(device, kind, after_calls=after)
+        rig.faults.inject_fault(device, kind, after_calls=after)
         session, proc = start(rig, tmp_path / "s", CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc, progress=events.append)
     assert result.status == "complete"
@@ -209,7 +209,7 @@ def test_a_long_turntable_move_gets_a_timeout_for_its_distance(tmp_path):
 def test_unrecoverable_fault_stops_cleanly_then_resumes(tmp_path, reference_session):
     out = tmp_path / "s"
     with sim_rig() as rig:
-        rig.sim.inject_fault("camera", "disconnect", after_calls=9)
+        rig.faults.inject_fault("camera", "disconnect", after_calls=9)
         session, proc = start(rig, out, CapturePlan(POSES4))
         result = run_session(rig, session, processor=proc)
     assert result.status == INTERRUPTED and "DeviceDisconnected" in result.reason

@@ -53,13 +53,13 @@ def test_a_timed_out_grab_is_retried_then_given_up():
     with open_rig(None, **SIM) as rig:
         ex = Executor(rig, policy=FaultPolicy(grab_retries=2))
         seen = events_of(ex)
-        rig.sim.inject_fault("camera", "timeout", after_calls=0)
+        rig.faults.inject_fault("camera", "timeout", after_calls=0)
         ex.execute(grab_step())
         retries = [e for e in seen if isinstance(e, Retried)]
         assert len(retries) == 1 and "camera grab timed out" in retries[0].message
         assert [type(e) for e in seen] == [Retried, FrameGrabbed]
         for k in range(3):  # three timeouts in a row: retries exhausted
-            rig.sim.inject_fault("camera", "timeout", after_calls=k)
+            rig.faults.inject_fault("camera", "timeout", after_calls=k)
         with pytest.raises(DeviceTimeout, match="timed out 3 times"):
             ex.execute(grab_step(1))
 
@@ -69,14 +69,14 @@ def test_a_failed_move_is_retried_once_after_homing(kind):
     with open_rig(None, **SIM) as rig:
         ex = Executor(rig)
         seen = events_of(ex)
-        rig.sim.inject_fault("stage", kind, after_calls=1)  # position, then move_to
+        rig.faults.inject_fault("stage", kind, after_calls=1)  # position, then move_to
         ex.execute(Move((("stage", 60.0),)))
         assert rig.stage.position_deg() == pytest.approx(60.0)
         assert any("re-homing and retrying once" in e.message for e in seen
                    if isinstance(e, Retried))
         # a second failure (the retried move, after position, move_to and home) is raised
-        rig.sim.inject_fault("stage", kind, after_calls=1)
-        rig.sim.inject_fault("stage", kind, after_calls=3)
+        rig.faults.inject_fault("stage", kind, after_calls=1)
+        rig.faults.inject_fault("stage", kind, after_calls=3)
         with pytest.raises(EXPECTED[kind]):
             ex.execute(Move((("stage", 10.0),)))
 
@@ -85,7 +85,7 @@ def test_a_disconnection_is_never_retried():
     with open_rig(None, **SIM) as rig:
         ex = Executor(rig)
         seen = events_of(ex)
-        rig.sim.inject_fault("turntable", "disconnect", after_calls=1)
+        rig.faults.inject_fault("turntable", "disconnect", after_calls=1)
         with pytest.raises(DeviceDisconnected):
             ex.execute(Move((("turntable", 30.0), ("stage", 45.0))))
         assert not [e for e in seen if isinstance(e, Retried)]
@@ -96,7 +96,7 @@ def test_axes_of_one_move_turn_together():
     100 deg/s^2) in one Move take as long as the slower of the two, not their sum (the
     simulated clock measures it)."""
     with open_rig(None, **SIM) as rig:
-        clock = rig.sim.world.clock
+        clock = rig.camera.world.clock
         ex = Executor(rig)
         t_turn = rig.turntable.move_time_s(0.0, 90.0)
         t_stage = rig.stage.move_time_s(0.0, 135.0)
@@ -119,7 +119,7 @@ class FreeRunCamera(SimCamera):
 
 def test_free_run_discards_the_settle_frames_after_a_move_or_a_setting():
     with open_rig(None, **SIM) as rig:
-        rig.camera = FreeRunCamera(rig.sim.world, rig.sim.faults)
+        rig.camera = FreeRunCamera(rig.camera.world, rig.faults)
         rig.camera.open()
         ex = Executor(rig)
         kept = []
@@ -150,7 +150,7 @@ def test_a_camera_without_exposure_control_is_never_asked_to_set_it():
     from polrig.acquisition.plan import session_steps, step_durations
 
     with open_rig(None, **SIM) as rig:
-        rig.camera = NoExposureControl(rig.sim.world, rig.sim.faults)
+        rig.camera = NoExposureControl(rig.camera.world, rig.faults)
         rig.camera.open()
         plan = CapturePlan((0.0,))
         steps = session_steps(plan, [0], (rig.camera.exposure_us,))
@@ -176,7 +176,7 @@ def test_a_session_on_a_camera_without_exposure_control_reopens_and_has_results(
     for name, camera in (("plain", None), ("no-exposure", NoExposureControl)):
         with open_rig(None, **SIM) as rig:
             if camera is not None:
-                rig.camera = camera(rig.sim.world, rig.sim.faults)
+                rig.camera = camera(rig.camera.world, rig.faults)
                 rig.camera.open()
             out = tmp_path / name
             session = create_session(out, rig, plan, calibration_id=cal.id)
@@ -217,10 +217,10 @@ def test_calibration_procedures_get_the_capture_fault_policy():
     with open_rig(None, **SIM) as rig:
         lines = []
         guarded = GuardedRig.around(rig, on_retry=lines.append)
-        rig.sim.inject_fault("camera", "timeout", after_calls=0)
+        rig.faults.inject_fault("camera", "timeout", after_calls=0)
         raw, meta = procedures.grab_mean(guarded.camera, 2)
         assert raw.shape == (32, 32) and np.isfinite(raw).all()
-        rig.sim.inject_fault("stage", "protocol", after_calls=1)
+        rig.faults.inject_fault("stage", "protocol", after_calls=1)
         procedures._move(guarded.stage, 90.0)  # the procedures' own move helper
         assert rig.stage.position_deg() == pytest.approx(90.0)
         assert any("camera grab timed out" in s for s in lines)
@@ -241,7 +241,7 @@ def test_the_plans_hardware_time_is_the_simulated_rigs_clock(tmp_path):
     cal = processing.Calibration("ideal")
     events = []
     with open_rig(None, **SIM) as rig:
-        clock = rig.sim.world.clock
+        clock = rig.camera.world.clock
         session = create_session(tmp_path / "s", rig, plan, calibration_id=cal.id)
         t0 = clock.now()
         result = run_session(rig, session, progress=events.append)

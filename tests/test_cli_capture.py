@@ -191,7 +191,7 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
         rig = real_open(*a, **kw)
         # stage calls: position (hardware time), home, then per move position, move_to, wait;
         # call 15 starts capture 1's first move (with the turntable)
-        rig.sim.inject_fault("stage", "disconnect", after_calls=15)
+        rig.faults.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
     monkeypatch.setattr(polrig.app.rig, "open_rig", faulty_open)
@@ -328,7 +328,7 @@ def interrupted_session(tmp_path, monkeypatch, cfg: pathlib.Path, poses: str = "
         rig = real_open(*a, **kw)
         # stage calls: position (hardware time), home, then per move position, move_to, wait;
         # call 15 starts capture 1's first move (with the turntable)
-        rig.sim.inject_fault("stage", "disconnect", after_calls=15)
+        rig.faults.inject_fault("stage", "disconnect", after_calls=15)
         return rig
 
     out = tmp_path / "run"

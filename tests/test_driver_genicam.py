@@ -221,6 +221,10 @@ def test_capabilities_of_a_camera_without_trigger_or_exposure_features(cam):
     assert nm.get_node("AcquisitionFrameRate").value == pytest.approx(200.0)
     assert caps.readout_us == pytest.approx(1e6 / 200.0)
     assert caps.settle_frames == 2
+    # nor SensorWidth/SensorHeight or WidthMax/HeightMax: the sensor size is not declared
+    assert not any(nm.has_node(n) for n in ("SensorWidth", "SensorHeight", "WidthMax",
+                                            "HeightMax"))
+    assert caps.sensor_size is None
     cam.set_trigger("free")  # free run works without TriggerMode
     assert cam.trigger == "free" and cam.grab(timeout_s=2.0).raw.shape == (100, 120)
 
@@ -265,6 +269,11 @@ def _float(name, value, lo=0.0, hi=1e9):
             f'<Max>{hi}</Max></Float>')
 
 
+def _int(name, value):
+    return (f'<Integer Name="{name}" NameSpace="Standard"><Value>{value}</Value><Min>0</Min>'
+            f'<Max>100000</Max></Integer>')
+
+
 _TRIGGER_MODE = ('<Enumeration Name="TriggerMode" NameSpace="Standard"><EnumEntry Name="Off">'
                  '<Value>0</Value></EnumEntry><EnumEntry Name="On"><Value>1</Value></EnumEntry>'
                  '<Value>0</Value></Enumeration>')
@@ -289,10 +298,14 @@ def test_capabilities_of_an_sfnc_camera():
     from polrig.drivers.genicam_camera import capabilities_from_node_map
 
     nm = node_map(_TRIGGER_MODE, _TRIGGER_SOFTWARE, _float("ExposureTime", 10000, 20, 3e7),
-                  _float("SensorReadoutTime", 8000), _float("AcquisitionFrameRate", 20))
+                  _float("SensorReadoutTime", 8000), _float("AcquisitionFrameRate", 20),
+                  _int("SensorWidth", 2448), _int("SensorHeight", 2048),
+                  _int("WidthMax", 1224), _int("HeightMax", 1024))
     caps = capabilities_from_node_map(nm)
     assert caps.trigger_modes == ("software", "free") and caps.preferred_trigger == "software"
     assert caps.exposure_range_us == (20.0, 3e7) and caps.readout_us == 8000.0
+    # the sensor's own size (SFNC SensorWidth/SensorHeight) wins over WidthMax/HeightMax
+    assert caps.sensor_size == (2448, 2048)
     caps.check_exposure(20.0)
     with pytest.raises(ConfigError, match=r"\[20, 3e\+07\]"):
         caps.check_exposure(19.0)
@@ -308,11 +321,14 @@ def test_capabilities_of_an_older_gige_camera():
     )
 
     nm = node_map(_TRIGGER_MODE, _float("ExposureTimeAbs", 5000, 35, 1e6),
-                  _float("AcquisitionFrameRate", 30), _float("ResultingFrameRate", 22.5))
+                  _float("AcquisitionFrameRate", 30), _float("ResultingFrameRate", 22.5),
+                  _int("WidthMax", 2448), _int("HeightMax", 2048), _int("SensorWidth", 2448))
     caps = capabilities_from_node_map(nm)
     assert exposure_feature(nm) == "ExposureTimeAbs"
     assert caps.trigger_modes == ("free",) and caps.exposure_range_us == (35.0, 1e6)
     assert caps.readout_us == pytest.approx(1e6 / 22.5)
+    # no SensorHeight (half a pair is no size): the largest image, WidthMax x HeightMax
+    assert caps.sensor_size == (2448, 2048)
 
 
 def test_capabilities_of_a_camera_that_says_nothing():
@@ -326,3 +342,4 @@ def test_capabilities_of_a_camera_that_says_nothing():
     assert exposure_feature(nm) is None
     assert caps.trigger_modes == ("free",) and caps.exposure_range_us == (0.0, 0.0)
     assert caps.readout_us == 0.0 and caps.settle_frames == 2
+    assert caps.sensor_size is None

@@ -262,9 +262,9 @@ def test_device_fault_shows_a_message_and_the_ui_stays_responsive(qtbot, window)
     wait_frames(qtbot, window, 2)
     probe = EventLoopProbe(10).start()
     frames_before = window.live.frames_shown
-    rig = window.rig.sim
-    rig.inject_fault("stage", "fault", after_calls=0)
-    rig.inject_fault("camera", "timeout", after_calls=0)
+    faults = window.rig.faults
+    faults.inject_fault("stage", "fault", after_calls=0)
+    faults.inject_fault("camera", "timeout", after_calls=0)
     window.devices.move("turntable", 8000.0)  # 800 s simulated = 0.8 s of a busy device
     window.devices.move("stage", 30.0)
     qtbot.waitUntil(lambda: any("simulated device fault" in t for lvl, t in

@@ -316,7 +316,7 @@ def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, t
     qtbot.waitUntil(lambda: not w.isVisible(), timeout=10000)
     assert time.monotonic() - t0 < 2.0
     assert not w.devices.worker.isRunning() and not w.live_worker.isRunning()
-    world = w.rig.sim.world  # the motion was stopped before the rig closed
+    world = w.rig.camera.world  # the motion was stopped before the rig closed
     assert world.turntable_move.t_end_s <= world.clock.now() < 5.0 * 10.0
 
 
@@ -435,7 +435,7 @@ def test_live_status_says_when_frames_stop(qtbot, window):
     wait_connected(qtbot, window)
     wait_frames(qtbot, window, 3)
     assert window.fps_label.text().startswith("live ")
-    window.rig.sim.inject_fault("camera", "disconnect", after_calls=0)
+    window.rig.faults.inject_fault("camera", "disconnect", after_calls=0)
     qtbot.waitUntil(lambda: window.fps_label.text().startswith("live: no frames"),
                     timeout=10000)
     qtbot.waitUntil(lambda: "camera not connected" in window.fps_label.text(), timeout=10000)

@@ -111,7 +111,7 @@ def test_calibration_asks_the_operator_to_mount_targets_on_hardware(qtbot, tmp_p
             {viky_camera()}
         """)
         rig = build_rig(load_rig_config(cfg))
-        assert rig.sim is None
+        assert rig.truth is None and rig.faults is None
         w = MainWindow(rig, make_settings(tmp_path / "gui.ini"), poll_ms=150)
         qtbot.addWidget(w)
         w.show()

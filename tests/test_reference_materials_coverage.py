@@ -56,8 +56,8 @@ def test_interreflections_change_the_crater_truth():
     sums = []
     for indirect in (0, 8):
         with open_rig(None, size=(64, 64), clock_speed=math.inf, scene="crater") as rig:
-            rig.sim.world.indirect_samples = indirect
-            sums.append(float(rig.sim.world.radiance_mueller(0.0)[:, 0, 0].sum()))
+            rig.camera.world.indirect_samples = indirect
+            sums.append(float(rig.camera.world.radiance_mueller(0.0)[:, 0, 0].sum()))
     assert sums[1] > 1.05 * sums[0]
 
 

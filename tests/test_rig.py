@@ -52,7 +52,7 @@ def test_real_rig_against_emulators(tmp_path, emulators):
     with open_rig(path) as rig:
         assert isinstance(rig.stage, Ell14Stage) and isinstance(rig.stage, hal.RotationStage)
         assert isinstance(rig.turntable, K10cr1Turntable) and isinstance(rig.turntable, hal.Turntable)
-        assert rig.truth is None and rig.sim is None and rig.source == path
+        assert rig.truth is None and rig.faults is None and rig.source == path
         text = rig.describe()
         assert "ELL14" in text and "K10CR1" in text and "DC2200" in text and "Viky" in text
         rig.stage.move_to(30.0)
@@ -101,7 +101,8 @@ def test_simulated_rig_shares_one_world():
         assert isinstance(rig.camera, hal.Camera) and isinstance(rig.light, hal.Light)
         assert isinstance(rig.turntable, hal.Turntable)
         assert rig.truth is not None and rig.source is None
-        assert rig.camera is rig.sim.camera and rig.stage is rig.sim.stage
+        assert rig.camera.world is rig.stage.world is rig.turntable.world is rig.light.world
+        assert isinstance(rig.truth, hal.RigTruth) and isinstance(rig.faults, hal.FaultInjection)
         assert rig.camera.grab().raw.shape == (24, 32)
         assert "built-in simulated rig" in rig.describe()
 
@@ -117,7 +118,7 @@ def test_mixed_rig_one_sim_world(tmp_path, emulators):
         """)
     with open_rig(path) as rig:
         assert isinstance(rig.stage, Ell14Stage)
-        assert rig.camera is rig.sim.camera and rig.light is rig.sim.light
-        assert rig.turntable is rig.sim.turntable
+        assert rig.camera.world is rig.light.world is rig.turntable.world
         assert rig.truth is None  # the simulated world no longer describes the real stage
+        assert rig.faults is not None  # the simulated devices still fail to order
         assert rig.camera.grab().raw.shape == (24, 32)

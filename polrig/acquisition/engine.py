@@ -40,6 +40,7 @@ from polrig.acquisition.hal import (
     Camera,
     CameraCapabilities,
     Light,
+    RigTruth,
     RotationStage,
     grab_timeout_s,
     motion_timeout_s,
@@ -478,7 +479,8 @@ class GuardedRig:
     """A rig facade for procedures written against the HAL (the calibration procedures):
     the same four devices, every grab, setting and move going through one
     :class:`Executor`'s fault policy, and pause/stop honoured before grabs and moves.
-    ``truth``, ``config`` and ``source`` are the wrapped rig's. Build with
+    ``truth`` (the declared :class:`polrig.acquisition.hal.RigTruth` or ``None``), ``config`` and
+    ``source`` are the wrapped rig's. Build with
     :meth:`around` (``rig``: a :class:`polrig.app.rig.Rig`); the camera is put in its preferred
     trigger mode."""
 
@@ -487,10 +489,9 @@ class GuardedRig:
     turntable: GuardedAxis
     light: GuardedLight
     executor: Executor
-    truth: Any = None
+    truth: RigTruth | None = None
     config: Any = None
     source: Any = None
-    sim: Any = None
 
     @property
     def devices(self) -> dict[str, Any]:
@@ -510,4 +511,4 @@ class GuardedRig:
                    GuardedAxis("stage", rig.stage, executor),
                    GuardedAxis("turntable", rig.turntable, executor),
                    GuardedLight(rig.light, executor), executor,
-                   truth=rig.truth, config=rig.config, source=rig.source, sim=rig.sim)
+                   truth=rig.truth, config=rig.config, source=rig.source)

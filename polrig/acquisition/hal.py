@@ -6,6 +6,11 @@ kind they hold. Every blocking call takes ``timeout_s`` and raises
 :class:`polrig.errors.DeviceTimeout` when it runs out; device-reported errors raise
 :class:`polrig.errors.DeviceFault` with the device's own code and text.
 
+Optional capabilities of a whole rig are declared here too, as protocols a rig's attribute is
+typed with (``None`` where the rig lacks them): :class:`RigTruth`, the simulator's hidden truth,
+and :class:`FaultInjection`, the simulated devices' made-to-order failures (for tests). Callers
+compare the attribute with ``None``; nothing asks an object which attributes it happens to have.
+
 Angles are degrees. A stage angle of 0 is the polarizer stage's zero axis (the ``x`` axis of
 the incident Stokes frame, see ``docs/conventions.md``); positive angles turn the polarizer
 counter-clockwise as seen from the object looking at the light. Turntable angles are positive
@@ -17,10 +22,15 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from polrig.errors import ConfigError
 from polrig.sensor.frame import Frame
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from polrig.sensor.analyzer import AnalyzerModel
 
 DEFAULT_TIMEOUT_S = 10.0
 #: Timeout of a motion (move or home) whose length is unknown, seconds (the HAL's default).
@@ -73,13 +83,16 @@ class CameraCapabilities:
     (readout plus transfer) at the current ROI and pixel format, microseconds (0 where the
     device does not say). ``settle_frames``: in free run, how many frames after a setting
     change to discard before a frame is certainly exposed with the new setting (one in
-    flight plus one being read out on typical sensors).
+    flight plus one being read out on typical sensors). ``sensor_size``: ``(width, height)``
+    of the full sensor in pixels (the largest ROI at offset (0, 0)), ``None`` where the
+    device does not say.
     """
 
     trigger_modes: tuple[str, ...] = ("software", "free")
     exposure_range_us: tuple[float, float] = (1.0, 10_000_000.0)
     readout_us: float = 0.0
     settle_frames: int = 2
+    sensor_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         modes = tuple(self.trigger_modes)
@@ -93,6 +106,13 @@ class CameraCapabilities:
             raise ValueError(f"readout time must be finite and >= 0 us, got {self.readout_us!r}")
         if int(self.settle_frames) < 0:
             raise ValueError(f"settle_frames must be >= 0, got {self.settle_frames!r}")
+        if self.sensor_size is not None:
+            size = tuple(self.sensor_size)
+            if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or int(v) < 1
+                                     for v in size):
+                raise ValueError(f"sensor size must be (width, height) in whole pixels >= 1, "
+                                 f"got {self.sensor_size!r}")
+            object.__setattr__(self, "sensor_size", (int(size[0]), int(size[1])))
         object.__setattr__(self, "trigger_modes", modes)
         object.__setattr__(self, "exposure_range_us", (lo, hi))
 
@@ -306,3 +326,49 @@ def check_level(level: float) -> float:
     if not (0.0 <= level <= 1.0) or level != level:
         raise ValueError(f"light level must be a fraction in [0, 1], got {level!r}")
     return level
+
+
+# -- optional capabilities of a rig -------------------------------------------------------------
+@runtime_checkable
+class RigTruth(Protocol):
+    """The hidden truth of a simulated rig: what the rig really is, which calibration and
+    processing estimate, and the hand that puts calibration targets in front of the camera
+    (on hardware an operator does that).
+
+    A rig declares it as an optional capability (:attr:`polrig.app.rig.Rig.truth`, typed
+    ``RigTruth | None``): present on the all-simulated rig, ``None`` on hardware and on a rig
+    that mixes real and simulated devices (the simulated world no longer describes the real
+    ones). :class:`polrig.sim.truth.SimTruth` implements it."""
+
+    def ground_truth(self, *, turntable_deg: float | None = None) -> dict[str, Any]:
+        """Per-pixel truth for the camera's current ROI, exposure and gain at the turntable's
+        current angle (or ``turntable_deg``): ``mueller`` ``(C, 3, 3, h, w)`` in DN per unit
+        incident S0, ``mask`` and the other arrays of ``docs/sim.md``."""
+
+    def rig_parameters(self) -> dict[str, Any]:
+        """The hidden rig parameters, JSON-serialisable (``docs/sim.md``, "Hidden parameters")."""
+
+    def incident_stokes(self, stage_deg: float) -> "np.ndarray":
+        """The true normalised incident Stokes vector ``(3,)`` at a stage reading."""
+
+    def analyzer(self) -> "AnalyzerModel":
+        """The camera's true per-pixel micro-polarizer analyzer (what the DoFP step fits)."""
+
+    def mount_target(self, name: str, **fixture: Any) -> None:
+        """Put calibration target ``name`` (``charuco``, ``chrome_sphere``, ``mirror_plate``,
+        ...) in front of the camera at ``fixture`` (the procedures' ``mount`` callback)."""
+
+
+@runtime_checkable
+class FaultInjection(Protocol):
+    """Failures made to order, for testing the code that drives a rig: a simulated rig's
+    devices raise them (:class:`polrig.sim.devices.FaultInjector`). An optional, test-only
+    capability of a rig (:attr:`polrig.app.rig.Rig.faults`, ``None`` on hardware)."""
+
+    def inject_fault(self, device_kind: str, kind: str = "timeout",
+                     after_calls: int = 0) -> None:
+        """Make call number ``after_calls + 1`` from now of the ``device_kind`` device
+        (``camera``, ``stage``, ``turntable``, ``light``) raise: ``timeout``
+        (:class:`polrig.errors.DeviceTimeout`), ``fault`` (:class:`polrig.errors.DeviceFault`),
+        ``protocol`` (:class:`polrig.errors.ProtocolError`) or ``disconnect``
+        (:class:`polrig.errors.DeviceDisconnected`)."""

@@ -15,7 +15,15 @@ import importlib
 from pathlib import Path
 from typing import Any
 
-from polrig.acquisition.hal import Camera, Device, Light, RotationStage, Turntable
+from polrig.acquisition.hal import (
+    Camera,
+    Device,
+    FaultInjection,
+    Light,
+    RigTruth,
+    RotationStage,
+    Turntable,
+)
 from polrig.formats.config import (
     DEVICE_KINDS,
     DriverSpec,
@@ -116,21 +124,27 @@ def driver_kwargs(table: dict[str, Any]) -> dict[str, Any]:
 
 @dataclasses.dataclass
 class Rig:
-    """The four devices of the rig, opened and closed together.
+    """The four devices of the rig, opened and closed together, and the rig's optional
+    capabilities, declared (typed, ``None`` where the rig lacks them) rather than probed:
 
-    ``truth`` is the simulator's ground-truth provider when every device is simulated
-    (a mixed rig has none: the simulated world no longer matches reality). ``config`` is the
-    validated configuration, ``source`` its file (``None``: the built-in simulated rig).
+    * ``truth`` (:class:`polrig.acquisition.hal.RigTruth`): the simulator's hidden truth and its
+      calibration-target swap, when every device is simulated (a mixed rig has none: the
+      simulated world no longer matches reality); ``None`` on hardware.
+    * ``faults`` (:class:`polrig.acquisition.hal.FaultInjection`): failures made to order in
+      the simulated devices, for tests; present when any device is simulated.
+
+    ``config`` is the validated configuration, ``source`` its file (``None``: the built-in
+    simulated rig).
     """
 
     camera: Camera
     stage: RotationStage
     turntable: Turntable
     light: Light
-    truth: Any = None
+    truth: RigTruth | None = None
     config: RigConfig = dataclasses.field(default_factory=RigConfig)
     source: Path | None = None
-    sim: Any = None
+    faults: FaultInjection | None = None
 
     @property
     def devices(self) -> dict[str, Device]:
@@ -218,7 +232,8 @@ def build_rig(config: RigConfig, sim_options: dict[str, Any] | None = None) -> R
     sim_rig = factory.made[0] if factory.made else None
     all_sim = all(config[k]["driver"] == "sim" for k in DEVICE_KINDS)
     return Rig(**devices, truth=sim_rig.truth if (sim_rig is not None and all_sim) else None,
-               config=config, source=config.source, sim=sim_rig)
+               config=config, source=config.source,
+               faults=sim_rig.faults if sim_rig is not None else None)
 
 
 def open_device(config_path: str | Path | None, kind: str, **sim_options: Any) -> Device:

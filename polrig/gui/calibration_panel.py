@@ -10,8 +10,9 @@ the simulator's hidden truth (:func:`polrig.calibration.runner.errors_against_tr
 stream into the panel, the report's text and PNGs are shown when it is done.
 
 Targets: on the simulated rig the procedure's ``mount(target, **fixture)`` swaps the simulated
-target (:func:`polrig.sim.targets.mount`, as ``polrig calibrate`` does); on hardware the panel asks the
-operator to mount it and waits for "Target in place" (the CLI waits for Enter).
+target (the rig's declared truth, :meth:`polrig.acquisition.hal.RigTruth.mount_target`, as
+``polrig calibrate`` does); on hardware the panel asks the operator to mount it and waits for
+"Target in place" (the CLI waits for Enter).
 
 The procedures run through the same executor as a capture (:func:`polrig.calibration.runner.run_steps`
 drives the rig through :class:`polrig.acquisition.engine.GuardedRig`: the capture's fault policy, retries
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import pathlib
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from PySide6.QtCore import Qt, QThread, Signal
 from PySide6.QtGui import QImage
@@ -52,7 +53,9 @@ from polrig.calibration.runner import STEPS
 from polrig.errors import PolrigError
 from polrig.gui.rigaccess import RigLocks
 from polrig.gui.widgets import ImageView
-from polrig.sim import targets
+
+if TYPE_CHECKING:
+    from polrig.app.rig import Rig
 
 STEP_LABELS = {"intrinsics": "Camera intrinsics (ChArUco board)",
                "turntable": "Turntable axis (board at several angles)",
@@ -72,14 +75,10 @@ class CalibrationCancelled(PolrigError):
     """The operator cancelled the calibration step."""
 
 
-def simulated_mount(rig):
-    """The simulated rig's target swap when every device is simulated (else ``None``)."""
-    if rig.sim is None or rig.truth is None:
-        return None
-
-    def mount(name: str, **fixture: Any) -> None:
-        targets.mount(rig.sim, name, **fixture)
-    return mount
+def simulated_mount(rig: Rig) -> Callable[..., None] | None:
+    """The simulated rig's target swap where the rig declares its truth (every device
+    simulated, :attr:`polrig.app.rig.Rig.truth`), else ``None``."""
+    return None if rig.truth is None else rig.truth.mount_target
 
 
 class CalibrationWorker(QThread):
@@ -134,10 +133,10 @@ class CalibrationWorker(QThread):
                                  log=self._log, control=CaptureControl(stop=self.cancelled))
                 check()
                 errors = None
-                if sim_mount is not None:
+                if self.rig.truth is not None:
                     errors = runner.errors_against_truth(
                         self.calset, self.rig.truth.rig_parameters(),
-                        self.rig.sim.world.sensor.analyzer)
+                        self.rig.truth.analyzer())
             check()  # the last moment a cancel keeps the folder as it was
             self.calset.save(self.folder)
             report = write_report(self.folder, self.calset, self.extras, errors)

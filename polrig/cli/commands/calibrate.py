@@ -22,10 +22,14 @@ import pathlib
 import shlex
 import signal
 import sys
+from typing import TYPE_CHECKING, Callable
 
 from polrig.cli.commands._device_args import add_config_argument
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.argcheck import positive_float
+
+if TYPE_CHECKING:
+    from polrig.app.rig import Rig
 
 STEP_CHOICES = ("intrinsics", "turntable", "light", "stokes", "dofp", "all")
 
@@ -62,19 +66,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _mount_for(rig):
-    sim_rig = getattr(rig, "sim", None)
-    if sim_rig is not None and getattr(rig, "truth", None) is not None:
-        from polrig.sim import targets
-
-        def mount(name: str, **fixture) -> None:
-            targets.mount(sim_rig, name, **fixture)
-        return mount, sim_rig
+def _mount_for(rig: Rig) -> Callable[..., None]:
+    """How the procedures' targets get mounted: by the simulated rig itself where the rig
+    declares its truth (:attr:`polrig.app.rig.Rig.truth`), else by the operator at a prompt."""
+    if rig.truth is not None:
+        return rig.truth.mount_target
 
     def ask(name: str, **fixture) -> None:
         where = ", ".join(f"{k}={v}" for k, v in fixture.items()) or "default position"
         input(f"Mount the {name.replace('_', ' ')} ({where}), then press Enter: ")
-    return ask, None
+    return ask
 
 
 def check_out_folder(out: pathlib.Path, flag: str = "--out") -> None:
@@ -205,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
     saved: list[str] = []
     saved_id: list[str] = []
     with rig:
-        mount, sim_rig = _mount_for(rig)
+        mount = _mount_for(rig)
         name = f"calibration set {out}"
         runner.check_set_fits_camera(cs, rig, name)  # before anything moves
         try:
@@ -241,9 +242,9 @@ def run(args: argparse.Namespace) -> int:
             raise cls(f"calibration step {step}: {exc}; "
                       f"{_saved_text(args, steps, saved, saved_id, existed)}") from None
         errors = None
-        if sim_rig is not None:
-            truth = rig.truth.rig_parameters()
-            errors = runner.errors_against_truth(cs, truth, sim_rig.world.sensor.analyzer)
+        if rig.truth is not None:
+            errors = runner.errors_against_truth(cs, rig.truth.rig_parameters(),
+                                                 rig.truth.analyzer())
     report = write_report(out, cs, extras, errors)
     if errors:
         print("errors against the simulated rig's hidden truth:")
