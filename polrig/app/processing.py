@@ -66,8 +66,8 @@ from polrig.app.session import (
     sha256_file,
 )
 from polrig.app.sessionio import CaptureFrames, load_capture_frames, read_verified_frame  # noqa: F401 (re-exported)
-from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.app.single_shot import SingleShot, SingleShotResult
+from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.exr import (
     MuellerRows,
     write_mueller_exr,
@@ -180,9 +180,10 @@ class TruthScore:
 class CaptureResult:
     """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
     ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
-    arrays (the reference solve's or the single-shot route's), ``metadata`` the EXR header's polrig entries, ``truth`` how to score it against
-    the simulator's truth (``None`` without a truth file), ``extra_planes`` further planes of
-    its EXR. :func:`write_and_score` writes and scores it."""
+    arrays (the reference solve's or the single-shot route's), ``metadata`` the EXR header's
+    polrig entries, ``truth`` how to score it against the simulator's truth (``None`` without a
+    truth file), ``extra_planes`` further planes of its EXR. :func:`write_and_score` writes and
+    scores it."""
 
     relpath: str
     result: ReferenceResult | SingleShotResult | MuellerEstimate

@@ -32,7 +32,9 @@ resolution the lift with the measured detail of the full-resolution demosaic
 
 **The planes** (:class:`SingleShotResult`): ``mask`` ``(C, H, W)`` reason bits of the reference
 solve (:data:`polrig.solve.reference.DARK`: outside the networks' object mask or ``S0`` below
-:data:`polrig.solve.reference.MIN_SNR` noise sigmas; :data:`~polrig.solve.reference.SATURATED`:
+:data:`polrig.solve.reference.MIN_SNR` noise sigmas, per colour: an object turned away from the
+light is all noise, which the networks' relative object mask cannot tell;
+:data:`~polrig.solve.reference.SATURATED`:
 an object pixel of a colour with a clipped or excluded sample in its demosaic support; the
 networks' estimate is kept in both; 0 = valid); ``sigma`` the model's calibrated standard
 deviation (:mod:`polrig.models.uncertainty`; infinite where ``SATURATED``, NaN where the route is
