@@ -2,9 +2,9 @@
 can run on, without Qt.
 
 Per frame, exactly what the live worker's processing stage does for the "Mueller 3x3" display
-(:mod:`polrig.gui.live`): :func:`polrig.gui.pipeline.infer_mueller` (demosaic, Stokes, the
-single-shot networks, :func:`polrig.models.runtime.infer_frame`) with the default rig's nominal
-geometry, then :func:`polrig.gui.pipeline.render` of the Mueller grid decimated to the live
+(:mod:`polrig.gui.live`): the one single-shot route, :meth:`polrig.app.single_shot.SingleShot.frame`
+(demosaic, Stokes, the single-shot networks, the planes) with the default rig's nominal
+geometry, and :meth:`polrig.gui.pipeline.PolarizationData.from_single_shot`, then :func:`polrig.gui.pipeline.render` of the Mueller grid decimated to the live
 view's display size (``--max-display-px``, default 1024; 0 renders the whole grid, as the view
 did before 2026-11-26). Qt's part (QImage onto
 the view) is left out: ``benchmarks/bench_gui.py`` measures it with the Stokes displays, and it
@@ -53,15 +53,18 @@ def frames(n: int, rng: np.random.Generator) -> list[Frame]:
 def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry: dict, max_px: int) -> dict:
     """Median seconds of inference and grid render over ``shots`` (two warm-ups first); the grid
     decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`)."""
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app.single_shot import SingleShot
     from polrig.gui import pipeline
-    from polrig.models.runtime import SingleShotModel
 
-    model = SingleShotModel.load(device=device)
+    model = SingleShot.open(device)
+    options = SingleShotOptions.from_settings(demosaic="superpixel", resolution=resolution,
+                                              network_binning=binning, sigma=False)
     infer, render = [], []
     for k, frame in enumerate([shots[0], shots[1 % len(shots)], *shots]):
         t0 = time.perf_counter()
-        data = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution=resolution,
-                                      network_binning=binning)
+        data = pipeline.PolarizationData.from_single_shot(
+            model.frame(frame, 0.0, options, geometry=geometry), frame)
         t1 = time.perf_counter()
         pipeline.render(data, "mueller", step=pipeline.display_step(data, "mueller", max_px))
         t2 = time.perf_counter()
@@ -90,7 +93,7 @@ def table(rows: list[dict], gpu: str | None) -> str:
 def main(argv: list[str] | None = None) -> int:
     import onnxruntime as ort
 
-    from polrig.app import processing
+    from polrig.app import calibrations
     from polrig.app.rig import load_rig_config
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -107,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         args.max_display_px = DEFAULT_MAX_DISPLAY_PX
     have_cuda = devices.CUDA in ort.get_available_providers()
     chosen = args.devices.split(",") if args.devices else (["cpu", "cuda"] if have_cuda else ["cpu"])
-    geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
+    geometry = calibrations.single_shot_geometry(calibrations.load_calibration(None), load_rig_config(None))
     shots = frames(max(args.frames, 2), np.random.default_rng(0))
     rows = []
     for device in chosen:

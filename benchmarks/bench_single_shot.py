@@ -1,8 +1,8 @@
 """Latency, throughput and memory of the whole single-shot path on this machine, warm and cold.
 
 Path per frame: decode the raw file (16-bit PNG, :func:`polrig.formats.rawio.read_raw`), demosaic,
-Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call per pass,
-:func:`polrig.models.runtime.infer_frame`), Mueller EXR (:func:`polrig.models.runtime.write_result_exr`). Raw
+Stokes, PIPNet -> pBRDF -> PMMNet (one onnxruntime call per pass; the one single-shot route,
+:meth:`polrig.app.single_shot.SingleShot.frame`), Mueller EXR (:func:`polrig.formats.exr.write_result_exr`). Raw
 frames are IMX250MYR (colour) mosaics of a lit sphere (content matters little for speed); the
 full sensor is also timed as a mono IMX250MZR frame (superpixel analyzer images 1224x1024, four
 times the colour sensor's).
@@ -65,11 +65,12 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from polrig.formats.rawio import read_raw, write_raw  # noqa: E402
+from polrig.acquisition.plan import SingleShotOptions  # noqa: E402
+from polrig.app.single_shot import SingleShot  # noqa: E402
+from polrig.formats.exr import write_result_exr  # noqa: E402
 from polrig.models.runtime import (  # noqa: E402
     SingleShotModel,
-    infer_frame,
     physical_cores,
-    write_result_exr,
 )
 from polrig.sensor.frame import Frame, FrameMeta
 from polrig.sensor.layouts import get_layout  # noqa: E402
@@ -117,42 +118,38 @@ def write_case_raw(shape, layout: str, path: pathlib.Path, rng) -> pathlib.Path:
     return path
 
 
-def _options(argv: list[str]) -> dict:
-    """:func:`infer_frame` keyword arguments of ``polrig infer`` options (the ones CASES use)."""
+def _options(argv: list[str]) -> SingleShotOptions:
+    """The :class:`SingleShotOptions` of ``polrig infer`` options (the ones CASES use)."""
     opts = dict(zip(argv[::2], argv[1::2]))
-    resolution = opts.get("--resolution", "superpixel")
-    method = opts.get("--demosaic", "bilinear" if resolution == "full" else "superpixel")
-    return {"resolution": resolution, "demosaic_method": method,
-            "network_binning": int(opts.get("--network-binning", 1))}
+    return SingleShotOptions(opts.get("--resolution", "superpixel"), opts.get("--demosaic"),
+                             int(opts.get("--network-binning", 1)))
 
 
-def warm_once(src: pathlib.Path, argv: list[str], model, out: pathlib.Path) -> dict:
+def warm_once(src: pathlib.Path, argv: list[str], route: SingleShot, out: pathlib.Path) -> dict:
     """One in-process frame, decode to EXR, as ``polrig infer`` does it (seconds per step)."""
     c0, t0 = _cpu_s(), time.perf_counter()
     frame = read_raw(src)
     t1 = time.perf_counter()
-    mueller, aux = infer_frame(frame.raw, frame.meta.layout, 0.0, model, black_level_dn=frame.meta.black_level_dn,
-                               saturation_dn=4095.0, **_options(argv), **_rig_geometry(frame, _options(argv)))
+    result = route.frame(frame, 0.0, _options(argv), geometry=_rig_geometry(), saturation_dn=4095.0)
     t2 = time.perf_counter()
-    write_result_exr(out, mueller, aux)
+    write_result_exr(out, result, planes=("mueller", "mask"), compression="none")
     t3 = time.perf_counter()
-    lift = aux["timings_s"].get("full_resolution", 0.0) + aux["timings_s"].get("binning_lift", 0.0)
-    return {**{k: v for k, v in aux["timings_s"].items()}, "lift": lift, "decode": t1 - t0, "compute": t2 - t1,
+    lift = result.timings_s.get("full_resolution", 0.0) + result.timings_s.get("binning_lift", 0.0)
+    mueller = result.mueller
+    return {**result.timings_s, "lift": lift, "decode": t1 - t0, "compute": t2 - t1,
             "exr": t3 - t2,
             "total": t3 - t0, "cpu": _cpu_s() - c0, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}"}
 
 
-def _rig_geometry(frame, options: dict) -> dict:
+def _rig_geometry() -> dict:
     """The geometry ``polrig infer`` uses without a calibration (the default rig's nominal
-    stage zero axis and intrinsics, :func:`polrig.app.processing.single_shot_geometry`), so warm and
+    stage zero axis and intrinsics, :func:`polrig.app.calibrations.single_shot_geometry`), so warm and
     cold runs do the same work: that axis differs from the training rig's, so the runtime makes
     its two passes (the incident-frame refinement, :meth:`SingleShotModel.run_rig_frame`)."""
-    from polrig.app import processing
+    from polrig.app import calibrations
     from polrig.app.rig import load_rig_config
 
-    geometry = processing.single_shot_geometry(processing.load_calibration(None), load_rig_config(None))
-    grid = "superpixel" if options["resolution"] == "full" else options["demosaic_method"]
-    return processing.single_shot_kwargs(geometry, frame, grid)  # on the analyzer grid (infer_frame bins them)
+    return calibrations.single_shot_geometry(calibrations.load_calibration(None), load_rig_config(None))
 
 
 def _cpu_s() -> float:
@@ -269,11 +266,12 @@ def timed(owner, name, label):
 import numpy, onnxruntime
 steps["import numpy+onnxruntime"] = (time.process_time() - c0, time.perf_counter() - w0)
 import polrig.models.runtime as rt, polrig.app.preview as pv, polrig.formats.rawio as rio, polrig.cli as cli
+import polrig.app.single_shot as ss, polrig.formats.exr as ex
 timed(rt.SingleShotModel, "load", "session creation")
 timed(rio, "read_raw", "decode")
-timed(rt, "infer_frame", "reconstruction")
-timed(rt, "write_result_exr", "EXR")
-timed(pv, "s0_snr", "previews: S0 SNR")
+timed(ss.SingleShot, "frame", "reconstruction")
+timed(ex, "write_result_exr", "EXR")
+timed(ss, "s0_snr", "S0 SNR (mask, previews)")
 timed(pv, "write_result_previews", "previews: PNGs")
 cli.main(sys.argv[1:])
 total = (time.process_time() - c0, time.perf_counter() - w0)
@@ -329,7 +327,7 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
     import os
 
     load_start = os.getloadavg()[0]
-    model = SingleShotModel.load(weights, threads=threads, spinning=spinning, device=device)
+    model = SingleShot(SingleShotModel.load(weights, threads=threads, spinning=spinning, device=device))
     rng = np.random.default_rng(0)
     warm: dict[str, list[dict]] = {c[0]: [] for c in cases}
     cold: dict[str, list[dict]] = {c[0]: [] for c in cases}

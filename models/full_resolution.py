@@ -13,7 +13,9 @@ takes the detail: ``M_full s_in = up(M s_in) + S_full - up(S)``, i.e. the full-r
 measurement plus the network's own (upsampled) misfit, while the unobserved part of the matrix
 (light polarized at 45 deg to the incident state, the network's prior) stays as smooth as the
 grid it was inferred on. No learned parameter: the physics path (PIPNet -> pBRDF -> PMMNet) is
-unchanged.
+unchanged. These are the building blocks; the single-shot route that uses them for ``polrig
+infer``, sessions and the GUI is :class:`polrig.app.single_shot.SingleShot` (its options:
+:class:`polrig.acquisition.plan.SingleShotOptions`).
 
 Why not the networks on the full-resolution demosaic: the full colour sensor is 5 Mpx x 3
 colours, 16 times the superpixel grid's work and four times the mono full sensor's grid, one
@@ -36,23 +38,6 @@ from __future__ import annotations
 import numpy as np
 
 from polrig.sensor.stokes import stokes_from_analyzers
-
-#: Resolutions of :func:`polrig.models.runtime.infer_frame`: ``superpixel`` (the networks' grid) or
-#: ``full`` (the raw frame's, this module).
-RESOLUTIONS = ("superpixel", "full")
-#: Network binnings of :func:`polrig.models.runtime.infer_frame` (``polrig infer --network-binning``):
-#: 1 runs the networks on the analyzer grid itself (default); 2 on that grid binned 2x2, with
-#: the answer lifted back to the analyzer grid by :func:`lift` (a quarter of the network work;
-#: its accuracy is in ``models/MODEL_CARD.md``, "Speed, warm and cold").
-BINNINGS = (1, 2)
-
-
-def check_binning(binning) -> int:
-    """``binning`` as an int when it is one of :data:`BINNINGS`, else ValueError (one line)."""
-    if isinstance(binning, bool) or not isinstance(binning, (int, np.integer)) or int(binning) not in BINNINGS:
-        raise ValueError(f"network binning must be one of {', '.join(map(str, BINNINGS))}, got {binning!r}")
-    return int(binning)
-
 
 def bin_cells(img: np.ndarray, factor: int) -> np.ndarray:
     """Mean over ``factor x factor`` cells of planes ``(..., h, w)`` -> ``(..., h // factor,
@@ -110,7 +95,8 @@ def _upsample_into(plane: np.ndarray, period: tuple[int, int], dst: np.ndarray) 
 
 def reconstruct_binned(model, analyzer: np.ndarray, s_in, binning: int, *, mask: np.ndarray | None = None,
                        intrinsics=None, stokes: np.ndarray | None = None, **kwargs) -> tuple[np.ndarray, dict]:
-    """The faster mode (:data:`BINNINGS`): ``model.reconstruct`` (a
+    """The faster mode (network binning, :data:`polrig.acquisition.plan.NETWORK_BINNINGS`; its
+    accuracy is in ``models/MODEL_CARD.md``, "Speed, warm and cold"): ``model.reconstruct`` (a
     :class:`polrig.models.runtime.SingleShotModel`) on analyzer images ``(C, 4, h, w)`` (DN) binned
     ``binning x binning`` (:func:`bin_cells`), lifted back to ``(h, w)`` with the grid's own
     measured detail (:func:`lift`, period ``binning``). ``mask`` ``(h, w)`` is binned (object
@@ -121,7 +107,9 @@ def reconstruct_binned(model, analyzer: np.ndarray, s_in, binning: int, *, mask:
     ``aux["network_grid"]``; ``timings_s`` gains ``binning_lift``."""
     import time
 
-    binning = check_binning(binning)
+    if isinstance(binning, bool) or not isinstance(binning, (int, np.integer)) or int(binning) < 2:
+        raise ValueError(f"binning must be an integer factor >= 2, got {binning!r}")
+    binning = int(binning)
     a = bin_cells(analyzer, binning)
     m = None if mask is None else bin_cells(np.asarray(mask, np.float32), binning) > 0.5
     mueller, aux = model.reconstruct(a, s_in, mask=m, intrinsics=binned_intrinsics(intrinsics, binning), **kwargs)

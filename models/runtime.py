@@ -4,7 +4,8 @@
 (PIPNet -> pBRDF -> PMMNet in one graph, see :mod:`polrig.models.export` for why one graph) and
 :meth:`SingleShotModel.reconstruct` turns one capture's analyzer images ``(C, 4, H, W)`` in DN
 under a known incident state ``s_in`` into a Mueller image ``(C, 3, 3, H, W)`` in DN per unit
-incident S0 (``docs/conventions.md``, "Radiometric units").
+incident S0 (``docs/conventions.md``, "Radiometric units"). From a raw frame (demosaic, the
+full-resolution lift, the result's planes) the one route is :class:`polrig.app.single_shot.SingleShot`.
 
 Steps: mask (given, or ``S0 > mask_fraction * percentile99(S0)``), normalisation by ``scale``
 (DN per normalised unit: given, or :func:`default_scale`, the same rule the simulator's
@@ -50,14 +51,10 @@ import time
 import numpy as np
 
 from polrig.errors import FormatError
-from polrig.formats.exr import colour_planes, element_planes, write_mueller_exr
-from polrig.models import devices, full_resolution, mirror
+from polrig.models import devices, mirror
 from polrig.models.size import SIZE_MULTIPLE
 from polrig.models.uncertainty import UncertaintyModel, calibration_for_graph
-from polrig.optics.mueller import polarizer_stokes
-from polrig.sensor.analyzer import resolve_layout
-from polrig.sensor.demosaic import demosaic, demosaic_combined, preprocess
-from polrig.sensor.stokes import ideal_inverse, saturation_mask, stokes_from_analyzers
+from polrig.sensor.stokes import stokes_from_analyzers
 from polrig.solve.quantiles import tail_percentile
 
 WEIGHTS_DIR = pathlib.Path(__file__).resolve().parent / "weights"
@@ -605,140 +602,3 @@ class SingleShotModel:
                     "incident_rotation_deg": rotation_deg, "provider": self.provider,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
         return mueller, aux
-
-
-def incident_stokes(state_deg: float, extinction_ratio: float = float("inf")) -> np.ndarray:
-    """Normalised incident Stokes ``(3,)`` of the polarizer at stage angle ``state_deg`` on
-    unit unpolarized light (``S0 = 0.5`` for an ideal polarizer, ``docs/conventions.md``)."""
-
-    return polarizer_stokes(np.deg2rad(float(state_deg)), extinction_ratio).astype(np.float32)
-
-
-def infer_frame(raw: np.ndarray, layout, state_deg: float, model: SingleShotModel, *,
-                demosaic_method: str = "superpixel", black_level_dn: float = 0.0,
-                mask: np.ndarray | None = None, scale: float | None = None,
-                stage_zero_axis=None, intrinsics=None, saturation_dn: float | None = None,
-                with_sigma: bool = False, mirror_average: bool = False,
-                resolution: str = "superpixel", network_binning: int = 1) -> tuple[np.ndarray, dict]:
-    """Raw mosaic ``(H, W)`` -> Mueller image ``(C, 3, 3, H', W')`` in DN per unit incident S0:
-    demosaic (:func:`polrig.sensor.demosaic.demosaic`; superpixel by default, i.e. the sensor's native
-    sampling: a quarter of the raw size per axis for the colour IMX250MYR), then
-    :meth:`SingleShotModel.reconstruct` under the state of the polarizer at ``state_deg``.
-    ``aux`` gains ``stokes`` (``(C, 3, H', W')`` DN, ideal analyzers) and per-step timings, and
-    with ``saturation_dn`` (raw DN, black level included, at which the sensor clips)
-    ``saturated`` ``(H', W')`` bool: output pixels with a clipped raw sample in their demosaic
-    support (the network's estimate there comes from clipped data; its ``sigma`` is infinite
-    there, as in a session's single-shot EXR); ``with_sigma``: as
-    :meth:`SingleShotModel.reconstruct`, as is ``mirror_average``.
-
-    ``resolution="full"``: the Mueller image at the raw frame's resolution ``(H, W)``: the
-    networks run on the superpixel grid and :func:`polrig.models.full_resolution.lift` adds the
-    measured detail of the full-resolution ``demosaic_method`` (``bilinear`` or ``newton``;
-    ``superpixel`` is refused; a given ``mask`` is on the networks' grid). ``mask``, ``stokes``
-    and ``saturated`` of ``aux`` are then full-resolution;
-    ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the networks' grid under
-    ``aux["network_grid"]``. The uncertainty is calibrated on the networks' grid only:
-    ``with_sigma`` is refused (ValueError).
-
-    ``network_binning=2`` (a faster mode, :data:`polrig.models.full_resolution.BINNINGS`): the networks
-    run on the demosaicked analyzer images binned 2x2 (a quarter of the pixels) and their
-    Mueller image is lifted back to the analyzer grid with that grid's measured detail
-    (:func:`polrig.models.full_resolution.lift`, period 2; then to the raw grid as above with
-    ``resolution="full"``). ``mask`` (on the analyzer grid) is binned too; the output mask is the
-    binned one upsampled; ``normal``, ``kd``, ``wi`` and ``mueller_init`` stay on the networks'
-    grid under ``aux["network_grid"]``; ``with_sigma`` is refused. Its accuracy against the
-    default is in ``models/MODEL_CARD.md`` ("Speed, warm and cold")."""
-
-    if resolution not in full_resolution.RESOLUTIONS:
-        raise ValueError(f"resolution must be one of {', '.join(full_resolution.RESOLUTIONS)}, got {resolution!r}")
-    full = resolution == "full"
-    if full and demosaic_method == "superpixel":
-        raise ValueError("full resolution takes its detail from a full-resolution demosaic (bilinear or newton), "
-                         "not superpixel")
-    if full and with_sigma:
-        raise ValueError("the uncertainty is calibrated at the networks' (superpixel) resolution only: "
-                         "no sigma at full resolution")
-    binning = full_resolution.check_binning(network_binning)
-    if binning > 1 and with_sigma:
-        raise ValueError("the uncertainty is calibrated on the unbinned analyzer grid only: no sigma with "
-                         f"network binning {binning}")
-    t0 = time.perf_counter()
-    lay = resolve_layout(layout)
-    analyzer = demosaic(raw, lay, "superpixel" if full else demosaic_method, black_level_dn=black_level_dn)
-    clipped = None
-    if saturation_dn is not None and not full:
-        clipped = saturation_mask(raw, lay, demosaic_method, saturation_dn).any(axis=0)
-    t1 = time.perf_counter()
-    stokes = stokes_from_analyzers(analyzer)
-    t2 = time.perf_counter()
-    s_in = incident_stokes(state_deg)
-    # At full resolution the networks' arena goes back before the lift's 0.5-1 GB of planes: the
-    # full colour sensor's one-shot peak 1959 -> 1852 MB, no measurable time (the superpixel
-    # route keeps it: there the next frame's pass would fault it in again, +90 ms of CPU).
-    release = True if full else None
-    if binning > 1:  # the networks on the binned grid, back to the analyzer grid with its measured detail
-        mueller, aux = full_resolution.reconstruct_binned(model, analyzer, s_in, binning, mask=mask, stokes=stokes,
-                                                          scale=scale, stage_zero_axis=stage_zero_axis,
-                                                          intrinsics=intrinsics, mirror_average=mirror_average,
-                                                          release_arena=release)
-    else:
-        mueller, aux = model.reconstruct(analyzer, s_in, mask=mask, scale=scale,
-                                         stage_zero_axis=stage_zero_axis, intrinsics=intrinsics,
-                                         with_sigma=with_sigma, mirror_average=mirror_average,
-                                         release_arena=release)
-    timings = dict(aux["timings_s"], demosaic=t1 - t0, stokes=t2 - t1)
-    if full:
-        t3 = time.perf_counter()
-        x = preprocess(raw, black_level_dn=black_level_dn)
-        if saturation_dn is not None:  # clipped samples go NaN: the demosaic marks their support
-            x[np.asarray(raw) >= saturation_dn] = np.nan
-        stokes_full = demosaic_combined(x, lay, demosaic_method, ideal_inverse())  # one colour at a time
-        del x
-        if saturation_dn is not None:
-            clipped = ~np.all(np.isfinite(stokes_full), axis=(0, 1))
-        grid = aux.pop("network_grid", None) or {k: aux.pop(k) for k in ("normal", "kd", "wi", "mueller_init") if k in aux}
-        mueller, aux["mask"] = full_resolution.lift(mueller, aux["mask"], stokes, stokes_full, s_in, lay.period)
-        aux["network_grid"], stokes = grid, stokes_full
-        timings["full_resolution"] = time.perf_counter() - t3
-    aux["stokes"] = stokes
-    aux["timings_s"] = timings
-    if clipped is not None:
-        aux["saturated"] = clipped
-        if "sigma" in aux:  # the estimate there comes from clipped data: no error bound
-            aux["sigma"] = np.where(clipped, np.float32(np.inf), aux["sigma"])
-    return mueller, aux
-
-
-def write_result_exr(path, mueller: np.ndarray, aux: dict, metadata: dict | None = None, *,
-                     with_normal: bool = False, compress: bool = False):
-    """Mueller EXR (``M{r}{c}.{R,G,B}``) with a ``mask`` plane (1 = object), a ``saturated``
-    plane where ``aux`` has one (1 = clipped raw data, :func:`infer_frame`), the calibrated
-    standard deviations ``sigma.M{r}{c}.{R,G,B}`` where ``aux`` has them, the estimated
-    ``normal.{X,Y,Z}`` with ``with_normal``, and the model's scalars in the header
-    (:func:`polrig.formats.exr.write_mueller_exr`). Uncompressed unless ``compress`` (ZIP): measured on
-    a 512x512 colour result, ZIP wrote 26.8 MB in 819 ms, uncompressed 29.4 MB in 69 ms (the
-    single-shot targets are per frame; noisy float32 planes hardly compress)."""
-
-    extra = {"mask": aux["mask"].astype(np.float32)}
-    if "sigma" in aux:
-        extra.update(element_planes("sigma", aux["sigma"]))
-    if "saturated" in aux:
-        extra["saturated"] = aux["saturated"].astype(np.float32)
-    if "beyond_calibration" in aux:
-        extra.update(colour_planes("beyond_calibration", aux["beyond_calibration"].astype(np.float32)))
-    if with_normal and "normal" in aux:
-        for k, name in enumerate("XYZ"):
-            extra[f"normal.{name}"] = aux["normal"][k]
-    planes = {"mask": "1 = object pixel (the network's input mask; 0 outside: Mueller 0)"}
-    if "saturated" in aux:
-        planes["saturated"] = "1 = a clipped raw sample in the pixel's demosaic support"
-    if "sigma" in aux:
-        planes["sigma.M{rc}"] = "calibrated standard deviation of M{rc} (models/uncertainty.py); inf where saturated"
-    if "beyond_calibration" in aux:
-        planes["beyond_calibration"] = ("1 = the pixel's misfit r lies beyond the 99th percentile of the sigma's "
-                                        "calibration sets: its sigma may be too small (models/uncertainty.py)")
-    meta = {"method": "single-shot", "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
-            "scale_dn": aux.get("scale"), "alpha": aux.get("alpha"), "planes": planes,
-            "execution_provider": aux.get("provider")}
-    meta.update(metadata or {})
-    return write_mueller_exr(path, mueller, extra=extra, metadata=meta, compression="zip" if compress else "none")

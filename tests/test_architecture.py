@@ -9,6 +9,10 @@
 * ``polrig.models.runtime`` never imports torch (inference is onnxruntime only).
 * The shells present, the app layer does: no module of ``polrig.cli`` or ``polrig.gui`` takes
   a capture's steps itself; each calls :func:`polrig.app.capture.run_capture`.
+* One single-shot route (issue 30): among the app layer and the shells only
+  ``polrig.app.single_shot`` uses the single-shot runtime (imports ``polrig.models.runtime``,
+  ``full_resolution`` or ``mirror``, loads a ``SingleShotModel``, runs its passes); processing,
+  ``polrig infer``, the plan check and the GUI's live view go through it.
 """
 
 from __future__ import annotations
@@ -167,6 +171,37 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return sorted(out)
 
 
+#: The one single-shot route (frame -> Mueller result with its planes; docs/architecture.md).
+SINGLE_SHOT_ROUTE = "polrig.app.single_shot"
+#: What a route of its own would be built from: the runtime's modules ...
+SINGLE_SHOT_RUNTIME = ("polrig.models.runtime", "polrig.models.full_resolution", "polrig.models.mirror")
+#: ... and its names: loading the model, its passes, the binned route, the removed duplicates.
+SINGLE_SHOT_STEPS = ("SingleShotModel", "run_rig_frame", "run_normalised", "reconstruct_binned",
+                     "infer_frame", "infer_mueller")
+#: The modules that must take the route: capture and reconstruct processing, the plan check,
+#: ``polrig infer``, the GUI's live view (its display data, its model loader).
+SINGLE_SHOT_USERS = ("polrig.app.processing", "polrig.app.calibrations", "polrig.cli.commands.infer",
+                     "polrig.gui.pipeline", "polrig.gui.app")
+
+
+def own_single_shot_route(path: pathlib.Path, name: str) -> list[str]:
+    """Where module ``name`` (file ``path``) builds a single-shot route of its own: an import
+    of :data:`SINGLE_SHOT_RUNTIME` (any name in it, at any depth), a use of a name of
+    :data:`SINGLE_SHOT_STEPS`, or a call of a model's ``reconstruct`` (``....model.reconstruct(...)``)."""
+    tree = ast.parse(path.read_text("utf-8"), str(path))
+    where = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+    bad = [f"{where}:{line} imports {mod}" for line, mod in _imports(tree, name, path.name == "__init__.py")
+           if any(mod == r or mod.startswith(r + ".") for r in SINGLE_SHOT_RUNTIME)]
+    for node in ast.walk(tree):
+        ident = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else None
+        if ident in SINGLE_SHOT_STEPS:
+            bad.append(f"{where}:{node.lineno} uses {ident}")
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "reconstruct"
+                and "model" in ast.unparse(node.func.value).lower()):
+            bad.append(f"{where}:{node.lineno} calls {ast.unparse(node.func)}")
+    return bad
+
+
 def old_name_imports(path: pathlib.Path) -> list[str]:
     """Imports in ``path`` of an old top-level name or a pre-layering ``polrig`` module."""
     old = re.compile(r"^(?:(?:%s)(?:\.|$)|polrig\.(?:%s)(?:\.|$))" % (
@@ -206,6 +241,20 @@ def test_the_old_name_check_finds_old_names(tmp_path, monkeypatch):
                  "from polrig.cli.commands import capture\nfrom polrig.app import session\n")
     assert [b.split(" imports ")[1] for b in old_name_imports(f)] == [
         "models.runtime", "sim.devices", "polrig.session.Session", "calibration.calset.load"]
+
+
+def test_the_single_shot_check_finds_a_route_of_its_own(tmp_path):
+    f = tmp_path / "shell.py"
+    f.write_text("from polrig.models.runtime import SingleShotModel\n"
+                 "def view(frame, m):\n    from polrig.models import full_resolution\n"
+                 "    return m.model.reconstruct(frame)\n"
+                 "import polrig.models.mirror as mirror\nfrom polrig.models.uncertainty import how_to_calibrate\n"
+                 "from polrig.app.single_shot import SingleShot\nr = SingleShot.open('cpu')\n"
+                 "cluster.reconstruct([])\nmodel = SingleShotModel.load()\n")
+    found = [b.split(".py:", 1)[1] for b in own_single_shot_route(f, "polrig.gui.shell")]
+    assert sorted(found, key=lambda b: int(b.split()[0])) == [
+        "1 imports polrig.models.runtime.SingleShotModel", "3 imports polrig.models.full_resolution",
+        "4 calls m.model.reconstruct", "5 imports polrig.models.mirror", "10 uses SingleShotModel"]
 
 
 def test_the_import_graph_sees_every_kind_of_import():
@@ -396,3 +445,19 @@ def test_every_shell_captures_through_the_one_capture_call():
         tree = ast.parse(files[shell].read_text("utf-8"))
         used = {d for _, d in _names_used(tree, shell, False)}
         assert "polrig.app.capture.run_capture" in used, shell
+
+
+def test_every_shell_and_processing_take_the_one_single_shot_route():
+    """Issue 30: the app layer and the shells (``polrig.gui``, ``polrig.cli``) build no
+    single-shot route of their own (:func:`own_single_shot_route`); only
+    :data:`SINGLE_SHOT_ROUTE` uses the runtime, and the modules of :data:`SINGLE_SHOT_USERS`
+    import it."""
+    files = _files()
+    shells = [m for m in files if layer_of(m) >= layer_of("polrig.app") and m != SINGLE_SHOT_ROUTE]
+    assert "polrig.cli.commands.infer" in shells and "polrig.gui.pipeline" in shells
+    bad = [b for m in shells for b in own_single_shot_route(files[m], m)]
+    assert not bad, "single-shot routes outside polrig.app.single_shot:\n" + "\n".join(bad)
+    graph = import_graph(files)
+    missing = [m for m in SINGLE_SHOT_USERS if SINGLE_SHOT_ROUTE not in graph[m]]
+    assert not missing, f"modules that should run single-shot through {SINGLE_SHOT_ROUTE}: {missing}"
+    assert own_single_shot_route(files[SINGLE_SHOT_ROUTE], SINGLE_SHOT_ROUTE)  # it does use the runtime

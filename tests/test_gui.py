@@ -138,10 +138,11 @@ def untrained_model_dir(tmp_path_factory):
 
 @pytest.mark.slow
 def test_live_mueller_grid_with_a_model(qtbot, tmp_path, untrained_model_dir):
+    from polrig.app.single_shot import SingleShot
     from polrig.models.runtime import SingleShotModel
 
     w = make_window(qtbot, tmp_path / "gui.ini",
-                    model_loader=lambda: SingleShotModel.load(untrained_model_dir, threads=1))
+                    model_loader=lambda: SingleShot(SingleShotModel.load(untrained_model_dir, threads=1)))
     try:
         w.live.set_display("mueller")
         qtbot.waitUntil(lambda: w.live.last is not None and w.live.last.display == "mueller",

@@ -160,9 +160,13 @@ def test_live_mueller_grid_at_full_resolution_has_the_sensor_size():
     """The live view's single-shot Mueller grid (issue 22 item 1): at ``full`` resolution the
     Mueller image, its Stokes images and masks have the simulated sensor's size (the networks'
     grid is a quarter of it per axis on the colour sensor), the grid renders 3x3 of them, and
-    the detail keeps the networks' cell averages."""
+    the detail keeps the networks' cell averages. Through the one single-shot route with the
+    live view's options (:meth:`polrig.acquisition.plan.SingleShotOptions.from_settings`: its
+    superpixel demosaic stands for the default detail at full resolution)."""
+    from polrig.acquisition.plan import SingleShotOptions
     from polrig.app.calibrations import nominal_calibration, single_shot_geometry
     from polrig.app.rig import build_rig, load_rig_config
+    from polrig.app.single_shot import SingleShot
     from polrig.models.runtime import SingleShotModel
 
     rig = build_rig(load_rig_config(None), {"size": "128x96", "clock_speed": 1000.0})
@@ -171,10 +175,15 @@ def test_live_mueller_grid_at_full_resolution_has_the_sensor_size():
         frame = rig.camera.grab(timeout_s=10.0)
     finally:
         rig.close()
-    model = SingleShotModel.load(threads=1, device="cpu")
+    route = SingleShot(SingleShotModel.load(threads=1, device="cpu"))
     geometry = single_shot_geometry(nominal_calibration(), rig.config)
-    sp = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry)
-    full = pipeline.infer_mueller(frame, model, 0.0, geometry=geometry, resolution="full")
+
+    def live(resolution: str) -> pipeline.PolarizationData:
+        options = SingleShotOptions.from_settings(demosaic="superpixel", resolution=resolution, sigma=False)
+        return pipeline.PolarizationData.from_single_shot(
+            route.frame(frame, 0.0, options, geometry=geometry), frame, "live")
+
+    sp, full = live("superpixel"), live("full")
     assert sp.mueller.shape == (3, 3, 3, 24, 32)
     assert full.mueller.shape == (3, 3, 3, 96, 128) and full.stokes.shape[-2:] == (96, 128)
     assert full.snr.shape[-2:] == (96, 128) and full.flags.shape[-2:] == (96, 128)

@@ -205,14 +205,20 @@ def test_polrig_infer_writes_the_exr_without_torch(tmp_path, capture):
     m = np.asarray(exr.mueller)
     assert m.shape == (3, 3, 3, 64, 64) and np.all(np.isfinite(m))
     assert np.abs(m).max() > 0
-    assert not np.any(exr.extra["saturated"]) and "warning" not in proc.stderr
+    from polrig.solve.reference import SATURATED
+
+    mask = np.stack([exr.extra[f"mask.{c}"] for c in "RGB"]).astype(np.uint8)
+    assert not np.any(mask & SATURATED) and "warning" not in proc.stderr
 
 
 def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
-    """A raw block at the sensor's full scale: the output pixels built from it are marked in
-    the EXR's ``saturated`` plane, and the command warns on stderr (exit 0, result written)."""
+    """A raw block at the sensor's full scale: the object pixels built from it are marked
+    ``saturated`` in the EXR's reason-bit ``mask.{colour}`` planes (as a session's single-shot
+    result: one mask meaning for every writer; a separate ``saturated`` plane, set off the
+    object too, before), and the command warns on stderr (exit 0, result written)."""
     from polrig.cli import main
     from polrig.formats.exr import read_mueller_exr
+    from polrig.solve.reference import SATURATED
 
     raw = np.clip(np.round(_mosaic_from_analyzer(capture["analyzer"] * float(capture["scale"])) + 100),
                   0, 4095).astype(np.uint16)
@@ -223,10 +229,13 @@ def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
     assert main(["infer", str(src), "--layout", "imx250myr", "--black-level", "100", "--saturation-dn", "4095",
                  "--state-deg", str(float(capture["stage_deg"])), "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    sat = read_mueller_exr(out).extra["saturated"] > 0
+    exr = read_mueller_exr(out)
+    sat = np.stack([exr.extra[f"mask.{c}"] for c in "RGB"]).astype(np.uint8) & SATURATED > 0
+    obj = np.any(exr.mueller != 0, axis=(0, 1, 2))  # the networks' object: Mueller 0 outside
     expected = np.zeros((64, 64), bool)
     expected[10:14, 20:26] = True
-    assert np.array_equal(sat, expected)
+    assert (expected & obj).sum() > 6  # the block is mostly on the object
+    assert np.array_equal(sat, np.broadcast_to(expected & obj, sat.shape))  # every colour clipped there
     assert "warning" in err and "clipped" in err and "4095 DN" in err
     # with --sigma the clipped pixels get an infinite sigma (as in a session's single-shot EXR:
     # no error bound for an estimate from clipped data), the others stay finite
@@ -235,8 +244,8 @@ def test_polrig_infer_flags_clipped_pixels(tmp_path, capture, capsys):
                  "--state-deg", str(float(capture["stage_deg"])), "--sigma", "--out", str(out_sigma)]) == 0
     exr = read_mueller_exr(out_sigma)
     sig = np.stack([exr.extra[f"sigma.M{r}{c}.{ch}"] for r in range(3) for c in range(3) for ch in "RGB"])
-    assert np.all(np.isinf(sig[:, expected])) and np.all(np.isfinite(sig[:, ~expected]))
-    assert "saturated" in exr.metadata["planes"] and "mask" in exr.metadata["planes"]
+    assert np.all(np.isinf(sig[:, expected & obj])) and np.all(np.isfinite(sig[:, ~(expected & obj)]))
+    assert exr.metadata["planes"]["mask"] == "reason bits, 0 = valid" and "sigma.M{rc}" in exr.metadata["planes"]
 
 
 def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
@@ -255,7 +264,7 @@ def test_polrig_infer_writes_sigma_planes_only_when_asked(tmp_path, capture):
     assert not any(k.startswith("sigma.") for k in read_mueller_exr(tmp_path / "plain.exr").extra)
     assert main(args + ["--sigma", "--out", str(tmp_path / "sigma.exr")]) == 0
     exr = read_mueller_exr(tmp_path / "sigma.exr")
-    obj = exr.extra["mask"] > 0
+    obj = np.any(exr.mueller != 0, axis=(0, 1, 2))  # the networks' object: Mueller 0 outside
     for r in range(3):
         for c in range(3):
             sig = exr.extra[f"sigma.M{r}{c}.G"]

@@ -1,6 +1,7 @@
 """The runtime's speed-ups (issue 22 item 2): the light-direction probe of the incident-frame
 refinement (:func:`polrig.models.runtime.probe_shape`) and the network-binning mode
-(:func:`polrig.models.full_resolution.reconstruct_binned`, ``polrig infer --network-binning 2``):
+(:func:`polrig.models.full_resolution.reconstruct_binned`; on raw frames through the one route,
+:class:`polrig.app.single_shot.SingleShot`, as ``polrig infer --network-binning 2``):
 what runs, agreement with the default route on simulated captures within measured bounds, the
 cell geometry of the binning against closed forms, and clear errors for bad values."""
 
@@ -14,20 +15,21 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from polrig.models import full_resolution, runtime
+from polrig.acquisition.plan import PlanError, SingleShotOptions
+from polrig.app.single_shot import SingleShot
+from polrig.models import runtime
 from polrig.models.full_resolution import (
     bin_cells,
     binned_intrinsics,
-    check_binning,
     reconstruct_binned,
     upsample,
 )
 from polrig.models.runtime import (
     SingleShotModel,
-    infer_frame,
     probe_shape,
     view_directions,
 )
+from polrig.sensor.frame import Frame, FrameMeta
 
 pytest.importorskip("onnxruntime")
 
@@ -39,6 +41,14 @@ RIG_AXIS = (0.6, -0.2, 0.77)
 @pytest.fixture(scope="module")
 def model():
     return SingleShotModel.load()
+
+
+def _infer(model, raw: np.ndarray, layout: str = "imx250myr", **options):
+    """The one route on a 12-bit raw mosaic (black level 64, the IMX250 noise model: its DN are
+    the frame's) with :class:`SingleShotOptions` ``options``, as ``polrig infer`` runs it."""
+    meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
+                     layout=layout, bit_depth=12, black_level_dn=64.0)
+    return SingleShot(model).frame(Frame(raw, meta), 0.0, SingleShotOptions(**options))
 
 
 def _capture(size: int, seed: int):
@@ -146,8 +156,9 @@ def test_binned_intrinsics_give_the_rays_of_the_cell_centres():
 
 @pytest.mark.parametrize("bad", [0, 3, 4, -2, "2", 2.0, True, None])
 def test_a_bad_binning_is_a_clear_error(bad):
-    with pytest.raises(ValueError, match="network binning must be one of 1, 2"):
-        check_binning(bad)
+    with pytest.raises(PlanError, match="must be one of 1, 2") as e:
+        SingleShotOptions(network_binning=bad)
+    assert e.value.field == "network_binning"
 
 
 def test_binning_agrees_with_the_default_within_its_measured_bound(model):
@@ -168,23 +179,22 @@ def test_binning_agrees_with_the_default_within_its_measured_bound(model):
     assert np.isfinite(_psnr(plain, one, inner))
 
 
-def test_infer_frame_takes_the_binning_and_refuses_it_with_sigma(model):
+def test_the_route_takes_the_binning_and_the_options_refuse_it_with_sigma(model):
     from benchmarks.bench_single_shot import synthetic_raw
 
     raw = synthetic_raw((256, 256), np.random.default_rng(0))
-    one, aux1 = infer_frame(raw, "imx250myr", 0.0, model, black_level_dn=64.0, saturation_dn=4095.0)
-    two, aux2 = infer_frame(raw, "imx250myr", 0.0, model, black_level_dn=64.0, saturation_dn=4095.0,
-                            network_binning=2)
-    assert two.shape == one.shape == (3, 3, 3, 64, 64)
-    assert aux2["network_grid"]["wi"].shape == (3, 32, 32) and "binning_lift" in aux2["timings_s"]
-    assert aux2["saturated"].shape == aux2["mask"].shape == (64, 64)
-    full, aux_f = infer_frame(raw, "imx250myr", 0.0, model, black_level_dn=64.0, resolution="full",
-                              demosaic_method="bilinear", network_binning=2)
-    assert full.shape == (3, 3, 3, 256, 256) and aux_f["network_grid"]["wi"].shape == (3, 32, 32)
-    with pytest.raises(ValueError, match="no sigma with network binning 2"):
-        infer_frame(raw, "imx250myr", 0.0, model, with_sigma=True, network_binning=2)
-    with pytest.raises(ValueError, match="network binning must be one of"):
-        infer_frame(raw, "imx250myr", 0.0, model, network_binning=3)
+    one = _infer(model, raw)
+    two = _infer(model, raw, network_binning=2)
+    assert two.mueller.shape == one.mueller.shape == (3, 3, 3, 64, 64)
+    assert two.network_grid["wi"].shape == (3, 32, 32) and "binning_lift" in two.timings_s
+    assert two.mask.shape == (3, 64, 64) and two.object.shape == (64, 64)
+    full = _infer(model, raw, resolution="full", demosaic="bilinear", network_binning=2)
+    assert full.mueller.shape == (3, 3, 3, 256, 256) and full.network_grid["wi"].shape == (3, 32, 32)
+    with pytest.raises(PlanError, match="not with network binning 2") as e:
+        SingleShotOptions(sigma=True, network_binning=2)
+    assert e.value.field == "sigma"
+    with pytest.raises(PlanError, match="network binning 3: must be one of"):
+        SingleShotOptions(network_binning=3)
 
 
 def test_polrig_infer_network_binning_flag(tmp_path):
@@ -248,11 +258,11 @@ def test_binning_handles_odd_grids_and_mono_sensors(model, shape, layout):
     from benchmarks.bench_single_shot import synthetic_raw
 
     raw = synthetic_raw(shape, np.random.default_rng(0), layout)
-    one, _ = infer_frame(raw, layout, 0.0, model, black_level_dn=64.0)
-    two, aux = infer_frame(raw, layout, 0.0, model, black_level_dn=64.0, network_binning=2)
-    assert two.shape == one.shape and np.all(np.isfinite(two))
-    inner = np.all(one != 0, axis=(0, 1, 2)) & aux["mask"]
-    assert _psnr(two, one, inner) > 30.0  # measured 36-38 dB on these frames
+    one = _infer(model, raw, layout).mueller
+    two = _infer(model, raw, layout, network_binning=2)
+    assert two.mueller.shape == one.shape and np.all(np.isfinite(two.mueller))
+    inner = np.all(one != 0, axis=(0, 1, 2)) & two.object
+    assert _psnr(two.mueller, one, inner) > 30.0  # measured 36-38 dB on these frames
 
 
 def test_full_resolution_hands_the_networks_arena_back_before_the_lift():
@@ -262,5 +272,5 @@ def test_full_resolution_hands_the_networks_arena_back_before_the_lift():
     raw = synthetic_raw((256, 256), np.random.default_rng(0))
     for resolution, method, released in (("superpixel", "superpixel", None), ("full", "bilinear", True)):
         m.sizes, m.released = [], []
-        infer_frame(raw, "imx250myr", 0.0, m, black_level_dn=64.0, resolution=resolution, demosaic_method=method)
+        _infer(m, raw, resolution=resolution, demosaic=method)
         assert m.released and all(r is released for r in m.released)

@@ -1,4 +1,4 @@
-"""Single-shot geometry carried to the analyzer grid (polrig.app.processing) on frames too small
+"""Single-shot geometry carried to the analyzer grid (polrig.app.single_shot) on frames too small
 for one mosaic cell: one clear error for every caller, never a ZeroDivisionError."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polrig.app.processing import analyzer_grid_intrinsics, single_shot_kwargs
+from polrig.app.single_shot import analyzer_grid_intrinsics, network_kwargs
 from polrig.cli import main
 from polrig.sensor.frame import Frame, FrameMeta
 
@@ -28,13 +28,13 @@ def test_frame_smaller_than_a_layout_cell_is_the_demosaic_error(shape, layout, c
 
     message = f"raw mosaic {shape} is smaller than one {cell} layout cell"
     with pytest.raises(ValueError, match=re.escape(message)):
-        single_shot_kwargs(GEOMETRY, _frame(*shape, layout), method)
+        network_kwargs(GEOMETRY, _frame(*shape, layout), method)
 
 
 def test_an_empty_analyzer_grid_is_refused_not_divided_by():
     with pytest.raises(ValueError, match="empty analyzer grid"):
         analyzer_grid_intrinsics(GEOMETRY["intrinsics"], (0, 0), (1, 1), (0, 0))
-    assert single_shot_kwargs(GEOMETRY, _frame(2, 2))["intrinsics"] is not None
+    assert network_kwargs(GEOMETRY, _frame(2, 2))["intrinsics"] is not None
 
 
 def test_infer_on_a_one_pixel_frame_is_one_line_exit_2(tmp_path, capsys):

@@ -191,9 +191,10 @@ def test_infer_records_the_provider_and_full_resolution_is_the_raw_size(frame, t
     assert a.metadata["execution_provider"] == devices.CPU or HAS_CUDA
     assert b.mueller.shape[-2:] == (96, 128) and a.mueller.shape[-2:] == (24, 32)  # colour 4x4 cells
     assert b.metadata["resolution"] == "full" and b.metadata["demosaic"] == "bilinear"
-    # the lifted image averaged back over the cells is close to the grid answer
+    # the lifted image averaged back over the cells is close to the grid answer (on valid pixels:
+    # the mask planes are reason bits, 0 = valid, as in a session's result)
     cells = b.mueller.reshape(*b.mueller.shape[:3], 24, 4, 32, 4).mean(axis=(-3, -1))
-    obj = (a.extra["mask"] > 0) & (b.extra["mask"].reshape(24, 4, 32, 4).min(axis=(1, 3)) > 0)
+    obj = (a.extra["mask.G"] == 0) & (b.extra["mask.G"].reshape(24, 4, 32, 4).max(axis=(1, 3)) == 0)
     err = np.abs(cells - a.mueller)[..., obj].mean() / np.abs(a.mueller[..., obj]).mean()
     assert err < 0.25, err
 
@@ -214,21 +215,34 @@ def test_infer_refuses_what_cannot_run_in_one_line(frame, tmp_path, capsys, argv
     assert needle in err and "\n" not in err and not out.exists()
 
 
-@pytest.mark.parametrize("compress", [False, True])
-def test_result_exr_round_trips_bit_exactly_compressed_or_not(tmp_path, compress):
-    """Single-shot EXRs are written uncompressed by default (ZIP on request): both lossless."""
-    from polrig.formats.exr import read_mueller_exr
-    from polrig.models.runtime import write_result_exr
+@pytest.mark.parametrize("compression", ["none", "zip"])
+def test_result_exr_round_trips_bit_exactly_compressed_or_not(tmp_path, compression):
+    """A single-shot result through the one result writer (:func:`polrig.formats.exr.write_result_exr`;
+    ``polrig infer`` writes uncompressed, a session ZIP by default): both lossless, its mask the
+    reason bits, its header the route's."""
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app.single_shot import SingleShotResult
+    from polrig.formats.exr import read_mueller_exr, write_result_exr
+    from polrig.solve.reference import DARK
 
     rng = np.random.default_rng(3)
     m = rng.normal(size=(3, 3, 3, 8, 12)).astype(np.float32)
     m[0, 1, 2, 3, 4] = np.nan
-    aux = {"mask": rng.random((8, 12)) > 0.3, "provider": devices.CPU}
-    path = write_result_exr(tmp_path / "m.exr", m, aux, compress=compress)
+    obj = rng.random((8, 12)) > 0.3
+    mask = np.broadcast_to(np.where(obj, 0, DARK).astype(np.uint8), (3, 8, 12))
+    zeros = np.zeros((3, 8, 12), np.float32)
+    result = SingleShotResult(m, np.abs(m), np.zeros_like(m), mask, zeros, obj, SingleShotOptions(),
+                              provider=devices.CPU)
+    planes = ("mueller", "mask")
+    path = write_result_exr(tmp_path / "m.exr", result, planes=planes, compression=compression,
+                            metadata=result.header(planes))
     back = read_mueller_exr(path)
     np.testing.assert_array_equal(back.mueller, m)
-    np.testing.assert_array_equal(back.extra["mask"] > 0, aux["mask"])
+    for k, c in enumerate("RGB"):
+        np.testing.assert_array_equal(back.extra[f"mask.{c}"], mask[k])
+    assert not any(p.startswith("sigma") for p in back.extra)
     assert back.metadata["execution_provider"] == devices.CPU
+    assert back.metadata["planes"] == {"mask": "reason bits, 0 = valid"}
 
 
 def test_the_accuracy_tool_samples_a_mosaic_the_superpixel_demosaic_inverts():

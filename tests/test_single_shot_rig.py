@@ -137,7 +137,7 @@ def test_intrinsics_on_the_analyzer_grid():
     """A raw pixel centre ``u`` of a superpixel block ``j`` (``4 j .. 4 j + 3``) projects to
     grid ``j`` with the carried intrinsics; the simulator's design camera at 256x256 becomes
     the runtime's default camera of the 64x64 analyzer image; an ROI offset moves ``c``."""
-    from polrig.app.processing import analyzer_grid_intrinsics
+    from polrig.app.single_shot import analyzer_grid_intrinsics
     from polrig.models.runtime import DEFAULT_FOCAL_PER_PX
 
     fx, fy, cx, cy = analyzer_grid_intrinsics((640.0, 640.0, 127.5, 127.5), (0, 0), (256, 256), (64, 64))
@@ -152,18 +152,18 @@ def test_intrinsics_on_the_analyzer_grid():
     assert analyzer_grid_intrinsics(full, (8, 4), (256, 320), (256, 320)) == (700.0, 690.0, 292.2, 236.7)
 
 
-def test_single_shot_kwargs_follow_the_demosaic_and_the_roi():
-    from polrig.app.processing import single_shot_kwargs
+def test_network_kwargs_follow_the_demosaic_and_the_roi():
+    from polrig.app.single_shot import network_kwargs
     from polrig.sensor.frame import Frame, FrameMeta
 
     geo = {"intrinsics": (640.0, 640.0, 127.5, 127.5), "stage_zero_axis_camera": (1.0, 0.0, 0.0)}
     meta = FrameMeta(0, 0.0, 1000.0, 0.0, "Mono16", "imx250myr", 12, offset_xy=(16, 8))
     frame = Frame(np.zeros((128, 192), np.uint16), meta)
-    sp = single_shot_kwargs(geo, frame, "superpixel")
+    sp = network_kwargs(geo, frame, "superpixel")
     assert sp["stage_zero_axis"] == (1.0, 0.0, 0.0)
     assert sp["intrinsics"] == (160.0, 160.0, (127.5 - 16 - 1.5) / 4, (127.5 - 8 - 1.5) / 4)
-    assert single_shot_kwargs(geo, frame, "bilinear")["intrinsics"] == (640.0, 640.0, 111.5, 119.5)
-    assert single_shot_kwargs({"intrinsics": None}, frame) == {"stage_zero_axis": None, "intrinsics": None}
+    assert network_kwargs(geo, frame, "bilinear")["intrinsics"] == (640.0, 640.0, 111.5, 119.5)
+    assert network_kwargs({"intrinsics": None}, frame) == {"stage_zero_axis": None, "intrinsics": None}
 
 
 def test_dataset_axes_are_read_per_sample_and_resume_checks_the_mode(tmp_path):

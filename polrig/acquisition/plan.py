@@ -44,16 +44,18 @@ AXES = ("stage", "turntable")
 
 
 MIRROR_SINGLE_SHOT_ONLY = "mirror averaging applies to the single-shot mode only"
-#: Output resolutions of the single-shot method (:mod:`polrig.models.full_resolution`): the networks'
-#: superpixel grid or the raw frame's own.
+#: Output resolutions of the single-shot method (:attr:`SingleShotOptions.resolution`): the
+#: networks' superpixel grid or the raw frame's own.
 RESOLUTIONS = ("superpixel", "full")
 FULL_RESOLUTION_SINGLE_SHOT_ONLY = ("only the single-shot method has a full-resolution output (the "
                                     "reference method's resolution is its demosaic: bilinear or "
                                     "newton give the raw frame's size)")
-#: Network binnings of the single-shot method (the values of
-#: :data:`polrig.models.full_resolution.BINNINGS`, not imported here: polrig core does not import the
-#: models package): 1 runs the networks on the analyzer grid, 2 on that grid binned 2x2 with the
-#: answer lifted back by the grid's measured detail (:func:`polrig.models.full_resolution.reconstruct_binned`).
+#: Why a full-resolution single-shot output refuses the superpixel demosaic.
+FULL_RESOLUTION_NEEDS_DETAIL = ("takes its detail from a full-resolution demosaic (bilinear or newton), "
+                                "not superpixel")
+#: Network binnings of the single-shot method (:attr:`SingleShotOptions.network_binning`): 1 runs
+#: the networks on the analyzer grid, 2 on that grid binned 2x2 with the answer lifted back by
+#: the grid's measured detail (:func:`polrig.models.full_resolution.reconstruct_binned`).
 NETWORK_BINNINGS = (1, 2)
 NETWORK_BINNING_SINGLE_SHOT_ONLY = ("network binning applies to the single-shot method only (the "
                                     "reference method runs no network)")
@@ -75,7 +77,7 @@ class PlanError(ConfigError):
 def check_network_binning(binning: Any, mode: str) -> int:
     """``binning`` as an int when it is one of :data:`NETWORK_BINNINGS` and allowed in ``mode``
     (anything but 1 is single-shot only); a one-line :class:`PlanError` of ``network_binning``
-    otherwise (shared by :class:`CapturePlan` and :class:`polrig.app.processing.Processor`)."""
+    otherwise (:func:`single_shot_options`, :class:`SingleShotOptions`)."""
     if isinstance(binning, bool) or not isinstance(binning, int) or binning not in NETWORK_BINNINGS:
         raise PlanError("network_binning", f"must be one of {', '.join(map(str, NETWORK_BINNINGS))}",
                         subject=repr(binning), what="network binning")
@@ -83,6 +85,110 @@ def check_network_binning(binning: Any, mode: str) -> int:
         raise PlanError("network_binning", NETWORK_BINNING_SINGLE_SHOT_ONLY, subject=str(binning),
                         what="network binning")
     return int(binning)
+
+
+@dataclasses.dataclass(frozen=True)
+class SingleShotOptions:
+    """How a single-shot result is computed: the one place its option rules live (issue 30).
+    :class:`polrig.app.single_shot.SingleShot` takes it; ``polrig infer``, a capture plan
+    (:func:`single_shot_options`: capture and ``reconstruct`` processing) and the GUI's live view
+    build it. Refusals are one-line :class:`PlanError` s naming the field (``resolution``,
+    ``demosaic``, ``network_binning``, ``sigma``), for the command line to name its option.
+
+    ``resolution``: ``superpixel`` (the networks' grid) or ``full`` (the raw frame's: the
+    networks' answer on the superpixel grid lifted with the measured detail of ``demosaic``,
+    :func:`polrig.models.full_resolution.lift`).
+    ``demosaic``: the output grid's demosaic (``None``: the resolution's default). At
+    ``superpixel`` resolution it is the networks' input (``superpixel`` by default; ``bilinear``
+    or ``newton`` run the networks on the full-resolution demosaic); at ``full`` resolution the
+    demosaic whose detail lifts the networks' answer: ``bilinear`` by default or ``newton``, and
+    ``superpixel`` is refused (it has no detail to give).
+    ``network_binning``: :data:`NETWORK_BINNINGS`. ``mirror_average``: average the networks'
+    answers for the frame and its mirror image (:mod:`polrig.models.mirror`).
+    ``sigma``: the model's calibrated standard deviations: ``True`` asks for them (refused where
+    they are not calibrated: at full resolution or with network binning, :attr:`sigma_calibrated`),
+    ``False`` skips them, ``None`` computes them where they are calibrated (a session's result:
+    NaN planes elsewhere)."""
+
+    resolution: str = "superpixel"
+    demosaic: str | None = None
+    network_binning: int = 1
+    mirror_average: bool = False
+    sigma: bool | None = None
+
+    def __post_init__(self) -> None:
+        from polrig.sensor.demosaic import METHODS  # (cv2: not at plan import)
+
+        if self.resolution not in RESOLUTIONS:
+            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
+                            subject=repr(self.resolution), what="resolution")
+        full = self.resolution == "full"
+        demosaic = self.demosaic or ("bilinear" if full else "superpixel")
+        if demosaic not in METHODS:
+            raise PlanError("demosaic", f"must be one of {', '.join(METHODS)}", subject=repr(demosaic),
+                            what="demosaic")
+        if full and demosaic == "superpixel":
+            raise PlanError("resolution", FULL_RESOLUTION_NEEDS_DETAIL, subject="full", what="resolution")
+        object.__setattr__(self, "demosaic", demosaic)
+        object.__setattr__(self, "network_binning", check_network_binning(self.network_binning, "single-shot"))
+        object.__setattr__(self, "mirror_average", bool(self.mirror_average))
+        if self.sigma and not self.sigma_calibrated:
+            raise PlanError("sigma", "the single-shot uncertainty is calibrated on the networks' unbinned "
+                                     f"superpixel grid only, not {' or '.join(self.uncalibrated_because())}")
+
+    @classmethod
+    def from_settings(cls, *, demosaic: str, resolution: str = "superpixel", network_binning: int = 1,
+                      mirror_average: bool = False, sigma: bool | None = None) -> "SingleShotOptions":
+        """The options of settings whose ``demosaic`` serves more than the single-shot output (a
+        :class:`CapturePlan`'s, also the reference method's; the live view's, also its Stokes
+        display's), ``superpixel`` by default: at full resolution that default stands for the
+        default detail (``bilinear``) instead of being refused."""
+        full_default = resolution == "full" and demosaic == "superpixel"
+        return cls(resolution, None if full_default else demosaic, network_binning, mirror_average, sigma)
+
+    @property
+    def network_demosaic(self) -> str:
+        """The demosaic of the networks' input: ``superpixel`` at full resolution (the grid they
+        were trained on), else :attr:`demosaic`."""
+        return "superpixel" if self.resolution == "full" else self.demosaic
+
+    @property
+    def sigma_calibrated(self) -> bool:
+        """Whether the model's uncertainty is calibrated for this route: on the networks'
+        unbinned grid at superpixel resolution only."""
+        return self.resolution == "superpixel" and self.network_binning == 1
+
+    @property
+    def with_sigma(self) -> bool:
+        """Whether the route computes the calibrated sigma (``sigma``, ``None``: where calibrated)."""
+        return self.sigma_calibrated if self.sigma is None else bool(self.sigma)
+
+    def uncalibrated_because(self) -> list[str]:
+        """Why the uncertainty is not calibrated for this route, in words (empty where it is)."""
+        return [why for why, on in (("at full resolution", self.resolution == "full"),
+                                    (f"with network binning {self.network_binning}",
+                                     self.network_binning > 1)) if on]
+
+
+def single_shot_options(mode: str, demosaic: str, resolution: str, network_binning: Any,
+                        mirror_average: bool) -> SingleShotOptions | None:
+    """The single-shot options of a plan's (or a revision's) settings, ``None`` for the reference
+    method, checked against the mode: mirror averaging, full resolution and network binning are
+    single-shot only (one-line :class:`PlanError` s of the field). Shared by
+    :class:`CapturePlan` and :class:`polrig.app.processing.Processor`."""
+    if mirror_average and mode != "single-shot":
+        raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
+    if resolution not in RESOLUTIONS:
+        raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
+                        subject=repr(resolution), what="resolution")
+    if resolution == "full" and mode != "single-shot":
+        raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
+                        what="resolution")
+    binning = check_network_binning(network_binning, mode)
+    if mode != "single-shot":
+        return None
+    return SingleShotOptions.from_settings(demosaic=demosaic, resolution=resolution,
+                                           network_binning=binning, mirror_average=mirror_average)
 
 
 # -- parsing command-line style specs ------------------------------------------------------
@@ -247,15 +353,8 @@ class CapturePlan:
         if any(not (e > 0 and math.isfinite(e)) for e in self.exposures_us):
             raise PlanError("exposures_us", f"exposures must be > 0 microseconds, got "
                                             f"{self.exposures_us}")
-        if self.mirror_average and self.mode != "single-shot":
-            raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
-        if self.resolution not in RESOLUTIONS:
-            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
-                            subject=repr(self.resolution), what="resolution")
-        if self.resolution == "full" and self.mode != "single-shot":
-            raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
-                            what="resolution")
-        check_network_binning(self.network_binning, self.mode)
+        single_shot_options(self.mode, self.demosaic, self.resolution, self.network_binning,
+                            self.mirror_average)
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
                                           f"states, got {len(self.states_deg)}")

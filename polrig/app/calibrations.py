@@ -4,7 +4,7 @@
 axis, the calibration's own uncertainty); :func:`load_calibration` reads a calibration set
 folder (``None``: the nominal rig, :func:`nominal_calibration`);
 :func:`check_calibration_fits` refuses frames a set was not calibrated for;
-:func:`single_shot_geometry` and :func:`single_shot_kwargs` give the single-shot network the
+:func:`single_shot_geometry` gives the single-shot route (:mod:`polrig.app.single_shot`) the
 rig geometry; :func:`check_plan` refuses a plan that cannot give a result.
 
 Errors name the problem and the calibration set, never a command-line option:
@@ -24,14 +24,12 @@ import numpy as np
 from polrig.acquisition.plan import PlanError
 from polrig.app.rig import nominal_geometry
 from polrig.app.session import Session
+from polrig.app.single_shot import SingleShot
 from polrig.calibration.calset import SensorGeometry
 from polrig.calibration.rigframes import stage_zero_axis_cam
-from polrig.errors import ConfigError, FormatError
+from polrig.errors import ConfigError
 from polrig.optics.mueller import polarizer_stokes
-from polrig.sensor.analyzer import AnalyzerModel, layout_name_at, resolve_layout
-from polrig.sensor.demosaic import output_shape
-from polrig.sensor.frame import Frame
-from polrig.sensor.layouts import MosaicLayout
+from polrig.sensor.analyzer import AnalyzerModel, frame_layout  # noqa: F401 (frame_layout re-exported)
 from polrig.solve.reference import validate_states
 
 NOMINAL_CALIBRATION_ID = "nominal"
@@ -208,14 +206,6 @@ def check_calibration_fits_rig(calibration: Calibration, rig) -> None:
                            sensor_size=now.sensor_size, what="this camera")
 
 
-def frame_layout(frame: Frame) -> MosaicLayout:
-    """Mosaic layout of a frame, phase from its ROI offset."""
-
-    ox, oy = frame.meta.offset_xy
-    return resolve_layout(layout_name_at(frame.meta.layout, ox, oy))
-
-
-
 def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | None,
                          sensor_size: tuple[int, int] | None = None) -> dict[str, Any]:
     """Intrinsics (full-sensor pixels) and stage zero axis (camera frame) for single-shot
@@ -238,55 +228,19 @@ def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | 
     return out
 
 
-def analyzer_grid_intrinsics(intrinsics: Sequence[float], offset_xy: Sequence[int],
-                             raw_shape: tuple[int, int], grid_shape: tuple[int, int]
-                             ) -> tuple[float, float, float, float]:
-    """Full-sensor pinhole intrinsics ``(fx, fy, cx, cy)`` carried to the demosaiced analyzer
-    grid of a readout with ROI offset ``offset_xy`` (pixels) and raw size ``raw_shape``
-    ``(H, W)``: the principal point moves by the offset, and a grid ``p`` times coarser (the
-    ``superpixel`` demosaic of a ``p x p`` mosaic period) has its pixel ``j`` centred on raw
-    ``p j + (p - 1) / 2``, so ``f' = f / p`` and ``c' = (c - offset - (p - 1) / 2) / p``.
-    A full-resolution grid (``bilinear``, ``newton``) keeps ``f`` and ``c - offset``."""
-    if min(grid_shape[:2]) < 1 or min(raw_shape[:2]) < 1:
-        raise ValueError(f"raw mosaic {tuple(raw_shape)} gives an empty analyzer grid "
-                         f"{tuple(grid_shape)}: it is smaller than one layout cell")
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    ox, oy = (float(v) for v in offset_xy)
-    py = raw_shape[0] / float(grid_shape[0])
-    px = raw_shape[1] / float(grid_shape[1])
-    return (fx / px, fy / py, (cx - ox - (px - 1) / 2) / px, (cy - oy - (py - 1) / 2) / py)
-
-
-def single_shot_kwargs(geometry: dict[str, Any], frame: Frame, method: str = "superpixel"
-                       ) -> dict[str, Any]:
-    """``stage_zero_axis`` and ``intrinsics`` keyword arguments of
-    :meth:`polrig.models.runtime.SingleShotModel.reconstruct` / :func:`polrig.models.runtime.infer_frame` for
-    one raw ``frame`` demosaiced with ``method``, from :func:`single_shot_geometry` (the
-    intrinsics carried to the analyzer grid by :func:`analyzer_grid_intrinsics`). The GUI's
-    live single-shot view and ``polrig infer`` can pass these as processing does."""
-
-    lay = frame_layout(frame)
-    raw_shape = tuple(frame.raw.shape[-2:])
-    ph, pw = lay.period
-    if raw_shape[0] < ph or raw_shape[1] < pw:  # the demosaic's own one-line refusal
-        raise ValueError(f"raw mosaic {raw_shape} is smaller than one {ph}x{pw} layout cell")
-    intrinsics = geometry.get("intrinsics")
-    if intrinsics is not None:
-        intrinsics = analyzer_grid_intrinsics(intrinsics, frame.meta.offset_xy, raw_shape,
-                                              output_shape(lay, raw_shape, method))
-    return {"stage_zero_axis": geometry.get("stage_zero_axis_camera"), "intrinsics": intrinsics}
-
-
 def check_plan(plan, calibration: Calibration, device: str = "auto") -> float | None:
     """Reject a plan that cannot give a result, before any device moves.
 
     Reference mode: the incident states must determine the Mueller block (at least 3, not
     collinear, condition number below :data:`polrig.solve.reference.DEFAULT_MAX_CONDITION`);
     returns the condition number. Single-shot: a model must be installed and open on
-    ``device`` (a forced ``cuda`` that cannot run: :class:`polrig.models.devices.DeviceUnavailable`).
+    ``device`` (:meth:`polrig.app.single_shot.SingleShot.open`: the loaded model the capture's
+    processing then gets, not a second load; :class:`polrig.acquisition.plan.PlanError` of ``mode``
+    when there is none, :class:`polrig.models.devices.DeviceUnavailable` for a forced ``cuda``
+    that cannot run).
     """
     if plan.mode == "single-shot":
-        single_shot_model(device)
+        SingleShot.open(device)
         return None
     try:
         return validate_states(calibration.incident_stokes(plan.states_deg))
@@ -294,24 +248,3 @@ def check_plan(plan, calibration: Calibration, device: str = "auto") -> float | 
         states = ",".join(f"{a:g}" for a in plan.states_deg)
         raise PlanError("states_deg", str(exc), subject=states,
                         what="polarizer states") from None
-
-
-def single_shot_model(device: str = "auto"):
-    """The installed single-shot model on ``device`` (``auto``, ``cpu`` or ``cuda``:
-    :meth:`polrig.models.runtime.SingleShotModel.load`; its ``provider`` is the one used);
-    :class:`polrig.acquisition.plan.PlanError` (of ``mode``, one line) when there is none, and
-    :class:`polrig.models.devices.DeviceUnavailable` (a one-line :class:`ConfigError`) for a forced
-    ``cuda`` that cannot run."""
-    try:
-        from polrig.models.runtime import SingleShotModel  # type: ignore[import-not-found]
-    except ImportError:
-        raise PlanError("mode", "no single-shot model is installed (polrig.models.runtime is "
-                                "missing); use the reference method",
-                        subject="single-shot", what="mode") from None
-    try:
-        return SingleShotModel.load(device=device)
-    except (FileNotFoundError, OSError, FormatError) as exc:
-        raise PlanError("mode", f"no single-shot model is installed ({exc}); use the "
-                                f"reference method", subject="single-shot", what="mode") from None
-
-

@@ -49,7 +49,9 @@ from polrig.solve.reference import (
 #: Default signal threshold of every view: ``S0`` (or ``m00``) below this many noise standard
 #: deviations is masked (``--min-snr`` of ``polrig stokes``/``infer``; the GUI's "Min SNR").
 DEFAULT_MIN_SNR = MIN_SNR
-#: Mask bit of a pixel outside the object (a single-shot result's ``mask`` plane is 0 there).
+#: Display bit of a pixel outside the object (a single-shot result's object mask,
+#: :meth:`polrig.app.single_shot.SingleShotResult.preview_flags`; an older ``polrig infer`` file's
+#: ``mask`` plane is 0 there).
 BACKGROUND = 16
 #: bit -> reason, in bit order: :data:`polrig.solve.reference.REASONS` plus :data:`BACKGROUND`.
 MASK_REASONS: dict[int, str] = {**REASONS, BACKGROUND: "background"}
@@ -376,8 +378,9 @@ def exr_masks(planes: Mapping[str, np.ndarray], n_colours: int, signal: np.ndarr
     """``(flags, snr)`` ``(C, H, W)`` of a result EXR from its extra planes.
 
     ``signal`` ``(C, H, W)``: ``S0`` of a Stokes EXR or ``m00`` of a Mueller EXR. Read:
-    ``mask.{colour}`` (a session's reason bits), ``mask`` (a single-shot result: 0 = outside
-    the object, :data:`BACKGROUND`), ``saturated`` (clipped raw data, ``SATURATED``),
+    ``mask.{colour}`` (a reconstruction's reason bits: a session's or ``polrig infer``'s),
+    ``mask`` (a ``polrig infer`` file written before the one result writer: 0 = outside the
+    object, :data:`BACKGROUND`), ``saturated`` (clipped raw data, ``SATURATED``),
     ``valid`` (a Stokes EXR: 0 = saturated or invalid in some colour; ``NONFINITE`` where no
     ``saturated`` plane says why), and non-finite or non-positive signal (``NONFINITE``).
     The SNR comes from ``snr.{colour}`` planes, else ``signal / sigma_noise.M00.{colour}``

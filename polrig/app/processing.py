@@ -29,21 +29,17 @@ import numpy as np
 
 from polrig import __version__
 from polrig.acquisition.plan import (
-    FULL_RESOLUTION_SINGLE_SHOT_ONLY,
-    MIRROR_SINGLE_SHOT_ONLY,
     MODES,
-    RESOLUTIONS,
     CapturePlan,
     ExrChoice,
     PlanError,
-    check_network_binning,
+    single_shot_options,
 )
 from polrig.app.calibrations import (  # noqa: F401 (re-exported)
     NOMINAL_ANALYZER_TOLERANCE,
     NOMINAL_CALIBRATION_ID,
     NOMINAL_GENERATOR_TOLERANCE,
     Calibration,
-    analyzer_grid_intrinsics,
     calibration_geometry,
     check_calibration_fits,
     check_calibration_fits_rig,
@@ -52,8 +48,6 @@ from polrig.app.calibrations import (  # noqa: F401 (re-exported)
     load_calibration,
     nominal_calibration,
     single_shot_geometry,
-    single_shot_kwargs,
-    single_shot_model,
 )
 from polrig.app.preview import write_result_previews
 from polrig.app.records import (  # noqa: F401 (re-exported)
@@ -72,18 +66,16 @@ from polrig.app.session import (
     sha256_file,
 )
 from polrig.app.sessionio import CaptureFrames, load_capture_frames, read_verified_frame  # noqa: F401 (re-exported)
+from polrig.app.single_shot import SingleShot, SingleShotResult
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.exr import (
     MuellerRows,
-    colour_planes,
-    result_planes,
     write_mueller_exr,
+    write_result_exr,
 )
-from polrig.models.full_resolution import lift, reconstruct_binned
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
-from polrig.sensor.stokes import stokes_from_analyzers
 from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
     StateRadiance,
     adc_scale,
@@ -92,9 +84,6 @@ from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
     state_radiance,
 )
 from polrig.solve.reference import (
-    DARK,
-    MIN_SNR,
-    SATURATED,
     MuellerEstimate,
     ReferenceResult,
     reason_names,
@@ -191,16 +180,18 @@ class TruthScore:
 class CaptureResult:
     """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
     ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
-    arrays, ``metadata`` the EXR header's polrig entries, ``truth`` how to score it against
-    the simulator's truth (``None`` without a truth file), ``extra_planes`` further planes of
-    its EXR. :func:`write_and_score` writes and scores it."""
+    arrays (the reference solve's or the single-shot route's), ``metadata`` the EXR header's
+    polrig entries, ``truth`` how to score it against the simulator's truth (``None`` without a
+    truth file), ``extra_planes`` further planes of its EXR. :func:`write_and_score` writes and
+    scores it."""
 
     relpath: str
-    result: ReferenceResult | MuellerEstimate
+    result: ReferenceResult | SingleShotResult | MuellerEstimate
     metadata: dict[str, Any]
     truth: TruthScore | None
     #: planes written beside :func:`polrig.formats.exr.result_planes`' (name -> ``(H, W)`` array): the
     #: single-shot ``beyond_calibration.{colour}`` flags, with the ``sigma`` group
+    #: (:meth:`polrig.app.single_shot.SingleShotResult.extra_planes`)
     extra_planes: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
@@ -226,10 +217,8 @@ def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *
                 for role, suffix in PREVIEW_ROLES.items()}
     written = {"mueller": path, **previews}
     try:
-        write_mueller_exr(path, res.mueller,
-                          extra={**result_planes(res, planes=exr.planes, uncertainty=exr.uncertainty),
-                                 **out.extra_planes},
-                          metadata=out.metadata, compression=exr.compression)
+        write_result_exr(path, res, planes=exr.planes, uncertainty=exr.uncertainty,
+                         compression=exr.compression, extra=out.extra_planes, metadata=out.metadata)
         made = write_result_previews(res.mueller, path.parent, stem=path.stem, flags=res.mask)
         if sorted(made) != sorted(previews.values()):  # pragma: no cover - preview's contract
             raise RuntimeError(f"previews {made} are not the expected {previews}")
@@ -255,7 +244,7 @@ def write_and_score(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
     records = write_result_files(root, out, exr, replace=replace)
     if out.truth is None:
         return records, None
-    if isinstance(out.result, ReferenceResult):
+    if not isinstance(out.result, MuellerEstimate):
         out.result = out.result.estimate()
     try:
         return records, out.truth.run(out.result)
@@ -327,11 +316,6 @@ def record_result(session: Session, index: int, revision: str | None,
             raise
 
 
-#: The header's description of a single-shot result's ``beyond_calibration.{colour}`` planes.
-BEYOND_CALIBRATION_PLANE = ("1 = the pixel's misfit lies beyond the range the single-shot sigma was "
-                            "calibrated on (models/uncertainty.py): its sigma may be too small")
-
-
 class Processor:
     """Processing of captures inside a session (see :func:`polrig.app.capture.run_session`).
 
@@ -339,12 +323,15 @@ class Processor:
     ``mirror_average``: single-shot runs the network on the capture and on its mirror image and
     averages (:mod:`polrig.models.mirror`; twice the network time, a few per cent lower error).
     ``resolution``: single-shot output at the networks' ``superpixel`` grid or the raw frame's
-    (``full``, :func:`polrig.models.full_resolution.lift`; a :class:`PlanError` of ``resolution`` with
-    the reference mode). ``network_binning``: 1, or 2 for the single-shot networks on the
-    analyzer grid binned 2x2 (:func:`polrig.models.full_resolution.reconstruct_binned`; about half the
-    frame time at full sensor size, no calibrated sigma; a :class:`PlanError` of
-    ``network_binning`` with the reference mode). ``device``: where the network runs (``auto``,
-    ``cpu``, ``cuda``; :mod:`polrig.models.devices`), a run option, not part of the plan; the provider used is recorded.
+    (``full``; a :class:`PlanError` of ``resolution`` with the reference mode).
+    ``network_binning``: 1, or 2 for the single-shot networks on the analyzer grid binned 2x2
+    (about half the frame time at full sensor size, no calibrated sigma; a :class:`PlanError` of
+    ``network_binning`` with the reference mode). The single-shot settings are checked and
+    become :attr:`single_shot_options` (:func:`polrig.acquisition.plan.single_shot_options`), run
+    by the one route, :attr:`single_shot` (:class:`polrig.app.single_shot.SingleShot`).
+    ``device``: where the network runs (``auto``, ``cpu``, ``cuda``; :mod:`polrig.models.devices`), a
+    run option, not part of the plan; the provider used is recorded; the model is the one the
+    plan check opened (:meth:`polrig.app.single_shot.SingleShot.open`), not a second load.
     ``exr``: the result file's planes, precision and compression (the plan's
     :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
     """
@@ -355,17 +342,13 @@ class Processor:
                  exr: ExrChoice = ExrChoice(), network_binning: int = 1):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use reference or single-shot")
-        if mirror_average and mode != "single-shot":
-            raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
-        if resolution not in RESOLUTIONS:
-            raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
-                            subject=repr(resolution), what="resolution")
-        if resolution == "full" and mode != "single-shot":
-            raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
-                            what="resolution")
-        self.network_binning = check_network_binning(network_binning, mode)
-        # single-shot: the installed network, or the one-line "no model installed" error
-        self.model = single_shot_model(device) if mode == "single-shot" else None
+        #: the single-shot route's options (``None`` for the reference method)
+        self.single_shot_options = single_shot_options(mode, demosaic, resolution, network_binning,
+                                                       mirror_average)
+        self.network_binning = int(network_binning)
+        # single-shot: the installed network (loaded once per process and device), or the
+        # one-line "no model installed" error
+        self.single_shot = SingleShot.open(device) if mode == "single-shot" else None
         self.resolution = resolution
         self.mode = mode
         self.demosaic = demosaic
@@ -436,8 +419,9 @@ class Processor:
             geometry = single_shot_geometry(
                 self.calibration, config,
                 None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
-            result, s_in, lay, single_shot_meta, extra_planes = self.single_shot(cf, geometry)
+            result, s_in, lay = self.single_shot_result(cf, geometry)
             states = None
+            extra_planes = result.extra_planes(self.exr.planes, self.exr.uncertainty)
         else:
             unc = np.float16 if self.exr.uncertainty == "half" else np.float32
             result, s_in, lay, states = process_reference(cf, self.calibration,
@@ -454,10 +438,8 @@ class Processor:
             "mask_bits": {str(b): n for b, n in reason_names().items()},
             "analyzer_tolerance": list(self.calibration.analyzer_tolerance),
             "generator_tolerance": list(self.calibration.generator_tolerance),
-            "planes": {"sigma.M{rc}": ("standard deviation of M{rc}: sensor noise and "
-                                       "calibration uncertainty" if self.mode == "reference" else
-                                       "standard deviation of M{rc}: the single-shot model's "
-                                       "calibrated error (models/uncertainty.py); inf where clipped"),
+            "planes": {"sigma.M{rc}": "standard deviation of M{rc}: sensor noise and "
+                                      "calibration uncertainty",
                        "sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor "
                                             "noise model alone",
                        "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"},
@@ -465,69 +447,34 @@ class Processor:
             "software": f"polrig {__version__}", "capture": cap["name"],
             "revision": revision or "capture",
         }
+        meta["planes"] = {k: v for k, v in meta["planes"].items()
+                          if k.split(".", 1)[0] in self.exr.planes}
         if geometry is not None:
             meta["single_shot_geometry"] = {
                 "intrinsics_full_sensor": geometry["intrinsics"],
                 "stage_zero_axis_camera": geometry["stage_zero_axis_camera"],
                 "sources": geometry["sources"]}
-            meta["mirror_average"] = self.mirror_average
-            meta.update(single_shot_meta)
-            self.single_shot_header(meta)
-        meta["planes"] = {k: v for k, v in meta["planes"].items()
-                          if k.split(".", 1)[0] in self.exr.planes}
-        if "sigma" not in self.exr.planes:  # the flags say how far to trust the sigma: with it only
-            extra_planes = {}
-        if extra_planes:
-            meta["planes"]["beyond_calibration"] = BEYOND_CALIBRATION_PLANE
+            meta.update(result.header(self.exr.planes))  # settings, provider, its planes' meaning
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
         truth = None if truth_path is None else self.truth_score(
             truth_path, lay, s_in, states if self.mode == "reference" else None,
             noise_exposures_us(cf)[0])
         return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes)
 
-    def single_shot(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
-                    ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, dict[str, Any],
-                               dict[str, np.ndarray]]:
-        """One state through the installed network (:mod:`polrig.models.runtime`): averaged and
-        HDR-merged like the reference states, demosaiced, reconstructed; returns the result,
-        the incident state ``(1, 3)``, the layout, the result header's single-shot entries
-        and the EXR's further planes: ``beyond_calibration.{colour}`` (1 where the pixel's
-        misfit lies beyond the sigma's calibration range,
-        :meth:`polrig.models.uncertainty.UncertaintyModel.beyond_calibration`, in the uncertainty
-        planes' precision; none without a calibrated sigma). The header's
-        ``beyond_calibration_fraction`` is the object's fraction so flagged
-        (:meth:`polrig.models.uncertainty.UncertaintyModel.beyond_fraction`;
-        ``None`` where not known, at full resolution, with network binning or without a
-        calibrated sigma). ``sigma`` is the model's calibrated uncertainty (:mod:`polrig.models.uncertainty`: the network's error
-        against the simulator's truth, which sensor noise does not describe; 0 where the graph
-        has no calibration), infinite for a colour with a clipped sample (the magnitude of a
-        clipped highlight is unknown); ``sigma_noise`` is 0. The mask marks, as the reference solve does,
-        ``dark`` pixels: background (outside the network's object mask) and, per colour, pixels
-        whose measured ``S0`` is below :data:`polrig.solve.reference.MIN_SNR` noise standard
-        deviations (the noise model's variance carried through the demosaic; an object turned
-        away from the light is all noise, and the network's relative object mask cannot tell);
-        and ``saturated`` pixels, of a colour with an excluded analyzer sample. The network's
-        estimate is kept in both.
+    def single_shot_result(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
+                           ) -> tuple[SingleShotResult, np.ndarray, MosaicLayout]:
+        """The capture's one state through the single-shot route
+        (:meth:`polrig.app.single_shot.SingleShot.state`): its frames averaged and HDR-merged
+        like the reference states (:func:`polrig.solve.radiometry.state_radiance`, in ADC DN with
+        the noise model's variance), under the calibration's incident state. Returns the result
+        (its planes: :mod:`polrig.app.single_shot`), the incident state ``(1, 3)`` and the layout.
 
         ``geometry`` (:func:`single_shot_geometry`; default: from the calibration alone): the
-        intrinsics, carried to the analyzer grid (:func:`analyzer_grid_intrinsics`), and the
-        stage zero axis the incident state is expressed about; without them the model assumes
-        its training rig's, which on another rig puts the result in the wrong incident frame.
-
-        ``resolution="full"``: the networks run on the superpixel stack and their Mueller image
-        is lifted to the raw grid with the measured detail of :attr:`output_demosaic`
-        (:func:`polrig.models.full_resolution.lift`); the ``dark`` and ``saturated`` bits come from that
-        full-resolution stack, the intrinsics are carried to the superpixel grid the networks
-        see, and ``sigma`` is NaN (the model's uncertainty is calibrated on its own grid only).
-
-        ``network_binning=2``: the networks run on the analyzer grid binned 2x2 and their answer
-        is lifted back to that grid with its measured detail
-        (:func:`polrig.models.full_resolution.reconstruct_binned`: the intrinsics rescaled, the mask
-        binned), then on to the raw grid at full resolution as above; ``sigma`` is NaN (calibrated
-        on the unbinned grid only)."""
+        intrinsics and the stage zero axis the incident state is expressed about; without them
+        the model assumes its training rig's, which on another rig puts the result in the wrong
+        incident frame."""
 
         first = cf.first
-        lay = frame_layout(first)
         scale = adc_scale(self.sensor_model, first.meta.bit_depth)
         adc = lambda f: f.raw.astype(np.float64) * scale  # noqa: E731
         state = state_radiance([[adc(f) for f in lst] for lst in cf.frames[0]],
@@ -536,83 +483,19 @@ class Processor:
                                darks=[[adc(f) for f in d] for d in cf.darks]
                                if any(len(d) for d in cf.darks) else None,
                                code_step_dn=scale)
-        full = self.resolution == "full"
-        # the networks' input: the superpixel grid at full resolution (the grid they were
-        # trained on), else the plan's demosaic
-        measured, variance, valid, _ = analyzer_stack(state, lay, "superpixel" if full else self.demosaic)
         s_in = self.calibration.incident_stokes(cf.states_deg[:1])
         if geometry is None:  # the calibration's geometry only
             geometry = {"intrinsics": self.calibration.intrinsics,
                         "stage_zero_axis_camera": self.calibration.stage_zero_axis_camera}
-        network_input = np.where(valid, measured, np.nan)
-        kwargs = single_shot_kwargs(geometry, first, "superpixel" if full else self.demosaic)
-        uncalibrated = full or self.network_binning > 1  # no calibrated sigma on this route
-        if self.network_binning > 1:  # the networks on the binned grid, lifted back to this one
-            mueller, aux = reconstruct_binned(self.model, network_input, s_in[0], self.network_binning,
-                                              with_sigma=False, mirror_average=self.mirror_average,
-                                              **kwargs)
-        else:
-            mueller, aux = self.model.reconstruct(network_input, s_in[0], with_sigma=not full,
-                                                  mirror_average=self.mirror_average, **kwargs)
-        obj = np.asarray(aux["mask"], bool)
-        if full:  # the measured detail of the full-resolution demosaic (models/full_resolution.py)
-            stokes_sp = stokes_from_analyzers(network_input)  # NaN where clipped: no detail there
-            measured, variance, valid, _ = analyzer_stack(state, lay, self.output_demosaic)
-            stokes_full = stokes_from_analyzers(np.where(valid, measured, np.nan))
-            mueller, obj = lift(mueller, obj, stokes_sp, stokes_full, s_in[0], lay.period)
-            del stokes_sp, stokes_full
-        c, h, w = mueller.shape[0], mueller.shape[-2], mueller.shape[-1]
-        s0, s0_sigma = 0.5 * measured.sum(axis=1), 0.5 * np.sqrt(variance.sum(axis=1))  # (C, H, W)
-        with np.errstate(invalid="ignore"):
-            dark = ~obj[None] | ~(s0 >= MIN_SNR * s0_sigma)
-        clipped = ~np.all(valid, axis=1) & obj[None]  # (C, H, W)
-        mask = (np.where(dark, DARK, 0) | np.where(clipped, SATURATED, 0)).astype(np.uint8)
-        zeros = np.zeros((c, h, w), np.float32)
-        if uncalibrated:  # not calibrated at this resolution or binning: NaN planes (the header says so)
-            sigma = np.broadcast_to(np.float32(np.nan), mueller.shape)
-        else:
-            sigma = np.asarray(aux.get("sigma", np.zeros_like(mueller)), np.float32)
-            sigma = np.where(clipped[:, None, None], np.float32(np.inf), sigma)
-        result = ReferenceResult(mueller.astype(np.float32, copy=False), sigma, zeros, mask, float("nan"),
-                                 zeros + np.inf, np.zeros((c, h, w), np.uint16),
-                                 sigma_noise=(np.broadcast_to(np.float32(0), mueller.shape) if uncalibrated
-                                              else np.zeros_like(sigma)))
-        beyond = aux.get("beyond_calibration")
-        fraction = None if beyond is None else self.model.uncertainty.beyond_fraction(beyond, aux["mask"])
-        planes = {} if beyond is None else colour_planes(
-            "beyond_calibration", np.asarray(beyond).astype(np.float16 if self.exr.uncertainty == "half"
-                                                            else np.float32))
-        return result, s_in, lay, {"beyond_calibration_fraction": fraction}, planes
+        result = self.single_shot.state(state, first, s_in[0], self.single_shot_options, geometry=geometry)
+        return result, s_in, frame_layout(first)
 
     @property
     def output_demosaic(self) -> str:
-        """The demosaic of the result's grid: the plan's, except at full resolution, where the
-        detail comes from a full-resolution one (the plan's if it is one, else ``bilinear``)."""
-        if self.resolution == "full" and self.demosaic == "superpixel":
-            return "bilinear"
-        return self.demosaic
-
-    def single_shot_header(self, meta: dict[str, Any]) -> None:
-        """Add the single-shot settings to a result EXR's header ``meta`` (in place): the
-        resolution, the network binning (where it is not 1), the execution provider that ran the network, at full
-        resolution the grids (networks on ``superpixel``, detail from :attr:`output_demosaic`),
-        and where either is set the ``sigma`` planes' meaning there (NaN: not calibrated)."""
-        meta["resolution"] = self.resolution
-        if self.network_binning > 1:  # absent: 1 (a binning-1 result is byte-identical to one from before the option)
-            meta["network_binning"] = self.network_binning
-        meta["execution_provider"] = self.model.provider
-        if self.resolution == "full":
-            meta["network_demosaic"] = "superpixel"
-            meta["output_demosaic"] = self.output_demosaic
-        why = [w for w, on in (("at full resolution", self.resolution == "full"),
-                               (f"with network binning {self.network_binning}",
-                                self.network_binning > 1)) if on]
-        if why:
-            meta["planes"] = dict(meta.get("planes", {}), **{
-                "sigma.M{rc}": "NaN: the single-shot model's uncertainty is calibrated on the "
-                               "networks' unbinned (superpixel) grid only, not "
-                               + " or ".join(why),
-                "sigma_noise.M{rc}": "0 (not modelled for the single-shot method)"})
+        """The demosaic of the result's grid: the plan's, except at single-shot full resolution,
+        where it is the demosaic whose detail lifts the networks' answer
+        (:attr:`polrig.acquisition.plan.SingleShotOptions.demosaic`)."""
+        return self.demosaic if self.single_shot_options is None else self.single_shot_options.demosaic
 
     @staticmethod
     def _verified_truth(session: Session, index: int) -> pathlib.Path | None:

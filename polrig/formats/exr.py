@@ -10,7 +10,8 @@ under their own channel names (``mask``, ``dolp.R``, ``sigma.M00.R``, ...);
 float32 0/1; a float16 plane is stored as an OpenEXR ``HALF`` channel (the readers return
 every channel as float32 either way).
 
-A reconstruction's planes (:func:`result_planes`): the Mueller channels always; ``sigma``,
+A reconstruction's planes (:func:`result_planes`, written by :func:`write_result_exr`, the one
+writer of result files): the Mueller channels always; ``sigma``,
 ``sigma_noise``, ``mask`` and ``residual`` by choice (:data:`RESULT_PLANES`), the uncertainty
 planes in float32 or half precision (``uncertainty="half"``: 11 significant bits, ample for a
 standard deviation; values above 65504 become ``inf``). Bytes per full-sensor colour pose:
@@ -251,10 +252,13 @@ def write_mueller_exr(path: PathLike, mueller: np.ndarray, *,
 
 
 class ResultArrays(Protocol):
-    """What :func:`result_planes` reads of a reconstruction (the reference solve's
-    :class:`polrig.solve.reference.ReferenceResult` or a single-shot result): ``sigma`` and
-    ``sigma_noise`` ``(C, 3, 3, H, W)``, ``mask`` (reason bits) and ``residual`` ``(C, H, W)``."""
+    """What :func:`result_planes` and :func:`write_result_exr` read of a reconstruction (the
+    reference solve's :class:`polrig.solve.reference.ReferenceResult` or a single-shot
+    :class:`polrig.app.single_shot.SingleShotResult`): ``mueller``, ``sigma`` and ``sigma_noise``
+    ``(C, 3, 3, H, W)``, ``mask`` (reason bits of :func:`polrig.solve.reference.reason_names`,
+    0 = valid) and ``residual`` ``(C, H, W)``."""
 
+    mueller: np.ndarray
     sigma: np.ndarray
     sigma_noise: np.ndarray
     mask: np.ndarray
@@ -291,6 +295,21 @@ def result_planes(result: ResultArrays, *, planes: Sequence[str] = RESULT_PLANES
         if "residual" in planes:
             out.update(colour_planes("residual", as_dtype(result.residual)))
     return out
+
+
+def write_result_exr(path: PathLike, result: ResultArrays, *, planes: Sequence[str] = RESULT_PLANES,
+                     uncertainty: str = "float", compression: str = "zip",
+                     extra: Mapping[str, np.ndarray] | None = None,
+                     metadata: Mapping[str, Any] | None = None) -> pathlib.Path:
+    """The one writer of a reconstruction's Mueller EXR (a session's ``mueller.exr``, a
+    ``polrig infer`` result): the Mueller channels, the plane groups ``planes`` of
+    :func:`result_planes` in ``uncertainty`` precision (its ``mask.{colour}`` planes are reason
+    bits, 0 = valid, whatever the method), the ``extra`` planes and the header ``metadata``,
+    atomically (:func:`write_mueller_exr`)."""
+    return write_mueller_exr(path, result.mueller,
+                             extra={**result_planes(result, planes=planes, uncertainty=uncertainty),
+                                    **(extra or {})},
+                             metadata=metadata, compression=compression)
 
 
 def _merge_extra(planes: dict[str, np.ndarray], extra: Mapping[str, np.ndarray] | None) -> None:

@@ -9,11 +9,10 @@ import sys
 import threading
 from typing import Any, Iterator
 
-from polrig.app import processing
 from polrig.app.rig import build_rig, load_rig_config
 from polrig.app.session import Interrupted
+from polrig.app.single_shot import SingleShot
 from polrig.errors import ConfigError, PolrigError
-from polrig.models.runtime import SingleShotModel
 
 #: Simulated sensor size of the GUI's built-in rig (width x height). Smaller than a real
 #: IMX250 (2448x2048): the simulator renders every new pose, which at full size takes
@@ -106,12 +105,12 @@ def sim_options(size: str = DEFAULT_SIM_SIZE, clock_speed: float = 1.0) -> dict[
 
 
 def model_loader(weights: str | None = None, device: str = "auto"):
-    """A function loading the single-shot model on ``device`` (``auto``, ``cpu``, ``cuda``:
-    :mod:`polrig.models.devices`; the CLI's message when none is installed)."""
-    def load():
-        if weights is None:
-            return processing.single_shot_model(device)
-        return SingleShotModel.load(weights, device=device)
+    """A function opening the single-shot route on ``device`` (``auto``, ``cpu``, ``cuda``:
+    :mod:`polrig.models.devices`) with the model in ``weights`` (default: the installed one; the
+    CLI's message when none is installed): :meth:`polrig.app.single_shot.SingleShot.open`, whose
+    model the window's captures share (loaded once per window)."""
+    def load() -> SingleShot:
+        return SingleShot.open(device, weights)
     return load
 
 

@@ -3,7 +3,8 @@
 Threading: the worker is a two-stage pipeline so that both CPU cores work. Stage 1 (a thread
 the worker starts) grabs (holding the camera lock of :class:`polrig.gui.rigaccess.RigLocks`)
 and processes (:mod:`polrig.gui.pipeline`: Stokes/DoLP/AoLP, or single-shot Mueller
-inference); stage 2 (the ``QThread`` itself) renders the display image of the newest
+inference through the one route, :meth:`polrig.app.single_shot.SingleShot.frame`, with the
+settings' :class:`polrig.acquisition.plan.SingleShotOptions`); stage 2 (the ``QThread`` itself) renders the display image of the newest
 processed frame and puts it into a :class:`LatestSlot` for the UI. Each hand-over is a
 one-item slot: a newer item replaces one not taken yet (that frame is dropped and counted),
 so nothing is ever queued without bound, and the UI thread never waits for a device or for
@@ -29,6 +30,7 @@ from PySide6.QtCore import QThread, Signal
 from PySide6.QtGui import QImage
 
 from polrig.acquisition.hal import grab_timeout_s
+from polrig.acquisition.plan import SingleShotOptions
 from polrig.app import processing
 from polrig.app.processing import sensor_model_of
 from polrig.errors import DeviceDisconnected, PolrigError
@@ -77,10 +79,11 @@ class LiveSettings:
     #: (:mod:`polrig.models.mirror`; twice the network time)
     mirror_average: bool = False
     #: Mueller display: ``superpixel`` (the networks' grid) or ``full`` (the raw frame's size,
-    #: :mod:`polrig.models.full_resolution`)
+    #: the detail from ``method``, bilinear where that is superpixel:
+    #: :meth:`polrig.acquisition.plan.SingleShotOptions.from_settings`)
     resolution: str = "superpixel"
-    #: Mueller display: 2 runs the networks on the analyzer grid binned 2x2 (the faster mode,
-    #: :mod:`polrig.models.full_resolution`: about half the frame time at full sensor size); 1 on the grid
+    #: Mueller display: 2 runs the networks on the analyzer grid binned 2x2 (the faster mode:
+    #: about half the frame time at full sensor size); 1 on the grid
     network_binning: int = 1
     max_fps: float = 30.0
     #: Longest side of the displayed image in pixels (0: full resolution); see
@@ -134,8 +137,10 @@ class RateMeter:
 
 class LiveWorker(QThread):
     """Grab -> process -> render loop (see the module docstring). ``rig`` is a
-    :class:`polrig.app.rig.Rig`; ``model_loader`` returns the single-shot model (called in this
-    thread the first time the Mueller display is chosen; its exceptions become messages)."""
+    :class:`polrig.app.rig.Rig`; ``model_loader`` returns the single-shot route
+    (:class:`polrig.app.single_shot.SingleShot`, :func:`polrig.gui.app.model_loader`: called in
+    this thread the first time the Mueller display is chosen, once per window; its exceptions
+    become messages)."""
 
     frame_ready = Signal()
     message = Signal(str, str)  # level, text
@@ -285,14 +290,16 @@ class LiveWorker(QThread):
         note = ""
         data = None
         if s.display == "mueller":
-            model = self._get_model()
-            if model is None:
+            route = self._get_model()
+            if route is None:
                 note = f"Mueller display unavailable: {self._model_error}"
             else:
-                data = pipeline.infer_mueller(frame, model, self._stage_angle(), s.method,
-                                              source="live", geometry=self._geometry(),
-                                              mirror_average=s.mirror_average,
-                                              resolution=s.resolution, network_binning=s.network_binning)
+                options = SingleShotOptions.from_settings(
+                    demosaic=s.method, resolution=s.resolution, network_binning=s.network_binning,
+                    mirror_average=s.mirror_average, sigma=False)
+                result = route.frame(frame, self._stage_angle(), options, geometry=self._geometry(),
+                                     sensor=self._sensor_model())
+                data = pipeline.PolarizationData.from_single_shot(result, frame, source="live")
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
                                           source="live", model=self._sensor_model())

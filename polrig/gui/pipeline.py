@@ -2,7 +2,8 @@
 
 Everything the live view, the viewer and the benchmark show goes through here, and all the
 numbers come from the core: :func:`polrig.sensor.stokes.stokes_from_raw` (demosaic, Stokes, masks,
-DoLP, AoLP), :func:`polrig.models.runtime.infer_frame` (single-shot Mueller images) and the colour maps
+DoLP, AoLP), the single-shot route's results (:class:`polrig.app.single_shot.SingleShotResult`,
+:meth:`PolarizationData.from_single_shot`) and the colour maps
 of :mod:`polrig.app.preview`. Conventions (AoLP in degrees in [0, 180), DoLP in [0, 1], arrays
 plane-first) are those of ``docs/conventions.md``.
 
@@ -26,8 +27,7 @@ from typing import Any
 import numpy as np
 
 from polrig.app import preview
-from polrig.app.processing import single_shot_kwargs
-from polrig.models.runtime import infer_frame
+from polrig.app.single_shot import SingleShotResult
 from polrig.sensor.analyzer import layout_name_at, resolve_layout
 from polrig.sensor.frame import Frame
 from polrig.sensor.noise import SensorModel
@@ -135,6 +135,23 @@ class PolarizationData:
                    aolp_deg=aolp_deg(s, valid), source=source, flags=flags, snr=snr)
 
     @classmethod
+    def from_single_shot(cls, result: SingleShotResult, frame: Frame | None = None,
+                         source: str = "") -> "PolarizationData":
+        """From a single-shot result of a raw frame
+        (:meth:`polrig.app.single_shot.SingleShot.frame`): its Mueller image, the measured Stokes
+        images on the same grid (the raw size at full resolution) with their masks, the SNR of
+        their ``S0`` (the result's, from the camera's noise model) and ``BACKGROUND`` outside the
+        networks' object mask; with the ``frame``, its raw mosaic."""
+        d = cls.from_stokes(result.stokes, source)
+        d.mueller = result.mueller
+        if frame is not None:
+            d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
+            d.black_level_dn = float(frame.meta.black_level_dn)
+        d.snr = result.snr
+        d.flags = d.flags | np.where(result.object, 0, preview.BACKGROUND).astype(np.uint8)[None]
+        return d
+
+    @classmethod
     def from_mueller(cls, mueller: np.ndarray, source: str = "",
                      planes: dict | None = None) -> "PolarizationData":
         """From a Mueller image ``(C, 3, 3, H, W)``; ``planes`` (the EXR's other planes) give
@@ -238,42 +255,6 @@ def process_frame(frame: Frame, method: str = "superpixel", *, workers: int | No
                                black_level_dn=frame.meta.black_level_dn,
                                bit_depth=frame.meta.bit_depth, workers=workers)
     return PolarizationData.from_stokes_images(s, frame, source, model)
-
-
-def infer_mueller(frame: Frame, model, state_deg: float, method: str = "superpixel",
-                  source: str = "", geometry: dict | None = None,
-                  mirror_average: bool = False, resolution: str = "superpixel",
-                  network_binning: int = 1) -> PolarizationData:
-    """Single-shot Mueller image of a frame taken with the polarizer at ``state_deg``
-    (:func:`polrig.models.runtime.infer_frame`), with the Stokes images it computed on the way.
-
-    ``resolution``: ``superpixel`` (the networks' grid, ``method`` the networks' input) or
-    ``full`` (the raw frame's size: :mod:`polrig.models.full_resolution`, the detail from ``method``,
-    ``bilinear`` where that is ``superpixel``); the Stokes images, masks and SNR are then at
-    the raw size as well.
-
-    ``geometry``: the rig's single-shot geometry (intrinsics, stage zero axis) from
-    :func:`polrig.app.processing.single_shot_geometry`, exactly as capture processing uses it;
-    ``None`` leaves the model's training geometry. ``mirror_average`` and ``network_binning``
-    (2: the faster mode, the networks on the analyzer grid binned 2x2,
-    :mod:`polrig.models.full_resolution`): as :func:`polrig.models.runtime.infer_frame`."""
-
-    full = resolution == "full"
-    if full and method == "superpixel":  # the detail comes from a full-resolution demosaic
-        method = "bilinear"
-    kwargs = single_shot_kwargs(geometry, frame, "superpixel" if full else method) if geometry else {}
-    mueller, aux = infer_frame(frame.raw, frame_layout(frame), state_deg, model,
-                               demosaic_method=method, black_level_dn=frame.meta.black_level_dn,
-                               mirror_average=mirror_average, resolution=resolution,
-                               network_binning=network_binning, **kwargs)
-    d = PolarizationData.from_stokes(aux["stokes"], source)
-    d.mueller = mueller
-    d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
-    d.black_level_dn = float(frame.meta.black_level_dn)
-    d.snr = frame_snr(aux["stokes"][:, 0], frame)
-    d.flags = d.flags | np.where(np.asarray(aux["mask"], bool), 0,
-                                 preview.BACKGROUND).astype(np.uint8)[None]
-    return d
 
 
 # -- rendering -----------------------------------------------------------------------------------

@@ -24,13 +24,16 @@ import dataclasses
 import io
 import os
 import re
-from typing import Union
+from typing import TYPE_CHECKING, Union
 
 import numpy as np
 
 from polrig.atomic import atomic_write_bytes
 from polrig.errors import FormatError
 from polrig.sensor.layouts import MosaicLayout, get_layout
+
+if TYPE_CHECKING:
+    from polrig.sensor.frame import Frame
 
 LayoutLike = Union[str, MosaicLayout]
 
@@ -66,6 +69,13 @@ def layout_name_at(layout: LayoutLike, offset_x: int, offset_y: int) -> str:
     ph, pw = get_layout(base).period
     x, y = (x0 + offset_x) % pw, (y0 + offset_y) % ph
     return base if (x, y) == (0, 0) else f"{base}@{x},{y}"
+
+
+def frame_layout(frame: "Frame") -> MosaicLayout:
+    """Mosaic layout of a :class:`polrig.sensor.frame.Frame`, its phase from the frame's ROI
+    offset (:func:`layout_name_at`)."""
+    ox, oy = frame.meta.offset_xy
+    return resolve_layout(layout_name_at(frame.meta.layout, int(ox), int(oy)))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,8 +1,11 @@
 """``polrig infer RAW --layout imx250myr --state-deg 0 --out OUT.exr``: single-shot Mueller
 image of one raw frame with the shipped ONNX model (onnxruntime only, no torch).
 
-Decode (:func:`polrig.formats.rawio.read_raw`), demosaic, Stokes, PIPNet -> pBRDF -> PMMNet
-(:func:`polrig.models.runtime.infer_frame`), EXR (:func:`polrig.models.runtime.write_result_exr`).
+Decode (:func:`polrig.formats.rawio.read_raw`), then the one single-shot route
+(:meth:`polrig.app.single_shot.SingleShot.frame`: demosaic, Stokes, PIPNet -> pBRDF -> PMMNet,
+the planes) with its options (:class:`polrig.acquisition.plan.SingleShotOptions`, whose refusals
+name this command's options), and the one result writer
+(:func:`polrig.formats.exr.write_result_exr`: ``mask.{colour}`` reason bits as in a session).
 """
 
 from __future__ import annotations
@@ -46,9 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output resolution: superpixel (the networks' grid, default) or full (the raw "
                         "frame's: the networks on the superpixel grid plus the measured detail of a "
                         "full-resolution demosaic, models/full_resolution.py)")
-    from polrig.models.full_resolution import BINNINGS
+    from polrig.acquisition.plan import NETWORK_BINNINGS
 
-    p.add_argument("--network-binning", type=int, choices=BINNINGS, default=1,
+    p.add_argument("--network-binning", type=int, choices=NETWORK_BINNINGS, default=1,
                    help="1 (default): the networks on the analyzer grid; 2: a faster mode, the networks on "
                         "that grid binned 2x2 (a quarter of the work) and the answer lifted back with the "
                         "grid's measured detail (models/full_resolution.py; its accuracy in "
@@ -91,38 +94,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+#: The option that sets each :class:`polrig.acquisition.plan.SingleShotOptions` field and each
+#: other field a library error names (:func:`polrig.cli.commands.capture.options_named`).
+FLAGS = {"resolution": "--resolution", "demosaic": "--demosaic", "network_binning": "--network-binning",
+         "mirror_average": "--mirror-average", "sigma": "--sigma", "calibration": "--calibration"}
+#: The plane groups of a ``polrig infer`` EXR (:func:`polrig.formats.exr.result_planes`): the
+#: reason-bit mask always, the sigma with ``--sigma`` (``sigma_noise`` and ``residual`` are not
+#: modelled for the single-shot method).
+PLANES, SIGMA_PLANES = ("mueller", "mask"), ("mueller", "sigma", "mask")
+
+
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
     import pathlib
     import sys
 
     import numpy as np
 
+    from polrig.acquisition.plan import SingleShotOptions
     from polrig.app import calibrations
-    from polrig.app.preview import (
-        BACKGROUND,
-        DEFAULT_MIN_SNR,
-        SATURATED,
-        mask_summary,
-        s0_snr,
-        write_result_previews,
-    )
+    from polrig.app.preview import DEFAULT_MIN_SNR, mask_summary, write_result_previews
     from polrig.app.rig import load_rig_config
+    from polrig.app.single_shot import SingleShot
     from polrig.cli.commands._units import adc_factor
     from polrig.cli.commands.capture import options_named
+    from polrig.formats.exr import write_result_exr
     from polrig.formats.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
-    from polrig.models.runtime import SingleShotModel, infer_frame, write_result_exr
-    from polrig.models.uncertainty import BEYOND_WARN_FRACTION, UncertaintyModel
+    from polrig.models.uncertainty import BEYOND_WARN_FRACTION
+    from polrig.solve.reference import SATURATED, reason_names
 
-    method = args.demosaic or ("bilinear" if args.resolution == "full" else "superpixel")
-    if args.resolution == "full" and method == "superpixel":
-        raise ConfigError("--resolution full takes its detail from a full-resolution demosaic: "
-                          "--demosaic bilinear or newton, not superpixel")
-    if args.resolution == "full" and args.sigma:
-        raise ConfigError("--sigma: the uncertainty is calibrated at the networks' (superpixel) resolution "
-                          "only; leave out --resolution full or --sigma")
-    if args.network_binning > 1 and args.sigma:
-        raise ConfigError("--sigma: the uncertainty is calibrated on the unbinned analyzer grid only; leave out "
-                          "--network-binning or --sigma")
+    with options_named(FLAGS):  # the option rules (SingleShotOptions), before any file is read
+        options = SingleShotOptions(args.resolution, args.demosaic, args.network_binning,
+                                    args.mirror_average, args.sigma)
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
@@ -131,65 +134,60 @@ def run(args: argparse.Namespace) -> int:
     for preview_path in previews:
         check_output_file(preview_path, "--out preview")
     frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
-    layout = args.layout or frame.meta.layout
+    if args.layout:  # the option wins over the sidecar
+        frame = dataclasses.replace(frame, meta=dataclasses.replace(frame.meta, layout=args.layout))
+    layout = frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
     saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
     if not black < saturation:
         source = "--black-level" if args.black_level is not None else "the sidecar's black level"
         raise ConfigError(f"{source} {black:g} DN is not below the saturation level {saturation:g} DN")
-    with options_named():
+    with options_named(FLAGS):
         calibration = calibrations.load_calibration(args.calibration)
         # a set from another sensor (layout) or one that does not cover this frame: refused
         h, w = frame.raw.shape[-2:]
         calibrations.check_calibration_fits(calibration, layout=layout,
                                             readout=(w, h, *frame.meta.offset_xy),
                                             what=f"{args.raw}", phase=False)
+    config = load_rig_config(args.config)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
-    geometry = calibrations.single_shot_geometry(calibration, load_rig_config(args.config))
-    kwargs = calibrations.single_shot_kwargs(geometry, frame,
-                                             "superpixel" if args.resolution == "full" else method)
-    if args.stage_zero_axis is not None:
-        kwargs["stage_zero_axis"] = args.stage_zero_axis
-    model = SingleShotModel.load(args.weights, device=args.device)
-    if args.sigma and model.uncertainty is None:  # before the work: --sigma would silently write no planes
-        from polrig.models.uncertainty import how_to_calibrate
-
-        raise ConfigError(f"--sigma: {model.uncertainty_problem}; {how_to_calibrate(model.weights_dir)}")
-    # the file's DN -> ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16): the
-    # result is in the unit of the noise model, the truth of a simulated capture and a session
-    sensor, to_adc = adc_factor(load_rig_config(args.config), frame.meta.bit_depth)
-    raw_adc = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
-    mueller, aux = infer_frame(raw_adc, layout, args.state_deg, model, demosaic_method=method,
-                               resolution=args.resolution, network_binning=args.network_binning,
-                               black_level_dn=black * to_adc, scale=args.scale,
-                               saturation_dn=saturation * to_adc,
-                               with_sigma=args.sigma, mirror_average=args.mirror_average, **kwargs)
-    beyond = None
-    if "beyond_calibration" in aux:
-        beyond = UncertaintyModel.beyond_fraction(aux["beyond_calibration"], aux["mask"])
-    write_result_exr(out, mueller, aux, {"source": str(args.raw), "state_deg": args.state_deg,
-                                         "beyond_calibration_fraction": beyond,
-                                         "layout": str(layout), "demosaic": method,
-                                         "resolution": args.resolution,
-                                         "network_binning": args.network_binning,
-                                         "saturation_dn": saturation, "mirror_average": args.mirror_average,
-                                         "units": UNITS, "adc_dn_per_file_dn": to_adc})
+    geometry = calibrations.single_shot_geometry(calibration, config)
+    route = SingleShot.open(args.device, args.weights)
+    # the result is in the unit of the noise model, the truth of a simulated capture and a
+    # session: ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16)
+    sensor, to_adc = adc_factor(config, frame.meta.bit_depth)
+    with options_named(FLAGS):  # --sigma without a calibration of the graph: before the work
+        result = route.frame(frame, args.state_deg, options, geometry=geometry, sensor=sensor,
+                             black_level_dn=black, saturation_dn=saturation, scale=args.scale,
+                             stage_zero_axis=args.stage_zero_axis)
+    planes = SIGMA_PLANES if options.sigma else PLANES
+    write_result_exr(out, result, planes=planes, compression="none",
+                     extra=result.extra_planes(planes),
+                     metadata={"method": "single-shot",
+                               "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
+                               "scale_dn": result.scale, "alpha": result.alpha,
+                               "source": str(args.raw), "state_deg": args.state_deg,
+                               "layout": str(layout), "demosaic": options.demosaic,
+                               "saturation_dn": saturation, "units": UNITS,
+                               "adc_dn_per_file_dn": to_adc,
+                               "mask_bits": {str(b): n for b, n in reason_names().items()},
+                               **result.header(planes)})
     # previews: the measured S0 against its noise sigma decides what is signal
-    snr = s0_snr(aux["stokes"][:, 0], sensor, frame.meta.exposure_us)
-    flags = (np.where(np.asarray(aux["mask"], bool), 0, BACKGROUND)
-             | np.where(aux["saturated"], SATURATED, 0)).astype(np.uint8)[None] | np.zeros(snr.shape, np.uint8)
+    flags = result.preview_flags()
     min_snr = DEFAULT_MIN_SNR if args.min_snr is None else args.min_snr
-    write_result_previews(mueller, out.parent, stem=out.stem, flags=flags, snr=snr, min_snr=min_snr)
-    t = aux["timings_s"]
+    write_result_previews(result.mueller, out.parent, stem=out.stem, flags=flags, snr=result.snr,
+                          min_snr=min_snr)
+    mueller = result.mueller
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
-          f"network {1e3 * t['network']:.1f} ms; {mask_summary(flags, snr, min_snr)}; previews "
-          f"{', '.join(p.name for p in previews)}")
-    print(f"networks ran on {model.provider}")
-    n_clipped, n_object = int(np.sum(aux["saturated"] & aux["mask"])), int(np.sum(aux["mask"]))
+          f"network {1e3 * result.timings_s['network']:.1f} ms; {mask_summary(flags, result.snr, min_snr)}; "
+          f"previews {', '.join(p.name for p in previews)}")
+    print(f"networks ran on {route.provider}")
+    n_clipped, n_object = int(np.sum(result.saturated)), int(np.sum(result.object))
     if n_clipped:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
-              f"{saturation:g} DN (clipped); their Mueller estimate comes from clipped data (EXR plane "
-              f"'saturated'); lower the exposure", file=sys.stderr)
+              f"{saturation:g} DN (clipped); their Mueller estimate comes from clipped data (EXR planes "
+              f"'mask', bit {SATURATED}: saturated); lower the exposure", file=sys.stderr)
+    beyond = result.beyond_fraction
     if beyond is not None and beyond > BEYOND_WARN_FRACTION:
         print(f"polrig infer: warning: {100 * beyond:.0f} % of the object's pixels lie beyond the misfit range "
               f"the sigma was calibrated on (1 % by construction; e.g. a metal or a retarding film, which the "
