@@ -431,12 +431,14 @@ def generate_dataset(out: str | pathlib.Path, *, count: int, width: int = 256,
     written = skipped = 0
     n_shards = manifest["n_shards"]
     todo = []
+    root = str(out.resolve())
+    present = {p.name for p in out.glob("shard-*.npz")}  # one listing, not a stat per shard
     for k in range(n_shards):
         n_k = min(shard_size, count - k * shard_size)
-        if shard_complete(out / shard_name(k), n_k):
+        if shard_name(k) in present and shard_complete(out / shard_name(k), n_k):
             skipped += 1
         else:
-            todo.append(ShardJob(str(out.resolve()), k, k * shard_size, n_k, seed, width, height,
+            todo.append(ShardJob(root, k, k * shard_size, n_k, seed, width, height,
                                  bool(holdout), stage_zero_axes,
                                  None if families is None else tuple(families), compress,
                                  material_mix, int(indirect_samples)))
