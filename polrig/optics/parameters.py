@@ -187,7 +187,9 @@ SIGMA_METHOD = (
 
 _DEG = 180.0 / np.pi
 _FD_REL_STEP = 1e-6
-_ASSUMED_K = 2.0  # retardance significant at this many sigma: DECOMP_ASSUMED
+_ASSUMED_K = 3.0  # anisotropy significant at this many sigma: DECOMP_ASSUMED
+_ANISOTROPY_TOL = 1e-9  # numerical floor of the anisotropy R (normalised block)
+_EXCESS_TOL = 1e-9  # numerical floor of Delta - 1
 
 
 def _blocks(m) -> np.ndarray:
@@ -358,18 +360,25 @@ def decompose_linear(m) -> dict[str, np.ndarray]:
     tell), ``1 - Delta`` (``Delta`` the linear depolarization factor, 1 for a
     non-depolarizing block), the rotation that follows the linear retarder in ``(-90, 90]`` deg
     (optical rotation from ``x`` towards ``y``, and any rotation between the incident and the
-    emergent frame), and the flag bits (:data:`DECOMPOSITION_FLAGS`; uint8). ``DECOMP_ASSUMED``
-    is set where the retardance is above a numerical tolerance (1e-6 deg); with measured
-    sigma :func:`decomposition_flags` sets it where the retardance is significant instead.
-    NaN maps and ``DECOMP_UNDEFINED`` where the decomposition cannot be formed.
+    emergent frame), and the flag bits (:func:`decomposition_flags` without sigma: numerical
+    tolerances only). NaN maps and ``DECOMP_UNDEFINED`` where the decomposition cannot be
+    formed.
+
+    The retardance is computed as ``2 atan2(sqrt(R), sqrt(Q))`` (``tan^2(d/2) = R / Q``), which
+    is exact where ``arccos`` of ``(Q - R) / (Q + R)`` is not; a retardance near 0 or 180 deg is
+    still ill-conditioned by nature (``d ~ 2 sqrt(R / Q)``): rounding errors ``e`` of the block
+    give errors ``~ sqrt(e)`` there, about 1e-5 deg in float64.
     """
-    out, _ = _decompose(_blocks(m))
-    out["decomposition_flags"] = decomposition_flags(out)
+    m = _blocks(m)
+    out, internal = _decompose(m)
+    out["decomposition_flags"] = _flags(internal, None, _ASSUMED_K)
     return out
 
 
-def _decompose(m: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """The four decomposition maps and the boolean ``defined`` mask (no flags)."""
+def _decompose(m: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The four decomposition maps, and the internal quantities of the flags: ``defined``
+    (bool), ``anisotropy`` (``R = (s1 - s2) / 2`` of ``m'``, 0 for an isotropic block) and
+    ``excess`` (``Delta - 1``)."""
     n, ok = _normalised(m)
     with np.errstate(all="ignore"):
         d1, d2 = n[..., 0, 1], n[..., 0, 2]
@@ -385,10 +394,10 @@ def _decompose(m: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
         q12 = (a11 * i12 + a12 * i22 - p1 * d2) / k2
         q21 = (a21 * i11 + a22 * i12 - p2 * d1) / k2
         q22 = (a21 * i12 + a22 * i22 - p2 * d2) / k2
-        s1, s2, (e, _, _, h, _, _) = _svd2(q11, q12, q21, q22)
+        s1, _, (e, _, _, h, q, r) = _svd2(q11, q12, q21, q22)
         ok = ok & (s1 > 0)
         delta = np.where(ok, s1, np.nan)
-        cos_d = np.clip(s2 / delta, -1.0, 1.0)
+        retardance = 2.0 * np.arctan2(np.sqrt(r), np.sqrt(q))  # cos d = (Q - R) / (Q + R)
         rho = 0.5 * np.arctan2(h, e)  # radians; atan2(0, 0) = 0 at a half-wave retarder
         cr, sr = np.cos(2 * rho), np.sin(2 * rho)
         # L = Rot(-rho) A with A = m' / Delta: the optical rotation undone (rotator(rho) block)
@@ -400,47 +409,62 @@ def _decompose(m: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
         rot = _DEG * rho
         rot = np.where(rot <= -90.0, rot + 180.0, rot)
     nan = np.nan
-    return {"retardance_deg": np.where(ok, _DEG * np.arccos(cos_d), nan),
+    maps = {"retardance_deg": np.where(ok, _DEG * retardance, nan),
             "retardance_axis_deg": np.where(ok, axis, nan),
             "depolarization": np.where(ok, 1.0 - delta, nan),
-            "rotation_deg": np.where(ok, rot, nan)}, ok
+            "rotation_deg": np.where(ok, rot, nan)}
+    internal = {"defined": ok, "anisotropy": np.where(ok, r, nan),
+                "excess": np.where(ok, delta - 1.0, nan)}
+    return maps, internal
 
 
-def decomposition_flags(maps: Mapping[str, np.ndarray],
-                        sigmas: Mapping[str, np.ndarray] | None = None, *,
-                        k: float = _ASSUMED_K) -> np.ndarray:
-    """Flag bits (:data:`DECOMPOSITION_FLAGS`, uint8 ``(...)``) of decomposition maps.
-
-    ``DECOMP_UNDEFINED`` where ``retardance_deg`` is NaN; ``DECOMP_NONPHYSICAL`` where
-    ``depolarization < 0`` (``Delta > 1``) by more than ``k`` sigma (more than 1e-9 without
-    sigma); ``DECOMP_ASSUMED`` where the retardance exceeds ``k`` times its sigma (without sigma,
-    or where the sigma is not finite: 1e-6 deg), i.e. where the block is measurably linearly
-    anisotropic and the split between retardance and anisotropic depolarization rests on the
-    assumption. ``sigmas`` as :func:`parameter_sigmas` returns them.
-    """
-    ret = np.asarray(maps["retardance_deg"], dtype=np.float64)
-    dep = np.asarray(maps["depolarization"], dtype=np.float64)
-    sr = ss = None
-    if sigmas is not None:
-        sr = np.asarray(sigmas["retardance_deg"], dtype=np.float64)
-        ss = np.asarray(sigmas["depolarization"], dtype=np.float64)
-    undefined = np.isnan(ret)
+def _flags(internal: Mapping[str, np.ndarray], sig: Mapping[str, np.ndarray] | None,
+           k: float) -> np.ndarray:
+    """Flag bits from :func:`_decompose`'s internal quantities and (optionally) their sigma."""
+    defined = internal["defined"]
+    aniso, excess = internal["anisotropy"], internal["excess"]
     with np.errstate(invalid="ignore"):
-        if sr is None:
-            assumed = ret > 1e-6
-            nonphysical = dep < -1e-9
-        else:
-            assumed = np.where(np.isfinite(sr), ret > k * sr, ret > 1e-6)
-            nonphysical = np.where(np.isfinite(ss), dep < -k * ss, dep < -1e-9)
-    flags = np.where(undefined, DECOMP_UNDEFINED, 0)
-    flags = flags | np.where(~undefined & assumed, DECOMP_ASSUMED, 0)
-    flags = flags | np.where(~undefined & nonphysical, DECOMP_NONPHYSICAL, 0)
+        assumed = aniso > _ANISOTROPY_TOL
+        nonphysical = excess > _EXCESS_TOL
+        if sig is not None:
+            sa, se = sig["anisotropy"], sig["excess"]
+            assumed = np.where(np.isfinite(sa), aniso > np.maximum(k * sa, _ANISOTROPY_TOL),
+                               assumed)
+            nonphysical = np.where(np.isfinite(se), excess > np.maximum(k * se, _EXCESS_TOL),
+                                   nonphysical)
+    flags = np.where(defined, 0, DECOMP_UNDEFINED)
+    flags = flags | np.where(defined & assumed, DECOMP_ASSUMED, 0)
+    flags = flags | np.where(defined & nonphysical, DECOMP_NONPHYSICAL, 0)
     return flags.astype(np.uint8)
+
+
+def decomposition_flags(m, sigma=None, *, k: float = _ASSUMED_K) -> np.ndarray:
+    """Flag bits (:data:`DECOMPOSITION_FLAGS`, uint8 ``(...)``) of the decomposition of
+    ``(..., 3, 3)`` blocks.
+
+    ``DECOMP_UNDEFINED`` where the decomposition cannot be formed. ``DECOMP_ASSUMED`` where the
+    block is linearly anisotropic: the anisotropy ``R = (s1 - s2) / 2`` of ``m'`` (module
+    docstring; ``R = Delta (1 - cos d) / 2`` in the model) exceeds ``k`` of its linearised
+    sigmas (with per-element ``sigma``) and a numerical tolerance of 1e-9. There the split
+    between retardance and anisotropic depolarization rests on the assumption. ``R`` is a
+    magnitude, so on an isotropic block with noise it exceeds ``k`` sigma with the Rayleigh
+    probability ``exp(-k^2 / 2)``: 1.1 % for the default ``k = 3`` (the retardance's own
+    linearised sigma would not do: its derivative grows without bound at ``d = 0``).
+    ``DECOMP_NONPHYSICAL`` where ``Delta > 1`` by more than ``k`` sigma (and 1e-9).
+    """
+    m = _blocks(m)
+    _, internal = _decompose(m)
+    sig = None
+    if sigma is not None:
+        s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), m.shape)
+        sig = _fd_sigma(m, s, ("anisotropy", "excess"))
+    return _flags(internal, sig, k)
 
 
 # -- every map at once -------------------------------------------------------------------------
 def parameter_maps(m) -> dict[str, np.ndarray]:
-    """Every map of :data:`MAPS` (float64 ``(...)``) plus ``decomposition_flags`` (uint8) of
+    """Every map of :data:`MAPS` (float64 ``(...)``) plus ``decomposition_flags`` (uint8,
+    numerical tolerances; :func:`decomposition_flags` with sigma for measured blocks) of
     ``(..., 3, 3)`` blocks."""
     m = _blocks(m)
     out: dict[str, np.ndarray] = {"m00": m[..., 0, 0].copy()}
@@ -452,26 +476,28 @@ def parameter_maps(m) -> dict[str, np.ndarray]:
     return out
 
 
-def _fd_names() -> tuple[str, ...]:
-    return ("sv1", "sv2", "retardance_deg", "retardance_axis_deg", "depolarization",
-            "rotation_deg")
+#: The quantities whose sigma is taken by finite differences (:func:`_fd_sigma`).
+_FD_NAMES = ("sv1", "sv2", "retardance_deg", "retardance_axis_deg", "depolarization",
+             "rotation_deg", "anisotropy", "excess")
 
 
 def _fd_maps(m: np.ndarray) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     out["sv1"], out["sv2"] = frame_invariants(m)
-    out.update(_decompose(m)[0])
+    maps, internal = _decompose(m)
+    out.update(maps)
+    out["anisotropy"], out["excess"] = internal["anisotropy"], internal["excess"]
     return out
 
 
-def _fd_sigma(m: np.ndarray, s: np.ndarray) -> dict[str, np.ndarray]:
-    """Central-difference linearised sigma of the maps of :func:`_fd_maps`."""
-    names = _fd_names()
-    with np.errstate(all="ignore"):
-        scale = np.nanmax(np.abs(np.where(np.isfinite(m), m, np.nan)), axis=(-2, -1))
-    scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+def _fd_sigma(m: np.ndarray, s: np.ndarray,
+              names: tuple[str, ...] = _FD_NAMES) -> dict[str, np.ndarray]:
+    """Central-difference linearised sigma of ``names`` of :func:`_fd_maps`."""
+    finite = np.isfinite(m)
+    scale = np.max(np.where(finite, np.abs(np.where(finite, m, 0.0)), 0.0), axis=(-2, -1))
+    scale = np.where(scale > 0, scale, 1.0)
     h = _FD_REL_STEP * scale
-    var = {k: np.zeros(m.shape[:-2]) for k in names}
+    var = {name: np.zeros(m.shape[:-2]) for name in names}
     work = m.copy()
     with np.errstate(all="ignore"):
         for i in range(3):
@@ -481,14 +507,24 @@ def _fd_sigma(m: np.ndarray, s: np.ndarray) -> dict[str, np.ndarray]:
                 work[..., i, j] = m[..., i, j] - h
                 minus = _fd_maps(work)
                 work[..., i, j] = m[..., i, j]
-                for k in names:
-                    diff = plus[k] - minus[k]
-                    period = ANGLE_PERIOD_DEG.get(k)
+                for name in names:
+                    diff = plus[name] - minus[name]
+                    period = ANGLE_PERIOD_DEG.get(name)
                     if period is not None:
                         diff = np.mod(diff + 0.5 * period, period) - 0.5 * period
                     g = diff / (2.0 * h)
-                    var[k] = var[k] + np.where(g == 0, 0.0, (g * s[..., i, j]) ** 2)
-    return {k: np.sqrt(v) for k, v in var.items()}
+                    var[name] = var[name] + np.where(g == 0, 0.0, (g * s[..., i, j]) ** 2)
+    return {name: np.sqrt(v) for name, v in var.items()}
+
+
+def _all_sigmas(m: np.ndarray, s: np.ndarray) -> dict[str, np.ndarray]:
+    """Sigma of every map and of the flags' internal quantities (NaN where undefined)."""
+    out: dict[str, np.ndarray] = {"m00": s[..., 0, 0].copy()}
+    out["DL"], out["DL_axis_deg"] = _magnitude_axis_sigma(m, s, (0, 1), (0, 2))
+    out["PL"], out["PL_axis_deg"] = _magnitude_axis_sigma(m, s, (1, 0), (2, 0))
+    out.update(_mmt_sigma(m, s))
+    out.update(_fd_sigma(m, s))
+    return out
 
 
 def parameter_sigmas(m, sigma) -> dict[str, np.ndarray]:
@@ -497,15 +533,9 @@ def parameter_sigmas(m, sigma) -> dict[str, np.ndarray]:
     NaN where the map is NaN or a sigma it depends on is NaN). Method: the module docstring."""
     m = _blocks(m)
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), m.shape)
-    out: dict[str, np.ndarray] = {"m00": s[..., 0, 0].copy()}
-    out["DL"], out["DL_axis_deg"] = _magnitude_axis_sigma(m, s, (0, 1), (0, 2))
-    out["PL"], out["PL_axis_deg"] = _magnitude_axis_sigma(m, s, (1, 0), (2, 0))
-    out.update(_mmt_sigma(m, s))
-    out.update(_fd_sigma(m, s))
-    values_nan = np.isnan(parameter_maps(m)["retardance_deg"])
-    for k in ("retardance_deg", "retardance_axis_deg", "depolarization", "rotation_deg"):
-        out[k] = np.where(values_nan, np.nan, out[k])
-    return {k: out[k] for k in MAPS}
+    out = _all_sigmas(m, s)
+    values = parameter_maps(m)
+    return {name: np.where(np.isnan(values[name]), np.nan, out[name]) for name in MAPS}
 
 
 #: Default of :func:`resolved`: a map's linearised sigma is trusted where the magnitude it rests
@@ -590,11 +620,11 @@ def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
         vals = parameter_maps(mb)
         sb = None
         if sig is not None:
-            sb = parameter_sigmas(mb, np.moveaxis(sig[..., r0:r1, :].astype(np.float64),
-                                                  (1, 2), (-2, -1)))
+            sb = _all_sigmas(mb, np.moveaxis(sig[..., r0:r1, :].astype(np.float64),
+                                             (1, 2), (-2, -1)))
             for name in MAPS:
-                sigmas[name][:, r0:r1] = sb[name]
+                sigmas[name][:, r0:r1] = np.where(np.isnan(vals[name]), np.nan, sb[name])
         for name in MAPS:
             values[name][:, r0:r1] = vals[name]
-        flags[:, r0:r1] = decomposition_flags(vals, sb, k=k)
+        flags[:, r0:r1] = _flags(_decompose(mb)[1], sb, k)
     return MapSet(values, sigmas, flags)

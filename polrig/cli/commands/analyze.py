@@ -48,10 +48,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="per-element standard deviations to propagate: sigma (noise and "
                         "calibration uncertainty, default), sigma_noise (sensor noise alone) "
                         "or none (maps only)")
-    p.add_argument("--k", type=nonnegative_float, default=2.0, metavar="K",
-                   help="a pixel's retardance counts as present (decomposition_flags bit 2: "
-                        "retardance or anisotropic depolarization, the block cannot tell) "
-                        "above K of its sigmas (default 2)")
+    p.add_argument("--k", type=nonnegative_float, default=3.0, metavar="K",
+                   help="decomposition_flags bit 2 (linearly anisotropic: retardance or "
+                        "anisotropic depolarization, the block cannot tell) where the "
+                        "anisotropy exceeds K of its sigmas (default 3: 1.1%% of isotropic "
+                        "pixels by chance)")
     p.set_defaults(func=run)
 
 
@@ -96,7 +97,7 @@ def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
 
 
 def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigma",
-                 k: float = 2.0) -> str:
+                 k: float = 3.0) -> str:
     """Write the maps EXR of one Mueller result; return the summary line."""
     from polrig.formats.exr import channel_suffixes, colour_planes, read_mueller_exr, write_exr
     from polrig.optics import parameters as pa
