@@ -89,12 +89,12 @@ independent per-element standard deviations ``sigma (..., 3, 3)``:
 ``sigma_f^2 = sum_ij (df / dm_ij)^2 sigma_ij^2`` (a term with a zero derivative is zero even
 where ``sigma_ij`` is infinite). The Jacobians of ``m00``, ``DL``, ``PL``, their axes and the
 MMT parameters are analytic (closed forms, cheap); those of the singular values and the
-decomposition are central finite differences, vectorised over pixels and taken one element at a
-time (nine pairs of evaluations; step ``1e-6 * max|m_ij|``, where the truncation and the rounding
-errors of a float64 difference are both below ``1e-9`` of the derivative), because their
-closed-form derivatives (through the inverse diattenuator and the 2x2 singular value
-decomposition) are long and easy to get wrong; the tests check the two routes against each other
-on ``DL``. Angle differences are wrapped to their period. Linearisation is accurate where a
+decomposition are forward finite differences, vectorised over pixels and taken one element at a
+time (nine extra evaluations; step ``1e-7 * max|m_ij|``: the truncation error is about ``1e-7``
+and the rounding error about ``1e-9`` of the derivative, far below what a sigma needs), because
+their closed-form derivatives (through the inverse diattenuator and the 2x2 singular value
+decomposition) are long and easy to get wrong; the tests check the finite-difference route
+against the analytic one on ``DL`` and every sigma against the spread of sampled errors. Angle differences are wrapped to their period. Linearisation is accurate where a
 map is smooth over the error's range: it fails near a map's boundary (``DL``, ``PL``, ``t1`` or
 the retardance near 0, where the estimate is biased upwards like a Rician amplitude) and for an
 axis whose magnitude is within its noise (its sigma is then large or infinite, which is
@@ -181,12 +181,12 @@ DECOMPOSITION_ASSUMPTION = (
 #: How the ``sigma.*`` maps are computed (written into the output's header).
 SIGMA_METHOD = (
     "first-order (linearised) propagation of the per-element sigma planes taken as independent: "
-    "analytic Jacobians for m00, DL, PL, their axes and the MMT parameters, central finite "
+    "analytic Jacobians for m00, DL, PL, their axes and the MMT parameters, forward finite "
     "differences for sv1, sv2 and the decomposition; angle differences wrapped to their period "
     "(docs/analysis.md)")
 
 _DEG = 180.0 / np.pi
-_FD_REL_STEP = 1e-6
+_FD_REL_STEP = 1e-7
 _ASSUMED_K = 3.0  # anisotropy significant at this many sigma: DECOMP_ASSUMED
 _ANISOTROPY_TOL = 1e-9  # numerical floor of the anisotropy R (normalised block)
 _EXCESS_TOL = 1e-9  # numerical floor of Delta - 1
@@ -365,9 +365,10 @@ def decompose_linear(m) -> dict[str, np.ndarray]:
     formed.
 
     The retardance is computed as ``2 atan2(sqrt(R), sqrt(Q))`` (``tan^2(d/2) = R / Q``), which
-    is exact where ``arccos`` of ``(Q - R) / (Q + R)`` is not; a retardance near 0 or 180 deg is
-    still ill-conditioned by nature (``d ~ 2 sqrt(R / Q)``): rounding errors ``e`` of the block
-    give errors ``~ sqrt(e)`` there, about 1e-5 deg in float64.
+    keeps the accuracy of ``R`` and ``Q`` where ``arccos((Q - R) / (Q + R))`` loses it; a
+    retardance near 0 or 180 deg is still ill-conditioned by nature (``d ~ 2 sqrt(R / Q)``):
+    rounding errors ``e`` of the block give errors ``~ sqrt(e)`` there, about 1e-5 deg in
+    float64.
     """
     m = _blocks(m)
     out, internal = _decompose(m)
@@ -453,11 +454,11 @@ def decomposition_flags(m, sigma=None, *, k: float = _ASSUMED_K) -> np.ndarray:
     ``DECOMP_NONPHYSICAL`` where ``Delta > 1`` by more than ``k`` sigma (and 1e-9).
     """
     m = _blocks(m)
-    _, internal = _decompose(m)
+    _, internal, base = _evaluate(m)
     sig = None
     if sigma is not None:
         s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), m.shape)
-        sig = _fd_sigma(m, s, ("anisotropy", "excess"))
+        sig = _fd_sigma(m, s, ("anisotropy", "excess"), base)
     return _flags(internal, sig, k)
 
 
@@ -466,14 +467,24 @@ def parameter_maps(m) -> dict[str, np.ndarray]:
     """Every map of :data:`MAPS` (float64 ``(...)``) plus ``decomposition_flags`` (uint8,
     numerical tolerances; :func:`decomposition_flags` with sigma for measured blocks) of
     ``(..., 3, 3)`` blocks."""
-    m = _blocks(m)
+    out, internal, _ = _evaluate(_blocks(m))
+    out["decomposition_flags"] = _flags(internal, None, _ASSUMED_K)
+    return out
+
+
+def _evaluate(m: np.ndarray):
+    """``(maps of MAPS, the decomposition's internal quantities, the values of _fd_maps)``,
+    each decomposition computed once."""
     out: dict[str, np.ndarray] = {"m00": m[..., 0, 0].copy()}
     out["DL"], out["DL_axis_deg"] = linear_diattenuation(m)
     out["PL"], out["PL_axis_deg"] = linear_polarizance(m)
     out["sv1"], out["sv2"] = frame_invariants(m)
     out.update(mmt_parameters(m))
-    out.update(decompose_linear(m))
-    return out
+    maps, internal = _decompose(m)
+    out.update(maps)
+    base = {name: out[name] for name in ("sv1", "sv2", *maps)}
+    base["anisotropy"], base["excess"] = internal["anisotropy"], internal["excess"]
+    return out, internal, base
 
 
 #: The quantities whose sigma is taken by finite differences (:func:`_fd_sigma`).
@@ -490,40 +501,42 @@ def _fd_maps(m: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def _fd_sigma(m: np.ndarray, s: np.ndarray,
-              names: tuple[str, ...] = _FD_NAMES) -> dict[str, np.ndarray]:
-    """Central-difference linearised sigma of ``names`` of :func:`_fd_maps`."""
+def _fd_sigma(m: np.ndarray, s: np.ndarray, names: tuple[str, ...] = _FD_NAMES,
+              base: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Forward-difference linearised sigma of ``names`` of :func:`_fd_maps` (``base``: their
+    values at ``m``, if already known)."""
     finite = np.isfinite(m)
     scale = np.max(np.where(finite, np.abs(np.where(finite, m, 0.0)), 0.0), axis=(-2, -1))
     scale = np.where(scale > 0, scale, 1.0)
     h = _FD_REL_STEP * scale
+    base = _fd_maps(m) if base is None else base
     var = {name: np.zeros(m.shape[:-2]) for name in names}
     work = m.copy()
     with np.errstate(all="ignore"):
         for i in range(3):
             for j in range(3):
                 work[..., i, j] = m[..., i, j] + h
-                plus = _fd_maps(work)
-                work[..., i, j] = m[..., i, j] - h
-                minus = _fd_maps(work)
+                step = _fd_maps(work)
                 work[..., i, j] = m[..., i, j]
                 for name in names:
-                    diff = plus[name] - minus[name]
+                    diff = step[name] - base[name]
                     period = ANGLE_PERIOD_DEG.get(name)
                     if period is not None:
                         diff = np.mod(diff + 0.5 * period, period) - 0.5 * period
-                    g = diff / (2.0 * h)
+                    g = diff / h
                     var[name] = var[name] + np.where(g == 0, 0.0, (g * s[..., i, j]) ** 2)
     return {name: np.sqrt(v) for name, v in var.items()}
 
 
-def _all_sigmas(m: np.ndarray, s: np.ndarray) -> dict[str, np.ndarray]:
-    """Sigma of every map and of the flags' internal quantities (NaN where undefined)."""
+def _all_sigmas(m: np.ndarray, s: np.ndarray,
+                base: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Sigma of every map and of the flags' internal quantities (``base``: :func:`_evaluate`'s
+    values of the finite-difference quantities, if known)."""
     out: dict[str, np.ndarray] = {"m00": s[..., 0, 0].copy()}
     out["DL"], out["DL_axis_deg"] = _magnitude_axis_sigma(m, s, (0, 1), (0, 2))
     out["PL"], out["PL_axis_deg"] = _magnitude_axis_sigma(m, s, (1, 0), (2, 0))
     out.update(_mmt_sigma(m, s))
-    out.update(_fd_sigma(m, s))
+    out.update(_fd_sigma(m, s, _FD_NAMES, base))
     return out
 
 
@@ -533,8 +546,8 @@ def parameter_sigmas(m, sigma) -> dict[str, np.ndarray]:
     NaN where the map is NaN or a sigma it depends on is NaN). Method: the module docstring."""
     m = _blocks(m)
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), m.shape)
-    out = _all_sigmas(m, s)
-    values = parameter_maps(m)
+    values, _, base = _evaluate(m)
+    out = _all_sigmas(m, s, base)
     return {name: np.where(np.isnan(values[name]), np.nan, out[name]) for name in MAPS}
 
 
@@ -617,14 +630,14 @@ def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
         mb = np.moveaxis(img[..., r0:r1, :].astype(np.float64), (1, 2), (-2, -1))
-        vals = parameter_maps(mb)
+        vals, internal, base = _evaluate(mb)
         sb = None
         if sig is not None:
             sb = _all_sigmas(mb, np.moveaxis(sig[..., r0:r1, :].astype(np.float64),
-                                             (1, 2), (-2, -1)))
+                                             (1, 2), (-2, -1)), base)
             for name in MAPS:
                 sigmas[name][:, r0:r1] = np.where(np.isnan(vals[name]), np.nan, sb[name])
         for name in MAPS:
             values[name][:, r0:r1] = vals[name]
-        flags[:, r0:r1] = _flags(_decompose(mb)[1], sb, k)
+        flags[:, r0:r1] = _flags(internal, sb, k)
     return MapSet(values, sigmas, flags)
