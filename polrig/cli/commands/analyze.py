@@ -1,0 +1,176 @@
+"""``polrig analyze RESULT.exr|SESSION [--out FILE|DIR]``: parameter maps of Mueller results,
+each with its propagated sigma, as named EXR planes.
+
+Maps, definitions and the propagation: :mod:`polrig.optics.parameters` and
+``docs/analysis.md``. A session (a folder with ``session.json``) is read through
+:class:`polrig.app.session.Session` (read only, no lock): one maps file per capture that has a
+Mueller result, next to it (``mueller_maps.exr`` beside ``mueller.exr``; not recorded in the
+manifest: a derived file, replaced when analyzed again) or in ``--out DIR`` as
+``<capture>_maps.exr``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+from typing import Any
+
+import numpy as np
+
+from polrig.errors import ConfigError
+from polrig.formats.argcheck import check_output_file, check_output_folder, nonnegative_float
+
+#: Where the per-element sigma comes from (``--sigma``).
+SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "analyze", help="parameter maps (diattenuation, retardance, ...) of Mueller results",
+        description="Compute parameter maps of a Mueller result EXR or of every capture of a "
+                    "session: m00; linear diattenuation and polarizance with their axes; the "
+                    "signed singular values of the lower 2x2 block (invariants of independent "
+                    "frame rotations); the MMT parameters b, t1, A, x; the 3x3 polar "
+                    "decomposition (linear retardance, its axis modulo 90 deg, depolarization, "
+                    "rotation), which assumes isotropic linear depolarization (docs/analysis.md) "
+                    "and flags per pixel where that assumption decides the answer. Each map "
+                    "has its standard deviation, propagated to first order from the result's "
+                    "sigma planes. Output: an EXR with planes NAME.{R,G,B|Y}, sigma.NAME.{...}, "
+                    "decomposition_flags.{...} and the result's mask.{...}.")
+    p.add_argument("source", type=pathlib.Path, metavar="RESULT_OR_SESSION",
+                   help="a Mueller result EXR, or a session folder (holds session.json)")
+    p.add_argument("--out", type=pathlib.Path, default=None, metavar="FILE_OR_DIR",
+                   help="output EXR for one result (default: RESULT_maps.exr beside it); for a "
+                        "session a folder that receives CAPTURE_maps.exr per capture (default: "
+                        "each capture's mueller_maps.exr beside its result)")
+    p.add_argument("--sigma", choices=SIGMA_SOURCES, default="sigma",
+                   help="per-element standard deviations to propagate: sigma (noise and "
+                        "calibration uncertainty, default), sigma_noise (sensor noise alone) "
+                        "or none (maps only)")
+    p.add_argument("--k", type=nonnegative_float, default=3.0, metavar="K",
+                   help="decomposition_flags bit 2 (linearly anisotropic: retardance or "
+                        "anisotropic depolarization, the block cannot tell) where the "
+                        "anisotropy exceeds K of its sigmas (default 3: 1.1%% of isotropic "
+                        "pixels by chance)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    src: pathlib.Path = args.source
+    if src.is_dir():
+        return _run_session(args, src)
+    if src.suffix.lower() != ".exr":
+        raise ConfigError(f"{src}: give a Mueller result .exr or a session folder")
+    out = args.out if args.out is not None else src.with_name(src.stem + "_maps.exr")
+    if out.suffix.lower() != ".exr":
+        raise ConfigError(f"--out must name an .exr file, got {out}")
+    check_output_file(out)
+    print(analyze_file(src, out, args.sigma, args.k))
+    return 0
+
+
+def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
+    from polrig.app.session import Session
+
+    if args.out is not None:
+        check_output_folder(args.out)
+    session = Session.open(root)  # a reader: no lock
+    jobs = []
+    for cap in session.captures:
+        rec = cap.get("files", {}).get("mueller")
+        if not rec:
+            continue
+        result = session.root / rec["path"]
+        if args.out is not None:
+            out = args.out / f"{cap['name']}_maps.exr"
+        else:
+            out = result.with_name(result.stem + "_maps.exr")
+        jobs.append((cap["name"], result, out))
+    if not jobs:
+        raise ConfigError(f"{root}: no capture has a Mueller result yet")
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+    for name, result, out in jobs:
+        print(f"{name}: {analyze_file(result, out, args.sigma, args.k)}")
+    return 0
+
+
+def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigma",
+                 k: float = 3.0) -> str:
+    """Write the maps EXR of one Mueller result; return the summary line."""
+    from polrig.formats.exr import channel_suffixes, colour_planes, read_mueller_exr, write_exr
+    from polrig.optics import parameters as pa
+
+    res = read_mueller_exr(src)
+    c = res.mueller.shape[0]
+    sfx = channel_suffixes(c)
+    sigma, note = _element_sigma(res.extra, sfx, sigma_source)
+    maps = pa.image_maps(res.mueller, sigma, k=k)
+    planes: dict[str, np.ndarray] = {}
+    for name in pa.MAPS:
+        planes.update(colour_planes(name, maps.values[name]))
+    for name in maps.sigma:
+        planes.update(colour_planes(f"sigma.{name}", maps.sigma[name]))
+    planes.update(colour_planes("decomposition_flags", maps.flags))
+    for s in sfx:
+        if f"mask.{s}" in res.extra:
+            planes[f"mask.{s}"] = res.extra[f"mask.{s}"]
+    described = {f"{n}.{{ch}}": d for n, d in pa.MAPS.items()}
+    if maps.sigma:
+        described["sigma.{name}.{ch}"] = ("standard deviation of map {name} (" + pa.SIGMA_METHOD
+                                          + f"; from the result's {sigma_source}.M{{rc}} planes)")
+    described["decomposition_flags.{ch}"] = "bits: " + "; ".join(
+        f"{b} = {t}" for b, t in pa.DECOMPOSITION_FLAGS.items()) + "; 0 = decomposed, isotropic block"
+    if any(k.startswith("mask.") for k in planes):
+        described["mask.{ch}"] = "the result's mask plane, copied (reason bits, 0 = valid)"
+    metadata: dict[str, Any] = {
+        "source": str(src), "planes": described,
+        "decomposition_assumption": pa.DECOMPOSITION_ASSUMPTION,
+        "decomposition_flag_bits": {str(b): t for b, t in pa.DECOMPOSITION_FLAGS.items()},
+        "assumed_k": k,
+        "sigma_source": sigma_source if maps.sigma else None,
+        "sigma_method": pa.SIGMA_METHOD if maps.sigma else None,
+        "source_units": res.metadata.get("units"),
+    }
+    for key in ("capture", "pose_deg", "exposure_us", "mode", "calibration_id", "revision"):
+        if key in res.metadata:
+            metadata[key] = res.metadata[key]
+    write_exr(out, planes, kind="parameter_maps", metadata=metadata)
+    flags = maps.flags
+    valid = np.ones(flags.shape, bool)
+    masks = [res.extra.get(f"mask.{s}") for s in sfx]
+    if all(m is not None for m in masks):
+        valid = np.stack(masks) == 0
+    n = int(valid.sum())
+    assumed = int(np.count_nonzero(((flags & pa.DECOMP_ASSUMED) != 0) & valid))
+    undefined = int(np.count_nonzero(((flags & pa.DECOMP_UNDEFINED) != 0) & valid))
+    h, w = res.mueller.shape[-2:]
+    line = (f"wrote {out} ({w}x{h}, {c} colour plane(s), {len(pa.MAPS)} maps"
+            f"{' with sigma' if maps.sigma else ''}); decomposition of {n} valid pixel-colour(s): "
+            f"{undefined} undefined, {assumed} linearly anisotropic (retardance or anisotropic "
+            f"depolarization, shown under the isotropic-depolarization assumption)")
+    if note:
+        print(f"polrig analyze: note: {src}: {note}", file=sys.stderr)
+    return line
+
+
+def _element_sigma(extra: dict[str, np.ndarray], sfx: tuple[str, ...], source: str
+                   ) -> tuple[np.ndarray | None, str | None]:
+    """``(C, 3, 3, H, W)`` per-element sigma from the ``{source}.M{rc}.{ch}`` planes, or None
+    (with a note when the file lacks them)."""
+    if source == "none":
+        return None, None
+    names = [f"{source}.M{r}{q}.{s}" for s in sfx for r in range(3) for q in range(3)]
+    missing = [n for n in names if n not in extra]
+    if missing:
+        return None, f"no {source}.M{{rc}} planes: maps written without sigma"
+    h, w = extra[names[0]].shape
+    sig = np.empty((len(sfx), 3, 3, h, w), np.float32)
+    for ci, s in enumerate(sfx):
+        for r in range(3):
+            for q in range(3):
+                sig[ci, r, q] = extra[f"{source}.M{r}{q}.{s}"]
+    if not np.isfinite(sig).any():
+        return sig, f"the {source} planes hold no finite value: sigma maps are NaN or infinite"
+    return sig, None
