@@ -255,7 +255,8 @@ def test_seen_state_alone_is_the_frame_plus_the_priors_unobserved_part():
     plane = np.eye(3) - np.outer(u, u)
     est_u = np.einsum("crahw,a->crhw", got.mueller, u)
     want_plane = np.einsum("crahw,ab->crbhw", mean, plane)
-    assert np.allclose(np.einsum("crahw,ab->crbhw", got.mueller, plane), want_plane, rtol=0, atol=1e-9 * np.abs(m).max())
+    assert np.allclose(np.einsum("crahw,ab->crbhw", got.mueller, plane), want_plane, rtol=0,
+                       atol=1e-9 * np.abs(m).max())
     # the u-part is the frame's weighted least squares (the network without its misfit)
     net_nomisfit, _ = simulated_network(np.random.default_rng(0), m, s[0], meas[0], var[0], tau_rel=0.0)
     assert np.allclose(est_u, np.einsum("crahw,a->crhw", net_nomisfit, u), rtol=1e-9, atol=1e-9)
