@@ -9,7 +9,8 @@ Training (``train`` extra, PyTorch): :mod:`polrig.models.pipnet`, :mod:`polrig.m
 :mod:`polrig.models.pbrdf_torch`, :mod:`polrig.models.layers`, :mod:`polrig.models.data`, :mod:`polrig.models.train`,
 :mod:`polrig.models.export`, :mod:`polrig.models.paper_scale` (a whole run in a wall-clock budget).
 Evaluation and fitting tools: :mod:`polrig.models.evaluate`, :mod:`polrig.models.evaluate_full_resolution`,
-:mod:`polrig.models.uncertainty_fit`, :mod:`polrig.models.diagnose`. ``tests/test_models_imports.py`` keeps
-the package free of import cycles. The single-shot route from a raw frame to a result (used by
+:mod:`polrig.models.uncertainty_fit`, :mod:`polrig.models.diagnose`, :mod:`polrig.models.continuum` (the
+network as the prior of :func:`polrig.solve.hybrid.solve_hybrid`, one state to four). ``tests/test_models_imports.py``
+keeps the package free of import cycles. The single-shot route from a raw frame to a result (used by
 ``polrig infer``, sessions and the GUI) is :class:`polrig.app.single_shot.SingleShot`.
 """

@@ -59,6 +59,10 @@ _ILL_CONDITIONED = 4
 _NONFINITE = 8
 #: smallest pivot of the equilibrated (unit-diagonal) normal matrix that counts as positive
 PIVOT_EPS = 1e-12
+#: largest diagonal element of the inverse of the equilibrated normal matrix of a pixel with a
+#: prior (:mod:`polrig.solve.hybrid`): beyond it (its smallest eigenvalue is then below about
+#: 1e-13) the posterior counts as singular, also where no single Cholesky pivot is that small
+INVERSE_DIAG_MAX = 1.0 / PIVOT_EPS
 #: pixels of one row solved together (the SIMD width of every loop; a partial block at the
 #: end of a row is padded with copies of its last pixel, which are not written)
 LANES = 64
@@ -410,8 +414,165 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, per_pixel_rows, t, x, ainv
 
 
 @_jit()
+def _add_prior(pa, pm, amat, rhs):  # pragma: no cover - compiled
+    """``A += P`` (lower triangle) and ``b += P mu`` per lane (``pa`` ``(9, 9, L)`` the full
+    symmetric ``P``, ``pm`` ``(9, L)``)."""
+    d9, nl = rhs.shape
+    for ii in range(d9):
+        for ll in range(ii + 1):
+            for q in range(nl):
+                amat[ii, ll, q] += pa[ii, ll, q]
+        for ll in range(d9):
+            for q in range(nl):
+                rhs[ii, q] += pa[ii, ll, q] * pm[ll, q]
+
+
+@_jit()
+def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pixel_rows, pa,
+               pm, prank):  # pragma: no cover - compiled
+    """The prior of rows ``y0 .. y1`` of colour ``c`` into block-major buffers (layout of
+    :func:`load_tile`, which must have filled ``w``, ``flags`` and, with ``per_pixel_rows``,
+    ``arow`` first), as :mod:`polrig.solve.hybrid` derives it.
+
+    ``mean``, ``sigma`` ``(C, 3, 3, H, W)`` (any float dtype and strides). An element's prior
+    is used where its mean is finite and its precision ``pi = 1 / sigma^2`` is finite and
+    positive; ``sigma`` 0, ``+inf`` or so large that ``pi`` underflows means no prior for that
+    element; a NaN or negative sigma, a non-finite mean with a usable sigma, or a ``pi``
+    beyond float64 set NONFINITE in ``flags``.
+
+    ``seen_k >= 0``: the prior is a function of the frame of state ``seen_k``, whose unit
+    Stokes direction is ``seen_dir`` (``u``). Its used samples ``j`` (``w > 0``) observe the
+    directions ``a_j (x) u`` of ``vec(M)``; the prior's information on those is removed
+    (a Schur complement): ``P = Pi - T K T^T`` with ``Pi = diag(pi)``, ``T`` ``(9, 3)`` the
+    block columns ``t_r = Pi_r u`` (row ``r`` of ``M``), ``K = B (B^T C B)^+ B^T`` over the
+    span ``B`` of the used analyzer rows and ``C = diag(u^T Pi_r u)``. With 3 or more used
+    samples (they observe ``M s`` whole) ``K = C^+`` and ``P`` is block diagonal,
+    ``P_r = g_r (Pi_r - t_r t_r^T / c_r)``, evaluated without cancellation
+    (``P_aa = g_r pi_a sum_{k != a} pi_k u_k^2 / c_r``), where
+    ``g_r = sum (1 - u_a^2) sigma_a^2 / sum sigma_a^2`` over the row's used elements keeps the
+    row's whole prior variance in its unobserved plane; with 1 or 2 the plain Schur
+    complement of the general form.
+    ``seen_k < 0``: ``P = Pi``.
+
+    Writes ``pa`` ``(B, 9, 9, L)`` (the full symmetric ``P``), ``pm`` ``(B, 9, L)`` (the mean,
+    0 where unused) and ``prank`` ``(B, L)``: the number of directions ``P`` informs (0: no
+    prior at this pixel, which is then solved from its samples alone)."""
+    width = mean.shape[4]
+    nbr = (width + LANES - 1) // LANES
+    pi = np.empty(9)
+    tt = np.empty(9)
+    cc = np.empty(3)
+    u2 = np.empty(3)
+    kk = np.zeros((3, 3))
+    used = np.empty(4, np.int64)
+    for a in range(3):
+        u2[a] = seen_dir[a] * seen_dir[a]
+    for yy in range(y0, y1):
+        for xb in range(nbr):
+            b = (yy - y0) * nbr + xb
+            x0 = xb * LANES
+            nb = min(LANES, width - x0)
+            ab = arow[b if per_pixel_rows else 0]
+            for q in range(nb):
+                xx = x0 + q
+                nuse = 0
+                fault = False
+                for r in range(3):
+                    for a in range(3):
+                        m = np.float64(mean[c, r, a, yy, xx])
+                        sd = np.float64(sigma[c, r, a, yy, xx])
+                        p = 1.0 / (sd * sd) if sd > 0 else 0.0  # 0 for sd 0, inf or NaN
+                        fine = abs(m) < np.inf
+                        use = fine & (p > 0) & (p < np.inf)
+                        fault |= (not (sd >= 0)) | (p == np.inf) | ((p > 0) & (not fine))
+                        pi[3 * r + a] = p if use else 0.0
+                        pm[b, 3 * r + a, q] = m if use else 0.0
+                        nuse += 1 if use else 0
+                flags[b, q] |= _NONFINITE if fault else 0
+                for ii in range(9):
+                    for ll in range(9):
+                        pa[b, ii, ll, q] = 0.0
+                    pa[b, ii, ii, q] = pi[ii]
+                nseen = 0
+                if seen_k >= 0:
+                    for j in range(4):
+                        if w[b, 4 * seen_k + j, q] > 0:
+                            used[nseen] = j
+                            nseen += 1
+                for r in range(3):
+                    cc[r] = 0.0
+                    for a in range(3):
+                        tt[3 * r + a] = pi[3 * r + a] * seen_dir[a]
+                        cc[r] += pi[3 * r + a] * u2[a]
+                rank = nuse
+                if nseen >= 3:  # M u observed whole: per row, without cancellation
+                    for r in range(3):
+                        cr = cc[r]
+                        if cr > 0:
+                            rank -= 1
+                            # g: the share of the row's prior variance off u (the whole
+                            # variance is kept in the unobserved plane)
+                            num = 0.0
+                            den = 0.0
+                            for a in range(3):
+                                if pi[3 * r + a] > 0:
+                                    num += (1.0 - u2[a]) / pi[3 * r + a]
+                                    den += 1.0 / pi[3 * r + a]
+                            g = num / den
+                            for a in range(3):
+                                a1, a2 = (a + 1) % 3, (a + 2) % 3
+                                pa[b, 3 * r + a, 3 * r + a, q] = g * pi[3 * r + a] * (
+                                    (pi[3 * r + a1] * u2[a1] + pi[3 * r + a2] * u2[a2]) / cr)
+                                for bb in range(a):
+                                    v = -g * tt[3 * r + a] * tt[3 * r + bb] / cr
+                                    pa[b, 3 * r + a, 3 * r + bb, q] = v
+                                    pa[b, 3 * r + bb, 3 * r + a, q] = v
+                elif nseen >= 1:  # part of M u observed: K = B (B^T C B)^+ B^T
+                    for r in range(3):
+                        for r2 in range(3):
+                            kk[r, r2] = 0.0
+                    j0 = used[0]
+                    if nseen == 1:
+                        g = (ab[j0, 0, q] ** 2 * cc[0] + ab[j0, 1, q] ** 2 * cc[1]
+                             + ab[j0, 2, q] ** 2 * cc[2])
+                        if g > 0:
+                            rank -= 1
+                            for r in range(3):
+                                for r2 in range(3):
+                                    kk[r, r2] = ab[j0, r, q] * ab[j0, r2, q] / g
+                    else:
+                        j1 = used[1]
+                        g00 = g01 = g11 = 0.0
+                        for r in range(3):
+                            g00 += ab[j0, r, q] * ab[j0, r, q] * cc[r]
+                            g01 += ab[j0, r, q] * ab[j1, r, q] * cc[r]
+                            g11 += ab[j1, r, q] * ab[j1, r, q] * cc[r]
+                        det = g00 * g11 - g01 * g01
+                        tr = g00 + g11
+                        if det > 1e-12 * tr * tr:  # (B^T C B)^-1
+                            rank -= 2
+                            h00, h01, h11 = g11 / det, -g01 / det, g00 / det
+                        elif tr > 0:  # rank 1: G^+ = G / tr^2
+                            rank -= 1
+                            h00, h01, h11 = g00 / (tr * tr), g01 / (tr * tr), g11 / (tr * tr)
+                        else:
+                            h00 = h01 = h11 = 0.0
+                        for r in range(3):
+                            for r2 in range(3):
+                                kk[r, r2] = (ab[j0, r, q] * (h00 * ab[j0, r2, q] + h01 * ab[j1, r2, q])
+                                             + ab[j1, r, q] * (h01 * ab[j0, r2, q]
+                                                               + h11 * ab[j1, r2, q]))
+                    for ii in range(9):
+                        r = ii // 3
+                        for ll in range(9):
+                            r2 = ll // 3
+                            pa[b, ii, ll, q] -= tt[ii] * kk[r, r2] * tt[ll]
+                prank[b, q] = rank
+
+
+@_jit()
 def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, out_max, cal_sd,
-                 with_cal, x_out, sg_out, sn_out, res_out, nok, keys
+                 with_cal, with_prior, pa, pm, prank, x_out, sg_out, sn_out, res_out, nok, keys
                  ):  # pragma: no cover - compiled
     """Solve the blocks of a tile loaded by :func:`load_tile` as if every pixel's used samples
     determined M (the caller masks those whose used design is too ill-conditioned).
@@ -429,6 +590,16 @@ def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, 
     an unsolved pixel (singular, or an output not finite or beyond ``out_max``) gets zeros.
     All arrays float64 (int64 ``nok``, ``flags``): one compiled variant serves every input and
     output dtype.
+
+    ``with_prior`` (:mod:`polrig.solve.hybrid`): a Gaussian prior on the nine elements from
+    :func:`load_prior`, ``pa`` ``(B, 9, 9, L)`` its precision, ``pm`` ``(B, 9, L)`` its mean
+    (0 where unused), ``prank`` ``(B, L)`` the number of directions it informs. It adds ``P`` to
+    the normal matrix and ``P mu`` to the right-hand side; the residual is the samples'
+    ``chi^2`` over their effective degrees of freedom ``n - tr(H) = n - 9 + tr(A^-1 P)`` (``H``
+    the hat matrix; 0 below half a degree of freedom), and a pixel with a prior is
+    also unsolved where a diagonal element of its equilibrated inverse exceeds
+    :data:`INVERSE_DIAG_MAX`; without it (or with a zero precision and rank) every operation
+    is the reference solve's.
     """
     n = s.shape[0]
     nl = lanes
@@ -463,6 +634,8 @@ def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, 
                 nok[blk, q] += 1 if use else 0
                 keys[wd, blk * nl + q] |= bit if use else 0
         _normal_equations(s, wb, mb, ab, per_pixel_rows, t, rj, amat, rhs)
+        if with_prior:
+            _add_prior(pa[blk], pm[blk], amat, rhs)
         _factor(amat, dsc, low, rl, bad)
         # estimate and noise sigma: the same operations with and without the calibration term
         _triangular_solve(low, dsc, rhs, e, x)
@@ -474,8 +647,19 @@ def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, 
                     acc[ll, q] += low[ii, ll, q] * low[ii, ll, q]
             for q in range(nl):
                 sn[ll, q] = dsc[ll, q] * np.sqrt(acc[ll, q])
-        if with_cal:
+            if with_prior:  # (A_eq^-1)_ll: a singular posterior need not show in one pivot
+                for q in range(nl):
+                    bad[q] |= (prank[blk, q] > 0) & (not acc[ll, q] <= INVERSE_DIAG_MAX)
+        if with_cal or with_prior:
             _inverse(low, dsc, amat)
+        if with_prior:  # tr(A^-1 P) in chi2[1]: the directions the prior determines
+            for q in range(nl):
+                chi2[1, q] = 0.0
+            for ii in range(d9):
+                for ll in range(d9):
+                    for q in range(nl):
+                        chi2[1, q] += amat[ii, ll, q] * pa[blk, ll, ii, q]
+        if with_cal:
             _calibration_variance(s, ds_gen, cal_sd, wb, ab, per_pixel_rows, t, x, amat, pj, e,
                                   z, u, acc)
             for ll in range(d9):
@@ -503,8 +687,12 @@ def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, 
                     chi2[0, q] += wr * dv * dv if wr > 0 else 0.0
         # solved, finite and representable in the output dtype: else unsolved (zeros)
         for q in range(nl):
-            dof = nok[blk, q] - 9
-            res = chi2[0, q] / dof if dof > 0 else 0.0
+            if with_prior:  # n - tr(H), H = D A^-1 D^T W the hat matrix: n - 9 + tr(A^-1 P)
+                dof = nok[blk, q] - 9 + chi2[1, q]
+                res = chi2[0, q] / dof if dof > 0.5 else 0.0
+            else:
+                dof = nok[blk, q] - 9
+                res = chi2[0, q] / dof if dof > 0 else 0.0
             chi2[0, q] = res
             fine[q] = (not bad[q]) & (abs(res) <= out_max)
         for ll in range(d9):

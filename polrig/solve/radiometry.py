@@ -7,7 +7,8 @@ mosaics with variance and exclusions -> demosaiced analyzer images -> the refere
   sensor noise model, and the samples to exclude (saturated).
 * :func:`analyzer_stack` -- demosaic mosaics, variances and exclusions into analyzer images
   ``(C, 4, H', W')``.
-* :func:`reference_from_frames` -- all states -> :class:`polrig.solve.reference.ReferenceResult`.
+* :func:`reference_from_frames` -- all states -> :class:`polrig.solve.reference.ReferenceResult`
+  (with a prior from the single-shot network: the hybrid solve, :mod:`polrig.solve.hybrid`).
 
 Uncertainty propagation: per raw sample the model variance
 (:meth:`polrig.sensor.noise.SensorModel.variance_dn2` at the measured mean signal, divided by K;
@@ -44,6 +45,7 @@ from polrig.sensor.demosaic import (
 )
 from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
+from polrig.solve.hybrid import solve_hybrid
 from polrig.solve.reference import ReferenceResult, merge_hdr, solve_reference
 
 
@@ -228,9 +230,17 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           generator_tolerance: Sequence[float] | None = None,
                           band_pixels: int = BAND_PIXELS,
                           uncertainty_dtype: type | np.dtype | str = np.float32,
-                          workers: int | None = None) -> ReferenceResult:
+                          workers: int | None = None, prior_mean: np.ndarray | None = None,
+                          prior_sigma: np.ndarray | None = None,
+                          seen_state: int | None = None) -> ReferenceResult:
     """The reference solve of all states (see :func:`polrig.solve.reference.solve_reference`;
     the tolerances are the calibration's, :class:`polrig.app.processing.Calibration`).
+
+    With ``prior_mean`` and ``prior_sigma`` (``(C, 3, 3, H', W')`` on the output grid, or
+    broadcastable to it: the single-shot network's estimate and calibrated sigma of state
+    ``seen_state``'s frame), the hybrid solve instead
+    (:func:`polrig.solve.hybrid.solve_hybrid`, any number of states), each band with its rows
+    of the prior.
 
     Solved in bands of about ``band_pixels`` output pixels (times colours): each band is
     demosaiced from the mosaic rows it needs (:func:`polrig.sensor.demosaic.row_bands`) and solved on
@@ -257,6 +267,15 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
         _check_analyzer(analyzer, shape)
     n, c = len(states), lay.n_colours
     h_out, w_out = output_shape(lay, shape, method)
+    if (prior_mean is None) != (prior_sigma is None):
+        raise ValueError("give both prior_mean and prior_sigma, or neither")
+    if prior_mean is not None:
+        try:
+            prior_mean, prior_sigma = (np.broadcast_to(np.asarray(a), (c, 3, 3, h_out, w_out))
+                                       for a in (prior_mean, prior_sigma))
+        except ValueError:
+            raise ValueError(f"prior shapes {np.shape(prior_mean)}, {np.shape(prior_sigma)} do not "
+                             f"broadcast to the output grid {(c, 3, 3, h_out, w_out)}") from None
     band_rows = max(1, int(band_pixels) // max(1, w_out * c))
     bands = row_bands(lay, shape, method, band_rows)
 
@@ -277,6 +296,12 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                                        st.excluded[e0:e1], lay, method, offset)
             meas[k], var[k], valid[k] = (p[:, :, a:a + rows] for p in (m, v, ok))
         with _SOLVE_LOCK:  # one solve at a time: the solver may run threads of its own
+            if prior_mean is not None:
+                return solve_hybrid(s_in, meas, var, valid, a_rows,
+                                    prior_mean=prior_mean[..., o0:o1, :],
+                                    prior_sigma=prior_sigma[..., o0:o1, :], seen_state=seen_state,
+                                    analyzer_tolerance=analyzer_tolerance,
+                                    generator_tolerance=generator_tolerance)
             return solve_reference(s_in, meas, var, valid, a_rows,
                                    analyzer_tolerance=analyzer_tolerance,
                                    generator_tolerance=generator_tolerance)

@@ -380,17 +380,26 @@ class SolveInputs(NamedTuple):
 
 
 def solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
-                 analyzer_tolerance, generator_tolerance) -> SolveInputs:
+                 analyzer_tolerance, generator_tolerance, *,
+                 check_state_set: bool = True) -> SolveInputs:
     """Check and normalise the arguments of :func:`solve_reference` (and of its numpy oracle,
     :mod:`polrig.solve._reference_numpy`): tolerances, state set (its condition number against
     ``max_condition``), sample arrays (:func:`check_samples`), shared analyzer rows. Raises as
-    :func:`solve_reference` documents."""
+    :func:`solve_reference` documents. ``check_state_set=False`` (the hybrid solve, whose
+    prior may complete any state set): at least one finite state, its condition number
+    reported as it is (``inf`` for fewer than 3 states)."""
     a_tol = _tolerance(analyzer_tolerance, AnalyzerTolerance, "analyzer")
     g_tol = _tolerance(generator_tolerance, GeneratorTolerance, "generator")
     cal_sd = np.array([a_tol.gain_rel, np.deg2rad(a_tol.angle_deg), a_tol.diattenuation,
                        np.deg2rad(g_tol.zero_offset_deg), g_tol.inverse_extinction])
     shared = analyzer_rows is None or np.ndim(analyzer_rows) == 2
-    cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
+    if check_state_set:
+        cond_all = validate_states(s_in, max_condition, analyzer_rows if shared else None)
+    else:
+        _max_condition(max_condition)
+        if len(_states(s_in)) < 1:
+            raise ConfigError("need at least 1 polarizer state, got 0")
+        cond_all = condition_number(s_in, analyzer_rows if shared else None)
     s = _states(s_in)
     meas, var, valid = check_samples(len(s), measured, variance, valid)
     a_shared = _shared_rows(analyzer_rows) if shared else ideal_analyzer_matrix()
@@ -497,9 +506,31 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
     """
     max_condition, min_snr, dtype, tile = _solve_options(max_condition, min_snr, dtype,
                                                          chunk_pixels)
-    (cal_sd, with_cal, shared, cond_all, s, meas, var, valid,
-     a_shared) = solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
-                              analyzer_tolerance, generator_tolerance)
+    inputs = solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
+                          analyzer_tolerance, generator_tolerance)
+    return solve_tiles(inputs, analyzer_rows, max_condition, min_snr, dtype, tile)
+
+
+class PriorInputs(NamedTuple):
+    """A Gaussian prior on the nine elements for :func:`solve_tiles` (checked by
+    :mod:`polrig.solve.hybrid`): ``mean`` and ``sigma`` ``(C, 3, 3, H, W)`` float32 or float64
+    (broadcast views allowed), ``seen_dir`` ``(3,)`` the unit Stokes vector of the state
+    whose samples the prior already holds and ``seen_k`` that state's index (-1: none)."""
+
+    mean: np.ndarray
+    sigma: np.ndarray
+    seen_dir: np.ndarray
+    seen_k: int
+
+
+def solve_tiles(inputs: SolveInputs, analyzer_rows, max_condition: float, min_snr: float,
+                dtype: np.dtype, tile: int, prior: PriorInputs | None = None) -> ReferenceResult:
+    """The tile driver of :func:`solve_reference` on checked inputs (:func:`solve_inputs`,
+    :func:`_solve_options`); with ``prior``, the hybrid solve of :mod:`polrig.solve.hybrid`
+    (the same kernels with the prior's precision in the normal equations; a pixel with a
+    prior is not masked for its samples' condition number, only where the posterior is
+    singular)."""
+    (cal_sd, with_cal, shared, cond_all, s, meas, var, valid, a_shared) = inputs
     n = len(s)
     _, n_col, _, h, w = meas.shape
     pixel_rows = None
@@ -523,7 +554,7 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
         run = _TileRun(kern, s, _float_samples(meas), _float_samples(var), valid, a_shared,
                        pixel_rows, cond_all, max_condition, min_snr,
                        float(np.finfo(dtype).max), cal_sd, with_cal,
-                       (mueller, sigma, sigma_noise, residual, mask, pix_cond, n_used))
+                       (mueller, sigma, sigma_noise, residual, mask, pix_cond, n_used), prior)
         rows_per_tile = max(1, tile // w)
         tiles = [(c, y0, min(h, y0 + rows_per_tile))
                  for c in range(n_col) for y0 in range(0, h, rows_per_tile)]
@@ -552,7 +583,8 @@ class _TileRun:
     Called from several threads at once: tiles write disjoint parts of the outputs."""
 
     def __init__(self, kern, s, meas, var, valid, a_shared, pixel_rows, cond_all,
-                 max_condition, min_snr, out_max, cal_sd, with_cal, outputs) -> None:
+                 max_condition, min_snr, out_max, cal_sd, with_cal, outputs,
+                 prior: PriorInputs | None = None) -> None:
         self.kern = kern
         self.s = s
         self.ds_gen = _generator_derivatives(s)
@@ -568,6 +600,7 @@ class _TileRun:
         self.max_condition, self.min_snr, self.out_max = max_condition, min_snr, out_max
         self.cal_sd, self.with_cal = cal_sd, with_cal
         self.outputs = outputs
+        self.prior = prior
         self.local = threading.local()
 
     def _buffers(self, n_blocks: int) -> dict[str, np.ndarray]:
@@ -583,6 +616,9 @@ class _TileRun:
                    "keys": np.zeros((self.patterns.n_words, n_blocks * lanes), np.int64),
                    "x": np.zeros((n_blocks, 9, lanes)), "sg": np.zeros((n_blocks, 9, lanes)),
                    "sn": np.zeros((n_blocks, 9, lanes)), "res": np.zeros((n_blocks, lanes))}
+            pb = n_blocks if self.prior is not None else 0  # the prior's buffers, else empty
+            buf.update(pa=np.zeros((pb, 9, 9, lanes)), pm=np.zeros((pb, 9, lanes)),
+                       prank=np.zeros((pb, lanes), np.int64))
             self.local.buf = buf
         return {k: v[:, :n_blocks * self.kern.LANES] if k == "keys" else v[:n_blocks]
                 for k, v in buf.items()}
@@ -598,20 +634,28 @@ class _TileRun:
         arow = b["arow"] if self.per_pixel else self.shared_arow
         partial = kern.load_tile(self.meas, self.var, self.valid, self.has_valid, self.rows,
                                  self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], arow)
+        prior = self.prior
+        if prior is not None:  # polrig.solve.hybrid
+            kern.load_prior(prior.mean, prior.sigma, c, y0, y1, prior.seen_dir, prior.seen_k,
+                            b["w"], b["flags"], arow, self.per_pixel, b["pa"], b["pm"],
+                            b["prank"])
         kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, self.per_pixel,
                           b["flags"], lanes, self.min_snr, self.out_max, self.cal_sd,
-                          self.with_cal, b["x"], b["sg"], b["sn"], b["res"], b["nok"],
-                          b["keys"])
+                          self.with_cal, prior is not None, b["pa"], b["pm"], b["prank"],
+                          b["x"], b["sg"], b["sn"], b["res"], b["nok"], b["keys"])
         kern.store_tile(c, y0, y1, b["x"], b["sg"], b["sn"], b["res"], b["flags"], b["nok"],
                         self.with_cal, mueller, sigma, sigma_noise, residual, mask, n_used)
-        if not partial:  # every pixel uses all its samples: the state set's condition
+        if prior is None and not partial:  # every pixel uses all its samples
             pix_cond[c, y0:y1] = self.patterns.cond_all
             return
         keys = b["keys"].reshape(-1, y1 - y0, per_row * lanes)[:, :, :width].reshape(
             -1, (y1 - y0) * width).T
         cond = self.patterns.conditions(keys)
         pix_cond[c, y0:y1] = cond.reshape(y1 - y0, width)
-        unsolved = np.flatnonzero(~(cond <= self.max_condition))
+        too_ill = ~(cond <= self.max_condition)
+        if prior is not None:  # a pixel with a prior is judged by its posterior (pivots) alone
+            too_ill &= (b["prank"].reshape(y1 - y0, per_row * lanes)[:, :width] == 0).ravel()
+        unsolved = np.flatnonzero(too_ill)
         if unsolved.size:  # too few or too ill-conditioned samples: zeros, ILL_CONDITIONED
             yy, xx = np.divmod(unsolved, width)
             yy += y0

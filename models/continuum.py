@@ -1,0 +1,436 @@
+"""From one state to four: single-shot, hybrid and reference on the held-out sets (issue 33,
+item 4).
+
+``python -m polrig.models.continuum [--count N] [--out FILE.md]`` generates the model card's
+held-out sets at 64x64 (``polrig.sim.dataset``; the first ``--count`` samples of each, the same
+scenes as the first samples of the card's 256-sample sets), runs the shipped single-shot
+network on each sample's own frame (onnxruntime, read only) with its calibrated sigma, and
+compares, with the metrics of :mod:`polrig.models.evaluate`:
+
+* **single-shot**: the network's estimate and sigma;
+* **hybrid N** (:func:`polrig.solve.hybrid.solve_hybrid`): the network as the prior, the
+  sample's own frame as the seen state, plus ``N - 1`` more states;
+* **reference N** (:func:`polrig.solve.reference.solve_reference`): the same frames, no prior.
+
+**States.** Offsets from the seen state's polarizer angle (every sample has its own), on a
+15 deg grid. The best 2- and 3-state sets (``0/d``, ``0/d1/d2``) are searched by the hybrid's
+mean matrix PSNR (over pixels unclipped in every state) on sets none of the reported ones
+holds (the uncertainty calibration's scenes, seed 11: all six families, and the held-out
+families); four states are 0/45/90/135.
+
+**Frames.** The seen frame is the dataset's own (the simulator's sensor model: shot, read, dark
+and quantisation noise, clipping). The other states' frames are rendered from the truth and
+sampled with the same sensor model and exposure (:meth:`polrig.sensor.noise.SensorModel.sample_raw`,
+as the dataset does), so every state has the same noise and clips where the sensor would. Each
+sample's variance is the sensor model's at its measured value, samples at or above the
+saturation level are excluded (as :mod:`polrig.app.processing` does). So the reference rows
+differ from the card's "four-state reference" row, which adds Gaussian noise of a fitted
+model and never clips.
+
+**Equal capture time.** The hybrid with 3 states of 4 frames each against 4 states of 3 (the
+rendered frames averaged, their variance the sensor model's for the mean of that many; the
+seen state's first frame is the network's input); every other row has one frame per state.
+
+**Metrics.** Matrix PSNR (peak the largest true ``|m|`` on the object, over the object mask;
+and over the object's pixels with no clipped sample in any frame of any state: a highlight
+clipped in every state, a few tenths of a per cent of the pixels, is recovered by no number of
+states and sets the first PSNR of every method alike), forward Stokes relative L2 over the 11 held-out incident states
+(:func:`polrig.models.evaluate.forward_l2`), and coverage: the fraction of the elements of the
+object's pixels (per colour) whose error is within 2 sigma, over pixels whose seen frame is
+not clipped (as the single-shot sigma's coverage is measured) and that the solve did not mask
+``ILL_CONDITIONED``.
+
+**Variants of the seen state's treatment** (the double-counting question of
+:mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
+unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
+every frame: the seen frame counted twice) and ``exclude`` (the whole prior, the seen frame
+dropped).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import pathlib
+import sys
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+#: The held-out sets of ``models/MODEL_CARD.md``: name -> (label, generate_dataset arguments).
+SEEN = ("sphere", "box", "cylinder", "multi")
+SETS: dict[str, tuple[str, dict]] = {
+    "unseen_terrain": ("unseen families: heightfield, plane (seed 2)", dict(seed=2, holdout=True)),
+    "seen_families": ("seen families, new scenes (seed 5)", dict(seed=5, families=SEEN)),
+    "unseen_compact": ("unseen compact: blob, torus (seed 7)", dict(seed=7, families=("blob", "torus"))),
+    "film_depolarizing": ("films + depolarizing layers (seed 5)", dict(seed=5, families=SEEN, material_mix="heldout")),
+    "conductors": ("conductors (seed 5)", dict(seed=5, families=SEEN, material_mix="conductor")),
+    "dispersive": ("dispersive dielectrics (seed 5)", dict(seed=5, families=SEEN, material_mix="dispersive")),
+    "interreflection_terrain": ("interreflections, heightfield + plane (seed 2)",
+                                dict(seed=2, holdout=True, indirect_samples=32)),
+    "interreflection_compact": ("interreflections, blob + torus (seed 7)",
+                                dict(seed=7, families=("blob", "torus"), indirect_samples=32)),
+}
+#: The angle search's sets (the uncertainty calibration's scenes, in no reported set).
+SEARCH_SETS: dict[str, dict] = {
+    "search_all_families": dict(seed=11, families=SEEN + ("blob", "torus")),
+    "search_holdout_families": dict(seed=11, holdout=True),
+}
+SIZE = 64
+#: Offsets (deg) from the seen state's angle that frames are made for.
+OFFSETS_DEG = tuple(range(0, 180, 15))
+FOUR_STATES = (0, 45, 90, 135)
+VARIANTS = ("marginal", "naive", "exclude")
+
+
+@dataclasses.dataclass
+class Frames:
+    """One sample: truth, network prior and a frame per offset (normalised units)."""
+
+    truth: np.ndarray  # (C, 3, 3, H, W)
+    mask: np.ndarray  # (H, W)
+    use: np.ndarray  # (C, H, W) object pixels whose seen frame is not clipped
+    clean: np.ndarray  # (H, W) object pixels with no clipped sample in any frame of any state
+    prior: np.ndarray
+    sigma: np.ndarray
+    states: dict[int, np.ndarray]  # offset -> (3,)
+    meas: dict[int, np.ndarray]  # offset -> (C, 4, H, W)
+    var: dict[int, np.ndarray]
+    valid: dict[int, np.ndarray]
+
+
+def rotated_state(s: np.ndarray, offset_deg: float) -> np.ndarray:
+    """The state of the same polarizer turned by ``offset_deg`` (its Stokes vector rotated)."""
+    t = np.deg2rad(2.0 * offset_deg)
+    c, sn = np.cos(t), np.sin(t)
+    return np.array([s[0], c * s[1] - sn * s[2], sn * s[1] + c * s[2]])
+
+
+def make_set(root: pathlib.Path, name: str, kwargs: dict, count: int) -> pathlib.Path:
+    """The set's folder under ``root`` (generated unless already there)."""
+    from polrig.sim.dataset import generate_dataset
+
+    out = root / f"{name}_{count}"
+    generate_dataset(out, count=count, width=SIZE, progress=False, **kwargs)
+    return out
+
+
+def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray]:
+    """The network's estimate and calibrated sigma for sample ``i``'s own frame (0 off the
+    object)."""
+    from polrig.models.evaluate import network_inputs
+    from polrig.sensor.stokes import stokes_from_analyzers
+
+    mask = ds["mask"][i] > 0
+    s0 = ds["s_in"][i].astype(np.float64)
+    pred = net.run_rig_frame(*network_inputs(ds, i))["mueller"][0].astype(np.float64)
+    sigma = net.uncertainty.sigma(pred, s0, mask, stokes_from_analyzers(ds["analyzer"][i].astype(np.float64)))
+    return np.where(mask, pred, 0.0), np.where(mask, sigma.astype(np.float64), 0.0)
+
+
+def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng: np.random.Generator, *,
+                  offsets: Sequence[int] = OFFSETS_DEG, frames_per_state: int = 1) -> Frames:
+    """The frames of sample ``i`` at ``offsets`` (0 first: the seen state), each the mean of
+    ``frames_per_state`` frames (the seen state's: the dataset's own frame and
+    ``frames_per_state - 1`` more); a sample is excluded where any of its frames saturates."""
+    from polrig.sim.dataset import DATASET_EXPOSURE_US
+    from polrig.solve.reference import forward_measurements
+
+    k = int(frames_per_state)
+    mask = ds["mask"][i] > 0
+    truth = ds["mueller"][i].astype(np.float64)
+    s0 = ds["s_in"][i].astype(np.float64)
+    scale = float(ds["scale"][i])
+    seen_dn = ds["analyzer"][i].astype(np.float64) * scale
+    dark_dn = float(sensor.dark_electrons(DATASET_EXPOSURE_US) / sensor.gain_e_per_dn)
+    states = {d: rotated_state(s0, d) for d in offsets}
+    clean_e = np.clip(forward_measurements(truth, np.stack([states[d] for d in offsets])) * scale, 0, None) \
+        * sensor.gain_e_per_dn
+    meas, var, valid = {}, {}, {}
+    for j, d in enumerate(offsets):
+        frames = [sensor.sample_raw(clean_e[j], rng, DATASET_EXPOSURE_US).astype(np.float64)
+                  - sensor.black_level_dn - dark_dn for _ in range(k - 1 if d == 0 else k)]
+        if d == 0:
+            frames.insert(0, seen_dn)
+        stack = np.stack(frames)
+        mean_dn = stack.mean(axis=0)
+        meas[d] = mean_dn / scale
+        var[d] = sensor.variance_dn2(mean_dn, DATASET_EXPOSURE_US, k) / scale**2
+        valid[d] = (stack < sensor.saturation_dn).all(axis=0)
+    use = mask[None] & (seen_dn < sensor.saturation_dn).all(axis=1)
+    clean = mask & np.all([v.all(axis=(0, 1)) for v in valid.values()], axis=0)
+    return Frames(truth, mask, use, clean, prior[0], prior[1], states, meas, var, valid)
+
+
+def _stack(fr: Frames, offsets: Sequence[int]):
+    return (np.stack([fr.states[d] for d in offsets]), np.stack([fr.meas[d] for d in offsets]),
+            np.stack([fr.var[d] for d in offsets]), np.stack([fr.valid[d] for d in offsets]))
+
+
+def marginal_sigma(fr: Frames) -> np.ndarray:
+    """Prior sigma that makes the hybrid solve use the plain marginal on the unobserved plane
+    (``sigma sqrt(g_r)``: the Schur complement scales with the precision, ``g_r`` does not)."""
+    from polrig.solve.hybrid import observed_direction
+
+    u2 = observed_direction(fr.states[0]) ** 2
+    v = fr.sigma**2
+    tot = v.sum(axis=2, keepdims=True)
+    g = np.where(tot > 0, np.einsum("crahw,a->crhw", v, 1.0 - u2)[:, :, None] / np.where(tot > 0, tot, 1.0), 1.0)
+    return fr.sigma * np.sqrt(g)
+
+
+def estimate(fr: Frames, offsets: Sequence[int], method: str):
+    """``(mueller, sigma, solved)`` of ``method`` (``single``, ``hybrid``, ``reference`` or a
+    :data:`VARIANTS` name) from the frames at ``offsets`` (the seen state first)."""
+    from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.reference import ILL_CONDITIONED, solve_reference
+
+    if method == "single":
+        return fr.prior, fr.sigma, np.ones(fr.use.shape, bool)
+    s, meas, var, valid = _stack(fr, offsets)
+    kw = dict(prior_mean=fr.prior, dtype=np.float64)
+    if method == "hybrid":
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, **kw)
+    elif method == "marginal":
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, **kw)
+    elif method == "naive":
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=None, **kw)
+    elif method == "exclude":
+        if len(offsets) == 1:
+            return fr.prior, fr.sigma, np.ones(fr.use.shape, bool)
+        r = solve_hybrid(s[1:], meas[1:], var[1:], valid[1:], prior_sigma=fr.sigma, seen_state=None, **kw)
+    elif method == "reference":
+        r = solve_reference(s, meas, var, valid, dtype=np.float64, max_condition=np.inf)
+    else:
+        raise ValueError(method)
+    return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
+
+
+def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray,
+          clean: np.ndarray | None = None) -> dict[str, float]:
+    """Matrix PSNR (over the object, and over its pixels unclipped in every state: ``clean``,
+    default ``fr.clean``), forward L2 and the counts of elements within 2 sigma (module
+    docstring)."""
+    from polrig.models.evaluate import forward_l2, psnr
+
+    clean = fr.clean if clean is None else clean
+    pred = (mueller * fr.mask).astype(np.float32)
+    peak = float(np.abs(fr.truth[..., fr.mask]).max())
+    sel = fr.use & solved
+    inside = (np.abs(mueller - fr.truth) <= 2.0 * sigma).transpose(1, 2, 0, 3, 4)[:, :, sel]
+    return {"matrix_psnr": psnr(pred, fr.truth, fr.mask, peak),
+            "matrix_psnr_unclipped": psnr(pred, fr.truth, clean, peak) if clean.any() else float("nan"),
+            "fwd_l2": forward_l2(pred, fr.truth, fr.mask),
+            "inside": float(inside.sum()), "elements": float(inside.size)}
+
+
+def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
+    out = {k: float(np.nanmean([r[k] for r in rows])) for k in ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2")}
+    n = sum(r["elements"] for r in rows)
+    out["coverage"] = sum(r["inside"] for r in rows) / n if n else float("nan")
+    return out
+
+
+def _samples(data_dir, net):
+    """``(dataset, sensor model, [(index, network prior)])`` of a set's lit samples."""
+    from polrig.models.data import check_network_size, lit_samples, load_dataset
+    from polrig.sensor.noise import SensorModel
+
+    ds = load_dataset(data_dir)
+    check_network_size(ds, data_dir)
+    sensor = SensorModel(**ds.manifest["noise"]["sensor_model"])
+    for i in lit_samples(ds):
+        yield ds, sensor, i, network_prior(ds, i, net)
+
+
+def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> dict:
+    """Mean hybrid matrix PSNR (over pixels unclipped in every state) of every 2- and 3-state
+    set on the search sets; the best of each."""
+    two = [(0, d) for d in OFFSETS_DEG[1:]]
+    three = [(0, a, b) for a in OFFSETS_DEG[1:] for b in OFFSETS_DEG[1:] if a < b]
+    acc: dict[tuple, list[float]] = {k: [] for k in two + three}
+    n = 0
+    for tag, d in enumerate(dirs):
+        for ds, sensor, i, prior in _samples(d, net):
+            fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, 100 + tag, i]))
+            n += 1
+            for key in acc:
+                acc[key].append(score(fr, *estimate(fr, key, "hybrid"))["matrix_psnr_unclipped"])
+    mean = {k: float(np.nanmean(v)) for k, v in acc.items()}
+    best2 = max(two, key=mean.get)
+    best3 = max(three, key=mean.get)
+    echo(f"search: {n} samples; best 2 states {best2} {mean[best2]:.2f} dB, best 3 {best3} {mean[best3]:.2f} dB")
+    return {"samples": n, "two": {"/".join(map(str, k)): mean[k] for k in two},
+            "three": {"/".join(map(str, k)): mean[k] for k in three}, "best_two": list(best2),
+            "best_three": list(best3)}
+
+
+def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, tag: int) -> dict:
+    """Every method's mean metrics on one set (module docstring)."""
+    plan = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
+            "hybrid3": ("hybrid", offsets["three"]), "hybrid4": ("hybrid", offsets["four"]),
+            "reference3": ("reference", offsets["three"]), "reference4": ("reference", offsets["four"])}
+    for v in VARIANTS:
+        plan[f"{v}1"] = (v, (0,))
+        plan[f"{v}2"] = (v, offsets["two"])
+    # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
+    timed = {"hybrid3_4frames": (offsets["three"], 4), "hybrid4_3frames": (offsets["four"], 3)}
+    rows: dict[str, list] = {k: [] for k in (*plan, *timed)}
+    t0 = time.perf_counter()
+    for ds, sensor, i, prior in _samples(data_dir, net):
+        fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
+        for key, (method, offs) in plan.items():
+            rows[key].append(score(fr, *estimate(fr, offs, method)))
+        for key, (offs, k) in timed.items():
+            frk = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, k]), offsets=offs,
+                                frames_per_state=k)
+            rows[key].append(score(frk, *estimate(frk, offs, "hybrid"), clean=fr.clean))
+    n = len(rows["single"])
+    return {"data": str(data_dir), "samples": n, "methods": {k: _mean(v) for k, v in rows.items()},
+            "seconds": time.perf_counter() - t0}
+
+
+def markdown(result: dict) -> str:
+    off = result["offsets"]
+    name = lambda k: "/".join(map(str, off[k]))  # noqa: E731
+    cols = [("single", "single-shot"), ("hybrid1", "hybrid 1 (0)"), ("hybrid2", f"hybrid 2 ({name('two')})"),
+            ("hybrid3", f"hybrid 3 ({name('three')})"), ("hybrid4", f"hybrid 4 ({name('four')})"),
+            ("reference3", "reference 3"), ("reference4", "reference 4")]
+    lines = []
+    for metric, title, fmt in (("matrix_psnr", "Matrix PSNR (dB), object pixels", "{:.2f}"),
+                               ("matrix_psnr_unclipped", "Matrix PSNR (dB), object pixels with no clipped sample in "
+                                                         "any state", "{:.2f}"),
+                               ("fwd_l2", "Forward Stokes L2 (rel.)", "{:.4f}"),
+                               ("coverage", "Within 2 sigma", "{:.1%}")):
+        psnr_table = metric.startswith("matrix_psnr")
+        extra = (" | hybrid 2 - single | hybrid 4 - hybrid 3 | same, equal time (4 vs 3 frames per state) |"
+                 if psnr_table else " |")
+        lines += [f"**{title}**", "", "| set | scored | " + " | ".join(c[1] for c in cols) + extra,
+                  "|---|---:|" + "---:|" * len(cols) + ("---:|---:|---:|" if psnr_table else "")]
+        for key, r in result["sets"].items():
+            m = r["methods"]
+            cells = [fmt.format(m[c][metric]).replace("%", " %") for c, _ in cols]
+            row = f"| {SETS[key][0]} | {r['samples']} | " + " | ".join(cells) + " |"
+            if psnr_table:
+                row += (f" {m['hybrid2'][metric] - m['single'][metric]:+.2f} |"
+                        f" {m['hybrid4'][metric] - m['hybrid3'][metric]:+.2f} |"
+                        f" {m['hybrid4_3frames'][metric] - m['hybrid3_4frames'][metric]:+.2f} |")
+            lines.append(row)
+        lines.append("")
+    lines += ["**The seen state's treatment** (matrix PSNR dB / within 2 sigma; 1 state, and 2 states "
+              f"{name('two')})", "",
+              "| set | hybrid (shipped) 1 | marginal 1 | naive 1 | exclude 1 (= single-shot) | hybrid (shipped) 2 | "
+              "marginal 2 | naive 2 | exclude 2 |", "|---|" + "---:|" * 8]
+    for key, r in result["sets"].items():
+        m = r["methods"]
+        cell = lambda k: f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} %"  # noqa: E731
+        keys = ("hybrid1", "marginal1", "naive1", "exclude1", "hybrid2", "marginal2", "naive2", "exclude2")
+        lines.append(f"| {SETS[key][0]} | " + " | ".join(cell(k) for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], seed: int = 0,
+        weights_dir=None, two=None, three=None, echo=print) -> dict:
+    """Generate the sets, search the states (unless ``two`` and ``three`` are given), evaluate,
+    write ``out_md`` and its ``.json`` (when given)."""
+    from polrig.atomic import atomic_write_text
+    from polrig.errors import ConfigError
+    from polrig.models.evaluate import results_paths
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+
+    if count < 1 or search_count < 1:
+        raise ConfigError(f"--count and --search-count must be >= 1, got {count} and {search_count}")
+    unknown = [s for s in sets if s not in SETS]
+    if unknown:
+        raise ConfigError(f"unknown set(s) {', '.join(unknown)}; sets are {', '.join(SETS)}")
+    if out_md is not None:
+        out_md, out_json = results_paths(out_md)
+    root = pathlib.Path(root)
+    net = SingleShotModel.load(weights_dir if weights_dir is not None else WEIGHTS_DIR)
+    if net.uncertainty is None:
+        raise ConfigError("the single-shot graph has no calibrated uncertainty (models/weights/uncertainty.json)")
+    t0 = time.perf_counter()
+    result: dict = {"count": count, "size": SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG)}
+    if two is None or three is None:
+        dirs = [make_set(root, name, kw, search_count if "all" in name else max(1, search_count // 2))
+                for name, kw in SEARCH_SETS.items()]
+        result["search"] = search_states(dirs, net, seed, echo)
+        two = two or tuple(result["search"]["best_two"])
+        three = three or tuple(result["search"]["best_three"])
+    result["offsets"] = {"two": list(two), "three": list(three), "four": list(FOUR_STATES)}
+    result["sets"] = {}
+    for tag, name in enumerate(sets):
+        d = make_set(root, name, SETS[name][1], count)
+        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag)
+        result["sets"][name] = r
+        m = r["methods"]
+        echo(f"{name}: {r['samples']} scored; PSNR single {m['single']['matrix_psnr']:.2f}, hybrid 1-4 "
+             + " / ".join(f"{m[f'hybrid{k}']['matrix_psnr']:.2f}" for k in range(1, 5))
+             + f", reference 3/4 {m['reference3']['matrix_psnr']:.2f} / {m['reference4']['matrix_psnr']:.2f}; "
+             + "coverage " + " / ".join(f"{100 * m[k]['coverage']:.1f}" for k in
+                                         ("single", "hybrid1", "hybrid2", "hybrid3", "hybrid4")))
+    result["seconds"] = time.perf_counter() - t0
+    table = markdown(result)
+    echo(table)
+    if out_md is not None:
+        out_md.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        atomic_write_text(out_md, "# From one state to four: single-shot, hybrid, reference\n\n"
+                          f"`python -m polrig.models.continuum --count {count} --search-count {search_count}`"
+                          " (models/continuum.py: sets, frames, metrics and variants in its docstring). "
+                          f"{count} samples per set at {SIZE}x{SIZE} (those with a lit object pixel scored); "
+                          f"{_search_line(result)}{result['seconds']:.0f} s on {os.cpu_count()} CPUs "
+                          "(shipped network on onnxruntime, CPU).\n\n" + table + "\n")
+    return result
+
+
+def _search_line(result: dict) -> str:
+    s = result.get("search")
+    if not s:
+        return "states given, not searched; "
+    best = lambda part: sorted(s[part].items(), key=lambda kv: -kv[1])[:3]  # noqa: E731
+    return ("states searched on " + f"{s['samples']} samples (PSNR over unclipped pixels; best 2-state sets "
+            + ", ".join(f"{k} {v:.2f}" for k, v in best("two")) + " dB; best 3-state sets "
+            + ", ".join(f"{k} {v:.2f}" for k, v in best("three")) + " dB); ")
+
+
+def _offsets(text: str | None, n: int) -> tuple[int, ...] | None:
+    from polrig.errors import ConfigError
+
+    if text is None:
+        return None
+    try:
+        vals = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"give {n} comma-separated offsets in degrees, got {text!r}") from None
+    if len(vals) != n or vals[0] != 0 or any(v not in OFFSETS_DEG for v in vals):
+        raise ConfigError(f"give {n} offsets from {OFFSETS_DEG}, the first 0, got {text!r}")
+    return vals
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from polrig.models._cli import run_main
+
+    ap = argparse.ArgumentParser(prog="python -m polrig.models.continuum", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--count", type=int, default=16, help="samples per held-out set (default 16)")
+    ap.add_argument("--search-count", type=int, default=16,
+                    help="samples of the state search's all-family set (half as many of its held-out families)")
+    ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated, of: {', '.join(SETS)}")
+    ap.add_argument("--root", default="runs/continuum", help="where the sets are generated (default runs/continuum)")
+    ap.add_argument("--out", default=None, help="Markdown file for the tables (the numbers go next to it as .json)")
+    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
+    ap.add_argument("--seed", type=int, default=0, help="noise seed of the rendered states' frames")
+    ap.add_argument("--two", default=None, help="the 2-state offsets instead of searching, e.g. 0,90")
+    ap.add_argument("--three", default=None, help="the 3-state offsets instead of searching, e.g. 0,60,120")
+    args = ap.parse_args(argv)
+    return run_main(ap.prog, lambda: (run(args.root, args.out, count=args.count, search_count=args.search_count,
+                                          sets=[s for s in args.sets.split(",") if s], seed=args.seed,
+                                          weights_dir=args.weights, two=_offsets(args.two, 2),
+                                          three=_offsets(args.three, 3)), 0)[1])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

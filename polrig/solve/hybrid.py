@@ -1,0 +1,232 @@
+"""Hybrid Mueller solve: any number of polarizer states combined with a Gaussian prior on the
+nine elements (the single-shot network's estimate and calibrated sigma), per pixel and colour.
+
+**Model.** As in :mod:`polrig.solve.reference` (conventions, units, masks), each used sample
+gives ``I_kj = kron(a_j, s_k) . vec(M) + noise`` with variance ``v_kj``; ``D``, ``W`` the design
+and weights of all used samples. The prior is ``vec(M) ~ N(mu, Sigma)`` with
+``Sigma = diag(sigma^2)`` (``prior_mean``, ``prior_sigma``, ``(C, 3, 3, H, W)``: the network's
+estimate and its calibrated per-element sigma, :mod:`polrig.models.uncertainty`). With a
+prior precision ``P`` the posterior is Gaussian with
+
+    (D^T W D + P) vec(M) = D^T W I + P mu,       cov = (D^T W D + P)^-1,
+
+its mean the estimate and ``sqrt(diag cov)`` its ``sigma``. The ``residual`` is the samples'
+``chi^2 = sum w r^2`` over their effective degrees of freedom ``n - tr(H)`` with
+``H = D cov D^T W`` the hat matrix, ``tr(H) = 9 - tr(cov P)``: for a right noise model and a
+calibrated prior ``E chi^2 = n - tr(H)`` exactly (``(I - H)(D P^-1 D^T + W^-1) = W^-1``), so
+it is about 1, and it tends to the reference solve's ``chi^2 / (n - 9)`` as ``P -> 0``
+(0 below half a degree of freedom). ``P = 0`` gives the reference solve's normal equations exactly: the compiled
+kernel of the reference solve (:func:`polrig.solve._reference_kernel.solve_blocks`) adds
+``P`` and ``P mu`` and nothing else, so a prior of infinite sigma reproduces
+:func:`~polrig.solve.reference.solve_reference` bit for bit (``tests/test_hybrid.py``).
+
+**An observation must never count twice.** The network's estimate is a function of one
+frame, the state ``s_0`` it saw (``seen_state``), and that frame's samples are also among
+the ones measured. One DoFP frame of ``s_0`` measures exactly ``M s_0``: three numbers per
+colour, one per row ``r`` of ``M``, the component of the row ``m_r`` along ``u = s_0 / |s_0|``
+(4 analyzers, rank 3). The other six directions, ``m_r`` orthogonal to ``u``, are the ones the
+frame leaves unobserved and the network fills in from what it has learned. Write
+``vec(M) = O z_o + U z_u`` with ``O = I_3 (x) u`` (observed) and ``U = I_3 (x) V``
+(``V`` an orthonormal basis of ``u``'s complement; unobserved). The frame's likelihood
+depends on ``z_o`` only (``D_0 U = 0``).
+
+Let ``y_0`` be the seen frame and ``Y`` the other states (independent noise given ``M``).
+The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0) p(Y | M)``.
+
+* ``p(z_o | y_0)`` is the frame's own likelihood (a learned prior on ``z_o`` is far wider
+  than 4 samples of one pixel determine it): the reference solve's term ``D_0^T W_0 D_0``.
+* ``p(z_u | z_o, y_0)`` is what the network adds: the prior's information on the unobserved
+  directions, precision ``P = U Sigma_u^-1 U^T`` for the covariance ``Sigma_u`` (6x6) of the
+  network's error there. The calibrated sigma is per element, ``sigma_ra^2 = E e_ra^2``, not
+  a joint covariance, so ``Sigma_u`` has to be modelled. Because ``U = I (x) V``, it is taken
+  block diagonal over the rows, ``Sigma_u = diag_r(f_r V^T Sigma_r V)`` with
+  ``Sigma_r = diag(sigma_r^2)``:
+
+  - ``V^T Sigma_r V`` is the *marginal* of ``N(mu_r, Sigma_r)`` on the plane ``u^perp``.
+    Its precision is the Schur complement of ``Pi_r = diag(1 / sigma_r^2)`` with the ``u``
+    direction eliminated, written back in ``M``'s coordinates as
+
+        Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u),      (annihilates u, rank 2)
+
+    (proof: it annihilates ``u``, so it equals ``V V^T (.) V V^T``, and ``V^T (.) V`` is the
+    Schur complement of ``u^T Pi_r u`` in ``[V u]^T Pi_r [V u]``, the inverse of
+    ``V^T Sigma_r V``). Elements without a prior (``pi = 0``) drop out exactly, and written
+    element by element it has no cancellation
+    (:func:`polrig.solve._reference_kernel.load_prior`).
+  - ``f_r = tr Sigma_r / (tr Sigma_r - u^T Sigma_r u)`` keeps the row's whole calibrated
+    variance in that plane. The marginal alone would throw away the share
+    ``u^T Sigma_r u / tr Sigma_r`` of it (a third, for ``u`` between the element axes), as if
+    a third of the network's error lay along ``u``; but the network reproduces the frame it
+    saw, so its error along ``u`` is small: on the held-out terrain set (64x64, first 16 lit
+    samples) 3.5 % of the row's error energy, where the diagonal ``Sigma_r`` puts 33 %. With
+    the marginal, the posterior's coverage within 2 sigma at the seen state alone fell up to
+    2.8 points below the network's own; with ``f_r`` it is 0.5-0.9 points above it (2.2 on
+    conductors) on the eight held-out sets (``benchmarks/results/continuum.md``). Where the
+    network's error in the plane is as small as the frame's noise this is conservative (a
+    simulated network in ``tests/test_hybrid.py``: 98 % within 2 sigma).
+
+  So the row's prior precision is ``P_r = g_r (Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u))``
+  with ``g_r = 1 / f_r = sum_a (1 - u_a^2) sigma_a^2 / sum_a sigma_a^2`` (over the row's
+  elements that have a prior).
+* ``p(Y | M)`` is the other states' likelihood, unchanged.
+
+So the seen frame enters through its samples and the prior through the six directions that
+frame does not observe: the observed part of the network's estimate (the ``u``-component of
+each row) is not used, because it *is* the seen frame again, reproduced. Counting the whole
+prior as well (``P = Pi``, "naive") counts ``M s_0`` twice; the other way to count it once,
+"exclude" (the whole prior, the seen frame's samples dropped), replaces the frame's
+per-pixel measurement of ``M s_0`` by the network's reproduction of it, which is worse (its
+error along ``u`` is 2.3-2.7 times the frame's noise variance on the first 16 samples of two
+held-out sets). Which is right is measured by coverage. ``tests/test_hybrid.py`` simulates a
+network that reproduces its frame in the observed directions: there "naive" covers 91-93 %
+within 2 sigma, the projection 95.7-96.7 % (1 to 4 states). With the shipped network
+(``python -m polrig.models.continuum``, ``benchmarks/results/continuum.md``, eight held-out
+sets), "naive" covers 1.8-4.1 points less than the projection at one state, for 0.1-0.5 dB
+more matrix PSNR (the network's reproduction of ``M s_0`` is smoothed over its neighbours and
+holds a little that the pixel's own frame does not: a calibrated model of that could earn
+it without the double count), and "exclude" is 0.3-0.8 dB worse at two states.
+
+Consequences, all tested:
+
+* **Seen state alone**: the estimate is the frame's least-squares ``M s_0`` plus the
+  prior's unobserved part, ``m_r = u u^T m_r^(data) + V V^T mu_r`` (the Frobenius error
+  splits orthogonally into the two), so it is no worse than the single-shot estimate where
+  the frame measures ``M s_0`` better than the network reproduces it.
+* **Wide prior** (``sigma -> inf``): ``P -> 0`` and the estimate, sigma, residual and masks
+  are the reference solve's (bit for bit at ``inf``, to 1e-9 relative at ``1e8`` times the
+  data's sigma).
+* **Where the frame is partly used** (saturated or bad samples of the seen state): only the
+  directions its *used* samples observe are removed from the prior, ``a_j (x) u`` for each
+  used analyzer row ``a_j``: with 3 or 4 used samples that is ``M s_0`` whole, with 1 or 2 a
+  smaller subspace (the same Schur complement over it, which couples the rows), with none
+  the prior is used whole. So no sample counts twice and none is thrown away, and a wide
+  prior tends to the reference solve at every pixel.
+* **Where there is no prior** (the network's sigma is 0 outside its object mask, or
+  infinite, or its mean is not finite), the pixel is solved from its samples alone, exactly
+  as the reference solve does (and masked ``ILL_CONDITIONED`` where they do not determine
+  ``M``, e.g. with fewer than 3 states). A NaN or negative sigma, or a non-finite mean with a
+  finite sigma, sets ``NONFINITE``.
+
+Masks and outputs are those of :class:`~polrig.solve.reference.ReferenceResult`, so
+:func:`polrig.formats.exr.result_planes` writes them unchanged: ``ILL_CONDITIONED`` for a
+pixel with a prior means its posterior is singular to working precision (a Cholesky pivot of
+the equilibrated normal matrix at or below 1e-12) or does not fit the output dtype; for a
+pixel without one, the reference solve's rule (its samples' condition number above
+``max_condition``). ``pixel_condition`` and ``condition_number`` stay the samples' own
+(``inf`` for fewer than 3 states). ``sigma`` is the posterior's (prior and noise; plus the
+calibration part with tolerances, ``G = (D^T W D + P)^-1 D^T W``), ``sigma_noise`` the same
+without the calibration part. ``n_samples`` counts the samples used.
+
+Frames to result: :func:`polrig.solve.radiometry.reference_from_frames` takes the prior
+(``prior_mean``, ``prior_sigma``, ``seen_state``) and solves band by band. The capture and
+reconstruct modes (``--mode hybrid --states ...``) are not wired yet.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from polrig.errors import ConfigError
+from polrig.solve.reference import (
+    DEFAULT_MAX_CONDITION,
+    DEFAULT_TILE_PIXELS,
+    MIN_SNR,
+    PriorInputs,
+    ReferenceResult,
+    _float_samples,
+    _solve_options,
+    solve_inputs,
+    solve_tiles,
+)
+
+__all__ = ["solve_hybrid", "unobserved_precision", "observed_direction"]
+
+
+def observed_direction(s_seen) -> np.ndarray:
+    """Unit vector ``u = s / |s|`` of a seen state's Stokes vector ``(3,)``: the direction of
+    each Mueller row that one DoFP frame of that state observes (module docstring)."""
+    s = np.asarray(s_seen, np.float64).reshape(-1)
+    if s.shape != (3,) or not np.all(np.isfinite(s)) or not np.any(s):
+        raise ConfigError(f"the seen state must be 3 finite numbers, not all 0, got {s_seen!r}")
+    return s / np.linalg.norm(s)
+
+
+def unobserved_precision(sigma_row: np.ndarray, s_seen=None) -> np.ndarray:
+    """The prior precision block ``P_r`` ``(..., 3, 3)`` of Mueller rows with per-element
+    sigma ``sigma_row`` ``(..., 3)``: ``diag(1 / sigma^2)`` (0 where sigma is 0 or inf), and
+    with a seen state ``s_seen`` whose frame is used whole,
+    ``g_r (Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u))`` (module docstring). The numpy form of
+    what the compiled kernel does, for tests and analysis."""
+    sd = np.asarray(sigma_row, np.float64)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        pi = np.where((sd > 0) & np.isfinite(sd), 1.0 / (sd * sd), 0.0)
+    pi = np.where(np.isfinite(pi), pi, 0.0)
+    p = pi[..., :, None] * np.eye(3)
+    if s_seen is None:
+        return p
+    u = observed_direction(s_seen)
+    pu = pi * u
+    c = np.sum(pu * u, axis=-1)[..., None, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = np.where(pi > 0, 1.0 / np.where(pi > 0, pi, 1.0), 0.0)
+        g = (np.sum(var * (1.0 - u * u), axis=-1) / np.sum(var, axis=-1))[..., None, None]
+        return np.where(c > 0, g * (p - pu[..., :, None] * pu[..., None, :] / np.where(c > 0, c, 1.0)), p)
+
+
+def _prior_array(x, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(x)
+    if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{name} must be a real array, got dtype {a.dtype}")
+    try:
+        a = np.broadcast_to(a, shape)
+    except ValueError:
+        raise ValueError(f"{name} shape {np.shape(x)} does not broadcast to the solve's "
+                         f"(C, 3, 3, H, W) = {shape}") from None
+    return _float_samples(a)
+
+
+def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
+                 valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
+                 prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int | None,
+                 max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
+                 analyzer_tolerance: Sequence[float] | None = None,
+                 generator_tolerance: Sequence[float] | None = None,
+                 chunk_pixels: int = DEFAULT_TILE_PIXELS, dtype=np.float32) -> ReferenceResult:
+    """Posterior Mueller block per pixel and colour from ``N >= 1`` states and a Gaussian
+    prior (module docstring).
+
+    ``s_in``, ``measured``, ``variance``, ``valid``, ``analyzer_rows`` and the keyword options
+    as :func:`polrig.solve.reference.solve_reference`, except that any ``N >= 1`` finite
+    states are accepted (their ``condition_number`` may be ``inf``; ``max_condition`` applies
+    to pixels without a prior only). ``prior_mean``, ``prior_sigma``: ``(C, 3, 3, H, W)`` (or
+    broadcastable to it), in the units of the solve (DN per unit incident S0): the
+    network's estimate and per-element standard deviation; sigma 0 or ``inf`` is no prior for
+    that element. ``seen_state``: index into ``s_in`` of the state whose frame the prior was
+    computed from (its samples are in ``measured``), or None when the prior depends on none
+    of the measured samples.
+
+    Raises :class:`polrig.errors.ConfigError` for no state, non-finite states, a
+    ``seen_state`` that is not an index of ``s_in`` (or a zero state), or a bad option, and
+    ``ValueError`` for mismatched shapes; never for bad pixel values (they are masked).
+    """
+    max_condition, min_snr, dtype, tile = _solve_options(max_condition, min_snr, dtype,
+                                                         chunk_pixels)
+    inputs = solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
+                          analyzer_tolerance, generator_tolerance, check_state_set=False)
+    n = len(inputs.s)
+    if seen_state is None:
+        seen_k, u = -1, np.zeros(3)
+    else:
+        if isinstance(seen_state, bool) or not isinstance(seen_state, (int, np.integer)) \
+                or not 0 <= int(seen_state) < n:
+            raise ConfigError(f"seen_state must be None or a state index 0..{n - 1}, "
+                              f"got {seen_state!r}")
+        seen_k = int(seen_state)
+        u = observed_direction(inputs.s[seen_k])
+    _, n_col, _, h, w = inputs.meas.shape
+    shape = (n_col, 3, 3, h, w)
+    prior = PriorInputs(_prior_array(prior_mean, "prior_mean", shape),
+                        _prior_array(prior_sigma, "prior_sigma", shape), u, seen_k)
+    return solve_tiles(inputs, analyzer_rows, max_condition, min_snr, dtype, tile, prior)
