@@ -213,8 +213,7 @@ class GrblTurntable(SerialDevice, Turntable):
         name = f"ALARM:{code}" if code != "Alarm" else "Alarm"
         message = f"{self.kind} stopped by {name}, {what}"
         if self.halted:
-            message += ("; the controller ignores every command until it is reset (the home "
-                        "command resets it first)")
+            message += "; halted until reset (the home command resets it first)"
         return DeviceAlarm(message, device=self._link.device, code=code, text=text,
                            axis=self.kind)
 

@@ -207,7 +207,7 @@ def test_hard_limit_halts_until_reset_then_home_resets_first(table, emu):
     for call in (table.position_deg, table.is_busy, lambda: table.move_to(10.0)):
         with pytest.raises(DeviceFault) as ei:
             call()
-        assert ei.value.code == 1 and "until it is reset" in str(ei.value)
+        assert ei.value.code == 1 and "halted until reset" in str(ei.value)
     assert time.monotonic() - t0 < 0.3  # no reply awaited from a controller that won't answer
     t0 = time.monotonic()
     table.home(timeout_s=5)
