@@ -138,6 +138,28 @@ def test_a_limit_fault_is_not_retried_behind_the_hal_either():
         assert lines == []
 
 
+def test_a_limit_fault_stops_the_session_resumably(tmp_path):
+    """A capture whose turntable trips a limit on the way to its second pose: the session is
+    interrupted with a one-line reason naming the home command, nothing was retried, and a
+    resume (the operator having cleared the way) completes."""
+    plan = CapturePlan((0.0, 90.0))
+    cal = processing.Calibration("ideal")
+    with open_rig(None, **SIM) as rig:
+        session = create_session(tmp_path / "s", rig, plan, calibration_id=cal.id)
+        events: list = []
+        # turntable calls of capture 0: position (hardware model), position, move_to, wait;
+        # capture 1: position, move_to <- the limit
+        rig.faults.inject_fault("turntable", "limit", after_calls=5)
+        result = run_session(rig, session, progress=events.append)
+        assert result.status == "interrupted" and "\n" not in result.reason
+        assert result.reason.startswith("safety stop:")
+        assert "`polrig home turntable`" in result.reason
+        assert not any(e.kind == "retry" for e in events)
+        assert [c["status"] for c in session.captures] == ["complete", "failed"]
+        result = run_session(rig, session)
+        assert result.status == "complete"
+
+
 def test_axes_of_one_move_turn_together():
     """Turntable 0 -> 90 deg (10 deg/s, 20 deg/s^2) and stage 0 -> 135 deg (20 deg/s,
     100 deg/s^2) in one Move take as long as the slower of the two, not their sum (the
