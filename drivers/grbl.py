@@ -24,20 +24,24 @@ makes the reported position the commanded one; with the default zero offsets bot
 Alarms (interface.md; ``doc/csv/alarm_codes_en_US.csv``): an ``ALARM:N`` line raises
 :class:`polrig.errors.DeviceAlarm` (a :class:`DeviceFault` that needs the operator: the
 acquisition engine never retries it nor homes the axis on its own) with the code and text
-wherever it is read, also when it arrived unasked between two calls; so do a controller
-locked in the Alarm state (``error:9`` for G-code, ``Alarm`` in the ``?`` report, the
-``[MSG:'$H'|'$X' to unlock]`` of a controller that came back from a reset locked). Its
-message names the alarm and ``polrig home turntable``, the command that clears it. After a hard or soft limit (``ALARM:1``/``ALARM:2``) GRBL prints
-``[MSG:Reset to continue]`` and ignores everything, ``?`` included, until a soft reset
-(grbl/grbl ``grbl/protocol.c`` ``protocol_exec_rt_system``: "Block everything ... until user
-issues reset"): every call then raises that alarm at once instead of waiting for a reply
-that cannot come, and :meth:`home` (and :meth:`unlock`) soft-reset first.
+wherever it is read, also when it arrived unasked between two calls; so do a controller locked
+in the Alarm state (``error:9`` for G-code, ``Alarm`` in the ``?`` report, the ``[MSG:'$H'|'$X'
+to unlock]`` of a controller that came back from a reset locked). Its message names the alarm,
+what it means (:data:`polrig.drivers.grbl_codes.ALARM_MEANINGS`: a hard limit is a limit switch
+that fired, something may be in the way) and ``polrig home turntable``, the command that clears
+it. After a hard or soft limit (``ALARM:1``/``ALARM:2``) GRBL prints ``[MSG:Reset to
+continue]`` and ignores everything, ``?`` included, until a soft reset (grbl/grbl
+``grbl/protocol.c`` ``protocol_exec_rt_system``: "Block everything ... until user issues
+reset"; the wait loop's body is empty, so no status report is printed either): every call then
+raises that alarm at once instead of waiting for a reply that cannot come, and :meth:`home`
+(and :meth:`unlock`) soft-reset first.
 
 A motion suspended by a feed hold or an open safety door (states ``Hold`` and ``Door``,
 interface.md) has not ended: :meth:`wait` keeps waiting, because GRBL resumes it on cycle
 start (``~``) once the operator allows, and at its deadline the timeout names the state. A
-controller that cannot move at all raises at once: asleep (``Sleep``: only a reset wakes it, locked in
-Alarm) a :class:`polrig.errors.DeviceAlarm`, check mode (``Check``) a :class:`DeviceFault`.
+controller that cannot move at all raises at once: asleep (``Sleep``: only a reset wakes it,
+locked in Alarm) a :class:`polrig.errors.DeviceAlarm`, check mode (``Check``) a
+:class:`DeviceFault`.
 
 Capabilities (:attr:`GrblTurntable.capabilities`, read on open with ``$$``, commands.md
 "Grbl Settings"): for the configured axis, number ``k`` of ``axes``, its maximum rate

@@ -21,18 +21,19 @@ the travel negated; system.c ``system_check_travel_limits`` without
 
 Faults: see :mod:`polrig.drivers.emulators._pty`; ``error_mid_move`` and ``hard_limit`` trip a
 hard limit half way through the next motion (``ALARM:1``, motion aborted, position lost:
-re-home); :attr:`obstacle` puts something in the way of one axis (a motion reaching it
-stops there with ``ALARM:1``, until it is taken away); ``soft_limit`` makes the next G-code motion a soft-limit alarm (``ALARM:2``, before
-any motion, as if its target were beyond the travel); :meth:`trip_hard_limit` closes a limit
-switch now, whatever runs (grbl/grbl ``grbl/limits.c``: the pin-change interrupt kills the
-motion and raises the hard-limit alarm unless already in Alarm). With soft limits on, a
-target outside the travel raises ``ALARM:2`` before any motion, as GRBL 1.1 does. Both are
-critical alarms: like grbl/grbl ``grbl/protocol.c`` (``protocol_exec_rt_system``) the
-controller prints ``ALARM:N`` then ``[MSG:Reset to continue]`` and then ignores every
-byte, ``?`` included (the wait loop there has an empty body: no status report is printed),
-until a soft reset (0x18); it comes back with the banner and ``[MSG:'$H'|'$X' to unlock]``,
-locked in the Alarm state: ``<Alarm|...>`` reports, G-code answered ``error:9``, until
-``$H`` (homing) or ``$X`` (unlock). Alarm codes: ``doc/csv/alarm_codes_en_US.csv``.
+re-home); :attr:`obstacle` puts something in the way of one axis (a motion reaching it stops
+there with ``ALARM:1``, until it is taken away); ``soft_limit`` makes the next G-code motion a
+soft-limit alarm (``ALARM:2``, before any motion, as if its target were beyond the travel);
+:meth:`trip_hard_limit` closes a limit switch now, whatever runs (grbl/grbl ``grbl/limits.c``:
+the pin-change interrupt kills the motion and raises the hard-limit alarm unless already in
+Alarm). With soft limits on, a target outside the travel raises ``ALARM:2`` before any motion,
+as GRBL 1.1 does. Both are critical alarms: like grbl/grbl ``grbl/protocol.c``
+(``protocol_exec_rt_system``) the controller prints ``ALARM:N`` then ``[MSG:Reset to
+continue]`` and then ignores every byte, ``?`` included (the wait loop there has an empty body:
+no status report is printed), until a soft reset (0x18); it comes back with the banner and
+``[MSG:'$H'|'$X' to unlock]``, locked in the Alarm state: ``<Alarm|...>`` reports, G-code
+answered ``error:9``, until ``$H`` (homing) or ``$X`` (unlock). Alarm codes:
+``doc/csv/alarm_codes_en_US.csv``.
 
 The controller's input pins (GRBL 1.1 cpu_map: feed hold, cycle start, safety door), as an
 operator would use them: :meth:`press_feed_hold` (state ``Hold:0``, the motion suspended),

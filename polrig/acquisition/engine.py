@@ -17,14 +17,14 @@ procedures use it alike, the latter through :class:`GuardedRig`):
 * a move that times out, faults or gets a garbled reply (:class:`ProtocolError`: line noise
   leaves the position unknown) is retried once after homing the axis (homing is the
   documented recovery of the ELL14/K10CR1 stages and loses no data); a second failure is
-  raised; a disconnection is never retried;
+  raised; a disconnection is never retried. Each move's timeout comes from its axis's
+  :meth:`polrig.acquisition.hal.RotationStage.calculate_timeout` for the distance it has to go;
 * a safety fault (:class:`polrig.errors.DeviceAlarm`: a limit switch fired, a soft limit, a
   controller locked in its alarm state, issue 33 item 5) is never retried and the axis is
   never homed on its own: a limit switch that fired means something may be in the way. The
   other axes of the move are let finish (nothing is left moving unattended), nothing else
   is started, and the alarm is raised; its message names the command that clears it
-  (``polrig home turntable``), which the operator runs once the cause is cleared. Each move's timeout comes from its axis's
-  :meth:`polrig.acquisition.hal.RotationStage.calculate_timeout` for the distance it has to go;
+  (``polrig home turntable``), which the operator runs once the cause is cleared;
 * axes named in one :class:`polrig.acquisition.plan.Move` are started together (``wait=False``) and then
   waited on, each with its own timeout;
 * in free run (a camera without software trigger) the first
