@@ -55,6 +55,10 @@ ALARMS = {
     8: "Homing fail: pull-off failed to clear limit switch",
     9: "Homing fail: could not find limit switch",
 }
+#: Checked against grbl/grbl ``doc/csv/alarm_codes_en_US.csv`` (commit 5e3048f): 1 hard limit,
+#: 2 soft limit, 3 abort during cycle (reset while in motion), 4-5 probe fail, 6-9 homing fail
+#: (reset, door, pull-off, switch not found); ``report.c`` prints MESSAGE_CRITICAL_EVENT and
+#: MESSAGE_ALARM_LOCK as below (GRBL 1.1 puts them in ``[MSG:...]``).
 #: What each alarm means for the rig, in the operator's words (the message of the
 #: :class:`polrig.errors.DeviceAlarm` the driver raises). Every GRBL alarm locks the
 #: controller (G-code answered ``error:9``) until ``$H`` homes it or ``$X`` unlocks it
