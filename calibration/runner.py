@@ -164,10 +164,11 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
 
     The procedures drive ``rig`` through :class:`polrig.acquisition.engine.GuardedRig`: every grab,
     camera setting, light switch and move goes through the same fault policy as a capture
-    (:class:`polrig.acquisition.engine.Executor`: retried grab timeouts, one re-homed retry per move,
-    timeouts from the declared capabilities, free-run settle frames; each retry is a ``log``
-    line), and ``control`` (a :class:`polrig.acquisition.engine.CaptureControl`) pauses or stops them
-    before a grab or a move (:class:`polrig.acquisition.engine.StopRequested`).
+    (:class:`polrig.acquisition.engine.Executor`: retried grab timeouts, one re-homed retry per move
+    but none after a safety fault such as a limit switch, timeouts from the declared
+    capabilities, free-run settle frames; each retry is a ``log`` line), and ``control`` (a
+    :class:`polrig.acquisition.engine.CaptureControl`) pauses or stops them before a grab or a
+    move (:class:`polrig.acquisition.engine.StopRequested`).
 
     Before anything moves, a set calibrated on another camera readout is refused
     (:func:`check_set_fits_camera`, ``set_name`` names it). After each step, the results of

@@ -22,18 +22,26 @@ active work coordinate system, so with a work offset set (``G10``/``G92``) only 
 makes the reported position the commanded one; with the default zero offsets both agree.
 
 Alarms (interface.md; ``doc/csv/alarm_codes_en_US.csv``): an ``ALARM:N`` line raises
-:class:`DeviceFault` with the code and text wherever it is read, also when it arrived
-unasked between two calls. After a hard or soft limit (``ALARM:1``/``ALARM:2``) GRBL prints
-``[MSG:Reset to continue]`` and ignores everything, ``?`` included, until a soft reset
-(grbl/grbl ``grbl/protocol.c`` ``protocol_exec_rt_system``: "Block everything ... until user
-issues reset"): every call then raises that alarm at once instead of waiting for a reply
-that cannot come, and :meth:`home` (and :meth:`unlock`) soft-reset first.
+:class:`polrig.errors.DeviceAlarm` (a :class:`DeviceFault` that needs the operator: the
+acquisition engine never retries it nor homes the axis on its own) with the code and text
+wherever it is read, also when it arrived unasked between two calls; so do a controller locked
+in the Alarm state (``error:9`` for G-code, ``Alarm`` in the ``?`` report, the ``[MSG:'$H'|'$X'
+to unlock]`` of a controller that came back from a reset locked). Its message names the alarm,
+what it means (:data:`polrig.drivers.grbl_codes.ALARM_MEANINGS`: a hard limit is a limit switch
+that fired, something may be in the way) and ``polrig home turntable``, the command that clears
+it. After a hard or soft limit (``ALARM:1``/``ALARM:2``) GRBL prints ``[MSG:Reset to
+continue]`` and ignores everything, ``?`` included, until a soft reset (grbl/grbl
+``grbl/protocol.c`` ``protocol_exec_rt_system``: "Block everything ... until user issues
+reset"; the wait loop's body is empty, so no status report is printed either): every call then
+raises that alarm at once instead of waiting for a reply that cannot come, and :meth:`home`
+(and :meth:`unlock`) soft-reset first.
 
 A motion suspended by a feed hold or an open safety door (states ``Hold`` and ``Door``,
 interface.md) has not ended: :meth:`wait` keeps waiting, because GRBL resumes it on cycle
 start (``~``) once the operator allows, and at its deadline the timeout names the state. A
-controller that cannot move at all (``Sleep``, check mode ``Check``) raises
-:class:`DeviceFault` at once.
+controller that cannot move at all raises at once: asleep (``Sleep``: only a reset wakes it,
+locked in Alarm) a :class:`polrig.errors.DeviceAlarm`, check mode (``Check``) a
+:class:`DeviceFault`.
 
 Capabilities (:attr:`GrblTurntable.capabilities`, read on open with ``$$``, commands.md
 "Grbl Settings"): for the configured axis, number ``k`` of ``axes``, its maximum rate
@@ -54,13 +62,21 @@ import time
 from polrig.acquisition.hal import AxisCapabilities, DeviceInfo, Turntable
 from polrig.drivers._serial import SerialDevice, SerialLink
 from polrig.drivers.grbl_codes import (
+    ALARM_MEANINGS,
     ALARMS,
     CRITICAL_ALARMS,
     CRITICAL_MESSAGE,
     ERRORS,
+    LOCK_MESSAGE,
     SUBSTATES,
 )
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.errors import (
+    DeviceAlarm,
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 BAUDRATE = 115200
 SOFT_RESET = b"\x18"
@@ -192,25 +208,42 @@ class GrblTurntable(SerialDevice, Turntable):
             self.halted = True
         return self._alarm_fault()
 
-    def _alarm_fault(self) -> DeviceFault:
+    def _alarm_fault(self) -> DeviceAlarm:
+        """The :class:`DeviceAlarm` of the alarm recorded last (or of the Alarm lock)."""
         code = self.last_alarm if self.last_alarm is not None else "Alarm"
         text = ALARMS.get(code, "controller locked in the Alarm state")
+        what = ALARM_MEANINGS.get(code, "locked in the Alarm state (power-up, reset or an "
+                                        "earlier alarm): the position is unknown")
+        name = f"ALARM:{code}" if code != "Alarm" else "Alarm"
+        message = f"{self.kind} stopped by {name}, {what}"
         if self.halted:
-            return DeviceFault("halted by an alarm: the controller ignores every command until "
-                               "it is reset (`polrig home turntable` resets and homes it)",
-                               device=self._link.device, code=code, text=text)
-        return DeviceFault("alarm (home the turntable: polrig home turntable)",
-                           device=self._link.device, code=code, text=text)
+            message += "; halted until reset (the home command resets it first)"
+        return DeviceAlarm(message, device=self._link.device, code=code, text=text,
+                           axis=self.kind)
+
+    def _locked(self, message: str, code: int | str | None = None,
+                text: str | None = None) -> DeviceAlarm:
+        """A controller found locked (``message`` says how): in the Alarm state, or asleep
+        (the state stays ``Sleep``: :meth:`home` resets it first)."""
+        if self.state != "Sleep":
+            self.state = "Alarm"
+        return DeviceAlarm(f"{self.kind} {message}", device=self._link.device, code=code,
+                           text=text, axis=self.kind)
 
     def _reset_seen(self, banner: str, during: str) -> DeviceFault:
         """A ``Grbl 1.1x`` banner nobody asked for: the controller was reset (power, USB
         re-enumeration toggling DTR, the reset button); whatever it was doing is gone."""
         self.halted = False
         self.state = ""
-        self._resync()  # the [MSG:...] lines that follow the banner
-        return DeviceFault(f"controller reset during {during} (power, USB or reset button); "
-                           "the command was not carried out and any motion was aborted",
-                           device=self._link.device, code="reset", text=banner.strip())
+        time.sleep(0.05)
+        after = self._link.discard_input()  # the [MSG:...] lines that follow the banner
+        message = (f"controller reset during {during} (power, USB or reset button); the "
+                   "command was not carried out and any motion was aborted")
+        if LOCK_MESSAGE.encode() in after:
+            return self._locked(f"stopped: {message}; it came back locked in the Alarm state, "
+                                "the position is unknown", code="reset", text=banner.strip())
+        return DeviceFault(message, device=self._link.device, code="reset",
+                           text=banner.strip())
 
     def _drain_pending(self, *, raise_alarm: bool = True) -> None:
         """Read what arrived unasked (late replies of a timed-out command, pushed messages)
@@ -218,6 +251,7 @@ class GrblTurntable(SerialDevice, Turntable):
         (``raise_alarm``; always recorded); while the controller is halted after a critical
         alarm the halt is raised, since GRBL would not answer anything but a reset."""
         alarm = banner = None
+        locked = False
         if self._link.in_waiting():
             time.sleep(0.01)
             for raw in self._link.discard_input().split(b"\n"):
@@ -228,11 +262,18 @@ class GrblTurntable(SerialDevice, Turntable):
                     self.halted = True
                 elif line.startswith("Grbl "):
                     self.halted = False  # someone reset it: the halt is over
-                    self.state, banner = "", line
+                    self.state, banner, locked = "", line, False
+                elif line == LOCK_MESSAGE and banner is not None:
+                    locked = True
         if not raise_alarm:
             return
         if alarm is not None:
             raise alarm
+        if banner is not None and locked:
+            raise self._locked("stopped: the controller was reset (power, USB or reset "
+                               "button), any motion was aborted; it came back locked in the "
+                               "Alarm state, the position is unknown", code="reset",
+                               text=banner)
         if banner is not None:
             raise DeviceFault("controller was reset (power, USB or reset button); any motion "
                               "was aborted", device=self._link.device, code="reset",
@@ -342,9 +383,9 @@ class GrblTurntable(SerialDevice, Turntable):
         base = st.split(":")[0]
         if base == "Alarm":
             raise self._alarm_fault()
-        if base == "Sleep":
-            raise DeviceFault("controller is asleep ($SLP): nothing moves until it is reset",
-                              device=self._link.device, code=st, text="sleep mode")
+        if base == "Sleep":  # only a reset ends it, and GRBL comes back locked in Alarm
+            raise self._locked("controller is asleep ($SLP): nothing moves until it is reset",
+                               code=st, text="sleep mode")
         if base == "Check":
             raise DeviceFault("controller is in check mode ($C): G-code is checked, nothing "
                               "moves (send $C again to leave it)", device=self._link.device,
@@ -412,10 +453,14 @@ class GrblTurntable(SerialDevice, Turntable):
         try:
             self._command(line)
         except DeviceFault as exc:
-            if exc.code == 9:  # G-code locked out: Alarm state after power-up, reset or limit
-                raise DeviceFault("turntable is locked in the Alarm state (run `polrig home "
-                                  "turntable`)", device=self._link.device, code=9,
-                                  text=exc.text) from None
+            if exc.code == 9 and not isinstance(exc, DeviceAlarm):
+                # G-code locked out: the Alarm state after power-up, a reset or an alarm
+                code = self.last_alarm
+                what = (f"ALARM:{code}, {ALARM_MEANINGS[code]}" if code in ALARM_MEANINGS
+                        else "power-up, a reset or an earlier alarm: the position is unknown")
+                raise self._locked(f"is locked in the Alarm state ({what}); the move to "
+                                   f"{angle_deg:g} deg was refused", code=9,
+                                   text=exc.text) from None
             raise
         if wait:
             self.wait(timeout_s)

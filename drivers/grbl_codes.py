@@ -55,6 +55,35 @@ ALARMS = {
     8: "Homing fail: pull-off failed to clear limit switch",
     9: "Homing fail: could not find limit switch",
 }
+#: Checked against grbl/grbl ``doc/csv/alarm_codes_en_US.csv`` (commit 5e3048f): 1 hard limit,
+#: 2 soft limit, 3 abort during cycle (reset while in motion), 4-5 probe fail, 6-9 homing fail
+#: (reset, door, pull-off, switch not found); ``report.c`` prints MESSAGE_CRITICAL_EVENT and
+#: MESSAGE_ALARM_LOCK as below (GRBL 1.1 puts them in ``[MSG:...]``).
+#: What each alarm means for the rig, in the operator's words (the message of the
+#: :class:`polrig.errors.DeviceAlarm` the driver raises). Every GRBL alarm locks the
+#: controller (G-code answered ``error:9``) until ``$H`` homes it or ``$X`` unlocks it
+#: (interface.md, "Alarm messages"; ``[MSG:'$H'|'$X' to unlock]``); after a hard limit, a
+#: reset in motion or a failed homing the position is lost and homing is the safe route
+#: (alarm_codes_en_US.csv: "Re-homing is highly recommended").
+ALARM_MEANINGS = {
+    1: "hard limit: a limit switch fired, something may be in the way; the motion stopped "
+       "at once and the position is lost",
+    2: "soft limit: a move's target was beyond the machine travel; nothing moved",
+    3: "reset during a motion: the position is lost",
+    4: "probe failed: the probe was not in its expected state",
+    5: "probe failed: no contact within the programmed travel",
+    6: "homing failed: the homing cycle was reset",
+    7: "homing failed: the safety door was opened during homing",
+    8: "homing failed: the pull-off did not clear the limit switch",
+    9: "homing failed: no limit switch found within the search distance",
+}
+#: The ``$N`` alarm names of GRBL 1.0 and earlier ("Alarm Message in v1.0-" column).
+ALARM_NAMES = {1: "Hard limit", 2: "Soft limit", 3: "Abort during cycle", 4: "Probe fail",
+               5: "Probe fail", 6: "Homing fail", 7: "Homing fail", 8: "Homing fail",
+               9: "Homing fail"}
+#: ``report.c`` MESSAGE_ALARM_LOCK: printed after the banner when the controller comes up
+#: (power-up with homing enabled, a reset out of an alarm) locked in the Alarm state.
+LOCK_MESSAGE = "[MSG:'$H'|'$X' to unlock]"
 #: Alarms after which GRBL 1.1 halts until a soft reset: protocol.c
 #: ``protocol_exec_rt_system`` reports the alarm, prints ``[MSG:Reset to continue]`` and
 #: blocks everything, status reports included, until the user issues a reset (0x18) -

@@ -36,7 +36,11 @@ class DeviceTimeout(DeviceError):
 
 
 class DeviceFault(DeviceError):
-    """The device reported an error of its own; ``code`` and ``text`` are the device's."""
+    """The device reported an error of its own; ``code`` and ``text`` are the device's.
+    ``requires_operator``: a safety fault (:class:`DeviceAlarm`) rather than one the fault
+    policy may retry."""
+
+    requires_operator = False
 
     def __init__(self, message: str, *, device: str | None = None,
                  code: int | str | None = None, text: str | None = None):
@@ -44,6 +48,39 @@ class DeviceFault(DeviceError):
         self.text = text
         detail = f" (device error {code}: {text})" if code is not None else ""
         super().__init__(message + detail, device=device)
+
+
+class DeviceAlarm(DeviceFault):
+    """A safety fault: the device stopped itself (a limit switch fired, a soft limit, a
+    controller locked in its alarm state) and must not be driven on without the operator. A
+    limit switch that fired means something may be in the way. The acquisition engine never
+    retries it and never re-homes the axis on its own (:mod:`polrig.acquisition.engine`): it
+    stops and reports. ``axis`` is the rig's device (``"turntable"``), ``command`` the
+    command line the operator runs once the cause is cleared (``polrig home turntable``:
+    :meth:`command_for` adds the rig file); ``code``/``text`` are the device's alarm."""
+
+    requires_operator = True
+
+    def __init__(self, message: str, *, device: str | None = None,
+                 code: int | str | None = None, text: str | None = None,
+                 axis: str = "turntable", command: str | None = None):
+        self.axis = axis
+        self.command = command or f"polrig home {axis}"
+        self.reason = message
+        super().__init__(f"{message}; clear the cause, then run `{self.command}`",
+                         device=device, code=code, text=text)
+
+    def command_for(self, config: object | None = None) -> str:
+        """:attr:`command`, with ``--config CONFIG`` when the rig came from a file."""
+        return f"{self.command} --config {config}" if config else self.command
+
+    def operator_message(self, config: object | None = None) -> str:
+        """One line for the operator: what stopped, the device's alarm, and the command (with
+        the rig file ``config``) that clears it."""
+        detail = f" (device error {self.code}: {self.text})" if self.code is not None else ""
+        where = f"{self.device}: " if self.device else ""
+        return (f"{where}{self.reason}{detail}; clear the cause, then run "
+                f"`{self.command_for(config)}`")
 
 
 class ProtocolError(DeviceError):

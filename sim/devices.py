@@ -27,6 +27,7 @@ from polrig.acquisition import hal
 from polrig.acquisition.hal import DeviceInfo
 from polrig.errors import (
     ConfigError,
+    DeviceAlarm,
     DeviceDisconnected,
     DeviceFault,
     DeviceTimeout,
@@ -39,7 +40,7 @@ from polrig.sim.motion import Move
 from polrig.sim.truth import SimTruth
 from polrig.sim.world import SimWorld
 
-FAULT_KINDS = ("timeout", "fault", "disconnect", "protocol")
+FAULT_KINDS = ("timeout", "fault", "disconnect", "protocol", "limit")
 DEVICE_KINDS = ("camera", "stage", "turntable", "light")
 
 
@@ -133,6 +134,10 @@ class _SimDevice:
                               text="simulated device fault")
         if fault == "protocol":
             raise ProtocolError(f"{op}: garbled reply (simulated)", device=self._name)
+        if fault == "limit":
+            raise DeviceAlarm(f"{self.kind} stopped by a limit switch (simulated): something "
+                              "may be in the way", device=self._name, code=1,
+                              text="simulated hard limit", axis=self.kind)
         self._open = False
         raise DeviceDisconnected(f"{op}: connection lost (simulated)", device=self._name)
 
@@ -454,7 +459,8 @@ class SimRig:
         """Make call number ``after_calls + 1`` (counting from now) of the ``device_kind``
         device (``camera``, ``stage``, ``turntable``, ``light``) raise: ``timeout`` ->
         :class:`DeviceTimeout`, ``fault`` -> :class:`DeviceFault` (code 13), ``protocol`` ->
-        :class:`ProtocolError`, ``disconnect`` -> :class:`DeviceDisconnected` (and the device
+        :class:`ProtocolError`, ``limit`` -> :class:`polrig.errors.DeviceAlarm` (a limit switch
+        fired: a safety fault), ``disconnect`` -> :class:`DeviceDisconnected` (and the device
         stays closed until :meth:`open`). Every HAL call except ``open``, ``close``,
         ``info``, ``is_open`` and the camera's read-only properties counts."""
         self.faults.inject_fault(device_kind, kind, after_calls)

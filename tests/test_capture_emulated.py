@@ -10,6 +10,12 @@ and sidecars written, the reference solve in ADC DN, a Mueller EXR per pose. The
 pattern is a white frame (code 255, the top of the 8-bit format) with a black square moving
 with the frame number: white samples are clipped and must be masked as saturated, which
 the 12-bit saturation threshold alone (4095 - 5 sigma) would not do at 255 * 16 = 4080 DN.
+
+GRBL starts locked in its Alarm state (homing enabled) and the capture never homes it on its
+own (issue 33 item 5): the operator runs ``polrig home turntable --config ...`` first, as the
+rig file says. A limit switch that fires during a capture (something in the way of the
+turntable) stops it with one line naming that command; after the operator clears the way and
+runs it, ``polrig capture --resume`` completes.
 """
 
 from __future__ import annotations
@@ -53,10 +59,17 @@ def emulated_rig_ports():
             yield ell, grbl
 
 
+def home_turntable(capsys) -> None:
+    """The operator's command: ``polrig home turntable --config rig-emulated.toml``."""
+    assert main(["home", "turntable", "--config", str(CONFIG)]) == 0
+    assert "turntable: homed" in capsys.readouterr().out
+
+
 def test_reference_capture_on_the_emulated_rig(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("GENICAM_GENTL64_PATH", os.path.dirname(genicam.__file__))
     out = tmp_path / "session"
     with emulated_rig_ports() as (ell, grbl):
+        home_turntable(capsys)
         code = main(["capture", "--poses", "0,90", "--mode", "reference",
                      "--config", str(CONFIG), "--out", str(out)])
         said = capsys.readouterr()
@@ -98,6 +111,58 @@ def test_reference_capture_on_the_emulated_rig(tmp_path, monkeypatch, capsys):
         assert all_clipped.mean() > 0.9  # the white test pattern
         assert (mask[all_clipped] & SATURATED).all()
         assert not (mask[~any_clipped] & SATURATED).any()
+
+
+def test_a_limit_switch_stops_the_capture_until_the_operator_homes(tmp_path, monkeypatch,
+                                                                  capsys):
+    """Something in the way of the turntable between pose 0 and pose 90: the limit switch
+    fires (ALARM:1) on the way to 90; the capture stops with one line naming the home command
+    and the resume, the session interrupted, capture 0 intact; no $H from the capture, nor
+    from a resume tried before the operator homed (it stops again at once); the operator
+    clears the way and homes it, and the resume completes."""
+    monkeypatch.setenv("GENICAM_GENTL64_PATH", os.path.dirname(genicam.__file__))
+    out = tmp_path / "session"
+    home_cmd = f"polrig home turntable --config {CONFIG}"
+    with emulated_rig_ports() as (ell, grbl):
+        home_turntable(capsys)
+        grbl.obstacle = ("A", 45.0)
+        sent = len(grbl.received)
+        code = main(["capture", "--poses", "0,90", "--mode", "reference", "--no-progress",
+                     "--config", str(CONFIG), "--out", str(out)])
+        said = capsys.readouterr()
+        assert code == 1, said.err
+        stop = [ln for ln in said.err.splitlines() if ln.startswith("polrig: error:")]
+        assert len(stop) == 1, said.err  # one line says it all
+        assert f"`{home_cmd}`" in stop[0] and "ALARM:1" in stop[0]
+        assert "something may be in the way" in stop[0]
+        assert stop[0].endswith(f"polrig capture --out {out} --resume --config {CONFIG}")
+        assert b"$H" not in grbl.received[sent:]
+        assert grbl.axis_position("A") == pytest.approx(45.0) and grbl.critical
+        manifest = json.loads((out / "session.json").read_text())
+        assert manifest["status"] == "interrupted"
+        assert home_cmd in manifest["status_reason"]
+        assert [c["status"] for c in manifest["captures"]] == ["complete", "failed"]
+
+        # resumed before the operator homed: stopped again at once, still no $H
+        sent = len(grbl.received)
+        assert main(["capture", "--out", str(out), "--resume", "--config", str(CONFIG),
+                     "--no-progress"]) == 1
+        assert home_cmd in capsys.readouterr().err
+        assert b"$H" not in grbl.received[sent:]
+
+        grbl.obstacle = None  # the operator clears the way,
+        home_turntable(capsys)  # homes the turntable,
+        sent = len(grbl.received)
+        code = main(["capture", "--out", str(out), "--resume", "--config", str(CONFIG)])
+        said = capsys.readouterr()
+        assert code == 0, said.err
+        assert b"$H" not in grbl.received[sent:]
+        assert grbl.axis_position("A") == pytest.approx(90.0, abs=1e-3)
+    assert f"session complete: 2 captures in {out}" in said.out
+    manifest = json.loads((out / "session.json").read_text())
+    assert manifest["status"] == "complete"
+    assert all(c["status"] == "complete" for c in manifest["captures"])
+    assert (out / manifest["captures"][1]["name"] / "mueller.exr").is_file()
 
 
 # -- Mono8 of a 12-bit ADC through the radiometry: clipping and rounding ------------------

@@ -31,7 +31,13 @@ from polrig.acquisition.plan import (
 from polrig.app import processing
 from polrig.app.capture import CapturePlan, create_session, run_session
 from polrig.app.rig import open_rig
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.errors import (
+    DeviceAlarm,
+    DeviceDisconnected,
+    DeviceFault,
+    DeviceTimeout,
+    ProtocolError,
+)
 from polrig.sim.devices import SimCamera
 
 SIM = {"size": (32, 32), "clock_speed": math.inf, "seed": 3}
@@ -89,6 +95,69 @@ def test_a_disconnection_is_never_retried():
         with pytest.raises(DeviceDisconnected):
             ex.execute(Move((("turntable", 30.0), ("stage", 45.0))))
         assert not [e for e in seen if isinstance(e, Retried)]
+
+
+@pytest.mark.parametrize("when", ["start", "wait"])
+def test_a_limit_fault_is_never_retried_nor_re_homed(when):
+    """Issue 33 item 5: a limit switch that fired (DeviceAlarm) stops the move: no retry, no
+    homing of the axis on its own, nothing more started; the stage already moving in the
+    same Move finishes its move first. The alarm names the command that clears it."""
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig)
+        seen = events_of(ex)
+        homed: list[str] = []
+        for name in ("stage", "turntable"):
+            real = rig.devices[name].home
+            rig.devices[name].home = (lambda real, name: lambda *a, **k: (
+                homed.append(name), real(*a, **k)))(real, name)
+        # turntable calls: position, move_to, wait
+        rig.faults.inject_fault("turntable", "limit",
+                                after_calls={"start": 1, "wait": 2}[when])
+        with pytest.raises(DeviceAlarm) as ei:
+            ex.execute(Move((("stage", 45.0), ("turntable", 30.0))))
+        assert ei.value.requires_operator and ei.value.axis == "turntable"
+        assert "polrig home turntable" in str(ei.value)
+        assert ei.value.command_for("rig.toml") == "polrig home turntable --config rig.toml"
+        assert not [e for e in seen if isinstance(e, Retried)]
+        assert homed == []
+        assert rig.stage.position_deg() == pytest.approx(45.0)  # let finish, not abandoned
+        # a plain fault of the same axis keeps its one re-homed retry
+        rig.faults.inject_fault("turntable", "fault", after_calls=1)
+        ex.execute(Move((("turntable", 30.0),)))
+        assert homed == ["turntable"] and rig.turntable.position_deg() == pytest.approx(30.0)
+
+
+def test_a_limit_fault_is_not_retried_behind_the_hal_either():
+    """GuardedRig (calibration procedures): the same policy, the alarm raised at once."""
+    with open_rig(None, **SIM) as rig:
+        lines: list[str] = []
+        guarded = GuardedRig.around(rig, on_retry=lines.append)
+        rig.faults.inject_fault("turntable", "limit", after_calls=1)
+        with pytest.raises(DeviceAlarm, match="limit switch"):
+            guarded.turntable.move_to(60.0)
+        assert lines == []
+
+
+def test_a_limit_fault_stops_the_session_resumably(tmp_path):
+    """A capture whose turntable trips a limit on the way to its second pose: the session is
+    interrupted with a one-line reason naming the home command, nothing was retried, and a
+    resume (the operator having cleared the way) completes."""
+    plan = CapturePlan((0.0, 90.0))
+    cal = processing.Calibration("ideal")
+    with open_rig(None, **SIM) as rig:
+        session = create_session(tmp_path / "s", rig, plan, calibration_id=cal.id)
+        events: list = []
+        # turntable calls of capture 0: position (hardware model), position, move_to, wait;
+        # capture 1: position, move_to <- the limit
+        rig.faults.inject_fault("turntable", "limit", after_calls=5)
+        result = run_session(rig, session, progress=events.append)
+        assert result.status == "interrupted" and "\n" not in result.reason
+        assert result.reason.startswith("safety stop:")
+        assert "`polrig home turntable`" in result.reason
+        assert not any(e.kind == "retry" for e in events)
+        assert [c["status"] for c in session.captures] == ["complete", "failed"]
+        result = run_session(rig, session)
+        assert result.status == "complete"
 
 
 def test_axes_of_one_move_turn_together():

@@ -66,6 +66,8 @@ def test_move_turntable_grbl(tmp_path, capsys):
         cfg = config(tmp_path, f'[turntable]\ndriver = "grbl"\nport = "{emu.port}"\naxis = "A"\n')
         rc, _, err = run(capsys, "move", "turntable", "45", "--config", cfg)
         assert rc == 1 and ("alarm" in err.lower() or "error 9" in err)
+        # one line naming the command that clears it, with this rig file
+        assert err.count("\n") == 1 and f"`polrig home turntable --config {cfg}`" in err
         assert run(capsys, "home", "turntable", "--config", cfg)[0] == 0
         rc, out, err = run(capsys, "move", "turntable", "45", "--config", cfg)
         assert rc == 0, err

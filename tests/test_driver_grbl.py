@@ -10,6 +10,7 @@ import serial
 from polrig.drivers.emulators.grbl import GrblEmulator
 from polrig.drivers.grbl import GrblTurntable
 from polrig.errors import (
+    DeviceAlarm,
     DeviceDisconnected,
     DeviceFault,
     DeviceNotFound,
@@ -34,9 +35,11 @@ def table(emu):
 
 def test_starts_locked_homes_and_moves(table, emu):
     assert table.info().firmware.startswith("Grbl 1.1")
-    with pytest.raises(DeviceFault) as ei:
+    with pytest.raises(DeviceAlarm) as ei:
         table.move_to(45.0)
     assert ei.value.code == 9  # G-code locked out in alarm
+    assert ei.value.requires_operator and ei.value.axis == "turntable"
+    assert "run `polrig home turntable`" in str(ei.value)
     table.home(timeout_s=5)
     table.move_to(45.0, timeout_s=5)
     assert emu.axis_position("A") == pytest.approx(45.0, abs=1e-3)
@@ -85,9 +88,11 @@ def test_reset_while_moving_raises_alarm(table, emu):
 def test_error_mid_move_alarm_then_rehome(table, emu):
     table.home(timeout_s=5)
     emu.inject("error_mid_move")
-    with pytest.raises(DeviceFault) as ei:
+    with pytest.raises(DeviceAlarm) as ei:
         table.move_to(90.0, timeout_s=5)
     assert ei.value.code == 1 and "Hard limit" in ei.value.text
+    assert "limit switch fired, something may be in the way" in str(ei.value)
+    assert ei.value.command_for("rig.toml") == "polrig home turntable --config rig.toml"
     assert 0 < emu.axis_position() < 90
     with pytest.raises(DeviceFault):
         table.move_to(90.0)
@@ -155,9 +160,10 @@ def test_soft_limit_alarm(tmp_path):
     with GrblEmulator(link=tmp_path / "g", speed_factor=20, max_travel=720.0) as emu, \
             GrblTurntable(emu.port, reply_timeout_s=0.5, poll_s=0.01) as t:
         t.home(timeout_s=5)
-        with pytest.raises(DeviceFault) as ei:
+        with pytest.raises(DeviceAlarm) as ei:
             t.move_to(400.0)
         assert ei.value.code == 2 and "Soft limit" in ei.value.text
+        assert "ALARM:2, soft limit" in str(ei.value)
         assert emu.axis_position() == 0.0
         t.home(timeout_s=5)
         t.move_to(-90.0, timeout_s=5)
@@ -207,7 +213,7 @@ def test_hard_limit_halts_until_reset_then_home_resets_first(table, emu):
     for call in (table.position_deg, table.is_busy, lambda: table.move_to(10.0)):
         with pytest.raises(DeviceFault) as ei:
             call()
-        assert ei.value.code == 1 and "until it is reset" in str(ei.value)
+        assert ei.value.code == 1 and "halted until reset" in str(ei.value)
     assert time.monotonic() - t0 < 0.3  # no reply awaited from a controller that won't answer
     t0 = time.monotonic()
     table.home(timeout_s=5)
@@ -344,7 +350,7 @@ def test_controller_reset_during_a_command(table, emu):
     with pytest.raises(DeviceFault, match="controller reset during 'G90 G0 A10.0000'"):
         table.move_to(10.0)
     assert time.monotonic() - t0 < 0.4
-    with pytest.raises(DeviceFault, match="Alarm"):
+    with pytest.raises(DeviceAlarm, match="Alarm"):
         table.move_to(10.0)  # came back locked (homing enabled)
     table.home(timeout_s=5)
     table.move_to(10.0, timeout_s=5)

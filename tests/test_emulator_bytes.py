@@ -167,6 +167,63 @@ def test_grbl_limit_alarm_blocks_everything_until_reset():
         assert lines(ser, 1) == [b"<Alarm|MPos:0.000,0.000,0.000,0.000|FS:0,0>\r\n"]
 
 
+def test_grbl_injected_limits_speak_grbls_bytes():
+    """Issue 33 item 5: the emulator trips a hard limit (injected mid-move, an obstacle in
+    the way, a switch closed now) and a soft limit on demand, with GRBL 1.1's bytes
+    (alarm_codes_en_US.csv, protocol.c, report.c): ALARM:N, [MSG:Reset to continue],
+    silence until 0x18, then the banner with [MSG:'$H'|'$X' to unlock], <Alarm|...> and
+    error:9 for G-code until $H."""
+    halted = [b"[MSG:Reset to continue]\r\n"]
+    locked = [b"\r\n", b"Grbl 1.1h ['$' for help]\r\n", b"[MSG:'$H'|'$X' to unlock]\r\n"]
+    with GrblEmulator(speed_factor=50) as emu, serial.Serial(emu.port, 115200, timeout=0.2) as ser:
+        def unlock_and(line: bytes, alarm: int) -> None:
+            ser.write(b"$X\n")
+            assert lines(ser, 2)[-1] == b"ok\r\n"
+            ser.write(line)
+            got = lines(ser, 3)
+            assert got == [b"ok\r\n", f"ALARM:{alarm}\r\n".encode()] + halted, got
+            ser.write(b"?")
+            assert lines(ser, 1, 0.3) == []  # halted: not even a status report
+            ser.write(b"\x18")
+            assert lines(ser, 3) == locked
+            ser.write(b"?")
+            assert lines(ser, 1)[0].startswith(b"<Alarm|MPos:")
+            ser.write(b"G0 A0\n")
+            assert lines(ser, 1) == [b"error:9\r\n"]
+
+        emu.inject("hard_limit")
+        unlock_and(b"G0 A90\n", 1)
+        assert 0 < emu.axis_position() < 90  # stopped half way, position lost
+        emu.obstacle = ("A", 30.0)  # something in the way, between here and -10
+        unlock_and(b"G0 A-10\n", 1)
+        assert emu.axis_position() == pytest.approx(30.0)  # stopped where it pushed the switch
+        ser.write(b"$X\n")
+        lines(ser, 2)
+        emu.obstacle = None
+        ser.write(b"G0 A0\n")
+        assert lines(ser, 1) == [b"ok\r\n"]
+        time.sleep(0.05)
+        emu.obstacle = ("A", 30.0)
+        ser.write(b"G0 A60\n")
+        assert lines(ser, 3) == [b"ok\r\n", b"ALARM:1\r\n"] + halted
+        assert emu.axis_position() == pytest.approx(30.0)
+        ser.write(b"\x18")
+        assert lines(ser, 3) == locked
+        emu.obstacle = None
+        emu.inject("soft_limit")
+        ser.write(b"$X\n")
+        lines(ser, 2)
+        ser.write(b"G0 A10\n")  # soft limit: alarm before any motion, no ok
+        assert lines(ser, 2) == [b"ALARM:2\r\n"] + halted
+        assert emu.axis_position() == pytest.approx(30.0)
+        ser.write(b"\x18")
+        assert lines(ser, 3) == locked
+        ser.write(b"$H\n")
+        assert lines(ser, 1) == [b"ok\r\n"]  # homing is the way out
+        emu.trip_hard_limit()  # a switch pushed while idle
+        assert lines(ser, 2) == [b"ALARM:1\r\n"] + halted
+
+
 def test_grbl_hold_door_and_wpos_reports():
     with GrblEmulator(speed_factor=1) as emu, serial.Serial(emu.port, 115200, timeout=0.2) as ser:
         ser.write(b"$X\n$10=0\nG0 A90\n")

@@ -19,12 +19,21 @@ axis to the machine travel of a default GRBL 1.1 build, ``[-$13x, 0]`` (settings
 the travel negated; system.c ``system_check_travel_limits`` without
 ``HOMING_FORCE_SET_ORIGIN``): ``max_travel`` switches them on with that travel.
 
-Faults: see :mod:`polrig.drivers.emulators._pty`; ``error_mid_move`` trips a hard limit half way
-(``ALARM:1``, motion aborted, position lost: re-home). With soft limits on, a target outside
-the travel raises ``ALARM:2`` (soft limit) before any motion, as GRBL 1.1 does. Both are
-critical alarms: like grbl/grbl ``grbl/protocol.c`` (``protocol_exec_rt_system``) the
-controller prints ``[MSG:Reset to continue]`` and then ignores every byte, ``?`` included,
-until a soft reset (0x18); it comes back locked in the Alarm state.
+Faults: see :mod:`polrig.drivers.emulators._pty`; ``error_mid_move`` and ``hard_limit`` trip a
+hard limit half way through the next motion (``ALARM:1``, motion aborted, position lost:
+re-home); :attr:`obstacle` puts something in the way of one axis (a motion reaching it stops
+there with ``ALARM:1``, until it is taken away); ``soft_limit`` makes the next G-code motion a
+soft-limit alarm (``ALARM:2``, before any motion, as if its target were beyond the travel);
+:meth:`trip_hard_limit` closes a limit switch now, whatever runs (grbl/grbl ``grbl/limits.c``:
+the pin-change interrupt kills the motion and raises the hard-limit alarm unless already in
+Alarm). With soft limits on, a target outside the travel raises ``ALARM:2`` before any motion,
+as GRBL 1.1 does. Both are critical alarms: like grbl/grbl ``grbl/protocol.c``
+(``protocol_exec_rt_system``) the controller prints ``ALARM:N`` then ``[MSG:Reset to
+continue]`` and then ignores every byte, ``?`` included (the wait loop there has an empty body:
+no status report is printed), until a soft reset (0x18); it comes back with the banner and
+``[MSG:'$H'|'$X' to unlock]``, locked in the Alarm state: ``<Alarm|...>`` reports, G-code
+answered ``error:9``, until ``$H`` (homing) or ``$X`` (unlock). Alarm codes:
+``doc/csv/alarm_codes_en_US.csv``.
 
 The controller's input pins (GRBL 1.1 cpu_map: feed hold, cycle start, safety door), as an
 operator would use them: :meth:`press_feed_hold` (state ``Hold:0``, the motion suspended),
@@ -61,7 +70,9 @@ class GrblEmulator(PtyEmulator):
     name = "grbl"
     # "reset": the controller resets (brown-out, DTR pulse) on receiving the next line, which
     # it never executes: the banner comes instead of the line's ``ok``
-    FAULTS = PtyEmulator.FAULTS + ("reset",)
+    # "hard_limit": a limit switch fires half way through the next motion (ALARM:1);
+    # "soft_limit": the next G-code motion is a soft-limit alarm (ALARM:2), nothing moves
+    FAULTS = PtyEmulator.FAULTS + ("reset", "hard_limit", "soft_limit")
 
     def __init__(self, *, link=None, speed_factor: float = 1.0, homing_enabled: bool = True,
                  max_rate_per_min: float = 3600.0, accel_per_s2: float = 100.0,
@@ -86,6 +97,9 @@ class GrblEmulator(PtyEmulator):
         self.move_start_pos: list[float] | None = None
         self.homing_until = 0.0
         self.critical = False  # halted after a hard/soft limit until a soft reset
+        #: something in the way: (axis letter, position) where a motion closes a limit
+        #: switch (ALARM:1), until the operator takes it away (``None``)
+        self.obstacle: tuple[str, float] | None = None
         self._fails = False
         self._line = bytearray()
 
@@ -158,7 +172,7 @@ class GrblEmulator(PtyEmulator):
         self.move = [LinearMove(p, t, abs(t - p) / dur if dur else 1.0, now)
                      for p, t in zip(self.pos, target)]
         self.state = "Run"
-        self._fails = self.take_fault("error_mid_move")
+        self._fails = self.take_fault("error_mid_move") or self.take_fault("hard_limit")
 
     def tick(self, now: float) -> None:
         if self.state == "Home":
@@ -173,7 +187,10 @@ class GrblEmulator(PtyEmulator):
                 self.pos = [m.position(now) for m in self.move]
                 self._alarm(1)
                 return
-            self.pos = [m.position(now) for m in self.move]
+            new = [m.position(now) for m in self.move]
+            if self._hits_obstacle(self.pos, new):
+                return
+            self.pos = new
             if all(m.done(now) for m in self.move):
                 self.move = None
                 self._begin_next(now)
@@ -182,6 +199,19 @@ class GrblEmulator(PtyEmulator):
         elif self.state in ("Idle", "Run"):
             self._begin_next(now)
 
+    def _hits_obstacle(self, old: list[float], new: list[float]) -> bool:
+        """A motion from ``old`` to ``new`` that reaches :attr:`obstacle` stops there with a
+        hard-limit alarm (the switch it pushed)."""
+        if self.obstacle is None:
+            return False
+        i, at = AXES.index(self.obstacle[0]), float(self.obstacle[1])
+        if old[i] == new[i] or old[i] == at or not min(old[i], new[i]) <= at <= max(old[i], new[i]):
+            return False
+        self.pos = list(new)
+        self.pos[i] = at
+        self._alarm(1)
+        return True
+
     def _alarm(self, code: int) -> None:
         self.move, self.queue, self._fails = None, [], False
         self.state = "Alarm"
@@ -189,6 +219,19 @@ class GrblEmulator(PtyEmulator):
         if code in (1, 2):  # protocol.c: hard and soft limits halt until reset
             self.critical = True
             self.send(b"[MSG:Reset to continue]\r\n")
+
+    def trip_hard_limit(self) -> None:
+        """A limit switch closes now (something in the way): any motion stops at once
+        (position lost), ``ALARM:1`` and ``[MSG:Reset to continue]``; nothing if the
+        controller is in Alarm already (limits.c)."""
+        with self.lock:
+            now = time.monotonic()
+            self.tick(now)
+            if self.critical or self.state == "Alarm":
+                return
+            if self.move is not None:
+                self.pos = [m.position(now) for m in self.move]
+            self._alarm(1)
 
     # -- input pins ------------------------------------------------------------------------
     def press_feed_hold(self) -> None:
@@ -375,6 +418,9 @@ class GrblEmulator(PtyEmulator):
             self._error(22)
             return
         self.absolute, self.feed_rate, self.motion_mode = absolute, feed, motion
+        if has_axis and self.take_fault("soft_limit"):
+            self._alarm(2)  # injected: as if the target were beyond the travel
+            return
         if has_axis and self.settings[20]:
             if any(not -self.settings[130 + i] <= t <= 0 for i, t in enumerate(target)):
                 # GRBL 1.1: a G-code target beyond the machine travel is a soft-limit alarm

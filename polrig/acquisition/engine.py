@@ -19,6 +19,12 @@ procedures use it alike, the latter through :class:`GuardedRig`):
   documented recovery of the ELL14/K10CR1 stages and loses no data); a second failure is
   raised; a disconnection is never retried. Each move's timeout comes from its axis's
   :meth:`polrig.acquisition.hal.RotationStage.calculate_timeout` for the distance it has to go;
+* a safety fault (:class:`polrig.errors.DeviceAlarm`: a limit switch fired, a soft limit, a
+  controller locked in its alarm state, issue 33 item 5) is never retried and the axis is
+  never homed on its own: a limit switch that fired means something may be in the way. The
+  other axes of the move are let finish (nothing is left moving unattended), nothing else
+  is started, and the alarm is raised; its message names the command that clears it
+  (``polrig home turntable``), which the operator runs once the cause is cleared;
 * axes named in one :class:`polrig.acquisition.plan.Move` are started together (``wait=False``) and then
   waited on, each with its own timeout;
 * in free run (a camera without software trigger) the first
@@ -57,11 +63,21 @@ from polrig.acquisition.plan import (
     SetTrigger,
     Step,
 )
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.errors import (
+    DeviceAlarm,
+    DeviceDisconnected,
+    DeviceError,
+    DeviceFault,
+    DeviceTimeout,
+    ProtocolError,
+)
 from polrig.sensor.frame import Frame
 
-#: Errors after which a move is retried once, after homing the axis.
+#: Errors after which a move is retried once, after homing the axis (but never a
+#: :class:`DeviceAlarm`, a safety fault, nor a :class:`DeviceDisconnected`).
 MOVE_RECOVERABLE = (DeviceTimeout, DeviceFault, ProtocolError)
+#: Errors never retried: they stop the run and are reported.
+NEVER_RETRIED = (DeviceDisconnected, DeviceAlarm)
 
 
 # -- control ------------------------------------------------------------------------------------
@@ -253,9 +269,12 @@ class Executor:
 
     def move(self, targets: dict[str, float]) -> None:
         """Move every axis of ``targets`` (name -> angle, deg) at once and wait for all; an
-        axis whose move fails recoverably is homed and moved once more on its own."""
+        axis whose move fails recoverably is homed and moved once more on its own. A safety
+        fault (:class:`DeviceAlarm`) of any axis starts nothing more, waits for the axes
+        already moving and is raised, with no retry and no homing."""
         failed: dict[str, Exception] = {}
         started = []
+        alarm: DeviceAlarm | None = None
         self._unsettled = True
         for name, angle in targets.items():
             axis = self.axis(name)
@@ -264,16 +283,27 @@ class Executor:
                 axis.move_to(float(angle), wait=False, timeout_s=timeout_s)
                 started.append((name, axis, timeout_s))
             except DeviceDisconnected:
+                self._let_finish(started)
                 raise
+            except DeviceAlarm as exc:
+                alarm = exc
+                break
             except MOVE_RECOVERABLE as exc:
                 failed[name] = exc
+        if alarm is not None:
+            self._let_finish(started)
+            raise alarm
         for name, axis, timeout_s in started:
             try:
                 axis.wait(timeout_s)
             except DeviceDisconnected:
                 raise
+            except DeviceAlarm as exc:
+                alarm = alarm or exc
             except MOVE_RECOVERABLE as exc:
                 failed[name] = exc
+        if alarm is not None:
+            raise alarm
         for name in targets:
             if name in failed:
                 angle = float(targets[name])
@@ -284,12 +314,23 @@ class Executor:
                 axis.move_to(angle, wait=True, timeout_s=motion_timeout_s(axis, angle))
 
     @staticmethod
+    def _let_finish(started: list) -> None:
+        """Wait for the axes already moving before a stop is raised (their own errors are
+        not the news: the stop is)."""
+        for _name, axis, timeout_s in started:
+            try:
+                axis.wait(timeout_s)
+            except DeviceError:
+                pass
+
+    @staticmethod
     def _timeout_from_here(axis: RotationStage, angle_deg: float) -> float:
         """Timeout of a move from where ``axis`` is now; if its position cannot be read (the
-        move then fails or succeeds on its own), as if it had a full turn more to go."""
+        move then fails or succeeds on its own), as if it had a full turn more to go; a
+        safety fault or a disconnection is raised."""
         try:
             here = float(axis.position_deg())
-        except DeviceDisconnected:
+        except NEVER_RETRIED:
             raise
         except MOVE_RECOVERABLE:
             here = float(angle_deg) + 360.0
@@ -391,7 +432,8 @@ class GuardedCamera(Camera):
 
 class GuardedAxis(RotationStage):
     """A stage or turntable whose moves go through ``executor``'s policy (timeout from the
-    distance, one re-homed retry). Used by :class:`GuardedRig`."""
+    distance, one re-homed retry, never one after a safety fault). Used by
+    :class:`GuardedRig`."""
 
     def __init__(self, name: str, axis: RotationStage, executor: Executor):
         self._name, self._axis, self._executor = name, axis, executor

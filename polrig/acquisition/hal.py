@@ -370,5 +370,6 @@ class FaultInjection(Protocol):
         """Make call number ``after_calls + 1`` from now of the ``device_kind`` device
         (``camera``, ``stage``, ``turntable``, ``light``) raise: ``timeout``
         (:class:`polrig.errors.DeviceTimeout`), ``fault`` (:class:`polrig.errors.DeviceFault`),
-        ``protocol`` (:class:`polrig.errors.ProtocolError`) or ``disconnect``
+        ``protocol`` (:class:`polrig.errors.ProtocolError`), ``limit``
+        (:class:`polrig.errors.DeviceAlarm`, a limit switch that fired) or ``disconnect``
         (:class:`polrig.errors.DeviceDisconnected`)."""

@@ -23,6 +23,11 @@ timeouts from the hardware's declared capabilities) and subscribes to its events
 * **progress** (:class:`Progress` events, with the plan's remaining hardware time for an
   ETA from the first event) goes to the caller's callback, always from the calling thread.
 
+A safety fault (:class:`polrig.errors.DeviceAlarm`: a limit switch fired, a soft limit, a
+turntable locked in its alarm state) stops the run like any device fault, with a reason that
+names the command the operator runs once the cause is cleared (``polrig home turntable
+--config RIG``); the engine never homes the axis on its own, and ``--resume`` continues.
+
 Interruptions (Ctrl-C, SIGTERM, a stop request, a device fault, a full disk, another
 file-system error, a processing error) end the run cleanly: processing already under way is
 let finish (its capture becomes ``complete``, or stays ``acquired`` with the reason if it
@@ -104,7 +109,7 @@ from polrig.app.sessionio import (  # noqa: F401 (re-exported)
     manifest_exposure_us,
     raw_relpath,
 )
-from polrig.errors import DeviceError
+from polrig.errors import DeviceAlarm, DeviceError
 
 __all__ = ["CaptureControl", "CaptureEvent", "CapturePlan", "CaptureRequest", "PreparedCapture",
            "Progress", "SessionOpened", "SessionResult", "StopRequested", "check_resume_space",
@@ -591,13 +596,16 @@ class _Run:
                         executor.execute(step)
                         self.hardware_left_s -= seconds
                 except DeviceError as exc:
-                    reason = f"rig preparation failed: {exc}"
+                    alarm = isinstance(exc, DeviceAlarm)
+                    reason = ("rig preparation failed: "
+                              + (self.device_reason(exc) if alarm else str(exc)))
                     error = self.drain()
                     with self.guard.deferred():
                         session.set_status(INTERRUPTED, reason)
                     if error is not None:
                         raise error.error
-                    return SessionResult(INTERRUPTED, self.result.completed, [], str(exc),
+                    return SessionResult(INTERRUPTED, self.result.completed, [],
+                                         reason if alarm else str(exc),
                                          self.result.scores)
                 executor.run(body)  # StepDone indices count from 0 again: self.durations
             self.collect(block=True)
@@ -624,8 +632,7 @@ class _Run:
                 # leave the session consistent and resumable, then let the caller report it
                 self.stop(f"{type(exc).__name__}: {exc}", FAILED)
                 raise
-            kind = "disk full" if is_disk_full(exc) else type(exc).__name__
-            self.stop(f"{kind}: {exc}", FAILED)
+            self.stop(self.device_reason(exc), FAILED)
             self.report_failed()
             return self.result
         except Exception as exc:  # a bug or bad data while acquiring: record it, report it
@@ -638,6 +645,16 @@ class _Run:
         last = self.to_acquire[-1] if self.to_acquire else (self.to_process or [0])[-1]
         self.emit("session-done", last)
         return self.result
+
+    def device_reason(self, exc: BaseException) -> str:
+        """One line on why a device or the disk stopped the run. A safety fault
+        (:class:`polrig.errors.DeviceAlarm`: a limit switch fired, an alarm) names the command
+        that clears it, with this rig's file (``polrig home turntable --config RIG``): the
+        engine never homes such an axis on its own, the operator does, then resumes."""
+        if isinstance(exc, DeviceAlarm):
+            return f"safety stop: {exc.operator_message(getattr(self.rig, 'source', None))}"
+        kind = "disk full" if is_disk_full(exc) else type(exc).__name__
+        return f"{kind}: {exc}"
 
     def stop(self, reason: str, capture_status: str) -> None:
         """Leave the session consistent after an interruption: processing under way ends

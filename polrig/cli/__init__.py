@@ -21,7 +21,7 @@ import sys
 import threading
 
 from polrig import __version__
-from polrig.errors import EXIT_USAGE, exit_code_for
+from polrig.errors import EXIT_USAGE, DeviceAlarm, exit_code_for
 
 EXIT_OK, EXIT_INTERRUPTED = 0, 130  # failure 1 and usage 2: polrig.errors.exit_code_for
 EXIT_TERMINATED = 128 + signal.SIGTERM  # 143
@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
             code = exit_code_for(exc)
             if code is None or os.environ.get("POLRIG_DEBUG"):
                 raise
+            if isinstance(exc, DeviceAlarm):  # the command that clears it, with this rig
+                _error_line(f"polrig: error: {exc.operator_message(getattr(args, 'config', None))}")
+                return code
             _error_line(f"polrig: error: {exc}")
             return code
 

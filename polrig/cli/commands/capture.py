@@ -207,7 +207,8 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     if result.status != "complete":
         print(f"polrig: error: capture stopped ({result.reason}); completed captures are "
-              f"intact, continue with: polrig capture --out {request.out} --resume",
+              f"intact, continue with: polrig capture --out {request.out} --resume"
+              + (f" --config {request.config}" if request.config else ""),
               file=sys.stderr)
         return 1
     print(f"session complete: {len(result.completed)} captures in {request.out}")

@@ -1,4 +1,9 @@
-"""``polrig home stage|turntable``: run the device's homing cycle and report the position."""
+"""``polrig home stage|turntable``: run the device's homing cycle and report the position.
+
+The operator's command after a safety stop (:class:`polrig.errors.DeviceAlarm`: a limit switch
+fired, a soft limit, GRBL locked in its Alarm state): the capture engine never homes an axis in
+that state on its own, its stop message names this command. For GRBL it soft-resets a
+controller halted by a hard or soft limit, then homes it (``$H``)."""
 
 from __future__ import annotations
 
@@ -15,7 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("home", help="home the polarizer stage or the turntable",
                        description="Run the homing cycle of the polarizer stage or the object "
                                    "turntable (needed after power-up, a motion error or an "
-                                   "alarm) and print the position the device reports.")
+                                   "alarm: a capture stopped by a limit switch names this "
+                                   "command; clear whatever is in the way first) and print the "
+                                   "position the device reports.")
     p.add_argument("device", choices=("stage", "turntable"), help="which axis")
     add_config_argument(p)
     add_timeout_argument(p, 120.0)
