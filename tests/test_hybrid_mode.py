@@ -220,3 +220,28 @@ def test_reconstruct_refusals_record_nothing(tmp_path, capsys):
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and message in err, err
         assert (out / MANIFEST_NAME).read_bytes() == before
+
+
+def test_the_gui_capture_panel_offers_the_hybrid_mode(qtbot, tmp_path):
+    """The capture panel's mode list has ``hybrid``; its request carries the states, the seen
+    state and mirror averaging (the network's settings), superpixel and unbinned."""
+    pytest.importorskip("PySide6")
+    pytest.importorskip("pytestqt")
+    from test_gui import close_window, make_window
+
+    w = make_window(qtbot, tmp_path / "gui.ini", start=False)
+    cp = w.capture
+    modes = [cp.mode.itemText(i) for i in range(cp.mode.count())]
+    assert modes == ["reference", "single-shot", "hybrid"]
+    assert not cp.seen_state.isEnabled()
+    cp.mode.setCurrentText("hybrid")
+    assert cp.seen_state.isEnabled() and cp.mirror_average.isEnabled() and not cp.resolution.isEnabled()
+    cp.poses.setText("0")
+    cp.states.setText("0,60")
+    cp.seen_state.setValue(1)
+    cp.out.setText(str(tmp_path / "s"))
+    request = cp.request()
+    assert (request.mode, request.states_deg, request.seen_state) == ("hybrid", (0.0, 60.0), 1)
+    assert (request.resolution, request.network_binning) == ("superpixel", 1)
+    assert request.plan().seen_state == 1
+    close_window(qtbot, w)
