@@ -133,6 +133,27 @@ def test_hybrid_capture_with_two_states_end_to_end(tmp_path, capsys):
     # measured: 30.7 dB against 26.5 dB, RMSE 111 against 180
     assert ours["psnr_db"] > theirs["psnr_db"] + 2.0 and ours["rmse"] < theirs["rmse"]
     assert ours["within_2sigma"] > 0.9
+    capsys.readouterr()
+    assert main(["info", str(hybrid)]) == 0
+    assert "plan: mode hybrid (seen state 0: 0 deg), 1 poses, states 0,60 deg" in capsys.readouterr().out
+
+
+@needs_model
+def test_hybrid_with_a_seen_state_mirror_averaging_and_bilinear(tmp_path):
+    """The seen state, mirror averaging and the demosaic reach the prior: the record says so and
+    the result lies on the bilinear (raw frame's) grid."""
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,60,120", "--seen-state", "1",
+                 "--mirror-average", "--demosaic", "bilinear", "--device", "cpu", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 0
+    cap = Session.open(out).capture(0)
+    assert (cap["prior"]["seen_state"], cap["prior"]["seen_state_deg"], cap["prior"]["mirror_average"]) == (
+        1, 60.0, True)
+    exr = read_mueller_exr(out / cap["files"]["mueller"]["path"])
+    assert exr.mueller.shape[-2:] == (64, 64) and exr.metadata["demosaic"] == "bilinear"
+    assert exr.metadata["condition_number"] == pytest.approx(2.0)  # 0/60/120
+    assert cap["score"]["within_2sigma"] > 0.9 and cap["score"]["psnr_db"] > 40
 
 
 @needs_model
