@@ -47,10 +47,10 @@ from polrig.app.calibrations import (  # noqa: F401 (re-exported)
     check_calibration_fits_rig,
     check_plan,
     frame_layout,
-    state_set_condition,
     load_calibration,
     nominal_calibration,
     single_shot_geometry,
+    state_set_condition,
 )
 from polrig.app.preview import write_result_previews
 from polrig.app.records import (  # noqa: F401 (re-exported)
