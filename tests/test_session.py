@@ -9,6 +9,7 @@ import pathlib
 import pytest
 
 from polrig.acquisition.plan import CapturePlan
+from polrig.app.manifest import SCHEMA_VERSION
 from polrig.app.session import (
     COMPLETE,
     LOCK_NAME,
@@ -43,7 +44,7 @@ def make(tmp_path: pathlib.Path, **kw) -> Session:
 def test_create_lists_one_pending_capture_per_pose(tmp_path):
     s = make(tmp_path)
     m = json.loads((s.root / MANIFEST_NAME).read_text())
-    assert m["schema_version"] == 2 and m["calibration_id"] == "nominal"
+    assert m["schema_version"] == SCHEMA_VERSION == 3 and m["calibration_id"] == "nominal"
     assert m["plan"]["poses_deg"] == [0.0, 90.0] and m["plan"]["exr_uncertainty"] == "half"
     assert Session.open(s.root).plan == PLAN  # stored once, read back as the CapturePlan
     assert [c["pose_deg"] for c in m["captures"]] == [0.0, 90.0]
@@ -149,7 +150,7 @@ def test_revisions_are_separate_entries(tmp_path):
     with pytest.raises(ValueError, match="revision rev1: missing 'mirror_average'"):
         s.new_revision({"mode": "reference", "demosaic": "bilinear"})
     name = s.new_revision({"mode": "reference", "demosaic": "bilinear", "mirror_average": False,
-                           "resolution": "superpixel", "network_binning": 1,
+                           "resolution": "superpixel", "network_binning": 1, "seen_state": 0,
                            "calibration_id": "nominal", "exr_planes": ["mueller"],
                            "exr_uncertainty": "half", "exr_compression": "zip"})
     s.start_revision(0, name)

@@ -31,7 +31,12 @@ from typing import Any, Callable, Iterable, Sequence, Union
 from polrig.errors import ConfigError
 from polrig.formats.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
 
-MODES = ("reference", "single-shot")
+#: Capture and processing methods: ``reference`` (N >= 3 polarizer states solved per pixel),
+#: ``single-shot`` (the trained network on one state), ``hybrid`` (N >= 1 states solved with the
+#: network's estimate of one of them, ``seen_state``, as a Gaussian prior: :mod:`polrig.solve.hybrid`).
+MODES = ("reference", "single-shot", "hybrid")
+#: The modes that run the single-shot network (the single-shot route, :class:`SingleShotOptions`).
+NETWORK_MODES = ("single-shot", "hybrid")
 DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
 #: Largest turntable pose accepted, in degrees either way (100 turns): beyond it a pose is a
 #: typo, and its capture folder name (``c000_pose<angle>``) would outgrow the file system's.
@@ -59,6 +64,11 @@ FULL_RESOLUTION_NEEDS_DETAIL = ("takes its detail from a full-resolution demosai
 NETWORK_BINNINGS = (1, 2)
 NETWORK_BINNING_SINGLE_SHOT_ONLY = ("network binning applies to the single-shot method only (the "
                                     "reference method runs no network)")
+#: Why the hybrid method refuses what leaves the network's sigma uncalibrated (NaN): its prior
+#: is the network's estimate with that sigma.
+HYBRID_NEEDS_SIGMA = ("the hybrid method's prior needs the network's calibrated sigma, which exists on "
+                      "the networks' unbinned superpixel grid only")
+SEEN_STATE_HYBRID_ONLY = "the seen state applies to the hybrid method only"
 
 
 class PlanError(ConfigError):
@@ -81,6 +91,9 @@ def check_network_binning(binning: Any, mode: str) -> int:
     if isinstance(binning, bool) or not isinstance(binning, int) or binning not in NETWORK_BINNINGS:
         raise PlanError("network_binning", f"must be one of {', '.join(map(str, NETWORK_BINNINGS))}",
                         subject=repr(binning), what="network binning")
+    if binning != 1 and mode == "hybrid":
+        raise PlanError("network_binning", HYBRID_NEEDS_SIGMA, subject=str(binning),
+                        what="network binning")
     if binning != 1 and mode != "single-shot":
         raise PlanError("network_binning", NETWORK_BINNING_SINGLE_SHOT_ONLY, subject=str(binning),
                         what="network binning")
@@ -174,21 +187,45 @@ def single_shot_options(mode: str, demosaic: str, resolution: str, network_binni
                         mirror_average: bool) -> SingleShotOptions | None:
     """The single-shot options of a plan's (or a revision's) settings, ``None`` for the reference
     method, checked against the mode: mirror averaging, full resolution and network binning are
-    single-shot only (one-line :class:`PlanError` s of the field). Shared by
-    :class:`CapturePlan` and :class:`polrig.app.processing.Processor`."""
-    if mirror_average and mode != "single-shot":
+    single-shot only (one-line :class:`PlanError` s of the field). The hybrid method runs the
+    single-shot route for its prior with its calibrated sigma (``sigma=True``): mirror averaging
+    applies, full resolution and network binning 2 are refused (the sigma is NaN there,
+    :data:`HYBRID_NEEDS_SIGMA`). Shared by :class:`CapturePlan` and
+    :class:`polrig.app.processing.Processor`."""
+    if mirror_average and mode not in NETWORK_MODES:
         raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
     if resolution not in RESOLUTIONS:
         raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
                         subject=repr(resolution), what="resolution")
+    if resolution == "full" and mode == "hybrid":
+        raise PlanError("resolution", HYBRID_NEEDS_SIGMA, subject="full", what="resolution")
     if resolution == "full" and mode != "single-shot":
         raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
                         what="resolution")
     binning = check_network_binning(network_binning, mode)
-    if mode != "single-shot":
+    if mode not in NETWORK_MODES:
         return None
     return SingleShotOptions.from_settings(demosaic=demosaic, resolution=resolution,
-                                           network_binning=binning, mirror_average=mirror_average)
+                                           network_binning=binning, mirror_average=mirror_average,
+                                           sigma=True if mode == "hybrid" else None)
+
+
+def check_seen_state(seen_state: Any, mode: str, n_states: int) -> int:
+    """``seen_state`` (the index into the plan's states of the frame the hybrid method's prior
+    is computed from) as an int: ``0 <= seen_state < n_states`` in the hybrid mode, 0 in the
+    others (one-line :class:`PlanError` s of ``seen_state``)."""
+    if isinstance(seen_state, bool) or not isinstance(seen_state, int):
+        raise PlanError("seen_state", "must be a state index (0, 1, ...)", subject=repr(seen_state),
+                        what="seen state")
+    if mode != "hybrid":
+        if seen_state != 0:
+            raise PlanError("seen_state", SEEN_STATE_HYBRID_ONLY, subject=str(seen_state),
+                            what="seen state")
+        return 0
+    if not 0 <= seen_state < n_states:
+        raise PlanError("seen_state", f"must index the plan's {n_states} polarizer state(s): "
+                                      f"0..{n_states - 1}", subject=str(seen_state), what="seen state")
+    return int(seen_state)
 
 
 # -- parsing command-line style specs ------------------------------------------------------
@@ -325,6 +362,9 @@ class CapturePlan:
     exr_planes: tuple[str, ...] = RESULT_PLANES
     exr_uncertainty: str = ExrChoice.uncertainty
     exr_compression: str = ExrChoice.compression
+    #: hybrid: the index into ``states_deg`` of the state whose frame the network sees (its
+    #: estimate and calibrated sigma are the prior, :mod:`polrig.solve.hybrid`); 0 in other modes
+    seen_state: int = 0
 
     def __post_init__(self) -> None:
         exr = ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
@@ -358,8 +398,10 @@ class CapturePlan:
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
                                           f"states, got {len(self.states_deg)}")
-        if self.mode == "single-shot" and not self.states_deg:
-            raise PlanError("states_deg", "the single-shot method needs one polarizer state")
+        if self.mode in NETWORK_MODES and not self.states_deg:
+            raise PlanError("states_deg", f"the {self.mode} method needs at least one polarizer state")
+        object.__setattr__(self, "seen_state", check_seen_state(self.seen_state, self.mode,
+                                                                len(self.states_deg)))
         object.__setattr__(self, "poses_deg", tuple(float(p) for p in self.poses_deg))
         # single-shot captures one state per pose: the plan records the state it captures
         # (older sessions listed the default four; only the first was ever captured)

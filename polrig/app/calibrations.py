@@ -30,7 +30,7 @@ from polrig.calibration.rigframes import stage_zero_axis_cam
 from polrig.errors import ConfigError
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.analyzer import AnalyzerModel, frame_layout  # noqa: F401 (frame_layout re-exported)
-from polrig.solve.reference import validate_states
+from polrig.solve.reference import condition_number, validate_states
 
 NOMINAL_CALIBRATION_ID = "nominal"
 
@@ -237,14 +237,27 @@ def check_plan(plan, calibration: Calibration, device: str = "auto") -> float | 
     ``device`` (:meth:`polrig.app.single_shot.SingleShot.open`: the loaded model the capture's
     processing then gets, not a second load; :class:`polrig.acquisition.plan.PlanError` of ``mode``
     when there is none, :class:`polrig.models.devices.DeviceUnavailable` for a forced ``cuda``
-    that cannot run).
+    that cannot run). Hybrid: the same, and the model must have a calibrated uncertainty (its
+    sigma is the prior's); any number of states from 1 (they need not determine the block:
+    the prior fills in what they leave out); returns the state set's condition number, which
+    may be infinite (fewer than 3 states, or collinear ones).
     """
-    if plan.mode == "single-shot":
-        SingleShot.open(device)
-        return None
+    if plan.mode in ("single-shot", "hybrid"):
+        route = SingleShot.open(device)
+        if plan.mode == "single-shot":
+            return None
+        route.check_sigma()
+        return state_set_condition(calibration.incident_stokes(plan.states_deg))
     try:
         return validate_states(calibration.incident_stokes(plan.states_deg))
     except ConfigError as exc:
         states = ",".join(f"{a:g}" for a in plan.states_deg)
         raise PlanError("states_deg", str(exc), subject=states,
                         what="polarizer states") from None
+
+
+def state_set_condition(s_in) -> float:
+    """The condition number of incident states ``(N, 3)`` as the reference solve defines it
+    (:func:`polrig.solve.reference.condition_number` of the ideal-analyzer design), ``inf``
+    where they do not determine the block (fewer than 3, collinear): what a hybrid plan reports."""
+    return float(condition_number(np.asarray(s_in, np.float64).reshape(-1, 3)))

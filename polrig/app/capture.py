@@ -137,6 +137,9 @@ class CaptureRequest:
     resolution: str | None = None
     #: single-shot network binning (1 or 2: :attr:`polrig.acquisition.plan.CapturePlan.network_binning`)
     network_binning: int | None = None
+    #: hybrid: the index into the states of the frame the network sees
+    #: (:attr:`polrig.acquisition.plan.CapturePlan.seen_state`)
+    seen_state: int | None = None
     #: the result EXR's plane groups, uncertainty precision and compression
     #: (:class:`polrig.acquisition.plan.ExrChoice`)
     exr_planes: tuple[str, ...] | None = None
@@ -154,7 +157,7 @@ class CaptureRequest:
         """The :class:`polrig.acquisition.plan.CapturePlan` fields this request gives (not ``None``)."""
         names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
                  "dark_frames", "demosaic", "mirror_average", "resolution", "network_binning",
-                 "exr_planes",
+                 "seen_state", "exr_planes",
                  "exr_uncertainty", "exr_compression")
         fields = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
         if "exr_planes" in fields:  # as the plan holds them (mueller always, in order)

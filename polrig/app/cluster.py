@@ -210,6 +210,8 @@ class CaptureJob:
     exr_compression: str
     #: single-shot network binning (1 or 2: :class:`polrig.app.processing.Processor`)
     network_binning: int = 1
+    #: hybrid: the index of the state whose frame the network sees
+    seen_state: int = 0
 
     @property
     def exr(self):
@@ -229,6 +231,8 @@ class CaptureOutcome:
     reason: str | None
     disk_full: bool
     seconds: float
+    #: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`)
+    prior: dict[str, Any] | None = None
 
 
 _PROCESSORS: dict[tuple, Any] = {}  # per worker process: settings -> Processor
@@ -240,7 +244,7 @@ def _processor(job: CaptureJob, session: Session):
 
     sensor = processing.session_sensor_model(session)
     key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
-           job.device, job.calibration, job.calibration_id, repr(sensor), job.exr)
+           job.seen_state, job.device, job.calibration, job.calibration_id, repr(sensor), job.exr)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
@@ -248,7 +252,7 @@ def _processor(job: CaptureJob, session: Session):
                               f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
                                                 job.mirror_average, job.resolution, job.device,
-                                                job.exr, job.network_binning)
+                                                job.exr, job.network_binning, job.seen_state)
     return _PROCESSORS[key]
 
 
@@ -265,12 +269,13 @@ def process_job(job: CaptureJob) -> CaptureOutcome:
         # a file already there is a result the manifest does not record (the client only
         # submits captures not complete in the revision): the unrecorded output of an attempt
         # that died before the client heard of it, replaced by this one's identical bytes
-        record, score = processing.write_and_score(
-            session.root, proc.solve(session, job.index, job.revision), proc.exr, replace=True)
+        out = proc.solve(session, job.index, job.revision)
+        prior = out.prior
+        record, score = processing.write_and_score(session.root, out, proc.exr, replace=True)
     except Exception as exc:
         return CaptureOutcome(None, None, f"{type(exc).__name__}: {exc}", is_disk_full(exc),
                               time.perf_counter() - t0)
-    return CaptureOutcome(record, score, None, False, time.perf_counter() - t0)
+    return CaptureOutcome(record, score, None, False, time.perf_counter() - t0, prior)
 
 
 # -- the client ----------------------------------------------------------------------------------
@@ -348,14 +353,15 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             device: str = "auto", calibration=None,
             command_line: list[str] | None = None,
             exr: dict[str, Any] | None = None,
-            network_binning: int | None = None) -> list[SessionBatch]:
+            network_binning: int | None = None, seen_state: int | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
     new one. Leftover files of earlier attempts in the revision's folders are removed."""
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device, exr, network_binning) for s in sessions]
+                                      resolution, device, exr, network_binning, seen_state)
+             for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
         cont = _continuable(s, settings, done)
@@ -379,7 +385,8 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
     return [CaptureJob(str(batch.session.root.resolve()), i, batch.revision, st["mode"],
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
-                       st["exr_uncertainty"], st["exr_compression"], st["network_binning"])
+                       st["exr_uncertainty"], st["exr_compression"], st["network_binning"],
+                       st.get("seen_state", 0))
             for i in batch.todo]
 
 
@@ -431,7 +438,7 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                         b.finished += 1
                         if out.reason is None:
                             processing.record_result(b.session, job.index, job.revision,
-                                                     out.record, out.score, job.exr)
+                                                     out.record, out.score, job.exr, out.prior)
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)
@@ -473,7 +480,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
                 mirror_average=None, resolution=None, device: str = "auto",
-                network_binning: int | None = None,
+                network_binning: int | None = None, seen_state: int | None = None,
                 calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
@@ -489,7 +496,7 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
     try:
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
                           resolution=resolution, device=device, calibration=calibration,
-                          network_binning=network_binning,
+                          network_binning=network_binning, seen_state=seen_state,
                           command_line=command_line, exr=exr)
         if on_start:
             on_start(batches)

@@ -43,7 +43,7 @@ from polrig.formats.typedjson import (
 )
 
 #: The version of the manifest this polrig writes (``schema_version``).
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 # capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
 # processing not done yet (a resume processes it without acquiring it again)
@@ -169,17 +169,37 @@ class Score(TypedDict):
     peak_m00: NotRequired[float | None]
 
 
+class PriorRecord(TypedDict):
+    """The prior of a hybrid result (:mod:`polrig.solve.hybrid`): the single-shot model whose
+    estimate and calibrated sigma of state ``seen_state``'s frame it is
+    (:meth:`polrig.app.single_shot.SingleShot.prior_model`): ``graph`` (file name in the weights
+    folder) and its SHA-256, the ``uncertainty.json`` SHA-256 and format version, the
+    onnxruntime ``execution_provider`` that ran it, ``mirror_average``; ``seen_state`` (index
+    into the plan's states) and its stage angle ``seen_state_deg``."""
+
+    graph: str
+    graph_sha256: Sha256
+    uncertainty_sha256: Sha256
+    uncertainty_version: int
+    execution_provider: str
+    mirror_average: bool
+    seen_state: Index
+    seen_state_deg: Finite
+
+
 class RevisionResult(TypedDict):
-    """A capture's part of a ``polrig reconstruct`` revision."""
+    """A capture's part of a ``polrig reconstruct`` revision (``prior``: hybrid results only)."""
 
     status: CaptureStatus
     files: Annotated[CaptureFiles, Label("")]
     score: Annotated[Score | None, Label("")]
     reason: str | None
+    prior: NotRequired[Annotated[PriorRecord, Label("prior: ")]]
 
 
 class CaptureRecord(TypedDict):
-    """One pose of the plan: its folder ``name``, status, last attempt, files, score."""
+    """One pose of the plan: its folder ``name``, status, last attempt, files, score (and
+    ``prior``: the hybrid result's prior model, absent in other modes)."""
 
     index: Index
     name: FolderName
@@ -192,6 +212,7 @@ class CaptureRecord(TypedDict):
     files: Annotated[CaptureFiles, Label("")]
     score: Annotated[Score | None, Label("")]
     revisions: Annotated[dict[str, RevisionResult], Label(entry=lambda k, v: f"revision {k!r}: ")]
+    prior: NotRequired[Annotated[PriorRecord, Label("prior: ")]]
 
 
 # -- the session --------------------------------------------------------------------------------
@@ -207,6 +228,7 @@ class RevisionSettings(TypedDict):
     mirror_average: bool
     resolution: Literal[RESOLUTIONS]
     network_binning: Literal[NETWORK_BINNINGS]
+    seen_state: Index
     calibration_id: str
     exr_planes: list[str]
     exr_uncertainty: str
@@ -428,5 +450,23 @@ def utc_now() -> str:
         "+00:00", "Z")
 
 
+def migrate_v2(m: dict[str, Any]) -> dict[str, Any]:
+    """Version 2 to 3 (the hybrid mode): the plan's and every revision's ``seen_state`` (0: the
+    only value a version-2 session could mean; it is used by the hybrid mode only, which did
+    not exist). A capture's or a revision result's ``prior`` stays absent (no hybrid result).
+    Whatever is damaged is left for the check that follows to name."""
+    m = dict(m, schema_version=3)
+    if isinstance(m.get("plan"), dict):
+        m["plan"] = dict(m["plan"])
+        m["plan"].setdefault("seen_state", 0)
+    if isinstance(m.get("revisions"), list):
+        m["revisions"] = [dict(r, seen_state=r.get("seen_state", 0)) if isinstance(r, dict) else r
+                          for r in m["revisions"]]
+    if isinstance(m.get("history"), list):
+        m["history"] = [*m["history"], {"time": utc_now(), "event": "schema migrated",
+                                        "from_version": 2, "to_version": 3}]
+    return m
+
+
 #: Version -> the function that migrates a manifest of that version to the next one.
-MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: migrate_v1}
+MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: migrate_v1, 2: migrate_v2}

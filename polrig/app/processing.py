@@ -30,9 +30,11 @@ import numpy as np
 from polrig import __version__
 from polrig.acquisition.plan import (
     MODES,
+    NETWORK_MODES,
     CapturePlan,
     ExrChoice,
     PlanError,
+    check_seen_state,
     single_shot_options,
 )
 from polrig.app.calibrations import (  # noqa: F401 (re-exported)
@@ -48,6 +50,7 @@ from polrig.app.calibrations import (  # noqa: F401 (re-exported)
     load_calibration,
     nominal_calibration,
     single_shot_geometry,
+    state_set_condition,
 )
 from polrig.app.preview import write_result_previews
 from polrig.app.records import (  # noqa: F401 (re-exported)
@@ -107,11 +110,16 @@ def noise_exposures_us(cf: CaptureFrames) -> list[float]:
 
 
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
-                      method: str, uncertainty_dtype: type = np.float32
+                      method: str, uncertainty_dtype: type = np.float32,
+                      prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None
                       ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
     """Reference solve of one capture's frames: ``(result, s_in, layout, states)``;
     ``uncertainty_dtype`` of its ``sigma``, ``sigma_noise`` and ``residual`` (float16 halves
-    their memory: :func:`polrig.solve.radiometry.reference_from_frames`)."""
+    their memory: :func:`polrig.solve.radiometry.reference_from_frames`).
+
+    ``prior(states, s_in)``: the hybrid solve instead, with the keywords it returns
+    (``prior_mean``, ``prior_sigma``, ``seen_state``: :func:`polrig.solve.radiometry.reference_from_frames`),
+    computed from the capture's state radiances (:meth:`Processor.solve`)."""
     first = cf.first
     lay = frame_layout(first)
     scale = adc_scale(model, first.meta.bit_depth)
@@ -132,10 +140,11 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
         if analyzer.shape != (h, w) or (calibration.sensor is not None and (ox, oy) != (ax, ay)):
             analyzer = analyzer.crop(ox - ax, oy - ay, w, h)
     s_in = calibration.incident_stokes(cf.states_deg)
+    extra = {} if prior is None else dict(prior(states, s_in))
     result = reference_from_frames(states, s_in, lay, method, analyzer,
                                    analyzer_tolerance=calibration.analyzer_tolerance,
                                    generator_tolerance=calibration.generator_tolerance,
-                                   uncertainty_dtype=uncertainty_dtype)
+                                   uncertainty_dtype=uncertainty_dtype, **extra)
     return result, s_in, lay, states
 
 
@@ -193,6 +202,8 @@ class CaptureResult:
     #: single-shot ``beyond_calibration.{colour}`` flags, with the ``sigma`` group
     #: (:meth:`polrig.app.single_shot.SingleShotResult.extra_planes`)
     extra_planes: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    #: hybrid: the prior's record for the manifest (:class:`polrig.app.manifest.PriorRecord`)
+    prior: dict[str, Any] | None = None
 
 
 def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
@@ -280,13 +291,14 @@ def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
 
 def record_result(session: Session, index: int, revision: str | None,
                   records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
-                  exr: ExrChoice = ExrChoice()) -> None:
+                  exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None) -> None:
     """Record capture ``index``'s written result files (``records`` by role, as
     :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
     file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
     not written), and in ``revision`` (if given) its score and status ``complete``; save the
     manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
-    meanwhile). The one place a result enters a manifest: the serial
+    meanwhile). ``prior``: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`),
+    recorded beside its files. The one place a result enters a manifest: the serial
     :meth:`Processor.process` and the client of :mod:`polrig.app.cluster` (whose workers write
     the files) both call it."""
     with session.mutex:
@@ -306,6 +318,8 @@ def record_result(session: Session, index: int, revision: str | None,
         if "mask" in exr.planes:
             files["mask"] = {"part_of": "mueller", "path": path,
                              "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        if prior is not None:
+            entry["prior"] = dict(prior)
         if revision is not None:
             entry.update(status=COMPLETE, score=score)
         try:
@@ -334,21 +348,29 @@ class Processor:
     plan check opened (:meth:`polrig.app.single_shot.SingleShot.open`), not a second load.
     ``exr``: the result file's planes, precision and compression (the plan's
     :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
+    ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
+    (its estimate and calibrated sigma are the prior of the solve of all states,
+    :mod:`polrig.solve.hybrid`).
     """
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
-                 exr: ExrChoice = ExrChoice(), network_binning: int = 1):
+                 exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0):
         if mode not in MODES:
-            raise PlanError("mode", f"unknown mode {mode!r}; use reference or single-shot")
+            raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
         #: the single-shot route's options (``None`` for the reference method)
         self.single_shot_options = single_shot_options(mode, demosaic, resolution, network_binning,
                                                        mirror_average)
         self.network_binning = int(network_binning)
         # single-shot: the installed network (loaded once per process and device), or the
         # one-line "no model installed" error
-        self.single_shot = SingleShot.open(device) if mode == "single-shot" else None
+        self.single_shot = SingleShot.open(device) if mode in NETWORK_MODES else None
+        #: hybrid: the prior's model (manifest ``prior`` record less the seen state); needs the
+        #: graph's calibrated sigma (a one-line PlanError of ``mode`` otherwise)
+        self.prior_model = (self.single_shot.prior_model(bool(mirror_average)) if mode == "hybrid"
+                            else None)
+        self.seen_state = int(seen_state)
         self.resolution = resolution
         self.mode = mode
         self.demosaic = demosaic
@@ -392,10 +414,11 @@ class Processor:
         ``revision`` if given); return the score against the truth (simulated rig) or None.
         :meth:`solve` and :func:`record_result`, with the file written and scored in between
         (:func:`write_and_score`)."""
-        records, score = write_and_score(session.root, self.solve(session, index, revision),
-                                         self.exr)
+        out = self.solve(session, index, revision)
+        prior = out.prior
+        records, score = write_and_score(session.root, out, self.exr)
         try:
-            record_result(session, index, revision, records, score, self.exr)
+            record_result(session, index, revision, records, score, self.exr, prior)
         except BaseException:  # not recorded (a full disk...): no unrecorded file left
             remove_files(session.root / r["path"] for r in records.values())
             raise
@@ -411,22 +434,42 @@ class Processor:
         cap = session.capture(index)
         cf = load_capture_frames(session, index)
         truth_path = self._verified_truth(session, index)  # damaged truth: refused up front
-        geometry = None
-        if self.mode == "single-shot":
+        geometry = prior_record = prior_header = None
+        if self.mode in NETWORK_MODES:
             rig_info = session.manifest.get("rig", {}) or {}
             config = rig_info.get("config")
             size = ((config or {}).get("sim") or {}).get("size")
             geometry = single_shot_geometry(
                 self.calibration, config,
                 None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
+        if self.mode == "single-shot":
             result, s_in, lay = self.single_shot_result(cf, geometry)
             states = None
             extra_planes = result.extra_planes(self.exr.planes, self.exr.uncertainty)
         else:
             unc = np.float16 if self.exr.uncertainty == "half" else np.float32
-            result, s_in, lay, states = process_reference(cf, self.calibration,
-                                                          self.sensor_model, self.demosaic, unc)
+            prior = None
+            if self.mode == "hybrid":
+                k = self.seen_state
+                if not 0 <= k < len(cf.states_deg):
+                    raise PlanError("seen_state", f"the capture has {len(cf.states_deg)} polarizer "
+                                                  f"state(s): 0..{len(cf.states_deg) - 1}",
+                                    subject=str(k), what="seen state")
+                prior_header = {}
+
+                def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
+                    net = self.single_shot.state(states_[k], cf.first, s_in_[k],
+                                                 self.single_shot_options, geometry=geometry)
+                    prior_header["execution_provider"] = net.provider
+                    # the network's sigma: inf on clipped colours, 0 outside its object (no prior)
+                    return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k}
+
+            result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
+                                                          self.demosaic, unc, prior)
             extra_planes = {}
+            if self.mode == "hybrid":
+                prior_record = {**self.prior_model, **prior_header, "seen_state": self.seen_state,
+                                "seen_state_deg": float(cf.states_deg[self.seen_state])}
         meta = {
             "calibration_id": self.calibration.id, "mode": self.mode, "demosaic": self.demosaic,
             "pose_deg": cap["pose_deg"], "states_deg": cf.states_deg,
@@ -454,12 +497,37 @@ class Processor:
                 "intrinsics_full_sensor": geometry["intrinsics"],
                 "stage_zero_axis_camera": geometry["stage_zero_axis_camera"],
                 "sources": geometry["sources"]}
-            meta.update(result.header(self.exr.planes))  # settings, provider, its planes' meaning
+            if self.mode == "single-shot":
+                meta.update(result.header(self.exr.planes))  # settings, provider, its planes' meaning
+        if prior_record is not None:
+            meta.update(self.hybrid_header(prior_record, s_in))
+            meta["planes"] = {k: v for k, v in meta["planes"].items()
+                              if k.split(".", 1)[0] in self.exr.planes}
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
         truth = None if truth_path is None else self.truth_score(
             truth_path, lay, s_in, states if self.mode == "reference" else None,
             noise_exposures_us(cf)[0])
-        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes)
+        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes, prior_record)
+
+    @staticmethod
+    def hybrid_header(prior_record: Mapping[str, Any], s_in: np.ndarray) -> dict[str, Any]:
+        """A hybrid result's header entries: the seen state, the prior's model (the manifest's
+        ``prior`` record), the state set's own condition number (``inf`` where it does not
+        determine the block) and what the planes mean for the posterior."""
+        return {
+            "seen_state": prior_record["seen_state"], "seen_state_deg": prior_record["seen_state_deg"],
+            "mirror_average": prior_record["mirror_average"],
+            "execution_provider": prior_record["execution_provider"],
+            "prior_model": {k: v for k, v in prior_record.items()
+                            if k not in ("seen_state", "seen_state_deg")},
+            "condition_number": state_set_condition(s_in),
+            "planes": {
+                "sigma.M{rc}": "posterior standard deviation of M{rc}: sensor noise, calibration "
+                               "uncertainty and the single-shot prior (polrig.solve.hybrid)",
+                "sigma_noise.M{rc}": "posterior standard deviation of M{rc} from the sensor noise "
+                                     "model and the prior, without the calibration part",
+                "mask": "reason bits, 0 = valid",
+                "residual": "chi^2 of the samples per effective degree of freedom (n - tr H)"}}
 
     def single_shot_result(self, cf: CaptureFrames, geometry: dict[str, Any] | None = None
                            ) -> tuple[SingleShotResult, np.ndarray, MosaicLayout]:
@@ -517,8 +585,10 @@ class Processor:
         """How to score a capture of this processor against its (verified) truth file: with
         the capture's own ``states`` as weights (reference), or for the single-shot method
         (``states=None``) at its output resolution with nominal four-state weights and the
-        noise model at ``exposure_us``."""
-        if states is None:
+        noise model at ``exposure_us``. The hybrid method is scored as the single-shot one (its
+        states may not determine the block; the truth is that of a perfect four-state rig at its
+        output resolution), so the two compare on the same truth."""
+        if states is None or self.mode == "hybrid":
             return TruthScore(truth_path, layout, self.output_demosaic,
                               polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
                               None, self.sensor_model, exposure_us)
@@ -529,7 +599,7 @@ def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: Se
                    device: str = "auto") -> Processor:
     """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
-                     plan.resolution, device, plan.exr, plan.network_binning)
+                     plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -554,9 +624,13 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       on_failed: Callable[[int, str], None] | None = None,
                       resolution: str | None = None, device: str = "auto",
                       exr: Mapping[str, Any] | None = None,
-                      network_binning: int | None = None) -> str:
+                      network_binning: int | None = None, seen_state: int | None = None) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
+
+    ``mode`` ``hybrid`` works on any session with at least one polarizer state: ``seen_state``
+    (index into the session's states; default: the session's where it was hybrid, else 0) names
+    the frame the network sees.
 
     ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
     stays single-shot, else ``superpixel``) and ``network_binning`` (single-shot, 1 or 2; default:
@@ -579,7 +653,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         if not was_locked:
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed, resolution, device, exr, network_binning)
+                          progress, on_failed, resolution, device, exr, network_binning, seen_state)
     finally:
         if not was_locked:
             session.unlock()
@@ -588,12 +662,13 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
 def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   mirror_average: bool | None, calibration: Calibration | None,
                   resolution: str | None = None, device: str = "auto",
-                  exr: Mapping[str, Any] | None = None, network_binning: int | None = None
+                  exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
+                  seen_state: int | None = None
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
     revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
-    ``network_binning``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
+    ``network_binning``, ``seen_state``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
     ``exr_compression``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
     take the session's), its :class:`Processor` (on
     ``device``) and the indices of the complete captures to process. Shared by
@@ -601,8 +676,12 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
     plan = session.plan
     mode = mode or plan.mode
     demosaic = demosaic or plan.demosaic
-    if mirror_average is None:  # the session's choice where it was single-shot already
-        mirror_average = plan.mirror_average and mode == "single-shot"
+    if mirror_average is None:  # the session's choice where it ran the network already
+        mirror_average = plan.mirror_average and mode in NETWORK_MODES and plan.mode in NETWORK_MODES
+    if seen_state is None:  # the session's where it stays hybrid
+        seen_state = plan.seen_state if mode == "hybrid" and plan.mode == "hybrid" else 0
+    acquired = plan.acquired_states_deg()
+    check_seen_state(seen_state, mode, len(acquired))
     if resolution is None:  # the session's where it stays single-shot
         resolution = plan.resolution if mode == "single-shot" else "superpixel"
     if network_binning is None:  # the session's where it stays single-shot
@@ -615,12 +694,11 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device, choice, network_binning)
+                          resolution, device, choice, network_binning, seen_state)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
     if mode == "reference":  # before a revision exists: an impossible request records nothing
-        acquired = plan.acquired_states_deg()
         if len(acquired) < 3:
             raise ConfigError(f"{session.root}: captured in {plan.mode} mode, "
                               f"{len(acquired)} polarizer state per pose; the reference method "
@@ -629,16 +707,17 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         validate_states(calibration.incident_stokes(acquired))
     return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
              "resolution": resolution, "network_binning": processor.network_binning,
-             "calibration_id": calibration.id,
+             "seen_state": processor.seen_state, "calibration_id": calibration.id,
              "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
              "exr_compression": choice.compression}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
                progress, on_failed, resolution=None, device="auto", exr=None,
-               network_binning=None) -> str:
+               network_binning=None, seen_state=None) -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
-                                              calibration, resolution, device, exr, network_binning)
+                                              calibration, resolution, device, exr, network_binning,
+                                              seen_state)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

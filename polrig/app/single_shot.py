@@ -299,6 +299,33 @@ class SingleShot:
         """The onnxruntime execution provider that runs the networks."""
         return self.model.provider
 
+    def check_sigma(self) -> None:
+        """A one-line :class:`PlanError` of ``mode`` unless the loaded graph has a calibrated
+        uncertainty (the hybrid method's prior is its estimate with that sigma)."""
+        if self.model.uncertainty is None:
+            from polrig.models.uncertainty import how_to_calibrate
+
+            raise PlanError("mode", f"the hybrid method needs the single-shot model's calibrated sigma: "
+                                    f"{self.model.uncertainty_problem}; {how_to_calibrate(self.model.weights_dir)}",
+                            subject="hybrid", what="mode")
+
+    def prior_model(self, mirror_average: bool) -> dict[str, Any]:
+        """What identifies this route as a hybrid result's prior (the manifest's ``prior`` record,
+        :class:`polrig.app.manifest.PriorRecord`, less the seen state; the result header's
+        ``prior_model``): the graph's file name and SHA-256 (the one its uncertainty calibration
+        was verified against at load), the ``uncertainty.json`` SHA-256 and format version, the
+        execution provider and ``mirror_average``. Needs a calibrated sigma (:meth:`check_sigma`)."""
+        import hashlib
+
+        from polrig.models.uncertainty import FILE_NAME, VERSION
+
+        self.check_sigma()
+        unc = pathlib.Path(self.model.weights_dir) / FILE_NAME
+        return {"graph": "single_shot.onnx", "graph_sha256": self.model.uncertainty.graph_sha256,
+                "uncertainty_sha256": hashlib.sha256(unc.read_bytes()).hexdigest(),
+                "uncertainty_version": int(VERSION), "execution_provider": self.provider,
+                "mirror_average": bool(mirror_average)}
+
     # -- front ends ---------------------------------------------------------------------------
     def frame(self, frame: Frame, state_deg: float, options: SingleShotOptions, *,
               geometry: Mapping[str, Any] | None = None, sensor: SensorModel | None = None,

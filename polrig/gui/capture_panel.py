@@ -154,7 +154,10 @@ class CapturePanel(QWidget):
         self.poses.setToolTip("turntable poses in degrees: a list 0,30,60 or a range "
                               "START:STOP:STEP with STOP exclusive")
         self.mode = QComboBox()
-        self.mode.addItems(["reference", "single-shot"])
+        self.mode.addItems(["reference", "single-shot", "hybrid"])
+        self.mode.setToolTip("reference: N >= 3 polarizer states solved per pixel; single-shot: the "
+                             "trained network on one state; hybrid: N >= 1 states solved with the "
+                             "network's estimate of the seen state as a prior")
         self.mirror_average = QCheckBox("Mirror-average the network (single-shot: twice the network time, "
                                         "a few per cent lower error)")
         self.mirror_average.setEnabled(False)
@@ -171,9 +174,17 @@ class CapturePanel(QWidget):
         self.device.setToolTip("where the single-shot network runs (auto: CUDA where onnxruntime "
                                "offers it); the provider used is recorded in each result")
         self.device.setEnabled(False)
-        for w in (self.mirror_average, self.resolution, self.binning, self.device):
+        for w in (self.resolution, self.binning):  # hybrid: superpixel, unbinned (calibrated sigma)
             self.mode.currentTextChanged.connect(
                 lambda m, w=w: w.setEnabled(m == "single-shot"))
+        self.seen_state = QSpinBox()
+        self.seen_state.setRange(0, 359)
+        self.seen_state.setToolTip("hybrid: index into the states of the one whose frame the network sees")
+        self.seen_state.setEnabled(False)
+        for w in (self.mirror_average, self.device):
+            self.mode.currentTextChanged.connect(
+                lambda m, w=w: w.setEnabled(m in ("single-shot", "hybrid")))
+        self.mode.currentTextChanged.connect(lambda m: self.seen_state.setEnabled(m == "hybrid"))
         self.states = QLineEdit()
         self.states.setPlaceholderText("0,45,90,135")
         self.frames = QSpinBox()
@@ -211,6 +222,7 @@ class CapturePanel(QWidget):
         form.addRow("Resolution", self.resolution)
         form.addRow("Network binning", self.binning)
         form.addRow("Network device", self.device)
+        form.addRow("Seen state (hybrid)", self.seen_state)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
         form.addRow("Exposure(s)", self.exposure)
@@ -285,7 +297,8 @@ class CapturePanel(QWidget):
             exposures_us=(parse_float_list(exposure, "exposures", positive=True,
                                            field="exposures_us") if exposure else None),
             dark_frames=self.dark_frames.value(), demosaic=self.demosaic.currentText(),
-            mirror_average=mode == "single-shot" and self.mirror_average.isChecked(),
+            mirror_average=mode in ("single-shot", "hybrid") and self.mirror_average.isChecked(),
+            seen_state=self.seen_state.value() if mode == "hybrid" else 0,
             resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel",
             network_binning=int(self.binning.currentData()) if mode == "single-shot" else 1,
             exr_planes=tuple(p.strip() for p in self.exr_planes.text().split(",") if p.strip()),

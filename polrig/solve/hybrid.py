@@ -119,7 +119,9 @@ without the calibration part. ``n_samples`` counts the samples used.
 
 Frames to result: :func:`polrig.solve.radiometry.reference_from_frames` takes the prior
 (``prior_mean``, ``prior_sigma``, ``seen_state``) and solves band by band. The capture and
-reconstruct modes (``--mode hybrid --states ...``) are not wired yet.
+reconstruct mode ``hybrid`` (``--mode hybrid --states 0,90 [--seen-state 0]``) runs it on a
+session's frames with the prior from the single-shot route
+(:meth:`polrig.app.processing.Processor.solve`).
 """
 
 from __future__ import annotations

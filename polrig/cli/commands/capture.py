@@ -33,15 +33,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "Interrupted sessions (Ctrl-C, device fault, full disk) continue with "
                     "--out DIR --resume.")
     p.add_argument("--poses", help=POSES_HELP + " (required unless --resume)")
-    p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
+    p.add_argument("--mode", choices=("reference", "single-shot", "hybrid"), default=None,
                    help="reference: N polarizer states per pose (default); single-shot: the "
-                        "trained network")
+                        "trained network; hybrid: N >= 1 states solved with the network's estimate "
+                        "of one of them (--seen-state) as a prior (polrig.solve.hybrid)")
+    add_seen_state_option(p, "default 0")
     p.add_argument("--mirror-average", action="store_true", default=None,
                    help="single-shot: also run the network on each frame's left-right mirror image "
                         "and average the two answers (a few per cent lower error, twice the network "
                         "time; models/MODEL_CARD.md, 'Mirror averaging')")
     p.add_argument("--states", help="polarizer stage angles in degrees (default 0,45,90,135; "
-                                    "at least 3 non-collinear states for the reference method)")
+                                    "at least 3 non-collinear states for the reference method, "
+                                    "1 or more for the hybrid method)")
     p.add_argument("--frames", type=int, default=None, help="frames averaged per state (default 1)")
     p.add_argument("--exposure", help="exposure time(s) in microseconds; several (comma "
                                       "separated) form an HDR bracket, the first is the "
@@ -72,6 +75,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="continue the session in --out where it stopped")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
+    """``--seen-state K``: the hybrid method's seen state, an index into ``--states``
+    (:attr:`polrig.acquisition.plan.CapturePlan.seen_state`; ``capture`` and ``reconstruct``)."""
+    p.add_argument("--seen-state", type=int, default=None, metavar="K",
+                   help=f"hybrid: index into the polarizer states of the one whose frame the network "
+                        f"sees; its estimate and calibrated sigma are the prior ({default})")
 
 
 def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
@@ -116,7 +127,7 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "frames_per_state": "--frames", "exposures_us": "--exposure",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "resolution": "--resolution",
-         "network_binning": "--network-binning",
+         "network_binning": "--network-binning", "seen_state": "--seen-state",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
          "exr_compression": "--exr-compression",
          "calibration": "--calibration", "out": "--out"}
@@ -166,6 +177,7 @@ def build_request(args: argparse.Namespace):
             mirror_average=args.mirror_average,
             resolution=args.resolution,
             network_binning=args.network_binning,
+            seen_state=args.seen_state,
             exr_planes=exr_planes_option(args.exr_planes),
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,

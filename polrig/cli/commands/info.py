@@ -38,7 +38,9 @@ def run(args: argparse.Namespace) -> int:
           f"{m['calibration_id']}")
     exposures = (",".join(f"{e:g}" for e in plan.exposures_us) + " us"
                  if plan.exposures_us else "camera default")
-    print(f"  plan: mode {plan.mode}, {len(plan.poses_deg)} poses, states "
+    seen = (f" (seen state {plan.seen_state}: {plan.states_deg[plan.seen_state]:g} deg)"
+            if plan.mode == "hybrid" else "")
+    print(f"  plan: mode {plan.mode}{seen}, {len(plan.poses_deg)} poses, states "
           f"{','.join(f'{a:g}' for a in plan.states_deg)} deg, "
           f"{plan.frames_per_state} frame(s)/state, exposure {exposures}, "
           f"{plan.dark_frames} dark frame(s), demosaic {plan.demosaic}")

@@ -26,7 +26,7 @@ from polrig.formats.argcheck import int_range
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polrig.cli.commands.capture import add_binning_option, add_exr_options
+    from polrig.cli.commands.capture import add_binning_option, add_exr_options, add_seen_state_option
 
     p = sub.add_parser(
         "reconstruct", help="re-process sessions' raw frames (new calibration/model/demosaic)",
@@ -38,8 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="session folder(s) (each holds session.json)")
     p.add_argument("--from-list", metavar="FILE",
                    help="text file listing session folders, one per line (# comments)")
-    p.add_argument("--mode", choices=("reference", "single-shot"), default=None,
-                   help="reconstruction method (default: each session's)")
+    p.add_argument("--mode", choices=("reference", "single-shot", "hybrid"), default=None,
+                   help="reconstruction method (default: each session's); hybrid works on any "
+                        "session with at least one polarizer state")
+    add_seen_state_option(p, "default: the session's where it stays hybrid, else 0")
     p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
                    help="demosaic method (default: each session's)")
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
@@ -120,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
             batches = cluster.reconstruct(
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
-                network_binning=args.network_binning,
+                network_binning=args.network_binning, seen_state=args.seen_state,
                 device=args.device or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
