@@ -1,0 +1,506 @@
+"""Training scenes made on the training device (issue 32, item 1): a batched PyTorch generator
+of the simulator's training distribution (:func:`polrig.sim.dataset.make_sample`).
+
+:class:`SceneGenerator` draws ``n`` random scenes at once and renders them on the tensors' device
+(CPU or CUDA): no disk, no worker pool, no numpy in the per-batch path. :meth:`SceneGenerator.batch`
+returns the arrays :func:`polrig.models.data.load_dataset` gives training for ``n`` samples (same
+keys, shapes, dtypes and normalisation: ``analyzer`` black-subtracted DN / ``scale``, ``mueller``
+DN per unit incident S0 / ``scale``, ``mask`` float32, vectors in the camera frame);
+:func:`training_tensors` turns them into the tensors :func:`polrig.models.train._tensors` makes from a
+loaded set.
+
+What is sampled, as ``polrig sim dataset`` does (``sim/dataset.py``, ``sim/scene.py``,
+``sim/materials.py``):
+
+* **Shape families**: ``sphere``, ``box``, ``cylinder`` and ``multi`` (a sphere and a box),
+  intersected in closed form per pixel (sphere quadratic, slab test, quadric plus caps), with the
+  same size, pose and centre draws as :func:`polrig.sim.scene.random_scene` and the turntable angle
+  uniform in [0, 360). Not covered: ``blob`` and ``torus`` (implicit solids that the simulator
+  marches and bisects: possible in torch but not written yet) and the held-out ``heightfield``
+  and ``plane`` (never trained on). Asking for them is a :class:`ConfigError`. The default
+  families are the four covered ones (the version-1 training sets' ``--families
+  sphere,box,cylinder,multi``).
+* **Materials**: the ``baek`` mix (kd per colour uniform in [0.02, 0.9], alpha log-uniform in
+  [0.01, 0.8], eta uniform in [1.3, 1.8], ks 0 for one in ten) rendered with the differentiable
+  pBRDF :mod:`polrig.models.pbrdf_torch` (GGX, the simulator's default distribution). Not covered:
+  the ``train`` mix's conductors, dispersive dielectrics and anisotropic roughness
+  (:mod:`polrig.sim.surface_bsdf`, complex-index Fresnel and anisotropic GGX/Beckmann: a torch port
+  is item 1's remaining work); asking for another mix is a :class:`ConfigError`.
+* **Light and stage geometry**: light azimuth +-70 deg, elevation 5-60 deg, 0.3-0.6 m, colour
+  uniform in [0.6, 1] per channel over its maximum; the default camera (``fx = fy = 2.5 min(W,
+  H)``); the stage zero axis as ``stage_zero_axes="random"`` (rig axis 0.5, camera up 0.2, else
+  a uniform angle about the illumination axis) or ``"camera-up"``; stage angle uniform in
+  [0, 180) deg, extinction ratio log-uniform in [200, 3000], no stage offset.
+* **Sensor**: the ideal-analyzer intensities (0/45/90/135 deg) per colour at ``H x W``, exposure
+  scaled so the 99.5th percentile of the clean values inside the mask is 25-85 % of the clip
+  level, Poisson photo- and dark electrons (clipped at the full well), Gaussian read noise,
+  the gain, black level, rounding to the nearest code and clipping to the ADC range
+  (:meth:`polrig.sensor.noise.SensorModel.sample_raw` with :data:`polrig.sim.options.SENSOR_MODEL_DEFAULTS`),
+  black level and mean dark signal removed, divided by ``scale`` (the 99.5th percentile of the
+  noisy values inside the mask, at least 1 DN; numpy's linear-interpolation percentile).
+* **Ground truth**: ``mask``, ``lit`` (hit, facing the light, no occluder on the shadow ray),
+  ``normal``, ``wi``, ``wo``, ``kd`` images (0 outside the mask), ``alpha``, ``eta``, ``s_in``,
+  the ``mueller`` blocks ``(ks Ms + kd_c Md) / r^2 x light colour x colour QE x k / scale``.
+
+**Same distribution, not the same scenes.** The simulator draws every sample from its own numpy
+``Generator`` seeded by ``(seed, holdout, index)`` (PCG64 streams, Poisson and normal variates
+from numpy's own algorithms, in a fixed order of draws within a sample). Reproducing them in
+torch would mean re-implementing numpy's bit generator, its seed-sequence hashing and its
+Poisson sampler, and drawing sample by sample: exactly the per-sample serial work a batched
+device generator exists to avoid, and torch's CUDA generator (Philox) cannot produce those
+streams. So :class:`SceneGenerator` samples the same distributions from a seeded
+``torch.Generator`` (reproducible for a given seed, device and batch size), and
+``tests/test_models_scenes_torch.py`` shows it is the simulator's distribution with two-sample
+Kolmogorov-Smirnov and chi-square tests on the parameter marginals and on summary statistics of
+the rendered images against :func:`polrig.sim.dataset.generate_dataset`, plus a per-scene check
+that the renderer agrees with :func:`polrig.sim.render.render` on the same scene (the
+deterministic part, where equality is practical), and a power check (a generator with a shifted
+roughness range is rejected).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from polrig.errors import ConfigError
+from polrig.models.pbrdf_torch import image_blocks
+from polrig.sim.dataset import (
+    CAMERA_UP_FRACTION,
+    DATASET_EXPOSURE_US,
+    RIG_AXIS_FRACTION,
+    SCALE_PERCENTILE,
+    SIZE_MULTIPLE,
+    STAGE_ZERO_AXES,
+    dataset_sensor_model,
+)
+from polrig.sim.materials import MATERIAL_KINDS
+from polrig.sim.options import HIDDEN_DEFAULTS
+from polrig.sim.scene import FAMILIES, OBJECT_Z_M, RANDOM_FOCAL_PER_PX, default_camera
+
+#: Shape families the torch generator renders (indices into :data:`polrig.sim.scene.FAMILIES`).
+COVERED_FAMILIES = ("sphere", "box", "cylinder", "multi")
+#: Material mixes it draws from.
+COVERED_MIXES = ("baek",)
+#: Shadow-ray origin offset along the geometric normal (m), as :data:`polrig.sim.raycast.SHADOW_EPS_M`.
+SHADOW_EPS_M = 1e-5
+T_MIN = 1e-6
+
+_SPHERE, _BOX, _CYLINDER = 0, 1, 2
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return (a * b).sum(-1)
+
+
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    n = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    return v / n.clamp_min(1e-30)
+
+
+def _rot_x(deg: torch.Tensor) -> torch.Tensor:
+    a = torch.deg2rad(deg)
+    c, s = torch.cos(a), torch.sin(a)
+    o, z = torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack([torch.stack([o, z, z], -1), torch.stack([z, c, -s], -1),
+                        torch.stack([z, s, c], -1)], -2)
+
+
+def _rot_z(deg: torch.Tensor) -> torch.Tensor:
+    a = torch.deg2rad(deg)
+    c, s = torch.cos(a), torch.sin(a)
+    o, z = torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack([torch.stack([c, -s, z], -1), torch.stack([s, c, z], -1),
+                        torch.stack([z, z, o], -1)], -2)
+
+
+def _tilt(deg_x: torch.Tensor, deg_z: torch.Tensor) -> torch.Tensor:
+    """:func:`polrig.sim.scene._tilt`: ``Rz(deg_z) @ Rx(deg_x)``, batched."""
+    return _rot_z(deg_z) @ _rot_x(deg_x)
+
+
+# ------------------------------------------------------------------------------- intersections
+# Rays o + t d (B, P, 3) in a shape's local frame; parameters (B, 1[, 3]). Each returns
+# (t (B, P) with inf for a miss, outward normal (B, P, 3)), as polrig.sim.shapes.
+
+
+def sphere_hit(o, d, radius, t_min=T_MIN):
+    b = _dot(o, d)
+    c = _dot(o, o) - radius * radius
+    disc = b * b - c
+    sq = torch.sqrt(disc.clamp_min(0.0))
+    t1, t2 = -b - sq, -b + sq
+    inf = torch.full_like(t1, math.inf)
+    t = torch.where(t1 > t_min, t1, torch.where(t2 > t_min, t2, inf))
+    t = torch.where(disc >= 0, t, inf)
+    p = o + torch.where(torch.isfinite(t), t, 0.0)[..., None] * d
+    return t, p / radius[..., None]
+
+
+def box_hit(o, d, half, t_min=T_MIN):
+    """``half`` (B, 1, 3)."""
+    inv = 1.0 / d
+    t1, t2 = (-half - o) * inv, (half - o) * inv
+    t1 = torch.nan_to_num(t1, nan=-math.inf)
+    t2 = torch.nan_to_num(t2, nan=math.inf)
+    lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
+    t_near, ax_near = lo.max(-1)
+    t_far, ax_far = hi.min(-1)
+    hit = (t_near <= t_far) & (t_far > t_min)
+    entering = t_near > t_min
+    t = torch.where(hit, torch.where(entering, t_near, t_far), torch.full_like(t_near, math.inf))
+    ax = torch.where(entering, ax_near, ax_far)
+    p = o + torch.where(torch.isfinite(t), t, 0.0)[..., None] * d
+    onehot = torch.nn.functional.one_hot(ax, 3).to(o.dtype)
+    return t, onehot * torch.sign(p)
+
+
+def cylinder_hit(o, d, radius, half_height, t_min=T_MIN):
+    r, hh = radius, half_height
+    inf = math.inf
+    a = d[..., 0] ** 2 + d[..., 1] ** 2
+    b = o[..., 0] * d[..., 0] + o[..., 1] * d[..., 1]
+    c = o[..., 0] ** 2 + o[..., 1] ** 2 - r * r
+    disc = b * b - a * c
+    sq = torch.sqrt(disc.clamp_min(0.0))
+    t_best = torch.full_like(a, inf)
+    n_best = torch.zeros_like(o)
+    for sgn in (-1.0, 1.0):
+        ts = (-b + sgn * sq) / a
+        z = o[..., 2] + ts * d[..., 2]
+        ok = (disc >= 0) & (ts > t_min) & (z.abs() <= hh) & torch.isfinite(ts)
+        ts = torch.where(ok, ts, inf)
+        p = o + torch.where(ok, ts, 0.0)[..., None] * d
+        ns = torch.stack([p[..., 0] / r, p[..., 1] / r, torch.zeros_like(ts)], -1)
+        closer = ts < t_best
+        t_best = torch.where(closer, ts, t_best)
+        n_best = torch.where(closer[..., None], ns, n_best)
+    for zc in (-1.0, 1.0):
+        tc = (zc * hh - o[..., 2]) / d[..., 2]
+        x, y = o[..., 0] + tc * d[..., 0], o[..., 1] + tc * d[..., 1]
+        ok = (tc > t_min) & (x * x + y * y <= r * r) & torch.isfinite(tc)
+        tc = torch.where(ok, tc, inf)
+        nc = torch.zeros_like(o)
+        nc[..., 2] = zc
+        closer = tc < t_best
+        t_best = torch.where(closer, tc, t_best)
+        n_best = torch.where(closer[..., None], nc, n_best)
+    return t_best, n_best
+
+
+def masked_percentile(values: torch.Tensor, valid: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """numpy's ``percentile(values[valid], q)`` (linear interpolation) per row of ``values``
+    ``(B, K)``; returns ``(percentile (B,), any valid (B,))`` (0 where a row has none)."""
+    big = torch.finfo(values.dtype).max
+    s, _ = torch.sort(torch.where(valid, values, big), dim=1)
+    n = valid.sum(1)
+    pos = (q / 100.0) * (n - 1).clamp_min(0).to(values.dtype)
+    lo = pos.floor().long()
+    hi = pos.ceil().long()
+    v_lo = s.gather(1, lo[:, None])[:, 0]
+    v_hi = s.gather(1, hi[:, None])[:, 0]
+    out = v_lo + (v_hi - v_lo) * (pos - lo.to(values.dtype))
+    has = n > 0
+    return torch.where(has, out, torch.zeros_like(out)), has
+
+
+class SceneGenerator:
+    """Fresh random scenes of ``polrig sim dataset``'s training distribution, rendered in batches
+    on ``device`` (module docstring). ``seed`` seeds a :class:`torch.Generator` on that device:
+    the same seed, device and sequence of batch sizes give the same batches.
+
+    ``roughness_range``: the log-uniform alpha range, only for the tests' power check (a shifted
+    range must be told apart from the simulator)."""
+
+    def __init__(self, width: int = 256, height: int | None = None, *, seed: int = 0,
+                 device: str | torch.device = "cpu", families: Sequence[str] | None = None,
+                 material_mix: str = "baek", stage_zero_axes: str = "random",
+                 dtype: torch.dtype = torch.float32,
+                 roughness_range: tuple[float, float] = (0.01, 0.8)) -> None:
+        height = width if height is None else int(height)
+        if width % SIZE_MULTIPLE or height % SIZE_MULTIPLE or not (8 <= width <= 4096 and 8 <= height <= 4096):
+            raise ConfigError(f"generator size {width}x{height}: the sides must be multiples of {SIZE_MULTIPLE} "
+                              f"in 8..4096")
+        names = tuple(COVERED_FAMILIES if families is None else families)
+        bad = [f for f in names if f not in COVERED_FAMILIES]
+        if bad or not names:
+            raise ConfigError(f"the torch scene generator renders the families {', '.join(COVERED_FAMILIES)}; "
+                              f"got {', '.join(names) or 'none'} (blob and torus: not yet; heightfield, plane: "
+                              f"held out)")
+        if material_mix not in COVERED_MIXES:
+            raise ConfigError(f"the torch scene generator draws the material mixes {', '.join(COVERED_MIXES)}; got "
+                              f"{material_mix!r} (the train mix's conductors, dispersive and anisotropic "
+                              f"materials are not ported yet)")
+        if stage_zero_axes not in STAGE_ZERO_AXES:
+            raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
+        self.width, self.height = int(width), height
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.families = names
+        self.family_ids = torch.tensor([FAMILIES.index(f) for f in names], device=self.device)
+        self.material_mix = material_mix
+        self.stage_zero_axes = stage_zero_axes
+        self.log_alpha = (math.log(roughness_range[0]), math.log(roughness_range[1]))
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(int(seed))
+        model = dataset_sensor_model()
+        self.gain = float(model.gain_e_per_dn)
+        self.full_well = float(model.full_well_e)
+        self.read_noise = float(model.read_noise_e)
+        self.black = float(model.black_level_dn)
+        self.max_code = float(model.max_code_dn)
+        self.clip_dn = float(model.clip_dn)
+        self.dark_e = float(model.dark_electrons(DATASET_EXPOSURE_US))
+        cam = default_camera(self.width, self.height, focal_per_px=RANDOM_FOCAL_PER_PX)
+        t = dict(device=self.device, dtype=dtype)
+        self.cam_r = torch.tensor(cam.R, **t)  # world -> camera
+        self.cam_t = torch.tensor(cam.t, **t)
+        u = (torch.arange(self.width, device=self.device, dtype=torch.float64) - cam.cx) / cam.fx
+        v = (torch.arange(self.height, device=self.device, dtype=torch.float64) - cam.cy) / cam.fy
+        d = torch.stack([u[None, :].expand(self.height, -1), v[:, None].expand(-1, self.width),
+                         torch.ones(self.height, self.width, dtype=torch.float64, device=self.device)], -1)
+        self.rays = _unit(d).reshape(1, -1, 3).to(dtype)  # camera frame, pixel centres, row-major
+        self.colour_qe = torch.tensor(HIDDEN_DEFAULTS["colour_qe"], **t)
+        self.target_w = torch.tensor([0.0, 0.0, OBJECT_Z_M], **t)
+
+    # -- random draws ----------------------------------------------------------------------
+    def _u(self, *shape, lo=0.0, hi=1.0) -> torch.Tensor:
+        r = torch.rand(*shape, generator=self.generator, device=self.device, dtype=self.dtype)
+        return lo + (hi - lo) * r
+
+    def _draw(self, n: int) -> dict[str, torch.Tensor]:
+        """Per-sample scene parameters, as :func:`polrig.sim.scene.random_scene` and
+        :func:`polrig.sim.dataset.make_sample` draw them."""
+        fam = self.family_ids[torch.randint(len(self.family_ids), (n,), generator=self.generator,
+                                            device=self.device)]
+        kd = self._u(n, 3, lo=0.02, hi=0.9)
+        alpha = torch.exp(self._u(n, lo=self.log_alpha[0], hi=self.log_alpha[1]))
+        eta = self._u(n, lo=1.3, hi=1.8)
+        ks = (self._u(n) >= 0.1).to(self.dtype)
+        rot = _tilt(self._u(n, lo=-40.0, hi=40.0), self._u(n, lo=0.0, hi=360.0))
+        c = self.target_w + self._u(n, 3, lo=-0.01, hi=0.01)
+        is_multi = fam == FAMILIES.index("multi")
+        kind = torch.full((n,), _SPHERE, device=self.device)
+        kind = torch.where(fam == FAMILIES.index("box"), _BOX, kind)
+        kind = torch.where(fam == FAMILIES.index("cylinder"), _CYLINDER, kind)
+        r_sphere = torch.where(is_multi, self._u(n, lo=0.02, hi=0.035), self._u(n, lo=0.035, hi=0.06))
+        half_box = self._u(n, 3, lo=0.02, hi=0.045)
+        r_cyl, hh_cyl = self._u(n, lo=0.02, hi=0.04), self._u(n, lo=0.025, hi=0.05)
+        radius = torch.where(kind == _CYLINDER, r_cyl, r_sphere)
+        eye = torch.eye(3, device=self.device, dtype=self.dtype).expand(n, 3, 3)
+        rot_a = torch.where((kind == _SPHERE)[:, None, None], eye, rot)
+        off_a = torch.tensor([-0.03, -0.02, -0.02], device=self.device, dtype=self.dtype)
+        c_a = c + is_multi[:, None].to(self.dtype) * off_a
+        half_b = self._u(n, 3, lo=0.015, hi=0.03)
+        c_b = c + torch.tensor([0.03, 0.02, -0.01], device=self.device, dtype=self.dtype)
+        az = torch.deg2rad(self._u(n, lo=-70.0, hi=70.0))
+        el = torch.deg2rad(self._u(n, lo=5.0, hi=60.0))
+        dist = self._u(n, lo=0.3, hi=0.6)
+        light = self.target_w + dist[:, None] * torch.stack(
+            [torch.sin(az) * torch.cos(el), -torch.cos(az) * torch.cos(el), torch.sin(el)], -1)
+        colour = self._u(n, 3, lo=0.6, hi=1.0)
+        colour = colour / colour.max(1, keepdim=True).values
+        turn = _rot_z(self._u(n, lo=0.0, hi=360.0))
+        # stage zero axis (world), as sample_stage_zero_axis and Scene.__post_init__
+        k = _unit(self.target_w - light)
+        up = torch.tensor([0.0, 0.0, 1.0], device=self.device, dtype=self.dtype).expand(n, 3)
+        rig_axis = _unit(torch.linalg.cross(self.target_w - light, up))
+        cam_up = -self.cam_r[1].expand(n, 3)
+        cam_up = _unit(cam_up - _dot(cam_up, k)[:, None] * k)
+        if self.stage_zero_axes == "camera-up":
+            axis = cam_up
+        else:
+            pick = self._u(n)
+            ang = self._u(n, lo=0.0, hi=math.pi)
+            y = torch.linalg.cross(k, cam_up)
+            turned = torch.cos(ang)[:, None] * cam_up + torch.sin(ang)[:, None] * y
+            axis = torch.where((pick < RIG_AXIS_FRACTION)[:, None], rig_axis,
+                               torch.where((pick < RIG_AXIS_FRACTION + CAMERA_UP_FRACTION)[:, None], cam_up,
+                                           turned))
+            axis = _unit(axis - _dot(axis, k)[:, None] * k)
+        stage_deg = self._u(n, lo=0.0, hi=180.0)
+        er = torch.exp(self._u(n, lo=math.log(200.0), hi=math.log(3000.0)))
+        exposure = self._u(n, lo=0.25, hi=0.85)
+        # to the camera frame: p_cam = R_cam (R_turn p) + t_cam
+        rc = self.cam_r @ turn
+        return {"family": fam, "kind": kind, "is_multi": is_multi, "kd": kd, "alpha": alpha, "eta": eta,
+                "ks": ks, "rot_a": rc @ rot_a, "t_a": (rc @ c_a[..., None])[..., 0] + self.cam_t,
+                "radius": radius, "half_a": half_box, "hh": hh_cyl,
+                "rot_b": rc @ rot, "t_b": (rc @ c_b[..., None])[..., 0] + self.cam_t, "half_b": half_b,
+                "light": (self.cam_r @ light[..., None])[..., 0] + self.cam_t, "colour": colour,
+                "axis": (self.cam_r @ axis[..., None])[..., 0], "stage_deg": stage_deg, "er": er,
+                "exposure": exposure}
+
+    # -- ray casting -----------------------------------------------------------------------
+    @staticmethod
+    def _local(o, d, rot, t):
+        """Rays (B, P, 3) into an object's local frame (``p_cam = rot p_local + t``: row vectors
+        ``p_local = (p_cam - t) rot``)."""
+        return (o - t[:, None]) @ rot, d @ rot
+
+    def _hit_a(self, s, o, d):
+        ol, dl = self._local(o, d, s["rot_a"], s["t_a"])
+        r = s["radius"][:, None]
+        ts, ns = sphere_hit(ol, dl, r)
+        tb, nb = box_hit(ol, dl, s["half_a"][:, None])
+        tc, nc = cylinder_hit(ol, dl, r, s["hh"][:, None])
+        kind = s["kind"][:, None]
+        t = torch.where(kind == _SPHERE, ts, torch.where(kind == _BOX, tb, tc))
+        n = torch.where((kind == _SPHERE)[..., None], ns, torch.where((kind == _BOX)[..., None], nb, nc))
+        return t, n @ s["rot_a"].transpose(1, 2)
+
+    def _hit_b(self, s, o, d):
+        ol, dl = self._local(o, d, s["rot_b"], s["t_b"])
+        t, n = box_hit(ol, dl, s["half_b"][:, None])
+        t = torch.where(s["is_multi"][:, None], t, torch.full_like(t, math.inf))
+        return t, n @ s["rot_b"].transpose(1, 2)
+
+    def _render(self, s):
+        n = len(s["kd"])
+        h, w = self.height, self.width
+        d = self.rays.expand(n, -1, -1)
+        o = torch.zeros_like(d)
+        ta, na = self._hit_a(s, o, d)
+        tb, nb = self._hit_b(s, o, d)
+        closer_b = tb < ta
+        t = torch.where(closer_b, tb, ta)
+        ng = _unit(torch.where(closer_b[..., None], nb, na))
+        mask = torch.isfinite(t)
+        p = torch.where(mask[..., None], t[..., None] * d, 0.0)
+        flip = _dot(ng, d) > 0  # two-sided surfaces face the camera
+        ng = torch.where(flip[..., None], -ng, ng)
+        to_light = s["light"][:, None] - p
+        dist = torch.linalg.vector_norm(to_light, dim=-1)
+        wi = to_light / dist[..., None]
+        facing = mask & (_dot(ng, wi) > 0)
+        so = p + SHADOW_EPS_M * ng
+        t_max = dist - SHADOW_EPS_M
+        sa, _ = self._hit_a(s, so, wi)
+        sb, _ = self._hit_b(s, so, wi)
+        shadowed = (torch.minimum(sa, sb) < t_max)
+        lit = facing & ~shadowed
+        wo = -d
+        zero = torch.zeros((), dtype=self.dtype, device=self.device)
+        img = lambda v: v.reshape(n, h, w, 3).permute(0, 3, 1, 2)  # noqa: E731
+        m3 = mask[..., None]
+        normal = img(torch.where(m3, ng, zero))
+        wi_img = img(torch.where(m3, wi, zero))
+        wo_img = img(torch.where(m3, wo, zero))
+        mask_img = mask.reshape(n, 1, h, w)
+        lit_img = lit.reshape(n, 1, h, w)
+        inv_r2 = torch.where(lit, 1.0 / (dist * dist), zero).reshape(n, 1, h, w)
+        return mask_img, lit_img, normal, wi_img, wo_img, inv_r2
+
+    # -- a batch ---------------------------------------------------------------------------
+    @torch.no_grad()
+    def batch(self, n: int) -> dict[str, torch.Tensor]:
+        """``n`` fresh samples: the arrays of :func:`polrig.models.data.load_dataset` (``mask``
+        float32 ``(n, H, W)``, shard dtypes for ``lit``, ``family``, ``material_kind``) plus
+        ``stage_deg``."""
+        return self.render(self._draw(int(n)))
+
+    def clean(self, s: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The noiseless part of a sample from its parameters ``s`` (:meth:`_draw`, or
+        :func:`scene_parameters`): geometry images and ``m_rad`` ``(n, 3, 3, 3, H, W)``, the
+        emergent radiance Mueller per unit light intensity times the light colour and colour QE
+        (what :func:`polrig.sim.dataset.make_sample` calls ``m_rad``)."""
+        mask, lit, normal, wi, wo, inv_r2 = self._render(s)
+        spec, diff = image_blocks(normal, wi, wo, s["alpha"], s["axis"], eta=s["eta"][:, None, None, None],
+                                  mask=lit.to(self.dtype))
+        light = s["colour"] * self.colour_qe  # (n, 3)
+        # (n, colour, 3, 3, H, W): (ks Ms + kd_c Md) / r^2 x light colour
+        m_rad = (s["ks"][:, None, None, None, None, None] * spec[:, None]
+                 + s["kd"][:, :, None, None, None, None] * diff[:, None]) * inv_r2[:, None, None] \
+            * light[:, :, None, None, None, None]
+        ang = torch.deg2rad(s["stage_deg"])
+        t1, t2 = torch.ones_like(s["er"]), 1.0 / s["er"]
+        s_in = torch.stack([(t1 + t2) / 2, (t1 - t2) / 2 * torch.cos(2 * ang), (t1 - t2) / 2 * torch.sin(2 * ang)], -1)
+        return {"mask": mask, "lit": lit, "normal": normal, "wi": wi, "wo": wo, "m_rad": m_rad, "s_in": s_in}
+
+    @torch.no_grad()
+    def render(self, s: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """A batch (:meth:`batch`) from scene parameters ``s``: render, expose, add the sensor's
+        noise, normalise."""
+        n = len(s["kd"])
+        c = self.clean(s)
+        mask, lit, normal, wi, wo, m_rad, s_in = (c[k] for k in ("mask", "lit", "normal", "wi", "wo", "m_rad",
+                                                                 "s_in"))
+        maskf = mask.to(self.dtype)
+        stokes = (m_rad * s_in[:, None, None, :, None, None]).sum(3)  # (n, c, 3, H, W)
+        s0, s1, s2 = stokes[:, :, 0], stokes[:, :, 1], stokes[:, :, 2]
+        an = 0.5 * torch.stack([s0 + s1, s0 + s2, s0 - s1, s0 - s2], 2)  # (n, c, 4, H, W)
+        inside = mask[:, None].expand(-1, 3, 4, -1, -1).reshape(n, -1)
+        ref, has = masked_percentile(an.reshape(n, -1), inside, SCALE_PERCENTILE)
+        target = s["exposure"] * self.clip_dn
+        k = torch.where(has & (ref > 0), target / torch.where(ref > 0, ref, 1.0), torch.ones_like(ref))
+        lam = (an * k[:, None, None, None, None]).clamp_min(0.0) * self.gain + self.dark_e
+        electrons = torch.poisson(lam, generator=self.generator).clamp_max(self.full_well)
+        electrons = electrons + self.read_noise * torch.randn(lam.shape, generator=self.generator,
+                                                              device=self.device, dtype=self.dtype)
+        codes = torch.floor(electrons / self.gain + self.black + 0.5).clamp(0.0, self.max_code)
+        analyzer = codes - self.black - self.dark_e / self.gain
+        sc, has = masked_percentile(analyzer.reshape(n, -1), inside, SCALE_PERCENTILE)
+        scale = torch.where(has, sc.clamp_min(1.0), torch.ones_like(sc))
+        kd_img = s["kd"][:, :, None, None] * maskf
+        f32 = torch.float32
+        return {
+            "analyzer": (analyzer / scale[:, None, None, None, None]).to(f32),
+            "scale": scale.to(f32), "mask": maskf[:, 0].to(f32),
+            "normal": normal.to(f32), "kd": kd_img.to(f32), "wi": wi.to(f32), "wo": wo.to(f32),
+            "alpha": s["alpha"].to(f32), "eta": s["eta"].to(f32), "s_in": s_in.to(f32),
+            "mueller": (m_rad * (k / scale)[:, None, None, None, None, None]).to(f32),
+            "family": s["family"].to(torch.int16), "stage_deg": s["stage_deg"].to(f32),
+            "lit": lit[:, 0].to(torch.uint8), "stage_zero_axis": s["axis"].to(f32),
+            "material_kind": torch.full((n,), MATERIAL_KINDS.index("baek"), dtype=torch.int16,
+                                        device=self.device),
+        }
+
+
+def training_tensors(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The tensors :func:`polrig.models.train._tensors` makes of a loaded dataset, from a
+    :meth:`SceneGenerator.batch` (``mask`` gets its channel axis)."""
+    t = {k: batch[k] for k in ("analyzer", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller",
+                               "stage_zero_axis")}
+    t["mask"] = batch["mask"][:, None]
+    return t
+
+
+def scene_parameters(gen: SceneGenerator, scene, turntable_deg: float, *, stage_deg: float = 0.0,
+                     extinction_ratio: float = 800.0, exposure: float = 0.5) -> dict[str, torch.Tensor]:
+    """The parameters :meth:`SceneGenerator.render` takes (one sample) of a
+    :class:`polrig.sim.scene.Scene` of a covered family (a random scene of
+    :func:`polrig.sim.scene.random_scene` with a Baek material), so that the torch renderer can be
+    compared with :func:`polrig.sim.render.render` on the same scene (tests; not the hot path)."""
+    from polrig.sim.shapes import Box, Cylinder, Sphere
+
+    t = dict(device=gen.device, dtype=gen.dtype)
+    cam_r, cam_t = scene.camera.R, scene.camera.t
+    objs = scene.objects
+    mat = objs[0].materials[0]
+
+    def pose(ob):
+        r, tr = ob.world_pose(scene.turntable, turntable_deg)
+        return cam_r @ r, cam_r @ tr + cam_t
+
+    a = objs[0].shape
+    rot_a, t_a = pose(objs[0])
+    kind = {Sphere: _SPHERE, Box: _BOX, Cylinder: _CYLINDER}[type(a)]
+    multi = len(objs) > 1
+    rot_b, t_b = pose(objs[1]) if multi else (np.eye(3), np.zeros(3))
+    one = lambda v: torch.tensor(np.asarray(v, float), **t)[None]  # noqa: E731
+    return {
+        "family": torch.tensor([FAMILIES.index(scene.name)], device=gen.device),
+        "kind": torch.tensor([kind], device=gen.device), "is_multi": torch.tensor([multi], device=gen.device),
+        "kd": one(mat.kd), "alpha": one(mat.alpha), "eta": one(mat.eta), "ks": one(mat.ks),
+        "rot_a": one(rot_a), "t_a": one(t_a),
+        "radius": one(getattr(a, "radius_m", 0.03)), "hh": one(getattr(a, "half_height_m", 0.03)),
+        "half_a": one(getattr(a, "half_m", (0.03,) * 3)),
+        "rot_b": one(rot_b), "t_b": one(t_b),
+        "half_b": one(objs[1].shape.half_m if multi else (0.03,) * 3),
+        "light": one(cam_r @ scene.light.position_m + cam_t), "colour": one(scene.light.intensity_rgb),
+        "axis": one(cam_r @ scene.stage_zero_axis), "stage_deg": one(stage_deg),
+        "er": one(extinction_ratio), "exposure": one(exposure),
+    }
