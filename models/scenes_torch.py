@@ -212,14 +212,16 @@ class SceneGenerator:
     on ``device`` (module docstring). ``seed`` seeds a :class:`torch.Generator` on that device:
     the same seed, device and sequence of batch sizes give the same batches.
 
-    ``roughness_range``: the log-uniform alpha range, only for the tests' power check (a shifted
-    range must be told apart from the simulator)."""
+    ``roughness_range`` (the log-uniform alpha range) and ``exposure_range`` (the exposure's
+    target as a fraction of the clip level) are there for the tests' power checks only: a
+    generator with a shifted range must be told apart from the simulator."""
 
     def __init__(self, width: int = 256, height: int | None = None, *, seed: int = 0,
                  device: str | torch.device = "cpu", families: Sequence[str] | None = None,
                  material_mix: str = "baek", stage_zero_axes: str = "random",
                  dtype: torch.dtype = torch.float32,
-                 roughness_range: tuple[float, float] = (0.01, 0.8)) -> None:
+                 roughness_range: tuple[float, float] = (0.01, 0.8),
+                 exposure_range: tuple[float, float] = (0.25, 0.85)) -> None:
         height = width if height is None else int(height)
         if width % SIZE_MULTIPLE or height % SIZE_MULTIPLE or not (8 <= width <= 4096 and 8 <= height <= 4096):
             raise ConfigError(f"generator size {width}x{height}: the sides must be multiples of {SIZE_MULTIPLE} "
@@ -244,6 +246,7 @@ class SceneGenerator:
         self.material_mix = material_mix
         self.stage_zero_axes = stage_zero_axes
         self.log_alpha = (math.log(roughness_range[0]), math.log(roughness_range[1]))
+        self.exposure_range = tuple(float(v) for v in exposure_range)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(int(seed))
         model = dataset_sensor_model()
@@ -323,7 +326,7 @@ class SceneGenerator:
             axis = _unit(axis - _dot(axis, k)[:, None] * k)
         stage_deg = self._u(n, lo=0.0, hi=180.0)
         er = torch.exp(self._u(n, lo=math.log(200.0), hi=math.log(3000.0)))
-        exposure = self._u(n, lo=0.25, hi=0.85)
+        exposure = self._u(n, lo=self.exposure_range[0], hi=self.exposure_range[1])
         # to the camera frame: p_cam = R_cam (R_turn p) + t_cam
         rc = self.cam_r @ turn
         return {"family": fam, "kind": kind, "is_multi": is_multi, "kd": kd, "alpha": alpha, "eta": eta,
@@ -420,6 +423,17 @@ class SceneGenerator:
         s_in = torch.stack([(t1 + t2) / 2, (t1 - t2) / 2 * torch.cos(2 * ang), (t1 - t2) / 2 * torch.sin(2 * ang)], -1)
         return {"mask": mask, "lit": lit, "normal": normal, "wi": wi, "wo": wo, "m_rad": m_rad, "s_in": s_in}
 
+    def sample_codes(self, mean_electrons: torch.Tensor) -> torch.Tensor:
+        """Raw codes (as floats) for mean photo-electrons, as
+        :meth:`polrig.sensor.noise.SensorModel.sample_raw` of the dataset's sensor model: Poisson
+        photo- and dark electrons clipped at the full well, Gaussian read noise, the gain, the
+        black level, rounding to the nearest code, clipping to ``0 .. max code``."""
+        lam = mean_electrons + self.dark_e
+        electrons = torch.poisson(lam, generator=self.generator).clamp_max(self.full_well)
+        electrons = electrons + self.read_noise * torch.randn(lam.shape, generator=self.generator,
+                                                              device=self.device, dtype=self.dtype)
+        return torch.floor(electrons / self.gain + self.black + 0.5).clamp(0.0, self.max_code)
+
     @torch.no_grad()
     def render(self, s: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """A batch (:meth:`batch`) from scene parameters ``s``: render, expose, add the sensor's
@@ -436,11 +450,7 @@ class SceneGenerator:
         ref, has = masked_percentile(an.reshape(n, -1), inside, SCALE_PERCENTILE)
         target = s["exposure"] * self.clip_dn
         k = torch.where(has & (ref > 0), target / torch.where(ref > 0, ref, 1.0), torch.ones_like(ref))
-        lam = (an * k[:, None, None, None, None]).clamp_min(0.0) * self.gain + self.dark_e
-        electrons = torch.poisson(lam, generator=self.generator).clamp_max(self.full_well)
-        electrons = electrons + self.read_noise * torch.randn(lam.shape, generator=self.generator,
-                                                              device=self.device, dtype=self.dtype)
-        codes = torch.floor(electrons / self.gain + self.black + 0.5).clamp(0.0, self.max_code)
+        codes = self.sample_codes((an * k[:, None, None, None, None]).clamp_min(0.0) * self.gain)
         analyzer = codes - self.black - self.dark_e / self.gain
         sc, has = masked_percentile(analyzer.reshape(n, -1), inside, SCALE_PERCENTILE)
         scale = torch.where(has, sc.clamp_min(1.0), torch.ones_like(sc))
