@@ -251,3 +251,33 @@ def test_seeded_and_refuses_what_it_does_not_cover():
         SceneGenerator(16, material_mix="heldout")
     with pytest.raises(ConfigError, match="multiples"):
         SceneGenerator(20)
+
+
+# ------------------------------------------------------------------------- the entry point
+
+def test_train_on_device_end_to_end(tmp_path, capsys):
+    """`polrig train --data on-device` at tiny scale: every stage on fresh batches, the log,
+    the checkpoint (loadable as a donor), the summary and the exported graphs."""
+    pytest.importorskip("onnxruntime")
+    from polrig.cli import main
+    from polrig.models.train import load_checkpoint
+
+    out = tmp_path / "run"
+    code = main(["train", "--data", "on-device", "--size", "32", "--steps-per-epoch", "2", "--val-samples", "2",
+                 "--batch-size", "2", "--width", "4", "--epochs", "1", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    rows = (out / "log.csv").read_text().splitlines()
+    assert [r.split(",")[0] for r in rows[1:]] == ["pipnet", "pmmnet", "direct"]
+    summary = __import__("json").loads((out / "summary.json").read_text())
+    assert summary["data"] == "on-device" and summary["samples_drawn"] == {"pipnet": 4, "pmmnet": 4, "direct": 4}
+    assert summary["dataset"]["families_present"] == list(COVERED_FAMILIES)
+    assert (out / "weights" / "single_shot.onnx").is_file()
+    ck = load_checkpoint(out / "checkpoint.pt")
+    assert ck["stage"] == "direct" and ck["epoch"] == 1 and ck["data"] == "on-device"
+    # refusals, one line, before anything is written
+    code = main(["train", "--data", "on-device", "--resume", "--out", str(tmp_path / "other")])
+    assert code == 2 and "--resume" in capsys.readouterr().err and not (tmp_path / "other").exists()
+    code = main(["train", "--data", str(tmp_path), "--size", "32", "--out", str(tmp_path / "other")])
+    assert code == 2 and "needs --data on-device" in capsys.readouterr().err
+    code = main(["train", "--data", "on-device", "--size", "36", "--out", str(tmp_path / "other")])
+    assert code == 2 and "multiples of 8" in capsys.readouterr().err

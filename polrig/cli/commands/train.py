@@ -48,7 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "a simulated dataset; checkpoints every epoch (resume with "
                                    "--resume), logs OUT/log.csv, exports OUT/weights/*.onnx and "
                                    "checks them against PyTorch with onnxruntime.")
-    p.add_argument("--data", required=True, help="dataset folder written by `polrig sim dataset`")
+    p.add_argument("--data", required=True, help="dataset folder written by `polrig sim dataset`, or "
+                   "'on-device': fresh scenes of its training distribution made by PyTorch on the training "
+                   "device at every step (polrig.models.scenes_torch; no disk)")
+    p.add_argument("--size", type=int_range(8, 4096), default=None,
+                   help="with --data on-device: image side, a multiple of 8 (default 64)")
+    p.add_argument("--steps-per-epoch", type=int_range(1, 10**7), default=None,
+                   help="with --data on-device: optimizer steps (fresh batches) per epoch (default 64)")
+    p.add_argument("--val-samples", type=int_range(1, 10**6), default=None,
+                   help="with --data on-device: scenes of the fixed validation set (default 32)")
     p.add_argument("--out", required=True, help="output folder (checkpoint, logs, weights/); a folder holding "
                    "another run is refused unless --resume or --overwrite")
     p.add_argument("--epochs", type=_EPOCHS, default=None,
@@ -142,6 +150,20 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, name)
         if value is not None:
             overrides[name] = value
+    on_device_args = {k: getattr(args, k) for k in ("size", "steps_per_epoch", "val_samples")
+                      if getattr(args, k) is not None}
+    if args.data == "on-device":
+        from polrig.models.train_on_device import train_on_device
+
+        refused = [flag for flag, given in (("--resume", args.resume), ("--init-from", args.init_from),
+                                            ("--stages", args.stages), ("--limit", args.limit)) if given]
+        if refused:
+            raise ValueError(f"--data on-device: {', '.join(refused)} not supported with on-device scenes")
+        train_on_device(args.out, None, overrides=overrides, export=not args.no_export,
+                        overwrite=args.overwrite, **on_device_args)
+        return 0
+    if on_device_args:
+        raise ValueError(f"--{next(iter(on_device_args)).replace('_', '-')} needs --data on-device")
     train(args.data, args.out, None, resume=args.resume, export=not args.no_export,
           overrides=overrides, init_from=args.init_from, stages=args.stages,
           warm_start=args.warm_start, overwrite=args.overwrite)
