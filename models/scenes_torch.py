@@ -193,16 +193,16 @@ def cylinder_hit(o, d, radius, half_height, t_min=T_MIN):
 
 def masked_percentile(values: torch.Tensor, valid: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
     """numpy's ``percentile(values[valid], q)`` (linear interpolation) per row of ``values``
-    ``(B, K)``; returns ``(percentile (B,), any valid (B,))`` (0 where a row has none)."""
-    big = torch.finfo(values.dtype).max
-    s, _ = torch.sort(torch.where(valid, values, big), dim=1)
+    ``(B, K)``; returns ``(percentile (B,), any valid (B,))`` (0 where a row has none). Only the
+    top ``(1 - q / 100)`` of a row is ordered (:func:`torch.topk`), not the whole row."""
     n = valid.sum(1)
-    pos = (q / 100.0) * (n - 1).clamp_min(0).to(values.dtype)
-    lo = pos.floor().long()
-    hi = pos.ceil().long()
-    v_lo = s.gather(1, lo[:, None])[:, 0]
-    v_hi = s.gather(1, hi[:, None])[:, 0]
-    out = v_lo + (v_hi - v_lo) * (pos - lo.to(values.dtype))
+    pos = (q / 100.0) * (n - 1).clamp_min(0).to(torch.float64)  # float64 as numpy
+    lo, hi = pos.floor().long(), pos.ceil().long()
+    k = min(values.shape[1], int(math.ceil((1.0 - q / 100.0) * max(int(n.max()) - 1, 0))) + 2)
+    top, _ = torch.topk(torch.where(valid, values, -math.inf), k, dim=1)  # descending
+    rank = lambda r: (n - 1 - r).clamp(0, k - 1)[:, None]  # noqa: E731 - ascending rank r, from the top
+    v_lo, v_hi = top.gather(1, rank(lo))[:, 0], top.gather(1, rank(hi))[:, 0]
+    out = v_lo + (v_hi - v_lo) * (pos - lo).to(values.dtype)
     has = n > 0
     return torch.where(has, out, torch.zeros_like(out)), has
 
@@ -345,21 +345,29 @@ class SceneGenerator:
         return (o - t[:, None]) @ rot, d @ rot
 
     def _hit_a(self, s, o, d):
+        """Nearest hit of the rays (B, P, 3) on each sample's first object (only the samples
+        of each shape kind are intersected with that kind)."""
         ol, dl = self._local(o, d, s["rot_a"], s["t_a"])
-        r = s["radius"][:, None]
-        ts, ns = sphere_hit(ol, dl, r)
-        tb, nb = box_hit(ol, dl, s["half_a"][:, None])
-        tc, nc = cylinder_hit(ol, dl, r, s["hh"][:, None])
-        kind = s["kind"][:, None]
-        t = torch.where(kind == _SPHERE, ts, torch.where(kind == _BOX, tb, tc))
-        n = torch.where((kind == _SPHERE)[..., None], ns, torch.where((kind == _BOX)[..., None], nb, nc))
+        t = torch.full(ol.shape[:2], math.inf, dtype=ol.dtype, device=ol.device)
+        n = torch.zeros_like(ol)
+        for kind, hit in ((_SPHERE, lambda q: sphere_hit(ol[q], dl[q], s["radius"][q, None])),
+                          (_BOX, lambda q: box_hit(ol[q], dl[q], s["half_a"][q, None])),
+                          (_CYLINDER, lambda q: cylinder_hit(ol[q], dl[q], s["radius"][q, None], s["hh"][q, None]))):
+            q = torch.nonzero(s["kind"] == kind)[:, 0]
+            if len(q):
+                t[q], n[q] = hit(q)
         return t, n @ s["rot_a"].transpose(1, 2)
 
     def _hit_b(self, s, o, d):
-        ol, dl = self._local(o, d, s["rot_b"], s["t_b"])
-        t, n = box_hit(ol, dl, s["half_b"][:, None])
-        t = torch.where(s["is_multi"][:, None], t, torch.full_like(t, math.inf))
-        return t, n @ s["rot_b"].transpose(1, 2)
+        """Nearest hit on the second object (the box of ``multi``; a miss for other samples)."""
+        t = torch.full(o.shape[:2], math.inf, dtype=o.dtype, device=o.device)
+        n = torch.zeros_like(o)
+        q = torch.nonzero(s["is_multi"])[:, 0]
+        if len(q):
+            ol, dl = self._local(o[q], d[q], s["rot_b"][q], s["t_b"][q])
+            tq, nq = box_hit(ol, dl, s["half_b"][q, None])
+            t[q], n[q] = tq, nq @ s["rot_b"][q].transpose(1, 2)
+        return t, n
 
     def _render(self, s):
         n = len(s["kd"])

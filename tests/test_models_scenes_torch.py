@@ -208,6 +208,8 @@ def test_masked_percentile_is_numpys():
     v = torch.rand(5, 97, generator=g, dtype=torch.float64)
     m = torch.rand(5, 97, generator=g) < 0.4
     m[3] = False
+    m[4] = False
+    m[4, 17] = True
     got, has = masked_percentile(v, m, 99.5)
     for i in range(5):
         if m[i].any():
