@@ -67,7 +67,7 @@ import numpy as np
 import torch
 
 from polrig.errors import ConfigError
-from polrig.models.pbrdf_torch import image_blocks
+from polrig.models.pbrdf_torch import _fresnel_r, _Vec, image_blocks, rotation_2phi
 from polrig.sim.dataset import (
     CAMERA_UP_FRACTION,
     DATASET_EXPOSURE_US,
@@ -77,14 +77,17 @@ from polrig.sim.dataset import (
     STAGE_ZERO_AXES,
     dataset_sensor_model,
 )
-from polrig.sim.materials import MATERIAL_KINDS
+from polrig.sim.materials import _LINES_NM, MATERIAL_KINDS, MATERIAL_MIXES
+from polrig.sim.optical_data import CONDUCTORS, WAVELENGTHS_NM
 from polrig.sim.options import HIDDEN_DEFAULTS
 from polrig.sim.scene import FAMILIES, OBJECT_Z_M, RANDOM_FOCAL_PER_PX, default_camera
 
 #: Shape families the torch generator renders (indices into :data:`polrig.sim.scene.FAMILIES`).
 COVERED_FAMILIES = ("sphere", "box", "cylinder", "multi")
-#: Material mixes it draws from.
-COVERED_MIXES = ("baek",)
+#: Material mixes it draws from: the Baek family and the training mix's kinds.
+COVERED_MIXES = ("baek", "train", "conductor", "dispersive", "anisotropic")
+#: Smallest roughness of the microfacet distributions (:data:`polrig.optics.pbrdf.ALPHA_MIN`).
+ALPHA_MIN = 1e-4
 #: Shadow-ray origin offset along the geometric normal (m), as :data:`polrig.sim.raycast.SHADOW_EPS_M`.
 SHADOW_EPS_M = 1e-5
 T_MIN = 1e-6
@@ -191,6 +194,96 @@ def cylinder_hit(o, d, radius, half_height, t_min=T_MIN):
     return t_best, n_best
 
 
+def _g1(v_l, h_dot_v, au, av, beckmann):
+    """Smith masking of :func:`polrig.sim.surface_bsdf.smith_g1` (projected roughness, Heitz 2014):
+    ``v_l`` the local (t, b, n) components (tuple of three tensors)."""
+    xy = (au * v_l[0]) ** 2 + (av * v_l[1]) ** 2
+    a2t2 = xy / (v_l[2] * v_l[2]).clamp_min(1e-30)
+    g_ggx = 2.0 / (1.0 + torch.sqrt(1.0 + a2t2))
+    b = 1.0 / torch.sqrt(a2t2.clamp_min(1e-30))
+    g_beck = torch.where(b >= 1.6, torch.ones_like(b), (3.535 * b + 2.181 * b * b) / (1.0 + 2.276 * b + 2.577 * b * b))
+    g = torch.where(beckmann, g_beck, g_ggx)
+    g = torch.where(xy == 0, torch.ones_like(g), g)
+    return torch.where(h_dot_v * v_l[2] <= 0, torch.zeros_like(g), g)
+
+
+def surface_blocks(normal, wi, wo, tangent, *, au, av, beckmann, eta_re, eta_im, stage_zero_axis, mask):
+    """Unit specular (``ks = 1``) and diffuse (``kd = 1``) linear blocks per colour
+    ``(B, 3, 3, 3, H, W)`` (colour, row, col) in the rig frames of
+    :func:`polrig.sim.surface_bsdf.evaluate` without film or depolarization: the anisotropic GGX
+    or Beckmann microfacet term with the complex-index Fresnel matrix of each colour, and the
+    Baek diffuse term with each colour's real index. Images ``(B, 3, H, W)`` (``tangent``: the
+    tangent reference, projected here); per sample ``au``, ``av``, ``beckmann`` ``(B,)`` and
+    ``eta_re``, ``eta_im`` ``(B, 3)``; ``mask`` ``(B, 1, H, W)``."""
+    v = _Vec(1)
+    n, wi, wo = v.normalize(normal), v.normalize(wi), v.normalize(wo)
+    cos_i, cos_o = v.dot(n, wi), v.dot(n, wo)
+    visible = (cos_i > 0).to(n.dtype) * (cos_o > 0).to(n.dtype) * mask
+    k_in, k_out = -wi, wo
+    cam = torch.zeros_like(n[:1, :, :1, :1])
+    cam[:, 0] = 1.0
+    x_in = v.perpendicular(stage_zero_axis[:, :, None, None], k_in)
+    x_out = v.perpendicular(cam, k_out)
+    y_in, y_out = v.cross(k_in, x_in), v.cross(k_out, x_out)
+    # the tangent reference projected on the surface; where it is parallel to the normal any
+    # perpendicular axis (the roughness is then isotropic or the case has probability zero)
+    fallback = v.axis_or(v.cross(n, torch.ones_like(n) * torch.tensor([1.0, 0.0, 0.0], dtype=n.dtype,
+                                                                        device=n.device)[:, None, None]),
+                         v.normalize(v.cross(n, torch.ones_like(n) * torch.tensor(
+                             [0.0, 1.0, 0.0], dtype=n.dtype, device=n.device)[:, None, None])))
+    t = v.axis_or(tangent - v.dot(tangent, n) * n, fallback)
+    b = v.cross(n, t)
+    h = v.normalize(wi + wo)
+    loc = lambda u: (v.dot(u, t), v.dot(u, b), v.dot(u, n))  # noqa: E731
+    h_l, i_l, o_l = loc(h), loc(wi), loc(wo)
+    au4, av4 = au.clamp_min(ALPHA_MIN)[:, None, None, None], av.clamp_min(ALPHA_MIN)[:, None, None, None]
+    beck = beckmann[:, None, None, None]
+    x2 = (h_l[0] / au4) ** 2 + (h_l[1] / av4) ** 2
+    z = h_l[2]
+    z2 = (z * z).clamp_min(1e-30)
+    d_ggx = 1.0 / (math.pi * au4 * av4 * (x2 + z * z) ** 2)
+    d_beck = torch.exp(-x2 / z2) / (math.pi * au4 * av4 * z2 * z2)
+    d = torch.where(beck, d_beck, d_ggx)
+    d = torch.where((z > 0) & torch.isfinite(d) & (d * z > 1e-20), d, torch.zeros_like(d))
+    scalar = d * _g1(i_l, v.dot(wi, h), au4, av4, beck) * _g1(o_l, v.dot(wo, h), au4, av4, beck) \
+        / (4.0 * cos_o.clamp_min(1e-6)) * visible
+    s_axis = v.axis_or(v.cross(wi, h), x_in)
+    ci, si = rotation_2phi(v.dot(x_in, s_axis), v.dot(y_in, s_axis))
+    co, so = rotation_2phi(v.dot(s_axis, x_out), -v.dot(y_out, s_axis))
+    # complex Fresnel per colour (B, 3, H, W), polrig.optics.mueller._fresnel_amplitudes
+    cih = v.dot(wi, h).abs().clamp(0.0, 1.0)
+    eta = torch.complex(eta_re, eta_im)[:, :, None, None]
+    cc = torch.complex(cih, torch.zeros_like(cih))
+    ect = torch.sqrt(eta * eta - 1.0 + cc * cc)
+    e2ci = eta * eta * cc
+    rs, rp = (cc - ect) / (cc + ect), (e2ci - ect) / (e2ci + ect)
+    rs2, rp2 = rs.abs() ** 2, rp.abs() ** 2
+    a, bb, c = 0.5 * (rs2 + rp2) * scalar, 0.5 * (rs2 - rp2) * scalar, (rs * rp.conj()).real * scalar
+    a_ci, a_si, c_si, c_ci = a * ci, a * si, c * si, c * ci
+    spec = torch.stack([a, bb * ci, bb * si,
+                        co * bb, co * a_ci - so * c_si, co * a_si + so * c_ci,
+                        -so * bb, -so * a_ci - co * c_si, -so * a_si + co * c_ci], 2).unflatten(2, (3, 3))
+    # diffuse, per colour's real index
+    s_in = v.axis_or(v.cross(n, k_in), x_in)
+    s_out = v.axis_or(v.cross(n, k_out), x_out)
+    ci_d, si_d = rotation_2phi(v.dot(x_in, s_in), v.dot(y_in, s_in))
+    co_d, so_d = rotation_2phi(v.dot(s_out, x_out), -v.dot(y_out, s_out))
+    # a conductor has no diffuse term (kd = 0); a dielectric index keeps its blocks finite
+    eta_d = torch.where(eta_im > 0, 1.5, eta_re)[:, :, None, None]
+
+    def transmission_ab(cos_t):
+        ts_r, tp_r = _fresnel_r(cos_t, eta_d)
+        ts, tp = (1.0 - ts_r * ts_r).clamp(0.0, 1.0), (1.0 - tp_r * tp_r).clamp(0.0, 1.0)
+        return 0.5 * (ts + tp), 0.5 * (ts - tp)
+
+    a_i, b_i = transmission_ab(cos_i)
+    a_o, b_o = transmission_ab(cos_o)
+    scale = cos_i.clamp_min(0.0) / math.pi * visible
+    u = torch.stack([a_o, co_d * b_o, -so_d * b_o], 2)
+    w = torch.stack([scale * a_i, scale * ci_d * b_i, scale * si_d * b_i], 2)
+    return spec, u[:, :, :, None] * w[:, :, None, :]
+
+
 def masked_percentile(values: torch.Tensor, valid: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
     """numpy's ``percentile(values[valid], q)`` (linear interpolation) per row of ``values``
     ``(B, K)``; returns ``(percentile (B,), any valid (B,))`` (0 where a row has none). Only the
@@ -267,6 +360,16 @@ class SceneGenerator:
                          torch.ones(self.height, self.width, dtype=torch.float64, device=self.device)], -1)
         self.rays = _unit(d).reshape(1, -1, 3).to(dtype)  # camera frame, pixel centres, row-major
         self.colour_qe = torch.tensor(HIDDEN_DEFAULTS["colour_qe"], **t)
+        probs = MATERIAL_MIXES[material_mix]
+        self.mix_kinds = torch.tensor([MATERIAL_KINDS.index(k) for k in probs], device=self.device)
+        self.mix_probs = torch.tensor([probs[k] for k in probs], device=self.device, dtype=torch.float64)
+        metals = list(CONDUCTORS)
+        eta_m = np.array([CONDUCTORS[m] for m in metals], complex)  # (5, 3)
+        self.metal_re = torch.tensor(eta_m.real, **t)
+        self.metal_im = torch.tensor(eta_m.imag, **t)
+        r = np.abs((eta_m[:, 1] - 1.0) / (eta_m[:, 1] + 1.0))
+        self.metal_eta_fit = torch.tensor((1.0 + r) / (1.0 - r), **t)  # polrig.sim.dataset.effective_eta
+        self.inv_l2 = torch.tensor([1.0 / lam ** 2 for lam in WAVELENGTHS_NM], **t)
         self.target_w = torch.tensor([0.0, 0.0, OBJECT_Z_M], **t)
 
     # -- random draws ----------------------------------------------------------------------
@@ -327,15 +430,45 @@ class SceneGenerator:
         stage_deg = self._u(n, lo=0.0, hi=180.0)
         er = torch.exp(self._u(n, lo=math.log(200.0), hi=math.log(3000.0)))
         exposure = self._u(n, lo=self.exposure_range[0], hi=self.exposure_range[1])
+        mat = self._draw_material(n, kd, alpha, eta, ks)
         # to the camera frame: p_cam = R_cam (R_turn p) + t_cam
         rc = self.cam_r @ turn
-        return {"family": fam, "kind": kind, "is_multi": is_multi, "kd": kd, "alpha": alpha, "eta": eta,
-                "ks": ks, "rot_a": rc @ rot_a, "t_a": (rc @ c_a[..., None])[..., 0] + self.cam_t,
+        return {**mat, "family": fam, "kind": kind, "is_multi": is_multi, "rot_a": rc @ rot_a, "t_a": (rc @ c_a[..., None])[..., 0] + self.cam_t,
                 "radius": radius, "half_a": half_box, "hh": hh_cyl,
                 "rot_b": rc @ rot, "t_b": (rc @ c_b[..., None])[..., 0] + self.cam_t, "half_b": half_b,
                 "light": (self.cam_r @ light[..., None])[..., 0] + self.cam_t, "colour": colour,
                 "axis": (self.cam_r @ axis[..., None])[..., 0], "stage_deg": stage_deg, "er": er,
                 "exposure": exposure}
+
+    def _draw_material(self, n, kd, alpha, eta, ks) -> dict[str, torch.Tensor]:
+        """The sample's material drawn from the mix on the Baek material ``(kd, alpha, eta, ks)``
+        as :func:`polrig.sim.materials.random_mix_material`, with its ground-truth parameters
+        (:data:`polrig.sim.dataset.GROUND_TRUTH_PARAMETERS`)."""
+        kinds = self.mix_kinds[torch.multinomial(self.mix_probs, n, replacement=True, generator=self.generator)]
+        is_k = {k: kinds == MATERIAL_KINDS.index(k) for k in ("conductor", "dispersive", "anisotropic")}
+        tangent = torch.randn(n, 3, generator=self.generator, device=self.device, dtype=self.dtype)
+        metal = torch.randint(len(self.metal_re), (n,), generator=self.generator, device=self.device)
+        alpha_c = torch.exp(self._u(n, lo=math.log(0.02), hi=math.log(0.6)))
+        beckmann = self._u(n) < 0.5
+        abbe = self._u(n, lo=20.0, hi=65.0)
+        u = self._u(n, lo=0.3, hi=1.2)
+        # polrig.sim.materials.cauchy_rgb
+        ld, lf, lc = _LINES_NM
+        bc = (eta - 1.0) / abbe / (1.0 / lf ** 2 - 1.0 / lc ** 2)
+        cauchy = (eta - bc / ld ** 2)[:, None] + bc[:, None] * self.inv_l2
+        cond, disp, aniso = is_k["conductor"][:, None], is_k["dispersive"][:, None], is_k["anisotropic"]
+        eta3 = eta[:, None].expand(n, 3)
+        eta_re = torch.where(cond, self.metal_re[metal], torch.where(disp, cauchy, eta3))
+        eta_im = torch.where(cond, self.metal_im[metal], torch.zeros_like(eta3))
+        au = torch.where(is_k["conductor"], alpha_c, torch.where(aniso, alpha * torch.exp(u), alpha))
+        av = torch.where(is_k["conductor"], alpha_c, torch.where(aniso, alpha * torch.exp(-u), alpha))
+        alpha_fit = torch.where(is_k["conductor"], alpha_c, alpha)
+        eta_fit = torch.where(is_k["conductor"], self.metal_eta_fit[metal], torch.where(is_k["dispersive"],
+                                                                                      cauchy[:, 1], eta))
+        return {"material_kind": kinds, "kd": torch.where(cond, 0.0, kd), "ks": torch.where(is_k["conductor"], 1.0, ks),
+                "alpha": alpha_fit, "alpha_empty": au, "eta": eta_fit, "au": au, "av": av,
+                "beckmann": beckmann & (is_k["conductor"] | aniso), "eta_re": eta_re, "eta_im": eta_im,
+                "tangent": tangent}
 
     # -- ray casting -----------------------------------------------------------------------
     @staticmethod
@@ -403,6 +536,7 @@ class SceneGenerator:
         mask_img = mask.reshape(n, 1, h, w)
         lit_img = lit.reshape(n, 1, h, w)
         inv_r2 = torch.where(lit, 1.0 / (dist * dist), zero).reshape(n, 1, h, w)
+        self._on_b = closer_b.reshape(n, 1, h, w)  # which object a pixel sees (the tangent's frame)
         return mask_img, lit_img, normal, wi_img, wo_img, inv_r2
 
     # -- a batch ---------------------------------------------------------------------------
@@ -419,12 +553,20 @@ class SceneGenerator:
         emergent radiance Mueller per unit light intensity times the light colour and colour QE
         (what :func:`polrig.sim.dataset.make_sample` calls ``m_rad``)."""
         mask, lit, normal, wi, wo, inv_r2 = self._render(s)
-        spec, diff = image_blocks(normal, wi, wo, s["alpha"], s["axis"], eta=s["eta"][:, None, None, None],
-                                  mask=lit.to(self.dtype))
+        if self.material_mix == "baek":  # one real index, isotropic GGX: the networks' pBRDF
+            spec, diff = image_blocks(normal, wi, wo, s["alpha"], s["axis"], eta=s["eta"][:, None, None, None],
+                                      mask=lit.to(self.dtype))
+            spec, diff = spec[:, None], diff[:, None]
+        else:  # per colour, polrig.sim.surface_bsdf
+            tan = lambda r: (r @ _unit(s["tangent"])[..., None])[..., 0][:, :, None, None]  # noqa: E731
+            tangent = torch.where(self._on_b, tan(s["rot_b"]), tan(s["rot_a"]))
+            spec, diff = surface_blocks(normal, wi, wo, tangent, au=s["au"], av=s["av"], beckmann=s["beckmann"],
+                                        eta_re=s["eta_re"], eta_im=s["eta_im"], stage_zero_axis=s["axis"],
+                                        mask=lit.to(self.dtype))
         light = s["colour"] * self.colour_qe  # (n, 3)
         # (n, colour, 3, 3, H, W): (ks Ms + kd_c Md) / r^2 x light colour
-        m_rad = (s["ks"][:, None, None, None, None, None] * spec[:, None]
-                 + s["kd"][:, :, None, None, None, None] * diff[:, None]) * inv_r2[:, None, None] \
+        m_rad = (s["ks"][:, None, None, None, None, None] * spec
+                 + s["kd"][:, :, None, None, None, None] * diff) * inv_r2[:, None, None] \
             * light[:, :, None, None, None, None]
         ang = torch.deg2rad(s["stage_deg"])
         t1, t2 = torch.ones_like(s["er"]), 1.0 / s["er"]
@@ -468,12 +610,12 @@ class SceneGenerator:
             "analyzer": (analyzer / scale[:, None, None, None, None]).to(f32),
             "scale": scale.to(f32), "mask": maskf[:, 0].to(f32),
             "normal": normal.to(f32), "kd": kd_img.to(f32), "wi": wi.to(f32), "wo": wo.to(f32),
-            "alpha": s["alpha"].to(f32), "eta": s["eta"].to(f32), "s_in": s_in.to(f32),
+            "alpha": torch.where(maskf.flatten(1).any(1), s["alpha"], s["alpha_empty"]).to(f32),
+            "eta": s["eta"].to(f32), "s_in": s_in.to(f32),
             "mueller": (m_rad * (k / scale)[:, None, None, None, None, None]).to(f32),
             "family": s["family"].to(torch.int16), "stage_deg": s["stage_deg"].to(f32),
             "lit": lit[:, 0].to(torch.uint8), "stage_zero_axis": s["axis"].to(f32),
-            "material_kind": torch.full((n,), MATERIAL_KINDS.index("baek"), dtype=torch.int16,
-                                        device=self.device),
+            "material_kind": s["material_kind"].to(torch.int16),
         }
 
 
@@ -512,7 +654,7 @@ def scene_parameters(gen: SceneGenerator, scene, turntable_deg: float, *, stage_
     return {
         "family": torch.tensor([FAMILIES.index(scene.name)], device=gen.device),
         "kind": torch.tensor([kind], device=gen.device), "is_multi": torch.tensor([multi], device=gen.device),
-        "kd": one(mat.kd), "alpha": one(mat.alpha), "eta": one(mat.eta), "ks": one(mat.ks),
+        **_material_parameters(mat, one, gen.device),
         "rot_a": one(rot_a), "t_a": one(t_a),
         "radius": one(getattr(a, "radius_m", 0.03)), "hh": one(getattr(a, "half_height_m", 0.03)),
         "half_a": one(getattr(a, "half_m", (0.03,) * 3)),
@@ -522,3 +664,28 @@ def scene_parameters(gen: SceneGenerator, scene, turntable_deg: float, *, stage_
         "axis": one(cam_r @ scene.stage_zero_axis), "stage_deg": one(stage_deg),
         "er": one(extinction_ratio), "exposure": one(exposure),
     }
+
+
+def _material_parameters(mat, one, device) -> dict[str, torch.Tensor]:
+    """The material entries of :func:`scene_parameters` for a :class:`polrig.sim.materials.Material`
+    or a :class:`polrig.sim.materials.SurfaceMaterial` without film or depolarization."""
+    from polrig.sim.dataset import effective_eta, material_kind
+
+    kind = material_kind(mat)
+    if kind in ("film", "depolarizing"):
+        raise ValueError(f"scene_parameters: {kind} materials are not rendered by the torch generator")
+    if kind == "baek":
+        eta = np.full(3, complex(mat.eta))
+        au = av = mat.alpha
+        beck, tangent, alpha_fit, eta_fit = False, (0.0, 0.0, 1.0), mat.alpha, mat.eta
+    else:
+        eta = np.asarray(mat.eta_rgb, complex)
+        au = mat.alpha
+        av = mat.alpha if mat.alpha_v is None else mat.alpha_v
+        beck, tangent = mat.distribution == "beckmann", mat.tangent_axis
+        alpha_fit = float(np.sqrt(au * av))
+        eta_fit = effective_eta(mat.eta_rgb[1]) if mat.conductor else mat.eta_rgb[1].real
+    return {"material_kind": torch.tensor([MATERIAL_KINDS.index(kind)], device=device),
+            "kd": one(mat.kd), "ks": one(mat.ks), "alpha": one(alpha_fit), "alpha_empty": one(au), "eta": one(eta_fit),
+            "au": one(au), "av": one(av), "beckmann": torch.tensor([beck], device=device),
+            "eta_re": one(eta.real), "eta_im": one(eta.imag), "tangent": one(tangent)}
