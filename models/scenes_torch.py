@@ -327,8 +327,8 @@ class SceneGenerator:
                               f"held out)")
         if material_mix not in COVERED_MIXES:
             raise ConfigError(f"the torch scene generator draws the material mixes {', '.join(COVERED_MIXES)}; got "
-                              f"{material_mix!r} (the train mix's conductors, dispersive and anisotropic "
-                              f"materials are not ported yet)")
+                              f"{material_mix!r} (films and depolarizing layers, the held-out kinds, are not "
+                              f"ported)")
         if stage_zero_axes not in STAGE_ZERO_AXES:
             raise ConfigError(f"stage_zero_axes must be one of {STAGE_ZERO_AXES}, got {stage_zero_axes!r}")
         self.width, self.height = int(width), height

@@ -127,6 +127,8 @@ def compare(ref: dict[str, np.ndarray], other: dict[str, np.ndarray]) -> dict[st
         x, y = sa[k][np.isfinite(sa[k])], sb[k][np.isfinite(sb[k])]
         res[k] = ks_2samp(x, y)
     res["family (chi2)"] = chi2_2samp(ref["family"], other["family"])
+    if len(np.unique(ref["material_kind"])) > 1 or len(np.unique(other["material_kind"])) > 1:
+        res["material kind (chi2)"] = chi2_2samp(ref["material_kind"], other["material_kind"])
     return res
 
 
@@ -172,11 +174,14 @@ def test_batch_is_what_training_reads(sim_set):
 
 
 @pytest.mark.parametrize("family", COVERED_FAMILIES)
-def test_renders_the_simulators_scene(family):
-    """Same scene, same image: geometry, lit pixels and Mueller blocks as polrig.sim.render."""
-    gen = SceneGenerator(SIZE, dtype=torch.float64)
+@pytest.mark.parametrize("kind", ["baek", "conductor", "dispersive", "anisotropic"])
+def test_renders_the_simulators_scene(family, kind):
+    """Same scene, same image: geometry, lit pixels and Mueller blocks as polrig.sim.render, for
+    each material kind of the train mix (the baek mix's own path for ``baek``)."""
+    gen = SceneGenerator(SIZE, dtype=torch.float64, material_mix="baek" if kind == "baek" else "train")
     for seed in (0, 1):
-        sc = random_scene(np.random.default_rng(seed), SIZE, SIZE, FAMILIES.index(family))
+        sc = random_scene(np.random.default_rng(seed), SIZE, SIZE, FAMILIES.index(family), material_mix=kind,
+                          material_rng=np.random.default_rng(seed + 10))
         res = render(sc, 123.0)
         c = gen.clean(scene_parameters(gen, sc, 123.0, stage_deg=40.0, extinction_ratio=700.0))
         assert np.array_equal(c["mask"][0, 0].numpy(), res.mask)
@@ -225,6 +230,27 @@ def test_same_distribution_as_sim_dataset(sim_set, torch_set):
     assert all(p > ALPHA for _, p in res.values()), report
 
 
+@pytest.fixture(scope="module")
+def sim_train_mix(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim_train") / "data"
+    generate_dataset(out, count=N_SIM, width=SIZE, seed=12, families=COVERED_FAMILIES, progress=False,
+                     shard_size=N_SIM, compress=False, material_mix="train")
+    return load_dataset(out)
+
+
+def test_same_distribution_as_sim_dataset_train_mix(sim_train_mix):
+    """The train mix (baek 0.4, conductor, dispersive, anisotropic 0.2 each): the same tests plus
+    the material kinds' chi-square; and the baek mix alone is rejected against it (power)."""
+    torch.set_num_threads(2)
+    res = compare(sim_train_mix.arrays, torch_samples(SceneGenerator(SIZE, seed=6, material_mix="train"), N_TORCH))
+    report = "\n".join(f"{k:>20}: D or chi2 {d:.4f}  p {p:.4f}" for k, (d, p) in res.items())
+    print(report)
+    assert "material kind (chi2)" in res and all(p > ALPHA for _, p in res.values()), report
+    wrong = compare(sim_train_mix.arrays, torch_samples(SceneGenerator(SIZE, seed=6), N_TORCH))
+    print({k: round(p, 8) for k, (_, p) in wrong.items()})
+    assert wrong["material kind (chi2)"][1] < ALPHA / 100 and wrong["eta"][1] < ALPHA / 100
+
+
 def test_shifted_roughness_is_rejected(sim_set):
     """Power: a generator drawing alpha log-uniform in [0.02, 1.2] instead of [0.01, 0.8]."""
     torch.set_num_threads(2)
@@ -251,6 +277,8 @@ def test_seeded_and_refuses_what_it_does_not_cover():
         SceneGenerator(16, families=("blob",))
     with pytest.raises(ConfigError, match="mix"):
         SceneGenerator(16, material_mix="heldout")
+    with pytest.raises(ConfigError, match="mix"):
+        SceneGenerator(16, material_mix="film")
     with pytest.raises(ConfigError, match="multiples"):
         SceneGenerator(20)
 
