@@ -22,10 +22,15 @@ What is sampled, as ``polrig sim dataset`` does (``sim/dataset.py``, ``sim/scene
   sphere,box,cylinder,multi``).
 * **Materials**: the ``baek`` mix (kd per colour uniform in [0.02, 0.9], alpha log-uniform in
   [0.01, 0.8], eta uniform in [1.3, 1.8], ks 0 for one in ten) rendered with the differentiable
-  pBRDF :mod:`polrig.models.pbrdf_torch` (GGX, the simulator's default distribution). Not covered:
-  the ``train`` mix's conductors, dispersive dielectrics and anisotropic roughness
-  (:mod:`polrig.sim.surface_bsdf`, complex-index Fresnel and anisotropic GGX/Beckmann: a torch port
-  is item 1's remaining work); asking for another mix is a :class:`ConfigError`.
+  pBRDF :mod:`polrig.models.pbrdf_torch` (GGX, the simulator's default distribution); the ``train``
+  mix (baek 0.4, conductor, dispersive, anisotropic 0.2 each) and each of those kinds alone,
+  drawn on the Baek material as :func:`polrig.sim.materials.random_surface_material` draws them
+  and rendered per colour as :mod:`polrig.sim.surface_bsdf` (:func:`surface_blocks`: anisotropic GGX
+  or Beckmann with the projected-roughness Smith term, the complex-index Fresnel matrix of each
+  colour, the Baek diffuse term with each colour's index), with the ground-truth ``alpha``,
+  ``eta`` and ``kd`` of :data:`polrig.sim.dataset.GROUND_TRUTH_PARAMETERS` and ``material_kind``. Not
+  covered: the ``heldout`` kinds (films, depolarizing layers with textures) and interreflections
+  (``indirect_samples``); asking for another mix is a :class:`ConfigError`.
 * **Light and stage geometry**: light azimuth +-70 deg, elevation 5-60 deg, 0.3-0.6 m, colour
   uniform in [0.6, 1] per channel over its maximum; the default camera (``fx = fy = 2.5 min(W,
   H)``); the stage zero axis as ``stage_zero_axes="random"`` (rig axis 0.5, camera up 0.2, else

@@ -85,10 +85,11 @@ def _step_with_augmentations(stage: str, config: TrainConfig, rng: np.random.Gen
 
 def train_on_device(out_dir: str | pathlib.Path, config: TrainConfig | None = None, *, size: int = 64,
                     steps_per_epoch: int = 64, val_samples: int = 32, overrides: dict | None = None,
-                    families=COVERED_FAMILIES, export: bool = True, overwrite: bool = False,
+                    families=COVERED_FAMILIES, material_mix: str = "baek", export: bool = True, overwrite: bool = False,
                     echo: Callable[[str], None] = print) -> dict:
     """Train every stage on fresh generated batches (module docstring); returns the summary
-    written to ``OUT/summary.json``."""
+    written to ``OUT/summary.json``. ``families`` and ``material_mix``: what the generator draws
+    (:data:`polrig.models.scenes_torch.COVERED_FAMILIES`, :data:`polrig.models.scenes_torch.COVERED_MIXES`)."""
     overrides = dict(overrides or {})
     unknown = [k for k in overrides if k not in {f.name for f in dataclasses.fields(TrainConfig)}]
     if unknown:
@@ -108,8 +109,10 @@ def train_on_device(out_dir: str | pathlib.Path, config: TrainConfig | None = No
     if export:
         _check_export_possible()
     device = torch.device(config.device)
-    gen = SceneGenerator(size, seed=config.seed, device=device, families=families)  # checks size, families
-    val_gen = SceneGenerator(size, seed=config.seed + 1_000_003, device=device, families=families)
+    gen = SceneGenerator(size, seed=config.seed, device=device, families=families,
+                         material_mix=material_mix)  # checks the size, families and mix
+    val_gen = SceneGenerator(size, seed=config.seed + 1_000_003, device=device, families=families,
+                             material_mix=material_mix)
     identity = generator_identity(size, config.seed, gen.families, gen.material_mix)
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -129,7 +132,7 @@ def train_on_device(out_dir: str | pathlib.Path, config: TrainConfig | None = No
     if overwrite:
         for f in _run_files(out):
             f.unlink()
-    echo(f"data: on-device generator, {size}x{size}, families {', '.join(gen.families)}, "
+    echo(f"data: on-device generator, {size}x{size}, families {', '.join(gen.families)}, materials {material_mix}, "
          f"{config.batch_size} fresh samples per step, {steps_per_epoch} steps per epoch, {val_samples} val")
 
     def save(stage: str, epoch: int) -> None:

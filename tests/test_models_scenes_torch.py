@@ -294,13 +294,14 @@ def test_train_on_device_end_to_end(tmp_path, capsys):
 
     out = tmp_path / "run"
     code = main(["train", "--data", "on-device", "--size", "32", "--steps-per-epoch", "2", "--val-samples", "2",
-                 "--batch-size", "2", "--width", "4", "--epochs", "1", "--out", str(out)])
+                 "--batch-size", "2", "--width", "4", "--epochs", "1", "--materials", "train", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     rows = (out / "log.csv").read_text().splitlines()
     assert [r.split(",")[0] for r in rows[1:]] == ["pipnet", "pmmnet", "direct"]
     summary = __import__("json").loads((out / "summary.json").read_text())
     assert summary["data"] == "on-device" and summary["samples_drawn"] == {"pipnet": 4, "pmmnet": 4, "direct": 4}
     assert summary["dataset"]["families_present"] == list(COVERED_FAMILIES)
+    assert summary["dataset"]["material_mix"] == "train"
     assert (out / "weights" / "single_shot.onnx").is_file()
     ck = load_checkpoint(out / "checkpoint.pt")
     assert ck["stage"] == "direct" and ck["epoch"] == 1 and ck["data"] == "on-device"
@@ -311,3 +312,5 @@ def test_train_on_device_end_to_end(tmp_path, capsys):
     assert code == 2 and "needs --data on-device" in capsys.readouterr().err
     code = main(["train", "--data", "on-device", "--size", "36", "--out", str(tmp_path / "other")])
     assert code == 2 and "multiples of 8" in capsys.readouterr().err
+    code = main(["train", "--data", "on-device", "--materials", "film", "--out", str(tmp_path / "other")])
+    assert code == 2 and "mix" in capsys.readouterr().err and not (tmp_path / "other").exists()

@@ -58,6 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --data on-device: optimizer steps (fresh batches) per epoch (default 64)")
     p.add_argument("--val-samples", type=int_range(1, 10**6), default=None,
                    help="with --data on-device: scenes of the fixed validation set (default 32)")
+    p.add_argument("--materials", default=None,
+                   help="with --data on-device: material mix, baek (default), train, conductor, dispersive or "
+                        "anisotropic (as polrig sim dataset --materials)")
     p.add_argument("--out", required=True, help="output folder (checkpoint, logs, weights/); a folder holding "
                    "another run is refused unless --resume or --overwrite")
     p.add_argument("--epochs", type=_EPOCHS, default=None,
@@ -153,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
             overrides[name] = value
     on_device_args = {k: getattr(args, k) for k in ("size", "steps_per_epoch", "val_samples")
                       if getattr(args, k) is not None}
+    if args.materials is not None:
+        on_device_args["material_mix"] = args.materials
     if args.data == "on-device":
         from polrig.models.train_on_device import train_on_device
 
@@ -164,7 +169,9 @@ def run(args: argparse.Namespace) -> int:
                         overwrite=args.overwrite, **on_device_args)
         return 0
     if on_device_args:
-        raise ValueError(f"--{next(iter(on_device_args)).replace('_', '-')} needs --data on-device")
+        flag = next(iter(on_device_args))
+        flag = "materials" if flag == "material_mix" else flag.replace("_", "-")
+        raise ValueError(f"--{flag} needs --data on-device")
     train(args.data, args.out, None, resume=args.resume, export=not args.no_export,
           overrides=overrides, init_from=args.init_from, stages=args.stages,
           warm_start=args.warm_start, overwrite=args.overwrite)
