@@ -88,7 +88,7 @@ from polrig.sim.options import HIDDEN_DEFAULTS
 from polrig.sim.scene import FAMILIES, OBJECT_Z_M, RANDOM_FOCAL_PER_PX, default_camera
 
 #: Shape families the torch generator renders (indices into :data:`polrig.sim.scene.FAMILIES`).
-COVERED_FAMILIES = ("sphere", "box", "cylinder", "multi")
+COVERED_FAMILIES = ("sphere", "box", "cylinder", "multi", "blob", "torus")
 #: Material mixes it draws from: the Baek family and the training mix's kinds.
 COVERED_MIXES = ("baek", "train", "conductor", "dispersive", "anisotropic")
 #: Smallest roughness of the microfacet distributions (:data:`polrig.optics.pbrdf.ALPHA_MIN`).
@@ -97,7 +97,11 @@ ALPHA_MIN = 1e-4
 SHADOW_EPS_M = 1e-5
 T_MIN = 1e-6
 
-_SPHERE, _BOX, _CYLINDER = 0, 1, 2
+_SPHERE, _BOX, _CYLINDER, _BLOB, _TORUS = 0, 1, 2, 3, 4
+#: Most bumps of a random blob (``polrig.sim.scene.random_scene``: 4 to 10).
+MAX_BUMPS = 10
+#: Marching samples and bisections of the implicit solids (``polrig.sim.shapes.Blob``, ``Torus``).
+MARCH_STEPS, BISECTIONS = 64, 24
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -197,6 +201,81 @@ def cylinder_hit(o, d, radius, half_height, t_min=T_MIN):
         t_best = torch.where(closer, tc, t_best)
         n_best = torch.where(closer[..., None], nc, n_best)
     return t_best, n_best
+
+def _march(f, grad, o, d, bound, t_min=T_MIN):
+    """Nearest entry into the solid ``f(p) <= 0`` inside the sphere of radius ``bound`` (B, 1)
+    about the local origin, as :func:`polrig.sim.shapes.march_to_surface` and
+    ``_MarchedSolid.intersect``: :data:`MARCH_STEPS` uniform samples, then :data:`BISECTIONS`
+    halvings of the bracket; a ray whose first sample is inside misses. Returns ``(t, normal)``."""
+    b = _dot(o, d)
+    disc = b * b - (_dot(o, o) - bound * bound)
+    sq = torch.sqrt(disc.clamp_min(0.0))
+    t0, t1 = torch.clamp_min(-b - sq, t_min), -b + sq
+    ok = (disc > 0) & (t0 < t1)
+    found = torch.zeros_like(ok)
+    starts_inside = torch.zeros_like(ok)
+    lo = torch.zeros_like(t0)
+    hi = torch.zeros_like(t0)
+    prev = t0
+    for k in range(MARCH_STEPS + 1):
+        tk = t0 + (t1 - t0) * (k / MARCH_STEPS)
+        inside = f(o + tk[..., None] * d) <= 0.0
+        new = inside & ~found
+        if k == 0:
+            starts_inside = inside
+        lo = torch.where(new, prev, lo)
+        hi = torch.where(new, tk, hi)
+        found = found | inside
+        prev = tk
+    for _ in range(BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        go_hi = f(o + mid[..., None] * d) <= 0.0
+        hi = torch.where(go_hi, mid, hi)
+        lo = torch.where(go_hi, lo, mid)
+    hit = ok & found & ~starts_inside
+    t = torch.where(hit, hi, torch.full_like(hi, math.inf))
+    n = _unit(grad(o + torch.where(hit, hi, 0.0)[..., None] * d))
+    return t, torch.where(hit[..., None], n, 0.0)
+
+
+def blob_hit(o, d, radius, centres, widths, amplitudes):
+    """:class:`polrig.sim.shapes.Blob` per sample: ``radius`` (B, 1), unit ``centres``
+    (B, K, 3), ``widths`` and ``amplitudes`` (B, K) (amplitude 0 pads the unused bumps)."""
+    w2 = (widths * widths)[:, None]  # (B, 1, K)
+
+    def radius_and_grad(u):
+        e = amplitudes[:, None] * torch.exp((u @ centres.transpose(1, 2) - 1.0) / w2)  # (B, P, K)
+        r = radius * torch.exp(e.sum(-1))
+        return r, r[..., None] * ((e / w2) @ centres)
+
+    def f(p):
+        rho = torch.linalg.vector_norm(p, dim=-1)
+        r, _ = radius_and_grad(p / rho.clamp_min(1e-30)[..., None])
+        return rho - r
+
+    def grad(p):
+        rho = torch.linalg.vector_norm(p, dim=-1).clamp_min(1e-30)
+        u = p / rho[..., None]
+        _, g = radius_and_grad(u)
+        g_tan = g - _dot(g, u)[..., None] * u
+        return u - g_tan / rho[..., None]
+
+    bound = radius * torch.exp(amplitudes.clamp_min(0.0).sum(1, keepdim=True)) * 1.001
+    return _march(f, grad, o, d, bound)
+
+
+def torus_hit(o, d, major, minor):
+    """:class:`polrig.sim.shapes.Torus` per sample: radii (B, 1)."""
+    def f(p):
+        rho = torch.hypot(p[..., 0], p[..., 1])
+        return (rho - major) ** 2 + p[..., 2] ** 2 - minor ** 2
+
+    def grad(p):
+        rho = torch.hypot(p[..., 0], p[..., 1]).clamp_min(1e-30)
+        k = (rho - major) / rho
+        return torch.stack([k * p[..., 0], k * p[..., 1], p[..., 2]], -1)
+
+    return _march(f, grad, o, d, (major + minor) * 1.001)
 
 
 def _g1(v_l, h_dot_v, au, av, beckmann):
@@ -397,12 +476,28 @@ class SceneGenerator:
         kind = torch.full((n,), _SPHERE, device=self.device)
         kind = torch.where(fam == FAMILIES.index("box"), _BOX, kind)
         kind = torch.where(fam == FAMILIES.index("cylinder"), _CYLINDER, kind)
+        kind = torch.where(fam == FAMILIES.index("blob"), _BLOB, kind)
+        kind = torch.where(fam == FAMILIES.index("torus"), _TORUS, kind)
         r_sphere = torch.where(is_multi, self._u(n, lo=0.02, hi=0.035), self._u(n, lo=0.035, hi=0.06))
         half_box = self._u(n, 3, lo=0.02, hi=0.045)
         r_cyl, hh_cyl = self._u(n, lo=0.02, hi=0.04), self._u(n, lo=0.025, hi=0.05)
+        # blob: 4-10 bumps (unit centres, widths, amplitudes; the unused ones amplitude 0)
+        r_blob = self._u(n, lo=0.035, hi=0.05)
+        n_bumps = torch.randint(4, MAX_BUMPS + 1, (n,), generator=self.generator, device=self.device)
+        used = torch.arange(MAX_BUMPS, device=self.device)[None] < n_bumps[:, None]
+        centres = _unit(torch.randn(n, MAX_BUMPS, 3, generator=self.generator, device=self.device,
+                                    dtype=self.dtype))
+        widths = self._u(n, MAX_BUMPS, lo=0.25, hi=0.7)
+        amplitudes = self._u(n, MAX_BUMPS, lo=-0.35, hi=0.45) * used
+        # torus: radii and its own tilt
+        r_major, r_minor = self._u(n, lo=0.03, hi=0.045), self._u(n, lo=0.01, hi=0.02)
+        rot_torus = _tilt(self._u(n, lo=-70.0, hi=70.0), self._u(n, lo=0.0, hi=360.0))
         radius = torch.where(kind == _CYLINDER, r_cyl, r_sphere)
+        radius = torch.where(kind == _BLOB, r_blob, torch.where(kind == _TORUS, r_major, radius))
+        hh_cyl = torch.where(kind == _TORUS, r_minor, hh_cyl)
         eye = torch.eye(3, device=self.device, dtype=self.dtype).expand(n, 3, 3)
-        rot_a = torch.where((kind == _SPHERE)[:, None, None], eye, rot)
+        rot_a = torch.where((kind == _SPHERE)[:, None, None], eye,
+                            torch.where((kind == _TORUS)[:, None, None], rot_torus, rot))
         off_a = torch.tensor([-0.03, -0.02, -0.02], device=self.device, dtype=self.dtype)
         c_a = c + is_multi[:, None].to(self.dtype) * off_a
         half_b = self._u(n, 3, lo=0.015, hi=0.03)
@@ -439,7 +534,8 @@ class SceneGenerator:
         # to the camera frame: p_cam = R_cam (R_turn p) + t_cam
         rc = self.cam_r @ turn
         return {**mat, "family": fam, "kind": kind, "is_multi": is_multi, "rot_a": rc @ rot_a, "t_a": (rc @ c_a[..., None])[..., 0] + self.cam_t,
-                "radius": radius, "half_a": half_box, "hh": hh_cyl,
+                "radius": radius, "half_a": half_box, "hh": hh_cyl, "centres": centres, "widths": widths,
+                "amplitudes": amplitudes,
                 "rot_b": rc @ rot, "t_b": (rc @ c_b[..., None])[..., 0] + self.cam_t, "half_b": half_b,
                 "light": (self.cam_r @ light[..., None])[..., 0] + self.cam_t, "colour": colour,
                 "axis": (self.cam_r @ axis[..., None])[..., 0], "stage_deg": stage_deg, "er": er,
@@ -490,7 +586,10 @@ class SceneGenerator:
         n = torch.zeros_like(ol)
         for kind, hit in ((_SPHERE, lambda q: sphere_hit(ol[q], dl[q], s["radius"][q, None])),
                           (_BOX, lambda q: box_hit(ol[q], dl[q], s["half_a"][q, None])),
-                          (_CYLINDER, lambda q: cylinder_hit(ol[q], dl[q], s["radius"][q, None], s["hh"][q, None]))):
+                          (_CYLINDER, lambda q: cylinder_hit(ol[q], dl[q], s["radius"][q, None], s["hh"][q, None])),
+                          (_BLOB, lambda q: blob_hit(ol[q], dl[q], s["radius"][q, None], s["centres"][q],
+                                                     s["widths"][q], s["amplitudes"][q])),
+                          (_TORUS, lambda q: torus_hit(ol[q], dl[q], s["radius"][q, None], s["hh"][q, None]))):
             q = torch.nonzero(s["kind"] == kind)[:, 0]
             if len(q):
                 t[q], n[q] = hit(q)
@@ -639,7 +738,7 @@ def scene_parameters(gen: SceneGenerator, scene, turntable_deg: float, *, stage_
     :class:`polrig.sim.scene.Scene` of a covered family (a random scene of
     :func:`polrig.sim.scene.random_scene` with a Baek material), so that the torch renderer can be
     compared with :func:`polrig.sim.render.render` on the same scene (tests; not the hot path)."""
-    from polrig.sim.shapes import Box, Cylinder, Sphere
+    from polrig.sim.shapes import Blob, Box, Cylinder, Sphere, Torus
 
     t = dict(device=gen.device, dtype=gen.dtype)
     cam_r, cam_t = scene.camera.R, scene.camera.t
@@ -652,7 +751,13 @@ def scene_parameters(gen: SceneGenerator, scene, turntable_deg: float, *, stage_
 
     a = objs[0].shape
     rot_a, t_a = pose(objs[0])
-    kind = {Sphere: _SPHERE, Box: _BOX, Cylinder: _CYLINDER}[type(a)]
+    kind = {Sphere: _SPHERE, Box: _BOX, Cylinder: _CYLINDER, Blob: _BLOB, Torus: _TORUS}[type(a)]
+    centres, widths, amps = np.zeros((MAX_BUMPS, 3)), np.ones(MAX_BUMPS), np.zeros(MAX_BUMPS)
+    if kind == _BLOB:
+        k = len(a.amplitudes)
+        c = np.asarray(a.centres, float)
+        centres[:k] = c / np.linalg.norm(c, axis=1, keepdims=True)
+        widths[:k], amps[:k] = a.widths, a.amplitudes
     multi = len(objs) > 1
     rot_b, t_b = pose(objs[1]) if multi else (np.eye(3), np.zeros(3))
     one = lambda v: torch.tensor(np.asarray(v, float), **t)[None]  # noqa: E731
@@ -661,7 +766,9 @@ def scene_parameters(gen: SceneGenerator, scene, turntable_deg: float, *, stage_
         "kind": torch.tensor([kind], device=gen.device), "is_multi": torch.tensor([multi], device=gen.device),
         **_material_parameters(mat, one, gen.device),
         "rot_a": one(rot_a), "t_a": one(t_a),
-        "radius": one(getattr(a, "radius_m", 0.03)), "hh": one(getattr(a, "half_height_m", 0.03)),
+        "radius": one(getattr(a, "radius_m", getattr(a, "major_radius_m", 0.03))),
+        "hh": one(getattr(a, "half_height_m", getattr(a, "minor_radius_m", 0.03))),
+        "centres": one(centres), "widths": one(widths), "amplitudes": one(amps),
         "half_a": one(getattr(a, "half_m", (0.03,) * 3)),
         "rot_b": one(rot_b), "t_b": one(t_b),
         "half_b": one(objs[1].shape.half_m if multi else (0.03,) * 3),
