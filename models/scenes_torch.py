@@ -12,14 +12,15 @@ loaded set.
 What is sampled, as ``polrig sim dataset`` does (``sim/dataset.py``, ``sim/scene.py``,
 ``sim/materials.py``):
 
-* **Shape families**: ``sphere``, ``box``, ``cylinder`` and ``multi`` (a sphere and a box),
-  intersected in closed form per pixel (sphere quadratic, slab test, quadric plus caps), with the
-  same size, pose and centre draws as :func:`polrig.sim.scene.random_scene` and the turntable angle
-  uniform in [0, 360). Not covered: ``blob`` and ``torus`` (implicit solids that the simulator
-  marches and bisects: possible in torch but not written yet) and the held-out ``heightfield``
-  and ``plane`` (never trained on). Asking for them is a :class:`ConfigError`. The default
-  families are the four covered ones (the version-1 training sets' ``--families
-  sphere,box,cylinder,multi``).
+* **Shape families**: every training family: ``sphere``, ``box``, ``cylinder`` and ``multi`` (a
+  sphere and a box) intersected in closed form per pixel (sphere quadratic, slab test, quadric
+  plus caps), ``blob`` and ``torus`` marched and bisected inside their bounding spheres as
+  :func:`polrig.sim.shapes.march_to_surface` (64 samples, 24 bisections; a blob's 4-10 bumps
+  padded to :data:`MAX_BUMPS` with zero amplitudes), with the same size, pose and centre draws
+  as :func:`polrig.sim.scene.random_scene` and the turntable angle uniform in [0, 360). Not
+  covered: the held-out ``heightfield`` and ``plane`` (never trained on); asking for them is a
+  :class:`ConfigError`. The default families are the six training ones (``polrig sim
+  dataset``'s default training side).
 * **Materials**: the ``baek`` mix (kd per colour uniform in [0.02, 0.9], alpha log-uniform in
   [0.01, 0.8], eta uniform in [1.3, 1.8], ks 0 for one in ten) rendered with the differentiable
   pBRDF :mod:`polrig.models.pbrdf_torch` (GGX, the simulator's default distribution); the ``train``
@@ -407,8 +408,8 @@ class SceneGenerator:
         bad = [f for f in names if f not in COVERED_FAMILIES]
         if bad or not names:
             raise ConfigError(f"the torch scene generator renders the families {', '.join(COVERED_FAMILIES)}; "
-                              f"got {', '.join(names) or 'none'} (blob and torus: not yet; heightfield, plane: "
-                              f"held out)")
+                              f"got {', '.join(names) or 'none'} (heightfield and plane, the held-out families, "
+                              f"are not ported)")
         if material_mix not in COVERED_MIXES:
             raise ConfigError(f"the torch scene generator draws the material mixes {', '.join(COVERED_MIXES)}; got "
                               f"{material_mix!r} (films and depolarizing layers, the held-out kinds, are not "

@@ -274,7 +274,7 @@ def test_seeded_and_refuses_what_it_does_not_cover():
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not torch.equal(SceneGenerator(16, seed=8).batch(2)["analyzer"], a["analyzer"])
     with pytest.raises(ConfigError, match="families"):
-        SceneGenerator(16, families=("blob",))
+        SceneGenerator(16, families=("heightfield",))
     with pytest.raises(ConfigError, match="mix"):
         SceneGenerator(16, material_mix="heldout")
     with pytest.raises(ConfigError, match="mix"):
