@@ -1,12 +1,13 @@
 """The torch scene generator (polrig.models.scenes_torch, issue 32 item 1) against `polrig sim
-dataset` (polrig.sim.dataset.generate_dataset).
+dataset` (polrig.sim.dataset.generate_dataset), and `polrig train --data on-device`.
 
 Same scenes where equality is practical: the renderer on a given scene agrees with
-polrig.sim.render.render (geometry, lit pixels, Mueller blocks). Same distribution for the random
-draws and the noise (numpy's and torch's random streams differ): two-sample Kolmogorov-Smirnov
-and chi-square tests, fixed seeds, on the parameter marginals and on summary statistics of the
-rendered images, and two power checks (a shifted roughness range, a sensor without the colour
-QE) that the same tests reject."""
+polrig.sim.render.render (geometry, lit pixels, Mueller blocks) for every family and material
+kind covered. Same distribution for the random draws and the noise (numpy's and torch's random
+streams differ): two-sample Kolmogorov-Smirnov and chi-square tests, fixed seeds, on the
+parameter marginals and on summary statistics of the rendered images, for the baek and train
+mixes, and power checks (a shifted roughness range, shifted exposures, the baek mix against the
+train mix) that the same tests reject."""
 
 from __future__ import annotations
 
