@@ -534,7 +534,8 @@ class SceneGenerator:
         mat = self._draw_material(n, kd, alpha, eta, ks)
         # to the camera frame: p_cam = R_cam (R_turn p) + t_cam
         rc = self.cam_r @ turn
-        return {**mat, "family": fam, "kind": kind, "is_multi": is_multi, "rot_a": rc @ rot_a, "t_a": (rc @ c_a[..., None])[..., 0] + self.cam_t,
+        return {**mat, "family": fam, "kind": kind, "is_multi": is_multi,
+                "rot_a": rc @ rot_a, "t_a": (rc @ c_a[..., None])[..., 0] + self.cam_t,
                 "radius": radius, "half_a": half_box, "hh": hh_cyl, "centres": centres, "widths": widths,
                 "amplitudes": amplitudes,
                 "rot_b": rc @ rot, "t_b": (rc @ c_b[..., None])[..., 0] + self.cam_t, "half_b": half_b,

@@ -315,3 +315,13 @@ def test_train_on_device_end_to_end(tmp_path, capsys):
     assert code == 2 and "multiples of 8" in capsys.readouterr().err
     code = main(["train", "--data", "on-device", "--materials", "film", "--out", str(tmp_path / "other")])
     assert code == 2 and "mix" in capsys.readouterr().err and not (tmp_path / "other").exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_on_cuda_same_distribution(sim_set):
+    """On a GPU: the batch stays on the device and passes the same tests of distribution."""
+    gen = SceneGenerator(SIZE, seed=5, device="cuda")
+    b = gen.batch(4)
+    assert all(v.device.type == "cuda" for v in b.values())
+    res = compare(sim_set.arrays, torch_samples(gen, N_TORCH))
+    assert all(p > ALPHA for _, p in res.values()), res
