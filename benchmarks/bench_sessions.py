@@ -11,7 +11,7 @@ difference; on CUDA (``--device cuda``) the same for the CUDA provider, plus the
 parity of the ``after`` path.
 
     python benchmarks/bench_sessions.py --before /tmp/oldweights [--size 612x512] [--rounds 9]
-        [--threads T] [--device cpu|cuda] [--out FILE]
+        [--threads T] [--device cpu|cuda] [--training-axis] [--out FILE]
 
 ``--before`` folder: ``git show 5cfac96:models/weights/{single_shot.onnx,model.json}`` (the graph
 before issue 31).
@@ -53,11 +53,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--training-axis", action="store_true",
+                    help="the training rig's stage zero axis: one frame pass, no probe")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     h, w = (int(x) for x in args.size.split("x"))
     an, s_in, mask = capture((h, w))
-    axis = (1.0, 0.0, 0.0)  # not the training axis: probe + frame pass
+    axis = None if args.training_axis else (1.0, 0.0, 0.0)  # not the training axis: probe + frame pass
     models = {"before": SingleShotModel.load(args.before, threads=args.threads, device=args.device, fixed_sizes=False),
               "after": SingleShotModel.load(threads=args.threads, device=args.device)}
     kw = {"before": {}, "after": {"outputs": "frame"}}
@@ -75,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
             times[k].append(time.perf_counter() - t)
             net[k].append(aux["timings_s"]["network"])
     dev = float(np.max(np.abs(results["after"] - results["before"])) / np.max(np.abs(results["before"])))
-    lines = [f"# Networks' step, {h}x{w}x3, {models['after'].provider}, "
+    lines = [f"# Networks' step, {h}x{w}x3, {'frame pass only' if axis is None else 'probe + frame pass'}, "
+             f"{models['after'].provider}, "
              f"{models['after'].provider_options}, {args.rounds} interleaved rounds (medians)", "",
              "| path | reconstruct ms | networks ms (probe + frame) |", "|---|---:|---:|"]
     for k in models:

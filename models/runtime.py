@@ -437,12 +437,13 @@ class SingleShotModel:
             raise FormatError(f"{meta_path}: not a model description (a JSON object expected)")
         n_threads = threads or physical_cores()
 
-        def options(sizes: tuple[int, int, int] | None = None):
+        def options(sizes: tuple[int, int, int] | None = None, optimise: bool = True):
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = n_threads
             opts.inter_op_num_threads = 1
             opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimise
+                                             else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
             opts.enable_mem_pattern = False
             opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
             for name, n in zip(("batch", "height", "width"), sizes or ()):
@@ -454,7 +455,10 @@ class SingleShotModel:
                                         providers=devices.session_providers(providers, cuda_graph))
 
         try:
-            sess = ort.InferenceSession(str(path), options(), providers=devices.session_providers(providers))
+            # with fixed sizes this session only names the graph's inputs, outputs and provider
+            # (it never runs): not optimised, so a one-shot run does not optimise the graph twice
+            sess = ort.InferenceSession(str(path), options(optimise=not fixed_sizes),
+                                        providers=devices.session_providers(providers))
         except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
             raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc
