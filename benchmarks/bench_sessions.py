@@ -10,11 +10,12 @@ warm-up each: the fixed-size sessions are created then) and the two results' lar
 difference; on CUDA (``--device cuda``) the same for the CUDA provider, plus the CPU-vs-CUDA
 parity of the ``after`` path.
 
-    python benchmarks/bench_sessions.py --before /tmp/oldweights [--size 612x512] [--rounds 9]
+    python benchmarks/bench_sessions.py [--before /tmp/oldweights] [--size 612x512] [--rounds 9]
         [--threads T] [--device cpu|cuda] [--training-axis] [--out FILE]
 
 ``--before`` folder: ``git show 5cfac96:models/weights/{single_shot.onnx,model.json}`` (the graph
-before issue 31).
+before issue 31; ``benchmarks/gpu_pieces.sh`` writes it to ``.ortpieces/before``); without it the
+shipped graph on one dynamic session is "before" (the sessions' effect alone).
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def capture(size: tuple[int, int]):
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--before", required=True, help="weights folder of the graph before (dynamic session)")
+    ap.add_argument("--before", default=None, help="weights folder of the graph before (dynamic session; "
+                    "default: the shipped graph, so only the sessions differ)")
     ap.add_argument("--size", default="612x512", help="analyzer grid HxW (default the colour sensor's superpixel grid)")
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--threads", type=int, default=None)
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
             times[k].append(time.perf_counter() - t)
             net[k].append(aux["timings_s"]["network"])
     dev = float(np.max(np.abs(results["after"] - results["before"])) / np.max(np.abs(results["before"])))
-    lines = [f"# Networks' step, {h}x{w}x3, {'frame pass only' if axis is None else 'probe + frame pass'}, "
+    lines = [f"# Networks' step, {h}x{w}x3, {'training axis: one frame pass' if axis is None else 'another axis: probe + frame pass (two frame passes below 256 px)'}, "
              f"{models['after'].provider}, "
              f"{models['after'].provider_options}, {args.rounds} interleaved rounds (medians)", "",
              "| path | reconstruct ms | networks ms (probe + frame) |", "|---|---:|---:|"]
