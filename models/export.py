@@ -167,6 +167,9 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
         meta = {"colours": int(pipnet.colours), "width": int(pipnet.backbone.width), "opset": OPSET,
                 "inputs": list(INPUTS), "single_shot_outputs": list(SINGLE_SHOT_OUTPUTS),
                 "graph_outputs": {name: list(outputs) for name, _, outputs in graphs(single, direct)},
+                # which files belong together: the runtime takes the smaller graphs only beside
+                # the full graph they were exported with
+                "graph_sha256": {final.name: _sha256(tmp) for tmp, final in written},
                 "size_multiple": SIZE_MULTIPLE, "eta": 1.5, "ks": 1.0, "camera_x_axis": [1.0, 0.0, 0.0],
                 "conventions_version": _conventions_version(), "export_check": report,
                 "export_tolerance": EXPORT_TOLERANCE}
@@ -181,6 +184,12 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
     # a calibration of earlier graphs in this folder belongs to them (polrig.models.uncertainty checks the hash)
     atomic_write_text(wd / "model.json", json.dumps(meta, indent=2))
     return report
+
+
+def _sha256(path: pathlib.Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _conventions_version() -> str:

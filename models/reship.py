@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"reference: {args.reference} ({pathlib.Path(args.reference).stat().st_size} bytes)")
         nets, meta = networks_from_weights(wd)
         sample = {k: torch.from_numpy(v) for k, v in feeds[0].items()}
-        keep = {k: v for k, v in meta.items() if k not in ("export_check", "graph_outputs")}
+        keep = {k: v for k, v in meta.items() if k not in ("export_check", "graph_outputs", "graph_sha256")}
         report = export_all(nets["pipnet"], nets["pmmnet"], nets["direct"], tmp / "new", sample, extra_meta=keep)
         worst: dict[str, dict[str, float]] = {}
         inside: dict[str, float] = {}  # the full graph's, over the object mask
@@ -133,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
             shutil.copy2(tmp / "new" / name, wd / name)
         new_meta = json.loads((tmp / "new" / "model.json").read_text())
         new_meta["export_check"]["direct.onnx"] = meta.get("export_check", {}).get("direct.onnx")
+        new_meta["graph_sha256"]["direct.onnx"] = graph_sha256(wd / "direct.onnx")  # kept as shipped
         atomic_write_text(wd / "model.json", json.dumps(new_meta, indent=2) + "\n")
         unc_path = wd / "uncertainty.json"
         if unc_path.is_file():

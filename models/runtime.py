@@ -486,12 +486,31 @@ class SingleShotModel:
         return self._runner(outputs, (int(b), int(h), int(w))).run(feed, run_options)
 
     def _graph_path(self, outputs: str) -> pathlib.Path:
-        name = OUTPUT_GRAPHS.get(outputs) if self.graph == "single_shot.onnx" else None
+        """The graph a run of ``outputs`` takes: the smaller one where it was exported with this
+        graph (``model.json``'s ``graph_sha256`` names both files as they are), else this one."""
         if outputs not in ("all", *OUTPUT_GRAPHS):
             raise ValueError(f"outputs must be all, {', '.join(OUTPUT_GRAPHS)}, got {outputs!r}")
-        if name is not None and (self.weights_dir / name).is_file():
+        name = OUTPUT_GRAPHS.get(outputs) if self.graph == "single_shot.onnx" else None
+        if name is not None and name in self._companions():
             return self.weights_dir / name
         return self.weights_dir / self.graph
+
+    def _companions(self) -> set[str]:
+        """The smaller graphs in :attr:`weights_dir` exported together with :attr:`graph` (checked
+        once, by their SHA-256 against ``model.json``; a graph replaced alone has none)."""
+        if getattr(self, "_companion_names", None) is None:
+            from polrig.models.uncertainty import graph_sha256
+
+            want = self.meta.get("graph_sha256") or {}
+            names = set()
+            try:
+                if want.get(self.graph) == graph_sha256(self.weights_dir / self.graph):
+                    names = {n for n in OUTPUT_GRAPHS.values()
+                             if (self.weights_dir / n).is_file() and want.get(n) == graph_sha256(self.weights_dir / n)}
+            except OSError:
+                names = set()
+            self._companion_names = names
+        return self._companion_names
 
     def _note(self, line: str) -> None:
         import sys

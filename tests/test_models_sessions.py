@@ -153,3 +153,27 @@ def test_accepted_cuda_graphs_bind_fixed_buffers(capture, monkeypatch):
     monkeypatch.setattr(runtime._Runner, "_run_bound", spy)
     model.reconstruct(analyzer, s_in, mask=mask, outputs="frame")
     assert calls == [["analyzer", "mask", "s_in", "stage_zero_axis", "wo"]]
+
+
+def test_smaller_graphs_only_beside_the_full_graph_they_were_exported_with(tmp_path, capture):
+    """A folder whose full graph was replaced alone (its SHA-256 is not the one model.json names
+    beside the smaller graphs) runs everything on the full graph; the shipped folder's match."""
+    import json
+    import shutil
+
+    analyzer, s_in, mask = capture
+    shipped = SingleShotModel.load(threads=1)
+    assert shipped._companions() == {"single_shot_frame.onnx", "single_shot_probe.onnx"}
+    wd = tmp_path / "w"
+    shutil.copytree(WEIGHTS_DIR, wd)
+    meta = json.loads((wd / "model.json").read_text())
+    meta["graph_sha256"]["single_shot.onnx"] = "0" * 64  # another full graph than the smaller ones'
+    (wd / "model.json").write_text(json.dumps(meta))
+    model = SingleShotModel.load(wd, threads=1)
+    assert model._companions() == set()
+    big = np.repeat(np.repeat(analyzer, 4, axis=-1), 4, axis=-2)
+    model.reconstruct(big, s_in, mask=np.repeat(np.repeat(mask, 4, axis=-1), 4, axis=-2),
+                      stage_zero_axis=(1.0, 0.0, 0.0), outputs="frame")
+    assert {k[0] for k in model._runners} == {"single_shot.onnx"}
+    with pytest.raises(ValueError, match="outputs must be"):
+        model.reconstruct(analyzer, s_in, mask=mask, outputs="some")
