@@ -79,17 +79,19 @@ def main(argv: list[str] | None = None) -> int:
             times[k].append(time.perf_counter() - t)
             net[k].append(aux["timings_s"]["network"])
     dev = float(np.max(np.abs(results["after"] - results["before"])) / np.max(np.abs(results["before"])))
-    lines = [f"# Networks' step, {h}x{w}x3, {'training axis: one frame pass' if axis is None else 'another axis: probe + frame pass (two frame passes below 256 px)'}, "
-             f"{models['after'].provider}, "
-             f"{models['after'].provider_options}, {args.rounds} interleaved rounds (medians)", "",
-             "| path | reconstruct ms | networks ms (probe + frame) |", "|---|---:|---:|"]
+    passes = ("training axis: one frame pass" if axis is None
+              else "another axis: probe + frame pass (two frame passes below 256 px)")
+    title = (f"# Networks' step, {h}x{w}x3, {passes}, {models['after'].provider}, "
+             f"{models['after'].provider_options}, {args.rounds} interleaved rounds (medians)")
+    lines = [title, "", "| path | reconstruct ms | networks ms (probe + frame) |", "|---|---:|---:|"]
     for k in models:
         lines.append(f"| {k} | {1e3 * statistics.median(times[k]):.1f} | {1e3 * statistics.median(net[k]):.1f} |")
     ratios = [a / b for a, b in zip(net["after"], net["before"])]
-    lines += ["", f"networks after/before per round: median {statistics.median(ratios):.3f} "
-              f"(min {min(ratios):.3f}, max {max(ratios):.3f}); max |after - before| / max |before| = {dev:.2e}"]
+    lines += ["", (f"networks after/before per round: median {statistics.median(ratios):.3f} "
+                   f"(min {min(ratios):.3f}, max {max(ratios):.3f}); max |after - before| / max |before| = {dev:.2e}")]
     if args.device == "cuda":
-        cpu = SingleShotModel.load(device="cpu").reconstruct(an, s_in, mask=mask, stage_zero_axis=axis, outputs="frame")[0]
+        cpu = SingleShotModel.load(device="cpu").reconstruct(an, s_in, mask=mask, stage_zero_axis=axis,
+                                                             outputs="frame")[0]
         par = float(np.max(np.abs(results["after"] - cpu)) / np.max(np.abs(cpu)))
         lines.append(f"CUDA vs CPU (after): max |cuda - cpu| / max |cpu| = {par:.2e}; notes: "
                      f"{models['after'].device_notes or 'none'}")

@@ -120,8 +120,8 @@ def accepted_options(requested: dict[str, str], reported: dict[str, str] | None,
     another value. Pure, so the refusal path is tested without a GPU."""
     if error is not None:
         why = (str(error).strip().splitlines() or ["refused"])[0][:200]
-        return {}, [f"onnxruntime refused {', '.join(f'{k}={v}' for k, v in requested.items())} ({why}); "
-                    "running without"]
+        asked = ", ".join(f"{k}={v}" for k, v in requested.items())
+        return {}, [f"onnxruntime refused {asked} ({why}); running without"]
     if reported is None:
         return {}, ["the provider did not start: none of its options apply"]
     options, notes = {}, []

@@ -139,7 +139,7 @@ def test_accepted_cuda_graphs_bind_fixed_buffers(capture, monkeypatch):
     """Where onnxruntime takes ``enable_cuda_graph`` the run goes through I/O binding (here the
     binding fails for want of a GPU, which is the refusal path above); the plain path keeps the
     CPU's arena options."""
-    model, opened = _cuda_model(refuse_at_creation=False)
+    model, _ = _cuda_model(refuse_at_creation=False)
     analyzer, s_in, mask = capture
     calls = []
     from polrig.models import runtime

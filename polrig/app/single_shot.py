@@ -139,8 +139,9 @@ class SingleShotResult:
     ``beyond_calibration`` ``(C, H, W)`` bool (object pixels whose misfit lies beyond the
     sigma's calibration range; only with the sigma) and ``beyond_fraction`` (the object's
     fraction so flagged), ``network_grid`` (``wi`` on the networks' own grid: the route runs the
-    frame graph, without ``normal``, ``kd`` and ``mueller_init``), ``scale`` (ADC DN per normalised unit), ``alpha``, ``provider`` (the
-    onnxruntime execution provider that ran them), ``incident_rotation_deg``. From
+    frame graph, without ``normal``, ``kd`` and ``mueller_init``), ``scale`` (ADC DN per
+    normalised unit), ``alpha``, ``provider`` (the onnxruntime execution provider that ran them)
+    with ``provider_options`` and ``provider_notes``, ``incident_rotation_deg``. From
     :meth:`SingleShot.frame` also ``stokes`` ``(C, 3, H, W)`` (the measured Stokes images on
     the output grid, ADC DN) and ``snr`` ``(C, H, W)`` (their ``S0`` over its noise sigma).
     ``timings_s``: seconds per step."""
@@ -201,8 +202,9 @@ class SingleShotResult:
         byte-identical to one from before the option, ``mirror_average``; at full resolution the
         grids, the networks' ``network_demosaic`` and the detail's ``output_demosaic``), the
         ``execution_provider`` with its ``execution_provider_options`` (and
-        ``execution_provider_notes``, the options onnxruntime refused, where any), the object's ``beyond_calibration_fraction`` (``None`` where not
-        known) and ``planes``, what each written plane group holds (the ``sigma`` planes' NaN
+        ``execution_provider_notes``, the options onnxruntime refused, where any), the object's
+        ``beyond_calibration_fraction`` (``None`` where not known) and ``planes``, what each
+        written plane group holds (the ``sigma`` planes' NaN
         where the route is not calibrated)."""
         o = self.options
         out: dict[str, Any] = {"mirror_average": o.mirror_average,
