@@ -1,8 +1,9 @@
 """The networks' step of one single-shot frame before and after issue 31's sessions, interleaved in
 one process: ``before``, a weights folder (``--before``: the graph as shipped before, with Acos)
 on one session with dynamic sizes (``SingleShotModel.load(fixed_sizes=False)``, every output);
-``after``, the shipped weights on fixed-size sessions with the probe's and the frame's graphs
-(``outputs="frame"``, what :class:`polrig.app.single_shot.SingleShot` asks). Per frame: the
+``after``, the shipped weights with the probe's and the frame's graphs (``outputs="frame"``, what
+:class:`polrig.app.single_shot.SingleShot` asks) on the device's default sessions (fixed sizes on
+CUDA, one dynamic-size session per graph on the CPU). Per frame: the
 light-direction probe pass and the frame pass (a stage zero axis other than the training one),
 as :meth:`polrig.models.runtime.SingleShotModel.reconstruct` runs them, on a simulated held-out
 capture resized to ``--size``. Prints the medians of ``--rounds`` interleaved rounds (after one
@@ -14,8 +15,8 @@ parity of the ``after`` path.
         [--threads T] [--device cpu|cuda] [--training-axis] [--out FILE]
 
 ``--before`` folder: ``git show 5cfac96:models/weights/{single_shot.onnx,model.json}`` (the graph
-before issue 31; ``benchmarks/gpu_pieces.sh`` writes it to ``.ortpieces/before``); without it the
-shipped graph on one dynamic session is "before" (the sessions' effect alone).
+before issue 31; ``benchmarks/gpu_pieces.sh`` writes it to ``.ortpieces/before``); without it
+"before" is the shipped graphs on dynamic-size sessions (on CUDA: the fixed sizes' effect alone).
 """
 
 from __future__ import annotations

@@ -354,21 +354,27 @@ class SingleShotModel:
     """onnxruntime session of the shipped single-shot graph (and optionally the baseline).
 
     Sessions: :attr:`session` holds the graph with dynamic sizes (its outputs' names, the
-    provider). Runs go to sessions with the input sizes fixed
-    (``SessionOptions.add_free_dimension_override_by_name``: every shape computation folded away),
-    one per graph and input size, created at a size's first run and kept (:data:`MAX_SESSIONS`):
-    on CUDA a session that alternates sizes rebuilds every convolution's cuDNN plan at each change
-    (onnxruntime issue #23006), and only a fixed-size session can be captured as a CUDA graph. A run
-    that needs fewer outputs takes the graph holding only those (:data:`OUTPUT_GRAPHS`: the frame
-    path's ``mueller``, ``wi``, ``alpha``; the light-direction probe's ``wi``, PIPNet alone)."""
+    provider). With :attr:`fixed_sizes` (the default on CUDA) runs go to sessions with the input
+    sizes fixed (``SessionOptions.add_free_dimension_override_by_name``: every shape computation
+    folded away), one per graph and input size, created at a size's first run and kept
+    (:data:`MAX_SESSIONS`): on CUDA a session that alternates sizes rebuilds every convolution's
+    cuDNN plan at each change (onnxruntime issue #23006), and only a fixed-size session can be
+    captured as a CUDA graph. Without (the CPU's default, :meth:`load`) each graph has one
+    dynamic-size session. A run that needs fewer outputs takes the graph holding only those
+    (:data:`OUTPUT_GRAPHS`: the frame path's ``mueller``, ``wi``, ``alpha``; the light-direction
+    probe's ``wi``, PIPNet alone), so in the route the probe's and the frame's sizes never share a
+    session."""
 
     def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty: UncertaintyModel | None = None,
                  uncertainty_problem: str = "", *, opener=None, graph: str = "single_shot.onnx",
-                 session_options: dict[str, str] | None = None):
+                 session_options: dict[str, str] | None = None, fixed_sizes: bool = True):
         self.session = session
         #: ``opener(path, sizes, cuda_graph)`` -> a session of the graph at ``path`` with the input
-        #: sizes ``(batch, height, width)`` fixed (None: every run on :attr:`session`).
+        #: sizes ``(batch, height, width)`` fixed (``sizes`` None: dynamic sizes); None: every run
+        #: on :attr:`session`.
         self._opener = opener
+        #: Whether runs take sessions with their sizes fixed (else one dynamic session per graph).
+        self.fixed_sizes = bool(fixed_sizes)
         self.graph = graph
         self._runners: dict[tuple, _Runner] = {}
         #: One line per option onnxruntime refused (printed to stderr once each as it happens).
@@ -400,7 +406,7 @@ class SingleShotModel:
     @classmethod
     def load(cls, weights_dir: str | os.PathLike | None = None, *, graph: str = "single_shot.onnx",
              threads: int | None = None, spinning: bool = False, device: str = "auto",
-             fixed_sizes: bool = True) -> "SingleShotModel":
+             fixed_sizes: bool | None = None) -> "SingleShotModel":
         """Open ``graph`` in ``weights_dir`` (default: the shipped ``models/weights``).
 
         ``threads``: intra-op threads (default :func:`physical_cores`). ``spinning``: let idle
@@ -411,7 +417,11 @@ class SingleShotModel:
         (:mod:`polrig.models.devices`; a forced ``cuda`` that cannot run raises
         :class:`polrig.models.devices.DeviceUnavailable`); :attr:`provider` is the one really used.
         ``fixed_sizes``: runs on sessions with their input sizes fixed (class docstring); off,
-        every run goes to the one dynamic-size session (the route before issue 31).
+        one dynamic-size session per graph (full, frame, probe: in the route each sees one size).
+        Default: on for CUDA, off for the CPU, where fixing the sizes brought no measurable speed
+        but more memory (the mono full sensor's 1224x1024 frame: peak 1648 -> 1955 MB: onnxruntime
+        folds the shape-dependent constants into image-sized tensors, 25 MB of them in the frame
+        graph at that size, and plans the activations otherwise).
 
         Memory: onnxruntime's memory-pattern planning is off. With dynamic image sizes it plans
         one block for the whole graph at the first run of each new shape; without it the
@@ -436,6 +446,8 @@ class SingleShotModel:
         if not isinstance(meta, dict):
             raise FormatError(f"{meta_path}: not a model description (a JSON object expected)")
         n_threads = threads or physical_cores()
+        if fixed_sizes is None:
+            fixed_sizes = devices.CUDA in providers
 
         def options(sizes: tuple[int, int, int] | None = None, optimise: bool = True):
             opts = ort.SessionOptions()
@@ -450,7 +462,7 @@ class SingleShotModel:
                 opts.add_free_dimension_override_by_name(name, int(n))
             return opts
 
-        def opener(p: pathlib.Path, sizes: tuple[int, int, int], cuda_graph: bool = False):
+        def opener(p: pathlib.Path, sizes: tuple[int, int, int] | None, cuda_graph: bool = False):
             return ort.InferenceSession(str(p), options(sizes),
                                         providers=devices.session_providers(providers, cuda_graph))
 
@@ -463,7 +475,7 @@ class SingleShotModel:
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
             raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc
         devices.check_session(device, providers, sess.get_providers())
-        return cls(sess, meta, wd, *calibration_for_graph(wd, graph), opener=opener if fixed_sizes else None,
+        return cls(sess, meta, wd, *calibration_for_graph(wd, graph), opener=opener, fixed_sizes=fixed_sizes,
                    graph=graph, session_options={"intra_op_num_threads": str(n_threads),
                                                  "fixed_sizes": "1" if fixed_sizes else "0"})
 
@@ -480,10 +492,10 @@ class SingleShotModel:
         if release_arena is None:
             release_arena = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
         run_options = self._shrink if release_arena else None
-        if self._opener is None:
+        if self._opener is None or (not self.fixed_sizes and self._graph_path(outputs).name == self.graph):
             return dict(zip(self.output_names, self.session.run(None, feed, run_options)))
         b, _, _, h, w = feed["analyzer"].shape
-        return self._runner(outputs, (int(b), int(h), int(w))).run(feed, run_options)
+        return self._runner(outputs, (int(b), int(h), int(w)) if self.fixed_sizes else None).run(feed, run_options)
 
     def _graph_path(self, outputs: str) -> pathlib.Path:
         """The graph a run of ``outputs`` takes: the smaller one where it was exported with this
@@ -519,9 +531,10 @@ class SingleShotModel:
             self.device_notes.append(line)
             print(f"polrig: {devices.short_name(self.provider)}: {line}", file=sys.stderr)
 
-    def _runner(self, outputs: str, sizes: tuple[int, int, int]) -> _Runner:
-        """The fixed-size session of ``outputs``' graph at input ``sizes`` (created at the first
-        run of that size, then kept: the least recently used beyond :data:`MAX_SESSIONS` goes)."""
+    def _runner(self, outputs: str, sizes: tuple[int, int, int] | None) -> _Runner:
+        """The session of ``outputs``' graph at input ``sizes`` (None: its dynamic-size one), created
+        at the first run of that size, then kept: the least recently used beyond
+        :data:`MAX_SESSIONS` goes."""
         path = self._graph_path(outputs)
         key = (path.name, sizes)
         runner = self._runners.pop(key, None)
@@ -532,8 +545,8 @@ class SingleShotModel:
             self._runners.pop(next(iter(self._runners)))
         return runner
 
-    def _new_runner(self, path: pathlib.Path, sizes: tuple[int, int, int]) -> _Runner:
-        if self.provider != devices.CUDA or self._cuda_graph is False:
+    def _new_runner(self, path: pathlib.Path, sizes: tuple[int, int, int] | None) -> _Runner:
+        if self.provider != devices.CUDA or self._cuda_graph is False or sizes is None:
             return _Runner(self._opener(path, sizes))
         requested = dict(devices.CUDA_GRAPH_OPTION)
         try:

@@ -25,7 +25,7 @@ def capture():
 
 def test_fixed_size_sessions_are_made_once_and_give_the_dynamic_sessions_numbers(capture):
     analyzer, s_in, mask = capture
-    fixed = SingleShotModel.load(threads=1)
+    fixed = SingleShotModel.load(threads=1, fixed_sizes=True)
     dynamic = SingleShotModel.load(threads=1, fixed_sizes=False)
     axis = (1.0, 0.0, 0.0)  # another axis than the training one: probe + frame pass at 256x256
     big = np.repeat(np.repeat(analyzer, 4, axis=-1), 4, axis=-2)
@@ -43,12 +43,16 @@ def test_fixed_size_sessions_are_made_once_and_give_the_dynamic_sessions_numbers
     fixed.reconstruct(big, s_in, mask=big_mask, stage_zero_axis=axis, outputs="frame")
     assert all(fixed._runners[k] is runners[k] for k in keys)  # created once per size
     assert fixed.provider_options == {"intra_op_num_threads": "1", "fixed_sizes": "1"}
-    assert dynamic._runners == {}
+    # without fixed sizes: one dynamic session per graph (the full graph's is model.session)
+    assert set(dynamic._runners) == {("single_shot_probe.onnx", None)}
+    assert dynamic.provider_options["fixed_sizes"] == "0"
+    # the CPU's default: dynamic sizes (more memory for no measured speed when fixed)
+    assert not SingleShotModel.load(threads=1).fixed_sizes
 
 
 def test_sessions_are_bounded_least_recently_used_first(capture):
     analyzer, s_in, mask = capture
-    model = SingleShotModel.load(threads=1)
+    model = SingleShotModel.load(threads=1, fixed_sizes=True)
     for n in range(MAX_SESSIONS + 1):
         size = 16 + 8 * n
         model.reconstruct(analyzer[..., :size, :size], s_in, mask=mask[:size, :size])
@@ -111,7 +115,7 @@ def test_refused_cuda_graphs_run_without_and_say_so(capture, capsys, refuse_at_c
     model, opened = _cuda_model(refuse_at_creation)
     assert model.provider == devices.CUDA
     got, aux = model.reconstruct(analyzer, s_in, mask=mask, outputs="frame")
-    want, _ = SingleShotModel.load(threads=1, fixed_sizes=False).reconstruct(analyzer, s_in, mask=mask)
+    want, _ = SingleShotModel.load(threads=1).reconstruct(analyzer, s_in, mask=mask)
     assert np.max(np.abs(got - want)) <= 1e-5 * np.max(np.abs(want))
     assert opened[0] == ("single_shot_frame.onnx", (1, 64, 64), True)
     assert opened[1] == ("single_shot_frame.onnx", (1, 64, 64), False)
@@ -169,7 +173,7 @@ def test_smaller_graphs_only_beside_the_full_graph_they_were_exported_with(tmp_p
     meta = json.loads((wd / "model.json").read_text())
     meta["graph_sha256"]["single_shot.onnx"] = "0" * 64  # another full graph than the smaller ones'
     (wd / "model.json").write_text(json.dumps(meta))
-    model = SingleShotModel.load(wd, threads=1)
+    model = SingleShotModel.load(wd, threads=1, fixed_sizes=True)
     assert model._companions() == set()
     big = np.repeat(np.repeat(analyzer, 4, axis=-1), 4, axis=-2)
     model.reconstruct(big, s_in, mask=np.repeat(np.repeat(mask, 4, axis=-1), 4, axis=-2),
