@@ -4,6 +4,7 @@
 # onnxruntime-gpu (CUDA 13 build, the machine's CUDA) unpacked, without the parts polrig does not
 # use (tools, transformers, quantization, the TensorRT provider), as one xz tar split into
 # pieces of 50.8 MB in .ortpieces/ (a call carries at most 64 MiB with the working tree).
+# and the graph before issue 31 in .ortpieces/before/ (benchmarks/bench_sessions.py's "before").
 # Each gpu_check.sh call then carries one piece: copy it into .ortpart/ first, e.g.
 #   rm -rf .ortpart && mkdir .ortpart && cp .ortpieces/ort.tar.xz.0 .ortpart/
 # Both folders are kept out of git by .git/info/exclude (added here if missing).
@@ -27,4 +28,8 @@ mkdir "$tmp/ort"
               onnxruntime/capi/libonnxruntime_providers_tensorrt.so)
 rm -f .ortpieces/ort.tar.xz.*
 (cd "$tmp/ort" && tar cf - . | xz -T0 -9) | split -b 50800000 -d -a 1 - .ortpieces/ort.tar.xz.
-ls -l .whl .ortpieces
+# the single-shot graph before issue 31 (with Acos), for bench_sessions.py's "before" rows
+mkdir -p .ortpieces/before
+git show 5cfac96:models/weights/single_shot.onnx > .ortpieces/before/single_shot.onnx
+git show 5cfac96:models/weights/model.json > .ortpieces/before/model.json
+ls -l .whl .ortpieces .ortpieces/before

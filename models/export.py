@@ -8,7 +8,10 @@ Shipped graphs (``models/weights/``):
   no copies between sessions (the numpy pBRDF alone costs more than both networks at 512x512
   on this CPU); the torch pBRDF is tested against :mod:`polrig.optics.pbrdf` to 1e-5, so the physics is
   the same. Outputs ``mueller``, ``mueller_init`` (PIPNet-pBRDF alone), ``normal``, ``kd``,
-  ``wi``, ``alpha``.
+  ``wi``, ``alpha``. No ``Acos`` (:func:`polrig.models.pipnet.diffuse_zenith_cos_sin`).
+* ``single_shot_frame.onnx`` (``mueller``, ``wi``, ``alpha``: what the frame path reads) and
+  ``single_shot_probe.onnx`` (``wi``: the light-direction probe's, PIPNet alone): the same
+  function with fewer outputs, so onnxruntime runs only the nodes those need.
 * ``direct.onnx``: the direct Stokes->MM ablation baseline (same backbone, no physics).
 
 Inputs of both: ``analyzer`` (B,C,4,H,W) normalised, ``mask`` (B,1,H,W), ``s_in`` (B,3),
@@ -43,9 +46,12 @@ from polrig.errors import PolrigError
 from polrig.models.layers import SIZE_MULTIPLE, UpsampledConcatConv1x1
 from polrig.models.pipnet import PIPNet
 from polrig.models.pmmnet import (
+    FRAME_OUTPUTS,
+    PROBE_OUTPUTS,
     SINGLE_SHOT_OUTPUTS,
     DirectStokesToMM,
     PMMNet,
+    SelectedOutputs,
     SingleShotNet,
 )
 
@@ -107,6 +113,20 @@ def compare_with_onnxruntime(model: torch.nn.Module, path: pathlib.Path,
     return float(max(np.max(np.abs(o - r.numpy())) for o, r in zip(ort_out, ref)))
 
 
+#: The single-shot function's graphs with fewer outputs (:data:`SINGLE_SHOT_OUTPUTS`' subsets): the
+#: frame path's and the light-direction probe's (:mod:`polrig.models.runtime`).
+FRAME_GRAPH = "single_shot_frame.onnx"
+PROBE_GRAPH = "single_shot_probe.onnx"
+
+
+def graphs(single: torch.nn.Module, direct: torch.nn.Module) -> list[tuple[str, torch.nn.Module, tuple[str, ...]]]:
+    """``(file, module, output names)`` of every shipped graph (module docstring)."""
+    return [("single_shot.onnx", single, SINGLE_SHOT_OUTPUTS),
+            (FRAME_GRAPH, SelectedOutputs(single, FRAME_OUTPUTS).eval(), FRAME_OUTPUTS),
+            (PROBE_GRAPH, SelectedOutputs(single, PROBE_OUTPUTS).eval(), PROBE_OUTPUTS),
+            ("direct.onnx", direct, ("mueller",))]
+
+
 def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights_dir: str | pathlib.Path,
                sample: dict[str, torch.Tensor], extra_meta: dict | None = None) -> dict[str, dict]:
     """Export ``single_shot.onnx`` and ``direct.onnx`` plus ``model.json`` into ``weights_dir``;
@@ -126,8 +146,7 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
     wd.mkdir(parents=True, exist_ok=True)
     report, written = {}, []
     try:
-        for name, model, outputs in (("single_shot.onnx", single, SINGLE_SHOT_OUTPUTS),
-                                     ("direct.onnx", direct, ("mueller",))):
+        for name, model, outputs in graphs(single, direct):
             tmp = temporary_sibling(wd / name)
             written.append((tmp, wd / name))
             _export(model, sample, outputs, tmp)
@@ -147,6 +166,10 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
             report[name] = rec
         meta = {"colours": int(pipnet.colours), "width": int(pipnet.backbone.width), "opset": OPSET,
                 "inputs": list(INPUTS), "single_shot_outputs": list(SINGLE_SHOT_OUTPUTS),
+                "graph_outputs": {name: list(outputs) for name, _, outputs in graphs(single, direct)},
+                # which files belong together: the runtime takes the smaller graphs only beside
+                # the full graph they were exported with
+                "graph_sha256": {final.name: _sha256(tmp) for tmp, final in written},
                 "size_multiple": SIZE_MULTIPLE, "eta": 1.5, "ks": 1.0, "camera_x_axis": [1.0, 0.0, 0.0],
                 "conventions_version": _conventions_version(), "export_check": report,
                 "export_tolerance": EXPORT_TOLERANCE}
@@ -161,6 +184,12 @@ def export_all(pipnet: PIPNet, pmmnet: PMMNet, direct: DirectStokesToMM, weights
     # a calibration of earlier graphs in this folder belongs to them (polrig.models.uncertainty checks the hash)
     atomic_write_text(wd / "model.json", json.dumps(meta, indent=2))
     return report
+
+
+def _sha256(path: pathlib.Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _conventions_version() -> str:

@@ -69,14 +69,35 @@ def diffuse_zenith(dolp: torch.Tensor, eta: float = SFP_ETA) -> torch.Tensor:
     estimation from an uncalibrated, monocular polarisation image", ECCV 2016 uses
     (``utils/rho_diffuse.m`` of github.com/waps101/depth-from-polarisation), rearranged;
     ``tests/test_models_pipnet.py`` checks it inverts :func:`diffuse_dolp`. DoLP values above
-    the model's maximum (grazing emission) are clamped to it."""
+    the model's maximum (grazing emission) are clamped to it. The networks use
+    :func:`diffuse_zenith_cos_sin` (no ``acos``)."""
+    return torch.acos(torch.sqrt(diffuse_zenith_cos2(dolp, eta)))
+
+
+def diffuse_zenith_cos2(dolp: torch.Tensor, eta: float = SFP_ETA) -> torch.Tensor:
+    """``q = cos^2`` of :func:`diffuse_zenith` in [0, 1], the closed form before its ``acos``."""
     r_max = float(diffuse_dolp(torch.tensor(0.5 * torch.pi - 1e-4, dtype=torch.float64), eta))
     r = dolp.clamp(0.0, r_max)
     e2, e3, e4 = eta * eta, eta ** 3, eta ** 4
     num = (e4 * (1.0 - r * r) + 2.0 * e2 * (2.0 * r * r + r - 1.0) + r * r + 2.0 * r
            - 4.0 * e3 * r * torch.sqrt((1.0 - r * r).clamp_min(0.0)) + 1.0)
     den = (r + 1.0) ** 2 * (e4 + 1.0) + 2.0 * e2 * (3.0 * r * r + 2.0 * r - 1.0)
-    return torch.acos(torch.sqrt((num / den).clamp(0.0, 1.0)))
+    return (num / den).clamp(0.0, 1.0)
+
+
+def diffuse_zenith_cos_sin(dolp: torch.Tensor, eta: float = SFP_ETA) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(cos, sin)`` of :func:`diffuse_zenith` without the angle: with ``q`` from
+    :func:`diffuse_zenith_cos2`, ``cos(acos sqrt q) = sqrt q`` and ``sin(acos sqrt q) = sqrt(1 - q)``
+    exactly on [0, 1] (the zenith lies in [0, pi/2], where the sine is not negative). The
+    exported graph then has no ``Acos`` (onnxruntime's CUDA provider has no kernel for it: it
+    ran on the host between two copies and kept the graph out of CUDA graphs, issue 31).
+
+    Gradient: ``q`` is computed from the measured Stokes images only (no parameter is upstream
+    of it), so training never differentiates through these square roots; where an input does
+    require a gradient, the clamps keep the argument in [0, 1] and ``sqrt``'s infinite slope at
+    0 (``q = 0`` or ``q = 1``, an unpolarized pixel) is where ``acos``'s was too."""
+    q = diffuse_zenith_cos2(dolp, eta)
+    return torch.sqrt(q), torch.sqrt((1.0 - q).clamp_min(0.0))
 
 
 def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
@@ -92,7 +113,7 @@ def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
     the sign does not matter since both candidates are returned)."""
     s = sum_over(stokes, 1)[:, 0] / stokes.shape[1]  # the mean over colours (B, 3, H, W)
     s0, s1, s2 = s[:, 0:1], s[:, 1:2], s[:, 2:3]
-    zen = diffuse_zenith(torch.sqrt(s1 * s1 + s2 * s2) / s0.clamp_min(eps), eta)
+    cos_zen, sin_zen = diffuse_zenith_cos_sin(torch.sqrt(s1 * s1 + s2 * s2) / s0.clamp_min(eps), eta)
     lin = torch.sqrt(s1 * s1 + s2 * s2 + eps * eps)
     c2, sn2 = s1 / lin, s2 / lin
     # the choice as a blend with a {0, 1} weight: picks the finite value exactly, and runs
@@ -105,7 +126,7 @@ def sfp_candidates(stokes: torch.Tensor, wo: torch.Tensor, eta: float = SFP_ETA,
     x = normalize_channels(cam_x - k[:, :1] * k, eps)
     y = cross(k, x)
     e = normalize_channels(ex * x + ey * y, eps)
-    along, across = torch.cos(zen) * k, torch.sin(zen) * e
+    along, across = cos_zen * k, sin_zen * e
     return along + across, along - across
 
 

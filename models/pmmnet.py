@@ -207,6 +207,26 @@ class SingleShotNet(nn.Module):
 
 
 SINGLE_SHOT_OUTPUTS = ("mueller", "mueller_init", "normal", "kd", "wi", "alpha")
+#: Outputs the frame path reads (:mod:`polrig.models.runtime`: the Mueller image, the light
+#: directions that rotate it into the rig's frame, the roughness the result records).
+FRAME_OUTPUTS = ("mueller", "wi", "alpha")
+#: Outputs the light-direction probe reads (its mean ``wi``): PIPNet alone.
+PROBE_OUTPUTS = ("wi",)
+
+
+class SelectedOutputs(nn.Module):
+    """``net``'s outputs named ``outputs`` (of :data:`SINGLE_SHOT_OUTPUTS`), in that order: the
+    same function with fewer outputs, so an exported graph holds only the nodes they need."""
+
+    def __init__(self, net: nn.Module, outputs: tuple[str, ...]):
+        super().__init__()
+        self.net = net
+        self.index = [SINGLE_SHOT_OUTPUTS.index(k) for k in outputs]
+
+    def forward(self, analyzer, mask, s_in, wo, stage_zero_axis):
+        out = self.net(analyzer, mask, s_in, wo, stage_zero_axis)
+        picked = tuple(out[i] for i in self.index)
+        return picked if len(picked) > 1 else picked[0]
 
 
 class DirectStokesToMM(nn.Module):

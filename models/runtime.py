@@ -83,6 +83,11 @@ SHRINK_ARENA_ABOVE = 2_000_000
 #: Short side (pixels) of the reduced pass that estimates the light direction for the
 #: incident-frame refinement (:func:`probe_shape`).
 PROBE_SIDE = 128
+#: Sessions with fixed input sizes a model keeps (:meth:`SingleShotModel.run_normalised`): the
+#: probe's and the frame's per sensor size and a few more; the least recently used goes beyond.
+MAX_SESSIONS = 4
+#: The graphs with fewer outputs (:mod:`polrig.models.export`) a run asking only for these uses.
+OUTPUT_GRAPHS = {"frame": "single_shot_frame.onnx", "probe": "single_shot_probe.onnx"}
 #: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
 COLOUR_OUTPUTS = ("mueller", "mueller_init", "kd", "mueller_disagreement")
 
@@ -297,12 +302,85 @@ def _resize(img: np.ndarray, shape: tuple[int, int], interpolation: int) -> np.n
     return out.reshape(img.shape[:-2] + shape)
 
 
+class _Runner:
+    """One session with fixed input sizes. With ``cuda_graph`` (a CUDA session created with
+    ``enable_cuda_graph``) it runs through I/O binding at fixed device addresses, as onnxruntime's
+    CUDA graphs need: the inputs are copied into device buffers bound once (``update_inplace``),
+    the outputs come back from device buffers of the session's fixed output sizes. Where that
+    run fails (onnxruntime refuses the capture), ``fallback(error)`` gives a plain session that
+    runs from then on."""
+
+    def __init__(self, session, cuda_graph: bool = False, fallback=None):
+        self.session = session
+        self.cuda_graph = cuda_graph
+        self._fallback = fallback
+        self._binding = None
+        self.inputs = [i.name for i in session.get_inputs()]
+        self.outputs = [o.name for o in session.get_outputs()]
+
+    def run(self, feed: dict[str, np.ndarray], run_options=None) -> dict[str, np.ndarray]:
+        if self.cuda_graph:
+            try:
+                return self._run_bound(feed)
+            except Exception as exc:  # onnxruntime's own types: the capture refused
+                self.cuda_graph, self._binding = False, None
+                self.session = self._fallback(exc)
+        outs = self.session.run(None, {k: feed[k] for k in self.inputs}, run_options)
+        return dict(zip(self.outputs, outs))
+
+    def _run_bound(self, feed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        import onnxruntime as ort
+
+        if self._binding is None:
+            binding = self.session.io_binding()
+            self._in, self._out = {}, {}
+            for name in self.inputs:
+                self._in[name] = ort.OrtValue.ortvalue_from_numpy(feed[name], "cuda", 0)
+                binding.bind_ortvalue_input(name, self._in[name])
+            for o in self.session.get_outputs():
+                if not all(isinstance(n, int) for n in o.shape):
+                    raise ValueError(f"output {o.name} has no fixed size {o.shape}")
+                self._out[o.name] = ort.OrtValue.ortvalue_from_shape_and_type(o.shape, np.float32, "cuda", 0)
+                binding.bind_ortvalue_output(o.name, self._out[o.name])
+            self._binding = binding
+        else:
+            for name, value in self._in.items():
+                value.update_inplace(feed[name])
+        self.session.run_with_iobinding(self._binding)
+        return {k: v.numpy() for k, v in self._out.items()}
+
+
 class SingleShotModel:
-    """onnxruntime session of the shipped single-shot graph (and optionally the baseline)."""
+    """onnxruntime session of the shipped single-shot graph (and optionally the baseline).
+
+    Sessions: :attr:`session` holds the graph with dynamic sizes (its outputs' names, the
+    provider). With :attr:`fixed_sizes` (the default on CUDA) runs go to sessions with the input
+    sizes fixed (``SessionOptions.add_free_dimension_override_by_name``: every shape computation
+    folded away), one per graph and input size, created at a size's first run and kept
+    (:data:`MAX_SESSIONS`): on CUDA a session that alternates sizes rebuilds every convolution's
+    cuDNN plan at each change (onnxruntime issue #23006), and only a fixed-size session can be
+    captured as a CUDA graph. Without (the CPU's default, :meth:`load`) each graph has one
+    dynamic-size session. A run that needs fewer outputs takes the graph holding only those
+    (:data:`OUTPUT_GRAPHS`: the frame path's ``mueller``, ``wi``, ``alpha``; the light-direction
+    probe's ``wi``, PIPNet alone), so in the route the probe's and the frame's sizes never share a
+    session."""
 
     def __init__(self, session, meta: dict, weights_dir: pathlib.Path, uncertainty: UncertaintyModel | None = None,
-                 uncertainty_problem: str = ""):
+                 uncertainty_problem: str = "", *, opener=None, graph: str = "single_shot.onnx",
+                 session_options: dict[str, str] | None = None, fixed_sizes: bool = True):
         self.session = session
+        #: ``opener(path, sizes, cuda_graph)`` -> a session of the graph at ``path`` with the input
+        #: sizes ``(batch, height, width)`` fixed (``sizes`` None: dynamic sizes); None: every run
+        #: on :attr:`session`.
+        self._opener = opener
+        #: Whether runs take sessions with their sizes fixed (else one dynamic session per graph).
+        self.fixed_sizes = bool(fixed_sizes)
+        self.graph = graph
+        self._runners: dict[tuple, _Runner] = {}
+        #: One line per option onnxruntime refused (printed to stderr once each as it happens).
+        self.device_notes: list[str] = []
+        self._session_options = dict(session_options or {})
+        self._cuda_graph: bool | None = None  # whether the fixed-size CUDA sessions replay CUDA graphs
         self.meta = meta
         self.weights_dir = weights_dir
         #: :class:`polrig.models.uncertainty.UncertaintyModel` calibrated for this graph, or None.
@@ -327,7 +405,8 @@ class SingleShotModel:
 
     @classmethod
     def load(cls, weights_dir: str | os.PathLike | None = None, *, graph: str = "single_shot.onnx",
-             threads: int | None = None, spinning: bool = False, device: str = "auto") -> "SingleShotModel":
+             threads: int | None = None, spinning: bool = False, device: str = "auto",
+             fixed_sizes: bool | None = None) -> "SingleShotModel":
         """Open ``graph`` in ``weights_dir`` (default: the shipped ``models/weights``).
 
         ``threads``: intra-op threads (default :func:`physical_cores`). ``spinning``: let idle
@@ -337,6 +416,12 @@ class SingleShotModel:
         ``auto`` (CUDA where this onnxruntime offers it, else the CPU), ``cpu`` or ``cuda``
         (:mod:`polrig.models.devices`; a forced ``cuda`` that cannot run raises
         :class:`polrig.models.devices.DeviceUnavailable`); :attr:`provider` is the one really used.
+        ``fixed_sizes``: runs on sessions with their input sizes fixed (class docstring); off,
+        one dynamic-size session per graph (full, frame, probe: in the route each sees one size).
+        Default: on for CUDA, off for the CPU, where fixing the sizes brought no measurable speed
+        but more memory (the mono full sensor's 1224x1024 frame: peak 1648 -> 1955 MB: onnxruntime
+        folds the shape-dependent constants into image-sized tensors, 25 MB of them in the frame
+        graph at that size, and plans the activations otherwise).
 
         Memory: onnxruntime's memory-pattern planning is off. With dynamic image sizes it plans
         one block for the whole graph at the first run of each new shape; without it the
@@ -360,32 +445,150 @@ class SingleShotModel:
             raise FormatError(f"{meta_path}: not a readable model description ({exc})") from None
         if not isinstance(meta, dict):
             raise FormatError(f"{meta_path}: not a model description (a JSON object expected)")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads or physical_cores()
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.enable_mem_pattern = False
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+        n_threads = threads or physical_cores()
+        if fixed_sizes is None:
+            fixed_sizes = devices.CUDA in providers
+
+        def options(sizes: tuple[int, int, int] | None = None, optimise: bool = True):
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = n_threads
+            opts.inter_op_num_threads = 1
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimise
+                                             else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
+            opts.enable_mem_pattern = False
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+            for name, n in zip(("batch", "height", "width"), sizes or ()):
+                opts.add_free_dimension_override_by_name(name, int(n))
+            return opts
+
+        def opener(p: pathlib.Path, sizes: tuple[int, int, int] | None, cuda_graph: bool = False):
+            return ort.InferenceSession(str(p), options(sizes),
+                                        providers=devices.session_providers(providers, cuda_graph))
+
         try:
-            sess = ort.InferenceSession(str(path), opts, providers=devices.session_providers(providers))
+            # with fixed sizes this session only names the graph's inputs, outputs and provider
+            # (it never runs): not optimised, so a one-shot run does not optimise the graph twice
+            sess = ort.InferenceSession(str(path), options(optimise=not fixed_sizes),
+                                        providers=devices.session_providers(providers))
         except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
             raise FormatError(f"{path}: not a loadable ONNX graph ({reason})") from exc
         devices.check_session(device, providers, sess.get_providers())
-        return cls(sess, meta, wd, *calibration_for_graph(wd, graph))
+        return cls(sess, meta, wd, *calibration_for_graph(wd, graph), opener=opener, fixed_sizes=fixed_sizes,
+                   graph=graph, session_options={"intra_op_num_threads": str(n_threads),
+                                                 "fixed_sizes": "1" if fixed_sizes else "0"})
 
     def run_normalised(self, analyzer: np.ndarray, mask: np.ndarray, s_in: np.ndarray, wo: np.ndarray,
-                       stage_zero_axis: np.ndarray, *, release_arena: bool | None = None) -> dict[str, np.ndarray]:
+                       stage_zero_axis: np.ndarray, *, release_arena: bool | None = None,
+                       outputs: str = "all") -> dict[str, np.ndarray]:
         """One graph call on batched, normalised, padded inputs (names as :mod:`polrig.models.export`).
         ``release_arena``: hand the CPU arena's memory back when the run ends (None: for runs on
-        more than :data:`SHRINK_ARENA_ABOVE` colour-pixels)."""
+        more than :data:`SHRINK_ARENA_ABOVE` colour-pixels). ``outputs``: ``all`` (the graph's),
+        ``frame`` or ``probe`` (at least the outputs of :data:`OUTPUT_GRAPHS`' graph; where the
+        weights folder has no such graph, the full one's)."""
         feed = {"analyzer": analyzer, "mask": mask, "s_in": s_in, "wo": wo, "stage_zero_axis": stage_zero_axis}
+        feed = {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names}
         if release_arena is None:
             release_arena = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
-        outs = self.session.run(None, {k: np.ascontiguousarray(feed[k], dtype=np.float32) for k in self.input_names},
-                                self._shrink if release_arena else None)
-        return dict(zip(self.output_names, outs))
+        run_options = self._shrink if release_arena else None
+        if self._opener is None or (not self.fixed_sizes and self._graph_path(outputs).name == self.graph):
+            return dict(zip(self.output_names, self.session.run(None, feed, run_options)))
+        b, _, _, h, w = feed["analyzer"].shape
+        return self._runner(outputs, (int(b), int(h), int(w)) if self.fixed_sizes else None).run(feed, run_options)
+
+    def _graph_path(self, outputs: str) -> pathlib.Path:
+        """The graph a run of ``outputs`` takes: the smaller one where it was exported with this
+        graph (``model.json``'s ``graph_sha256`` names both files as they are), else this one."""
+        if outputs not in ("all", *OUTPUT_GRAPHS):
+            raise ValueError(f"outputs must be all, {', '.join(OUTPUT_GRAPHS)}, got {outputs!r}")
+        name = OUTPUT_GRAPHS.get(outputs) if self.graph == "single_shot.onnx" else None
+        if name is not None and name in self._companions():
+            return self.weights_dir / name
+        return self.weights_dir / self.graph
+
+    def _companions(self) -> set[str]:
+        """The smaller graphs in :attr:`weights_dir` exported together with :attr:`graph` (checked
+        once, by their SHA-256 against ``model.json``; a graph replaced alone has none)."""
+        if getattr(self, "_companion_names", None) is None:
+            from polrig.models.uncertainty import graph_sha256
+
+            want = self.meta.get("graph_sha256") or {}
+            names = set()
+            try:
+                if want.get(self.graph) == graph_sha256(self.weights_dir / self.graph):
+                    names = {n for n in OUTPUT_GRAPHS.values()
+                             if (self.weights_dir / n).is_file() and want.get(n) == graph_sha256(self.weights_dir / n)}
+            except OSError:
+                names = set()
+            self._companion_names = names
+        return self._companion_names
+
+    def _note(self, line: str) -> None:
+        import sys
+
+        if line not in self.device_notes:
+            self.device_notes.append(line)
+            print(f"polrig: {devices.short_name(self.provider)}: {line}", file=sys.stderr)
+
+    def _runner(self, outputs: str, sizes: tuple[int, int, int] | None) -> _Runner:
+        """The session of ``outputs``' graph at input ``sizes`` (None: its dynamic-size one), created
+        at the first run of that size, then kept: the least recently used beyond
+        :data:`MAX_SESSIONS` goes."""
+        path = self._graph_path(outputs)
+        key = (path.name, sizes)
+        runner = self._runners.pop(key, None)
+        if runner is None:
+            runner = self._new_runner(path, sizes)
+        self._runners[key] = runner
+        while len(self._runners) > MAX_SESSIONS:
+            self._runners.pop(next(iter(self._runners)))
+        return runner
+
+    def _new_runner(self, path: pathlib.Path, sizes: tuple[int, int, int] | None) -> _Runner:
+        if self.provider != devices.CUDA or self._cuda_graph is False or sizes is None:
+            return _Runner(self._opener(path, sizes))
+        requested = dict(devices.CUDA_GRAPH_OPTION)
+        try:
+            sess = self._opener(path, sizes, cuda_graph=True)
+        except Exception as exc:  # onnxruntime refused the capture option for this graph
+            self._refuse_cuda_graph(requested, exc)
+            return _Runner(self._opener(path, sizes))
+        reported = sess.get_provider_options().get(devices.CUDA) if devices.CUDA in sess.get_providers() else None
+        options, notes = devices.accepted_options(requested, reported)
+        if notes or options.get("enable_cuda_graph") != "1":
+            for line in notes:
+                self._note(line)
+            self._cuda_graph = False
+            return _Runner(self._opener(path, sizes))
+
+        def fallback(exc: Exception):
+            self._refuse_cuda_graph(requested, exc)
+            return self._opener(path, sizes)
+
+        self._cuda_graph = True
+        return _Runner(sess, cuda_graph=True, fallback=fallback)
+
+    def _refuse_cuda_graph(self, requested: dict[str, str], exc: Exception) -> None:
+        """CUDA graphs refused (session creation or the first run): noted, and not asked again."""
+        self._cuda_graph = False
+        for line in devices.accepted_options(requested, None, error=str(exc) or type(exc).__name__)[1]:
+            self._note(line)
+
+    @property
+    def provider_options(self) -> dict[str, str]:
+        """The options the provider runs with, as recorded in a result's header: on CUDA those of
+        :data:`polrig.models.devices.CUDA_OPTIONS` as the session reports them and
+        ``enable_cuda_graph`` (``1`` where the fixed-size sessions replay CUDA graphs, ``0`` where
+        onnxruntime refused them or they were not asked for; absent before a fixed-size run); the
+        session settings that decide the speed (threads, fixed sizes)."""
+        out = dict(self._session_options)
+        if self.provider == devices.CUDA:
+            reported = self.session.get_provider_options().get(devices.CUDA, {})
+            out.update(devices.accepted_options(devices.CUDA_OPTIONS, reported)[0])
+            if self._cuda_graph is not None:
+                out["enable_cuda_graph"] = "1" if self._cuda_graph else "0"
+        return out
 
     @property
     def model_axis(self) -> np.ndarray:
@@ -396,7 +599,7 @@ class SingleShotModel:
                       stage_zero_axis: np.ndarray, *, wi_guess: np.ndarray | None = None,
                       tolerance_deg: float = 3.0, rotate_with: np.ndarray | None = None,
                       mirror_average: bool = False, probe: bool = True,
-                      release_arena: bool | None = None) -> dict[str, np.ndarray]:
+                      release_arena: bool | None = None, outputs: str = "all") -> dict[str, np.ndarray]:
         """:meth:`run_normalised` for a rig whose stage zero axis ``(B, 3)`` (camera frame) may
         differ from the training one: the graph runs in the training frame and ``mueller``
         and ``mueller_init`` come back in the rig's frame (module docstring).
@@ -419,16 +622,17 @@ class SingleShotModel:
         refined angle: at the full colour sensor's 612x512 grid 1.06 passes instead of 2 (a rig on
         the training axis needs no refinement: one full-size pass). ``probe=False``: the full-size
         graph runs for the refinement too (the route before; ``polrig.models.evaluate_speed_modes``
-        compares the two). ``release_arena``: as :meth:`run_normalised`, for the full-size
-        passes."""
+        compares the two). ``release_arena``, ``outputs``: as :meth:`run_normalised`, for the
+        full-size passes (the probe's needs ``wi`` alone)."""
         if mirror_average:
             plain = self.run_rig_frame(analyzer, mask, s_in, wo, stage_zero_axis, wi_guess=wi_guess,
                                        tolerance_deg=tolerance_deg, rotate_with=rotate_with, probe=probe,
-                                       release_arena=release_arena)
+                                       release_arena=release_arena, outputs=outputs)
             seen = self.run_rig_frame(mirror.analyzer(analyzer), mirror.image(mask), mirror.stokes(s_in),
                                       mirror.vector_image(wo), mirror.vectors(stage_zero_axis),
                                       wi_guess=None if wi_guess is None else mirror.vectors(wi_guess),
                                       tolerance_deg=tolerance_deg, probe=probe, release_arena=release_arena,
+                                      outputs=outputs,
                                       rotate_with=None if rotate_with is None else mirror.vector_image(rotate_with))
             back = mirror.outputs(seen)
             out = mirror.average(plain, back)
@@ -453,7 +657,8 @@ class SingleShotModel:
             # One reduced pass: a second moved the 512x512 unseen set's matrix PSNR by 0.006 dB.
             a_s, m_s, wo_s = reduce_inputs(analyzer, mask, wo, small)
             c2, s2 = incident_rotation(wi, axis, self.model_axis)
-            reduced = self.run_normalised(a_s, m_s, rotate_stokes(s_in, c2, s2).astype(np.float32), wo_s, model_axis)
+            reduced = self.run_normalised(a_s, m_s, rotate_stokes(s_in, c2, s2).astype(np.float32), wo_s, model_axis,
+                                          outputs="probe")
             w_mean = mean_direction(reduced["wi"], m_s)
             del reduced, a_s, m_s, wo_s
             if w_mean is not None:
@@ -465,7 +670,7 @@ class SingleShotModel:
                 break
             out = None  # the previous pass's outputs go before the next pass allocates (peak memory)
             out = self.run_normalised(analyzer, mask, rotate_stokes(s_in, c2, s2).astype(np.float32), wo, model_axis,
-                                      release_arena=release_arena)
+                                      release_arena=release_arena, outputs=outputs)
             prev = theta
             if rotate_with is not None or "wi" not in out:
                 break
@@ -487,7 +692,7 @@ class SingleShotModel:
                     *, stage_zero_axis=None, intrinsics=None,
                     max_pixels: int = 1_500_000, with_sigma: bool = False,
                     mirror_average: bool = False, probe: bool = True,
-                    release_arena: bool | None = None) -> tuple[np.ndarray, dict]:
+                    release_arena: bool | None = None, outputs: str = "all") -> tuple[np.ndarray, dict]:
         """Mueller image ``(C, 3, 3, H, W)`` float32 in DN per unit incident S0 from analyzer
         images ``(C, 4, H, W)`` in DN (black level removed) under the normalised incident
         state ``s_in`` ``(3,)`` (incident frame, ``docs/conventions.md``).
@@ -510,7 +715,9 @@ class SingleShotModel:
         too small (:meth:`polrig.models.uncertainty.UncertaintyModel.beyond_calibration`).
         ``mirror_average``: average the answers for the capture and its mirror image
         (:mod:`polrig.models.mirror`): a few per cent lower error for twice the network time.
-        ``probe``, ``release_arena``: as :meth:`run_rig_frame`.
+        ``probe``, ``release_arena``, ``outputs``: as :meth:`run_rig_frame` (``frame``: ``aux``
+        without ``mueller_init``, ``normal`` and ``kd``, from the graph without them).
+        ``aux["provider_options"]``: :attr:`provider_options` after the run.
         """
         t0 = time.perf_counter()
         a = np.asarray(analyzer, dtype=np.float32)
@@ -573,7 +780,8 @@ class SingleShotModel:
         t1 = time.perf_counter()
         out = self.run_rig_frame(an_p[None], mk_p[None, None], s[None], wo_p[None],
                                  np.asarray(stage_zero_axis, np.float64).reshape(1, 3),
-                                 mirror_average=mirror_average, probe=probe, release_arena=release_arena)
+                                 mirror_average=mirror_average, probe=probe, release_arena=release_arena,
+                                 outputs=outputs)
         rotation_deg = float(out.pop("incident_rotation_deg")[0])
         t2 = time.perf_counter()
         crop = lambda x: x[0, ..., :hr, :wr]  # noqa: E731
@@ -600,5 +808,6 @@ class SingleShotModel:
                 aux["beyond_calibration"] = beyond
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
                     "incident_rotation_deg": rotation_deg, "provider": self.provider,
+                    "provider_options": self.provider_options,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
         return mueller, aux

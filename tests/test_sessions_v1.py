@@ -163,7 +163,11 @@ def test_reconstruct_reprocesses_the_single_shot_session(tmp_path, capsys):
     assert entry["status"] == "complete" and entry["score"]["pixels_compared"] > 0
     mine = read_mueller_exr(root / entry["files"]["mueller"]["path"]).mueller
     theirs = read_mueller_exr(root / cap["files"]["mueller"]["path"]).mueller
-    np.testing.assert_array_equal(mine, theirs)
+    # Not bit for bit since issue 31: the graph was re-shipped without Acos and the route runs
+    # the frame graph (fewer outputs), which move the stored result by float32 rounding (about
+    # 2e-6 of its maximum; the old graph on one dynamic session reproduces it bit for bit).
+    assert np.max(np.abs(mine - theirs)) <= 1e-5 * np.max(np.abs(theirs))
+    assert np.array_equal(mine == 0, theirs == 0)  # the same object
 
 
 @pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")

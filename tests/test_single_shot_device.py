@@ -21,16 +21,43 @@ HAS_WEIGHTS = (WEIGHTS_DIR / "single_shot.onnx").is_file()
 
 
 # -- provider selection ------------------------------------------------------------------------
-@pytest.mark.parametrize("device, available, expected", [
-    ("auto", [devices.CPU], [devices.CPU]),
-    ("auto", ["AzureExecutionProvider", devices.CPU], [devices.CPU]),
-    ("auto", [devices.CUDA, devices.CPU], [devices.CUDA, devices.CPU]),
-    ("auto", ["TensorrtExecutionProvider", devices.CUDA, devices.CPU], [devices.CUDA, devices.CPU]),
-    ("cpu", [devices.CUDA, devices.CPU], [devices.CPU]),
-    ("cuda", [devices.CUDA, devices.CPU], [devices.CUDA, devices.CPU]),
+@pytest.mark.parametrize("device, available, gpus, expected", [
+    ("auto", [devices.CPU], 1, [devices.CPU]),
+    ("auto", ["AzureExecutionProvider", devices.CPU], 1, [devices.CPU]),
+    ("auto", [devices.CUDA, devices.CPU], 1, [devices.CUDA, devices.CPU]),
+    ("auto", ["TensorrtExecutionProvider", devices.CUDA, devices.CPU], 2, [devices.CUDA, devices.CPU]),
+    # the gpu extra on a machine without an NVIDIA device: auto stays on the CPU
+    ("auto", [devices.CUDA, devices.CPU], 0, [devices.CPU]),
+    ("cpu", [devices.CUDA, devices.CPU], 1, [devices.CPU]),
+    ("cuda", [devices.CUDA, devices.CPU], 1, [devices.CUDA, devices.CPU]),
+    # a forced cuda is tried (check_session refuses it if it does not start)
+    ("cuda", [devices.CUDA, devices.CPU], 0, [devices.CUDA, devices.CPU]),
 ])
-def test_choose_providers(device, available, expected):
-    assert devices.choose_providers(device, available) == expected
+def test_choose_providers(device, available, gpus, expected):
+    assert devices.choose_providers(device, available, gpus) == expected
+
+
+def test_cuda_device_count_is_a_number_without_a_gpu_too():
+    n = devices.cuda_device_count()
+    assert isinstance(n, int) and n >= 0
+    # what auto decides on this machine follows the count
+    assert devices.choose_providers("auto", [devices.CUDA, devices.CPU])[0] == (devices.CUDA if n else devices.CPU)
+
+
+def test_accepted_options_report_refusals_in_one_line_each():
+    """The CUDA-graph refusal path, fed what onnxruntime reports (no GPU needed)."""
+    want = {"enable_cuda_graph": "1"}
+    assert devices.accepted_options(want, {"enable_cuda_graph": "1", "device_id": "0"}) == (want, [])
+    options, notes = devices.accepted_options(want, {"enable_cuda_graph": "0"})
+    assert options == {"enable_cuda_graph": "0"} and notes == ["onnxruntime runs enable_cuda_graph=0 (asked 1)"]
+    options, notes = devices.accepted_options(
+        want, None, error="[ONNXRuntimeError] : 1 : FAIL : This session cannot use the graph capture feature as "
+                          "requested by the user as all compute graph nodes have not been partitioned to the CUDA EP.\nmore")
+    assert options == {} and len(notes) == 1 and "\n" not in notes[0]
+    assert notes[0].startswith("onnxruntime refused enable_cuda_graph=1 (") and notes[0].endswith("running without")
+    assert devices.accepted_options(want, None)[1] == ["the provider did not start: none of its options apply"]
+    # an option the provider does not report keeps the asked value
+    assert devices.accepted_options({"use_tf32": "0"}, {}) == ({"use_tf32": "0"}, [])
 
 
 def test_forced_cuda_without_cuda_is_one_line_usage_error():
@@ -54,9 +81,12 @@ def test_a_forced_cuda_session_that_fell_back_to_the_cpu_is_refused_auto_accepts
 
 def test_session_providers_give_cuda_heuristic_convolution_search_and_the_cpu_nothing():
     """CUDA sessions ask cuDNN's heuristics for convolution algorithms (no benchmarking run at
-    each new input shape); the CPU provider gets no options, and the order is kept."""
+    each new input shape), TF32 off, CUDA graphs where asked; the CPU provider gets no options,
+    and the order is kept."""
     assert devices.session_providers([devices.CUDA, devices.CPU]) == [
-        (devices.CUDA, {"cudnn_conv_algo_search": "HEURISTIC"}), (devices.CPU, {})]
+        (devices.CUDA, {"cudnn_conv_algo_search": "HEURISTIC", "use_tf32": "0"}), (devices.CPU, {})]
+    assert devices.session_providers([devices.CUDA], cuda_graph=True) == [
+        (devices.CUDA, {"cudnn_conv_algo_search": "HEURISTIC", "use_tf32": "0", "enable_cuda_graph": "1"})]
     assert devices.session_providers([devices.CPU]) == [(devices.CPU, {})]
     # a fresh dict each time: a caller's edit cannot change the next session's options
     devices.session_providers([devices.CUDA])[0][1]["x"] = "1"

@@ -138,9 +138,10 @@ class SingleShotResult:
     object mask on the output grid; ``options`` the route's settings. From the networks:
     ``beyond_calibration`` ``(C, H, W)`` bool (object pixels whose misfit lies beyond the
     sigma's calibration range; only with the sigma) and ``beyond_fraction`` (the object's
-    fraction so flagged), ``network_grid`` (``normal``, ``kd``, ``wi``, ``mueller_init`` on the
-    networks' own grid), ``scale`` (ADC DN per normalised unit), ``alpha``, ``provider`` (the
-    onnxruntime execution provider that ran them), ``incident_rotation_deg``. From
+    fraction so flagged), ``network_grid`` (``wi`` on the networks' own grid: the route runs the
+    frame graph, without ``normal``, ``kd`` and ``mueller_init``), ``scale`` (ADC DN per
+    normalised unit), ``alpha``, ``provider`` (the onnxruntime execution provider that ran them)
+    with ``provider_options`` and ``provider_notes``, ``incident_rotation_deg``. From
     :meth:`SingleShot.frame` also ``stokes`` ``(C, 3, H, W)`` (the measured Stokes images on
     the output grid, ADC DN) and ``snr`` ``(C, H, W)`` (their ``S0`` over its noise sigma).
     ``timings_s``: seconds per step."""
@@ -160,6 +161,10 @@ class SingleShotResult:
     scale: float | None = None
     alpha: float | None = None
     provider: str = ""
+    #: The provider's options as it ran them (:attr:`polrig.models.runtime.SingleShotModel.provider_options`)
+    provider_options: dict[str, str] = dataclasses.field(default_factory=dict)
+    #: One line per option onnxruntime refused (CUDA graphs, ...): the path ran without it.
+    provider_notes: list[str] = dataclasses.field(default_factory=list)
     incident_rotation_deg: float | None = None
     timings_s: dict[str, float] = dataclasses.field(default_factory=dict)
     #: no state set: NaN (the reference solve's condition number, in a score's output)
@@ -196,8 +201,10 @@ class SingleShotResult:
         settings (``resolution``, ``network_binning`` where it is not 1: a binning-1 result is
         byte-identical to one from before the option, ``mirror_average``; at full resolution the
         grids, the networks' ``network_demosaic`` and the detail's ``output_demosaic``), the
-        ``execution_provider``, the object's ``beyond_calibration_fraction`` (``None`` where not
-        known) and ``planes``, what each written plane group holds (the ``sigma`` planes' NaN
+        ``execution_provider`` with its ``execution_provider_options`` (and
+        ``execution_provider_notes``, the options onnxruntime refused, where any), the object's
+        ``beyond_calibration_fraction`` (``None`` where not known) and ``planes``, what each
+        written plane group holds (the ``sigma`` planes' NaN
         where the route is not calibrated)."""
         o = self.options
         out: dict[str, Any] = {"mirror_average": o.mirror_average,
@@ -206,6 +213,10 @@ class SingleShotResult:
         if o.network_binning > 1:
             out["network_binning"] = o.network_binning
         out["execution_provider"] = self.provider
+        if self.provider_options:
+            out["execution_provider_options"] = dict(self.provider_options)
+        if self.provider_notes:
+            out["execution_provider_notes"] = list(self.provider_notes)
         if o.resolution == "full":
             out["network_demosaic"] = o.network_demosaic
             out["output_demosaic"] = o.demosaic
@@ -427,6 +438,8 @@ class SingleShot:
         # (the full colour sensor's one-shot peak 1959 -> 1852 MB, no measurable time); the
         # superpixel route keeps it: the next frame's pass would fault it in again (+90 ms CPU).
         release = True if options.resolution == "full" else None
+        # the route reads mueller, wi and alpha: the graph without the other outputs (issue 31)
+        kwargs = dict(kwargs, outputs="frame")
         if options.network_binning > 1:
             mueller, aux = reconstruct_binned(self.model, analyzer, s_in, options.network_binning,
                                               stokes=stokes, scale=scale,
@@ -467,4 +480,6 @@ class SingleShot:
             mueller.astype(np.float32, copy=False), sigma, sigma_noise, mask, zeros, obj, options,
             beyond_calibration=beyond, beyond_fraction=fraction, network_grid=aux["network_grid"],
             scale=aux.get("scale"), alpha=aux.get("alpha"), provider=aux.get("provider", self.provider),
+            provider_options=dict(aux.get("provider_options") or {}),
+            provider_notes=list(getattr(self.model, "device_notes", [])),
             incident_rotation_deg=aux.get("incident_rotation_deg"))

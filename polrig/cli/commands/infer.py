@@ -181,7 +181,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
           f"network {1e3 * result.timings_s['network']:.1f} ms; {mask_summary(flags, result.snr, min_snr)}; "
           f"previews {', '.join(p.name for p in previews)}")
-    print(f"networks ran on {route.provider}")
+    opts = ", ".join(f"{k}={v}" for k, v in result.provider_options.items())
+    print(f"networks ran on {route.provider}" + (f" ({opts})" if opts else ""))
     n_clipped, n_object = int(np.sum(result.saturated)), int(np.sum(result.object))
     if n_clipped:
         print(f"polrig infer: warning: {n_clipped} of {n_object} object pixels have raw samples at or above "
