@@ -248,6 +248,28 @@ def test_capture_form_asks_for_the_result_exr_format(qtbot, window, tmp_path):
     assert info.value.field == "exr_planes"
 
 
+def test_capture_form_asks_for_the_sample_metadata(qtbot, window, tmp_path):
+    """The form's sample, operator, note and further keys reach the typed request as the
+    :class:`polrig.app.manifest.SampleMetadata` ``polrig capture --sample ...`` gives; a resume
+    keeps the session's (``None``); a bad key is one line."""
+    from polrig.app.manifest import MetadataError, SampleMetadata
+
+    cp = window.capture
+    cp.poses.setText("0")
+    cp.out.setText(str(tmp_path / "s"))
+    assert cp.request().metadata == SampleMetadata()
+    cp.sample.setText("gold ball")
+    cp.operator.setText("ada")
+    cp.note.setText("why")
+    cp.md.setText("lot=42; batch_id = x7")
+    assert cp.request().metadata == SampleMetadata(sample="gold ball", operator="ada", note="why",
+                                                   user={"lot": "42", "batch_id": "x7"})
+    assert cp.request(resume=True).metadata is None
+    cp.md.setText("mode=x")
+    with pytest.raises(MetadataError, match="one of polrig's own keys"):
+        cp.request()
+
+
 def test_bad_capture_options_are_a_message(qtbot, window, tmp_path):
     window.capture.poses.setText("0:10:0")
     window.capture.out.setText(str(tmp_path / "s"))

@@ -78,6 +78,7 @@ from polrig.app.calibrations import (
     check_plan,
     load_calibration,
 )
+from polrig.app.manifest import SampleMetadata
 from polrig.app.processing import make_processor
 from polrig.app.records import (
     check_resume_rig,
@@ -152,6 +153,10 @@ class CaptureRequest:
     #: a run option, not part of the plan (a resumed session may run on another device); the
     #: provider used is recorded in each result's header
     device: str = "auto"
+    #: who, why, what (:class:`polrig.app.manifest.SampleMetadata`): recorded in the manifest
+    #: and every result header; ``None``: empty for a new session, the stored one on ``resume``
+    #: (a different one is refused there)
+    metadata: SampleMetadata | None = None
 
     def plan_fields(self) -> dict[str, Any]:
         """The :class:`polrig.acquisition.plan.CapturePlan` fields this request gives (not ``None``)."""
@@ -183,6 +188,8 @@ class PreparedCapture:
     plan: CapturePlan
     calibration: Calibration
     resume_session: Session | None  # the session to continue, or None
+    #: a new session's metadata (a resumed one keeps its own)
+    metadata: SampleMetadata = dataclasses.field(default_factory=SampleMetadata)
 
 
 def prepare_capture(request: CaptureRequest) -> PreparedCapture:
@@ -210,6 +217,12 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                 if value != getattr(plan, key):
                     raise PlanError(key, f"the session was planned with {key}="
                                          f"{getattr(plan, key)!r}, this run asks for {value!r}")
+            stored = session.manifest["metadata"]
+            if request.metadata is not None and request.metadata != stored:
+                raise PlanError("metadata", f"the session was captured with metadata "
+                                            f"{_metadata_text(stored)}, this run asks for "
+                                            f"{_metadata_text(request.metadata)}; leave the "
+                                            f"metadata out to keep the stored one")
             calibration = load_calibration(request.calibration, session=session)
             check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
         except BaseException:
@@ -225,7 +238,8 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                    "session in it", subject=str(out), what="output")
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
-    return PreparedCapture(out, plan, calibration, session)
+    return PreparedCapture(out, plan, calibration, session,
+                           request.metadata if request.metadata is not None else SampleMetadata())
 
 
 def open_session(prepared: PreparedCapture, rig, command_line: list[str]) -> Session:
@@ -252,7 +266,12 @@ def open_session(prepared: PreparedCapture, rig, command_line: list[str]) -> Ses
     check_calibration_fits_rig(prepared.calibration, rig)
     check_rig_for_plan(rig, prepared.plan)
     return create_session(prepared.out, rig, prepared.plan,
-                          calibration_id=prepared.calibration.id, command_line=command_line)
+                          calibration_id=prepared.calibration.id, command_line=command_line,
+                          metadata=prepared.metadata)
+
+
+def _metadata_text(md: SampleMetadata) -> str:
+    return "{" + ", ".join(f"{k}={v!r}" for k, v in md.header().items()) + "}"
 
 
 # -- progress -----------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ import re
 from typing import Annotated, Any, Callable, Literal, NotRequired, TypedDict
 
 from polrig.acquisition.plan import MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
-from polrig.errors import FormatError
+from polrig.errors import ConfigError, FormatError
 from polrig.formats.exr import RESULT_PLANES
 from polrig.formats.typedjson import (
     FINITE,
@@ -43,7 +43,7 @@ from polrig.formats.typedjson import (
 )
 
 #: The version of the manifest this polrig writes (``schema_version``).
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 # capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
 # processing not done yet (a resume processes it without acquiring it again)
@@ -73,6 +73,103 @@ ByteCount = Annotated[int, Check(lambda v: v >= 0, "a byte count")]
 Finite = Annotated[float, FINITE]
 CaptureStatus = Literal[CAPTURE_STATUSES]
 SessionStatus = Literal[SESSION_STATUSES]
+
+
+# -- who, why, what (issue 34, item 7) -------------------------------------------------------------
+#: Keys a user key of :class:`SampleMetadata` may not take: the record's own fields and every key
+#: polrig itself writes beside them (a result EXR header's ``polrig:`` entries,
+#: :meth:`polrig.app.processing.Processor.solve`, and the attributes of
+#: :func:`polrig.app.dataset.open_session`'s dataset). ``tests/test_metadata.py`` checks that a
+#: written result header holds no key outside this set and the user's.
+RESERVED_METADATA_KEYS = frozenset({
+    # the record's fields, and the EXR file's own entries
+    "sample", "operator", "note", "user", "metadata", "kind", "conventions",
+    # a result header (processing, single-shot, hybrid)
+    "calibration_id", "mode", "demosaic", "pose_deg", "states_deg", "incident_state",
+    "exposure_us", "exposures_us", "frames_per_state", "dark_frames", "layout",
+    "condition_number", "units", "mask_bits", "analyzer_tolerance", "generator_tolerance",
+    "planes", "uncertainty_precision", "software", "capture", "revision",
+    "single_shot_geometry", "single_shot", "execution_provider", "prior", "seen_state",
+    "seen_state_deg", "resolution", "network_binning", "mirror_average", "model",
+    # a dataset's attributes
+    "schema_version", "conventions_version", "session", "created", "updated", "status", "plan",
+    "rig", "command_line", "captures", "path",
+})
+_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def _metadata_problem(sample: Any, operator: Any, note: Any, user: Any) -> str | None:
+    for name, value in (("sample", sample), ("operator", operator), ("note", note)):
+        if not isinstance(value, str):
+            return f"{name} must be a string, got {type(value).__name__}"
+    if not isinstance(user, dict):
+        return f"user keys must be an object of strings, got {type(user).__name__}"
+    for key, value in user.items():
+        if not isinstance(key, str) or not _IDENTIFIER.fullmatch(key):
+            return f"metadata key {key!r} is not an identifier (letters, digits, _; not a digit first)"
+        if key in RESERVED_METADATA_KEYS or key.startswith("polrig"):
+            return f"metadata key {key!r} is one of polrig's own keys; choose another name"
+        if not isinstance(value, str):
+            return f"metadata key {key!r}: the value must be a string, got {type(value).__name__}"
+    return None
+
+
+class MetadataError(ConfigError):
+    """A :class:`SampleMetadata` that is refused (one line; ``field`` is ``"metadata"``)."""
+
+    field = "metadata"
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleMetadata:
+    """Who captured what, and why (bluesky's start document is the model): ``sample`` (what is
+    on the turntable), ``operator`` (who), ``note`` (why, free text) and ``user`` keys
+    (``--md KEY=VALUE``: identifiers, string values, none of :data:`RESERVED_METADATA_KEYS`).
+    Empty strings mean "not given". Recorded once in the manifest (``metadata``), copied into
+    every result EXR header and shown by ``polrig info``."""
+
+    sample: str = ""
+    operator: str = ""
+    note: str = ""
+    user: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        problem = _metadata_problem(self.sample, self.operator, self.note, self.user)
+        if problem:
+            raise MetadataError(problem)
+        object.__setattr__(self, "user", dict(sorted(self.user.items())))
+
+    def __hash__(self) -> int:
+        return hash((self.sample, self.operator, self.note, tuple(self.user.items())))
+
+    @staticmethod
+    def parse_user(items) -> dict[str, str]:
+        """``KEY=VALUE`` texts (``--md``, the GUI's field) as user keys; a text without ``=``
+        or a key given twice is a one-line :class:`MetadataError` (the keys themselves are
+        checked when the record is built)."""
+        user: dict[str, str] = {}
+        for item in items:
+            key, eq, value = item.partition("=")
+            if not eq:
+                raise MetadataError(f"metadata {item!r}: give KEY=VALUE")
+            if key.strip() in user:
+                raise MetadataError(f"metadata key {key.strip()!r} given twice")
+            user[key.strip()] = value.strip()
+        return user
+
+    @property
+    def empty(self) -> bool:
+        return not (self.sample or self.operator or self.note or self.user)
+
+    def fields(self) -> dict[str, str]:
+        """Flat: ``sample``, ``operator``, ``note`` (empty strings too) and each user key (a
+        dataset's attributes)."""
+        return {"sample": self.sample, "operator": self.operator, "note": self.note, **self.user}
+
+    def header(self) -> dict[str, str]:
+        """The entries a result EXR header gets: :meth:`fields` that are given (an empty
+        record adds none, so a session without metadata writes the files it always did)."""
+        return {k: v for k, v in self.fields().items() if v}
 
 
 # -- files by role ------------------------------------------------------------------------------
@@ -290,6 +387,8 @@ class SessionManifest(TypedDict):
     rig: RigRecord
     calibration_id: str
     plan: CapturePlan
+    #: who, why, what (:class:`SampleMetadata`; empty in sessions from before version 4)
+    metadata: Annotated[SampleMetadata, Label("metadata: ")]
     planned_bytes: ByteCount
     #: the plan's hardware time, computed when the first run starts (null until then)
     hardware_time_s: float | None
@@ -468,5 +567,18 @@ def migrate_v2(m: dict[str, Any]) -> dict[str, Any]:
     return m
 
 
+def migrate_v3(m: dict[str, Any]) -> dict[str, Any]:
+    """Version 3 to 4 (sample metadata, issue 34 item 7): ``metadata`` is the empty
+    :class:`SampleMetadata` (a version-3 session recorded none). Whatever is damaged is left for
+    the check that follows to name."""
+    m = dict(m, schema_version=4)
+    m.setdefault("metadata", {"sample": "", "operator": "", "note": "", "user": {}})
+    if isinstance(m.get("history"), list):
+        m["history"] = [*m["history"], {"time": utc_now(), "event": "schema migrated",
+                                        "from_version": 3, "to_version": 4}]
+    return m
+
+
 #: Version -> the function that migrates a manifest of that version to the next one.
-MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: migrate_v1, 2: migrate_v2}
+MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
+    1: migrate_v1, 2: migrate_v2, 3: migrate_v3}

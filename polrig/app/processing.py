@@ -489,6 +489,8 @@ class Processor:
             "uncertainty_precision": self.exr.uncertainty,
             "software": f"polrig {__version__}", "capture": cap["name"],
             "revision": revision or "capture",
+            # who, why, what (manifest.SampleMetadata): flat, its user keys never polrig's own
+            **session.manifest["metadata"].header(),
         }
         meta["planes"] = {k: v for k, v in meta["planes"].items()
                           if k.split(".", 1)[0] in self.exr.planes}

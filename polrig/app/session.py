@@ -57,6 +57,7 @@ from polrig.app.manifest import (  # noqa: F401 (re-exported: the statuses and r
     RUNNING,
     SCHEMA_VERSION,
     SESSION_COMPLETE,
+    SampleMetadata,
     CaptureRecord,
     RevisionSettings,
     RigRecord,
@@ -236,12 +237,14 @@ class Session:
     @classmethod
     def create(cls, root: str | os.PathLike, *, plan: CapturePlan, rig: RigRecord,
                calibration_id: str, command_line: list[str] | None = None,
-               required_bytes: int = 0, write_hook: WriteHook | None = None) -> "Session":
+               required_bytes: int = 0, write_hook: WriteHook | None = None,
+               metadata: SampleMetadata | None = None) -> "Session":
         """Start a new session in ``root`` (created; must not exist or be empty).
 
         One pending capture is listed per pose of ``plan``. ``rig`` describes the rig
         (:func:`polrig.app.records.rig_record`). ``required_bytes`` is checked against the
-        free disk space. The manifest is checked against its types before anything is
+        free disk space. ``metadata``: who, why, what (:class:`polrig.app.manifest.SampleMetadata`,
+        empty by default). The manifest is checked against its types before anything is
         written (``ValueError`` naming the key).
         """
         root = pathlib.Path(root)
@@ -265,6 +268,7 @@ class Session:
             "rig": json.loads(json.dumps(rig)),
             "calibration_id": calibration_id,
             "plan": plan,
+            "metadata": metadata if metadata is not None else SampleMetadata(),
             "planned_bytes": int(required_bytes),
             "hardware_time_s": None,
             "captures": [

@@ -45,6 +45,7 @@ from PySide6.QtWidgets import (
 from polrig.acquisition.plan import ExrChoice, parse_float_list, parse_pose_spec
 from polrig.app import capture
 from polrig.app.capture import CaptureControl, CaptureRequest, Progress, SessionOpened
+from polrig.app.manifest import SampleMetadata
 from polrig.app.preview import tone_map
 from polrig.errors import PolrigError
 from polrig.formats.exr import (
@@ -209,6 +210,12 @@ class CapturePanel(QWidget):
         self.exr_compression.setCurrentText(ExrChoice().compression)
         self.calibration = QLineEdit()
         self.calibration.setPlaceholderText("nominal")
+        # who, why, what (polrig.app.manifest.SampleMetadata; a resume keeps the stored one)
+        self.sample, self.operator, self.note = QLineEdit(), QLineEdit(), QLineEdit()
+        self.md = QLineEdit()
+        self.md.setPlaceholderText("KEY=VALUE; KEY=VALUE")
+        self.md.setToolTip("further metadata keys (identifiers, not polrig's own keys), "
+                           "separated by ';'")
         self.out = QLineEdit()
         browse = QPushButton("Browse...")
         browse.clicked.connect(self._browse)
@@ -232,6 +239,10 @@ class CapturePanel(QWidget):
         form.addRow("Uncertainty precision", self.exr_uncertainty)
         form.addRow("EXR compression", self.exr_compression)
         form.addRow("Calibration set", self.calibration)
+        form.addRow("Sample", self.sample)
+        form.addRow("Operator", self.operator)
+        form.addRow("Note", self.note)
+        form.addRow("More metadata", self.md)
         form.addRow("Output folder", out_row)
         opts = QGroupBox("Capture options (as polrig capture)")
         opts.setLayout(form)
@@ -303,7 +314,11 @@ class CapturePanel(QWidget):
             network_binning=int(self.binning.currentData()) if mode == "single-shot" else 1,
             exr_planes=tuple(p.strip() for p in self.exr_planes.text().split(",") if p.strip()),
             exr_uncertainty=self.exr_uncertainty.currentText(),
-            exr_compression=self.exr_compression.currentText())
+            exr_compression=self.exr_compression.currentText(),
+            metadata=SampleMetadata(
+                sample=self.sample.text().strip(), operator=self.operator.text().strip(),
+                note=self.note.text().strip(),
+                user=SampleMetadata.parse_user(t for t in self.md.text().split(";") if t.strip())))
 
     def _browse(self) -> None:
         path = QFileDialog.getExistingDirectory(self, "Session folder", self.out.text())

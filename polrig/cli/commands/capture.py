@@ -73,8 +73,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="session folder (must be new or empty)")
     p.add_argument("--resume", action="store_true",
                    help="continue the session in --out where it stopped")
+    add_metadata_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def add_metadata_options(p: argparse.ArgumentParser) -> None:
+    """``--sample``, ``--operator``, ``--note``, ``--md KEY=VALUE``: who, why, what
+    (:class:`polrig.app.manifest.SampleMetadata`), recorded in the manifest and every result
+    header; on ``--resume`` the stored ones are kept (different ones are refused)."""
+    g = p.add_argument_group("metadata", "who, why, what: recorded in session.json and every result "
+                                         "EXR header, shown by polrig info (--resume keeps the "
+                                         "stored metadata; giving different ones is refused)")
+    g.add_argument("--sample", default=None, help="what is on the turntable")
+    g.add_argument("--operator", default=None, help="who captures it")
+    g.add_argument("--note", default=None, help="why, free text")
+    g.add_argument("--md", action="append", default=None, metavar="KEY=VALUE",
+                   help="a further key (an identifier, not one of polrig's own keys) and its "
+                        "value; repeat for several")
+
+
+def metadata_option(args: argparse.Namespace):
+    """The :class:`polrig.app.manifest.SampleMetadata` the options give, ``None`` where none is
+    given (a new session: empty; ``--resume``: the stored one). One-line :class:`ConfigError`."""
+    from polrig.app.manifest import MetadataError, SampleMetadata
+
+    given = [getattr(args, k, None) for k in ("sample", "operator", "note", "md")]
+    if all(v is None for v in given):
+        return None
+    try:
+        return SampleMetadata(sample=args.sample or "", operator=args.operator or "",
+                              note=args.note or "", user=SampleMetadata.parse_user(args.md or ()))
+    except MetadataError as exc:
+        first = str(exc).split()[0]
+        flag = "--" + first if first in ("sample", "operator", "note") else "--md"
+        raise ConfigError(f"{flag}: {exc}") from None
 
 
 def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
@@ -130,7 +163,8 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "network_binning": "--network-binning", "seen_state": "--seen-state",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
          "exr_compression": "--exr-compression",
-         "calibration": "--calibration", "out": "--out"}
+         "calibration": "--calibration", "out": "--out",
+         "metadata": "--sample/--operator/--note/--md"}
 #: What the command line adds to an error about a field.
 HINTS = {"out": "--resume"}
 
@@ -184,7 +218,8 @@ def build_request(args: argparse.Namespace):
             device=args.device or "auto",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
-            resume=bool(args.resume))
+            resume=bool(args.resume),
+            metadata=metadata_option(args))
 
 
 def command_line(args: argparse.Namespace, command: str = "capture") -> list[str]:

@@ -36,6 +36,9 @@ def run(args: argparse.Namespace) -> int:
               f"(the next capture --resume or reconstruct writes it so)")
     print(f"  rig: {'simulated' if m['rig']['simulated'] else 'hardware'}; calibration: "
           f"{m['calibration_id']}")
+    md = m["metadata"]
+    if not md.empty:  # who, why, what (manifest.SampleMetadata)
+        print("  metadata: " + "; ".join(f"{k}: {v}" for k, v in md.header().items()))
     exposures = (",".join(f"{e:g}" for e in plan.exposures_us) + " us"
                  if plan.exposures_us else "camera default")
     seen = (f" (seen state {plan.seen_state}: {plan.states_deg[plan.seen_state]:g} deg)"
