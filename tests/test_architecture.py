@@ -7,6 +7,10 @@
   layer (module level, function level, or under ``if TYPE_CHECKING:``).
 * No module imports a module that imports it back, directly or through others.
 * ``polrig.models.runtime`` never imports torch (inference is onnxruntime only).
+* One public face: ``polrig`` (layer 0) re-exports the Python API (``polrig.open_session``...)
+  lazily, through its module ``__getattr__`` and the table :data:`PUBLIC_FACE` declared here;
+  ``import polrig`` imports nothing of a higher layer, and ``polrig/__init__.py`` has no import
+  statement of a project module (the table is the only way up, and this test knows it).
 * The shells present, the app layer does: no module of ``polrig.cli`` or ``polrig.gui`` takes
   a capture's steps itself; each calls :func:`polrig.app.capture.run_capture`.
 * One single-shot route (issue 30): among the app layer and the shells only
@@ -48,6 +52,16 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("polrig.gui",),
     ("polrig.cli", "polrig.__main__"),
 )
+
+#: The one deliberate lazy re-export (docs/architecture.md, "The public face"): names of
+#: ``polrig`` -> the module that defines them, imported by ``polrig.__getattr__`` on first access.
+PUBLIC_FACE = {
+    "open_session": "polrig.app.dataset",
+    "open_result": "polrig.app.dataset",
+    "run_capture": "polrig.app.capture",
+    "CaptureRequest": "polrig.app.capture",
+    "SampleMetadata": "polrig.app.manifest",
+}
 
 #: Top-level names polrig used to install besides ``polrig``, and the pre-layering modules of
 #: ``polrig`` (each now lives in a layer's subpackage).
@@ -317,6 +331,34 @@ def test_the_package_list_is_every_package_folder():
     assert conf["package-dir"] == PACKAGE_DIRS
     found = {m for m, p in _files().items() if p.name == "__init__.py"}
     assert sorted(conf["packages"]) == sorted(found)
+
+
+def test_the_public_face_is_declared_lazy_and_the_only_way_up():
+    """``polrig``'s public face is exactly :data:`PUBLIC_FACE`: each name is the object its
+    module defines; ``polrig/__init__.py`` imports no project module itself (only
+    ``importlib``, inside ``__getattr__``); a fresh ``import polrig`` loads no module above
+    layer 0; an unknown name is an ``AttributeError``."""
+    import subprocess
+
+    import polrig
+
+    assert polrig.PUBLIC_FACE == PUBLIC_FACE
+    assert set(PUBLIC_FACE) <= set(polrig.__all__) and set(PUBLIC_FACE) <= set(dir(polrig))
+    for name, module in PUBLIC_FACE.items():
+        assert _files()[module] and getattr(polrig, name) is _resolve(f"{module}.{name}"), name
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        polrig.nothing_here  # noqa: B018
+    init = _files()["polrig"]
+    tree = ast.parse(init.read_text("utf-8"))
+    assert [m for _, m in _imports(tree, "polrig", True)] == ["importlib"]
+    getattr_fn = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "__getattr__"]
+    assert getattr_fn and any(isinstance(n, ast.Import) for n in ast.walk(getattr_fn[0]))
+    code = ("import sys, polrig\n"
+            "up = sorted(m for m in sys.modules if m.startswith('polrig.') and m not in "
+            "('polrig.errors', 'polrig.atomic'))\nprint(up)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=REPO).stdout.strip()
+    assert out == "[]", f"import polrig loads {out}"
 
 
 def test_runtime_never_imports_torch():

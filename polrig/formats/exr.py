@@ -444,6 +444,8 @@ class MuellerRows:
             self._file.close()
             raise
         self.shape: tuple[int, int, int, int, int] = (c, 3, 3, h, w)
+        #: every channel's name in the file (its header: no pixel read)
+        self.channels: tuple[str, ...] = tuple(self._channels)
         self._names = [f"M{r}{q}.{s}" for s in channel_suffixes(c) for r in range(3)
                        for q in range(3)]
 
