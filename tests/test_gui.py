@@ -427,7 +427,8 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
     with build_rig(load_rig_config(None), SIM).open() as rig:
         plan = capture.CapturePlan(poses_deg=(0.0,))
         cal = processing.load_calibration(None)
-        s = capture.create_session(out, rig, plan, calibration_id=cal.id)
+        md = capture.SampleMetadata(sample="box", operator="ada", user={"lot": "7"})
+        s = capture.create_session(out, rig, plan, calibration_id=cal.id, metadata=md)
         proc = processing.make_processor(plan, cal, processing.session_sensor_model(s))
         assert capture.run_session(rig, s, processor=proc).status == "complete"
         frame = rig.camera.grab()
@@ -438,6 +439,7 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
     messages = []
     v.message.connect(lambda lvl, t: messages.append((lvl, t)))
     assert v.open_session(out)
+    assert v.metadata.text() == "sample: box\noperator: ada\nlot: 7"  # the sample metadata
     labels = [v.entries.item(i).text() for i in range(v.entries.count())]
     assert any("mueller.exr" in t for t in labels) and any("truth_mueller" in t for t in labels)
     assert sum("raw" in t for t in labels) == 4

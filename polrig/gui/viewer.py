@@ -26,9 +26,10 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from polrig.app.manifest import RESERVED_METADATA_KEYS
 from polrig.app.session import Session
 from polrig.errors import FormatError, PolrigError
-from polrig.formats.exr import read_exr, read_mueller_exr, read_stokes_exr
+from polrig.formats.exr import MuellerRows, read_exr, read_mueller_exr, read_stokes_exr
 from polrig.formats.rawio import read_raw
 from polrig.gui import pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
@@ -81,6 +82,29 @@ def session_entries(root: str | pathlib.Path) -> list[tuple[str, str, pathlib.Pa
     return out
 
 
+def metadata_text(entries: dict) -> str:
+    """Sample metadata (``sample``, ``operator``, ``note``, user keys) as one line per given key."""
+    return "\n".join(f"{k}: {v}" for k, v in entries.items() if isinstance(v, str) and v)
+
+
+def session_metadata(root: str | pathlib.Path) -> dict[str, str]:
+    """A session's sample metadata (:class:`polrig.app.manifest.SampleMetadata`), flat."""
+    return Session.open(root).manifest["metadata"].header()
+
+
+def result_metadata(path: str | pathlib.Path) -> dict[str, str]:
+    """The sample metadata a result EXR's header holds (``{}`` for a file without, or not a
+    Mueller result): ``sample``, ``operator``, ``note`` and the keys that are not polrig's."""
+    try:
+        with MuellerRows(path) as rows:
+            header = rows.metadata
+    except (PolrigError, OSError, ValueError):
+        return {}
+    named = {k: header[k] for k in ("sample", "operator", "note") if k in header}
+    return {**named, **{k: v for k, v in sorted(header.items())
+                        if k not in RESERVED_METADATA_KEYS and isinstance(v, str)}}
+
+
 class ViewerPanel(QWidget):
     """Open a session or an EXR, pick an entry, choose the display."""
 
@@ -106,6 +130,10 @@ class ViewerPanel(QWidget):
         self.view = ImageView(placeholder="open a session folder or a Mueller/Stokes EXR")
         self.view.hovered.connect(self._hovered)
         self.readout = ReadoutLabel("")
+        #: the sample metadata of the session or file shown (who, why, what)
+        self.metadata = QLabel("")
+        self.metadata.setWordWrap(True)
+        self.metadata.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.min_snr = min_snr_box()
         self.min_snr.valueChanged.connect(self.refresh)
         self.histogram = HistogramWidget()
@@ -115,6 +143,7 @@ class ViewerPanel(QWidget):
         row.addWidget(open_session)
         row.addWidget(open_exr)
         left.addLayout(row)
+        left.addWidget(self.metadata)
         left.addWidget(self.entries, 1)
         for label, w in (("Display", self.display), ("Colour", self.colour),
                          ("Demosaic (raw frames)", self.method),
@@ -147,9 +176,11 @@ class ViewerPanel(QWidget):
     def open_session(self, root: str | pathlib.Path) -> bool:
         try:
             entries = session_entries(root)
+            metadata = session_metadata(root)
         except (PolrigError, OSError, ValueError) as exc:
             self.message.emit("error", f"viewer: {exc}")
             return False
+        self.metadata.setText(metadata_text(metadata))
         self.entries.clear()
         for label, kind, path in entries:
             item = QListWidgetItem(label)
@@ -171,6 +202,10 @@ class ViewerPanel(QWidget):
             return False
         self.path = pathlib.Path(path)
         self._kind = kind
+        if kind == "exr":
+            found = result_metadata(path)
+            if found or not self.entries.count():  # a session's own stays when its file has none
+                self.metadata.setText(metadata_text(found))
         self.set_data(data)
         return True
 
