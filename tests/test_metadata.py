@@ -174,3 +174,19 @@ def test_a_damaged_metadata_record_is_one_line(captured, tmp_path):
     (bad / MANIFEST_NAME).write_text(json.dumps(m))
     with pytest.raises(FormatError, match=r"metadata: metadata key 'mode' is one of polrig's own"):
         Session.open(bad)
+
+
+def test_a_distributed_reconstruct_copies_it_too(captured, tmp_path):
+    """The workers of ``polrig reconstruct --workers`` build the header in the same place
+    (:meth:`polrig.app.processing.Processor.solve` on the session they read)."""
+    import shutil
+
+    pytest.importorskip("distributed")
+    _, out = captured
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "session.lock").unlink(missing_ok=True)
+    assert main(["reconstruct", str(copy), "--workers", "1", "--no-progress"]) == 0
+    for cap in ("c000_pose000.0", "c001_pose090.0"):
+        meta = read_exr(copy / cap / "rev1" / "mueller.exr").metadata
+        assert (meta["operator"], meta["batch_id"]) == ("ada", "x7")
