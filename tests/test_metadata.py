@@ -64,6 +64,8 @@ def test_the_manifest_records_it(captured):
     _, out = captured
     stored = json.loads((out / MANIFEST_NAME).read_text())
     assert stored["schema_version"] == SCHEMA_VERSION == 4
+    line = " ".join(stored["command_line"])
+    assert "--sample gold ball #3" in line and "--md lot=42 --md batch_id=x7" in line
     assert stored["metadata"] == {"sample": "gold ball #3", "operator": "ada",
                                   "note": "after re-polishing",
                                   "user": {"batch_id": "x7", "lot": "42"}}

@@ -229,7 +229,12 @@ def command_line(args: argparse.Namespace, command: str = "capture") -> list[str
     for key, value in vars(args).items():
         if key in ("func", "command", "session") or value is None or value is False:
             continue
-        out.append("--" + key.replace("_", "-"))
+        flag = "--" + key.replace("_", "-")
+        if isinstance(value, list):  # a repeated option (--md KEY=VALUE ...): as given
+            for item in value:
+                out += [flag, str(item)]
+            continue
+        out.append(flag)
         if value is not True:
             out.append(str(value))
     if getattr(args, "session", None):
