@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import polrig
+from polrig.app.manifest import RESERVED_METADATA_KEYS
 from polrig.app.session import MANIFEST_NAME
 from polrig.cli import main
 from polrig.formats.exr import read_mueller_exr
@@ -70,6 +71,7 @@ def test_open_session_is_lazy_one_chunk_per_capture_and_the_files_values(session
     assert (a["sample"], a["operator"], a["note"], a["lot"]) == ("box", "", "", "7")
     assert a["plan"]["poses_deg"] == [0.0, 45.0, 90.0] and a["schema_version"] == 4
     json.dumps(a)  # every attribute JSON-serialisable
+    assert set(a) - {"lot"} <= RESERVED_METADATA_KEYS  # a user key never overwrites one of polrig's
     assert a["captures_without_result"] == []
 
 

@@ -20,7 +20,7 @@ from polrig.app.session import MANIFEST_NAME, Session
 from polrig.cli import main
 from polrig.formats.exr import read_exr
 
-from test_cli_capture import sim_config
+from test_cli_capture import MODEL_INSTALLED, sim_config
 
 MD = ["--sample", "gold ball #3", "--operator", "ada", "--note", "after re-polishing",
       "--md", "lot=42", "--md", "batch_id=x7"]
@@ -83,6 +83,19 @@ def test_every_result_header_has_it_and_no_key_of_its_own_clashes(captured, tmp_
         assert {k: meta[k] for k in want} == want
         # polrig's own header keys are all reserved: a user key can never overwrite one
         assert set(meta) - set(want) <= RESERVED_METADATA_KEYS, set(meta) - RESERVED_METADATA_KEYS
+
+
+@pytest.mark.skipif(not MODEL_INSTALLED, reason="single-shot model not installed")
+@pytest.mark.parametrize("mode, states", [("single-shot", "0"), ("hybrid", "0,60")])
+def test_network_modes_headers_have_no_key_a_user_key_could_take(tmp_path, mode, states):
+    cfg = sim_config(tmp_path / "rig.toml", noise=False)
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", mode, "--states", states, "--config",
+                 str(cfg), "--out", str(out), "--no-progress", "--device", "cpu",
+                 "--md", "lot=42"]) == 0
+    meta = read_exr(out / "c000_pose000.0" / "mueller.exr").metadata
+    assert meta["lot"] == "42"
+    assert set(meta) - {"lot"} <= RESERVED_METADATA_KEYS, set(meta) - RESERVED_METADATA_KEYS
 
 
 def test_info_shows_it(captured, capsys):

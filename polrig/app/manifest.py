@@ -91,9 +91,13 @@ RESERVED_METADATA_KEYS = frozenset({
     "planes", "uncertainty_precision", "software", "capture", "revision",
     "single_shot_geometry", "single_shot", "execution_provider", "prior", "seen_state",
     "seen_state_deg", "resolution", "network_binning", "mirror_average", "model",
+    "beyond_calibration_fraction", "execution_provider_options", "execution_provider_notes",
+    "network_demosaic", "output_demosaic", "prior_model",
+    # a ``polrig infer`` result's header
+    "method", "scale_dn", "alpha", "source", "state_deg", "saturation_dn", "adc_dn_per_file_dn",
     # a dataset's attributes
     "schema_version", "conventions_version", "session", "created", "updated", "status", "plan",
-    "rig", "command_line", "captures", "path",
+    "rig", "command_line", "captures", "path", "captures_without_result",
 })
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
