@@ -111,3 +111,19 @@ def test_without_the_extra_the_openers_name_it(monkeypatch, session):
     monkeypatch.setitem(sys.modules, "xarray", None)
     with pytest.raises(ModuleNotFoundError, match=r"pip install 'polrig\[api\]'"):
         polrig.open_session(session)
+
+
+def test_pixels_are_read_when_computed_once_per_capture(session, monkeypatch):
+    """Opening reads headers only; computing a capture's variables reads its file once."""
+    import dask
+
+    from polrig.app import dataset
+
+    reads = []
+    real = dataset.read_mueller_exr
+    monkeypatch.setattr(dataset, "read_mueller_exr", lambda p: reads.append(p) or real(p))
+    ds = polrig.open_session(session)
+    assert reads == []
+    one = ds.sel(capture=90.0)
+    dask.compute(one.mueller.data, one.sigma.data, one.mask.data, scheduler="sync")
+    assert [p.parent.name for p in reads] == ["c002_pose090.0"]

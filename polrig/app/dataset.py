@@ -100,8 +100,7 @@ def _lazy_variables(layout: _Layout, dask, da) -> dict[str, tuple[tuple[str, ...
     """The file's variables as dask arrays sharing one delayed read."""
     c = len(layout.colours)
     h, w = layout.shape
-    read = dask.delayed(_read_planes, pure=True)(layout.path, layout.colours, layout.groups,
-                                                 dask_key_name=f"read-{layout.path}")
+    read = dask.delayed(_read_planes, pure=True)(layout.path, layout.colours, layout.groups)
     element = (("channel", "i", "j", "y", "x"), (c, 3, 3, h, w))
     colour = (("channel", "y", "x"), (c, h, w))
     out = {}
