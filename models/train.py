@@ -507,6 +507,28 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
     return total / max(count, 1)
 
 
+
+def save_checkpoint(path: pathlib.Path, *, config, epochs: dict, stage: str, epoch: int, stages,
+                    models: dict, opts: dict, times: dict, rng: np.random.Generator, recalibrate: list,
+                    rows: list, dataset, data: str, init_from: str | None, **extra) -> None:
+    """Write a training checkpoint (:data:`CHECKPOINT_FORMAT`, version 2) atomically: the run's
+    config with each stage's epochs, where it stands (``stage``, ``epoch``), every network's and
+    optimizer's state, the seconds spent per stage, both random generators' states, the log rows
+    so far, and what it trains on (``dataset`` identity, ``data``). ``extra`` holds what one kind
+    of run adds (the on-device generator's state); :func:`train` and
+    :func:`polrig.models.train_on_device.train_on_device` both write through here."""
+    blob = io.BytesIO()
+    torch.save({"format": CHECKPOINT_FORMAT, "version": 2,
+                "config": dict(dataclasses.asdict(config), **{f"{k}_epochs": v for k, v in epochs.items()}),
+                "stage": stage, "epoch": epoch, "stages": list(stages),
+                "models": {k: m.state_dict() for k, m in models.items()},
+                "optimizers": {k: o.state_dict() for k, o in opts.items()},
+                "times": dict(times), "rng_state": rng.bit_generator.state,
+                "torch_rng_state": torch.get_rng_state(), **extra, "recalibrate": recalibrate,
+                "log": list(rows), "dataset": dataset, "data": data, "init_from": init_from}, blob)
+    atomic_write_bytes(path, blob.getvalue())
+
+
 def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: TrainConfig | None = None,
           *, resume: bool = False, export: bool = True, overrides: dict | None = None,
           init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] | None = None,
@@ -722,17 +744,10 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
          f"loaded in {time.time() - t0:.1f}s")
 
     def save(stage: str, epoch: int) -> None:
-        blob = io.BytesIO()
-        torch.save({"format": CHECKPOINT_FORMAT, "version": 2,
-                    "config": dict(dataclasses.asdict(config), **{f"{k}_epochs": v for k, v in epochs.items()}),
-                    "stage": stage, "epoch": epoch, "stages": list(stages),
-                    "models": {k: m.state_dict() for k, m in models.items()},
-                    "optimizers": {k: o.state_dict() for k, o in opts.items()},
-                    "times": dict(times), "rng_state": rng.bit_generator.state,
-                    "torch_rng_state": torch.get_rng_state(), "recalibrate": sorted(recalibrate),
-                    "log": list(rows), "dataset": identity, "data": str(data_dir),
-                    "init_from": None if init_from is None else str(init_from)}, blob)
-        atomic_write_bytes(ckpt_path, blob.getvalue())
+        save_checkpoint(ckpt_path, config=config, epochs=epochs, stage=stage, epoch=epoch, stages=stages,
+                        models=models, opts=opts, times=times, rng=rng, recalibrate=sorted(recalibrate),
+                        rows=rows, dataset=identity, data=str(data_dir),
+                        init_from=None if init_from is None else str(init_from))
 
     saved = [(state["stage"], int(state["epoch"]))] if state is not None else []
     try:

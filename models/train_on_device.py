@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import io
 import json
 import math
 import pathlib
@@ -28,14 +27,17 @@ from typing import Callable
 import numpy as np
 import torch
 
-from polrig.atomic import atomic_write_bytes, atomic_write_text
+from polrig.atomic import atomic_write_text
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import check_output_folder
 from polrig.models.pipnet import PIPNet
 from polrig.models.pmmnet import DirectStokesToMM, PMMNet
-from polrig.models.scenes_torch import COVERED_FAMILIES, SceneGenerator, training_tensors
+from polrig.models.scenes_torch import (
+    COVERED_FAMILIES,
+    SceneGenerator,
+    training_tensors,
+)
 from polrig.models.train import (
-    CHECKPOINT_FORMAT,
     CROPPED_STAGES,
     STAGES,
     TrainConfig,
@@ -50,6 +52,7 @@ from polrig.models.train import (
     lr_at,
     pipnet_step,
     pmmnet_step,
+    save_checkpoint,
 )
 
 #: What ``--data`` names to train on the generator instead of a dataset folder.
@@ -136,17 +139,10 @@ def train_on_device(out_dir: str | pathlib.Path, config: TrainConfig | None = No
          f"{config.batch_size} fresh samples per step, {steps_per_epoch} steps per epoch, {val_samples} val")
 
     def save(stage: str, epoch: int) -> None:
-        blob = io.BytesIO()
-        torch.save({"format": CHECKPOINT_FORMAT, "version": 2,
-                    "config": dict(dataclasses.asdict(config), **{f"{k}_epochs": v for k, v in epochs.items()}),
-                    "stage": stage, "epoch": epoch, "stages": list(STAGES),
-                    "models": {k: m.state_dict() for k, m in models.items()},
-                    "optimizers": {k: o.state_dict() for k, o in opts.items()},
-                    "times": dict(times), "rng_state": rng.bit_generator.state,
-                    "torch_rng_state": torch.get_rng_state(), "generator_state": gen.generator.get_state(),
-                    "recalibrate": [], "log": list(rows), "dataset": identity, "data": ON_DEVICE,
-                    "init_from": None}, blob)
-        atomic_write_bytes(ckpt_path, blob.getvalue())
+        save_checkpoint(ckpt_path, config=config, epochs=epochs, stage=stage, epoch=epoch, stages=STAGES,
+                        models=models, opts=opts, times=times, rng=rng, recalibrate=[], rows=rows,
+                        dataset=identity, data=ON_DEVICE, init_from=None,
+                        generator_state=gen.generator.get_state())
 
     for stage in STAGES:
         model, opt = models[stage], opts[stage]
