@@ -508,6 +508,29 @@ def _evaluate(model, step, t, idx_all, batch) -> float:
 
 
 
+def step_with_augmentations(stage: str, config: TrainConfig, rng: np.random.Generator):
+    """The step function of ``stage`` with this epoch's augmentations bound: crops, mirroring,
+    the shape-from-polarization supervision and the initialization's perturbation, each
+    random one with a torch generator seeded from ``rng`` in this order (so a resumed run
+    draws the same). :func:`train` and :func:`polrig.models.train_on_device.train_on_device`
+    both build their steps here."""
+    steps = {"pipnet": pipnet_step, "pmmnet": pmmnet_step, "direct": direct_step}
+    step = steps[stage]
+    if stage in CROPPED_STAGES and config.crop_fraction > 0:
+        gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+        step = functools.partial(step, crop=(config.crop_fraction, gen))
+    if config.mirror_fraction > 0:
+        gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+        step = functools.partial(step, mirroring=(config.mirror_fraction, gen))
+    if stage == "pipnet" and config.sfp_supervision > 0:
+        step = functools.partial(step, sfp_weight=config.sfp_supervision)
+    if stage == "pmmnet" and config.init_perturb_fraction > 0:
+        gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+        step = functools.partial(step, perturb=(config.init_perturb_fraction, config.init_perturb_deg,
+                                                config.init_perturb_light_deg, config.init_perturb_toward_view, gen))
+    return step
+
+
 def save_checkpoint(path: pathlib.Path, *, config, epochs: dict, stage: str, epoch: int, stages,
                     models: dict, opts: dict, times: dict, rng: np.random.Generator, recalibrate: list,
                     rows: list, dataset, data: str, init_from: str | None, **extra) -> None:
@@ -780,21 +803,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                 for g in opt.param_groups:
                     g["lr"] = lr
                 te = time.time()
-                train_step = steps[stage]
-                if stage in CROPPED_STAGES and config.crop_fraction > 0:
-                    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                    train_step = functools.partial(steps[stage], crop=(config.crop_fraction, gen))
-                if config.mirror_fraction > 0:
-                    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                    train_step = functools.partial(train_step, mirroring=(config.mirror_fraction, gen))
-                if stage == "pipnet" and config.sfp_supervision > 0:
-                    train_step = functools.partial(train_step, sfp_weight=config.sfp_supervision)
-                if stage == "pmmnet" and config.init_perturb_fraction > 0:
-                    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                    train_step = functools.partial(train_step, perturb=(config.init_perturb_fraction,
-                                                                        config.init_perturb_deg,
-                                                                        config.init_perturb_light_deg,
-                                                                        config.init_perturb_toward_view, gen))
+                train_step = step_with_augmentations(stage, config, rng)
                 where = f"{stage} epoch {epoch} (lr {lr:.3g})"
                 train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng, where)
                 val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")

@@ -17,7 +17,6 @@ the end ``OUT/summary.json`` and, unless ``export=False``, ``OUT/weights/``. Not
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import math
 import pathlib
@@ -38,7 +37,6 @@ from polrig.models.scenes_torch import (
     training_tensors,
 )
 from polrig.models.train import (
-    CROPPED_STAGES,
     STAGES,
     TrainConfig,
     TrainingError,
@@ -53,6 +51,7 @@ from polrig.models.train import (
     pipnet_step,
     pmmnet_step,
     save_checkpoint,
+    step_with_augmentations,
 )
 
 #: What ``--data`` names to train on the generator instead of a dataset folder.
@@ -64,26 +63,6 @@ def generator_identity(size: int, seed: int, families, material_mix: str) -> dic
     return {"generator": "polrig.models.scenes_torch.SceneGenerator", "width": size, "height": size,
             "seed": seed, "families_present": list(families), "material_mix": material_mix,
             "stage_zero_axes": "random"}
-
-
-def _step_with_augmentations(stage: str, config: TrainConfig, rng: np.random.Generator):
-    """The step function of ``stage`` with this epoch's augmentations, as
-    :func:`polrig.models.train.train` builds it."""
-    steps = {"pipnet": pipnet_step, "pmmnet": pmmnet_step, "direct": direct_step}
-    step = steps[stage]
-    if stage in CROPPED_STAGES and config.crop_fraction > 0:
-        gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-        step = functools.partial(step, crop=(config.crop_fraction, gen))
-    if config.mirror_fraction > 0:
-        gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-        step = functools.partial(step, mirroring=(config.mirror_fraction, gen))
-    if stage == "pipnet" and config.sfp_supervision > 0:
-        step = functools.partial(step, sfp_weight=config.sfp_supervision)
-    if stage == "pmmnet" and config.init_perturb_fraction > 0:
-        gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-        step = functools.partial(step, perturb=(config.init_perturb_fraction, config.init_perturb_deg,
-                                                config.init_perturb_light_deg, config.init_perturb_toward_view, gen))
-    return step
 
 
 def train_on_device(out_dir: str | pathlib.Path, config: TrainConfig | None = None, *, size: int = 64,
@@ -153,7 +132,7 @@ def train_on_device(out_dir: str | pathlib.Path, config: TrainConfig | None = No
             for g in opt.param_groups:
                 g["lr"] = lr
             te = time.time()
-            step = _step_with_augmentations(stage, config, rng)
+            step = step_with_augmentations(stage, config, rng)
             where = f"{stage} epoch {epoch} (lr {lr:.3g})"
             total, parts = 0.0, {}
             for k_step in range(steps_per_epoch):
