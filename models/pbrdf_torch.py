@@ -105,6 +105,16 @@ def _fresnel_r(cos_i: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch.Ten
     return rs, rp
 
 
+def transmission_ab(cos_t: torch.Tensor, eta) -> tuple[torch.Tensor, torch.Tensor]:
+    """The diffuse term's Fresnel transmission as ``(a, b)``: half the sum and half the difference
+    of the s and p intensity transmittances ``1 - r_s^2`` and ``1 - r_p^2`` (clamped to [0, 1])
+    at incidence cosine ``cos_t`` and index ``eta`` (a float or a tensor broadcasting with it);
+    a diattenuator ``[[a, b], [b, a]]`` in the plane of incidence (Baek et al. 2018)."""
+    ts_r, tp_r = _fresnel_r(cos_t, eta)
+    ts, tp = (1.0 - ts_r * ts_r).clamp(0.0, 1.0), (1.0 - tp_r * tp_r).clamp(0.0, 1.0)
+    return 0.5 * (ts + tp), 0.5 * (ts - tp)
+
+
 def ggx_d(cos_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """GGX normal distribution (1/sr) at ``cos_h = n . h`` (zero for ``cos_h <= 0``)."""
     a2 = alpha * alpha
@@ -161,13 +171,8 @@ def _blocks(n, wi, wo, alpha, stage_zero_axis, camera_x_axis, eta: float, dim: i
     ci_d, si_d = rotation_2phi(v.dot(x_in, s_in), v.dot(y_in, s_in))
     co_d, so_d = rotation_2phi(v.dot(s_out, x_out), -v.dot(y_out, s_out))
 
-    def transmission_ab(cos_t):
-        ts_r, tp_r = _fresnel_r(cos_t, eta)
-        ts, tp = (1.0 - ts_r * ts_r).clamp(0.0, 1.0), (1.0 - tp_r * tp_r).clamp(0.0, 1.0)
-        return 0.5 * (ts + tp), 0.5 * (ts - tp)
-
-    a_i, b_i = transmission_ab(cos_i)
-    a_o, b_o = transmission_ab(cos_o)
+    a_i, b_i = transmission_ab(cos_i, eta)
+    a_o, b_o = transmission_ab(cos_o, eta)
     scale = cos_i.clamp_min(0.0) / math.pi * visible
     u = torch.cat([a_o, co_d * b_o, -so_d * b_o], dim)
     w = torch.cat([scale * a_i, scale * ci_d * b_i, scale * si_d * b_i], dim)

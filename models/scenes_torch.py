@@ -73,7 +73,12 @@ import numpy as np
 import torch
 
 from polrig.errors import ConfigError
-from polrig.models.pbrdf_torch import _fresnel_r, _Vec, image_blocks, rotation_2phi
+from polrig.models.pbrdf_torch import (
+    _Vec,
+    image_blocks,
+    rotation_2phi,
+    transmission_ab,
+)
 from polrig.sim.dataset import (
     CAMERA_UP_FRACTION,
     DATASET_EXPOSURE_US,
@@ -356,13 +361,8 @@ def surface_blocks(normal, wi, wo, tangent, *, au, av, beckmann, eta_re, eta_im,
     # a conductor has no diffuse term (kd = 0); a dielectric index keeps its blocks finite
     eta_d = torch.where(eta_im > 0, 1.5, eta_re)[:, :, None, None]
 
-    def transmission_ab(cos_t):
-        ts_r, tp_r = _fresnel_r(cos_t, eta_d)
-        ts, tp = (1.0 - ts_r * ts_r).clamp(0.0, 1.0), (1.0 - tp_r * tp_r).clamp(0.0, 1.0)
-        return 0.5 * (ts + tp), 0.5 * (ts - tp)
-
-    a_i, b_i = transmission_ab(cos_i)
-    a_o, b_o = transmission_ab(cos_o)
+    a_i, b_i = transmission_ab(cos_i, eta_d)
+    a_o, b_o = transmission_ab(cos_o, eta_d)
     scale = cos_i.clamp_min(0.0) / math.pi * visible
     u = torch.stack([a_o, co_d * b_o, -so_d * b_o], 2)
     w = torch.stack([scale * a_i, scale * ci_d * b_i, scale * si_d * b_i], 2)
