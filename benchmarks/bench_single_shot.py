@@ -119,10 +119,11 @@ def write_case_raw(shape, layout: str, path: pathlib.Path, rng) -> pathlib.Path:
 
 
 def _options(argv: list[str]) -> SingleShotOptions:
-    """The :class:`SingleShotOptions` of ``polrig infer`` options (the ones CASES use)."""
+    """The :class:`SingleShotOptions` of ``polrig infer`` options (the ones CASES use; no sigma,
+    as ``infer`` without ``--sigma``: ``sigma=None`` would compute it, a session's default)."""
     opts = dict(zip(argv[::2], argv[1::2]))
     return SingleShotOptions(opts.get("--resolution", "superpixel"), opts.get("--demosaic"),
-                             int(opts.get("--network-binning", 1)))
+                             int(opts.get("--network-binning", 1)), sigma=False)
 
 
 def warm_once(src: pathlib.Path, argv: list[str], route: SingleShot, out: pathlib.Path) -> dict:
