@@ -1,0 +1,25 @@
+"""``python -m benchmarks continuum``: the committed table's settings, overridable, end to end."""
+
+import pytest
+
+from polrig.models.runtime import WEIGHTS_DIR
+
+
+def test_defaults_are_the_committed_tables():
+    from benchmarks import bench_continuum
+
+    assert bench_continuum.DEFAULTS[:4] == ["--count", "64", "--search-count", "32"]
+    assert bench_continuum.RESULTS.name == "continuum.md"
+    assert (bench_continuum.RESULTS.with_suffix(".json")).is_file()
+
+
+@pytest.mark.skipif(not (WEIGHTS_DIR / "uncertainty.json").is_file(), reason="no calibrated model")
+def test_a_tiny_run_writes_the_tables(tmp_path):
+    from benchmarks import bench_continuum
+
+    out = tmp_path / "c.md"
+    assert bench_continuum.main(["--count", "2", "--search-count", "2", "--sets", "seen_families",
+                                 "--out", str(out), "--root", str(tmp_path / "sets")]) == 0
+    text = out.read_text()
+    assert "--count 2 --search-count 2" in text and "seen families" in text
+    assert "hybrid 2 - single" in text and out.with_suffix(".json").is_file()
