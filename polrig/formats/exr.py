@@ -91,6 +91,18 @@ def element_planes(prefix: str, stack: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
+def element_stack(prefix: str, planes: Mapping[str, np.ndarray], n_colours: int
+                  ) -> np.ndarray | None:
+    """The inverse of :func:`element_planes`: ``(C, 3, 3, H, W)`` float32 of the
+    ``prefix.M{r}{c}.{colour}`` planes, or None when any of them is missing."""
+    names = [[[f"{prefix}.M{r}{c}.{s}" for c in range(3)] for r in range(3)]
+             for s in channel_suffixes(n_colours)]
+    if any(n not in planes for per in names for row in per for n in row):
+        return None
+    return np.stack([np.stack([np.stack([np.asarray(planes[n], np.float32) for n in row])
+                               for row in per]) for per in names])
+
+
 def stokes_channels(n_colours: int) -> list[str]:
     return [f"S{k}.{s}" for k in range(3) for s in channel_suffixes(n_colours)]
 

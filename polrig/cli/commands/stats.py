@@ -1,0 +1,147 @@
+"""``polrig stats RESULT_OR_SESSION --roi SHAPE [--profile x0,y0,x1,y1] [--csv OUT]``: ROI
+statistics and line profiles of Mueller results, headless (the numbers of the GUI's ROI tools).
+
+Statistics, conventions and the two standard errors: :mod:`polrig.app.roi`. A session is read
+through :class:`polrig.app.session.Session` (read only, no lock): every capture with a Mueller
+result, one block of rows each (CSV column ``capture``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import pathlib
+
+from polrig.errors import ConfigError
+from polrig.formats.argcheck import check_output_file, positive_float
+
+#: Where the per-element sigma comes from (``--sigma``), as ``polrig analyze``.
+SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "stats", help="ROI statistics and line profiles of Mueller results",
+        description="Statistics over a region of a Mueller result EXR, or of every capture of a "
+                    "session: mean and standard deviation of S0, DoLP and the circular mean and "
+                    "spread of AoLP (of the light unpolarized illumination leaves: m00, PL, "
+                    "PL_axis_deg), of every m_ij/m00 and of the parameter maps of polrig "
+                    "analyze, each with two standard errors of the mean (from the pixels' "
+                    "scatter and from their sigma planes) and the pixels counted and masked "
+                    "(the result's mask, NaN). A pixel belongs to the ROI when its centre "
+                    "(u + 0.5, v + 0.5) does. --profile samples quantities along a segment "
+                    "(bilinear, every --spacing pixels).")
+    p.add_argument("source", type=pathlib.Path, metavar="RESULT_OR_SESSION",
+                   help="a Mueller result EXR, or a session folder (holds session.json)")
+    p.add_argument("--roi", default=None, metavar="SHAPE",
+                   help="rect:x,y,w,h | ellipse:cx,cy,rx,ry | poly:x1,y1,x2,y2,... in image "
+                        "pixels (default: the whole image)")
+    p.add_argument("--profile", default=None, metavar="x0,y0,x1,y1",
+                   help="also a line profile along this segment (image pixels)")
+    p.add_argument("--spacing", type=positive_float, default=1.0, metavar="PX",
+                   help="profile sample spacing in pixels of arc length (default 1)")
+    p.add_argument("--sigma", choices=SIGMA_SOURCES, default="sigma",
+                   help="per-element standard deviations to propagate (default sigma: noise "
+                        "and calibration; sigma_noise: sensor noise alone; none)")
+    p.add_argument("--csv", type=pathlib.Path, default=None, metavar="OUT.csv",
+                   help="write the statistics as CSV (the profile, if any, to OUT_profile.csv); "
+                        "without it a table is printed")
+    p.set_defaults(func=run)
+
+
+def _sources(src: pathlib.Path) -> list[tuple[str, pathlib.Path]]:
+    if src.is_dir():
+        from polrig.app.session import Session
+
+        session = Session.open(src)  # a reader: no lock
+        out = [(cap["name"], session.root / cap["files"]["mueller"]["path"])
+               for cap in session.captures if cap.get("files", {}).get("mueller")]
+        if not out:
+            raise ConfigError(f"{src}: no capture has a Mueller result yet")
+        return out
+    if src.suffix.lower() != ".exr":
+        raise ConfigError(f"{src}: give a Mueller result .exr or a session folder")
+    return [("", src)]
+
+
+def load_result(path: pathlib.Path, sigma_source: str = "sigma"):
+    """``(mueller, sigma or None, valid)`` of a result EXR: ``valid`` ``(C, H, W)`` is the
+    ``mask`` planes' 0 (all True without them)."""
+    import numpy as np
+
+    from polrig.formats.exr import channel_suffixes, element_stack, read_mueller_exr
+
+    res = read_mueller_exr(path)
+    c = res.mueller.shape[0]
+    sigma = None if sigma_source == "none" else element_stack(sigma_source, res.extra, c)
+    masks = [res.extra.get(f"mask.{s}") for s in channel_suffixes(c)]
+    valid = (np.stack(masks) == 0 if all(m is not None for m in masks)
+             else np.ones((c,) + res.mueller.shape[-2:], bool))
+    return res.mueller, sigma, valid
+
+
+def run(args: argparse.Namespace) -> int:
+    from polrig.app import roi
+
+    shape = roi.parse_roi(args.roi) if args.roi else None
+    segment = roi.parse_segment(args.profile) if args.profile else None
+    profile_out = None
+    if args.csv is not None:
+        if args.csv.suffix.lower() != ".csv":
+            raise ConfigError(f"--csv must name a .csv file, got {args.csv}")
+        check_output_file(args.csv, "--csv")
+        if segment is not None:
+            profile_out = args.csv.with_name(args.csv.stem + "_profile.csv")
+            check_output_file(profile_out, "--csv profile")
+    stats_parts, profile_parts = [], []
+    for label, path in _sources(args.source):
+        mueller, sigma, valid = load_result(path, args.sigma)
+        h, w = mueller.shape[-2:]
+        region = shape or roi.RectROI(0, 0, w, h)
+        inside = roi.roi_mask(region, (h, w))
+        rows = roi.roi_statistics(inside, mueller=mueller, sigma=sigma, valid=valid)
+        header = {"source": str(path), "roi": region.text(), "image": f"{w}x{h}",
+                  "sigma": args.sigma if sigma is not None else "none (no sigma planes)",
+                  "pixel_convention": "pixel (u, v) has its centre at (u + 0.5, v + 0.5)"}
+        if label:
+            header["capture"] = label
+        stats_parts.append((header, rows))
+        if segment is not None:
+            q = roi.mueller_quantities(mueller, sigma, valid)
+            profile_parts.append((header, roi.line_profile(q, *segment, spacing=args.spacing)))
+    if args.csv is None:
+        for header, rows in stats_parts:
+            print(_table(header, rows))
+        for header, prof in profile_parts:
+            print(f"profile {args.profile} ({prof.s.size} samples every {args.spacing:g} px) of "
+                  f"{header.get('capture') or header['source']}: use --csv for the values")
+        return 0
+    from polrig.atomic import atomic_write_text
+
+    atomic_write_text(args.csv, "".join(roi.stats_csv(rows, header) for header, rows in stats_parts))
+    written = [str(args.csv)]
+    if profile_out is not None:
+        atomic_write_text(profile_out, "".join(
+            roi.profile_csv(p, {**header, "profile": args.profile,
+                                "spacing_px": f"{args.spacing:g}"})
+            for header, p in profile_parts))
+        written.append(str(profile_out))
+    n = sum(len(rows) for _, rows in stats_parts)
+    print(f"wrote {', '.join(written)} ({n} rows, {len(stats_parts)} result(s))")
+    return 0
+
+
+def _num(v: float) -> str:
+    return f"{v:.6g}" if math.isfinite(v) else str(v)
+
+
+def _table(header: dict, rows) -> str:
+    lines = [f"{header.get('capture') or header['source']}: {header['roi']} "
+             f"(image {header['image']}, sigma {header['sigma']})",
+             f"{'quantity':<22}{'ch':<3}{'mean':>12}{'std':>12}{'sem_scatter':>13}"
+             f"{'sem_sigma':>12}{'counted':>9}{'masked':>8}"]
+    for r in rows:
+        lines.append(f"{r.quantity:<22}{r.channel:<3}{_num(r.mean):>12}{_num(r.std):>12}"
+                     f"{_num(r.sem_scatter):>13}{_num(r.sem_sigma):>12}{r.n_counted:>9}"
+                     f"{r.n_masked:>8}")
+    return "\n".join(lines)
