@@ -227,6 +227,30 @@ def aolp_legend(height: int) -> np.ndarray:
                      lo=0.0, hi=179.9, title="AoLP")
 
 
+def aolp_wheel(size: int, *, dolp_as: str | None = "value") -> np.ndarray:
+    """The colour wheel of :func:`aolp_rgb`, uint8 RGB ``(size, size, 3)``: the direction at
+    angle ``a`` from the image's ``+u`` axis towards image up (``docs/conventions.md``) has the
+    hue of AoLP ``a`` (mod 180: opposite directions, one axis, one colour), the distance from
+    the centre is DoLP 0..1 shown as ``dolp_as`` (``"value"``, ``"saturation"``, or None: hue
+    only); white outside the disc, labels at 0, 45, 90 and 135 deg."""
+    size = int(size)
+    r = (size - 1) / 2.0
+    v, u = np.mgrid[:size, :size].astype(np.float32)
+    dx, dy = (u - r) / r, (r - v) / r
+    a = np.rad2deg(np.arctan2(dy, dx)) % 180.0
+    d = np.hypot(dx, dy)
+    rgb = aolp_rgb(a, None if dolp_as is None else np.minimum(d, 1.0),
+                   dolp_as=dolp_as or "value")
+    rgb[d > 1.0] = 255
+    scale = max(0.3, size / 400.0)
+    for ang in (0, 45, 90, 135):
+        t = np.deg2rad(ang)
+        x, y = r + 0.78 * r * np.cos(t), r - 0.78 * r * np.sin(t)
+        _put_label(rgb, str(ang), (int(x) - int(8 * scale), int(y) + int(6 * scale)), scale,
+                   colour=(0, 0, 0), box=(255, 255, 255))
+    return rgb
+
+
 def with_legend(rgb: np.ndarray, legend: np.ndarray) -> np.ndarray:
     """``rgb`` with ``legend`` (same height) appended on the right."""
     return np.ascontiguousarray(np.concatenate([rgb, legend], axis=1))

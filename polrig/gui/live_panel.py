@@ -6,6 +6,8 @@ result from the worker's slot (never blocking) and shows it.
 
 from __future__ import annotations
 
+import time
+
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (
     QCheckBox,
@@ -22,6 +24,7 @@ from PySide6.QtWidgets import (
 
 from polrig.gui import pipeline
 from polrig.gui.live import LiveResult, LiveSettings, LiveWorker
+from polrig.gui.roi_panel import AolpWheel, RoiTools
 from polrig.gui.widgets import (
     HistogramWidget,
     ImageView,
@@ -31,6 +34,12 @@ from polrig.gui.widgets import (
 )
 
 DEMOSAIC_METHODS = ("superpixel", "bilinear", "newton")
+#: Displays the live view offers: all but the viewer's Mueller layers that need their own
+#: controls (parameter map, virtual polarizer).
+LIVE_DISPLAYS = tuple(k for k in pipeline.DISPLAYS if k not in ("maps", "polarizer"))
+#: Least time between two ROI statistics of live frames (seconds): a table that changes faster
+#: cannot be read, and the statistics of a Mueller frame cost a parameter-map computation.
+ROI_INTERVAL_S = 0.5
 
 
 def colour_choices(n_colours: int) -> list[tuple[str, int]]:
@@ -54,8 +63,8 @@ class LivePanel(QWidget):
         self._hover = (-1, -1)
 
         self.display = QComboBox()
-        for key, label in pipeline.DISPLAYS.items():
-            self.display.addItem(label, key)
+        for key in LIVE_DISPLAYS:
+            self.display.addItem(pipeline.DISPLAYS[key], key)
         self.colour = QComboBox()
         for label, value in colour_choices(n_colours):
             self.colour.addItem(label, value)
@@ -97,16 +106,24 @@ class LivePanel(QWidget):
         form.addRow(self.pause_button)
         self.readout = ReadoutLabel("move the cursor over the image")
         self.histogram = HistogramWidget()
+        self.view = ImageView(placeholder="waiting for the camera...")
+        self.wheel = AolpWheel(110)
+        self.roi = RoiTools(self.view)
+        self.roi.message.connect(self.message)
+        self._roi_at = 0.0
         side = QVBoxLayout()
         side.addLayout(form)
-        side.addWidget(QLabel("Histogram"))
-        side.addWidget(self.histogram)
+        side.addWidget(QLabel("Histogram and AoLP colour wheel"))
+        row = QHBoxLayout()
+        row.addWidget(self.histogram, 1)
+        row.addWidget(self.wheel)
+        side.addLayout(row)
         side.addWidget(self.readout.area, 1)
+        side.addWidget(self.roi, 2)
         side_w = QWidget()
         side_w.setLayout(side)
         side_w.setMaximumWidth(520)
         side_w.setMinimumWidth(430)
-        self.view = ImageView(placeholder="waiting for the camera...")
         split = QSplitter()
         split.addWidget(self.view)
         split.addWidget(side_w)
@@ -201,6 +218,13 @@ class LivePanel(QWidget):
         self.frames_shown += 1
         self.view.set_image(res.image)
         self.histogram.set_data(*res.hist)
+        self.wheel.set_mode(pipeline.AOLP_DOLP_AS.get(res.display, "value"))
+        now = time.monotonic()
+        self.roi.to_data = lambda pts: pipeline.display_to_data(res.data, res.display, pts,
+                                                                res.step)
+        if now - self._roi_at >= ROI_INTERVAL_S or self.roi.data is None:
+            self._roi_at = now
+            self.roi.set_data(res.data)
         if self._hover != (-1, -1):
             self._hovered(*self._hover)
         h, w = pipeline.display_shape(res.data, res.display)

@@ -26,8 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from polrig.app import preview
+from polrig.app import preview, roi
 from polrig.app.single_shot import SingleShotResult
+from polrig.formats.exr import element_stack
+from polrig.optics import parameters
+from polrig.optics.virtual_polarizer import virtual_polarizer_image
 from polrig.sensor.analyzer import layout_name_at, resolve_layout
 from polrig.sensor.frame import Frame
 from polrig.sensor.noise import SensorModel
@@ -35,6 +38,7 @@ from polrig.sensor.stokes import (
     StokesImages,
     aolp_deg,
     dolp,
+    min_max_intensity,
     stokes_from_raw,
     stokes_validity,
 )
@@ -46,8 +50,34 @@ DISPLAYS: dict[str, str] = {
     "dolp": "DoLP",
     "aolp": "AoLP (hue)",
     "aolp_dolp": "AoLP weighted by DoLP",
+    "aolp_dolp_sat": "AoLP, DoLP as saturation",
+    "imin": "Imin (glare-reduced)",
+    "imax": "Imax",
+    "s1": "S1 (signed)",
+    "s2": "S2 (signed)",
     "mueller": "Mueller 3x3",
+    "maps": "Parameter map",
+    "polarizer": "Virtual polarizer",
 }
+#: Displays of Stokes data (a live frame, a Stokes EXR) beyond S0.
+STOKES_DISPLAYS = ("dolp", "aolp", "aolp_dolp", "aolp_dolp_sat", "imin", "imax", "s1", "s2")
+#: Displays of a Mueller image beyond S0 (m00).
+MUELLER_DISPLAYS = ("mueller", "maps", "polarizer")
+#: How each AoLP display shows DoLP (:func:`polrig.app.preview.aolp_rgb`'s ``dolp_as``; None:
+#: hue only): the colour wheel beside the image follows it.
+AOLP_DOLP_AS = {"aolp": None, "aolp_dolp": "value", "aolp_dolp_sat": "saturation"}
+
+
+@dataclasses.dataclass
+class ViewOptions:
+    """What the Mueller displays show beyond their key: the parameter map (a name of
+    :data:`polrig.optics.parameters.MAPS`) or its sigma, and the virtual polarizer's incident
+    linear state and analyzer angle in degrees (None: unpolarized light / no analyzer)."""
+
+    map_name: str = "retardance_deg"
+    map_sigma: bool = False
+    incident_deg: float | None = 0.0
+    analyzer_deg: float | None = 0.0
 #: Colour choice "luminance": the mean over the colour channels (a mono sensor has one channel).
 LUMINANCE = -1
 SATURATION_RGB = (255, 0, 0)
@@ -83,6 +113,9 @@ class PolarizationData:
     flags: np.ndarray | None = None
     snr: np.ndarray | None = None
     min_snr: float = preview.DEFAULT_MIN_SNR
+    #: per-element standard deviations of ``mueller`` ``(C, 3, 3, H', W')`` (a result's
+    #: ``sigma`` planes), or None
+    sigma: np.ndarray | None = None
     _views: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
@@ -100,10 +133,28 @@ class PolarizationData:
         if self.stokes is not None or self.mueller is not None:
             out.append("s0")
         if self.stokes is not None:
-            out += ["dolp", "aolp", "aolp_dolp"]
+            out += list(STOKES_DISPLAYS)
         if self.mueller is not None:
-            out.append("mueller")
+            out += list(MUELLER_DISPLAYS)
         return out
+
+    def maps(self) -> parameters.MapSet:
+        """The parameter maps of ``mueller`` with their sigma (from ``sigma``), computed once."""
+        if "maps" not in self._views:
+            self._views["maps"] = parameters.image_maps(self.mueller, self.sigma)
+        return self._views["maps"]
+
+    def min_max(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(Imin, Imax)`` ``(C, H, W)`` of ``stokes``
+        (:func:`polrig.sensor.stokes.min_max_intensity`), computed once."""
+        if "min_max" not in self._views:
+            self._views["min_max"] = min_max_intensity(self.stokes, self.valid)
+        return self._views["min_max"]
+
+    def polarizer(self, incident_deg: float | None, analyzer_deg: float | None) -> np.ndarray:
+        """:func:`polrig.optics.virtual_polarizer.virtual_polarizer_image` of ``mueller``:
+        ``(C, H, W)`` float32 in the units of ``mueller``."""
+        return virtual_polarizer_image(self.mueller, incident_deg, analyzer_deg)[0]
 
     @classmethod
     def from_stokes_images(cls, s: StokesImages, frame: Frame | None = None,
@@ -158,7 +209,8 @@ class PolarizationData:
         its masks and SNR (:func:`polrig.app.preview.exr_masks`)."""
         m = np.asarray(mueller, np.float32)
         flags, snr = preview.exr_masks(planes or {}, m.shape[0], m[:, 0, 0])
-        return cls(mueller=m, source=source, flags=flags, snr=snr)
+        return cls(mueller=m, source=source, flags=flags, snr=snr,
+                   sigma=element_stack("sigma", planes or {}, m.shape[0]))
 
 
 def frame_snr(s0: np.ndarray, frame: Frame, model: SensorModel | None = None) -> np.ndarray:
@@ -315,14 +367,17 @@ def display_step(data: PolarizationData, display: str, max_px: int) -> int:
 
 
 def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
-           saturation_overlay: bool = False, step: int = 1) -> np.ndarray:
+           saturation_overlay: bool = False, step: int = 1,
+           options: ViewOptions | None = None) -> np.ndarray:
     """The uint8 RGB image ``(H, W, 3)`` of ``display`` (a key of :data:`DISPLAYS`).
 
     S0 of the luminance choice is the RGB composite of a colour sensor; saturated pixels are
     painted :data:`SATURATION_RGB` when ``saturation_overlay`` is set. ``step`` > 1 shows every
     ``step``-th pixel in each direction (see :func:`display_step`; for the Mueller grid, in each
-    tile).
+    tile). ``options``: the parameter map and the virtual polarizer's angles
+    (:class:`ViewOptions`; default its defaults).
     """
+    options = options or ViewOptions()
     if display not in data.available():
         raise ValueError(f"{DISPLAYS.get(display, display)} is not available for this data")
     sat = None
@@ -340,6 +395,34 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
         return preview.mueller_grid(data.mueller[..., k, k], colour=None if colour == LUMINANCE else
                                     min(colour, data.mueller.shape[0] - 1),
                                     border_px=GRID_BORDER_PX, valid=None if ok is None else ok[k, k])
+    elif display == "maps":
+        return render_map(data, options.map_name, colour, sigma=options.map_sigma, step=step)
+    elif display == "polarizer":
+        i = data.polarizer(options.incident_deg, options.analyzer_deg)[:, k, k]
+        white_of = 0.5 * data.mueller[:, 0, 0, k, k]  # the unpolarized, analyzer-free scale
+        if colour == LUMINANCE:
+            rgb = preview.tone_map(i, white=fast_white(white_of))
+        else:
+            c = min(colour, i.shape[0] - 1)
+            rgb = preview.tone_map(i[c], white=fast_white(white_of[c]))
+    elif display in ("imin", "imax"):
+        imin, imax = data.min_max()
+        planes = imin if display == "imin" else imax
+        pick = slice(None) if colour == LUMINANCE else [min(colour, planes.shape[0] - 1)]
+        white = fast_white(data.stokes[pick, 0][:, k, k])  # S0's scale: Imin looks darker
+        rgb = preview.tone_map(planes[pick][:, k, k], white=white)
+        if saturation_overlay:
+            sat = data.saturated[:, k, k].any(axis=0)
+    elif display in ("s1", "s2"):
+        x = _pick(data.stokes[:, 1 if display == "s1" else 2], colour)[k, k]
+        lin = np.hypot(_pick(data.stokes[:, 1], colour)[k, k], _pick(data.stokes[:, 2], colour)[k, k])
+        valid = channel_view(data, colour)[3][k, k]
+        ok = shown(data, colour)
+        if ok is not None:
+            valid = valid & ok[k, k]
+        rgb = preview.diverging(x, vmax=fast_white(lin), valid=valid)
+        if saturation_overlay:
+            sat = data.saturated[:, k, k].any(axis=0)
     elif display == "s0" and data.stokes is None:  # Mueller only: m00
         m00 = _pick(data.mueller[:, 0, 0], colour)[k, k]
         rgb = preview.tone_map(m00, white=fast_white(m00))
@@ -360,7 +443,7 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
         elif display == "aolp":
             rgb = preview.aolp_rgb(a, valid=valid)
         else:
-            rgb = preview.aolp_rgb(a, d, valid=valid)
+            rgb = preview.aolp_rgb(a, d, dolp_as=AOLP_DOLP_AS[display], valid=valid)
         if saturation_overlay:
             sat = data.saturated[:, k, k].any(axis=0)
     if sat is not None and sat.any():
@@ -368,16 +451,127 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
     return rgb
 
 
+#: Maps shown on a viridis scale over [0, 1] (the others: angles as hue, m00 tone-mapped,
+#: sv2 diverging over [-1, 1], the retardance over [0, 180] deg).
+_UNIT_MAPS = ("DL", "PL", "sv1", "mmt_b", "mmt_t1", "mmt_A", "depolarization")
+
+
+def map_plane(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
+              sigma: bool = False) -> tuple[np.ndarray, str]:
+    """``(plane (H, W), channel name)`` of parameter map ``name`` (or its sigma) of one colour;
+    the luminance choice shows green for a colour image (an angle has no mean of its colours;
+    green is the best-sampled colour of a Bayer sensor)."""
+    ms = data.maps()
+    stack = ms.sigma.get(name) if sigma else ms.values[name]
+    if stack is None:
+        raise ValueError("this result has no sigma planes")
+    n = stack.shape[0]
+    c = (1 if n == 3 else 0) if colour == LUMINANCE else min(colour, n - 1)
+    return stack[c], _colour_names(n)[c]
+
+
+def render_map(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
+               sigma: bool = False, step: int = 1) -> np.ndarray:
+    """Parameter map ``name`` (:data:`polrig.optics.parameters.MAPS`) of the Mueller image, or
+    its sigma (grey, tone-mapped), as uint8 RGB with its colour bar on the right (an angle map
+    has none: the colour wheel beside the image is its key); masked and NaN pixels black."""
+    k = slice(None, None, max(1, int(step)))
+    v, ch = map_plane(data, name, colour, sigma=sigma)
+    v = v[k, k]
+    ok = np.isfinite(v)
+    shown_ok = shown(data, colour)
+    if shown_ok is not None and shown_ok.shape == data.mueller.shape[-2:]:
+        ok &= shown_ok[k, k]
+    title = f"{'sigma ' if sigma else ''}{name} {ch}"
+    h = v.shape[0]
+    if sigma or name == "m00":
+        white = fast_white(np.where(ok, v, 0))
+        rgb = preview.tone_map(v, white=white, valid=ok)
+        bar = preview.value_bar(h, lambda x: preview.tone_map(x, white=white, gamma=1 / 2.2),
+                                {white: f"{white:.3g}", 0.0: "0"}, lo=0.0, hi=white, title=title)
+    elif name in parameters.ANGLE_PERIOD_DEG:
+        period = parameters.ANGLE_PERIOD_DEG[name]
+        return preview.aolp_rgb(np.mod(v, period) * (180.0 / period), valid=ok)
+    elif name == "sv2":
+        rgb = preview.diverging(v, vmax=1.0, valid=ok)
+        bar = preview.value_bar(h, lambda x: preview.diverging(x[:, 0], vmax=1.0)[:, None],
+                                {1.0: "+1", 0.0: "0", -1.0: "-1"}, lo=-1.0, hi=1.0, title=title)
+    else:
+        top = 180.0 if name == "retardance_deg" else 1.0
+        rgb = preview.dolp_colormap(v / top, valid=ok)
+        bar = preview.value_bar(h, lambda x: preview.dolp_colormap(x / top),
+                                {top: f"{top:g}", top / 2: f"{top / 2:g}", 0.0: "0"},
+                                lo=0.0, hi=top, title=title)
+    return preview.with_legend(rgb, bar)
+
+
+def roi_valid(data: PolarizationData) -> np.ndarray | None:
+    """``(C, H, W)`` the pixels ROI statistics count by the data's masks (reason bits and the
+    signal threshold ``min_snr``, :func:`polrig.app.preview.display_valid`; for Stokes data
+    also its own validity); None: no mask."""
+    v = preview.display_valid(data.flags, data.snr, data.min_snr)
+    if data.mueller is not None:
+        return v if v is None or v.shape[-2:] == data.mueller.shape[-2:] else None
+    return data.valid if v is None else v & data.valid
+
+
+def roi_shape(data: PolarizationData) -> tuple[int, int]:
+    """``(H, W)`` of the grid ROI statistics use: the Mueller image's, else the Stokes'."""
+    src = data.mueller if data.mueller is not None else data.stokes
+    return tuple(src.shape[-2:])  # type: ignore[return-value]
+
+
+def roi_statistics(data: PolarizationData, inside: np.ndarray) -> list[roi.RoiRow]:
+    """:func:`polrig.app.roi.roi_statistics` of the data (its Mueller image and sigma where it
+    has one, else its Stokes images and SNR) over ``inside`` ``(H, W)``, counting the pixels
+    :func:`roi_valid` leaves."""
+    if data.mueller is not None:
+        return roi.roi_statistics(inside, mueller=data.mueller, sigma=data.sigma,
+                                  valid=roi_valid(data))
+    return roi.roi_statistics(inside, stokes=data.stokes, valid=roi_valid(data), snr=data.snr)
+
+
+def roi_quantities(data: PolarizationData) -> roi.Quantities:
+    """The quantities of :func:`roi_statistics`, whole image (for line profiles)."""
+    if data.mueller is not None:
+        if "roi_quantities" not in data._views:
+            data._views["roi_quantities"] = roi.mueller_quantities(data.mueller, data.sigma,
+                                                                   roi_valid(data))
+        return data._views["roi_quantities"]
+    return roi.stokes_quantities(data.stokes, roi_valid(data), data.snr)
+
+
 def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
-              bins: int = 64, step: int = 1) -> tuple[np.ndarray, np.ndarray, str]:
+              bins: int = 64, step: int = 1, options: ViewOptions | None = None
+              ) -> tuple[np.ndarray, np.ndarray, str]:
     """``(counts, edges, label)`` of the quantity a display shows (valid pixels only):
     raw DN, S0 DN, DoLP in [0, 1] or AoLP in degrees [0, 180). The Mueller grid shows the
     histogram of ``m00``. ``step`` > 1 counts every ``step``-th pixel in each direction."""
     k = slice(None, None, max(1, int(step)))
+    options = options or ViewOptions()
     if display == "raw":
         x = data.raw[k, k].reshape(-1)
         rng = (0.0, float(2 ** int(data.bit_depth)))
         label = "raw DN"
+    elif display in ("maps", "polarizer", "imin", "imax", "s1", "s2"):
+        if display == "maps":
+            v, ch = map_plane(data, options.map_name, colour, sigma=options.map_sigma)
+            label = f"{'sigma ' if options.map_sigma else ''}{options.map_name} {ch}"
+        elif display == "polarizer":
+            v = _pick(data.polarizer(options.incident_deg, options.analyzer_deg), colour)
+            label = "virtual polarizer (DN)"
+        elif display in ("imin", "imax"):
+            v = _pick(data.min_max()[display == "imax"], colour)
+            label = f"{display.capitalize()} (DN)"
+        else:
+            v = _pick(data.stokes[:, 1 if display == "s1" else 2], colour)
+            label = f"{display.upper()} (DN)"
+        x = np.asarray(v)[k, k].reshape(-1)
+        x = x[np.isfinite(x)]
+        lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 1.0)
+        if display in ("s1", "s2"):
+            lo, hi = -max(abs(lo), abs(hi), 1e-30), max(abs(lo), abs(hi), 1e-30)
+        rng = (min(lo, 0.0) if display != "maps" else lo, hi if hi > lo else lo + 1.0)
     elif display in ("s0", "mueller") and (data.stokes is None or display == "mueller"):
         x = _pick(data.mueller[:, 0, 0], colour).reshape(-1)
         x = x[np.isfinite(x) & (x > 0)]
@@ -390,7 +584,8 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
             valid = valid & ok[k, k]
         q = {"s0": s0, "dolp": d}.get(display, a)
         x = q[valid]
-        rng = {"dolp": (0.0, 1.0), "aolp": (0.0, 180.0), "aolp_dolp": (0.0, 180.0)}.get(
+        rng = {"dolp": (0.0, 1.0), "aolp": (0.0, 180.0), "aolp_dolp": (0.0, 180.0),
+               "aolp_dolp_sat": (0.0, 180.0)}.get(
             display, (0.0, float(x.max()) if x.size and x.max() > 0 else 1.0))
         label = {"s0": "S0 (DN)", "dolp": "DoLP"}.get(display, "AoLP (deg)")
     counts, edges = np.histogram(x, bins=bins, range=rng)
@@ -407,6 +602,23 @@ def grid_to_pixel(x: int, y: int, shape: tuple[int, int]) -> tuple[int, int, int
     if not (0 <= r < 3 and 0 <= c < 3 and 0 <= u < w and 0 <= v < h):
         return None
     return r, c, u, v
+
+
+def display_to_data(data: PolarizationData, display: str, points: list, step: int = 1) -> list:
+    """Points drawn on a display image rendered with ``step`` -> the data's pixel coordinates
+    (floats): times ``step``; on the Mueller grid, relative to the tile of the first point (a
+    shape drawn on any element tile measures the same pixels)."""
+    k = max(1, int(step))
+    pts = [(float(x), float(y)) for x, y in points]
+    if display == "mueller" and data.mueller is not None and pts:
+        h, w = data.mueller.shape[-2:]
+        th, tw = -(-h // k), -(-w // k)
+        hit = grid_to_pixel(int(pts[0][0]), int(pts[0][1]), (th, tw))
+        if hit is not None:
+            r, c = hit[0], hit[1]
+            ox, oy = GRID_BORDER_PX + c * (tw + GRID_BORDER_PX), GRID_BORDER_PX + r * (th + GRID_BORDER_PX)
+            pts = [(x - ox, y - oy) for x, y in pts]
+    return [(x * k, y * k) for x, y in pts]
 
 
 def readout(data: PolarizationData, display: str, x: int, y: int, step: int = 1) -> str:

@@ -13,14 +13,18 @@ import pathlib
 import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (
+    QCheckBox,
     QComboBox,
     QDoubleSpinBox,
     QFileDialog,
+    QGridLayout,
+    QGroupBox,
     QHBoxLayout,
     QLabel,
     QListWidget,
     QListWidgetItem,
     QPushButton,
+    QSlider,
     QSplitter,
     QVBoxLayout,
     QWidget,
@@ -34,7 +38,9 @@ from polrig.formats.rawio import read_raw
 from polrig.gui import pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
 from polrig.gui.qtimage import to_qimage
+from polrig.gui.roi_panel import AolpWheel, RoiTools
 from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box
+from polrig.optics.parameters import ANGLE_PERIOD_DEG, MAPS
 
 
 def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
@@ -105,6 +111,17 @@ def result_metadata(path: str | pathlib.Path) -> dict[str, str]:
                         if k not in RESERVED_METADATA_KEYS and isinstance(v, str)}}
 
 
+def _angle_slider() -> QSlider:
+    """A horizontal slider of an angle in whole degrees, 0..180 (180 is 0 again)."""
+    sl = QSlider(Qt.Orientation.Horizontal)
+    sl.setRange(0, 180)
+    sl.setSingleStep(1)
+    sl.setPageStep(15)
+    sl.setTickInterval(45)
+    sl.setTickPosition(QSlider.TickPosition.TicksBelow)
+    return sl
+
+
 class ViewerPanel(QWidget):
     """Open a session or an EXR, pick an entry, choose the display."""
 
@@ -137,6 +154,43 @@ class ViewerPanel(QWidget):
         self.min_snr = min_snr_box()
         self.min_snr.valueChanged.connect(self.refresh)
         self.histogram = HistogramWidget()
+        # the parameter-maps layer: which map, or its sigma
+        self.map_name = QComboBox()
+        for name, text in MAPS.items():
+            self.map_name.addItem(name, name)
+            self.map_name.setItemData(self.map_name.count() - 1, text, Qt.ItemDataRole.ToolTipRole)
+        self.map_name.setCurrentIndex(self.map_name.findData("retardance_deg"))
+        self.map_sigma = QCheckBox("show its sigma")
+        self.map_name.currentIndexChanged.connect(self.refresh)
+        self.map_sigma.toggled.connect(self.refresh)
+        # the virtual polarizer: incident linear state (or unpolarized) and analyzer angle
+        self.incident = _angle_slider()
+        self.analyzer = _angle_slider()
+        self.unpolarized = QCheckBox("unpolarized")
+        self.no_analyzer = QCheckBox("no analyzer")
+        self.incident_label, self.analyzer_label = QLabel(), QLabel()
+        for w in (self.incident, self.analyzer):
+            w.valueChanged.connect(self.refresh)
+        for w in (self.unpolarized, self.no_analyzer):
+            w.toggled.connect(self.refresh)
+        self.wheel = AolpWheel(110)
+        self.roi = RoiTools(self.view)
+        self.roi.message.connect(self.message)
+
+        maps_box = QGroupBox("Parameter map (display \"Parameter map\")")
+        g = QHBoxLayout(maps_box)
+        g.addWidget(self.map_name, 1)
+        g.addWidget(self.map_sigma)
+        pol_box = QGroupBox("Virtual polarizer (display \"Virtual polarizer\")")
+        g = QGridLayout(pol_box)
+        g.addWidget(QLabel("incident"), 0, 0)
+        g.addWidget(self.incident, 0, 1)
+        g.addWidget(self.incident_label, 0, 2)
+        g.addWidget(self.unpolarized, 0, 3)
+        g.addWidget(QLabel("analyzer"), 1, 0)
+        g.addWidget(self.analyzer, 1, 1)
+        g.addWidget(self.analyzer_label, 1, 2)
+        g.addWidget(self.no_analyzer, 1, 3)
 
         left = QVBoxLayout()
         row = QHBoxLayout()
@@ -150,17 +204,26 @@ class ViewerPanel(QWidget):
                          ("Mask below signal-to-noise", self.min_snr)):
             left.addWidget(QLabel(label))
             left.addWidget(w)
-        left.addWidget(self.histogram)
+        left.addWidget(maps_box)
+        left.addWidget(pol_box)
+        row = QHBoxLayout()
+        row.addWidget(self.histogram, 1)
+        row.addWidget(self.wheel)
+        left.addLayout(row)
         left.addWidget(self.readout.area, 1)
         lw = QWidget()
         lw.setLayout(left)
         lw.setMaximumWidth(520)
         lw.setMinimumWidth(430)
+        self.roi.setMinimumWidth(380)
         split = QSplitter()
         split.addWidget(lw)
         split.addWidget(self.view)
+        split.addWidget(self.roi)
         split.setStretchFactor(1, 3)
+        split.setStretchFactor(2, 1)
         QHBoxLayout(self).addWidget(split)
+        self._angle_labels()
 
     # -- opening
     def _ask_session(self) -> None:
@@ -229,6 +292,7 @@ class ViewerPanel(QWidget):
             self.view.set_placeholder(placeholder)
         self.histogram.set_data(np.zeros(0), np.zeros(1), "")
         self.readout.setText("")
+        self.roi.set_data(None)
 
     def set_data(self, data: pipeline.PolarizationData) -> None:
         self.data = data
@@ -247,19 +311,50 @@ class ViewerPanel(QWidget):
         self.display.blockSignals(False)
         self.colour.blockSignals(False)
         self.refresh()
+        self.roi.set_data(data)
+
+    def options(self) -> pipeline.ViewOptions:
+        """The parameter map and the virtual polarizer's angles the controls say."""
+        return pipeline.ViewOptions(
+            map_name=self.map_name.currentData(), map_sigma=self.map_sigma.isChecked(),
+            incident_deg=None if self.unpolarized.isChecked() else float(self.incident.value()),
+            analyzer_deg=None if self.no_analyzer.isChecked() else float(self.analyzer.value()))
+
+    def _angle_labels(self) -> None:
+        o = self.options()
+        self.incident_label.setText("unpolarized" if o.incident_deg is None
+                                    else f"{o.incident_deg:5.0f} deg")
+        self.analyzer_label.setText("none" if o.analyzer_deg is None
+                                    else f"{o.analyzer_deg:5.0f} deg")
+        self.incident.setEnabled(o.incident_deg is not None)
+        self.analyzer.setEnabled(o.analyzer_deg is not None)
+
+    def _wheel_mode(self, display: str) -> str | None:
+        if display in pipeline.AOLP_DOLP_AS:
+            return pipeline.AOLP_DOLP_AS[display]
+        if display == "maps" and self.map_name.currentData() in ANGLE_PERIOD_DEG:
+            return None
+        return "value"
 
     def refresh(self, *_a) -> None:
+        self._angle_labels()
         if self.data is None or self.display.currentData() is None:
             return
         display, colour = self.display.currentData(), self.colour.currentData()
         self.data.min_snr = self.min_snr.value()
+        options = self.options()
         try:
-            rgb = pipeline.render(self.data, display, colour, saturation_overlay=True)
-            self.histogram.set_data(*pipeline.histogram(self.data, display, colour))
+            rgb = pipeline.render(self.data, display, colour, saturation_overlay=True,
+                                  options=options)
+            self.histogram.set_data(*pipeline.histogram(self.data, display, colour,
+                                                        options=options))
         except ValueError as exc:
             self.message.emit("error", f"viewer: {exc}")
             return
         self.view.set_image(to_qimage(rgb))
+        self.wheel.set_mode(self._wheel_mode(display))
+        data = self.data
+        self.roi.to_data = lambda pts: pipeline.display_to_data(data, display, pts)
 
     def _hovered(self, x: int, y: int) -> None:
         if self.data is not None and x >= 0:

@@ -69,13 +69,25 @@ class ReadoutLabel(QLabel):
         self.area.setMinimumHeight(120)
 
 
+#: Drawing tools of :class:`ImageView` (key -> label).
+DRAW_TOOLS = {"": "None (cursor readout)", "rect": "Rectangle ROI", "ellipse": "Ellipse ROI",
+              "poly": "Polygon ROI (click vertices, double-click closes)",
+              "line": "Line profile"}
+
+
 class ImageView(QWidget):
     """Shows a ``QImage`` scaled to fit (aspect kept, nearest-neighbour when enlarged).
 
     ``hovered(x, y)`` gives the image pixel under the cursor (``-1, -1`` outside the image).
+    With a drawing :attr:`tool` (a key of :data:`DRAW_TOOLS`), a drag draws a rectangle, an
+    ellipse (the drag's box) or a line, clicks place polygon vertices (a double click closes
+    it); ``drawn(tool, points)`` then gives the shape's points in image coordinates (floats,
+    pixel ``(u, v)`` covers ``[u, u + 1) x [v, v + 1)``): the two corners of the box, the two
+    ends of the line, or the vertices. The last shape stays drawn over the image.
     """
 
     hovered = Signal(int, int)
+    drawn = Signal(str, list)
 
     def __init__(self, parent=None, placeholder: str = "no image"):
         super().__init__(parent)
@@ -86,6 +98,10 @@ class ImageView(QWidget):
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.images_shown = 0
         self.banner = ""
+        self.tool = ""
+        #: ``(tool, [(x, y), ...])`` of the shape drawn (image coordinates), or None
+        self.shape: tuple[str, list] | None = None
+        self._drawing = False
 
     def set_banner(self, text: str) -> None:
         """A line drawn across the top of the image (e.g. "PAUSED: capture running"); ""
@@ -125,6 +141,8 @@ class ImageView(QWidget):
         p.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform,
                         t.width() < self._image.width())
         p.drawImage(t, self._image)
+        if self.shape is not None:
+            self._paint_shape(p)
         if self.banner:
             bar = QRect(0, 0, self.width(), 28)
             p.fillRect(bar, QColor(200, 120, 0, 220))
@@ -133,6 +151,91 @@ class ImageView(QWidget):
             f.setBold(True)
             p.setFont(f)
             p.drawText(bar, Qt.AlignmentFlag.AlignCenter, self.banner)
+
+    def set_tool(self, tool: str) -> None:
+        """Choose a drawing tool (a key of :data:`DRAW_TOOLS`; "" for none)."""
+        if tool not in DRAW_TOOLS:
+            raise ValueError(f"unknown drawing tool {tool!r}")
+        self.tool = tool
+        self._drawing = False
+        self.setCursor(Qt.CursorShape.CrossCursor if tool else Qt.CursorShape.ArrowCursor)
+
+    def set_shape(self, tool: str, points: list) -> None:
+        """Show a shape (image coordinates) and emit :attr:`drawn`, as if drawn by the mouse."""
+        self.shape = (tool, [(float(x), float(y)) for x, y in points])
+        self._drawing = False
+        self.update()
+        self.drawn.emit(tool, list(self.shape[1]))
+
+    def image_point(self, pos) -> tuple[float, float] | None:
+        """Widget position -> image coordinates (floats, clamped to the image), or None
+        without an image."""
+        if self._image is None or self._image.isNull():
+            return None
+        t = self._target()
+        x = (pos.x() - t.x()) * self._image.width() / t.width()
+        y = (pos.y() - t.y()) * self._image.height() / t.height()
+        return (min(max(x, 0.0), float(self._image.width())),
+                min(max(y, 0.0), float(self._image.height())))
+
+    def _widget_point(self, x: float, y: float):
+        from PySide6.QtCore import QPointF
+
+        t = self._target()
+        return QPointF(t.x() + x * t.width() / self._image.width(),
+                       t.y() + y * t.height() / self._image.height())
+
+    def mousePressEvent(self, event) -> None:  # noqa: N802
+        p = self.image_point(event.position())
+        if not self.tool or p is None or event.button() != Qt.MouseButton.LeftButton:
+            return
+        if self.tool == "poly":
+            if self._drawing and self.shape is not None:
+                self.shape[1].append(p)
+            else:
+                self.shape, self._drawing = ("poly", [p]), True
+        else:
+            self.shape, self._drawing = (self.tool, [p, p]), True
+        self.update()
+
+    def mouseDoubleClickEvent(self, event) -> None:  # noqa: N802
+        if self.tool == "poly" and self._drawing and self.shape is not None:
+            pts = self.shape[1]
+            while len(pts) > 1 and pts[-1] == pts[-2]:  # the double click's own press
+                pts.pop()
+            if len(pts) >= 3:
+                self.set_shape("poly", pts)
+            self._drawing = False
+
+    def mouseReleaseEvent(self, event) -> None:  # noqa: N802
+        if self._drawing and self.shape is not None and self.tool in ("rect", "ellipse", "line"):
+            p = self.image_point(event.position())
+            if p is not None:
+                self.shape[1][1] = p
+            a, b = self.shape[1]
+            if a != b:
+                self.set_shape(self.tool, [a, b])
+            self._drawing = False
+
+    def _paint_shape(self, p: QPainter) -> None:
+        from PySide6.QtCore import QRectF
+        from PySide6.QtGui import QPolygonF
+
+        tool, pts = self.shape
+        p.setRenderHint(QPainter.RenderHint.Antialiasing, True)
+        pen = QPen(QColor(255, 255, 0))
+        pen.setWidth(2)
+        p.setPen(pen)
+        p.setBrush(Qt.BrushStyle.NoBrush)
+        wp = [self._widget_point(x, y) for x, y in pts]
+        if tool in ("rect", "ellipse") and len(wp) == 2:
+            r = QRectF(wp[0], wp[1]).normalized()
+            (p.drawRect if tool == "rect" else p.drawEllipse)(r)
+        elif tool == "line" and len(wp) == 2:
+            p.drawLine(wp[0], wp[1])
+        elif tool == "poly" and wp:
+            poly = QPolygonF(wp)
+            (p.drawPolyline if self._drawing else p.drawPolygon)(poly)
 
     def map_to_image(self, pos: QPoint) -> tuple[int, int]:
         if self._image is None:
@@ -145,6 +248,11 @@ class ImageView(QWidget):
         return -1, -1
 
     def mouseMoveEvent(self, event) -> None:  # noqa: N802
+        if self._drawing and self.shape is not None and self.tool in ("rect", "ellipse", "line"):
+            p = self.image_point(event.position())
+            if p is not None:
+                self.shape[1][1] = p
+                self.update()
         x, y = self.map_to_image(event.position().toPoint())
         self.hovered.emit(x, y)
 

@@ -337,6 +337,18 @@ def polarized_split(stokes: np.ndarray, valid: np.ndarray | None = None
     return s0 - pol, pol
 
 
+def min_max_intensity(stokes: np.ndarray, valid: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``(Imin, Imax)`` ``(C, H, W)``: the intensities an ideal linear analyzer passes across and
+    along the AoLP, ``(S0 -+ sqrt(S1^2 + S2^2)) / 2`` (DoLP clipped to [0, 1]), from
+    :func:`polarized_split`: ``Imin = unpolarized / 2`` (the glare-reduced image: the polarized
+    part, e.g. specular glare off a dielectric, removed), ``Imax = Imin + polarized``; 0 where
+    invalid."""
+    unpolarized, polarized = polarized_split(stokes, valid)
+    imin = np.float32(0.5) * unpolarized
+    return imin, imin + polarized
+
+
 def saturation_mask(raw: np.ndarray, layout: LayoutLike, method: str,
                     saturation_dn: float) -> np.ndarray:
     """``(C, H', W')`` bool: some sensor pixel that contributes to the output pixel reads at or
