@@ -251,6 +251,15 @@ def aolp_wheel(size: int, *, dolp_as: str | None = "value") -> np.ndarray:
     return rgb
 
 
+def aolp_key(height: int, *, dolp_as: str | None = "value") -> np.ndarray:
+    """The AoLP legend of a preview ``height`` rows tall: the hue bar (:func:`aolp_legend`)
+    and the colour wheel (:func:`aolp_wheel`, at most 256 px, at the top, white below)."""
+    size = int(min(height, 256))
+    wheel = np.full((height, size, 3), 255, np.uint8)
+    wheel[:size] = aolp_wheel(size, dolp_as=dolp_as)
+    return np.concatenate([aolp_legend(height), wheel], axis=1)
+
+
 def with_legend(rgb: np.ndarray, legend: np.ndarray) -> np.ndarray:
     """``rgb`` with ``legend`` (same height) appended on the right."""
     return np.ascontiguousarray(np.concatenate([rgb, legend], axis=1))

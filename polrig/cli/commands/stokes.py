@@ -12,14 +12,17 @@ from polrig.app.preview import (
     DARK,
     DEFAULT_MIN_SNR,
     SATURATED,
-    aolp_legend,
+    aolp_key,
     aolp_rgb,
+    colorbar,
+    diverging,
     display_valid,
     dolp_gray,
     dolp_legend,
     mask_summary,
     png_bytes,
     s0_snr,
+    tone_map,
     with_legend,
 )
 from polrig.atomic import atomic_write_bytes
@@ -56,7 +59,11 @@ def register(subparsers) -> None:
                     "present, supplies layout, ROI offset, bit depth and black level), "
                     "demosaic it, compute linear Stokes images and write OUT.exr "
                     "(channels S0..S2 per colour, plus mask and DoLP/AoLP planes) and "
-                    "OUT_dolp.png, OUT_aolp.png (AoLP as hue, DoLP as value; legends included). "
+                    "OUT_dolp.png, OUT_aolp.png (AoLP as hue, DoLP as value or saturation, with "
+                    "the hue bar and the colour wheel), OUT_imin.png and OUT_imax.png (the "
+                    "intensity across and along the AoLP: Imin is the glare-reduced image, both "
+                    "on S0's scale) and OUT_s1.png, OUT_s2.png (signed S1, S2 on a blue-white-red "
+                    "map with its bar). "
                     "Stokes values are in ADC DN (a Mono16 file of a 12-bit ADC is divided by "
                     "16). Pixels whose S0 is below --min-snr noise standard deviations are "
                     "masked (black) in the previews and counted.")
@@ -84,6 +91,9 @@ def register(subparsers) -> None:
     p.add_argument("--config", type=pathlib.Path, default=None, metavar="RIG.toml",
                    help="rig configuration whose sensor model (ADC bits, gain, read noise) "
                         "gives the unit and the noise (default: the IMX250 model, 12 bits)")
+    p.add_argument("--aolp-dolp", choices=("value", "saturation"), default="value",
+                   help="how OUT_aolp.png shows DoLP: as the colour's value (dark = weakly "
+                        "polarized, default) or its saturation (white = weakly polarized)")
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="OUT.exr",
                    help="output Stokes EXR")
     p.set_defaults(func=run)
@@ -100,16 +110,17 @@ def _parse_offset(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from polrig.sensor.stokes import stokes_from_raw
+    from polrig.sensor.stokes import min_max_intensity, stokes_from_raw
 
     out = args.out
     if out.suffix.lower() != ".exr":
         raise ConfigError(f"--out must name an .exr file, got {out}")
     check_output_file(out)
     stem = out.with_suffix("")
-    dolp_png = stem.with_name(stem.name + "_dolp.png")
-    aolp_png = stem.with_name(stem.name + "_aolp.png")
-    for preview in (dolp_png, aolp_png):
+    pngs = {k: stem.with_name(f"{stem.name}_{k}.png")
+            for k in ("dolp", "aolp", "imin", "imax", "s1", "s2")}
+    dolp_png, aolp_png = pngs["dolp"], pngs["aolp"]
+    for preview in pngs.values():
         check_output_file(preview, "--out preview")
     frame = read_raw(args.raw)
     meta = frame.meta
@@ -164,15 +175,28 @@ def run(args: argparse.Namespace) -> int:
     valid = display_valid(flags[ci], snr[ci], args.min_snr)
     _write_png(dolp_png, with_legend(dolp_gray(res.dolp[ci], valid=valid),
                                      dolp_legend(res.dolp.shape[-2])))
-    _write_png(aolp_png, with_legend(aolp_rgb(res.aolp_deg[ci], res.dolp[ci], valid=valid),
-                                     aolp_legend(res.dolp.shape[-2])))
+    h = res.dolp.shape[-2]
+    _write_png(aolp_png, with_legend(aolp_rgb(res.aolp_deg[ci], res.dolp[ci],
+                                              dolp_as=args.aolp_dolp, valid=valid),
+                                     aolp_key(h, dolp_as=args.aolp_dolp)))
+    imin, imax = min_max_intensity(stokes, res.valid)
+    white = float(np.percentile(stokes[ci, 0][res.valid[ci]], 99.5)) if res.valid[ci].any() else 1.0
+    for key, plane in (("imin", imin[ci]), ("imax", imax[ci])):
+        _write_png(pngs[key], tone_map(plane, white=white, valid=res.valid[ci]))
+    with np.errstate(all="ignore"):
+        lin = np.hypot(stokes[ci, 1], stokes[ci, 2])[res.valid[ci]]
+    vmax = float(np.percentile(lin, 99.5)) if lin.size and lin.max() > 0 else 1.0
+    for key, plane in (("s1", stokes[ci, 1]), ("s2", stokes[ci, 2])):
+        _write_png(pngs[key], with_legend(diverging(plane, vmax=vmax, valid=res.valid[ci]),
+                                          colorbar(h, vmax=vmax)))
     shown = display_valid(flags, snr, args.min_snr)
     with np.errstate(all="ignore"):
         over = int((shown & (np.hypot(stokes[:, 1], stokes[:, 2]) > stokes[:, 0])).sum())
     clipped = (f"; DoLP above 1 (noise) in {over} shown pixel-colour(s), drawn as 1"
                if over else "")
     print(f"wrote {out} ({res.stokes.shape[-1]}x{res.stokes.shape[-2]}, {c} colour plane(s), "
-          f"{args.demosaic}, ADC DN), {dolp_png.name}, {aolp_png.name}; {masked}{clipped}")
+          f"{args.demosaic}, ADC DN), {', '.join(p.name for p in pngs.values())}; "
+          f"{masked}{clipped}")
     note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
     if note:
         print(f"polrig stokes: note: {note}", file=sys.stderr)
