@@ -453,6 +453,9 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
 
 #: Maps shown on a viridis scale over [0, 1] (the others: angles as hue, m00 tone-mapped,
 #: sv2 diverging over [-1, 1], the retardance over [0, 180] deg).
+#: Least height (pixels) of a map image that gets its colour bar (a readable bar is about 90
+#: pixels wide whatever the image's size).
+MAP_LEGEND_MIN_PX = 128
 _UNIT_MAPS = ("DL", "PL", "sv1", "mmt_b", "mmt_t1", "mmt_A", "depolarization")
 
 
@@ -473,8 +476,9 @@ def map_plane(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
 def render_map(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
                sigma: bool = False, step: int = 1) -> np.ndarray:
     """Parameter map ``name`` (:data:`polrig.optics.parameters.MAPS`) of the Mueller image, or
-    its sigma (grey, tone-mapped), as uint8 RGB with its colour bar on the right (an angle map
-    has none: the colour wheel beside the image is its key); masked and NaN pixels black."""
+    its sigma (grey, tone-mapped), as uint8 RGB with its colour bar on the right when the image
+    is at least :data:`MAP_LEGEND_MIN_PX` tall (an angle map has none: the colour wheel beside
+    the image is its key; the histogram gives the range of any); masked and NaN pixels black."""
     k = slice(None, None, max(1, int(step)))
     v, ch = map_plane(data, name, colour, sigma=sigma)
     v = v[k, k]
@@ -502,7 +506,7 @@ def render_map(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
         bar = preview.value_bar(h, lambda x: preview.dolp_colormap(x / top),
                                 {top: f"{top:g}", top / 2: f"{top / 2:g}", 0.0: "0"},
                                 lo=0.0, hi=top, title=title)
-    return preview.with_legend(rgb, bar)
+    return preview.with_legend(rgb, bar) if h >= MAP_LEGEND_MIN_PX else rgb
 
 
 def roi_valid(data: PolarizationData) -> np.ndarray | None:

@@ -158,6 +158,8 @@ class RoiTools(QWidget):
         self.table.verticalHeader().setVisible(False)
         self.table.setEditTriggers(QTableWidget.EditTrigger.NoEditTriggers)
         self.table.setMinimumHeight(140)
+        self.table.verticalHeader().setDefaultSectionSize(20)
+        self.table.setStyleSheet("font-size: 9pt")
         self.plot = ProfilePlot()
         self.profile_quantity = QComboBox()
         self.profile_quantity.currentIndexChanged.connect(self._show_profile)
@@ -226,13 +228,14 @@ class RoiTools(QWidget):
     def _fill(self) -> None:
         self.table.setRowCount(len(self.rows))
         for i, r in enumerate(self.rows):
-            cells = (r.quantity + (" (circular)" if r.kind != "linear" else ""), r.channel,
+            cells = (r.quantity + (" (circ.)" if r.kind != "linear" else ""), r.channel,
                      r.mean, r.std, r.sem_scatter, r.sem_sigma, r.n_counted, r.n_masked)
             for j, v in enumerate(cells):
                 item = QTableWidgetItem(_fmt(v))
                 if j >= 2:
                     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
                 self.table.setItem(i, j, item)
+        self.table.resizeColumnsToContents()
         if self.region is not None and self.rows:
             first = self.rows[0]
             self.summary.setText(f"{self.region.text()}: {first.n_counted + first.n_masked} "

@@ -1,7 +1,7 @@
 """Render screenshots of the main GUI views offscreen into ``docs/screenshots/``.
 
-``python -m polrig.gui.screenshots [--out docs/screenshots] [--size 512x512]`` opens the
-window on the simulated rig (``QT_QPA_PLATFORM=offscreen`` unless a platform is set), waits
+``python -m polrig.gui.screenshots [--out docs/screenshots] [--size 512x512] [--only analysis]``
+opens the window on the simulated rig (``QT_QPA_PLATFORM=offscreen`` unless a platform is set), waits
 for real frames and writes:
 
 * ``live_dolp.png``, ``live_aolp.png`` -- the live view showing DoLP and DoLP-weighted AoLP;
@@ -11,9 +11,18 @@ for real frames and writes:
 * ``viewer_reference_mueller.png`` -- the viewer showing a reference capture's Mueller EXR;
 * ``capture_progress.png`` -- the capture panel during a reference capture (progress, ETA,
   thumbnails of finished poses, scores against the simulator's truth);
+* ``viewer_roi_stats.png`` -- the viewer showing a parameter map (linear retardance) of a
+  reference capture of the stressed-film scene, an ellipse ROI with its statistics table
+  (counted and masked pixels) and a line profile;
+* ``viewer_virtual_polarizer.png`` -- the viewer's virtual polarizer (incident 30 deg,
+  analyzer 120 deg) on the same capture;
 * ``devices.png`` -- the devices panel;
 * ``calibration.png`` -- the calibration panel after the intrinsics and turntable steps
   (report text and its residual plot).
+
+``--only analysis`` writes the two viewer analysis screenshots alone, from a one-pose reference
+capture of the ``film_plane`` scene on the mono sensor at ``--size`` shown in a viewer
+panel on its own.
 """
 
 from __future__ import annotations
@@ -35,6 +44,56 @@ def _wait(app, cond, timeout_s: float, what: str) -> None:
         time.sleep(0.01)
 
 
+def analysis_views(app, viewer, shot) -> None:
+    """The viewer's analysis tools on the result it shows: a parameter map with an ellipse ROI,
+    its statistics and a line profile (``viewer_roi_stats.png``), then the virtual polarizer
+    (``viewer_virtual_polarizer.png``)."""
+    v = viewer
+    h, w = v.data.mueller.shape[-2:]
+    v.display.setCurrentIndex(v.display.findData("maps"))
+    v.map_name.setCurrentIndex(v.map_name.findData("retardance_deg"))
+    app.processEvents()
+    v.roi.tool.setCurrentIndex(v.roi.tool.findData("line"))
+    v.view.set_shape("line", [(0.1 * w, 0.8 * h), (0.9 * w, 0.2 * h)])
+    v.roi.profile_quantity.setCurrentText("retardance_deg")
+    v.roi.tool.setCurrentIndex(v.roi.tool.findData("ellipse"))
+    v.view.set_shape("ellipse", [(0.3 * w, 0.3 * h), (0.7 * w, 0.6 * h)])
+    shot(v, "viewer_roi_stats.png")
+    v.display.setCurrentIndex(v.display.findData("polarizer"))
+    v.incident.setValue(30)
+    v.analyzer.setValue(120)
+    shot(v, "viewer_virtual_polarizer.png")
+
+
+def _analysis_only(app, out: pathlib.Path, tmp: pathlib.Path, size: str) -> list[pathlib.Path]:
+    from polrig.app.capture import CaptureRequest, run_capture
+    from polrig.gui.viewer import ViewerPanel
+
+    cfg = tmp / "rig.toml"
+    cfg.write_text(f'[sim]\nsize = "{size}"\nsensor = "imx250mzr"\nclock_speed = inf\nseed = 3\n'
+                   'scene = "film_plane"\nnoise = true\n')
+    result = run_capture(CaptureRequest(out=tmp / "session", poses_deg=(0.0,), mode="reference",
+                                        config=cfg), command_line=["screenshots"])
+    if result.status != "complete":
+        raise RuntimeError(f"screenshots: the capture ended {result.status}: {result.reason}")
+    v = ViewerPanel()
+    v.resize(1560, 900)
+    v.show()
+    if not v.open_session(tmp / "session"):
+        raise RuntimeError("screenshots: the viewer cannot open the capture")
+    written = []
+
+    def shot(widget, name: str) -> None:
+        app.processEvents()
+        path = out / name
+        widget.grab().save(str(path))
+        written.append(path)
+
+    analysis_views(app, v, shot)
+    v.close()
+    return written
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m polrig.gui.screenshots", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -42,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="512x512", help="simulated sensor size WxH")
     ap.add_argument("--no-calibration", action="store_true",
                     help="skip calibration.png (two calibration steps, about a minute)")
+    ap.add_argument("--only", choices=("all", "analysis"), default="all",
+                    help="analysis: only the viewer's ROI statistics and virtual polarizer "
+                         "screenshots, from a quick capture of their own")
     args = ap.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
@@ -56,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     app = QApplication.instance() or QApplication(sys.argv[:1])
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="polrig-shots-"))
+    if args.only == "analysis":
+        for p in _analysis_only(app, out, tmp, args.size):
+            print(f"wrote {p}")
+        return 0
     rig = build_rig(load_rig_config(None), {"size": args.size, "clock_speed": 200.0})
     w = MainWindow(rig, make_settings(tmp / "gui.ini"), model_loader=model_loader(),
                    live_max_fps=15.0)
@@ -109,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     shot(w, "viewer_reference_mueller.png")
     if not live_mueller:
         shot(w, "mueller_grid.png")
+    analysis_views(app, v, lambda _widget, name: shot(w, name))
     w.tabs.setCurrentWidget(w.devices)
     w.devices.move("stage", 22.5)
     _wait(app, lambda: abs(w.devices.last_status.get("stage", {}).get("position_deg", 0) - 22.5)

@@ -215,13 +215,14 @@ class ViewerPanel(QWidget):
         lw.setLayout(left)
         lw.setMaximumWidth(520)
         lw.setMinimumWidth(430)
-        self.roi.setMinimumWidth(380)
+        self.roi.setMinimumWidth(500)
         split = QSplitter()
         split.addWidget(lw)
         split.addWidget(self.view)
         split.addWidget(self.roi)
         split.setStretchFactor(1, 3)
         split.setStretchFactor(2, 1)
+        split.setSizes([430, 420, 600])  # the table's eight columns fit beside the image
         QHBoxLayout(self).addWidget(split)
         self._angle_labels()
 
