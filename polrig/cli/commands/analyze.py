@@ -159,18 +159,13 @@ def _element_sigma(extra: dict[str, np.ndarray], sfx: tuple[str, ...], source: s
                    ) -> tuple[np.ndarray | None, str | None]:
     """``(C, 3, 3, H, W)`` per-element sigma from the ``{source}.M{rc}.{ch}`` planes, or None
     (with a note when the file lacks them)."""
+    from polrig.formats.exr import element_stack
+
     if source == "none":
         return None, None
-    names = [f"{source}.M{r}{q}.{s}" for s in sfx for r in range(3) for q in range(3)]
-    missing = [n for n in names if n not in extra]
-    if missing:
+    sig = element_stack(source, extra, len(sfx))
+    if sig is None:
         return None, f"no {source}.M{{rc}} planes: maps written without sigma"
-    h, w = extra[names[0]].shape
-    sig = np.empty((len(sfx), 3, 3, h, w), np.float32)
-    for ci, s in enumerate(sfx):
-        for r in range(3):
-            for q in range(3):
-                sig[ci, r, q] = extra[f"{source}.M{r}{q}.{s}"]
     if not np.isfinite(sig).any():
         return sig, f"the {source} planes hold no finite value: sigma maps are NaN or infinite"
     return sig, None
