@@ -145,11 +145,14 @@ def test_line_profile_and_csv_export(qtbot, viewer, tmp_path):
     drag(qtbot, v.view, (3.0, 20.0), (45.0, 20.0))
     seg = v.roi.segment
     assert seg is not None and abs(seg[0] - 3) < 1 and abs(seg[2] - 45) < 1
-    q = roi.mueller_quantities(v.data.mueller, v.data.sigma, pipeline.roi_valid(v.data))
-    want = roi.line_profile(q, *seg)
+    want = roi.profile_of(seg, mueller=v.data.mueller, sigma=v.data.sigma,
+                          valid=pipeline.roi_valid(v.data))  # what polrig stats computes
+    whole = roi.line_profile(roi.mueller_quantities(v.data.mueller, v.data.sigma,
+                                                    pipeline.roi_valid(v.data)), *seg)
     np.testing.assert_array_equal(v.roi.profile.s, want.s)
     for name in ("S0", "AoLP_deg", "retardance_deg"):
         np.testing.assert_array_equal(v.roi.profile.values[name], want.values[name])
+        np.testing.assert_allclose(want.values[name], whole.values[name], rtol=1e-12)
     v.roi.profile_quantity.setCurrentText("retardance_deg")
     np.testing.assert_array_equal(v.roi.plot.values, want.values["retardance_deg"])
     written = v.roi.export_csv(tmp_path / "stats.csv")

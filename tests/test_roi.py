@@ -248,6 +248,23 @@ def test_profile_interpolates_axial_angles_through_the_wrap():
     assert min(mid, 180 - mid) == pytest.approx(0.0, abs=1e-9)
 
 
+@pytest.mark.parametrize("segment", [(3.2, 4.7, 20.9, 15.1), (0.0, 0.0, 30.0, 24.0),
+                                     (-5.0, 10.0, 40.0, 10.0), (12.5, 3.5, 12.5, 3.5)])
+def test_profile_of_on_the_segments_box_equals_the_whole_image(segment):
+    rng = np.random.default_rng(2)
+    m = (uniform_mueller(300 * mu.linear_block(mu.retarder_at(0.3, 1.0)), h=24, w=30)
+         + rng.normal(0, 2, (1, 3, 3, 24, 30))).astype(np.float32)
+    sigma = np.full(m.shape, 2.0, np.float32)
+    valid = rng.uniform(size=(1, 24, 30)) > 0.1
+    whole = roi.line_profile(roi.mueller_quantities(m, sigma, valid), *segment, spacing=0.7)
+    got = roi.profile_of(segment, mueller=m, sigma=sigma, valid=valid, spacing=0.7)
+    np.testing.assert_allclose(got.x, whole.x)
+    np.testing.assert_allclose(got.y, whole.y)
+    for name in whole.values:
+        np.testing.assert_allclose(got.values[name], whole.values[name], rtol=1e-12,
+                                   atol=1e-9, err_msg=name)  # the same up to rounding
+
+
 # -- CSV ------------------------------------------------------------------------------------------
 def test_csv_round_trips_the_rows_at_full_precision():
     m3 = 300.0 * mu.linear_block(mu.polarizer_at(0.3))

@@ -63,7 +63,7 @@ from polrig.sensor.stokes import aolp_deg, dolp, stokes_validity
 __all__ = [
     "RectROI", "EllipseROI", "PolygonROI", "ROI", "parse_roi", "parse_segment", "roi_mask",
     "Quantities", "stokes_quantities", "mueller_quantities", "RoiRow", "roi_statistics",
-    "statistics_of", "Profile", "line_profile", "stats_csv", "profile_csv", "STATS_COLUMNS",
+    "statistics_of", "Profile", "line_profile", "profile_of", "stats_csv", "profile_csv", "STATS_COLUMNS",
 ]
 
 
@@ -464,6 +464,35 @@ def line_profile(q: Quantities, x0: float, y0: float, x1: float, y1: float,
         else:
             values[name] = _bilinear(v, q.valid, x, y)
     return Profile(s, x, y, values, q.channels)
+
+
+def profile_of(segment: tuple[float, float, float, float], *, mueller: np.ndarray | None = None,
+               sigma: np.ndarray | None = None, stokes: np.ndarray | None = None,
+               valid: np.ndarray | None = None, snr: np.ndarray | None = None,
+               spacing: float = 1.0) -> Profile:
+    """:func:`line_profile` of a Mueller image (:func:`mueller_quantities`) or, without one, of
+    Stokes images (:func:`stokes_quantities`), the arguments as :func:`roi_statistics`'s; the
+    quantities are computed on the segment's bounding box (and the pixels next to it) only,
+    with the same values as on the whole image."""
+    src = mueller if mueller is not None else stokes
+    if src is None:
+        raise ValueError("profile_of needs a Mueller or a Stokes image")
+    h, w = np.shape(src)[-2:]
+    x0, y0, x1, y1 = segment
+    c0 = int(np.clip(math.floor(min(x0, x1) - 0.5), 0, w - 1))
+    c1 = int(np.clip(math.floor(max(x0, x1) + 0.5), 0, w - 1)) + 1
+    r0 = int(np.clip(math.floor(min(y0, y1) - 0.5), 0, h - 1))
+    r1 = int(np.clip(math.floor(max(y0, y1) + 0.5), 0, h - 1)) + 1
+    crop = lambda a: None if a is None else np.asarray(a)[..., r0:r1, c0:c1]  # noqa: E731
+    if mueller is not None:
+        q = mueller_quantities(crop(mueller), crop(sigma), crop(valid))
+    else:
+        q = stokes_quantities(crop(stokes), crop(valid), crop(snr))
+    p = line_profile(q, x0 - c0, y0 - r0, x1 - c0, y1 - r0, spacing)
+    outside = ~((p.x + c0 >= 0) & (p.x + c0 <= w) & (p.y + r0 >= 0) & (p.y + r0 <= h))
+    for v in p.values.values():
+        v[:, outside] = np.nan  # outside the image, not merely outside the crop
+    return Profile(p.s, p.x + c0, p.y + r0, p.values, p.channels)
 
 
 # -- CSV ------------------------------------------------------------------------------------------

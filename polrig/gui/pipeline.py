@@ -535,14 +535,14 @@ def roi_statistics(data: PolarizationData, inside: np.ndarray) -> list[roi.RoiRo
     return roi.roi_statistics(inside, stokes=data.stokes, valid=roi_valid(data), snr=data.snr)
 
 
-def roi_quantities(data: PolarizationData) -> roi.Quantities:
-    """The quantities of :func:`roi_statistics`, whole image (for line profiles)."""
+def roi_profile(data: PolarizationData, segment: tuple[float, float, float, float]
+                ) -> roi.Profile:
+    """:func:`polrig.app.roi.profile_of` the data along ``segment`` (data pixels), with the
+    quantities and masks of :func:`roi_statistics`."""
     if data.mueller is not None:
-        if "roi_quantities" not in data._views:
-            data._views["roi_quantities"] = roi.mueller_quantities(data.mueller, data.sigma,
-                                                                   roi_valid(data))
-        return data._views["roi_quantities"]
-    return roi.stokes_quantities(data.stokes, roi_valid(data), data.snr)
+        return roi.profile_of(segment, mueller=data.mueller, sigma=data.sigma,
+                              valid=roi_valid(data))
+    return roi.profile_of(segment, stokes=data.stokes, valid=roi_valid(data), snr=data.snr)
 
 
 def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,

@@ -219,7 +219,7 @@ class RoiTools(QWidget):
                 inside = roi.roi_mask(self.region, pipeline.roi_shape(data))
                 self.rows = pipeline.roi_statistics(data, inside)
             if self.segment is not None:
-                self.profile = roi.line_profile(pipeline.roi_quantities(data), *self.segment)
+                self.profile = pipeline.roi_profile(data, self.segment)
         except (ValueError, FloatingPointError) as exc:
             self.message.emit("error", f"ROI: {exc}")
             return

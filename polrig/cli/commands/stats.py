@@ -107,8 +107,8 @@ def run(args: argparse.Namespace) -> int:
             header["capture"] = label
         stats_parts.append((header, rows))
         if segment is not None:
-            q = roi.mueller_quantities(mueller, sigma, valid)
-            profile_parts.append((header, roi.line_profile(q, *segment, spacing=args.spacing)))
+            profile_parts.append((header, roi.profile_of(segment, mueller=mueller, sigma=sigma,
+                                                         valid=valid, spacing=args.spacing)))
     if args.csv is None:
         for header, rows in stats_parts:
             print(_table(header, rows))
