@@ -183,6 +183,9 @@ def test_virtual_polarizer_sliders_show_virtual_polarizer_image(qtbot, viewer):
         assert v.incident_label.text().strip() == f"{inc} deg"
         shown.append(got)
     assert not np.array_equal(shown[0], shown[1])  # the sliders change the image
+    v._hovered(30, 25)  # the readout: the value under the cursor with its exact sigma
+    i, s = virtual_polarizer_image(m, 90.0, 45.0, v.data.sigma)
+    assert f"Y {i[0, 25, 30]:.4g} +- {s[0, 25, 30]:.2g}" in v.readout.text()
     v.unpolarized.setChecked(True)
     v.no_analyzer.setChecked(True)
     assert not v.incident.isEnabled() and v.analyzer_label.text() == "none"
@@ -210,6 +213,9 @@ def test_parameter_maps_layer_shows_the_maps_with_their_colormaps(qtbot, viewer)
             expect = preview.aolp_rgb(x, valid=valid)
             assert v.wheel.mode is None  # an angle map: hue only, the wheel says so
         np.testing.assert_array_equal(got, expect)
+    v._hovered(40, 30)
+    assert (f"PL_axis_deg at (u=40, v=30): Y {maps.values['PL_axis_deg'][0, 30, 40]:.4g} +- "
+            f"{maps.sigma['PL_axis_deg'][0, 30, 40]:.2g}") in v.readout.text()
     v.map_name.setCurrentIndex(v.map_name.findData("DL"))
     v.map_sigma.setChecked(True)
     assert "sigma DL" in v.histogram.label

@@ -570,7 +570,9 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
         else:
             v = _pick(data.stokes[:, 1 if display == "s1" else 2], colour)
             label = f"{display.upper()} (DN)"
-        x = np.asarray(v)[k, k].reshape(-1)
+        x = np.asarray(v)[k, k]
+        ok = shown(data, colour) if display in ("maps", "polarizer") else None
+        x = x[ok[k, k]] if ok is not None and ok.shape == np.shape(v) else x.reshape(-1)
         x = x[np.isfinite(x)]
         lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 1.0)
         if display in ("s1", "s2"):
@@ -623,6 +625,34 @@ def display_to_data(data: PolarizationData, display: str, points: list, step: in
             ox, oy = GRID_BORDER_PX + c * (tw + GRID_BORDER_PX), GRID_BORDER_PX + r * (th + GRID_BORDER_PX)
             pts = [(x - ox, y - oy) for x, y in pts]
     return [(x * k, y * k) for x, y in pts]
+
+
+def layer_readout(data: PolarizationData, display: str, options: ViewOptions, x: int, y: int
+                  ) -> str:
+    """The value of the parameter map (with its sigma) or of the virtual polarizer (with its
+    exact sigma) under the cursor at image pixel ``(x, y)``, per colour; "" for other displays
+    or outside the image."""
+    if data.mueller is None or display not in ("maps", "polarizer"):
+        return ""
+    h, w = data.mueller.shape[-2:]
+    if not (0 <= y < h and 0 <= x < w):
+        return ""
+    names = _colour_names(data.mueller.shape[0])
+    if display == "maps":
+        ms = data.maps()
+        val = ms.values[options.map_name][:, y, x]
+        sig = ms.sigma.get(options.map_name)
+        parts = [f"{n} {v:.4g}" + (f" +- {sig[c, y, x]:.2g}" if sig is not None else "")
+                 for c, (n, v) in enumerate(zip(names, val))]
+        return f"{options.map_name} at (u={x}, v={y}): " + ", ".join(parts)
+    i, s = virtual_polarizer_image(data.mueller[..., y:y + 1, x:x + 1], options.incident_deg,
+                                   options.analyzer_deg,
+                                   None if data.sigma is None else data.sigma[..., y:y + 1, x:x + 1])
+    inc = "unpolarized" if options.incident_deg is None else f"{options.incident_deg:g} deg"
+    ana = "none" if options.analyzer_deg is None else f"{options.analyzer_deg:g} deg"
+    parts = [f"{n} {i[c, 0, 0]:.4g}" + (f" +- {s[c, 0, 0]:.2g}" if s is not None else "")
+             for c, n in enumerate(names)]
+    return f"virtual polarizer (in {inc}, analyzer {ana}) DN: " + ", ".join(parts)
 
 
 def readout(data: PolarizationData, display: str, x: int, y: int, step: int = 1) -> str:

@@ -360,4 +360,7 @@ class ViewerPanel(QWidget):
     def _hovered(self, x: int, y: int) -> None:
         if self.data is not None and x >= 0:
             self.data.min_snr = self.min_snr.value()
-            self.readout.setText(pipeline.readout(self.data, self.display.currentData(), x, y))
+            display = self.display.currentData()
+            layer = pipeline.layer_readout(self.data, display, self.options(), x, y)
+            text = pipeline.readout(self.data, display, x, y)
+            self.readout.setText(f"{layer}\n{text}" if layer else text)
