@@ -291,7 +291,7 @@ def test_live_view_new_displays_and_roi(qtbot, tmp_path):
         assert "maps" not in keys and "polarizer" not in keys
         for display in ("imin", "imax", "s1", "s2", "aolp_dolp_sat"):
             w.live.set_display(display)
-            qtbot.waitUntil(lambda: w.live.last is not None and w.live.last.display == display,
+            qtbot.waitUntil(lambda d=display: w.live.last is not None and w.live.last.display == d,
                             timeout=20000)
             res = w.live.last
             rgb = from_qimage(res.image)

@@ -136,10 +136,11 @@ def _num(v: float) -> str:
 
 
 def _table(header: dict, rows) -> str:
-    lines = [f"{header.get('capture') or header['source']}: {header['roi']} "
-             f"(image {header['image']}, sigma {header['sigma']})",
-             f"{'quantity':<22}{'ch':<3}{'mean':>12}{'std':>12}{'sem_scatter':>13}"
-             f"{'sem_sigma':>12}{'counted':>9}{'masked':>8}"]
+    title = (f"{header.get('capture') or header['source']}: {header['roi']} "
+             f"(image {header['image']}, sigma {header['sigma']})")
+    columns = (f"{'quantity':<22}{'ch':<3}{'mean':>12}{'std':>12}{'sem_scatter':>13}"
+               f"{'sem_sigma':>12}{'counted':>9}{'masked':>8}")
+    lines = [title, columns]
     for r in rows:
         lines.append(f"{r.quantity:<22}{r.channel:<3}{_num(r.mean):>12}{_num(r.std):>12}"
                      f"{_num(r.sem_scatter):>13}{_num(r.sem_sigma):>12}{r.n_counted:>9}"
