@@ -359,3 +359,45 @@ def test_stats_cli_bad_input_is_one_line(session, argv, words, capsys):
     rc = main(["stats", str(session / "c000_pose000.0" / "mueller.exr"), *argv])
     err = capsys.readouterr().err
     assert rc != 0 and words in err and len(err.strip().splitlines()) == 1
+
+
+def test_roi_means_cover_the_simulators_truth_with_their_sigma_sem(session):
+    """Hidden truth: over 4x4-pixel rectangles tiling both captures, the ROI mean of ``S0`` and
+    of every ``m_ij/m00`` differs from the same ROI's mean of the truth (as a perfect rig
+    measures it, :func:`polrig.solve.scoring.truth_on_output_grid`) by at most 2 ``sem_sigma``
+    (from the ``sigma_noise`` planes: the ideal rig has no calibration error) in 92-98 % of
+    the ROIs, pooled (about 640 ROI means: 95 % +- 3 binomial standard deviations), and the
+    errors in units of ``sem_sigma`` have a standard deviation of 1 +- 0.1. Measured: 93.7 %,
+    1.05."""
+    from polrig.cli.commands.stats import load_result
+    from polrig.formats.exr import read_mueller_exr
+    from polrig.sensor.noise import SensorModel
+    from polrig.solve.scoring import truth_on_output_grid
+
+    names = ["S0"] + [f"m{i}{j}/m00" for i in range(3) for j in range(3) if i or j]
+    within = []
+    for cap in ("c000_pose000.0", "c001_pose090.0"):
+        mueller, sigma, valid = load_result(session / cap / "mueller.exr", "sigma_noise")
+        md = read_mueller_exr(session / cap / "mueller.exr").metadata
+        t = truth_on_output_grid(read_mueller_exr(session / cap / "truth_mueller.exr").mueller,
+                                 md["layout"] + "@0,0", md["demosaic"],
+                                 np.array(md["incident_state"]), model=SensorModel(),
+                                 exposure_us=md["exposure_us"])
+        h, w = mueller.shape[-2:]
+        for y in range(0, h, 4):
+            for x in range(0, w, 4):
+                inside = roi.roi_mask(roi.RectROI(x, y, 4, 4), (h, w))
+                # count the same pixels in both: valid in the result and in the truth
+                ok = valid & (t[:, 0, 0] > 0)
+                est = roi.roi_statistics(inside, mueller=mueller, sigma=sigma, valid=ok)
+                ref = roi.roi_statistics(inside, mueller=t, valid=ok)
+                for n in names:
+                    e, r = row(est, n), row(ref, n)
+                    if e.n_counted >= 8 and e.n_counted == r.n_counted:
+                        within.append((e.mean - r.mean) / e.sem_sigma)
+    z = np.array(within)
+    cover = float((np.abs(z) <= 2).mean())
+    print(f"\n{z.size} ROI means, {cover:.3f} within 2 sem_sigma of the truth, sd(z) {z.std():.3f}")
+    assert z.size >= 600
+    assert 0.92 <= cover <= 0.98
+    assert 0.9 <= z.std() <= 1.1
