@@ -401,3 +401,13 @@ def test_roi_means_cover_the_simulators_truth_with_their_sigma_sem(session):
     assert z.size >= 600
     assert 0.92 <= cover <= 0.98
     assert 0.9 <= z.std() <= 1.1
+
+
+def test_a_pixel_without_sigma_still_counts_and_makes_sem_sigma_honest():
+    x = np.array([[[1.0, 2.0, 3.0, 4.0]]])
+    s = np.array([[[0.1, 0.1, np.inf, 0.1]]])
+    q = roi.Quantities({"x": x}, {"x": s}, np.ones(x.shape, bool), {}, {}, ("Y",), {})
+    r = roi.statistics_of(q, np.ones((1, 4), bool))[0]
+    assert r.n_counted == 4 and r.mean == 2.5 and r.sem_sigma == math.inf
+    q.sigma = {}
+    assert roi.statistics_of(q, np.ones((1, 4), bool))[0].mean == 2.5

@@ -24,8 +24,10 @@ give 0, not 90).
 * linear quantities: mean, standard deviation (``ddof = 1``), and two standard errors of the
   mean: ``sem_scatter = std / sqrt(n)`` from the pixels' scatter (texture included), and
   ``sem_sigma = sqrt(sum sigma_i^2) / n`` from the pixels' own sigma planes (independent pixels;
-  NaN without sigma planes). The first also holds the sample's texture; the second only the
-  measurement noise (and calibration) that the sigma planes hold.
+  NaN without sigma planes; infinite or NaN when a counted pixel's sigma is: an axis whose
+  magnitude is within its noise has no sigma to speak of). The first also holds the sample's
+  texture; the second only the measurement noise (and calibration) that the sigma planes hold.
+  Which pixels count does not depend on the sigma planes.
 * axial angles (period ``p``: AoLP and ``DL``/``PL``/retarder axes 180 deg, the MMT
   orientation 90 deg): the angles are mapped onto the circle, ``phi = 2 pi a / p``, and
   summarised by the mean resultant vector ``R e^{i mu}`` (Mardia and Jupp, *Directional
@@ -352,12 +354,8 @@ def statistics_of(q: Quantities, inside: np.ndarray,
         for ci, ch in enumerate(q.channels):
             v = vals[ci][inside]
             ok = q.valid[ci][inside] & np.isfinite(v)
-            s = None
-            if sig is not None:
-                s = sig[ci][inside]
-                ok &= np.isfinite(s)
             x = v[ok]
-            s = None if s is None else s[ok]
+            s = None if sig is None else sig[ci][inside][ok]
             if name in q.periods:
                 kind = f"axial/{q.periods[name]:g}"
                 stats = _axial(x, s, q.periods[name], q.lows.get(name, 0.0))
