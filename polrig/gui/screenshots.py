@@ -20,9 +20,9 @@ for real frames and writes:
 * ``calibration.png`` -- the calibration panel after the intrinsics and turntable steps
   (report text and its residual plot).
 
-``--only analysis`` writes the two viewer analysis screenshots alone, from a one-pose reference
-capture of the ``film_plane`` scene on the mono sensor at ``--size`` shown in a viewer
-panel on its own.
+The two viewer analysis screenshots come from a one-pose reference capture of their own (the
+``film_plane`` scene, a stressed film with a retardance texture, on the mono sensor at
+``--size``) shown in a viewer panel on its own; ``--only analysis`` writes them alone.
 """
 
 from __future__ import annotations
@@ -175,13 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     shot(w, "viewer_reference_mueller.png")
     if not live_mueller:
         shot(w, "mueller_grid.png")
-    analysis_views(app, v, lambda _widget, name: shot(w, name))
     w.tabs.setCurrentWidget(w.devices)
     w.devices.move("stage", 22.5)
     _wait(app, lambda: abs(w.devices.last_status.get("stage", {}).get("position_deg", 0) - 22.5)
           < 1e-6 and not any("busy_with" in v for v in w.devices.last_status.values()),
           60, "fresh device status")
     shot(w, "devices.png")
+    written += _analysis_only(app, out, tmp, args.size)
     if not args.no_calibration:
         cal = w.calibration
         cal.folder.setText(str(tmp / "calibration"))
