@@ -80,6 +80,14 @@ SIGMA_PLANE = ("standard deviation of M{rc}: the single-shot model's calibrated 
 #: The header's descriptions of the other result planes (as a reference solve's file).
 OTHER_PLANES = {"sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor noise model alone",
                 "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"}
+#: The frame route per execution provider (issue 31): ``device``, the steps around the networks
+#: as ONNX graphs on the provider's device with the frame kept there
+#: (:class:`polrig.models.device_path.DevicePath`); ``host``, the numpy and OpenCV steps. CUDA
+#: takes the device route; the CPU keeps the host route, measured faster there
+#: (``benchmarks/results/single_shot_device_route.md``: the same numbers through onnxruntime's
+#: CPU kernels instead of OpenCV's). Options the device route does not cover take the host
+#: steps (:meth:`polrig.models.device_path.DevicePath.supports`).
+FRAME_ROUTES = {"CUDAExecutionProvider": "device", "CPUExecutionProvider": "host"}
 #: Loaded routes kept per process (weights folder, device, graph files): the oldest beyond this
 #: many goes (whoever holds it keeps it).
 MAX_OPEN = 4
@@ -167,6 +175,9 @@ class SingleShotResult:
     provider_notes: list[str] = dataclasses.field(default_factory=list)
     incident_rotation_deg: float | None = None
     timings_s: dict[str, float] = dataclasses.field(default_factory=dict)
+    #: The live view's display-size grid of the nine elements ``(C, 3 dh, 3 dw)`` (the device
+    #: route's :meth:`SingleShot.live_grid`; then :attr:`mueller` holds zeros), else None.
+    preview_grid: np.ndarray | None = None
     #: no state set: NaN (the reference solve's condition number, in a score's output)
     condition_number: float = float("nan")
 
@@ -268,8 +279,15 @@ class SingleShot:
     :meth:`frame` or :meth:`state` with the :class:`polrig.acquisition.plan.SingleShotOptions`
     (a live view changes them between frames; the model stays)."""
 
-    def __init__(self, model: "SingleShotModel"):
+    def __init__(self, model: "SingleShotModel", frame_route: str | None = None):
         self.model = model
+        if frame_route is None:
+            frame_route = FRAME_ROUTES.get(model.provider, "host")
+        if frame_route not in ("host", "device"):
+            raise ValueError(f"frame_route must be host or device, got {frame_route!r}")
+        #: How :meth:`frame` runs its steps around the networks (:data:`FRAME_ROUTES`).
+        self.frame_route = frame_route
+        self._device = None
 
     @classmethod
     def open(cls, device: str = "auto", weights: str | os.PathLike | None = None) -> "SingleShot":
@@ -357,6 +375,10 @@ class SingleShot:
         to_adc = adc_scale(sensor, frame.meta.bit_depth)
         black = float(frame.meta.black_level_dn if black_level_dn is None else black_level_dn) * to_adc
         saturation = float((2.0 ** frame.meta.bit_depth - 1) if saturation_dn is None else saturation_dn) * to_adc
+        if self.frame_route == "device" and not self.device_refuses(frame, options):
+            return self._frame_on_device(frame, state_deg, options, geometry=geometry, sensor=sensor,
+                                         to_adc=to_adc, black=black, saturation=saturation, scale=scale,
+                                         stage_zero_axis=stage_zero_axis)
         raw = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
         lay = frame_layout(frame)
         kwargs = network_kwargs(geometry, frame, options.network_demosaic)
@@ -389,6 +411,58 @@ class SingleShot:
             low = snr < MIN_SNR  # unknown (a clipped sample's NaN): not dark, SATURATED says why
         result = self._result(mueller, obj, low, clipped, net, options)
         result.stokes, result.snr, result.timings_s = stokes, snr, timings
+        return result
+
+    def device_path(self):
+        """The :class:`polrig.models.device_path.DevicePath` of this route's model (made once)."""
+        if self._device is None:
+            from polrig.models.device_path import DevicePath
+
+            self._device = DevicePath(self.model)
+        return self._device
+
+    def device_refuses(self, frame: Frame, options: SingleShotOptions) -> str:
+        """Why the device route cannot take ``frame`` with ``options`` (one line; ``""``: it can)."""
+        lay = frame_layout(frame)
+        return self.device_path().supports(options, output_shape(lay, tuple(frame.raw.shape[-2:]), "superpixel"))
+
+    def _frame_on_device(self, frame: Frame, state_deg: float, options: SingleShotOptions, *, geometry,
+                         sensor: SensorModel, to_adc: float, black: float, saturation: float,
+                         scale: float | None, stage_zero_axis, preview_size=None,
+                         probe_every: int = 1) -> SingleShotResult:
+        """:meth:`frame` with its steps on the provider's device (:data:`FRAME_ROUTES`)."""
+        lay = frame_layout(frame)
+        kwargs = network_kwargs(geometry, frame, options.network_demosaic)
+        if stage_zero_axis is not None:
+            kwargs["stage_zero_axis"] = stage_zero_axis
+        per_dn, offset = sensor.variance_terms(frame.meta.exposure_us)
+        s_in = polarizer_stokes(np.deg2rad(float(state_deg))).astype(np.float32)
+        with_sigma = options.with_sigma and self.model.uncertainty is not None
+        out = self.device_path().frame(
+            frame.raw, lay, to_adc=to_adc, black=black, saturation=saturation, s_in=s_in,
+            resolution=options.resolution, stage_zero_axis=kwargs["stage_zero_axis"],
+            intrinsics=kwargs["intrinsics"], scale=scale, half_per_dn=float(np.float32(0.5 * per_dn)),
+            noise_offset=float(offset), with_stokes=with_sigma, preview_size=preview_size,
+            probe_every=probe_every)
+        m_net = out["object"] if options.resolution != "full" else None
+        aux: dict[str, Any] = {"scale": out["scale"], "alpha": out["alpha"], "provider": self.provider,
+                               "provider_options": self.model.provider_options,
+                               "incident_rotation_deg": out["incident_rotation_deg"], "network_grid": {}}
+        mueller = out.get("mueller")
+        if with_sigma and mueller is not None:
+            unc = self.model.uncertainty
+            aux["sigma"] = unc.sigma(mueller, s_in, m_net, out["stokes"], None)
+            beyond = unc.beyond_calibration(mueller, s_in, m_net, out["stokes"])
+            if beyond is not None:
+                aux["beyond_calibration"], aux["mask"] = beyond, m_net
+        net = _Network(mueller, out["object"], aux)
+        with np.errstate(invalid="ignore"):
+            low = out["snr"] < MIN_SNR
+        if mueller is None:  # the live view's grid: no result planes
+            mueller = np.zeros((out["snr"].shape[0], 3, 3) + out["object"].shape, np.float32)
+        result = self._result(mueller, out["object"], low, out["clipped"], net, options)
+        result.stokes, result.snr, result.timings_s = out.get("stokes"), out["snr"], out["timings_s"]
+        result.preview_grid = out.get("grid")
         return result
 
     def state(self, state: StateRadiance, frame: Frame, s_in, options: SingleShotOptions, *,
