@@ -108,6 +108,16 @@ def tail_count(n: int, q: float = SCALE_PERCENTILE) -> int:
     return n if n < MIN_SIZE else n - int(math.floor(q / 100.0 * (n - 1)))
 
 
+#: Graphs whose output size depends on an input's value (``k``): their outputs are never kept.
+DATA_SHAPED = frozenset({"scale_tail"})
+
+
+def _host(value) -> np.ndarray:
+    """A host input as a graph takes it: floats as float32 (the graphs' one float type)."""
+    a = np.asarray(value)
+    return a.astype(np.float32) if a.dtype == np.float64 else a
+
+
 class DevicePath:
     """The frame route on ``model``'s provider (module docstring). ``graphs``: the folder of
     :mod:`polrig.models.device_graphs`' files."""
@@ -121,7 +131,7 @@ class DevicePath:
         self._graphs = pathlib.Path(graphs)
         self._sessions: dict[str, object] = {}
         self._buffers: dict[tuple, object] = {}
-        self._outputs: dict[tuple, dict] = {}
+        self._bindings: dict[str, tuple] = {}
         self._frames = 0
         self._probe_wi: np.ndarray | None = None
 
@@ -179,14 +189,21 @@ class DevicePath:
         """Graph ``stem`` on ``inputs`` (``OrtValue`` s on the device, or numpy arrays, uploaded
         into persistent buffers); its outputs stay on the device, in buffers kept per input
         shapes."""
-        vals = {k: (v if isinstance(v, self._ort.OrtValue) else self.upload(f"{stem}.{k}", np.asarray(v)))
+        vals = {k: (v if isinstance(v, self._ort.OrtValue) else self.upload(f"{stem}.{k}", _host(v)))
                 for k, v in inputs.items()}
         sess = self.session(stem)
-        key = (stem,) + tuple((k, tuple(v.shape())) for k, v in sorted(vals.items()))
+        ident = tuple((k, id(v), tuple(v.shape())) for k, v in sorted(vals.items()))
+        held = self._bindings.get(stem)
+        if stem in DATA_SHAPED:
+            held = None
+        if held is not None and held[0] == ident:  # the same buffers: the binding stands
+            sess.run_with_iobinding(held[1])
+            return held[2]
         binding = sess.io_binding()
         for k, v in vals.items():
             binding.bind_ortvalue_input(k, v)
-        outs = self._outputs.get(key)
+        shapes = tuple((k, s) for k, _, s in ident)
+        outs = held[2] if held is not None and held[3] == shapes else None
         names = [o.name for o in sess.get_outputs()]
         for n in names:
             if outs is None:
@@ -196,9 +213,8 @@ class DevicePath:
         sess.run_with_iobinding(binding)
         if outs is None:
             outs = dict(zip(names, binding.get_outputs()))
-            for old in [k for k in self._outputs if k[0] == stem]:
-                del self._outputs[old]  # one size per graph: a new size frees the last one's
-            self._outputs[key] = outs
+        # one binding per graph, its outputs kept while the input sizes stay (a new size frees them)
+        self._bindings[stem] = (ident, binding, outs, shapes, vals)
         return outs
 
     def numpy(self, stem: str, inputs: dict) -> dict[str, np.ndarray]:

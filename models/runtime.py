@@ -341,8 +341,13 @@ class _Runner:
         size's first run otherwise). A refused capture falls back as :meth:`run` does."""
         import onnxruntime as ort
 
-        key = tuple((k, tuple(v.shape())) for k, v in sorted(inputs.items()))
-        outs = getattr(self, "_device_out", {}).get(key)
+        ident = tuple((k, id(v), tuple(v.shape())) for k, v in sorted(inputs.items()))
+        held = getattr(self, "_device_binding", None)
+        if held is not None and held[0] == ident and held[3] is self.session:  # the same buffers
+            self.session.run_with_iobinding(held[1])
+            return held[2]
+        shapes = tuple((k, s) for k, _, s in ident)
+        outs = held[2] if held is not None and held[4] == shapes and held[3] is self.session else None
         for attempt in (0, 1):
             binding = self.session.io_binding()
             for name in self.inputs:
@@ -365,7 +370,8 @@ class _Runner:
                 self.session = self._fallback(exc)
         if outs is None:
             outs = dict(zip(self.outputs, binding.get_outputs()))
-        self._device_out = {key: outs}  # one size at a time: a size change frees the last one's
+        # one binding kept (its inputs held alive with it): a size change frees the last one's
+        self._device_binding = (ident, binding, outs, self.session, shapes, dict(inputs))
         return outs
 
     def _run_bound(self, feed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
