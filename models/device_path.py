@@ -134,6 +134,12 @@ class DevicePath:
         self._bindings: dict[str, tuple] = {}
         self._frames = 0
         self._probe_wi: np.ndarray | None = None
+        #: The live view's probe schedule (:meth:`polrig.app.single_shot.SingleShot.live`).
+        self.probe_every = LIVE_PROBE_EVERY
+
+    def restart_live(self) -> None:
+        """Forget the probe's last direction: the next frame probes (a new live stream)."""
+        self._frames, self._probe_wi = 0, None
 
     # -- capability ---------------------------------------------------------------------------
     def supports(self, options, network_shape: tuple[int, int]) -> str:

@@ -413,6 +413,32 @@ class SingleShot:
         result.stokes, result.snr, result.timings_s = stokes, snr, timings
         return result
 
+    def live(self, frame: Frame, state_deg: float, options: SingleShotOptions, *, max_display_px: int | None,
+             geometry: Mapping[str, Any] | None = None, sensor: SensorModel | None = None) -> SingleShotResult:
+        """One live-view frame (issue 31, item 4). On the device route the 3x3 grid of the
+        elements is rendered on the device at display size (each element area-averaged to a
+        long side of ``max_display_px / 3``: :attr:`SingleShotResult.preview_grid`, the only
+        image copied back; :attr:`~SingleShotResult.mueller` is zeros; ``None``: the whole
+        Mueller image instead) and the light-direction probe runs on every
+        :attr:`polrig.models.device_path.DevicePath.probe_every` th frame
+        (:data:`~polrig.models.device_path.LIVE_PROBE_EVERY`), its direction reused in between.
+        The host route is :meth:`frame` unchanged."""
+        if self.frame_route != "device" or self.device_refuses(frame, options):
+            return self.frame(frame, state_deg, options, geometry=geometry, sensor=sensor)
+        self._check(options)
+        sensor = sensor or SensorModel()
+        lay = frame_layout(frame)
+        raw_shape = tuple(frame.raw.shape[-2:])
+        h, w = raw_shape if options.resolution == "full" else output_shape(lay, raw_shape, "superpixel")
+        step = max(1, -(-3 * max(h, w) // max(1, int(max_display_px or 1))))
+        to_adc = adc_scale(sensor, frame.meta.bit_depth)
+        return self._frame_on_device(
+            frame, state_deg, options, geometry=geometry, sensor=sensor, to_adc=to_adc,
+            black=float(frame.meta.black_level_dn) * to_adc,
+            saturation=float(2.0 ** frame.meta.bit_depth - 1) * to_adc, scale=None, stage_zero_axis=None,
+            preview_size=None if max_display_px is None else (max(1, h // step), max(1, w // step)),
+            probe_every=self.device_path().probe_every)
+
     def device_path(self):
         """The :class:`polrig.models.device_path.DevicePath` of this route's model (made once)."""
         if self._device is None:
