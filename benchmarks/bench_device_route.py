@@ -11,6 +11,9 @@ rounds after one warm-up, warm in process, the raw frame in memory to the result
   scale's tail), ``networks`` (probe, frame pass, refinement), ``post`` (rotation, DN, the
   full-resolution lift, SNR) and ``copy_back`` (the result's arrays to the host);
 * the two routes' largest Mueller difference relative to the host route's largest value;
+* the live view's frame (:meth:`~polrig.app.single_shot.SingleShot.live`, the grid at a long
+  side of 1024 px on the device route; :meth:`frame` on the host route), ms and fps, Qt's
+  colour mapping and display not included;
 * with ``cpu`` and ``cuda`` both listed: the device route's CUDA-vs-CPU parity per output
   (the issue's target: within 1e-4 of each output's maximum, TF32 off).
 
@@ -74,7 +77,8 @@ def routes(device: str, cases, rounds: int, geometry: dict) -> tuple[list[dict],
         opts = SingleShotOptions(resolution, sigma=False)
         a = host.frame(frame, 0.0, opts, geometry=geometry)
         b = dev.frame(frame, 0.0, opts, geometry=geometry)  # warm-ups: sessions, plans, buffers
-        row = {"device": device, "provider": model.provider, "case": label, "host": [], "device_route": [],
+        dev.live(frame, 0.0, opts, max_display_px=1024, geometry=geometry)
+        row = {"device": device, "provider": model.provider, "case": label, "host": [], "device_route": [], "live": [],
                "steps": {k: [] for k in STEPS}, "host_vs_device": _rel(b.mueller, a.mueller)}
         results[label] = {"mueller": b.mueller, "snr": b.snr}
         rows.append(row)
@@ -86,6 +90,8 @@ def routes(device: str, cases, rounds: int, geometry: dict) -> tuple[list[dict],
             t1 = time.perf_counter()
             r = dev.frame(frame, 0.0, opts, geometry=geometry)
             t2 = time.perf_counter()
+            dev.live(frame, 0.0, opts, max_display_px=1024, geometry=geometry)
+            row["live"].append(time.perf_counter() - t2)
             row["host"].append(t1 - t0)
             row["device_route"].append(t2 - t1)
             for k in STEPS:
@@ -149,11 +155,13 @@ def render(rows: list[dict], parity: dict, live: list[dict], gpu: str | None, ro
     med = lambda xs: 1e3 * statistics.median(xs)  # noqa: E731
     lines = [f"GPU: {gpu or 'none'}. Medians over {rounds} interleaved round(s) after one warm-up, warm in "
              "process, the raw frame in memory to the result in memory; ms.", "",
-             "| provider | case | host route | device route | " + " | ".join(STEPS) + " | device vs host |",
-             "|---|---|---|---|" + "---|" * len(STEPS) + "---|"]
+             "| provider | case | host route | device route | " + " | ".join(STEPS)
+             + " | live grid (fps) | device vs host |",
+             "|---|---|---|---|" + "---|" * len(STEPS) + "---|---|"]
     for r in rows:
         lines.append(f"| {r['provider']} | {r['case']} | {med(r['host']):.1f} | **{med(r['device_route']):.1f}** | "
-                     + " | ".join(f"{med(r['steps'][k]):.1f}" for k in STEPS) + f" | {r['host_vs_device']:.1e} |")
+                     + " | ".join(f"{med(r['steps'][k]):.1f}" for k in STEPS)
+                     + f" | {med(r['live']):.1f} ({1e3 / med(r['live']):.1f}) | {r['host_vs_device']:.1e} |")
     if parity:
         lines += ["", "Device route, CUDA against the CPU provider (largest difference over the output's largest "
                   "value; target <= 1e-4 with TF32 off):", "", "| case | mueller | snr |", "|---|---|---|"]
@@ -204,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     live = []
     if args.live_frames >= 2:
         with tempfile.TemporaryDirectory() as d:
-            live = live_probe(devices[-1], args.live_frames, pathlib.Path(d))
+            live = live_probe(devices[0], args.live_frames, pathlib.Path(d))
     text = render(rows, parity, live, gpu_name() if "cuda" in devices else None, args.rounds)
     print(text)
     if args.out:

@@ -147,7 +147,8 @@ class SingleShotResult:
     ``beyond_calibration`` ``(C, H, W)`` bool (object pixels whose misfit lies beyond the
     sigma's calibration range; only with the sigma) and ``beyond_fraction`` (the object's
     fraction so flagged), ``network_grid`` (``wi`` on the networks' own grid: the route runs the
-    frame graph, without ``normal``, ``kd`` and ``mueller_init``), ``scale`` (ADC DN per
+    frame graph, without ``normal``, ``kd`` and ``mueller_init``; empty on the device route, which
+    copies back only what the result's planes use), ``scale`` (ADC DN per
     normalised unit), ``alpha``, ``provider`` (the onnxruntime execution provider that ran them)
     with ``provider_options`` and ``provider_notes``, ``incident_rotation_deg``. From
     :meth:`SingleShot.frame` also ``stokes`` ``(C, 3, H, W)`` (the measured Stokes images on
