@@ -252,10 +252,10 @@ class DevicePath:
         ``clipped`` ``(C, h, w)`` bool, ``snr`` ``(C, h, w)`` (``half_per_dn``, ``noise_offset``:
         :meth:`polrig.sensor.noise.SensorModel.variance_terms`, the first halved), ``stokes``
         ``(C, 3, h, w)`` with ``with_stokes`` (the network grid's), ``scale``, ``alpha``,
-        ``incident_rotation_deg``, ``wi`` ``(3, h, w)`` is not copied; ``timings_s`` per step
+        ``incident_rotation_deg`` (``wi`` is not copied); ``timings_s`` per step
         (``upload``, ``pre``, ``statistics``, ``networks``, ``post``, ``copy_back``). With
         ``preview_size`` ``(dh, dw)``: ``grid`` ``(C, 3 dh, 3 dw)``, the live view's matrix
-        grid, instead of ``mueller``. ``probe_every``: run the light-direction probe on every
+        grid, instead of ``mueller``, ``snr`` and ``clipped``. ``probe_every``: run the light-direction probe on every
         this many frames and reuse the last one's direction in between (the live view)."""
         m = self.model
         t = {"upload": 0.0, "pre": 0.0, "statistics": 0.0, "networks": 0.0, "post": 0.0, "copy_back": 0.0}
@@ -359,7 +359,9 @@ class DevicePath:
         post = self.run("post", {"mueller": out["mueller"], "wi": out["wi"], "size": np.array([h, w], np.int64),
                                  "axes": axes, "colour_mix": mix, "mask": mask_f, "scale": f32(sc)})
         mueller = post["mueller_dn"]
-        stokes = self.run("stokes", {"analyzer": analyzer})["stokes"]
+        stokes = None  # the network grid's Stokes: for the lift, the SNR, the sigma
+        if resolution == "full" or preview_size is None or with_stokes:
+            stokes = self.run("stokes", {"analyzer": analyzer})["stokes"]
         result = {"object": obj, "scale": sc, "default_scale": default,
                   "alpha": None, "incident_rotation_deg": float(np.rad2deg(prev).reshape(-1)[0])}
         if resolution == "full":
@@ -373,9 +375,11 @@ class DevicePath:
                                        "grid": np.array([h * ph, w * pw], np.int64),
                                        "pads": np.array([hh - h * ph, ww - w * pw], np.int64)})
             mueller = lifted["mueller_full"]
-            snr = self.run("s0_snr", {"stokes": full, "half_per_dn": f32(half_per_dn), "offset": f32(noise_offset)})
-            clipped = snr["clipped"]
-        else:
+            if preview_size is None:
+                snr = self.run("s0_snr", {"stokes": full, "half_per_dn": f32(half_per_dn),
+                                          "offset": f32(noise_offset)})
+                clipped = snr["clipped"]
+        elif preview_size is None:
             snr = self.run("s0_snr", {"stokes": stokes, "half_per_dn": f32(half_per_dn), "offset": f32(noise_offset)})
             clipped = sp["clipped"]
         if preview_size is not None:
@@ -392,9 +396,10 @@ class DevicePath:
             result["mueller"] = mueller.numpy()
         if resolution == "full":
             result["object"] = lifted["inside"].numpy()
-        result["snr"] = snr["snr"].numpy()
-        cl = clipped.numpy()
-        result["clipped"] = np.broadcast_to(cl, (c,) + cl.shape[-2:]) if cl.ndim == 2 else cl
+        if preview_size is None:  # the planes of a file (the live grid shows none)
+            result["snr"] = snr["snr"].numpy()
+            cl = clipped.numpy()
+            result["clipped"] = np.broadcast_to(cl, (c,) + cl.shape[-2:]) if cl.ndim == 2 else cl
         if with_stokes:
             result["stokes"] = stokes.numpy()
         lap("copy_back")

@@ -381,3 +381,70 @@ def test_the_device_route_declines_what_it_does_not_cover_in_one_line():
         why = p.supports(opts, (512, 612))
         assert text in why and "\n" not in why
     assert "1.5 Mpx" in p.supports(SingleShotOptions(), (2048, 2448))
+
+
+def test_a_capture_refused_at_the_first_bound_run_falls_back_to_the_plain_session():
+    """:meth:`polrig.models.runtime._Runner.run_device` (the networks on device buffers): where the
+    CUDA-graph session's first run fails, the plain session runs the same bound buffers, and the
+    outputs are kept for the next frame (the same objects)."""
+    import onnxruntime as ort
+
+    from polrig.models.runtime import _Runner
+
+    plain = ort.InferenceSession(str(dg.GRAPH_DIR / "masked_mean.onnx"), providers=["CPUExecutionProvider"])
+
+    class RefusesCapture:
+        def __init__(self, s):
+            self._s = s
+
+        def run_with_iobinding(self, binding, run_options=None):
+            raise RuntimeError("graph capture failed")
+
+        def __getattr__(self, name):
+            return getattr(self._s, name)
+
+    refused = []
+    runner = _Runner(RefusesCapture(plain), cuda_graph=True, fallback=lambda exc: refused.append(exc) or plain)
+    wi = rt.view_directions((6, 7))[None]
+    m = np.ones((1, 1, 6, 7), np.float32)
+    feed = {"wi": ort.OrtValue.ortvalue_from_numpy(wi), "mask": ort.OrtValue.ortvalue_from_numpy(m)}
+    out = runner.run_device(feed, "cpu")
+    assert len(refused) == 1 and runner.cuda_graph is False and runner.session is plain
+    np.testing.assert_array_equal(out["mean"].numpy(), plain.run(None, {"wi": wi, "mask": m})[0])
+    assert runner.run_device(feed, "cpu")["mean"] is out["mean"]
+
+
+@needs_model
+def test_the_live_grid_is_the_frames_mueller_image_at_display_size_and_probes_every_nth_frame(frames, monkeypatch):
+    """The device route's live frame: the nine elements area-averaged to a long side of a third
+    of the display, laid out as the matrix, the only image copied back; the probe (on the mono
+    256x256 grid) on every ``probe_every``-th frame only. The host route's live frame is its frame."""
+    import cv2
+
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app.single_shot import SingleShot
+    from polrig.models.runtime import SingleShotModel
+
+    f = frames["mono"][0]
+    opts = SingleShotOptions(sigma=False)
+    axis = {"stage_zero_axis_camera": (0.3, -0.9, 0.3)}
+    model = SingleShotModel.load(device="cpu")
+    route = SingleShot(model, "device")
+    path = route.device_path()
+    passes = []
+    real = DevicePath._network
+    monkeypatch.setattr(DevicePath, "_network", lambda self, outputs, feed: passes.append(outputs)
+                        or real(self, outputs, feed))
+    path.probe_every = 3
+    grids = [route.live(f, 30.0, opts, max_display_px=96, geometry=axis) for _ in range(4)]
+    assert passes == ["probe", "frame", "frame", "frame", "probe", "frame"]
+    whole = route.frame(f, 30.0, opts, geometry=axis)  # probes: what the first live frame showed
+    grid = grids[0].preview_grid
+    assert grid.shape == (1, 96, 96) and not np.any(grids[0].mask & 2)
+    for r in range(3):
+        for k in range(3):
+            _close(grid[0, 32 * r: 32 * r + 32, 32 * k: 32 * k + 32],
+                   cv2.resize(whole.mueller[0, r, k], (32, 32), interpolation=cv2.INTER_AREA), 1e-5)
+    host = SingleShot(model, "host")
+    np.testing.assert_array_equal(host.live(f, 30.0, opts, max_display_px=96, geometry=axis).mueller,
+                                  host.frame(f, 30.0, opts, geometry=axis).mueller)

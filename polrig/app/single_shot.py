@@ -177,7 +177,7 @@ class SingleShotResult:
     incident_rotation_deg: float | None = None
     timings_s: dict[str, float] = dataclasses.field(default_factory=dict)
     #: The live view's display-size grid of the nine elements ``(C, 3 dh, 3 dw)`` (the device
-    #: route's :meth:`SingleShot.live_grid`; then :attr:`mueller` holds zeros), else None.
+    #: route's :meth:`SingleShot.live`; then :attr:`mueller` is zeros and no pixel is flagged), else None.
     preview_grid: np.ndarray | None = None
     #: no state set: NaN (the reference solve's condition number, in a score's output)
     condition_number: float = float("nan")
@@ -242,6 +242,17 @@ class SingleShotResult:
         if self.extra_planes(planes):
             out["planes"]["beyond_calibration"] = BEYOND_CALIBRATION_PLANE
         return out
+
+
+def _levels(frame: Frame, sensor: SensorModel, black_level_dn: float | None = None,
+            saturation_dn: float | None = None) -> tuple[float, float, float]:
+    """``(to_adc, black, saturation)``: the factor from the frame's DN to the ADC's and the
+    black and saturation levels in ADC DN (defaults: the frame's black level, its bit depth's
+    full scale)."""
+    to_adc = adc_scale(sensor, frame.meta.bit_depth)
+    black = float(frame.meta.black_level_dn if black_level_dn is None else black_level_dn) * to_adc
+    saturation = float((2.0 ** frame.meta.bit_depth - 1) if saturation_dn is None else saturation_dn) * to_adc
+    return to_adc, black, saturation
 
 
 @dataclasses.dataclass
@@ -373,9 +384,7 @@ class SingleShot:
         normalised unit (default: from the image)."""
         self._check(options)
         sensor = sensor or SensorModel()
-        to_adc = adc_scale(sensor, frame.meta.bit_depth)
-        black = float(frame.meta.black_level_dn if black_level_dn is None else black_level_dn) * to_adc
-        saturation = float((2.0 ** frame.meta.bit_depth - 1) if saturation_dn is None else saturation_dn) * to_adc
+        to_adc, black, saturation = _levels(frame, sensor, black_level_dn, saturation_dn)
         if self.frame_route == "device" and not self.device_refuses(frame, options):
             return self._frame_on_device(frame, state_deg, options, geometry=geometry, sensor=sensor,
                                          to_adc=to_adc, black=black, saturation=saturation, scale=scale,
@@ -432,11 +441,10 @@ class SingleShot:
         raw_shape = tuple(frame.raw.shape[-2:])
         h, w = raw_shape if options.resolution == "full" else output_shape(lay, raw_shape, "superpixel")
         step = max(1, -(-3 * max(h, w) // max(1, int(max_display_px or 1))))
-        to_adc = adc_scale(sensor, frame.meta.bit_depth)
+        to_adc, black, saturation = _levels(frame, sensor)
         return self._frame_on_device(
             frame, state_deg, options, geometry=geometry, sensor=sensor, to_adc=to_adc,
-            black=float(frame.meta.black_level_dn) * to_adc,
-            saturation=float(2.0 ** frame.meta.bit_depth - 1) * to_adc, scale=None, stage_zero_axis=None,
+            black=black, saturation=saturation, scale=None, stage_zero_axis=None,
             preview_size=None if max_display_px is None else (max(1, h // step), max(1, w // step)),
             probe_every=self.device_path().probe_every)
 
@@ -483,12 +491,16 @@ class SingleShot:
             if beyond is not None:
                 aux["beyond_calibration"], aux["mask"] = beyond, m_net
         net = _Network(mueller, out["object"], aux)
-        with np.errstate(invalid="ignore"):
-            low = out["snr"] < MIN_SNR
-        if mueller is None:  # the live view's grid: no result planes
-            mueller = np.zeros((out["snr"].shape[0], 3, 3) + out["object"].shape, np.float32)
-        result = self._result(mueller, out["object"], low, out["clipped"], net, options)
-        result.stokes, result.snr, result.timings_s = out.get("stokes"), out["snr"], out["timings_s"]
+        if mueller is None:  # the live view's grid: no planes came back (nothing flagged, zeros)
+            shape = (lay.n_colours,) + out["object"].shape
+            mueller = np.broadcast_to(np.float32(0), shape[:1] + (3, 3) + shape[1:])
+            low = clipped = np.broadcast_to(False, shape)
+        else:
+            with np.errstate(invalid="ignore"):
+                low = out["snr"] < MIN_SNR
+            clipped = out["clipped"]
+        result = self._result(mueller, out["object"], low, clipped, net, options)
+        result.stokes, result.snr, result.timings_s = out.get("stokes"), out.get("snr"), out["timings_s"]
         result.preview_grid = out.get("grid")
         return result
 
