@@ -36,6 +36,16 @@ a layout decides (its class cells, its tent taps) comes in as small inputs. Name
     ``clipped`` ``(C, h, w)`` bool (a non-finite Stokes value).
 ``s0_mean``
     ``analyzer`` -> ``s0`` ``(h, w)``: the colours' mean ``S0``, what :func:`polrig.models.runtime.default_mask` reads.
+``mask_stats``
+    ``s0`` ``(h, w)``, ``k_low``, ``k_high``, ``k_mid`` ``(1,)`` int64 -> ``low``, ``high``,
+    ``mid`` ``(2,)``: the last two of the ``k_low`` smallest and ``k_high`` largest ``S0``
+    values and of the ``k_mid`` smallest ``|S0[:, j + 1] - S0[:, j]|`` (``TopK``), ``finite``
+    ``(2,)`` int64: how many values and differences are finite: the order statistics of the
+    object mask's rule (:func:`polrig.models.runtime.mask_from_s0`: its 1st and 99th percentile
+    and the differences' median).
+``mask_threshold``
+    ``s0``, ``threshold`` ``(1,)`` -> ``mask`` ``(h, w)`` float32 (``S0 > threshold``),
+    ``count`` ``(1,)`` int64.
 ``scale_tail``
     ``analyzer`` ``(C, 4, h, w)``, ``mask`` ``(h, w)`` float32, ``k`` ``(1,)`` int64 -> ``tail``
     ``(k,)``: the ``k`` largest analyzer values inside the mask, descending: the order
@@ -282,6 +292,50 @@ def s0_mean_graph():
     return g.model()
 
 
+def mask_stats_graph():
+    """:data:`mask_stats`: the order statistics :func:`polrig.models.runtime.mask_from_s0`
+    interpolates, by ``TopK``: the last two of the ``k_low`` smallest and of the ``k_high``
+    largest ``S0`` values, of the ``k_mid`` smallest absolute horizontal neighbour differences,
+    and how many values and differences are finite (the host checks they are all)."""
+    g = _Graph("mask_stats")
+    s0 = g.input("s0", FLOAT, ["h", "w"])
+    k_low = g.input("k_low", INT64, [1])
+    k_high = g.input("k_high", INT64, [1])
+    k_mid = g.input("k_mid", INT64, [1])
+    flat = g.op("Reshape", [s0, g.i64(-1)])
+    w = g.dim(s0, 1)
+    diff = g.op("Abs", [g.op("Sub", [g.op("Slice", [s0, g.i64(1), w, g.i64(1)]),
+                                     g.op("Slice", [s0, g.i64(0), g.op("Sub", [w, g.i64(1)]), g.i64(1)])])])
+    diff = g.op("Reshape", [diff, g.i64(-1)])
+
+    def last_two(values: str, k: str, largest: int) -> str:
+        top = g.op("TopK", [values, k], n_out=2, largest=largest, sorted=1)[0]
+        return g.op("Slice", [top, g.i64(-2), g.i64(2 ** 62)])
+
+    g.output(last_two(flat, k_low, 0), "low", FLOAT, [2])
+    g.output(last_two(flat, k_high, 1), "high", FLOAT, [2])
+    g.output(last_two(diff, k_mid, 0), "mid", FLOAT, [2])
+
+    def finite_count(v: str) -> str:
+        bad = g.op("Or", [g.op("IsNaN", [v]), g.op("IsInf", [v])])
+        return g.op("ReduceSum", [g.op("Cast", [g.op("Not", [bad])], to=INT64)], keepdims=1)
+
+    g.output(g.op("Concat", [finite_count(flat), finite_count(diff)], axis=0), "finite", INT64, [2])
+    return g.model()
+
+
+def mask_threshold_graph():
+    """:data:`mask_threshold`: ``S0 > threshold`` (NaN is not) as float32, and its count."""
+    g = _Graph("mask_threshold")
+    s0 = g.input("s0", FLOAT, ["h", "w"])
+    thr = g.input("threshold", FLOAT, [1])
+    m = g.op("Cast", [g.op("Greater", [s0, thr])], to=FLOAT)
+    g.output(m, "mask", FLOAT, ["h", "w"])
+    count = g.op("ReduceSum", [g.op("Reshape", [g.op("Cast", [m], to=INT64), g.i64(-1)])], keepdims=1)
+    g.output(count, "count", INT64, [1])
+    return g.model()
+
+
 def scale_tail_graph():
     """:data:`scale_tail`: ``TopK`` over the analyzer values, those outside the mask at -inf."""
     g = _Graph("scale_tail")
@@ -455,7 +509,8 @@ def grid_preview_graph():
 
 #: Every graph by the file stem it ships as.
 BUILDERS = {"superpixel": superpixel_graph, "bilinear": bilinear_graph, "stokes": stokes_graph,
-            "s0_snr": s0_snr_graph, "s0_mean": s0_mean_graph, "scale_tail": scale_tail_graph,
+            "s0_snr": s0_snr_graph, "s0_mean": s0_mean_graph, "mask_stats": mask_stats_graph,
+            "mask_threshold": mask_threshold_graph, "scale_tail": scale_tail_graph,
             "network_input": network_input_graph, "reduce": reduce_graph,
             "masked_mean": masked_mean_graph, "post": post_graph, "lift": lift_graph,
             "grid_preview": grid_preview_graph}

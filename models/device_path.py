@@ -11,14 +11,17 @@ numpy route.
 Per frame, what crosses between host and device:
 
 * up: the raw mosaic (``uint16``, once), a few scalars (black level, saturation, the incident
-  state, the scale), the object mask ``(h, w)``;
-* down for the normalisation statistics: the colours' mean ``S0`` ``(h, w)`` (the object mask's
-  rule, :func:`polrig.models.runtime.mask_from_s0`, median and percentiles, stays on the host:
-  exactness), then the ``k`` largest analyzer values in the mask (``TopK`` on the device; ``k``
-  about 0.5 % of the values, 76 kB at the full colour sensor): the host interpolates the scale's
-  percentile from them exactly as :func:`polrig.solve.quantiles.tail_percentile` does. Cost: one
-  ``(h, w)`` plane down and one up, and the host's mask rule (about 10-20 ms of CPU at
-  612x512, the same as the numpy route's);
+  state, the scale, the mask's threshold);
+* down for the normalisation statistics: order statistics found on the device by ``TopK``,
+  from which the host interpolates the percentiles exactly as
+  :func:`polrig.solve.quantiles.tail_percentile` does: for the object mask
+  (:func:`polrig.models.runtime.mask_from_s0`: the 1st and 99th percentile of ``S0`` and the
+  median of its neighbour differences) six numbers and the mask's pixel count, then the mask's
+  threshold goes up and is applied there; for the scale the ``k`` largest analyzer values in
+  the mask (``k`` about 0.5 % of them, 76 kB at the full colour sensor). Where the mask rule
+  needs the whole image (fewer than 65536 pixels, a non-finite ``S0``, fewer than 1 % of the
+  pixels lit) the ``S0`` plane ``(h, w)`` comes down and the rule runs on the host (26 ms at
+  612x512 on this 2-core machine, busy);
 * down for the light-direction probe and the refinement: three numbers each (the masked mean
   ``wi``);
 * down at the end, only what is used: the Mueller image, the object mask's reason planes
@@ -44,6 +47,8 @@ from polrig.models import devices
 from polrig.models.device_graphs import GRAPH_DIR, area_matrix
 from polrig.models.runtime import (
     DEFAULT_STAGE_ZERO_AXIS,
+    MASK_FRACTION,
+    MASK_NOISE_SIGMAS,
     MAX_INPUT_LEVEL,
     SCALE_PERCENTILE,
     incident_rotation,
@@ -85,6 +90,20 @@ def bilinear_inputs(layout) -> dict[str, np.ndarray]:
             "tent_y": _tent(ph).reshape(1, 1, -1, 1), "tent_x": _tent(pw).reshape(1, 1, 1, -1)}
 
 
+def _positions(n: int, q: float) -> tuple[int, int, float]:
+    """The two order statistics (0-based ranks) and the fraction that the ``q`` th percentile of
+    ``n`` values interpolates (numpy's ``linear`` method, as :func:`polrig.solve.quantiles.tail_percentile`)."""
+    pos = q / 100.0 * (n - 1)
+    lo = int(math.floor(pos))
+    return lo, min(lo + 1, n - 1), pos - lo
+
+
+def _lerp(a: float, b: float, frac: float) -> float:
+    """:func:`polrig.solve.quantiles.tail_percentile`'s interpolation (numpy's, in float64)."""
+    a, b = float(a), float(b)
+    return b - (b - a) * (1.0 - frac) if frac >= 0.5 else a + (b - a) * frac
+
+
 def scale_from_tail(tail: np.ndarray, n: int, q: float = SCALE_PERCENTILE) -> float:
     """:func:`polrig.models.runtime.default_scale` from the ``k`` largest of ``n`` values in
     descending order (``k >= n - floor(q (n - 1) / 100)``; all ``n`` where ``n`` is below
@@ -94,13 +113,8 @@ def scale_from_tail(tail: np.ndarray, n: int, q: float = SCALE_PERCENTILE) -> fl
         return 1.0
     if n < MIN_SIZE:
         return max(tail_percentile(np.asarray(tail[:n]), q), 1.0)
-    pos = q / 100.0 * (n - 1)
-    lo = int(math.floor(pos))
-    frac = pos - lo
-    hi = min(lo + 1, n - 1)
-    a, b = float(tail[n - 1 - lo]), float(tail[n - 1 - hi])
-    value = b - (b - a) * (1.0 - frac) if frac >= 0.5 else a + (b - a) * frac
-    return max(value, 1.0)
+    lo, hi, frac = _positions(n, q)
+    return max(_lerp(tail[n - 1 - lo], tail[n - 1 - hi], frac), 1.0)
 
 
 def tail_count(n: int, q: float = SCALE_PERCENTILE) -> int:
@@ -233,6 +247,36 @@ class DevicePath:
         runner = m._runner(outputs, (int(b), int(h), int(w)) if m.fixed_sizes else None)
         return runner.run_device({k: feed[k] for k in runner.inputs}, self.device)
 
+    def _object_mask(self, s0, shape: tuple[int, int]) -> tuple[object, int]:
+        """The object mask ``(h, w)`` float32 (on the device, or a host array) and its pixel count
+        by :func:`polrig.models.runtime.mask_from_s0`'s rule from the colours' mean ``S0`` on the
+        device: its 1st and 99th percentiles and the neighbour differences' median come from the
+        order statistics ``TopK`` finds there (``mask_stats``), interpolated here as the host rule
+        does, and the threshold is applied there (``mask_threshold``). Where the rule needs the
+        whole image (fewer than :data:`polrig.solve.quantiles.MIN_SIZE` pixels, a non-finite
+        value, fewer than 1 % of the pixels lit) ``S0`` comes to the host and the rule runs there."""
+        h, w = shape
+        n, m = h * w, h * (w - 1)
+        if n >= MIN_SIZE and m >= 2:
+            lo1, hi1, f1 = _positions(n, 1.0)
+            lo99, hi99, f99 = _positions(n, 99.0)
+            mid = m // 2 if m % 2 == 0 else (m - 1) // 2  # the (upper) middle rank
+            st = self.run("mask_stats", {"s0": s0, "k_low": np.array([hi1 + 1], np.int64),
+                                         "k_high": np.array([n - lo99], np.int64),
+                                         "k_mid": np.array([mid + 1], np.int64)})
+            if st["finite"].numpy().tolist() == [n, m]:
+                low, high, mids = (st[k].numpy() for k in ("low", "high", "mid"))
+                # np.median: the middle value, or the float32 mean of the two middle ones
+                median = float(np.median(mids if m % 2 == 0 else mids[-1:]))
+                floor = _lerp(low[0], low[1], f1) + MASK_NOISE_SIGMAS * (1.4826 * median / np.sqrt(2.0))
+                ref = _lerp(high[1], high[0], f99)
+                if ref > floor:
+                    thr = np.float32(MASK_FRACTION * ref) if ref > 0 else np.float32(np.inf)
+                    out = self.run("mask_threshold", {"s0": s0, "threshold": np.array([thr], np.float32)})
+                    return out["mask"], int(out["count"].numpy()[0])
+        obj = mask_from_s0(s0.numpy())
+        return obj.astype(np.float32), int(obj.sum())
+
     def _mean_direction(self, wi, mask) -> np.ndarray | None:
         """:func:`polrig.models.runtime.mean_direction` from the device's masked mean (3 numbers)."""
         mean = self.run("masked_mean", {"wi": wi, "mask": mask})["mean"].numpy().astype(np.float32)
@@ -279,11 +323,9 @@ class DevicePath:
         cn = m.colours if c == 1 else c
         colours = np.array([cn, 4, h, w], np.int64)
         lap("pre")
-        # the normalisation statistics: the mask on the host from S0, the scale's tail on the device
-        s0 = self.run("s0_mean", {"analyzer": analyzer})["s0"].numpy()
-        obj = mask_from_s0(s0)
-        mask_f = obj.astype(np.float32)
-        n = int(obj.sum()) * cn * 4
+        # the normalisation statistics: the object mask and the scale from order statistics on the device
+        mask_f, count = self._object_mask(self.run("s0_mean", {"analyzer": analyzer})["s0"], (h, w))
+        n = count * cn * 4
         default = 1.0
         if n:
             # a mono frame goes to the networks repeated to their colours: its statistics are
@@ -362,7 +404,7 @@ class DevicePath:
         stokes = None  # the network grid's Stokes: for the lift, the SNR, the sigma
         if resolution == "full" or preview_size is None or with_stokes:
             stokes = self.run("stokes", {"analyzer": analyzer})["stokes"]
-        result = {"object": obj, "scale": sc, "default_scale": default,
+        result = {"scale": sc, "default_scale": default,
                   "alpha": None, "incident_rotation_deg": float(np.rad2deg(prev).reshape(-1)[0])}
         if resolution == "full":
             bil = self.run("bilinear", {**common, **bilinear_inputs(layout)})
@@ -396,6 +438,8 @@ class DevicePath:
             result["mueller"] = mueller.numpy()
         if resolution == "full":
             result["object"] = lifted["inside"].numpy()
+        else:
+            result["object"] = (mask_f if isinstance(mask_f, np.ndarray) else mask_f.numpy()) > 0.5
         if preview_size is None:  # the planes of a file (the live grid shows none)
             result["snr"] = snr["snr"].numpy()
             cl = clipped.numpy()

@@ -448,3 +448,28 @@ def test_the_live_grid_is_the_frames_mueller_image_at_display_size_and_probes_ev
     host = SingleShot(model, "host")
     np.testing.assert_array_equal(host.live(f, 30.0, opts, max_display_px=96, geometry=axis).mueller,
                                   host.frame(f, 30.0, opts, geometry=axis).mueller)
+
+
+@pytest.mark.parametrize("case", ["sphere", "ties", "small_object", "nan", "dark", "small_image"])
+def test_the_object_mask_from_the_devices_order_statistics_equals_mask_from_s0(path, case):
+    """The 1st/99th percentiles and the differences' median from ``TopK`` on the device, the
+    threshold applied there; the host rule where it needs the whole image (a small image, a
+    non-finite value, fewer than 1 % lit): the same mask and count in every case."""
+    rng = np.random.default_rng(11)
+    h, w = (40, 50) if case == "small_image" else (256, 300)
+    v, u = np.mgrid[0:h, 0:w]
+    radius = 4 if case == "small_object" else 0.4 * min(h, w)
+    s0 = np.where((u - w / 2) ** 2 + (v - h / 2) ** 2 < radius ** 2, 1500.0, 40.0) + rng.normal(0, 3, (h, w))
+    if case == "ties":
+        s0 = np.round(s0 / 20) * 20
+    if case == "dark":
+        s0 = rng.normal(0, 3, (h, w))
+    s0 = s0.astype(np.float32)
+    if case == "nan":
+        s0[5, 7] = np.nan
+    mask, count = path._object_mask(path.upload("test_s0", s0), (h, w))
+    got = (mask if isinstance(mask, np.ndarray) else mask.numpy()) > 0.5
+    want = rt.mask_from_s0(s0)
+    np.testing.assert_array_equal(got, want)
+    assert count == int(want.sum())
+    assert isinstance(mask, np.ndarray) == (case in ("small_object", "dark", "nan", "small_image"))  # on the host
