@@ -202,9 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     for device in devices:
         r, results[device] = routes(device, cases, args.rounds, geometry)
         rows += r
-        for row in r:
-            print(f"{row['provider']} {row['case']}: host {1e3 * statistics.median(row['host']):.1f} ms, device "
-                  f"{1e3 * statistics.median(row['device_route']):.1f} ms", flush=True)
+        # the table so far, in the log: a run cut short by its time limit still leaves its rows
+        print(render(rows, {}, [], gpu_name() if device == "cuda" else None, args.rounds), flush=True)
     parity = {}
     if "cpu" in results and "cuda" in results:
         parity = {k: {o: _rel(results["cuda"][k][o], results["cpu"][k][o]) for o in ("mueller", "snr")}

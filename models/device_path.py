@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import pathlib
+import threading
 import time
 
 import numpy as np
@@ -146,6 +147,7 @@ class DevicePath:
         self._sessions: dict[str, object] = {}
         self._buffers: dict[tuple, object] = {}
         self._bindings: dict[str, tuple] = {}
+        self._lock = threading.Lock()
         self._frames = 0
         self._probe_wi: np.ndarray | None = None
         #: The live view's probe schedule (:meth:`polrig.app.single_shot.SingleShot.live`).
@@ -192,14 +194,17 @@ class DevicePath:
 
     def upload(self, name: str, array: np.ndarray):
         """``array`` in the persistent device buffer ``name`` (made at its first shape and dtype,
-        refilled in place after)."""
+        refilled in place after; int64 arrays in host memory)."""
         a = np.ascontiguousarray(array)
         key = (name, a.shape, a.dtype.str)
         buf = self._buffers.get(key)
         if buf is None:
             for old in [k for k in self._buffers if k[0] == name]:
                 del self._buffers[old]
-            buf = self._ort.OrtValue.ortvalue_from_numpy(a.copy(), self.device, 0)
+            # int64 inputs are sizes, pads and counts, which the CUDA kernels read on the host
+            # (onnxruntime would otherwise copy them back before each use)
+            where = "cpu" if a.dtype == np.int64 else self.device
+            buf = self._ort.OrtValue.ortvalue_from_numpy(a.copy(), where, 0)
             self._buffers[key] = buf
         else:
             buf.update_inplace(a)
@@ -284,7 +289,13 @@ class DevicePath:
         return mean / norm if np.all(norm > 1e-6) else None
 
     # -- the frame ------------------------------------------------------------------------------
-    def frame(self, raw: np.ndarray, layout, *, to_adc: float, black: float, saturation: float,
+    def frame(self, *args, **kwargs) -> dict:
+        """:meth:`_frame`, one frame at a time (the buffers are this path's: a capture's
+        processing and a live view sharing the route take turns)."""
+        with self._lock:
+            return self._frame(*args, **kwargs)
+
+    def _frame(self, raw: np.ndarray, layout, *, to_adc: float, black: float, saturation: float,
               s_in, resolution: str = "superpixel", stage_zero_axis=None, intrinsics=None,
               scale: float | None = None, half_per_dn: float = 0.0, noise_offset: float = 0.0,
               with_stokes: bool = False, probe_every: int = 1, tolerance_deg: float = 3.0,
