@@ -340,8 +340,10 @@ def test_the_device_route_equals_the_host_route(frames, kind, resolution):
 
 
 @needs_model
-def test_the_device_route_equals_polrig_infers_file(frames, tmp_path):
-    """``polrig infer`` (the CPU's host route) and the device route on the same raw file."""
+@pytest.mark.parametrize("kind", ["colour", "mono"])
+def test_the_device_route_equals_polrig_infers_file(frames, tmp_path, kind):
+    """``polrig infer`` (the CPU's host route) and the device route on the same raw file,
+    superpixel and full resolution (the colour frame with a clipped block)."""
     from polrig.acquisition.plan import SingleShotOptions
     from polrig.app.calibrations import nominal_calibration, single_shot_geometry
     from polrig.app.rig import load_rig_config
@@ -351,10 +353,11 @@ def test_the_device_route_equals_polrig_infers_file(frames, tmp_path):
     from polrig.formats.exr import read_mueller_exr
     from polrig.models.runtime import SingleShotModel
 
-    f, d = frames["colour"]
+    f, d = frames[kind]
+    src = d / "clipped.png" if kind == "colour" else next(d.glob("*_state00.png"))
     for resolution in ("superpixel", "full"):
         out = tmp_path / f"{resolution}.exr"
-        assert main(["infer", str(d / "clipped.png"), "--state-deg", "0", "--device", "cpu",
+        assert main(["infer", str(src), "--state-deg", "0", "--device", "cpu",
                      "--resolution", resolution, "--out", str(out)]) == 0
         exr = read_mueller_exr(out)
         config = load_rig_config(None)
@@ -362,8 +365,10 @@ def test_the_device_route_equals_polrig_infers_file(frames, tmp_path):
             f, 0.0, SingleShotOptions(resolution, sigma=False), sensor=config_sensor_model(config),
             geometry=single_shot_geometry(nominal_calibration(), config))
         _close(r.mueller, exr.mueller, ROUTE_RTOL)
-        for k, c in enumerate("RGB"):
-            np.testing.assert_array_equal(exr.extra[f"mask.{c}"], r.mask[k])
+        planes = sorted(k for k in exr.extra if k.startswith("mask"))
+        assert len(planes) == r.mask.shape[0]
+        for k, name in enumerate(["mask.R", "mask.G", "mask.B"] if kind == "colour" else planes):
+            np.testing.assert_array_equal(exr.extra[name], r.mask[k])
 
 
 @needs_model
