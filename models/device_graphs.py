@@ -17,6 +17,8 @@ Every graph is independent of the sensor's size and mosaic layout: sizes are dyn
 a layout decides (its class cells, its tent taps) comes in as small inputs. Names, shapes
 (``C`` colours, ``K = 4 C`` classes, ``(H, W)`` the raw mosaic, ``(h, w)`` a grid):
 
+``to_device``
+    ``raw_host`` ``(H, W)`` uint16 -> ``raw``: the upload from pinned host memory on CUDA.
 ``superpixel``
     ``raw`` ``(H, W)`` uint16, ``to_adc``, ``black``, ``saturation`` ``(1,)`` float32, ``cells``
     ``(K, ph, pw)`` (1 / the class's count at its cell positions) -> ``analyzer``
@@ -507,13 +509,21 @@ def grid_preview_graph():
     return g.model()
 
 
+def to_device_graph():
+    """:data:`to_device`: the raw mosaic as it is (on CUDA the input bound in pinned host memory,
+    the output in device memory: onnxruntime's copy between them is the upload)."""
+    g = _Graph("to_device")
+    g.output(g.input("raw_host", UINT16, ["H", "W"]), "raw", UINT16, ["H", "W"])
+    return g.model()
+
+
 #: Every graph by the file stem it ships as.
 BUILDERS = {"superpixel": superpixel_graph, "bilinear": bilinear_graph, "stokes": stokes_graph,
             "s0_snr": s0_snr_graph, "s0_mean": s0_mean_graph, "mask_stats": mask_stats_graph,
             "mask_threshold": mask_threshold_graph, "scale_tail": scale_tail_graph,
             "network_input": network_input_graph, "reduce": reduce_graph,
             "masked_mean": masked_mean_graph, "post": post_graph, "lift": lift_graph,
-            "grid_preview": grid_preview_graph}
+            "grid_preview": grid_preview_graph, "to_device": to_device_graph}
 
 
 def build_all(folder: pathlib.Path = GRAPH_DIR) -> dict:

@@ -10,7 +10,7 @@ numpy route.
 
 Per frame, what crosses between host and device:
 
-* up: the raw mosaic (``uint16``, once), a few scalars (black level, saturation, the incident
+* up: the raw mosaic (``uint16``, once; on CUDA from a pinned host buffer), a few scalars (black level, saturation, the incident
   state, the scale, the mask's threshold);
 * down for the normalisation statistics: order statistics found on the device by ``TopK``,
   from which the host interpolates the percentiles exactly as
@@ -148,6 +148,9 @@ class DevicePath:
         self._buffers: dict[tuple, object] = {}
         self._bindings: dict[str, tuple] = {}
         self._lock = threading.Lock()
+        #: Whether the raw mosaic goes up from pinned memory (CUDA; None: not tried yet). A refusal
+        #: is one of the model's ``device_notes`` (printed once, recorded in the result's header).
+        self._pinned: bool | None = None
         self._frames = 0
         self._probe_wi: np.ndarray | None = None
         #: The live view's probe schedule (:meth:`polrig.app.single_shot.SingleShot.live`).
@@ -209,6 +212,31 @@ class DevicePath:
         else:
             buf.update_inplace(a)
         return buf
+
+    def _upload_raw(self, raw: np.ndarray):
+        """The raw mosaic on the device. On CUDA it goes through a buffer in pinned (page-locked)
+        host memory, from which the copy to the device is one DMA transfer (``to_device``);
+        where onnxruntime offers no pinned memory the mosaic is copied from pageable memory, and
+        a note says so. On the CPU it is the host buffer."""
+        if self.device != "cuda" or self._pinned is False:
+            return self.upload("raw", raw)
+        key = ("raw_pinned", raw.shape, raw.dtype.str)
+        buf = self._buffers.get(key)
+        try:
+            if buf is None:
+                for old in [k for k in self._buffers if k[0] == "raw_pinned"]:
+                    del self._buffers[old]
+                buf = self._ort.OrtValue.ortvalue_from_shape_and_type(raw.shape, raw.dtype, "cuda_pinned", 0)
+                self._buffers[key] = buf
+            buf.update_inplace(raw)
+            out = self.run("to_device", {"raw_host": buf})["raw"]
+            self._pinned = True
+            return out
+        except Exception as exc:  # onnxruntime's own types: no pinned allocator here
+            self._pinned = False
+            why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:120]
+            self.model._note(f"pinned host memory refused ({why}); the raw mosaic goes up from pageable memory")
+            return self.upload("raw", raw)
 
     def run(self, stem: str, inputs: dict) -> dict:
         """Graph ``stem`` on ``inputs`` (``OrtValue`` s on the device, or numpy arrays, uploaded
@@ -325,7 +353,7 @@ class DevicePath:
         if raw.dtype != np.uint16:
             raw = raw.astype(np.uint16)
         f32 = lambda v: np.asarray([v], np.float32)  # noqa: E731
-        raw_d = self.upload("raw", raw)
+        raw_d = self._upload_raw(raw)
         lap("upload")
         common = {"raw": raw_d, "to_adc": f32(to_adc), "saturation": f32(saturation), "black": f32(black)}
         sp = self.run("superpixel", {**common, "cells": superpixel_cells(layout)})

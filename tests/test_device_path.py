@@ -478,3 +478,29 @@ def test_the_object_mask_from_the_devices_order_statistics_equals_mask_from_s0(p
     np.testing.assert_array_equal(got, want)
     assert count == int(want.sum())
     assert isinstance(mask, np.ndarray) == (case in ("small_object", "dark", "nan", "small_image"))  # on the host
+
+
+def test_a_refused_pinned_buffer_uploads_from_pageable_memory_and_says_so_once(capsys):
+    """The CUDA path's pinned upload where onnxruntime has no pinned allocator (this CPU build
+    refuses the ``cuda_pinned`` device): the mosaic goes up as it is, one note, not asked again."""
+    import onnxruntime as ort
+
+    notes = []
+
+    class Model(_CpuModel):
+        def _note(self, line):
+            notes.append(line)
+
+    path = DevicePath(Model())
+    raw = _raw((8, 10), 12)
+    path.device, pinned_device = "cuda", True  # the pinned branch of a CUDA path
+    try:
+        ort.OrtValue.ortvalue_from_shape_and_type((1,), np.uint16, "cuda_pinned", 0)
+    except Exception:
+        pinned_device = False
+    if pinned_device:
+        pytest.skip("this onnxruntime has pinned memory: nothing refused")
+    path.upload = lambda name, a: ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(a))  # host buffers here
+    for _ in range(2):
+        np.testing.assert_array_equal(path._upload_raw(raw).numpy(), raw)
+    assert path._pinned is False and len(notes) == 1 and "pageable" in notes[0]
