@@ -24,10 +24,11 @@ Per frame, what crosses between host and device:
   612x512 on this 2-core machine, busy);
 * down for the light-direction probe and the refinement: three numbers each (the masked mean
   ``wi``);
-* down at the end, only what is used: the Mueller image, the object mask's reason planes
-  (``clipped``), the ``S0`` signal-to-noise ``(C, h, w)`` for the ``dark`` bits, the Stokes
-  images only where the calibrated sigma needs them (:meth:`frame` ``with_stokes``), or for the
-  live view a display-size grid of the nine elements (:meth:`preview`).
+* down at the end, only what is used: for a result (``polrig infer``, the GUI's displays) the
+  Mueller image, the object mask, the reason planes (``clipped``), the ``S0`` signal-to-noise
+  ``(C, h, w)`` for the ``dark`` bits and the measured Stokes images (the result's, which the
+  displays and the calibrated sigma read; :meth:`frame` ``with_stokes``), or for the live view
+  only a display-size grid of the nine elements (``preview_size``).
 
 What it does not cover (:meth:`supports` says why, in one line; the route then takes the
 numpy steps): network binning, the mirror average, a ``bilinear`` or ``newton`` demosaic as the
@@ -334,7 +335,8 @@ class DevicePath:
         ``resolution`` ``full`` the lifted ``(C, 3, 3, H, W)``), ``object`` ``(h, w)`` bool,
         ``clipped`` ``(C, h, w)`` bool, ``snr`` ``(C, h, w)`` (``half_per_dn``, ``noise_offset``:
         :meth:`polrig.sensor.noise.SensorModel.variance_terms`, the first halved), ``stokes``
-        ``(C, 3, h, w)`` with ``with_stokes`` (the network grid's), ``scale``, ``alpha``,
+        ``(C, 3, h, w)`` with ``with_stokes`` (on the output grid: ``(C, 3, H, W)`` at full
+        resolution), ``scale``, ``alpha``,
         ``incident_rotation_deg`` (``wi`` is not copied); ``timings_s`` per step
         (``upload``, ``pre``, ``statistics``, ``networks``, ``post``, ``copy_back``). With
         ``preview_size`` ``(dh, dw)``: ``grid`` ``(C, 3 dh, 3 dw)``, the live view's matrix
@@ -483,8 +485,8 @@ class DevicePath:
             result["snr"] = snr["snr"].numpy()
             cl = clipped.numpy()
             result["clipped"] = np.broadcast_to(cl, (c,) + cl.shape[-2:]) if cl.ndim == 2 else cl
-        if with_stokes:
-            result["stokes"] = stokes.numpy()
+        if with_stokes and preview_size is None:  # on the output grid (the raw one at full resolution)
+            result["stokes"] = (full if resolution == "full" else stokes).numpy()
         lap("copy_back")
         result["timings_s"] = t
         return result

@@ -335,6 +335,11 @@ def test_the_device_route_equals_the_host_route(frames, kind, resolution):
     np.testing.assert_array_equal(a.mask, b.mask)
     _close(b.mueller, a.mueller, ROUTE_RTOL)
     _close(b.snr, a.snr, 1e-6)
+    _close(b.stokes, a.stokes, STEP_RTOL)  # what the displays read (polrig.gui.pipeline)
+    from polrig.gui.pipeline import PolarizationData
+
+    shown_a, shown_b = PolarizationData.from_single_shot(a, f), PolarizationData.from_single_shot(b, f)
+    np.testing.assert_array_equal(shown_b.flags, shown_a.flags)
     if resolution == "superpixel":
         _close(b.sigma, a.sigma, 1e-4)
 

@@ -477,7 +477,7 @@ class SingleShot:
             frame.raw, lay, to_adc=to_adc, black=black, saturation=saturation, s_in=s_in,
             resolution=options.resolution, stage_zero_axis=kwargs["stage_zero_axis"],
             intrinsics=kwargs["intrinsics"], scale=scale, half_per_dn=float(np.float32(0.5 * per_dn)),
-            noise_offset=float(offset), with_stokes=with_sigma, preview_size=preview_size,
+            noise_offset=float(offset), with_stokes=True, preview_size=preview_size,
             probe_every=probe_every)
         m_net = out["object"] if options.resolution != "full" else None
         aux: dict[str, Any] = {"scale": out["scale"], "alpha": out["alpha"], "provider": self.provider,
