@@ -509,3 +509,27 @@ def test_a_refused_pinned_buffer_uploads_from_pageable_memory_and_says_so_once(c
     for _ in range(2):
         np.testing.assert_array_equal(path._upload_raw(raw).numpy(), raw)
     assert path._pinned is False and len(notes) == 1 and "pageable" in notes[0]
+
+
+@needs_model
+@pytest.mark.parametrize("resolution", ["superpixel", "full"])
+def test_the_device_route_takes_a_roi_at_an_odd_offset_and_partial_cells(frames, resolution):
+    """A 94x122 crop of the colour frame at ROI offset (3, 1): the layout's phase moves, the last
+    partial cells are dropped (superpixel) or edge-repeated (the lift), 8-bit raw data."""
+    import dataclasses
+
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app.single_shot import SingleShot
+    from polrig.models.runtime import SingleShotModel
+
+    f = frames["colour"][0]
+    raw = (f.raw[1:95, 3:125] >> 4).astype(np.uint8)
+    meta = dataclasses.replace(f.meta, offset_xy=(3, 1), bit_depth=8,
+                               black_level_dn=float(f.meta.black_level_dn) / 16)
+    crop = type(f)(raw, meta)
+    model = SingleShotModel.load(device="cpu")
+    opts = SingleShotOptions(resolution, sigma=False)
+    a = SingleShot(model, "host").frame(crop, 45.0, opts)
+    b = SingleShot(model, "device").frame(crop, 45.0, opts)
+    np.testing.assert_array_equal(a.mask, b.mask)
+    _close(b.mueller, a.mueller, ROUTE_RTOL)
