@@ -108,8 +108,8 @@ def live_probe(device: str, n_frames: int, tmp: pathlib.Path) -> list[dict]:
     from polrig.cli import main as cli
     from polrig.formats.rawio import read_raw
     from polrig.models import device_path
-    from polrig.models.runtime import SingleShotModel
     from polrig.models.full_resolution import bin_cells
+    from polrig.models.runtime import SingleShotModel
     from polrig.solve.scoring import score_against_truth
 
     shots = []

@@ -292,8 +292,8 @@ class DevicePath:
         h, w = shape
         n, m = h * w, h * (w - 1)
         if n >= MIN_SIZE and m >= 2:
-            lo1, hi1, f1 = _positions(n, 1.0)
-            lo99, hi99, f99 = _positions(n, 99.0)
+            _, hi1, f1 = _positions(n, 1.0)
+            lo99, _, f99 = _positions(n, 99.0)
             mid = m // 2 if m % 2 == 0 else (m - 1) // 2  # the (upper) middle rank
             st = self.run("mask_stats", {"s0": s0, "k_low": np.array([hi1 + 1], np.int64),
                                          "k_high": np.array([n - lo99], np.int64),
