@@ -15,6 +15,7 @@ pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / "single_shot.onnx").is_file()
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_gpu_checks_dry_mode_brings_back_the_device_route_table(tmp_path):
     env = dict(os.environ, OUT=str(tmp_path), STEPS="device_route", PY=sys.executable)
     proc = subprocess.run(["bash", "benchmarks/gpu_check.sh", "dry"], cwd=REPO, env=env, capture_output=True,
