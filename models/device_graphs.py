@@ -475,9 +475,14 @@ def lift_graph():
     zero = g.const(np.float32(0))
 
     def up(v: str, lead: int) -> str:
-        sizes = g.cat(g.op("Slice", [g.op("Shape", [v]), g.i64(0), g.i64(lead)]), grid)
-        r = g.op("Resize", [v, "", "", sizes], mode="linear", coordinate_transformation_mode="half_pixel")
-        return g.op("Pad", [r, g.cat(g.i64(*([0] * (lead + 2 + lead))), pads)], mode="edge")
+        # as (1, N, h, w): the 4-D case with the outer scales 1, which every provider's linear
+        # Resize takes; then back to the lead axes
+        shape = g.op("Shape", [v])
+        flat = g.op("Reshape", [v, g.cat(g.i64(1, -1), g.op("Slice", [shape, g.i64(lead), g.i64(lead + 2)]))])
+        r = g.op("Resize", [flat, "", "", g.cat(g.i64(1), g.dim(flat, 1), grid)], mode="linear",
+                 coordinate_transformation_mode="half_pixel")
+        r = g.op("Pad", [r, g.cat(g.i64(0, 0, 0, 0, 0, 0), pads)], mode="edge")
+        return g.op("Reshape", [r, g.cat(g.op("Slice", [shape, g.i64(0), g.i64(lead)]), g.op("Shape", [r], start=2))])
 
     w = up(m, 0)
     inside = g.op("Greater", [w, g.const(np.float32(0.5))])
