@@ -15,7 +15,9 @@ Columns: per device and resolution, the median milliseconds of the inference and
 render over ``--frames`` frames after two warm-ups, and the frames per second they allow
 (1 / their sum; the live worker overlaps the render with the next frame's processing, so this
 is the lower bound). Devices: ``cpu`` and, where this onnxruntime offers it, ``cuda``; the
-GPU's name is printed. Issue 22's target: >= 20 fps at full sensor with the Mueller grid on one
+GPU's name is printed. Where the route runs its frames on the device (CUDA, issue 31) two
+more rows time its live frame, :meth:`polrig.app.single_shot.SingleShot.live`: the grid
+rendered on the device at display size and the light-direction probe every 8 frames. Issue 22's target: >= 20 fps at full sensor with the Mueller grid on one
 H100-class GPU.
 
     python benchmarks/bench_live_mueller.py [--frames 10] [--devices cpu,cuda] [--out FILE]
@@ -50,9 +52,14 @@ def frames(n: int, rng: np.random.Generator) -> list[Frame]:
     return [Frame(raw=synthetic_raw(FULL, rng, COLOUR), meta=meta) for _ in range(n)]
 
 
-def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry: dict, max_px: int) -> dict:
+def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry: dict, max_px: int,
+        grid_on_device: bool = False) -> dict:
     """Median seconds of inference and grid render over ``shots`` (two warm-ups first); the grid
-    decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`)."""
+    decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`).
+    ``grid_on_device``: the device route's live frame instead
+    (:meth:`polrig.app.single_shot.SingleShot.live`: the grid rendered on the device at display
+    size, the probe every few frames; the render column is then 0: the colour mapping of the
+    small grid is Qt's step, left out)."""
     from polrig.acquisition.plan import SingleShotOptions
     from polrig.app.single_shot import SingleShot
     from polrig.gui import pipeline
@@ -63,16 +70,21 @@ def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry
     infer, render = [], []
     for k, frame in enumerate([shots[0], shots[1 % len(shots)], *shots]):
         t0 = time.perf_counter()
-        data = pipeline.PolarizationData.from_single_shot(
-            model.frame(frame, 0.0, options, geometry=geometry), frame)
-        t1 = time.perf_counter()
-        pipeline.render(data, "mueller", step=pipeline.display_step(data, "mueller", max_px))
-        t2 = time.perf_counter()
+        if grid_on_device:
+            model.live(frame, 0.0, options, max_display_px=max_px or None, geometry=geometry)
+            t1 = t2 = time.perf_counter()
+        else:
+            data = pipeline.PolarizationData.from_single_shot(
+                model.frame(frame, 0.0, options, geometry=geometry), frame)
+            t1 = time.perf_counter()
+            pipeline.render(data, "mueller", step=pipeline.display_step(data, "mueller", max_px))
+            t2 = time.perf_counter()
         if k >= 2:
             infer.append(t1 - t0)
             render.append(t2 - t1)
     i, r = statistics.median(infer), statistics.median(render)
     return {"device": device, "provider": model.provider, "resolution": resolution, "binning": binning,
+            "path": "grid on the device" if grid_on_device else f"{model.frame_route} route, grid on the host",
             "infer_s": i, "render_s": r, "fps": 1.0 / (i + r), "frames": len(infer), "max_px": max_px}
 
 
@@ -80,11 +92,12 @@ def table(rows: list[dict], gpu: str | None) -> str:
     lines = [f"GPU: {gpu or 'none'}. Grid long side: {rows[0]['max_px'] or 'whole'} px. Medians over "
              f"{rows[0]['frames']} full-sensor colour frames after two warm-ups, warm in process; Qt's display "
              "step not included.", "",
-             "| device (provider) | resolution | network binning | inference ms | Mueller grid render ms | fps | target |",
-             "|---|---|---|---|---|---|---|"]
+             "| device (provider) | path | resolution | network binning | inference ms | Mueller grid render ms | fps "
+             "| target |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         goal = f">= {TARGET_FPS:.0f} fps (GPU)" if r["device"] == "cuda" else ""
-        lines.append(f"| {r['device']} ({r['provider']}) | {r['resolution']} | {r.get('binning', 1)} | "
+        lines.append(f"| {r['device']} ({r['provider']}) | {r.get('path', '')} | {r['resolution']} | {r.get('binning', 1)} | "
                      f"{1e3 * r['infer_s']:.0f} | "
                      f"{1e3 * r['render_s']:.0f} | {r['fps']:.1f} | {goal} |")
     return "\n".join(lines)
@@ -117,6 +130,12 @@ def main(argv: list[str] | None = None) -> int:
         for resolution, binning in VARIANTS:
             rows.append(run(device, resolution, binning, shots, geometry, args.max_display_px))
             print(f"{device} {resolution} binning {binning}: {rows[-1]['fps']:.1f} fps", flush=True)
+        from polrig.app.single_shot import SingleShot
+
+        if SingleShot.open(device).frame_route == "device":  # issue 31: the grid rendered on the device
+            for resolution in ("superpixel", "full"):
+                rows.append(run(device, resolution, 1, shots, geometry, args.max_display_px, grid_on_device=True))
+                print(f"{device} {resolution} grid on the device: {rows[-1]['fps']:.1f} fps", flush=True)
     import os
 
     text = (table(rows, gpu_name() if "cuda" in chosen else None)

@@ -29,7 +29,11 @@ also times, in fresh processes, where a cold run's time goes: imports, session c
 first and a second network pass at the full-sensor mono size; and the one-shot CLI's own steps
 for the full colour sensor at full resolution (its functions wrapped where they run: decode,
 session, reconstruction, EXR, the previews' S0 SNR and PNGs, the rest). The device each ran on (the
-onnxruntime provider) is printed with the table.
+onnxruntime provider, the GPU's name) and the frame route (``host`` on the CPU; ``device`` on CUDA,
+the frame kept on the GPU: :data:`polrig.app.single_shot.FRAME_ROUTES`) are printed with the
+table; on the device route a second table splits the warm frame into its steps (upload, pre,
+statistics, networks, post, copy-back; ``benchmarks/bench_device_route.py`` compares the two
+routes on one provider).
 
 Usage: ``python benchmarks/bench_single_shot.py [--rounds N] [--threads T] [--out FILE] [--anatomy]``
 (or ``python -m benchmarks single_shot``; default ``--out benchmarks/results/single_shot_speed.md``).
@@ -137,7 +141,8 @@ def warm_once(src: pathlib.Path, argv: list[str], route: SingleShot, out: pathli
     t3 = time.perf_counter()
     lift = result.timings_s.get("full_resolution", 0.0) + result.timings_s.get("binning_lift", 0.0)
     mueller = result.mueller
-    return {**result.timings_s, "lift": lift, "decode": t1 - t0, "compute": t2 - t1,
+    network = result.timings_s.get("network", result.timings_s.get("networks", 0.0))  # host / device route
+    return {**result.timings_s, "network": network, "lift": lift, "decode": t1 - t0, "compute": t2 - t1,
             "exr": t3 - t2,
             "total": t3 - t0, "cpu": _cpu_s() - c0, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}"}
 
@@ -360,6 +365,7 @@ def speed(rounds: int, threads: int | None, spinning: bool, weights, with_anatom
         steps = cold_steps(raws[(shape, layout)], argv + ["--device", device], tmp / "steps.exr",
                            rounds) if with_anatomy else None
     raw = {"provider": model.provider, "gpu": gpu_name() if model.provider == "CUDAExecutionProvider" else None,
+           "frame_route": model.frame_route,
            "onnxruntime": __import__("onnxruntime").__version__,
            "threads": threads or physical_cores(), "cores": physical_cores(), "spinning": spinning, "rounds": rounds,
            "warm": warm, "cold": cold, "anatomy": anat, "cold_steps": steps,
@@ -371,7 +377,8 @@ def render(raw: dict) -> str:
     """The Markdown table of :func:`speed`'s measurements ``raw`` (also saved as JSON)."""
     med = lambda rows, k: statistics.median(x.get(k, 0.0) for x in rows)  # noqa: E731
     gpu = f" on {raw['gpu']}" if raw.get("gpu") else ""
-    lines = [f"Device: {raw['provider']}{gpu} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
+    route = f", frame route {raw['frame_route']}" if raw.get("frame_route") else ""
+    lines = [f"Device: {raw['provider']}{gpu}{route} (onnxruntime {raw['onnxruntime']}), {raw['threads']} intra-op thread(s), "
              f"spinning {'on' if raw['spinning'] else 'off'}; {raw['cores']} physical core(s). Medians over "
              f"{raw['rounds']} interleaved round(s) after one warm-up; times in ms. Warm: in process; raw -> Mueller: "
              f"the raw frame in memory (as the camera delivers it) to the Mueller image in memory (demosaic, Stokes, "
@@ -393,6 +400,13 @@ def render(raw: dict) -> str:
                      f"{1e3 * med(w, 'network'):.0f} | {1e3 * med(w, 'lift'):.0f} | {1e3 * med(w, 'decode'):.0f} | "
                      f"{1e3 * med(w, 'exr'):.0f} | {1e3 * med(w, 'cpu'):.0f} | "
                      f"**{1e3 * med(c, 'wall'):.0f}** | {1e3 * med(c, 'cpu'):.0f} | {med(c, 'peak_mb'):.0f} | {'; '.join(goals)} |")
+    device_rows = {label: w for label, w in raw["warm"].items() if w and "upload" in w[0]}
+    if device_rows:  # the device route (issue 31): the frame kept on the provider's device
+        steps = ("upload", "pre", "statistics", "networks", "post", "copy_back")
+        lines += ["", "The device route's steps (warm, raw -> Mueller; `models/device_path.py`), ms:", "",
+                  "| case | " + " | ".join(steps) + " |", "|---|" + "---|" * len(steps)]
+        lines += [f"| {label} | " + " | ".join(f"{1e3 * med(w, k):.1f}" for k in steps) + " |"
+                  for label, w in device_rows.items()]
     anat = raw.get("anatomy")
     if anat:
         lines += ["", f"Where a cold run's time goes (fresh processes, medians of {raw['rounds']}; one network pass "

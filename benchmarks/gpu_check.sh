@@ -21,6 +21,11 @@
 # call ends inside the tool's 600 s and the tables come back). Results go to $OUT (*.md, *.log).
 #
 # What `measure` measures, in order of importance:
+#  0. the device route (issue 31 item 3-4: the frame kept on the GPU from the raw mosaic to the
+#     Mueller image, bench_device_route.py): per step (upload, pre, statistics, networks, post,
+#     copy-back) for the full colour and mono sensor, superpixel and full resolution, CUDA and
+#     the machine's CPU; the device route's CUDA-vs-CPU parity; the live grid with the probe on
+#     every frame and every 8th (its error against the hidden truth);
 #  1. the networks' step of one full colour sensor frame (612x512: probe + frame pass) on CUDA,
 #     before (the Acos graph on one dynamic session) and after (fixed-size sessions, the frame
 #     and probe graphs, HEURISTIC, TF32 off, CUDA graphs where accepted), with the CUDA-vs-CPU
@@ -31,6 +36,9 @@
 #  3. the live Mueller view on CUDA and CPU (bench_live_mueller.py);
 #  4. one network pass per provider setting with onnxruntime's profile (bench_network_pass.py);
 #  5. the CPU rows of 2 on the machine's 16 cores, for the comparison.
+#
+# STEPS="name ..." runs only the named steps (the logs' names; default all): the dry mode's test
+# runs the device route's alone.
 set -u
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/gpu-out}
@@ -43,6 +51,7 @@ T0=$(date +%s)
 # $OUT/NAME.log, the tail printed when it fails
 run() {
     local name=$1 cap=$2; shift 2
+    if [ -n "${STEPS:-}" ] && [[ " $STEPS " != *" $name "* ]]; then return; fi
     local left=$(( MEASURE_S - ($(date +%s) - T0) ))
     (( left < cap )) && cap=$left
     if (( cap < 10 )); then echo "SKIPPED $name (deadline)"; return; fi
@@ -79,17 +88,19 @@ measure)
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
     $PY -c "import onnxruntime as o; print('onnxruntime', o.__version__, o.get_available_providers())"
     $PY -c "from polrig.models import devices; print('gpus', devices.cuda_device_count(), 'auto ->', devices.choose_providers('auto', __import__('onnxruntime').get_available_providers()))"
-    run sessions_cuda 120 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --out "$OUT/sessions_cuda.md"
-    run sessions_cuda_frame 60 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --training-axis --out "$OUT/sessions_cuda_frame.md"
-    run single_shot_cuda 150 $PY benchmarks/bench_single_shot.py --device cuda --cases 0,3,4,6,7 --rounds 3 --out "$OUT/single_shot_cuda.md"
-    run live_mueller 60 $PY benchmarks/bench_live_mueller.py --frames 10 --devices cuda,cpu --out "$OUT/live_mueller.md"
-    run network_pass 60 $PY benchmarks/bench_network_pass.py --devices cuda,cpu --rounds 5 --no-torch --profile --out "$OUT/network_pass.md"
-    run single_shot_cpu 60 $PY benchmarks/bench_single_shot.py --device cpu --cases 3,4 --rounds 2 --out "$OUT/single_shot_cpu16.md"
+    run device_route 150 $PY benchmarks/bench_device_route.py --devices cuda,cpu --sizes 2448x2048 --rounds 3 --live-frames 8 --out "$OUT/device_route.md"
+    run sessions_cuda 100 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --out "$OUT/sessions_cuda.md"
+    run sessions_cuda_frame 40 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --training-axis --out "$OUT/sessions_cuda_frame.md"
+    run single_shot_cuda 120 $PY benchmarks/bench_single_shot.py --device cuda --cases 0,3,4,6,7 --rounds 3 --out "$OUT/single_shot_cuda.md"
+    run live_mueller 50 $PY benchmarks/bench_live_mueller.py --frames 10 --devices cuda,cpu --out "$OUT/live_mueller.md"
+    run network_pass 40 $PY benchmarks/bench_network_pass.py --devices cuda,cpu --rounds 5 --no-torch --profile --out "$OUT/network_pass.md"
+    run single_shot_cpu 50 $PY benchmarks/bench_single_shot.py --device cpu --cases 3,4 --rounds 2 --out "$OUT/single_shot_cpu16.md"
     cat "$OUT"/*.md 2>/dev/null
     grep -h "^polrig: " "$OUT"/*.log 2>/dev/null | sort | uniq -c   # refusals onnxruntime gave
     echo "measure: $(( $(date +%s) - T0 )) s"
     ;;
 dry)
+    run device_route 120 $PY benchmarks/bench_device_route.py --devices cpu --sizes 64x64 --rounds 1 --live-frames 2 --out "$OUT/device_route.md"
     run sessions_cpu 120 $PY benchmarks/bench_sessions.py --device cpu $(before_args) --size 64x64 --rounds 2 --out "$OUT/sessions_cpu.md"
     run sessions_cpu_frame 60 $PY benchmarks/bench_sessions.py --device cpu --size 64x64 --rounds 2 --training-axis --out "$OUT/sessions_cpu_frame.md"
     run network_pass 120 $PY benchmarks/bench_network_pass.py --devices cpu --size 64x64 --rounds 2 --no-torch --out "$OUT/network_pass.md"

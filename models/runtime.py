@@ -264,7 +264,12 @@ def default_mask(analyzer: np.ndarray, fraction: float = MASK_FRACTION) -> np.nd
     differences (``1.4826 MAD / sqrt 2``; a dark background is flat, so its differences are
     noise). Where nothing is above the floor (a black frame, or a texture as rough as noise
     filling the frame), the 99th-percentile rule stands."""
-    s0 = np.mean(stokes_s0(analyzer), axis=0)
+    return mask_from_s0(np.mean(stokes_s0(analyzer), axis=0), fraction)
+
+
+def mask_from_s0(s0: np.ndarray, fraction: float = MASK_FRACTION) -> np.ndarray:
+    """:func:`default_mask`'s rule on the colours' mean ``S0`` image ``(H, W)`` (what
+    :class:`polrig.models.device_path.DevicePath` copies back from the device for it)."""
     finite = np.isfinite(s0)
     if not finite.any():
         return np.zeros(s0.shape, bool)
@@ -327,6 +332,47 @@ class _Runner:
                 self.session = self._fallback(exc)
         outs = self.session.run(None, {k: feed[k] for k in self.inputs}, run_options)
         return dict(zip(self.outputs, outs))
+
+    def run_device(self, inputs: dict, device: str) -> dict:
+        """One run on inputs already on the session's device (``OrtValue`` s by input name, as
+        :class:`polrig.models.device_path.DevicePath` keeps them), the outputs left there in
+        buffers kept per input shapes: the same addresses every frame of a size, as CUDA graphs
+        replay them (allocated from the session's fixed output sizes there; by onnxruntime at a
+        size's first run otherwise). A refused capture falls back as :meth:`run` does."""
+        import onnxruntime as ort
+
+        ident = tuple((k, id(v), tuple(v.shape())) for k, v in sorted(inputs.items()))
+        held = getattr(self, "_device_binding", None)
+        if held is not None and held[0] == ident and held[3] is self.session:  # the same buffers
+            self.session.run_with_iobinding(held[1])
+            return held[2]
+        shapes = tuple((k, s) for k, _, s in ident)
+        outs = held[2] if held is not None and held[4] == shapes and held[3] is self.session else None
+        for attempt in (0, 1):
+            binding = self.session.io_binding()
+            for name in self.inputs:
+                binding.bind_ortvalue_input(name, inputs[name])
+            if outs is None and self.cuda_graph:
+                outs = {o.name: ort.OrtValue.ortvalue_from_shape_and_type(o.shape, np.float32, device, 0)
+                        for o in self.session.get_outputs()}
+            for name in self.outputs:
+                if outs is None:
+                    binding.bind_output(name, device, 0)
+                else:
+                    binding.bind_ortvalue_output(name, outs[name])
+            try:
+                self.session.run_with_iobinding(binding)
+                break
+            except Exception as exc:  # onnxruntime's own types: the capture refused
+                if not self.cuda_graph or attempt:
+                    raise
+                self.cuda_graph, self._binding, outs = False, None, None
+                self.session = self._fallback(exc)
+        if outs is None:
+            outs = dict(zip(self.outputs, binding.get_outputs()))
+        # one binding kept (its inputs held alive with it): a size change frees the last one's
+        self._device_binding = (ident, binding, outs, self.session, shapes, dict(inputs))
+        return outs
 
     def _run_bound(self, feed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         import onnxruntime as ort

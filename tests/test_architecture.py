@@ -188,9 +188,10 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 #: The one single-shot route (frame -> Mueller result with its planes; docs/architecture.md).
 SINGLE_SHOT_ROUTE = "polrig.app.single_shot"
 #: What a route of its own would be built from: the runtime's modules ...
-SINGLE_SHOT_RUNTIME = ("polrig.models.runtime", "polrig.models.full_resolution", "polrig.models.mirror")
+SINGLE_SHOT_RUNTIME = ("polrig.models.runtime", "polrig.models.full_resolution", "polrig.models.mirror",
+                       "polrig.models.device_path")
 #: ... and its names: loading the model, its passes, the binned route, the removed duplicates.
-SINGLE_SHOT_STEPS = ("SingleShotModel", "run_rig_frame", "run_normalised", "reconstruct_binned",
+SINGLE_SHOT_STEPS = ("SingleShotModel", "DevicePath", "run_rig_frame", "run_normalised", "reconstruct_binned",
                      "infer_frame", "infer_mueller")
 #: The modules that must take the route: capture and reconstruct processing, the plan check,
 #: ``polrig infer``, the GUI's live view (its display data, its model loader).

@@ -80,6 +80,14 @@ SIGMA_PLANE = ("standard deviation of M{rc}: the single-shot model's calibrated 
 #: The header's descriptions of the other result planes (as a reference solve's file).
 OTHER_PLANES = {"sigma_noise.M{rc}": "standard deviation of M{rc} from the sensor noise model alone",
                 "mask": "reason bits, 0 = valid", "residual": "chi^2 per dof"}
+#: The frame route per execution provider (issue 31): ``device``, the steps around the networks
+#: as ONNX graphs on the provider's device with the frame kept there
+#: (:class:`polrig.models.device_path.DevicePath`); ``host``, the numpy and OpenCV steps. CUDA
+#: takes the device route; the CPU keeps the host route, measured faster there
+#: (``benchmarks/results/single_shot_device_route.md``: the same numbers through onnxruntime's
+#: CPU kernels instead of OpenCV's). Options the device route does not cover take the host
+#: steps (:meth:`polrig.models.device_path.DevicePath.supports`).
+FRAME_ROUTES = {"CUDAExecutionProvider": "device", "CPUExecutionProvider": "host"}
 #: Loaded routes kept per process (weights folder, device, graph files): the oldest beyond this
 #: many goes (whoever holds it keeps it).
 MAX_OPEN = 4
@@ -139,7 +147,8 @@ class SingleShotResult:
     ``beyond_calibration`` ``(C, H, W)`` bool (object pixels whose misfit lies beyond the
     sigma's calibration range; only with the sigma) and ``beyond_fraction`` (the object's
     fraction so flagged), ``network_grid`` (``wi`` on the networks' own grid: the route runs the
-    frame graph, without ``normal``, ``kd`` and ``mueller_init``), ``scale`` (ADC DN per
+    frame graph, without ``normal``, ``kd`` and ``mueller_init``; empty on the device route, which
+    copies back only what the result's planes use), ``scale`` (ADC DN per
     normalised unit), ``alpha``, ``provider`` (the onnxruntime execution provider that ran them)
     with ``provider_options`` and ``provider_notes``, ``incident_rotation_deg``. From
     :meth:`SingleShot.frame` also ``stokes`` ``(C, 3, H, W)`` (the measured Stokes images on
@@ -167,6 +176,9 @@ class SingleShotResult:
     provider_notes: list[str] = dataclasses.field(default_factory=list)
     incident_rotation_deg: float | None = None
     timings_s: dict[str, float] = dataclasses.field(default_factory=dict)
+    #: The live view's display-size grid of the nine elements ``(C, 3 dh, 3 dw)`` (the device
+    #: route's :meth:`SingleShot.live`; then :attr:`mueller` is zeros and no pixel is flagged), else None.
+    preview_grid: np.ndarray | None = None
     #: no state set: NaN (the reference solve's condition number, in a score's output)
     condition_number: float = float("nan")
 
@@ -232,6 +244,17 @@ class SingleShotResult:
         return out
 
 
+def _levels(frame: Frame, sensor: SensorModel, black_level_dn: float | None = None,
+            saturation_dn: float | None = None) -> tuple[float, float, float]:
+    """``(to_adc, black, saturation)``: the factor from the frame's DN to the ADC's and the
+    black and saturation levels in ADC DN (defaults: the frame's black level, its bit depth's
+    full scale)."""
+    to_adc = adc_scale(sensor, frame.meta.bit_depth)
+    black = float(frame.meta.black_level_dn if black_level_dn is None else black_level_dn) * to_adc
+    saturation = float((2.0 ** frame.meta.bit_depth - 1) if saturation_dn is None else saturation_dn) * to_adc
+    return to_adc, black, saturation
+
+
 @dataclasses.dataclass
 class _Network:
     """The networks' answer on the analyzer grid (before a full-resolution lift)."""
@@ -268,8 +291,15 @@ class SingleShot:
     :meth:`frame` or :meth:`state` with the :class:`polrig.acquisition.plan.SingleShotOptions`
     (a live view changes them between frames; the model stays)."""
 
-    def __init__(self, model: "SingleShotModel"):
+    def __init__(self, model: "SingleShotModel", frame_route: str | None = None):
         self.model = model
+        if frame_route is None:
+            frame_route = FRAME_ROUTES.get(model.provider, "host")
+        if frame_route not in ("host", "device"):
+            raise ValueError(f"frame_route must be host or device, got {frame_route!r}")
+        #: How :meth:`frame` runs its steps around the networks (:data:`FRAME_ROUTES`).
+        self.frame_route = frame_route
+        self._device = None
 
     @classmethod
     def open(cls, device: str = "auto", weights: str | os.PathLike | None = None) -> "SingleShot":
@@ -354,9 +384,11 @@ class SingleShot:
         normalised unit (default: from the image)."""
         self._check(options)
         sensor = sensor or SensorModel()
-        to_adc = adc_scale(sensor, frame.meta.bit_depth)
-        black = float(frame.meta.black_level_dn if black_level_dn is None else black_level_dn) * to_adc
-        saturation = float((2.0 ** frame.meta.bit_depth - 1) if saturation_dn is None else saturation_dn) * to_adc
+        to_adc, black, saturation = _levels(frame, sensor, black_level_dn, saturation_dn)
+        if self.frame_route == "device" and not self.device_refuses(frame, options):
+            return self._frame_on_device(frame, state_deg, options, geometry=geometry, sensor=sensor,
+                                         to_adc=to_adc, black=black, saturation=saturation, scale=scale,
+                                         stage_zero_axis=stage_zero_axis)
         raw = frame.raw.astype(np.float64) * to_adc if to_adc != 1 else frame.raw
         lay = frame_layout(frame)
         kwargs = network_kwargs(geometry, frame, options.network_demosaic)
@@ -389,6 +421,87 @@ class SingleShot:
             low = snr < MIN_SNR  # unknown (a clipped sample's NaN): not dark, SATURATED says why
         result = self._result(mueller, obj, low, clipped, net, options)
         result.stokes, result.snr, result.timings_s = stokes, snr, timings
+        return result
+
+    def live(self, frame: Frame, state_deg: float, options: SingleShotOptions, *, max_display_px: int | None,
+             geometry: Mapping[str, Any] | None = None, sensor: SensorModel | None = None) -> SingleShotResult:
+        """One live-view frame (issue 31, item 4). On the device route the 3x3 grid of the
+        elements is rendered on the device at display size (each element area-averaged to a
+        long side of ``max_display_px / 3``: :attr:`SingleShotResult.preview_grid`, the only
+        image copied back; :attr:`~SingleShotResult.mueller` is zeros; ``None``: the whole
+        Mueller image instead) and the light-direction probe runs on every
+        :attr:`polrig.models.device_path.DevicePath.probe_every` th frame
+        (:data:`~polrig.models.device_path.LIVE_PROBE_EVERY`), its direction reused in between.
+        The host route is :meth:`frame` unchanged."""
+        if self.frame_route != "device" or self.device_refuses(frame, options):
+            return self.frame(frame, state_deg, options, geometry=geometry, sensor=sensor)
+        self._check(options)
+        sensor = sensor or SensorModel()
+        lay = frame_layout(frame)
+        raw_shape = tuple(frame.raw.shape[-2:])
+        h, w = raw_shape if options.resolution == "full" else output_shape(lay, raw_shape, "superpixel")
+        step = max(1, -(-3 * max(h, w) // max(1, int(max_display_px or 1))))
+        to_adc, black, saturation = _levels(frame, sensor)
+        return self._frame_on_device(
+            frame, state_deg, options, geometry=geometry, sensor=sensor, to_adc=to_adc,
+            black=black, saturation=saturation, scale=None, stage_zero_axis=None,
+            preview_size=None if max_display_px is None else (max(1, h // step), max(1, w // step)),
+            probe_every=self.device_path().probe_every)
+
+    def device_path(self):
+        """The :class:`polrig.models.device_path.DevicePath` of this route's model (made once)."""
+        if self._device is None:
+            from polrig.models.device_path import DevicePath
+
+            self._device = DevicePath(self.model)
+        return self._device
+
+    def device_refuses(self, frame: Frame, options: SingleShotOptions) -> str:
+        """Why the device route cannot take ``frame`` with ``options`` (one line; ``""``: it can)."""
+        lay = frame_layout(frame)
+        return self.device_path().supports(options, output_shape(lay, tuple(frame.raw.shape[-2:]), "superpixel"))
+
+    def _frame_on_device(self, frame: Frame, state_deg: float, options: SingleShotOptions, *, geometry,
+                         sensor: SensorModel, to_adc: float, black: float, saturation: float,
+                         scale: float | None, stage_zero_axis, preview_size=None,
+                         probe_every: int = 1) -> SingleShotResult:
+        """:meth:`frame` with its steps on the provider's device (:data:`FRAME_ROUTES`)."""
+        lay = frame_layout(frame)
+        kwargs = network_kwargs(geometry, frame, options.network_demosaic)
+        if stage_zero_axis is not None:
+            kwargs["stage_zero_axis"] = stage_zero_axis
+        per_dn, offset = sensor.variance_terms(frame.meta.exposure_us)
+        s_in = polarizer_stokes(np.deg2rad(float(state_deg))).astype(np.float32)
+        with_sigma = options.with_sigma and self.model.uncertainty is not None
+        out = self.device_path().frame(
+            frame.raw, lay, to_adc=to_adc, black=black, saturation=saturation, s_in=s_in,
+            resolution=options.resolution, stage_zero_axis=kwargs["stage_zero_axis"],
+            intrinsics=kwargs["intrinsics"], scale=scale, half_per_dn=float(np.float32(0.5 * per_dn)),
+            noise_offset=float(offset), with_stokes=True, preview_size=preview_size,
+            probe_every=probe_every)
+        m_net = out["object"] if options.resolution != "full" else None
+        aux: dict[str, Any] = {"scale": out["scale"], "alpha": out["alpha"], "provider": self.provider,
+                               "provider_options": self.model.provider_options,
+                               "incident_rotation_deg": out["incident_rotation_deg"], "network_grid": {}}
+        mueller = out.get("mueller")
+        if with_sigma and mueller is not None:
+            unc = self.model.uncertainty
+            aux["sigma"] = unc.sigma(mueller, s_in, m_net, out["stokes"], None)
+            beyond = unc.beyond_calibration(mueller, s_in, m_net, out["stokes"])
+            if beyond is not None:
+                aux["beyond_calibration"], aux["mask"] = beyond, m_net
+        net = _Network(mueller, out["object"], aux)
+        if mueller is None:  # the live view's grid: no planes came back (nothing flagged, zeros)
+            shape = (lay.n_colours,) + out["object"].shape
+            mueller = np.broadcast_to(np.float32(0), shape[:1] + (3, 3) + shape[1:])
+            low = clipped = np.broadcast_to(False, shape)
+        else:
+            with np.errstate(invalid="ignore"):
+                low = out["snr"] < MIN_SNR
+            clipped = out["clipped"]
+        result = self._result(mueller, out["object"], low, clipped, net, options)
+        result.stokes, result.snr, result.timings_s = out.get("stokes"), out.get("snr"), out["timings_s"]
+        result.preview_grid = out.get("grid")
         return result
 
     def state(self, state: StateRadiance, frame: Frame, s_in, options: SingleShotOptions, *,
