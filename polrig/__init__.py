@@ -22,6 +22,7 @@ PUBLIC_FACE = {
     "run_capture": "polrig.app.capture",
     "CaptureRequest": "polrig.app.capture",
     "SampleMetadata": "polrig.app.manifest",
+    "export": "polrig.app.export",
 }
 
 __all__ = ["__version__", *PUBLIC_FACE]
