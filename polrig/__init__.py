@@ -23,6 +23,7 @@ PUBLIC_FACE = {
     "CaptureRequest": "polrig.app.capture",
     "SampleMetadata": "polrig.app.manifest",
     "export": "polrig.app.export",
+    "normals_from_mueller": "polrig.optics.shape_from_polarization",
 }
 
 __all__ = ["__version__", *PUBLIC_FACE]

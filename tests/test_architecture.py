@@ -62,6 +62,7 @@ PUBLIC_FACE = {
     "CaptureRequest": "polrig.app.capture",
     "SampleMetadata": "polrig.app.manifest",
     "export": "polrig.app.export",
+    "normals_from_mueller": "polrig.optics.shape_from_polarization",
 }
 
 #: Top-level names polrig used to install besides ``polrig``, and the pre-layering modules of
