@@ -29,6 +29,7 @@ sensor pitch x distance / focal length); without it the export states unit-less 
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pathlib
 from typing import Any
@@ -52,11 +53,33 @@ def _channel_names(name: str, ds) -> tuple[str, ...]:
     return tuple(f"{name}.{s}" for s in colours)
 
 
+class _OneCaptureAtATime:
+    """A session variable as ``(T, C, Y, X)`` whose ``[t]`` computes every variable of capture
+    ``t`` together (one read of its result file, shared through the dataset's one dask chunk
+    per capture) and keeps that capture until another is asked for."""
+
+    def __init__(self, stacks: dict[str, Any], name: str, cache: dict[str, Any]):
+        self._stacks, self._name, self._cache = stacks, name, cache
+        data = stacks[name]
+        self.shape, self.dtype, self.ndim = tuple(data.shape), data.dtype, data.ndim
+
+    def __getitem__(self, t: int):
+        if self._cache.get("t") != t:
+            import dask
+
+            self._cache.clear()
+            names = list(self._stacks)
+            self._cache.update(zip(names, dask.compute(*(self._stacks[n][t] for n in names))))
+            self._cache["t"] = t
+        return self._cache[self._name]
+
+
 def dataset_images(ds) -> list[OmeImage]:
     """The images of an opened session or result (module docstring's table): each variable's
     ``(capture, channel, i, j, y, x)`` (or ``(capture, channel, y, x)``) as ``(T, C, Y, X)``,
     element-major channels (``M00.R``, ``M00.G``, ``M00.B``, ``M01.R``, ...); without a
-    ``capture`` dim ``(C, Y, X)``. Lazy where ``ds`` is."""
+    ``capture`` dim ``(C, Y, X)``, read at once (one result file); a session's are read a
+    capture at a time, all its variables together."""
     images = []
     for name in _ORDER:
         if name not in ds:
@@ -72,6 +95,14 @@ def dataset_images(ds) -> list[OmeImage]:
             data = var.transpose(*lead, "channel", "y", "x").data
             visible = channels
         images.append(OmeImage(name, data, channels, visible, dict(var.attrs)))
+    if "capture" in ds.dims:  # each capture's file read once for all its variables
+        stacks, cache = {im.name: im.data for im in images}, {}
+        images = [dataclasses.replace(im, data=_OneCaptureAtATime(stacks, im.name, cache)) for im in images]
+    else:  # one result: one read
+        import dask
+
+        images = [dataclasses.replace(im, data=d)
+                  for im, d in zip(images, dask.compute(*(im.data for im in images)))]
     return images
 
 

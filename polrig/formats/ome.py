@@ -62,6 +62,11 @@ _COLOURS = {"R": "FF0000", "G": "00FF00", "B": "0000FF", "Y": "FFFFFF"}
 UNITS = {"micrometer": "µm", "millimeter": "mm", "nanometer": "nm", "meter": "m"}
 #: Largest (Y, X) chunk edge of the OME-Zarr arrays.
 CHUNK = 1024
+#: Most values per plane the display windows are taken from (an even subsample beyond).
+WINDOW_SAMPLES = 65536
+#: OME-TIFF deflate level: 1, the fastest (float planes gain little from more; Bio-Formats reads
+#: any level).
+ZLIB_LEVEL = 1
 
 
 def channel_colour(name: str) -> str:
@@ -98,13 +103,16 @@ class OmeImage:
     def planes(self):
         """``((t, c), (Y, X) numpy plane)`` in storage order (``t`` is ``None`` without ``T``)."""
         if self.data.ndim == 3:
-            for c in range(self.data.shape[0]):
-                yield (None, c), np.asarray(self.data[c])
+            block = np.asarray(self.data)  # one read of a lazy result
+            for c in range(block.shape[0]):
+                yield (None, c), block[c]
         else:
             for t in range(self.data.shape[0]):
-                block = np.asarray(self.data[t])  # one capture: one read of a lazy session
-                for c in range(block.shape[0]):
-                    yield (t, c), block[c]
+                yield from (((t, c), p) for c, p in enumerate(self.block(t)))
+
+    def block(self, t: int) -> np.ndarray:
+        """The ``(C, Y, X)`` stack of capture ``t`` as numpy (one read of a lazy session)."""
+        return np.asarray(self.data[t])
 
 
 def _check(images: Sequence[OmeImage], pixel_size: tuple[float, float] | None, unit: str) -> None:
@@ -161,9 +169,17 @@ def write_ome_zarr(path: str | os.PathLike, images: Sequence[OmeImage], *,
     tmp = temporary_sibling(out)
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=NGFF_VERSIONS[version])
-        for k, im in enumerate(images):
-            group = root if k == 0 else root.create_group(im.name)
-            _write_image(group, im, pixel_size, unit, version)
+        groups = [root if k == 0 else root.create_group(im.name) for k, im in enumerate(images)]
+        arrays = [_create_array(g, im, version) for g, im in zip(groups, images)]
+        windows = [_Window(len(im.channels)) for im in images]
+        # capture by capture, every image: a lazy session's file is read once per capture
+        for t in range(images[0].data.shape[0] if images[0].data.ndim == 4 else 1):
+            for im, arr, win in zip(images, arrays, windows):
+                block = im.block(t) if im.data.ndim == 4 else np.asarray(im.data)
+                arr[t if im.data.ndim == 4 else slice(None)] = block
+                win.add(block)
+        for g, im, win in zip(groups, images, windows):
+            _write_metadata(g, im, win, pixel_size, unit, version)
         root.attrs.update({"polrig": json.loads(json.dumps(dict(attributes or {}), allow_nan=True,
                                                            default=str))})
         if out.exists():
@@ -175,7 +191,27 @@ def write_ome_zarr(path: str | os.PathLike, images: Sequence[OmeImage], *,
     return out
 
 
-def _write_image(group, im: OmeImage, pixel_size, unit: str, version: str) -> None:
+class _Window:
+    """Per channel display range (0.5 and 99.5 percentiles of the finite values, widened over
+    the captures) for the ``omero`` channels' ``window``."""
+
+    def __init__(self, n: int):
+        self.lo = np.full(n, np.inf)
+        self.hi = np.full(n, -np.inf)
+
+    def add(self, block: np.ndarray) -> None:
+        for c, plane in enumerate(block):
+            finite = plane[np.isfinite(plane)]
+            finite = finite[::max(1, finite.size // WINDOW_SAMPLES)]  # a display range: a sample will do
+            if finite.size:
+                a, b = np.percentile(finite, (0.5, 99.5))
+                self.lo[c], self.hi[c] = min(self.lo[c], float(a)), max(self.hi[c], float(b))
+
+    def of(self, c: int) -> dict[str, float]:
+        return _window(self.lo[c], self.hi[c])
+
+
+def _create_array(group, im: OmeImage, version: str):
     shape = tuple(int(s) for s in im.data.shape)
     dtype = np.dtype(im.data.dtype)
     chunks = (1,) * (len(shape) - 2) + (min(shape[-2], CHUNK), min(shape[-1], CHUNK))
@@ -184,25 +220,20 @@ def _write_image(group, im: OmeImage, pixel_size, unit: str, version: str) -> No
         kwargs["chunk_key_encoding"] = {"name": "v2", "separator": "/"}  # NGFF 0.4: "/" separator
     else:
         kwargs["dimension_names"] = list(im.axes)  # NGFF 0.5: the axes' names
-    arr = group.create_array("0", shape=shape, chunks=chunks, dtype=dtype, **kwargs)
-    lo = np.full(len(im.channels), np.inf)
-    hi = np.full(len(im.channels), -np.inf)
-    for (t, c), plane in im.planes():
-        arr[(c,) if t is None else (t, c)] = plane
-        finite = plane[np.isfinite(plane)]
-        if finite.size:
-            a, b = np.percentile(finite, (0.5, 99.5))
-            lo[c], hi[c] = min(lo[c], float(a)), max(hi[c], float(b))
+    return group.create_array("0", shape=shape, chunks=chunks, dtype=dtype, **kwargs)
+
+
+def _write_metadata(group, im: OmeImage, window: _Window, pixel_size, unit: str, version: str) -> None:
     space = {"type": "space"}
     if pixel_size is not None:
         space["unit"] = unit
     axes = [{"name": a, "type": {"t": "time", "c": "channel"}.get(a, "space")} | (space if a in "yx" else {})
             for a in im.axes]
-    scale = [1.0] * (len(shape) - 2) + ([float(v) for v in pixel_size] if pixel_size else [1.0, 1.0])
+    scale = [1.0] * (im.data.ndim - 2) + ([float(v) for v in pixel_size] if pixel_size else [1.0, 1.0])
     multiscale = {"name": im.name, "axes": axes,
                   "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": scale}]}]}
     omero = {"name": im.name, "rdefs": {"model": "color"},
-             "channels": [{"label": name, "color": channel_colour(name), "window": _window(lo[c], hi[c]),
+             "channels": [{"label": name, "color": channel_colour(name), "window": window.of(c),
                            "active": (name in im.visible) if im.visible else True}
                           for c, name in enumerate(im.channels)]}
     own = json.loads(json.dumps(dict(im.attributes), allow_nan=True, default=str))
@@ -221,7 +252,7 @@ def write_ome_tiff(path: str | os.PathLike, images: Sequence[OmeImage], *,
                    attributes: Mapping[str, Any] | None = None,
                    annotations: Mapping[str, str] | None = None) -> pathlib.Path:
     """Write ``images`` as one OME-TIFF (BigTIFF), one series per image, axes ``TCYX`` or
-    ``CYX`` (module docstring). ``pixel_size`` ``(y, x)`` in ``unit`` as
+    ``CYX`` (module docstring), deflate level :data:`ZLIB_LEVEL`. ``pixel_size`` ``(y, x)`` in ``unit`` as
     :func:`write_ome_zarr` (``None``: no physical size written); ``attributes`` (JSON) each
     image's ``Description`` (with the image's own attributes under ``image``),
     ``annotations`` (strings: the sample metadata) each image's ``MapAnnotation``. Written
@@ -247,7 +278,7 @@ def write_ome_tiff(path: str | os.PathLike, images: Sequence[OmeImage], *,
                     meta["MapAnnotation"] = {str(k): str(v) for k, v in annotations.items()}
                 tw.write((p for _, p in im.planes()), shape=tuple(im.data.shape),
                          dtype=np.dtype(im.data.dtype), photometric="minisblack",
-                         compression="zlib", metadata=meta)
+                         compression="zlib", compressionargs={"level": ZLIB_LEVEL}, metadata=meta)
         os.replace(tmp, out)
     except BaseException:
         pathlib.Path(tmp).unlink(missing_ok=True)
