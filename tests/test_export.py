@@ -143,3 +143,13 @@ def test_bad_requests_are_one_line(session, tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err and not (tmp_path / "no").exists()
     with pytest.raises(ValueError, match="unknown export format"):
         polrig.export(session, tmp_path / "x", "png")
+
+
+def test_ome_zarr_reads_each_capture_once(session, tmp_path, monkeypatch):
+    from polrig.app import dataset
+
+    reads = []
+    real = dataset.read_mueller_exr
+    monkeypatch.setattr(dataset, "read_mueller_exr", lambda p: reads.append(p.parent.name) or real(p))
+    polrig.export(session, tmp_path / "once.zarr")
+    assert sorted(reads) == ["c000_pose000.0", "c001_pose090.0"]  # mueller, sigma, mask: one read
