@@ -153,3 +153,41 @@ def test_ome_zarr_reads_each_capture_once(session, tmp_path, monkeypatch):
     monkeypatch.setattr(dataset, "read_mueller_exr", lambda p: reads.append(p.parent.name) or real(p))
     polrig.export(session, tmp_path / "once.zarr")
     assert sorted(reads) == ["c000_pose000.0", "c001_pose090.0"]  # mueller, sigma, mask: one read
+
+
+def test_pixel_size_from_the_calibration_set(tmp_path, session):
+    """The pixel size at the turntable axis: depth 0.5 m where the axis crosses the optical axis,
+    f = 600 px, a superpixel of the mono layout is 2x2 sensor pixels: 0.5 / 600 * 2 m."""
+    from polrig.calibration.calset import CalibrationSet
+    from polrig.sensor.analyzer import AnalyzerModel
+
+    cs = CalibrationSet()
+    cs.params["camera"] = {"layout": "imx250mzr", "readout": [64, 64, 0, 0], "sensor_size": [64, 64]}
+    cs.params["intrinsics"] = {"K": [[600.0, 0, 32.0], [0, 600.0, 32.0], [0, 0, 1]],
+                               "dist": [0.0] * 5, "image_size": [64, 64]}
+    cs.params["turntable"] = {"axis_cam": [0.0, -0.97, 0.26], "point_cam_m": [0.0, 0.3, 0.5 - 0.3 * 0.26 / 0.97],
+                              "axis_std_deg": 0.05}
+    cs.params["generator"] = {"zero_offset_deg": 0.0, "extinction_ratio": 1e6,
+                              "stage_zero_axis_cam": [1.0, 0.0, 0.0]}
+    cs.analyzer = AnalyzerModel.ideal("imx250mzr", (64, 64))
+    cs.dofp_maps = {"valid": np.ones((64, 64), bool)}
+    cal = tmp_path / "cal"
+    cs.save(cal)
+    cfg = sim_config(tmp_path / "rig.toml", noise=False)
+    run = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--config", str(cfg), "--out", str(run), "--no-progress",
+                 "--calibration", str(cal), "--exr-planes", "mueller,mask"]) == 0
+    out = polrig.export(run, tmp_path / "cal.zarr", calibration=cal)
+    md = read_ngff(out)[0].metadata
+    expected = 0.5 / 600 * 2 * 1e6  # micrometres
+    np.testing.assert_allclose(md["coordinateTransformations"][0][0]["scale"][2:], [expected] * 2, rtol=1e-9)
+    assert md["axes"][3]["unit"] == "micrometer"
+    # a result header knows its own layout and demosaic too
+    one = polrig.export(run / "c000_pose000.0" / "mueller.exr", tmp_path / "one.ome.tif", "ome-tiff",
+                        calibration=cal)
+    with tifffile.TiffFile(one) as tif:
+        assert float(ET.fromstring(tif.ome_metadata).find(".//{*}Pixels").get("PhysicalSizeX")) == pytest.approx(expected)
+    # a session captured with another calibration (the nominal one): refused, nothing written
+    with pytest.raises(ValueError, match="the source was captured with 'nominal'"):
+        polrig.export(session, tmp_path / "x.zarr", calibration=cal)
+    assert not (tmp_path / "x.zarr").exists()

@@ -21,10 +21,13 @@ the dataset's (sample metadata, plan, rig, calibration id, ... :mod:`polrig.app.
 the sample metadata (:func:`polrig.app.manifest.sample_fields`) also an OME-TIFF
 ``MapAnnotation``.
 
-Pixel size: the output pixel's size in the object, which polrig cannot know without the
-distance to the sample. It is the caller's ``pixel_size`` (e.g. a scale bar's measure, or the
-sensor pitch x distance / focal length); without it the export states unit-less pixels
-(scale 1, no unit; ``attributes["pixel_size"]`` says so).
+Pixel size: the output pixel's size in the object, which needs the distance to the sample.
+It is the caller's ``pixel_size`` (e.g. a scale bar's measure), or, from the calibration set the
+source was captured with (``calibration``: its ``intrinsics`` and ``turntable`` steps),
+:func:`pixel_size_at_turntable_axis`: the size at the depth where the turntable axis crosses
+the optical axis (closest approach), ``depth / f`` times the output grid's binning of sensor
+pixels (the layout period for a ``superpixel`` result, 1 otherwise). Without either the export
+states unit-less pixels (scale 1, no unit; ``attributes["pixel_size"]`` says so).
 """
 
 from __future__ import annotations
@@ -106,14 +109,62 @@ def dataset_images(ds) -> list[OmeImage]:
     return images
 
 
+def pixel_size_at_turntable_axis(calibration: str | os.PathLike, attrs: dict[str, Any]
+                                 ) -> tuple[float, float]:
+    """``(y, x)`` size in micrometres of an output pixel of the source with attributes
+    ``attrs`` (an opened session's or result's), in the object at the turntable axis, from the
+    calibration set in folder ``calibration``: ``depth / (fy, fx) * binning`` with ``depth`` the
+    camera-frame Z of the axis point closest to the optical axis (distortion ignored).
+    ``ValueError`` (one line) for a set without the ``intrinsics`` or ``turntable`` step, of
+    another calibration id than the source's, or an axis along the optical axis."""
+    import numpy as np
+
+    from polrig.calibration import calset
+    from polrig.sensor.layouts import get_layout
+
+    cs = calset.load(calibration)
+    missing = [step for step in ("intrinsics", "turntable") if not cs.has(step)]
+    if missing:
+        raise ValueError(f"calibration set {calibration}: no {' or '.join(missing)} step for a pixel size")
+    own = attrs.get("calibration_id")
+    if own is not None and own != cs.id:
+        raise ValueError(f"calibration set {calibration} is {cs.id!r}; the source was captured "
+                         f"with {own!r}")
+    k = cs.intrinsics["K"]
+    tt = cs.turntable_axis
+    a = tt["axis_cam"] / np.linalg.norm(tt["axis_cam"])
+    p0 = tt["point_cam_m"]
+    ez = np.array([0.0, 0.0, 1.0])
+    # closest approach of the lines p0 + s a and t ez: solve for s, t
+    b = float(a @ ez)
+    if 1.0 - b * b < 1e-9:
+        raise ValueError(f"calibration set {calibration}: the turntable axis runs along the optical axis")
+    d = p0
+    s_ = (b * float(ez @ d) - float(a @ d)) / (1.0 - b * b)
+    depth = float((p0 + s_ * a)[2])
+    plan = attrs.get("plan") or {}
+    demosaic = plan.get("demosaic", attrs.get("demosaic"))
+    resolution = plan.get("resolution", attrs.get("resolution", "superpixel"))
+    # the result header's layout, else the sensor the set was calibrated on (the frames' own)
+    layout = attrs.get("layout") or cs.params.get("camera", {}).get("layout")
+    binned = demosaic == "superpixel" and resolution != "full"
+    if binned and not layout:
+        raise ValueError(f"calibration set {calibration}: no sensor layout to size a superpixel by")
+    period = get_layout(layout).period if binned else (1, 1)
+    return (depth / float(k[1, 1]) * period[0] * 1e6, depth / float(k[0, 0]) * period[1] * 1e6)
+
+
 def export(source: str | os.PathLike, out: str | os.PathLike, format: str = "ome-zarr", *,
            pixel_size: tuple[float, float] | None = None, unit: str = "micrometer",
-           revision: str | None = None, version: str = "0.4") -> pathlib.Path:
+           revision: str | None = None, version: str = "0.4",
+           calibration: str | os.PathLike | None = None) -> pathlib.Path:
     """Export the session folder or result EXR ``source`` to ``out`` in ``format``
     (:data:`FORMATS`: ``"ome-zarr"``, OME-NGFF ``version`` 0.4 (default) or 0.5; ``"ome-tiff"``).
 
     ``pixel_size`` ``(y, x)`` in ``unit`` (:data:`polrig.formats.ome.UNITS`), ``None`` for
-    unit-less pixels (module docstring); ``revision`` a session revision's results. Returns
+    unit-less pixels (module docstring); ``calibration``: the calibration set folder the
+    pixel size is computed from instead (:func:`pixel_size_at_turntable_axis`, micrometres);
+    ``revision`` a session revision's results. Returns
     the written path. Raises ``ValueError`` for an unknown format, version or unit and the
     openers' errors (:class:`polrig.errors.FormatError`, ``KeyError`` for an unknown
     revision)."""
@@ -129,7 +180,14 @@ def export(source: str | os.PathLike, out: str | os.PathLike, format: str = "ome
     ds = open_session(src, revision=revision) if src.is_dir() else open_result(src)
     if not ds.data_vars:
         raise ValueError(f"{src}: no capture has a result to export")
+    if calibration is not None:
+        if pixel_size is not None:
+            raise ValueError("give a pixel size or a calibration set, not both")
+        pixel_size, unit = pixel_size_at_turntable_axis(calibration, dict(ds.attrs)), "micrometer"
     attrs = _attributes(ds, pixel_size, unit)
+    if calibration is not None:
+        attrs["pixel_size"]["from"] = (f"calibration set {calibration}: at the turntable axis "
+                                       "(its closest approach to the optical axis)")
     images = dataset_images(ds)
     if format == "ome-zarr":
         return write_ome_zarr(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,

@@ -46,6 +46,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pixel-size", type=pixel_size, default=None, metavar="S|SY,SX",
                    help="the output pixel's size in the object, in --unit (default: not known, "
                         "unit-less pixels)")
+    p.add_argument("--calibration", type=pathlib.Path, default=None, metavar="DIR",
+                   help="the calibration set the source was captured with: the pixel size at the "
+                        "turntable axis from its intrinsics and turntable steps, in micrometres "
+                        "(instead of --pixel-size)")
     p.add_argument("--unit", choices=tuple(UNITS), default="micrometer",
                    help="unit of --pixel-size (default micrometer)")
     p.add_argument("--revision", default=None, metavar="NAME",
@@ -67,10 +71,10 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.out.with_name(args.out.name + ".probe"))  # its folder exists
     try:
         out = export(src, args.out, args.format, pixel_size=args.pixel_size, unit=args.unit,
-                     revision=args.revision, version=args.ngff)
+                     revision=args.revision, version=args.ngff, calibration=args.calibration)
     except (ValueError, FileExistsError, KeyError) as exc:
         raise ConfigError(str(exc).strip("'\"")) from None
     print(f"wrote {out} ({args.format}"
           f"{f', OME-NGFF {args.ngff}' if args.format == 'ome-zarr' else ''}"
-          f"{'' if args.pixel_size else ', unit-less pixels'})")
+          f"{'' if args.pixel_size or args.calibration else ', unit-less pixels'})")
     return 0
