@@ -169,6 +169,8 @@ class DevicePath:
             return "network binning runs on the host"
         if options.mirror_average:
             return "the mirror average runs on the host"
+        if options.geometry:
+            return "the geometry planes (the full graph's outputs) run on the host"
         if options.network_demosaic != "superpixel":
             return f"a {options.network_demosaic} network input runs on the host"
         if options.resolution == "full" and options.demosaic != "bilinear":

@@ -22,6 +22,8 @@ PUBLIC_FACE = {
     "run_capture": "polrig.app.capture",
     "CaptureRequest": "polrig.app.capture",
     "SampleMetadata": "polrig.app.manifest",
+    "export": "polrig.app.export",
+    "normals_from_mueller": "polrig.optics.shape_from_polarization",
 }
 
 __all__ = ["__version__", *PUBLIC_FACE]

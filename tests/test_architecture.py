@@ -61,6 +61,8 @@ PUBLIC_FACE = {
     "run_capture": "polrig.app.capture",
     "CaptureRequest": "polrig.app.capture",
     "SampleMetadata": "polrig.app.manifest",
+    "export": "polrig.app.export",
+    "normals_from_mueller": "polrig.optics.shape_from_polarization",
 }
 
 #: Top-level names polrig used to install besides ``polrig``, and the pre-layering modules of

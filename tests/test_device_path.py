@@ -387,7 +387,8 @@ def test_the_device_route_declines_what_it_does_not_cover_in_one_line():
     for opts, text in ((SingleShotOptions(network_binning=2), "binning"),
                        (SingleShotOptions(mirror_average=True), "mirror"),
                        (SingleShotOptions("superpixel", "bilinear"), "bilinear network input"),
-                       (SingleShotOptions("full", "newton"), "newton detail")):
+                       (SingleShotOptions("full", "newton"), "newton detail"),
+                       (SingleShotOptions(geometry=True), "geometry")):
         why = p.supports(opts, (512, 612))
         assert text in why and "\n" not in why
     assert "1.5 Mpx" in p.supports(SingleShotOptions(), (2048, 2448))

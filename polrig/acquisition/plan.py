@@ -29,7 +29,7 @@ import math
 from typing import Any, Callable, Iterable, Sequence, Union
 
 from polrig.errors import ConfigError
-from polrig.formats.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+from polrig.formats.exr import COMPRESSIONS, PLANE_GROUPS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
 
 #: Capture and processing methods: ``reference`` (N >= 3 polarizer states solved per pixel),
 #: ``single-shot`` (the trained network on one state), ``hybrid`` (N >= 1 states solved with the
@@ -100,6 +100,13 @@ def check_network_binning(binning: Any, mode: str) -> int:
     return int(binning)
 
 
+
+#: Why the ``geometry`` planes are refused outside the single-shot method and off its grid.
+GEOMETRY_SINGLE_SHOT_ONLY = ("the geometry planes (normal, albedo, roughness, light) are the single-shot "
+                             "method's network outputs (mode single-shot)")
+GEOMETRY_ON_NETWORK_GRID = ("the geometry planes are written on the networks' own grid only: superpixel "
+                            "resolution, network binning 1")
+
 @dataclasses.dataclass(frozen=True)
 class SingleShotOptions:
     """How a single-shot result is computed: the one place its option rules live (issue 30).
@@ -121,13 +128,18 @@ class SingleShotOptions:
     ``sigma``: the model's calibrated standard deviations: ``True`` asks for them (refused where
     they are not calibrated: at full resolution or with network binning, :attr:`sigma_calibrated`),
     ``False`` skips them, ``None`` computes them where they are calibrated (a session's result:
-    NaN planes elsewhere)."""
+    NaN planes elsewhere).
+    ``geometry``: also keep the networks' surface normal, diffuse albedo, roughness and light
+    direction (the result's ``geometry`` planes; the full graph runs instead of the frame
+    graph); on the networks' own grid only, so refused at full resolution and with network
+    binning (:data:`GEOMETRY_ON_NETWORK_GRID`)."""
 
     resolution: str = "superpixel"
     demosaic: str | None = None
     network_binning: int = 1
     mirror_average: bool = False
     sigma: bool | None = None
+    geometry: bool = False
 
     def __post_init__(self) -> None:
         from polrig.sensor.demosaic import METHODS  # (cv2: not at plan import)
@@ -145,19 +157,25 @@ class SingleShotOptions:
         object.__setattr__(self, "demosaic", demosaic)
         object.__setattr__(self, "network_binning", check_network_binning(self.network_binning, "single-shot"))
         object.__setattr__(self, "mirror_average", bool(self.mirror_average))
+        object.__setattr__(self, "geometry", bool(self.geometry))
+        if self.geometry and not self.sigma_calibrated:
+            raise PlanError("geometry", GEOMETRY_ON_NETWORK_GRID + ", not "
+                            + " or ".join(self.uncalibrated_because()))
         if self.sigma and not self.sigma_calibrated:
             raise PlanError("sigma", "the single-shot uncertainty is calibrated on the networks' unbinned "
                                      f"superpixel grid only, not {' or '.join(self.uncalibrated_because())}")
 
     @classmethod
     def from_settings(cls, *, demosaic: str, resolution: str = "superpixel", network_binning: int = 1,
-                      mirror_average: bool = False, sigma: bool | None = None) -> "SingleShotOptions":
+                      mirror_average: bool = False, sigma: bool | None = None,
+                      geometry: bool = False) -> "SingleShotOptions":
         """The options of settings whose ``demosaic`` serves more than the single-shot output (a
         :class:`CapturePlan`'s, also the reference method's; the live view's, also its Stokes
         display's), ``superpixel`` by default: at full resolution that default stands for the
         default detail (``bilinear``) instead of being refused."""
         full_default = resolution == "full" and demosaic == "superpixel"
-        return cls(resolution, None if full_default else demosaic, network_binning, mirror_average, sigma)
+        return cls(resolution, None if full_default else demosaic, network_binning, mirror_average, sigma,
+                   geometry)
 
     @property
     def network_demosaic(self) -> str:
@@ -184,14 +202,16 @@ class SingleShotOptions:
 
 
 def single_shot_options(mode: str, demosaic: str, resolution: str, network_binning: Any,
-                        mirror_average: bool) -> SingleShotOptions | None:
+                        mirror_average: bool, exr_planes: Sequence[str] = ()) -> SingleShotOptions | None:
     """The single-shot options of a plan's (or a revision's) settings, ``None`` for the reference
     method, checked against the mode: mirror averaging, full resolution and network binning are
     single-shot only (one-line :class:`PlanError` s of the field). The hybrid method runs the
     single-shot route for its prior with its calibrated sigma (``sigma=True``): mirror averaging
     applies, full resolution and network binning 2 are refused (the sigma is NaN there,
-    :data:`HYBRID_NEEDS_SIGMA`). Shared by :class:`CapturePlan` and
-    :class:`polrig.app.processing.Processor`."""
+    :data:`HYBRID_NEEDS_SIGMA`). ``exr_planes``: the result's plane groups; ``geometry`` among
+    them (the networks' geometry, :attr:`SingleShotOptions.geometry`) is the single-shot
+    method's, on the networks' grid (a :class:`PlanError` of ``exr_planes`` otherwise). Shared by
+    :class:`CapturePlan` and :class:`polrig.app.processing.Processor`."""
     if mirror_average and mode not in NETWORK_MODES:
         raise PlanError("mirror_average", MIRROR_SINGLE_SHOT_ONLY)
     if resolution not in RESOLUTIONS:
@@ -203,11 +223,16 @@ def single_shot_options(mode: str, demosaic: str, resolution: str, network_binni
         raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
                         what="resolution")
     binning = check_network_binning(network_binning, mode)
+    geometry = "geometry" in exr_planes
+    if geometry and mode != "single-shot":
+        raise PlanError("exr_planes", GEOMETRY_SINGLE_SHOT_ONLY, subject="geometry", what="EXR plane group")
+    if geometry and (resolution != "superpixel" or binning != 1):
+        raise PlanError("exr_planes", GEOMETRY_ON_NETWORK_GRID, subject="geometry", what="EXR plane group")
     if mode not in NETWORK_MODES:
         return None
     return SingleShotOptions.from_settings(demosaic=demosaic, resolution=resolution,
                                            network_binning=binning, mirror_average=mirror_average,
-                                           sigma=True if mode == "hybrid" else None)
+                                           sigma=True if mode == "hybrid" else None, geometry=geometry)
 
 
 def check_seen_state(seen_state: Any, mode: str, n_states: int) -> int:
@@ -283,7 +308,8 @@ def parse_float_list(spec: str, name: str, *, positive: bool = False,
 @dataclasses.dataclass(frozen=True)
 class ExrChoice:
     """What a result ``mueller.exr`` holds and how it is stored (:func:`polrig.formats.exr.result_planes`,
-    :func:`polrig.formats.exr.write_exr`): ``planes`` the plane groups (:data:`polrig.formats.exr.RESULT_PLANES`;
+    :func:`polrig.formats.exr.write_exr`): ``planes`` the plane groups (:data:`polrig.formats.exr.RESULT_PLANES`,
+    and on request :data:`polrig.formats.exr.OPTIONAL_PLANES`' ``geometry``, single-shot only;
     ``mueller`` is always written, the groups are kept in that order), ``uncertainty``
     ``"float"`` (float32) or ``"half"`` (float16 ``sigma``, ``sigma_noise``, ``residual`` and
     ``mask``), ``compression`` ``"zip"``, ``"piz"`` or ``"none"``. Bytes per full-sensor colour
@@ -301,9 +327,9 @@ class ExrChoice:
 
     def __post_init__(self) -> None:
         planes = tuple(self.planes)
-        unknown = [p for p in planes if p not in RESULT_PLANES]
+        unknown = [p for p in planes if p not in PLANE_GROUPS]
         if unknown:
-            raise PlanError("exr_planes", f"choose from {', '.join(RESULT_PLANES)}",
+            raise PlanError("exr_planes", f"choose from {', '.join(PLANE_GROUPS)}",
                             subject=", ".join(map(str, unknown)), what="EXR plane group")
         if self.uncertainty not in UNCERTAINTY_PRECISIONS:
             raise PlanError("exr_uncertainty", f"use {' or '.join(UNCERTAINTY_PRECISIONS)}",
@@ -311,14 +337,16 @@ class ExrChoice:
         if self.compression not in COMPRESSIONS:
             raise PlanError("exr_compression", f"use one of {', '.join(COMPRESSIONS)}",
                             subject=repr(self.compression), what="EXR compression")
-        object.__setattr__(self, "planes", tuple(p for p in RESULT_PLANES
+        object.__setattr__(self, "planes", tuple(p for p in PLANE_GROUPS
                                                  if p == "mueller" or p in planes))
 
     def bytes_per_pixel(self) -> int:
         """Uncompressed bytes per output pixel and colour."""
         unc = 2 if self.uncertainty == "half" else 4
+        # geometry: albedo per colour, the normal, light (3 each) and roughness planes per pixel
+        # (counted per colour: exact for mono, an upper bound for colour)
         per = {"mueller": 9 * 4, "sigma": 9 * unc, "sigma_noise": 9 * unc, "mask": unc,
-               "residual": unc}
+               "residual": unc, "geometry": 4 * (1 + 3 + 3 + 1)}
         return sum(per[p] for p in self.planes)
 
 
@@ -394,7 +422,7 @@ class CapturePlan:
             raise PlanError("exposures_us", f"exposures must be > 0 microseconds, got "
                                             f"{self.exposures_us}")
         single_shot_options(self.mode, self.demosaic, self.resolution, self.network_binning,
-                            self.mirror_average)
+                            self.mirror_average, exr.planes)
         if self.mode == "reference" and len(self.states_deg) < 3:
             raise PlanError("states_deg", f"the reference method needs at least 3 polarizer "
                                           f"states, got {len(self.states_deg)}")

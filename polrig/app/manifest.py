@@ -27,7 +27,7 @@ import dataclasses
 import datetime as _dt
 import json
 import re
-from typing import Annotated, Any, Callable, Literal, NotRequired, TypedDict
+from typing import Annotated, Any, Callable, Literal, Mapping, NotRequired, TypedDict
 
 from polrig.acquisition.plan import MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
 from polrig.errors import ConfigError, FormatError
@@ -175,6 +175,16 @@ class SampleMetadata:
         record adds none, so a session without metadata writes the files it always did)."""
         return {k: v for k, v in self.fields().items() if v}
 
+
+
+def sample_fields(attributes: Mapping[str, Any]) -> dict[str, str]:
+    """The sample metadata among flat ``attributes`` (a result header's polrig entries, a
+    dataset's attributes): ``sample``, ``operator``, ``note`` where present and every string
+    entry that is none of :data:`RESERVED_METADATA_KEYS` (the user keys)."""
+    named = {k: str(attributes[k]) for k in ("sample", "operator", "note") if k in attributes}
+    return {**named, **{k: v for k, v in sorted(attributes.items())
+                        if k not in RESERVED_METADATA_KEYS and not k.startswith("polrig")
+                        and isinstance(v, str)}}
 
 # -- files by role ------------------------------------------------------------------------------
 class FileRecord(TypedDict):

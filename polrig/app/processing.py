@@ -361,7 +361,7 @@ class Processor:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
         #: the single-shot route's options (``None`` for the reference method)
         self.single_shot_options = single_shot_options(mode, demosaic, resolution, network_binning,
-                                                       mirror_average)
+                                                       mirror_average, exr.planes)
         self.network_binning = int(network_binning)
         # single-shot: the installed network (loaded once per process and device), or the
         # one-line "no model installed" error

@@ -88,6 +88,15 @@ OTHER_PLANES = {"sigma_noise.M{rc}": "standard deviation of M{rc} from the senso
 #: CPU kernels instead of OpenCV's). Options the device route does not cover take the host
 #: steps (:meth:`polrig.models.device_path.DevicePath.supports`).
 FRAME_ROUTES = {"CUDAExecutionProvider": "device", "CPUExecutionProvider": "host"}
+#: The header's descriptions of the ``geometry`` planes (:func:`geometry_planes`).
+GEOMETRY_PLANES = {
+    "geometry.normal.{X,Y,Z}": "the networks' unit surface normal, camera frame (X right, Y down, "
+                               "Z forward), towards the camera; NaN outside the object",
+    "geometry.albedo.{ch}": "the networks' diffuse albedo kd (pBRDF, Baek et al. 2018)",
+    "geometry.light.{X,Y,Z}": "the networks' unit direction towards the light, camera frame",
+    "geometry.roughness": "the networks' GGX roughness alpha: one value per image (header "
+                          "roughness_alpha), repeated over the object",
+}
 #: Loaded routes kept per process (weights folder, device, graph files): the oldest beyond this
 #: many goes (whoever holds it keeps it).
 MAX_OPEN = 4
@@ -202,11 +211,15 @@ class SingleShotResult:
         """The single-shot planes beside :func:`polrig.formats.exr.result_planes`' of the plane
         groups ``planes``: ``beyond_calibration.{colour}`` (0/1 in the uncertainty planes'
         precision) with the ``sigma`` group where the networks flagged them (they qualify the
-        sigma)."""
-        if self.beyond_calibration is None or "sigma" not in planes:
-            return {}
-        return colour_planes("beyond_calibration",
-                             np.asarray(self.beyond_calibration).astype(UNCERTAINTY_PRECISIONS[uncertainty]))
+        sigma); with the ``geometry`` group (:attr:`SingleShotOptions.geometry` runs the
+        networks for it) :func:`geometry_planes`."""
+        out: dict[str, np.ndarray] = {}
+        if self.beyond_calibration is not None and "sigma" in planes:
+            out.update(colour_planes("beyond_calibration", np.asarray(self.beyond_calibration)
+                                     .astype(UNCERTAINTY_PRECISIONS[uncertainty])))
+        if "geometry" in planes:
+            out.update(geometry_planes(self))
+        return out
 
     def header(self, planes: Sequence[str]) -> dict[str, Any]:
         """A result EXR's single-shot header entries for the plane groups ``planes``: the
@@ -239,8 +252,11 @@ class SingleShotResult:
                                          "networks' unbinned (superpixel) grid only, not " + " or ".join(why),
                           "sigma_noise.M{rc}": "0 (not modelled for the single-shot method)"})
         out["planes"] = {k: v for k, v in notes.items() if k.split(".", 1)[0] in planes}
-        if self.extra_planes(planes):
+        if self.beyond_calibration is not None and "sigma" in planes:
             out["planes"]["beyond_calibration"] = BEYOND_CALIBRATION_PLANE
+        if "geometry" in planes:
+            out["planes"].update(GEOMETRY_PLANES)
+            out["roughness_alpha"] = self.alpha
         return out
 
 
@@ -253,6 +269,26 @@ def _levels(frame: Frame, sensor: SensorModel, black_level_dn: float | None = No
     black = float(frame.meta.black_level_dn if black_level_dn is None else black_level_dn) * to_adc
     saturation = float((2.0 ** frame.meta.bit_depth - 1) if saturation_dn is None else saturation_dn) * to_adc
     return to_adc, black, saturation
+def geometry_planes(result: SingleShotResult) -> dict[str, np.ndarray]:
+    """The ``geometry`` plane group (:data:`GEOMETRY_PLANES`) of a result whose route ran with
+    :attr:`SingleShotOptions.geometry`: the networks' normal and light direction
+    (``geometry.normal.{X,Y,Z}``, ``geometry.light.{X,Y,Z}``, camera frame), diffuse albedo
+    (``geometry.albedo.{colour}``) and the image's one roughness (``geometry.roughness``), float32,
+    NaN outside the object. :class:`ValueError` where the route did not keep them."""
+    grid = result.network_grid
+    if not all(k in grid for k in ("normal", "kd", "wi")):
+        raise ValueError("the geometry planes need the route run with SingleShotOptions(geometry=True)")
+    obj = np.asarray(result.object, bool)
+    if grid["normal"].shape[-2:] != obj.shape:
+        raise ValueError(f"geometry on the networks' grid {grid['normal'].shape[-2:]} is not the "
+                         f"output grid {obj.shape}")
+    keep = lambda a: np.where(obj, np.asarray(a, np.float32), np.float32(np.nan))  # noqa: E731
+    out = {f"geometry.normal.{a}": keep(p) for a, p in zip("XYZ", grid["normal"])}
+    out.update(colour_planes("geometry.albedo", keep(grid["kd"])))
+    out.update({f"geometry.light.{a}": keep(p) for a, p in zip("XYZ", grid["wi"])})
+    alpha = np.nan if result.alpha is None else result.alpha
+    out["geometry.roughness"] = keep(np.full(obj.shape, alpha, np.float32))
+    return out
 
 
 @dataclasses.dataclass
@@ -551,8 +587,9 @@ class SingleShot:
         # (the full colour sensor's one-shot peak 1959 -> 1852 MB, no measurable time); the
         # superpixel route keeps it: the next frame's pass would fault it in again (+90 ms CPU).
         release = True if options.resolution == "full" else None
-        # the route reads mueller, wi and alpha: the graph without the other outputs (issue 31)
-        kwargs = dict(kwargs, outputs="frame")
+        # the route reads mueller, wi and alpha: the graph without the other outputs (issue 31),
+        # unless the geometry planes (normal, kd) are asked for
+        kwargs = dict(kwargs, outputs="all" if options.geometry else "frame")
         if options.network_binning > 1:
             mueller, aux = reconstruct_binned(self.model, analyzer, s_in, options.network_binning,
                                               stokes=stokes, scale=scale,

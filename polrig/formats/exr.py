@@ -59,6 +59,12 @@ COMPRESSIONS = {"zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
                 "none": OpenEXR.NO_COMPRESSION}
 #: Plane groups of a reconstruction (:func:`result_planes`); ``mueller`` is always written.
 RESULT_PLANES = ("mueller", "sigma", "sigma_noise", "mask", "residual")
+#: Plane groups written only on request, by the method that has them: ``geometry``, the
+#: single-shot networks' surface normal, diffuse albedo, roughness and light direction
+#: (:meth:`polrig.app.single_shot.SingleShotResult.extra_planes`).
+OPTIONAL_PLANES = ("geometry",)
+#: Every plane group a result file may hold, in file order.
+PLANE_GROUPS = RESULT_PLANES + OPTIONAL_PLANES
 #: Precision choices of the uncertainty planes (``sigma``, ``sigma_noise``, ``residual``).
 UNCERTAINTY_PRECISIONS = {"float": np.float32, "half": np.float16}
 
@@ -286,11 +292,12 @@ def result_planes(result: ResultArrays, *, planes: Sequence[str] = RESULT_PLANES
     ``residual.{colour}`` (chi^2 per dof). ``uncertainty``: ``"float"`` (float32) or ``"half"``
     (float16 ``sigma``, ``sigma_noise``, ``residual`` and ``mask``; the reason bits are small
     integers, exact in half precision). No copy is made of planes already in that precision.
+    The :data:`OPTIONAL_PLANES` groups may be named; their method writes them (``extra``).
     """
-    unknown = [p for p in planes if p not in RESULT_PLANES]
+    unknown = [p for p in planes if p not in PLANE_GROUPS]
     if unknown:
         raise ValueError(f"unknown EXR plane group(s) {', '.join(map(repr, unknown))}; choose "
-                         f"from {', '.join(RESULT_PLANES)}")
+                         f"from {', '.join(PLANE_GROUPS)}")
     if uncertainty not in UNCERTAINTY_PRECISIONS:
         raise ValueError(f"unknown uncertainty precision {uncertainty!r}; use "
                          f"{' or '.join(UNCERTAINTY_PRECISIONS)}")

@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from polrig.errors import ConfigError
-from polrig.formats.argcheck import check_output_file, check_output_folder, nonnegative_float
+from polrig.formats.argcheck import (check_output_file, check_output_folder, finite_float,
+                                     nonnegative_float, positive_float)
 
 #: Where the per-element sigma comes from (``--sigma``).
 SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
@@ -53,7 +54,45 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "anisotropic depolarization, the block cannot tell) where the "
                         "anisotropy exceeds K of its sigmas (default 3: 1.1%% of isotropic "
                         "pixels by chance)")
+    g = p.add_argument_group(
+        "shape from polarization",
+        "surface normals from the linear polarizance (the DoLP and AoLP unpolarized light "
+        "leaves): zenith from the DoLP for --ior, azimuth from the AoLP, in the camera frame; "
+        "every candidate the ambiguities allow is written (diffuse: azimuth or azimuth + 180 "
+        "deg; specular: also below or above Brewster's angle). polrig.optics.shape_from_polarization")
+    g.add_argument("--normals", action="store_true",
+                   help="also write the normal planes sfp_normal{K}.{X,Y,Z}.{ch}, "
+                        "sfp_zenith_deg{Z}.{ch}, sfp_azimuth_deg.{ch}")
+    g.add_argument("--ior", type=positive_float, default=None, metavar="N",
+                   help="refractive index of the surface (> 1; required with --normals), e.g. 1.5")
+    g.add_argument("--reflection", choices=("diffuse", "specular"), default="diffuse",
+                   help="reflection model (default diffuse: a matte dielectric)")
+    g.add_argument("--intrinsics", type=intrinsics, default=None, metavar="FX,FY,CX,CY",
+                   help="pinhole intrinsics of the result's pixel grid (pixels) for per-pixel "
+                        "viewing directions (default: orthographic view along the optical axis)")
     p.set_defaults(func=run)
+
+
+def intrinsics(text: str) -> tuple[float, float, float, float]:
+    """An argparse type: ``FX,FY,CX,CY``, finite, focal lengths > 0."""
+    parts = text.split(",")
+    if len(parts) != 4:
+        raise argparse.ArgumentTypeError(f"expected FX,FY,CX,CY, got {text!r}")
+    fx, fy = positive_float(parts[0]), positive_float(parts[1])
+    return (fx, fy, finite_float(parts[2]), finite_float(parts[3]))
+
+
+def _sfp(args: argparse.Namespace) -> dict | None:
+    """The shape-from-polarization request of the options, checked (``None``: not asked)."""
+    if not args.normals:
+        if args.ior is not None or args.intrinsics is not None:
+            raise ConfigError("--ior and --intrinsics need --normals")
+        return None
+    if args.ior is None:
+        raise ConfigError("--normals needs --ior N, the surface's refractive index (e.g. 1.5)")
+    if not args.ior > 1:
+        raise ConfigError(f"--ior must be > 1, got {args.ior:g}")
+    return {"ior": args.ior, "reflection": args.reflection, "intrinsics": args.intrinsics}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise ConfigError(f"--out must name an .exr file, got {out}")
     check_output_file(out)
-    print(analyze_file(src, out, args.sigma, args.k))
+    print(analyze_file(src, out, args.sigma, args.k, _sfp(args)))
     return 0
 
 
@@ -75,6 +114,7 @@ def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
 
     if args.out is not None:
         check_output_folder(args.out)
+    sfp = _sfp(args)
     session = Session.open(root)  # a reader: no lock
     jobs = []
     for cap in session.captures:
@@ -92,13 +132,14 @@ def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
     for name, result, out in jobs:
-        print(f"{name}: {analyze_file(result, out, args.sigma, args.k)}")
+        print(f"{name}: {analyze_file(result, out, args.sigma, args.k, sfp)}")
     return 0
 
 
 def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigma",
-                 k: float = 3.0) -> str:
-    """Write the maps EXR of one Mueller result; return the summary line."""
+                 k: float = 3.0, sfp: dict | None = None) -> str:
+    """Write the maps EXR of one Mueller result (with the shape-from-polarization normals of
+    ``sfp``, ``{"ior", "reflection", "intrinsics"}``, where given); return the summary line."""
     from polrig.formats.exr import channel_suffixes, colour_planes, read_mueller_exr, write_exr
     from polrig.optics import parameters as pa
 
@@ -124,6 +165,9 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
         f"{b} = {t}" for b, t in pa.DECOMPOSITION_FLAGS.items()) + "; 0 = decomposed, isotropic block"
     if any(k.startswith("mask.") for k in planes):
         described["mask.{ch}"] = "the result's mask plane, copied (reason bits, 0 = valid)"
+    normals_line = ""
+    if sfp is not None:
+        normals_line = _normal_planes(res.mueller, sfp, planes, described)
     metadata: dict[str, Any] = {
         "source": str(src), "planes": described,
         "decomposition_assumption": pa.DECOMPOSITION_ASSUMPTION,
@@ -136,6 +180,13 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
     for key in ("capture", "pose_deg", "exposure_us", "mode", "calibration_id", "revision"):
         if key in res.metadata:
             metadata[key] = res.metadata[key]
+    if sfp is not None:
+        metadata["shape_from_polarization"] = {
+            "ior": sfp["ior"], "reflection": sfp["reflection"],
+            "intrinsics": list(sfp["intrinsics"]) if sfp["intrinsics"] else None,
+            "view": "per pixel, pinhole" if sfp["intrinsics"] else "orthographic (0, 0, -1)",
+            "frame": "camera (OpenCV: X right, Y down, Z forward); normals point to the camera",
+            "reference": "Atkinson and Hancock, IEEE TIP 15(6):1653, 2006 (rho_d, rho_s)"}
     write_exr(out, planes, kind="parameter_maps", metadata=metadata)
     flags = maps.flags
     valid = np.ones(flags.shape, bool)
@@ -149,10 +200,43 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
     line = (f"wrote {out} ({w}x{h}, {c} colour plane(s), {len(pa.MAPS)} maps"
             f"{' with sigma' if maps.sigma else ''}); decomposition of {n} valid pixel-colour(s): "
             f"{undefined} undefined, {assumed} linearly anisotropic (retardance or anisotropic "
-            f"depolarization, shown under the isotropic-depolarization assumption)")
+            f"depolarization, shown under the isotropic-depolarization assumption){normals_line}")
     if note:
         print(f"polrig analyze: note: {src}: {note}", file=sys.stderr)
     return line
+
+
+def _normal_planes(mueller: np.ndarray, sfp: dict, planes: dict[str, np.ndarray],
+                   described: dict[str, str]) -> str:
+    """Add the shape-from-polarization planes of ``mueller`` ``(C, 3, 3, H, W)`` to ``planes``
+    and their descriptions to ``described``; return the summary's addition."""
+    from polrig.formats.exr import colour_planes
+    from polrig.optics import shape_from_polarization as sp
+
+    h, w = mueller.shape[-2:]
+    view = sp.view_directions(sfp["intrinsics"], (h, w)) if sfp["intrinsics"] else None
+    got = sp.normals_from_mueller(mueller, sfp["ior"], sfp["reflection"], view)
+    for kk, normal in enumerate(got.normals):
+        for axis, plane in zip("XYZ", normal):
+            planes.update(colour_planes(f"sfp_normal{kk}.{axis}", plane))
+    for z, zenith in enumerate(got.zenith_deg):
+        planes.update(colour_planes(f"sfp_zenith_deg{z}", zenith))
+    planes.update(colour_planes("sfp_azimuth_deg", got.azimuth_deg))
+    n = f"n = {sfp['ior']:g}"
+    if got.reflection == "diffuse":
+        described["sfp_normal{k}.{X,Y,Z}.{ch}"] = (
+            f"unit normal, camera frame, diffuse reflection, {n}: k = 0 azimuth = AoLP, k = 1 "
+            "azimuth + 180 deg (the pi ambiguity); NaN where the DoLP exceeds the grazing value")
+        described["sfp_zenith_deg0.{ch}"] = f"zenith from the diffuse DoLP, {n} (unique)"
+    else:
+        described["sfp_normal{k}.{X,Y,Z}.{ch}"] = (
+            f"unit normal, camera frame, specular reflection, {n}: k = 0, 1 zenith below "
+            "Brewster's angle with azimuth = AoLP + 90 deg, + 270 deg; k = 2, 3 above it")
+        described["sfp_zenith_deg{z}.{ch}"] = f"the two zeniths of the specular DoLP, {n}: 0 below, 1 above Brewster's angle"
+    described["sfp_azimuth_deg.{ch}"] = "image azimuth of sfp_normal0, [0, 180) deg from image right towards up"
+    found = int(np.count_nonzero(np.isfinite(got.zenith_deg[0])))
+    return (f"; {got.reflection} shape-from-polarization normals ({n}, {len(got.normals)} "
+            f"candidates) at {found} pixel-colour(s)")
 
 
 def _element_sigma(extra: dict[str, np.ndarray], sfx: tuple[str, ...], source: str

@@ -134,11 +134,13 @@ def add_exr_options(p: argparse.ArgumentParser, planes_default: str, unc_default
                     comp_default: str) -> None:
     """``--exr-planes``, ``--exr-uncertainty``, ``--exr-compression``: the result EXR's format
     (:class:`polrig.acquisition.plan.ExrChoice`; ``capture`` and ``reconstruct`` share them)."""
-    from polrig.formats.exr import COMPRESSIONS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+    from polrig.formats.exr import COMPRESSIONS, PLANE_GROUPS, UNCERTAINTY_PRECISIONS
 
     p.add_argument("--exr-planes", metavar="LIST", default=None,
                    help="plane groups of each result EXR, comma separated, from "
-                        f"{','.join(RESULT_PLANES)} (mueller always written; {planes_default})")
+                        f"{','.join(PLANE_GROUPS)} (mueller always written; geometry: the "
+                        f"single-shot networks' normal, albedo, roughness and light direction, "
+                        f"on request only; {planes_default})")
     p.add_argument("--exr-uncertainty", choices=tuple(UNCERTAINTY_PRECISIONS), default=None,
                    help="precision of the sigma, sigma_noise, residual and mask planes: float "
                         f"(float32) or half (float16, half the bytes; {unc_default})")

@@ -82,6 +82,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also write the model's calibrated standard deviation of every element "
                         "(sigma.M{row}{col}.{colour} planes, models/uncertainty.py; costs about a "
                         "third more time)")
+    p.add_argument("--geometry", action="store_true",
+                   help="also write the networks' geometry: surface normal and light direction "
+                        "(geometry.normal.{X,Y,Z}, geometry.light.{X,Y,Z}, camera frame), diffuse "
+                        "albedo (geometry.albedo.{colour}) and roughness (geometry.roughness); "
+                        "superpixel resolution, network binning 1")
     p.add_argument("--mirror-average", action="store_true",
                    help="also run the network on the frame's left-right mirror image and average the "
                         "two answers (models/mirror.py): a few per cent lower error for twice the "
@@ -97,7 +102,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 #: The option that sets each :class:`polrig.acquisition.plan.SingleShotOptions` field and each
 #: other field a library error names (:func:`polrig.cli.commands.capture.options_named`).
 FLAGS = {"resolution": "--resolution", "demosaic": "--demosaic", "network_binning": "--network-binning",
-         "mirror_average": "--mirror-average", "sigma": "--sigma", "calibration": "--calibration"}
+         "mirror_average": "--mirror-average", "sigma": "--sigma", "calibration": "--calibration",
+         "geometry": "--geometry"}
 #: The plane groups of a ``polrig infer`` EXR (:func:`polrig.formats.exr.result_planes`): the
 #: reason-bit mask always, the sigma with ``--sigma`` (``sigma_noise`` and ``residual`` are not
 #: modelled for the single-shot method).
@@ -125,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 
     with options_named(FLAGS):  # the option rules (SingleShotOptions), before any file is read
         options = SingleShotOptions(args.resolution, args.demosaic, args.network_binning,
-                                    args.mirror_average, args.sigma)
+                                    args.mirror_average, args.sigma, args.geometry)
     out = pathlib.Path(args.out)
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
@@ -160,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
         result = route.frame(frame, args.state_deg, options, geometry=geometry, sensor=sensor,
                              black_level_dn=black, saturation_dn=saturation, scale=args.scale,
                              stage_zero_axis=args.stage_zero_axis)
-    planes = SIGMA_PLANES if options.sigma else PLANES
+    planes = (SIGMA_PLANES if options.sigma else PLANES) + (("geometry",) if options.geometry else ())
     write_result_exr(out, result, planes=planes, compression="none",
                      extra=result.extra_planes(planes),
                      metadata={"method": "single-shot",

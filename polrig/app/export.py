@@ -1,0 +1,209 @@
+"""Export a session or a result EXR to OME-Zarr or OME-TIFF (issue 34, item 6): the files napari
+and Fiji open. ``polrig export`` and :func:`export` (``polrig.export``) are this one route.
+
+The source is read through the Python API's openers (:func:`polrig.app.dataset.open_session`,
+:func:`~polrig.app.dataset.open_result`: lazily, one capture at a time), and each of its
+variables becomes one image (:class:`polrig.formats.ome.OmeImage`) with a labelled channel axis:
+
+===============  ==========================  ========================================
+image            channels                    from
+===============  ==========================  ========================================
+``mueller``      ``M{i}{j}.{colour}``        the 3x3 Mueller block, element-major
+``sigma``        ``sigma.M{i}{j}.{colour}``  its standard deviation (noise + calibration)
+``sigma_noise``  ``sigma_noise.M{i}{j}...``  its standard deviation from the noise alone
+``mask``         ``mask.{colour}``           reason bits (uint8), 0 = valid
+``residual``     ``residual.{colour}``       chi^2 per degree of freedom
+===============  ==========================  ========================================
+
+(only the variables the source holds). A session's captures are the ``T`` axis, in capture
+order; their poses and folder names are in the attributes (``captures``). The attributes are
+the dataset's (sample metadata, plan, rig, calibration id, ... :mod:`polrig.app.dataset`), and
+the sample metadata (:func:`polrig.app.manifest.sample_fields`) also an OME-TIFF
+``MapAnnotation``.
+
+Pixel size: the output pixel's size in the object, which needs the distance to the sample.
+It is the caller's ``pixel_size`` (e.g. a scale bar's measure), or, from the calibration set the
+source was captured with (``calibration``: its ``intrinsics`` and ``turntable`` steps),
+:func:`pixel_size_at_turntable_axis`: the size at the depth where the turntable axis crosses
+the optical axis (closest approach), ``depth / f`` times the output grid's binning of sensor
+pixels (the layout period for a ``superpixel`` result, 1 otherwise). Without either the export
+states unit-less pixels (scale 1, no unit; ``attributes["pixel_size"]`` says so).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+from typing import Any
+
+from polrig.app.manifest import sample_fields
+from polrig.formats.ome import NGFF_VERSIONS, UNITS, OmeImage, write_ome_tiff, write_ome_zarr
+
+__all__ = ["FORMATS", "export", "dataset_images"]
+
+#: Export formats and their writers' file-name endings.
+FORMATS = {"ome-zarr": ".zarr", "ome-tiff": ".ome.tif"}
+_ELEMENT = ("mueller", "sigma", "sigma_noise")
+_ORDER = ("mueller", "sigma", "sigma_noise", "mask", "residual")
+
+
+def _channel_names(name: str, ds) -> tuple[str, ...]:
+    colours = [str(c) for c in ds.channel.values]
+    if name in _ELEMENT:
+        prefix = "" if name == "mueller" else f"{name}."
+        return tuple(f"{prefix}M{i}{j}.{s}" for i in range(3) for j in range(3) for s in colours)
+    return tuple(f"{name}.{s}" for s in colours)
+
+
+class _OneCaptureAtATime:
+    """A session variable as ``(T, C, Y, X)`` whose ``[t]`` computes every variable of capture
+    ``t`` together (one read of its result file, shared through the dataset's one dask chunk
+    per capture) and keeps that capture until another is asked for."""
+
+    def __init__(self, stacks: dict[str, Any], name: str, cache: dict[str, Any]):
+        self._stacks, self._name, self._cache = stacks, name, cache
+        data = stacks[name]
+        self.shape, self.dtype, self.ndim = tuple(data.shape), data.dtype, data.ndim
+
+    def __getitem__(self, t: int):
+        if self._cache.get("t") != t:
+            import dask
+
+            self._cache.clear()
+            names = list(self._stacks)
+            self._cache.update(zip(names, dask.compute(*(self._stacks[n][t] for n in names))))
+            self._cache["t"] = t
+        return self._cache[self._name]
+
+
+def dataset_images(ds) -> list[OmeImage]:
+    """The images of an opened session or result (module docstring's table): each variable's
+    ``(capture, channel, i, j, y, x)`` (or ``(capture, channel, y, x)``) as ``(T, C, Y, X)``,
+    element-major channels (``M00.R``, ``M00.G``, ``M00.B``, ``M01.R``, ...); without a
+    ``capture`` dim ``(C, Y, X)``, read at once (one result file); a session's are read a
+    capture at a time, all its variables together."""
+    images = []
+    for name in _ORDER:
+        if name not in ds:
+            continue
+        var = ds[name]
+        lead = ("capture",) if "capture" in var.dims else ()
+        channels = _channel_names(name, ds)
+        if name in _ELEMENT:  # (..., i, j, channel, y, x) -> (..., 9 C, y, x), element-major
+            data = var.transpose(*lead, "i", "j", "channel", "y", "x").data
+            data = data.reshape(data.shape[:len(lead)] + (len(channels),) + data.shape[-2:])
+            visible = tuple(c for c in channels if c.split(".")[-2] == "M00")
+        else:
+            data = var.transpose(*lead, "channel", "y", "x").data
+            visible = channels
+        images.append(OmeImage(name, data, channels, visible, dict(var.attrs)))
+    if "capture" in ds.dims:  # each capture's file read once for all its variables
+        stacks, cache = {im.name: im.data for im in images}, {}
+        images = [dataclasses.replace(im, data=_OneCaptureAtATime(stacks, im.name, cache)) for im in images]
+    else:  # one result: one read
+        import dask
+
+        images = [dataclasses.replace(im, data=d)
+                  for im, d in zip(images, dask.compute(*(im.data for im in images)))]
+    return images
+
+
+def pixel_size_at_turntable_axis(calibration: str | os.PathLike, attrs: dict[str, Any]
+                                 ) -> tuple[float, float]:
+    """``(y, x)`` size in micrometres of an output pixel of the source with attributes
+    ``attrs`` (an opened session's or result's), in the object at the turntable axis, from the
+    calibration set in folder ``calibration``: ``depth / (fy, fx) * binning`` with ``depth`` the
+    camera-frame Z of the axis point closest to the optical axis (distortion ignored).
+    ``ValueError`` (one line) for a set without the ``intrinsics`` or ``turntable`` step, of
+    another calibration id than the source's, or an axis along the optical axis."""
+    import numpy as np
+
+    from polrig.calibration import calset
+    from polrig.sensor.layouts import get_layout
+
+    cs = calset.load(calibration)
+    missing = [step for step in ("intrinsics", "turntable") if not cs.has(step)]
+    if missing:
+        raise ValueError(f"calibration set {calibration}: no {' or '.join(missing)} step for a pixel size")
+    own = attrs.get("calibration_id")
+    if own is not None and own != cs.id:
+        raise ValueError(f"calibration set {calibration} is {cs.id!r}; the source was captured "
+                         f"with {own!r}")
+    k = cs.intrinsics["K"]
+    tt = cs.turntable_axis
+    a = tt["axis_cam"] / np.linalg.norm(tt["axis_cam"])
+    p0 = tt["point_cam_m"]
+    ez = np.array([0.0, 0.0, 1.0])
+    # closest approach of the lines p0 + s a and t ez: solve for s, t
+    b = float(a @ ez)
+    if 1.0 - b * b < 1e-9:
+        raise ValueError(f"calibration set {calibration}: the turntable axis runs along the optical axis")
+    d = p0
+    s_ = (b * float(ez @ d) - float(a @ d)) / (1.0 - b * b)
+    depth = float((p0 + s_ * a)[2])
+    plan = attrs.get("plan") or {}
+    demosaic = plan.get("demosaic", attrs.get("demosaic"))
+    resolution = plan.get("resolution", attrs.get("resolution", "superpixel"))
+    # the result header's layout, else the sensor the set was calibrated on (the frames' own)
+    layout = attrs.get("layout") or cs.params.get("camera", {}).get("layout")
+    binned = demosaic == "superpixel" and resolution != "full"
+    if binned and not layout:
+        raise ValueError(f"calibration set {calibration}: no sensor layout to size a superpixel by")
+    period = get_layout(layout).period if binned else (1, 1)
+    return (depth / float(k[1, 1]) * period[0] * 1e6, depth / float(k[0, 0]) * period[1] * 1e6)
+
+
+def export(source: str | os.PathLike, out: str | os.PathLike, format: str = "ome-zarr", *,
+           pixel_size: tuple[float, float] | None = None, unit: str = "micrometer",
+           revision: str | None = None, version: str = "0.4",
+           calibration: str | os.PathLike | None = None) -> pathlib.Path:
+    """Export the session folder or result EXR ``source`` to ``out`` in ``format``
+    (:data:`FORMATS`: ``"ome-zarr"``, OME-NGFF ``version`` 0.4 (default) or 0.5; ``"ome-tiff"``).
+
+    ``pixel_size`` ``(y, x)`` in ``unit`` (:data:`polrig.formats.ome.UNITS`), ``None`` for
+    unit-less pixels (module docstring); ``calibration``: the calibration set folder the
+    pixel size is computed from instead (:func:`pixel_size_at_turntable_axis`, micrometres);
+    ``revision`` a session revision's results. Returns
+    the written path. Raises ``ValueError`` for an unknown format, version or unit and the
+    openers' errors (:class:`polrig.errors.FormatError`, ``KeyError`` for an unknown
+    revision)."""
+    from polrig.app.dataset import open_result, open_session
+
+    if format not in FORMATS:
+        raise ValueError(f"unknown export format {format!r}; use {' or '.join(FORMATS)}")
+    if version not in NGFF_VERSIONS:
+        raise ValueError(f"unknown OME-NGFF version {version!r}; use {' or '.join(NGFF_VERSIONS)}")
+    if unit not in UNITS:
+        raise ValueError(f"unknown unit {unit!r}; use one of {', '.join(UNITS)}")
+    src = pathlib.Path(source)
+    ds = open_session(src, revision=revision) if src.is_dir() else open_result(src)
+    if not ds.data_vars:
+        raise ValueError(f"{src}: no capture has a result to export")
+    if calibration is not None:
+        if pixel_size is not None:
+            raise ValueError("give a pixel size or a calibration set, not both")
+        pixel_size, unit = pixel_size_at_turntable_axis(calibration, dict(ds.attrs)), "micrometer"
+    attrs = _attributes(ds, pixel_size, unit)
+    if calibration is not None:
+        attrs["pixel_size"]["from"] = (f"calibration set {calibration}: at the turntable axis "
+                                       "(its closest approach to the optical axis)")
+    images = dataset_images(ds)
+    if format == "ome-zarr":
+        return write_ome_zarr(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,
+                              version=version)
+    return write_ome_tiff(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,
+                          annotations=sample_fields(ds.attrs))
+
+
+def _attributes(ds, pixel_size, unit: str) -> dict[str, Any]:
+    attrs: dict[str, Any] = dict(ds.attrs)
+    attrs["sample_metadata"] = sample_fields(ds.attrs)
+    if "capture" in ds.dims:
+        attrs["captures"] = [{"capture_id": str(i), "pose_deg": float(p)}
+                             for i, p in zip(ds.capture_id.values, ds.capture.values)]
+        attrs["t_axis"] = "the captures, in capture order (not a time: see captures' pose_deg)"
+    attrs["pixel_size"] = ({"y": pixel_size[0], "x": pixel_size[1], "unit": unit} if pixel_size
+                           else "not known: unit-less pixels (scale 1)")
+    return attrs
+
