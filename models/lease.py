@@ -71,10 +71,11 @@ SETS = {
 }
 CALIBRATION_SET = "calibration"
 #: Networks and batches per size for a run from scratch (a continued run keeps its checkpoint's
-#: architecture). The large width is the widest whose checkpoint with Adam's moments in bfloat16
-#: stays under 16 MiB (width 32: about 1.3 M parameters, 5 MB of float32 weights and 5 MB of
-#: moments; the frame graph about 3.7 MB); its batch and scene size fill an H200 far better than
-#: the CPU recipe (untested on the GPU until a lease runs it: the first lease's run.json says).
+#: architecture). The large width is the widest whose checkpoint keeps everything in float32
+#: under 16 MiB (measured: width 32, 1.08 M parameters over the three networks, 12.6 MiB with
+#: Adam's moments; width 48, 2.4 M, would need bfloat16 weights and moments, 13.9 MiB, and lose
+#: the weights' precision from lease to lease); its batch and scene size are meant to fill an H200
+#: far better than the CPU recipe (not yet run on a GPU: the first lease's run.json will say).
 PROFILES = {
     "large": {"width": 32, "batch_size": 32, "image": 128, "steps_per_epoch": 32, "val_samples": 64},
     "small": {"width": 16, "batch_size": 16, "image": 64, "steps_per_epoch": 64, "val_samples": 32},

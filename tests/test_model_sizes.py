@@ -172,3 +172,25 @@ def test_a_reference_capture_records_no_model(tmp_path):
     cap = json.loads((out / "session.json").read_text())["captures"][0]
     assert "model" not in cap
     assert "model_size" not in read_exr(out / cap["name"] / "mueller.exr").metadata
+
+
+# -- the benchmark's table -------------------------------------------------------------------------
+def test_the_benchmark_shows_both_sizes_and_waits_for_the_large_one(large_missing):
+    from benchmarks.bench_single_shot import SIZE_CASES, WAITING, sizes_table
+
+    measured = {"rounds": 1, "provider": "CPUExecutionProvider", "threads": 2,
+                "medians_s": {"small": {c[0]: 0.05 for c in SIZE_CASES}}}
+    rows = {line.split("|")[1].strip(): line for line in sizes_table(measured).splitlines() if line.startswith("| ")}
+    assert "37.26 / 0.1073" in rows["small"] and "| 50 | 50 |" in rows["small"]  # committed accuracy, measured speed
+    assert rows["large"].count(WAITING) == 6
+
+
+def test_the_benchmark_times_a_shipped_large_size(large_shipped):
+    from benchmarks.bench_single_shot import SIZE_CASES, size_speed, sizes_table
+
+    measured = size_speed(1, 1, "cpu")
+    assert set(measured["medians_s"]) == {"small", "large"}
+    assert all(v > 0 for t in measured["medians_s"].values() for v in t.values())
+    large = next(line for line in sizes_table(measured).splitlines() if line.startswith("| large"))
+    assert "NVIDIA H200 (test)" in large and "| 8.0 |" in large and "not measured" in large  # no accuracy yet
+    assert len(SIZE_CASES) == 2
