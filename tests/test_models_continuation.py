@@ -152,3 +152,31 @@ def test_cli_continue_from_a_size_without_a_checkpoint_is_one_line(tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "no committed checkpoint yet" in err[0] and "gpu_train.sh" in err[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_bf16_autocast_runs_the_networks_in_bfloat16_and_gives_float32(tmp_path):
+    """``--autocast bf16`` (the lease's setting on CUDA; CPU autocast here): the convolutions run
+    in bfloat16, what the losses read comes back float32, and a run trains to finite losses."""
+    from polrig.models.pipnet import PIPNet
+    from polrig.models.scenes_torch import SceneGenerator, training_tensors
+    from polrig.models.train import Autocast, with_precision
+
+    t = training_tensors(SceneGenerator(32, seed=0).batch(2))
+    net = PIPNet(3, 4, True).eval()
+    seen: list[torch.dtype] = []
+    hooks = [m.register_forward_hook(lambda mod, i, o: seen.append(o.dtype))
+             for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    out = Autocast(net, "cpu")(t["analyzer"], t["mask"], t["s_in"], t["wo"])
+    for h in hooks:
+        h.remove()
+    assert seen and set(seen) == {torch.bfloat16}
+    assert all(v.dtype == torch.float32 for v in out.values() if torch.is_tensor(v) and v.is_floating_point())
+    plain = net(t["analyzer"], t["mask"], t["s_in"], t["wo"])
+    assert float((out["normal"] - plain["normal"]).detach().abs().max()) < 0.1  # bfloat16's ~3 significant digits
+    assert with_precision(net, _tiny()) is net
+    summary = tod.train_on_device(tmp_path / "run", _tiny(autocast="bf16"), export=False, **QUIET, **TINY_DEVICE)
+    assert summary["config"]["autocast"] == "bf16"
+    rows = (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]
+    assert len(rows) == 3 and all("nan" not in r and "inf" not in r for r in rows)
+    with pytest.raises(Exception, match="autocast must be none or bf16"):
+        tod.train_on_device(tmp_path / "bad", _tiny(autocast="fp8"), export=False, **QUIET, **TINY_DEVICE)
