@@ -102,8 +102,8 @@ SIZE_CASES = (CASES[2], CASES[3])
 #: Each size's committed accuracy tables (``polrig evaluate`` JSON in benchmarks/results) on the
 #: model card's held-out sets; the large size's are written when a lease ships it.
 ACCURACY_FILES = {"small": {"unseen shapes": "single_shot.json", "new scenes": "single_shot_seen_families.json"},
-                  "large": {"unseen shapes": "single_shot_large_unseen.json",
-                            "new scenes": "single_shot_large_seen_families.json"}}
+                  "large": {"unseen shapes": "single_shot_large_unseen_shapes.json",  # polrig.models.lease.ship
+                            "new scenes": "single_shot_large_new_scenes.json"}}
 #: Each size's committed CUDA measurements (this benchmark's JSON from a lease, ``--device cuda``).
 GPU_RESULTS = {"small": "single_shot_cuda_h200.json", "large": "single_shot_large_cuda.json"}
 WAITING = "waiting for a GPU lease"

@@ -15,8 +15,10 @@
 #   tables.tar.gz    eval_<set>_<new|baseline>.md/.json, log.csv, summary.json
 #   run.json         hardware, budget, phases, plan, scores, verdict
 #   lease.log        the run's output
-# Shipping (only where run.json says "ship": true): unpack weights.tar and copy checkpoint.pt into
-# models/weights/large/ (or models/weights/ for small), commit with run.json's numbers.
+# Shipping (only where run.json says "ship": true): python -m polrig.models.lease --ship FOLDER (the
+# five files fetched here) copies the weights and checkpoint.pt into models/weights/large/ (or
+# models/weights/ for small) and the new weights' tables into benchmarks/results/; commit them with
+# run.json's numbers.
 #
 # Limits (the device tool): 10 minutes per command, 15 minutes of device time per session with
 # the machine's start (about a minute): a budget of 7.5 minutes leaves the start, the wheels'

@@ -31,7 +31,8 @@ One budget ``B`` covers everything, in this order:
 ``model.json`` with ``size``, hardware and lineage, ``uncertainty.json`` where it ships),
 ``checkpoint.pt`` (the committed form, :func:`polrig.models.continuation.compact`), ``log.csv``,
 ``summary.json``, ``eval_<set>_<new|baseline>.md``, ``sigma_fit.log``, ``run.json`` (hardware, budget, phases,
-plan, scores, verdict). Copying ``weights/`` and ``checkpoint.pt`` into the size's folder ships it.
+plan, scores, verdict). ``--ship FOLDER`` (:func:`ship`) ships what ``benchmarks/gpu_train.sh``
+brought back where the rule passed.
 
 ``--dry``: the same run at tiny scale on the CPU (32x32 scenes, width 4, two scenes per set, a
 budget of seconds; the sigma refitted whatever the verdict, so that every step runs): what the
@@ -150,17 +151,24 @@ def score(data: pathlib.Path, weights: pathlib.Path, out_md: pathlib.Path, *, li
 
 def probe_step_seconds(work: pathlib.Path, base: dict, overrides: dict, continue_from) -> dict[str, float]:
     """Seconds of one optimizer step per stage, warm: every stage trained 2 epochs of
-    :data:`PROBE_STEPS` steps (no export); the second epoch's time per step (the first pays the
-    warm-up). Includes the validation pass, as the real epochs do."""
+    :data:`PROBE_STEPS` steps (no export) with a one-scene validation set; the second epoch's
+    time per step (the first pays the warm-up). The real epochs' validation pass is planned
+    apart (:func:`validation_seconds`)."""
     from polrig.models.train_on_device import train_on_device
 
     train_on_device(work / "probe", None, overrides=dict(overrides, pipnet_epochs=2, pmmnet_epochs=2,
                                                                  direct_epochs=2),
-                            size=base["image"], steps_per_epoch=PROBE_STEPS, val_samples=base["val_samples"],
+                            size=base["image"], steps_per_epoch=PROBE_STEPS, val_samples=1,
                             continue_from=continue_from, export=False, echo=lambda s: None)
     rows = _log_rows(work / "probe" / "log.csv")
     return {k: min(float(r["epoch_s"]) for r in rows if r["stage"] == k and int(r["epoch"]) == 1) / PROBE_STEPS
             for k in ("pipnet", "pmmnet", "direct")}
+
+
+def validation_seconds(step_s: dict[str, float], val_samples: int, batch_size: int) -> float:
+    """An epoch's validation pass, estimated: forward passes over ``val_samples`` scenes, a third
+    of a training step's time per batch (forward only, no optimizer) for the slowest stage."""
+    return max(step_s.values()) * val_samples / batch_size / 3.0
 
 
 def _log_rows(path: pathlib.Path) -> list[dict]:
@@ -219,7 +227,9 @@ def run(out: pathlib.Path, *, size: str = "large", budget_s: float = 480.0, dry:
         t_probe = time.perf_counter()
         step_s = probe_step_seconds(w, profile, overrides, continue_from)
         train_end = t0 + TRAIN_SHARE * budget_s
-        planner = StagePlanner(step_s, profile["steps_per_epoch"], train_end, clock=time.perf_counter, echo=echo)
+        planner = StagePlanner(step_s, profile["steps_per_epoch"], train_end, clock=time.perf_counter, echo=echo,
+                               epoch_overhead_s=validation_seconds(step_s, profile["val_samples"],
+                                                                   profile["batch_size"]))
         echo(f"probe: {time.perf_counter() - t_probe:.1f} s; a warm step "
              + ", ".join(f"{k} {1e3 * v:.0f} ms" for k, v in step_s.items()))
         t_train = time.perf_counter()
@@ -275,13 +285,67 @@ def run(out: pathlib.Path, *, size: str = "large", budget_s: float = 480.0, dry:
     return record
 
 
+#: Where :func:`ship` puts the new weights' evaluation tables (``benchmarks/results`` of the checkout).
+RESULTS_DIR = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+
+
+def ship(folder: pathlib.Path, results: pathlib.Path = RESULTS_DIR) -> list[pathlib.Path]:
+    """Ship what a lease brought back (``benchmarks/gpu_train.sh``'s ``$OUT``: ``run.json``,
+    ``weights.tar``, ``checkpoint.pt``, ``tables.tar.gz``) where its ``run.json`` says the
+    shipping rule passed: the graphs, ``model.json`` and ``uncertainty.json`` and the checkpoint
+    into the size's folder (:mod:`polrig.models.sizes`), each set's evaluation of the new weights
+    into ``results/single_shot_<size>_<set>.json`` (+ ``.md``; ``python -m benchmarks
+    single_shot`` reads the held-out ones). A run that did not pass, a dry run, or a folder
+    missing a file: :class:`polrig.errors.ConfigError`, nothing copied. Returns the files written."""
+    import tarfile
+
+    from polrig.errors import ConfigError
+    from polrig.models import sizes
+
+    folder = pathlib.Path(folder)
+    missing = [n for n in ("run.json", "weights.tar", "checkpoint.pt", "tables.tar.gz") if not (folder / n).is_file()]
+    if missing:
+        raise ConfigError(f"--ship {folder}: no {', '.join(missing)} (what benchmarks/gpu_train.sh brings back)")
+    run_record = json.loads((folder / "run.json").read_text())
+    if run_record.get("dry") or not run_record.get("ship"):
+        why = "a dry run" if run_record.get("dry") else "the new weights did not beat the shipped ones on every set"
+        raise ConfigError(f"--ship {folder}: not shipped ({why}; run.json)")
+    size = run_record["size"]
+    dest = sizes.size_folder(size)
+    written = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = pathlib.Path(tmp)
+        with tarfile.open(folder / "weights.tar") as t:
+            t.extractall(tmp, filter="data")
+        with tarfile.open(folder / "tables.tar.gz") as t:
+            t.extractall(tmp / "tables", filter="data")
+        meta = json.loads((tmp / "weights" / "model.json").read_text())
+        if meta.get("size") != size or not (tmp / "weights" / "single_shot.onnx").is_file():
+            raise ConfigError(f"--ship {folder}: weights.tar does not hold the {size} model run.json names")
+        dest.mkdir(parents=True, exist_ok=True)
+        for f in sorted((tmp / "weights").iterdir()):
+            shutil.copy2(f, dest / f.name)
+            written.append(dest / f.name)
+        shutil.copy2(folder / "checkpoint.pt", dest / "checkpoint.pt")
+        written.append(dest / "checkpoint.pt")
+        for f in sorted((tmp / "tables").glob("eval_*_new.*")):
+            name = f.name[len("eval_"):-len("_new" + f.suffix)]
+            target = results / f"single_shot_{size}_{name}{f.suffix}"
+            shutil.copy2(f, target)
+            written.append(target)
+    return written
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from polrig.formats.argcheck import int_range, positive_float
     from polrig.models._cli import run_main
     from polrig.models.sizes import SIZES
 
     ap = argparse.ArgumentParser(prog="python -m polrig.models.lease", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="output folder (new or empty): what the lease brings back")
+    ap.add_argument("--out", help="output folder (new or empty): what the lease brings back")
+    ap.add_argument("--ship", default=None, metavar="FOLDER",
+                    help="instead of a run: ship what benchmarks/gpu_train.sh brought back into FOLDER, where its "
+                         "run.json says the shipping rule passed")
     ap.add_argument("--model-size", choices=SIZES, default="large", help="the size trained (default large)")
     ap.add_argument("--budget-min", type=positive_float, default=8.0, help="wall-clock budget in minutes (default 8)")
     ap.add_argument("--sets", default=",".join(SETS), help="sets made and scored (default all: " + ", ".join(SETS) + ")")
@@ -293,6 +357,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     def body() -> int:
         from polrig.errors import ConfigError
 
+        if args.ship is not None:
+            for f in ship(pathlib.Path(args.ship)):
+                print(f"shipped {f}")
+            return 0
+        if args.out is None:
+            raise ConfigError("--out is required (or --ship FOLDER)")
         sets = [s.strip() for s in args.sets.split(",") if s.strip()]
         bad = [s for s in sets if s not in SETS]
         if bad or not sets:

@@ -94,3 +94,26 @@ def test_bad_sets_are_one_line(tmp_path, capsys):
     assert lease.main(["--out", str(tmp_path / "o"), "--dry", "--sets", "nope"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown set(s) ['nope']" in err[0]
+
+
+def test_ship_copies_a_passed_run_and_refuses_the_rest(brought_back, tmp_path, monkeypatch):
+    """``--ship``: a dry run (or one that failed the rule) is refused in one line, nothing
+    copied; a run whose record says it passed lands in the size's folder and the results."""
+    import shutil
+
+    out, _ = brought_back
+    monkeypatch.setitem(sizes.SIZE_FOLDERS, "large", tmp_path / "large")
+    assert lease.main(["--ship", str(out)]) == 2
+    assert not (tmp_path / "large").exists()
+    passed = tmp_path / "passed"
+    shutil.copytree(out, passed)
+    record = json.loads((passed / "run.json").read_text())
+    (passed / "run.json").write_text(json.dumps(dict(record, dry=False, ship=True)))
+    results = tmp_path / "results"
+    results.mkdir()
+    written = lease.ship(passed, results)
+    assert sizes.is_shipped("large") and (tmp_path / "large" / "checkpoint.pt").is_file()
+    assert sizes.model_record(tmp_path / "large")["size"] == "large"
+    assert {p.name for p in results.iterdir()} >= {"single_shot_large_unseen_shapes.json",
+                                                   "single_shot_large_mm_conductor.md"}
+    assert len(written) == len(set(written))
