@@ -274,6 +274,7 @@ def run(out: pathlib.Path, *, size: str = "large", budget_s: float = 480.0, dry:
             record["sigma"] = {"seconds": time.perf_counter() - t_sigma,
                                "within_2sigma": {k: v["within_2sigma"] for k, v in checks.items()}}
     record["total_s"] = time.perf_counter() - t0
+    record["over_budget"] = record["total_s"] > budget_s  # a dry run's fixed costs exceed its seconds
     (out / "run.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
     big = [p for p in out.rglob("*") if p.is_file() and p.stat().st_size > MAX_FILE_BYTES]
     if big:

@@ -194,3 +194,20 @@ def test_the_benchmark_times_a_shipped_large_size(large_shipped):
     large = next(line for line in sizes_table(measured).splitlines() if line.startswith("| large"))
     assert "NVIDIA H200 (test)" in large and "| 8.0 |" in large and "not measured" in large  # no accuracy yet
     assert len(SIZE_CASES) == 2
+
+
+def test_auto_asks_onnxruntime_for_cuda_only_where_a_large_model_is_shipped(large_shipped, monkeypatch):
+    import onnxruntime as ort
+
+    from polrig.app import single_shot
+    from polrig.models import devices
+
+    monkeypatch.setattr(ort, "get_available_providers", lambda: [devices.CUDA, devices.CPU])
+    monkeypatch.setattr(devices, "cuda_device_count", lambda: 1)
+    assert single_shot._runs_on_cuda("auto") and single_shot._runs_on_cuda("cuda")
+    assert not single_shot._runs_on_cuda("cpu")
+    monkeypatch.setattr(devices, "cuda_device_count", lambda: 0)  # the gpu extra, no GPU: the CPU runs it
+    assert not single_shot._runs_on_cuda("auto")
+    monkeypatch.setitem(sizes.SIZE_FOLDERS, "large", large_shipped / "gone")
+    monkeypatch.setattr(ort, "get_available_providers", lambda: pytest.fail("asked without a large model"))
+    assert not single_shot._runs_on_cuda("auto")

@@ -261,8 +261,9 @@ def _files_stamp(folder: pathlib.Path) -> tuple:
 
 
 def _runs_on_cuda(device: str) -> bool:
-    """Whether a model opened on ``device`` would run on CUDA (a large model is shipped only
-    then worth asking: :func:`polrig.models.sizes.choose_size`)."""
+    """Whether a model opened on ``device`` would run on CUDA, for ``--model-size auto``
+    (:func:`polrig.models.sizes.choose_size`); asked only where a large model is shipped (else
+    ``auto`` takes the small one anyway, and onnxruntime's providers are not looked at)."""
     from polrig.models import sizes
 
     if device == "cpu" or not sizes.is_shipped("large"):
