@@ -25,18 +25,20 @@
 # install and a margin. The lease itself ends within its budget less 2 % (models/lease.py).
 # LEASE_DRY=1: the same at tiny scale on the CPU in seconds (tests/test_models_lease.py runs it).
 set -u -o pipefail
-export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
 OUT=${OUT:-/tmp/gpu-out}
 PY=${PY:-python3}
 budget=${1:-7.5}
 size=${2:-large}
-mkdir -p "$OUT"
+mkdir -p "$OUT" && OUT=$(cd "$OUT" && pwd)  # absolute: the lease runs from another folder
 # wheels the image lacks (OpenEXR for cp312) travel in .whl/ (benchmarks/gpu_pieces.sh)
 if compgen -G ".whl/*.whl" > /dev/null && [ ! -d /tmp/wheels ]; then
     $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/wheels .whl/*.whl
 fi
-export PYTHONPATH="$PYTHONPATH:/tmp/wheels"
+export PYTHONPATH="${PYTHONPATH:+$PYTHONPATH:}/tmp/wheels"
 work=$(mktemp -d)
+# polrig is not installed on a lent machine: links name its folders as an install does
+. benchmarks/polrig_path.sh "$work"
 dry=()
 if [ "${LEASE_DRY:-0}" = 1 ]; then
     dry=(--dry --sets "${LEASE_SETS:-unseen_shapes,mm_conductor,calibration}")
@@ -44,9 +46,13 @@ else
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader || true
 fi
 limit=$(awk -v b="$budget" 'BEGIN { printf "%d", b * 60 + 60 }')
+repo=$PWD
+cd "$work"  # not the repository root: its polrig/ would come first on sys.path (polrig_path.sh)
+$PY -c "import polrig.models.lease as m; print('polrig.models from', m.__file__)" || { echo "polrig does not import here"; exit 1; }
 timeout "$limit" $PY -m polrig.models.lease --out "$work/lease" --budget-min "$budget" --model-size "$size" \
     "${dry[@]}" 2>&1 | tee "$OUT/lease.log"
 rc=$?
+cd "$repo"
 if [ -d "$work/lease" ]; then
     l="$work/lease"
     [ -d "$l/weights" ] && tar cf "$OUT/weights.tar" -C "$l" weights

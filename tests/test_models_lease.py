@@ -33,7 +33,24 @@ def brought_back(tmp_path_factory):
     run = subprocess.run(["bash", str(REPO / "benchmarks" / "gpu_train.sh"), "0.3", "large"], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=800)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "polrig.models from " in run.stdout  # the links (polrig_path.sh) or this environment's install
     return out, run.stdout
+
+
+def test_the_links_make_polrig_importable_without_an_install(tmp_path):
+    """On a lent machine polrig is not installed: ``benchmarks/polrig_path.sh`` names the
+    top-level folders as the install does. Checked with an interpreter that sees no install (no
+    site processing: the editable install's finder is not loaded), only the dependencies."""
+    deps = [p for p in sys.path if p.endswith("site-packages")]
+    code = ("import sys; sys.path.extend(sys.argv[1:]); import polrig.models.lease as m, polrig.sim.dataset; "
+            "from polrig.models import sizes; print(m.__file__, sizes.WEIGHTS_ROOT, sizes.is_shipped('small'))")
+    run = subprocess.run(["bash", "-c", '. benchmarks/polrig_path.sh "$1" && cd "$1" && shift && "$@"', "_", str(tmp_path),
+                          sys.executable, "-S", "-c", code, *deps], cwd=REPO, capture_output=True, text=True,
+                         timeout=120, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    assert run.returncode == 0, run.stderr[-2000:]
+    module, weights, shipped = run.stdout.split()
+    assert module == str(tmp_path / "shim" / "polrig" / "models" / "lease.py")
+    assert weights == str(REPO / "models" / "weights") and shipped == "True"
 
 
 def test_the_lease_brings_back_five_files_under_the_limits(brought_back):
