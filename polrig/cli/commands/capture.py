@@ -138,7 +138,7 @@ MODEL_SIZES = ("auto", "small", "large")
 def add_model_size_option(p: argparse.ArgumentParser) -> None:
     """``--model-size {auto,small,large}``: which shipped single-shot model runs
     (:mod:`polrig.models.sizes`; ``infer``, ``capture``, ``reconstruct`` and ``gui`` share it)."""
-    p.add_argument("--model-size", choices=MODEL_SIZES, default="auto",
+    p.add_argument("--model-size", choices=MODEL_SIZES, default=None,  # None: auto, left out of a manifest's command line
                    help="single-shot model: small (the CPU networks, for CPUs and the live view), "
                         "large (wider networks trained on a GPU; refused while not shipped) or auto "
                         "(default: large where the networks run on CUDA and it is shipped, else small); "
@@ -231,7 +231,7 @@ def build_request(args: argparse.Namespace):
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,
             device=args.device or "auto",
-            model_size=args.model_size,
+            model_size=args.model_size or "auto",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
             resume=bool(args.resume),

@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         from polrig.models.devices import choose_providers
 
         choose_providers(args.device, ort.get_available_providers())
-    if args.weights is None and args.model_size != "auto":  # a size not shipped: one line, before Qt starts
+    if args.weights is None and args.model_size not in (None, "auto"):  # a size not shipped: one line, before Qt starts
         from polrig.models.sizes import choose_size
 
         choose_size(args.model_size, on_cuda=False)
@@ -54,4 +54,4 @@ def run(args: argparse.Namespace) -> int:
 
     return run_gui(args.config, sim_size=f"{w}x{h}", sim_clock_speed=args.sim_clock_speed,
                    weights=args.weights, device=args.device, settings_file=args.settings,
-                   model_size=args.model_size)
+                   model_size=args.model_size or "auto")

@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_rig_config(args.config)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
     geometry = calibrations.single_shot_geometry(calibration, config)
-    route = SingleShot.open(args.device, args.weights, size=args.model_size)
+    route = SingleShot.open(args.device, args.weights, size=args.model_size or "auto")
     # the result is in the unit of the noise model, the truth of a simulated capture and a
     # session: ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16)
     sensor, to_adc = adc_factor(config, frame.meta.bit_depth)

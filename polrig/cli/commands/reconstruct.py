@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
                 network_binning=args.network_binning, seen_state=args.seen_state,
-                device=args.device or "auto", model_size=args.model_size, calibration_path=args.calibration,
+                device=args.device or "auto", model_size=args.model_size or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
                 command_line=_command_line(args, paths), on_start=on_start,
