@@ -38,6 +38,14 @@ routes on one provider).
 Usage: ``python benchmarks/bench_single_shot.py [--rounds N] [--threads T] [--out FILE] [--anatomy]``
 (or ``python -m benchmarks single_shot``; default ``--out benchmarks/results/single_shot_speed.md``).
 
+**Model sizes** (issue 32, :mod:`polrig.models.sizes`): every run also writes
+``benchmarks/results/single_shot_sizes.md`` (``--sizes-only``: that table alone), one row per
+size: its width, training hardware and minutes (``model.json``), its accuracy on the model
+card's two held-out sets (the committed evaluation tables, :data:`ACCURACY_FILES`), its warm
+raw -> Mueller time here for :data:`SIZE_CASES` (interleaved rounds, medians) and on a GPU (the
+committed CUDA measurements, :data:`GPU_RESULTS`). A size not shipped yet reads "waiting for a
+GPU lease".
+
 ``--rig-scenes sphere,box,...`` instead scores ``polrig capture --mode single-shot`` on the
 default simulated rig (256x256 raw, virtual clock, nominal calibration: the simulator's design
 geometry), one capture per scene, with processing's own score (``polrig.app.processing``), three
@@ -93,6 +101,16 @@ CASES = (
     ("full sensor colour full resolution, network binning 2", FULL, COLOUR,
      ["--resolution", "full", "--network-binning", "2"]),
 )
+#: The cases the model sizes table times (a live-view frame and the full colour sensor).
+SIZE_CASES = (CASES[2], CASES[3])
+#: Each size's committed accuracy tables (``polrig evaluate`` JSON in benchmarks/results) on the
+#: model card's held-out sets; the large size's are written when a lease ships it.
+ACCURACY_FILES = {"small": {"unseen shapes": "single_shot.json", "new scenes": "single_shot_seen_families.json"},
+                  "large": {"unseen shapes": "single_shot_large_unseen_shapes.json",  # polrig.models.lease.ship
+                            "new scenes": "single_shot_large_new_scenes.json"}}
+#: Each size's committed CUDA measurements (this benchmark's JSON from a lease, ``--device cuda``).
+GPU_RESULTS = {"small": "single_shot_cuda_h200.json", "large": "single_shot_large_cuda.json"}
+WAITING = "waiting for a GPU lease"
 #: Issue 22's CPU targets (ms, per frame: the warm raw -> Mueller column) and the full-sensor peak (MB).
 TARGETS_MS = {CASES[0][0]: 150, CASES[3][0]: 300, CASES[4][0]: 3000, CASES[6][0]: 300, CASES[7][0]: 3000}
 PEAK_TARGET_MB = 2048
@@ -425,6 +443,87 @@ def render(raw: dict) -> str:
 RIG_SCENES = "sphere,rough_sphere,checker_sphere,box,multi,heightfield,plane,normalmap"
 
 
+def size_speed(rounds: int, threads: int | None, device: str) -> dict:
+    """Warm raw -> Mueller seconds per shipped size and :data:`SIZE_CASES` case, rounds
+    interleaving the sizes (the model loaded once per size)."""
+    from polrig.models import sizes
+
+    routes = {s: SingleShot(SingleShotModel.load(sizes.size_folder(s), threads=threads, device=device))
+              for s in sizes.shipped_sizes()}
+    times: dict[str, dict[str, list[float]]] = {s: {c[0]: [] for c in SIZE_CASES} for s in routes}
+    with tempfile.TemporaryDirectory() as d:
+        tmp, rng = pathlib.Path(d), np.random.default_rng(0)
+        raws = {c[0]: write_case_raw(c[1], c[2], tmp / f"raw{k}.png", rng) for k, c in enumerate(SIZE_CASES)}
+        for route in routes.values():
+            for label, _, _, argv in SIZE_CASES:
+                warm_once(raws[label], argv, route, tmp / "warm.exr")  # warm-up
+        for _ in range(rounds):
+            for s, route in routes.items():
+                for label, _, _, argv in SIZE_CASES:
+                    times[s][label].append(warm_once(raws[label], argv, route, tmp / "warm.exr")["compute"])
+    provider = next(iter(routes.values())).provider if routes else ""
+    return {"rounds": rounds, "provider": provider, "threads": threads or physical_cores(),
+            "load_average": os.getloadavg()[0],
+            "medians_s": {s: {k: statistics.median(v) for k, v in t.items()} for s, t in times.items()}}
+
+
+def _committed(name: str) -> dict | None:
+    import json
+
+    path = REPO / "benchmarks" / "results" / name
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def sizes_table(measured: dict) -> str:
+    """The model sizes table (module docstring) from :func:`size_speed`'s ``measured``."""
+    from polrig.models import sizes
+
+    cases = [c[0] for c in SIZE_CASES]
+    lines = [f"One row per model size (`polrig --model-size`, polrig.models.sizes). Accuracy: the full model on the "
+             f"model card's held-out sets (matrix PSNR dB / forward Stokes L2). Speed: warm raw -> Mueller, ms, "
+             f"medians of {measured['rounds']} interleaved round(s) here ({measured['provider']}, "
+             f"{measured['threads']} intra-op thread(s)"
+             + (f", load average {measured['load_average']:.1f}: the machine's other jobs slow it" if
+                measured.get("load_average") else "")
+             + ") and from the committed CUDA measurements (`single_shot_cuda_h200.json` for small).", "",
+             "| size | width | trained on | training min | unseen shapes | new scenes | "
+             + " | ".join(f"CPU {c}" for c in cases) + " | " + " | ".join(f"GPU {c}" for c in cases) + " |",
+             "|---" * (6 + 2 * len(cases)) + "|"]
+    for size in sizes.SIZES:
+        if not sizes.is_shipped(size):
+            lines.append(f"| {size} | | | | " + " | ".join([WAITING] * (2 + 2 * len(cases))) + " |")
+            continue
+        rec = sizes.model_record(sizes.size_folder(size))
+        acc = []
+        for name in ACCURACY_FILES[size].values():
+            r = _committed(name)
+            full = (r or {}).get("methods", {}).get("full")
+            acc.append(f"{full['matrix_psnr']:.2f} / {full['fwd_l2']:.4f}" if full else "not measured")
+        cpu = [f"{1e3 * measured['medians_s'][size][c]:.0f}" if size in measured["medians_s"] else "" for c in cases]
+        gpu_raw = _committed(GPU_RESULTS[size]) or {}
+        gpu = []
+        for c in cases:
+            rows = (gpu_raw.get("warm") or {}).get(c)
+            gpu.append(f"{1e3 * statistics.median(x['compute'] for x in rows):.0f}" if rows else "not measured")
+        lines.append(f"| {size} | {rec['width']} | {rec['training_hardware'].split('; ')[0]} | "
+                     f"{rec['training_minutes']} | {' | '.join(acc)} | {' | '.join(cpu)} | {' | '.join(gpu)} |")
+    return "\n".join(lines)
+
+
+def write_sizes(rounds: int, threads: int | None, device: str) -> str:
+    import json
+
+    measured = size_speed(rounds, threads, device)
+    table = sizes_table(measured)
+    out = REPO / "benchmarks" / "results" / "single_shot_sizes.md"
+    out.with_suffix(".json").write_text(json.dumps(measured, indent=1) + "\n")
+    out.write_text("# Single-shot model sizes: accuracy and speed\n\n`python benchmarks/bench_single_shot.py "
+                   f"--sizes-only --rounds {rounds}`\n\n" + table + "\n")
+    print(table)
+    print(f"wrote {out}")
+    return table
+
+
 def rig_scene_scores(scenes: list[str], tmp: pathlib.Path, poses: str = "0", mirror: bool = False) -> list[dict]:
     """Processing scores of single-shot captures on the default simulated rig (see module):
     per scene and variant the mean matrix PSNR over the ``poses`` (``polrig capture --poses``
@@ -513,7 +612,12 @@ def main(argv=None) -> int:
                     help=f"score single-shot captures of these scenes on the default rig instead (default {RIG_SCENES})")
     ap.add_argument("--rig-poses", default="0",
                     help="turntable poses of the --rig-scenes captures, as polrig capture --poses (default 0)")
+    ap.add_argument("--sizes-only", action="store_true",
+                    help="only the model sizes table (benchmarks/results/single_shot_sizes.md)")
     args = ap.parse_args(argv)
+    if args.sizes_only:
+        write_sizes(args.rounds, args.threads, args.device)
+        return 0
     if args.rig_scenes:
         with tempfile.TemporaryDirectory() as d:
             rows = rig_scene_scores(args.rig_scenes.split(","), pathlib.Path(d), args.rig_poses,
@@ -547,6 +651,8 @@ def main(argv=None) -> int:
     out.write_text("# Single-shot inference speed\n\n`python benchmarks/bench_single_shot.py"
                    f"{' --anatomy' if args.anatomy else ''} --rounds {args.rounds}`\n\n" + table + "\n")
     print(f"wrote {out}")
+    if args.weights is None and args.cases is None:  # the default run: both sizes too
+        write_sizes(args.rounds, args.threads, args.device)
     return 0
 
 

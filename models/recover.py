@@ -171,7 +171,8 @@ def networks_from_weights(weights_dir: str | pathlib.Path) -> tuple[dict[str, nn
 def checkpoint_from_weights(weights_dir: str | pathlib.Path) -> dict:
     """A donor in the layout of a ``polrig train`` checkpoint (``config``, ``models``,
     ``times``) for :func:`polrig.models.train.train`'s ``init_from``: the recovered networks, the
-    training configuration and per-network epochs and CPU seconds that ``model.json`` records.
+    training configuration and per-network epochs and CPU seconds that ``model.json`` records,
+    its ``lineage`` and ``size``.
     ``recovered_from_onnx`` tells the trainer to :func:`recalibrate_batchnorm` before training
     a network."""
     nets, meta = networks_from_weights(weights_dir)
@@ -185,7 +186,9 @@ def checkpoint_from_weights(weights_dir: str | pathlib.Path) -> dict:
         times[k] = float(totals.get(k, {}).get("seconds", 0.0))
     config.setdefault("width", int(meta["width"]))
     return {"config": config, "models": {k: m.state_dict() for k, m in nets.items()}, "times": times,
-            "recovered_from_onnx": str(weights_dir)}
+            "recovered_from_onnx": str(weights_dir), "lineage": list(training.get("lineage") or []),
+            "size": meta.get("size"),
+            "optimizer_note": "networks recovered from the ONNX graphs, which keep no optimizer state"}
 
 
 @torch.no_grad()

@@ -40,6 +40,8 @@ from polrig.atomic import atomic_write_bytes, atomic_write_text
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.argcheck import check_output_folder
 from polrig.models import mirror
+from polrig.models.lineage import hardware_line, run_entries
+from polrig.models.lineage import totals as lineage_totals
 from polrig.models.data import (
     Dataset,
     check_network_size,
@@ -102,6 +104,9 @@ class TrainConfig:
     #: on the device; the export runs on CPU copies). On CUDA a resumed run is not bit-identical
     #: to an uninterrupted one (cuDNN's kernels are not deterministic).
     device: str = "cpu"
+    #: Mixed precision of the networks' forward passes: "none" (float32) or "bf16" (bfloat16
+    #: autocast, :class:`Autocast`; the pBRDF initialization and the losses stay float32)
+    autocast: str = "none"
     seed: int = 0
     val_fraction: float = 0.05
     limit: int | None = None
@@ -316,6 +321,53 @@ def add_initialization(pipnet: PIPNet, t: dict[str, torch.Tensor], batch: int = 
     t.update({k: torch.cat(v) for k, v in parts.items()})
 
 
+AUTOCAST_MODES = ("none", "bf16")
+
+
+class Autocast:
+    """A network whose forward pass runs under bfloat16 autocast on ``device_type`` and returns
+    float32 outputs (a tensor, or a dict of them), so that the losses computed from them, and the
+    pBRDF (which runs outside the networks, :func:`add_initialization`), stay float32: autocast
+    only where it is safe, the convolutions and attention. Everything else (``train()``,
+    ``eval()``, parameters) is the network's own."""
+
+    def __init__(self, model: torch.nn.Module, device_type: str):
+        self.model, self.device_type = model, device_type
+
+    def __call__(self, *args):
+        with torch.autocast(self.device_type, dtype=torch.bfloat16):
+            out = self.model(*args)
+        if isinstance(out, dict):
+            return {k: v.float() if torch.is_tensor(v) and v.is_floating_point() else v for k, v in out.items()}
+        return out.float()
+
+    def __getattr__(self, name):
+        return getattr(self.model, name)
+
+
+def with_precision(model: torch.nn.Module, config: "TrainConfig"):
+    """``model`` as the training steps call it: itself, or under :class:`Autocast` (``config.autocast``)."""
+    return Autocast(model, torch.device(config.device).type) if config.autocast == "bf16" else model
+
+
+#: Configuration fields a continued run (``continue_from``) does not take from its checkpoint:
+#: the epochs of this run, and the machine's settings.
+NOT_CONTINUED = ("pipnet_epochs", "pmmnet_epochs", "direct_epochs", "threads", "device", "limit", "autocast",
+                 "batch_size", "seed")
+
+
+def continued_config(donor: dict, overrides: dict, source) -> TrainConfig:
+    """The configuration of a run continuing ``donor``: its recipe and architecture (not
+    :data:`NOT_CONTINUED`), ``overrides`` on top; another width or SfP prior is one line."""
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    recipe = {k: v for k, v in _config_of(donor).items() if k in fields and k not in NOT_CONTINUED}
+    for k in ("width", "sfp_prior"):
+        if k in overrides and k in recipe and overrides[k] != recipe[k]:
+            raise ConfigError(f"--continue-from {source}: its networks have {k} {recipe[k]}, not {overrides[k]} "
+                              f"(a continued run keeps the architecture)")
+    return dataclasses.replace(TrainConfig(**recipe), **overrides)
+
+
 #: Columns of ``OUT/log.csv`` (one row per finished epoch).
 LOG_FIELDS = ("stage", "epoch", "lr", "train_loss", "val_loss", "epoch_s", "details")
 #: Files of a run in ``OUT`` (and the graphs :func:`polrig.models.export.export_all` writes into
@@ -421,6 +473,29 @@ def _load_donor(init_from: str | pathlib.Path) -> dict:
     return load_checkpoint(path)
 
 
+def continue_checkpoint(donor: dict, opts: dict, source, echo: Callable[[str], None]) -> bool:
+    """Load ``donor``'s optimizer states into ``opts`` (one per network) where it holds them:
+    True; else a note that the optimizers start fresh: False. A checkpoint stored compactly
+    (:func:`polrig.models.continuation.compact`: moments in bfloat16) loads the same way (Adam casts
+    its state to the parameters' dtype)."""
+    saved = donor.get("optimizers")
+    if not saved:
+        why = donor.get("optimizer_note") or "it holds none"
+        echo(f"note: --continue-from {source}: no optimizer state ({why}); the optimizers start fresh")
+        return False
+    try:
+        for k, opt in opts.items():
+            opt.load_state_dict(saved[k])
+    except (KeyError, ValueError, RuntimeError) as exc:
+        raise ConfigError(f"--continue-from {source}: its optimizer states do not fit these networks: "
+                          f"{_reason(exc)}") from exc
+    steps = {k: int(max((float(st["step"]) for st in o.state.values() if "step" in st), default=0))
+             for k, o in opts.items()}
+    echo(f"continuing from {source}: weights and optimizer states (steps so far: "
+         + ", ".join(f"{k} {v}" for k, v in steps.items()) + ")")
+    return True
+
+
 def _check_config(config: TrainConfig, stages: tuple[str, ...], epochs: dict[str, int]) -> None:
     """:class:`ConfigError` naming the first field no training can use."""
     def bad(name: str, value, what: str):
@@ -443,6 +518,8 @@ def _check_config(config: TrainConfig, stages: tuple[str, ...], epochs: dict[str
         raise bad("width", config.width, "a multiple of 4, >= 4 (the attention heads split the channels)")
     if config.limit is not None and not (is_int(config.limit) and config.limit >= 1):
         raise bad("limit", config.limit, "an integer >= 1")
+    if config.autocast not in AUTOCAST_MODES:
+        raise bad("autocast", config.autocast, " or ".join(AUTOCAST_MODES))
     if config.device not in ("cpu", "cuda"):
         raise bad("device", config.device, "cpu or cuda")
     if config.device == "cuda" and not torch.cuda.is_available():
@@ -533,11 +610,14 @@ def step_with_augmentations(stage: str, config: TrainConfig, rng: np.random.Gene
 
 def save_checkpoint(path: pathlib.Path, *, config, epochs: dict, stage: str, epoch: int, stages,
                     models: dict, opts: dict, times: dict, rng: np.random.Generator, recalibrate: list,
-                    rows: list, dataset, data: str, init_from: str | None, **extra) -> None:
+                    rows: list, dataset, data: str, init_from: str | None,
+                    lineage_before: list | None = None, lineage: list | None = None, **extra) -> None:
     """Write a training checkpoint (:data:`CHECKPOINT_FORMAT`, version 2) atomically: the run's
     config with each stage's epochs, where it stands (``stage``, ``epoch``), every network's and
     optimizer's state, the seconds spent per stage, both random generators' states, the log rows
-    so far, and what it trains on (``dataset`` identity, ``data``). ``extra`` holds what one kind
+    so far, and what it trains on (``dataset`` identity, ``data``); ``lineage_before`` (the runs
+    before this one, which a resumed run starts from again) and ``lineage`` (those plus this run's
+    entries so far) with its ``totals`` (:mod:`polrig.models.lineage`). ``extra`` holds what one kind
     of run adds (the on-device generator's state); :func:`train` and
     :func:`polrig.models.train_on_device.train_on_device` both write through here."""
     blob = io.BytesIO()
@@ -548,7 +628,9 @@ def save_checkpoint(path: pathlib.Path, *, config, epochs: dict, stage: str, epo
                 "optimizers": {k: o.state_dict() for k, o in opts.items()},
                 "times": dict(times), "rng_state": rng.bit_generator.state,
                 "torch_rng_state": torch.get_rng_state(), **extra, "recalibrate": recalibrate,
-                "log": list(rows), "dataset": dataset, "data": data, "init_from": init_from}, blob)
+                "log": list(rows), "dataset": dataset, "data": data, "init_from": init_from,
+                "lineage_before": list(lineage_before or []), "lineage": list(lineage or []),
+                "totals": lineage_totals(lineage or [])}, blob)
     atomic_write_bytes(path, blob.getvalue())
 
 
@@ -556,7 +638,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
           *, resume: bool = False, export: bool = True, overrides: dict | None = None,
           init_from: str | pathlib.Path | None = None, stages: tuple[str, ...] | None = None,
           warm_start: bool = False, overwrite: bool = False, echo: Callable[[str], None] = print,
-          plan_stage: Callable[[str, list[dict]], int] | None = None) -> dict:
+          plan_stage: Callable[[str, list[dict]], int] | None = None,
+          continue_from: str | pathlib.Path | None = None) -> dict:
     """Train all stages on ``data_dir``, write checkpoints/logs/ONNX into ``out_dir``.
 
     ``overrides`` (field -> value) are applied on top of ``config`` or, when resuming, on top
@@ -590,7 +673,23 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     with the log rows so far (``epoch_s`` of every finished epoch), and returns an integer >= 1
     that replaces the configured epochs (the checkpoints and the summary record it). A caller
     with a wall-clock budget plans each stage from what the earlier ones really took
-    (:mod:`polrig.models.paper_scale`)."""
+    (:mod:`polrig.models.paper_scale`).
+
+    ``continue_from`` (a checkpoint, e.g. a shipped size's committed ``checkpoint.pt``) goes on
+    training every network of it: its weights and, where it holds them, its optimizers' states
+    (Adam's moments and step counters; else fresh optimizers, said in one note), with a fresh
+    learning-rate schedule of this run's epochs (:func:`continue_checkpoint`).
+
+    Lineage: every checkpoint and the exported ``model.json`` carry the runs before (the
+    donor's or the continued checkpoint's ``lineage``) plus one entry per network this run
+    trained, and their ``totals`` (epochs, optimizer steps, seconds; :mod:`polrig.models.lineage`)."""
+    if continue_from is not None:
+        given = [f for f, v in (("--init-from", init_from), ("--warm-start", warm_start), ("--resume", resume),
+                                ("--stages", stages is not None and set(stages) != set(STAGES))) if v]
+        if given:
+            raise ConfigError(f"--continue-from goes on with every network of its checkpoint: not with "
+                              f"{', '.join(given)}")
+        init_from, warm_start, stages = continue_from, True, None
     if warm_start and init_from is None:
         raise ValueError("warm_start needs init_from (the checkpoint to start from)")
     if resume and overwrite:
@@ -655,11 +754,13 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                                   f"--resume, replace it with --overwrite, or choose another folder")
     if export:
         _check_export_possible()
-    donor, recalibrate = None, set()
+    donor, recalibrate, continued_optimizer = None, set(), False
     if state is None:
         if init_from is not None:
             donor = _load_donor(init_from)
-            if config is None:  # same architecture and settings as the run the networks come from
+            if continue_from is not None and config is None:  # its recipe, this run's epochs
+                config = continued_config(donor, overrides, continue_from)
+            elif config is None:  # same architecture and settings as the run the networks come from
                 config = TrainConfig(**{k: v for k, v in _config_of(donor).items()
                                         if k in {f.name for f in dataclasses.fields(TrainConfig)}})
         config = dataclasses.replace(config or TrainConfig(), **overrides)
@@ -723,6 +824,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                     times[k] = float((donor.get("times") or {}).get(k, 0.0))
             if warm_start and donor.get("recovered_from_onnx"):
                 recalibrate = set(stages)
+            if continue_from is not None:
+                continued_optimizer = continue_checkpoint(donor, opts, continue_from, echo)
         if state is not None:
             for k in STAGES:
                 models[k].load_state_dict(state["models"][k])
@@ -766,11 +869,29 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
     echo(f"data: {n} samples of {ds.shape[0]}x{ds.shape[1]} ({len(train_idx)} train, {n_val} val), "
          f"loaded in {time.time() - t0:.1f}s")
 
+    if state is not None:
+        before = list(state.get("lineage_before") or [])
+        start_kind, optimizer_kind = state.get("start_kind", "scratch"), state.get("optimizer_kind", "fresh")
+    else:
+        before = list((donor or {}).get("lineage") or [])
+        start_kind = "continued" if continue_from is not None else "warm" if warm_start else "scratch"
+        optimizer_kind = "continued" if continued_optimizer else "fresh"
+    per_epoch = -(-len(train_idx) // config.batch_size)
+
+    def lineage() -> list[dict]:
+        """The runs before this one and this run's entries so far (:mod:`polrig.models.lineage`)."""
+        return before + run_entries([r for r in rows if r["stage"] in stages], run=str(out), start=start_kind,
+                                    steps_per_epoch={k: per_epoch for k in STAGES}, data=str(data_dir),
+                                    device=config.device, hardware=hardware_line(config.device),
+                                    optimizer=optimizer_kind)
+
     def save(stage: str, epoch: int) -> None:
         save_checkpoint(ckpt_path, config=config, epochs=epochs, stage=stage, epoch=epoch, stages=stages,
                         models=models, opts=opts, times=times, rng=rng, recalibrate=sorted(recalibrate),
                         rows=rows, dataset=identity, data=str(data_dir),
-                        init_from=None if init_from is None else str(init_from))
+                        init_from=None if init_from is None else str(init_from),
+                        lineage_before=before, lineage=lineage(), start_kind=start_kind,
+                        optimizer_kind=optimizer_kind, size=(donor or state or {}).get("size"))
 
     saved = [(state["stage"], int(state["epoch"]))] if state is not None else []
     try:
@@ -805,7 +926,8 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                 te = time.time()
                 train_step = step_with_augmentations(stage, config, rng)
                 where = f"{stage} epoch {epoch} (lr {lr:.3g})"
-                train_loss, detail = _run_epoch(model, train_step, t, train_idx, config.batch_size, opt, rng, where)
+                train_loss, detail = _run_epoch(with_precision(model, config), train_step, t, train_idx,
+                                                config.batch_size, opt, rng, where)
                 val_loss = _evaluate(model, steps[stage], t, val_idx, config.batch_size) if n_val else float("nan")
                 if n_val and not math.isfinite(val_loss):
                     raise TrainingError(f"{where}: the validation loss is {val_loss}; training stopped (the "
@@ -838,6 +960,7 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                "torch_threads": torch.get_num_threads(), "torch_version": torch.__version__}
     if state is not None and state.get("init_from"):
         summary["init_from"] = state["init_from"]
+    summary["lineage"] = lineage()
     if export:
         from polrig.models.export import export_all
 
@@ -851,7 +974,12 @@ def train(data_dir: str | pathlib.Path, out_dir: str | pathlib.Path, config: Tra
                               "dataset": {k: ds.manifest.get(k) for k in
                                           ("format", "version", "seed", "holdout", "families_present",
                                            "intrinsics", "normalisation")},
-                              "train_seconds": times, "config": summary["config"]}}
+                              "train_seconds": times, "config": summary["config"],
+                              "hardware": hardware_line(config.device), "lineage": summary["lineage"],
+                              "totals": lineage_totals(summary["lineage"])}}
+        size = (donor or state or {}).get("size")
+        if size is not None:  # a continued size stays that size
+            extra["size"] = size
         summary["export"] = export_all(models["pipnet"], models["pmmnet"], models["direct"],
                                        out / "weights", sample, extra)
         for name, rec in summary["export"].items():

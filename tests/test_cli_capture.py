@@ -85,9 +85,9 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
     if "single-shot" in args:  # no model installed: point the runtime at an empty folder
-        import polrig.models.runtime as runtime
+        from polrig.models import sizes
 
-        monkeypatch.setattr(runtime, "WEIGHTS_DIR", tmp_path / "no-weights")
+        monkeypatch.setitem(sizes.SIZE_FOLDERS, "small", tmp_path / "no-weights")
     out = tmp_path / "out"
     rc = main(["capture", *args, "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err

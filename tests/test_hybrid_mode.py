@@ -216,11 +216,12 @@ def test_capture_option_refusals_exit_2_with_one_line(tmp_path, capsys, args, me
 def test_hybrid_needs_a_calibrated_sigma(tmp_path, capsys, monkeypatch):
     """A graph without its uncertainty calibration: the hybrid capture is refused before
     anything is written (one line naming --mode)."""
-    import polrig.models.runtime as runtime
+    from polrig.models import sizes
 
     weights = tmp_path / "weights"
-    shutil.copytree(runtime.WEIGHTS_DIR, weights, ignore=shutil.ignore_patterns("uncertainty.json", "*.csv"))
-    monkeypatch.setattr(runtime, "WEIGHTS_DIR", weights)
+    shutil.copytree(sizes.SIZE_FOLDERS["small"], weights,
+                    ignore=shutil.ignore_patterns("uncertainty.json", "*.csv", "*.pt", "large"))
+    monkeypatch.setitem(sizes.SIZE_FOLDERS, "small", weights)  # the installed (small) model
     out = tmp_path / "out"
     assert main(["capture", "--poses", "0", "--mode", "hybrid", "--device", "cpu", "--out", str(out),
                  "--no-progress"]) == 2

@@ -140,10 +140,10 @@ def test_the_gui_window_and_its_captures_share_one_model(counted_loads):
 def test_a_missing_installed_model_is_a_plan_error_and_a_given_folder_its_own(tmp_path, monkeypatch):
     from polrig.app import single_shot
     from polrig.app.single_shot import SingleShot
-    from polrig.models import runtime
+    from polrig.models import sizes
 
     monkeypatch.setattr(single_shot, "_OPEN", {})
-    monkeypatch.setattr(runtime, "WEIGHTS_DIR", tmp_path / "none")
+    monkeypatch.setitem(sizes.SIZE_FOLDERS, "small", tmp_path / "none")  # the installed (small) model
     with pytest.raises(PlanError, match="no single-shot model is installed") as e:
         SingleShot.open("cpu")
     assert e.value.field == "mode"

@@ -108,12 +108,16 @@ def check_wheel_contents(wheel: pathlib.Path) -> None:
         tail = "/__init__.py" if path.name == "__init__.py" else ".py"
         rel = "/".join(module.split(".")) + tail
         assert rel in names, f"{rel} ({path.relative_to(REPO)}) is not in the wheel"
-    # the shipped model: its graphs, their JSON files and the model card
-    weights = sorted(p.name for p in (REPO / "models" / "weights").iterdir()
+    # the shipped models of every size (polrig.models.sizes: the small one in models/weights,
+    # the large one in models/weights/large once a GPU lease shipped it): their graphs and JSON
+    # files; never a training checkpoint (read by the training code only, which needs torch)
+    models = REPO / "models"
+    weights = sorted(p.relative_to(models).as_posix() for p in (models / "weights").rglob("*")
                      if p.suffix in (".onnx", ".json"))
-    assert any(w.endswith(".onnx") for w in weights) and any(w.endswith(".json") for w in weights)
+    assert "weights/single_shot.onnx" in weights and "weights/model.json" in weights
     for w in weights:
-        assert f"polrig/models/weights/{w}" in names, f"models/weights/{w} is not in the wheel"
+        assert f"polrig/models/{w}" in names, f"models/{w} is not in the wheel"
+    assert not [n for n in names if n.endswith(".pt")], "a training checkpoint is in the wheel"
     assert "polrig/models/MODEL_CARD.md" in names
     entry_points = zipfile.ZipFile(wheel).read(f"{info[0]}/entry_points.txt").decode()
     assert re.search(r"^polrig\s*=\s*polrig\.cli:main\s*$", entry_points, re.M), entry_points

@@ -228,22 +228,22 @@ def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | 
     return out
 
 
-def check_plan(plan, calibration: Calibration, device: str = "auto") -> float | None:
+def check_plan(plan, calibration: Calibration, device: str = "auto", model_size: str = "auto") -> float | None:
     """Reject a plan that cannot give a result, before any device moves.
 
     Reference mode: the incident states must determine the Mueller block (at least 3, not
     collinear, condition number below :data:`polrig.solve.reference.DEFAULT_MAX_CONDITION`);
     returns the condition number. Single-shot: a model must be installed and open on
     ``device`` (:meth:`polrig.app.single_shot.SingleShot.open`: the loaded model the capture's
-    processing then gets, not a second load; :class:`polrig.acquisition.plan.PlanError` of ``mode``
-    when there is none, :class:`polrig.models.devices.DeviceUnavailable` for a forced ``cuda``
+    processing then gets, not a second load, of ``model_size``; :class:`polrig.acquisition.plan.PlanError`
+    of ``mode`` when there is none, :class:`polrig.models.sizes.ModelSizeUnavailable` for a size not shipped, :class:`polrig.models.devices.DeviceUnavailable` for a forced ``cuda``
     that cannot run). Hybrid: the same, and the model must have a calibrated uncertainty (its
     sigma is the prior's); any number of states from 1 (they need not determine the block:
     the prior fills in what they leave out); returns the state set's condition number, which
     may be infinite (fewer than 3 states, or collinear ones).
     """
     if plan.mode in ("single-shot", "hybrid"):
-        route = SingleShot.open(device)
+        route = SingleShot.open(device, size=model_size)
         if plan.mode == "single-shot":
             return None
         route.check_sigma()

@@ -153,6 +153,9 @@ class CaptureRequest:
     #: a run option, not part of the plan (a resumed session may run on another device); the
     #: provider used is recorded in each result's header
     device: str = "auto"
+    #: which shipped single-shot model (``auto``, ``small``, ``large``: :mod:`polrig.models.sizes`):
+    #: a run option like ``device``; each result records its size, training hardware and minutes
+    model_size: str = "auto"
     #: who, why, what (:class:`polrig.app.manifest.SampleMetadata`): recorded in the manifest
     #: and every result header; ``None``: empty for a new session, the stored one on ``resume``
     #: (a different one is refused there)
@@ -224,7 +227,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                             f"{_metadata_text(request.metadata)}; leave the "
                                             f"metadata out to keep the stored one")
             calibration = load_calibration(request.calibration, session=session)
-            check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
+            check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
         except BaseException:
             session.unlock()
             raise
@@ -237,7 +240,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
             raise PlanError("out", "folder is not empty; choose a new folder, or resume the "
                                    "session in it", subject=str(out), what="output")
         calibration = load_calibration(request.calibration)
-        check_plan(plan, calibration, request.device)  # states conditioning, single-shot model
+        check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
     return PreparedCapture(out, plan, calibration, session,
                            request.metadata if request.metadata is not None else SampleMetadata())
 
@@ -371,7 +374,7 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
             sensor = (session_sensor_model(prepared.resume_session)
                       if prepared.resume_session is not None else sensor_model_of(opened))
             processor = make_processor(prepared.plan, prepared.calibration, sensor,
-                                       device=request.device)
+                                       device=request.device, model_size=request.model_size)
             session = open_session(prepared, opened, list(command_line))
             try:
                 if events is not None:

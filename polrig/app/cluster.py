@@ -212,6 +212,8 @@ class CaptureJob:
     network_binning: int = 1
     #: hybrid: the index of the state whose frame the network sees
     seen_state: int = 0
+    #: which shipped single-shot model (``auto``, ``small``, ``large``: :mod:`polrig.models.sizes`)
+    model_size: str = "auto"
 
     @property
     def exr(self):
@@ -233,6 +235,8 @@ class CaptureOutcome:
     seconds: float
     #: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`)
     prior: dict[str, Any] | None = None
+    #: a single-shot or hybrid result's network model (:class:`polrig.app.manifest.ModelRecord`)
+    model: dict[str, Any] | None = None
 
 
 _PROCESSORS: dict[tuple, Any] = {}  # per worker process: settings -> Processor
@@ -244,7 +248,7 @@ def _processor(job: CaptureJob, session: Session):
 
     sensor = processing.session_sensor_model(session)
     key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
-           job.seen_state, job.device, job.calibration, job.calibration_id, repr(sensor), job.exr)
+           job.seen_state, job.device, job.model_size, job.calibration, job.calibration_id, repr(sensor), job.exr)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
@@ -252,7 +256,8 @@ def _processor(job: CaptureJob, session: Session):
                               f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
                                                 job.mirror_average, job.resolution, job.device,
-                                                job.exr, job.network_binning, job.seen_state)
+                                                job.exr, job.network_binning, job.seen_state,
+                                                job.model_size)
     return _PROCESSORS[key]
 
 
@@ -270,12 +275,12 @@ def process_job(job: CaptureJob) -> CaptureOutcome:
         # submits captures not complete in the revision): the unrecorded output of an attempt
         # that died before the client heard of it, replaced by this one's identical bytes
         out = proc.solve(session, job.index, job.revision)
-        prior = out.prior
+        prior, model = out.prior, out.model
         record, score = processing.write_and_score(session.root, out, proc.exr, replace=True)
     except Exception as exc:
         return CaptureOutcome(None, None, f"{type(exc).__name__}: {exc}", is_disk_full(exc),
                               time.perf_counter() - t0)
-    return CaptureOutcome(record, score, None, False, time.perf_counter() - t0, prior)
+    return CaptureOutcome(record, score, None, False, time.perf_counter() - t0, prior, model)
 
 
 # -- the client ----------------------------------------------------------------------------------
@@ -291,6 +296,7 @@ class SessionBatch:
     todo: list[int]
     device: str = "auto"
     continued: bool = False
+    model_size: str = "auto"
     failed: list[tuple[int, str]] = dataclasses.field(default_factory=list)
     finished: int = 0
 
@@ -353,14 +359,15 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             device: str = "auto", calibration=None,
             command_line: list[str] | None = None,
             exr: dict[str, Any] | None = None,
-            network_binning: int | None = None, seen_state: int | None = None) -> list[SessionBatch]:
+            network_binning: int | None = None, seen_state: int | None = None,
+            model_size: str = "auto") -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
     new one. Leftover files of earlier attempts in the revision's folders are removed."""
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device, exr, network_binning, seen_state)
+                                      resolution, device, exr, network_binning, seen_state, model_size)
              for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
@@ -373,7 +380,8 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
         for i in todo:
             s.start_revision(i, name)
         s.save()
-        batch = SessionBatch(s, name, settings, todo, device, continued=cont is not None)
+        batch = SessionBatch(s, name, settings, todo, device, continued=cont is not None,
+                             model_size=model_size)
         discard_leftovers(batch)
         batches.append(batch)
     return batches
@@ -386,7 +394,7 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
                        st["exr_uncertainty"], st["exr_compression"], st["network_binning"],
-                       st.get("seen_state", 0))
+                       st.get("seen_state", 0), batch.model_size)
             for i in batch.todo]
 
 
@@ -438,7 +446,8 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                         b.finished += 1
                         if out.reason is None:
                             processing.record_result(b.session, job.index, job.revision,
-                                                     out.record, out.score, job.exr, out.prior)
+                                                     out.record, out.score, job.exr, out.prior,
+                                                     out.model)
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)
@@ -479,7 +488,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 
 
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
-                mirror_average=None, resolution=None, device: str = "auto",
+                mirror_average=None, resolution=None, device: str = "auto", model_size: str = "auto",
                 network_binning: int | None = None, seen_state: int | None = None,
                 calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
@@ -497,7 +506,7 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
                           resolution=resolution, device=device, calibration=calibration,
                           network_binning=network_binning, seen_state=seen_state,
-                          command_line=command_line, exr=exr)
+                          command_line=command_line, exr=exr, model_size=model_size)
         if on_start:
             on_start(batches)
         run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)

@@ -92,7 +92,7 @@ RESERVED_METADATA_KEYS = frozenset({
     "single_shot_geometry", "single_shot", "execution_provider", "prior", "seen_state",
     "seen_state_deg", "resolution", "network_binning", "mirror_average", "model",
     "beyond_calibration_fraction", "execution_provider_options", "execution_provider_notes",
-    "network_demosaic", "output_demosaic", "prior_model",
+    "network_demosaic", "output_demosaic", "prior_model", "model_size", "model_training",
     # a ``polrig infer`` result's header
     "method", "scale_dn", "alpha", "source", "state_deg", "saturation_dn", "adc_dn_per_file_dn",
     # a dataset's attributes
@@ -298,19 +298,34 @@ class PriorRecord(TypedDict):
     seen_state_deg: Finite
 
 
+class ModelRecord(TypedDict):
+    """The single-shot model of a single-shot or hybrid result (:mod:`polrig.models.sizes`, read
+    from its ``model.json``): ``size`` (``small``, ``large``; None for a weights folder of the
+    user's), network ``width``, ``training_hardware`` and ``training_minutes`` (over its whole
+    lineage; None where not recorded)."""
+
+    size: str | None
+    width: int | None
+    training_hardware: str
+    training_minutes: float | None
+
+
 class RevisionResult(TypedDict):
-    """A capture's part of a ``polrig reconstruct`` revision (``prior``: hybrid results only)."""
+    """A capture's part of a ``polrig reconstruct`` revision (``prior``: hybrid results only;
+    ``model``: single-shot and hybrid results)."""
 
     status: CaptureStatus
     files: Annotated[CaptureFiles, Label("")]
     score: Annotated[Score | None, Label("")]
     reason: str | None
     prior: NotRequired[Annotated[PriorRecord, Label("prior: ")]]
+    model: NotRequired[Annotated[ModelRecord, Label("model: ")]]
 
 
 class CaptureRecord(TypedDict):
     """One pose of the plan: its folder ``name``, status, last attempt, files, score (and
-    ``prior``: the hybrid result's prior model, absent in other modes)."""
+    ``prior``: the hybrid result's prior model, absent in other modes; ``model``: the single-shot
+    model of a single-shot or hybrid result, absent for the reference method)."""
 
     index: Index
     name: FolderName
@@ -324,6 +339,7 @@ class CaptureRecord(TypedDict):
     score: Annotated[Score | None, Label("")]
     revisions: Annotated[dict[str, RevisionResult], Label(entry=lambda k, v: f"revision {k!r}: ")]
     prior: NotRequired[Annotated[PriorRecord, Label("prior: ")]]
+    model: NotRequired[Annotated[ModelRecord, Label("model: ")]]
 
 
 # -- the session --------------------------------------------------------------------------------

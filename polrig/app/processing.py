@@ -204,6 +204,8 @@ class CaptureResult:
     extra_planes: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     #: hybrid: the prior's record for the manifest (:class:`polrig.app.manifest.PriorRecord`)
     prior: dict[str, Any] | None = None
+    #: single-shot and hybrid: the network's model for the manifest (:class:`polrig.app.manifest.ModelRecord`)
+    model: dict[str, Any] | None = None
 
 
 def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
@@ -291,14 +293,16 @@ def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
 
 def record_result(session: Session, index: int, revision: str | None,
                   records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
-                  exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None) -> None:
+                  exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None,
+                  model: Mapping[str, Any] | None = None) -> None:
     """Record capture ``index``'s written result files (``records`` by role, as
     :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
     file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
     not written), and in ``revision`` (if given) its score and status ``complete``; save the
     manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
     meanwhile). ``prior``: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`),
-    recorded beside its files. The one place a result enters a manifest: the serial
+    recorded beside its files, as is ``model``, the network's model of a single-shot or hybrid
+    result (:class:`polrig.app.manifest.ModelRecord`). The one place a result enters a manifest: the serial
     :meth:`Processor.process` and the client of :mod:`polrig.app.cluster` (whose workers write
     the files) both call it."""
     with session.mutex:
@@ -320,6 +324,8 @@ def record_result(session: Session, index: int, revision: str | None,
                              "channels": "mask.{colour} (reason bits, 0 = valid)"}
         if prior is not None:
             entry["prior"] = dict(prior)
+        if model is not None:
+            entry["model"] = dict(model)
         if revision is not None:
             entry.update(status=COMPLETE, score=score)
         try:
@@ -346,6 +352,9 @@ class Processor:
     ``device``: where the network runs (``auto``, ``cpu``, ``cuda``; :mod:`polrig.models.devices`), a
     run option, not part of the plan; the provider used is recorded; the model is the one the
     plan check opened (:meth:`polrig.app.single_shot.SingleShot.open`), not a second load.
+    ``model_size``: which shipped model (``auto``, ``small``, ``large``: :mod:`polrig.models.sizes`),
+    a run option too; the size, training hardware and minutes are recorded with each result
+    (header ``model_size``, ``model_training``; manifest ``model``).
     ``exr``: the result file's planes, precision and compression (the plan's
     :class:`ExrChoice`; half-precision uncertainty is solved in half precision too).
     ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
@@ -356,7 +365,8 @@ class Processor:
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
-                 exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0):
+                 exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0,
+                 model_size: str = "auto"):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
         #: the single-shot route's options (``None`` for the reference method)
@@ -365,7 +375,10 @@ class Processor:
         self.network_binning = int(network_binning)
         # single-shot: the installed network (loaded once per process and device), or the
         # one-line "no model installed" error
-        self.single_shot = SingleShot.open(device) if mode in NETWORK_MODES else None
+        self.single_shot = SingleShot.open(device, size=model_size) if mode in NETWORK_MODES else None
+        #: what the results record of the network's model (size, training hardware and minutes;
+        #: :meth:`polrig.app.single_shot.SingleShot.model_header`), None for the reference method
+        self.model_header = None if self.single_shot is None else self.single_shot.model_header()
         #: hybrid: the prior's model (manifest ``prior`` record less the seen state); needs the
         #: graph's calibrated sigma (a one-line PlanError of ``mode`` otherwise)
         self.prior_model = (self.single_shot.prior_model(bool(mirror_average)) if mode == "hybrid"
@@ -418,7 +431,7 @@ class Processor:
         prior = out.prior
         records, score = write_and_score(session.root, out, self.exr)
         try:
-            record_result(session, index, revision, records, score, self.exr, prior)
+            record_result(session, index, revision, records, score, self.exr, prior, out.model)
         except BaseException:  # not recorded (a full disk...): no unrecorded file left
             remove_files(session.root / r["path"] for r in records.values())
             raise
@@ -501,6 +514,8 @@ class Processor:
                 "sources": geometry["sources"]}
             if self.mode == "single-shot":
                 meta.update(result.header(self.exr.planes))  # settings, provider, its planes' meaning
+        if self.model_header is not None:
+            meta.update(self.model_header)
         if prior_record is not None:
             meta.update(self.hybrid_header(prior_record, s_in))
             meta["planes"] = {k: v for k, v in meta["planes"].items()
@@ -509,7 +524,15 @@ class Processor:
         truth = None if truth_path is None else self.truth_score(
             truth_path, lay, s_in, states if self.mode == "reference" else None,
             noise_exposures_us(cf)[0])
-        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes, prior_record)
+        return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes, prior_record,
+                             self.manifest_model())
+
+    def manifest_model(self) -> dict[str, Any] | None:
+        """The manifest's ``model`` record of this processor's results
+        (:class:`polrig.app.manifest.ModelRecord`), None for the reference method."""
+        if self.model_header is None:
+            return None
+        return {"size": self.model_header["model_size"], **self.model_header["model_training"]}
 
     @staticmethod
     def hybrid_header(prior_record: Mapping[str, Any], s_in: np.ndarray) -> dict[str, Any]:
@@ -598,10 +621,11 @@ class Processor:
 
 
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
-                   device: str = "auto") -> Processor:
-    """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
+                   device: str = "auto", model_size: str = "auto") -> Processor:
+    """The :class:`Processor` of ``plan`` (its network on ``device``, of ``model_size``: run options)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
-                     plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state)
+                     plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state,
+                     model_size)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -626,7 +650,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       on_failed: Callable[[int, str], None] | None = None,
                       resolution: str | None = None, device: str = "auto",
                       exr: Mapping[str, Any] | None = None,
-                      network_binning: int | None = None, seen_state: int | None = None) -> str:
+                      network_binning: int | None = None, seen_state: int | None = None,
+                      model_size: str = "auto") -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
@@ -637,7 +662,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
     stays single-shot, else ``superpixel``) and ``network_binning`` (single-shot, 1 or 2; default:
     the session's where it stays single-shot, else 1) are recorded with the revision; ``device``
-    (where the network runs) is not a setting of the result: the provider used is in its header.
+    (where the network runs) is not a setting of the result: the provider used is in its header;
+    nor is ``model_size`` (which shipped model, :mod:`polrig.models.sizes`): its results record it.
     ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
     ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
     revision.
@@ -655,7 +681,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         if not was_locked:
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed, resolution, device, exr, network_binning, seen_state)
+                          progress, on_failed, resolution, device, exr, network_binning, seen_state,
+                          model_size)
     finally:
         if not was_locked:
             session.unlock()
@@ -665,7 +692,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   mirror_average: bool | None, calibration: Calibration | None,
                   resolution: str | None = None, device: str = "auto",
                   exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
-                  seen_state: int | None = None
+                  seen_state: int | None = None, model_size: str = "auto"
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
@@ -696,7 +723,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device, choice, network_binning, seen_state)
+                          resolution, device, choice, network_binning, seen_state, model_size)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
@@ -716,10 +743,10 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
                progress, on_failed, resolution=None, device="auto", exr=None,
-               network_binning=None, seen_state=None) -> str:
+               network_binning=None, seen_state=None, model_size="auto") -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
                                               calibration, resolution, device, exr, network_binning,
-                                              seen_state)
+                                              seen_state, model_size)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

@@ -319,6 +319,21 @@ def _files_stamp(folder: pathlib.Path) -> tuple:
     return tuple(out)
 
 
+def _runs_on_cuda(device: str) -> bool:
+    """Whether a model opened on ``device`` would run on CUDA, for ``--model-size auto``
+    (:func:`polrig.models.sizes.choose_size`); asked only where a large model is shipped (else
+    ``auto`` takes the small one anyway, and onnxruntime's providers are not looked at)."""
+    from polrig.models import sizes
+
+    if device == "cpu" or not sizes.is_shipped("large"):
+        return False
+    import onnxruntime as ort
+
+    from polrig.models import devices
+
+    return devices.CUDA in devices.choose_providers(device, ort.get_available_providers())
+
+
 class SingleShot:
     """The single-shot route through one loaded model (:class:`polrig.models.runtime.SingleShotModel`).
 
@@ -338,23 +353,30 @@ class SingleShot:
         self._device = None
 
     @classmethod
-    def open(cls, device: str = "auto", weights: str | os.PathLike | None = None) -> "SingleShot":
+    def open(cls, device: str = "auto", weights: str | os.PathLike | None = None,
+             size: str = "auto") -> "SingleShot":
         """The route on ``device`` (``auto``, ``cpu``, ``cuda``: :mod:`polrig.models.devices`)
-        with the graph in ``weights`` (default: the installed ``models/weights``), the same
-        object for every caller of this process while the folder's files are unchanged: the
-        plan check, the capture's processing and the GUI's live view share one loaded model.
+        with the graph in ``weights`` (default: the installed model of ``size``, ``auto``,
+        ``small`` or ``large``: :func:`polrig.models.sizes.choose_size`, the small one on a CPU),
+        the same object for every caller of this process while the folder's files are unchanged:
+        the plan check, the capture's processing and the GUI's live view share one loaded model.
 
         The installed model missing or unloadable: :class:`polrig.acquisition.plan.PlanError`
-        of ``mode`` (one line: use the reference method); a given ``weights`` folder's problem
-        is raised as it is (``FileNotFoundError``, :class:`polrig.errors.FormatError`); a forced
-        ``cuda`` that cannot run: :class:`polrig.models.devices.DeviceUnavailable`."""
+        of ``mode`` (one line: use the reference method); a size asked for by name that is not
+        shipped: :class:`polrig.models.sizes.ModelSizeUnavailable` (one line: how to get it); a
+        given ``weights`` folder's problem is raised as it is (``FileNotFoundError``,
+        :class:`polrig.errors.FormatError`); a forced ``cuda`` that cannot run:
+        :class:`polrig.models.devices.DeviceUnavailable`."""
         try:
-            from polrig.models import runtime
+            from polrig.models import runtime, sizes
         except ImportError:
             raise PlanError("mode", "no single-shot model is installed (polrig.models.runtime is "
                                     "missing); use the reference method",
                             subject="single-shot", what="mode") from None
-        folder = pathlib.Path(weights) if weights is not None else runtime.WEIGHTS_DIR
+        if weights is not None:
+            folder = pathlib.Path(weights)
+        else:
+            folder = sizes.size_folder(sizes.choose_size(size, size == "auto" and _runs_on_cuda(device)))
         key = (str(folder.resolve()), str(device), _files_stamp(folder))
         with _OPEN_LOCK:
             route = _OPEN.get(key)
@@ -370,6 +392,15 @@ class SingleShot:
                 while len(_OPEN) > MAX_OPEN:
                     _OPEN.pop(next(iter(_OPEN)))
         return route
+
+    def model_header(self) -> dict[str, Any]:
+        """What a result records of the model that made it (:func:`polrig.models.sizes.model_record`,
+        read from its ``model.json``): the header's ``model_size`` (``small``, ``large``, or None
+        for a folder of the user's) and ``model_training`` (width, hardware, minutes)."""
+        from polrig.models.sizes import model_record
+
+        record = model_record(self.model.weights_dir, getattr(self.model, "meta", None))
+        return {"model_size": record.pop("size"), "model_training": record}
 
     @property
     def provider(self) -> str:

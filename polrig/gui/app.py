@@ -104,19 +104,21 @@ def sim_options(size: str = DEFAULT_SIM_SIZE, clock_speed: float = 1.0) -> dict[
     return {"size": size, "clock_speed": clock_speed}
 
 
-def model_loader(weights: str | None = None, device: str = "auto"):
+def model_loader(weights: str | None = None, device: str = "auto", size: str = "auto"):
     """A function opening the single-shot route on ``device`` (``auto``, ``cpu``, ``cuda``:
-    :mod:`polrig.models.devices`) with the model in ``weights`` (default: the installed one; the
+    :mod:`polrig.models.devices`) with the model in ``weights`` (default: the installed one of
+    ``size``, :mod:`polrig.models.sizes`; the
     CLI's message when none is installed): :meth:`polrig.app.single_shot.SingleShot.open`, whose
     model the window's captures share (loaded once per window)."""
     def load() -> SingleShot:
-        return SingleShot.open(device, weights)
+        return SingleShot.open(device, weights, size=size)
     return load
 
 
 def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_SIM_SIZE,
             sim_clock_speed: float = 1.0, weights: str | None = None, device: str = "auto",
-            settings_file: str | None = None, argv: list[str] | None = None) -> int:
+            settings_file: str | None = None, argv: list[str] | None = None,
+            model_size: str = "auto") -> int:
     """Open the rig (simulated unless ``config``) and run the GUI until its window closes."""
     import PySide6
     from PySide6.QtWidgets import QApplication
@@ -131,7 +133,7 @@ def run_gui(config: str | os.PathLike | None = None, *, sim_size: str = DEFAULT_
     rig = build_rig(config_data, sim_options(sim_size, sim_clock_speed))
     app = QApplication.instance() or QApplication(argv or sys.argv[:1])
     app.setApplicationName("polrig")
-    window = MainWindow(rig, make_settings(settings_file), model_loader=model_loader(weights, device))
+    window = MainWindow(rig, make_settings(settings_file), model_loader=model_loader(weights, device, model_size))
     window.show()
     window.start()
     with close_on_signals(window) as received:

@@ -175,6 +175,12 @@ class CapturePanel(QWidget):
         self.device.setToolTip("where the single-shot network runs (auto: CUDA where onnxruntime "
                                "offers it); the provider used is recorded in each result")
         self.device.setEnabled(False)
+        self.model_size = QComboBox()
+        self.model_size.addItems(["auto", "small", "large"])  # polrig.models.sizes.CHOICES
+        self.model_size.setToolTip("single-shot model: small (CPU networks), large (trained on a GPU; "
+                                   "refused while not shipped) or auto (large on CUDA where shipped); "
+                                   "each result records its size, training hardware and minutes")
+        self.model_size.setEnabled(False)
         for w in (self.resolution, self.binning):  # hybrid: superpixel, unbinned (calibrated sigma)
             self.mode.currentTextChanged.connect(
                 lambda m, w=w: w.setEnabled(m == "single-shot"))
@@ -182,7 +188,7 @@ class CapturePanel(QWidget):
         self.seen_state.setRange(0, 359)
         self.seen_state.setToolTip("hybrid: index into the states of the one whose frame the network sees")
         self.seen_state.setEnabled(False)
-        for w in (self.mirror_average, self.device):
+        for w in (self.mirror_average, self.device, self.model_size):
             self.mode.currentTextChanged.connect(
                 lambda m, w=w: w.setEnabled(m in ("single-shot", "hybrid")))
         self.mode.currentTextChanged.connect(lambda m: self.seen_state.setEnabled(m == "hybrid"))
@@ -229,6 +235,7 @@ class CapturePanel(QWidget):
         form.addRow("Resolution", self.resolution)
         form.addRow("Network binning", self.binning)
         form.addRow("Network device", self.device)
+        form.addRow("Model size", self.model_size)
         form.addRow("Seen state (hybrid)", self.seen_state)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
@@ -295,7 +302,7 @@ class CapturePanel(QWidget):
         calibration = self.calibration.text().strip()
         base = dict(out=pathlib.Path(out), resume=resume,
                     calibration=pathlib.Path(calibration) if calibration else None,
-                    device=self.device.currentText())
+                    device=self.device.currentText(), model_size=self.model_size.currentText())
         if resume:
             return CaptureRequest(**base)
         states, exposure = self.states.text().strip(), self.exposure.text().strip()

@@ -67,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="where the single-shot network runs: auto (CUDA where onnxruntime offers it, "
                         "else the CPU; default), cpu or cuda (refused when unavailable); the provider "
                         "used is recorded in each result's header")
+    add_model_size_option(p)
     p.add_argument("--config", help="rig configuration TOML (default: the simulated rig)")
     p.add_argument("--calibration", help="calibration set folder (default: nominal ideal "
                                          "polarizer and analyzer, calibration id 'nominal')")
@@ -128,6 +129,20 @@ def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
                         "frame time at full sensor size for -0.56..+0.03 dB on held-out sets "
                         "(models/MODEL_CARD.md, 'Speed, warm and cold'); the output grid is the same, "
                         f"but there is no sigma (NaN planes) ({default})")
+
+
+#: ``--model-size`` choices (:data:`polrig.models.sizes.CHOICES`; not imported: start-up)
+MODEL_SIZES = ("auto", "small", "large")
+
+
+def add_model_size_option(p: argparse.ArgumentParser) -> None:
+    """``--model-size {auto,small,large}``: which shipped single-shot model runs
+    (:mod:`polrig.models.sizes`; ``infer``, ``capture``, ``reconstruct`` and ``gui`` share it)."""
+    p.add_argument("--model-size", choices=MODEL_SIZES, default=None,  # None: auto, left out of a manifest's command line
+                   help="single-shot model: small (the CPU networks, for CPUs and the live view), "
+                        "large (wider networks trained on a GPU; refused while not shipped) or auto "
+                        "(default: large where the networks run on CUDA and it is shipped, else small); "
+                        "the size, training hardware and minutes are recorded with each result")
 
 
 def add_exr_options(p: argparse.ArgumentParser, planes_default: str, unc_default: str,
@@ -218,6 +233,7 @@ def build_request(args: argparse.Namespace):
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,
             device=args.device or "auto",
+            model_size=args.model_size or "auto",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
             resume=bool(args.resume),

@@ -25,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="where the live view's single-shot network runs: auto (CUDA where "
                         "onnxruntime offers it, else the CPU; default), cpu or cuda (refused when "
                         "unavailable, before the window opens)")
+    from polrig.cli.commands.capture import add_model_size_option
+
+    add_model_size_option(p)
     p.add_argument("--settings", default=None, metavar="FILE",
                    help="INI file for the remembered settings (default: the user's "
                         "polrig/polrig-gui settings)")
@@ -43,7 +46,12 @@ def run(args: argparse.Namespace) -> int:
         from polrig.models.devices import choose_providers
 
         choose_providers(args.device, ort.get_available_providers())
+    if args.weights is None and args.model_size not in (None, "auto"):  # a size not shipped: one line, before Qt starts
+        from polrig.models.sizes import choose_size
+
+        choose_size(args.model_size, on_cuda=False)
     from polrig.gui.app import run_gui
 
     return run_gui(args.config, sim_size=f"{w}x{h}", sim_clock_speed=args.sim_clock_speed,
-                   weights=args.weights, device=args.device, settings_file=args.settings)
+                   weights=args.weights, device=args.device, settings_file=args.settings,
+                   model_size=args.model_size or "auto")

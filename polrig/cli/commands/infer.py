@@ -91,7 +91,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also run the network on the frame's left-right mirror image and average the "
                         "two answers (models/mirror.py): a few per cent lower error for twice the "
                         "network time (models/MODEL_CARD.md, 'Mirror averaging')")
-    p.add_argument("--weights", default=None, help="weights folder (default: shipped models/weights)")
+    from polrig.cli.commands.capture import add_model_size_option
+
+    add_model_size_option(p)
+    p.add_argument("--weights", default=None, help="weights folder (default: the shipped model of --model-size)")
     p.add_argument("--min-snr", type=nonnegative_float, default=None, metavar="K",
                    help="in the previews (OUT_grid.png, OUT_dolp.png, OUT_aolp.png), mask pixels "
                         "whose measured S0 is below K noise standard deviations (default 3, "
@@ -158,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_rig_config(args.config)
     # the same geometry capture processing uses: calibration set, else the rig's nominal one
     geometry = calibrations.single_shot_geometry(calibration, config)
-    route = SingleShot.open(args.device, args.weights)
+    route = SingleShot.open(args.device, args.weights, size=args.model_size or "auto")
     # the result is in the unit of the noise model, the truth of a simulated capture and a
     # session: ADC DN (a Mono16 frame of a 12-bit ADC holds its codes times 16)
     sensor, to_adc = adc_factor(config, frame.meta.bit_depth)
@@ -170,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
     write_result_exr(out, result, planes=planes, compression="none",
                      extra=result.extra_planes(planes),
                      metadata={"method": "single-shot",
-                               "model": "PIPNet+pBRDF+PMMNet (models/weights/single_shot.onnx)",
+                               "model": f"PIPNet+pBRDF+PMMNet ({route.model.weights_dir}/{route.model.graph})",
+                               **route.model_header(),
                                "scale_dn": result.scale, "alpha": result.alpha,
                                "source": str(args.raw), "state_deg": args.state_deg,
                                "layout": str(layout), "demosaic": options.demosaic,

@@ -26,7 +26,12 @@ from polrig.formats.argcheck import int_range
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polrig.cli.commands.capture import add_binning_option, add_exr_options, add_seen_state_option
+    from polrig.cli.commands.capture import (
+        add_binning_option,
+        add_exr_options,
+        add_model_size_option,
+        add_seen_state_option,
+    )
 
     p = sub.add_parser(
         "reconstruct", help="re-process sessions' raw frames (new calibration/model/demosaic)",
@@ -54,6 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
                    help="where the single-shot network runs: auto (default), cpu or cuda (refused "
                         "when unavailable); the provider used is recorded in each result's header")
+    add_model_size_option(p)
     add_exr_options(p, "default: the session's", "default: the session's",
                     "default: the session's")
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
@@ -123,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
                 network_binning=args.network_binning, seen_state=args.seen_state,
-                device=args.device or "auto", calibration_path=args.calibration,
+                device=args.device or "auto", model_size=args.model_size or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
                 command_line=_command_line(args, paths), on_start=on_start,

@@ -115,6 +115,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "networks of the stages not trained from")
     p.add_argument("--warm-start", action="store_true", help="with --init-from: start the trained "
                    "stages from that checkpoint's weights too (fine-tuning, fresh schedule)")
+    p.add_argument("--continue-from", default=None, metavar="CHECKPOINT|small|large",
+                   help="go on training every network of a checkpoint: a checkpoint.pt, or a shipped model "
+                        "size's committed one (models/weights/checkpoint.pt for small; polrig.models.continuation): "
+                        "its weights, its optimizers' states where it holds them (else fresh, said in a note), "
+                        "its recipe and architecture, a fresh schedule of this run's epochs; the lineage records "
+                        "every run (also with --data on-device)")
+    p.add_argument("--autocast", choices=("none", "bf16"), default=None,
+                   help="mixed precision of the networks' forward passes: none (float32, default) or bf16 "
+                        "(bfloat16 autocast; the pBRDF and the losses stay float32)")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export")
     p.set_defaults(func=run)
 
@@ -150,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
             overrides[name] = value
     # ranges checked by argparse (the type= helpers above)
     for name in ("pipnet_epochs", "pmmnet_epochs", "direct_epochs", "batch_size", "lr", "width",
-                 "threads", "limit", "seed"):
+                 "threads", "limit", "seed", "autocast"):
         value = getattr(args, name)
         if value is not None:
             overrides[name] = value
@@ -166,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
         if refused:
             raise ValueError(f"--data on-device: {', '.join(refused)} not supported with on-device scenes")
         train_on_device(args.out, None, overrides=overrides, export=not args.no_export,
-                        overwrite=args.overwrite, **on_device_args)
+                        overwrite=args.overwrite, continue_from=_continue_from(args), **on_device_args)
         return 0
     if on_device_args:
         flag = next(iter(on_device_args))
@@ -174,5 +183,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--{flag} needs --data on-device")
     train(args.data, args.out, None, resume=args.resume, export=not args.no_export,
           overrides=overrides, init_from=args.init_from, stages=args.stages,
-          warm_start=args.warm_start, overwrite=args.overwrite)
+          warm_start=args.warm_start, overwrite=args.overwrite, continue_from=_continue_from(args))
     return 0
+
+
+def _continue_from(args: argparse.Namespace):
+    """``--continue-from``: a size name's committed checkpoint, or the file given (None without)."""
+    if args.continue_from is None:
+        return None
+    from polrig.models.continuation import resolve
+
+    return resolve(args.continue_from)
