@@ -36,7 +36,7 @@ import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+    sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by links (polrig_path.sh)
 
 from polrig.sensor.analyzer import AnalyzerModel  # noqa: E402
 from polrig.sensor.demosaic import METHODS, demosaic  # noqa: E402

@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by links (polrig_path.sh)
 
 from benchmarks.bench_single_shot import COLOUR, FULL, gpu_name, synthetic_raw  # noqa: E402
 from polrig.models import devices  # noqa: E402

@@ -44,7 +44,7 @@ import time
 import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
+sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by links (polrig_path.sh)
 
 from benchmarks.bench_single_shot import gpu_name  # noqa: E402
 from polrig.models import devices  # noqa: E402

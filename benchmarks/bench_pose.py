@@ -51,7 +51,7 @@ import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+    sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by links (polrig_path.sh)
 
 RESULTS = REPO / "benchmarks" / "results" / "pose.md"
 STATES_DEG = (0.0, 45.0, 90.0, 135.0)

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by links (polrig_path.sh)
 
 from polrig.app import processing  # noqa: E402
 from polrig.app.capture import CapturePlan, create_session, run_session  # noqa: E402

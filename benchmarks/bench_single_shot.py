@@ -74,7 +74,7 @@ import time
 import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by links (polrig_path.sh)
 
 from polrig.formats.rawio import read_raw, write_raw  # noqa: E402
 from polrig.acquisition.plan import SingleShotOptions  # noqa: E402
@@ -202,12 +202,14 @@ sys.exit(code)
 
 
 def _child_env() -> dict:
-    """The environment of a one-shot run: this checkout first on the path, and bytecode caching
+    """The environment of a one-shot run: this checkout on the path, and bytecode caching
     as an installed package has it (a development shell's PYTHONDONTWRITEBYTECODE would make
     every cold start compile all of polrig again)."""
     import os
 
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    # this checkout after PYTHONPATH: on a lent machine the links of benchmarks/polrig_path.sh,
+    # which name polrig's top-level folders as an install does, must come before its polrig/
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (os.environ.get("PYTHONPATH"), str(REPO)) if p))
     env.pop("PYTHONDONTWRITEBYTECODE", None)
     return env
 

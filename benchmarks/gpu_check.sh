@@ -40,7 +40,13 @@
 # STEPS="name ..." runs only the named steps (the logs' names; default all): the dry mode's test
 # runs the device route's alone.
 set -u
-export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+# polrig is not installed on a lent machine: links name its folders as an install does
+# (benchmarks/polrig_path.sh), first on PYTHONPATH; the checkout after them (the benchmarks
+# package). PYTHONSAFEPATH: no `python -c` or child puts the working folder (the root, whose
+# polrig/ lacks polrig.models) first on sys.path.
+work=$(mktemp -d)
+. benchmarks/polrig_path.sh "$work"
+export PYTHONPATH="$PYTHONPATH:$PWD" PYTHONSAFEPATH=1 PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/gpu-out}
 PY=${PY:-python3}
 MEASURE_S=${MEASURE_S:-540}

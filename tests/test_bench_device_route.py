@@ -17,7 +17,11 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 @pytest.mark.slow
 def test_gpu_checks_dry_mode_brings_back_the_device_route_table(tmp_path):
-    env = dict(os.environ, OUT=str(tmp_path), STEPS="device_route", PY=sys.executable)
+    """Run as on a lent machine, where polrig is not installed: an interpreter without site
+    processing (the editable install's finder is not loaded) that sees only the dependencies;
+    the script names polrig's folders itself (benchmarks/polrig_path.sh)."""
+    deps = os.pathsep.join(p for p in sys.path if p.endswith("site-packages"))
+    env = dict(os.environ, OUT=str(tmp_path), STEPS="device_route", PY=f"{sys.executable} -S", PYTHONPATH=deps)
     proc = subprocess.run(["bash", "benchmarks/gpu_check.sh", "dry"], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0 and "device_route: rc 0" in proc.stdout, proc.stdout[-2000:]
