@@ -212,6 +212,8 @@ class CaptureJob:
     network_binning: int = 1
     #: hybrid: the index of the state whose frame the network sees
     seen_state: int = 0
+    #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`)
+    models: str = "full"
 
     @property
     def exr(self):
@@ -244,7 +246,8 @@ def _processor(job: CaptureJob, session: Session):
 
     sensor = processing.session_sensor_model(session)
     key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
-           job.seen_state, job.device, job.calibration, job.calibration_id, repr(sensor), job.exr)
+           job.seen_state, job.device, job.calibration, job.calibration_id, repr(sensor), job.exr,
+           job.models)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
@@ -252,7 +255,8 @@ def _processor(job: CaptureJob, session: Session):
                               f"the client loaded {job.calibration_id!r} (changed meanwhile?)")
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
                                                 job.mirror_average, job.resolution, job.device,
-                                                job.exr, job.network_binning, job.seen_state)
+                                                job.exr, job.network_binning, job.seen_state,
+                                                job.models)
     return _PROCESSORS[key]
 
 
@@ -321,7 +325,8 @@ def _continuable(session: Session, settings: dict[str, Any], done: list[int]
     if not revisions:
         return None
     last = revisions[-1]
-    if any(last[k] != v for k, v in settings.items()):
+    # a revision made before a setting existed has its default (models: full)
+    if any(last.get(k, "full" if k == "models" else None) != v for k, v in settings.items()):
         return None
     name = last["name"]
     todo = [i for i in done
@@ -353,14 +358,16 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             device: str = "auto", calibration=None,
             command_line: list[str] | None = None,
             exr: dict[str, Any] | None = None,
-            network_binning: int | None = None, seen_state: int | None = None) -> list[SessionBatch]:
+            network_binning: int | None = None, seen_state: int | None = None,
+            models: str | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
     new one. Leftover files of earlier attempts in the revision's folders are removed."""
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device, exr, network_binning, seen_state)
+                                      resolution, device, exr, network_binning, seen_state,
+                                      models)
              for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
@@ -386,7 +393,7 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
                        st["exr_uncertainty"], st["exr_compression"], st["network_binning"],
-                       st.get("seen_state", 0))
+                       st.get("seen_state", 0), st.get("models", "full"))
             for i in batch.todo]
 
 
@@ -481,6 +488,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
                 mirror_average=None, resolution=None, device: str = "auto",
                 network_binning: int | None = None, seen_state: int | None = None,
+                models: str | None = None,
                 calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
@@ -497,7 +505,7 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
                           resolution=resolution, device=device, calibration=calibration,
                           network_binning=network_binning, seen_state=seen_state,
-                          command_line=command_line, exr=exr)
+                          models=models, command_line=command_line, exr=exr)
         if on_start:
             on_start(batches)
         run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)

@@ -334,6 +334,9 @@ class RevisionSettings(TypedDict):
     exr_planes: list[str]
     exr_uncertainty: str
     exr_compression: str
+    #: ``full`` or ``auto`` (lower-order models per pixel, :mod:`polrig.solve.model_selection`);
+    #: absent in revisions made before it existed (``full``)
+    models: NotRequired[Literal["full", "auto"]]
 
 
 class CameraFrames(TypedDict):

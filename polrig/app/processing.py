@@ -73,6 +73,7 @@ from polrig.app.single_shot import SingleShot, SingleShotResult
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.exr import (
     MuellerRows,
+    channel_suffixes,
     write_mueller_exr,
     write_result_exr,
 )
@@ -91,6 +92,13 @@ from polrig.solve.reference import (
     ReferenceResult,
     reason_names,
     validate_states,
+)
+from polrig.solve.model_selection import (
+    MODEL_CHOICES,
+    MODEL_PLANES,
+    SelectionOptions,
+    model_header,
+    model_planes,
 )
 from polrig.solve.scoring import (  # noqa: F401 (re-exported)
     _psnr_db,
@@ -111,7 +119,8 @@ def noise_exposures_us(cf: CaptureFrames) -> list[float]:
 
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
                       method: str, uncertainty_dtype: type = np.float32,
-                      prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None
+                      prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None,
+                      model_selection: SelectionOptions | None = None
                       ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
     """Reference solve of one capture's frames: ``(result, s_in, layout, states)``;
     ``uncertainty_dtype`` of its ``sigma``, ``sigma_noise`` and ``residual`` (float16 halves
@@ -119,7 +128,9 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
 
     ``prior(states, s_in)``: the hybrid solve instead, with the keywords it returns
     (``prior_mean``, ``prior_sigma``, ``seen_state``: :func:`polrig.solve.radiometry.reference_from_frames`),
-    computed from the capture's state radiances (:meth:`Processor.solve`)."""
+    computed from the capture's state radiances (:meth:`Processor.solve`).
+    ``model_selection``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
+    the result's ``models`` holds the maps)."""
     first = cf.first
     lay = frame_layout(first)
     scale = adc_scale(model, first.meta.bit_depth)
@@ -144,7 +155,8 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     result = reference_from_frames(states, s_in, lay, method, analyzer,
                                    analyzer_tolerance=calibration.analyzer_tolerance,
                                    generator_tolerance=calibration.generator_tolerance,
-                                   uncertainty_dtype=uncertainty_dtype, **extra)
+                                   uncertainty_dtype=uncertainty_dtype,
+                                   model_selection=model_selection, **extra)
     return result, s_in, lay, states
 
 
@@ -351,14 +363,26 @@ class Processor:
     ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
     (its estimate and calibrated sigma are the prior of the solve of all states,
     :mod:`polrig.solve.hybrid`).
+    ``models``: ``full`` (the default: the 3x3 block everywhere) or ``auto`` (reference and
+    hybrid: per pixel the lower-order model a likelihood-ratio test accepts,
+    :mod:`polrig.solve.model_selection`; the result then always carries the model map
+    ``model.{colour}`` with ``model_chi2``/``model_p`` and the header its ``model_selection``).
     """
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
-                 exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0):
+                 exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0,
+                 models: str = "full"):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
+        if models not in MODEL_CHOICES:
+            raise PlanError("models", f"unknown choice {models!r}; use {', '.join(MODEL_CHOICES)}")
+        if models == "auto" and mode == "single-shot":
+            raise PlanError("models", "model selection tests the samples of the polarizer states: "
+                                      "use the reference or hybrid mode")
+        #: ``full`` or ``auto`` (model selection, :mod:`polrig.solve.model_selection`)
+        self.models = models
         #: the single-shot route's options (``None`` for the reference method)
         self.single_shot_options = single_shot_options(mode, demosaic, resolution, network_binning,
                                                        mirror_average)
@@ -464,9 +488,12 @@ class Processor:
                     # the network's sigma: inf on clipped colours, 0 outside its object (no prior)
                     return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k}
 
+            selection = SelectionOptions() if self.models == "auto" else None
             result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
-                                                          self.demosaic, unc, prior)
+                                                          self.demosaic, unc, prior, selection)
             extra_planes = {}
+            if result.models is not None:  # never silent: the map is always written
+                extra_planes = model_planes(result.models, channel_suffixes(lay.n_colours))
             if self.mode == "hybrid":
                 prior_record = {**self.prior_model, **prior_header, "seen_state": self.seen_state,
                                 "seen_state_deg": float(cf.states_deg[self.seen_state])}
@@ -505,6 +532,9 @@ class Processor:
             meta.update(self.hybrid_header(prior_record, s_in))
             meta["planes"] = {k: v for k, v in meta["planes"].items()
                               if k.split(".", 1)[0] in self.exr.planes}
+        if self.mode != "single-shot" and result.models is not None:
+            meta.update(model_header(result.models))
+            meta["planes"] = {**meta["planes"], **MODEL_PLANES}
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
         truth = None if truth_path is None else self.truth_score(
             truth_path, lay, s_in, states if self.mode == "reference" else None,
@@ -598,10 +628,12 @@ class Processor:
 
 
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
-                   device: str = "auto") -> Processor:
-    """The :class:`Processor` of ``plan`` (its network on ``device``: a run option)."""
+                   device: str = "auto", models: str = "full") -> Processor:
+    """The :class:`Processor` of ``plan`` (its network on ``device``: a run option; ``models``:
+    :class:`Processor`)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
-                     plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state)
+                     plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state,
+                     models)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -626,7 +658,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       on_failed: Callable[[int, str], None] | None = None,
                       resolution: str | None = None, device: str = "auto",
                       exr: Mapping[str, Any] | None = None,
-                      network_binning: int | None = None, seen_state: int | None = None) -> str:
+                      network_binning: int | None = None, seen_state: int | None = None,
+                      models: str | None = None) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
@@ -640,7 +673,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     (where the network runs) is not a setting of the result: the provider used is in its header.
     ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
     ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
-    revision.
+    revision. ``models``: ``full`` (default: never applied silently) or ``auto``
+    (:class:`Processor`), recorded with the revision.
 
     A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
     is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
@@ -655,7 +689,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
         if not was_locked:
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed, resolution, device, exr, network_binning, seen_state)
+                          progress, on_failed, resolution, device, exr, network_binning, seen_state,
+                          models)
     finally:
         if not was_locked:
             session.unlock()
@@ -665,7 +700,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   mirror_average: bool | None, calibration: Calibration | None,
                   resolution: str | None = None, device: str = "auto",
                   exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
-                  seen_state: int | None = None
+                  seen_state: int | None = None, models: str | None = None
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
@@ -695,8 +730,10 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         layout, readout, size = session_frame_geometry(session)
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
+    if models is None:  # off unless asked: never applied silently
+        models = "full"
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device, choice, network_binning, seen_state)
+                          resolution, device, choice, network_binning, seen_state, models)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
@@ -711,15 +748,15 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
              "resolution": resolution, "network_binning": processor.network_binning,
              "seen_state": processor.seen_state, "calibration_id": calibration.id,
              "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
-             "exr_compression": choice.compression}, processor, done)
+             "exr_compression": choice.compression, "models": processor.models}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
                progress, on_failed, resolution=None, device="auto", exr=None,
-               network_binning=None, seen_state=None) -> str:
+               network_binning=None, seen_state=None, models=None) -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
                                               calibration, resolution, device, exr, network_binning,
-                                              seen_state)
+                                              seen_state, models)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

@@ -26,7 +26,7 @@ model_selection`` measure). Where the full block holds, accepting a reduced mode
 only where the samples can tell: the truth's distance from the model in the noise metric,
 the noncentrality ``lambda = min_theta (m(theta) - m_true)^T N (m(theta) - m_true)``, is at
 least :func:`detectable_noncentrality` (the ``lambda`` at which the level-``alpha`` test rejects
-with probability 0.95; 15.2 at 4 degrees of freedom, ``alpha = 0.05``). A pixel whose truth is
+with probability 0.95: 18.6 at 4 degrees of freedom, ``alpha = 0.05``). A pixel whose truth is
 detectably off *every* candidate counts in the denominator; it is a false acceptance when any
 reduced model is chosen. Below that distance a reduced model may be accepted and is not an
 error: its bias is then comparable to the noise it removes (the benchmark reports the RMSE
@@ -71,7 +71,7 @@ from polrig.sensor.stokes import ideal_analyzer_matrix
 
 __all__ = ["UNTESTED", "SelectionOptions", "ModelMaps", "select_models", "chi2_sf",
            "chi2_critical", "detectable_noncentrality", "model_planes", "model_header",
-           "normal_equations", "MODEL_CHOICES"]
+           "normal_equations", "MODEL_CHOICES", "MODEL_PLANES"]
 
 #: Model map code of a pixel that was not tested (its samples do not determine the block).
 UNTESTED = 255
@@ -254,7 +254,7 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     chosen one (module docstring). Returns a new result (arrays copied; the same dtypes) and
     the :class:`ModelMaps`."""
     opts = options or SelectionOptions()
-    models = [m for m in MODELS if m.name in opts.models]
+    models = sorted((m for m in MODELS if m.name in opts.models), key=lambda m: m.n_params)
     crit = {m.code: chi2_critical(9 - m.n_params, opts.alpha) for m in models}
     n_col, h, w = result.mask.shape
     mueller, sigma = result.mueller.copy(), result.sigma.copy()
@@ -281,8 +281,16 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
             top_p, top_q = np.full(len(pix), -1.0), np.full(len(pix), np.nan)
             fits = {}
             m0 = np.where(good[:, None], m_hat, 0.0)
-            for model in models:
-                m_fit, q, jac = fit_model(model, m0, normal, iterations=opts.iterations)
+            for model in models:  # fewest parameters first
+                # a pixel that accepted a model with fewer parameters cannot choose this one:
+                # fit only the others (the statistic of the skipped ones is not needed)
+                need = np.flatnonzero(good & (best_k >= model.n_params))
+                m_fit = np.full((len(pix), 9), np.nan)
+                q = np.full(len(pix), np.nan)
+                jac = np.zeros((len(pix), 9, model.n_params))
+                if need.size:
+                    m_fit[need], q[need], jac[need] = fit_model(
+                        model, m0[need], normal[need], iterations=opts.iterations)
                 q = np.where(good, np.clip(q, 0.0, None), np.nan)
                 p = chi2_sf(q, 9 - model.n_params)
                 fits[model.code] = (m_fit, jac, q, model.n_params)
@@ -321,13 +329,21 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                     dark = ~(m_fit[sel, 0] >= MIN_SNR * sd[:, 0])
                 mask[c, py, px] = np.where(dark, mask[c, py, px] | DARK,
                                            mask[c, py, px] & ~np.uint8(DARK))
-    out = ReferenceResult(mueller, sigma, residual, mask, result.condition_number,
-                          result.pixel_condition, result.n_samples,
-                          sigma_noise if with_cal else None)
-    return out, ModelMaps(code, stat, pval, opts)
+    maps = ModelMaps(code, stat, pval, opts)
+    return ReferenceResult(mueller, sigma, residual, mask, result.condition_number,
+                           result.pixel_condition, result.n_samples,
+                           sigma_noise if with_cal else None, maps), maps
 
 
 # ----------------------------------------------------------------------- files
+#: What the model planes mean (a result header's ``planes`` entries).
+MODEL_PLANES = {
+    "model": "lower-order model chosen per pixel (codes in model_selection.codes; 0 full, "
+             "255 untested)",
+    "model_chi2": "likelihood-ratio statistic of the chosen model against the full block "
+                  "(full: of the candidate with the largest p-value)",
+    "model_p": "its p-value, P(chi^2(9 - k) > model_chi2)"}
+
 def model_planes(maps: ModelMaps, colours: Sequence[str]) -> dict[str, np.ndarray]:
     """The EXR planes of the maps (:func:`polrig.formats.exr.colour_planes` naming):
     ``model.{colour}`` (codes, exact in float32), ``model_chi2.{colour}``, ``model_p.{colour}``."""

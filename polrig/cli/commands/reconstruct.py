@@ -56,6 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "when unavailable); the provider used is recorded in each result's header")
     add_exr_options(p, "default: the session's", "default: the session's",
                     "default: the session's")
+    add_models_option(p)
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
@@ -66,6 +67,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                             "path on every worker")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def add_models_option(p: argparse.ArgumentParser) -> None:
+    """``--models full|auto``: lower-order models per pixel (``polrig reconstruct`` and
+    ``polrig capture``; :mod:`polrig.solve.model_selection`)."""
+    p.add_argument("--models", choices=("full", "auto"), default=None,
+                   help="full (default): the 3x3 block at every pixel; auto (reference and hybrid "
+                        "modes): per pixel the lower-order model (depolarizer, diattenuator, "
+                        "retarder, Fresnel-type, rank one...) that a likelihood-ratio test at "
+                        "level 0.05 accepts, estimated under it; the model map (model.{colour}, "
+                        "codes in the header) and its statistic are always written")
 
 
 def _command_line(args: argparse.Namespace, paths: list[str]) -> list[str]:
@@ -123,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
                 network_binning=args.network_binning, seen_state=args.seen_state,
-                device=args.device or "auto", calibration_path=args.calibration,
+                models=args.models, device=args.device or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
                 command_line=_command_line(args, paths), on_start=on_start,
