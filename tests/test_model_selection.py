@@ -295,3 +295,51 @@ def _analyzer_offsets(lay):
     for (dy, dx), ang in np.ndenumerate(lay.angle_deg):
         out[order[int(ang)]] = (dy, dx)
     return out
+
+
+# ------------------------------------------------------------------ the --models round trip
+def test_models_flag_round_trip_capture_and_reconstruct(tmp_path, capsys):
+    """``capture --models auto``: the result holds the map and its statistic, the header the
+    test and its codes, the manifest a ``models`` view; ``reconstruct`` without the flag is
+    the full block (no map, revision setting ``full``), ``--models auto`` records ``auto``;
+    ``--models auto`` with the single-shot mode is one line, exit 2, nothing written."""
+    from polrig.app.session import Session
+    from polrig.cli import main
+    from polrig.formats.exr import read_exr
+
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[sim]\nsize = "64x64"\nsensor = "imx250mzr"\nclock_speed = inf\nseed = 11\n'
+                   'scene = "box"\nnoise = true\n')
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", "reference", "--models", "auto",
+                 "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    s = Session.open(out)
+    files = s.capture(0)["files"]
+    assert files["models"]["path"] == files["mueller"]["path"]
+    im = read_exr(out / files["mueller"]["path"])
+    assert {"model.Y", "model_chi2.Y", "model_p.Y"} <= set(im.planes)
+    header = im.metadata["model_selection"]
+    assert header["alpha"] == 0.05 and header["codes"]["0"] == "full"
+    assert header["codes"]["255"] == "untested"
+    code = im.planes["model.Y"]
+    assert set(np.unique(code).astype(int)) <= {int(c) for c in header["codes"]}
+    assert sum(header["counts"].values()) == code.size
+    assert (code != 0).any()
+
+    assert main(["reconstruct", str(out), "--no-progress"]) == 0
+    assert main(["reconstruct", str(out), "--models", "auto", "--no-progress"]) == 0
+    s = Session.open(out)
+    assert [r["models"] for r in s.manifest["revisions"]] == ["full", "auto"]
+    assert "models" not in s.capture(0)["revisions"]["rev1"]["files"]
+    rev2 = s.capture(0)["revisions"]["rev2"]["files"]
+    assert "models" in rev2
+    np.testing.assert_array_equal(read_exr(out / rev2["mueller"]["path"]).planes["model.Y"], code)
+    assert "model.Y" not in read_exr(out / s.capture(0)["revisions"]["rev1"]["files"]["mueller"]["path"]).planes
+    assert s.verify() == []
+    capsys.readouterr()
+
+    assert main(["capture", "--poses", "0", "--mode", "single-shot", "--models", "auto",
+                 "--config", str(cfg), "--out", str(tmp_path / "ss"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("polrig: error: --models")
+    assert not (tmp_path / "ss").exists()

@@ -153,6 +153,11 @@ class CaptureRequest:
     #: a run option, not part of the plan (a resumed session may run on another device); the
     #: provider used is recorded in each result's header
     device: str = "auto"
+    #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
+    #: reference and hybrid modes): a processing option like ``device``, not part of the plan;
+    #: each result records its own choice (its ``models`` view in the manifest, the header's
+    #: ``model_selection``)
+    models: str = "full"
     #: who, why, what (:class:`polrig.app.manifest.SampleMetadata`): recorded in the manifest
     #: and every result header; ``None``: empty for a new session, the stored one on ``resume``
     #: (a different one is refused there)
@@ -371,7 +376,7 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
             sensor = (session_sensor_model(prepared.resume_session)
                       if prepared.resume_session is not None else sensor_model_of(opened))
             processor = make_processor(prepared.plan, prepared.calibration, sensor,
-                                       device=request.device)
+                                       device=request.device, models=request.models)
             session = open_session(prepared, opened, list(command_line))
             try:
                 if events is not None:

@@ -445,7 +445,8 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                         b.finished += 1
                         if out.reason is None:
                             processing.record_result(b.session, job.index, job.revision,
-                                                     out.record, out.score, job.exr, out.prior)
+                                                     out.record, out.score, job.exr, out.prior,
+                                                     job.models == "auto")
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)

@@ -303,14 +303,16 @@ def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
 
 def record_result(session: Session, index: int, revision: str | None,
                   records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
-                  exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None) -> None:
+                  exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None,
+                  model_map: bool = False) -> None:
     """Record capture ``index``'s written result files (``records`` by role, as
     :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
     file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
     not written), and in ``revision`` (if given) its score and status ``complete``; save the
     manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
     meanwhile). ``prior``: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`),
-    recorded beside its files. The one place a result enters a manifest: the serial
+    recorded beside its files. ``model_map``: the file holds the model selection's planes
+    (``models`` view). The one place a result enters a manifest: the serial
     :meth:`Processor.process` and the client of :mod:`polrig.app.cluster` (whose workers write
     the files) both call it."""
     with session.mutex:
@@ -330,6 +332,10 @@ def record_result(session: Session, index: int, revision: str | None,
         if "mask" in exr.planes:
             files["mask"] = {"part_of": "mueller", "path": path,
                              "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        if model_map:
+            files["models"] = {"part_of": "mueller", "path": path,
+                               "channels": "model.{colour} (codes in the header's "
+                                           "model_selection), model_chi2.{colour}, model_p.{colour}"}
         if prior is not None:
             entry["prior"] = dict(prior)
         if revision is not None:
@@ -442,7 +448,8 @@ class Processor:
         prior = out.prior
         records, score = write_and_score(session.root, out, self.exr)
         try:
-            record_result(session, index, revision, records, score, self.exr, prior)
+            record_result(session, index, revision, records, score, self.exr, prior,
+                          self.models == "auto")
         except BaseException:  # not recorded (a full disk...): no unrecorded file left
             remove_files(session.root / r["path"] for r in records.values())
             raise

@@ -38,6 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "trained network; hybrid: N >= 1 states solved with the network's estimate "
                         "of one of them (--seen-state) as a prior (polrig.solve.hybrid)")
     add_seen_state_option(p, "default 0")
+    add_models_option(p)
     p.add_argument("--mirror-average", action="store_true", default=None,
                    help="single-shot: also run the network on each frame's left-right mirror image "
                         "and average the two answers (a few per cent lower error, twice the network "
@@ -108,6 +109,17 @@ def metadata_option(args: argparse.Namespace):
         first = str(exc).split()[0]
         flag = "--" + first if first in ("sample", "operator", "note") else "--md"
         raise ConfigError(f"{flag}: {exc}") from None
+
+
+def add_models_option(p: argparse.ArgumentParser) -> None:
+    """``--models full|auto``: lower-order models per pixel (``capture`` and ``reconstruct``;
+    :mod:`polrig.solve.model_selection`)."""
+    p.add_argument("--models", choices=("full", "auto"), default=None,
+                   help="full (default): the 3x3 block at every pixel; auto (reference and hybrid "
+                        "modes): per pixel the lower-order model (depolarizer, diattenuator, "
+                        "retarder, Fresnel-type, rank one...) that a likelihood-ratio test at "
+                        "level 0.05 accepts, estimated under it; the model map (model.{colour}, "
+                        "codes in the header) and its statistic are always written")
 
 
 def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
@@ -216,6 +228,7 @@ def build_request(args: argparse.Namespace):
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,
             device=args.device or "auto",
+            models=args.models or "full",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
             resume=bool(args.resume),

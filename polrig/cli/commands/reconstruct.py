@@ -26,7 +26,12 @@ from polrig.formats.argcheck import int_range
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polrig.cli.commands.capture import add_binning_option, add_exr_options, add_seen_state_option
+    from polrig.cli.commands.capture import (
+        add_binning_option,
+        add_exr_options,
+        add_models_option,
+        add_seen_state_option,
+    )
 
     p = sub.add_parser(
         "reconstruct", help="re-process sessions' raw frames (new calibration/model/demosaic)",
@@ -67,17 +72,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                             "path on every worker")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
-
-
-def add_models_option(p: argparse.ArgumentParser) -> None:
-    """``--models full|auto``: lower-order models per pixel (``polrig reconstruct`` and
-    ``polrig capture``; :mod:`polrig.solve.model_selection`)."""
-    p.add_argument("--models", choices=("full", "auto"), default=None,
-                   help="full (default): the 3x3 block at every pixel; auto (reference and hybrid "
-                        "modes): per pixel the lower-order model (depolarizer, diattenuator, "
-                        "retarder, Fresnel-type, rank one...) that a likelihood-ratio test at "
-                        "level 0.05 accepts, estimated under it; the model map (model.{colour}, "
-                        "codes in the header) and its statistic are always written")
 
 
 def _command_line(args: argparse.Namespace, paths: list[str]) -> list[str]:
