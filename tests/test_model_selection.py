@@ -25,37 +25,6 @@ def states(*angles_deg):
 S4 = states(0, 45, 90, 135)
 
 
-def model_blocks(rng, name: str, p: int, scale: float = 1.0) -> np.ndarray:
-    """``p`` random blocks ``(P, 9)`` of model ``name`` (physical ranges), times ``scale``."""
-    u = lambda lo, hi, *shape: rng.uniform(lo, hi, (p,) + shape)  # noqa: E731
-    ang = lambda: u(0.0, 2 * np.pi)  # noqa: E731
-    if name == "unpolarizing":
-        m = (MODEL[name].basis[0] @ u(0.5, 1.0, 1).T).T
-    elif name == "depolarizer":
-        a = u(0.5, 1.0)
-        q = a * u(0.0, 1.0)
-        b = ang()
-        m = (MODEL[name].basis[int(rng.integers(2))] @ np.stack([a, q * np.cos(b), q * np.sin(b)])).T
-    elif name == "diattenuator":
-        m = MODEL[name].matrix(np.stack([u(0.5, 1.0), u(-1.0, 1.0), ang(), ang()], -1))
-    elif name == "retarder":
-        a = u(0.5, 1.0)
-        m = MODEL[name].matrix(np.stack([a, a * np.cos(u(0, np.pi)), ang(), ang()], -1))
-    elif name == "fresnel":
-        a = u(0.5, 1.0)
-        b = a * u(-1.0, 1.0)
-        c = np.sqrt(a * a - b * b) * np.cos(u(0, np.pi))
-        m = MODEL[name].matrix(np.stack([a, b, c, ang(), ang()], -1))
-    elif name == "rank_one":
-        x = np.stack([u(0.5, 1.0), u(-0.4, 0.4), u(-0.4, 0.4)], -1)
-        m = MODEL[name].matrix(np.concatenate([x, u(-0.5, 0.5, 2)], -1))
-    else:  # full: convex sums of 3 random Jones matrices, m00 in [0.5, 1]
-        j = rng.normal(size=(3, p, 2, 2)) + 1j * rng.normal(size=(3, p, 2, 2))
-        m = np.einsum("k,k...->...", rng.random(3), mu.jones_to_mueller(j))[..., :3, :3]
-        m = (m / m[..., :1, :1] * u(0.5, 1.0)[:, None, None]).reshape(p, 9)
-    return m * scale
-
-
 def images(blocks: np.ndarray, h: int, w: int) -> np.ndarray:
     """``(P, 9)`` blocks -> one-colour Mueller images ``(1, 3, 3, H, W)``."""
     return blocks.reshape(h, w, 3, 3).transpose(2, 3, 0, 1)[None]
@@ -89,7 +58,7 @@ def normal_of_truth(truth, s=S4, read_var=4.0, gain=0.5):
 def test_exact_model_blocks_are_fitted_exactly(name):
     """Noise-free samples of a block of the model: the fit is the block and the statistic 0."""
     rng = np.random.default_rng(1)
-    truth = images(model_blocks(rng, name, 200, 1000.0), 10, 20)
+    truth = images(rm.random_blocks(rng, name, 200, 1000.0), 10, 20)
     normal, m_hat = normal_of_truth(truth)
     m_fit, q, _ = rm.fit_model(MODEL[name], m_hat, normal)
     scale = np.abs(m_hat).max(axis=1, keepdims=True)
@@ -128,7 +97,7 @@ def test_parameters_of_a_diattenuator_a_retarder_and_a_depolarizer_are_recovered
 
 def test_full_model_data_rejects_every_reduced_model():
     rng = np.random.default_rng(7)
-    truth = images(model_blocks(rng, "full", 400, 3000.0), 20, 20)
+    truth = images(rm.random_blocks(rng, "full", 400, 3000.0), 20, 20)
     full, sel, maps, _ = solve_and_select(truth, rng)
     assert np.all(maps.code == 0)
     np.testing.assert_array_equal(sel.mueller, full.mueller)
@@ -167,7 +136,7 @@ def test_a_true_model_is_rejected_at_the_tests_level_and_accepting_it_lowers_the
     2400 pixels: standard error 0.45 %), and the selected estimate is closer to the truth than
     the full one."""
     rng = np.random.default_rng(11)
-    truth = images(model_blocks(rng, name, 2400, 3000.0), 40, 60)
+    truth = images(rm.random_blocks(rng, name, 2400, 3000.0), 40, 60)
     full, sel, maps, (meas, var) = solve_and_select(
         truth, rng, ms.SelectionOptions(models=(name,)))
     rejected = np.mean(maps.code == 0)
@@ -191,9 +160,9 @@ def test_false_acceptance_is_at_most_5_percent_where_the_full_model_holds():
     rng = np.random.default_rng(5)
     p = 6000
     names = list(MODEL)
-    base = np.concatenate([model_blocks(rng, names[i % len(names)], p // len(names), 3000.0)
+    base = np.concatenate([rm.random_blocks(rng, names[i % len(names)], p // len(names), 3000.0)
                            for i in range(len(names))])
-    pert = model_blocks(rng, "full", p, 1.0)
+    pert = rm.random_blocks(rng, "full", p, 1.0)
     size = rng.uniform(0.0, 800.0, (p, 1))  # DN: the full solve's sigma is about 20-40 DN
     truth = images(base + size * pert / np.linalg.norm(pert, axis=1, keepdims=True), 60, 100)
     full, sel, maps, _ = solve_and_select(truth, rng)
@@ -218,7 +187,7 @@ def test_dark_nan_and_masked_pixels():
     """m00 = 0 (no light): the unpolarizing model, finite; a pixel whose samples are all NaN
     or all masked: untested, its result untouched; a pixel with one masked sample: tested."""
     rng = np.random.default_rng(3)
-    blocks = model_blocks(rng, "full", 6, 3000.0)
+    blocks = rm.random_blocks(rng, "full", 6, 3000.0)
     blocks[0] = 0.0
     truth = images(blocks, 2, 3)
     meas, var = noisy_samples(rng, truth)
@@ -240,7 +209,7 @@ def test_dark_nan_and_masked_pixels():
 def test_fewer_than_three_states_are_not_tested():
     rng = np.random.default_rng(4)
     s = states(0, 60)
-    truth = images(model_blocks(rng, "unpolarizing", 4, 3000.0), 2, 2)
+    truth = images(rm.random_blocks(rng, "unpolarizing", 4, 3000.0), 2, 2)
     meas, var = noisy_samples(rng, truth, s)
     mean = np.zeros((1, 3, 3, 2, 2))
     from polrig.solve.hybrid import solve_hybrid
@@ -268,8 +237,8 @@ def test_banded_frames_to_result_equals_one_selection():
     rng = np.random.default_rng(8)
     lay = get_layout("IMX250MZR")
     h, w = 16, 24
-    truth = images(np.concatenate([model_blocks(rng, "rank_one", h * w // 2, 3000.0),
-                                   model_blocks(rng, "full", h * w // 2, 3000.0)]), h, w)
+    truth = images(np.concatenate([rm.random_blocks(rng, "rank_one", h * w // 2, 3000.0),
+                                   rm.random_blocks(rng, "full", h * w // 2, 3000.0)]), h, w)
     meas, var = noisy_samples(rng, truth)
     # superpixel mosaics: analyzer j of state k at its place in the 2x2 cell
     states_ = []

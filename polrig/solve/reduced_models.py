@@ -59,7 +59,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ReducedModel", "MODELS", "MODEL_CODES", "fit_model", "block_covariance"]
+from polrig.optics.mueller import jones_to_mueller
+
+__all__ = ["ReducedModel", "MODELS", "MODEL_CODES", "fit_model", "block_covariance", "random_blocks"]
 
 
 @dataclass(frozen=True)
@@ -347,3 +349,40 @@ def block_covariance(jac: np.ndarray, normal: np.ndarray) -> np.ndarray:
     inv_w = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
     jv = jac @ v
     return (jv * inv_w[:, None, :]) @ np.swapaxes(jv, 1, 2)
+
+
+_BY_NAME = {m.name: m for m in MODELS}
+
+
+def random_blocks(rng: np.random.Generator, name: str, p: int, scale: float = 1.0) -> np.ndarray:
+    """``p`` random blocks ``(P, 9)`` of model ``name`` (a :data:`MODELS` name, or ``full``:
+    convex sums of three random Jones matrices), in physical ranges (``m00`` in [0.5, 1],
+    uniform axes, diattenuation and retardance), times ``scale``: the tests' and
+    ``python -m benchmarks model_selection``'s synthetic truths."""
+    u = lambda lo, hi, *shape: rng.uniform(lo, hi, (p,) + shape)  # noqa: E731
+    ang = lambda: u(0.0, 2 * np.pi)  # noqa: E731
+    if name == "unpolarizing":
+        m = (_BY_NAME[name].basis[0] @ u(0.5, 1.0, 1).T).T
+    elif name == "depolarizer":
+        a = u(0.5, 1.0)
+        q = a * u(0.0, 1.0)
+        b = ang()
+        m = (_BY_NAME[name].basis[int(rng.integers(2))] @ np.stack([a, q * np.cos(b), q * np.sin(b)])).T
+    elif name == "diattenuator":
+        m = _BY_NAME[name].matrix(np.stack([u(0.5, 1.0), u(-1.0, 1.0), ang(), ang()], -1))
+    elif name == "retarder":
+        a = u(0.5, 1.0)
+        m = _BY_NAME[name].matrix(np.stack([a, a * np.cos(u(0, np.pi)), ang(), ang()], -1))
+    elif name == "fresnel":
+        a = u(0.5, 1.0)
+        b = a * u(-1.0, 1.0)
+        c = np.sqrt(a * a - b * b) * np.cos(u(0, np.pi))
+        m = _BY_NAME[name].matrix(np.stack([a, b, c, ang(), ang()], -1))
+    elif name == "rank_one":
+        x = np.stack([u(0.5, 1.0), u(-0.4, 0.4), u(-0.4, 0.4)], -1)
+        m = _BY_NAME[name].matrix(np.concatenate([x, u(-0.5, 0.5, 2)], -1))
+    else:  # full: convex sums of 3 random Jones matrices, m00 in [0.5, 1]
+        j = rng.normal(size=(3, p, 2, 2)) + 1j * rng.normal(size=(3, p, 2, 2))
+        m = np.einsum("k,k...->...", rng.random(3), jones_to_mueller(j))[..., :3, :3]
+        m = (m / m[..., :1, :1] * u(0.5, 1.0)[:, None, None]).reshape(p, 9)
+    return m * scale
