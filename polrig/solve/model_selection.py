@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from polrig.errors import ConfigError
+from polrig.sensor.stokes import ideal_analyzer_matrix
 from polrig.solve.reduced_models import MODEL_CODES, MODELS, block_covariance, fit_model
 from polrig.solve.reference import (
     DARK,
@@ -67,7 +68,6 @@ from polrig.solve.reference import (
     MIN_SNR,
     ReferenceResult,
 )
-from polrig.sensor.stokes import ideal_analyzer_matrix
 
 __all__ = ["UNTESTED", "SelectionOptions", "ModelMaps", "select_models", "chi2_sf",
            "chi2_critical", "detectable_noncentrality", "model_planes", "model_header",
