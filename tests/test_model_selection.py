@@ -206,6 +206,31 @@ def test_dark_nan_and_masked_pixels():
     assert code[1, 0] == 0 and np.isfinite(maps.statistic[0, 1, 0])
 
 
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.sampled_from([0.0, 1e-3, 1.0, 30.0, 3000.0, 6e4]),
+       drop=st.floats(0.0, 0.6))
+def test_any_scene_gives_finite_results_and_known_codes(seed, scale, drop):
+    """Random blocks of every kind from no light to near saturation, random samples masked:
+    finite estimates and sigma, codes from the table, untested pixels untouched, a chosen
+    model's statistic within its critical value."""
+    rng = np.random.default_rng(seed)
+    names = ["full", *MODEL]
+    blocks = np.concatenate([rm.random_blocks(rng, n, 3, scale) for n in names])
+    truth = images(blocks, 3, len(names))
+    meas, var = noisy_samples(rng, truth)
+    valid = rng.random(meas.shape) >= drop
+    full = ref.solve_reference(S4, meas, var, valid, dtype=np.float64)
+    sel, maps = ms.select_models(S4, meas, var, valid, None, full)
+    assert np.isfinite(sel.mueller).all() and np.isfinite(sel.sigma).all()
+    assert set(np.unique(maps.code)) <= {*rm.MODEL_CODES, ms.UNTESTED}
+    untested = maps.code == ms.UNTESTED
+    np.testing.assert_array_equal(sel.mueller[:, :, :, untested[0]], full.mueller[:, :, :, untested[0]])
+    assert np.isnan(maps.statistic[untested]).all()
+    for model in rm.MODELS:
+        chosen = maps.code == model.code
+        assert (maps.statistic[chosen] <= ms.chi2_critical(9 - model.n_params, 0.05) + 1e-6).all()
+
+
 def test_fewer_than_three_states_are_not_tested():
     rng = np.random.default_rng(4)
     s = states(0, 60)
