@@ -18,7 +18,9 @@ Definitions (``polrig/solve/model_selection.py``): a pixel's truth is *detectabl
 when its noncentrality ``lambda`` (the truth's distance from the model in the noise metric of
 its samples) reaches :func:`~polrig.solve.model_selection.detectable_noncentrality` (the test
 rejects with probability 0.95 there); **false acceptance** = the share of the pixels
-detectably off every candidate where a reduced model was chosen. "holds" = the truth within
+detectably off every candidate where a reduced model was chosen; **chosen model detectably
+wrong** = the share of the pixels given a reduced model whose truth is detectably off that
+model. "holds" = the truth within
 ``lambda < 1`` of some candidate (closer than one noise standard deviation). RMSE in the
 sets' normalised units (``x 1000``), over all object pixels and over those subsets. Timing:
 the reference solve (compiled kernel) and the selection (numpy) of the same samples, median
@@ -87,14 +89,21 @@ def evaluate(s, meas, var, valid, truth, use, rounds: int, unit: float = 1000.0)
             covs.append(np.abs(e) <= 2 * sg + 1e-12)
     lam, code = np.concatenate(lam_rows), np.concatenate(code_rows)
     e_full, e_sel = np.concatenate(err_full), np.concatenate(err_sel)
-    detect = (lam >= thresholds()).all(axis=1)
+    thr = thresholds()
+    detect = (lam >= thr).all(axis=1)
+    chosen = code != 0
+    col = {m.code: j for j, m in enumerate(rm.MODELS)}
+    lam_chosen = np.array([lam[i, col[c]] if c else 0.0 for i, c in enumerate(code)])
+    thr_chosen = np.array([thr[col[c]] if c else np.inf for c in code])
+    wrong = chosen & (lam_chosen >= thr_chosen)
     holds = lam.min(axis=1) < 1.0
     rmse = lambda e, m: float(np.sqrt(np.mean(e[m] ** 2)) * unit) if m.any() else float("nan")  # noqa: E731
     every = np.ones(len(code), bool)
     return {
         "pixels": len(code), "accepted": float(np.mean(code != 0)),
         "counts": {name: int(np.sum(code == k)) for k, name in rm.MODEL_CODES.items()},
-        "detectable": int(detect.sum()), "holds": int(holds.sum()),
+        "detectable": int(detect.sum()), "holds": int(holds.sum()), "chosen": int(chosen.sum()),
+        "chosen_wrong": float(np.mean(wrong[chosen])) if chosen.any() else float("nan"),
         "false_acceptance": float(np.mean(code[detect] != 0)) if detect.any() else float("nan"),
         "rejected_where_holds": float(np.mean(code[holds] == 0)) if holds.any() else float("nan"),
         "rmse_full": rmse(e_full, every), "rmse_sel": rmse(e_sel, every),
@@ -114,6 +123,8 @@ def merge(rows: list[dict]) -> dict:
                               / max(1, sum(r[wkey] for r in rows if np.isfinite(r[key]))))
     out["accepted"] = wsum("accepted", "pixels")
     out["detectable"] = sum(r["detectable"] for r in rows)
+    out["chosen"] = sum(r["chosen"] for r in rows)
+    out["chosen_wrong"] = wsum("chosen_wrong", "chosen") if out["chosen"] else float("nan")
     out["holds"] = sum(r["holds"] for r in rows)
     out["false_acceptance"] = wsum("false_acceptance", "detectable") if out["detectable"] else float("nan")
     out["rejected_where_holds"] = wsum("rejected_where_holds", "holds") if out["holds"] else float("nan")
@@ -185,7 +196,8 @@ def sim_sets(names, count: int, data: pathlib.Path, rounds: int) -> dict[str, di
 
 def fmt(r: dict) -> str:
     return (f"{r['pixels']} px, accepted {100 * r['accepted']:.1f}%, false acceptance "
-            f"{100 * r['false_acceptance']:.2f}% of {r['detectable']}, RMSE {r['rmse_full']:.3f} -> "
+            f"{100 * r['false_acceptance']:.2f}% of {r['detectable']}, chosen detectably wrong "
+            f"{100 * r['chosen_wrong']:.2f}% of {r['chosen']}, RMSE {r['rmse_full']:.3f} -> "
             f"{r['rmse_sel']:.3f} (holds {r['rmse_full_holds']:.3f} -> {r['rmse_sel_holds']:.3f}), "
             f"coverage {100 * r['coverage_full']:.1f} -> {100 * r['coverage_sel']:.1f}%, "
             f"time {1e3 * r['t_ref']:.0f} + {1e3 * r['t_sel']:.0f} ms")
@@ -193,15 +205,16 @@ def fmt(r: dict) -> str:
 
 def markdown(syn: dict, sim: dict, args) -> str:
     head = ("| set | pixels | accepted | detectably full | false acceptance | model holds | "
-            "rejected where it holds | RMSE full -> selected | where a model holds | "
+            "rejected where it holds | chosen model detectably wrong | RMSE full -> selected | where a model holds | "
             "where detectably full | within 2 sigma full -> selected | reference solve | selection |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
 
     def row(name, r):
         pct = lambda v: "n/a" if not np.isfinite(v) else f"{100 * v:.1f} %"  # noqa: E731
         pair = lambda a, b: "n/a" if not np.isfinite(a) else f"{a:.3f} -> {b:.3f}"  # noqa: E731
         return (f"| {name} | {r['pixels']} | {pct(r['accepted'])} | {r['detectable']} | "
                 f"{pct(r['false_acceptance'])} | {r['holds']} | {pct(r['rejected_where_holds'])} | "
+                f"{pct(r['chosen_wrong'])} | "
                 f"{pair(r['rmse_full'], r['rmse_sel'])} | {pair(r['rmse_full_holds'], r['rmse_sel_holds'])} | "
                 f"{pair(r['rmse_full_detect'], r['rmse_sel_detect'])} | "
                 f"{100 * r['coverage_full']:.1f} -> {100 * r['coverage_sel']:.1f} % | "
