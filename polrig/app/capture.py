@@ -156,6 +156,11 @@ class CaptureRequest:
     #: which shipped single-shot model (``auto``, ``small``, ``large``: :mod:`polrig.models.sizes`):
     #: a run option like ``device``; each result records its size, training hardware and minutes
     model_size: str = "auto"
+    #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
+    #: reference and hybrid modes): a processing option like ``device``, not part of the plan;
+    #: each result records its own choice (its ``models`` view in the manifest, the header's
+    #: ``model_selection``)
+    models: str = "full"
     #: who, why, what (:class:`polrig.app.manifest.SampleMetadata`): recorded in the manifest
     #: and every result header; ``None``: empty for a new session, the stored one on ``resume``
     #: (a different one is refused there)
@@ -374,7 +379,8 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
             sensor = (session_sensor_model(prepared.resume_session)
                       if prepared.resume_session is not None else sensor_model_of(opened))
             processor = make_processor(prepared.plan, prepared.calibration, sensor,
-                                       device=request.device, model_size=request.model_size)
+                                       device=request.device, model_size=request.model_size,
+                                       models=request.models)
             session = open_session(prepared, opened, list(command_line))
             try:
                 if events is not None:

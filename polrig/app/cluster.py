@@ -214,6 +214,8 @@ class CaptureJob:
     seen_state: int = 0
     #: which shipped single-shot model (``auto``, ``small``, ``large``: :mod:`polrig.models.sizes`)
     model_size: str = "auto"
+    #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`)
+    models: str = "full"
 
     @property
     def exr(self):
@@ -248,7 +250,8 @@ def _processor(job: CaptureJob, session: Session):
 
     sensor = processing.session_sensor_model(session)
     key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
-           job.seen_state, job.device, job.model_size, job.calibration, job.calibration_id, repr(sensor), job.exr)
+           job.seen_state, job.device, job.model_size, job.calibration, job.calibration_id, repr(sensor), job.exr,
+           job.models)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
@@ -257,7 +260,7 @@ def _processor(job: CaptureJob, session: Session):
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
                                                 job.mirror_average, job.resolution, job.device,
                                                 job.exr, job.network_binning, job.seen_state,
-                                                job.model_size)
+                                                job.model_size, job.models)
     return _PROCESSORS[key]
 
 
@@ -327,7 +330,8 @@ def _continuable(session: Session, settings: dict[str, Any], done: list[int]
     if not revisions:
         return None
     last = revisions[-1]
-    if any(last[k] != v for k, v in settings.items()):
+    # a revision made before a setting existed has its default (models: full)
+    if any(last.get(k, "full" if k == "models" else None) != v for k, v in settings.items()):
         return None
     name = last["name"]
     todo = [i for i in done
@@ -360,14 +364,15 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             command_line: list[str] | None = None,
             exr: dict[str, Any] | None = None,
             network_binning: int | None = None, seen_state: int | None = None,
-            model_size: str = "auto") -> list[SessionBatch]:
+            model_size: str = "auto", models: str | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
     new one. Leftover files of earlier attempts in the revision's folders are removed."""
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device, exr, network_binning, seen_state, model_size)
+                                      resolution, device, exr, network_binning, seen_state, model_size,
+                                      models)
              for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
@@ -394,7 +399,8 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
                        st["demosaic"], bool(st["mirror_average"]), st["resolution"],
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
                        st["exr_uncertainty"], st["exr_compression"], st["network_binning"],
-                       st.get("seen_state", 0), batch.model_size)
+                       st.get("seen_state", 0), batch.model_size,
+                       st.get("models", "full"))
             for i in batch.todo]
 
 
@@ -447,7 +453,8 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                         if out.reason is None:
                             processing.record_result(b.session, job.index, job.revision,
                                                      out.record, out.score, job.exr, out.prior,
-                                                     out.model)
+                                                     out.model,
+                                                     job.models == "auto")
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)
@@ -490,6 +497,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
                 mirror_average=None, resolution=None, device: str = "auto", model_size: str = "auto",
                 network_binning: int | None = None, seen_state: int | None = None,
+                models: str | None = None,
                 calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
@@ -506,7 +514,8 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
         batches = prepare(sessions, mode=mode, demosaic=demosaic, mirror_average=mirror_average,
                           resolution=resolution, device=device, calibration=calibration,
                           network_binning=network_binning, seen_state=seen_state,
-                          command_line=command_line, exr=exr, model_size=model_size)
+                          command_line=command_line, exr=exr, model_size=model_size,
+                          models=models)
         if on_start:
             on_start(batches)
         run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)

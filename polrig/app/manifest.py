@@ -248,6 +248,8 @@ class CaptureFiles(TypedDict, total=False):
     preview_aolp: _file("preview_aolp")
     uncertainty: Annotated[PlaneView, Label("uncertainty view: ")]
     mask: Annotated[PlaneView, Label("mask view: ")]
+    #: the model map of a result made with model selection (:mod:`polrig.solve.model_selection`)
+    models: Annotated[PlaneView, Label("models view: ")]
 
 
 #: Roles whose entry is a list of files (one per frame); every other role is one record.
@@ -256,7 +258,7 @@ LIST_ROLES = ("raw", "dark")
 #: at the pose); every other role is a result of processing them.
 ACQUISITION_ROLES = ("raw", "dark", "truth_mueller")
 #: Roles that are views into another role's file.
-VIEW_ROLES = ("uncertainty", "mask")
+VIEW_ROLES = ("uncertainty", "mask", "models")
 
 
 # -- captures -----------------------------------------------------------------------------------
@@ -360,6 +362,9 @@ class RevisionSettings(TypedDict):
     exr_planes: list[str]
     exr_uncertainty: str
     exr_compression: str
+    #: ``full`` or ``auto`` (lower-order models per pixel, :mod:`polrig.solve.model_selection`);
+    #: absent in revisions made before it existed (``full``)
+    models: NotRequired[Literal["full", "auto"]]
 
 
 class CameraFrames(TypedDict):

@@ -73,12 +73,20 @@ from polrig.app.single_shot import SingleShot, SingleShotResult
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.exr import (
     MuellerRows,
+    channel_suffixes,
     write_mueller_exr,
     write_result_exr,
 )
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
+from polrig.solve.model_selection import (
+    MODEL_CHOICES,
+    MODEL_PLANES,
+    SelectionOptions,
+    model_planes,
+    selection_header,
+)
 from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
     StateRadiance,
     adc_scale,
@@ -111,7 +119,8 @@ def noise_exposures_us(cf: CaptureFrames) -> list[float]:
 
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
                       method: str, uncertainty_dtype: type = np.float32,
-                      prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None
+                      prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None,
+                      model_selection: SelectionOptions | None = None
                       ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
     """Reference solve of one capture's frames: ``(result, s_in, layout, states)``;
     ``uncertainty_dtype`` of its ``sigma``, ``sigma_noise`` and ``residual`` (float16 halves
@@ -119,7 +128,9 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
 
     ``prior(states, s_in)``: the hybrid solve instead, with the keywords it returns
     (``prior_mean``, ``prior_sigma``, ``seen_state``: :func:`polrig.solve.radiometry.reference_from_frames`),
-    computed from the capture's state radiances (:meth:`Processor.solve`)."""
+    computed from the capture's state radiances (:meth:`Processor.solve`).
+    ``model_selection``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
+    the result's ``models`` holds the maps)."""
     first = cf.first
     lay = frame_layout(first)
     scale = adc_scale(model, first.meta.bit_depth)
@@ -144,7 +155,8 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     result = reference_from_frames(states, s_in, lay, method, analyzer,
                                    analyzer_tolerance=calibration.analyzer_tolerance,
                                    generator_tolerance=calibration.generator_tolerance,
-                                   uncertainty_dtype=uncertainty_dtype, **extra)
+                                   uncertainty_dtype=uncertainty_dtype,
+                                   model_selection=model_selection, **extra)
     return result, s_in, lay, states
 
 
@@ -294,7 +306,8 @@ def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
 def record_result(session: Session, index: int, revision: str | None,
                   records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
                   exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None,
-                  model: Mapping[str, Any] | None = None) -> None:
+                  model: Mapping[str, Any] | None = None,
+                  model_map: bool = False) -> None:
     """Record capture ``index``'s written result files (``records`` by role, as
     :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
     file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
@@ -302,7 +315,8 @@ def record_result(session: Session, index: int, revision: str | None,
     manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
     meanwhile). ``prior``: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`),
     recorded beside its files, as is ``model``, the network's model of a single-shot or hybrid
-    result (:class:`polrig.app.manifest.ModelRecord`). The one place a result enters a manifest: the serial
+    result (:class:`polrig.app.manifest.ModelRecord`). ``model_map``: the file holds the model selection's
+    planes (``models`` view). The one place a result enters a manifest: the serial
     :meth:`Processor.process` and the client of :mod:`polrig.app.cluster` (whose workers write
     the files) both call it."""
     with session.mutex:
@@ -322,6 +336,10 @@ def record_result(session: Session, index: int, revision: str | None,
         if "mask" in exr.planes:
             files["mask"] = {"part_of": "mueller", "path": path,
                              "channels": "mask.{colour} (reason bits, 0 = valid)"}
+        if model_map:
+            files["models"] = {"part_of": "mueller", "path": path,
+                               "channels": "model.{colour} (codes in the header's "
+                                           "model_selection), model_chi2.{colour}, model_p.{colour}"}
         if prior is not None:
             entry["prior"] = dict(prior)
         if model is not None:
@@ -360,15 +378,26 @@ class Processor:
     ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
     (its estimate and calibrated sigma are the prior of the solve of all states,
     :mod:`polrig.solve.hybrid`).
+    ``models``: ``full`` (the default: the 3x3 block everywhere) or ``auto`` (reference and
+    hybrid: per pixel the lower-order model a likelihood-ratio test accepts,
+    :mod:`polrig.solve.model_selection`; the result then always carries the model map
+    ``model.{colour}`` with ``model_chi2``/``model_p`` and the header its ``model_selection``).
     """
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
                  exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0,
-                 model_size: str = "auto"):
+                 model_size: str = "auto", models: str = "full"):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
+        if models not in MODEL_CHOICES:
+            raise PlanError("models", f"unknown choice {models!r}; use {', '.join(MODEL_CHOICES)}")
+        if models == "auto" and mode == "single-shot":
+            raise PlanError("models", "model selection tests the samples of the polarizer states: "
+                                      "use the reference or hybrid mode")
+        #: ``full`` or ``auto`` (model selection, :mod:`polrig.solve.model_selection`)
+        self.models = models
         #: the single-shot route's options (``None`` for the reference method)
         self.single_shot_options = single_shot_options(mode, demosaic, resolution, network_binning,
                                                        mirror_average, exr.planes)
@@ -431,7 +460,8 @@ class Processor:
         prior = out.prior
         records, score = write_and_score(session.root, out, self.exr)
         try:
-            record_result(session, index, revision, records, score, self.exr, prior, out.model)
+            record_result(session, index, revision, records, score, self.exr, prior, out.model,
+                          self.models == "auto")
         except BaseException:  # not recorded (a full disk...): no unrecorded file left
             remove_files(session.root / r["path"] for r in records.values())
             raise
@@ -477,9 +507,12 @@ class Processor:
                     # the network's sigma: inf on clipped colours, 0 outside its object (no prior)
                     return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k}
 
+            selection = SelectionOptions() if self.models == "auto" else None
             result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
-                                                          self.demosaic, unc, prior)
+                                                          self.demosaic, unc, prior, selection)
             extra_planes = {}
+            if result.models is not None:  # never silent: the map is always written
+                extra_planes = model_planes(result.models, channel_suffixes(lay.n_colours))
             if self.mode == "hybrid":
                 prior_record = {**self.prior_model, **prior_header, "seen_state": self.seen_state,
                                 "seen_state_deg": float(cf.states_deg[self.seen_state])}
@@ -520,6 +553,9 @@ class Processor:
             meta.update(self.hybrid_header(prior_record, s_in))
             meta["planes"] = {k: v for k, v in meta["planes"].items()
                               if k.split(".", 1)[0] in self.exr.planes}
+        if self.mode != "single-shot" and result.models is not None:
+            meta.update(selection_header(result.models))
+            meta["planes"] = {**meta["planes"], **MODEL_PLANES}
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
         truth = None if truth_path is None else self.truth_score(
             truth_path, lay, s_in, states if self.mode == "reference" else None,
@@ -621,11 +657,13 @@ class Processor:
 
 
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
-                   device: str = "auto", model_size: str = "auto") -> Processor:
-    """The :class:`Processor` of ``plan`` (its network on ``device``, of ``model_size``: run options)."""
+                   device: str = "auto", model_size: str = "auto",
+                   models: str = "full") -> Processor:
+    """The :class:`Processor` of ``plan`` (its network on ``device``, of ``model_size``: run options; ``models``:
+    :class:`Processor`)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
                      plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state,
-                     model_size)
+                     model_size, models)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -651,7 +689,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       resolution: str | None = None, device: str = "auto",
                       exr: Mapping[str, Any] | None = None,
                       network_binning: int | None = None, seen_state: int | None = None,
-                      model_size: str = "auto") -> str:
+                      model_size: str = "auto", models: str | None = None) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
@@ -666,7 +704,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     nor is ``model_size`` (which shipped model, :mod:`polrig.models.sizes`): its results record it.
     ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
     ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
-    revision.
+    revision. ``models``: ``full`` (default: never applied silently) or ``auto``
+    (:class:`Processor`), recorded with the revision.
 
     A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
     is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
@@ -682,7 +721,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
                           progress, on_failed, resolution, device, exr, network_binning, seen_state,
-                          model_size)
+                          model_size, models)
     finally:
         if not was_locked:
             session.unlock()
@@ -692,7 +731,8 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   mirror_average: bool | None, calibration: Calibration | None,
                   resolution: str | None = None, device: str = "auto",
                   exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
-                  seen_state: int | None = None, model_size: str = "auto"
+                  seen_state: int | None = None, model_size: str = "auto",
+                  models: str | None = None
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
@@ -722,8 +762,11 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         layout, readout, size = session_frame_geometry(session)
         check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
                                what=f"the camera of session {session.root}")
+    if models is None:  # off unless asked: never applied silently
+        models = "full"
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device, choice, network_binning, seen_state, model_size)
+                          resolution, device, choice, network_binning, seen_state, model_size,
+                          models)
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")
@@ -738,15 +781,15 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
              "resolution": resolution, "network_binning": processor.network_binning,
              "seen_state": processor.seen_state, "calibration_id": calibration.id,
              "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
-             "exr_compression": choice.compression}, processor, done)
+             "exr_compression": choice.compression, "models": processor.models}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
                progress, on_failed, resolution=None, device="auto", exr=None,
-               network_binning=None, seen_state=None, model_size="auto") -> str:
+               network_binning=None, seen_state=None, model_size="auto", models=None) -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
                                               calibration, resolution, device, exr, network_binning,
-                                              seen_state, model_size)
+                                              seen_state, model_size, models)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

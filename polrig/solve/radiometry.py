@@ -46,6 +46,7 @@ from polrig.sensor.demosaic import (
 from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
 from polrig.solve.hybrid import solve_hybrid
+from polrig.solve.model_selection import ModelMaps, SelectionOptions, select_models
 from polrig.solve.reference import ReferenceResult, merge_hdr, solve_reference
 
 
@@ -232,7 +233,8 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           uncertainty_dtype: type | np.dtype | str = np.float32,
                           workers: int | None = None, prior_mean: np.ndarray | None = None,
                           prior_sigma: np.ndarray | None = None,
-                          seen_state: int | None = None) -> ReferenceResult:
+                          seen_state: int | None = None,
+                          model_selection: SelectionOptions | None = None) -> ReferenceResult:
     """The reference solve of all states (see :func:`polrig.solve.reference.solve_reference`;
     the tolerances are the calibration's, :class:`polrig.app.processing.Calibration`).
 
@@ -241,6 +243,10 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     ``seen_state``'s frame), the hybrid solve instead
     (:func:`polrig.solve.hybrid.solve_hybrid`, any number of states), each band with its rows
     of the prior.
+
+    With ``model_selection``, each band's result then goes through
+    :func:`polrig.solve.model_selection.select_models` on the same samples (lower-order models
+    where they explain them; off by default): the result's ``models`` holds the maps.
 
     Solved in bands of about ``band_pixels`` output pixels (times colours): each band is
     demosaiced from the mosaic rows it needs (:func:`polrig.sensor.demosaic.row_bands`) and solved on
@@ -297,14 +303,18 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
             meas[k], var[k], valid[k] = (p[:, :, a:a + rows] for p in (m, v, ok))
         with _SOLVE_LOCK:  # one solve at a time: the solver may run threads of its own
             if prior_mean is not None:
-                return solve_hybrid(s_in, meas, var, valid, a_rows,
-                                    prior_mean=prior_mean[..., o0:o1, :],
-                                    prior_sigma=prior_sigma[..., o0:o1, :], seen_state=seen_state,
-                                    analyzer_tolerance=analyzer_tolerance,
-                                    generator_tolerance=generator_tolerance)
-            return solve_reference(s_in, meas, var, valid, a_rows,
+                res = solve_hybrid(s_in, meas, var, valid, a_rows,
+                                   prior_mean=prior_mean[..., o0:o1, :],
+                                   prior_sigma=prior_sigma[..., o0:o1, :], seen_state=seen_state,
                                    analyzer_tolerance=analyzer_tolerance,
                                    generator_tolerance=generator_tolerance)
+            else:
+                res = solve_reference(s_in, meas, var, valid, a_rows,
+                                      analyzer_tolerance=analyzer_tolerance,
+                                      generator_tolerance=generator_tolerance)
+        if model_selection is not None:  # numpy: releases the GIL in its large operations
+            res = select_models(s_in, meas, var, valid, a_rows, res, model_selection)[0]
+        return res
 
     # the first band alone (it raises for a bad state set before any other work, and gives
     # the result's layout); the others on a few threads: their demosaics run side by side
@@ -317,10 +327,18 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     shared_sigma = first.sigma_noise is first.sigma
     out = _allocate(first, (h_out, w_out), unc, shared_sigma)
 
+    maps = None
+    if model_selection is not None:
+        maps = ModelMaps(*(np.empty(first.mask.shape[:-2] + (h_out, w_out), a.dtype) for a in (
+            first.models.code, first.models.statistic, first.models.p_value)), model_selection)
+
     def store(band: tuple[int, int, int, int], res: ReferenceResult) -> None:
         with np.errstate(over="ignore"):  # above the half range: inf
             for name, arr in out.items():
                 arr[..., band[0]:band[1], :] = getattr(res, name)
+        if maps is not None:
+            for name in ("code", "statistic", "p_value"):
+                getattr(maps, name)[..., band[0]:band[1], :] = getattr(res.models, name)
 
     store(bands[0], first)
     rest = bands[1:]
@@ -333,7 +351,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
             list(pool.map(lambda band: store(band, solve_band(band)), rest))
     return ReferenceResult(out["mueller"], out["sigma"], out["residual"], out["mask"], cond,
                            out["pixel_condition"], out["n_samples"],
-                           None if shared_sigma else out["sigma_noise"])
+                           None if shared_sigma else out["sigma_noise"], maps)
 
 
 def _allocate(band: ReferenceResult, hw: tuple[int, int], unc: np.dtype, shared_sigma: bool

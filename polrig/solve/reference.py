@@ -224,6 +224,8 @@ class ReferenceResult:
     which keeps it cheap; a calibrated analyzer differs from the ideal by a few percent), and
     systems that are singular to working precision are caught by the Cholesky pivots instead.
     ``n_samples``: ``(C, H, W)`` uint16 number of samples used.
+    ``models``: with model selection only (:mod:`polrig.solve.model_selection`), the
+    :class:`~polrig.solve.model_selection.ModelMaps` of the model chosen per pixel; None else.
     """
 
     mueller: np.ndarray
@@ -234,6 +236,7 @@ class ReferenceResult:
     pixel_condition: np.ndarray
     n_samples: np.ndarray
     sigma_noise: np.ndarray | None = None
+    models: object | None = None
 
     def __post_init__(self) -> None:
         if self.sigma_noise is None:

@@ -38,6 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "trained network; hybrid: N >= 1 states solved with the network's estimate "
                         "of one of them (--seen-state) as a prior (polrig.solve.hybrid)")
     add_seen_state_option(p, "default 0")
+    add_models_option(p)
     p.add_argument("--mirror-average", action="store_true", default=None,
                    help="single-shot: also run the network on each frame's left-right mirror image "
                         "and average the two answers (a few per cent lower error, twice the network "
@@ -111,6 +112,17 @@ def metadata_option(args: argparse.Namespace):
         raise ConfigError(f"{flag}: {exc}") from None
 
 
+def add_models_option(p: argparse.ArgumentParser) -> None:
+    """``--models full|auto``: lower-order models per pixel (``capture`` and ``reconstruct``;
+    :mod:`polrig.solve.model_selection`)."""
+    p.add_argument("--models", choices=("full", "auto"), default=None,
+                   help="full (default): the 3x3 block at every pixel; auto (reference and hybrid "
+                        "modes): per pixel the lower-order model (depolarizer, diattenuator, "
+                        "retarder, Fresnel-type, rank one...) that a likelihood-ratio test at "
+                        "level 0.05 accepts, estimated under it; the model map (model.{colour}, "
+                        "codes in the header) and its statistic are always written")
+
+
 def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
     """``--seen-state K``: the hybrid method's seen state, an index into ``--states``
     (:attr:`polrig.acquisition.plan.CapturePlan.seen_state`; ``capture`` and ``reconstruct``)."""
@@ -177,7 +189,7 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "frames_per_state": "--frames", "exposures_us": "--exposure",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "resolution": "--resolution",
-         "network_binning": "--network-binning", "seen_state": "--seen-state",
+         "network_binning": "--network-binning", "seen_state": "--seen-state", "models": "--models",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
          "exr_compression": "--exr-compression",
          "calibration": "--calibration", "out": "--out",
@@ -234,6 +246,7 @@ def build_request(args: argparse.Namespace):
             exr_compression=args.exr_compression,
             device=args.device or "auto",
             model_size=args.model_size or "auto",
+            models=args.models or "full",
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
             resume=bool(args.resume),

@@ -30,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         add_binning_option,
         add_exr_options,
         add_model_size_option,
+        add_models_option,
         add_seen_state_option,
     )
 
@@ -62,6 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_model_size_option(p)
     add_exr_options(p, "default: the session's", "default: the session's",
                     "default: the session's")
+    add_models_option(p)
     p.add_argument("--calibration", help="calibration set folder (default: nominal)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
@@ -129,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
                 network_binning=args.network_binning, seen_state=args.seen_state,
-                device=args.device or "auto", model_size=args.model_size or "auto", calibration_path=args.calibration,
+                models=args.models, device=args.device or "auto", model_size=args.model_size or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
                 command_line=_command_line(args, paths), on_start=on_start,
