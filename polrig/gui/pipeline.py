@@ -40,7 +40,6 @@ from polrig.sensor.stokes import (
     dolp,
     min_max_intensity,
     stokes_from_raw,
-    stokes_validity,
 )
 
 #: Display modes (key -> label shown in the GUI).
@@ -177,11 +176,8 @@ class PolarizationData:
         """From Stokes images ``(C, 3, H, W)`` (e.g. a Stokes EXR): masks, DoLP and AoLP by
         :mod:`polrig.sensor.stokes`; ``planes`` (the EXR's other planes: ``valid``, ``saturated``,
         ``snr.*``) add the file's masks (:func:`polrig.app.preview.exr_masks`)."""
-        s = np.nan_to_num(np.asarray(stokes, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        valid = stokes_validity(np.asarray(stokes, np.float32))
-        flags, snr = preview.exr_masks(planes or {}, s.shape[0], s[:, 0])
+        s, valid, flags, snr = preview.stokes_exr_masks(stokes, planes)
         saturated = (flags & preview.SATURATED) > 0
-        valid &= flags == 0
         return cls(stokes=s, valid=valid, saturated=saturated, dolp=dolp(s, valid),
                    aolp_deg=aolp_deg(s, valid), source=source, flags=flags, snr=snr)
 
