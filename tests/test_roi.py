@@ -472,7 +472,7 @@ def test_stats_cli_reads_a_stokes_exr_like_the_viewer(tmp_path, capsys):
     for a, b in zip(gui, want):
         np.testing.assert_equal(a.as_tuple(), b.as_tuple())  # NaN equal to NaN
     prof = (tmp_path / "s_profile.csv").read_text().splitlines()
-    assert "AoLP_deg.Y" in [line for line in prof if line.startswith("s,x,y")][0].split(",")
+    assert "AoLP_deg.Y" in next(line for line in prof if line.startswith("s,x,y")).split(",")
     capsys.readouterr()
     assert main(["stats", str(exr)]) == 0  # the whole image, printed
     assert "DoLP" in capsys.readouterr().out
