@@ -155,3 +155,40 @@ def test_no_geometry_planes_no_layer(tmp_path, viewer):
     assert data.geometry is None and "geometry" not in data.available()
     assert viewer.open_file(path)
     assert viewer.display.findData("geometry") < 0 and not viewer.geometry_choice.isEnabled()
+
+
+def test_specular_candidates_name_their_zenith_and_azimuth(viewer, files, tmp_path):
+    """A specular maps EXR has four candidates (two zeniths about Brewster's angle, each with
+    the pi azimuth ambiguity): candidate 3's readout gives zenith 1 (above Brewster) and the
+    azimuth of candidate 0 (AoLP + 90 deg) + 180 deg."""
+    result, _ = files
+    maps = tmp_path / "spec.exr"
+    assert main(["analyze", str(result), "--normals", "--ior", "1.5", "--reflection", "specular",
+                 "--out", str(maps)]) == 0
+    p = read_exr(maps).planes
+    assert viewer.open_file(maps)
+    labels = [viewer.geometry_choice.itemText(i) for i in range(viewer.geometry_choice.count())]
+    assert len(labels) == 4 and "above Brewster, azimuth = AoLP + 270 deg" in labels[3]
+    viewer.colour.setCurrentIndex(viewer.colour.findData(0))
+    viewer.geometry_choice.setCurrentIndex(3)
+    np.testing.assert_array_equal(from_qimage(viewer.view.image()),
+                                  expected_normal_map(*(p[f"sfp_normal3.{a}.R"] for a in "XYZ")))
+    ok = np.isfinite(p["sfp_normal3.X.R"])
+    v, u = np.argwhere(ok)[0]
+    viewer._hovered(int(u), int(v))
+    az = np.mod(p["sfp_azimuth_deg.R"][v, u] + 180.0, 360.0)
+    assert (f"zenith {p['sfp_zenith_deg1.R'][v, u]:.2f} deg, image azimuth {az:.2f} deg"
+            in viewer.readout.text())
+    assert p["sfp_zenith_deg1.R"][v, u] > np.rad2deg(np.arctan(1.5)) > p["sfp_zenith_deg0.R"][v, u]
+
+
+def test_normal_map_colours_at_the_extremes():
+    """Facing the camera is (128, 128, 255); the axes reach 0 and 255; NaN is black."""
+    from polrig.gui.geometry_layer import normal_rgb
+
+    n = np.array([[0.0, 1.0, -1.0, 0.0, np.nan],
+                  [0.0, 0.0, 0.0, -1.0, 0.0],
+                  [-1.0, 0.0, 0.0, 0.0, -1.0]])[:, None, :]
+    rgb = normal_rgb(n)[0]
+    np.testing.assert_array_equal(rgb, [[128, 128, 255], [255, 128, 128], [0, 128, 128],
+                                        [128, 255, 128], [0, 0, 0]])
