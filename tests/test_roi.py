@@ -411,3 +411,79 @@ def test_a_pixel_without_sigma_still_counts_and_makes_sem_sigma_honest():
     assert r.n_counted == 4 and r.mean == 2.5 and r.sem_sigma == math.inf
     q.sigma = {}
     assert roi.statistics_of(q, np.ones((1, 4), bool))[0].mean == 2.5
+
+
+# -- polrig stats of a Stokes EXR -------------------------------------------------------------------
+def test_stats_cli_reads_a_stokes_exr_like_the_viewer(tmp_path, capsys):
+    """A ``polrig stokes`` EXR of a noisy uniformly polarized frame (AoLP 30 deg, DoLP 0.6) with
+    one saturated raw sample: ``polrig stats`` gives :func:`polrig.app.roi.roi_statistics` of
+    its Stokes images over the ROI, counting the pixels the file says are valid (the saturated
+    cell is masked), with ``sem_sigma`` from the ``snr`` planes; the Viewer's ROI statistics
+    of the same file (no signal threshold) are the same numbers."""
+    from polrig.cli import main
+    from polrig.formats.exr import read_stokes_exr
+    from polrig.formats.rawio import write_raw
+    from polrig.gui import pipeline
+    from polrig.gui.viewer import load_exr
+    from polrig.sensor.analyzer import AnalyzerModel
+    from polrig.sensor.frame import Frame, FrameMeta
+
+    shape = (48, 64)
+    model = AnalyzerModel.ideal("imx250mzr@0,0", shape)
+    t = np.deg2rad(60.0)
+    s = np.array([2000.0, 1200.0 * np.cos(t), 1200.0 * np.sin(t)])
+    clean = model.mosaic(np.broadcast_to(s[None, :, None, None], (1, 3) + shape))
+    raw = np.random.default_rng(5).poisson(clean).astype(np.float64) + 64
+    raw[10, 10] = 4095  # saturated at 12 bits
+    meta = FrameMeta(frame_id=1, timestamp_s=0.0, exposure_us=1000.0, gain_db=0.0,
+                     pixel_format="Mono12", layout="imx250mzr", bit_depth=12, black_level_dn=64.0)
+    src = tmp_path / "frame.png"
+    write_raw(src, Frame(np.clip(raw, 0, 4095).astype(np.uint16), meta))
+    exr = tmp_path / "stokes.exr"
+    assert main(["stokes", str(src), "--demosaic", "superpixel", "--out", str(exr)]) == 0
+    back = read_stokes_exr(exr)
+    h, w = back.stokes.shape[-2:]
+    region = "ellipse:12,10,9,7"
+    out = tmp_path / "s.csv"
+    assert main(["stats", str(exr), "--roi", region, "--csv", str(out),
+                 "--profile", f"1,2,{w - 3},{h - 2}"]) == 0
+    [(header, got)] = read_csv_blocks(out)
+    assert header["sigma"] == "snr planes"
+    inside = roi.roi_mask(roi.parse_roi(region), (h, w))
+    valid = (back.extra["valid"] > 0)[None] & (back.stokes[:, 0] > 0)
+    snr = back.extra["snr.Y"][None]
+    want = roi.roi_statistics(inside, stokes=back.stokes, valid=valid, snr=snr)
+    assert [g["quantity"] for g in got] == ["S0", "DoLP", "AoLP_deg"]
+    for g, r in zip(got, want):
+        assert (g["quantity"], g["channel"], int(g["n_counted"]), int(g["n_masked"])) == (
+            r.quantity, r.channel, r.n_counted, r.n_masked)
+        for k in ("mean", "std", "sem_scatter", "sem_sigma"):
+            v = getattr(r, k)
+            assert float(g[k]) == v or (math.isnan(v) and g[k] == "nan")
+    s0, dolp_row, aolp_row = want
+    assert s0.n_masked == 1 and s0.n_counted + 1 == inside.sum()  # the saturated cell
+    assert abs(dolp_row.mean - 0.6) < 0.01 and abs(aolp_row.mean - 30.0) < 0.5
+    assert np.isfinite(s0.sem_sigma) and s0.sem_sigma > 0
+    # the Viewer's statistics of the same file, without a signal threshold
+    data = load_exr(exr)
+    data.min_snr = 0.0
+    gui = pipeline.roi_statistics(data, inside)
+    assert len(gui) == len(want)
+    for a, b in zip(gui, want):
+        np.testing.assert_equal(a.as_tuple(), b.as_tuple())  # NaN equal to NaN
+    prof = (tmp_path / "s_profile.csv").read_text().splitlines()
+    assert "AoLP_deg.Y" in next(line for line in prof if line.startswith("s,x,y")).split(",")
+    capsys.readouterr()
+    assert main(["stats", str(exr)]) == 0  # the whole image, printed
+    assert "DoLP" in capsys.readouterr().out
+
+
+def test_stats_cli_refuses_an_exr_that_is_neither_mueller_nor_stokes(tmp_path, capsys):
+    from polrig.cli import main
+    from polrig.formats.exr import write_exr
+
+    path = tmp_path / "maps.exr"
+    write_exr(path, {"retardance_deg.Y": np.zeros((4, 4), np.float32)})
+    assert main(["stats", str(path)]) != 0
+    err = capsys.readouterr().err
+    assert "neither a Mueller result" in err and len(err.strip().splitlines()) == 1

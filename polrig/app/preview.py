@@ -37,6 +37,7 @@ import numpy as np
 from polrig.atomic import atomic_write_bytes
 from polrig.formats.exr import read_mueller_exr
 from polrig.sensor.noise import SensorModel
+from polrig.sensor.stokes import stokes_validity
 from polrig.solve.reference import (
     DARK,
     ILL_CONDITIONED,
@@ -444,6 +445,20 @@ def exr_masks(planes: Mapping[str, np.ndarray], n_colours: int, signal: np.ndarr
             with np.errstate(all="ignore"):
                 snr = np.where(np.isfinite(sigma) & (sigma > 0), sig / sigma, np.nan)
     return flags, None if snr is None else np.asarray(snr, np.float32)
+
+
+def stokes_exr_masks(stokes: np.ndarray, planes: Mapping[str, np.ndarray] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(stokes, valid, flags, snr)`` of a Stokes EXR's images ``(C, 3, H, W)`` and its other
+    ``planes``: the Stokes images with non-finite values set to 0, ``valid`` ``(C, H, W)``
+    (:func:`polrig.sensor.stokes.stokes_validity` and no reason bit set), and
+    :func:`exr_masks`' ``flags`` and ``snr``. The Viewer and ``polrig stats`` read a Stokes EXR
+    through this."""
+    raw = np.asarray(stokes, np.float32)
+    s = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
+    flags, snr = exr_masks(planes or {}, s.shape[0], s[:, 0])
+    valid = stokes_validity(raw) & (flags == 0)
+    return s, valid, flags, snr
 
 
 def mask_summary(flags: np.ndarray | None, snr: np.ndarray | None,

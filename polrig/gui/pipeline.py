@@ -29,6 +29,7 @@ import numpy as np
 from polrig.app import preview, roi
 from polrig.app.single_shot import SingleShotResult
 from polrig.formats.exr import element_stack
+from polrig.gui import geometry_layer
 from polrig.optics import parameters
 from polrig.optics.virtual_polarizer import virtual_polarizer_image
 from polrig.sensor.analyzer import layout_name_at, resolve_layout
@@ -40,7 +41,6 @@ from polrig.sensor.stokes import (
     dolp,
     min_max_intensity,
     stokes_from_raw,
-    stokes_validity,
 )
 
 #: Display modes (key -> label shown in the GUI).
@@ -58,6 +58,7 @@ DISPLAYS: dict[str, str] = {
     "mueller": "Mueller 3x3",
     "maps": "Parameter map",
     "polarizer": "Virtual polarizer",
+    "geometry": "Geometry (normals, albedo)",
 }
 #: Displays of Stokes data (a live frame, a Stokes EXR) beyond S0.
 STOKES_DISPLAYS = ("dolp", "aolp", "aolp_dolp", "aolp_dolp_sat", "imin", "imax", "s1", "s2")
@@ -78,6 +79,9 @@ class ViewOptions:
     map_sigma: bool = False
     incident_deg: float | None = 0.0
     analyzer_deg: float | None = 0.0
+    #: what the geometry layer shows (a key of
+    #: :meth:`polrig.gui.geometry_layer.GeometryPlanes.choices`)
+    geometry: str = geometry_layer.NETWORK_NORMAL
 #: Colour choice "luminance": the mean over the colour channels (a mono sensor has one channel).
 LUMINANCE = -1
 SATURATION_RGB = (255, 0, 0)
@@ -116,6 +120,9 @@ class PolarizationData:
     #: per-element standard deviations of ``mueller`` ``(C, 3, 3, H', W')`` (a result's
     #: ``sigma`` planes), or None
     sigma: np.ndarray | None = None
+    #: the file's normals, albedo, roughness, light direction
+    #: (:func:`polrig.gui.geometry_layer.geometry_from_planes`), or None
+    geometry: geometry_layer.GeometryPlanes | None = None
     _views: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
@@ -123,7 +130,7 @@ class PolarizationData:
         for a in (self.stokes, self.mueller):
             if a is not None:
                 return int(a.shape[0])
-        return 1
+        return 1 if self.geometry is None else self.geometry.n_colours
 
     def available(self) -> list[str]:
         """The display modes this data can show (keys of :data:`DISPLAYS`)."""
@@ -136,6 +143,8 @@ class PolarizationData:
             out += list(STOKES_DISPLAYS)
         if self.mueller is not None:
             out += list(MUELLER_DISPLAYS)
+        if self.geometry is not None:
+            out.append("geometry")
         return out
 
     def maps(self) -> parameters.MapSet:
@@ -177,11 +186,8 @@ class PolarizationData:
         """From Stokes images ``(C, 3, H, W)`` (e.g. a Stokes EXR): masks, DoLP and AoLP by
         :mod:`polrig.sensor.stokes`; ``planes`` (the EXR's other planes: ``valid``, ``saturated``,
         ``snr.*``) add the file's masks (:func:`polrig.app.preview.exr_masks`)."""
-        s = np.nan_to_num(np.asarray(stokes, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        valid = stokes_validity(np.asarray(stokes, np.float32))
-        flags, snr = preview.exr_masks(planes or {}, s.shape[0], s[:, 0])
+        s, valid, flags, snr = preview.stokes_exr_masks(stokes, planes)
         saturated = (flags & preview.SATURATED) > 0
-        valid &= flags == 0
         return cls(stokes=s, valid=valid, saturated=saturated, dolp=dolp(s, valid),
                    aolp_deg=aolp_deg(s, valid), source=source, flags=flags, snr=snr)
 
@@ -349,6 +355,8 @@ def display_shape(data: PolarizationData, display: str) -> tuple[int, int]:
     """``(H, W)`` of the full-resolution image of ``display`` (before any decimation)."""
     if display == "raw":
         return tuple(data.raw.shape)  # type: ignore[return-value]
+    if display == "geometry" or (data.stokes is None and data.mueller is None):
+        return data.geometry.shape
     src = data.stokes if data.stokes is not None else data.mueller
     return tuple(src.shape[-2:])  # type: ignore[return-value]
 
@@ -397,6 +405,8 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
                                     border_px=GRID_BORDER_PX, valid=None if ok is None else ok[k, k])
     elif display == "maps":
         return render_map(data, options.map_name, colour, sigma=options.map_sigma, step=step)
+    elif display == "geometry":
+        return geometry_layer.render(data.geometry, options.geometry, colour, step)
     elif display == "polarizer":
         i = data.polarizer(options.incident_deg, options.analyzer_deg)[:, k, k]
         white_of = 0.5 * data.mueller[:, 0, 0, k, k]  # the unpolarized, analyzer-free scale
@@ -553,6 +563,10 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
     histogram of ``m00``. ``step`` > 1 counts every ``step``-th pixel in each direction."""
     k = slice(None, None, max(1, int(step)))
     options = options or ViewOptions()
+    if display == "geometry":
+        x, rng, label = geometry_layer.histogram_values(data.geometry, options.geometry, colour)
+        counts, edges = np.histogram(x, bins=bins, range=rng)
+        return counts, edges, label
     if display == "raw":
         x = data.raw[k, k].reshape(-1)
         rng = (0.0, float(2 ** int(data.bit_depth)))
@@ -631,7 +645,10 @@ def layer_readout(data: PolarizationData, display: str, options: ViewOptions, x:
                   ) -> str:
     """The value of the parameter map (with its sigma) or of the virtual polarizer (with its
     exact sigma) under the cursor at image pixel ``(x, y)``, per colour; "" for other displays
-    or outside the image."""
+    or outside the image; the geometry layer's readout
+    (:func:`polrig.gui.geometry_layer.readout`)."""
+    if display == "geometry" and data.geometry is not None:
+        return geometry_layer.readout(data.geometry, options.geometry, x, y)
     if data.mueller is None or display not in ("maps", "polarizer"):
         return ""
     h, w = data.mueller.shape[-2:]

@@ -35,7 +35,7 @@ from polrig.app.session import Session
 from polrig.errors import FormatError, PolrigError
 from polrig.formats.exr import MuellerRows, read_exr, read_mueller_exr, read_stokes_exr
 from polrig.formats.rawio import read_raw
-from polrig.gui import pipeline
+from polrig.gui import geometry_layer, pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.roi_panel import AolpWheel, RoiTools
@@ -46,17 +46,28 @@ from polrig.optics.parameters import ANGLE_PERIOD_DEG, MAPS
 def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
     """A Mueller or a Stokes EXR as :class:`pipeline.PolarizationData` (kind from its
     channels), with the file's masks (``valid``, ``saturated``, ``mask``, SNR planes:
-    :func:`polrig.app.preview.exr_masks`); :class:`polrig.errors.FormatError` for anything else."""
+    :func:`polrig.app.preview.exr_masks`) and its geometry planes (the single-shot networks'
+    ``geometry.*``, or the ``sfp_*`` normals of a ``polrig analyze --normals`` maps EXR, which
+    then holds only them: :func:`polrig.gui.geometry_layer.geometry_from_planes`);
+    :class:`polrig.errors.FormatError` for anything else."""
 
     path = pathlib.Path(path)
-    planes = read_exr(path).planes
+    whole = read_exr(path)
+    planes = whole.planes
+    geometry = geometry_layer.geometry_from_planes(planes, whole.metadata)
     if any(k.startswith("M00.") for k in planes):
         img = read_mueller_exr(path)
-        return pipeline.PolarizationData.from_mueller(img.mueller, str(path), img.extra)
-    if any(k.startswith("S0.") for k in planes):
+        data = pipeline.PolarizationData.from_mueller(img.mueller, str(path), img.extra)
+    elif any(k.startswith("S0.") for k in planes):
         img = read_stokes_exr(path)
-        return pipeline.PolarizationData.from_stokes(img.stokes, str(path), img.extra)
-    raise FormatError(f"{path}: neither a Mueller (M00.*) nor a Stokes (S0.*) EXR")
+        data = pipeline.PolarizationData.from_stokes(img.stokes, str(path), img.extra)
+    elif geometry is not None:
+        data = pipeline.PolarizationData(source=str(path))
+    else:
+        raise FormatError(f"{path}: neither a Mueller (M00.*) nor a Stokes (S0.*) EXR, nor "
+                          "geometry planes (geometry.*, sfp_normal*)")
+    data.geometry = geometry
+    return data
 
 
 def load_raw(path: str | pathlib.Path, method: str = "superpixel") -> pipeline.PolarizationData:
@@ -173,6 +184,9 @@ class ViewerPanel(QWidget):
             w.valueChanged.connect(self.refresh)
         for w in (self.unpolarized, self.no_analyzer):
             w.toggled.connect(self.refresh)
+        # the geometry layer: the networks' normal or albedo, or a shape-from-polarization candidate
+        self.geometry_choice = QComboBox()
+        self.geometry_choice.currentIndexChanged.connect(self.refresh)
         self.wheel = AolpWheel(110)
         self.roi = RoiTools(self.view)
         self.roi.message.connect(self.message)
@@ -206,6 +220,9 @@ class ViewerPanel(QWidget):
             left.addWidget(w)
         left.addWidget(maps_box)
         left.addWidget(pol_box)
+        geo_box = QGroupBox("Geometry (display \"Geometry\")")
+        QHBoxLayout(geo_box).addWidget(self.geometry_choice, 1)
+        left.addWidget(geo_box)
         row = QHBoxLayout()
         row.addWidget(self.histogram, 1)
         row.addWidget(self.wheel)
@@ -311,15 +328,29 @@ class ViewerPanel(QWidget):
             self.colour.addItem(label, value)
         self.display.blockSignals(False)
         self.colour.blockSignals(False)
+        self._geometry_choices(data)
         self.refresh()
         self.roi.set_data(data)
+
+    def _geometry_choices(self, data: pipeline.PolarizationData) -> None:
+        """Offer what the data's geometry can show (kept across files where it can)."""
+        keep = self.geometry_choice.currentData()
+        self.geometry_choice.blockSignals(True)
+        self.geometry_choice.clear()
+        for key, label in data.geometry.choices() if data.geometry is not None else []:
+            self.geometry_choice.addItem(label, key)
+        at = self.geometry_choice.findData(keep)
+        self.geometry_choice.setCurrentIndex(max(at, 0))
+        self.geometry_choice.setEnabled(data.geometry is not None)
+        self.geometry_choice.blockSignals(False)
 
     def options(self) -> pipeline.ViewOptions:
         """The parameter map and the virtual polarizer's angles the controls say."""
         return pipeline.ViewOptions(
             map_name=self.map_name.currentData(), map_sigma=self.map_sigma.isChecked(),
             incident_deg=None if self.unpolarized.isChecked() else float(self.incident.value()),
-            analyzer_deg=None if self.no_analyzer.isChecked() else float(self.analyzer.value()))
+            analyzer_deg=None if self.no_analyzer.isChecked() else float(self.analyzer.value()),
+            geometry=self.geometry_choice.currentData() or geometry_layer.NETWORK_NORMAL)
 
     def _angle_labels(self) -> None:
         o = self.options()

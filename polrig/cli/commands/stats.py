@@ -1,9 +1,12 @@
 """``polrig stats RESULT_OR_SESSION --roi SHAPE [--profile x0,y0,x1,y1] [--csv OUT]``: ROI
-statistics and line profiles of Mueller results, headless (the numbers of the GUI's ROI tools).
+statistics and line profiles of Mueller results and Stokes EXRs, headless (the numbers of the
+GUI's ROI tools).
 
 Statistics, conventions and the two standard errors: :mod:`polrig.app.roi`. A session is read
 through :class:`polrig.app.session.Session` (read only, no lock): every capture with a Mueller
-result, one block of rows each (CSV column ``capture``).
+result, one block of rows each (CSV column ``capture``). A Stokes EXR (``polrig stokes --out``)
+gives the Stokes quantities (S0, DoLP, AoLP) with the masks the Viewer applies
+(:func:`polrig.app.preview.stokes_exr_masks`) and the standard errors from its ``snr`` planes.
 """
 
 from __future__ import annotations
@@ -21,18 +24,19 @@ SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "stats", help="ROI statistics and line profiles of Mueller results",
-        description="Statistics over a region of a Mueller result EXR, or of every capture of a "
-                    "session: mean and standard deviation of S0, DoLP and the circular mean and "
+        "stats", help="ROI statistics and line profiles of Mueller results and Stokes EXRs",
+        description="Statistics over a region of a Mueller result EXR, of a Stokes EXR (polrig "
+                    "stokes), or of every capture of a session: mean and standard deviation of S0, DoLP and the circular mean and "
                     "spread of AoLP (of the light unpolarized illumination leaves: m00, PL, "
                     "PL_axis_deg), of every m_ij/m00 and of the parameter maps of polrig "
-                    "analyze, each with two standard errors of the mean (from the pixels' "
+                    "analyze (of a Stokes EXR: S0, DoLP, AoLP), each with two standard errors of the mean (from the pixels' "
                     "scatter and from their sigma planes) and the pixels counted and masked "
                     "(the result's mask, NaN). A pixel belongs to the ROI when its centre "
                     "(u + 0.5, v + 0.5) does. --profile samples quantities along a segment "
                     "(bilinear, every --spacing pixels).")
     p.add_argument("source", type=pathlib.Path, metavar="RESULT_OR_SESSION",
-                   help="a Mueller result EXR, or a session folder (holds session.json)")
+                   help="a Mueller result EXR, a Stokes EXR, or a session folder (holds "
+                        "session.json)")
     p.add_argument("--roi", default=None, metavar="SHAPE",
                    help="rect:x,y,w,h | ellipse:cx,cy,rx,ry | poly:x1,y1,x2,y2,... in image "
                         "pixels (default: the whole image)")
@@ -60,7 +64,7 @@ def _sources(src: pathlib.Path) -> list[tuple[str, pathlib.Path]]:
             raise ConfigError(f"{src}: no capture has a Mueller result yet")
         return out
     if src.suffix.lower() != ".exr":
-        raise ConfigError(f"{src}: give a Mueller result .exr or a session folder")
+        raise ConfigError(f"{src}: give a Mueller result or Stokes .exr, or a session folder")
     return [("", src)]
 
 
@@ -80,6 +84,28 @@ def load_result(path: pathlib.Path, sigma_source: str = "sigma"):
     return res.mueller, sigma, valid
 
 
+def load_source(path: pathlib.Path, sigma_source: str = "sigma") -> dict:
+    """The keyword arguments of :func:`polrig.app.roi.roi_statistics` and
+    :func:`polrig.app.roi.profile_of` for a Mueller result EXR (``mueller``, ``sigma``,
+    ``valid``: :func:`load_result`) or a Stokes EXR (``stokes``, ``valid``, ``snr``:
+    :func:`polrig.app.preview.stokes_exr_masks`); :class:`polrig.errors.FormatError` for any
+    other EXR."""
+    from polrig.errors import FormatError
+    from polrig.formats.exr import read_exr, read_stokes_exr
+
+    names = read_exr(path).planes
+    if any(k.startswith("M00.") for k in names):
+        mueller, sigma, valid = load_result(path, sigma_source)
+        return {"mueller": mueller, "sigma": sigma, "valid": valid}
+    if any(k.startswith("S0.") for k in names):
+        from polrig.app.preview import stokes_exr_masks
+
+        img = read_stokes_exr(path)
+        stokes, valid, _flags, snr = stokes_exr_masks(img.stokes, img.extra)
+        return {"stokes": stokes, "valid": valid, "snr": snr}
+    raise FormatError(f"{path}: neither a Mueller result (M00.*) nor a Stokes EXR (S0.*)")
+
+
 def run(args: argparse.Namespace) -> int:
     from polrig.app import roi
 
@@ -95,20 +121,24 @@ def run(args: argparse.Namespace) -> int:
             check_output_file(profile_out, "--csv profile")
     stats_parts, profile_parts = [], []
     for label, path in _sources(args.source):
-        mueller, sigma, valid = load_result(path, args.sigma)
-        h, w = mueller.shape[-2:]
+        data = load_source(path, args.sigma)
+        h, w = (data["mueller"] if "mueller" in data else data["stokes"]).shape[-2:]
         region = shape or roi.RectROI(0, 0, w, h)
         inside = roi.roi_mask(region, (h, w))
-        rows = roi.roi_statistics(inside, mueller=mueller, sigma=sigma, valid=valid)
+        rows = roi.roi_statistics(inside, **data)
+        if "stokes" in data:
+            sigma_text = ("snr planes" if data["snr"] is not None
+                          else "none (a Stokes EXR without snr planes)")
+        else:
+            sigma_text = args.sigma if data["sigma"] is not None else "none (no sigma planes)"
         header = {"source": str(path), "roi": region.text(), "image": f"{w}x{h}",
-                  "sigma": args.sigma if sigma is not None else "none (no sigma planes)",
+                  "sigma": sigma_text,
                   "pixel_convention": "pixel (u, v) has its centre at (u + 0.5, v + 0.5)"}
         if label:
             header["capture"] = label
         stats_parts.append((header, rows))
         if segment is not None:
-            profile_parts.append((header, roi.profile_of(segment, mueller=mueller, sigma=sigma,
-                                                         valid=valid, spacing=args.spacing)))
+            profile_parts.append((header, roi.profile_of(segment, spacing=args.spacing, **data)))
     if args.csv is None:
         for header, rows in stats_parts:
             print(_table(header, rows))
