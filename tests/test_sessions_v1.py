@@ -48,7 +48,7 @@ def content(root: pathlib.Path) -> list:
 def test_the_data_is_version_1():
     for name in SESSIONS:
         assert json.loads((DATA / name / MANIFEST_NAME).read_text())["schema_version"] == 1
-    assert SCHEMA_VERSION == 4
+    assert SCHEMA_VERSION == 5
 
 
 @pytest.mark.parametrize("name, poses, mode, statuses", [
@@ -62,7 +62,7 @@ def test_each_opens_under_the_new_manifest(name, poses, mode, statuses):
     writes nothing and every checksum still holds."""
     before = snapshot(DATA / name)
     s = Session.open(DATA / name)
-    assert s.stored_version == 1 and s.manifest["schema_version"] == 4
+    assert s.stored_version == 1 and s.manifest["schema_version"] == 5
     plan = s.plan
     assert isinstance(plan, CapturePlan)
     assert (plan.poses_deg, plan.mode, plan.network_binning, plan.resolution) == (
@@ -123,13 +123,13 @@ def test_the_interrupted_session_resumes_to_an_uninterrupted_runs_result(tmp_pat
                  "--out", str(ref), "--no-progress"]) == 0
     assert content(out) == content(ref)
     s = Session.open(out)
-    assert s.stored_version == 4 and s.verify() == []
+    assert s.stored_version == 5 and s.verify() == []
     assert s.manifest["status"] == "complete" and s.capture(1)["attempts"] == 2
     events = [h["event"] for h in s.manifest["history"]]
     assert events.index("session interrupted") < events.index("schema migrated") < \
         events.index("resumed")
     stored = json.loads((out / MANIFEST_NAME).read_text())
-    assert stored["schema_version"] == 4 and stored["plan"]["network_binning"] == 1
+    assert stored["schema_version"] == 5 and stored["plan"]["network_binning"] == 1
 
 
 def test_reconstruct_reprocesses_the_reference_session(tmp_path, capsys):
@@ -139,7 +139,7 @@ def test_reconstruct_reprocesses_the_reference_session(tmp_path, capsys):
     assert main(["reconstruct", str(root), "--no-progress"]) == 0
     assert f"revision rev1 written to {root}" in capsys.readouterr().out
     s = Session.open(root)
-    assert s.stored_version == 4 and s.verify() == []
+    assert s.stored_version == 5 and s.verify() == []
     [rev] = s.manifest["revisions"]
     assert (rev["name"], rev["mode"], rev["exr_uncertainty"]) == ("rev1", "reference", "half")
     for cap in s.captures:
@@ -156,7 +156,7 @@ def test_reconstruct_reprocesses_the_single_shot_session(tmp_path, capsys):
     root = copy("single-shot", tmp_path)
     assert main(["reconstruct", str(root), "--device", "cpu", "--no-progress"]) == 0
     s = Session.open(root)
-    assert s.stored_version == 4 and s.verify() == []
+    assert s.stored_version == 5 and s.verify() == []
     [rev] = s.manifest["revisions"]
     assert (rev["mode"], rev["resolution"], rev["network_binning"]) == ("single-shot",
                                                                          "superpixel", 1)
@@ -179,7 +179,7 @@ def test_reconstruct_hybrid_on_the_single_shot_session(tmp_path, capsys):
     root = copy("single-shot", tmp_path)
     assert main(["reconstruct", str(root), "--mode", "hybrid", "--device", "cpu", "--no-progress"]) == 0
     s = Session.open(root)
-    assert s.stored_version == 4 and s.verify() == []
+    assert s.stored_version == 5 and s.verify() == []
     [rev] = s.manifest["revisions"]
     assert (rev["mode"], rev["seen_state"]) == ("hybrid", 0)
     entry = s.capture(0)["revisions"]["rev1"]

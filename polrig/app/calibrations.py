@@ -240,9 +240,10 @@ def check_plan(plan, calibration: Calibration, device: str = "auto") -> float | 
     that cannot run). Hybrid: the same, and the model must have a calibrated uncertainty (its
     sigma is the prior's); any number of states from 1 (they need not determine the block:
     the prior fills in what they leave out); returns the state set's condition number, which
-    may be infinite (fewer than 3 states, or collinear ones).
+    may be infinite (fewer than 3 states, or collinear ones). Adaptive: as hybrid, of its
+    first state (it chooses the others as it goes).
     """
-    if plan.mode in ("single-shot", "hybrid"):
+    if plan.mode in ("single-shot", "hybrid", "adaptive"):  # the network modes
         route = SingleShot.open(device)
         if plan.mode == "single-shot":
             return None
