@@ -300,8 +300,9 @@ class RevisionResult(TypedDict):
 
 class AdaptiveDecision(TypedDict):
     """One decision of an adaptive capture (:mod:`polrig.app.adaptive`), made after
-    ``states_taken`` states: the share of its ``object_pixels`` (the network's object mask) that
-    met the target then (``share_met``), what it did (``action``: ``take`` the state at stage
+    ``states_taken`` states: the share of its ``object_pixels`` (the network's object mask, less
+    the ``clipped_pixels`` its frame clips: they have no prior) that met the target then
+    (``share_met``), what it did (``action``: ``take`` the state at stage
     angle ``state_deg``, or stop: ``stop-target``, ``stop-max-states``, ``stop-no-object``) and
     why: the A-optimal criterion (:mod:`polrig.solve.design`, summed relative posterior variance
     over ``design_pixels`` object pixels still above target) now (``criterion``) and predicted
@@ -310,6 +311,7 @@ class AdaptiveDecision(TypedDict):
     states_taken: Annotated[int, Check(lambda v: v >= 1, "a count >= 1")]
     share_met: Annotated[float, Check(lambda v: 0.0 <= v <= 1.0, "a share in [0, 1]")]
     object_pixels: Count
+    clipped_pixels: Count
     design_pixels: Count
     criterion: Finite | None
     action: Literal["take", "stop-target", "stop-max-states", "stop-no-object"]
