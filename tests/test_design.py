@@ -67,6 +67,13 @@ def test_relative_sigma_is_the_rms_sigma_over_m00_worst_colour():
     expect[1, 0, 1] = np.inf
     np.testing.assert_allclose(rel, expect.max(axis=0))
     assert rel[0, 1] == np.inf
+    colours = np.ones((3, 2, 2), bool)
+    colours[1, 0, 1] = False  # the colour with m00 <= 0 left out there (dark in the frame)
+    colours[:, 1, 1] = False  # no colour counts: never at target
+    got = relative_sigma(sig, m, colours)
+    np.testing.assert_allclose(got[0, 1], expect[[0, 2], 0, 1].max())
+    assert got[1, 1] == np.inf
+    np.testing.assert_allclose(got[0, 0], rel[0, 0])
 
 
 def test_the_criterion_is_the_summed_relative_trace_and_prefers_completing_the_set():

@@ -658,6 +658,18 @@ def adaptive_pose_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[
     return steps + pose_tail_steps(capture, exposures_us)
 
 
+def nearest_stage_angle(polarizer_deg: float, here_deg: float) -> float:
+    """The stage angle for polarizer angle ``polarizer_deg`` (a linear polarizer repeats every
+    180 deg) nearest to ``here_deg``, within +-:data:`MAX_STATE_DEG`: the adaptive mode's move
+    to a chosen state."""
+    angle = float(polarizer_deg) + 180.0 * round((float(here_deg) - float(polarizer_deg)) / 180.0)
+    while angle > MAX_STATE_DEG:
+        angle -= 180.0
+    while angle < -MAX_STATE_DEG:
+        angle += 180.0
+    return angle
+
+
 def adaptive_forecast_states(plan: CapturePlan, taken_deg: Sequence[float]) -> list[float]:
     """The states an adaptive capture that took ``taken_deg`` so far is forecast to take, for
     its hardware time before the decisions are made: ``taken_deg`` and then, up to

@@ -11,16 +11,18 @@ the worst colour; dimensionless, the block normalised to ``m00 = 1``) is at most
 calibration's tolerances add a systematic floor that more states of the same rig do not
 lower, so a target below it would never stop. Object pixels are the network's object mask
 less the pixels clipped in its frame (the network gives them no prior: infinite sigma; they
-need an exposure bracket, not more states, and are counted apart, ``clipped_pixels``); a pixel
-without a finite posterior does not meet the target (a pixel the solve flags ``dark``, below
-the samples' SNR floor, does where its posterior does: the target is relative). A pose stops when
+need an exposure bracket, not more states, and are counted apart, ``clipped_pixels``) and the
+pixels dark in every colour of its frame (``S0`` below :data:`polrig.solve.reference.MIN_SNR`
+noise sigmas, the route's ``DARK`` bit: turned away from the light, all noise; ``dark_pixels``);
+a colour dark at a pixel does not count in its relative sigma. A pixel without a finite
+posterior does not meet the target. A pose stops when
 the share of its object pixels meeting the target reaches ``target_share``, or at
 ``max_states`` states.
 
 **The choice** (:func:`evaluate`): the Bayesian A-optimal state among
 :data:`CANDIDATES_DEG` (:mod:`polrig.solve.design`: the least summed relative posterior
 variance over the object pixels still above target, predicted in closed form), evaluated on at
-most :data:`DESIGN_PIXELS` of those pixels (every n-th in raster order: deterministic), with
+most :data:`polrig.solve.design.DESIGN_PIXELS` of those pixels (every n-th in raster order: deterministic), with
 the ideal analyzer's rows and the noise model's variance at the current estimate. Of equally
 good candidates (:data:`NEAR_BEST`) the stage goes to the nearest, at the nearer of the two
 equivalent angles (a linear polarizer repeats every 180 deg).
@@ -52,11 +54,11 @@ import numpy as np
 
 from polrig.acquisition.plan import (
     ADAPTIVE_CANDIDATE_STEP_DEG,
-    MAX_STATE_DEG,
     CapturePlan,
     Step,
     adaptive_forecast_states,
     adaptive_pose_steps,
+    nearest_stage_angle,
     pose_head_steps,
     pose_tail_steps,
     state_steps,
@@ -64,23 +66,13 @@ from polrig.acquisition.plan import (
 from polrig.app.processing import Processor, noise_exposures_us, process_reference
 from polrig.app.session import Session
 from polrig.app.sessionio import CaptureFrames, load_capture_frames
-from polrig.sensor.stokes import ideal_analyzer_matrix
-from polrig.solve.design import (
-    a_optimal_scores,
-    data_precision,
-    predicted_variance,
-    prior_precision,
-    relative_sigma,
-    state_precision,
-)
+from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
 from polrig.solve.radiometry import analyzer_stack
+from polrig.solve.reference import DARK
 
 #: Candidate polarizer angles, deg: ``[0, 180)`` in steps of
 #: :data:`polrig.acquisition.plan.ADAPTIVE_CANDIDATE_STEP_DEG`.
 CANDIDATES_DEG = tuple(float(a) for a in np.arange(0.0, 180.0, ADAPTIVE_CANDIDATE_STEP_DEG))
-#: Most pixels the criterion is evaluated on (a regular subsample of the object pixels still
-#: above target): about 0.1 s per decision for 24 candidates and 3 colours.
-DESIGN_PIXELS = 1024
 #: Candidates whose predicted reduction of the criterion is within this fraction of the best
 #: one's count as equally good; of those the stage goes to the nearest. 0: exact ties only (2 %
 #: was tried on plastic_metal at 64x64: it chose clustered angles, 0/67.5/90/127.5 deg, and lost
@@ -94,7 +86,7 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
              geometry: dict[str, Any] | None) -> dict[str, Any]:
     """The decision after the states of ``cf`` (a pose's frames so far, first state first):
     an :class:`polrig.app.manifest.AdaptiveDecision` record (``states_taken``, ``share_met``,
-    ``object_pixels``, ``clipped_pixels``, ``design_pixels``, ``criterion``, ``action``, ``state_deg``,
+    ``object_pixels``, ``clipped_pixels``, ``dark_pixels``, ``design_pixels``, ``criterion``, ``action``, ``state_deg``,
     ``predicted_criterion``). See the module docstring."""
     keep: dict[str, Any] = {}
     prior = processor.prior_function(cf, geometry, {}, keep)
@@ -102,16 +94,20 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
                                                   processor.demosaic, np.float32, prior)
     net = keep["net"]
     sigma = result.sigma_noise if result.sigma_noise is not None else result.sigma
-    rel = relative_sigma(sigma, result.mueller)
+    lit = (np.asarray(net.mask) & DARK) == 0  # (C, H, W): colours above the seen frame's noise floor
+    rel = relative_sigma(sigma, result.mueller, lit)
     prior_sigma = np.asarray(net.sigma)
-    clipped = np.asarray(net.object, bool) & ~np.all(np.isfinite(prior_sigma), axis=(0, 1, 2))
-    obj = np.asarray(net.object, bool) & ~clipped
-    met = obj & (rel <= plan.target_sigma)  # rel is inf where the solve has no finite answer
+    net_object = np.asarray(net.object, bool)
+    clipped = net_object & ~np.all(np.isfinite(prior_sigma), axis=(0, 1, 2))
+    dark = net_object & ~clipped & ~lit.any(axis=0)
+    obj = net_object & ~clipped & ~dark
+    share, met = share_at_target(rel, obj, plan.target_sigma)  # rel is inf without a finite answer
     n_obj = int(obj.sum())
-    share = float(met.sum()) / n_obj if n_obj else 0.0
     n = len(cf.states_deg)
     record: dict[str, Any] = {"states_taken": n, "share_met": share, "object_pixels": n_obj,
-                              "clipped_pixels": int(clipped.sum()), "design_pixels": 0, "criterion": None, "action": TAKE,
+                              "clipped_pixels": int(clipped.sum()), "dark_pixels": int(dark.sum()),
+                              "design_pixels": 0,
+                              "criterion": None, "action": TAKE,
                               "state_deg": None, "predicted_criterion": None}
     if n_obj == 0:
         return record | {"action": STOP_NO_OBJECT}
@@ -120,45 +116,28 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     if n >= plan.max_states:
         return record | {"action": STOP_MAX}
     m00 = np.asarray(result.mueller, np.float64)[:, 0, 0]
-    above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)
+    above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)  # (all colours: it normalises)
     ys, xs = np.nonzero(above)
     if len(ys) == 0:  # the pixels above target are all dark or masked: nothing to design for
         return record | {"action": STOP_TARGET}
     stride = max(1, math.ceil(len(ys) / DESIGN_PIXELS))
     ys, xs = ys[::stride], xs[::stride]
-    rows = ideal_analyzer_matrix()
-    # per design pixel and colour: the prior, then each measured state's samples
-    prec = prior_precision(np.moveaxis(np.asarray(net.sigma, np.float64)[..., ys, xs], -1, 0), s_in[0])
+    pixels = lambda a: np.moveaxis(np.asarray(a)[..., ys, xs], -1, 0)  # noqa: E731 - (P, ...)
+    measured = []
     for k, st in enumerate(states):
         _, var, ok, _ = analyzer_stack(st, lay, processor.demosaic)
-        prec = prec + data_precision(rows, np.moveaxis(var[..., ys, xs], -1, 0),
-                                     np.moveaxis(ok[..., ys, xs], -1, 0), s_in[k])
-    estimate = np.moveaxis(np.asarray(result.mueller, np.float64)[..., ys, xs], -1, 0)  # (P, C, 3, 3)
+        measured.append((s_in[k], pixels(var), pixels(ok)))
     per_dn, offset = processor.sensor_model.variance_terms(noise_exposures_us(cf)[0], plan.frames_per_state)
-    candidates = []
-    cand_s = processor.calibration.incident_stokes(CANDIDATES_DEG)
-    for s_c in cand_s:
-        var_c = predicted_variance(estimate, rows, s_c, float(per_dn), float(offset))
-        candidates.append(state_precision(rows, 1.0 / var_c, s_c).reshape(-1, 9, 9))
-    j_now, j = a_optimal_scores(prec.reshape(-1, 9, 9), estimate[..., 0, 0].reshape(-1), candidates)
+    j_now, j = a_optimal_next(pixels(prior_sigma).astype(np.float64), s_in[0], measured,
+                              pixels(result.mueller).astype(np.float64),
+                              processor.calibration.incident_stokes(CANDIDATES_DEG), float(per_dn), float(offset))
     here = cf.states_deg[-1]
-    angles = [stage_angle(a, here) for a in CANDIDATES_DEG]
+    angles = [nearest_stage_angle(a, here) for a in CANDIDATES_DEG]
     # the nearest of the candidates within NEAR_BEST of the best reduction (motion is time)
     good = j <= np.min(j) + NEAR_BEST * max(0.0, j_now - float(np.min(j)))
     best = min(np.flatnonzero(good), key=lambda c: (abs(angles[c] - here), c))
     return record | {"design_pixels": int(len(ys)), "criterion": j_now,
                      "state_deg": angles[best], "predicted_criterion": float(j[best])}
-
-
-def stage_angle(candidate_deg: float, here_deg: float) -> float:
-    """The stage angle for polarizer angle ``candidate_deg`` (mod 180) nearest to ``here_deg``,
-    within the plan's +-:data:`polrig.acquisition.plan.MAX_STATE_DEG`."""
-    angle = float(candidate_deg) + 180.0 * round((float(here_deg) - float(candidate_deg)) / 180.0)
-    while angle > MAX_STATE_DEG:
-        angle -= 180.0
-    while angle < -MAX_STATE_DEG:
-        angle += 180.0
-    return angle
 
 
 def truncated(cf: CaptureFrames, n: int) -> CaptureFrames:

@@ -301,7 +301,8 @@ class RevisionResult(TypedDict):
 class AdaptiveDecision(TypedDict):
     """One decision of an adaptive capture (:mod:`polrig.app.adaptive`), made after
     ``states_taken`` states: the share of its ``object_pixels`` (the network's object mask, less
-    the ``clipped_pixels`` its frame clips: they have no prior) that met the target then
+    the ``clipped_pixels`` its frame clips, which have no prior, and the ``dark_pixels``, all noise
+    in its frame) that met the target then
     (``share_met``), what it did (``action``: ``take`` the state at stage
     angle ``state_deg``, or stop: ``stop-target``, ``stop-max-states``, ``stop-no-object``) and
     why: the A-optimal criterion (:mod:`polrig.solve.design`, summed relative posterior variance
@@ -312,6 +313,7 @@ class AdaptiveDecision(TypedDict):
     share_met: Annotated[float, Check(lambda v: 0.0 <= v <= 1.0, "a share in [0, 1]")]
     object_pixels: Count
     clipped_pixels: Count
+    dark_pixels: Count
     design_pixels: Count
     criterion: Finite | None
     action: Literal["take", "stop-target", "stop-max-states", "stop-no-object"]
