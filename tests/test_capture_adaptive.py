@@ -6,7 +6,11 @@ result. The criterion's algebra is tested in ``tests/test_design.py``."""
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
+from test_capture import content, resume, sim_rig, start
+from test_cli_capture import MODEL_INSTALLED
 
 from polrig.acquisition.engine import hardware_model
 from polrig.acquisition.plan import (
@@ -20,9 +24,6 @@ from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, replay_decisions
 from polrig.app.capture import CaptureRequest, run_session
 from polrig.app.session import COMPLETE, INTERRUPTED, PENDING, Session
 from polrig.cli import main
-
-from test_capture import content, resume, sim_rig, start
-from test_cli_capture import MODEL_INSTALLED
 
 needs_model = pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
 
@@ -119,6 +120,15 @@ def test_each_pose_records_the_states_it_took_and_why(adaptive_run):
 
 
 @needs_model
+def test_info_shows_the_target_and_the_decisions(adaptive_run, capsys):
+    session = adaptive_run[0]
+    assert main(["info", str(session.root), "--no-verify"]) == 0
+    out = capsys.readouterr().out
+    assert "mode adaptive (target relative sigma 0.05 on 95 % of the object pixels, at most 4 states" in out
+    assert out.count("decisions: 1: ") == len(session.captures)
+
+
+@needs_model
 def test_decisions_are_reproducible_from_the_recorded_frames(adaptive_run):
     session, proc, _, _, _ = adaptive_run
     for cap in session.captures:
@@ -141,7 +151,7 @@ def test_hardware_time_and_eta_follow_the_decisions(adaptive_run):
     assert last.kind == "session-done"
     assert last.hardware_s == pytest.approx(expected, rel=1e-12) and last.hardware_left_s == 0.0
     done = [e.hardware_s - e.hardware_left_s for e in events]
-    assert all(b >= a - 1e-9 for a, b in zip(done, done[1:]))
+    assert all(b >= a - 1e-9 for a, b in itertools.pairwise(done))
     assert last.step == last.total == sum(len(c["files"]["raw"]) for c in session.captures)
     assert [e.kind for e in events].count("decision") == sum(len(c["adaptive"]) for c in session.captures)
 

@@ -13,6 +13,12 @@ order alternates between poses (serpentine: pose 0 visits the states in plan ord
 in reverse, ...), so the stage never travels back idle. Frames stay tagged with the plan's
 state index, so raw file names and results do not depend on the order.
 
+An adaptive plan (``mode="adaptive"``) chooses its states as it goes: its steps are the same
+pieces (:func:`pose_head_steps`, :func:`state_steps`, :func:`pose_tail_steps`), handed to the
+executor one at a time by the app layer's decisions (:mod:`polrig.app.adaptive`); a pose that took
+states ``S`` ran :func:`adaptive_pose_steps` of ``S``, and before the decisions its hardware time is
+forecast at :func:`adaptive_forecast_states`.
+
 :func:`step_durations` is the plan's hardware time per step (motion from each axis's
 :meth:`polrig.acquisition.hal.RotationStage.move_time_s`, exposure plus readout per frame, discarded
 free-run settle frames), computed before a capture starts. Angles in degrees, exposures in

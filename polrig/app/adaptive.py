@@ -48,7 +48,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -66,7 +67,12 @@ from polrig.acquisition.plan import (
 from polrig.app.processing import Processor, noise_exposures_us, process_reference
 from polrig.app.session import Session
 from polrig.app.sessionio import CaptureFrames, load_capture_frames
-from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
+from polrig.solve.design import (
+    DESIGN_PIXELS,
+    a_optimal_next,
+    relative_sigma,
+    share_at_target,
+)
 from polrig.solve.radiometry import analyzer_stack
 from polrig.solve.reference import DARK
 
@@ -122,7 +128,7 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
         return record | {"action": STOP_TARGET}
     stride = max(1, math.ceil(len(ys) / DESIGN_PIXELS))
     ys, xs = ys[::stride], xs[::stride]
-    pixels = lambda a: np.moveaxis(np.asarray(a)[..., ys, xs], -1, 0)  # noqa: E731 - (P, ...)
+    pixels = lambda a: np.moveaxis(np.asarray(a)[..., ys, xs], -1, 0)
     measured = []
     for k, st in enumerate(states):
         _, var, ok, _ = analyzer_stack(st, lay, processor.demosaic)
@@ -136,7 +142,7 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     # the nearest of the candidates within NEAR_BEST of the best reduction (motion is time)
     good = j <= np.min(j) + NEAR_BEST * max(0.0, j_now - float(np.min(j)))
     best = min(np.flatnonzero(good), key=lambda c: (abs(angles[c] - here), c))
-    return record | {"design_pixels": int(len(ys)), "criterion": j_now,
+    return record | {"design_pixels": len(ys), "criterion": j_now,
                      "state_deg": angles[best], "predicted_criterion": float(j[best])}
 
 
