@@ -292,7 +292,8 @@ class Progress:
     """One progress event. ``kind``: ``"capture-start"``, ``"frame"`` (a raw frame written),
     ``"retry"``, ``"capture-acquired"`` (every frame of the capture written; it is handed to
     processing), ``"capture-done"`` (processed; ``score`` set on the simulated rig),
-    ``"capture-failed"``, ``"session-done"``. ``step``/``total`` count the raw frames this run
+    ``"capture-failed"``, ``"session-done"``, ``"decision"`` (an adaptive capture's decision,
+    ``message`` says it; the hardware time and ``total`` follow it). ``step``/``total`` count the raw frames this run
     acquires. ``hardware_s``: the plan's hardware time for this run (motion, exposure,
     readout; :func:`polrig.acquisition.plan.step_durations`), known before the first frame;
     ``hardware_left_s`` what is left of it. ``result``: of ``"capture-done"``, the capture's
@@ -446,6 +447,8 @@ def run_session(rig, session: Session, *, processor=None,
     full disk, or an unexpected error (a processing error included), after leaving the
     session interrupted.
     """
+    if session.plan.mode == "adaptive" and processor is None:
+        raise ValueError("the adaptive mode decides from the network's prior: it needs a processor")
     session.lock()
     try:
         with SignalGuard() as guard:
@@ -600,7 +603,6 @@ class _Run:
                 continue
         return error
 
-    # -- the run
     # -- the adaptive mode: the plan continues by decisions (polrig.app.adaptive)
     def extend(self) -> list:
         """The executor's ``extend``: the schedule's next steps, with their hardware time; the
@@ -622,9 +624,9 @@ class _Run:
         self.handed += new
         self.hardware_s = sum(durations)
         self.hardware_left_s = max(0.0, self.hardware_s - done_s)
-        grabs = [s for s in self.handed[len(self.setup):] + forecast if isinstance(s, Grab)]
-        self.total = sum(1 for g in grabs if g.tag.role in ("raw", "dark"))
+        self.total = sum(isinstance(s, Grab) for s in self.handed[len(self.setup):] + forecast)
 
+    # -- the run
     def run(self) -> SessionResult:
         session, plan = self.session, self.plan
         try:
@@ -633,8 +635,6 @@ class _Run:
             extend = None
             if self.to_acquire and plan.mode == "adaptive":
                 exposures = plan.exposures_us or (float(self.rig.camera.exposure_us),)
-                if self.processor is None:
-                    raise ValueError("the adaptive mode decides from the network's prior: it needs a processor")
                 self.setup = setup = setup_steps()
                 self.hardware = hardware_model(self.rig)
                 self.schedule = AdaptiveSchedule(
