@@ -194,3 +194,32 @@ def test_a_loose_target_stops_at_the_networks_frame_and_a_tight_one_at_max_state
     decisions = session.capture(0)["adaptive"]
     assert [d["action"] for d in decisions] == [TAKE, STOP_MAX]
     assert decisions[-1]["share_met"] < 0.95 and len(session.capture(0)["files"]["raw"]) == 2
+
+
+@needs_model
+def test_a_limit_on_a_chosen_states_move_stops_safely_then_resumes_to_the_same_result(tmp_path, adaptive_run):
+    """The steps a decision appends run under the engine's one fault policy: a limit switch
+    on the stage's move to the first chosen state stops the session (no retry, no homing, the
+    reason names the home command), the pose is failed with its partial frames gone, and a
+    resume captures it again to the uninterrupted session's files and decisions."""
+    reference = adaptive_run[0]
+    out = tmp_path / "s"
+    events = []
+    with sim_rig(scene=SCENE) as rig:
+        def progress(ev):
+            events.append(ev)
+            if ev.kind == "decision" and sum(e.kind == "decision" for e in events) == 1:
+                rig.faults.inject_fault("stage", "limit", after_calls=0)  # the next stage call
+
+        session, proc = start(rig, out, adaptive())
+        result = run_session(rig, session, processor=proc, progress=progress)
+    assert result.status == INTERRUPTED and result.reason.startswith("safety stop:")
+    assert "`polrig home stage`" in result.reason and "\n" not in result.reason
+    assert not any(e.kind == "retry" for e in events)
+    s = Session.open(out)
+    assert [c["status"] for c in s.captures] == ["failed", PENDING] and s.verify() == []
+    with sim_rig(scene=SCENE) as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete" and s2.verify() == []
+    assert content(s2) == content(reference)
+    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
