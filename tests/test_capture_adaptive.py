@@ -129,6 +129,17 @@ def test_info_shows_the_target_and_the_decisions(adaptive_run, capsys):
 
 
 @needs_model
+def test_on_plastic_and_metal_the_target_holds_with_fewer_states_than_the_fixed_four(adaptive_run):
+    """Issue 33's acceptance at CI size (64x64, two poses; the measurement at 128x128 and
+    512x512 is ``python -m benchmarks adaptive``): every pose stops at the target, on at least
+    95 % of its object pixels, with fewer than four states on average."""
+    session = adaptive_run[0]
+    last = [c["adaptive"][-1] for c in session.captures]
+    assert all(d["action"] == STOP_TARGET and d["share_met"] >= 0.95 for d in last), last
+    assert sum(d["states_taken"] for d in last) / len(last) < 4
+
+
+@needs_model
 def test_decisions_are_reproducible_from_the_recorded_frames(adaptive_run):
     session, proc, _, _, _ = adaptive_run
     for cap in session.captures:
