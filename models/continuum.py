@@ -40,6 +40,12 @@ object's pixels (per colour) whose error is within 2 sigma, over pixels whose se
 not clipped (as the single-shot sigma's coverage is measured) and that the solve did not mask
 ``ILL_CONDITIONED``.
 
+**Adaptive** (issue 33 item 2; :func:`adaptive`): the adaptive capture's rule on each sample,
+at each of ``--targets`` (relative posterior sigma; 95 % of the object pixels, at most 4
+states), choosing among the 15 deg offsets (one frame each). **Acquisition time**
+(:func:`acquisition_time_s`): the simulated rig's hardware time of one pose taking a method's
+states (stage motion, exposure, readout), with its states per pose.
+
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
 unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
@@ -84,6 +90,17 @@ SIZE = 64
 OFFSETS_DEG = tuple(range(0, 180, 15))
 FOUR_STATES = (0, 45, 90, 135)
 VARIANTS = ("marginal", "naive", "exclude")
+#: The adaptive capture's targets measured (relative posterior sigma,
+#: :func:`polrig.solve.design.relative_sigma`), its share of object pixels and most states (the
+#: capture's defaults: :mod:`polrig.app.adaptive`).
+ADAPTIVE_TARGETS = (0.05, 0.03)
+ADAPTIVE_SHARE = 0.95
+ADAPTIVE_MAX_STATES = 4
+#: The simulated rig's stage acceleration (deg/s^2, :class:`polrig.sim.devices.SimStage`'s
+#: default) and camera readout (us per frame, :class:`polrig.sim.devices.SimCamera`'s), for the
+#: acquisition time (:func:`acquisition_time_s`).
+SIM_STAGE_ACCEL_DEG_S2 = 100.0
+SIM_READOUT_US = 13000.0
 
 
 @dataclasses.dataclass
@@ -100,6 +117,9 @@ class Frames:
     meas: dict[int, np.ndarray]  # offset -> (C, 4, H, W)
     var: dict[int, np.ndarray]
     valid: dict[int, np.ndarray]
+    #: the noise model's linear terms for one state's (averaged) frames in these units:
+    #: variance = max(I, 0) * per + offset (:meth:`polrig.sensor.noise.SensorModel.variance_terms`)
+    noise_terms: tuple[float, float] = (0.0, 0.0)
 
 
 def rotated_state(s: np.ndarray, offset_deg: float) -> np.ndarray:
@@ -162,7 +182,9 @@ def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng:
         valid[d] = (stack < sensor.saturation_dn).all(axis=0)
     use = mask[None] & (seen_dn < sensor.saturation_dn).all(axis=1)
     clean = mask & np.all([v.all(axis=(0, 1)) for v in valid.values()], axis=0)
-    return Frames(truth, mask, use, clean, prior[0], prior[1], states, meas, var, valid)
+    per_dn, offset = sensor.variance_terms(DATASET_EXPOSURE_US, k)
+    return Frames(truth, mask, use, clean, prior[0], prior[1], states, meas, var, valid,
+                  (float(per_dn) / scale, float(offset) / scale**2))
 
 
 def _stack(fr: Frames, offsets: Sequence[int]):
@@ -209,6 +231,69 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
 
 
+def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1) -> float:
+    """The simulated rig's hardware time of one pose that takes the states ``offsets`` (deg from
+    the seen state, in that order; the stage starts at the first, each move to the nearer of the
+    two equivalent angles: :func:`polrig.acquisition.plan.nearest_stage_angle`): the stage's
+    trapezoidal moves (:mod:`polrig.sim.motion`, the simulated rig's speed and acceleration) and
+    ``frames_per_state`` frames of the dataset's exposure plus readout per state
+    (:func:`polrig.acquisition.plan.step_durations` of
+    :func:`polrig.acquisition.plan.adaptive_pose_steps`: the plan's own hardware time)."""
+    from polrig.acquisition.plan import (CapturePlan, HardwareModel, adaptive_pose_steps,
+                                         nearest_stage_angle, step_durations)
+    from polrig.sim.dataset import DATASET_EXPOSURE_US
+    from polrig.sim.motion import Move
+    from polrig.sim.options import DEFAULTS
+
+    speed = {"stage": DEFAULTS["stage_speed_deg_s"], "turntable": DEFAULTS["turntable_speed_deg_s"]}
+    model = HardwareModel(lambda a, f, t: Move(f, t, 0.0, speed[a], SIM_STAGE_ACCEL_DEG_S2).duration_s
+                          if f != t else 0.0, SIM_READOUT_US, 0, {"stage": 0.0, "turntable": 0.0},
+                          DATASET_EXPOSURE_US)
+    angles = [float(offsets[0])]
+    for d in offsets[1:]:
+        angles.append(nearest_stage_angle(d, angles[-1]))
+    plan = CapturePlan((0.0,), frames_per_state=int(frames_per_state))
+    return float(sum(step_durations(adaptive_pose_steps(plan, 0, [DATASET_EXPOSURE_US], angles), model)))
+
+
+def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
+             max_states: int = ADAPTIVE_MAX_STATES) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """The adaptive capture on one sample (:mod:`polrig.app.adaptive`'s rule and criterion on
+    the sample's frames): from the seen state, while less than ``share`` of the object pixels
+    (those whose seen frame is not clipped and has some colour above its noise floor, ``S0`` at
+    least :data:`polrig.solve.reference.MIN_SNR` sigmas; the colours below it do not count) have
+    a relative posterior sigma at most ``target``
+    and fewer than ``max_states`` states are taken, the A-optimal next offset
+    (:func:`polrig.solve.design.a_optimal_next`) among the offsets not taken yet (one frame each
+    exists). Returns the hybrid estimate of the states taken (``estimate``'s three arrays) and
+    the offsets taken, in order."""
+    from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
+    from polrig.solve.reference import MIN_SNR
+
+    # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
+    s0 = fr.meas[0].sum(axis=1) / 2.0
+    lit = fr.use & (s0 >= MIN_SNR * np.sqrt(fr.var[0].sum(axis=1) / 4.0))
+    obj = fr.use.all(axis=0) & lit.any(axis=0)
+    taken = [0]
+    while True:
+        mueller, sigma, solved = estimate(fr, taken, "hybrid")
+        got, met = share_at_target(relative_sigma(sigma, mueller, lit), obj, target)
+        if got >= share or len(taken) >= max_states:
+            return mueller, sigma, solved, taken
+        m00 = mueller[:, 0, 0]
+        ys, xs = np.nonzero(obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0))
+        if len(ys) == 0:
+            return mueller, sigma, solved, taken
+        stride = max(1, -(-len(ys) // DESIGN_PIXELS))
+        ys, xs = ys[::stride], xs[::stride]
+        px = lambda a: np.moveaxis(np.asarray(a, np.float64)[..., ys, xs], -1, 0)  # noqa: E731
+        cands = [d for d in OFFSETS_DEG if d not in taken]
+        _, j = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
+                                                             for d in taken],
+                              px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms)
+        taken.append(cands[int(np.argmin(j))])
+
+
 def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray,
           clean: np.ndarray | None = None) -> dict[str, float]:
     """Matrix PSNR (over the object, and over its pixels unclipped in every state: ``clean``,
@@ -228,7 +313,8 @@ def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray
 
 
 def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
-    out = {k: float(np.nanmean([r[k] for r in rows])) for k in ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2")}
+    keys = ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2", "states", "time_s")
+    out = {k: float(np.nanmean([r[k] for r in rows])) for k in keys if rows and k in rows[0]}
     n = sum(r["elements"] for r in rows)
     out["coverage"] = sum(r["inside"] for r in rows) / n if n else float("nan")
     return out
@@ -268,8 +354,11 @@ def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> d
             "best_three": list(best3)}
 
 
-def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, tag: int) -> dict:
-    """Every method's mean metrics on one set (module docstring)."""
+def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, tag: int,
+                 targets: Sequence[float] = ADAPTIVE_TARGETS) -> dict:
+    """Every method's mean metrics on one set (module docstring), the adaptive capture at each of
+    ``targets`` included; with each method's states per pose and acquisition time
+    (:func:`acquisition_time_s`; the adaptive's per sample)."""
     plan = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
             "hybrid3": ("hybrid", offsets["three"]), "hybrid4": ("hybrid", offsets["four"]),
             "reference3": ("reference", offsets["three"]), "reference4": ("reference", offsets["four"])}
@@ -278,16 +367,23 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
         plan[f"{v}2"] = (v, offsets["two"])
     # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
     timed = {"hybrid3_4frames": (offsets["three"], 4), "hybrid4_3frames": (offsets["four"], 3)}
-    rows: dict[str, list] = {k: [] for k in (*plan, *timed)}
+    adaptive_keys = {f"adaptive_{t:g}": t for t in targets}
+    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys)}
+    time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
+    time_s |= {key: acquisition_time_s(offs, k) for key, (offs, k) in timed.items()}
     t0 = time.perf_counter()
     for ds, sensor, i, prior in _samples(data_dir, net):
         fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
         for key, (method, offs) in plan.items():
-            rows[key].append(score(fr, *estimate(fr, offs, method)))
+            rows[key].append(score(fr, *estimate(fr, offs, method)) | {"states": len(offs), "time_s": time_s[key]})
         for key, (offs, k) in timed.items():
             frk = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, k]), offsets=offs,
                                 frames_per_state=k)
-            rows[key].append(score(frk, *estimate(frk, offs, "hybrid"), clean=fr.clean))
+            rows[key].append(score(frk, *estimate(frk, offs, "hybrid"), clean=fr.clean)
+                             | {"states": len(offs), "time_s": time_s[key]})
+        for key, target in adaptive_keys.items():
+            *est, taken = adaptive(fr, target)
+            rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
     n = len(rows["single"])
     return {"data": str(data_dir), "samples": n, "methods": {k: _mean(v) for k, v in rows.items()},
             "seconds": time.perf_counter() - t0}
@@ -299,6 +395,9 @@ def markdown(result: dict) -> str:
     cols = [("single", "single-shot"), ("hybrid1", "hybrid 1 (0)"), ("hybrid2", f"hybrid 2 ({name('two')})"),
             ("hybrid3", f"hybrid 3 ({name('three')})"), ("hybrid4", f"hybrid 4 ({name('four')})"),
             ("reference3", "reference 3"), ("reference4", "reference 4")]
+    first = next(iter(result["sets"].values()))["methods"]
+    adaptive_cols = [(k, f"adaptive {k.split('_', 1)[1]}") for k in first if k.startswith("adaptive_")]
+    cols += adaptive_cols
     lines = []
     for metric, title, fmt in (("matrix_psnr", "Matrix PSNR (dB), object pixels", "{:.2f}"),
                                ("matrix_psnr_unclipped", "Matrix PSNR (dB), object pixels with no clipped sample in "
@@ -320,6 +419,20 @@ def markdown(result: dict) -> str:
                         f" {m['hybrid4_3frames'][metric] - m['hybrid3_4frames'][metric]:+.2f} |")
             lines.append(row)
         lines.append("")
+    if "time_s" in first["single"]:
+        timed = [("single", "single-shot"), ("hybrid2", "hybrid 2"), ("hybrid3", "hybrid 3"),
+                 ("hybrid4", "hybrid 4"), ("hybrid3_4frames", "hybrid 3, 4 frames each"),
+                 ("hybrid4_3frames", "hybrid 4, 3 frames each"), *adaptive_cols]
+        lines += ["**States per pose and acquisition time** (mean states / seconds per pose on the simulated rig: "
+                  "stage motion, exposure and readout, `acquisition_time_s`; the adaptive capture stops when "
+                  f"{100 * ADAPTIVE_SHARE:.0f} % of the object pixels have a relative posterior sigma at most its target, "
+                  f"at most {ADAPTIVE_MAX_STATES} states)", "",
+                  "| set | " + " | ".join(c[1] for c in timed) + " |", "|---|" + "---:|" * len(timed)]
+        for key, r in result["sets"].items():
+            m = r["methods"]
+            lines.append(f"| {SETS[key][0]} | " + " | ".join(f"{m[c]['states']:.2f} / {m[c]['time_s']:.2f} s"
+                                                           for c, _ in timed) + " |")
+        lines.append("")
     lines += ["**The seen state's treatment** (matrix PSNR dB / within 2 sigma; 1 state, and 2 states "
               f"{name('two')})", "",
               "| set | hybrid (shipped) 1 | marginal 1 | naive 1 | exclude 1 (= single-shot) | hybrid (shipped) 2 | "
@@ -333,7 +446,8 @@ def markdown(result: dict) -> str:
 
 
 def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], seed: int = 0,
-        weights_dir=None, two=None, three=None, echo=print) -> dict:
+        weights_dir=None, two=None, three=None, echo=print,
+        targets: Sequence[float] = ADAPTIVE_TARGETS) -> dict:
     """Generate the sets, search the states (unless ``two`` and ``three`` are given), evaluate,
     write ``out_md`` and its ``.json`` (when given)."""
     from polrig.atomic import atomic_write_text
@@ -353,7 +467,8 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     if net.uncertainty is None:
         raise ConfigError("the single-shot graph has no calibrated uncertainty (models/weights/uncertainty.json)")
     t0 = time.perf_counter()
-    result: dict = {"count": count, "size": SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG)}
+    result: dict = {"count": count, "size": SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
+                    "adaptive_targets": list(targets)}
     if two is None or three is None:
         dirs = [make_set(root, name, kw, search_count if "all" in name else max(1, search_count // 2))
                 for name, kw in SEARCH_SETS.items()]
@@ -364,7 +479,7 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     result["sets"] = {}
     for tag, name in enumerate(sets):
         d = make_set(root, name, SETS[name][1], count)
-        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag)
+        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets)
         result["sets"][name] = r
         m = r["methods"]
         echo(f"{name}: {r['samples']} scored; PSNR single {m['single']['matrix_psnr']:.2f}, hybrid 1-4 "
@@ -379,7 +494,8 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
         out_md.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
         atomic_write_text(out_md, "# From one state to four: single-shot, hybrid, reference\n\n"
-                          f"`python -m polrig.models.continuum --count {count} --search-count {search_count}`"
+                          f"`python -m polrig.models.continuum --count {count} --search-count {search_count}"
+                          f" --targets {','.join(f'{t:g}' for t in targets)}`"
                           " (models/continuum.py: sets, frames, metrics and variants in its docstring). "
                           f"{count} samples per set at {SIZE}x{SIZE} (those with a lit object pixel scored); "
                           f"{_search_line(result)}{result['seconds']:.0f} s on {os.cpu_count()} CPUs "
@@ -425,11 +541,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="noise seed of the rendered states' frames")
     ap.add_argument("--two", default=None, help="the 2-state offsets instead of searching, e.g. 0,90")
     ap.add_argument("--three", default=None, help="the 3-state offsets instead of searching, e.g. 0,60,120")
+    ap.add_argument("--targets", default=",".join(f"{t:g}" for t in ADAPTIVE_TARGETS),
+                    help="the adaptive capture's relative sigma targets, comma separated (default "
+                         + ",".join(f"{t:g}" for t in ADAPTIVE_TARGETS) + ")")
     args = ap.parse_args(argv)
     return run_main(ap.prog, lambda: (run(args.root, args.out, count=args.count, search_count=args.search_count,
                                           sets=[s for s in args.sets.split(",") if s], seed=args.seed,
                                           weights_dir=args.weights, two=_offsets(args.two, 2),
-                                          three=_offsets(args.three, 3)), 0)[1])
+                                          three=_offsets(args.three, 3), targets=_targets(args.targets)), 0)[1])
+
+
+def _targets(text: str) -> tuple[float, ...]:
+    from polrig.errors import ConfigError
+
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--targets: give relative sigmas in (0, 1], comma separated, got {text!r}") from None
+    if not vals or not all(0 < v <= 1 for v in vals):
+        raise ConfigError(f"--targets: give relative sigmas in (0, 1], comma separated, got {text!r}")
+    return vals
 
 
 if __name__ == "__main__":

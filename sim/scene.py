@@ -312,6 +312,9 @@ def _material_scene_objects(name: str, c: np.ndarray) -> list[SceneObject]:
                            rotation=_tilt(90.0, 0.0), on_turntable=False)
         return [_floor("plastic_white"), wall,
                 SceneObject("sphere", Sphere(0.025), (get_material("plastic_red"),), [0.0, 0.0, 0.025])]
+    if name == "plastic_metal":  # issue 33 item 2: a dielectric half and a conductor half
+        return [SceneObject("sphere", Sphere(0.05), (get_material("plastic_red"), sm["aluminium"]), c,
+                            region=halves_region(0))]
     if name == "crater":  # a concave dish that lights itself
         h, g = gaussian_bumps([[0.0, 0.0]], [0.02], [-0.02])
         return [SceneObject("dish", HeightField(0.045, 0.045, -0.021, 0.001, h, g), (sm["gold"],),
@@ -319,9 +322,11 @@ def _material_scene_objects(name: str, c: np.ndarray) -> list[SceneObject]:
     raise ValueError(name)  # pragma: no cover - MATERIAL_SCENES is exhaustive
 
 
-#: Scenes with materials outside the Baek 2018 family (:class:`SurfaceMaterial`).
+#: Scenes with materials outside the Baek 2018 family (:class:`SurfaceMaterial`); ``plastic_metal``
+#: (a sphere, half red plastic, half aluminium: the adaptive capture's test scene, issue 33 item 2)
+#: mixes the two and is used for fitting nothing.
 MATERIAL_SCENES = ("gold_sphere", "chrome_sphere", "brushed_cylinder", "dispersive_sphere",
-                   "film_plane", "textured_blob", "metals", "corner", "crater")
+                   "film_plane", "textured_blob", "metals", "corner", "crater", "plastic_metal")
 
 SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_sphere",
           "plane", "box", "cylinder", "multi", "heightfield", "normalmap", "blob",

@@ -324,3 +324,29 @@ def test_the_plans_hardware_time_is_the_simulated_rigs_clock(tmp_path):
     # 24 frames of 20 ms + 13 ms; motion: stage 135 deg per pose (serpentine), two 90 deg turns
     frames_s = 24 * 0.033
     assert first.hardware_s > frames_s + 2 * 9.0
+
+
+# -- a plan continued by decisions (the adaptive capture) ----------------------------------------
+def test_extend_continues_the_steps_after_their_events_under_the_same_policy():
+    """``extend`` is asked for more steps only once the ones given ran (their frames already
+    delivered to the subscribers, so a decision can read them); its steps run under the same
+    fault policy (a timed-out grab retried) and StepDone counts on; ``[]`` ends the run."""
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig, policy=FaultPolicy(grab_retries=1))
+        seen = events_of(ex)
+        asked = []
+
+        def extend():
+            frames = sum(isinstance(e, FrameGrabbed) for e in seen)
+            asked.append(frames)
+            if len(asked) == 1:
+                rig.faults.inject_fault("camera", "timeout", after_calls=0)  # the next grab times out once
+                return [Move((("stage", 60.0),)), grab_step(1)]
+            return []
+
+        ex.run([SetTrigger(None), grab_step(0)], extend)
+        assert asked == [1, 2]  # after the first frame, then after the second
+        done = [e.index for e in seen if type(e).__name__ == "StepDone"]
+        assert done == [0, 1, 2, 3]
+        assert sum(isinstance(e, Retried) for e in seen) == 1
+        assert rig.stage.position_deg() == pytest.approx(60.0)

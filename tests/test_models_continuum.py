@@ -45,6 +45,26 @@ def test_tables_search_and_the_hybrid_limits(tmp_path):
         assert 0.5 < m[k]["coverage"] <= 1.0 and m[k]["fwd_l2"] > 0
     text = out.read_text()
     assert "hybrid 2 (0/" in text and "Within 2 sigma" in text and "equal time" in text
+    # the adaptive capture at its two targets: between one and four states, a time that grows with them
+    for t in continuum.ADAPTIVE_TARGETS:
+        a = m[f"adaptive_{t:g}"]
+        assert 1 <= a["states"] <= 4 and 0.5 < a["coverage"] <= 1.0
+        assert m["single"]["time_s"] <= a["time_s"] <= m["hybrid4"]["time_s"] + 10.0
+    assert m["single"]["time_s"] < m["hybrid2"]["time_s"] < m["hybrid4"]["time_s"]
+    assert "adaptive 0.05" in text and "acquisition time" in text
+
+
+def test_acquisition_time_is_the_plans_hardware_time():
+    """One frame of exposure plus readout per state, and the stage's trapezoidal moves: 0 -> 90
+    at 20 deg/s and 100 deg/s^2 takes 90 / 20 + 20 / 100 s; a move to 165 deg goes to -15."""
+    from polrig.models import continuum
+    from polrig.sim.dataset import DATASET_EXPOSURE_US
+
+    frame = (DATASET_EXPOSURE_US + continuum.SIM_READOUT_US) * 1e-6
+    assert continuum.acquisition_time_s([0]) == pytest.approx(frame)
+    assert continuum.acquisition_time_s([0, 90]) == pytest.approx(2 * frame + 90 / 20 + 20 / 100)
+    assert continuum.acquisition_time_s([0, 165]) == continuum.acquisition_time_s([0, 15])
+    assert continuum.acquisition_time_s([0, 90], 3) == pytest.approx(6 * frame + 90 / 20 + 20 / 100)
 
 
 @needs_weights

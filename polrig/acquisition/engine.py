@@ -40,7 +40,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
-from typing import Any, Callable, Iterable, Union
+from typing import Any, Callable, Iterable, Sequence, Union
 
 from polrig.acquisition.hal import (
     Camera,
@@ -170,11 +170,28 @@ class Executor:
         for subscriber in self.subscribers:
             subscriber(event)
 
-    def run(self, steps: Iterable[Step]) -> None:
-        """Execute ``steps`` in order, emitting :class:`StepDone` after each."""
-        for index, step in enumerate(steps):
-            self.execute(step)
-            self.emit(StepDone(index, step))
+    def run(self, steps: Iterable[Step],
+            extend: Callable[[], Sequence[Step]] | None = None) -> None:
+        """Execute ``steps`` in order, emitting :class:`StepDone` after each (``index`` counts
+        every step of this call).
+
+        ``extend``: where the plan continues by a decision on the data (the adaptive capture,
+        :mod:`polrig.app.adaptive`): called whenever the steps run out (after the last one's
+        events, so a subscriber has written its frames), it returns the next steps, ``[]`` to
+        end. The executor knows nothing of the decision; each step it gets runs under the one
+        fault policy like any other."""
+        index = 0
+        pending: Iterable[Step] = steps
+        while True:
+            for step in pending:
+                self.execute(step)
+                self.emit(StepDone(index, step))
+                index += 1
+            if extend is None:
+                return
+            pending = list(extend())
+            if not pending:
+                return
 
     def execute(self, step: Step) -> None:
         """Execute one step under the fault policy."""

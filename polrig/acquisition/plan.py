@@ -13,6 +13,12 @@ order alternates between poses (serpentine: pose 0 visits the states in plan ord
 in reverse, ...), so the stage never travels back idle. Frames stay tagged with the plan's
 state index, so raw file names and results do not depend on the order.
 
+An adaptive plan (``mode="adaptive"``) chooses its states as it goes: its steps are the same
+pieces (:func:`pose_head_steps`, :func:`state_steps`, :func:`pose_tail_steps`), handed to the
+executor one at a time by the app layer's decisions (:mod:`polrig.app.adaptive`); a pose that took
+states ``S`` ran :func:`adaptive_pose_steps` of ``S``, and before the decisions its hardware time is
+forecast at :func:`adaptive_forecast_states`.
+
 :func:`step_durations` is the plan's hardware time per step (motion from each axis's
 :meth:`polrig.acquisition.hal.RotationStage.move_time_s`, exposure plus readout per frame, discarded
 free-run settle frames), computed before a capture starts. Angles in degrees, exposures in
@@ -29,14 +35,32 @@ import math
 from typing import Any, Callable, Iterable, Sequence, Union
 
 from polrig.errors import ConfigError
-from polrig.formats.exr import COMPRESSIONS, PLANE_GROUPS, RESULT_PLANES, UNCERTAINTY_PRECISIONS
+from polrig.formats.exr import (
+    COMPRESSIONS,
+    PLANE_GROUPS,
+    RESULT_PLANES,
+    UNCERTAINTY_PRECISIONS,
+)
 
 #: Capture and processing methods: ``reference`` (N >= 3 polarizer states solved per pixel),
 #: ``single-shot`` (the trained network on one state), ``hybrid`` (N >= 1 states solved with the
-#: network's estimate of one of them, ``seen_state``, as a Gaussian prior: :mod:`polrig.solve.hybrid`).
-MODES = ("reference", "single-shot", "hybrid")
+#: network's estimate of one of them, ``seen_state``, as a Gaussian prior: :mod:`polrig.solve.hybrid`),
+#: ``adaptive`` (the hybrid solve of states chosen per pose from the data until the posterior
+#: meets a target: :class:`AdaptiveTarget`, :mod:`polrig.app.adaptive`).
+MODES = ("reference", "single-shot", "hybrid", "adaptive")
 #: The modes that run the single-shot network (the single-shot route, :class:`SingleShotOptions`).
-NETWORK_MODES = ("single-shot", "hybrid")
+NETWORK_MODES = ("single-shot", "hybrid", "adaptive")
+#: The modes whose result is the hybrid posterior (the network's estimate of the seen state as
+#: the prior of the solve of every state taken): they need its calibrated sigma.
+PRIOR_MODES = ("hybrid", "adaptive")
+#: The modes whose plan records one polarizer state per pose.
+ONE_STATE_MODES = ("single-shot", "adaptive")
+#: Candidate polarizer angles of the adaptive mode: 0 to 180 deg (a linear polarizer repeats
+#: every 180 deg) in steps of :data:`ADAPTIVE_CANDIDATE_STEP_DEG`.
+ADAPTIVE_CANDIDATE_STEP_DEG = 7.5
+#: Most polarizer states the adaptive mode may take per pose (``max_states``): beyond about
+#: twice the four of the reference mode more states only average noise, a fixed plan does that.
+ADAPTIVE_MAX_STATES = 8
 DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
 #: Largest turntable pose accepted, in degrees either way (100 turns): beyond it a pose is a
 #: typo, and its capture folder name (``c000_pose<angle>``) would outgrow the file system's.
@@ -69,6 +93,7 @@ NETWORK_BINNING_SINGLE_SHOT_ONLY = ("network binning applies to the single-shot 
 HYBRID_NEEDS_SIGMA = ("the hybrid method's prior needs the network's calibrated sigma, which exists on "
                       "the networks' unbinned superpixel grid only")
 SEEN_STATE_HYBRID_ONLY = "the seen state applies to the hybrid method only"
+ADAPTIVE_ONLY = "applies to the adaptive method only"
 
 
 class PlanError(ConfigError):
@@ -91,7 +116,7 @@ def check_network_binning(binning: Any, mode: str) -> int:
     if isinstance(binning, bool) or not isinstance(binning, int) or binning not in NETWORK_BINNINGS:
         raise PlanError("network_binning", f"must be one of {', '.join(map(str, NETWORK_BINNINGS))}",
                         subject=repr(binning), what="network binning")
-    if binning != 1 and mode == "hybrid":
+    if binning != 1 and mode in PRIOR_MODES:
         raise PlanError("network_binning", HYBRID_NEEDS_SIGMA, subject=str(binning),
                         what="network binning")
     if binning != 1 and mode != "single-shot":
@@ -217,7 +242,7 @@ def single_shot_options(mode: str, demosaic: str, resolution: str, network_binni
     if resolution not in RESOLUTIONS:
         raise PlanError("resolution", f"must be one of {', '.join(RESOLUTIONS)}",
                         subject=repr(resolution), what="resolution")
-    if resolution == "full" and mode == "hybrid":
+    if resolution == "full" and mode in PRIOR_MODES:
         raise PlanError("resolution", HYBRID_NEEDS_SIGMA, subject="full", what="resolution")
     if resolution == "full" and mode != "single-shot":
         raise PlanError("resolution", FULL_RESOLUTION_SINGLE_SHOT_ONLY, subject="full",
@@ -232,7 +257,7 @@ def single_shot_options(mode: str, demosaic: str, resolution: str, network_binni
         return None
     return SingleShotOptions.from_settings(demosaic=demosaic, resolution=resolution,
                                            network_binning=binning, mirror_average=mirror_average,
-                                           sigma=True if mode == "hybrid" else None, geometry=geometry)
+                                           sigma=True if mode in PRIOR_MODES else None, geometry=geometry)
 
 
 def check_seen_state(seen_state: Any, mode: str, n_states: int) -> int:
@@ -251,6 +276,33 @@ def check_seen_state(seen_state: Any, mode: str, n_states: int) -> int:
         raise PlanError("seen_state", f"must index the plan's {n_states} polarizer state(s): "
                                       f"0..{n_states - 1}", subject=str(seen_state), what="seen state")
     return int(seen_state)
+
+
+def check_adaptive_target(mode: str, target_sigma: Any, target_share: Any, max_states: Any
+                          ) -> tuple[float, float, int]:
+    """The adaptive mode's stopping rule ``(target_sigma, target_share, max_states)`` checked:
+    in the adaptive mode a relative sigma ``0 < target_sigma <= 1`` (of the normalised block,
+    m00 = 1), a share ``0 < target_share <= 1`` and ``1 <= max_states <=``
+    :data:`ADAPTIVE_MAX_STATES`; in the others the defaults (0, 0.95, 4). One-line
+    :class:`PlanError` s naming the field."""
+    defaults = (0.0, 0.95, 4)
+    if mode != "adaptive":
+        for name, value, default in zip(("target_sigma", "target_share", "max_states"),
+                                        (target_sigma, target_share, max_states), defaults):
+            if isinstance(value, bool) or value != default:
+                raise PlanError(name, ADAPTIVE_ONLY, subject=repr(value), what=name.replace("_", " "))
+        return defaults
+    for name, value in (("target_sigma", target_sigma), ("target_share", target_share)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not (math.isfinite(value) and 0 < value <= 1):
+            what = ("a relative sigma (of the block normalised to m00 = 1) in (0, 1], e.g. 0.01"
+                    if name == "target_sigma" else "a share of object pixels in (0, 1], e.g. 0.95")
+            raise PlanError(name, f"must be {what}", subject=repr(value), what=name.replace("_", " "))
+    if isinstance(max_states, bool) or not isinstance(max_states, int) \
+            or not 1 <= max_states <= ADAPTIVE_MAX_STATES:
+        raise PlanError("max_states", f"must be a whole number of polarizer states 1..{ADAPTIVE_MAX_STATES}",
+                        subject=repr(max_states), what="max states")
+    return float(target_sigma), float(target_share), int(max_states)
 
 
 # -- parsing command-line style specs ------------------------------------------------------
@@ -393,6 +445,14 @@ class CapturePlan:
     #: hybrid: the index into ``states_deg`` of the state whose frame the network sees (its
     #: estimate and calibrated sigma are the prior, :mod:`polrig.solve.hybrid`); 0 in other modes
     seen_state: int = 0
+    #: adaptive: the target on each object pixel's relative posterior sigma (the RMS of the nine
+    #: elements' sigma over its m00, the worst colour: :func:`polrig.solve.design.relative_sigma`),
+    #: dimensionless; 0 in other modes
+    target_sigma: float = 0.0
+    #: adaptive: the share of object pixels that must meet ``target_sigma`` for a pose to stop
+    target_share: float = 0.95
+    #: adaptive: the most polarizer states a pose takes (the first, the network's, included)
+    max_states: int = 4
 
     def __post_init__(self) -> None:
         exr = ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
@@ -430,10 +490,16 @@ class CapturePlan:
             raise PlanError("states_deg", f"the {self.mode} method needs at least one polarizer state")
         object.__setattr__(self, "seen_state", check_seen_state(self.seen_state, self.mode,
                                                                 len(self.states_deg)))
+        target = check_adaptive_target(self.mode, self.target_sigma, self.target_share,
+                                       self.max_states)
+        object.__setattr__(self, "target_sigma", target[0])
+        object.__setattr__(self, "target_share", target[1])
+        object.__setattr__(self, "max_states", target[2])
         object.__setattr__(self, "poses_deg", tuple(float(p) for p in self.poses_deg))
         # single-shot captures one state per pose: the plan records the state it captures
         # (older sessions listed the default four; only the first was ever captured)
-        states = self.states_deg[:1] if self.mode == "single-shot" else self.states_deg
+        # (the adaptive mode likewise records its first state, the network's: it chooses the others)
+        states = self.states_deg[:1] if self.mode in ONE_STATE_MODES else self.states_deg
         object.__setattr__(self, "states_deg", tuple(float(s) for s in states))
         object.__setattr__(self, "exposures_us", tuple(float(e) for e in self.exposures_us))
 
@@ -443,12 +509,14 @@ class CapturePlan:
         return ExrChoice(self.exr_planes, self.exr_uncertainty, self.exr_compression)
 
     def frames_per_pose(self) -> int:
+        """Frames per pose (adaptive: the most, at ``max_states``)."""
         n_exp = max(1, len(self.exposures_us))
-        n_states = len(self.states_deg)
+        n_states = self.max_states if self.mode == "adaptive" else len(self.states_deg)
         return n_exp * (n_states * self.frames_per_state + self.dark_frames)
 
     def acquired_states_deg(self) -> tuple[float, ...]:
-        """Stage angles visited per pose (single-shot: its one state)."""
+        """Stage angles visited per pose (single-shot: its one state; adaptive: the first state,
+        the others are chosen per pose and recorded with it)."""
         return self.states_deg
 
 
@@ -560,15 +628,33 @@ def capture_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float]
     the first state together; dark frames per exposure with the light off (if planned); per
     state (serpentine order, :func:`state_order`) a stage move (not for the first state: it is
     there already) and ``K`` frames per exposure; the reference exposure again (the simulated
-    rig's truth is taken at it); checkpoint "capture-acquired"."""
-    pose = float(plan.poses_deg[capture])
+    rig's truth is taken at it); checkpoint "capture-acquired". Composed of
+    :func:`pose_head_steps`, :func:`state_steps` and :func:`pose_tail_steps`, which the
+    adaptive mode runs one state at a time (its states are chosen as it goes)."""
     states = plan.acquired_states_deg()
     order = state_order(plan, capture)
+    steps = pose_head_steps(plan, capture, exposures_us, states[order[0]])
+    for n, j in enumerate(order):
+        steps += state_steps(plan, capture, exposures_us, j, states[j], move=n > 0)
+    return steps + pose_tail_steps(capture, exposures_us)
+
+
+def _bracket(exposures_us: Sequence[float]) -> list[float]:
     exposures = [float(e) for e in exposures_us]
     if not exposures:
         raise ValueError("at least one exposure is needed")
+    return exposures
+
+
+def pose_head_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float],
+                    first_state_deg: float) -> list[Step]:
+    """The start of capture ``capture``: checkpoint "capture-start"; turntable to the pose and
+    stage to ``first_state_deg`` together; the dark frames per exposure with the light off (if
+    planned)."""
+    pose = float(plan.poses_deg[capture])
+    exposures = _bracket(exposures_us)
     steps: list[Step] = [Checkpoint("capture-start", capture),
-                         Move((("turntable", pose), ("stage", states[order[0]])))]
+                         Move((("turntable", pose), ("stage", float(first_state_deg))))]
     if plan.dark_frames:
         steps.append(SetLight(False))
         for e, exposure in enumerate(exposures):
@@ -576,15 +662,62 @@ def capture_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float]
             steps += [Grab(FrameTag(capture, pose, "dark", e, exposure, k))
                       for k in range(plan.dark_frames)]
         steps.append(SetLight(True))
-    for n, j in enumerate(order):
-        if n:
-            steps.append(Move((("stage", states[j]),)))
-        for e, exposure in enumerate(exposures):
-            steps.append(SetExposure(exposure))
-            steps += [Grab(FrameTag(capture, pose, "raw", e, exposure, k, j, states[j]))
-                      for k in range(plan.frames_per_state)]
-    steps += [SetExposure(exposures[0]), Checkpoint("capture-acquired", capture)]
     return steps
+
+
+def state_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float], state_index: int,
+                state_deg: float, *, move: bool = True) -> list[Step]:
+    """One polarizer state of capture ``capture``: the stage to ``state_deg`` (when ``move``)
+    and ``K`` frames per exposure, tagged with ``state_index``."""
+    pose = float(plan.poses_deg[capture])
+    state = float(state_deg)
+    steps: list[Step] = [Move((("stage", state),))] if move else []
+    for e, exposure in enumerate(_bracket(exposures_us)):
+        steps.append(SetExposure(exposure))
+        steps += [Grab(FrameTag(capture, pose, "raw", e, exposure, k, state_index, state))
+                  for k in range(plan.frames_per_state)]
+    return steps
+
+
+def pose_tail_steps(capture: int, exposures_us: Sequence[float]) -> list[Step]:
+    """The end of a capture: the reference exposure again (the simulated rig's truth is taken
+    at it) and checkpoint "capture-acquired"."""
+    return [SetExposure(_bracket(exposures_us)[0]), Checkpoint("capture-acquired", capture)]
+
+
+def adaptive_pose_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float],
+                        states_deg: Sequence[float]) -> list[Step]:
+    """Every step of an adaptive capture that took ``states_deg`` (in the order taken; the
+    first is the plan's): what :func:`pose_head_steps`, one :func:`state_steps` per state and
+    :func:`pose_tail_steps` add up to as the decisions are made. Its hardware time
+    (:func:`step_durations`) is the capture's."""
+    steps = pose_head_steps(plan, capture, exposures_us, states_deg[0])
+    for j, state in enumerate(states_deg):
+        steps += state_steps(plan, capture, exposures_us, j, state, move=j > 0)
+    return steps + pose_tail_steps(capture, exposures_us)
+
+
+def nearest_stage_angle(polarizer_deg: float, here_deg: float) -> float:
+    """The stage angle for polarizer angle ``polarizer_deg`` (a linear polarizer repeats every
+    180 deg) nearest to ``here_deg``, within +-:data:`MAX_STATE_DEG`: the adaptive mode's move
+    to a chosen state."""
+    angle = float(polarizer_deg) + 180.0 * round((float(here_deg) - float(polarizer_deg)) / 180.0)
+    while angle > MAX_STATE_DEG:
+        angle -= 180.0
+    while angle < -MAX_STATE_DEG:
+        angle += 180.0
+    return angle
+
+
+def adaptive_forecast_states(plan: CapturePlan, taken_deg: Sequence[float]) -> list[float]:
+    """The states an adaptive capture that took ``taken_deg`` so far is forecast to take, for
+    its hardware time before the decisions are made: ``taken_deg`` and then, up to
+    ``plan.max_states``, the remaining angles of an even spread over 180 deg from the first
+    state (``first + 180 k / max_states``): the most states, at the spacing of a fixed plan."""
+    first = float(plan.states_deg[0])
+    n = int(plan.max_states)
+    spread = [first + 180.0 * k / n for k in range(n)]
+    return [float(t) for t in taken_deg] + spread[len(taken_deg):]
 
 
 def session_steps(plan: CapturePlan, captures: Iterable[int],

@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from polrig.acquisition.plan import PlanError
+from polrig.acquisition.plan import NETWORK_MODES, PlanError
 from polrig.app.rig import nominal_geometry
 from polrig.app.session import Session
 from polrig.app.single_shot import SingleShot
@@ -240,9 +240,10 @@ def check_plan(plan, calibration: Calibration, device: str = "auto", model_size:
     that cannot run). Hybrid: the same, and the model must have a calibrated uncertainty (its
     sigma is the prior's); any number of states from 1 (they need not determine the block:
     the prior fills in what they leave out); returns the state set's condition number, which
-    may be infinite (fewer than 3 states, or collinear ones).
+    may be infinite (fewer than 3 states, or collinear ones). Adaptive: as hybrid, of its
+    first state (it chooses the others as it goes).
     """
-    if plan.mode in ("single-shot", "hybrid"):
+    if plan.mode in NETWORK_MODES:
         route = SingleShot.open(device, size=model_size)
         if plan.mode == "single-shot":
             return None

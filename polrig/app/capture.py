@@ -64,6 +64,7 @@ from polrig.acquisition.plan import (  # noqa: F401 (re-exported)
     DEFAULT_STATES_DEG,
     CapturePlan,
     ExrChoice,
+    Grab,
     PlanError,
     capture_steps,
     parse_float_list,
@@ -72,6 +73,8 @@ from polrig.acquisition.plan import (  # noqa: F401 (re-exported)
     setup_steps,
     step_durations,
 )
+from polrig.app.adaptive import AdaptiveSchedule
+from polrig.app.adaptive import decide as adaptive_decide
 from polrig.app.calibrations import (
     Calibration,
     check_calibration_fits_rig,
@@ -141,6 +144,11 @@ class CaptureRequest:
     #: hybrid: the index into the states of the frame the network sees
     #: (:attr:`polrig.acquisition.plan.CapturePlan.seen_state`)
     seen_state: int | None = None
+    #: adaptive: the stopping rule (:attr:`polrig.acquisition.plan.CapturePlan.target_sigma`,
+    #: ``target_share``, ``max_states``)
+    target_sigma: float | None = None
+    target_share: float | None = None
+    max_states: int | None = None
     #: the result EXR's plane groups, uncertainty precision and compression
     #: (:class:`polrig.acquisition.plan.ExrChoice`)
     exr_planes: tuple[str, ...] | None = None
@@ -170,7 +178,7 @@ class CaptureRequest:
         """The :class:`polrig.acquisition.plan.CapturePlan` fields this request gives (not ``None``)."""
         names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
                  "dark_frames", "demosaic", "mirror_average", "resolution", "network_binning",
-                 "seen_state", "exr_planes",
+                 "seen_state", "target_sigma", "target_share", "max_states", "exr_planes",
                  "exr_uncertainty", "exr_compression")
         fields = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
         if "exr_planes" in fields:  # as the plan holds them (mueller always, in order)
@@ -185,6 +193,10 @@ class CaptureRequest:
         if fields.get("mode") == "single-shot" and len(fields.get("states_deg", ())) > 1:
             raise PlanError("states_deg", "the single-shot method captures one polarizer "
                                           "state per pose; give one state (e.g. 0)")
+        if fields.get("mode") == "adaptive" and len(fields.get("states_deg", ())) > 1:
+            raise PlanError("states_deg", "the adaptive method starts each pose at one polarizer "
+                                          "state (the network's) and chooses the others; give one "
+                                          "state (e.g. 0)")
         return CapturePlan(**fields)
 
 
@@ -288,7 +300,8 @@ class Progress:
     """One progress event. ``kind``: ``"capture-start"``, ``"frame"`` (a raw frame written),
     ``"retry"``, ``"capture-acquired"`` (every frame of the capture written; it is handed to
     processing), ``"capture-done"`` (processed; ``score`` set on the simulated rig),
-    ``"capture-failed"``, ``"session-done"``. ``step``/``total`` count the raw frames this run
+    ``"capture-failed"``, ``"session-done"``, ``"decision"`` (an adaptive capture's decision,
+    ``message`` says it; the hardware time and ``total`` follow it). ``step``/``total`` count the raw frames this run
     acquires. ``hardware_s``: the plan's hardware time for this run (motion, exposure,
     readout; :func:`polrig.acquisition.plan.step_durations`), known before the first frame;
     ``hardware_left_s`` what is left of it. ``result``: of ``"capture-done"``, the capture's
@@ -443,6 +456,8 @@ def run_session(rig, session: Session, *, processor=None,
     full disk, or an unexpected error (a processing error included), after leaving the
     session interrupted.
     """
+    if session.plan.mode == "adaptive" and processor is None:
+        raise ValueError("the adaptive mode decides from the network's prior: it needs a processor")
     session.lock()
     try:
         with SignalGuard() as guard:
@@ -597,13 +612,49 @@ class _Run:
                 continue
         return error
 
+    # -- the adaptive mode: the plan continues by decisions (polrig.app.adaptive)
+    def extend(self) -> list:
+        """The executor's ``extend``: the schedule's next steps, with their hardware time; the
+        forecast of what is left (hardware time, ETA, frames) follows the decision."""
+        new = self.schedule.extend()
+        self.account(new)
+        return new
+
+    def account(self, new: list) -> None:
+        """Add ``new`` (steps handed to the executor) to the run's hardware time and revise the
+        forecast of the steps still to come (:meth:`polrig.app.adaptive.AdaptiveSchedule.forecast`):
+        ``hardware_s`` is the time of the steps handed out plus that forecast, ``hardware_left_s``
+        keeps the time already run."""
+        done_s = self.hardware_s - self.hardware_left_s
+        forecast = self.schedule.forecast()
+        durations = step_durations(self.handed + new + forecast, self.hardware)
+        n = len(self.handed)
+        self.durations += durations[n:n + len(new)]  # StepDone indices: the body's steps in turn
+        self.handed += new
+        self.hardware_s = sum(durations)
+        self.hardware_left_s = max(0.0, self.hardware_s - done_s)
+        self.total = sum(isinstance(s, Grab) for s in self.handed[len(self.setup):] + forecast)
+
     # -- the run
     def run(self) -> SessionResult:
         session, plan = self.session, self.plan
         try:
             session.set_status(RUNNING)
             setup, body = [], []
-            if self.to_acquire:
+            extend = None
+            if self.to_acquire and plan.mode == "adaptive":
+                exposures = plan.exposures_us or (float(self.rig.camera.exposure_us),)
+                self.setup = setup = setup_steps()
+                self.hardware = hardware_model(self.rig)
+                self.schedule = AdaptiveSchedule(
+                    plan, self.to_acquire, exposures,
+                    lambda i: self.decision(adaptive_decide(session, i, self.processor)))
+                self.handed, self.durations = list(setup), []
+                body = self.schedule.start()
+                self.account(body)
+                setup_s = step_durations(setup, self.hardware)
+                extend = self.extend
+            elif self.to_acquire:
                 exposures = plan.exposures_us or (float(self.rig.camera.exposure_us),)
                 setup = setup_steps()
                 body = [step for i in self.to_acquire
@@ -638,7 +689,7 @@ class _Run:
                     return SessionResult(INTERRUPTED, self.result.completed, [],
                                          reason if alarm else str(exc),
                                          self.result.scores)
-                executor.run(body)  # StepDone indices count from 0 again: self.durations
+                executor.run(body, extend)  # StepDone indices count from 0 again: self.durations
             self.collect(block=True)
             with self.guard.deferred():
                 session.set_status(SESSION_COMPLETE)
@@ -676,6 +727,16 @@ class _Run:
         last = self.to_acquire[-1] if self.to_acquire else (self.to_process or [0])[-1]
         self.emit("session-done", last)
         return self.result
+
+    def decision(self, record: dict[str, Any]) -> dict[str, Any]:
+        """Report an adaptive decision (a ``"decision"`` progress event) and return it."""
+        index = self.current if self.current is not None else 0
+        what = (f"take {record['state_deg']:g} deg" if record["action"] == "take"
+                else record["action"].replace("-", " "))
+        self.emit("decision", index, f"{record['states_taken']} state(s): "
+                                     f"{100 * record['share_met']:.1f} % of "
+                                     f"{record['object_pixels']} object pixels at target; {what}")
+        return record
 
     def device_reason(self, exc: BaseException) -> str:
         """One line on why a device or the disk stopped the run. A safety fault

@@ -43,7 +43,7 @@ from polrig.formats.typedjson import (
 )
 
 #: The version of the manifest this polrig writes (``schema_version``).
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 # capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
 # processing not done yet (a resume processes it without acquiring it again)
@@ -324,10 +324,34 @@ class RevisionResult(TypedDict):
     model: NotRequired[Annotated[ModelRecord, Label("model: ")]]
 
 
+class AdaptiveDecision(TypedDict):
+    """One decision of an adaptive capture (:mod:`polrig.app.adaptive`), made after
+    ``states_taken`` states: the share of its ``object_pixels`` (the network's object mask, less
+    the ``clipped_pixels`` its frame clips, which have no prior, and the ``dark_pixels``, all noise
+    in its frame) that met the target then
+    (``share_met``), what it did (``action``: ``take`` the state at stage
+    angle ``state_deg``, or stop: ``stop-target``, ``stop-max-states``, ``stop-no-object``) and
+    why: the A-optimal criterion (:mod:`polrig.solve.design`, summed relative posterior variance
+    over ``design_pixels`` object pixels still above target) now (``criterion``) and predicted
+    after the state taken (``predicted_criterion``); null where no state was chosen."""
+
+    states_taken: Annotated[int, Check(lambda v: v >= 1, "a count >= 1")]
+    share_met: Annotated[float, Check(lambda v: 0.0 <= v <= 1.0, "a share in [0, 1]")]
+    object_pixels: Count
+    clipped_pixels: Count
+    dark_pixels: Count
+    design_pixels: Count
+    criterion: Finite | None
+    action: Literal["take", "stop-target", "stop-max-states", "stop-no-object"]
+    state_deg: Finite | None
+    predicted_criterion: Finite | None
+
+
 class CaptureRecord(TypedDict):
     """One pose of the plan: its folder ``name``, status, last attempt, files, score (and
     ``prior``: the hybrid result's prior model, absent in other modes; ``model``: the single-shot
-    model of a single-shot or hybrid result, absent for the reference method)."""
+    model of a single-shot or hybrid result, absent for the reference method;
+    ``adaptive``: an adaptive capture's decisions, in the order made, absent in other modes)."""
 
     index: Index
     name: FolderName
@@ -342,6 +366,8 @@ class CaptureRecord(TypedDict):
     revisions: Annotated[dict[str, RevisionResult], Label(entry=lambda k, v: f"revision {k!r}: ")]
     prior: NotRequired[Annotated[PriorRecord, Label("prior: ")]]
     model: NotRequired[Annotated[ModelRecord, Label("model: ")]]
+    adaptive: NotRequired[Annotated[list[AdaptiveDecision],
+                                    Label(entry=lambda i, v: f"adaptive decision {i}: ")]]
 
 
 # -- the session --------------------------------------------------------------------------------
@@ -614,6 +640,22 @@ def migrate_v3(m: dict[str, Any]) -> dict[str, Any]:
     return m
 
 
+def migrate_v4(m: dict[str, Any]) -> dict[str, Any]:
+    """Version 4 to 5 (the adaptive mode, issue 33 item 2): the plan's ``target_sigma`` (0),
+    ``target_share`` (0.95) and ``max_states`` (4), the values of every plan that is not
+    adaptive (a version-4 session cannot be). A capture's ``adaptive`` decisions stay absent.
+    Whatever is damaged is left for the check that follows to name."""
+    m = dict(m, schema_version=5)
+    if isinstance(m.get("plan"), dict):
+        m["plan"] = {**m["plan"]}
+        for key, value in (("target_sigma", 0.0), ("target_share", 0.95), ("max_states", 4)):
+            m["plan"].setdefault(key, value)
+    if isinstance(m.get("history"), list):
+        m["history"] = [*m["history"], {"time": utc_now(), "event": "schema migrated",
+                                        "from_version": 4, "to_version": 5}]
+    return m
+
+
 #: Version -> the function that migrates a manifest of that version to the next one.
 MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
-    1: migrate_v1, 2: migrate_v2, 3: migrate_v3}
+    1: migrate_v1, 2: migrate_v2, 3: migrate_v3, 4: migrate_v4}

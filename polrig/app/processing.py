@@ -31,6 +31,7 @@ from polrig import __version__
 from polrig.acquisition.plan import (
     MODES,
     NETWORK_MODES,
+    PRIOR_MODES,
     CapturePlan,
     ExrChoice,
     PlanError,
@@ -410,7 +411,7 @@ class Processor:
         self.model_header = None if self.single_shot is None else self.single_shot.model_header()
         #: hybrid: the prior's model (manifest ``prior`` record less the seen state); needs the
         #: graph's calibrated sigma (a one-line PlanError of ``mode`` otherwise)
-        self.prior_model = (self.single_shot.prior_model(bool(mirror_average)) if mode == "hybrid"
+        self.prior_model = (self.single_shot.prior_model(bool(mirror_average)) if mode in PRIOR_MODES
                             else None)
         self.seen_state = int(seen_state)
         self.resolution = resolution
@@ -479,12 +480,7 @@ class Processor:
         truth_path = self._verified_truth(session, index)  # damaged truth: refused up front
         geometry = prior_record = prior_header = None
         if self.mode in NETWORK_MODES:
-            rig_info = session.manifest.get("rig", {}) or {}
-            config = rig_info.get("config")
-            size = ((config or {}).get("sim") or {}).get("size")
-            geometry = single_shot_geometry(
-                self.calibration, config,
-                None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
+            geometry = self.network_geometry(session, cf)
         if self.mode == "single-shot":
             result, s_in, lay = self.single_shot_result(cf, geometry)
             states = None
@@ -492,28 +488,16 @@ class Processor:
         else:
             unc = np.float16 if self.exr.uncertainty == "half" else np.float32
             prior = None
-            if self.mode == "hybrid":
-                k = self.seen_state
-                if not 0 <= k < len(cf.states_deg):
-                    raise PlanError("seen_state", f"the capture has {len(cf.states_deg)} polarizer "
-                                                  f"state(s): 0..{len(cf.states_deg) - 1}",
-                                    subject=str(k), what="seen state")
+            if self.mode in PRIOR_MODES:
                 prior_header = {}
-
-                def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
-                    net = self.single_shot.state(states_[k], cf.first, s_in_[k],
-                                                 self.single_shot_options, geometry=geometry)
-                    prior_header["execution_provider"] = net.provider
-                    # the network's sigma: inf on clipped colours, 0 outside its object (no prior)
-                    return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k}
-
+                prior = self.prior_function(cf, geometry, prior_header)
             selection = SelectionOptions() if self.models == "auto" else None
             result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
                                                           self.demosaic, unc, prior, selection)
             extra_planes = {}
             if result.models is not None:  # never silent: the map is always written
                 extra_planes = model_planes(result.models, channel_suffixes(lay.n_colours))
-            if self.mode == "hybrid":
+            if self.mode in PRIOR_MODES:
                 prior_record = {**self.prior_model, **prior_header, "seen_state": self.seen_state,
                                 "seen_state_deg": float(cf.states_deg[self.seen_state])}
         meta = {
@@ -569,6 +553,40 @@ class Processor:
         if self.model_header is None:
             return None
         return {"size": self.model_header["model_size"], **self.model_header["model_training"]}
+
+    def network_geometry(self, session: Session, cf: CaptureFrames) -> dict[str, Any]:
+        """The single-shot geometry of ``session``'s captures (:func:`single_shot_geometry`: the
+        calibration's, the simulated rig's configured size, else the frame's)."""
+        rig_info = session.manifest.get("rig", {}) or {}
+        config = rig_info.get("config")
+        size = ((config or {}).get("sim") or {}).get("size")
+        return single_shot_geometry(
+            self.calibration, config,
+            None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
+
+    def prior_function(self, cf: CaptureFrames, geometry: dict[str, Any] | None,
+                       header: dict[str, Any], keep: dict[str, Any] | None = None
+                       ) -> Callable[[list[StateRadiance], np.ndarray], dict[str, Any]]:
+        """The hybrid solve's prior (``process_reference``'s ``prior``) for ``cf``: the single-shot
+        route on the seen state's radiance (:attr:`seen_state`; 0 in the adaptive mode), its
+        estimate and calibrated sigma (inf on clipped colours, 0 outside its object: no prior).
+        ``header`` gets the execution provider; ``keep`` (if given) the route's result as
+        ``"net"`` (the adaptive mode's decisions use its object mask and sigma)."""
+        k = self.seen_state
+        if not 0 <= k < len(cf.states_deg):
+            raise PlanError("seen_state", f"the capture has {len(cf.states_deg)} polarizer "
+                                          f"state(s): 0..{len(cf.states_deg) - 1}",
+                            subject=str(k), what="seen state")
+
+        def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
+            net = self.single_shot.state(states_[k], cf.first, s_in_[k],
+                                         self.single_shot_options, geometry=geometry)
+            header["execution_provider"] = net.provider
+            if keep is not None:
+                keep["net"] = net
+            return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k}
+
+        return prior
 
     @staticmethod
     def hybrid_header(prior_record: Mapping[str, Any], s_in: np.ndarray) -> dict[str, Any]:
@@ -649,7 +667,7 @@ class Processor:
         noise model at ``exposure_us``. The hybrid method is scored as the single-shot one (its
         states may not determine the block; the truth is that of a perfect four-state rig at its
         output resolution), so the two compare on the same truth."""
-        if states is None or self.mode == "hybrid":
+        if states is None or self.mode in PRIOR_MODES:
             return TruthScore(truth_path, layout, self.output_demosaic,
                               polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
                               None, self.sensor_model, exposure_us)
@@ -749,6 +767,9 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         mirror_average = plan.mirror_average and mode in NETWORK_MODES and plan.mode in NETWORK_MODES
     if seen_state is None:  # the session's where it stays hybrid
         seen_state = plan.seen_state if mode == "hybrid" and plan.mode == "hybrid" else 0
+    if mode == "adaptive" and plan.mode != "adaptive":
+        raise ConfigError(f"{session.root}: captured in {plan.mode} mode; the adaptive method chooses "
+                          f"its states while capturing (reconstruct with the hybrid method)")
     acquired = plan.acquired_states_deg()
     check_seen_state(seen_state, mode, len(acquired))
     if resolution is None:  # the session's where it stays single-shot

@@ -489,6 +489,7 @@ class Session:
             cap.update(status=PENDING, reason=None, files={}, score=None, revisions={},
                        started=utc_now(), finished=None,
                        attempts=cap["attempts"] + 1)
+            cap.pop("adaptive", None)  # an adaptive capture decides again on its new frames
             self.save()
         if folder.exists():
             shutil.rmtree(folder)

@@ -1,4 +1,4 @@
-"""``polrig capture``: reference (or single-shot) captures over turntable poses into a session.
+"""``polrig capture``: reference (single-shot, hybrid, adaptive) captures over turntable poses into a session.
 
 A shell over :func:`polrig.app.capture.run_capture`, the one capture call (the GUI makes the
 same): the options become a typed :class:`polrig.app.capture.CaptureRequest`, its events are
@@ -33,12 +33,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "Interrupted sessions (Ctrl-C, device fault, full disk) continue with "
                     "--out DIR --resume.")
     p.add_argument("--poses", help=POSES_HELP + " (required unless --resume)")
-    p.add_argument("--mode", choices=("reference", "single-shot", "hybrid"), default=None,
+    p.add_argument("--mode", choices=("reference", "single-shot", "hybrid", "adaptive"), default=None,
                    help="reference: N polarizer states per pose (default); single-shot: the "
                         "trained network; hybrid: N >= 1 states solved with the network's estimate "
-                        "of one of them (--seen-state) as a prior (polrig.solve.hybrid)")
+                        "of one of them (--seen-state) as a prior (polrig.solve.hybrid); adaptive: "
+                        "the network's state (the first of --states), then states chosen from the "
+                        "posterior until --target-sigma holds (polrig.app.adaptive)")
     add_seen_state_option(p, "default 0")
     add_models_option(p)
+    add_adaptive_options(p)
     p.add_argument("--mirror-average", action="store_true", default=None,
                    help="single-shot: also run the network on each frame's left-right mirror image "
                         "and average the two answers (a few per cent lower error, twice the network "
@@ -131,6 +134,21 @@ def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
                         f"sees; its estimate and calibrated sigma are the prior ({default})")
 
 
+def add_adaptive_options(p: argparse.ArgumentParser) -> None:
+    """``--target-sigma``, ``--target-share``, ``--max-states``: the adaptive mode's stopping rule
+    (:func:`polrig.acquisition.plan.check_adaptive_target`)."""
+    p.add_argument("--target-sigma", type=float, default=None, metavar="X",
+                   help="adaptive: stop a pose once each object pixel's posterior sigma, RMS over the "
+                        "nine elements relative to its m00 (the block normalised to m00 = 1; worst "
+                        "colour), is at most X, e.g. 0.01 (required with --mode adaptive)")
+    p.add_argument("--target-share", type=float, default=None, metavar="F",
+                   help="adaptive: the share of object pixels that must meet --target-sigma "
+                        "(default 0.95)")
+    p.add_argument("--max-states", type=int, default=None, metavar="N",
+                   help="adaptive: the most polarizer states per pose, the first included (default "
+                        "4, at most 8)")
+
+
 def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
     """``--network-binning {1,2}``: the single-shot networks on the analyzer grid or on that
     grid binned 2x2 (:attr:`polrig.acquisition.plan.CapturePlan.network_binning`; ``capture`` and
@@ -190,6 +208,8 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "resolution": "--resolution",
          "network_binning": "--network-binning", "seen_state": "--seen-state", "models": "--models",
+         "target_sigma": "--target-sigma", "target_share": "--target-share",
+         "max_states": "--max-states",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
          "exr_compression": "--exr-compression",
          "calibration": "--calibration", "out": "--out",
@@ -241,6 +261,9 @@ def build_request(args: argparse.Namespace):
             resolution=args.resolution,
             network_binning=args.network_binning,
             seen_state=args.seen_state,
+            target_sigma=args.target_sigma,
+            target_share=args.target_share,
+            max_states=args.max_states,
             exr_planes=exr_planes_option(args.exr_planes),
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,
@@ -331,6 +354,9 @@ class _ProgressPrinter:
 
                 line += " | " + format_score(ev.score)
             self._write(line, sys.stdout)
+        elif ev.kind == "decision":
+            self._write(f"capture {ev.capture_index + 1}/{ev.n_captures} pose {ev.pose_deg:g} deg: "
+                        f"{ev.message}", sys.stdout)
         elif ev.kind == "capture-failed":
             self._write(f"capture {ev.capture_index + 1}/{ev.n_captures} pose "
                         f"{ev.pose_deg:g} deg: {ev.message}", sys.stderr)

@@ -43,6 +43,9 @@ def run(args: argparse.Namespace) -> int:
                  if plan.exposures_us else "camera default")
     seen = (f" (seen state {plan.seen_state}: {plan.states_deg[plan.seen_state]:g} deg)"
             if plan.mode == "hybrid" else "")
+    if plan.mode == "adaptive":
+        seen = (f" (target relative sigma {plan.target_sigma:g} on {100 * plan.target_share:g} % of the "
+                f"object pixels, at most {plan.max_states} states; the first state below, the others chosen)")
     print(f"  plan: mode {plan.mode}{seen}, {len(plan.poses_deg)} poses, states "
           f"{','.join(f'{a:g}' for a in plan.states_deg)} deg, "
           f"{plan.frames_per_state} frame(s)/state, exposure {exposures}, "
@@ -62,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
         if cap["reason"]:
             line += f"  ({cap['reason']})"
         print(line)
+        if cap.get("adaptive"):  # the states an adaptive capture took, and why it stopped
+            steps = [f"{d['states_taken']}: {100 * d['share_met']:.1f} % at target -> "
+                     + (f"{d['state_deg']:g} deg" if d["action"] == "take" else d["action"])
+                     for d in cap["adaptive"]]
+            print("          decisions: " + "; ".join(steps))
         if cap["score"]:
             print(f"          score: {format_score(cap['score'])}")
         for name, rev in cap["revisions"].items():

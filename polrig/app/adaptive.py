@@ -1,0 +1,234 @@
+"""The adaptive capture (issue 33 item 2): each pose starts with the single-shot frame at the
+plan's first polarizer state, the network's estimate becomes the prior of the hybrid solve
+(:mod:`polrig.solve.hybrid`), and further states are chosen one at a time from the posterior
+until the pose is measured well enough.
+
+**The target** (:attr:`polrig.acquisition.plan.CapturePlan.target_sigma`, ``target_share``,
+``max_states``): an object pixel meets it when its relative posterior sigma
+(:func:`polrig.solve.design.relative_sigma`: the RMS sigma of the nine elements over ``m00``,
+the worst colour; dimensionless, the block normalised to ``m00 = 1``) is at most
+``target_sigma``. The sigma is the posterior's noise-and-prior part (``sigma_noise``): the
+calibration's tolerances add a systematic floor that more states of the same rig do not
+lower, so a target below it would never stop. Object pixels are the network's object mask
+less the pixels clipped in its frame (the network gives them no prior: infinite sigma; they
+need an exposure bracket, not more states, and are counted apart, ``clipped_pixels``) and the
+pixels dark in every colour of its frame (``S0`` below :data:`polrig.solve.reference.MIN_SNR`
+noise sigmas, the route's ``DARK`` bit: turned away from the light, all noise; ``dark_pixels``);
+a colour dark at a pixel does not count in its relative sigma. A pixel without a finite
+posterior does not meet the target. A pose stops when
+the share of its object pixels meeting the target reaches ``target_share``, or at
+``max_states`` states.
+
+**The choice** (:func:`evaluate`): the Bayesian A-optimal state among
+:data:`CANDIDATES_DEG` (:mod:`polrig.solve.design`: the least summed relative posterior
+variance over the object pixels still above target, predicted in closed form), evaluated on at
+most :data:`polrig.solve.design.DESIGN_PIXELS` of those pixels (every n-th in raster order: deterministic), with
+the ideal analyzer's rows and the noise model's variance at the current estimate. Of equally
+good candidates (:data:`NEAR_BEST`) the stage goes to the nearest, at the nearer of the two
+equivalent angles (a linear polarizer repeats every 180 deg).
+
+**How a decision enters the plan.** Plans are frozen data and the engine knows no session
+(:mod:`polrig.acquisition.engine`): :class:`AdaptiveSchedule` hands the executor one piece at a
+time (a pose's start and first state; then each chosen state; then the pose's end) through
+:meth:`polrig.acquisition.engine.Executor.run`'s ``extend``, which the executor calls when the
+steps it has run out. Each piece is steps of :mod:`polrig.acquisition.plan`
+(:func:`~polrig.acquisition.plan.pose_head_steps`, :func:`~polrig.acquisition.plan.state_steps`,
+:func:`~polrig.acquisition.plan.pose_tail_steps`), run under the engine's one fault policy; a pose
+that took states ``S`` ran exactly :func:`~polrig.acquisition.plan.adaptive_pose_steps` of ``S``.
+
+**Reproducible.** A decision reads the pose's frames back from the session (checksums
+verified, :func:`polrig.app.sessionio.load_capture_frames`) after the session writer has
+written them, so it is a function of the recorded frames alone: :func:`replay_decisions`
+recomputes a pose's decisions from its files, and a resumed session (which acquires an
+interrupted pose from scratch) takes the same decisions on the same frames. Each decision is
+recorded in the pose's manifest entry (``adaptive``: :class:`polrig.app.manifest.AdaptiveDecision`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from polrig.acquisition.plan import (
+    ADAPTIVE_CANDIDATE_STEP_DEG,
+    CapturePlan,
+    Step,
+    adaptive_forecast_states,
+    adaptive_pose_steps,
+    nearest_stage_angle,
+    pose_head_steps,
+    pose_tail_steps,
+    state_steps,
+)
+from polrig.app.processing import Processor, noise_exposures_us, process_reference
+from polrig.app.session import Session
+from polrig.app.sessionio import CaptureFrames, load_capture_frames
+from polrig.solve.design import (
+    DESIGN_PIXELS,
+    a_optimal_next,
+    relative_sigma,
+    share_at_target,
+)
+from polrig.solve.radiometry import analyzer_stack
+from polrig.solve.reference import DARK
+
+#: Candidate polarizer angles, deg: ``[0, 180)`` in steps of
+#: :data:`polrig.acquisition.plan.ADAPTIVE_CANDIDATE_STEP_DEG`.
+CANDIDATES_DEG = tuple(float(a) for a in np.arange(0.0, 180.0, ADAPTIVE_CANDIDATE_STEP_DEG))
+#: Candidates whose predicted reduction of the criterion is within this fraction of the best
+#: one's count as equally good; of those the stage goes to the nearest. 0: exact ties only (2 %
+#: was tried on plastic_metal at 64x64: it chose clustered angles, 0/67.5/90/127.5 deg, and lost
+#: 8 dB on one pose for 1 s less motion).
+NEAR_BEST = 0.0
+#: What a decision does (the manifest's ``action``).
+TAKE, STOP_TARGET, STOP_MAX, STOP_NO_OBJECT = "take", "stop-target", "stop-max-states", "stop-no-object"
+
+
+def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
+             geometry: dict[str, Any] | None) -> dict[str, Any]:
+    """The decision after the states of ``cf`` (a pose's frames so far, first state first):
+    an :class:`polrig.app.manifest.AdaptiveDecision` record (``states_taken``, ``share_met``,
+    ``object_pixels``, ``clipped_pixels``, ``dark_pixels``, ``design_pixels``, ``criterion``, ``action``, ``state_deg``,
+    ``predicted_criterion``). See the module docstring."""
+    keep: dict[str, Any] = {}
+    prior = processor.prior_function(cf, geometry, {}, keep)
+    result, s_in, lay, states = process_reference(cf, processor.calibration, processor.sensor_model,
+                                                  processor.demosaic, np.float32, prior)
+    net = keep["net"]
+    sigma = result.sigma_noise if result.sigma_noise is not None else result.sigma
+    lit = (np.asarray(net.mask) & DARK) == 0  # (C, H, W): colours above the seen frame's noise floor
+    rel = relative_sigma(sigma, result.mueller, lit)
+    prior_sigma = np.asarray(net.sigma)
+    net_object = np.asarray(net.object, bool)
+    clipped = net_object & ~np.all(np.isfinite(prior_sigma), axis=(0, 1, 2))
+    dark = net_object & ~clipped & ~lit.any(axis=0)
+    obj = net_object & ~clipped & ~dark
+    share, met = share_at_target(rel, obj, plan.target_sigma)  # rel is inf without a finite answer
+    n_obj = int(obj.sum())
+    n = len(cf.states_deg)
+    record: dict[str, Any] = {"states_taken": n, "share_met": share, "object_pixels": n_obj,
+                              "clipped_pixels": int(clipped.sum()), "dark_pixels": int(dark.sum()),
+                              "design_pixels": 0,
+                              "criterion": None, "action": TAKE,
+                              "state_deg": None, "predicted_criterion": None}
+    if n_obj == 0:
+        return record | {"action": STOP_NO_OBJECT}
+    if share >= plan.target_share:
+        return record | {"action": STOP_TARGET}
+    if n >= plan.max_states:
+        return record | {"action": STOP_MAX}
+    m00 = np.asarray(result.mueller, np.float64)[:, 0, 0]
+    above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)  # (all colours: it normalises)
+    ys, xs = np.nonzero(above)
+    if len(ys) == 0:  # the pixels above target are all dark or masked: nothing to design for
+        return record | {"action": STOP_TARGET}
+    stride = max(1, math.ceil(len(ys) / DESIGN_PIXELS))
+    ys, xs = ys[::stride], xs[::stride]
+    pixels = lambda a: np.moveaxis(np.asarray(a)[..., ys, xs], -1, 0)
+    measured = []
+    for k, st in enumerate(states):
+        _, var, ok, _ = analyzer_stack(st, lay, processor.demosaic)
+        measured.append((s_in[k], pixels(var), pixels(ok)))
+    per_dn, offset = processor.sensor_model.variance_terms(noise_exposures_us(cf)[0], plan.frames_per_state)
+    j_now, j = a_optimal_next(pixels(prior_sigma).astype(np.float64), s_in[0], measured,
+                              pixels(result.mueller).astype(np.float64),
+                              processor.calibration.incident_stokes(CANDIDATES_DEG), float(per_dn), float(offset))
+    here = cf.states_deg[-1]
+    angles = [nearest_stage_angle(a, here) for a in CANDIDATES_DEG]
+    # the nearest of the candidates within NEAR_BEST of the best reduction (motion is time)
+    good = j <= np.min(j) + NEAR_BEST * max(0.0, j_now - float(np.min(j)))
+    best = min(np.flatnonzero(good), key=lambda c: (abs(angles[c] - here), c))
+    return record | {"design_pixels": len(ys), "criterion": j_now,
+                     "state_deg": angles[best], "predicted_criterion": float(j[best])}
+
+
+def truncated(cf: CaptureFrames, n: int) -> CaptureFrames:
+    """``cf`` with its first ``n`` states only (the pose as it was after ``n`` states)."""
+    return dataclasses.replace(cf, states_deg=list(cf.states_deg[:n]), frames=list(cf.frames[:n]))
+
+
+def decide(session: Session, index: int, processor: Processor) -> dict[str, Any]:
+    """Capture ``index``'s decision after the states it has recorded so far (read back from the
+    session), appended to its manifest entry (``adaptive``) and saved."""
+    cf = load_capture_frames(session, index)
+    record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf))
+    with session.mutex:
+        session.capture(index).setdefault("adaptive", []).append(record)
+        session.save()
+    return record
+
+
+def replay_decisions(session: Session, index: int, processor: Processor) -> list[dict[str, Any]]:
+    """Capture ``index``'s decisions recomputed from its recorded frames (after 1, 2, ...
+    states): equal to its manifest's ``adaptive`` records when they are reproducible."""
+    cf = load_capture_frames(session, index)
+    geometry = processor.network_geometry(session, cf)
+    return [evaluate(truncated(cf, n), session.plan, processor, geometry)
+            for n in range(1, len(cf.states_deg) + 1)]
+
+
+class AdaptiveSchedule:
+    """The device steps of the adaptive captures ``captures`` of ``plan``, handed out a piece
+    at a time as the decisions are made (module docstring). ``decide(index)`` returns a
+    capture's next decision (:func:`decide`) once the frames of its last state are written.
+
+    :meth:`start` gives the first piece; :meth:`extend` (the executor's ``extend``) the next
+    one, ``[]`` when every capture is done. :meth:`forecast` is the steps still expected after
+    those handed out so far (the current capture at its :func:`adaptive_forecast_states`, the
+    captures after it at theirs), for the hardware time and ETA."""
+
+    def __init__(self, plan: CapturePlan, captures: Sequence[int], exposures_us: Sequence[float],
+                 decide: Callable[[int], dict[str, Any]]):
+        self.plan, self.captures = plan, list(captures)
+        self.exposures = [float(e) for e in exposures_us]
+        self.decide = decide
+        self.position = -1  # index into captures of the capture under way
+        self.taken: list[float] = []  # its states so far
+        self.handed = 0  # its steps handed out so far
+        self.ended = True  # its tail was handed out
+
+    def start(self) -> list[Step]:
+        return self._next_capture()
+
+    def _next_capture(self) -> list[Step]:
+        self.position += 1
+        if self.position >= len(self.captures):
+            return []
+        first = float(self.plan.states_deg[0])
+        i = self.captures[self.position]
+        self.taken, self.ended = [first], False
+        steps = (pose_head_steps(self.plan, i, self.exposures, first)
+                 + state_steps(self.plan, i, self.exposures, 0, first, move=False))
+        self.handed = len(steps)
+        return steps
+
+    def extend(self) -> list[Step]:
+        if self.ended:
+            return self._next_capture()
+        i = self.captures[self.position]
+        decision = self.decide(i)
+        if decision["action"] == TAKE:
+            state = float(decision["state_deg"])
+            steps = state_steps(self.plan, i, self.exposures, len(self.taken), state)
+            self.taken.append(state)
+        else:
+            steps = pose_tail_steps(i, self.exposures)
+            self.ended = True
+        self.handed += len(steps)
+        return steps
+
+    def forecast(self) -> list[Step]:
+        """The steps still expected after those handed out."""
+        out: list[Step] = []
+        if 0 <= self.position < len(self.captures) and not self.ended:
+            i = self.captures[self.position]
+            out += adaptive_pose_steps(self.plan, i, self.exposures,
+                                       adaptive_forecast_states(self.plan, self.taken))[self.handed:]
+        for i in self.captures[max(0, self.position + 1):]:
+            out += adaptive_pose_steps(self.plan, i, self.exposures,
+                                       adaptive_forecast_states(self.plan, []))
+        return out

@@ -1,0 +1,236 @@
+"""The adaptive capture (issue 33 item 2) on a 64x64 simulated rig of the ``plastic_metal``
+scene: the plan's rules (one-line PlanErrors naming the field), decisions that stop at the
+target and at the most states, decisions reproducible from the recorded frames, the hardware
+time and ETA following the decisions, and an interrupted session that resumes to the identical
+result. The criterion's algebra is tested in ``tests/test_design.py``."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+from test_capture import content, resume, sim_rig, start
+from test_cli_capture import MODEL_INSTALLED
+
+from polrig.acquisition.engine import hardware_model
+from polrig.acquisition.plan import (
+    CapturePlan,
+    PlanError,
+    adaptive_pose_steps,
+    setup_steps,
+    step_durations,
+)
+from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, replay_decisions
+from polrig.app.capture import CaptureRequest, run_session
+from polrig.app.session import COMPLETE, INTERRUPTED, PENDING, Session
+from polrig.cli import main
+
+needs_model = pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
+
+SCENE = "plastic_metal"
+POSES = (0.0, 90.0)
+
+
+def adaptive(target: float = 0.05, max_states: int = 4, poses=POSES, **kw) -> CapturePlan:
+    return CapturePlan(poses, mode="adaptive", states_deg=(0.0,), target_sigma=target,
+                       max_states=max_states, **kw)
+
+
+# -- the plan ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kwargs, field, text", [
+    ({"target_sigma": 0.0}, "target_sigma", "relative sigma"),
+    ({"target_sigma": float("nan")}, "target_sigma", "relative sigma"),
+    ({"target_sigma": 2.0}, "target_sigma", "(0, 1]"),
+    ({"target_sigma": 0.01, "target_share": 0.0}, "target_share", "share of object pixels"),
+    ({"target_sigma": 0.01, "target_share": 1.5}, "target_share", "share of object pixels"),
+    ({"target_sigma": 0.01, "max_states": 0}, "max_states", "1..8"),
+    ({"target_sigma": 0.01, "max_states": 9}, "max_states", "1..8"),
+    ({"target_sigma": 0.01, "max_states": True}, "max_states", "1..8"),
+    ({"target_sigma": 0.01, "resolution": "full"}, "resolution", "calibrated sigma"),
+    ({"target_sigma": 0.01, "network_binning": 2}, "network_binning", "calibrated sigma"),
+])
+def test_adaptive_plan_refusals_name_the_field(kwargs, field, text):
+    with pytest.raises(PlanError) as e:
+        CapturePlan((0.0,), mode="adaptive", **kwargs)
+    assert e.value.field == field and text in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("field, value", [("target_sigma", 0.01), ("target_share", 0.5),
+                                          ("max_states", 3)])
+def test_the_stopping_rule_is_adaptive_only(field, value):
+    for mode in ("reference", "hybrid"):
+        with pytest.raises(PlanError) as e:
+            CapturePlan((0.0,), mode=mode, **{field: value})
+        assert e.value.field == field and "adaptive method only" in str(e.value)
+
+
+def test_an_adaptive_plan_records_its_first_state_and_counts_the_most_frames():
+    p = adaptive(0.02, 3, frames_per_state=2, dark_frames=1)
+    assert p.states_deg == (0.0,) and p.seen_state == 0
+    assert p.frames_per_pose() == 3 * 2 + 1  # the most: max_states states of K frames, the darks
+    with pytest.raises(PlanError) as e:  # several states given: the method chooses them
+        CaptureRequest(out=".", poses_deg=(0.0,), mode="adaptive", states_deg=(0.0, 45.0),
+                       target_sigma=0.01).plan()
+    assert e.value.field == "states_deg"
+
+
+def test_the_command_line_names_the_option(tmp_path, capsys):
+    out = tmp_path / "out"
+    rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "--target-sigma" in err, err
+    rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--target-sigma", "0.01",
+               "--max-states", "12", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--max-states 12" in err and not out.exists(), err
+
+
+# -- sessions -----------------------------------------------------------------------------------------
+def run(tmp, plan: CapturePlan, **kw):
+    events = []
+    with sim_rig(scene=SCENE) as rig:
+        model = hardware_model(rig)
+        session, proc = start(rig, tmp, plan)
+        result = run_session(rig, session, processor=proc, progress=events.append, **kw)
+    return Session.open(tmp), proc, result, events, model
+
+
+@pytest.fixture(scope="module")
+def adaptive_run(tmp_path_factory):
+    """Uninterrupted two-pose adaptive session (sensor noise keyed by pose, stage angle and
+    repeat: a resumed session must reproduce it), the yardstick of the tests below."""
+    return run(tmp_path_factory.mktemp("adaptive") / "s", adaptive())
+
+
+@needs_model
+def test_each_pose_records_the_states_it_took_and_why(adaptive_run):
+    session, _, result, _, _ = adaptive_run
+    assert result.status == "complete"
+    for cap in session.captures:
+        decisions = cap["adaptive"]
+        assert [d["states_taken"] for d in decisions] == list(range(1, len(decisions) + 1))
+        assert all(d["action"] == TAKE for d in decisions[:-1])
+        assert decisions[-1]["action"] in (STOP_TARGET, STOP_MAX)
+        taken = [0.0] + [d["state_deg"] for d in decisions[:-1]]
+        raw = sorted((r["state_index"], r["state_deg"]) for r in cap["files"]["raw"])
+        assert raw == list(enumerate(taken))  # the files are the states the decisions took
+        for d in decisions[:-1]:  # the chosen state was predicted to lower the criterion
+            assert d["predicted_criterion"] < d["criterion"] and d["design_pixels"] > 0
+        assert cap["prior"]["seen_state"] == 0 and cap["score"]["psnr_db"] > 30
+
+
+@needs_model
+def test_info_shows_the_target_and_the_decisions(adaptive_run, capsys):
+    session = adaptive_run[0]
+    assert main(["info", str(session.root), "--no-verify"]) == 0
+    out = capsys.readouterr().out
+    assert "mode adaptive (target relative sigma 0.05 on 95 % of the object pixels, at most 4 states" in out
+    assert out.count("decisions: 1: ") == len(session.captures)
+
+
+@needs_model
+def test_on_plastic_and_metal_the_target_holds_with_fewer_states_than_the_fixed_four(adaptive_run):
+    """Issue 33's acceptance at CI size (64x64, two poses; the measurement at 128x128 and
+    512x512 is ``python -m benchmarks adaptive``): every pose stops at the target, on at least
+    95 % of its object pixels, with fewer than four states on average."""
+    session = adaptive_run[0]
+    last = [c["adaptive"][-1] for c in session.captures]
+    assert all(d["action"] == STOP_TARGET and d["share_met"] >= 0.95 for d in last), last
+    assert sum(d["states_taken"] for d in last) / len(last) < 4
+
+
+@needs_model
+def test_decisions_are_reproducible_from_the_recorded_frames(adaptive_run):
+    session, proc, _, _, _ = adaptive_run
+    for cap in session.captures:
+        assert replay_decisions(session, cap["index"], proc) == cap["adaptive"]
+
+
+@needs_model
+def test_hardware_time_and_eta_follow_the_decisions(adaptive_run):
+    """The steps run are exactly each pose's steps for the states it took: the final hardware
+    time is theirs; on the way the time done never goes back and what is left ends at 0."""
+    session, _, _, events, model = adaptive_run
+    plan = session.plan
+    exposures = (float(session.capture(0)["files"]["raw"][0]["exposure_us"]),)
+    steps = setup_steps()
+    for cap in session.captures:
+        taken = [0.0] + [d["state_deg"] for d in cap["adaptive"][:-1]]
+        steps += adaptive_pose_steps(plan, cap["index"], exposures, taken)
+    expected = sum(step_durations(steps, model))
+    last = events[-1]
+    assert last.kind == "session-done"
+    assert last.hardware_s == pytest.approx(expected, rel=1e-12) and last.hardware_left_s == 0.0
+    done = [e.hardware_s - e.hardware_left_s for e in events]
+    assert all(b >= a - 1e-9 for a, b in itertools.pairwise(done))
+    assert last.step == last.total == sum(len(c["files"]["raw"]) for c in session.captures)
+    assert [e.kind for e in events].count("decision") == sum(len(c["adaptive"]) for c in session.captures)
+
+
+@needs_model
+def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_path, adaptive_run):
+    reference = adaptive_run[0]
+    out = tmp_path / "s"
+    frames = []
+
+    def progress(ev):
+        if ev.kind == "frame":
+            frames.append(ev)
+            if len(frames) == len(reference.capture(0)["files"]["raw"]) + 2:  # pose 1, state 2
+                raise KeyboardInterrupt
+
+    with sim_rig(scene=SCENE) as rig:
+        session, proc = start(rig, out, adaptive())
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
+    s = Session.open(out)
+    assert s.manifest["status"] == INTERRUPTED
+    assert [c["status"] for c in s.captures] == [COMPLETE, PENDING]
+    assert len(s.capture(1)["adaptive"]) == 1  # its first decision was recorded
+    with sim_rig(scene=SCENE) as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete" and s2.verify() == []
+    assert content(s2) == content(reference)
+    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+
+
+@needs_model
+def test_a_loose_target_stops_at_the_networks_frame_and_a_tight_one_at_max_states(tmp_path):
+    session, _, result, _, _ = run(tmp_path / "loose", adaptive(1.0, poses=(0.0,)))
+    assert result.status == "complete"
+    (only,) = session.capture(0)["adaptive"]
+    assert only["action"] == STOP_TARGET and only["share_met"] >= 0.95 and only["states_taken"] == 1
+    assert len(session.capture(0)["files"]["raw"]) == 1
+    session, _, result, _, _ = run(tmp_path / "tight", adaptive(1e-6, max_states=2, poses=(0.0,)))
+    decisions = session.capture(0)["adaptive"]
+    assert [d["action"] for d in decisions] == [TAKE, STOP_MAX]
+    assert decisions[-1]["share_met"] < 0.95 and len(session.capture(0)["files"]["raw"]) == 2
+
+
+@needs_model
+def test_a_limit_on_a_chosen_states_move_stops_safely_then_resumes_to_the_same_result(tmp_path, adaptive_run):
+    """The steps a decision appends run under the engine's one fault policy: a limit switch
+    on the stage's move to the first chosen state stops the session (no retry, no homing, the
+    reason names the home command), the pose is failed with its partial frames gone, and a
+    resume captures it again to the uninterrupted session's files and decisions."""
+    reference = adaptive_run[0]
+    out = tmp_path / "s"
+    events = []
+    with sim_rig(scene=SCENE) as rig:
+        def progress(ev):
+            events.append(ev)
+            if ev.kind == "decision" and sum(e.kind == "decision" for e in events) == 1:
+                rig.faults.inject_fault("stage", "limit", after_calls=0)  # the next stage call
+
+        session, proc = start(rig, out, adaptive())
+        result = run_session(rig, session, processor=proc, progress=progress)
+    assert result.status == INTERRUPTED and result.reason.startswith("safety stop:")
+    assert "`polrig home stage`" in result.reason and "\n" not in result.reason
+    assert not any(e.kind == "retry" for e in events)
+    s = Session.open(out)
+    assert [c["status"] for c in s.captures] == ["failed", PENDING] and s.verify() == []
+    with sim_rig(scene=SCENE) as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete" and s2.verify() == []
+    assert content(s2) == content(reference)
+    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]

@@ -1,0 +1,98 @@
+"""The adaptive capture's criterion (:mod:`polrig.solve.design`) against closed forms: a frame's
+precision is the design matrix's ``D^T W D``, the prior's is the hybrid solve's per-row block,
+the relative sigma and the A-optimal criterion are what their formulas say, and the criterion
+prefers the state that completes a set to one already measured."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve.design import (
+    a_optimal_scores,
+    data_precision,
+    predicted_variance,
+    prior_precision,
+    relative_sigma,
+    state_precision,
+)
+from polrig.solve.hybrid import unobserved_precision
+from polrig.solve.reference import design_matrix
+
+RNG = np.random.default_rng(3)
+R = ideal_analyzer_matrix()
+
+
+def stokes(deg):
+    return polarizer_stokes(np.deg2rad([deg]), intensity=1.0)[0]
+
+
+@pytest.mark.parametrize("deg", [0.0, 30.0, 112.5])
+def test_a_frames_precision_is_its_design_matrix_normal_matrix(deg):
+    s = stokes(deg)
+    w = RNG.uniform(0.5, 2.0, 4)
+    d = design_matrix(s[None], R)  # (4, 9) rows kron(a_j, s)
+    np.testing.assert_allclose(state_precision(R, w, s), d.T @ np.diag(w) @ d, atol=1e-12)
+    valid = np.array([True, False, True, True])
+    var = 1.0 / w
+    np.testing.assert_allclose(data_precision(R, var, valid, s), d.T @ np.diag(w * valid) @ d, atol=1e-12)
+    assert np.linalg.matrix_rank(state_precision(R, w, s)) == 3  # one frame observes M s only
+
+
+def test_the_prior_precision_is_the_hybrid_solves_row_blocks():
+    sigma = RNG.uniform(0.01, 0.2, (5, 3, 3))
+    s = stokes(20.0)
+    p = prior_precision(sigma, s)
+    blocks = unobserved_precision(sigma, s)
+    for r in range(3):
+        np.testing.assert_allclose(p[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3], blocks[:, r])
+        for q in range(3):
+            if q != r:
+                assert not p[:, 3 * r:3 * r + 3, 3 * q:3 * q + 3].any()
+    # the seen state's own direction is left to its frame: kron(e_r, s) is in the null space
+    u = s / np.linalg.norm(s)
+    for r in range(3):
+        v = np.kron(np.eye(3)[r], u)
+        np.testing.assert_allclose(p @ v, 0.0, atol=1e-9)
+
+
+def test_relative_sigma_is_the_rms_sigma_over_m00_worst_colour():
+    m = RNG.uniform(0.1, 1.0, (3, 3, 3, 2, 2))
+    sig = RNG.uniform(0.0, 0.05, (3, 3, 3, 2, 2))
+    m[1, 0, 0, 0, 1] = -1.0  # a colour with m00 <= 0: never at target
+    rel = relative_sigma(sig, m)
+    expect = np.sqrt((sig ** 2).mean(axis=(1, 2))) / m[:, 0, 0]
+    expect[1, 0, 1] = np.inf
+    np.testing.assert_allclose(rel, expect.max(axis=0))
+    assert rel[0, 1] == np.inf
+    colours = np.ones((3, 2, 2), bool)
+    colours[1, 0, 1] = False  # the colour with m00 <= 0 left out there (dark in the frame)
+    colours[:, 1, 1] = False  # no colour counts: never at target
+    got = relative_sigma(sig, m, colours)
+    np.testing.assert_allclose(got[0, 1], expect[[0, 2], 0, 1].max())
+    assert got[1, 1] == np.inf
+    np.testing.assert_allclose(got[0, 0], rel[0, 0])
+
+
+def test_the_criterion_is_the_summed_relative_trace_and_prefers_completing_the_set():
+    m00 = np.array([2.0, 0.5])
+    s0, s90 = stokes(0.0), stokes(90.0)
+    prior = prior_precision(np.full((2, 3, 3), 0.3), s0)
+    prec = prior + data_precision(R, np.full((2, 4), 1e-4), np.ones((2, 4), bool), s0)
+    j_now, _ = a_optimal_scores(prec, m00, [])
+    expect = sum(np.trace(np.linalg.inv(prec[p])) / (9 * m00[p] ** 2) for p in range(2))
+    assert j_now == pytest.approx(expect, rel=1e-12)
+    mueller = np.tile(np.diag([1.0, 0.4, 0.4]), (2, 1, 1))
+    cands = []
+    for deg in (0.0, 45.0, 90.0):
+        s = stokes(deg)
+        var = predicted_variance(mueller, R, s, per_dn=1e-4, offset_dn2=1e-6)
+        cands.append(state_precision(R, 1.0 / var, s))
+    _, j = a_optimal_scores(prec, m00, cands)
+    assert np.all(j < j_now)  # any frame adds information
+    assert j[1] < j[0]  # 45 deg observes directions 0 deg (already measured) leaves open
+    assert j[2] < j[0]  # 90 deg observes s1 with the other sign: the s0 and s1 columns apart
+    np.testing.assert_allclose(predicted_variance(mueller[0], R, s90, 2.0, 3.0),
+                               np.clip(R @ mueller[0] @ s90, 0, None) * 2.0 + 3.0)
