@@ -19,13 +19,13 @@ pytest.importorskip("pytestqt")
 pytest.importorskip("onnxruntime")
 
 import cv2  # noqa: E402
+from test_device_path import ROUTE_RTOL  # noqa: E402
+from test_gui import close_window, make_window  # noqa: E402
 
 from polrig.app import preview  # noqa: E402
 from polrig.app.single_shot import SingleShot  # noqa: E402
 from polrig.gui import pipeline  # noqa: E402
 from polrig.gui.qtimage import from_qimage  # noqa: E402
-from test_device_path import ROUTE_RTOL  # noqa: E402
-from test_gui import close_window, make_window  # noqa: E402
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 pytestmark = [pytest.mark.gui, pytest.mark.skipif(
