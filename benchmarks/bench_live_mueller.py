@@ -1,9 +1,11 @@
 """Frame rate of the GUI's live Mueller view at full sensor size, on each device the networks
 can run on, without Qt.
 
-Per frame, exactly what the live worker's processing stage does for the "Mueller 3x3" display
-(:mod:`polrig.gui.live`): the one single-shot route, :meth:`polrig.app.single_shot.SingleShot.frame`
-(demosaic, Stokes, the single-shot networks, the planes) with the default rig's nominal
+Per frame, what the live worker's processing stage does for the "Mueller 3x3" display
+(:mod:`polrig.gui.live`): the one single-shot route's whole frame,
+:meth:`polrig.app.single_shot.SingleShot.frame` (demosaic, Stokes, the single-shot networks, the
+planes; on the host route this is the worker's :meth:`~polrig.app.single_shot.SingleShot.live`,
+and on any route what it takes while an ROI is drawn) with the default rig's nominal
 geometry, and :meth:`polrig.gui.pipeline.PolarizationData.from_single_shot`, then :func:`polrig.gui.pipeline.render` of the Mueller grid decimated to the live
 view's display size (``--max-display-px``, default 1024; 0 renders the whole grid, as the view
 did before 2026-11-26). Qt's part (QImage onto
@@ -16,8 +18,9 @@ render over ``--frames`` frames after two warm-ups, and the frames per second th
 (1 / their sum; the live worker overlaps the render with the next frame's processing, so this
 is the lower bound). Devices: ``cpu`` and, where this onnxruntime offers it, ``cuda``; the
 GPU's name is printed. Where the route runs its frames on the device (CUDA, issue 31) two
-more rows time its live frame, :meth:`polrig.app.single_shot.SingleShot.live`: the grid
-rendered on the device at display size and the light-direction probe every 8 frames. Issue 22's target: >= 20 fps at full sensor with the Mueller grid on one
+more rows time its live frame, :meth:`polrig.app.single_shot.SingleShot.live` as the worker
+calls it: the grid rendered on the device at display size and the light-direction probe every 8
+frames, then the colour mapping of that small grid (``render`` at step 1). Issue 22's target: >= 20 fps at full sensor with the Mueller grid on one
 H100-class GPU.
 
     python benchmarks/bench_live_mueller.py [--frames 10] [--devices cpu,cuda] [--out FILE]
@@ -58,8 +61,8 @@ def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry
     decimated as the live view shows it (long side ``max_px``, :func:`polrig.gui.pipeline.display_step`).
     ``grid_on_device``: the device route's live frame instead
     (:meth:`polrig.app.single_shot.SingleShot.live`: the grid rendered on the device at display
-    size, the probe every few frames; the render column is then 0: the colour mapping of the
-    small grid is Qt's step, left out)."""
+    size, the probe every few frames; the render column is then the colour mapping of that
+    display-size grid, as the live worker does it)."""
     from polrig.acquisition.plan import SingleShotOptions
     from polrig.app.single_shot import SingleShot
     from polrig.gui import pipeline
@@ -71,8 +74,11 @@ def run(device: str, resolution: str, binning: int, shots: list[Frame], geometry
     for k, frame in enumerate([shots[0], shots[1 % len(shots)], *shots]):
         t0 = time.perf_counter()
         if grid_on_device:
-            model.live(frame, 0.0, options, max_display_px=max_px or None, geometry=geometry)
-            t1 = t2 = time.perf_counter()
+            data = pipeline.PolarizationData.from_single_shot(
+                model.live(frame, 0.0, options, max_display_px=max_px or None, geometry=geometry), frame)
+            t1 = time.perf_counter()
+            pipeline.render(data, "mueller", step=pipeline.display_step(data, "mueller", max_px))
+            t2 = time.perf_counter()
         else:
             data = pipeline.PolarizationData.from_single_shot(
                 model.frame(frame, 0.0, options, geometry=geometry), frame)

@@ -473,22 +473,25 @@ class DevicePath:
             grid = self.run("grid_preview", {"mueller": mueller, "area_y": area_matrix(shape[-2], dh),
                                              "area_x": area_matrix(shape[-1], dw).T.copy()})["grid"]
         lap("post")
+        # on the CPU provider ``numpy()`` is a view of the persistent buffer, which the next frame
+        # overwrites: a result keeps its own copy (from a device, ``numpy()`` is the copy back)
+        back = (lambda v: v.numpy()) if self.device == "cuda" else (lambda v: v.numpy().copy())  # noqa: E731
         if "alpha" in out:
             result["alpha"] = float(out["alpha"].numpy().reshape(-1)[0])
         if preview_size is not None:
-            result["grid"] = grid.numpy()
+            result["grid"] = back(grid)
         else:
-            result["mueller"] = mueller.numpy()
+            result["mueller"] = back(mueller)
         if resolution == "full":
-            result["object"] = lifted["inside"].numpy()
+            result["object"] = back(lifted["inside"])
         else:
             result["object"] = (mask_f if isinstance(mask_f, np.ndarray) else mask_f.numpy()) > 0.5
         if preview_size is None:  # the planes of a file (the live grid shows none)
-            result["snr"] = snr["snr"].numpy()
-            cl = clipped.numpy()
+            result["snr"] = back(snr["snr"])
+            cl = back(clipped)
             result["clipped"] = np.broadcast_to(cl, (c,) + cl.shape[-2:]) if cl.ndim == 2 else cl
         if with_stokes and preview_size is None:  # on the output grid (the raw one at full resolution)
-            result["stokes"] = (full if resolution == "full" else stokes).numpy()
+            result["stokes"] = back(full if resolution == "full" else stokes)
         lap("copy_back")
         result["timings_s"] = t
         return result

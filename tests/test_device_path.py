@@ -534,3 +534,28 @@ def test_the_device_route_takes_a_roi_at_an_odd_offset_and_partial_cells(frames,
     b = SingleShot(model, "device").frame(crop, 45.0, opts)
     np.testing.assert_array_equal(a.mask, b.mask)
     _close(b.mueller, a.mueller, ROUTE_RTOL)
+
+
+@needs_model
+def test_a_result_keeps_its_arrays_when_the_next_frame_runs_on_the_cpu_provider(frames):
+    """On the CPU provider the persistent buffers are host memory, and ``OrtValue.numpy()`` is a
+    view of them: the results copy what they return, so the next frame (another mosaic) leaves a
+    result's Mueller image, planes and live grid as they were."""
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app.single_shot import SingleShot
+    from polrig.models.runtime import SingleShotModel
+
+    f = frames["colour"][0]
+    other = type(f)(np.ascontiguousarray(f.raw[::-1]), f.meta)  # the scene upside down
+    opts = SingleShotOptions(sigma=False)
+    route = SingleShot(SingleShotModel.load(device="cpu"), "device")
+    first = route.frame(f, 30.0, opts)
+    kept = {k: np.array(getattr(first, k)) for k in ("mueller", "stokes", "snr", "mask", "object")}
+    live = route.live(f, 30.0, opts, max_display_px=48)
+    grid = np.array(live.preview_grid)
+    second = route.frame(other, 30.0, opts)
+    route.live(other, 30.0, opts, max_display_px=48)
+    assert not np.array_equal(second.mueller, kept["mueller"])  # the buffers did change
+    for k, v in kept.items():
+        np.testing.assert_array_equal(getattr(first, k), v)
+    np.testing.assert_array_equal(live.preview_grid, grid)

@@ -196,3 +196,40 @@ def test_live_mueller_grid_at_full_resolution_has_the_sensor_size():
     avg = full.mueller.reshape(3, 3, 3, 24, 4, 32, 4).mean(axis=(-3, -1))
     err = np.abs(avg - sp.mueller)[..., cells].mean() / np.abs(sp.mueller[..., cells]).mean()
     assert err < 0.25, err
+
+
+def test_a_display_size_mueller_grid_shows_as_the_matrix_and_maps_rois_to_image_pixels():
+    """A live result carrying only the device's display-size grid (``preview_grid``
+    ``(C, 3 dh, 3 dw)``, laid out as the matrix): the data holds it as ``(C, 3, 3, dh, dw)``,
+    masks display pixels less than half object, shows only the grid (at step 1, rendered as the
+    whole-image grid would be from the same means), reads out its means, reports that ROI
+    statistics need the whole image, and maps a point drawn on any tile to image pixels."""
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app import preview
+    from polrig.app.single_shot import SingleShotResult
+
+    rng = np.random.default_rng(3)
+    small = rng.uniform(-1, 1, (1, 3, 3, 4, 6)).astype(np.float32)
+    small[:, 0, 0] = rng.uniform(1, 2, (4, 6))
+    grid = small.transpose(0, 1, 3, 2, 4).reshape(1, 12, 18)  # the grid_preview graph's layout
+    obj = np.zeros((8, 12), bool)
+    obj[:, :5] = True  # display columns 0-1 object, column 2 (image 4-5) half: 4 of 4 rows x 1/2
+    z = np.zeros((1, 3, 3, 8, 12), np.float32)
+    res = SingleShotResult(z, z, z, np.zeros((1, 8, 12), np.uint8), np.zeros((1, 8, 12)), obj,
+                           SingleShotOptions(sigma=False), preview_grid=grid)
+    d = pipeline.PolarizationData.from_single_shot(res, source="live")
+    np.testing.assert_array_equal(d.mueller_preview, small)
+    assert d.mueller is None and d.preview_of == (8, 12) and d.available() == ["mueller"]
+    inside = d.flags[0] == 0
+    assert inside[:, :3].all() and not inside[:, 3:].any()  # column 2 exactly half object: shown
+    assert pipeline.needs_full_image(d, "mueller") and pipeline.display_step(d, "mueller", 4) == 1
+    np.testing.assert_array_equal(
+        pipeline.render(d, "mueller"),
+        preview.mueller_grid(small, border_px=pipeline.GRID_BORDER_PX, valid=inside))
+    b = pipeline.GRID_BORDER_PX
+    text = pipeline.readout(d, "mueller", b + (6 + b) + 1, b + 2)  # tile m01, display pixel (1, 2)
+    assert "display pixel (u=1, v=2) of 6x4" in text and f"m00 = {small[0, 0, 0, 2, 1]:.4g}" in text
+    # a rectangle drawn on tile m12 (row 1, column 2): tile-relative, two image pixels per display pixel
+    ox, oy = b + 2 * (6 + b), b + (4 + b)
+    assert pipeline.display_to_data(d, "mueller", [(ox + 1, oy + 1), (ox + 3, oy + 2)]) == [(2.0, 2.0), (6.0, 4.0)]
+    assert pipeline.summary(d) == {"size": (12, 8)}

@@ -3,8 +3,13 @@
 Threading: the worker is a two-stage pipeline so that both CPU cores work. Stage 1 (a thread
 the worker starts) grabs (holding the camera lock of :class:`polrig.gui.rigaccess.RigLocks`)
 and processes (:mod:`polrig.gui.pipeline`: Stokes/DoLP/AoLP, or single-shot Mueller
-inference through the one route, :meth:`polrig.app.single_shot.SingleShot.frame`, with the
-settings' :class:`polrig.acquisition.plan.SingleShotOptions`); stage 2 (the ``QThread`` itself) renders the display image of the newest
+inference through the one route's live frame, :meth:`polrig.app.single_shot.SingleShot.live`,
+with the settings' :class:`polrig.acquisition.plan.SingleShotOptions` and display size:
+on the host route (the CPU) that is :meth:`~polrig.app.single_shot.SingleShot.frame`
+unchanged; on the device route (CUDA) the 3x3 grid is rendered on the device at display size,
+only it comes back, and the light-direction probe runs every few frames. What needs the whole
+Mueller image, ROI statistics and profiles, sets :attr:`LiveSettings.full_mueller` and the
+next frames go through :meth:`~polrig.app.single_shot.SingleShot.frame`); stage 2 (the ``QThread`` itself) renders the display image of the newest
 processed frame and puts it into a :class:`LatestSlot` for the UI. Each hand-over is a
 one-item slot: a newer item replaces one not taken yet (that frame is dropped and counted),
 so nothing is ever queued without bound, and the UI thread never waits for a device or for
@@ -95,6 +100,10 @@ class LiveSettings:
     #: DoLP, AoLP and ``m_ij / m00`` are masked where ``S0`` is below this many noise
     #: standard deviations (:data:`polrig.app.preview.DEFAULT_MIN_SNR`; 0: off).
     min_snr: float = pipeline.preview.DEFAULT_MIN_SNR
+    #: Mueller display: take whole frames (:meth:`polrig.app.single_shot.SingleShot.frame`)
+    #: instead of live ones, whose device route brings back the display-size grid only: set
+    #: while the panel measures an ROI or a line profile (they need every image pixel).
+    full_mueller: bool = False
 
 
 @dataclasses.dataclass
@@ -170,6 +179,7 @@ class LiveWorker(QThread):
         self._stall_reason = ""
         self._single_shot_geometry: dict | None = None  # computed at first use
         self._model_of_rig: Any = None  # read at first use
+        self._mueller_stream = False  # the previous frame was a live Mueller frame
 
     # -- control from the UI thread
     def stop(self) -> None:
@@ -297,9 +307,18 @@ class LiveWorker(QThread):
                 options = SingleShotOptions.from_settings(
                     demosaic=s.method, resolution=s.resolution, network_binning=s.network_binning,
                     mirror_average=s.mirror_average, sigma=False)
-                result = route.frame(frame, self._stage_angle(), options, geometry=self._geometry(),
-                                     sensor=self._sensor_model())
+                kwargs = {"geometry": self._geometry(), "sensor": self._sensor_model()}
+                if s.full_mueller:
+                    result = route.frame(frame, self._stage_angle(), options, **kwargs)
+                else:
+                    if not self._mueller_stream and route.frame_route == "device":
+                        route.device_path().restart_live()  # a new live stream probes first
+                    result = route.live(frame, self._stage_angle(), options,
+                                        max_display_px=s.max_display_px or None, **kwargs)
                 data = pipeline.PolarizationData.from_single_shot(result, frame, source="live")
+                if result.preview_grid is not None:
+                    note = "Mueller grid at display size (on the device; ROI statistics take whole frames)"
+        self._mueller_stream = data is not None and not s.full_mueller
         if data is None:
             data = pipeline.process_frame(frame, s.method, workers=s.strip_workers or None,
                                           source="live", model=self._sensor_model())
@@ -309,7 +328,8 @@ class LiveWorker(QThread):
         """Stage 2: the display image, histogram and ``QImage`` of processed data."""
         t0 = time.perf_counter()
         s = dataclasses.replace(self.settings)
-        display = s.display if s.display in data.available() else "aolp_dolp"
+        shows = data.available()  # a display-size Mueller grid shows only itself
+        display = s.display if s.display in shows else ("aolp_dolp" if "aolp_dolp" in shows else shows[-1])
         data.min_snr = s.min_snr
         step = pipeline.display_step(data, display, s.max_display_px)
         rgb = pipeline.render(data, display, s.colour, saturation_overlay=s.saturation_overlay,

@@ -2,6 +2,13 @@
 
 The panel owns a :class:`polrig.gui.live.LiveWorker`; on ``frame_ready`` it takes the latest
 result from the worker's slot (never blocking) and shows it.
+
+The Mueller display on the device route (CUDA) gets the 3x3 grid already reduced to display
+size (:meth:`polrig.app.single_shot.SingleShot.live`): the grid, its histogram and a readout
+of display-pixel means. ROI statistics and line profiles need every image pixel: once an ROI
+or a line is drawn the panel asks the worker for whole frames
+(:attr:`polrig.gui.live.LiveSettings.full_mueller`, :meth:`~polrig.app.single_shot.SingleShot.frame`;
+slower) and measures those; until one is drawn the ROI summary says so.
 """
 
 from __future__ import annotations
@@ -152,6 +159,7 @@ class LivePanel(QWidget):
         self.gain.valueChanged.connect(lambda v: self.worker.set_camera(gain_db=v))
         self.pause_button.toggled.connect(self._pause_toggled)
         self.view.hovered.connect(self._hovered)
+        self.view.drawn.connect(self._measuring_changed)
         worker.frame_ready.connect(self._take_frame)
         worker.message.connect(self.message)
         worker.stalled.connect(self._stalled)
@@ -180,6 +188,11 @@ class LivePanel(QWidget):
         s.resolution = self.resolution.currentText()
         s.network_binning = int(self.binning.currentData())
         s.min_snr = self.min_snr.value()
+
+    def _measuring_changed(self, *_a) -> None:
+        """An ROI or a line drawn: the Mueller display takes whole frames from now on (the
+        device route's live grid has display-pixel means only)."""
+        self.worker.settings.full_mueller = self.roi.region is not None or self.roi.segment is not None
 
     def _pause_toggled(self, paused: bool) -> None:
         self.worker.pause(paused)
@@ -222,7 +235,13 @@ class LivePanel(QWidget):
         now = time.monotonic()
         self.roi.to_data = lambda pts: pipeline.display_to_data(res.data, res.display, pts,
                                                                 res.step)
-        if now - self._roi_at >= ROI_INTERVAL_S or self.roi.data is None:
+        self._measuring_changed()
+        if pipeline.needs_full_image(res.data, res.display):  # display-pixel means: nothing to measure
+            if self.roi.region is None and self.roi.segment is None:
+                self.roi.summary.setText("ROI statistics need the whole Mueller image: this grid is "
+                                         "rendered at display size on the device; draw an ROI or a "
+                                         "line and the live view takes whole frames (slower)")
+        elif now - self._roi_at >= ROI_INTERVAL_S or self.roi.data is None:
             self._roi_at = now
             self.roi.set_data(res.data)
         if self._hover != (-1, -1):

@@ -24,6 +24,7 @@ import dataclasses
 import os
 from typing import Any
 
+import cv2
 import numpy as np
 
 from polrig.app import preview, roi
@@ -123,11 +124,20 @@ class PolarizationData:
     #: the file's normals, albedo, roughness, light direction
     #: (:func:`polrig.gui.geometry_layer.geometry_from_planes`), or None
     geometry: geometry_layer.GeometryPlanes | None = None
+    #: The Mueller image already reduced to display size ``(C, 3, 3, dh, dw)`` (each element
+    #: area-averaged: the device route's live grid, :attr:`SingleShotResult.preview_grid`), or
+    #: None. Such data has no ``mueller`` and no Stokes images: it shows the Mueller grid
+    #: (:func:`render`, step 1), its histogram and a readout of the display pixels' means;
+    #: ROI statistics need the whole image (:func:`needs_full_image`). ``flags`` are then on
+    #: the display grid (``BACKGROUND`` where less than half a display pixel is object).
+    mueller_preview: np.ndarray | None = None
+    #: ``(H, W)`` of the Mueller image ``mueller_preview`` was reduced from.
+    preview_of: tuple[int, int] | None = None
     _views: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def n_colours(self) -> int:
-        for a in (self.stokes, self.mueller):
+        for a in (self.stokes, self.mueller, self.mueller_preview):
             if a is not None:
                 return int(a.shape[0])
         return 1 if self.geometry is None else self.geometry.n_colours
@@ -143,6 +153,8 @@ class PolarizationData:
             out += list(STOKES_DISPLAYS)
         if self.mueller is not None:
             out += list(MUELLER_DISPLAYS)
+        elif self.mueller_preview is not None:
+            out.append("mueller")
         if self.geometry is not None:
             out.append("geometry")
         return out
@@ -198,7 +210,13 @@ class PolarizationData:
         (:meth:`polrig.app.single_shot.SingleShot.frame`): its Mueller image, the measured Stokes
         images on the same grid (the raw size at full resolution) with their masks, the SNR of
         their ``S0`` (the result's, from the camera's noise model) and ``BACKGROUND`` outside the
-        networks' object mask; with the ``frame``, its raw mosaic."""
+        networks' object mask; with the ``frame``, its raw mosaic.
+
+        A live result of the device route (:meth:`polrig.app.single_shot.SingleShot.live`: only
+        its display-size grid came back, :attr:`SingleShotResult.preview_grid`) gives the grid
+        as ``mueller_preview`` and the object mask reduced to it, nothing else."""
+        if result.preview_grid is not None:
+            return cls._from_preview_grid(result, frame, source)
         d = cls.from_stokes(result.stokes, source)
         d.mueller = result.mueller
         if frame is not None:
@@ -206,6 +224,25 @@ class PolarizationData:
             d.black_level_dn = float(frame.meta.black_level_dn)
         d.snr = result.snr
         d.flags = d.flags | np.where(result.object, 0, preview.BACKGROUND).astype(np.uint8)[None]
+        return d
+
+    @classmethod
+    def _from_preview_grid(cls, result: SingleShotResult, frame: Frame | None,
+                           source: str) -> "PolarizationData":
+        """:meth:`from_single_shot` of a result carrying only ``preview_grid`` ``(C, 3 dh, 3 dw)``
+        (the nine elements laid out as the matrix) -> ``mueller_preview`` ``(C, 3, 3, dh, dw)``;
+        ``BACKGROUND`` where the networks' object mask covers less than half of a display pixel
+        (its area fraction, OpenCV's ``INTER_AREA`` as the grid's own reduction)."""
+        g = np.asarray(result.preview_grid, np.float32)
+        c, dh, dw = g.shape[0], g.shape[1] // 3, g.shape[2] // 3
+        grid = g.reshape(c, 3, dh, 3, dw).transpose(0, 1, 3, 2, 4)
+        inside = cv2.resize(np.asarray(result.object, np.float32), (dw, dh), interpolation=cv2.INTER_AREA)
+        flags = np.where(inside >= 0.5, 0, preview.BACKGROUND).astype(np.uint8)[None].repeat(c, axis=0)
+        d = cls(mueller_preview=grid, preview_of=tuple(int(v) for v in result.object.shape[-2:]),
+                source=source, flags=flags)
+        if frame is not None:
+            d.raw, d.bit_depth = frame.raw, int(frame.meta.bit_depth)
+            d.black_level_dn = float(frame.meta.black_level_dn)
         return d
 
     @classmethod
@@ -355,10 +392,19 @@ def display_shape(data: PolarizationData, display: str) -> tuple[int, int]:
     """``(H, W)`` of the full-resolution image of ``display`` (before any decimation)."""
     if display == "raw":
         return tuple(data.raw.shape)  # type: ignore[return-value]
+    if data.stokes is None and data.mueller is None and data.preview_of is not None:
+        return data.preview_of
     if display == "geometry" or (data.stokes is None and data.mueller is None):
         return data.geometry.shape
     src = data.stokes if data.stokes is not None else data.mueller
     return tuple(src.shape[-2:])  # type: ignore[return-value]
+
+
+def needs_full_image(data: PolarizationData, display: str) -> bool:
+    """True where ``display`` of ``data`` shows a display-size Mueller grid only
+    (``mueller_preview``): ROI statistics and profiles need the whole Mueller image (the live
+    view then takes whole frames, :attr:`polrig.gui.live.LiveSettings.full_mueller`)."""
+    return display == "mueller" and data.mueller is None and data.mueller_preview is not None
 
 
 def display_step(data: PolarizationData, display: str, max_px: int) -> int:
@@ -368,7 +414,7 @@ def display_step(data: PolarizationData, display: str, max_px: int) -> int:
     :func:`readout` with the same ``step``) stay at full resolution. At full sensor resolution
     the grid is 7344 pixels wide: rendering it whole took 2.8 s a frame on 16 cores
     (``benchmarks/results/live_mueller_h200.md``), decimated to 1024 a few milliseconds."""
-    if max_px <= 0:
+    if max_px <= 0 or needs_full_image(data, display):  # a display-size grid: shown as it is
         return 1
     long_side = max(display_shape(data, display)) * (3 if display == "mueller" else 1)
     return max(1, -(-long_side // int(max_px)))
@@ -400,8 +446,8 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
             sat = raw >= full
     elif display == "mueller":
         ok = shown(data, colour)
-        return preview.mueller_grid(data.mueller[..., k, k], colour=None if colour == LUMINANCE else
-                                    min(colour, data.mueller.shape[0] - 1),
+        m = data.mueller[..., k, k] if data.mueller is not None else data.mueller_preview
+        return preview.mueller_grid(m, colour=None if colour == LUMINANCE else min(colour, m.shape[0] - 1),
                                     border_px=GRID_BORDER_PX, valid=None if ok is None else ok[k, k])
     elif display == "maps":
         return render_map(data, options.map_name, colour, sigma=options.map_sigma, step=step)
@@ -593,10 +639,11 @@ def histogram(data: PolarizationData, display: str, colour: int = LUMINANCE,
             lo, hi = -max(abs(lo), abs(hi), 1e-30), max(abs(lo), abs(hi), 1e-30)
         rng = (min(lo, 0.0) if display != "maps" else lo, hi if hi > lo else lo + 1.0)
     elif display in ("s0", "mueller") and (data.stokes is None or display == "mueller"):
-        x = _pick(data.mueller[:, 0, 0], colour).reshape(-1)
+        m = data.mueller if data.mueller is not None else data.mueller_preview
+        x = _pick(m[:, 0, 0], colour).reshape(-1)
         x = x[np.isfinite(x) & (x > 0)]
         rng = (0.0, float(x.max()) if x.size else 1.0)
-        label = "m00 (DN per unit S0)"
+        label = "m00 (DN per unit S0)" + (" display-pixel means" if data.mueller is None else "")
     else:
         s0, d, a, valid = (v[k, k] for v in channel_view(data, colour))
         ok = shown(data, colour)
@@ -630,15 +677,20 @@ def display_to_data(data: PolarizationData, display: str, points: list, step: in
     shape drawn on any element tile measures the same pixels)."""
     k = max(1, int(step))
     pts = [(float(x), float(y)) for x, y in points]
-    if display == "mueller" and data.mueller is not None and pts:
+    ky = kx = float(k)
+    if needs_full_image(data, display) and data.preview_of is not None:  # tiles of display-pixel means
+        th, tw = data.mueller_preview.shape[-2:]
+        ky, kx = data.preview_of[0] / th, data.preview_of[1] / tw
+    elif display == "mueller" and data.mueller is not None:
         h, w = data.mueller.shape[-2:]
         th, tw = -(-h // k), -(-w // k)
+    if display == "mueller" and (data.mueller is not None or data.mueller_preview is not None) and pts:
         hit = grid_to_pixel(int(pts[0][0]), int(pts[0][1]), (th, tw))
         if hit is not None:
             r, c = hit[0], hit[1]
             ox, oy = GRID_BORDER_PX + c * (tw + GRID_BORDER_PX), GRID_BORDER_PX + r * (th + GRID_BORDER_PX)
             pts = [(x - ox, y - oy) for x, y in pts]
-    return [(x * k, y * k) for x, y in pts]
+    return [(x * kx, y * ky) for x, y in pts]
 
 
 def layer_readout(data: PolarizationData, display: str, options: ViewOptions, x: int, y: int
@@ -677,6 +729,14 @@ def readout(data: PolarizationData, display: str, x: int, y: int, step: int = 1)
     ``step`` (:func:`render`): Stokes, DoLP, AoLP per colour, and the 3x3 Mueller matrix
     (normalised by ``m00`` too) where there is one."""
     k = max(1, int(step))
+    if needs_full_image(data, display):
+        hit = grid_to_pixel(x, y, data.mueller_preview.shape[-2:])
+        if hit is None:
+            return ""
+        th, tw = data.mueller_preview.shape[-2:]
+        return _mueller_lines(data, hit[2], hit[3], data.mueller_preview,
+                              f"Mueller, display pixel (u={hit[2]}, v={hit[3]}) of {tw}x{th}: the mean over "
+                              f"its {data.preview_of[1] / tw:.3g}x{data.preview_of[0] / th:.3g} image pixels")
     if display == "mueller" and data.mueller is not None:
         h, w = data.mueller.shape[-2:]
         hit = grid_to_pixel(x, y, (-(-h // k), -(-w // k)))  # the decimated tiles' shape
@@ -726,9 +786,11 @@ def _stokes_lines(data: PolarizationData, u: int, v: int) -> str:
     return "\n".join(out)
 
 
-def _mueller_lines(data: PolarizationData, u: int, v: int) -> str:
-    mueller = data.mueller
-    out = [f"Mueller at (u={u}, v={v}): m00 in DN per unit S0, then M / m00"]
+def _mueller_lines(data: PolarizationData, u: int, v: int, mueller: np.ndarray | None = None,
+                   where: str = "") -> str:
+    """The matrix of ``mueller`` (default ``data.mueller``) at ``(u, v)`` with its mask reason."""
+    mueller = data.mueller if mueller is None else mueller
+    out = [f"{where or f'Mueller at (u={u}, v={v})'}: m00 in DN per unit S0, then M / m00"]
     same_grid = data.flags is not None and data.flags.shape[-2:] == mueller.shape[-2:]
     for c, name in enumerate(_colour_names(mueller.shape[0])):
         m = mueller[c, :, :, v, u]
@@ -754,4 +816,6 @@ def summary(data: PolarizationData) -> dict[str, Any]:
                 "saturated_fraction": float(data.saturated.mean())}
     if data.mueller is not None:
         return {"size": tuple(int(v) for v in data.mueller.shape[-1:-3:-1])}
+    if data.preview_of is not None:
+        return {"size": data.preview_of[::-1]}
     return {}
