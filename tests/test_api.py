@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import polrig
-from polrig.app.manifest import RESERVED_METADATA_KEYS
+from polrig.app.manifest import RESERVED_METADATA_KEYS, SCHEMA_VERSION
 from polrig.app.session import MANIFEST_NAME
 from polrig.cli import main
 from polrig.formats.exr import read_mueller_exr
@@ -69,7 +69,7 @@ def test_open_session_is_lazy_one_chunk_per_capture_and_the_files_values(session
                                   f.extra["mask.Y"].astype(np.uint8))
     a = ds.attrs
     assert (a["sample"], a["operator"], a["note"], a["lot"]) == ("box", "", "", "7")
-    assert a["plan"]["poses_deg"] == [0.0, 45.0, 90.0] and a["schema_version"] == 4
+    assert a["plan"]["poses_deg"] == [0.0, 45.0, 90.0] and a["schema_version"] == SCHEMA_VERSION
     json.dumps(a)  # every attribute JSON-serialisable
     assert set(a) - {"lot"} <= RESERVED_METADATA_KEYS  # a user key never overwrites one of polrig's
     assert a["captures_without_result"] == []
@@ -104,7 +104,7 @@ def test_an_older_session_and_one_without_results_open(session, tmp_path):
     (old / MANIFEST_NAME).write_text(json.dumps(m))
     ds = polrig.open_session(old)
     assert ds.sizes["capture"] == 2 and ds.attrs["captures_without_result"] == ["c002_pose090.0"]
-    assert ds.attrs["sample"] == "" and ds.attrs["schema_version"] == 4
+    assert ds.attrs["sample"] == "" and ds.attrs["schema_version"] == SCHEMA_VERSION
 
 
 def test_without_the_extra_the_openers_name_it(monkeypatch, session):
