@@ -103,7 +103,9 @@ honest). ``docs/analysis.md`` reports the coverage measured on a simulated captu
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 from typing import Mapping
 
 import numpy as np
@@ -128,6 +130,7 @@ __all__ = [
     "resolved",
     "MapSet",
     "image_maps",
+    "DEFAULT_WORKERS",
 ]
 
 #: Every map :func:`parameter_maps` returns, with its meaning and unit (also written into the
@@ -263,7 +266,8 @@ def _combine(terms) -> np.ndarray:
     total = 0.0
     with np.errstate(all="ignore"):
         for g, s in terms:
-            total = total + np.where(g == 0, 0.0, (g * s) ** 2)
+            term = (g * s) ** 2
+            total = total + (term if np.isfinite(s).all() else np.where(g == 0, 0.0, term))
     return np.sqrt(total)
 
 
@@ -729,14 +733,23 @@ class MapSet:
     flags: np.ndarray
 
 
+#: Default of :func:`image_maps`'s ``workers``: threads over bands (numpy releases the GIL).
+DEFAULT_WORKERS = max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                             else (os.cpu_count() or 1)))
+
+
 def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
-               band_pixels: int = 1 << 16) -> MapSet:
+               band_pixels: int = 1 << 14, workers: int | None = None) -> MapSet:
     """Every map of a Mueller image ``(C, 3, 3, H, W)`` (plane-first, ``docs/conventions.md``)
     and, with ``sigma`` of the same shape (the result's ``sigma.M{rc}`` planes), their
     linearised standard deviations; the decomposition flags use them
-    (:func:`decomposition_flags` with significance ``k``). Computed in float64 over bands of
-    about ``band_pixels`` pixels (times colours) so that memory stays bounded at full sensor
-    size; returned as float32."""
+    (:func:`decomposition_flags` with significance ``k``). Returned as float32.
+
+    Computed in float64 over bands of image rows of about ``band_pixels`` pixels (times
+    colours), on ``workers`` threads (default :data:`DEFAULT_WORKERS`): the memory beyond the
+    input and the output is that of ``workers`` bands' intermediates (tens of MB), whatever the
+    image size. Every pixel's numbers depend on that pixel only and on no reduction, so the
+    result is the same to the bit for any band size and thread count."""
     img = np.asarray(mueller)
     if img.ndim != 5 or img.shape[1:3] != (3, 3):
         raise ValueError(f"Mueller images must have shape (C, 3, 3, H, W), got {img.shape}")
@@ -746,7 +759,8 @@ def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
     sigmas = {name: np.empty((c, h, w), np.float32) for name in MAPS} if sig is not None else {}
     flags = np.empty((c, h, w), np.uint8)
     rows = max(1, int(band_pixels) // max(1, w * c))
-    for r0 in range(0, h, rows):
+
+    def band(r0: int) -> None:
         r1 = min(h, r0 + rows)
         mb = np.moveaxis(img[..., r0:r1, :].astype(np.float64), (1, 2), (-2, -1))
         vals, internal = _evaluate(mb)
@@ -759,4 +773,15 @@ def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
         for name in MAPS:
             values[name][:, r0:r1] = vals[name]
         flags[:, r0:r1] = _flags(internal, sb, k)
+
+    starts = range(0, h, rows)
+    n_threads = min(len(starts), max(1, int(workers or DEFAULT_WORKERS)))
+    if n_threads < 2:
+        for r0 in starts:
+            band(r0)
+    else:
+        with concurrent.futures.ThreadPoolExecutor(n_threads,
+                                                   thread_name_prefix="polrig-maps") as pool:
+            for done in pool.map(band, starts):
+                del done  # re-raises a band's exception here
     return MapSet(values, sigmas, flags)
