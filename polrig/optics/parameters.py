@@ -87,14 +87,17 @@ block; the values are reported, not clipped).
 **Uncertainty.** Every ``*_sigma`` result is the first-order (linearised) propagation of
 independent per-element standard deviations ``sigma (..., 3, 3)``:
 ``sigma_f^2 = sum_ij (df / dm_ij)^2 sigma_ij^2`` (a term with a zero derivative is zero even
-where ``sigma_ij`` is infinite). The Jacobians of ``m00``, ``DL``, ``PL``, their axes and the
-MMT parameters are analytic (closed forms, cheap); those of the singular values and the
-decomposition are forward finite differences, vectorised over pixels and taken one element at a
-time (nine extra evaluations; step ``1e-7 * max|m_ij|``: the truncation error is about ``1e-7``
-and the rounding error about ``1e-9`` of the derivative, far below what a sigma needs), because
-their closed-form derivatives (through the inverse diattenuator and the 2x2 singular value
-decomposition) are long and easy to get wrong; the tests check the finite-difference route
-against the analytic one on ``DL`` and every sigma against the spread of sampled errors. Angle differences are wrapped to their period. Linearisation is accurate where a
+where ``sigma_ij`` is infinite). Every Jacobian is analytic: closed forms for ``m00``, ``DL``,
+``PL``, their axes and the MMT parameters; for the singular values and the decomposition the
+chain rule through the 2x2 block, ``m -> n -> m' -> (E, F, G, H) -> map``
+(:func:`_chain_sigma`: each of those maps is a closed-form function of ``E, F, G, H``, which
+are linear in ``m'``, whose derivatives are written out in :func:`_dq_dn`; the ``m00``
+derivative follows from Euler's relation, every map being homogeneous of degree 0 in ``m``).
+Until 2026-11-28 these came from forward finite differences, the whole decomposition run nine
+more times; the analytic values equal them to the differences' truncation error (median
+relative 1e-7) at a fraction of the time (``benchmarks/results/analyze.md``). The tests check
+the chain rule against central differences of the maps, and every sigma against the spread of
+sampled errors. Linearisation is accurate where a
 map is smooth over the error's range: it fails near a map's boundary (``DL``, ``PL``, ``t1`` or
 the retardance near 0, where the estimate is biased upwards like a Rician amplitude) and for an
 axis whose magnitude is within its noise (its sigma is then large or infinite, which is
@@ -183,10 +186,10 @@ DECOMPOSITION_ASSUMPTION = (
     "the answer (docs/analysis.md)")
 #: How the ``sigma.*`` maps are computed (written into the output's header).
 SIGMA_METHOD = (
-    "first-order (linearised) propagation of the per-element sigma planes taken as independent: "
-    "analytic Jacobians for m00, DL, PL, their axes and the MMT parameters, forward finite "
-    "differences for sv1, sv2 and the decomposition; angle differences wrapped to their period "
-    "(docs/analysis.md)")
+    "first-order (linearised) propagation of the per-element sigma planes taken as independent, "
+    "with analytic Jacobians (closed forms for m00, DL, PL, their axes and the MMT parameters; "
+    "the chain rule through the 2x2 block for sv1, sv2 and the decomposition; infinite where a "
+    "map is not differentiable) (docs/analysis.md)")
 
 _DEG = 180.0 / np.pi
 _ASSUMED_K = 3.0  # anisotropy significant at this many sigma: DECOMP_ASSUMED
