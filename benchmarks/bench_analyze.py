@@ -75,7 +75,8 @@ def synthetic_result(c: int, h: int, w: int, seed: int = 0) -> tuple[np.ndarray,
     md = np.zeros((g, g, 3, 3))
     md[..., 0, 0] = 1.0
     md[..., 0, 1:], md[..., 1:, 0] = dvec, dvec
-    md[..., 1:, 1:] = k[..., None, None] * np.eye(2) + dvec[..., :, None] * dvec[..., None, :] / (1 + k)[..., None, None]
+    outer = dvec[..., :, None] * dvec[..., None, :]
+    md[..., 1:, 1:] = k[..., None, None] * np.eye(2) + outer / (1 + k)[..., None, None]
     delta = np.zeros((g, g, 3, 3))
     delta[..., 0, 0] = 1.0
     delta[..., 1, 1] = delta[..., 2, 2] = dep
@@ -252,25 +253,27 @@ def main(argv: list[str] | None = None) -> int:
         bf = ["--baseline-file", str(base)]
         from polrig.optics.parameters import DEFAULT_WORKERS
 
-        lines = [f"# `python -m benchmarks analyze`: parameter maps with sigma", "",
-                 f"Machine: {platform.processor() or platform.machine()}, "
-                 f"{len(os.sched_getaffinity(0))} CPUs usable (load average at start "
-                 f"{os.getloadavg()[0]:.1f}); current = {DEFAULT_WORKERS} thread(s); "
-                 f"baseline = `polrig/optics/parameters.py` at {BASELINE_COMMIT}; "
-                 f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", ""]
+        machine = (f"Machine: {platform.processor() or platform.machine()}, "
+                   f"{len(os.sched_getaffinity(0))} CPUs usable (load average at start "
+                   f"{os.getloadavg()[0]:.1f}); current = {DEFAULT_WORKERS} thread(s); "
+                   f"baseline = `polrig/optics/parameters.py` at {BASELINE_COMMIT}; "
+                   f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.")
+        lines = ["# `python -m benchmarks analyze`: parameter maps with sigma", "", machine, ""]
         first = a.sizes.split(",")[0]
         if "baseline" in (a.impls if first == "512" else a.full_impls):
             h, w = SIZES[first]
             cmp, _, _ = _run_child(["--child", "compare", "1", str(h), str(w), *bf])
-            lines += [f"Equality at {w}x{h} mono: maps bit for bit {cmp['values_bitwise_equal']}, "
-                      f"flags equal {cmp['flags_equal']}; sigma relative to the baseline's: "
-                      f"median {cmp['sigma_median_rel']:.1e}, 99.9 % {cmp['sigma_p999_rel']:.1e}, "
-                      f"max {cmp['sigma_max_rel']:.1e} ({cmp['sigma_max_rel_map']}; the "
-                      f"baseline's forward-difference truncation error)", ""]
+            equality = (f"Equality at {w}x{h} mono: maps bit for bit {cmp['values_bitwise_equal']}, "
+                        f"flags equal {cmp['flags_equal']}; sigma relative to the baseline's: "
+                        f"median {cmp['sigma_median_rel']:.1e}, 99.9 % "
+                        f"{cmp['sigma_p999_rel']:.1e}, max {cmp['sigma_max_rel']:.1e} "
+                        f"({cmp['sigma_max_rel_map']}; the baseline's forward-difference "
+                        f"truncation error)")
+            lines += [equality, ""]
             print(lines[-2], flush=True)
-        lines += ["| size | C | mode | rounds | " + " | ".join(f"{i} s" for i in IMPLS)
-                  + " | speed-up | " + " | ".join(f"{i} MiB" for i in IMPLS) + " | outputs MiB |",
-                  "|---" * (4 + 2 * len(IMPLS) + 2) + "|"]
+        header = ("| size | C | mode | rounds | " + " | ".join(f"{i} s" for i in IMPLS)
+                  + " | speed-up | " + " | ".join(f"{i} MiB" for i in IMPLS) + " | outputs MiB |")
+        lines += [header, "|---" * (4 + 2 * len(IMPLS) + 2) + "|"]
         for size in a.sizes.split(","):
             h, w = SIZES[size]
             rounds = a.rounds if size == "512" else a.full_rounds
@@ -309,9 +312,10 @@ def main(argv: list[str] | None = None) -> int:
                                  + " | ".join(f"{mm[i]:.0f}" if i in mm else "" for i in IMPLS)
                                  + f" | {outputs} |")
                     print(lines[-1], flush=True)
-    lines += ["", "Memory: warm in-process = rise of the peak RSS during the call (beyond the "
-                  "inputs; includes the float32 outputs); one-shot CLI = the process's peak RSS "
-                  "(inputs, outputs, EXR buffers, interpreter)."]
+    note = ("Memory: warm in-process = rise of the peak RSS during the call (beyond the inputs; "
+            "includes the float32 outputs); one-shot CLI = the process's peak RSS (inputs, "
+            "outputs, EXR buffers, interpreter).")
+    lines += ["", note]
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out is not None:

@@ -109,7 +109,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import os
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -630,16 +630,22 @@ def _chain_sigma(m: np.ndarray, s: np.ndarray, parts: _DecompositionParts,
                 dg, dh = 0.5 * (d21 + d12) * inv00, 0.5 * (d21 - d12) * inv00
                 dq_, dr_ = ue * de + uh * dh, uf * df + ug * dg
                 fin = bool(np.isfinite(s[..., i, j]).all())
-                grads = {"excess": lambda: dq_ + dr_, "depolarization": lambda: -(dq_ + dr_),
-                         "anisotropy": lambda: dr_,
-                         "retardance_deg": lambda: kr * (p.q * dr_ - p.r * dq_)}
-                if want & {"rotation_deg", "retardance_axis_deg"}:
-                    turn = (p.e * dh - p.h * de) / q2  # d atan2(H, E)
-                    grads["rotation_deg"] = lambda: 0.5 * _DEG * turn
-                    grads["retardance_axis_deg"] = lambda: 0.25 * _DEG * (
-                        (p.f * dg - p.g * df) / r2 - turn)
+                turn = ((p.e * dh - p.h * de) / q2  # d atan2(H, E)
+                        if want & {"rotation_deg", "retardance_axis_deg"} else None)
                 for name in decomposition:
-                    _accumulate(var, euler, name, grads[name](), m[..., i, j], s[..., i, j], fin)
+                    if name == "excess":
+                        grad = dq_ + dr_
+                    elif name == "depolarization":
+                        grad = -(dq_ + dr_)
+                    elif name == "anisotropy":
+                        grad = dr_
+                    elif name == "retardance_deg":
+                        grad = kr * (p.q * dr_ - p.r * dq_)
+                    elif name == "rotation_deg":
+                        grad = 0.5 * _DEG * turn
+                    else:  # retardance_axis_deg
+                        grad = 0.25 * _DEG * ((p.f * dg - p.g * df) / r2 - turn)
+                    _accumulate(var, euler, name, grad, m[..., i, j], s[..., i, j], fin)
         fin00 = bool(np.isfinite(s[..., 0, 0]).all())
         out = {}
         for name in names:
