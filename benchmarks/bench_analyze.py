@@ -263,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         if "baseline" in (a.impls if first == "512" else a.full_impls):
             h, w = SIZES[first]
             cmp, _, _ = _run_child(["--child", "compare", "1", str(h), str(w), *bf])
-            equality = (f"Equality at {w}x{h} mono: maps bit for bit {cmp['values_bitwise_equal']}, "
-                        f"flags equal {cmp['flags_equal']}; sigma relative to the baseline's: "
+            equality = (f"Equality at {w}x{h} mono: maps bit for bit "
+                        f"{cmp['values_bitwise_equal']}, flags equal {cmp['flags_equal']}; sigma relative to the baseline's: "
                         f"median {cmp['sigma_median_rel']:.1e}, 99.9 % "
                         f"{cmp['sigma_p999_rel']:.1e}, max {cmp['sigma_max_rel']:.1e} "
                         f"({cmp['sigma_max_rel_map']}; the baseline's forward-difference "

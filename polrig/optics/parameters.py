@@ -554,10 +554,13 @@ def _dq_dn(p: _DecompositionParts) -> dict[tuple[int, int], tuple]:
             j11, j12 = j11 + 2.0 * p.c * d1, j12 + p.c * d2
         else:
             j22, j12 = j22 + 2.0 * p.c * d2, j12 + p.c * d1
-        out[(0, col)] = ((a11 * j11 + a12 * j12 - (p1 if col == 1 else 0.0) + 2 * dl * p.q11) * inv,
-                         (a11 * j12 + a12 * j22 - (p1 if col == 2 else 0.0) + 2 * dl * p.q12) * inv,
-                         (a21 * j11 + a22 * j12 - (p2 if col == 1 else 0.0) + 2 * dl * p.q21) * inv,
-                         (a21 * j12 + a22 * j22 - (p2 if col == 2 else 0.0) + 2 * dl * p.q22) * inv)
+        # - P e_l^T: p1, p2 in column l only
+        p1_1, p1_2 = (p1, 0.0) if col == 1 else (0.0, p1)
+        p2_1, p2_2 = (p2, 0.0) if col == 1 else (0.0, p2)
+        out[(0, col)] = ((a11 * j11 + a12 * j12 - p1_1 + 2 * dl * p.q11) * inv,
+                         (a11 * j12 + a12 * j22 - p1_2 + 2 * dl * p.q12) * inv,
+                         (a21 * j11 + a22 * j12 - p2_1 + 2 * dl * p.q21) * inv,
+                         (a21 * j12 + a22 * j22 - p2_2 + 2 * dl * p.q22) * inv)
     return out
 
 
