@@ -1,7 +1,8 @@
 """The viewer's and the live view's analysis tools (issue 34, items 2, 4 and 8; pytest-qt,
 offscreen): a drawn ROI's table equals the headless :func:`polrig.app.roi.roi_statistics`, the
 line profile and CSV export, the virtual polarizer's sliders against
-:func:`polrig.optics.virtual_polarizer.virtual_polarizer_image`, the parameter-maps layer, and
+:func:`polrig.optics.virtual_polarizer.virtual_polarizer_image`, the parameter-maps layer (its
+maps computed on a worker thread, a stale result discarded), and
 the polarization-camera views (Imin/Imax, signed S1/S2, AoLP with DoLP as saturation or
 value, the colour wheel).
 
@@ -195,9 +196,14 @@ def test_virtual_polarizer_sliders_show_virtual_polarizer_image(qtbot, viewer):
     np.testing.assert_allclose(virtual_polarizer_image(m, None, None)[0], 0.5 * m[:, 0, 0], rtol=1e-6)
 
 
+def _maps_shown(v) -> bool:
+    return v.data.maps_ready() and v.view.image() is not None and not v.maps_busy
+
+
 def test_parameter_maps_layer_shows_the_maps_with_their_colormaps(qtbot, viewer):
     v = viewer
     v.display.setCurrentIndex(v.display.findData("maps"))
+    qtbot.waitUntil(lambda: _maps_shown(v), timeout=60000)  # computed on a worker thread
     maps = pa.image_maps(v.data.mueller, v.data.sigma)
     ok = pipeline.shown(v.data)
     for name in ("DL", "retardance_deg", "PL_axis_deg"):
@@ -220,6 +226,69 @@ def test_parameter_maps_layer_shows_the_maps_with_their_colormaps(qtbot, viewer)
     v.map_sigma.setChecked(True)
     assert "sigma DL" in v.histogram.label
     assert not np.array_equal(from_qimage(v.view.image())[:, :W], expect)
+
+
+def test_parameter_maps_are_computed_off_the_gui_thread_and_equal_image_maps(qtbot, viewer):
+    """The maps layer does not compute on the GUI thread: the view says "computing" until the
+    worker's signal delivers the maps, which equal :func:`pa.image_maps` bit for bit."""
+    import threading
+
+    from polrig.gui.viewer import COMPUTING_MAPS
+
+    v = viewer
+    data = v.data
+    threads = []
+    compute = data.compute_maps
+
+    def recorded():
+        threads.append(threading.get_ident())
+        return compute()
+
+    data.compute_maps = recorded
+    v._hovered(5, 5)
+    v.display.setCurrentIndex(v.display.findData("maps"))
+    assert v.maps_busy and not data.maps_ready()
+    assert v.view.image() is None and v.view.placeholder == COMPUTING_MAPS
+    v._hovered(5, 5)
+    assert COMPUTING_MAPS in v.readout.text()  # the readout does not compute them either
+    qtbot.waitUntil(lambda: _maps_shown(v), timeout=60000)
+    assert threads and threads[0] != threading.get_ident()
+    expect = pa.image_maps(data.mueller, data.sigma)
+    got = data.maps()
+    for name in pa.MAPS:
+        np.testing.assert_array_equal(got.values[name], expect.values[name])
+        np.testing.assert_array_equal(got.sigma[name], expect.sigma[name])
+    np.testing.assert_array_equal(got.flags, expect.flags)
+    rgb = pipeline.render(data, "maps", v.colour.currentData(), saturation_overlay=True,
+                          options=v.options())
+    np.testing.assert_array_equal(from_qimage(v.view.image()), rgb)
+    assert len(threads) == 1  # computed once; changing the map only renders
+    v.map_name.setCurrentIndex(v.map_name.findData("DL"))
+    assert len(threads) == 1 and v.view.image() is not None
+
+
+def test_a_stale_maps_result_is_discarded_when_the_file_changes(qtbot, viewer, tmp_path):
+    """Another file opened while the maps of the first are computed: the first's result is
+    dropped (never kept or shown) and the maps of the file shown are computed and shown."""
+    v = viewer
+    first = v.data
+    v.display.setCurrentIndex(v.display.findData("maps"))
+    assert v.maps_busy
+    other = tmp_path / "other.exr"
+    m = 500.0 * mu.linear_block(mu.retarder_at(np.full((H, W), 0.4), np.full((H, W), 1.1)))
+    img = np.moveaxis(m, (-2, -1), (0, 1))[None].astype(np.float32)
+    write_mueller_exr(other, img, extra=element_planes("sigma", np.full(img.shape, 2.0, np.float32)))
+    assert v.open_file(other)  # while the first file's worker still runs (no event handled)
+    assert v.data is not first
+    qtbot.waitUntil(lambda: _maps_shown(v), timeout=60000)
+    assert not first.maps_ready()  # the stale result was discarded
+    expect = pa.image_maps(v.data.mueller, v.data.sigma)
+    np.testing.assert_array_equal(v.data.maps().values["retardance_deg"],
+                                  expect.values["retardance_deg"])
+    np.testing.assert_allclose(expect.values["retardance_deg"], np.degrees(1.1), rtol=1e-5)
+    rgb = pipeline.render(v.data, "maps", v.colour.currentData(), saturation_overlay=True,
+                          options=v.options())
+    np.testing.assert_array_equal(from_qimage(v.view.image()), rgb)
 
 
 def test_stokes_views_imin_imax_signed_s1_s2_and_the_wheel(qtbot, tmp_path):

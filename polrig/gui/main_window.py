@@ -222,4 +222,5 @@ class MainWindow(QMainWindow):
         self.live_worker.stop()
         self.live_worker.wait(15000)
         self.devices.shutdown(wait_ms=65000)
+        self.viewer.shutdown()
         self.rig.close()

@@ -160,10 +160,25 @@ class PolarizationData:
         return out
 
     def maps(self) -> parameters.MapSet:
-        """The parameter maps of ``mueller`` with their sigma (from ``sigma``), computed once."""
-        if "maps" not in self._views:
-            self._views["maps"] = parameters.image_maps(self.mueller, self.sigma)
+        """The parameter maps of ``mueller`` with their sigma (from ``sigma``), computed once
+        (here, unless :meth:`set_maps` gave them: the viewer computes them on a worker thread,
+        :class:`polrig.gui.viewer.MapsWorker`)."""
+        if not self.maps_ready():
+            self.set_maps(self.compute_maps())
         return self._views["maps"]
+
+    def maps_ready(self) -> bool:
+        """True when :meth:`maps` returns without computing."""
+        return "maps" in self._views
+
+    def compute_maps(self) -> parameters.MapSet:
+        """:func:`polrig.optics.parameters.image_maps` of ``mueller`` and ``sigma``, not kept
+        (it only reads the data: safe on a worker thread while the GUI thread shows it)."""
+        return parameters.image_maps(self.mueller, self.sigma)
+
+    def set_maps(self, maps: parameters.MapSet) -> None:
+        """Keep the maps :meth:`compute_maps` returned (on the thread that shows the data)."""
+        self._views["maps"] = maps
 
     def min_max(self) -> tuple[np.ndarray, np.ndarray]:
         """``(Imin, Imax)`` ``(C, H, W)`` of ``stokes``

@@ -52,7 +52,8 @@ def analysis_views(app, viewer, shot) -> None:
     h, w = v.data.mueller.shape[-2:]
     v.display.setCurrentIndex(v.display.findData("maps"))
     v.map_name.setCurrentIndex(v.map_name.findData("retardance_deg"))
-    app.processEvents()
+    _wait(app, lambda: v.data.maps_ready() and v.view.image() is not None, 600.0,
+          "the parameter maps (computed on a worker thread)")
     v.roi.tool.setCurrentIndex(v.roi.tool.findData("line"))
     v.view.set_shape("line", [(0.1 * w, 0.8 * h), (0.9 * w, 0.2 * h)])
     v.roi.profile_quantity.setCurrentText("retardance_deg")

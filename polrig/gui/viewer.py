@@ -4,6 +4,14 @@ A session folder lists its captures' files (Mueller EXR, truth EXR on the simula
 frames); a Mueller or Stokes EXR opens on its own. Files are read with the core readers
 (:mod:`polrig.app.session`, :mod:`polrig.formats.exr`, :mod:`polrig.formats.rawio`) and shown through
 :mod:`polrig.gui.pipeline` (a raw frame is processed like a live frame).
+
+The parameter maps (display "Parameter map") take seconds at full sensor size
+(``benchmarks/results/analyze.md``), so they are computed off the GUI thread: a
+:class:`MapsWorker` (a ``QThread``, as the capture, calibration and device workers are) computes
+:meth:`pipeline.PolarizationData.compute_maps` and delivers the result by its ``done`` signal;
+the view says "computing parameter maps..." meanwhile and the rest of the viewer stays usable.
+One worker runs at a time; a result for data that is no longer shown (another file was opened)
+is discarded, and the maps of the data shown then are requested in turn.
 """
 
 from __future__ import annotations
@@ -11,7 +19,7 @@ from __future__ import annotations
 import pathlib
 
 import numpy as np
-from PySide6.QtCore import Qt, Signal
+from PySide6.QtCore import Qt, QThread, Signal
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -133,6 +141,31 @@ def _angle_slider() -> QSlider:
     return sl
 
 
+class MapsWorker(QThread):
+    """Computes the parameter maps of one :class:`pipeline.PolarizationData` off the GUI thread.
+    Signals: ``done(data, MapSet)``, ``failed(data, text)``; ``data`` is the object the maps
+    belong to, so that the receiver can tell a stale result."""
+
+    done = Signal(object, object)
+    failed = Signal(object, str)
+
+    def __init__(self, data: pipeline.PolarizationData, parent=None):
+        super().__init__(parent)
+        self.data = data
+
+    def run(self) -> None:
+        try:
+            maps = self.data.compute_maps()
+        except Exception as exc:  # noqa: BLE001 - a failure is a message, never a dead thread
+            self.failed.emit(self.data, f"{type(exc).__name__}: {exc}")
+            return
+        self.done.emit(self.data, maps)
+
+
+#: What the view shows while the parameter maps are computed.
+COMPUTING_MAPS = "computing parameter maps..."
+
+
 class ViewerPanel(QWidget):
     """Open a session or an EXR, pick an entry, choose the display."""
 
@@ -141,6 +174,8 @@ class ViewerPanel(QWidget):
     def __init__(self, parent=None):
         super().__init__(parent)
         self.data: pipeline.PolarizationData | None = None
+        #: the worker computing parameter maps, if one runs
+        self.maps_worker: MapsWorker | None = None
         self.path: pathlib.Path | None = None
         open_session = QPushButton("Open session...")
         open_exr = QPushButton("Open EXR...")
@@ -368,6 +403,52 @@ class ViewerPanel(QWidget):
             return None
         return "value"
 
+    # -- the parameter maps, off the GUI thread
+    @property
+    def maps_busy(self) -> bool:
+        """True while a :class:`MapsWorker` runs."""
+        return self.maps_worker is not None
+
+    def _request_maps(self) -> None:
+        """Start a worker for the maps of the data shown, unless one runs (when it ends,
+        :meth:`_maps_done` asks again for the data shown then)."""
+        if self.maps_worker is not None or self.data is None or self.data.maps_ready():
+            return
+        w = MapsWorker(self.data, self)
+        w.done.connect(self._maps_done)
+        w.failed.connect(self._maps_failed)
+        self.maps_worker = w
+        w.start()
+
+    def _worker_ended(self) -> None:
+        w, self.maps_worker = self.maps_worker, None
+        if w is not None:
+            w.wait()  # its run() has returned: the signal was its last act
+            w.deleteLater()
+
+    def _maps_done(self, data: pipeline.PolarizationData, maps) -> None:
+        self._worker_ended()
+        if data is not self.data:  # another file is shown now: discard, ask for its maps
+            if self.data is not None and self.display.currentData() == "maps":
+                self._request_maps()
+            return
+        data.set_maps(maps)
+        if self.display.currentData() == "maps":
+            self.refresh()
+
+    def _maps_failed(self, data: pipeline.PolarizationData, text: str) -> None:
+        self._worker_ended()
+        if data is self.data:
+            self.view.set_placeholder(f"parameter maps failed: {text}")
+            self.message.emit("error", f"viewer: parameter maps: {text}")
+        elif self.data is not None and self.display.currentData() == "maps":
+            self._request_maps()
+
+    def shutdown(self, wait_ms: int = 60000) -> bool:
+        """Wait for a running maps worker (numpy cannot be interrupted); True when none runs."""
+        w = self.maps_worker
+        return w is None or w.wait(wait_ms)
+
     def refresh(self, *_a) -> None:
         self._angle_labels()
         if self.data is None or self.display.currentData() is None:
@@ -375,6 +456,15 @@ class ViewerPanel(QWidget):
         display, colour = self.display.currentData(), self.colour.currentData()
         self.data.min_snr = self.min_snr.value()
         options = self.options()
+        data = self.data
+        self.roi.to_data = lambda pts: pipeline.display_to_data(data, display, pts)
+        if display == "maps" and not data.maps_ready():
+            self.view.set_image(None)
+            self.view.set_placeholder(COMPUTING_MAPS)
+            self.histogram.set_data(np.zeros(0), np.zeros(1), COMPUTING_MAPS)
+            self.wheel.set_mode(self._wheel_mode(display))
+            self._request_maps()
+            return
         try:
             rgb = pipeline.render(self.data, display, colour, saturation_overlay=True,
                                   options=options)
@@ -385,13 +475,14 @@ class ViewerPanel(QWidget):
             return
         self.view.set_image(to_qimage(rgb))
         self.wheel.set_mode(self._wheel_mode(display))
-        data = self.data
-        self.roi.to_data = lambda pts: pipeline.display_to_data(data, display, pts)
 
     def _hovered(self, x: int, y: int) -> None:
         if self.data is not None and x >= 0:
             self.data.min_snr = self.min_snr.value()
             display = self.display.currentData()
-            layer = pipeline.layer_readout(self.data, display, self.options(), x, y)
+            if display == "maps" and not self.data.maps_ready():
+                layer = COMPUTING_MAPS
+            else:
+                layer = pipeline.layer_readout(self.data, display, self.options(), x, y)
             text = pipeline.readout(self.data, display, x, y)
             self.readout.setText(f"{layer}\n{text}" if layer else text)

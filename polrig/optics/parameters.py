@@ -87,14 +87,17 @@ block; the values are reported, not clipped).
 **Uncertainty.** Every ``*_sigma`` result is the first-order (linearised) propagation of
 independent per-element standard deviations ``sigma (..., 3, 3)``:
 ``sigma_f^2 = sum_ij (df / dm_ij)^2 sigma_ij^2`` (a term with a zero derivative is zero even
-where ``sigma_ij`` is infinite). The Jacobians of ``m00``, ``DL``, ``PL``, their axes and the
-MMT parameters are analytic (closed forms, cheap); those of the singular values and the
-decomposition are forward finite differences, vectorised over pixels and taken one element at a
-time (nine extra evaluations; step ``1e-7 * max|m_ij|``: the truncation error is about ``1e-7``
-and the rounding error about ``1e-9`` of the derivative, far below what a sigma needs), because
-their closed-form derivatives (through the inverse diattenuator and the 2x2 singular value
-decomposition) are long and easy to get wrong; the tests check the finite-difference route
-against the analytic one on ``DL`` and every sigma against the spread of sampled errors. Angle differences are wrapped to their period. Linearisation is accurate where a
+where ``sigma_ij`` is infinite). Every Jacobian is analytic: closed forms for ``m00``, ``DL``,
+``PL``, their axes and the MMT parameters; for the singular values and the decomposition the
+chain rule through the 2x2 block, ``m -> n -> m' -> (E, F, G, H) -> map``
+(:func:`_chain_sigma`: each of those maps is a closed-form function of ``E, F, G, H``, which
+are linear in ``m'``, whose derivatives are written out in :func:`_dq_dn`; the ``m00``
+derivative follows from Euler's relation, every map being homogeneous of degree 0 in ``m``).
+Until 2026-11-28 these came from forward finite differences, the whole decomposition run nine
+more times; the analytic values equal them to the differences' truncation error (median
+relative 1e-7) at a fraction of the time (``benchmarks/results/analyze.md``). The tests check
+the chain rule against central differences of the maps, and every sigma against the spread of
+sampled errors. Linearisation is accurate where a
 map is smooth over the error's range: it fails near a map's boundary (``DL``, ``PL``, ``t1`` or
 the retardance near 0, where the estimate is biased upwards like a Rician amplitude) and for an
 axis whose magnitude is within its noise (its sigma is then large or infinite, which is
@@ -103,8 +106,10 @@ honest). ``docs/analysis.md`` reports the coverage measured on a simulated captu
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
-from typing import Mapping
+import os
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -128,6 +133,7 @@ __all__ = [
     "resolved",
     "MapSet",
     "image_maps",
+    "DEFAULT_WORKERS",
 ]
 
 #: Every map :func:`parameter_maps` returns, with its meaning and unit (also written into the
@@ -180,13 +186,12 @@ DECOMPOSITION_ASSUMPTION = (
     "the answer (docs/analysis.md)")
 #: How the ``sigma.*`` maps are computed (written into the output's header).
 SIGMA_METHOD = (
-    "first-order (linearised) propagation of the per-element sigma planes taken as independent: "
-    "analytic Jacobians for m00, DL, PL, their axes and the MMT parameters, forward finite "
-    "differences for sv1, sv2 and the decomposition; angle differences wrapped to their period "
-    "(docs/analysis.md)")
+    "first-order (linearised) propagation of the per-element sigma planes taken as independent, "
+    "with analytic Jacobians (closed forms for m00, DL, PL, their axes and the MMT parameters; "
+    "the chain rule through the 2x2 block for sv1, sv2 and the decomposition; infinite where a "
+    "map is not differentiable) (docs/analysis.md)")
 
 _DEG = 180.0 / np.pi
-_FD_REL_STEP = 1e-7
 _ASSUMED_K = 3.0  # anisotropy significant at this many sigma: DECOMP_ASSUMED
 _ANISOTROPY_TOL = 1e-9  # numerical floor of the anisotropy R (normalised block)
 _EXCESS_TOL = 1e-9  # numerical floor of Delta - 1
@@ -264,7 +269,8 @@ def _combine(terms) -> np.ndarray:
     total = 0.0
     with np.errstate(all="ignore"):
         for g, s in terms:
-            total = total + np.where(g == 0, 0.0, (g * s) ** 2)
+            term = (g * s) ** 2
+            total = total + (term if np.isfinite(s).all() else np.where(g == 0, 0.0, term))
     return np.sqrt(total)
 
 
@@ -395,7 +401,7 @@ def _decompose(m: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarr
         q12 = (a11 * i12 + a12 * i22 - p1 * d2) / k2
         q21 = (a21 * i11 + a22 * i12 - p2 * d1) / k2
         q22 = (a21 * i12 + a22 * i22 - p2 * d2) / k2
-        s1, _, (e, _, _, h, q, r) = _svd2(q11, q12, q21, q22)
+        s1, _, (e, f, g, h, q, r) = _svd2(q11, q12, q21, q22)
         ok = ok & (s1 > 0)
         delta = np.where(ok, s1, np.nan)
         retardance = 2.0 * np.arctan2(np.sqrt(r), np.sqrt(q))  # cos d = (Q - R) / (Q + R)
@@ -415,7 +421,9 @@ def _decompose(m: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarr
             "depolarization": np.where(ok, 1.0 - delta, nan),
             "rotation_deg": np.where(ok, rot, nan)}
     internal = {"defined": ok, "anisotropy": np.where(ok, r, nan),
-                "excess": np.where(ok, delta - 1.0, nan)}
+                "excess": np.where(ok, delta - 1.0, nan),
+                "parts": _DecompositionParts(n, d1, d2, p1, p2, k, k2, c, i11, i12, i22,
+                                             q11, q12, q21, q22, e, f, g, h, q, r)}
     return maps, internal
 
 
@@ -454,11 +462,11 @@ def decomposition_flags(m, sigma=None, *, k: float = _ASSUMED_K) -> np.ndarray:
     ``DECOMP_NONPHYSICAL`` where ``Delta > 1`` by more than ``k`` sigma (and 1e-9).
     """
     m = _blocks(m)
-    _, internal, base = _evaluate(m)
+    _, internal = _evaluate(m)
     sig = None
     if sigma is not None:
         s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), m.shape)
-        sig = _fd_sigma(m, s, ("anisotropy", "excess"), base)
+        sig = _chain_sigma(m, s, internal["parts"], ("anisotropy", "excess"))
     return _flags(internal, sig, k)
 
 
@@ -467,14 +475,14 @@ def parameter_maps(m) -> dict[str, np.ndarray]:
     """Every map of :data:`MAPS` (float64 ``(...)``) plus ``decomposition_flags`` (uint8,
     numerical tolerances; :func:`decomposition_flags` with sigma for measured blocks) of
     ``(..., 3, 3)`` blocks."""
-    out, internal, _ = _evaluate(_blocks(m))
+    out, internal = _evaluate(_blocks(m))
     out["decomposition_flags"] = _flags(internal, None, _ASSUMED_K)
     return out
 
 
 def _evaluate(m: np.ndarray):
-    """``(maps of MAPS, the decomposition's internal quantities, the values of _fd_maps)``,
-    each decomposition computed once."""
+    """``(maps of MAPS, the decomposition's internal quantities)`` (its intermediates under
+    ``"parts"``, :class:`_DecompositionParts`), the decomposition computed once."""
     out: dict[str, np.ndarray] = {"m00": m[..., 0, 0].copy()}
     out["DL"], out["DL_axis_deg"] = linear_diattenuation(m)
     out["PL"], out["PL_axis_deg"] = linear_polarizance(m)
@@ -482,61 +490,188 @@ def _evaluate(m: np.ndarray):
     out.update(mmt_parameters(m))
     maps, internal = _decompose(m)
     out.update(maps)
-    base = {name: out[name] for name in ("sv1", "sv2", *maps)}
-    base["anisotropy"], base["excess"] = internal["anisotropy"], internal["excess"]
-    return out, internal, base
+    return out, internal
 
 
-#: The quantities whose sigma is taken by finite differences (:func:`_fd_sigma`).
-_FD_NAMES = ("sv1", "sv2", "retardance_deg", "retardance_axis_deg", "depolarization",
-             "rotation_deg", "anisotropy", "excess")
+#: The quantities whose sigma goes through the chain rule of the 2x2 block (:func:`_chain_sigma`).
+_CHAIN_NAMES = ("sv1", "sv2", "retardance_deg", "retardance_axis_deg", "depolarization",
+                "rotation_deg", "anisotropy", "excess")
 
 
-def _fd_maps(m: np.ndarray) -> dict[str, np.ndarray]:
-    out: dict[str, np.ndarray] = {}
-    out["sv1"], out["sv2"] = frame_invariants(m)
-    maps, internal = _decompose(m)
-    out.update(maps)
-    out["anisotropy"], out["excess"] = internal["anisotropy"], internal["excess"]
+@dataclasses.dataclass
+class _DecompositionParts:
+    """The intermediate planes of :func:`_decompose` (``(...)`` each; names as in the module
+    docstring): the normalised block ``n``, ``D = (d1, d2)``, ``P = (p1, p2)``, ``k``,
+    ``k^2``, ``c = 1 / (1 + k)``, ``m_D = [[i11, i12], [i12, i22]]``, ``m' = [[q11, q12],
+    [q21, q22]]`` and its ``E, F, G, H, Q, R``."""
+
+    n: np.ndarray
+    d1: np.ndarray
+    d2: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+    k: np.ndarray
+    k2: np.ndarray
+    c: np.ndarray
+    i11: np.ndarray
+    i12: np.ndarray
+    i22: np.ndarray
+    q11: np.ndarray
+    q12: np.ndarray
+    q21: np.ndarray
+    q22: np.ndarray
+    e: np.ndarray
+    f: np.ndarray
+    g: np.ndarray
+    h: np.ndarray
+    q: np.ndarray
+    r: np.ndarray
+
+
+def _dq_dn(p: _DecompositionParts) -> dict[tuple[int, int], tuple]:
+    """``d(q11, q12, q21, q22) / dn_ij`` of ``m' = (a m_D - P D^T) / k^2`` for the eight
+    elements ``(i, j) != (0, 0)`` of the normalised block (``a`` its lower 2x2 block; a 0 entry
+    is an exact zero). With ``dk / dD_l = -D_l / k`` and ``dc / dD_l = c^2 D_l / k``:
+    ``dm_D / dD_l = -(D_l / k) I + c (e_l D^T + D e_l^T) + (c^2 D_l / k) D D^T`` and
+    ``dm' / dD_l = (a dm_D / dD_l - P e_l^T + 2 D_l m') / k^2``."""
+    n, d1, d2, p1, p2 = p.n, p.d1, p.d2, p.p1, p.p2
+    a11, a12, a21, a22 = n[..., 1, 1], n[..., 1, 2], n[..., 2, 1], n[..., 2, 2]
+    inv = 1.0 / p.k2  # NaN where the decomposition is undefined
+    out: dict[tuple[int, int], tuple] = {
+        (1, 1): (p.i11 * inv, p.i12 * inv, 0.0, 0.0),
+        (1, 2): (p.i12 * inv, p.i22 * inv, 0.0, 0.0),
+        (2, 1): (0.0, 0.0, p.i11 * inv, p.i12 * inv),
+        (2, 2): (0.0, 0.0, p.i12 * inv, p.i22 * inv),
+        (1, 0): (-d1 * inv, -d2 * inv, 0.0, 0.0),
+        (2, 0): (0.0, 0.0, -d1 * inv, -d2 * inv),
+    }
+    for col, dl in ((1, d1), (2, d2)):
+        w = p.c * p.c * dl / p.k
+        j11 = -dl / p.k + w * d1 * d1
+        j12 = w * d1 * d2
+        j22 = -dl / p.k + w * d2 * d2
+        if col == 1:
+            j11, j12 = j11 + 2.0 * p.c * d1, j12 + p.c * d2
+        else:
+            j22, j12 = j22 + 2.0 * p.c * d2, j12 + p.c * d1
+        # - P e_l^T: p1, p2 in column l only
+        p1_1, p1_2 = (p1, 0.0) if col == 1 else (0.0, p1)
+        p2_1, p2_2 = (p2, 0.0) if col == 1 else (0.0, p2)
+        out[(0, col)] = ((a11 * j11 + a12 * j12 - p1_1 + 2 * dl * p.q11) * inv,
+                         (a11 * j12 + a12 * j22 - p1_2 + 2 * dl * p.q12) * inv,
+                         (a21 * j11 + a22 * j12 - p2_1 + 2 * dl * p.q21) * inv,
+                         (a21 * j12 + a22 * j22 - p2_2 + 2 * dl * p.q22) * inv)
     return out
 
 
-def _fd_sigma(m: np.ndarray, s: np.ndarray, names: tuple[str, ...] = _FD_NAMES,
-              base: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-    """Forward-difference linearised sigma of ``names`` of :func:`_fd_maps` (``base``: their
-    values at ``m``, if already known)."""
-    finite = np.isfinite(m)
-    scale = np.max(np.where(finite, np.abs(np.where(finite, m, 0.0)), 0.0), axis=(-2, -1))
-    scale = np.where(scale > 0, scale, 1.0)
-    h = _FD_REL_STEP * scale
-    base = _fd_maps(m) if base is None else base
-    var = {name: np.zeros(m.shape[:-2]) for name in names}
-    work = m.copy()
+def _unit(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y) / r``; at ``r = 0`` (a cone point of ``r = |(x, y)|``) the convention of
+    :func:`_magnitude_axis_sigma`: every direction has slope 1."""
     with np.errstate(all="ignore"):
-        for i in range(3):
-            for j in range(3):
-                work[..., i, j] = m[..., i, j] + h
-                step = _fd_maps(work)
-                work[..., i, j] = m[..., i, j]
-                for name in names:
-                    diff = step[name] - base[name]
-                    period = ANGLE_PERIOD_DEG.get(name)
-                    if period is not None:
-                        diff = np.mod(diff + 0.5 * period, period) - 0.5 * period
-                    g = diff / h
-                    var[name] = var[name] + np.where(g == 0, 0.0, (g * s[..., i, j]) ** 2)
-    return {name: np.sqrt(v) for name, v in var.items()}
+        return np.where(r > 0, x / r, np.sqrt(0.5)), np.where(r > 0, y / r, np.sqrt(0.5))
+
+
+def _accumulate(var: dict, euler: dict, name: str, grad, m_ij, s_ij, s_finite: bool) -> None:
+    """Add ``(grad s_ij)^2`` to ``var[name]`` (a zero gradient adds 0 even where ``s_ij`` is
+    infinite) and ``m_ij grad`` to ``euler[name]``."""
+    term = (grad * s_ij) ** 2 if s_finite else np.where(grad == 0, 0.0, (grad * s_ij) ** 2)
+    var[name] = var[name] + term
+    euler[name] = euler[name] + m_ij * grad
+
+
+def _chain_sigma(m: np.ndarray, s: np.ndarray, parts: _DecompositionParts,
+                 names: tuple[str, ...] = _CHAIN_NAMES) -> dict[str, np.ndarray]:
+    """Analytic linearised sigma of ``names`` (of :data:`_CHAIN_NAMES`) by the chain rule
+    ``m -> n -> m' -> (E, F, G, H) -> map``, and for ``sv1``, ``sv2``: ``n``'s lower block
+    ``-> (E, F, G, H) -> map`` (:func:`_svd2`).
+
+    In ``E, F, G, H``: ``dQ = (E dE + H dH) / Q``, ``dR = (F dF + G dG) / R`` (at a cone point
+    ``Q = 0`` or ``R = 0`` every direction has slope 1, as in :func:`_magnitude_axis_sigma`);
+    ``Delta = s1 = Q + R``, ``s2 = Q - R``; the retardance ``2 atan2(sqrt R, sqrt Q)`` has
+    ``d = (Q dR - R dQ) / (sqrt(RQ) (Q + R))``; the rotation ``atan2(H, E) / 2`` and the axis
+    ``(atan2(G, F) - atan2(H, E)) / 4`` (the axis of ``L = Rot(-rho) A`` in the module
+    docstring is the angle of ``(F, G)`` turned by ``-2 rho``) have
+    ``d atan2(y, x) = (x dy - y dx) / (x^2 + y^2)``. Every map is homogeneous of degree 0 in
+    ``m``, so the ``m00`` derivative follows from the others (Euler):
+    ``dX/dm00 = -sum_{ij != 00} m_ij dX/dm_ij / m00``. Where a map is not differentiable (the
+    retardance at ``R = 0`` or ``Q = 0``, the axis and rotation where the angle they follow
+    has magnitude 0) its sigma is infinite.
+    """
+    m00 = m[..., 0, 0]
+    want = set(names)
+    var: dict[str, object] = {name: 0.0 for name in names}
+    euler: dict[str, object] = {name: 0.0 for name in names}
+    with np.errstate(all="ignore"):
+        inv00 = 1.0 / m00
+        p = parts
+        ue, uh = _unit(p.e, p.h, p.q)
+        uf, ug = _unit(p.f, p.g, p.r)
+        kr = _DEG / (np.sqrt(p.r * p.q) * (p.q + p.r))
+        q2, r2 = p.q * p.q, p.r * p.r
+        # the sigma of sv1, sv2 from n's lower block (E', F', G', H')
+        if want & {"sv1", "sv2"}:
+            n = p.n
+            en, hn = 0.5 * (n[..., 1, 1] + n[..., 2, 2]), 0.5 * (n[..., 2, 1] - n[..., 1, 2])
+            fn, gn = 0.5 * (n[..., 1, 1] - n[..., 2, 2]), 0.5 * (n[..., 2, 1] + n[..., 1, 2])
+            sue, suh = _unit(en, hn, np.hypot(en, hn))
+            suf, sug = _unit(fn, gn, np.hypot(fn, gn))
+            # d(E', F', G', H') / dn_ij of the lower block: dQ' and dR' per element
+            for (i, j), de, df, dg, dh in (((1, 1), 0.5, 0.5, 0.0, 0.0),
+                                           ((2, 2), 0.5, -0.5, 0.0, 0.0),
+                                           ((1, 2), 0.0, 0.0, 0.5, -0.5),
+                                           ((2, 1), 0.0, 0.0, 0.5, 0.5)):
+                dq_ = (sue * de + suh * dh) * inv00
+                dr_ = (suf * df + sug * dg) * inv00
+                fin = bool(np.isfinite(s[..., i, j]).all())
+                for name, grad in (("sv1", dq_ + dr_), ("sv2", dq_ - dr_)):
+                    if name in want:
+                        _accumulate(var, euler, name, grad, m[..., i, j], s[..., i, j], fin)
+        decomposition = want - {"sv1", "sv2"}
+        if decomposition:
+            for (i, j), (d11, d12, d21, d22) in _dq_dn(p).items():
+                de, df = 0.5 * (d11 + d22) * inv00, 0.5 * (d11 - d22) * inv00
+                dg, dh = 0.5 * (d21 + d12) * inv00, 0.5 * (d21 - d12) * inv00
+                dq_, dr_ = ue * de + uh * dh, uf * df + ug * dg
+                fin = bool(np.isfinite(s[..., i, j]).all())
+                turn = ((p.e * dh - p.h * de) / q2  # d atan2(H, E)
+                        if want & {"rotation_deg", "retardance_axis_deg"} else None)
+                for name in decomposition:
+                    if name == "excess":
+                        grad = dq_ + dr_
+                    elif name == "depolarization":
+                        grad = -(dq_ + dr_)
+                    elif name == "anisotropy":
+                        grad = dr_
+                    elif name == "retardance_deg":
+                        grad = kr * (p.q * dr_ - p.r * dq_)
+                    elif name == "rotation_deg":
+                        grad = 0.5 * _DEG * turn
+                    else:  # retardance_axis_deg
+                        grad = 0.25 * _DEG * ((p.f * dg - p.g * df) / r2 - turn)
+                    _accumulate(var, euler, name, grad, m[..., i, j], s[..., i, j], fin)
+        fin00 = bool(np.isfinite(s[..., 0, 0]).all())
+        out = {}
+        for name in names:
+            g00 = -euler[name] * inv00
+            term = (g00 * s[..., 0, 0]) ** 2
+            out[name] = np.sqrt(var[name] + (term if fin00 else np.where(g00 == 0, 0.0, term)))
+        cone_q, cone_r = p.q == 0, p.r == 0
+        for name, cone in (("retardance_deg", cone_q | cone_r), ("rotation_deg", cone_q),
+                           ("retardance_axis_deg", cone_q | cone_r)):
+            if name in out:
+                out[name] = np.where(cone, np.inf, out[name])
+    return out
 
 
 def _all_sigmas(m: np.ndarray, s: np.ndarray,
-                base: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-    """Sigma of every map and of the flags' internal quantities (``base``: :func:`_evaluate`'s
-    values of the finite-difference quantities, if known)."""
+                parts: _DecompositionParts) -> dict[str, np.ndarray]:
+    """Sigma of every map and of the flags' internal quantities (``parts``: the intermediates
+    of :func:`_decompose` at ``m``)."""
     out: dict[str, np.ndarray] = {"m00": s[..., 0, 0].copy()}
     out["DL"], out["DL_axis_deg"] = _magnitude_axis_sigma(m, s, (0, 1), (0, 2))
     out["PL"], out["PL_axis_deg"] = _magnitude_axis_sigma(m, s, (1, 0), (2, 0))
     out.update(_mmt_sigma(m, s))
-    out.update(_fd_sigma(m, s, _FD_NAMES, base))
+    out.update(_chain_sigma(m, s, parts))
     return out
 
 
@@ -546,8 +681,8 @@ def parameter_sigmas(m, sigma) -> dict[str, np.ndarray]:
     NaN where the map is NaN or a sigma it depends on is NaN). Method: the module docstring."""
     m = _blocks(m)
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), m.shape)
-    values, _, base = _evaluate(m)
-    out = _all_sigmas(m, s, base)
+    values, internal = _evaluate(m)
+    out = _all_sigmas(m, s, internal["parts"])
     return {name: np.where(np.isnan(values[name]), np.nan, out[name]) for name in MAPS}
 
 
@@ -610,14 +745,23 @@ class MapSet:
     flags: np.ndarray
 
 
+#: Default of :func:`image_maps`'s ``workers``: threads over bands (numpy releases the GIL).
+DEFAULT_WORKERS = max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                             else (os.cpu_count() or 1)))
+
+
 def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
-               band_pixels: int = 1 << 16) -> MapSet:
+               band_pixels: int = 1 << 14, workers: int | None = None) -> MapSet:
     """Every map of a Mueller image ``(C, 3, 3, H, W)`` (plane-first, ``docs/conventions.md``)
     and, with ``sigma`` of the same shape (the result's ``sigma.M{rc}`` planes), their
     linearised standard deviations; the decomposition flags use them
-    (:func:`decomposition_flags` with significance ``k``). Computed in float64 over bands of
-    about ``band_pixels`` pixels (times colours) so that memory stays bounded at full sensor
-    size; returned as float32."""
+    (:func:`decomposition_flags` with significance ``k``). Returned as float32.
+
+    Computed in float64 over bands of image rows of about ``band_pixels`` pixels (times
+    colours), on ``workers`` threads (default :data:`DEFAULT_WORKERS`): the memory beyond the
+    input and the output is that of ``workers`` bands' intermediates (tens of MB), whatever the
+    image size. Every pixel's numbers depend on that pixel only and on no reduction, so the
+    result is the same to the bit for any band size and thread count."""
     img = np.asarray(mueller)
     if img.ndim != 5 or img.shape[1:3] != (3, 3):
         raise ValueError(f"Mueller images must have shape (C, 3, 3, H, W), got {img.shape}")
@@ -627,17 +771,29 @@ def image_maps(mueller, sigma=None, *, k: float = _ASSUMED_K,
     sigmas = {name: np.empty((c, h, w), np.float32) for name in MAPS} if sig is not None else {}
     flags = np.empty((c, h, w), np.uint8)
     rows = max(1, int(band_pixels) // max(1, w * c))
-    for r0 in range(0, h, rows):
+
+    def band(r0: int) -> None:
         r1 = min(h, r0 + rows)
         mb = np.moveaxis(img[..., r0:r1, :].astype(np.float64), (1, 2), (-2, -1))
-        vals, internal, base = _evaluate(mb)
+        vals, internal = _evaluate(mb)
         sb = None
         if sig is not None:
             sb = _all_sigmas(mb, np.moveaxis(sig[..., r0:r1, :].astype(np.float64),
-                                             (1, 2), (-2, -1)), base)
+                                             (1, 2), (-2, -1)), internal["parts"])
             for name in MAPS:
                 sigmas[name][:, r0:r1] = np.where(np.isnan(vals[name]), np.nan, sb[name])
         for name in MAPS:
             values[name][:, r0:r1] = vals[name]
         flags[:, r0:r1] = _flags(internal, sb, k)
+
+    starts = range(0, h, rows)
+    n_threads = min(len(starts), max(1, int(workers or DEFAULT_WORKERS)))
+    if n_threads < 2:
+        for r0 in starts:
+            band(r0)
+    else:
+        with concurrent.futures.ThreadPoolExecutor(n_threads,
+                                                   thread_name_prefix="polrig-maps") as pool:
+            for done in pool.map(band, starts):
+                del done  # re-raises a band's exception here
     return MapSet(values, sigmas, flags)
