@@ -12,8 +12,8 @@ states at equal capture time. Extra arguments go to ``python -m polrig.models.co
 ``python benchmarks/bench_continuum.py --plot-only`` redraws ``continuum.png`` from the committed
 ``continuum.json`` alone (seconds). ``--rig`` scores the default simulated rig's scenes at its size
 instead (:data:`polrig.models.continuum.RIG_SCENES` at the 128x128 analyzer grid of its 512x512
-colour sensor, turntable 0 and 135 deg, the states searched at 64x64; about 6 min on 2 shared
-CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``).
+colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; about 6 min on 2
+shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``).
 """
 
 from __future__ import annotations

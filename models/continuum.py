@@ -46,7 +46,7 @@ states), choosing among the 15 deg offsets (one frame each). **Acquisition time*
 (:func:`acquisition_time_s`): the simulated rig's hardware time of one pose taking a method's
 states (stage motion, exposure, readout), with its states per pose.
 
-**The rig's size** (``--rig-scenes [LIST] [--rig-poses 0,135] [--size N]``, :func:`rig_set`):
+**The rig's size** (``--rig-scenes [LIST] [--rig-poses 0,60,...] [--size N]``, :func:`rig_set`):
 instead of the held-out sets, the default simulated rig's named scenes (:data:`RIG_SCENES`) at
 its analyzer grid (:func:`rig_size`: 128x128, its 512x512 colour sensor over the 4x4 mosaic), one
 sample per turntable angle, with the dataset's random polarizer state, exposure and noise
@@ -112,7 +112,7 @@ ADAPTIVE_MAX_STATES = 4
 #: ``benchmarks/bench_single_shot.py``'s ``RIG_SCENES``) and turntable poses (deg) scored at the
 #: rig's size.
 RIG_SCENES = ("sphere", "rough_sphere", "checker_sphere", "box", "multi", "heightfield", "plane", "normalmap")
-RIG_POSES_DEG = (0.0, 135.0)
+RIG_POSES_DEG = (0.0, 60.0, 120.0, 180.0, 240.0, 300.0)
 #: The simulated rig's states searched at 64x64 (``benchmarks/results/continuum.json``): ``--rig``
 #: takes them as given.
 RIG_TWO, RIG_THREE = (0, 90), (0, 60, 120)
@@ -581,8 +581,9 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
                    f"--rig-scenes {','.join(rig_scenes)} --rig-poses {','.join(f'{p:g}' for p in rig_poses)} "
                    f"--size {n} --two {','.join(map(str, two))} --three {','.join(map(str, three))}")
         what = (f"{count} samples per set at {n}x{n}" if rig_scenes is None else
-                f"the default simulated rig's scenes at {n}x{n} (its 512x512 colour sensor's analyzer grid when "
-                f"{rig_size()}), one sample per turntable angle {', '.join(f'{p:g}' for p in rig_poses)} deg "
+                f"the default simulated rig's scenes at {n}x{n}"
+                + (" (the analyzer grid of its 512x512 colour sensor)" if n == rig_size() else "")
+                + f", one sample per turntable angle {', '.join(f'{p:g}' for p in rig_poses)} deg "
                 "(models/continuum.py `rig_set`)")
         atomic_write_text(out_md, "# From one state to four: single-shot, hybrid, reference\n\n"
                           f"`python -m polrig.models.continuum {command}"
