@@ -46,6 +46,18 @@ states), choosing among the 15 deg offsets (one frame each). **Acquisition time*
 (:func:`acquisition_time_s`): the simulated rig's hardware time of one pose taking a method's
 states (stage motion, exposure, readout), with its states per pose.
 
+**The rig's size** (``--rig-scenes [LIST] [--rig-poses 0,60,...] [--size N]``, :func:`rig_set`):
+instead of the held-out sets, the default simulated rig's named scenes (:data:`RIG_SCENES`) at
+its analyzer grid (:func:`rig_size`: 128x128, its 512x512 colour sensor over the 4x4 mosaic), one
+sample per turntable angle, with the dataset's random polarizer state, exposure and noise
+(:func:`polrig.sim.dataset.capture_sample`) and the states searched at 64x64 (:data:`RIG_TWO`,
+:data:`RIG_THREE`).
+
+**The trade plot** (:func:`plot_trade`, written beside ``--out`` as ``.png``; ``--plot-only
+FILE.json`` redraws it from a results JSON alone): matrix PSNR and forward Stokes L2 against the
+acquisition time per pose, a point per set and method and the median over the sets with its
+range.
+
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
 unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
@@ -96,6 +108,14 @@ VARIANTS = ("marginal", "naive", "exclude")
 ADAPTIVE_TARGETS = (0.05, 0.03)
 ADAPTIVE_SHARE = 0.95
 ADAPTIVE_MAX_STATES = 4
+#: The default simulated rig's scenes (``--rig``: those of the single-shot rig benchmark,
+#: ``benchmarks/bench_single_shot.py``'s ``RIG_SCENES``) and turntable poses (deg) scored at the
+#: rig's size.
+RIG_SCENES = ("sphere", "rough_sphere", "checker_sphere", "box", "multi", "heightfield", "plane", "normalmap")
+RIG_POSES_DEG = (0.0, 60.0, 120.0, 180.0, 240.0, 300.0)
+#: The simulated rig's states searched at 64x64 (``benchmarks/results/continuum.json``): ``--rig``
+#: takes them as given.
+RIG_TWO, RIG_THREE = (0, 90), (0, 60, 120)
 #: The simulated rig's stage acceleration (deg/s^2, :class:`polrig.sim.devices.SimStage`'s
 #: default) and camera readout (us per frame, :class:`polrig.sim.devices.SimCamera`'s), for the
 #: acquisition time (:func:`acquisition_time_s`).
@@ -127,6 +147,40 @@ def rotated_state(s: np.ndarray, offset_deg: float) -> np.ndarray:
     t = np.deg2rad(2.0 * offset_deg)
     c, sn = np.cos(t), np.sin(t)
     return np.array([s[0], c * s[1] - sn * s[2], sn * s[1] + c * s[2]])
+
+
+def rig_size() -> int:
+    """The default simulated rig's analyzer grid side (pixels): its sensor's side
+    (:data:`polrig.sim.options.DEFAULTS`, 512x512) over its mosaic's period (4x4 for the colour
+    IMX250MYR), the grid the networks run on (``--network-binning 1``)."""
+    from polrig.sensor.layouts import get_layout
+    from polrig.sim.options import DEFAULTS, parse_size
+
+    w, h = parse_size(DEFAULTS["size"])
+    ph, pw = get_layout(DEFAULTS["sensor"]).period
+    return min(w // pw, h // ph)
+
+
+def rig_set(name: str, size: int, poses_deg: Sequence[float], seed: int = 0):
+    """The named scene ``name`` (:data:`polrig.sim.scene.SCENES`, in the default rig:
+    :func:`polrig.sim.scene.make_scene`) at ``size x size`` as a set of one sample per turntable
+    angle of ``poses_deg`` (:func:`polrig.sim.dataset.capture_sample`: the dataset's polarizer
+    state, exposure and sensor noise drawn from ``(seed, pose index)``); a
+    :class:`polrig.models.data.Dataset` in memory."""
+    from polrig.models.data import Dataset
+    from polrig.sim.dataset import capture_sample, dataset_sensor_model
+    from polrig.sim.scene import FAMILIES, make_scene
+
+    model = dataset_sensor_model()
+    scene = make_scene(name, size, size)
+    family = FAMILIES.index(name) if name in FAMILIES else -1
+    samples = [capture_sample(scene, np.random.default_rng([seed, j]), model=model, index=j, family=family,
+                              turntable_deg=float(p)) for j, p in enumerate(poses_deg)]
+    arrays = {k: np.stack([np.asarray(x[k]) for x in samples]) for k in samples[0]}
+    for k in ("analyzer", "normal", "kd", "wi", "wo", "alpha", "s_in", "mueller", "stage_zero_axis", "mask"):
+        arrays[k] = np.ascontiguousarray(arrays[k], dtype=np.float32)  # as load_dataset gives them
+    return Dataset(arrays, {"noise": {"sensor_model": dataclasses.asdict(model)}, "scene": name,
+                            "poses_deg": [float(p) for p in poses_deg], "width": size, "height": size})
 
 
 def make_set(root: pathlib.Path, name: str, kwargs: dict, count: int) -> pathlib.Path:
@@ -320,12 +374,14 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
     return out
 
 
-def _samples(data_dir, net):
-    """``(dataset, sensor model, [(index, network prior)])`` of a set's lit samples."""
-    from polrig.models.data import check_network_size, lit_samples, load_dataset
+def _samples(data, net):
+    """``(dataset, sensor model, [(index, network prior)])`` of a set's lit samples (``data``: a
+    dataset folder or a :class:`polrig.models.data.Dataset`)."""
+    from polrig.models.data import Dataset, check_network_size, lit_samples, load_dataset
     from polrig.sensor.noise import SensorModel
 
-    ds = load_dataset(data_dir)
+    data_dir = data if not isinstance(data, Dataset) else f"scene {data.manifest.get('scene', '?')}"
+    ds = data if isinstance(data, Dataset) else load_dataset(data)
     check_network_size(ds, data_dir)
     sensor = SensorModel(**ds.manifest["noise"]["sensor_model"])
     for i in lit_samples(ds):
@@ -385,7 +441,8 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
             *est, taken = adaptive(fr, target)
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
     n = len(rows["single"])
-    return {"data": str(data_dir), "samples": n, "methods": {k: _mean(v) for k, v in rows.items()},
+    return {"data": str(data_dir) if not hasattr(data_dir, "manifest") else
+            f"scene {data_dir.manifest.get('scene')} at poses {data_dir.manifest.get('poses_deg')}", "samples": n, "methods": {k: _mean(v) for k, v in rows.items()},
             "seconds": time.perf_counter() - t0}
 
 
@@ -412,7 +469,7 @@ def markdown(result: dict) -> str:
         for key, r in result["sets"].items():
             m = r["methods"]
             cells = [fmt.format(m[c][metric]).replace("%", " %") for c, _ in cols]
-            row = f"| {SETS[key][0]} | {r['samples']} | " + " | ".join(cells) + " |"
+            row = f"| {set_label(key)} | {r['samples']} | " + " | ".join(cells) + " |"
             if psnr_table:
                 row += (f" {m['hybrid2'][metric] - m['single'][metric]:+.2f} |"
                         f" {m['hybrid4'][metric] - m['hybrid3'][metric]:+.2f} |"
@@ -430,7 +487,7 @@ def markdown(result: dict) -> str:
                   "| set | " + " | ".join(c[1] for c in timed) + " |", "|---|" + "---:|" * len(timed)]
         for key, r in result["sets"].items():
             m = r["methods"]
-            lines.append(f"| {SETS[key][0]} | " + " | ".join(f"{m[c]['states']:.2f} / {m[c]['time_s']:.2f} s"
+            lines.append(f"| {set_label(key)} | " + " | ".join(f"{m[c]['states']:.2f} / {m[c]['time_s']:.2f} s"
                                                            for c, _ in timed) + " |")
         lines.append("")
     lines += ["**The seen state's treatment** (matrix PSNR dB / within 2 sigma; 1 state, and 2 states "
@@ -441,15 +498,21 @@ def markdown(result: dict) -> str:
         m = r["methods"]
         cell = lambda k: f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} %"  # noqa: E731
         keys = ("hybrid1", "marginal1", "naive1", "exclude1", "hybrid2", "marginal2", "naive2", "exclude2")
-        lines.append(f"| {SETS[key][0]} | " + " | ".join(cell(k) for k in keys) + " |")
+        lines.append(f"| {set_label(key)} | " + " | ".join(cell(k) for k in keys) + " |")
     return "\n".join(lines)
 
 
 def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], seed: int = 0,
         weights_dir=None, two=None, three=None, echo=print,
-        targets: Sequence[float] = ADAPTIVE_TARGETS) -> dict:
+        targets: Sequence[float] = ADAPTIVE_TARGETS, rig_scenes: Sequence[str] | None = None,
+        rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None) -> dict:
     """Generate the sets, search the states (unless ``two`` and ``three`` are given), evaluate,
-    write ``out_md`` and its ``.json`` (when given)."""
+    write ``out_md``, its ``.json`` and the accuracy-against-time plot (:func:`plot_trade`,
+    ``.png``) when given.
+
+    ``rig_scenes``: instead of ``sets``, the default rig's named scenes at ``size`` (default
+    :func:`rig_size`), one sample per turntable angle of ``rig_poses`` (:func:`rig_set`), with
+    the states ``two`` and ``three`` (default :data:`RIG_TWO`, :data:`RIG_THREE`: not searched)."""
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
     from polrig.models.evaluate import results_paths
@@ -458,8 +521,24 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     if count < 1 or search_count < 1:
         raise ConfigError(f"--count and --search-count must be >= 1, got {count} and {search_count}")
     unknown = [s for s in sets if s not in SETS]
-    if unknown:
+    if unknown and rig_scenes is None:
         raise ConfigError(f"unknown set(s) {', '.join(unknown)}; sets are {', '.join(SETS)}")
+    if rig_scenes is not None:
+        from polrig.sim.scene import SCENES
+
+        bad = [n for n in rig_scenes if n not in SCENES]
+        if bad or not rig_scenes:
+            raise ConfigError(f"--rig-scenes: unknown scene(s) {', '.join(bad) or '(none given)'}; scenes are "
+                              f"{', '.join(SCENES)}")
+        if not rig_poses:
+            raise ConfigError("--rig-poses: give at least one turntable angle")
+        size = rig_size() if size is None else int(size)
+        if size < 8 or size % 8:
+            raise ConfigError(f"--size must be a positive multiple of 8 (the networks' size multiple), got {size}")
+        two, three = two or RIG_TWO, three or RIG_THREE
+        sets = [f"rig_{n}" for n in rig_scenes]
+    elif size is not None:
+        raise ConfigError("--size goes with --rig-scenes (the held-out sets are 64x64)")
     if out_md is not None:
         out_md, out_json = results_paths(out_md)
     root = pathlib.Path(root)
@@ -467,7 +546,7 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     if net.uncertainty is None:
         raise ConfigError("the single-shot graph has no calibrated uncertainty (models/weights/uncertainty.json)")
     t0 = time.perf_counter()
-    result: dict = {"count": count, "size": SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
+    result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size or SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
                     "adaptive_targets": list(targets)}
     if two is None or three is None:
         dirs = [make_set(root, name, kw, search_count if "all" in name else max(1, search_count // 2))
@@ -476,9 +555,12 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
         two = two or tuple(result["search"]["best_two"])
         three = three or tuple(result["search"]["best_three"])
     result["offsets"] = {"two": list(two), "three": list(three), "four": list(FOUR_STATES)}
+    if rig_scenes is not None:
+        result["rig"] = {"scenes": list(rig_scenes), "poses_deg": [float(p) for p in rig_poses]}
     result["sets"] = {}
     for tag, name in enumerate(sets):
-        d = make_set(root, name, SETS[name][1], count)
+        d = (make_set(root, name, SETS[name][1], count) if rig_scenes is None
+             else rig_set(name[len("rig_"):], size, rig_poses, seed))
         r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets)
         result["sets"][name] = r
         m = r["methods"]
@@ -493,14 +575,31 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     if out_md is not None:
         out_md.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        plot_trade(result, out_md.with_suffix(".png"))
+        n = result["size"]
+        command = (f"--count {count} --search-count {search_count}" if rig_scenes is None else
+                   f"--rig-scenes {','.join(rig_scenes)} --rig-poses {','.join(f'{p:g}' for p in rig_poses)} "
+                   f"--size {n} --two {','.join(map(str, two))} --three {','.join(map(str, three))}")
+        what = (f"{count} samples per set at {n}x{n}" if rig_scenes is None else
+                f"the default simulated rig's scenes at {n}x{n}"
+                + (" (the analyzer grid of its 512x512 colour sensor)" if n == rig_size() else "")
+                + f", one sample per turntable angle {', '.join(f'{p:g}' for p in rig_poses)} deg "
+                "(models/continuum.py `rig_set`)")
         atomic_write_text(out_md, "# From one state to four: single-shot, hybrid, reference\n\n"
-                          f"`python -m polrig.models.continuum --count {count} --search-count {search_count}"
+                          f"`python -m polrig.models.continuum {command}"
                           f" --targets {','.join(f'{t:g}' for t in targets)}`"
                           " (models/continuum.py: sets, frames, metrics and variants in its docstring). "
-                          f"{count} samples per set at {SIZE}x{SIZE} (those with a lit object pixel scored); "
+                          f"{what} (those with a lit object pixel scored); "
                           f"{_search_line(result)}{result['seconds']:.0f} s on {os.cpu_count()} CPUs "
                           "(shipped network on onnxruntime, CPU).\n\n" + table + "\n")
     return result
+
+
+def set_label(key: str) -> str:
+    """A set's row label: :data:`SETS`' label, or ``"<scene> (default rig)"`` for ``rig_<scene>``."""
+    if key in SETS:
+        return SETS[key][0]
+    return f"{key[len('rig_'):]} (default rig)" if key.startswith("rig_") else key
 
 
 def _search_line(result: dict) -> str:
@@ -511,6 +610,118 @@ def _search_line(result: dict) -> str:
     return ("states searched on " + f"{s['samples']} samples (PSNR over unclipped pixels; best 2-state sets "
             + ", ".join(f"{k} {v:.2f}" for k, v in best("two")) + " dB; best 3-state sets "
             + ", ".join(f"{k} {v:.2f}" for k, v in best("three")) + " dB); ")
+
+
+#: The methods of the trade plot (:func:`trade_points`): result key, label, marker; then one
+#: row per adaptive target (``adaptive_<t>``) in the result.
+TRADE_METHODS = (("single", "single-shot", "o"), ("hybrid1", "hybrid 1", "v"), ("hybrid2", "hybrid 2", "s"),
+                 ("hybrid3", "hybrid 3", "^"), ("hybrid4", "hybrid 4", "D"), ("reference3", "reference 3", "<"),
+                 ("reference4", "reference 4", ">"), ("hybrid3_4frames", "hybrid 3 x 4 frames", "P"),
+                 ("hybrid4_3frames", "hybrid 4 x 3 frames", "X"))
+#: The trade plot's panels: result metric, axis label.
+TRADE_METRICS = (("matrix_psnr", "matrix PSNR (dB), object pixels"), ("fwd_l2", "forward Stokes L2 (rel.)"))
+
+
+def trade_methods(result: dict) -> list[tuple[str, str, str]]:
+    """``(key, label, marker)`` of the methods :func:`trade_points` plots: those of
+    :data:`TRADE_METHODS` every set of ``result`` holds, then its adaptive targets."""
+    sets = list(result["sets"].values())
+    have = lambda k: all(k in s["methods"] for s in sets)  # noqa: E731
+    rows = [m for m in TRADE_METHODS if have(m[0])]
+    adaptive_keys = sorted((k for k in (sets[0]["methods"] if sets else {}) if k.startswith("adaptive_") and have(k)),
+                           key=lambda k: -float(k.split("_", 1)[1]))
+    return rows + [(k, f"adaptive {k.split('_', 1)[1]}", m) for k, m in zip(adaptive_keys, "*hp8")]
+
+
+def trade_points(result: dict) -> list[dict]:
+    """The trade's points: one per set and method (:func:`trade_methods`) of a :func:`run`
+    result (or its JSON), each ``{"set", "method", "label", "time_s", "states"}`` and the
+    :data:`TRADE_METRICS` (time in seconds per pose, :func:`acquisition_time_s`).
+    :class:`ValueError` when there is none (no set, or no trade method every set holds)."""
+    if not trade_methods(result) or not result["sets"]:
+        raise ValueError("no set holds the trade's methods (" + ", ".join(k for k, _, _ in TRADE_METHODS) + ")")
+    out = []
+    for name, r in result["sets"].items():
+        for key, label, _ in trade_methods(result):
+            m = r["methods"][key]
+            out.append({"set": name, "method": key, "label": label, "time_s": float(m["time_s"]),
+                        "states": float(m["states"])} | {k: float(m[k]) for k, _ in TRADE_METRICS})
+    return out
+
+
+def trade_figure(result: dict):
+    """The accuracy-against-time figure of a :func:`run` result: one panel per
+    :data:`TRADE_METRICS` against the acquisition time per pose (the L2 on a log axis); a small point per set
+    (one colour per set) and method (one marker per method), and per method the median over the
+    sets with its range (min..max, both axes). Returns ``(figure, points)`` (:func:`trade_points`)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+
+    points = trade_points(result)
+    methods = trade_methods(result)
+    sets = list(result["sets"])
+    colours = {s: plt.get_cmap("tab10")(i % 10) for i, s in enumerate(sets)}
+    fig, axes = plt.subplots(1, len(TRADE_METRICS), figsize=(12, 5.2), constrained_layout=True)
+    for ax, (metric, title) in zip(np.atleast_1d(axes), TRADE_METRICS):
+        for key, label, marker in methods:
+            rows = [p for p in points if p["method"] == key]
+            t = np.array([p["time_s"] for p in rows])
+            y = np.array([p[metric] for p in rows])
+            ax.scatter(t, y, s=14, marker=marker, c=[colours[p["set"]] for p in rows], alpha=0.8, linewidths=0)
+            tm, ym = float(np.median(t)), float(np.median(y))
+            ax.errorbar([tm], [ym], xerr=[[tm - t.min()], [t.max() - tm]], yerr=[[ym - y.min()], [y.max() - ym]],
+                        fmt=marker, ms=8, mfc="none", mec="black", ecolor="0.35", elinewidth=0.8, capsize=2)
+        ax.set_xlim(left=-0.3)
+        ax.set_xlabel("acquisition time per pose (s, simulated rig)")
+        ax.set_ylabel(title)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.axvline(0.0, color="0.6", lw=0.5)
+        if metric == "fwd_l2":
+            ax.set_yscale("log")
+    handles = [Line2D([], [], ls="none", marker=m, mfc="none", mec="black", ms=7, label=lab) for _, lab, m in methods]
+    handles += [Line2D([], [], ls="none", marker="o", color=colours[s], ms=6, label=set_label(s)) for s in sets]
+    fig.legend(handles=handles, loc="outside right center", fontsize=7, frameon=False)
+    fig.suptitle(f"Speed against accuracy: {len(sets)} sets at {result.get('size', SIZE)}x{result.get('size', SIZE)}"
+                 " (open black: median over the sets, bars: min..max)", fontsize=10)
+    return fig, points
+
+
+def plot_trade(result: dict, path) -> list[dict]:
+    """Write :func:`trade_figure` of ``result`` to ``path`` (PNG); returns its points."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    from polrig.atomic import atomic_write_bytes
+
+    fig, points = trade_figure(result)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write_bytes(pathlib.Path(path), buf.getvalue())
+    return points
+
+
+def plot_from_json(path) -> pathlib.Path:
+    """Draw :func:`plot_trade` of a results JSON (:func:`run`'s) next to it as ``.png``; returns
+    the PNG's path. :class:`polrig.errors.ConfigError` (one line naming the file) unless it is a
+    readable results JSON."""
+    from polrig.errors import ConfigError
+
+    path = pathlib.Path(path)
+    try:
+        result = json.loads(path.read_text())
+        trade_points(result)
+    except FileNotFoundError:
+        raise ConfigError(f"--plot-only {path}: no such file") from None
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ConfigError(f"--plot-only {path}: not a continuum results JSON ({type(exc).__name__}: {exc})") from None
+    png = path.with_suffix(".png")
+    plot_trade(result, png)
+    return png
 
 
 def _offsets(text: str | None, n: int) -> tuple[int, ...] | None:
@@ -544,11 +755,36 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--targets", default=",".join(f"{t:g}" for t in ADAPTIVE_TARGETS),
                     help="the adaptive capture's relative sigma targets, comma separated (default "
                          + ",".join(f"{t:g}" for t in ADAPTIVE_TARGETS) + ")")
+    ap.add_argument("--rig-scenes", default=None, nargs="?", const=",".join(RIG_SCENES),
+                    help="score the default rig's named scenes at its size instead of the held-out sets "
+                         f"(default {','.join(RIG_SCENES)}; states --two/--three default "
+                         f"{','.join(map(str, RIG_TWO))} and {','.join(map(str, RIG_THREE))}, not searched)")
+    ap.add_argument("--rig-poses", default=",".join(f"{p:g}" for p in RIG_POSES_DEG),
+                    help="turntable angles (deg) of --rig-scenes, one sample each (default "
+                         + ",".join(f"{p:g}" for p in RIG_POSES_DEG) + ")")
+    ap.add_argument("--size", type=int, default=None,
+                    help="image side of --rig-scenes (default: the rig's analyzer grid, 128)")
+    ap.add_argument("--plot-only", metavar="JSON", default=None,
+                    help="only draw the accuracy-against-time plot of a results JSON (written next to it as .png)")
     args = ap.parse_args(argv)
+    if args.plot_only is not None:
+        return run_main(ap.prog, lambda: print(plot_from_json(args.plot_only)) or 0)
     return run_main(ap.prog, lambda: (run(args.root, args.out, count=args.count, search_count=args.search_count,
                                           sets=[s for s in args.sets.split(",") if s], seed=args.seed,
                                           weights_dir=args.weights, two=_offsets(args.two, 2),
-                                          three=_offsets(args.three, 3), targets=_targets(args.targets)), 0)[1])
+                                          three=_offsets(args.three, 3), targets=_targets(args.targets),
+                                          rig_scenes=None if args.rig_scenes is None else
+                                          [n for n in args.rig_scenes.split(",") if n],
+                                          rig_poses=_poses(args.rig_poses), size=args.size), 0)[1])
+
+
+def _poses(text: str) -> tuple[float, ...]:
+    from polrig.errors import ConfigError
+
+    try:
+        return tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ConfigError(f"--rig-poses: give turntable angles in degrees, comma separated, got {text!r}") from None
 
 
 def _targets(text: str) -> tuple[float, ...]:

@@ -237,9 +237,25 @@ def make_sample(index: int, *, seed: int, width: int, height: int, holdout: bool
     if stage_zero_axes == "random":
         axis_rng = np.random.default_rng([int(seed), int(bool(holdout)), int(index), 1])
         scene = dataclasses.replace(scene, stage_zero_axis=sample_stage_zero_axis(scene, axis_rng))
+    return capture_sample(scene, rng, model=model, index=index, family=family,
+                          indirect_samples=indirect_samples,
+                          indirect_seed=indirect_seed_for(seed, holdout, index) if indirect_samples else 0)
+
+
+def capture_sample(scene: Scene, rng: np.random.Generator, *, model: SensorModel | None = None,
+                   index: int = 0, family: int = -1, turntable_deg: float | None = None,
+                   indirect_samples: int = 0, indirect_seed: int = 0) -> dict[str, Any]:
+    """One sample of ``scene`` (the arrays of :data:`SHARD_ARRAYS` without the ``N`` axis, as
+    :func:`make_sample` describes them): rendered at the turntable angle ``turntable_deg``
+    (degrees; ``None``: drawn from ``rng``, uniform in [0, 360)), then from ``rng`` the polarizer
+    state, the exposure and the sensor noise. ``alpha``, ``eta`` and ``material_kind`` are those
+    of the scene's first material (a random scene's one material; a named scene
+    (:func:`polrig.sim.scene.make_scene`) may have more). ``family``: the index in
+    :data:`polrig.sim.scene.FAMILIES`, -1 for none."""
+    model = model or dataset_sensor_model()
     material = scene.materials[0]  # the sample's one material (every object has it)
-    res = render(scene, float(rng.uniform(0.0, 360.0)), indirect_samples=int(indirect_samples),
-                 indirect_seed=indirect_seed_for(seed, holdout, index) if indirect_samples else 0)
+    pose = float(rng.uniform(0.0, 360.0)) if turntable_deg is None else float(turntable_deg)
+    res = render(scene, pose, indirect_samples=int(indirect_samples), indirect_seed=int(indirect_seed))
     stage_deg = float(rng.uniform(0.0, 180.0))
     gen = Generator(0.0, float(np.exp(rng.uniform(np.log(200.0), np.log(3000.0)))))
     s_in = gen.incident_stokes(stage_deg)

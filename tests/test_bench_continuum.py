@@ -23,3 +23,24 @@ def test_a_tiny_run_writes_the_tables(tmp_path):
     text = out.read_text()
     assert "--count 2 --search-count 2" in text and "seen families" in text
     assert "hybrid 2 - single" in text and out.with_suffix(".json").is_file()
+
+
+def test_plot_only_redraws_the_committed_plot_from_its_json(tmp_path):
+    """``--plot-only [JSON]`` draws the plot beside the JSON from the JSON alone: the committed
+    table's 8 sets x 11 methods (single-shot, hybrid 1-4, reference 3/4, the two equal-time
+    rows, adaptive at two targets)."""
+    import json
+    import shutil
+
+    from benchmarks import bench_continuum
+    from polrig.models import continuum
+
+    src = bench_continuum.RESULTS.with_suffix(".json")
+    copy = tmp_path / "continuum.json"
+    shutil.copy(src, copy)
+    assert bench_continuum.main(["--plot-only", str(copy)]) == 0
+    assert (tmp_path / "continuum.png").is_file()
+    result = json.loads(src.read_text())
+    assert len(continuum.trade_points(result)) == 8 * 11
+    assert bench_continuum.RIG_RESULTS.with_suffix(".json").is_file()
+    assert bench_continuum.RIG_DEFAULTS[:2] == ["--rig-scenes", ",".join(continuum.RIG_SCENES)]

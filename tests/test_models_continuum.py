@@ -95,6 +95,10 @@ def test_frames_are_the_sensor_models(tmp_path):
     (["--sets", "nowhere", "--two", "0,90", "--three", "0,60,120"], "nowhere"),
     (["--two", "0,7"], "offsets"),
     (["--three", "15,60,120"], "the first 0"),
+    (["--size", "128"], "--size goes with --rig-scenes"),
+    (["--rig-scenes", "sphere,nowhere"], "nowhere"),
+    (["--rig-scenes", "sphere", "--size", "60"], "multiple of 8"),
+    (["--rig-scenes", "sphere", "--rig-poses", "a"], "--rig-poses"),
 ])
 def test_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, argv, needle):
     from polrig.models.continuum import main
@@ -103,3 +107,95 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, argv, needl
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and err.count("\n") == 1
+
+
+def _small_result(adaptive=("0.05",)) -> dict:
+    """A results JSON of two sets with every trade method (distinct values per set and method)."""
+    from polrig.models.continuum import TRADE_METHODS
+
+    keys = [k for k, _, _ in TRADE_METHODS] + [f"adaptive_{t}" for t in adaptive] + ["naive1"]
+    sets = {}
+    for j, name in enumerate(("conductors", "rig_sphere")):
+        sets[name] = {"samples": 3, "methods": {
+            k: {"matrix_psnr": 30.0 + i + 0.5 * j, "fwd_l2": 0.01 * (i + 1) + 0.001 * j, "states": 1 + i % 4,
+                "time_s": 0.02 + i + 0.1 * j, "coverage": 0.95, "matrix_psnr_unclipped": 40.0}
+            for i, k in enumerate(keys)}}
+    return {"size": 64, "sets": sets}
+
+
+def test_trade_points_map_the_json_and_the_plot_draws_each(tmp_path):
+    """One point per set and trade method (the seen state's variants left out), with the JSON's
+    numbers; the figure draws each of them once per panel and a median per method; the PNG is
+    written from the JSON alone."""
+    import matplotlib.image
+
+    from polrig.models import continuum
+
+    result = _small_result(("0.05", "0.03"))
+    pts = continuum.trade_points(result)
+    n_methods = len(continuum.TRADE_METHODS) + 2
+    assert len(pts) == 2 * n_methods and not any(p["method"] == "naive1" for p in pts)
+    assert [p["method"] for p in pts[-2:]] == ["adaptive_0.05", "adaptive_0.03"]  # the looser target first
+    for p in pts:
+        m = result["sets"][p["set"]]["methods"][p["method"]]
+        assert (p["time_s"], p["matrix_psnr"], p["fwd_l2"], p["states"]) == \
+            (m["time_s"], m["matrix_psnr"], m["fwd_l2"], m["states"])
+    fig, _ = continuum.trade_figure(result)
+    for ax in fig.axes:
+        scattered = sum(len(c.get_offsets()) for c in ax.collections if c.get_offsets().ndim == 2
+                        and type(c).__name__ == "PathCollection")
+        assert scattered == len(pts)
+        assert len(ax.containers) == n_methods  # one median with its range per method
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(result))
+    png = continuum.plot_from_json(path)
+    assert png == tmp_path / "r.png"
+    img = matplotlib.image.imread(png)
+    assert img.shape[0] > 300 and img.shape[1] > 600 and img[..., :3].std() > 0.05
+
+
+def test_trade_medians_and_ranges_over_the_sets():
+    from polrig.models import continuum
+
+    fig, _ = continuum.trade_figure(_small_result())
+    ax = fig.axes[0]
+    single = ax.containers[0].lines[0]  # the first method's median: single-shot
+    assert single.get_xdata()[0] == pytest.approx(0.07) and single.get_ydata()[0] == pytest.approx(30.25)
+
+
+def test_plot_only_cli_and_its_bad_input(tmp_path, capsys):
+    from polrig.models.continuum import main
+
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(_small_result()))
+    assert main(["--plot-only", str(good)]) == 0 and (tmp_path / "good.png").is_file()
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"sets": {"x": {"methods": {}}}}')
+    assert main(["--plot-only", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "not a continuum results JSON" in err and err.count("\n") == 1
+    assert main(["--plot-only", str(tmp_path / "none.json")]) == 2
+
+
+def test_rig_set_is_the_default_rigs_scene_at_its_size():
+    """The rig's analyzer grid is its 512x512 colour sensor over the 4x4 mosaic; a rig set's
+    frames are the truth seen through its polarizer state plus the sensor model's noise (chi^2
+    per unclipped value near 1), one pose per sample."""
+    from polrig.models import continuum
+    from polrig.sensor.noise import SensorModel
+    from polrig.sim.dataset import DATASET_EXPOSURE_US
+    from polrig.sim.world import ideal_analyzer_images
+
+    assert continuum.rig_size() == 128
+    ds = continuum.rig_set("box", 32, (0.0, 135.0), seed=3)
+    assert len(ds) == 2 and ds.shape == (32, 32) and ds["mueller"].shape == (2, 3, 3, 3, 32, 32)
+    assert not np.array_equal(ds["mask"][0], ds["mask"][1])  # the box turned
+    sensor = SensorModel(**ds.manifest["noise"]["sensor_model"])
+    for i in range(2):
+        scale = float(ds["scale"][i])
+        clean = ideal_analyzer_images(np.einsum("cijhw,j->cihw", ds["mueller"][i].astype(np.float64),
+                                                ds["s_in"][i].astype(np.float64))) * scale
+        meas = ds["analyzer"][i].astype(np.float64) * scale
+        ok = (ds["mask"][i] > 0)[None, None] & (meas < sensor.saturation_dn - 100)
+        chi2 = ((meas - clean) ** 2 / sensor.variance_dn2(np.clip(clean, 0, None), DATASET_EXPOSURE_US, 1))[ok]
+        assert ok.sum() > 100 and 0.7 < chi2.mean() < 1.4
