@@ -120,6 +120,8 @@ def test_the_parser_offers_what_the_library_accepts():
     stokes = _options(parser, "stokes")
     assert stokes["--layout"].choices == sorted(LAYOUTS)
     assert tuple(stokes["--demosaic"].choices) == METHODS
+    for command in ("capture", "infer", "reconstruct"):
+        assert tuple(_options(parser, command)["--demosaic"].choices) == METHODS
     assert stokes["--min-snr"].default == MIN_SNR
     capture = _options(parser, "capture")
     assert tuple(capture["--exr-compression"].choices) == tuple(COMPRESSIONS)

@@ -19,6 +19,7 @@ import sys
 from typing import Iterator
 
 from polrig.choices import (
+    DEMOSAIC_METHODS,
     EXR_COMPRESSIONS,
     EXR_UNCERTAINTY_PRECISIONS,
     NETWORK_BINNINGS,
@@ -63,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dark-frames", type=int, default=None,
                    help="dark frames (light off) per pose and exposure (default 0: subtract "
                         "the camera's black level only)")
-    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+    p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method for processing (default superpixel: no interpolated "
                         "values, exact propagated uncertainty)")
     p.add_argument("--resolution", choices=("superpixel", "full"), default=None,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 
-from polrig.choices import NETWORK_BINNINGS
+from polrig.choices import DEMOSAIC_METHODS, NETWORK_BINNINGS
 from polrig.cli.commands.capture import add_model_size_option
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (
@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
     p.add_argument("--state-deg", type=finite_float, required=True, help="polarizer stage angle of the capture (deg)")
     p.add_argument("--out", required=True, help="output EXR path")
-    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+    p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method (default superpixel: the sensor's native sampling; bilinear "
                         "with --resolution full). bilinear/newton at the default resolution run the "
                         "networks on the full-resolution demosaic (slow: resized to 1.5 Mpx)")
