@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from polrig.choices import MATERIAL_KINDS, MATERIAL_MIXES
 from polrig.sim.optical_data import CONDUCTORS, WAVELENGTHS_NM
 
 
@@ -262,18 +263,6 @@ class SurfaceMaterial:
 # ---------------------------------------------------------------------------------------------
 # Random materials of the dataset mixes (issue 23, item 4)
 
-#: Kinds of random material: ``baek`` is the initialization's family (:func:`random_material`);
-#: the others are outside it (:func:`random_surface_material`).
-MATERIAL_KINDS = ("baek", "conductor", "dispersive", "anisotropic", "film", "depolarizing")
-#: Named mixes: kind -> probability. ``baek`` is the default (datasets as before); ``train``
-#: is the training mix; ``heldout`` draws only the kinds the training mix leaves out (a thin
-#: retarding film, partial depolarization with textures); a single kind is also a mix.
-MATERIAL_MIXES: dict[str, dict[str, float]] = {
-    "baek": {"baek": 1.0},
-    "train": {"baek": 0.4, "conductor": 0.2, "dispersive": 0.2, "anisotropic": 0.2},
-    "heldout": {"film": 0.5, "depolarizing": 0.5},
-    **{k: {k: 1.0} for k in MATERIAL_KINDS if k != "baek"},
-}
 #: Fraunhofer d, F and C lines (nm) of the Abbe number.
 _LINES_NM = (587.5618, 486.1327, 656.2725)
 

@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from polrig.choices import MATERIAL_SCENES, SCENES
 from polrig.sim.geometry import (
     PinholeCamera,
     PointLight,
@@ -322,15 +323,6 @@ def _material_scene_objects(name: str, c: np.ndarray) -> list[SceneObject]:
     raise ValueError(name)  # pragma: no cover - MATERIAL_SCENES is exhaustive
 
 
-#: Scenes with materials outside the Baek 2018 family (:class:`SurfaceMaterial`); ``plastic_metal``
-#: (a sphere, half red plastic, half aluminium: the adaptive capture's test scene, issue 33 item 2)
-#: mixes the two and is used for fitting nothing.
-MATERIAL_SCENES = ("gold_sphere", "chrome_sphere", "brushed_cylinder", "dispersive_sphere",
-                   "film_plane", "textured_blob", "metals", "corner", "crater", "plastic_metal")
-
-SCENES = ("sphere", "diffuse_sphere", "mirror_sphere", "rough_sphere", "checker_sphere",
-          "plane", "box", "cylinder", "multi", "heightfield", "normalmap", "blob",
-          "torus") + MATERIAL_SCENES
 
 
 def make_scene(name: str = "sphere", width: int = 512, height: int = 512, *,

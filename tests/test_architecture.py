@@ -38,7 +38,7 @@ PACKAGE_DIRS = {"polrig": "polrig", "polrig.drivers": "drivers", "polrig.sim": "
 #: The layers, bottom up (docs/architecture.md). A module's layer is that of the longest entry
 #: that is the module or one of its packages; ``polrig`` itself (the version) is the bottom.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("polrig", "polrig.errors", "polrig.atomic"),  # foundation: version, errors, atomic writes
+    ("polrig", "polrig.errors", "polrig.atomic", "polrig.choices"),  # foundation: version, errors, atomic writes, CLI vocabularies
     ("polrig.optics",),
     ("polrig.sensor",),
     ("polrig.formats",),

@@ -34,6 +34,7 @@ import dataclasses
 import math
 from typing import Any, Callable, Iterable, Sequence, Union
 
+from polrig.choices import NETWORK_BINNINGS
 from polrig.errors import ConfigError
 from polrig.formats.exr import (
     COMPRESSIONS,
@@ -82,10 +83,6 @@ FULL_RESOLUTION_SINGLE_SHOT_ONLY = ("only the single-shot method has a full-reso
 #: Why a full-resolution single-shot output refuses the superpixel demosaic.
 FULL_RESOLUTION_NEEDS_DETAIL = ("takes its detail from a full-resolution demosaic (bilinear or newton), "
                                 "not superpixel")
-#: Network binnings of the single-shot method (:attr:`SingleShotOptions.network_binning`): 1 runs
-#: the networks on the analyzer grid, 2 on that grid binned 2x2 with the answer lifted back by
-#: the grid's measured detail (:func:`polrig.models.full_resolution.reconstruct_binned`).
-NETWORK_BINNINGS = (1, 2)
 NETWORK_BINNING_SINGLE_SHOT_ONLY = ("network binning applies to the single-shot method only (the "
                                     "reference method runs no network)")
 #: Why the hybrid method refuses what leaves the network's sigma uncalibrated (NaN): its prior

@@ -16,7 +16,6 @@ import pathlib
 from typing import Callable
 
 from polrig.errors import ConfigError
-from polrig.formats.config import axis_problem
 
 
 def finite_float(text: str) -> float:
@@ -62,6 +61,7 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
 def axis_vector(text: str) -> tuple[float, float, float]:
     """``x,y,z``: three finite numbers, not all zero (a direction; the same rule as the rig
     configuration's axes, :func:`polrig.formats.config.axis_problem`)."""
+    from polrig.formats.config import axis_problem  # here: config needs NumPy, parser start-up does not
 
     try:
         parts = [float(p) for p in text.split(",")]

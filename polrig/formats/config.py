@@ -44,10 +44,10 @@ import tomllib
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from polrig.choices import DEVICE_KINDS
 from polrig.errors import ConfigError
 from polrig.sensor.noise import SensorModel
 
-DEVICE_KINDS = ("camera", "stage", "turntable", "light")
 EXTRA_TABLES = ("sim", "sensor_model", "nominal_geometry")
 #: Keys of the ``[nominal_geometry]`` table: ``intrinsics`` ``[fx, fy, cx, cy]`` (pixels of the full
 #: sensor readout, OpenCV pinhole, ``docs/conventions.md`` "Image coordinates") and

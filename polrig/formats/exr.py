@@ -47,6 +47,7 @@ import numpy as np
 import OpenEXR
 
 from polrig.atomic import temporary_sibling, write_error
+from polrig.choices import OPTIONAL_PLANES, PLANE_GROUPS, RESULT_PLANES
 from polrig.errors import FormatError
 from polrig.formats.rawio import check_input_file
 from polrig.optics.conventions import CONVENTIONS_VERSION, MONO, RGB
@@ -57,14 +58,6 @@ _PREFIX = "polrig:"
 #: Compression choices of :func:`write_exr` (OpenEXR's names, lower case).
 COMPRESSIONS = {"zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
                 "none": OpenEXR.NO_COMPRESSION}
-#: Plane groups of a reconstruction (:func:`result_planes`); ``mueller`` is always written.
-RESULT_PLANES = ("mueller", "sigma", "sigma_noise", "mask", "residual")
-#: Plane groups written only on request, by the method that has them: ``geometry``, the
-#: single-shot networks' surface normal, diffuse albedo, roughness and light direction
-#: (:meth:`polrig.app.single_shot.SingleShotResult.extra_planes`).
-OPTIONAL_PLANES = ("geometry",)
-#: Every plane group a result file may hold, in file order.
-PLANE_GROUPS = RESULT_PLANES + OPTIONAL_PLANES
 #: Precision choices of the uncertainty planes (``sigma``, ``sigma_noise``, ``residual``).
 UNCERTAINTY_PRECISIONS = {"float": np.float32, "half": np.float16}
 

@@ -49,6 +49,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from polrig.atomic import temporary_sibling
+from polrig.choices import OME_UNITS
 
 __all__ = ["NGFF_VERSIONS", "OmeImage", "write_ome_tiff", "write_ome_zarr", "channel_colour"]
 
@@ -58,8 +59,9 @@ NGFF_VERSIONS = {"0.4": 2, "0.5": 3}
 MISSING_EXTRA = "OME-Zarr and OME-TIFF export need zarr and tifffile: pip install 'polrig[export]'"
 #: Display colour (hex RGB) of a channel by its colour suffix.
 _COLOURS = {"R": "FF0000", "G": "00FF00", "B": "0000FF", "Y": "FFFFFF"}
-#: Spatial units the writers accept (NGFF names; OME-XML symbols).
-UNITS = {"micrometer": "µm", "millimeter": "mm", "nanometer": "nm", "meter": "m"}
+#: Spatial units the writers accept (NGFF names; OME-XML symbols; defined in
+#: :mod:`polrig.choices`, the command line's start-up vocabulary).
+UNITS = OME_UNITS
 #: Largest (Y, X) chunk edge of the OME-Zarr arrays.
 CHUNK = 1024
 #: Most values per plane the display windows are taken from (an even subsample beyond).

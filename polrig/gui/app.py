@@ -12,12 +12,13 @@ from typing import Any, Iterator
 from polrig.app.rig import build_rig, load_rig_config
 from polrig.app.session import Interrupted
 from polrig.app.single_shot import SingleShot
+from polrig.choices import GUI_SIM_SIZE
 from polrig.errors import ConfigError, PolrigError
 
 #: Simulated sensor size of the GUI's built-in rig (width x height). Smaller than a real
 #: IMX250 (2448x2048): the simulator renders every new pose, which at full size takes
 #: seconds; ``polrig gui --sim-size 2448x2048`` gives the full size.
-DEFAULT_SIM_SIZE = "512x512"
+DEFAULT_SIM_SIZE = GUI_SIM_SIZE  # defined in polrig.choices (the command line's start-up vocabulary)
 
 
 def check_qt_binding(pyside_version: str, python: tuple[int, int]) -> None:

@@ -50,9 +50,10 @@ import threading
 import cv2
 import numpy as np
 
+from polrig.choices import DEMOSAIC_METHODS
 from polrig.sensor.layouts import ANALYZER_ANGLES_DEG, MosaicLayout
 
-METHODS = ("superpixel", "bilinear", "newton")
+METHODS = DEMOSAIC_METHODS  # defined in polrig.choices (the command line's start-up vocabulary)
 _BORDER = cv2.BORDER_REFLECT_101
 
 #: Newton 1-D kernel taps at offsets -3..3 (Li et al. 2019, Eqs. 14-17 simplified).

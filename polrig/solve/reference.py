@@ -110,6 +110,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from polrig.choices import MIN_SNR
 from polrig.errors import ConfigError
 from polrig.sensor.noise import SensorModel
 from polrig.sensor.stokes import ideal_analyzer_matrix
@@ -123,8 +124,6 @@ __all__ = [
 ]
 
 DARK = 1  #: m00 below ``min_snr`` standard deviations (estimate kept)
-#: Default ``min_snr``: a signal below this many noise standard deviations is ``DARK``.
-MIN_SNR = 3.0
 SATURATED = 2  #: some samples excluded by the validity mask (saturated or bad)
 ILL_CONDITIONED = 4  #: remaining samples do not determine M (estimate set to 0)
 NONFINITE = 8  #: some samples had a non-finite value or a non-finite/non-positive variance

@@ -8,10 +8,12 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
-from polrig.acquisition.hal import DeviceInfo
 from polrig.formats.argcheck import positive_float
+
+if TYPE_CHECKING:
+    from polrig.acquisition.hal import DeviceInfo
 
 
 def add_config_argument(p: argparse.ArgumentParser) -> None:

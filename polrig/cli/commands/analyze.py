@@ -14,13 +14,14 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (check_output_file, check_output_folder, finite_float,
                                      nonnegative_float, positive_float)
+
+if TYPE_CHECKING:
+    import numpy as np
 
 #: Where the per-element sigma comes from (``--sigma``).
 SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
@@ -140,6 +141,8 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
                  k: float = 3.0, sfp: dict | None = None) -> str:
     """Write the maps EXR of one Mueller result (with the shape-from-polarization normals of
     ``sfp``, ``{"ior", "reflection", "intrinsics"}``, where given); return the summary line."""
+    import numpy as np
+
     from polrig.formats.exr import channel_suffixes, colour_planes, read_mueller_exr, write_exr
     from polrig.optics import parameters as pa
 
@@ -210,6 +213,8 @@ def _normal_planes(mueller: np.ndarray, sfp: dict, planes: dict[str, np.ndarray]
                    described: dict[str, str]) -> str:
     """Add the shape-from-polarization planes of ``mueller`` ``(C, 3, 3, H, W)`` to ``planes``
     and their descriptions to ``described``; return the summary's addition."""
+    import numpy as np
+
     from polrig.formats.exr import colour_planes
     from polrig.optics import shape_from_polarization as sp
 
@@ -243,6 +248,8 @@ def _element_sigma(extra: dict[str, np.ndarray], sfx: tuple[str, ...], source: s
                    ) -> tuple[np.ndarray | None, str | None]:
     """``(C, 3, 3, H, W)`` per-element sigma from the ``{source}.M{rc}.{ch}`` planes, or None
     (with a note when the file lacks them)."""
+    import numpy as np
+
     from polrig.formats.exr import element_stack
 
     if source == "none":

@@ -18,7 +18,15 @@ import pathlib
 import sys
 from typing import Iterator
 
+from polrig.choices import (
+    DEMOSAIC_METHODS,
+    EXR_COMPRESSIONS,
+    EXR_UNCERTAINTY_PRECISIONS,
+    NETWORK_BINNINGS,
+    PLANE_GROUPS,
+)
 from polrig.errors import ConfigError
+from polrig.models.sizes import CHOICES as MODEL_SIZES
 
 POSES_HELP = ("turntable poses in degrees: a list 0,30,60 or a range START:STOP:STEP with STOP "
               "exclusive (0:360:90 = 0, 90, 180, 270)")
@@ -56,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dark-frames", type=int, default=None,
                    help="dark frames (light off) per pose and exposure (default 0: subtract "
                         "the camera's black level only)")
-    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+    p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method for processing (default superpixel: no interpolated "
                         "values, exact propagated uncertainty)")
     p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
@@ -66,7 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "sigma at full resolution; models/full_resolution.py)")
     add_binning_option(p, "default 1")
     add_exr_options(p, "default: mueller,sigma,sigma_noise,mask,residual (all)",
-                    "default half", "default zip")  # polrig.acquisition.plan.ExrChoice (not imported: start-up)
+                    "default half", "default zip")  # polrig.acquisition.plan.ExrChoice
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None,
                    help="where the single-shot network runs: auto (CUDA where onnxruntime offers it, "
                         "else the CPU; default), cpu or cuda (refused when unavailable); the provider "
@@ -153,16 +161,12 @@ def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
     """``--network-binning {1,2}``: the single-shot networks on the analyzer grid or on that
     grid binned 2x2 (:attr:`polrig.acquisition.plan.CapturePlan.network_binning`; ``capture`` and
     ``reconstruct`` share it)."""
-    p.add_argument("--network-binning", type=int, choices=(1, 2), default=None,  # plan.NETWORK_BINNINGS
+    p.add_argument("--network-binning", type=int, choices=NETWORK_BINNINGS, default=None,
                    help="single-shot: 1 runs the networks on the analyzer grid; 2 on that grid binned "
                         "2x2, the answer lifted back with the grid's measured detail: about half the "
                         "frame time at full sensor size for -0.56..+0.03 dB on held-out sets "
                         "(models/MODEL_CARD.md, 'Speed, warm and cold'); the output grid is the same, "
                         f"but there is no sigma (NaN planes) ({default})")
-
-
-#: ``--model-size`` choices (:data:`polrig.models.sizes.CHOICES`; not imported: start-up)
-MODEL_SIZES = ("auto", "small", "large")
 
 
 def add_model_size_option(p: argparse.ArgumentParser) -> None:
@@ -179,17 +183,15 @@ def add_exr_options(p: argparse.ArgumentParser, planes_default: str, unc_default
                     comp_default: str) -> None:
     """``--exr-planes``, ``--exr-uncertainty``, ``--exr-compression``: the result EXR's format
     (:class:`polrig.acquisition.plan.ExrChoice`; ``capture`` and ``reconstruct`` share them)."""
-    from polrig.formats.exr import COMPRESSIONS, PLANE_GROUPS, UNCERTAINTY_PRECISIONS
-
     p.add_argument("--exr-planes", metavar="LIST", default=None,
                    help="plane groups of each result EXR, comma separated, from "
                         f"{','.join(PLANE_GROUPS)} (mueller always written; geometry: the "
                         f"single-shot networks' normal, albedo, roughness and light direction, "
                         f"on request only; {planes_default})")
-    p.add_argument("--exr-uncertainty", choices=tuple(UNCERTAINTY_PRECISIONS), default=None,
+    p.add_argument("--exr-uncertainty", choices=EXR_UNCERTAINTY_PRECISIONS, default=None,
                    help="precision of the sigma, sigma_noise, residual and mask planes: float "
                         f"(float32) or half (float16, half the bytes; {unc_default})")
-    p.add_argument("--exr-compression", choices=tuple(COMPRESSIONS), default=None,
+    p.add_argument("--exr-compression", choices=EXR_COMPRESSIONS, default=None,
                    help="EXR compression: zip (lossless, smaller), piz (wavelet, lossless) or "
                         f"none (fastest write, largest file; {comp_default})")
 

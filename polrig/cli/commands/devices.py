@@ -10,7 +10,7 @@ import sys
 
 from polrig.cli.commands._device_args import add_config_argument, identity
 from polrig.errors import DeviceError
-from polrig.formats.config import DEVICE_KINDS
+from polrig.choices import DEVICE_KINDS
 
 #: USB VID:PID of the serial adapters the rig's devices use (vendor documentation:
 #: FTDI application note AN_146 for FTDI's ids; Thorlabs assigns 0403:FAF0 to its APT

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 
+from polrig.choices import OME_UNITS
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import check_output_file, positive_float
 
@@ -24,8 +25,6 @@ def pixel_size(text: str) -> tuple[float, float]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polrig.formats.ome import UNITS
-
     p = sub.add_parser(
         "export", help="a session or a result as OME-Zarr or OME-TIFF (napari, Fiji)",
         description="Write a session (a folder with session.json: its captures as the T axis) "
@@ -50,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the calibration set the source was captured with: the pixel size at the "
                         "turntable axis from its intrinsics and turntable steps, in micrometres "
                         "(instead of --pixel-size)")
-    p.add_argument("--unit", choices=tuple(UNITS), default="micrometer",
+    p.add_argument("--unit", choices=tuple(OME_UNITS), default="micrometer",
                    help="unit of --pixel-size (default micrometer)")
     p.add_argument("--revision", default=None, metavar="NAME",
                    help="a session's reconstruct revision (rev1, ...) instead of the capture's results")

@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import argparse
 
+from polrig.choices import GUI_SIM_SIZE
 from polrig.cli.commands._device_args import add_config_argument
+from polrig.cli.commands.capture import add_model_size_option
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from polrig.gui.app import DEFAULT_SIM_SIZE  # light: no Qt import
-
     p = sub.add_parser("gui", help="operator GUI: live view, devices, capture, calibration, viewer",
                        description="Open the operator GUI on the rig (simulated unless --config "
                                    "names real hardware).")
     add_config_argument(p)
-    p.add_argument("--sim-size", default=DEFAULT_SIM_SIZE, metavar="WxH",
-                   help=f"sensor size of the simulated rig (default {DEFAULT_SIM_SIZE}; the "
+    p.add_argument("--sim-size", default=GUI_SIM_SIZE, metavar="WxH",
+                   help=f"sensor size of the simulated rig (default {GUI_SIM_SIZE}; the "
                         f"real IMX250 is 2448x2048, which renders slowly)")
     p.add_argument("--sim-clock-speed", type=float, default=1.0, metavar="X",
                    help="simulated seconds per real second (default 1: real time)")
@@ -25,8 +25,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="where the live view's single-shot network runs: auto (CUDA where "
                         "onnxruntime offers it, else the CPU; default), cpu or cuda (refused when "
                         "unavailable, before the window opens)")
-    from polrig.cli.commands.capture import add_model_size_option
-
     add_model_size_option(p)
     p.add_argument("--settings", default=None, metavar="FILE",
                    help="INI file for the remembered settings (default: the user's "

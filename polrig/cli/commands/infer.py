@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 
+from polrig.choices import DEMOSAIC_METHODS, NETWORK_BINNINGS
+from polrig.cli.commands.capture import add_model_size_option
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (
     axis_vector,
@@ -41,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layout", default=None, help="mosaic layout (default: the sidecar's, else imx250mzr, with a note)")
     p.add_argument("--state-deg", type=finite_float, required=True, help="polarizer stage angle of the capture (deg)")
     p.add_argument("--out", required=True, help="output EXR path")
-    p.add_argument("--demosaic", choices=("superpixel", "bilinear", "newton"), default=None,
+    p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method (default superpixel: the sensor's native sampling; bilinear "
                         "with --resolution full). bilinear/newton at the default resolution run the "
                         "networks on the full-resolution demosaic (slow: resized to 1.5 Mpx)")
@@ -49,8 +51,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output resolution: superpixel (the networks' grid, default) or full (the raw "
                         "frame's: the networks on the superpixel grid plus the measured detail of a "
                         "full-resolution demosaic, models/full_resolution.py)")
-    from polrig.acquisition.plan import NETWORK_BINNINGS
-
     p.add_argument("--network-binning", type=int, choices=NETWORK_BINNINGS, default=1,
                    help="1 (default): the networks on the analyzer grid; 2: a faster mode, the networks on "
                         "that grid binned 2x2 (a quarter of the work) and the answer lifted back with the "
@@ -91,8 +91,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also run the network on the frame's left-right mirror image and average the "
                         "two answers (models/mirror.py): a few per cent lower error for twice the "
                         "network time (models/MODEL_CARD.md, 'Mirror averaging')")
-    from polrig.cli.commands.capture import add_model_size_option
-
     add_model_size_option(p)
     p.add_argument("--weights", default=None, help="weights folder (default: the shipped model of --model-size)")
     p.add_argument("--min-snr", type=nonnegative_float, default=None, metavar="K",

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from polrig.acquisition.hal import check_level
 from polrig.cli.commands._device_args import add_config_argument, identity
 
 
@@ -21,6 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polrig.acquisition.hal import check_level
     from polrig.app.rig import open_device
 
     level = None if args.level is None else check_level(args.level)  # before opening anything

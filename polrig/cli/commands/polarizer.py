@@ -14,11 +14,13 @@ from __future__ import annotations
 import argparse
 import math
 import pathlib
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import check_output_file, positive_float
+
+if TYPE_CHECKING:
+    import numpy as np
 
 SUFFIXES = (".exr", ".png")
 
@@ -64,6 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from polrig.formats.exr import channel_suffixes, colour_planes, read_mueller_exr, write_exr
     from polrig.optics.virtual_polarizer import virtual_polarizer_image
 
@@ -120,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
 def _write_png16(path: pathlib.Path, planes: np.ndarray) -> None:
     """``(C, H, W)`` uint16 as a grey (C = 1) or RGB (C = 3) 16-bit PNG, atomically."""
     import cv2
+    import numpy as np
 
     from polrig.atomic import atomic_write_bytes
 

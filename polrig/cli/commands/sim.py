@@ -18,6 +18,7 @@ import math
 import pathlib
 import time
 
+from polrig.choices import MATERIAL_MIXES, SCENES
 from polrig.formats.argcheck import finite_float, int_range, positive_float
 
 
@@ -58,8 +59,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = ss.add_parser("render", help="raw frames of polarizer states + ground truth",
                       description="Grab one raw frame per polarizer state from the simulated "
                                   "rig and write the ground truth (docs/sim.md).")
-    from polrig.sim.scene import SCENES
-
     r.add_argument("--scene", default="sphere", choices=SCENES, help="scene (default sphere)")
     r.add_argument("--size", default="512x512", help="sensor WxH in pixels (default 512x512)")
     r.add_argument("--states", type=_states, default=[0.0, 45.0, 90.0, 135.0],
@@ -97,8 +96,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="polarizer stage zero axis per sample: drawn at random (default), or the "
                         "camera's up direction for every sample (version-1 sets such as the "
                         "shipped model's training set)")
-    from polrig.sim.materials import MATERIAL_MIXES
-
     d.add_argument("--materials", default="baek", choices=tuple(MATERIAL_MIXES), metavar="MIX",
                    help="material mix (docs/sim.md, 'Material mixes'): baek (default: the Baek "
                         "2018 dielectric pBRDF of the networks' initialization, datasets as "

@@ -5,40 +5,16 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from polrig.app.preview import (
-    DARK,
-    DEFAULT_MIN_SNR,
-    SATURATED,
-    aolp_key,
-    aolp_rgb,
-    colorbar,
-    diverging,
-    display_valid,
-    dolp_gray,
-    dolp_legend,
-    mask_summary,
-    png_bytes,
-    s0_snr,
-    tone_map,
-    with_legend,
-)
-from polrig.atomic import atomic_write_bytes
+from polrig.choices import DEMOSAIC_METHODS, LAYOUT_NAMES, MIN_SNR
 from polrig.errors import ConfigError, FormatError
 from polrig.formats.argcheck import check_output_file, int_range, nonnegative_float
-from polrig.formats.exr import colour_planes, write_stokes_exr
-from polrig.formats.rawio import (
-    DEFAULT_LAYOUT,
-    assumed_layout_note,
-    check_bit_depth,
-    read_raw,
-    sidecar_path,
-)
-from polrig.sensor.analyzer import AnalyzerModel
-from polrig.sensor.demosaic import METHODS
-from polrig.sensor.layouts import LAYOUTS
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from polrig.sensor.analyzer import AnalyzerModel
 
 #: What the extra planes of a ``polrig stokes`` EXR mean (also written into its header).
 STOKES_EXR_PLANES = {"valid": "1 = valid in every colour (finite, S0 > 0, no saturated sample in the demosaic support)",
@@ -68,10 +44,10 @@ def register(subparsers) -> None:
                     "16). Pixels whose S0 is below --min-snr noise standard deviations are "
                     "masked (black) in the previews and counted.")
     p.add_argument("raw", type=pathlib.Path, metavar="RAW", help="raw mosaic file")
-    p.add_argument("--layout", choices=sorted(LAYOUTS), default=None,
+    p.add_argument("--layout", choices=sorted(LAYOUT_NAMES), default=None,
                    help="mosaic layout (default: from the sidecar, else imx250mzr, with a "
                         "note); one that contradicts the sidecar's is refused")
-    p.add_argument("--demosaic", choices=METHODS, default="bilinear",
+    p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default="bilinear",
                    help="demosaicing method (default: bilinear)")
     p.add_argument("--black-level", type=nonnegative_float, default=None, metavar="N",
                    help="black level in DN to subtract, >= 0 and below the full scale "
@@ -85,9 +61,9 @@ def register(subparsers) -> None:
                         "the sidecar, else the file's dtype)")
     p.add_argument("--analyzer", type=pathlib.Path, default=None, metavar="NPZ",
                    help="calibrated per-pixel analyzer model (.npz) of this readout")
-    p.add_argument("--min-snr", type=nonnegative_float, default=DEFAULT_MIN_SNR, metavar="K",
+    p.add_argument("--min-snr", type=nonnegative_float, default=MIN_SNR, metavar="K",
                    help=f"mask DoLP/AoLP where S0 is below K noise standard deviations of the "
-                        f"sensor noise model (default {DEFAULT_MIN_SNR:g}; 0 masks nothing)")
+                        f"sensor noise model (default {MIN_SNR:g}; 0 masks nothing)")
     p.add_argument("--config", type=pathlib.Path, default=None, metavar="RIG.toml",
                    help="rig configuration whose sensor model (ADC bits, gain, read noise) "
                         "gives the unit and the noise (default: the IMX250 model, 12 bits)")
@@ -110,6 +86,32 @@ def _parse_offset(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from polrig.app.preview import (
+        DARK,
+        SATURATED,
+        aolp_key,
+        aolp_rgb,
+        colorbar,
+        display_valid,
+        diverging,
+        dolp_gray,
+        dolp_legend,
+        mask_summary,
+        s0_snr,
+        tone_map,
+        with_legend,
+    )
+    from polrig.formats.exr import colour_planes, write_stokes_exr
+    from polrig.formats.rawio import (
+        DEFAULT_LAYOUT,
+        assumed_layout_note,
+        check_bit_depth,
+        read_raw,
+        sidecar_path,
+    )
+    from polrig.sensor.layouts import LAYOUTS
     from polrig.sensor.stokes import min_max_intensity, stokes_from_raw
 
     out = args.out
@@ -206,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
 def _load_analyzer(path: pathlib.Path) -> AnalyzerModel:
     """The ``--analyzer`` model; a file that is not an .npz archive is one line in polrig's
     words (numpy's own message for a text file is advice about unpickling it)."""
+    from polrig.sensor.analyzer import AnalyzerModel
+
     try:
         with open(path, "rb") as f:
             head = f.read(4)
@@ -218,4 +222,7 @@ def _load_analyzer(path: pathlib.Path) -> AnalyzerModel:
 
 
 def _write_png(path: pathlib.Path, rgb: np.ndarray) -> None:
+    from polrig.app.preview import png_bytes
+    from polrig.atomic import atomic_write_bytes
+
     atomic_write_bytes(path, png_bytes(rgb))
