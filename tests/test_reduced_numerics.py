@@ -1,11 +1,10 @@
 """The compiled Levenberg-Marquardt of the lower-order models (polrig.solve.reduced_models.fit_model,
 polrig.solve._reduced_kernel) against the previous numpy implementation
 (polrig.solve._reduced_numpy, the oracle): the compiled model forms, the fits, the whole
-selection; determinism across thread counts; a normal matrix that is not positive definite."""
+selection; determinism across threads and chunks; a normal matrix that is not positive definite."""
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import pytest
 
@@ -103,18 +102,16 @@ def test_selection_equals_the_one_with_the_numpy_oracle(monkeypatch):
         assert np.max(diff) <= 1e-6, name
 
 
-def test_fits_do_not_depend_on_the_thread_count():
+def test_fits_do_not_depend_on_the_threads_or_the_chunking(monkeypatch):
+    """One thread, or chunks of 7 pixels on 3 threads: the same bits."""
     rng = np.random.default_rng(3)
     normal, m_hat = noisy_normal_equations(rng, mixed_blocks(rng, 30, 3000.0))
-    before = numba.get_num_threads()
-    try:
-        results = []
-        for n in sorted({1, before}):
-            numba.set_num_threads(n)
-            results.append([rm.fit_model(m, m_hat, normal) for m in NONLINEAR])
-    finally:
-        numba.set_num_threads(before)
-    for a, b in zip(results[0], results[-1]):
+    results = []
+    for threads, chunk in ((1, 256), (3, 7)):
+        monkeypatch.setattr(rm, "_THREADS", threads)
+        monkeypatch.setattr(rm, "_CHUNK_PIXELS", chunk)
+        results.append([rm.fit_model(m, m_hat, normal) for m in NONLINEAR])
+    for a, b in zip(*results):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
 

@@ -3,7 +3,9 @@
 
 The models, their parametrisations and the fit are documented in
 :mod:`polrig.solve.reduced_models`; this module runs the fit of one model for many pixels, one
-pixel per iteration of a ``prange`` loop, every start point of a pixel in turn. The per-pixel
+pixel after the other, every start point of a pixel in turn; the caller runs chunks of pixels
+on threads (``nogil``; as :mod:`polrig.solve._reference_kernel`, no ``prange``: the selection
+runs on several row bands' threads at once, which numba's parallel layers do not all allow). The per-pixel
 algebra is small (``9 x 9`` normal matrix, ``k <= 5`` parameters) and written out: the block
 ``m(theta)`` and its Jacobian per model (:func:`_matrix`, :func:`_jacobian`, the same
 expressions as the numpy forms of :mod:`polrig.solve.reduced_models`). The quadratic form is
@@ -26,7 +28,7 @@ model could be accepted the block within ``1e-8`` in the noise metric, the same 
 under an axis model, the two may return different minimisers of equal ``q``).
 
 Determinism: no fastmath, no reductions across pixels (results do not depend on the thread
-count). ``cache=True`` as in :mod:`polrig.solve._reference_kernel` (uncached where numba finds
+count or the chunking). ``cache=True`` as in :mod:`polrig.solve._reference_kernel` (uncached where numba finds
 no writable cache directory). ``error_model="numpy"``: a zero pivot gives inf/NaN, whose trial
 step is then rejected (``q_t < q`` is false for NaN), as the oracle's ridge makes it.
 """
@@ -36,7 +38,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +46,10 @@ log = logging.getLogger(__name__)
 DIATTENUATOR, RETARDER, FRESNEL, RANK_ONE = 3, 4, 5, 6
 
 
-def _jit(parallel: bool = False):
-    """``numba.njit`` with ``cache=True`` (uncached where no cache directory is writable)."""
-    opts = dict(nogil=True, error_model="numpy", parallel=parallel)
+def _jit():
+    """``numba.njit`` (nogil: the caller runs chunks of pixels on threads) with ``cache=True``
+    (uncached where no cache directory is writable)."""
+    opts = dict(nogil=True, error_model="numpy")
 
     def deco(fn):
         try:
@@ -267,17 +270,17 @@ def _lm_pixel(code, m_hat, u, theta, iterations, m, step, jac, j5, jw, damp, tri
     return q
 
 
-@_jit(parallel=True)
+@_jit()
 def fit_nonlinear(code, m_hat, normal, starts, iterations, theta_out, m_out, q_out
                   ):  # pragma: no cover - compiled
     """Fit model ``code`` to ``P`` pixels from each of ``S`` start points, keeping per pixel
     the start with the lowest ``q`` (the first on ties; NaN never wins).
 
-    ``m_hat`` ``(P, 9)``, ``normal`` ``(P, 9, 9)``, ``starts`` ``(S, P, k)`` float64 (finite);
+    ``m_hat`` ``(P, 9)``, ``normal`` ``(P, 9, 9)``, ``starts`` ``(P, S, k)`` float64 (finite);
     outputs ``theta_out`` ``(P, k)``, ``m_out`` ``(P, 9)``, ``q_out`` ``(P,)``: the start's
     parameters, NaN ``m`` and ``q`` where ``N`` is not positive definite (the fit failed)."""
-    n_start, n_pix, k = starts.shape
-    for p in prange(n_pix):
+    n_pix, n_start, k = starts.shape
+    for p in range(n_pix):
         u = np.empty((9, 9))
         theta = np.empty(k)
         m = np.empty(9)
@@ -292,14 +295,14 @@ def fit_nonlinear(code, m_hat, normal, starts, iterations, theta_out, m_out, q_o
         z_t = np.empty(9)
         if not _cholesky_upper(normal[p], u):
             for a in range(k):
-                theta_out[p, a] = starts[0, p, a]
+                theta_out[p, a] = starts[p, 0, a]
             for i in range(9):
                 m_out[p, i] = np.nan
             q_out[p] = np.nan
             continue
         for s in range(n_start):
             for a in range(k):
-                theta[a] = starts[s, p, a]
+                theta[a] = starts[p, s, a]
             q = _lm_pixel(code, m_hat[p], u, theta, iterations, m, step, jac, j5, jw, damp,
                           trial, m_t, z, z_t)
             if s == 0 or q < q_out[p]:

@@ -59,7 +59,9 @@ parametrisation is singular, e.g. ``u = v = 0``).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -296,6 +298,12 @@ def _ridge(a: np.ndarray) -> np.ndarray:
     return a + eps[:, None, None] * np.eye(k)
 
 
+#: threads the compiled fits run on (the CPUs this process may use); a chunk has at least
+#: ``_CHUNK_PIXELS`` pixels (a thread per few hundred microseconds of work at least)
+_THREADS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+_CHUNK_PIXELS = 256
+
+
 def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
               iterations: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted least-squares fit of ``model`` to ``P`` pixels.
@@ -305,19 +313,30 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
     statistic ``q = (m - m_hat)^T N (m - m_hat)`` ``(P,)`` (``chi^2`` of the model minus that of
     the full block; non-finite where the fit failed) and the Jacobian ``(P, 9, k)`` at the
     optimum (for :func:`block_covariance`). Nonlinear models: the compiled kernel
-    (:func:`polrig.solve._reduced_kernel.fit_nonlinear`, one pixel per thread iteration, every
-    start in turn, the lowest ``q`` kept; ``q`` and the block NaN where ``N`` is not positive
-    definite)."""
+    (:func:`polrig.solve._reduced_kernel.fit_nonlinear`, chunks of pixels on up to
+    ``_THREADS`` threads, every start in turn, the lowest ``q`` kept; ``q`` and the block NaN
+    where ``N`` is not positive definite)."""
     if model.linear:
         return _fit_linear(model, m_hat, normal)
     from polrig.solve import _reduced_kernel as kern  # numba: imported on first use
 
-    starts = np.stack([np.where(np.isfinite(t), t, 0.0) for t in model.starts(m_hat)])
+    starts = np.stack([np.where(np.isfinite(t), t, 0.0) for t in model.starts(m_hat)], 1)
+    m_hat = np.ascontiguousarray(m_hat, np.float64)
+    normal = np.ascontiguousarray(normal, np.float64)
     p = len(m_hat)
     theta, m, q = np.empty((p, model.n_params)), np.empty((p, 9)), np.empty(p)
-    kern.fit_nonlinear(model.code, np.ascontiguousarray(m_hat, np.float64),
-                       np.ascontiguousarray(normal, np.float64), np.ascontiguousarray(starts),
-                       int(iterations), theta, m, q)
+
+    def fit(sl: slice) -> None:
+        kern.fit_nonlinear(model.code, m_hat[sl], normal[sl], starts[sl], int(iterations),
+                           theta[sl], m[sl], q[sl])
+
+    n_threads = max(1, min(_THREADS, p // _CHUNK_PIXELS))
+    if n_threads == 1:
+        fit(slice(0, p))
+    else:
+        bounds = np.linspace(0, p, n_threads + 1).astype(int)
+        with ThreadPoolExecutor(n_threads, thread_name_prefix="reduced-fit") as pool:
+            list(pool.map(fit, [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]))
     return m, q, model.jacobian(theta)
 
 
