@@ -260,24 +260,24 @@ def throughput(sizes, rounds: int, oracle_max: int) -> list[dict]:
 
 
 def throughput_markdown(rows: list[dict], rounds: int) -> str:
-    import numba
-
     text = (f"### Throughput (mixed scene, 3 colours, 4 states; median of {rounds} interleaved rounds, "
-            f"warm, in process; {numba.get_num_threads()} numba threads, {os.cpu_count()} CPUs shared "
+            f"warm, in process; {rm._THREADS} fit threads, {os.cpu_count()} CPUs shared "
             "with other work)\n\n"
             "| size | pixel-colours | accepted | reference solve | selection | selection, numpy fits "
             "(previous) | speed-up | same codes | full sensor (1224x1024x3): reference + selection |\n"
             "|---|---|---|---|---|---|---|---|---|\n")
+    def rate(r: dict, k: str) -> str:
+        return f"{r['pixels'] / r[k]:,.0f} px/s ({1e3 * r[k]:.0f} ms)" if k in r else "-"
+
     for r in rows:
         p = r["pixels"]
-        rate = lambda k: f"{p / r[k]:,.0f} px/s ({1e3 * r[k]:.0f} ms)" if k in r else "-"  # noqa: E731
         old = "selection (numpy fits)"
         speed = f"{r[old] / r['selection']:.1f}x" if old in r else "-"
         same = f"{100 * r['same_codes']:.2f} %" if np.isfinite(r["same_codes"]) else "-"
         sensor = (f"{FULL_SENSOR * r['reference'] / p:.0f} s + "
                   f"{FULL_SENSOR * r['selection'] / p:.0f} s")
-        text += (f"| {r['size']}x{r['size']} | {p} | {100 * r['accepted']:.1f} % | {rate('reference')} | "
-                 f"{rate('selection')} | {rate(old)} | {speed} | {same} | {sensor} |\n")
+        text += (f"| {r['size']}x{r['size']} | {p} | {100 * r['accepted']:.1f} % | {rate(r, 'reference')} | "
+                 f"{rate(r, 'selection')} | {rate(r, old)} | {speed} | {same} | {sensor} |\n")
     return text
 
 

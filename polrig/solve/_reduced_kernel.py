@@ -49,7 +49,7 @@ DIATTENUATOR, RETARDER, FRESNEL, RANK_ONE = 3, 4, 5, 6
 def _jit():
     """``numba.njit`` (nogil: the caller runs chunks of pixels on threads) with ``cache=True``
     (uncached where no cache directory is writable)."""
-    opts = dict(nogil=True, error_model="numpy")
+    opts = {"nogil": True, "error_model": "numpy"}
 
     def deco(fn):
         try:

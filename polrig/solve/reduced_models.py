@@ -63,6 +63,7 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -336,7 +337,7 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
     else:
         bounds = np.linspace(0, p, n_threads + 1).astype(int)
         with ThreadPoolExecutor(n_threads, thread_name_prefix="reduced-fit") as pool:
-            list(pool.map(fit, [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]))
+            list(pool.map(fit, [slice(a, b) for a, b in pairwise(bounds)]))
     return m, q, model.jacobian(theta)
 
 
