@@ -14,6 +14,14 @@ and without selection, and the time it adds to the plain reference solve.
   (``seen_families``), films and depolarizing layers, conductors, dispersive dielectrics,
   interreflections. Object pixels with no clipped sample.
 
+* **Throughput** (``--sizes``, default 64 and 256): a mixed scene, three colours, every pixel
+  a random block of one of the six models or an off-model one (as "full" above), 4 states;
+  the plain reference solve (compiled), the selection (compiled fits,
+  ``polrig/solve/_reduced_kernel.py``) and, at the sizes up to ``--oracle-max`` (default 64),
+  the selection with the previous numpy fits (``polrig/solve/_reduced_numpy.py``, the tests'
+  oracle), interleaved rounds, medians; pixels/s count pixel-colours; the full-sensor estimate
+  is 1224 x 1024 superpixels x 3 colours at the largest size's rate.
+
 Definitions (``polrig/solve/model_selection.py``): a pixel's truth is *detectably off* a model
 when its noncentrality ``lambda`` (the truth's distance from the model in the noise metric of
 its samples) reaches :func:`~polrig.solve.model_selection.detectable_noncentrality` (the test
@@ -23,8 +31,8 @@ wrong** = the share of the pixels given a reduced model whose truth is detectabl
 model. "holds" = the truth within
 ``lambda < 1`` of some candidate (closer than one noise standard deviation). RMSE in the
 sets' normalised units (``x 1000``), over all object pixels and over those subsets. Timing:
-the reference solve (compiled kernel) and the selection (numpy) of the same samples, median
-of ``--rounds`` interleaved rounds, warm, in process.
+the reference solve (compiled kernel) and the selection (compiled fits) of the same samples,
+median of ``--rounds`` interleaved rounds, warm, in process.
 """
 
 from __future__ import annotations
@@ -194,6 +202,85 @@ def sim_sets(names, count: int, data: pathlib.Path, rounds: int) -> dict[str, di
     return out
 
 
+#: superpixels x colours of the rig's sensor (2448 x 2048 DoFP, 2x2 superpixels, RGB)
+FULL_SENSOR = 1224 * 1024 * 3
+
+
+def throughput(sizes, rounds: int, oracle_max: int) -> list[dict]:
+    """Pixels/s of the reference solve, the selection and (up to ``oracle_max``) the
+    selection with the numpy oracle's fits, on a mixed three-colour scene per size."""
+    from polrig.solve._reduced_numpy import fit_model_numpy
+
+    rng = np.random.default_rng(99)
+    s = polarizer_stokes(np.radians(FOUR), np.inf)
+    names = [m.name for m in rm.MODELS]
+    rows = []
+    for size in sizes:
+        p = 3 * size * size
+        base = np.concatenate([rm.random_blocks(rng, names[i % 6], p // 6 + 1, 3000.0)
+                               for i in range(6)])[rng.permutation(p)]
+        pert = rm.random_blocks(rng, "full", p)
+        off = rng.random((p, 1)) < 1 / 7  # about one pixel in seven off every model
+        blocks = base + off * rng.uniform(0, 800, (p, 1)) * pert / np.linalg.norm(pert, axis=1, keepdims=True)
+        truth = blocks.reshape(3, size, size, 3, 3).transpose(0, 3, 4, 1, 2)
+        mean = ref.forward_measurements(truth, s)
+        var = 4.0 + np.clip(mean, 0, None) / 0.5
+        meas = mean + rng.normal(size=mean.shape) * np.sqrt(var)
+        full = ref.solve_reference(s, meas, var, dtype=np.float64)
+        ms.select_models(s, meas, var, None, None, full)  # warm-up: compiled kernels loaded
+        with_oracle = size <= oracle_max
+        times = {"reference": [], "selection": [], "selection (numpy fits)": []}
+        for _ in range(rounds):  # interleaved
+            t0 = time.perf_counter()
+            full = ref.solve_reference(s, meas, var, dtype=np.float64)
+            t1 = time.perf_counter()
+            _, maps = ms.select_models(s, meas, var, None, None, full)
+            t2 = time.perf_counter()
+            times["reference"].append(t1 - t0)
+            times["selection"].append(t2 - t1)
+            if with_oracle:
+                compiled = ms.fit_model
+                ms.fit_model = fit_model_numpy
+                try:
+                    t3 = time.perf_counter()
+                    _, maps_o = ms.select_models(s, meas, var, None, None, full)
+                    times["selection (numpy fits)"].append(time.perf_counter() - t3)
+                finally:
+                    ms.fit_model = compiled
+                same = float(np.mean(maps_o.code == maps.code))
+        row = {"size": size, "pixels": p, "accepted": float(np.mean((maps.code != 0) & (maps.code != ms.UNTESTED))),
+               "same_codes": same if with_oracle else float("nan")}
+        for k, v in times.items():
+            if v:
+                row[k] = float(np.median(v))
+        rows.append(row)
+        print(f"throughput {size}x{size}x3: " + ", ".join(
+            f"{k} {p / row[k]:.0f} px/s" for k in times if k in row), flush=True)
+    return rows
+
+
+def throughput_markdown(rows: list[dict], rounds: int) -> str:
+    text = (f"### Throughput (mixed scene, 3 colours, 4 states; median of {rounds} interleaved rounds, "
+            f"warm, in process; {rm._THREADS} fit threads, {os.cpu_count()} CPUs shared "
+            "with other work)\n\n"
+            "| size | pixel-colours | accepted | reference solve | selection | selection, numpy fits "
+            "(previous) | speed-up | same codes | full sensor (1224x1024x3): reference + selection |\n"
+            "|---|---|---|---|---|---|---|---|---|\n")
+    def rate(r: dict, k: str) -> str:
+        return f"{r['pixels'] / r[k]:,.0f} px/s ({1e3 * r[k]:.0f} ms)" if k in r else "-"
+
+    for r in rows:
+        p = r["pixels"]
+        old = "selection (numpy fits)"
+        speed = f"{r[old] / r['selection']:.1f}x" if old in r else "-"
+        same = f"{100 * r['same_codes']:.2f} %" if np.isfinite(r["same_codes"]) else "-"
+        sensor = (f"{FULL_SENSOR * r['reference'] / p:.0f} s + "
+                  f"{FULL_SENSOR * r['selection'] / p:.0f} s")
+        text += (f"| {r['size']}x{r['size']} | {p} | {100 * r['accepted']:.1f} % | {rate(r, 'reference')} | "
+                 f"{rate(r, 'selection')} | {rate(r, old)} | {speed} | {same} | {sensor} |\n")
+    return text
+
+
 def fmt(r: dict) -> str:
     return (f"{r['pixels']} px, accepted {100 * r['accepted']:.1f}%, false acceptance "
             f"{100 * r['false_acceptance']:.2f}% of {r['detectable']}, chosen detectably wrong "
@@ -238,16 +325,21 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=4, help="samples per simulated set (default 4)")
     ap.add_argument("--sets", nargs="*", default=list(SIM_SETS), help="simulated sets (none: synthetic only)")
     ap.add_argument("--rounds", type=int, default=3, help="timing rounds (default 3)")
+    ap.add_argument("--sizes", nargs="*", type=int, default=[64, 256],
+                    help="throughput scene sizes (default 64 256; none: skip)")
+    ap.add_argument("--oracle-max", type=int, default=64,
+                    help="time the numpy fits (the oracle) up to this size (default 64)")
     ap.add_argument("--data", type=pathlib.Path, default=None,
                     help="folder of the generated sets (default: a temporary folder)")
     ap.add_argument("--out", type=pathlib.Path, default=None,
                     help="write the tables to this markdown file (e.g. benchmarks/results/model_selection.md)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
+    thr = throughput(args.sizes, args.rounds, args.oracle_max) if args.sizes else []
     syn = synthetic(args.rounds)
     with tempfile.TemporaryDirectory() as tmp:
         sim = sim_sets(args.sets, args.count, args.data or pathlib.Path(tmp), args.rounds) if args.sets else {}
-    table = markdown(syn, sim, args)
+    table = (throughput_markdown(thr, args.rounds) + "\n" if thr else "") + markdown(syn, sim, args)
     print("\n" + table)
     print(f"{time.perf_counter() - t0:.0f} s on {os.cpu_count()} CPUs")
     if args.out:
@@ -255,7 +347,8 @@ def main(argv=None) -> int:
 
         atomic_write_text(args.out, "# Lower-order models per pixel: false acceptance, RMSE, time\n\n"
                           f"`python benchmarks/bench_model_selection.py --count {args.count} --rounds "
-                          f"{args.rounds} --out {args.out}` ({os.cpu_count()} CPUs shared with other "
+                          f"{args.rounds} --sizes {' '.join(map(str, args.sizes))} --oracle-max "
+                          f"{args.oracle_max} --out {args.out}` ({os.cpu_count()} CPUs shared with other "
                           "work; definitions in the benchmark's docstring; warm, in process).\n\n" + table)
     return 0
 

@@ -55,6 +55,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -147,8 +148,11 @@ def chi2_sf(x: np.ndarray, df: int) -> np.ndarray:
     return np.where(np.isnan(x), np.nan, np.clip(q, 0.0, 1.0))
 
 
+@lru_cache(maxsize=64)
 def chi2_critical(df: int, alpha: float) -> float:
-    """The ``1 - alpha`` quantile of ``chi^2(df)`` (bisection on :func:`chi2_sf`)."""
+    """The ``1 - alpha`` quantile of ``chi^2(df)`` (bisection on :func:`chi2_sf`; cached: 200
+    bisection steps cost about 10 ms, once per model and call of :func:`select_models`, i.e.
+    per row band of a full-sensor solve)."""
     lo, hi = 0.0, 10.0 * df + 100.0
     for _ in range(200):
         mid = 0.5 * (lo + hi)

@@ -46,16 +46,24 @@ samples are linear in ``m``), so a model is fitted by minimising the 9-dimension
 form ``q(theta) = (m(theta) - m_hat)^T N (m(theta) - m_hat)``: the same weighted least squares
 as the reference solve, without revisiting the ``4 N`` samples. Linear models (the first two)
 have the closed form ``theta = (B^T N B)^-1 B^T N m_hat``; the others run Levenberg-Marquardt
-(Marquardt's diagonal scaling, a few iterations) from closed-form starts read off ``m_hat``
-(its singular value decomposition). Covariance by the delta method: ``cov(m) = J (J^T N J)^+
+(Marquardt's diagonal scaling, at most ``iterations`` steps) from closed-form starts read off
+``m_hat`` (its singular value decomposition), compiled per pixel
+(:mod:`polrig.solve._reduced_kernel`; the previous numpy version,
+:mod:`polrig.solve._reduced_numpy`, is the tests' oracle and the benchmark's baseline). A pixel
+stops once a step lowers ``q`` by less than ``1e-6 (q + 1)`` (the test compares ``q`` with
+critical values of order 10) or its damping reaches ``1e9`` (on a 64x64 full-model scene the
+decisions at 8, 12 and 30 iterations differ in at most 0.02 % of the pixels). Covariance by the delta method: ``cov(m) = J (J^T N J)^+
 J^T`` at the optimum (``J = dm / dtheta``; invariant to the parametrisation, and finite where a
 parametrisation is singular, e.g. ``u = v = 0``).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -291,38 +299,10 @@ def _ridge(a: np.ndarray) -> np.ndarray:
     return a + eps[:, None, None] * np.eye(k)
 
 
-def _levenberg_marquardt(model: ReducedModel, m_hat, normal, theta, iterations: int):
-    """Levenberg-Marquardt with Marquardt's diagonal scaling on ``q(theta)``; a pixel stops
-    once a step lowers ``q`` by less than ``1e-6 (q + 1)`` (the test compares ``q`` with
-    critical values of order 10) or its damping reaches ``1e9``: later iterations run on the
-    pixels still moving only (on a 64x64 full-model scene the decisions at 8, 12 and 30
-    iterations differ in at most 0.02 % of the pixels)."""
-    theta = theta.copy()
-    m = model.matrix(theta)
-    q = _quad(m - m_hat, normal)
-    lam = np.full(len(theta), 1e-3)
-    k = model.n_params
-    act = np.arange(len(theta))
-    for _ in range(iterations):
-        if not act.size:
-            break
-        th, mm, nn, mh = theta[act], m[act], normal[act], m_hat[act]
-        jac = model.jacobian(th)
-        nj = nn @ jac
-        a = np.swapaxes(jac, 1, 2) @ nj
-        g = (np.swapaxes(nj, 1, 2) @ (mm - mh)[..., None])[..., 0]
-        damp = a + lam[act, None, None] * (a * np.eye(k))
-        trial = th + np.linalg.solve(_ridge(damp), -g[..., None])[..., 0]
-        m_t = model.matrix(trial)
-        q_t = _quad(m_t - mh, nn)
-        better = q_t < q[act]  # NaN never is
-        gain = np.where(better, q[act] - q_t, 0.0)
-        idx = act[better]
-        theta[idx], m[idx], q[idx] = trial[better], m_t[better], q_t[better]
-        lam[act] = np.where(better, lam[act] * 0.3, lam[act] * 10.0).clip(1e-9, 1e9)
-        moving = np.where(better, gain > 1e-6 * (q[act] + 1.0), lam[act] < 1e9)
-        act = act[moving]
-    return theta, m, q
+#: threads the compiled fits run on (the CPUs this process may use); a chunk has at least
+#: ``_CHUNK_PIXELS`` pixels (a thread per few hundred microseconds of work at least)
+_THREADS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+_CHUNK_PIXELS = 256
 
 
 def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
@@ -333,21 +313,32 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
     ``(P, 9, 9)`` its normal matrix ``D^T W D``. Returns the fitted block ``(P, 9)``, the
     statistic ``q = (m - m_hat)^T N (m - m_hat)`` ``(P,)`` (``chi^2`` of the model minus that of
     the full block; non-finite where the fit failed) and the Jacobian ``(P, 9, k)`` at the
-    optimum (for :func:`block_covariance`)."""
+    optimum (for :func:`block_covariance`). Nonlinear models: the compiled kernel
+    (:func:`polrig.solve._reduced_kernel.fit_nonlinear`, chunks of pixels on up to
+    ``_THREADS`` threads, every start in turn, the lowest ``q`` kept; ``q`` and the block NaN
+    where ``N`` is not positive definite)."""
     if model.linear:
         return _fit_linear(model, m_hat, normal)
-    best_q = best_m = best_t = None
-    for theta0 in model.starts(m_hat):
-        theta0 = np.where(np.isfinite(theta0), theta0, 0.0)
-        theta, m, q = _levenberg_marquardt(model, m_hat, normal, theta0, iterations)
-        if best_q is None:
-            best_q, best_m, best_t = q, m, theta
-        else:
-            better = q < best_q
-            best_q = np.where(better, q, best_q)
-            best_m = np.where(better[:, None], m, best_m)
-            best_t = np.where(better[:, None], theta, best_t)
-    return best_m, best_q, model.jacobian(best_t)
+    from polrig.solve import _reduced_kernel as kern  # numba: imported on first use
+
+    starts = np.stack([np.where(np.isfinite(t), t, 0.0) for t in model.starts(m_hat)], 1)
+    m_hat = np.ascontiguousarray(m_hat, np.float64)
+    normal = np.ascontiguousarray(normal, np.float64)
+    p = len(m_hat)
+    theta, m, q = np.empty((p, model.n_params)), np.empty((p, 9)), np.empty(p)
+
+    def fit(sl: slice) -> None:
+        kern.fit_nonlinear(model.code, m_hat[sl], normal[sl], starts[sl], int(iterations),
+                           theta[sl], m[sl], q[sl])
+
+    n_threads = max(1, min(_THREADS, p // _CHUNK_PIXELS))
+    if n_threads == 1:
+        fit(slice(0, p))
+    else:
+        bounds = np.linspace(0, p, n_threads + 1).astype(int)
+        with ThreadPoolExecutor(n_threads, thread_name_prefix="reduced-fit") as pool:
+            list(pool.map(fit, [slice(a, b) for a, b in pairwise(bounds)]))
+    return m, q, model.jacobian(theta)
 
 
 def block_covariance(jac: np.ndarray, normal: np.ndarray) -> np.ndarray:
