@@ -35,32 +35,15 @@ step is then rejected (``q_t < q`` is false for NaN), as the oracle's ridge make
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
-from numba import njit
 
-log = logging.getLogger(__name__)
+from polrig.solve._reference_kernel import jit_cached
 
 #: model codes with a compiled fit (:data:`polrig.solve.reduced_models.MODELS`)
 DIATTENUATOR, RETARDER, FRESNEL, RANK_ONE = 3, 4, 5, 6
 
 
-def _jit():
-    """``numba.njit`` (nogil: the caller runs chunks of pixels on threads) with ``cache=True``
-    (uncached where no cache directory is writable)."""
-    opts = {"nogil": True, "error_model": "numpy"}
-
-    def deco(fn):
-        try:
-            return njit(cache=True, **opts)(fn)
-        except RuntimeError as exc:  # "cannot cache function ...: no locator available"
-            log.debug("numba cache unavailable for %s (%s); compiling in memory", fn.__name__, exc)
-            return njit(cache=False, **opts)(fn)
-    return deco
-
-
-@_jit()
+@jit_cached()
 def _block(a, b, c, ci, si, co, so, out, col):  # pragma: no cover - compiled
     """``R(po) F(a, b, c) R(pi)^T`` row-major into ``out[:, col]`` (``out`` ``(9, n)``), the
     expressions of ``reduced_models._axis_form``'s ``block``."""
@@ -75,7 +58,7 @@ def _block(a, b, c, ci, si, co, so, out, col):  # pragma: no cover - compiled
     out[8, col] = so * si * a + co * ci * c
 
 
-@_jit()
+@jit_cached()
 def _axis_parameters(code, t):  # pragma: no cover - compiled
     """``(a, b, c, pi, po)`` of an axis-form model's parameters ``t``."""
     if code == DIATTENUATOR:
@@ -86,7 +69,7 @@ def _axis_parameters(code, t):  # pragma: no cover - compiled
     return t[0], t[1], t[2], t[3], t[4]
 
 
-@_jit()
+@jit_cached()
 def _matrix(code, t, m):  # pragma: no cover - compiled
     """The block ``m(theta)`` ``(9,)`` of model ``code`` at ``t`` ``(k,)``, into ``m``."""
     if code == RANK_ONE:
@@ -100,7 +83,7 @@ def _matrix(code, t, m):  # pragma: no cover - compiled
     _block(a, b, c, np.cos(pi), np.sin(pi), np.cos(po), np.sin(po), out, 0)
 
 
-@_jit()
+@jit_cached()
 def _jacobian(code, t, jac, j5):  # pragma: no cover - compiled
     """``d m / d theta`` ``(9, k)`` of model ``code`` at ``t`` into ``jac`` (``j5`` ``(9, 5)``
     scratch: the axis form's derivatives in ``(a, b, c, pi, po)``)."""
@@ -146,7 +129,7 @@ def _jacobian(code, t, jac, j5):  # pragma: no cover - compiled
             jac[i, 3] = j5[i, 4]
 
 
-@_jit()
+@jit_cached()
 def _cholesky_upper(normal, u):  # pragma: no cover - compiled
     """``u = L^T`` ``(9, 9)`` with ``L L^T = N`` (the upper triangle of ``u`` written). Returns
     False where a pivot is not positive (``N`` not positive definite to working precision)."""
@@ -166,7 +149,7 @@ def _cholesky_upper(normal, u):  # pragma: no cover - compiled
     return True
 
 
-@_jit()
+@jit_cached()
 def _whitened_residual(m, m_hat, u, z):  # pragma: no cover - compiled
     """``z = L^T (m - m_hat)`` into ``z``; returns ``q = |z|^2 = (m - m_hat)^T N (m - m_hat)``."""
     q = 0.0
@@ -179,7 +162,7 @@ def _whitened_residual(m, m_hat, u, z):  # pragma: no cover - compiled
     return q
 
 
-@_jit()
+@jit_cached()
 def _solve_in_place(a, x, k):  # pragma: no cover - compiled
     """Solve ``a x = b`` (``a`` ``(k, k)``, ``x`` holds ``b``) by Gaussian elimination with
     partial pivoting; ``a`` and ``x`` are overwritten (``x`` with the solution)."""
@@ -210,7 +193,7 @@ def _solve_in_place(a, x, k):  # pragma: no cover - compiled
         x[col] = acc / a[col, col]
 
 
-@_jit()
+@jit_cached()
 def _lm_pixel(code, m_hat, u, theta, iterations, m, step, jac, j5, jw, damp, trial, m_t, z,
               z_t):  # pragma: no cover - compiled
     """Levenberg-Marquardt of one pixel from ``theta`` (``(k,)``, updated in place) on
@@ -270,7 +253,7 @@ def _lm_pixel(code, m_hat, u, theta, iterations, m, step, jac, j5, jw, damp, tri
     return q
 
 
-@_jit()
+@jit_cached()
 def fit_nonlinear(code, m_hat, normal, starts, iterations, theta_out, m_out, q_out
                   ):  # pragma: no cover - compiled
     """Fit model ``code`` to ``P`` pixels from each of ``S`` start points, keeping per pixel

@@ -68,10 +68,11 @@ INVERSE_DIAG_MAX = 1.0 / PIVOT_EPS
 LANES = 64
 
 
-def _jit():
-    """``numba.njit`` (nogil: the caller runs tiles on threads) with ``cache=True``, falling
-    back to an uncached kernel (compiled at each process's first call) where numba finds no
-    writable cache directory."""
+def jit_cached():
+    """``numba.njit`` (nogil: the caller runs tiles or pixel chunks on threads) with
+    ``cache=True``, falling back to an uncached kernel (compiled at each process's first call)
+    where numba finds no writable cache directory. The decorator of every compiled kernel of
+    :mod:`polrig.solve` (this one's and :mod:`polrig.solve._reduced_kernel`'s)."""
     opts = dict(nogil=True, error_model="numpy")
 
     def deco(fn):
@@ -89,7 +90,7 @@ THREADS = max(1, min(int(numba.config.NUMBA_NUM_THREADS), len(os.sched_getaffini
                      if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
 
 
-@_jit()
+@jit_cached()
 def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, mv, flags, arow
               ):  # pragma: no cover - compiled
     """Read image rows ``y0 .. y1`` of colour ``c`` into block-major float64 buffers: each
@@ -139,7 +140,7 @@ def load_tile(meas, var, valid, has_valid, rows, per_pixel_rows, c, y0, y1, w, m
     return partial
 
 
-@_jit()
+@jit_cached()
 def store_tile(c, y0, y1, x, sg, sn, res, flags, nok, with_cal, mueller, sigma, sigma_noise,
                residual, mask, n_used):  # pragma: no cover - compiled
     """Write a tile's block-major results (:func:`solve_blocks`, layout of
@@ -168,7 +169,7 @@ def store_tile(c, y0, y1, x, sg, sn, res, flags, nok, with_cal, mueller, sigma, 
                 n_used[c, yy, x0 + q] = min(nok[b, q], 65535)
 
 
-@_jit()
+@jit_cached()
 def _normal_equations(s, w, mv, arow, per_pixel_rows, t, rj, amat, rhs
                       ):  # pragma: no cover - compiled
     """``T_j``, ``r_j``, then the lower triangle of ``D^T W D`` and ``D^T W I`` per lane
@@ -222,7 +223,7 @@ def _normal_equations(s, w, mv, arow, per_pixel_rows, t, rj, amat, rhs
                           + arow[2, ia, q] * rj[2, ib, q] + arow[3, ia, q] * rj[3, ib, q])
 
 
-@_jit()
+@jit_cached()
 def _factor(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
     """Per lane: equilibration ``dsc = 1 / sqrt(diag A)`` of the normal matrix ``A`` (lower
     triangle in ``amat``, used as scratch afterwards), the Cholesky factor of the
@@ -272,7 +273,7 @@ def _factor(amat, dsc, low, rl, bad):  # pragma: no cover - compiled
             low[ii, ii, q] = rl[ii, q]
 
 
-@_jit()
+@jit_cached()
 def _inverse(low, dsc, amat):  # pragma: no cover - compiled
     """Per lane, the full symmetric ``A^-1 = diag(dsc) L^-T L^-1 diag(dsc)`` into ``amat``
     (``low``: ``L^-1``)."""
@@ -289,7 +290,7 @@ def _inverse(low, dsc, amat):  # pragma: no cover - compiled
                 amat[ll, ii, q] = amat[ii, ll, q]
 
 
-@_jit()
+@jit_cached()
 def _triangular_solve(linv, dsc, b, tmp, out):  # pragma: no cover - compiled
     """``out = diag(dsc) L^-T L^-1 diag(dsc) b`` per lane, with the inverse factor."""
     d9, nl = b.shape
@@ -309,7 +310,7 @@ def _triangular_solve(linv, dsc, b, tmp, out):  # pragma: no cover - compiled
             out[ll, q] *= dsc[ll, q]
 
 
-@_jit()
+@jit_cached()
 def _calibration_variance(s, ds_gen, cal_sd, w, arow, per_pixel_rows, t, x, ainv, pj, e, z, u,
                           acc):  # pragma: no cover - compiled
     """``acc_i = sum_p (G sigma_p e_p)_i^2`` per lane over the 12 analyzer and 2 generator
@@ -413,7 +414,7 @@ def _calibration_variance(s, ds_gen, cal_sd, w, arow, per_pixel_rows, t, x, ainv
             acc[ii, q] += ge * ge + gz * gz
 
 
-@_jit()
+@jit_cached()
 def _add_prior(pa, pm, amat, rhs):  # pragma: no cover - compiled
     """``A += P`` (lower triangle) and ``b += P mu`` per lane (``pa`` ``(9, 9, L)`` the full
     symmetric ``P``, ``pm`` ``(9, L)``)."""
@@ -427,7 +428,7 @@ def _add_prior(pa, pm, amat, rhs):  # pragma: no cover - compiled
                 rhs[ii, q] += pa[ii, ll, q] * pm[ll, q]
 
 
-@_jit()
+@jit_cached()
 def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pixel_rows, pa,
                pm, prank):  # pragma: no cover - compiled
     """The prior of rows ``y0 .. y1`` of colour ``c`` into block-major buffers (layout of
@@ -570,7 +571,7 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pix
                 prank[b, q] = rank
 
 
-@_jit()
+@jit_cached()
 def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, out_max, cal_sd,
                  with_cal, with_prior, pa, pm, prank, x_out, sg_out, sn_out, res_out, nok, keys
                  ):  # pragma: no cover - compiled
