@@ -66,6 +66,19 @@ def analysis_views(app, viewer, shot) -> None:
     shot(v, "viewer_virtual_polarizer.png")
 
 
+def _shooter(app, out: pathlib.Path, written: list[pathlib.Path]):
+    """``shot(widget, name)``: process pending events, grab ``widget`` into ``out/name`` (PNG)
+    and append the path to ``written``."""
+
+    def shot(widget, name: str) -> None:
+        app.processEvents()
+        path = out / name
+        widget.grab().save(str(path))
+        written.append(path)
+
+    return shot
+
+
 def _analysis_only(app, out: pathlib.Path, tmp: pathlib.Path, size: str) -> list[pathlib.Path]:
     from polrig.app.capture import CaptureRequest, run_capture
     from polrig.gui.viewer import ViewerPanel
@@ -82,13 +95,8 @@ def _analysis_only(app, out: pathlib.Path, tmp: pathlib.Path, size: str) -> list
     v.show()
     if not v.open_session(tmp / "session"):
         raise RuntimeError("screenshots: the viewer cannot open the capture")
-    written = []
-
-    def shot(widget, name: str) -> None:
-        app.processEvents()
-        path = out / name
-        widget.grab().save(str(path))
-        written.append(path)
+    written: list[pathlib.Path] = []
+    shot = _shooter(app, out, written)
 
     analysis_views(app, v, shot)
     v.close()
@@ -129,13 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     w.resize(1400, 900)
     w.show()
     w.start()
-    written = []
-
-    def shot(widget, name: str) -> None:
-        app.processEvents()
-        path = out / name
-        widget.grab().save(str(path))
-        written.append(path)
+    written: list[pathlib.Path] = []
+    shot = _shooter(app, out, written)
 
     w.tabs.setCurrentWidget(w.live)
     # the exposure box shows the camera's value (from the device poll), as the status line does
