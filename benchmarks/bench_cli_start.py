@@ -15,8 +15,9 @@ links first on PYTHONPATH (as benchmarks/polrig_path.sh does), so neither reache
 modules through the editable install. Rounds interleave base and head (the order alternates
 per round); the medians and the per-round ratio's median are reported. The two checkouts'
 ``--help`` pages (every command and sub-command) and their ``--version``, ``info`` and
-``infer --help`` output, and the EXR and preview PNGs every ``infer`` row writes, are compared
-byte for byte.
+``infer --help`` output, and the EXR and preview PNGs every ``infer`` row writes (both from
+one copy of this checkout's weights folder, as the EXR header names the model's path), are
+compared byte for byte.
 
     python -m benchmarks cli_start
     python benchmarks/bench_cli_start.py --rounds 7 --base 9c422a5 --out benchmarks/results/cli_start.md
@@ -143,14 +144,19 @@ def main(argv: list[str] | None = None) -> int:
         for label in ("--version", "infer --help", "info SESSION (64x64, 1 pose)"):
             outs = [run(envs[v], rows[label], work)[1] for v in ("base", "head")]
             same[label] = outs[0] == outs[1]
-        for label, cmd in rows.items():  # the files infer writes (no time stamps in them)
+        # the files infer writes (no time stamps in them), from one weights folder: the EXR
+        # header names the model's path, which differs between the two checkouts
+        weights = work / "weights"
+        shutil.copytree(REPO / "models" / "weights", weights)
+        for label, cmd in rows.items():
             if cmd[0] != "infer" or "--help" in cmd:
                 continue
             written = []
             for v in ("base", "head"):
                 out = work / f"compare_{v}" / "m.exr"
                 out.parent.mkdir()
-                run(envs[v], [c.replace("{out}", str(out)) for c in cmd], work)
+                run(envs[v], [c.replace("{out}", str(out)) for c in cmd] + ["--weights", str(weights)],
+                    work)
                 written.append({p.name: p.read_bytes() for p in sorted(out.parent.iterdir())})
                 shutil.rmtree(out.parent)
             same[f"{label[:-1]}: EXR + previews)"] = written[0] == written[1] and len(written[0]) == 4
