@@ -400,7 +400,8 @@ class SingleShotModel:
     """onnxruntime session of the shipped single-shot graph (and optionally the baseline).
 
     Sessions: :attr:`session` holds the graph with dynamic sizes (its outputs' names, the
-    provider). With :attr:`fixed_sizes` (the default on CUDA) runs go to sessions with the input
+    provider); made by :meth:`load` it is not optimised and never runs: runs take sessions
+    from the ``opener``, created at a graph's first run. With :attr:`fixed_sizes` (the default on CUDA) runs go to sessions with the input
     sizes fixed (``SessionOptions.add_free_dimension_override_by_name``: every shape computation
     folded away), one per graph and input size, created at a size's first run and kept
     (:data:`MAX_SESSIONS`): on CUDA a session that alternates sizes rebuilds every convolution's
@@ -513,9 +514,11 @@ class SingleShotModel:
                                         providers=devices.session_providers(providers, cuda_graph))
 
         try:
-            # with fixed sizes this session only names the graph's inputs, outputs and provider
-            # (it never runs): not optimised, so a one-shot run does not optimise the graph twice
-            sess = ort.InferenceSession(str(path), options(optimise=not fixed_sizes),
+            # this session only names the graph's inputs, outputs and provider (it never runs:
+            # runs take the opener's optimised sessions, made at the first run of each graph):
+            # not optimised, so a one-shot run optimises only the graphs it runs (the route's
+            # frame and probe graphs, not the full one: 0.3-0.5 s of a cold `polrig infer`)
+            sess = ort.InferenceSession(str(path), options(optimise=False),
                                         providers=devices.session_providers(providers))
         except Exception as exc:  # onnxruntime's own exception types: a damaged or foreign file
             reason = (str(exc) or type(exc).__name__).strip().splitlines()[0][:200]
@@ -538,7 +541,7 @@ class SingleShotModel:
         if release_arena is None:
             release_arena = int(np.prod(np.shape(analyzer)[1:])) // 4 > SHRINK_ARENA_ABOVE  # colours x H x W
         run_options = self._shrink if release_arena else None
-        if self._opener is None or (not self.fixed_sizes and self._graph_path(outputs).name == self.graph):
+        if self._opener is None:
             return dict(zip(self.output_names, self.session.run(None, feed, run_options)))
         b, _, _, h, w = feed["analyzer"].shape
         return self._runner(outputs, (int(b), int(h), int(w)) if self.fixed_sizes else None).run(feed, run_options)

@@ -166,3 +166,16 @@ def test_sigma_flags_pixels_beyond_its_calibration_on_a_metal(tmp_path, capsys):
         assert fractions[scene] == pytest.approx(np.any(flagged > 0, axis=0)[obj].mean())
         assert ("beyond the misfit range" in err) == (fractions[scene] > BEYOND_WARN_FRACTION)
     assert fractions["sphere"] < BEYOND_WARN_FRACTION < fractions["gold_sphere"]
+
+
+def test_two_runs_write_the_same_bytes(frame, tmp_path):
+    """The EXR and previews of ``polrig infer`` hold no time stamps: two runs give the same
+    bytes (what ``benchmarks/bench_cli_start.py`` relies on to compare two checkouts' output)."""
+    written = []
+    for run in ("a", "b"):
+        (tmp_path / run).mkdir()
+        assert main(["infer", str(frame), "--state-deg", "0", "--device", "cpu",
+                     "--out", str(tmp_path / run / "m.exr")]) == 0
+        written.append({p.name: p.read_bytes() for p in sorted((tmp_path / run).iterdir())})
+    assert sorted(written[0]) == ["m.exr", "m_aolp.png", "m_dolp.png", "m_grid.png"]
+    assert written[0] == written[1]

@@ -43,8 +43,10 @@ def test_fixed_size_sessions_are_made_once_and_give_the_dynamic_sessions_numbers
     fixed.reconstruct(big, s_in, mask=big_mask, stage_zero_axis=axis, outputs="frame")
     assert all(fixed._runners[k] is runners[k] for k in keys)  # created once per size
     assert fixed.provider_options == {"intra_op_num_threads": "1", "fixed_sizes": "1"}
-    # without fixed sizes: one dynamic session per graph (the full graph's is model.session)
-    assert set(dynamic._runners) == {("single_shot_probe.onnx", None)}
+    # without fixed sizes: one dynamic session per graph run; model.session (not optimised)
+    # only names the graph and never runs
+    assert set(dynamic._runners) == {("single_shot_probe.onnx", None), ("single_shot.onnx", None)}
+    assert all(r.session is not dynamic.session for r in dynamic._runners.values())
     assert dynamic.provider_options["fixed_sizes"] == "0"
     # the CPU's default: dynamic sizes (more memory for no measured speed when fixed)
     assert not SingleShotModel.load(threads=1).fixed_sizes

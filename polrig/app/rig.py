@@ -33,7 +33,6 @@ from polrig.formats.config import (
     validate_config,
 )
 from polrig.sensor.layouts import LAYOUTS
-from polrig.sim.devices import create_sim_rig
 from polrig.sim.geometry import TurntableGeometry
 from polrig.sim.options import DEFAULTS, parse_options, parse_size
 from polrig.sim.scene import default_camera, default_light, stage_zero_axis_for
@@ -217,6 +216,11 @@ def _sim_factory(config: RigConfig, sim_options: dict[str, Any] | None):
 
     def factory():
         if not made:
+            # imported here, where a simulated device is made: the simulated devices, their
+            # truth and targets are ~50-90 ms of a cold `polrig infer`, which only reads the
+            # rig's configuration and nominal geometry (benchmarks/results/cli_start.md)
+            from polrig.sim.devices import create_sim_rig
+
             made.append(create_sim_rig({**config.get("sim", {}), **(sim_options or {}),
                                         "open": False}))
         return made[0]
