@@ -216,7 +216,7 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
         return record | {"action": STOP_TARGET}
     if n >= plan.max_states:
         return record | {"action": STOP_MAX}
-    m00 = np.asarray(result.mueller, np.float64)[:, 0, 0]
+    m00 = np.asarray(result.mueller)[:, 0, 0].astype(np.float64)
     above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)  # (all colours: it normalises)
     ys, xs = np.nonzero(above)
     if len(ys) == 0:  # the pixels above target are all dark or masked: nothing to design for
