@@ -62,6 +62,9 @@ from polrig.app.session import Session
 from polrig.app.sessionio import load_capture_frames
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "adaptive.md"
+#: The decision time of the code before the pose memo (commit 9c422a5), measured apart (its
+#: ``how``); shown beside the decision-time table when present.
+BEFORE = RESULTS.with_name("adaptive_before.json")
 IDEAL = {"stage_zero_offset_deg": 0.0, "extinction_ratio": 1e12, "ideal_analyzer": True}
 EXACT = processing.Calibration("ideal")
 
@@ -193,25 +196,32 @@ def decision_profile(name: str, tmp: pathlib.Path, rounds: int, seed: int) -> di
 
 def decision_lines(profile: dict[str, dict]) -> list[str]:
     """The decision-time table of :func:`decision_profile`'s rows."""
-    rounds = next(iter(profile.values()))["n_rounds"]
     lines = [
         "## Decision time",
         "",
-        (f"One adaptive pose of `plastic_metal` on the colour sensor (IMX250MYR), target 1e-6 so it "
-         f"takes 4 states; its 4 decisions (after 1..4 states; 3 design the next state, the 4th "
-         f"stops at max states) taken again from its files as the run took them, without and with "
-         f"the pose memo, alternating, {rounds} rounds, medians; warm in process (after the capture "
+        ("One adaptive pose of `plastic_metal` on the colour sensor (IMX250MYR), target 1e-6 so it "
+         "takes 4 states; its 4 decisions (after 1..4 states; 3 design the next state, the 4th "
+         "stops at max states) taken again from its files as the run took them, without and with "
+         "the pose memo, alternating rounds (how many: beside the size), medians; warm in process (after the capture "
          "that recorded them); 2 shared CPUs. Seconds per pose (all 4 decisions) by part; per "
          "decision: the pose's total / 4. Peak: tracemalloc's (numpy and Python, not the ONNX "
-         "runtime's arena) during the pose's decisions. Both ways give the run's records exactly."),
+         "runtime's arena) during the pose's decisions. Both ways give the run's records exactly. "
+         f"Before: {BEFORE.name} (how it was measured is in it; both ways of this code replay "
+         "its recorded decisions exactly)."),
         "",
         "| size | path | read s | radiance s | network s | solve s | criterion s | pose total s | per decision s | peak MiB |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for prof in profile.values():
+    before = json.loads(BEFORE.read_text()) if BEFORE.is_file() else {"rows": {}}
+    for name, prof in profile.items():
+        if name in before["rows"]:
+            old = before["rows"][name]
+            lines.append(f"| {old['width']}x{old['height']} ({len(old['totals_s'])} rounds) | before "
+                         f"({before['commit']}, run apart) | - | - | - | - | - | {old['median_s']:.2f} | "
+                         f"{old['median_s'] / old['decisions']:.2f} | {old['peak_mib']:.0f} |")
         for path in ("uncached", "cached"):
             row = prof[path]
-            lines.append(f"| {prof['width']}x{prof['height']} | {path} | "
+            lines.append(f"| {prof['width']}x{prof['height']} ({prof['n_rounds']} rounds) | {path} | "
                          + " | ".join(f"{row[k]:.3f}" for k in PARTS)
                          + f" | {row['total']:.2f} | {row['total'] / row['decisions']:.2f} | {row['peak_mib']:.0f} |")
     return lines
@@ -252,8 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         run_args = vars(args)
         lines = session_lines(args, targets, rows)
-    if not decision_sizes:  # the decision table as it was
-        profile = before.get("decision_time", {})
+    profile = {**before.get("decision_time", {}), **profile}  # sizes not run this time: as they were
     out.with_suffix(".json").write_text(json.dumps({"args": run_args, "rows": rows,
                                                     "decision_time": profile}, indent=1,
                                                    default=str) + "\n")
