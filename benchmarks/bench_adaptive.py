@@ -217,8 +217,13 @@ def decision_lines(profile: dict[str, dict]) -> list[str]:
         if name in before["rows"]:
             old = before["rows"][name]
             lines.append(f"| {old['width']}x{old['height']} ({len(old['totals_s'])} rounds) | before "
-                         f"({before['commit']}, run apart) | - | - | - | - | - | {old['median_s']:.2f} | "
+                         f"({before['commit']}, {old.get('label', 'run apart')}) | - | - | - | - | - | {old['median_s']:.2f} | "
                          f"{old['median_s'] / old['decisions']:.2f} | {old['peak_mib']:.0f} |")
+            if "this_code_with_memo_median_s" in old:  # the same alternation's rounds of this code
+                lines.append(f"| {old['width']}x{old['height']} ({len(old['this_code_with_memo_totals_s'])} rounds) | "
+                             f"cached ({old['label']}) | - | - | - | - | - | "
+                             f"{old['this_code_with_memo_median_s']:.2f} | "
+                             f"{old['this_code_with_memo_median_s'] / old['decisions']:.2f} | - |")
         for path in ("uncached", "cached"):
             row = prof[path]
             lines.append(f"| {prof['width']}x{prof['height']} ({prof['n_rounds']} rounds) | {path} | "

@@ -47,7 +47,7 @@ recorded in the pose's manifest entry (``adaptive``: :class:`polrig.app.manifest
 :class:`PoseMemo` (:func:`polrig.app.capture.run_session` keeps one), which holds the pose's
 frames already decoded, their state radiances and the network's answer on the first state,
 each keyed by the SHA-256 of the files it comes from (every file is still verified on each
-read). A decision then costs the new state's frames and radiance, the hybrid solve of all
+read), and forgets them at the pose's last decision. A decision then costs the new state's frames and radiance, the hybrid solve of all
 states, and the criterion (on the design pixels; only the samples' variances are demosaiced
 for it, not the signal). The record is identical with and without the memo (every reused
 value is that of the same computation on the same bytes; tested), so replay and resume stay
@@ -125,11 +125,17 @@ class PoseMemo:
     def of_capture(self, index: int) -> PoseMemo:
         """This memo for capture ``index``: emptied if it held another capture's entries."""
         if index != self.index:
+            self.clear()
             self.index = index
-            self.frames.clear()
-            self.radiances.clear()
-            self.networks.clear()
         return self
+
+    def clear(self) -> None:
+        """Forget every entry (a pose's last decision: its arrays are not held while the next
+        pose is acquired and this one processed)."""
+        self.index = None
+        self.frames.clear()
+        self.radiances.clear()
+        self.networks.clear()
 
 
 class _Clock:
@@ -257,6 +263,8 @@ def decide(session: Session, index: int, processor: Processor, memo: PoseMemo | 
     with _Clock(timings)("read"):
         cf = load_capture_frames(session, index, None if memo is None else memo.frames)
     record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf), memo, timings)
+    if memo is not None and record["action"] != TAKE:  # the pose's last decision
+        memo.clear()
     with session.mutex:
         session.capture(index).setdefault("adaptive", []).append(record)
         session.save()
