@@ -135,11 +135,13 @@ def capture_state_radiance(cf: CaptureFrames, k: int, model: SensorModel) -> Sta
 
 def state_key(cf: CaptureFrames, k: int) -> tuple[Hashable, ...] | None:
     """What state ``k``'s radiance (:func:`capture_state_radiance`) is a function of, besides
-    the noise model: the checksums of its frame files and of the darks, and the exposures;
-    ``None`` for frames that did not come from files (no checksums)."""
-    if len(cf.checksums) != len(cf.frames):
+    the noise model: the checksums of its frame files, of the darks and of the capture's first
+    frame (its bit depth and black level), and the exposures; ``None`` for frames that did not
+    come from files (no checksums)."""
+    if len(cf.checksums) != len(cf.frames) or not cf.checksums[0]:
         return None
-    return (cf.checksums[k], cf.dark_checksums, tuple(repr(float(e)) for e in cf.exposures_us))
+    return (cf.checksums[0][0], cf.checksums[k], cf.dark_checksums,
+            tuple(repr(float(e)) for e in cf.exposures_us))
 
 
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
