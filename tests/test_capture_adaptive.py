@@ -7,6 +7,7 @@ result. The criterion's algebra is tested in ``tests/test_design.py``."""
 from __future__ import annotations
 
 import itertools
+import shutil
 
 import pytest
 from test_capture import content, resume, sim_rig, start
@@ -20,10 +21,12 @@ from polrig.acquisition.plan import (
     setup_steps,
     step_durations,
 )
-from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, replay_decisions
+from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, PoseMemo, replay_decisions
 from polrig.app.capture import CaptureRequest, run_session
 from polrig.app.session import COMPLETE, INTERRUPTED, PENDING, Session
+from polrig.app.sessionio import load_capture_frames
 from polrig.cli import main
+from polrig.errors import FormatError
 
 needs_model = pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
 
@@ -144,6 +147,50 @@ def test_decisions_are_reproducible_from_the_recorded_frames(adaptive_run):
     session, proc, _, _, _ = adaptive_run
     for cap in session.captures:
         assert replay_decisions(session, cap["index"], proc) == cap["adaptive"]
+
+
+@needs_model
+def test_the_pose_memo_gives_identical_decisions_with_one_network_pass_per_pose(adaptive_run, monkeypatch):
+    """The memo a run keeps (frames, state radiances, the network's answer; keyed by the files'
+    checksums) changes no decision: the records with it, without it and as recorded (by the run,
+    which used one) are equal, and with it the network runs once per pose, each state's
+    radiance is computed once."""
+    session, proc, _, _, _ = adaptive_run
+    calls = []
+    network = proc.single_shot.state
+    monkeypatch.setattr(proc.single_shot, "state", lambda *a, **k: calls.append(1) or network(*a, **k))
+    memo = PoseMemo()
+    for cap in session.captures:
+        n = len(cap["adaptive"])
+        calls.clear()
+        uncached = replay_decisions(session, cap["index"], proc)
+        assert len(calls) == n  # without the memo: the network on every decision
+        calls.clear()
+        cached = replay_decisions(session, cap["index"], proc, memo)
+        assert len(calls) == 1 and len(memo.networks) == 1 and len(memo.radiances) == n
+        assert memo.index == cap["index"] and len(memo.frames) == len(cap["files"]["raw"])
+        assert cached == uncached == cap["adaptive"]
+        calls.clear()  # a second pass finds everything in the memo
+        assert replay_decisions(session, cap["index"], proc, memo) == cap["adaptive"] and calls == []
+
+
+@needs_model
+def test_frames_in_the_memo_are_still_verified(adaptive_run, tmp_path):
+    """A frame the memo holds is not decoded again, but its file is verified on every read: a
+    file changed since is refused (one line naming it), not served from the memo."""
+    session, proc, _, _, _ = adaptive_run
+    shutil.copytree(session.root, tmp_path / "s")
+    s = Session.open(tmp_path / "s")
+    memo = PoseMemo().of_capture(0)
+    replay_decisions(s, 0, proc, memo)
+    raw = s.capture(0)["files"]["raw"][-1]
+    path = s.root / raw["path"]
+    data = bytearray(path.read_bytes())
+    data[-5] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(FormatError) as e:
+        load_capture_frames(s, 0, memo.frames)
+    assert str(path) in str(e.value) and "SHA-256" in str(e.value) and "\n" not in str(e.value)
 
 
 @needs_model

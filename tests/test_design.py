@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.stokes import ideal_analyzer_matrix
@@ -74,6 +76,26 @@ def test_relative_sigma_is_the_rms_sigma_over_m00_worst_colour():
     np.testing.assert_allclose(got[0, 1], expect[[0, 2], 0, 1].max())
     assert got[1, 1] == np.inf
     np.testing.assert_allclose(got[0, 0], rel[0, 0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from([np.float16, np.float32, np.float64]), st.integers(1, 3), st.integers(1, 6),
+       st.integers(1, 7), st.floats(-40, 40), st.integers(0, 2 ** 32 - 1))
+def test_relative_sigma_sums_the_squares_as_the_float64_array_sum_bit_for_bit(dtype, c, h, w, exp10, seed):
+    """The adaptive decisions are recorded and replayed bit for bit: relative_sigma's plane-wise
+    sum of squares gives the numbers of the float64 array sum it replaced, at every magnitude
+    (extremes that overflow to inf, underflow, NaN and inf included)."""
+    rng = np.random.default_rng(seed)
+    sig = (rng.standard_normal((c, 3, 3, h, w)) * 10.0 ** exp10).astype(dtype)
+    sig.flat[rng.integers(0, sig.size)] = rng.choice([np.inf, np.nan, 0.0, 1e-300])
+    m = rng.uniform(-0.2, 1.0, (c, 3, 3, h, w)).astype(dtype)
+    with np.errstate(all="ignore"):
+        s64 = np.asarray(sig, np.float64)
+        rms = np.sqrt(np.sum(s64 * s64, axis=(1, 2)) / 9.0)
+        m00 = np.asarray(m, np.float64)[:, 0, 0]
+        rel = np.where((m00 > 0) & np.isfinite(m00) & np.isfinite(rms), rms / m00, np.inf)
+        got = relative_sigma(sig, m)
+    assert got.dtype == np.float64 and np.array_equal(got, np.max(rel, axis=0))
 
 
 def test_the_criterion_is_the_summed_relative_trace_and_prefers_completing_the_set():

@@ -17,6 +17,7 @@ from polrig.sensor.noise import SensorModel
 from polrig.solve.radiometry import (
     StateRadiance,
     analyzer_stack,
+    analyzer_variance,
     reference_from_frames,
     state_radiance,
 )
@@ -184,3 +185,17 @@ def test_bad_input_is_a_clear_error():
         reference_from_frames([tiny] * 4, S_IN, IMX250MZR)
     with pytest.raises(ValueError, match="of one shape"):
         state_radiance([[np.zeros((4, 4)), np.zeros((4, 5))]], [100.0], SensorModel())
+
+
+@pytest.mark.parametrize("layout", [IMX250MZR, IMX250MYR])
+@pytest.mark.parametrize("method", METHODS)
+def test_analyzer_variance_is_analyzer_stacks_noise_half_bit_for_bit(layout, method):
+    """The adaptive criterion's weights (analyzer_variance) are analyzer_stack's variance and
+    validity, identical, with and without excluded samples."""
+    rng = np.random.default_rng(7)
+    for state in _states(rng, (24, 32), layout)[:2] + [
+            StateRadiance(rng.uniform(1, 9, (24, 32)).astype(np.float32),
+                          rng.uniform(1, 9, (24, 32)).astype(np.float32), np.zeros((24, 32), bool))]:
+        _, var, valid, _ = analyzer_stack(state, layout, method)
+        var2, valid2 = analyzer_variance(state, layout, method)
+        assert var2.dtype == var.dtype and np.array_equal(var2, var) and np.array_equal(valid2, valid)

@@ -42,13 +42,25 @@ written them, so it is a function of the recorded frames alone: :func:`replay_de
 recomputes a pose's decisions from its files, and a resumed session (which acquires an
 interrupted pose from scratch) takes the same decisions on the same frames. Each decision is
 recorded in the pose's manifest entry (``adaptive``: :class:`polrig.app.manifest.AdaptiveDecision`).
+
+**Fast.** Within a pose, only the newest state's frames are new: a run's decisions share a
+:class:`PoseMemo` (:func:`polrig.app.capture.run_session` keeps one), which holds the pose's
+frames already decoded, their state radiances and the network's answer on the first state,
+each keyed by the SHA-256 of the files it comes from (every file is still verified on each
+read), and forgets them at the pose's last decision. A decision then costs the new state's frames and radiance, the hybrid solve of all
+states, and the criterion (on the design pixels; only the samples' variances are demosaiced
+for it, not the signal). The record is identical with and without the memo (every reused
+value is that of the same computation on the same bytes; tested), so replay and resume stay
+exact. Measured with ``python -m benchmarks adaptive`` (its decision table).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Hashable, Sequence
 from typing import Any
 
 import numpy as np
@@ -64,16 +76,23 @@ from polrig.acquisition.plan import (
     pose_tail_steps,
     state_steps,
 )
-from polrig.app.processing import Processor, noise_exposures_us, process_reference
+from polrig.app.processing import (
+    Processor,
+    capture_state_radiance,
+    noise_exposures_us,
+    process_reference,
+    state_key,
+)
 from polrig.app.session import Session
 from polrig.app.sessionio import CaptureFrames, load_capture_frames
+from polrig.sensor.frame import Frame
 from polrig.solve.design import (
     DESIGN_PIXELS,
     a_optimal_next,
     relative_sigma,
     share_at_target,
 )
-from polrig.solve.radiometry import analyzer_stack
+from polrig.solve.radiometry import StateRadiance, analyzer_variance
 from polrig.solve.reference import DARK
 
 #: Candidate polarizer angles, deg: ``[0, 180)`` in steps of
@@ -88,17 +107,99 @@ NEAR_BEST = 0.0
 TAKE, STOP_TARGET, STOP_MAX, STOP_NO_OBJECT = "take", "stop-target", "stop-max-states", "stop-no-object"
 
 
+@dataclasses.dataclass
+class PoseMemo:
+    """What the decisions of one capture share (module docstring, *Fast*): the frames read
+    (by :func:`polrig.app.sessionio.frame_key`), the state radiances (by
+    :func:`polrig.app.processing.state_key`) and the network's answer on the seen state (by
+    that key and its incident state). Every entry is keyed by the checksums of the files it
+    comes from, so a decision that uses it is the decision a fresh process takes on the same
+    files. For one session and one processor; :meth:`of_capture` forgets a capture's entries
+    when the next capture begins (only one pose's are held)."""
+
+    index: int | None = None
+    frames: dict[str, Frame] = dataclasses.field(default_factory=dict)
+    radiances: dict[Hashable, StateRadiance] = dataclasses.field(default_factory=dict)
+    networks: dict[Hashable, Any] = dataclasses.field(default_factory=dict)
+
+    def of_capture(self, index: int) -> PoseMemo:
+        """This memo for capture ``index``: emptied if it held another capture's entries."""
+        if index != self.index:
+            self.clear()
+            self.index = index
+        return self
+
+    def clear(self) -> None:
+        """Forget every entry (a pose's last decision: its arrays are not held while the next
+        pose is acquired and this one processed)."""
+        self.index = None
+        self.frames.clear()
+        self.radiances.clear()
+        self.networks.clear()
+
+
+class _Clock:
+    """Adds the seconds spent in ``with clock(part):`` to ``timings[part]`` (no-op without)."""
+
+    def __init__(self, timings: dict[str, float] | None):
+        self.timings = timings
+
+    @contextlib.contextmanager
+    def __call__(self, part: str):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self.timings is not None:
+                self.timings[part] = self.timings.get(part, 0.0) + time.perf_counter() - t
+
+
 def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
-             geometry: dict[str, Any] | None) -> dict[str, Any]:
+             geometry: dict[str, Any] | None, memo: PoseMemo | None = None,
+             timings: dict[str, float] | None = None) -> dict[str, Any]:
     """The decision after the states of ``cf`` (a pose's frames so far, first state first):
     an :class:`polrig.app.manifest.AdaptiveDecision` record (``states_taken``, ``share_met``,
     ``object_pixels``, ``clipped_pixels``, ``dark_pixels``, ``design_pixels``, ``criterion``, ``action``, ``state_deg``,
-    ``predicted_criterion``). See the module docstring."""
+    ``predicted_criterion``). See the module docstring.
+
+    ``memo``: the state radiances and the network's answer of earlier decisions of the same
+    pose (:class:`PoseMemo`), reused where their files' checksums match; the record is
+    identical with and without it. ``timings`` (if given) gets the seconds of each part added:
+    ``radiance``, ``network``, ``solve`` (the hybrid solve), ``criterion``."""
+    clock = _Clock(timings)
+
+    def radiance(k: int) -> StateRadiance:
+        key = None if memo is None else state_key(cf, k)
+        if key is None:
+            return capture_state_radiance(cf, k, processor.sensor_model)
+        if key not in memo.radiances:
+            memo.radiances[key] = capture_state_radiance(cf, k, processor.sensor_model)
+        return memo.radiances[key]
+
+    with clock("radiance"):
+        states = [radiance(k) for k in range(len(cf.frames))]
     keep: dict[str, Any] = {}
-    prior = processor.prior_function(cf, geometry, {}, keep)
+    network = processor.prior_function(cf, geometry, {}, keep,
+                                       None if memo is None else memo.networks)
+
+    def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
+        with clock("network"):
+            return network(states_, s_in_)
+
+    t, network_s = time.perf_counter(), (timings or {}).get("network", 0.0)
     result, s_in, lay, states = process_reference(cf, processor.calibration, processor.sensor_model,
-                                                  processor.demosaic, np.float32, prior)
-    net = keep["net"]
+                                                  processor.demosaic, np.float32, prior, states=states)
+    if timings is not None:  # the solve: all of it but the network
+        network_s = timings.get("network", 0.0) - network_s
+        timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - t - network_s
+    with clock("criterion"):
+        return _decide(cf, plan, processor, result, s_in, lay, states, keep["net"])
+
+
+def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, s_in: np.ndarray,
+            lay, states: list[StateRadiance], net) -> dict[str, Any]:
+    """:func:`evaluate`'s record from the hybrid solve's ``result`` of the states ``states``
+    (incident ``s_in``, layout ``lay``) and the network's answer ``net`` on the first."""
     sigma = result.sigma_noise if result.sigma_noise is not None else result.sigma
     lit = (np.asarray(net.mask) & DARK) == 0  # (C, H, W): colours above the seen frame's noise floor
     rel = relative_sigma(sigma, result.mueller, lit)
@@ -121,7 +222,7 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
         return record | {"action": STOP_TARGET}
     if n >= plan.max_states:
         return record | {"action": STOP_MAX}
-    m00 = np.asarray(result.mueller, np.float64)[:, 0, 0]
+    m00 = np.asarray(result.mueller)[:, 0, 0].astype(np.float64)
     above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)  # (all colours: it normalises)
     ys, xs = np.nonzero(above)
     if len(ys) == 0:  # the pixels above target are all dark or masked: nothing to design for
@@ -131,7 +232,7 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     pixels = lambda a: np.moveaxis(np.asarray(a)[..., ys, xs], -1, 0)
     measured = []
     for k, st in enumerate(states):
-        _, var, ok, _ = analyzer_stack(st, lay, processor.demosaic)
+        var, ok = analyzer_variance(st, lay, processor.demosaic)
         measured.append((s_in[k], pixels(var), pixels(ok)))
     per_dn, offset = processor.sensor_model.variance_terms(noise_exposures_us(cf)[0], plan.frames_per_state)
     j_now, j = a_optimal_next(pixels(prior_sigma).astype(np.float64), s_in[0], measured,
@@ -148,26 +249,37 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
 
 def truncated(cf: CaptureFrames, n: int) -> CaptureFrames:
     """``cf`` with its first ``n`` states only (the pose as it was after ``n`` states)."""
-    return dataclasses.replace(cf, states_deg=list(cf.states_deg[:n]), frames=list(cf.frames[:n]))
+    return dataclasses.replace(cf, states_deg=list(cf.states_deg[:n]), frames=list(cf.frames[:n]),
+                               checksums=list(cf.checksums[:n]))
 
 
-def decide(session: Session, index: int, processor: Processor) -> dict[str, Any]:
+def decide(session: Session, index: int, processor: Processor, memo: PoseMemo | None = None,
+           timings: dict[str, float] | None = None) -> dict[str, Any]:
     """Capture ``index``'s decision after the states it has recorded so far (read back from the
-    session), appended to its manifest entry (``adaptive``) and saved."""
-    cf = load_capture_frames(session, index)
-    record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf))
+    session), appended to its manifest entry (``adaptive``) and saved. ``memo``: what earlier
+    decisions of the run computed (:class:`PoseMemo`; the same decision without it);
+    ``timings``: as :func:`evaluate`'s, with ``read`` (the frames read back, verified)."""
+    memo = None if memo is None else memo.of_capture(index)
+    with _Clock(timings)("read"):
+        cf = load_capture_frames(session, index, None if memo is None else memo.frames)
+    record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf), memo, timings)
+    if memo is not None and record["action"] != TAKE:  # the pose's last decision
+        memo.clear()
     with session.mutex:
         session.capture(index).setdefault("adaptive", []).append(record)
         session.save()
     return record
 
 
-def replay_decisions(session: Session, index: int, processor: Processor) -> list[dict[str, Any]]:
+def replay_decisions(session: Session, index: int, processor: Processor,
+                     memo: PoseMemo | None = None) -> list[dict[str, Any]]:
     """Capture ``index``'s decisions recomputed from its recorded frames (after 1, 2, ...
-    states): equal to its manifest's ``adaptive`` records when they are reproducible."""
-    cf = load_capture_frames(session, index)
+    states): equal to its manifest's ``adaptive`` records when they are reproducible
+    (``memo`` as :func:`evaluate`'s: the same records with or without it)."""
+    memo = None if memo is None else memo.of_capture(index)
+    cf = load_capture_frames(session, index, None if memo is None else memo.frames)
     geometry = processor.network_geometry(session, cf)
-    return [evaluate(truncated(cf, n), session.plan, processor, geometry)
+    return [evaluate(truncated(cf, n), session.plan, processor, geometry, memo)
             for n in range(1, len(cf.states_deg) + 1)]
 
 

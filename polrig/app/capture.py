@@ -73,7 +73,7 @@ from polrig.acquisition.plan import (  # noqa: F401 (re-exported)
     setup_steps,
     step_durations,
 )
-from polrig.app.adaptive import AdaptiveSchedule
+from polrig.app.adaptive import AdaptiveSchedule, PoseMemo
 from polrig.app.adaptive import decide as adaptive_decide
 from polrig.app.calibrations import (
     Calibration,
@@ -646,9 +646,10 @@ class _Run:
                 exposures = plan.exposures_us or (float(self.rig.camera.exposure_us),)
                 self.setup = setup = setup_steps()
                 self.hardware = hardware_model(self.rig)
+                memo = PoseMemo()  # what a pose's decisions share (frames, radiances, the network's answer)
                 self.schedule = AdaptiveSchedule(
                     plan, self.to_acquire, exposures,
-                    lambda i: self.decision(adaptive_decide(session, i, self.processor)))
+                    lambda i: self.decision(adaptive_decide(session, i, self.processor, memo)))
                 self.handed, self.durations = list(setup), []
                 body = self.schedule.start()
                 self.account(body)

@@ -23,6 +23,7 @@ import copy
 import dataclasses
 import math
 import pathlib
+from collections.abc import Hashable, MutableMapping
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -118,10 +119,36 @@ def noise_exposures_us(cf: CaptureFrames) -> list[float]:
     return [e if math.isfinite(e) else 0.0 for e in cf.exposures_us]
 
 
+def capture_state_radiance(cf: CaptureFrames, k: int, model: SensorModel) -> StateRadiance:
+    """State ``k``'s radiance of capture ``cf`` (:func:`polrig.solve.radiometry.state_radiance`):
+    its frames (every exposure) and the capture's darks in ADC DN, under the noise ``model``.
+    A function of those frames, their exposures and ``model`` alone."""
+    first = cf.first
+    scale = adc_scale(model, first.meta.bit_depth)
+    adc = lambda f: f.raw.astype(np.float64) * scale if scale != 1 else f.raw  # noqa: E731
+    have_darks = any(len(d) for d in cf.darks)
+    return state_radiance(
+        [[adc(f) for f in lst] for lst in cf.frames[k]], noise_exposures_us(cf), model,
+        black_level_dn=float(first.meta.black_level_dn) * scale, code_step_dn=scale,
+        darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None)
+
+
+def state_key(cf: CaptureFrames, k: int) -> tuple[Hashable, ...] | None:
+    """What state ``k``'s radiance (:func:`capture_state_radiance`) is a function of, besides
+    the noise model: the checksums of its frame files, of the darks and of the capture's first
+    frame (its bit depth and black level), and the exposures; ``None`` for frames that did not
+    come from files (no checksums)."""
+    if len(cf.checksums) != len(cf.frames) or not cf.checksums[0]:
+        return None
+    return (cf.checksums[0][0], cf.checksums[k], cf.dark_checksums,
+            tuple(repr(float(e)) for e in cf.exposures_us))
+
+
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
                       method: str, uncertainty_dtype: type = np.float32,
                       prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None,
-                      model_selection: SelectionOptions | None = None
+                      model_selection: SelectionOptions | None = None,
+                      states: Sequence[StateRadiance] | None = None
                       ) -> tuple[ReferenceResult, np.ndarray, MosaicLayout, list[StateRadiance]]:
     """Reference solve of one capture's frames: ``(result, s_in, layout, states)``;
     ``uncertainty_dtype`` of its ``sigma``, ``sigma_noise`` and ``residual`` (float16 halves
@@ -131,19 +158,14 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     (``prior_mean``, ``prior_sigma``, ``seen_state``: :func:`polrig.solve.radiometry.reference_from_frames`),
     computed from the capture's state radiances (:meth:`Processor.solve`).
     ``model_selection``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
-    the result's ``models`` holds the maps)."""
+    the result's ``models`` holds the maps). ``states``: the capture's state radiances
+    (:func:`capture_state_radiance` of each state) when already computed."""
     first = cf.first
     lay = frame_layout(first)
-    scale = adc_scale(model, first.meta.bit_depth)
-    adc = lambda f: f.raw.astype(np.float64) * scale if scale != 1 else f.raw  # noqa: E731
-    black = float(first.meta.black_level_dn) * scale
-    have_darks = any(len(d) for d in cf.darks)
-    states = []
-    for per_state in cf.frames:
-        states.append(state_radiance(
-            [[adc(f) for f in lst] for lst in per_state], noise_exposures_us(cf), model,
-            black_level_dn=black, code_step_dn=scale,
-            darks=[[adc(f) for f in d] for d in cf.darks] if have_darks else None))
+    if states is None:
+        states = [capture_state_radiance(cf, k, model) for k in range(len(cf.frames))]
+    elif len(states) != len(cf.frames):
+        raise ValueError(f"{len(states)} state radiances for {len(cf.frames)} states")
     analyzer = calibration.analyzer
     if analyzer is not None:  # the frame's readout within the calibrated area
         h, w = first.raw.shape
@@ -158,7 +180,7 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
                                    generator_tolerance=calibration.generator_tolerance,
                                    uncertainty_dtype=uncertainty_dtype,
                                    model_selection=model_selection, **extra)
-    return result, s_in, lay, states
+    return result, s_in, lay, list(states)
 
 
 #: Roles of a result's PNG previews (:func:`polrig.app.preview.write_result_previews`), by the
@@ -565,13 +587,20 @@ class Processor:
             None if size is not None else (cf.first.raw.shape[1], cf.first.raw.shape[0]))
 
     def prior_function(self, cf: CaptureFrames, geometry: dict[str, Any] | None,
-                       header: dict[str, Any], keep: dict[str, Any] | None = None
+                       header: dict[str, Any], keep: dict[str, Any] | None = None,
+                       known: MutableMapping[Hashable, SingleShotResult] | None = None
                        ) -> Callable[[list[StateRadiance], np.ndarray], dict[str, Any]]:
         """The hybrid solve's prior (``process_reference``'s ``prior``) for ``cf``: the single-shot
         route on the seen state's radiance (:attr:`seen_state`; 0 in the adaptive mode), its
         estimate and calibrated sigma (inf on clipped colours, 0 outside its object: no prior).
         ``header`` gets the execution provider; ``keep`` (if given) the route's result as
-        ``"net"`` (the adaptive mode's decisions use its object mask and sigma)."""
+        ``"net"`` (the adaptive mode's decisions use its object mask and sigma).
+
+        ``known``: the route's results already computed, by the seen state's
+        :func:`state_key` and incident state: one there is taken rather than run again (the
+        adaptive mode's later decisions of a pose; the network is deterministic, so the result
+        is identical), one computed is added. Valid for this processor and one session's
+        geometry only; a capture without frame checksums is always run."""
         k = self.seen_state
         if not 0 <= k < len(cf.states_deg):
             raise PlanError("seen_state", f"the capture has {len(cf.states_deg)} polarizer "
@@ -579,8 +608,14 @@ class Processor:
                             subject=str(k), what="seen state")
 
         def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
-            net = self.single_shot.state(states_[k], cf.first, s_in_[k],
-                                         self.single_shot_options, geometry=geometry)
+            seen = state_key(cf, k)
+            key = None if known is None or seen is None else (seen, np.asarray(s_in_[k], np.float64).tobytes())
+            net = None if key is None else known.get(key)
+            if net is None:
+                net = self.single_shot.state(states_[k], cf.first, s_in_[k],
+                                             self.single_shot_options, geometry=geometry)
+                if key is not None:
+                    known[key] = net
             header["execution_provider"] = net.provider
             if keep is not None:
                 keep["net"] = net

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from collections.abc import Mapping, MutableMapping
 
 from polrig.acquisition.plan import CapturePlan, planned_bytes
 from polrig.app.manifest import DarkFrameRecord, RawFrameRecord
@@ -63,8 +64,13 @@ def check_resume_space(session: Session, rig, n_captures: int) -> None:
     session.log("resumed", remaining=n_captures)
 
 
-def read_verified_frame(session: Session, record: RawFrameRecord | DarkFrameRecord) -> Frame:
-    """Read one recorded raw frame after checking its (and its sidecar's) SHA-256."""
+def read_verified_frame(session: Session, record: RawFrameRecord | DarkFrameRecord,
+                        known: Mapping[str, Frame] | None = None) -> Frame:
+    """Read one recorded raw frame after checking its (and its sidecar's) SHA-256.
+
+    ``known``: frames already read, by the SHA-256 of their file: a file whose checksum (as
+    verified now) is there is not decoded again; its frame was read from identical bytes,
+    sidecar included (the key is both checksums, :func:`frame_key`)."""
     for key, digest in (("path", "sha256"), ("meta_path", "meta_sha256")):
         path = session.root / record[key]
         if not path.is_file():
@@ -72,7 +78,14 @@ def read_verified_frame(session: Session, record: RawFrameRecord | DarkFrameReco
         if sha256_file(path) != record[digest]:
             raise FormatError(f"{path}: SHA-256 does not match the session manifest (changed "
                               f"or corrupt raw data)")
+    if known is not None and frame_key(record) in known:
+        return known[frame_key(record)]
     return read_raw(session.root / record["path"])
+
+
+def frame_key(record: RawFrameRecord | DarkFrameRecord) -> str:
+    """A frame file's identity: its image's and its sidecar's SHA-256 (``image:sidecar``)."""
+    return f"{record['sha256']}:{record['meta_sha256']}"
 
 
 @dataclasses.dataclass
@@ -83,6 +96,11 @@ class CaptureFrames:
     exposures_us: list[float]
     frames: list[list[list[Frame]]]  # [state][exposure][k]
     darks: list[list[Frame]]  # [exposure][k]
+    #: per state, the SHA-256 of its frame files in the order of ``frames[state]`` (exposure,
+    #: then repeat), as verified when read; empty where the frames did not come from files
+    checksums: list[tuple[str, ...]] = dataclasses.field(default_factory=list)
+    #: the dark frames' SHA-256 in the order of ``darks``
+    dark_checksums: tuple[str, ...] = ()
 
     @property
     def first(self) -> Frame:
@@ -103,8 +121,12 @@ def manifest_exposure_us(exposure_us: float) -> float | None:
     return e if math.isfinite(e) else None
 
 
-def load_capture_frames(session: Session, index: int) -> CaptureFrames:
-    """Every raw and dark frame of capture ``index``, checksums verified."""
+def load_capture_frames(session: Session, index: int,
+                        known: MutableMapping[str, Frame] | None = None) -> CaptureFrames:
+    """Every raw and dark frame of capture ``index``, checksums verified.
+
+    ``known`` (frames by :func:`frame_key`): frames already read are taken from it rather than
+    decoded again (their files are still verified), and the frames read are added to it."""
     files = session.capture(index)["files"]
     raw = files.get("raw", [])
     if not raw:
@@ -113,22 +135,29 @@ def load_capture_frames(session: Session, index: int) -> CaptureFrames:
     n_exp = 1 + max(r["exposure_index"] for r in raw)
     states = [0.0] * n_states
     exposures = [0.0] * n_exp
-    frames: list[list[list[tuple[int, Frame]]]] = [[[] for _ in range(n_exp)]
-                                                   for _ in range(n_states)]
+    frames: list[list[list[tuple[int, Frame, str]]]] = [[[] for _ in range(n_exp)]
+                                                        for _ in range(n_states)]
+
+    def read(r) -> tuple[int, Frame, str]:
+        frame = read_verified_frame(session, r, known)
+        if known is not None:
+            known[frame_key(r)] = frame
+        return r["frame"], frame, frame_key(r)
+
     for r in raw:
         states[r["state_index"]] = float(r["state_deg"])
         exposures[r["exposure_index"]] = recorded_exposure_us(r)
-        frames[r["state_index"]][r["exposure_index"]].append((r["frame"],
-                                                              read_verified_frame(session, r)))
-    darks: list[list[tuple[int, Frame]]] = [[] for _ in range(n_exp)]
+        frames[r["state_index"]][r["exposure_index"]].append(read(r))
+    darks: list[list[tuple[int, Frame, str]]] = [[] for _ in range(n_exp)]
     for r in files.get("dark", []):
-        darks[r["exposure_index"]].append((r["frame"], read_verified_frame(session, r)))
+        darks[r["exposure_index"]].append(read(r))
     for j, per_state in enumerate(frames):
         for e, lst in enumerate(per_state):
             if not lst:
                 raise FormatError(f"capture {index}: no frames of state {j} at exposure {e}")
-    srt = lambda lst: [f for _, f in sorted(lst, key=lambda t: t[0])]  # noqa: E731
-    return CaptureFrames(states, exposures, [[srt(l) for l in s] for s in frames],
-                         [srt(l) for l in darks])
-
-
+    srt = lambda lst: sorted(lst, key=lambda t: t[0])  # noqa: E731
+    return CaptureFrames(states, exposures,
+                         [[[f for _, f, _ in srt(l)] for l in s] for s in frames],
+                         [[f for _, f, _ in srt(l)] for l in darks],
+                         [tuple(k for l in s for _, _, k in srt(l)) for s in frames],
+                         tuple(k for l in darks for _, _, k in srt(l)))

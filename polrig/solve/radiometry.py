@@ -182,14 +182,28 @@ def _demosaic_state(signal: np.ndarray, variance: np.ndarray, excluded: np.ndarr
     if offset_dn is not None:
         signal = np.asarray(signal, np.float64) - offset_dn
     measured = demosaic_float(np.asarray(signal, np.float32), layout, method)
+    return (measured, *_demosaic_variance(variance, excluded, layout, method))
+
+
+def _demosaic_variance(variance: np.ndarray, excluded: np.ndarray, layout: MosaicLayout,
+                       method: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(variance, valid)`` ``(C, 4, H', W')`` of one state's mosaic (or rows of it): the
+    noise half of :func:`_demosaic_state`."""
     var = demosaic_float(np.asarray(variance, np.float32), layout, method)
     if method == "superpixel":
         var /= _superpixel_counts(layout)
     excluded = np.asarray(excluded)
     if not excluded.any():  # nothing to spread: every output sample is valid
-        return measured, var, np.ones(measured.shape, bool)
+        return var, np.ones(var.shape, bool)
     bad = demosaic_float(excluded.astype(np.float32), layout, method)
-    return measured, var, ~(bad > 0)
+    return var, ~(bad > 0)
+
+
+def analyzer_variance(state: StateRadiance, layout: MosaicLayout, method: str
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``variance`` and ``valid`` of :func:`analyzer_stack` alone (``(C, 4, H', W')``,
+    identical values), without demosaicing the signal: what the samples' weights need."""
+    return _demosaic_variance(state.variance_dn2, state.excluded, layout, method)
 
 
 def _demosaic_rows(rows: np.ndarray, layout: MosaicLayout, method: str) -> np.ndarray:
