@@ -76,14 +76,24 @@ class _Captures:
 
             self._blocks, self._t = {}, None  # the previous capture goes before the next comes
             names = list(self._variables)
-            computed = dict(zip(names, dask.compute(*(self._variables[n] if t is None
-                                                      else self._variables[n][t] for n in names))))
+            computed = dict(zip(names, dask.compute(*(_one_chunk(self._variables[n] if t is None
+                                                                 else self._variables[n][t])
+                                                      for n in names))))
             for n in names:  # (..., y, x) -> (C, y, x), C-contiguous; one variable copied at a time
                 a = computed.pop(n)
                 self._blocks[n] = np.ascontiguousarray(a).reshape((-1,) + a.shape[-2:])
                 del a
             self._t = t
         return self._blocks
+
+
+def _one_chunk(array):
+    """A one-chunk dask array as the delayed value of that chunk: computed, it is the chunk
+    itself, not the copy that computing the array makes (dask copies a single chunk), and, the
+    graph left unoptimised, the chunks of one capture share its one read (an optimised graph
+    per delayed value would inline the read into each)."""
+    (chunk,) = array.to_delayed(optimize_graph=False).ravel()
+    return chunk
 
 
 class _OneCaptureAtATime:

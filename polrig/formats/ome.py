@@ -32,8 +32,15 @@ unit; Fiji's Bio-Formats importer opens each series as a hyperstack (ImageJ's ``
 ``Z`` of size 1). The attributes are the image's ``Description`` (JSON) and the sample
 metadata a ``MapAnnotation`` (key-value pairs, shown by Fiji's "Show Info" and OMERO).
 
-Both write plane by plane from the stacks (numpy or dask arrays), so a session larger than
-memory is written with one ``(Y, X)`` plane in memory at a time. Writers: ``zarr`` (>= 3) and
+Both write a capture at a time: :meth:`OmeImage.block` ``(C, Y, X)`` of capture ``t``, every
+image's block of one capture before the next (a session opened lazily,
+:func:`polrig.app.export.dataset_images`, reads each capture's result file once and holds one
+capture). An OME-Zarr takes the blocks as they come, chunk by chunk. An OME-TIFF's series
+follow one another in the file, so the first image's planes are written as each capture comes
+and the other images' blocks are spilled to a raw file each in a temporary folder beside the
+output (removed afterwards: it needs their size in disk space once more), then read back a
+plane at a time for their own series. Memory holds one capture, whatever the session's size.
+Writers: ``zarr`` (>= 3) and
 ``tifffile``, the ``export`` extra; without them a one-line error names the extra.
 """
 
@@ -178,7 +185,8 @@ def write_ome_zarr(path: str | os.PathLike, images: Sequence[OmeImage], *,
         for t in range(images[0].data.shape[0] if images[0].data.ndim == 4 else 1):
             for im, arr, win in zip(images, arrays, windows):
                 block = im.block(t) if im.data.ndim == 4 else np.asarray(im.data)
-                arr[t if im.data.ndim == 4 else slice(None)] = block
+                for c, plane in enumerate(block):  # plane by plane: zarr buffers what it is given
+                    arr[(t, c) if im.data.ndim == 4 else c] = plane
                 win.add(block)
         for g, im, win in zip(groups, images, windows):
             _write_metadata(g, im, win, pixel_size, unit, version)
