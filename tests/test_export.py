@@ -155,6 +155,31 @@ def test_ome_zarr_reads_each_capture_once(session, tmp_path, monkeypatch):
     assert sorted(reads) == ["c000_pose000.0", "c001_pose090.0"]  # mueller, sigma, mask: one read
 
 
+def test_ome_tiff_reads_each_capture_once_and_writes_every_series_as_the_files_hold_it(
+        session, tmp_path, monkeypatch):
+    """OME-TIFF series follow one another; the session is still read a capture at a time, once
+    (the later series spilled beside the output and read back), with nothing left behind."""
+    from polrig.app import dataset
+
+    reads = []
+    real = dataset.read_mueller_exr
+    monkeypatch.setattr(dataset, "read_mueller_exr", lambda p: reads.append(p.parent.name) or real(p))
+    out = polrig.export(session, tmp_path / "once.ome.tif", "ome-tiff")
+    captures = ["c000_pose000.0", "c001_pose090.0"]
+    assert sorted(reads) == captures  # mueller, sigma, mask: one read per capture
+    with tifffile.TiffFile(out) as tif:
+        series = {s.name: s.asarray() for s in tif.series}
+    assert [v.shape for v in series.values()] == [(2, 9, 32, 32), (2, 9, 32, 32), (2, 32, 32)]  # C=1 squeezed
+    for t, cap in enumerate(captures):
+        f = real(session / cap / "mueller.exr")
+        np.testing.assert_array_equal(series["mueller"][t], f.mueller.reshape(9, 32, 32))
+        sigma = np.stack([f.extra[f"sigma.M{i}{j}.Y"] for i in range(3) for j in range(3)])
+        np.testing.assert_array_equal(series["sigma"][t], sigma)
+        np.testing.assert_array_equal(series["mask"][t], f.extra["mask.Y"].astype(np.uint8))
+    assert not np.array_equal(series["mueller"][0], series["mueller"][1])  # two captures, not one twice
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["once.ome.tif"]  # no spill folder left
+
+
 def test_pixel_size_from_the_calibration_set(tmp_path, session):
     """The pixel size at the turntable axis: depth 0.5 m where the axis crosses the optical axis,
     f = 600 px, a superpixel of the mono layout is 2x2 sensor pixels: 0.5 / 600 * 2 m."""

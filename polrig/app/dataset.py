@@ -85,14 +85,18 @@ def _read_planes(path: pathlib.Path, colours: tuple[str, ...], groups: list[str]
     if channel_suffixes(res.mueller.shape[0]) != tuple(colours):
         raise FormatError(f"{path}: colours changed since the session was opened")
     out = {"mueller": res.mueller}
-    for g in groups:
+    h, w = res.mueller.shape[-2:]
+    for g in groups:  # each plane moved into its group's array: no second copy of the file at once
         if g in ELEMENT_GROUPS:
-            out[g] = np.stack([np.stack([np.stack([res.extra[f"{g}.M{r}{q}.{s}"] for q in range(3)])
-                                         for r in range(3)]) for s in colours]).astype(np.float32)
-        elif g == "mask":
-            out[g] = np.stack([res.extra[f"mask.{s}"] for s in colours]).astype(np.uint8)
+            out[g] = np.empty((len(colours), 3, 3, h, w), np.float32)
+            for k, s in enumerate(colours):
+                for r in range(3):
+                    for q in range(3):
+                        out[g][k, r, q] = res.extra.pop(f"{g}.M{r}{q}.{s}")
         else:
-            out[g] = np.stack([res.extra[f"{g}.{s}"] for s in colours]).astype(np.float32)
+            out[g] = np.empty((len(colours), h, w), np.uint8 if g == "mask" else np.float32)
+            for k, s in enumerate(colours):
+                out[g][k] = res.extra.pop(f"{g}.{s}")
     return out
 
 

@@ -37,6 +37,8 @@ import os
 import pathlib
 from typing import Any
 
+import numpy as np
+
 from polrig.app.manifest import sample_fields
 from polrig.formats.ome import NGFF_VERSIONS, UNITS, OmeImage, write_ome_tiff, write_ome_zarr
 
@@ -56,25 +58,54 @@ def _channel_names(name: str, ds) -> tuple[str, ...]:
     return tuple(f"{name}.{s}" for s in colours)
 
 
-class _OneCaptureAtATime:
-    """A session variable as ``(T, C, Y, X)`` whose ``[t]`` computes every variable of capture
-    ``t`` together (one read of its result file, shared through the dataset's one dask chunk
-    per capture) and keeps that capture until another is asked for."""
+class _Captures:
+    """A dataset's variables as the images' ``(C, Y, X)`` blocks, a capture at a time:
+    ``blocks(t)`` computes every variable of capture ``t`` together (one read of its result
+    file, shared through the dataset's one dask chunk per capture; ``t`` is ``None`` for a
+    dataset without captures) and keeps that capture only, so that memory holds one capture's
+    planes (and one variable's reordered copy while it is made) whatever the session's size."""
 
-    def __init__(self, stacks: dict[str, Any], name: str, cache: dict[str, Any]):
-        self._stacks, self._name, self._cache = stacks, name, cache
-        data = stacks[name]
-        self.shape, self.dtype, self.ndim = tuple(data.shape), data.dtype, data.ndim
+    def __init__(self, variables: dict[str, Any]):
+        self._variables = variables  # dask (T, ..., y, x) or (..., y, x), image-major dims
+        self._t: object = object()
+        self._blocks: dict[str, np.ndarray] = {}
 
-    def __getitem__(self, t: int):
-        if self._cache.get("t") != t:
+    def blocks(self, t: int | None) -> dict[str, np.ndarray]:
+        if t != self._t:
             import dask
 
-            self._cache.clear()
-            names = list(self._stacks)
-            self._cache.update(zip(names, dask.compute(*(self._stacks[n][t] for n in names))))
-            self._cache["t"] = t
-        return self._cache[self._name]
+            self._blocks, self._t = {}, None  # the previous capture goes before the next comes
+            names = list(self._variables)
+            computed = dict(zip(names, dask.compute(*(_one_chunk(self._variables[n] if t is None
+                                                                 else self._variables[n][t])
+                                                      for n in names))))
+            for n in names:  # (..., y, x) -> (C, y, x), C-contiguous; one variable copied at a time
+                a = computed.pop(n)
+                self._blocks[n] = np.ascontiguousarray(a).reshape((-1,) + a.shape[-2:])
+                del a
+            self._t = t
+        return self._blocks
+
+
+def _one_chunk(array):
+    """A one-chunk dask array as the delayed value of that chunk: computed, it is the chunk
+    itself, not the copy that computing the array makes (dask copies a single chunk), and, the
+    graph left unoptimised, the chunks of one capture share its one read (an optimised graph
+    per delayed value would inline the read into each)."""
+    (chunk,) = array.to_delayed(optimize_graph=False).ravel()
+    return chunk
+
+
+class _OneCaptureAtATime:
+    """A session variable as ``(T, C, Y, X)`` whose ``[t]`` is its block of capture ``t``
+    (:class:`_Captures`: every variable of that capture read together)."""
+
+    def __init__(self, captures: _Captures, name: str, shape: tuple[int, ...], dtype):
+        self._captures, self._name = captures, name
+        self.shape, self.dtype, self.ndim = shape, np.dtype(dtype), len(shape)
+
+    def __getitem__(self, t: int) -> np.ndarray:
+        return self._captures.blocks(int(t))[self._name]
 
 
 def dataset_images(ds) -> list[OmeImage]:
@@ -82,8 +113,8 @@ def dataset_images(ds) -> list[OmeImage]:
     ``(capture, channel, i, j, y, x)`` (or ``(capture, channel, y, x)``) as ``(T, C, Y, X)``,
     element-major channels (``M00.R``, ``M00.G``, ``M00.B``, ``M01.R``, ...); without a
     ``capture`` dim ``(C, Y, X)``, read at once (one result file); a session's are read a
-    capture at a time, all its variables together."""
-    images = []
+    capture at a time, all its variables together (:class:`_Captures`)."""
+    labels, variables = {}, {}
     for name in _ORDER:
         if name not in ds:
             continue
@@ -91,21 +122,19 @@ def dataset_images(ds) -> list[OmeImage]:
         lead = ("capture",) if "capture" in var.dims else ()
         channels = _channel_names(name, ds)
         if name in _ELEMENT:  # (..., i, j, channel, y, x) -> (..., 9 C, y, x), element-major
-            data = var.transpose(*lead, "i", "j", "channel", "y", "x").data
-            data = data.reshape(data.shape[:len(lead)] + (len(channels),) + data.shape[-2:])
+            variables[name] = var.transpose(*lead, "i", "j", "channel", "y", "x").data
             visible = tuple(c for c in channels if c.split(".")[-2] == "M00")
         else:
-            data = var.transpose(*lead, "channel", "y", "x").data
+            variables[name] = var.transpose(*lead, "channel", "y", "x").data
             visible = channels
-        images.append(OmeImage(name, data, channels, visible, dict(var.attrs)))
-    if "capture" in ds.dims:  # each capture's file read once for all its variables
-        stacks, cache = {im.name: im.data for im in images}, {}
-        images = [dataclasses.replace(im, data=_OneCaptureAtATime(stacks, im.name, cache)) for im in images]
-    else:  # one result: one read
-        import dask
-
-        images = [dataclasses.replace(im, data=d)
-                  for im, d in zip(images, dask.compute(*(im.data for im in images)))]
+        labels[name] = (channels, visible, dict(var.attrs))
+    captures = _Captures(variables)
+    if "capture" not in ds.dims:  # one result: one read
+        return [OmeImage(n, b, *labels[n]) for n, b in captures.blocks(None).items()]
+    images = []
+    for name, v in variables.items():  # each capture's file read once for all its variables
+        shape = (v.shape[0], len(labels[name][0])) + v.shape[-2:]
+        images.append(OmeImage(name, _OneCaptureAtATime(captures, name, shape, v.dtype), *labels[name]))
     return images
 
 

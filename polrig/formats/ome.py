@@ -32,19 +32,28 @@ unit; Fiji's Bio-Formats importer opens each series as a hyperstack (ImageJ's ``
 ``Z`` of size 1). The attributes are the image's ``Description`` (JSON) and the sample
 metadata a ``MapAnnotation`` (key-value pairs, shown by Fiji's "Show Info" and OMERO).
 
-Both write plane by plane from the stacks (numpy or dask arrays), so a session larger than
-memory is written with one ``(Y, X)`` plane in memory at a time. Writers: ``zarr`` (>= 3) and
+Both write a capture at a time: :meth:`OmeImage.block` ``(C, Y, X)`` of capture ``t``, every
+image's block of one capture before the next (a session opened lazily,
+:func:`polrig.app.export.dataset_images`, reads each capture's result file once and holds one
+capture). An OME-Zarr takes the blocks as they come, chunk by chunk. An OME-TIFF's series
+follow one another in the file, so the first image's planes are written as each capture comes
+and the other images' blocks are spilled to a raw file each in a temporary folder beside the
+output (removed afterwards: it needs their size in disk space once more), then read back a
+plane at a time for their own series. Memory holds one capture, whatever the session's size.
+Writers: ``zarr`` (>= 3) and
 ``tifffile``, the ``export`` extra; without them a one-line error names the extra.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import pathlib
 import shutil
-from typing import Any, Mapping, Sequence
+import tempfile
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -178,7 +187,8 @@ def write_ome_zarr(path: str | os.PathLike, images: Sequence[OmeImage], *,
         for t in range(images[0].data.shape[0] if images[0].data.ndim == 4 else 1):
             for im, arr, win in zip(images, arrays, windows):
                 block = im.block(t) if im.data.ndim == 4 else np.asarray(im.data)
-                arr[t if im.data.ndim == 4 else slice(None)] = block
+                for c, plane in enumerate(block):  # plane by plane: zarr buffers what it is given
+                    arr[(t, c) if im.data.ndim == 4 else c] = plane
                 win.add(block)
         for g, im, win in zip(groups, images, windows):
             _write_metadata(g, im, win, pixel_size, unit, version)
@@ -265,8 +275,10 @@ def write_ome_tiff(path: str | os.PathLike, images: Sequence[OmeImage], *,
     tmp = temporary_sibling(out)
     common = dict(attributes or {})
     try:
-        with tifffile.TiffWriter(tmp, bigtiff=True, ome=True) as tw:
-            for im in images:
+        with tifffile.TiffWriter(tmp, bigtiff=True, ome=True) as tw, \
+                tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.spill-") as spill, \
+                contextlib.closing(_series_planes(images, pathlib.Path(spill))) as series:
+            for im, planes in zip(images, series):
                 meta: dict[str, Any] = {
                     "axes": im.axes.upper(), "Name": im.name,
                     "Channel": {"Name": list(im.channels)},
@@ -278,7 +290,7 @@ def write_ome_tiff(path: str | os.PathLike, images: Sequence[OmeImage], *,
                                 PhysicalSizeYUnit=UNITS[unit], PhysicalSizeXUnit=UNITS[unit])
                 if annotations:
                     meta["MapAnnotation"] = {str(k): str(v) for k, v in annotations.items()}
-                tw.write((p for _, p in im.planes()), shape=tuple(im.data.shape),
+                tw.write(planes, shape=tuple(im.data.shape),
                          dtype=np.dtype(im.data.dtype), photometric="minisblack",
                          compression="zlib", compressionargs={"level": ZLIB_LEVEL}, metadata=meta)
         os.replace(tmp, out)
@@ -286,3 +298,38 @@ def write_ome_tiff(path: str | os.PathLike, images: Sequence[OmeImage], *,
         pathlib.Path(tmp).unlink(missing_ok=True)
         raise
     return out
+
+
+def _series_planes(images: Sequence[OmeImage], spill: pathlib.Path) -> Iterator[Iterator[np.ndarray]]:
+    """Each image's ``(Y, X)`` planes in storage order, one iterator per image, to be consumed
+    in turn (an OME-TIFF's series follow one another). Stacks of several captures are read a
+    capture at a time, every image's block of it together (a lazy session's result file once
+    per capture, :meth:`OmeImage.block`): while the first image's planes are written, the
+    other images' blocks of the same capture go to a raw file each in folder ``spill``, read
+    back a plane at a time for their own series; memory holds one capture, never the session."""
+    first = images[0]
+    if first.data.ndim == 3 or first.data.shape[0] == 1 or len(images) == 1:
+        yield from (((p for _, p in im.planes())) for im in images)
+        return
+    files = [open(spill / f"{k}.raw", "w+b") for k in range(1, len(images))]
+    try:
+        def first_series() -> Iterator[np.ndarray]:
+            for t in range(first.data.shape[0]):
+                block = first.block(t)
+                for im, f in zip(images[1:], files):
+                    np.ascontiguousarray(im.block(t)).tofile(f)
+                yield from block
+
+        def spilled(im: OmeImage, f) -> Iterator[np.ndarray]:
+            f.flush()
+            f.seek(0)
+            count = int(np.prod(im.data.shape[-2:]))
+            for _ in range(im.data.shape[0] * im.data.shape[1]):
+                yield np.fromfile(f, np.dtype(im.data.dtype), count).reshape(im.data.shape[-2:])
+
+        yield first_series()
+        for im, f in zip(images[1:], files):
+            yield spilled(im, f)
+    finally:
+        for f in files:
+            f.close()
