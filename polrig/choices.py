@@ -34,6 +34,9 @@ EXR_COMPRESSIONS = ("zip", "piz", "none")
 #: Precision names of the uncertainty planes (keys of
 #: :data:`polrig.formats.exr.UNCERTAINTY_PRECISIONS`).
 EXR_UNCERTAINTY_PRECISIONS = ("float", "half")
+#: Where ``polrig analyze`` and ``polrig stats`` take the per-element sigma from (``--sigma``):
+#: the result's ``sigma`` planes (noise and calibration), ``sigma_noise`` (noise alone), or none.
+SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
 #: Spatial units the OME writers accept (NGFF names; OME-XML symbols;
 #: :data:`polrig.formats.ome.UNITS`).
 OME_UNITS = {"micrometer": "µm", "millimeter": "mm", "nanometer": "nm", "meter": "m"}

@@ -16,15 +16,13 @@ import pathlib
 import sys
 from typing import TYPE_CHECKING, Any
 
+from polrig.choices import SIGMA_SOURCES
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (check_output_file, check_output_folder, finite_float,
                                      nonnegative_float, positive_float)
 
 if TYPE_CHECKING:
     import numpy as np
-
-#: Where the per-element sigma comes from (``--sigma``).
-SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

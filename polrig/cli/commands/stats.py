@@ -15,11 +15,9 @@ import argparse
 import math
 import pathlib
 
+from polrig.choices import SIGMA_SOURCES
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import check_output_file, positive_float
-
-#: Where the per-element sigma comes from (``--sigma``), as ``polrig analyze``.
-SIGMA_SOURCES = ("sigma", "sigma_noise", "none")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
