@@ -128,7 +128,7 @@ def shares(run: dict, targets: list[float]) -> dict[float, float]:
 
 
 #: Sizes of the decision-time table: name -> (width, height).
-DECISION_SIZES = {"512": (512, 512), "full": (2448, 2048)}
+DECISION_SIZES = {"64": (64, 64), "512": (512, 512), "full": (2448, 2048)}  # 64: the test's
 #: The parts of a decision (:func:`polrig.app.adaptive.decide`'s ``timings``).
 PARTS = ("read", "radiance", "network", "solve", "criterion")
 
