@@ -25,6 +25,16 @@ def row(rows, name, ch=None):
     return hits[0]
 
 
+def assert_csv_rows_equal(got: list[dict], want) -> None:
+    """The CSV rows ``got`` (``csv.DictReader``) state exactly the statistics ``want``, row by row."""
+    for g, r in zip(got, want):
+        assert (g["quantity"], g["channel"], int(g["n_counted"]), int(g["n_masked"])) == (
+            r.quantity, r.channel, r.n_counted, r.n_masked)
+        for k in ("mean", "std", "sem_scatter", "sem_sigma"):
+            v = getattr(r, k)
+            assert float(g[k]) == v or (math.isnan(v) and g[k] == "nan")
+
+
 # -- masks --------------------------------------------------------------------------------------
 def test_rect_mask_is_the_pixels_whose_centre_is_inside():
     m = roi.roi_mask(roi.RectROI(2, 3, 4, 2), (8, 10))
@@ -326,12 +336,7 @@ def test_stats_cli_equals_the_core_on_a_result_and_per_capture_of_a_session(sess
     inside = roi.roi_mask(roi.parse_roi(shape), (h, w))
     want = roi.roi_statistics(inside, mueller=mueller, sigma=sigma, valid=valid)
     assert len(got) == len(want)
-    for g, r in zip(got, want):
-        assert (g["quantity"], g["channel"], int(g["n_counted"]), int(g["n_masked"])) == (
-            r.quantity, r.channel, r.n_counted, r.n_masked)
-        for k in ("mean", "std", "sem_scatter", "sem_sigma"):
-            v = getattr(r, k)
-            assert float(g[k]) == v or (math.isnan(v) and g[k] == "nan")
+    assert_csv_rows_equal(got, want)
     assert sum(int(g["n_counted"]) + int(g["n_masked"]) for g in got[:1]) == inside.sum()
     prof = (tmp_path / "one_profile.csv").read_text().splitlines()
     cols = [line for line in prof if line.startswith("s,x,y")][0].split(",")
@@ -454,12 +459,7 @@ def test_stats_cli_reads_a_stokes_exr_like_the_viewer(tmp_path, capsys):
     snr = back.extra["snr.Y"][None]
     want = roi.roi_statistics(inside, stokes=back.stokes, valid=valid, snr=snr)
     assert [g["quantity"] for g in got] == ["S0", "DoLP", "AoLP_deg"]
-    for g, r in zip(got, want):
-        assert (g["quantity"], g["channel"], int(g["n_counted"]), int(g["n_masked"])) == (
-            r.quantity, r.channel, r.n_counted, r.n_masked)
-        for k in ("mean", "std", "sem_scatter", "sem_sigma"):
-            v = getattr(r, k)
-            assert float(g[k]) == v or (math.isnan(v) and g[k] == "nan")
+    assert_csv_rows_equal(got, want)
     s0, dolp_row, aolp_row = want
     assert s0.n_masked == 1 and s0.n_counted + 1 == inside.sum()  # the saturated cell
     assert abs(dolp_row.mean - 0.6) < 0.01 and abs(aolp_row.mean - 30.0) < 0.5
