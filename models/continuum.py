@@ -106,6 +106,9 @@ VARIANTS = ("marginal", "naive", "exclude")
 #: :func:`polrig.solve.design.relative_sigma`), its share of object pixels and most states (the
 #: capture's defaults: :mod:`polrig.app.adaptive`).
 ADAPTIVE_TARGETS = (0.05, 0.03)
+#: The exposure bracket of the "Highlights" rows: fractions of the dataset's exposure each
+#: state also takes (one frame each), merged with the reference exposure (:func:`sample_frames`).
+BRACKET = (1 / 16, 1 / 256)
 ADAPTIVE_SHARE = 0.95
 ADAPTIVE_MAX_STATES = 4
 #: The default simulated rig's scenes (``--rig``: those of the single-shot rig benchmark,
@@ -206,12 +209,20 @@ def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray]:
 
 
 def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng: np.random.Generator, *,
-                  offsets: Sequence[int] = OFFSETS_DEG, frames_per_state: int = 1) -> Frames:
+                  offsets: Sequence[int] = OFFSETS_DEG, frames_per_state: int = 1,
+                  bracket: Sequence[float] = ()) -> Frames:
     """The frames of sample ``i`` at ``offsets`` (0 first: the seen state), each the mean of
     ``frames_per_state`` frames (the seen state's: the dataset's own frame and
-    ``frames_per_state - 1`` more); a sample is excluded where any of its frames saturates."""
+    ``frames_per_state - 1`` more); a sample is excluded where any of its frames saturates.
+
+    ``bracket``: fractions of the dataset's exposure (e.g. :data:`BRACKET`) at which each state
+    also takes ``frames_per_state`` frames, merged with the reference exposure's by
+    :func:`polrig.solve.reference.merge_hdr` (as :func:`polrig.solve.radiometry.state_radiance`
+    merges a capture's bracket): a sample is then excluded only where every exposure
+    saturates. ``use`` and ``clean`` stay the reference exposure's; the prior is the network's
+    on the reference exposure (:func:`bracket_prior` carries it to the measured highlights)."""
     from polrig.sim.dataset import DATASET_EXPOSURE_US
-    from polrig.solve.reference import forward_measurements
+    from polrig.solve.reference import forward_measurements, merge_hdr
 
     k = int(frames_per_state)
     mask = ds["mask"][i] > 0
@@ -223,7 +234,7 @@ def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng:
     states = {d: rotated_state(s0, d) for d in offsets}
     clean_e = np.clip(forward_measurements(truth, np.stack([states[d] for d in offsets])) * scale, 0, None) \
         * sensor.gain_e_per_dn
-    meas, var, valid = {}, {}, {}
+    meas, var, valid, ref_valid = {}, {}, {}, {}
     for j, d in enumerate(offsets):
         frames = [sensor.sample_raw(clean_e[j], rng, DATASET_EXPOSURE_US).astype(np.float64)
                   - sensor.black_level_dn - dark_dn for _ in range(k - 1 if d == 0 else k)]
@@ -233,12 +244,77 @@ def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng:
         mean_dn = stack.mean(axis=0)
         meas[d] = mean_dn / scale
         var[d] = sensor.variance_dn2(mean_dn, DATASET_EXPOSURE_US, k) / scale**2
-        valid[d] = (stack < sensor.saturation_dn).all(axis=0)
+        valid[d] = ref_valid[d] = (stack < sensor.saturation_dn).all(axis=0)
+        if bracket:
+            merged = [(np.where(valid[d], mean_dn, np.inf), DATASET_EXPOSURE_US)]
+            for f in bracket:
+                t = DATASET_EXPOSURE_US * float(f)
+                short = np.stack([sensor.sample_raw(clean_e[j] * float(f), rng, t).astype(np.float64)
+                                  - sensor.black_level_dn - sensor.dark_electrons(t) / sensor.gain_e_per_dn
+                                  for _ in range(k)])
+                merged.append((np.where((short < sensor.saturation_dn).all(axis=0), short.mean(axis=0), np.inf), t))
+            rad, v, ok = merge_hdr(merged, sensor.saturation_dn, sensor, reference_exposure_us=DATASET_EXPOSURE_US,
+                                   n_frames=k)
+            meas[d], var[d], valid[d] = rad / scale, v / scale**2, ok
     use = mask[None] & (seen_dn < sensor.saturation_dn).all(axis=1)
-    clean = mask & np.all([v.all(axis=(0, 1)) for v in valid.values()], axis=0)
+    clean = mask & np.all([v.all(axis=(0, 1)) for v in ref_valid.values()], axis=0)
     per_dn, offset = sensor.variance_terms(DATASET_EXPOSURE_US, k)
     return Frames(truth, mask, use, clean, prior[0], prior[1], states, meas, var, valid,
                   (float(per_dn) / scale, float(offset) / scale**2))
+
+
+def bracket_prior(fr: Frames, uncertainty) -> Frames:
+    """``fr`` (its frames bracketed: :func:`sample_frames`' ``bracket``) with the prior carried
+    to the highlights the bracket measured (:func:`polrig.models.highlights.measured_highlights`:
+    the seen frame's clipped colours rescaled to the merged intensity, their sigma the
+    calibrated model's on the rescaled estimate times
+    :data:`polrig.models.highlights.SIGMA_FACTOR`), as the capture's single-shot route does
+    (:meth:`polrig.app.single_shot.SingleShot.state`)."""
+    from polrig.models.highlights import highlight_sigma, measured_highlights
+    from polrig.sensor.stokes import stokes_from_analyzers
+
+    clipped = fr.mask[None] & ~fr.use
+    stokes = stokes_from_analyzers(np.where(fr.valid[0], fr.meas[0], np.nan))
+    mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, clipped)
+    if not rescaled.any():
+        return fr
+    sigma = highlight_sigma(fr.sigma, uncertainty.sigma(mean, fr.states[0], fr.mask, stokes).astype(np.float64),
+                            rescaled)
+    return dataclasses.replace(fr, prior=np.where(fr.mask, mean, 0.0), sigma=np.where(fr.mask, sigma, 0.0))
+
+
+def fit_highlight_factor(root, net, *, count: int = 128, seed: int = 0, echo=print) -> dict:
+    """The sigma factor at the highlights a bracket measured
+    (:data:`polrig.models.highlights.SIGMA_FACTOR`), fitted on the uncertainty calibration's
+    scenes (:data:`SEARCH_SETS`, ``count`` samples of the all-family set and half as many of the
+    held-out families; no reported set): half the 95.45 % quantile of ``|M' - M_true| / sigma``
+    over the rescaled pixels' elements, ``sigma`` the calibrated model's on the rescaled
+    estimate (factor 1). Returns the factor, the elements it rests on and each set's quantile."""
+    from polrig.models.highlights import measured_highlights
+    from polrig.sensor.stokes import stokes_from_analyzers
+
+    ratios, per_set = [], {}
+    for tag, (name, kw) in enumerate(SEARCH_SETS.items()):
+        d = make_set(pathlib.Path(root), name, kw, count if "all" in name else max(1, count // 2))
+        got = []
+        for ds, sensor, i, prior in _samples(d, net):
+            fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, 200 + tag, i]), offsets=(0,),
+                               bracket=BRACKET)
+            stokes = stokes_from_analyzers(np.where(fr.valid[0], fr.meas[0], np.nan))
+            mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, fr.mask[None] & ~fr.use)
+            if rescaled.any():
+                sigma = net.uncertainty.sigma(mean, fr.states[0], fr.mask, stokes).astype(np.float64)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    e = np.abs(mean - fr.truth) / sigma
+                got.append(e.transpose(1, 2, 0, 3, 4)[:, :, rescaled].ravel())
+        r = np.concatenate(got) if got else np.zeros(0)
+        per_set[name] = {"elements": int(r.size), "factor": float(np.quantile(r, 0.9545) / 2) if r.size else None}
+        ratios.append(r)
+    r = np.concatenate(ratios)
+    out = {"factor": float(np.quantile(r, 0.9545) / 2), "elements": int(r.size), "sets": per_set,
+           "bracket": list(BRACKET), "count": count}
+    echo(json.dumps(out, indent=1))
+    return out
 
 
 def _stack(fr: Frames, offsets: Sequence[int]):
@@ -285,12 +361,13 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
 
 
-def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1) -> float:
+def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1, bracket: Sequence[float] = ()) -> float:
     """The simulated rig's hardware time of one pose that takes the states ``offsets`` (deg from
     the seen state, in that order; the stage starts at the first, each move to the nearer of the
     two equivalent angles: :func:`polrig.acquisition.plan.nearest_stage_angle`): the stage's
     trapezoidal moves (:mod:`polrig.sim.motion`, the simulated rig's speed and acceleration) and
-    ``frames_per_state`` frames of the dataset's exposure plus readout per state
+    ``frames_per_state`` frames of the dataset's exposure plus readout per state, and as many
+    again at each ``bracket`` fraction of it
     (:func:`polrig.acquisition.plan.step_durations` of
     :func:`polrig.acquisition.plan.adaptive_pose_steps`: the plan's own hardware time)."""
     from polrig.acquisition.plan import (CapturePlan, HardwareModel, adaptive_pose_steps,
@@ -307,7 +384,8 @@ def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1) -> f
     for d in offsets[1:]:
         angles.append(nearest_stage_angle(d, angles[-1]))
     plan = CapturePlan((0.0,), frames_per_state=int(frames_per_state))
-    return float(sum(step_durations(adaptive_pose_steps(plan, 0, [DATASET_EXPOSURE_US], angles), model)))
+    exposures = [DATASET_EXPOSURE_US] + [DATASET_EXPOSURE_US * float(f) for f in bracket]
+    return float(sum(step_durations(adaptive_pose_steps(plan, 0, exposures, angles), model)))
 
 
 def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
@@ -349,16 +427,17 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
 
 
 def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray,
-          clean: np.ndarray | None = None) -> dict[str, float]:
+          clean: np.ndarray | None = None, cover: np.ndarray | None = None) -> dict[str, float]:
     """Matrix PSNR (over the object, and over its pixels unclipped in every state: ``clean``,
     default ``fr.clean``), forward L2 and the counts of elements within 2 sigma (module
-    docstring)."""
+    docstring; over ``cover`` ``(C, H, W)`` instead of the pixels whose seen frame is not
+    clipped, if given)."""
     from polrig.models.evaluate import forward_l2, psnr
 
     clean = fr.clean if clean is None else clean
     pred = (mueller * fr.mask).astype(np.float32)
     peak = float(np.abs(fr.truth[..., fr.mask]).max())
-    sel = fr.use & solved
+    sel = (fr.use if cover is None else cover) & solved
     inside = (np.abs(mueller - fr.truth) <= 2.0 * sigma).transpose(1, 2, 0, 3, 4)[:, :, sel]
     return {"matrix_psnr": psnr(pred, fr.truth, fr.mask, peak),
             "matrix_psnr_unclipped": psnr(pred, fr.truth, clean, peak) if clean.any() else float("nan"),
@@ -371,6 +450,10 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
     out = {k: float(np.nanmean([r[k] for r in rows])) for k in keys if rows and k in rows[0]}
     n = sum(r["elements"] for r in rows)
     out["coverage"] = sum(r["inside"] for r in rows) / n if n else float("nan")
+    if rows and "hl_elements" in rows[0]:
+        n = sum(r["hl_elements"] for r in rows)
+        out["coverage_highlights"] = sum(r["hl_inside"] for r in rows) / n if n else float("nan")
+        out["highlight_elements"] = float(n)
     return out
 
 
@@ -424,9 +507,13 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
     # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
     timed = {"hybrid3_4frames": (offsets["three"], 4), "hybrid4_3frames": (offsets["four"], 3)}
     adaptive_keys = {f"adaptive_{t:g}": t for t in targets}
-    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys)}
+    # an exposure bracket at every state (the "Highlights" rows): the network sees the reference exposure
+    bracketed = {"single_bracket": ("single", (0,)), "hybrid1_bracket": ("hybrid", (0,)),
+                 "hybrid2_bracket": ("hybrid", offsets["two"])}
+    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *bracketed)}
     time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
     time_s |= {key: acquisition_time_s(offs, k) for key, (offs, k) in timed.items()}
+    time_s |= {key: acquisition_time_s(offs, bracket=BRACKET) for key, (_, offs) in bracketed.items()}
     t0 = time.perf_counter()
     for ds, sensor, i, prior in _samples(data_dir, net):
         fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
@@ -437,6 +524,14 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
                                 frames_per_state=k)
             rows[key].append(score(frk, *estimate(frk, offs, "hybrid"), clean=fr.clean)
                              | {"states": len(offs), "time_s": time_s[key]})
+        frb = bracket_prior(sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, 99]),
+                                          offsets=offsets["two"], bracket=BRACKET), net.uncertainty)
+        highlights = frb.mask[None] & ~frb.use & frb.valid[0].all(axis=1)  # clipped, the bracket measured
+        for key, (method, offs) in bracketed.items():
+            est = estimate(frb, offs, method)
+            hl = score(frb, *est, clean=fr.clean, cover=highlights)
+            rows[key].append(score(frb, *est, clean=fr.clean) | {"states": len(offs), "time_s": time_s[key]}
+                             | {"hl_inside": hl["inside"], "hl_elements": hl["elements"]})
         for key, target in adaptive_keys.items():
             *est, taken = adaptive(fr, target)
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
@@ -489,6 +584,26 @@ def markdown(result: dict) -> str:
             m = r["methods"]
             lines.append(f"| {set_label(key)} | " + " | ".join(f"{m[c]['states']:.2f} / {m[c]['time_s']:.2f} s"
                                                            for c, _ in timed) + " |")
+        lines.append("")
+    if "hybrid2_bracket" in first:
+        br = " / ".join(["1"] + [f"1/{1 / f:g}" for f in BRACKET])
+        lines += [f"**Highlights: an exposure bracket at every state** ({br} of the exposure, merged; the network "
+                  "sees the reference exposure, and where it clipped but a shorter exposure measured the pixel its "
+                  "estimate takes the measured intensity with a calibrated sigma: `polrig.models.highlights`). "
+                  "Matrix PSNR (dB) over the object / within 2 sigma (pixels whose seen frame did not clip) / within "
+                  "2 sigma at the highlights the bracket measured / seconds per pose", "",
+                  "| set | single-shot | single-shot, bracket | hybrid 1, bracket | hybrid 2 | hybrid 2, bracket | "
+                  "hybrid 2 bracket - single-shot | hybrid 2 bracket - single-shot bracket |", "|---|" + "---:|" * 7]
+        for key, r in result["sets"].items():
+            m = r["methods"]
+            cell = lambda k: (f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} % / "  # noqa: E731
+                              + (f"{100 * m[k]['coverage_highlights']:.1f} %" if m[k].get("highlight_elements") else "-")
+                              + f" / {m[k]['time_s']:.2f} s")
+            plain = lambda k: f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} % / - / {m[k]['time_s']:.2f} s"  # noqa: E731
+            lines.append(f"| {set_label(key)} | {plain('single')} | {cell('single_bracket')} | {cell('hybrid1_bracket')} | "
+                         f"{plain('hybrid2')} | {cell('hybrid2_bracket')} | "
+                         f"{m['hybrid2_bracket']['matrix_psnr'] - m['single']['matrix_psnr']:+.2f} | "
+                         f"{m['hybrid2_bracket']['matrix_psnr'] - m['single_bracket']['matrix_psnr']:+.2f} |")
         lines.append("")
     lines += ["**The seen state's treatment** (matrix PSNR dB / within 2 sigma; 1 state, and 2 states "
               f"{name('two')})", "",
@@ -766,7 +881,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="image side of --rig-scenes (default: the rig's analyzer grid, 128)")
     ap.add_argument("--plot-only", metavar="JSON", default=None,
                     help="only draw the accuracy-against-time plot of a results JSON (written next to it as .png)")
+    ap.add_argument("--fit-highlights", action="store_true",
+                    help="only fit the sigma factor at the highlights a bracket measured "
+                         "(polrig.models.highlights.SIGMA_FACTOR) on the calibration scenes, --count samples")
     args = ap.parse_args(argv)
+    if args.fit_highlights:
+        from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+
+        return run_main(ap.prog, lambda: fit_highlight_factor(
+            args.root, SingleShotModel.load(args.weights or WEIGHTS_DIR), count=args.count, seed=args.seed) and 0)
     if args.plot_only is not None:
         return run_main(ap.prog, lambda: print(plot_from_json(args.plot_only)) or 0)
     return run_main(ap.prog, lambda: (run(args.root, args.out, count=args.count, search_count=args.search_count,

@@ -583,9 +583,17 @@ class SingleShot:
         lay = frame_layout(frame)
         full = options.resolution == "full"
         measured, variance, valid, _ = analyzer_stack(state, lay, options.network_demosaic)
-        network_input = np.where(valid, measured, np.nan)
+        bracketed = state.clipped_reference is not None
+        if bracketed:  # the networks see what the reference exposure's frame shows, as trained
+            seen = analyzer_stack(dataclasses.replace(state, excluded=state.reference_exclusions()), lay,
+                                  options.network_demosaic)[2]
+        else:
+            seen = valid
+        network_input = np.where(seen, measured, np.nan)
         net = self._network(network_input, s_in, options,
                             network_kwargs(geometry, frame, options.network_demosaic))
+        if bracketed:
+            self._measured_highlights(net, s_in, np.where(valid, measured, np.nan), ~np.all(seen, axis=1), options)
         mueller, obj = net.mueller, net.object
         if full:  # the detail from the full-resolution demosaic of the same radiance
             stokes_sp = stokes_from_analyzers(network_input)  # NaN where excluded: no detail there
@@ -600,6 +608,27 @@ class SingleShot:
         result = self._result(mueller, obj, low, ~np.all(valid, axis=1), net, options)
         result.timings_s = dict(net.aux["timings_s"])
         return result
+
+    def _measured_highlights(self, net: _Network, s_in, analyzer: np.ndarray, clipped: np.ndarray,
+                             options: SingleShotOptions) -> None:
+        """Where the reference exposure clipped (``clipped`` ``(C, h, w)``) but the state's
+        bracket measured ``analyzer`` ``(C, 4, h, w)`` (NaN where no exposure did), the
+        network's estimate rescaled to the measured intensity and its sigma the calibrated
+        model's there (:mod:`polrig.models.highlights`); ``net`` is updated in place."""
+        from polrig.models.highlights import highlight_sigma, measured_highlights
+
+        if net.mueller.shape[-2:] != analyzer.shape[-2:]:  # network binning: its grid is not the input's
+            return
+        stokes = stokes_from_analyzers(analyzer)
+        mueller, rescaled = measured_highlights(net.mueller, s_in, stokes, clipped & net.object[None])
+        if not rescaled.any():
+            return
+        net.mueller = mueller
+        unc = self.model.uncertainty
+        if options.with_sigma and unc is not None and "sigma" in net.aux:
+            net.aux["sigma"] = highlight_sigma(net.aux["sigma"], unc.sigma(mueller, s_in, net.object, stokes),
+                                               rescaled)
+        net.aux["highlights_rescaled"] = int(rescaled.sum())
 
     # -- the shared steps ---------------------------------------------------------------------
     def _check(self, options: SingleShotOptions) -> None:

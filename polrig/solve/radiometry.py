@@ -75,11 +75,20 @@ UNCERTAINTY_DTYPES = (np.float32, np.float16)
 class StateRadiance:
     """One state's mosaic ``(H, W)``: ``signal_dn`` (black/dark-subtracted, at the reference
     exposure), ``variance_dn2`` and ``excluded`` (bool, saturated in every exposure).
-    :func:`state_radiance` gives float32 signal and variance; any float dtype is accepted."""
+    :func:`state_radiance` gives float32 signal and variance; any float dtype is accepted.
+
+    ``clipped_reference`` (bool): saturated at the reference exposure (what its frame alone
+    shows; the single-shot networks see that, :meth:`polrig.app.single_shot.SingleShot.state`);
+    ``None`` means the same as ``excluded`` (one exposure)."""
 
     signal_dn: np.ndarray
     variance_dn2: np.ndarray
     excluded: np.ndarray
+    clipped_reference: np.ndarray | None = None
+
+    def reference_exclusions(self) -> np.ndarray:
+        """The samples the reference exposure's frame clipped (``excluded`` without a bracket)."""
+        return self.excluded if self.clipped_reference is None else self.clipped_reference
 
 
 def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Sequence[float],
@@ -118,20 +127,24 @@ def state_radiance(brackets: Sequence[Sequence[np.ndarray]], exposures_us: Seque
     signal = np.empty((h, w), np.float32)
     variance = np.empty((h, w), np.float32)
     excluded = np.empty((h, w), bool)
+    clipped = np.empty((h, w), bool) if len(frames) > 1 else None
     step = max(1, int(band_rows))
     for r0 in range(0, h, step):
         sl = slice(r0, min(h, r0 + step))
-        s, v, x = _state_radiance_rows(
+        s, v, x, c = _state_radiance_rows(
             [[f[sl] for f in lst] for lst in frames], exposures_us, model, black_level_dn,
             None if dark_frames is None else [[d[sl] for d in lst] for lst in dark_frames],
             float(code_step_dn))
         signal[sl], variance[sl], excluded[sl] = s, v, x
-    return StateRadiance(signal, variance, excluded)
+        if clipped is not None:
+            clipped[sl] = c
+    return StateRadiance(signal, variance, excluded, clipped)
 
 
 def _state_radiance_rows(brackets, exposures_us, model: SensorModel, black_level_dn: float,
-                         darks, step: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`state_radiance` of some rows, float64 ``(signal, variance, excluded)``."""
+                         darks, step: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`state_radiance` of some rows, float64 ``(signal, variance, excluded,
+    clipped_reference)``."""
     sat_raw = min(black_level_dn + model.saturation_dn, model.max_code_dn + 1.0 - step)
     requantization = max(step * step - 1.0, 0.0) / 12.0
     means, variances, sats = [], [], []
@@ -157,13 +170,13 @@ def _state_radiance_rows(brackets, exposures_us, model: SensorModel, black_level
         variances.append(var)
         sats.append(sat)
     if len(brackets) == 1:
-        return means[0], variances[0], sats[0]
+        return means[0], variances[0], sats[0], sats[0]
     # merge_hdr excludes samples >= saturation_dn: mark the saturated ones that way
     marked = [np.where(s, np.inf, m) for m, s in zip(means, sats)]
     radiance, variance, valid = merge_hdr(list(zip(marked, exposures_us)), model.saturation_dn,
                                           model, reference_exposure_us=exposures_us[0],
                                           n_frames=len(brackets[0]))
-    return radiance, variance, ~valid
+    return radiance, variance, ~valid, sats[0]
 
 
 def _superpixel_counts(layout: MosaicLayout) -> np.ndarray:
