@@ -628,7 +628,6 @@ class SingleShot:
         if options.with_sigma and unc is not None and "sigma" in net.aux:
             net.aux["sigma"] = highlight_sigma(net.aux["sigma"], unc.sigma(mueller, s_in, net.object, stokes),
                                                rescaled)
-        net.aux["highlights_rescaled"] = int(rescaled.sum())
 
     # -- the shared steps ---------------------------------------------------------------------
     def _check(self, options: SingleShotOptions) -> None:
