@@ -40,6 +40,15 @@ object's pixels (per colour) whose error is within 2 sigma, over pixels whose se
 not clipped (as the single-shot sigma's coverage is measured) and that the solve did not mask
 ``ILL_CONDITIONED``.
 
+**Highlights** (:data:`BRACKET`, the "Highlights" table): single-shot, hybrid 1 and hybrid 2
+with every state's frame merged with shorter exposures (:func:`sample_frames`' ``bracket``); the
+network sees the reference exposure and, where it clipped but a shorter exposure measured the
+pixel, its estimate takes the measured intensity (:func:`bracket_prior`,
+:mod:`polrig.models.highlights`), as the capture's single-shot route does with
+``--exposure T,T/16,T/256``. Scored as above (``clean`` the reference exposure's), plus the
+coverage at those highlights. ``--fit-highlights`` fits their sigma factor
+(:func:`fit_highlight_factor`) on the calibration scenes.
+
 **Adaptive** (issue 33 item 2; :func:`adaptive`): the adaptive capture's rule on each sample,
 at each of ``--targets`` (relative posterior sigma; 95 % of the object pixels, at most 4
 states), choosing among the 15 deg offsets (one frame each). **Acquisition time**

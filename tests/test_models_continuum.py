@@ -52,6 +52,10 @@ def test_tables_search_and_the_hybrid_limits(tmp_path):
         assert m["single"]["time_s"] <= a["time_s"] <= m["hybrid4"]["time_s"] + 10.0
     assert m["single"]["time_s"] < m["hybrid2"]["time_s"] < m["hybrid4"]["time_s"]
     assert "adaptive 0.05" in text and "acquisition time" in text
+    # the bracketed rows: the bracket's short frames cost little time; the highlights table is written
+    assert m["hybrid2"]["time_s"] < m["hybrid2_bracket"]["time_s"] < m["hybrid2"]["time_s"] + 0.2
+    assert m["hybrid2_bracket"]["states"] == 2 and 0.5 < m["hybrid2_bracket"]["coverage"] <= 1.0
+    assert "Highlights: an exposure bracket" in text
 
 
 def test_acquisition_time_is_the_plans_hardware_time():
@@ -89,6 +93,22 @@ def test_frames_are_the_sensor_models(tmp_path):
                        / float(ds["scale"][0]) ** 2)
     sat = sensor.saturation_dn / float(ds["scale"][0])
     assert not np.any(one.valid[90] & (one.meas[90] >= sat))
+    # a bracket (on a conductor, whose highlights clip): the reference exposure's clipping stays
+    # the scoring's; its merge measures the clipped samples too
+    generate_dataset(tmp_path / "m", count=1, width=64, seed=3, progress=False, material_mix="conductor")
+    ds = load_dataset(tmp_path / "m")
+    one = continuum.sample_frames(ds, 0, prior, sensor, np.random.default_rng(0), offsets=(0, 90))
+    br = continuum.sample_frames(ds, 0, prior, sensor, np.random.default_rng(0), offsets=(0, 90),
+                                 bracket=continuum.BRACKET)
+    assert np.array_equal(br.use, one.use) and np.array_equal(br.clean, one.clean)
+    for d in (0, 90):
+        assert br.valid[d].sum() >= one.valid[d].sum()
+        newly = br.valid[d] & ~one.valid[d]  # clipped at the reference exposure, measured shorter
+        assert newly.any() and np.all(br.meas[d][newly] >= 0.9 * sat)
+    # the seen state's reference frame is the dataset's in both: where it measured, the merge
+    # (inverse-variance weighted with far noisier short frames) stays within its noise
+    both = one.valid[0] & br.valid[0]
+    assert np.all(np.abs(br.meas[0][both] - one.meas[0][both]) <= 3 * np.sqrt(one.var[0][both]))
 
 
 @pytest.mark.parametrize("argv, needle", [
