@@ -11,7 +11,9 @@ the worst colour; dimensionless, the block normalised to ``m00 = 1``) is at most
 calibration's tolerances add a systematic floor that more states of the same rig do not
 lower, so a target below it would never stop. Object pixels are the network's object mask
 less the pixels clipped in its frame (the network gives them no prior: infinite sigma; they
-need an exposure bracket, not more states, and are counted apart, ``clipped_pixels``) and the
+need an exposure bracket, not more states, and are counted apart, ``clipped_pixels``; with a
+bracket, ``--exposure T,T/16,...``, those a shorter exposure measured have a prior,
+:mod:`polrig.models.highlights`, and count as object pixels) and the
 pixels dark in every colour of its frame (``S0`` below :data:`polrig.solve.reference.MIN_SNR`
 noise sigmas, the route's ``DARK`` bit: turned away from the light, all noise; ``dark_pixels``);
 a colour dark at a pixel does not count in its relative sigma. A pixel without a finite
