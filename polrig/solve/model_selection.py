@@ -52,6 +52,7 @@ Never silent: nothing here runs unless asked (``polrig reconstruct --models auto
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -213,6 +214,20 @@ def normal_equations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarra
     ``(P,)`` and the number of samples used ``(P,)``. Arguments as
     :func:`polrig.solve.reference.solve_reference` (samples used: finite, positive variance,
     ``valid``)."""
+    normal, rhs, d, wgt, y, ok = _weighted_system(s_in, measured, variance, valid, analyzer_rows, c, pix)
+    scale, eq = _equilibrated(normal)
+    with np.errstate(all="ignore"):
+        sv = np.linalg.svd(eq, compute_uv=False)
+        regular = sv[:, -1] > 1e-12 * sv[:, 0]
+        safe = np.where(regular[:, None, None], eq, np.eye(9))
+        m_hat = np.linalg.solve(safe, (rhs * scale)[..., None])[..., 0] * scale
+        m_hat = np.where(regular[:, None], m_hat, np.nan)
+    return normal, m_hat, _chi2(m_hat, d, wgt, y, ok), ok.sum(axis=1)
+
+
+def _weighted_system(s_in, measured, variance, valid, analyzer_rows, c: int, pix: np.ndarray):
+    """``(N, D^T W y, D, w, y, used)`` of pixels ``pix`` of colour ``c`` (float64; ``D``
+    shared ``(4 n, 9)`` or per pixel ``(P, 4 n, 9)``; ``w``, ``y``, ``used`` ``(P, 4 n)``)."""
     s = np.asarray(s_in, dtype=np.float64)
     n = len(s)
     h, w = measured.shape[-2:]
@@ -233,42 +248,142 @@ def normal_equations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarra
     else:
         normal = (np.swapaxes(d, 1, 2) * wgt[:, None, :]) @ d
         rhs = np.einsum("pr,pri->pi", wgt * y, d)
+    return normal, rhs, d, wgt, y, ok
+
+
+def _equilibrated(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(S, S N S)``: Jacobi scaling ``S = diag(N)^-1/2`` (1 where the diagonal is 0)."""
     scale = 1.0 / np.sqrt(np.where(np.einsum("pii->pi", normal) > 0,
                                    np.einsum("pii->pi", normal), 1.0))
-    eq = normal * scale[:, :, None] * scale[:, None, :]
+    return scale, normal * scale[:, :, None] * scale[:, None, :]
+
+
+def _chi2(m_hat, d, wgt, y, ok) -> np.ndarray:
+    """``sum w (y - D m_hat)^2`` over the used samples ``(P,)``."""
     with np.errstate(all="ignore"):
-        sv = np.linalg.svd(eq, compute_uv=False)
-        regular = sv[:, -1] > 1e-12 * sv[:, 0]
-        safe = np.where(regular[:, None, None], eq, np.eye(9))
-        m_hat = np.linalg.solve(safe, (rhs * scale)[..., None])[..., 0] * scale
-        m_hat = np.where(regular[:, None], m_hat, np.nan)
         pred = m_hat @ d.T if d.ndim == 2 else np.einsum("pri,pi->pr", d, m_hat)
-        chi2 = np.einsum("pr,pr->p", wgt, np.where(ok, y - pred, 0.0) ** 2)
-    return normal, m_hat, chi2, ok.sum(axis=1)
+        return np.einsum("pr,pr->p", wgt, np.where(ok, y - pred, 0.0) ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class RowSpace:
+    """The samples' weighted least squares of ``P`` pixels at any rank of the design
+    (:func:`row_space_equations`), float64: ``normal`` ``(P, 9, 9)`` ``N = D^T W D``;
+    ``m_hat`` ``(P, 9)`` a least-squares solution (the pseudo-inverse's, in the equilibrated
+    coordinates); ``chi2`` ``(P,)`` its ``chi^2``; ``n_used`` ``(P,)``; ``rank`` ``(P,)``
+    ``r = rank N``; ``condition`` ``(P,)`` the equilibrated design's condition number within
+    its row space; ``factor`` ``(P, 9, 9)`` ``U`` with ``U^T U = N`` (``9 - r`` zero rows);
+    ``null`` ``(P, 9, 9)`` an orthonormal basis of ``N``'s null space in its first ``9 - r``
+    columns (zeros after)."""
+
+    normal: np.ndarray
+    m_hat: np.ndarray
+    chi2: np.ndarray
+    n_used: np.ndarray
+    rank: np.ndarray
+    condition: np.ndarray
+    factor: np.ndarray
+    null: np.ndarray
+
+
+#: relative eigenvalue of the equilibrated normal matrix below which a direction counts as
+#: unobserved (a singular value of the design 1e-6 of its largest)
+RANK_TOLERANCE = 1e-12
+
+
+def row_space_equations(s_in, measured, variance, valid, analyzer_rows, c: int,
+                        pix: np.ndarray) -> RowSpace:
+    """:func:`normal_equations` for a design of any rank (module docstring, "At any rank"):
+    the eigendecomposition of the equilibrated ``S N S = V w V^T`` gives the rank (eigenvalues
+    above :data:`RANK_TOLERANCE` of the largest), ``m_hat = S V w^+ V^T S D^T W y``, the factor
+    ``U = w_+^1/2 V^T S^-1`` and the null space ``S V_0`` (orthonormalised)."""
+    normal, rhs, d, wgt, y, ok = _weighted_system(s_in, measured, variance, valid, analyzer_rows, c, pix)
+    scale, eq = _equilibrated(normal)
+    with np.errstate(all="ignore"):
+        w_eig, v = np.linalg.eigh(eq)  # ascending
+        top = w_eig[:, -1:]
+        kept = w_eig > RANK_TOLERANCE * np.where(top > 0, top, np.inf)
+        rank = kept.sum(axis=1)
+        inv_w = np.where(kept, 1.0 / np.where(kept, w_eig, 1.0), 0.0)
+        m_hat = scale * np.einsum("pij,pj,pkj,pk->pi", v, inv_w, v, rhs * scale)
+        smallest = np.where(kept, w_eig, np.inf).min(axis=1)
+        condition = np.sqrt(top[:, 0] / smallest)
+        factor = np.sqrt(np.where(kept, w_eig, 0.0))[:, :, None] * np.swapaxes(v, 1, 2) / scale[:, None, :]
+        # null space: the eigenvectors not kept (the first 9 - r, ascending), scaled back by S
+        null_raw = np.where(kept[:, None, :], 0.0, v * scale[:, :, None])
+        q, _ = np.linalg.qr(null_raw)
+        null = np.where(kept[:, None, :], 0.0, q)
+    return RowSpace(normal, m_hat, _chi2(m_hat, d, wgt, y, ok), ok.sum(axis=1), rank, condition,
+                    factor, null)
 
 
 # ----------------------------------------------------------------------- selection
+@dataclass
+class _Outputs:
+    """The arrays :func:`select_models` writes (copies of the result's) and the result."""
+
+    result: ReferenceResult
+    mueller: np.ndarray
+    sigma: np.ndarray
+    sigma_noise: np.ndarray
+    residual: np.ndarray
+    mask: np.ndarray
+    with_cal: bool
+
+    def write(self, c: int, pix: np.ndarray, w: int, m_fit: np.ndarray, cov: np.ndarray,
+              chi2_full: np.ndarray, q: np.ndarray, n_ok: np.ndarray, k: int) -> None:
+        """The estimate under a chosen model at pixels ``pix`` (flat) of colour ``c``: block
+        ``m_fit`` ``(P, 9)``, its noise covariance ``cov`` ``(P, 9, 9)``, the calibration part
+        of the full result's sigma kept, residual ``(chi2_full + q) / (n_ok - k)``, ``DARK``
+        re-evaluated (module docstring)."""
+        py, px = np.divmod(pix, w)
+        flat = lambda a: a.reshape(a.shape[:-2] + (-1,))  # noqa: E731
+        sd_noise = np.sqrt(np.clip(np.einsum("pii->pi", cov), 0.0, None))
+        full_sg = flat(self.result.sigma[c])[:, :, pix].reshape(9, -1).T.astype(np.float64)
+        full_sn = flat(self.result.sigma_noise[c])[:, :, pix].reshape(9, -1).T.astype(np.float64)
+        sd = np.sqrt(sd_noise**2 + np.clip(full_sg**2 - full_sn**2, 0.0, None))
+        self.mueller[c, :, :, py, px] = m_fit.reshape(-1, 3, 3)
+        self.sigma[c, :, :, py, px] = sd.reshape(-1, 3, 3)
+        if self.with_cal:
+            self.sigma_noise[c, :, :, py, px] = sd_noise.reshape(-1, 3, 3)
+        dof = n_ok - k
+        self.residual[c, py, px] = np.where(dof > 0, (chi2_full + q) / np.maximum(dof, 1), 0.0)
+        with np.errstate(invalid="ignore"):
+            dark = ~(m_fit[:, 0] >= MIN_SNR * sd[:, 0])
+        self.mask[c, py, px] = np.where(dark, self.mask[c, py, px] | DARK,
+                                        self.mask[c, py, px] & ~np.uint8(DARK))
+
+
 def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                   valid: np.ndarray | None, analyzer_rows, result: ReferenceResult,
-                  options: SelectionOptions | None = None, *, chunk_pixels: int = 16384
+                  options: SelectionOptions | None = None, *, chunk_pixels: int = 16384,
+                  prior: tuple[np.ndarray, np.ndarray] | None = None
                   ) -> tuple[ReferenceResult, ModelMaps]:
     """Test the candidate models at every pixel and colour of ``result`` (the reference or
     hybrid solve of the same samples: ``s_in``, ``measured``, ``variance``, ``valid``,
     ``analyzer_rows`` as :func:`polrig.solve.reference.solve_reference`) and estimate under the
     chosen one (module docstring). Returns a new result (arrays copied; the same dtypes) and
-    the :class:`ModelMaps`."""
+    the :class:`ModelMaps`.
+
+    ``prior``: ``(mean, sigma)``, ``(C, 3, 3, H, W)`` (or broadcastable), the hybrid solve's
+    prior. With it, the pixels whose samples observe only some of the block's directions
+    (rank 6 to 8: two states, or three with samples missing) are tested too (module
+    docstring, "At any rank"); without it they stay :data:`UNTESTED`. It never changes a
+    pixel the samples alone determine."""
     opts = options or SelectionOptions()
     models = sorted((m for m in MODELS if m.name in opts.models), key=lambda m: m.n_params)
     crit = {m.code: chi2_critical(9 - m.n_params, opts.alpha) for m in models}
     n_col, h, w = result.mask.shape
-    mueller, sigma = result.mueller.copy(), result.sigma.copy()
     with_cal = result.sigma_noise is not result.sigma
-    sigma_noise = result.sigma_noise.copy() if with_cal else sigma
-    residual, mask = result.residual.copy(), result.mask.copy()
+    sigma = result.sigma.copy()
+    out = _Outputs(result, result.mueller.copy(), sigma,
+                   result.sigma_noise.copy() if with_cal else sigma, result.residual.copy(),
+                   result.mask.copy(), with_cal)
     code = np.full((n_col, h, w), UNTESTED, np.uint8)
     stat = np.full((n_col, h, w), np.nan, np.float32)
     pval = np.full((n_col, h, w), np.nan, np.float32)
-    flat = lambda a: a.reshape(a.shape[:-2] + (h * w,))  # noqa: E731
+    if prior is not None:
+        prior = tuple(np.broadcast_to(np.asarray(a), (n_col, 3, 3, h, w)) for a in prior)
     for c in range(n_col):
         testable = ((result.mask[c] & ILL_CONDITIONED) == 0) & (
             result.pixel_condition[c] <= opts.max_condition)
@@ -315,28 +430,169 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
             pval[c, yy, xx] = np.where(good, np.where(chosen, best_p, top_p), np.nan)
             for model_code, (m_fit, jac, q, k) in fits.items():
                 sel = np.flatnonzero(best == model_code)
-                if not sel.size:
-                    continue
-                py, px = yy[sel], xx[sel]
-                cov = block_covariance(jac[sel], normal[sel])
-                sd_noise = np.sqrt(np.clip(np.einsum("pii->pi", cov), 0.0, None))
-                full_sg = flat(result.sigma[c])[:, :, pix[sel]].reshape(9, -1).T.astype(np.float64)
-                full_sn = flat(result.sigma_noise[c])[:, :, pix[sel]].reshape(9, -1).T.astype(np.float64)
-                sd = np.sqrt(sd_noise**2 + np.clip(full_sg**2 - full_sn**2, 0.0, None))
-                mueller[c, :, :, py, px] = m_fit[sel].reshape(-1, 3, 3)
-                sigma[c, :, :, py, px] = sd.reshape(-1, 3, 3)
-                if with_cal:
-                    sigma_noise[c, :, :, py, px] = sd_noise.reshape(-1, 3, 3)
-                dof = n_ok[sel] - k
-                residual[c, py, px] = np.where(dof > 0, (chi2_full[sel] + q[sel]) / np.maximum(dof, 1), 0.0)
-                with np.errstate(invalid="ignore"):
-                    dark = ~(m_fit[sel, 0] >= MIN_SNR * sd[:, 0])
-                mask[c, py, px] = np.where(dark, mask[c, py, px] | DARK,
-                                           mask[c, py, px] & ~np.uint8(DARK))
+                if sel.size:
+                    out.write(c, pix[sel], w, m_fit[sel], block_covariance(jac[sel], normal[sel]),
+                              chi2_full[sel], q[sel], n_ok[sel], k)
+        if prior is None:
+            continue
+        rest = np.flatnonzero((~testable & ((result.mask[c] & ILL_CONDITIONED) == 0)).ravel())
+        for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
+            pix = rest[p0:p0 + chunk_pixels]
+            _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
+                              opts, prior, out, code, stat, pval)
     maps = ModelMaps(code, stat, pval, opts)
-    return ReferenceResult(mueller, sigma, residual, mask, result.condition_number,
+    return ReferenceResult(out.mueller, out.sigma, out.residual, out.mask, result.condition_number,
                            result.pixel_condition, result.n_samples,
-                           sigma_noise if with_cal else None, maps), maps
+                           out.sigma_noise if with_cal else None, maps), maps
+
+
+#: the least rank of the samples' design at which a pixel is tested (two states' six
+#: directions; one state's three leave no candidate but the unpolarizing one)
+MIN_RANK = 6
+#: a model's tangent direction counts as observed where at least this share of its length
+#: (a sine) lies in the samples' row space
+MIN_OBSERVED = 1e-3
+
+
+def identifiable(jac: np.ndarray, null: np.ndarray) -> np.ndarray:
+    """Whether the samples determine every direction a model can move in at its fit
+    ``(P,)``: the tangent space ``range(J)`` (``jac`` ``(P, 9, k)``; its numerical rank,
+    singular values above ``1e-8`` of the largest) projected off the null space (``null``
+    ``(P, 9, 9)``, orthonormal columns, zeros beyond ``9 - r``) keeps its dimension, each unit
+    tangent at least :data:`MIN_OBSERVED` of its length (the smallest singular value of the
+    projected basis)."""
+    u, sv, _ = np.linalg.svd(jac, full_matrices=False)
+    rank_j = (sv > 1e-8 * sv[:, :1]).sum(axis=1)
+    basis = u * (np.arange(u.shape[-1]) < rank_j[:, None])[:, None, :]
+    proj = basis - null @ (np.swapaxes(null, 1, 2) @ basis)
+    s_proj = np.linalg.svd(proj, compute_uv=False)
+    low = np.take_along_axis(s_proj, np.clip(rank_j - 1, 0, None)[:, None], 1)[:, 0]
+    return (rank_j > 0) & (low >= MIN_OBSERVED)
+
+
+def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pix: np.ndarray,
+                      w: int, models, opts: SelectionOptions, prior, out: _Outputs, code, stat,
+                      pval) -> None:
+    """The test and the estimate at pixels ``pix`` of colour ``c`` whose samples leave some
+    of the block's directions unobserved (module docstring, "At any rank")."""
+    rs = row_space_equations(s_in, measured, variance, valid, analyzer_rows, c, pix)
+    yy, xx = np.divmod(pix, w)
+    take = lambda a: np.asarray(a[c])[:, :, yy, xx].reshape(9, -1).T.astype(np.float64)  # noqa: E731
+    mean, sd = take(prior[0]), take(prior[1])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        precision = np.where((sd > 0) & np.isfinite(sd) & np.isfinite(mean), 1.0 / (sd * sd), 0.0)
+    precision = np.where(np.isfinite(precision), precision, 0.0)
+    mean = np.where(precision > 0, mean, 0.0)
+    good = (np.isfinite(rs.m_hat).all(axis=1) & (rs.rank >= MIN_RANK) & (rs.rank < 9)
+            & (rs.condition <= opts.max_condition) & (rs.n_used >= rs.rank))
+    post = take(out.result.mueller)
+    post = np.where(np.isfinite(post), post, rs.m_hat)
+    # starts: the samples' own solution, the hybrid posterior (the samples completed by the
+    # prior) and its mirror through the null space (for two orthogonal states the exact
+    # second minimum: M -> M H leaves the samples unchanged and maps every model to itself)
+    mirror = post - 2.0 * np.einsum("pij,pkj,pk->pi", rs.null, rs.null, post)
+    for r in np.unique(rs.rank[good]):
+        sel = np.flatnonzero(good & (rs.rank == r))
+        _select_at_rank(int(r), sel, pix, rs, (rs.m_hat, post, mirror), mean, precision, w, c,
+                        models, opts, out, code, stat, pval)
+
+
+def _select_at_rank(r: int, sel: np.ndarray, pix: np.ndarray, rs: RowSpace, start_blocks,
+                    mean: np.ndarray, precision: np.ndarray, w: int, c: int, models,
+                    opts: SelectionOptions, out: _Outputs, code, stat, pval) -> None:
+    """:func:`_select_row_space` for its pixels ``sel`` (indices into ``pix``) of rank ``r``."""
+    n = len(sel)
+    normal, m_hat, factor, null = rs.normal[sel], rs.m_hat[sel], rs.factor[sel], rs.null[sel]
+    mu, pi = mean[sel], precision[sel]
+    best = np.zeros(n, np.int64)
+    best_k = np.full(n, 10)
+    best_p, best_q = np.full(n, -1.0), np.full(n, np.nan)
+    top_p, top_q = np.full(n, -1.0), np.full(n, np.nan)
+    tested = np.zeros(n, bool)
+    estimates = {}
+    for model in models:
+        k = model.n_params
+        if k >= r:  # no degree of freedom left: not testable
+            continue
+        need = np.flatnonzero(best_k >= k)
+        if not need.size:
+            continue
+        cands = []  # (m, q, jac) of each start / branch
+        if model.linear:
+            for basis in model.basis:
+                cands.append(fit_model(dataclasses.replace(model, basis=(basis,)), m_hat[need],
+                                       normal[need]))
+        else:
+            for start in start_blocks:
+                cands.append(fit_model(model, m_hat[need], normal[need], iterations=opts.iterations,
+                                       factor=factor[need], start_from=start[sel][need]))
+        m_c = np.stack([cd[0] for cd in cands], 1)  # (P', S, 9)
+        q_c = np.stack([np.clip(cd[1], 0.0, None) for cd in cands], 1)
+        q_c = np.where(np.isfinite(m_c).all(axis=2), q_c, np.nan)
+        ident = np.stack([identifiable(cd[2], null[need]) for cd in cands], 1)
+        lam = np.nanmin(np.where(np.isnan(q_c), np.inf, q_c), axis=1)
+        at_min = np.argmin(np.where(np.isnan(q_c), np.inf, q_c), axis=1)
+        ok_model = np.isfinite(lam) & np.take_along_axis(ident, at_min[:, None], 1)[:, 0]
+        p = np.where(ok_model, chi2_sf(np.where(ok_model, lam, 0.0), r - k), -1.0)
+        tested[need] |= ok_model
+        higher = p > top_p[need]
+        top_p[need] = np.where(higher, p, top_p[need])
+        top_q[need] = np.where(higher, lam, top_q[need])
+        crit = chi2_critical(r - k, opts.alpha)
+        accept = ok_model & (lam <= crit)
+        choose = accept & ((k < best_k[need]) | ((k == best_k[need]) & (p > best_p[need])))
+        hit = need[choose]
+        best[hit], best_k[hit], best_p[hit], best_q[hit] = model.code, k, p[choose], lam[choose]
+        if choose.any():
+            # the estimate: the accepted, identifiable minima weighted by likelihood and prior
+            use = ident & (q_c <= crit)
+            m_sel, cov = _mode_mixture(m_c[choose], q_c[choose], use[choose],
+                                       [cd[2][choose] for cd in cands], normal[hit], mu[hit], pi[hit])
+            estimates[model.code] = (hit, m_sel, cov, k)
+    chosen = best > 0
+    pp = pix[sel]
+    yy, xx = np.divmod(pp, w)
+    code[c, yy, xx] = np.where(tested, best, UNTESTED)
+    stat[c, yy, xx] = np.where(tested, np.where(chosen, best_q, top_q), np.nan)
+    pval[c, yy, xx] = np.where(tested, np.where(chosen, best_p, top_p), np.nan)
+    for model_code, (hit, m_sel, cov, k) in estimates.items():
+        keep = best[hit] == model_code
+        if keep.any():
+            h = hit[keep]
+            out.write(c, pp[h], w, m_sel[keep], cov[keep], rs.chi2[sel][h], best_q[h],
+                      rs.n_used[sel][h], k)
+
+
+def _mode_mixture(m_c: np.ndarray, q_c: np.ndarray, use: np.ndarray, jacs, normal: np.ndarray,
+                  mu: np.ndarray, pi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``(P, 9)`` and covariance ``(P, 9, 9)`` of the candidate minima ``m_c``
+    ``(P, S, 9)`` (``use``: accepted and identifiable; duplicates, within ``1e-6`` of a
+    previous one's norm, dropped) as a mixture with weights ``exp(-(q + d) / 2)``, ``d`` the
+    prior's ``sum pi (m - mu)^2``: the posterior of the discrete minima the samples cannot tell
+    apart (module docstring), each with its delta-method covariance."""
+    n_s = m_c.shape[1]
+    use = use.copy()
+    for i in range(n_s):
+        for j in range(i):
+            same = np.linalg.norm(m_c[:, i] - m_c[:, j], axis=1) <= 1e-6 * (
+                np.linalg.norm(m_c[:, j], axis=1) + 1e-300)
+            use[:, i] &= ~(same & use[:, j])
+    d = np.einsum("pi,psi->ps", pi, (m_c - mu[:, None]) ** 2)
+    score = np.where(use, -(q_c + d) / 2.0, -np.inf)
+    score = score - score.max(axis=1, keepdims=True)
+    wgt = np.where(use, np.exp(score), 0.0)
+    wgt /= wgt.sum(axis=1, keepdims=True)
+    m_c0 = np.where(use[:, :, None], m_c, 0.0)
+    mean = np.einsum("ps,psi->pi", wgt, m_c0)
+    cov = np.zeros(mean.shape + (9,))
+    for i, jac in enumerate(jacs):
+        on = wgt[:, i] > 0
+        if not on.any():
+            continue
+        dev = m_c0[on, i] - mean[on]
+        cov[on] += wgt[on, i, None, None] * (block_covariance(jac[on], normal[on])
+                                             + dev[:, :, None] * dev[:, None, :])
+    return mean, cov
 
 
 # ----------------------------------------------------------------------- files
