@@ -13,10 +13,7 @@ whitened once per pixel: with the Cholesky factor ``N = L L^T``, ``z = L^T (m(th
 ``q = |z|^2``, ``J_w = L^T J``, ``A = J_w^T J_w`` and ``g = J_w^T z`` (about half the
 arithmetic of forming ``N J``, and ``q`` never negative by rounding); the damped normal
 equations ``(A + lambda diag A + eps I) delta = -g`` (``eps`` the ridge of
-``reduced_models._ridge``) are solved by Gaussian elimination with partial pivoting. Where
-``N`` is singular (fewer samples' directions than nine: two polarizer states observe six),
-:func:`fit_nonlinear_factored` takes any factor ``U`` with ``U^T U = N`` instead of ``L^T``
-(the same iteration, the full ``U`` read). A pixel
+``reduced_models._ridge``) are solved by Gaussian elimination with partial pivoting. A pixel
 whose ``N`` has a non-positive Cholesky pivot (not positive definite to working precision;
 the selection never tests such a pixel, its ``m_hat`` being NaN) gets NaN ``q`` and block.
 
@@ -153,14 +150,12 @@ def _cholesky_upper(normal, u):  # pragma: no cover - compiled
 
 
 @jit_cached()
-def _whitened_residual(m, m_hat, u, z, upper):  # pragma: no cover - compiled
-    """``z = U (m - m_hat)`` into ``z``; returns ``q = |z|^2 = (m - m_hat)^T N (m - m_hat)``
-    (``U^T U = N``; ``upper``: ``U`` is the Cholesky factor ``L^T``, only its upper triangle
-    read)."""
+def _whitened_residual(m, m_hat, u, z):  # pragma: no cover - compiled
+    """``z = L^T (m - m_hat)`` into ``z``; returns ``q = |z|^2 = (m - m_hat)^T N (m - m_hat)``."""
     q = 0.0
     for i in range(9):
         acc = 0.0
-        for j in range(i if upper else 0, 9):
+        for j in range(i, 9):
             acc += u[i, j] * (m[j] - m_hat[j])
         z[i] = acc
         q += acc * acc
@@ -199,22 +194,21 @@ def _solve_in_place(a, x, k):  # pragma: no cover - compiled
 
 
 @jit_cached()
-def _lm_pixel(code, m_hat, u, upper, theta, iterations, m, step, jac, j5, jw, damp, trial, m_t,
-              z, z_t):  # pragma: no cover - compiled
+def _lm_pixel(code, m_hat, u, theta, iterations, m, step, jac, j5, jw, damp, trial, m_t, z,
+              z_t):  # pragma: no cover - compiled
     """Levenberg-Marquardt of one pixel from ``theta`` (``(k,)``, updated in place) on
-    ``q = |U (m(theta) - m_hat)|^2`` (``U = u``: ``L^T`` where ``upper``, else any factor with
-    ``U^T U = N``); ``m`` receives the block at the end. Returns ``q``. The rest are scratch
-    arrays."""
+    ``q = |L^T (m(theta) - m_hat)|^2`` (``u = L^T``); ``m`` receives the block at the end.
+    Returns ``q``. The rest are scratch arrays."""
     k = theta.shape[0]
     _matrix(code, theta, m)
-    q = _whitened_residual(m, m_hat, u, z, upper)
+    q = _whitened_residual(m, m_hat, u, z)
     lam = 1e-3
     for _ in range(iterations):
         _jacobian(code, theta, jac, j5)
-        for i in range(9):  # J_w = U J
+        for i in range(9):  # J_w = L^T J
             for a in range(k):
                 acc = 0.0
-                for j in range(i if upper else 0, 9):
+                for j in range(i, 9):
                     acc += u[i, j] * jac[j, a]
                 jw[i, a] = acc
         for a in range(k):  # A = J_w^T J_w (symmetric), -g = -J_w^T z
@@ -239,7 +233,7 @@ def _lm_pixel(code, m_hat, u, upper, theta, iterations, m, step, jac, j5, jw, da
         for a in range(k):
             trial[a] = theta[a] + step[a]
         _matrix(code, trial, m_t)
-        q_t = _whitened_residual(m_t, m_hat, u, z_t, upper)
+        q_t = _whitened_residual(m_t, m_hat, u, z_t)
         better = q_t < q  # NaN never is
         if better:
             gain = q - q_t
@@ -260,37 +254,6 @@ def _lm_pixel(code, m_hat, u, upper, theta, iterations, m, step, jac, j5, jw, da
 
 
 @jit_cached()
-def _fit_starts(code, m_hat, u, upper, starts, iterations, theta_out, m_out, q_out
-                ):  # pragma: no cover - compiled
-    """One pixel: Levenberg-Marquardt from each start ``starts`` ``(S, k)`` on the factor ``u``
-    (:func:`_lm_pixel`), the lowest ``q`` kept (the first on ties; NaN never wins) into
-    ``theta_out`` ``(k,)``, ``m_out`` ``(9,)`` and ``q_out`` ``(1,)``."""
-    n_start, k = starts.shape
-    theta = np.empty(k)
-    m = np.empty(9)
-    step = np.empty(k)
-    jac = np.empty((9, k))
-    j5 = np.empty((9, 5))
-    jw = np.empty((9, k))
-    damp = np.empty((k, k))
-    trial = np.empty(k)
-    m_t = np.empty(9)
-    z = np.empty(9)
-    z_t = np.empty(9)
-    for s in range(n_start):
-        for a in range(k):
-            theta[a] = starts[s, a]
-        q = _lm_pixel(code, m_hat, u, upper, theta, iterations, m, step, jac, j5, jw, damp,
-                      trial, m_t, z, z_t)
-        if s == 0 or q < q_out[0]:
-            q_out[0] = q
-            for a in range(k):
-                theta_out[a] = theta[a]
-            for i in range(9):
-                m_out[i] = m[i]
-
-
-@jit_cached()
 def fit_nonlinear(code, m_hat, normal, starts, iterations, theta_out, m_out, q_out
                   ):  # pragma: no cover - compiled
     """Fit model ``code`` to ``P`` pixels from each of ``S`` start points, keeping per pixel
@@ -302,6 +265,17 @@ def fit_nonlinear(code, m_hat, normal, starts, iterations, theta_out, m_out, q_o
     n_pix, n_start, k = starts.shape
     for p in range(n_pix):
         u = np.empty((9, 9))
+        theta = np.empty(k)
+        m = np.empty(9)
+        step = np.empty(k)
+        jac = np.empty((9, k))
+        j5 = np.empty((9, 5))
+        jw = np.empty((9, k))
+        damp = np.empty((k, k))
+        trial = np.empty(k)
+        m_t = np.empty(9)
+        z = np.empty(9)
+        z_t = np.empty(9)
         if not _cholesky_upper(normal[p], u):
             for a in range(k):
                 theta_out[p, a] = starts[p, 0, a]
@@ -309,17 +283,14 @@ def fit_nonlinear(code, m_hat, normal, starts, iterations, theta_out, m_out, q_o
                 m_out[p, i] = np.nan
             q_out[p] = np.nan
             continue
-        _fit_starts(code, m_hat[p], u, True, starts[p], iterations, theta_out[p], m_out[p],
-                    q_out[p:p + 1])
-
-
-@jit_cached()
-def fit_nonlinear_factored(code, m_hat, factor, starts, iterations, theta_out, m_out, q_out
-                           ):  # pragma: no cover - compiled
-    """:func:`fit_nonlinear` with the normal matrices given by factors ``factor`` ``(P, 9, 9)``,
-    ``U^T U = N`` (any ``U``: a singular ``N`` of rank ``r`` has ``r`` nonzero rows,
-    :func:`polrig.solve.model_selection.row_space_equations`); every pixel is fitted."""
-    n_pix = starts.shape[0]
-    for p in range(n_pix):
-        _fit_starts(code, m_hat[p], factor[p], False, starts[p], iterations, theta_out[p],
-                    m_out[p], q_out[p:p + 1])
+        for s in range(n_start):
+            for a in range(k):
+                theta[a] = starts[p, s, a]
+            q = _lm_pixel(code, m_hat[p], u, theta, iterations, m, step, jac, j5, jw, damp,
+                          trial, m_t, z, z_t)
+            if s == 0 or q < q_out[p]:
+                q_out[p] = q
+                for a in range(k):
+                    theta_out[p, a] = theta[a]
+                for i in range(9):
+                    m_out[p, i] = m[i]

@@ -16,15 +16,13 @@ __all__ = ["fit_model_numpy"]
 
 
 def fit_model_numpy(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
-                    iterations: int = 12, factor: np.ndarray | None = None,
-                    start_from: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    iterations: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The previous implementation of :func:`polrig.solve.reduced_models.fit_model` (same
-    arguments and results; ``factor`` is not needed: the quadratic form is evaluated with
-    ``N`` itself, which may be singular)."""
+    arguments and results)."""
     if model.linear:
         return _fit_linear(model, m_hat, normal)
     best_q = best_m = best_t = None
-    for theta0 in model.starts(m_hat if start_from is None else start_from):
+    for theta0 in model.starts(m_hat):
         theta0 = np.where(np.isfinite(theta0), theta0, 0.0)
         theta, m, q = _levenberg_marquardt(model, m_hat, normal, theta0, iterations)
         if best_q is None:

@@ -52,7 +52,6 @@ Never silent: nothing here runs unless asked (``polrig reconstruct --models auto
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -272,8 +271,7 @@ class RowSpace:
     ``m_hat`` ``(P, 9)`` a least-squares solution (the pseudo-inverse's, in the equilibrated
     coordinates); ``chi2`` ``(P,)`` its ``chi^2``; ``n_used`` ``(P,)``; ``rank`` ``(P,)``
     ``r = rank N``; ``condition`` ``(P,)`` the equilibrated design's condition number within
-    its row space; ``factor`` ``(P, 9, 9)`` ``U`` with ``U^T U = N`` (``9 - r`` zero rows);
-    ``null`` ``(P, 9, 9)`` an orthonormal basis of ``N``'s null space in its first ``9 - r``
+    its row space; ``null`` ``(P, 9, 9)`` an orthonormal basis of ``N``'s null space in its first ``9 - r``
     columns (zeros after)."""
 
     normal: np.ndarray
@@ -282,7 +280,6 @@ class RowSpace:
     n_used: np.ndarray
     rank: np.ndarray
     condition: np.ndarray
-    factor: np.ndarray
     null: np.ndarray
 
 
@@ -295,8 +292,8 @@ def row_space_equations(s_in, measured, variance, valid, analyzer_rows, c: int,
                         pix: np.ndarray) -> RowSpace:
     """:func:`normal_equations` for a design of any rank (module docstring, "At any rank"):
     the eigendecomposition of the equilibrated ``S N S = V w V^T`` gives the rank (eigenvalues
-    above :data:`RANK_TOLERANCE` of the largest), ``m_hat = S V w^+ V^T S D^T W y``, the factor
-    ``U = w_+^1/2 V^T S^-1`` and the null space ``S V_0`` (orthonormalised)."""
+    above :data:`RANK_TOLERANCE` of the largest), ``m_hat = S V w^+ V^T S D^T W y`` and the
+    null space ``S V_0`` (orthonormalised)."""
     normal, rhs, d, wgt, y, ok = _weighted_system(s_in, measured, variance, valid, analyzer_rows, c, pix)
     scale, eq = _equilibrated(normal)
     with np.errstate(all="ignore"):
@@ -308,13 +305,12 @@ def row_space_equations(s_in, measured, variance, valid, analyzer_rows, c: int,
         m_hat = scale * np.einsum("pij,pj,pkj,pk->pi", v, inv_w, v, rhs * scale)
         smallest = np.where(kept, w_eig, np.inf).min(axis=1)
         condition = np.sqrt(top[:, 0] / smallest)
-        factor = np.sqrt(np.where(kept, w_eig, 0.0))[:, :, None] * np.swapaxes(v, 1, 2) / scale[:, None, :]
         # null space: the eigenvectors not kept (the first 9 - r, ascending), scaled back by S
         null_raw = np.where(kept[:, None, :], 0.0, v * scale[:, :, None])
         q, _ = np.linalg.qr(null_raw)
         null = np.where(kept[:, None, :], 0.0, q)
     return RowSpace(normal, m_hat, _chi2(m_hat, d, wgt, y, ok), ok.sum(axis=1), rank, condition,
-                    factor, null)
+                    null)
 
 
 # ----------------------------------------------------------------------- selection
@@ -393,86 +389,74 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
             normal, m_hat, chi2_full, n_ok = normal_equations(
                 s_in, measured, variance, valid, analyzer_rows, c, pix)
             good = np.isfinite(m_hat).all(axis=1) & (n_ok >= 9)
-            best = np.zeros(len(pix), np.int64)  # chosen code, 0 full
-            best_k = np.full(len(pix), 10)
-            best_p = np.full(len(pix), -1.0)
-            best_q = np.full(len(pix), np.nan)
-            top_p, top_q = np.full(len(pix), -1.0), np.full(len(pix), np.nan)
-            fits = {}
-            m0 = np.where(good[:, None], m_hat, 0.0)
-            for model in models:  # fewest parameters first
-                # a pixel that accepted a model with fewer parameters cannot choose this one:
-                # fit only the others (the statistic of the skipped ones is not needed)
-                need = np.flatnonzero(good & (best_k >= model.n_params))
-                m_fit = np.full((len(pix), 9), np.nan)
-                q = np.full(len(pix), np.nan)
-                jac = np.zeros((len(pix), 9, model.n_params))
-                if need.size:
-                    m_fit[need], q[need], jac[need] = fit_model(
-                        model, m0[need], normal[need], iterations=opts.iterations)
-                q = np.where(good, np.clip(q, 0.0, None), np.nan)
-                p = chi2_sf(q, 9 - model.n_params)
-                fits[model.code] = (m_fit, jac, q, model.n_params)
-                ok_p = np.where(np.isfinite(p), p, -1.0)
-                higher = ok_p > top_p
-                top_p, top_q = np.where(higher, ok_p, top_p), np.where(higher, q, top_q)
-                accept = (q <= crit[model.code]) & np.isfinite(m_fit).all(axis=1)
-                choose = accept & ((model.n_params < best_k)
-                                   | ((model.n_params == best_k) & (ok_p > best_p)))
-                best = np.where(choose, model.code, best)
-                best_k = np.where(choose, model.n_params, best_k)
-                best_p = np.where(choose, ok_p, best_p)
-                best_q = np.where(choose, q, best_q)
-            chosen = best > 0
-            yy, xx = np.divmod(pix, w)
-            code[c, yy, xx] = np.where(good, best, UNTESTED)
-            stat[c, yy, xx] = np.where(good, np.where(chosen, best_q, top_q), np.nan)
-            pval[c, yy, xx] = np.where(good, np.where(chosen, best_p, top_p), np.nan)
-            for model_code, (m_fit, jac, q, k) in fits.items():
-                sel = np.flatnonzero(best == model_code)
-                if sel.size:
-                    out.write(c, pix[sel], w, m_fit[sel], block_covariance(jac[sel], normal[sel]),
-                              chi2_full[sel], q[sel], n_ok[sel], k)
+            _test_and_write(models, crit, opts, c, pix, w, normal, m_hat, chi2_full, n_ok, good,
+                            out, code, stat, pval)
         if prior is None:
             continue
         rest = np.flatnonzero((~testable & ((result.mask[c] & ILL_CONDITIONED) == 0)).ravel())
         for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
             pix = rest[p0:p0 + chunk_pixels]
             _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
-                              opts, prior, out, code, stat, pval)
+                              crit, opts, prior, out, code, stat, pval)
     maps = ModelMaps(code, stat, pval, opts)
     return ReferenceResult(out.mueller, out.sigma, out.residual, out.mask, result.condition_number,
                            result.pixel_condition, result.n_samples,
                            out.sigma_noise if with_cal else None, maps), maps
 
 
+def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarray, w: int,
+                    normal: np.ndarray, m_hat: np.ndarray, chi2_full: np.ndarray, n_ok: np.ndarray,
+                    good: np.ndarray, out: _Outputs, code, stat, pval) -> None:
+    """The test against the full block of the full-rank system ``(normal, m_hat)`` at pixels
+    ``pix`` (flat) of colour ``c`` where ``good``, the maps and the estimate written."""
+    best = np.zeros(len(pix), np.int64)  # chosen code, 0 full
+    best_k = np.full(len(pix), 10)
+    best_p = np.full(len(pix), -1.0)
+    best_q = np.full(len(pix), np.nan)
+    top_p, top_q = np.full(len(pix), -1.0), np.full(len(pix), np.nan)
+    fits = {}
+    m0 = np.where(good[:, None], m_hat, 0.0)
+    for model in models:  # fewest parameters first
+        # a pixel that accepted a model with fewer parameters cannot choose this one:
+        # fit only the others (the statistic of the skipped ones is not needed)
+        need = np.flatnonzero(good & (best_k >= model.n_params))
+        m_fit = np.full((len(pix), 9), np.nan)
+        q = np.full(len(pix), np.nan)
+        jac = np.zeros((len(pix), 9, model.n_params))
+        if need.size:
+            m_fit[need], q[need], jac[need] = fit_model(
+                model, m0[need], normal[need], iterations=opts.iterations)
+        q = np.where(good, np.clip(q, 0.0, None), np.nan)
+        p = chi2_sf(q, 9 - model.n_params)
+        fits[model.code] = (m_fit, jac, q, model.n_params)
+        ok_p = np.where(np.isfinite(p), p, -1.0)
+        higher = ok_p > top_p
+        top_p, top_q = np.where(higher, ok_p, top_p), np.where(higher, q, top_q)
+        accept = (q <= crit[model.code]) & np.isfinite(m_fit).all(axis=1)
+        choose = accept & ((model.n_params < best_k)
+                           | ((model.n_params == best_k) & (ok_p > best_p)))
+        best = np.where(choose, model.code, best)
+        best_k = np.where(choose, model.n_params, best_k)
+        best_p = np.where(choose, ok_p, best_p)
+        best_q = np.where(choose, q, best_q)
+    chosen = best > 0
+    yy, xx = np.divmod(pix, w)
+    code[c, yy, xx] = np.where(good, best, UNTESTED)
+    stat[c, yy, xx] = np.where(good, np.where(chosen, best_q, top_q), np.nan)
+    pval[c, yy, xx] = np.where(good, np.where(chosen, best_p, top_p), np.nan)
+    for model_code, (m_fit, jac, q, k) in fits.items():
+        sel = np.flatnonzero(best == model_code)
+        if sel.size:
+            out.write(c, pix[sel], w, m_fit[sel], block_covariance(jac[sel], normal[sel]),
+                      chi2_full[sel], q[sel], n_ok[sel], k)
+
+
 #: the least rank of the samples' design at which a pixel is tested (two states' six
 #: directions; one state's three leave no candidate but the unpolarizing one)
 MIN_RANK = 6
-#: a model's tangent direction counts as observed where at least this share of its length
-#: (a sine) lies in the samples' row space
-MIN_OBSERVED = 1e-3
-
-
-def identifiable(jac: np.ndarray, null: np.ndarray) -> np.ndarray:
-    """Whether the samples determine every direction a model can move in at its fit
-    ``(P,)``: the tangent space ``range(J)`` (``jac`` ``(P, 9, k)``; its numerical rank,
-    singular values above ``1e-8`` of the largest) projected off the null space (``null``
-    ``(P, 9, 9)``, orthonormal columns, zeros beyond ``9 - r``) keeps its dimension, each unit
-    tangent at least :data:`MIN_OBSERVED` of its length (the smallest singular value of the
-    projected basis)."""
-    u, sv, _ = np.linalg.svd(jac, full_matrices=False)
-    rank_j = (sv > 1e-8 * sv[:, :1]).sum(axis=1)
-    basis = u * (np.arange(u.shape[-1]) < rank_j[:, None])[:, None, :]
-    proj = basis - null @ (np.swapaxes(null, 1, 2) @ basis)
-    s_proj = np.linalg.svd(proj, compute_uv=False)
-    low = np.take_along_axis(s_proj, np.clip(rank_j - 1, 0, None)[:, None], 1)[:, 0]
-    return (rank_j > 0) & (low >= MIN_OBSERVED)
-
-
 def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pix: np.ndarray,
-                      w: int, models, opts: SelectionOptions, prior, out: _Outputs, code, stat,
-                      pval) -> None:
+                      w: int, models, crit, opts: SelectionOptions, prior, out: _Outputs, code,
+                      stat, pval) -> None:
     """The test and the estimate at pixels ``pix`` of colour ``c`` whose samples leave some
     of the block's directions unobserved (module docstring, "At any rank")."""
     rs = row_space_equations(s_in, measured, variance, valid, analyzer_rows, c, pix)
@@ -485,114 +469,28 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
     mean = np.where(precision > 0, mean, 0.0)
     good = (np.isfinite(rs.m_hat).all(axis=1) & (rs.rank >= MIN_RANK) & (rs.rank < 9)
             & (rs.condition <= opts.max_condition) & (rs.n_used >= rs.rank))
-    post = take(out.result.mueller)
-    post = np.where(np.isfinite(post), post, rs.m_hat)
-    # starts: the samples' own solution, the hybrid posterior (the samples completed by the
-    # prior) and its mirror through the null space (for two orthogonal states the exact
-    # second minimum: M -> M H leaves the samples unchanged and maps every model to itself)
-    mirror = post - 2.0 * np.einsum("pij,pkj,pk->pi", rs.null, rs.null, post)
-    for r in np.unique(rs.rank[good]):
-        sel = np.flatnonzero(good & (rs.rank == r))
-        _select_at_rank(int(r), sel, pix, rs, (rs.m_hat, post, mirror), mean, precision, w, c,
-                        models, opts, out, code, stat, pval)
+    g = np.flatnonzero(good & (precision > 0).all(axis=1))
+    if not g.size:
+        return
+    normal, m_c = completed_system(rs, g, mean[g], 1.0 / precision[g])
+    _test_and_write(models, crit, opts, c, pix[g], w, normal, m_c, rs.chi2[g], rs.n_used[g],
+                    np.ones(g.size, bool), out, code, stat, pval)
 
 
-def _select_at_rank(r: int, sel: np.ndarray, pix: np.ndarray, rs: RowSpace, start_blocks,
-                    mean: np.ndarray, precision: np.ndarray, w: int, c: int, models,
-                    opts: SelectionOptions, out: _Outputs, code, stat, pval) -> None:
-    """:func:`_select_row_space` for its pixels ``sel`` (indices into ``pix``) of rank ``r``."""
-    n = len(sel)
-    normal, m_hat, factor, null = rs.normal[sel], rs.m_hat[sel], rs.factor[sel], rs.null[sel]
-    mu, pi = mean[sel], precision[sel]
-    best = np.zeros(n, np.int64)
-    best_k = np.full(n, 10)
-    best_p, best_q = np.full(n, -1.0), np.full(n, np.nan)
-    top_p, top_q = np.full(n, -1.0), np.full(n, np.nan)
-    tested = np.zeros(n, bool)
-    estimates = {}
-    for model in models:
-        k = model.n_params
-        if k >= r:  # no degree of freedom left: not testable
-            continue
-        need = np.flatnonzero(best_k >= k)
-        if not need.size:
-            continue
-        cands = []  # (m, q, jac) of each start / branch
-        if model.linear:
-            for basis in model.basis:
-                cands.append(fit_model(dataclasses.replace(model, basis=(basis,)), m_hat[need],
-                                       normal[need]))
-        else:
-            for start in start_blocks:
-                cands.append(fit_model(model, m_hat[need], normal[need], iterations=opts.iterations,
-                                       factor=factor[need], start_from=start[sel][need]))
-        m_c = np.stack([cd[0] for cd in cands], 1)  # (P', S, 9)
-        q_c = np.stack([np.clip(cd[1], 0.0, None) for cd in cands], 1)
-        q_c = np.where(np.isfinite(m_c).all(axis=2), q_c, np.nan)
-        ident = np.stack([identifiable(cd[2], null[need]) for cd in cands], 1)
-        lam = np.nanmin(np.where(np.isnan(q_c), np.inf, q_c), axis=1)
-        at_min = np.argmin(np.where(np.isnan(q_c), np.inf, q_c), axis=1)
-        ok_model = np.isfinite(lam) & np.take_along_axis(ident, at_min[:, None], 1)[:, 0]
-        p = np.where(ok_model, chi2_sf(np.where(ok_model, lam, 0.0), r - k), -1.0)
-        tested[need] |= ok_model
-        higher = p > top_p[need]
-        top_p[need] = np.where(higher, p, top_p[need])
-        top_q[need] = np.where(higher, lam, top_q[need])
-        crit = chi2_critical(r - k, opts.alpha)
-        accept = ok_model & (lam <= crit)
-        choose = accept & ((k < best_k[need]) | ((k == best_k[need]) & (p > best_p[need])))
-        hit = need[choose]
-        best[hit], best_k[hit], best_p[hit], best_q[hit] = model.code, k, p[choose], lam[choose]
-        if choose.any():
-            # the estimate: the accepted, identifiable minima weighted by likelihood and prior
-            use = ident & (q_c <= crit)
-            m_sel, cov = _mode_mixture(m_c[choose], q_c[choose], use[choose],
-                                       [cd[2][choose] for cd in cands], normal[hit], mu[hit], pi[hit])
-            estimates[model.code] = (hit, m_sel, cov, k)
-    chosen = best > 0
-    pp = pix[sel]
-    yy, xx = np.divmod(pp, w)
-    code[c, yy, xx] = np.where(tested, best, UNTESTED)
-    stat[c, yy, xx] = np.where(tested, np.where(chosen, best_q, top_q), np.nan)
-    pval[c, yy, xx] = np.where(tested, np.where(chosen, best_p, top_p), np.nan)
-    for model_code, (hit, m_sel, cov, k) in estimates.items():
-        keep = best[hit] == model_code
-        if keep.any():
-            h = hit[keep]
-            out.write(c, pp[h], w, m_sel[keep], cov[keep], rs.chi2[sel][h], best_q[h],
-                      rs.n_used[sel][h], k)
-
-
-def _mode_mixture(m_c: np.ndarray, q_c: np.ndarray, use: np.ndarray, jacs, normal: np.ndarray,
-                  mu: np.ndarray, pi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean ``(P, 9)`` and covariance ``(P, 9, 9)`` of the candidate minima ``m_c``
-    ``(P, S, 9)`` (``use``: accepted and identifiable; duplicates, within ``1e-6`` of a
-    previous one's norm, dropped) as a mixture with weights ``exp(-(q + d) / 2)``, ``d`` the
-    prior's ``sum pi (m - mu)^2``: the posterior of the discrete minima the samples cannot tell
-    apart (module docstring), each with its delta-method covariance."""
-    n_s = m_c.shape[1]
-    use = use.copy()
-    for i in range(n_s):
-        for j in range(i):
-            same = np.linalg.norm(m_c[:, i] - m_c[:, j], axis=1) <= 1e-6 * (
-                np.linalg.norm(m_c[:, j], axis=1) + 1e-300)
-            use[:, i] &= ~(same & use[:, j])
-    d = np.einsum("pi,psi->ps", pi, (m_c - mu[:, None]) ** 2)
-    score = np.where(use, -(q_c + d) / 2.0, -np.inf)
-    score = score - score.max(axis=1, keepdims=True)
-    wgt = np.where(use, np.exp(score), 0.0)
-    wgt /= wgt.sum(axis=1, keepdims=True)
-    m_c0 = np.where(use[:, :, None], m_c, 0.0)
-    mean = np.einsum("ps,psi->pi", wgt, m_c0)
-    cov = np.zeros(mean.shape + (9,))
-    for i, jac in enumerate(jacs):
-        on = wgt[:, i] > 0
-        if not on.any():
-            continue
-        dev = m_c0[on, i] - mean[on]
-        cov[on] += wgt[on, i, None, None] * (block_covariance(jac[on], normal[on])
-                                             + dev[:, :, None] * dev[:, None, :])
-    return mean, cov
+def completed_system(rs: RowSpace, g: np.ndarray, mean: np.ndarray, variance: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The samples of pixels ``g`` (indices into ``rs``) completed by the prior's marginal on
+    their null space (module docstring, "At any rank"): ``N' = N + Q_0 (Q_0^T Sigma Q_0)^-1
+    Q_0^T`` ``(P, 9, 9)`` and ``m' = m_hat + Q_0 Q_0^T (mu - m_hat)`` ``(P, 9)`` (``mean``,
+    ``variance`` ``(P, 9)`` the prior's ``mu`` and ``diag Sigma``, all positive)."""
+    n_null = 9 - rs.rank[g]
+    active = np.arange(9)[None, :] < n_null[:, None]  # the null space's columns in use
+    q0 = rs.null[g] * active[:, None, :]
+    a = np.einsum("pia,pi,pib->pab", q0, variance, q0) + np.where(active, 0.0, 1.0)[:, :, None] * np.eye(9)
+    a_inv = np.linalg.inv(a) * active[:, :, None] * active[:, None, :]
+    p_null = np.einsum("pia,pab,pjb->pij", q0, a_inv, q0)
+    m_c = rs.m_hat[g] + np.einsum("pia,pja,pj->pi", q0, q0, mean - rs.m_hat[g])
+    return rs.normal[g] + p_null, m_c
 
 
 # ----------------------------------------------------------------------- files

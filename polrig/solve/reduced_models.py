@@ -306,8 +306,7 @@ _CHUNK_PIXELS = 256
 
 
 def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
-              iterations: int = 12, factor: np.ndarray | None = None,
-              start_from: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              iterations: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted least-squares fit of ``model`` to ``P`` pixels.
 
     ``m_hat``: ``(P, 9)`` float64, the full block's estimate (row-major); ``normal``:
@@ -317,29 +316,20 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
     optimum (for :func:`block_covariance`). Nonlinear models: the compiled kernel
     (:func:`polrig.solve._reduced_kernel.fit_nonlinear`, chunks of pixels on up to
     ``_THREADS`` threads, every start in turn, the lowest ``q`` kept; ``q`` and the block NaN
-    where ``N`` is not positive definite).
-
-    ``factor``: ``(P, 9, 9)`` with ``U^T U = N``, for normal matrices that may be singular (the
-    samples of fewer than three states: ``m_hat`` is then any least-squares solution, ``q``
-    does not depend on which); the nonlinear fit then whitens with it instead of the
-    Cholesky factor (:func:`polrig.solve._reduced_kernel.fit_nonlinear_factored`).
-    ``start_from``: ``(P, 9)`` blocks to read the start points off instead of ``m_hat``
-    (:func:`polrig.solve.model_selection.select_models` starts from the prior's completion too)."""
+    where ``N`` is not positive definite)."""
     if model.linear:
         return _fit_linear(model, m_hat, normal)
     from polrig.solve import _reduced_kernel as kern  # numba: imported on first use
 
-    starts = np.stack([np.where(np.isfinite(t), t, 0.0)
-                       for t in model.starts(m_hat if start_from is None else start_from)], 1)
+    starts = np.stack([np.where(np.isfinite(t), t, 0.0) for t in model.starts(m_hat)], 1)
     m_hat = np.ascontiguousarray(m_hat, np.float64)
-    normal = np.ascontiguousarray(normal if factor is None else factor, np.float64)
+    normal = np.ascontiguousarray(normal, np.float64)
     p = len(m_hat)
     theta, m, q = np.empty((p, model.n_params)), np.empty((p, 9)), np.empty(p)
-    kernel = kern.fit_nonlinear if factor is None else kern.fit_nonlinear_factored
 
     def fit(sl: slice) -> None:
-        kernel(model.code, m_hat[sl], normal[sl], starts[sl], int(iterations),
-               theta[sl], m[sl], q[sl])
+        kern.fit_nonlinear(model.code, m_hat[sl], normal[sl], starts[sl], int(iterations),
+                           theta[sl], m[sl], q[sl])
 
     n_threads = max(1, min(_THREADS, p // _CHUNK_PIXELS))
     if n_threads == 1:
