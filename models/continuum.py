@@ -280,9 +280,85 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
         r = solve_hybrid(s[1:], meas[1:], var[1:], valid[1:], prior_sigma=fr.sigma, seen_state=None, **kw)
     elif method == "reference":
         r = solve_reference(s, meas, var, valid, dtype=np.float64, max_condition=np.inf)
+    elif method == "hybrid_models":
+        return hybrid_with_models(fr, offsets)[:3]
     else:
         raise ValueError(method)
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
+
+
+def hybrid_with_models(fr: Frames, offsets: Sequence[int]):
+    """The hybrid solve of ``offsets`` then the lower-order model selection
+    (:func:`polrig.solve.model_selection.select_models` with the network as the prior: at two
+    states it tests with the prior completing the directions the samples leave unobserved):
+    ``(mueller, sigma, solved, model codes (C, H, W))``."""
+    from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.model_selection import select_models
+    from polrig.solve.reference import ILL_CONDITIONED
+
+    s, meas, var, valid = _stack(fr, offsets)
+    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
+                     dtype=np.float64)
+    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma))
+    return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0, maps.code
+
+
+#: "A lower-order model holds" at a pixel (from the hidden truth): in every colour the truth's
+#: nearest block of some candidate model (:data:`polrig.solve.reduced_models.MODELS`, Frobenius
+#: distance) is within this share of the truth's Frobenius norm.
+HOLDS_REL = 0.01
+
+
+def model_holds(truth: np.ndarray, mask: np.ndarray, rel: float = HOLDS_REL) -> np.ndarray:
+    """``(H, W)`` object pixels where a lower-order model holds (:data:`HOLDS_REL`): the least
+    relative Frobenius distance of the truth ``(C, 3, 3, H, W)`` from each model (its fit with
+    the identity metric, :func:`polrig.solve.reduced_models.fit_model`) at most ``rel`` in
+    every colour."""
+    from polrig.solve.reduced_models import MODELS, fit_model
+
+    ys, xs = np.nonzero(mask)
+    blocks = np.moveaxis(truth[..., ys, xs], -1, 1).reshape(-1, 9).astype(np.float64)  # (C*P, 9)
+    eye = np.broadcast_to(np.eye(9), (len(blocks), 9, 9))
+    dist = np.full(len(blocks), np.inf)
+    for model in MODELS:
+        _, q, _ = fit_model(model, blocks, eye)
+        dist = np.fmin(dist, np.sqrt(np.clip(q, 0.0, None)))
+    ok = (dist <= rel * np.linalg.norm(blocks, axis=1)).reshape(truth.shape[0], -1).all(axis=0)
+    out = np.zeros(mask.shape, bool)
+    out[ys, xs] = ok
+    return out
+
+
+def score_where_models_hold(fr: Frames, mueller: np.ndarray, holds: np.ndarray) -> dict[str, float]:
+    """Matrix PSNR over the object pixels where a lower-order model holds (:func:`model_holds`)
+    and have no clipped sample (``fr.clean``), and their count (the peak of :func:`score`)."""
+    from polrig.models.evaluate import psnr
+
+    sel = holds & fr.clean
+    pred = (mueller * fr.mask).astype(np.float32)
+    peak = float(np.abs(fr.truth[..., fr.mask]).max())
+    return {"psnr_holds": psnr(pred, fr.truth, sel, peak) if sel.any() else float("nan"),
+            "holds_pixels": float(sel.sum()), "object_pixels": float((fr.mask & fr.clean).sum())}
+
+
+def models_rows(fr: Frames, two: Sequence[int]) -> dict[str, dict[str, float]]:
+    """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
+    single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
+    each with :func:`score` and :func:`score_where_models_hold`; the selection's row also the
+    share of scored colour-pixels given a reduced model, overall and where one holds."""
+    holds = model_holds(fr.truth, fr.mask)
+    rows = {}
+    for key, method in (("single", "single"), ("hybrid2", "hybrid")):
+        est = estimate(fr, two, method)
+        rows[key] = score(fr, *est) | score_where_models_hold(fr, est[0], holds)
+    *est, code = hybrid_with_models(fr, two)
+    sel = fr.use & est[2]
+    reduced = (code != 0) & (code != 255)
+    rows["hybrid2_models"] = (score(fr, *est) | score_where_models_hold(fr, est[0], holds)
+                              | {"accepted": float(reduced[sel].mean()) if sel.any() else float("nan"),
+                                 "accepted_holds": float(reduced[sel & holds[None]].mean())
+                                 if (sel & holds[None]).any() else float("nan")})
+    return rows
 
 
 def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1) -> float:
@@ -367,10 +443,14 @@ def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray
 
 
 def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
-    keys = ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2", "states", "time_s")
+    keys = ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2", "states", "time_s", "psnr_holds", "accepted",
+            "accepted_holds")
     out = {k: float(np.nanmean([r[k] for r in rows])) for k in keys if rows and k in rows[0]}
     n = sum(r["elements"] for r in rows)
     out["coverage"] = sum(r["inside"] for r in rows) / n if n else float("nan")
+    if rows and "holds_pixels" in rows[0]:
+        total = sum(r["object_pixels"] for r in rows)
+        out["holds_share"] = sum(r["holds_pixels"] for r in rows) / total if total else float("nan")
     return out
 
 
@@ -411,20 +491,25 @@ def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> d
 
 
 def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, tag: int,
-                 targets: Sequence[float] = ADAPTIVE_TARGETS) -> dict:
+                 targets: Sequence[float] = ADAPTIVE_TARGETS, only_models: bool = False) -> dict:
     """Every method's mean metrics on one set (module docstring), the adaptive capture at each of
     ``targets`` included; with each method's states per pose and acquisition time
-    (:func:`acquisition_time_s`; the adaptive's per sample)."""
-    plan = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
+    (:func:`acquisition_time_s`; the adaptive's per sample). Also the lower-order model
+    comparison at two states (:func:`models_rows`: keys ``holds_single``, ``holds_hybrid2``,
+    ``hybrid2_models``); ``only_models``: that alone."""
+    plan = {} if only_models else {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
             "hybrid3": ("hybrid", offsets["three"]), "hybrid4": ("hybrid", offsets["four"]),
             "reference3": ("reference", offsets["three"]), "reference4": ("reference", offsets["four"])}
-    for v in VARIANTS:
+    for v in VARIANTS if not only_models else ():
         plan[f"{v}1"] = (v, (0,))
         plan[f"{v}2"] = (v, offsets["two"])
     # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
-    timed = {"hybrid3_4frames": (offsets["three"], 4), "hybrid4_3frames": (offsets["four"], 3)}
-    adaptive_keys = {f"adaptive_{t:g}": t for t in targets}
-    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys)}
+    timed = {} if only_models else {"hybrid3_4frames": (offsets["three"], 4),
+                                    "hybrid4_3frames": (offsets["four"], 3)}
+    adaptive_keys = {} if only_models else {f"adaptive_{t:g}": t for t in targets}
+    model_keys = {"holds_single": "single", "holds_hybrid2": "hybrid2", "hybrid2_models": "hybrid2_models"}
+    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *model_keys)}
+    time_two = acquisition_time_s(offsets["two"])
     time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
     time_s |= {key: acquisition_time_s(offs, k) for key, (offs, k) in timed.items()}
     t0 = time.perf_counter()
@@ -440,7 +525,11 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
         for key, target in adaptive_keys.items():
             *est, taken = adaptive(fr, target)
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
-    n = len(rows["single"])
+        two_rows = models_rows(fr, offsets["two"])
+        for key, k in model_keys.items():
+            rows[key].append(two_rows[k] | {"states": 1 if k == "single" else 2,
+                                            "time_s": acquisition_time_s((0,)) if k == "single" else time_two})
+    n = len(rows["hybrid2_models"])
     return {"data": str(data_dir) if not hasattr(data_dir, "manifest") else
             f"scene {data_dir.manifest.get('scene')} at poses {data_dir.manifest.get('poses_deg')}", "samples": n, "methods": {k: _mean(v) for k, v in rows.items()},
             "seconds": time.perf_counter() - t0}
@@ -499,20 +588,50 @@ def markdown(result: dict) -> str:
         cell = lambda k: f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} %"  # noqa: E731
         keys = ("hybrid1", "marginal1", "naive1", "exclude1", "hybrid2", "marginal2", "naive2", "exclude2")
         lines.append(f"| {set_label(key)} | " + " | ".join(cell(k) for k in keys) + " |")
+    if "hybrid2_models" in first:
+        lines += ["", models_markdown(result)]
+    return "\n".join(lines)
+
+
+def models_markdown(result: dict) -> str:
+    """The lower-order model comparison at two states (:func:`models_rows`) as a Markdown table."""
+    two = "/".join(map(str, result["offsets"]["two"]))
+    lines = [f"**Lower-order models at two states ({two})**: single-shot, hybrid 2 and hybrid 2 with the model "
+             "selection (`select_models` with the network as the prior completing the directions the two states "
+             "leave unobserved). \"holds\": object pixels with no clipped sample where in every colour the truth "
+             f"is within {100 * HOLDS_REL:g} % (relative Frobenius) of its nearest candidate model "
+             "(`model_holds`); \"all\": every object pixel. Matrix PSNR in dB; \"reduced\": share of the "
+             "scored colour-pixels given a reduced model.", "",
+             "| set | scored | holds (share of pixels) | single-shot, holds | hybrid 2, holds | hybrid 2 + models, holds "
+             "| + models - single, holds | hybrid 2, all | hybrid 2 + models, all | + models - single, all | "
+             "reduced, all / holds | within 2 sigma, hybrid 2 / + models |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for key, r in result["sets"].items():
+        m = r["methods"]
+        sgl, hyb, sel = m["holds_single"], m["holds_hybrid2"], m["hybrid2_models"]
+        lines.append(
+            f"| {set_label(key)} | {r['samples']} | {100 * sel.get('holds_share', float('nan')):.1f} % | "
+            f"{sgl['psnr_holds']:.2f} | {hyb['psnr_holds']:.2f} | {sel['psnr_holds']:.2f} | "
+            f"{sel['psnr_holds'] - sgl['psnr_holds']:+.2f} | {hyb['matrix_psnr']:.2f} | {sel['matrix_psnr']:.2f} | "
+            f"{sel['matrix_psnr'] - sgl['matrix_psnr']:+.2f} | "
+            f"{100 * sel['accepted']:.0f} / {100 * sel['accepted_holds']:.0f} % | "
+            f"{100 * hyb['coverage']:.1f} / {100 * sel['coverage']:.1f} % |")
     return "\n".join(lines)
 
 
 def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], seed: int = 0,
         weights_dir=None, two=None, three=None, echo=print,
         targets: Sequence[float] = ADAPTIVE_TARGETS, rig_scenes: Sequence[str] | None = None,
-        rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None) -> dict:
+        rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None, only_models: bool = False) -> dict:
     """Generate the sets, search the states (unless ``two`` and ``three`` are given), evaluate,
     write ``out_md``, its ``.json`` and the accuracy-against-time plot (:func:`plot_trade`,
     ``.png``) when given.
 
     ``rig_scenes``: instead of ``sets``, the default rig's named scenes at ``size`` (default
     :func:`rig_size`), one sample per turntable angle of ``rig_poses`` (:func:`rig_set`), with
-    the states ``two`` and ``three`` (default :data:`RIG_TWO`, :data:`RIG_THREE`: not searched)."""
+    the states ``two`` and ``three`` (default :data:`RIG_TWO`, :data:`RIG_THREE`: not searched).
+    ``only_models``: only the lower-order model comparison at ``two`` (default :data:`RIG_TWO`,
+    not searched; :func:`models_rows`, :func:`models_markdown`), no plot."""
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
     from polrig.models.evaluate import results_paths
@@ -548,6 +667,8 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     t0 = time.perf_counter()
     result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size or SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
                     "adaptive_targets": list(targets)}
+    if only_models:
+        two, three = two or RIG_TWO, three or RIG_THREE
     if two is None or three is None:
         dirs = [make_set(root, name, kw, search_count if "all" in name else max(1, search_count // 2))
                 for name, kw in SEARCH_SETS.items()]
@@ -561,18 +682,32 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     for tag, name in enumerate(sets):
         d = (make_set(root, name, SETS[name][1], count) if rig_scenes is None
              else rig_set(name[len("rig_"):], size, rig_poses, seed))
-        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets)
+        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets,
+                         only_models)
         result["sets"][name] = r
         m = r["methods"]
+        if only_models:
+            echo(f"{name}: {r['samples']} scored; PSNR where a model holds: single "
+                 f"{m['holds_single']['psnr_holds']:.2f}, hybrid 2 {m['holds_hybrid2']['psnr_holds']:.2f}, "
+                 f"+ models {m['hybrid2_models']['psnr_holds']:.2f}")
+            continue
         echo(f"{name}: {r['samples']} scored; PSNR single {m['single']['matrix_psnr']:.2f}, hybrid 1-4 "
              + " / ".join(f"{m[f'hybrid{k}']['matrix_psnr']:.2f}" for k in range(1, 5))
              + f", reference 3/4 {m['reference3']['matrix_psnr']:.2f} / {m['reference4']['matrix_psnr']:.2f}; "
              + "coverage " + " / ".join(f"{100 * m[k]['coverage']:.1f}" for k in
                                          ("single", "hybrid1", "hybrid2", "hybrid3", "hybrid4")))
     result["seconds"] = time.perf_counter() - t0
-    table = markdown(result)
+    table = models_markdown(result) if only_models else markdown(result)
     echo(table)
-    if out_md is not None:
+    if out_md is not None and only_models:
+        out_md.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        atomic_write_text(out_md, "# Lower-order models at two states\n\n`python -m polrig.models.continuum "
+                          f"--models-only --count {count} --sets {','.join(sets)}` (models/continuum.py "
+                          f"`models_rows`); {count} samples per set at {result['size']}x{result['size']} "
+                          f"(those with a lit object pixel scored); {result['seconds']:.0f} s on "
+                          f"{os.cpu_count()} CPUs.\n\n" + table + "\n")
+    elif out_md is not None:
         out_md.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
         plot_trade(result, out_md.with_suffix(".png"))
@@ -764,6 +899,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                          + ",".join(f"{p:g}" for p in RIG_POSES_DEG) + ")")
     ap.add_argument("--size", type=int, default=None,
                     help="image side of --rig-scenes (default: the rig's analyzer grid, 128)")
+    ap.add_argument("--models-only", action="store_true",
+                    help="only the lower-order model comparison at two states (--two, default "
+                         + ",".join(map(str, RIG_TWO)) + "): single-shot, hybrid 2, hybrid 2 + models")
     ap.add_argument("--plot-only", metavar="JSON", default=None,
                     help="only draw the accuracy-against-time plot of a results JSON (written next to it as .png)")
     args = ap.parse_args(argv)
@@ -775,7 +913,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                           three=_offsets(args.three, 3), targets=_targets(args.targets),
                                           rig_scenes=None if args.rig_scenes is None else
                                           [n for n in args.rig_scenes.split(",") if n],
-                                          rig_poses=_poses(args.rig_poses), size=args.size), 0)[1])
+                                          rig_poses=_poses(args.rig_poses), size=args.size,
+                                          only_models=args.models_only), 0)[1])
 
 
 def _poses(text: str) -> tuple[float, ...]:
