@@ -406,9 +406,11 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
 
 def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarray, w: int,
                     normal: np.ndarray, m_hat: np.ndarray, chi2_full: np.ndarray, n_ok: np.ndarray,
-                    good: np.ndarray, out: _Outputs, code, stat, pval) -> None:
+                    good: np.ndarray, out: _Outputs, code, stat, pval, prefer_p: bool = False) -> None:
     """The test against the full block of the full-rank system ``(normal, m_hat)`` at pixels
-    ``pix`` (flat) of colour ``c`` where ``good``, the maps and the estimate written."""
+    ``pix`` (flat) of colour ``c`` where ``good``, the maps and the estimate written. Of the
+    accepted models the one with the fewest parameters (ties: the larger p-value), or with
+    ``prefer_p`` the one with the largest p-value (module docstring, "At any rank")."""
     best = np.zeros(len(pix), np.int64)  # chosen code, 0 full
     best_k = np.full(len(pix), 10)
     best_p = np.full(len(pix), -1.0)
@@ -419,7 +421,7 @@ def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarra
     for model in models:  # fewest parameters first
         # a pixel that accepted a model with fewer parameters cannot choose this one:
         # fit only the others (the statistic of the skipped ones is not needed)
-        need = np.flatnonzero(good & (best_k >= model.n_params))
+        need = np.flatnonzero(good & ((best_k >= model.n_params) | prefer_p))
         m_fit = np.full((len(pix), 9), np.nan)
         q = np.full(len(pix), np.nan)
         jac = np.zeros((len(pix), 9, model.n_params))
@@ -433,8 +435,11 @@ def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarra
         higher = ok_p > top_p
         top_p, top_q = np.where(higher, ok_p, top_p), np.where(higher, q, top_q)
         accept = (q <= crit[model.code]) & np.isfinite(m_fit).all(axis=1)
-        choose = accept & ((model.n_params < best_k)
-                           | ((model.n_params == best_k) & (ok_p > best_p)))
+        if prefer_p:
+            choose = accept & (ok_p > best_p)
+        else:
+            choose = accept & ((model.n_params < best_k)
+                               | ((model.n_params == best_k) & (ok_p > best_p)))
         best = np.where(choose, model.code, best)
         best_k = np.where(choose, model.n_params, best_k)
         best_p = np.where(choose, ok_p, best_p)
@@ -474,7 +479,7 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
         return
     normal, m_c = completed_system(rs, g, mean[g], 1.0 / precision[g])
     _test_and_write(models, crit, opts, c, pix[g], w, normal, m_c, rs.chi2[g], rs.n_used[g],
-                    np.ones(g.size, bool), out, code, stat, pval)
+                    np.ones(g.size, bool), out, code, stat, pval, prefer_p=True)
 
 
 def completed_system(rs: RowSpace, g: np.ndarray, mean: np.ndarray, variance: np.ndarray
