@@ -299,7 +299,7 @@ def hybrid_with_models(fr: Frames, offsets: Sequence[int]):
     s, meas, var, valid = _stack(fr, offsets)
     r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
                      dtype=np.float64)
-    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma))
+    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0)
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0, maps.code
 
 

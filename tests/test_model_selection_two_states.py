@@ -26,27 +26,42 @@ SCALE = 3000.0
 PRIOR_SD = 150.0  # 5 % of the scale: a prior a little better than the shipped network's
 
 
+def prior_error(rng, sd: np.ndarray, s_seen) -> np.ndarray:
+    """A network's error as the hybrid models it (:mod:`polrig.solve.hybrid`): per row, Gaussian
+    in the plane the seen frame leaves unobserved with the covariance whose precision is the
+    prior's ``P_r`` (:func:`polrig.solve.hybrid.unobserved_precision`); none along the seen
+    state (the network reproduces its frame). ``sd`` ``(C, 3, 3, H, W)``."""
+    from polrig.solve.hybrid import unobserved_precision
+
+    p_rows = unobserved_precision(np.moveaxis(sd, (1, 2), (-2, -1)), s_seen)  # (C, H, W, 3, 3, 3)
+    w, v = np.linalg.eigh(p_rows)
+    scale = np.where(w > 1e-12 * w.max(axis=-1, keepdims=True), 1.0 / np.sqrt(np.where(w > 0, w, 1.0)), 0.0)
+    z = rng.normal(size=w.shape)
+    err = np.einsum("...ij,...j->...i", v, scale * z)  # (C, H, W, row, 3)
+    return np.moveaxis(err, (-2, -1), (1, 2))
+
+
 def two_state_case(rng, truth, *, s=S2, prior_sd=PRIOR_SD, valid=None):
-    """Noisy samples of ``truth`` at states ``s``, a calibrated prior (the truth plus Gaussian
-    noise of ``prior_sd``), the hybrid solve and the selection with that prior."""
+    """Noisy samples of ``truth`` at states ``s``, a prior calibrated in the hybrid's model
+    (:func:`prior_error`, sigma ``prior_sd`` per element), the hybrid solve and the selection
+    with that prior."""
     meas, var = noisy_samples(rng, truth, s)
     sd = np.broadcast_to(np.asarray(prior_sd, float), truth.shape)
-    mean = truth + rng.normal(size=truth.shape) * sd
+    mean = truth + prior_error(rng, sd, s[0])
     post = solve_hybrid(s, meas, var, valid, prior_mean=mean, prior_sigma=sd, seen_state=0,
                         dtype=np.float64)
-    sel, maps = ms.select_models(s, meas, var, valid, None, post, prior=(mean, sd))
+    sel, maps = ms.select_models(s, meas, var, valid, None, post, prior=(mean, sd), seen_state=0)
     return post, sel, maps, (meas, var, mean, sd)
 
 
-def completed(truth, meas, var, mean, sd, s=S2):
-    """The completed system (``N'``, ``m'``) of every pixel (one colour)."""
+def posterior(truth, meas, var, mean, sd, s=S2):
+    """The hybrid's posterior system (``N'``, ``m'``) of every pixel (one colour)."""
     h, w = truth.shape[-2:]
     rs = ms.row_space_equations(s, meas, var, None, None, 0, np.arange(h * w))
     assert (rs.rank == 6).all()
-    g = np.arange(h * w)
     mu_ = mean[0].reshape(9, -1).T
-    var_ = (np.broadcast_to(sd, truth.shape)[0].reshape(9, -1).T) ** 2
-    return ms.completed_system(rs, g, mu_, var_)
+    sd_ = np.broadcast_to(sd, truth.shape)[0].reshape(9, -1).T
+    return ms.posterior_system(rs.normal, rs.m_hat, mu_, sd_, s[0])
 
 
 # ------------------------------------------------------------------ the statistic's level
@@ -55,11 +70,11 @@ def test_the_true_models_statistic_has_the_tests_level(name):
     """Truth exactly of the model, sensor noise, a calibrated prior: the model's statistic on
     the completed system exceeds the chi^2(9 - k) critical value at about alpha = 5 % (exact
     for the linear unpolarizing model; the depolarizer, the lower of two subspaces, and the
-    nonlinear models to first order). Measured at this seed: 4.9, 4.1, 4.6, 5.2, 6.4 %."""
+    nonlinear models to first order). Measured at this seed: 5.3, 4.3, 4.5, 4.7, 4.6 %."""
     rng = np.random.default_rng(11)
     truth = images(rm.random_blocks(rng, name, 2000, SCALE), 40, 50)
     _, _, _, (meas, var, mean, sd) = two_state_case(rng, truth)
-    normal, m_c = completed(truth, meas, var, mean, sd)
+    normal, m_c = posterior(truth, meas, var, mean, sd)
     _, q, _ = rm.fit_model(MODEL[name], m_c, normal)
     rate = np.mean(q > ms.chi2_critical(9 - MODEL[name].n_params, 0.05))
     lo, hi = (0.03, 0.07) if name == "unpolarizing" else (0.02, 0.09)
@@ -70,8 +85,10 @@ def test_the_true_models_statistic_has_the_tests_level(name):
 @pytest.mark.parametrize("name", [m.name for m in rm.MODELS])
 def test_two_state_round_trip_per_model(name):
     """Truth of each model at two states: a reduced model explains about all pixels (the true
-    one or an equivalent on the samples), the estimate beats the hybrid's RMSE and covers the
-    truth within 2 sigma at about 95 % (measured at this seed in the comments)."""
+    one, or one that nests it or matches it on the samples), the estimate beats the hybrid's
+    RMSE and covers the truth within 2 sigma at about 95 %. Measured at this seed, per model
+    in MODELS order: reduced 99, 95, 97, 98, 96, 96 %; RMSE 0.58, 0.60, 0.53, 0.72, 0.62, 0.69
+    of the hybrid's; within 2 sigma 94.9, 93.0, 91.8, 93.0, 93.4, 94.9 % (the hybrid's 95-96 %)."""
     rng = np.random.default_rng(5)
     truth = images(rm.random_blocks(rng, name, 600, SCALE), 20, 30)
     post, sel, maps, _ = two_state_case(rng, truth)
@@ -103,7 +120,7 @@ def test_false_acceptance_where_the_truth_is_detectably_off_every_model():
     _, _, maps, _ = two_state_case(rng, truth)
     clean = ref.forward_measurements(truth, S2)
     var = 4.0 + np.clip(clean, 0, None) / 0.5
-    normal, m_c = completed(truth, clean, var, truth, PRIOR_SD)
+    normal, m_c = posterior(truth, clean, var, truth, PRIOR_SD)
     np.testing.assert_allclose(m_c, truth[0].reshape(9, -1).T, atol=1e-6 * SCALE)
     detectable = np.ones(p, bool)
     for model in rm.MODELS:
@@ -128,11 +145,11 @@ def test_two_state_selection_equals_the_one_with_the_numpy_oracle(monkeypatch):
     truth = images(np.concatenate([rm.random_blocks(rng, n, 100, SCALE) for n in names]), 20, 35)
     meas, var = noisy_samples(rng, truth, S2)
     sd = np.full(truth.shape, PRIOR_SD)
-    mean = truth + rng.normal(size=truth.shape) * sd
+    mean = truth + prior_error(rng, sd, S2[0])
     post = solve_hybrid(S2, meas, var, prior_mean=mean, prior_sigma=sd, seen_state=0, dtype=np.float64)
-    sel, maps = ms.select_models(S2, meas, var, None, None, post, prior=(mean, sd))
+    sel, maps = ms.select_models(S2, meas, var, None, None, post, prior=(mean, sd), seen_state=0)
     monkeypatch.setattr(ms, "fit_model", fit_model_numpy)
-    sel_o, maps_o = ms.select_models(S2, meas, var, None, None, post, prior=(mean, sd))
+    sel_o, maps_o = ms.select_models(S2, meas, var, None, None, post, prior=(mean, sd), seen_state=0)
     np.testing.assert_array_equal(maps.code, maps_o.code)
     assert 0.3 < np.mean(maps.code != 0) < 0.95
     np.testing.assert_allclose(maps.statistic, maps_o.statistic, rtol=1e-4, atol=1e-4)
@@ -191,7 +208,7 @@ def test_any_two_state_scene_gives_finite_results_and_known_codes(seed, scale, d
     mean = truth + rng.normal(size=truth.shape) * np.where(np.isfinite(sd), sd, 0.0)
     post = solve_hybrid(S2, meas, var, valid, prior_mean=mean, prior_sigma=sd, seen_state=0,
                         dtype=np.float64)
-    sel, maps = ms.select_models(S2, meas, var, valid, None, post, prior=(mean, sd))
+    sel, maps = ms.select_models(S2, meas, var, valid, None, post, prior=(mean, sd), seen_state=0)
     assert set(np.unique(maps.code)) <= {*rm.MODEL_CODES, ms.UNTESTED}
     untested = maps.code[0] == ms.UNTESTED
     np.testing.assert_array_equal(sel.mueller[0][:, :, untested], post.mueller[0][:, :, untested])

@@ -271,7 +271,7 @@ class RowSpace:
     ``m_hat`` ``(P, 9)`` a least-squares solution (the pseudo-inverse's, in the equilibrated
     coordinates); ``chi2`` ``(P,)`` its ``chi^2``; ``n_used`` ``(P,)``; ``rank`` ``(P,)``
     ``r = rank N``; ``condition`` ``(P,)`` the equilibrated design's condition number within
-    its row space; ``null`` ``(P, 9, 9)`` an orthonormal basis of ``N``'s null space in its first ``9 - r``
+    its row space; ``used`` ``(P, 4 n)`` which samples are used; ``null`` ``(P, 9, 9)`` an orthonormal basis of ``N``'s null space in its first ``9 - r``
     columns (zeros after)."""
 
     normal: np.ndarray
@@ -280,7 +280,7 @@ class RowSpace:
     n_used: np.ndarray
     rank: np.ndarray
     condition: np.ndarray
-    null: np.ndarray
+    used: np.ndarray
 
 
 #: relative eigenvalue of the equilibrated normal matrix below which a direction counts as
@@ -292,8 +292,7 @@ def row_space_equations(s_in, measured, variance, valid, analyzer_rows, c: int,
                         pix: np.ndarray) -> RowSpace:
     """:func:`normal_equations` for a design of any rank (module docstring, "At any rank"):
     the eigendecomposition of the equilibrated ``S N S = V w V^T`` gives the rank (eigenvalues
-    above :data:`RANK_TOLERANCE` of the largest), ``m_hat = S V w^+ V^T S D^T W y`` and the
-    null space ``S V_0`` (orthonormalised)."""
+    above :data:`RANK_TOLERANCE` of the largest) and ``m_hat = S V w^+ V^T S D^T W y``."""
     normal, rhs, d, wgt, y, ok = _weighted_system(s_in, measured, variance, valid, analyzer_rows, c, pix)
     scale, eq = _equilibrated(normal)
     with np.errstate(all="ignore"):
@@ -305,12 +304,7 @@ def row_space_equations(s_in, measured, variance, valid, analyzer_rows, c: int,
         m_hat = scale * np.einsum("pij,pj,pkj,pk->pi", v, inv_w, v, rhs * scale)
         smallest = np.where(kept, w_eig, np.inf).min(axis=1)
         condition = np.sqrt(top[:, 0] / smallest)
-        # null space: the eigenvectors not kept (the first 9 - r, ascending), scaled back by S
-        null_raw = np.where(kept[:, None, :], 0.0, v * scale[:, :, None])
-        q, _ = np.linalg.qr(null_raw)
-        null = np.where(kept[:, None, :], 0.0, q)
-    return RowSpace(normal, m_hat, _chi2(m_hat, d, wgt, y, ok), ok.sum(axis=1), rank, condition,
-                    null)
+    return RowSpace(normal, m_hat, _chi2(m_hat, d, wgt, y, ok), ok.sum(axis=1), rank, condition, ok)
 
 
 # ----------------------------------------------------------------------- selection
@@ -353,7 +347,7 @@ class _Outputs:
 def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                   valid: np.ndarray | None, analyzer_rows, result: ReferenceResult,
                   options: SelectionOptions | None = None, *, chunk_pixels: int = 16384,
-                  prior: tuple[np.ndarray, np.ndarray] | None = None
+                  prior: tuple[np.ndarray, np.ndarray] | None = None, seen_state: int | None = None
                   ) -> tuple[ReferenceResult, ModelMaps]:
     """Test the candidate models at every pixel and colour of ``result`` (the reference or
     hybrid solve of the same samples: ``s_in``, ``measured``, ``variance``, ``valid``,
@@ -397,7 +391,7 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
         for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
             pix = rest[p0:p0 + chunk_pixels]
             _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
-                              crit, opts, prior, out, code, stat, pval)
+                              crit, opts, prior, out, code, stat, pval, seen_state)
     maps = ModelMaps(code, stat, pval, opts)
     return ReferenceResult(out.mueller, out.sigma, out.residual, out.mask, result.condition_number,
                            result.pixel_condition, result.n_samples,
@@ -461,7 +455,7 @@ def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarra
 MIN_RANK = 6
 def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pix: np.ndarray,
                       w: int, models, crit, opts: SelectionOptions, prior, out: _Outputs, code,
-                      stat, pval) -> None:
+                      stat, pval, seen_state=None) -> None:
     """The test and the estimate at pixels ``pix`` of colour ``c`` whose samples leave some
     of the block's directions unobserved (module docstring, "At any rank")."""
     rs = row_space_equations(s_in, measured, variance, valid, analyzer_rows, c, pix)
@@ -474,28 +468,36 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
     mean = np.where(precision > 0, mean, 0.0)
     good = (np.isfinite(rs.m_hat).all(axis=1) & (rs.rank >= MIN_RANK) & (rs.rank < 9)
             & (rs.condition <= opts.max_condition) & (rs.n_used >= rs.rank))
-    g = np.flatnonzero(good & (precision > 0).all(axis=1))
+    g = good & (precision > 0).all(axis=1)
+    s_seen = None
+    if seen_state is not None:  # the prior's projection assumes the seen frame used whole
+        s_seen = np.asarray(s_in, np.float64)[seen_state]
+        g &= rs.used[:, 4 * seen_state:4 * seen_state + 4].all(axis=1)
+    g = np.flatnonzero(g)
     if not g.size:
         return
-    normal, m_c = completed_system(rs, g, mean[g], 1.0 / precision[g])
-    _test_and_write(models, crit, opts, c, pix[g], w, normal, m_c, rs.chi2[g], rs.n_used[g],
+    normal, m_post = posterior_system(rs.normal[g], rs.m_hat[g], mean[g], 1.0 / np.sqrt(precision[g]), s_seen)
+    _test_and_write(models, crit, opts, c, pix[g], w, normal, m_post, rs.chi2[g], rs.n_used[g],
                     np.ones(g.size, bool), out, code, stat, pval, prefer_p=True)
 
 
-def completed_system(rs: RowSpace, g: np.ndarray, mean: np.ndarray, variance: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The samples of pixels ``g`` (indices into ``rs``) completed by the prior's marginal on
-    their null space (module docstring, "At any rank"): ``N' = N + Q_0 (Q_0^T Sigma Q_0)^-1
-    Q_0^T`` ``(P, 9, 9)`` and ``m' = m_hat + Q_0 Q_0^T (mu - m_hat)`` ``(P, 9)`` (``mean``,
-    ``variance`` ``(P, 9)`` the prior's ``mu`` and ``diag Sigma``, all positive)."""
-    n_null = 9 - rs.rank[g]
-    active = np.arange(9)[None, :] < n_null[:, None]  # the null space's columns in use
-    q0 = rs.null[g] * active[:, None, :]
-    a = np.einsum("pia,pi,pib->pab", q0, variance, q0) + np.where(active, 0.0, 1.0)[:, :, None] * np.eye(9)
-    a_inv = np.linalg.inv(a) * active[:, :, None] * active[:, None, :]
-    p_null = np.einsum("pia,pab,pjb->pij", q0, a_inv, q0)
-    m_c = rs.m_hat[g] + np.einsum("pia,pja,pj->pi", q0, q0, mean - rs.m_hat[g])
-    return rs.normal[g] + p_null, m_c
+def posterior_system(normal: np.ndarray, m_hat: np.ndarray, mean: np.ndarray, sigma: np.ndarray,
+                     s_seen=None) -> tuple[np.ndarray, np.ndarray]:
+    """The hybrid solve's posterior system of ``P`` pixels (module docstring, "At any rank"):
+    ``N' = N + P`` ``(P, 9, 9)`` and the posterior mean ``m' = N'^-1 (N m_hat + P mu)``
+    ``(P, 9)``, float64, with the hybrid's prior precision ``P``
+    (:func:`polrig.solve.hybrid.unobserved_precision`, block diagonal over the rows; the seen
+    state ``s_seen``'s frame used whole). ``normal``, ``m_hat``: the samples' (any rank);
+    ``mean``, ``sigma`` ``(P, 9)``: the prior's, sigma positive and finite."""
+    from polrig.solve.hybrid import unobserved_precision
+
+    rows = unobserved_precision(sigma.reshape(-1, 3, 3), s_seen)  # (P, row, 3, 3)
+    prec = np.zeros(normal.shape)
+    for r in range(3):
+        prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
+    total = normal + prec
+    rhs = np.einsum("pij,pj->pi", normal, m_hat) + np.einsum("pij,pj->pi", prec, mean)
+    return total, np.linalg.solve(total, rhs[..., None])[..., 0]
 
 
 # ----------------------------------------------------------------------- files

@@ -332,7 +332,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
             band_prior = None if prior_mean is None else (prior_mean[..., o0:o1, :],
                                                           prior_sigma[..., o0:o1, :])
             res = select_models(s_in, meas, var, valid, a_rows, res, model_selection,
-                                prior=band_prior)[0]
+                                prior=band_prior, seen_state=seen_state)[0]
         return res
 
     # the first band alone (it raises for a bad state set before any other work, and gives
