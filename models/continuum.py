@@ -290,7 +290,7 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
 def hybrid_with_models(fr: Frames, offsets: Sequence[int]):
     """The hybrid solve of ``offsets`` then the lower-order model selection
     (:func:`polrig.solve.model_selection.select_models` with the network as the prior: at two
-    states it tests with the prior completing the directions the samples leave unobserved):
+    states it tests on the hybrid's posterior system, samples and prior):
     ``(mueller, sigma, solved, model codes (C, H, W))``."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.model_selection import select_models
@@ -344,9 +344,12 @@ def score_where_models_hold(fr: Frames, mueller: np.ndarray, holds: np.ndarray) 
 def models_rows(fr: Frames, two: Sequence[int]) -> dict[str, dict[str, float]]:
     """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
     single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
-    each with :func:`score` and :func:`score_where_models_hold`; the selection's row also the
-    share of scored colour-pixels given a reduced model, overall and where one holds."""
-    holds = model_holds(fr.truth, fr.mask)
+    each with :func:`score` and :func:`score_where_models_hold` over the pixels where a model
+    holds (:func:`model_holds`) that are lit in every colour (:func:`lit_pixels`: in a shadow a
+    model holds trivially, the truth is about 0, the network returns about 0 and one frame's
+    noise is all there is: single-shot PSNRs of 90 dB); the selection's row also the share of
+    scored colour-pixels given a reduced model, overall and where one holds."""
+    holds = model_holds(fr.truth, fr.mask) & lit_pixels(fr).all(axis=0)
     rows = {}
     for key, method in (("single", "single"), ("hybrid2", "hybrid")):
         est = estimate(fr, two, method)
@@ -386,6 +389,16 @@ def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1) -> f
     return float(sum(step_durations(adaptive_pose_steps(plan, 0, [DATASET_EXPOSURE_US], angles), model)))
 
 
+def lit_pixels(fr: Frames) -> np.ndarray:
+    """``(C, H, W)``: the seen frame not clipped and its ``S0`` at least
+    :data:`polrig.solve.reference.MIN_SNR` of its noise sigma (the adaptive capture's object
+    pixels per colour)."""
+    from polrig.solve.reference import MIN_SNR
+
+    s0 = fr.meas[0].sum(axis=1) / 2.0
+    return fr.use & (s0 >= MIN_SNR * np.sqrt(fr.var[0].sum(axis=1) / 4.0))
+
+
 def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
              max_states: int = ADAPTIVE_MAX_STATES) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """The adaptive capture on one sample (:mod:`polrig.app.adaptive`'s rule and criterion on
@@ -398,11 +411,9 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     exists). Returns the hybrid estimate of the states taken (``estimate``'s three arrays) and
     the offsets taken, in order."""
     from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
-    from polrig.solve.reference import MIN_SNR
 
     # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
-    s0 = fr.meas[0].sum(axis=1) / 2.0
-    lit = fr.use & (s0 >= MIN_SNR * np.sqrt(fr.var[0].sum(axis=1) / 4.0))
+    lit = lit_pixels(fr)
     obj = fr.use.all(axis=0) & lit.any(axis=0)
     taken = [0]
     while True:
@@ -597,10 +608,10 @@ def models_markdown(result: dict) -> str:
     """The lower-order model comparison at two states (:func:`models_rows`) as a Markdown table."""
     two = "/".join(map(str, result["offsets"]["two"]))
     lines = [f"**Lower-order models at two states ({two})**: single-shot, hybrid 2 and hybrid 2 with the model "
-             "selection (`select_models` with the network as the prior completing the directions the two states "
-             "leave unobserved). \"holds\": object pixels with no clipped sample where in every colour the truth "
-             f"is within {100 * HOLDS_REL:g} % (relative Frobenius) of its nearest candidate model "
-             "(`model_holds`); \"all\": every object pixel. Matrix PSNR in dB; \"reduced\": share of the "
+             "selection (`select_models` with the network's prior: at two states the test runs on the hybrid's "
+             "posterior system). \"holds\": object pixels with no clipped sample, lit in every colour (`lit_pixels`), "
+             f"where in every colour the truth is within {100 * HOLDS_REL:g} % (relative Frobenius) of its nearest "
+             "candidate model (`model_holds`); \"all\": every object pixel. Matrix PSNR in dB; \"reduced\": share of the "
              "scored colour-pixels given a reduced model.", "",
              "| set | scored | holds (share of pixels) | single-shot, holds | hybrid 2, holds | hybrid 2 + models, holds "
              "| + models - single, holds | hybrid 2, all | hybrid 2 + models, all | + models - single, all | "
