@@ -64,3 +64,10 @@ def test_models_only_run_writes_its_table(tmp_path):
     text = out.read_text()
     assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
     assert "--models-only --count 2" in text
+
+
+def test_the_benchmarks_models_defaults_are_the_committed_table():
+    from benchmarks import bench_continuum
+
+    assert bench_continuum.MODELS_DEFAULTS[:3] == ["--models-only", "--count", "64"]
+    assert bench_continuum.MODELS_RESULTS.with_suffix(".json").is_file()
