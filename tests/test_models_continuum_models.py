@@ -7,11 +7,9 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
+from test_models_continuum import needs_weights
 
 from polrig.solve import reduced_models as rm
-
-from test_models_continuum import needs_weights
 
 
 def test_model_holds_is_the_truths_distance_from_the_nearest_model():
