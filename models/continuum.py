@@ -58,6 +58,15 @@ FILE.json`` redraws it from a results JSON alone): matrix PSNR and forward Stoke
 acquisition time per pose, a point per set and method and the median over the sets with its
 range.
 
+**Lower-order models at two states** (``--models-only`` runs only this; the full run adds it as
+its last table; :func:`models_rows`): at the 2-state set, single-shot, hybrid 2 and hybrid 2 with
+:func:`polrig.solve.model_selection.select_models` (the network's prior given: at two states the
+test runs on the hybrid's posterior system), scored over every object pixel and over those where
+a lower-order model holds (:func:`model_holds`: the truth within :data:`HOLDS_REL` relative
+Frobenius of its nearest candidate in every colour, the pixel lit, :func:`lit_pixels`, and
+unclipped), with the share given a reduced model and the false acceptance where the truth is
+detectably off every candidate (:func:`detectably_off_every_model`).
+
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
 unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
@@ -69,6 +78,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import pathlib
@@ -329,6 +339,44 @@ def model_holds(truth: np.ndarray, mask: np.ndarray, rel: float = HOLDS_REL) -> 
     return out
 
 
+@functools.lru_cache(maxsize=16)
+def _detectable(df: int) -> float:
+    from polrig.solve.model_selection import detectable_noncentrality
+
+    return detectable_noncentrality(df)
+
+
+def detectably_off_every_model(fr: Frames, offsets: Sequence[int]) -> np.ndarray:
+    """``(C, H, W)``: the object's unclipped pixels whose truth the selection at ``offsets``
+    could tell from every candidate model (:mod:`polrig.solve.model_selection`'s false-acceptance
+    definition on the hybrid's posterior system: the noncentrality, each model's fit to the
+    truth in the metric ``N'`` of the noise-free samples and the network's prior sigma, at least
+    :func:`polrig.solve.model_selection.detectable_noncentrality`)."""
+    from polrig.solve import model_selection as ms
+    from polrig.solve.reduced_models import MODELS, fit_model
+    from polrig.solve.reference import forward_measurements
+
+    s, _, var, valid = _stack(fr, offsets)
+    clean = forward_measurements(fr.truth, s)
+    out = np.zeros(fr.use.shape, bool)
+    h, w = fr.mask.shape
+    for c in range(fr.truth.shape[0]):
+        ys, xs = np.nonzero(fr.use[c] & fr.clean & (fr.sigma[c] > 0).all(axis=(0, 1)))
+        if not len(ys):
+            continue
+        rs = ms.row_space_equations(s, clean, var, valid, None, c, ys * w + xs)
+        ok = (rs.rank >= ms.MIN_RANK) & (rs.rank < 9) & rs.used[:, :4].all(axis=1)
+        truth = fr.truth[c][:, :, ys, xs].reshape(9, -1).T
+        sd = fr.sigma[c][:, :, ys, xs].reshape(9, -1).T
+        normal, m_post = ms.posterior_system(rs.normal, np.where(ok[:, None], rs.m_hat, 0.0), truth, sd, s[0])
+        det = ok.copy()
+        for model in MODELS:
+            _, lam, _ = fit_model(model, m_post, normal)
+            det &= lam >= _detectable(9 - model.n_params)
+        out[c, ys, xs] = det
+    return out
+
+
 def score_where_models_hold(fr: Frames, mueller: np.ndarray, holds: np.ndarray) -> dict[str, float]:
     """Matrix PSNR over the object pixels where a lower-order model holds (:func:`model_holds`)
     and have no clipped sample (``fr.clean``), and their count (the peak of :func:`score`)."""
@@ -357,10 +405,12 @@ def models_rows(fr: Frames, two: Sequence[int]) -> dict[str, dict[str, float]]:
     *est, code = hybrid_with_models(fr, two)
     sel = fr.use & est[2]
     reduced = (code != 0) & (code != 255)
+    det = detectably_off_every_model(fr, two) & sel
     rows["hybrid2_models"] = (score(fr, *est) | score_where_models_hold(fr, est[0], holds)
                               | {"accepted": float(reduced[sel].mean()) if sel.any() else float("nan"),
                                  "accepted_holds": float(reduced[sel & holds[None]].mean())
-                                 if (sel & holds[None]).any() else float("nan")})
+                                 if (sel & holds[None]).any() else float("nan"),
+                                 "detectable": float(det.sum()), "falsely_accepted": float(reduced[det].sum())})
     return rows
 
 
@@ -459,6 +509,10 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
     out = {k: float(np.nanmean([r[k] for r in rows])) for k in keys if rows and k in rows[0]}
     n = sum(r["elements"] for r in rows)
     out["coverage"] = sum(r["inside"] for r in rows) / n if n else float("nan")
+    if rows and "detectable" in rows[0]:
+        det = sum(r["detectable"] for r in rows)
+        out["false_acceptance"] = sum(r["falsely_accepted"] for r in rows) / det if det else float("nan")
+        out["detectable_share"] = det / n * 9 if n else float("nan")
     if rows and "holds_pixels" in rows[0]:
         total = sum(r["object_pixels"] for r in rows)
         out["holds_share"] = sum(r["holds_pixels"] for r in rows) / total if total else float("nan")
@@ -612,11 +666,15 @@ def models_markdown(result: dict) -> str:
              "posterior system). \"holds\": object pixels with no clipped sample, lit in every colour (`lit_pixels`), "
              f"where in every colour the truth is within {100 * HOLDS_REL:g} % (relative Frobenius) of its nearest "
              "candidate model (`model_holds`); \"all\": every object pixel. Matrix PSNR in dB; \"reduced\": share of the "
-             "scored colour-pixels given a reduced model.", "",
+             "scored colour-pixels given a reduced model. False acceptance: a reduced model chosen where the "
+             "truth is detectably off every candidate (`detectably_off_every_model`: noncentrality on the hybrid's "
+             "posterior system with the network's sigma at least the test's 95 % power point), of that share of the "
+             "scored colour-pixels.", "",
              "| set | scored | holds (share of pixels) | single-shot, holds | hybrid 2, holds | hybrid 2 + models, holds "
              "| + models - single, holds | hybrid 2, all | hybrid 2 + models, all | + models - single, all | "
-             "reduced, all / holds | within 2 sigma, hybrid 2 / + models |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "reduced, all / holds | within 2 sigma, hybrid 2 / + models | false acceptance (detectably off every "
+             "model) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for key, r in result["sets"].items():
         m = r["methods"]
         sgl, hyb, sel = m["holds_single"], m["holds_hybrid2"], m["hybrid2_models"]
@@ -626,7 +684,9 @@ def models_markdown(result: dict) -> str:
             f"{sel['psnr_holds'] - sgl['psnr_holds']:+.2f} | {hyb['matrix_psnr']:.2f} | {sel['matrix_psnr']:.2f} | "
             f"{sel['matrix_psnr'] - sgl['matrix_psnr']:+.2f} | "
             f"{100 * sel['accepted']:.0f} / {100 * sel['accepted_holds']:.0f} % | "
-            f"{100 * hyb['coverage']:.1f} / {100 * sel['coverage']:.1f} % |")
+            f"{100 * hyb['coverage']:.1f} / {100 * sel['coverage']:.1f} % | "
+            f"{100 * sel.get('false_acceptance', float('nan')):.1f} % of "
+            f"{100 * sel.get('detectable_share', float('nan')):.0f} % |")
     return "\n".join(lines)
 
 

@@ -69,3 +69,31 @@ def test_the_benchmarks_models_defaults_are_the_committed_table():
 
     assert bench_continuum.MODELS_DEFAULTS[:3] == ["--models-only", "--count", "64"]
     assert bench_continuum.MODELS_RESULTS.with_suffix(".json").is_file()
+
+
+def test_detectably_off_every_model_on_a_synthetic_frame():
+    """Blocks exactly of a model are never detectably off every model; random full blocks with
+    precise samples and a tight prior are (the noncentrality on the hybrid's posterior system);
+    pixels without a prior are left out."""
+    from polrig.models.continuum import Frames, detectably_off_every_model, rotated_state
+
+    rng = np.random.default_rng(3)
+    h, w = 4, 10
+    names = [m.name for m in rm.MODELS]
+    exact = np.concatenate([rm.random_blocks(rng, n, 4, 1.0) for n in names])[:w * h // 2]
+    full = rm.random_blocks(rng, "full", w * h // 2, 1.0)
+    truth = np.concatenate([exact, full]).reshape(h, w, 3, 3).transpose(2, 3, 0, 1)[None]
+    s0 = np.array([1.0, 0.6, 0.8]) / 2
+    states = {0: s0, 90: rotated_state(s0, 90)}
+    from polrig.solve.reference import forward_measurements
+
+    meas = forward_measurements(truth, np.stack([states[0], states[90]]))
+    var = np.full(meas.shape[1:], 1e-6)
+    sigma = np.full(truth.shape, 0.01)
+    sigma[..., 3, 9] = 0.0  # no prior at one pixel
+    ones = np.ones((h, w), bool)
+    fr = Frames(truth, ones, ones[None], ones, truth, sigma, states, {0: meas[0], 90: meas[1]},
+                {0: var, 90: var}, {0: np.ones(var.shape, bool), 90: np.ones(var.shape, bool)})
+    det = detectably_off_every_model(fr, (0, 90))[0]
+    assert not det[:h // 2].any()
+    assert det[h // 2:].mean() > 0.9 and not det[3, 9]
