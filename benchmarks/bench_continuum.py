@@ -13,7 +13,11 @@ states at equal capture time. Extra arguments go to ``python -m polrig.models.co
 ``continuum.json`` alone (seconds). ``--rig`` scores the default simulated rig's scenes at its size
 instead (:data:`polrig.models.continuum.RIG_SCENES` at the 128x128 analyzer grid of its 512x512
 colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; about 6 min on 2
-shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``).
+shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``). ``--models``
+runs only the lower-order model comparison at two states (0/90: single-shot, hybrid 2, hybrid 2
+with ``select_models``; 64 samples per set; about 10 min) into
+``benchmarks/results/continuum_models.md`` (``.json``); the full run holds it too, as its last
+table.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "continuum.md"
 RIG_RESULTS = RESULTS.with_name("continuum_rig.md")
 DEFAULTS = ["--count", "64", "--search-count", "32", "--out", str(RESULTS)]
 RIG_DEFAULTS = ["--rig-scenes", ",".join(continuum.RIG_SCENES), "--out", str(RIG_RESULTS)]
+MODELS_RESULTS = RESULTS.with_name("continuum_models.md")
+MODELS_DEFAULTS = ["--models-only", "--count", "64", "--out", str(MODELS_RESULTS)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     if "--rig" in extra:
         extra.remove("--rig")
         return continuum.main(RIG_DEFAULTS + extra)
+    if "--models" in extra:
+        extra.remove("--models")
+        return continuum.main(MODELS_DEFAULTS + extra)
     return continuum.main(DEFAULTS + extra)  # later options win (argparse)
 
 

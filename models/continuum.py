@@ -67,6 +67,15 @@ FILE.json`` redraws it from a results JSON alone): matrix PSNR and forward Stoke
 acquisition time per pose, a point per set and method and the median over the sets with its
 range.
 
+**Lower-order models at two states** (``--models-only`` runs only this; the full run adds it as
+its last table; :func:`models_rows`): at the 2-state set, single-shot, hybrid 2 and hybrid 2 with
+:func:`polrig.solve.model_selection.select_models` (the network's prior given: at two states the
+test runs on the hybrid's posterior system), scored over every object pixel and over those where
+a lower-order model holds (:func:`model_holds`: the truth within :data:`HOLDS_REL` relative
+Frobenius of its nearest candidate in every colour, the pixel lit, :func:`lit_pixels`, and
+unclipped), with the share given a reduced model and the false acceptance where the truth is
+detectably off every candidate (:func:`detectably_off_every_model`).
+
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
 unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
@@ -78,6 +87,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import pathlib
@@ -365,9 +375,128 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
         r = solve_hybrid(s[1:], meas[1:], var[1:], valid[1:], prior_sigma=fr.sigma, seen_state=None, **kw)
     elif method == "reference":
         r = solve_reference(s, meas, var, valid, dtype=np.float64, max_condition=np.inf)
+    elif method == "hybrid_models":
+        return hybrid_with_models(fr, offsets)[:3]
     else:
         raise ValueError(method)
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
+
+
+def hybrid_with_models(fr: Frames, offsets: Sequence[int]):
+    """The hybrid solve of ``offsets`` then the lower-order model selection
+    (:func:`polrig.solve.model_selection.select_models` with the network as the prior: at two
+    states it tests on the hybrid's posterior system, samples and prior):
+    ``(mueller, sigma, solved, model codes (C, H, W))``."""
+    from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.model_selection import select_models
+    from polrig.solve.reference import ILL_CONDITIONED
+
+    s, meas, var, valid = _stack(fr, offsets)
+    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
+                     dtype=np.float64)
+    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0)
+    return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0, maps.code
+
+
+#: "A lower-order model holds" at a pixel (from the hidden truth): in every colour the truth's
+#: nearest block of some candidate model (:data:`polrig.solve.reduced_models.MODELS`, Frobenius
+#: distance) is within this share of the truth's Frobenius norm.
+HOLDS_REL = 0.01
+
+
+def model_holds(truth: np.ndarray, mask: np.ndarray, rel: float = HOLDS_REL) -> np.ndarray:
+    """``(H, W)`` object pixels where a lower-order model holds (:data:`HOLDS_REL`): the least
+    relative Frobenius distance of the truth ``(C, 3, 3, H, W)`` from each model (its fit with
+    the identity metric, :func:`polrig.solve.reduced_models.fit_model`) at most ``rel`` in
+    every colour."""
+    from polrig.solve.reduced_models import MODELS, fit_model
+
+    ys, xs = np.nonzero(mask)
+    blocks = np.moveaxis(truth[..., ys, xs], -1, 1).reshape(-1, 9).astype(np.float64)  # (C*P, 9)
+    eye = np.broadcast_to(np.eye(9), (len(blocks), 9, 9))
+    dist = np.full(len(blocks), np.inf)
+    for model in MODELS:
+        _, q, _ = fit_model(model, blocks, eye)
+        dist = np.fmin(dist, np.sqrt(np.clip(q, 0.0, None)))
+    ok = (dist <= rel * np.linalg.norm(blocks, axis=1)).reshape(truth.shape[0], -1).all(axis=0)
+    out = np.zeros(mask.shape, bool)
+    out[ys, xs] = ok
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _detectable(df: int) -> float:
+    from polrig.solve.model_selection import detectable_noncentrality
+
+    return detectable_noncentrality(df)
+
+
+def detectably_off_every_model(fr: Frames, offsets: Sequence[int]) -> np.ndarray:
+    """``(C, H, W)``: the object's unclipped pixels whose truth the selection at ``offsets``
+    could tell from every candidate model (:mod:`polrig.solve.model_selection`'s false-acceptance
+    definition on the hybrid's posterior system: the noncentrality, each model's fit to the
+    truth in the metric ``N'`` of the noise-free samples and the network's prior sigma, at least
+    :func:`polrig.solve.model_selection.detectable_noncentrality`)."""
+    from polrig.solve import model_selection as ms
+    from polrig.solve.reduced_models import MODELS, fit_model
+    from polrig.solve.reference import forward_measurements
+
+    s, _, var, valid = _stack(fr, offsets)
+    clean = forward_measurements(fr.truth, s)
+    out = np.zeros(fr.use.shape, bool)
+    h, w = fr.mask.shape
+    for c in range(fr.truth.shape[0]):
+        ys, xs = np.nonzero(fr.use[c] & fr.clean & (fr.sigma[c] > 0).all(axis=(0, 1)))
+        if not len(ys):
+            continue
+        rs = ms.row_space_equations(s, clean, var, valid, None, c, ys * w + xs)
+        ok = (rs.rank >= ms.MIN_RANK) & (rs.rank < 9) & rs.used[:, :4].all(axis=1)
+        truth = fr.truth[c][:, :, ys, xs].reshape(9, -1).T
+        sd = fr.sigma[c][:, :, ys, xs].reshape(9, -1).T
+        normal, m_post = ms.posterior_system(rs.normal, np.where(ok[:, None], rs.m_hat, 0.0), truth, sd, s[0])
+        det = ok.copy()
+        for model in MODELS:
+            _, lam, _ = fit_model(model, m_post, normal)
+            det &= lam >= _detectable(9 - model.n_params)
+        out[c, ys, xs] = det
+    return out
+
+
+def score_where_models_hold(fr: Frames, mueller: np.ndarray, holds: np.ndarray) -> dict[str, float]:
+    """Matrix PSNR over the object pixels where a lower-order model holds (:func:`model_holds`)
+    and have no clipped sample (``fr.clean``), and their count (the peak of :func:`score`)."""
+    from polrig.models.evaluate import psnr
+
+    sel = holds & fr.clean
+    pred = (mueller * fr.mask).astype(np.float32)
+    peak = float(np.abs(fr.truth[..., fr.mask]).max())
+    return {"psnr_holds": psnr(pred, fr.truth, sel, peak) if sel.any() else float("nan"),
+            "holds_pixels": float(sel.sum()), "object_pixels": float((fr.mask & fr.clean).sum())}
+
+
+def models_rows(fr: Frames, two: Sequence[int]) -> dict[str, dict[str, float]]:
+    """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
+    single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
+    each with :func:`score` and :func:`score_where_models_hold` over the pixels where a model
+    holds (:func:`model_holds`) that are lit in every colour (:func:`lit_pixels`: in a shadow a
+    model holds trivially, the truth is about 0, the network returns about 0 and one frame's
+    noise is all there is: single-shot PSNRs of 90 dB); the selection's row also the share of
+    scored colour-pixels given a reduced model, overall and where one holds."""
+    holds = model_holds(fr.truth, fr.mask) & lit_pixels(fr).all(axis=0)
+    rows = {}
+    for key, method in (("single", "single"), ("hybrid2", "hybrid")):
+        est = estimate(fr, two, method)
+        rows[key] = score(fr, *est) | score_where_models_hold(fr, est[0], holds)
+    *est, code = hybrid_with_models(fr, two)
+    sel = fr.use & est[2]
+    reduced = (code != 0) & (code != 255)
+    det = detectably_off_every_model(fr, two) & sel
+    rows["hybrid2_models"] = (score(fr, *est) | score_where_models_hold(fr, est[0], holds)
+                              | {"accepted": float(reduced[sel].mean()) if sel.any() else float("nan"),
+                                 "accepted_holds": float(reduced[sel & holds[None]].mean())
+                                 if (sel & holds[None]).any() else float("nan"),
+                                 "detectable": float(det.sum()), "falsely_accepted": float(reduced[det].sum())})
+    return rows
 
 
 def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1, bracket: Sequence[float] = ()) -> float:
@@ -397,6 +526,16 @@ def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1, brac
     return float(sum(step_durations(adaptive_pose_steps(plan, 0, exposures, angles), model)))
 
 
+def lit_pixels(fr: Frames) -> np.ndarray:
+    """``(C, H, W)``: the seen frame not clipped and its ``S0`` at least
+    :data:`polrig.solve.reference.MIN_SNR` of its noise sigma (the adaptive capture's object
+    pixels per colour)."""
+    from polrig.solve.reference import MIN_SNR
+
+    s0 = fr.meas[0].sum(axis=1) / 2.0
+    return fr.use & (s0 >= MIN_SNR * np.sqrt(fr.var[0].sum(axis=1) / 4.0))
+
+
 def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
              max_states: int = ADAPTIVE_MAX_STATES) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """The adaptive capture on one sample (:mod:`polrig.app.adaptive`'s rule and criterion on
@@ -409,11 +548,9 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     exists). Returns the hybrid estimate of the states taken (``estimate``'s three arrays) and
     the offsets taken, in order."""
     from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
-    from polrig.solve.reference import MIN_SNR
 
     # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
-    s0 = fr.meas[0].sum(axis=1) / 2.0
-    lit = fr.use & (s0 >= MIN_SNR * np.sqrt(fr.var[0].sum(axis=1) / 4.0))
+    lit = lit_pixels(fr)
     obj = fr.use.all(axis=0) & lit.any(axis=0)
     taken = [0]
     while True:
@@ -455,7 +592,8 @@ def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray
 
 
 def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
-    keys = ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2", "states", "time_s")
+    keys = ("matrix_psnr", "matrix_psnr_unclipped", "fwd_l2", "states", "time_s", "psnr_holds", "accepted",
+            "accepted_holds")
     out = {k: float(np.nanmean([r[k] for r in rows])) for k in keys if rows and k in rows[0]}
     n = sum(r["elements"] for r in rows)
     out["coverage"] = sum(r["inside"] for r in rows) / n if n else float("nan")
@@ -463,6 +601,13 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
         n = sum(r["hl_elements"] for r in rows)
         out["coverage_highlights"] = sum(r["hl_inside"] for r in rows) / n if n else float("nan")
         out["highlight_elements"] = float(n)
+    if rows and "detectable" in rows[0]:
+        det = sum(r["detectable"] for r in rows)
+        out["false_acceptance"] = sum(r["falsely_accepted"] for r in rows) / det if det else float("nan")
+        out["detectable_share"] = det / n * 9 if n else float("nan")
+    if rows and "holds_pixels" in rows[0]:
+        total = sum(r["object_pixels"] for r in rows)
+        out["holds_share"] = sum(r["holds_pixels"] for r in rows) / total if total else float("nan")
     return out
 
 
@@ -503,23 +648,28 @@ def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> d
 
 
 def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, tag: int,
-                 targets: Sequence[float] = ADAPTIVE_TARGETS) -> dict:
+                 targets: Sequence[float] = ADAPTIVE_TARGETS, only_models: bool = False) -> dict:
     """Every method's mean metrics on one set (module docstring), the adaptive capture at each of
     ``targets`` included; with each method's states per pose and acquisition time
-    (:func:`acquisition_time_s`; the adaptive's per sample)."""
-    plan = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
+    (:func:`acquisition_time_s`; the adaptive's per sample). Also the lower-order model
+    comparison at two states (:func:`models_rows`: keys ``holds_single``, ``holds_hybrid2``,
+    ``hybrid2_models``); ``only_models``: that alone."""
+    plan = {} if only_models else {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
             "hybrid3": ("hybrid", offsets["three"]), "hybrid4": ("hybrid", offsets["four"]),
             "reference3": ("reference", offsets["three"]), "reference4": ("reference", offsets["four"])}
-    for v in VARIANTS:
+    for v in VARIANTS if not only_models else ():
         plan[f"{v}1"] = (v, (0,))
         plan[f"{v}2"] = (v, offsets["two"])
     # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
-    timed = {"hybrid3_4frames": (offsets["three"], 4), "hybrid4_3frames": (offsets["four"], 3)}
-    adaptive_keys = {f"adaptive_{t:g}": t for t in targets}
+    timed = {} if only_models else {"hybrid3_4frames": (offsets["three"], 4),
+                                    "hybrid4_3frames": (offsets["four"], 3)}
+    adaptive_keys = {} if only_models else {f"adaptive_{t:g}": t for t in targets}
     # an exposure bracket at every state (the "Highlights" rows): the network sees the reference exposure
-    bracketed = {"single_bracket": ("single", (0,)), "hybrid1_bracket": ("hybrid", (0,)),
-                 "hybrid2_bracket": ("hybrid", offsets["two"])}
-    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *bracketed)}
+    bracketed = {} if only_models else {"single_bracket": ("single", (0,)), "hybrid1_bracket": ("hybrid", (0,)),
+                                        "hybrid2_bracket": ("hybrid", offsets["two"])}
+    model_keys = {"holds_single": "single", "holds_hybrid2": "hybrid2", "hybrid2_models": "hybrid2_models"}
+    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *model_keys, *bracketed)}
+    time_two = acquisition_time_s(offsets["two"])
     time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
     time_s |= {key: acquisition_time_s(offs, k) for key, (offs, k) in timed.items()}
     time_s |= {key: acquisition_time_s(offs, bracket=BRACKET) for key, (_, offs) in bracketed.items()}
@@ -533,9 +683,10 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
                                 frames_per_state=k)
             rows[key].append(score(frk, *estimate(frk, offs, "hybrid"), clean=fr.clean)
                              | {"states": len(offs), "time_s": time_s[key]})
-        frb = bracket_prior(sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, 99]),
-                                          offsets=offsets["two"], bracket=BRACKET), net.uncertainty)
-        highlights = frb.mask[None] & ~frb.use & frb.valid[0].all(axis=1)  # clipped, the bracket measured
+        if bracketed:
+            frb = bracket_prior(sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, 99]),
+                                              offsets=offsets["two"], bracket=BRACKET), net.uncertainty)
+            highlights = frb.mask[None] & ~frb.use & frb.valid[0].all(axis=1)  # clipped, the bracket measured
         for key, (method, offs) in bracketed.items():
             est = estimate(frb, offs, method)
             hl = score(frb, *est, clean=fr.clean, cover=highlights)
@@ -544,7 +695,11 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
         for key, target in adaptive_keys.items():
             *est, taken = adaptive(fr, target)
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
-    n = len(rows["single"])
+        two_rows = models_rows(fr, offsets["two"])
+        for key, k in model_keys.items():
+            rows[key].append(two_rows[k] | {"states": 1 if k == "single" else 2,
+                                            "time_s": acquisition_time_s((0,)) if k == "single" else time_two})
+    n = len(rows["hybrid2_models"])
     return {"data": str(data_dir) if not hasattr(data_dir, "manifest") else
             f"scene {data_dir.manifest.get('scene')} at poses {data_dir.manifest.get('poses_deg')}", "samples": n, "methods": {k: _mean(v) for k, v in rows.items()},
             "seconds": time.perf_counter() - t0}
@@ -623,20 +778,56 @@ def markdown(result: dict) -> str:
         cell = lambda k: f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} %"  # noqa: E731
         keys = ("hybrid1", "marginal1", "naive1", "exclude1", "hybrid2", "marginal2", "naive2", "exclude2")
         lines.append(f"| {set_label(key)} | " + " | ".join(cell(k) for k in keys) + " |")
+    if "hybrid2_models" in first:
+        lines += ["", models_markdown(result)]
+    return "\n".join(lines)
+
+
+def models_markdown(result: dict) -> str:
+    """The lower-order model comparison at two states (:func:`models_rows`) as a Markdown table."""
+    two = "/".join(map(str, result["offsets"]["two"]))
+    lines = [f"**Lower-order models at two states ({two})**: single-shot, hybrid 2 and hybrid 2 with the model "
+             "selection (`select_models` with the network's prior: at two states the test runs on the hybrid's "
+             "posterior system). \"holds\": object pixels with no clipped sample, lit in every colour (`lit_pixels`), "
+             f"where in every colour the truth is within {100 * HOLDS_REL:g} % (relative Frobenius) of its nearest "
+             "candidate model (`model_holds`); \"all\": every object pixel. Matrix PSNR in dB; \"reduced\": share of the "
+             "scored colour-pixels given a reduced model. False acceptance: a reduced model chosen where the "
+             "truth is detectably off every candidate (`detectably_off_every_model`: noncentrality on the hybrid's "
+             "posterior system with the network's sigma at least the test's 95 % power point), of that share of the "
+             "scored colour-pixels.", "",
+             "| set | scored | holds (share of pixels) | single-shot, holds | hybrid 2, holds | hybrid 2 + models, holds "
+             "| + models - single, holds | hybrid 2, all | hybrid 2 + models, all | + models - single, all | "
+             "reduced, all / holds | within 2 sigma, hybrid 2 / + models | false acceptance (detectably off every "
+             "model) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for key, r in result["sets"].items():
+        m = r["methods"]
+        sgl, hyb, sel = m["holds_single"], m["holds_hybrid2"], m["hybrid2_models"]
+        lines.append(
+            f"| {set_label(key)} | {r['samples']} | {100 * sel.get('holds_share', float('nan')):.1f} % | "
+            f"{sgl['psnr_holds']:.2f} | {hyb['psnr_holds']:.2f} | {sel['psnr_holds']:.2f} | "
+            f"{sel['psnr_holds'] - sgl['psnr_holds']:+.2f} | {hyb['matrix_psnr']:.2f} | {sel['matrix_psnr']:.2f} | "
+            f"{sel['matrix_psnr'] - sgl['matrix_psnr']:+.2f} | "
+            f"{100 * sel['accepted']:.0f} / {100 * sel['accepted_holds']:.0f} % | "
+            f"{100 * hyb['coverage']:.1f} / {100 * sel['coverage']:.1f} % | "
+            f"{100 * sel.get('false_acceptance', float('nan')):.1f} % of "
+            f"{100 * sel.get('detectable_share', float('nan')):.0f} % |")
     return "\n".join(lines)
 
 
 def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], seed: int = 0,
         weights_dir=None, two=None, three=None, echo=print,
         targets: Sequence[float] = ADAPTIVE_TARGETS, rig_scenes: Sequence[str] | None = None,
-        rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None) -> dict:
+        rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None, only_models: bool = False) -> dict:
     """Generate the sets, search the states (unless ``two`` and ``three`` are given), evaluate,
     write ``out_md``, its ``.json`` and the accuracy-against-time plot (:func:`plot_trade`,
     ``.png``) when given.
 
     ``rig_scenes``: instead of ``sets``, the default rig's named scenes at ``size`` (default
     :func:`rig_size`), one sample per turntable angle of ``rig_poses`` (:func:`rig_set`), with
-    the states ``two`` and ``three`` (default :data:`RIG_TWO`, :data:`RIG_THREE`: not searched)."""
+    the states ``two`` and ``three`` (default :data:`RIG_TWO`, :data:`RIG_THREE`: not searched).
+    ``only_models``: only the lower-order model comparison at ``two`` (default :data:`RIG_TWO`,
+    not searched; :func:`models_rows`, :func:`models_markdown`), no plot."""
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
     from polrig.models.evaluate import results_paths
@@ -672,6 +863,8 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     t0 = time.perf_counter()
     result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size or SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
                     "adaptive_targets": list(targets)}
+    if only_models:
+        two, three = two or RIG_TWO, three or RIG_THREE
     if two is None or three is None:
         dirs = [make_set(root, name, kw, search_count if "all" in name else max(1, search_count // 2))
                 for name, kw in SEARCH_SETS.items()]
@@ -685,18 +878,32 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     for tag, name in enumerate(sets):
         d = (make_set(root, name, SETS[name][1], count) if rig_scenes is None
              else rig_set(name[len("rig_"):], size, rig_poses, seed))
-        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets)
+        r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets,
+                         only_models)
         result["sets"][name] = r
         m = r["methods"]
+        if only_models:
+            echo(f"{name}: {r['samples']} scored; PSNR where a model holds: single "
+                 f"{m['holds_single']['psnr_holds']:.2f}, hybrid 2 {m['holds_hybrid2']['psnr_holds']:.2f}, "
+                 f"+ models {m['hybrid2_models']['psnr_holds']:.2f}")
+            continue
         echo(f"{name}: {r['samples']} scored; PSNR single {m['single']['matrix_psnr']:.2f}, hybrid 1-4 "
              + " / ".join(f"{m[f'hybrid{k}']['matrix_psnr']:.2f}" for k in range(1, 5))
              + f", reference 3/4 {m['reference3']['matrix_psnr']:.2f} / {m['reference4']['matrix_psnr']:.2f}; "
              + "coverage " + " / ".join(f"{100 * m[k]['coverage']:.1f}" for k in
                                          ("single", "hybrid1", "hybrid2", "hybrid3", "hybrid4")))
     result["seconds"] = time.perf_counter() - t0
-    table = markdown(result)
+    table = models_markdown(result) if only_models else markdown(result)
     echo(table)
-    if out_md is not None:
+    if out_md is not None and only_models:
+        out_md.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        atomic_write_text(out_md, "# Lower-order models at two states\n\n`python -m polrig.models.continuum "
+                          f"--models-only --count {count} --sets {','.join(sets)}` (models/continuum.py "
+                          f"`models_rows`); {count} samples per set at {result['size']}x{result['size']} "
+                          f"(those with a lit object pixel scored); {result['seconds']:.0f} s on "
+                          f"{os.cpu_count()} CPUs.\n\n" + table + "\n")
+    elif out_md is not None:
         out_md.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
         plot_trade(result, out_md.with_suffix(".png"))
@@ -888,6 +1095,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                          + ",".join(f"{p:g}" for p in RIG_POSES_DEG) + ")")
     ap.add_argument("--size", type=int, default=None,
                     help="image side of --rig-scenes (default: the rig's analyzer grid, 128)")
+    ap.add_argument("--models-only", action="store_true",
+                    help="only the lower-order model comparison at two states (--two, default "
+                         + ",".join(map(str, RIG_TWO)) + "): single-shot, hybrid 2, hybrid 2 + models")
     ap.add_argument("--plot-only", metavar="JSON", default=None,
                     help="only draw the accuracy-against-time plot of a results JSON (written next to it as .png)")
     ap.add_argument("--fit-highlights", action="store_true",
@@ -907,7 +1117,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                           three=_offsets(args.three, 3), targets=_targets(args.targets),
                                           rig_scenes=None if args.rig_scenes is None else
                                           [n for n in args.rig_scenes.split(",") if n],
-                                          rig_poses=_poses(args.rig_poses), size=args.size), 0)[1])
+                                          rig_poses=_poses(args.rig_poses), size=args.size,
+                                          only_models=args.models_only), 0)[1])
 
 
 def _poses(text: str) -> tuple[float, ...]:

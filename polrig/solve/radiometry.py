@@ -273,7 +273,9 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
 
     With ``model_selection``, each band's result then goes through
     :func:`polrig.solve.model_selection.select_models` on the same samples (lower-order models
-    where they explain them; off by default): the result's ``models`` holds the maps.
+    where they explain them; off by default): the result's ``models`` holds the maps. With a
+    prior, the pixels whose samples leave directions of the block unobserved (two states) are
+    tested with the prior completing those directions.
 
     Solved in bands of about ``band_pixels`` output pixels (times colours): each band is
     demosaiced from the mosaic rows it needs (:func:`polrig.sensor.demosaic.row_bands`) and solved on
@@ -340,7 +342,10 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                                       analyzer_tolerance=analyzer_tolerance,
                                       generator_tolerance=generator_tolerance)
         if model_selection is not None:  # numpy: releases the GIL in its large operations
-            res = select_models(s_in, meas, var, valid, a_rows, res, model_selection)[0]
+            band_prior = None if prior_mean is None else (prior_mean[..., o0:o1, :],
+                                                          prior_sigma[..., o0:o1, :])
+            res = select_models(s_in, meas, var, valid, a_rows, res, model_selection,
+                                prior=band_prior, seen_state=seen_state)[0]
         return res
 
     # the first band alone (it raises for a bad state set before any other work, and gives

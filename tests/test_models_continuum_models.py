@@ -1,0 +1,99 @@
+"""``python -m polrig.models.continuum``'s lower-order model comparison at two states
+(``models_rows``, ``--models-only``): where a model holds from the hidden truth, and the
+comparison end to end on a tiny set."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from test_models_continuum import needs_weights
+
+from polrig.solve import reduced_models as rm
+
+
+def test_model_holds_is_the_truths_distance_from_the_nearest_model():
+    """Exact blocks of every model hold; full random blocks do not; a model block moved off by
+    half a per cent holds, by two per cent not (relative Frobenius, every colour); off the
+    object nothing."""
+    from polrig.models.continuum import HOLDS_REL, model_holds
+
+    rng = np.random.default_rng(0)
+    names = [m.name for m in rm.MODELS]
+    exact = np.concatenate([rm.random_blocks(rng, n, 4, 2.0) for n in names])  # (24, 9)
+    full = rm.random_blocks(rng, "full", 24, 2.0)
+    full_dist = np.full(24, np.inf)
+    for model in rm.MODELS:
+        _, q, _ = rm.fit_model(model, full, np.broadcast_to(np.eye(9), (24, 9, 9)))
+        full_dist = np.fmin(full_dist, np.sqrt(q))
+    far = full_dist > 2 * HOLDS_REL * np.linalg.norm(full, axis=1)
+    direction = rng.normal(size=exact.shape)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    # moved along a random direction: the distance to the model is at most the step
+    near = exact + 0.5 * HOLDS_REL * np.linalg.norm(exact, axis=1, keepdims=True) * direction
+    blocks = np.stack([exact, full, near])  # (3, 24, 9): three rows of the image
+    truth = np.broadcast_to(blocks.reshape(3, 24, 3, 3).transpose(2, 3, 0, 1), (3, 3, 3, 3, 24))
+    mask = np.ones((3, 24), bool)
+    mask[0, 0] = False
+    holds = model_holds(np.ascontiguousarray(truth), mask)
+    assert holds[0, 1:].all() and not holds[0, 0]
+    assert not holds[1, far].any() and far.sum() >= 12
+    assert holds[2].all()
+
+
+@needs_weights
+def test_models_only_run_writes_its_table(tmp_path):
+    """``--models-only`` on a tiny set: the three methods' rows, the share where a model holds,
+    the table and its JSON; the selection gives a reduced model somewhere and keeps its sigma
+    finite."""
+    from polrig.models.continuum import main
+
+    out = tmp_path / "m.md"
+    assert main(["--models-only", "--count", "2", "--sets", "seen_families", "--root", str(tmp_path / "sets"),
+                 "--out", str(out)]) == 0
+    res = json.loads(out.with_suffix(".json").read_text())
+    assert res["offsets"]["two"] == [0, 90]
+    m = res["sets"]["seen_families"]["methods"]
+    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models"}
+    sel = m["hybrid2_models"]
+    assert 0 < sel["holds_share"] <= 1 and 0 < sel["accepted"] <= 1 and 0.5 < sel["coverage"] <= 1
+    assert np.isfinite(sel["matrix_psnr"]) and np.isfinite(m["holds_hybrid2"]["psnr_holds"])
+    assert m["holds_single"]["matrix_psnr"] < m["holds_hybrid2"]["matrix_psnr"]
+    text = out.read_text()
+    assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
+    assert "--models-only --count 2" in text
+
+
+def test_the_benchmarks_models_defaults_are_the_committed_table():
+    from benchmarks import bench_continuum
+
+    assert bench_continuum.MODELS_DEFAULTS[:3] == ["--models-only", "--count", "64"]
+    assert bench_continuum.MODELS_RESULTS.with_suffix(".json").is_file()
+
+
+def test_detectably_off_every_model_on_a_synthetic_frame():
+    """Blocks exactly of a model are never detectably off every model; random full blocks with
+    precise samples and a tight prior are (the noncentrality on the hybrid's posterior system);
+    pixels without a prior are left out."""
+    from polrig.models.continuum import Frames, detectably_off_every_model, rotated_state
+
+    rng = np.random.default_rng(3)
+    h, w = 4, 10
+    names = [m.name for m in rm.MODELS]
+    exact = np.concatenate([rm.random_blocks(rng, n, 4, 1.0) for n in names])[:w * h // 2]
+    full = rm.random_blocks(rng, "full", w * h // 2, 1.0)
+    truth = np.concatenate([exact, full]).reshape(h, w, 3, 3).transpose(2, 3, 0, 1)[None]
+    s0 = np.array([1.0, 0.6, 0.8]) / 2
+    states = {0: s0, 90: rotated_state(s0, 90)}
+    from polrig.solve.reference import forward_measurements
+
+    meas = forward_measurements(truth, np.stack([states[0], states[90]]))
+    var = np.full(meas.shape[1:], 1e-6)
+    sigma = np.full(truth.shape, 0.01)
+    sigma[..., 3, 9] = 0.0  # no prior at one pixel
+    ones = np.ones((h, w), bool)
+    fr = Frames(truth, ones, ones[None], ones, truth, sigma, states, {0: meas[0], 90: meas[1]},
+                {0: var, 90: var}, {0: np.ones(var.shape, bool), 90: np.ones(var.shape, bool)})
+    det = detectably_off_every_model(fr, (0, 90))[0]
+    assert not det[:h // 2].any()
+    assert det[h // 2:].mean() > 0.9 and not det[3, 9]
