@@ -200,8 +200,12 @@ def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray]:
 
     mask = ds["mask"][i] > 0
     s0 = ds["s_in"][i].astype(np.float64)
-    pred = net.run_rig_frame(*network_inputs(ds, i))["mueller"][0].astype(np.float64)
-    sigma = net.uncertainty.sigma(pred, s0, mask, stokes_from_analyzers(ds["analyzer"][i].astype(np.float64)))
+    from polrig.models.uncertainty import light_spread
+
+    res = net.run_rig_frame(*network_inputs(ds, i))
+    pred = res["mueller"][0].astype(np.float64)
+    sigma = net.uncertainty.sigma(pred, s0, mask, stokes_from_analyzers(ds["analyzer"][i].astype(np.float64)),
+                                  light_spread=light_spread(res["wi"][0], mask))
     return np.where(mask, pred, 0.0), np.where(mask, sigma.astype(np.float64), 0.0)
 
 

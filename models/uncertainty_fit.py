@@ -1,7 +1,9 @@
 """The fitting tool of the single-shot uncertainty (:mod:`polrig.models.uncertainty`, whose module
 docstring describes the error model; that module is the runtime part).
 
-Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
+Calibration (:func:`calibrate`): the light-spread factor's limits and reference are quantiles
+of the calibration images' spread (:func:`spread_limits`), the errors are divided by the factor,
+and the coefficients are fitted to the ``COVERAGE`` quantile of
 ``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
 the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly
 ``COVERAGE`` of the calibration errors lie within ``2 sigma``, the fraction a right Gaussian
@@ -33,12 +35,14 @@ from polrig.models.uncertainty import (
     FILE_NAME,
     N_FEATURES,
     P_MIN,
+    SPREAD_QUANTILES,
     UncertaintyModel,
     calibration_for_graph,
     feature_rows,
     features,
     graph_sha256,
     how_to_calibrate,
+    light_spread,
     misfit,
     observed_frame_rotation,
     to_observed_frame,
@@ -58,6 +62,8 @@ class Sample:
     """One prediction with its truth: ``pred``/``truth`` ``(C, 3, 3, H, W)``, ``s_in`` (3,),
     ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample,
     ``stokes`` ``(C, 3, H, W)`` the measured Stokes images the prediction was made from;
+    ``light_spread`` the network's light spread over the object (rad,
+    :func:`polrig.models.uncertainty.light_spread`);
     ``disagreement`` (like ``pred``) for a mirror-averaged prediction, else None."""
 
     pred: np.ndarray
@@ -66,20 +72,34 @@ class Sample:
     mask: np.ndarray
     clipped: np.ndarray
     stokes: np.ndarray
+    light_spread: float
     disagreement: np.ndarray | None = None
 
 
-def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled ``(|error'| / scale (N, 3, 3), q (N,), r (N,), p (N,))`` over unclipped object pixels."""
+def spread_limits(samples: Iterable[Sample]) -> dict[str, float]:
+    """The light-spread factor's ``{"low", "reference", "high"}`` (rad): the
+    :data:`~polrig.models.uncertainty.SPREAD_QUANTILES` of the samples' spreads."""
+    w = np.array([s.light_spread for s in samples], np.float64)
+    w = w[np.isfinite(w) & (w > 0)]
+    if not len(w):
+        raise ValueError("no calibration sample with a finite light spread above 0")
+    return {k: float(np.quantile(w, q)) for k, q in SPREAD_QUANTILES.items()}
+
+
+def _observed_errors(samples: Iterable[Sample], spread: UncertaintyModel | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``(|error'| / (t scale) (N, 3, 3), q (N,), r (N,), p (N,))`` over unclipped object
+    pixels, ``t`` the light-spread factor of ``spread`` (1 without)."""
     ratios, qs, rs, ps = [], [], [], []
     for s in samples:
+        t = 1.0 if spread is None else spread.spread_factor(s.light_spread)
         rot, p = observed_frame_rotation(s.s_in)
         pred = np.asarray(s.pred, np.float64)
         pred_obs, truth = to_observed_frame(pred, rot), to_observed_frame(np.asarray(s.truth, np.float64), rot)
         scale, q = features(pred_obs, s.mask)
         r = misfit(pred, s.s_in, np.asarray(s.stokes, np.float64), scale)
         use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.isfinite(r)  # (C, H, W)
-        err = np.abs(pred_obs - truth) / scale[:, None, None]
+        err = np.abs(pred_obs - truth) / (t * scale[:, None, None])
         ratios.append(np.moveaxis(err, (1, 2), (-2, -1))[use])
         qs.append(q[use])
         rs.append(r[use])
@@ -93,9 +113,11 @@ def _quantile_bins(x: np.ndarray, n: int) -> np.ndarray:
     return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n - 1)
 
 
-def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
-    """Coefficients ``(3, 3, N_FEATURES)`` (module docstring) and a summary of the fit."""
-    ratio, q, r, p = _observed_errors(samples)
+def calibrate(samples: Sequence[Sample]) -> tuple[np.ndarray, dict, dict]:
+    """Coefficients ``(3, 3, N_FEATURES)``, the light-spread factor's limits
+    (:func:`spread_limits`) and a summary of the fit (module docstring)."""
+    limits = spread_limits(samples)
+    ratio, q, r, p = _observed_errors(samples, UncertaintyModel(np.zeros((3, 3, N_FEATURES)), spread=limits))
     polarized = p >= P_MIN
     ratio, q, r = ratio[polarized], q[polarized], r[polarized]
     n_bins = Q_BINS * R_BINS
@@ -120,7 +142,7 @@ def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
             # exact coverage on the calibration pixels
             sig = full_design @ coef[row, k]
             coef[row, k] *= np.quantile(ratio[:, row, k] / np.maximum(sig, 1e-12), COVERAGE) / 2.0
-    return coef, {"pixels": int(len(q)), "q_bins": Q_BINS, "r_bins": R_BINS}
+    return coef, limits, {"pixels": int(len(q)), "q_bins": Q_BINS, "r_bins": R_BINS}
 
 
 def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -147,7 +169,8 @@ def _pooled(model: UncertaintyModel, samples: Iterable[Sample], mirror_term: boo
     over unclipped object pixels of ``samples`` with a finite sigma."""
     errs, sigs, dis = [], [], []
     for s in samples:
-        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement if mirror_term else None)
+        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement if mirror_term else None,
+                          s.light_spread)
         use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
         h = np.zeros_like(sig) if s.disagreement is None else s.disagreement
         for out, x in ((errs, np.abs(np.asarray(s.pred, np.float64) - s.truth)), (sigs, sig), (dis, h)):
@@ -236,7 +259,7 @@ def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: b
         dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
         clipped = dn.max(axis=1) >= sensor.saturation_dn
         out.append(Sample(res["mueller"][0], truth, ds["s_in"][i], mask, clipped,
-                          stokes_from_analyzers(ds["analyzer"][i]),
+                          stokes_from_analyzers(ds["analyzer"][i]), light_spread(res["wi"][0], mask),
                           res["mueller_disagreement"][0] if mirror_average else None))
     return out
 
@@ -275,9 +298,10 @@ def _main(args: argparse.Namespace) -> int:
     net = SingleShotModel.load(wd)
     if args.data:
         cal = [s for d in args.data for s in dataset_samples(d, net)]
-        coef, info = calibrate(cal)
+        coef, limits, info = calibrate(cal)
         model = UncertaintyModel(coef, graph_sha256(wd / "single_shot.onnx"),
-                                 dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)))
+                                 dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)),
+                                 spread=limits)
         model.calibration["coverage"] = coverage(model, cal)
         model.calibration["misfit_quantiles"] = misfit_quantiles(cal)
         mirrored = [s for d in args.data for s in dataset_samples(d, net, mirror_average=True)]

@@ -553,7 +553,7 @@ class SingleShot:
         mueller = out.get("mueller")
         if with_sigma and mueller is not None:
             unc = self.model.uncertainty
-            aux["sigma"] = unc.sigma(mueller, s_in, m_net, out["stokes"], None)
+            aux["sigma"] = unc.sigma(mueller, s_in, m_net, out["stokes"], None, out["light_spread"])
             beyond = unc.beyond_calibration(mueller, s_in, m_net, out["stokes"])
             if beyond is not None:
                 aux["beyond_calibration"], aux["mask"] = beyond, m_net
