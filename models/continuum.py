@@ -251,8 +251,9 @@ def _stack(fr: Frames, offsets: Sequence[int]):
 
 
 def marginal_sigma(fr: Frames) -> np.ndarray:
-    """Prior sigma that makes the hybrid solve use the plain marginal on the unobserved plane
-    (``sigma sqrt(g_r)``: the Schur complement scales with the precision, ``g_r`` does not)."""
+    """Prior sigma that makes the hybrid solve with ``plane_variance="scalar"`` use the plain
+    marginal on the unobserved plane (``sigma sqrt(g_r)``: the Schur complement scales with the
+    precision, ``g_r`` does not)."""
     from polrig.solve.hybrid import observed_direction
 
     u2 = observed_direction(fr.states[0]) ** 2
@@ -275,7 +276,8 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
     if method == "hybrid":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, **kw)
     elif method == "marginal":
-        r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, **kw)
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, plane_variance="scalar",
+                         **kw)
     elif method == "naive":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=None, **kw)
     elif method == "exclude":
