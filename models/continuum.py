@@ -60,7 +60,8 @@ range.
 
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
-unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
+unobserved plane, without the row's prior variance along the seen direction kept in it),
+``naive`` (the whole prior and
 every frame: the seen frame counted twice) and ``exclude`` (the whole prior, the seen frame
 dropped).
 """

@@ -39,8 +39,8 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
   directions, precision ``P = U Sigma_u^-1 U^T`` for the covariance ``Sigma_u`` (6x6) of the
   network's error there. The calibrated sigma is per element, ``sigma_ra^2 = E e_ra^2``, not
   a joint covariance, so ``Sigma_u`` has to be modelled. Because ``U = I (x) V``, it is taken
-  block diagonal over the rows, ``Sigma_u = diag_r(f_r V^T Sigma_r V)`` with
-  ``Sigma_r = diag(sigma_r^2)``:
+  block diagonal over the rows, ``Sigma_u = diag_r(V^T Sigma_r V + alpha_r v1 v1^T)`` (in
+  ``V``'s coordinates) with ``Sigma_r = diag(sigma_r^2)`` and ``alpha_r = u^T Sigma_r u``:
 
   - ``V^T Sigma_r V`` is the *marginal* of ``N(mu_r, Sigma_r)`` on the plane ``u^perp``.
     Its precision is the Schur complement of ``Pi_r = diag(1 / sigma_r^2)`` with the ``u``
@@ -53,21 +53,39 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
     ``V^T Sigma_r V``). Elements without a prior (``pi = 0``) drop out exactly, and written
     element by element it has no cancellation
     (:func:`polrig.solve._reference_kernel.load_prior`).
-  - ``f_r = tr Sigma_r / (tr Sigma_r - u^T Sigma_r u)`` keeps the row's whole calibrated
-    variance in that plane. The marginal alone would throw away the share
-    ``u^T Sigma_r u / tr Sigma_r`` of it (a third, for ``u`` between the element axes), as if
-    a third of the network's error lay along ``u``; but the network reproduces the frame it
-    saw, so its error along ``u`` is small: on the held-out terrain set (64x64, first 16 lit
-    samples) 3.5 % of the row's error energy, where the diagonal ``Sigma_r`` puts 33 %. With
-    the marginal, the posterior's coverage within 2 sigma at the seen state alone fell up to
-    2.8 points below the network's own; with ``f_r`` it is 0.5-0.9 points above it (2.2 on
-    conductors) on the eight held-out sets (``benchmarks/results/continuum.md``). Where the
-    network's error in the plane is as small as the frame's noise this is conservative (a
-    simulated network in ``tests/test_hybrid.py``: 98 % within 2 sigma).
+  - ``alpha_r v1 v1^T`` keeps the row's whole calibrated variance in that plane. The marginal
+    alone would throw away the share ``u^T Sigma_r u / tr Sigma_r`` of it (a third, for ``u``
+    between the element axes), as if a third of the network's error lay along ``u``; but the
+    network reproduces the frame it saw, so its error along ``u`` is small: on the held-out
+    terrain set (64x64, first 16 lit samples) 3.5 % of the row's error energy, where the
+    diagonal ``Sigma_r`` puts 33 %. With the marginal, the posterior's coverage within 2 sigma
+    at the seen state alone fell up to 2.8 points below the network's own.
+  - That variance goes onto one axis of the plane, ``v1`` (:func:`plane_axis`): the calibrated
+    sigma is per column of the *observed* frame (:mod:`polrig.models.uncertainty`), whose
+    columns 0 and 1 (unpolarized light and light along the seen state) span ``u`` and ``v1``,
+    and whose column 2 (light at 45 deg to it) is ``v2 = v1 x u``, orthogonal to both and not
+    observed at all. An error that the network keeps off ``u`` within columns 0 and 1 lies on
+    ``v1``; column 2's has its own calibrated sigma and no share of ``u``'s. (Where ``Sigma_r``
+    is diagonal in the observed frame, ``u`` between columns 0 and 1, this puts exactly
+    ``sigma_0^2 + sigma_1^2`` on ``v1`` and ``sigma_2^2`` on ``v2``.) The form before spread it
+    over the whole plane, ``f_r V^T Sigma_r V`` with ``f_r = tr Sigma_r / (tr Sigma_r -
+    u^T Sigma_r u)``, about 1.5: that inflated column 2's variance by ``f_r``, and at two
+    states 90 deg apart, which leave column 2 alone unobserved, it over-covered (97.1-97.5 %
+    within 2 sigma on the seen-family, compact and dispersive sets). Moved onto ``v1`` (first
+    12 samples of six sets, 64x64): two states 0.5-0.8 points lower (96.0-96.9 % where ``f_r``
+    gave 96.6-97.5 %), one state 0.0-0.4 higher, three the same, matrix PSNR +0.00..+0.07 dB.
+    ``solve_hybrid(plane_variance="scalar")`` keeps the ``f_r`` form for that comparison, and
+    a seen state without an angle (degree of polarization below :data:`MIN_SEEN_DOP`) uses it:
+    there the plane has no axis of its own.
 
-  So the row's prior precision is ``P_r = g_r (Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u))``
-  with ``g_r = 1 / f_r = sum_a (1 - u_a^2) sigma_a^2 / sum_a sigma_a^2`` (over the row's
-  elements that have a prior).
+  So the row's prior precision is the inverse of that covariance written back in ``M``'s
+  coordinates: with ``S_r = Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u)`` (the marginal's
+  precision) and Sherman-Morrison,
+  ``P_r = (S_r + alpha_r d_r v2 v2^T) / (1 + alpha_r v1^T S_r v1)``, ``d_r = pi_0 pi_1 pi_2 /
+  (u^T Pi_r u)`` the determinant of ``S_r`` on the plane (0 where an element has no prior: then
+  ``S_r`` has rank 1 there), every term a sum of positive ones where the row's three elements
+  have a prior; ``alpha_r`` is summed over the row's elements that have a prior. The scalar form
+  is ``P_r = g_r S_r``, ``g_r = 1 / f_r``.
 * ``p(Y | M)`` is the other states' likelihood, unchanged.
 
 So the seen frame enters through its samples and the prior through the six directions that
