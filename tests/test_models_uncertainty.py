@@ -340,20 +340,23 @@ def test_file_format_round_trip_and_bad_files(tmp_path):
 @pytest.mark.skipif(not (WEIGHTS_DIR / unc.FILE_NAME).is_file(), reason="no shipped calibration")
 def test_shipped_calibration_covers_a_fresh_simulated_set(tmp_path):
     """The shipped graph carries its calibration, and on scenes it was not calibrated on
-    (another seed, training and held-out families) about 95 % of the errors lie within 2 sigma."""
+    (another seed) about 95 % of the errors lie within 2 sigma, on the training families and on
+    the held-out ones alike: 95.9 % and 96.5 % here, where version 2 (no light factor) gave
+    98.5 % and 93.4 %."""
     from polrig.models.runtime import SingleShotModel
     from polrig.sim.dataset import generate_dataset
 
     net = SingleShotModel.load()
     assert net.uncertainty is not None, "uncertainty.json does not belong to the shipped graph"
+    assert net.uncertainty.spread is not None, "the shipped calibration has no light factor"
     assert SingleShotModel.load(graph="direct.onnx").uncertainty is None
-    samples = []
+    cov = {}
     for holdout in (False, True):
         out = tmp_path / f"set{holdout}"
         generate_dataset(out, count=16, width=64, seed=4242, holdout=holdout, progress=False)
-        samples += fit.dataset_samples(out, net)
-    cov = fit.coverage(net.uncertainty, samples)
-    assert 0.88 <= cov["within_2sigma"] <= 0.99
+        cov[holdout] = fit.coverage(net.uncertainty, fit.dataset_samples(out, net))["within_2sigma"]
+    assert all(0.93 <= c <= 0.975 for c in cov.values()), cov
+    assert abs(cov[True] - cov[False]) < 0.02, cov
 
 
 @pytest.mark.skipif(not (WEIGHTS_DIR / unc.FILE_NAME).is_file(), reason="no shipped calibration")
