@@ -42,9 +42,14 @@ The error model (numpy only: it runs at inference without torch):
   prediction or of the measured polarization, or the predicted normal's angle to the view), while
   the light's spread is per image: median 5.9 deg on the training families' calibration scenes,
   8.9 deg on the held-out families' (Spearman correlation with the factor an image's own sigma
-  would need, 0.44 over the calibration images). ``omega_lo``, ``omega_hi`` and ``omega_ref``
-  are the 1 %, 99 % and 50 % quantiles of the calibration images' spread: the term does not
-  extrapolate beyond them.
+  would need, 0.44 over the calibration images). ``omega_lo`` and ``omega_ref`` are the 1 % and
+  50 % quantiles of the calibration images' spread; ``omega_hi`` is where the factor stops
+  growing, fitted to what the calibration images need (:mod:`polrig.models.uncertainty_fit`):
+  it lands at the median, 7.7 deg, so the factor narrows the sigma of images whose light the
+  network is sure of and leaves the others' as fitted. (Growing on to the calibration's 99th
+  percentile, 22.9 deg, brought the held-out families to 95 % but made the sigma 2-3 times too
+  wide on the default rig's scenes, where the network's light scatters by 14-35 deg with
+  errors no larger: 99.5-100 % within 2 sigma, ``models/MODEL_CARD.md``, "Uncertainty".)
 * **Back to the rig's frame.** ``M_rc = sum_k M'_rk R_kc``; with independent errors per
   observed-frame column, ``sigma_rc^2 = sum_k R_kc^2 sigma'_rk^2``. Where the incident state is
   (nearly) unpolarized, ``p < P_MIN``, columns 1 and 2 are both unobserved and get the larger
@@ -88,8 +93,8 @@ FORMAT = "polrig-single-shot-uncertainty"
 #: its reference and limits); an older file counts as no calibration (one line says so, and how
 #: to calibrate). The mirror term's ``mirror_disagreement_k`` is optional (absent: 0, no term).
 VERSION = 3
-#: Quantiles of the calibration images' light spread that bound it (``low``, ``high``) and
-#: divide it (``reference``): ``calibration["light_spread"]``.
+#: Quantiles of the calibration images' light spread that bound it below (``low``) and divide it
+#: (``reference``), and up to which the knee ``high`` is searched (``light_spread`` in the file).
 SPREAD_QUANTILES = {"low": 0.01, "reference": 0.5, "high": 0.99}
 
 

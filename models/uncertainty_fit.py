@@ -1,9 +1,11 @@
 """The fitting tool of the single-shot uncertainty (:mod:`polrig.models.uncertainty`, whose module
 docstring describes the error model; that module is the runtime part).
 
-Calibration (:func:`calibrate`): the light-spread factor's limits and reference are quantiles
-of the calibration images' spread (:func:`spread_limits`), the errors are divided by the factor,
-and the coefficients are fitted to the ``COVERAGE`` quantile of
+Calibration (:func:`calibrate`): a first fit without the light-spread factor gives each
+calibration image the factor its sigma would need (:func:`needed_factors`); the factor's knee,
+where it stops growing, is fitted to those, its low limit and reference are quantiles of the
+images' spread (:func:`spread_limits`); then the errors are divided by the factor and the
+coefficients are fitted to the ``COVERAGE`` quantile of
 ``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
 the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly
 ``COVERAGE`` of the calibration errors lie within ``2 sigma``, the fraction a right Gaussian
@@ -76,14 +78,43 @@ class Sample:
     disagreement: np.ndarray | None = None
 
 
-def spread_limits(samples: Iterable[Sample]) -> dict[str, float]:
-    """The light-spread factor's ``{"low", "reference", "high"}`` (rad): the
-    :data:`~polrig.models.uncertainty.SPREAD_QUANTILES` of the samples' spreads."""
+def needed_factors(model: UncertaintyModel, samples: Sequence[Sample]) -> np.ndarray:
+    """Per sample, the factor its sigma (``model``'s) would need for ``COVERAGE`` of its own
+    elements within 2 sigma: the ``COVERAGE`` quantile of ``|error| / (2 sigma)`` ``(n,)`` (NaN
+    for a sample without a scored element)."""
+    out = []
+    for s in samples:
+        e, g, _ = _pooled(model, [s], mirror_term=False)
+        ratio = (e / np.maximum(g, 1e-30)).ravel()
+        out.append(float(np.quantile(ratio, COVERAGE)) / 2.0 if ratio.size else np.nan)
+    return np.asarray(out)
+
+
+def spread_limits(samples: Sequence[Sample], plain: UncertaintyModel) -> dict[str, float]:
+    """The light-spread factor's ``{"low", "reference", "high"}`` (rad) from the calibration
+    ``samples`` and their fit without the factor, ``plain``: ``low`` and ``reference`` the
+    :data:`~polrig.models.uncertainty.SPREAD_QUANTILES` of the samples' spreads; ``high``, where
+    the factor stops growing, the knee ``omega_c`` of ``n = k min(max(omega, low), omega_c)``
+    fitted to the samples' :func:`needed_factors` ``n`` by least squares in ``log n`` (``log k``
+    in closed form, ``omega_c`` among the samples' spreads from the reference up to the
+    ``SPREAD_QUANTILES["high"]`` quantile)."""
     w = np.array([s.light_spread for s in samples], np.float64)
-    w = w[np.isfinite(w) & (w > 0)]
-    if not len(w):
-        raise ValueError("no calibration sample with a finite light spread above 0")
-    return {k: float(np.quantile(w, q)) for k, q in SPREAD_QUANTILES.items()}
+    need = needed_factors(plain, samples)
+    ok = np.isfinite(w) & (w > 0) & np.isfinite(need) & (need > 0)
+    if ok.sum() < 3:
+        raise ValueError(f"too few calibration samples with a finite light spread and a scored element "
+                         f"({int(ok.sum())})")
+    w, log_need = w[ok], np.log(need[ok])
+    out = {k: float(np.quantile(w, q)) for k, q in SPREAD_QUANTILES.items()}
+    w_low = np.maximum(w, out["low"])
+    best, best_res = out["high"], np.inf
+    for knee in np.unique(np.concatenate([w[(w >= out["reference"]) & (w <= out["high"])], [out["high"]]])):
+        x = np.log(np.minimum(w_low, knee))
+        res = float(np.sum((log_need - x - np.mean(log_need - x)) ** 2))
+        if res < best_res - 1e-12:
+            best, best_res = float(knee), res
+    out["high"] = best
+    return out
 
 
 def _observed_errors(samples: Iterable[Sample], spread: UncertaintyModel | None = None
@@ -115,9 +146,17 @@ def _quantile_bins(x: np.ndarray, n: int) -> np.ndarray:
 
 def calibrate(samples: Sequence[Sample]) -> tuple[np.ndarray, dict, dict]:
     """Coefficients ``(3, 3, N_FEATURES)``, the light-spread factor's limits
-    (:func:`spread_limits`) and a summary of the fit (module docstring)."""
-    limits = spread_limits(samples)
-    ratio, q, r, p = _observed_errors(samples, UncertaintyModel(np.zeros((3, 3, N_FEATURES)), spread=limits))
+    (:func:`spread_limits`, from a first fit without the factor) and a summary of the fit
+    (module docstring)."""
+    plain, _ = _fit_coefficients(samples, None)
+    limits = spread_limits(samples, UncertaintyModel(plain))
+    coef, info = _fit_coefficients(samples, UncertaintyModel(np.zeros((3, 3, N_FEATURES)), spread=limits))
+    return coef, limits, info
+
+
+def _fit_coefficients(samples: Sequence[Sample], spread: UncertaintyModel | None) -> tuple[np.ndarray, dict]:
+    """The binned fit of :func:`calibrate` on the errors divided by ``spread``'s light factor."""
+    ratio, q, r, p = _observed_errors(samples, spread)
     polarized = p >= P_MIN
     ratio, q, r = ratio[polarized], q[polarized], r[polarized]
     n_bins = Q_BINS * R_BINS
@@ -142,7 +181,7 @@ def calibrate(samples: Sequence[Sample]) -> tuple[np.ndarray, dict, dict]:
             # exact coverage on the calibration pixels
             sig = full_design @ coef[row, k]
             coef[row, k] *= np.quantile(ratio[:, row, k] / np.maximum(sig, 1e-12), COVERAGE) / 2.0
-    return coef, limits, {"pixels": int(len(q)), "q_bins": Q_BINS, "r_bins": R_BINS}
+    return coef, {"pixels": int(len(q)), "q_bins": Q_BINS, "r_bins": R_BINS}
 
 
 def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
