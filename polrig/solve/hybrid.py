@@ -71,9 +71,11 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
     over the whole plane, ``f_r V^T Sigma_r V`` with ``f_r = tr Sigma_r / (tr Sigma_r -
     u^T Sigma_r u)``, about 1.5: that inflated column 2's variance by ``f_r``, and at two
     states 90 deg apart, which leave column 2 alone unobserved, it over-covered (97.1-97.5 %
-    within 2 sigma on the seen-family, compact and dispersive sets). Moved onto ``v1`` (first
-    12 samples of six sets, 64x64): two states 0.5-0.8 points lower (96.0-96.9 % where ``f_r``
-    gave 96.6-97.5 %), one state 0.0-0.4 higher, three the same, matrix PSNR +0.00..+0.07 dB.
+    within 2 sigma on the seen-family, compact and dispersive sets). Moved onto ``v1`` (the
+    first 24 samples of the eight sets of ``models/continuum.py``, 64x64, the calibrated sigma
+    of version 3): two states 0.3-1.1 points lower (95.4-97.1 % where ``f_r`` gave 96.0-97.6 %),
+    one state -0.2..+0.6, three -0.1..0; matrix PSNR the same at one and two states (within
+    0.01 dB) and +0.03..+0.23 dB at three.
     ``solve_hybrid(plane_variance="scalar")`` keeps the ``f_r`` form for that comparison, and
     a seen state without an angle (degree of polarization below :data:`MIN_SEEN_DOP`) uses it:
     there the plane has no axis of its own.
