@@ -78,7 +78,8 @@ detectably off every candidate (:func:`detectably_off_every_model`).
 
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
-unobserved plane, without the row variance factor ``f_r``), ``naive`` (the whole prior and
+unobserved plane, without the row's prior variance along the seen direction kept in it),
+``naive`` (the whole prior and
 every frame: the seen frame counted twice) and ``exclude`` (the whole prior, the seen frame
 dropped).
 """
@@ -162,6 +163,9 @@ class Frames:
     #: the noise model's linear terms for one state's (averaged) frames in these units:
     #: variance = max(I, 0) * per + offset (:meth:`polrig.sensor.noise.SensorModel.variance_terms`)
     noise_terms: tuple[float, float] = (0.0, 0.0)
+    #: the network's light spread over the object (rad, :func:`polrig.models.uncertainty.light_spread`;
+    #: the calibrated sigma's factor), None where not known
+    light_spread: float | None = None
 
 
 def rotated_state(s: np.ndarray, offset_deg: float) -> np.ndarray:
@@ -214,20 +218,25 @@ def make_set(root: pathlib.Path, name: str, kwargs: dict, count: int) -> pathlib
     return out
 
 
-def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray]:
+def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray, float | None]:
     """The network's estimate and calibrated sigma for sample ``i``'s own frame (0 off the
-    object)."""
+    object), and its light spread over the object (the sigma's factor)."""
     from polrig.models.evaluate import network_inputs
     from polrig.sensor.stokes import stokes_from_analyzers
 
     mask = ds["mask"][i] > 0
     s0 = ds["s_in"][i].astype(np.float64)
-    pred = net.run_rig_frame(*network_inputs(ds, i))["mueller"][0].astype(np.float64)
-    sigma = net.uncertainty.sigma(pred, s0, mask, stokes_from_analyzers(ds["analyzer"][i].astype(np.float64)))
-    return np.where(mask, pred, 0.0), np.where(mask, sigma.astype(np.float64), 0.0)
+    from polrig.models.uncertainty import light_spread
+
+    res = net.run_rig_frame(*network_inputs(ds, i))
+    pred = res["mueller"][0].astype(np.float64)
+    spread = light_spread(res["wi"][0], mask)
+    sigma = net.uncertainty.sigma(pred, s0, mask, stokes_from_analyzers(ds["analyzer"][i].astype(np.float64)),
+                                  light_spread=spread)
+    return np.where(mask, pred, 0.0), np.where(mask, sigma.astype(np.float64), 0.0), spread
 
 
-def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng: np.random.Generator, *,
+def sample_frames(ds, i: int, prior: tuple, sensor, rng: np.random.Generator, *,
                   offsets: Sequence[int] = OFFSETS_DEG, frames_per_state: int = 1,
                   bracket: Sequence[float] = ()) -> Frames:
     """The frames of sample ``i`` at ``offsets`` (0 first: the seen state), each the mean of
@@ -279,7 +288,8 @@ def sample_frames(ds, i: int, prior: tuple[np.ndarray, np.ndarray], sensor, rng:
     clean = mask & np.all([v.all(axis=(0, 1)) for v in ref_valid.values()], axis=0)
     per_dn, offset = sensor.variance_terms(DATASET_EXPOSURE_US, k)
     return Frames(truth, mask, use, clean, prior[0], prior[1], states, meas, var, valid,
-                  (float(per_dn) / scale, float(offset) / scale**2))
+                  (float(per_dn) / scale, float(offset) / scale**2),
+                  light_spread=prior[2] if len(prior) > 2 else None)
 
 
 def bracket_prior(fr: Frames, uncertainty) -> Frames:
@@ -297,8 +307,8 @@ def bracket_prior(fr: Frames, uncertainty) -> Frames:
     mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, clipped)
     if not rescaled.any():
         return fr
-    sigma = highlight_sigma(fr.sigma, uncertainty.sigma(mean, fr.states[0], fr.mask, stokes).astype(np.float64),
-                            rescaled)
+    sigma = highlight_sigma(fr.sigma, uncertainty.sigma(mean, fr.states[0], fr.mask, stokes,
+                                                         light_spread=fr.light_spread).astype(np.float64), rescaled)
     return dataclasses.replace(fr, prior=np.where(fr.mask, mean, 0.0), sigma=np.where(fr.mask, sigma, 0.0))
 
 
@@ -322,7 +332,8 @@ def fit_highlight_factor(root, net, *, count: int = 128, seed: int = 0, echo=pri
             stokes = stokes_from_analyzers(np.where(fr.valid[0], fr.meas[0], np.nan))
             mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, fr.mask[None] & ~fr.use)
             if rescaled.any():
-                sigma = net.uncertainty.sigma(mean, fr.states[0], fr.mask, stokes).astype(np.float64)
+                sigma = net.uncertainty.sigma(mean, fr.states[0], fr.mask, stokes,
+                                              light_spread=fr.light_spread).astype(np.float64)
                 with np.errstate(divide="ignore", invalid="ignore"):
                     e = np.abs(mean - fr.truth) / sigma
                 got.append(e.transpose(1, 2, 0, 3, 4)[:, :, rescaled].ravel())
@@ -342,8 +353,9 @@ def _stack(fr: Frames, offsets: Sequence[int]):
 
 
 def marginal_sigma(fr: Frames) -> np.ndarray:
-    """Prior sigma that makes the hybrid solve use the plain marginal on the unobserved plane
-    (``sigma sqrt(g_r)``: the Schur complement scales with the precision, ``g_r`` does not)."""
+    """Prior sigma that makes the hybrid solve with ``plane_variance="scalar"`` use the plain
+    marginal on the unobserved plane (``sigma sqrt(g_r)``: the Schur complement scales with the
+    precision, ``g_r`` does not)."""
     from polrig.solve.hybrid import observed_direction
 
     u2 = observed_direction(fr.states[0]) ** 2
@@ -366,7 +378,8 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
     if method == "hybrid":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, **kw)
     elif method == "marginal":
-        r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, **kw)
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, plane_variance="scalar",
+                         **kw)
     elif method == "naive":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=None, **kw)
     elif method == "exclude":

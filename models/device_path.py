@@ -60,6 +60,7 @@ from polrig.models.runtime import (
     view_directions,
 )
 from polrig.models.size import SIZE_MULTIPLE
+from polrig.models.uncertainty import spread_of_mean
 from polrig.solve.quantiles import MIN_SIZE, tail_percentile
 
 #: Network grids above this many pixels take the numpy route (its resize to ``max_pixels``).
@@ -437,6 +438,10 @@ class DevicePath:
             if w_mean is None:
                 break
             wi = w_mean
+        light = None  # the network's light spread over the object (the sigma's light factor)
+        if with_stokes and preview_size is None and "wi" in out:
+            light = spread_of_mean(self.run("masked_mean", {"wi": out["wi"], "mask": net["net_mask"]})["mean"]
+                                   .numpy().reshape(3))
         lap("networks")
         a, b = (v / np.linalg.norm(v) for v in (axis.reshape(3), model_axis.reshape(3)))
         axes = np.stack([a, b, np.cross(a, b), [float(np.sum(a * b)), 0.0, 0.0]]).astype(np.float32)
@@ -494,4 +499,5 @@ class DevicePath:
             result["stokes"] = back(full if resolution == "full" else stokes)
         lap("copy_back")
         result["timings_s"] = t
+        result["light_spread"] = light
         return result

@@ -79,7 +79,7 @@ def _coverage_by_flag(model, samples) -> dict:
     counts = np.zeros((2, 2))  # [flagged?][inside?] elements
     beyond = n = 0
     for smp in samples:
-        sig = model.sigma(smp.pred, smp.s_in, smp.mask, smp.stokes)
+        sig = model.sigma(smp.pred, smp.s_in, smp.mask, smp.stokes, light_spread=smp.light_spread)
         flag = model.beyond_calibration(smp.pred, smp.s_in, smp.mask, smp.stokes)
         use = np.asarray(smp.mask, bool)[None] & ~np.asarray(smp.clipped, bool)
         beyond += int(np.sum(flag & use))

@@ -53,7 +53,7 @@ import numpy as np
 from polrig.errors import FormatError
 from polrig.models import devices, mirror
 from polrig.models.size import SIZE_MULTIPLE
-from polrig.models.uncertainty import UncertaintyModel, calibration_for_graph
+from polrig.models.uncertainty import UncertaintyModel, calibration_for_graph, light_spread
 from polrig.sensor.stokes import stokes_from_analyzers
 from polrig.solve.quantiles import tail_percentile
 
@@ -754,7 +754,8 @@ class SingleShotModel:
         ``intrinsics``: ``(fx, fy, cx, cy)`` of the
         analyzer image (default: the simulated rig's camera). Background pixels are 0.
         ``aux`` holds ``mueller_init`` (PIPNet-pBRDF, DN), ``normal``, ``kd``, ``wi``,
-        ``alpha``, ``mask``, ``scale``, ``timings_s`` and, with ``with_sigma`` where the graph has
+        ``alpha``, ``mask``, ``scale``, ``light_spread`` (the network's light spread over the object,
+        rad, :func:`polrig.models.uncertainty.light_spread`; None without ``wi``), ``timings_s`` and, with ``with_sigma`` where the graph has
         a calibrated uncertainty (:mod:`polrig.models.uncertainty`; about 11 ms at 128x128, a third of
         the reconstruction, so off by default), ``sigma`` ``(C, 3, 3, H, W)`` DN: the standard
         deviation of each element (calibrated on simulated held-out sets: about 95 % of the
@@ -832,6 +833,8 @@ class SingleShotModel:
                                  mirror_average=mirror_average, probe=probe, release_arena=release_arena,
                                  outputs=outputs)
         rotation_deg = float(out.pop("incident_rotation_deg")[0])
+        # the network's light spread over the object, on its own grid (the sigma's light factor)
+        spread = light_spread(out["wi"][0], mk_p > 0) if "wi" in out else None
         t2 = time.perf_counter()
         crop = lambda x: x[0, ..., :hr, :wr]  # noqa: E731
         res = {k: crop(v) for k, v in out.items() if k != "alpha"}
@@ -851,12 +854,12 @@ class SingleShotModel:
         if with_sigma and self.uncertainty is not None:
             # the capture's own Stokes images, in DN like ``mueller`` (a mono frame is repeated: one copy)
             stokes = stokes_from_analyzers(a[:mueller.shape[0]])
-            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes, disagreement)
+            aux["sigma"] = self.uncertainty.sigma(mueller, s, m, stokes, disagreement, spread)
             beyond = self.uncertainty.beyond_calibration(mueller, s, m, stokes)
             if beyond is not None:
                 aux["beyond_calibration"] = beyond
         aux.update({"alpha": float(out["alpha"][0]) if "alpha" in out else None, "mask": m, "scale": sc,
-                    "incident_rotation_deg": rotation_deg, "provider": self.provider,
+                    "light_spread": spread, "incident_rotation_deg": rotation_deg, "provider": self.provider,
                     "provider_options": self.provider_options,
                     "timings_s": {"prepare": t1 - t0, "network": t2 - t1, "finish": time.perf_counter() - t2}})
         return mueller, aux

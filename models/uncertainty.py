@@ -27,6 +27,29 @@ The error model (numpy only: it runs at inference without torch):
   vector: where the prediction does not reproduce its own observation (the network is unsure of
   the shape, or the pixel is noisy), the rest of the matrix is less certain too (on the held-out
   sets the errors grow about fivefold from the lowest to the highest misfits).
+* **The network's certainty of the light.** The whole image's sigma is multiplied by
+  ``t = clip(omega, omega_lo, omega_hi) / omega_ref``, with ``omega`` the angular spread of the
+  network's own per-pixel light direction ``wi`` over the object (:func:`light_spread`):
+  ``omega = sqrt(2 (1 - Rbar))`` with ``Rbar`` the length of the mean of the unit vectors ``wi``,
+  the spherical variance ``1 - Rbar`` of directional statistics (Mardia and Jupp, *Directional
+  Statistics*, 2000, sec. 9.2.1) as an angle (about the RMS angle to the mean for small
+  spreads). The rig's light is one lamp, whose direction varies over a 64x64 object by 2-6 deg;
+  where the network's estimates of it scatter more, it is unsure of the light, which sets the
+  unobserved columns through the surface's reflectance. No pixel feature separates the shapes
+  the network gets wrong from those it gets right (on the calibration sets the held-out
+  families' coverage was 4-6 points below the others' in every quantile bin of ``q``, ``r``,
+  the measured DoLP, the shading, the distance to the silhouette, the local gradient of the
+  prediction or of the measured polarization, or the predicted normal's angle to the view), while
+  the light's spread is per image: median 5.9 deg on the training families' calibration scenes,
+  8.9 deg on the held-out families' (Spearman correlation with the factor an image's own sigma
+  would need, 0.44 over the calibration images). ``omega_lo`` and ``omega_ref`` are the 1 % and
+  50 % quantiles of the calibration images' spread; ``omega_hi`` is where the factor stops
+  growing, fitted to what the calibration images need (:mod:`polrig.models.uncertainty_fit`):
+  it lands at the median, 7.7 deg, so the factor narrows the sigma of images whose light the
+  network is sure of and leaves the others' as fitted. (Growing on to the calibration's 99th
+  percentile, 22.9 deg, brought the held-out families to 95 % but made the sigma 2-3 times too
+  wide on the default rig's scenes, where the network's light scatters by 14-35 deg with
+  errors no larger: 99.5-100 % within 2 sigma, ``models/MODEL_CARD.md``, "Uncertainty".)
 * **Back to the rig's frame.** ``M_rc = sum_k M'_rk R_kc``; with independent errors per
   observed-frame column, ``sigma_rc^2 = sum_k R_kc^2 sigma'_rk^2``. Where the incident state is
   (nearly) unpolarized, ``p < P_MIN``, columns 1 and 2 are both unobserved and get the larger
@@ -66,9 +89,13 @@ MISFIT_LIMIT_QUANTILE = "0.99"
 N_FEATURES = 4
 FILE_NAME = "uncertainty.json"
 FORMAT = "polrig-single-shot-uncertainty"
-#: Version 2 added the misfit feature ``r``; a version-1 file counts as no calibration. The
-#: mirror term's ``mirror_disagreement_k`` is optional (absent: 0, no term).
-VERSION = 2
+#: Version 2 added the misfit feature ``r``, version 3 the light-spread factor (``light_spread``:
+#: its reference and limits); an older file counts as no calibration (one line says so, and how
+#: to calibrate). The mirror term's ``mirror_disagreement_k`` is optional (absent: 0, no term).
+VERSION = 3
+#: Quantiles of the calibration images' light spread that bound it below (``low``) and divide it
+#: (``reference``), and up to which the knee ``high`` is searched (``light_spread`` in the file).
+SPREAD_QUANTILES = {"low": 0.01, "reference": 0.5, "high": 0.99}
 
 
 def observed_frame_rotation(s_in) -> tuple[np.ndarray, float]:
@@ -119,6 +146,28 @@ def _features_and_misfit(m: np.ndarray, s_in, object_mask: np.ndarray, stokes: n
     return rot, p, scale, q, misfit(m, s_in, np.asarray(stokes, np.float64), scale)
 
 
+def light_spread(wi: np.ndarray, object_mask: np.ndarray) -> float:
+    """Angular spread ``omega = sqrt(2 (1 - Rbar))`` (rad) of the unit light directions ``wi``
+    ``(3, H, W)`` over ``object_mask`` ``(H, W)``, ``Rbar`` the length of their mean (module
+    docstring); NaN for an empty mask. 0 where every direction is the same, ``sqrt 2`` where they
+    cancel; about the RMS angle to the mean direction for small spreads."""
+    w = np.asarray(wi, np.float64)
+    m = np.asarray(object_mask, bool)
+    if w.shape[:1] != (3,) or w.shape[1:] != m.shape:
+        raise ValueError(f"wi must be (3, H, W) with the mask's (H, W) = {m.shape}, got {w.shape}")
+    if not m.any():
+        return float("nan")
+    n = np.linalg.norm(w, axis=0)
+    return spread_of_mean((w[:, m] / np.where(n[m] > 0, n[m], 1.0)).mean(axis=1))
+
+
+def spread_of_mean(mean) -> float:
+    """``sqrt(2 (1 - Rbar))`` (rad) of the mean ``(3,)`` of unit directions, ``Rbar`` its length
+    (:func:`light_spread`; the device route's masked mean gives it without the images)."""
+    rbar = float(np.linalg.norm(np.asarray(mean, np.float64).reshape(3)))
+    return float(np.sqrt(2.0 * max(0.0, 1.0 - rbar)))
+
+
 def feature_rows(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Feature rows ``[1, min(q,1), max(q - 1, 0), r]`` -> ``(..., N_FEATURES)``."""
     return np.stack([np.ones_like(q), np.minimum(q, 1.0), np.maximum(q - 1.0, 0.0), r], -1)
@@ -142,18 +191,35 @@ class UncertaintyModel:
     calibration: dict = dataclasses.field(default_factory=dict)
     #: ``k`` of the mirror-disagreement term (module docstring); 0: none.
     mirror_k: float = 0.0
+    #: ``{"low", "reference", "high"}`` (rad) of the light-spread factor (module docstring;
+    #: :data:`SPREAD_QUANTILES`), or None: no factor (a model made in code, e.g. in a test).
+    spread: dict | None = None
+
+    def spread_factor(self, light_spread: float | None) -> float:
+        """``clip(omega, low, high) / reference`` (module docstring); 1 for a model without the
+        factor. :class:`ValueError` when the model has it and ``light_spread`` is not a finite
+        number >= 0."""
+        if self.spread is None:
+            return 1.0
+        if light_spread is None or not np.isfinite(light_spread) or light_spread < 0:
+            raise ValueError(f"this calibration needs the network's light spread (a finite angle >= 0, rad), "
+                             f"got {light_spread!r}")
+        return float(np.clip(light_spread, self.spread["low"], self.spread["high"]) / self.spread["reference"])
 
     def sigma(self, mueller: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray,
-              disagreement: np.ndarray | None = None) -> np.ndarray:
+              disagreement: np.ndarray | None = None, light_spread: float | None = None) -> np.ndarray:
         """Standard deviation ``(C, 3, 3, H, W)`` of each element of a single-shot Mueller
         image ``mueller`` ``(C, 3, 3, H, W)`` (any units: sigma has the same) reconstructed
         under ``s_in`` from a capture whose Stokes images are ``stokes`` ``(C, 3, H, W)`` (same
         units); ``object_mask`` ``(H, W)``: where the object is (outside it sigma is 0, as the
         Mueller image). Non-finite where ``stokes`` is. ``disagreement`` (like ``mueller``): for
-        a mirror-averaged image, ``|M_plain - M_mirror| / 2`` (module docstring)."""
+        a mirror-averaged image, ``|M_plain - M_mirror| / 2`` (module docstring).
+        ``light_spread``: :func:`light_spread` of the network's light directions over the
+        object (needed where the calibration has the factor, :meth:`spread_factor`)."""
         m = np.asarray(mueller, np.float64)
+        t = self.spread_factor(light_spread)
         rot, p, scale, q, r = _features_and_misfit(m, s_in, object_mask, stokes)
-        sig_obs = scale[:, None, None] * np.einsum("chwj,rkj->crkhw", feature_rows(q, r), self.coefficients)
+        sig_obs = (t * scale)[:, None, None] * np.einsum("chwj,rkj->crkhw", feature_rows(q, r), self.coefficients)
         if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
             sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
         var = np.einsum("crkhw,kj->crjhw", sig_obs**2, rot**2)  # sum_k R_kc^2 sigma'_rk^2
@@ -199,11 +265,12 @@ class UncertaintyModel:
 
     def to_json(self) -> dict:
         return {"format": FORMAT, "version": VERSION, "graph_sha256": self.graph_sha256,
-                "model": "sigma'_rk = scale * (a + b min(q,1) + c max(q-1,0) + d r) in the observed frame "
-                         "(models/uncertainty.py)",
+                "model": "sigma'_rk = scale * clip(omega, low, high) / reference * (a + b min(q,1) + c max(q-1,0) "
+                         "+ d r) in the observed frame, omega the network's light spread (models/uncertainty.py)",
                 "coverage_target": COVERAGE, "scale_floor": SCALE_FLOOR, "p_min": P_MIN,
                 "coefficients": np.round(self.coefficients, 6).tolist(),
-                "mirror_disagreement_k": round(float(self.mirror_k), 6), "calibration": self.calibration}
+                "mirror_disagreement_k": round(float(self.mirror_k), 6), "light_spread": self.spread,
+                "calibration": self.calibration}
 
     @classmethod
     def from_json(cls, data: dict) -> "UncertaintyModel":
@@ -216,7 +283,16 @@ class UncertaintyModel:
         k = float(data.get("mirror_disagreement_k", 0.0))
         if not (np.isfinite(k) and k >= 0):
             raise ValueError(f"mirror_disagreement_k must be a finite number >= 0, got {k}")
-        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k)
+        spread = data.get("light_spread")
+        try:
+            spread = {key: float(spread[key]) for key in SPREAD_QUANTILES}
+        except (TypeError, KeyError, ValueError):
+            raise ValueError(f"light_spread must hold {', '.join(SPREAD_QUANTILES)} (an older calibration: run "
+                             "python -m polrig.models.uncertainty_fit again)") from None
+        if not (np.all(np.isfinite(list(spread.values())))
+                and 0 < spread["low"] <= spread["reference"] <= spread["high"]):
+            raise ValueError(f"light_spread must be finite with 0 < low <= reference <= high, got {spread}")
+        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k, spread)
 
 
 def graph_sha256(path: str | pathlib.Path) -> str:

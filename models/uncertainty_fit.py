@@ -1,7 +1,11 @@
 """The fitting tool of the single-shot uncertainty (:mod:`polrig.models.uncertainty`, whose module
 docstring describes the error model; that module is the runtime part).
 
-Calibration (:func:`calibrate`): the coefficients are fitted to the ``COVERAGE`` quantile of
+Calibration (:func:`calibrate`): a first fit without the light-spread factor gives each
+calibration image the factor its sigma would need (:func:`needed_factors`); the factor's knee,
+where it stops growing, is fitted to those, its low limit and reference are quantiles of the
+images' spread (:func:`spread_limits`); then the errors are divided by the factor and the
+coefficients are fitted to the ``COVERAGE`` quantile of
 ``|error'| / scale`` in bins of ``q`` and, within each, of ``r`` (weighted least squares over
 the bins, coefficients kept >= 0), then each element's sigma is rescaled so that exactly
 ``COVERAGE`` of the calibration errors lie within ``2 sigma``, the fraction a right Gaussian
@@ -33,12 +37,14 @@ from polrig.models.uncertainty import (
     FILE_NAME,
     N_FEATURES,
     P_MIN,
+    SPREAD_QUANTILES,
     UncertaintyModel,
     calibration_for_graph,
     feature_rows,
     features,
     graph_sha256,
     how_to_calibrate,
+    light_spread,
     misfit,
     observed_frame_rotation,
     to_observed_frame,
@@ -58,6 +64,8 @@ class Sample:
     """One prediction with its truth: ``pred``/``truth`` ``(C, 3, 3, H, W)``, ``s_in`` (3,),
     ``mask`` (H, W) object pixels, ``clipped`` (C, H, W) pixels with a clipped sample,
     ``stokes`` ``(C, 3, H, W)`` the measured Stokes images the prediction was made from;
+    ``light_spread`` the network's light spread over the object (rad,
+    :func:`polrig.models.uncertainty.light_spread`);
     ``disagreement`` (like ``pred``) for a mirror-averaged prediction, else None."""
 
     pred: np.ndarray
@@ -66,20 +74,63 @@ class Sample:
     mask: np.ndarray
     clipped: np.ndarray
     stokes: np.ndarray
+    light_spread: float
     disagreement: np.ndarray | None = None
 
 
-def _observed_errors(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled ``(|error'| / scale (N, 3, 3), q (N,), r (N,), p (N,))`` over unclipped object pixels."""
+def needed_factors(model: UncertaintyModel, samples: Sequence[Sample]) -> np.ndarray:
+    """Per sample, the factor its sigma (``model``'s) would need for ``COVERAGE`` of its own
+    elements within 2 sigma: the ``COVERAGE`` quantile of ``|error| / (2 sigma)`` ``(n,)`` (NaN
+    for a sample without a scored element)."""
+    out = []
+    for s in samples:
+        e, g, _ = _pooled(model, [s], mirror_term=False)
+        ratio = (e / np.maximum(g, 1e-30)).ravel()
+        out.append(float(np.quantile(ratio, COVERAGE)) / 2.0 if ratio.size else np.nan)
+    return np.asarray(out)
+
+
+def spread_limits(samples: Sequence[Sample], plain: UncertaintyModel) -> dict[str, float]:
+    """The light-spread factor's ``{"low", "reference", "high"}`` (rad) from the calibration
+    ``samples`` and their fit without the factor, ``plain``: ``low`` and ``reference`` the
+    :data:`~polrig.models.uncertainty.SPREAD_QUANTILES` of the samples' spreads; ``high``, where
+    the factor stops growing, the knee ``omega_c`` of ``n = k min(max(omega, low), omega_c)``
+    fitted to the samples' :func:`needed_factors` ``n`` by least squares in ``log n`` (``log k``
+    in closed form, ``omega_c`` among the samples' spreads from the reference up to the
+    ``SPREAD_QUANTILES["high"]`` quantile)."""
+    w = np.array([s.light_spread for s in samples], np.float64)
+    need = needed_factors(plain, samples)
+    ok = np.isfinite(w) & (w > 0) & np.isfinite(need) & (need > 0)
+    if ok.sum() < 3:
+        raise ValueError(f"too few calibration samples with a finite light spread and a scored element "
+                         f"({int(ok.sum())})")
+    w, log_need = w[ok], np.log(need[ok])
+    out = {k: float(np.quantile(w, q)) for k, q in SPREAD_QUANTILES.items()}
+    w_low = np.maximum(w, out["low"])
+    best, best_res = out["high"], np.inf
+    for knee in np.unique(np.concatenate([w[(w >= out["reference"]) & (w <= out["high"])], [out["high"]]])):
+        x = np.log(np.minimum(w_low, knee))
+        res = float(np.sum((log_need - x - np.mean(log_need - x)) ** 2))
+        if res < best_res - 1e-12:
+            best, best_res = float(knee), res
+    out["high"] = best
+    return out
+
+
+def _observed_errors(samples: Iterable[Sample], spread: UncertaintyModel | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled ``(|error'| / (t scale) (N, 3, 3), q (N,), r (N,), p (N,))`` over unclipped object
+    pixels, ``t`` the light-spread factor of ``spread`` (1 without)."""
     ratios, qs, rs, ps = [], [], [], []
     for s in samples:
+        t = 1.0 if spread is None else spread.spread_factor(s.light_spread)
         rot, p = observed_frame_rotation(s.s_in)
         pred = np.asarray(s.pred, np.float64)
         pred_obs, truth = to_observed_frame(pred, rot), to_observed_frame(np.asarray(s.truth, np.float64), rot)
         scale, q = features(pred_obs, s.mask)
         r = misfit(pred, s.s_in, np.asarray(s.stokes, np.float64), scale)
         use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.isfinite(r)  # (C, H, W)
-        err = np.abs(pred_obs - truth) / scale[:, None, None]
+        err = np.abs(pred_obs - truth) / (t * scale[:, None, None])
         ratios.append(np.moveaxis(err, (1, 2), (-2, -1))[use])
         qs.append(q[use])
         rs.append(r[use])
@@ -93,9 +144,19 @@ def _quantile_bins(x: np.ndarray, n: int) -> np.ndarray:
     return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n - 1)
 
 
-def calibrate(samples: Iterable[Sample]) -> tuple[np.ndarray, dict]:
-    """Coefficients ``(3, 3, N_FEATURES)`` (module docstring) and a summary of the fit."""
-    ratio, q, r, p = _observed_errors(samples)
+def calibrate(samples: Sequence[Sample]) -> tuple[np.ndarray, dict, dict]:
+    """Coefficients ``(3, 3, N_FEATURES)``, the light-spread factor's limits
+    (:func:`spread_limits`, from a first fit without the factor) and a summary of the fit
+    (module docstring)."""
+    plain, _ = _fit_coefficients(samples, None)
+    limits = spread_limits(samples, UncertaintyModel(plain))
+    coef, info = _fit_coefficients(samples, UncertaintyModel(np.zeros((3, 3, N_FEATURES)), spread=limits))
+    return coef, limits, info
+
+
+def _fit_coefficients(samples: Sequence[Sample], spread: UncertaintyModel | None) -> tuple[np.ndarray, dict]:
+    """The binned fit of :func:`calibrate` on the errors divided by ``spread``'s light factor."""
+    ratio, q, r, p = _observed_errors(samples, spread)
     polarized = p >= P_MIN
     ratio, q, r = ratio[polarized], q[polarized], r[polarized]
     n_bins = Q_BINS * R_BINS
@@ -147,7 +208,8 @@ def _pooled(model: UncertaintyModel, samples: Iterable[Sample], mirror_term: boo
     over unclipped object pixels of ``samples`` with a finite sigma."""
     errs, sigs, dis = [], [], []
     for s in samples:
-        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement if mirror_term else None)
+        sig = model.sigma(s.pred, s.s_in, s.mask, s.stokes, s.disagreement if mirror_term else None,
+                          s.light_spread)
         use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & np.all(np.isfinite(sig), axis=(1, 2))
         h = np.zeros_like(sig) if s.disagreement is None else s.disagreement
         for out, x in ((errs, np.abs(np.asarray(s.pred, np.float64) - s.truth)), (sigs, sig), (dis, h)):
@@ -236,7 +298,7 @@ def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: b
         dn = ds["analyzer"][i] * (ds["scale"][i] if "scale" in ds.arrays else 1.0)
         clipped = dn.max(axis=1) >= sensor.saturation_dn
         out.append(Sample(res["mueller"][0], truth, ds["s_in"][i], mask, clipped,
-                          stokes_from_analyzers(ds["analyzer"][i]),
+                          stokes_from_analyzers(ds["analyzer"][i]), light_spread(res["wi"][0], mask),
                           res["mueller_disagreement"][0] if mirror_average else None))
     return out
 
@@ -275,9 +337,10 @@ def _main(args: argparse.Namespace) -> int:
     net = SingleShotModel.load(wd)
     if args.data:
         cal = [s for d in args.data for s in dataset_samples(d, net)]
-        coef, info = calibrate(cal)
+        coef, limits, info = calibrate(cal)
         model = UncertaintyModel(coef, graph_sha256(wd / "single_shot.onnx"),
-                                 dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)))
+                                 dict(info, sets=[pathlib.Path(d).name for d in args.data], samples=len(cal)),
+                                 spread=limits)
         model.calibration["coverage"] = coverage(model, cal)
         model.calibration["misfit_quantiles"] = misfit_quantiles(cal)
         mirrored = [s for d in args.data for s in dataset_samples(d, net, mirror_average=True)]

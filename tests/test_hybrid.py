@@ -14,7 +14,7 @@ from polrig.formats.exr import result_planes
 from polrig.optics import mueller as mu
 from polrig.sensor.stokes import ideal_analyzer_matrix
 from polrig.solve import reference as ref
-from polrig.solve.hybrid import observed_direction, solve_hybrid, unobserved_precision
+from polrig.solve.hybrid import observed_direction, plane_axis, solve_hybrid, unobserved_precision
 
 
 def states(*angles_deg, er=np.inf):
@@ -39,7 +39,25 @@ def noisy(rng, m, s, read_var=4.0, gain=0.5):
 
 
 # ---------------------------------------------------------------------------- dense oracle
-def dense_posterior(s, meas, var, valid, mean, sigma, seen):
+def _keep_variance_in_plane(schur, var_r, u, scalar=False):
+    """The row's unobserved-plane precision with its prior variance along ``u``,
+    ``alpha = sum u_a^2 var_a``, added to the plane's axis ``v1`` (``plane_axis``): by the
+    explicit covariance ``(V^T S V)^-1 + alpha e1 e1^T`` in the basis ``V = [v1, v2]`` where the
+    row's three elements have a prior, else (``S`` of rank 1 on the plane) by Sherman-Morrison,
+    ``S / (1 + alpha v1^T S v1)``; the scalar ``g_r`` for a seen
+    state without an angle, or with ``scalar``."""
+    v1 = None if scalar else plane_axis(u)
+    if v1 is None:
+        return schur * np.sum(var_r * (1 - u * u)) / var_r.sum()
+    alpha = float(np.sum(var_r * u * u))
+    if np.all(var_r > 0):
+        basis = np.stack([v1, np.cross(u, v1)], axis=1)  # (3, 2)
+        cov = np.linalg.inv(basis.T @ schur @ basis) + np.diag([alpha, 0.0])
+        return basis @ np.linalg.inv(cov) @ basis.T
+    return schur / (1.0 + alpha * v1 @ schur @ v1)  # S rank 1: S v1 v1^T S = (v1^T S v1) S
+
+
+def dense_posterior(s, meas, var, valid, mean, sigma, seen, scalar=False):
     """Per pixel with numpy: the prior precision by an explicit Schur complement over the
     span of the used seen samples' design rows (the whole-frame row scaling ``g_r`` where
     they span ``M u`` whole), then the posterior. Returns (x, sd, residual, rank) images."""
@@ -72,13 +90,13 @@ def dense_posterior(s, meas, var, valid, mean, sigma, seen):
                         q_basis = np.linalg.svd(design[rows], full_matrices=False)[2][:min(len(rows), 3)].T
                         gq = q_basis.T @ p @ q_basis
                         p = p - p @ q_basis @ np.linalg.pinv(gq, rcond=1e-12, hermitian=True) @ q_basis.T @ p
-                        if len(rows) >= 3:  # the row scaling g_r of a whole observed M u
+                        if len(rows) >= 3:  # a whole observed M u: the row variance along u kept
                             u = observed_direction(s[seen])
                             for r in range(3):
                                 blk = slice(3 * r, 3 * r + 3)
                                 var_r = np.where(pi[blk] > 0, 1.0 / np.where(pi[blk] > 0, pi[blk], 1.0), 0.0)
                                 if var_r.sum() > 0:
-                                    p[blk, blk] *= np.sum(var_r * (1 - u * u)) / var_r.sum()
+                                    p[blk, blk] = _keep_variance_in_plane(p[blk, blk], var_r, u, scalar)
                 a = design.T @ (wt[:, None] * design) + p
                 b = design.T @ (wt * yv) + p @ mn
                 dg = 1.0 / np.sqrt(np.where(np.diag(a) > 0, np.diag(a), 1.0))
@@ -105,6 +123,17 @@ def test_kernel_matches_a_dense_posterior(seed, n, seen, drop):
     """The compiled kernel against a per-pixel numpy posterior, with random states, excluded
     samples (so that 0-4 of the seen state's samples are used), elements without a prior and
     priors of very different widths."""
+    _kernel_against_the_oracle(seed, n, seen, drop, "axis")
+
+
+@pytest.mark.parametrize("seed,n", [(1, 1), (2, 2), (3, 3), (4, 4)])
+def test_kernel_matches_a_dense_posterior_with_the_scalar_plane_factor(seed, n):
+    """``plane_variance="scalar"`` (the row variance spread over the plane by ``f_r``, the
+    comparison of ``models/continuum.py``) against the same oracle."""
+    _kernel_against_the_oracle(seed, n, True, 0.1, "scalar")
+
+
+def _kernel_against_the_oracle(seed, n, seen, drop, plane_variance):
     rng = np.random.default_rng(seed)
     ang = rng.uniform(0, 180, n)
     s = states(*ang, er=rng.uniform(100, 1e4))
@@ -117,8 +146,8 @@ def test_kernel_matches_a_dense_posterior(seed, n, seen, drop):
     sigma[rng.random(m.shape) < 0.1] = np.inf  # no prior for some elements
     k = 0 if seen else None
     got = solve_hybrid(s, meas, var, valid, prior_mean=mean, prior_sigma=sigma, seen_state=k,
-                       dtype=np.float64)
-    x, sd, res, rank = dense_posterior(s, meas, var, valid, mean, sigma, k)
+                       plane_variance=plane_variance, dtype=np.float64)
+    x, sd, res, rank = dense_posterior(s, meas, var, valid, mean, sigma, k, scalar=plane_variance == "scalar")
     solved = (got.mask & ref.ILL_CONDITIONED) == 0
     # a pixel without a prior follows the reference solve's rule (its samples' condition); one
     # with a prior is unsolved exactly where its posterior is singular
@@ -362,14 +391,24 @@ def test_unobserved_precision_annihilates_the_seen_direction():
     u = observed_direction(s0)
     assert np.abs(p @ u).max() < 1e-12 * np.abs(p).max()
     assert np.all(np.linalg.eigvalsh(p) > -1e-12 * np.abs(p).max())
-    # in the plane: the marginal precision scaled by g (the whole variance kept in the plane)
-    v = np.linalg.svd(u[None])[2][1:].T
+    # in the plane (basis v1 = plane_axis, v2 = 45 deg light): the marginal covariance of the
+    # diagonal prior plus its variance along u on v1, so the row's whole variance is kept
+    v1 = plane_axis(u)
+    v2 = np.cross(v1, u)
+    assert np.allclose(v2, np.array([0.0, -u[2], u[1]]) / np.hypot(u[1], u[2]), atol=1e-12)
+    v = np.stack([v1, v2], axis=1)
     for k in range(5):
         cov = np.diag(sd[k] ** 2)
-        g = np.sum(sd[k] ** 2 * (1 - u * u)) / np.sum(sd[k] ** 2)
-        assert np.allclose(v.T @ p[k] @ v, g * np.linalg.inv(v.T @ cov @ v), rtol=1e-10)
+        want = v.T @ cov @ v + np.diag([u @ cov @ u, 0.0])
+        assert np.allclose(np.linalg.inv(v.T @ p[k] @ v), want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
         assert np.isclose(np.trace(np.linalg.inv(v.T @ p[k] @ v)), np.sum(sd[k] ** 2), rtol=1e-10)
     assert np.allclose(unobserved_precision(sd), np.einsum("ka,ab->kab", sd ** -2.0, np.eye(3)))
+    # a seen state without an angle (unpolarized): no axis, the scalar row factor g_r
+    p0 = unobserved_precision(sd, np.array([1.0, 0.0, 0.0]))
+    assert plane_axis(np.array([1.0, 0.0, 0.0])) is None
+    for k in range(5):
+        g = np.sum(sd[k, 1:] ** 2) / np.sum(sd[k] ** 2)
+        assert np.allclose(p0[k], g * np.diag([0.0, *sd[k, 1:] ** -2.0]), rtol=1e-10, atol=0)
 
 
 # ---------------------------------------------------------------------------- properties
@@ -424,6 +463,8 @@ def test_bad_arguments_are_one_line_errors():
         solve_hybrid(s, meas, var, seen_state=0, prior_mean=m[..., :2], prior_sigma=1.0)
     with pytest.raises(ConfigError, match="max_condition"):
         solve_hybrid(s, meas, var, seen_state=0, max_condition=0.5, **kw)
+    with pytest.raises(ConfigError, match="plane_variance"):
+        solve_hybrid(s, meas, var, seen_state=None, plane_variance="marginal", **kw)
 
 
 def test_the_result_writes_the_reference_planes():

@@ -19,6 +19,7 @@ from polrig.app.manifest import SCHEMA_VERSION
 from polrig.app.session import MANIFEST_NAME, Session
 from polrig.cli import main
 from polrig.formats.exr import read_mueller_exr
+from polrig.models.uncertainty import VERSION as UNCERTAINTY_VERSION
 
 from test_cli_capture import MODEL_INSTALLED, sim_config
 
@@ -118,7 +119,7 @@ def test_hybrid_capture_with_two_states_end_to_end(tmp_path, capsys):
     assert prior["graph"] == "single_shot.onnx"
     assert prior["graph_sha256"] == hashlib.sha256((weights / "single_shot.onnx").read_bytes()).hexdigest()
     assert prior["uncertainty_sha256"] == hashlib.sha256((weights / "uncertainty.json").read_bytes()).hexdigest()
-    assert prior["uncertainty_version"] == 2 and prior["execution_provider"] == "CPUExecutionProvider"
+    assert prior["uncertainty_version"] == UNCERTAINTY_VERSION and prior["execution_provider"] == "CPUExecutionProvider"
     assert (prior["mirror_average"], prior["seen_state"], prior["seen_state_deg"]) == (False, 0, 0.0)
     exr = read_mueller_exr(hybrid / cap["files"]["mueller"]["path"])
     meta = exr.metadata

@@ -117,6 +117,7 @@ def test_mirror_averaged_reconstruction_sigma_grows_with_the_disagreement():
     dn = c["analyzer"] * float(c["scale"])
     mueller, aux = model.reconstruct(dn, c["s_in"], mask=mask, mirror_average=True, with_sigma=True)
     assert np.all(np.isfinite(aux["sigma"])) and "mueller_disagreement" not in aux
-    without = model.uncertainty.sigma(mueller, c["s_in"], mask, stokes_from_analyzers(dn))
+    without = model.uncertainty.sigma(mueller, c["s_in"], mask, stokes_from_analyzers(dn),
+                                      light_spread=aux["light_spread"])
     assert np.all(aux["sigma"] >= without - 1e-6 * without.max())
     assert np.mean(aux["sigma"][..., mask] > without[..., mask] * 1.001) > 0.5  # the passes do disagree

@@ -553,7 +553,7 @@ class SingleShot:
         mueller = out.get("mueller")
         if with_sigma and mueller is not None:
             unc = self.model.uncertainty
-            aux["sigma"] = unc.sigma(mueller, s_in, m_net, out["stokes"], None)
+            aux["sigma"] = unc.sigma(mueller, s_in, m_net, out["stokes"], None, out["light_spread"])
             beyond = unc.beyond_calibration(mueller, s_in, m_net, out["stokes"])
             if beyond is not None:
                 aux["beyond_calibration"], aux["mask"] = beyond, m_net
@@ -626,8 +626,9 @@ class SingleShot:
         net.mueller = mueller
         unc = self.model.uncertainty
         if options.with_sigma and unc is not None and "sigma" in net.aux:
-            net.aux["sigma"] = highlight_sigma(net.aux["sigma"], unc.sigma(mueller, s_in, net.object, stokes),
-                                               rescaled)
+            net.aux["sigma"] = highlight_sigma(
+                net.aux["sigma"], unc.sigma(mueller, s_in, net.object, stokes,
+                                            light_spread=net.aux.get("light_spread")), rescaled)
 
     # -- the shared steps ---------------------------------------------------------------------
     def _check(self, options: SingleShotOptions) -> None:

@@ -429,8 +429,8 @@ def _add_prior(pa, pm, amat, rhs):  # pragma: no cover - compiled
 
 
 @jit_cached()
-def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pixel_rows, pa,
-               pm, prank):  # pragma: no cover - compiled
+def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, arow, per_pixel_rows,
+               pa, pm, prank):  # pragma: no cover - compiled
     """The prior of rows ``y0 .. y1`` of colour ``c`` into block-major buffers (layout of
     :func:`load_tile`, which must have filled ``w``, ``flags`` and, with ``per_pixel_rows``,
     ``arow`` first), as :mod:`polrig.solve.hybrid` derives it.
@@ -448,11 +448,15 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pix
     block columns ``t_r = Pi_r u`` (row ``r`` of ``M``), ``K = B (B^T C B)^+ B^T`` over the
     span ``B`` of the used analyzer rows and ``C = diag(u^T Pi_r u)``. With 3 or more used
     samples (they observe ``M s`` whole) ``K = C^+`` and ``P`` is block diagonal,
-    ``P_r = g_r (Pi_r - t_r t_r^T / c_r)``, evaluated without cancellation
-    (``P_aa = g_r pi_a sum_{k != a} pi_k u_k^2 / c_r``), where
-    ``g_r = sum (1 - u_a^2) sigma_a^2 / sum sigma_a^2`` over the row's used elements keeps the
-    row's whole prior variance in its unobserved plane; with 1 or 2 the plain Schur
-    complement of the general form.
+    the Schur complement ``S_r = Pi_r - t_r t_r^T / c_r`` (evaluated without cancellation,
+    ``S_aa = pi_a sum_{k != a} pi_k u_k^2 / c_r``) with the row's prior variance along ``u``,
+    ``alpha_r = sum u_a^2 sigma_a^2`` over its used elements, moved onto the plane's axis ``v1``
+    ``seen_axis`` (:func:`polrig.solve.hybrid.plane_axis`): ``P_r = (S_r + alpha_r det_r v2 v2^T) /
+    (1 + alpha_r v1^T S_r v1)`` with ``v2 = v1 x u`` and ``det_r`` the determinant of ``S_r`` on
+    the plane (``pi_0 pi_1 pi_2 / c_r``; 0 where an element has no prior); with ``seen_axis`` all 0 (a seen state without an angle) the
+    scalar ``P_r = g_r S_r`` with
+    ``g_r = sum (1 - u_a^2) sigma_a^2 / sum sigma_a^2``. Either way the row's whole prior variance
+    stays in its unobserved plane; with 1 or 2 the plain Schur complement of the general form.
     ``seen_k < 0``: ``P = Pi``.
 
     Writes ``pa`` ``(B, 9, 9, L)`` (the full symmetric ``P``), ``pm`` ``(B, 9, L)`` (the mean,
@@ -466,8 +470,15 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pix
     u2 = np.empty(3)
     kk = np.zeros((3, 3))
     used = np.empty(4, np.int64)
+    srow = np.empty((3, 3))
+    sv = np.empty(3)
     for a in range(3):
         u2[a] = seen_dir[a] * seen_dir[a]
+    directional = seen_axis[0] * seen_axis[0] + seen_axis[1] * seen_axis[1] + seen_axis[2] * seen_axis[2] > 0
+    # v2 = v1 x u: the plane's other axis (light at 45 deg to the seen state)
+    sv[0] = seen_axis[1] * seen_dir[2] - seen_axis[2] * seen_dir[1]
+    sv[1] = seen_axis[2] * seen_dir[0] - seen_axis[0] * seen_dir[2]
+    sv[2] = seen_axis[0] * seen_dir[1] - seen_axis[1] * seen_dir[0]
     for yy in range(y0, y1):
         for xb in range(nbr):
             b = (yy - y0) * nbr + xb
@@ -511,6 +522,43 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_k, w, flags, arow, per_pix
                         cr = cc[r]
                         if cr > 0:
                             rank -= 1
+                            if directional:  # the variance along u moved onto v1
+                                # P = (S + alpha det2 v2 v2^T) / (1 + alpha s11) (module
+                                # docstring), every term without cancellation where the row's
+                                # three elements have a prior: det2 = pi0 pi1 pi2 / c (the
+                                # plane's precision determinant), s11 = v1^T S v1 = det2 v2^T
+                                # Sigma v2; with one missing, det2 = 0 and S has rank 1
+                                alpha = 0.0
+                                nrow = 0
+                                for a in range(3):
+                                    if pi[3 * r + a] > 0:
+                                        alpha += u2[a] / pi[3 * r + a]
+                                        nrow += 1
+                                for a in range(3):
+                                    a1, a2 = (a + 1) % 3, (a + 2) % 3
+                                    srow[a, a] = pi[3 * r + a] * (
+                                        (pi[3 * r + a1] * u2[a1] + pi[3 * r + a2] * u2[a2]) / cr)
+                                    for bb in range(a):
+                                        srow[a, bb] = -tt[3 * r + a] * tt[3 * r + bb] / cr
+                                        srow[bb, a] = srow[a, bb]
+                                if nrow == 3:
+                                    det2 = pi[3 * r] * pi[3 * r + 1] * pi[3 * r + 2] / cr
+                                    s11 = (sv[0] * sv[0] * pi[3 * r + 1] * pi[3 * r + 2]
+                                           + sv[1] * sv[1] * pi[3 * r + 2] * pi[3 * r]
+                                           + sv[2] * sv[2] * pi[3 * r] * pi[3 * r + 1]) / cr
+                                else:
+                                    det2 = 0.0
+                                    s11 = 0.0
+                                    for a in range(3):
+                                        for bb in range(3):
+                                            s11 += seen_axis[a] * srow[a, bb] * seen_axis[bb]
+                                inv = 1.0 / (1.0 + alpha * s11)
+                                for a in range(3):
+                                    for bb in range(a + 1):
+                                        v = (srow[a, bb] + alpha * det2 * sv[a] * sv[bb]) * inv
+                                        pa[b, 3 * r + a, 3 * r + bb, q] = v
+                                        pa[b, 3 * r + bb, 3 * r + a, q] = v
+                                continue
                             # g: the share of the row's prior variance off u (the whole
                             # variance is kept in the unobserved plane)
                             num = 0.0

@@ -39,8 +39,8 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
   directions, precision ``P = U Sigma_u^-1 U^T`` for the covariance ``Sigma_u`` (6x6) of the
   network's error there. The calibrated sigma is per element, ``sigma_ra^2 = E e_ra^2``, not
   a joint covariance, so ``Sigma_u`` has to be modelled. Because ``U = I (x) V``, it is taken
-  block diagonal over the rows, ``Sigma_u = diag_r(f_r V^T Sigma_r V)`` with
-  ``Sigma_r = diag(sigma_r^2)``:
+  block diagonal over the rows, ``Sigma_u = diag_r(V^T Sigma_r V + alpha_r v1 v1^T)`` (in
+  ``V``'s coordinates) with ``Sigma_r = diag(sigma_r^2)`` and ``alpha_r = u^T Sigma_r u``:
 
   - ``V^T Sigma_r V`` is the *marginal* of ``N(mu_r, Sigma_r)`` on the plane ``u^perp``.
     Its precision is the Schur complement of ``Pi_r = diag(1 / sigma_r^2)`` with the ``u``
@@ -53,21 +53,41 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
     ``V^T Sigma_r V``). Elements without a prior (``pi = 0``) drop out exactly, and written
     element by element it has no cancellation
     (:func:`polrig.solve._reference_kernel.load_prior`).
-  - ``f_r = tr Sigma_r / (tr Sigma_r - u^T Sigma_r u)`` keeps the row's whole calibrated
-    variance in that plane. The marginal alone would throw away the share
-    ``u^T Sigma_r u / tr Sigma_r`` of it (a third, for ``u`` between the element axes), as if
-    a third of the network's error lay along ``u``; but the network reproduces the frame it
-    saw, so its error along ``u`` is small: on the held-out terrain set (64x64, first 16 lit
-    samples) 3.5 % of the row's error energy, where the diagonal ``Sigma_r`` puts 33 %. With
-    the marginal, the posterior's coverage within 2 sigma at the seen state alone fell up to
-    2.8 points below the network's own; with ``f_r`` it is 0.5-0.9 points above it (2.2 on
-    conductors) on the eight held-out sets (``benchmarks/results/continuum.md``). Where the
-    network's error in the plane is as small as the frame's noise this is conservative (a
-    simulated network in ``tests/test_hybrid.py``: 98 % within 2 sigma).
+  - ``alpha_r v1 v1^T`` keeps the row's whole calibrated variance in that plane. The marginal
+    alone would throw away the share ``u^T Sigma_r u / tr Sigma_r`` of it (a third, for ``u``
+    between the element axes), as if a third of the network's error lay along ``u``; but the
+    network reproduces the frame it saw, so its error along ``u`` is small: on the held-out
+    terrain set (64x64, first 16 lit samples) 3.5 % of the row's error energy, where the
+    diagonal ``Sigma_r`` puts 33 %. With the marginal, the posterior's coverage within 2 sigma
+    at the seen state alone fell up to 2.8 points below the network's own.
+  - That variance goes onto one axis of the plane, ``v1`` (:func:`plane_axis`): the calibrated
+    sigma is per column of the *observed* frame (:mod:`polrig.models.uncertainty`), whose
+    columns 0 and 1 (unpolarized light and light along the seen state) span ``u`` and ``v1``,
+    and whose column 2 (light at 45 deg to it) is ``v2 = v1 x u``, orthogonal to both and not
+    observed at all. An error that the network keeps off ``u`` within columns 0 and 1 lies on
+    ``v1``; column 2's has its own calibrated sigma and no share of ``u``'s. (Where ``Sigma_r``
+    is diagonal in the observed frame, ``u`` between columns 0 and 1, this puts exactly
+    ``sigma_0^2 + sigma_1^2`` on ``v1`` and ``sigma_2^2`` on ``v2``.) The form before spread it
+    over the whole plane, ``f_r V^T Sigma_r V`` with ``f_r = tr Sigma_r / (tr Sigma_r -
+    u^T Sigma_r u)``, about 1.5: that inflated column 2's variance by ``f_r``, and at two
+    states 90 deg apart, which leave column 2 alone unobserved, it over-covered (97.1-97.5 %
+    within 2 sigma on the seen-family, compact and dispersive sets). Moved onto ``v1`` (the
+    first 24 samples of the eight sets of ``models/continuum.py``, 64x64, the calibrated sigma
+    of version 3): two states 0.3-1.1 points lower (95.4-97.1 % where ``f_r`` gave 96.0-97.6 %),
+    one state -0.2..+0.6, three -0.1..0; matrix PSNR the same at one and two states (within
+    0.01 dB) and +0.03..+0.23 dB at three.
+    ``solve_hybrid(plane_variance="scalar")`` keeps the ``f_r`` form for that comparison, and
+    a seen state without an angle (degree of polarization below :data:`MIN_SEEN_DOP`) uses it:
+    there the plane has no axis of its own.
 
-  So the row's prior precision is ``P_r = g_r (Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u))``
-  with ``g_r = 1 / f_r = sum_a (1 - u_a^2) sigma_a^2 / sum_a sigma_a^2`` (over the row's
-  elements that have a prior).
+  So the row's prior precision is the inverse of that covariance written back in ``M``'s
+  coordinates: with ``S_r = Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u)`` (the marginal's
+  precision) and Sherman-Morrison,
+  ``P_r = (S_r + alpha_r d_r v2 v2^T) / (1 + alpha_r v1^T S_r v1)``, ``d_r = pi_0 pi_1 pi_2 /
+  (u^T Pi_r u)`` the determinant of ``S_r`` on the plane (0 where an element has no prior: then
+  ``S_r`` has rank 1 there), every term a sum of positive ones where the row's three elements
+  have a prior; ``alpha_r`` is summed over the row's elements that have a prior. The scalar form
+  is ``P_r = g_r S_r``, ``g_r = 1 / f_r``.
 * ``p(Y | M)`` is the other states' likelihood, unchanged.
 
 So the seen frame enters through its samples and the prior through the six directions that
@@ -143,7 +163,14 @@ from polrig.solve.reference import (
     solve_tiles,
 )
 
-__all__ = ["solve_hybrid", "unobserved_precision", "observed_direction"]
+__all__ = ["solve_hybrid", "unobserved_precision", "observed_direction", "plane_axis"]
+
+#: Degree of polarization of the seen state below which its observed direction has no angle:
+#: its unobserved plane has no preferred axis, and the row variance factor is the scalar ``g_r``
+#: (module docstring; the single-shot uncertainty's ``P_MIN`` alike).
+MIN_SEEN_DOP = 0.05
+#: :func:`solve_hybrid`'s ``plane_variance`` choices (module docstring).
+PLANE_VARIANCE = ("axis", "scalar")
 
 
 def observed_direction(s_seen) -> np.ndarray:
@@ -158,9 +185,10 @@ def observed_direction(s_seen) -> np.ndarray:
 def unobserved_precision(sigma_row: np.ndarray, s_seen=None) -> np.ndarray:
     """The prior precision block ``P_r`` ``(..., 3, 3)`` of Mueller rows with per-element
     sigma ``sigma_row`` ``(..., 3)``: ``diag(1 / sigma^2)`` (0 where sigma is 0 or inf), and
-    with a seen state ``s_seen`` whose frame is used whole,
-    ``g_r (Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u))`` (module docstring). The numpy form of
-    what the compiled kernel does, for tests and analysis."""
+    with a seen state ``s_seen`` whose frame is used whole, the Schur complement
+    ``S_r = Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u)`` with the variance along ``u`` moved onto
+    the plane's axis :func:`plane_axis` (module docstring). The numpy form of what the compiled
+    kernel does, for tests, analysis and the adaptive capture's design."""
     sd = np.asarray(sigma_row, np.float64)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
         pi = np.where((sd > 0) & np.isfinite(sd), 1.0 / (sd * sd), 0.0)
@@ -173,8 +201,29 @@ def unobserved_precision(sigma_row: np.ndarray, s_seen=None) -> np.ndarray:
     c = np.sum(pu * u, axis=-1)[..., None, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         var = np.where(pi > 0, 1.0 / np.where(pi > 0, pi, 1.0), 0.0)
-        g = (np.sum(var * (1.0 - u * u), axis=-1) / np.sum(var, axis=-1))[..., None, None]
-        return np.where(c > 0, g * (p - pu[..., :, None] * pu[..., None, :] / np.where(c > 0, c, 1.0)), p)
+        schur = p - pu[..., :, None] * pu[..., None, :] / np.where(c > 0, c, 1.0)
+        v1 = plane_axis(u)
+        if v1 is None:  # no axis: the scalar row factor
+            g = (np.sum(var * (1.0 - u * u), axis=-1) / np.sum(var, axis=-1))[..., None, None]
+            return np.where(c > 0, g * schur, p)
+        # the variance along u, moved onto v1: P = (S + alpha det2 v2 v2^T) / (1 + alpha s11)
+        alpha = np.sum(var * u * u, axis=-1)[..., None, None]
+        v2 = np.cross(v1, u)
+        det2 = (np.prod(pi, axis=-1) / np.where(c[..., 0, 0] > 0, c[..., 0, 0], 1.0))[..., None, None]
+        s11 = np.einsum("...ab,a,b->...", schur, v1, v1)[..., None, None]
+        out = (schur + alpha * det2 * np.outer(v2, v2)) / (1.0 + alpha * s11)
+        return np.where(c > 0, out, p)
+
+
+def plane_axis(u: np.ndarray) -> np.ndarray | None:
+    """The unit axis ``v1 = u x v2`` ``(3,)`` of the unobserved plane that lies in the seen
+    state's own columns (``v2 = (0, -u_2, u_1) / |.|``, light polarized at 45 deg to the seen
+    state, is the other), for a unit seen direction ``u``; None where the seen state's degree
+    of polarization is below :data:`MIN_SEEN_DOP` (module docstring)."""
+    lin = float(np.hypot(u[1], u[2]))
+    if not (lin >= MIN_SEEN_DOP * abs(float(u[0])) and lin > 0):
+        return None
+    return np.array([lin, -u[0] * u[1] / lin, -u[0] * u[2] / lin])
 
 
 def _prior_array(x, name: str, shape: tuple[int, ...]) -> np.ndarray:
@@ -192,7 +241,7 @@ def _prior_array(x, name: str, shape: tuple[int, ...]) -> np.ndarray:
 def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                  valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
                  prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int | None,
-                 max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
+                 plane_variance: str = "axis", max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
                  analyzer_tolerance: Sequence[float] | None = None,
                  generator_tolerance: Sequence[float] | None = None,
                  chunk_pixels: int = DEFAULT_TILE_PIXELS, dtype=np.float32) -> ReferenceResult:
@@ -207,7 +256,10 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     network's estimate and per-element standard deviation; sigma 0 or ``inf`` is no prior for
     that element. ``seen_state``: index into ``s_in`` of the state whose frame the prior was
     computed from (its samples are in ``measured``), or None when the prior depends on none
-    of the measured samples.
+    of the measured samples. ``plane_variance``: where the row's prior variance along the seen
+    direction goes (module docstring): ``"axis"`` onto the plane's axis :func:`plane_axis`,
+    ``"scalar"`` spread over the plane by the factor ``f_r`` (the form before; for the comparison
+    in ``models/continuum.py``).
 
     Raises :class:`polrig.errors.ConfigError` for no state, non-finite states, a
     ``seen_state`` that is not an index of ``s_in`` (or a zero state), or a bad option, and
@@ -215,11 +267,13 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     """
     max_condition, min_snr, dtype, tile = _solve_options(max_condition, min_snr, dtype,
                                                          chunk_pixels)
+    if plane_variance not in PLANE_VARIANCE:
+        raise ConfigError(f"plane_variance must be one of {', '.join(PLANE_VARIANCE)}, got {plane_variance!r}")
     inputs = solve_inputs(s_in, measured, variance, valid, analyzer_rows, max_condition,
                           analyzer_tolerance, generator_tolerance, check_state_set=False)
     n = len(inputs.s)
     if seen_state is None:
-        seen_k, u = -1, np.zeros(3)
+        seen_k, u, axis = -1, np.zeros(3), np.zeros(3)
     else:
         if isinstance(seen_state, bool) or not isinstance(seen_state, (int, np.integer)) \
                 or not 0 <= int(seen_state) < n:
@@ -227,8 +281,10 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                               f"got {seen_state!r}")
         seen_k = int(seen_state)
         u = observed_direction(inputs.s[seen_k])
+        v1 = plane_axis(u) if plane_variance == "axis" else None
+        axis = np.zeros(3) if v1 is None else v1
     _, n_col, _, h, w = inputs.meas.shape
     shape = (n_col, 3, 3, h, w)
     prior = PriorInputs(_prior_array(prior_mean, "prior_mean", shape),
-                        _prior_array(prior_sigma, "prior_sigma", shape), u, seen_k)
+                        _prior_array(prior_sigma, "prior_sigma", shape), u, axis, seen_k)
     return solve_tiles(inputs, analyzer_rows, max_condition, min_snr, dtype, tile, prior)

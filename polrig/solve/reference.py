@@ -517,11 +517,14 @@ class PriorInputs(NamedTuple):
     """A Gaussian prior on the nine elements for :func:`solve_tiles` (checked by
     :mod:`polrig.solve.hybrid`): ``mean`` and ``sigma`` ``(C, 3, 3, H, W)`` float32 or float64
     (broadcast views allowed), ``seen_dir`` ``(3,)`` the unit Stokes vector of the state
-    whose samples the prior already holds and ``seen_k`` that state's index (-1: none)."""
+    whose samples the prior already holds, ``seen_axis`` ``(3,)`` the axis of its unobserved
+    plane that the row variance along ``seen_dir`` moves onto (all 0: the scalar row factor;
+    :func:`polrig.solve.hybrid.plane_axis`) and ``seen_k`` that state's index (-1: none)."""
 
     mean: np.ndarray
     sigma: np.ndarray
     seen_dir: np.ndarray
+    seen_axis: np.ndarray
     seen_k: int
 
 
@@ -638,7 +641,7 @@ class _TileRun:
                                  self.per_pixel, c, y0, y1, b["w"], b["mv"], b["flags"], arow)
         prior = self.prior
         if prior is not None:  # polrig.solve.hybrid
-            kern.load_prior(prior.mean, prior.sigma, c, y0, y1, prior.seen_dir, prior.seen_k,
+            kern.load_prior(prior.mean, prior.sigma, c, y0, y1, prior.seen_dir, prior.seen_axis, prior.seen_k,
                             b["w"], b["flags"], arow, self.per_pixel, b["pa"], b["pm"],
                             b["prank"])
         kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, self.per_pixel,
