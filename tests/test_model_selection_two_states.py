@@ -2,7 +2,8 @@
 the samples observe six of the block's nine directions and the hybrid's prior completes the
 other three. Hidden-truth round trips per model, the test's level and false acceptance measured
 at a fixed seed, the numpy oracle, extremes, the >= 3-state path untouched by the prior, and
-``polrig capture --mode hybrid --states 0,90 --models auto``."""
+``polrig capture --mode hybrid --states 0,90 --models auto``, which does not offer it (its pixels
+stay untested: the shipped prior's false acceptance exceeds the level)."""
 
 from __future__ import annotations
 
@@ -225,9 +226,11 @@ def test_any_two_state_scene_gives_finite_results_and_known_codes(seed, scale, d
 
 # ------------------------------------------------------------------ the CLI
 @pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
-def test_hybrid_two_states_models_auto_tests_pixels(tmp_path):
+def test_hybrid_two_states_models_auto_leaves_the_pixels_untested_in_captures(tmp_path):
     """``polrig capture --mode hybrid --states 0,90 --models auto`` then ``reconstruct`` with
-    the same: the model map holds tested pixels (not only 255) on the object."""
+    the same: the model map is written and says every pixel is untested (captures do not pass
+    the prior to the selection: with the shipped network's prior the two-state test's false
+    acceptance exceeds its level, ``polrig.solve.radiometry.reference_from_frames``)."""
     from polrig.app.session import Session
     from polrig.cli import main
     from polrig.formats.exr import read_exr
@@ -239,11 +242,11 @@ def test_hybrid_two_states_models_auto_tests_pixels(tmp_path):
     s = Session.open(out)
     im = read_exr(out / s.capture(0)["files"]["mueller"]["path"])
     code = np.stack([v for k, v in im.planes.items() if k.startswith("model.")])
-    assert (code != ms.UNTESTED).mean() > 0.05 and ((code != 0) & (code != ms.UNTESTED)).any()
+    assert code.size and np.all(code == ms.UNTESTED)
     assert main(["reconstruct", str(out), "--mode", "hybrid", "--models", "auto", "--device", "cpu",
                  "--no-progress"]) == 0
     s = Session.open(out)
     rev = s.capture(0)["revisions"]["rev1"]["files"]
     code = np.stack([v for k, v in read_exr(out / rev["mueller"]["path"]).planes.items() if k.startswith("model.")])
-    assert (code != ms.UNTESTED).mean() > 0.05
+    assert np.all(code == ms.UNTESTED)
     assert s.verify() == []

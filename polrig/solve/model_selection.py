@@ -97,10 +97,13 @@ only the unpolarizing model), the row space's condition number at most ``max_con
 prior finite and positive at all nine elements, and the seen frame's four samples used (the
 prior's projection assumes it whole). The level on real scenes is that of the prior's
 calibration: ``python -m polrig.models.continuum --models-only`` measures it on the held-out sets
-(``benchmarks/results/continuum_models.md``, the shipped network's prior): false acceptance 1.2 %
-on the terrains but 6-17 % elsewhere (the network's errors are not calibrated in the hybrid's
-model; not measured further), +4.0..+6.8 dB over single-shot where a model holds, and 80-85 %
-of the elements within 2 sigma.
+(``benchmarks/results/continuum_models.md``, the shipped network's prior): false acceptance
+1.2-1.3 % on the terrains but 7-22 % elsewhere (the network's errors are not calibrated in the
+hybrid's model; not measured further), +4.0..+6.6 dB over single-shot where a model holds, and
+80-84 % of the elements within 2 sigma. Because that false acceptance exceeds the level, captures
+and ``polrig reconstruct`` do not pass the prior here
+(:func:`polrig.solve.radiometry.reference_from_frames`): with two states their pixels stay
+``UNTESTED``; this route serves the benchmark until the prior is calibrated jointly.
 
 Never silent: nothing here runs unless asked (``polrig reconstruct --models auto``,
 ``polrig capture --models auto``); the result then always carries the maps
