@@ -23,7 +23,9 @@ evaluated on ``M'`` with the measured ``S`` (the scale feature then follows the 
 intensity), times :data:`SIGMA_FACTOR`, fitted on the uncertainty calibration's scenes (never
 on a reported set) so that 95.45 % of these pixels' elements lie within 2 sigma. Elsewhere
 the estimate and sigma are unchanged. A pixel clipped in every exposure stays as it was
-(``SATURATED``, no error bound).
+(``SATURATED``, no error bound). With ``--network-binning 2`` the networks' grid is not the
+measured one, and the highlights keep the network's estimate (that mode has no calibrated sigma
+either).
 
 The hybrid solve (:mod:`polrig.solve.hybrid`) takes ``M'`` as its prior where the seen state's
 merged samples are used: the part of ``M'`` those samples observe (``M s_in``) is dropped from
