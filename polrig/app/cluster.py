@@ -94,6 +94,10 @@ class SerialRunner:
         pass
 
 
+#: Seconds the Dask client and the local cluster each get to close (:meth:`DaskRunner.close`).
+CLOSE_TIMEOUT_S = 20.0
+
+
 class DaskRunner:
     """Jobs as Dask tasks (``pure=False``: each runs once per submission; Dask reruns a task
     whose worker died, up to ``distributed.scheduler.allowed-failures`` times). Build it with
@@ -158,11 +162,14 @@ class DaskRunner:
                 self.client.cancel(list(futures))
 
     def close(self) -> None:
+        """Close the client, then the local cluster, each within :data:`CLOSE_TIMEOUT_S` (a
+        Ctrl-C must end the command: a worker busy in a long task can hold Dask's default
+        close for minutes; its process is then left to the nanny's own shutdown)."""
         with contextlib.suppress(Exception):
-            self.client.close()
+            self.client.close(timeout=CLOSE_TIMEOUT_S)
         if self.cluster is not None:
             with contextlib.suppress(Exception):
-                self.cluster.close()
+                self.cluster.close(timeout=CLOSE_TIMEOUT_S)
 
 
 def one_core(fn: Callable[[Any], Any], job: Any) -> Any:
