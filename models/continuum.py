@@ -292,23 +292,33 @@ def sample_frames(ds, i: int, prior: tuple, sensor, rng: np.random.Generator, *,
                   light_spread=prior[2] if len(prior) > 2 else None)
 
 
-def bracket_prior(fr: Frames, uncertainty) -> Frames:
-    """``fr`` (its frames bracketed: :func:`sample_frames`' ``bracket``) with the prior carried
-    to the highlights the bracket measured (:func:`polrig.models.highlights.measured_highlights`:
-    the seen frame's clipped colours rescaled to the merged intensity, their sigma the
-    calibrated model's on the rescaled estimate times
-    :data:`polrig.models.highlights.SIGMA_FACTOR`), as the capture's single-shot route does
-    (:meth:`polrig.app.single_shot.SingleShot.state`)."""
-    from polrig.models.highlights import highlight_sigma, measured_highlights
+def _measured_highlights(fr: Frames, uncertainty):
+    """``(M', sigma, rescaled)`` of a bracketed sample: the network's estimate rescaled where
+    the seen frame clipped and the bracket measured it
+    (:func:`polrig.models.highlights.measured_highlights`), and the calibrated model's sigma on
+    it (factor 1; None where nothing was rescaled)."""
+    from polrig.models.highlights import measured_highlights
     from polrig.sensor.stokes import stokes_from_analyzers
 
-    clipped = fr.mask[None] & ~fr.use
     stokes = stokes_from_analyzers(np.where(fr.valid[0], fr.meas[0], np.nan))
-    mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, clipped)
+    mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, fr.mask[None] & ~fr.use)
     if not rescaled.any():
+        return mean, None, rescaled
+    sigma = uncertainty.sigma(mean, fr.states[0], fr.mask, stokes, light_spread=fr.light_spread)
+    return mean, sigma.astype(np.float64), rescaled
+
+
+def bracket_prior(fr: Frames, uncertainty) -> Frames:
+    """``fr`` (its frames bracketed: :func:`sample_frames`' ``bracket``) with the prior carried
+    to the highlights the bracket measured (:func:`_measured_highlights`, their sigma times
+    :data:`polrig.models.highlights.SIGMA_FACTOR`), as the capture's single-shot route does
+    (:meth:`polrig.app.single_shot.SingleShot.state`)."""
+    from polrig.models.highlights import highlight_sigma
+
+    mean, sigma, rescaled = _measured_highlights(fr, uncertainty)
+    if sigma is None:
         return fr
-    sigma = highlight_sigma(fr.sigma, uncertainty.sigma(mean, fr.states[0], fr.mask, stokes,
-                                                         light_spread=fr.light_spread).astype(np.float64), rescaled)
+    sigma = highlight_sigma(fr.sigma, sigma, rescaled)
     return dataclasses.replace(fr, prior=np.where(fr.mask, mean, 0.0), sigma=np.where(fr.mask, sigma, 0.0))
 
 
@@ -319,9 +329,6 @@ def fit_highlight_factor(root, net, *, count: int = 128, seed: int = 0, echo=pri
     held-out families; no reported set): half the 95.45 % quantile of ``|M' - M_true| / sigma``
     over the rescaled pixels' elements, ``sigma`` the calibrated model's on the rescaled
     estimate (factor 1). Returns the factor, the elements it rests on and each set's quantile."""
-    from polrig.models.highlights import measured_highlights
-    from polrig.sensor.stokes import stokes_from_analyzers
-
     ratios, per_set = [], {}
     for tag, (name, kw) in enumerate(SEARCH_SETS.items()):
         d = make_set(pathlib.Path(root), name, kw, count if "all" in name else max(1, count // 2))
@@ -329,11 +336,8 @@ def fit_highlight_factor(root, net, *, count: int = 128, seed: int = 0, echo=pri
         for ds, sensor, i, prior in _samples(d, net):
             fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, 200 + tag, i]), offsets=(0,),
                                bracket=BRACKET)
-            stokes = stokes_from_analyzers(np.where(fr.valid[0], fr.meas[0], np.nan))
-            mean, rescaled = measured_highlights(fr.prior, fr.states[0], stokes, fr.mask[None] & ~fr.use)
-            if rescaled.any():
-                sigma = net.uncertainty.sigma(mean, fr.states[0], fr.mask, stokes,
-                                              light_spread=fr.light_spread).astype(np.float64)
+            mean, sigma, rescaled = _measured_highlights(fr, net.uncertainty)
+            if sigma is not None:
                 with np.errstate(divide="ignore", invalid="ignore"):
                     e = np.abs(mean - fr.truth) / sigma
                 got.append(e.transpose(1, 2, 0, 3, 4)[:, :, rescaled].ravel())
