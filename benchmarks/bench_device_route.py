@@ -47,7 +47,7 @@ sys.path.append(str(REPO))  # after PYTHONPATH: a lent machine names polrig by l
 from benchmarks.bench_single_shot import COLOUR, MONO, _rig_geometry, gpu_name, synthetic_raw  # noqa: E402
 from polrig.sensor.frame import Frame, FrameMeta  # noqa: E402
 
-STEPS = ("upload", "pre", "statistics", "networks", "post", "copy_back")
+STEPS = ("upload", "pre", "statistics", "network", "post", "copy_back")
 LAYOUT_NAMES = {"colour": COLOUR, "mono": MONO}
 
 

@@ -159,7 +159,7 @@ def warm_once(src: pathlib.Path, argv: list[str], route: SingleShot, out: pathli
     t3 = time.perf_counter()
     lift = result.timings_s.get("full_resolution", 0.0) + result.timings_s.get("binning_lift", 0.0)
     mueller = result.mueller
-    network = result.timings_s.get("network", result.timings_s.get("networks", 0.0))  # host / device route
+    network = result.timings_s["network"]
     return {**result.timings_s, "network": network, "lift": lift, "decode": t1 - t0, "compute": t2 - t1,
             "exr": t3 - t2,
             "total": t3 - t0, "cpu": _cpu_s() - c0, "net": f"{mueller.shape[-1]}x{mueller.shape[-2]}"}
@@ -422,7 +422,7 @@ def render(raw: dict) -> str:
                      f"**{1e3 * med(c, 'wall'):.0f}** | {1e3 * med(c, 'cpu'):.0f} | {med(c, 'peak_mb'):.0f} | {'; '.join(goals)} |")
     device_rows = {label: w for label, w in raw["warm"].items() if w and "upload" in w[0]}
     if device_rows:  # the device route (issue 31): the frame kept on the provider's device
-        steps = ("upload", "pre", "statistics", "networks", "post", "copy_back")
+        steps = ("upload", "pre", "statistics", "network", "post", "copy_back")
         lines += ["", "The device route's steps (warm, raw -> Mueller; `models/device_path.py`), ms:", "",
                   "| case | " + " | ".join(steps) + " |", "|---|" + "---|" * len(steps)]
         lines += [f"| {label} | " + " | ".join(f"{1e3 * med(w, k):.1f}" for k in steps) + " |"

@@ -10,7 +10,7 @@
 #
 # benchmarks/gpu_pieces.sh makes what travels (run it here first, with network access): the
 # OpenEXR wheel in .whl/, onnxruntime-gpu (tools, transformers, quantization and the TensorRT
-# provider removed) as one xz tar in pieces of 50.8 MB in .ortpieces/, and the graph before issue 31
+# provider removed) as one xz tar in pieces of 38.9 MB in .ortpieces/, and the graph before issue 31
 # in .ortpieces/before/ (the "before" rows). A call carries at most 64 MiB: each `part` call
 # carries one piece (copy it to .ortpart/ and name .ortpart in the run's carry), the `measure`
 # call the last piece and .ortpieces/before.
@@ -38,7 +38,7 @@
 #  5. the CPU rows of 2 on the machine's 16 cores, for the comparison.
 #
 # STEPS="name ..." runs only the named steps (the logs' names; default all): the dry mode's test
-# runs the device route's alone.
+# runs the device route's alone. EXTRA="script.py args" runs one more script first (step "extra").
 set -u
 # polrig is not installed on a lent machine: links name its folders as an install does
 # (benchmarks/polrig_path.sh), first on PYTHONPATH; the checkout after them (the benchmarks
@@ -94,11 +94,13 @@ measure)
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
     $PY -c "import onnxruntime as o; print('onnxruntime', o.__version__, o.get_available_providers())"
     $PY -c "from polrig.models import devices; print('gpus', devices.cuda_device_count(), 'auto ->', devices.choose_providers('auto', __import__('onnxruntime').get_available_providers()))"
+    # EXTRA="script.py args": one more script first, in the same environment (a one-off check)
+    [ -n "${EXTRA:-}" ] && run extra 150 $PY $EXTRA
     run device_route 150 $PY benchmarks/bench_device_route.py --devices cuda,cpu --sizes 2448x2048 --rounds 3 --live-frames 8 --out "$OUT/device_route.md"
     run sessions_cuda 100 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --out "$OUT/sessions_cuda.md"
-    run sessions_cuda_frame 40 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --training-axis --out "$OUT/sessions_cuda_frame.md"
     run single_shot_cuda 120 $PY benchmarks/bench_single_shot.py --device cuda --cases 0,3,4,6,7 --rounds 3 --out "$OUT/single_shot_cuda.md"
     run live_mueller 50 $PY benchmarks/bench_live_mueller.py --frames 10 --devices cuda,cpu --out "$OUT/live_mueller.md"
+    run sessions_cuda_frame 40 $PY benchmarks/bench_sessions.py --device cuda $(before_args) --size 612x512 --rounds 20 --training-axis --out "$OUT/sessions_cuda_frame.md"
     run network_pass 40 $PY benchmarks/bench_network_pass.py --devices cuda,cpu --rounds 5 --no-torch --profile --out "$OUT/network_pass.md"
     run single_shot_cpu 50 $PY benchmarks/bench_single_shot.py --device cpu --cases 3,4 --rounds 2 --out "$OUT/single_shot_cpu16.md"
     cat "$OUT"/*.md 2>/dev/null

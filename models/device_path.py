@@ -341,12 +341,12 @@ class DevicePath:
         ``(C, 3, h, w)`` with ``with_stokes`` (on the output grid: ``(C, 3, H, W)`` at full
         resolution), ``scale``, ``alpha``,
         ``incident_rotation_deg`` (``wi`` is not copied); ``timings_s`` per step
-        (``upload``, ``pre``, ``statistics``, ``networks``, ``post``, ``copy_back``). With
+        (``upload``, ``pre``, ``statistics``, ``network``, ``post``, ``copy_back``). With
         ``preview_size`` ``(dh, dw)``: ``grid`` ``(C, 3 dh, 3 dw)``, the live view's matrix
         grid, instead of ``mueller``, ``snr`` and ``clipped``. ``probe_every``: run the light-direction probe on every
         this many frames and reuse the last one's direction in between (the live view)."""
         m = self.model
-        t = {"upload": 0.0, "pre": 0.0, "statistics": 0.0, "networks": 0.0, "post": 0.0, "copy_back": 0.0}
+        t = {"upload": 0.0, "pre": 0.0, "statistics": 0.0, "network": 0.0, "post": 0.0, "copy_back": 0.0}
         clock = [time.perf_counter()]
 
         def lap(step: str) -> None:
@@ -442,7 +442,7 @@ class DevicePath:
         if with_stokes and preview_size is None and "wi" in out:
             light = spread_of_mean(self.run("masked_mean", {"wi": out["wi"], "mask": net["net_mask"]})["mean"]
                                    .numpy().reshape(3))
-        lap("networks")
+        lap("network")
         a, b = (v / np.linalg.norm(v) for v in (axis.reshape(3), model_axis.reshape(3)))
         axes = np.stack([a, b, np.cross(a, b), [float(np.sum(a * b)), 0.0, 0.0]]).astype(np.float32)
         mix = np.eye(cn, dtype=np.float32) if c == cn else np.full((1, cn), 1.0 / cn, np.float32)
