@@ -281,7 +281,7 @@ class DevicePath:
     def _network(self, outputs: str, feed: dict) -> dict:
         m = self.model
         b, _, _, h, w = feed["analyzer"].shape()
-        runner = m._runner(outputs, (int(b), int(h), int(w)) if m.fixed_sizes else None)
+        runner = m._runner(outputs, (int(b), int(h), int(w)) if m.fixed_sizes else None, route="device")
         return runner.run_device({k: feed[k] for k in runner.inputs}, self.device)
 
     def _object_mask(self, s0, shape: tuple[int, int]) -> tuple[object, int]:

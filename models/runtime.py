@@ -84,8 +84,9 @@ SHRINK_ARENA_ABOVE = 2_000_000
 #: incident-frame refinement (:func:`probe_shape`).
 PROBE_SIDE = 128
 #: Sessions with fixed input sizes a model keeps (:meth:`SingleShotModel.run_normalised`): the
-#: probe's and the frame's per sensor size and a few more; the least recently used goes beyond.
-MAX_SESSIONS = 4
+#: probe's and the frame's per sensor size and route (host, device) and a few more; the least
+#: recently used goes beyond.
+MAX_SESSIONS = 8
 #: The graphs with fewer outputs (:mod:`polrig.models.export`) a run asking only for these uses.
 OUTPUT_GRAPHS = {"frame": "single_shot_frame.onnx", "probe": "single_shot_probe.onnx"}
 #: Graph outputs with a colour axis first (after the batch axis): averaged to one colour for a mono sensor.
@@ -313,19 +314,43 @@ class _Runner:
     CUDA graphs need: the inputs are copied into device buffers bound once (``update_inplace``),
     the outputs come back from device buffers of the session's fixed output sizes. Where that
     run fails (onnxruntime refuses the capture), ``fallback(error)`` gives a plain session that
-    runs from then on."""
+    runs from then on.
 
-    def __init__(self, session, cuda_graph: bool = False, fallback=None):
+    A session captures one CUDA graph, at the addresses of the run that captured it, and replays
+    it at those addresses whatever is bound later (the inputs and outputs must keep the capturing
+    run's addresses: onnxruntime's CUDA execution provider documentation, "Using CUDA Graphs"). So the runner remembers whose buffers the
+    graph holds (:attr:`_owner`: ``"host"`` for :meth:`run`'s own buffers, the inputs' identity
+    for :meth:`run_device`); a run with other buffers first takes a fresh session from
+    ``device_graph_session()`` (a new capture). On an H200 (2026-11-28) a device-route frame after
+    a host-route frame on the same model came back as zeros: the replay wrote into the host
+    route's buffers."""
+
+    def __init__(self, session, cuda_graph: bool = False, fallback=None, reopen=None, device: str = "cuda"):
         self.session = session
         self.cuda_graph = cuda_graph
         self._fallback = fallback
+        self._reopen = reopen
+        #: Where :meth:`run` keeps its bound buffers (``cuda``; ``cpu`` only in tests).
+        self.device = device
         self._binding = None
+        self._device_binding = None
+        self._owner: object = None
         self.inputs = [i.name for i in session.get_inputs()]
         self.outputs = [o.name for o in session.get_outputs()]
+
+    def _claim(self, owner: object) -> None:
+        """Make the captured graph (if any) ``owner``'s: with another owner's graph captured,
+        a fresh session, and neither owner's bindings kept."""
+        if not self.cuda_graph or self._owner is None or self._owner == owner:
+            self._owner = owner
+            return
+        self.session = self._reopen()
+        self._binding, self._device_binding, self._owner = None, None, owner
 
     def run(self, feed: dict[str, np.ndarray], run_options=None) -> dict[str, np.ndarray]:
         if self.cuda_graph:
             try:
+                self._claim("host")
                 return self._run_bound(feed)
             except Exception as exc:  # onnxruntime's own types: the capture refused
                 self.cuda_graph, self._binding = False, None
@@ -342,7 +367,8 @@ class _Runner:
         import onnxruntime as ort
 
         ident = tuple((k, id(v), tuple(v.shape())) for k, v in sorted(inputs.items()))
-        held = getattr(self, "_device_binding", None)
+        self._claim(ident)
+        held = self._device_binding
         if held is not None and held[0] == ident and held[3] is self.session:  # the same buffers
             self.session.run_with_iobinding(held[1])
             return held[2]
@@ -381,12 +407,12 @@ class _Runner:
             binding = self.session.io_binding()
             self._in, self._out = {}, {}
             for name in self.inputs:
-                self._in[name] = ort.OrtValue.ortvalue_from_numpy(feed[name], "cuda", 0)
+                self._in[name] = ort.OrtValue.ortvalue_from_numpy(feed[name], self.device, 0)
                 binding.bind_ortvalue_input(name, self._in[name])
             for o in self.session.get_outputs():
                 if not all(isinstance(n, int) for n in o.shape):
                     raise ValueError(f"output {o.name} has no fixed size {o.shape}")
-                self._out[o.name] = ort.OrtValue.ortvalue_from_shape_and_type(o.shape, np.float32, "cuda", 0)
+                self._out[o.name] = ort.OrtValue.ortvalue_from_shape_and_type(o.shape, np.float32, self.device, 0)
                 binding.bind_ortvalue_output(o.name, self._out[o.name])
             self._binding = binding
         else:
@@ -580,12 +606,14 @@ class SingleShotModel:
             self.device_notes.append(line)
             print(f"polrig: {devices.short_name(self.provider)}: {line}", file=sys.stderr)
 
-    def _runner(self, outputs: str, sizes: tuple[int, int, int] | None) -> _Runner:
-        """The session of ``outputs``' graph at input ``sizes`` (None: its dynamic-size one), created
+    def _runner(self, outputs: str, sizes: tuple[int, int, int] | None, route: str = "host") -> _Runner:
+        """The session of ``outputs``' graph at input ``sizes`` (None: its dynamic-size one) for
+        ``route`` (``host``: numpy in and out; ``device``: :class:`polrig.models.device_path.DevicePath`'s
+        buffers; each route its own session, so that each keeps its own CUDA graph), created
         at the first run of that size, then kept: the least recently used beyond
         :data:`MAX_SESSIONS` goes."""
         path = self._graph_path(outputs)
-        key = (path.name, sizes)
+        key = (path.name, sizes, route)
         runner = self._runners.pop(key, None)
         if runner is None:
             runner = self._new_runner(path, sizes)
@@ -616,7 +644,8 @@ class SingleShotModel:
             return self._opener(path, sizes)
 
         self._cuda_graph = True
-        return _Runner(sess, cuda_graph=True, fallback=fallback)
+        return _Runner(sess, cuda_graph=True, fallback=fallback,
+                       reopen=lambda: self._opener(path, sizes, cuda_graph=True))
 
     def _refuse_cuda_graph(self, requested: dict[str, str], exc: Exception) -> None:
         """CUDA graphs refused (session creation or the first run): noted, and not asked again."""

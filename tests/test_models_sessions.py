@@ -37,15 +37,15 @@ def test_fixed_size_sessions_are_made_once_and_give_the_dynamic_sessions_numbers
         assert abs(aux["incident_rotation_deg"] - want_aux["incident_rotation_deg"]) < 1e-3
         assert ("normal" in aux) == (outputs == "all") and aux["wi"].shape == (3, 256, 256)
     keys = set(fixed._runners)
-    assert keys == {("single_shot_probe.onnx", (1, 128, 128)), ("single_shot.onnx", (1, 256, 256)),
-                    ("single_shot_frame.onnx", (1, 256, 256))}
+    assert keys == {("single_shot_probe.onnx", (1, 128, 128), "host"), ("single_shot.onnx", (1, 256, 256), "host"),
+                    ("single_shot_frame.onnx", (1, 256, 256), "host")}
     runners = dict(fixed._runners)
     fixed.reconstruct(big, s_in, mask=big_mask, stage_zero_axis=axis, outputs="frame")
     assert all(fixed._runners[k] is runners[k] for k in keys)  # created once per size
     assert fixed.provider_options == {"intra_op_num_threads": "1", "fixed_sizes": "1"}
     # without fixed sizes: one dynamic session per graph run; model.session (not optimised)
     # only names the graph and never runs
-    assert set(dynamic._runners) == {("single_shot_probe.onnx", None), ("single_shot.onnx", None)}
+    assert set(dynamic._runners) == {("single_shot_probe.onnx", None, "host"), ("single_shot.onnx", None, "host")}
     assert all(r.session is not dynamic.session for r in dynamic._runners.values())
     assert dynamic.provider_options["fixed_sizes"] == "0"
     # the CPU's default: dynamic sizes (more memory for no measured speed when fixed)
@@ -55,11 +55,13 @@ def test_fixed_size_sessions_are_made_once_and_give_the_dynamic_sessions_numbers
 def test_sessions_are_bounded_least_recently_used_first(capture):
     analyzer, s_in, mask = capture
     model = SingleShotModel.load(threads=1, fixed_sizes=True)
+    analyzer = np.repeat(np.repeat(analyzer, 2, axis=-1), 2, axis=-2)  # 128x128: room for the sizes
+    mask = np.repeat(np.repeat(mask, 2, axis=-1), 2, axis=-2)
     for n in range(MAX_SESSIONS + 1):
         size = 16 + 8 * n
         model.reconstruct(analyzer[..., :size, :size], s_in, mask=mask[:size, :size])
     assert len(model._runners) == MAX_SESSIONS
-    assert ("single_shot.onnx", (1, 16, 16)) not in model._runners
+    assert ("single_shot.onnx", (1, 16, 16), "host") not in model._runners
 
 
 class _ReportsCuda:
@@ -183,3 +185,70 @@ def test_smaller_graphs_only_beside_the_full_graph_they_were_exported_with(tmp_p
     assert {k[0] for k in model._runners} == {"single_shot.onnx"}
     with pytest.raises(ValueError, match="outputs must be"):
         model.reconstruct(analyzer, s_in, mask=mask, outputs="some")
+
+
+def _add_one_session(path):
+    """A real session of ``y = x + 1`` on a ``(1, 4)`` float32 input."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    if not path.exists():
+        one = helper.make_tensor("one", TensorProto.FLOAT, [1], [1.0])
+        graph = helper.make_graph([helper.make_node("Add", ["x", "one"], ["y"])], "add_one",
+                                  [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4])],
+                                  [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 4])], [one])
+        onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+    return ort.InferenceSession(str(path), providers=[devices.CPU])
+
+
+def test_a_captured_graph_serves_only_the_buffers_it_was_captured_with(tmp_path):
+    """A CUDA graph replays at the addresses it was captured with, whatever is bound later (on an
+    H200 a device-route frame after a host-route frame came back as zeros). So a run with other
+    buffers than the capturing run's takes a fresh session; the same buffers keep it. Played on
+    the CPU with real bindings: the reopenings are counted, and every result is checked."""
+    from polrig.models.runtime import _Runner
+
+    path = tmp_path / "add_one.onnx"
+    reopened = []
+
+    def reopen():
+        reopened.append(1)
+        return _add_one_session(path)
+
+    runner = _Runner(_add_one_session(path), cuda_graph=True, fallback=None, reopen=reopen, device="cpu")
+    rng = np.random.default_rng(3)
+    a, b = (rng.normal(size=(1, 4)).astype(np.float32) for _ in range(2))
+    np.testing.assert_array_equal(runner.run({"x": a})["y"], a + 1)
+    np.testing.assert_array_equal(runner.run({"x": b})["y"], b + 1)  # its own buffers, refilled
+    assert reopened == []
+    v1 = ort.OrtValue.ortvalue_from_numpy(a, "cpu", 0)
+    v2 = ort.OrtValue.ortvalue_from_numpy(b, "cpu", 0)
+    for value, want, count in ((v1, a, 1), (v1, a, 1), (v2, b, 2), (v2, b, 2)):
+        np.testing.assert_array_equal(runner.run_device({"x": value}, "cpu")["y"].numpy(), want + 1)
+        assert len(reopened) == count
+    np.testing.assert_array_equal(runner.run({"x": a})["y"], a + 1)  # back to the host's buffers
+    assert len(reopened) == 3
+    # without CUDA graphs nothing is captured, and no buffers are owned
+    plain = _Runner(_add_one_session(path), device="cpu")
+    plain.run({"x": a})
+    np.testing.assert_array_equal(plain.run_device({"x": v2}, "cpu")["y"].numpy(), b + 1)
+
+
+def test_host_and_device_routes_keep_their_own_sessions(capture):
+    """One model serving both routes (the device route hands some options to the host route)
+    gives each its own fixed-size session, so each keeps its own CUDA graph."""
+    from polrig.acquisition.plan import SingleShotOptions
+    from polrig.app.single_shot import SingleShot
+    from polrig.sensor.frame import Frame, FrameMeta
+    from benchmarks.bench_single_shot import COLOUR, synthetic_raw
+
+    model = SingleShotModel.load(threads=1, fixed_sizes=True)
+    meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
+                     layout=COLOUR, bit_depth=12, black_level_dn=64.0)
+    frame = Frame(raw=synthetic_raw((128, 128), np.random.default_rng(0), COLOUR), meta=meta)
+    opts = SingleShotOptions(sigma=False)
+    a = SingleShot(model, "host").frame(frame, 0.0, opts).mueller
+    b = SingleShot(model, "device").frame(frame, 0.0, opts).mueller
+    assert {k[2] for k in model._runners} == {"host", "device"}
+    ok = np.isfinite(a) & np.isfinite(b)
+    assert np.max(np.abs(a[ok] - b[ok])) <= 1e-5 * np.max(np.abs(a[ok]))
