@@ -318,12 +318,12 @@ class _Runner:
 
     A session captures one CUDA graph, at the addresses of the run that captured it, and replays
     it at those addresses whatever is bound later (the inputs and outputs must keep the capturing
-    run's addresses: onnxruntime's CUDA execution provider documentation, "Using CUDA Graphs"). So the runner remembers whose buffers the
-    graph holds (:attr:`_owner`: ``"host"`` for :meth:`run`'s own buffers, the inputs' identity
-    for :meth:`run_device`); a run with other buffers first takes a fresh session from
-    ``device_graph_session()`` (a new capture). On an H200 (2026-11-28) a device-route frame after
-    a host-route frame on the same model came back as zeros: the replay wrote into the host
-    route's buffers."""
+    run's addresses: onnxruntime's CUDA execution provider documentation, "Using CUDA Graphs").
+    So the runner remembers whose buffers the graph holds (:attr:`_owner`: ``"host"`` for
+    :meth:`run`'s own buffers, the inputs' identity for :meth:`run_device`); a run with other
+    buffers first takes a fresh session from ``reopen()`` (a new capture). On an H200
+    (2026-11-28) a device-route frame after a host-route frame on the same model came back as
+    zeros: the replay wrote into the host route's buffers."""
 
     def __init__(self, session, cuda_graph: bool = False, fallback=None, reopen=None, device: str = "cuda"):
         self.session = session
