@@ -237,10 +237,10 @@ def test_a_captured_graph_serves_only_the_buffers_it_was_captured_with(tmp_path)
 def test_host_and_device_routes_keep_their_own_sessions(capture):
     """One model serving both routes (the device route hands some options to the host route)
     gives each its own fixed-size session, so each keeps its own CUDA graph."""
+    from benchmarks.bench_single_shot import COLOUR, synthetic_raw
     from polrig.acquisition.plan import SingleShotOptions
     from polrig.app.single_shot import SingleShot
     from polrig.sensor.frame import Frame, FrameMeta
-    from benchmarks.bench_single_shot import COLOUR, synthetic_raw
 
     model = SingleShotModel.load(threads=1, fixed_sizes=True)
     meta = FrameMeta(frame_id=0, timestamp_s=0.0, exposure_us=10000.0, gain_db=0.0, pixel_format="Mono16",
