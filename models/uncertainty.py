@@ -93,6 +93,10 @@ FORMAT = "polrig-single-shot-uncertainty"
 #: its reference and limits); an older file counts as no calibration (one line says so, and how
 #: to calibrate). The mirror term's ``mirror_disagreement_k`` is optional (absent: 0, no term).
 VERSION = 3
+#: Key of the optional joint prior in the file (module docstring, "Joint prior"), and the
+#: version of its entry: a file without it (every version-3 file before) reads as before.
+JOINT_KEY = "joint_prior"
+JOINT_VERSION = 1
 #: Quantiles of the calibration images' light spread that bound it below (``low``) and divide it
 #: (``reference``), and up to which the knee ``high`` is searched (``light_spread`` in the file).
 SPREAD_QUANTILES = {"low": 0.01, "reference": 0.5, "high": 0.99}
@@ -194,6 +198,15 @@ class UncertaintyModel:
     #: ``{"low", "reference", "high"}`` (rad) of the light-spread factor (module docstring;
     #: :data:`SPREAD_QUANTILES`), or None: no factor (a model made in code, e.g. in a test).
     spread: dict | None = None
+    #: The joint prior (module docstring, "Joint prior"): ``{"version", "correlation" (6, 6),
+    #: ...}`` as :mod:`polrig.models.uncertainty_fit` fits it (``--joint``), or None: none fitted.
+    joint: dict | None = None
+
+    @property
+    def joint_correlation(self) -> np.ndarray | None:
+        """The joint prior's ``K`` ``(6, 6)`` (:func:`polrig.solve.hybrid.solve_hybrid`'s
+        ``prior_correlation``), or None where the calibration has none."""
+        return None if self.joint is None else np.asarray(self.joint["correlation"], np.float64)
 
     def spread_factor(self, light_spread: float | None) -> float:
         """``clip(omega, low, high) / reference`` (module docstring); 1 for a model without the
@@ -270,7 +283,7 @@ class UncertaintyModel:
                 "coverage_target": COVERAGE, "scale_floor": SCALE_FLOOR, "p_min": P_MIN,
                 "coefficients": np.round(self.coefficients, 6).tolist(),
                 "mirror_disagreement_k": round(float(self.mirror_k), 6), "light_spread": self.spread,
-                "calibration": self.calibration}
+                "calibration": self.calibration} | ({} if self.joint is None else {JOINT_KEY: self.joint})
 
     @classmethod
     def from_json(cls, data: dict) -> "UncertaintyModel":
@@ -292,7 +305,26 @@ class UncertaintyModel:
         if not (np.all(np.isfinite(list(spread.values())))
                 and 0 < spread["low"] <= spread["reference"] <= spread["high"]):
             raise ValueError(f"light_spread must be finite with 0 < low <= reference <= high, got {spread}")
-        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k, spread)
+        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k, spread,
+                   _read_joint(data.get(JOINT_KEY)))
+
+
+def _read_joint(joint) -> dict | None:
+    """The file's :data:`JOINT_KEY` entry checked (None where absent: a calibration without the
+    joint prior, as every file before it); :class:`ValueError` for one this polrig cannot use."""
+    if joint is None:
+        return None
+    from polrig.errors import ConfigError
+    from polrig.solve.hybrid import check_correlation
+
+    if not isinstance(joint, dict) or joint.get("version") != JOINT_VERSION:
+        raise ValueError(f"{JOINT_KEY} must be a version-{JOINT_VERSION} object, got "
+                         f"{joint.get('version') if isinstance(joint, dict) else type(joint).__name__!r}")
+    try:
+        check_correlation(joint.get("correlation"))
+    except ConfigError as exc:
+        raise ValueError(f"{JOINT_KEY}: {exc}") from None
+    return dict(joint)
 
 
 def graph_sha256(path: str | pathlib.Path) -> str:
