@@ -526,20 +526,29 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
     return rows
 
 
-#: The priors of the joint comparison (:func:`joint_rows`): the per-element prior and the joint one.
-JOINT_PRIORS = ("diagonal", "joint")
+#: The priors of the joint comparison (:func:`joint_priors`): the per-element prior, the joint
+#: one (the fitted correlation ``K``) and the joint one with the whitened errors' scale measured
+#: on the calibration scenes (``S K S``, ``S`` the file's ``coverage_scale``).
+JOINT_PRIORS = ("diagonal", "joint", "joint_scaled")
 
 
-def joint_rows(fr: Frames, offsets: dict[str, tuple[int, ...]], correlation: np.ndarray
+def joint_priors(uncertainty) -> dict[str, np.ndarray | None]:
+    """:data:`JOINT_PRIORS` -> the hybrid's ``prior_correlation`` of an
+    :class:`polrig.models.uncertainty.UncertaintyModel` with a joint prior."""
+    k = uncertainty.joint_correlation
+    scale = np.asarray(uncertainty.joint["coverage_scale"], np.float64)
+    return dict(zip(JOINT_PRIORS, (None, k, scale[:, None] * k * scale[None, :])))
+
+
+def joint_rows(fr: Frames, offsets: dict[str, tuple[int, ...]], priors: dict[str, np.ndarray | None]
                ) -> dict[str, dict[str, float]]:
-    """One sample's rows of the joint-prior comparison (``--joint-compare``): for the per-element
-    prior and the joint one (``correlation``, :meth:`polrig.models.uncertainty.UncertaintyModel.
-    joint_correlation`), the hybrid at 1, 2, 3 and 4 states (``offsets``: ``two``, ``three``,
-    ``four``) with :func:`score`, and at two states with the lower-order model selection
-    (:func:`models_rows`: its false acceptance and share accepted); keys ``<prior>_hybrid<N>``
-    and ``<prior>_models``."""
+    """One sample's rows of the joint-prior comparison (``--joint-compare``): for each of
+    ``priors`` (name -> ``prior_correlation``, :func:`joint_priors`), the hybrid at 1, 2, 3 and 4
+    states (``offsets``: ``two``, ``three``, ``four``) with :func:`score`, and at two states with
+    the lower-order model selection (:func:`models_rows`: its false acceptance and share
+    accepted); keys ``<prior>_hybrid<N>`` and ``<prior>_models``."""
     rows = {}
-    for name, k in zip(JOINT_PRIORS, (None, correlation)):
+    for name, k in priors.items():
         for n, offs in ((1, (0,)), (2, offsets["two"]), (3, offsets["three"]), (4, offsets["four"])):
             rows[f"{name}_hybrid{n}"] = score(fr, *estimate(fr, offs, "hybrid", k)) | {"states": n, "time_s": 0.0}
         rows[f"{name}_models"] = models_rows(fr, offsets["two"], k, keys=("hybrid2_models",))["hybrid2_models"] \
@@ -894,15 +903,15 @@ def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 
         rows: dict[str, list] = {}
         for ds, sensor, i, prior in _samples(make_set(pathlib.Path(root), name, SETS[name][1], count), net):
             fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
-            for key, row in joint_rows(fr, offsets, k).items():
+            for key, row in joint_rows(fr, offsets, joint_priors(net.uncertainty)).items():
                 rows.setdefault(key, []).append(row)
         result["sets"][name] = {"samples": len(rows.get("joint_models", [])),
                                 "methods": {key: _mean(v) for key, v in rows.items()}}
         m = result["sets"][name]["methods"]
-        echo(f"{name}: false acceptance {100 * m['diagonal_models']['false_acceptance']:.1f} -> "
-             f"{100 * m['joint_models']['false_acceptance']:.1f} %; coverage 1-4 "
-             + " / ".join(f"{100 * m[f'diagonal_hybrid{n}']['coverage']:.1f}->{100 * m[f'joint_hybrid{n}']['coverage']:.1f}"
-                          for n in range(1, 5)))
+        echo(f"{name}: false acceptance " + " / ".join(f"{100 * m[f'{p}_models']['false_acceptance']:.1f}"
+                                                     for p in JOINT_PRIORS) + " %; coverage 1-4 "
+             + "; ".join(" / ".join(f"{100 * m[f'{p}_hybrid{n}']['coverage']:.1f}" for p in JOINT_PRIORS)
+                         for n in range(1, 5)))
     result["seconds"] = time.perf_counter() - t0
     table = joint_markdown(result)
     echo(table)
@@ -917,35 +926,43 @@ def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 
 
 
 def joint_markdown(result: dict) -> str:
-    """:func:`joint_compare`'s result as Markdown tables: per set, the two priors' false
-    acceptance at two states, coverage within 2 sigma and matrix PSNR at 1 to 4 states."""
+    """:func:`joint_compare`'s result as Markdown tables: per set, each prior's
+    (:data:`JOINT_PRIORS`) false acceptance at two states, coverage within 2 sigma and matrix
+    PSNR at 1 to 4 states."""
     off = result["offsets"]
+    first = next(iter(result["sets"].values()))["methods"]
+    priors = [p for p in JOINT_PRIORS if f"{p}_models" in first]
+    head = " / ".join(priors)
     lines = ["**False acceptance of the two-state model test** "
              f"({'/'.join(map(str, off['two']))}; a reduced model chosen where the truth is detectably off every "
-             "candidate in the test's own metric, of that share of the scored colour-pixels), and the share given a "
-             "reduced model where one holds", "",
-             "| set | scored | diagonal | joint | reduced where one holds, diagonal / joint | "
-             "PSNR where one holds, diagonal / joint (dB) |", "|---|---:|---:|---:|---:|---:|"]
+             "candidate in the test's own metric, of that share of the scored colour-pixels), the share given a "
+             "reduced model where one holds, and the matrix PSNR there (hybrid 2 + models)", "",
+             "| set | scored | " + " | ".join(f"false acceptance, {p}" for p in priors)
+             + f" | reduced where one holds, {head} | PSNR where one holds, {head} (dB) |",
+             "|---|---:|" + "---:|" * (len(priors) + 2)]
     for key, r in result["sets"].items():
-        d, j = r["methods"]["diagonal_models"], r["methods"]["joint_models"]
-        lines.append(f"| {set_label(key)} | {r['samples']} | {100 * d['false_acceptance']:.1f} % of "
-                     f"{100 * d['detectable_share']:.0f} % | {100 * j['false_acceptance']:.1f} % of "
-                     f"{100 * j['detectable_share']:.0f} % | {100 * d['accepted_holds']:.0f} / "
-                     f"{100 * j['accepted_holds']:.0f} % | {d['psnr_holds']:.2f} / {j['psnr_holds']:.2f} |")
+        m = [r["methods"][f"{p}_models"] for p in priors]
+        lines.append(f"| {set_label(key)} | {r['samples']} | "
+                     + " | ".join(f"{100 * x['false_acceptance']:.1f} % of {100 * x['detectable_share']:.0f} %"
+                                  for x in m)
+                     + " | " + " / ".join(f"{100 * x['accepted_holds']:.0f}" for x in m) + " % | "
+                     + " / ".join(f"{x['psnr_holds']:.2f}" for x in m) + " |")
     states = [(1, "0"), (2, "/".join(map(str, off["two"]))), (3, "/".join(map(str, off["three"]))),
               (4, "/".join(map(str, off["four"])))]
     for metric, title, fmt in (("coverage", "Within 2 sigma, hybrid", "{:.1%}"),
                                ("matrix_psnr", "Matrix PSNR (dB), hybrid, object pixels", "{:.2f}")):
-        lines += ["", f"**{title}**: diagonal / joint (joint - diagonal)" if metric == "matrix_psnr"
-                  else f"**{title}**: diagonal / joint", "",
-                  "| set | " + " | ".join(f"{n} ({o})" for n, o in states) + " |", "|---|" + "---:|" * len(states)]
+        lines += ["", f"**{title}**: {head}" + (" (each joint prior - diagonal)" if metric == "matrix_psnr" else ""),
+                  "", "| set | " + " | ".join(f"{n} ({o})" for n, o in states) + " |",
+                  "|---|" + "---:|" * len(states)]
         for key, r in result["sets"].items():
             m = r["methods"]
             cells = []
             for n, _ in states:
-                a, b = m[f"diagonal_hybrid{n}"][metric], m[f"joint_hybrid{n}"][metric]
-                cell = f"{fmt.format(a)} / {fmt.format(b)}".replace("%", " %")
-                cells.append(cell + (f" ({b - a:+.2f})" if metric == "matrix_psnr" else ""))
+                vals = [m[f"{p}_hybrid{n}"][metric] for p in priors]
+                cell = " / ".join(fmt.format(v) for v in vals).replace("%", " %")
+                if metric == "matrix_psnr":
+                    cell += " (" + ", ".join(f"{v - vals[0]:+.2f}" for v in vals[1:]) + ")"
+                cells.append(cell)
             lines.append(f"| {set_label(key)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
