@@ -61,6 +61,17 @@ The error model (numpy only: it runs at inference without torch):
   two passes disagree the network is unsure (on the held-out sets coverage fell from 94-99 %
   to 71-83 % in the 1 % of elements that disagree most, measured against ``sigma``).
 
+* **Joint prior** (optional, the file's ``joint_prior``, version :data:`JOINT_VERSION`): the
+  sigma is per element, but the hybrid solve uses the network's estimate as a prior on the six
+  directions its frame leaves unobserved, whose errors are correlated across the rows of ``M``.
+  ``joint_prior.correlation`` is the 6x6 correlation ``K`` of the errors in the coordinates the
+  per-element prior whitens (:mod:`polrig.solve.hybrid`, "Joint prior"), fitted on the
+  calibration scenes by ``python -m polrig.models.uncertainty_fit --data ... --joint --write``
+  (Spearman's rank correlation taken to Pearson's, robust to heavy tails). It leaves every
+  element's sigma as it is. A file without it (every version-3 file before it) reads as
+  before, with no joint prior; a refit of the per-element sigma writes the file without it
+  (``K`` belongs to that sigma's whitening), so the joint prior is fitted again after it.
+
 The coefficients are fitted by :mod:`polrig.models.uncertainty_fit` (``python -m polrig.models.uncertainty_fit``,
 the fitting tool: it runs the graph on simulated sets, so it imports the evaluation code; this
 module is the runtime part and imports nothing from evaluation or training).

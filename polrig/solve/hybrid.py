@@ -127,6 +127,29 @@ Consequences, all tested:
   ``M``, e.g. with fewer than 3 states). A NaN or negative sigma, or a non-finite mean with a
   finite sigma, sets ``NONFINITE``.
 
+**Joint prior** (``prior_correlation``, off by default). The calibrated sigma is per element;
+the network's errors on the six unobserved directions are not independent across the rows of
+``M``. In the coordinates the per-element prior whitens, ``w = Q^T e`` with ``Q`` ``(9, 6)``
+block diagonal over the rows, ``Q_r = [v1 v2] L_r`` and ``L_r`` the Cholesky factor of the row's
+precision on its plane ``[v1 v2]^T P_r [v1 v2]`` (:func:`unobserved_factor`; ``Q Q^T = P``), a
+right per-element prior gives ``w`` unit covariance. The joint prior models it as ``K`` (6x6,
+symmetric positive definite; coordinates ``(r, v1), (r, v2)`` row by row), so the covariance
+on the plane is ``L^-T K L^-1`` and the precision ``P_joint = Q K^-1 Q^T``
+(:func:`joint_precision`; the kernel's :func:`polrig.solve._reference_kernel.correlate_prior`).
+``K = I`` is the per-element prior (to rounding: ``tests/test_hybrid_joint.py``, 1e-9). ``K``
+with a unit diagonal (a correlation, as fitted: :mod:`polrig.models.uncertainty_fit`
+``--joint``) keeps every coordinate's calibrated variance. At the seen state alone the data
+observe ``u`` and the prior the plane, orthogonal in every row, so the posterior mean is the
+per-element prior's exactly and an element's variance changes only through ``K``'s terms
+within a row (``(r, v1)`` with ``(r, v2)``: at most 0.05 as fitted); the rows' coupling acts
+from two states on, where a measured direction of one row informs an unmeasured one of
+another. It applies where the per-element prior has its block-diagonal form (the seen frame's
+samples used whole, a seen state with an axis, all nine elements with a prior); elsewhere the
+per-element prior is used as it is. Fitted on the calibration scenes, ``K`` is about ``I`` but
+for the lower 2x2 block of the observed frame: ``corr((1, v1), (2, v2)) = +0.66`` and
+``corr((1, v2), (2, v1)) = -0.63``, the pattern of a rotation of the linear polarization frame
+(an error in the surface's azimuth turns ``m11, m12, m21, m22`` together).
+
 Masks and outputs are those of :class:`~polrig.solve.reference.ReferenceResult`, so
 :func:`polrig.formats.exr.result_planes` writes them unchanged: ``ILL_CONDITIONED`` for a
 pixel with a prior means its posterior is singular to working precision (a Cholesky pivot of
