@@ -388,6 +388,8 @@ def _main(args: argparse.Namespace) -> int:
     wd = pathlib.Path(args.weights) if args.weights else WEIGHTS_DIR
     if not wd.is_dir():
         raise FileNotFoundError(f"weights folder {wd} not found")
+    if args.joint and not args.data:
+        raise ConfigError("--joint needs --data (the calibration sets)")
     for d in (*args.data, *args.check):  # every set, before the first is run
         read_manifest(d)
     if args.write:
@@ -401,8 +403,6 @@ def _main(args: argparse.Namespace) -> int:
             raise ConfigError(f"--write: cannot write in {wd} ({exc.strerror or exc})") from None
     net = SingleShotModel.load(wd)
     if args.joint:
-        if not args.data:
-            raise ConfigError("--joint needs --data (the calibration sets)")
         model, why = calibration_for_graph(wd, "single_shot.onnx")
         if model is None:
             raise ConfigError(f"{why}; {how_to_calibrate(wd)}")
