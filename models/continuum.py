@@ -873,19 +873,22 @@ def models_markdown(result: dict) -> str:
 
 
 def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 0, weights_dir=None,
-                  two=None, three=None, echo=print) -> dict:
+                  two=None, three=None, echo=print, rig_scenes: Sequence[str] | None = None,
+                  rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None) -> dict:
     """The per-element prior against the joint one (``--joint-compare``, :func:`joint_rows`) on
     ``count`` samples of each of ``sets``, the states ``two``/``three`` (default
     :data:`RIG_TWO`, :data:`RIG_THREE`, as the continuum run found them) and
     :data:`FOUR_STATES`; the frames as :func:`evaluate_set` makes them (same seeds). Writes
-    ``out_md`` and its ``.json`` when given. :class:`polrig.errors.ConfigError` where the
-    calibration has no joint prior (``python -m polrig.models.uncertainty_fit --joint``)."""
+    ``out_md`` and its ``.json`` when given. ``rig_scenes``: instead of ``sets``, the default
+    rig's named scenes at ``size`` (default :func:`rig_size`), one sample per turntable angle of
+    ``rig_poses`` (:func:`rig_set`). :class:`polrig.errors.ConfigError` where the calibration has
+    no joint prior (``python -m polrig.models.uncertainty_fit --joint``)."""
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
     from polrig.models.evaluate import results_paths
     from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
 
-    unknown = [s for s in sets if s not in SETS]
+    unknown = [s for s in sets if s not in SETS] if rig_scenes is None else []
     if unknown or count < 1:
         raise ConfigError(f"unknown set(s) {', '.join(unknown)} or --count {count} < 1; sets are {', '.join(SETS)}")
     net = SingleShotModel.load(weights_dir if weights_dir is not None else WEIGHTS_DIR)
@@ -894,14 +897,17 @@ def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 
         raise ConfigError("the single-shot calibration has no joint prior (python -m polrig.models.uncertainty_fit "
                           "--data DIR [DIR ...] --joint --write)")
     offsets = {"two": tuple(two or RIG_TWO), "three": tuple(three or RIG_THREE), "four": FOUR_STATES}
-    result: dict = {"count": count, "size": SIZE, "seed": seed, "offsets": {a: list(b) for a, b in offsets.items()},
-                    "correlation": k.tolist(), "sets": {}}
+    size = (rig_size() if size is None else int(size)) if rig_scenes is not None else SIZE
+    result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size, "seed": seed,
+                    "offsets": {a: list(b) for a, b in offsets.items()}, "correlation": k.tolist(), "sets": {}}
     t0 = time.perf_counter()
-    for tag, name in enumerate(SETS):
-        if name not in sets:
-            continue
+    names = [n for n in SETS if n in sets] if rig_scenes is None else [f"rig_{n}" for n in rig_scenes]
+    for name in names:
+        tag = list(SETS).index(name) if rig_scenes is None else names.index(name)
+        data = (make_set(pathlib.Path(root), name, SETS[name][1], count) if rig_scenes is None
+                else rig_set(name[len("rig_"):], size, rig_poses, seed))
         rows: dict[str, list] = {}
-        for ds, sensor, i, prior in _samples(make_set(pathlib.Path(root), name, SETS[name][1], count), net):
+        for ds, sensor, i, prior in _samples(data, net):
             fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
             for key, row in joint_rows(fr, offsets, joint_priors(net.uncertainty)).items():
                 rows.setdefault(key, []).append(row)
@@ -918,9 +924,13 @@ def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 
     if out_md is not None:
         out_md, out_json = results_paths(out_md)
         atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        what = (f"--count {count} --sets {','.join(sets)}` (models/continuum.py `joint_rows`); {count} samples per set"
+                if rig_scenes is None else
+                f"--rig-scenes {','.join(rig_scenes)} --rig-poses {','.join(f'{p:g}' for p in rig_poses)}` "
+                "(models/continuum.py `joint_rows`); the default simulated rig's scenes, one sample per turntable "
+                "angle")
         atomic_write_text(out_md, "# The network's prior: per element against joint\n\n`python -m polrig.models.continuum "
-                          f"--joint-compare --count {count} --sets {','.join(sets)}` (models/continuum.py `joint_rows`); "
-                          f"{count} samples per set at {SIZE}x{SIZE} (those with a lit object pixel scored); "
+                          f"--joint-compare {what} at {size}x{size} (those with a lit object pixel scored); "
                           f"{result['seconds']:.0f} s on {os.cpu_count()} CPUs.\n\n" + table + "\n")
     return result
 
@@ -1263,7 +1273,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_main(ap.prog, lambda: (joint_compare(args.root, args.out, count=args.count,
                                                         sets=[s for s in args.sets.split(",") if s], seed=args.seed,
                                                         weights_dir=args.weights, two=_offsets(args.two, 2),
-                                                        three=_offsets(args.three, 3)), 0)[1])
+                                                        three=_offsets(args.three, 3),
+                                                        rig_scenes=None if args.rig_scenes is None else
+                                                        [n for n in args.rig_scenes.split(",") if n],
+                                                        rig_poses=_poses(args.rig_poses), size=args.size), 0)[1])
     if args.fit_highlights:
         from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
 
