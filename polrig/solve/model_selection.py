@@ -103,7 +103,12 @@ hybrid's model; not measured further), +4.0..+6.6 dB over single-shot where a mo
 80-84 % of the elements within 2 sigma. Because that false acceptance exceeds the level, captures
 and ``polrig reconstruct`` do not pass the prior here
 (:func:`polrig.solve.radiometry.reference_from_frames`): with two states their pixels stay
-``UNTESTED``; this route serves the benchmark until the prior is calibrated jointly.
+``UNTESTED``; this route serves the benchmark. The prior calibrated jointly
+(``prior_correlation``, :mod:`polrig.solve.hybrid` "Joint prior") gives the test its level on
+data drawn from that model (``tests/test_hybrid_joint.py``) but not on the network's errors:
+1.3-21.9 % per held-out set (``python -m polrig.models.continuum --joint-compare``,
+``benchmarks/results/continuum_joint.md``), where the network's estimate itself leans toward a
+lower-order block that the truth is not.
 
 Never silent: nothing here runs unless asked (``polrig reconstruct --models auto``,
 ``polrig capture --models auto``); the result then always carries the maps
