@@ -297,3 +297,20 @@ def test_the_fit_entry_recovers_k_from_errors_drawn_from_the_joint_model():
     got = np.asarray(fit_joint(w)["correlation"])
     assert np.abs(got - k).max() <= 0.05, np.abs(got - k).max()
     assert np.abs(k - np.eye(6)).max() > 0.3  # a K far from the per-element prior
+
+
+def test_an_unpolarized_seen_state_keeps_the_per_element_prior():
+    """A seen state without an angle has no plane axis: the kernel and ``posterior_system`` both
+    keep the per-element prior there, bit for bit in the solve."""
+    rng, s, m, meas, var, mean, sd = _case(3, 2, h=3, w=8)
+    s = s.copy()
+    s[0] = [1.0, 0.01, 0.0]  # degree of polarization 0.01, below MIN_SEEN_DOP
+    a = solve_hybrid(s, meas, var, prior_mean=mean, prior_sigma=sd, seen_state=0, dtype=np.float64)
+    b = solve_hybrid(s, meas, var, prior_mean=mean, prior_sigma=sd, seen_state=0, dtype=np.float64,
+                     prior_correlation=random_correlation(rng))
+    assert np.array_equal(a.mueller, b.mueller) and np.array_equal(a.sigma, b.sigma)
+    normal = np.tile(np.eye(9), (4, 1, 1))
+    mh, mn, sg = rng.normal(size=(4, 9)), rng.normal(size=(4, 9)), np.exp(rng.normal(size=(4, 9)))
+    x = ms.posterior_system(normal, mh, mn, sg, s[0])
+    y = ms.posterior_system(normal, mh, mn, sg, s[0], random_correlation(rng))
+    assert np.array_equal(x[0], y[0]) and np.array_equal(x[1], y[1])

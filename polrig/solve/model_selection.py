@@ -559,12 +559,13 @@ def posterior_system(normal: np.ndarray, m_hat: np.ndarray, mean: np.ndarray, si
     (:func:`polrig.solve.hybrid.unobserved_precision`, block diagonal over the rows; the seen
     state ``s_seen``'s frame used whole). ``normal``, ``m_hat``: the samples' (any rank);
     ``mean``, ``sigma`` ``(P, 9)``: the prior's, sigma positive and finite. ``correlation``: the
-    joint prior's ``K`` (:func:`polrig.solve.hybrid.joint_precision`; needs ``s_seen``), None
-    the per-element prior."""
-    from polrig.solve.hybrid import joint_precision, unobserved_precision
+    joint prior's ``K`` (:func:`polrig.solve.hybrid.joint_precision`; used where ``s_seen`` has
+    an axis, as the hybrid solve does), None the per-element prior."""
+    from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
 
     rows = unobserved_precision(sigma.reshape(-1, 3, 3), s_seen)  # (P, row, 3, 3)
-    if correlation is not None:
+    # as the kernel: the joint prior where the seen state has an axis, else the per-element one
+    if correlation is not None and s_seen is not None and plane_axis(observed_direction(s_seen)) is not None:
         prec = joint_precision(rows, s_seen, correlation)
     else:
         prec = np.zeros(normal.shape)
