@@ -323,7 +323,7 @@ def fit_joint(w: np.ndarray) -> dict:
 
 
 #: What the joint prior's entry describes (``joint_prior.model`` in the file).
-JOINT_MODEL = ("prior covariance on the seen state's unobserved directions Q^-T K Q^-1, Q the per-element prior's "
+JOINT_MODEL = ("prior precision on the seen state's unobserved directions Q K^-1 Q^T, Q the per-element prior's "
                "factor (polrig.solve.hybrid.unobserved_factor), K this correlation of the whitened errors, "
                "coordinates (row 0, v1), (row 0, v2), (row 1, v1), ...")
 #: Least eigenvalue of the fitted joint correlation (:func:`fit_joint`).
