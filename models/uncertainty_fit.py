@@ -18,6 +18,10 @@ analyzer sample are left out: a clipped highlight's magnitude is unknown, and
 ``python -m polrig.models.uncertainty_fit --data DIR [DIR ...] --write`` runs the shipped graph on
 ``polrig sim dataset`` folders, calibrates and writes ``models/weights/uncertainty.json`` (with
 the SHA-256 of the graph it belongs to); ``--check DIR ...`` prints the coverage on other sets.
+``--data DIR [DIR ...] --joint --write`` fits only the joint prior on top of the calibration in the
+file (:func:`joint_whitened`, :func:`fit_joint`; :mod:`polrig.solve.hybrid`, "Joint prior") and
+adds it as ``joint_prior``, everything else in the file as it is; a refit of the per-element
+sigma writes the file without it.
 """
 
 from __future__ import annotations
