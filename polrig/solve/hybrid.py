@@ -345,7 +345,7 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     direction goes (module docstring): ``"axis"`` onto the plane's axis :func:`plane_axis`,
     ``"scalar"`` spread over the plane by the factor ``f_r`` (the form before; for the comparison
     in ``models/continuum.py``). ``prior_correlation``: the joint prior's ``K`` ``(6, 6)``
-    (module docstring, "Joint prior"; :meth:`polrig.models.uncertainty.UncertaintyModel.joint`),
+    (module docstring, "Joint prior"; :attr:`polrig.models.uncertainty.UncertaintyModel.joint_correlation`),
     applied where the seen frame is used whole, the state has an axis and all nine elements have
     a prior; None (default): the per-element prior.
 

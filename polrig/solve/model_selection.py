@@ -546,7 +546,7 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
     if not g.size:
         return
     normal, m_post = posterior_system(rs.normal[g], rs.m_hat[g], mean[g], 1.0 / np.sqrt(precision[g]), s_seen,
-                                      correlation if s_seen is not None else None)
+                                      correlation)
     _test_and_write(models, crit, opts, c, pix[g], w, normal, m_post, rs.chi2[g], rs.n_used[g],
                     np.ones(g.size, bool), out, code, stat, pval, prefer_p=True)
 
