@@ -17,7 +17,11 @@ shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``).
 runs only the lower-order model comparison at two states (0/90: single-shot, hybrid 2, hybrid 2
 with ``select_models``; 64 samples per set; about 10 min) into
 ``benchmarks/results/continuum_models.md`` (``.json``); the full run holds it too, as its last
-table.
+table. ``--joint`` compares the per-element prior with the joint one (``joint_prior`` in
+``uncertainty.json``; ``--joint-compare``: the two-state test's false acceptance, coverage and
+PSNR at 1-4 states; 64 samples per set, about 22 min) into ``benchmarks/results/continuum_joint.md``,
+``--joint --rig`` on the rig's scenes at three turntable angles (about 5 min) into
+``continuum_joint_rig.md``.
 """
 
 from __future__ import annotations
@@ -33,6 +37,9 @@ DEFAULTS = ["--count", "64", "--search-count", "32", "--out", str(RESULTS)]
 RIG_DEFAULTS = ["--rig-scenes", ",".join(continuum.RIG_SCENES), "--out", str(RIG_RESULTS)]
 MODELS_RESULTS = RESULTS.with_name("continuum_models.md")
 MODELS_DEFAULTS = ["--models-only", "--count", "64", "--out", str(MODELS_RESULTS)]
+JOINT_DEFAULTS = ["--joint-compare", "--count", "64", "--out", str(RESULTS.with_name("continuum_joint.md"))]
+JOINT_RIG_DEFAULTS = ["--joint-compare", "--rig-scenes", ",".join(continuum.RIG_SCENES), "--rig-poses", "0,120,240",
+                      "--out", str(RESULTS.with_name("continuum_joint_rig.md"))]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,6 +48,12 @@ def main(argv: list[str] | None = None) -> int:
         i = extra.index("--plot-only")
         given = i + 1 < len(extra) and not extra[i + 1].startswith("--")
         return continuum.main(["--plot-only", extra[i + 1] if given else str(RESULTS.with_suffix(".json"))])
+    if "--joint" in extra:
+        extra.remove("--joint")
+        if "--rig" in extra:
+            extra.remove("--rig")
+            return continuum.main(JOINT_RIG_DEFAULTS + extra)
+        return continuum.main(JOINT_DEFAULTS + extra)
     if "--rig" in extra:
         extra.remove("--rig")
         return continuum.main(RIG_DEFAULTS + extra)

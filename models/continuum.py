@@ -369,9 +369,11 @@ def marginal_sigma(fr: Frames) -> np.ndarray:
     return fr.sigma * np.sqrt(g)
 
 
-def estimate(fr: Frames, offsets: Sequence[int], method: str):
+def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.ndarray | None = None):
     """``(mueller, sigma, solved)`` of ``method`` (``single``, ``hybrid``, ``reference`` or a
-    :data:`VARIANTS` name) from the frames at ``offsets`` (the seen state first)."""
+    :data:`VARIANTS` name) from the frames at ``offsets`` (the seen state first); ``correlation``:
+    the hybrid's joint prior (:func:`polrig.solve.hybrid.solve_hybrid`'s ``prior_correlation``;
+    None the per-element prior)."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.reference import ILL_CONDITIONED, solve_reference
 
@@ -380,7 +382,7 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
     s, meas, var, valid = _stack(fr, offsets)
     kw = dict(prior_mean=fr.prior, dtype=np.float64)
     if method == "hybrid":
-        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, **kw)
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, prior_correlation=correlation, **kw)
     elif method == "marginal":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, plane_variance="scalar",
                          **kw)
@@ -393,13 +395,13 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str):
     elif method == "reference":
         r = solve_reference(s, meas, var, valid, dtype=np.float64, max_condition=np.inf)
     elif method == "hybrid_models":
-        return hybrid_with_models(fr, offsets)[:3]
+        return hybrid_with_models(fr, offsets, correlation)[:3]
     else:
         raise ValueError(method)
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
 
 
-def hybrid_with_models(fr: Frames, offsets: Sequence[int]):
+def hybrid_with_models(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None):
     """The hybrid solve of ``offsets`` then the lower-order model selection
     (:func:`polrig.solve.model_selection.select_models` with the network as the prior: at two
     states it tests on the hybrid's posterior system, samples and prior):
@@ -410,8 +412,9 @@ def hybrid_with_models(fr: Frames, offsets: Sequence[int]):
 
     s, meas, var, valid = _stack(fr, offsets)
     r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
-                     dtype=np.float64)
-    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0)
+                     dtype=np.float64, prior_correlation=correlation)
+    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0,
+                            prior_correlation=correlation)
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0, maps.code
 
 
@@ -448,7 +451,8 @@ def _detectable(df: int) -> float:
     return detectable_noncentrality(df)
 
 
-def detectably_off_every_model(fr: Frames, offsets: Sequence[int]) -> np.ndarray:
+def detectably_off_every_model(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None
+                               ) -> np.ndarray:
     """``(C, H, W)``: the object's unclipped pixels whose truth the selection at ``offsets``
     could tell from every candidate model (:mod:`polrig.solve.model_selection`'s false-acceptance
     definition on the hybrid's posterior system: the noncentrality, each model's fit to the
@@ -470,7 +474,8 @@ def detectably_off_every_model(fr: Frames, offsets: Sequence[int]) -> np.ndarray
         ok = (rs.rank >= ms.MIN_RANK) & (rs.rank < 9) & rs.used[:, :4].all(axis=1)
         truth = fr.truth[c][:, :, ys, xs].reshape(9, -1).T
         sd = fr.sigma[c][:, :, ys, xs].reshape(9, -1).T
-        normal, m_post = ms.posterior_system(rs.normal, np.where(ok[:, None], rs.m_hat, 0.0), truth, sd, s[0])
+        normal, m_post = ms.posterior_system(rs.normal, np.where(ok[:, None], rs.m_hat, 0.0), truth, sd, s[0],
+                                             correlation)
         det = ok.copy()
         for model in MODELS:
             _, lam, _ = fit_model(model, m_post, normal)
@@ -491,28 +496,63 @@ def score_where_models_hold(fr: Frames, mueller: np.ndarray, holds: np.ndarray) 
             "holds_pixels": float(sel.sum()), "object_pixels": float((fr.mask & fr.clean).sum())}
 
 
-def models_rows(fr: Frames, two: Sequence[int]) -> dict[str, dict[str, float]]:
+def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None = None,
+                keys: Sequence[str] = ("single", "hybrid2", "hybrid2_models")) -> dict[str, dict[str, float]]:
     """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
     single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
     each with :func:`score` and :func:`score_where_models_hold` over the pixels where a model
     holds (:func:`model_holds`) that are lit in every colour (:func:`lit_pixels`: in a shadow a
     model holds trivially, the truth is about 0, the network returns about 0 and one frame's
     noise is all there is: single-shot PSNRs of 90 dB); the selection's row also the share of
-    scored colour-pixels given a reduced model, overall and where one holds."""
+    scored colour-pixels given a reduced model, overall and where one holds. ``correlation``: the
+    hybrid's joint prior (None: per element); ``keys``: the rows wanted."""
     holds = model_holds(fr.truth, fr.mask) & lit_pixels(fr).all(axis=0)
     rows = {}
     for key, method in (("single", "single"), ("hybrid2", "hybrid")):
-        est = estimate(fr, two, method)
-        rows[key] = score(fr, *est) | score_where_models_hold(fr, est[0], holds)
-    *est, code = hybrid_with_models(fr, two)
+        if key in keys:
+            est = estimate(fr, two, method, correlation)
+            rows[key] = score(fr, *est) | score_where_models_hold(fr, est[0], holds)
+    if "hybrid2_models" not in keys:
+        return rows
+    *est, code = hybrid_with_models(fr, two, correlation)
     sel = fr.use & est[2]
     reduced = (code != 0) & (code != 255)
-    det = detectably_off_every_model(fr, two) & sel
+    det = detectably_off_every_model(fr, two, correlation) & sel
     rows["hybrid2_models"] = (score(fr, *est) | score_where_models_hold(fr, est[0], holds)
                               | {"accepted": float(reduced[sel].mean()) if sel.any() else float("nan"),
                                  "accepted_holds": float(reduced[sel & holds[None]].mean())
                                  if (sel & holds[None]).any() else float("nan"),
                                  "detectable": float(det.sum()), "falsely_accepted": float(reduced[det].sum())})
+    return rows
+
+
+#: The priors of the joint comparison (:func:`joint_priors`): the per-element prior, the joint
+#: one (the fitted correlation ``K``) and the joint one with the whitened errors' scale measured
+#: on the calibration scenes (``S K S``, ``S`` the file's ``coverage_scale``).
+JOINT_PRIORS = ("diagonal", "joint", "joint_scaled")
+
+
+def joint_priors(uncertainty) -> dict[str, np.ndarray | None]:
+    """:data:`JOINT_PRIORS` -> the hybrid's ``prior_correlation`` of an
+    :class:`polrig.models.uncertainty.UncertaintyModel` with a joint prior."""
+    k = uncertainty.joint_correlation
+    scale = np.asarray(uncertainty.joint["coverage_scale"], np.float64)
+    return dict(zip(JOINT_PRIORS, (None, k, scale[:, None] * k * scale[None, :])))
+
+
+def joint_rows(fr: Frames, offsets: dict[str, tuple[int, ...]], priors: dict[str, np.ndarray | None]
+               ) -> dict[str, dict[str, float]]:
+    """One sample's rows of the joint-prior comparison (``--joint-compare``): for each of
+    ``priors`` (name -> ``prior_correlation``, :func:`joint_priors`), the hybrid at 1, 2, 3 and 4
+    states (``offsets``: ``two``, ``three``, ``four``) with :func:`score`, and at two states with
+    the lower-order model selection (:func:`models_rows`: its false acceptance and share
+    accepted); keys ``<prior>_hybrid<N>`` and ``<prior>_models``."""
+    rows = {}
+    for name, k in priors.items():
+        for n, offs in ((1, (0,)), (2, offsets["two"]), (3, offsets["three"]), (4, offsets["four"])):
+            rows[f"{name}_hybrid{n}"] = score(fr, *estimate(fr, offs, "hybrid", k)) | {"states": n, "time_s": 0.0}
+        rows[f"{name}_models"] = models_rows(fr, offsets["two"], k, keys=("hybrid2_models",))["hybrid2_models"] \
+            | {"states": 2, "time_s": 0.0}
     return rows
 
 
@@ -832,6 +872,111 @@ def models_markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
+def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 0, weights_dir=None,
+                  two=None, three=None, echo=print, rig_scenes: Sequence[str] | None = None,
+                  rig_poses: Sequence[float] = RIG_POSES_DEG, size: int | None = None) -> dict:
+    """The per-element prior against the joint one (``--joint-compare``, :func:`joint_rows`) on
+    ``count`` samples of each of ``sets``, the states ``two``/``three`` (default
+    :data:`RIG_TWO`, :data:`RIG_THREE`, as the continuum run found them) and
+    :data:`FOUR_STATES`; the frames as :func:`evaluate_set` makes them (same seeds). Writes
+    ``out_md`` and its ``.json`` when given. ``rig_scenes``: instead of ``sets``, the default
+    rig's named scenes at ``size`` (default :func:`rig_size`), one sample per turntable angle of
+    ``rig_poses`` (:func:`rig_set`). :class:`polrig.errors.ConfigError` where the calibration has
+    no joint prior (``python -m polrig.models.uncertainty_fit --joint``)."""
+    from polrig.atomic import atomic_write_text
+    from polrig.errors import ConfigError
+    from polrig.models.evaluate import results_paths
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+
+    unknown = [s for s in sets if s not in SETS] if rig_scenes is None else []
+    if unknown or count < 1:
+        raise ConfigError(f"unknown set(s) {', '.join(unknown)} or --count {count} < 1; sets are {', '.join(SETS)}")
+    net = SingleShotModel.load(weights_dir if weights_dir is not None else WEIGHTS_DIR)
+    k = None if net.uncertainty is None else net.uncertainty.joint_correlation
+    if k is None:
+        raise ConfigError("the single-shot calibration has no joint prior (python -m polrig.models.uncertainty_fit "
+                          "--data DIR [DIR ...] --joint --write)")
+    offsets = {"two": tuple(two or RIG_TWO), "three": tuple(three or RIG_THREE), "four": FOUR_STATES}
+    size = (rig_size() if size is None else int(size)) if rig_scenes is not None else SIZE
+    result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size, "seed": seed,
+                    "offsets": {a: list(b) for a, b in offsets.items()}, "correlation": k.tolist(), "sets": {}}
+    t0 = time.perf_counter()
+    names = [n for n in SETS if n in sets] if rig_scenes is None else [f"rig_{n}" for n in rig_scenes]
+    for name in names:
+        tag = list(SETS).index(name) if rig_scenes is None else names.index(name)
+        data = (make_set(pathlib.Path(root), name, SETS[name][1], count) if rig_scenes is None
+                else rig_set(name[len("rig_"):], size, rig_poses, seed))
+        rows: dict[str, list] = {}
+        for ds, sensor, i, prior in _samples(data, net):
+            fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
+            for key, row in joint_rows(fr, offsets, joint_priors(net.uncertainty)).items():
+                rows.setdefault(key, []).append(row)
+        result["sets"][name] = {"samples": len(rows.get("joint_models", [])),
+                                "methods": {key: _mean(v) for key, v in rows.items()}}
+        m = result["sets"][name]["methods"]
+        echo(f"{name}: false acceptance " + " / ".join(f"{100 * m[f'{p}_models']['false_acceptance']:.1f}"
+                                                     for p in JOINT_PRIORS) + " %; coverage 1-4 "
+             + "; ".join(" / ".join(f"{100 * m[f'{p}_hybrid{n}']['coverage']:.1f}" for p in JOINT_PRIORS)
+                         for n in range(1, 5)))
+    result["seconds"] = time.perf_counter() - t0
+    table = joint_markdown(result)
+    echo(table)
+    if out_md is not None:
+        out_md, out_json = results_paths(out_md)
+        atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        what = (f"--count {count} --sets {','.join(sets)}` (models/continuum.py `joint_rows`); {count} samples per set"
+                if rig_scenes is None else
+                f"--rig-scenes {','.join(rig_scenes)} --rig-poses {','.join(f'{p:g}' for p in rig_poses)}` "
+                "(models/continuum.py `joint_rows`); the default simulated rig's scenes, one sample per turntable "
+                "angle")
+        atomic_write_text(out_md, "# The network's prior: per element against joint\n\n`python -m polrig.models.continuum "
+                          f"--joint-compare {what} at {size}x{size} (those with a lit object pixel scored); "
+                          f"{result['seconds']:.0f} s on {os.cpu_count()} CPUs.\n\n" + table + "\n")
+    return result
+
+
+def joint_markdown(result: dict) -> str:
+    """:func:`joint_compare`'s result as Markdown tables: per set, each prior's
+    (:data:`JOINT_PRIORS`) false acceptance at two states, coverage within 2 sigma and matrix
+    PSNR at 1 to 4 states."""
+    off = result["offsets"]
+    first = next(iter(result["sets"].values()))["methods"]
+    priors = [p for p in JOINT_PRIORS if f"{p}_models" in first]
+    head = " / ".join(priors)
+    lines = ["**False acceptance of the two-state model test** "
+             f"({'/'.join(map(str, off['two']))}; a reduced model chosen where the truth is detectably off every "
+             "candidate in the test's own metric, of that share of the scored colour-pixels), the share given a "
+             "reduced model where one holds, and the matrix PSNR there (hybrid 2 + models)", "",
+             "| set | scored | " + " | ".join(f"false acceptance, {p}" for p in priors)
+             + f" | reduced where one holds, {head} | PSNR where one holds, {head} (dB) |",
+             "|---|---:|" + "---:|" * (len(priors) + 2)]
+    for key, r in result["sets"].items():
+        m = [r["methods"][f"{p}_models"] for p in priors]
+        lines.append(f"| {set_label(key)} | {r['samples']} | "
+                     + " | ".join(f"{100 * x['false_acceptance']:.1f} % of {100 * x['detectable_share']:.0f} %"
+                                  for x in m)
+                     + " | " + " / ".join(f"{100 * x['accepted_holds']:.0f}" for x in m) + " % | "
+                     + " / ".join(f"{x['psnr_holds']:.2f}" for x in m) + " |")
+    states = [(1, "0"), (2, "/".join(map(str, off["two"]))), (3, "/".join(map(str, off["three"]))),
+              (4, "/".join(map(str, off["four"])))]
+    for metric, title, fmt in (("coverage", "Within 2 sigma, hybrid", "{:.1%}"),
+                               ("matrix_psnr", "Matrix PSNR (dB), hybrid, object pixels", "{:.2f}")):
+        lines += ["", f"**{title}**: {head}" + (" (each joint prior - diagonal)" if metric == "matrix_psnr" else ""),
+                  "", "| set | " + " | ".join(f"{n} ({o})" for n, o in states) + " |",
+                  "|---|" + "---:|" * len(states)]
+        for key, r in result["sets"].items():
+            m = r["methods"]
+            cells = []
+            for n, _ in states:
+                vals = [m[f"{p}_hybrid{n}"][metric] for p in priors]
+                cell = " / ".join(fmt.format(v) for v in vals).replace("%", " %")
+                if metric == "matrix_psnr":
+                    cell += " (" + ", ".join(f"{v - vals[0]:+.2f}" for v in vals[1:]) + ")"
+                cells.append(cell)
+            lines.append(f"| {set_label(key)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], seed: int = 0,
         weights_dir=None, two=None, three=None, echo=print,
         targets: Sequence[float] = ADAPTIVE_TARGETS, rig_scenes: Sequence[str] | None = None,
@@ -1120,7 +1265,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--fit-highlights", action="store_true",
                     help="only fit the sigma factor at the highlights a bracket measured "
                          "(polrig.models.highlights.SIGMA_FACTOR) on the calibration scenes, --count samples")
+    ap.add_argument("--joint-compare", action="store_true",
+                    help="only the per-element prior against the joint one (uncertainty.json's joint_prior): the "
+                         "two-state model test's false acceptance, coverage and PSNR at 1 to 4 states")
     args = ap.parse_args(argv)
+    if args.joint_compare:
+        return run_main(ap.prog, lambda: (joint_compare(args.root, args.out, count=args.count,
+                                                        sets=[s for s in args.sets.split(",") if s], seed=args.seed,
+                                                        weights_dir=args.weights, two=_offsets(args.two, 2),
+                                                        three=_offsets(args.three, 3),
+                                                        rig_scenes=None if args.rig_scenes is None else
+                                                        [n for n in args.rig_scenes.split(",") if n],
+                                                        rig_poses=_poses(args.rig_poses), size=args.size), 0)[1])
     if args.fit_highlights:
         from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
 

@@ -61,6 +61,17 @@ The error model (numpy only: it runs at inference without torch):
   two passes disagree the network is unsure (on the held-out sets coverage fell from 94-99 %
   to 71-83 % in the 1 % of elements that disagree most, measured against ``sigma``).
 
+* **Joint prior** (optional, the file's ``joint_prior``, version :data:`JOINT_VERSION`): the
+  sigma is per element, but the hybrid solve uses the network's estimate as a prior on the six
+  directions its frame leaves unobserved, whose errors are correlated across the rows of ``M``.
+  ``joint_prior.correlation`` is the 6x6 correlation ``K`` of the errors in the coordinates the
+  per-element prior whitens (:mod:`polrig.solve.hybrid`, "Joint prior"), fitted on the
+  calibration scenes by ``python -m polrig.models.uncertainty_fit --data ... --joint --write``
+  (Spearman's rank correlation taken to Pearson's, robust to heavy tails). It leaves every
+  element's sigma as it is. A file without it (every version-3 file before it) reads as
+  before, with no joint prior; a refit of the per-element sigma writes the file without it
+  (``K`` belongs to that sigma's whitening), so the joint prior is fitted again after it.
+
 The coefficients are fitted by :mod:`polrig.models.uncertainty_fit` (``python -m polrig.models.uncertainty_fit``,
 the fitting tool: it runs the graph on simulated sets, so it imports the evaluation code; this
 module is the runtime part and imports nothing from evaluation or training).
@@ -93,6 +104,10 @@ FORMAT = "polrig-single-shot-uncertainty"
 #: its reference and limits); an older file counts as no calibration (one line says so, and how
 #: to calibrate). The mirror term's ``mirror_disagreement_k`` is optional (absent: 0, no term).
 VERSION = 3
+#: Key of the optional joint prior in the file (module docstring, "Joint prior"), and the
+#: version of its entry: a file without it (every version-3 file before) reads as before.
+JOINT_KEY = "joint_prior"
+JOINT_VERSION = 1
 #: Quantiles of the calibration images' light spread that bound it below (``low``) and divide it
 #: (``reference``), and up to which the knee ``high`` is searched (``light_spread`` in the file).
 SPREAD_QUANTILES = {"low": 0.01, "reference": 0.5, "high": 0.99}
@@ -194,6 +209,15 @@ class UncertaintyModel:
     #: ``{"low", "reference", "high"}`` (rad) of the light-spread factor (module docstring;
     #: :data:`SPREAD_QUANTILES`), or None: no factor (a model made in code, e.g. in a test).
     spread: dict | None = None
+    #: The joint prior (module docstring, "Joint prior"): ``{"version", "correlation" (6, 6),
+    #: ...}`` as :mod:`polrig.models.uncertainty_fit` fits it (``--joint``), or None: none fitted.
+    joint: dict | None = None
+
+    @property
+    def joint_correlation(self) -> np.ndarray | None:
+        """The joint prior's ``K`` ``(6, 6)`` (:func:`polrig.solve.hybrid.solve_hybrid`'s
+        ``prior_correlation``), or None where the calibration has none."""
+        return None if self.joint is None else np.asarray(self.joint["correlation"], np.float64)
 
     def spread_factor(self, light_spread: float | None) -> float:
         """``clip(omega, low, high) / reference`` (module docstring); 1 for a model without the
@@ -270,7 +294,7 @@ class UncertaintyModel:
                 "coverage_target": COVERAGE, "scale_floor": SCALE_FLOOR, "p_min": P_MIN,
                 "coefficients": np.round(self.coefficients, 6).tolist(),
                 "mirror_disagreement_k": round(float(self.mirror_k), 6), "light_spread": self.spread,
-                "calibration": self.calibration}
+                "calibration": self.calibration} | ({} if self.joint is None else {JOINT_KEY: self.joint})
 
     @classmethod
     def from_json(cls, data: dict) -> "UncertaintyModel":
@@ -292,7 +316,26 @@ class UncertaintyModel:
         if not (np.all(np.isfinite(list(spread.values())))
                 and 0 < spread["low"] <= spread["reference"] <= spread["high"]):
             raise ValueError(f"light_spread must be finite with 0 < low <= reference <= high, got {spread}")
-        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k, spread)
+        return cls(coef, str(data.get("graph_sha256", "")), dict(data.get("calibration", {})), k, spread,
+                   _read_joint(data.get(JOINT_KEY)))
+
+
+def _read_joint(joint) -> dict | None:
+    """The file's :data:`JOINT_KEY` entry checked (None where absent: a calibration without the
+    joint prior, as every file before it); :class:`ValueError` for one this polrig cannot use."""
+    if joint is None:
+        return None
+    from polrig.errors import ConfigError
+    from polrig.solve.hybrid import check_correlation
+
+    if not isinstance(joint, dict) or joint.get("version") != JOINT_VERSION:
+        raise ValueError(f"{JOINT_KEY} must be a version-{JOINT_VERSION} object, got "
+                         f"{joint.get('version') if isinstance(joint, dict) else type(joint).__name__!r}")
+    try:
+        check_correlation(joint.get("correlation"))
+    except ConfigError as exc:
+        raise ValueError(f"{JOINT_KEY}: {exc}") from None
+    return dict(joint)
 
 
 def graph_sha256(path: str | pathlib.Path) -> str:

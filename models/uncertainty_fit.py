@@ -18,6 +18,10 @@ analyzer sample are left out: a clipped highlight's magnitude is unknown, and
 ``python -m polrig.models.uncertainty_fit --data DIR [DIR ...] --write`` runs the shipped graph on
 ``polrig sim dataset`` folders, calibrates and writes ``models/weights/uncertainty.json`` (with
 the SHA-256 of the graph it belongs to); ``--check DIR ...`` prints the coverage on other sets.
+``--data DIR [DIR ...] --joint --write`` fits only the joint prior on top of the calibration in the
+file (:func:`joint_whitened`, :func:`fit_joint`; :mod:`polrig.solve.hybrid`, "Joint prior") and
+adds it as ``joint_prior``, everything else in the file as it is; a refit of the per-element
+sigma writes the file without it.
 """
 
 from __future__ import annotations
@@ -35,6 +39,8 @@ from polrig.errors import ConfigError, FormatError
 from polrig.models.uncertainty import (
     COVERAGE,
     FILE_NAME,
+    JOINT_KEY,
+    JOINT_VERSION,
     N_FEATURES,
     P_MIN,
     SPREAD_QUANTILES,
@@ -268,6 +274,66 @@ def coverage(model: UncertaintyModel, samples: Iterable[Sample]) -> dict[str, fl
             "pixels": int(len(e_all))}
 
 
+def joint_whitened(model: UncertaintyModel, samples: Iterable[Sample]) -> np.ndarray:
+    """The network's errors whitened in the hybrid's unobserved coordinates, ``w = Q^T (M_net -
+    M_true)`` ``(N, 6)`` (:func:`polrig.solve.hybrid.unobserved_factor` of the per-element
+    prior's precision, ``model``'s sigma with the seen state the sample's own), pooled over the
+    unclipped object pixels (and colours) whose sigma is positive at all nine elements; samples
+    whose state has no angle are left out (the joint prior does not apply there). Unit
+    covariance where the per-element prior is right (:mod:`polrig.models.uncertainty`, "Joint
+    prior")."""
+    from polrig.solve.hybrid import observed_direction, plane_axis, unobserved_factor, unobserved_precision
+
+    out = []
+    for s in samples:
+        if plane_axis(observed_direction(s.s_in)) is None:
+            continue
+        pred = np.asarray(s.pred, np.float64)
+        sd = model.sigma(pred, s.s_in, s.mask, s.stokes, s.disagreement, light_spread=s.light_spread)
+        use = np.asarray(s.mask, bool)[None] & ~np.asarray(s.clipped, bool) & (sd > 0).all(axis=(1, 2)) \
+            & np.isfinite(sd).all(axis=(1, 2))
+        sig = np.moveaxis(sd, (1, 2), (-2, -1))[use].astype(np.float64)  # (n, 3, 3)
+        err = np.moveaxis(pred - np.asarray(s.truth, np.float64), (1, 2), (-2, -1))[use].reshape(-1, 9)
+        q = unobserved_factor(unobserved_precision(sig, s.s_in), s.s_in)  # (n, 9, 6)
+        w = np.einsum("nia,ni->na", q, err)
+        out.append(w[np.isfinite(w).all(axis=1)])
+    return np.concatenate(out) if out else np.zeros((0, 6))
+
+
+def fit_joint(w: np.ndarray) -> dict:
+    """The joint prior's correlation ``K`` ``(6, 6)`` of whitened errors ``w`` ``(N, 6)``
+    (:func:`joint_whitened`): Spearman's rank correlation ``rho_s`` of each pair, taken to the
+    Pearson correlation of a Gaussian pair, ``2 sin(pi rho_s / 6)`` (Kruskal 1958, J. Am. Stat.
+    Assoc. 53, 814), robust to the errors' heavy tails that would dominate a moment estimate;
+    then made positive definite (eigenvalues at least :data:`JOINT_MIN_EIGENVALUE`, unit
+    diagonal again). Also records, per coordinate, the ``COVERAGE`` quantile of ``|w| / 2``,
+    the scale the per-element sigma has in those coordinates (1 for a calibrated one; not
+    applied: ``K`` keeps the per-element calibration's scale)."""
+    w = np.asarray(w, np.float64)
+    if w.ndim != 2 or w.shape[1] != 6 or len(w) < 10:
+        raise ValueError(f"too few whitened errors to fit the joint prior ({w.shape})")
+    ranks = np.argsort(np.argsort(w, axis=0), axis=0).astype(np.float64)
+    rho_s = np.corrcoef(ranks, rowvar=False)
+    k = 2.0 * np.sin(np.pi * rho_s / 6.0)
+    np.fill_diagonal(k, 1.0)
+    val, vec = np.linalg.eigh((k + k.T) / 2)
+    k = (vec * np.maximum(val, JOINT_MIN_EIGENVALUE)) @ vec.T
+    d = np.sqrt(np.diag(k))
+    k = k / d[:, None] / d[None, :]
+    k = (k + k.T) / 2
+    scale = np.quantile(np.abs(w), COVERAGE, axis=0) / 2.0
+    return {"correlation": np.round(k, 6).tolist(), "elements": int(len(w)),
+            "coverage_scale": np.round(scale, 4).tolist()}
+
+
+#: What the joint prior's entry describes (``joint_prior.model`` in the file).
+JOINT_MODEL = ("prior precision on the seen state's unobserved directions Q K^-1 Q^T, Q the per-element prior's "
+               "factor (polrig.solve.hybrid.unobserved_factor), K this correlation of the whitened errors, "
+               "coordinates (row 0, v1), (row 0, v2), (row 1, v1), ...")
+#: Least eigenvalue of the fitted joint correlation (:func:`fit_joint`).
+JOINT_MIN_EIGENVALUE = 0.02
+
+
 def dataset_samples(data_dir, model, limit: int | None = None, mirror_average: bool = False) -> list[Sample]:
     """Run ``model`` (:class:`polrig.models.runtime.SingleShotModel`; mirror-averaged with
     ``mirror_average``) on a ``polrig sim dataset`` folder -> samples with the truth (samples
@@ -311,6 +377,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--check", nargs="*", default=[], help="sets to report the coverage on")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
     ap.add_argument("--write", action="store_true", help=f"write {FILE_NAME} into the weights folder")
+    ap.add_argument("--joint", action="store_true",
+                    help="fit only the joint prior (the correlation of the errors the hybrid solve's prior leaves "
+                         f"unobserved) on --data, on top of the calibration in {FILE_NAME}, which is not refitted")
     args = ap.parse_args(argv)
     return run_main(ap.prog, lambda: _main(args))
 
@@ -323,6 +392,8 @@ def _main(args: argparse.Namespace) -> int:
     wd = pathlib.Path(args.weights) if args.weights else WEIGHTS_DIR
     if not wd.is_dir():
         raise FileNotFoundError(f"weights folder {wd} not found")
+    if args.joint and not args.data:
+        raise ConfigError("--joint needs --data (the calibration sets)")
     for d in (*args.data, *args.check):  # every set, before the first is run
         read_manifest(d)
     if args.write:
@@ -335,6 +406,20 @@ def _main(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise ConfigError(f"--write: cannot write in {wd} ({exc.strerror or exc})") from None
     net = SingleShotModel.load(wd)
+    if args.joint:
+        model, why = calibration_for_graph(wd, "single_shot.onnx")
+        if model is None:
+            raise ConfigError(f"{why}; {how_to_calibrate(wd)}")
+        cal = [s for d in args.data for s in dataset_samples(d, net)]
+        model.joint = {"version": JOINT_VERSION, **fit_joint(joint_whitened(model, cal)),
+                       "sets": [pathlib.Path(d).name for d in args.data], "samples": len(cal),
+                       "model": JOINT_MODEL}
+        print(json.dumps(model.joint, indent=1))
+        if args.write:
+            data = json.loads((wd / FILE_NAME).read_text())  # everything else as it is (checks included)
+            data[JOINT_KEY] = model.joint
+            atomic_write_text(wd / FILE_NAME, json.dumps(data, indent=1) + "\n")
+        return 0
     if args.data:
         cal = [s for d in args.data for s in dataset_samples(d, net)]
         coef, limits, info = calibrate(cal)

@@ -1,5 +1,7 @@
 """``python -m benchmarks continuum``: the committed table's settings, overridable, end to end."""
 
+import pathlib
+
 import pytest
 
 from polrig.models.runtime import WEIGHTS_DIR
@@ -11,6 +13,8 @@ def test_defaults_are_the_committed_tables():
     assert bench_continuum.DEFAULTS[:4] == ["--count", "64", "--search-count", "32"]
     assert bench_continuum.RESULTS.name == "continuum.md"
     assert (bench_continuum.RESULTS.with_suffix(".json")).is_file()
+    for defaults in (bench_continuum.JOINT_DEFAULTS, bench_continuum.JOINT_RIG_DEFAULTS):
+        assert defaults[0] == "--joint-compare" and pathlib.Path(defaults[-1]).with_suffix(".json").is_file()
 
 
 @pytest.mark.skipif(not (WEIGHTS_DIR / "uncertainty.json").is_file(), reason="no calibrated model")

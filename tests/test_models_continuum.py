@@ -219,3 +219,25 @@ def test_rig_set_is_the_default_rigs_scene_at_its_size():
         ok = (ds["mask"][i] > 0)[None, None] & (meas < sensor.saturation_dn - 100)
         chi2 = ((meas - clean) ** 2 / sensor.variance_dn2(np.clip(clean, 0, None), DATASET_EXPOSURE_US, 1))[ok]
         assert ok.sum() > 100 and 0.7 < chi2.mean() < 1.4
+
+
+def test_joint_compare_tables_each_prior(tmp_path):
+    """``--joint-compare`` on 1 sample: every prior of JOINT_PRIORS at 1-4 states and the
+    two-state test; at one state the joint prior's mean is the per-element prior's (the data
+    and the prior are orthogonal there), so its PSNR is the same to 0.01 dB."""
+    from polrig.models import continuum
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+
+    net = SingleShotModel.load(WEIGHTS_DIR)
+    if net.uncertainty is None or net.uncertainty.joint_correlation is None:
+        pytest.skip("no joint prior in the shipped calibration")
+    out = tmp_path / "j.md"
+    res = continuum.joint_compare(tmp_path / "sets", out, count=1, sets=["seen_families"], echo=lambda *a: None)
+    m = res["sets"]["seen_families"]["methods"]
+    for p in continuum.JOINT_PRIORS:
+        for n in range(1, 5):
+            assert 0.5 < m[f"{p}_hybrid{n}"]["coverage"] <= 1.0
+        assert "false_acceptance" in m[f"{p}_models"]
+    assert abs(m["joint_hybrid1"]["matrix_psnr"] - m["diagonal_hybrid1"]["matrix_psnr"]) < 0.01
+    text = out.read_text()
+    assert "False acceptance of the two-state model test" in text and "joint_scaled" in text

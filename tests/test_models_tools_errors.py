@@ -81,7 +81,7 @@ def _tool(module: str, capsys, *argv) -> tuple[int, str]:
 
 
 @pytest.mark.parametrize("case", ["no-weights", "no-data", "dark", "dark-check", "limit-0", "limit-negative",
-                                  "json-nodir"])
+                                  "json-nodir", "joint-no-data"])
 def test_diagnose_and_uncertainty_bad_input_is_one_line(sets, tmp_path, capsys, case):
     lit, dark = sets
     module, argv, needle = {
@@ -92,6 +92,7 @@ def test_diagnose_and_uncertainty_bad_input_is_one_line(sets, tmp_path, capsys, 
         "limit-0": ("diagnose", ["--data", lit, "--limit", "0"], "--limit"),
         "limit-negative": ("diagnose", ["--data", lit, "--limit", "-1"], "--limit"),
         "json-nodir": ("diagnose", ["--data", lit, "--json", tmp_path / "nodir" / "x.json"], "nodir"),
+        "joint-no-data": ("uncertainty_fit", ["--joint", "--check", lit], "--joint needs --data"),
     }[case]
     code, err = _tool(module, capsys, *argv)
     assert code == 2 and needle in err.splitlines()[-1] and "Traceback" not in err

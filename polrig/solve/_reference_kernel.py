@@ -620,6 +620,71 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
 
 
 @jit_cached()
+def correlate_prior(pa, prank, w, seen_k, seen_dir, seen_axis, kinv):  # pragma: no cover - compiled
+    """The joint prior of :mod:`polrig.solve.hybrid` ("Joint prior"): where :func:`load_prior`
+    wrote the block-diagonal precision of a whole seen frame and a prior at all nine elements
+    (``prank == 6``, at least 3 of the seen state's samples used, a seen state with an axis),
+    replace it by ``P = Q K^-1 Q^T`` with ``Q`` ``(9, 6)`` block diagonal over the rows,
+    ``Q_r = [v1 v2] L_r`` and ``L_r`` the Cholesky factor of ``[v1 v2]^T P_r [v1 v2]`` (so
+    ``Q Q^T`` is the block-diagonal ``P``: ``K = I`` changes nothing but rounding). ``kinv``
+    ``(6, 6)``: the inverse of the whitened unobserved error's correlation ``K`` (coordinates
+    row-major, ``(r, v1), (r, v2)``). Other lanes are left as they are."""
+    nb, _, _, nl = pa.shape
+    v2 = np.empty(3)
+    v2[0] = seen_axis[1] * seen_dir[2] - seen_axis[2] * seen_dir[1]
+    v2[1] = seen_axis[2] * seen_dir[0] - seen_axis[0] * seen_dir[2]
+    v2[2] = seen_axis[0] * seen_dir[1] - seen_axis[1] * seen_dir[0]
+    qf = np.zeros((9, 6))
+    tmp = np.empty((9, 6))
+    for b in range(nb):
+        for q in range(nl):
+            if prank[b, q] != 6 or seen_k < 0:
+                continue
+            nseen = 0
+            for j in range(4):
+                if w[b, 4 * seen_k + j, q] > 0:
+                    nseen += 1
+            if nseen < 3:
+                continue
+            ok = True
+            for r in range(3):
+                g11 = 0.0
+                g12 = 0.0
+                g22 = 0.0
+                for a in range(3):
+                    for bb in range(3):
+                        p = pa[b, 3 * r + a, 3 * r + bb, q]
+                        g11 += seen_axis[a] * p * seen_axis[bb]
+                        g12 += seen_axis[a] * p * v2[bb]
+                        g22 += v2[a] * p * v2[bb]
+                if not g11 > 0:
+                    ok = False
+                    break
+                l11 = np.sqrt(g11)
+                l21 = g12 / l11
+                d = g22 - l21 * l21
+                if not d > 0:
+                    ok = False
+                    break
+                l22 = np.sqrt(d)
+                for a in range(3):
+                    qf[3 * r + a, 2 * r] = seen_axis[a] * l11 + v2[a] * l21
+                    qf[3 * r + a, 2 * r + 1] = v2[a] * l22
+            if not ok:
+                continue
+            for ii in range(9):  # tmp = Q K^-1 (Q block diagonal: row ii lives in block ii // 3)
+                r = ii // 3
+                for jj in range(6):
+                    tmp[ii, jj] = qf[ii, 2 * r] * kinv[2 * r, jj] + qf[ii, 2 * r + 1] * kinv[2 * r + 1, jj]
+            for ii in range(9):
+                for ll in range(ii + 1):
+                    r2 = ll // 3
+                    v = tmp[ii, 2 * r2] * qf[ll, 2 * r2] + tmp[ii, 2 * r2 + 1] * qf[ll, 2 * r2 + 1]
+                    pa[b, ii, ll, q] = v
+                    pa[b, ll, ii, q] = v
+
+
+@jit_cached()
 def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, out_max, cal_sd,
                  with_cal, with_prior, pa, pm, prank, x_out, sg_out, sn_out, res_out, nok, keys
                  ):  # pragma: no cover - compiled

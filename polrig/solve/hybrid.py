@@ -127,6 +127,29 @@ Consequences, all tested:
   ``M``, e.g. with fewer than 3 states). A NaN or negative sigma, or a non-finite mean with a
   finite sigma, sets ``NONFINITE``.
 
+**Joint prior** (``prior_correlation``, off by default). The calibrated sigma is per element;
+the network's errors on the six unobserved directions are not independent across the rows of
+``M``. In the coordinates the per-element prior whitens, ``w = Q^T e`` with ``Q`` ``(9, 6)``
+block diagonal over the rows, ``Q_r = [v1 v2] L_r`` and ``L_r`` the Cholesky factor of the row's
+precision on its plane ``[v1 v2]^T P_r [v1 v2]`` (:func:`unobserved_factor`; ``Q Q^T = P``), a
+right per-element prior gives ``w`` unit covariance. The joint prior models it as ``K`` (6x6,
+symmetric positive definite; coordinates ``(r, v1), (r, v2)`` row by row), so the covariance
+on the plane is ``L^-T K L^-1`` and the precision ``P_joint = Q K^-1 Q^T``
+(:func:`joint_precision`; the kernel's :func:`polrig.solve._reference_kernel.correlate_prior`).
+``K = I`` is the per-element prior (to rounding: ``tests/test_hybrid_joint.py``, 1e-9). ``K``
+with a unit diagonal (a correlation, as fitted: :mod:`polrig.models.uncertainty_fit`
+``--joint``) keeps every coordinate's calibrated variance. At the seen state alone the data
+observe ``u`` and the prior the plane, orthogonal in every row, so the posterior mean is the
+per-element prior's exactly and an element's variance changes only through ``K``'s terms
+within a row (``(r, v1)`` with ``(r, v2)``: at most 0.05 as fitted); the rows' coupling acts
+from two states on, where a measured direction of one row informs an unmeasured one of
+another. It applies where the per-element prior has its block-diagonal form (the seen frame's
+samples used whole, a seen state with an axis, all nine elements with a prior); elsewhere the
+per-element prior is used as it is. Fitted on the calibration scenes, ``K`` is about ``I`` but
+for the lower 2x2 block of the observed frame: ``corr((1, v1), (2, v2)) = +0.66`` and
+``corr((1, v2), (2, v1)) = -0.63``, the pattern of a rotation of the linear polarization frame
+(an error in the surface's azimuth turns ``m11, m12, m21, m22`` together).
+
 Masks and outputs are those of :class:`~polrig.solve.reference.ReferenceResult`, so
 :func:`polrig.formats.exr.result_planes` writes them unchanged: ``ILL_CONDITIONED`` for a
 pixel with a prior means its posterior is singular to working precision (a Cholesky pivot of
@@ -163,7 +186,12 @@ from polrig.solve.reference import (
     solve_tiles,
 )
 
-__all__ = ["solve_hybrid", "unobserved_precision", "observed_direction", "plane_axis"]
+__all__ = ["solve_hybrid", "unobserved_precision", "observed_direction", "plane_axis", "unobserved_factor",
+           "joint_precision", "check_correlation", "JOINT_DIM"]
+
+#: Dimension of the joint prior's correlation: two unobserved directions (``v1``, ``v2``) per
+#: row of ``M`` (module docstring, "Joint prior").
+JOINT_DIM = 6
 
 #: Degree of polarization of the seen state below which its observed direction has no angle:
 #: its unobserved plane has no preferred axis, and the row variance factor is the scalar ``g_r``
@@ -226,6 +254,62 @@ def plane_axis(u: np.ndarray) -> np.ndarray | None:
     return np.array([lin, -u[0] * u[1] / lin, -u[0] * u[2] / lin])
 
 
+def unobserved_factor(p_rows: np.ndarray, s_seen) -> np.ndarray:
+    """``Q`` ``(..., 9, 6)`` with ``Q Q^T`` the per-element prior's block-diagonal precision
+    ``p_rows`` ``(..., 3, 3, 3)`` (:func:`unobserved_precision` with a seen state that has an
+    axis; row ``r``'s block ``[r]``): ``Q_r = [v1 v2] L_r``, ``L_r`` the Cholesky factor of
+    ``[v1 v2]^T P_r [v1 v2]`` (module docstring, "Joint prior"). ``Q^T e`` is the network's error
+    ``e`` ``(..., 9)`` whitened in the unobserved coordinates ``(r, v1), (r, v2)``: unit
+    covariance where the per-element prior is right. NaN where a row's block is not positive
+    on the plane. :class:`ValueError` for a seen state without an axis."""
+    u = observed_direction(s_seen)
+    v1 = plane_axis(u)
+    if v1 is None:
+        raise ValueError("the joint prior needs a seen state with an angle (degree of polarization at least "
+                         f"{MIN_SEEN_DOP})")
+    basis = np.stack([v1, np.cross(v1, u)], axis=1)  # (3, 2)
+    p = np.asarray(p_rows, np.float64)
+    g = np.einsum("ai,...rab,bj->...rij", basis, p, basis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l11 = np.sqrt(np.where(g[..., 0, 0] > 0, g[..., 0, 0], np.nan))
+        l21 = g[..., 0, 1] / l11
+        d = g[..., 1, 1] - l21 * l21
+        l22 = np.sqrt(np.where(d > 0, d, np.nan))
+    low = np.zeros(g.shape)
+    low[..., 0, 0], low[..., 1, 0], low[..., 1, 1] = l11, l21, l22
+    rows = np.einsum("ai,...rij->...raj", basis, low)  # (..., 3 rows, 3, 2)
+    q = np.zeros(p.shape[:-3] + (9, JOINT_DIM))
+    for r in range(3):
+        q[..., 3 * r:3 * r + 3, 2 * r:2 * r + 2] = rows[..., r, :, :]
+    return q
+
+
+def joint_precision(p_rows: np.ndarray, s_seen, correlation: np.ndarray) -> np.ndarray:
+    """The joint prior's precision ``Q K^-1 Q^T`` ``(..., 9, 9)`` of the per-element prior's
+    blocks ``p_rows`` ``(..., 3, 3, 3)`` (:func:`unobserved_factor`) and the whitened
+    unobserved error's correlation ``K`` ``(6, 6)`` (module docstring, "Joint prior"); the
+    numpy form of :func:`polrig.solve._reference_kernel.correlate_prior`."""
+    q = unobserved_factor(p_rows, s_seen)
+    kinv = np.linalg.inv(check_correlation(correlation))
+    return np.einsum("...ia,ab,...jb->...ij", q, kinv, q)
+
+
+def check_correlation(correlation) -> np.ndarray:
+    """``correlation`` as a float64 ``(6, 6)`` symmetric positive definite matrix;
+    :class:`polrig.errors.ConfigError` (one line) otherwise."""
+    k = np.asarray(correlation, np.float64)
+    if k.shape != (JOINT_DIM, JOINT_DIM) or not np.all(np.isfinite(k)):
+        raise ConfigError(f"prior_correlation must be a finite {JOINT_DIM}x{JOINT_DIM} matrix, got shape {k.shape}")
+    if not np.allclose(k, k.T, rtol=0, atol=1e-9 * max(1.0, float(np.abs(k).max()))):
+        raise ConfigError("prior_correlation must be symmetric")
+    k = (k + k.T) / 2
+    try:
+        np.linalg.cholesky(k)
+    except np.linalg.LinAlgError:
+        raise ConfigError("prior_correlation must be positive definite") from None
+    return k
+
+
 def _prior_array(x, name: str, shape: tuple[int, ...]) -> np.ndarray:
     a = np.asarray(x)
     if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
@@ -241,7 +325,8 @@ def _prior_array(x, name: str, shape: tuple[int, ...]) -> np.ndarray:
 def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                  valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
                  prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int | None,
-                 plane_variance: str = "axis", max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
+                 plane_variance: str = "axis", prior_correlation: np.ndarray | None = None,
+                 max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
                  analyzer_tolerance: Sequence[float] | None = None,
                  generator_tolerance: Sequence[float] | None = None,
                  chunk_pixels: int = DEFAULT_TILE_PIXELS, dtype=np.float32) -> ReferenceResult:
@@ -259,7 +344,10 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     of the measured samples. ``plane_variance``: where the row's prior variance along the seen
     direction goes (module docstring): ``"axis"`` onto the plane's axis :func:`plane_axis`,
     ``"scalar"`` spread over the plane by the factor ``f_r`` (the form before; for the comparison
-    in ``models/continuum.py``).
+    in ``models/continuum.py``). ``prior_correlation``: the joint prior's ``K`` ``(6, 6)``
+    (module docstring, "Joint prior"; :attr:`polrig.models.uncertainty.UncertaintyModel.joint_correlation`),
+    applied where the seen frame is used whole, the state has an axis and all nine elements have
+    a prior; None (default): the per-element prior.
 
     Raises :class:`polrig.errors.ConfigError` for no state, non-finite states, a
     ``seen_state`` that is not an index of ``s_in`` (or a zero state), or a bad option, and
@@ -285,6 +373,10 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
         axis = np.zeros(3) if v1 is None else v1
     _, n_col, _, h, w = inputs.meas.shape
     shape = (n_col, 3, 3, h, w)
+    kinv = None
+    if prior_correlation is not None:
+        kinv = np.linalg.inv(check_correlation(prior_correlation))
+        kinv = (kinv + kinv.T) / 2
     prior = PriorInputs(_prior_array(prior_mean, "prior_mean", shape),
-                        _prior_array(prior_sigma, "prior_sigma", shape), u, axis, seen_k)
+                        _prior_array(prior_sigma, "prior_sigma", shape), u, axis, seen_k, kinv)
     return solve_tiles(inputs, analyzer_rows, max_condition, min_snr, dtype, tile, prior)

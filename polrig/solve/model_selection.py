@@ -103,7 +103,12 @@ hybrid's model; not measured further), +4.0..+6.6 dB over single-shot where a mo
 80-84 % of the elements within 2 sigma. Because that false acceptance exceeds the level, captures
 and ``polrig reconstruct`` do not pass the prior here
 (:func:`polrig.solve.radiometry.reference_from_frames`): with two states their pixels stay
-``UNTESTED``; this route serves the benchmark until the prior is calibrated jointly.
+``UNTESTED``; this route serves the benchmark. The prior calibrated jointly
+(``prior_correlation``, :mod:`polrig.solve.hybrid` "Joint prior") gives the test its level on
+data drawn from that model (``tests/test_hybrid_joint.py``) but not on the network's errors:
+1.3-21.9 % per held-out set (``python -m polrig.models.continuum --joint-compare``,
+``benchmarks/results/continuum_joint.md``), where the network's estimate itself leans toward a
+lower-order block that the truth is not.
 
 Never silent: nothing here runs unless asked (``polrig reconstruct --models auto``,
 ``polrig capture --models auto``); the result then always carries the maps
@@ -409,8 +414,8 @@ class _Outputs:
 def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                   valid: np.ndarray | None, analyzer_rows, result: ReferenceResult,
                   options: SelectionOptions | None = None, *, chunk_pixels: int = 16384,
-                  prior: tuple[np.ndarray, np.ndarray] | None = None, seen_state: int | None = None
-                  ) -> tuple[ReferenceResult, ModelMaps]:
+                  prior: tuple[np.ndarray, np.ndarray] | None = None, seen_state: int | None = None,
+                  prior_correlation: np.ndarray | None = None) -> tuple[ReferenceResult, ModelMaps]:
     """Test the candidate models at every pixel and colour of ``result`` (the reference or
     hybrid solve of the same samples: ``s_in``, ``measured``, ``variance``, ``valid``,
     ``analyzer_rows`` as :func:`polrig.solve.reference.solve_reference`) and estimate under the
@@ -422,7 +427,8 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     them, the pixels whose samples observe only some of the block's directions (rank 6 to 8:
     two states, or three with samples missing) are tested too, on the hybrid's posterior
     system (module docstring, "At any rank"); without them those stay :data:`UNTESTED`. A pixel
-    the samples alone determine is tested as without a prior."""
+    the samples alone determine is tested as without a prior. ``prior_correlation``: the joint
+    prior's ``K`` (:func:`polrig.solve.hybrid.solve_hybrid`'s; None: the per-element prior)."""
     opts = options or SelectionOptions()
     models = sorted((m for m in MODELS if m.name in opts.models), key=lambda m: m.n_params)
     crit = {m.code: chi2_critical(9 - m.n_params, opts.alpha) for m in models}
@@ -454,7 +460,7 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
         for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
             pix = rest[p0:p0 + chunk_pixels]
             _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
-                              crit, opts, prior, out, code, stat, pval, seen_state)
+                              crit, opts, prior, out, code, stat, pval, seen_state, prior_correlation)
     maps = ModelMaps(code, stat, pval, opts)
     return ReferenceResult(out.mueller, out.sigma, out.residual, out.mask, result.condition_number,
                            result.pixel_condition, result.n_samples,
@@ -518,7 +524,7 @@ def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarra
 MIN_RANK = 6
 def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pix: np.ndarray,
                       w: int, models, crit, opts: SelectionOptions, prior, out: _Outputs, code,
-                      stat, pval, seen_state=None) -> None:
+                      stat, pval, seen_state=None, correlation=None) -> None:
     """The test and the estimate at pixels ``pix`` of colour ``c`` whose samples leave some
     of the block's directions unobserved (module docstring, "At any rank")."""
     rs = row_space_equations(s_in, measured, variance, valid, analyzer_rows, c, pix)
@@ -539,25 +545,32 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
     g = np.flatnonzero(g)
     if not g.size:
         return
-    normal, m_post = posterior_system(rs.normal[g], rs.m_hat[g], mean[g], 1.0 / np.sqrt(precision[g]), s_seen)
+    normal, m_post = posterior_system(rs.normal[g], rs.m_hat[g], mean[g], 1.0 / np.sqrt(precision[g]), s_seen,
+                                      correlation)
     _test_and_write(models, crit, opts, c, pix[g], w, normal, m_post, rs.chi2[g], rs.n_used[g],
                     np.ones(g.size, bool), out, code, stat, pval, prefer_p=True)
 
 
 def posterior_system(normal: np.ndarray, m_hat: np.ndarray, mean: np.ndarray, sigma: np.ndarray,
-                     s_seen=None) -> tuple[np.ndarray, np.ndarray]:
+                     s_seen=None, correlation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The hybrid solve's posterior system of ``P`` pixels (module docstring, "At any rank"):
     ``N' = N + P`` ``(P, 9, 9)`` and the posterior mean ``m' = N'^-1 (N m_hat + P mu)``
     ``(P, 9)``, float64, with the hybrid's prior precision ``P``
     (:func:`polrig.solve.hybrid.unobserved_precision`, block diagonal over the rows; the seen
     state ``s_seen``'s frame used whole). ``normal``, ``m_hat``: the samples' (any rank);
-    ``mean``, ``sigma`` ``(P, 9)``: the prior's, sigma positive and finite."""
-    from polrig.solve.hybrid import unobserved_precision
+    ``mean``, ``sigma`` ``(P, 9)``: the prior's, sigma positive and finite. ``correlation``: the
+    joint prior's ``K`` (:func:`polrig.solve.hybrid.joint_precision`; used where ``s_seen`` has
+    an axis, as the hybrid solve does), None the per-element prior."""
+    from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
 
     rows = unobserved_precision(sigma.reshape(-1, 3, 3), s_seen)  # (P, row, 3, 3)
-    prec = np.zeros(normal.shape)
-    for r in range(3):
-        prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
+    # as the kernel: the joint prior where the seen state has an axis, else the per-element one
+    if correlation is not None and s_seen is not None and plane_axis(observed_direction(s_seen)) is not None:
+        prec = joint_precision(rows, s_seen, correlation)
+    else:
+        prec = np.zeros(normal.shape)
+        for r in range(3):
+            prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
     total = normal + prec
     rhs = np.einsum("pij,pj->pi", normal, m_hat) + np.einsum("pij,pj->pi", prec, mean)
     return total, np.linalg.solve(total, rhs[..., None])[..., 0]

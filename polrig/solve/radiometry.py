@@ -279,7 +279,8 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     system (:func:`~polrig.solve.model_selection.select_models` with ``prior``) exists and is
     measured (``python -m polrig.models.continuum --models-only``), but with the shipped
     network's prior its false acceptance is 1-22 % per held-out set, above the 5 % its level
-    promises, so captures do not offer it.
+    promises (1.3-21.9 % with the prior calibrated jointly, ``python -m polrig.models.continuum
+    --joint-compare``), so captures do not offer it.
 
     Solved in bands of about ``band_pixels`` output pixels (times colours): each band is
     demosaiced from the mosaic rows it needs (:func:`polrig.sensor.demosaic.row_bands`) and solved on

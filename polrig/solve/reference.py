@@ -526,6 +526,9 @@ class PriorInputs(NamedTuple):
     seen_dir: np.ndarray
     seen_axis: np.ndarray
     seen_k: int
+    #: ``(6, 6)`` inverse of the joint prior's correlation in the whitened unobserved
+    #: coordinates (:mod:`polrig.solve.hybrid`, "Joint prior"), or None: the per-element prior
+    joint_inverse: np.ndarray | None = None
 
 
 def solve_tiles(inputs: SolveInputs, analyzer_rows, max_condition: float, min_snr: float,
@@ -644,6 +647,9 @@ class _TileRun:
             kern.load_prior(prior.mean, prior.sigma, c, y0, y1, prior.seen_dir, prior.seen_axis, prior.seen_k,
                             b["w"], b["flags"], arow, self.per_pixel, b["pa"], b["pm"],
                             b["prank"])
+            if prior.joint_inverse is not None:
+                kern.correlate_prior(b["pa"], b["prank"], b["w"], prior.seen_k, prior.seen_dir, prior.seen_axis,
+                                     prior.joint_inverse)
         kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, self.per_pixel,
                           b["flags"], lanes, self.min_snr, self.out_max, self.cal_sd,
                           self.with_cal, prior is not None, b["pa"], b["pm"], b["prank"],
