@@ -269,3 +269,36 @@ def test_the_gui_capture_panel_offers_the_hybrid_mode(qtbot, tmp_path):
     assert (request.resolution, request.network_binning) == ("superpixel", 1)
     assert request.plan().seen_state == 1
     close_window(qtbot, w)
+
+
+def test_the_hybrid_solve_uses_the_joint_prior_and_records_it(tmp_path, monkeypatch):
+    """The shipped calibration holds the prior calibrated jointly: a two-state hybrid capture
+    records ``joint_prior_version`` in its prior and solves with the correlation; reconstructed
+    with the same calibration without it (a file fitted per element only), the revision records
+    none and gives another posterior on the object."""
+    from polrig.app import cluster, single_shot
+    from polrig.models import uncertainty
+
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,90", "--device", "cpu",
+                 "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    from_json = uncertainty.UncertaintyModel.from_json.__func__
+
+    def per_element(cls, data):
+        return dataclasses.replace(from_json(cls, data), joint=None)
+
+    monkeypatch.setattr(uncertainty.UncertaintyModel, "from_json", classmethod(per_element))
+    # the process's loaded routes and processors: made again
+    monkeypatch.setattr(single_shot, "_OPEN", {})
+    monkeypatch.setattr(cluster, "_PROCESSORS", {})
+    assert main(["reconstruct", str(out), "--mode", "hybrid", "--device", "cpu", "--no-progress"]) == 0
+    cap = Session.open(out).capture(0)
+    joint, plain = cap, cap["revisions"]["rev1"]
+    assert joint["prior"]["joint_prior_version"] == uncertainty.JOINT_VERSION
+    assert "joint_prior_version" not in plain["prior"]
+    a, b = (read_mueller_exr(out / e["files"]["mueller"]["path"]) for e in (joint, plain))
+    assert a.metadata["prior_model"]["joint_prior_version"] == uncertainty.JOINT_VERSION
+    differ = np.any(np.abs(a.mueller - b.mueller) > 1e-3 * np.nanmax(np.abs(b.mueller)), axis=(1, 2))
+    assert differ.mean() > 0.05  # the object's pixels, where the prior acts
+    assert joint["score"]["within_2sigma"] > 0.9 and plain["score"]["within_2sigma"] > 0.9

@@ -288,7 +288,8 @@ class PriorRecord(TypedDict):
     (:meth:`polrig.app.single_shot.SingleShot.prior_model`): ``graph`` (file name in the weights
     folder) and its SHA-256, the ``uncertainty.json`` SHA-256 and format version, the
     onnxruntime ``execution_provider`` that ran it, ``mirror_average``; ``seen_state`` (index
-    into the plan's states) and its stage angle ``seen_state_deg``."""
+    into the plan's states) and its stage angle ``seen_state_deg``; ``joint_prior_version``
+    where the prior was calibrated jointly across elements (absent: per element)."""
 
     graph: str
     graph_sha256: Sha256
@@ -298,6 +299,7 @@ class PriorRecord(TypedDict):
     mirror_average: bool
     seen_state: Index
     seen_state_deg: Finite
+    joint_prior_version: NotRequired[int]
 
 
 class ModelRecord(TypedDict):

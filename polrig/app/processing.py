@@ -155,7 +155,8 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
     their memory: :func:`polrig.solve.radiometry.reference_from_frames`).
 
     ``prior(states, s_in)``: the hybrid solve instead, with the keywords it returns
-    (``prior_mean``, ``prior_sigma``, ``seen_state``: :func:`polrig.solve.radiometry.reference_from_frames`),
+    (``prior_mean``, ``prior_sigma``, ``seen_state``, ``prior_correlation``:
+    :func:`polrig.solve.radiometry.reference_from_frames`),
     computed from the capture's state radiances (:meth:`Processor.solve`).
     ``model_selection``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
     the result's ``models`` holds the maps). ``states``: the capture's state radiances
@@ -592,7 +593,9 @@ class Processor:
                        ) -> Callable[[list[StateRadiance], np.ndarray], dict[str, Any]]:
         """The hybrid solve's prior (``process_reference``'s ``prior``) for ``cf``: the single-shot
         route on the seen state's radiance (:attr:`seen_state`; 0 in the adaptive mode), its
-        estimate and calibrated sigma (inf on clipped colours, 0 outside its object: no prior).
+        estimate and calibrated sigma (inf on clipped colours, 0 outside its object: no prior),
+        and the errors' joint correlation where the calibration holds one (the prior record's
+        ``joint_prior_version``).
         ``header`` gets the execution provider; ``keep`` (if given) the route's result as
         ``"net"`` (the adaptive mode's decisions use its object mask and sigma).
 
@@ -619,7 +622,8 @@ class Processor:
             header["execution_provider"] = net.provider
             if keep is not None:
                 keep["net"] = net
-            return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k}
+            return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k,
+                    "prior_correlation": self.single_shot.model.uncertainty.joint_correlation}
 
         return prior
 

@@ -422,7 +422,9 @@ class SingleShot:
         :class:`polrig.app.manifest.PriorRecord`, less the seen state; the result header's
         ``prior_model``): the graph's file name and SHA-256 (the one its uncertainty calibration
         was verified against at load), the ``uncertainty.json`` SHA-256 and format version, the
-        execution provider and ``mirror_average``. Needs a calibrated sigma (:meth:`check_sigma`)."""
+        execution provider and ``mirror_average``; ``joint_prior_version`` where the calibration
+        holds the joint prior (the hybrid solve then uses it). Needs a calibrated sigma
+        (:meth:`check_sigma`)."""
         import hashlib
 
         from polrig.models.uncertainty import FILE_NAME, VERSION
@@ -432,7 +434,9 @@ class SingleShot:
         return {"graph": "single_shot.onnx", "graph_sha256": self.model.uncertainty.graph_sha256,
                 "uncertainty_sha256": hashlib.sha256(unc.read_bytes()).hexdigest(),
                 "uncertainty_version": int(VERSION), "execution_provider": self.provider,
-                "mirror_average": bool(mirror_average)}
+                "mirror_average": bool(mirror_average),
+                **({} if self.model.uncertainty.joint is None
+                   else {"joint_prior_version": int(self.model.uncertainty.joint["version"])})}
 
     # -- front ends ---------------------------------------------------------------------------
     def frame(self, frame: Frame, state_deg: float, options: SingleShotOptions, *,

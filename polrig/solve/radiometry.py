@@ -261,6 +261,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           workers: int | None = None, prior_mean: np.ndarray | None = None,
                           prior_sigma: np.ndarray | None = None,
                           seen_state: int | None = None,
+                          prior_correlation: np.ndarray | None = None,
                           model_selection: SelectionOptions | None = None) -> ReferenceResult:
     """The reference solve of all states (see :func:`polrig.solve.reference.solve_reference`;
     the tolerances are the calibration's, :class:`polrig.app.processing.Calibration`).
@@ -269,7 +270,8 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     broadcastable to it: the single-shot network's estimate and calibrated sigma of state
     ``seen_state``'s frame), the hybrid solve instead
     (:func:`polrig.solve.hybrid.solve_hybrid`, any number of states), each band with its rows
-    of the prior.
+    of the prior; ``prior_correlation`` ``(6, 6)``: the prior calibrated jointly
+    (:mod:`polrig.solve.hybrid`, "Joint prior"; None: per element).
 
     With ``model_selection``, each band's result then goes through
     :func:`polrig.solve.model_selection.select_models` on the same samples (lower-order models
@@ -340,6 +342,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                 res = solve_hybrid(s_in, meas, var, valid, a_rows,
                                    prior_mean=prior_mean[..., o0:o1, :],
                                    prior_sigma=prior_sigma[..., o0:o1, :], seen_state=seen_state,
+                                   prior_correlation=prior_correlation,
                                    analyzer_tolerance=analyzer_tolerance,
                                    generator_tolerance=generator_tolerance)
             else:
