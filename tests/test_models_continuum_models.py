@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from test_models_continuum import needs_weights
 
 from polrig.solve import reduced_models as rm
@@ -54,13 +55,17 @@ def test_models_only_run_writes_its_table(tmp_path):
     res = json.loads(out.with_suffix(".json").read_text())
     assert res["offsets"]["two"] == [0, 90]
     m = res["sets"]["seen_families"]["methods"]
-    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models"}
+    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models", "holds_reference4", "reference4_models"}
+    # the four-state bound: more samples than two states, so a better estimate where a model holds
+    assert m["reference4_models"]["states"] == 4 and m["holds_reference4"]["time_s"] > m["hybrid2_models"]["time_s"]
+    assert m["reference4_models"]["psnr_holds"] > m["holds_hybrid2"]["psnr_holds"]
     sel = m["hybrid2_models"]
     assert 0 < sel["holds_share"] <= 1 and 0 < sel["accepted"] <= 1 and 0.5 < sel["coverage"] <= 1
     assert np.isfinite(sel["matrix_psnr"]) and np.isfinite(m["holds_hybrid2"]["psnr_holds"])
     assert m["holds_single"]["matrix_psnr"] < m["holds_hybrid2"]["matrix_psnr"]
     text = out.read_text()
     assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
+    assert "reference 4 / + models, holds" in text
     assert "--models-only --count 2" in text
 
 
@@ -97,3 +102,14 @@ def test_detectably_off_every_model_on_a_synthetic_frame():
     det = detectably_off_every_model(fr, (0, 90))[0]
     assert not det[:h // 2].any()
     assert det[h // 2:].mean() > 0.9 and not det[3, 9]
+
+
+def test_two_state_bound_is_the_inverse_variance_combination():
+    """Two equal independent estimates give 3.01 dB more than either; a four-state estimate
+    halved to two states loses 3.01 dB; a far worse single-shot adds almost nothing."""
+    from polrig.models.continuum import two_state_bound_db
+
+    db3 = 10 * np.log10(2)
+    assert two_state_bound_db(40.0, 40.0 + db3) == pytest.approx(40.0 + db3, abs=1e-9)
+    assert two_state_bound_db(0.0, 50.0) == pytest.approx(50.0 - db3, abs=1e-4)
+    assert two_state_bound_db(50.0, 0.0) == pytest.approx(50.0, abs=1e-4)

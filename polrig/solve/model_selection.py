@@ -114,7 +114,7 @@ calibration: ``python -m polrig.models.continuum --models-only`` measures it on 
 (``benchmarks/results/continuum_models.md``, the shipped network's prior): false acceptance
 1.2-1.3 % on the terrains but 7-22 % elsewhere (the network's errors are not calibrated in the
 hybrid's model; not measured further), +4.0..+6.6 dB over single-shot where a model holds, and
-80-84 % of the elements within 2 sigma. Because that false acceptance exceeds the level, captures
+92.2-94.1 % of the elements within 2 sigma (80-84 % before the selection term above). Because that false acceptance exceeds the level, captures
 and ``polrig reconstruct`` do not pass the prior here
 (:func:`polrig.solve.radiometry.reference_from_frames`): with two states their pixels stay
 ``UNTESTED``; this route serves the benchmark. The prior calibrated jointly
