@@ -224,7 +224,11 @@ class SelectedOutputs(nn.Module):
         self.index = [SINGLE_SHOT_OUTPUTS.index(k) for k in outputs]
 
     def forward(self, analyzer, mask, s_in, wo, stage_zero_axis):
-        out = self.net(analyzer, mask, s_in, wo, stage_zero_axis)
+        return self.select(self.net(analyzer, mask, s_in, wo, stage_zero_axis))
+
+    def select(self, out: tuple[torch.Tensor, ...]) -> torch.Tensor | tuple[torch.Tensor, ...]:
+        """What :meth:`forward` returns, from ``out``: the wrapped network's outputs on the same
+        inputs (so one run of it serves every selection)."""
         picked = tuple(out[i] for i in self.index)
         return picked if len(picked) > 1 else picked[0]
 

@@ -90,6 +90,20 @@ def _no_leftovers(session_dir: pathlib.Path) -> None:
     assert not [p for p in session_dir.rglob("*.tmp*")]
 
 
+@pytest.fixture(scope="module")
+def archive_serial(archive, tmp_path_factory) -> list[dict]:
+    """:func:`_results` of the serial reference of the archive (default demosaic), computed
+    once for the tests that compare against it."""
+    return [_results(c) for c in _serial(archive, tmp_path_factory.mktemp("archive-serial"))]
+
+
+@pytest.fixture(scope="module")
+def slow_serial(slow_session, tmp_path_factory) -> dict:
+    """:func:`_results` of the serial bilinear reference of the slow session, computed once."""
+    return _results(_serial([slow_session], tmp_path_factory.mktemp("slow-serial"),
+                            demosaic="bilinear")[0])
+
+
 def test_two_local_workers_are_bit_identical_to_serial(archive, tmp_path, capsys):
     serial = _serial(archive, tmp_path / "serial", demosaic="bilinear")
     dist = _copies(archive, tmp_path / "dist")
@@ -106,21 +120,20 @@ def test_two_local_workers_are_bit_identical_to_serial(archive, tmp_path, capsys
         assert rev["demosaic"] == "bilinear" and "--workers" in rev["command_line"]
 
 
-def test_from_list_and_serial_command_match_the_library(archive, tmp_path):
-    serial = _serial(archive, tmp_path / "serial")
+def test_from_list_and_serial_command_match_the_library(archive, archive_serial, tmp_path):
     dist = _copies(archive, tmp_path / "listed")
     lst = tmp_path / "listed" / "sessions.txt"
     lst.write_text("# the archive\n" + "\n".join(d.name for d in dist) + "\n\n")
     assert main(["reconstruct", "--from-list", str(lst), "--no-progress"]) == 0
-    for s, d in zip(serial, dist):
-        assert _results(d) == _results(s)
+    for s, d in zip(archive_serial, dist):
+        assert _results(d) == s
 
 
-def test_a_worker_killed_mid_task_is_rerun_and_the_batch_is_identical(slow_session, tmp_path):
+def test_a_worker_killed_mid_task_is_rerun_and_the_batch_is_identical(slow_session, slow_serial,
+                                                                      tmp_path):
     """SIGKILL of a worker process while the scheduler says it is running a task: Dask reruns
     the task elsewhere; every capture completes with the serial bytes, nothing half-written
     or temporary is left."""
-    serial = _serial([slow_session], tmp_path / "serial", demosaic="bilinear")[0]
     dist = _copies([slow_session], tmp_path / "dist")[0]
     runner = cluster.DaskRunner.local(2)
     killed: list[int] = []
@@ -145,7 +158,7 @@ def test_a_worker_killed_mid_task_is_rerun_and_the_batch_is_identical(slow_sessi
         t.join(timeout=5)
         runner.close()
     assert killed, "no worker was caught running a task"
-    assert _results(dist) == _results(serial)
+    assert _results(dist) == slow_serial
     _no_leftovers(dist)
 
 
@@ -177,8 +190,8 @@ def _spawn(argv: list[str]) -> subprocess.Popen:
 
 
 @pytest.mark.slow
-def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, tmp_path, capsys):
-    serial = _serial([slow_session], tmp_path / "serial", demosaic="bilinear")[0]
+def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, slow_serial, tmp_path,
+                                                              capsys):
     d = _copies([slow_session], tmp_path / "dist")[0]
     proc = _spawn(["reconstruct", str(d), "--workers", "2", "--demosaic", "bilinear"])
     try:
@@ -204,7 +217,7 @@ def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, tmp_
     s = Session.open(d)
     assert [r["name"] for r in s.manifest["revisions"]] == ["rev1"]
     assert s.manifest["history"][-1]["event"] == "revision continued"
-    assert _results(d) == _results(serial)
+    assert _results(d) == slow_serial
     assert all(_results(d)[k] == v for k, v in kept.items())
     _no_leftovers(d)
 
@@ -291,7 +304,7 @@ def _readme_block() -> list[str]:
 
 
 @pytest.mark.slow
-def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
+def test_the_readme_scheduler_and_two_workers_example(archive, archive_serial, tmp_path):
     """The README's lines run as they are written, with real ``dask scheduler`` and
     ``dask worker`` processes on the loopback interface (a free port instead of 8786, the
     archive's two sessions instead of ``runs/demo``): the archive is reprocessed with the
@@ -301,7 +314,6 @@ def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
     lines = _readme_block()
     assert lines[0].startswith("dask scheduler") and lines[-1].startswith("kill %1 %2 %3")
     assert sum(ln.startswith("dask worker") for ln in lines) == 2
-    serial = _serial(archive, tmp_path / "serial")
     dist = _copies(archive, tmp_path / "dist")
     port = str(_free_port())
     env = {**ENV, "DASK_TEMPORARY_DIRECTORY": str(tmp_path / "scratch")}
@@ -345,6 +357,6 @@ def test_the_readme_scheduler_and_two_workers_example(archive, tmp_path):
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
                 p.wait(timeout=20)
-    for s, d in zip(serial, dist):
-        assert _results(d) == _results(s)
+    for s, d in zip(archive_serial, dist):
+        assert _results(d) == s
         _no_leftovers(d)

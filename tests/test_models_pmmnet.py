@@ -144,3 +144,28 @@ def test_compose_is_the_masked_mueller_image_for_any_mask():
     mask[:, :, 1] = 1.0
     expected = (ms[:, None] + kd[:, :, None, None] * md[:, None]) * mask[:, :, None, None]
     torch.testing.assert_close(compose(ms, md, kd, mask), expected, rtol=1e-14, atol=1e-15)
+
+
+def test_a_selection_of_the_single_shot_outputs_is_its_forward_on_the_full_outputs():
+    """``SelectedOutputs.select`` of the full single-shot function's outputs is what the
+    selection's own forward returns, output for output and bit for bit: the export check
+    (:func:`polrig.models.export.export_all`) runs the full function once and compares each
+    smaller graph with its selection."""
+    from polrig.models.pipnet import PIPNet
+    from polrig.models.pmmnet import FRAME_OUTPUTS, PROBE_OUTPUTS, SelectedOutputs, SingleShotNet
+
+    torch.manual_seed(0)
+    single = SingleShotNet(PIPNet(3, 4, True), PMMNet(3, 4, 2)).eval()
+    b, h, w = 2, 16, 16
+    wo = torch.nn.functional.normalize(torch.randn(b, 3, h, w) + torch.tensor([0.0, 0.0, 3.0])[:, None, None], dim=1)
+    args = (torch.rand(b, 3, 4, h, w), (torch.rand(b, 1, h, w) > 0.2).float(),
+            torch.tensor([[1.0, 0.3, -0.2], [1.0, -0.5, 0.1]]), wo, torch.tensor([[0.0, -1.0, 0.0]] * 2))
+    with torch.no_grad():
+        full = single(*args)
+        for outputs in (FRAME_OUTPUTS, PROBE_OUTPUTS):
+            sel = SelectedOutputs(single, outputs).eval()
+            own, picked = sel(*args), sel.select(full)
+            own, picked = (own, picked) if len(outputs) > 1 else ((own,), (picked,))
+            assert len(own) == len(picked) == len(outputs)
+            for a, p in zip(own, picked):
+                assert torch.equal(a, p)
