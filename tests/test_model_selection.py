@@ -126,8 +126,13 @@ def test_chi2_tail_and_noncentrality_match_scipy():
     for df in range(1, 9):
         np.testing.assert_allclose(ms.chi2_sf(x, df), stats.chi2.sf(x, df), rtol=1e-9, atol=1e-14)
         assert ms.chi2_critical(df, 0.05) == pytest.approx(stats.chi2.isf(0.05, df), rel=1e-9)
-    lam = ms.detectable_noncentrality(4)
-    assert stats.ncx2.sf(stats.chi2.isf(0.05, 4), 4, lam) == pytest.approx(0.95, abs=1e-6)
+    for df in range(1, 9):
+        for x_ in (0.0, 0.5, 9.49, 40.0, 700.0):
+            for lam_ in (0.0, 1e-3, 3.0, 18.6, 120.0, 900.0):
+                assert ms._ncx2_sf(x_, df, lam_) == pytest.approx(stats.ncx2.sf(x_, df, lam_) if lam_ else
+                                                                  stats.chi2.sf(x_, df), rel=1e-8, abs=1e-13)
+        lam = ms.detectable_noncentrality(df)
+        assert stats.ncx2.sf(stats.chi2.isf(0.05, df), df, lam) == pytest.approx(0.95, abs=1e-6)
 
 
 @pytest.mark.parametrize("name", ["depolarizer", "diattenuator", "rank_one"])
