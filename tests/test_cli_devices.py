@@ -76,12 +76,14 @@ def test_move_turntable_grbl(tmp_path, capsys):
 
 
 def test_move_timeout_and_missing_port(tmp_path, capsys):
-    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=0.05) as emu:
+    """--timeout bounds the move: it fails after 0.3 s (plus opening the port), in one line,
+    long before the motion would end (180 deg at 8.6 deg/s: 21 s)."""
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=0.02) as emu:
         cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{emu.port}"\n')
         t0 = time.monotonic()
         rc, _, err = run(capsys, "move", "stage", "180", "--timeout", "0.3", "--config", cfg)
         assert rc == 1 and "within 0.3 s" in err and err.count("\n") == 1
-        assert time.monotonic() - t0 < 2.0
+        assert 0.3 <= time.monotonic() - t0 < 21.0 / 3
     cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{tmp_path / "ttyNone"}"\n')
     rc, _, err = run(capsys, "move", "stage", "10", "--config", cfg)
     assert rc == 1 and "cannot open serial port" in err and err.count("\n") == 1

@@ -7,6 +7,7 @@ import time
 import pytest
 import serial
 
+from polrig.drivers import ell14
 from polrig.drivers.ell14 import Ell14Stage
 from polrig.drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
 from polrig.errors import (
@@ -19,6 +20,11 @@ from polrig.errors import (
 
 pytestmark = pytest.mark.timeout(20)
 PULSE_DEG = 360.0 / PULSES_PER_REV
+#: reply timeout of the ``stage`` fixture (s)
+REPLY_S = 0.5
+#: a motion timeout the tests below must not wait for (s): a wait for it fails their bound
+#: of a third of it, which a loaded machine cannot reach by delays alone
+LONG_S = 15.0
 
 
 @pytest.fixture
@@ -29,7 +35,7 @@ def emu(tmp_path):
 
 @pytest.fixture
 def stage(emu):
-    with Ell14Stage(emu.port, reply_timeout_s=0.5) as s:
+    with Ell14Stage(emu.port, reply_timeout_s=REPLY_S) as s:
         yield s
 
 
@@ -72,20 +78,26 @@ def test_stop_mid_move(stage, emu):
 
 
 def test_no_reply_times_out_then_recovers(stage, emu):
+    """A lost reply raises DeviceTimeout naming the configured reply timeout, after asking
+    once (no retry), then the next query works."""
     emu.inject("no_reply")
+    asked = emu.received.count(b"0gp")
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(DeviceTimeout, match=r"within 0\.5 s"):
         stage.position_deg()
-    assert time.monotonic() - t0 < 1.0
+    assert REPLY_S <= time.monotonic() - t0 < REPLY_S + 2.0  # its deadline, and not hanging
+    assert emu.received.count(b"0gp") == asked + 1
     assert stage.position_deg() == pytest.approx(0.0, abs=PULSE_DEG)
 
 
 def test_move_timeout_is_bounded(stage, emu):
+    """A move that cannot end in time raises at its timeout (0.3 s), not when the motion
+    ends (8.4 s at 21.5 deg/s)."""
     emu.speed_factor = 0.05
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(DeviceTimeout, match=r"within 0\.3 s"):
         stage.move_to(180.0, timeout_s=0.3)
-    assert time.monotonic() - t0 < 0.8
+    assert 0.3 <= time.monotonic() - t0 < 3.0
     stage.stop()
     stage.move_to(10.0)
 
@@ -155,8 +167,9 @@ def test_lost_end_of_move_reply(stage, emu):
     device idle and returns (it ran into its timeout)."""
     emu.inject("no_reply")  # the PO that ends the move never arrives
     t0 = time.monotonic()
-    stage.move_to(60.0, timeout_s=3)
-    assert time.monotonic() - t0 < 0.6
+    stage.move_to(60.0, timeout_s=LONG_S)
+    assert time.monotonic() - t0 < LONG_S / 3  # about 0.35 s: one poll window, then `gs`
+    assert emu.received.count(b"0gs") >= 1
     assert emu.position_deg == pytest.approx(60.0, abs=PULSE_DEG)
     assert not stage.is_busy()
     stage.move_to(70.0)
@@ -164,12 +177,13 @@ def test_lost_end_of_move_reply(stage, emu):
 
 
 def test_lost_end_of_a_long_move(stage, emu):
-    """`gs` polls during the move answer busy; the move is over once one answers GS00."""
+    """`gs` polls during the move answer busy; the move is over once one answers GS00
+    (not before the motion has ended, and not at the move's timeout)."""
     emu.speed_factor = 0.5  # 215 deg/s: 100 deg in about 0.47 s
     emu.inject("lost_end")
     t0 = time.monotonic()
-    stage.move_to(100.0, timeout_s=3)
-    assert 0.45 < time.monotonic() - t0 < 1.2
+    stage.move_to(100.0, timeout_s=LONG_S)
+    assert 0.45 < time.monotonic() - t0 < LONG_S / 3
     assert emu.position_deg == pytest.approx(100.0, abs=PULSE_DEG)
     assert emu.received.count(b"0gs") >= 2
 
@@ -198,13 +212,14 @@ def test_malformed_status_is_a_protocol_error(stage, emu, call):
     assert stage.status_code() == 0
 
 
-def test_move_ended_by_a_status_reply(stage, emu):
-    """GS00 answering `ma` ends the move (it was ignored and the move timed out); another
-    code is the device's error."""
+def test_move_ended_by_a_status_reply(stage, emu, monkeypatch):
+    """GS00 answering `ma` ends the move: the driver does not ask `gs`, which it does only
+    after a silent poll window (GS00 was ignored and the move timed out)."""
+    monkeypatch.setattr(ell14, "POLL_S", LONG_S)  # no silent window a loaded machine can reach
     emu.end_with_status = True
-    t0 = time.monotonic()
-    stage.move_to(45.0, timeout_s=2)
-    assert time.monotonic() - t0 < 0.3
+    asked = emu.received.count(b"0gs")
+    stage.move_to(45.0, timeout_s=LONG_S)
+    assert emu.received.count(b"0gs") == asked  # ended by the reply, not by asking
     assert stage.position_deg() == pytest.approx(45.0, abs=PULSE_DEG)
     stage.move_to(10.0, wait=False)
     stage.wait(2)
@@ -214,14 +229,23 @@ def test_move_ended_by_a_status_reply(stage, emu):
 @pytest.mark.parametrize("reply", ["GS", None])
 def test_stop_answered_by_status_or_nothing(stage, emu, reply):
     """`st` answered GS00, or not at all: stop() succeeds once the device reports idle (it
-    raised DeviceTimeout unless the answer was PO)."""
+    raised DeviceTimeout unless the answer was PO). GS00 ends it at once, without asking
+    `gs`; with no answer the reply timeout runs out and `gs` is asked once."""
     emu.stop_reply = reply
     emu.speed_factor = 0.2
     stage.move_to(300.0, wait=False)
     time.sleep(0.1)
+    if reply:
+        stage.reply_timeout_s = LONG_S  # waiting for it would break the bound below
+    asked = emu.received.count(b"0gs")
     t0 = time.monotonic()
     stage.stop()
-    assert time.monotonic() - t0 < (0.2 if reply else 0.7)
+    dt = time.monotonic() - t0
+    stage.reply_timeout_s = REPLY_S
+    if reply:
+        assert dt < LONG_S / 3 and emu.received.count(b"0gs") == asked
+    else:
+        assert REPLY_S <= dt < REPLY_S + 2.0 and emu.received.count(b"0gs") == asked + 1
     pos = stage.position_deg()
     assert 0 < pos < 300
     assert not stage.is_busy()
@@ -270,12 +294,12 @@ def test_end_of_move_reply_straddling_the_poll_window(tmp_path):
 
 def test_end_of_move_reply_that_stops_midway(stage, emu):
     """A reply that really stops half way is still a ProtocolError (then the device is
-    asked where it is)."""
+    asked where it is), raised once the reply stops, not at the move's timeout."""
     emu.inject("partial")
     t0 = time.monotonic()
     with pytest.raises(ProtocolError, match=r"partial reply b'0PO0"):
-        stage.move_to(40.0, timeout_s=5)
-    assert time.monotonic() - t0 < 1.5
+        stage.move_to(40.0, timeout_s=LONG_S)
+    assert time.monotonic() - t0 < LONG_S / 3
     assert stage.position_deg() == pytest.approx(40.0, abs=PULSE_DEG)
 
 

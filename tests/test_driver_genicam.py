@@ -55,10 +55,8 @@ def test_lists_the_three_viky_devices(viky, monkeypatch):
 def test_configure_and_stream_100_frames(cam):
     assert cam.info().serial == "1" and cam.info().model == "Viky"
     assert cam.pixel_format == "Mono8" and cam.roi == (120, 100, 0, 0)
-    t0 = time.monotonic()
     frames = list(cam.frames(100, timeout_s=2.0))
-    elapsed = time.monotonic() - t0
-    assert len(frames) == 100 and elapsed < 10
+    assert len(frames) == 100
     ids = [f.meta.frame_id for f in frames]
     assert ids == sorted(ids) and len(set(ids)) == 100
     f = frames[-1]
@@ -71,12 +69,15 @@ def test_configure_and_stream_100_frames(cam):
 
 
 def test_fetch_timeout_then_recover(cam):
+    """A grab with no frame within its timeout raises DeviceTimeout once the timeout has run
+    (the next frame, half a second away, would have ended a longer wait without an error),
+    then the camera streams again."""
     cam.set_frame_rate_hz(2.0)
     cam.grab(timeout_s=3.0)  # one frame, the next is half a second away
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(DeviceTimeout, match=r"no frame within 0\.2 s"):
         cam.grab(timeout_s=0.2)
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 >= 0.19  # waited its timeout (less the producer's ms rounding)
     cam.set_frame_rate_hz(200.0)
     assert cam.grab(timeout_s=2.0).raw.shape == (100, 120)
 
@@ -194,12 +195,10 @@ def test_producer_held_by_other_code_in_the_process(viky):
 @pytest.mark.parametrize("timeout", [0, -1.0, float("nan"), float("inf")])
 def test_non_positive_frame_timeouts_are_refused(cam, timeout):
     """harvesters waits forever for fetch(timeout <= 0): the driver refuses them (grab(0)
-    blocked)."""
-    t0 = time.monotonic()
+    blocked). A call that waited instead would run into the module's 60 s test timeout."""
     for call in (cam.grab, cam.fetch, lambda t: list(cam.frames(1, t))):
         with pytest.raises(ValueError, match="positive, finite number of seconds"):
             call(timeout)
-    assert time.monotonic() - t0 < 0.5
     assert cam.grab(timeout_s=2.0).raw.shape == (100, 120)
 
 

@@ -20,6 +20,11 @@ from polrig.errors import (
 
 pytestmark = pytest.mark.timeout(20)
 STEP_DEG = 1 / STEPS_PER_DEG
+#: reply timeout of the ``stage`` fixture (s)
+REPLY_S = 0.5
+#: a motion timeout the tests below must not wait for (s): a wait for it fails their bound
+#: of a third of it, which a loaded machine cannot reach by delays alone
+LONG_S = 15.0
 
 
 @pytest.fixture
@@ -30,7 +35,7 @@ def emu(tmp_path):
 
 @pytest.fixture
 def stage(emu):
-    with K10cr1Stage(emu.port, reply_timeout_s=0.5) as s:
+    with K10cr1Stage(emu.port, reply_timeout_s=REPLY_S) as s:
         yield s
 
 
@@ -83,21 +88,28 @@ def test_stop(stage, emu):
 
 
 def test_no_reply_times_out_and_recovers(stage, emu):
+    """A lost reply raises DeviceTimeout naming the configured reply timeout, after asking
+    once (no retry), then the next request works."""
+    request = apt.AptMessage(apt.MOT_REQ_POSCOUNTER, 1).pack()
     emu.inject("no_reply")
+    asked = emu.received.count(request)
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(DeviceTimeout, match=r"within 0\.5 s"):
         stage.position_deg()
-    assert time.monotonic() - t0 < 1.0
+    assert REPLY_S <= time.monotonic() - t0 < REPLY_S + 2.0  # its deadline, and not hanging
+    assert emu.received.count(request) == asked + 1
     assert stage.position_deg() == pytest.approx(0.0)
 
 
 def test_move_timeout_bounded(stage, emu):
+    """A move that cannot end in time raises at its timeout (0.3 s), not when the motion
+    ends (18 s at 5 deg/s)."""
     stage.home(timeout_s=5)
     emu.speed_factor = 0.5
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(DeviceTimeout, match=r"within 0\.3 s"):
         stage.move_to(90.0, timeout_s=0.3)
-    assert time.monotonic() - t0 < 0.8
+    assert 0.3 <= time.monotonic() - t0 < 3.0
     stage.stop()
 
 
@@ -154,8 +166,8 @@ def test_lost_move_completed(stage, emu):
     emu.inject("no_reply")  # MOT_MOVE_COMPLETED never arrives
     time.sleep(0.4)  # the move is over
     t0 = time.monotonic()
-    stage.wait(timeout_s=3)
-    assert time.monotonic() - t0 < 0.6
+    stage.wait(timeout_s=LONG_S)
+    assert time.monotonic() - t0 < LONG_S / 3  # about 0.35 s: one poll window, then the status
     assert not stage.is_busy()
     assert stage.position_deg() == pytest.approx(30.0, abs=STEP_DEG)
     stage.move_to(40.0, timeout_s=5)
@@ -163,13 +175,15 @@ def test_lost_move_completed(stage, emu):
 
 
 def test_lost_move_completed_during_move_to(stage, emu):
+    """As above, with move_to() waiting: it returns once the status bits say idle, not at its
+    timeout."""
     stage.home(timeout_s=5)
     emu.speed_factor = 10.0
     stage.require_homed = False  # no status request before the move
     emu.inject("no_reply")  # the first thing the controller sends: the completion
     t0 = time.monotonic()
-    stage.move_to(2.0, timeout_s=3)  # 0.02 s of motion, then silence
-    assert time.monotonic() - t0 < 0.6
+    stage.move_to(2.0, timeout_s=LONG_S)  # 0.02 s of motion, then silence
+    assert time.monotonic() - t0 < LONG_S / 3
     assert emu.position_deg == pytest.approx(2.0, abs=STEP_DEG)
 
 

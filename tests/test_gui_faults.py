@@ -124,24 +124,27 @@ def test_driver_bug_in_status_poll_and_live_grab_is_a_message(qtbot, window):
 
 # -- 3. manual moves: Stop at once, readouts during the motion, long moves
 def test_stop_interrupts_a_manual_move_and_readouts_follow_it(qtbot, tmp_path):
-    w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=50.0)  # turntable 500 deg/s
+    """Stop ends a manual move at once, not at its end (the move lasts 14 s, Stop must be
+    done within 5 s); a light setting runs during the motion (the axis is still busy when
+    it is done); the readouts follow the axis."""
+    w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=5.0)  # turntable 50 deg/s
     try:
         wait_connected(qtbot, w)
         d = w.devices
         qtbot.waitUntil(lambda: "position_deg" in d.last_status.get("turntable", {}),
                         timeout=10000)
         d.turntable.target.setValue(700.0)
-        d.turntable.move.click()  # ~1.5 s
+        d.turntable.move.click()  # ~14 s
         qtbot.waitUntil(lambda: d.turntable.state.text() == "moving"
                         and 20.0 < float(d.turntable.position.text().split()[0]) < 600.0,
                         timeout=5000)
         d.light_level.setValue(0.5)  # runs during the motion, not after it
-        qtbot.waitUntil(lambda: "light level 0.5: done" in messages(w), timeout=1000)
+        qtbot.waitUntil(lambda: "light level 0.5: done" in messages(w), timeout=5000)
         assert w.rig.turntable.is_busy()
         t0 = time.monotonic()
         d.turntable.stop.click()
-        qtbot.waitUntil(lambda: "stop turntable: done" in messages(w), timeout=2000)
-        assert time.monotonic() - t0 < 1.0
+        qtbot.waitUntil(lambda: "stop turntable: done" in messages(w), timeout=5000)
+        assert time.monotonic() - t0 < 5.0
         assert not w.rig.turntable.is_busy()
         stopped = w.rig.turntable.position_deg()
         assert 20.0 < stopped < 690.0
@@ -307,17 +310,21 @@ def test_settings_that_cannot_be_written_are_reported(qtbot, tmp_path, capsys):
 
 # -- 8. closing during a manual move
 def test_closing_during_a_manual_move_stops_the_axis_and_closes_at_once(qtbot, tmp_path):
-    w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=10.0)  # 720 deg: ~7 s
+    """Closing the window during a 14 s move stops the axis and closes within 5 s, without
+    waiting for the move's end."""
+    w = make_window(qtbot, tmp_path / "gui.ini", clock_speed=5.0)  # 720 deg: ~14 s
     wait_connected(qtbot, w)
     w.devices.move("turntable", 720.0)
     qtbot.waitUntil(lambda: w.rig.turntable.is_busy(), timeout=5000)
     t0 = time.monotonic()
     w.close()
     qtbot.waitUntil(lambda: not w.isVisible(), timeout=10000)
-    assert time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 < 5.0
     assert not w.devices.worker.isRunning() and not w.live_worker.isRunning()
-    world = w.rig.camera.world  # the motion was stopped before the rig closed
-    assert world.turntable_move.t_end_s <= world.clock.now() < 5.0 * 10.0
+    # the motion was stopped before the rig closed: the axis's last move is the standstill
+    # stop() leaves, short of the target
+    move = w.rig.camera.world.turntable_move
+    assert move.start_deg == move.target_deg < 720.0
 
 
 # -- 9. a capture cannot start while a calibration step runs
