@@ -31,6 +31,12 @@ model and never clips.
 rendered frames averaged, their variance the sensor model's for the mean of that many; the
 seen state's first frame is the network's input); every other row has one frame per state.
 
+**The prior** is the one captures use: the calibration's joint prior (``joint_prior`` in
+``uncertainty.json``, :mod:`polrig.solve.hybrid` "Joint prior") where it holds one, else the
+per-element sigma; every hybrid row, the adaptive one and the two-state model rows use it
+(``--joint-compare`` measures the two against each other). Tables written before the joint
+prior say "per element".
+
 **Metrics.** Matrix PSNR (peak the largest true ``|m|`` on the object, over the object mask;
 and over the object's pixels with no clipped sample in any frame of any state: a highlight
 clipped in every state, a few tenths of a per cent of the pixels, is recovered by no number of
@@ -620,7 +626,8 @@ def lit_pixels(fr: Frames) -> np.ndarray:
 
 
 def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
-             max_states: int = ADAPTIVE_MAX_STATES) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+             max_states: int = ADAPTIVE_MAX_STATES, correlation: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """The adaptive capture on one sample (:mod:`polrig.app.adaptive`'s rule and criterion on
     the sample's frames): from the seen state, while less than ``share`` of the object pixels
     (those whose seen frame is not clipped and has some colour above its noise floor, ``S0`` at
@@ -628,8 +635,9 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     a relative posterior sigma at most ``target``
     and fewer than ``max_states`` states are taken, the A-optimal next offset
     (:func:`polrig.solve.design.a_optimal_next`) among the offsets not taken yet (one frame each
-    exists). Returns the hybrid estimate of the states taken (``estimate``'s three arrays) and
-    the offsets taken, in order."""
+    exists). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
+    the joint prior ``correlation`` where given, as the capture's) and the offsets taken, in
+    order."""
     from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
 
     # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
@@ -637,7 +645,7 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     obj = fr.use.all(axis=0) & lit.any(axis=0)
     taken = [0]
     while True:
-        mueller, sigma, solved = estimate(fr, taken, "hybrid")
+        mueller, sigma, solved = estimate(fr, taken, "hybrid", correlation)
         got, met = share_at_target(relative_sigma(sigma, mueller, lit), obj, target)
         if got >= share or len(taken) >= max_states:
             return mueller, sigma, solved, taken
@@ -708,9 +716,11 @@ def _samples(data, net):
         yield ds, sensor, i, network_prior(ds, i, net)
 
 
-def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> dict:
+def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print,
+                  correlation: np.ndarray | None = None) -> dict:
     """Mean hybrid matrix PSNR (over pixels unclipped in every state) of every 2- and 3-state
-    set on the search sets; the best of each."""
+    set on the search sets; the best of each. ``correlation``: the hybrid's joint prior (None:
+    per element)."""
     two = [(0, d) for d in OFFSETS_DEG[1:]]
     three = [(0, a, b) for a in OFFSETS_DEG[1:] for b in OFFSETS_DEG[1:] if a < b]
     acc: dict[tuple, list[float]] = {k: [] for k in two + three}
@@ -720,7 +730,7 @@ def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> d
             fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, 100 + tag, i]))
             n += 1
             for key in acc:
-                acc[key].append(score(fr, *estimate(fr, key, "hybrid"))["matrix_psnr_unclipped"])
+                acc[key].append(score(fr, *estimate(fr, key, "hybrid", correlation))["matrix_psnr_unclipped"])
     mean = {k: float(np.nanmean(v)) for k, v in acc.items()}
     best2 = max(two, key=mean.get)
     best3 = max(three, key=mean.get)
@@ -731,12 +741,15 @@ def search_states(dirs: Sequence[pathlib.Path], net, seed: int, echo=print) -> d
 
 
 def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, tag: int,
-                 targets: Sequence[float] = ADAPTIVE_TARGETS, only_models: bool = False) -> dict:
+                 targets: Sequence[float] = ADAPTIVE_TARGETS, only_models: bool = False,
+                 correlation: np.ndarray | None = None) -> dict:
     """Every method's mean metrics on one set (module docstring), the adaptive capture at each of
     ``targets`` included; with each method's states per pose and acquisition time
     (:func:`acquisition_time_s`; the adaptive's per sample). Also the lower-order model
     comparison at two states (:func:`models_rows`: keys ``holds_single``, ``holds_hybrid2``,
-    ``hybrid2_models``); ``only_models``: that alone."""
+    ``hybrid2_models``); ``only_models``: that alone. ``correlation``: the hybrid's joint prior
+    for every hybrid row (the :data:`VARIANTS` rows keep the per-element prior they study); None
+    per element."""
     plan = {} if only_models else {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", offsets["two"]),
             "hybrid3": ("hybrid", offsets["three"]), "hybrid4": ("hybrid", offsets["four"]),
             "reference3": ("reference", offsets["three"]), "reference4": ("reference", offsets["four"])}
@@ -760,25 +773,26 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
     for ds, sensor, i, prior in _samples(data_dir, net):
         fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
         for key, (method, offs) in plan.items():
-            rows[key].append(score(fr, *estimate(fr, offs, method)) | {"states": len(offs), "time_s": time_s[key]})
+            rows[key].append(score(fr, *estimate(fr, offs, method, correlation))
+                             | {"states": len(offs), "time_s": time_s[key]})
         for key, (offs, k) in timed.items():
             frk = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, k]), offsets=offs,
                                 frames_per_state=k)
-            rows[key].append(score(frk, *estimate(frk, offs, "hybrid"), clean=fr.clean)
+            rows[key].append(score(frk, *estimate(frk, offs, "hybrid", correlation), clean=fr.clean)
                              | {"states": len(offs), "time_s": time_s[key]})
         if bracketed:
             frb = bracket_prior(sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, 99]),
                                               offsets=offsets["two"], bracket=BRACKET), net.uncertainty)
             highlights = frb.mask[None] & ~frb.use & frb.valid[0].all(axis=1)  # clipped, the bracket measured
         for key, (method, offs) in bracketed.items():
-            est = estimate(frb, offs, method)
+            est = estimate(frb, offs, method, correlation)
             hl = score(frb, *est, clean=fr.clean, cover=highlights)
             rows[key].append(score(frb, *est, clean=fr.clean) | {"states": len(offs), "time_s": time_s[key]}
                              | {"hl_inside": hl["inside"], "hl_elements": hl["elements"]})
         for key, target in adaptive_keys.items():
-            *est, taken = adaptive(fr, target)
+            *est, taken = adaptive(fr, target, correlation=correlation)
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
-        two_rows = models_rows(fr, offsets["two"])
+        two_rows = models_rows(fr, offsets["two"], correlation)
         for key, k in model_keys.items():
             n_states = {"single": 1, "reference4": 4, "reference4_models": 4}.get(k, 2)
             rows[key].append(two_rows[k] | {"states": n_states, "time_s": acquisition_time_s(
@@ -1071,15 +1085,18 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     net = SingleShotModel.load(weights_dir if weights_dir is not None else WEIGHTS_DIR)
     if net.uncertainty is None:
         raise ConfigError("the single-shot graph has no calibrated uncertainty (models/weights/uncertainty.json)")
+    # the prior the captures use: the calibration's joint prior where it holds one
+    correlation = net.uncertainty.joint_correlation
     t0 = time.perf_counter()
     result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size or SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
-                    "adaptive_targets": list(targets)}
+                    "adaptive_targets": list(targets),
+                    "prior": "per element" if correlation is None else "joint"}
     if only_models:
         two, three = two or RIG_TWO, three or RIG_THREE
     if two is None or three is None:
         dirs = [make_set(root, name, kw, search_count if "all" in name else max(1, search_count // 2))
                 for name, kw in SEARCH_SETS.items()]
-        result["search"] = search_states(dirs, net, seed, echo)
+        result["search"] = search_states(dirs, net, seed, echo, correlation)
         two = two or tuple(result["search"]["best_two"])
         three = three or tuple(result["search"]["best_three"])
     result["offsets"] = {"two": list(two), "three": list(three), "four": list(FOUR_STATES)}
@@ -1090,7 +1107,7 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
         d = (make_set(root, name, SETS[name][1], count) if rig_scenes is None
              else rig_set(name[len("rig_"):], size, rig_poses, seed))
         r = evaluate_set(d, net, {k: tuple(v) for k, v in result["offsets"].items()}, seed, tag, targets,
-                         only_models)
+                         only_models, correlation)
         result["sets"][name] = r
         m = r["methods"]
         if only_models:
@@ -1113,7 +1130,7 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
                           f"--models-only --count {count} --sets {','.join(sets)}` (models/continuum.py "
                           f"`models_rows`); {count} samples per set at {result['size']}x{result['size']} "
                           f"(those with a lit object pixel scored); {result['seconds']:.0f} s on "
-                          f"{os.cpu_count()} CPUs.\n\n" + table + "\n")
+                          f"{os.cpu_count()} CPUs; the hybrid's prior {_prior_words(result)}.\n\n" + table + "\n")
     elif out_md is not None:
         out_md.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
@@ -1133,8 +1150,17 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
                           " (models/continuum.py: sets, frames, metrics and variants in its docstring). "
                           f"{what} (those with a lit object pixel scored); "
                           f"{_search_line(result)}{result['seconds']:.0f} s on {os.cpu_count()} CPUs "
-                          "(shipped network on onnxruntime, CPU).\n\n" + table + "\n")
+                          "(shipped network on onnxruntime, CPU); the hybrid's prior "
+                          f"{_prior_words(result)}.\n\n" + table + "\n")
     return result
+
+
+def _prior_words(result: dict) -> str:
+    """How a run's hybrid rows used the network's prior (the captures' choice)."""
+    if result.get("prior") == "joint":
+        return ("jointly calibrated (the calibration's `joint_prior`, as captures use it; "
+                "`--joint-compare` sets it against the per-element one)")
+    return "per element (the calibration holds no joint prior)"
 
 
 def set_label(key: str) -> str:

@@ -19,14 +19,18 @@ def test_defaults_are_the_committed_tables():
 
 @pytest.mark.skipif(not (WEIGHTS_DIR / "uncertainty.json").is_file(), reason="no calibrated model")
 def test_a_tiny_run_writes_the_tables(tmp_path):
+    """The benchmark's defaults with the options given winning; the states given, so not
+    searched (the search: tests/test_models_continuum.py)."""
     from benchmarks import bench_continuum
 
     out = tmp_path / "c.md"
-    assert bench_continuum.main(["--count", "2", "--search-count", "2", "--sets", "seen_families",
+    assert bench_continuum.main(["--count", "1", "--search-count", "2", "--sets", "seen_families",
+                                 "--two", "0,90", "--three", "0,60,120",
                                  "--out", str(out), "--root", str(tmp_path / "sets")]) == 0
     text = out.read_text()
-    assert "--count 2 --search-count 2" in text and "seen families" in text
+    assert "--count 1 --search-count 2" in text and "seen families" in text
     assert "hybrid 2 - single" in text and out.with_suffix(".json").is_file()
+    assert "the hybrid's prior jointly calibrated" in text  # the shipped calibration holds K
 
 
 def test_plot_only_redraws_the_committed_plot_from_its_json(tmp_path):

@@ -111,10 +111,13 @@ only the unpolarizing model), the row space's condition number at most ``max_con
 prior finite and positive at all nine elements, and the seen frame's four samples used (the
 prior's projection assumes it whole). The level on real scenes is that of the prior's
 calibration: ``python -m polrig.models.continuum --models-only`` measures it on the held-out sets
-(``benchmarks/results/continuum_models.md``, the shipped network's prior): false acceptance
-1.2-1.3 % on the terrains but 7-22 % elsewhere (the network's errors are not calibrated in the
-hybrid's model; not measured further), +4.0..+6.6 dB over single-shot where a model holds, and
-92.2-94.1 % of the elements within 2 sigma (80-84 % before the selection term above). Because that false acceptance exceeds the level, captures
+(``benchmarks/results/continuum_models.md``, the shipped network's joint prior): false
+acceptance 1.3 % on the terrains but 7-22 % elsewhere (the network's errors are not calibrated
+in the hybrid's model), +4.1..+12.1 dB over single-shot where a model holds, and 92.4-94.7 % of
+the elements within 2 sigma (80-84 % before the selection term above). No single level fixes
+it: at a level of 0.2 instead of 0.05 the seen families' false acceptance falls to 4.4 % and
+unseen compact's to 1.5 %, the films + depolarizing layers' stays at 33 % (12 % at 0.7, where
+a model that holds is accepted on 71 % of its pixels; 16 samples each, per-element prior). Because that false acceptance exceeds the level, captures
 and ``polrig reconstruct`` do not pass the prior here
 (:func:`polrig.solve.radiometry.reference_from_frames`): with two states their pixels stay
 ``UNTESTED``; this route serves the benchmark. The prior calibrated jointly
