@@ -634,11 +634,14 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     least :data:`polrig.solve.reference.MIN_SNR` sigmas; the colours below it do not count) have
     a relative posterior sigma at most ``target``
     and fewer than ``max_states`` states are taken, the A-optimal next offset
-    (:func:`polrig.solve.design.a_optimal_next`) among the offsets not taken yet (one frame each
-    exists). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
+    (:func:`polrig.solve.design.a_optimal_next`, under the joint prior ``correlation`` where
+    given) among the candidates of :func:`polrig.solve.design.next_candidates` not taken yet
+    (the equiangular set through the seen state first, then the 15 deg offsets; one frame each
+    exists), of equally good ones the nearest. Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
     the joint prior ``correlation`` where given, as the capture's) and the offsets taken, in
     order."""
-    from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, relative_sigma, share_at_target
+    from polrig.acquisition.plan import nearest_stage_angle
+    from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, next_candidates, relative_sigma, share_at_target
 
     # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
     lit = lit_pixels(fr)
@@ -656,11 +659,15 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         stride = max(1, -(-len(ys) // DESIGN_PIXELS))
         ys, xs = ys[::stride], xs[::stride]
         px = lambda a: np.moveaxis(np.asarray(a, np.float64)[..., ys, xs], -1, 0)  # noqa: E731
-        cands = [d for d in OFFSETS_DEG if d not in taken]
+        cands = [int(round(a)) for a in next_candidates(taken, OFFSETS_DEG) if int(round(a)) not in taken]
         _, j = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
                                                              for d in taken],
-                              px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms)
-        taken.append(cands[int(np.argmin(j))])
+                              px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms,
+                              correlation=correlation)
+        # of equally good offsets the nearest (the capture's rule, polrig.app.adaptive)
+        here = taken[-1]
+        best = min(np.flatnonzero(j <= np.min(j)), key=lambda c: (abs(nearest_stage_angle(cands[c], here) - here), c))
+        taken.append(cands[best])
 
 
 def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray,

@@ -117,6 +117,9 @@ def test_each_pose_records_the_states_it_took_and_why(adaptive_run):
         taken = [0.0] + [d["state_deg"] for d in decisions[:-1]]
         raw = sorted((r["state_index"], r["state_deg"]) for r in cap["files"]["raw"])
         assert raw == list(enumerate(taken))  # the files are the states the decisions took
+        # the second and third states are the equiangular set through the seen one (polrig.solve.design)
+        second_third = [t % 180.0 for t in taken[1:3]]
+        assert set(second_third) <= {60.0, 120.0} and len(set(second_third)) == len(second_third), taken
         for d in decisions[:-1]:  # the chosen state was predicted to lower the criterion
             assert d["predicted_criterion"] < d["criterion"] and d["design_pixels"] > 0
         assert cap["prior"]["seen_state"] == 0 and cap["score"]["psnr_db"] > 30
@@ -281,3 +284,15 @@ def test_a_limit_on_a_chosen_states_move_stops_safely_then_resumes_to_the_same_r
     assert result.status == "complete" and s2.verify() == []
     assert content(s2) == content(reference)
     assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+
+
+def test_the_forecast_is_the_equiangular_set_then_its_midpoints():
+    """The hardware-time forecast (:func:`polrig.acquisition.plan.adaptive_forecast_states`): the
+    states taken, then the equiangular set through the first not taken yet, then its midpoints,
+    up to ``max_states``; a state taken at an equivalent stage angle counts as taken."""
+    from polrig.acquisition.plan import adaptive_forecast_states
+
+    plan = adaptive(max_states=5)
+    assert adaptive_forecast_states(plan, []) == [0.0, 60.0, 120.0, 90.0, 30.0]
+    assert adaptive_forecast_states(plan, [0.0, 300.0]) == [0.0, 300.0, 60.0, 90.0, 30.0]  # 300 is 120
+    assert adaptive_forecast_states(adaptive(max_states=2), [0.0, 60.0, 120.0]) == [0.0, 60.0, 120.0]

@@ -15,6 +15,7 @@ from polrig.sensor.stokes import ideal_analyzer_matrix
 from polrig.solve.design import (
     a_optimal_scores,
     data_precision,
+    next_candidates,
     predicted_variance,
     prior_precision,
     relative_sigma,
@@ -118,3 +119,43 @@ def test_the_criterion_is_the_summed_relative_trace_and_prefers_completing_the_s
     assert j[2] < j[0]  # 90 deg observes s1 with the other sign: the s0 and s1 columns apart
     np.testing.assert_allclose(predicted_variance(mueller[0], R, s90, 2.0, 3.0),
                                np.clip(R @ mueller[0] @ s90, 0, None) * 2.0 + 3.0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_the_designs_posterior_is_the_hybrid_solves_with_the_joint_prior(n):
+    """The criterion's covariance under the joint prior, ``(prior_precision(sigma, s0, K) +
+    sum_k data_precision)^-1``, has the compiled hybrid solve's sigma (same ``K``) as the square
+    roots of its diagonal, to 1e-9; ``K = I`` is the per-element precision (to 1e-9)."""
+    from test_hybrid_joint import _case, random_correlation
+
+    from polrig.solve.hybrid import solve_hybrid
+
+    rng, s, _, meas, var, mean, sd = _case(40 + n, n, h=2, w=5)
+    k = random_correlation(rng)
+    got = solve_hybrid(s, meas, var, prior_mean=mean, prior_sigma=sd, seen_state=0, dtype=np.float64,
+                       prior_correlation=k)
+    px = lambda a: np.moveaxis(a, (-2, -1), (0, 1)).reshape(-1, *a.shape[:-2])  # noqa: E731  (P, ...)
+    sig = px(sd).reshape(-1, 3, 3)
+    prec = prior_precision(sig, s[0], k)
+    for j in range(n):
+        v = px(var[j]).reshape(-1, 4)  # (P*C, 4)
+        prec = prec + data_precision(R, v, np.ones(v.shape, bool), s[j])
+    want = np.sqrt(np.diagonal(np.linalg.inv(prec), axis1=-2, axis2=-1))
+    np.testing.assert_allclose(px(got.sigma).reshape(-1, 9), want, rtol=1e-9)
+    np.testing.assert_allclose(prior_precision(sig, s[0], np.eye(6)), prior_precision(sig, s[0]), rtol=1e-9,
+                               atol=1e-9 * np.abs(prior_precision(sig, s[0])).max())
+
+
+def test_the_first_three_states_are_the_equiangular_set_through_the_seen_one():
+    """:func:`next_candidates`: the seen angle +60 and +120 deg (mod 180, whatever stage angle
+    took a state), then the whole grid."""
+    grid = (0.0, 7.5, 90.0)
+    assert next_candidates([0.0], grid) == [60.0, 120.0]
+    assert next_candidates([0.0, 120.0], grid) == [60.0]
+    assert next_candidates([0.0, -60.0], grid) == [60.0]  # -60 is 120: the same polarizer state
+    assert next_candidates([10.0, 250.0], grid) == [130.0]  # 250 is 70 = 10 + 60
+    assert next_candidates([0.0, 60.0, 300.0], grid) == list(grid)
+    assert next_candidates([0.0, 90.0], grid) == [60.0, 120.0]  # a state off the set: the set still first
+    assert next_candidates([0.0, 90.0, 60.0], grid) == list(grid)  # three taken: the grid
+    with pytest.raises(ValueError, match="seen state"):
+        next_candidates([], grid)

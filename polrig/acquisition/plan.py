@@ -62,6 +62,10 @@ ADAPTIVE_CANDIDATE_STEP_DEG = 7.5
 #: Most polarizer states the adaptive mode may take per pose (``max_states``): beyond about
 #: twice the four of the reference mode more states only average noise, a fixed plan does that.
 ADAPTIVE_MAX_STATES = 8
+#: The adaptive capture's forecast states (:func:`adaptive_forecast_states`), as offsets from its
+#: first state (deg): the equiangular set through it (the capture's first three,
+#: :data:`polrig.solve.design.EQUIANGULAR_OFFSETS_DEG`), then its midpoints, then theirs.
+FORECAST_OFFSETS_DEG = (0.0, 60.0, 120.0, 90.0, 30.0, 150.0, 15.0, 45.0, 75.0, 105.0, 135.0, 165.0)
 DEFAULT_STATES_DEG = (0.0, 45.0, 90.0, 135.0)
 #: Largest turntable pose accepted, in degrees either way (100 turns): beyond it a pose is a
 #: typo, and its capture folder name (``c000_pose<angle>``) would outgrow the file system's.
@@ -709,12 +713,15 @@ def nearest_stage_angle(polarizer_deg: float, here_deg: float) -> float:
 def adaptive_forecast_states(plan: CapturePlan, taken_deg: Sequence[float]) -> list[float]:
     """The states an adaptive capture that took ``taken_deg`` so far is forecast to take, for
     its hardware time before the decisions are made: ``taken_deg`` and then, up to
-    ``plan.max_states``, the remaining angles of an even spread over 180 deg from the first
-    state (``first + 180 k / max_states``): the most states, at the spacing of a fixed plan."""
+    ``plan.max_states``, the angles of :data:`FORECAST_OFFSETS_DEG` from the first state not
+    taken yet: the equiangular set through it, which the capture takes first
+    (:func:`polrig.solve.design.next_candidates`), then its midpoints and so on, each pass
+    halving the spacing: the most states, at the spacing the capture tends to choose."""
     first = float(plan.states_deg[0])
-    n = int(plan.max_states)
-    spread = [first + 180.0 * k / n for k in range(n)]
-    return [float(t) for t in taken_deg] + spread[len(taken_deg):]
+    taken = [float(t) for t in taken_deg]
+    left = [first + o for o in FORECAST_OFFSETS_DEG
+            if not any(abs(((first + o - t) + 90.0) % 180.0 - 90.0) < 1e-6 for t in taken)]
+    return taken + left[:max(0, int(plan.max_states) - len(taken))]
 
 
 def session_steps(plan: CapturePlan, captures: Iterable[int],

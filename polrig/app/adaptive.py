@@ -21,9 +21,12 @@ posterior does not meet the target. A pose stops when
 the share of its object pixels meeting the target reaches ``target_share``, or at
 ``max_states`` states.
 
-**The choice** (:func:`evaluate`): the Bayesian A-optimal state among
-:data:`CANDIDATES_DEG` (:mod:`polrig.solve.design`: the least summed relative posterior
-variance over the object pixels still above target, predicted in closed form), evaluated on at
+**The choice** (:func:`evaluate`): the Bayesian A-optimal state (:mod:`polrig.solve.design`:
+the least summed relative posterior variance over the object pixels still above target,
+predicted in closed form, under the prior the solve uses: the calibration's joint prior where
+it holds one) among the candidates of :func:`polrig.solve.design.next_candidates`: for the
+second and third states the two others of the equiangular set through the first (its angle
++60 and +120 deg), then all of :data:`CANDIDATES_DEG`. It is evaluated on at
 most :data:`polrig.solve.design.DESIGN_PIXELS` of those pixels (every n-th in raster order: deterministic), with
 the ideal analyzer's rows and the noise model's variance at the current estimate. Of equally
 good candidates (:data:`NEAR_BEST`) the stage goes to the nearest, at the nearer of the two
@@ -91,6 +94,7 @@ from polrig.sensor.frame import Frame
 from polrig.solve.design import (
     DESIGN_PIXELS,
     a_optimal_next,
+    next_candidates,
     relative_sigma,
     share_at_target,
 )
@@ -186,7 +190,9 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
 
     def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
         with clock("network"):
-            return network(states_, s_in_)
+            inputs = network(states_, s_in_)
+        keep["correlation"] = inputs.get("prior_correlation")  # the design's prior is the solve's
+        return inputs
 
     t, network_s = time.perf_counter(), (timings or {}).get("network", 0.0)
     result, s_in, lay, states = process_reference(cf, processor.calibration, processor.sensor_model,
@@ -195,13 +201,14 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
         network_s = timings.get("network", 0.0) - network_s
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - t - network_s
     with clock("criterion"):
-        return _decide(cf, plan, processor, result, s_in, lay, states, keep["net"])
+        return _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], keep.get("correlation"))
 
 
 def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, s_in: np.ndarray,
-            lay, states: list[StateRadiance], net) -> dict[str, Any]:
+            lay, states: list[StateRadiance], net, net_correlation: np.ndarray | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s record from the hybrid solve's ``result`` of the states ``states``
-    (incident ``s_in``, layout ``lay``) and the network's answer ``net`` on the first."""
+    (incident ``s_in``, layout ``lay``), the network's answer ``net`` on the first and the
+    joint prior's correlation the solve used (None: the per-element prior)."""
     sigma = result.sigma_noise if result.sigma_noise is not None else result.sigma
     lit = (np.asarray(net.mask) & DARK) == 0  # (C, H, W): colours above the seen frame's noise floor
     rel = relative_sigma(sigma, result.mueller, lit)
@@ -237,11 +244,13 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
         var, ok = analyzer_variance(st, lay, processor.demosaic)
         measured.append((s_in[k], pixels(var), pixels(ok)))
     per_dn, offset = processor.sensor_model.variance_terms(noise_exposures_us(cf)[0], plan.frames_per_state)
+    candidates = next_candidates(cf.states_deg, CANDIDATES_DEG)
     j_now, j = a_optimal_next(pixels(prior_sigma).astype(np.float64), s_in[0], measured,
                               pixels(result.mueller).astype(np.float64),
-                              processor.calibration.incident_stokes(CANDIDATES_DEG), float(per_dn), float(offset))
+                              processor.calibration.incident_stokes(candidates), float(per_dn), float(offset),
+                              correlation=net_correlation)
     here = cf.states_deg[-1]
-    angles = [nearest_stage_angle(a, here) for a in CANDIDATES_DEG]
+    angles = [nearest_stage_angle(a, here) for a in candidates]
     # the nearest of the candidates within NEAR_BEST of the best reduction (motion is time)
     good = j <= np.min(j) + NEAR_BEST * max(0.0, j_now - float(np.min(j)))
     best = min(np.flatnonzero(good), key=lambda c: (abs(angles[c] - here), c))

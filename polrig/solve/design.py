@@ -6,8 +6,9 @@ Gaussian: per pixel and colour its posterior precision over ``vec(M)`` (row-majo
 
     A = P + sum_k kron(R^T W_k R, s_k s_k^T),
 
-``P`` the prior's precision (:func:`prior_precision`: block diagonal over the rows, the
-unobserved directions of the seen state only, :func:`polrig.solve.hybrid.unobserved_precision`),
+``P`` the prior's precision (:func:`prior_precision`: on the unobserved directions of the seen
+state only, block diagonal over the rows, :func:`polrig.solve.hybrid.unobserved_precision`, or
+with the calibration's joint prior the solve's :func:`polrig.solve.hybrid.joint_precision`),
 ``R`` the ``(4, 3)`` analyzer rows, ``W_k`` the inverse variances of state ``k``'s used samples
 and ``s_k`` its incident Stokes vector (one DoFP frame adds ``D^T W D`` with
 ``D_j = kron(a_j, s_k)``, which is that Kronecker product: rank 3). The posterior covariance is
@@ -24,7 +25,8 @@ summed over the pixels that do not meet the target yet,
 
     J(s_c) = sum_{pixels, colours} tr(A_c^-1) / (9 m00^2)       (:func:`a_optimal_scores`).
 
-The next state is the candidate of least ``J``: the one expected to lower the summed relative
+The next state is the candidate of least ``J`` (the candidates: :func:`next_candidates`, the
+equiangular set through the seen state first): the one expected to lower the summed relative
 posterior variance of the pixels still above target most. Pixels already at target do not
 steer the choice (measuring them better does not bring the stop nearer), and the
 normalisation by ``m00`` makes a dark pixel's variance count as much as a bright one's
@@ -39,17 +41,21 @@ Everything is per pixel and colour with numpy batches ``(..., 9, 9)``; no device
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
-from polrig.solve.hybrid import unobserved_precision
+from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
 
 #: Most pixels the criterion is evaluated on (a regular subsample of the object pixels still
 #: above target, every n-th in raster order): about 0.1 s per decision for 24 candidates and 3
 #: colours.
 DESIGN_PIXELS = 1024
+#: The first states of an adaptive pose, as offsets from the seen state's polarizer angle (deg):
+#: the equiangular set through it (:func:`next_candidates`).
+EQUIANGULAR_OFFSETS_DEG = (0.0, 60.0, 120.0)
 
-__all__ = ["DESIGN_PIXELS", "a_optimal_next", "a_optimal_scores", "data_precision", "predicted_variance",
+__all__ = ["DESIGN_PIXELS", "EQUIANGULAR_OFFSETS_DEG", "a_optimal_next", "next_candidates", "a_optimal_scores", "data_precision", "predicted_variance",
            "prior_precision", "relative_sigma", "share_at_target", "state_precision"]
 
 
@@ -132,17 +138,61 @@ def data_precision(rows: np.ndarray, variance: np.ndarray, valid: np.ndarray,
     return state_precision(rows, w, s)
 
 
-def prior_precision(prior_sigma: np.ndarray, s_seen: np.ndarray) -> np.ndarray:
+def prior_precision(prior_sigma: np.ndarray, s_seen: np.ndarray,
+                    correlation: np.ndarray | None = None) -> np.ndarray:
     """The hybrid solve's prior precision ``(..., 9, 9)`` for per-element sigma ``prior_sigma``
     ``(..., 3, 3)``: block diagonal over the rows, each the unobserved-direction precision of
     the seen state ``s_seen`` (:func:`polrig.solve.hybrid.unobserved_precision`; the seen
-    frame's own samples enter through :func:`data_precision`, never twice)."""
+    frame's own samples enter through :func:`data_precision`, never twice). With the joint
+    prior's ``correlation`` ``(6, 6)`` (the calibration's ``K``, as the solve takes it), its
+    precision :func:`polrig.solve.hybrid.joint_precision` where the solve uses it: a seen state
+    with an axis and a block whose rows are positive on the plane (every element with a prior);
+    elsewhere the per-element blocks, as the solve does."""
     sig = np.asarray(prior_sigma, np.float64)
     blocks = unobserved_precision(sig, s_seen)  # (..., 3 rows, 3, 3)
     out = np.zeros((*sig.shape[:-2], 9, 9))
     for r in range(3):
         out[..., 3 * r:3 * r + 3, 3 * r:3 * r + 3] = blocks[..., r, :, :]
-    return out
+    if correlation is None or plane_axis(observed_direction(s_seen)) is None:
+        return out
+    joint = joint_precision(blocks, s_seen, correlation)
+    return np.where(np.all(np.isfinite(joint), axis=(-2, -1), keepdims=True), joint, out)
+
+
+def next_candidates(taken_deg: Sequence[float], grid_deg: Sequence[float]) -> list[float]:
+    """The polarizer angles (deg, in ``[0, 180)``) the adaptive capture chooses its next state
+    among, after the states ``taken_deg`` (stage angles, the seen state first): while fewer than
+    three are taken, those of the **equiangular set through the seen state**
+    (:data:`EQUIANGULAR_OFFSETS_DEG`) not taken yet; then every angle of ``grid_deg``.
+
+    The first three states are nested in the design that is best for three states: with equal
+    noise per sample, three fully polarized states determine the block with the least summed
+    variance exactly when they are 60 deg apart (``tr (S^T S)^-1 = 5 / 3``, the least possible,
+    ``tests/test_state_count_bound.py``), and the set through the seen state is reached with two
+    60 deg moves. The greedy A-optimal choice over the whole grid goes to the seen state's
+    orthogonal, 90 deg, the best pair, from which no third state completes an equiangular set:
+    on the eight held-out sets of :mod:`polrig.models.continuum` (12 samples each, target 0.05)
+    it took the same number of states 0.5..2.7 s per pose slower and 0.1..1.7 dB worse in
+    matrix PSNR, better only where two states sufficed on the terrains (0.7-0.8 dB: 0/90 is the
+    better pair). Which of the two comes first, and the states after the third, the criterion
+    decides (:func:`a_optimal_next`)."""
+    taken = [float(t) % 180.0 for t in taken_deg]
+    if not taken:
+        raise ValueError("the seen state comes first: no state taken yet")
+    if len(taken) < len(EQUIANGULAR_OFFSETS_DEG):
+        seen = taken[0]
+        lattice = [(seen + o) % 180.0 for o in EQUIANGULAR_OFFSETS_DEG[1:]]
+        left = [a for a in lattice if not any(_same_state(a, t) for t in taken)]
+        if left:
+            return left
+    return [float(a) % 180.0 for a in grid_deg]
+
+
+def _same_state(a: float, b: float, tol_deg: float = 1e-6) -> bool:
+    """Whether polarizer angles ``a`` and ``b`` (deg) are one state (a linear polarizer repeats
+    every 180 deg)."""
+    d = (a - b) % 180.0
+    return min(d, 180.0 - d) <= tol_deg
 
 
 def predicted_variance(mueller: np.ndarray, rows: np.ndarray, s: np.ndarray, per_dn: float,
@@ -181,7 +231,8 @@ def a_optimal_scores(precision: np.ndarray, m00: np.ndarray, candidates: list[np
 
 def a_optimal_next(prior_sigma: np.ndarray, s_seen: np.ndarray, measured: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
                    estimate: np.ndarray, candidates: np.ndarray, per_dn: float, offset_dn2: float,
-                   rows: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+                   rows: np.ndarray | None = None, correlation: np.ndarray | None = None
+                   ) -> tuple[float, np.ndarray]:
     """The A-optimal criterion now and after each candidate state, for ``P`` design pixels.
 
     ``prior_sigma`` ``(P, C, 3, 3)`` (the network's sigma), ``s_seen`` ``(3,)`` the seen state;
@@ -189,11 +240,13 @@ def a_optimal_next(prior_sigma: np.ndarray, s_seen: np.ndarray, measured: list[t
     ``(P, C, 3, 3)`` the current posterior mean (its ``m00`` normalises, its samples' predicted
     variance weighs each candidate); ``candidates`` ``(K, 3)`` incident states; ``per_dn``,
     ``offset_dn2`` the noise model's linear terms for one state's frames; ``rows`` the ``(4, 3)``
-    analyzer rows (default ideal). Returns ``(J_now, J (K,))`` (:func:`a_optimal_scores`)."""
+    analyzer rows (default ideal); ``correlation`` the joint prior's ``K`` ``(6, 6)`` where the
+    solve uses one (:func:`prior_precision`). Returns ``(J_now, J (K,))``
+    (:func:`a_optimal_scores`)."""
     from polrig.sensor.stokes import ideal_analyzer_matrix
 
     r = ideal_analyzer_matrix() if rows is None else np.asarray(rows, np.float64)
-    prec = prior_precision(prior_sigma, s_seen)
+    prec = prior_precision(prior_sigma, s_seen, correlation)
     for s, var, valid in measured:
         prec = prec + data_precision(r, var, valid, s)
     est = np.asarray(estimate, np.float64)
