@@ -225,9 +225,17 @@ class CapturePanel(QWidget):
         self.max_states.setValue(CapturePlan.max_states)
         self.max_states.setToolTip("adaptive: the most polarizer states a pose takes, the "
                                    "network's first one included")
-        for w in (self.target_sigma, self.target_share, self.max_states):
-            w.setEnabled(False)
-            self.mode.currentTextChanged.connect(lambda m, w=w: w.setEnabled(m == "adaptive"))
+        # one form row (the panel is tall already), on in the adaptive mode only
+        self.adaptive_target = QWidget()
+        row = QHBoxLayout(self.adaptive_target)
+        row.setContentsMargins(0, 0, 0, 0)
+        for label, w in (("relative sigma", self.target_sigma), ("share", self.target_share),
+                         ("max states", self.max_states)):
+            row.addWidget(QLabel(label))
+            row.addWidget(w, 1)
+        self.adaptive_target.setEnabled(False)
+        self.mode.currentTextChanged.connect(
+            lambda m: self.adaptive_target.setEnabled(m == "adaptive"))
         self.states = QLineEdit()
         self.states.setPlaceholderText("0,45,90,135")
         self.states.setToolTip("polarizer stage angles in degrees (single-shot and adaptive: the "
@@ -275,9 +283,7 @@ class CapturePanel(QWidget):
         form.addRow("Network device", self.device)
         form.addRow("Model size", self.model_size)
         form.addRow("Seen state (hybrid)", self.seen_state)
-        form.addRow("Target relative sigma (adaptive)", self.target_sigma)
-        form.addRow("Target share (adaptive)", self.target_share)
-        form.addRow("Max states (adaptive)", self.max_states)
+        form.addRow("Target (adaptive)", self.adaptive_target)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
         form.addRow("Exposure(s)", self.exposure)
@@ -319,21 +325,30 @@ class CapturePanel(QWidget):
         self.thumbs.setFlow(QListWidget.Flow.LeftToRight)
         self.thumbs.setWrapping(False)
         self.thumbs.setFixedHeight(THUMB_PX + 48)
-        #: an adaptive capture's decisions as they are made, one line each (hidden in other modes)
+        #: an adaptive capture's decisions as they are made, one line each (shown from the first)
         self.decisions = QListWidget()
         self.decisions.setToolTip("each adaptive decision: the states taken so far, the share of "
                                   "the object pixels at target, and the next state or why it stopped")
-        self.decisions_box = QGroupBox("Adaptive decisions")
-        QVBoxLayout(self.decisions_box).addWidget(self.decisions)
+        self.decisions.setFixedHeight(THUMB_PX + 48)  # beside the thumbnails, as tall
+        self.decisions_box = QWidget()
+        box = QVBoxLayout(self.decisions_box)
+        box.setContentsMargins(0, 0, 0, 0)
+        box.addWidget(QLabel("Adaptive decisions"))
+        box.addWidget(self.decisions)
         self.decisions_box.setVisible(False)
         lay = QVBoxLayout(self)
         lay.addWidget(opts)
         lay.addLayout(buttons)
         lay.addWidget(self.progress)
         lay.addWidget(self.eta)
-        lay.addWidget(QLabel("Finished poses"))
-        lay.addWidget(self.thumbs)
-        lay.addWidget(self.decisions_box)
+        poses = QVBoxLayout()
+        poses.setContentsMargins(0, 0, 0, 0)
+        poses.addWidget(QLabel("Finished poses"))
+        poses.addWidget(self.thumbs)
+        results = QHBoxLayout()  # an adaptive capture's decisions beside its poses
+        results.addLayout(poses, 1)
+        results.addWidget(self.decisions_box, 1)
+        lay.addLayout(results)
         lay.addWidget(self.score)
         lay.addStretch(1)
         self._set_running(False)
