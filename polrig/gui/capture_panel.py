@@ -5,9 +5,10 @@ The form becomes a typed :class:`polrig.app.capture.CaptureRequest` (as ``polrig
 options do) and :class:`CaptureWorker` runs it with the call ``polrig capture`` makes,
 :func:`polrig.app.capture.run_capture`, in a ``QThread``, on the window's rig with every
 device lock held, and shows its events. The ETA comes from the plan's hardware time from the
-first event, scaled by the observed pace once frames arrive; in the adaptive mode each decision (states taken, share of the object pixels at
-target, what it does next) is logged and listed under "Adaptive decisions" as it is made, and
-its event carries the forecast the decision revised. Pause and stop go through
+first event, scaled by the observed pace once frames arrive. In the adaptive mode each
+decision (states taken, share of the object pixels at target, what it does next) is logged, put
+on the ETA line (its event carries the forecast the decision revised) and listed under "Adaptive
+decisions" as it is made. Pause and stop go through
 :class:`polrig.app.capture.CaptureControl`; a stop (or closing the window) leaves the session
 ``interrupted`` and resumable. Once the session exists, every way a run can end is reported
 like ``polrig capture`` reports it: complete, or stopped with the reason (a device fault, a
