@@ -301,7 +301,7 @@ class Progress:
     ``"retry"``, ``"capture-acquired"`` (every frame of the capture written; it is handed to
     processing), ``"capture-done"`` (processed; ``score`` set on the simulated rig),
     ``"capture-failed"``, ``"session-done"``, ``"decision"`` (an adaptive capture's decision,
-    ``message`` says it; the hardware time and ``total`` follow it). ``step``/``total`` count the raw frames this run
+    ``message`` says it; its hardware time and ``total`` are already revised by it). ``step``/``total`` count the raw frames this run
     acquires. ``hardware_s``: the plan's hardware time for this run (motion, exposure,
     readout; :func:`polrig.acquisition.plan.step_durations`), known before the first frame;
     ``hardware_left_s`` what is left of it. ``result``: of ``"capture-done"``, the capture's
@@ -488,6 +488,8 @@ class _Run:
         self.pool: concurrent.futures.ThreadPoolExecutor | None = None
         self.durations: list[float] = []
         self.hardware_s = self.hardware_left_s = 0.0
+        #: the adaptive decision made in the current :meth:`extend`, reported once its steps are counted
+        self.decided: dict[str, Any] | None = None
         self.result = SessionResult(RUNNING, [c["index"] for c in session.captures
                                               if c["status"] == COMPLETE], [])
 
@@ -615,9 +617,13 @@ class _Run:
     # -- the adaptive mode: the plan continues by decisions (polrig.app.adaptive)
     def extend(self) -> list:
         """The executor's ``extend``: the schedule's next steps, with their hardware time; the
-        forecast of what is left (hardware time, ETA, frames) follows the decision."""
+        forecast of what is left (hardware time, ETA, frames) follows the decision, which is
+        reported after it (its ``"decision"`` event carries the revised forecast)."""
         new = self.schedule.extend()
         self.account(new)
+        record, self.decided = self.decided, None
+        if record is not None:
+            self.decision(record)
         return new
 
     def account(self, new: list) -> None:
@@ -649,7 +655,7 @@ class _Run:
                 memo = PoseMemo()  # what a pose's decisions share (frames, radiances, the network's answer)
                 self.schedule = AdaptiveSchedule(
                     plan, self.to_acquire, exposures,
-                    lambda i: self.decision(adaptive_decide(session, i, self.processor, memo)))
+                    lambda i: self.keep_decision(adaptive_decide(session, i, self.processor, memo)))
                 self.handed, self.durations = list(setup), []
                 body = self.schedule.start()
                 self.account(body)
@@ -728,6 +734,11 @@ class _Run:
         last = self.to_acquire[-1] if self.to_acquire else (self.to_process or [0])[-1]
         self.emit("session-done", last)
         return self.result
+
+    def keep_decision(self, record: dict[str, Any]) -> dict[str, Any]:
+        """The schedule's ``decide``: keep the decision for :meth:`extend` to report, return it."""
+        self.decided = record
+        return record
 
     def decision(self, record: dict[str, Any]) -> dict[str, Any]:
         """Report an adaptive decision (a ``"decision"`` progress event) and return it."""

@@ -5,7 +5,10 @@ The form becomes a typed :class:`polrig.app.capture.CaptureRequest` (as ``polrig
 options do) and :class:`CaptureWorker` runs it with the call ``polrig capture`` makes,
 :func:`polrig.app.capture.run_capture`, in a ``QThread``, on the window's rig with every
 device lock held, and shows its events. The ETA comes from the plan's hardware time from the
-first event, scaled by the observed pace once frames arrive. Pause and stop go through
+first event, scaled by the observed pace once frames arrive. In the adaptive mode each
+decision (states taken, share of the object pixels at target, what it does next) is logged, put
+on the ETA line (its event carries the forecast the decision revised) and listed under "Adaptive
+decisions" as it is made. Pause and stop go through
 :class:`polrig.app.capture.CaptureControl`; a stop (or closing the window) leaves the session
 ``interrupted`` and resumable. Once the session exists, every way a run can end is reported
 like ``polrig capture`` reports it: complete, or stopped with the reason (a device fault, a
@@ -27,6 +30,7 @@ from PySide6.QtGui import QIcon, QPixmap
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
+    QDoubleSpinBox,
     QFileDialog,
     QFormLayout,
     QGroupBox,
@@ -42,7 +46,15 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from polrig.acquisition.plan import ExrChoice, parse_float_list, parse_pose_spec
+from polrig.acquisition.plan import (
+    ADAPTIVE_MAX_STATES,
+    MODES,
+    NETWORK_MODES,
+    CapturePlan,
+    ExrChoice,
+    parse_float_list,
+    parse_pose_spec,
+)
 from polrig.app import capture
 from polrig.app.capture import CaptureControl, CaptureRequest, Progress, SessionOpened
 from polrig.app.manifest import SampleMetadata
@@ -155,10 +167,12 @@ class CapturePanel(QWidget):
         self.poses.setToolTip("turntable poses in degrees: a list 0,30,60 or a range "
                               "START:STOP:STEP with STOP exclusive")
         self.mode = QComboBox()
-        self.mode.addItems(["reference", "single-shot", "hybrid"])
+        self.mode.addItems(list(MODES))
         self.mode.setToolTip("reference: N >= 3 polarizer states solved per pixel; single-shot: the "
                              "trained network on one state; hybrid: N >= 1 states solved with the "
-                             "network's estimate of the seen state as a prior")
+                             "network's estimate of the seen state as a prior; adaptive: the "
+                             "network's state, then states chosen from the posterior until the "
+                             "target holds")
         self.mirror_average = QCheckBox("Mirror-average the network (single-shot: twice the network time, "
                                         "a few per cent lower error)")
         self.mirror_average.setEnabled(False)
@@ -190,10 +204,43 @@ class CapturePanel(QWidget):
         self.seen_state.setEnabled(False)
         for w in (self.mirror_average, self.device, self.model_size):
             self.mode.currentTextChanged.connect(
-                lambda m, w=w: w.setEnabled(m in ("single-shot", "hybrid")))
+                lambda m, w=w: w.setEnabled(m in NETWORK_MODES))
         self.mode.currentTextChanged.connect(lambda m: self.seen_state.setEnabled(m == "hybrid"))
+        # adaptive: the stopping rule (polrig.acquisition.plan.check_adaptive_target checks it)
+        self.target_sigma = QDoubleSpinBox()
+        self.target_sigma.setDecimals(4)
+        self.target_sigma.setRange(0.0, 1.0)
+        self.target_sigma.setSingleStep(0.01)
+        self.target_sigma.setSpecialValueText("required (e.g. 0.05)")  # shown at 0: not given
+        self.target_sigma.setToolTip("adaptive: stop a pose once each object pixel's posterior "
+                                     "sigma, RMS of the nine elements over m00, is at most this")
+        self.target_share = QDoubleSpinBox()
+        self.target_share.setDecimals(3)
+        self.target_share.setRange(0.0, 1.0)
+        self.target_share.setSingleStep(0.01)
+        self.target_share.setValue(CapturePlan.target_share)
+        self.target_share.setToolTip("adaptive: the share of the object pixels that must meet the "
+                                     "target for a pose to stop")
+        self.max_states = QSpinBox()
+        self.max_states.setRange(1, ADAPTIVE_MAX_STATES)
+        self.max_states.setValue(CapturePlan.max_states)
+        self.max_states.setToolTip("adaptive: the most polarizer states a pose takes, the "
+                                   "network's first one included")
+        # one form row (the panel is tall already), on in the adaptive mode only
+        self.adaptive_target = QWidget()
+        row = QHBoxLayout(self.adaptive_target)
+        row.setContentsMargins(0, 0, 0, 0)
+        for label, w in (("relative sigma", self.target_sigma), ("share", self.target_share),
+                         ("max states", self.max_states)):
+            row.addWidget(QLabel(label))
+            row.addWidget(w, 1)
+        self.adaptive_target.setEnabled(False)
+        self.mode.currentTextChanged.connect(
+            lambda m: self.adaptive_target.setEnabled(m == "adaptive"))
         self.states = QLineEdit()
         self.states.setPlaceholderText("0,45,90,135")
+        self.states.setToolTip("polarizer stage angles in degrees (single-shot and adaptive: the "
+                               "one state the network sees, default 0; adaptive chooses the others)")
         self.frames = QSpinBox()
         self.frames.setRange(1, 1000)
         self.exposure = QLineEdit()
@@ -237,6 +284,7 @@ class CapturePanel(QWidget):
         form.addRow("Network device", self.device)
         form.addRow("Model size", self.model_size)
         form.addRow("Seen state (hybrid)", self.seen_state)
+        form.addRow("Target (adaptive)", self.adaptive_target)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
         form.addRow("Exposure(s)", self.exposure)
@@ -278,13 +326,30 @@ class CapturePanel(QWidget):
         self.thumbs.setFlow(QListWidget.Flow.LeftToRight)
         self.thumbs.setWrapping(False)
         self.thumbs.setFixedHeight(THUMB_PX + 48)
+        #: an adaptive capture's decisions as they are made, one line each (shown from the first)
+        self.decisions = QListWidget()
+        self.decisions.setToolTip("each adaptive decision: the states taken so far, the share of "
+                                  "the object pixels at target, and the next state or why it stopped")
+        self.decisions.setFixedHeight(THUMB_PX + 48)  # beside the thumbnails, as tall
+        self.decisions_box = QWidget()
+        box = QVBoxLayout(self.decisions_box)
+        box.setContentsMargins(0, 0, 0, 0)
+        box.addWidget(QLabel("Adaptive decisions"))
+        box.addWidget(self.decisions)
+        self.decisions_box.setVisible(False)
         lay = QVBoxLayout(self)
         lay.addWidget(opts)
         lay.addLayout(buttons)
         lay.addWidget(self.progress)
         lay.addWidget(self.eta)
-        lay.addWidget(QLabel("Finished poses"))
-        lay.addWidget(self.thumbs)
+        poses = QVBoxLayout()
+        poses.setContentsMargins(0, 0, 0, 0)
+        poses.addWidget(QLabel("Finished poses"))
+        poses.addWidget(self.thumbs)
+        results = QHBoxLayout()  # an adaptive capture's decisions beside its poses
+        results.addLayout(poses, 1)
+        results.addWidget(self.decisions_box, 1)
+        lay.addLayout(results)
         lay.addWidget(self.score)
         lay.addStretch(1)
         self._set_running(False)
@@ -315,8 +380,11 @@ class CapturePanel(QWidget):
             exposures_us=(parse_float_list(exposure, "exposures", positive=True,
                                            field="exposures_us") if exposure else None),
             dark_frames=self.dark_frames.value(), demosaic=self.demosaic.currentText(),
-            mirror_average=mode in ("single-shot", "hybrid") and self.mirror_average.isChecked(),
+            mirror_average=mode in NETWORK_MODES and self.mirror_average.isChecked(),
             seen_state=self.seen_state.value() if mode == "hybrid" else 0,
+            target_sigma=self.target_sigma.value() if mode == "adaptive" else None,
+            target_share=self.target_share.value() if mode == "adaptive" else None,
+            max_states=self.max_states.value() if mode == "adaptive" else None,
             resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel",
             network_binning=int(self.binning.currentData()) if mode == "single-shot" else 1,
             exr_planes=tuple(p.strip() for p in self.exr_planes.text().split(",") if p.strip()),
@@ -362,6 +430,8 @@ class CapturePanel(QWidget):
         self.events.clear()
         self.scores.clear()
         self.thumbs.clear()
+        self.decisions.clear()
+        self.decisions_box.setVisible(False)
         self.score.setText("")
         self._progress_idle("starting...")
         self.eta.setText("starting...")
@@ -435,6 +505,8 @@ class CapturePanel(QWidget):
             self.eta.setText(f"capture {ev.capture_index + 1}/{ev.n_captures}, pose "
                              f"{ev.pose_deg:g} deg, frame {ev.step}/{ev.total}, ETA "
                              f"{_fmt_s(eta)}")
+        elif ev.kind == "decision":
+            self._decision(ev, control)
         elif ev.kind == "retry":
             self.message.emit("warning", f"capture: {ev.message}")
         elif ev.kind == "capture-failed":
@@ -442,6 +514,18 @@ class CapturePanel(QWidget):
                                                   f"{ev.pose_deg:g} deg: {ev.message}")
         elif ev.kind == "capture-done":
             self._capture_done(ev)
+
+    def _decision(self, ev: Progress, control: CaptureControl | None) -> None:
+        """An adaptive decision: logged, listed under "Adaptive decisions" and, unless a pause
+        or stop was asked for, on the ETA label with the ETA it revised."""
+        where = f"capture {ev.capture_index + 1}, pose {ev.pose_deg:g} deg"
+        self.decisions.addItem(f"{where}: {ev.message}")
+        self.decisions.scrollToBottom()
+        self.decisions_box.setVisible(True)
+        if control is None or not (control.pause.is_set() or control.stop.is_set()):
+            self.eta.setText(f"capture {ev.capture_index + 1}/{ev.n_captures}, pose "
+                             f"{ev.pose_deg:g} deg, {ev.message}, ETA {_fmt_s(self._eta_s(ev))}")
+        self.message.emit("info", f"{where}: decision: {ev.message}")
 
     def _eta_s(self, ev: Progress) -> float:
         """Remaining time: the plan's remaining hardware time (known from the first event),
