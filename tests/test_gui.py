@@ -190,7 +190,7 @@ def test_two_pose_reference_capture_completes(qtbot, window, tmp_path):
     cp.out.setText(str(out))
     paused = []
     cp.running.connect(lambda r: paused.append((r, window.live_worker.paused)))
-    window.tabs.setCurrentWidget(cp)
+    window.show_panel(cp)
     window.activateWindow()
     window.capture_action.trigger()  # what Ctrl+R triggers
     qtbot.waitUntil(lambda: cp.last_status == "complete", timeout=60000)
@@ -393,9 +393,14 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.capture.binning.setCurrentIndex(w.capture.binning.findData(2))
     w.live.resolution.setCurrentText("full")
     w.live.binning.setCurrentIndex(w.live.binning.findData(2))
+    w.capture.target_sigma.setValue(0.03)
+    w.capture.target_share.setValue(0.9)
+    w.capture.max_states.setValue(6)
     w.close()
     assert ini.is_file()
     w2 = make_window(qtbot, ini, start=False)
+    assert (w2.capture.target_sigma.value(), w2.capture.target_share.value(), w2.capture.max_states.value()) \
+        == (0.03, 0.9, 6)
     assert w2.live.display.currentData() == "dolp"
     assert w2.live_worker.settings.display == "dolp"
     assert w2.capture.poses.text() == "0:180:30" and w2.capture.frames.value() == 3
@@ -508,3 +513,23 @@ def test_qt_binding_check():
     check_qt_binding("6.12.0", (3, 12))
     with pytest.raises(ConfigError, match="PySide6 6.12.0"):
         check_qt_binding("6.12.0", (3, 11))
+
+
+def test_the_window_fits_a_1080p_screen_and_tall_panels_scroll(qtbot, tmp_path):
+    """Every panel sits in a scroll area: the window's least size is what the tab bar, menus
+    and the messages need, not the tallest panel's (the capture panel alone is about 1000 px),
+    so the default 1280x860 window fits a 1920x1080 screen; each panel is brought to the front
+    by its page, and one taller than the room scrolls."""
+    w = make_window(qtbot, tmp_path / "s.ini", start=False)
+    try:
+        least = w.minimumSizeHint()
+        assert least.width() <= 1280 and least.height() <= 860, least
+        assert w.height() <= 1080
+        for panel in (w.live, w.devices, w.capture, w.calibration, w.viewer):
+            w.show_panel(panel)
+            assert w.tabs.currentWidget() is w.pages[panel] and w.pages[panel].widget() is panel
+        w.show_panel(w.capture)
+        w.resize(1280, 700)
+        qtbot.waitUntil(lambda: w.pages[w.capture].verticalScrollBar().maximum() > 0, timeout=5000)
+    finally:
+        close_window(qtbot, w)

@@ -280,7 +280,8 @@ def test_calibration_cancel_stops_at_the_next_device_call_and_saves_nothing(qtbo
 def test_bad_settings_values_are_skipped_and_lists_joined(qtbot, tmp_path, capsys):
     ini = tmp_path / "s.ini"
     ini.write_text("[capture]\nframes=99999999999\nposes=0,90,180\nstates=@Invalid()\n"
-                   "exposure=1000,2000\nmode=superfast\n[live]\nsaturation_overlay=maybe\n")
+                   "exposure=1000,2000\nmode=superfast\ntarget_sigma=nan\ntarget_share=2\n"
+                   "[live]\nsaturation_overlay=maybe\n")
     w = make_window(qtbot, ini, start=False)
     cp = w.capture
     assert cp.frames.value() == 1 and cp.mode.currentText() == "reference"
@@ -288,7 +289,9 @@ def test_bad_settings_values_are_skipped_and_lists_joined(qtbot, tmp_path, capsy
     assert cp.states.text() == "" and w.live.overlay.isChecked()
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("polrig: warning: settings ")
-    for key in ("capture/frames", "capture/states", "capture/mode", "live/saturation_overlay"):
+    assert cp.target_sigma.value() == 0.0 and cp.target_share.value() == 0.95  # the defaults kept
+    for key in ("capture/frames", "capture/states", "capture/mode", "capture/target_sigma",
+                "capture/target_share", "live/saturation_overlay"):
         assert key in err[0]
     assert "capture/poses" not in err[0]
     assert any("skipped invalid values" in t for t in messages(w, "warning"))

@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 from PySide6.QtCore import QByteArray, Qt
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QDockWidget, QLabel, QMainWindow, QTabWidget
+from PySide6.QtWidgets import QDockWidget, QFrame, QLabel, QMainWindow, QScrollArea, QTabWidget, QWidget
 
 from polrig.gui import settings as st
 from polrig.gui.calibration_panel import CalibrationPanel
@@ -41,6 +41,18 @@ def _n_colours(rig) -> int:
         return resolve_layout(rig.camera.layout).n_colours
     except Exception:  # noqa: BLE001 - a closed real camera may not know its layout yet
         return 3
+
+
+def scrolled(panel: QWidget) -> QScrollArea:
+    """``panel`` in a frameless scroll area that resizes it to the room there is: a panel
+    taller or wider than that room scrolls instead of forcing the window beyond the screen (the
+    capture panel's form alone is about 1000 px tall; before, the window's least height was
+    1149 px, more than a 1080p screen)."""
+    area = QScrollArea()
+    area.setWidget(panel)
+    area.setWidgetResizable(True)
+    area.setFrameShape(QFrame.Shape.NoFrame)
+    return area
 
 
 class MainWindow(QMainWindow):
@@ -66,10 +78,13 @@ class MainWindow(QMainWindow):
         self.calibration = CalibrationPanel(rig, self.locks)
         self.viewer = ViewerPanel()
         self.tabs = QTabWidget()
+        #: each panel's page: the panel in a scroll area (:func:`scrolled`)
+        self.pages: dict[QWidget, QScrollArea] = {}
         for w, name in ((self.live, "Live"), (self.devices, "Devices"),
                         (self.capture, "Capture"), (self.calibration, "Calibration"),
                         (self.viewer, "Viewer")):
-            self.tabs.addTab(w, name)
+            self.pages[w] = scrolled(w)
+            self.tabs.addTab(self.pages[w], name)
         self.setCentralWidget(self.tabs)
 
         self.messages = MessageArea()
@@ -138,8 +153,16 @@ class MainWindow(QMainWindow):
         b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
         b.bind("capture/frames", st.int_binding(cp.frames))
         b.bind("capture/dark_frames", st.int_binding(cp.dark_frames))
+        b.bind("capture/target_sigma", st.float_binding(cp.target_sigma))
+        b.bind("capture/target_share", st.float_binding(cp.target_share))
+        b.bind("capture/max_states", st.int_binding(cp.max_states))
         b.bind("calibration/folder", st.text_binding(self.calibration.folder))
         b.bind("window/tab", (self.tabs.currentIndex, lambda v: self.tabs.setCurrentIndex(int(v))))
+
+    def show_panel(self, panel: QWidget) -> None:
+        """Bring ``panel`` (one of the window's panels: ``live``, ``devices``, ``capture``,
+        ``calibration``, ``viewer``) to the front."""
+        self.tabs.setCurrentWidget(self.pages[panel])
 
     # -- life cycle
     def start(self) -> None:

@@ -86,14 +86,15 @@ def _analysis_only(app, out: pathlib.Path, tmp: pathlib.Path, size: str) -> list
     cfg = tmp / "rig.toml"
     cfg.write_text(f'[sim]\nsize = "{size}"\nsensor = "imx250mzr"\nclock_speed = inf\nseed = 3\n'
                    'scene = "film_plane"\nnoise = true\n')
-    result = run_capture(CaptureRequest(out=tmp / "session", poses_deg=(0.0,), mode="reference",
+    session = tmp / "analysis_session"  # its own folder: the full run's capture is in tmp / "session"
+    result = run_capture(CaptureRequest(out=session, poses_deg=(0.0,), mode="reference",
                                         config=cfg), command_line=["screenshots"])
     if result.status != "complete":
         raise RuntimeError(f"screenshots: the capture ended {result.status}: {result.reason}")
     v = ViewerPanel()
     v.resize(1560, 900)
     v.show()
-    if not v.open_session(tmp / "session"):
+    if not v.open_session(session):
         raise RuntimeError("screenshots: the viewer cannot open the capture")
     written: list[pathlib.Path] = []
     shot = _shooter(app, out, written)
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     written: list[pathlib.Path] = []
     shot = _shooter(app, out, written)
 
-    w.tabs.setCurrentWidget(w.live)
+    w.show_panel(w.live)
     # the exposure box shows the camera's value (from the device poll), as the status line does
     _wait(app, lambda: w.live.last is not None
           and abs(w.live.exposure.value() - w.live.last.exposure_us) < 0.5, 120,
@@ -162,16 +163,18 @@ def main(argv: list[str] | None = None) -> int:
     cp = w.capture
     cp.poses.setText("0:360:60")
     cp.out.setText(str(tmp / "session"))
-    w.tabs.setCurrentWidget(cp)
+    w.show_panel(cp)
     cp.start()
     _wait(app, lambda: cp.thumbs.count() >= 2 or not cp.is_running, 600, "two finished poses")
     _wait(app, lambda: any(e.kind == "frame" and e.step > cp.progress.maximum() // 3 + 2
                            for e in cp.events) or not cp.is_running, 600, "capture progress")
+    bar = w.pages[cp].verticalScrollBar()  # the page scrolled to its progress, ETA and poses
+    bar.setValue(bar.maximum())
     shot(w, "capture_progress.png")
     cp.stop()
     _wait(app, lambda: not cp.is_running, 600, "the capture to stop")
     w.viewer.open_session(tmp / "session")
-    w.tabs.setCurrentWidget(w.viewer)
+    w.show_panel(w.viewer)
     v = w.viewer
     h, wd = v.data.mueller.shape[-2:]  # cursor on the object in the m11 tile
     b = pipeline.GRID_BORDER_PX
@@ -179,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     shot(w, "viewer_reference_mueller.png")
     if not live_mueller:
         shot(w, "mueller_grid.png")
-    w.tabs.setCurrentWidget(w.devices)
+    w.show_panel(w.devices)
     w.devices.move("stage", 22.5)
     _wait(app, lambda: abs(w.devices.last_status.get("stage", {}).get("position_deg", 0) - 22.5)
           < 1e-6 and not any("busy_with" in v for v in w.devices.last_status.values()),
@@ -189,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_calibration:
         cal = w.calibration
         cal.folder.setText(str(tmp / "calibration"))
-        w.tabs.setCurrentWidget(cal)
+        w.show_panel(cal)
         for step in ("intrinsics", "turntable"):
             cal.run_step(step)
             _wait(app, lambda: not cal.is_running, 900, f"calibration step {step}")

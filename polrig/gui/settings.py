@@ -14,6 +14,8 @@ written.
 
 from __future__ import annotations
 
+import math
+
 import os
 from typing import Any, Callable
 
@@ -74,6 +76,17 @@ def int_binding(spin):
         if not spin.minimum() <= n <= spin.maximum():
             raise ValueError(f"{n} is outside [{spin.minimum()}, {spin.maximum()}]")
         spin.setValue(n)
+    return spin.value, put
+
+
+def float_binding(spin):
+    """Getter/setter of a ``QDoubleSpinBox``: a stored value that is not a finite number in the
+    box's range is refused (:class:`ValueError`: the binder skips it and says so)."""
+    def put(v):
+        x = float(as_text(v).strip())
+        if not (math.isfinite(x) and spin.minimum() <= x <= spin.maximum()):
+            raise ValueError(f"{x} is outside [{spin.minimum()}, {spin.maximum()}]")
+        spin.setValue(x)
     return spin.value, put
 
 
