@@ -528,6 +528,8 @@ def test_the_window_fits_a_1080p_screen_and_tall_panels_scroll(qtbot, tmp_path):
         for panel in (w.live, w.devices, w.capture, w.calibration, w.viewer):
             w.show_panel(panel)
             assert w.tabs.currentWidget() is w.pages[panel] and w.pages[panel].widget() is panel
+        for panel in (w.live, w.viewer):  # an image beside its controls: the image scales, the controls scroll
+            assert panel.minimumSizeHint().height() < 400, panel
         w.show_panel(w.capture)
         w.resize(1280, 700)
         qtbot.waitUntil(lambda: w.pages[w.capture].verticalScrollBar().maximum() > 0, timeout=5000)

@@ -38,6 +38,7 @@ from polrig.gui.widgets import (
     ReadoutLabel,
     min_snr_box,
     network_binning_box,
+    scrolled,
 )
 
 DEMOSAIC_METHODS = ("superpixel", "bilinear", "newton")
@@ -129,11 +130,13 @@ class LivePanel(QWidget):
         side.addWidget(self.roi, 2)
         side_w = QWidget()
         side_w.setLayout(side)
-        side_w.setMaximumWidth(520)
         side_w.setMinimumWidth(430)
+        side_area = scrolled(side_w)  # the controls scroll, the image scales
+        side_area.setMinimumWidth(450)
+        side_area.setMaximumWidth(540)
         split = QSplitter()
         split.addWidget(self.view)
-        split.addWidget(side_w)
+        split.addWidget(side_area)
         split.setStretchFactor(0, 3)
         lay = QHBoxLayout(self)
         lay.addWidget(split)

@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 from PySide6.QtCore import QByteArray, Qt
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QDockWidget, QFrame, QLabel, QMainWindow, QScrollArea, QTabWidget, QWidget
+from PySide6.QtWidgets import QDockWidget, QLabel, QMainWindow, QScrollArea, QTabWidget, QWidget
 
 from polrig.gui import settings as st
 from polrig.gui.calibration_panel import CalibrationPanel
@@ -29,7 +29,7 @@ from polrig.gui.live import LiveSettings, LiveWorker
 from polrig.gui.live_panel import LivePanel
 from polrig.gui.rigaccess import RigLocks
 from polrig.gui.viewer import ViewerPanel
-from polrig.gui.widgets import MessageArea
+from polrig.gui.widgets import MessageArea, scrolled
 from polrig.sensor.analyzer import resolve_layout
 
 STOP_KEYS = ("Esc", "Ctrl+.")
@@ -41,18 +41,6 @@ def _n_colours(rig) -> int:
         return resolve_layout(rig.camera.layout).n_colours
     except Exception:  # noqa: BLE001 - a closed real camera may not know its layout yet
         return 3
-
-
-def scrolled(panel: QWidget) -> QScrollArea:
-    """``panel`` in a frameless scroll area that resizes it to the room there is: a panel
-    taller or wider than that room scrolls instead of forcing the window beyond the screen (the
-    capture panel's form alone is about 1000 px tall; before, the window's least height was
-    1149 px, more than a 1080p screen)."""
-    area = QScrollArea()
-    area.setWidget(panel)
-    area.setWidgetResizable(True)
-    area.setFrameShape(QFrame.Shape.NoFrame)
-    return area
 
 
 class MainWindow(QMainWindow):
@@ -78,7 +66,8 @@ class MainWindow(QMainWindow):
         self.calibration = CalibrationPanel(rig, self.locks)
         self.viewer = ViewerPanel()
         self.tabs = QTabWidget()
-        #: each panel's page: the panel in a scroll area (:func:`scrolled`)
+        #: each panel's page: the panel in a scroll area (:func:`polrig.gui.widgets.scrolled`): the
+        #: window opens at 1280x860 and fits a 1080p screen (its least height was 1149 px before)
         self.pages: dict[QWidget, QScrollArea] = {}
         for w, name in ((self.live, "Live"), (self.devices, "Devices"),
                         (self.capture, "Capture"), (self.calibration, "Calibration"),

@@ -47,7 +47,7 @@ from polrig.gui import geometry_layer, pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.roi_panel import AolpWheel, RoiTools
-from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box
+from polrig.gui.widgets import HistogramWidget, ImageView, ReadoutLabel, min_snr_box, scrolled
 from polrig.optics.parameters import ANGLE_PERIOD_DEG, MAPS
 
 
@@ -265,13 +265,15 @@ class ViewerPanel(QWidget):
         left.addWidget(self.readout.area, 1)
         lw = QWidget()
         lw.setLayout(left)
-        lw.setMaximumWidth(520)
         lw.setMinimumWidth(430)
+        left_area = scrolled(lw)  # the controls and the ROI tools scroll, the image scales
+        left_area.setMinimumWidth(450)
+        left_area.setMaximumWidth(540)
         self.roi.setMinimumWidth(500)
         split = QSplitter()
-        split.addWidget(lw)
+        split.addWidget(left_area)
         split.addWidget(self.view)
-        split.addWidget(self.roi)
+        split.addWidget(scrolled(self.roi))
         split.setStretchFactor(1, 3)
         split.setStretchFactor(2, 1)
         split.setSizes([430, 420, 600])  # the table's eight columns fit beside the image

@@ -310,3 +310,15 @@ class MessageArea(QPlainTextEdit):
             del self.messages[:500]
         stamp = time.strftime("%H:%M:%S")
         self.appendPlainText(f"{stamp} {self.LEVELS.get(level, '')}{text}")
+
+
+def scrolled(widget: QWidget) -> QScrollArea:
+    """``widget`` in a frameless scroll area that resizes it to the room there is: a column or
+    panel taller (or wider) than that room scrolls instead of forcing the window beyond the
+    screen (the main window's pages; the live and viewer panels' control columns, beside an image
+    that scales)."""
+    area = QScrollArea()
+    area.setWidget(widget)
+    area.setWidgetResizable(True)
+    area.setFrameShape(QFrame.Shape.NoFrame)
+    return area
