@@ -57,7 +57,8 @@ coverage at those highlights. ``--fit-highlights`` fits their sigma factor
 
 **Adaptive** (issue 33 item 2; :func:`adaptive`): the adaptive capture's rule on each sample,
 at each of ``--targets`` (relative posterior sigma; 95 % of the object pixels, at most 4
-states), choosing among the 15 deg offsets (one frame each). **Acquisition time**
+states), the equiangular set through the seen state first, then choosing among the 15 deg
+offsets (one frame each; :func:`polrig.solve.design.next_candidates`). **Acquisition time**
 (:func:`acquisition_time_s`): the simulated rig's hardware time of one pose taking a method's
 states (stage motion, exposure, readout), with its states per pose.
 
