@@ -717,10 +717,12 @@ def adaptive_forecast_states(plan: CapturePlan, taken_deg: Sequence[float]) -> l
     taken yet: the equiangular set through it, which the capture takes first
     (:func:`polrig.solve.design.next_candidates`), then its midpoints and so on, each pass
     halving the spacing: the most states, at the spacing the capture tends to choose."""
+    from polrig.solve.design import same_polarizer_state  # the solve stack only when forecasting
+
     first = float(plan.states_deg[0])
     taken = [float(t) for t in taken_deg]
     left = [first + o for o in FORECAST_OFFSETS_DEG
-            if not any(abs(((first + o - t) + 90.0) % 180.0 - 90.0) < 1e-6 for t in taken)]
+            if not any(same_polarizer_state(first + o, t) for t in taken)]
     return taken + left[:max(0, int(plan.max_states) - len(taken))]
 
 

@@ -56,7 +56,7 @@ DESIGN_PIXELS = 1024
 EQUIANGULAR_OFFSETS_DEG = (0.0, 60.0, 120.0)
 
 __all__ = ["DESIGN_PIXELS", "EQUIANGULAR_OFFSETS_DEG", "a_optimal_next", "next_candidates", "a_optimal_scores", "data_precision", "predicted_variance",
-           "prior_precision", "relative_sigma", "share_at_target", "state_precision"]
+           "prior_precision", "relative_sigma", "same_polarizer_state", "share_at_target", "state_precision"]
 
 
 def relative_sigma(sigma: np.ndarray, mueller: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
@@ -182,15 +182,15 @@ def next_candidates(taken_deg: Sequence[float], grid_deg: Sequence[float]) -> li
     if len(taken) < len(EQUIANGULAR_OFFSETS_DEG):
         seen = taken[0]
         lattice = [(seen + o) % 180.0 for o in EQUIANGULAR_OFFSETS_DEG[1:]]
-        left = [a for a in lattice if not any(_same_state(a, t) for t in taken)]
+        left = [a for a in lattice if not any(same_polarizer_state(a, t) for t in taken)]
         if left:
             return left
     return [float(a) % 180.0 for a in grid_deg]
 
 
-def _same_state(a: float, b: float, tol_deg: float = 1e-6) -> bool:
-    """Whether polarizer angles ``a`` and ``b`` (deg) are one state (a linear polarizer repeats
-    every 180 deg)."""
+def same_polarizer_state(a: float, b: float, tol_deg: float = 1e-6) -> bool:
+    """Whether polarizer angles ``a`` and ``b`` (deg) are one state, within ``tol_deg`` (a linear
+    polarizer repeats every 180 deg)."""
     d = (a - b) % 180.0
     return min(d, 180.0 - d) <= tol_deg
 
