@@ -19,6 +19,21 @@ settings.register_profile("dev", deadline=None)
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
+def pytest_xdist_auto_num_workers(config) -> int | None:
+    """Workers of ``-n auto`` (pyproject.toml's addopts): the CPUs this process may run on (its
+    affinity: ``taskset``, a container's cpuset), at most the physical cores. pytest-xdist's own
+    count (psutil's physical cores) ignores the affinity: pinned to one CPU it started two
+    workers on it. ``PYTEST_XDIST_AUTO_NUM_WORKERS=N`` still sets the count (xdist's rule)."""
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS") or not hasattr(os, "sched_getaffinity"):
+        return None  # xdist's own rule
+    cpus = len(os.sched_getaffinity(0))
+    try:
+        import psutil
+    except ImportError:
+        return cpus
+    return max(1, min(cpus, psutil.cpu_count(logical=False) or cpus))
+
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 #: Real IMX250MZR raw frames with their licence (tests/data/real-dofp/README.md).
 REAL_DOFP = REPO / "tests" / "data" / "real-dofp"
