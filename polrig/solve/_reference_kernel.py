@@ -23,7 +23,13 @@ excluded samples):
   is the Kronecker sum ``D^T W D = sum_j (a_j a_j^T) (x) T_j`` (45 distinct entries from four
   3x3 blocks) and ``D^T W I = sum_j a_j (x) r_j``;
 * equilibration ``d_i = 1 / sqrt(A_ii)``, Cholesky ``L L^T = diag(d) A diag(d)`` (a pivot
-  ``<= 1e-12`` makes the pixel ILL_CONDITIONED), the inverse factor ``L^-1``;
+  ``<= 1e-12`` makes the pixel ILL_CONDITIONED; with a prior also fewer samples used than the
+  nine elements less the prior's rank, a diagonal ``A_ii <= 1e-12 max A_jj``, or an inverse
+  diagonal of the equilibrated matrix above ``1e12``: singular, whatever the pivots show; where
+  1 or 2 of the seen state's samples are used, the prior's Schur complement is formed as a
+  difference, accurate to about 2e-5 relative at worst, and a posterior singular in exact
+  arithmetic can come out regular with a huge sigma), the
+  inverse factor ``L^-1``;
   ``x = d L^-T L^-1 d b`` and ``sigma_noise_i = d_i |(L^-1)_{:, i}|``;
 * with calibration tolerances, the explicit ``A^-1`` and the 14 calibration right-hand sides
   without forming the 4N-vectors ``e_p``: an analyzer parameter of row ``j`` gives
@@ -750,7 +756,22 @@ def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, 
         _normal_equations(s, wb, mb, ab, per_pixel_rows, t, rj, amat, rhs)
         if with_prior:
             _add_prior(pa[blk], pm[blk], amat, rhs)
+        if with_prior:  # the largest and smallest diagonal of A (acc: scratch until the sigma)
+            for q in range(nl):
+                acc[0, q] = 0.0
+                acc[1, q] = np.inf
+            for ii in range(d9):
+                for q in range(nl):
+                    acc[0, q] = max(acc[0, q], amat[ii, ii, q])
+                    acc[1, q] = min(acc[1, q], amat[ii, ii, q])
         _factor(amat, dsc, low, rl, bad)
+        if with_prior:  # singular whatever rounding leaves in the pivots of the equilibrated matrix:
+            for q in range(nl):
+                # fewer samples used than the nine elements less the prior's directions (exactly),
+                # or an element that neither the samples nor the prior inform to working precision
+                # (its diagonal at most PIVOT_EPS of the largest: equilibration would hide it)
+                bad[q] |= (prank[blk, q] > 0) & ((nok[blk, q] + prank[blk, q] < d9)
+                                                  | (not acc[1, q] > PIVOT_EPS * acc[0, q]))
         # estimate and noise sigma: the same operations with and without the calibration term
         _triangular_solve(low, dsc, rhs, e, x)
         for ll in range(d9):
