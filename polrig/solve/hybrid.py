@@ -153,7 +153,9 @@ for the lower 2x2 block of the observed frame: ``corr((1, v1), (2, v2)) = +0.66`
 Masks and outputs are those of :class:`~polrig.solve.reference.ReferenceResult`, so
 :func:`polrig.formats.exr.result_planes` writes them unchanged: ``ILL_CONDITIONED`` for a
 pixel with a prior means its posterior is singular to working precision (a Cholesky pivot of
-the equilibrated normal matrix at or below 1e-12) or does not fit the output dtype; for a
+the equilibrated normal matrix at or below 1e-12; fewer samples used than the nine elements less
+the prior's directions; an element neither the samples nor the prior inform, its diagonal at
+most 1e-12 of the largest) or does not fit the output dtype; for a
 pixel without one, the reference solve's rule (its samples' condition number above
 ``max_condition``). ``pixel_condition`` and ``condition_number`` stay the samples' own
 (``inf`` for fewer than 3 states). ``sigma`` is the posterior's (prior and noise; plus the
