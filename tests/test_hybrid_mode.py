@@ -256,7 +256,7 @@ def test_the_gui_capture_panel_offers_the_hybrid_mode(qtbot, tmp_path):
     w = make_window(qtbot, tmp_path / "gui.ini", start=False)
     cp = w.capture
     modes = [cp.mode.itemText(i) for i in range(cp.mode.count())]
-    assert modes == ["reference", "single-shot", "hybrid"]
+    assert modes == ["reference", "single-shot", "hybrid", "adaptive"]
     assert not cp.seen_state.isEnabled()
     cp.mode.setCurrentText("hybrid")
     assert cp.seen_state.isEnabled() and cp.mirror_average.isEnabled() and not cp.resolution.isEnabled()
