@@ -19,6 +19,7 @@ settings.register_profile("dev", deadline=None)
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
+
 def pytest_xdist_auto_num_workers(config) -> int | None:
     """Workers of ``-n auto`` (pyproject.toml's addopts): the CPUs this process may run on (its
     affinity: ``taskset``, a container's cpuset), at most the physical cores. pytest-xdist's own

@@ -15,7 +15,6 @@ written.
 from __future__ import annotations
 
 import math
-
 import os
 from typing import Any, Callable
 
