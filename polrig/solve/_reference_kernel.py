@@ -25,10 +25,7 @@ excluded samples):
 * equilibration ``d_i = 1 / sqrt(A_ii)``, Cholesky ``L L^T = diag(d) A diag(d)`` (a pivot
   ``<= 1e-12`` makes the pixel ILL_CONDITIONED; with a prior also fewer samples used than the
   nine elements less the prior's rank, a diagonal ``A_ii <= 1e-12 max A_jj``, or an inverse
-  diagonal of the equilibrated matrix above ``1e12``: singular, whatever the pivots show; where
-  1 or 2 of the seen state's samples are used, the prior's Schur complement is formed as a
-  difference, accurate to about 2e-5 relative at worst, and a posterior singular in exact
-  arithmetic can come out regular with a huge sigma), the
+  diagonal of the equilibrated matrix above ``1e12``: singular, whatever the pivots show), the
   inverse factor ``L^-1``;
   ``x = d L^-T L^-1 d b`` and ``sigma_noise_i = d_i |(L^-1)_{:, i}|``;
 * with calibration tolerances, the explicit ``A^-1`` and the 14 calibration right-hand sides
@@ -462,7 +459,9 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
     the plane (``pi_0 pi_1 pi_2 / c_r``; 0 where an element has no prior); with ``seen_axis`` all 0 (a seen state without an angle) the
     scalar ``P_r = g_r S_r`` with
     ``g_r = sum (1 - u_a^2) sigma_a^2 / sum sigma_a^2``. Either way the row's whole prior variance
-    stays in its unobserved plane; with 1 or 2 the plain Schur complement of the general form.
+    stays in its unobserved plane; with 1 or 2 the plain Schur complement of the general form,
+    computed as ``R (I - E E^T) R`` (``R = Pi^1/2``, ``E`` an orthonormal basis of ``R B``, Gram-Schmidt
+    twice): no inverse of ``B^T Pi B``, which can be nearly singular.
     ``seen_k < 0``: ``P = Pi``.
 
     Writes ``pa`` ``(B, 9, 9, L)`` (the full symmetric ``P``), ``pm`` ``(B, 9, L)`` (the mean,
@@ -474,7 +473,8 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
     tt = np.empty(9)
     cc = np.empty(3)
     u2 = np.empty(3)
-    kk = np.zeros((3, 3))
+    rp = np.empty(9)
+    zz = np.empty((2, 9))
     used = np.empty(4, np.int64)
     srow = np.empty((3, 3))
     sv = np.empty(3)
@@ -582,46 +582,64 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
                                     v = -g * tt[3 * r + a] * tt[3 * r + bb] / cr
                                     pa[b, 3 * r + a, 3 * r + bb, q] = v
                                     pa[b, 3 * r + bb, 3 * r + a, q] = v
-                elif nseen >= 1:  # part of M u observed: K = B (B^T C B)^+ B^T
-                    for r in range(3):
-                        for r2 in range(3):
-                            kk[r, r2] = 0.0
-                    j0 = used[0]
-                    if nseen == 1:
-                        g = (ab[j0, 0, q] ** 2 * cc[0] + ab[j0, 1, q] ** 2 * cc[1]
-                             + ab[j0, 2, q] ** 2 * cc[2])
-                        if g > 0:
-                            rank -= 1
-                            for r in range(3):
-                                for r2 in range(3):
-                                    kk[r, r2] = ab[j0, r, q] * ab[j0, r2, q] / g
-                    else:
-                        j1 = used[1]
-                        g00 = g01 = g11 = 0.0
-                        for r in range(3):
-                            g00 += ab[j0, r, q] * ab[j0, r, q] * cc[r]
-                            g01 += ab[j0, r, q] * ab[j1, r, q] * cc[r]
-                            g11 += ab[j1, r, q] * ab[j1, r, q] * cc[r]
-                        det = g00 * g11 - g01 * g01
-                        tr = g00 + g11
-                        if det > 1e-12 * tr * tr:  # (B^T C B)^-1
-                            rank -= 2
-                            h00, h01, h11 = g11 / det, -g01 / det, g00 / det
-                        elif tr > 0:  # rank 1: G^+ = G / tr^2
-                            rank -= 1
-                            h00, h01, h11 = g00 / (tr * tr), g01 / (tr * tr), g11 / (tr * tr)
-                        else:
-                            h00 = h01 = h11 = 0.0
-                        for r in range(3):
-                            for r2 in range(3):
-                                kk[r, r2] = (ab[j0, r, q] * (h00 * ab[j0, r2, q] + h01 * ab[j1, r2, q])
-                                             + ab[j1, r, q] * (h01 * ab[j0, r2, q]
-                                                               + h11 * ab[j1, r2, q]))
+                elif nseen >= 1:  # part of M u observed: P = R (I - E E^T) R
+                    # (R = Pi^1/2, E an orthonormal basis of R B, B the used samples' directions
+                    # a_j (x) u): the Schur complement Pi - Pi B (B^T Pi B)^+ B^T Pi with no
+                    # inverse of B^T Pi B, which can be nearly singular (row precisions 1e4
+                    # apart: it lost 4e-5 of P that way); Gram-Schmidt twice
                     for ii in range(9):
-                        r = ii // 3
+                        rp[ii] = np.sqrt(pi[ii])
+                    tr = 0.0
+                    for k in range(nseen):
+                        for ii in range(9):
+                            zz[k, ii] = rp[ii] * ab[used[k], ii // 3, q] * seen_dir[ii % 3]
+                            tr += zz[k, ii] * zz[k, ii]
+                    # the first direction: the longer vector; the second: the other, less its
+                    # part along the first, kept where the Gram determinant |z_a|^2 |z_b'|^2 is
+                    # above 1e-12 tr^2 (the rank rule of B^T Pi B, tr its trace)
+                    first = 0
+                    if nseen == 2:
+                        n0 = 0.0
+                        n1 = 0.0
+                        for ii in range(9):
+                            n0 += zz[0, ii] * zz[0, ii]
+                            n1 += zz[1, ii] * zz[1, ii]
+                        first = 1 if n1 > n0 else 0
+                    na = 0.0
+                    for ii in range(9):
+                        na += zz[first, ii] * zz[first, ii]
+                    nvec = 0
+                    if na > 0:
+                        rank -= 1
+                        nvec = 1
+                        inv = 1.0 / np.sqrt(na)
+                        for ii in range(9):
+                            zz[first, ii] *= inv
+                        if nseen == 2:
+                            other = 1 - first
+                            for _ in range(2):
+                                dot = 0.0
+                                for ii in range(9):
+                                    dot += zz[first, ii] * zz[other, ii]
+                                for ii in range(9):
+                                    zz[other, ii] -= dot * zz[first, ii]
+                            nb = 0.0
+                            for ii in range(9):
+                                nb += zz[other, ii] * zz[other, ii]
+                            if na * nb > 1e-12 * tr * tr:
+                                rank -= 1
+                                nvec = 2
+                                inv = 1.0 / np.sqrt(nb)
+                                for ii in range(9):
+                                    zz[other, ii] *= inv
+                    for ii in range(9):
                         for ll in range(9):
-                            r2 = ll // 3
-                            pa[b, ii, ll, q] -= tt[ii] * kk[r, r2] * tt[ll]
+                            proj = 0.0
+                            if nvec >= 1:
+                                proj += zz[first, ii] * zz[first, ll]
+                            if nvec == 2:
+                                proj += zz[1 - first, ii] * zz[1 - first, ll]
+                            pa[b, ii, ll, q] -= rp[ii] * rp[ll] * proj
                 prank[b, q] = rank
 
 
