@@ -475,6 +475,7 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
     u2 = np.empty(3)
     rp = np.empty(9)
     zz = np.empty((2, 9))
+    nz = np.empty(2)
     used = np.empty(4, np.int64)
     srow = np.empty((3, 3))
     sv = np.empty(3)
@@ -589,25 +590,17 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
                     # apart: it lost 4e-5 of P that way); Gram-Schmidt twice
                     for ii in range(9):
                         rp[ii] = np.sqrt(pi[ii])
-                    tr = 0.0
                     for k in range(nseen):
+                        nz[k] = 0.0
                         for ii in range(9):
                             zz[k, ii] = rp[ii] * ab[used[k], ii // 3, q] * seen_dir[ii % 3]
-                            tr += zz[k, ii] * zz[k, ii]
+                            nz[k] += zz[k, ii] * zz[k, ii]
                     # the first direction: the longer vector; the second: the other, less its
                     # part along the first, kept where the Gram determinant |z_a|^2 |z_b'|^2 is
                     # above 1e-12 tr^2 (the rank rule of B^T Pi B, tr its trace)
-                    first = 0
-                    if nseen == 2:
-                        n0 = 0.0
-                        n1 = 0.0
-                        for ii in range(9):
-                            n0 += zz[0, ii] * zz[0, ii]
-                            n1 += zz[1, ii] * zz[1, ii]
-                        first = 1 if n1 > n0 else 0
-                    na = 0.0
-                    for ii in range(9):
-                        na += zz[first, ii] * zz[first, ii]
+                    first = 1 if nseen == 2 and nz[1] > nz[0] else 0
+                    na = nz[first]
+                    tr = nz[0] + nz[1] if nseen == 2 else nz[0]
                     nvec = 0
                     if na > 0:
                         rank -= 1
