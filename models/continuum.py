@@ -598,22 +598,41 @@ def acquisition_time_s(offsets: Sequence[float], frames_per_state: int = 1, brac
     again at each ``bracket`` fraction of it
     (:func:`polrig.acquisition.plan.step_durations` of
     :func:`polrig.acquisition.plan.adaptive_pose_steps`: the plan's own hardware time)."""
-    from polrig.acquisition.plan import (CapturePlan, HardwareModel, adaptive_pose_steps,
-                                         nearest_stage_angle, step_durations)
+    from polrig.acquisition.plan import CapturePlan, adaptive_pose_steps, step_durations
+    from polrig.sim.dataset import DATASET_EXPOSURE_US
+
+    plan = CapturePlan((0.0,), frames_per_state=int(frames_per_state))
+    exposures = [DATASET_EXPOSURE_US] + [DATASET_EXPOSURE_US * float(f) for f in bracket]
+    return float(sum(step_durations(adaptive_pose_steps(plan, 0, exposures, stage_angles(offsets)),
+                                    sim_hardware_model())))
+
+
+def stage_angles(offsets: Sequence[float]) -> list[float]:
+    """The stage angles of a pose that takes the states ``offsets`` in that order: the first as
+    given, each next at the nearer of its two equivalent angles
+    (:func:`polrig.acquisition.plan.nearest_stage_angle`)."""
+    from polrig.acquisition.plan import nearest_stage_angle
+
+    angles = [float(offsets[0])]
+    for d in offsets[1:]:
+        angles.append(nearest_stage_angle(d, angles[-1]))
+    return angles
+
+
+def sim_hardware_model():
+    """The simulated rig's :class:`polrig.acquisition.plan.HardwareModel` at the sets' exposure:
+    trapezoidal moves (:mod:`polrig.sim.motion`, the simulated rig's default speeds and
+    :data:`SIM_STAGE_ACCEL_DEG_S2`), :data:`SIM_READOUT_US` per frame, no settle frames, both
+    axes at 0."""
+    from polrig.acquisition.plan import HardwareModel
     from polrig.sim.dataset import DATASET_EXPOSURE_US
     from polrig.sim.motion import Move
     from polrig.sim.options import DEFAULTS
 
     speed = {"stage": DEFAULTS["stage_speed_deg_s"], "turntable": DEFAULTS["turntable_speed_deg_s"]}
-    model = HardwareModel(lambda a, f, t: Move(f, t, 0.0, speed[a], SIM_STAGE_ACCEL_DEG_S2).duration_s
-                          if f != t else 0.0, SIM_READOUT_US, 0, {"stage": 0.0, "turntable": 0.0},
-                          DATASET_EXPOSURE_US)
-    angles = [float(offsets[0])]
-    for d in offsets[1:]:
-        angles.append(nearest_stage_angle(d, angles[-1]))
-    plan = CapturePlan((0.0,), frames_per_state=int(frames_per_state))
-    exposures = [DATASET_EXPOSURE_US] + [DATASET_EXPOSURE_US * float(f) for f in bracket]
-    return float(sum(step_durations(adaptive_pose_steps(plan, 0, exposures, angles), model)))
+    return HardwareModel(lambda a, f, t: Move(f, t, 0.0, speed[a], SIM_STAGE_ACCEL_DEG_S2).duration_s
+                         if f != t else 0.0, SIM_READOUT_US, 0, {"stage": 0.0, "turntable": 0.0},
+                         DATASET_EXPOSURE_US)
 
 
 def lit_pixels(fr: Frames) -> np.ndarray:
@@ -638,15 +657,19 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     (:func:`polrig.solve.design.a_optimal_next`, under the joint prior ``correlation`` where
     given) among the candidates of :func:`polrig.solve.design.next_candidates` not taken yet
     (the equiangular set through the seen state first, then the 15 deg offsets; one frame each
-    exists), of equally good ones the nearest. Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
+    exists) of greatest predicted reduction per second of the simulated rig's hardware time
+    (:func:`polrig.solve.design.per_second_choice`, :func:`sim_hardware_model`). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
     the joint prior ``correlation`` where given, as the capture's) and the offsets taken, in
     order."""
-    from polrig.acquisition.plan import nearest_stage_angle
-    from polrig.solve.design import DESIGN_PIXELS, a_optimal_next, next_candidates, relative_sigma, share_at_target
+    from polrig.acquisition.plan import CapturePlan, nearest_stage_angle, state_time_s
+    from polrig.sim.dataset import DATASET_EXPOSURE_US
+    from polrig.solve.design import (DESIGN_PIXELS, a_optimal_next, next_candidates, per_second_choice,
+                                     relative_sigma, share_at_target)
 
     # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
     lit = lit_pixels(fr)
     obj = fr.use.all(axis=0) & lit.any(axis=0)
+    plan, exposures, model = CapturePlan((0.0,)), [DATASET_EXPOSURE_US], sim_hardware_model()
     taken = [0]
     while True:
         mueller, sigma, solved = estimate(fr, taken, "hybrid", correlation)
@@ -661,14 +684,14 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         ys, xs = ys[::stride], xs[::stride]
         px = lambda a: np.moveaxis(np.asarray(a, np.float64)[..., ys, xs], -1, 0)  # noqa: E731
         cands = [int(round(a)) for a in next_candidates(taken, OFFSETS_DEG) if int(round(a)) not in taken]
-        _, j = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
+        j_now, j = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
                                                              for d in taken],
                               px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms,
                               correlation=correlation)
-        # of equally good offsets the nearest (the capture's rule, polrig.app.adaptive)
-        here = taken[-1]
-        best = min(np.flatnonzero(j <= np.min(j)), key=lambda c: (abs(nearest_stage_angle(cands[c], here) - here), c))
-        taken.append(cands[best])
+        # the greatest reduction per second of hardware time (the capture's rule, polrig.app.adaptive)
+        here = stage_angles(taken)[-1]
+        cost = [state_time_s(plan, exposures, here, nearest_stage_angle(c, here), model) for c in cands]
+        taken.append(cands[per_second_choice(j_now, j, cost)])
 
 
 def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray,

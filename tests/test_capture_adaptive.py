@@ -286,6 +286,48 @@ def test_a_limit_on_a_chosen_states_move_stops_safely_then_resumes_to_the_same_r
     assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
 
 
+@needs_model
+def test_past_the_equiangular_set_the_state_taken_is_the_greatest_gain_per_second(tmp_path):
+    """A tight target takes four states. The fourth is chosen by its predicted reduction per
+    second of hardware time (:func:`polrig.solve.design.per_second_choice`), timed by the rig's
+    timing the session recorded; replayed without that record (a session from before it) the
+    same frames choose by the least criterion alone. The first two choices (the equiangular set,
+    one 60 deg move each) agree; where the fourth differs, the per-second choice costs less time and
+    predicts no lower criterion (the least criterion has the greatest gain, so anything of
+    greater gain per second must cost less)."""
+    from polrig.acquisition.plan import state_time_s
+    from polrig.app.adaptive import timing_model
+
+    out = tmp_path / "tight"
+    session, proc, result, _, _ = run(out, adaptive(1e-6, max_states=4, poses=(0.0,)))
+    assert result.status == "complete"
+    with sim_rig(scene=SCENE) as rig:
+        caps = rig.stage.capabilities
+    timing = session.manifest["rig"]["timing"]
+    assert timing["stage_speed_deg_s"] == caps.speed_deg_s
+    decisions = session.capture(0)["adaptive"]
+    assert [d["action"] for d in decisions] == [TAKE, TAKE, TAKE, STOP_MAX]
+    exposures = load_capture_frames(session, 0).exposures_us
+    here = 0.0
+    for d in decisions[:-1]:  # each records the hardware time of the state it took
+        assert d["state_time_s"] == state_time_s(session.plan, exposures, here, d["state_deg"], timing_model(timing))
+        here = d["state_deg"]
+    legacy = tmp_path / "legacy"
+    shutil.copytree(out, legacy)
+    old = Session.open(legacy)
+    del old.manifest["rig"]["timing"]
+    old.save()
+    replayed = replay_decisions(Session.open(legacy), 0, proc)
+    assert all("state_time_s" not in d for d in replayed)
+    assert [d["state_deg"] for d in replayed[:2]] == [d["state_deg"] for d in decisions[:2]]
+    fourth, least = decisions[2], replayed[2]
+    if least["state_deg"] != fourth["state_deg"]:
+        least_s = state_time_s(session.plan, exposures, decisions[1]["state_deg"], least["state_deg"],
+                               timing_model(timing))
+        assert fourth["state_time_s"] < least_s
+        assert fourth["predicted_criterion"] >= least["predicted_criterion"]
+
+
 def test_the_forecast_is_the_equiangular_set_then_its_midpoints():
     """The hardware-time forecast (:func:`polrig.acquisition.plan.adaptive_forecast_states`): the
     states taken, then the equiangular set through the first not taken yet, then its midpoints,

@@ -225,3 +225,22 @@ def test_hardware_time_is_motion_plus_exposure_plus_readout_with_overlapped_axes
                           _model(settle=2))
     frames = [t for t in free if 0 < t < 1]
     assert frames.count(pytest.approx(0.090)) == 4 and frames.count(pytest.approx(0.030)) == 8
+
+
+@pytest.mark.parametrize("frames, bracket, settle", [(1, (1000.0,), 0), (3, (1000.0, 62.5), 2)])
+def test_a_states_time_is_its_move_and_its_frames(frames, bracket, settle):
+    """:func:`polrig.acquisition.plan.state_time_s`: the stage's move from where it stands, then
+    ``frames`` frames per exposure of the bracket, each exposure plus readout, and the settle
+    frames after the move and after each exposure change (free run) - the camera starts at the
+    bracket's last exposure, where the state before left it."""
+    from polrig.acquisition.hal import AxisCapabilities
+    from polrig.acquisition.plan import HardwareModel, state_time_s
+
+    axis = AxisCapabilities(20.0, 50.0)
+    model = HardwareModel(lambda a, f, t: axis.move_time_s(t - f), 500.0, settle, {"stage": 0.0}, float("nan"))
+    plan = CapturePlan((0.0,), frames_per_state=frames)
+    frame_s = [(e + 500.0) * 1e-6 for e in bracket]
+    # the move unsettles; each exposure's first frame discards the settle frames (a change or the move)
+    expected = axis.move_time_s(75.0) + sum((frames + settle) * f for f in frame_s)
+    assert state_time_s(plan, bracket, 45.0, 120.0, model) == pytest.approx(expected, rel=1e-12)
+    assert state_time_s(plan, bracket, 120.0, 45.0, model) == pytest.approx(expected, rel=1e-12)  # either way

@@ -16,6 +16,7 @@ from polrig.solve.design import (
     a_optimal_scores,
     data_precision,
     next_candidates,
+    per_second_choice,
     predicted_variance,
     prior_precision,
     relative_sigma,
@@ -159,3 +160,24 @@ def test_the_first_three_states_are_the_equiangular_set_through_the_seen_one():
     assert next_candidates([0.0, 90.0, 60.0], grid) == list(grid)  # three taken: the grid
     with pytest.raises(ValueError, match="seen state"):
         next_candidates([], grid)
+
+
+def test_the_choice_is_the_greatest_gain_per_second_and_of_equal_ones_the_cheapest():
+    assert per_second_choice(10.0, np.array([5.0, 8.0]), [4.0, 1.0]) == 1  # 1.25 against 2 per second
+    assert per_second_choice(10.0, np.array([5.0, 8.0]), [1.0, 1.0]) == 0  # equal cost: the least criterion
+    assert per_second_choice(10.0, np.array([8.0, 6.0]), [1.0, 2.0]) == 0  # equal rates: the cheaper
+    assert per_second_choice(10.0, np.array([8.0, 8.0]), [1.0, 1.0]) == 0  # all equal: the first
+    assert per_second_choice(10.0, np.array([9.0, 8.0]), [0.0, 0.0]) == 1  # no cost: floored, gains rank
+    with pytest.raises(ValueError, match="one cost per candidate"):
+        per_second_choice(1.0, np.array([0.5, 0.4]), [1.0])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(0.0, 1e6), st.lists(st.tuples(st.floats(0.0, 1.0), st.floats(1e-3, 1e3)), min_size=1, max_size=24))
+def test_no_candidate_gains_more_per_second_than_the_one_chosen(j_now, rows):
+    frac, cost = (np.array(v) for v in zip(*rows))
+    j = j_now * frac  # criteria at most the current one
+    c = per_second_choice(j_now, j, cost)
+    rate = (j_now - j) / cost
+    assert np.all(rate <= rate[c])
+    assert np.all(cost[rate == rate[c]] >= cost[c])

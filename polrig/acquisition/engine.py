@@ -369,9 +369,14 @@ def hardware_model(rig) -> HardwareModel:
         except (DeviceTimeout, DeviceFault, ProtocolError):
             positions[name] = 0.0
     caps = rig.camera.capabilities
-    settle = caps.settle_frames if caps.preferred_trigger == "free" else 0
-    return HardwareModel(lambda a, f, t: axes[a].move_time_s(f, t), caps.readout_us, settle,
+    return HardwareModel(lambda a, f, t: axes[a].move_time_s(f, t), caps.readout_us, settle_frames(caps),
                          positions, float(rig.camera.exposure_us))
+
+
+def settle_frames(caps: CameraCapabilities) -> int:
+    """The frames a camera of capabilities ``caps`` discards after a setting change or a move:
+    its declared settle frames in free run (its preferred trigger), none when triggered."""
+    return int(caps.settle_frames) if caps.preferred_trigger == "free" else 0
 
 
 # -- calibration procedures: the same policy behind the HAL interfaces ----------------------

@@ -680,6 +680,19 @@ def state_steps(plan: CapturePlan, capture: int, exposures_us: Sequence[float], 
     return steps
 
 
+def state_time_s(plan: CapturePlan, exposures_us: Sequence[float], here_deg: float,
+                 state_deg: float, model: HardwareModel) -> float:
+    """The hardware time of one more state of a pose at stage angle ``state_deg`` with the
+    stage at ``here_deg`` and the camera at the last exposure of the bracket ``exposures_us``
+    (where the state before left it): :func:`step_durations` of its :func:`state_steps` (the
+    move and ``plan.frames_per_state`` frames per exposure, settle frames included; the pose
+    does not change it), seconds. What the adaptive capture weighs a candidate state's gain
+    against (:func:`polrig.solve.design.per_second_choice`)."""
+    at = dataclasses.replace(model, positions_deg={**model.positions_deg, "stage": float(here_deg)},
+                             exposure_us=_bracket(exposures_us)[-1])
+    return float(sum(step_durations(state_steps(plan, 0, exposures_us, 1, state_deg), at)))
+
+
 def pose_tail_steps(capture: int, exposures_us: Sequence[float]) -> list[Step]:
     """The end of a capture: the reference exposure again (the simulated rig's truth is taken
     at it) and checkpoint "capture-acquired"."""

@@ -26,11 +26,16 @@ the least summed relative posterior variance over the object pixels still above 
 predicted in closed form, under the prior the solve uses: the calibration's joint prior where
 it holds one) among the candidates of :func:`polrig.solve.design.next_candidates`: for the
 second and third states the two others of the equiangular set through the first (its angle
-+60 and +120 deg), then all of :data:`CANDIDATES_DEG`. It is evaluated on at
++60 and +120 deg), then all of :data:`CANDIDATES_DEG`, each at the nearer of its two stage
+angles (a linear polarizer repeats every 180 deg). It is evaluated on at
 most :data:`polrig.solve.design.DESIGN_PIXELS` of those pixels (every n-th in raster order: deterministic), with
-the ideal analyzer's rows and the noise model's variance at the current estimate. Of equally
-good candidates (:data:`NEAR_BEST`) the stage goes to the nearest, at the nearer of the two
-equivalent angles (a linear polarizer repeats every 180 deg).
+the ideal analyzer's rows and the noise model's variance at the current estimate. The state
+taken is the one of greatest predicted reduction **per second** of the hardware time it costs
+(:func:`polrig.solve.design.per_second_choice`; its move and frames,
+:func:`polrig.acquisition.plan.state_time_s`, timed by the rig's timing the session recorded,
+:func:`timing_model`), so that the pose reaches its target soonest. A session recorded before
+the rig's timing was (no ``rig.timing``) chooses as it did then: the least criterion, of
+equal ones the nearest.
 
 **How a decision enters the plan.** Plans are frozen data and the engine knows no session
 (:mod:`polrig.acquisition.engine`): :class:`AdaptiveSchedule` hands the executor one piece at a
@@ -65,14 +70,16 @@ import contextlib
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from polrig.acquisition.hal import AxisCapabilities
 from polrig.acquisition.plan import (
     ADAPTIVE_CANDIDATE_STEP_DEG,
     CapturePlan,
+    HardwareModel,
     Step,
     adaptive_forecast_states,
     adaptive_pose_steps,
@@ -80,6 +87,7 @@ from polrig.acquisition.plan import (
     pose_head_steps,
     pose_tail_steps,
     state_steps,
+    state_time_s,
 )
 from polrig.app.processing import (
     Processor,
@@ -95,6 +103,7 @@ from polrig.solve.design import (
     DESIGN_PIXELS,
     a_optimal_next,
     next_candidates,
+    per_second_choice,
     relative_sigma,
     share_at_target,
 )
@@ -104,11 +113,6 @@ from polrig.solve.reference import DARK
 #: Candidate polarizer angles, deg: ``[0, 180)`` in steps of
 #: :data:`polrig.acquisition.plan.ADAPTIVE_CANDIDATE_STEP_DEG`.
 CANDIDATES_DEG = tuple(float(a) for a in np.arange(0.0, 180.0, ADAPTIVE_CANDIDATE_STEP_DEG))
-#: Candidates whose predicted reduction of the criterion is within this fraction of the best
-#: one's count as equally good; of those the stage goes to the nearest. 0: exact ties only (2 %
-#: was tried on plastic_metal at 64x64: it chose clustered angles, 0/67.5/90/127.5 deg, and lost
-#: 8 dB on one pose for 1 s less motion).
-NEAR_BEST = 0.0
 #: What a decision does (the manifest's ``action``).
 TAKE, STOP_TARGET, STOP_MAX, STOP_NO_OBJECT = "take", "stop-target", "stop-max-states", "stop-no-object"
 
@@ -162,11 +166,16 @@ class _Clock:
 
 def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
              geometry: dict[str, Any] | None, memo: PoseMemo | None = None,
-             timings: dict[str, float] | None = None) -> dict[str, Any]:
+             timings: dict[str, float] | None = None, timing: Mapping[str, Any] | None = None
+             ) -> dict[str, Any]:
     """The decision after the states of ``cf`` (a pose's frames so far, first state first):
     an :class:`polrig.app.manifest.AdaptiveDecision` record (``states_taken``, ``share_met``,
     ``object_pixels``, ``clipped_pixels``, ``dark_pixels``, ``design_pixels``, ``criterion``, ``action``, ``state_deg``,
-    ``predicted_criterion``). See the module docstring.
+    ``predicted_criterion``, and ``state_time_s`` with ``timing``). See the module docstring.
+
+    ``timing``: the rig's :class:`polrig.app.manifest.TimingRecord` (the session's
+    ``rig.timing``); the state taken is then the greatest reduction per second of its hardware
+    time, without it (a session from before it) the least criterion.
 
     ``memo``: the state radiances and the network's answer of earlier decisions of the same
     pose (:class:`PoseMemo`), reused where their files' checksums match; the record is
@@ -201,14 +210,32 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
         network_s = timings.get("network", 0.0) - network_s
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - t - network_s
     with clock("criterion"):
-        return _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], keep.get("correlation"))
+        return _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], keep.get("correlation"), timing)
+
+
+def timing_model(timing: Mapping[str, Any]) -> HardwareModel:
+    """The :class:`polrig.acquisition.plan.HardwareModel` of a recorded
+    :class:`polrig.app.manifest.TimingRecord`: the polarizer stage's moves and the frames' readout
+    and settle frames (the stage's position and the camera's exposure are set per candidate
+    by :func:`polrig.acquisition.plan.state_time_s`)."""
+    accel = timing["stage_accel_deg_s2"]
+    stage = AxisCapabilities(float(timing["stage_speed_deg_s"]), math.inf if accel is None else float(accel))
+
+    def move_time_s(axis: str, from_deg: float, to_deg: float) -> float:
+        if axis != "stage":
+            raise ValueError(f"the recorded timing has the polarizer stage's motion only, not the {axis}'s")
+        return stage.move_time_s(float(to_deg) - float(from_deg))
+
+    return HardwareModel(move_time_s, float(timing["readout_us"]), int(timing["settle_frames"]),
+                         {"stage": 0.0}, math.nan)
 
 
 def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, s_in: np.ndarray,
-            lay, states: list[StateRadiance], net, net_correlation: np.ndarray | None = None) -> dict[str, Any]:
+            lay, states: list[StateRadiance], net, net_correlation: np.ndarray | None = None,
+            timing: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s record from the hybrid solve's ``result`` of the states ``states``
-    (incident ``s_in``, layout ``lay``), the network's answer ``net`` on the first and the
-    joint prior's correlation the solve used (None: the per-element prior)."""
+    (incident ``s_in``, layout ``lay``), the network's answer ``net`` on the first, the joint
+    prior's correlation the solve used (None: the per-element prior) and the rig's ``timing``."""
     sigma = result.sigma_noise if result.sigma_noise is not None else result.sigma
     lit = (np.asarray(net.mask) & DARK) == 0  # (C, H, W): colours above the seen frame's noise floor
     rel = relative_sigma(sigma, result.mueller, lit)
@@ -251,11 +278,15 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
                               correlation=net_correlation)
     here = cf.states_deg[-1]
     angles = [nearest_stage_angle(a, here) for a in candidates]
-    # the nearest of the candidates within NEAR_BEST of the best reduction (motion is time)
-    good = j <= np.min(j) + NEAR_BEST * max(0.0, j_now - float(np.min(j)))
-    best = min(np.flatnonzero(good), key=lambda c: (abs(angles[c] - here), c))
-    return record | {"design_pixels": len(ys), "criterion": j_now,
-                     "state_deg": angles[best], "predicted_criterion": float(j[best])}
+    if timing is None:  # a session from before the rig's timing: the least criterion, of equal ones the nearest
+        best = min(np.flatnonzero(j <= np.min(j)), key=lambda c: (abs(angles[c] - here), c))
+        return record | {"design_pixels": len(ys), "criterion": j_now,
+                         "state_deg": angles[best], "predicted_criterion": float(j[best])}
+    model = timing_model(timing)
+    cost = [state_time_s(plan, cf.exposures_us, here, a, model) for a in angles]
+    best = per_second_choice(j_now, j, cost)
+    return record | {"design_pixels": len(ys), "criterion": j_now, "state_deg": angles[best],
+                     "predicted_criterion": float(j[best]), "state_time_s": cost[best]}
 
 
 def truncated(cf: CaptureFrames, n: int) -> CaptureFrames:
@@ -273,7 +304,8 @@ def decide(session: Session, index: int, processor: Processor, memo: PoseMemo | 
     memo = None if memo is None else memo.of_capture(index)
     with _Clock(timings)("read"):
         cf = load_capture_frames(session, index, None if memo is None else memo.frames)
-    record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf), memo, timings)
+    record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf), memo, timings,
+                      timing=session.manifest["rig"].get("timing"))
     if memo is not None and record["action"] != TAKE:  # the pose's last decision
         memo.clear()
     with session.mutex:
@@ -290,7 +322,8 @@ def replay_decisions(session: Session, index: int, processor: Processor,
     memo = None if memo is None else memo.of_capture(index)
     cf = load_capture_frames(session, index, None if memo is None else memo.frames)
     geometry = processor.network_geometry(session, cf)
-    return [evaluate(truncated(cf, n), session.plan, processor, geometry, memo)
+    timing = session.manifest["rig"].get("timing")
+    return [evaluate(truncated(cf, n), session.plan, processor, geometry, memo, timing=timing)
             for n in range(1, len(cf.states_deg) + 1)]
 
 

@@ -26,6 +26,7 @@ import copy
 import dataclasses
 import datetime as _dt
 import json
+import math
 import re
 from typing import Annotated, Any, Callable, Literal, Mapping, NotRequired, TypedDict
 
@@ -71,6 +72,8 @@ Index = Annotated[int, Check(lambda v: v >= 0, "an index >= 0")]
 Count = Annotated[int, Check(lambda v: v >= 0, "a count")]
 ByteCount = Annotated[int, Check(lambda v: v >= 0, "a byte count")]
 Finite = Annotated[float, FINITE]
+Positive = Annotated[float, Check(lambda v: math.isfinite(v) and v > 0, "a finite number > 0")]
+NonNegative = Annotated[float, Check(lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")]
 CaptureStatus = Literal[CAPTURE_STATUSES]
 SessionStatus = Literal[SESSION_STATUSES]
 
@@ -335,7 +338,10 @@ class AdaptiveDecision(TypedDict):
     angle ``state_deg``, or stop: ``stop-target``, ``stop-max-states``, ``stop-no-object``) and
     why: the A-optimal criterion (:mod:`polrig.solve.design`, summed relative posterior variance
     over ``design_pixels`` object pixels still above target) now (``criterion``) and predicted
-    after the state taken (``predicted_criterion``); null where no state was chosen."""
+    after the state taken (``predicted_criterion``), and the hardware time that state cost
+    (``state_time_s``, its move and frames, seconds: the choice is the greatest reduction per
+    second; absent in sessions without the rig's ``timing``, whose choice was the least
+    criterion); null where no state was chosen."""
 
     states_taken: Annotated[int, Check(lambda v: v >= 1, "a count >= 1")]
     share_met: Annotated[float, Check(lambda v: 0.0 <= v <= 1.0, "a share in [0, 1]")]
@@ -347,6 +353,7 @@ class AdaptiveDecision(TypedDict):
     action: Literal["take", "stop-target", "stop-max-states", "stop-no-object"]
     state_deg: Finite | None
     predicted_criterion: Finite | None
+    state_time_s: NotRequired[Finite | None]
 
 
 class CaptureRecord(TypedDict):
@@ -406,9 +413,22 @@ class CameraFrames(TypedDict):
     colours: int
 
 
+class TimingRecord(TypedDict):
+    """The rig's hardware timing as the adaptive capture weighs a state's cost
+    (:func:`polrig.app.records.timing_record`): the polarizer stage's declared cruise speed
+    (deg/s) and acceleration (deg/s^2, null: full speed at once), the camera's readout per
+    frame (us) and the frames it discards after a setting change or a move (free run; else 0)."""
+
+    stage_speed_deg_s: Positive
+    stage_accel_deg_s2: Positive | None
+    readout_us: NonNegative
+    settle_frames: Count
+
+
 class RigRecord(TypedDict):
     """The rig a session was captured on (:func:`polrig.app.records.rig_record`): null where a
-    session from before a key existed did not record it."""
+    session from before a key existed did not record it (``timing``, absent in sessions from
+    before it: their adaptive captures chose by the criterion alone, and resume so)."""
 
     simulated: bool
     config: dict[str, Any] | None
@@ -416,6 +436,7 @@ class RigRecord(TypedDict):
     sim_parameters: dict[str, Any] | None
     camera_frames: CameraFrames | None
     sensor_model: dict[str, float] | None
+    timing: NotRequired[TimingRecord]
 
 
 class Software(TypedDict):

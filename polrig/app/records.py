@@ -1,5 +1,5 @@
 """What a session records about the rig, and checks against it: the devices' identities,
-the camera's frame geometry, the sensor noise model (:func:`rig_record`, the manifest's
+the camera's frame geometry, the sensor noise model, the hardware timing (:func:`rig_record`, the manifest's
 ``rig`` entry); whether a plan fits the camera (:func:`check_rig_for_plan`) and whether a
 session may continue on a rig (:func:`check_resume_rig`, :func:`rig_differences`).
 
@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from polrig.acquisition.plan import CapturePlan, PlanError
-from polrig.app.manifest import CameraFrames, RigRecord
+from polrig.acquisition.engine import settle_frames
+from polrig.app.manifest import CameraFrames, RigRecord, TimingRecord
 from polrig.app.session import Session
 from polrig.errors import ConfigError
 from polrig.formats.rawio import read_raw
@@ -50,7 +51,22 @@ def rig_record(rig) -> RigRecord:
     return {"simulated": info["simulated"], "config": info.get("config"),
             "devices": info["devices"], "sim_parameters": info.get("sim_parameters"),
             "camera_frames": camera_frames(rig),
-            "sensor_model": jsonable(dataclasses.asdict(sensor_model_of(rig)))}
+            "sensor_model": jsonable(dataclasses.asdict(sensor_model_of(rig))),
+            "timing": timing_record(rig)}
+
+
+def timing_record(rig) -> TimingRecord:
+    """The manifest's ``rig.timing`` (:class:`polrig.app.manifest.TimingRecord`): the polarizer
+    stage's declared motion and the camera's readout and settle frames, as
+    :func:`polrig.acquisition.engine.hardware_model` takes them. An adaptive capture weighs its
+    candidate states' cost with it (:func:`polrig.app.adaptive.timing_model`), from the session
+    alone, so a replay or a resume chooses alike."""
+    stage = rig.stage.capabilities
+    accel = float(stage.accel_deg_s2)
+    caps = rig.camera.capabilities
+    return {"stage_speed_deg_s": float(stage.speed_deg_s),
+            "stage_accel_deg_s2": accel if math.isfinite(accel) else None,
+            "readout_us": float(caps.readout_us), "settle_frames": settle_frames(caps)}
 
 
 def check_rig_for_plan(rig, plan: CapturePlan) -> None:
