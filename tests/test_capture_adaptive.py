@@ -22,7 +22,13 @@ from polrig.acquisition.plan import (
     step_durations,
 )
 from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, PoseMemo, replay_decisions
-from polrig.app.capture import CaptureRequest, run_session
+from polrig.app.capture import (
+    CaptureRequest,
+    RecordedDecision,
+    kept_decisions,
+    run_session,
+)
+from polrig.app.manifest import describe_decision
 from polrig.app.session import COMPLETE, INTERRUPTED, PENDING, Session
 from polrig.app.sessionio import load_capture_frames
 from polrig.cli import main
@@ -131,7 +137,11 @@ def test_info_shows_the_target_and_the_decisions(adaptive_run, capsys):
     assert main(["info", str(session.root), "--no-verify"]) == 0
     out = capsys.readouterr().out
     assert "mode adaptive (target relative sigma 0.05 on 95 % of the object pixels, at most 4 states" in out
-    assert out.count("decisions: 1: ") == len(session.captures)
+    lines = [line.strip() for line in out.splitlines()]
+    # each decision on a line of its own, in the words of its progress event, in the order made
+    decisions = [line.removeprefix("decision: ") for line in lines if line.startswith("decision: ")]
+    assert decisions == [describe_decision(d) for c in session.captures for d in c["adaptive"]]
+    assert sum(line.startswith("1 state(s): ") for line in decisions) == len(session.captures)
 
 
 @needs_model
@@ -214,7 +224,9 @@ def test_hardware_time_and_eta_follow_the_decisions(adaptive_run):
     done = [e.hardware_s - e.hardware_left_s for e in events]
     assert all(b >= a - 1e-9 for a, b in itertools.pairwise(done))
     assert last.step == last.total == sum(len(c["files"]["raw"]) for c in session.captures)
-    assert [e.kind for e in events].count("decision") == sum(len(c["adaptive"]) for c in session.captures)
+    # a decision event per recorded decision, in its words (polrig.app.manifest.describe_decision)
+    assert [(e.capture_index, e.message) for e in events if e.kind == "decision"] == [
+        (c["index"], describe_decision(d)) for c in session.captures for d in c["adaptive"]]
 
 
 @needs_model
@@ -237,6 +249,8 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
     assert s.manifest["status"] == INTERRUPTED
     assert [c["status"] for c in s.captures] == [COMPLETE, PENDING]
     assert len(s.capture(1)["adaptive"]) == 1  # its first decision was recorded
+    # a resume keeps the complete pose's decisions; the pending one decides again from scratch
+    assert kept_decisions(s) == tuple(RecordedDecision(0, POSES[0], d) for d in s.capture(0)["adaptive"])
     with sim_rig(scene=SCENE) as rig:
         s2, result = resume(rig, out)
     assert result.status == "complete" and s2.verify() == []

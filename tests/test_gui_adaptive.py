@@ -2,7 +2,9 @@
 that mode only and reach the plan through the request ``polrig capture`` builds; a bad target
 is the plan's one-line error and starts nothing; a one-pose adaptive capture on the simulated
 rig records its decisions in ``session.json`` and the panel shows each one as it is made (log,
-ETA label, the "Adaptive decisions" list), the ETA from the forecast the decision revised."""
+ETA label, the "Adaptive decisions" list), the ETA from the forecast the decision revised; a
+stopped adaptive session resumed from the panel lists the decisions recorded for the captures it
+keeps, marked, then the live ones, none twice."""
 
 from __future__ import annotations
 
@@ -127,5 +129,70 @@ def test_an_adaptive_capture_shows_each_decision_and_records_them(qtbot, tmp_pat
                 assert (nxt.hardware_s, nxt.total) == (ev.hardware_s, ev.total), (ev, nxt)
         assert cp.progress.value() == cp.progress.maximum() == len(decisions)
         assert cp.eta.text() == "session complete (1 captures)"
+    finally:
+        close_window(qtbot, w)
+
+
+@needs_model
+def test_a_resumed_adaptive_session_lists_the_recorded_decisions_then_the_live_ones(
+        qtbot, tmp_path, monkeypatch):
+    """Two poses, a target no pose meets and at most two states: each pose takes a second
+    state, then stops at the most states. The first run is stopped at pose 2's first decision
+    (the stop is asked for in the worker thread as the event is sent, so the pose's next move
+    never starts): pose 1 complete, pose 2 pending with that decision recorded. Resumed from the
+    panel, the list starts, before the run's first event, with pose 1's recorded decisions
+    (marked "(recorded)"), not pose 2's, which the run takes again from scratch and lists once,
+    live: the list ends as the session's decisions, each once."""
+    from polrig.app.manifest import describe_decision
+    from polrig.gui.capture_panel import CaptureWorker
+
+    stop_at = {"capture": 1}  # the first run stops at this capture's first decision
+    real_event = CaptureWorker._event
+
+    def event(worker, ev):
+        if getattr(ev, "kind", "") == "decision" and ev.capture_index == stop_at.get("capture"):
+            worker.control.stop.set()
+        real_event(worker, ev)
+
+    monkeypatch.setattr(CaptureWorker, "_event", event)
+    w = make_window(qtbot, tmp_path / "gui.ini")
+    try:
+        wait_connected(qtbot, w)
+        cp = w.capture
+        out = tmp_path / "session"
+        cp.poses.setText("0,90")
+        cp.out.setText(str(out))
+        cp.mode.setCurrentText("adaptive")
+        cp.target_sigma.setValue(1e-4)  # the spin box's least: no pose meets it
+        cp.max_states.setValue(2)
+        cp.start()
+        qtbot.waitUntil(lambda: cp.last_status == "interrupted" and not cp.is_running,
+                        timeout=120000)
+        first = json.loads((out / "session.json").read_text())
+        assert [c["status"] for c in first["captures"]] == ["complete", "pending"]
+        kept, dropped = first["captures"][0]["adaptive"], first["captures"][1]["adaptive"]
+        assert [d["action"] for d in kept] == ["take", "stop-max-states"]
+        assert [d["action"] for d in dropped] == ["take"]  # recorded, then stopped before its move
+        assert cp.decisions.count() == 3 and "(recorded)" not in cp.decisions.item(0).text()
+
+        stop_at.clear()
+        at_start = []  # the list when the resumed run's session is ready, and the events by then
+        cp.message.connect(lambda level, text: text.startswith("capture resumed in") and at_start.append(
+            ([cp.decisions.item(i).text() for i in range(cp.decisions.count())], len(cp.events),
+             cp.decisions_box.isVisibleTo(cp))))
+        cp.resume()
+        qtbot.waitUntil(lambda: cp.last_status == "complete" and not cp.is_running, timeout=120000)
+        final = json.loads((out / "session.json").read_text())
+        assert final["captures"][0]["adaptive"] == kept  # kept, not taken again
+        again = final["captures"][1]["adaptive"]
+        assert [d["action"] for d in again] == ["take", "stop-max-states"]
+        assert again[0] == dropped[0]  # the same decision on the same frames, listed once below
+        recorded = [f"capture 1, pose 0 deg: {describe_decision(d)} (recorded)" for d in kept]
+        live = [f"capture 2, pose 90 deg: {describe_decision(d)}" for d in again]
+        assert at_start == [(recorded, 0, True)]
+        assert [cp.decisions.item(i).text() for i in range(cp.decisions.count())] == recorded + live
+        assert [e.message for e in cp.events if e.kind == "decision"] == [
+            describe_decision(d) for d in again]
+        assert cp.decisions.item(0).toolTip() != cp.decisions.item(len(recorded)).toolTip()
     finally:
         close_window(qtbot, w)

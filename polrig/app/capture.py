@@ -81,7 +81,7 @@ from polrig.app.calibrations import (
     check_plan,
     load_calibration,
 )
-from polrig.app.manifest import SampleMetadata
+from polrig.app.manifest import AdaptiveDecision, SampleMetadata, describe_decision
 from polrig.app.processing import make_processor
 from polrig.app.records import (
     check_resume_rig,
@@ -116,9 +116,9 @@ from polrig.app.sessionio import (  # noqa: F401 (re-exported)
 from polrig.errors import DeviceAlarm, DeviceError
 
 __all__ = ["CaptureControl", "CaptureEvent", "CapturePlan", "CaptureRequest", "PreparedCapture",
-           "Progress", "SessionOpened", "SessionResult", "StopRequested", "check_resume_space",
-           "create_session", "interrupted_result", "open_session", "prepare_capture",
-           "run_capture", "run_session"]
+           "Progress", "RecordedDecision", "SessionOpened", "SessionResult", "StopRequested",
+           "check_resume_space", "create_session", "interrupted_result", "kept_decisions",
+           "open_session", "prepare_capture", "run_capture", "run_session"]
 
 
 # -- the request (GUI and command line) ---------------------------------------------------------
@@ -324,14 +324,43 @@ ProgressCallback = Callable[[Progress], None]
 
 
 @dataclasses.dataclass(frozen=True)
+class RecordedDecision:
+    """An adaptive decision a session holds from an earlier run: capture ``capture_index``
+    (at ``pose_deg``) took ``decision`` (:class:`polrig.app.manifest.AdaptiveDecision`)."""
+
+    capture_index: int
+    pose_deg: float
+    decision: AdaptiveDecision
+
+    def describe(self) -> str:
+        """The decision in the words of its progress event
+        (:func:`polrig.app.manifest.describe_decision`)."""
+        return describe_decision(self.decision)
+
+
+def kept_decisions(session: Session) -> tuple[RecordedDecision, ...]:
+    """The adaptive decisions ``session`` holds for the captures a run of it keeps: those
+    complete or acquired (processed, not acquired again), in plan order, each capture's in the
+    order made. Every other capture is acquired from scratch
+    (:meth:`polrig.app.session.Session.restart_capture` forgets its decisions) and decides
+    again, in that run's ``"decision"`` events. Empty for a new session or another mode."""
+    return tuple(RecordedDecision(c["index"], c["pose_deg"], d) for c in session.captures
+                 if c["status"] in (COMPLETE, ACQUIRED) for d in c.get("adaptive", ()))
+
+
+@dataclasses.dataclass(frozen=True)
 class SessionOpened:
     """The session of a :func:`run_capture` exists (``resumed``: an existing one continues)
     and its run starts: the request was valid, the rig is open and fits it, nothing was
-    refused. Every way the run ends from here is a :class:`SessionResult` (or Ctrl-C)."""
+    refused. Every way the run ends from here is a :class:`SessionResult` (or Ctrl-C).
+    ``decisions``: a resumed adaptive session's decisions the run keeps
+    (:func:`kept_decisions`), read before the run changes anything; the run's own come as
+    ``"decision"`` events."""
 
     root: pathlib.Path
     resumed: bool
     n_captures: int
+    decisions: tuple[RecordedDecision, ...] = ()
 
 
 #: What :func:`run_capture` tells its ``events`` callback, in the calling thread.
@@ -398,7 +427,7 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
             try:
                 if events is not None:
                     events(SessionOpened(session.root, prepared.resume_session is not None,
-                                         len(session.captures)))
+                                         len(session.captures), kept_decisions(session)))
                 return run_session(opened, session, processor=processor, progress=events,
                                    control=control)
             except Exception as exc:  # the session exists: a stop to report
@@ -743,11 +772,7 @@ class _Run:
     def decision(self, record: dict[str, Any]) -> dict[str, Any]:
         """Report an adaptive decision (a ``"decision"`` progress event) and return it."""
         index = self.current if self.current is not None else 0
-        what = (f"take {record['state_deg']:g} deg" if record["action"] == "take"
-                else record["action"].replace("-", " "))
-        self.emit("decision", index, f"{record['states_taken']} state(s): "
-                                     f"{100 * record['share_met']:.1f} % of "
-                                     f"{record['object_pixels']} object pixels at target; {what}")
+        self.emit("decision", index, describe_decision(record))
         return record
 
     def device_reason(self, exc: BaseException) -> str:

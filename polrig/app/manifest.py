@@ -356,6 +356,18 @@ class AdaptiveDecision(TypedDict):
     state_time_s: NotRequired[Finite | None]
 
 
+def describe_decision(decision: AdaptiveDecision) -> str:
+    """One line on an adaptive ``decision``: the states taken, the share of the object pixels
+    at target, and what it did (``take 60 deg``, ``stop target``...), e.g. ``2 state(s): 97.1 %
+    of 1200 object pixels at target; stop target``. The one wording of a decision everywhere:
+    the progress event's message (``polrig capture``, the GUI's log and list), ``polrig info``
+    and the decisions the GUI shows from a resumed session's manifest."""
+    what = (f"take {decision['state_deg']:g} deg" if decision["action"] == "take"
+            else decision["action"].replace("-", " "))
+    return (f"{decision['states_taken']} state(s): {100 * decision['share_met']:.1f} % of "
+            f"{decision['object_pixels']} object pixels at target; {what}")
+
+
 class CaptureRecord(TypedDict):
     """One pose of the plan: its folder ``name``, status, last attempt, files, score (and
     ``prior``: the hybrid result's prior model, absent in other modes; ``model``: the single-shot

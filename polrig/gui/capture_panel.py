@@ -8,7 +8,12 @@ device lock held, and shows its events. The ETA comes from the plan's hardware t
 first event, scaled by the observed pace once frames arrive. In the adaptive mode each
 decision (states taken, share of the object pixels at target, what it does next) is logged, put
 on the ETA line (its event carries the forecast the decision revised) and listed under "Adaptive
-decisions" as it is made. Pause and stop go through
+decisions" as it is made. When a resumed adaptive session starts, the list first shows, greyed
+and marked "(recorded)", the decisions its earlier runs took for the captures this run keeps
+(complete or acquired: :func:`polrig.app.capture.kept_decisions`, read from its
+``session.json``); a capture that is acquired again (interrupted, failed) decides again from
+scratch, its earlier decisions are dropped and its new ones come live, so none is listed
+twice. Pause and stop go through
 :class:`polrig.app.capture.CaptureControl`; a stop (or closing the window) leaves the session
 ``interrupted`` and resumable. Once the session exists, every way a run can end is reported
 like ``polrig capture`` reports it: complete, or stopped with the reason (a device fault, a
@@ -26,7 +31,7 @@ from typing import Any, Iterator
 
 import numpy as np
 from PySide6.QtCore import QSize, Qt, QThread, Signal
-from PySide6.QtGui import QIcon, QPixmap
+from PySide6.QtGui import QIcon, QPalette, QPixmap
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -56,7 +61,13 @@ from polrig.acquisition.plan import (
     parse_pose_spec,
 )
 from polrig.app import capture
-from polrig.app.capture import CaptureControl, CaptureRequest, Progress, SessionOpened
+from polrig.app.capture import (
+    CaptureControl,
+    CaptureRequest,
+    Progress,
+    RecordedDecision,
+    SessionOpened,
+)
 from polrig.app.manifest import SampleMetadata
 from polrig.app.preview import tone_map
 from polrig.errors import PolrigError
@@ -93,12 +104,13 @@ class CaptureWorker(QThread):
     the :class:`polrig.app.capture.SessionResult`; any error once the session exists ends
     here, as an ``interrupted`` result), ``failed(message)`` (a refusal before the session
     exists: bad options, devices not connected or busy; nothing written),
-    ``session_ready(path)`` (the session exists and the run starts)."""
+    ``session_ready(opened)`` (the session exists and the run starts: its
+    :class:`polrig.app.capture.SessionOpened`)."""
 
     progress = Signal(object)
     finished_result = Signal(str, str, object)
     failed = Signal(str)
-    session_ready = Signal(str)
+    session_ready = Signal(object)
 
     def __init__(self, rig, locks: RigLocks, request: CaptureRequest, parent=None):
         super().__init__(parent)
@@ -136,7 +148,7 @@ class CaptureWorker(QThread):
 
     def _event(self, ev) -> None:
         if isinstance(ev, SessionOpened):
-            self.session_ready.emit(str(ev.root))
+            self.session_ready.emit(ev)
         else:
             self.progress.emit(ev)
 
@@ -326,7 +338,8 @@ class CapturePanel(QWidget):
         self.thumbs.setFlow(QListWidget.Flow.LeftToRight)
         self.thumbs.setWrapping(False)
         self.thumbs.setFixedHeight(THUMB_PX + 48)
-        #: an adaptive capture's decisions as they are made, one line each (shown from the first)
+        #: an adaptive capture's decisions, one line each (shown from the first): on a resume
+        #: those recorded before for the captures kept, "(recorded)", then those made live
         self.decisions = QListWidget()
         self.decisions.setToolTip("each adaptive decision: the states taken so far, the share of "
                                   "the object pixels at target, and the next state or why it stopped")
@@ -447,9 +460,11 @@ class CapturePanel(QWidget):
         self._set_running(True)
         w.start()
 
-    def _session_ready(self, path: str) -> None:
-        resumed = self._request is not None and self._request.resume
-        self.message.emit("info", f"capture {'resumed' if resumed else 'started'} in {path}")
+    def _session_ready(self, opened: SessionOpened) -> None:
+        for recorded in opened.decisions:  # a resumed adaptive session: what it decided before
+            self._recorded_decision(recorded)
+        self.message.emit("info", f"capture {'resumed' if opened.resumed else 'started'} in "
+                                  f"{opened.root}")
 
     def set_paused(self, paused: bool) -> None:
         if self.worker is None:
@@ -514,6 +529,19 @@ class CapturePanel(QWidget):
                                                   f"{ev.pose_deg:g} deg: {ev.message}")
         elif ev.kind == "capture-done":
             self._capture_done(ev)
+
+    def _recorded_decision(self, recorded: RecordedDecision) -> None:
+        """A decision an earlier run of the resumed session took (a capture the run keeps:
+        :func:`polrig.app.capture.kept_decisions`), listed as the live ones are, marked
+        "(recorded)" and greyed."""
+        item = QListWidgetItem(f"capture {recorded.capture_index + 1}, pose "
+                               f"{recorded.pose_deg:g} deg: {recorded.describe()} (recorded)")
+        item.setForeground(self.decisions.palette().color(QPalette.ColorRole.PlaceholderText))
+        item.setToolTip("taken by an earlier run of this session (its session.json); the run "
+                        "keeps this capture")
+        self.decisions.addItem(item)
+        self.decisions.scrollToBottom()
+        self.decisions_box.setVisible(True)
 
     def _decision(self, ev: Progress, control: CaptureControl | None) -> None:
         """An adaptive decision: logged, listed under "Adaptive decisions" and, unless a pause

@@ -11,6 +11,11 @@ for real frames and writes:
 * ``viewer_reference_mueller.png`` -- the viewer showing a reference capture's Mueller EXR;
 * ``capture_progress.png`` -- the capture panel during a reference capture (progress, ETA,
   thumbnails of finished poses, scores against the simulator's truth);
+* ``capture_adaptive.png`` -- the capture panel after an adaptive capture (three poses, target
+  relative sigma 0.05) that was stopped at the second pose's first decision and resumed: its
+  "Adaptive decisions" list, the first pose's decisions recorded by the stopped run (greyed,
+  "(recorded)"), then those the resumed run made (needs the single-shot model; ``--only
+  adaptive`` writes it alone);
 * ``viewer_roi_stats.png`` -- the viewer showing a parameter map (linear retardance) of a
   reference capture of the stressed-film scene, an ellipse ROI with its statistics table
   (counted and masked pixels) and a line profile;
@@ -66,6 +71,38 @@ def analysis_views(app, viewer, shot) -> None:
     shot(v, "viewer_virtual_polarizer.png")
 
 
+def adaptive_capture_view(app, w, session: pathlib.Path, shot) -> None:
+    """``capture_adaptive.png``: in window ``w``, an adaptive capture into ``session`` (poses
+    0, 120, 240 deg, target relative sigma 0.05) stopped once the second pose's first decision
+    is made, then resumed from the panel to its end: the decisions list shows the ones the
+    stopped run recorded, then the resumed run's."""
+    cp = w.capture
+    cp.poses.setText("0:360:120")
+    cp.out.setText(str(session))
+    cp.mode.setCurrentText("adaptive")
+    cp.target_sigma.setValue(0.05)
+    cp.states.setText("")
+    w.show_panel(cp)
+    cp.start()
+    _wait(app, lambda: any(e.kind == "decision" and e.capture_index >= 1 for e in cp.events)
+          or not cp.is_running, 900, "the second pose's first decision")
+    cp.stop()
+    _wait(app, lambda: not cp.is_running, 600, "the adaptive capture to stop")
+    if cp.last_status != "interrupted":
+        raise RuntimeError(f"screenshots: the adaptive capture ended {cp.last_status}: "
+                           f"{cp.eta.text()}")
+    cp.resume()
+    _wait(app, lambda: cp.is_running, 60, "the resumed adaptive capture to start")
+    _wait(app, lambda: not cp.is_running, 900, "the resumed adaptive capture")
+    if cp.last_status != "complete":
+        raise RuntimeError(f"screenshots: the resumed adaptive capture ended {cp.last_status}: "
+                           f"{cp.eta.text()}")
+    bar = w.pages[cp].verticalScrollBar()  # the page scrolled to its ETA, poses and decisions
+    bar.setValue(bar.maximum())
+    cp.decisions.scrollToTop()
+    shot(w, "capture_adaptive.png")
+
+
 def _shooter(app, out: pathlib.Path, written: list[pathlib.Path]):
     """``shot(widget, name)``: process pending events, grab ``widget`` into ``out/name`` (PNG)
     and append the path to ``written``."""
@@ -111,9 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="512x512", help="simulated sensor size WxH")
     ap.add_argument("--no-calibration", action="store_true",
                     help="skip calibration.png (two calibration steps, about a minute)")
-    ap.add_argument("--only", choices=("all", "analysis"), default="all",
+    ap.add_argument("--only", choices=("all", "analysis", "adaptive"), default="all",
                     help="analysis: only the viewer's ROI statistics and virtual polarizer "
-                         "screenshots, from a quick capture of their own")
+                         "screenshots, from a quick capture of their own; adaptive: only "
+                         "capture_adaptive.png")
     args = ap.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
@@ -140,6 +178,14 @@ def main(argv: list[str] | None = None) -> int:
     w.start()
     written: list[pathlib.Path] = []
     shot = _shooter(app, out, written)
+    if args.only == "adaptive":
+        _wait(app, lambda: all(d.is_open for d in rig.devices.values()), 120, "the devices")
+        adaptive_capture_view(app, w, tmp / "adaptive_session", shot)
+        w.close()
+        _wait(app, lambda: not w.isVisible(), 60, "the window to close")
+        for p in written:
+            print(f"wrote {p}")
+        return 0
 
     w.show_panel(w.live)
     # the exposure box shows the camera's value (from the device poll), as the status line does
@@ -173,6 +219,10 @@ def main(argv: list[str] | None = None) -> int:
     shot(w, "capture_progress.png")
     cp.stop()
     _wait(app, lambda: not cp.is_running, 600, "the capture to stop")
+    if live_mueller:  # the adaptive mode needs the single-shot model, as the live grid does
+        adaptive_capture_view(app, w, tmp / "adaptive_session", shot)
+    else:
+        print("capture_adaptive.png not written: no single-shot model installed")
     w.viewer.open_session(tmp / "session")
     w.show_panel(w.viewer)
     v = w.viewer

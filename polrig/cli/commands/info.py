@@ -20,6 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polrig.app.manifest import describe_decision
     from polrig.app.session import Session
     from polrig.solve.scoring import format_score
 
@@ -65,11 +66,8 @@ def run(args: argparse.Namespace) -> int:
         if cap["reason"]:
             line += f"  ({cap['reason']})"
         print(line)
-        if cap.get("adaptive"):  # the states an adaptive capture took, and why it stopped
-            steps = [f"{d['states_taken']}: {100 * d['share_met']:.1f} % at target -> "
-                     + (f"{d['state_deg']:g} deg" if d["action"] == "take" else d["action"])
-                     for d in cap["adaptive"]]
-            print("          decisions: " + "; ".join(steps))
+        for d in cap.get("adaptive", ()):  # the states an adaptive capture took, why it stopped
+            print(f"          decision: {describe_decision(d)}")
         if cap["score"]:
             print(f"          score: {format_score(cap['score'])}")
         for name, rev in cap["revisions"].items():
