@@ -138,6 +138,10 @@ ADAPTIVE_TARGETS = (0.05, 0.03)
 BRACKET = (1 / 16, 1 / 256)
 ADAPTIVE_SHARE = 0.95
 ADAPTIVE_MAX_STATES = 4
+#: The adaptive rows' second budget of states: the most a capture allows
+#: (:data:`polrig.acquisition.plan.ADAPTIVE_MAX_STATES`), where the choice per second of hardware
+#: time (:func:`polrig.solve.design.choose_next`) decides more than the fourth, last state.
+ADAPTIVE_MORE_STATES = 8
 #: The default simulated rig's scenes (``--rig``: those of the single-shot rig benchmark,
 #: ``benchmarks/bench_single_shot.py``'s ``RIG_SCENES``) and turntable poses (deg) scored at the
 #: rig's size.
@@ -657,14 +661,21 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     (:func:`polrig.solve.design.a_optimal_next`, under the joint prior ``correlation`` where
     given) among the candidates of :func:`polrig.solve.design.next_candidates` not taken yet
     (the equiangular set through the seen state first, then the 15 deg offsets; one frame each
-    exists) of greatest predicted reduction per second of the simulated rig's hardware time
-    (:func:`polrig.solve.design.per_second_choice`, :func:`sim_hardware_model`). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
+    exists), chosen as the capture chooses (:func:`polrig.solve.design.choose_next`, timed by
+    :func:`sim_hardware_model`). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
     the joint prior ``correlation`` where given, as the capture's) and the offsets taken, in
     order."""
     from polrig.acquisition.plan import CapturePlan, nearest_stage_angle, state_time_s
     from polrig.sim.dataset import DATASET_EXPOSURE_US
-    from polrig.solve.design import (DESIGN_PIXELS, a_optimal_next, next_candidates, per_second_choice,
-                                     relative_sigma, share_at_target)
+    from polrig.solve.design import (
+        DESIGN_PIXELS,
+        a_optimal_next,
+        choose_next,
+        next_candidates,
+        predicted_share,
+        relative_sigma,
+        share_at_target,
+    )
 
     # the capture's object pixels: the seen frame not clipped, some colour above its noise floor
     lit = lit_pixels(fr)
@@ -677,21 +688,26 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         if got >= share or len(taken) >= max_states:
             return mueller, sigma, solved, taken
         m00 = mueller[:, 0, 0]
-        ys, xs = np.nonzero(obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0))
+        above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)
+        ys, xs = np.nonzero(above)
         if len(ys) == 0:
             return mueller, sigma, solved, taken
         stride = max(1, -(-len(ys) // DESIGN_PIXELS))
         ys, xs = ys[::stride], xs[::stride]
         px = lambda a: np.moveaxis(np.asarray(a, np.float64)[..., ys, xs], -1, 0)  # noqa: E731
-        cands = [int(round(a)) for a in next_candidates(taken, OFFSETS_DEG) if int(round(a)) not in taken]
-        j_now, j = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
-                                                             for d in taken],
-                              px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms,
-                              correlation=correlation)
-        # the greatest reduction per second of hardware time (the capture's rule, polrig.app.adaptive)
+        cands = [int(round(a)) for a in next_candidates(taken, OFFSETS_DEG)]
+        scores = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
+                                                            for d in taken],
+                                px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms,
+                                correlation=correlation)
+        # the capture's choice (polrig.app.adaptive): the cheapest state predicted to finish, else at the
+        # last state the least criterion, else the greatest reduction per second of hardware time
         here = stage_angles(taken)[-1]
         cost = [state_time_s(plan, exposures, here, nearest_stage_angle(c, here), model) for c in cands]
-        taken.append(cands[per_second_choice(j_now, j, cost)])
+        m = px(mueller)
+        after = predicted_share(scores.trace.reshape(len(cands), *m.shape[:2]), m[..., 0, 0], px(lit) > 0,
+                                target, got, int(above.sum()) / int(obj.sum()))
+        taken.append(cands[choose_next(scores, cost, after, share, last=len(taken) + 1 >= max_states)])
 
 
 def score(fr: Frames, mueller: np.ndarray, sigma: np.ndarray, solved: np.ndarray,
@@ -736,7 +752,12 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
 def _samples(data, net):
     """``(dataset, sensor model, [(index, network prior)])`` of a set's lit samples (``data``: a
     dataset folder or a :class:`polrig.models.data.Dataset`)."""
-    from polrig.models.data import Dataset, check_network_size, lit_samples, load_dataset
+    from polrig.models.data import (
+        Dataset,
+        check_network_size,
+        lit_samples,
+        load_dataset,
+    )
     from polrig.sensor.noise import SensorModel
 
     data_dir = data if not isinstance(data, Dataset) else f"scene {data.manifest.get('scene', '?')}"
@@ -790,7 +811,8 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
     # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
     timed = {} if only_models else {"hybrid3_4frames": (offsets["three"], 4),
                                     "hybrid4_3frames": (offsets["four"], 3)}
-    adaptive_keys = {} if only_models else {f"adaptive_{t:g}": t for t in targets}
+    adaptive_keys = {} if only_models else {adaptive_key(t, n): (t, n) for n in (ADAPTIVE_MAX_STATES, ADAPTIVE_MORE_STATES)
+                                            for t in targets}
     # an exposure bracket at every state (the "Highlights" rows): the network sees the reference exposure
     bracketed = {} if only_models else {"single_bracket": ("single", (0,)), "hybrid1_bracket": ("hybrid", (0,)),
                                         "hybrid2_bracket": ("hybrid", offsets["two"])}
@@ -820,8 +842,8 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
             hl = score(frb, *est, clean=fr.clean, cover=highlights)
             rows[key].append(score(frb, *est, clean=fr.clean) | {"states": len(offs), "time_s": time_s[key]}
                              | {"hl_inside": hl["inside"], "hl_elements": hl["elements"]})
-        for key, target in adaptive_keys.items():
-            *est, taken = adaptive(fr, target, correlation=correlation)
+        for key, (target, most) in adaptive_keys.items():
+            *est, taken = adaptive(fr, target, max_states=most, correlation=correlation)
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
         two_rows = models_rows(fr, offsets["two"], correlation)
         for key, k in model_keys.items():
@@ -841,7 +863,7 @@ def markdown(result: dict) -> str:
             ("hybrid3", f"hybrid 3 ({name('three')})"), ("hybrid4", f"hybrid 4 ({name('four')})"),
             ("reference3", "reference 3"), ("reference4", "reference 4")]
     first = next(iter(result["sets"].values()))["methods"]
-    adaptive_cols = [(k, f"adaptive {k.split('_', 1)[1]}") for k in first if k.startswith("adaptive_")]
+    adaptive_cols = [(k, adaptive_label(k)) for k in first if k.startswith("adaptive_")]
     cols += adaptive_cols
     lines = []
     for metric, title, fmt in (("matrix_psnr", "Matrix PSNR (dB), object pixels", "{:.2f}"),
@@ -1228,8 +1250,27 @@ def trade_methods(result: dict) -> list[tuple[str, str, str]]:
     have = lambda k: all(k in s["methods"] for s in sets)  # noqa: E731
     rows = [m for m in TRADE_METHODS if have(m[0])]
     adaptive_keys = sorted((k for k in (sets[0]["methods"] if sets else {}) if k.startswith("adaptive_") and have(k)),
-                           key=lambda k: -float(k.split("_", 1)[1]))
-    return rows + [(k, f"adaptive {k.split('_', 1)[1]}", m) for k, m in zip(adaptive_keys, "*hp8")]
+                           key=lambda k: (adaptive_budget(k), -float(k.split("_")[1])))
+    return rows + [(k, adaptive_label(k), m) for k, m in zip(adaptive_keys, "*hp8")]
+
+
+def adaptive_key(target: float, max_states: int = ADAPTIVE_MAX_STATES) -> str:
+    """The result key of the adaptive capture at ``target`` with at most ``max_states`` states:
+    ``adaptive_<target>``, with ``_max<n>`` beyond :data:`ADAPTIVE_MAX_STATES`."""
+    return f"adaptive_{target:g}" + ("" if max_states == ADAPTIVE_MAX_STATES else f"_max{max_states}")
+
+
+def adaptive_budget(key: str) -> int:
+    """The most states of an :func:`adaptive_key`."""
+    parts = key.split("_")
+    return int(parts[2][len("max"):]) if len(parts) > 2 else ADAPTIVE_MAX_STATES
+
+
+def adaptive_label(key: str) -> str:
+    """``adaptive 0.05`` (:data:`ADAPTIVE_MAX_STATES` states at most), ``adaptive 0.05, <= 8
+    states``: an :func:`adaptive_key`'s label in tables and the plot."""
+    n = adaptive_budget(key)
+    return f"adaptive {key.split('_')[1]}" + ("" if n == ADAPTIVE_MAX_STATES else f", <= {n} states")
 
 
 def trade_points(result: dict) -> list[dict]:

@@ -301,31 +301,34 @@ def test_a_limit_on_a_chosen_states_move_stops_safely_then_resumes_to_the_same_r
 
 
 @needs_model
-def test_past_the_equiangular_set_the_state_taken_is_the_greatest_gain_per_second(tmp_path):
-    """A tight target takes four states. The fourth is chosen by its predicted reduction per
-    second of hardware time (:func:`polrig.solve.design.per_second_choice`), timed by the rig's
-    timing the session recorded; replayed without that record (a session from before it) the
-    same frames choose by the least criterion alone. The first two choices (the equiangular set,
-    one 60 deg move each) agree; where the fourth differs, the per-second choice costs less time and
-    predicts no lower criterion (the least criterion has the greatest gain, so anything of
-    greater gain per second must cost less)."""
+def test_past_the_equiangular_set_states_are_chosen_per_second_and_the_last_for_accuracy(tmp_path):
+    """A target no pose reaches takes ``max_states`` (5) states. The fourth is chosen by its
+    predicted reduction of the criterion per second of hardware time, timed by the rig's timing
+    the session recorded; the fifth, the last allowed, by the least criterion
+    (:func:`polrig.solve.design.choose_next`). Replayed without that record (a session from
+    before it) the same frames choose by the least criterion alone: the equiangular set's two
+    states (one 60 deg move each) and the last state agree, and where the fourth differs, the
+    per-second choice costs less time and predicts no lower criterion (the least criterion has
+    the greatest gain, so a greater gain per second must cost less)."""
     from polrig.acquisition.plan import state_time_s
     from polrig.app.adaptive import timing_model
 
     out = tmp_path / "tight"
-    session, proc, result, _, _ = run(out, adaptive(1e-6, max_states=4, poses=(0.0,)))
+    session, proc, result, _, _ = run(out, adaptive(1e-6, max_states=5, poses=(0.0,)))
     assert result.status == "complete"
     with sim_rig(scene=SCENE) as rig:
         caps = rig.stage.capabilities
     timing = session.manifest["rig"]["timing"]
     assert timing["stage_speed_deg_s"] == caps.speed_deg_s
     decisions = session.capture(0)["adaptive"]
-    assert [d["action"] for d in decisions] == [TAKE, TAKE, TAKE, STOP_MAX]
+    assert [d["action"] for d in decisions] == [TAKE] * 4 + [STOP_MAX]
     exposures = load_capture_frames(session, 0).exposures_us
-    here = 0.0
-    for d in decisions[:-1]:  # each records the hardware time of the state it took
+    here, seen = 0.0, []
+    for d in decisions[:-1]:  # each records the hardware time of the state it took, a new state
         assert d["state_time_s"] == state_time_s(session.plan, exposures, here, d["state_deg"], timing_model(timing))
+        assert all((d["state_deg"] - t) % 180.0 not in (0.0,) for t in [0.0, *seen])
         here = d["state_deg"]
+        seen.append(here)
     legacy = tmp_path / "legacy"
     shutil.copytree(out, legacy)
     old = Session.open(legacy)
@@ -333,9 +336,10 @@ def test_past_the_equiangular_set_the_state_taken_is_the_greatest_gain_per_secon
     old.save()
     replayed = replay_decisions(Session.open(legacy), 0, proc)
     assert all("state_time_s" not in d for d in replayed)
-    assert [d["state_deg"] for d in replayed[:2]] == [d["state_deg"] for d in decisions[:2]]
+    assert [d["state_deg"] % 180.0 for d in replayed[:2]] == [d["state_deg"] % 180.0 for d in decisions[:2]]
+    assert replayed[3]["state_deg"] % 180.0 == decisions[3]["state_deg"] % 180.0  # the last: least criterion
     fourth, least = decisions[2], replayed[2]
-    if least["state_deg"] != fourth["state_deg"]:
+    if least["state_deg"] % 180.0 != fourth["state_deg"] % 180.0:
         least_s = state_time_s(session.plan, exposures, decisions[1]["state_deg"], least["state_deg"],
                                timing_model(timing))
         assert fourth["state_time_s"] < least_s

@@ -13,10 +13,13 @@ from hypothesis import strategies as st
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.stokes import ideal_analyzer_matrix
 from polrig.solve.design import (
+    DesignScores,
     a_optimal_scores,
+    choose_next,
     data_precision,
     next_candidates,
     per_second_choice,
+    predicted_share,
     predicted_variance,
     prior_precision,
     relative_sigma,
@@ -105,7 +108,7 @@ def test_the_criterion_is_the_summed_relative_trace_and_prefers_completing_the_s
     s0, s90 = stokes(0.0), stokes(90.0)
     prior = prior_precision(np.full((2, 3, 3), 0.3), s0)
     prec = prior + data_precision(R, np.full((2, 4), 1e-4), np.ones((2, 4), bool), s0)
-    j_now, _ = a_optimal_scores(prec, m00, [])
+    j_now = a_optimal_scores(prec, m00, []).criterion
     expect = sum(np.trace(np.linalg.inv(prec[p])) / (9 * m00[p] ** 2) for p in range(2))
     assert j_now == pytest.approx(expect, rel=1e-12)
     mueller = np.tile(np.diag([1.0, 0.4, 0.4]), (2, 1, 1))
@@ -114,7 +117,11 @@ def test_the_criterion_is_the_summed_relative_trace_and_prefers_completing_the_s
         s = stokes(deg)
         var = predicted_variance(mueller, R, s, per_dn=1e-4, offset_dn2=1e-6)
         cands.append(state_precision(R, 1.0 / var, s))
-    _, j = a_optimal_scores(prec, m00, cands)
+    scores = a_optimal_scores(prec, m00, cands)
+    j = scores.predicted
+    for k, c in enumerate(cands):  # the blocks' traces it sums
+        np.testing.assert_allclose(scores.trace[k], [np.trace(np.linalg.inv(prec[p] + c[p])) for p in range(2)],
+                                   rtol=1e-12)
     assert np.all(j < j_now)  # any frame adds information
     assert j[1] < j[0]  # 45 deg observes directions 0 deg (already measured) leaves open
     assert j[2] < j[0]  # 90 deg observes s1 with the other sign: the s0 and s1 columns apart
@@ -149,15 +156,16 @@ def test_the_designs_posterior_is_the_hybrid_solves_with_the_joint_prior(n):
 
 def test_the_first_three_states_are_the_equiangular_set_through_the_seen_one():
     """:func:`next_candidates`: the seen angle +60 and +120 deg (mod 180, whatever stage angle
-    took a state), then the whole grid."""
+    took a state), then the grid less the states taken."""
     grid = (0.0, 7.5, 90.0)
     assert next_candidates([0.0], grid) == [60.0, 120.0]
     assert next_candidates([0.0, 120.0], grid) == [60.0]
     assert next_candidates([0.0, -60.0], grid) == [60.0]  # -60 is 120: the same polarizer state
     assert next_candidates([10.0, 250.0], grid) == [130.0]  # 250 is 70 = 10 + 60
-    assert next_candidates([0.0, 60.0, 300.0], grid) == list(grid)
+    assert next_candidates([0.0, 60.0, 300.0], grid) == [7.5, 90.0]  # 0 taken: not again
     assert next_candidates([0.0, 90.0], grid) == [60.0, 120.0]  # a state off the set: the set still first
-    assert next_candidates([0.0, 90.0, 60.0], grid) == list(grid)  # three taken: the grid
+    assert next_candidates([0.0, 90.0, 60.0], grid) == [7.5]  # three taken: the grid less them
+    assert next_candidates([7.5, 67.5, 307.5], grid) == [0.0, 90.0]  # 307.5 is 127.5
     with pytest.raises(ValueError, match="seen state"):
         next_candidates([], grid)
 
@@ -181,3 +189,32 @@ def test_no_candidate_gains_more_per_second_than_the_one_chosen(j_now, rows):
     rate = (j_now - j) / cost
     assert np.all(rate <= rate[c])
     assert np.all(cost[rate == rate[c]] >= cost[c])
+
+
+def test_the_predicted_share_counts_the_design_pixels_whose_worst_colour_meets_the_target():
+    """:func:`predicted_share`: relative sigma ``sqrt(tr / 9) / m00`` per colour, the worst of
+    the colours that count, scaled from the design pixels to the pixels above target."""
+    m00 = np.array([[1.0, 2.0], [1.0, 1.0], [4.0, 4.0]])  # 3 design pixels, 2 colours
+    colours = np.array([[True, True], [True, False], [False, False]])
+    # relative sigma 0.1 is tr = 9 * (0.1 m00)^2
+    tr = 9 * (np.array([[[0.1, 0.1], [0.1, 0.5]], [[0.1, 0.2], [0.2, 0.2]]])[:, :2] * m00[:2]) ** 2
+    tr = np.concatenate([tr, np.zeros((2, 1, 2))], axis=1)  # the third pixel: no colour counts
+    got = predicted_share(tr, m00, colours, 0.1 + 1e-12, share_now=0.5, above_share=0.3)
+    # candidate 0: pixel 0 meets (0.1, 0.1), pixel 1 meets (0.1; its 0.5 does not count); candidate 1: neither
+    np.testing.assert_allclose(got, [0.5 + 0.3 * 2 / 3, 0.5])
+    assert predicted_share(np.full((1, 2, 1), np.inf), np.ones((2, 1)), np.ones((2, 1), bool), 1.0, 0.2, 0.8) == [0.2]
+
+
+def test_the_choice_finishes_cheapest_then_spends_the_last_state_on_accuracy_else_gains_per_second():
+    scores = DesignScores(10.0, np.array([4.0, 6.0, 9.0]), np.zeros((3, 1)))
+    cost = [3.0, 2.0, 0.5]  # gain per second 2, 2, 2: the cheapest of equal rates
+    # 1. some candidates finish the pose: the cheapest of them
+    assert choose_next(scores, cost, np.array([0.96, 0.97, 0.90]), 0.95, last=False) == 1
+    assert choose_next(scores, cost, np.array([0.96, 0.90, 0.90]), 0.95, last=True) == 0
+    # 2. none does, and this is the last state: the least criterion
+    assert choose_next(scores, cost, np.array([0.9, 0.9, 0.9]), 0.95, last=True) == 0
+    # 3. none does, more may follow: the greatest gain per second
+    assert choose_next(scores, cost, np.array([0.9, 0.9, 0.9]), 0.95, last=False) == 2
+    assert choose_next(scores, [3.0, 2.0, 5.0], np.array([0.9, 0.9, 0.9]), 0.95, last=False) == 1  # 2 / 3 / 0.2
+    with pytest.raises(ValueError, match="one cost and share per candidate"):
+        choose_next(scores, cost[:2], np.array([0.9, 0.9, 0.9]), 0.95, last=False)

@@ -114,7 +114,8 @@ def test_an_adaptive_capture_shows_each_decision_and_records_them(qtbot, tmp_pat
         assert len(shown) == cp.decisions.count() == len(decisions)
         assert cp.decisions_box.isVisibleTo(cp)
         for i, (d, (text, eta)) in enumerate(zip(decisions, shown)):
-            what = f"take {d['state_deg']:g} deg" if d["action"] == "take" else d["action"].replace("-", " ")
+            what = (f"take {d['state_deg']:g} deg ({d['state_time_s']:.2f} s)" if d["action"] == "take"
+                    else d["action"].replace("-", " "))
             said = (f"{d['states_taken']} state(s): {100 * d['share_met']:.1f} % of "
                     f"{d['object_pixels']} object pixels at target; {what}")
             assert text == f"capture 1, pose 0 deg: decision: {said}"

@@ -50,8 +50,10 @@ def test_tables_search_and_the_hybrid_limits(tmp_path):
         a = m[f"adaptive_{t:g}"]
         assert 1 <= a["states"] <= 4 and 0.5 < a["coverage"] <= 1.0
         assert m["single"]["time_s"] <= a["time_s"] <= m["hybrid4"]["time_s"] + 10.0
+        more = m[f"adaptive_{t:g}_max{continuum.ADAPTIVE_MORE_STATES}"]  # up to 8 states
+        assert a["states"] <= more["states"] <= continuum.ADAPTIVE_MORE_STATES and 0.5 < more["coverage"] <= 1.0
     assert m["single"]["time_s"] < m["hybrid2"]["time_s"] < m["hybrid4"]["time_s"]
-    assert "adaptive 0.05" in text and "acquisition time" in text
+    assert "adaptive 0.05" in text and "adaptive 0.05, <= 8 states" in text and "acquisition time" in text
     # the bracketed rows: the bracket's short frames cost little time; the highlights table is written
     assert m["hybrid2"]["time_s"] < m["hybrid2_bracket"]["time_s"] < m["hybrid2"]["time_s"] + 0.2
     assert m["hybrid2_bracket"]["states"] == 2 and 0.5 < m["hybrid2_bracket"]["coverage"] <= 1.0
@@ -151,11 +153,13 @@ def test_trade_points_map_the_json_and_the_plot_draws_each(tmp_path):
 
     from polrig.models import continuum
 
-    result = _small_result(("0.05", "0.03"))
+    result = _small_result(("0.03_max8", "0.05", "0.03"))
     pts = continuum.trade_points(result)
-    n_methods = len(continuum.TRADE_METHODS) + 2
+    n_methods = len(continuum.TRADE_METHODS) + 3
     assert len(pts) == 2 * n_methods and not any(p["method"] == "naive1" for p in pts)
-    assert [p["method"] for p in pts[-2:]] == ["adaptive_0.05", "adaptive_0.03"]  # the looser target first
+    # the looser target first, the larger budget of states after
+    assert [p["method"] for p in pts[-3:]] == ["adaptive_0.05", "adaptive_0.03", "adaptive_0.03_max8"]
+    assert [p["label"] for p in pts[-3:]] == ["adaptive 0.05", "adaptive 0.03", "adaptive 0.03, <= 8 states"]
     for p in pts:
         m = result["sets"][p["set"]]["methods"][p["method"]]
         assert (p["time_s"], p["matrix_psnr"], p["fwd_l2"], p["states"]) == \

@@ -21,21 +21,22 @@ posterior does not meet the target. A pose stops when
 the share of its object pixels meeting the target reaches ``target_share``, or at
 ``max_states`` states.
 
-**The choice** (:func:`evaluate`): the Bayesian A-optimal state (:mod:`polrig.solve.design`:
-the least summed relative posterior variance over the object pixels still above target,
+**The choice** (:func:`evaluate`; :mod:`polrig.solve.design`): the Bayesian A-optimal
+criterion (the summed relative posterior variance over the object pixels still above target,
 predicted in closed form, under the prior the solve uses: the calibration's joint prior where
-it holds one) among the candidates of :func:`polrig.solve.design.next_candidates`: for the
+it holds one) for each candidate of :func:`polrig.solve.design.next_candidates`: for the
 second and third states the two others of the equiangular set through the first (its angle
-+60 and +120 deg), then all of :data:`CANDIDATES_DEG`, each at the nearer of its two stage
-angles (a linear polarizer repeats every 180 deg). It is evaluated on at
-most :data:`polrig.solve.design.DESIGN_PIXELS` of those pixels (every n-th in raster order: deterministic), with
-the ideal analyzer's rows and the noise model's variance at the current estimate. The state
-taken is the one of greatest predicted reduction **per second** of the hardware time it costs
-(:func:`polrig.solve.design.per_second_choice`; its move and frames,
-:func:`polrig.acquisition.plan.state_time_s`, timed by the rig's timing the session recorded,
-:func:`timing_model`), so that the pose reaches its target soonest. A session recorded before
-the rig's timing was (no ``rig.timing``) chooses as it did then: the least criterion, of
-equal ones the nearest.
++60 and +120 deg), then :data:`CANDIDATES_DEG` less the states taken, each at the nearer of its
+two stage angles (a linear polarizer repeats every 180 deg). It is evaluated on at most
+:data:`polrig.solve.design.DESIGN_PIXELS` of those pixels (every n-th in raster order:
+deterministic), with the ideal analyzer's rows and the noise model's variance at the current
+estimate. Each candidate's hardware time (its move and frames,
+:func:`polrig.acquisition.plan.state_time_s`) is timed by the rig's timing the session
+recorded (``rig.timing``, :func:`timing_model`), and :func:`polrig.solve.design.choose_next`
+takes the cheapest state predicted to bring the pose to its target; else, at the last allowed
+state, the least criterion; else the greatest predicted reduction per second. A session
+recorded before the rig's timing was (no ``rig.timing``) chooses as it did then: the least
+criterion, of equal ones the nearest.
 
 **How a decision enters the plan.** Plans are frozen data and the engine knows no session
 (:mod:`polrig.acquisition.engine`): :class:`AdaptiveSchedule` hands the executor one piece at a
@@ -102,8 +103,9 @@ from polrig.sensor.frame import Frame
 from polrig.solve.design import (
     DESIGN_PIXELS,
     a_optimal_next,
+    choose_next,
     next_candidates,
-    per_second_choice,
+    predicted_share,
     relative_sigma,
     share_at_target,
 )
@@ -272,20 +274,23 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
         measured.append((s_in[k], pixels(var), pixels(ok)))
     per_dn, offset = processor.sensor_model.variance_terms(noise_exposures_us(cf)[0], plan.frames_per_state)
     candidates = next_candidates(cf.states_deg, CANDIDATES_DEG)
-    j_now, j = a_optimal_next(pixels(prior_sigma).astype(np.float64), s_in[0], measured,
-                              pixels(result.mueller).astype(np.float64),
-                              processor.calibration.incident_stokes(candidates), float(per_dn), float(offset),
-                              correlation=net_correlation)
+    estimate = pixels(result.mueller).astype(np.float64)  # (N, C, 3, 3)
+    scores = a_optimal_next(pixels(prior_sigma).astype(np.float64), s_in[0], measured, estimate,
+                            processor.calibration.incident_stokes(candidates), float(per_dn), float(offset),
+                            correlation=net_correlation)
+    j = scores.predicted
     here = cf.states_deg[-1]
     angles = [nearest_stage_angle(a, here) for a in candidates]
     if timing is None:  # a session from before the rig's timing: the least criterion, of equal ones the nearest
         best = min(np.flatnonzero(j <= np.min(j)), key=lambda c: (abs(angles[c] - here), c))
-        return record | {"design_pixels": len(ys), "criterion": j_now,
+        return record | {"design_pixels": len(ys), "criterion": scores.criterion,
                          "state_deg": angles[best], "predicted_criterion": float(j[best])}
     model = timing_model(timing)
     cost = [state_time_s(plan, cf.exposures_us, here, a, model) for a in angles]
-    best = per_second_choice(j_now, j, cost)
-    return record | {"design_pixels": len(ys), "criterion": j_now, "state_deg": angles[best],
+    share_after = predicted_share(scores.trace.reshape(len(angles), *estimate.shape[:2]), estimate[..., 0, 0],
+                                  pixels(lit), plan.target_sigma, share, int(above.sum()) / n_obj)
+    best = choose_next(scores, cost, share_after, plan.target_share, last=n + 1 >= plan.max_states)
+    return record | {"design_pixels": len(ys), "criterion": scores.criterion, "state_deg": angles[best],
                      "predicted_criterion": float(j[best]), "state_time_s": cost[best]}
 
 

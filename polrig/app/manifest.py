@@ -358,12 +358,15 @@ class AdaptiveDecision(TypedDict):
 
 def describe_decision(decision: AdaptiveDecision) -> str:
     """One line on an adaptive ``decision``: the states taken, the share of the object pixels
-    at target, and what it did (``take 60 deg``, ``stop target``...), e.g. ``2 state(s): 97.1 %
-    of 1200 object pixels at target; stop target``. The one wording of a decision everywhere:
+    at target, and what it did (``take 60 deg (3.03 s)``, with the hardware time that state
+    costs where recorded; ``stop target``...), e.g. ``2 state(s): 97.1 % of 1200 object pixels
+    at target; stop target``. The one wording of a decision everywhere:
     the progress event's message (``polrig capture``, the GUI's log and list), ``polrig info``
     and the decisions the GUI shows from a resumed session's manifest."""
     what = (f"take {decision['state_deg']:g} deg" if decision["action"] == "take"
             else decision["action"].replace("-", " "))
+    if decision.get("state_time_s") is not None:  # what that state costs (sessions with the rig's timing)
+        what += f" ({decision['state_time_s']:.2f} s)"
     return (f"{decision['states_taken']} state(s): {100 * decision['share_met']:.1f} % of "
             f"{decision['object_pixels']} object pixels at target; {what}")
 

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from polrig.acquisition.plan import CapturePlan, PlanError
 from polrig.acquisition.engine import settle_frames
+from polrig.acquisition.plan import CapturePlan, PlanError
 from polrig.app.manifest import CameraFrames, RigRecord, TimingRecord
 from polrig.app.session import Session
 from polrig.errors import ConfigError

@@ -25,30 +25,40 @@ summed over the pixels that do not meet the target yet,
 
     J(s_c) = sum_{pixels, colours} tr(A_c^-1) / (9 m00^2)       (:func:`a_optimal_scores`).
 
-The next state is the candidate whose predicted reduction ``J_now - J(s_c)`` is largest **per
-second of hardware time** it costs, its stage move and its frames (:func:`per_second_choice`;
-the candidates: :func:`next_candidates`, the equiangular set through the seen state first,
-whose two states both cost one 60 deg move, so there it is the candidate of least ``J``): the
-one expected to lower the summed relative posterior variance of the pixels still above target
-fastest. Pixels already at target do not
-steer the choice (measuring them better does not bring the stop nearer), and the
-normalisation by ``m00`` makes a dark pixel's variance count as much as a bright one's
-relative to its signal, as the target does (:func:`relative_sigma`). A-optimality rather than
-D-optimality (the log-determinant): the target is on element variances, whose sum the trace
-is; the determinant rewards shrinking any direction, including ones the target never looks
-at separately.
+**The choice** (:func:`choose_next`; the candidates: :func:`next_candidates`, the equiangular
+set through the seen state first, then the grid less the states taken). ``J`` ranks the
+candidates; what the operator waits for is the time to the target, and states differ in cost
+(a 90 deg move takes the simulated stage 3 s more than a 30 deg one). So the capture takes
 
-**Per second.** The target stops a pose, so what the operator waits for is the time to reach
-it, and states differ in cost: a move of 90 deg takes the simulated stage 3 s more than one of
-30 deg. Weighing each candidate's expected gain by its cost is the cost-aware greedy rule of
-sequential design (Snoek, Larochelle and Adams, "Practical Bayesian optimization of machine
-learning algorithms", NeurIPS 2012, section 3.2: expected improvement per second). On the
-eight held-out sets of :mod:`polrig.models.continuum` (16 samples each, 64x64, the same frames)
-it took the same number of states as the least-``J`` choice at 0.5..2.1 s less per pose (0.05:
-4.6..7.1 s against 5.2..8.8 s; 0.03: 6.2..7.3 against 7.3..9.3), for -0.7..+0.3 dB of matrix
-PSNR beyond the target: after the equiangular set the least ``J`` was often the state next to
-the seen one on the far side of the stage (75 deg away), the greatest gain per second a state
-15..45 deg from where the stage stands.
+1. of the states predicted to bring the pose to its target (:func:`predicted_share`: the
+   share of the object pixels whose relative sigma the candidate's posterior covariance puts
+   at most the target), the one of least hardware time: the pose ends there;
+2. else, at the pose's last allowed state, the least ``J``: the pose ends there too, short of
+   the target, as well measured as one more state can;
+3. else the greatest predicted reduction ``J_now - J(s_c)`` **per second** of the hardware
+   time the state costs, its move and its frames (:func:`per_second_choice`): the cost-aware
+   greedy rule of sequential design (Snoek, Larochelle and Adams, "Practical Bayesian
+   optimization of machine learning algorithms", NeurIPS 2012, section 3.2: expected
+   improvement per second).
+
+Pixels already at target do not steer the choice (measuring them better does not bring the
+stop nearer), and the normalisation by ``m00`` makes a dark pixel's variance count as much as a
+bright one's relative to its signal, as the target does (:func:`relative_sigma`). A-optimality
+rather than D-optimality (the log-determinant): the target is on element variances, whose sum
+the trace is; the determinant rewards shrinking any direction, including ones the target
+never looks at separately.
+
+Measured against the least ``J`` alone (its choice before, nearest of equals) on the eight
+held-out sets of :mod:`polrig.models.continuum` (16 samples each, 64x64, the same frames): with
+up to 8 states (the most a capture allows) about the same number of states (-0.06..+0.13 on
+average) in 22..37 % less time per pose (0.05: 6.4..11.4 s against 8.3..16.9 s; 0.03: 8.7..13.6
+against 12.2..21.8), -1.3..+0.7 dB matrix PSNR (beyond the target; -0.24..-0.04 dB on the
+pixels no state clipped); rule 3 alone, also for the last state, saved a few points more
+(26..45 %) and lost up to 2.6 dB (0.56 unclipped). With
+up to 4 states (the default), where the fourth is the last, rule 1 alone acts: 0..0.14 s less.
+After the equiangular set, the least ``J`` was often a state next to the seen one, on the far
+side of the stage (75 deg away); the greatest gain per second, one 7.5..45 deg from where the
+stage stands.
 
 Everything is per pixel and colour with numpy batches ``(..., 9, 9)``; no device, no file.
 """
@@ -57,10 +67,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
-from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
+from polrig.solve.hybrid import (
+    joint_precision,
+    observed_direction,
+    plane_axis,
+    unobserved_precision,
+)
 
 #: Most pixels the criterion is evaluated on (a regular subsample of the object pixels still
 #: above target, every n-th in raster order): about 0.1 s per decision for 24 candidates and 3
@@ -70,8 +86,10 @@ DESIGN_PIXELS = 1024
 #: the equiangular set through it (:func:`next_candidates`).
 EQUIANGULAR_OFFSETS_DEG = (0.0, 60.0, 120.0)
 
-__all__ = ["DESIGN_PIXELS", "EQUIANGULAR_OFFSETS_DEG", "a_optimal_next", "next_candidates", "a_optimal_scores", "data_precision", "per_second_choice", "predicted_variance",
-           "prior_precision", "relative_sigma", "same_polarizer_state", "share_at_target", "state_precision"]
+__all__ = ["DESIGN_PIXELS", "EQUIANGULAR_OFFSETS_DEG", "DesignScores", "a_optimal_next", "a_optimal_scores",
+           "choose_next", "data_precision", "next_candidates", "per_second_choice", "predicted_share",
+           "predicted_variance", "prior_precision", "relative_sigma", "same_polarizer_state", "share_at_target",
+           "state_precision"]
 
 
 def relative_sigma(sigma: np.ndarray, mueller: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
@@ -178,7 +196,9 @@ def next_candidates(taken_deg: Sequence[float], grid_deg: Sequence[float]) -> li
     """The polarizer angles (deg, in ``[0, 180)``) the adaptive capture chooses its next state
     among, after the states ``taken_deg`` (stage angles, the seen state first): while fewer than
     three are taken, those of the **equiangular set through the seen state**
-    (:data:`EQUIANGULAR_OFFSETS_DEG`) not taken yet; then every angle of ``grid_deg``.
+    (:data:`EQUIANGULAR_OFFSETS_DEG`) not taken yet; then every angle of ``grid_deg`` not taken
+    yet (more frames of a state are the plan's ``frames_per_state``: a state taken again would
+    cost no move, and the choice per second, :func:`choose_next`, would repeat it).
 
     The first three states are nested in the design that is best for three states: with equal
     noise per sample, three fully polarized states determine the block with the least summed
@@ -189,18 +209,17 @@ def next_candidates(taken_deg: Sequence[float], grid_deg: Sequence[float]) -> li
     on the eight held-out sets of :mod:`polrig.models.continuum` (12 samples each, target 0.05)
     it took the same number of states 0.5..2.7 s per pose slower and 0.1..1.7 dB worse in
     matrix PSNR, better only where two states sufficed on the terrains (0.7-0.8 dB: 0/90 is the
-    better pair). Which of the two comes first, and the states after the third, the criterion
-    decides (:func:`a_optimal_next`)."""
+    better pair). Which of the two comes first, and the states after the third,
+    :func:`choose_next` decides."""
     taken = [float(t) % 180.0 for t in taken_deg]
     if not taken:
         raise ValueError("the seen state comes first: no state taken yet")
+    new = lambda angles: [a for a in angles if not any(same_polarizer_state(a, t) for t in taken)]  # noqa: E731
     if len(taken) < len(EQUIANGULAR_OFFSETS_DEG):
-        seen = taken[0]
-        lattice = [(seen + o) % 180.0 for o in EQUIANGULAR_OFFSETS_DEG[1:]]
-        left = [a for a in lattice if not any(same_polarizer_state(a, t) for t in taken)]
+        left = new([(taken[0] + o) % 180.0 for o in EQUIANGULAR_OFFSETS_DEG[1:]])
         if left:
             return left
-    return [float(a) % 180.0 for a in grid_deg]
+    return new([float(a) % 180.0 for a in grid_deg])
 
 
 def same_polarizer_state(a: float, b: float, tol_deg: float = 1e-6) -> bool:
@@ -237,33 +256,93 @@ def per_second_choice(j_now: float, j: np.ndarray, cost_s: Sequence[float]) -> i
     return int(min(best, key=lambda c: (cost[c], c)))
 
 
-def a_optimal_scores(precision: np.ndarray, m00: np.ndarray, candidates: list[np.ndarray]
-                     ) -> tuple[float, np.ndarray]:
+class DesignScores(NamedTuple):
+    """The A-optimal criterion of ``P`` pixel-colour blocks now and after each of ``K``
+    candidate states (:func:`a_optimal_scores`): ``criterion`` ``J_now``, ``predicted`` ``(K,)``
+    the ``J`` each candidate leaves, ``trace`` ``(K, P)`` each block's posterior covariance trace
+    after each candidate (what :func:`predicted_share` reads the stopping rule from)."""
+
+    criterion: float
+    predicted: np.ndarray
+    trace: np.ndarray
+
+
+def a_optimal_scores(precision: np.ndarray, m00: np.ndarray, candidates: list[np.ndarray]) -> DesignScores:
     """The A-optimal criterion now and after each candidate state.
 
     ``precision``: the current posterior precision ``(P, 9, 9)`` of ``P`` pixel-colour blocks;
     ``m00`` ``(P,)`` their current ``m00`` (> 0); ``candidates``: for each candidate state the
     precision its frame would add ``(P, 9, 9)`` (:func:`state_precision` with
-    :func:`predicted_variance`). Returns ``(J_now, J)`` with ``J`` ``(K,)``:
-    ``sum_p tr(cov_p) / (9 m00_p^2)``. A block whose precision is singular counts its
-    pseudo-inverse's trace (it adds what its determined directions know)."""
+    :func:`predicted_variance`). ``J = sum_p tr(cov_p) / (9 m00_p^2)`` (:class:`DesignScores`). A
+    block whose precision is singular counts its pseudo-inverse's trace (it adds what its
+    determined directions know)."""
     a = np.asarray(precision, np.float64)
     norm = 1.0 / (9.0 * np.asarray(m00, np.float64) ** 2)
 
-    def criterion(prec: np.ndarray) -> float:
+    def traces(prec: np.ndarray) -> np.ndarray:
         try:
-            cov_trace = np.trace(np.linalg.inv(prec), axis1=-2, axis2=-1)
+            return np.trace(np.linalg.inv(prec), axis1=-2, axis2=-1)
         except np.linalg.LinAlgError:
-            cov_trace = np.trace(np.linalg.pinv(prec, hermitian=True), axis1=-2, axis2=-1)
-        return float(np.sum(cov_trace * norm))
+            return np.trace(np.linalg.pinv(prec, hermitian=True), axis1=-2, axis2=-1)
 
-    return criterion(a), np.array([criterion(a + c) for c in candidates])
+    after = np.array([traces(a + c) for c in candidates]).reshape(len(candidates), len(a))
+    return DesignScores(float(np.sum(traces(a) * norm)), np.sum(after * norm, axis=1), after)
+
+
+def predicted_share(trace: np.ndarray, m00: np.ndarray, colours: np.ndarray, target: float,
+                    share_now: float, above_share: float) -> np.ndarray:
+    """The share of the object pixels each candidate state is predicted to bring to the target:
+    ``share_now`` (those at it already) plus ``above_share`` (those above it, whose design
+    pixels these are, as a share of the object) times the share of the design pixels whose
+    predicted relative sigma (:func:`relative_sigma`'s, from the posterior covariance the
+    candidate leaves) is at most ``target``.
+
+    ``trace`` ``(K, N, C)``: each design pixel and colour's posterior covariance trace after each
+    candidate (:attr:`DesignScores.trace`, its blocks in pixel-then-colour order); ``m00``
+    ``(N, C)`` the current estimate's (> 0); ``colours`` ``(N, C)`` bool, the colours that count
+    (a pixel with none counts as not meeting it). Returns ``(K,)``."""
+    tr = np.asarray(trace, np.float64)
+    use = np.asarray(colours, bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.sqrt(np.maximum(tr, 0.0) / 9.0) / np.asarray(m00, np.float64)
+    rel = np.where(np.isfinite(rel), rel, np.inf)
+    worst = np.where(use.any(axis=-1), np.max(np.where(use, rel, 0.0), axis=-1), np.inf)  # (K, N)
+    met = np.mean(worst <= float(target), axis=-1) if worst.shape[-1] else np.zeros(len(tr))
+    return float(share_now) + float(above_share) * met
+
+
+def choose_next(scores: DesignScores, cost_s: Sequence[float], share_after: np.ndarray,
+                target_share: float, last: bool) -> int:
+    """The index of the candidate state to take (module docstring, *The choice*):
+
+    1. of the candidates predicted to bring the pose to its target (``share_after`` ``(K,)``, from
+       :func:`predicted_share`, at least ``target_share``), the one of least hardware time
+       ``cost_s`` ``(K,)`` (seconds, :func:`polrig.acquisition.plan.state_time_s`): the pose
+       ends there;
+    2. else, when this is the pose's last allowed state (``last``), the least criterion: the
+       pose ends there too, short of its target, as well measured as one more state can;
+    3. else the greatest predicted reduction of the criterion per second
+       (:func:`per_second_choice`): the way to the target that costs least time.
+
+    Ties: the cheapest, then the first."""
+    j = np.asarray(scores.predicted, np.float64)
+    cost = np.asarray(cost_s, np.float64)
+    share = np.asarray(share_after, np.float64)
+    if not (j.shape == cost.shape == share.shape) or j.ndim != 1 or not len(j):
+        raise ValueError(f"one cost and share per candidate: {j.shape} criteria, {cost.shape} costs, "
+                         f"{share.shape} shares")
+    finish = np.flatnonzero(share >= float(target_share))
+    if len(finish):
+        return int(min(finish, key=lambda c: (cost[c], -share[c], j[c], c)))
+    if last:
+        return int(min(np.flatnonzero(j <= np.min(j)), key=lambda c: (cost[c], c)))
+    return per_second_choice(scores.criterion, j, cost)
 
 
 def a_optimal_next(prior_sigma: np.ndarray, s_seen: np.ndarray, measured: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
                    estimate: np.ndarray, candidates: np.ndarray, per_dn: float, offset_dn2: float,
                    rows: np.ndarray | None = None, correlation: np.ndarray | None = None
-                   ) -> tuple[float, np.ndarray]:
+                   ) -> DesignScores:
     """The A-optimal criterion now and after each candidate state, for ``P`` design pixels.
 
     ``prior_sigma`` ``(P, C, 3, 3)`` (the network's sigma), ``s_seen`` ``(3,)`` the seen state;
@@ -272,8 +351,8 @@ def a_optimal_next(prior_sigma: np.ndarray, s_seen: np.ndarray, measured: list[t
     variance weighs each candidate); ``candidates`` ``(K, 3)`` incident states; ``per_dn``,
     ``offset_dn2`` the noise model's linear terms for one state's frames; ``rows`` the ``(4, 3)``
     analyzer rows (default ideal); ``correlation`` the joint prior's ``K`` ``(6, 6)`` where the
-    solve uses one (:func:`prior_precision`). Returns ``(J_now, J (K,))``
-    (:func:`a_optimal_scores`)."""
+    solve uses one (:func:`prior_precision`). Returns :func:`a_optimal_scores`'s
+    :class:`DesignScores` (its blocks in pixel-then-colour order: ``trace`` ``(K, P * C)``)."""
     from polrig.sensor.stokes import ideal_analyzer_matrix
 
     r = ideal_analyzer_matrix() if rows is None else np.asarray(rows, np.float64)
