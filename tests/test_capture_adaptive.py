@@ -230,7 +230,10 @@ def test_hardware_time_and_eta_follow_the_decisions(adaptive_run):
 
 
 @needs_model
-def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_path, adaptive_run):
+def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_path, adaptive_run, capsys):
+    from polrig.app.capture import SessionOpened
+    from polrig.cli.commands.capture import _ProgressPrinter
+
     reference = adaptive_run[0]
     out = tmp_path / "s"
     frames = []
@@ -251,6 +254,10 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
     assert len(s.capture(1)["adaptive"]) == 1  # its first decision was recorded
     # a resume keeps the complete pose's decisions; the pending one decides again from scratch
     assert kept_decisions(s) == tuple(RecordedDecision(0, POSES[0], d) for d in s.capture(0)["adaptive"])
+    # the command line prints them as the resumed run starts, as the GUI lists them
+    _ProgressPrinter(enabled=False)(SessionOpened(out, True, 2, kept_decisions(s)))
+    assert capsys.readouterr().out.splitlines() == [f"capture 1/2 pose {POSES[0]:g} deg: {describe_decision(d)} (recorded)"
+                                                    for d in s.capture(0)["adaptive"]]
     with sim_rig(scene=SCENE) as rig:
         s2, result = resume(rig, out)
     assert result.status == "complete" and s2.verify() == []

@@ -325,7 +325,8 @@ def run(args: argparse.Namespace) -> int:
 
 class _ProgressPrinter:
     """The events of :func:`polrig.app.capture.run_capture`: a tqdm bar on stderr (frames,
-    with ETA) and one score line per capture on stdout."""
+    with ETA), one score line per capture and one line per adaptive decision on stdout (a
+    resumed session's kept decisions first, marked "(recorded)", as the GUI lists them)."""
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled
@@ -334,9 +335,14 @@ class _ProgressPrinter:
     def __call__(self, ev) -> None:
         from tqdm import tqdm
 
-        from polrig.app.capture import Progress
+        from polrig.app.capture import Progress, SessionOpened
 
-        if not isinstance(ev, Progress):  # the session exists: nothing to show yet
+        if isinstance(ev, SessionOpened):  # the session exists; a resumed one's decisions kept
+            for kept in ev.decisions:
+                self._write(f"capture {kept.capture_index + 1}/{ev.n_captures} pose {kept.pose_deg:g} deg: "
+                            f"{kept.describe()} (recorded)", sys.stdout)
+            return
+        if not isinstance(ev, Progress):
             return
         if self.bar is None and self.enabled and ev.total:
             self.bar = tqdm(total=ev.total, unit="frame", file=sys.stderr, dynamic_ncols=True,
