@@ -686,8 +686,8 @@ def state_time_s(plan: CapturePlan, exposures_us: Sequence[float], here_deg: flo
     stage at ``here_deg`` and the camera at the last exposure of the bracket ``exposures_us``
     (where the state before left it): :func:`step_durations` of its :func:`state_steps` (the
     move and ``plan.frames_per_state`` frames per exposure, settle frames included; the pose
-    does not change it), seconds. What the adaptive capture weighs a candidate state's gain
-    against (:func:`polrig.solve.design.per_second_choice`)."""
+    does not change it), seconds. What the adaptive capture weighs a candidate state with
+    (:func:`polrig.solve.design.choose_next`)."""
     at = dataclasses.replace(model, positions_deg={**model.positions_deg, "stage": float(here_deg)},
                              exposure_us=_bracket(exposures_us)[-1])
     return float(sum(step_durations(state_steps(plan, 0, exposures_us, 1, state_deg), at)))

@@ -176,8 +176,8 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     ``predicted_criterion``, and ``state_time_s`` with ``timing``). See the module docstring.
 
     ``timing``: the rig's :class:`polrig.app.manifest.TimingRecord` (the session's
-    ``rig.timing``); the state taken is then the greatest reduction per second of its hardware
-    time, without it (a session from before it) the least criterion.
+    ``rig.timing``), which times the candidates for :func:`polrig.solve.design.choose_next`;
+    without it (a session from before it) the least criterion is taken.
 
     ``memo``: the state radiances and the network's answer of earlier decisions of the same
     pose (:class:`PoseMemo`), reused where their files' checksums match; the record is

@@ -339,9 +339,9 @@ class AdaptiveDecision(TypedDict):
     why: the A-optimal criterion (:mod:`polrig.solve.design`, summed relative posterior variance
     over ``design_pixels`` object pixels still above target) now (``criterion``) and predicted
     after the state taken (``predicted_criterion``), and the hardware time that state cost
-    (``state_time_s``, its move and frames, seconds: the choice is the greatest reduction per
-    second; absent in sessions without the rig's ``timing``, whose choice was the least
-    criterion); null where no state was chosen."""
+    (``state_time_s``, its move and frames, seconds, as the choice weighed it:
+    :func:`polrig.solve.design.choose_next`; absent in sessions without the rig's ``timing``,
+    whose choice was the least criterion); null where no state was chosen."""
 
     states_taken: Annotated[int, Check(lambda v: v >= 1, "a count >= 1")]
     share_met: Annotated[float, Check(lambda v: 0.0 <= v <= 1.0, "a share in [0, 1]")]
