@@ -1251,7 +1251,7 @@ def trade_methods(result: dict) -> list[tuple[str, str, str]]:
     rows = [m for m in TRADE_METHODS if have(m[0])]
     adaptive_keys = sorted((k for k in (sets[0]["methods"] if sets else {}) if k.startswith("adaptive_") and have(k)),
                            key=lambda k: (adaptive_budget(k), -float(k.split("_")[1])))
-    return rows + [(k, adaptive_label(k), m) for k, m in zip(adaptive_keys, "*hp8")]
+    return rows + [(k, adaptive_label(k), m) for k, m in zip(adaptive_keys, "*hpd")]
 
 
 def adaptive_key(target: float, max_states: int = ADAPTIVE_MAX_STATES) -> str:
