@@ -35,8 +35,8 @@ def test_a_tiny_run_writes_the_tables(tmp_path):
 
 def test_plot_only_redraws_the_committed_plot_from_its_json(tmp_path):
     """``--plot-only [JSON]`` draws the plot beside the JSON from the JSON alone: the committed
-    table's 8 sets x 11 methods (single-shot, hybrid 1-4, reference 3/4, the two equal-time
-    rows, adaptive at two targets)."""
+    table's 8 sets x 13 methods (single-shot, hybrid 1-4, reference 3/4, the two equal-time
+    rows, adaptive at two targets with up to 4 and up to 8 states)."""
     import json
     import shutil
 
@@ -49,6 +49,6 @@ def test_plot_only_redraws_the_committed_plot_from_its_json(tmp_path):
     assert bench_continuum.main(["--plot-only", str(copy)]) == 0
     assert (tmp_path / "continuum.png").is_file()
     result = json.loads(src.read_text())
-    assert len(continuum.trade_points(result)) == 8 * 11
+    assert len(continuum.trade_points(result)) == 8 * 13
     assert bench_continuum.RIG_RESULTS.with_suffix(".json").is_file()
     assert bench_continuum.RIG_DEFAULTS[:2] == ["--rig-scenes", ",".join(continuum.RIG_SCENES)]
