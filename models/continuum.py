@@ -662,12 +662,14 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     given) among the candidates of :func:`polrig.solve.design.next_candidates` not taken yet
     (the equiangular set through the seen state first, then the 15 deg offsets; one frame each
     exists), chosen as the capture chooses (:func:`polrig.solve.design.choose_next`, timed by
-    :func:`sim_hardware_model`). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
+    :func:`sim_hardware_model` and :data:`polrig.solve.design.DECISION_S`; the time reported is
+    the hardware time alone, as for every method). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
     the joint prior ``correlation`` where given, as the capture's) and the offsets taken, in
     order."""
     from polrig.acquisition.plan import CapturePlan, nearest_stage_angle, state_time_s
     from polrig.sim.dataset import DATASET_EXPOSURE_US
     from polrig.solve.design import (
+        DECISION_S,
         DESIGN_PIXELS,
         a_optimal_next,
         choose_next,
@@ -703,7 +705,7 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         # the capture's choice (polrig.app.adaptive): the cheapest state predicted to finish, else at the
         # last state the least criterion, else the greatest reduction per second of hardware time
         here = stage_angles(taken)[-1]
-        cost = [state_time_s(plan, exposures, here, nearest_stage_angle(c, here), model) for c in cands]
+        cost = [state_time_s(plan, exposures, here, nearest_stage_angle(c, here), model) + DECISION_S for c in cands]
         m = px(mueller)
         after = predicted_share(scores.trace.reshape(len(cands), *m.shape[:2]), m[..., 0, 0], px(lit) > 0,
                                 target, got, int(above.sum()) / int(obj.sum()))

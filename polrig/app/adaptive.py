@@ -32,7 +32,8 @@ two stage angles (a linear polarizer repeats every 180 deg). It is evaluated on 
 deterministic), with the ideal analyzer's rows and the noise model's variance at the current
 estimate. Each candidate's hardware time (its move and frames,
 :func:`polrig.acquisition.plan.state_time_s`) is timed by the rig's timing the session
-recorded (``rig.timing``, :func:`timing_model`), and :func:`polrig.solve.design.choose_next`
+recorded (``rig.timing``, :func:`timing_model`), with the decision's own time the stage waits
+for (``rig.timing.decision_s``), and :func:`polrig.solve.design.choose_next`
 takes the cheapest state predicted to bring the pose to its target; else, at the last allowed
 state, the least criterion; else the greatest predicted reduction per second. A session
 recorded before the rig's timing was (no ``rig.timing``) chooses as it did then: the least
@@ -286,12 +287,13 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
         return record | {"design_pixels": len(ys), "criterion": scores.criterion,
                          "state_deg": angles[best], "predicted_criterion": float(j[best])}
     model = timing_model(timing)
-    cost = [state_time_s(plan, cf.exposures_us, here, a, model) for a in angles]
+    hardware = [state_time_s(plan, cf.exposures_us, here, a, model) for a in angles]
+    cost = [t + float(timing["decision_s"]) for t in hardware]  # and the decision the stage waits for
     share_after = predicted_share(scores.trace.reshape(len(angles), *estimate.shape[:2]), estimate[..., 0, 0],
                                   pixels(lit), plan.target_sigma, share, int(above.sum()) / n_obj)
     best = choose_next(scores, cost, share_after, plan.target_share, last=n + 1 >= plan.max_states)
     return record | {"design_pixels": len(ys), "criterion": scores.criterion, "state_deg": angles[best],
-                     "predicted_criterion": float(j[best]), "state_time_s": cost[best]}
+                     "predicted_criterion": float(j[best]), "state_time_s": hardware[best]}
 
 
 def truncated(cf: CaptureFrames, n: int) -> CaptureFrames:

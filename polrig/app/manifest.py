@@ -432,12 +432,14 @@ class TimingRecord(TypedDict):
     """The rig's hardware timing as the adaptive capture weighs a state's cost
     (:func:`polrig.app.records.timing_record`): the polarizer stage's declared cruise speed
     (deg/s) and acceleration (deg/s^2, null: full speed at once), the camera's readout per
-    frame (us) and the frames it discards after a setting change or a move (free run; else 0)."""
+    frame (us), the frames it discards after a setting change or a move (free run; else 0),
+    and the time a decision is taken to cost (s, :data:`polrig.solve.design.DECISION_S`)."""
 
     stage_speed_deg_s: Positive
     stage_accel_deg_s2: Positive | None
     readout_us: NonNegative
     settle_frames: Count
+    decision_s: NonNegative
 
 
 class RigRecord(TypedDict):

@@ -24,6 +24,7 @@ from polrig.errors import ConfigError
 from polrig.formats.rawio import read_raw
 from polrig.sensor.analyzer import resolve_layout
 from polrig.sensor.noise import SensorModel
+from polrig.solve.design import DECISION_S
 
 
 def frame_geometry(rig) -> tuple[int, int, int, tuple[int, int]]:
@@ -58,7 +59,8 @@ def rig_record(rig) -> RigRecord:
 def timing_record(rig) -> TimingRecord:
     """The manifest's ``rig.timing`` (:class:`polrig.app.manifest.TimingRecord`): the polarizer
     stage's declared motion and the camera's readout and settle frames, as
-    :func:`polrig.acquisition.engine.hardware_model` takes them. An adaptive capture weighs its
+    :func:`polrig.acquisition.engine.hardware_model` takes them, and the time a decision is
+    taken to cost (:data:`polrig.solve.design.DECISION_S`). An adaptive capture weighs its
     candidate states' cost with it (:func:`polrig.app.adaptive.timing_model`), from the session
     alone, so a replay or a resume chooses alike."""
     stage = rig.stage.capabilities
@@ -66,7 +68,8 @@ def timing_record(rig) -> TimingRecord:
     caps = rig.camera.capabilities
     return {"stage_speed_deg_s": float(stage.speed_deg_s),
             "stage_accel_deg_s2": accel if math.isfinite(accel) else None,
-            "readout_us": float(caps.readout_us), "settle_frames": settle_frames(caps)}
+            "readout_us": float(caps.readout_us), "settle_frames": settle_frames(caps),
+            "decision_s": DECISION_S}
 
 
 def check_rig_for_plan(rig, plan: CapturePlan) -> None:
