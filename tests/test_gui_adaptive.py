@@ -85,17 +85,23 @@ def test_a_bad_adaptive_option_is_one_line_and_starts_nothing(qtbot, idle_window
     assert not (tmp_path / "s").exists()
 
 
+def adaptive_panel(w, out, poses: str, target: float):
+    """``w``'s capture panel set for an adaptive capture of ``poses`` into ``out`` at relative
+    sigma ``target``: ``(panel, out)``."""
+    cp = w.capture
+    cp.poses.setText(poses)
+    cp.out.setText(str(out))
+    cp.mode.setCurrentText("adaptive")
+    cp.target_sigma.setValue(target)
+    return cp, out
+
+
 @needs_model
 def test_an_adaptive_capture_shows_each_decision_and_records_them(qtbot, tmp_path):
     w = make_window(qtbot, tmp_path / "gui.ini")
     try:
         wait_connected(qtbot, w)
-        cp = w.capture
-        out = tmp_path / "session"
-        cp.poses.setText("0")
-        cp.out.setText(str(out))
-        cp.mode.setCurrentText("adaptive")
-        cp.target_sigma.setValue(0.05)
+        cp, out = adaptive_panel(w, tmp_path / "session", "0", 0.05)
         cp.target_share.setValue(0.9)
         shown = []  # the ETA label when each decision is logged
         cp.message.connect(lambda level, text: "decision" in text and shown.append(
@@ -159,12 +165,7 @@ def test_a_resumed_adaptive_session_lists_the_recorded_decisions_then_the_live_o
     w = make_window(qtbot, tmp_path / "gui.ini")
     try:
         wait_connected(qtbot, w)
-        cp = w.capture
-        out = tmp_path / "session"
-        cp.poses.setText("0,90")
-        cp.out.setText(str(out))
-        cp.mode.setCurrentText("adaptive")
-        cp.target_sigma.setValue(1e-4)  # the spin box's least: no pose meets it
+        cp, out = adaptive_panel(w, tmp_path / "session", "0,90", 1e-4)  # the spin box's least: no pose meets it
         cp.max_states.setValue(2)
         cp.start()
         qtbot.waitUntil(lambda: cp.last_status == "interrupted" and not cp.is_running,
