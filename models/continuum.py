@@ -81,7 +81,11 @@ test runs on the hybrid's posterior system), scored over every object pixel and 
 a lower-order model holds (:func:`model_holds`: the truth within :data:`HOLDS_REL` relative
 Frobenius of its nearest candidate in every colour, the pixel lit, :func:`lit_pixels`, and
 unclipped), with the share given a reduced model and the false acceptance where the truth is
-detectably off every candidate (:func:`detectably_off_every_model`).
+detectably off every candidate (:func:`detectably_off_every_model`); and the selection's result
+with the direction the two states leave open predicted from the diffuse term's geometry where it
+chose ``rank_one`` (:func:`polrig.solve.diffuse_geometry.complete_diffuse`; the geometry of
+:func:`frame_geometry`: the intrinsics' view directions, one light direction per sample, the
+network's normals as the guess).
 
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
@@ -177,6 +181,9 @@ class Frames:
     #: the network's light spread over the object (rad, :func:`polrig.models.uncertainty.light_spread`;
     #: the calibrated sigma's factor), None where not known
     light_spread: float | None = None
+    #: what the rig knows of the geometry (:func:`frame_geometry`), for the diffuse completion at
+    #: two states (:func:`polrig.solve.diffuse_geometry.complete_diffuse`); None where not known
+    geometry: object | None = None
 
 
 def rotated_state(s: np.ndarray, offset_deg: float) -> np.ndarray:
@@ -229,9 +236,10 @@ def make_set(root: pathlib.Path, name: str, kwargs: dict, count: int) -> pathlib
     return out
 
 
-def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray, float | None]:
+def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None]:
     """The network's estimate and calibrated sigma for sample ``i``'s own frame (0 off the
-    object), and its light spread over the object (the sigma's factor)."""
+    object), its light spread over the object (the sigma's factor) and its normals ``(H, W, 3)``
+    (camera frame; None where the graph has none)."""
     from polrig.models.evaluate import network_inputs
     from polrig.sensor.stokes import stokes_from_analyzers
 
@@ -244,7 +252,42 @@ def network_prior(ds, i: int, net) -> tuple[np.ndarray, np.ndarray, float | None
     spread = light_spread(res["wi"][0], mask)
     sigma = net.uncertainty.sigma(pred, s0, mask, stokes_from_analyzers(ds["analyzer"][i].astype(np.float64)),
                                   light_spread=spread)
-    return np.where(mask, pred, 0.0), np.where(mask, sigma.astype(np.float64), 0.0), spread
+    normal = np.moveaxis(res["normal"][0].astype(np.float64), 0, -1) if "normal" in res else None
+    return np.where(mask, pred, 0.0), np.where(mask, sigma.astype(np.float64), 0.0), spread, normal
+
+
+def light_over_depth(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """The point light's position ``(3,)`` over the object's depth (camera frame, the camera at
+    the origin) that best explains the light directions ``wi`` ``(P, 3)`` (surface -> light)
+    seen from the surface points ``-wo`` ``(P, 3)`` at unit depth: ``(L + wo) x wi = 0``, linear
+    least squares in ``L``. What the rig's calibration gives (the light's position, the
+    turntable's distance); the simulator's sets do not record it."""
+    wi = np.asarray(wi, np.float64)
+    z = np.zeros(len(wi))
+    skew = np.stack([np.stack([z, -wi[:, 2], wi[:, 1]], -1), np.stack([wi[:, 2], z, -wi[:, 0]], -1),
+                     np.stack([-wi[:, 1], wi[:, 0], z], -1)], -2)  # skew(wi) L = wi x L
+    return np.linalg.lstsq(skew.reshape(-1, 3), np.cross(np.asarray(wo, np.float64), wi).reshape(-1), rcond=None)[0]
+
+
+def frame_geometry(ds, i: int, normal_guess: np.ndarray | None):
+    """What the rig knows of sample ``i``'s geometry
+    (:class:`polrig.solve.diffuse_geometry.DiffuseGeometry`): the view directions (the
+    intrinsics'), the polarizer stage's zero axis (calibration) and the light's direction at
+    each pixel from the light's position over the object's depth (:func:`light_over_depth`, 3
+    numbers fitted to the truth's directions as the rig's calibration would give them), the
+    surface taken at one depth (:func:`polrig.solve.diffuse_geometry.light_directions`: median
+    1-2 deg from the truth's directions on the held-out seen families, where one direction over
+    the object is 2-5 deg off), with the network's normals as the guess; None where the set has no
+    directions."""
+    from polrig.solve.diffuse_geometry import DiffuseGeometry, light_directions
+
+    if not all(k in ds.arrays for k in ("wi", "wo", "stage_zero_axis")):
+        return None
+    mask = ds["mask"][i] > 0
+    view = np.moveaxis(ds["wo"][i].astype(np.float64), 0, -1)
+    light = light_over_depth(ds["wi"][i].astype(np.float64)[:, mask].T, view[mask])
+    return DiffuseGeometry(view=view, light=light_directions(light, view),
+                           stage_zero_axis=ds["stage_zero_axis"][i].astype(np.float64), normal_guess=normal_guess)
 
 
 def sample_frames(ds, i: int, prior: tuple, sensor, rng: np.random.Generator, *,
@@ -300,7 +343,8 @@ def sample_frames(ds, i: int, prior: tuple, sensor, rng: np.random.Generator, *,
     per_dn, offset = sensor.variance_terms(DATASET_EXPOSURE_US, k)
     return Frames(truth, mask, use, clean, prior[0], prior[1], states, meas, var, valid,
                   (float(per_dn) / scale, float(offset) / scale**2),
-                  light_spread=prior[2] if len(prior) > 2 else None)
+                  light_spread=prior[2] if len(prior) > 2 else None,
+                  geometry=frame_geometry(ds, i, prior[3]) if len(prior) > 3 else None)
 
 
 def _measured_highlights(fr: Frames, uncertainty):
@@ -412,21 +456,29 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.nd
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
 
 
-def hybrid_with_models(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None):
+def hybrid_models_result(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None):
     """The hybrid solve of ``offsets`` then the lower-order model selection
     (:func:`polrig.solve.model_selection.select_models` with the network as the prior: at two
-    states it tests on the hybrid's posterior system, samples and prior):
-    ``(mueller, sigma, solved, model codes (C, H, W))``."""
+    states it tests on the hybrid's posterior system, samples and prior): the
+    :class:`polrig.solve.reference.ReferenceResult` (its ``models`` the maps) and the states
+    ``(N, 3)``."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.model_selection import select_models
-    from polrig.solve.reference import ILL_CONDITIONED
 
     s, meas, var, valid = _stack(fr, offsets)
     r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
                      dtype=np.float64, prior_correlation=correlation)
-    r, maps = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0,
-                            prior_correlation=correlation)
-    return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0, maps.code
+    r, _ = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0,
+                         prior_correlation=correlation)
+    return r, s
+
+
+def hybrid_with_models(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None):
+    """:func:`hybrid_models_result` as ``(mueller, sigma, solved, model codes (C, H, W))``."""
+    from polrig.solve.reference import ILL_CONDITIONED
+
+    r, _ = hybrid_models_result(fr, offsets, correlation)
+    return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0, r.models.code
 
 
 def reference_with_models(fr: Frames, offsets: Sequence[int]):
@@ -526,7 +578,8 @@ FOUR_STATES = (0, 45, 90, 135)
 
 
 def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None = None,
-                keys: Sequence[str] = ("single", "hybrid2", "hybrid2_models", "reference4", "reference4_models")
+                keys: Sequence[str] = ("single", "hybrid2", "hybrid2_models", "hybrid2_geometry", "reference4",
+                                       "reference4_models")
                 ) -> dict[str, dict[str, float]]:
     """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
     single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
@@ -537,8 +590,10 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
     scored colour-pixels given a reduced model, overall and where one holds. The bound they are
     read against: ``reference4``, the four-state reference solve (:data:`FOUR_STATES`, no prior),
     and ``reference4_models``, the same with the selection (:func:`reference_with_models`), scored
-    alike. ``correlation``: the hybrid's joint prior (None: per element); ``keys``: the rows
-    wanted."""
+    alike. ``hybrid2_geometry``: the selection's result with the diffuse completion
+    (:func:`polrig.solve.diffuse_geometry.complete_diffuse`, the frames' ``geometry``; the share of
+    scored colour-pixels it completed as ``accepted``; absent without a geometry).
+    ``correlation``: the hybrid's joint prior (None: per element); ``keys``: the rows wanted."""
     holds = model_holds(fr.truth, fr.mask) & lit_pixels(fr).all(axis=0)
     rows = {}
     for key, method, offs in (("single", "single", two), ("hybrid2", "hybrid", two),
@@ -551,8 +606,18 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
         rows["reference4_models"] = score(fr, *est) | score_where_models_hold(fr, est[0], holds)
     if "hybrid2_models" not in keys:
         return rows
-    *est, code = hybrid_with_models(fr, two, correlation)
+    from polrig.solve.diffuse_geometry import complete_diffuse
+    from polrig.solve.reference import ILL_CONDITIONED
+
+    r, s = hybrid_models_result(fr, two, correlation)
+    code = r.models.code
+    est = (r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0)
     sel = fr.use & est[2]
+    if "hybrid2_geometry" in keys and fr.geometry is not None:
+        g, completed, _ = complete_diffuse(r, s, fr.geometry)
+        rows["hybrid2_geometry"] = (score(fr, g.mueller, g.sigma, est[2])
+                                    | score_where_models_hold(fr, g.mueller, holds)
+                                    | {"accepted": float(completed[sel].mean()) if sel.any() else float("nan")})
     reduced = (code != 0) & (code != 255)
     det = detectably_off_every_model(fr, two, correlation) & sel
     rows["hybrid2_models"] = (score(fr, *est) | score_where_models_hold(fr, est[0], holds)
@@ -819,7 +884,8 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
     bracketed = {} if only_models else {"single_bracket": ("single", (0,)), "hybrid1_bracket": ("hybrid", (0,)),
                                         "hybrid2_bracket": ("hybrid", offsets["two"])}
     model_keys = {"holds_single": "single", "holds_hybrid2": "hybrid2", "hybrid2_models": "hybrid2_models",
-                  "holds_reference4": "reference4", "reference4_models": "reference4_models"}
+                  "hybrid2_geometry": "hybrid2_geometry", "holds_reference4": "reference4",
+                  "reference4_models": "reference4_models"}
     rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *model_keys, *bracketed)}
     time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
     time_s |= {key: acquisition_time_s(offs, k) for key, (offs, k) in timed.items()}
@@ -849,6 +915,8 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
             rows[key].append(score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
         two_rows = models_rows(fr, offsets["two"], correlation)
         for key, k in model_keys.items():
+            if k not in two_rows:
+                continue
             n_states = {"single": 1, "reference4": 4, "reference4_models": 4}.get(k, 2)
             rows[key].append(two_rows[k] | {"states": n_states, "time_s": acquisition_time_s(
                 {1: (0,), 4: FOUR_STATES}.get(n_states, offsets["two"]))})
@@ -963,28 +1031,37 @@ def models_markdown(result: dict) -> str:
              "scored colour-pixels. The bound: the four-state reference solve (0/45/90/135, no prior) and the same "
              "with the selection, scored alike; \"single + 6\" is the PSNR the issue's +6 dB asks for; \"two-state "
              "bound\": the most two states could give where a model holds (`two_state_bound_db`: the four-state "
-             "selection with half its samples, combined with the single-shot estimate as independent).", "",
+             "selection with half its samples, combined with the single-shot estimate as independent). \"+ geometry\": "
+             "hybrid 2 + models with the direction the two states leave open predicted from the diffuse term's "
+             "geometry where the selection chose `rank_one` (`complete_diffuse`: one light direction per image, the "
+             "network's normals as the guess, normals and one refractive index fitted), \"completed\" the share of "
+             "the scored colour-pixels it changed.", "",
              "| set | scored | holds (share of pixels) | single-shot, holds | hybrid 2, holds | hybrid 2 + models, holds "
-             "| + models - single, holds | single + 6, holds | reference 4 / + models, holds | two-state bound, holds "
+             "| + models - single, holds | + geometry, holds | + geometry - single, holds | single + 6, holds "
+             "| reference 4 / + models, holds | two-state bound, holds "
              "| hybrid 2, all | "
-             "hybrid 2 + models, all | + models - single, all | "
-             "reduced, all / holds | within 2 sigma, hybrid 2 / + models / reference 4 + models | "
+             "hybrid 2 + models / + geometry, all | + models / + geometry - single, all | "
+             "reduced, all / holds; completed, all | within 2 sigma, hybrid 2 / + models / + geometry / reference 4 + models | "
              "false acceptance (detectably off every model) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    nan = {"psnr_holds": float("nan"), "coverage": float("nan")}
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    nan = {"psnr_holds": float("nan"), "coverage": float("nan"), "matrix_psnr": float("nan"), "accepted": float("nan")}
     for key, r in result["sets"].items():
         m = r["methods"]
         sgl, hyb, sel = m["holds_single"], m["holds_hybrid2"], m["hybrid2_models"]
         ref4, ref4m = m.get("holds_reference4", nan), m.get("reference4_models", nan)
+        geo = nan | m.get("hybrid2_geometry", {})
         lines.append(
             f"| {set_label(key)} | {r['samples']} | {100 * sel.get('holds_share', float('nan')):.1f} % | "
             f"{sgl['psnr_holds']:.2f} | {hyb['psnr_holds']:.2f} | {sel['psnr_holds']:.2f} | "
-            f"{sel['psnr_holds'] - sgl['psnr_holds']:+.2f} | {sgl['psnr_holds'] + 6:.2f} | "
+            f"{sel['psnr_holds'] - sgl['psnr_holds']:+.2f} | {geo['psnr_holds']:.2f} | "
+            f"{geo['psnr_holds'] - sgl['psnr_holds']:+.2f} | {sgl['psnr_holds'] + 6:.2f} | "
             f"{ref4['psnr_holds']:.2f} / {ref4m['psnr_holds']:.2f} | "
             f"{two_state_bound_db(sgl['psnr_holds'], ref4m['psnr_holds']):.2f} | {hyb['matrix_psnr']:.2f} | "
-            f"{sel['matrix_psnr']:.2f} | {sel['matrix_psnr'] - sgl['matrix_psnr']:+.2f} | "
-            f"{100 * sel['accepted']:.0f} / {100 * sel['accepted_holds']:.0f} % | "
-            f"{100 * hyb['coverage']:.1f} / {100 * sel['coverage']:.1f} / {100 * ref4m['coverage']:.1f} % | "
+            f"{sel['matrix_psnr']:.2f} / {geo['matrix_psnr']:.2f} | {sel['matrix_psnr'] - sgl['matrix_psnr']:+.2f} / "
+            f"{geo['matrix_psnr'] - sgl['matrix_psnr']:+.2f} | "
+            f"{100 * sel['accepted']:.0f} / {100 * sel['accepted_holds']:.0f} / {100 * geo['accepted']:.0f} % | "
+            f"{100 * hyb['coverage']:.1f} / {100 * sel['coverage']:.1f} / {100 * geo['coverage']:.1f} / "
+            f"{100 * ref4m['coverage']:.1f} % | "
             f"{100 * sel.get('false_acceptance', float('nan')):.1f} % of "
             f"{100 * sel.get('detectable_share', float('nan')):.0f} % |")
     return "\n".join(lines)
@@ -1168,7 +1245,8 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
         if only_models:
             echo(f"{name}: {r['samples']} scored; PSNR where a model holds: single "
                  f"{m['holds_single']['psnr_holds']:.2f}, hybrid 2 {m['holds_hybrid2']['psnr_holds']:.2f}, "
-                 f"+ models {m['hybrid2_models']['psnr_holds']:.2f}")
+                 f"+ models {m['hybrid2_models']['psnr_holds']:.2f}, + geometry "
+                 f"{m.get('hybrid2_geometry', {}).get('psnr_holds', float('nan')):.2f}")
             continue
         echo(f"{name}: {r['samples']} scored; PSNR single {m['single']['matrix_psnr']:.2f}, hybrid 1-4 "
              + " / ".join(f"{m[f'hybrid{k}']['matrix_psnr']:.2f}" for k in range(1, 5))

@@ -55,7 +55,8 @@ def test_models_only_run_writes_its_table(tmp_path):
     res = json.loads(out.with_suffix(".json").read_text())
     assert res["offsets"]["two"] == [0, 90]
     m = res["sets"]["seen_families"]["methods"]
-    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models", "holds_reference4", "reference4_models"}
+    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models", "hybrid2_geometry", "holds_reference4",
+                      "reference4_models"}
     # the four-state bound: more samples than two states, so a better estimate where a model holds
     assert m["reference4_models"]["states"] == 4 and m["holds_reference4"]["time_s"] > m["hybrid2_models"]["time_s"]
     assert m["reference4_models"]["psnr_holds"] > m["holds_hybrid2"]["psnr_holds"]
@@ -63,9 +64,12 @@ def test_models_only_run_writes_its_table(tmp_path):
     assert 0 < sel["holds_share"] <= 1 and 0 < sel["accepted"] <= 1 and 0.5 < sel["coverage"] <= 1
     assert np.isfinite(sel["matrix_psnr"]) and np.isfinite(m["holds_hybrid2"]["psnr_holds"])
     assert m["holds_single"]["matrix_psnr"] < m["holds_hybrid2"]["matrix_psnr"]
+    # the diffuse completion changes some of the rank-one pixels and keeps its sigma finite
+    geo = m["hybrid2_geometry"]
+    assert 0 < geo["accepted"] <= sel["accepted"] and 0.5 < geo["coverage"] <= 1 and np.isfinite(geo["psnr_holds"])
     text = out.read_text()
     assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
-    assert "reference 4 / + models, holds" in text
+    assert "reference 4 / + models, holds" in text and "+ geometry, holds" in text
     assert "--models-only --count 2" in text
 
 

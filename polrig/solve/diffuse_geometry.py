@@ -1,0 +1,276 @@
+"""The direction two polarizer states leave open, predicted from the surface's geometry where
+the block is Baek et al.'s diffuse term.
+
+**What two states leave open.** States ``s_a``, ``s_b`` (linear Stokes, ``(3,)``) observe each
+row ``m_r`` of the 3x3 block along their plane; the unit normal ``u = s_a x s_b / |.|`` of that
+plane is not observed (:func:`unobserved_direction`). The hybrid solve
+(:mod:`polrig.solve.hybrid`) takes ``m_r . u`` from the network's prior.
+
+**The diffuse term** (Baek, Jeon, Kim and Kim 2018, *Simultaneous acquisition of polarimetric
+SVBRDF and normals*, ACM TOG 37(6) 268, eq. 9; :func:`polrig.optics.pbrdf.linear_rig_mueller`,
+``components=("diffuse",)``) is rank one, ``M = k x y^T``: ``x`` the first column of the Fresnel
+transmission out of the surface (axis ``n x wo`` in the camera's frame), ``y`` the first row of
+the transmission into it (axis ``n x -wi`` in the polarizer stage's frame), both set by the
+surface normal ``n``, the view and light directions ``wo``, ``wi`` and the refractive index
+``eta``. Where the model selection (:mod:`polrig.solve.model_selection`) chose ``rank_one`` the
+two states measure ``x`` (the ratios of ``M (s_a + s_b)``), ``k`` and the incident ratio
+``rho = (y . s_b) / (y . s_a)``; ``y . u`` is the one number they miss. With the light and view
+directions known (calibration: the light's position, the intrinsics; :class:`DiffuseGeometry`),
+``n`` and ``eta`` predict it.
+
+**The fit** (:func:`fit_diffuse_geometry`): per pixel the normal ``n`` (zenith and azimuth about
+``wo``), per image one ``eta``, minimising
+
+    |x(n, eta) - x_hat|^2 + (rho(n, eta) - rho_hat)^2 + PRIOR_WEIGHT angle(n, n_guess)^2
+
+(``x`` its two polarized ratios; ``n_guess`` the network's normal, rad: the two states leave
+``n``'s zenith weakly determined where ``x`` is weakly polarized). A search, not a descent: the
+objective has two branches 180 deg apart in azimuth (``x`` sees the axis, not its sign) and is
+flat in zenith near normal exitance. The candidates are a zenith x azimuth grid about ``wo``
+(:data:`ZENITH_STEP_DEG`, :data:`AZIMUTH_STEP_DEG`), refined twice by halving around the best;
+``eta`` is the grid value (:data:`ETAS`) of least total capped cost over a stride sample of the
+pixels (:data:`ETA_SAMPLE`; cap :data:`COST_CAP`: pixels the model does not fit must not pick it).
+
+**The completion** (:func:`complete_diffuse`): ``M u = M v (y . u) / (y . v)`` with
+``v = s_a + s_b`` and ``y`` the fitted geometry's, per colour, on the ``rank_one`` pixels whose fit
+is valid; the block's other directions are kept. Its sigma adds the squared change, per element,
+to the selected model's (the model-selection term of :mod:`polrig.solve.model_selection`, Buckland,
+Burnham and Augustin 1997: the change's size is what is known of the prediction's error).
+
+Shapes: images ``(C, 3, 3, H, W)`` as :class:`polrig.solve.reference.ReferenceResult`; directions
+``(H, W, 3)`` or ``(3,)`` unit vectors in the camera frame (``docs/conventions.md``): ``view``
+surface -> camera, ``light`` surface -> light.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import numpy as np
+
+from polrig.optics.pbrdf import linear_rig_mueller
+from polrig.solve.reference import ILL_CONDITIONED, ReferenceResult
+from polrig.solve.reduced_models import MODELS
+
+__all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "light_directions",
+           "fit_diffuse_geometry", "complete_diffuse", "RANK_ONE"]
+
+#: The model selection's code of the rank-one block (Baek's diffuse term).
+RANK_ONE = next(m.code for m in MODELS if m.name == "rank_one")
+#: The refractive indices searched (one per image).
+ETAS = tuple(np.round(np.arange(1.2, 2.01, 0.05), 2))
+#: Weight of the squared angle (rad) from the guessed normal in the fit's cost.
+PRIOR_WEIGHT = 0.005
+#: Per-pixel cost above which a pixel counts as this cap in the choice of ``eta``.
+COST_CAP = 0.01
+#: Pixels (a stride sample) on which ``eta`` is chosen.
+ETA_SAMPLE = 256
+#: The coarse grid of normals about the view direction (deg), refined twice by halving.
+ZENITH_STEP_DEG, AZIMUTH_STEP_DEG, MAX_ZENITH_DEG = 5.0, 10.0, 85.0
+#: Pixels per chunk of the search (memory: chunk x candidates x 9 doubles).
+_CHUNK = 128
+
+
+@dataclasses.dataclass(frozen=True)
+class DiffuseGeometry:
+    """What the rig knows of each pixel's geometry, camera frame.
+
+    ``view``: ``(H, W, 3)`` unit, surface -> camera (the pixel's ray reversed: intrinsics).
+    ``light``: ``(3,)`` or ``(H, W, 3)`` unit, surface -> light (the calibrated light position
+    seen from the object). ``stage_zero_axis``: ``(3,)`` the polarizer stage's zero axis (the
+    incident Stokes frame's x); ``camera_x_axis``: ``(3,)`` the emergent frame's x.
+    ``normal_guess``: ``(H, W, 3)`` a normal per pixel (the network's), or None (no pull)."""
+
+    view: np.ndarray
+    light: np.ndarray
+    stage_zero_axis: np.ndarray
+    camera_x_axis: np.ndarray = dataclasses.field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    normal_guess: np.ndarray | None = None
+
+
+class DiffuseFit(NamedTuple):
+    """:func:`fit_diffuse_geometry`'s result: ``eta`` (float), ``normal`` ``(P, 3)`` and ``cost``
+    ``(P,)`` (inf where no candidate is valid)."""
+
+    eta: float
+    normal: np.ndarray
+    cost: np.ndarray
+
+
+def unobserved_direction(s_in: np.ndarray) -> np.ndarray | None:
+    """The unit vector ``(3,)`` no row of the block is observed along by the states ``s_in``
+    ``(N, 3)``, or None when they observe all three directions (or fewer than two): the null
+    vector of the states' span when it is a plane (rank 2, relative tolerance 1e-9)."""
+    s = np.asarray(s_in, np.float64).reshape(-1, 3)
+    _, sv, vt = np.linalg.svd(s)
+    if len(sv) < 2 or sv[1] <= 1e-9 * sv[0] or (len(sv) == 3 and sv[2] > 1e-9 * sv[0]):
+        return None
+    return vt[2]
+
+
+def light_directions(light_position: np.ndarray, view: np.ndarray, depth: float = 1.0) -> np.ndarray:
+    """Unit vectors surface -> light ``(..., 3)`` for a point light at ``light_position`` ``(3,)``
+    (camera frame, the camera at the origin) and the surface at ``depth`` along each pixel's ray
+    (the point ``-depth * view``; ``view`` ``(..., 3)`` unit, surface -> camera): the object's
+    relief about that depth is left out. Units: ``light_position`` and ``depth`` alike (only
+    their ratio matters)."""
+    d = np.asarray(light_position, np.float64) + depth * np.asarray(view, np.float64)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def diffuse_ratios(normal, light, view, eta: float, stage_zero_axis, camera_x_axis
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y)``, each ``(P, 3)``: the first column and first row of the unit diffuse block at
+    ``normal``, ``light``, ``view`` (``(P, 3)``), each over its first element (NaN where the block
+    is zero: the normal faces away from the light or the camera)."""
+    md = linear_rig_mueller(normal, light, view, kd=1.0, ks=0.0, alpha=0.1, eta=eta, components=("diffuse",),
+                            stage_zero_axis=stage_zero_axis, camera_x_axis=camera_x_axis)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m00 = np.where(md[:, 0, 0] > 0, md[:, 0, 0], np.nan)[:, None]
+        return md[:, :, 0] / m00, md[:, 0, :] / m00
+
+
+def _frame(view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors ``(P, 3)`` completing ``view`` to an orthonormal frame."""
+    helper = np.where(np.abs(view[:, 1:2]) < 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(view, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return e1, np.cross(view, e1)
+
+
+def _grid(z0: np.ndarray, a0: np.ndarray, dz: float, da: float, nz: int, na: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate (zenith, azimuth) ``(P, nz * na)`` around ``(z0, a0)`` ``(P,)`` (rad)."""
+    oz = (np.arange(nz) - (nz - 1) / 2) * dz
+    oa = (np.arange(na) - (na - 1) / 2) * da
+    z = z0[:, None, None] + oz[None, :, None]
+    a = a0[:, None, None] + oa[None, None, :]
+    z, a = np.broadcast_arrays(z, a)
+    return np.clip(z, 0.0, np.deg2rad(MAX_ZENITH_DEG)).reshape(len(z0), -1), a.reshape(len(z0), -1)
+
+
+def _costs(z, a, pix, eta: float, obs, geo) -> np.ndarray:
+    """Cost ``(P, K)`` of the candidates ``z``, ``a`` ``(P, K)`` (module docstring)."""
+    view, light, e1, e2, guess = (g[pix] if g is not None else None for g in geo[:5])
+    stage, cam, s_a, s_b = geo[5:]
+    p, k = z.shape
+    n = (np.cos(z)[..., None] * view[:, None] + np.sin(z)[..., None]
+         * (np.cos(a)[..., None] * e1[:, None] + np.sin(a)[..., None] * e2[:, None])).reshape(-1, 3)
+    rep = lambda v: np.repeat(v, k, axis=0)  # noqa: E731
+    x, y = diffuse_ratios(n, rep(light), rep(view), eta, stage, cam)
+    x_hat, rho_hat = obs[0][pix], obs[1][pix]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = (y @ s_b) / (y @ s_a)
+    cost = ((x[:, 1] - rep(x_hat[:, 1])) ** 2 + (x[:, 2] - rep(x_hat[:, 2])) ** 2
+            + (rho - rep(rho_hat)) ** 2).reshape(p, k)
+    if guess is not None:
+        ang = np.arccos(np.clip(np.einsum("pkj,pj->pk", n.reshape(p, k, 3), guess), -1.0, 1.0))
+        cost = cost + PRIOR_WEIGHT * ang**2
+    return np.where(np.isfinite(cost), cost, np.inf)
+
+
+def _search(pix: np.ndarray, eta: float, obs, geo, refine: int) -> tuple[np.ndarray, np.ndarray]:
+    """Best normal ``(P, 3)`` and its cost ``(P,)`` for the pixels ``pix`` at ``eta``."""
+    dz, da = np.deg2rad(ZENITH_STEP_DEG), np.deg2rad(AZIMUTH_STEP_DEG)
+    nz = int(round(MAX_ZENITH_DEG / ZENITH_STEP_DEG)) + 1
+    na = int(round(360.0 / AZIMUTH_STEP_DEG))
+    zs, as_, cs = [], [], []
+    for c0 in range(0, len(pix), _CHUNK):
+        sub = pix[c0:c0 + _CHUNK]
+        rows = np.arange(len(sub))
+        # the coarse grid: zenith 0..MAX_ZENITH_DEG, azimuth 0..360 - step
+        z, a = _grid(np.full(len(sub), (nz - 1) * dz / 2), np.full(len(sub), np.pi - da / 2), dz, da, nz, na)
+        for level in range(refine + 1):
+            cost = _costs(z, a, sub, eta, obs, geo)
+            j = np.argmin(cost, axis=1)
+            zb, ab, cb = z[rows, j], a[rows, j], cost[rows, j]
+            if level < refine:
+                step = 2.0 ** -(level + 1)
+                z, a = _grid(zb, ab, dz * step, da * step, 3, 3)
+        zs.append(zb), as_.append(ab), cs.append(cb)
+    z, a, cost = np.concatenate(zs), np.concatenate(as_), np.concatenate(cs)
+    view, e1, e2 = geo[0][pix], geo[2][pix], geo[3][pix]
+    n = np.cos(z)[:, None] * view + np.sin(z)[:, None] * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+    return n, cost
+
+
+def fit_diffuse_geometry(x_hat: np.ndarray, rho_hat: np.ndarray, s_a: np.ndarray, s_b: np.ndarray,
+                         view: np.ndarray, light: np.ndarray, stage_zero_axis, camera_x_axis,
+                         normal_guess: np.ndarray | None = None, *, etas=ETAS) -> DiffuseFit:
+    """Fit the diffuse term's geometry to ``P`` pixels (module docstring, "The fit").
+
+    ``x_hat`` ``(P, 3)``: the measured emergent ratios ``(1, x1, x2)``; ``rho_hat`` ``(P,)``:
+    the measured ``(y . s_b) / (y . s_a)``; ``s_a``, ``s_b`` ``(3,)`` the two states; ``view``,
+    ``light`` ``(P, 3)`` (or ``light`` ``(3,)``); ``normal_guess`` ``(P, 3)`` or None."""
+    view = np.asarray(view, np.float64).reshape(-1, 3)
+    p = len(view)
+    light = np.broadcast_to(np.asarray(light, np.float64), (p, 3))
+    guess = None if normal_guess is None else np.asarray(normal_guess, np.float64).reshape(p, 3)
+    e1, e2 = _frame(view)
+    geo = (view, light, e1, e2, guess, np.asarray(stage_zero_axis, np.float64),
+           np.asarray(camera_x_axis, np.float64), np.asarray(s_a, np.float64), np.asarray(s_b, np.float64))
+    obs = (np.asarray(x_hat, np.float64), np.asarray(rho_hat, np.float64))
+    if p == 0:
+        return DiffuseFit(float(etas[0]), np.zeros((0, 3)), np.zeros(0))
+    sample = np.arange(0, p, max(1, p // ETA_SAMPLE))[:ETA_SAMPLE]
+    totals = [np.minimum(_search(sample, float(e), obs, geo, refine=2)[1], COST_CAP).sum() for e in etas]
+    eta = float(etas[int(np.argmin(totals))])
+    normal, cost = _search(np.arange(p), eta, obs, geo, refine=2)
+    return DiffuseFit(eta, normal, cost)
+
+
+def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: DiffuseGeometry
+                     ) -> tuple[ReferenceResult, np.ndarray, float | None]:
+    """Predict the unobserved direction of the ``rank_one`` pixels of ``result`` (a solve of the
+    states ``s_in`` ``(2, 3)`` with the model selection, whose ``models`` map says which) from
+    the diffuse term's geometry (module docstring). Returns the new result (arrays copied), the
+    completed pixels ``(C, H, W)`` bool and the fitted ``eta`` (None where nothing was fitted).
+    States that observe every direction (or a result without a model map) return ``result``
+    unchanged."""
+    s_in = np.asarray(s_in, np.float64).reshape(-1, 3)
+    u = unobserved_direction(s_in)
+    n_col, _, _, h, w = result.mueller.shape
+    none = np.zeros((n_col, h, w), bool)
+    if u is None or result.models is None or len(s_in) != 2:
+        return result, none, None
+    s_a, s_b = s_in
+    v = s_a + s_b
+    code = result.models.code
+    rank_one = (code == RANK_ONE) & ((result.mask & ILL_CONDITIONED) == 0)  # (C, H, W)
+    ok_pix = rank_one.any(axis=0)
+    ys, xs = np.nonzero(ok_pix)
+    if not len(ys):
+        return result, none, None
+    m = result.mueller.astype(np.float64)[..., ys, xs]  # (C, 3, 3, P)
+    total = m.sum(axis=0)  # the colours share the geometry
+    mv = np.einsum("rkp,k->rp", total, v)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_hat = (mv / mv[0]).T
+        rho_hat = (total[0].T @ s_b) / (total[0].T @ s_a)
+    good = np.isfinite(x_hat).all(axis=1) & np.isfinite(rho_hat) & (mv[0] > 0)
+    ys, xs, m, x_hat, rho_hat = ys[good], xs[good], m[..., good], x_hat[good], rho_hat[good]
+    pick = lambda a: None if a is None else np.asarray(a, np.float64).reshape(h, w, 3)[ys, xs]  # noqa: E731
+    light = np.asarray(geometry.light, np.float64)
+    light = light if light.ndim == 1 else pick(light)
+    fit = fit_diffuse_geometry(x_hat, rho_hat, s_a, s_b, pick(geometry.view), light, geometry.stage_zero_axis,
+                               geometry.camera_x_axis, pick(geometry.normal_guess))
+    view = pick(geometry.view)
+    _, y = diffuse_ratios(fit.normal, np.broadcast_to(light, view.shape), view, fit.eta,
+                          geometry.stage_zero_axis, geometry.camera_x_axis)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (y @ u) / (y @ v)
+    done = np.isfinite(ratio) & np.isfinite(fit.cost)
+    ys, xs, m, ratio = ys[done], xs[done], m[..., done], ratio[done]
+    m_v = np.einsum("crkp,k->crp", m, v)
+    m_u = np.einsum("crkp,k->crp", m, u)
+    colours = rank_one[:, ys, xs]  # (C, P): the colours the selection gave the rank-one block
+    change = np.where(colours[:, None, :], m_v * ratio - m_u, 0.0)
+    new = m + change[:, :, None, :] * u[None, None, :, None]
+    mueller, sigma = result.mueller.copy(), result.sigma.copy()
+    old_sd = sigma[..., ys, xs].astype(np.float64)
+    mueller[..., ys, xs] = new
+    sigma[..., ys, xs] = np.sqrt(old_sd**2 + (new - m) ** 2)
+    completed = none.copy()
+    completed[:, ys, xs] = colours
+    out = dataclasses.replace(result, mueller=mueller, sigma=sigma)
+    return out, completed, fit.eta
