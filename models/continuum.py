@@ -272,21 +272,25 @@ def light_over_depth(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
 def frame_geometry(ds, i: int, normal_guess: np.ndarray | None):
     """What the rig knows of sample ``i``'s geometry
     (:class:`polrig.solve.diffuse_geometry.DiffuseGeometry`): the view directions (the
-    intrinsics'), the polarizer stage's zero axis (calibration) and the light's direction at
-    each pixel from the light's position over the object's depth (:func:`light_over_depth`, 3
-    numbers fitted to the truth's directions as the rig's calibration would give them), the
-    surface taken at one depth (:func:`polrig.solve.diffuse_geometry.light_directions`: median
-    1-2 deg from the truth's directions on the held-out seen families, where one direction over
-    the object is 2-5 deg off), with the network's normals as the guess; None where the set has no
-    directions."""
+    intrinsics'), the polarizer stage's zero axis (calibration) and two candidate light fields
+    from the light's position over the object's depth (:func:`light_over_depth`, 3 numbers
+    fitted to the truth's directions as the rig's calibration would give them): the surface at
+    one depth (:func:`polrig.solve.diffuse_geometry.light_directions`: median 1-2 deg from the
+    truth's directions on the held-out seen families, where one direction over the object is
+    2-5 deg off) and one direction, the truth's mean over the object (the light seen from the
+    object's centre; where the depth varies over the image, a terrain's ground, the one-depth
+    fit is biased and this is the better of the two); the network's normals as the guess. None
+    where the set has no directions."""
     from polrig.solve.diffuse_geometry import DiffuseGeometry, light_directions
 
     if not all(k in ds.arrays for k in ("wi", "wo", "stage_zero_axis")):
         return None
     mask = ds["mask"][i] > 0
     view = np.moveaxis(ds["wo"][i].astype(np.float64), 0, -1)
-    light = light_over_depth(ds["wi"][i].astype(np.float64)[:, mask].T, view[mask])
-    return DiffuseGeometry(view=view, light=light_directions(light, view),
+    wi = ds["wi"][i].astype(np.float64)[:, mask].T
+    centre = wi.mean(axis=0)
+    at_depth = light_directions(light_over_depth(wi, view[mask]), view)
+    return DiffuseGeometry(view=view, light=(at_depth, centre / np.linalg.norm(centre)),
                            stage_zero_axis=ds["stage_zero_axis"][i].astype(np.float64), normal_guess=normal_guess)
 
 

@@ -167,3 +167,20 @@ def test_light_directions_round_trip_through_the_light_position():
     assert np.allclose(light_over_depth(wi, view), light, atol=1e-10)
     # the same light 2x further, the surface 2x further: the same directions
     assert np.allclose(dg.light_directions(2 * light, view, depth=2.0), wi)
+
+
+def test_the_fit_takes_the_light_that_explains_the_states():
+    """Of two candidate lights, the true one and one 20 deg off, the fit takes the true one in
+    either order (its cost is lower: the incident ratio the two states see depends on it)."""
+    truth, geo, s = _scene(eta=1.5, seed=8)
+    block = truth[0, :, :, 0, :]  # (3, 3, P), red
+    v = s[0] + s[1]
+    mv = np.einsum("rkp,k->rp", block, v)
+    x_hat, rho_hat = (mv / mv[0]).T, (block[0].T @ s[1]) / (block[0].T @ s[0])
+    t = np.deg2rad(20)
+    wrong = np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]]) @ geo.light
+    for lights, right in (((geo.light, wrong), 0), ((wrong, geo.light), 1)):
+        fit = dg.fit_diffuse_geometry(x_hat, rho_hat, s[0], s[1], geo.view[0], lights, STAGE, CAM,
+                                      geo.normal_guess[0])
+        assert fit.light == right
+        assert abs(fit.eta - 1.5) <= 0.05 + 1e-9
