@@ -140,6 +140,27 @@ def diffuse_ratios(normal, light, view, eta: float, stage_zero_axis, camera_x_ax
         return md[:, :, 0] / m00, md[:, 0, :] / m00
 
 
+class _Pixels(NamedTuple):
+    """What the search reads per pixel (``(P, 3)``; ``guess`` may be None) and per image."""
+
+    view: np.ndarray
+    light: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    guess: np.ndarray | None
+    stage: np.ndarray
+    cam: np.ndarray
+    s_a: np.ndarray
+    s_b: np.ndarray
+
+
+def _normals(z: np.ndarray, a: np.ndarray, view: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """Unit normals ``(P, K, 3)`` at zenith ``z`` and azimuth ``a`` ``(P, K)`` (rad) about each
+    pixel's ``view`` in its frame ``e1``, ``e2`` (``(P, 3)``)."""
+    return (np.cos(z)[..., None] * view[:, None] + np.sin(z)[..., None]
+            * (np.cos(a)[..., None] * e1[:, None] + np.sin(a)[..., None] * e2[:, None]))
+
+
 def _frame(view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors ``(P, 3)`` completing ``view`` to an orthonormal frame."""
     helper = np.where(np.abs(view[:, 1:2]) < 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
@@ -158,18 +179,16 @@ def _grid(z0: np.ndarray, a0: np.ndarray, dz: float, da: float, nz: int, na: int
     return np.clip(z, 0.0, np.deg2rad(MAX_ZENITH_DEG)).reshape(len(z0), -1), a.reshape(len(z0), -1)
 
 
-def _costs(z, a, pix, eta: float, obs, geo) -> np.ndarray:
+def _costs(z, a, pix, eta: float, obs, geo: _Pixels) -> np.ndarray:
     """Cost ``(P, K)`` of the candidates ``z``, ``a`` ``(P, K)`` (module docstring)."""
-    view, light, e1, e2, guess = (g[pix] if g is not None else None for g in geo[:5])
-    stage, cam, s_a, s_b = geo[5:]
+    view, light, guess = geo.view[pix], geo.light[pix], None if geo.guess is None else geo.guess[pix]
     p, k = z.shape
-    n = (np.cos(z)[..., None] * view[:, None] + np.sin(z)[..., None]
-         * (np.cos(a)[..., None] * e1[:, None] + np.sin(a)[..., None] * e2[:, None])).reshape(-1, 3)
+    n = _normals(z, a, view, geo.e1[pix], geo.e2[pix]).reshape(-1, 3)
     rep = lambda v: np.repeat(v, k, axis=0)  # noqa: E731
-    x, y = diffuse_ratios(n, rep(light), rep(view), eta, stage, cam)
+    x, y = diffuse_ratios(n, rep(light), rep(view), eta, geo.stage, geo.cam)
     x_hat, rho_hat = obs[0][pix], obs[1][pix]
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = (y @ s_b) / (y @ s_a)
+        rho = (y @ geo.s_b) / (y @ geo.s_a)
     cost = ((x[:, 1] - rep(x_hat[:, 1])) ** 2 + (x[:, 2] - rep(x_hat[:, 2])) ** 2
             + (rho - rep(rho_hat)) ** 2).reshape(p, k)
     if guess is not None:
@@ -178,7 +197,7 @@ def _costs(z, a, pix, eta: float, obs, geo) -> np.ndarray:
     return np.where(np.isfinite(cost), cost, np.inf)
 
 
-def _search(pix: np.ndarray, eta: float, obs, geo, refine: int) -> tuple[np.ndarray, np.ndarray]:
+def _search(pix: np.ndarray, eta: float, obs, geo: _Pixels, refine: int) -> tuple[np.ndarray, np.ndarray]:
     """Best normal ``(P, 3)`` and its cost ``(P,)`` for the pixels ``pix`` at ``eta``."""
     dz, da = np.deg2rad(ZENITH_STEP_DEG), np.deg2rad(AZIMUTH_STEP_DEG)
     nz = int(round(MAX_ZENITH_DEG / ZENITH_STEP_DEG)) + 1
@@ -198,9 +217,7 @@ def _search(pix: np.ndarray, eta: float, obs, geo, refine: int) -> tuple[np.ndar
                 z, a = _grid(zb, ab, dz * step, da * step, 3, 3)
         zs.append(zb), as_.append(ab), cs.append(cb)
     z, a, cost = np.concatenate(zs), np.concatenate(as_), np.concatenate(cs)
-    view, e1, e2 = geo[0][pix], geo[2][pix], geo[3][pix]
-    n = np.cos(z)[:, None] * view + np.sin(z)[:, None] * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
-    return n, cost
+    return _normals(z[:, None], a[:, None], geo.view[pix], geo.e1[pix], geo.e2[pix])[:, 0], cost
 
 
 def fit_diffuse_geometry(x_hat: np.ndarray, rho_hat: np.ndarray, s_a: np.ndarray, s_b: np.ndarray,
@@ -218,7 +235,8 @@ def fit_diffuse_geometry(x_hat: np.ndarray, rho_hat: np.ndarray, s_a: np.ndarray
     e1, e2 = _frame(view)
     fixed = (np.asarray(stage_zero_axis, np.float64), np.asarray(camera_x_axis, np.float64),
              np.asarray(s_a, np.float64), np.asarray(s_b, np.float64))
-    geos = [(view, np.broadcast_to(np.asarray(li, np.float64), (p, 3)), e1, e2, guess, *fixed) for li in lights]
+    geos = [_Pixels(view, np.broadcast_to(np.asarray(li, np.float64), (p, 3)), e1, e2, guess, *fixed)
+            for li in lights]
     obs = (np.asarray(x_hat, np.float64), np.asarray(rho_hat, np.float64))
     if p == 0:
         return DiffuseFit(float(etas[0]), np.zeros((0, 3)), np.zeros(0))
