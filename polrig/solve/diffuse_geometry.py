@@ -28,8 +28,9 @@ directions known (calibration: the light's position, the intrinsics; :class:`Dif
 objective has two branches 180 deg apart in azimuth (``x`` sees the axis, not its sign) and is
 flat in zenith near normal exitance. The candidates are a zenith x azimuth grid about ``wo``
 (:data:`ZENITH_STEP_DEG`, :data:`AZIMUTH_STEP_DEG`), refined twice by halving around the best;
-``eta`` is the grid value (:data:`ETAS`) of least total capped cost over a stride sample of the
-pixels (:data:`ETA_SAMPLE`; cap :data:`COST_CAP`: pixels the model does not fit must not pick it).
+``eta`` (with the light, where several light fields are given) is the grid value (:data:`ETAS`)
+of least total capped cost over a stride sample of the pixels (:data:`ETA_SAMPLE`; cap
+:data:`COST_CAP`: pixels the model does not fit must not pick it).
 
 **The completion** (:func:`complete_diffuse`): ``M u = M v (y . u) / (y . v)`` with
 ``v = s_a + s_b`` and ``y`` the fitted geometry's, per colour, on the ``rank_one`` pixels whose fit
