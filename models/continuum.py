@@ -85,7 +85,7 @@ detectably off every candidate (:func:`detectably_off_every_model`); and the sel
 with the direction the two states leave open predicted from the diffuse term's geometry where it
 chose ``rank_one`` (:func:`polrig.solve.diffuse_geometry.complete_diffuse`; the geometry of
 :func:`frame_geometry`: the intrinsics' view directions, two candidate light fields per sample,
-the network's normals as the guess).
+the network's normals as the first pass's guess, the neighbours' mean as the second's).
 
 **Variants of the seen state's treatment** (the double-counting question of
 :mod:`polrig.solve.hybrid`), at 1 and 2 states: ``marginal`` (the plain marginal on the
@@ -1037,8 +1037,9 @@ def models_markdown(result: dict) -> str:
              "bound\": the most two states could give where a model holds (`two_state_bound_db`: the four-state "
              "selection with half its samples, combined with the single-shot estimate as independent). \"+ geometry\": "
              "hybrid 2 + models with the direction the two states leave open predicted from the diffuse term's "
-             "geometry where the selection chose `rank_one` (`complete_diffuse`: of two light fields per image the one of least cost, the "
-             "network's normals as the guess, normals and one refractive index fitted), \"completed\" the share of "
+             "geometry where the selection chose `rank_one` (`complete_diffuse`: of two light fields per image the one of least cost, "
+             "normals and one refractive index fitted to the measured ratios in their noise, pulled first towards the network's "
+             "normals, then towards the 3x3 neighbours' mean), \"completed\" the share of "
              "the scored colour-pixels it changed.", "",
              "| set | scored | holds (share of pixels) | single-shot, holds | hybrid 2, holds | hybrid 2 + models, holds "
              "| + models - single, holds | + geometry, holds | + geometry - single, holds | single + 6, holds "

@@ -75,8 +75,9 @@ ETAS = tuple(np.round(np.arange(1.2, 2.01, 0.05), 2))
 #: Weight (1/rad^2) of the squared angle from the network's normal in the first pass: a standard
 #: deviation of 33 deg. Measured with ``models/continuum.py``'s two-state rows on the search
 #: scenes (the first 32 of ``search_all_families``, which no reported set holds; PSNR where a model
-#: holds, over single-shot, with the second pass): 1 gives +6.83 dB, 3 +7.38, 10 +6.73 (at
-#: ``NEIGHBOUR_WEIGHT`` 30), 30 +6.89.
+#: holds, over single-shot, with the second pass): 1 gives +6.83 dB, 3 +7.38, 10 +7.17, 30
+#: +6.89; the hybrid with the selection alone +4.75, the one-pass fit with unweighted misfits of
+#: before +5.64, the weighted one-pass fit +6.30.
 GUESS_WEIGHT = 3.0
 #: Weight (1/rad^2) of the squared angle from the neighbours' mean normal in the second pass: a
 #: standard deviation of 3.3 deg. The same scenes: without the second pass +6.30 dB, 30 +6.73,
