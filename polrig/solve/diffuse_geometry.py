@@ -290,12 +290,13 @@ def ratio_weights(total: np.ndarray, variance: np.ndarray, s_a: np.ndarray, s_b:
     (``m_0`` the first row), and ``weights`` ``(P, 3)`` the inverses of ``var x_hat_1``,
     ``var x_hat_2`` and ``var rho_hat`` by the delta method, each element's error independent
     (``var (M v)_r = sum_k var m_rk v_k^2``; ``var (a / b) = (var a + (a / b)^2 var b) / b^2``).
-    Not finite where a denominator is 0."""
+    NaN where ``(M v)_0 <= 0`` (no light the diffuse term can explain); not finite where a
+    denominator is 0."""
     v = s_a + s_b
     mv = np.einsum("rkp,k->rp", total, v)
     var_mv = np.einsum("rkp,k->rp", variance, v**2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x_hat = (mv / mv[0]).T
+        x_hat = np.where(mv[0] > 0, mv / mv[0], np.nan).T
         m_a, m_b = total[0].T @ s_a, total[0].T @ s_b
         rho_hat = m_b / m_a
         var_x = (var_mv[1:] + x_hat.T[1:] ** 2 * var_mv[0]) / mv[0] ** 2
@@ -348,8 +349,7 @@ def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: Diffus
     total = m.sum(axis=0)  # the colours share the geometry
     variance = (result.sigma.astype(np.float64)[..., ys, xs] ** 2).sum(axis=0)
     x_hat, rho_hat, weights = ratio_weights(total, variance, s_a, s_b)
-    good = (np.isfinite(x_hat).all(axis=1) & np.isfinite(rho_hat) & np.isfinite(weights).all(axis=1)
-            & (np.einsum("rkp,k->rp", total, v)[0] > 0))
+    good = np.isfinite(x_hat).all(axis=1) & np.isfinite(rho_hat) & np.isfinite(weights).all(axis=1)
     ys, xs, m, x_hat, rho_hat, weights = ys[good], xs[good], m[..., good], x_hat[good], rho_hat[good], weights[good]
     pick = lambda a: None if a is None else np.asarray(a, np.float64).reshape(h, w, 3)[ys, xs]  # noqa: E731
     candidates = geometry.light if isinstance(geometry.light, tuple) else (geometry.light,)
