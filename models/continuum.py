@@ -582,8 +582,8 @@ FOUR_STATES = (0, 45, 90, 135)
 
 
 def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None = None,
-                keys: Sequence[str] = ("single", "hybrid2", "hybrid2_models", "hybrid2_geometry", "reference4",
-                                       "reference4_models")
+                keys: Sequence[str] = ("single", "hybrid2", "hybrid2_models", "hybrid2_geometry", "hybrid2_diffuse",
+                                       "reference4", "reference4_models")
                 ) -> dict[str, dict[str, float]]:
     """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
     single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
@@ -597,6 +597,11 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
     alike. ``hybrid2_geometry``: the selection's result with the diffuse completion
     (:func:`polrig.solve.diffuse_geometry.complete_diffuse`, the frames' ``geometry``; the share of
     scored colour-pixels it completed as ``accepted``; absent without a geometry).
+    ``hybrid2_diffuse``: hybrid 2 with the diffuse term where the two states' samples alone accept
+    it (:func:`polrig.solve.diffuse_test.complete_tested_diffuse`; no selection), ``accepted`` the
+    share of scored colour-pixels, its false acceptance where the samples can tell
+    (:func:`detectably_off_diffuse`) and in the prior's metric (:func:`detectably_off_every_model`,
+    as the selection's); absent without a geometry.
     ``correlation``: the hybrid's joint prior (None: per element); ``keys``: the rows wanted."""
     holds = model_holds(fr.truth, fr.mask) & lit_pixels(fr).all(axis=0)
     rows = {}
@@ -624,12 +629,64 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
                                     | {"accepted": float(completed[sel].mean()) if sel.any() else float("nan")})
     reduced = (code != 0) & (code != 255)
     det = detectably_off_every_model(fr, two, correlation) & sel
+    if "hybrid2_diffuse" in keys and fr.geometry is not None:
+        rows["hybrid2_diffuse"] = diffuse_row(fr, two, correlation, holds, sel, det)
     rows["hybrid2_models"] = (score(fr, *est) | score_where_models_hold(fr, est[0], holds)
                               | {"accepted": float(reduced[sel].mean()) if sel.any() else float("nan"),
                                  "accepted_holds": float(reduced[sel & holds[None]].mean())
                                  if (sel & holds[None]).any() else float("nan"),
                                  "detectable": float(det.sum()), "falsely_accepted": float(reduced[det].sum())})
     return rows
+
+
+def detectably_off_diffuse(fr: Frames, two: Sequence[int], test) -> np.ndarray:
+    """``(H, W)``: the pixels the diffuse test ``test`` (:func:`polrig.solve.diffuse_test.test_diffuse`
+    of the states ``two``) tested whose truth its samples can tell from the diffuse term: the
+    truth's own statistic (noise-free Stokes, the frames' information, the test's ``eta`` and
+    light) at least the level's 95 % power point (:mod:`polrig.solve.diffuse_test`, "False
+    acceptance")."""
+    from polrig.solve.diffuse_test import _lights, diffuse_statistic, state_stokes
+    from polrig.solve.model_selection import detectable_noncentrality
+
+    out = np.zeros(fr.mask.shape, bool)
+    ys, xs = np.nonzero(test.tested)
+    if not len(ys) or test.eta is None:
+        return out
+    states = np.stack([fr.states[d] for d in two])
+    truth = fr.truth[..., ys, xs]
+    clean = np.stack([np.einsum("crkp,k->crp", truth, st) for st in states], axis=1)  # (C, 2, 3, P)
+    info = np.stack([state_stokes(fr.meas[d], fr.var[d], fr.valid[d])[1][..., ys, xs] for d in two], axis=1)
+    g = fr.geometry
+    lam, _, _ = diffuse_statistic(clean, info, states, g.view[ys, xs], _lights(g, ys, xs)[test.light], test.eta,
+                                  g.stage_zero_axis, g.camera_x_axis)
+    out[ys, xs] = lam >= detectable_noncentrality(test.df, test.alpha)
+    return out
+
+
+def diffuse_row(fr: Frames, two: Sequence[int], correlation, holds: np.ndarray, sel: np.ndarray,
+                det_prior: np.ndarray) -> dict[str, float]:
+    """:func:`models_rows`' ``hybrid2_diffuse`` row: scores, where a model holds, the accepted
+    share of the scored colour-pixels ``sel`` ``(C, H, W)``, and the false acceptance counts where
+    the samples can tell (:func:`detectably_off_diffuse`) and in the prior's metric
+    (``det_prior``, :func:`detectably_off_every_model`)."""
+    from polrig.solve.diffuse_test import complete_tested_diffuse
+    from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.reference import ILL_CONDITIONED
+
+    s, meas, var, valid = _stack(fr, two)
+    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
+                     dtype=np.float64, prior_correlation=correlation)
+    g, test, _ = complete_tested_diffuse(r, s, meas, var, valid, fr.geometry, prior=(fr.prior, fr.sigma),
+                                         seen_state=0, prior_correlation=correlation, mask=fr.mask)
+    solved = (r.mask & ILL_CONDITIONED) == 0
+    accepted = np.broadcast_to(test.accepted[None], sel.shape)
+    det = np.broadcast_to(detectably_off_diffuse(fr, two, test)[None], sel.shape) & sel
+    return (score(fr, g.mueller, g.sigma, solved) | score_where_models_hold(fr, g.mueller, holds)
+            | {"accepted": float(accepted[sel].mean()) if sel.any() else float("nan"),
+               "accepted_holds": float(accepted[sel & holds[None]].mean()) if (sel & holds[None]).any()
+               else float("nan"),
+               "detectable": float(det.sum()), "falsely_accepted": float(accepted[det].sum()),
+               "detectable_prior": float(det_prior.sum()), "falsely_accepted_prior": float(accepted[det_prior].sum())})
 
 
 #: The priors of the joint comparison (:func:`joint_priors`): the per-element prior, the joint
@@ -814,6 +871,10 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
         det = sum(r["detectable"] for r in rows)
         out["false_acceptance"] = sum(r["falsely_accepted"] for r in rows) / det if det else float("nan")
         out["detectable_share"] = det / n * 9 if n else float("nan")
+    if rows and "detectable_prior" in rows[0]:
+        det = sum(r["detectable_prior"] for r in rows)
+        out["false_acceptance_prior"] = sum(r["falsely_accepted_prior"] for r in rows) / det if det else float("nan")
+        out["detectable_prior_share"] = det / n * 9 if n else float("nan")
     if rows and "holds_pixels" in rows[0]:
         total = sum(r["object_pixels"] for r in rows)
         out["holds_share"] = sum(r["holds_pixels"] for r in rows) / total if total else float("nan")
@@ -888,7 +949,8 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
     bracketed = {} if only_models else {"single_bracket": ("single", (0,)), "hybrid1_bracket": ("hybrid", (0,)),
                                         "hybrid2_bracket": ("hybrid", offsets["two"])}
     model_keys = {"holds_single": "single", "holds_hybrid2": "hybrid2", "hybrid2_models": "hybrid2_models",
-                  "hybrid2_geometry": "hybrid2_geometry", "holds_reference4": "reference4",
+                  "hybrid2_geometry": "hybrid2_geometry", "hybrid2_diffuse": "hybrid2_diffuse",
+                  "holds_reference4": "reference4",
                   "reference4_models": "reference4_models"}
     rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *model_keys, *bracketed)}
     time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
@@ -1069,7 +1131,41 @@ def models_markdown(result: dict) -> str:
             f"{100 * ref4m['coverage']:.1f} % | "
             f"{100 * sel.get('false_acceptance', float('nan')):.1f} % of "
             f"{100 * sel.get('detectable_share', float('nan')):.0f} % |")
-    return "\n".join(lines)
+    return "\n".join(lines + diffuse_markdown(result))
+
+
+def diffuse_markdown(result: dict) -> list[str]:
+    """The lines of the diffuse route's table (:func:`diffuse_row`), none where no set has it."""
+    if not any("hybrid2_diffuse" in r["methods"] for r in result["sets"].values()):
+        return []
+    lines = ["", "**The diffuse term tested on the two states' samples alone** (`polrig.solve.diffuse_test`: no "
+             "model selection, no prior in the test; hybrid 2 with the rank-one estimate and the diffuse completion "
+             "where the test accepts, `complete_tested_diffuse`). Columns as above; \"accepted\": share of the scored "
+             "colour-pixels; false acceptance where the samples can tell: accepted where the truth's own statistic "
+             "is at least the test's 95 % power point (`detectably_off_diffuse`), of that share of the scored "
+             "colour-pixels; in the prior's metric: accepted where the truth is detectably off every candidate on "
+             "the hybrid's posterior system (the selection's definition above, its false acceptance alongside).", "",
+             "| set | accepted, all / holds | PSNR, holds | - single, holds | single + 6, holds | PSNR, all | - single, all "
+             "| - hybrid 2 + models / + geometry, all | within 2 sigma | false acceptance where the samples can tell "
+             "| false acceptance in the prior's metric / the selection's |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for key, r in result["sets"].items():
+        m = r["methods"]
+        if "hybrid2_diffuse" not in m:
+            continue
+        d, sgl, sel = m["hybrid2_diffuse"], m["holds_single"], m["hybrid2_models"]
+        geo = m.get("hybrid2_geometry", {"matrix_psnr": float("nan")})
+        lines.append(
+            f"| {set_label(key)} | {100 * d['accepted']:.0f} / {100 * d['accepted_holds']:.0f} % | "
+            f"{d['psnr_holds']:.2f} | {d['psnr_holds'] - sgl['psnr_holds']:+.2f} | {sgl['psnr_holds'] + 6:.2f} | "
+            f"{d['matrix_psnr']:.2f} | {d['matrix_psnr'] - sgl['matrix_psnr']:+.2f} | "
+            f"{d['matrix_psnr'] - sel['matrix_psnr']:+.2f} / {d['matrix_psnr'] - geo['matrix_psnr']:+.2f} | "
+            f"{100 * d['coverage']:.1f} % | "
+            f"{100 * d.get('false_acceptance', float('nan')):.1f} % of {100 * d.get('detectable_share', float('nan')):.0f} % | "
+            f"{100 * d.get('false_acceptance_prior', float('nan')):.1f} % of "
+            f"{100 * d.get('detectable_prior_share', float('nan')):.0f} % / "
+            f"{100 * sel.get('false_acceptance', float('nan')):.1f} % |")
+    return lines
 
 
 def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 0, weights_dir=None,

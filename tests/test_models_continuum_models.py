@@ -55,8 +55,8 @@ def test_models_only_run_writes_its_table(tmp_path):
     res = json.loads(out.with_suffix(".json").read_text())
     assert res["offsets"]["two"] == [0, 90]
     m = res["sets"]["seen_families"]["methods"]
-    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models", "hybrid2_geometry", "holds_reference4",
-                      "reference4_models"}
+    assert set(m) == {"holds_single", "holds_hybrid2", "hybrid2_models", "hybrid2_geometry", "hybrid2_diffuse",
+                      "holds_reference4", "reference4_models"}
     # the four-state bound: more samples than two states, so a better estimate where a model holds
     assert m["reference4_models"]["states"] == 4 and m["holds_reference4"]["time_s"] > m["hybrid2_models"]["time_s"]
     assert m["reference4_models"]["psnr_holds"] > m["holds_hybrid2"]["psnr_holds"]
@@ -67,7 +67,13 @@ def test_models_only_run_writes_its_table(tmp_path):
     # the diffuse completion changes some of the rank-one pixels and keeps its sigma finite
     geo = m["hybrid2_geometry"]
     assert 0 < geo["accepted"] <= sel["accepted"] and 0.5 < geo["coverage"] <= 1 and np.isfinite(geo["psnr_holds"])
+    # the diffuse term tested on the samples alone: accepted somewhere, its sigma finite, both
+    # false acceptances counted (the samples' own and the prior's metric)
+    dif = m["hybrid2_diffuse"]
+    assert 0 < dif["accepted"] <= 1 and 0.5 < dif["coverage"] <= 1 and np.isfinite(dif["psnr_holds"])
+    assert dif["detectable_share"] >= 0 and dif["detectable_prior_share"] >= 0
     text = out.read_text()
+    assert "tested on the two states' samples alone" in text
     assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
     assert "reference 4 / + models, holds" in text and "+ geometry, holds" in text
     assert "--models-only --count 2" in text

@@ -171,8 +171,6 @@ class _Pixels(NamedTuple):
 
     view: np.ndarray
     light: np.ndarray
-    e1: np.ndarray
-    e2: np.ndarray
     guess: np.ndarray | None
     guess_weight: float
     stage: np.ndarray
@@ -206,11 +204,12 @@ def _grid(z0: np.ndarray, a0: np.ndarray, dz: float, da: float, nz: int, na: int
     return np.clip(z, 0.0, np.deg2rad(MAX_ZENITH_DEG)).reshape(len(z0), -1), a.reshape(len(z0), -1)
 
 
-def _costs(z, a, pix, eta: float, obs: _Observed, geo: _Pixels) -> np.ndarray:
-    """Cost ``(P, K)`` of the candidates ``z``, ``a`` ``(P, K)`` (module docstring)."""
+def _costs(normals: np.ndarray, pix, eta: float, obs: _Observed, geo: _Pixels) -> np.ndarray:
+    """Cost ``(P, K)`` of the candidate normals ``(P, K, 3)`` of the pixels ``pix`` (module
+    docstring)."""
     view, light, guess = geo.view[pix], geo.light[pix], None if geo.guess is None else geo.guess[pix]
-    p, k = z.shape
-    n = _normals(z, a, view, geo.e1[pix], geo.e2[pix]).reshape(-1, 3)
+    p, k = normals.shape[:2]
+    n = normals.reshape(-1, 3)
     rep = lambda v: np.repeat(v, k, axis=0)  # noqa: E731
     x, y = diffuse_ratios(n, rep(light), rep(view), eta, geo.stage, geo.cam)
     x_hat, rho_hat, wt = obs.x_hat[pix], obs.rho_hat[pix], obs.weights[pix]
@@ -219,32 +218,48 @@ def _costs(z, a, pix, eta: float, obs: _Observed, geo: _Pixels) -> np.ndarray:
     cost = (rep(wt[:, 0]) * (x[:, 1] - rep(x_hat[:, 1])) ** 2 + rep(wt[:, 1]) * (x[:, 2] - rep(x_hat[:, 2])) ** 2
             + rep(wt[:, 2]) * (rho - rep(rho_hat)) ** 2).reshape(p, k)
     if guess is not None:
-        ang = np.arccos(np.clip(np.einsum("pkj,pj->pk", n.reshape(p, k, 3), guess), -1.0, 1.0))
+        ang = np.arccos(np.clip(np.einsum("pkj,pj->pk", normals, guess), -1.0, 1.0))
         cost = cost + geo.guess_weight * ang**2
     return np.where(np.isfinite(cost), cost, np.inf)
 
 
-def _search(pix: np.ndarray, eta: float, obs: _Observed, geo: _Pixels, refine: int) -> tuple[np.ndarray, np.ndarray]:
-    """Best normal ``(P, 3)`` and its cost ``(P,)`` for the pixels ``pix`` at ``eta``."""
-    dz, da = np.deg2rad(ZENITH_STEP_DEG), np.deg2rad(AZIMUTH_STEP_DEG)
-    nz = int(round(MAX_ZENITH_DEG / ZENITH_STEP_DEG)) + 1
-    na = int(round(360.0 / AZIMUTH_STEP_DEG))
-    zs, as_, cs = [], [], []
-    for c0 in range(0, len(pix), _CHUNK):
-        sub = pix[c0:c0 + _CHUNK]
+def search_normals(view: np.ndarray, cost, refine: int = 2,
+                   steps_deg: tuple[float, float] = (ZENITH_STEP_DEG, AZIMUTH_STEP_DEG)
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The least-cost unit normal ``(P, 3)`` of each pixel and its cost ``(P,)``: a zenith x
+    azimuth grid about the pixel's ``view`` ``(P, 3)`` (``steps_deg``, default
+    :data:`ZENITH_STEP_DEG`, :data:`AZIMUTH_STEP_DEG`; zenith up to :data:`MAX_ZENITH_DEG`),
+    refined ``refine`` times by halving the steps around the best (module docstring, "The fit").
+    ``cost(normals, pix)``: the cost ``(p, K)`` of the candidate normals ``(p, K, 3)`` of the
+    pixels ``pix`` (indices into ``view``, a chunk of :data:`_CHUNK`), inf where a candidate is
+    not valid."""
+    view = np.asarray(view, np.float64).reshape(-1, 3)
+    e1, e2 = _frame(view)
+    dz, da = np.deg2rad(steps_deg[0]), np.deg2rad(steps_deg[1])
+    nz = int(round(MAX_ZENITH_DEG / steps_deg[0])) + 1
+    na = int(round(360.0 / steps_deg[1]))
+    normals, costs = np.zeros((len(view), 3)), np.full(len(view), np.inf)
+    for c0 in range(0, len(view), _CHUNK):
+        sub = np.arange(c0, min(len(view), c0 + _CHUNK))
         rows = np.arange(len(sub))
         # the coarse grid: zenith 0..MAX_ZENITH_DEG, azimuth 0..360 - step
         z, a = _grid(np.full(len(sub), (nz - 1) * dz / 2), np.full(len(sub), np.pi - da / 2), dz, da, nz, na)
         for level in range(refine + 1):
-            cost = _costs(z, a, sub, eta, obs, geo)
-            j = np.argmin(cost, axis=1)
-            zb, ab, cb = z[rows, j], a[rows, j], cost[rows, j]
+            cost_k = cost(_normals(z, a, view[sub], e1[sub], e2[sub]), sub)
+            cost_k = np.where(np.isfinite(cost_k), cost_k, np.inf)
+            j = np.argmin(cost_k, axis=1)
+            zb, ab = z[rows, j], a[rows, j]
             if level < refine:
                 step = 2.0 ** -(level + 1)
                 z, a = _grid(zb, ab, dz * step, da * step, 3, 3)
-        zs.append(zb), as_.append(ab), cs.append(cb)
-    z, a, cost = np.concatenate(zs), np.concatenate(as_), np.concatenate(cs)
-    return _normals(z[:, None], a[:, None], geo.view[pix], geo.e1[pix], geo.e2[pix])[:, 0], cost
+        costs[sub] = cost_k[rows, j]
+        normals[sub] = _normals(zb[:, None], ab[:, None], view[sub], e1[sub], e2[sub])[:, 0]
+    return normals, costs
+
+
+def _search(pix: np.ndarray, eta: float, obs: _Observed, geo: _Pixels, refine: int) -> tuple[np.ndarray, np.ndarray]:
+    """Best normal ``(P, 3)`` and its cost ``(P,)`` for the pixels ``pix`` at ``eta``."""
+    return search_normals(geo.view[pix], lambda n, sub: _costs(n, pix[sub], eta, obs, geo), refine)
 
 
 def fit_diffuse_geometry(x_hat: np.ndarray, rho_hat: np.ndarray, weights: np.ndarray, s_a: np.ndarray,
@@ -262,10 +277,9 @@ def fit_diffuse_geometry(x_hat: np.ndarray, rho_hat: np.ndarray, weights: np.nda
     view = np.asarray(view, np.float64).reshape(-1, 3)
     p = len(view)
     guess = None if normal_guess is None else np.asarray(normal_guess, np.float64).reshape(p, 3)
-    e1, e2 = _frame(view)
     fixed = (np.asarray(stage_zero_axis, np.float64), np.asarray(camera_x_axis, np.float64),
              np.asarray(s_a, np.float64), np.asarray(s_b, np.float64))
-    geos = [_Pixels(view, np.broadcast_to(np.asarray(li, np.float64), (p, 3)), e1, e2, guess, float(guess_weight),
+    geos = [_Pixels(view, np.broadcast_to(np.asarray(li, np.float64), (p, 3)), guess, float(guess_weight),
                     *fixed) for li in lights]
     obs = _Observed(np.asarray(x_hat, np.float64), np.asarray(rho_hat, np.float64),
                     np.asarray(weights, np.float64).reshape(p, 3))
@@ -323,14 +337,19 @@ def neighbour_mean(normal: np.ndarray, valid: np.ndarray, ys: np.ndarray, xs: np
     return np.where(ok[:, None], mean / np.where(ok[:, None], norm, 1.0), normal)
 
 
-def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: DiffuseGeometry
+def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: DiffuseGeometry, *,
+                     eta: float | None = None, light: int | None = None
                      ) -> tuple[ReferenceResult, np.ndarray, float | None]:
     """Predict the unobserved direction of the ``rank_one`` pixels of ``result`` (a solve of the
     states ``s_in`` ``(2, 3)`` with the model selection, whose ``models`` map says which) from
-    the diffuse term's geometry (module docstring). Returns the new result (arrays copied), the
-    completed pixels ``(C, H, W)`` bool and the fitted ``eta`` (None where nothing was fitted).
-    States that observe every direction (or a result without a model map) return ``result``
-    unchanged."""
+    the diffuse term's geometry (module docstring). ``eta`` and ``light`` (an index into the
+    geometry's candidate light fields), given together: the image's refractive index and light
+    as chosen elsewhere (:func:`polrig.solve.diffuse_test.test_diffuse`), not fitted here.
+    Returns the new result (arrays copied), the completed pixels ``(C, H, W)`` bool and the
+    ``eta`` used (None where nothing was fitted). States that observe every direction (or a
+    result without a model map) return ``result`` unchanged."""
+    if (eta is None) != (light is None):
+        raise ValueError("give eta and light together, or neither")
     s_in = np.asarray(s_in, np.float64).reshape(-1, 3)
     u = unobserved_direction(s_in)
     n_col, _, _, h, w = result.mueller.shape
@@ -355,8 +374,12 @@ def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: Diffus
     candidates = geometry.light if isinstance(geometry.light, tuple) else (geometry.light,)
     lights = [li if li.ndim == 1 else pick(li) for li in (np.asarray(c, np.float64) for c in candidates)]
     view = pick(geometry.view)
+    if eta is not None:
+        lights, etas = [lights[light]], (float(eta),)
+    else:
+        etas = ETAS
     fit = fit_diffuse_geometry(x_hat, rho_hat, weights, s_a, s_b, view, lights, geometry.stage_zero_axis,
-                               geometry.camera_x_axis, pick(geometry.normal_guess))
+                               geometry.camera_x_axis, pick(geometry.normal_guess), etas=etas)
     # the second pass: towards the neighbours' normals, at the first pass's index and light
     smooth = neighbour_mean(fit.normal, np.isfinite(fit.cost), ys, xs, (h, w))
     second = fit_diffuse_geometry(x_hat, rho_hat, weights, s_a, s_b, view, [lights[fit.light]],

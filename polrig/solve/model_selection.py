@@ -446,7 +446,8 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                   valid: np.ndarray | None, analyzer_rows, result: ReferenceResult,
                   options: SelectionOptions | None = None, *, chunk_pixels: int = 16384,
                   prior: tuple[np.ndarray, np.ndarray] | None = None, seen_state: int | None = None,
-                  prior_correlation: np.ndarray | None = None) -> tuple[ReferenceResult, ModelMaps]:
+                  prior_correlation: np.ndarray | None = None, decided: np.ndarray | None = None
+                  ) -> tuple[ReferenceResult, ModelMaps]:
     """Test the candidate models at every pixel and colour of ``result`` (the reference or
     hybrid solve of the same samples: ``s_in``, ``measured``, ``variance``, ``valid``,
     ``analyzer_rows`` as :func:`polrig.solve.reference.solve_reference`) and estimate under the
@@ -459,7 +460,13 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     two states, or three with samples missing) are tested too, on the hybrid's posterior
     system (module docstring, "At any rank"); without them those stay :data:`UNTESTED`. A pixel
     the samples alone determine is tested as without a prior. ``prior_correlation``: the joint
-    prior's ``K`` (:func:`polrig.solve.hybrid.solve_hybrid`'s; None: the per-element prior)."""
+    prior's ``K`` (:func:`polrig.solve.hybrid.solve_hybrid`'s; None: the per-element prior).
+
+    ``decided`` ``(C, H, W)`` bool: the caller's own test decided, and this module only
+    estimates: a candidate counts as accepted exactly where ``decided`` holds (and its fit is
+    finite), whatever its statistic (which the maps still hold), e.g. the diffuse term tested on
+    two states' samples alone (:mod:`polrig.solve.diffuse_test`) with ``options.models =
+    ("rank_one",)``."""
     opts = options or SelectionOptions()
     models = sorted((m for m in MODELS if m.name in opts.models), key=lambda m: m.n_params)
     crit = {m.code: chi2_critical(9 - m.n_params, opts.alpha) for m in models}
@@ -473,6 +480,8 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     pval = np.full((n_col, h, w), np.nan, np.float32)
     if prior is not None:
         prior = tuple(np.broadcast_to(np.asarray(a), (n_col, 3, 3, h, w)) for a in prior)
+    if decided is not None:
+        decided = np.broadcast_to(np.asarray(decided, bool), (n_col, h, w))
     for c in range(n_col):
         testable = ((result.mask[c] & ILL_CONDITIONED) == 0) & (
             result.pixel_condition[c] <= opts.max_condition)
@@ -483,14 +492,15 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                 s_in, measured, variance, valid, analyzer_rows, c, pix)
             good = np.isfinite(m_hat).all(axis=1) & (n_ok >= 9)
             _test_and_write(models, crit, opts, c, pix, w, normal, m_hat, chi2_full, n_ok, good,
-                            out, code, stat, pval)
+                            out, code, stat, pval, decided=None if decided is None else decided[c].ravel()[pix])
         if prior is None:
             continue
         rest = np.flatnonzero((~testable & ((result.mask[c] & ILL_CONDITIONED) == 0)).ravel())
         for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
             pix = rest[p0:p0 + chunk_pixels]
             _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
-                              crit, opts, prior, out, code, stat, pval, seen_state, prior_correlation)
+                              crit, opts, prior, out, code, stat, pval, seen_state, prior_correlation,
+                              None if decided is None else decided[c].ravel()[pix])
     maps = ModelMaps(code, stat, pval, opts)
     return ReferenceResult(out.mueller, out.sigma, out.residual, out.mask, result.condition_number,
                            result.pixel_condition, result.n_samples, out.sigma_noise, maps), maps
@@ -498,11 +508,13 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
 
 def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarray, w: int,
                     normal: np.ndarray, m_hat: np.ndarray, chi2_full: np.ndarray, n_ok: np.ndarray,
-                    good: np.ndarray, out: _Outputs, code, stat, pval, prefer_p: bool = False) -> None:
+                    good: np.ndarray, out: _Outputs, code, stat, pval, prefer_p: bool = False,
+                    decided: np.ndarray | None = None) -> None:
     """The test against the full block of the full-rank system ``(normal, m_hat)`` at pixels
     ``pix`` (flat) of colour ``c`` where ``good``, the maps and the estimate written. Of the
     accepted models the one with the fewest parameters (ties: the larger p-value), or with
-    ``prefer_p`` the one with the largest p-value (module docstring, "At any rank")."""
+    ``prefer_p`` the one with the largest p-value (module docstring, "At any rank").
+    ``decided`` ``(P,)``: accepted there and only there (:func:`select_models`)."""
     best = np.zeros(len(pix), np.int64)  # chosen code, 0 full
     best_k = np.full(len(pix), 10)
     best_p = np.full(len(pix), -1.0)
@@ -526,7 +538,7 @@ def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarra
         ok_p = np.where(np.isfinite(p), p, -1.0)
         higher = ok_p > top_p
         top_p, top_q = np.where(higher, ok_p, top_p), np.where(higher, q, top_q)
-        accept = (q <= crit[model.code]) & np.isfinite(m_fit).all(axis=1)
+        accept = ((q <= crit[model.code]) if decided is None else decided) & np.isfinite(m_fit).all(axis=1)
         if prefer_p:
             choose = accept & (ok_p > best_p)
         else:
@@ -553,9 +565,10 @@ def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarra
 MIN_RANK = 6
 def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pix: np.ndarray,
                       w: int, models, crit, opts: SelectionOptions, prior, out: _Outputs, code,
-                      stat, pval, seen_state=None, correlation=None) -> None:
+                      stat, pval, seen_state=None, correlation=None, decided: np.ndarray | None = None) -> None:
     """The test and the estimate at pixels ``pix`` of colour ``c`` whose samples leave some
-    of the block's directions unobserved (module docstring, "At any rank")."""
+    of the block's directions unobserved (module docstring, "At any rank"); ``decided``
+    ``(P,)`` as :func:`_test_and_write`'s."""
     rs = row_space_equations(s_in, measured, variance, valid, analyzer_rows, c, pix)
     yy, xx = np.divmod(pix, w)
     take = lambda a: np.asarray(a[c])[:, :, yy, xx].reshape(9, -1).T.astype(np.float64)  # noqa: E731
@@ -577,7 +590,8 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
     normal, m_post = posterior_system(rs.normal[g], rs.m_hat[g], mean[g], 1.0 / np.sqrt(precision[g]), s_seen,
                                       correlation)
     _test_and_write(models, crit, opts, c, pix[g], w, normal, m_post, rs.chi2[g], rs.n_used[g],
-                    np.ones(g.size, bool), out, code, stat, pval, prefer_p=True)
+                    np.ones(g.size, bool), out, code, stat, pval, prefer_p=True,
+                    decided=None if decided is None else decided[g])
 
 
 def posterior_system(normal: np.ndarray, m_hat: np.ndarray, mean: np.ndarray, sigma: np.ndarray,

@@ -1,0 +1,274 @@
+"""Two polarizer states: the diffuse term tested on the samples alone, without the network's
+prior.
+
+**Why.** At two states the model selection (:mod:`polrig.solve.model_selection`, "At any rank")
+tests its candidates on the hybrid's posterior system: along the direction ``u`` the two states
+leave open, the network's prior decides. The network's estimate leans toward lower-order blocks
+the truth is not, so that test's level is only as good as the network's calibration (false
+acceptance 1.3-21.9 % per held-out set, ``benchmarks/results/continuum_models.md``). The
+completion at two states (:func:`polrig.solve.diffuse_geometry.complete_diffuse`) needs one
+model, Baek's diffuse term with the rig's geometry, and this module tests that model on what the
+two frames measure and nothing else.
+
+**The statistic** (:func:`diffuse_statistic`). State ``j``'s frame measures, per colour ``c``,
+the Stokes vector ``S_cj = M_c s_j``: its four analyzer samples give the weighted least-squares
+estimate and its information ``Q_cj = A^T W A`` (``A`` the analyzer rows, ``W`` the inverse
+variances of the noise model; :func:`state_stokes`). The diffuse term predicts
+``S_cj = k_c (y . s_j) x`` (``x``, ``y`` the unit diffuse block's first column and row at the
+normal ``n``, :func:`polrig.solve.diffuse_geometry.diffuse_ratios`; ``eta`` and the light per
+image; ``k_c >= 0`` the colour's albedo times the shading). Against the unconstrained block,
+whose nine elements per colour reproduce the six measured numbers exactly, the likelihood-ratio
+statistic is
+
+    T = min_{n, k >= 0} sum_cj (S_cj - k_c (y . s_j) x)^T Q_cj (S_cj - k_c (y . s_j) x),
+
+``chi^2`` with ``6 C - (2 + C)`` degrees of freedom where the model holds (Wilks 1938; 13 for three
+colours, 3 for one; :func:`degrees_of_freedom`). ``k_c`` is in closed form at each candidate
+normal (a weighted projection, clipped at 0), the normal a grid search
+(:func:`polrig.solve.diffuse_geometry.search_normals`, a grid of :data:`STEPS_DEG` refined
+:data:`REFINE` times, to steps of 0.6 deg of zenith and 1.25 deg of azimuth; finer steps moved the
+held-out seen families' median ``T`` by 0.1-0.3, acceptance by 0.4 points at most). A pixel is
+accepted where ``T`` is at most the level-``alpha`` critical value (:func:`test_diffuse`).
+
+**eta and the light**, one per image: of the refractive indices
+(:data:`polrig.solve.diffuse_geometry.ETAS`) and the geometry's candidate light fields, the pair
+of least total statistic over a stride sample of the pixels (:data:`ETA_SAMPLE`), each pixel's
+capped at :data:`CAP_QUANTILE`'s critical value so that the pixels the model does not explain
+do not choose them; every other index first, then the best one's neighbours (the total is
+smooth in ``eta``). The completion (:func:`complete_tested_diffuse`) fits its normals at the same
+pair.
+
+**False acceptance** is defined as the model selection's at four states: accepting is wrong only
+where the samples can tell, the truth's own statistic (``T`` of the noise-free ``S``, the
+noncentrality) at least the level-``alpha`` test's 95 % power point
+(:func:`polrig.solve.model_selection.detectable_noncentrality`). What the two states cannot tell,
+a truth off the diffuse term along ``u`` alone, no test on them can; there the completion's error
+is the truth's distance from the diffuse term along ``u``, and the benchmark reports that too
+(``models/continuum.py``: the PSNR over every object pixel, and the false acceptance in the
+prior's metric). Measured: ``benchmarks/results/continuum_models.md``.
+
+Shapes: Stokes images ``(C, 3, H, W)``, per-pixel arrays flattened to ``P`` pixels where noted;
+directions unit vectors in the camera frame as :mod:`polrig.solve.diffuse_geometry`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve.diffuse_geometry import ETAS, DiffuseGeometry, complete_diffuse, diffuse_ratios, search_normals
+from polrig.solve.model_selection import SelectionOptions, chi2_critical, chi2_sf, select_models
+from polrig.solve.reference import ReferenceResult
+
+__all__ = ["state_stokes", "degrees_of_freedom", "diffuse_statistic", "DiffuseTest", "test_diffuse",
+           "complete_tested_diffuse"]
+
+#: The normal's coarse grid (zenith, azimuth steps in deg) and its refinements (each halves the
+#: steps): 0.6 deg of zenith and 1.25 deg of azimuth at the end.
+STEPS_DEG, REFINE = (10.0, 20.0), 4
+#: Pixels (a stride sample) on which ``eta`` and the light are chosen.
+ETA_SAMPLE = 256
+#: Each sampled pixel's statistic counts at most the critical value at this level in the choice of
+#: ``eta`` and the light.
+CAP_QUANTILE = 1e-3
+
+
+def state_stokes(measured: np.ndarray, variance: np.ndarray, valid: np.ndarray | None = None,
+                 analyzer_rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One state's Stokes images from its analyzer samples, by weighted least squares.
+
+    ``measured``, ``variance`` ``(C, 4, H, W)`` (the reference solve's units; analyzers 0, 45, 90,
+    135 deg), ``valid`` ``(C, 4, H, W)`` bool or None (all); ``analyzer_rows`` ``(4, 3)`` shared or
+    None (ideal, :func:`polrig.sensor.stokes.ideal_analyzer_matrix`). Returns the Stokes
+    estimate ``(C, 3, H, W)``, its information ``A^T W A`` ``(C, 3, 3, H, W)`` (the inverse of its
+    covariance) and ``ok`` ``(C, H, W)``: where all four samples are used (finite, positive
+    variance, valid); the estimate is NaN elsewhere."""
+    a = ideal_analyzer_matrix() if analyzer_rows is None else np.asarray(analyzer_rows, np.float64)
+    if a.shape != (4, 3):
+        raise ValueError(f"analyzer_rows must be (4, 3), got {a.shape}")
+    y = np.asarray(measured, np.float64)
+    v = np.asarray(variance, np.float64)
+    used = np.isfinite(y) & np.isfinite(v) & (v > 0)
+    if valid is not None:
+        used &= np.asarray(valid, bool)
+    ok = used.all(axis=1)
+    w = np.where(used, 1.0 / np.where(used, v, 1.0), 0.0)
+    info = np.einsum("ja,cjhw,jb->cabhw", a, w, a)
+    rhs = np.einsum("ja,cjhw->cahw", a, w * np.where(used, y, 0.0))
+    system = np.where(ok[..., None, None], np.moveaxis(info, (1, 2), (-2, -1)), np.eye(3))
+    s = np.moveaxis(np.linalg.solve(system, np.moveaxis(rhs, 1, -1)[..., None])[..., 0], -1, 1)
+    return np.where(ok[:, None], s, np.nan), info, ok
+
+
+def degrees_of_freedom(n_colours: int) -> int:
+    """``6 C - (2 + C)``: two states' six numbers per colour less the normal and the colours'
+    albedos."""
+    return 5 * int(n_colours) - 2
+
+
+def _profile(stokes: np.ndarray, info: np.ndarray, x: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, k)`` of candidates: ``stokes`` ``(C, J, 3, p)``, ``info`` ``(C, J, 3, 3, p)``, ``x``
+    ``(p, K, 3)``, ``g = y . s_j`` ``(p, K, J)``; ``T`` ``(p, K)`` minimised over ``k >= 0``,
+    ``k`` ``(C, p, K)``."""
+    xqx = np.einsum("pka,cjabp,pkb->cjpk", x, info, x)
+    xqs = np.einsum("pka,cjabp,cjbp->cjpk", x, info, stokes)
+    sqs = np.einsum("cjap,cjabp,cjbp->cp", stokes, info, stokes)
+    gj = np.moveaxis(g, -1, 0)[None]  # (1, J, p, K)
+    num, den = (gj * xqs).sum(axis=1), (gj**2 * xqx).sum(axis=1)  # (C, p, K)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.maximum(num / den, 0.0)
+    return (sqs[..., None] - 2.0 * k * num + k**2 * den).sum(axis=0), k
+
+
+def diffuse_statistic(stokes: np.ndarray, information: np.ndarray, states: np.ndarray, view: np.ndarray,
+                      light: np.ndarray, eta: float, stage_zero_axis, camera_x_axis
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T`` of ``P`` pixels (module docstring), the normal that attains it and the albedos.
+
+    ``stokes`` ``(C, J, 3, P)`` and ``information`` ``(C, J, 3, 3, P)``: each state's
+    (:func:`state_stokes`); ``states`` ``(J, 3)``; ``view``, ``light`` ``(P, 3)``; ``eta`` the
+    refractive index. Returns ``T`` ``(P,)`` (inf where no candidate normal is valid), the normal
+    ``(P, 3)`` and ``k`` ``(C, P)``."""
+    states = np.asarray(states, np.float64).reshape(-1, 3)
+    view = np.asarray(view, np.float64).reshape(-1, 3)
+    light = np.broadcast_to(np.asarray(light, np.float64), view.shape)
+    stage, cam = np.asarray(stage_zero_axis, np.float64), np.asarray(camera_x_axis, np.float64)
+
+    def candidates(normals: np.ndarray, pix: np.ndarray):
+        p, k = normals.shape[:2]
+        rep = lambda v: np.repeat(v, k, axis=0)  # noqa: E731
+        x, y = diffuse_ratios(normals.reshape(-1, 3), rep(light[pix]), rep(view[pix]), eta, stage, cam)
+        return _profile(stokes[..., pix], information[..., pix], x.reshape(p, k, 3), (y @ states.T).reshape(p, k, -1))
+
+    normal, t = search_normals(view, lambda n, pix: candidates(n, pix)[0], refine=REFINE, steps_deg=STEPS_DEG)
+    _, k = candidates(normal[:, None], np.arange(len(view)))
+    return t, normal, k[:, :, 0]
+
+
+class DiffuseTest(NamedTuple):
+    """:func:`test_diffuse`'s result. ``accepted`` ``(H, W)`` bool; ``statistic``, ``p_value``
+    ``(H, W)`` (NaN where not tested); ``tested`` ``(H, W)``; ``normal`` ``(H, W, 3)`` (0 where not
+    tested); ``albedo`` ``(C, H, W)``; ``df``, ``alpha``; ``eta`` and ``light`` (the index of the
+    geometry's candidate light field) chosen for the image (None where nothing was tested)."""
+
+    accepted: np.ndarray
+    statistic: np.ndarray
+    p_value: np.ndarray
+    tested: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+    df: int
+    alpha: float
+    eta: float | None
+    light: int | None
+
+
+def _lights(geometry: DiffuseGeometry, ys: np.ndarray, xs: np.ndarray) -> list[np.ndarray]:
+    """The candidate light fields at pixels ``(ys, xs)``, each ``(P, 3)``."""
+    cands = geometry.light if isinstance(geometry.light, tuple) else (geometry.light,)
+    out = []
+    for c in cands:
+        c = np.asarray(c, np.float64)
+        out.append(np.broadcast_to(c, (len(ys), 3)) if c.ndim == 1 else c[ys, xs])
+    return out
+
+
+def _choose(n_lights: int, n_etas: int, total) -> tuple[int, int]:
+    """``(light, eta)`` indices of least ``total(light, eta)``: every other index first, then
+    the neighbours of the best (the total is smooth in ``eta``: half the evaluations)."""
+    if n_lights * n_etas == 1:
+        return 0, 0
+    seen: dict[tuple[int, int], float] = {}
+
+    def at(li: int, e: int) -> float:
+        if (li, e) not in seen:
+            seen[li, e] = total(li, e)
+        return seen[li, e]
+
+    coarse = sorted(set(range(0, n_etas, 2)) | {n_etas - 1})
+    li, e = min(((li, e) for li in range(n_lights) for e in coarse), key=lambda k: at(*k))
+    return min(((li, f) for f in (e - 1, e, e + 1) if 0 <= f < n_etas), key=lambda k: at(*k))
+
+
+def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray, valid: np.ndarray | None,
+                 geometry: DiffuseGeometry, *, mask: np.ndarray | None = None, alpha: float = 0.05,
+                 analyzer_rows: np.ndarray | None = None, etas=ETAS) -> DiffuseTest:
+    """Test the diffuse term at every pixel of two states' frames (module docstring).
+
+    ``states`` ``(2, 3)``; ``measured``, ``variance`` ``(2, C, 4, H, W)``, ``valid`` the same
+    (bool) or None, as :func:`polrig.solve.reference.solve_reference` takes them;
+    ``geometry``: what the rig knows of the pixels' geometry; ``mask`` ``(H, W)``: the pixels to
+    test (default all), of which those with all samples of both states in every colour used are
+    tested; ``alpha`` the level; ``analyzer_rows`` as :func:`state_stokes`; ``etas`` the indices
+    searched."""
+    states = np.asarray(states, np.float64).reshape(-1, 3)
+    if len(states) != 2:
+        raise ValueError(f"the diffuse test takes two states, got {len(states)}")
+    if not 0.0 < float(alpha) < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+    measured = np.asarray(measured)
+    n_col, h, w = measured.shape[1], measured.shape[-2], measured.shape[-1]
+    per_state = [state_stokes(measured[j], variance[j], None if valid is None else valid[j], analyzer_rows)
+                 for j in range(2)]
+    tested = np.all([ok.all(axis=0) for _, _, ok in per_state], axis=0)
+    if mask is not None:
+        tested &= np.asarray(mask, bool)
+    df = degrees_of_freedom(n_col)
+    ys, xs = np.nonzero(tested)
+    nan_img = np.full((h, w), np.nan)
+    if not len(ys):
+        return DiffuseTest(np.zeros((h, w), bool), nan_img, nan_img.copy(), tested, np.zeros((h, w, 3)),
+                           np.zeros((n_col, h, w)), df, float(alpha), None, None)
+    stokes = np.stack([s[..., ys, xs] for s, _, _ in per_state], axis=1)  # (C, 2, 3, P)
+    info = np.stack([q[..., ys, xs] for _, q, _ in per_state], axis=1)  # (C, 2, 3, 3, P)
+    view = np.asarray(geometry.view, np.float64)[ys, xs]
+    lights = _lights(geometry, ys, xs)
+    fixed = (geometry.stage_zero_axis, geometry.camera_x_axis)
+    sample = np.arange(0, len(ys), max(1, len(ys) // ETA_SAMPLE))[:ETA_SAMPLE]
+    cap = chi2_critical(df, CAP_QUANTILE)
+
+    def total(li: int, e: int) -> float:
+        return float(np.minimum(diffuse_statistic(stokes[..., sample], info[..., sample], states, view[sample],
+                                                  lights[li][sample], float(etas[e]), *fixed)[0], cap).sum())
+
+    best_light, best_eta = _choose(len(lights), len(etas), total)
+    eta = float(etas[best_eta])
+    t, normal, k = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed)
+    statistic, p_value = nan_img.copy(), nan_img.copy()
+    statistic[ys, xs], p_value[ys, xs] = t, chi2_sf(t, df)
+    accepted = np.zeros((h, w), bool)
+    accepted[ys, xs] = t <= chi2_critical(df, float(alpha))
+    normals = np.zeros((h, w, 3))
+    normals[ys, xs] = normal
+    albedo = np.zeros((n_col, h, w))
+    albedo[:, ys, xs] = k
+    return DiffuseTest(accepted, statistic, p_value, tested, normals, albedo, df, float(alpha), eta, int(best_light))
+
+
+def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measured: np.ndarray,
+                            variance: np.ndarray, valid: np.ndarray | None, geometry: DiffuseGeometry, *,
+                            prior: tuple[np.ndarray, np.ndarray], seen_state: int = 0,
+                            prior_correlation: np.ndarray | None = None, alpha: float = 0.05,
+                            mask: np.ndarray | None = None) -> tuple[ReferenceResult, DiffuseTest, np.ndarray]:
+    """Two states' hybrid solve ``result`` with the diffuse term where the samples alone accept it.
+
+    :func:`test_diffuse` decides; at the accepted pixels the block is estimated under the
+    rank-one model on the hybrid's posterior system (:func:`polrig.solve.model_selection.select_models`
+    with ``decided``: the same fit, covariance and model-selection term in the sigma as the
+    selection's), and the direction the states leave open is predicted from the geometry
+    (:func:`polrig.solve.diffuse_geometry.complete_diffuse`). ``prior``, ``seen_state``,
+    ``prior_correlation``: the hybrid solve's. Returns the result (its ``models`` map: ``rank_one``
+    where accepted, ``full`` where tested and not), the test and the completed pixels
+    ``(C, H, W)``."""
+    states = np.asarray(states, np.float64).reshape(-1, 3)
+    test = test_diffuse(states, measured, variance, valid, geometry, mask=mask, alpha=alpha)
+    chosen, _ = select_models(states, measured, variance, valid, None, result,
+                              SelectionOptions(alpha=alpha, models=("rank_one",)), prior=prior,
+                              seen_state=seen_state, prior_correlation=prior_correlation,
+                              decided=test.accepted[None])
+    if test.eta is None:
+        return chosen, test, np.zeros(chosen.mask.shape, bool)
+    completed_result, completed, _ = complete_diffuse(chosen, states, geometry, eta=test.eta, light=test.light)
+    return completed_result, test, completed
