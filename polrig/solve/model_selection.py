@@ -127,7 +127,9 @@ pass the prior here
 data drawn from that model (``tests/test_hybrid_joint.py``) but not on the network's errors:
 1.3-21.9 % per held-out set (``python -m polrig.models.continuum --joint-compare``,
 ``benchmarks/results/continuum_joint.md``), where the network's estimate itself leans toward a
-lower-order block that the truth is not.
+lower-order block that the truth is not. The one model the two-state completion needs, the
+diffuse term, is tested on the samples alone instead by :mod:`polrig.solve.diffuse_test`, whose
+decision this module takes as given (``decided``) to estimate under ``rank_one``.
 
 Never silent: nothing here runs unless asked (``polrig reconstruct --models auto``,
 ``polrig capture --models auto``); the result then always carries the maps
