@@ -645,7 +645,8 @@ def detectably_off_diffuse(fr: Frames, two: Sequence[int], test) -> np.ndarray:
     truth's own statistic (noise-free Stokes, the frames' information, the test's ``eta`` and
     light) at least the level's 95 % power point (:mod:`polrig.solve.diffuse_test`, "False
     acceptance")."""
-    from polrig.solve.diffuse_test import _lights, diffuse_statistic, state_stokes
+    from polrig.solve.diffuse_geometry import light_fields
+    from polrig.solve.diffuse_test import diffuse_statistic, state_stokes
     from polrig.solve.model_selection import detectable_noncentrality
 
     out = np.zeros(fr.mask.shape, bool)
@@ -657,7 +658,7 @@ def detectably_off_diffuse(fr: Frames, two: Sequence[int], test) -> np.ndarray:
     clean = np.stack([np.einsum("crkp,k->crp", truth, st) for st in states], axis=1)  # (C, 2, 3, P)
     info = np.stack([state_stokes(fr.meas[d], fr.var[d], fr.valid[d])[1][..., ys, xs] for d in two], axis=1)
     g = fr.geometry
-    lam, _, _ = diffuse_statistic(clean, info, states, g.view[ys, xs], _lights(g, ys, xs)[test.light], test.eta,
+    lam, _, _ = diffuse_statistic(clean, info, states, g.view[ys, xs], light_fields(g, ys, xs)[test.light], test.eta,
                                   g.stage_zero_axis, g.camera_x_axis)
     out[ys, xs] = lam >= detectable_noncentrality(test.df, test.alpha)
     return out

@@ -156,7 +156,7 @@ def test_a_specular_block_is_rejected_where_the_samples_can_tell():
 
     view, light, normal = _surface(16, 16, seed=6)
     truth = _blocks(view, light, normal, 1.5, "specular", [1.0, 1.0, 1.0])
-    meas, var, scale = _frames(truth, np.random.default_rng(7))
+    meas, var, _ = _frames(truth, np.random.default_rng(7))
     res = dt.test_diffuse(STATES, meas, var, None, _geometry(view, light), etas=(1.5,))
     assert res.tested.all()
     clean = np.stack([np.einsum("crkhw,k->crhw", truth, s) for s in STATES], axis=1)  # (C, 2, 3, H, W)

@@ -65,7 +65,8 @@ from polrig.optics.pbrdf import linear_rig_mueller
 from polrig.solve.reference import ILL_CONDITIONED, ReferenceResult
 from polrig.solve.reduced_models import MODELS
 
-__all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "light_directions",
+__all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "light_directions", "light_fields",
+           "search_normals",
            "fit_diffuse_geometry", "ratio_weights", "neighbour_mean", "complete_diffuse", "RANK_ONE"]
 
 #: The model selection's code of the rank-one block (Baek's diffuse term).
@@ -133,6 +134,15 @@ def unobserved_direction(s_in: np.ndarray) -> np.ndarray | None:
     if len(sv) < 2 or sv[1] <= 1e-9 * sv[0] or (len(sv) == 3 and sv[2] > 1e-9 * sv[0]):
         return None
     return vt[2]
+
+
+def light_fields(geometry: DiffuseGeometry, ys: np.ndarray, xs: np.ndarray) -> list[np.ndarray]:
+    """The geometry's candidate light fields at the pixels ``(ys, xs)``, each ``(P, 3)``."""
+    candidates = geometry.light if isinstance(geometry.light, tuple) else (geometry.light,)
+    out = []
+    for c in (np.asarray(c, np.float64) for c in candidates):
+        out.append(np.broadcast_to(c, (len(ys), 3)) if c.ndim == 1 else c[ys, xs])
+    return out
 
 
 def light_directions(light_position: np.ndarray, view: np.ndarray, depth: float = 1.0) -> np.ndarray:
@@ -371,8 +381,7 @@ def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: Diffus
     good = np.isfinite(x_hat).all(axis=1) & np.isfinite(rho_hat) & np.isfinite(weights).all(axis=1)
     ys, xs, m, x_hat, rho_hat, weights = ys[good], xs[good], m[..., good], x_hat[good], rho_hat[good], weights[good]
     pick = lambda a: None if a is None else np.asarray(a, np.float64).reshape(h, w, 3)[ys, xs]  # noqa: E731
-    candidates = geometry.light if isinstance(geometry.light, tuple) else (geometry.light,)
-    lights = [li if li.ndim == 1 else pick(li) for li in (np.asarray(c, np.float64) for c in candidates)]
+    lights = light_fields(geometry, ys, xs)
     view = pick(geometry.view)
     if eta is not None:
         lights, etas = [lights[light]], (float(eta),)

@@ -58,8 +58,20 @@ from typing import NamedTuple
 import numpy as np
 
 from polrig.sensor.stokes import ideal_analyzer_matrix
-from polrig.solve.diffuse_geometry import ETAS, DiffuseGeometry, complete_diffuse, diffuse_ratios, search_normals
-from polrig.solve.model_selection import SelectionOptions, chi2_critical, chi2_sf, select_models
+from polrig.solve.diffuse_geometry import (
+    ETAS,
+    DiffuseGeometry,
+    complete_diffuse,
+    diffuse_ratios,
+    light_fields,
+    search_normals,
+)
+from polrig.solve.model_selection import (
+    SelectionOptions,
+    chi2_critical,
+    chi2_sf,
+    select_models,
+)
 from polrig.solve.reference import ReferenceResult
 
 __all__ = ["state_stokes", "degrees_of_freedom", "diffuse_statistic", "DiffuseTest", "test_diffuse",
@@ -165,16 +177,6 @@ class DiffuseTest(NamedTuple):
     light: int | None
 
 
-def _lights(geometry: DiffuseGeometry, ys: np.ndarray, xs: np.ndarray) -> list[np.ndarray]:
-    """The candidate light fields at pixels ``(ys, xs)``, each ``(P, 3)``."""
-    cands = geometry.light if isinstance(geometry.light, tuple) else (geometry.light,)
-    out = []
-    for c in cands:
-        c = np.asarray(c, np.float64)
-        out.append(np.broadcast_to(c, (len(ys), 3)) if c.ndim == 1 else c[ys, xs])
-    return out
-
-
 def _choose(n_lights: int, n_etas: int, total) -> tuple[int, int]:
     """``(light, eta)`` indices of least ``total(light, eta)``: every other index first, then
     the neighbours of the best (the total is smooth in ``eta``: half the evaluations)."""
@@ -224,7 +226,7 @@ def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     stokes = np.stack([s[..., ys, xs] for s, _, _ in per_state], axis=1)  # (C, 2, 3, P)
     info = np.stack([q[..., ys, xs] for _, q, _ in per_state], axis=1)  # (C, 2, 3, 3, P)
     view = np.asarray(geometry.view, np.float64)[ys, xs]
-    lights = _lights(geometry, ys, xs)
+    lights = light_fields(geometry, ys, xs)
     fixed = (geometry.stage_zero_axis, geometry.camera_x_axis)
     sample = np.arange(0, len(ys), max(1, len(ys) // ETA_SAMPLE))[:ETA_SAMPLE]
     cap = chi2_critical(df, CAP_QUANTILE)
