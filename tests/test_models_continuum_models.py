@@ -123,3 +123,45 @@ def test_two_state_bound_is_the_inverse_variance_combination():
     assert two_state_bound_db(40.0, 40.0 + db3) == pytest.approx(40.0 + db3, abs=1e-9)
     assert two_state_bound_db(0.0, 50.0) == pytest.approx(50.0 - db3, abs=1e-4)
     assert two_state_bound_db(50.0, 0.0) == pytest.approx(50.0, abs=1e-4)
+
+
+def test_detectably_off_diffuse_on_a_synthetic_frame():
+    """The diffuse test's false-acceptance denominator: diffuse truth (Baek's term at the frame's
+    own geometry) is never detectably off it; a bright specular (Fresnel) truth mostly is, in
+    the noise of the frames' samples."""
+    from polrig.models.continuum import Frames, detectably_off_diffuse, rotated_state
+    from polrig.optics.pbrdf import linear_rig_mueller
+    from polrig.solve.diffuse_geometry import DiffuseGeometry
+    from polrig.solve.diffuse_test import test_diffuse
+    from polrig.solve.reference import forward_measurements
+
+    h, w = 6, 8
+    yy, xx = np.mgrid[0:h, 0:w] / w
+    view = np.stack([0.05 * xx, 0.05 * yy, np.ones_like(xx)], axis=-1)
+    view /= np.linalg.norm(view, axis=-1, keepdims=True)
+    light = np.array([0.6, 0.1, 0.8]) / np.linalg.norm([0.6, 0.1, 0.8])
+    zen, azi = np.deg2rad(15 + 30 * xx), 2 * np.pi * (xx + yy)
+    normal = np.stack([np.sin(zen) * np.cos(azi), np.sin(zen) * np.sin(azi), np.cos(zen)], axis=-1)
+    stage, cam = np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    s0 = np.array([1.0, 1.0, 0.0])
+    states = {0: s0, 90: rotated_state(s0, 90)}
+    geo = DiffuseGeometry(view=view, light=light, stage_zero_axis=stage, camera_x_axis=cam)
+    for component, detectable in (("diffuse", False), ("specular", True)):
+        kw = {"kd": 1.0, "ks": 0.0} if component == "diffuse" else {"kd": 0.0, "ks": 1.0}
+        m = linear_rig_mueller(normal.reshape(-1, 3), np.broadcast_to(light, (h * w, 3)), view.reshape(-1, 3),
+                               alpha=0.3, eta=1.5, components=(component,), stage_zero_axis=stage,
+                               camera_x_axis=cam, **kw)
+        truth = np.moveaxis(m, 0, -1).reshape(3, 3, h, w)[None].repeat(3, axis=0)
+        truth = truth / truth[:, 0, 0].max()
+        meas = forward_measurements(truth, np.stack([states[0], states[90]]))
+        var = np.clip(meas, 0, None) / 2000 + 1e-5  # shot noise at 2000 DN for the brightest m00
+        ones = np.ones((h, w), bool)
+        fr = Frames(truth, ones, ones[None].repeat(3, 0), ones, truth, np.full(truth.shape, 0.01), states,
+                    {0: meas[0], 90: meas[1]}, {0: var[0], 90: var[1]},
+                    {0: np.ones(var.shape[1:], bool), 90: np.ones(var.shape[1:], bool)}, geometry=geo)
+        test = test_diffuse(np.stack([states[0], states[90]]), meas, var, None, geo, etas=(1.5,))
+        det = detectably_off_diffuse(fr, (0, 90), test)
+        if detectable:
+            assert det.mean() > 0.9 and not test.accepted[det].any()
+        else:
+            assert not det.any() and test.accepted.all()
