@@ -223,3 +223,18 @@ def test_neighbour_mean_averages_valid_neighbours_only():
     assert np.allclose(lone, [[1.0, 0.0, 0.0]])
     alone = dg.neighbour_mean(tilted[7:8], np.zeros(1, bool), ys[7:8], xs[7:8], (4, 5))
     assert np.allclose(alone, tilted[7:8])  # no valid neighbour: its own
+
+
+def test_a_given_index_and_light_are_used_as_given():
+    """``complete_diffuse(eta=, light=)``: the index and light chosen elsewhere (the diffuse
+    test's) are used, not fitted; one without the other is an error."""
+    import pytest
+
+    truth, geo, s = _scene(eta=1.5, seed=13)
+    u = dg.unobserved_direction(s)
+    start = _corrupt(truth, u, np.random.default_rng(14))
+    r = _result(start, np.full((3, 1, truth.shape[-1]), dg.RANK_ONE))
+    _, completed, eta = dg.complete_diffuse(r, s, geo, eta=1.8, light=0)
+    assert eta == 1.8 and completed.any()
+    with pytest.raises(ValueError, match="together"):
+        dg.complete_diffuse(r, s, geo, eta=1.5)
