@@ -868,14 +868,12 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
         n = sum(r["hl_elements"] for r in rows)
         out["coverage_highlights"] = sum(r["hl_inside"] for r in rows) / n if n else float("nan")
         out["highlight_elements"] = float(n)
-    if rows and "detectable" in rows[0]:
-        det = sum(r["detectable"] for r in rows)
-        out["false_acceptance"] = sum(r["falsely_accepted"] for r in rows) / det if det else float("nan")
-        out["detectable_share"] = det / n * 9 if n else float("nan")
-    if rows and "detectable_prior" in rows[0]:
-        det = sum(r["detectable_prior"] for r in rows)
-        out["false_acceptance_prior"] = sum(r["falsely_accepted_prior"] for r in rows) / det if det else float("nan")
-        out["detectable_prior_share"] = det / n * 9 if n else float("nan")
+    for metric in ("", "_prior"):  # the false acceptance in each metric a row counts
+        if rows and f"detectable{metric}" in rows[0]:
+            det = sum(r[f"detectable{metric}"] for r in rows)
+            out[f"false_acceptance{metric}"] = (sum(r[f"falsely_accepted{metric}"] for r in rows) / det if det
+                                                else float("nan"))
+            out[f"detectable{metric}_share"] = det / n * 9 if n else float("nan")
     if rows and "holds_pixels" in rows[0]:
         total = sum(r["object_pixels"] for r in rows)
         out["holds_share"] = sum(r["holds_pixels"] for r in rows) / total if total else float("nan")
