@@ -28,6 +28,7 @@ from polrig.app.single_shot import SingleShot
 from polrig.calibration.calset import SensorGeometry
 from polrig.calibration.rigframes import stage_zero_axis_cam
 from polrig.errors import ConfigError
+from polrig.formats.config import GEOMETRY_KEYS
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.analyzer import AnalyzerModel, frame_layout  # noqa: F401 (frame_layout re-exported)
 from polrig.solve.reference import condition_number, validate_states
@@ -63,7 +64,11 @@ class Calibration:
     geometry is used, :func:`single_shot_geometry`): ``intrinsics`` ``(fx, fy, cx, cy)`` in
     pixels of the full sensor readout (OpenCV pinhole, distortion ignored) and
     ``stage_zero_axis_camera`` ``(x, y, z)``, the polarizer stage's zero axis in the camera
-    frame (the ``x`` of the incident Stokes frame, "Stokes reference frames").
+    frame (the ``x`` of the incident Stokes frame, "Stokes reference frames"). For the diffuse
+    test (``--models diffuse``, :mod:`polrig.app.diffuse_route`): ``light_position_camera_m``, the
+    point light, and ``object_point_camera_m``, the object's centre (the turntable axis point
+    nearest the camera's optical axis), both ``(x, y, z)`` in the camera frame, metres
+    (:func:`calibration_light_geometry`).
 
     Uncertainty of the calibration itself (1 sigma, propagated into the reported ``sigma`` by
     :func:`polrig.solve.reference.solve_reference`): ``analyzer_tolerance`` ``(gain_rel, angle_deg,
@@ -83,6 +88,8 @@ class Calibration:
     analyzer: AnalyzerModel | None = None
     intrinsics: tuple[float, float, float, float] | None = None
     stage_zero_axis_camera: tuple[float, float, float] | None = None
+    light_position_camera_m: tuple[float, float, float] | None = None
+    object_point_camera_m: tuple[float, float, float] | None = None
     analyzer_tolerance: tuple[float, float, float] = (0.0, 0.0, 0.0)
     generator_tolerance: tuple[float, float] = (0.0, 0.0)
     sensor: Any = None
@@ -131,7 +138,7 @@ def load_calibration(path: str | os.PathLike | None, *, session: Session | None 
         a_tol, g_tol = calibset.tolerances(cs, NOMINAL_ANALYZER_TOLERANCE,
                                            NOMINAL_GENERATOR_TOLERANCE)
         cal = Calibration(cs.id, cs.incident_stokes, cs.analyzer,
-                          *calibration_geometry(cs), analyzer_tolerance=a_tol,
+                          *calibration_geometry(cs), *calibration_light_geometry(cs), analyzer_tolerance=a_tol,
                           generator_tolerance=g_tol, sensor=cs.sensor_geometry(),
                           source=str(p))
     if session is not None and session.manifest.get("calibration_id") != cal.id:
@@ -165,6 +172,37 @@ def calibration_geometry(cs) -> tuple[tuple[float, float, float, float] | None,
     if axis is not None and not (np.all(np.isfinite(axis)) and np.any(axis)):
         axis = None
     return intrinsics, None if axis is None else tuple(float(v) for v in axis)
+
+
+def calibration_light_geometry(cs) -> tuple[tuple[float, float, float] | None,
+                                            tuple[float, float, float] | None]:
+    """``(light_position_camera_m, object_point_camera_m)`` of a calibration set, each ``None``
+    where the set lacks the step: the light step's point light, and the point of the turntable
+    axis nearest the camera's optical axis (the ray ``s (0, 0, 1)``; the object sits on the axis
+    in the middle of the picture), camera frame, metres."""
+    light = point = None
+    if cs.has("light"):
+        light = np.asarray(cs.light_position_m, np.float64)
+    if cs.has("turntable"):
+        tt = cs.turntable_axis
+        point = axis_point_nearest_optical_axis(tt["point_cam_m"], tt["axis_cam"])
+    return tuple((None if v is None or not np.all(np.isfinite(v)) else tuple(float(x) for x in v))
+                 for v in (light, point))
+
+
+def axis_point_nearest_optical_axis(point: Sequence[float], axis: Sequence[float]) -> np.ndarray:
+    """The point ``(3,)`` of the line ``point + t axis`` (camera frame) nearest the camera's
+    optical axis ``s (0, 0, 1)``: the common perpendicular's foot; ``point`` itself where the
+    two are parallel."""
+    p, a = np.asarray(point, np.float64), np.asarray(axis, np.float64)
+    a = a / np.linalg.norm(a)
+    z = np.array([0.0, 0.0, 1.0])
+    b = a @ z
+    den = 1.0 - b * b
+    if den < 1e-12:
+        return p
+    t = (b * (p @ z) - p @ a) / den
+    return p + t * a
 
 
 def check_calibration_fits(calibration: Calibration, *, layout: str | None,
@@ -209,7 +247,8 @@ def check_calibration_fits_rig(calibration: Calibration, rig) -> None:
 def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | None,
                          sensor_size: tuple[int, int] | None = None) -> dict[str, Any]:
     """Intrinsics (full-sensor pixels) and stage zero axis (camera frame) for single-shot
-    reconstruction: the calibration set's where it has them, else the rig's nominal geometry
+    reconstruction, and the light's and the object's positions (camera frame, metres) for the
+    diffuse test (:data:`polrig.formats.config.GEOMETRY_KEYS`): the calibration set's where it has them, else the rig's nominal geometry
     (:func:`polrig.app.rig.nominal_geometry`: the ``[nominal_geometry]`` table of the rig config, or the
     simulator's design values for a simulated camera). ``None`` values mean "unknown": the
     model then uses its training geometry (``models/weights/model.json``). ``sources`` says
@@ -217,7 +256,7 @@ def single_shot_geometry(calibration: Calibration, rig_config: dict[str, Any] | 
 
     nominal = nominal_geometry(rig_config, sensor_size)
     out: dict[str, Any] = {"sources": {}}
-    for key in ("intrinsics", "stage_zero_axis_camera"):
+    for key in GEOMETRY_KEYS:
         cal_value = getattr(calibration, key)
         if cal_value is not None:
             out[key], out["sources"][key] = tuple(cal_value), f"calibration {calibration.id}"

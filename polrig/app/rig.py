@@ -26,6 +26,7 @@ from polrig.acquisition.hal import (
 )
 from polrig.formats.config import (
     DEVICE_KINDS,
+    GEOMETRY_KEYS,
     DriverSpec,
     Field,
     RigConfig,
@@ -289,14 +290,17 @@ def nominal_geometry(config: dict[str, Any] | None,
     principal point at the centre) for a sensor of ``sensor_size`` ``(W, H)`` (default: the
     ``[sim]`` table's ``size``, else :data:`polrig.sim.options.DEFAULTS`), and the stage zero axis of
     :func:`polrig.sim.scene.stage_zero_axis_for` for the default light and a vertical turntable
-    through the origin, in the camera frame. A real rig without ``[nominal_geometry]`` has none.
+    through the origin, in the camera frame, and that light's position and the object's centre
+    (the turntable axis at the object's height), camera frame. A real rig without
+    ``[nominal_geometry]`` has none.
 
     Returns ``{"intrinsics": (fx, fy, cx, cy) | None`` (pixels of the full sensor),
-    ``"stage_zero_axis_camera": (x, y, z) | None, "source": str}``.
+    ``"stage_zero_axis_camera": (x, y, z) | None, "light_position_camera_m": (x, y, z) | None,
+    "object_point_camera_m": (x, y, z) | None, "source": str}`` (metres).
     """
     cfg = dict(config or {})
     geo = dict(cfg.get("nominal_geometry") or {})
-    out: dict[str, Any] = {"intrinsics": None, "stage_zero_axis_camera": None, "source": "none"}
+    out: dict[str, Any] = {key: None for key in GEOMETRY_KEYS} | {"source": "none"}
     camera = cfg.get("camera") or {}
     if camera.get("driver", "sim") == "sim":
         import numpy as np
@@ -305,12 +309,16 @@ def nominal_geometry(config: dict[str, Any] | None,
             sensor_size = parse_size((cfg.get("sim") or {}).get("size", DEFAULTS["size"]))
         w, h = (int(v) for v in sensor_size)
         cam = default_camera(w, h)
-        axis_world, _ = stage_zero_axis_for(default_light(), TurntableGeometry())
+        light = default_light()
+        axis_world, target_world = stage_zero_axis_for(light, TurntableGeometry())
+        to_camera = lambda p: tuple(float(v) for v in np.asarray(cam.R) @ p + np.asarray(cam.t))  # noqa: E731
         out.update(intrinsics=(cam.fx, cam.fy, cam.cx, cam.cy),
                    stage_zero_axis_camera=tuple(float(v) for v in np.asarray(cam.R) @ axis_world),
+                   light_position_camera_m=to_camera(light.position_m),
+                   object_point_camera_m=to_camera(target_world),
                    source="simulator design geometry")
     if geo:
-        for key in ("intrinsics", "stage_zero_axis_camera"):
+        for key in GEOMETRY_KEYS:
             if key in geo:
                 out[key] = tuple(float(v) for v in geo[key])
         out["source"] = "[nominal_geometry] table" if out["source"] == "none" else \

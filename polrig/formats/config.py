@@ -24,12 +24,15 @@ Example (``docs``: issue 4 and ``polrig devices``)::
 Device tables are ``camera``, ``stage``, ``turntable`` and ``light``; a device left out is
 the simulated one. Optional tables: ``[sim]`` (options of the simulated rig, checked by
 :mod:`polrig.sim.options`), ``[sensor_model]`` (fields of :class:`polrig.sensor.noise.SensorModel` for a
-real camera) and ``[nominal_geometry]`` (the rig's nominal geometry for single-shot processing when no
-calibration set gives it, :data:`GEOMETRY_KEYS`)::
+real camera) and ``[nominal_geometry]`` (the rig's nominal geometry for single-shot processing, and
+the light's and the object's positions for the diffuse test of ``--models diffuse``, when no
+calibration set gives them, :data:`GEOMETRY_KEYS`)::
 
     [nominal_geometry]
     intrinsics = [6120.0, 6120.0, 1223.5, 1023.5]   # fx, fy, cx, cy: pixels of the full sensor
     stage_zero_axis_camera = [0.92, -0.10, 0.38]    # polarizer zero axis, camera frame
+    light_position_camera_m = [0.31, -0.18, 0.12]   # the point light, camera frame, metres
+    object_point_camera_m = [0.0, 0.0, 0.5]         # the object's centre (on the turntable axis)
  Each device table names its ``driver``; the keys a driver accepts, their
 types, defaults and meaning are its *schema*, supplied by the driver registry
 (:data:`polrig.app.rig.DRIVERS`): this module only knows how to check a table against a schema.
@@ -52,8 +55,12 @@ EXTRA_TABLES = ("sim", "sensor_model", "nominal_geometry")
 #: Keys of the ``[nominal_geometry]`` table: ``intrinsics`` ``[fx, fy, cx, cy]`` (pixels of the full
 #: sensor readout, OpenCV pinhole, ``docs/conventions.md`` "Image coordinates") and
 #: ``stage_zero_axis_camera`` ``[x, y, z]`` (the polarizer stage's zero axis in the camera frame,
-#: any length but not zero; "Stokes reference frames"). Both optional.
-GEOMETRY_KEYS = {"intrinsics": 4, "stage_zero_axis_camera": 3}
+#: any length but not zero; "Stokes reference frames"), ``light_position_camera_m`` and
+#: ``object_point_camera_m`` ``[x, y, z]`` (the point light and the object's centre on the turntable
+#: axis, camera frame, metres: the diffuse test's light directions,
+#: :mod:`polrig.app.diffuse_route`). All optional.
+GEOMETRY_KEYS = {"intrinsics": 4, "stage_zero_axis_camera": 3, "light_position_camera_m": 3,
+                 "object_point_camera_m": 3}
 
 _TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", bool: "true or false",
                list: "a list"}
