@@ -45,6 +45,10 @@ OME_UNITS = {"micrometer": "µm", "millimeter": "mm", "nanometer": "nm", "meter"
 #: Default ``min_snr``: a signal below this many noise standard deviations is ``DARK``
 #: (:data:`polrig.solve.reference.MIN_SNR`).
 MIN_SNR = 3.0
+#: The ``--models`` choices (:data:`polrig.solve.model_selection.MODEL_CHOICES`): ``full`` (the 3x3
+#: block everywhere, the default), ``auto`` (the lower-order model selection) and ``diffuse`` (two
+#: states: the diffuse term tested on their samples alone, :mod:`polrig.app.diffuse_route`).
+MODEL_CHOICES = ("full", "auto", "diffuse")
 
 # -- polrig.acquisition ---------------------------------------------------------------------------
 #: Network binnings of the single-shot method

@@ -92,6 +92,32 @@ def test_state_stokes_is_the_weighted_inverse_of_the_analyzer_rows():
     assert np.allclose(s, stokes, atol=1e-12)
 
 
+def test_state_stokes_takes_a_calibrated_analyzer_per_pixel():
+    """Per-pixel rows ``(C, 4, 3, H, W)`` (a calibrated analyzer: gains, angles and
+    diattenuations off the ideal) give, pixel by pixel, the weighted least squares of that
+    pixel's own rows; the ideal rows broadcast give the shared rows' result exactly."""
+    rng = np.random.default_rng(1)
+    c, h, w = 2, 3, 4
+    stokes = rng.normal(size=(c, 3, h, w)) + np.array([3.0, 0.0, 0.0])[None, :, None, None]
+    ideal = ideal_analyzer_matrix()
+    rows = ideal[None, :, :, None, None] * rng.uniform(0.9, 1.1, (c, 4, 1, h, w))
+    rows[:, :, 1:] += rng.normal(0, 0.03, (c, 4, 2, h, w))
+    meas = np.einsum("cjahw,cahw->cjhw", rows, stokes) + rng.normal(0, 0.01, (c, 4, h, w))
+    var = rng.uniform(0.01, 0.1, meas.shape)
+    s, info, ok = dt.state_stokes(meas, var, analyzer_rows=rows)
+    assert ok.all()
+    for ci, y, x in np.ndindex(c, h, w):
+        a, wt = rows[ci, :, :, y, x], 1.0 / var[ci, :, y, x]
+        q = a.T @ (wt[:, None] * a)
+        np.testing.assert_allclose(info[ci, :, :, y, x], q, rtol=1e-12)
+        np.testing.assert_allclose(s[ci, :, y, x], np.linalg.solve(q, a.T @ (wt * meas[ci, :, y, x])), rtol=1e-10)
+    same = dt.state_stokes(meas, var, analyzer_rows=np.broadcast_to(ideal[None, :, :, None, None], rows.shape))
+    for got, want in zip(same, dt.state_stokes(meas, var)):
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="analyzer_rows must be"):
+        dt.state_stokes(meas, var, analyzer_rows=rows[:, :, :, :1])
+
+
 def test_degrees_of_freedom():
     assert dt.degrees_of_freedom(3) == 13 and dt.degrees_of_freedom(1) == 3
 

@@ -80,7 +80,9 @@ from polrig.app.calibrations import (
     check_calibration_fits_rig,
     check_plan,
     load_calibration,
+    single_shot_geometry,
 )
+from polrig.app.diffuse_route import check_diffuse_states, check_geometry
 from polrig.app.manifest import AdaptiveDecision, SampleMetadata, describe_decision
 from polrig.app.processing import make_processor
 from polrig.app.records import (
@@ -89,6 +91,7 @@ from polrig.app.records import (
     sensor_model_of,
     session_sensor_model,
 )
+from polrig.app.rig import load_rig_config
 from polrig.app.session import (
     ACQUIRED,
     ACQUISITION_ROLES,
@@ -245,6 +248,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                             f"metadata out to keep the stored one")
             calibration = load_calibration(request.calibration, session=session)
             check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
+            check_models(request, plan, calibration)
         except BaseException:
             session.unlock()
             raise
@@ -258,8 +262,18 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                    "session in it", subject=str(out), what="output")
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
+        check_models(request, plan, calibration)
     return PreparedCapture(out, plan, calibration, session,
                            request.metadata if request.metadata is not None else SampleMetadata())
+
+
+def check_models(request: CaptureRequest, plan: CapturePlan, calibration: Calibration) -> None:
+    """``models`` ``diffuse``: a hybrid plan at two states, and the rig's geometry known (the
+    calibration's or the rig configuration's; :mod:`polrig.app.diffuse_route`), one-line
+    :class:`PlanError` s of ``models`` before any device opens."""
+    if request.models == "diffuse":
+        check_diffuse_states(plan.mode, len(plan.states_deg))
+        check_geometry(single_shot_geometry(calibration, load_rig_config(request.config)))
 
 
 def open_session(prepared: PreparedCapture, rig, command_line: list[str]) -> Session:

@@ -461,7 +461,7 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                             processing.record_result(b.session, job.index, job.revision,
                                                      out.record, out.score, job.exr, out.prior,
                                                      out.model,
-                                                     job.models == "auto")
+                                                     job.models != "full")
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)

@@ -412,9 +412,10 @@ class RevisionSettings(TypedDict):
     exr_planes: list[str]
     exr_uncertainty: str
     exr_compression: str
-    #: ``full`` or ``auto`` (lower-order models per pixel, :mod:`polrig.solve.model_selection`);
-    #: absent in revisions made before it existed (``full``)
-    models: NotRequired[Literal["full", "auto"]]
+    #: ``full``, ``auto`` (lower-order models per pixel, :mod:`polrig.solve.model_selection`) or
+    #: ``diffuse`` (two states, :mod:`polrig.app.diffuse_route`); absent in revisions made before
+    #: it existed (``full``)
+    models: NotRequired[Literal["full", "auto", "diffuse"]]
 
 
 class CameraFrames(TypedDict):

@@ -54,6 +54,14 @@ from polrig.app.calibrations import (  # noqa: F401 (re-exported)
     single_shot_geometry,
     state_set_condition,
 )
+from polrig.app.diffuse_route import (
+    DIFFUSE_PLANES,
+    capture_geometry,
+    check_diffuse_states,
+    check_geometry,
+    diffuse_header,
+    solve_diffuse,
+)
 from polrig.app.preview import write_result_previews
 from polrig.app.records import (  # noqa: F401 (re-exported)
     sensor_model_of,
@@ -144,6 +152,19 @@ def state_key(cf: CaptureFrames, k: int) -> tuple[Hashable, ...] | None:
             tuple(repr(float(e)) for e in cf.exposures_us))
 
 
+def capture_analyzer(cf: CaptureFrames, calibration: Calibration):
+    """The calibration's analyzer model of the capture's readout (cropped to it within the
+    calibrated area), or None (the ideal analyzer)."""
+    analyzer = calibration.analyzer
+    if analyzer is not None:  # the frame's readout within the calibrated area
+        h, w = cf.first.raw.shape
+        ax, ay = calibration.area_offset
+        ox, oy = cf.first.meta.offset_xy
+        if analyzer.shape != (h, w) or (calibration.sensor is not None and (ox, oy) != (ax, ay)):
+            analyzer = analyzer.crop(ox - ax, oy - ay, w, h)
+    return analyzer
+
+
 def process_reference(cf: CaptureFrames, calibration: Calibration, model: SensorModel,
                       method: str, uncertainty_dtype: type = np.float32,
                       prior: Callable[[list[StateRadiance], np.ndarray], Mapping[str, Any]] | None = None,
@@ -167,16 +188,9 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
         states = [capture_state_radiance(cf, k, model) for k in range(len(cf.frames))]
     elif len(states) != len(cf.frames):
         raise ValueError(f"{len(states)} state radiances for {len(cf.frames)} states")
-    analyzer = calibration.analyzer
-    if analyzer is not None:  # the frame's readout within the calibrated area
-        h, w = first.raw.shape
-        ax, ay = calibration.area_offset
-        ox, oy = first.meta.offset_xy
-        if analyzer.shape != (h, w) or (calibration.sensor is not None and (ox, oy) != (ax, ay)):
-            analyzer = analyzer.crop(ox - ax, oy - ay, w, h)
     s_in = calibration.incident_stokes(cf.states_deg)
     extra = {} if prior is None else dict(prior(states, s_in))
-    result = reference_from_frames(states, s_in, lay, method, analyzer,
+    result = reference_from_frames(states, s_in, lay, method, capture_analyzer(cf, calibration),
                                    analyzer_tolerance=calibration.analyzer_tolerance,
                                    generator_tolerance=calibration.generator_tolerance,
                                    uncertainty_dtype=uncertainty_dtype,
@@ -402,17 +416,20 @@ class Processor:
     ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
     (its estimate and calibrated sigma are the prior of the solve of all states,
     :mod:`polrig.solve.hybrid`).
-    ``models``: ``full`` (the default: the 3x3 block everywhere) or ``auto`` (reference and
+    ``models``: ``full`` (the default: the 3x3 block everywhere), ``auto`` (reference and
     hybrid: per pixel the lower-order model a likelihood-ratio test accepts,
-    :mod:`polrig.solve.model_selection`; the result then always carries the model map
-    ``model.{colour}`` with ``model_chi2``/``model_p`` and the header its ``model_selection``).
+    :mod:`polrig.solve.model_selection`) or ``diffuse`` (hybrid at two states, ``n_states``: the
+    diffuse term tested on their samples alone and the open direction predicted from the rig's
+    geometry, :mod:`polrig.app.diffuse_route`; the network then also gives its normals); the
+    result then always carries the model map ``model.{colour}`` with ``model_chi2``/``model_p``
+    and the header its ``model_selection``.
     """
 
     def __init__(self, mode: str, demosaic: str, calibration: Calibration,
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
                  exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0,
-                 model_size: str = "auto", models: str = "full"):
+                 model_size: str = "auto", models: str = "full", n_states: int | None = None):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
         if models not in MODEL_CHOICES:
@@ -420,11 +437,17 @@ class Processor:
         if models == "auto" and mode == "single-shot":
             raise PlanError("models", "model selection tests the samples of the polarizer states: "
                                       "use the reference or hybrid mode")
-        #: ``full`` or ``auto`` (model selection, :mod:`polrig.solve.model_selection`)
+        if models == "diffuse":
+            check_diffuse_states(mode, 2 if n_states is None else int(n_states))
+        #: ``full``, ``auto`` (model selection, :mod:`polrig.solve.model_selection`) or
+        #: ``diffuse`` (:mod:`polrig.app.diffuse_route`)
         self.models = models
-        #: the single-shot route's options (``None`` for the reference method)
+        #: the single-shot route's options (``None`` for the reference method); the diffuse
+        #: route's first guess of the normals is the network's (the full graph)
         self.single_shot_options = single_shot_options(mode, demosaic, resolution, network_binning,
                                                        mirror_average, exr.planes)
+        if models == "diffuse":
+            self.single_shot_options = dataclasses.replace(self.single_shot_options, geometry=True)
         self.network_binning = int(network_binning)
         # single-shot: the installed network (loaded once per process and device), or the
         # one-line "no model installed" error
@@ -485,7 +508,7 @@ class Processor:
         records, score = write_and_score(session.root, out, self.exr)
         try:
             record_result(session, index, revision, records, score, self.exr, prior, out.model,
-                          self.models == "auto")
+                          self.models != "full")
         except BaseException:  # not recorded (a full disk...): no unrecorded file left
             remove_files(session.root / r["path"] for r in records.values())
             raise
@@ -511,12 +534,15 @@ class Processor:
         else:
             unc = np.float16 if self.exr.uncertainty == "half" else np.float32
             prior = None
+            keep: dict[str, Any] = {}
             if self.mode in PRIOR_MODES:
                 prior_header = {}
-                prior = self.prior_function(cf, geometry, prior_header)
+                prior = self.prior_function(cf, geometry, prior_header, keep)
             selection = SelectionOptions() if self.models == "auto" else None
             result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
                                                           self.demosaic, unc, prior, selection)
+            if self.models == "diffuse":
+                result, diffuse_meta = self.diffuse(result, s_in, lay, states, cf, geometry, keep)
             extra_planes = {}
             if result.models is not None:  # never silent: the map is always written
                 extra_planes = model_planes(result.models, channel_suffixes(lay.n_colours))
@@ -560,7 +586,10 @@ class Processor:
             meta.update(self.hybrid_header(prior_record, s_in))
             meta["planes"] = {k: v for k, v in meta["planes"].items()
                               if k.split(".", 1)[0] in self.exr.planes}
-        if self.mode != "single-shot" and result.models is not None:
+        if self.models == "diffuse":
+            meta.update(diffuse_meta)
+            meta["planes"] = {**meta["planes"], **DIFFUSE_PLANES}
+        elif self.mode != "single-shot" and result.models is not None:
             meta.update(selection_header(result.models))
             meta["planes"] = {**meta["planes"], **MODEL_PLANES}
         folder = cap["name"] if revision is None else f"{cap['name']}/{revision}"
@@ -569,6 +598,21 @@ class Processor:
             noise_exposures_us(cf)[0])
         return CaptureResult(f"{folder}/mueller.exr", result, meta, truth, extra_planes, prior_record,
                              self.manifest_model())
+
+    def diffuse(self, result: ReferenceResult, s_in: np.ndarray, lay: MosaicLayout,
+                states: list[StateRadiance], cf: CaptureFrames, geometry: dict[str, Any],
+                keep: Mapping[str, Any]) -> tuple[ReferenceResult, dict[str, Any]]:
+        """The diffuse route on a two-state hybrid ``result`` (:mod:`polrig.app.diffuse_route`):
+        the geometry (``geometry``: :meth:`network_geometry`'s; the network's normals from
+        ``keep["net"]``, the prior from ``keep["prior"]``, :meth:`prior_function`), tested on
+        the network's object pixels. Returns the result and its header entries."""
+        net: SingleShotResult = keep["net"]
+        grid = result.mueller.shape[-2:]
+        where = capture_geometry(geometry, cf.first, grid, network_normals(net.network_grid.get("normal"), grid))
+        out, test, completed = solve_diffuse(result, s_in, states, lay, self.demosaic,
+                                             capture_analyzer(cf, self.calibration), where,
+                                             prior=keep["prior"], mask=net.object)
+        return out, diffuse_header(test, completed, out.models, geometry["sources"])
 
     def manifest_model(self) -> dict[str, Any] | None:
         """The manifest's ``model`` record of this processor's results
@@ -597,7 +641,8 @@ class Processor:
         and the errors' joint correlation where the calibration holds one (the prior record's
         ``joint_prior_version``).
         ``header`` gets the execution provider; ``keep`` (if given) the route's result as
-        ``"net"`` (the adaptive mode's decisions use its object mask and sigma).
+        ``"net"`` (the adaptive mode's decisions use its object mask and sigma) and the keywords
+        returned as ``"prior"`` (the diffuse route's).
 
         ``known``: the route's results already computed, by the seen state's
         :func:`state_key` and incident state: one there is taken rather than run again (the
@@ -620,10 +665,11 @@ class Processor:
                 if key is not None:
                     known[key] = net
             header["execution_provider"] = net.provider
+            out = {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k,
+                   "prior_correlation": self.single_shot.model.uncertainty.joint_correlation}
             if keep is not None:
-                keep["net"] = net
-            return {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k,
-                    "prior_correlation": self.single_shot.model.uncertainty.joint_correlation}
+                keep["net"], keep["prior"] = net, out
+            return out
 
         return prior
 
@@ -713,6 +759,20 @@ class Processor:
         return TruthScore(truth_path, layout, self.demosaic, s_in, states)
 
 
+def network_normals(normal: np.ndarray | None, grid: tuple[int, int]) -> np.ndarray | None:
+    """The networks' unit normals ``(3, h, w)`` (their own, superpixel grid) on the output grid
+    ``grid`` ``(H, W)``, ``(H, W, 3)``: each network pixel's normal over the output pixels it
+    covers (a full-resolution demosaic's grid is an integer multiple of it); None without
+    normals or on a grid that is no multiple of theirs."""
+    if normal is None:
+        return None
+    h, w = normal.shape[-2:]
+    fy, fx = grid[0] // h, grid[1] // w
+    if (h * fy, w * fx) != tuple(grid):
+        return None
+    return np.repeat(np.repeat(np.moveaxis(np.asarray(normal, np.float64), 0, -1), fy, axis=0), fx, axis=1)
+
+
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
                    device: str = "auto", model_size: str = "auto",
                    models: str = "full") -> Processor:
@@ -720,7 +780,7 @@ def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: Se
     :class:`Processor`)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
                      plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state,
-                     model_size, models)
+                     model_size, models, len(plan.states_deg))
 
 
 class ReconstructIncomplete(PolrigError):
@@ -826,7 +886,9 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         models = "full"
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
                           resolution, device, choice, network_binning, seen_state, model_size,
-                          models)
+                          models, len(acquired))
+    if models == "diffuse":  # before a revision exists
+        check_geometry(single_shot_geometry(calibration, (session.manifest.get("rig") or {}).get("config")))
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
     if not done:
         raise ConfigError(f"{session.root}: no complete capture to reconstruct")

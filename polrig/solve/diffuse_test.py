@@ -94,23 +94,28 @@ def state_stokes(measured: np.ndarray, variance: np.ndarray, valid: np.ndarray |
     """One state's Stokes images from its analyzer samples, by weighted least squares.
 
     ``measured``, ``variance`` ``(C, 4, H, W)`` (the reference solve's units; analyzers 0, 45, 90,
-    135 deg), ``valid`` ``(C, 4, H, W)`` bool or None (all); ``analyzer_rows`` ``(4, 3)`` shared or
-    None (ideal, :func:`polrig.sensor.stokes.ideal_analyzer_matrix`). Returns the Stokes
-    estimate ``(C, 3, H, W)``, its information ``A^T W A`` ``(C, 3, 3, H, W)`` (the inverse of its
+    135 deg), ``valid`` ``(C, 4, H, W)`` bool or None (all); ``analyzer_rows`` ``(4, 3)`` shared,
+    ``(C, 4, 3, H, W)`` per pixel (a calibrated analyzer on the output grid, as
+    :func:`polrig.solve.reference.solve_reference` takes it) or None (ideal,
+    :func:`polrig.sensor.stokes.ideal_analyzer_matrix`). Returns the Stokes estimate
+    ``(C, 3, H, W)``, its information ``A^T W A`` ``(C, 3, 3, H, W)`` (the inverse of its
     covariance) and ``ok`` ``(C, H, W)``: where all four samples are used (finite, positive
     variance, valid); the estimate is NaN elsewhere."""
-    a = ideal_analyzer_matrix() if analyzer_rows is None else np.asarray(analyzer_rows, np.float64)
-    if a.shape != (4, 3):
-        raise ValueError(f"analyzer_rows must be (4, 3), got {a.shape}")
     y = np.asarray(measured, np.float64)
     v = np.asarray(variance, np.float64)
+    a = ideal_analyzer_matrix() if analyzer_rows is None else np.asarray(analyzer_rows, np.float64)
+    if a.shape == (4, 3):
+        a = a[None, :, :, None, None]
+    elif a.shape != y.shape[:2] + (3,) + y.shape[2:]:
+        raise ValueError(f"analyzer_rows must be (4, 3) or {y.shape[:2] + (3,) + y.shape[2:]}, got {a.shape}")
     used = np.isfinite(y) & np.isfinite(v) & (v > 0)
     if valid is not None:
         used &= np.asarray(valid, bool)
     ok = used.all(axis=1)
     w = np.where(used, 1.0 / np.where(used, v, 1.0), 0.0)
-    info = np.einsum("ja,cjhw,jb->cabhw", a, w, a)
-    rhs = np.einsum("ja,cjhw->cahw", a, w * np.where(used, y, 0.0))
+    a = np.broadcast_to(a, y.shape[:2] + (3,) + y.shape[2:])
+    info = np.einsum("cjahw,cjhw,cjbhw->cabhw", a, w, a)
+    rhs = np.einsum("cjahw,cjhw->cahw", a, w * np.where(used, y, 0.0))
     system = np.where(ok[..., None, None], np.moveaxis(info, (1, 2), (-2, -1)), np.eye(3))
     s = np.moveaxis(np.linalg.solve(system, np.moveaxis(rhs, 1, -1)[..., None])[..., 0], -1, 1)
     return np.where(ok[:, None], s, np.nan), info, ok
@@ -246,7 +251,8 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
                             variance: np.ndarray, valid: np.ndarray | None, geometry: DiffuseGeometry, *,
                             prior: tuple[np.ndarray, np.ndarray], seen_state: int = 0,
                             prior_correlation: np.ndarray | None = None, alpha: float = 0.05,
-                            mask: np.ndarray | None = None) -> tuple[ReferenceResult, DiffuseTest, np.ndarray]:
+                            mask: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None
+                            ) -> tuple[ReferenceResult, DiffuseTest, np.ndarray]:
     """Two states' hybrid solve ``result`` with the diffuse term where the samples alone accept it.
 
     :func:`test_diffuse` decides; at the accepted pixels the block is estimated under the
@@ -254,12 +260,14 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
     with ``decided``: the same fit, covariance and model-selection term in the sigma as the
     selection's), and the direction the states leave open is predicted from the geometry
     (:func:`polrig.solve.diffuse_geometry.complete_diffuse`). ``prior``, ``seen_state``,
-    ``prior_correlation``: the hybrid solve's. Returns the result (its ``models`` map: ``rank_one``
+    ``prior_correlation``: the hybrid solve's; ``analyzer_rows``: the samples' analyzer rows, as
+    :func:`polrig.solve.reference.solve_reference` takes them (None: ideal). Returns the result (its ``models`` map: ``rank_one``
     where accepted, ``full`` where tested and not), the test and the completed pixels
     ``(C, H, W)``."""
     states = np.asarray(states, np.float64).reshape(-1, 3)
-    test = test_diffuse(states, measured, variance, valid, geometry, mask=mask, alpha=alpha)
-    chosen, _ = select_models(states, measured, variance, valid, None, result,
+    test = test_diffuse(states, measured, variance, valid, geometry, mask=mask, alpha=alpha,
+                        analyzer_rows=analyzer_rows)
+    chosen, _ = select_models(states, measured, variance, valid, analyzer_rows, result,
                               SelectionOptions(alpha=alpha, models=("rank_one",)), prior=prior,
                               seen_state=seen_state, prior_correlation=prior_correlation,
                               decided=test.accepted[None])

@@ -146,6 +146,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from polrig.choices import MODEL_CHOICES as _MODEL_CHOICES
 from polrig.errors import ConfigError
 from polrig.sensor.stokes import ideal_analyzer_matrix
 from polrig.solve.reduced_models import MODEL_CODES, MODELS, block_covariance, fit_model
@@ -165,8 +166,9 @@ __all__ = ["UNTESTED", "SelectionOptions", "ModelMaps", "select_models", "chi2_s
 #: Model map code of a pixel that was not tested (its samples do not determine the block).
 UNTESTED = 255
 
-#: The ``--models`` choices: ``full`` (no selection, the default) and ``auto``.
-MODEL_CHOICES = ("full", "auto")
+#: The ``--models`` choices: ``full`` (no selection, the default), ``auto`` (this module) and
+#: ``diffuse`` (two states: :mod:`polrig.solve.diffuse_test`), from :mod:`polrig.choices`.
+MODEL_CHOICES = _MODEL_CHOICES
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from polrig.choices import (
     DEMOSAIC_METHODS,
     EXR_COMPRESSIONS,
     EXR_UNCERTAINTY_PRECISIONS,
+    MODEL_CHOICES,
     NETWORK_BINNINGS,
     PLANE_GROUPS,
 )
@@ -124,14 +125,18 @@ def metadata_option(args: argparse.Namespace):
 
 
 def add_models_option(p: argparse.ArgumentParser) -> None:
-    """``--models full|auto``: lower-order models per pixel (``capture`` and ``reconstruct``;
-    :mod:`polrig.solve.model_selection`)."""
-    p.add_argument("--models", choices=("full", "auto"), default=None,
+    """``--models full|auto|diffuse``: lower-order models per pixel (``capture`` and ``reconstruct``;
+    :mod:`polrig.solve.model_selection`, :mod:`polrig.app.diffuse_route`)."""
+    p.add_argument("--models", choices=MODEL_CHOICES, default=None,
                    help="full (default): the 3x3 block at every pixel; auto (reference and hybrid "
                         "modes): per pixel the lower-order model (depolarizer, diattenuator, "
                         "retarder, Fresnel-type, rank one...) that a likelihood-ratio test at "
-                        "level 0.05 accepts, estimated under it; the model map (model.{colour}, "
-                        "codes in the header) and its statistic are always written")
+                        "level 0.05 accepts, estimated under it; diffuse (hybrid mode, two states): "
+                        "per pixel the diffuse term tested on the two states' samples alone (level "
+                        "0.05) and, where accepted, the direction they leave open predicted from the "
+                        "rig's geometry (calibrated light and turntable, or [nominal_geometry]); the "
+                        "model map (model.{colour}, codes in the header) and its statistic are "
+                        "always written")
 
 
 def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
