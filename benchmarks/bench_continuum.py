@@ -16,7 +16,7 @@ colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; ab
 shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``). ``--models``
 runs only the lower-order model comparison at two states (0/90: single-shot, hybrid 2, hybrid 2
 with ``select_models``, its diffuse completion, and the diffuse term tested on the samples alone,
-``polrig.solve.diffuse_test``; 64 samples per set; 62 min on 2 shared CPUs) into
+``polrig.solve.diffuse_test``; 64 samples per set; 9 min on 2 shared CPUs) into
 ``benchmarks/results/continuum_models.md`` (``.json``); the full run holds it too, as its last
 table. ``--joint`` compares the per-element prior with the joint one (``joint_prior`` in
 ``uncertainty.json``; ``--joint-compare``: the two-state test's false acceptance, coverage and
