@@ -98,9 +98,9 @@ def test_a_two_state_capture_of_a_diffuse_sphere_end_to_end(tmp_path, capsys):
     out = tmp_path / "run"
     # bilinear: the superpixel's four analyzers see four places, and across a small sphere's
     # shading that instantaneous-field-of-view error is a false polarization the size of the
-    # diffuse term's own (measured on this rig: the diffuse route -0.8..-2.1 dB against the
-    # plain hybrid with superpixel at 64-256 pixels, +2.6..+4.3 dB with bilinear; +1.9 dB
-    # with superpixel at 512)
+    # diffuse term's own (measured on this rig, python -m benchmarks diffuse_route: the diffuse
+    # route -2.2..+0.4 dB against the plain hybrid with superpixel at 64-256 pixels, +2.6..+4.3 dB
+    # with bilinear)
     assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,90", "--models", "diffuse",
                  "--demosaic", "bilinear", "--device", "cpu", "--config", str(cfg), "--out", str(out),
                  "--no-progress"]) == 0
