@@ -34,6 +34,17 @@ def test_view_directions_are_the_pixels_rays_reversed():
     np.testing.assert_allclose(view[40, 10], -np.array([0.0, 0.4, 1.0]) / np.sqrt(1.16), atol=1e-15)
 
 
+def test_the_networks_normals_cover_the_output_pixels_of_their_own():
+    normal = np.random.default_rng(0).normal(size=(3, 4, 5))
+    same = dr.network_normals(normal, (4, 5))
+    np.testing.assert_array_equal(same, np.moveaxis(normal, 0, -1))
+    up = dr.network_normals(normal, (8, 10))  # a full-resolution demosaic's grid
+    assert up.shape == (8, 10, 3)
+    np.testing.assert_array_equal(up[5, 7], normal[:, 2, 3])
+    np.testing.assert_array_equal(up[4:6, 6:8].reshape(-1, 3), np.tile(normal[:, 2, 3], (4, 1)))
+    assert dr.network_normals(normal, (9, 10)) is None and dr.network_normals(None, (4, 5)) is None
+
+
 @pytest.mark.parametrize("point, axis", [((0.1, -0.2, 0.5), (0.0, 1.0, 0.0)), ((0.3, 0.1, 0.7), (0.2, -0.9, 0.4)),
                                          ((0.0, 0.0, 0.4), (0.0, 0.0, 1.0))])
 def test_the_object_point_is_the_axis_point_nearest_the_optical_axis(point, axis):

@@ -51,7 +51,8 @@ from polrig.solve.radiometry import StateRadiance, analyzer_stack
 from polrig.solve.reference import ReferenceResult
 
 __all__ = ["LIGHTS", "DIFFUSE_PLANES", "GEOMETRY_NEEDED", "check_diffuse_states", "missing_geometry",
-           "check_geometry", "view_directions", "capture_geometry", "solve_diffuse", "diffuse_header"]
+           "check_geometry", "view_directions", "network_normals", "capture_geometry", "solve_diffuse",
+           "diffuse_header"]
 
 #: The candidate light fields, in the order :func:`capture_geometry` gives them.
 LIGHTS = ("at the object's distance along each pixel's ray", "from the object's centre")
@@ -68,14 +69,14 @@ DIFFUSE_PLANES = {
     "model_p": "its p-value"}
 
 
-def check_diffuse_states(mode: str, n_states: int) -> None:
-    """The diffuse test's plan: the hybrid mode at exactly two polarizer states (one-line
-    :class:`PlanError` s of ``models``)."""
+def check_diffuse_states(mode: str, n_states: int | None) -> None:
+    """The diffuse test's plan: the hybrid mode at exactly two polarizer states (``n_states``;
+    None: not known yet, not checked); one-line :class:`PlanError` s of ``models``."""
     if mode != "hybrid":
         raise PlanError("models", f"the diffuse test completes the hybrid method at two polarizer "
                                   f"states, not the {mode} mode: use --mode hybrid --states A,B",
                         subject="diffuse", what="models")
-    if n_states != 2:
+    if n_states is not None and n_states != 2:
         raise PlanError("models", f"the diffuse test takes two polarizer states, the plan has "
                                   f"{n_states}: at three or more, use --models auto",
                         subject="diffuse", what="models")
@@ -107,14 +108,29 @@ def view_directions(intrinsics: Sequence[float], shape: tuple[int, int]) -> np.n
     return -ray / np.linalg.norm(ray, axis=-1, keepdims=True)
 
 
+def network_normals(normal: np.ndarray | None, grid: tuple[int, int]) -> np.ndarray | None:
+    """The networks' unit normals ``(3, h, w)`` (camera frame, on their own superpixel grid) on
+    the output grid ``grid`` ``(H, W)``, ``(H, W, 3)``: each network pixel's normal over the output
+    pixels it covers (a full-resolution demosaic's grid is an integer multiple of it); None
+    without normals (the device route keeps none) or on a grid that is no multiple of theirs."""
+    if normal is None:
+        return None
+    h, w = normal.shape[-2:]
+    fy, fx = grid[0] // h, grid[1] // w
+    if (h * fy, w * fx) != tuple(grid):
+        return None
+    return np.repeat(np.repeat(np.moveaxis(np.asarray(normal, np.float64), 0, -1), fy, axis=0), fx, axis=1)
+
+
 def capture_geometry(geometry: Mapping[str, Any], frame: Frame, grid_shape: tuple[int, int],
-                     normal_guess: np.ndarray | None = None) -> DiffuseGeometry:
+                     network_normal: np.ndarray | None = None) -> DiffuseGeometry:
     """What the rig knows of the output grid's geometry (module docstring).
 
     ``geometry``: :func:`polrig.app.calibrations.single_shot_geometry`'s (every key of
     :data:`GEOMETRY_NEEDED` known; :func:`check_geometry`); ``frame``: the capture's first raw
     frame (its readout offset and size carry the intrinsics to the grid); ``grid_shape``
-    ``(H, W)``; ``normal_guess`` ``(H, W, 3)`` unit normals in the camera frame or None."""
+    ``(H, W)``; ``network_normal``: the networks' normals ``(3, h, w)`` or None, the completion's
+    first guess (:func:`network_normals`)."""
     check_geometry(geometry)
     intr = analyzer_grid_intrinsics(geometry["intrinsics"], frame.meta.offset_xy, frame.raw.shape, grid_shape)
     view = view_directions(intr, grid_shape)
@@ -125,7 +141,7 @@ def capture_geometry(geometry: Mapping[str, Any], frame: Frame, grid_shape: tupl
                            light=(light_directions(light, view, float(np.linalg.norm(centre))),
                                   from_centre / np.linalg.norm(from_centre)),
                            stage_zero_axis=np.asarray(geometry["stage_zero_axis_camera"], np.float64),
-                           normal_guess=normal_guess)
+                           normal_guess=network_normals(network_normal, grid_shape))
 
 
 def solve_diffuse(result: ReferenceResult, s_in: np.ndarray, states: Sequence[StateRadiance],

@@ -438,7 +438,7 @@ class Processor:
             raise PlanError("models", "model selection tests the samples of the polarizer states: "
                                       "use the reference or hybrid mode")
         if models == "diffuse":
-            check_diffuse_states(mode, 2 if n_states is None else int(n_states))
+            check_diffuse_states(mode, n_states)
         #: ``full``, ``auto`` (model selection, :mod:`polrig.solve.model_selection`) or
         #: ``diffuse`` (:mod:`polrig.app.diffuse_route`)
         self.models = models
@@ -608,7 +608,7 @@ class Processor:
         the network's object pixels. Returns the result and its header entries."""
         net: SingleShotResult = keep["net"]
         grid = result.mueller.shape[-2:]
-        where = capture_geometry(geometry, cf.first, grid, network_normals(net.network_grid.get("normal"), grid))
+        where = capture_geometry(geometry, cf.first, grid, net.network_grid.get("normal"))
         out, test, completed = solve_diffuse(result, s_in, states, lay, self.demosaic,
                                              capture_analyzer(cf, self.calibration), where,
                                              prior=keep["prior"], mask=net.object)
@@ -757,20 +757,6 @@ class Processor:
                               polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1),
                               None, self.sensor_model, exposure_us)
         return TruthScore(truth_path, layout, self.demosaic, s_in, states)
-
-
-def network_normals(normal: np.ndarray | None, grid: tuple[int, int]) -> np.ndarray | None:
-    """The networks' unit normals ``(3, h, w)`` (their own, superpixel grid) on the output grid
-    ``grid`` ``(H, W)``, ``(H, W, 3)``: each network pixel's normal over the output pixels it
-    covers (a full-resolution demosaic's grid is an integer multiple of it); None without
-    normals or on a grid that is no multiple of theirs."""
-    if normal is None:
-        return None
-    h, w = normal.shape[-2:]
-    fy, fx = grid[0] // h, grid[1] // w
-    if (h * fy, w * fx) != tuple(grid):
-        return None
-    return np.repeat(np.repeat(np.moveaxis(np.asarray(normal, np.float64), 0, -1), fy, axis=0), fx, axis=1)
 
 
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
