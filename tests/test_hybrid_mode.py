@@ -268,6 +268,13 @@ def test_the_gui_capture_panel_offers_the_hybrid_mode(qtbot, tmp_path):
     assert (request.mode, request.states_deg, request.seen_state) == ("hybrid", (0.0, 60.0), 1)
     assert (request.resolution, request.network_binning) == ("superpixel", 1)
     assert request.plan().seen_state == 1
+    # the models per pixel: the CLI's choices, full by default, none for the single-shot mode
+    assert [cp.models.itemText(i) for i in range(cp.models.count())] == ["full", "auto", "diffuse"]
+    assert request.models == "full" and cp.models.isEnabled()
+    cp.models.setCurrentText("diffuse")
+    assert cp.request().models == "diffuse"
+    cp.mode.setCurrentText("single-shot")
+    assert not cp.models.isEnabled() and cp.request().models == "full"
     close_window(qtbot, w)
 
 

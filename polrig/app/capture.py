@@ -167,7 +167,8 @@ class CaptureRequest:
     #: which shipped single-shot model (``auto``, ``small``, ``large``: :mod:`polrig.models.sizes`):
     #: a run option like ``device``; each result records its size, training hardware and minutes
     model_size: str = "auto"
-    #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`;
+    #: ``full``, ``auto`` or ``diffuse``: lower-order models per pixel (:mod:`polrig.solve.model_selection`,
+    #: :mod:`polrig.app.diffuse_route`;
     #: reference and hybrid modes): a processing option like ``device``, not part of the plan;
     #: each result records its own choice (its ``models`` view in the manifest, the header's
     #: ``model_selection``)

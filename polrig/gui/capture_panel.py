@@ -70,6 +70,7 @@ from polrig.app.capture import (
 )
 from polrig.app.manifest import SampleMetadata
 from polrig.app.preview import tone_map
+from polrig.choices import MODEL_CHOICES
 from polrig.errors import PolrigError
 from polrig.formats.exr import (
     COMPRESSIONS,
@@ -218,6 +219,14 @@ class CapturePanel(QWidget):
             self.mode.currentTextChanged.connect(
                 lambda m, w=w: w.setEnabled(m in NETWORK_MODES))
         self.mode.currentTextChanged.connect(lambda m: self.seen_state.setEnabled(m == "hybrid"))
+        self.models = QComboBox()
+        self.models.addItems(list(MODEL_CHOICES))
+        self.models.setToolTip("full: the 3x3 block at every pixel; auto (reference, hybrid): per pixel "
+                               "the lower-order model a likelihood-ratio test accepts; diffuse (hybrid, two "
+                               "states): the diffuse term tested on their samples alone and the direction "
+                               "they leave open predicted from the rig's geometry. The model map is always "
+                               "written")
+        self.mode.currentTextChanged.connect(lambda m: self.models.setEnabled(m != "single-shot"))
         # adaptive: the stopping rule (polrig.acquisition.plan.check_adaptive_target checks it)
         self.target_sigma = QDoubleSpinBox()
         self.target_sigma.setDecimals(4)
@@ -296,6 +305,7 @@ class CapturePanel(QWidget):
         form.addRow("Network device", self.device)
         form.addRow("Model size", self.model_size)
         form.addRow("Seen state (hybrid)", self.seen_state)
+        form.addRow("Models per pixel", self.models)
         form.addRow("Target (adaptive)", self.adaptive_target)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
@@ -380,7 +390,8 @@ class CapturePanel(QWidget):
         calibration = self.calibration.text().strip()
         base = dict(out=pathlib.Path(out), resume=resume,
                     calibration=pathlib.Path(calibration) if calibration else None,
-                    device=self.device.currentText(), model_size=self.model_size.currentText())
+                    device=self.device.currentText(), model_size=self.model_size.currentText(),
+                    models=self.models.currentText() if self.mode.currentText() != "single-shot" else "full")
         if resume:
             return CaptureRequest(**base)
         states, exposure = self.states.text().strip(), self.exposure.text().strip()

@@ -139,6 +139,7 @@ class MainWindow(QMainWindow):
         b.bind("capture/network_binning", st.combo_binding(cp.binning))
         b.bind("capture/device", st.combo_binding(cp.device))
         b.bind("capture/model_size", st.combo_binding(cp.model_size))
+        b.bind("capture/models", st.combo_binding(cp.models))
         b.bind("capture/demosaic", st.combo_binding(cp.demosaic))
         b.bind("capture/frames", st.int_binding(cp.frames))
         b.bind("capture/dark_frames", st.int_binding(cp.dark_frames))
