@@ -2,7 +2,7 @@
 reference solve on the model card's held-out sets (issue 33 item 4).
 
 ``python -m benchmarks continuum`` runs :mod:`polrig.models.continuum` with the settings of the
-committed table (64 samples per set at 64x64, the 2- and 3-state search on 32; about 18 min on
+committed table (64 samples per set at 64x64, the 2- and 3-state search on 32; about 14 min on
 2 shared CPUs) and writes ``benchmarks/results/continuum.md`` with its ``.json`` and the
 accuracy-against-time plot ``.png``: matrix PSNR (all object pixels, and those with no clipped
 sample), forward Stokes L2, coverage within 2 sigma, the seen state's treatment, and 3 against 4
