@@ -468,9 +468,10 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
 
     ``decided`` ``(C, H, W)`` bool: the caller's own test decided, and this module only
     estimates: a candidate counts as accepted exactly where ``decided`` holds (and its fit is
-    finite), whatever its statistic (which the maps still hold), e.g. the diffuse term tested on
+    finite), whatever its statistic (which the maps hold there), e.g. the diffuse term tested on
     two states' samples alone (:mod:`polrig.solve.diffuse_test`) with ``options.models =
-    ("rank_one",)``."""
+    ("rank_one",)``. Elsewhere nothing is fitted: the full block as given, code ``0`` (where not
+    ill-conditioned), no statistic."""
     opts = options or SelectionOptions()
     models = sorted((m for m in MODELS if m.name in opts.models), key=lambda m: m.n_params)
     crit = {m.code: chi2_critical(9 - m.n_params, opts.alpha) for m in models}
@@ -487,8 +488,11 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     if decided is not None:
         decided = np.broadcast_to(np.asarray(decided, bool), (n_col, h, w))
     for c in range(n_col):
-        testable = ((result.mask[c] & ILL_CONDITIONED) == 0) & (
-            result.pixel_condition[c] <= opts.max_condition)
+        solved = (result.mask[c] & ILL_CONDITIONED) == 0
+        if decided is not None:  # the caller's test rejected: the full block, nothing to fit
+            code[c][solved & ~decided[c]] = 0
+            solved = solved & decided[c]
+        testable = solved & (result.pixel_condition[c] <= opts.max_condition)
         idx = np.flatnonzero(testable.ravel())
         for p0 in range(0, idx.size, max(1, int(chunk_pixels))):
             pix = idx[p0:p0 + chunk_pixels]
@@ -499,7 +503,7 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                             out, code, stat, pval, decided=None if decided is None else decided[c].ravel()[pix])
         if prior is None:
             continue
-        rest = np.flatnonzero((~testable & ((result.mask[c] & ILL_CONDITIONED) == 0)).ravel())
+        rest = np.flatnonzero((~testable & solved).ravel())
         for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
             pix = rest[p0:p0 + chunk_pixels]
             _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
