@@ -210,19 +210,27 @@ def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray,
         raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
     measured = np.asarray(measured)
     n_col, h, w = measured.shape[1], measured.shape[-2], measured.shape[-1]
-    per_state = [state_stokes(measured[j], variance[j], None if valid is None else valid[j], analyzer_rows)
+    # the Stokes estimates of the masked pixels only (as a (P, 1) image): the whole image's
+    # float64 information would cost memory and time for nothing at the full sensor
+    ys, xs = np.nonzero(np.ones((h, w), bool) if mask is None else np.asarray(mask, bool))
+    rows = analyzer_rows
+    if rows is not None and np.ndim(rows) == 5:
+        rows = np.asarray(rows)[..., ys, xs][..., None]
+    per_state = [state_stokes(np.asarray(measured[j])[..., ys, xs][..., None],
+                              np.asarray(variance[j])[..., ys, xs][..., None],
+                              None if valid is None else np.asarray(valid[j])[..., ys, xs][..., None], rows)
                  for j in range(2)]
-    tested = np.all([ok.all(axis=0) for _, _, ok in per_state], axis=0)
-    if mask is not None:
-        tested &= np.asarray(mask, bool)
+    used = np.all([ok.all(axis=0)[:, 0] for _, _, ok in per_state], axis=0)  # (P,)
+    tested = np.zeros((h, w), bool)
+    tested[ys[used], xs[used]] = True
     df = degrees_of_freedom(n_col)
-    ys, xs = np.nonzero(tested)
+    ys, xs = ys[used], xs[used]
     nan_img = np.full((h, w), np.nan)
     if not len(ys):
         return DiffuseTest(np.zeros((h, w), bool), nan_img, nan_img.copy(), tested, np.zeros((h, w, 3)),
                            np.zeros((n_col, h, w)), df, float(alpha), None, None)
-    stokes = np.stack([s[..., ys, xs] for s, _, _ in per_state], axis=1)  # (C, 2, 3, P)
-    info = np.stack([q[..., ys, xs] for _, q, _ in per_state], axis=1)  # (C, 2, 3, 3, P)
+    stokes = np.stack([s[..., used, 0] for s, _, _ in per_state], axis=1)  # (C, 2, 3, P)
+    info = np.stack([q[..., used, 0] for _, q, _ in per_state], axis=1)  # (C, 2, 3, 3, P)
     view = np.asarray(geometry.view, np.float64)[ys, xs]
     lights = light_fields(geometry, ys, xs)
     fixed = (geometry.stage_zero_axis, geometry.camera_x_axis)
