@@ -467,6 +467,9 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
 
 
 def test_calibration_step_out_of_order_is_a_readable_failure(qtbot, window, tmp_path):
+    # the devices open on their own thread: a step started before they are open fails on the
+    # camera (DeviceDisconnected), not on the missing intrinsics this test is about
+    wait_connected(qtbot, window)
     cal = window.calibration
     cal.run_selected()
     assert "choose a calibration set folder" in window.messages.messages[-1][1]
