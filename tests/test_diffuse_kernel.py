@@ -13,6 +13,7 @@ import pytest
 from polrig.optics.pbrdf import linear_rig_mueller
 from polrig.sensor.stokes import ideal_analyzer_matrix
 from polrig.solve import _diffuse_numpy as oracle
+from polrig.solve import chunks
 from polrig.solve import diffuse_geometry as dg
 from polrig.solve import diffuse_test as dt
 
@@ -137,9 +138,9 @@ def test_results_do_not_depend_on_threads_or_chunks(monkeypatch):
     rng = np.random.default_rng(21)
     stokes, info, view, light = _statistic_inputs(150, 1.5, rng)
     args = (stokes, info, STATES, view, light, 1.5, STAGE, CAM)
-    monkeypatch.setattr(dg, "_THREADS", 1)
+    monkeypatch.setattr(chunks, "THREADS", 1)
     one = dt.diffuse_statistic(*args)
-    monkeypatch.setattr(dg, "_THREADS", 3)
+    monkeypatch.setattr(chunks, "THREADS", 3)
     monkeypatch.setattr(dg, "_CHUNK_PIXELS", 7)
     many = dt.diffuse_statistic(*args)
     for a, b in zip(one, many):

@@ -10,6 +10,7 @@ import pytest
 
 from polrig.optics import mueller as mu
 from polrig.solve import _reduced_kernel as kern
+from polrig.solve import chunks
 from polrig.solve import model_selection as ms
 from polrig.solve import reduced_models as rm
 from polrig.solve import reference as ref
@@ -108,7 +109,7 @@ def test_fits_do_not_depend_on_the_threads_or_the_chunking(monkeypatch):
     normal, m_hat = noisy_normal_equations(rng, mixed_blocks(rng, 30, 3000.0))
     results = []
     for threads, chunk in ((1, 256), (3, 7)):
-        monkeypatch.setattr(rm, "_THREADS", threads)
+        monkeypatch.setattr(chunks, "THREADS", threads)
         monkeypatch.setattr(rm, "_CHUNK_PIXELS", chunk)
         results.append([rm.fit_model(m, m_hat, normal) for m in NONLINEAR])
     for a, b in zip(*results):

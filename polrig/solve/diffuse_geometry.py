@@ -61,14 +61,12 @@ surface -> camera, ``light`` surface -> light.
 from __future__ import annotations
 
 import dataclasses
-import os
-from concurrent.futures import ThreadPoolExecutor
-from itertools import pairwise
 from typing import NamedTuple
 
 import numpy as np
 
 from polrig.optics.pbrdf import linear_rig_mueller
+from polrig.solve.chunks import in_chunks
 from polrig.solve.reference import ILL_CONDITIONED, ReferenceResult
 from polrig.solve.reduced_models import MODELS
 
@@ -97,9 +95,7 @@ COST_CAP = 16.0
 ETA_SAMPLE = 256
 #: The coarse grid of normals about the view direction (deg), refined twice by halving.
 ZENITH_STEP_DEG, AZIMUTH_STEP_DEG, MAX_ZENITH_DEG = 5.0, 10.0, 85.0
-#: Threads the compiled search runs pixel chunks on (the CPUs this process may use), chunks of
-#: at least ``_CHUNK_PIXELS`` pixels (a few milliseconds of work each).
-_THREADS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+#: Pixels a chunk of the compiled search has at least (a few milliseconds of work each).
 _CHUNK_PIXELS = 64
 
 
@@ -209,17 +205,11 @@ def _search_grid(steps_deg: tuple[float, float], refine: int
 
 
 def _in_chunks(p: int, work) -> None:
-    """``work(sl)`` for slices ``sl`` covering ``range(p)``, on up to :data:`_THREADS` threads
-    (chunks of at least :data:`_CHUNK_PIXELS` pixels, four a thread where there are enough): the
-    compiled search releases the GIL and its pixels are independent, so the results do not
-    depend on the chunking."""
-    n_chunks = max(1, min(4 * _THREADS, p // _CHUNK_PIXELS))
-    if n_chunks == 1:
-        work(slice(0, p))
-        return
-    bounds = np.linspace(0, p, n_chunks + 1).astype(int)
-    with ThreadPoolExecutor(min(_THREADS, n_chunks), thread_name_prefix="diffuse-search") as pool:
-        list(pool.map(work, [slice(a, b) for a, b in pairwise(bounds)]))
+    """``work(sl)`` for slices ``sl`` covering ``range(p)``: :func:`polrig.solve.chunks.in_chunks`
+    with chunks of at least :data:`_CHUNK_PIXELS` pixels, four a thread where there are enough
+    (the compiled search releases the GIL and its pixels are independent, so the results do not
+    depend on the chunking)."""
+    in_chunks(p, work, min_pixels=_CHUNK_PIXELS, per_thread=4, name="diffuse-search")
 
 
 def _search(pix: np.ndarray, eta: float, obs: _Observed, geo: _Pixels, refine: int) -> tuple[np.ndarray, np.ndarray]:

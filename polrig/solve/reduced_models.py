@@ -59,15 +59,13 @@ parametrisation is singular, e.g. ``u = v = 0``).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from itertools import pairwise
 
 import numpy as np
 
 from polrig.optics.mueller import jones_to_mueller
+from polrig.solve.chunks import in_chunks
 
 __all__ = ["ReducedModel", "MODELS", "MODEL_CODES", "fit_model", "block_covariance", "random_blocks"]
 
@@ -299,9 +297,8 @@ def _ridge(a: np.ndarray) -> np.ndarray:
     return a + eps[:, None, None] * np.eye(k)
 
 
-#: threads the compiled fits run on (the CPUs this process may use); a chunk has at least
-#: ``_CHUNK_PIXELS`` pixels (a thread per few hundred microseconds of work at least)
-_THREADS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+#: pixels a chunk of the compiled fits has at least (a thread per few hundred microseconds of
+#: work at least; the threads: :data:`polrig.solve.chunks.THREADS`)
 _CHUNK_PIXELS = 256
 
 
@@ -315,7 +312,7 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
     the full block; non-finite where the fit failed) and the Jacobian ``(P, 9, k)`` at the
     optimum (for :func:`block_covariance`). Nonlinear models: the compiled kernel
     (:func:`polrig.solve._reduced_kernel.fit_nonlinear`, chunks of pixels on up to
-    ``_THREADS`` threads, every start in turn, the lowest ``q`` kept; ``q`` and the block NaN
+    the CPUs' threads, :func:`polrig.solve.chunks.in_chunks`, every start in turn, the lowest ``q`` kept; ``q`` and the block NaN
     where ``N`` is not positive definite)."""
     if model.linear:
         return _fit_linear(model, m_hat, normal)
@@ -331,13 +328,7 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
         kern.fit_nonlinear(model.code, m_hat[sl], normal[sl], starts[sl], int(iterations),
                            theta[sl], m[sl], q[sl])
 
-    n_threads = max(1, min(_THREADS, p // _CHUNK_PIXELS))
-    if n_threads == 1:
-        fit(slice(0, p))
-    else:
-        bounds = np.linspace(0, p, n_threads + 1).astype(int)
-        with ThreadPoolExecutor(n_threads, thread_name_prefix="reduced-fit") as pool:
-            list(pool.map(fit, [slice(a, b) for a, b in pairwise(bounds)]))
+    in_chunks(p, fit, min_pixels=_CHUNK_PIXELS, name="reduced-fit")
     return m, q, model.jacobian(theta)
 
 
