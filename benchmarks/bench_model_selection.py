@@ -50,6 +50,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from polrig.optics.mueller import polarizer_stokes  # noqa: E402
+from polrig.solve import chunks  # noqa: E402
 from polrig.solve import model_selection as ms  # noqa: E402
 from polrig.solve import reduced_models as rm  # noqa: E402
 from polrig.solve import reference as ref  # noqa: E402
@@ -261,7 +262,7 @@ def throughput(sizes, rounds: int, oracle_max: int) -> list[dict]:
 
 def throughput_markdown(rows: list[dict], rounds: int) -> str:
     text = (f"### Throughput (mixed scene, 3 colours, 4 states; median of {rounds} interleaved rounds, "
-            f"warm, in process; {rm._THREADS} fit threads, {os.cpu_count()} CPUs shared "
+            f"warm, in process; {chunks.THREADS} fit threads, {os.cpu_count()} CPUs shared "
             "with other work)\n\n"
             "| size | pixel-colours | accepted | reference solve | selection | selection, numpy fits "
             "(previous) | speed-up | same codes | full sensor (1224x1024x3): reference + selection |\n"
