@@ -265,3 +265,69 @@ def test_completion_after_the_test_recovers_the_open_direction():
     after = np.sqrt(np.mean((along(out.mueller.astype(np.float64)) - along(truth)) ** 2))
     assert after < before / 3
     assert np.sqrt(np.mean((out.mueller - truth) ** 2)) < np.sqrt(np.mean((r.mueller - truth) ** 2))
+
+
+def test_neighbour_bias_is_the_chosen_neighbours_mean_deviation():
+    """Against a loop over every pixel: the mean deviation over the chosen pixels of the same
+    colour in the window (clipped at the edges), 0 where not chosen; a window of one is the
+    pixel's own deviation."""
+    rng = np.random.default_rng(3)
+    dev = rng.normal(size=(2, 3, 3, 9, 11))
+    chosen = rng.random((2, 9, 11)) < 0.6
+    got = dt.neighbour_bias(dev, chosen[:, None, None], window=5)
+    want = np.zeros_like(got)
+    for c, y, x in np.ndindex(2, 9, 11):
+        if chosen[c, y, x]:
+            ys, xs = slice(max(0, y - 2), y + 3), slice(max(0, x - 2), x + 3)
+            want[c, :, :, y, x] = dev[c, :, :, ys, xs][..., chosen[c, ys, xs]].mean(axis=-1)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    assert dt.neighbour_bias(dev, chosen[:, None, None], window=1) == pytest.approx(np.where(chosen[:, None, None], dev, 0))
+    # one plane with its own (H, W) choice: the same numbers as the stack's
+    np.testing.assert_array_equal(dt.neighbour_bias(dev[1, 2, 0], chosen[1], window=5), got[1, 2, 0])
+
+
+def _coverage_with_and_without_neighbours(monkeypatch, bias: float):
+    """Diffuse truth with ``m11`` and ``m22`` raised by ``bias`` times ``m00`` (as a weak specular
+    reflection adds; no rank-one block holds it), its frames and a prior off along the open
+    direction: the share accepted, and of the accepted pixels' elements (all, ``m11``) the share
+    within 2 sigma, with the neighbours' bias and with each pixel's own deviation alone."""
+    view, light, normal = _surface(24, 24, 21)
+    truth = _blocks(view, light, normal, 1.5, "diffuse", [0.9, 0.7, 0.5])
+    truth[:, 1, 1] += bias * truth[:, 0, 0]
+    truth[:, 2, 2] += bias * truth[:, 0, 0]
+    rng = np.random.default_rng(121)
+    meas, var, _ = _frames(truth, rng)
+    u = dg.unobserved_direction(STATES)
+    err = rng.normal(0, 0.05, truth.shape[:2] + truth.shape[3:]) * truth[:, 0, 0].max()
+    prior = truth + err[:, :, None] * u[None, None, :, None, None]
+    sigma = np.full(truth.shape, 0.05 * truth[:, 0, 0].max())
+    geo = _geometry(view, light, normal)
+    r = _hybrid(truth, meas, var, prior, sigma)
+
+    def within():
+        out, test, _ = dt.complete_tested_diffuse(r, STATES, meas, var, None, geo, prior=(prior, sigma))
+        ok = (np.abs(out.mueller - truth) <= 2 * out.sigma)[..., test.accepted]
+        return test.accepted.mean(), ok.mean(), ok[:, 1, 1].mean()
+
+    accepted, *neighbours = within()
+    with monkeypatch.context() as m:
+        m.setattr(dt, "neighbour_bias", lambda d, chosen: d)
+        _, *alone = within()
+    return accepted, neighbours, alone
+
+
+def test_the_sigma_holds_a_bias_the_test_cannot_detect(monkeypatch):
+    """A bias of 1.5 % of ``m00`` in ``m11``: the test still accepts most pixels; with each
+    pixel's own deviation alone ``m11`` is within 2 sigma on about 82 % of them, with the
+    neighbours' bias as often as a sigma should say."""
+    accepted, (_, m11), (_, m11_alone) = _coverage_with_and_without_neighbours(monkeypatch, 0.015)
+    assert accepted > 0.85
+    assert m11_alone < 0.9
+    assert 0.93 <= m11 <= 0.99
+
+
+def test_the_neighbours_add_nothing_where_the_model_holds(monkeypatch):
+    """Exact diffuse truth: the neighbours' mean deviation is noise averaged down, and the
+    sigma is as wide as each pixel's own deviation makes it (within half a point)."""
+    _, (every, _), (every_alone, _) = _coverage_with_and_without_neighbours(monkeypatch, 0.0)
+    assert abs(every - every_alone) < 0.005
