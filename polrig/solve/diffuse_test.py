@@ -58,6 +58,7 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from polrig.sensor.stokes import ideal_analyzer_matrix
@@ -304,17 +305,15 @@ def neighbour_bias(deviation: np.ndarray, chosen: np.ndarray, window: int = POOL
     chosen = np.asarray(chosen, bool)
     dev = np.where(chosen, np.asarray(deviation, np.float64), 0.0)
     r = int(window) // 2
-    h, w = dev.shape[-2:]
 
-    def box(a: np.ndarray) -> np.ndarray:  # sums over the clipped window, by integral images
-        c = np.zeros(a.shape[:-2] + (h + 1, w + 1))
-        c[..., 1:, 1:] = a.cumsum(-2).cumsum(-1)
-        y0, y1 = np.clip(np.arange(h) - r, 0, h), np.clip(np.arange(h) + r + 1, 0, h)
-        x0, x1 = np.clip(np.arange(w) - r, 0, w), np.clip(np.arange(w) + r + 1, 0, w)
-        return (c[..., y1[:, None], x1] - c[..., y0[:, None], x1] - c[..., y1[:, None], x0]
-                + c[..., y0[:, None], x0])
+    def box(a: np.ndarray) -> np.ndarray:  # sums over the window, zeros beyond the edge, plane by plane
+        out = np.empty(a.shape)
+        for i in np.ndindex(a.shape[:-2]):
+            out[i] = cv2.boxFilter(a[i], cv2.CV_64F, (2 * r + 1, 2 * r + 1), normalize=False,
+                                   borderType=cv2.BORDER_CONSTANT)
+        return out
 
-    count = box(chosen.astype(np.float64))
+    count = box(np.broadcast_to(chosen, dev.shape).astype(np.float64))
     return np.where(chosen, box(dev) / np.maximum(count, 1.0), 0.0)
 
 
