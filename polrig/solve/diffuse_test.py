@@ -368,8 +368,7 @@ def _floor_at_neighbour_bias(out: ReferenceResult, full: ReferenceResult, states
         for r in range(3):
             dev = np.where(chosen, out.mueller[c, r].astype(np.float64) - full.mueller[c, r].astype(np.float64), 0.0)
             observed = dev - np.einsum("k...,k->...", dev, u)[None] * u[:, None, None]
-            for k in range(3):
-                extra = np.maximum(neighbour_bias(observed[k], chosen) ** 2 - dev[k] ** 2, 0.0)
-                sigma[c, r, k] = np.sqrt(sigma[c, r, k].astype(np.float64) ** 2 + extra)
+            extra = np.maximum(neighbour_bias(observed, chosen) ** 2 - dev**2, 0.0)
+            sigma[c, r] = np.sqrt(sigma[c, r].astype(np.float64) ** 2 + extra)
     return sigma
 
