@@ -47,7 +47,8 @@ OME_UNITS = {"micrometer": "µm", "millimeter": "mm", "nanometer": "nm", "meter"
 MIN_SNR = 3.0
 #: The ``--models`` choices (:data:`polrig.solve.model_selection.MODEL_CHOICES`): ``full`` (the 3x3
 #: block everywhere, the default), ``auto`` (the lower-order model selection) and ``diffuse`` (two
-#: states: the diffuse term tested on their samples alone, :mod:`polrig.app.diffuse_route`).
+#: states: the diffuse term, with the specular term where significant, tested on their samples
+#: alone, :mod:`polrig.app.diffuse_route`).
 MODEL_CHOICES = ("full", "auto", "diffuse")
 
 # -- polrig.acquisition ---------------------------------------------------------------------------

@@ -111,6 +111,33 @@ def test_statistic_matches_the_numpy_search(eta):
     assert np.isnan(k_k[:, 3:6]).all()  # behind: the normal taken is not valid
 
 
+@pytest.mark.parametrize("eta", [1.3, 1.8])
+def test_statistic_with_the_specular_term_matches_the_numpy_search(eta):
+    """The second albedo per colour (Baek's specular block, unit ``m00``): the same candidates,
+    statistics and both albedos as the numpy search, on pixels with a specular part, without
+    one and arbitrary; never above the diffuse term's statistic alone; the albedos >= 0."""
+    from polrig.solve.diffuse_geometry import specular_block
+
+    rng = np.random.default_rng(int(eta * 10))
+    stokes, info, view, light = _statistic_inputs(240, eta, rng)
+    spec = specular_block(light, view, eta, STAGE, CAM)
+    # a specular part on every third pixel: up to its diffuse part's size
+    add = np.einsum("cp,prk,jk->cjrp", rng.uniform(0.0, 1.0, (3, 240)) * (np.arange(240) % 3 == 0),
+                    spec, STATES) * stokes[:, :, :1].clip(0, None)
+    stokes = stokes + add
+    t_k, n_k, k_k = dt.diffuse_statistic(stokes, info, STATES, view, light, eta, STAGE, CAM, specular=spec)
+    t_n, n_n, k_n = oracle.diffuse_statistic_numpy(stokes, info, STATES, view, light, eta, STAGE, CAM, specular=spec)
+    same = _agree(t_k, n_k, t_n, n_n)
+    assert k_k.shape == (6, 240)
+    fin = same & np.isfinite(k_n).all(axis=0)
+    assert np.allclose(k_k[:, fin], k_n[:, fin], rtol=1e-8, atol=1e-10)
+    assert (k_k[:, fin] >= 0).all()
+    t_d, _, _ = dt.diffuse_statistic(stokes, info, STATES, view, light, eta, STAGE, CAM)
+    ok = np.isfinite(t_d)
+    assert np.all(t_k[ok] <= t_d[ok] + 1e-9 * (1 + t_d[ok]))
+    assert (k_k[3:, fin] > 0).any()
+
+
 @pytest.mark.parametrize("with_guess", [True, False])
 def test_ratio_search_matches_the_numpy_search(with_guess):
     rng = np.random.default_rng(7 + with_guess)

@@ -120,14 +120,21 @@ def test_a_two_state_capture_of_a_diffuse_sphere_end_to_end(tmp_path, capsys):
     files = cap["files"]
     assert files["models"]["path"] == files["mueller"]["path"] and s.verify() == []
     im = read_exr(out / files["mueller"]["path"])
-    assert {"model.Y", "model_chi2.Y", "model_p.Y"} <= set(im.planes)
+    assert {"model.Y", "model_chi2.Y", "model_p.Y", "specular.Y"} <= set(im.planes)
     meta = im.metadata
     sel, test = meta["model_selection"], meta["diffuse_test"]
     assert "diffuse term" in sel["test"] and sel["df"] == 3 and sel["models"] == ["rank_one"]
+    assert "specular term" in sel["test"] and sel["df_specular"] == 2
+    # the diffuse sphere has no specular term: significant on few of the accepted pixels, and the
+    # plane holds the albedo exactly where the header counts it
+    spec = im.planes["specular.Y"]
+    assert np.all(spec >= 0) and test["colour_pixels_specular"] == np.count_nonzero(spec)
+    assert test["colour_pixels_specular"] <= 0.15 * test["pixels_accepted"]
+    assert "specular" in meta["planes"]
     assert 1.2 <= test["refractive_index"] <= 2.0 and test["light"] in dr.LIGHTS
     assert set(test["geometry_sources"]) == set(dr.GEOMETRY_NEEDED)
     code = im.planes["model.Y"].astype(int)
-    assert set(np.unique(code)) <= {0, 6, 255}
+    assert set(np.unique(code)) <= {0, 6, 255} and not np.any(spec[code != 6])
     assert sum(sel["counts"].values()) == code.size and sel["counts"]["rank_one"] == (code == 6).sum()
     # measured: 659 of 829; the rejected ones at the limb, where a pixel straddles the edge
     assert test["pixels_accepted"] == (code == 6).sum() > 0.7 * test["pixels_tested"]

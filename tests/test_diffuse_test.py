@@ -331,3 +331,81 @@ def test_the_neighbours_add_nothing_where_the_model_holds(monkeypatch):
     sigma is as wide as each pixel's own deviation makes it (within half a point)."""
     _, (every, _), (every_alone, _) = _coverage_with_and_without_neighbours(monkeypatch, 0.0)
     assert abs(every - every_alone) < 0.005
+
+
+def _diffuse_and_specular(seed: int, share: float, h: int = 16, w: int = 16):
+    """Diffuse truth plus Baek's specular term at ``share`` of each pixel's diffuse ``m00`` (the
+    unit specular block of :func:`polrig.solve.diffuse_geometry.specular_block`, the same share
+    in every colour), with its view, light and the specular albedo ``(C, H, W)``."""
+    view, light, normal = _surface(h, w, seed)
+    diffuse = _blocks(view, light, normal, 1.5, "diffuse", [1.0, 0.7, 0.5])
+    unit = dg.specular_block(np.broadcast_to(light, view.shape).reshape(-1, 3), view.reshape(-1, 3), 1.5, STAGE, CAM)
+    unit = np.moveaxis(unit, 0, -1).reshape(3, 3, h, w)
+    ks = share * diffuse[:, 0, 0]
+    return diffuse + ks[:, None, None] * unit[None], view, light, ks
+
+
+def test_the_specular_block_is_set_by_the_light_view_and_index_alone():
+    """Baek's specular block over its ``m00`` is the same at any normal (the normal and the
+    roughness only scale it), so the test's unit block, evaluated at the half vector, is the
+    pBRDF's at the surface's own normal."""
+    view, light, normal = _surface(8, 8, seed=13)
+    flat = lambda a: np.broadcast_to(a, (8, 8, 3)).reshape(-1, 3)  # noqa: E731
+    spec = _blocks(view, light, normal, 1.7, "specular", [1.0]).reshape(3, 3, -1)
+    unit = dg.specular_block(flat(light), flat(view), 1.7, STAGE, CAM)
+    lit = spec[0, 0] > 1e-12
+    assert lit.mean() > 0.5
+    np.testing.assert_allclose(np.moveaxis(spec[..., lit] / spec[0, 0, lit], -1, 0), unit[lit], rtol=1e-9, atol=1e-12)
+    assert np.allclose(unit[:, 0, 0], 1.0)
+
+
+def test_with_the_specular_term_the_level_holds_on_diffuse_pixels():
+    """Diffuse truth: with the specular term the test still rejects about ``alpha`` of the
+    pixels, and the term is significant on few (its test's level, halved by ``k_s >= 0``)."""
+    view, light, normal = _surface(24, 24, seed=2)
+    truth = _blocks(view, light, normal, 1.6, "diffuse", [1.0, 0.7, 0.5])
+    meas, var, _ = _frames(truth, np.random.default_rng(3))
+    res = dt.test_diffuse(STATES, meas, var, None, _geometry(view, light), etas=(1.6,), specular=True)
+    assert 0.02 <= 1 - res.accepted[res.tested].mean() <= 0.08
+    assert ((res.specular_albedo > 0).any(axis=0) & res.tested).mean() <= 0.08
+    assert res.df == 13 and dt.degrees_of_freedom(3, True) == 10
+
+
+def test_a_diffuse_and_specular_truth_is_accepted_with_its_specular_albedo():
+    """Diffuse plus a specular term at 10 % of the diffuse ``m00``: the diffuse term alone is
+    rejected almost everywhere; with the specular term the test accepts at about its level, the
+    term is significant nearly everywhere and its albedo is the truth's within its noise."""
+    truth, view, light, ks = _diffuse_and_specular(14, 0.10)
+    meas, var, _ = _frames(truth, np.random.default_rng(15))
+    geo = _geometry(view, light)
+    alone = dt.test_diffuse(STATES, meas, var, None, geo, etas=(1.5,))
+    res = dt.test_diffuse(STATES, meas, var, None, geo, etas=(1.5,), specular=True)
+    assert alone.accepted.mean() < 0.3 and alone.specular_albedo is None
+    assert res.accepted.mean() > 0.9
+    used = (res.specular_albedo > 0).all(axis=0) & res.accepted
+    assert used.mean() > 0.75
+    z = (res.specular_albedo - ks)[:, used] / res.specular_sigma[:, used]
+    assert np.mean(np.abs(z) <= 2) > 0.9 and abs(np.median(z)) < 0.3
+
+
+def test_the_completion_with_the_specular_term():
+    """The same truth, two states and a prior off along the open direction: taking the fitted
+    specular term off before the rank-one estimate and the completion, and back after, brings
+    the block's error to a fraction of the diffuse route's, with the sigma covering it."""
+    truth, view, light, _ = _diffuse_and_specular(16, 0.10)
+    rng = np.random.default_rng(17)
+    meas, var, _ = _frames(truth, rng)
+    u = dg.unobserved_direction(STATES)
+    err = rng.normal(0, 0.05, truth.shape[:2] + truth.shape[3:]) * truth[:, 0, 0].max()
+    prior = truth + err[:, :, None] * u[None, None, :, None, None]
+    sigma = np.full(truth.shape, 0.05 * truth[:, 0, 0].max())
+    geo = _geometry(view, light)
+    r = _hybrid(truth, meas, var, prior, sigma)
+    rmse = lambda m: np.sqrt(np.mean((m - truth) ** 2))  # noqa: E731
+    alone, _, _ = dt.complete_tested_diffuse(r, STATES, meas, var, None, geo, prior=(prior, sigma))
+    out, test, completed = dt.complete_tested_diffuse(r, STATES, meas, var, None, geo, prior=(prior, sigma),
+                                                      specular=True)
+    assert test.accepted.mean() > 0.9 and completed[:, test.accepted].mean() > 0.9
+    assert rmse(out.mueller) < 0.5 * rmse(alone.mueller) and rmse(out.mueller) < 0.5 * rmse(r.mueller)
+    inside = np.abs(out.mueller - truth) <= 2 * out.sigma
+    assert inside[..., test.accepted].mean() >= 0.93

@@ -67,13 +67,15 @@ def test_models_only_run_writes_its_table(tmp_path):
     # the diffuse completion changes some of the rank-one pixels and keeps its sigma finite
     geo = m["hybrid2_geometry"]
     assert 0 < geo["accepted"] <= sel["accepted"] and 0.5 < geo["coverage"] <= 1 and np.isfinite(geo["psnr_holds"])
-    # the diffuse term tested on the samples alone: accepted somewhere, its sigma finite, both
-    # false acceptances counted (the samples' own and the prior's metric)
+    # the diffuse term (with the specular term where significant) tested on the samples alone:
+    # accepted somewhere, the specular term on some of those, its sigma finite, both false
+    # acceptances counted (the samples' own and the prior's metric)
     dif = m["hybrid2_diffuse"]
     assert 0 < dif["accepted"] <= 1 and 0.5 < dif["coverage"] <= 1 and np.isfinite(dif["psnr_holds"])
+    assert 0 < dif["specular"] <= dif["accepted"]
     assert dif["detectable_share"] >= 0 and dif["detectable_prior_share"] >= 0
     text = out.read_text()
-    assert "tested on the two states' samples alone" in text
+    assert "tested on the two states' samples alone" in text and "with the specular term" in text
     assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
     assert "reference 4 / + models, holds" in text and "+ geometry, holds" in text
     assert "--models-only --count 2" in text

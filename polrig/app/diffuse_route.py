@@ -4,10 +4,10 @@ likewise).
 
 Two polarizer states leave one direction of each row of the 3x3 block unobserved; the hybrid
 solve (:mod:`polrig.solve.hybrid`) takes it from the single-shot network's prior. Where the
-pixel is Baek et al.'s diffuse term, the rig's geometry predicts that direction instead
-(:mod:`polrig.solve.diffuse_geometry`), and whether the pixel *is* the diffuse term is decided by
-a likelihood-ratio test on the two frames' samples alone, with nothing of the network in the
-decision (:mod:`polrig.solve.diffuse_test`; false acceptance 0.2-0.6 % where the samples can
+pixel is Baek et al.'s diffuse term, with their specular term where it is significant, the rig's
+geometry predicts that direction instead (:mod:`polrig.solve.diffuse_geometry`), and whether the
+pixel *is* that model is decided by a likelihood-ratio test on the two frames' samples alone,
+with nothing of the network in the decision (:mod:`polrig.solve.diffuse_test`; false acceptance 0.2-0.6 % where the samples can
 tell on the held-out sets, ``benchmarks/results/continuum_models.md``). This module gives that
 route what a capture knows:
 
@@ -21,9 +21,10 @@ route what a capture knows:
 * the run (:func:`solve_diffuse`): the two states' analyzer samples over the whole image (the
   index and the light are chosen per image; the completion's second pass looks at each pixel's
   neighbours), tested on the network's object pixels;
-* the record (:func:`diffuse_header`, :data:`DIFFUSE_PLANES`): the model map (``model.{colour}``:
-  ``rank_one`` where accepted, ``full`` where tested and not, ``untested`` elsewhere) with the
-  test's statistic and p-value, always written; the header's ``model_selection`` (the test, its
+* the record (:func:`diffuse_header`, :func:`diffuse_planes`, :data:`DIFFUSE_PLANES`): the model
+  map (``model.{colour}``: ``rank_one`` where accepted, ``full`` where tested and not,
+  ``untested`` elsewhere) with the test's statistic and p-value and the specular albedo
+  (``specular.{colour}``), always written; the header's ``model_selection`` (the test, its
   level and degrees of freedom, the counts) and ``diffuse_test`` (the index and light chosen,
   the pixels completed, where the geometry came from).
 
@@ -45,14 +46,14 @@ from polrig.app.single_shot import analyzer_grid_intrinsics
 from polrig.sensor.frame import Frame
 from polrig.sensor.layouts import MosaicLayout
 from polrig.solve.diffuse_geometry import DiffuseGeometry, light_directions
-from polrig.solve.diffuse_test import DiffuseTest, complete_tested_diffuse
+from polrig.solve.diffuse_test import SPECULAR_LEVEL, DiffuseTest, complete_tested_diffuse, degrees_of_freedom
 from polrig.solve.model_selection import UNTESTED, ModelMaps, SelectionOptions, selection_header
 from polrig.solve.radiometry import StateRadiance, analyzer_stack
 from polrig.solve.reference import ReferenceResult
 
 __all__ = ["LIGHTS", "DIFFUSE_PLANES", "GEOMETRY_NEEDED", "check_diffuse_states", "missing_geometry",
            "check_geometry", "view_directions", "network_normals", "capture_geometry", "solve_diffuse",
-           "diffuse_header"]
+           "diffuse_planes", "diffuse_header"]
 
 #: The candidate light fields, in the order :func:`capture_geometry` gives them.
 LIGHTS = ("at the object's distance along each pixel's ray", "from the object's centre")
@@ -60,13 +61,19 @@ LIGHTS = ("at the object's distance along each pixel's ray", "from the object's 
 GEOMETRY_NEEDED = ("intrinsics", "stage_zero_axis_camera", "light_position_camera_m", "object_point_camera_m")
 #: What the model planes hold on this route (the header's ``planes``).
 DIFFUSE_PLANES = {
-    "model": "model per pixel: 6 rank_one (Baek's diffuse term, accepted by the diffuse test and "
-             "its open direction predicted from the geometry), 0 full (tested, not accepted), "
-             "255 untested (codes in model_selection.codes)",
+    "model": "model per pixel: 6 rank_one (Baek's diffuse term, plus the specular term of "
+             "specular.{colour} where that is not 0, accepted by the diffuse test and its open "
+             "direction predicted from the geometry), 0 full (tested, not accepted), 255 untested "
+             "(codes in model_selection.codes)",
     "model_chi2": "the diffuse test's likelihood-ratio statistic on the two states' samples alone "
-                  "(the same in every colour; chi^2 with diffuse_test.df degrees of freedom where "
-                  "the diffuse term holds)",
-    "model_p": "its p-value"}
+                  "(the same in every colour; chi^2 with model_selection.df degrees of freedom where "
+                  "the diffuse term holds, model_selection.df_specular where the specular term was "
+                  "taken)",
+    "model_p": "its p-value",
+    "specular": "the specular albedo per pixel: the weight of Baek's specular block (its shape set by "
+                "the light, the view and the refractive index; m00 = 1) that the diffuse test fitted "
+                "and the completion took off before the rank-one estimate and put back after; 0 where "
+                "the term is not significant, the pixel not accepted or not tested"}
 
 
 def check_diffuse_states(mode: str, n_states: int | None) -> None:
@@ -162,7 +169,8 @@ def solve_diffuse(result: ReferenceResult, s_in: np.ndarray, states: Sequence[St
     out, test, completed = complete_tested_diffuse(
         result, s_in, measured, variance, valid, geometry,
         prior=(prior["prior_mean"], prior["prior_sigma"]), seen_state=int(prior["seen_state"]),
-        prior_correlation=prior.get("prior_correlation"), alpha=alpha, mask=mask, analyzer_rows=rows)
+        prior_correlation=prior.get("prior_correlation"), alpha=alpha, mask=mask, analyzer_rows=rows,
+        specular=True)
     maps = out.models
     code = np.where(test.tested[None], maps.code, np.uint8(UNTESTED)).astype(np.uint8)
     stat = np.broadcast_to(test.statistic.astype(np.float32), code.shape).copy()
@@ -171,19 +179,32 @@ def solve_diffuse(result: ReferenceResult, s_in: np.ndarray, states: Sequence[St
     return dataclasses.replace(out, models=ModelMaps(code, stat, pval, options)), test, completed
 
 
+def diffuse_planes(test: DiffuseTest, colours: Sequence[str]) -> dict[str, np.ndarray]:
+    """The route's planes besides the model map: ``specular.{colour}`` (:data:`DIFFUSE_PLANES`),
+    float32, at the accepted pixels (0 elsewhere)."""
+    albedo = np.zeros(test.albedo.shape) if test.specular_albedo is None else test.specular_albedo
+    albedo = np.where(test.accepted[None], albedo, 0.0).astype(np.float32)
+    return {f"specular.{col}": albedo[ci] for ci, col in enumerate(colours)}
+
+
 def diffuse_header(test: DiffuseTest, completed: np.ndarray, maps: ModelMaps,
                    sources: Mapping[str, str]) -> dict[str, Any]:
     """The result header's ``model_selection`` (the test, its level, degrees of freedom, codes
     and counts) and ``diffuse_test`` (the refractive index and the light chosen for the image,
     pixels tested, accepted and completed, where the geometry came from) entries."""
     selection = selection_header(maps)["model_selection"]
-    selection.update(test="the diffuse term (Baek et al. 2018, rank one, at the rig's geometry) against "
-                          "the full 3x3 block on the two states' samples alone, likelihood ratio, "
-                          "chi^2(5 C - 2) (polrig.solve.diffuse_test); the open direction of the "
-                          "accepted pixels predicted from the geometry (polrig.solve.diffuse_geometry)",
-                     df=int(test.df))
+    selection.update(test="the diffuse term (Baek et al. 2018, rank one, at the rig's geometry), with "
+                          "Baek's specular term where it explains significantly more (chi^2(C), level "
+                          f"{SPECULAR_LEVEL}), against the full 3x3 block on the two states' samples "
+                          "alone, likelihood ratio, chi^2(5 C - 2), with the specular term chi^2(4 C - 2) "
+                          "(polrig.solve.diffuse_test); the open direction of the accepted pixels "
+                          "predicted from the geometry (polrig.solve.diffuse_geometry)",
+                     df=int(test.df), df_specular=int(degrees_of_freedom(test.albedo.shape[0], True)))
+    specular = 0 if test.specular_albedo is None else int(np.count_nonzero(
+        (test.specular_albedo > 0) & test.accepted[None]))
     return {"model_selection": selection, "diffuse_test": {
         "refractive_index": test.eta, "light": None if test.light is None else LIGHTS[test.light],
         "pixels_tested": int(test.tested.sum()), "pixels_accepted": int(test.accepted.sum()),
         "colour_pixels_completed": int(np.count_nonzero(completed)),
+        "colour_pixels_specular": specular,
         "geometry_sources": {k: str(sources.get(k, "")) for k in GEOMETRY_NEEDED}}}

@@ -60,6 +60,7 @@ from polrig.app.diffuse_route import (
     check_diffuse_states,
     check_geometry,
     diffuse_header,
+    diffuse_planes,
     solve_diffuse,
 )
 from polrig.app.preview import write_result_previews
@@ -377,7 +378,8 @@ def record_result(session: Session, index: int, revision: str | None,
         if model_map:
             files["models"] = {"part_of": "mueller", "path": path,
                                "channels": "model.{colour} (codes in the header's "
-                                           "model_selection), model_chi2.{colour}, model_p.{colour}"}
+                                           "model_selection), model_chi2.{colour}, model_p.{colour}; "
+                                           "with --models diffuse also specular.{colour}"}
         if prior is not None:
             entry["prior"] = dict(prior)
         if model is not None:
@@ -541,11 +543,12 @@ class Processor:
             selection = SelectionOptions() if self.models == "auto" else None
             result, s_in, lay, states = process_reference(cf, self.calibration, self.sensor_model,
                                                           self.demosaic, unc, prior, selection)
+            diffuse_extra = {}
             if self.models == "diffuse":
-                result, diffuse_meta = self.diffuse(result, s_in, lay, states, cf, geometry, keep)
+                result, diffuse_meta, diffuse_extra = self.diffuse(result, s_in, lay, states, cf, geometry, keep)
             extra_planes = {}
             if result.models is not None:  # never silent: the map is always written
-                extra_planes = model_planes(result.models, channel_suffixes(lay.n_colours))
+                extra_planes = model_planes(result.models, channel_suffixes(lay.n_colours)) | diffuse_extra
             if self.mode in PRIOR_MODES:
                 prior_record = {**self.prior_model, **prior_header, "seen_state": self.seen_state,
                                 "seen_state_deg": float(cf.states_deg[self.seen_state])}
@@ -601,18 +604,20 @@ class Processor:
 
     def diffuse(self, result: ReferenceResult, s_in: np.ndarray, lay: MosaicLayout,
                 states: list[StateRadiance], cf: CaptureFrames, geometry: dict[str, Any],
-                keep: Mapping[str, Any]) -> tuple[ReferenceResult, dict[str, Any]]:
+                keep: Mapping[str, Any]) -> tuple[ReferenceResult, dict[str, Any], dict[str, np.ndarray]]:
         """The diffuse route on a two-state hybrid ``result`` (:mod:`polrig.app.diffuse_route`):
         the geometry (``geometry``: :meth:`network_geometry`'s; the network's normals from
         ``keep["net"]``, the prior from ``keep["prior"]``, :meth:`prior_function`), tested on
-        the network's object pixels. Returns the result and its header entries."""
+        the network's object pixels. Returns the result, its header entries and its planes
+        besides the model map."""
         net: SingleShotResult = keep["net"]
         grid = result.mueller.shape[-2:]
         where = capture_geometry(geometry, cf.first, grid, net.network_grid.get("normal"))
         out, test, completed = solve_diffuse(result, s_in, states, lay, self.demosaic,
                                              capture_analyzer(cf, self.calibration), where,
                                              prior=keep["prior"], mask=net.object)
-        return out, diffuse_header(test, completed, out.models, geometry["sources"])
+        return (out, diffuse_header(test, completed, out.models, geometry["sources"]),
+                diffuse_planes(test, channel_suffixes(lay.n_colours)))
 
     def manifest_model(self) -> dict[str, Any] | None:
         """The manifest's ``model`` record of this processor's results

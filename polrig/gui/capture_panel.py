@@ -223,7 +223,8 @@ class CapturePanel(QWidget):
         self.models.addItems(list(MODEL_CHOICES))
         self.models.setToolTip("full: the 3x3 block at every pixel; auto (reference, hybrid): per pixel "
                                "the lower-order model a likelihood-ratio test accepts; diffuse (hybrid, two "
-                               "states): the diffuse term tested on their samples alone and the direction "
+                               "states): the diffuse term (with the specular term where significant) tested on "
+                               "their samples alone and the direction "
                                "they leave open predicted from the rig's geometry. The model map is always "
                                "written")
         self.mode.currentTextChanged.connect(lambda m: self.models.setEnabled(m != "single-shot"))

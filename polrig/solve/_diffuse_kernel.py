@@ -241,10 +241,13 @@ _RATIO_DATA = 17
 
 
 @jit_cached()
-def _prepare_statistic(p, stokes, info, states, data):  # pragma: no cover - compiled
+def _prepare_statistic(p, stokes, info, states, spec, data):  # pragma: no cover - compiled
     """Pixel ``p``'s constants of :func:`_profile` into ``data``: ``sqs[c] = sum_j S^T Q S``
     (``C`` numbers), the states (``3 J``), then per colour and state the six coefficients of
-    ``x^T Q x`` in ``1, x1, x2, x1^2, x1 x2, x2^2`` and ``Q S`` (``9 C J``)."""
+    ``x^T Q x`` in ``1, x1, x2, x1^2, x1 x2, x2^2`` and ``Q S`` (``9 C J``); with the specular
+    term (``spec`` ``(P, J, 3)``: its unit block's response ``b_j`` to each state, not empty),
+    then per colour ``sum_j b_j^T Q b_j`` and ``sum_j b_j^T Q S`` (``2 C``) and per colour and
+    state ``Q b_j`` (``3 C J``)."""
     n_col, n_st = stokes.shape[1], stokes.shape[2]
     for j in range(n_st):
         for a in range(3):
@@ -266,19 +269,37 @@ def _prepare_statistic(p, stokes, info, states, data):  # pragma: no cover - com
                 data[r + 6 + a] = qs
                 acc += stokes[p, c, j, a] * qs
         data[c] = acc
+    if spec.shape[0] == 0:
+        return
+    o2 = o + 9 * n_col * n_st
+    o3 = o2 + 2 * n_col
+    for c in range(n_col):
+        bqb, bqs = 0.0, 0.0
+        for j in range(n_st):
+            r = o3 + 3 * (c * n_st + j)
+            for a in range(3):
+                qb = (info[p, c, j, a, 0] * spec[p, j, 0] + info[p, c, j, a, 1] * spec[p, j, 1]
+                      + info[p, c, j, a, 2] * spec[p, j, 2])
+                data[r + a] = qb
+                bqb += spec[p, j, a] * qb
+                bqs += stokes[p, c, j, a] * qb
+        data[o2 + 2 * c], data[o2 + 2 * c + 1] = bqb, bqs
 
 
 @_inline
-def _profile(xy, n_col, n_st, data, k, albedos):  # pragma: no cover - compiled
-    """The statistic ``T`` at the ratios ``xy`` (``diffuse_test._profile`` of the oracle) from the
-    pixel's constants ``data`` (:func:`_prepare_statistic`); with ``albedos`` the albedos into
-    ``k`` ``(C,)`` (only for the normal taken: a store per candidate slowed the search)."""
+def _profile(xy, n_col, n_st, data, k, albedos, specular):  # pragma: no cover - compiled
+    """The statistic ``T`` at the ratios ``xy`` (``_diffuse_numpy._profile`` of the oracle) from
+    the pixel's constants ``data`` (:func:`_prepare_statistic`); with ``albedos`` the albedos into
+    ``k`` (``(C,)``; with the ``specular`` term ``(2 C,)``: the diffuse ones, then the specular
+    ones), only for the normal taken (a store per candidate slowed the search)."""
     x1, x2, y1, y2 = xy[1], xy[2], xy[4], xy[5]
     x11, x12, x22 = x1 * x1, x1 * x2, x2 * x2
     o = n_col + 3 * n_st
+    o2 = o + 9 * n_col * n_st
+    o3 = o2 + 2 * n_col
     t = 0.0
     for c in range(n_col):
-        num, den = 0.0, 0.0
+        num, den, cross = 0.0, 0.0, 0.0
         for j in range(n_st):
             s = n_col + 3 * j
             g = data[s] + y1 * data[s + 1] + y2 * data[s + 2]  # y . s_j
@@ -288,12 +309,30 @@ def _profile(xy, n_col, n_st, data, k, albedos):  # pragma: no cover - compiled
             xqs = data[r + 6] + data[r + 7] * x1 + data[r + 8] * x2
             num += g * xqs
             den += g * g * xqx
+            if specular:
+                q = o3 + 3 * (c * n_st + j)
+                cross += g * (data[q] + x1 * data[q + 1] + x2 * data[q + 2])
         kc = num / den
         if kc < 0.0:  # np.maximum(kc, 0): NaN stays NaN
             kc = 0.0
+        tc = data[c] - 2.0 * kc * num + kc * kc * den
+        if specular:  # two albedos >= 0: the free optimum, else the better edge
+            bqb, bqs = data[o2 + 2 * c], data[o2 + 2 * c + 1]
+            ks = 0.0
+            det = den * bqb - cross * cross
+            kd2 = (bqb * num - cross * bqs) / det
+            ks2 = (den * bqs - cross * num) / det
+            if det > 0.0 and kd2 >= 0.0 and ks2 >= 0.0:
+                kc, ks = kd2, ks2
+                tc = data[c] - kd2 * num - ks2 * bqs
+            elif bqs > 0.0 and bqb > 0.0 and data[c] - bqs * bqs / bqb < tc:
+                kc, ks = 0.0, bqs / bqb
+                tc = data[c] - bqs * bqs / bqb
+            if albedos:
+                k[n_col + c] = ks
         if albedos:
             k[c] = kc
-        t += data[c] - 2.0 * kc * num + kc * kc * den
+        t += tc
     return t
 
 
@@ -325,7 +364,7 @@ def _misfit(xy, data):  # pragma: no cover - compiled
 
 
 @_inline
-def _cost(mode, n_col, n_st, cz, sz, ca, sa, ctx, usable, eta2, data, xy, k, albedos
+def _cost(mode, n_col, n_st, cz, sz, ca, sa, ctx, usable, eta2, data, xy, k, albedos, specular
           ):  # pragma: no cover - compiled
     """The cost ``mode`` at the candidate of zenith and azimuth cosines and sines ``cz``, ``sz``,
     ``ca``, ``sa`` of the pixel of context ``ctx`` (:func:`_setup`) and constants ``data``: inf
@@ -333,18 +372,18 @@ def _cost(mode, n_col, n_st, cz, sz, ca, sa, ctx, usable, eta2, data, xy, k, alb
     the albedos into ``k``, NaN where the candidate is invalid."""
     if not (usable and _ratios(cz, sz, ca, sa, ctx, eta2, xy)):
         if albedos:
-            for c in range(n_col):
+            for c in range(k.shape[0]):
                 k[c] = np.nan
         return np.inf
     if mode == STATISTIC:
-        cost = _profile(xy, n_col, n_st, data, k, albedos)
+        cost = _profile(xy, n_col, n_st, data, k, albedos, specular)
     else:
         cost = _misfit(xy, data)
     return cost if np.isfinite(cost) else np.inf
 
 
 @jit_cached()
-def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, data, xy, k, normal_out
+def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, data, xy, k, normal_out, specular
                   ):  # pragma: no cover - compiled
     """The grid search of one pixel (module docstring; ``grid`` = ``(nz, na, refine)``,
     ``steps`` = ``(dz, da, zmax)`` in rad, ``coarse`` ``(4, max(nz, na))`` the coarse grid's
@@ -371,7 +410,7 @@ def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, dat
             for j in range(n_j):
                 a = ab + (j - ha) * dal
                 ca, sa = (coarse[2, j], coarse[3, j]) if level == 0 else (np.cos(a), np.sin(a))
-                cost = _cost(mode, n_col, n_st, cz, sz, ca, sa, ctx, usable, eta2, data, xy, k, final)
+                cost = _cost(mode, n_col, n_st, cz, sz, ca, sa, ctx, usable, eta2, data, xy, k, final, specular)
                 if cost < best_l:
                     best_l, ib, jb = cost, i, j
         if not final:
@@ -389,8 +428,9 @@ def _search_all(mode, view, light, stage, cam, eta, grid, steps, stat, fit, gues
     """:func:`_search_pixel` of every pixel of ``view``, ``light`` ``(P, 3)``; ``stat`` =
     ``(stokes, info, states)`` as :func:`statistic_search` takes them, ``fit`` = ``(x_hat,
     rho_hat, weights, guess, s_a, s_b)`` as :func:`ratio_search` (those of the other cost empty)."""
-    stokes, info, states = stat
+    stokes, info, states, spec = stat
     x_hat, rho_hat, weights, guess, s_a, s_b = fit
+    specular = spec.shape[0] > 0
     nz, na, _ = grid
     dz, da, zmax = steps
     coarse = np.empty((4, max(nz, na)))  # the coarse grid's trigonometry, the same for every pixel
@@ -404,32 +444,34 @@ def _search_all(mode, view, light, stage, cam, eta, grid, steps, stat, fit, gues
     tmp = np.empty((3, 3))
     xy = np.empty(9)
     n_col, n_st = stokes.shape[1], stokes.shape[2]
-    data = np.empty(max(_RATIO_DATA, n_col + 3 * n_st + 9 * n_col * n_st))
+    data = np.empty(max(_RATIO_DATA, n_col + 3 * n_st + 9 * n_col * n_st + 2 * n_col + 3 * n_col * n_st))
     k = np.empty(k_out.shape[1])
     for p in range(view.shape[0]):
         usable = _setup(view[p], light[p], stage, cam, ctx, tmp)
         if mode == STATISTIC:
-            _prepare_statistic(p, stokes, info, states, data)
+            _prepare_statistic(p, stokes, info, states, spec, data)
         else:
             _prepare_ratios(p, x_hat, rho_hat, weights, guess, s_a, s_b, guess_weight, use_guess, data)
         cost_out[p] = _search_pixel(mode, n_col, n_st, usable, ctx, eta * eta, grid, steps, coarse, data, xy, k,
-                                    normal_out[p])
+                                    normal_out[p], specular)
         for c in range(k.shape[0]):
             k_out[p, c] = k[c]
 
 
 @jit_cached()
-def statistic_search(view, light, stage, cam, eta, grid, steps, stokes, info, states, t_out, normal_out,
+def statistic_search(view, light, stage, cam, eta, grid, steps, stokes, info, states, spec, t_out, normal_out,
                      k_out):  # pragma: no cover - compiled
     """The diffuse test's search (:func:`polrig.solve.diffuse_test.diffuse_statistic`) of ``P``
     pixels: ``view``, ``light`` ``(P, 3)``; ``stage``, ``cam`` ``(3,)``; ``grid`` ``(nz, na,
     refine)``, ``steps`` ``(dz, da, zmax)`` (rad); ``stokes`` ``(P, C, J, 3)``, ``info``
-    ``(P, C, J, 3, 3)``, ``states`` ``(J, 3)``. Outputs ``t_out`` ``(P,)`` (inf where no candidate
-    is valid), ``normal_out`` ``(P, 3)``, ``k_out`` ``(P, C)`` (NaN where the normal taken is not
-    valid)."""
+    ``(P, C, J, 3, 3)``, ``states`` ``(J, 3)``; ``spec`` ``(P, J, 3)``: the unit specular block's
+    response to each state (a second albedo per colour), or ``(0, J, 3)`` for the diffuse term
+    alone. Outputs ``t_out`` ``(P,)`` (inf where no candidate is valid), ``normal_out``
+    ``(P, 3)``, ``k_out`` ``(P, C)``, with the specular term ``(P, 2 C)`` (the diffuse albedos,
+    then the specular; NaN where the normal taken is not valid)."""
     fit = (np.empty((0, 3)), np.empty(0), np.empty((0, 3)), np.empty((0, 3)), np.empty(3), np.empty(3))
-    _search_all(STATISTIC, view, light, stage, cam, eta, grid, steps, (stokes, info, states), fit, 0.0, False,
-                t_out, normal_out, k_out)
+    _search_all(STATISTIC, view, light, stage, cam, eta, grid, steps, (stokes, info, states, spec), fit, 0.0,
+                False, t_out, normal_out, k_out)
 
 
 @jit_cached()
@@ -441,6 +483,6 @@ def ratio_search(view, light, stage, cam, eta, grid, steps, x_hat, rho_hat, weig
     ``guess`` ``(P, 3)`` (read only with ``use_guess``), ``s_a``, ``s_b`` ``(3,)``,
     ``guess_weight`` (1/rad^2). Outputs ``cost_out`` ``(P,)`` (inf where no candidate is valid)
     and ``normal_out`` ``(P, 3)``."""
-    stat = (np.empty((0, 0, 0, 3)), np.empty((0, 0, 0, 3, 3)), np.empty((0, 3)))
+    stat = (np.empty((0, 0, 0, 3)), np.empty((0, 0, 0, 3, 3)), np.empty((0, 3)), np.empty((0, 0, 3)))
     _search_all(RATIOS, view, light, stage, cam, eta, grid, steps, stat, (x_hat, rho_hat, weights, guess, s_a, s_b),
                 guess_weight, use_guess, cost_out, normal_out, np.empty((view.shape[0], 0)))

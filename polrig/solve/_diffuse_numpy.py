@@ -113,10 +113,13 @@ def search_ratios_numpy(pix: np.ndarray, eta: float, obs: _Observed, geo: _Pixel
     return search_normals(geo.view[pix], lambda n, sub: _costs(n, pix[sub], eta, obs, geo), refine)
 
 
-def _profile(stokes: np.ndarray, info: np.ndarray, x: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _profile(stokes: np.ndarray, info: np.ndarray, x: np.ndarray, g: np.ndarray, spec: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """``(T, k)`` of candidates: ``stokes`` ``(C, J, 3, p)``, ``info`` ``(C, J, 3, 3, p)``, ``x``
     ``(p, K, 3)``, ``g = y . s_j`` ``(p, K, J)``; ``T`` ``(p, K)`` minimised over ``k >= 0``,
-    ``k`` ``(C, p, K)``."""
+    ``k`` ``(C, p, K)``. With ``spec`` ``(p, J, 3)`` (the unit specular block's response to each
+    state) a second albedo per colour, ``k`` ``(2 C, p, K)`` (diffuse, then specular): the
+    free least squares where both are >= 0, else the better of the two edges."""
     xqx = np.einsum("pka,cjabp,pkb->cjpk", x, info, x)
     xqs = np.einsum("pka,cjabp,cjbp->cjpk", x, info, stokes)
     sqs = np.einsum("cjap,cjabp,cjbp->cp", stokes, info, stokes)
@@ -124,24 +127,41 @@ def _profile(stokes: np.ndarray, info: np.ndarray, x: np.ndarray, g: np.ndarray)
     num, den = (gj * xqs).sum(axis=1), (gj**2 * xqx).sum(axis=1)  # (C, p, K)
     with np.errstate(divide="ignore", invalid="ignore"):
         k = np.maximum(num / den, 0.0)
-    return (sqs[..., None] - 2.0 * k * num + k**2 * den).sum(axis=0), k
+    t = sqs[..., None] - 2.0 * k * num + k**2 * den
+    if spec is None:
+        return t.sum(axis=0), k
+    bqb = np.einsum("pja,cjabp,pjb->cp", spec, info, spec)[..., None]
+    bqs = np.einsum("pja,cjabp,cjbp->cp", spec, info, stokes)[..., None]
+    cross = (gj * np.einsum("pka,cjabp,pjb->cjpk", x, info, spec)).sum(axis=1)
+    det = den * bqb - cross**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kd2, ks2 = (bqb * num - cross * bqs) / det, (den * bqs - cross * num) / det
+        t_spec = sqs[..., None] - bqs**2 / bqb
+    free = (det > 0) & (kd2 >= 0) & (ks2 >= 0)
+    edge = ~free & (bqs > 0) & (bqb > 0) & (t_spec < t)
+    ks = np.where(free, ks2, np.where(edge, bqs / np.where(bqb > 0, bqb, 1.0), 0.0))
+    k = np.where(free, kd2, np.where(edge, 0.0, k))
+    t = np.where(free, sqs[..., None] - kd2 * num - ks2 * bqs, np.where(edge, t_spec, t))
+    return t.sum(axis=0), np.concatenate([k, ks])
 
 
 def diffuse_statistic_numpy(stokes: np.ndarray, information: np.ndarray, states: np.ndarray, view: np.ndarray,
-                            light: np.ndarray, eta: float, stage_zero_axis, camera_x_axis
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            light: np.ndarray, eta: float, stage_zero_axis, camera_x_axis,
+                            specular: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The previous :func:`polrig.solve.diffuse_test.diffuse_statistic` (same arguments and
     results)."""
     states = np.asarray(states, np.float64).reshape(-1, 3)
     view = np.asarray(view, np.float64).reshape(-1, 3)
     light = np.broadcast_to(np.asarray(light, np.float64), view.shape)
     stage, cam = np.asarray(stage_zero_axis, np.float64), np.asarray(camera_x_axis, np.float64)
+    spec = None if specular is None else np.einsum("pab,jb->pja", np.asarray(specular, np.float64), states)
 
     def candidates(normals: np.ndarray, pix: np.ndarray):
         p, k = normals.shape[:2]
         rep = lambda v: np.repeat(v, k, axis=0)  # noqa: E731
         x, y = diffuse_ratios(normals.reshape(-1, 3), rep(light[pix]), rep(view[pix]), eta, stage, cam)
-        return _profile(stokes[..., pix], information[..., pix], x.reshape(p, k, 3), (y @ states.T).reshape(p, k, -1))
+        return _profile(stokes[..., pix], information[..., pix], x.reshape(p, k, 3), (y @ states.T).reshape(p, k, -1),
+                        None if spec is None else spec[pix])
 
     normal, t = search_normals(view, lambda n, pix: candidates(n, pix)[0], refine=REFINE, steps_deg=STEPS_DEG)
     _, k = candidates(normal[:, None], np.arange(len(view)))

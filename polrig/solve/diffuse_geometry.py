@@ -65,12 +65,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from polrig.optics.pbrdf import linear_rig_mueller
+from polrig.optics.pbrdf import linear_rig_mueller, specular_diffuse_blocks
 from polrig.solve.chunks import in_chunks
 from polrig.solve.reference import ILL_CONDITIONED, ReferenceResult
 from polrig.solve.reduced_models import MODELS
 
-__all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "light_directions", "light_fields",
+__all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "specular_block",
+           "light_directions", "light_fields",
            "fit_diffuse_geometry", "ratio_weights", "neighbour_mean", "complete_diffuse", "RANK_ONE"]
 
 #: The model selection's code of the rank-one block (Baek's diffuse term).
@@ -191,6 +192,28 @@ class _Pixels(NamedTuple):
     cam: np.ndarray
     s_a: np.ndarray
     s_b: np.ndarray
+
+
+def specular_block(light: np.ndarray, view: np.ndarray, eta: float, stage_zero_axis, camera_x_axis) -> np.ndarray:
+    """The unit specular block ``(P, 3, 3)`` (``m00 = 1``) of Baek et al.'s specular term at
+    each pixel's ``light`` and ``view`` ``(P, 3)`` and refractive index ``eta``, in the rig's
+    frames (:func:`polrig.optics.pbrdf.specular_diffuse_blocks`). The term is
+    ``F_R(h . wi; eta) D(h) G(wi, wo) / (4 cos theta_o)`` (:mod:`polrig.optics.pbrdf`): the
+    Fresnel reflection in the microfacet's plane of incidence, the plane of ``wi`` and ``wo``,
+    turned into the incident and emergent frames, so its shape is set by ``light``, ``view``
+    and ``eta`` alone; the surface normal and the roughness only scale it (the distribution
+    ``D`` and the shadowing ``G``), and it is evaluated at ``n = h``. Zero where the term is not
+    defined (``m00`` not positive)."""
+    light = np.asarray(light, np.float64).reshape(-1, 3)
+    view = np.asarray(view, np.float64).reshape(-1, 3)
+    h = light / np.linalg.norm(light, axis=1, keepdims=True) + view / np.linalg.norm(view, axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = h / np.linalg.norm(h, axis=1, keepdims=True)
+        ms, _ = specular_diffuse_blocks(h, light, view, alpha=1.0, eta=float(eta), stage_zero_axis=stage_zero_axis,
+                                        camera_x_axis=camera_x_axis)
+        unit = ms / ms[:, :1, :1]
+    ok = np.isfinite(unit).all(axis=(1, 2)) & (ms[:, 0, 0] > 0)
+    return np.where(ok[:, None, None], unit, 0.0)
 
 
 def _search_grid(steps_deg: tuple[float, float], refine: int

@@ -40,6 +40,27 @@ do not choose them; every other index first, then the best one's neighbours (the
 smooth in ``eta``). The completion (:func:`complete_tested_diffuse`) fits its normals at the same
 pair.
 
+**The specular term** (``specular=True``; captures with ``--models diffuse`` use it). Baek's
+specular term ``k_s,c B`` adds to the diffuse one; its unit block ``B``
+(:func:`polrig.solve.diffuse_geometry.specular_block`) is set by the light, the view and
+``eta`` alone (the normal and the roughness scale it), so it brings one more albedo per colour
+and nothing to search: ``T_s`` minimises over both albedos ``>= 0`` (the two-albedo least
+squares in closed form in the same compiled search, else the better edge), ``chi^2(4 C - 2)``
+where the model holds. The term is taken where it explains significantly more than the diffuse
+term alone, ``T - T_s`` beyond ``chi^2(C)``'s critical value at :data:`SPECULAR_LEVEL` (a
+likelihood ratio of nested models), and that pixel is then accepted where ``T_s`` is at most
+``chi^2(4 C - 2)``'s critical value; elsewhere the specular albedo is 0 and the diffuse term's
+test decides as without it. Where the term is taken, the completion
+(:func:`complete_tested_diffuse`) subtracts it from the samples, the prior and the hybrid's
+estimate, estimates and completes the diffuse rest as without it and adds it back, its sigma with
+the albedo's least-squares variance times the unit block squared. Why: the dielectric scenes the
+rig is for (Baek's plastic) have a specular part at almost every pixel, and two states cannot
+tell a weak one from noise: the diffuse term alone was accepted with it and its rank-one
+estimate carried it as a bias (captures of the simulated plastic sphere: ``m11`` and ``m22`` 36
+rms against 20-25 for the plain hybrid). Measured on the held-out sets:
+``benchmarks/results/continuum_models.md``, "The diffuse term, with the specular term where
+significant".
+
 **False acceptance** is defined as the model selection's at four states: accepting is wrong only
 where the samples can tell, the truth's own statistic (``T`` of the noise-free ``S``, the
 noncentrality) at least the level-``alpha`` test's 95 % power point
@@ -69,7 +90,9 @@ from polrig.solve.diffuse_geometry import (
     _in_chunks,
     _search_grid,
     complete_diffuse,
+    diffuse_ratios,
     light_fields,
+    specular_block,
     unobserved_direction,
 )
 from polrig.solve.model_selection import (
@@ -81,7 +104,8 @@ from polrig.solve.model_selection import (
 from polrig.solve.reference import ReferenceResult
 
 __all__ = ["state_stokes", "degrees_of_freedom", "diffuse_statistic", "DiffuseTest", "test_diffuse",
-           "neighbour_bias", "complete_tested_diffuse"]
+           "neighbour_bias", "complete_tested_diffuse",
+           "specular_image"]
 
 #: The normal's coarse grid (zenith, azimuth steps in deg) and its refinements (each halves the
 #: steps): 0.6 deg of zenith and 1.25 deg of azimuth at the end.
@@ -91,6 +115,9 @@ ETA_SAMPLE = 256
 #: Each sampled pixel's statistic counts at most the critical value at this level in the choice of
 #: ``eta`` and the light.
 CAP_QUANTILE = 1e-3
+#: Level of the likelihood-ratio test of the specular term against the diffuse term alone
+#: (``chi^2(C)``): below it the specular albedo is taken as 0.
+SPECULAR_LEVEL = 0.05
 #: Side (output pixels) of the square neighbourhood over which :func:`neighbour_bias` averages
 #: the deviation from the full estimate: the bias turns slowly over it (with the whole deviation,
 #: before the observed part alone, 3, 5 and 7 gave 95.3-95.9, 95.6-96.4 and 95.7-96.6 % of the
@@ -130,21 +157,24 @@ def state_stokes(measured: np.ndarray, variance: np.ndarray, valid: np.ndarray |
     return np.where(ok[:, None], s, np.nan), info, ok
 
 
-def degrees_of_freedom(n_colours: int) -> int:
+def degrees_of_freedom(n_colours: int, specular: bool = False) -> int:
     """``6 C - (2 + C)``: two states' six numbers per colour less the normal and the colours'
-    albedos."""
-    return 5 * int(n_colours) - 2
+    albedos; with the specular term ``6 C - (2 + 2 C)`` (a second albedo per colour)."""
+    return (4 if specular else 5) * int(n_colours) - 2
 
 
 def diffuse_statistic(stokes: np.ndarray, information: np.ndarray, states: np.ndarray, view: np.ndarray,
-                      light: np.ndarray, eta: float, stage_zero_axis, camera_x_axis
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      light: np.ndarray, eta: float, stage_zero_axis, camera_x_axis,
+                      specular: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``T`` of ``P`` pixels (module docstring), the normal that attains it and the albedos.
 
     ``stokes`` ``(C, J, 3, P)`` and ``information`` ``(C, J, 3, 3, P)``: each state's
     (:func:`state_stokes`); ``states`` ``(J, 3)``; ``view``, ``light`` ``(P, 3)``; ``eta`` the
-    refractive index. Returns ``T`` ``(P,)`` (inf where no candidate normal is valid), the normal
-    ``(P, 3)`` and ``k`` ``(C, P)``. The compiled search
+    refractive index; ``specular`` ``(P, 3, 3)``: the unit specular block of each pixel
+    (:func:`polrig.solve.diffuse_geometry.specular_block`, with a second albedo per colour), or
+    None (the diffuse term alone). Returns ``T`` ``(P,)`` (inf where no candidate normal is
+    valid), the normal ``(P, 3)`` and ``k`` ``(C, P)``, with the specular term ``(2 C, P)`` (the
+    diffuse albedos, then the specular). The compiled search
     (:func:`polrig.solve._diffuse_kernel.statistic_search`, pixel chunks on threads)."""
     from polrig.solve import _diffuse_kernel as kern  # numba: imported on first use
 
@@ -155,12 +185,14 @@ def diffuse_statistic(stokes: np.ndarray, information: np.ndarray, states: np.nd
     stokes = np.ascontiguousarray(np.moveaxis(np.asarray(stokes, np.float64), -1, 0))  # (P, C, J, 3)
     info = np.ascontiguousarray(np.moveaxis(np.asarray(information, np.float64), -1, 0))  # (P, C, J, 3, 3)
     p, n_col = len(view), stokes.shape[1]
+    spec = (np.empty((0, len(states), 3)) if specular is None
+            else np.ascontiguousarray(np.einsum("pab,jb->pja", np.asarray(specular, np.float64), states)))
     grid, steps = _search_grid(STEPS_DEG, REFINE)
-    t, normal, k = np.empty(p), np.empty((p, 3)), np.empty((p, n_col))
+    t, normal, k = np.empty(p), np.empty((p, 3)), np.empty((p, n_col * (1 if specular is None else 2)))
 
     def work(sl: slice) -> None:
         kern.statistic_search(view[sl], light[sl], stage, cam, float(eta), grid, steps, stokes[sl], info[sl], states,
-                              t[sl], normal[sl], k[sl])
+                              spec[sl] if len(spec) else spec, t[sl], normal[sl], k[sl])
 
     _in_chunks(p, work)
     return t, normal, np.ascontiguousarray(k.T)
@@ -170,7 +202,11 @@ class DiffuseTest(NamedTuple):
     """:func:`test_diffuse`'s result. ``accepted`` ``(H, W)`` bool; ``statistic``, ``p_value``
     ``(H, W)`` (NaN where not tested); ``tested`` ``(H, W)``; ``normal`` ``(H, W, 3)`` (0 where not
     tested); ``albedo`` ``(C, H, W)``; ``df``, ``alpha``; ``eta`` and ``light`` (the index of the
-    geometry's candidate light field) chosen for the image (None where nothing was tested)."""
+    geometry's candidate light field) chosen for the image (None where nothing was tested);
+    ``specular_albedo`` ``(C, H, W)``, the specular term's weight against its unit block
+    (:func:`polrig.solve.diffuse_geometry.specular_block`; 0 where the term is not significant),
+    and ``specular_sigma`` its standard deviation (the least squares' at the normal taken), or
+    None where the test had no specular term."""
 
     accepted: np.ndarray
     statistic: np.ndarray
@@ -182,6 +218,8 @@ class DiffuseTest(NamedTuple):
     alpha: float
     eta: float | None
     light: int | None
+    specular_albedo: np.ndarray | None = None
+    specular_sigma: np.ndarray | None = None
 
 
 def _choose(n_lights: int, n_etas: int, total) -> tuple[int, int]:
@@ -203,7 +241,7 @@ def _choose(n_lights: int, n_etas: int, total) -> tuple[int, int]:
 
 def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray, valid: np.ndarray | None,
                  geometry: DiffuseGeometry, *, mask: np.ndarray | None = None, alpha: float = 0.05,
-                 analyzer_rows: np.ndarray | None = None, etas=ETAS) -> DiffuseTest:
+                 analyzer_rows: np.ndarray | None = None, etas=ETAS, specular: bool = False) -> DiffuseTest:
     """Test the diffuse term at every pixel of two states' frames (module docstring).
 
     ``states`` ``(2, 3)``; ``measured``, ``variance`` ``(2, C, 4, H, W)``, ``valid`` the same
@@ -211,7 +249,8 @@ def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     ``geometry``: what the rig knows of the pixels' geometry; ``mask`` ``(H, W)``: the pixels to
     test (default all), of which those with all samples of both states in every colour used are
     tested; ``alpha`` the level; ``analyzer_rows`` as :func:`state_stokes`; ``etas`` the indices
-    searched."""
+    searched; ``specular``: the model is the diffuse term plus Baek's specular term (module
+    docstring, "The specular term")."""
     states = np.asarray(states, np.float64).reshape(-1, 3)
     if len(states) != 2:
         raise ValueError(f"the diffuse test takes two states, got {len(states)}")
@@ -232,36 +271,76 @@ def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     used = np.all([ok.all(axis=0)[:, 0] for _, _, ok in per_state], axis=0)  # (P,)
     tested = np.zeros((h, w), bool)
     tested[ys[used], xs[used]] = True
-    df = degrees_of_freedom(n_col)
+    df, df_fit = degrees_of_freedom(n_col), degrees_of_freedom(n_col, specular)
     ys, xs = ys[used], xs[used]
     nan_img = np.full((h, w), np.nan)
     if not len(ys):
         return DiffuseTest(np.zeros((h, w), bool), nan_img, nan_img.copy(), tested, np.zeros((h, w, 3)),
-                           np.zeros((n_col, h, w)), df, float(alpha), None, None)
+                           np.zeros((n_col, h, w)), df, float(alpha), None, None,
+                           np.zeros((n_col, h, w)) if specular else None)
     stokes = np.stack([s[..., used, 0] for s, _, _ in per_state], axis=1)  # (C, 2, 3, P)
     info = np.stack([q[..., used, 0] for _, q, _ in per_state], axis=1)  # (C, 2, 3, 3, P)
     view = np.asarray(geometry.view, np.float64)[ys, xs]
     lights = light_fields(geometry, ys, xs)
     fixed = (geometry.stage_zero_axis, geometry.camera_x_axis)
     sample = np.arange(0, len(ys), max(1, len(ys) // ETA_SAMPLE))[:ETA_SAMPLE]
-    cap = chi2_critical(df, CAP_QUANTILE)
+    cap = chi2_critical(df_fit, CAP_QUANTILE)
+
+    def spec(li: int, e: int, pix) -> np.ndarray | None:
+        return specular_block(lights[li][pix], view[pix], float(etas[e]), *fixed) if specular else None
 
     def total(li: int, e: int) -> float:
         return float(np.minimum(diffuse_statistic(stokes[..., sample], info[..., sample], states, view[sample],
-                                                  lights[li][sample], float(etas[e]), *fixed)[0], cap).sum())
+                                                  lights[li][sample], float(etas[e]), *fixed,
+                                                  specular=spec(li, e, sample))[0], cap).sum())
 
     best_light, best_eta = _choose(len(lights), len(etas), total)
     eta = float(etas[best_eta])
-    t, normal, k = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed)
+    t, normal, k = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed,
+                                     specular=spec(best_light, best_eta, slice(None)))
+    p, accept = chi2_sf(t, df_fit), t <= chi2_critical(df_fit, float(alpha))
+    if specular:  # the specular term only where it explains significantly more than the diffuse alone
+        t_d, normal_d, k_d = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed)
+        significant = (t_d - t) > chi2_critical(n_col, SPECULAR_LEVEL)
+        normal = np.where(significant[:, None], normal, normal_d)
+        k = np.concatenate([np.where(significant, k[:n_col], k_d), np.where(significant, k[n_col:], 0.0)])
+        # then the model chosen is tested against the free block
+        p = np.where(significant, p, chi2_sf(t_d, df))
+        accept = np.where(significant, accept, t_d <= chi2_critical(df, float(alpha)))
+        t = np.where(significant, t, t_d)
+        ks_sd = np.where(significant, np.sqrt(_specular_variance(
+            info, states, normal, lights[best_light], view, eta, fixed, spec(best_light, best_eta, slice(None)))), 0.0)
     statistic, p_value = nan_img.copy(), nan_img.copy()
-    statistic[ys, xs], p_value[ys, xs] = t, chi2_sf(t, df)
+    statistic[ys, xs], p_value[ys, xs] = t, p
     accepted = np.zeros((h, w), bool)
-    accepted[ys, xs] = t <= chi2_critical(df, float(alpha))
+    accepted[ys, xs] = accept
     normals = np.zeros((h, w, 3))
     normals[ys, xs] = normal
     albedo = np.zeros((n_col, h, w))
-    albedo[:, ys, xs] = k
-    return DiffuseTest(accepted, statistic, p_value, tested, normals, albedo, df, float(alpha), eta, int(best_light))
+    albedo[:, ys, xs] = k[:n_col]
+    specular_albedo = specular_sigma = None
+    if specular:
+        specular_albedo, specular_sigma = np.zeros((n_col, h, w)), np.zeros((n_col, h, w))
+        specular_albedo[:, ys, xs], specular_sigma[:, ys, xs] = k[n_col:], ks_sd
+    return DiffuseTest(accepted, statistic, p_value, tested, normals, albedo, df, float(alpha), eta, int(best_light),
+                       specular_albedo, specular_sigma)
+
+
+def _specular_variance(info: np.ndarray, states: np.ndarray, normal: np.ndarray, light: np.ndarray,
+                       view: np.ndarray, eta: float, fixed, block: np.ndarray) -> np.ndarray:
+    """The variance ``(C, P)`` of the specular albedo's least squares at the ``normal`` ``(P, 3)``
+    taken: the ``[1, 1]`` element of the inverse of the two albedos' information
+    ``sum_j [a_j b_j]^T Q_j [a_j b_j]`` (``a_j = (y . s_j) x`` the diffuse term's response,
+    ``b_j`` the unit specular block's ``block`` ``(P, 3, 3)``; ``info`` ``(C, J, 3, 3, P)``)."""
+    x, y = diffuse_ratios(normal, light, view, eta, *fixed)
+    a = np.einsum("pj,pr->jrp", y @ states.T, x)  # (J, 3, P)
+    b = np.einsum("prk,jk->jrp", block, states)
+    gaa = np.einsum("jrp,cjrsp,jsp->cp", a, info, a)
+    gab = np.einsum("jrp,cjrsp,jsp->cp", a, info, b)
+    gbb = np.einsum("jrp,cjrsp,jsp->cp", b, info, b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = gaa / (gaa * gbb - gab**2)
+    return np.where(np.isfinite(var) & (var > 0), var, 0.0)
 
 
 def neighbour_bias(deviation: np.ndarray, chosen: np.ndarray, window: int = POOL_WINDOW) -> np.ndarray:
@@ -321,8 +400,8 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
                             variance: np.ndarray, valid: np.ndarray | None, geometry: DiffuseGeometry, *,
                             prior: tuple[np.ndarray, np.ndarray], seen_state: int = 0,
                             prior_correlation: np.ndarray | None = None, alpha: float = 0.05,
-                            mask: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None
-                            ) -> tuple[ReferenceResult, DiffuseTest, np.ndarray]:
+                            mask: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None,
+                            specular: bool = False) -> tuple[ReferenceResult, DiffuseTest, np.ndarray]:
     """Two states' hybrid solve ``result`` with the diffuse term where the samples alone accept it.
 
     :func:`test_diffuse` decides; at the accepted pixels the block is estimated under the
@@ -335,20 +414,61 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
     observe (:func:`neighbour_bias`; along the open direction ``result`` is the network's prior,
     whose errors are no measure of the model's). ``prior``, ``seen_state``,
     ``prior_correlation``: the hybrid solve's; ``analyzer_rows``: the samples' analyzer rows, as
-    :func:`polrig.solve.reference.solve_reference` takes them (None: ideal). Returns the result (its ``models`` map: ``rank_one``
+    :func:`polrig.solve.reference.solve_reference` takes them (None: ideal); ``specular``: with
+    Baek's specular term where significant (module docstring, "The specular term": it is taken
+    off before the rank-one estimate and the completion and put back after). Returns the result (its ``models`` map: ``rank_one``
     where accepted, ``full`` where tested and not), the test and the completed pixels
     ``(C, H, W)``."""
     states = np.asarray(states, np.float64).reshape(-1, 3)
     test = test_diffuse(states, measured, variance, valid, geometry, mask=mask, alpha=alpha,
-                        analyzer_rows=analyzer_rows)
-    chosen, _ = select_models(states, measured, variance, valid, analyzer_rows, result,
+                        analyzer_rows=analyzer_rows, specular=specular)
+    spec, base = None, result
+    if test.specular_albedo is not None and test.eta is not None:
+        # the specular term fitted by the test, taken off the samples, the prior and the hybrid's
+        # estimate: the rank-one estimate and the completion see the diffuse term alone
+        spec = specular_image(test, geometry)
+        measured = np.asarray(measured, np.float64) - _samples_of(spec, states, analyzer_rows, measured.shape)
+        prior = (np.asarray(prior[0], np.float64) - spec, prior[1])
+        base = dataclasses.replace(result, mueller=(result.mueller - spec).astype(result.mueller.dtype))
+    chosen, _ = select_models(states, measured, variance, valid, analyzer_rows, base,
                               SelectionOptions(alpha=alpha, models=("rank_one",)), prior=prior,
                               seen_state=seen_state, prior_correlation=prior_correlation,
                               decided=test.accepted[None])
     if test.eta is None:
         return chosen, test, np.zeros(chosen.mask.shape, bool)
     out, completed, _ = complete_diffuse(chosen, states, geometry, eta=test.eta, light=test.light)
+    if spec is not None:  # back with its own noise: the albedo's variance times the unit block squared
+        spec_var = specular_image(test, geometry, test.specular_sigma) ** 2
+        out = dataclasses.replace(out, mueller=(out.mueller + spec).astype(out.mueller.dtype),
+                                  sigma=np.sqrt(out.sigma.astype(np.float64) ** 2 + spec_var).astype(out.sigma.dtype))
     return dataclasses.replace(out, sigma=_floor_at_neighbour_bias(out, result, states)), test, completed
+
+
+def specular_image(test: DiffuseTest, geometry: DiffuseGeometry, weight: np.ndarray | None = None) -> np.ndarray:
+    """The specular term the test fitted, ``(C, 3, 3, H, W)`` float64: its albedo (or another
+    ``weight`` ``(C, H, W)``, e.g. its sigma) times the unit specular block
+    (:func:`polrig.solve.diffuse_geometry.specular_block`, at the test's light and index) at the
+    accepted pixels, 0 elsewhere."""
+    weight = test.specular_albedo if weight is None else weight
+    n_col, h, w = test.albedo.shape
+    out = np.zeros((n_col, 3, 3, h, w))
+    ys, xs = np.nonzero(test.accepted)
+    if test.specular_albedo is None or not len(ys):
+        return out
+    block = specular_block(light_fields(geometry, ys, xs)[test.light], np.asarray(geometry.view, np.float64)[ys, xs],
+                           test.eta, geometry.stage_zero_axis, geometry.camera_x_axis)  # (P, 3, 3)
+    out[..., ys, xs] = weight[:, None, None, ys, xs] * np.moveaxis(block, 0, -1)[None]
+    return out
+
+
+def _samples_of(mueller: np.ndarray, states: np.ndarray, analyzer_rows, shape) -> np.ndarray:
+    """The analyzer samples ``(J, C, 4, H, W)`` a block image ``(C, 3, 3, H, W)`` gives under
+    the ``states`` ``(J, 3)`` (``analyzer_rows`` as :func:`state_stokes`; None ideal)."""
+    stokes = np.einsum("crkhw,jk->jcrhw", mueller, states)
+    rows = ideal_analyzer_matrix() if analyzer_rows is None else np.asarray(analyzer_rows, np.float64)
+    if rows.ndim == 2:
+        return np.einsum("ar,jcrhw->jcahw", rows, stokes).reshape(shape)
+    return np.einsum("carhw,jcrhw->jcahw", rows, stokes).reshape(shape)
 
 
 def _floor_at_neighbour_bias(out: ReferenceResult, full: ReferenceResult, states: np.ndarray) -> np.ndarray:

@@ -132,8 +132,9 @@ def add_models_option(p: argparse.ArgumentParser) -> None:
                         "modes): per pixel the lower-order model (depolarizer, diattenuator, "
                         "retarder, Fresnel-type, rank one...) that a likelihood-ratio test at "
                         "level 0.05 accepts, estimated under it; diffuse (hybrid mode, two states): "
-                        "per pixel the diffuse term tested on the two states' samples alone (level "
-                        "0.05) and, where accepted, the direction they leave open predicted from the "
+                        "per pixel the diffuse term, with the specular term where significant, tested "
+                        "on the two states' samples alone (level 0.05) and, where accepted, the "
+                        "direction they leave open predicted from the "
                         "rig's geometry (calibrated light and turntable, or [nominal_geometry]); the "
                         "model map (model.{colour}, codes in the header) and its statistic are "
                         "always written")
