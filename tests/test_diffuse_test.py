@@ -218,17 +218,23 @@ def _hybrid(truth, meas, var, prior_mean, prior_sigma):
                         dtype=np.float64)
 
 
-def _scene(seed: int, h: int = 16, w: int = 16):
-    """Diffuse truth, its frames and a prior off along the open direction (a network's error
-    where two states do not look), 5 % of the brightest ``m00``."""
-    view, light, normal = _surface(h, w, seed)
-    truth = _blocks(view, light, normal, 1.5, "diffuse", [0.9, 0.7, 0.5])
-    rng = np.random.default_rng(seed + 100)
+def _frames_and_prior(truth: np.ndarray, rng: np.random.Generator):
+    """:func:`_frames` of ``truth`` and a prior off along the direction the two states leave open
+    (a network's error where they do not look), 5 % of the brightest ``m00``: ``meas, var,
+    prior, sigma``."""
     meas, var, _ = _frames(truth, rng)
     u = dg.unobserved_direction(STATES)
     err = rng.normal(0, 0.05, truth.shape[:2] + truth.shape[3:]) * truth[:, 0, 0].max()
     prior = truth + err[:, :, None] * u[None, None, :, None, None]
-    sigma = np.full(truth.shape, 0.05 * truth[:, 0, 0].max())
+    return meas, var, prior, np.full(truth.shape, 0.05 * truth[:, 0, 0].max())
+
+
+def _scene(seed: int, h: int = 16, w: int = 16):
+    """Diffuse truth, its frames and a prior off along the open direction
+    (:func:`_frames_and_prior`)."""
+    view, light, normal = _surface(h, w, seed)
+    truth = _blocks(view, light, normal, 1.5, "diffuse", [0.9, 0.7, 0.5])
+    meas, var, prior, sigma = _frames_and_prior(truth, np.random.default_rng(seed + 100))
     return truth, meas, var, prior, sigma, _geometry(view, light, normal)
 
 
@@ -295,12 +301,7 @@ def _coverage_with_and_without_neighbours(monkeypatch, bias: float):
     truth = _blocks(view, light, normal, 1.5, "diffuse", [0.9, 0.7, 0.5])
     truth[:, 1, 1] += bias * truth[:, 0, 0]
     truth[:, 2, 2] += bias * truth[:, 0, 0]
-    rng = np.random.default_rng(121)
-    meas, var, _ = _frames(truth, rng)
-    u = dg.unobserved_direction(STATES)
-    err = rng.normal(0, 0.05, truth.shape[:2] + truth.shape[3:]) * truth[:, 0, 0].max()
-    prior = truth + err[:, :, None] * u[None, None, :, None, None]
-    sigma = np.full(truth.shape, 0.05 * truth[:, 0, 0].max())
+    meas, var, prior, sigma = _frames_and_prior(truth, np.random.default_rng(121))
     geo = _geometry(view, light, normal)
     r = _hybrid(truth, meas, var, prior, sigma)
 
@@ -393,12 +394,7 @@ def test_the_completion_with_the_specular_term():
     specular term off before the rank-one estimate and the completion, and back after, brings
     the block's error to a fraction of the diffuse route's, with the sigma covering it."""
     truth, view, light, _ = _diffuse_and_specular(16, 0.10)
-    rng = np.random.default_rng(17)
-    meas, var, _ = _frames(truth, rng)
-    u = dg.unobserved_direction(STATES)
-    err = rng.normal(0, 0.05, truth.shape[:2] + truth.shape[3:]) * truth[:, 0, 0].max()
-    prior = truth + err[:, :, None] * u[None, None, :, None, None]
-    sigma = np.full(truth.shape, 0.05 * truth[:, 0, 0].max())
+    meas, var, prior, sigma = _frames_and_prior(truth, np.random.default_rng(17))
     geo = _geometry(view, light)
     r = _hybrid(truth, meas, var, prior, sigma)
     rmse = lambda m: np.sqrt(np.mean((m - truth) ** 2))  # noqa: E731
