@@ -300,8 +300,8 @@ def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray,
 
     best_light, best_eta = _choose(len(lights), len(etas), total)
     eta = float(etas[best_eta])
-    t, normal, k = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed,
-                                     specular=spec(best_light, best_eta, slice(None)))
+    block = spec(best_light, best_eta, slice(None))
+    t, normal, k = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed, specular=block)
     p, accept = chi2_sf(t, df_fit), t <= chi2_critical(df_fit, float(alpha))
     if specular:  # the specular term only where it explains significantly more than the diffuse alone
         t_d, normal_d, k_d = diffuse_statistic(stokes, info, states, view, lights[best_light], eta, *fixed)
@@ -313,7 +313,7 @@ def test_diffuse(states: np.ndarray, measured: np.ndarray, variance: np.ndarray,
         accept = np.where(significant, accept, t_d <= chi2_critical(df, float(alpha)))
         t = np.where(significant, t, t_d)
         ks_sd = np.where(significant, np.sqrt(_specular_variance(
-            info, states, normal, lights[best_light], view, eta, fixed, spec(best_light, best_eta, slice(None)))), 0.0)
+            info, states, normal, lights[best_light], view, eta, fixed, block)), 0.0)
     statistic, p_value = nan_img.copy(), nan_img.copy()
     statistic[ys, xs], p_value[ys, xs] = t, p
     accepted = np.zeros((h, w), bool)
@@ -430,8 +430,8 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
     if test.specular_albedo is not None and test.eta is not None:
         # the specular term fitted by the test, taken off the samples, the prior and the hybrid's
         # estimate: the rank-one estimate and the completion see the diffuse term alone
-        spec = specular_term(test, geometry)
-        ys, xs, values = spec
+        ys, xs, unit = spec = specular_term(test, geometry)
+        values = test.specular_albedo[:, None, None, ys, xs] * unit[None]
         measured = np.array(measured)
         measured[..., ys, xs] -= _samples_of(values, states, analyzer_rows, ys, xs).astype(measured.dtype)
         mean = np.array(np.broadcast_to(prior[0], result.mueller.shape))
@@ -452,7 +452,7 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
         # albedo shifts the rest by -d B, whose first row and column the rank-one fit keeps (they
         # are measured) and whose other elements it predicts from them, so d B comes back there
         # less its rank-one part B[:, 0] B[0, :] / B[0, 0]
-        _, _, sd = specular_term(test, geometry, test.specular_sigma)  # (C, 3, 3, P): sigma_ks B
+        sd = test.specular_sigma[:, None, None, ys, xs] * unit[None]  # (C, 3, 3, P): sigma_ks B
         with np.errstate(divide="ignore", invalid="ignore"):
             part = sd[:, :, :1] * sd[:, :1, :] / sd[:, :1, :1]
         spec_var = np.where(sd[:, :1, :1] > 0, sd - part, 0.0) ** 2
@@ -463,19 +463,16 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
     return dataclasses.replace(out, sigma=_floor_at_neighbour_bias(out, result, states)), test, completed
 
 
-def specular_term(test: DiffuseTest, geometry: DiffuseGeometry, weight: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The specular term the test fitted at its accepted pixels: their rows and columns
-    ``(P,)`` and the blocks ``(C, 3, 3, P)`` float64, the albedo (or another ``weight``
-    ``(C, H, W)``, e.g. its sigma) times the unit specular block
-    (:func:`polrig.solve.diffuse_geometry.specular_block`, at the test's light and index)."""
-    weight = test.specular_albedo if weight is None else weight
+def specular_term(test: DiffuseTest, geometry: DiffuseGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unit specular block (:func:`polrig.solve.diffuse_geometry.specular_block`, at the
+    test's light and index) at the test's accepted pixels: their rows and columns ``(P,)`` and
+    the blocks ``(3, 3, P)`` float64; the term is ``test.specular_albedo`` there times them."""
     ys, xs = np.nonzero(test.accepted)
     if test.specular_albedo is None or not len(ys):
-        return ys, xs, np.zeros(test.albedo.shape[:1] + (3, 3, len(ys)))
+        return ys, xs, np.zeros((3, 3, len(ys)))
     block = specular_block(light_fields(geometry, ys, xs)[test.light], np.asarray(geometry.view, np.float64)[ys, xs],
                            test.eta, geometry.stage_zero_axis, geometry.camera_x_axis)  # (P, 3, 3)
-    return ys, xs, weight[:, None, None, ys, xs] * np.moveaxis(block, 0, -1)[None]
+    return ys, xs, np.moveaxis(block, 0, -1)
 
 
 def _samples_of(blocks: np.ndarray, states: np.ndarray, analyzer_rows, ys: np.ndarray, xs: np.ndarray
