@@ -73,7 +73,7 @@ def test_models_only_run_writes_its_table(tmp_path):
     dif = m["hybrid2_diffuse"]
     assert 0 < dif["accepted"] <= 1 and 0.5 < dif["coverage"] <= 1 and np.isfinite(dif["psnr_holds"])
     assert 0 < dif["specular"] <= dif["accepted"]
-    assert dif["detectable_share"] >= 0 and dif["detectable_prior_share"] >= 0
+    assert dif["detectable_share"] >= dif["detectable_mc_share"] >= 0 and dif["detectable_prior_share"] >= 0
     text = out.read_text()
     assert "tested on the two states' samples alone" in text and "with the specular term" in text
     assert "Lower-order models at two states (0/90)" in text and "hybrid 2 + models, holds" in text
@@ -128,10 +128,11 @@ def test_two_state_bound_is_the_inverse_variance_combination():
 
 
 def test_detectably_off_diffuse_on_a_synthetic_frame():
-    """The diffuse test's false-acceptance denominator: diffuse truth (Baek's term at the frame's
-    own geometry) is never detectably off it; a bright specular (Fresnel) truth mostly is, in
-    the noise of the frames' samples."""
-    from polrig.models.continuum import Frames, detectably_off_diffuse, rotated_state
+    """The diffuse test's false-acceptance denominators: diffuse truth (Baek's term at the frame's
+    own geometry) is never detectably off it, and the test's Monte Carlo rejection rate there is
+    its level; a bright specular (Fresnel) truth mostly is, and the test rejects it on almost
+    every noise draw there, in the noise of the frames' samples."""
+    from polrig.models.continuum import Frames, detectably_off_diffuse, diffuse_test_power, rotated_state
     from polrig.optics.pbrdf import linear_rig_mueller
     from polrig.solve.diffuse_geometry import DiffuseGeometry
     from polrig.solve.diffuse_test import test_diffuse
@@ -163,7 +164,10 @@ def test_detectably_off_diffuse_on_a_synthetic_frame():
                     {0: np.ones(var.shape[1:], bool), 90: np.ones(var.shape[1:], bool)}, geometry=geo)
         test = test_diffuse(np.stack([states[0], states[90]]), meas, var, None, geo, etas=(1.5,))
         det = detectably_off_diffuse(fr, (0, 90), test)
+        rejected = diffuse_test_power(fr, (0, 90), test, *np.nonzero(ones), draws=100)
         if detectable:
             assert det.mean() > 0.9 and not test.accepted[det].any()
+            assert rejected.reshape(h, w)[det].mean() > 0.95
         else:
             assert not det.any() and test.accepted.all()
+            assert 0.0 < rejected.mean() < 0.12  # the level, 0.05, within the grid search's and the draws' spread
