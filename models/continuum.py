@@ -723,9 +723,9 @@ def diffuse_test_power(fr: Frames, two: Sequence[int], test, ys: np.ndarray, xs:
         noise = np.einsum("cjpab,cjpkb->cjakp", chol, rng.standard_normal((n_col, 2, p, k, 3)))
         stokes = (clean[..., None, :] + noise).reshape(n_col, 2, 3, k * p)  # draw-major pixels
         tile = lambda a: np.tile(a, (k,) + (1,) * (a.ndim - 1))  # noqa: E731
-        t_d, _, _ = diffuse_statistic(stokes, np.tile(info, k), states, tile(view), tile(light), test.eta, *fixed)
-        t_s = None if spec is None else diffuse_statistic(stokes, np.tile(info, k), states, tile(view), tile(light),
-                                                           test.eta, *fixed, specular=tile(spec))[0]
+        system = (np.tile(info, k), states, tile(view), tile(light), test.eta, *fixed)
+        t_d, _, _ = diffuse_statistic(stokes, *system)
+        t_s = None if spec is None else diffuse_statistic(stokes, *system, specular=tile(spec))[0]
         accepted, _ = decide(t_d, t_s, n_col, test.alpha)
         rejected += (~accepted).reshape(k, p).sum(axis=0)
     return rejected / int(draws)
