@@ -405,3 +405,24 @@ def test_the_completion_with_the_specular_term():
     assert rmse(out.mueller) < 0.5 * rmse(alone.mueller) and rmse(out.mueller) < 0.5 * rmse(r.mueller)
     inside = np.abs(out.mueller - truth) <= 2 * out.sigma
     assert inside[..., test.accepted].mean() >= 0.93
+
+
+def test_the_decision_takes_the_specular_term_only_where_significant_and_rejects_what_has_no_fit():
+    """:func:`polrig.solve.diffuse_test.decide` against its rule written out: the specular term
+    where ``T - T_s`` passes ``chi^2(C)`` at the specular level, then the chosen model's own
+    critical value (``chi^2(4C - 2)`` with it, ``chi^2(5C - 2)`` without); a statistic that is
+    infinite (no valid normal) or NaN is never accepted, and without ``T_s`` the diffuse term
+    alone decides."""
+    from polrig.solve.diffuse_test import SPECULAR_LEVEL, decide, degrees_of_freedom
+    from polrig.solve.model_selection import chi2_critical
+
+    c = 3
+    crit_d, crit_s = chi2_critical(degrees_of_freedom(c), 0.05), chi2_critical(degrees_of_freedom(c, True), 0.05)
+    gap = chi2_critical(c, SPECULAR_LEVEL)
+    t_d = np.array([crit_d - 1, crit_d + 1, crit_s + gap + 2, crit_s + gap + 2, np.inf, np.nan, np.inf])
+    t_s = np.array([crit_d - 1, crit_d + 1 - gap / 2, crit_s - 1, crit_s + 1, np.inf, np.nan, crit_s - 1])
+    accepted, significant = decide(t_d, t_s, c, 0.05)
+    assert significant.tolist() == [False, False, True, True, False, False, True]
+    assert accepted.tolist() == [True, False, True, False, False, False, True]
+    alone, none = decide(t_d, None, c, 0.05)
+    assert alone.tolist() == [True, False, False, False, False, False, False] and not none.any()

@@ -245,7 +245,8 @@ def decide(t_diffuse: np.ndarray, t_specular: np.ndarray | None, n_colours: int,
     if t_specular is None:
         return accept_diffuse, np.zeros(t_diffuse.shape, bool)
     t_specular = np.asarray(t_specular, np.float64)
-    significant = (t_diffuse - t_specular) > chi2_critical(int(n_colours), SPECULAR_LEVEL)
+    with np.errstate(invalid="ignore"):  # both infinite (no valid normal): not significant
+        significant = (t_diffuse - t_specular) > chi2_critical(int(n_colours), SPECULAR_LEVEL)
     accept_specular = t_specular <= chi2_critical(degrees_of_freedom(n_colours, True), float(alpha))
     return np.where(significant, accept_specular, accept_diffuse), significant
 
