@@ -111,7 +111,7 @@ from polrig.solve.model_selection import (
     chi2_sf,
     select_models,
 )
-from polrig.solve.reference import ReferenceResult
+from polrig.solve.reference import ReferenceResult, forward_measurements
 
 __all__ = ["state_stokes", "degrees_of_freedom", "diffuse_statistic", "DiffuseTest", "decide", "test_diffuse",
            "neighbour_bias", "complete_tested_diffuse",
@@ -503,13 +503,13 @@ def specular_term(test: DiffuseTest, geometry: DiffuseGeometry) -> tuple[np.ndar
 def _samples_of(blocks: np.ndarray, states: np.ndarray, analyzer_rows, ys: np.ndarray, xs: np.ndarray
                 ) -> np.ndarray:
     """The analyzer samples ``(J, C, 4, P)`` that blocks ``(C, 3, 3, P)`` at the pixels ``ys``,
-    ``xs`` give under the ``states`` ``(J, 3)`` (``analyzer_rows`` as :func:`state_stokes`, per
-    pixel ``(C, 4, 3, H, W)`` read at those pixels; None ideal)."""
-    stokes = np.einsum("crkp,jk->jcrp", blocks, states)
-    rows = ideal_analyzer_matrix() if analyzer_rows is None else np.asarray(analyzer_rows, np.float64)
-    if rows.ndim == 2:
-        return np.einsum("ar,jcrp->jcap", rows, stokes)
-    return np.einsum("carp,jcrp->jcap", rows[..., ys, xs], stokes)
+    ``xs`` give under the ``states`` ``(J, 3)``: :func:`polrig.solve.reference.forward_measurements`
+    of the pixels as a ``(P, 1)`` image (``analyzer_rows`` as :func:`state_stokes`, per pixel
+    ``(C, 4, 3, H, W)`` read at those pixels; None ideal)."""
+    rows = analyzer_rows
+    if rows is not None and np.ndim(rows) > 2:
+        rows = np.asarray(rows)[..., ys, xs][..., None]
+    return forward_measurements(blocks[..., None], states, rows)[..., 0]
 
 
 def _floor_at_neighbour_bias(out: ReferenceResult, full: ReferenceResult, states: np.ndarray) -> np.ndarray:
