@@ -8,8 +8,9 @@ pixel is Baek et al.'s diffuse term, with their specular term where it is signif
 geometry predicts that direction instead (:mod:`polrig.solve.diffuse_geometry`), and whether the
 pixel *is* that model is decided by a likelihood-ratio test on the two frames' samples alone,
 with nothing of the network in the decision (:mod:`polrig.solve.diffuse_test`; on the held-out
-sets +6.35..+10.13 dB over single-shot where a model holds, false acceptance where the samples
-can tell 0.0-1.1 % on the sets where such pixels are more than 1 % of the scored ones,
+sets +6.35..+10.13 dB over single-shot where a model holds; false acceptance where the samples
+can tell, the test's Monte Carlo power at least 0.95, 0.0-0.7 % on the sets where such pixels are
+more than 1 % of the scored ones and 1.4 % pooled over the Baek sets,
 ``benchmarks/results/continuum_models.md``). This module gives that route what a capture knows:
 
 * the geometry (:func:`capture_geometry`): each output pixel's view direction from the
