@@ -138,8 +138,11 @@ def test_statistic_with_the_specular_term_matches_the_numpy_search(eta):
     assert (k_k[3:, fin] > 0).any()
 
 
-@pytest.mark.parametrize("with_guess", [True, False])
-def test_ratio_search_matches_the_numpy_search(with_guess):
+@pytest.mark.parametrize("guess_weight", [None, dg.GUESS_WEIGHT, dg.NEIGHBOUR_WEIGHT])
+def test_ratio_search_matches_the_numpy_search(guess_weight):
+    """With a pull (the first pass's weak one and the second pass's strong one) the kernel's
+    coarse level skips the candidates the pull alone bounds; the numpy search scans them all."""
+    with_guess = guess_weight is not None
     rng = np.random.default_rng(7 + with_guess)
     p, eta = 240, 1.5
     view, light, normal = _geometry(p, rng)
@@ -149,7 +152,7 @@ def test_ratio_search_matches_the_numpy_search(with_guess):
     x_hat, rho_hat, weights = (np.nan_to_num(a, nan=0.3) for a in (x_hat, rho_hat, weights))
     guess = _unit(normal + rng.normal(0, 0.1, normal.shape)) if with_guess else None
     obs = dg._Observed(x_hat, rho_hat, weights)
-    geo = dg._Pixels(view, light, guess, dg.GUESS_WEIGHT, STAGE, CAM, s_a, s_b)
+    geo = dg._Pixels(view, light, guess, guess_weight or 0.0, STAGE, CAM, s_a, s_b)
     pix = np.arange(p)
     n_k, c_k = dg._search(pix, eta, obs, geo, 2)
     n_n, c_n = oracle.search_ratios_numpy(pix, eta, obs, geo, 2)
@@ -159,6 +162,32 @@ def test_ratio_search_matches_the_numpy_search(with_guess):
     sub = rng.permutation(p)[:50]
     n_s, c_s = dg._search(sub, eta, obs, geo, 2)
     assert np.array_equal(n_s, n_k[sub]) and np.array_equal(c_s, c_k[sub])
+
+
+def test_bounded_scan_takes_the_full_scans_candidate_where_data_and_pull_disagree():
+    """Guesses anywhere in the visible hemisphere (most far from the data's normal), at the second
+    pass's strong pull and at a pull that just balances the data, and guesses with no direction
+    (zero, NaN: nothing bounded; NaN makes every cost inf): the kernel, which skips the coarse
+    candidates whose pull alone exceeds its least cost so far, takes the numpy search's
+    candidates, which scans them all."""
+    rng = np.random.default_rng(17)
+    p, eta = 300, 1.5
+    view, light, normal = _geometry(p, rng)
+    s_a, s_b = _state(30), _state(120)
+    md = _diffuse(normal, light, view, eta) + rng.normal(0, 0.002, (p, 3, 3))
+    x_hat, rho_hat, weights = dg.ratio_weights(np.moveaxis(md, 0, -1), np.full((3, 3, p), 1e-4), s_a, s_b)
+    x_hat, rho_hat, weights = (np.nan_to_num(a, nan=0.3) for a in (x_hat, rho_hat, weights))
+    guess = _about(view, rng.uniform(0, 88, p), rng)
+    guess[12:15] = 0.0
+    guess[15:18] = np.nan
+    obs = dg._Observed(x_hat, rho_hat, weights)
+    pix = np.arange(p)
+    for weight in (dg.NEIGHBOUR_WEIGHT, float(np.median(weights.sum(axis=1))) * 1e-3):
+        geo = dg._Pixels(view, light, guess, weight, STAGE, CAM, s_a, s_b)
+        n_k, c_k = dg._search(pix, eta, obs, geo, 2)
+        n_n, c_n = oracle.search_ratios_numpy(pix, eta, obs, geo, 2)
+        _agree(c_k, n_k, c_n, n_n)
+        assert np.isinf(c_k[15:18]).all() and np.isfinite(c_k[12:15]).all()
 
 
 def test_results_do_not_depend_on_threads_or_chunks(monkeypatch):

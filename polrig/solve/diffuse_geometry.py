@@ -34,9 +34,11 @@ normal exitance. The candidates are a zenith x azimuth grid about ``wo``
 of least total capped cost over a stride sample of the pixels (:data:`ETA_SAMPLE`; cap
 :data:`COST_CAP`: pixels the model does not fit must not pick it). The search is compiled
 (:mod:`polrig.solve._diffuse_kernel`, shared with the diffuse test's statistic; pixel chunks on
-a few threads): about 18 us a pixel a pass on 2 CPUs, some 12 s for both passes over a full
-612x512 image (the previous numpy search, :mod:`polrig.solve._diffuse_numpy`, now the tests'
-oracle: 250 us, 13x slower).
+a few threads), the coarse level bounded by the pull (``_diffuse_kernel``, "Bounded by the
+pull": the full scan's choices bit for bit): on the 176293 tested pixels of a full mono capture
+(2 CPUs, warm) the first pass 2.9 s and the second 0.5 s, where the full scan took 3.9 and 3.6 s
+(the previous numpy search, :mod:`polrig.solve._diffuse_numpy`, now the tests' oracle: 250 us a
+pixel a pass, 13x slower than the full scan).
 
 :func:`complete_diffuse` fits twice. The first pass pulls towards the network's normal with
 :data:`GUESS_WEIGHT`: the two states leave ``n``'s zenith weakly determined where ``x`` is
