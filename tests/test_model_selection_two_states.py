@@ -250,3 +250,33 @@ def test_hybrid_two_states_models_auto_leaves_the_pixels_untested_in_captures(tm
     code = np.stack([v for k, v in read_exr(out / rev["mueller"]["path"]).planes.items() if k.startswith("model.")])
     assert np.all(code == ms.UNTESTED)
     assert s.verify() == []
+
+
+def test_selection_does_not_depend_on_chunks_or_threads(monkeypatch):
+    """Both paths (four states, full rank; two states with the prior, on the posterior system)
+    in small chunks, one after the other on one thread and side by side on three: the same arrays
+    bit for bit (each chunk writes its own pixels)."""
+    from polrig.solve import chunks
+
+    rng = np.random.default_rng(29)
+    names = ["full", *(m.name for m in rm.MODELS)]
+    truth = images(np.concatenate([rm.random_blocks(rng, n, 60, SCALE) for n in names]), 12, 35)
+    meas4, var4 = noisy_samples(rng, truth, S4)
+    full = ref.solve_reference(S4, meas4, var4, dtype=np.float64)
+    meas2, var2 = noisy_samples(rng, truth, S2)
+    sd = np.full(truth.shape, PRIOR_SD)
+    mean = truth + prior_error(rng, sd, S2[0])
+    post = solve_hybrid(S2, meas2, var2, prior_mean=mean, prior_sigma=sd, seen_state=0, dtype=np.float64)
+    cases = [((S4, meas4, var4, None, None, full), {}),
+             ((S2, meas2, var2, None, None, post), dict(prior=(mean, sd), seen_state=0))]
+    for args, kw in cases:
+        monkeypatch.setattr(chunks, "THREADS", 1)
+        one, maps_one = ms.select_models(*args, chunk_pixels=37, **kw)
+        monkeypatch.setattr(chunks, "THREADS", 3)
+        many, maps_many = ms.select_models(*args, chunk_pixels=37, **kw)
+        assert (maps_one.code != 0).any()
+        for a, b in zip((one.mueller, one.sigma, one.sigma_noise, one.residual, one.mask, maps_one.code,
+                         maps_one.statistic, maps_one.p_value),
+                        (many.mueller, many.sigma, many.sigma_noise, many.residual, many.mask, maps_many.code,
+                         maps_many.statistic, maps_many.p_value)):
+            np.testing.assert_array_equal(a, b)

@@ -140,7 +140,7 @@ Never silent: nothing here runs unless asked (``polrig reconstruct --models auto
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -149,6 +149,7 @@ import numpy as np
 from polrig.choices import MODEL_CHOICES as _MODEL_CHOICES
 from polrig.errors import ConfigError
 from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve.chunks import in_chunks
 from polrig.solve.reduced_models import MODEL_CODES, MODELS, block_covariance, fit_model
 from polrig.solve.reference import (
     DARK,
@@ -471,7 +472,10 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     finite), whatever its statistic (which the maps hold there), e.g. the diffuse term tested on
     two states' samples alone (:mod:`polrig.solve.diffuse_test`) with ``options.models =
     ("rank_one",)``. Elsewhere nothing is fitted: the full block as given, code ``0`` (where not
-    ill-conditioned), no statistic."""
+    ill-conditioned), no statistic.
+
+    ``chunk_pixels``: the most pixels a chunk's systems hold (its memory); the chunks run side by
+    side on the CPUs (:func:`_in_pixel_chunks`), and the results do not depend on the threads."""
     opts = options or SelectionOptions()
     models = sorted((m for m in MODELS if m.name in opts.models), key=lambda m: m.n_params)
     crit = {m.code: chi2_critical(9 - m.n_params, opts.alpha) for m in models}
@@ -493,25 +497,40 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
             code[c][solved & ~decided[c]] = 0
             solved = solved & decided[c]
         testable = solved & (result.pixel_condition[c] <= opts.max_condition)
-        idx = np.flatnonzero(testable.ravel())
-        for p0 in range(0, idx.size, max(1, int(chunk_pixels))):
-            pix = idx[p0:p0 + chunk_pixels]
+        def full_rank(pix: np.ndarray, c: int = c) -> None:
             normal, m_hat, chi2_full, n_ok = normal_equations(
                 s_in, measured, variance, valid, analyzer_rows, c, pix)
             good = np.isfinite(m_hat).all(axis=1) & (n_ok >= 9)
             _test_and_write(models, crit, opts, c, pix, w, normal, m_hat, chi2_full, n_ok, good,
                             out, code, stat, pval, decided=None if decided is None else decided[c].ravel()[pix])
-        if prior is None:
-            continue
-        rest = np.flatnonzero((~testable & solved).ravel())
-        for p0 in range(0, rest.size, max(1, int(chunk_pixels))):
-            pix = rest[p0:p0 + chunk_pixels]
+
+        def row_space(pix: np.ndarray, c: int = c) -> None:
             _select_row_space(s_in, measured, variance, valid, analyzer_rows, c, pix, w, models,
                               crit, opts, prior, out, code, stat, pval, seen_state, prior_correlation,
                               None if decided is None else decided[c].ravel()[pix])
+
+        _in_pixel_chunks(np.flatnonzero(testable.ravel()), chunk_pixels, full_rank)
+        if prior is not None:
+            _in_pixel_chunks(np.flatnonzero((~testable & solved).ravel()), chunk_pixels, row_space)
     maps = ModelMaps(code, stat, pval, opts)
     return ReferenceResult(out.mueller, out.sigma, out.residual, out.mask, result.condition_number,
                            result.pixel_condition, result.n_samples, out.sigma_noise, maps), maps
+
+
+def _in_pixel_chunks(idx: np.ndarray, chunk_pixels: int, work: Callable[[np.ndarray], None]) -> None:
+    """``work(pix)`` for the consecutive chunks ``pix`` of at most ``chunk_pixels`` of the flat
+    pixel indices ``idx``, the chunks side by side on the CPUs (:func:`polrig.solve.chunks.in_chunks`;
+    each chunk writes its own pixels and is computed as alone, so the results do not depend on
+    the threads)."""
+    size = max(1, int(chunk_pixels))
+    n_chunks = -(-idx.size // size)
+
+    def run(sl: slice) -> None:
+        for i in range(sl.start, sl.stop):
+            work(idx[i * size:(i + 1) * size])
+
+    if n_chunks:
+        in_chunks(n_chunks, run, min_pixels=1, name="model-selection")
 
 
 def _test_and_write(models, crit, opts: SelectionOptions, c: int, pix: np.ndarray, w: int,
