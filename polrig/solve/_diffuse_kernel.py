@@ -44,17 +44,19 @@ level (``_inline``), at one site.
 the pull ``g angle(n, n_guess)^2``, so a candidate whose pull alone exceeds the least cost found
 so far cannot be taken; in floating point too, since adding a non-negative number never rounds
 below the pull. The coarse level with a pull therefore starts at the candidate nearest the guess
-(:func:`_seed`) and, from there on, tests each candidate's cosine to the guess (the candidate
+(:func:`_seed`) and at the one the previous pixel of the chunk took (a surface's normal turns
+little from one pixel to the next, so the least cost is near its final value from the start)
+and, from there on, tests each candidate's cosine to the guess (the candidate
 normal and the cosine by the expressions of :func:`_ratios` and :func:`_misfit`) against the
 cosine of ``sqrt(best / g)`` widened by ``1e-6`` relative and absolute (:func:`_pull_limit`)
 before it computes the ratios. A tie goes to the first candidate in the grid's order, as in the
 full scan. The choices, costs and normals are those of the full scan bit for bit (checked on the
-176293 tested pixels of a full mono capture of the plastic sphere, both passes, and the tests'
-random pixels, ``tests/test_diffuse_kernel.py`` against the oracle, which scans them all). On
-that capture (warm, median of 3 interleaved rounds, 2 shared CPUs) the second pass, whose pull
-``NEIGHBOUR_WEIGHT`` keeps the normal within a few degrees of its neighbours', takes 0.51 s
-against 3.62 s, the first pass (weak pull, with the choice of ``eta`` and the light) 2.92 s
-against 3.94 s.
+176293 tested pixels of a full mono capture of the plastic sphere, both passes and the whole
+route's outputs, and the tests' random pixels, ``tests/test_diffuse_kernel.py`` against the
+oracle, which scans them all). On that capture (warm, median of 3 interleaved rounds, 2 shared
+CPUs) the second pass, whose pull ``NEIGHBOUR_WEIGHT`` keeps the normal within a few degrees of
+its neighbours', takes 0.54 s against 3.56 s, the first pass (weak pull, with the choice of
+``eta`` and the light) 2.55 s against 4.26 s (2.92 s with the guess's seed alone).
 
 **Oracle** (:mod:`polrig.solve._diffuse_numpy`, the previous numpy implementation,
 ``tests/test_diffuse_kernel.py``): the candidates are the same numbers; the costs, from the
@@ -428,8 +430,8 @@ def _pull_limit(best, guess_weight):  # pragma: no cover - compiled
 
 
 @jit_cached()
-def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, data, xy, k, normal_out, specular
-                  ):  # pragma: no cover - compiled
+def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, data, xy, k, normal_out, specular,
+                  seeds):  # pragma: no cover - compiled
     """The grid search of one pixel (module docstring; ``grid`` = ``(nz, na, refine)``,
     ``steps`` = ``(dz, da, zmax)`` in rad, ``coarse`` ``(4, max(nz, na))`` the coarse grid's
     zenith cosines, sines, azimuth cosines, sines); the normal into ``normal_out`` ``(3,)``, the
@@ -438,9 +440,11 @@ def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, dat
     its albedos): one site of the inlined cost, a third of the compile time of one per level.
 
     The completion's coarse level with a pull (module docstring, "Bounded by the pull") starts
-    at the candidate nearest the guess (:func:`_seed`) and skips the candidates whose pull alone
-    exceeds the least cost so far (:func:`_pull_limit`); a tie is resolved to the first candidate
-    in the grid's order, as the full scan resolves it."""
+    at the candidate nearest the guess (:func:`_seed`) and at ``seeds[1]`` (the coarse candidate
+    the previous pixel took, -1 none; this pixel's is written there), and skips the candidates
+    whose pull alone exceeds the least cost so far (:func:`_pull_limit`); a tie is resolved to
+    the first candidate in the grid's order, as the full scan resolves it. ``seeds`` ``(2,)``
+    int64 scratch."""
     nz, na, refine = grid
     dz, da, zmax = steps
     zb, ab = (nz - 1) * dz / 2, np.pi - da / 2  # the coarse grid's centre
@@ -455,13 +459,22 @@ def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, dat
             n_i, n_j, dzl, dal = 3, 3, dz * 2.0 ** -level, da * 2.0 ** -level
         hz, ha = (n_i - 1) / 2, (n_j - 1) / 2
         best_l, ib, jb = np.inf, 0, 0
-        seed = _seed(ctx, data, nz, na, dz, da) if bounded and level == 0 else -1
+        seeded = bounded and level == 0
+        if seeded:
+            seeds[0] = _seed(ctx, data, nz, na, dz, da)
+            if seeds[1] == seeds[0]:
+                seeds[1] = -1
         cos_limit = -np.inf
-        for row in range(-1 if seed >= 0 else 0, n_i):  # row -1: the seed alone
+        for row in range(-2 if seeded else 0, n_i):  # rows -2, -1: the seeds alone
             for col in range(n_j if row >= 0 else 1):
-                i, j = (row, col) if row >= 0 else (seed // n_j, seed % n_j)
-                if row >= 0 and seed >= 0:
-                    if i * n_j + j == seed:
+                if row < 0:
+                    if seeds[row + 2] < 0:
+                        continue
+                    i, j = seeds[row + 2] // n_j, seeds[row + 2] % n_j
+                else:
+                    i, j = row, col
+                if row >= 0 and seeded:
+                    if i * n_j + j == seeds[0] or i * n_j + j == seeds[1]:
                         continue
                     # the candidate normal and its cosine to the guess, as _ratios and _misfit
                     ca, sa, cz, sz = coarse[2, j], coarse[3, j], coarse[0, i], coarse[1, i]
@@ -477,8 +490,10 @@ def _search_pixel(mode, n_col, n_st, usable, ctx, eta2, grid, steps, coarse, dat
                 cost = _cost(mode, n_col, n_st, cz, sz, ca, sa, ctx, usable, eta2, data, xy, k, final, specular)
                 if cost < best_l or (cost == best_l and cost < np.inf and (i, j) < (ib, jb)):
                     best_l, ib, jb = cost, i, j
-                    if seed >= 0:
+                    if seeded:
                         cos_limit = _pull_limit(best_l, data[_GW])
+        if seeded:
+            seeds[1] = ib * n_j + jb if best_l < np.inf else -1
         if not final:
             best = best_l
             zb, ab = min(max(zb + (ib - hz) * dzl, 0.0), zmax), ab + (jb - ha) * dal
@@ -512,6 +527,7 @@ def _search_all(mode, view, light, stage, cam, eta, grid, steps, stat, fit, gues
     n_col, n_st = stokes.shape[1], stokes.shape[2]
     data = np.empty(max(_RATIO_DATA, n_col + 3 * n_st + 9 * n_col * n_st + 2 * n_col + 3 * n_col * n_st))
     k = np.empty(k_out.shape[1])
+    seeds = np.full(2, -1, np.int64)  # where the search of the completion starts (_search_pixel)
     for p in range(view.shape[0]):
         usable = _setup(view[p], light[p], stage, cam, ctx, tmp)
         if mode == STATISTIC:
@@ -519,7 +535,7 @@ def _search_all(mode, view, light, stage, cam, eta, grid, steps, stat, fit, gues
         else:
             _prepare_ratios(p, x_hat, rho_hat, weights, guess, s_a, s_b, guess_weight, use_guess, data)
         cost_out[p] = _search_pixel(mode, n_col, n_st, usable, ctx, eta * eta, grid, steps, coarse, data, xy, k,
-                                    normal_out[p], specular)
+                                    normal_out[p], specular, seeds)
         for c in range(k.shape[0]):
             k_out[p, c] = k[c]
 

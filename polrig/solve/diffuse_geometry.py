@@ -36,7 +36,7 @@ of least total capped cost over a stride sample of the pixels (:data:`ETA_SAMPLE
 (:mod:`polrig.solve._diffuse_kernel`, shared with the diffuse test's statistic; pixel chunks on
 a few threads), the coarse level bounded by the pull (``_diffuse_kernel``, "Bounded by the
 pull": the full scan's choices bit for bit): on the 176293 tested pixels of a full mono capture
-(2 CPUs, warm) the first pass 2.9 s and the second 0.5 s, where the full scan took 3.9 and 3.6 s
+(2 CPUs, warm) the first pass 2.6 s and the second 0.5 s, where the full scan took 4.3 and 3.6 s
 (the previous numpy search, :mod:`polrig.solve._diffuse_numpy`, now the tests' oracle: 250 us a
 pixel a pass, 13x slower than the full scan).
 
