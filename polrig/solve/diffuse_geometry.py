@@ -65,6 +65,7 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from polrig.optics.pbrdf import linear_rig_mueller, specular_diffuse_blocks
@@ -74,7 +75,7 @@ from polrig.solve.reduced_models import MODELS
 
 __all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "specular_block",
            "light_directions", "light_fields",
-           "fit_diffuse_geometry", "ratio_weights", "neighbour_mean", "complete_diffuse", "RANK_ONE"]
+           "fit_diffuse_geometry", "ratio_weights", "window_sums", "neighbour_mean", "complete_diffuse", "RANK_ONE"]
 
 #: The model selection's code of the rank-one block (Baek's diffuse term).
 RANK_ONE = next(m.code for m in MODELS if m.name == "rank_one")
@@ -317,21 +318,37 @@ def ratio_weights(total: np.ndarray, variance: np.ndarray, s_a: np.ndarray, s_b:
     return x_hat, rho_hat, weights
 
 
+def window_sums(values: np.ndarray, chosen: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """The sums of ``values`` ``(..., H, W)`` over the ``chosen`` pixels (bool, broadcastable to
+    ``values``) in each pixel's ``window`` x ``window`` neighbourhood (itself included; nothing
+    beyond the image's edge), plane by plane, and how many pixels each sum holds; both
+    ``(..., H, W)`` float64 (``values``' units; a count)."""
+    chosen = np.broadcast_to(np.asarray(chosen, bool), np.shape(values))
+    r = int(window) // 2
+
+    def box(a: np.ndarray) -> np.ndarray:
+        out = np.empty(a.shape)
+        for i in np.ndindex(a.shape[:-2]):
+            out[i] = cv2.boxFilter(a[i], cv2.CV_64F, (2 * r + 1, 2 * r + 1), normalize=False,
+                                   borderType=cv2.BORDER_CONSTANT)
+        return out
+
+    return box(np.where(chosen, np.asarray(values, np.float64), 0.0)), box(chosen.astype(np.float64))
+
+
 def neighbour_mean(normal: np.ndarray, valid: np.ndarray, ys: np.ndarray, xs: np.ndarray,
                    shape: tuple[int, int]) -> np.ndarray:
     """The mean unit normal ``(P, 3)`` over each pixel's 3x3 neighbourhood (itself included) of
     the ``valid`` ``(P,)`` normals ``normal`` ``(P, 3)`` at rows ``ys`` and columns ``xs`` of an
-    image of ``shape`` ``(H, W)``; a pixel with no valid neighbour, or whose neighbours' normals
-    cancel, keeps its own."""
-    h, w = shape
-    img, weight = np.zeros((h + 2, w + 2, 3)), np.zeros((h + 2, w + 2))
-    img[ys[valid] + 1, xs[valid] + 1] = normal[valid]
-    weight[ys[valid] + 1, xs[valid] + 1] = 1.0
-    total = sum(img[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1))
-    count = sum(weight[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1))
-    mean = total[ys, xs]
+    image of ``shape`` ``(H, W)`` (:func:`window_sums`); a pixel with no valid neighbour, or
+    whose neighbours' normals cancel, keeps its own."""
+    img, chosen = np.zeros((3, *shape)), np.zeros(shape, bool)
+    img[:, ys[valid], xs[valid]] = normal[valid].T
+    chosen[ys[valid], xs[valid]] = True
+    total, count = window_sums(img, chosen, 3)
+    mean = total[:, ys, xs].T
     norm = np.linalg.norm(mean, axis=1, keepdims=True)
-    ok = (count[ys, xs] > 0) & (norm[:, 0] > 1e-9)
+    ok = (count[0, ys, xs] > 0) & (norm[:, 0] > 1e-9)
     return np.where(ok[:, None], mean / np.where(ok[:, None], norm, 1.0), normal)
 
 

@@ -89,7 +89,6 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 
 from polrig.sensor.stokes import ideal_analyzer_matrix
@@ -104,6 +103,7 @@ from polrig.solve.diffuse_geometry import (
     light_fields,
     specular_block,
     unobserved_direction,
+    window_sums,
 )
 from polrig.solve.model_selection import (
     SelectionOptions,
@@ -410,19 +410,8 @@ def neighbour_bias(deviation: np.ndarray, chosen: np.ndarray, window: int = POOL
     not the model (the compact held-out sets went above 97 %); the completed element's own
     bias stays uncovered there (``m22`` within 2 sigma on 79-81 % of the capture's accepted
     pixels)."""
-    chosen = np.asarray(chosen, bool)
-    dev = np.where(chosen, np.asarray(deviation, np.float64), 0.0)
-    r = int(window) // 2
-
-    def box(a: np.ndarray) -> np.ndarray:  # sums over the window, zeros beyond the edge, plane by plane
-        out = np.empty(a.shape)
-        for i in np.ndindex(a.shape[:-2]):
-            out[i] = cv2.boxFilter(a[i], cv2.CV_64F, (2 * r + 1, 2 * r + 1), normalize=False,
-                                   borderType=cv2.BORDER_CONSTANT)
-        return out
-
-    count = box(np.broadcast_to(chosen, dev.shape).astype(np.float64))
-    return np.where(chosen, box(dev) / np.maximum(count, 1.0), 0.0)
+    total, count = window_sums(deviation, chosen, window)
+    return np.where(chosen, total / np.maximum(count, 1.0), 0.0)
 
 
 def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measured: np.ndarray,
