@@ -138,6 +138,18 @@ def test_statistic_with_the_specular_term_matches_the_numpy_search(eta):
     assert (k_k[3:, fin] > 0).any()
 
 
+def _ratio_inputs(p: int, eta: float, rng: np.random.Generator):
+    """The completion's search inputs: views, lights and true normals (:func:`_geometry`), the
+    states 30 and 120 deg, and the measured ratios of the noisy diffuse blocks with their weights
+    (``dg._Observed``; NaN where no light the diffuse term explains, set to 0.3)."""
+    view, light, normal = _geometry(p, rng)
+    s_a, s_b = _state(30), _state(120)
+    md = _diffuse(normal, light, view, eta) + rng.normal(0, 0.002, (p, 3, 3))
+    x_hat, rho_hat, weights = dg.ratio_weights(np.moveaxis(md, 0, -1), np.full((3, 3, p), 1e-4), s_a, s_b)
+    x_hat, rho_hat, weights = (np.nan_to_num(a, nan=0.3) for a in (x_hat, rho_hat, weights))
+    return view, light, normal, s_a, s_b, dg._Observed(x_hat, rho_hat, weights)
+
+
 @pytest.mark.parametrize("guess_weight", [None, dg.GUESS_WEIGHT, dg.NEIGHBOUR_WEIGHT])
 def test_ratio_search_matches_the_numpy_search(guess_weight):
     """With a pull (the first pass's weak one and the second pass's strong one) the kernel's
@@ -145,13 +157,8 @@ def test_ratio_search_matches_the_numpy_search(guess_weight):
     with_guess = guess_weight is not None
     rng = np.random.default_rng(7 + with_guess)
     p, eta = 240, 1.5
-    view, light, normal = _geometry(p, rng)
-    s_a, s_b = _state(30), _state(120)
-    md = _diffuse(normal, light, view, eta) + rng.normal(0, 0.002, (p, 3, 3))
-    x_hat, rho_hat, weights = dg.ratio_weights(np.moveaxis(md, 0, -1), np.full((3, 3, p), 1e-4), s_a, s_b)
-    x_hat, rho_hat, weights = (np.nan_to_num(a, nan=0.3) for a in (x_hat, rho_hat, weights))
+    view, light, normal, s_a, s_b, obs = _ratio_inputs(p, eta, rng)
     guess = _unit(normal + rng.normal(0, 0.1, normal.shape)) if with_guess else None
-    obs = dg._Observed(x_hat, rho_hat, weights)
     geo = dg._Pixels(view, light, guess, guess_weight or 0.0, STAGE, CAM, s_a, s_b)
     pix = np.arange(p)
     n_k, c_k = dg._search(pix, eta, obs, geo, 2)
@@ -172,17 +179,12 @@ def test_bounded_scan_takes_the_full_scans_candidate_where_data_and_pull_disagre
     candidates, which scans them all."""
     rng = np.random.default_rng(17)
     p, eta = 300, 1.5
-    view, light, normal = _geometry(p, rng)
-    s_a, s_b = _state(30), _state(120)
-    md = _diffuse(normal, light, view, eta) + rng.normal(0, 0.002, (p, 3, 3))
-    x_hat, rho_hat, weights = dg.ratio_weights(np.moveaxis(md, 0, -1), np.full((3, 3, p), 1e-4), s_a, s_b)
-    x_hat, rho_hat, weights = (np.nan_to_num(a, nan=0.3) for a in (x_hat, rho_hat, weights))
+    view, light, _, s_a, s_b, obs = _ratio_inputs(p, eta, rng)
     guess = _about(view, rng.uniform(0, 88, p), rng)
     guess[12:15] = 0.0
     guess[15:18] = np.nan
-    obs = dg._Observed(x_hat, rho_hat, weights)
     pix = np.arange(p)
-    for weight in (dg.NEIGHBOUR_WEIGHT, float(np.median(weights.sum(axis=1))) * 1e-3):
+    for weight in (dg.NEIGHBOUR_WEIGHT, float(np.median(obs.weights.sum(axis=1))) * 1e-3):
         geo = dg._Pixels(view, light, guess, weight, STAGE, CAM, s_a, s_b)
         n_k, c_k = dg._search(pix, eta, obs, geo, 2)
         n_n, c_n = oracle.search_ratios_numpy(pix, eta, obs, geo, 2)
