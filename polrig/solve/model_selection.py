@@ -497,6 +497,7 @@ def select_models(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
             code[c][solved & ~decided[c]] = 0
             solved = solved & decided[c]
         testable = solved & (result.pixel_condition[c] <= opts.max_condition)
+
         def full_rank(pix: np.ndarray, c: int = c) -> None:
             normal, m_hat, chi2_full, n_ok = normal_equations(
                 s_in, measured, variance, valid, analyzer_rows, c, pix)
