@@ -606,6 +606,39 @@ def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tm
     assert content(s2) == content(reference_session)
 
 
+def test_a_write_a_crash_cut_short_in_an_acquired_capture_is_gone_after_the_resume(tmp_path, reference_session):
+    """A crash (SIGKILL: no clean-up runs) while an acquired capture's result was being written
+    leaves the atomic write's temporary sibling in its folder, recorded nowhere. The resume
+    processes the capture again and deletes that leftover: the session verifies clean and equals
+    an uninterrupted one."""
+    from polrig.atomic import temporary_sibling
+
+    class Failing(processing.Processor):
+        def process(self, session, index, revision=None):
+            if index == 1:
+                raise RuntimeError("stand-in for the crash")
+            return super().process(session, index, revision)
+
+    out = tmp_path / "s"
+    with sim_rig() as rig:
+        plan = CapturePlan(POSES4)
+        session = create_session(out, rig, plan, calibration_id=EXACT.id)
+        proc = Failing(plan.mode, plan.demosaic, EXACT, processing.session_sensor_model(session))
+        with pytest.raises(RuntimeError):
+            run_session(rig, session, processor=proc)
+    s = Session.open(out)
+    assert s.capture(1)["status"] == "acquired"
+    leftover = temporary_sibling(s.capture_dir(1) / "mueller.exr")
+    leftover.write_bytes(b"\x76\x2f\x31\x01 half an EXR")
+    assert s.verify() == [f"{s.relpath(leftover)}: not recorded in the manifest"]
+    with sim_rig() as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete"
+    assert not leftover.exists()
+    assert s2.verify() == []
+    assert content(s2) == content(reference_session)
+
+
 def test_a_deeper_processing_queue_gives_the_same_session(tmp_path, reference_session):
     """``max_queued=3``: acquisition runs ahead of processing (captures wait, in order, for
     the one worker); the session is the same as with the default hand-over."""

@@ -614,6 +614,7 @@ class _Run:
         session = self.session
         if set(session.capture(index)["files"]) - set(ACQUISITION_ROLES):
             session.reset_results(index)  # an earlier, interrupted processing's files
+        session.discard_unrecorded(index)  # a write a crash cut short (its temporary sibling)
         score = self.processor.process(session, index)
         session.complete_capture(index, score)
         return score
