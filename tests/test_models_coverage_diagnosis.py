@@ -1,0 +1,54 @@
+"""``python -m polrig.models.coverage_diagnosis`` end to end on a tiny set: its counts add up
+(the what-if at the shipped knee is the per-element table), the error shares are shares, and
+bad input is one line, exit 2."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from polrig.models.runtime import WEIGHTS_DIR
+from polrig.models.uncertainty import FILE_NAME
+
+needs_weights = pytest.mark.skipif(not (WEIGHTS_DIR / "single_shot.onnx").is_file()
+                                   or not (WEIGHTS_DIR / FILE_NAME).is_file(), reason="no shipped weights")
+
+
+@needs_weights
+def test_tables_and_their_counts(tmp_path):
+    from polrig.models import coverage_diagnosis as cd
+
+    out = tmp_path / "res" / "d.md"
+    res = cd.run(tmp_path / "sets", out, count=2, sets=["unseen_terrain"], set_count=2, knees_deg=(None, 30.0),
+                 echo=lambda *a: None)
+    saved = json.loads(out.with_suffix(".json").read_text())
+    r = saved["sets"]["unseen_terrain"]
+    assert r["samples"] == res["sets"]["unseen_terrain"]["samples"] >= 1
+    for m in cd.METHODS:
+        per = {k: np.array(v) for k, v in r["per_element"][m].items()}
+        shipped = r["what_if"]["shipped"][m]
+        assert per["inside"][0].sum() == shipped[0] and per["elements"][0].sum() == shipped[1]
+        assert per["inside"].sum() == shipped[2] and per["elements"].sum() == shipped[3]
+        assert (per["inside"] <= per["elements"]).all() and per["elements"].min() > 0
+        # a knee past the shipped one only widens the first row's sigma: never fewer inside
+        grown = r["what_if"]["30"][m]
+        assert grown[0] >= shipped[0] and grown[2] >= shipped[2] and grown[1] == shipped[1]
+    rows = {k: np.array(v) for k, v in r["rows"].items()}
+    assert (0 <= rows["u_error"]).all() and (rows["u_error"] <= rows["error"] * (1 + 1e-12)).all()
+    assert (rows["u_sigma"] <= rows["sigma"]).all()
+    text = out.read_text()
+    assert "Within 2 sigma per element" in text and "What-if" in text and "knee 30" in text
+
+
+@pytest.mark.parametrize("argv, needle", [(["--sets", "nowhere"], "unknown set(s) nowhere"),
+                                          (["--count", "0", "--sets", "unseen_terrain"], "--count and --set-count must be >= 1"),
+                                          (["--sets", "unseen_terrain", "--out", "x.txt"], "ending in .md")])
+def test_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, argv, needle):
+    from polrig.models import coverage_diagnosis as cd
+
+    monkeypatch.chdir(tmp_path)
+    assert cd.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
