@@ -7,8 +7,8 @@ lit samples of each set (the held-out sets and the uncertainty calibration's sce
 :mod:`polrig.models.continuum`, ``SETS`` and ``SEARCH_SETS``, 64x64, the same frames as there):
 
 * **Per element** (the rig's frame), the share of errors within 2 sigma of the single-shot
-  estimate and of the hybrid at the seen state alone (:func:`polrig.solve.hybrid.solve_hybrid`,
-  the calibration's joint prior).
+  estimate, of the hybrid at the seen state alone and of the hybrid at two states 0/90 deg
+  (:func:`polrig.solve.hybrid.solve_hybrid`, the calibration's joint prior).
 * **Per row of M**, the network's error energy along the seen state's direction ``u``
   (``u = s_0 / |s_0|``: the one direction of each row the frame measures), as a share of the
   row's, against the share the diagonal calibrated sigma gives it. The hybrid keeps the row's
@@ -23,6 +23,9 @@ lit samples of each set (the held-out sets and the uncertainty calibration's sce
   scored again. The first row is the one the light sets: in Baek's diffuse term the block is
   ``x y^T`` with ``y`` the transmission into the surface, set by the light's direction, and
   ``x`` the transmission out, set by the view (:mod:`polrig.solve.diffuse_geometry`).
+
+``--rig-scenes``: the default rig's named scenes at its analyzer grid instead, one sample per
+turntable angle (:func:`polrig.models.continuum.rig_set`, the frames of ``--rig``).
 
 Prints the tables and writes ``--out`` (Markdown, the numbers next to it as ``.json``).
 """
@@ -42,7 +45,8 @@ from polrig.models import continuum as cn
 
 #: The what-if's knees of the first row's light factor (deg); the shipped knee first.
 KNEES_DEG = (None, 11.5, 17.2)
-METHODS = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,))}
+METHODS = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", cn.RIG_TWO)}
+LABELS = {"single": "single-shot", "hybrid1": "hybrid 1", "hybrid2": "hybrid 2"}
 
 
 def _knee_key(knee_deg: float | None) -> str:
@@ -107,19 +111,23 @@ def _pct(a, b) -> str:
 def markdown(result: dict) -> str:
     """The three tables of :func:`run`'s result."""
     names = {**{k: v[0] for k, v in cn.SETS.items()}, **{k: f"{k} (calibration scenes)" for k in cn.SEARCH_SETS}}
-    lines = ["# Where the one-state sigma misses", "",
-             f"`python -m polrig.models.coverage_diagnosis --count {result['count']}` ({result['seconds']:.0f} s "
-             "on 2 shared CPUs, one-shot): the first lit samples of each set, 64x64, the frames of "
-             "`models/continuum.py`; the calibration's joint prior.", "",
-             "**Within 2 sigma per element** (the rig's frame; m00 m01 m02 / m10 m11 m12 / m20 m21 m22):", "",
-             "| set | samples | single-shot | hybrid 1 (the seen state alone) |", "|---|---:|---|---|"]
+    where = ("the default rig's scenes at its analyzer grid, one sample per turntable angle "
+             f"{', '.join(f'{p:g}' for p in cn.RIG_POSES_DEG)} deg" if result.get("rig") else
+             "the first lit samples of each set, 64x64")
+    lines = ["# Where the sigma misses", "",
+             f"`{result['command']}` ({result['seconds']:.0f} s on 2 shared CPUs, one-shot): {where}, the frames "
+             "of `models/continuum.py`; the calibration's joint prior.", "",
+             "**Within 2 sigma per element** (the rig's frame; m00 m01 m02 / m10 m11 m12 / m20 m21 m22; "
+             f"hybrid 2 at {'/'.join(map(str, cn.RIG_TWO))} deg):", "",
+             "| set | samples | " + " | ".join(LABELS[m] for m in METHODS) + " |",
+             "|---|---:|" + "---|" * len(METHODS)]
     for name, r in result["sets"].items():
         cells = []
         for m in METHODS:
             d = r["per_element"][m]
             cells.append(" / ".join(" ".join(_pct(d["inside"][a][b], d["elements"][a][b]) for b in range(3))
                                     for a in range(3)))
-        lines.append(f"| {names.get(name, name)} | {r['samples']} | {cells[0]} | {cells[1]} |")
+        lines.append(f"| {names.get(name, name)} | {r['samples']} | " + " | ".join(cells) + " |")
     lines += ["", "**The network's error along the seen state's direction u**, per row (share of the row's "
               "error energy; the diagonal calibrated sigma's share of the row's variance after the slash):", "",
               "| set | row 0 | row 1 | row 2 |", "|---|---:|---:|---:|"]
@@ -132,9 +140,8 @@ def markdown(result: dict) -> str:
     lines += ["", "**What-if: the first row's light factor grown on to a knee** (deg; the other rows as "
               "shipped): within 2 sigma, first row / all elements, %; the sets' light spread (median, "
               "range):", "",
-              "| set | light spread (deg) | " + " | ".join(f"single, knee {k}" for k in knees) + " | "
-              + " | ".join(f"hybrid 1, knee {k}" for k in knees) + " |",
-              "|---|---|" + "---:|" * (2 * len(knees))]
+              "| set | light spread (deg) | " + " | ".join(f"{LABELS[m]}, knee {k}" for m in METHODS for k in knees)
+              + " |", "|---|---|" + "---:|" * (len(METHODS) * len(knees))]
     for name, r in result["sets"].items():
         s = r["light_spread_deg"]
         spread = f"{np.median(s):.1f} ({min(s):.1f}-{max(s):.1f})" if s else "-"
@@ -154,16 +161,23 @@ def folder_count(name: str, set_count: int) -> int:
 
 
 def run(root, out_md, *, count: int, sets: Sequence[str], set_count: int = 64,
-        knees_deg: Sequence[float | None] = KNEES_DEG, weights_dir=None, seed: int = 0, echo=print) -> dict:
+        knees_deg: Sequence[float | None] = KNEES_DEG, weights_dir=None, seed: int = 0,
+        rig_scenes: Sequence[str] | None = None, echo=print) -> dict:
     """Generate the sets (as :func:`polrig.models.continuum.run` does, :func:`folder_count`
     samples each, reusing a folder already there), diagnose the first ``count`` lit samples of
-    each, write ``out_md`` and its ``.json``."""
+    each, write ``out_md`` and its ``.json``. ``rig_scenes``: instead of ``sets``, the default
+    rig's named scenes at its analyzer grid, one sample per angle of
+    :data:`polrig.models.continuum.RIG_POSES_DEG`."""
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
     from polrig.models.evaluate import results_paths
     from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
 
     known = {**{k: v[1] for k, v in cn.SETS.items()}, **cn.SEARCH_SETS}
+    if rig_scenes is not None:
+        from polrig.sim.scene import SCENES
+
+        known, sets = {f"rig_{n}": n for n in SCENES}, [f"rig_{n}" for n in rig_scenes]
     unknown = [s for s in sets if s not in known]
     if unknown or not sets:
         raise ConfigError(f"--sets: unknown set(s) {', '.join(unknown) or '(none given)'}; sets are {', '.join(known)}")
@@ -174,9 +188,13 @@ def run(root, out_md, *, count: int, sets: Sequence[str], set_count: int = 64,
     if net.uncertainty is None:
         raise ConfigError("the single-shot graph has no calibrated uncertainty (models/weights/uncertainty.json)")
     t0 = time.perf_counter()
-    result: dict = {"count": count, "knees_deg": [_knee_key(k) for k in knees_deg], "sets": {}}
+    command = "python -m polrig.models.coverage_diagnosis " + (
+        "--rig-scenes " + ",".join(rig_scenes) if rig_scenes is not None else f"--count {count}")
+    result: dict = {"command": command, "count": count, "rig": rig_scenes is not None,
+                    "knees_deg": [_knee_key(k) for k in knees_deg], "sets": {}}
     for tag, name in enumerate(sets):
-        d = cn.make_set(pathlib.Path(root), name, known[name], folder_count(name, set_count))
+        d = (cn.rig_set(known[name], cn.rig_size(), cn.RIG_POSES_DEG, seed) if rig_scenes is not None
+             else cn.make_set(pathlib.Path(root), name, known[name], folder_count(name, set_count)))
         result["sets"][name] = diagnose_set(d, net, count, tag, knees_deg, seed)
         echo(f"{name}: {result['sets'][name]['samples']} samples")
     result["seconds"] = time.perf_counter() - t0
@@ -203,10 +221,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--root", default="runs/continuum", help="where the sets are generated (default runs/continuum)")
     ap.add_argument("--out", default=None, help="Markdown file for the tables (the numbers go next to it as .json)")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped one)")
+    ap.add_argument("--rig-scenes", default=None, nargs="?", const=",".join(cn.RIG_SCENES),
+                    help="the default rig's named scenes at its analyzer grid instead of --sets (default "
+                         f"{','.join(cn.RIG_SCENES)})")
     args = ap.parse_args(argv)
     return run_main(ap.prog, lambda: run(args.root, args.out, count=args.count,
                                          sets=[s for s in args.sets.split(",") if s], set_count=args.set_count,
-                                         weights_dir=args.weights) and 0)
+                                         weights_dir=args.weights,
+                                         rig_scenes=None if args.rig_scenes is None else
+                                         [n for n in args.rig_scenes.split(",") if n]) and 0)
 
 
 if __name__ == "__main__":

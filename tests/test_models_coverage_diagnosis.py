@@ -39,12 +39,25 @@ def test_tables_and_their_counts(tmp_path):
     assert (0 <= rows["u_error"]).all() and (rows["u_error"] <= rows["error"] * (1 + 1e-12)).all()
     assert (rows["u_sigma"] <= rows["sigma"]).all()
     text = out.read_text()
-    assert "Within 2 sigma per element" in text and "What-if" in text and "knee 30" in text
+    assert "Within 2 sigma per element" in text and "What-if" in text and "hybrid 2, knee 30" in text
+
+
+@needs_weights
+def test_rig_scenes_are_diagnosed_pose_by_pose():
+    from polrig.models import continuum as cn
+    from polrig.models import coverage_diagnosis as cd
+
+    res = cd.run(None, None, count=len(cn.RIG_POSES_DEG), sets=[], rig_scenes=["sphere"], knees_deg=(None,),
+                 echo=lambda *a: None)
+    r = res["sets"]["rig_sphere"]
+    assert res["rig"] and 1 <= r["samples"] <= len(cn.RIG_POSES_DEG)
+    assert "--rig-scenes sphere" in cd.markdown(res) and np.array(r["per_element"]["hybrid2"]["elements"]).min() > 0
 
 
 @pytest.mark.parametrize("argv, needle", [(["--sets", "nowhere"], "unknown set(s) nowhere"),
                                           (["--count", "0", "--sets", "unseen_terrain"], "--count and --set-count must be >= 1"),
-                                          (["--sets", "unseen_terrain", "--out", "x.txt"], "ending in .md")])
+                                          (["--sets", "unseen_terrain", "--out", "x.txt"], "ending in .md"),
+                                          (["--rig-scenes", "moon"], "unknown set(s) rig_moon")])
 def test_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, argv, needle):
     from polrig.models import coverage_diagnosis as cd
 
