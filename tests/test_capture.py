@@ -575,11 +575,10 @@ def test_sigint_while_a_pose_is_processed_in_the_background_then_resume(tmp_path
     assert content(s2) == content(reference_session)
 
 
-def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tmp_path,
-                                                                              reference_session):
-    """A processing error (in the worker) ends the run like before (session interrupted,
-    the error raised for the caller to report), but the capture keeps its raw frames as
-    "acquired" with the reason; the resume processes it without acquiring it again."""
+def _processing_fails_at_capture_1(out: pathlib.Path) -> Session:
+    """A four-pose session whose processing of capture 1 raises ``RuntimeError("solver blew
+    up")`` in the worker: the run ends with it (raised here as pytest expects) and the session is
+    returned as left on disk."""
 
     class Failing(processing.Processor):
         def process(self, session, index, revision=None):
@@ -587,14 +586,22 @@ def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tm
                 raise RuntimeError("solver blew up")
             return super().process(session, index, revision)
 
-    out = tmp_path / "s"
     with sim_rig() as rig:
         plan = CapturePlan(POSES4)
         session = create_session(out, rig, plan, calibration_id=EXACT.id)
         proc = Failing(plan.mode, plan.demosaic, EXACT, processing.session_sensor_model(session))
         with pytest.raises(RuntimeError, match="solver blew up"):
             run_session(rig, session, processor=proc)
-    s = Session.open(out)
+    return Session.open(out)
+
+
+def test_processing_error_leaves_the_capture_acquired_and_resume_processes_it(tmp_path,
+                                                                              reference_session):
+    """A processing error (in the worker) ends the run like before (session interrupted,
+    the error raised for the caller to report), but the capture keeps its raw frames as
+    "acquired" with the reason; the resume processes it without acquiring it again."""
+    out = tmp_path / "s"
+    s = _processing_fails_at_capture_1(out)
     assert s.manifest["status"] == INTERRUPTED and "RuntimeError" in s.manifest["status_reason"]
     assert s.capture(1)["status"] == "acquired"
     assert "processing failed: RuntimeError: solver blew up" == s.capture(1)["reason"]
@@ -613,20 +620,8 @@ def test_a_write_a_crash_cut_short_in_an_acquired_capture_is_gone_after_the_resu
     an uninterrupted one."""
     from polrig.atomic import temporary_sibling
 
-    class Failing(processing.Processor):
-        def process(self, session, index, revision=None):
-            if index == 1:
-                raise RuntimeError("stand-in for the crash")
-            return super().process(session, index, revision)
-
     out = tmp_path / "s"
-    with sim_rig() as rig:
-        plan = CapturePlan(POSES4)
-        session = create_session(out, rig, plan, calibration_id=EXACT.id)
-        proc = Failing(plan.mode, plan.demosaic, EXACT, processing.session_sensor_model(session))
-        with pytest.raises(RuntimeError):
-            run_session(rig, session, processor=proc)
-    s = Session.open(out)
+    s = _processing_fails_at_capture_1(out)  # capture 1 left "acquired", as a crash leaves it
     assert s.capture(1)["status"] == "acquired"
     leftover = temporary_sibling(s.capture_dir(1) / "mueller.exr")
     leftover.write_bytes(b"\x76\x2f\x31\x01 half an EXR")
