@@ -180,7 +180,8 @@ def run(root, out_md, *, count: int, sets: Sequence[str], set_count: int = 64,
         known, sets = {f"rig_{n}": n for n in SCENES}, [f"rig_{n}" for n in rig_scenes]
     unknown = [s for s in sets if s not in known]
     if unknown or not sets:
-        raise ConfigError(f"--sets: unknown set(s) {', '.join(unknown) or '(none given)'}; sets are {', '.join(known)}")
+        option = "--sets" if rig_scenes is None else "--rig-scenes"
+        raise ConfigError(f"{option}: unknown set(s) {', '.join(unknown) or '(none given)'}; sets are {', '.join(known)}")
     if count < 1 or set_count < 1:
         raise ConfigError(f"--count and --set-count must be >= 1, got {count} and {set_count}")
     paths = None if out_md is None else results_paths(out_md)

@@ -57,7 +57,7 @@ def test_rig_scenes_are_diagnosed_pose_by_pose():
 @pytest.mark.parametrize("argv, needle", [(["--sets", "nowhere"], "unknown set(s) nowhere"),
                                           (["--count", "0", "--sets", "unseen_terrain"], "--count and --set-count must be >= 1"),
                                           (["--sets", "unseen_terrain", "--out", "x.txt"], "ending in .md"),
-                                          (["--rig-scenes", "moon"], "unknown set(s) rig_moon")])
+                                          (["--rig-scenes", "moon"], "--rig-scenes: unknown set(s) rig_moon")])
 def test_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, argv, needle):
     from polrig.models import coverage_diagnosis as cd
 
