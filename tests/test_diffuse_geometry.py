@@ -212,17 +212,21 @@ def test_neighbour_mean_averages_valid_neighbours_only():
     ys, xs = np.nonzero(np.ones((4, 5), bool))
     n = np.tile([0.0, 0.0, 1.0], (len(ys), 1))
     valid = np.ones(len(ys), bool)
-    assert np.allclose(dg.neighbour_mean(n, valid, ys, xs, (4, 5)), n)
+    assert np.allclose(dg.neighbour_mean(n, valid, ys, xs), n)
     tilted = n.copy()
     tilted[7] = [1.0, 0.0, 0.0]  # row 1, column 2
     valid[7] = False
-    got = dg.neighbour_mean(tilted, valid, ys, xs, (4, 5))
+    got = dg.neighbour_mean(tilted, valid, ys, xs)
     assert np.allclose(np.delete(got, 7, axis=0), np.delete(n, 7, axis=0))  # the invalid one does not count
     assert np.allclose(got[7], [0.0, 0.0, 1.0])  # nor for itself: its valid neighbours' mean
-    lone = dg.neighbour_mean(tilted[7:8], np.ones(1, bool), ys[7:8], xs[7:8], (4, 5))
+    lone = dg.neighbour_mean(tilted[7:8], np.ones(1, bool), ys[7:8], xs[7:8])
     assert np.allclose(lone, [[1.0, 0.0, 0.0]])
-    alone = dg.neighbour_mean(tilted[7:8], np.zeros(1, bool), ys[7:8], xs[7:8], (4, 5))
+    alone = dg.neighbour_mean(tilted[7:8], np.zeros(1, bool), ys[7:8], xs[7:8])
     assert np.allclose(alone, tilted[7:8])  # no valid neighbour: its own
+    # the same pixels anywhere in a larger image: the same means, bit for bit (only the pixels' box is summed)
+    np.testing.assert_array_equal(dg.neighbour_mean(tilted, valid, ys + 10, xs + 20), got)
+    empty = np.zeros(0, int)
+    assert dg.neighbour_mean(np.zeros((0, 3)), np.zeros(0, bool), empty, empty).shape == (0, 3)
 
 
 def test_a_given_index_and_light_are_used_as_given():

@@ -336,13 +336,17 @@ def window_sums(values: np.ndarray, chosen: np.ndarray, window: int) -> tuple[np
     return box(np.where(chosen, np.asarray(values, np.float64), 0.0)), box(chosen.astype(np.float64))
 
 
-def neighbour_mean(normal: np.ndarray, valid: np.ndarray, ys: np.ndarray, xs: np.ndarray,
-                   shape: tuple[int, int]) -> np.ndarray:
+def neighbour_mean(normal: np.ndarray, valid: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
     """The mean unit normal ``(P, 3)`` over each pixel's 3x3 neighbourhood (itself included) of
     the ``valid`` ``(P,)`` normals ``normal`` ``(P, 3)`` at rows ``ys`` and columns ``xs`` of an
-    image of ``shape`` ``(H, W)`` (:func:`window_sums`); a pixel with no valid neighbour, or
-    whose neighbours' normals cancel, keeps its own."""
-    img, chosen = np.zeros((3, *shape)), np.zeros(shape, bool)
+    image (:func:`window_sums`, within the box that holds the pixels: nothing outside it is
+    valid); a pixel with no valid neighbour, or whose neighbours' normals cancel, keeps its own."""
+    if not len(ys):
+        return normal
+    y0, x0 = ys.min(), xs.min()
+    ys, xs = ys - y0, xs - x0
+    box = (int(ys.max()) + 1, int(xs.max()) + 1)
+    img, chosen = np.zeros((3, *box)), np.zeros(box, bool)
     img[:, ys[valid], xs[valid]] = normal[valid].T
     chosen[ys[valid], xs[valid]] = True
     total, count = window_sums(img, chosen, 3)
@@ -395,7 +399,7 @@ def complete_diffuse(result: ReferenceResult, s_in: np.ndarray, geometry: Diffus
     fit = fit_diffuse_geometry(x_hat, rho_hat, weights, s_a, s_b, view, lights, geometry.stage_zero_axis,
                                geometry.camera_x_axis, pick(geometry.normal_guess), etas=etas)
     # the second pass: towards the neighbours' normals, at the first pass's index and light
-    smooth = neighbour_mean(fit.normal, np.isfinite(fit.cost), ys, xs, (h, w))
+    smooth = neighbour_mean(fit.normal, np.isfinite(fit.cost), ys, xs)
     second = fit_diffuse_geometry(x_hat, rho_hat, weights, s_a, s_b, view, [lights[fit.light]],
                                   geometry.stage_zero_axis, geometry.camera_x_axis, smooth,
                                   guess_weight=NEIGHBOUR_WEIGHT, etas=(fit.eta,))

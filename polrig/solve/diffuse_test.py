@@ -507,7 +507,9 @@ def _floor_at_neighbour_bias(out: ReferenceResult, full: ReferenceResult, states
     ``states`` observe (along the open direction ``full`` is the network's prior, whose own
     errors keep their sign over neighbours too: no measure of the model's bias). One row of one
     colour at a time (a few ``(H, W)`` planes: the full sensor's nine planes in float64 would
-    cost some 0.5 GB). Returns ``(C, 3, 3, H, W)`` of ``out.sigma``'s dtype."""
+    cost some 0.5 GB), within the box that holds the colour's ``rank_one`` pixels (outside it
+    nothing is chosen: no pixel there is floored, and none adds to a window's sums). Returns
+    ``(C, 3, 3, H, W)`` of ``out.sigma``'s dtype."""
     u = unobserved_direction(states)
     u = np.zeros(3) if u is None else u  # states that leave no one direction open: all of it
     sigma = out.sigma.copy()
@@ -515,10 +517,15 @@ def _floor_at_neighbour_bias(out: ReferenceResult, full: ReferenceResult, states
         chosen = np.asarray(out.models.code[c]) == RANK_ONE
         if not chosen.any():
             continue
+        ys, xs = np.nonzero(chosen)
+        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        chosen = chosen[box]
         for r in range(3):
-            dev = np.where(chosen, out.mueller[c, r].astype(np.float64) - full.mueller[c, r].astype(np.float64), 0.0)
+            dev = np.where(chosen, out.mueller[c, r][(slice(None), *box)].astype(np.float64)
+                           - full.mueller[c, r][(slice(None), *box)].astype(np.float64), 0.0)
             observed = dev - np.einsum("k...,k->...", dev, u)[None] * u[:, None, None]
             extra = np.maximum(neighbour_bias(observed, chosen) ** 2 - dev**2, 0.0)
-            sigma[c, r] = np.sqrt(sigma[c, r].astype(np.float64) ** 2 + extra)
+            sig = sigma[c, r][(slice(None), *box)]
+            sigma[c, r][(slice(None), *box)] = np.sqrt(sig.astype(np.float64) ** 2 + extra)
     return sigma
 
