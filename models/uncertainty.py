@@ -246,19 +246,31 @@ class UncertaintyModel:
         Mueller image). Non-finite where ``stokes`` is. ``disagreement`` (like ``mueller``): for
         a mirror-averaged image, ``|M_plain - M_mirror| / 2`` (module docstring).
         ``light_spread``: :func:`light_spread` of the network's light directions over the
-        object (needed where the calibration has the factor, :meth:`spread_factor`)."""
-        m = np.asarray(mueller, np.float64)
+        object (needed where the calibration has the factor, :meth:`spread_factor`). Computed
+        within the box that holds the object (every value is per pixel, the scale's reference
+        the object's own), zero around it."""
         t = self.spread_factor(light_spread)
-        rot, p, scale, q, r = _features_and_misfit(m, s_in, object_mask, stokes)
+        mask = np.asarray(object_mask, bool)
+        shape = np.shape(mueller)
+        if np.shape(stokes) != shape[:1] + (3,) + shape[-2:]:
+            raise ValueError(f"stokes must be {shape[:1] + (3,) + shape[-2:]}, got {np.shape(stokes)}")
+        if disagreement is not None and np.shape(disagreement) != shape:
+            raise ValueError(f"disagreement must be {shape}, got {np.shape(disagreement)}")
+        out = np.zeros(shape, np.float32)
+        if not mask.any():
+            return out
+        ys, xs = np.nonzero(mask)
+        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        m = np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64)
+        rot, p, scale, q, r = _features_and_misfit(m, s_in, mask[box], np.asarray(stokes)[..., box[0], box[1]])
         sig_obs = (t * scale)[:, None, None] * np.einsum("chwj,rkj->crkhw", feature_rows(q, r), self.coefficients)
         if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
             sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
         var = np.einsum("crkhw,kj->crjhw", sig_obs**2, rot**2)  # sum_k R_kc^2 sigma'_rk^2
         if disagreement is not None:
-            if np.shape(disagreement) != m.shape:
-                raise ValueError(f"disagreement must be {m.shape}, got {np.shape(disagreement)}")
-            var = var + (self.mirror_k * np.asarray(disagreement, np.float64)) ** 2
-        return np.where(np.asarray(object_mask, bool), np.sqrt(var), 0.0).astype(np.float32)
+            var = var + (self.mirror_k * np.asarray(np.asarray(disagreement)[..., box[0], box[1]], np.float64)) ** 2
+        out[..., box[0], box[1]] = np.where(mask[box], np.sqrt(var), 0.0)
+        return out
 
     @property
     def misfit_limit(self) -> float | None:

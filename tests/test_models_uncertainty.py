@@ -272,6 +272,33 @@ def test_sigma_is_zero_off_the_object_and_scales_with_the_matrix():
                                rtol=1e-5)
     with pytest.raises(ValueError, match="stokes"):
         model.sigma(m, s_in, mask, stokes[:, :2])
+    with pytest.raises(ValueError, match="disagreement"):
+        model.sigma(m, s_in, mask, stokes, np.zeros((3, 3, 3, 4, 3)))
+    assert not model.sigma(m, s_in, np.zeros((4, 4), bool), stokes).any()  # no object: all zero
+
+
+def test_sigma_is_computed_within_the_objects_box_and_is_the_same_anywhere():
+    """An object with its background moved around in a larger image (random matrices, a mirror
+    disagreement, a misfit, an unmasked hole and a noisy background): the sigma of its pixels is
+    the same bit for bit, and zero off the object."""
+    rng = np.random.default_rng(3)
+    coef = rng.uniform(0.01, 0.2, (3, 3, unc.N_FEATURES))
+    model = unc.UncertaintyModel(coef, mirror_k=1.7)
+    s_in = [1.0, 0.3, -0.5]
+    m = rng.normal(0, 0.3, (3, 3, 3, 9, 7))
+    m[:, 0, 0] = rng.uniform(0.5, 2.0, (3, 9, 7))
+    mask = rng.uniform(size=(9, 7)) < 0.7
+    stokes = _consistent_stokes(m, s_in) + rng.normal(0, 0.05, (3, 3, 9, 7))
+    dis = np.abs(rng.normal(0, 0.02, m.shape))
+    small = model.sigma(m, s_in, mask, stokes, dis)
+    big_m = rng.normal(0, 5, (3, 3, 3, 30, 40))  # background: anything, even NaN
+    big_m[..., 0, 0] = np.nan
+    big_s, big_d, big_mask = rng.normal(0, 5, (3, 3, 30, 40)), np.zeros((3, 3, 3, 30, 40)), np.zeros((30, 40), bool)
+    big_m[..., 11:20, 23:30], big_s[..., 11:20, 23:30], big_d[..., 11:20, 23:30] = m, stokes, dis
+    big_mask[11:20, 23:30] = mask
+    big = model.sigma(big_m, s_in, big_mask, big_s, big_d)
+    np.testing.assert_array_equal(big[..., 11:20, 23:30], small)
+    assert not big[..., ~big_mask].any() and big.dtype == np.float32
 
 
 def test_beyond_calibration_flags_pixels_whose_misfit_exceeds_the_recorded_limit():
