@@ -168,6 +168,14 @@ def _features_and_misfit(m: np.ndarray, s_in, object_mask: np.ndarray, stokes: n
     return rot, p, scale, q, misfit(m, s_in, np.asarray(stokes, np.float64), scale)
 
 
+def _object_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """The rows and columns ``(H, W)`` that hold the ``mask``'s pixels, or None where it holds none."""
+    ys, xs = np.nonzero(mask)
+    if not len(ys):
+        return None
+    return slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1)
+
+
 def light_spread(wi: np.ndarray, object_mask: np.ndarray) -> float:
     """Angular spread ``omega = sqrt(2 (1 - Rbar))`` (rad) of the unit light directions ``wi``
     ``(3, H, W)`` over ``object_mask`` ``(H, W)``, ``Rbar`` the length of their mean (module
@@ -257,10 +265,9 @@ class UncertaintyModel:
         if disagreement is not None and np.shape(disagreement) != shape:
             raise ValueError(f"disagreement must be {shape}, got {np.shape(disagreement)}")
         out = np.zeros(shape, np.float32)
-        if not mask.any():
+        box = _object_box(mask)
+        if box is None:
             return out
-        ys, xs = np.nonzero(mask)
-        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
         m = np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64)
         rot, p, scale, q, r = _features_and_misfit(m, s_in, mask[box], np.asarray(stokes)[..., box[0], box[1]])
         sig_obs = (t * scale)[:, None, None] * np.einsum("chwj,rkj->crkhw", feature_rows(q, r), self.coefficients)
@@ -303,8 +310,17 @@ class UncertaintyModel:
         limit = self.misfit_limit
         if limit is None:
             return None
-        r = _features_and_misfit(np.asarray(mueller, np.float64), s_in, object_mask, stokes)[4]
-        return np.asarray(object_mask, bool)[None] & ~(r <= limit)  # non-finite r counts as beyond
+        mask = np.asarray(object_mask, bool)
+        shape = np.shape(mueller)
+        if np.shape(stokes) != shape[:1] + (3,) + shape[-2:]:
+            raise ValueError(f"stokes must be {shape[:1] + (3,) + shape[-2:]}, got {np.shape(stokes)}")
+        beyond = np.zeros(shape[:1] + shape[-2:], bool)
+        box = _object_box(mask)  # the misfit is per pixel, its scale's reference the object's own
+        if box is not None:
+            r = _features_and_misfit(np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64), s_in,
+                                     mask[box], np.asarray(stokes)[..., box[0], box[1]])[4]
+            beyond[..., box[0], box[1]] = mask[box][None] & ~(r <= limit)  # non-finite r counts as beyond
+        return beyond
 
     def to_json(self) -> dict:
         return {"format": FORMAT, "version": VERSION, "graph_sha256": self.graph_sha256,

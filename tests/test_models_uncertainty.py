@@ -283,7 +283,7 @@ def test_sigma_is_computed_within_the_objects_box_and_is_the_same_anywhere():
     the same bit for bit, and zero off the object."""
     rng = np.random.default_rng(3)
     coef = rng.uniform(0.01, 0.2, (3, 3, unc.N_FEATURES))
-    model = unc.UncertaintyModel(coef, mirror_k=1.7)
+    model = unc.UncertaintyModel(coef, mirror_k=1.7, calibration={"misfit_quantiles": {unc.MISFIT_LIMIT_QUANTILE: 0.05}})
     s_in = [1.0, 0.3, -0.5]
     m = rng.normal(0, 0.3, (3, 3, 3, 9, 7))
     m[:, 0, 0] = rng.uniform(0.5, 2.0, (3, 9, 7))
@@ -299,6 +299,12 @@ def test_sigma_is_computed_within_the_objects_box_and_is_the_same_anywhere():
     big = model.sigma(big_m, s_in, big_mask, big_s, big_d)
     np.testing.assert_array_equal(big[..., 11:20, 23:30], small)
     assert not big[..., ~big_mask].any() and big.dtype == np.float32
+    # the flag beyond the calibration's misfit, the same way
+    flag, big_flag = model.beyond_calibration(m, s_in, mask, stokes), model.beyond_calibration(big_m, s_in, big_mask, big_s)
+    assert 0 < flag.sum() < mask.sum() * 3
+    np.testing.assert_array_equal(big_flag[..., 11:20, 23:30], flag)
+    assert not big_flag[..., ~big_mask].any()
+    assert not model.beyond_calibration(big_m, s_in, np.zeros((30, 40), bool), big_s).any()
 
 
 def test_beyond_calibration_flags_pixels_whose_misfit_exceeds_the_recorded_limit():
