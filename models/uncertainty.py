@@ -93,6 +93,8 @@ import pathlib
 
 import numpy as np
 
+from polrig.solve.chunks import mask_box
+
 #: Fraction of errors inside +-2 sigma for a right Gaussian sigma (erf(sqrt 2)).
 COVERAGE = 0.9545
 #: Degree of polarization of ``s_in`` below which its angle is undefined (unpolarized input).
@@ -166,14 +168,6 @@ def _features_and_misfit(m: np.ndarray, s_in, object_mask: np.ndarray, stokes: n
     rot, p = observed_frame_rotation(s_in)
     scale, q = features(to_observed_frame(m, rot), object_mask)
     return rot, p, scale, q, misfit(m, s_in, np.asarray(stokes, np.float64), scale)
-
-
-def _object_box(mask: np.ndarray) -> tuple[slice, slice] | None:
-    """The rows and columns ``(H, W)`` that hold the ``mask``'s pixels, or None where it holds none."""
-    ys, xs = np.nonzero(mask)
-    if not len(ys):
-        return None
-    return slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1)
 
 
 def light_spread(wi: np.ndarray, object_mask: np.ndarray) -> float:
@@ -265,7 +259,7 @@ class UncertaintyModel:
         if disagreement is not None and np.shape(disagreement) != shape:
             raise ValueError(f"disagreement must be {shape}, got {np.shape(disagreement)}")
         out = np.zeros(shape, np.float32)
-        box = _object_box(mask)
+        box = mask_box(mask)
         if box is None:
             return out
         m = np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64)
@@ -315,7 +309,7 @@ class UncertaintyModel:
         if np.shape(stokes) != shape[:1] + (3,) + shape[-2:]:
             raise ValueError(f"stokes must be {shape[:1] + (3,) + shape[-2:]}, got {np.shape(stokes)}")
         beyond = np.zeros(shape[:1] + shape[-2:], bool)
-        box = _object_box(mask)  # the misfit is per pixel, its scale's reference the object's own
+        box = mask_box(mask)  # the misfit is per pixel, its scale's reference the object's own
         if box is not None:
             r = _features_and_misfit(np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64), s_in,
                                      mask[box], np.asarray(stokes)[..., box[0], box[1]])[4]

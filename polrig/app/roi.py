@@ -61,6 +61,7 @@ import numpy as np
 from polrig.errors import ConfigError
 from polrig.optics import parameters as pa
 from polrig.sensor.stokes import aolp_deg, dolp, stokes_validity
+from polrig.solve.chunks import mask_box
 
 __all__ = [
     "RectROI", "EllipseROI", "PolygonROI", "ROI", "parse_roi", "parse_segment", "roi_mask",
@@ -142,14 +143,6 @@ def roi_mask(roi: ROI, shape: tuple[int, int]) -> np.ndarray:
     cy = np.arange(h, dtype=np.float64)[:, None] + 0.5
     cx = np.arange(w, dtype=np.float64)[None, :] + 0.5
     return np.broadcast_to(roi.contains(cx, cy), (h, w)).copy()
-
-
-def _bbox(inside: np.ndarray) -> tuple[slice, slice] | None:
-    """The smallest ``(rows, cols)`` slices holding every True of ``inside`` (None: empty)."""
-    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
-    if rows.size == 0:
-        return None
-    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
@@ -380,7 +373,7 @@ def roi_statistics(inside: np.ndarray, *, mueller: np.ndarray | None = None,
         raise ValueError("roi_statistics needs a Mueller or a Stokes image")
     if inside.shape != np.shape(src)[-2:]:
         raise ValueError(f"ROI mask {inside.shape} does not match the image {np.shape(src)[-2:]}")
-    box = _bbox(inside)
+    box = mask_box(inside)
     if box is None:
         box = (slice(0, 1), slice(0, 1))
         inside = np.zeros((1, 1), bool)

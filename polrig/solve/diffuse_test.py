@@ -92,6 +92,7 @@ from typing import NamedTuple
 import numpy as np
 
 from polrig.sensor.stokes import ideal_analyzer_matrix
+from polrig.solve.chunks import mask_box
 from polrig.solve.diffuse_geometry import (
     ETAS,
     RANK_ONE,
@@ -515,10 +516,9 @@ def _floor_at_neighbour_bias(out: ReferenceResult, full: ReferenceResult, states
     sigma = out.sigma.copy()
     for c in range(out.mueller.shape[0]):
         chosen = np.asarray(out.models.code[c]) == RANK_ONE
-        if not chosen.any():
+        box = mask_box(chosen)
+        if box is None:
             continue
-        ys, xs = np.nonzero(chosen)
-        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
         chosen = chosen[box]
         for r in range(3):
             dev = np.where(chosen, out.mueller[c, r][(slice(None), *box)].astype(np.float64)
