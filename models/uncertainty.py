@@ -160,14 +160,23 @@ def misfit(mueller: np.ndarray, s_in, stokes: np.ndarray, scale: np.ndarray) -> 
     return np.linalg.norm(rendered - stokes, axis=1) / (np.linalg.norm(s) * scale)
 
 
-def _features_and_misfit(m: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray):
-    """``(R, p, scale, q, r)`` of a Mueller image ``m`` ``(C, 3, 3, H, W)`` (float64) under
-    ``s_in`` with the measured Stokes images ``stokes`` ``(C, 3, H, W)``."""
-    if np.shape(stokes) != m.shape[:1] + (3,) + m.shape[-2:]:
-        raise ValueError(f"stokes must be {m.shape[:1] + (3,) + m.shape[-2:]}, got {np.shape(stokes)}")
+def _features_and_misfit(mueller: np.ndarray, s_in, object_mask: np.ndarray, stokes: np.ndarray):
+    """``(box, R, p, scale, q, r)`` of a Mueller image ``mueller`` ``(C, 3, 3, H, W)`` under
+    ``s_in`` with the measured Stokes images ``stokes`` ``(C, 3, H, W)``, within ``box``, the
+    rows and columns that hold the object (:func:`polrig.solve.chunks.mask_box`: every value is
+    per pixel, the scale's reference the object's own); None where there is no object."""
+    shape = np.shape(mueller)
+    if np.shape(stokes) != shape[:1] + (3,) + shape[-2:]:
+        raise ValueError(f"stokes must be {shape[:1] + (3,) + shape[-2:]}, got {np.shape(stokes)}")
+    mask = np.asarray(object_mask, bool)
+    box = mask_box(mask)
+    if box is None:
+        return None
+    m = np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64)
     rot, p = observed_frame_rotation(s_in)
-    scale, q = features(to_observed_frame(m, rot), object_mask)
-    return rot, p, scale, q, misfit(m, s_in, np.asarray(stokes, np.float64), scale)
+    scale, q = features(to_observed_frame(m, rot), mask[box])
+    stokes = np.asarray(np.asarray(stokes)[..., box[0], box[1]], np.float64)
+    return box, rot, p, scale, q, misfit(m, s_in, stokes, scale)
 
 
 def light_spread(wi: np.ndarray, object_mask: np.ndarray) -> float:
@@ -254,16 +263,13 @@ class UncertaintyModel:
         t = self.spread_factor(light_spread)
         mask = np.asarray(object_mask, bool)
         shape = np.shape(mueller)
-        if np.shape(stokes) != shape[:1] + (3,) + shape[-2:]:
-            raise ValueError(f"stokes must be {shape[:1] + (3,) + shape[-2:]}, got {np.shape(stokes)}")
         if disagreement is not None and np.shape(disagreement) != shape:
             raise ValueError(f"disagreement must be {shape}, got {np.shape(disagreement)}")
         out = np.zeros(shape, np.float32)
-        box = mask_box(mask)
-        if box is None:
+        found = _features_and_misfit(mueller, s_in, mask, stokes)
+        if found is None:
             return out
-        m = np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64)
-        rot, p, scale, q, r = _features_and_misfit(m, s_in, mask[box], np.asarray(stokes)[..., box[0], box[1]])
+        box, rot, p, scale, q, r = found
         sig_obs = (t * scale)[:, None, None] * np.einsum("chwj,rkj->crkhw", feature_rows(q, r), self.coefficients)
         if p < P_MIN:  # no observed direction: columns 1 and 2 are alike unobserved
             sig_obs[:, :, 1:] = np.max(sig_obs[:, :, 1:], axis=2, keepdims=True)
@@ -305,14 +311,10 @@ class UncertaintyModel:
         if limit is None:
             return None
         mask = np.asarray(object_mask, bool)
-        shape = np.shape(mueller)
-        if np.shape(stokes) != shape[:1] + (3,) + shape[-2:]:
-            raise ValueError(f"stokes must be {shape[:1] + (3,) + shape[-2:]}, got {np.shape(stokes)}")
-        beyond = np.zeros(shape[:1] + shape[-2:], bool)
-        box = mask_box(mask)  # the misfit is per pixel, its scale's reference the object's own
-        if box is not None:
-            r = _features_and_misfit(np.asarray(np.asarray(mueller)[..., box[0], box[1]], np.float64), s_in,
-                                     mask[box], np.asarray(stokes)[..., box[0], box[1]])[4]
+        beyond = np.zeros(np.shape(mueller)[:1] + np.shape(mueller)[-2:], bool)
+        found = _features_and_misfit(mueller, s_in, mask, stokes)
+        if found is not None:
+            box, r = found[0], found[-1]
             beyond[..., box[0], box[1]] = mask[box][None] & ~(r <= limit)  # non-finite r counts as beyond
         return beyond
 
