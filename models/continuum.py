@@ -428,11 +428,13 @@ def marginal_sigma(fr: Frames) -> np.ndarray:
     return fr.sigma * np.sqrt(g)
 
 
-def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.ndarray | None = None):
+def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.ndarray | None = None,
+             seen_share: Sequence[float] | None = None):
     """``(mueller, sigma, solved)`` of ``method`` (``single``, ``hybrid``, ``reference`` or a
     :data:`VARIANTS` name) from the frames at ``offsets`` (the seen state first); ``correlation``:
     the hybrid's joint prior (:func:`polrig.solve.hybrid.solve_hybrid`'s ``prior_correlation``;
-    None the per-element prior)."""
+    None the per-element prior); ``seen_share``: the hybrid's (``solve_hybrid``'s; None: the
+    row's whole variance along the seen direction kept)."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.reference import ILL_CONDITIONED, solve_reference
 
@@ -441,7 +443,8 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.nd
     s, meas, var, valid = _stack(fr, offsets)
     kw = dict(prior_mean=fr.prior, dtype=np.float64)
     if method == "hybrid":
-        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, prior_correlation=correlation, **kw)
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, prior_correlation=correlation,
+                         seen_share=seen_share, **kw)
     elif method == "marginal":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, plane_variance="scalar",
                          **kw)

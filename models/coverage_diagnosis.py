@@ -24,6 +24,16 @@ lit samples of each set (the held-out sets and the uncertainty calibration's sce
   ``x y^T`` with ``y`` the transmission into the surface, set by the light's direction, and
   ``x`` the transmission out, set by the view (:mod:`polrig.solve.diffuse_geometry`).
 
+* **A what-if of the seen direction's share** (:mod:`polrig.solve.hybrid`, "The seen
+  direction's share"): the one-state hybrid with the share ``kappa`` of each row's variance along
+  ``u`` kept in its unobserved plane, on a grid from 1 (as shipped) to 0 (the plain marginal),
+  and with the share per row *fitted on the calibration scenes* (:data:`polrig.models.continuum.SEARCH_SETS`,
+  when the run holds them): where the one-state posterior's coverage of the row equals the
+  single-shot sigma's on the same pixels (:func:`fit_seen_share`: linear between the grid's
+  points; at one state each row's posterior depends on its own share alone), so that the seen
+  frame narrows the sigma by what it takes off the error and no more. Every set is then scored
+  again at that share.
+
 ``--rig-scenes``: the default rig's named scenes at its analyzer grid instead, one sample per
 turntable angle (:func:`polrig.models.continuum.rig_set`, the frames of ``--rig``).
 
@@ -46,6 +56,8 @@ from polrig.models import continuum as cn
 #: The what-if's knees of the first row's light factor (deg); the shipped knee first.
 KNEES_DEG = (None, 11.5, 17.2)
 METHODS = {"single": ("single", (0,)), "hybrid1": ("hybrid", (0,)), "hybrid2": ("hybrid", cn.RIG_TWO)}
+#: The what-if's shares of the seen direction's variance kept (the shipped 1 first).
+SEEN_SHARES = (1.0, 0.8, 0.6, 0.4, 0.2, 0.0)
 LABELS = {"single": "single-shot", "hybrid1": "hybrid 1", "hybrid2": "hybrid 2"}
 
 
@@ -53,13 +65,62 @@ def _knee_key(knee_deg: float | None) -> str:
     return "shipped" if knee_deg is None else f"{knee_deg:g}"
 
 
+def _frames(data_dir, net, count: int, tag: int, seed: int):
+    """The frames (:func:`polrig.models.continuum.sample_frames`) and light spread (rad) of the
+    first ``count`` lit samples of the set in ``data_dir``; ``tag`` and ``seed`` draw the frames'
+    noise as :func:`polrig.models.continuum.evaluate_set` does."""
+    for n, (ds, sensor, i, prior) in enumerate(cn._samples(data_dir, net)):
+        if n >= count:
+            break
+        yield cn.sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i])), prior[2]
+
+
+def _row_counts(fr, mueller, sigma, solved) -> np.ndarray:
+    """Per row of ``M``, ``[elements within 2 sigma, elements]`` ``(3, 2)`` over the scored pixels."""
+    inside = (np.abs(mueller - fr.truth) <= 2.0 * sigma).transpose(1, 2, 0, 3, 4)[:, :, fr.use & solved]
+    return np.stack([inside.reshape(3, -1).sum(axis=1), np.full(3, inside[0].size)], axis=1).astype(float)
+
+
+def share_coverage(data_dir, net, count: int, tag: int, shares: Sequence[Sequence[float]], seed: int = 0
+                   ) -> list[list[list[float]]]:
+    """Per share vector of ``shares`` (``(3,)`` each, per row), the one-state hybrid's
+    ``[within 2 sigma, elements]`` per row ``(3, 2)`` on the first ``count`` lit samples of the
+    set in ``data_dir`` (the calibration's joint prior, the shipped sigma)."""
+    counts = np.zeros((len(shares), 3, 2))
+    correlation = net.uncertainty.joint_correlation
+    for fr, _ in _frames(data_dir, net, count, tag, seed):
+        for j, share in enumerate(shares):
+            counts[j] += _row_counts(fr, *cn.estimate(fr, (0,), "hybrid", correlation, seen_share=share))
+    return counts.tolist()
+
+
+def fit_seen_share(grid_counts: dict[str, list], single_counts: np.ndarray,
+                   shares: Sequence[float] = SEEN_SHARES) -> list[float]:
+    """Per row of ``M``, the share ``kappa_r`` at which the one-state hybrid's coverage of the row
+    equals the single-shot sigma's on the same pixels (``single_counts`` ``(3, 2)``), from its
+    coverage at each of ``shares`` (``grid_counts[str(share)]`` ``(3, 2)``, the counts pooled over
+    the calibration scenes; the coverage falls with the share): linear between the grid's points,
+    clipped to ``[0, 1]``."""
+    order = np.argsort(shares)
+    x = np.asarray(shares, float)[order]
+    out = []
+    for row in range(3):
+        cov = np.array([grid_counts[str(float(k))][row][0] / grid_counts[str(float(k))][row][1] for k in x])
+        target = single_counts[row][0] / single_counts[row][1]
+        out.append(float(np.clip(np.interp(target, cov, x), 0.0, 1.0)) if np.all(np.diff(cov) >= 0)
+                   else float(x[np.argmin(np.abs(cov - target))]))
+    return out
+
+
 def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float | None] = KNEES_DEG,
-                 seed: int = 0) -> dict:
+                 seed: int = 0, shares: Sequence[float] = SEEN_SHARES) -> dict:
     """The three diagnoses (module docstring) on the first ``count`` lit samples of the set in
     ``data_dir``: ``inside`` and ``elements`` ``(3, 3)`` per method (the shipped sigma), per row
     the error energy along ``u`` and in all (``u_error``, ``error``) and the diagonal sigma's
     (``u_sigma``, ``sigma``), per knee and method the first row's and all elements' counts, and
-    the light spreads (deg). ``tag`` and ``seed`` draw the frames' noise as
+    the light spreads (deg), and per share of ``shares`` (all rows alike) the one-state hybrid's
+    per row (``seen_share``) and the single-shot's per row (``single_rows``) ``[within 2 sigma,
+    elements]``. ``tag`` and ``seed`` draw the frames' noise as
     :func:`polrig.models.continuum.evaluate_set` does."""
     model = net.uncertainty
     if model.spread is None:
@@ -71,11 +132,12 @@ def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float 
     what_if = {_knee_key(k): {m: np.zeros(4) for m in METHODS} for k in knees_deg}
     spreads: list[float] = []
     correlation = model.joint_correlation
-    for n, (ds, sensor, i, prior) in enumerate(cn._samples(data_dir, net)):
-        if n >= count:
-            break
-        fr = cn.sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
-        omega = prior[2]
+    seen_share = np.zeros((len(shares), 3, 2))
+    single_rows = np.zeros((3, 2))
+    for fr, omega in _frames(data_dir, net, count, tag, seed):
+        single_rows += _row_counts(fr, fr.prior, fr.sigma, np.ones(fr.use.shape, bool))
+        for j, share in enumerate(shares):
+            seen_share[j] += _row_counts(fr, *cn.estimate(fr, (0,), "hybrid", correlation, seen_share=[share] * 3))
         spreads.append(float(np.degrees(omega)))
         u = fr.states[0] / np.linalg.norm(fr.states[0])
         err = (fr.prior - fr.truth).transpose(1, 2, 0, 3, 4)[:, :, fr.use]  # (3, 3, n)
@@ -101,7 +163,9 @@ def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float 
     return {"samples": len(spreads), "light_spread_deg": spreads,
             "per_element": {m: {k: v.tolist() for k, v in d.items()} for m, d in per.items()},
             "rows": {k: v.tolist() for k, v in rows.items()},
-            "what_if": {k: {m: v.tolist() for m, v in d.items()} for k, d in what_if.items()}}
+            "what_if": {k: {m: v.tolist() for m, v in d.items()} for k, d in what_if.items()},
+            "seen_share": {str(float(k)): v.tolist() for k, v in zip(shares, seen_share)},
+            "single_rows": single_rows.tolist()}
 
 
 def _pct(a, b) -> str:
@@ -148,7 +212,32 @@ def markdown(result: dict) -> str:
         cells = [f"{_pct(v[0], v[1])} / {_pct(v[2], v[3])}" for m in METHODS for v in
                  (r["what_if"][k][m] for k in knees)]
         lines.append(f"| {names.get(name, name)} | {spread} | " + " | ".join(cells) + " |")
+    lines += _share_table(result, names)
     return "\n".join(lines) + "\n"
+
+
+def _share_table(result: dict, names: dict) -> list[str]:
+    """The seen direction's share what-if (module docstring) as Markdown lines."""
+    first = next(iter(result["sets"].values()))
+    if "seen_share" not in first:
+        return []
+    shares = list(first["seen_share"])
+    fitted = result.get("fitted_share")
+    head = ["single-shot", *(f"kappa {float(k):g}" for k in shares)]
+    if fitted is not None:
+        head.append("kappa fitted (" + ", ".join(f"{k:.2f}" for k in fitted) + ")")
+    total = lambda rows: _pct(sum(r[0] for r in rows), sum(r[1] for r in rows))  # noqa: E731
+    lines = ["", "**What-if: the share of the seen direction's variance kept at one state** (within 2 sigma, "
+             "all elements, %; the single-shot sigma, then the one-state hybrid at each share, every row alike, "
+             "and at the share per row fitted on the calibration scenes, where the hybrid's coverage of the row "
+             "equals the single-shot's; shipped: 1):", "",
+             "| set | " + " | ".join(head) + " |", "|---|" + "---:|" * len(head)]
+    for name, r in result["sets"].items():
+        cells = [total(r["single_rows"]), *(total(r["seen_share"][k]) for k in shares)]
+        if fitted is not None:
+            cells.append(total(r["fitted_share"]))
+        lines.append(f"| {names.get(name, name)} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def folder_count(name: str, set_count: int) -> int:
@@ -193,11 +282,21 @@ def run(root, out_md, *, count: int, sets: Sequence[str], set_count: int = 64,
         "--rig-scenes " + ",".join(rig_scenes) if rig_scenes is not None else f"--count {count}")
     result: dict = {"command": command, "count": count, "rig": rig_scenes is not None,
                     "knees_deg": [_knee_key(k) for k in knees_deg], "sets": {}}
+    data = {}
     for tag, name in enumerate(sets):
-        d = (cn.rig_set(known[name], cn.rig_size(), cn.RIG_POSES_DEG, seed) if rig_scenes is not None
-             else cn.make_set(pathlib.Path(root), name, known[name], folder_count(name, set_count)))
+        data[name] = d = (cn.rig_set(known[name], cn.rig_size(), cn.RIG_POSES_DEG, seed) if rig_scenes is not None
+                          else cn.make_set(pathlib.Path(root), name, known[name], folder_count(name, set_count)))
         result["sets"][name] = diagnose_set(d, net, count, tag, knees_deg, seed)
         echo(f"{name}: {result['sets'][name]['samples']} samples")
+    calibration = [n for n in sets if n in cn.SEARCH_SETS]
+    if calibration:  # the share per row fitted on the calibration scenes, then every set at it
+        grid = {k: np.sum([result["sets"][n]["seen_share"][k] for n in calibration], axis=0).tolist()
+                for k in result["sets"][calibration[0]]["seen_share"]}
+        single = np.sum([result["sets"][n]["single_rows"] for n in calibration], axis=0)
+        result["fitted_share"] = share = fit_seen_share(grid, single)
+        echo(f"the seen direction's share fitted on {', '.join(calibration)}: {share}")
+        for tag, name in enumerate(sets):
+            result["sets"][name]["fitted_share"] = share_coverage(data[name], net, count, tag, [share], seed)[0]
     result["seconds"] = time.perf_counter() - t0
     text = markdown(result)
     echo(text)

@@ -39,17 +39,18 @@ def noisy(rng, m, s, read_var=4.0, gain=0.5):
 
 
 # ---------------------------------------------------------------------------- dense oracle
-def _keep_variance_in_plane(schur, var_r, u, scalar=False):
+def _keep_variance_in_plane(schur, var_r, u, scalar=False, share=1.0):
     """The row's unobserved-plane precision with its prior variance along ``u``,
-    ``alpha = sum u_a^2 var_a``, added to the plane's axis ``v1`` (``plane_axis``): by the
+    ``alpha = share sum u_a^2 var_a``, added to the plane's axis ``v1`` (``plane_axis``): by the
     explicit covariance ``(V^T S V)^-1 + alpha e1 e1^T`` in the basis ``V = [v1, v2]`` where the
     row's three elements have a prior, else (``S`` of rank 1 on the plane) by Sherman-Morrison,
     ``S / (1 + alpha v1^T S v1)``; the scalar ``g_r`` for a seen
     state without an angle, or with ``scalar``."""
     v1 = None if scalar else plane_axis(u)
     if v1 is None:
-        return schur * np.sum(var_r * (1 - u * u)) / var_r.sum()
-    alpha = float(np.sum(var_r * u * u))
+        off = np.sum(var_r * (1 - u * u))
+        return schur * off / (off + share * np.sum(var_r * u * u))
+    alpha = share * float(np.sum(var_r * u * u))
     if np.all(var_r > 0):
         basis = np.stack([v1, np.cross(u, v1)], axis=1)  # (3, 2)
         cov = np.linalg.inv(basis.T @ schur @ basis) + np.diag([alpha, 0.0])
@@ -61,7 +62,7 @@ def _keep_variance_in_plane(schur, var_r, u, scalar=False):
 LAST_CONDITION: list[np.ndarray] = []
 
 
-def dense_posterior(s, meas, var, valid, mean, sigma, seen, scalar=False):
+def dense_posterior(s, meas, var, valid, mean, sigma, seen, scalar=False, share=(1.0, 1.0, 1.0)):
     """Per pixel with numpy: the prior precision by an explicit Schur complement over the
     span of the used seen samples' design rows (the whole-frame row scaling ``g_r`` where
     they span ``M u`` whole), then the posterior. Returns (x, sd, residual, rank) images;
@@ -110,7 +111,7 @@ def dense_posterior(s, meas, var, valid, mean, sigma, seen, scalar=False):
                                 blk = slice(3 * r, 3 * r + 3)
                                 var_r = np.where(pi[blk] > 0, 1.0 / np.where(pi[blk] > 0, pi[blk], 1.0), 0.0)
                                 if var_r.sum() > 0:
-                                    p[blk, blk] = _keep_variance_in_plane(p[blk, blk], var_r, u, scalar)
+                                    p[blk, blk] = _keep_variance_in_plane(p[blk, blk], var_r, u, scalar, share[r])
                 a = design.T @ (wt[:, None] * design) + p
                 b = design.T @ (wt * yv) + p @ mn
                 dg = 1.0 / np.sqrt(np.where(np.diag(a) > 0, np.diag(a), 1.0))
@@ -161,7 +162,15 @@ def test_kernel_matches_a_dense_posterior_with_the_scalar_plane_factor(seed, n):
     _kernel_against_the_oracle(seed, n, True, 0.1, "scalar")
 
 
-def _kernel_against_the_oracle(seed, n, seen, drop, plane_variance):
+@pytest.mark.parametrize("plane_variance", ["axis", "scalar"])
+@pytest.mark.parametrize("seed,n,share", [(5, 1, (0.0, 0.5, 1.0)), (6, 2, (0.3, 0.0, 0.9)), (8, 3, (0.7, 0.2, 0.0))])
+def test_kernel_matches_a_dense_posterior_with_a_share_of_the_seen_variance(seed, n, share, plane_variance):
+    """``seen_share`` (the part of each row's variance along ``u`` kept in its plane, 0 the plain
+    marginal) against the same oracle, a different share per row."""
+    _kernel_against_the_oracle(seed, n, True, 0.1, plane_variance, share)
+
+
+def _kernel_against_the_oracle(seed, n, seen, drop, plane_variance, share=None):
     rng = np.random.default_rng(seed)
     ang = rng.uniform(0, 180, n)
     s = states(*ang, er=rng.uniform(100, 1e4))
@@ -174,8 +183,9 @@ def _kernel_against_the_oracle(seed, n, seen, drop, plane_variance):
     sigma[rng.random(m.shape) < 0.1] = np.inf  # no prior for some elements
     k = 0 if seen else None
     got = solve_hybrid(s, meas, var, valid, prior_mean=mean, prior_sigma=sigma, seen_state=k,
-                       plane_variance=plane_variance, dtype=np.float64)
-    x, sd, res, rank = dense_posterior(s, meas, var, valid, mean, sigma, k, scalar=plane_variance == "scalar")
+                       plane_variance=plane_variance, seen_share=share, dtype=np.float64)
+    x, sd, res, rank = dense_posterior(s, meas, var, valid, mean, sigma, k, scalar=plane_variance == "scalar",
+                                       share=(1.0, 1.0, 1.0) if share is None else share)
     solved = (got.mask & ref.ILL_CONDITIONED) == 0
     # a pixel without a prior follows the reference solve's rule (its samples' condition); one
     # with a prior is unsolved exactly where its posterior is singular
@@ -462,6 +472,48 @@ def test_unobserved_precision_annihilates_the_seen_direction():
     for k in range(5):
         g = np.sum(sd[k, 1:] ** 2) / np.sum(sd[k] ** 2)
         assert np.allclose(p0[k], g * np.diag([0.0, *sd[k, 1:] ** -2.0]), rtol=1e-10, atol=0)
+
+
+def test_seen_share_keeps_that_part_of_the_variance_along_u():
+    """The numpy form: share 1 is the default bit for bit, share 0 the plain marginal (the Schur
+    complement), and in between the plane's covariance holds ``share alpha`` on ``v1``; the
+    one-state posterior's sigma falls with the share, its mean does not move; bad shares are one
+    line."""
+    rng = np.random.default_rng(11)
+    sd = 10.0 ** rng.uniform(-1, 2, (40, 3, 3))
+    s0 = states(71.0, er=300)[0]
+    u = observed_direction(s0)
+    assert np.array_equal(unobserved_precision(sd, s0, seen_share=[1.0, 1.0, 1.0]), unobserved_precision(sd, s0))
+    pi = sd ** -2.0
+    schur = pi[..., :, None] * np.eye(3) - (pi * u)[..., :, None] * (pi * u)[..., None, :] \
+        / np.sum(pi * u * u, axis=-1)[..., None, None]
+    assert np.allclose(unobserved_precision(sd, s0, seen_share=[0.0, 0.0, 0.0]), schur, rtol=1e-12, atol=0)
+    share = np.array([0.25, 0.5, 0.75])
+    p = unobserved_precision(sd, s0, seen_share=share)
+    v1 = plane_axis(u)
+    v = np.stack([v1, np.cross(v1, u)], axis=1)
+    for k in range(5):
+        for r in range(3):
+            cov = np.diag(sd[k, r] ** 2)
+            want = v.T @ cov @ v + np.diag([share[r] * (u @ cov @ u), 0.0])
+            assert np.allclose(np.linalg.inv(v.T @ p[k, r] @ v), want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    # the solve: one state, every element a prior
+    c, h, w = 1, 2, 3
+    m = physical_mueller(rng, c, h, w)
+    st1 = states(71.0, er=800)
+    meas, var = noisy(rng, m, st1)
+    mean, sigma = m + rng.normal(size=m.shape) * 20, np.full(m.shape, 30.0)
+    kw = dict(prior_mean=mean, prior_sigma=sigma, seen_state=0, dtype=np.float64)
+    whole = solve_hybrid(st1, meas, var, **kw)
+    assert np.array_equal(solve_hybrid(st1, meas, var, seen_share=[1.0, 1.0, 1.0], **kw).sigma, whole.sigma)
+    half = solve_hybrid(st1, meas, var, seen_share=[0.5, 0.5, 0.5], **kw)
+    none = solve_hybrid(st1, meas, var, seen_share=[0.0, 0.0, 0.0], **kw)
+    assert np.allclose(half.mueller, whole.mueller, rtol=0, atol=1e-9 * np.abs(whole.mueller).max())
+    assert np.all(none.sigma <= half.sigma * (1 + 1e-12)) and np.all(half.sigma <= whole.sigma * (1 + 1e-12))
+    assert np.any(none.sigma < whole.sigma * 0.99)
+    for bad in ([0.5, 0.5], [1.5, 0.0, 0.0], [-0.1, 0.0, 0.0], [np.nan, 0.0, 0.0]):
+        with pytest.raises(ConfigError, match="seen_share must be 3 numbers in"):
+            solve_hybrid(st1, meas, var, seen_share=bad, **kw)
 
 
 # ---------------------------------------------------------------------------- properties

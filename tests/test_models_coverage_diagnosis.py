@@ -38,8 +38,30 @@ def test_tables_and_their_counts(tmp_path):
     rows = {k: np.array(v) for k, v in r["rows"].items()}
     assert (0 <= rows["u_error"]).all() and (rows["u_error"] <= rows["error"] * (1 + 1e-12)).all()
     assert (rows["u_sigma"] <= rows["sigma"]).all()
+    # the seen direction's share: 1 is the shipped hybrid 1; a smaller share narrows the one-state
+    # sigma and leaves its mean, so never more inside; the single-shot's rows are its table's rows
+    h1 = np.array(r["per_element"]["hybrid1"]["inside"]).sum(axis=1)
+    grid = {float(k): np.array(v) for k, v in r["seen_share"].items()}
+    assert np.array_equal(grid[1.0][:, 0], h1) and np.array_equal(grid[1.0][:, 1], grid[0.0][:, 1])
+    shares = sorted(grid)
+    assert all((grid[a][:, 0] <= grid[b][:, 0]).all() for a, b in zip(shares, shares[1:]))
+    assert np.array_equal(np.array(r["single_rows"])[:, 0], np.array(r["per_element"]["single"]["inside"]).sum(axis=1))
+    assert "fitted_share" not in saved  # no calibration scenes in this run
     text = out.read_text()
     assert "Within 2 sigma per element" in text and "What-if" in text and "hybrid 2, knee 30" in text
+    assert "kappa 0.4" in text and "kappa fitted" not in text
+
+
+def test_the_share_is_fitted_where_the_hybrid_covers_as_the_single_shot():
+    from polrig.models import coverage_diagnosis as cd
+
+    shares = (1.0, 0.5, 0.0)
+    # row 0 covers 90 % at share 0, 94 at 0.5, 98 at 1; the single-shot 96 % -> 0.75; row 1 is
+    # below the single-shot's at every share -> 1; row 2 above at every share -> 0
+    cov = {1.0: [98, 90, 99], 0.5: [94, 85, 98], 0.0: [90, 80, 97.5]}
+    grid = {str(k): [[v[row], 100] for row in range(3)] for k, v in cov.items()}
+    single = np.array([[96, 100], [95, 100], [95, 100]])
+    assert cd.fit_seen_share(grid, single, shares) == pytest.approx([0.75, 1.0, 0.0])
 
 
 @needs_weights

@@ -432,7 +432,7 @@ def _add_prior(pa, pm, amat, rhs):  # pragma: no cover - compiled
 
 
 @jit_cached()
-def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, arow, per_pixel_rows,
+def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, seen_share, w, flags, arow, per_pixel_rows,
                pa, pm, prank):  # pragma: no cover - compiled
     """The prior of rows ``y0 .. y1`` of colour ``c`` into block-major buffers (layout of
     :func:`load_tile`, which must have filled ``w``, ``flags`` and, with ``per_pixel_rows``,
@@ -541,6 +541,7 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
                                     if pi[3 * r + a] > 0:
                                         alpha += u2[a] / pi[3 * r + a]
                                         nrow += 1
+                                alpha *= seen_share[r]
                                 for a in range(3):
                                     a1, a2 = (a + 1) % 3, (a + 2) % 3
                                     srow[a, a] = pi[3 * r + a] * (
@@ -566,15 +567,16 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, w, flags, ar
                                         pa[b, 3 * r + a, 3 * r + bb, q] = v
                                         pa[b, 3 * r + bb, 3 * r + a, q] = v
                                 continue
-                            # g: the share of the row's prior variance off u (the whole
-                            # variance is kept in the unobserved plane)
+                            # g: the share of the row's prior variance off u over the variance
+                            # kept in the unobserved plane (its share seen_share[r] along u too)
                             num = 0.0
                             den = 0.0
                             for a in range(3):
                                 if pi[3 * r + a] > 0:
                                     num += (1.0 - u2[a]) / pi[3 * r + a]
                                     den += 1.0 / pi[3 * r + a]
-                            g = num / den
+                            kept = den if seen_share[r] == 1.0 else num + seen_share[r] * (den - num)
+                            g = num / kept if kept > 0 else 0.0
                             for a in range(3):
                                 a1, a2 = (a + 1) % 3, (a + 2) % 3
                                 pa[b, 3 * r + a, 3 * r + a, q] = g * pi[3 * r + a] * (

@@ -526,6 +526,9 @@ class PriorInputs(NamedTuple):
     seen_dir: np.ndarray
     seen_axis: np.ndarray
     seen_k: int
+    #: ``(3,)`` per row of ``M``, the share of the row's prior variance along ``seen_dir`` that
+    #: is kept in its unobserved plane (:mod:`polrig.solve.hybrid`, "The seen direction's share")
+    seen_share: np.ndarray
     #: ``(6, 6)`` inverse of the joint prior's correlation in the whitened unobserved
     #: coordinates (:mod:`polrig.solve.hybrid`, "Joint prior"), or None: the per-element prior
     joint_inverse: np.ndarray | None = None
@@ -645,7 +648,7 @@ class _TileRun:
         prior = self.prior
         if prior is not None:  # polrig.solve.hybrid
             kern.load_prior(prior.mean, prior.sigma, c, y0, y1, prior.seen_dir, prior.seen_axis, prior.seen_k,
-                            b["w"], b["flags"], arow, self.per_pixel, b["pa"], b["pm"],
+                            prior.seen_share, b["w"], b["flags"], arow, self.per_pixel, b["pa"], b["pm"],
                             b["prank"])
             if prior.joint_inverse is not None:
                 kern.correlate_prior(b["pa"], b["prank"], b["w"], prior.seen_k, prior.seen_dir, prior.seen_axis,
