@@ -453,13 +453,16 @@ def load_prior(mean, sigma, c, y0, y1, seen_dir, seen_axis, seen_k, seen_share, 
     samples (they observe ``M s`` whole) ``K = C^+`` and ``P`` is block diagonal,
     the Schur complement ``S_r = Pi_r - t_r t_r^T / c_r`` (evaluated without cancellation,
     ``S_aa = pi_a sum_{k != a} pi_k u_k^2 / c_r``) with the row's prior variance along ``u``,
-    ``alpha_r = sum u_a^2 sigma_a^2`` over its used elements, moved onto the plane's axis ``v1``
+    ``alpha_r = seen_share_r sum u_a^2 sigma_a^2`` over its used elements (``seen_share`` ``(3,)``:
+    the part of it kept per row, 1 all of it; :mod:`polrig.solve.hybrid`, "The seen direction's
+    share"), moved onto the plane's axis ``v1``
     ``seen_axis`` (:func:`polrig.solve.hybrid.plane_axis`): ``P_r = (S_r + alpha_r det_r v2 v2^T) /
     (1 + alpha_r v1^T S_r v1)`` with ``v2 = v1 x u`` and ``det_r`` the determinant of ``S_r`` on
     the plane (``pi_0 pi_1 pi_2 / c_r``; 0 where an element has no prior); with ``seen_axis`` all 0 (a seen state without an angle) the
     scalar ``P_r = g_r S_r`` with
-    ``g_r = sum (1 - u_a^2) sigma_a^2 / sum sigma_a^2``. Either way the row's whole prior variance
-    stays in its unobserved plane; with 1 or 2 the plain Schur complement of the general form,
+    ``g_r = sum (1 - u_a^2) sigma_a^2 / (sum (1 - u_a^2) sigma_a^2 + seen_share_r sum u_a^2 sigma_a^2)``.
+    Either way the row's prior variance (all of it at ``seen_share`` 1) stays in its unobserved
+    plane; with 1 or 2 the plain Schur complement of the general form,
     computed as ``R (I - E E^T) R`` (``R = Pi^1/2``, ``E`` an orthonormal basis of ``R B``, Gram-Schmidt
     twice): no inverse of ``B^T Pi B``, which can be nearly singular.
     ``seen_k < 0``: ``P = Pi``.

@@ -381,8 +381,8 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     applied where the seen frame is used whole, the state has an axis and all nine elements have
     a prior; None (default): the per-element prior. ``seen_share``: per row of ``M``, the share
     ``kappa_r`` of the row's prior variance along the seen direction kept in its unobserved
-    plane (module docstring, "The seen direction's share";
-    :attr:`polrig.models.uncertainty.UncertaintyModel.seen_share`); None (default): all of it.
+    plane (module docstring, "The seen direction's share": an analysis option, measured by
+    :mod:`polrig.models.coverage_diagnosis`); None (default): all of it.
 
     Raises :class:`polrig.errors.ConfigError` for no state, non-finite states, a
     ``seen_state`` that is not an index of ``s_in`` (or a zero state), or a bad option, and
