@@ -52,6 +52,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from polrig.models import continuum as cn
+from polrig.models.scene_bootstrap import coverage_interval, scene_spread
 
 #: The what-if's knees of the first row's light factor (deg); the shipped knee first.
 KNEES_DEG = (None, 11.5, 17.2)
@@ -192,6 +193,8 @@ def markdown(result: dict) -> str:
             cells.append(" / ".join(" ".join(_pct(d["inside"][a][b], d["elements"][a][b]) for b in range(3))
                                     for a in range(3)))
         lines.append(f"| {names.get(name, name)} | {r['samples']} | " + " | ".join(cells) + " |")
+    if result.get("rig"):
+        lines += ["", pooled_line(result)]
     lines += ["", "**The network's error along the seen state's direction u**, per row (share of the row's "
               "error energy; the diagonal calibrated sigma's share of the row's variance after the slash):", "",
               "| set | row 0 | row 1 | row 2 |", "|---|---:|---:|---:|"]
@@ -214,6 +217,23 @@ def markdown(result: dict) -> str:
         lines.append(f"| {names.get(name, name)} | {spread} | " + " | ".join(cells) + " |")
     lines += _share_table(result, names)
     return "\n".join(lines) + "\n"
+
+
+def pooled_line(result: dict) -> str:
+    """All elements pooled over the result's sets (the rig's scenes), per method, with the 90 % bootstrap
+    interval over the scenes and the 10th-90th percentile of the scenes' own coverage
+    (:mod:`polrig.models.scene_bootstrap`): how well so many scenes pin the aggregate, and how far one
+    scene strays from it."""
+    cells = []
+    for m in METHODS:
+        inside = [float(np.sum(r["per_element"][m]["inside"])) for r in result["sets"].values()]
+        elements = [float(np.sum(r["per_element"][m]["elements"])) for r in result["sets"].values()]
+        low, high = coverage_interval(inside, elements)
+        first, last = scene_spread(inside, elements)
+        cells.append(f"{LABELS[m]} {_pct(sum(inside), sum(elements))} [{100 * low:.1f}, {100 * high:.1f}] % "
+                     f"(scenes {100 * first:.1f}-{100 * last:.1f})")
+    return (f"**Pooled over the {len(result['sets'])} scenes**, all elements within 2 sigma [90 % bootstrap interval "
+            "over the scenes] (10th-90th percentile of the scenes' own): " + "; ".join(cells) + ".")
 
 
 def _share_table(result: dict, names: dict) -> list[str]:

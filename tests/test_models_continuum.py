@@ -58,6 +58,11 @@ def test_tables_search_and_the_hybrid_limits(tmp_path):
     assert m["hybrid2"]["time_s"] < m["hybrid2_bracket"]["time_s"] < m["hybrid2"]["time_s"] + 0.2
     assert m["hybrid2_bracket"]["states"] == 2 and 0.5 < m["hybrid2_bracket"]["coverage"] <= 1.0
     assert "Highlights: an exposure bracket" in text
+    # every coverage figure carries its scene-bootstrap interval, which holds it
+    for k in ("single", "hybrid1", "hybrid4"):
+        low, high = m[k]["coverage_interval"]
+        assert low <= m[k]["coverage"] <= high
+    assert "how sure each figure is" in text
 
 
 def test_acquisition_time_is_the_plans_hardware_time():

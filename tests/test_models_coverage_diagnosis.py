@@ -74,6 +74,19 @@ def test_rig_scenes_are_diagnosed_pose_by_pose():
     r = res["sets"]["rig_sphere"]
     assert res["rig"] and 1 <= r["samples"] <= len(cn.RIG_POSES_DEG)
     assert "--rig-scenes sphere" in cd.markdown(res) and np.array(r["per_element"]["hybrid2"]["elements"]).min() > 0
+    assert "Pooled over the 1 scenes" in cd.markdown(res)
+
+
+def test_the_pooled_line_is_the_scenes_total_with_its_interval():
+    from polrig.models import coverage_diagnosis as cd
+
+    def scene(inside):  # one scene: every element's count alike, 100 elements each
+        return {"per_element": {m: {"inside": [[inside] * 3] * 3, "elements": [[100.0] * 3] * 3}
+                                for m in cd.METHODS}}
+
+    line = cd.pooled_line({"rig": True, "sets": {"a": scene(90.0), "b": scene(100.0)}})
+    # pooled (90 + 100) / 200; the bootstrap of two scenes spans one scene alone to the other alone
+    assert "single-shot 95.0 [90.0, 100.0] %" in line and "(scenes 91.0-99.0)" in line
 
 
 @pytest.mark.parametrize("argv, needle", [(["--sets", "nowhere"], "unknown set(s) nowhere"),
