@@ -20,8 +20,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-#: Resamples per interval; with 2000 the 5 % and 95 % points move by about 0.1 point between seeds
-#: on a 64-sample set.
+#: Resamples per interval: with 2000 the 5 % and 95 % points move by about 0.02 point (standard
+#: deviation over 20 seeds) on 64 synthetic scenes whose coverage spreads by 5 points.
 RESAMPLES = 2000
 
 

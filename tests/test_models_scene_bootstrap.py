@@ -24,7 +24,7 @@ def test_alike_scenes_give_the_binomial_interval():
 
 
 def test_scenes_that_differ_widen_it_beyond_the_pixel_count():
-    # the same element count, but each scene covers all or nothing of half its elements: a cluster effect
+    # the same element count, but half the scenes cover 99 % and half 91 %: a cluster effect
     rng = np.random.default_rng(4)
     n, m = 64, 4096
     per_scene = np.where(rng.random(n) < 0.5, 0.99, 0.91)
