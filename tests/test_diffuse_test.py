@@ -426,3 +426,30 @@ def test_the_decision_takes_the_specular_term_only_where_significant_and_rejects
     assert accepted.tolist() == [True, False, True, False, False, False, True]
     alone, none = decide(t_d, None, c, 0.05)
     assert alone.tolist() == [True, False, False, False, False, False, False] and not none.any()
+
+
+def test_a_specular_term_not_taken_enters_the_sigma(monkeypatch):
+    """Diffuse truth plus a weak specular term (3 % of the diffuse ``m00``), too weak for its test at
+    two thirds of the pixels: there the diffuse estimate misses it in ``m11`` and ``m22``, and the sigma holds
+    that bias only with the term's would-be part added (``specular_unused``, 0 where it was taken)."""
+    truth, view, light, _ = _diffuse_and_specular(23, 0.03, 24, 24)
+    meas, var, prior, sigma = _frames_and_prior(truth, np.random.default_rng(24))
+    geo = _geometry(view, light)
+    r = _hybrid(truth, meas, var, prior, sigma)
+
+    def within():
+        out, test, _ = dt.complete_tested_diffuse(r, STATES, meas, var, None, geo, prior=(prior, sigma),
+                                                  specular=True)
+        where = test.accepted[None] & (test.specular_albedo == 0)  # (C, H, W): the term not taken
+        ok = (np.abs(out.mueller - truth) <= 2 * out.sigma).transpose(1, 2, 0, 3, 4)[:, :, where]
+        return test, where, out, (ok[1, 1].mean() + ok[2, 2].mean()) / 2
+
+    test, where, out, with_term = within()
+    assert where.mean() > 0.5
+    assert np.all(test.specular_unused[test.specular_albedo > 0] == 0) and np.all(test.specular_unused >= 0)
+    assert (test.specular_unused[where] > 0).mean() > 0.5
+    with monkeypatch.context() as m:
+        m.setattr(dt, "_with_unused_specular", lambda out, *a: out)
+        _, _, plain, without = within()
+    assert without < 0.91 and with_term >= max(0.93, without + 0.03)
+    np.testing.assert_array_equal(out.mueller, plain.mueller)  # the estimate is the same
