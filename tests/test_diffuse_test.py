@@ -429,9 +429,10 @@ def test_the_decision_takes_the_specular_term_only_where_significant_and_rejects
 
 
 def test_a_specular_term_not_taken_enters_the_sigma(monkeypatch):
-    """Diffuse truth plus a weak specular term (3 % of the diffuse ``m00``), too weak for its test at
-    two thirds of the pixels: there the diffuse estimate misses it in ``m11`` and ``m22``, and the sigma holds
-    that bias only with the term's would-be part added (``specular_unused``, 0 where it was taken)."""
+    """Diffuse truth plus a weak specular term (3 % of the diffuse ``m00``), too weak for its test
+    at two thirds of the pixels: there the diffuse estimate misses it in ``m11`` and ``m22``, and
+    the sigma holds that bias only with the term's would-be part added (``specular_unused``, 0
+    where it was taken)."""
     truth, view, light, _ = _diffuse_and_specular(23, 0.03, 24, 24)
     meas, var, prior, sigma = _frames_and_prior(truth, np.random.default_rng(24))
     geo = _geometry(view, light)

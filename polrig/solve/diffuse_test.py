@@ -73,8 +73,8 @@ two-albedo fit gave there, is then a bias of the estimate (``m11`` low and ``m22
 plastic sphere: mean error -1.3 and +1.5 sigma on those pixels, 83 and 78 % within 2 sigma). Its
 square is added to the sigma's: the model-selection term of the chosen model against the larger
 one (Buckland, Burnham and Augustin 1997), as the selection does for its candidates. On captures
-of the plastic sphere (0/90, the simulator's hidden errors) the accepted pixels' ``m11`` and
-``m22`` go from 89.0 and 87.9 % within 2 sigma to 93.2 and 93.4 % (512x512 mono) and from 92.0
+of the plastic sphere (0/90, the simulator's hidden errors) the object's ``m11`` and ``m22``
+go from 89.0 and 87.9 % within 2 sigma to 93.2 and 93.4 % (512x512 mono) and from 92.0
 and 90.2 % to 94.6 and 93.7 % (the full colour sensor), the estimate unchanged. (Taking the term
 wherever its albedo fits above 0 mends those captures as well and raises their PSNR by 0.2-0.3
 dB, but costs the 64x64 held-out sets 0.1-0.6 dB.)
