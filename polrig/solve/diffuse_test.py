@@ -485,38 +485,30 @@ def complete_tested_diffuse(result: ReferenceResult, states: np.ndarray, measure
         return chosen, test, np.zeros(chosen.mask.shape, bool)
     out, completed, _ = complete_diffuse(chosen, states, geometry, eta=test.eta, light=test.light)
     if spec is not None:
-        # back, with its own noise where the rank-one estimate cannot follow it: an error d of the
-        # albedo shifts the rest by -d B, whose first row and column the rank-one fit keeps (they
-        # are measured) and whose other elements it predicts from them, so d B comes back there
-        # less its rank-one part B[:, 0] B[0, :] / B[0, 0]
-        sd = test.specular_sigma[:, None, None, ys, xs] * unit[None]  # (C, 3, 3, P): sigma_ks B
-        with np.errstate(divide="ignore", invalid="ignore"):
-            part = sd[:, :, :1] * sd[:, :1, :] / sd[:, :1, :1]
-        spec_var = np.where(sd[:, :1, :1] > 0, sd - part, 0.0) ** 2
-        mueller, sigma = out.mueller.copy(), out.sigma.copy()
+        mueller = out.mueller.copy()
         mueller[..., ys, xs] += values.astype(mueller.dtype)
-        sigma[..., ys, xs] = np.sqrt(sigma[..., ys, xs].astype(np.float64) ** 2 + spec_var).astype(sigma.dtype)
-        out = dataclasses.replace(out, mueller=mueller, sigma=sigma)
-    if spec is not None:
-        out = _with_unused_specular(out, test, *spec)
+        out = dataclasses.replace(out, mueller=mueller, sigma=_with_specular_terms(out.sigma, test, *spec))
     return dataclasses.replace(out, sigma=_floor_at_neighbour_bias(out, result, states)), test, completed
 
 
-def _with_unused_specular(out: ReferenceResult, test: DiffuseTest, ys: np.ndarray, xs: np.ndarray,
-                          unit: np.ndarray) -> ReferenceResult:
-    """``out`` with, at the accepted pixels ``ys``, ``xs`` where the specular term was fitted but
-    not taken (``test.specular_unused``), the square of what that term would have added where the
-    rank-one estimate cannot follow it, ``k_u (B - B[:, 0] B[0, :] / B[0, 0])``, added to the
-    sigma's square: the model-selection term of the diffuse estimate against the diffuse +
-    specular one (module docstring, "The specular term not taken"). ``unit`` ``(3, 3, P)`` the
-    unit blocks there (:func:`specular_term`)."""
-    k_u = test.specular_unused[:, ys, xs]  # (C, P)
+def _with_specular_terms(sigma: np.ndarray, test: DiffuseTest, ys: np.ndarray, xs: np.ndarray,
+                         unit: np.ndarray) -> np.ndarray:
+    """``sigma`` ``(C, 3, 3, H, W)`` with, at the accepted pixels ``ys``, ``xs``, what the specular
+    term leaves where the rank-one estimate cannot follow it, ``B - B[:, 0] B[0, :] / B[0, 0]``
+    (``unit`` ``(3, 3, P)`` the unit blocks ``B`` there, :func:`specular_term`), added in
+    quadrature: times the albedo's standard deviation where the term was taken (an error ``d`` of
+    the albedo shifts the rest by ``-d B``, whose first row and column the rank-one fit keeps, as
+    they are measured, and whose other elements it predicts from them), and times the albedo
+    fitted where it was not taken (the bias of leaving it out: module docstring, "The specular
+    term not taken"); each colour's pixel has one or the other."""
     with np.errstate(divide="ignore", invalid="ignore"):
         follow = unit[:, :1] * unit[:1, :] / unit[:1, :1]
-    bias = k_u[:, None, None] * np.where(unit[:1, :1] > 0, unit - follow, 0.0)[None]  # (C, 3, 3, P)
-    sigma = out.sigma.copy()
-    sigma[..., ys, xs] = np.sqrt(sigma[..., ys, xs].astype(np.float64) ** 2 + bias**2).astype(sigma.dtype)
-    return dataclasses.replace(out, sigma=sigma)
+    beyond = np.where(unit[:1, :1] > 0, unit - follow, 0.0)  # (3, 3, P)
+    scale2 = test.specular_sigma[:, ys, xs] ** 2 + test.specular_unused[:, ys, xs] ** 2  # (C, P)
+    out = sigma.copy()
+    out[..., ys, xs] = np.sqrt(sigma[..., ys, xs].astype(np.float64) ** 2
+                               + scale2[:, None, None] * beyond[None] ** 2).astype(sigma.dtype)
+    return out
 
 
 def specular_term(test: DiffuseTest, geometry: DiffuseGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
