@@ -46,10 +46,16 @@ def test_tables_and_their_counts(tmp_path):
     shares = sorted(grid)
     assert all((grid[a][:, 0] <= grid[b][:, 0]).all() for a, b in zip(shares, shares[1:]))
     assert np.array_equal(np.array(r["single_rows"])[:, 0], np.array(r["per_element"]["single"]["inside"]).sum(axis=1))
-    assert "fitted_share" not in saved  # no calibration scenes in this run
+    # the prior's scale from the innovations: gamma 0 is the shipped hybrid 2, every gamma scores the same elements
+    scaled = {n: {float(g): np.array(v) for g, v in d.items()} for n, d in r["prior_scale"].items()}
+    h2 = np.array(r["per_element"]["hybrid2"]["inside"]).sum()
+    assert scaled["2"][0.0][0] == h2 and len({v[1] for d in scaled.values() for v in d.values()}) <= 3
+    assert all(len(r["raw_scales"][n]) == r["samples"] and min(r["raw_scales"][n]) > 0 for n in scaled)
+    assert "fitted_share" not in saved and "fitted_shrink" not in saved  # no calibration scenes in this run
     text = out.read_text()
     assert "Within 2 sigma per element" in text and "What-if" in text and "hybrid 2, knee 30" in text
     assert "kappa 0.4" in text and "kappa fitted" not in text
+    assert "prior's scale from the innovations" in text and "2 states, gamma 0.5" in text and "gamma fitted" not in text
 
 
 def test_the_share_is_fitted_where_the_hybrid_covers_as_the_single_shot():
@@ -62,6 +68,16 @@ def test_the_share_is_fitted_where_the_hybrid_covers_as_the_single_shot():
     grid = {str(k): [[v[row], 100] for row in range(3)] for k, v in cov.items()}
     single = np.array([[96, 100], [95, 100], [95, 100]])
     assert cd.fit_seen_share(grid, single, shares) == pytest.approx([0.75, 1.0, 0.0])
+
+
+def test_the_exponent_is_fitted_where_two_states_cover_as_a_gaussian():
+    from polrig.models import coverage_diagnosis as cd
+
+    # coverage falls with gamma: 97 % at 0, 96 at 0.5, 94 at 1 -> 95.45 % at 0.6375
+    counts = {"0.0": [97, 100], "0.5": [96, 100], "1.0": [94, 100]}
+    assert cd.fit_shrink(counts) == pytest.approx(0.5 + 0.5 * 0.55 / 2)
+    assert cd.fit_shrink({"0.0": [99, 100], "1.0": [98, 100]}) == 1.0  # never low enough: the grid's end
+    assert cd.fit_shrink({"0.0": [95, 100], "0.5": [97, 100], "1.0": [94, 100]}) == 0.0  # not monotone: nearest
 
 
 @needs_weights
