@@ -126,14 +126,16 @@ def fit_seen_share(grid_counts: dict[str, list], single_counts: np.ndarray,
 
 def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float | None] = KNEES_DEG,
                  seed: int = 0, shares: Sequence[float] = SEEN_SHARES) -> dict:
-    """The three diagnoses (module docstring) on the first ``count`` lit samples of the set in
+    """The diagnoses (module docstring) on the first ``count`` lit samples of the set in
     ``data_dir``: ``inside`` and ``elements`` ``(3, 3)`` per method (the shipped sigma), per row
     the error energy along ``u`` and in all (``u_error``, ``error``) and the diagonal sigma's
     (``u_sigma``, ``sigma``), per knee and method the first row's and all elements' counts, and
     the light spreads (deg), and per share of ``shares`` (all rows alike) the one-state hybrid's
     per row (``seen_share``) and the single-shot's per row (``single_rows``) ``[within 2 sigma,
-    elements]``. ``tag`` and ``seed`` draw the frames' noise as
-    :func:`polrig.models.continuum.evaluate_set` does."""
+    elements]``, and per number of states of :data:`SCALED_STATES` the hybrid's ``[within 2 sigma,
+    elements]`` at each exponent of the prior's scale from the innovations (``prior_scale``,
+    :func:`scaled_counts`) and each sample's raw scale (``raw_scales``). ``tag`` and ``seed``
+    draw the frames' noise as :func:`polrig.models.continuum.evaluate_set` does."""
     model = net.uncertainty
     if model.spread is None:
         from polrig.errors import ConfigError
