@@ -90,21 +90,18 @@ def innovations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray, va
     usable_row = np.all(np.isfinite(sd) & (sd > 0), axis=-1)  # (C, 3, H, W)
     prec = unobserved_precision(np.where(usable_row[..., None], sd, 1.0), s[seen_state])  # (C, 3, H, W, 3, 3)
     m2 = np.einsum("ai,...ab,bj->...ij", basis, prec, basis)  # the plane's precision (..., 2, 2)
-    det = m2[..., 0, 0] * m2[..., 1, 1] - m2[..., 0, 1] * m2[..., 1, 0]
+    det = np.linalg.det(m2)
     usable_row &= np.isfinite(det) & (det > 0)
-    det = np.where(usable_row, det, 1.0)
-    cov = np.stack([np.stack([m2[..., 1, 1], -m2[..., 0, 1]], -1),
-                    np.stack([-m2[..., 1, 0], m2[..., 0, 0]], -1)], -2) / det[..., None, None]
-    rows = None if analyzer_rows is None else np.asarray(analyzer_rows, np.float64)
+    cov = np.linalg.inv(np.where(usable_row[..., None, None], m2, np.eye(2)))  # the plane's prior covariance
     seen, seen_info, seen_ok = state_stokes(measured[seen_state], variance[seen_state],
-                                            None if valid is None else valid[seen_state], rows)
+                                            None if valid is None else valid[seen_state], analyzer_rows)
     seen_var = _diagonal_of_inverse(seen_info)  # (C, 3, H, W)
     along_u = seen / norm0 - np.einsum("crkhw,k->crhw", mean, u)
     d, p, n = [], [], []
     for j in range(len(s)):
         if j == seen_state:
             continue
-        stokes, info, ok = state_stokes(measured[j], variance[j], None if valid is None else valid[j], rows)
+        stokes, info, ok = state_stokes(measured[j], variance[j], None if valid is None else valid[j], analyzer_rows)
         su = float(s[j] @ u)
         w = basis.T @ s[j]  # (2,)
         pred = np.einsum("crkhw,k->crhw", mean, s[j]) + su * along_u
