@@ -35,7 +35,11 @@ seen state's first frame is the network's input); every other row has one frame 
 ``uncertainty.json``, :mod:`polrig.solve.hybrid` "Joint prior") where it holds one, else the
 per-element sigma; every hybrid row, the adaptive one and the two-state model rows use it
 (``--joint-compare`` measures the two against each other). Tables written before the joint
-prior say "per element".
+prior say "per element". Its sigma is scaled per sample as captures scale it (:func:`scaled_sigma`,
+:mod:`polrig.solve.prior_scale`: by the states after the seen one; factor 1 at one state), in
+every hybrid row, the adaptive capture's solve and design and the two-state model rows; the
+rows ``hybrid<N>_calibrated`` (the "prior's scale" table) and the :data:`VARIANTS` keep it as
+calibrated, as does ``--joint-compare``. Tables written before the scale have no such table.
 
 **Metrics.** Matrix PSNR (peak the largest true ``|m|`` on the object, over the object mask;
 and over the object's pixels with no clipped sample in any frame of any state: a highlight
@@ -434,13 +438,25 @@ def marginal_sigma(fr: Frames) -> np.ndarray:
     return fr.sigma * np.sqrt(g)
 
 
+def scaled_sigma(fr: Frames, offsets: Sequence[int]) -> np.ndarray:
+    """The prior's sigma as captures take it for the states ``offsets`` (the seen state first):
+    ``fr.sigma`` times the factor of :func:`polrig.solve.prior_scale.prior_scale` (1 at one state),
+    as :func:`polrig.solve.radiometry.prior_scale_from_frames` finds it on a capture's frames."""
+    from polrig.solve.prior_scale import prior_scale
+
+    factor = prior_scale(*_stack(fr, offsets), fr.prior, fr.sigma, 0).factor
+    return fr.sigma if factor == 1.0 else fr.sigma * factor
+
+
 def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.ndarray | None = None,
-             seen_share: Sequence[float] | None = None):
+             seen_share: Sequence[float] | None = None, prior_scale: bool = True):
     """``(mueller, sigma, solved)`` of ``method`` (``single``, ``hybrid``, ``reference`` or a
     :data:`VARIANTS` name) from the frames at ``offsets`` (the seen state first); ``correlation``:
     the hybrid's joint prior (:func:`polrig.solve.hybrid.solve_hybrid`'s ``prior_correlation``;
     None the per-element prior); ``seen_share``: the hybrid's (``solve_hybrid``'s; None: the
-    row's whole variance along the seen direction kept)."""
+    row's whole variance along the seen direction kept); ``prior_scale``: the hybrid's prior
+    sigma scaled as captures scale it (:func:`scaled_sigma`, the default) or as calibrated
+    (False; the :data:`VARIANTS` study the calibrated sigma)."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.reference import ILL_CONDITIONED, solve_reference
 
@@ -449,8 +465,8 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.nd
     s, meas, var, valid = _stack(fr, offsets)
     kw = dict(prior_mean=fr.prior, dtype=np.float64)
     if method == "hybrid":
-        r = solve_hybrid(s, meas, var, valid, prior_sigma=fr.sigma, seen_state=0, prior_correlation=correlation,
-                         seen_share=seen_share, **kw)
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=scaled_sigma(fr, offsets) if prior_scale else fr.sigma,
+                         seen_state=0, prior_correlation=correlation, seen_share=seen_share, **kw)
     elif method == "marginal":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, plane_variance="scalar",
                          **kw)
@@ -469,19 +485,22 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.nd
     return r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0
 
 
-def hybrid_models_result(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None):
+def hybrid_models_result(fr: Frames, offsets: Sequence[int], correlation: np.ndarray | None = None,
+                         prior_scale: bool = True):
     """The hybrid solve of ``offsets`` then the lower-order model selection
     (:func:`polrig.solve.model_selection.select_models` with the network as the prior: at two
     states it tests on the hybrid's posterior system, samples and prior): the
     :class:`polrig.solve.reference.ReferenceResult` (its ``models`` the maps) and the states
-    ``(N, 3)``."""
+    ``(N, 3)``; the prior's sigma scaled as captures scale it (:func:`scaled_sigma`) or, with
+    ``prior_scale`` False, as calibrated."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.model_selection import select_models
 
     s, meas, var, valid = _stack(fr, offsets)
-    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
+    sigma = scaled_sigma(fr, offsets) if prior_scale else fr.sigma
+    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=sigma, seen_state=0,
                      dtype=np.float64, prior_correlation=correlation)
-    r, _ = select_models(s, meas, var, valid, None, r, prior=(fr.prior, fr.sigma), seen_state=0,
+    r, _ = select_models(s, meas, var, valid, None, r, prior=(fr.prior, sigma), seen_state=0,
                          prior_correlation=correlation)
     return r, s
 
@@ -592,8 +611,8 @@ FOUR_STATES = (0, 45, 90, 135)
 
 def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None = None,
                 keys: Sequence[str] = ("single", "hybrid2", "hybrid2_models", "hybrid2_geometry", "hybrid2_diffuse",
-                                       "reference4", "reference4_models")
-                ) -> dict[str, dict[str, float]]:
+                                       "reference4", "reference4_models"),
+                prior_scale: bool = True) -> dict[str, dict[str, float]]:
     """One sample's rows of the lower-order model comparison at the 2-state set ``two``:
     single-shot, hybrid 2 and hybrid 2 with the model selection (:func:`hybrid_with_models`),
     each with :func:`score` and :func:`score_where_models_hold` over the pixels where a model
@@ -611,13 +630,15 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
     share of scored colour-pixels, its false acceptance where the samples can tell
     (:func:`detectably_off_diffuse`) and in the prior's metric (:func:`detectably_off_every_model`,
     as the selection's); absent without a geometry.
-    ``correlation``: the hybrid's joint prior (None: per element); ``keys``: the rows wanted."""
+    ``correlation``: the hybrid's joint prior (None: per element); ``keys``: the rows wanted;
+    ``prior_scale``: the hybrid rows' prior sigma scaled as captures scale it (:func:`scaled_sigma`)
+    or as calibrated (False; the diffuse row is the capture's route, always scaled)."""
     holds = model_holds(fr.truth, fr.mask) & lit_pixels(fr).all(axis=0)
     rows = {}
     for key, method, offs in (("single", "single", two), ("hybrid2", "hybrid", two),
                               ("reference4", "reference", FOUR_STATES)):
         if key in keys:
-            est = estimate(fr, offs, method, correlation)
+            est = estimate(fr, offs, method, correlation, prior_scale=prior_scale)
             rows[key] = score(fr, *est) | score_where_models_hold(fr, est[0], holds)
     if "reference4_models" in keys:
         *est, code = reference_with_models(fr, FOUR_STATES)
@@ -627,7 +648,7 @@ def models_rows(fr: Frames, two: Sequence[int], correlation: np.ndarray | None =
     from polrig.solve.diffuse_geometry import complete_diffuse
     from polrig.solve.reference import ILL_CONDITIONED
 
-    r, s = hybrid_models_result(fr, two, correlation)
+    r, s = hybrid_models_result(fr, two, correlation, prior_scale)
     code = r.models.code
     est = (r.mueller, r.sigma, (r.mask & ILL_CONDITIONED) == 0)
     sel = fr.use & est[2]
@@ -753,9 +774,10 @@ def diffuse_row(fr: Frames, two: Sequence[int], correlation, holds: np.ndarray, 
     from polrig.solve.reference import ILL_CONDITIONED
 
     s, meas, var, valid = _stack(fr, two)
-    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=fr.sigma, seen_state=0,
+    sigma = scaled_sigma(fr, two)  # as the capture's route (polrig.app.diffuse_route)
+    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=sigma, seen_state=0,
                      dtype=np.float64, prior_correlation=correlation)
-    g, test, _ = complete_tested_diffuse(r, s, meas, var, valid, fr.geometry, prior=(fr.prior, fr.sigma),
+    g, test, _ = complete_tested_diffuse(r, s, meas, var, valid, fr.geometry, prior=(fr.prior, sigma),
                                          seen_state=0, prior_correlation=correlation, mask=fr.mask, specular=True)
     solved = (r.mask & ILL_CONDITIONED) == 0
     accepted = np.broadcast_to(test.accepted[None], sel.shape)
@@ -796,12 +818,16 @@ def joint_rows(fr: Frames, offsets: dict[str, tuple[int, ...]], priors: dict[str
     ``priors`` (name -> ``prior_correlation``, :func:`joint_priors`), the hybrid at 1, 2, 3 and 4
     states (``offsets``: ``two``, ``three``, ``four``) with :func:`score`, and at two states with
     the lower-order model selection (:func:`models_rows`: its false acceptance and share
-    accepted); keys ``<prior>_hybrid<N>`` and ``<prior>_models``."""
+    accepted); keys ``<prior>_hybrid<N>`` and ``<prior>_models``. The prior's sigma as calibrated
+    (the comparison is of the correlation; ``benchmarks/results/continuum_joint.md`` was measured
+    so, before captures scaled it)."""
     rows = {}
     for name, k in priors.items():
         for n, offs in ((1, (0,)), (2, offsets["two"]), (3, offsets["three"]), (4, offsets["four"])):
-            rows[f"{name}_hybrid{n}"] = score(fr, *estimate(fr, offs, "hybrid", k)) | {"states": n, "time_s": 0.0}
-        rows[f"{name}_models"] = models_rows(fr, offsets["two"], k, keys=("hybrid2_models",))["hybrid2_models"] \
+            rows[f"{name}_hybrid{n}"] = score(fr, *estimate(fr, offs, "hybrid", k, prior_scale=False)) | {
+                "states": n, "time_s": 0.0}
+        rows[f"{name}_models"] = models_rows(fr, offsets["two"], k, keys=("hybrid2_models",),
+                                             prior_scale=False)["hybrid2_models"] \
             | {"states": 2, "time_s": 0.0}
     return rows
 
@@ -898,7 +924,9 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     plan, exposures, model = CapturePlan((0.0,)), [DATASET_EXPOSURE_US], sim_hardware_model()
     taken = [0]
     while True:
-        mueller, sigma, solved = estimate(fr, taken, "hybrid", correlation)
+        prior_sigma = scaled_sigma(fr, taken)  # the solve's and the design's, as the capture's
+        mueller, sigma, solved = estimate(dataclasses.replace(fr, sigma=prior_sigma), taken, "hybrid", correlation,
+                                          prior_scale=False)
         got, met = share_at_target(relative_sigma(sigma, mueller, lit), obj, target)
         if got >= share or len(taken) >= max_states:
             return mueller, sigma, solved, taken
@@ -911,7 +939,7 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         ys, xs = ys[::stride], xs[::stride]
         px = lambda a: np.moveaxis(np.asarray(a, np.float64)[..., ys, xs], -1, 0)  # noqa: E731
         cands = [int(round(a)) for a in next_candidates(taken, OFFSETS_DEG)]
-        scores = a_optimal_next(px(fr.sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
+        scores = a_optimal_next(px(prior_sigma), fr.states[0], [(fr.states[d], px(fr.var[d]), px(fr.valid[d]) > 0)
                                                             for d in taken],
                                 px(mueller), np.stack([fr.states[d] for d in cands]), *fr.noise_terms,
                                 correlation=correlation)
@@ -1029,6 +1057,9 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
     for v in VARIANTS if not only_models else ():
         plan[f"{v}1"] = (v, (0,))
         plan[f"{v}2"] = (v, offsets["two"])
+    # the hybrid with the sigma as calibrated (captures scale it: polrig.solve.prior_scale)
+    calibrated = {} if only_models else {f"hybrid{n}_calibrated": offsets[k]
+                                         for n, k in ((2, "two"), (3, "three"), (4, "four"))}
     # equal capture time: 3 states of 4 frames against 4 states of 3 (12 frames each)
     timed = {} if only_models else {"hybrid3_4frames": (offsets["three"], 4),
                                     "hybrid4_3frames": (offsets["four"], 3)}
@@ -1041,8 +1072,9 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
                   "hybrid2_geometry": "hybrid2_geometry", "hybrid2_diffuse": "hybrid2_diffuse",
                   "holds_reference4": "reference4",
                   "reference4_models": "reference4_models"}
-    rows: dict[str, list] = {k: [] for k in (*plan, *timed, *adaptive_keys, *model_keys, *bracketed)}
+    rows: dict[str, list] = {k: [] for k in (*plan, *calibrated, *timed, *adaptive_keys, *model_keys, *bracketed)}
     time_s = {key: acquisition_time_s(offs) for key, (_, offs) in plan.items()}
+    time_s |= {key: acquisition_time_s(offs) for key, offs in calibrated.items()}
     time_s |= {key: acquisition_time_s(offs, k) for key, (offs, k) in timed.items()}
     time_s |= {key: acquisition_time_s(offs, bracket=BRACKET) for key, (_, offs) in bracketed.items()}
     t0 = time.perf_counter()
@@ -1050,6 +1082,9 @@ def evaluate_set(data_dir, net, offsets: dict[str, tuple[int, ...]], seed: int, 
         fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
         for key, (method, offs) in plan.items():
             rows[key].append(score(fr, *estimate(fr, offs, method, correlation))
+                             | {"states": len(offs), "time_s": time_s[key]})
+        for key, offs in calibrated.items():
+            rows[key].append(score(fr, *estimate(fr, offs, "hybrid", correlation, prior_scale=False))
                              | {"states": len(offs), "time_s": time_s[key]})
         for key, (offs, k) in timed.items():
             frk = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i, k]), offsets=offs,
@@ -1147,18 +1182,39 @@ def markdown(result: dict) -> str:
                          f"{m['hybrid2_bracket']['matrix_psnr'] - m['single']['matrix_psnr']:+.2f} | "
                          f"{m['hybrid2_bracket']['matrix_psnr'] - m['single_bracket']['matrix_psnr']:+.2f} |")
         lines.append("")
+    if "hybrid2_calibrated" in first:
+        lines += prior_scale_table(result)
+    two_shipped = "hybrid2_calibrated" if "hybrid2_calibrated" in first else "hybrid2"
     lines += ["**The seen state's treatment** (matrix PSNR dB / within 2 sigma; 1 state, and 2 states "
-              f"{name('two')})", "",
+              f"{name('two')}; every column with the sigma as calibrated)", "",
               "| set | hybrid (shipped) 1 | marginal 1 | naive 1 | exclude 1 (= single-shot) | hybrid (shipped) 2 | "
               "marginal 2 | naive 2 | exclude 2 |", "|---|" + "---:|" * 8]
     for key, r in result["sets"].items():
         m = r["methods"]
         cell = lambda k: f"{m[k]['matrix_psnr']:.2f} / {100 * m[k]['coverage']:.1f} %"  # noqa: E731
-        keys = ("hybrid1", "marginal1", "naive1", "exclude1", "hybrid2", "marginal2", "naive2", "exclude2")
+        keys = ("hybrid1", "marginal1", "naive1", "exclude1", two_shipped, "marginal2", "naive2", "exclude2")
         lines.append(f"| {set_label(key)} | " + " | ".join(cell(k) for k in keys) + " |")
     if "hybrid2_models" in first:
         lines += ["", models_markdown(result)]
     return "\n".join(lines)
+
+
+def prior_scale_table(result: dict) -> list[str]:
+    """The hybrid at 2, 3 and 4 states with the prior's sigma as calibrated against scaled as
+    captures scale it (:func:`scaled_sigma`): matrix PSNR and within 2 sigma, per set."""
+    head = [f"{n} states: {what}" for n in (2, 3, 4) for what in ("PSNR dB", "within 2 sigma")]
+    lines = ["**The prior's scale** (`polrig.solve.prior_scale`; the captures' default): the hybrid with the "
+             "network's sigma as calibrated -> scaled per sample by the states after the seen one", "",
+             "| set | " + " | ".join(head) + " |", "|---|" + "---:|" * len(head)]
+    for key, r in result["sets"].items():
+        m = r["methods"]
+        cells = []
+        for n in (2, 3, 4):
+            a, b = m[f"hybrid{n}_calibrated"], m[f"hybrid{n}"]
+            cells += [f"{a['matrix_psnr']:.2f} -> {b['matrix_psnr']:.2f}",
+                      f"{100 * a['coverage']:.1f} -> {100 * b['coverage']:.1f} %"]
+        lines.append(f"| {set_label(key)} | " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 def coverage_interval_table(result: dict, cols: Sequence[tuple[str, str]]) -> list[str]:

@@ -50,6 +50,10 @@ MIN_SNR = 3.0
 #: states: the diffuse term, with the specular term where significant, tested on their samples
 #: alone, :mod:`polrig.app.diffuse_route`).
 MODEL_CHOICES = ("full", "auto", "diffuse")
+#: The ``--prior-scale`` choices (:data:`polrig.solve.prior_scale.METHODS`): ``innovations`` (the
+#: hybrid prior's sigma scaled per capture from the states after the seen one, the default) and
+#: ``calibrated`` (as calibrated).
+PRIOR_SCALES = ("innovations", "calibrated")
 
 # -- polrig.acquisition ---------------------------------------------------------------------------
 #: Network binnings of the single-shot method

@@ -129,6 +129,10 @@ def test_each_pose_records_the_states_it_took_and_why(adaptive_run):
         for d in decisions[:-1]:  # the chosen state was predicted to lower the criterion
             assert d["predicted_criterion"] < d["criterion"] and d["design_pixels"] > 0
         assert cap["prior"]["seen_state"] == 0 and cap["score"]["psnr_db"] > 30
+        # the prior's scale: none at the network's state alone; the result's is its last decision's
+        assert decisions[0]["sigma_scale"] == 1.0 and all(d["sigma_scale"] > 0 for d in decisions)
+        assert cap["prior"]["sigma_scale"]["factor"] == decisions[-1]["sigma_scale"]
+        assert cap["prior"]["sigma_scale"]["method"] == "innovations"
 
 
 @needs_model

@@ -63,7 +63,9 @@ def test_the_scale_of_a_prior_drawn_at_k_times_its_sigma_is_k(k, offsets):
     d, p, n = innovations(states, measured, var, None, mean, sigma, 0)
     assert len(d) == 3 * SIDE * SIDE * (len(offsets) - 1)
     assert innovation_scale(d, p, n) == pytest.approx(k, rel=0.08)
-    assert prior_scale(states, measured, var, None, mean, sigma, 0, shrink=0.5) == pytest.approx(np.sqrt(k), rel=0.05)
+    scale = prior_scale(states, measured, var, None, mean, sigma, 0, shrink=0.5)
+    assert scale.factor == pytest.approx(np.sqrt(k), rel=0.05)
+    assert scale.raw ** 0.5 == scale.factor and scale.innovations == len(d) and scale.method == "innovations"
 
 
 def test_the_seen_frame_answers_for_the_direction_it_observes():
@@ -80,7 +82,7 @@ def test_the_seen_frame_answers_for_the_direction_it_observes():
 def test_one_state_or_too_few_innovations_leave_the_prior_as_it_is():
     rng = np.random.default_rng(4)
     states, measured, var, mean, sigma = _scene(rng, 2.0)
-    assert prior_scale(states[:1], measured[:1], var[:1], None, mean, sigma, 0) == 1.0
+    assert prior_scale(states[:1], measured[:1], var[:1], None, mean, sigma, 0).factor == 1.0
     d, p, n = innovations(states, measured, var, None, mean, sigma, 0)
     assert innovation_scale(d[: MIN_INNOVATIONS - 1], p[: MIN_INNOVATIONS - 1], n[: MIN_INNOVATIONS - 1]) == 1.0
     # elements without a prior and unusable samples drop out

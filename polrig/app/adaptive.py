@@ -174,7 +174,9 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     """The decision after the states of ``cf`` (a pose's frames so far, first state first):
     an :class:`polrig.app.manifest.AdaptiveDecision` record (``states_taken``, ``share_met``,
     ``object_pixels``, ``clipped_pixels``, ``dark_pixels``, ``design_pixels``, ``criterion``, ``action``, ``state_deg``,
-    ``predicted_criterion``, and ``state_time_s`` with ``timing``). See the module docstring.
+    ``predicted_criterion``, ``state_time_s`` with ``timing``, and ``sigma_scale``, the factor on
+    the prior's sigma: :attr:`polrig.app.processing.Processor.prior_scale`). See the module
+    docstring.
 
     ``timing``: the rig's :class:`polrig.app.manifest.TimingRecord` (the session's
     ``rig.timing``), which times the candidates for :func:`polrig.solve.design.choose_next`;
@@ -197,13 +199,15 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     with clock("radiance"):
         states = [radiance(k) for k in range(len(cf.frames))]
     keep: dict[str, Any] = {}
-    network = processor.prior_function(cf, geometry, {}, keep,
+    header: dict[str, Any] = {}
+    network = processor.prior_function(cf, geometry, header, keep,
                                        None if memo is None else memo.networks)
 
     def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
         with clock("network"):
             inputs = network(states_, s_in_)
         keep["correlation"] = inputs.get("prior_correlation")  # the design's prior is the solve's
+        keep["sigma"] = inputs["prior_sigma"]  # (scaled as the solve's: Processor.prior_scale)
         return inputs
 
     t, network_s = time.perf_counter(), (timings or {}).get("network", 0.0)
@@ -213,7 +217,9 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
         network_s = timings.get("network", 0.0) - network_s
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - t - network_s
     with clock("criterion"):
-        return _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], keep.get("correlation"), timing)
+        record = _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], keep["sigma"],
+                         keep.get("correlation"), timing)
+    return record | {"sigma_scale": header["sigma_scale"]["factor"]}
 
 
 def timing_model(timing: Mapping[str, Any]) -> HardwareModel:
@@ -234,15 +240,18 @@ def timing_model(timing: Mapping[str, Any]) -> HardwareModel:
 
 
 def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, s_in: np.ndarray,
-            lay, states: list[StateRadiance], net, net_correlation: np.ndarray | None = None,
+            lay, states: list[StateRadiance], net, prior_sigma: np.ndarray,
+            net_correlation: np.ndarray | None = None,
             timing: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s record from the hybrid solve's ``result`` of the states ``states``
-    (incident ``s_in``, layout ``lay``), the network's answer ``net`` on the first, the joint
-    prior's correlation the solve used (None: the per-element prior) and the rig's ``timing``."""
+    (incident ``s_in``, layout ``lay``), the network's answer ``net`` on the first, the prior's
+    sigma and joint correlation the solve used (``prior_sigma`` ``(C, 3, 3, H, W)``, the network's
+    scaled by :attr:`polrig.app.processing.Processor.prior_scale`; correlation None: the
+    per-element prior) and the rig's ``timing``."""
     sigma = result.sigma_noise if result.sigma_noise is not None else result.sigma
     lit = (np.asarray(net.mask) & DARK) == 0  # (C, H, W): colours above the seen frame's noise floor
     rel = relative_sigma(sigma, result.mueller, lit)
-    prior_sigma = np.asarray(net.sigma)
+    prior_sigma = np.asarray(prior_sigma)
     net_object = np.asarray(net.object, bool)
     clipped = net_object & ~np.all(np.isfinite(prior_sigma), axis=(0, 1, 2))
     dark = net_object & ~clipped & ~lit.any(axis=0)

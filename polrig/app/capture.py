@@ -84,7 +84,7 @@ from polrig.app.calibrations import (
 )
 from polrig.app.diffuse_route import check_diffuse_states, check_geometry
 from polrig.app.manifest import AdaptiveDecision, SampleMetadata, describe_decision
-from polrig.app.processing import make_processor
+from polrig.app.processing import PRIOR_SCALES, make_processor
 from polrig.app.records import (
     check_resume_rig,
     check_rig_for_plan,
@@ -173,6 +173,11 @@ class CaptureRequest:
     #: each result records its own choice (its ``models`` view in the manifest, the header's
     #: ``model_selection``)
     models: str = "full"
+    #: the hybrid prior's scale, ``innovations`` or ``calibrated`` (:class:`polrig.app.processing.Processor`):
+    #: a processing option like ``models``; ``None``: ``innovations`` for a new session, on
+    #: ``resume`` the one its captures were made with (another one is refused there: the
+    #: resumed session's results stay those of one method)
+    prior_scale: str | None = None
     #: who, why, what (:class:`polrig.app.manifest.SampleMetadata`): recorded in the manifest
     #: and every result header; ``None``: empty for a new session, the stored one on ``resume``
     #: (a different one is refused there)
@@ -214,6 +219,8 @@ class PreparedCapture:
     resume_session: Session | None  # the session to continue, or None
     #: a new session's metadata (a resumed one keeps its own)
     metadata: SampleMetadata = dataclasses.field(default_factory=SampleMetadata)
+    #: the hybrid prior's scale (:attr:`CaptureRequest.prior_scale`, resolved)
+    prior_scale: str = "innovations"
 
 
 def prepare_capture(request: CaptureRequest) -> PreparedCapture:
@@ -250,6 +257,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
             calibration = load_calibration(request.calibration, session=session)
             check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
             check_models(request, plan, calibration)
+            prior_scale = resumed_prior_scale(session, request.prior_scale)
         except BaseException:
             session.unlock()
             raise
@@ -264,8 +272,34 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
         check_models(request, plan, calibration)
+        prior_scale = checked_prior_scale(request.prior_scale or "innovations")
     return PreparedCapture(out, plan, calibration, session,
-                           request.metadata if request.metadata is not None else SampleMetadata())
+                           request.metadata if request.metadata is not None else SampleMetadata(),
+                           prior_scale)
+
+
+def checked_prior_scale(choice: str) -> str:
+    """``choice`` if it is one of :data:`polrig.solve.prior_scale.METHODS`, else a one-line
+    :class:`PlanError` of ``prior_scale``."""
+    if choice not in PRIOR_SCALES:
+        raise PlanError("prior_scale", f"unknown choice {choice!r}; use {', '.join(PRIOR_SCALES)}")
+    return choice
+
+
+def resumed_prior_scale(session: Session, asked: str | None) -> str:
+    """The prior scale a resumed ``session`` goes on with: the one its hybrid results were made
+    with (their prior records' ``sigma_scale``; a result from before it: ``calibrated``), else
+    ``asked`` or ``innovations``. Asking for another is a one-line :class:`PlanError` of
+    ``prior_scale``: one session's results are made one way."""
+    made = [c["prior"].get("sigma_scale", {"method": "calibrated"})["method"]
+            for c in session.captures if "prior" in c]
+    if not made:
+        return checked_prior_scale(asked or "innovations")
+    if asked is not None and asked != made[0]:
+        raise PlanError("prior_scale", f"the session's results were made with the prior scale {made[0]!r}, "
+                                       f"this run asks for {asked!r}; leave it out to go on with {made[0]!r}, "
+                                       f"or reconstruct the session with another")
+    return made[0]
 
 
 def check_models(request: CaptureRequest, plan: CapturePlan, calibration: Calibration) -> None:
@@ -437,7 +471,7 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
                       if prepared.resume_session is not None else sensor_model_of(opened))
             processor = make_processor(prepared.plan, prepared.calibration, sensor,
                                        device=request.device, model_size=request.model_size,
-                                       models=request.models)
+                                       models=request.models, prior_scale=prepared.prior_scale)
             session = open_session(prepared, opened, list(command_line))
             try:
                 if events is not None:

@@ -223,6 +223,8 @@ class CaptureJob:
     model_size: str = "auto"
     #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`)
     models: str = "full"
+    #: hybrid: the prior's scale, ``innovations`` or ``calibrated`` (:class:`polrig.app.processing.Processor`)
+    prior_scale: str = "innovations"
 
     @property
     def exr(self):
@@ -258,7 +260,7 @@ def _processor(job: CaptureJob, session: Session):
     sensor = processing.session_sensor_model(session)
     key = (job.mode, job.demosaic, job.mirror_average, job.resolution, job.network_binning,
            job.seen_state, job.device, job.model_size, job.calibration, job.calibration_id, repr(sensor), job.exr,
-           job.models)
+           job.models, job.prior_scale)
     if key not in _PROCESSORS:
         cal = processing.load_calibration(job.calibration)
         if cal.id != job.calibration_id:
@@ -267,7 +269,7 @@ def _processor(job: CaptureJob, session: Session):
         _PROCESSORS[key] = processing.Processor(job.mode, job.demosaic, cal, sensor,
                                                 job.mirror_average, job.resolution, job.device,
                                                 job.exr, job.network_binning, job.seen_state,
-                                                job.model_size, job.models)
+                                                job.model_size, job.models, prior_scale=job.prior_scale)
     return _PROCESSORS[key]
 
 
@@ -337,8 +339,10 @@ def _continuable(session: Session, settings: dict[str, Any], done: list[int]
     if not revisions:
         return None
     last = revisions[-1]
-    # a revision made before a setting existed has its default (models: full)
-    if any(last.get(k, "full" if k == "models" else None) != v for k, v in settings.items()):
+    # a revision made before a setting existed has the value it was made with: models full, the
+    # prior's sigma as calibrated
+    before = {"models": "full", "prior_scale": "calibrated"}
+    if any(last.get(k, before.get(k)) != v for k, v in settings.items()):
         return None
     name = last["name"]
     todo = [i for i in done
@@ -371,7 +375,8 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             command_line: list[str] | None = None,
             exr: dict[str, Any] | None = None,
             network_binning: int | None = None, seen_state: int | None = None,
-            model_size: str = "auto", models: str | None = None) -> list[SessionBatch]:
+            model_size: str = "auto", models: str | None = None,
+            prior_scale: str | None = None) -> list[SessionBatch]:
     """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
@@ -379,7 +384,7 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
                                       resolution, device, exr, network_binning, seen_state, model_size,
-                                      models)
+                                      models, prior_scale or "innovations")
              for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
@@ -407,7 +412,7 @@ def jobs_of(batch: SessionBatch, calibration_path: str | None) -> list[CaptureJo
                        batch.device, cal, st["calibration_id"], tuple(st["exr_planes"]),
                        st["exr_uncertainty"], st["exr_compression"], st["network_binning"],
                        st.get("seen_state", 0), batch.model_size,
-                       st.get("models", "full"))
+                       st.get("models", "full"), st.get("prior_scale", "calibrated"))
             for i in batch.todo]
 
 
@@ -504,7 +509,7 @@ def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:
 def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None, demosaic=None,
                 mirror_average=None, resolution=None, device: str = "auto", model_size: str = "auto",
                 network_binning: int | None = None, seen_state: int | None = None,
-                models: str | None = None,
+                models: str | None = None, prior_scale: str | None = None,
                 calibration_path: str | None = None, exr: dict[str, Any] | None = None,
                 command_line: list[str] | None = None,
                 on_start: Callable[[list[SessionBatch]], None] | None = None,
@@ -522,7 +527,7 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
                           resolution=resolution, device=device, calibration=calibration,
                           network_binning=network_binning, seen_state=seen_state,
                           command_line=command_line, exr=exr, model_size=model_size,
-                          models=models)
+                          models=models, prior_scale=prior_scale)
         if on_start:
             on_start(batches)
         run_batch(batches, runner, calibration_path=calibration_path, on_capture=on_capture)

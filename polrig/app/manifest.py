@@ -72,6 +72,7 @@ Index = Annotated[int, Check(lambda v: v >= 0, "an index >= 0")]
 Count = Annotated[int, Check(lambda v: v >= 0, "a count")]
 ByteCount = Annotated[int, Check(lambda v: v >= 0, "a byte count")]
 Finite = Annotated[float, FINITE]
+Factor = Annotated[float, Check(lambda v: math.isfinite(v) and v > 0, "a factor > 0")]
 Positive = Annotated[float, Check(lambda v: math.isfinite(v) and v > 0, "a finite number > 0")]
 NonNegative = Annotated[float, Check(lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")]
 CaptureStatus = Literal[CAPTURE_STATUSES]
@@ -285,6 +286,19 @@ class Score(TypedDict):
     peak_m00: NotRequired[float | None]
 
 
+class PriorScaleRecord(TypedDict):
+    """The factor a hybrid result's prior sigma was multiplied by
+    (:class:`polrig.solve.prior_scale.PriorScale`): ``method`` ``innovations`` (estimated from
+    the states after the seen one) or ``calibrated`` (factor 1), the ``factor``, the ``raw``
+    estimate, the exponent ``shrink`` it was taken to, and the number of ``innovations``."""
+
+    method: Literal["innovations", "calibrated"]
+    factor: Factor
+    raw: Factor
+    shrink: Finite
+    innovations: Index
+
+
 class PriorRecord(TypedDict):
     """The prior of a hybrid result (:mod:`polrig.solve.hybrid`): the single-shot model whose
     estimate and calibrated sigma of state ``seen_state``'s frame it is
@@ -292,7 +306,8 @@ class PriorRecord(TypedDict):
     folder) and its SHA-256, the ``uncertainty.json`` SHA-256 and format version, the
     onnxruntime ``execution_provider`` that ran it, ``mirror_average``; ``seen_state`` (index
     into the plan's states) and its stage angle ``seen_state_deg``; ``joint_prior_version``
-    where the prior was calibrated jointly across elements (absent: per element)."""
+    where the prior was calibrated jointly across elements (absent: per element);
+    ``sigma_scale`` the factor on its sigma (absent: a result from before it, factor 1)."""
 
     graph: str
     graph_sha256: Sha256
@@ -303,6 +318,7 @@ class PriorRecord(TypedDict):
     seen_state: Index
     seen_state_deg: Finite
     joint_prior_version: NotRequired[int]
+    sigma_scale: NotRequired[Annotated[PriorScaleRecord, Label("sigma scale: ")]]
 
 
 class ModelRecord(TypedDict):
@@ -354,6 +370,9 @@ class AdaptiveDecision(TypedDict):
     state_deg: Finite | None
     predicted_criterion: Finite | None
     state_time_s: NotRequired[Finite | None]
+    #: the factor on the prior's sigma of the decision's solve (:class:`PriorScaleRecord`); absent
+    #: in decisions made before it (1)
+    sigma_scale: NotRequired[Factor]
 
 
 def describe_decision(decision: AdaptiveDecision) -> str:
@@ -416,6 +435,9 @@ class RevisionSettings(TypedDict):
     #: ``diffuse`` (two states, :mod:`polrig.app.diffuse_route`); absent in revisions made before
     #: it existed (``full``)
     models: NotRequired[Literal["full", "auto", "diffuse"]]
+    #: the hybrid prior's scale (:data:`polrig.solve.prior_scale.METHODS`); absent in revisions
+    #: made before it existed (``calibrated``: their sigma was never scaled)
+    prior_scale: NotRequired[Literal["innovations", "calibrated"]]
 
 
 class CameraFrames(TypedDict):

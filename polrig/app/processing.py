@@ -98,10 +98,13 @@ from polrig.solve.model_selection import (
     model_planes,
     selection_header,
 )
+from polrig.solve.prior_scale import METHODS as PRIOR_SCALES
+from polrig.solve.prior_scale import PriorScale
 from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
     StateRadiance,
     adc_scale,
     analyzer_stack,
+    prior_scale_from_frames,
     reference_from_frames,
     state_radiance,
 )
@@ -418,6 +421,11 @@ class Processor:
     ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
     (its estimate and calibrated sigma are the prior of the solve of all states,
     :mod:`polrig.solve.hybrid`).
+    ``prior_scale``: hybrid and adaptive, ``innovations`` (the default: the calibrated sigma
+    scaled per capture by what the states after the seen one show of the network's errors,
+    :mod:`polrig.solve.prior_scale`; factor 1 at one state) or ``calibrated`` (as calibrated); a
+    processing option like ``models``, each result records its factor (the prior record's
+    ``sigma_scale``).
     ``models``: ``full`` (the default: the 3x3 block everywhere), ``auto`` (reference and
     hybrid: per pixel the lower-order model a likelihood-ratio test accepts,
     :mod:`polrig.solve.model_selection`) or ``diffuse`` (hybrid at two states, ``n_states``: the
@@ -431,7 +439,8 @@ class Processor:
                  sensor_model: SensorModel, mirror_average: bool = False,
                  resolution: str = "superpixel", device: str = "auto",
                  exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0,
-                 model_size: str = "auto", models: str = "full", n_states: int | None = None):
+                 model_size: str = "auto", models: str = "full", n_states: int | None = None,
+                 prior_scale: str = "innovations"):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
         if models not in MODEL_CHOICES:
@@ -441,6 +450,10 @@ class Processor:
                                       "use the reference or hybrid mode")
         if models == "diffuse":
             check_diffuse_states(mode, n_states)
+        if prior_scale not in PRIOR_SCALES:
+            raise PlanError("prior_scale", f"unknown choice {prior_scale!r}; use {', '.join(PRIOR_SCALES)}")
+        #: the hybrid prior's scale (:data:`polrig.solve.prior_scale.METHODS`)
+        self.prior_scale = prior_scale
         #: ``full``, ``auto`` (model selection, :mod:`polrig.solve.model_selection`) or
         #: ``diffuse`` (:mod:`polrig.app.diffuse_route`)
         self.models = models
@@ -642,12 +655,14 @@ class Processor:
                        ) -> Callable[[list[StateRadiance], np.ndarray], dict[str, Any]]:
         """The hybrid solve's prior (``process_reference``'s ``prior``) for ``cf``: the single-shot
         route on the seen state's radiance (:attr:`seen_state`; 0 in the adaptive mode), its
-        estimate and calibrated sigma (inf on clipped colours, 0 outside its object: no prior),
-        and the errors' joint correlation where the calibration holds one (the prior record's
-        ``joint_prior_version``).
-        ``header`` gets the execution provider; ``keep`` (if given) the route's result as
-        ``"net"`` (the adaptive mode's decisions use its object mask and sigma) and the keywords
-        returned as ``"prior"`` (the diffuse route's).
+        estimate and calibrated sigma (inf on clipped colours, 0 outside its object: no prior)
+        times the capture's scale (:attr:`prior_scale`:
+        :func:`polrig.solve.radiometry.prior_scale_from_frames`), and the errors' joint correlation
+        where the calibration holds one (the prior record's ``joint_prior_version``).
+        ``header`` gets the execution provider and the scale's record (``sigma_scale``); ``keep``
+        (if given) the route's result as ``"net"`` (the adaptive mode's decisions use its object
+        mask) and the keywords returned as ``"prior"`` (the adaptive mode's design and the
+        diffuse route use its scaled sigma).
 
         ``known``: the route's results already computed, by the seen state's
         :func:`state_key` and incident state: one there is taken rather than run again (the
@@ -670,7 +685,13 @@ class Processor:
                 if key is not None:
                     known[key] = net
             header["execution_provider"] = net.provider
-            out = {"prior_mean": net.mueller, "prior_sigma": net.sigma, "seen_state": k,
+            scale = PriorScale.calibrated()
+            if self.prior_scale == "innovations":
+                scale = prior_scale_from_frames(states_, s_in_, frame_layout(cf.first), self.demosaic,
+                                                capture_analyzer(cf, self.calibration), net.mueller, net.sigma, k)
+            header["sigma_scale"] = scale.record()
+            sigma = net.sigma if scale.factor == 1.0 else np.asarray(net.sigma) * np.float32(scale.factor)
+            out = {"prior_mean": net.mueller, "prior_sigma": sigma, "seen_state": k,
                    "prior_correlation": self.single_shot.model.uncertainty.joint_correlation}
             if keep is not None:
                 keep["net"], keep["prior"] = net, out
@@ -766,12 +787,12 @@ class Processor:
 
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
                    device: str = "auto", model_size: str = "auto",
-                   models: str = "full") -> Processor:
-    """The :class:`Processor` of ``plan`` (its network on ``device``, of ``model_size``: run options; ``models``:
-    :class:`Processor`)."""
+                   models: str = "full", prior_scale: str = "innovations") -> Processor:
+    """The :class:`Processor` of ``plan`` (its network on ``device``, of ``model_size``: run options;
+    ``models``, ``prior_scale``: :class:`Processor`)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
                      plan.resolution, device, plan.exr, plan.network_binning, plan.seen_state,
-                     model_size, models, len(plan.states_deg))
+                     model_size, models, len(plan.states_deg), prior_scale)
 
 
 class ReconstructIncomplete(PolrigError):
@@ -797,7 +818,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       resolution: str | None = None, device: str = "auto",
                       exr: Mapping[str, Any] | None = None,
                       network_binning: int | None = None, seen_state: int | None = None,
-                      model_size: str = "auto", models: str | None = None) -> str:
+                      model_size: str = "auto", models: str | None = None,
+                      prior_scale: str = "innovations") -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
@@ -813,7 +835,8 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
     ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
     ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
     revision. ``models``: ``full`` (default: never applied silently) or ``auto``
-    (:class:`Processor`), recorded with the revision.
+    (:class:`Processor`), recorded with the revision; so is ``prior_scale`` (hybrid:
+    ``innovations`` or ``calibrated``, :class:`Processor`).
 
     A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
     is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
@@ -829,7 +852,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
             session.reload()  # under the lock: the manifest no other writer changes any more
         return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
                           progress, on_failed, resolution, device, exr, network_binning, seen_state,
-                          model_size, models)
+                          model_size, models, prior_scale)
     finally:
         if not was_locked:
             session.unlock()
@@ -840,13 +863,13 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   resolution: str | None = None, device: str = "auto",
                   exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
                   seen_state: int | None = None, model_size: str = "auto",
-                  models: str | None = None
+                  models: str | None = None, prior_scale: str = "innovations"
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
     revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
     ``network_binning``, ``seen_state``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
-    ``exr_compression``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
+    ``exr_compression``, ``models``, ``prior_scale``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
     take the session's), its :class:`Processor` (on
     ``device``) and the indices of the complete captures to process. Shared by
     :func:`reprocess_session` and :mod:`polrig.app.cluster`."""
@@ -877,7 +900,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         models = "full"
     processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
                           resolution, device, choice, network_binning, seen_state, model_size,
-                          models, len(acquired))
+                          models, len(acquired), prior_scale)
     if models == "diffuse":  # before a revision exists
         check_geometry(single_shot_geometry(calibration, (session.manifest.get("rig") or {}).get("config")))
     done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
@@ -894,15 +917,17 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
              "resolution": resolution, "network_binning": processor.network_binning,
              "seen_state": processor.seen_state, "calibration_id": calibration.id,
              "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
-             "exr_compression": choice.compression, "models": processor.models}, processor, done)
+             "exr_compression": choice.compression, "models": processor.models,
+             "prior_scale": processor.prior_scale}, processor, done)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
                progress, on_failed, resolution=None, device="auto", exr=None,
-               network_binning=None, seen_state=None, model_size="auto", models=None) -> str:
+               network_binning=None, seen_state=None, model_size="auto", models=None,
+               prior_scale="innovations") -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
                                               calibration, resolution, device, exr, network_binning,
-                                              seen_state, model_size, models)
+                                              seen_state, model_size, models, prior_scale)
     failed: list[tuple[int, str]] = []
     with SignalGuard() as guard:
         name = session.new_revision(settings, command_line)

@@ -55,6 +55,7 @@ from polrig.acquisition.plan import (
     ADAPTIVE_MAX_STATES,
     MODES,
     NETWORK_MODES,
+    PRIOR_MODES,
     CapturePlan,
     ExrChoice,
     parse_float_list,
@@ -70,7 +71,7 @@ from polrig.app.capture import (
 )
 from polrig.app.manifest import SampleMetadata
 from polrig.app.preview import tone_map
-from polrig.choices import MODEL_CHOICES
+from polrig.choices import MODEL_CHOICES, PRIOR_SCALES
 from polrig.errors import PolrigError
 from polrig.formats.exr import (
     COMPRESSIONS,
@@ -228,6 +229,14 @@ class CapturePanel(QWidget):
                                "they leave open predicted from the rig's geometry. The model map is always "
                                "written")
         self.mode.currentTextChanged.connect(lambda m: self.models.setEnabled(m != "single-shot"))
+        self.prior_scale = QComboBox()
+        self.prior_scale.addItems(list(PRIOR_SCALES))
+        self.prior_scale.setToolTip("hybrid, adaptive: innovations scales the network's calibrated sigma per "
+                                    "capture by how far the states after the seen one find its estimate off "
+                                    "(each result records the factor); calibrated keeps it as calibrated. "
+                                    "A resumed session goes on with its own")
+        self.prior_scale.setEnabled(False)
+        self.mode.currentTextChanged.connect(lambda m: self.prior_scale.setEnabled(m in PRIOR_MODES))
         # adaptive: the stopping rule (polrig.acquisition.plan.check_adaptive_target checks it)
         self.target_sigma = QDoubleSpinBox()
         self.target_sigma.setDecimals(4)
@@ -307,6 +316,7 @@ class CapturePanel(QWidget):
         form.addRow("Model size", self.model_size)
         form.addRow("Seen state (hybrid)", self.seen_state)
         form.addRow("Models per pixel", self.models)
+        form.addRow("Prior scale", self.prior_scale)
         form.addRow("Target (adaptive)", self.adaptive_target)
         form.addRow("States (deg)", self.states)
         form.addRow("Frames per state", self.frames)
@@ -393,7 +403,7 @@ class CapturePanel(QWidget):
                     calibration=pathlib.Path(calibration) if calibration else None,
                     device=self.device.currentText(), model_size=self.model_size.currentText(),
                     models=self.models.currentText() if self.mode.currentText() != "single-shot" else "full")
-        if resume:
+        if resume:  # the session's own prior scale (polrig.app.capture.resumed_prior_scale)
             return CaptureRequest(**base)
         states, exposure = self.states.text().strip(), self.exposure.text().strip()
         mode = self.mode.currentText()
@@ -412,6 +422,7 @@ class CapturePanel(QWidget):
             max_states=self.max_states.value() if mode == "adaptive" else None,
             resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel",
             network_binning=int(self.binning.currentData()) if mode == "single-shot" else 1,
+            prior_scale=self.prior_scale.currentText() if mode in PRIOR_MODES else None,
             exr_planes=tuple(p.strip() for p in self.exr_planes.text().split(",") if p.strip()),
             exr_uncertainty=self.exr_uncertainty.currentText(),
             exr_compression=self.exr_compression.currentText(),

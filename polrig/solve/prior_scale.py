@@ -32,15 +32,20 @@ any innovation, so :data:`SHRINK` takes the estimate partly (``c ** SHRINK``), a
 the calibration scenes (:mod:`polrig.models.coverage_diagnosis`, "A what-if of the prior's scale
 from the innovations"; what it does to every set: ``README.md``, issue 33's coverage).
 
-Measured, not yet used by captures: the capture's band-by-band solve
-(:func:`polrig.solve.radiometry.reference_from_frames`) would need the scale before its first
-band, from a sample of the states' bands.
+Captures take it by default (``--prior-scale innovations``; ``calibrated`` keeps the sigma
+as calibrated): :func:`polrig.solve.radiometry.prior_scale_from_frames` estimates it from an
+even sample of the states' row bands before the band-by-band solve, and each hybrid result
+records it (:class:`PriorScale`, the manifest's ``prior`` record and the EXR header).
 """
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import numpy as np
 
+from polrig.choices import PRIOR_SCALES
 from polrig.solve.diffuse_test import state_stokes
 from polrig.solve.hybrid import observed_direction, plane_axis, unobserved_precision
 
@@ -54,6 +59,39 @@ SCALE_LIMITS = (0.1, 10.0)
 #: where two states 0/90 cover 95.45 % of the calibration scenes' elements (their 48 lit samples
 #: of ``python -m polrig.models.coverage_diagnosis --count 64``, the shipped network and sigma).
 SHRINK = 0.84
+#: The choices of a capture's prior scale: ``innovations`` (this module's, the default) or
+#: ``calibrated`` (the sigma as calibrated, factor 1); defined in :mod:`polrig.choices`.
+METHODS = PRIOR_SCALES
+
+
+@dataclasses.dataclass(frozen=True)
+class PriorScale:
+    """The factor ``factor`` the prior's calibrated sigma is multiplied by, how it was found
+    (``method``, :data:`METHODS`), the raw estimate ``raw`` (:func:`innovation_scale`), the
+    exponent ``shrink`` it was taken to and the number of ``innovations`` it rests on (0: one
+    state, or the calibrated sigma)."""
+
+    method: str
+    factor: float
+    raw: float
+    shrink: float
+    innovations: int
+
+    @classmethod
+    def calibrated(cls) -> "PriorScale":
+        """The sigma as calibrated: factor 1."""
+        return cls("calibrated", 1.0, 1.0, 0.0, 0)
+
+    def record(self) -> dict[str, Any]:
+        """The manifest's and the EXR header's record (:class:`polrig.app.manifest.PriorScaleRecord`)."""
+        return dataclasses.asdict(self)
+
+
+def scale_of(d: np.ndarray, p: np.ndarray, n: np.ndarray, shrink: float = SHRINK) -> PriorScale:
+    """The :class:`PriorScale` of :func:`innovations`' ``(d, p, n)``: :func:`innovation_scale`
+    to the power ``shrink``."""
+    raw = innovation_scale(d, p, n)
+    return PriorScale("innovations", float(raw ** float(shrink)), raw, float(shrink), int(np.count_nonzero(_usable(d, p, n))))
 
 
 def plane_basis(u: np.ndarray) -> np.ndarray:
@@ -108,7 +146,8 @@ def innovations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray, va
         use = usable_row & (ok & seen_ok)[:, None] & np.isfinite(stokes) & np.isfinite(pred)
         d.append((stokes - pred)[use])
         p.append(np.einsum("i,...ij,j->...", w, cov, w)[use])
-        n.append((_diagonal_of_inverse(info) + su * su * seen_var / norm0**2)[use])
+        seen_part = np.where(np.isfinite(seen_var), su * su * np.where(np.isfinite(seen_var), seen_var, 0.0), np.inf)
+        n.append((_diagonal_of_inverse(info) + seen_part / norm0**2)[use])
     if not d:
         return np.zeros(0), np.zeros(0), np.zeros(0)
     return np.concatenate(d), np.concatenate(p), np.concatenate(n)
@@ -125,13 +164,19 @@ def _diagonal_of_inverse(info: np.ndarray) -> np.ndarray:
     return np.moveaxis(diag, -1, 1)
 
 
+def _usable(d: np.ndarray, p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Which of :func:`innovations`' values an estimate uses: finite, prior variance > 0."""
+    d, p, n = (np.asarray(a, np.float64).ravel() for a in (d, p, n))
+    return np.isfinite(d) & np.isfinite(p) & np.isfinite(n) & (p > 0) & (n >= 0)
+
+
 def innovation_scale(d: np.ndarray, p: np.ndarray, n: np.ndarray, coverage: float = COVERAGE) -> float:
     """The raw scale ``c`` (module docstring) of :func:`innovations`' ``(d, p, n)``: where the
     share of ``|d| <= 2 sqrt(c^2 p + n)`` is ``coverage``, by bisection in ``log c`` within
     :data:`SCALE_LIMITS` (the share grows with ``c``); 1.0 with fewer than
     :data:`MIN_INNOVATIONS` finite values."""
     d, p, n = (np.asarray(a, np.float64).ravel() for a in (d, p, n))
-    keep = np.isfinite(d) & np.isfinite(p) & np.isfinite(n) & (p > 0) & (n >= 0)
+    keep = _usable(d, p, n)
     if np.count_nonzero(keep) < MIN_INNOVATIONS:
         return 1.0
     d2, p, n = (d[keep] / 2.0) ** 2, p[keep], n[keep]
@@ -147,11 +192,10 @@ def innovation_scale(d: np.ndarray, p: np.ndarray, n: np.ndarray, coverage: floa
 
 def prior_scale(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray, valid: np.ndarray | None,
                 prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int = 0,
-                analyzer_rows: np.ndarray | None = None, shrink: float = SHRINK) -> float:
-    """The factor for the prior's sigma of one image: :func:`innovation_scale` of its
-    :func:`innovations`, to the power ``shrink`` (module docstring); 1.0 with one state.
-    Arguments as :func:`innovations`."""
+                analyzer_rows: np.ndarray | None = None, shrink: float = SHRINK) -> PriorScale:
+    """The :class:`PriorScale` of one image (:func:`scale_of` of its :func:`innovations`;
+    factor 1 with one state). Arguments as :func:`innovations`."""
     if np.asarray(s_in).reshape(-1, 3).shape[0] < 2:
-        return 1.0
-    return innovation_scale(*innovations(s_in, measured, variance, valid, prior_mean, prior_sigma, seen_state,
-                                         analyzer_rows)) ** float(shrink)
+        return scale_of(np.zeros(0), np.zeros(0), np.zeros(0), shrink)
+    return scale_of(*innovations(s_in, measured, variance, valid, prior_mean, prior_sigma, seen_state,
+                                 analyzer_rows), shrink)

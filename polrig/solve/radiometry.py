@@ -47,6 +47,7 @@ from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
 from polrig.solve.hybrid import solve_hybrid
 from polrig.solve.model_selection import ModelMaps, SelectionOptions, select_models
+from polrig.solve.prior_scale import PriorScale, innovations, scale_of
 from polrig.solve.reference import ReferenceResult, merge_hdr, solve_reference
 
 
@@ -251,6 +252,72 @@ def _check_analyzer(analyzer: AnalyzerModel, shape: tuple[int, ...]) -> None:
         raise ValueError(f"analyzer model {analyzer.shape} does not match frames {tuple(shape)}")
 
 
+def _band_samples(states: Sequence[StateRadiance], band: tuple[int, int, int, int],
+                  lay: MosaicLayout, method: str, analyzer: AnalyzerModel | None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(measured, variance, valid, rows)`` of every state on the output rows ``o0:o1`` of
+    ``band`` ``(o0, o1, e0, e1)`` (:func:`polrig.sensor.demosaic.row_bands`: demosaiced from the
+    mosaic rows ``e0:e1``): the first three ``(N, C, 4, o1 - o0, W')``, ``rows`` the analyzer's
+    ``(C, 4, 3, o1 - o0, W')`` (None: ideal)."""
+    o0, o1, e0, e1 = band
+    width = np.shape(states[0].signal_dn)[1]
+    a = 0 if method == "superpixel" else o0 - e0
+    rows = o1 - o0
+    offset = a_rows = None
+    if analyzer is not None:
+        part = analyzer.crop(0, e0, width, e1 - e0)
+        offset = part.offset_dn
+        a_rows = _demosaic_rows(part.rows(), lay, method)[..., a:a + rows, :]
+    meas = var = valid = None
+    for k, st in enumerate(states):
+        m, v, ok = _demosaic_state(st.signal_dn[e0:e1], st.variance_dn2[e0:e1],
+                                   st.excluded[e0:e1], lay, method, offset)
+        if meas is None:
+            meas = np.empty((len(states), *m.shape[:2], rows, m.shape[-1]), np.float32)
+            var, valid = np.empty_like(meas), np.empty(meas.shape, bool)
+        meas[k], var[k], valid[k] = (p[:, :, a:a + rows] for p in (m, v, ok))
+    return meas, var, valid, a_rows
+
+
+#: Output pixels (times colours) :func:`prior_scale_from_frames` samples at most (2^18: every
+#: fifth band of a full-sensor mono superpixel result; the quantile it solves for then rests on
+#: about 2 million innovations per further state).
+SCALE_SAMPLE_PIXELS = 2 ** 18
+
+
+def prior_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
+                            layout: str | MosaicLayout, method: str, analyzer: AnalyzerModel | None,
+                            prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int, *,
+                            band_pixels: int = BAND_PIXELS,
+                            sample_pixels: int = SCALE_SAMPLE_PIXELS) -> PriorScale:
+    """The network prior's scale for the hybrid solve of these frames
+    (:func:`polrig.solve.prior_scale.scale_of`, :mod:`polrig.solve.prior_scale`): from the
+    innovations of an even sample of the row bands :func:`reference_from_frames` solves (every
+    ``k``-th band, ``k`` the least that keeps at most ``sample_pixels`` output pixels times
+    colours; all of them in a smaller image), demosaiced as it demosaics them. Arguments as
+    :func:`reference_from_frames` (``prior_mean``, ``prior_sigma`` on the output grid or
+    broadcastable to it). One state: factor 1 (nothing to measure the prior against)."""
+    lay = resolve_layout(layout)
+    s = np.asarray(s_in, np.float64).reshape(-1, 3)
+    if len(states) < 2:
+        return scale_of(np.zeros(0), np.zeros(0), np.zeros(0))
+    shape = np.shape(states[0].signal_dn)
+    if analyzer is not None:
+        _check_analyzer(analyzer, shape)
+    c = lay.n_colours
+    h_out, w_out = output_shape(lay, shape, method)
+    band_rows = max(1, int(band_pixels) // max(1, w_out * c))
+    bands = row_bands(lay, shape, method, band_rows)
+    step = max(1, -(-h_out * w_out * c // max(1, int(sample_pixels))))
+    mean, sigma = (np.broadcast_to(np.asarray(a), (c, 3, 3, h_out, w_out)) for a in (prior_mean, prior_sigma))
+    parts = []
+    for band in bands[::step]:
+        o0, o1 = band[:2]
+        meas, var, valid, rows = _band_samples(states, band, lay, method, analyzer)
+        parts.append(innovations(s, meas, var, valid, mean[..., o0:o1, :], sigma[..., o0:o1, :], seen_state, rows))
+    return scale_of(*(np.concatenate(a) for a in zip(*parts)))
+
+
 def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           layout: str | MosaicLayout, method: str = "superpixel",
                           analyzer: AnalyzerModel | None = None, *,
@@ -307,7 +374,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                 raise ValueError(f"state mosaics differ in shape: {np.shape(a)} and {shape}")
     if analyzer is not None:
         _check_analyzer(analyzer, shape)
-    n, c = len(states), lay.n_colours
+    c = lay.n_colours
     h_out, w_out = output_shape(lay, shape, method)
     if (prior_mean is None) != (prior_sigma is None):
         raise ValueError("give both prior_mean and prior_sigma, or neither")
@@ -322,21 +389,8 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     bands = row_bands(lay, shape, method, band_rows)
 
     def solve_band(band: tuple[int, int, int, int]) -> ReferenceResult:
-        o0, o1, e0, e1 = band
-        a = 0 if method == "superpixel" else o0 - e0
-        rows = o1 - o0
-        meas = np.empty((n, c, 4, rows, w_out), np.float32)
-        var = np.empty_like(meas)
-        valid = np.empty(meas.shape, bool)
-        offset = a_rows = None
-        if analyzer is not None:
-            part = analyzer.crop(0, e0, shape[1], e1 - e0)
-            offset = part.offset_dn
-            a_rows = _demosaic_rows(part.rows(), lay, method)[..., a:a + rows, :]
-        for k, st in enumerate(states):
-            m, v, ok = _demosaic_state(st.signal_dn[e0:e1], st.variance_dn2[e0:e1],
-                                       st.excluded[e0:e1], lay, method, offset)
-            meas[k], var[k], valid[k] = (p[:, :, a:a + rows] for p in (m, v, ok))
+        o0, o1 = band[:2]
+        meas, var, valid, a_rows = _band_samples(states, band, lay, method, analyzer)
         with _SOLVE_LOCK:  # one solve at a time: the solver may run threads of its own
             if prior_mean is not None:
                 res = solve_hybrid(s_in, meas, var, valid, a_rows,

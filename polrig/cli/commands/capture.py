@@ -23,6 +23,7 @@ from polrig.choices import (
     EXR_COMPRESSIONS,
     EXR_UNCERTAINTY_PRECISIONS,
     MODEL_CHOICES,
+    PRIOR_SCALES,
     NETWORK_BINNINGS,
     PLANE_GROUPS,
 )
@@ -49,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the network's state (the first of --states), then states chosen from the "
                         "posterior until --target-sigma holds (polrig.app.adaptive)")
     add_seen_state_option(p, "default 0")
+    add_prior_scale_option(p, "default innovations; on --resume the session's")
     add_models_option(p)
     add_adaptive_options(p)
     p.add_argument("--mirror-average", action="store_true", default=None,
@@ -140,6 +142,16 @@ def add_models_option(p: argparse.ArgumentParser) -> None:
                         "always written")
 
 
+def add_prior_scale_option(p: argparse.ArgumentParser, default: str) -> None:
+    """``--prior-scale innovations|calibrated``: the hybrid prior's scale
+    (:mod:`polrig.solve.prior_scale`; ``capture`` and ``reconstruct``)."""
+    p.add_argument("--prior-scale", choices=PRIOR_SCALES, default=None,
+                   help="hybrid and adaptive: innovations scales the network's calibrated sigma per "
+                        "capture by how far the states after the seen one find its estimate off "
+                        "(recorded with each result as sigma_scale; factor 1 at one state); calibrated "
+                        f"keeps the sigma as calibrated ({default})")
+
+
 def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
     """``--seen-state K``: the hybrid method's seen state, an index into ``--states``
     (:attr:`polrig.acquisition.plan.CapturePlan.seen_state`; ``capture`` and ``reconstruct``)."""
@@ -216,6 +228,7 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "dark_frames": "--dark-frames", "demosaic": "--demosaic",
          "mirror_average": "--mirror-average", "resolution": "--resolution",
          "network_binning": "--network-binning", "seen_state": "--seen-state", "models": "--models",
+         "prior_scale": "--prior-scale",
          "target_sigma": "--target-sigma", "target_share": "--target-share",
          "max_states": "--max-states",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
@@ -278,6 +291,7 @@ def build_request(args: argparse.Namespace):
             device=args.device or "auto",
             model_size=args.model_size or "auto",
             models=args.models or "full",
+            prior_scale=args.prior_scale,
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,
             resume=bool(args.resume),

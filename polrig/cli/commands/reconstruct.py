@@ -32,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         add_exr_options,
         add_model_size_option,
         add_models_option,
+        add_prior_scale_option,
         add_seen_state_option,
     )
 
@@ -49,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="reconstruction method (default: each session's); hybrid works on any "
                         "session with at least one polarizer state")
     add_seen_state_option(p, "default: the session's where it stays hybrid, else 0")
+    add_prior_scale_option(p, "default innovations")
     p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method (default: each session's)")
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
@@ -132,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
                 paths, runner, mode=args.mode, demosaic=args.demosaic,
                 mirror_average=args.mirror_average, resolution=args.resolution,
                 network_binning=args.network_binning, seen_state=args.seen_state,
-                models=args.models, device=args.device or "auto", model_size=args.model_size or "auto", calibration_path=args.calibration,
+                models=args.models, prior_scale=args.prior_scale, device=args.device or "auto", model_size=args.model_size or "auto", calibration_path=args.calibration,
                 exr={"planes": exr_planes_option(args.exr_planes),
                      "uncertainty": args.exr_uncertainty, "compression": args.exr_compression},
                 command_line=_command_line(args, paths), on_start=on_start,

@@ -1,0 +1,176 @@
+"""The prior's scale from the innovations in the capture path (issue 33, coverage): the banded
+estimate from the frames agrees with the definition on the whole image and samples the bands
+evenly; a hybrid capture records the factor in its manifest and EXR header, a reconstruct with
+the same choice gives the identical result and ``--prior-scale calibrated`` the unscaled one; a
+resumed session goes on with the scale its results were made with. The estimator's own
+properties are tested in ``tests/test_prior_scale.py``."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from polrig.acquisition.plan import PlanError
+from polrig.app.capture import resumed_prior_scale
+from polrig.app.cluster import _continuable
+from polrig.app.session import Session
+from polrig.cli import main
+from polrig.formats.exr import read_mueller_exr
+from polrig.optics.mueller import polarizer_stokes
+from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.demosaic import output_shape
+from polrig.sensor.layouts import IMX250MYR, IMX250MZR
+from polrig.sensor.noise import SensorModel
+from polrig.solve.prior_scale import SHRINK, innovations, prior_scale
+from polrig.solve.radiometry import StateRadiance, analyzer_stack, prior_scale_from_frames
+
+from test_cli_capture import MODEL_INSTALLED, sim_config
+
+needs_model = pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
+
+
+def _frames(rng, shape, layout, states_deg, method):
+    """Noisy mosaics of a smooth random Mueller scene under the polarizer ``states_deg``, a few
+    samples excluded, and a prior ``(mean, sigma)`` on the output grid off by about its sigma."""
+    h, w = shape
+    c = layout.n_colours
+    v, u = np.mgrid[0:h, 0:w]
+    m = np.zeros((c, 3, 3, h, w))
+    for ci in range(c):
+        base = rng.uniform(-0.3, 0.3, (3, 3)) + np.diag([1.0, 0.7, 0.6])
+        m[ci] = 800 * base[:, :, None, None] * (1 + 0.2 * np.sin(0.3 * u + 0.2 * v + ci))
+    s_in = polarizer_stokes(np.deg2rad(states_deg), intensity=1.0)
+    ideal, model = AnalyzerModel.ideal(layout, shape), SensorModel()
+    states = []
+    for s in s_in:
+        mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", m, s))
+        var = model.variance_dn2(mosaic, 1000.0)
+        states.append(StateRadiance((mosaic + rng.standard_normal(shape) * np.sqrt(var)).astype(np.float32),
+                                    var.astype(np.float32), rng.random(shape) < 0.02))
+    ho, wo = output_shape(layout, shape, method)
+    sigma = 20.0 * (1.0 + rng.random((c, 3, 3, ho, wo)))
+    mean = 800 * np.diag([1.0, 0.7, 0.6])[None, :, :, None, None] + sigma * rng.standard_normal(sigma.shape)
+    sigma[:, 2, 1, : ho // 3] = np.inf  # elements without a prior drop out
+    return states, s_in, mean, sigma
+
+
+def _calibrated(rng, layout, shape):
+    return AnalyzerModel(layout.name, 1 + 0.01 * rng.standard_normal(shape),
+                         layout.angle_map(shape) + 0.5 * rng.standard_normal(shape),
+                         np.clip(0.98 + 0.01 * rng.standard_normal(shape), 0, 1), rng.normal(0, 2, shape))
+
+
+@settings(max_examples=10, deadline=None)
+@given(colour=st.booleans(), method=st.sampled_from(("superpixel", "bilinear")), h=st.integers(8, 40),
+       w=st.integers(8, 24), band_pixels=st.integers(1, 500), calibrated=st.booleans(), seed=st.integers(0, 99))
+def test_the_banded_scale_is_the_scale_of_the_whole_image(colour, method, h, w, band_pixels, calibrated, seed):
+    """With every band sampled, the frames' scale is :func:`polrig.solve.prior_scale.prior_scale` of
+    the states demosaiced whole, exactly, whatever the banding, layout, demosaic and analyzer."""
+    rng = np.random.default_rng(seed)
+    layout = IMX250MYR if colour else IMX250MZR
+    shape = (2 * (h // 2), 2 * (w // 2)) if colour else (h, w)
+    states, s_in, mean, sigma = _frames(rng, shape, layout, [0, 60, 120], method)
+    analyzer = _calibrated(rng, layout, shape) if calibrated else None
+    got = prior_scale_from_frames(states, s_in, layout, method, analyzer, mean, sigma, 1, band_pixels=band_pixels,
+                                  sample_pixels=10**9)
+    parts = [analyzer_stack(s, layout, method, analyzer) for s in states]
+    want = prior_scale(s_in, *(np.stack([p[i] for p in parts]) for i in range(3)), mean, sigma, 1, parts[0][3])
+    assert got == want
+    assert got.method == "innovations" and got.shrink == SHRINK and got.factor == got.raw ** SHRINK
+
+
+def test_a_large_image_is_sampled_in_even_bands_and_one_state_has_no_scale():
+    """Above ``sample_pixels`` every ``k``-th band is taken: the innovations are those of the
+    sampled rows alone, spread over the whole image, and the factor is close to the whole
+    image's. One state: factor 1, nothing measured."""
+    rng = np.random.default_rng(7)
+    shape, layout = (96, 64), IMX250MZR  # output 48 x 32
+    states, s_in, mean, sigma = _frames(rng, shape, layout, [0, 90], "superpixel")
+    whole = prior_scale_from_frames(states, s_in, layout, "superpixel", None, mean, sigma, 0, band_pixels=64,
+                                    sample_pixels=10**9)
+    part = prior_scale_from_frames(states, s_in, layout, "superpixel", None, mean, sigma, 0, band_pixels=64,
+                                   sample_pixels=48 * 32 // 4)
+    # bands of 2 output rows; every 4th band: rows 0-1, 8-9, ..., 40-41
+    rows = np.concatenate([np.arange(r, r + 2) for r in range(0, 48, 8)])
+    parts = [analyzer_stack(s, layout, "superpixel") for s in states]
+    stack = [np.stack([p[i] for p in parts])[..., rows, :] for i in range(3)]
+    d, _, _ = innovations(s_in, *stack, mean[..., rows, :], sigma[..., rows, :], 0)
+    assert part.innovations == len(d) and whole.innovations > 3.5 * part.innovations
+    assert part.factor == pytest.approx(whole.factor, rel=0.15)
+    one = prior_scale_from_frames(states[:1], s_in[:1], layout, "superpixel", None, mean, sigma, 0)
+    assert (one.factor, one.innovations) == (1.0, 0)
+
+
+def _captures(*methods):
+    return types.SimpleNamespace(captures=[{"index": i} | ({} if m is None else {"prior": (
+        {} if m == "before" else {"sigma_scale": {"method": m}})}) for i, m in enumerate(methods)])
+
+
+def test_a_resumed_session_goes_on_with_the_scale_its_results_were_made_with():
+    """A session whose hybrid results were made with one scale goes on with it (a result from
+    before the scale existed was made with the calibrated sigma); another is refused in one line
+    naming the option's field; a session without a hybrid result yet takes what is asked."""
+    assert resumed_prior_scale(_captures("calibrated", None), None) == "calibrated"
+    assert resumed_prior_scale(_captures("before"), None) == "calibrated"
+    assert resumed_prior_scale(_captures("innovations"), "innovations") == "innovations"
+    assert resumed_prior_scale(_captures(None, None), None) == "innovations"
+    assert resumed_prior_scale(_captures(None), "calibrated") == "calibrated"
+    with pytest.raises(PlanError) as err:
+        resumed_prior_scale(_captures("before"), "innovations")
+    assert err.value.field == "prior_scale" and "'calibrated'" in str(err.value)
+    with pytest.raises(PlanError, match="unknown choice"):
+        resumed_prior_scale(_captures(None), "sometimes")
+
+
+def test_an_interrupted_revision_from_before_the_scale_is_not_continued_with_it():
+    """A revision made before the setting existed was made with the calibrated sigma: continued
+    only by a request for that."""
+    last = {"name": "rev1", "mode": "hybrid", "models": "full"}
+    session = types.SimpleNamespace(manifest={"revisions": [last]},
+                                    capture=lambda i: {"revisions": {"rev1": {"status": "pending"}}})
+    assert _continuable(session, {"mode": "hybrid", "prior_scale": "innovations"}, [0]) is None
+    assert _continuable(session, {"mode": "hybrid", "prior_scale": "calibrated"}, [0]) == ("rev1", [0])
+
+
+@needs_model
+def test_a_hybrid_capture_records_its_scale_and_reconstructs_to_the_same_result(tmp_path, capsys):
+    """``polrig capture --mode hybrid --states 0,90`` records the factor (manifest and header);
+    ``reconstruct`` with the same choice reproduces the result bit for bit; ``--prior-scale
+    calibrated`` records factor 1 and another posterior sigma where the prior acts; asking a
+    resumed session for another scale exits 2 with one line."""
+    cfg = sim_config(tmp_path / "rig.toml")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,90", "--device", "cpu",
+                 "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    assert main(["reconstruct", str(out), "--mode", "hybrid", "--device", "cpu", "--no-progress"]) == 0
+    assert main(["reconstruct", str(out), "--mode", "hybrid", "--prior-scale", "calibrated", "--device", "cpu",
+                 "--no-progress"]) == 0
+    s = Session.open(out)
+    cap = s.capture(0)
+    scale = cap["prior"]["sigma_scale"]
+    assert scale["method"] == "innovations" and scale["innovations"] > 1000
+    assert scale["factor"] == pytest.approx(scale["raw"] ** SHRINK) and scale["factor"] != 1.0
+    assert [r["prior_scale"] for r in s.manifest["revisions"]] == ["innovations", "calibrated"]
+    same, plain = cap["revisions"]["rev1"], cap["revisions"]["rev2"]
+    assert same["prior"]["sigma_scale"] == scale
+    assert plain["prior"]["sigma_scale"] == {"method": "calibrated", "factor": 1.0, "raw": 1.0, "shrink": 0.0,
+                                             "innovations": 0}
+    a, b, c = (read_mueller_exr(out / e["files"]["mueller"]["path"]) for e in (cap, same, plain))
+    assert a.metadata["prior_model"]["sigma_scale"] == scale
+    np.testing.assert_array_equal(a.mueller, b.mueller)
+    for k in a.extra:
+        np.testing.assert_array_equal(a.extra[k], b.extra[k], err_msg=k)
+    key = next(k for k in a.extra if k.startswith("sigma.M02"))
+    acts = np.isfinite(a.extra[key]) & (a.extra[key] > 0) & (c.extra[key] > 0)
+    ratio = a.extra[key][acts] / c.extra[key][acts]
+    # the open column at two states is the prior's: its sigma follows the factor there
+    assert np.median(ratio) == pytest.approx(scale["factor"], rel=0.1)
+    capsys.readouterr()
+    rc = main(["capture", "--resume", "--prior-scale", "calibrated", "--config", str(cfg), "--out", str(out),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "--prior-scale" in err, err
