@@ -170,6 +170,10 @@ def test_a_hybrid_capture_records_its_scale_and_reconstructs_to_the_same_result(
     # the open column at two states is the prior's: its sigma follows the factor there
     assert np.median(ratio) == pytest.approx(scale["factor"], rel=0.1)
     capsys.readouterr()
+    assert main(["info", str(out), "--no-verify"]) == 0
+    text = capsys.readouterr().out
+    assert f"prior: sigma x {scale['factor']:.3g} (innovations, {scale['innovations']} values)" in text
+    assert "rev2: complete" in text and "prior: sigma as calibrated" in text
     rc = main(["capture", "--resume", "--prior-scale", "calibrated", "--config", str(cfg), "--out", str(out),
                "--no-progress"])
     err = capsys.readouterr().err

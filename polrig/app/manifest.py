@@ -390,6 +390,18 @@ def describe_decision(decision: AdaptiveDecision) -> str:
             f"{decision['object_pixels']} object pixels at target; {what}")
 
 
+def describe_prior_scale(prior: PriorRecord) -> str:
+    """One line on a hybrid result's prior sigma (``polrig info``): ``sigma x 0.71 (innovations,
+    48000 values)``, ``sigma as calibrated``; ``sigma as calibrated (before the scale)`` for a
+    result made before it existed."""
+    scale = prior.get("sigma_scale")
+    if scale is None:
+        return "sigma as calibrated (before the scale)"
+    if scale["method"] == "calibrated":
+        return "sigma as calibrated"
+    return f"sigma x {scale['factor']:.3g} (innovations, {scale['innovations']} values)"
+
+
 class CaptureRecord(TypedDict):
     """One pose of the plan: its folder ``name``, status, last attempt, files, score (and
     ``prior``: the hybrid result's prior model, absent in other modes; ``model``: the single-shot

@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from polrig.app.manifest import describe_decision
+    from polrig.app.manifest import describe_decision, describe_prior_scale
     from polrig.app.session import Session
     from polrig.solve.scoring import format_score
 
@@ -68,10 +68,14 @@ def run(args: argparse.Namespace) -> int:
         print(line)
         for d in cap.get("adaptive", ()):  # the states an adaptive capture took, why it stopped
             print(f"          decision: {describe_decision(d)}")
+        if "prior" in cap:
+            print(f"          prior: {describe_prior_scale(cap['prior'])}")
         if cap["score"]:
             print(f"          score: {format_score(cap['score'])}")
         for name, rev in cap["revisions"].items():
             extra = f"  score: {format_score(rev['score'])}" if rev["score"] else ""
+            if "prior" in rev:
+                extra += f"  prior: {describe_prior_scale(rev['prior'])}"
             if rev["reason"]:
                 extra += f"  ({rev['reason']})"
             print(f"          {name}: {rev['status']}{extra}")
