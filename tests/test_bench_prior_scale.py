@@ -1,0 +1,14 @@
+"""``python -m benchmarks prior_scale``: a tiny run writes its table, and below the sample's
+size the sampled scale is the whole image's."""
+
+
+def test_a_tiny_run_writes_the_table(tmp_path, monkeypatch):
+    from benchmarks import bench_prior_scale
+
+    monkeypatch.setattr(bench_prior_scale, "SIZE", (64, 96))  # the full sensor is the benchmark's, not the suite's
+    out = tmp_path / "p.md"
+    assert bench_prior_scale.main(["--rounds", "1", "--out", str(out)]) == 0
+    rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| imx250")]
+    assert [r[0] for r in rows] == ["| imx250mzr", "| imx250mzr", "| imx250myr", "| imx250myr"]
+    for r in rows:  # all bands sampled at this size: the same factor and innovations
+        assert r[3:5] == r[6:8] and int(r[4]) > 0
