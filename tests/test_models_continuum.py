@@ -63,6 +63,13 @@ def test_tables_search_and_the_hybrid_limits(tmp_path):
         low, high = m[k]["coverage_interval"]
         assert low <= m[k]["coverage"] <= high
     assert "how sure each figure is" in text
+    # the prior's sigma as calibrated beside the captures' scaled one: the same states and time,
+    # another sigma from two states on
+    assert "**The prior's scale**" in text
+    for n in (2, 3, 4):
+        a, b = m[f"hybrid{n}_calibrated"], m[f"hybrid{n}"]
+        assert (a["states"], a["time_s"]) == (b["states"], b["time_s"]) and 0.5 < a["coverage"] <= 1.0
+        assert a["coverage"] != b["coverage"] or a["matrix_psnr"] != b["matrix_psnr"]
 
 
 def test_acquisition_time_is_the_plans_hardware_time():
