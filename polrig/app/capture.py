@@ -84,7 +84,7 @@ from polrig.app.calibrations import (
 )
 from polrig.app.diffuse_route import check_diffuse_states, check_geometry
 from polrig.app.manifest import AdaptiveDecision, SampleMetadata, describe_decision
-from polrig.app.processing import PRIOR_SCALES, make_processor
+from polrig.app.processing import check_prior_scale, make_processor
 from polrig.app.records import (
     check_resume_rig,
     check_rig_for_plan,
@@ -272,18 +272,10 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
         check_models(request, plan, calibration)
-        prior_scale = checked_prior_scale(request.prior_scale or "innovations")
+        prior_scale = check_prior_scale(request.prior_scale or "innovations")
     return PreparedCapture(out, plan, calibration, session,
                            request.metadata if request.metadata is not None else SampleMetadata(),
                            prior_scale)
-
-
-def checked_prior_scale(choice: str) -> str:
-    """``choice`` if it is one of :data:`polrig.solve.prior_scale.METHODS`, else a one-line
-    :class:`PlanError` of ``prior_scale``."""
-    if choice not in PRIOR_SCALES:
-        raise PlanError("prior_scale", f"unknown choice {choice!r}; use {', '.join(PRIOR_SCALES)}")
-    return choice
 
 
 def resumed_prior_scale(session: Session, asked: str | None) -> str:
@@ -294,7 +286,7 @@ def resumed_prior_scale(session: Session, asked: str | None) -> str:
     made = [c["prior"].get("sigma_scale", {"method": "calibrated"})["method"]
             for c in session.captures if "prior" in c]
     if not made:
-        return checked_prior_scale(asked or "innovations")
+        return check_prior_scale(asked or "innovations")
     if asked is not None and asked != made[0]:
         raise PlanError("prior_scale", f"the session's results were made with the prior scale {made[0]!r}, "
                                        f"this run asks for {asked!r}; leave it out to go on with {made[0]!r}, "

@@ -397,6 +397,14 @@ def record_result(session: Session, index: int, revision: str | None,
             raise
 
 
+def check_prior_scale(choice: str) -> str:
+    """``choice`` if it is one of :data:`polrig.solve.prior_scale.METHODS`, else a one-line
+    :class:`PlanError` of ``prior_scale``."""
+    if choice not in PRIOR_SCALES:
+        raise PlanError("prior_scale", f"unknown choice {choice!r}; use {', '.join(PRIOR_SCALES)}")
+    return choice
+
+
 class Processor:
     """Processing of captures inside a session (see :func:`polrig.app.capture.run_session`).
 
@@ -450,10 +458,8 @@ class Processor:
                                       "use the reference or hybrid mode")
         if models == "diffuse":
             check_diffuse_states(mode, n_states)
-        if prior_scale not in PRIOR_SCALES:
-            raise PlanError("prior_scale", f"unknown choice {prior_scale!r}; use {', '.join(PRIOR_SCALES)}")
         #: the hybrid prior's scale (:data:`polrig.solve.prior_scale.METHODS`)
-        self.prior_scale = prior_scale
+        self.prior_scale = check_prior_scale(prior_scale)
         #: ``full``, ``auto`` (model selection, :mod:`polrig.solve.model_selection`) or
         #: ``diffuse`` (:mod:`polrig.app.diffuse_route`)
         self.models = models
