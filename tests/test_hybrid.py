@@ -586,23 +586,15 @@ def test_the_result_writes_the_reference_planes():
 def test_frames_in_bands_equal_one_whole_image_solve(method):
     """reference_from_frames with a prior: band by band (each with its rows of the prior) the
     same numbers as one hybrid solve of the whole demosaiced image."""
-    from polrig.sensor.analyzer import AnalyzerModel
     from polrig.sensor.layouts import IMX250MYR
-    from polrig.sensor.noise import SensorModel
-    from polrig.solve.radiometry import StateRadiance, analyzer_stack, reference_from_frames
+    from polrig.solve.radiometry import analyzer_stack, reference_from_frames
+
+    from _state_radiance import noisy_states
 
     rng = np.random.default_rng(21)
     shape = (40, 48)
     s = states(0, 90, er=700)
-    ideal = AnalyzerModel.ideal(IMX250MYR, shape)
-    m = physical_mueller(rng, 3, *shape)
-    model = SensorModel()
-    sts = []
-    for sk in s:
-        mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", m, sk))
-        var = model.variance_dn2(mosaic, 1000.0)
-        sts.append(StateRadiance((mosaic + rng.standard_normal(shape) * np.sqrt(var)).astype(np.float32),
-                                 var.astype(np.float32), rng.random(shape) < 0.03))
+    sts = noisy_states(rng, physical_mueller(rng, 3, *shape), s, IMX250MYR)
     parts = [analyzer_stack(st_, IMX250MYR, method) for st_ in sts]
     meas, var, valid = (np.stack([p[i] for p in parts]) for i in range(3))
     mean = rng.normal(size=(3, 3, 3) + meas.shape[-2:]) * 50 + 100

@@ -24,10 +24,10 @@ from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.analyzer import AnalyzerModel
 from polrig.sensor.demosaic import output_shape
 from polrig.sensor.layouts import IMX250MYR, IMX250MZR
-from polrig.sensor.noise import SensorModel
 from polrig.solve.prior_scale import SHRINK, innovations, prior_scale
-from polrig.solve.radiometry import StateRadiance, analyzer_stack, prior_scale_from_frames
+from polrig.solve.radiometry import analyzer_stack, prior_scale_from_frames
 
+from _state_radiance import noisy_states
 from test_cli_capture import MODEL_INSTALLED, sim_config
 
 needs_model = pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
@@ -44,13 +44,7 @@ def _frames(rng, shape, layout, states_deg, method):
         base = rng.uniform(-0.3, 0.3, (3, 3)) + np.diag([1.0, 0.7, 0.6])
         m[ci] = 800 * base[:, :, None, None] * (1 + 0.2 * np.sin(0.3 * u + 0.2 * v + ci))
     s_in = polarizer_stokes(np.deg2rad(states_deg), intensity=1.0)
-    ideal, model = AnalyzerModel.ideal(layout, shape), SensorModel()
-    states = []
-    for s in s_in:
-        mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", m, s))
-        var = model.variance_dn2(mosaic, 1000.0)
-        states.append(StateRadiance((mosaic + rng.standard_normal(shape) * np.sqrt(var)).astype(np.float32),
-                                    var.astype(np.float32), rng.random(shape) < 0.02))
+    states = noisy_states(rng, m, s_in, layout, excluded_share=0.02)
     ho, wo = output_shape(layout, shape, method)
     sigma = 20.0 * (1.0 + rng.random((c, 3, 3, ho, wo)))
     mean = 800 * np.diag([1.0, 0.7, 0.6])[None, :, :, None, None] + sigma * rng.standard_normal(sigma.shape)

@@ -23,6 +23,8 @@ from polrig.solve.radiometry import (
 )
 from polrig.solve.reference import solve_reference
 
+from _state_radiance import noisy_states
+
 S_IN = polarizer_stokes(np.deg2rad([0, 45, 90, 135]), intensity=1.0)
 FIELDS = ("mueller", "sigma", "sigma_noise", "residual", "mask", "pixel_condition", "n_samples")
 TOL = dict(analyzer_tolerance=(0.01, 0.5, 0.02), generator_tolerance=(2.0, 0.006))
@@ -44,16 +46,7 @@ def _states(rng, shape, layout):
     for ci in range(c):
         base = rng.uniform(-0.3, 0.3, (3, 3)) + np.diag([1.0, 0.7, 0.6])
         m[ci] = 800 * base[:, :, None, None] * (1 + 0.2 * np.sin(0.3 * u + 0.2 * v + ci))
-    ideal = AnalyzerModel.ideal(layout, shape)
-    model = SensorModel()
-    out = []
-    for s in S_IN:
-        mosaic = ideal.mosaic(np.einsum("cijhw,j->cihw", m, s))
-        var = model.variance_dn2(mosaic, 1000.0)
-        noisy = mosaic + rng.standard_normal(shape) * np.sqrt(var)
-        out.append(StateRadiance(noisy.astype(np.float32), var.astype(np.float32),
-                                 rng.random(shape) < 0.03))
-    return out
+    return noisy_states(rng, m, S_IN, layout)
 
 
 def _calibrated(rng, layout, shape):
