@@ -44,7 +44,6 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 from polrig.acquisition.plan import ExrChoice
 from polrig.app import processing
 from polrig.app.session import (
-    COMPLETE,
     FAILED,
     PENDING,
     Session,
