@@ -279,24 +279,28 @@ def _band_samples(states: Sequence[StateRadiance], band: tuple[int, int, int, in
     return meas, var, valid, a_rows
 
 
-#: Output pixels (times colours) :func:`prior_scale_from_frames` samples at most (2^18: every
-#: fifth band of a full-sensor mono superpixel result; the quantile it solves for then rests on
-#: about 2 million innovations per further state).
-SCALE_SAMPLE_PIXELS = 2 ** 18
+#: Output pixels (times colours) :func:`prior_scale_from_frames` samples at most (2^16: one band
+#: of :data:`SCALE_BAND_ROWS` rows in 15 of a full-sensor colour superpixel result, in 20 of a
+#: mono one; the quantile it solves for then rests on about 200 000 innovations per further
+#: state; 64x64 and the rig's 128x128 analyzer grid are taken whole).
+SCALE_SAMPLE_PIXELS = 2 ** 16
+#: Output rows per band of :func:`prior_scale_from_frames`' sample (every ``k``-th such band).
+SCALE_BAND_ROWS = 4
 
 
 def prior_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                             layout: str | MosaicLayout, method: str, analyzer: AnalyzerModel | None,
                             prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int, *,
-                            band_pixels: int = BAND_PIXELS,
+                            band_rows: int = SCALE_BAND_ROWS,
                             sample_pixels: int = SCALE_SAMPLE_PIXELS) -> PriorScale:
     """The network prior's scale for the hybrid solve of these frames
     (:func:`polrig.solve.prior_scale.scale_of`, :mod:`polrig.solve.prior_scale`): from the
-    innovations of an even sample of the row bands :func:`reference_from_frames` solves (every
-    ``k``-th band, ``k`` the least that keeps at most ``sample_pixels`` output pixels times
-    colours; all of them in a smaller image), demosaiced as it demosaics them. Arguments as
-    :func:`reference_from_frames` (``prior_mean``, ``prior_sigma`` on the output grid or
-    broadcastable to it). One state: factor 1 (nothing to measure the prior against)."""
+    innovations of an even sample of the output rows, bands of ``band_rows`` rows
+    (:func:`polrig.sensor.demosaic.row_bands`, every ``k``-th, ``k`` the least that keeps at most
+    ``sample_pixels`` output pixels times colours; all of them in a smaller image), demosaiced as
+    :func:`reference_from_frames` demosaics them (per-pixel values do not depend on the banding).
+    Arguments as :func:`reference_from_frames` (``prior_mean``, ``prior_sigma`` on the output
+    grid or broadcastable to it). One state: factor 1 (nothing to measure the prior against)."""
     lay = resolve_layout(layout)
     s = np.asarray(s_in, np.float64).reshape(-1, 3)
     if len(states) < 2:
@@ -306,8 +310,7 @@ def prior_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
         _check_analyzer(analyzer, shape)
     c = lay.n_colours
     h_out, w_out = output_shape(lay, shape, method)
-    band_rows = max(1, int(band_pixels) // max(1, w_out * c))
-    bands = row_bands(lay, shape, method, band_rows)
+    bands = row_bands(lay, shape, method, max(1, int(band_rows)))
     step = max(1, -(-h_out * w_out * c // max(1, int(sample_pixels))))
     mean, sigma = (np.broadcast_to(np.asarray(a), (c, 3, 3, h_out, w_out)) for a in (prior_mean, prior_sigma))
     parts = []
