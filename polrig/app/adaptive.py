@@ -205,10 +205,7 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
 
     def prior(states_: list[StateRadiance], s_in_: np.ndarray) -> dict[str, Any]:
         with clock("network"):
-            inputs = network(states_, s_in_)
-        keep["correlation"] = inputs.get("prior_correlation")  # the design's prior is the solve's
-        keep["sigma"] = inputs["prior_sigma"]  # (scaled as the solve's: Processor.prior_scale)
-        return inputs
+            return network(states_, s_in_)
 
     t, network_s = time.perf_counter(), (timings or {}).get("network", 0.0)
     result, s_in, lay, states = process_reference(cf, processor.calibration, processor.sensor_model,
@@ -216,9 +213,10 @@ def evaluate(cf: CaptureFrames, plan: CapturePlan, processor: Processor,
     if timings is not None:  # the solve: all of it but the network
         network_s = timings.get("network", 0.0) - network_s
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - t - network_s
+    solved = keep["prior"]  # the design's prior is the solve's: its sigma scaled, its correlation
     with clock("criterion"):
-        record = _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], keep["sigma"],
-                         keep.get("correlation"), timing)
+        record = _decide(cf, plan, processor, result, s_in, lay, states, keep["net"], solved["prior_sigma"],
+                         solved.get("prior_correlation"), timing)
     return record | {"sigma_scale": header["sigma_scale"]["factor"]}
 
 
