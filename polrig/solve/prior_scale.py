@@ -34,7 +34,7 @@ from the innovations"; what it does to every set: ``README.md``, issue 33's cove
 
 Captures take it by default (``--prior-scale innovations``; ``calibrated`` keeps the sigma
 as calibrated): :func:`polrig.solve.radiometry.prior_scale_from_frames` estimates it from an
-even sample of the states' row bands before the band-by-band solve, and each hybrid result
+even sample of the output rows before the band-by-band solve, and each hybrid result
 records it (:class:`PriorScale`, the manifest's ``prior`` record and the EXR header).
 """
 
@@ -146,7 +146,8 @@ def innovations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray, va
         use = usable_row & (ok & seen_ok)[:, None] & np.isfinite(stokes) & np.isfinite(pred)
         d.append((stokes - pred)[use])
         p.append(np.einsum("i,...ij,j->...", w, cov, w)[use])
-        seen_part = np.where(np.isfinite(seen_var), su * su * np.where(np.isfinite(seen_var), seen_var, 0.0), np.inf)
+        # the seen frame's noise along u; a state orthogonal to u (su = 0) takes none of it
+        seen_part = su * su * seen_var if su else np.where(np.isfinite(seen_var), 0.0, np.inf)
         n.append((_diagonal_of_inverse(info) + seen_part / norm0**2)[use])
     if not d:
         return np.zeros(0), np.zeros(0), np.zeros(0)
