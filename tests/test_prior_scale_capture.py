@@ -120,6 +120,17 @@ def test_a_resumed_session_goes_on_with_the_scale_its_results_were_made_with():
         resumed_prior_scale(_captures(None), "sometimes")
 
 
+def test_info_words_each_kind_of_scale():
+    from polrig.app.manifest import describe_prior_scale
+
+    scaled = {"method": "innovations", "factor": 0.713, "raw": 0.669, "shrink": SHRINK, "innovations": 4800}
+    assert describe_prior_scale({"sigma_scale": scaled}) == "sigma x 0.713 (innovations, 4800 values)"
+    one_state = dict(scaled, factor=1.0, raw=1.0, innovations=0)
+    assert describe_prior_scale({"sigma_scale": one_state}) == "sigma as calibrated (no later state to scale it by)"
+    assert describe_prior_scale({"sigma_scale": dict(scaled, method="calibrated")}) == "sigma as calibrated"
+    assert describe_prior_scale({}) == "sigma as calibrated (before the scale)"
+
+
 def test_an_interrupted_revision_from_before_the_scale_is_not_continued_with_it():
     """A revision made before the setting existed was made with the calibrated sigma: continued
     only by a request for that."""

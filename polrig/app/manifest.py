@@ -392,13 +392,16 @@ def describe_decision(decision: AdaptiveDecision) -> str:
 
 def describe_prior_scale(prior: PriorRecord) -> str:
     """One line on a hybrid result's prior sigma (``polrig info``): ``sigma x 0.71 (innovations,
-    48000 values)``, ``sigma as calibrated``; ``sigma as calibrated (before the scale)`` for a
-    result made before it existed."""
+    48000 values)``, ``sigma as calibrated``; ``sigma as calibrated (no later state to scale it
+    by)`` where the scale found nothing to rest on (one state); ``sigma as calibrated (before the
+    scale)`` for a result made before it existed."""
     scale = prior.get("sigma_scale")
     if scale is None:
         return "sigma as calibrated (before the scale)"
     if scale["method"] == "calibrated":
         return "sigma as calibrated"
+    if scale["innovations"] == 0:
+        return "sigma as calibrated (no later state to scale it by)"
     return f"sigma x {scale['factor']:.3g} (innovations, {scale['innovations']} values)"
 
 
