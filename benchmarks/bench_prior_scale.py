@@ -12,7 +12,8 @@ errors of 1.5 times a per-element sigma of 5 % of m00 (independent per element: 
 plane covariance, which the innovations are measured against, keeps the row's variance along
 the seen direction, so the raw scale is not 1.5 here; its recovery of a known scale is tested in
 ``tests/test_prior_scale.py``). Warm, in process, after one untimed call each; medians of
-interleaved rounds; the factor of each and the number of innovations.
+interleaved rounds; the factor of each and the number of innovations; the peak of numpy's and
+Python's allocations (``tracemalloc``) during one more call of the sampled scale and of the solve.
 
     python benchmarks/bench_prior_scale.py [--rounds 3] [--out FILE]
 """
@@ -24,6 +25,7 @@ import pathlib
 import statistics
 import sys
 import time
+import tracemalloc
 
 import numpy as np
 
@@ -93,7 +95,13 @@ def main(argv: list[str] | None = None) -> int:
                     f()
                     times[k].append(time.perf_counter() - t)
             med = {k: statistics.median(v) for k, v in times.items()}
-            rows.append((layout_name, label, med, answers["sampled"], answers["every band"]))
+            peak = {}
+            for k in ("sampled", "hybrid solve"):  # one more call each, untimed, under tracemalloc
+                tracemalloc.start()
+                runs[k]()
+                peak[k] = tracemalloc.get_traced_memory()[1] / 2**20
+                tracemalloc.stop()
+            rows.append((layout_name, label, med, answers["sampled"], answers["every band"], peak))
             print(f"{layout_name} {label}: sampled {med['sampled']:.3f} s (factor {answers['sampled'].factor:.4f}), "
                   f"every band {med['every band']:.3f} s (factor {answers['every band'].factor:.4f}), "
                   f"hybrid solve {med['hybrid solve']:.2f} s", flush=True)
@@ -104,11 +112,13 @@ def main(argv: list[str] | None = None) -> int:
              f"{SCALE_SAMPLE_PIXELS} output pixels times colours, as captures take it; every band: the exact scale of "
              "the whole image.", "",
              "| sensor | states | sampled s | factor (raw) | innovations | every band s | factor (raw) | innovations "
-             "| hybrid solve s | sampled / solve |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for layout_name, label, med, a, b in rows:
+             "| hybrid solve s | sampled / solve | peak MiB, sampled / solve |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for layout_name, label, med, a, b, peak in rows:
         lines.append(f"| {layout_name} | {label} | {med['sampled']:.3f} | {a.factor:.4f} ({a.raw:.4f}) | {a.innovations} | "
                      f"{med['every band']:.3f} | {b.factor:.4f} ({b.raw:.4f}) | {b.innovations} | "
-                     f"{med['hybrid solve']:.2f} | {100 * med['sampled'] / med['hybrid solve']:.0f} % |")
+                     f"{med['hybrid solve']:.2f} | {100 * med['sampled'] / med['hybrid solve']:.0f} % | "
+                     f"{peak['sampled']:.0f} / {peak['hybrid solve']:.0f} |")
     text = "\n".join(lines) + "\n"
     pathlib.Path(args.out).write_text(text)
     print(text)

@@ -9,6 +9,7 @@ def test_a_tiny_run_writes_the_table(tmp_path, monkeypatch):
     out = tmp_path / "p.md"
     assert bench_prior_scale.main(["--rounds", "1", "--out", str(out)]) == 0
     rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| imx250")]
+    assert all(len(r) == 11 for r in rows)  # with the peak memory column
     assert [r[0] for r in rows] == ["| imx250mzr", "| imx250mzr", "| imx250myr", "| imx250myr"]
     for r in rows:  # all bands sampled at this size: the same factor and innovations
         assert r[3:5] == r[6:8] and int(r[4]) > 0
