@@ -9,7 +9,10 @@ def test_a_tiny_run_writes_the_table(tmp_path, monkeypatch):
     out = tmp_path / "p.md"
     assert bench_prior_scale.main(["--rounds", "1", "--out", str(out)]) == 0
     rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| imx250")]
-    assert all(len(r) == 11 for r in rows)  # with the peak memory column
-    assert [r[0] for r in rows] == ["| imx250mzr", "| imx250mzr", "| imx250myr", "| imx250myr"]
+    assert all(len(r) == 12 for r in rows)  # with the peak memory column
+    assert [r[0] for r in rows] == ["| imx250mzr"] * 4 + ["| imx250myr"] * 4
+    assert [r[2] for r in rows] == ["whole frame", "15 % of it"] * 4
     for r in rows:  # all bands sampled at this size: the same factor and innovations
-        assert r[3:5] == r[6:8] and int(r[4]) > 0
+        assert r[4:6] == r[7:9] and int(r[5]) > 0
+    for whole, part in zip(rows[::2], rows[1::2]):  # the object's share of the innovations, about
+        assert 0.1 < int(part[5]) / int(whole[5]) < 0.2

@@ -94,6 +94,30 @@ def test_one_state_or_too_few_innovations_leave_the_prior_as_it_is():
     assert len(d2) == 2 * (SIDE * SIDE // 2)  # row 1 gone; half the pixels of rows 0 and 2
 
 
+def test_only_the_objects_pixels_count_each_as_it_would_alone():
+    """Pixels without a prior (off the network's object: no finite positive sigma in any row)
+    give nothing and their samples, even NaN, change nothing; every other pixel's values are
+    those it gives as a 1x1 image of its own, in the order state, colour, row, pixel in scan order."""
+    rng = np.random.default_rng(12)
+    states, measured, var, mean, sigma = _scene(rng, 1.3, offsets=(0, 60, 120))
+    off = np.zeros((SIDE, SIDE), bool)
+    off[:7] = off[:, -5:] = True
+    off[20, 3] = True
+    sigma = sigma.copy()
+    sigma[..., off] = np.where(rng.random((1, 3, 3, off.sum())) < 0.5, 0.0, np.nan)
+    messy = measured.copy()
+    messy[..., off] = np.nan
+    got = innovations(states, messy, var, None, mean, sigma, 0)
+    assert all(np.array_equal(a, b) for a, b in zip(got, innovations(states, measured, var, None, mean, sigma, 0)))
+    ys, xs = np.nonzero(~off)
+    alone = [innovations(states, measured[..., y:y + 1, x:x + 1], var[..., y:y + 1, x:x + 1], None,
+                         mean[..., y:y + 1, x:x + 1], sigma[..., y:y + 1, x:x + 1], 0) for y, x in zip(ys, xs)]
+    for k in range(3):  # per pixel (state, colour, row) -> (state, colour, row, pixel)
+        want = np.stack([a[k].reshape(2, 1, 3) for a in alone], axis=-1).ravel()
+        np.testing.assert_allclose(got[k], want, rtol=1e-12, atol=0)
+    assert len(got[0]) == 2 * 3 * len(ys)
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.floats(0.3, 3.0), st.floats(1e-6, 1e6), st.integers(0, 2**31 - 1))
 def test_the_scale_grows_in_step_with_the_errors(t, unit, seed):

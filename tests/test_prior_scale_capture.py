@@ -49,6 +49,7 @@ def _frames(rng, shape, layout, states_deg, method):
     sigma = 20.0 * (1.0 + rng.random((c, 3, 3, ho, wo)))
     mean = 800 * np.diag([1.0, 0.7, 0.6])[None, :, :, None, None] + sigma * rng.standard_normal(sigma.shape)
     sigma[:, 2, 1, : ho // 3] = np.inf  # elements without a prior drop out
+    sigma[..., ho // 2:, : wo // 3] = 0.0  # pixels off the network's object: none of their rows has one
     return states, s_in, mean, sigma
 
 

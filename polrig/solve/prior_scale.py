@@ -118,8 +118,17 @@ def innovations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray, va
     :func:`polrig.solve.hybrid.solve_hybrid` takes them (``analyzer_rows`` shared ``(4, 3)``,
     per pixel ``(C, 4, 3, H, W)``, or None: ideal); ``prior_mean``, ``prior_sigma``
     ``(C, 3, 3, H, W)``. Usable: all four samples of the seen frame and of the state used, every
-    element of the row with a finite positive prior sigma."""
+    element of the row with a finite positive prior sigma. Only the pixels where some row of
+    some colour has such a sigma (the network's object) are computed, gathered in scan order:
+    the values and their order are those of the whole image, at the object's share of the cost."""
     s = np.asarray(s_in, np.float64).reshape(-1, 3)
+    sigma = np.asarray(prior_sigma)
+    ys, xs = np.nonzero(np.any(np.all(np.isfinite(sigma) & (sigma > 0), axis=2), axis=(0, 1)))
+    pick = lambda a: None if a is None else np.asarray(a)[..., ys, xs][..., None]  # noqa: E731  (..., P, 1)
+    measured, variance, valid, prior_mean, prior_sigma = (pick(a) for a in (measured, variance, valid,
+                                                                             prior_mean, sigma))
+    if analyzer_rows is not None and np.ndim(analyzer_rows) == 5:
+        analyzer_rows = pick(analyzer_rows)
     u = observed_direction(s[seen_state])
     norm0 = float(np.linalg.norm(s[seen_state]))
     basis = plane_basis(u)  # (3, 2)
