@@ -14,10 +14,11 @@ the seen direction, so the raw scale is not 1.5 here; its recovery of a known sc
 ``tests/test_prior_scale.py``). Each case twice: the prior over the whole frame, and over a
 centred disk of :data:`OBJECT_SHARE` of it, about the share of the simulated sphere at the full
 sensor (its 192842 tested pixels of the mono's 1224x1024 superpixel grid,
-``benchmarks/results/diffuse_route.md``), the network's object; off it the prior has no
-sigma, as the network gives none there, and the scale computes only the object's pixels. Warm, in process, after one untimed call each; medians of
-interleaved rounds; the factor of each and the number of innovations; the peak of numpy's and
-Python's allocations (``tracemalloc``) during one more call of the sampled scale and of the solve.
+``benchmarks/results/diffuse_route.md``), the network's object; off it the prior has no sigma,
+as the network gives none there, and the scale computes only the object's pixels. Warm, in
+process, after one untimed call each; medians of interleaved rounds; the factor of each and the
+number of innovations; the peak of numpy's and Python's allocations (``tracemalloc``) during one
+more call of the sampled scale and of the solve.
 
     python benchmarks/bench_prior_scale.py [--rounds 3] [--out FILE]
 """
