@@ -116,6 +116,9 @@ def test_only_the_objects_pixels_count_each_as_it_would_alone():
         want = np.stack([a[k].reshape(2, 1, 3) for a in alone], axis=-1).ravel()
         np.testing.assert_allclose(got[k], want, rtol=1e-12, atol=0)
     assert len(got[0]) == 2 * 3 * len(ys)
+    # no object at all: nothing to measure the prior against, the prior as it is
+    assert all(len(a) == 0 for a in innovations(states, measured, var, None, mean, np.zeros_like(sigma), 0))
+    assert prior_scale(states, measured, var, None, mean, np.zeros_like(sigma), 0).factor == 1.0
 
 
 @settings(max_examples=40, deadline=None)
