@@ -123,18 +123,19 @@ def innovations(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray, va
     the values and their order are those of the whole image, at the object's share of the cost."""
     s = np.asarray(s_in, np.float64).reshape(-1, 3)
     sigma = np.asarray(prior_sigma)
-    ys, xs = np.nonzero(np.any(np.all(np.isfinite(sigma) & (sigma > 0), axis=2), axis=(0, 1)))
+    usable_row = np.all(np.isfinite(sigma) & (sigma > 0), axis=2)  # (C, 3, H, W)
+    ys, xs = np.nonzero(usable_row.any(axis=(0, 1)))
     pick = lambda a: None if a is None else np.asarray(a)[..., ys, xs][..., None]  # noqa: E731  (..., P, 1)
-    measured, variance, valid, prior_mean, prior_sigma = (pick(a) for a in (measured, variance, valid,
-                                                                             prior_mean, sigma))
+    measured, variance, valid, prior_mean, prior_sigma, usable_row = (
+        pick(a) for a in (measured, variance, valid, prior_mean, sigma, usable_row))
     if analyzer_rows is not None and np.ndim(analyzer_rows) == 5:
         analyzer_rows = pick(analyzer_rows)
+    # from here on the images are the object's pixels as a (P, 1) image: H, W below are P, 1
     u = observed_direction(s[seen_state])
     norm0 = float(np.linalg.norm(s[seen_state]))
     basis = plane_basis(u)  # (3, 2)
     mean = np.asarray(prior_mean, np.float64)
     sd = np.moveaxis(np.asarray(prior_sigma, np.float64), 2, -1)  # (C, 3, H, W, 3): rows' sigma
-    usable_row = np.all(np.isfinite(sd) & (sd > 0), axis=-1)  # (C, 3, H, W)
     prec = unobserved_precision(np.where(usable_row[..., None], sd, 1.0), s[seen_state])  # (C, 3, H, W, 3, 3)
     m2 = np.einsum("ai,...ab,bj->...ij", basis, prec, basis)  # the plane's precision (..., 2, 2)
     det = np.linalg.det(m2)
