@@ -40,9 +40,23 @@ lit samples of each set (the held-out sets and the uncertainty calibration's sce
   calibrated) and at 0 and :data:`polrig.solve.prior_scale.SHRINK` at three and four; ``gamma`` is
   fitted on the calibration scenes (when the run holds them) where two states cover 95.45 % there.
 
-Every table here solves with the sigma as calibrated (``continuum.estimate``'s ``prior_scale``
-False): it is the diagnosis that led to the scale captures now take by default, and its
-what-if applies the scale itself.
+* **A what-if of the open direction's scale from the diffuse completion** (2026-11-30): at two
+  states the hybrid's posterior along the direction ``u`` they leave open is the prior's, and
+  nothing the states measure checks it (the innovations above see only the observed
+  directions). Where the diffuse test accepts (:mod:`polrig.solve.diffuse_test`; the
+  completion fitted without the network's normals as its guess, so that it does not lean on
+  the prior), the completion predicts ``m_r . u`` from the geometry; ``f_u`` is the quantile
+  scale (:func:`polrig.solve.prior_scale.innovation_scale`, no noise term) of the completion
+  less the hybrid along ``u`` against the hybrid's own posterior variance there
+  (:func:`open_variance`: the joint prior and the samples, per pixel). The hybrid's sigma then
+  gets ``(f_u^(2 g) - 1) u_k^2 V_r`` per element, for each exponent ``g`` of
+  :data:`OPEN_EXPONENTS` (0: as shipped); scored over all elements, with the spread of the
+  samples' own coverage (the 10th-90th percentile). Not in captures: measured here only.
+
+Every table here but the open direction's solves with the sigma as calibrated
+(``continuum.estimate``'s ``prior_scale`` False): it is the diagnosis that led to the scale
+captures now take by default, and its what-if applies the scale itself; the open direction's
+starts from the sigma as captures scale it.
 
 ``--rig-scenes``: the default rig's named scenes at its analyzer grid instead, one sample per
 turntable angle (:func:`polrig.models.continuum.rig_set`, the frames of ``--rig``).
@@ -75,6 +89,8 @@ LABELS = {"single": "single-shot", "hybrid1": "hybrid 1", "hybrid2": "hybrid 2"}
 SCALE_SHRINKS = tuple(sorted({0.0, 0.25, 0.5, 0.75, 1.0, SHRINK}))
 #: The states of that what-if by their number (the seen state first).
 SCALED_STATES = {"2": cn.RIG_TWO, "3": cn.RIG_THREE, "4": cn.FOUR_STATES}
+#: The open direction's what-if: exponents of its scale from the diffuse completion (0: as shipped).
+OPEN_EXPONENTS = (0.0, 0.5, 1.0)
 
 
 def _knee_key(knee_deg: float | None) -> str:
@@ -154,7 +170,10 @@ def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float 
     single_rows = np.zeros((3, 2))
     scaled = {n: {str(g): np.zeros(2) for g in (SCALE_SHRINKS if n == "2" else (0.0, SHRINK))} for n in SCALED_STATES}
     raw_scales: dict[str, list[float]] = {n: [] for n in SCALED_STATES}
+    opened: dict[str, list] = {str(g): [] for g in OPEN_EXPONENTS}
+    open_scales: list[float] = []
     for fr, omega in _frames(data_dir, net, count, tag, seed):
+        open_scales.append(open_scale_counts(fr, correlation, OPEN_EXPONENTS, opened))
         for n, offsets in SCALED_STATES.items():
             c = scaled_counts(fr, offsets, correlation, [float(g) for g in scaled[n]], scaled[n])
             raw_scales[n].append(c)
@@ -190,7 +209,7 @@ def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float 
             "seen_share": {str(float(k)): v.tolist() for k, v in zip(shares, seen_share)},
             "single_rows": single_rows.tolist(),
             "prior_scale": {n: {g: v.tolist() for g, v in d.items()} for n, d in scaled.items()},
-            "raw_scales": raw_scales}
+            "raw_scales": raw_scales, "open_scale": opened, "open_scales": open_scales}
 
 
 def scaled_counts(fr, offsets, correlation, shrinks: Sequence[float], counts: dict) -> float:
@@ -205,6 +224,79 @@ def scaled_counts(fr, offsets, correlation, shrinks: Sequence[float], counts: di
         sc = cn.score(fr, *cn.estimate(frg, offsets, "hybrid", correlation, prior_scale=False))
         counts[str(g)] += (sc["inside"], sc["elements"])
     return c
+
+
+def open_variance(fr, offsets, sigma: np.ndarray, correlation, u: np.ndarray) -> np.ndarray:
+    """The two-state hybrid's posterior variance of each row ``m_r . u`` along the unit ``u``
+    ``(C, 3, H, W)``: per object pixel the inverse of the posterior system ``N + P`` (the
+    samples' normal matrix, :func:`polrig.solve.model_selection.normal_equations`, and the prior
+    precision of :func:`polrig.solve.hybrid.unobserved_precision`, joint with ``correlation`` as
+    the solve takes it), in the frame's units; 0 where the system is singular or has no prior."""
+    from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
+    from polrig.solve.model_selection import normal_equations
+
+    s, meas, var, valid = cn._stack(fr, offsets)
+    s = np.asarray(s, np.float64).reshape(-1, 3)
+    n_col, h, w = fr.use.shape
+    out = np.zeros((n_col, 3, h, w))
+    pix = np.flatnonzero(fr.mask.ravel())
+    joint = correlation is not None and plane_axis(observed_direction(s[0])) is not None
+    for c in range(n_col):
+        sd = np.asarray(sigma, np.float64)[c].reshape(9, -1)[:, pix].T  # (P, 9)
+        ok = np.all(np.isfinite(sd) & (sd > 0), axis=1)
+        if not ok.any():
+            continue
+        normal = normal_equations(s, meas, var, valid, None, c, pix[ok])[0]
+        rows = unobserved_precision(sd[ok].reshape(-1, 3, 3), s[0])
+        if joint:
+            prec = joint_precision(rows, s[0], correlation)
+        else:
+            prec = np.zeros(normal.shape)
+            for r in range(3):
+                prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
+        total = normal + prec
+        regular = np.linalg.slogdet(total)[0] > 0
+        cov = np.linalg.inv(np.where(regular[:, None, None], total, np.eye(9)))
+        flat = np.zeros((3, h * w))
+        for r in range(3):
+            e = np.zeros(9)
+            e[3 * r:3 * r + 3] = u
+            flat[r, pix[ok]] = np.where(regular, np.einsum("i,pij,j->p", e, cov, e), 0.0)
+        out[c] = flat.reshape(3, h, w)
+    return out
+
+
+def open_scale_counts(fr, correlation, exponents: Sequence[float], counts: dict) -> float:
+    """The open direction's what-if (module docstring) on one sample: the two-state hybrid of
+    :data:`polrig.models.continuum.RIG_TWO`, the prior scaled as captures scale it, its sigma
+    widened or narrowed along the open direction by ``f_u ** g`` for each ``g`` of
+    ``exponents``: appends ``[within 2 sigma, elements]`` to ``counts[str(g)]``; returns ``f_u``
+    (1 where fewer than 30 accepted values)."""
+    from polrig.solve.diffuse_geometry import unobserved_direction
+    from polrig.solve.diffuse_test import complete_tested_diffuse
+    from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.reference import ILL_CONDITIONED
+
+    two = cn.RIG_TWO
+    s, meas, var, valid = cn._stack(fr, two)
+    sigma = cn.scaled_sigma(fr, two)
+    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=sigma, seen_state=0,
+                     dtype=np.float64, prior_correlation=correlation)
+    blind = dataclasses.replace(fr.geometry, normal_guess=None)  # the completion on the data and neighbours alone
+    out, _, completed = complete_tested_diffuse(r, s, meas, var, valid, blind, prior=(fr.prior, sigma), seen_state=0,
+                                                prior_correlation=correlation, mask=fr.mask, specular=True)
+    u = unobserved_direction(np.asarray(s, np.float64).reshape(-1, 3))
+    v = open_variance(fr, two, sigma, correlation, u)
+    d = np.einsum("crkhw,k->crhw", out.mueller.astype(np.float64) - r.mueller, u)
+    use = completed[:, None] & (v > 0) & np.isfinite(d)
+    f = innovation_scale(d[use], v[use], np.zeros(int(use.sum())))
+    solved = (r.mask & ILL_CONDITIONED) == 0
+    for g in exponents:
+        extra = (f ** (2.0 * g) - 1.0) * v[:, :, None] * (u * u)[None, None, :, None, None]
+        sg = r.sigma if g == 0 else np.sqrt(np.maximum(r.sigma.astype(np.float64) ** 2 + extra, 0.0))
+        sc = cn.score(fr, r.mueller, sg, solved)
+        counts[str(g)].append([sc["inside"], sc["elements"]])
+    return f
 
 
 def fit_shrink(counts: dict[str, list], target: float = 0.9545) -> float:
@@ -267,6 +359,7 @@ def markdown(result: dict) -> str:
         lines.append(f"| {names.get(name, name)} | {spread} | " + " | ".join(cells) + " |")
     lines += _share_table(result, names)
     lines += _scale_table(result, names)
+    lines += _open_table(result, names)
     return "\n".join(lines) + "\n"
 
 
@@ -307,6 +400,28 @@ def _share_table(result: dict, names: dict) -> list[str]:
         cells = [total(r["single_rows"]), *(total(r["seen_share"][k]) for k in shares)]
         if fitted is not None:
             cells.append(total(r["fitted_share"]))
+        lines.append(f"| {names.get(name, name)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _open_table(result: dict, names: dict) -> list[str]:
+    """The open direction's what-if (module docstring) as Markdown lines."""
+    first = next(iter(result["sets"].values()))
+    if "open_scale" not in first:
+        return []
+    gs = list(first["open_scale"])
+    lines = ["", "**What-if: the open direction's scale from the diffuse completion** (two states "
+             f"{'/'.join(map(str, cn.RIG_TWO))}, the prior scaled as captures scale it, then the hybrid's sigma along "
+             "the open direction times `f_u ** g`; g 0: as shipped): `f_u` median (10-90 %) over the samples; within "
+             "2 sigma, all elements, % (the 10th-90th percentile of the samples' own coverage)", "",
+             "| set | f_u | " + " | ".join(f"g {float(g):g}" for g in gs) + " |", "|---|---:|" + "---:|" * len(gs)]
+    for name, r in result["sets"].items():
+        f = np.asarray(r["open_scales"], float)
+        cells = [f"{np.median(f):.2f} ({np.quantile(f, 0.1):.2f}-{np.quantile(f, 0.9):.2f})" if f.size else "-"]
+        for g in gs:
+            inside, elements = zip(*r["open_scale"][g]) if r["open_scale"][g] else ((), ())
+            lo, hi = scene_spread(inside, elements)
+            cells.append(f"{_pct(sum(inside), sum(elements))} ({100 * lo:.0f}-{100 * hi:.0f})")
         lines.append(f"| {names.get(name, name)} | " + " | ".join(cells) + " |")
     return lines
 

@@ -5,6 +5,7 @@ bad input is one line, exit 2."""
 from __future__ import annotations
 
 import json
+import types
 
 import numpy as np
 import pytest
@@ -51,11 +52,50 @@ def test_tables_and_their_counts(tmp_path):
     h2 = np.array(r["per_element"]["hybrid2"]["inside"]).sum()
     assert scaled["2"][0.0][0] == h2 and len({v[1] for d in scaled.values() for v in d.values()}) <= 3
     assert all(len(r["raw_scales"][n]) == r["samples"] and min(r["raw_scales"][n]) > 0 for n in scaled)
+    # the open direction's what-if: exponent 0 is the two-state hybrid as captures scale it, every
+    # exponent scores the same elements, one scale per sample
+    from polrig.solve.prior_scale import SHRINK
+
+    opened = {float(g): np.array(v) for g, v in r["open_scale"].items()}
+    assert sorted(opened) == sorted(cd.OPEN_EXPONENTS) and len(r["open_scales"]) == r["samples"]
+    assert np.array_equal(opened[0.0].sum(axis=0), scaled["2"][SHRINK])
+    assert all(np.array_equal(v[:, 1], opened[0.0][:, 1]) for v in opened.values())
+    assert min(r["open_scales"]) > 0
     assert "fitted_share" not in saved and "fitted_shrink" not in saved  # no calibration scenes in this run
     text = out.read_text()
     assert "Within 2 sigma per element" in text and "What-if" in text and "hybrid 2, knee 30" in text
     assert "kappa 0.4" in text and "kappa fitted" not in text
     assert "prior's scale from the innovations" in text and "2 states, gamma 0.5" in text and "gamma fitted" not in text
+    assert "open direction's scale from the diffuse completion" in text and "| g 0.5 |" in text
+
+
+def test_the_open_variance_is_the_posterior_variance_along_the_direction():
+    """:func:`open_variance` on a tiny frame: with the per-element prior and two states it is the
+    prior's conditional variance along the open direction (the samples observe none of it),
+    ``1 / (u^T P_r u)``; with a third state that observes it, less than half of that."""
+    from polrig.models import continuum as cn
+    from polrig.models import coverage_diagnosis as cd
+    from polrig.solve.diffuse_geometry import unobserved_direction
+    from polrig.solve.hybrid import unobserved_precision
+    from polrig.solve.reference import forward_measurements
+
+    rng = np.random.default_rng(3)
+    n, h, w = 1, 3, 4
+    truth = np.zeros((n, 3, 3, h, w))
+    truth[:, 0, 0] = truth[:, 1, 1] = truth[:, 2, 2] = 1.0
+    offsets = (0, 90, 45)
+    states = {o: cn.rotated_state(np.array([1.0, 1.0, 0.0]), o) for o in offsets}
+    meas = {o: forward_measurements(truth, states[o][None])[0] for o in offsets}
+    var = {o: np.full(meas[o].shape, 1e-4) for o in offsets}
+    valid = {o: np.ones(meas[o].shape, bool) for o in offsets}
+    sigma = 0.05 * (1 + rng.random(truth.shape))
+    fr = types.SimpleNamespace(use=np.ones((n, h, w), bool), mask=np.ones((h, w), bool), states=states, meas=meas,
+                               var=var, valid=valid)  # the fields of continuum.Frames it reads
+    u = unobserved_direction(np.stack([states[0], states[90]]))
+    got = cd.open_variance(fr, (0, 90), sigma, None, u)
+    p = unobserved_precision(np.moveaxis(sigma, 2, -1), states[0])
+    assert np.allclose(got, 1.0 / np.einsum("i,...ij,j->...", u, p, u), rtol=1e-8)
+    assert (cd.open_variance(fr, (0, 90, 45), sigma, None, u) < 0.5 * got).all()
 
 
 def test_the_share_is_fitted_where_the_hybrid_covers_as_the_single_shot():
