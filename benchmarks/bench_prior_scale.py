@@ -134,11 +134,11 @@ def main(argv: list[str] | None = None) -> int:
                       f"{answers['every band'].factor:.4f}), hybrid solve {med['hybrid solve']:.2f} s", flush=True)
     lines = ["# The hybrid prior's scale at the full sensor", "",
              f"`python -m benchmarks prior_scale` (`benchmarks/bench_prior_scale.py --rounds {args.rounds}`): "
-             f"2448x2048 mosaics, superpixel, ideal analyzer, synthetic scene, the prior over the whole frame or over "
-             f"a centred disk of {100 * OBJECT_SHARE:.0f} % of it, the simulated sphere's share (module docstring); warm, in "
-             f"process, medians of {args.rounds} interleaved rounds on 2 shared CPUs. Sampled: every k-th row band, "
-             f"at most {SCALE_SAMPLE_PIXELS} output pixels times colours, as captures take it; every band: the exact "
-             "scale of the whole image. Only the object's pixels are computed.", "",
+             f"2448x2048 mosaics, superpixel, ideal analyzer, synthetic scene, the prior over the whole frame or "
+             f"over a centred disk of {100 * OBJECT_SHARE:.0f} % of it, the simulated sphere's share (module "
+             f"docstring); warm, in process, medians of {args.rounds} interleaved rounds on 2 shared CPUs. Sampled: "
+             f"every k-th row band, at most {SCALE_SAMPLE_PIXELS} output pixels times colours, as captures take it; "
+             "every band: the exact scale of the whole image. Only the object's pixels are computed.", "",
              "| sensor | states | prior over | sampled s | factor (raw) | innovations | every band s | factor (raw) | "
              "innovations | hybrid solve s | sampled / solve | peak MiB, sampled / solve |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

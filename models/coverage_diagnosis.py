@@ -229,32 +229,22 @@ def scaled_counts(fr, offsets, correlation, shrinks: Sequence[float], counts: di
 def open_variance(fr, offsets, sigma: np.ndarray, correlation, u: np.ndarray) -> np.ndarray:
     """The two-state hybrid's posterior variance of each row ``m_r . u`` along the unit ``u``
     ``(C, 3, H, W)``: per object pixel the inverse of the posterior system ``N + P`` (the
-    samples' normal matrix, :func:`polrig.solve.model_selection.normal_equations`, and the prior
-    precision of :func:`polrig.solve.hybrid.unobserved_precision`, joint with ``correlation`` as
-    the solve takes it), in the frame's units; 0 where the system is singular or has no prior."""
-    from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
-    from polrig.solve.model_selection import normal_equations
+    samples' normal matrix, :func:`polrig.solve.model_selection.normal_equations`, and the
+    solve's prior precision, :func:`polrig.solve.model_selection.prior_precision`, joint with
+    ``correlation``), in the frame's units; 0 where the system is singular or has no prior."""
+    from polrig.solve.model_selection import normal_equations, prior_precision
 
     s, meas, var, valid = cn._stack(fr, offsets)
     s = np.asarray(s, np.float64).reshape(-1, 3)
     n_col, h, w = fr.use.shape
     out = np.zeros((n_col, 3, h, w))
     pix = np.flatnonzero(fr.mask.ravel())
-    joint = correlation is not None and plane_axis(observed_direction(s[0])) is not None
     for c in range(n_col):
         sd = np.asarray(sigma, np.float64)[c].reshape(9, -1)[:, pix].T  # (P, 9)
         ok = np.all(np.isfinite(sd) & (sd > 0), axis=1)
         if not ok.any():
             continue
-        normal = normal_equations(s, meas, var, valid, None, c, pix[ok])[0]
-        rows = unobserved_precision(sd[ok].reshape(-1, 3, 3), s[0])
-        if joint:
-            prec = joint_precision(rows, s[0], correlation)
-        else:
-            prec = np.zeros(normal.shape)
-            for r in range(3):
-                prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
-        total = normal + prec
+        total = normal_equations(s, meas, var, valid, None, c, pix[ok])[0] + prior_precision(sd[ok], s[0], correlation)
         regular = np.linalg.slogdet(total)[0] > 0
         cov = np.linalg.inv(np.where(regular[:, None, None], total, np.eye(9)))
         flat = np.zeros((3, h * w))

@@ -622,6 +622,23 @@ def _select_row_space(s_in, measured, variance, valid, analyzer_rows, c: int, pi
                     decided=None if decided is None else decided[g])
 
 
+def prior_precision(sigma: np.ndarray, s_seen=None, correlation: np.ndarray | None = None) -> np.ndarray:
+    """The hybrid solve's prior precision ``(P, 9, 9)`` float64 of ``P`` pixels whose prior sigma is
+    ``sigma`` ``(P, 9)`` (positive and finite): :func:`polrig.solve.hybrid.unobserved_precision`
+    per row with the seen state ``s_seen``'s frame used whole, block diagonal over the rows, or,
+    as the kernel takes it, joint with ``correlation`` (:func:`polrig.solve.hybrid.joint_precision`)
+    where given and ``s_seen`` has an axis."""
+    from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
+
+    rows = unobserved_precision(np.asarray(sigma, np.float64).reshape(-1, 3, 3), s_seen)  # (P, row, 3, 3)
+    if correlation is not None and s_seen is not None and plane_axis(observed_direction(s_seen)) is not None:
+        return joint_precision(rows, s_seen, correlation)
+    prec = np.zeros((len(rows), 9, 9))
+    for r in range(3):
+        prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
+    return prec
+
+
 def posterior_system(normal: np.ndarray, m_hat: np.ndarray, mean: np.ndarray, sigma: np.ndarray,
                      s_seen=None, correlation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The hybrid solve's posterior system of ``P`` pixels (module docstring, "At any rank"):
@@ -632,16 +649,7 @@ def posterior_system(normal: np.ndarray, m_hat: np.ndarray, mean: np.ndarray, si
     ``mean``, ``sigma`` ``(P, 9)``: the prior's, sigma positive and finite. ``correlation``: the
     joint prior's ``K`` (:func:`polrig.solve.hybrid.joint_precision`; used where ``s_seen`` has
     an axis, as the hybrid solve does), None the per-element prior."""
-    from polrig.solve.hybrid import joint_precision, observed_direction, plane_axis, unobserved_precision
-
-    rows = unobserved_precision(sigma.reshape(-1, 3, 3), s_seen)  # (P, row, 3, 3)
-    # as the kernel: the joint prior where the seen state has an axis, else the per-element one
-    if correlation is not None and s_seen is not None and plane_axis(observed_direction(s_seen)) is not None:
-        prec = joint_precision(rows, s_seen, correlation)
-    else:
-        prec = np.zeros(normal.shape)
-        for r in range(3):
-            prec[:, 3 * r:3 * r + 3, 3 * r:3 * r + 3] = rows[:, r]
+    prec = prior_precision(sigma, s_seen, correlation)
     total = normal + prec
     rhs = np.einsum("pij,pj->pi", normal, m_hat) + np.einsum("pij,pj->pi", prec, mean)
     return total, np.linalg.solve(total, rhs[..., None])[..., 0]
