@@ -62,11 +62,22 @@ def test_tables_and_their_counts(tmp_path):
     assert all(np.array_equal(v[:, 1], opened[0.0][:, 1]) for v in opened.values())
     assert min(r["open_scales"]) > 0
     assert "fitted_share" not in saved and "fitted_shrink" not in saved  # no calibration scenes in this run
+    assert "fitted_open_exponent" not in saved
     text = out.read_text()
     assert "Within 2 sigma per element" in text and "What-if" in text and "hybrid 2, knee 30" in text
     assert "kappa 0.4" in text and "kappa fitted" not in text
     assert "prior's scale from the innovations" in text and "2 states, gamma 0.5" in text and "gamma fitted" not in text
     assert "open direction's scale from the diffuse completion" in text and "| g 0.5 |" in text
+
+
+def test_the_open_exponent_is_chosen_by_each_samples_coverage():
+    from polrig.models import coverage_diagnosis as cd
+
+    # g 0: pooled 95.5 % but samples at 91 and 100 %; g 1: samples at 95 and 96 % -> 1
+    per = {"0.0": [[91, 100], [100, 100]], "1.0": [[95, 100], [96, 100]], "2.0": [[99, 100], [99, 100]]}
+    assert cd.fit_open_exponent(per) == 1.0
+    assert cd.fit_open_exponent({"0.0": [[95, 100]], "0.5": [[96, 100]]}) == 0.0  # the nearer
+    assert cd.fit_open_exponent({"0.5": [[95, 100], [0, 0]], "0.0": [[95, 100]]}) == 0.0  # ties: the smaller g
 
 
 def test_the_open_variance_is_the_posterior_variance_along_the_direction():
