@@ -707,6 +707,34 @@ def correlate_prior(pa, prank, w, seen_k, seen_dir, seen_axis, kinv):  # pragma:
 
 
 @jit_cached()
+def stretch_prior(pa, prank, open_dir, beta):  # pragma: no cover - compiled
+    """The prior's spread along ``open_dir`` (``w`` ``(3,)``, unit) in every row of ``M``
+    widened (:mod:`polrig.solve.hybrid`, "The open direction's scale"): ``P <- B P B`` with
+    ``B = I_3 (x) (I + beta w w^T)`` on the lanes with a prior (``prank > 0``), ``beta = 1/a - 1``
+    for the factor ``a`` on the prior's standard deviation along ``w`` (covariance ``A C A``,
+    ``A = I_3 (x) (I + (a - 1) w w^T)``, whose inverse is ``B``). Other lanes are left as they are;
+    the prior's mean term ``P mu`` is formed afterwards from the result (:func:`_add_prior`)."""
+    nb, _, _, nl = pa.shape
+    tmp = np.empty((9, 9))
+    for b in range(nb):
+        for q in range(nl):
+            if prank[b, q] == 0:
+                continue
+            for r in range(3):  # tmp = B P: each row block r of P gets beta w (w . its rows)
+                for ll in range(9):
+                    d = (open_dir[0] * pa[b, 3 * r, ll, q] + open_dir[1] * pa[b, 3 * r + 1, ll, q]
+                         + open_dir[2] * pa[b, 3 * r + 2, ll, q])
+                    for a in range(3):
+                        tmp[3 * r + a, ll] = pa[b, 3 * r + a, ll, q] + beta * open_dir[a] * d
+            for ii in range(9):  # P = tmp B
+                for r in range(3):
+                    d = (tmp[ii, 3 * r] * open_dir[0] + tmp[ii, 3 * r + 1] * open_dir[1]
+                         + tmp[ii, 3 * r + 2] * open_dir[2])
+                    for a in range(3):
+                        pa[b, ii, 3 * r + a, q] = tmp[ii, 3 * r + a] + beta * open_dir[a] * d
+
+
+@jit_cached()
 def solve_blocks(s, ds_gen, w, mv, arow, per_pixel_rows, flags, lanes, min_snr, out_max, cal_sd,
                  with_cal, with_prior, pa, pm, prank, x_out, sg_out, sn_out, res_out, nok, keys
                  ):  # pragma: no cover - compiled

@@ -160,6 +160,22 @@ for the lower 2x2 block of the observed frame: ``corr((1, v1), (2, v2)) = +0.66`
 ``corr((1, v2), (2, v1)) = -0.63``, the pattern of a rotation of the linear polarization frame
 (an error in the surface's azimuth turns ``m11, m12, m21, m22`` together).
 
+**The open direction's scale** (``solve_hybrid(open_factor=a)``, two states only, default 1).
+Two states ``s_a``, ``s_b`` observe each row of ``M`` in their plane; the row's component along
+``w = s_a x s_b / |.|`` is the prior's alone (the seen state is one of the two, so ``w`` lies in
+its unobserved plane). No innovation of the states checks the prior there
+(:mod:`polrig.solve.prior_scale`), and where the network errs more along ``w`` than its sigma
+says, so does the posterior: the rig's ``plane`` and its plastic + metal scene at two states
+(:mod:`polrig.solve.open_scale` finds ``a`` from the diffuse term's geometry). The factor widens
+the prior's standard deviation along ``w`` in every row, covariance ``A C A`` with
+``A = I_3 (x) (I + (a - 1) w w^T)``, so its precision becomes ``B P B`` with
+``B = A^-1 = I_3 (x) (I + (1/a - 1) w w^T)`` (:func:`stretch_precision`; the kernel's
+:func:`polrig.solve._reference_kernel.stretch_prior`, after the joint prior). The samples do
+not observe ``w``, so the posterior's variance of each row along ``w`` is ``a^2`` times what it
+was (tested), its correlation with the observed directions is kept, and the posterior mean
+moves along ``w`` by ``a`` times the regression of the prior's error there on the observed
+directions' errors.
+
 Masks and outputs are those of :class:`~polrig.solve.reference.ReferenceResult`, so
 :func:`polrig.formats.exr.result_planes` writes them unchanged: ``ILL_CONDITIONED`` for a
 pixel with a prior means its posterior is singular to working precision (a Cholesky pivot of
@@ -199,7 +215,7 @@ from polrig.solve.reference import (
 )
 
 __all__ = ["solve_hybrid", "unobserved_precision", "observed_direction", "plane_axis", "unobserved_factor",
-           "joint_precision", "check_correlation", "JOINT_DIM"]
+           "joint_precision", "open_direction", "stretch_precision", "check_correlation", "JOINT_DIM"]
 
 #: Dimension of the joint prior's correlation: two unobserved directions (``v1``, ``v2``) per
 #: row of ``M`` (module docstring, "Joint prior").
@@ -314,6 +330,45 @@ def joint_precision(p_rows: np.ndarray, s_seen, correlation: np.ndarray) -> np.n
     return np.einsum("...ia,ab,...jb->...ij", q, kinv, q)
 
 
+def open_direction(s_in: np.ndarray) -> np.ndarray:
+    """The unit direction ``w = s_a x s_b / |.|`` ``(3,)`` that two states ``s_in`` ``(2, 3)``
+    leave open in each row of ``M`` (module docstring, "The open direction's scale");
+    :class:`polrig.errors.ConfigError` for another number of states or parallel ones."""
+    s = np.asarray(s_in, np.float64).reshape(-1, 3)
+    if len(s) != 2:
+        raise ConfigError(f"an open direction needs exactly two polarizer states, got {len(s)}")
+    w = np.cross(s[0], s[1])
+    norm = float(np.linalg.norm(w))
+    if not norm > 1e-12 * float(np.linalg.norm(s[0]) * np.linalg.norm(s[1])):
+        raise ConfigError("the two states are parallel: they leave two directions of each row open, not one")
+    return w / norm
+
+
+def stretch_precision(p: np.ndarray, w: np.ndarray, factor: float) -> np.ndarray:
+    """The prior precision ``p`` ``(..., 9, 9)`` with the standard deviation along the unit ``w``
+    ``(3,)`` in every row of ``M`` multiplied by ``factor`` (module docstring, "The open
+    direction's scale"): ``B p B``, ``B = I_3 (x) (I + (1/factor - 1) w w^T)``; the numpy form
+    of :func:`polrig.solve._reference_kernel.stretch_prior`."""
+    b = np.kron(np.eye(3), np.eye(3) + (1.0 / float(factor) - 1.0) * np.outer(w, w))
+    return np.einsum("ij,...jk,kl->...il", b, np.asarray(p, np.float64), b)
+
+
+def check_open_factor(open_factor, n_states: int, seen_state) -> float:
+    """``open_factor`` as a float: finite and positive, and other than 1 only with two states
+    and a seen state; :class:`polrig.errors.ConfigError` (one line) otherwise."""
+    try:
+        a = float(open_factor)
+    except (TypeError, ValueError):
+        raise ConfigError(f"open_factor must be a number, got {open_factor!r}") from None
+    if not (np.isfinite(a) and a > 0):
+        raise ConfigError(f"open_factor must be finite and positive, got {open_factor!r}")
+    if a != 1.0 and (n_states != 2 or seen_state is None):
+        raise ConfigError(f"open_factor scales the direction two states leave open: it needs two states "
+                          f"and a seen state, got {n_states} state(s)"
+                          + ("" if seen_state is not None else " and no seen state"))
+    return a
+
+
 def check_seen_share(seen_share) -> np.ndarray:
     """``seen_share`` as a float64 ``(3,)`` of numbers in ``[0, 1]`` (None: ones, the row's
     whole variance kept); :class:`polrig.errors.ConfigError` (one line) otherwise."""
@@ -357,7 +412,7 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
                  valid: np.ndarray | None = None, analyzer_rows: np.ndarray | None = None, *,
                  prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int | None,
                  plane_variance: str = "axis", prior_correlation: np.ndarray | None = None,
-                 seen_share: Sequence[float] | None = None,
+                 seen_share: Sequence[float] | None = None, open_factor: float = 1.0,
                  max_condition: float = DEFAULT_MAX_CONDITION, min_snr: float = MIN_SNR,
                  analyzer_tolerance: Sequence[float] | None = None,
                  generator_tolerance: Sequence[float] | None = None,
@@ -382,7 +437,10 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     a prior; None (default): the per-element prior. ``seen_share``: per row of ``M``, the share
     ``kappa_r`` of the row's prior variance along the seen direction kept in its unobserved
     plane (module docstring, "The seen direction's share": an analysis option, measured by
-    :mod:`polrig.models.coverage_diagnosis`); None (default): all of it.
+    :mod:`polrig.models.coverage_diagnosis`); None (default): all of it. ``open_factor``: at two
+    states, the factor on the prior's standard deviation along the direction they leave open
+    (module docstring, "The open direction's scale"; :mod:`polrig.solve.open_scale`); 1
+    (default): as it is.
 
     Raises :class:`polrig.errors.ConfigError` for no state, non-finite states, a
     ``seen_state`` that is not an index of ``s_in`` (or a zero state), or a bad option, and
@@ -412,7 +470,9 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     if prior_correlation is not None:
         kinv = np.linalg.inv(check_correlation(prior_correlation))
         kinv = (kinv + kinv.T) / 2
+    factor = check_open_factor(open_factor, n, seen_state)
+    w_open = open_direction(inputs.s) if factor != 1.0 else np.zeros(3)
     prior = PriorInputs(_prior_array(prior_mean, "prior_mean", shape),
                         _prior_array(prior_sigma, "prior_sigma", shape), u, axis, seen_k,
-                        check_seen_share(seen_share), kinv)
+                        check_seen_share(seen_share), kinv, w_open, factor)
     return solve_tiles(inputs, analyzer_rows, max_condition, min_snr, dtype, tile, prior)

@@ -532,6 +532,11 @@ class PriorInputs(NamedTuple):
     #: ``(6, 6)`` inverse of the joint prior's correlation in the whitened unobserved
     #: coordinates (:mod:`polrig.solve.hybrid`, "Joint prior"), or None: the per-element prior
     joint_inverse: np.ndarray | None = None
+    #: ``(3,)`` the unit direction two states leave open in each row, and the factor on the
+    #: prior's standard deviation along it (:mod:`polrig.solve.hybrid`, "The open direction's
+    #: scale"); factor 1: as it is
+    open_dir: np.ndarray = np.zeros(3)
+    open_factor: float = 1.0
 
 
 def solve_tiles(inputs: SolveInputs, analyzer_rows, max_condition: float, min_snr: float,
@@ -653,6 +658,8 @@ class _TileRun:
             if prior.joint_inverse is not None:
                 kern.correlate_prior(b["pa"], b["prank"], b["w"], prior.seen_k, prior.seen_dir, prior.seen_axis,
                                      prior.joint_inverse)
+            if prior.open_factor != 1.0:
+                kern.stretch_prior(b["pa"], b["prank"], prior.open_dir, 1.0 / prior.open_factor - 1.0)
         kern.solve_blocks(self.s, self.ds_gen, b["w"], b["mv"], arow, self.per_pixel,
                           b["flags"], lanes, self.min_snr, self.out_max, self.cal_sd,
                           self.with_cal, prior is not None, b["pa"], b["pm"], b["prank"],
