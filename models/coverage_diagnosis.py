@@ -43,19 +43,19 @@ lit samples of each set (the held-out sets and the uncertainty calibration's sce
 * **A what-if of the open direction's scale from the diffuse completion** (2026-11-30): at two
   states the hybrid's posterior along the direction ``u`` they leave open is the prior's, and
   nothing the states measure checks it (the innovations above see only the observed
-  directions). Where the diffuse test accepts (:mod:`polrig.solve.diffuse_test`; the
-  completion fitted without the network's normals as its guess, so that it does not lean on
-  the prior), the completion predicts ``m_r . u`` from the geometry; ``f_u`` is the quantile
-  scale (:func:`polrig.solve.prior_scale.innovation_scale`, no noise term) of the completion
-  less the hybrid along ``u`` against the hybrid's own posterior variance there
-  (:func:`open_variance`: the joint prior and the samples, per pixel). The hybrid's sigma then
-  gets ``(f_u^(2 g) - 1) u_k^2 V_r`` per element, for each exponent ``g`` of
-  :data:`OPEN_EXPONENTS` (0: as shipped); scored over all elements, with the spread of the
-  samples' own coverage (the 10th-90th percentile). The exponent is chosen on the calibration
-  scenes (when the run holds them) by the samples' own coverage, not the pooled one (that is
-  95.45 % at ``g = 0`` by the scale's own fit): the grid's ``g`` of least mean squared
-  distance of each sample's coverage from 95.45 % (:func:`fit_open_exponent`), each sample a
-  scene. Not in captures: measured here only.
+  directions). Where the diffuse test accepts, the completion (fitted without the network's
+  normals as its guess, so that it does not lean on the prior) predicts ``m_r . u`` from the
+  geometry; ``f_u`` is the quantile scale of the completion less the hybrid along ``u`` against
+  the hybrid's own posterior variance there (:mod:`polrig.solve.open_scale`). The hybrid is then
+  solved again with the prior's standard deviation along ``u`` times ``f_u ** g``
+  (``solve_hybrid(open_factor=...)``, as captures do with ``--prior-scale geometry``), for each
+  exponent ``g`` of :data:`OPEN_EXPONENTS` (0: the innovations' scale alone); scored over all
+  elements, with the spread of the samples' own coverage (the 10th-90th percentile). The
+  exponent is chosen on the calibration scenes (when the run holds them) by the samples' own
+  coverage, not the pooled one (that is 95.45 % at ``g = 0`` by the innovations' own fit): the
+  grid's ``g`` of least mean squared distance of each sample's coverage from 95.45 %
+  (:func:`fit_open_exponent`), each sample a scene; captures take it as
+  :data:`polrig.solve.open_scale.EXPONENT`.
 
 Every table here but the open direction's solves with the sigma as calibrated
 (``continuum.estimate``'s ``prior_scale`` False): it is the diagnosis that led to the scale
@@ -175,9 +175,10 @@ def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float 
     scaled = {n: {str(g): np.zeros(2) for g in (SCALE_SHRINKS if n == "2" else (0.0, SHRINK))} for n in SCALED_STATES}
     raw_scales: dict[str, list[float]] = {n: [] for n in SCALED_STATES}
     opened: dict[str, list] = {str(g): [] for g in OPEN_EXPONENTS}
+    open_psnr: dict[str, list] = {str(g): [] for g in OPEN_EXPONENTS}
     open_scales: list[float] = []
     for fr, omega in _frames(data_dir, net, count, tag, seed):
-        open_scales.append(open_scale_counts(fr, correlation, OPEN_EXPONENTS, opened))
+        open_scales.append(open_scale_counts(fr, correlation, OPEN_EXPONENTS, opened, open_psnr))
         for n, offsets in SCALED_STATES.items():
             c = scaled_counts(fr, offsets, correlation, [float(g) for g in scaled[n]], scaled[n])
             raw_scales[n].append(c)
@@ -213,7 +214,8 @@ def diagnose_set(data_dir, net, count: int, tag: int, knees_deg: Sequence[float 
             "seen_share": {str(float(k)): v.tolist() for k, v in zip(shares, seen_share)},
             "single_rows": single_rows.tolist(),
             "prior_scale": {n: {g: v.tolist() for g, v in d.items()} for n, d in scaled.items()},
-            "raw_scales": raw_scales, "open_scale": opened, "open_scales": open_scales}
+            "raw_scales": raw_scales, "open_scale": opened, "open_scales": open_scales,
+            "open_psnr": open_psnr}
 
 
 def scaled_counts(fr, offsets, correlation, shrinks: Sequence[float], counts: dict) -> float:
@@ -230,66 +232,30 @@ def scaled_counts(fr, offsets, correlation, shrinks: Sequence[float], counts: di
     return c
 
 
-def open_variance(fr, offsets, sigma: np.ndarray, correlation, u: np.ndarray) -> np.ndarray:
-    """The two-state hybrid's posterior variance of each row ``m_r . u`` along the unit ``u``
-    ``(C, 3, H, W)``: per object pixel the inverse of the posterior system ``N + P`` (the
-    samples' normal matrix, :func:`polrig.solve.model_selection.normal_equations`, and the
-    solve's prior precision, :func:`polrig.solve.model_selection.prior_precision`, joint with
-    ``correlation``), in the frame's units; 0 where the system is singular or has no prior."""
-    from polrig.solve.model_selection import normal_equations, prior_precision
-
-    s, meas, var, valid = cn._stack(fr, offsets)
-    s = np.asarray(s, np.float64).reshape(-1, 3)
-    n_col, h, w = fr.use.shape
-    out = np.zeros((n_col, 3, h, w))
-    pix = np.flatnonzero(fr.mask.ravel())
-    for c in range(n_col):
-        sd = np.asarray(sigma, np.float64)[c].reshape(9, -1)[:, pix].T  # (P, 9)
-        ok = np.all(np.isfinite(sd) & (sd > 0), axis=1)
-        if not ok.any():
-            continue
-        total = normal_equations(s, meas, var, valid, None, c, pix[ok])[0] + prior_precision(sd[ok], s[0], correlation)
-        regular = np.linalg.slogdet(total)[0] > 0
-        cov = np.linalg.inv(np.where(regular[:, None, None], total, np.eye(9)))
-        flat = np.zeros((3, h * w))
-        for r in range(3):
-            e = np.zeros(9)
-            e[3 * r:3 * r + 3] = u
-            flat[r, pix[ok]] = np.where(regular, np.einsum("i,pij,j->p", e, cov, e), 0.0)
-        out[c] = flat.reshape(3, h, w)
-    return out
-
-
-def open_scale_counts(fr, correlation, exponents: Sequence[float], counts: dict) -> float:
+def open_scale_counts(fr, correlation, exponents: Sequence[float], counts: dict, psnr: dict | None = None) -> float:
     """The open direction's what-if (module docstring) on one sample: the two-state hybrid of
-    :data:`polrig.models.continuum.RIG_TWO`, the prior scaled as captures scale it, its sigma
-    widened or narrowed along the open direction by ``f_u ** g`` for each ``g`` of
-    ``exponents``: appends ``[within 2 sigma, elements]`` to ``counts[str(g)]``; returns ``f_u``
-    (1 where fewer than 30 accepted values)."""
-    from polrig.solve.diffuse_geometry import unobserved_direction
-    from polrig.solve.diffuse_test import complete_tested_diffuse
+    :data:`polrig.models.continuum.RIG_TWO`, the prior scaled as captures scale it, solved again
+    with the prior's standard deviation along the open direction times ``f_u ** g``
+    (:func:`polrig.solve.open_scale.open_values`, ``solve_hybrid(open_factor=...)``) for each ``g``
+    of ``exponents``: appends ``[within 2 sigma, elements]`` to ``counts[str(g)]`` (and the matrix
+    PSNR over the object, dB, to ``psnr[str(g)]`` if given); returns ``f_u`` (1 where fewer than 30
+    accepted values)."""
     from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.open_scale import open_scale_of, open_values
     from polrig.solve.reference import ILL_CONDITIONED
 
     two = cn.RIG_TWO
     s, meas, var, valid = cn._stack(fr, two)
     sigma = cn.scaled_sigma(fr, two)
-    r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=sigma, seen_state=0,
-                     dtype=np.float64, prior_correlation=correlation)
-    blind = dataclasses.replace(fr.geometry, normal_guess=None)  # the completion on the data and neighbours alone
-    out, _, completed = complete_tested_diffuse(r, s, meas, var, valid, blind, prior=(fr.prior, sigma), seen_state=0,
-                                                prior_correlation=correlation, mask=fr.mask, specular=True)
-    u = unobserved_direction(np.asarray(s, np.float64).reshape(-1, 3))
-    v = open_variance(fr, two, sigma, correlation, u)
-    d = np.einsum("crkhw,k->crhw", out.mueller.astype(np.float64) - r.mueller, u)
-    use = completed[:, None] & (v > 0) & np.isfinite(d)
-    f = innovation_scale(d[use], v[use], np.zeros(int(use.sum())))
-    solved = (r.mask & ILL_CONDITIONED) == 0
+    prior = dict(prior_mean=fr.prior, prior_sigma=sigma, seen_state=0, prior_correlation=correlation)
+    r = solve_hybrid(s, meas, var, valid, dtype=np.float64, **prior)
+    f = open_scale_of(*open_values(r, s, meas, var, valid, fr.geometry, mask=fr.mask, **prior), exponent=1.0).raw
     for g in exponents:
-        extra = (f ** (2.0 * g) - 1.0) * v[:, :, None] * (u * u)[None, None, :, None, None]
-        sg = r.sigma if g == 0 else np.sqrt(np.maximum(r.sigma.astype(np.float64) ** 2 + extra, 0.0))
-        sc = cn.score(fr, r.mueller, sg, solved)
+        rg = r if g == 0 else solve_hybrid(s, meas, var, valid, dtype=np.float64, open_factor=f ** g, **prior)
+        sc = cn.score(fr, rg.mueller, rg.sigma, (rg.mask & ILL_CONDITIONED) == 0)
         counts[str(g)].append([sc["inside"], sc["elements"]])
+        if psnr is not None:
+            psnr[str(g)].append(sc["matrix_psnr"])
     return f
 
 
@@ -418,8 +384,8 @@ def _open_table(result: dict, names: dict) -> list[str]:
     gs = list(first["open_scale"])
     fitted = result.get("fitted_open_exponent")
     lines = ["", "**What-if: the open direction's scale from the diffuse completion** (two states "
-             f"{'/'.join(map(str, cn.RIG_TWO))}, the prior scaled as captures scale it, then the hybrid's sigma along "
-             "the open direction times `f_u ** g`; g 0: as shipped"
+             f"{'/'.join(map(str, cn.RIG_TWO))}, the prior scaled as captures scale it, then the prior's "
+             "standard deviation along the open direction times `f_u ** g` and solved again; g 0: as shipped"
              + ("" if fitted is None else f"; g chosen on the calibration scenes, each sample's coverage nearest "
                                           f"95.45 % in the mean square: {fitted:g}")
              + "): `f_u` median (10-90 %) over the samples; within "
@@ -432,6 +398,19 @@ def _open_table(result: dict, names: dict) -> list[str]:
             inside, elements = zip(*r["open_scale"][g]) if r["open_scale"][g] else ((), ())
             lo, hi = scene_spread(inside, elements)
             cells.append(f"{_pct(sum(inside), sum(elements))} ({100 * lo:.0f}-{100 * hi:.0f})")
+        lines.append(f"| {names.get(name, name)} | " + " | ".join(cells) + " |")
+    if "open_psnr" not in first:
+        return lines
+    lines += ["", "Matrix PSNR over the object at each `g` less that at g 0 (dB; the solve with the stretched prior moves "
+              "the estimate along the open direction too): median (min..max) over the samples", "",
+              "| set | " + " | ".join(f"g {float(g):g}" for g in gs[1:]) + " |", "|---|" + "---:|" * len(gs[1:])]
+    for name, r in result["sets"].items():
+        base = np.asarray(r["open_psnr"][gs[0]], float)
+        cells = []
+        for g in gs[1:]:
+            dv = np.asarray(r["open_psnr"][g], float) - base
+            dv = dv[np.isfinite(dv)]
+            cells.append(f"{np.median(dv):+.2f} ({dv.min():+.2f}..{dv.max():+.2f})" if dv.size else "-")
         lines.append(f"| {names.get(name, name)} | " + " | ".join(cells) + " |")
     return lines
 

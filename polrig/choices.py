@@ -51,9 +51,13 @@ MIN_SNR = 3.0
 #: alone, :mod:`polrig.app.diffuse_route`).
 MODEL_CHOICES = ("full", "auto", "diffuse")
 #: The ``--prior-scale`` choices (:data:`polrig.solve.prior_scale.METHODS`): ``innovations`` (the
-#: hybrid prior's sigma scaled per capture from the states after the seen one, the default) and
-#: ``calibrated`` (as calibrated).
-PRIOR_SCALES = ("innovations", "calibrated")
+#: hybrid prior's sigma scaled per capture from the states after the seen one), ``geometry``
+#: (that, and at two states the prior along the direction they leave open scaled by what the
+#: diffuse term's geometry shows of it, :mod:`polrig.solve.open_scale`) and ``calibrated`` (as
+#: calibrated).
+PRIOR_SCALES = ("innovations", "geometry", "calibrated")
+#: The ``--prior-scale`` a new capture or revision takes when none is given.
+DEFAULT_PRIOR_SCALE = "innovations"
 
 # -- polrig.acquisition ---------------------------------------------------------------------------
 #: Network binnings of the single-shot method

@@ -80,35 +80,6 @@ def test_the_open_exponent_is_chosen_by_each_samples_coverage():
     assert cd.fit_open_exponent({"0.5": [[95, 100], [0, 0]], "0.0": [[95, 100]]}) == 0.0  # ties: the smaller g
 
 
-def test_the_open_variance_is_the_posterior_variance_along_the_direction():
-    """:func:`open_variance` on a tiny frame: with the per-element prior and two states it is the
-    prior's conditional variance along the open direction (the samples observe none of it),
-    ``1 / (u^T P_r u)``; with a third state that observes it, less than half of that."""
-    from polrig.models import continuum as cn
-    from polrig.models import coverage_diagnosis as cd
-    from polrig.solve.diffuse_geometry import unobserved_direction
-    from polrig.solve.hybrid import unobserved_precision
-    from polrig.solve.reference import forward_measurements
-
-    rng = np.random.default_rng(3)
-    n, h, w = 1, 3, 4
-    truth = np.zeros((n, 3, 3, h, w))
-    truth[:, 0, 0] = truth[:, 1, 1] = truth[:, 2, 2] = 1.0
-    offsets = (0, 90, 45)
-    states = {o: cn.rotated_state(np.array([1.0, 1.0, 0.0]), o) for o in offsets}
-    meas = {o: forward_measurements(truth, states[o][None])[0] for o in offsets}
-    var = {o: np.full(meas[o].shape, 1e-4) for o in offsets}
-    valid = {o: np.ones(meas[o].shape, bool) for o in offsets}
-    sigma = 0.05 * (1 + rng.random(truth.shape))
-    fr = types.SimpleNamespace(use=np.ones((n, h, w), bool), mask=np.ones((h, w), bool), states=states, meas=meas,
-                               var=var, valid=valid)  # the fields of continuum.Frames it reads
-    u = unobserved_direction(np.stack([states[0], states[90]]))
-    got = cd.open_variance(fr, (0, 90), sigma, None, u)
-    p = unobserved_precision(np.moveaxis(sigma, 2, -1), states[0])
-    assert np.allclose(got, 1.0 / np.einsum("i,...ij,j->...", u, p, u), rtol=1e-8)
-    assert (cd.open_variance(fr, (0, 90, 45), sigma, None, u) < 0.5 * got).all()
-
-
 def test_the_share_is_fitted_where_the_hybrid_covers_as_the_single_shot():
     from polrig.models import coverage_diagnosis as cd
 

@@ -184,3 +184,49 @@ def test_a_hybrid_capture_records_its_scale_and_reconstructs_to_the_same_result(
                "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "--prior-scale" in err, err
+
+
+def test_info_words_the_open_directions_scale():
+    from polrig.app.manifest import describe_prior_scale
+
+    scaled = {"method": "geometry", "factor": 0.713, "raw": 0.669, "shrink": SHRINK, "innovations": 4800,
+              "open_direction": {"factor": 1.21, "raw": 1.29, "exponent": 0.75, "values": 900}}
+    assert describe_prior_scale({"sigma_scale": scaled}) == (
+        "sigma x 0.713 (innovations, 4800 values); along the open direction x 1.21 (diffuse geometry, 900 values)")
+    none = dict(scaled, open_direction={"factor": 1.0, "raw": 1.0, "exponent": 0.0, "values": 0})
+    assert describe_prior_scale({"sigma_scale": none}).endswith("along the open direction as that (no diffuse "
+                                                                 "pixel to check it by)")
+
+
+@needs_model
+def test_the_geometry_scale_widens_the_open_column_by_its_recorded_factor(tmp_path):
+    """``--prior-scale geometry`` at two states 0/90 (seen state 0: the open direction is the
+    third column of M) on the simulated rig's plane: the record holds the innovations' factor and
+    the open direction's, resting on values the diffuse test accepted; ``reconstruct`` with
+    ``innovations`` keeps the same innovations' factor, and the third column's posterior sigma
+    is the open factor times that revision's where the prior alone sets it; ``geometry`` again
+    reproduces the capture bit for bit."""
+    cfg = sim_config(tmp_path / "rig.toml", scene="plane")
+    out = tmp_path / "run"
+    assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,90", "--device", "cpu",
+                 "--prior-scale", "geometry", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    for scale in ("innovations", "geometry"):
+        assert main(["reconstruct", str(out), "--mode", "hybrid", "--prior-scale", scale, "--device", "cpu",
+                     "--no-progress"]) == 0
+    cap = Session.open(out).capture(0)
+    scale = cap["prior"]["sigma_scale"]
+    opened = scale["open_direction"]
+    assert scale["method"] == "geometry" and opened["values"] >= 30 and opened["exponent"] == 0.75
+    assert opened["factor"] == pytest.approx(opened["raw"] ** 0.75) and opened["factor"] != 1.0
+    plain, again = cap["revisions"]["rev1"], cap["revisions"]["rev2"]
+    assert plain["prior"]["sigma_scale"] == {k: v for k, v in scale.items() if k != "open_direction"} | {
+        "method": "innovations"}
+    a, b, c = (read_mueller_exr(out / e["files"]["mueller"]["path"]) for e in (cap, plain, again))
+    assert a.metadata["prior_model"]["sigma_scale"] == scale
+    np.testing.assert_array_equal(a.mueller, c.mueller)
+    for k in a.extra:
+        np.testing.assert_array_equal(a.extra[k], c.extra[k], err_msg=k)
+    key = next(k for k in a.extra if k.startswith("sigma.M02"))
+    acts = np.isfinite(a.extra[key]) & (a.extra[key] > 0) & (b.extra[key] > 0)
+    assert acts.sum() > 100
+    assert np.median(a.extra[key][acts] / b.extra[key][acts]) == pytest.approx(opened["factor"], rel=0.05)

@@ -116,6 +116,7 @@ from polrig.app.sessionio import (  # noqa: F401 (re-exported)
     manifest_exposure_us,
     raw_relpath,
 )
+from polrig.choices import DEFAULT_PRIOR_SCALE
 from polrig.errors import DeviceAlarm, DeviceError
 
 __all__ = ["CaptureControl", "CaptureEvent", "CapturePlan", "CaptureRequest", "PreparedCapture",
@@ -220,7 +221,7 @@ class PreparedCapture:
     #: a new session's metadata (a resumed one keeps its own)
     metadata: SampleMetadata = dataclasses.field(default_factory=SampleMetadata)
     #: the hybrid prior's scale (:attr:`CaptureRequest.prior_scale`, resolved)
-    prior_scale: str = "innovations"
+    prior_scale: str = DEFAULT_PRIOR_SCALE
 
 
 def prepare_capture(request: CaptureRequest) -> PreparedCapture:
@@ -272,7 +273,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
         check_models(request, plan, calibration)
-        prior_scale = check_prior_scale(request.prior_scale or "innovations")
+        prior_scale = check_prior_scale(request.prior_scale or DEFAULT_PRIOR_SCALE)
     return PreparedCapture(out, plan, calibration, session,
                            request.metadata if request.metadata is not None else SampleMetadata(),
                            prior_scale)
@@ -286,7 +287,7 @@ def resumed_prior_scale(session: Session, asked: str | None) -> str:
     made = [c["prior"].get("sigma_scale", {"method": "calibrated"})["method"]
             for c in session.captures if "prior" in c]
     if not made:
-        return check_prior_scale(asked or "innovations")
+        return check_prior_scale(asked or DEFAULT_PRIOR_SCALE)
     if asked is not None and asked != made[0]:
         raise PlanError("prior_scale", f"the session's results were made with the prior scale {made[0]!r}, "
                                        f"this run asks for {asked!r}; leave it out to go on with {made[0]!r}, "

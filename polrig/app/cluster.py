@@ -51,6 +51,7 @@ from polrig.app.session import (
     interruption_reason,
     is_disk_full,
 )
+from polrig.choices import DEFAULT_PRIOR_SCALE
 from polrig.errors import ConfigError, PolrigError
 
 INSTALL_HINT = "pip install 'polrig[cluster]' (or: pip install 'dask[distributed]')"
@@ -223,7 +224,7 @@ class CaptureJob:
     #: ``full`` or ``auto``: lower-order models per pixel (:mod:`polrig.solve.model_selection`)
     models: str = "full"
     #: hybrid: the prior's scale, ``innovations`` or ``calibrated`` (:class:`polrig.app.processing.Processor`)
-    prior_scale: str = "innovations"
+    prior_scale: str = DEFAULT_PRIOR_SCALE
 
     @property
     def exr(self):
@@ -383,7 +384,7 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
 
     plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
                                       resolution, device, exr, network_binning, seen_state, model_size,
-                                      models, prior_scale or "innovations")
+                                      models, prior_scale or DEFAULT_PRIOR_SCALE)
              for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):

@@ -286,17 +286,32 @@ class Score(TypedDict):
     peak_m00: NotRequired[float | None]
 
 
+class OpenScaleRecord(TypedDict):
+    """The factor on a two-state hybrid prior's standard deviation along the direction the
+    states leave open (:class:`polrig.solve.open_scale.OpenScale`): the ``factor``, the ``raw``
+    estimate, the ``exponent`` it was taken to and the number of accepted ``values`` it rests on
+    (0: none, factor 1)."""
+
+    factor: Factor
+    raw: Factor
+    exponent: Finite
+    values: Index
+
+
 class PriorScaleRecord(TypedDict):
     """The factor a hybrid result's prior sigma was multiplied by
     (:class:`polrig.solve.prior_scale.PriorScale`): ``method`` ``innovations`` (estimated from
-    the states after the seen one) or ``calibrated`` (factor 1), the ``factor``, the ``raw``
-    estimate, the exponent ``shrink`` it was taken to, and the number of ``innovations``."""
+    the states after the seen one), ``geometry`` (that, and ``open_direction``) or ``calibrated``
+    (factor 1), the ``factor``, the ``raw`` estimate, the exponent ``shrink`` it was taken to,
+    and the number of ``innovations``; ``open_direction`` (``geometry`` only): the factor along
+    the direction two states leave open."""
 
-    method: Literal["innovations", "calibrated"]
+    method: Literal["innovations", "geometry", "calibrated"]
     factor: Factor
     raw: Factor
     shrink: Finite
     innovations: Index
+    open_direction: NotRequired[Annotated[OpenScaleRecord, Label("open direction: ")]]
 
 
 class PriorRecord(TypedDict):
@@ -394,15 +409,21 @@ def describe_prior_scale(prior: PriorRecord) -> str:
     """One line on a hybrid result's prior sigma (``polrig info``): ``sigma x 0.71 (innovations,
     48000 values)``, ``sigma as calibrated``; ``sigma as calibrated (no later state to scale it
     by)`` where the scale found nothing to rest on (one state); ``sigma as calibrated (before the
-    scale)`` for a result made before it existed."""
+    scale)`` for a result made before it existed; with ``geometry``, ``; along the open direction
+    x 1.2 (diffuse geometry, 9000 values)`` after it."""
     scale = prior.get("sigma_scale")
     if scale is None:
         return "sigma as calibrated (before the scale)"
     if scale["method"] == "calibrated":
         return "sigma as calibrated"
-    if scale["innovations"] == 0:
-        return "sigma as calibrated (no later state to scale it by)"
-    return f"sigma x {scale['factor']:.3g} (innovations, {scale['innovations']} values)"
+    text = ("sigma as calibrated (no later state to scale it by)" if scale["innovations"] == 0
+            else f"sigma x {scale['factor']:.3g} (innovations, {scale['innovations']} values)")
+    opened = scale.get("open_direction")
+    if opened is not None:
+        text += ("; along the open direction as that (no diffuse pixel to check it by)" if opened["values"] == 0
+                 else f"; along the open direction x {opened['factor']:.3g} (diffuse geometry, "
+                      f"{opened['values']} values)")
+    return text
 
 
 class CaptureRecord(TypedDict):
@@ -452,7 +473,7 @@ class RevisionSettings(TypedDict):
     models: NotRequired[Literal["full", "auto", "diffuse"]]
     #: the hybrid prior's scale (:data:`polrig.solve.prior_scale.METHODS`); absent in revisions
     #: made before it existed (``calibrated``: their sigma was never scaled)
-    prior_scale: NotRequired[Literal["innovations", "calibrated"]]
+    prior_scale: NotRequired[Literal["innovations", "geometry", "calibrated"]]
 
 
 class CameraFrames(TypedDict):

@@ -61,6 +61,7 @@ from polrig.app.diffuse_route import (
     check_geometry,
     diffuse_header,
     diffuse_planes,
+    missing_geometry,
     solve_diffuse,
 )
 from polrig.app.preview import write_result_previews
@@ -81,6 +82,7 @@ from polrig.app.session import (
 )
 from polrig.app.sessionio import CaptureFrames, load_capture_frames, read_verified_frame  # noqa: F401 (re-exported)
 from polrig.app.single_shot import SingleShot, SingleShotResult
+from polrig.choices import DEFAULT_PRIOR_SCALE
 from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.exr import (
     MuellerRows,
@@ -98,12 +100,14 @@ from polrig.solve.model_selection import (
     model_planes,
     selection_header,
 )
+from polrig.solve.open_scale import OpenScale
 from polrig.solve.prior_scale import METHODS as PRIOR_SCALES
 from polrig.solve.prior_scale import PriorScale
 from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
     StateRadiance,
     adc_scale,
     analyzer_stack,
+    open_scale_from_frames,
     prior_scale_from_frames,
     reference_from_frames,
     state_radiance,
@@ -429,11 +433,13 @@ class Processor:
     ``seen_state``: hybrid, the index into the capture's states of the frame the network sees
     (its estimate and calibrated sigma are the prior of the solve of all states,
     :mod:`polrig.solve.hybrid`).
-    ``prior_scale``: hybrid and adaptive, ``innovations`` (the default: the calibrated sigma
-    scaled per capture by what the states after the seen one show of the network's errors,
-    :mod:`polrig.solve.prior_scale`; factor 1 at one state) or ``calibrated`` (as calibrated); a
-    processing option like ``models``, each result records its factor (the prior record's
-    ``sigma_scale``).
+    ``prior_scale``: hybrid and adaptive, ``innovations`` (the calibrated sigma scaled per
+    capture by what the states after the seen one show of the network's errors,
+    :mod:`polrig.solve.prior_scale`; factor 1 at one state), ``geometry`` (that, and at two
+    states the prior along the direction they leave open scaled by what the diffuse term's
+    geometry shows of it, :meth:`open_scale`) or ``calibrated`` (as calibrated); default
+    :data:`polrig.choices.DEFAULT_PRIOR_SCALE`; a processing option like ``models``, each
+    result records its factors (the prior record's ``sigma_scale``).
     ``models``: ``full`` (the default: the 3x3 block everywhere), ``auto`` (reference and
     hybrid: per pixel the lower-order model a likelihood-ratio test accepts,
     :mod:`polrig.solve.model_selection`) or ``diffuse`` (hybrid at two states, ``n_states``: the
@@ -448,7 +454,7 @@ class Processor:
                  resolution: str = "superpixel", device: str = "auto",
                  exr: ExrChoice = ExrChoice(), network_binning: int = 1, seen_state: int = 0,
                  model_size: str = "auto", models: str = "full", n_states: int | None = None,
-                 prior_scale: str = "innovations"):
+                 prior_scale: str = DEFAULT_PRIOR_SCALE):
         if mode not in MODES:
             raise PlanError("mode", f"unknown mode {mode!r}; use {', '.join(MODES)}")
         if models not in MODEL_CHOICES:
@@ -692,18 +698,38 @@ class Processor:
                     known[key] = net
             header["execution_provider"] = net.provider
             scale = PriorScale.calibrated()
-            if self.prior_scale == "innovations":
+            if self.prior_scale != "calibrated":
                 scale = prior_scale_from_frames(states_, s_in_, frame_layout(cf.first), self.demosaic,
                                                 capture_analyzer(cf, self.calibration), net.mueller, net.sigma, k)
-            header["sigma_scale"] = scale.record()
+            record = scale.record()
             sigma = net.sigma if scale.factor == 1.0 else np.asarray(net.sigma) * np.float32(scale.factor)
             out = {"prior_mean": net.mueller, "prior_sigma": sigma, "seen_state": k,
                    "prior_correlation": self.single_shot.model.uncertainty.joint_correlation}
+            if self.prior_scale == "geometry":
+                opened = self.open_scale(states_, s_in_, cf, geometry, net, out)
+                record = record | {"method": "geometry", "open_direction": opened.record()}
+                if opened.factor != 1.0:
+                    out["open_factor"] = opened.factor
+            header["sigma_scale"] = record
             if keep is not None:
                 keep["net"], keep["prior"] = net, out
             return out
 
         return prior
+
+    def open_scale(self, states: list[StateRadiance], s_in: np.ndarray, cf: CaptureFrames,
+                   geometry: Mapping[str, Any] | None, net: SingleShotResult, prior: Mapping[str, Any]) -> OpenScale:
+        """The factor along the direction two states leave open (``--prior-scale geometry``:
+        :func:`polrig.solve.radiometry.open_scale_from_frames` on the hybrid's ``prior``, tested
+        on the network's object); factor 1 (no values) at another number of states or where the
+        rig's geometry is not known (:data:`polrig.app.diffuse_route.GEOMETRY_NEEDED`)."""
+        if len(states) != 2 or geometry is None or missing_geometry(geometry):
+            return OpenScale.none()
+        grid = np.shape(net.mueller)[-2:]
+        return open_scale_from_frames(states, s_in, frame_layout(cf.first), self.demosaic,
+                                      capture_analyzer(cf, self.calibration), prior["prior_mean"],
+                                      prior["prior_sigma"], prior["seen_state"], prior["prior_correlation"],
+                                      capture_geometry(geometry, cf.first, grid), net.object)
 
     @staticmethod
     def hybrid_header(prior_record: Mapping[str, Any], s_in: np.ndarray) -> dict[str, Any]:
@@ -793,7 +819,7 @@ class Processor:
 
 def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: SensorModel,
                    device: str = "auto", model_size: str = "auto",
-                   models: str = "full", prior_scale: str = "innovations") -> Processor:
+                   models: str = "full", prior_scale: str = DEFAULT_PRIOR_SCALE) -> Processor:
     """The :class:`Processor` of ``plan`` (its network on ``device``, of ``model_size``: run options;
     ``models``, ``prior_scale``: :class:`Processor`)."""
     return Processor(plan.mode, plan.demosaic, calibration, sensor_model, plan.mirror_average,
@@ -825,7 +851,7 @@ def reprocess_session(session: Session, *, mode: str | None = None, demosaic: st
                       exr: Mapping[str, Any] | None = None,
                       network_binning: int | None = None, seen_state: int | None = None,
                       model_size: str = "auto", models: str | None = None,
-                      prior_scale: str = "innovations") -> str:
+                      prior_scale: str = DEFAULT_PRIOR_SCALE) -> str:
     """Re-process every complete capture from its raw frames into a new revision (raw data
     and earlier results untouched). Returns the revision name.
 
@@ -869,7 +895,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
                   resolution: str | None = None, device: str = "auto",
                   exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
                   seen_state: int | None = None, model_size: str = "auto",
-                  models: str | None = None, prior_scale: str = "innovations"
+                  models: str | None = None, prior_scale: str = DEFAULT_PRIOR_SCALE
                   ) -> tuple[dict[str, Any], Processor, list[int]]:
     """What a new revision of ``session`` records and needs, checked before it exists (an
     impossible request records nothing): ``(settings, processor, captures)`` -- the
@@ -930,7 +956,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
                progress, on_failed, resolution=None, device="auto", exr=None,
                network_binning=None, seen_state=None, model_size="auto", models=None,
-               prior_scale="innovations") -> str:
+               prior_scale=DEFAULT_PRIOR_SCALE) -> str:
     settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
                                               calibration, resolution, device, exr, network_binning,
                                               seen_state, model_size, models, prior_scale)

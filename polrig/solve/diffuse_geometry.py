@@ -85,7 +85,7 @@ from polrig.solve.chunks import in_chunks
 from polrig.solve.reference import ILL_CONDITIONED, ReferenceResult
 from polrig.solve.reduced_models import MODELS
 
-__all__ = ["DiffuseGeometry", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "specular_block",
+__all__ = ["DiffuseGeometry", "geometry_rows", "DiffuseFit", "unobserved_direction", "diffuse_ratios", "specular_block",
            "light_directions", "light_fields",
            "fit_diffuse_geometry", "ratio_weights", "window_sums", "neighbour_mean", "complete_diffuse", "RANK_ONE"]
 
@@ -133,6 +133,17 @@ class DiffuseGeometry:
     stage_zero_axis: np.ndarray
     camera_x_axis: np.ndarray = dataclasses.field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
     normal_guess: np.ndarray | None = None
+
+
+def geometry_rows(geometry: DiffuseGeometry, y0: int, y1: int) -> DiffuseGeometry:
+    """``geometry`` of the image rows ``y0 .. y1``: its per-pixel arrays (``view``, the
+    ``(H, W, 3)`` light fields, ``normal_guess``) cut to those rows, the rest as they are."""
+    def cut(a):
+        return a[y0:y1] if a is not None and np.ndim(a) == 3 else a
+
+    light = tuple(cut(x) for x in geometry.light) if isinstance(geometry.light, tuple) else cut(geometry.light)
+    return dataclasses.replace(geometry, view=geometry.view[y0:y1], light=light,
+                               normal_guess=cut(geometry.normal_guess))
 
 
 class DiffuseFit(NamedTuple):

@@ -45,8 +45,10 @@ from polrig.sensor.demosaic import (
 )
 from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
+from polrig.solve.diffuse_geometry import DiffuseGeometry, geometry_rows
 from polrig.solve.hybrid import solve_hybrid
 from polrig.solve.model_selection import ModelMaps, SelectionOptions, select_models
+from polrig.solve.open_scale import OpenScale, open_scale_of, open_values
 from polrig.solve.prior_scale import PriorScale, innovations, scale_of
 from polrig.solve.reference import ReferenceResult, merge_hdr, solve_reference
 
@@ -321,6 +323,56 @@ def prior_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     return scale_of(*(np.concatenate(a) for a in zip(*parts)))
 
 
+#: Output rows per band of :func:`open_scale_from_frames`' sample: the diffuse completion's second
+#: pass looks at each pixel's 3x3 neighbours, whom a band's first and last rows lack in part.
+OPEN_BAND_ROWS = 8
+
+
+def open_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
+                           layout: str | MosaicLayout, method: str, analyzer: AnalyzerModel | None,
+                           prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int,
+                           prior_correlation: np.ndarray | None, geometry: DiffuseGeometry, mask: np.ndarray, *,
+                           band_rows: int = OPEN_BAND_ROWS, sample_pixels: int = SCALE_SAMPLE_PIXELS) -> OpenScale:
+    """The factor on the prior's standard deviation along the direction two states leave open
+    (:mod:`polrig.solve.open_scale`) for the hybrid solve of these frames: on an even sample of
+    the bands of ``band_rows`` output rows that hold some of ``mask`` (every ``k``-th, ``k`` the
+    least that keeps at most ``sample_pixels`` of its pixels times colours; all of them on a
+    smaller object), each solved as :func:`reference_from_frames` solves it (in float64) and
+    tested and completed there (:func:`polrig.solve.open_scale.open_values`), the values pooled
+    (:func:`polrig.solve.open_scale.open_scale_of`). ``prior_*``, ``seen_state``: the hybrid's
+    (the sigma already scaled by :func:`prior_scale_from_frames`); ``geometry``: the output
+    grid's (:class:`polrig.solve.diffuse_geometry.DiffuseGeometry`; its normals are not used);
+    ``mask`` ``(H, W)``: the pixels to test (the network's object). Not two states: factor 1."""
+    lay = resolve_layout(layout)
+    s = np.asarray(s_in, np.float64).reshape(-1, 3)
+    if len(states) != 2:
+        return OpenScale.none()
+    shape = np.shape(states[0].signal_dn)
+    if analyzer is not None:
+        _check_analyzer(analyzer, shape)
+    c = lay.n_colours
+    h_out, w_out = output_shape(lay, shape, method)
+    mask = np.broadcast_to(np.asarray(mask, bool), (h_out, w_out))
+    bands = [b for b in row_bands(lay, shape, method, max(1, int(band_rows))) if mask[b[0]:b[1]].any()]
+    step = max(1, -(-int(mask.sum()) * c // max(1, int(sample_pixels))))
+    mean, sigma = (np.broadcast_to(np.asarray(a), (c, 3, 3, h_out, w_out)) for a in (prior_mean, prior_sigma))
+    d, v = [], []
+    for band in bands[::step]:
+        o0, o1 = band[:2]
+        meas, var, valid, rows = _band_samples(states, band, lay, method, analyzer)
+        prior = dict(prior_mean=mean[..., o0:o1, :], prior_sigma=sigma[..., o0:o1, :], seen_state=seen_state,
+                     prior_correlation=prior_correlation)
+        with _SOLVE_LOCK:
+            res = solve_hybrid(s, meas, var, valid, rows, dtype=np.float64, **prior)
+        part = open_values(res, s, meas, var, valid, geometry_rows(geometry, o0, o1), mask=mask[o0:o1],
+                           analyzer_rows=rows, **prior)
+        d.append(part[0])
+        v.append(part[1])
+    if not d:
+        return open_scale_of(np.zeros(0), np.zeros(0))
+    return open_scale_of(np.concatenate(d), np.concatenate(v))
+
+
 def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           layout: str | MosaicLayout, method: str = "superpixel",
                           analyzer: AnalyzerModel | None = None, *,
@@ -331,7 +383,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                           workers: int | None = None, prior_mean: np.ndarray | None = None,
                           prior_sigma: np.ndarray | None = None,
                           seen_state: int | None = None,
-                          prior_correlation: np.ndarray | None = None,
+                          prior_correlation: np.ndarray | None = None, open_factor: float = 1.0,
                           model_selection: SelectionOptions | None = None) -> ReferenceResult:
     """The reference solve of all states (see :func:`polrig.solve.reference.solve_reference`;
     the tolerances are the calibration's, :class:`polrig.app.processing.Calibration`).
@@ -341,7 +393,9 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
     ``seen_state``'s frame), the hybrid solve instead
     (:func:`polrig.solve.hybrid.solve_hybrid`, any number of states), each band with its rows
     of the prior; ``prior_correlation`` ``(6, 6)``: the prior calibrated jointly
-    (:mod:`polrig.solve.hybrid`, "Joint prior"; None: per element).
+    (:mod:`polrig.solve.hybrid`, "Joint prior"; None: per element); ``open_factor``: at two
+    states, the factor on the prior's standard deviation along the direction they leave open
+    (:func:`open_scale_from_frames`; 1: as it is).
 
     With ``model_selection``, each band's result then goes through
     :func:`polrig.solve.model_selection.select_models` on the same samples (lower-order models
@@ -399,7 +453,7 @@ def reference_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                 res = solve_hybrid(s_in, meas, var, valid, a_rows,
                                    prior_mean=prior_mean[..., o0:o1, :],
                                    prior_sigma=prior_sigma[..., o0:o1, :], seen_state=seen_state,
-                                   prior_correlation=prior_correlation,
+                                   prior_correlation=prior_correlation, open_factor=open_factor,
                                    analyzer_tolerance=analyzer_tolerance,
                                    generator_tolerance=generator_tolerance)
             else:

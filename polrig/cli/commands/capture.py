@@ -19,6 +19,7 @@ import sys
 from typing import Iterator
 
 from polrig.choices import (
+    DEFAULT_PRIOR_SCALE,
     DEMOSAIC_METHODS,
     EXR_COMPRESSIONS,
     EXR_UNCERTAINTY_PRECISIONS,
@@ -50,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the network's state (the first of --states), then states chosen from the "
                         "posterior until --target-sigma holds (polrig.app.adaptive)")
     add_seen_state_option(p, "default 0")
-    add_prior_scale_option(p, "default innovations; on --resume the session's")
+    add_prior_scale_option(p, f"default {DEFAULT_PRIOR_SCALE}; on --resume the session's")
     add_models_option(p)
     add_adaptive_options(p)
     p.add_argument("--mirror-average", action="store_true", default=None,
@@ -143,13 +144,17 @@ def add_models_option(p: argparse.ArgumentParser) -> None:
 
 
 def add_prior_scale_option(p: argparse.ArgumentParser, default: str) -> None:
-    """``--prior-scale innovations|calibrated``: the hybrid prior's scale
-    (:mod:`polrig.solve.prior_scale`; ``capture`` and ``reconstruct``)."""
+    """``--prior-scale innovations|geometry|calibrated``: the hybrid prior's scale
+    (:mod:`polrig.solve.prior_scale`, :mod:`polrig.solve.open_scale`; ``capture`` and ``reconstruct``)."""
     p.add_argument("--prior-scale", choices=PRIOR_SCALES, default=None,
                    help="hybrid and adaptive: innovations scales the network's calibrated sigma per "
                         "capture by how far the states after the seen one find its estimate off "
-                        "(recorded with each result as sigma_scale; factor 1 at one state); calibrated "
-                        f"keeps the sigma as calibrated ({default})")
+                        "(recorded with each result as sigma_scale; factor 1 at one state); geometry "
+                        "does that and, at two states, scales the prior along the direction they leave "
+                        "open by how far the diffuse term fitted to the rig's geometry finds it off "
+                        "(needs the calibrated light and intrinsics; recorded as "
+                        "sigma_scale.open_direction); calibrated keeps the sigma as calibrated "
+                        f"({default})")
 
 
 def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:

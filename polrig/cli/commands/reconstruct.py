@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from polrig.choices import DEMOSAIC_METHODS
+from polrig.choices import DEFAULT_PRIOR_SCALE, DEMOSAIC_METHODS
 from polrig.formats.argcheck import int_range
 
 
@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="reconstruction method (default: each session's); hybrid works on any "
                         "session with at least one polarizer state")
     add_seen_state_option(p, "default: the session's where it stays hybrid, else 0")
-    add_prior_scale_option(p, "default innovations")
+    add_prior_scale_option(p, f"default {DEFAULT_PRIOR_SCALE}")
     p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method (default: each session's)")
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
