@@ -448,6 +448,25 @@ def scaled_sigma(fr: Frames, offsets: Sequence[int]) -> np.ndarray:
     return fr.sigma if factor == 1.0 else fr.sigma * factor
 
 
+def open_factor(fr: Frames, offsets: Sequence[int], sigma: np.ndarray, correlation: np.ndarray | None = None
+                ) -> float:
+    """The factor on the hybrid prior's standard deviation along the direction two states leave
+    open, as captures with :data:`polrig.choices.DEFAULT_PRIOR_SCALE` find it (``geometry``:
+    :mod:`polrig.solve.open_scale` on the whole frame, the network's object, the prior's sigma
+    ``sigma`` as scaled by :func:`scaled_sigma`); 1 at another number of states, without the
+    frame's geometry, or with another default."""
+    from polrig.choices import DEFAULT_PRIOR_SCALE
+    from polrig.solve.hybrid import solve_hybrid
+    from polrig.solve.open_scale import open_scale_of, open_values
+
+    if DEFAULT_PRIOR_SCALE != "geometry" or len(offsets) != 2 or fr.geometry is None:
+        return 1.0
+    s, meas, var, valid = _stack(fr, offsets)
+    prior = dict(prior_mean=fr.prior, prior_sigma=sigma, seen_state=0, prior_correlation=correlation)
+    r = solve_hybrid(s, meas, var, valid, dtype=np.float64, **prior)
+    return open_scale_of(*open_values(r, s, meas, var, valid, fr.geometry, mask=fr.mask, **prior)).factor
+
+
 def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.ndarray | None = None,
              seen_share: Sequence[float] | None = None, prior_scale: bool = True):
     """``(mueller, sigma, solved)`` of ``method`` (``single``, ``hybrid``, ``reference`` or a
@@ -455,8 +474,8 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.nd
     the hybrid's joint prior (:func:`polrig.solve.hybrid.solve_hybrid`'s ``prior_correlation``;
     None the per-element prior); ``seen_share``: the hybrid's (``solve_hybrid``'s; None: the
     row's whole variance along the seen direction kept); ``prior_scale``: the hybrid's prior
-    sigma scaled as captures scale it (:func:`scaled_sigma`, the default) or as calibrated
-    (False; the :data:`VARIANTS` study the calibrated sigma)."""
+    sigma scaled as captures scale it (:func:`scaled_sigma` and, at two states, :func:`open_factor`;
+    the default) or as calibrated (False; the :data:`VARIANTS` study the calibrated sigma)."""
     from polrig.solve.hybrid import solve_hybrid
     from polrig.solve.reference import ILL_CONDITIONED, solve_reference
 
@@ -465,8 +484,10 @@ def estimate(fr: Frames, offsets: Sequence[int], method: str, correlation: np.nd
     s, meas, var, valid = _stack(fr, offsets)
     kw = dict(prior_mean=fr.prior, dtype=np.float64)
     if method == "hybrid":
-        r = solve_hybrid(s, meas, var, valid, prior_sigma=scaled_sigma(fr, offsets) if prior_scale else fr.sigma,
-                         seen_state=0, prior_correlation=correlation, seen_share=seen_share, **kw)
+        sigma = scaled_sigma(fr, offsets) if prior_scale else fr.sigma
+        factor = open_factor(fr, offsets, sigma, correlation) if prior_scale else 1.0
+        r = solve_hybrid(s, meas, var, valid, prior_sigma=sigma, seen_state=0, prior_correlation=correlation,
+                         seen_share=seen_share, open_factor=factor, **kw)
     elif method == "marginal":
         r = solve_hybrid(s, meas, var, valid, prior_sigma=marginal_sigma(fr), seen_state=0, plane_variance="scalar",
                          **kw)
@@ -776,7 +797,8 @@ def diffuse_row(fr: Frames, two: Sequence[int], correlation, holds: np.ndarray, 
     s, meas, var, valid = _stack(fr, two)
     sigma = scaled_sigma(fr, two)  # as the capture's route (polrig.app.diffuse_route)
     r = solve_hybrid(s, meas, var, valid, prior_mean=fr.prior, prior_sigma=sigma, seen_state=0,
-                     dtype=np.float64, prior_correlation=correlation)
+                     dtype=np.float64, prior_correlation=correlation,
+                     open_factor=open_factor(fr, two, sigma, correlation))
     g, test, _ = complete_tested_diffuse(r, s, meas, var, valid, fr.geometry, prior=(fr.prior, sigma),
                                          seen_state=0, prior_correlation=correlation, mask=fr.mask, specular=True)
     solved = (r.mask & ILL_CONDITIONED) == 0
@@ -925,8 +947,7 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     taken = [0]
     while True:
         prior_sigma = scaled_sigma(fr, taken)  # the solve's and the design's, as the capture's
-        mueller, sigma, solved = estimate(dataclasses.replace(fr, sigma=prior_sigma), taken, "hybrid", correlation,
-                                          prior_scale=False)
+        mueller, sigma, solved = estimate(fr, taken, "hybrid", correlation)  # prior_sigma and, at two, the open factor
         got, met = share_at_target(relative_sigma(sigma, mueller, lit), obj, target)
         if got >= share or len(taken) >= max_states:
             return mueller, sigma, solved, taken

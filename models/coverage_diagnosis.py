@@ -47,7 +47,8 @@ lit samples of each set (the held-out sets and the uncertainty calibration's sce
   normals as its guess, so that it does not lean on the prior) predicts ``m_r . u`` from the
   geometry; ``f_u`` is the quantile scale of the completion less the hybrid along ``u`` against
   the hybrid's own posterior variance there (:mod:`polrig.solve.open_scale`). The hybrid is then
-  solved again with the prior's standard deviation along ``u`` times ``f_u ** g``
+  solved again with the prior's standard deviation along ``u`` times ``max(f_u, 1) ** g`` (it
+  widens, never narrows: :mod:`polrig.solve.open_scale`)
   (``solve_hybrid(open_factor=...)``, as captures do with ``--prior-scale geometry``), for each
   exponent ``g`` of :data:`OPEN_EXPONENTS` (0: the innovations' scale alone); scored over all
   elements, with the spread of the samples' own coverage (the 10th-90th percentile). The
@@ -236,8 +237,8 @@ def open_scale_counts(fr, correlation, exponents: Sequence[float], counts: dict,
     """The open direction's what-if (module docstring) on one sample: the two-state hybrid of
     :data:`polrig.models.continuum.RIG_TWO`, the prior scaled as captures scale it, solved again
     with the prior's standard deviation along the open direction times ``f_u ** g``
-    (:func:`polrig.solve.open_scale.open_values`, ``solve_hybrid(open_factor=...)``) for each ``g``
-    of ``exponents``: appends ``[within 2 sigma, elements]`` to ``counts[str(g)]`` (and the matrix
+    (:func:`polrig.solve.open_scale.open_values`, ``solve_hybrid(open_factor=...)``; ``max(f_u, 1) ** g``,
+    :func:`polrig.solve.open_scale.open_scale_of`) for each ``g`` of ``exponents``: appends ``[within 2 sigma, elements]`` to ``counts[str(g)]`` (and the matrix
     PSNR over the object, dB, to ``psnr[str(g)]`` if given); returns ``f_u`` (1 where fewer than 30
     accepted values)."""
     from polrig.solve.hybrid import solve_hybrid
@@ -249,14 +250,15 @@ def open_scale_counts(fr, correlation, exponents: Sequence[float], counts: dict,
     sigma = cn.scaled_sigma(fr, two)
     prior = dict(prior_mean=fr.prior, prior_sigma=sigma, seen_state=0, prior_correlation=correlation)
     r = solve_hybrid(s, meas, var, valid, dtype=np.float64, **prior)
-    f = open_scale_of(*open_values(r, s, meas, var, valid, fr.geometry, mask=fr.mask, **prior), exponent=1.0).raw
+    values = open_values(r, s, meas, var, valid, fr.geometry, mask=fr.mask, **prior)
     for g in exponents:
-        rg = r if g == 0 else solve_hybrid(s, meas, var, valid, dtype=np.float64, open_factor=f ** g, **prior)
+        factor = open_scale_of(*values, exponent=g).factor
+        rg = r if factor == 1.0 else solve_hybrid(s, meas, var, valid, dtype=np.float64, open_factor=factor, **prior)
         sc = cn.score(fr, rg.mueller, rg.sigma, (rg.mask & ILL_CONDITIONED) == 0)
         counts[str(g)].append([sc["inside"], sc["elements"]])
         if psnr is not None:
             psnr[str(g)].append(sc["matrix_psnr"])
-    return f
+    return open_scale_of(*values).raw
 
 
 def fit_open_exponent(per_sample: dict[str, list], target: float = 0.9545) -> float:
@@ -385,7 +387,8 @@ def _open_table(result: dict, names: dict) -> list[str]:
     fitted = result.get("fitted_open_exponent")
     lines = ["", "**What-if: the open direction's scale from the diffuse completion** (two states "
              f"{'/'.join(map(str, cn.RIG_TWO))}, the prior scaled as captures scale it, then the prior's "
-             "standard deviation along the open direction times `f_u ** g` and solved again; g 0: as shipped"
+             "standard deviation along the open direction times `max(f_u, 1) ** g` and solved again; g 0: the "
+             "innovations' scale alone"
              + ("" if fitted is None else f"; g chosen on the calibration scenes, each sample's coverage nearest "
                                           f"95.45 % in the mean square: {fitted:g}")
              + "): `f_u` median (10-90 %) over the samples; within "

@@ -57,7 +57,7 @@ MODEL_CHOICES = ("full", "auto", "diffuse")
 #: calibrated).
 PRIOR_SCALES = ("innovations", "geometry", "calibrated")
 #: The ``--prior-scale`` a new capture or revision takes when none is given.
-DEFAULT_PRIOR_SCALE = "innovations"
+DEFAULT_PRIOR_SCALE = "geometry"
 
 # -- polrig.acquisition ---------------------------------------------------------------------------
 #: Network binnings of the single-shot method

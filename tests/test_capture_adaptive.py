@@ -132,7 +132,9 @@ def test_each_pose_records_the_states_it_took_and_why(adaptive_run):
         # the prior's scale: none at the network's state alone; the result's is its last decision's
         assert decisions[0]["sigma_scale"] == 1.0 and all(d["sigma_scale"] > 0 for d in decisions)
         assert cap["prior"]["sigma_scale"]["factor"] == decisions[-1]["sigma_scale"]
-        assert cap["prior"]["sigma_scale"]["method"] == "innovations"
+        scale = cap["prior"]["sigma_scale"]  # the default: with the open direction's at two states
+        assert scale["method"] == "geometry" and (decisions[-1]["states_taken"] == 2
+                                                  or scale["open_direction"]["values"] == 0)
 
 
 @needs_model

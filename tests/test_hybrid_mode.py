@@ -273,10 +273,11 @@ def test_the_gui_capture_panel_offers_the_hybrid_mode(qtbot, tmp_path):
     assert request.models == "full" and cp.models.isEnabled()
     cp.models.setCurrentText("diffuse")
     assert cp.request().models == "diffuse"
-    # the prior's scale: the CLI's choices, innovations by default, none outside the prior's modes
+    # the prior's scale: the CLI's choices, the CLI's default, none outside the prior's modes
     cp.mode.setCurrentText("hybrid")
-    assert [cp.prior_scale.itemText(i) for i in range(cp.prior_scale.count())] == ["innovations", "calibrated"]
-    assert cp.prior_scale.isEnabled() and cp.request().prior_scale == "innovations"
+    assert [cp.prior_scale.itemText(i) for i in range(cp.prior_scale.count())] == ["innovations", "geometry",
+                                                                                   "calibrated"]
+    assert cp.prior_scale.isEnabled() and cp.request().prior_scale == "geometry"
     cp.prior_scale.setCurrentText("calibrated")
     assert cp.request().prior_scale == "calibrated"
     cp.mode.setCurrentText("single-shot")

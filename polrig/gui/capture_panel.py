@@ -71,7 +71,7 @@ from polrig.app.capture import (
 )
 from polrig.app.manifest import SampleMetadata
 from polrig.app.preview import tone_map
-from polrig.choices import MODEL_CHOICES, PRIOR_SCALES
+from polrig.choices import DEFAULT_PRIOR_SCALE, MODEL_CHOICES, PRIOR_SCALES
 from polrig.errors import PolrigError
 from polrig.formats.exr import (
     COMPRESSIONS,
@@ -231,9 +231,12 @@ class CapturePanel(QWidget):
         self.mode.currentTextChanged.connect(lambda m: self.models.setEnabled(m != "single-shot"))
         self.prior_scale = QComboBox()
         self.prior_scale.addItems(list(PRIOR_SCALES))
+        self.prior_scale.setCurrentText(DEFAULT_PRIOR_SCALE)
         self.prior_scale.setToolTip("hybrid, adaptive: innovations scales the network's calibrated sigma per "
                                     "capture by how far the states after the seen one find its estimate off "
-                                    "(each result records the factor); calibrated keeps it as calibrated. "
+                                    "(each result records the factor); geometry does that and, at two states, "
+                                    "scales the prior along the direction they leave open by what the diffuse "
+                                    "term at the rig's geometry finds; calibrated keeps it as calibrated. "
                                     "A resumed session goes on with its own")
         self.prior_scale.setEnabled(False)
         self.mode.currentTextChanged.connect(lambda m: self.prior_scale.setEnabled(m in PRIOR_MODES))

@@ -32,10 +32,12 @@ any innovation, so :data:`SHRINK` takes the estimate partly (``c ** SHRINK``), a
 the calibration scenes (:mod:`polrig.models.coverage_diagnosis`, "A what-if of the prior's scale
 from the innovations"; what it does to every set: ``README.md``, issue 33's coverage).
 
-Captures take it by default (``--prior-scale innovations``; ``calibrated`` keeps the sigma
-as calibrated): :func:`polrig.solve.radiometry.prior_scale_from_frames` estimates it from an
-even sample of the output rows before the band-by-band solve, and each hybrid result
-records it (:class:`PriorScale`, the manifest's ``prior`` record and the EXR header).
+Captures take it (``--prior-scale innovations``, and ``geometry``, which at two states adds the
+open direction's own scale from the diffuse term's geometry, :mod:`polrig.solve.open_scale`;
+``calibrated`` keeps the sigma as calibrated): :func:`polrig.solve.radiometry.prior_scale_from_frames`
+estimates it from an even sample of the output rows before the band-by-band solve, and each
+hybrid result records it (:class:`PriorScale`, the manifest's ``prior`` record and the EXR
+header).
 """
 
 from __future__ import annotations
@@ -59,8 +61,9 @@ SCALE_LIMITS = (0.1, 10.0)
 #: where two states 0/90 cover 95.45 % of the calibration scenes' elements (their 48 lit samples
 #: of ``python -m polrig.models.coverage_diagnosis --count 64``, the shipped network and sigma).
 SHRINK = 0.84
-#: The choices of a capture's prior scale: ``innovations`` (this module's, the default) or
-#: ``calibrated`` (the sigma as calibrated, factor 1); defined in :mod:`polrig.choices`.
+#: The choices of a capture's prior scale: ``innovations`` (this module's), ``geometry`` (this
+#: module's and :mod:`polrig.solve.open_scale`'s) or ``calibrated`` (the sigma as calibrated,
+#: factor 1); defined in :mod:`polrig.choices`.
 METHODS = PRIOR_SCALES
 
 
