@@ -1222,10 +1222,12 @@ def markdown(result: dict) -> str:
 
 def prior_scale_table(result: dict) -> list[str]:
     """The hybrid at 2, 3 and 4 states with the prior's sigma as calibrated against scaled as
-    captures scale it (:func:`scaled_sigma`): matrix PSNR and within 2 sigma, per set."""
+    captures scale it (:func:`scaled_sigma`, and at two states :func:`open_factor`): matrix PSNR
+    and within 2 sigma, per set."""
     head = [f"{n} states: {what}" for n in (2, 3, 4) for what in ("PSNR dB", "within 2 sigma")]
-    lines = ["**The prior's scale** (`polrig.solve.prior_scale`; the captures' default): the hybrid with the "
-             "network's sigma as calibrated -> scaled per sample by the states after the seen one", "",
+    lines = ["**The prior's scale** (`polrig.solve.prior_scale`, `polrig.solve.open_scale`; the captures' default): "
+             "the hybrid with the network's sigma as calibrated -> scaled per sample by the states after the seen one "
+             "and, at two states, along the direction they leave open by the diffuse term's geometry", "",
              "| set | " + " | ".join(head) + " |", "|---|" + "---:|" * len(head)]
     for key, r in result["sets"].items():
         m = r["methods"]
