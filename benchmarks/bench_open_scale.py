@@ -6,7 +6,7 @@ every band of the object.
 two-state hybrid, the diffuse test and the completion on a sample of the object's row bands,
 :mod:`polrig.solve.open_scale`) on the full sensor's mosaics (2448x2048, IMX250MZR mono and
 IMX250MYR colour; superpixel demosaic, ideal analyzer), states 0/90, the seen state 0: its sample
-(:data:`polrig.solve.radiometry.SCALE_SAMPLE_PIXELS` of the object's pixels times colours) against
+(:data:`polrig.solve.radiometry.OPEN_SAMPLE_PIXELS` of the object's pixels times colours) against
 every band that holds the object (the alternative: the factor of the whole object), and, for
 scale, the banded hybrid solve it precedes (:func:`polrig.solve.radiometry.reference_from_frames`
 with the prior). The scene: a diffuse sphere (Baek's diffuse term, refractive index 1.5) filling
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "open_scale.md"))
     args = ap.parse_args(argv)
-    from polrig.solve.radiometry import SCALE_SAMPLE_PIXELS
+    from polrig.solve.radiometry import OPEN_SAMPLE_PIXELS
 
     rows = []
     for layout_name in ("imx250mzr", "imx250myr"):
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
              f"mosaics, superpixel, ideal analyzer, states 0/90, a diffuse sphere over {100 * OBJECT_SHARE:.0f} % of the "
              f"frame whose prior errs along the open direction by {PRIOR_ERROR:g} times its sigma (module docstring); "
              f"warm, in process, medians of {args.rounds} interleaved rounds on 2 shared CPUs. Sampled: every k-th row "
-             f"band holding the object, at most {SCALE_SAMPLE_PIXELS} of its pixels times colours, as captures take it; "
+             f"band holding the object, at most {OPEN_SAMPLE_PIXELS} of its pixels times colours, as captures take it; "
              "every band: the factor of the whole object.", "",
              "| sensor | object pixels | sampled s | factor (raw) | values | every band s | factor (raw) | values | "
              "hybrid solve s | sampled / solve | peak MiB, sampled / solve |",

@@ -326,13 +326,19 @@ def prior_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
 #: Output rows per band of :func:`open_scale_from_frames`' sample: the diffuse completion's second
 #: pass looks at each pixel's 3x3 neighbours, whom a band's first and last rows lack in part.
 OPEN_BAND_ROWS = 8
+#: Object pixels times colours :func:`open_scale_from_frames` samples at most: the test and the
+#: completion cost about 75 us a colour-pixel (2 CPUs), so 2^16 took 4.6 s of a full mono
+#: capture (``python -m benchmarks open_scale``); a quarter of that keeps the quantile's own
+#: spread small (some 40 000 values) for a quarter of the time. The rig's 128x128 grid and the
+#: 64x64 sets are taken whole.
+OPEN_SAMPLE_PIXELS = 2 ** 14
 
 
 def open_scale_from_frames(states: Sequence[StateRadiance], s_in: np.ndarray,
                            layout: str | MosaicLayout, method: str, analyzer: AnalyzerModel | None,
                            prior_mean: np.ndarray, prior_sigma: np.ndarray, seen_state: int,
                            prior_correlation: np.ndarray | None, geometry: DiffuseGeometry, mask: np.ndarray, *,
-                           band_rows: int = OPEN_BAND_ROWS, sample_pixels: int = SCALE_SAMPLE_PIXELS) -> OpenScale:
+                           band_rows: int = OPEN_BAND_ROWS, sample_pixels: int = OPEN_SAMPLE_PIXELS) -> OpenScale:
     """The factor on the prior's standard deviation along the direction two states leave open
     (:mod:`polrig.solve.open_scale`) for the hybrid solve of these frames: on an even sample of
     the bands of ``band_rows`` output rows that hold some of ``mask`` (every ``k``-th, ``k`` the
