@@ -25,10 +25,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
-import statistics
 import sys
-import time
-import tracemalloc
 
 import numpy as np
 
@@ -102,6 +99,7 @@ def measure(states, s_in, layout, mean, sigma, geometry, mask, rounds: int):
     """The sampled factor, the factor over every object band and the banded hybrid solve: medians
     of ``rounds`` interleaved rounds (s), each factor's answer and the peak MiB of the sampled
     factor and of the solve."""
+    from benchmarks.timing import interleaved_medians, peak_mib
     from polrig.solve.radiometry import open_scale_from_frames, reference_from_frames
 
     args = (states, s_in, layout, "superpixel", None, mean, sigma, 0, None, geometry, mask)
@@ -111,21 +109,9 @@ def measure(states, s_in, layout, mean, sigma, geometry, mask, rounds: int):
         "hybrid solve": lambda: reference_from_frames(states, s_in, layout, "superpixel", prior_mean=mean,
                                                       prior_sigma=sigma, seen_state=0),
     }
-    times: dict[str, list[float]] = {k: [] for k in runs}
-    answers = {k: f() for k, f in runs.items() if k != "hybrid solve"}  # warm-up (the kernels compiled)
-    runs["hybrid solve"]()
-    for _ in range(rounds):
-        for k, f in runs.items():
-            t = time.perf_counter()
-            f()
-            times[k].append(time.perf_counter() - t)
-    peak = {}
-    for k in ("sampled", "hybrid solve"):  # one more call each, untimed, under tracemalloc
-        tracemalloc.start()
-        runs[k]()
-        peak[k] = tracemalloc.get_traced_memory()[1] / 2**20
-        tracemalloc.stop()
-    return {k: statistics.median(v) for k, v in times.items()}, answers, peak
+    med, answers = interleaved_medians(runs, rounds)
+    answers.pop("hybrid solve")  # the solve's result is not kept
+    return med, answers, {k: peak_mib(runs[k]) for k in ("sampled", "hybrid solve")}
 
 
 def main(argv: list[str] | None = None) -> int:
