@@ -99,19 +99,16 @@ def measure(states, s_in, layout, mean, sigma, geometry, mask, rounds: int):
     """The sampled factor, the factor over every object band and the banded hybrid solve: medians
     of ``rounds`` interleaved rounds (s), each factor's answer and the peak MiB of the sampled
     factor and of the solve."""
-    from benchmarks.timing import interleaved_medians, peak_mib
+    from benchmarks.timing import sampled_against_every_band
     from polrig.solve.radiometry import open_scale_from_frames, reference_from_frames
 
     args = (states, s_in, layout, "superpixel", None, mean, sigma, 0, None, geometry, mask)
-    runs = {
-        "sampled": lambda: open_scale_from_frames(*args),
-        "every band": lambda: open_scale_from_frames(*args, sample_pixels=10**12),
-        "hybrid solve": lambda: reference_from_frames(states, s_in, layout, "superpixel", prior_mean=mean,
-                                                      prior_sigma=sigma, seen_state=0),
-    }
-    med, answers = interleaved_medians(runs, rounds)
-    answers.pop("hybrid solve")  # the solve's result is not kept
-    return med, answers, {k: peak_mib(runs[k]) for k in ("sampled", "hybrid solve")}
+    return sampled_against_every_band(
+        lambda: open_scale_from_frames(*args),
+        lambda: open_scale_from_frames(*args, sample_pixels=10**12),
+        lambda: reference_from_frames(states, s_in, layout, "superpixel", prior_mean=mean, prior_sigma=sigma,
+                                      seen_state=0),
+        rounds)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -84,19 +84,15 @@ def measure(states, s_in, layout, mean, sigma, rounds: int):
     """The sampled scale, the scale over every band and the banded hybrid solve of one case:
     medians of ``rounds`` interleaved rounds (s), each one's answer (the solve's not kept) and
     the peak MiB of the sampled scale and of the solve."""
-    from benchmarks.timing import interleaved_medians, peak_mib
+    from benchmarks.timing import sampled_against_every_band
     from polrig.solve.radiometry import prior_scale_from_frames, reference_from_frames
 
-    runs = {
-        "sampled": lambda: prior_scale_from_frames(states, s_in, layout, "superpixel", None, mean, sigma, 0),
-        "every band": lambda: prior_scale_from_frames(states, s_in, layout, "superpixel", None, mean, sigma, 0,
-                                                      sample_pixels=10**12),
-        "hybrid solve": lambda: reference_from_frames(states, s_in, layout, "superpixel", prior_mean=mean,
-                                                      prior_sigma=sigma, seen_state=0),
-    }
-    med, answers = interleaved_medians(runs, rounds)
-    answers.pop("hybrid solve")  # the solve's result is not kept
-    return med, answers, {k: peak_mib(runs[k]) for k in ("sampled", "hybrid solve")}
+    return sampled_against_every_band(
+        lambda: prior_scale_from_frames(states, s_in, layout, "superpixel", None, mean, sigma, 0),
+        lambda: prior_scale_from_frames(states, s_in, layout, "superpixel", None, mean, sigma, 0, sample_pixels=10**12),
+        lambda: reference_from_frames(states, s_in, layout, "superpixel", prior_mean=mean, prior_sigma=sigma,
+                                      seen_state=0),
+        rounds)
 
 
 def main(argv: list[str] | None = None) -> int:

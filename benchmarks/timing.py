@@ -33,3 +33,15 @@ def peak_mib(run: Callable[[], Any]) -> float:
         return tracemalloc.get_traced_memory()[1] / 2**20
     finally:
         tracemalloc.stop()
+
+
+def sampled_against_every_band(sampled: Callable[[], Any], every_band: Callable[[], Any], solve: Callable[[], Any],
+                               rounds: int) -> tuple[dict[str, float], dict[str, Any], dict[str, float]]:
+    """A scale estimated on a sample of the row bands, the same on every band, and the banded
+    solve it precedes (``prior_scale``, ``open_scale``): :func:`interleaved_medians` of the three
+    (keys ``sampled``, ``every band``, ``hybrid solve``), the two estimates' answers, and
+    :func:`peak_mib` of the sampled one and of the solve."""
+    runs = {"sampled": sampled, "every band": every_band, "hybrid solve": solve}
+    med, answers = interleaved_medians(runs, rounds)
+    answers.pop("hybrid solve")  # the solve's result is not kept
+    return med, answers, {k: peak_mib(runs[k]) for k in ("sampled", "hybrid solve")}
