@@ -239,3 +239,24 @@ def _open_column_ratio(a, b) -> float:
     acts = np.isfinite(a.extra[key]) & (a.extra[key] > 0) & (b.extra[key] > 0)
     assert acts.sum() > 100
     return float(np.median(a.extra[key][acts] / b.extra[key][acts]))
+
+
+@needs_model
+def test_without_the_rigs_geometry_or_two_states_the_open_factor_is_one():
+    """``Processor.open_scale`` gives factor 1 with no values, never an error, where the light or
+    the object point is not known (a real rig's configuration without them) and at a number of
+    states other than two; its record says so (``values`` 0)."""
+    from polrig.acquisition.plan import CapturePlan
+    from polrig.app import processing
+    from polrig.app.diffuse_route import GEOMETRY_NEEDED
+    from polrig.sensor.noise import SensorModel
+    from polrig.solve.open_scale import OpenScale
+
+    plan = CapturePlan((0.0,), mode="hybrid", states_deg=(0.0, 90.0))
+    proc = processing.make_processor(plan, processing.Calibration("ideal"), SensorModel())
+    assert proc.prior_scale == DEFAULT_PRIOR_SCALE == "geometry"
+    two = polarizer_stokes(np.deg2rad([0.0, 90.0]), intensity=1.0)
+    partial = dict.fromkeys(GEOMETRY_NEEDED, (1.0, 0.0, 0.0)) | {"light_position_camera_m": None}
+    for states, geometry in ((two, None), (two, partial), (two[:1], dict.fromkeys(GEOMETRY_NEEDED, 1.0))):
+        got = proc.open_scale(list(states), states, None, geometry, None, {})
+        assert got == OpenScale.none() and got.record()["values"] == 0
