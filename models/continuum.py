@@ -911,14 +911,15 @@ def lit_pixels(fr: Frames) -> np.ndarray:
 
 
 def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
-             max_states: int = ADAPTIVE_MAX_STATES, correlation: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+             max_states: int = ADAPTIVE_MAX_STATES, min_states: int | None = None,
+             correlation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """The adaptive capture on one sample (:mod:`polrig.app.adaptive`'s rule and criterion on
     the sample's frames): from the seen state, while less than ``share`` of the object pixels
     (those whose seen frame is not clipped and has some colour above its noise floor, ``S0`` at
     least :data:`polrig.solve.reference.MIN_SNR` sigmas; the colours below it do not count) have
-    a relative posterior sigma at most ``target``
-    and fewer than ``max_states`` states are taken, the A-optimal next offset
+    a relative posterior sigma at most ``target``, or fewer than ``min_states`` states are taken
+    (default the capture's, :data:`polrig.acquisition.plan.ADAPTIVE_MIN_STATES`; designed then for
+    every object pixel), and fewer than ``max_states`` states are taken, the A-optimal next offset
     (:func:`polrig.solve.design.a_optimal_next`, under the joint prior ``correlation`` where
     given) among the candidates of :func:`polrig.solve.design.next_candidates` not taken yet
     (the equiangular set through the seen state first, then the 15 deg offsets; one frame each
@@ -927,7 +928,7 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
     the hardware time alone, as for every method). Returns the hybrid estimate of the states taken (``estimate``'s three arrays, with
     the joint prior ``correlation`` where given, as the capture's) and the offsets taken, in
     order."""
-    from polrig.acquisition.plan import CapturePlan, nearest_stage_angle, state_time_s
+    from polrig.acquisition.plan import ADAPTIVE_MIN_STATES, CapturePlan, nearest_stage_angle, state_time_s
     from polrig.sim.dataset import DATASET_EXPOSURE_US
     from polrig.solve.design import (
         DECISION_S,
@@ -949,10 +950,15 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         prior_sigma = scaled_sigma(fr, taken)  # the solve's and the design's, as the capture's
         mueller, sigma, solved = estimate(fr, taken, "hybrid", correlation)  # prior_sigma and, at two, the open factor
         got, met = share_at_target(relative_sigma(sigma, mueller, lit), obj, target)
-        if got >= share or len(taken) >= max_states:
+        least = len(taken) >= (ADAPTIVE_MIN_STATES if min_states is None else min_states)
+        if (got >= share and least) or len(taken) >= max_states:
             return mueller, sigma, solved, taken
         m00 = mueller[:, 0, 0]
-        above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)
+        above = obj & np.all((m00 > 0) & np.isfinite(m00), axis=0)
+        at_target = 0.0  # as the capture: below its least states, designed for every object pixel
+        if got < share:
+            above &= ~met
+            at_target = got
         ys, xs = np.nonzero(above)
         if len(ys) == 0:
             return mueller, sigma, solved, taken
@@ -970,7 +976,7 @@ def adaptive(fr: Frames, target: float, *, share: float = ADAPTIVE_SHARE,
         cost = [state_time_s(plan, exposures, here, nearest_stage_angle(c, here), model) + DECISION_S for c in cands]
         m = px(mueller)
         after = predicted_share(scores.trace.reshape(len(cands), *m.shape[:2]), m[..., 0, 0], px(lit) > 0,
-                                target, got, int(above.sum()) / int(obj.sum()))
+                                target, at_target, int(above.sum()) / int(obj.sum()))
         taken.append(cands[choose_next(scores, cost, after, share, last=len(taken) + 1 >= max_states)])
 
 
@@ -1175,8 +1181,9 @@ def markdown(result: dict) -> str:
                  ("hybrid4_3frames", "hybrid 4, 3 frames each"), *adaptive_cols]
         lines += ["**States per pose and acquisition time** (mean states / seconds per pose on the simulated rig: "
                   "stage motion, exposure and readout, `acquisition_time_s`; the adaptive capture stops when "
-                  f"{100 * ADAPTIVE_SHARE:.0f} % of the object pixels have a relative posterior sigma at most its target, "
-                  f"at most {ADAPTIVE_MAX_STATES} states)", "",
+                  f"{100 * ADAPTIVE_SHARE:.0f} % of the object pixels have a relative posterior sigma at most its target "
+                  f"with at least {result.get('adaptive_min_states', 1)} states taken, at most {ADAPTIVE_MAX_STATES} "
+                  f"states)", "",
                   "| set | " + " | ".join(c[1] for c in timed) + " |", "|---|" + "---:|" * len(timed)]
         for key, r in result["sets"].items():
             m = r["methods"]
@@ -1479,6 +1486,7 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     the states ``two`` and ``three`` (default :data:`RIG_TWO`, :data:`RIG_THREE`: not searched).
     ``only_models``: only the lower-order model comparison at ``two`` (default :data:`RIG_TWO`,
     not searched; :func:`models_rows`, :func:`models_markdown`), no plot."""
+    from polrig.acquisition.plan import ADAPTIVE_MIN_STATES
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
     from polrig.models.evaluate import results_paths
@@ -1515,7 +1523,7 @@ def run(root, out_md, *, count: int, search_count: int, sets: Sequence[str], see
     correlation = net.uncertainty.joint_correlation
     t0 = time.perf_counter()
     result: dict = {"count": count if rig_scenes is None else len(rig_poses), "size": size or SIZE, "seed": seed, "offsets_deg": list(OFFSETS_DEG),
-                    "adaptive_targets": list(targets),
+                    "adaptive_targets": list(targets), "adaptive_min_states": ADAPTIVE_MIN_STATES,
                     "prior": "per element" if correlation is None else "joint"}
     if only_models:
         two, three = two or RIG_TWO, three or RIG_THREE

@@ -15,13 +15,14 @@ from test_cli_capture import MODEL_INSTALLED
 
 from polrig.acquisition.engine import hardware_model
 from polrig.acquisition.plan import (
+    ADAPTIVE_MIN_STATES,
     CapturePlan,
     PlanError,
     adaptive_pose_steps,
     setup_steps,
     step_durations,
 )
-from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, PoseMemo, replay_decisions
+from polrig.app.adaptive import STOP_MAX, STOP_TARGET, TAKE, TAKE_MIN, PoseMemo, replay_decisions
 from polrig.app.capture import (
     CaptureRequest,
     RecordedDecision,
@@ -55,6 +56,10 @@ def adaptive(target: float = 0.05, max_states: int = 4, poses=POSES, **kw) -> Ca
     ({"target_sigma": 0.01, "max_states": 0}, "max_states", "1..8"),
     ({"target_sigma": 0.01, "max_states": 9}, "max_states", "1..8"),
     ({"target_sigma": 0.01, "max_states": True}, "max_states", "1..8"),
+    ({"target_sigma": 0.01, "min_states": 0}, "min_states", "1..4"),
+    ({"target_sigma": 0.01, "min_states": 5}, "min_states", "1..4"),
+    ({"target_sigma": 0.01, "max_states": 3, "min_states": 4}, "min_states", "1..3"),
+    ({"target_sigma": 0.01, "min_states": 2.0}, "min_states", "whole number"),
     ({"target_sigma": 0.01, "resolution": "full"}, "resolution", "calibrated sigma"),
     ({"target_sigma": 0.01, "network_binning": 2}, "network_binning", "calibrated sigma"),
 ])
@@ -65,7 +70,7 @@ def test_adaptive_plan_refusals_name_the_field(kwargs, field, text):
 
 
 @pytest.mark.parametrize("field, value", [("target_sigma", 0.01), ("target_share", 0.5),
-                                          ("max_states", 3)])
+                                          ("max_states", 3), ("min_states", 1)])
 def test_the_stopping_rule_is_adaptive_only(field, value):
     for mode in ("reference", "hybrid"):
         with pytest.raises(PlanError) as e:
@@ -83,6 +88,32 @@ def test_an_adaptive_plan_records_its_first_state_and_counts_the_most_frames():
     assert e.value.field == "states_deg"
 
 
+def test_the_fewest_states_default_to_two_and_follow_a_smaller_most():
+    """A pose stops on its target from its second state on (the network's sigma checked by a
+    frame it did not see), unless the plan says 1; a request for at most one state, the fewest
+    not given, asks for one, not for a refusal."""
+    assert adaptive().min_states == ADAPTIVE_MIN_STATES == 2
+    assert adaptive(min_states=1).min_states == 1
+    assert CapturePlan((0.0,)).min_states == 2  # every other plan holds the default
+    req = lambda **kw: CaptureRequest(out=".", poses_deg=(0.0,), mode="adaptive", target_sigma=0.01, **kw).plan()
+    assert req(max_states=1).min_states == 1 and req(max_states=3).min_states == 2
+    with pytest.raises(PlanError) as e:  # both given: the fewest above the most is refused
+        req(max_states=1, min_states=2)
+    assert e.value.field == "min_states"
+
+
+def test_a_version_5_session_reads_with_the_fewest_states_it_ran_with():
+    """Version 5 had no ``min_states``: its adaptive poses could stop on the first state, and a
+    resumed one must decide as it did (1); any other plan holds the default."""
+    from polrig.app.manifest import migrate_v5
+
+    for mode, least in (("adaptive", 1), ("reference", ADAPTIVE_MIN_STATES)):
+        m = migrate_v5({"schema_version": 5, "plan": {"mode": mode}, "history": []})
+        assert m["schema_version"] == 6 and m["plan"]["min_states"] == least
+        assert m["history"][-1] | {"time": None} == {"time": None, "event": "schema migrated",
+                                                     "from_version": 5, "to_version": 6}
+
+
 def test_the_command_line_names_the_option(tmp_path, capsys):
     out = tmp_path / "out"
     rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--out", str(out), "--no-progress"])
@@ -92,6 +123,10 @@ def test_the_command_line_names_the_option(tmp_path, capsys):
                "--max-states", "12", "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and "--max-states 12" in err and not out.exists(), err
+    rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--target-sigma", "0.01",
+               "--min-states", "0", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--min-states 0" in err and not out.exists(), err
 
 
 # -- sessions -----------------------------------------------------------------------------------------
@@ -142,7 +177,7 @@ def test_info_shows_the_target_and_the_decisions(adaptive_run, capsys):
     session = adaptive_run[0]
     assert main(["info", str(session.root), "--no-verify"]) == 0
     out = capsys.readouterr().out
-    assert "mode adaptive (target relative sigma 0.05 on 95 % of the object pixels, at most 4 states" in out
+    assert "mode adaptive (target relative sigma 0.05 on 95 % of the object pixels, 2 to 4 states" in out
     lines = [line.strip() for line in out.splitlines()]
     # each decision on a line of its own, in the words of its progress event, in the order made
     decisions = [line.removeprefix("decision: ") for line in lines if line.startswith("decision: ")]
@@ -272,9 +307,18 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
 
 
 @needs_model
-def test_a_loose_target_stops_at_the_networks_frame_and_a_tight_one_at_max_states(tmp_path):
+def test_a_loose_target_stops_at_the_fewest_states_and_a_tight_one_at_max_states(tmp_path):
+    """At target on the network's frame, a pose takes its second state (``take-min-states``,
+    the cheapest: the nearer of the equiangular set's two others) and stops; with ``min_states``
+    1 it stops on the network's frame."""
     session, _, result, _, _ = run(tmp_path / "loose", adaptive(1.0, poses=(0.0,)))
     assert result.status == "complete"
+    first, last = session.capture(0)["adaptive"]
+    assert first["action"] == TAKE_MIN and first["share_met"] >= 0.95 and first["state_deg"] == 60.0
+    assert "the plan's fewest states not reached" in describe_decision(first)
+    assert last["action"] == STOP_TARGET and last["states_taken"] == 2
+    assert len(session.capture(0)["files"]["raw"]) == 2
+    session, _, result, _, _ = run(tmp_path / "one", adaptive(1.0, poses=(0.0,), min_states=1))
     (only,) = session.capture(0)["adaptive"]
     assert only["action"] == STOP_TARGET and only["share_met"] >= 0.95 and only["states_taken"] == 1
     assert len(session.capture(0)["files"]["raw"]) == 1

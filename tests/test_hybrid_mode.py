@@ -69,7 +69,7 @@ def test_a_version_2_session_opens_with_seen_state_0(tmp_path):
     assert main(["capture", "--poses", "0", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
     assert main(["reconstruct", str(out), "--no-progress"]) == 0
     m = json.loads((out / MANIFEST_NAME).read_text())
-    assert m["schema_version"] == SCHEMA_VERSION == 5 and m["plan"]["seen_state"] == 0
+    assert m["schema_version"] == SCHEMA_VERSION == 6 and m["plan"]["seen_state"] == 0
     del m["metadata"]  # version 4's
     del m["plan"]["seen_state"]
     for rev in m["revisions"]:
@@ -78,7 +78,7 @@ def test_a_version_2_session_opens_with_seen_state_0(tmp_path):
     (out / MANIFEST_NAME).write_text(json.dumps(m))
     before = (out / MANIFEST_NAME).read_bytes()
     s = Session.open(out)
-    assert s.stored_version == 2 and s.manifest["schema_version"] == 5
+    assert s.stored_version == 2 and s.manifest["schema_version"] == 6
     assert s.plan.seen_state == 0 and s.manifest["revisions"][0]["seen_state"] == 0
     steps = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-3:]]
     assert steps == [("schema migrated", 2, 3), ("schema migrated", 3, 4), ("schema migrated", 4, 5)]

@@ -18,8 +18,13 @@ pixels dark in every colour of its frame (``S0`` below :data:`polrig.solve.refer
 noise sigmas, the route's ``DARK`` bit: turned away from the light, all noise; ``dark_pixels``);
 a colour dark at a pixel does not count in its relative sigma. A pixel without a finite
 posterior does not meet the target. A pose stops when
-the share of its object pixels meeting the target reaches ``target_share``, or at
-``max_states`` states.
+the share of its object pixels meeting the target reaches ``target_share`` with at least
+``min_states`` states taken, or at ``max_states`` states. **Why a least number of states**
+(:data:`polrig.acquisition.plan.ADAPTIVE_MIN_STATES`, two by default): at one state the posterior
+sigma is the network's calibrated sigma alone, which nothing the network did not see has checked;
+a second state checks the prior's scale (the innovations', :mod:`polrig.solve.prior_scale`,
+and along the direction two states leave open, :mod:`polrig.solve.open_scale`). A pose at target
+on fewer states takes the next one (``take-min-states``), designed for all its object pixels.
 
 **The choice** (:func:`evaluate`; :mod:`polrig.solve.design`): the Bayesian A-optimal
 criterion (the summed relative posterior variance over the object pixels still above target,
@@ -116,8 +121,12 @@ from polrig.solve.reference import DARK
 #: Candidate polarizer angles, deg: ``[0, 180)`` in steps of
 #: :data:`polrig.acquisition.plan.ADAPTIVE_CANDIDATE_STEP_DEG`.
 CANDIDATES_DEG = tuple(float(a) for a in np.arange(0.0, 180.0, ADAPTIVE_CANDIDATE_STEP_DEG))
-#: What a decision does (the manifest's ``action``).
-TAKE, STOP_TARGET, STOP_MAX, STOP_NO_OBJECT = "take", "stop-target", "stop-max-states", "stop-no-object"
+#: What a decision does (the manifest's ``action``): ``TAKE_MIN`` takes a state although the
+#: target holds, the pose having fewer than the plan's ``min_states``.
+TAKE, TAKE_MIN, STOP_TARGET, STOP_MAX, STOP_NO_OBJECT = (
+    "take", "take-min-states", "stop-target", "stop-max-states", "stop-no-object")
+#: The actions that take a state.
+TAKES = (TAKE, TAKE_MIN)
 
 
 @dataclasses.dataclass
@@ -264,12 +273,18 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
                               "state_deg": None, "predicted_criterion": None}
     if n_obj == 0:
         return record | {"action": STOP_NO_OBJECT}
-    if share >= plan.target_share:
+    if share >= plan.target_share and n >= plan.min_states:
         return record | {"action": STOP_TARGET}
     if n >= plan.max_states:
         return record | {"action": STOP_MAX}
     m00 = np.asarray(result.mueller)[:, 0, 0].astype(np.float64)
-    above = obj & ~met & np.all((m00 > 0) & np.isfinite(m00), axis=0)  # (all colours: it normalises)
+    above = obj & np.all((m00 > 0) & np.isfinite(m00), axis=0)  # (all colours: it normalises)
+    at_target = 0.0  # the share the design pixels leave out, met already
+    if share >= plan.target_share:  # at target on fewer states than the plan's least: one more,
+        record["action"] = TAKE_MIN  # designed for every object pixel
+    else:  # designed for the object pixels above target
+        above &= ~met
+        at_target = share
     ys, xs = np.nonzero(above)
     if len(ys) == 0:  # the pixels above target are all dark or masked: nothing to design for
         return record | {"action": STOP_TARGET}
@@ -297,7 +312,7 @@ def _decide(cf: CaptureFrames, plan: CapturePlan, processor: Processor, result, 
     hardware = [state_time_s(plan, cf.exposures_us, here, a, model) for a in angles]
     cost = [t + float(timing["decision_s"]) for t in hardware]  # and the decision the stage waits for
     share_after = predicted_share(scores.trace.reshape(len(angles), *estimate.shape[:2]), estimate[..., 0, 0],
-                                  pixels(lit), plan.target_sigma, share, int(above.sum()) / n_obj)
+                                  pixels(lit), plan.target_sigma, at_target, int(above.sum()) / n_obj)
     best = choose_next(scores, cost, share_after, plan.target_share, last=n + 1 >= plan.max_states)
     return record | {"design_pixels": len(ys), "criterion": scores.criterion, "state_deg": angles[best],
                      "predicted_criterion": float(j[best]), "state_time_s": hardware[best]}
@@ -320,7 +335,7 @@ def decide(session: Session, index: int, processor: Processor, memo: PoseMemo | 
         cf = load_capture_frames(session, index, None if memo is None else memo.frames)
     record = evaluate(cf, session.plan, processor, processor.network_geometry(session, cf), memo, timings,
                       timing=session.manifest["rig"].get("timing"))
-    if memo is not None and record["action"] != TAKE:  # the pose's last decision
+    if memo is not None and record["action"] not in TAKES:  # the pose's last decision
         memo.clear()
     with session.mutex:
         session.capture(index).setdefault("adaptive", []).append(record)
@@ -381,7 +396,7 @@ class AdaptiveSchedule:
             return self._next_capture()
         i = self.captures[self.position]
         decision = self.decide(i)
-        if decision["action"] == TAKE:
+        if decision["action"] in TAKES:
             state = float(decision["state_deg"])
             steps = state_steps(self.plan, i, self.exposures, len(self.taken), state)
             self.taken.append(state)

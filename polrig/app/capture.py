@@ -61,6 +61,7 @@ from polrig.acquisition.engine import (
     hardware_model,
 )
 from polrig.acquisition.plan import (  # noqa: F401 (re-exported)
+    ADAPTIVE_MIN_STATES,
     DEFAULT_STATES_DEG,
     CapturePlan,
     ExrChoice,
@@ -149,10 +150,12 @@ class CaptureRequest:
     #: (:attr:`polrig.acquisition.plan.CapturePlan.seen_state`)
     seen_state: int | None = None
     #: adaptive: the stopping rule (:attr:`polrig.acquisition.plan.CapturePlan.target_sigma`,
-    #: ``target_share``, ``max_states``)
+    #: ``target_share``, ``max_states``, ``min_states``; ``min_states`` not given and a
+    #: ``max_states`` below its default: ``max_states``)
     target_sigma: float | None = None
     target_share: float | None = None
     max_states: int | None = None
+    min_states: int | None = None
     #: the result EXR's plane groups, uncertainty precision and compression
     #: (:class:`polrig.acquisition.plan.ExrChoice`)
     exr_planes: tuple[str, ...] | None = None
@@ -188,9 +191,12 @@ class CaptureRequest:
         """The :class:`polrig.acquisition.plan.CapturePlan` fields this request gives (not ``None``)."""
         names = ("poses_deg", "mode", "states_deg", "frames_per_state", "exposures_us",
                  "dark_frames", "demosaic", "mirror_average", "resolution", "network_binning",
-                 "seen_state", "target_sigma", "target_share", "max_states", "exr_planes",
+                 "seen_state", "target_sigma", "target_share", "max_states", "min_states", "exr_planes",
                  "exr_uncertainty", "exr_compression")
         fields = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
+        if self.min_states is None and isinstance(self.max_states, int) and not isinstance(self.max_states, bool) \
+                and 1 <= self.max_states < ADAPTIVE_MIN_STATES and fields.get("mode") == "adaptive":
+            fields["min_states"] = self.max_states  # fewer states asked for than the default least
         if "exr_planes" in fields:  # as the plan holds them (mueller always, in order)
             fields["exr_planes"] = ExrChoice(planes=fields["exr_planes"]).planes
         return fields

@@ -30,7 +30,7 @@ import math
 import re
 from typing import Annotated, Any, Callable, Literal, Mapping, NotRequired, TypedDict
 
-from polrig.acquisition.plan import MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
+from polrig.acquisition.plan import ADAPTIVE_MIN_STATES, MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
 from polrig.errors import ConfigError, FormatError
 from polrig.formats.exr import RESULT_PLANES
 from polrig.formats.typedjson import (
@@ -44,7 +44,7 @@ from polrig.formats.typedjson import (
 )
 
 #: The version of the manifest this polrig writes (``schema_version``).
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 # capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
 # processing not done yet (a resume processes it without acquiring it again)
@@ -366,7 +366,9 @@ class AdaptiveDecision(TypedDict):
     the ``clipped_pixels`` its frame clips, which have no prior, and the ``dark_pixels``, all noise
     in its frame) that met the target then
     (``share_met``), what it did (``action``: ``take`` the state at stage
-    angle ``state_deg``, or stop: ``stop-target``, ``stop-max-states``, ``stop-no-object``) and
+    angle ``state_deg``; ``take-min-states`` likewise where the share met the target at fewer
+    states than the plan's ``min_states``; or stop: ``stop-target``, ``stop-max-states``,
+    ``stop-no-object``) and
     why: the A-optimal criterion (:mod:`polrig.solve.design`, summed relative posterior variance
     over ``design_pixels`` object pixels still above target) now (``criterion``) and predicted
     after the state taken (``predicted_criterion``), and the hardware time that state cost
@@ -381,7 +383,7 @@ class AdaptiveDecision(TypedDict):
     dark_pixels: Count
     design_pixels: Count
     criterion: Finite | None
-    action: Literal["take", "stop-target", "stop-max-states", "stop-no-object"]
+    action: Literal["take", "take-min-states", "stop-target", "stop-max-states", "stop-no-object"]
     state_deg: Finite | None
     predicted_criterion: Finite | None
     state_time_s: NotRequired[Finite | None]
@@ -397,8 +399,10 @@ def describe_decision(decision: AdaptiveDecision) -> str:
     at target; stop target``. The one wording of a decision everywhere:
     the progress event's message (``polrig capture``, the GUI's log and list), ``polrig info``
     and the decisions the GUI shows from a resumed session's manifest."""
-    what = (f"take {decision['state_deg']:g} deg" if decision["action"] == "take"
+    what = (f"take {decision['state_deg']:g} deg" if decision["action"] in ("take", "take-min-states")
             else decision["action"].replace("-", " "))
+    if decision["action"] == "take-min-states":  # at target, but fewer states than the plan's least
+        what += ", the plan's fewest states not reached"
     if decision.get("state_time_s") is not None:  # what that state costs (sessions with the rig's timing)
         what += f" ({decision['state_time_s']:.2f} s)"
     return (f"{decision['states_taken']} state(s): {100 * decision['share_met']:.1f} % of "
@@ -755,6 +759,22 @@ def migrate_v4(m: dict[str, Any]) -> dict[str, Any]:
     return m
 
 
+def migrate_v5(m: dict[str, Any]) -> dict[str, Any]:
+    """Version 5 to 6 (the adaptive mode's fewest states, ``min_states``): 1 in an adaptive
+    plan (a version-5 adaptive pose could stop on its first state, and a resumed session takes
+    the same decisions on the same frames), the default
+    (:data:`polrig.acquisition.plan.ADAPTIVE_MIN_STATES`) in any other plan, as every plan that
+    is not adaptive holds it. Whatever is damaged is left for the check that follows to name."""
+    m = dict(m, schema_version=6)
+    if isinstance(m.get("plan"), dict):
+        m["plan"] = {**m["plan"]}
+        m["plan"].setdefault("min_states", 1 if m["plan"].get("mode") == "adaptive" else ADAPTIVE_MIN_STATES)
+    if isinstance(m.get("history"), list):
+        m["history"] = [*m["history"], {"time": utc_now(), "event": "schema migrated",
+                                        "from_version": 5, "to_version": 6}]
+    return m
+
+
 #: Version -> the function that migrates a manifest of that version to the next one.
 MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
-    1: migrate_v1, 2: migrate_v2, 3: migrate_v3, 4: migrate_v4}
+    1: migrate_v1, 2: migrate_v2, 3: migrate_v3, 4: migrate_v4, 5: migrate_v5}

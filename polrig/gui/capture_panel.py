@@ -260,12 +260,19 @@ class CapturePanel(QWidget):
         self.max_states.setValue(CapturePlan.max_states)
         self.max_states.setToolTip("adaptive: the most polarizer states a pose takes, the "
                                    "network's first one included")
+        self.min_states = QSpinBox()
+        self.min_states.setRange(1, ADAPTIVE_MAX_STATES)
+        self.min_states.setValue(CapturePlan.min_states)
+        self.min_states.setToolTip("adaptive: the fewest polarizer states a pose takes before the "
+                                   "target may stop it (2: the network's sigma is checked by a "
+                                   "state it did not see; 1: a pose may stop on the network alone)")
+        self.max_states.valueChanged.connect(self.min_states.setMaximum)  # never above the most
         # one form row (the panel is tall already), on in the adaptive mode only
         self.adaptive_target = QWidget()
         row = QHBoxLayout(self.adaptive_target)
         row.setContentsMargins(0, 0, 0, 0)
         for label, w in (("relative sigma", self.target_sigma), ("share", self.target_share),
-                         ("max states", self.max_states)):
+                         ("min states", self.min_states), ("max states", self.max_states)):
             row.addWidget(QLabel(label))
             row.addWidget(w, 1)
         self.adaptive_target.setEnabled(False)
@@ -423,6 +430,7 @@ class CapturePanel(QWidget):
             target_sigma=self.target_sigma.value() if mode == "adaptive" else None,
             target_share=self.target_share.value() if mode == "adaptive" else None,
             max_states=self.max_states.value() if mode == "adaptive" else None,
+            min_states=self.min_states.value() if mode == "adaptive" else None,
             resolution=self.resolution.currentText() if mode == "single-shot" else "superpixel",
             network_binning=int(self.binning.currentData()) if mode == "single-shot" else 1,
             prior_scale=self.prior_scale.currentText() if mode in PRIOR_MODES else None,

@@ -146,6 +146,7 @@ class MainWindow(QMainWindow):
         b.bind("capture/target_sigma", st.float_binding(cp.target_sigma))
         b.bind("capture/target_share", st.float_binding(cp.target_share))
         b.bind("capture/max_states", st.int_binding(cp.max_states))
+        b.bind("capture/min_states", st.int_binding(cp.min_states))
         b.bind("calibration/folder", st.text_binding(self.calibration.folder))
         b.bind("window/tab", (self.tabs.currentIndex, lambda v: self.tabs.setCurrentIndex(int(v))))
 

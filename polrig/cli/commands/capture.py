@@ -166,7 +166,7 @@ def add_seen_state_option(p: argparse.ArgumentParser, default: str) -> None:
 
 
 def add_adaptive_options(p: argparse.ArgumentParser) -> None:
-    """``--target-sigma``, ``--target-share``, ``--max-states``: the adaptive mode's stopping rule
+    """``--target-sigma``, ``--target-share``, ``--max-states``, ``--min-states``: the adaptive mode's stopping rule
     (:func:`polrig.acquisition.plan.check_adaptive_target`)."""
     p.add_argument("--target-sigma", type=float, default=None, metavar="X",
                    help="adaptive: stop a pose once each object pixel's posterior sigma, RMS over the "
@@ -178,6 +178,10 @@ def add_adaptive_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-states", type=int, default=None, metavar="N",
                    help="adaptive: the most polarizer states per pose, the first included (default "
                         "4, at most 8)")
+    p.add_argument("--min-states", type=int, default=None, metavar="N",
+                   help="adaptive: the fewest polarizer states per pose before the target may stop "
+                        "it (default 2: the network's sigma is checked by a state it did not see; "
+                        "1 lets a pose stop on the network's frame alone)")
 
 
 def add_binning_option(p: argparse.ArgumentParser, default: str) -> None:
@@ -235,7 +239,7 @@ FLAGS = {"poses_deg": "--poses", "mode": "--mode", "states_deg": "--states",
          "network_binning": "--network-binning", "seen_state": "--seen-state", "models": "--models",
          "prior_scale": "--prior-scale",
          "target_sigma": "--target-sigma", "target_share": "--target-share",
-         "max_states": "--max-states",
+         "max_states": "--max-states", "min_states": "--min-states",
          "exr_planes": "--exr-planes", "exr_uncertainty": "--exr-uncertainty",
          "exr_compression": "--exr-compression",
          "calibration": "--calibration", "out": "--out",
@@ -290,6 +294,7 @@ def build_request(args: argparse.Namespace):
             target_sigma=args.target_sigma,
             target_share=args.target_share,
             max_states=args.max_states,
+            min_states=args.min_states,
             exr_planes=exr_planes_option(args.exr_planes),
             exr_uncertainty=args.exr_uncertainty,
             exr_compression=args.exr_compression,

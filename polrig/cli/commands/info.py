@@ -46,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
             if plan.mode == "hybrid" else "")
     if plan.mode == "adaptive":
         seen = (f" (target relative sigma {plan.target_sigma:g} on {100 * plan.target_share:g} % of the "
-                f"object pixels, at most {plan.max_states} states; the first state below, the others chosen)")
+                f"object pixels, {plan.min_states} to {plan.max_states} states; the first state below, the others "
+                f"chosen)")
     print(f"  plan: mode {plan.mode}{seen}, {len(plan.poses_deg)} poses, states "
           f"{','.join(f'{a:g}' for a in plan.states_deg)} deg, "
           f"{plan.frames_per_state} frame(s)/state, exposure {exposures}, "
