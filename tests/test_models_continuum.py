@@ -45,10 +45,12 @@ def test_tables_search_and_the_hybrid_limits(tmp_path):
         assert 0.5 < m[k]["coverage"] <= 1.0 and m[k]["fwd_l2"] > 0
     text = out.read_text()
     assert "hybrid 2 (0/" in text and "Within 2 sigma" in text and "equal time" in text
-    # the adaptive capture at its two targets: between one and four states, a time that grows with them
+    # the adaptive capture at its two targets: between the capture's fewest states (2) and four, a time
+    # that grows with them
+    assert saved["adaptive_min_states"] == 2 and "with at least 2 states taken" in text
     for t in continuum.ADAPTIVE_TARGETS:
         a = m[f"adaptive_{t:g}"]
-        assert 1 <= a["states"] <= 4 and 0.5 < a["coverage"] <= 1.0
+        assert 2 <= a["states"] <= 4 and 0.5 < a["coverage"] <= 1.0
         assert m["single"]["time_s"] <= a["time_s"] <= m["hybrid4"]["time_s"] + 10.0
         more = m[f"adaptive_{t:g}_max{continuum.ADAPTIVE_MORE_STATES}"]  # up to 8 states
         assert a["states"] <= more["states"] <= continuum.ADAPTIVE_MORE_STATES and 0.5 < more["coverage"] <= 1.0
@@ -257,3 +259,20 @@ def test_joint_compare_tables_each_prior(tmp_path):
     assert abs(m["joint_hybrid1"]["matrix_psnr"] - m["diagonal_hybrid1"]["matrix_psnr"]) < 0.01
     text = out.read_text()
     assert "False acceptance of the two-state model test" in text and "joint_scaled" in text
+
+
+@needs_weights
+def test_the_adaptive_rows_stop_as_captures_do_from_the_fewest_states_on():
+    """At a target every pixel meets on the network's frame, the rule takes a second state (one of
+    the equiangular set's others, the cheaper) and stops, as the capture does by default; with
+    ``min_states`` 1 it stops on the network's frame."""
+    from polrig.models import continuum
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+
+    net = SingleShotModel.load(WEIGHTS_DIR)
+    ds = continuum.rig_set("sphere", 32, (0.0,))
+    (_, sensor, i, prior), *_ = continuum._samples(ds, net)
+    fr = continuum.sample_frames(ds, i, prior, sensor, np.random.default_rng(0), offsets=(0, 60, 120))
+    first, second = continuum.adaptive(fr, 1.0)[-1]
+    assert first == 0 and second in (60, 120)
+    assert continuum.adaptive(fr, 1.0, min_states=1)[-1] == [0]
