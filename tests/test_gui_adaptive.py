@@ -34,7 +34,7 @@ def idle_window(qtbot, tmp_path):
 
 def test_the_adaptive_fields_are_on_in_the_adaptive_mode_only(idle_window, tmp_path):
     cp = idle_window.capture
-    adaptive_fields = (cp.target_sigma, cp.target_share, cp.max_states)
+    adaptive_fields = (cp.target_sigma, cp.target_share, cp.max_states, cp.min_states)
     assert [cp.mode.itemText(i) for i in range(cp.mode.count())] == list(MODES)
     assert cp.max_states.maximum() == ADAPTIVE_MAX_STATES and cp.max_states.minimum() == 1
     assert all(w.toolTip() for w in adaptive_fields)
@@ -42,11 +42,11 @@ def test_the_adaptive_fields_are_on_in_the_adaptive_mode_only(idle_window, tmp_p
     cp.out.setText(str(tmp_path / "s"))
     for mode in MODES:
         cp.mode.setCurrentText(mode)
-        assert [w.isEnabled() for w in adaptive_fields] == [mode == "adaptive"] * 3, mode
+        assert [w.isEnabled() for w in adaptive_fields] == [mode == "adaptive"] * 4, mode
         assert cp.device.isEnabled() == cp.model_size.isEnabled() == (mode in NETWORK_MODES)
         if mode != "adaptive":  # the stopping rule is not asked for: the plan's defaults
             req = cp.request()
-            assert (req.target_sigma, req.target_share, req.max_states) == (None, None, None)
+            assert (req.target_sigma, req.target_share, req.max_states, req.min_states) == (None,) * 4
     cp.target_sigma.setValue(0.03)
     cp.target_share.setValue(0.9)
     cp.max_states.setValue(3)
@@ -55,6 +55,12 @@ def test_the_adaptive_fields_are_on_in_the_adaptive_mode_only(idle_window, tmp_p
     assert (plan.mode, plan.target_sigma, plan.target_share, plan.max_states) == (
         "adaptive", 0.03, 0.9, 3)
     assert plan.states_deg == (45.0,) and plan.frames_per_pose() == 3
+    assert plan.min_states == 2  # the default: a stop from the second state on
+    cp.max_states.setValue(1)  # the fewest follow the most down, never above it
+    assert cp.min_states.value() == 1 and cp.request().plan().min_states == 1
+    cp.max_states.setValue(4)
+    cp.min_states.setValue(1)
+    assert cp.request().plan().min_states == 1
     cp.states.setText("")  # as --states left out: the default's first state
     assert cp.request().plan().states_deg == (0.0,)
 
