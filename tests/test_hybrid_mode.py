@@ -80,8 +80,9 @@ def test_a_version_2_session_opens_with_seen_state_0(tmp_path):
     s = Session.open(out)
     assert s.stored_version == 2 and s.manifest["schema_version"] == 6
     assert s.plan.seen_state == 0 and s.manifest["revisions"][0]["seen_state"] == 0
-    steps = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-3:]]
-    assert steps == [("schema migrated", 2, 3), ("schema migrated", 3, 4), ("schema migrated", 4, 5)]
+    steps = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-4:]]
+    assert steps == [("schema migrated", 2, 3), ("schema migrated", 3, 4), ("schema migrated", 4, 5),
+                     ("schema migrated", 5, 6)]
     assert (out / MANIFEST_NAME).read_bytes() == before and s.verify() == []
 
 

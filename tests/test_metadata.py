@@ -168,7 +168,7 @@ def test_a_version_3_session_opens_with_empty_metadata(captured, tmp_path, capsy
     s = Session.open(old)
     assert s.stored_version == 3 and s.manifest["schema_version"] == 6
     assert s.manifest["metadata"] == SampleMetadata()
-    last = s.manifest["history"][-2]
+    last = s.manifest["history"][-3]
     assert (last["event"], last["from_version"], last["to_version"]) == ("schema migrated", 3, 4)
     assert main(["info", str(old), "--no-verify"]) == 0
     printed = capsys.readouterr().out

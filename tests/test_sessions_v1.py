@@ -75,9 +75,9 @@ def test_each_opens_under_the_new_manifest(name, poses, mode, statuses):
     assert s.manifest["rig"]["camera_frames"]["layout"] == "imx250mzr"
     assert s.manifest["hardware_time_s"] > 0
     assert s.manifest["metadata"] == SampleMetadata()  # stated (empty) by the step to version 4
-    migrated = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-4:]]
-    assert migrated == [("schema migrated", 1, 2), ("schema migrated", 2, 3),
-                        ("schema migrated", 3, 4), ("schema migrated", 4, 5)]  # one step per version
+    migrated = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-5:]]
+    assert migrated == [("schema migrated", 1, 2), ("schema migrated", 2, 3), ("schema migrated", 3, 4),
+                        ("schema migrated", 4, 5), ("schema migrated", 5, 6)]  # one step per version
     assert s.verify() == []
     assert snapshot(DATA / name) == before
 
