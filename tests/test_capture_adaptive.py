@@ -7,6 +7,7 @@ result. The criterion's algebra is tested in ``tests/test_design.py``."""
 from __future__ import annotations
 
 import itertools
+import json
 import shutil
 
 import pytest
@@ -30,7 +31,7 @@ from polrig.app.capture import (
     run_session,
 )
 from polrig.app.manifest import describe_decision
-from polrig.app.session import COMPLETE, INTERRUPTED, PENDING, Session
+from polrig.app.session import COMPLETE, INTERRUPTED, MANIFEST_NAME, PENDING, Session
 from polrig.app.sessionio import load_capture_frames
 from polrig.cli import main
 from polrig.errors import FormatError
@@ -299,6 +300,40 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
     _ProgressPrinter(enabled=False)(SessionOpened(out, True, 2, kept_decisions(s)))
     assert capsys.readouterr().out.splitlines() == [f"capture 1/2 pose {POSES[0]:g} deg: {describe_decision(d)} (recorded)"
                                                     for d in s.capture(0)["adaptive"]]
+    with sim_rig(scene=SCENE) as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete" and s2.verify() == []
+    assert content(s2) == content(reference)
+    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+
+
+@needs_model
+def test_an_interrupted_version_5_session_resumes_stopping_where_it_did(tmp_path):
+    """A session written by schema version 5 (no ``min_states``: a pose could stop on the
+    network's frame) and interrupted, then resumed by this polrig: the pending pose decides as
+    version 5 did, and the session equals an uninterrupted one run with ``min_states`` 1."""
+    plan = adaptive(1.0, min_states=1)
+    with sim_rig(scene=SCENE) as rig:
+        reference = run(tmp_path / "reference", plan)[0]
+    assert [len(c["adaptive"]) for c in reference.captures] == [1, 1]  # each pose stopped on its first state
+    out = tmp_path / "s"
+    frames = []
+
+    def progress(ev):
+        if ev.kind == "frame":
+            frames.append(ev)
+            if len(frames) == 2:  # pose 1's first frame
+                raise KeyboardInterrupt
+
+    with sim_rig(scene=SCENE) as rig:
+        session, proc = start(rig, out, plan)
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
+    m = json.loads((out / MANIFEST_NAME).read_text())
+    del m["plan"]["min_states"]
+    m["schema_version"] = 5
+    (out / MANIFEST_NAME).write_text(json.dumps(m))
+    assert Session.open(out).stored_version == 5 and Session.open(out).plan.min_states == 1
     with sim_rig(scene=SCENE) as rig:
         s2, result = resume(rig, out)
     assert result.status == "complete" and s2.verify() == []
