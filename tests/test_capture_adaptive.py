@@ -313,8 +313,7 @@ def test_an_interrupted_version_5_session_resumes_stopping_where_it_did(tmp_path
     network's frame) and interrupted, then resumed by this polrig: the pending pose decides as
     version 5 did, and the session equals an uninterrupted one run with ``min_states`` 1."""
     plan = adaptive(1.0, min_states=1)
-    with sim_rig(scene=SCENE) as rig:
-        reference = run(tmp_path / "reference", plan)[0]
+    reference = run(tmp_path / "reference", plan)[0]
     assert [len(c["adaptive"]) for c in reference.captures] == [1, 1]  # each pose stopped on its first state
     out = tmp_path / "s"
     frames = []
