@@ -271,6 +271,31 @@ def test_hardware_time_and_eta_follow_the_decisions(adaptive_run):
         (c["index"], describe_decision(d)) for c in session.captures for d in c["adaptive"]]
 
 
+def interrupted_at_frame(out, plan: CapturePlan, n: int) -> None:
+    """Start ``plan`` in ``out`` and interrupt it (Ctrl-C) at its ``n``-th frame."""
+    frames = []
+
+    def progress(ev):
+        if ev.kind == "frame":
+            frames.append(ev)
+            if len(frames) == n:
+                raise KeyboardInterrupt
+
+    with sim_rig(scene=SCENE) as rig:
+        session, proc = start(rig, out, plan)
+        with pytest.raises(KeyboardInterrupt):
+            run_session(rig, session, processor=proc, progress=progress)
+
+
+def resumes_to(out, reference: Session) -> None:
+    """Resume ``out``: complete, verified, and identical to ``reference`` in files and decisions."""
+    with sim_rig(scene=SCENE) as rig:
+        s2, result = resume(rig, out)
+    assert result.status == "complete" and s2.verify() == []
+    assert content(s2) == content(reference)
+    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+
+
 @needs_model
 def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_path, adaptive_run, capsys):
     from polrig.app.capture import SessionOpened
@@ -278,18 +303,7 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
 
     reference = adaptive_run[0]
     out = tmp_path / "s"
-    frames = []
-
-    def progress(ev):
-        if ev.kind == "frame":
-            frames.append(ev)
-            if len(frames) == len(reference.capture(0)["files"]["raw"]) + 2:  # pose 1, state 2
-                raise KeyboardInterrupt
-
-    with sim_rig(scene=SCENE) as rig:
-        session, proc = start(rig, out, adaptive())
-        with pytest.raises(KeyboardInterrupt):
-            run_session(rig, session, processor=proc, progress=progress)
+    interrupted_at_frame(out, adaptive(), len(reference.capture(0)["files"]["raw"]) + 2)  # pose 1, state 2
     s = Session.open(out)
     assert s.manifest["status"] == INTERRUPTED
     assert [c["status"] for c in s.captures] == [COMPLETE, PENDING]
@@ -300,11 +314,7 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
     _ProgressPrinter(enabled=False)(SessionOpened(out, True, 2, kept_decisions(s)))
     assert capsys.readouterr().out.splitlines() == [f"capture 1/2 pose {POSES[0]:g} deg: {describe_decision(d)} (recorded)"
                                                     for d in s.capture(0)["adaptive"]]
-    with sim_rig(scene=SCENE) as rig:
-        s2, result = resume(rig, out)
-    assert result.status == "complete" and s2.verify() == []
-    assert content(s2) == content(reference)
-    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+    resumes_to(out, reference)
 
 
 @needs_model
@@ -316,28 +326,13 @@ def test_an_interrupted_version_5_session_resumes_stopping_where_it_did(tmp_path
     reference = run(tmp_path / "reference", plan)[0]
     assert [len(c["adaptive"]) for c in reference.captures] == [1, 1]  # each pose stopped on its first state
     out = tmp_path / "s"
-    frames = []
-
-    def progress(ev):
-        if ev.kind == "frame":
-            frames.append(ev)
-            if len(frames) == 2:  # pose 1's first frame
-                raise KeyboardInterrupt
-
-    with sim_rig(scene=SCENE) as rig:
-        session, proc = start(rig, out, plan)
-        with pytest.raises(KeyboardInterrupt):
-            run_session(rig, session, processor=proc, progress=progress)
+    interrupted_at_frame(out, plan, 2)  # pose 1's first frame
     m = json.loads((out / MANIFEST_NAME).read_text())
     del m["plan"]["min_states"]
     m["schema_version"] = 5
     (out / MANIFEST_NAME).write_text(json.dumps(m))
     assert Session.open(out).stored_version == 5 and Session.open(out).plan.min_states == 1
-    with sim_rig(scene=SCENE) as rig:
-        s2, result = resume(rig, out)
-    assert result.status == "complete" and s2.verify() == []
-    assert content(s2) == content(reference)
-    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+    resumes_to(out, reference)
 
 
 @needs_model
@@ -384,11 +379,7 @@ def test_a_limit_on_a_chosen_states_move_stops_safely_then_resumes_to_the_same_r
     assert not any(e.kind == "retry" for e in events)
     s = Session.open(out)
     assert [c["status"] for c in s.captures] == ["failed", PENDING] and s.verify() == []
-    with sim_rig(scene=SCENE) as rig:
-        s2, result = resume(rig, out)
-    assert result.status == "complete" and s2.verify() == []
-    assert content(s2) == content(reference)
-    assert [c["adaptive"] for c in s2.captures] == [c["adaptive"] for c in reference.captures]
+    resumes_to(out, reference)
 
 
 @needs_model
