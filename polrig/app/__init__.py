@@ -1,4 +1,4 @@
-"""Layer 7, the application: a rig, sessions, processing, capture and scale-out.
+"""Layer 10, the application: a rig, sessions, processing, capture and scale-out.
 
 Composes every layer below: opening a rig from its configuration (``rig``), the session folder
 and its typed manifest (``manifest``, ``session``, ``records``, ``sessionio``), calibration sets
