@@ -120,6 +120,11 @@ def test_the_command_line_names_the_option(tmp_path, capsys):
     rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "--target-sigma" in err, err
+    assert "give a relative sigma" in err and "--target-sigma 0.0" not in err, err  # none given, not "0.0"
+    rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--target-sigma", "1.5", "--out", str(out),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--target-sigma 1.5: must be a relative sigma" in err and not out.exists(), err
     rc = main(["capture", "--poses", "0", "--mode", "adaptive", "--target-sigma", "0.01",
                "--max-states", "12", "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err

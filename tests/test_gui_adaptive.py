@@ -66,7 +66,7 @@ def test_the_adaptive_fields_are_on_in_the_adaptive_mode_only(idle_window, tmp_p
 
 
 @pytest.mark.parametrize("target_sigma, target_share, states, text", [
-    (0.0, 0.95, "", "target sigma 0.0: must be a relative sigma"),  # the spin box says "required"
+    (0.0, 0.95, "", "the adaptive mode stops each pose at a target"),  # the spin box says "required"
     (0.05, 0.0, "", "target share 0.0: must be a share of object pixels"),
     (0.05, 0.95, "0,45", "give one state"),
 ])

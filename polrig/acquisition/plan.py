@@ -294,7 +294,8 @@ def check_adaptive_target(mode: str, target_sigma: Any, target_share: Any, max_s
     checked: in the adaptive mode a relative sigma ``0 < target_sigma <= 1`` (of the normalised
     block, m00 = 1), a share ``0 < target_share <= 1``, ``1 <= max_states <=``
     :data:`ADAPTIVE_MAX_STATES` and ``1 <= min_states <= max_states``; in the others the defaults
-    (0, 0.95, 4, :data:`ADAPTIVE_MIN_STATES`). One-line :class:`PlanError` s naming the field."""
+    (0, 0.95, 4, :data:`ADAPTIVE_MIN_STATES`). One-line :class:`PlanError` s naming the field (an
+    adaptive plan with the default ``target_sigma``, 0, is one that gave none: the error says so)."""
     defaults = (0.0, 0.95, 4, ADAPTIVE_MIN_STATES)
     names = ("target_sigma", "target_share", "max_states", "min_states")
     if mode != "adaptive":
@@ -302,6 +303,9 @@ def check_adaptive_target(mode: str, target_sigma: Any, target_share: Any, max_s
             if isinstance(value, bool) or value != default:
                 raise PlanError(name, ADAPTIVE_ONLY, subject=repr(value), what=name.replace("_", " "))
         return defaults
+    if not isinstance(target_sigma, bool) and target_sigma == defaults[0]:  # not given
+        raise PlanError("target_sigma", "the adaptive mode stops each pose at a target: give a relative sigma "
+                                        "(of the block normalised to m00 = 1) in (0, 1], e.g. 0.05")
     for name, value in (("target_sigma", target_sigma), ("target_share", target_share)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) \
                 or not (math.isfinite(value) and 0 < value <= 1):
