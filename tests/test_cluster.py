@@ -360,3 +360,12 @@ def test_the_readme_scheduler_and_two_workers_example(archive, archive_serial, t
     for s, d in zip(archive_serial, dist):
         assert _results(d) == s
         _no_leftovers(d)
+
+
+def test_a_session_list_takes_comments_after_a_path_and_keeps_a_hash_inside_one(tmp_path):
+    from polrig.app.cluster import read_session_list
+
+    lst = tmp_path / "l" / "sessions.txt"
+    lst.parent.mkdir()
+    lst.write_text("# the archive\n../s2   # the second\n  # indented\nruns/a#2\n/abs/s3\t# tab\n\n")
+    assert read_session_list(lst) == [str(lst.parent / "../s2"), str(lst.parent / "runs/a#2"), "/abs/s3"]

@@ -37,6 +37,7 @@ import errno
 import logging
 import os
 import pathlib
+import re
 import time
 import uuid
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
@@ -537,9 +538,14 @@ def reconstruct(paths: Sequence[str | os.PathLike], runner: Runner, *, mode=None
             s.unlock()
 
 
+#: A list file's comment: from a ``#`` at the line's start or after white space to the line's end.
+_COMMENT = re.compile(r"(^|\s)#.*$")
+
+
 def read_session_list(path: str | os.PathLike) -> list[str]:
-    """Session folders listed in a text file, one per line (blank lines and ``#`` comments
-    skipped; relative paths are relative to the list's folder)."""
+    """Session folders listed in a text file, one per line; relative paths are relative to the
+    list's folder. A ``#`` at the start of a line or after a space or tab starts a comment (a
+    ``#`` inside a path, ``runs/a#2``, is part of it); blank lines are skipped."""
     p = pathlib.Path(path)
     try:
         text = p.read_text("utf-8")
@@ -549,8 +555,8 @@ def read_session_list(path: str | os.PathLike) -> list[str]:
         raise ConfigError(f"--from-list {p}: cannot read it ({exc})") from None
     out = []
     for line in text.splitlines():
-        line = line.strip()
-        if not line or line.startswith("#"):
+        line = _COMMENT.sub("", line).strip()
+        if not line:
             continue
         q = pathlib.Path(line)
         out.append(str(q if q.is_absolute() else p.parent / q))
