@@ -109,7 +109,7 @@ def test_two_local_workers_are_bit_identical_to_serial(archive, tmp_path, capsys
     dist = _copies(archive, tmp_path / "dist")
     assert main(["reconstruct", *map(str, dist), "--workers", "2", "--demosaic", "bilinear"]) == 0
     out, err = capsys.readouterr()
-    assert out.count(": done") == 7 and "a: capture 4 pose 270 deg: done" in out
+    assert out.count(": done") == 7 and "a: capture 4/4 pose 270 deg: done" in out
     assert "revision rev1 written to" in out
     assert "7/7" in err and "capture/s" in err  # one bar over both sessions, with its rate
     for s, d in zip(serial, dist):

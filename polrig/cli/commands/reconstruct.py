@@ -121,7 +121,9 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
         cap = batch.session.capture(index)
         where = f"{batch.session.root.name}: " if many else ""
-        line = f"{where}capture {index + 1} pose {cap['pose_deg']:g} deg: "
+        # a count, as the capture command's progress (``2/4``); the failure summary names the
+        # capture as the session does (its index from 0 and its folder: ``capture 1 (c001_...)``)
+        line = f"{where}capture {index + 1}/{len(batch.session.captures)} pose {cap['pose_deg']:g} deg: "
         if reason is None:
             line += "done" + (" | " + format_score(score) if score else "")
         else:
