@@ -396,9 +396,23 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w.capture.target_sigma.setValue(0.03)
     w.capture.target_share.setValue(0.9)
     w.capture.max_states.setValue(6)
+    w.capture.seen_state.setValue(2)
+    w.capture.prior_scale.setCurrentText("calibrated")
+    w.capture.exr_planes.setText("sigma,mask")
+    w.capture.exr_uncertainty.setCurrentText("float")
+    w.capture.exr_compression.setCurrentText("none")
+    w.capture.operator.setText("A. Lab")
+    w.capture.sample.setText("tile 7")
+    w.live.min_snr.setValue(7.5)
     w.close()
     assert ini.is_file()
     w2 = make_window(qtbot, ini, start=False)
+    c2 = w2.capture
+    assert (c2.seen_state.value(), c2.prior_scale.currentText(), c2.exr_planes.text(),
+            c2.exr_uncertainty.currentText(), c2.exr_compression.currentText()) \
+        == (2, "calibrated", "sigma,mask", "float", "none")
+    assert c2.operator.text() == "A. Lab" and c2.sample.text() == ""  # the sample is one capture's
+    assert w2.live.min_snr.value() == 7.5 and w2.live_worker.settings.min_snr == 7.5
     assert (w2.capture.target_sigma.value(), w2.capture.target_share.value(), w2.capture.max_states.value()) \
         == (0.03, 0.9, 6)
     assert w2.live.display.currentData() == "dolp"

@@ -130,6 +130,7 @@ class MainWindow(QMainWindow):
         b.bind("live/mirror_average", st.bool_binding(lp.mirror_average))
         b.bind("live/resolution", st.combo_binding(lp.resolution))
         b.bind("live/network_binning", st.combo_binding(lp.binning))
+        b.bind("live/min_snr", st.float_binding(lp.min_snr))
         for key, w in (("poses", cp.poses), ("states", cp.states), ("exposure", cp.exposure),
                        ("calibration", cp.calibration), ("out", cp.out)):
             b.bind(f"capture/{key}", st.text_binding(w))
@@ -147,6 +148,14 @@ class MainWindow(QMainWindow):
         b.bind("capture/target_share", st.float_binding(cp.target_share))
         b.bind("capture/max_states", st.int_binding(cp.max_states))
         b.bind("capture/min_states", st.int_binding(cp.min_states))
+        b.bind("capture/seen_state", st.int_binding(cp.seen_state))
+        b.bind("capture/prior_scale", st.combo_binding(cp.prior_scale))
+        b.bind("capture/exr_planes", st.text_binding(cp.exr_planes))
+        b.bind("capture/exr_uncertainty", st.combo_binding(cp.exr_uncertainty))
+        b.bind("capture/exr_compression", st.combo_binding(cp.exr_compression))
+        # the operator is the same from one capture to the next; the sample, the note and the
+        # further keys describe one capture, so each new one starts without them
+        b.bind("capture/operator", st.text_binding(cp.operator))
         b.bind("calibration/folder", st.text_binding(self.calibration.folder))
         b.bind("window/tab", (self.tabs.currentIndex, lambda v: self.tabs.setCurrentIndex(int(v))))
 
