@@ -116,6 +116,8 @@ class DaskRunner:
         require_distributed("--workers")
         from distributed import Client, LocalCluster
 
+        from polrig.app.dask_plugins import TerminalInterruptIgnored
+
         if n_workers < 1:
             raise ConfigError(f"--workers {n_workers}: need at least 1")
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
@@ -123,6 +125,7 @@ class DaskRunner:
                                silence_logs=logging.ERROR)
         try:
             client = Client(cluster)
+            client.register_plugin(TerminalInterruptIgnored())
         except BaseException:
             cluster.close()
             raise
