@@ -210,6 +210,45 @@ def test_injected_fault_stops_cleanly_and_cli_resumes(tmp_path, capsys, monkeypa
     assert content(out) == content(ref)
 
 
+def test_a_resumed_session_goes_on_with_its_models_and_refuses_others(tmp_path, capsys, monkeypatch):
+    """The session records how its captures are processed (``--models``, ``--prior-scale``):
+    interrupted by a device fault in its second capture, ``--resume`` without the options ends
+    with the content of an uninterrupted run (every result with its model map), and asking
+    for other models is refused in one line naming the option, before anything moves."""
+    import polrig.app.rig
+
+    cfg = sim_config(tmp_path / "rig.toml", noise=True)
+    args = ["--poses", "0,90,180", "--models", "auto", "--prior-scale", "calibrated", "--config", str(cfg)]
+    ref = tmp_path / "ref"
+    assert main(["capture", *args, "--out", str(ref), "--no-progress"]) == 0
+    real_open = polrig.app.rig.open_rig
+
+    def faulty_open(*a, **kw):
+        rig = real_open(*a, **kw)
+        rig.faults.inject_fault("stage", "disconnect", after_calls=15)  # in capture 1 (as above)
+        return rig
+
+    monkeypatch.setattr(polrig.app.rig, "open_rig", faulty_open)
+    out = tmp_path / "run"
+    assert main(["capture", *args, "--out", str(out), "--no-progress"]) == 1
+    monkeypatch.setattr(polrig.app.rig, "open_rig", real_open)
+    s = Session.open(out)
+    assert s.manifest["processing"] == {"models": "auto", "prior_scale": "calibrated"}
+    assert [c["status"] for c in s.captures].count("complete") == 1
+    capsys.readouterr()
+    assert main(["info", str(out), "--no-verify"]) == 0
+    assert "  processing: models auto (a resume goes on with these)\n" in capsys.readouterr().out
+    before = (out / "session.json").read_bytes()
+    for option in (["--models", "full"], ["--prior-scale", "geometry"]):
+        rc = main(["capture", "--config", str(cfg), "--out", str(out), "--resume", *option, "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and len(err.strip().splitlines()) == 1 and option[0] in err and "leave it out" in err, err
+        assert (out / "session.json").read_bytes() == before
+    assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume", "--no-progress"]) == 0
+    assert content(out) == content(ref)
+    assert all("models" in c["files"] for c in Session.open(out).captures)  # each result's model map
+
+
 @pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
 def test_single_shot_capture_with_the_installed_model(tmp_path, capsys):
     cfg = tmp_path / "rig.toml"

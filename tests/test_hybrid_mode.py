@@ -60,6 +60,23 @@ def test_the_seen_state_is_hybrid_only():
     assert e.value.field == "resolution"
 
 
+@needs_model
+def test_two_hybrid_states_that_are_one_polarizer_state_are_refused_before_anything_moves(tmp_path, capsys):
+    """0 and 180 deg are one polarizer state: no direction is left open for the prior's scale,
+    and the solve would fail on every resume; refused in one line naming --states, nothing
+    written. Two states apart, however close, are a plan."""
+    cfg = sim_config(tmp_path / "rig.toml")
+    for states in ("0,180", "45,45"):
+        out = tmp_path / f"s{states}"
+        rc = main(["capture", "--poses", "0", "--mode", "hybrid", "--states", states, "--config", str(cfg),
+                   "--out", str(out), "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"--states {states}: the two are one polarizer state" in err and not out.exists(), err
+    assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,5", "--config", str(cfg),
+                 "--out", str(tmp_path / "close"), "--no-progress"]) == 0
+
+
 # -- the manifest: version 3, older sessions ---------------------------------------------------------
 def test_a_version_2_session_opens_with_seen_state_0(tmp_path):
     """A session written in version 2 (no ``seen_state`` in its plan or revisions) opens,
@@ -69,7 +86,7 @@ def test_a_version_2_session_opens_with_seen_state_0(tmp_path):
     assert main(["capture", "--poses", "0", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
     assert main(["reconstruct", str(out), "--no-progress"]) == 0
     m = json.loads((out / MANIFEST_NAME).read_text())
-    assert m["schema_version"] == SCHEMA_VERSION == 6 and m["plan"]["seen_state"] == 0
+    assert m["schema_version"] == SCHEMA_VERSION == 7 and m["plan"]["seen_state"] == 0
     del m["metadata"]  # version 4's
     del m["plan"]["seen_state"]
     for rev in m["revisions"]:
@@ -78,11 +95,11 @@ def test_a_version_2_session_opens_with_seen_state_0(tmp_path):
     (out / MANIFEST_NAME).write_text(json.dumps(m))
     before = (out / MANIFEST_NAME).read_bytes()
     s = Session.open(out)
-    assert s.stored_version == 2 and s.manifest["schema_version"] == 6
+    assert s.stored_version == 2 and s.manifest["schema_version"] == 7
     assert s.plan.seen_state == 0 and s.manifest["revisions"][0]["seen_state"] == 0
-    steps = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-4:]]
+    steps = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-5:]]
     assert steps == [("schema migrated", 2, 3), ("schema migrated", 3, 4), ("schema migrated", 4, 5),
-                     ("schema migrated", 5, 6)]
+                     ("schema migrated", 5, 6), ("schema migrated", 6, 7)]
     assert (out / MANIFEST_NAME).read_bytes() == before and s.verify() == []
 
 

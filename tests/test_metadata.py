@@ -63,7 +63,7 @@ def captured(tmp_path_factory):
 def test_the_manifest_records_it(captured):
     _, out = captured
     stored = json.loads((out / MANIFEST_NAME).read_text())
-    assert stored["schema_version"] == SCHEMA_VERSION == 6
+    assert stored["schema_version"] == SCHEMA_VERSION == 7
     line = " ".join(stored["command_line"])
     assert "--sample gold ball #3" in line and "--md lot=42 --md batch_id=x7" in line
     assert stored["metadata"] == {"sample": "gold ball #3", "operator": "ada",
@@ -166,13 +166,13 @@ def test_a_version_3_session_opens_with_empty_metadata(captured, tmp_path, capsy
     (old / MANIFEST_NAME).write_text(json.dumps(m))
     before = (old / MANIFEST_NAME).read_bytes()
     s = Session.open(old)
-    assert s.stored_version == 3 and s.manifest["schema_version"] == 6
+    assert s.stored_version == 3 and s.manifest["schema_version"] == 7
     assert s.manifest["metadata"] == SampleMetadata()
-    last = s.manifest["history"][-3]
+    last = s.manifest["history"][-4]
     assert (last["event"], last["from_version"], last["to_version"]) == ("schema migrated", 3, 4)
     assert main(["info", str(old), "--no-verify"]) == 0
     printed = capsys.readouterr().out
-    assert "schema: version 3, read as version 6" in printed and "metadata:" not in printed
+    assert "schema: version 3, read as version 7" in printed and "metadata:" not in printed
     assert (old / MANIFEST_NAME).read_bytes() == before
 
 

@@ -207,8 +207,8 @@ def test_a_session_from_before_the_field_resumes_to_identical_results(tmp_path):
     assert run.status == COMPLETE
     assert _content(old) == _content(ref)
     stored = json.loads((old / "session.json").read_text())  # written in this version, stated
-    assert stored["schema_version"] == 6 and stored["plan"]["network_binning"] == 1
-    assert [h["from_version"] for h in stored["history"] if h["event"] == "schema migrated"] == [1, 2, 3, 4, 5]
+    assert stored["schema_version"] == 7 and stored["plan"]["network_binning"] == 1
+    assert [h["from_version"] for h in stored["history"] if h["event"] == "schema migrated"] == [1, 2, 3, 4, 5, 6]
     # and a reconstruct of it defaults to binning 1 too, recorded with the revision
     s = Session.open(old)
     s.lock()

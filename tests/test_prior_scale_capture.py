@@ -122,6 +122,30 @@ def test_a_resumed_session_goes_on_with_the_scale_its_results_were_made_with():
         resumed_prior_scale(_captures(None), "sometimes")
 
 
+def test_a_resumed_session_takes_the_processing_it_recorded_even_before_its_first_result():
+    """A version-7 session records its models and prior scale when it is created: a resume
+    goes on with them though no result exists yet (an adaptive session's decisions follow the
+    scale), and refuses others; a version-6 one recorded none (migrated to null) and resumes as
+    it did."""
+    from polrig.app.capture import resumed_processing
+    from polrig.app.manifest import migrate_v6
+
+    recorded = types.SimpleNamespace(manifest={"processing": {"models": "diffuse", "prior_scale": "calibrated"}},
+                                     captures=[{"index": 0}])
+    assert resumed_processing(recorded, None, None) == ("diffuse", "calibrated")
+    assert resumed_processing(recorded, "diffuse", "calibrated") == ("diffuse", "calibrated")
+    for asked in ({"models": "full"}, {"prior_scale": "geometry"}):
+        with pytest.raises(PlanError) as err:
+            resumed_processing(recorded, asked.get("models"), asked.get("prior_scale"))
+        assert err.value.field == next(iter(asked)), err.value
+    old = migrate_v6({"schema_version": 6, "history": []})
+    assert old["schema_version"] == 7 and old["processing"] is None
+    assert old["history"][-1]["from_version"] == 6 and old["history"][-1]["to_version"] == 7
+    unrecorded = types.SimpleNamespace(manifest=old, captures=_captures("innovations").captures)
+    assert resumed_processing(unrecorded, None, None) == ("full", "innovations")
+    assert resumed_processing(unrecorded, "auto", None) == ("auto", "innovations")
+
+
 def test_info_words_each_kind_of_scale():
     from polrig.app.manifest import describe_prior_scale
 

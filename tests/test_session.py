@@ -44,7 +44,7 @@ def make(tmp_path: pathlib.Path, **kw) -> Session:
 def test_create_lists_one_pending_capture_per_pose(tmp_path):
     s = make(tmp_path)
     m = json.loads((s.root / MANIFEST_NAME).read_text())
-    assert m["schema_version"] == SCHEMA_VERSION == 6 and m["calibration_id"] == "nominal"
+    assert m["schema_version"] == SCHEMA_VERSION == 7 and m["calibration_id"] == "nominal"
     assert m["plan"]["poses_deg"] == [0.0, 90.0] and m["plan"]["exr_uncertainty"] == "half"
     assert Session.open(s.root).plan == PLAN  # stored once, read back as the CapturePlan
     assert [c["pose_deg"] for c in m["captures"]] == [0.0, 90.0]

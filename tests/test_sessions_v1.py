@@ -1,5 +1,5 @@
 """Sessions written by polrig before the typed manifest (schema version 1, commit 45517b4:
-``tests/data/sessions-v1/README.md``) open, show, resume and reprocess under schema version 6 (through versions 2, 3, 4 and 5).
+``tests/data/sessions-v1/README.md``) open, show, resume and reprocess under schema version 7 (through versions 2, 3, 4, 5 and 6).
 
 The data folder is never changed: every test that writes works on a copy.
 """
@@ -48,7 +48,7 @@ def content(root: pathlib.Path) -> list:
 def test_the_data_is_version_1():
     for name in SESSIONS:
         assert json.loads((DATA / name / MANIFEST_NAME).read_text())["schema_version"] == 1
-    assert SCHEMA_VERSION == 6
+    assert SCHEMA_VERSION == 7
 
 
 @pytest.mark.parametrize("name, poses, mode, statuses", [
@@ -62,7 +62,7 @@ def test_each_opens_under_the_new_manifest(name, poses, mode, statuses):
     writes nothing and every checksum still holds."""
     before = snapshot(DATA / name)
     s = Session.open(DATA / name)
-    assert s.stored_version == 1 and s.manifest["schema_version"] == 6
+    assert s.stored_version == 1 and s.manifest["schema_version"] == 7
     plan = s.plan
     assert isinstance(plan, CapturePlan)
     assert (plan.poses_deg, plan.mode, plan.network_binning, plan.resolution) == (
@@ -75,9 +75,11 @@ def test_each_opens_under_the_new_manifest(name, poses, mode, statuses):
     assert s.manifest["rig"]["camera_frames"]["layout"] == "imx250mzr"
     assert s.manifest["hardware_time_s"] > 0
     assert s.manifest["metadata"] == SampleMetadata()  # stated (empty) by the step to version 4
-    migrated = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-5:]]
+    migrated = [(h["event"], h["from_version"], h["to_version"]) for h in s.manifest["history"][-6:]]
     assert migrated == [("schema migrated", 1, 2), ("schema migrated", 2, 3), ("schema migrated", 3, 4),
-                        ("schema migrated", 4, 5), ("schema migrated", 5, 6)]  # one step per version
+                        ("schema migrated", 4, 5), ("schema migrated", 5, 6),
+                        ("schema migrated", 6, 7)]  # one step per version
+    assert s.manifest["processing"] is None  # not recorded before version 7
     assert s.verify() == []
     assert snapshot(DATA / name) == before
 
@@ -88,7 +90,7 @@ def test_info_shows_them_and_writes_nothing(name, n_files, capsys):
     before = snapshot(DATA / name)
     assert main(["info", str(DATA / name)]) == 0
     out = capsys.readouterr().out
-    assert "schema: version 1, read as version 6" in out
+    assert "schema: version 1, read as version 7" in out
     assert f"checksums: all {n_files} files verified (SHA-256)" in out
     if name == "interrupted":
         assert "status: interrupted (terminated by SIGTERM)" in out
@@ -112,7 +114,7 @@ def test_the_interrupted_session_resumes_to_an_uninterrupted_runs_result(tmp_pat
     """``polrig capture --resume`` of the session interrupted under polrig 45517b4, on the fast
     clock (the same simulated world): it completes, and its captures (the one 45517b4 wrote and
     the two written now) are the files of an uninterrupted capture by today's polrig, byte for
-    byte. The manifest is then written in schema version 6."""
+    byte. The manifest is then written in schema version 7."""
     fast = DATA / "rig-fast.toml"
     out = copy("interrupted", tmp_path)
     assert main(["capture", "--config", str(fast), "--out", str(out), "--resume",
@@ -123,23 +125,23 @@ def test_the_interrupted_session_resumes_to_an_uninterrupted_runs_result(tmp_pat
                  "--out", str(ref), "--no-progress"]) == 0
     assert content(out) == content(ref)
     s = Session.open(out)
-    assert s.stored_version == 6 and s.verify() == []
+    assert s.stored_version == 7 and s.verify() == []
     assert s.manifest["status"] == "complete" and s.capture(1)["attempts"] == 2
     events = [h["event"] for h in s.manifest["history"]]
     assert events.index("session interrupted") < events.index("schema migrated") < \
         events.index("resumed")
     stored = json.loads((out / MANIFEST_NAME).read_text())
-    assert stored["schema_version"] == 6 and stored["plan"]["network_binning"] == 1
+    assert stored["schema_version"] == 7 and stored["plan"]["network_binning"] == 1
 
 
 def test_reconstruct_reprocesses_the_reference_session(tmp_path, capsys):
     """``polrig reconstruct`` of the version-1 session: a revision whose results are the
-    capture's own (same settings, same raw frames), the manifest written in version 6."""
+    capture's own (same settings, same raw frames), the manifest written in version 7."""
     root = copy("reference", tmp_path)
     assert main(["reconstruct", str(root), "--no-progress"]) == 0
     assert f"revision rev1 written to {root}" in capsys.readouterr().out
     s = Session.open(root)
-    assert s.stored_version == 6 and s.verify() == []
+    assert s.stored_version == 7 and s.verify() == []
     [rev] = s.manifest["revisions"]
     assert (rev["name"], rev["mode"], rev["exr_uncertainty"]) == ("rev1", "reference", "half")
     for cap in s.captures:
@@ -156,7 +158,7 @@ def test_reconstruct_reprocesses_the_single_shot_session(tmp_path, capsys):
     root = copy("single-shot", tmp_path)
     assert main(["reconstruct", str(root), "--device", "cpu", "--no-progress"]) == 0
     s = Session.open(root)
-    assert s.stored_version == 6 and s.verify() == []
+    assert s.stored_version == 7 and s.verify() == []
     [rev] = s.manifest["revisions"]
     assert (rev["mode"], rev["resolution"], rev["network_binning"]) == ("single-shot",
                                                                          "superpixel", 1)
@@ -179,7 +181,7 @@ def test_reconstruct_hybrid_on_the_single_shot_session(tmp_path, capsys):
     root = copy("single-shot", tmp_path)
     assert main(["reconstruct", str(root), "--mode", "hybrid", "--device", "cpu", "--no-progress"]) == 0
     s = Session.open(root)
-    assert s.stored_version == 6 and s.verify() == []
+    assert s.stored_version == 7 and s.verify() == []
     [rev] = s.manifest["revisions"]
     assert (rev["mode"], rev["seen_state"]) == ("hybrid", 0)
     entry = s.capture(0)["revisions"]["rev1"]

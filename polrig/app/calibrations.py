@@ -31,6 +31,7 @@ from polrig.errors import ConfigError
 from polrig.formats.config import GEOMETRY_KEYS
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.analyzer import AnalyzerModel, frame_layout  # noqa: F401 (frame_layout re-exported)
+from polrig.solve.hybrid import open_direction
 from polrig.solve.reference import condition_number, validate_states
 
 NOMINAL_CALIBRATION_ID = "nominal"
@@ -278,16 +279,28 @@ def check_plan(plan, calibration: Calibration, device: str = "auto", model_size:
     of ``mode`` when there is none, :class:`polrig.models.sizes.ModelSizeUnavailable` for a size not shipped, :class:`polrig.models.devices.DeviceUnavailable` for a forced ``cuda``
     that cannot run). Hybrid: the same, and the model must have a calibrated uncertainty (its
     sigma is the prior's); any number of states from 1 (they need not determine the block:
-    the prior fills in what they leave out); returns the state set's condition number, which
-    may be infinite (fewer than 3 states, or collinear ones). Adaptive: as hybrid, of its
-    first state (it chooses the others as it goes).
+    the prior fills in what they leave out), but two must be two polarizer states, not one
+    twice (0 and 180 deg: their incident states are parallel and leave no one direction open
+    for the prior's scale there, :func:`polrig.solve.hybrid.open_direction`; more frames of a
+    state are ``frames_per_state``); returns the state set's condition number, which may be
+    infinite (fewer than 3 states, or collinear ones). Adaptive: as hybrid, of its first state
+    (it chooses the others as it goes).
     """
     if plan.mode in NETWORK_MODES:
         route = SingleShot.open(device, size=model_size)
         if plan.mode == "single-shot":
             return None
         route.check_sigma()
-        return state_set_condition(calibration.incident_stokes(plan.states_deg))
+        s_in = calibration.incident_stokes(plan.states_deg)
+        if plan.mode == "hybrid" and len(plan.states_deg) == 2:
+            try:
+                open_direction(s_in)
+            except ConfigError:
+                states = ",".join(f"{a:g}" for a in plan.states_deg)
+                raise PlanError("states_deg", "the two are one polarizer state (parallel incident states); give "
+                                              "two angles apart, e.g. 0,90, or one state with more frames "
+                                              "(--frames)", subject=states, what="polarizer states") from None
+        return state_set_condition(s_in)
     try:
         return validate_states(calibration.incident_stokes(plan.states_deg))
     except ConfigError as exc:

@@ -84,7 +84,7 @@ from polrig.app.calibrations import (
     single_shot_geometry,
 )
 from polrig.app.diffuse_route import check_diffuse_states, check_geometry
-from polrig.app.manifest import AdaptiveDecision, SampleMetadata, describe_decision
+from polrig.app.manifest import AdaptiveDecision, ProcessingRecord, SampleMetadata, describe_decision
 from polrig.app.processing import check_prior_scale, make_processor
 from polrig.app.records import (
     check_resume_rig,
@@ -117,7 +117,7 @@ from polrig.app.sessionio import (  # noqa: F401 (re-exported)
     manifest_exposure_us,
     raw_relpath,
 )
-from polrig.choices import DEFAULT_PRIOR_SCALE
+from polrig.choices import DEFAULT_PRIOR_SCALE, MODEL_CHOICES
 from polrig.errors import DeviceAlarm, DeviceError
 
 __all__ = ["CaptureControl", "CaptureEvent", "CapturePlan", "CaptureRequest", "PreparedCapture",
@@ -172,15 +172,16 @@ class CaptureRequest:
     #: a run option like ``device``; each result records its size, training hardware and minutes
     model_size: str = "auto"
     #: ``full``, ``auto`` or ``diffuse``: lower-order models per pixel (:mod:`polrig.solve.model_selection`,
-    #: :mod:`polrig.app.diffuse_route`;
-    #: reference and hybrid modes): a processing option like ``device``, not part of the plan;
-    #: each result records its own choice (its ``models`` view in the manifest, the header's
-    #: ``model_selection``)
-    models: str = "full"
-    #: the hybrid prior's scale, ``innovations`` or ``calibrated`` (:class:`polrig.app.processing.Processor`):
-    #: a processing option like ``models``; ``None``: ``innovations`` for a new session, on
-    #: ``resume`` the one its captures were made with (another one is refused there: the
-    #: resumed session's results stay those of one method)
+    #: :mod:`polrig.app.diffuse_route`; reference and hybrid modes): a processing option, not
+    #: part of the plan, recorded in the session (:class:`polrig.app.manifest.ProcessingRecord`)
+    #: and in each result (its ``models`` view in the manifest, the header's
+    #: ``model_selection``); ``None``: ``full`` for a new session, on ``resume`` the session's
+    #: (another one is refused there: one session's results are made one way)
+    models: str | None = None
+    #: the hybrid prior's scale, ``innovations``, ``geometry`` or ``calibrated``
+    #: (:class:`polrig.app.processing.Processor`): a processing option recorded like ``models``;
+    #: ``None``: :data:`polrig.choices.DEFAULT_PRIOR_SCALE` for a new session, on ``resume`` the
+    #: session's (another one is refused there)
     prior_scale: str | None = None
     #: who, why, what (:class:`polrig.app.manifest.SampleMetadata`): recorded in the manifest
     #: and every result header; ``None``: empty for a new session, the stored one on ``resume``
@@ -228,6 +229,12 @@ class PreparedCapture:
     metadata: SampleMetadata = dataclasses.field(default_factory=SampleMetadata)
     #: the hybrid prior's scale (:attr:`CaptureRequest.prior_scale`, resolved)
     prior_scale: str = DEFAULT_PRIOR_SCALE
+    #: lower-order models per pixel (:attr:`CaptureRequest.models`, resolved)
+    models: str = "full"
+
+    def processing(self) -> ProcessingRecord:
+        """What a new session records of how its captures are processed."""
+        return {"models": self.models, "prior_scale": self.prior_scale}
 
 
 def prepare_capture(request: CaptureRequest) -> PreparedCapture:
@@ -263,8 +270,8 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                             f"metadata out to keep the stored one")
             calibration = load_calibration(request.calibration, session=session)
             check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
-            check_models(request, plan, calibration)
-            prior_scale = resumed_prior_scale(session, request.prior_scale)
+            models, prior_scale = resumed_processing(session, request.models, request.prior_scale)
+            check_models(models, plan, calibration, request.config)
         except BaseException:
             session.unlock()
             raise
@@ -278,11 +285,28 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                    "session in it", subject=str(out), what="output")
         calibration = load_calibration(request.calibration)
         check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
-        check_models(request, plan, calibration)
+        models = check_model_choice(request.models or "full")
+        check_models(models, plan, calibration, request.config)
         prior_scale = check_prior_scale(request.prior_scale or DEFAULT_PRIOR_SCALE)
     return PreparedCapture(out, plan, calibration, session,
                            request.metadata if request.metadata is not None else SampleMetadata(),
-                           prior_scale)
+                           prior_scale, models)
+
+
+def resumed_processing(session: Session, models: str | None, prior_scale: str | None) -> tuple[str, str]:
+    """``(models, prior_scale)`` a resumed ``session`` goes on with: those it recorded when it
+    was created (:class:`polrig.app.manifest.ProcessingRecord`). Asking for another is a
+    one-line :class:`PlanError` of the option. A session from before version 7 recorded none:
+    ``models`` as asked (default ``full``) and the prior scale of :func:`resumed_prior_scale`."""
+    stored = session.manifest.get("processing")
+    if stored is None:
+        return check_model_choice(models or "full"), resumed_prior_scale(session, prior_scale)
+    for field, asked, option in (("models", models, "--models"), ("prior_scale", prior_scale, "--prior-scale")):
+        if asked is not None and asked != stored[field]:
+            raise PlanError(field, f"the session's captures are processed with {field}={stored[field]!r}, this run "
+                                   f"asks for {asked!r}; leave it out to go on with {stored[field]!r}, or "
+                                   f"reconstruct the session with another")
+    return stored["models"], stored["prior_scale"]
 
 
 def resumed_prior_scale(session: Session, asked: str | None) -> str:
@@ -301,13 +325,21 @@ def resumed_prior_scale(session: Session, asked: str | None) -> str:
     return made[0]
 
 
-def check_models(request: CaptureRequest, plan: CapturePlan, calibration: Calibration) -> None:
+def check_model_choice(models: str) -> str:
+    """``models`` when it is one of :data:`polrig.choices.MODEL_CHOICES`, else a one-line
+    :class:`PlanError` of ``models``."""
+    if models not in MODEL_CHOICES:
+        raise PlanError("models", f"must be one of {', '.join(MODEL_CHOICES)}", subject=repr(models), what="models")
+    return models
+
+
+def check_models(models: str, plan: CapturePlan, calibration: Calibration, config=None) -> None:
     """``models`` ``diffuse``: a hybrid plan at two states, and the rig's geometry known (the
-    calibration's or the rig configuration's; :mod:`polrig.app.diffuse_route`), one-line
-    :class:`PlanError` s of ``models`` before any device opens."""
-    if request.models == "diffuse":
+    calibration's or the rig configuration's ``config``; :mod:`polrig.app.diffuse_route`),
+    one-line :class:`PlanError` s of ``models`` before any device opens."""
+    if models == "diffuse":
         check_diffuse_states(plan.mode, len(plan.states_deg))
-        check_geometry(single_shot_geometry(calibration, load_rig_config(request.config)))
+        check_geometry(single_shot_geometry(calibration, load_rig_config(config)))
 
 
 def open_session(prepared: PreparedCapture, rig, command_line: list[str]) -> Session:
@@ -335,7 +367,7 @@ def open_session(prepared: PreparedCapture, rig, command_line: list[str]) -> Ses
     check_rig_for_plan(rig, prepared.plan)
     return create_session(prepared.out, rig, prepared.plan,
                           calibration_id=prepared.calibration.id, command_line=command_line,
-                          metadata=prepared.metadata)
+                          metadata=prepared.metadata, processing=prepared.processing())
 
 
 def _metadata_text(md: SampleMetadata) -> str:
@@ -470,7 +502,7 @@ def run_capture(request: CaptureRequest, *, command_line: Sequence[str],
                       if prepared.resume_session is not None else sensor_model_of(opened))
             processor = make_processor(prepared.plan, prepared.calibration, sensor,
                                        device=request.device, model_size=request.model_size,
-                                       models=request.models, prior_scale=prepared.prior_scale)
+                                       models=prepared.models, prior_scale=prepared.prior_scale)
             session = open_session(prepared, opened, list(command_line))
             try:
                 if events is not None:

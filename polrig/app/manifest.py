@@ -31,6 +31,7 @@ import re
 from typing import Annotated, Any, Callable, Literal, Mapping, NotRequired, TypedDict
 
 from polrig.acquisition.plan import ADAPTIVE_MIN_STATES, MODES, NETWORK_BINNINGS, RESOLUTIONS, CapturePlan
+from polrig.choices import DEFAULT_PRIOR_SCALE
 from polrig.errors import ConfigError, FormatError
 from polrig.formats.exr import RESULT_PLANES
 from polrig.formats.typedjson import (
@@ -44,7 +45,7 @@ from polrig.formats.typedjson import (
 )
 
 #: The version of the manifest this polrig writes (``schema_version``).
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 # capture status: "acquired" = every raw frame (and the simulated rig's truth) recorded,
 # processing not done yet (a resume processes it without acquiring it again)
@@ -454,6 +455,25 @@ class CaptureRecord(TypedDict):
 
 
 # -- the session --------------------------------------------------------------------------------
+class ProcessingRecord(TypedDict):
+    """How a session's own captures are processed into results, beyond its plan: written when
+    the session is created, and a resumed run goes on with it (asking for another is refused),
+    so that an interrupted session ends as an uninterrupted one. ``models``: ``full``, ``auto``
+    or ``diffuse`` (:mod:`polrig.solve.model_selection`, :mod:`polrig.app.diffuse_route`);
+    ``prior_scale``: the hybrid prior's scale (:data:`polrig.solve.prior_scale.METHODS`; in an
+    adaptive session it also steers the decisions). A revision records its own
+    (:class:`RevisionSettings`)."""
+
+    models: Literal["full", "auto", "diffuse"]
+    prior_scale: Literal["innovations", "geometry", "calibrated"]
+
+
+def default_processing() -> ProcessingRecord:
+    """The :class:`ProcessingRecord` of a session whose run asks for nothing: the 3x3 block at
+    every pixel and the default prior scale (:data:`polrig.choices.DEFAULT_PRIOR_SCALE`)."""
+    return {"models": "full", "prior_scale": DEFAULT_PRIOR_SCALE}
+
+
 class RevisionSettings(TypedDict):
     """A ``polrig reconstruct`` revision: its name, when and how it was asked for, and the
     settings its results were made with."""
@@ -551,6 +571,9 @@ class SessionManifest(TypedDict):
     rig: RigRecord
     calibration_id: str
     plan: CapturePlan
+    #: how the captures are processed (:class:`ProcessingRecord`); null in sessions from before
+    #: version 7, which did not record it: a resumed one takes what its run asks for, as they did
+    processing: Annotated[ProcessingRecord | None, Label("processing: ")]
     #: who, why, what (:class:`SampleMetadata`; empty in sessions from before version 4)
     metadata: Annotated[SampleMetadata, Label("metadata: ")]
     planned_bytes: ByteCount
@@ -775,6 +798,19 @@ def migrate_v5(m: dict[str, Any]) -> dict[str, Any]:
     return m
 
 
+def migrate_v6(m: dict[str, Any]) -> dict[str, Any]:
+    """Version 6 to 7 (the session's processing options, ``processing``): null, as a version-6
+    session did not record them (its resumed runs take what they ask for, as they did; a
+    resumed run's prior scale still follows the results already made,
+    :func:`polrig.app.capture.resumed_prior_scale`)."""
+    m = dict(m, schema_version=7)
+    m.setdefault("processing", None)
+    if isinstance(m.get("history"), list):
+        m["history"] = [*m["history"], {"time": utc_now(), "event": "schema migrated",
+                                        "from_version": 6, "to_version": 7}]
+    return m
+
+
 #: Version -> the function that migrates a manifest of that version to the next one.
 MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
-    1: migrate_v1, 2: migrate_v2, 3: migrate_v3, 4: migrate_v4, 5: migrate_v5}
+    1: migrate_v1, 2: migrate_v2, 3: migrate_v3, 4: migrate_v4, 5: migrate_v5, 6: migrate_v6}

@@ -56,12 +56,14 @@ from polrig.app.manifest import (  # noqa: F401 (re-exported: the statuses and r
     PENDING,
     RUNNING,
     SCHEMA_VERSION,
+    ProcessingRecord,
     SESSION_COMPLETE,
     SampleMetadata,
     CaptureRecord,
     RevisionSettings,
     RigRecord,
     SessionManifest,
+    default_processing,
     utc_now,
 )
 from polrig.atomic import atomic_write_bytes
@@ -238,14 +240,17 @@ class Session:
     def create(cls, root: str | os.PathLike, *, plan: CapturePlan, rig: RigRecord,
                calibration_id: str, command_line: list[str] | None = None,
                required_bytes: int = 0, write_hook: WriteHook | None = None,
-               metadata: SampleMetadata | None = None) -> "Session":
+               metadata: SampleMetadata | None = None,
+               processing: ProcessingRecord | None = None) -> "Session":
         """Start a new session in ``root`` (created; must not exist or be empty).
 
         One pending capture is listed per pose of ``plan``. ``rig`` describes the rig
         (:func:`polrig.app.records.rig_record`). ``required_bytes`` is checked against the
         free disk space. ``metadata``: who, why, what (:class:`polrig.app.manifest.SampleMetadata`,
-        empty by default). The manifest is checked against its types before anything is
-        written (``ValueError`` naming the key).
+        empty by default). ``processing``: how its captures are processed
+        (:class:`polrig.app.manifest.ProcessingRecord`; default ``full`` models and the default
+        prior scale). The manifest is checked against its types before anything is written
+        (``ValueError`` naming the key).
         """
         root = pathlib.Path(root)
         if root.exists() and not root.is_dir():
@@ -268,6 +273,7 @@ class Session:
             "rig": json.loads(json.dumps(rig)),
             "calibration_id": calibration_id,
             "plan": plan,
+            "processing": dict(processing) if processing is not None else default_processing(),
             "metadata": metadata if metadata is not None else SampleMetadata(),
             "planned_bytes": int(required_bytes),
             "hardware_time_s": None,

@@ -44,16 +44,18 @@ def frame_bytes(frame: Frame) -> tuple[bytes, bytes]:
 
 def create_session(out, rig, plan: CapturePlan, *, calibration_id: str,
                    command_line: list[str] | None = None, write_hook=None,
-                   metadata=None) -> Session:
+                   metadata=None, processing=None) -> Session:
     """A new session for ``plan`` on ``rig`` in ``out`` (disk space checked; ``metadata``: its
-    :class:`polrig.app.manifest.SampleMetadata`, empty by default). The returned
+    :class:`polrig.app.manifest.SampleMetadata`, empty by default; ``processing``: how its
+    captures are processed, :class:`polrig.app.manifest.ProcessingRecord`). The returned
     session holds its lock (:meth:`polrig.app.session.Session.lock`) until :func:`run_session`
     ends."""
     width, height, colours, cell = frame_geometry(rig)
     need = planned_bytes(plan, len(plan.poses_deg), width, height, colours, cell)
     return Session.create(out, plan=plan, rig=rig_record(rig),
                           calibration_id=calibration_id, command_line=command_line,
-                          required_bytes=need, write_hook=write_hook, metadata=metadata)
+                          required_bytes=need, write_hook=write_hook, metadata=metadata,
+                          processing=processing)
 
 
 def check_resume_space(session: Session, rig, n_captures: int) -> None:

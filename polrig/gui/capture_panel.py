@@ -411,10 +411,10 @@ class CapturePanel(QWidget):
         calibration = self.calibration.text().strip()
         base = dict(out=pathlib.Path(out), resume=resume,
                     calibration=pathlib.Path(calibration) if calibration else None,
-                    device=self.device.currentText(), model_size=self.model_size.currentText(),
-                    models=self.models.currentText() if self.mode.currentText() != "single-shot" else "full")
-        if resume:  # the session's own prior scale (polrig.app.capture.resumed_prior_scale)
+                    device=self.device.currentText(), model_size=self.model_size.currentText())
+        if resume:  # the session's own models and prior scale (polrig.app.capture.resumed_processing)
             return CaptureRequest(**base)
+        base["models"] = self.models.currentText() if self.mode.currentText() != "single-shot" else "full"
         states, exposure = self.states.text().strip(), self.exposure.text().strip()
         mode = self.mode.currentText()
         return CaptureRequest(

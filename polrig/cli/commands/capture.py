@@ -140,7 +140,7 @@ def add_models_option(p: argparse.ArgumentParser) -> None:
                         "direction they leave open predicted from the "
                         "rig's geometry (calibrated light and turntable, or [nominal_geometry]); the "
                         "model map (model.{colour}, codes in the header) and its statistic are "
-                        "always written")
+                        "always written; capture --resume goes on with the session's")
 
 
 def add_prior_scale_option(p: argparse.ArgumentParser, default: str) -> None:
@@ -300,7 +300,7 @@ def build_request(args: argparse.Namespace):
             exr_compression=args.exr_compression,
             device=args.device or "auto",
             model_size=args.model_size or "auto",
-            models=args.models or "full",
+            models=args.models,
             prior_scale=args.prior_scale,
             config=pathlib.Path(args.config) if args.config else None,
             calibration=pathlib.Path(args.calibration) if args.calibration else None,

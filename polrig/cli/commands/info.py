@@ -20,6 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polrig.acquisition.plan import PRIOR_MODES
     from polrig.app.manifest import describe_decision, describe_prior_scale
     from polrig.app.session import Session
     from polrig.solve.scoring import format_score
@@ -52,6 +53,10 @@ def run(args: argparse.Namespace) -> int:
           f"{','.join(f'{a:g}' for a in plan.states_deg)} deg, "
           f"{plan.frames_per_state} frame(s)/state, exposure {exposures}, "
           f"{plan.dark_frames} dark frame(s), demosaic {plan.demosaic}")
+    processing = m["processing"]
+    if processing is not None:  # absent before schema version 7
+        scale = f", prior scale {processing['prior_scale']}" if plan.mode in PRIOR_MODES else ""
+        print(f"  processing: models {processing['models']}{scale} (a resume goes on with these)")
     counts: dict[str, int] = {}
     for cap in s.captures:
         counts[cap["status"]] = counts.get(cap["status"], 0) + 1
