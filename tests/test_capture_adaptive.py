@@ -276,6 +276,29 @@ def test_hardware_time_and_eta_follow_the_decisions(adaptive_run):
         (c["index"], describe_decision(d)) for c in session.captures for d in c["adaptive"]]
 
 
+@needs_model
+def test_the_reference_method_reconstructs_each_pose_of_three_states_or_more(adaptive_run, tmp_path, capsys):
+    """An adaptive session's poses took the states their decisions chose: ``reconstruct --mode
+    reference`` solves each of at least 3 states, and one of fewer fails with its reason while
+    the others go on; where no pose took 3 it is refused in one line, nothing recorded."""
+    from polrig.app.processing import states_taken
+
+    out = tmp_path / "s"
+    shutil.copytree(adaptive_run[0].root, out, ignore=shutil.ignore_patterns("session.lock"))
+    taken = [states_taken(Session.open(out), i) for i in range(len(POSES))]
+    assert taken == [len(c["adaptive"]) for c in adaptive_run[0].captures]
+    rc = main(["reconstruct", str(out), "--mode", "reference", "--no-progress"])
+    err = capsys.readouterr().err
+    if max(taken) < 3:
+        assert rc == 2 and "at most" in err and "reconstruct with the hybrid method" in err, err
+        return
+    assert rc == (0 if min(taken) >= 3 else 1), err
+    for n, cap in zip(taken, Session.open(out).captures):
+        result = cap["revisions"]["rev1"]
+        assert result["status"] == ("complete" if n >= 3 else "failed"), result
+        assert n >= 3 or "need at least 3 polarizer states" in result["reason"]
+
+
 def interrupted_at_frame(out, plan: CapturePlan, n: int) -> None:
     """Start ``plan`` in ``out`` and interrupt it (Ctrl-C) at its ``n``-th frame."""
     frames = []
