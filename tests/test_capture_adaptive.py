@@ -281,11 +281,9 @@ def test_the_reference_method_reconstructs_each_pose_of_three_states_or_more(ada
     """An adaptive session's poses took the states their decisions chose: ``reconstruct --mode
     reference`` solves each of at least 3 states, and one of fewer fails with its reason while
     the others go on; where no pose took 3 it is refused in one line, nothing recorded."""
-    from polrig.app.processing import states_taken
-
     out = tmp_path / "s"
     shutil.copytree(adaptive_run[0].root, out, ignore=shutil.ignore_patterns("session.lock"))
-    taken = [states_taken(Session.open(out), i) for i in range(len(POSES))]
+    taken = [Session.open(out).states_taken(i) for i in range(len(POSES))]
     assert taken == [len(c["adaptive"]) for c in adaptive_run[0].captures]
     rc = main(["reconstruct", str(out), "--mode", "reference", "--no-progress"])
     err = capsys.readouterr().err

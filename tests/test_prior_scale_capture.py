@@ -218,6 +218,10 @@ def test_info_words_the_open_directions_scale():
     none = dict(scaled, open_direction={"factor": 1.0, "raw": 1.0, "exponent": 0.0, "values": 0})
     assert describe_prior_scale({"sigma_scale": none}).endswith("along the open direction as that (no diffuse "
                                                                  "pixel to check it by)")
+    assert describe_prior_scale({"sigma_scale": none}, 2).endswith("(no diffuse pixel to check it by)")
+    for n in (1, 3, 4):  # no open direction to check: said so, not "no diffuse pixel"
+        assert describe_prior_scale({"sigma_scale": none}, n).endswith(
+            f"; no one direction left open at {n} state{'s' if n > 1 else ''}")
 
 
 @needs_model

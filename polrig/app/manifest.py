@@ -410,12 +410,14 @@ def describe_decision(decision: AdaptiveDecision) -> str:
             f"{decision['object_pixels']} object pixels at target; {what}")
 
 
-def describe_prior_scale(prior: PriorRecord) -> str:
+def describe_prior_scale(prior: PriorRecord, n_states: int | None = None) -> str:
     """One line on a hybrid result's prior sigma (``polrig info``): ``sigma x 0.71 (innovations,
     48000 values)``, ``sigma as calibrated``; ``sigma as calibrated (no later state to scale it
     by)`` where the scale found nothing to rest on (one state); ``sigma as calibrated (before the
     scale)`` for a result made before it existed; with ``geometry``, ``; along the open direction
-    x 1.2 (diffuse geometry, 9000 values)`` after it."""
+    x 1.2 (diffuse geometry, 9000 values)`` after it, or why it is 1: two states with no diffuse
+    pixel to check it by, or ``n_states`` (the states the result was solved from, where known)
+    other than two, which leave no one direction open."""
     scale = prior.get("sigma_scale")
     if scale is None:
         return "sigma as calibrated (before the scale)"
@@ -424,11 +426,13 @@ def describe_prior_scale(prior: PriorRecord) -> str:
     text = ("sigma as calibrated (no later state to scale it by)" if scale["innovations"] == 0
             else f"sigma x {scale['factor']:.3g} (innovations, {scale['innovations']} values)")
     opened = scale.get("open_direction")
-    if opened is not None:
-        text += ("; along the open direction as that (no diffuse pixel to check it by)" if opened["values"] == 0
-                 else f"; along the open direction x {opened['factor']:.3g} (diffuse geometry, "
-                      f"{opened['values']} values)")
-    return text
+    if opened is None:
+        return text
+    if opened["values"] > 0:
+        return text + f"; along the open direction x {opened['factor']:.3g} (diffuse geometry, {opened['values']} values)"
+    if n_states is not None and n_states != 2:
+        return text + f"; no one direction left open at {n_states} state{'s' if n_states > 1 else ''}"
+    return text + "; along the open direction as that (no diffuse pixel to check it by)"
 
 
 class CaptureRecord(TypedDict):

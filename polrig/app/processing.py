@@ -942,7 +942,7 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
         # each pose took the states its decisions chose: solved per capture, those of fewer than
         # 3 states fail with their reason and the others go on (before a revision exists: a
         # session where no pose took 3 records nothing)
-        most = max(states_taken(session, i) for i in done)
+        most = max(session.states_taken(i) for i in done)
         if most < 3:
             raise ConfigError(f"{session.root}: captured in adaptive mode, at most {most} polarizer "
                               f"state(s) per pose; the reference method needs at least 3 "
@@ -960,12 +960,6 @@ def revision_plan(session: Session, mode: str | None, demosaic: str | None,
              "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
              "exr_compression": choice.compression, "models": processor.models,
              "prior_scale": processor.prior_scale}, processor, done)
-
-
-def states_taken(session: Session, index: int) -> int:
-    """How many polarizer states capture ``index`` recorded raw frames of (an adaptive pose's:
-    the states its decisions took)."""
-    return 1 + max((r["state_index"] for r in session.capture(index)["files"].get("raw", [])), default=-1)
 
 
 def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,

@@ -389,6 +389,11 @@ class Session:
     def capture(self, index: int) -> CaptureRecord:
         return self.captures[index]
 
+    def states_taken(self, index: int) -> int:
+        """How many polarizer states capture ``index`` recorded raw frames of (an adaptive
+        pose's: the states its decisions took); 0 before any."""
+        return 1 + max((r["state_index"] for r in self.capture(index)["files"].get("raw", [])), default=-1)
+
     def capture_dir(self, index: int) -> pathlib.Path:
         return self.root / self.capture(index)["name"]
 

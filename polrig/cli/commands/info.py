@@ -74,14 +74,15 @@ def run(args: argparse.Namespace) -> int:
         print(line)
         for d in cap.get("adaptive", ()):  # the states an adaptive capture took, why it stopped
             print(f"          decision: {describe_decision(d)}")
+        n_states = s.states_taken(cap["index"])
         if "prior" in cap:
-            print(f"          prior: {describe_prior_scale(cap['prior'])}")
+            print(f"          prior: {describe_prior_scale(cap['prior'], n_states)}")
         if cap["score"]:
             print(f"          score: {format_score(cap['score'])}")
         for name, rev in cap["revisions"].items():
             extra = f"  score: {format_score(rev['score'])}" if rev["score"] else ""
             if "prior" in rev:
-                extra += f"  prior: {describe_prior_scale(rev['prior'])}"
+                extra += f"  prior: {describe_prior_scale(rev['prior'], n_states)}"
             if rev["reason"]:
                 extra += f"  ({rev['reason']})"
             print(f"          {name}: {rev['status']}{extra}")
