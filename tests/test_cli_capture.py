@@ -631,3 +631,20 @@ def test_full_resolution_with_the_reference_method_or_an_absent_cuda_is_refused(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--resolution full" in err
     assert (ss / "session.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("argv, usage", [
+    (["capture", "--poses", "0", "--out", "x", "--bogus"], "usage: polrig capture "),
+    (["info", "--bogus", "x"], "usage: polrig info "),
+    (["--bogus"], "usage: polrig "),
+])
+def test_a_mistyped_option_prints_its_commands_usage_line(argv, usage, tmp_path, capsys, monkeypatch):
+    """As the README says: the error in one line, the usage line of the command it belongs to
+    above it; exit 2, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(usage), err
+    assert err.strip().splitlines()[-1].endswith("error: unrecognized arguments: --bogus"), err
+    assert list(tmp_path.iterdir()) == []
