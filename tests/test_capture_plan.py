@@ -72,7 +72,7 @@ def test_plan_validation_and_json_round_trip():
                             ({"frames_per_state": 0}, "frames_per_state", "frames per state"),
                             ({"mode": "magic"}, "mode", "capture mode must be one of"),
                             ({"dark_frames": -1}, "dark_frames", "dark frames must be >= 0"),
-                            ({"mirror_average": True}, "mirror_average", "single-shot mode only"),
+                            ({"mirror_average": True}, "mirror_average", "network's methods only"),
                             ({"resolution": "full"}, "resolution", "only the single-shot method"),
                             ({"resolution": "half"}, "resolution", "superpixel, full")]:
         with pytest.raises(PlanError, match=text) as e:

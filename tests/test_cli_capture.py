@@ -81,7 +81,7 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     # single-shot captures one state: several are refused, not recorded as if captured
     (["--poses", "0", "--mode", "single-shot", "--states", "0,45"],
      "--states: the single-shot method captures one polarizer state per pose"),
-    (["--poses", "0", "--mirror-average"], "--mirror-average: mirror averaging applies to the single-shot mode only"),
+    (["--poses", "0", "--mirror-average"], "--mirror-average: mirror averaging applies to the network's methods only"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
     if "single-shot" in args:  # no model installed: point the runtime at an empty folder
@@ -352,7 +352,7 @@ def test_reconstruct_refuses_mirror_average_with_the_reference_method(tmp_path, 
     capsys.readouterr()
     assert main(["reconstruct", str(out), "--mirror-average", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "--mirror-average: mirror averaging applies to the single-shot mode only" in err and len(err.strip().splitlines()) == 1
+    assert "--mirror-average: mirror averaging applies to the network's methods only" in err and len(err.strip().splitlines()) == 1
     assert (out / "session.json").read_bytes() == before  # no revision recorded
 
 

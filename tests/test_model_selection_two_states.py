@@ -226,30 +226,31 @@ def test_any_two_state_scene_gives_finite_results_and_known_codes(seed, scale, d
 
 # ------------------------------------------------------------------ the CLI
 @pytest.mark.skipif(not MODEL_INSTALLED, reason="no single-shot model in models/weights")
-def test_hybrid_two_states_models_auto_leaves_the_pixels_untested_in_captures(tmp_path):
-    """``polrig capture --mode hybrid --states 0,90 --models auto`` then ``reconstruct`` with
-    the same: the model map is written and says every pixel is untested (captures do not pass
-    the prior to the selection: with the shipped network's prior the two-state test's false
-    acceptance exceeds its level, ``polrig.solve.radiometry.reference_from_frames``)."""
+def test_hybrid_two_states_models_auto_is_refused_in_captures_and_revisions(tmp_path, capsys):
+    """``polrig capture --mode hybrid --states 0,90 --models auto``, and ``reconstruct`` of a
+    two-state session with it: refused in one line naming ``--models`` before anything is
+    written, pointing at ``--models diffuse``. Captures do not pass the prior to the selection
+    (with the shipped network's prior the two-state test's false acceptance exceeds its level,
+    ``polrig.solve.radiometry.reference_from_frames``), so every pixel would stay untested."""
     from polrig.app.session import Session
     from polrig.cli import main
-    from polrig.formats.exr import read_exr
 
     cfg = sim_config(tmp_path / "rig.toml")
     out = tmp_path / "run"
-    assert main(["capture", "--poses", "0", "--mode", "hybrid", "--states", "0,90", "--models", "auto",
-                 "--device", "cpu", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
-    s = Session.open(out)
-    im = read_exr(out / s.capture(0)["files"]["mueller"]["path"])
-    code = np.stack([v for k, v in im.planes.items() if k.startswith("model.")])
-    assert code.size and np.all(code == ms.UNTESTED)
-    assert main(["reconstruct", str(out), "--mode", "hybrid", "--models", "auto", "--device", "cpu",
+    hybrid = ["--mode", "hybrid", "--device", "cpu"]
+    rc = main(["capture", "--poses", "0", *hybrid, "--states", "0,90", "--models", "auto", "--config", str(cfg),
+               "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and not out.exists(), err
+    assert "--models auto: model selection tests the block on the samples alone" in err and "--models diffuse" in err
+    assert main(["capture", "--poses", "0", *hybrid, "--states", "0,90", "--config", str(cfg), "--out", str(out),
                  "--no-progress"]) == 0
-    s = Session.open(out)
-    rev = s.capture(0)["revisions"]["rev1"]["files"]
-    code = np.stack([v for k, v in read_exr(out / rev["mueller"]["path"]).planes.items() if k.startswith("model.")])
-    assert np.all(code == ms.UNTESTED)
-    assert s.verify() == []
+    before = (out / "session.json").read_bytes()
+    capsys.readouterr()
+    rc = main(["reconstruct", str(out), *hybrid, "--models", "auto", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--models auto" in err and (out / "session.json").read_bytes() == before, err
+    assert Session.open(out).manifest["revisions"] == []
 
 
 def test_selection_does_not_depend_on_chunks_or_threads(monkeypatch):

@@ -86,7 +86,7 @@ MAX_STATE_DEG = 360.0
 AXES = ("stage", "turntable")
 
 
-MIRROR_SINGLE_SHOT_ONLY = "mirror averaging applies to the single-shot mode only"
+MIRROR_SINGLE_SHOT_ONLY = "mirror averaging applies to the network's methods only (single-shot, hybrid, adaptive)"
 #: Output resolutions of the single-shot method (:attr:`SingleShotOptions.resolution`): the
 #: networks' superpixel grid or the raw frame's own.
 RESOLUTIONS = ("superpixel", "full")

@@ -462,6 +462,14 @@ class Processor:
         if models == "auto" and mode == "single-shot":
             raise PlanError("models", "model selection tests the samples of the polarizer states: "
                                       "use the reference or hybrid mode")
+        if models == "auto" and mode == "hybrid" and n_states is not None and n_states < 3:
+            # with fewer, every pixel would stay untested (polrig.solve.model_selection, "At any
+            # rank": captures do not pass the prior to the test)
+            raise PlanError("models", f"model selection tests the block on the samples alone, which "
+                                      f"takes three polarizer states or more; the plan has {n_states}"
+                                      + (" (at two, --models diffuse tests the diffuse term on them)"
+                                         if n_states == 2 else ""),
+                            subject="auto", what="models")
         if models == "diffuse":
             check_diffuse_states(mode, n_states)
         #: the hybrid prior's scale (:data:`polrig.solve.prior_scale.METHODS`)

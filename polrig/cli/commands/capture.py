@@ -48,14 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="reference: N polarizer states per pose (default); single-shot: the "
                         "trained network; hybrid: N >= 1 states solved with the network's estimate "
                         "of one of them (--seen-state) as a prior (polrig.solve.hybrid); adaptive: "
-                        "the network's state (the first of --states), then states chosen from the "
+                        "the network's state (--states gives that one; default 0), then states chosen from the "
                         "posterior until --target-sigma holds (polrig.app.adaptive)")
     add_seen_state_option(p, "default 0")
     add_prior_scale_option(p, f"default {DEFAULT_PRIOR_SCALE}; on --resume the session's")
     add_models_option(p)
     add_adaptive_options(p)
     p.add_argument("--mirror-average", action="store_true", default=None,
-                   help="single-shot: also run the network on each frame's left-right mirror image "
+                   help="single-shot, hybrid, adaptive: also run the network on each frame's left-right "
+                        "mirror image "
                         "and average the two answers (a few per cent lower error, twice the network "
                         "time; models/MODEL_CARD.md, 'Mirror averaging')")
     p.add_argument("--states", help="polarizer stage angles in degrees (default 0,45,90,135; "

@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--demosaic", choices=DEMOSAIC_METHODS, default=None,
                    help="demosaic method (default: each session's)")
     p.add_argument("--mirror-average", action=argparse.BooleanOptionalAction, default=None,
-                   help="single-shot: average the network's answers for each frame and its mirror "
+                   help="single-shot, hybrid: average the network's answers for each frame and its mirror "
                         "image (default: the session's choice)")
     p.add_argument("--resolution", choices=("superpixel", "full"), default=None,
                    help="single-shot output resolution: superpixel or full (the raw frame's; "
