@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from polrig.app.session import Session
+from polrig.choices import DEFAULT_PRIOR_SCALE
 from polrig.cli import main
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -82,6 +83,7 @@ def test_capture_completes_with_scores_then_info_and_reconstruct(tmp_path, capsy
     (["--poses", "0", "--mode", "single-shot", "--states", "0,45"],
      "--states: the single-shot method captures one polarizer state per pose"),
     (["--poses", "0", "--mirror-average"], "--mirror-average: mirror averaging applies to the network's methods only"),
+    (["--poses", "0", "--prior-scale", "calibrated"], "--prior-scale calibrated: applies to the hybrid and adaptive"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, monkeypatch, args, message):
     if "single-shot" in args:  # no model installed: point the runtime at an empty folder
@@ -218,7 +220,7 @@ def test_a_resumed_session_goes_on_with_its_models_and_refuses_others(tmp_path, 
     import polrig.app.rig
 
     cfg = sim_config(tmp_path / "rig.toml", noise=True)
-    args = ["--poses", "0,90,180", "--models", "auto", "--prior-scale", "calibrated", "--config", str(cfg)]
+    args = ["--poses", "0,90,180", "--models", "auto", "--config", str(cfg)]
     ref = tmp_path / "ref"
     assert main(["capture", *args, "--out", str(ref), "--no-progress"]) == 0
     real_open = polrig.app.rig.open_rig
@@ -233,16 +235,16 @@ def test_a_resumed_session_goes_on_with_its_models_and_refuses_others(tmp_path, 
     assert main(["capture", *args, "--out", str(out), "--no-progress"]) == 1
     monkeypatch.setattr(polrig.app.rig, "open_rig", real_open)
     s = Session.open(out)
-    assert s.manifest["processing"] == {"models": "auto", "prior_scale": "calibrated"}
+    assert s.manifest["processing"] == {"models": "auto", "prior_scale": DEFAULT_PRIOR_SCALE}
     assert [c["status"] for c in s.captures].count("complete") == 1
     capsys.readouterr()
     assert main(["info", str(out), "--no-verify"]) == 0
     assert "  processing: models auto (a resume goes on with these)\n" in capsys.readouterr().out
     before = (out / "session.json").read_bytes()
-    for option in (["--models", "full"], ["--prior-scale", "geometry"]):
+    for option, why in ((["--models", "full"], "leave it out"), (["--prior-scale", "geometry"], "hybrid and adaptive")):
         rc = main(["capture", "--config", str(cfg), "--out", str(out), "--resume", *option, "--no-progress"])
         err = capsys.readouterr().err
-        assert rc == 2 and len(err.strip().splitlines()) == 1 and option[0] in err and "leave it out" in err, err
+        assert rc == 2 and len(err.strip().splitlines()) == 1 and option[0] in err and why in err, err
         assert (out / "session.json").read_bytes() == before
     assert main(["capture", "--config", str(cfg), "--out", str(out), "--resume", "--no-progress"]) == 0
     assert content(out) == content(ref)

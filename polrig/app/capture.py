@@ -63,6 +63,7 @@ from polrig.acquisition.engine import (
 from polrig.acquisition.plan import (  # noqa: F401 (re-exported)
     ADAPTIVE_MIN_STATES,
     DEFAULT_STATES_DEG,
+    PRIOR_MODES,
     CapturePlan,
     ExrChoice,
     Grab,
@@ -270,6 +271,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
                                             f"metadata out to keep the stored one")
             calibration = load_calibration(request.calibration, session=session)
             check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
+            check_prior_scale_applies(plan, request.prior_scale)
             models, prior_scale = resumed_processing(session, request.models, request.prior_scale)
             check_models(models, plan, calibration, request.config)
         except BaseException:
@@ -287,6 +289,7 @@ def prepare_capture(request: CaptureRequest) -> PreparedCapture:
         check_plan(plan, calibration, request.device, request.model_size)  # states conditioning, single-shot model
         models = check_model_choice(request.models or "full")
         check_models(models, plan, calibration, request.config)
+        check_prior_scale_applies(plan, request.prior_scale)
         prior_scale = check_prior_scale(request.prior_scale or DEFAULT_PRIOR_SCALE)
     return PreparedCapture(out, plan, calibration, session,
                            request.metadata if request.metadata is not None else SampleMetadata(),
@@ -323,6 +326,15 @@ def resumed_prior_scale(session: Session, asked: str | None) -> str:
                                        f"this run asks for {asked!r}; leave it out to go on with {made[0]!r}, "
                                        f"or reconstruct the session with another")
     return made[0]
+
+
+def check_prior_scale_applies(plan: CapturePlan, prior_scale: str | None) -> None:
+    """A prior scale asked for (not None) in a plan without the network's prior (reference,
+    single-shot) is a one-line :class:`PlanError` of ``prior_scale``, as the adaptive mode's
+    options are outside it: it would be recorded and do nothing."""
+    if prior_scale is not None and plan.mode not in PRIOR_MODES:
+        raise PlanError("prior_scale", "applies to the hybrid and adaptive methods only (the network's "
+                                       "estimate as a prior)", subject=prior_scale, what="prior scale")
 
 
 def check_model_choice(models: str) -> str:
