@@ -315,7 +315,7 @@ def resumed_processing(session: Session, models: str | None, prior_scale: str | 
 def resumed_prior_scale(session: Session, asked: str | None) -> str:
     """The prior scale a resumed ``session`` goes on with: the one its hybrid results were made
     with (their prior records' ``sigma_scale``; a result from before it: ``calibrated``), else
-    ``asked`` or ``innovations``. Asking for another is a one-line :class:`PlanError` of
+    ``asked`` or :data:`polrig.choices.DEFAULT_PRIOR_SCALE`. Asking for another is a one-line :class:`PlanError` of
     ``prior_scale``: one session's results are made one way."""
     made = [c["prior"].get("sigma_scale", {"method": "calibrated"})["method"]
             for c in session.captures if "prior" in c]
