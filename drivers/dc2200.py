@@ -66,7 +66,11 @@ def resolve_backend(backend: Any):
     except ImportError as exc:
         raise DeviceNotFound(f"pyusb backend module {backend!r} cannot be imported: {exc}",
                              device="dc2200") from None
-    be = module.get_backend()
+    get_backend = getattr(module, "get_backend", None)
+    if not callable(get_backend):
+        raise DeviceNotFound(f"{backend!r} is no pyusb backend module (it has no get_backend(); "
+                             f"e.g. usb.backend.libusb1)", device="dc2200")
+    be = get_backend()
     if be is None:
         raise DeviceNotFound(f"pyusb backend {backend!r} is not available on this system",
                              device="dc2200")

@@ -148,6 +148,18 @@ def test_devices_lists_configured_and_discovered(tmp_path, capsys, monkeypatch):
     assert rc == 1 and "unreachable" in out and "could not be opened" in err
 
 
+def test_devices_goes_on_past_a_device_that_refuses_a_setting(tmp_path, capsys, monkeypatch):
+    """A configured setting the device cannot take (software trigger on a free-running camera)
+    is reported as that device's, and the listing goes on to the others and the discovery."""
+    monkeypatch.setenv("GENICAM_GENTL64_PATH", str(VIKY.parent))
+    cfg = config(tmp_path, f'[camera]\ndriver = "genicam"\ncti = "{VIKY}"\nserial = "0"\ntrigger = "software"\n')
+    rc, out, err = run(capsys, "devices", "--config", cfg)
+    assert rc == 1 and "could not be opened" in err, err
+    camera = out.split("camera")[1].split("stage")[0]
+    assert "unreachable: trigger mode 'software' is not supported" in camera, out
+    assert "ok: " in out.split("stage")[1] and f"{VIKY}: Viky serial 2" in out  # the others, then discovery
+
+
 def test_emulator_cli_and_polrig_in_separate_processes(tmp_path):
     """A human's path: start the emulator from its CLI, point a config at the link."""
     link = tmp_path / "ell14"

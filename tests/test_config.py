@@ -189,3 +189,32 @@ def test_devices_checks_the_sim_table_before_printing_anything(tmp_path, capsys)
     assert out == ""
     assert err == (f"polrig: error: {path}: [sim] hidden.stage_zero_offset_deg: expected a "
                    f"number, got [1, 2]\n")
+
+
+@pytest.mark.parametrize("table, pattern", [
+    ('[stage]\ndriver = "ell14"\nport = "/dev/x"\nzero_offset_deg = nan',
+     r"\[stage\] zero_offset_deg: nan must be a finite angle$"),
+    ('[stage]\ndriver = "k10cr1"\nport = "/dev/x"\nzero_offset_deg = inf',
+     r"\[stage\] zero_offset_deg: inf must be a finite angle$"),
+    ('[turntable]\ndriver = "grbl"\nport = "/dev/x"\naxes = "XYZ"',
+     r"\[turntable\] axis: 'A' is not one of the controller's axes 'XYZ'"),
+    ('[turntable]\ndriver = "grbl"\nport = "/dev/x"\naxes = "XXYA"', r"\[turntable\] axes: 'XXYA' is not a list of distinct"),
+    ('[turntable]\ndriver = "grbl"\nport = "/dev/x"\naxes = ""', r"\[turntable\] axes: '' is not a list"),
+    ('[light]\ndriver = "dc2200"\nbackend = ""', r"\[light\] backend: '' is not a module name"),
+    ('[light]\ndriver = "dc2200"\nbackend = "usb backend"', r"\[light\] backend: 'usb backend' is not a module name"),
+])
+def test_values_a_device_cannot_take_are_named_before_it_opens(tmp_path, table, pattern):
+    """Values that would fail only once the port is open (a NaN zero offset, an axis the
+    controller does not report, an empty backend name) are refused by the configuration's check,
+    naming the table and key."""
+    with pytest.raises(ConfigError, match=pattern):
+        load_rig_config(write(tmp_path, table))
+    assert load_rig_config(write(tmp_path, '[turntable]\ndriver = "grbl"\nport = "/dev/x"\naxes = "xyza"\naxis = "a"'))
+
+
+def test_a_backend_module_that_is_no_pyusb_backend_is_one_line():
+    from polrig.drivers.dc2200 import resolve_backend
+    from polrig.errors import DeviceNotFound
+
+    with pytest.raises(DeviceNotFound, match=r"'json' is no pyusb backend module"):
+        resolve_backend("json")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import math
 from pathlib import Path
 from typing import Any
 
@@ -47,12 +48,38 @@ def _positive(v: float) -> str | None:
     return None if v > 0 and v == v and v != float("inf") else f"{v!r} must be a positive number"
 
 
+def _finite(v: float) -> str | None:
+    return None if math.isfinite(v) else f"{v!r} must be a finite angle"
+
+
 def _axis_ok(v: str) -> str | None:
     return None if len(v) == 1 and v.upper() in "XYZABC" else f"{v!r} is not an axis letter X Y Z A B C"
 
 
+def _axes_ok(v: str) -> str | None:
+    letters = v.upper()
+    if not letters or any(a not in "XYZABC" for a in letters) or len(set(letters)) != len(letters):
+        return f"{v!r} is not a list of distinct axis letters X Y Z A B C (e.g. XYZA)"
+    return None
+
+
+def _grbl_axis_listed(table) -> tuple[str, str] | None:
+    """The turntable's axis is one of the status report's axes."""
+    if table["axis"].upper() not in table["axes"].upper():
+        return "axis", f"{table['axis']!r} is not one of the controller's axes {table['axes']!r} (the key axes)"
+    return None
+
+
+def _module_name(v: str) -> str | None:
+    """A dotted Python module name (what ``importlib`` can be asked for; whether it imports and is
+    a pyusb backend is found when the device opens)."""
+    if v and all(part.isidentifier() for part in v.split(".")):
+        return None
+    return f"{v!r} is not a module name (e.g. usb.backend.libusb1)"
+
+
 _TIMEOUT = Field(float, default=1.0, doc="seconds to wait for each reply", check=_positive)
-_ZERO = Field(float, default=0.0, doc="device angle (deg) of the rig's zero axis")
+_ZERO = Field(float, default=0.0, doc="device angle (deg) of the rig's zero axis", check=_finite)
 _PORT = Field(str, required=True, doc="serial port, e.g. /dev/ttyUSB0 or /dev/serial/by-id/...")
 
 DRIVERS: dict[str, DriverSpec] = {
@@ -88,17 +115,19 @@ DRIVERS: dict[str, DriverSpec] = {
         "grbl", {"turntable": "polrig.drivers.grbl:GrblTurntable"}, {
             "port": _PORT,
             "axis": Field(str, default="A", check=_axis_ok, doc="axis letter of the turntable"),
-            "axes": Field(str, default="XYZA", doc="axis letters in the order of the status report's MPos/WPos list"),
+            "axes": Field(str, default="XYZA", check=_axes_ok,
+                          doc="axis letters in the order of the status report's MPos/WPos list"),
             "degrees_per_unit": Field(float, default=1.0, check=_positive,
                                       doc="degrees per GRBL axis unit"),
             "rate_per_min": Field(float, check=_positive,
                                   doc="G1 feed rate in units/min (default: G0 rapid)"),
             "reply_timeout_s": Field(float, default=2.0, check=_positive),
-        }, "GRBL 1.1 controller, one rotary axis"),
+        }, "GRBL 1.1 controller, one rotary axis", check=_grbl_axis_listed),
     "dc2200": DriverSpec(
         "dc2200", {"light": "polrig.drivers.dc2200:Dc2200Light"}, {
             "serial": Field(str, doc="USB serial number (default: the only DC2200)"),
-            "backend": Field(str, doc="pyusb backend module, e.g. usb.backend.libusb1"),
+            "backend": Field(str, check=_module_name,
+                             doc="pyusb backend module, e.g. usb.backend.libusb1 (default: pyusb's choice)"),
             "timeout_s": _TIMEOUT,
         }, "Thorlabs DC2200 LED driver (SCPI over USB-TMC via pyusb)"),
     "sim": DriverSpec(

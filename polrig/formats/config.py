@@ -134,12 +134,15 @@ class Field:
 
 @dataclasses.dataclass(frozen=True)
 class DriverSpec:
-    """A driver: its name, the device kinds it can be and the class for each, its schema."""
+    """A driver: its name, the device kinds it can be and the class for each, its schema, and
+    ``check``: a check of the whole table once every key has its value (keys that must agree
+    with each other), returning ``(key, problem)`` or None."""
 
     name: str
     classes: Mapping[str, str]  # kind -> "module:Class" ("" for the simulated devices)
     schema: Mapping[str, Field]
     doc: str = ""
+    check: Callable[[Mapping[str, Any]], tuple[str, str] | None] | None = None
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -239,6 +242,10 @@ def validate_config(data: Mapping[str, Any], registry: Mapping[str, DriverSpec],
                 raise ConfigError(f"{where}[{kind}] {key}: missing (driver {name!r} needs it: "
                                   f"{field.doc or field.describe_type()})")
             clean[key] = field.default
+        if spec.check is not None:
+            problem = spec.check(clean)
+            if problem is not None:
+                raise ConfigError(f"{where}[{kind}] {problem[0]}: {problem[1]}")
         out[kind] = clean
     for extra in EXTRA_TABLES:
         if extra in data:

@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from polrig.cli.commands._device_args import add_config_argument, identity
-from polrig.errors import DeviceError
+from polrig.errors import ConfigError, DeviceError
 from polrig.choices import DEVICE_KINDS
 
 #: USB VID:PID of the serial adapters the rig's devices use (vendor documentation:
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             with open_device(args.config, kind) as dev:
                 print(f"             ok: {identity(dev.info())}")
-        except DeviceError as exc:
+        except (DeviceError, ConfigError) as exc:  # ConfigError: a setting the device refuses
             failures += 1
             print(f"             unreachable: {exc}")
     print("serial ports:")
