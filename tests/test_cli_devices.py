@@ -198,6 +198,17 @@ def test_absurd_timeouts_and_exposures_are_usage_errors(tmp_path, capsys, monkey
     assert list(tmp_path.iterdir()) == []
 
 
+def test_snap_waits_for_a_long_exposure(tmp_path, capsys, monkeypatch):
+    """The frame is awaited for its exposure and readout and then ``--timeout`` (a margin), so
+    the camera's longest exposure does not time out; one out of range is refused in one line."""
+    monkeypatch.chdir(tmp_path)
+    rc, out, err = run(capsys, "snap", "--out", "long.png", "--exposure-us", "9995000")
+    assert rc == 0 and "exposure 9.995e+06 us" in out, err
+    rc, out, err = run(capsys, "snap", "--out", "over.png", "--exposure-us", "2e7")
+    assert rc == 2 and err.strip().endswith("is outside the camera's range [10, 1e+07] us"), err
+    assert not (tmp_path / "over.png").exists()
+
+
 def test_snap_never_replaces_a_raw_frame(tmp_path, capsys):
     """A second snap onto the same name, or onto a name whose previews an earlier snap wrote,
     is refused before the camera is touched (exit 2); ``--overwrite`` replaces on purpose."""

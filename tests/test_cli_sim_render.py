@@ -18,7 +18,8 @@ def _snapshot(folder):
 
 
 @pytest.mark.parametrize("args", [["--size", "abc"], ["--size", "63x48"], ["--pose", "nan"],
-                                  ["--exposure-us", "-1"], ["--states", "0,nan"]])
+                                  ["--exposure-us", "-1"], ["--states", "0,nan"],
+                                  ["--exposure-us", "5"], ["--exposure-us", "2e7"]])  # outside the camera's range
 def test_bad_options_leave_no_folder(tmp_path, capsys, args):
     out = tmp_path / "render"
     try:
@@ -62,3 +63,11 @@ def test_other_folders_and_files_are_refused(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     assert main(RENDER + ["--out", str(empty)]) == 0
+
+
+def test_the_longest_exposure_the_camera_takes_is_rendered(tmp_path, capsys):
+    """Every grab waits its exposure and readout and a margin (``grab_timeout_s``): the camera's
+    longest exposure, 10 s, does not time out as a fixed 10 s wait did."""
+    out = tmp_path / "long"
+    assert main([*RENDER, "--exposure-us", "1e7", "--out", str(out)]) == 0, capsys.readouterr().err
+    assert (out / "pose0000p00_state00.png").is_file()

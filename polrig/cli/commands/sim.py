@@ -125,6 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_render(args: argparse.Namespace) -> int:
+    from polrig.acquisition.hal import grab_timeout_s
     from polrig.formats.argcheck import check_output_folder
     from polrig.formats.rawio import write_raw
     from polrig.sim.devices import create_sim_rig
@@ -141,6 +142,7 @@ def run_render(args: argparse.Namespace) -> int:
     names = [f"{pose_name}_state{k:02d}.png" for k in range(len(args.states))]
     if not args.overwrite:
         _refuse_to_replace(out, names, pose_name, rig.truth.rig_parameters())
+    rig.camera.capabilities.check_exposure(args.exposure_us)  # before anything is written (exit 2)
     out.mkdir(parents=True, exist_ok=True)
     with rig:
         rig.camera.set_pixel_format("Mono16")
@@ -148,7 +150,7 @@ def run_render(args: argparse.Namespace) -> int:
         frames = []
         for angle, name in zip(args.states, names):
             rig.stage.move_to(angle, timeout_s=3600.0)
-            frame = rig.camera.grab()
+            frame = rig.camera.grab(timeout_s=grab_timeout_s(rig.camera))  # as every grab: exposure + readout + margin
             write_raw(out / name, frame)
             frames.append({"file": name, "stage_deg": angle,
                            "incident_stokes": rig.truth.incident_stokes(angle).tolist()})

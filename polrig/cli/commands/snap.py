@@ -10,7 +10,6 @@ import pathlib
 
 from polrig.cli.commands._device_args import (
     add_config_argument,
-    add_timeout_argument,
     identity,
     refuse_existing,
 )
@@ -34,11 +33,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="replace an existing FILE, its sidecar and previews (default: refuse, "
                         "so that no raw frame is lost)")
     add_config_argument(p)
-    add_timeout_argument(p, 10.0)
+    p.add_argument("--timeout", type=positive_float, default=None, metavar="S",
+                   help="wait S seconds for the frame beyond its exposure and readout (> 0; default: "
+                        "the margin every capture's grab has, 10)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from polrig.acquisition.hal import DEFAULT_TIMEOUT_S, grab_timeout_s
     from polrig.app.preview import aolp_rgb, dolp_gray, tone_map
     from polrig.app.rig import open_device
     from polrig.cli.commands.stokes import _write_png  # the stokes command's PNG writer
@@ -58,8 +60,10 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(p)
     with open_device(args.config, "camera") as cam:
         if args.exposure_us is not None:
+            cam.capabilities.check_exposure(args.exposure_us)  # one line naming the range (exit 2)
             cam.set_exposure_us(args.exposure_us)
-        frame = cam.grab(timeout_s=args.timeout)
+        margin = DEFAULT_TIMEOUT_S if args.timeout is None else args.timeout
+        frame = cam.grab(timeout_s=grab_timeout_s(cam, margin))  # a long exposure never times out
         who = identity(cam.info())
     write_raw(out, frame)
     m = frame.meta
