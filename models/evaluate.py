@@ -360,7 +360,8 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     n = len(next(iter(per.values())))
     scores = {m: {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} for m, rows in per.items() if rows}
     families = sorted({int(f) for f in ds["family"]}) if "family" in ds.arrays else []
-    result = {"data": str(data_dir), "samples": n, "skipped_unlit": skipped, "resolution": list(ds.shape), "families": families,
+    result = {"data": str(data_dir), "holdout": bool(ds.manifest.get("holdout", False)), "samples": n,
+              "skipped_unlit": skipped, "resolution": list(ds.shape), "families": families,
               "noise_model": None if noise is None else {"a": noise[0], "b": noise[1]}, "methods": scores,
               "samples_visited": visited,
               "seconds_per_sample": {m: times[m] / max(n, 1) for m in METHODS if m in times},
@@ -370,10 +371,18 @@ def evaluate(data_dir: str | pathlib.Path, weights_dir: str | pathlib.Path | Non
     return result
 
 
+def set_words(result: dict) -> str:
+    """What the evaluated set is, from its dataset manifest's ``holdout``: ``Held-out set``
+    (shape families never trained on, ``polrig sim dataset --holdout``) or ``Set of the training
+    families`` (new scenes of them unless it is the training data itself; a result from before
+    the key: held out, as ``polrig evaluate`` then assumed)."""
+    return "Held-out set" if result.get("holdout", True) else "Set of the training families"
+
+
 def markdown_tables(result: dict) -> str:
     """The paper's two tables as Markdown."""
     m = result["methods"]
-    lines = [f"Held-out set: {result['samples']} samples at {result['resolution'][0]}x{result['resolution'][1]}"
+    lines = [f"{set_words(result)}: {result['samples']} samples at {result['resolution'][0]}x{result['resolution'][1]}"
              f" ({result.get('skipped_unlit', 0)} with no lit object pixel skipped).", "",
              "| Method | Matrix PSNR (dB) ↑ | Rendering PSNR (dB) ↑ | Rendering SSIM ↑ | DoLP MAE ↓ | AoLP err. (deg) ↓ |",
              "|---|---|---|---|---|---|"]
@@ -431,6 +440,6 @@ def write_results(result: dict, out_md: str | pathlib.Path) -> None:
     out_md, out_json = results_paths(out_md)
     out_md.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_json, json.dumps(result, indent=2, default=str))
-    atomic_write_text(out_md, "# Single-shot Mueller reconstruction: held-out evaluation\n\n"
+    atomic_write_text(out_md, f"# Single-shot Mueller reconstruction: evaluation on a {set_words(result).lower()}\n\n"
                       "Produced by `polrig evaluate` (models/evaluate.py; metric definitions in its docstring).\n\n"
                       + markdown_tables(result) + "\n")

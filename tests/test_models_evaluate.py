@@ -38,6 +38,18 @@ def test_tables_and_json(result, tmp_path):
     md = (tmp_path / "t.md").read_text()
     assert "GK pass (lit)" in md and md.count("| Full model (PIPNet") == 2 and md.count("mirror-averaged") == 4
     assert json.loads((tmp_path / "t.json").read_text())["samples"] == res["samples"]
+    assert md.startswith("# Single-shot Mueller reconstruction: evaluation on a held-out set\n")
+    assert "Held-out set: " in md and res["holdout"] is True
+
+
+def test_a_set_of_the_training_families_is_not_called_held_out(result, tmp_path):
+    """The report says what the set is, from its manifest: a set made without ``--holdout`` holds
+    the training families."""
+    res, _ = result
+    ev.write_results(dict(res, holdout=False), tmp_path / "t.md")
+    md = (tmp_path / "t.md").read_text()
+    assert "held-out" not in md.split("\n")[0] and "Held-out set" not in md
+    assert "Set of the training families: " in md
 
 
 def test_forward_l2_of_a_scaled_matrix_is_the_scale_error():
