@@ -242,6 +242,8 @@ class LightFit:
     covariance_m2: np.ndarray
     ray_distances_m: np.ndarray  # per ray, distance of the fitted point from the ray
     spheres: tuple[SphereFit, ...]
+    #: indices into the observations of the views kept (the others' silhouettes fitted badly)
+    views: tuple[int, ...] = ()
 
     @property
     def std_m(self) -> np.ndarray:
@@ -277,9 +279,15 @@ def intersect_rays(points_m: np.ndarray, directions: np.ndarray) -> tuple[np.nda
 
 
 def fit_light_position(observations: list[SphereObservation], radius_m: float, K: np.ndarray,
-                       dist: np.ndarray | None = None) -> LightFit:
+                       dist: np.ndarray | None = None, views: tuple[int, ...] | None = None) -> LightFit:
     """Light position from mirror-sphere observations (one per image or sphere); at least 2
-    (3 recommended, for an uncertainty) with different sphere positions."""
+    (3 recommended, for an uncertainty) with different sphere positions. The views whose
+    silhouette fits far worse than the typical one are left out, unless ``views`` names the
+    ones to use: a fit at perturbed intrinsics (the uncertainty's propagation,
+    :mod:`polrig.calibration.procedures`) must use the same views as the fit it perturbs, or a
+    view kept or dropped at the margin moves the position by far more than the perturbation
+    does (at 256x256 a 15th view kept at fx + 1 sigma moved it by 350 mm, and the light's
+    reported sigma was 0.1-0.23 m against a 6 mm error)."""
     if len(observations) < 2:
         raise TooFewAngles(f"light position needs 2+ mirror-sphere views at different positions, "
                            f"got {len(observations)}; add turntable angles or spheres")
@@ -289,14 +297,15 @@ def fit_light_position(observations: list[SphereObservation], radius_m: float, K
         ray = pixel_rays(ob.highlight_px[None], K, dist)[0]
         p, refl = reflected_ray(c, radius_m, ray)
         fits.append(SphereFit(c, radius_m, rms, p, refl))
-    # a silhouette merged with its shadow or another object fits the cone badly: drop views
-    # whose edge residual is far above the typical one
-    med = float(np.median([f.edge_residual_rms for f in fits]))
-    good = [f for f in fits if f.edge_residual_rms <= 5.0 * med]
-    if len(good) < 2:
+    if views is None:
+        # a silhouette merged with its shadow or another object fits the cone badly: drop views
+        # whose edge residual is far above the typical one
+        med = float(np.median([f.edge_residual_rms for f in fits]))
+        views = tuple(i for i, f in enumerate(fits) if f.edge_residual_rms <= 5.0 * med)
+    if len(views) < 2:
         raise TooFewAngles("fewer than 2 clean mirror-sphere silhouettes; keep the sphere's "
                            "shadow off its outline (move the backdrop back) or add positions")
-    fits = good
+    fits = [fits[i] for i in views]
     x, cov, dists = intersect_rays(np.array([f.hit_cam_m for f in fits]),
                                    np.array([f.reflected_dir for f in fits]))
-    return LightFit(x, cov, dists, tuple(fits))
+    return LightFit(x, cov, dists, tuple(fits), tuple(views))

@@ -367,8 +367,8 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
                     dd[i] = sd
                     perturb.append((np.zeros((3, 3)), dd))
         for dk, dd in perturb:
-            d = 0.5 * (light.fit_light_position(obs, radius_m, K + dk, dist0 + dd).position_cam_m
-                       - light.fit_light_position(obs, radius_m, K - dk, dist0 - dd).position_cam_m)
+            d = 0.5 * (light.fit_light_position(obs, radius_m, K + dk, dist0 + dd, fit.views).position_cam_m
+                       - light.fit_light_position(obs, radius_m, K - dk, dist0 - dd, fit.views).position_cam_m)
             cov += np.outer(d, d)
         fit = dataclasses.replace(fit, covariance_m2=cov)
     dist_m = np.linalg.norm(fit.position_cam_m)
