@@ -353,14 +353,82 @@ def read_exr(path: PathLike) -> ExrImage:
 
 
 def _checked_exr(path: PathLike) -> pathlib.Path:
-    """``path`` after checking that it is a readable file with OpenEXR's magic number."""
+    """``path`` after checking that it is a readable file with OpenEXR's magic number and, for a
+    single-part scan-line file, that its chunks lie within it (:func:`_truncation`): a truncated
+    file is refused in one line here, before the OpenEXR library prints its own warnings."""
     path = pathlib.Path(path)
     check_input_file(path)
     with open(path, "rb") as f:
-        magic = f.read(4)
-    if magic != b"\x76\x2f\x31\x01":  # OpenEXR magic number 20000630, little-endian
-        raise FormatError(f"{path}: not an OpenEXR file (bad magic number)")
+        if f.read(4) != b"\x76\x2f\x31\x01":  # OpenEXR magic number 20000630, little-endian
+            raise FormatError(f"{path}: not an OpenEXR file (bad magic number)")
+        problem = _truncation(f, path.stat().st_size)
+    if problem:
+        raise FormatError(f"{path}: unreadable or truncated OpenEXR file ({problem})")
     return path
+
+
+#: Scan lines per chunk of each compression (the header's ``compression`` byte: NONE, RLE,
+#: ZIPS, ZIP, PIZ, PXR24, B44, B44A, DWAA, DWAB; "OpenEXR File Layout", "Line Offset Table").
+_LINES_PER_CHUNK = (1, 1, 1, 16, 32, 16, 32, 32, 32, 256)
+
+
+def _truncation(f, size: int) -> str | None:
+    """Why a single-part scan-line OpenEXR file (``f`` open after its magic number, ``size``
+    bytes) is cut short, or None: its header, then its line-offset table (one 64-bit offset per
+    chunk of the data window's scan lines), then each chunk (a 32-bit line number, a 32-bit byte
+    count, the data) must lie within the file. Tiled, deep and multi-part files, and headers this
+    check does not know, are left to the library (None). The layout: "OpenEXR File Layout",
+    https://openexr.com/en/latest/OpenEXRFileLayout.html."""
+    import struct
+
+    head = f.read(4)
+    if len(head) < 4:
+        return "no version field"
+    if struct.unpack("<I", head)[0] & ((1 << 9) | (1 << 11) | (1 << 12)):  # tiled, deep, multi-part
+        return None
+    attrs = {}
+    while True:
+        name = _read_cstring(f)
+        if name is None:
+            return "its header ends early"
+        if name == b"":  # the header's closing null byte
+            break
+        kind, count = _read_cstring(f), f.read(4)
+        if kind is None or len(count) < 4:
+            return "its header ends early"
+        n = struct.unpack("<i", count)[0]
+        value = f.read(n) if n >= 0 else b""
+        if n < 0 or len(value) < n:
+            return "its header ends early"
+        attrs[name] = value
+    window, compression = attrs.get(b"dataWindow", b""), attrs.get(b"compression", b"")
+    if len(window) != 16 or len(compression) != 1 or compression[0] >= len(_LINES_PER_CHUNK):
+        return None
+    _, y_min, _, y_max = struct.unpack("<4i", window)
+    chunks = max(0, (y_max - y_min) // _LINES_PER_CHUNK[compression[0]] + 1)
+    table = f.read(8 * chunks)
+    if len(table) < 8 * chunks:
+        return "its line-offset table ends early"
+    for (offset,) in struct.iter_unpack("<Q", table):
+        f.seek(offset)
+        chunk = f.read(8)
+        if len(chunk) < 8 or offset + 8 + struct.unpack("<ii", chunk)[1] > size:
+            return "a chunk ends beyond the file's end"
+    return None
+
+
+def _read_cstring(f, limit: int = 256) -> bytes | None:
+    """A null-terminated string of at most ``limit`` bytes from ``f`` (without the null), or None
+    where the file ends first or it is longer."""
+    out = bytearray()
+    while len(out) <= limit:
+        c = f.read(1)
+        if not c:
+            return None
+        if c == b"\0":
+            return bytes(out)
+        out += c
+    return None
 
 
 def _metadata(path: pathlib.Path, header: Mapping[str, Any]) -> dict[str, Any]:
