@@ -13,12 +13,18 @@ reply ``PO`` when the motion has ended or ``GS<code>`` on error, after which the
 (143360 pulses / 360 deg for an ELL14), never from a constant.
 
 End of a motion: the ``PO`` reply, or a ``GS`` status reply (pylablib's elliptec.py takes
-a ``GS`` answer to a move as its end too): ``GS00`` is a normal end, ``GS09`` (busy) means
-it goes on, any other code is the device's error (:class:`DeviceFault`). When nothing
-arrives for a while, :meth:`wait` asks ``gs`` itself (as :meth:`is_busy` does), so a lost
-``PO`` does not run into the timeout once the device reports it is idle. ``st`` (stop) is
-likewise answered by ``PO`` or ``GS``; with no answer at all the device is asked ``gs``.
-A status that is not two hex digits is a :class:`ProtocolError` naming the reply.
+a ``GS`` answer to a move as its end too): ``GS00`` is a normal end, any other code but busy
+is the device's error (:class:`DeviceFault`). ``GS09`` (busy) is the answer to one of this
+driver's own ``gs`` polls (the motion goes on) or, when no poll is outstanding, the device's
+answer to the move command itself: it refused the move because a motion was still running
+(started by another program or an earlier ``polrig move --no-wait``): :class:`DeviceFault`
+with code 9, never a success at the old motion's end position. When nothing arrives for a
+while, :meth:`wait` asks ``gs`` itself (as :meth:`is_busy` does), so a lost ``PO`` does not
+run into the timeout once the device reports it is idle; a motion that does not end within
+:meth:`wait`'s timeout is stopped (``st``) before :class:`DeviceTimeout` is raised. ``st``
+(stop) is likewise answered by ``PO`` or ``GS``; with no answer at all the device is asked
+``gs``. A status that is not two hex digits is a :class:`ProtocolError` naming the reply, as
+is an ``IN`` reply whose hex fields do not parse.
 
 Angles: degrees in ``[0, 360)``; see ``docs/conventions.md`` for the stage zero axis
 (``zero_offset_deg`` maps the device's home to the rig's zero axis).
@@ -37,7 +43,14 @@ import time
 
 from polrig.acquisition.hal import AxisCapabilities, DeviceInfo, RotationStage
 from polrig.drivers._serial import SerialDevice, SerialLink, wrap_deg
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.errors import (
+    DeviceAlarm,
+    DeviceDisconnected,
+    DeviceError,
+    DeviceFault,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 BAUDRATE = 9600
 #: ELL14 maximum rotation speed, deg/s (Thorlabs ELL14 specifications); ``gv`` is a
@@ -77,6 +90,8 @@ class Ell14Stage(SerialDevice, RotationStage):
         self._info: DeviceInfo | None = None
         self.pulses_per_deg = 0.0
         self._move_pending = False
+        self._move_cmd = ""  # the command that started the pending motion (ma, ho)
+        self._polls = 0  # this driver's gs polls during the motion whose GS is not read yet
         self._caps: AxisCapabilities | None = None
 
     # -- life cycle ------------------------------------------------------------------------
@@ -115,19 +130,21 @@ class Ell14Stage(SerialDevice, RotationStage):
         if len(data) != 30:
             raise ProtocolError(f"IN reply has {len(data)} characters, expected 30: {data!r}",
                                 device=self._link.device)
-        try:
-            dev_type = int(data[0:2], 16)
-            travel = int(data[18:22], 16)
-            pulses = int(data[22:30], 16)
-        except ValueError:
-            raise ProtocolError(f"malformed IN reply {data!r}", device=self._link.device) from None
+        fields = {"type": data[0:2], "firmware": data[14:16], "travel": data[18:22],
+                  "pulses": data[22:30]}
+        bad = [f"{name} {text!r}" for name, text in fields.items()
+               if not (text and set(text) <= _HEX)]
+        if bad:
+            raise ProtocolError(f"malformed IN reply {self.address + 'IN' + data!r}: "
+                                f"{', '.join(bad)} not hexadecimal", device=self._link.device)
+        dev_type, firmware, travel, pulses = (int(text, 16) for text in fields.values())
         if travel <= 0 or pulses <= 0:
             raise ProtocolError(f"IN reply gives travel {travel} and pulses {pulses}",
                                 device=self._link.device)
         self.pulses_per_deg = pulses / travel
         self._info = DeviceInfo(
             kind=self.kind, driver="ell14", model=f"ELL{dev_type}", serial=data[2:10],
-            firmware=f"{int(data[14:16], 16)}", port=self.port,
+            firmware=f"{firmware}", port=self.port,
             extra={"year": data[10:14], "hardware": data[16:18], "travel": travel,
                    "pulses_per_travel": pulses, "address": self.address})
 
@@ -238,18 +255,28 @@ class Ell14Stage(SerialDevice, RotationStage):
             self._identify()
         self._link.discard_input()
         self._send(cmd, data)
-        self._move_pending = True
+        self._move_pending, self._move_cmd, self._polls = True, cmd, 0
 
     def _finish(self, reply: str, payload: str) -> bool:
         """Handle a reply that may end the pending motion; True if it ended it. ``PO`` and
-        ``GS00`` end it, ``GS09`` (busy) does not, another ``GS`` code raises DeviceFault."""
+        ``GS00`` end it; ``GS09`` (busy) answers an outstanding ``gs`` poll (the motion goes
+        on) or, with none outstanding, the move command: the device refused it
+        (DeviceFault, code 9); another ``GS`` code raises DeviceFault."""
         if reply == "PO":
             self._move_pending = False
             return True
         if reply == "GS":
             code = self._status_of(payload)
             if code == BUSY:
-                return False
+                if self._polls > 0:
+                    self._polls -= 1
+                    return False
+                self._move_pending = False
+                raise DeviceFault(f"{self._move_cmd!r} refused: the device is busy with a "
+                                  "motion still running (another program, or a move started "
+                                  "without waiting); stop it or wait for it to end",
+                                  device=self._link.device, code=BUSY, text=STATUS_TEXT[BUSY])
+            self._polls = max(self._polls - 1, 0)
             self._move_pending = False
             if code != 0:
                 self._raise_status(payload, "move")
@@ -257,12 +284,14 @@ class Ell14Stage(SerialDevice, RotationStage):
         return False
 
     def wait(self, timeout_s: float = 30.0) -> None:
+        """Block until the pending motion ends (s). At ``timeout_s`` the motion is stopped
+        (:meth:`stop`) and :class:`DeviceTimeout` raised; a stop that fails too is named in
+        it (the mount may still be turning)."""
         deadline = time.monotonic() + timeout_s
         while self._move_pending:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
-                                    device=self._link.device)
+                raise self._stopped_after_timeout(f"motion did not end within {timeout_s:g} s")
             try:
                 try:
                     reply, payload = self._read_reply(min(left, POLL_S))
@@ -279,15 +308,29 @@ class Ell14Stage(SerialDevice, RotationStage):
                 self._move_pending = False
                 raise
 
+    def _stopped_after_timeout(self, message: str) -> DeviceTimeout:
+        """Stop the motion that ran out of time; the :class:`DeviceTimeout` to raise says
+        whether it stopped. A safety fault or a disconnection met on the way is raised."""
+        try:
+            self.stop()
+        except (DeviceAlarm, DeviceDisconnected):
+            raise
+        except DeviceError as exc:
+            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): the mount may "
+                                 "still be turning", device=self._link.device)
+        return DeviceTimeout(f"{message}; stopped", device=self._link.device)
+
     def is_busy(self) -> bool:
         if not self._move_pending:
             return self.status_code() == BUSY
         self._send("gs")
+        self._polls += 1
         deadline = time.monotonic() + self.reply_timeout_s
         while True:
             reply, payload = self._read_reply(max(deadline - time.monotonic(), 0.0),
                                               stated_s=self.reply_timeout_s)
             if reply == "GS":
+                self._polls = max(self._polls - 1, 0)
                 code = self._status_of(payload)
                 if code == BUSY:
                     return True

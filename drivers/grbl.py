@@ -39,9 +39,29 @@ raises that alarm at once instead of waiting for a reply that cannot come, and :
 A motion suspended by a feed hold or an open safety door (states ``Hold`` and ``Door``,
 interface.md) has not ended: :meth:`wait` keeps waiting, because GRBL resumes it on cycle
 start (``~``) once the operator allows, and at its deadline the timeout names the state. A
-controller that cannot move at all raises at once: asleep (``Sleep``: only a reset wakes it,
-locked in Alarm) a :class:`polrig.errors.DeviceAlarm`, check mode (``Check``) a
-:class:`DeviceFault`.
+motion that has not ended at :meth:`wait`'s deadline is stopped (:meth:`stop`: feed hold,
+then soft reset, position kept) before :class:`DeviceTimeout` is raised, so it neither keeps
+running nor resumes unattended; a homing cycle that runs out of time is aborted by a soft
+reset (:meth:`stop` during ``$H``: GRBL ignores a feed hold while homing). A controller that
+cannot move at all raises at once: asleep (``Sleep``: only a reset wakes it, locked in Alarm)
+a :class:`polrig.errors.DeviceAlarm`, check mode (``Check``) a :class:`DeviceFault`.
+
+Opening never aborts a running motion: a soft reset during a motion stops it and throws an
+alarm, the position being lost (commands.md, "Grbl v1.1 Realtime commands", ``0x18``: "If
+reset while in motion, Grbl will throw an alarm"; ALARM:3). So :meth:`open` first asks a
+``?`` status report, which GRBL answers "at any time, except during a homing cycle and when
+critical alarm (hard/soft limit error) is thrown" (same section), and takes a ``Grbl 1.1x``
+banner from a board that opening the port reset (DTR) on the way. Only a controller that does
+not answer sensibly (nothing, or a garbled line, within ``reply_timeout_s``: halted after a
+limit, homing, or not a GRBL at all) is soft-reset, and must then answer with its banner;
+so is one asleep or in check mode, where nothing moves (a sleeping GRBL takes nothing but a
+reset, commands.md ``$SLP``).
+The version comes from the banner or from ``$I`` (``[VER:1.1h...]``). A controller found
+moving (``Run``, ``Jog``, ``Home``, ``Hold``, ``Door``) is left alone: ``$I`` and ``$$`` are
+refused while it moves (grbl ``system.c``: ``$$`` blocked during a cycle or hold, ``$I`` only
+in Idle or Alarm: ``error:8``), so its version is not read and its settings are read when
+:attr:`GrblTurntable.capabilities` is first asked (a :class:`DeviceFault` naming the motion if
+it still moves then).
 
 Capabilities (:attr:`GrblTurntable.capabilities`, read on open with ``$$``, commands.md
 "Grbl Settings"): for the configured axis, number ``k`` of ``axes``, its maximum rate
@@ -73,6 +93,7 @@ from polrig.drivers.grbl_codes import (
 from polrig.errors import (
     DeviceAlarm,
     DeviceDisconnected,
+    DeviceError,
     DeviceFault,
     DeviceTimeout,
     ProtocolError,
@@ -89,7 +110,7 @@ class GrblTurntable(SerialDevice, Turntable):
     def __init__(self, port: str, *, axis: str = "A", axes: str = "XYZA",
                  degrees_per_unit: float = 1.0, rate_per_min: float | None = None,
                  reply_timeout_s: float = 2.0, poll_s: float = 0.02, kind: str = "turntable"):
-        axis = str(axis).upper()
+        axis, axes = str(axis).upper(), str(axes).upper()
         if len(axis) != 1 or axis not in axes:
             raise ValueError(f"axis {axis!r} is not one of the controller's axes {axes!r}")
         if not degrees_per_unit or degrees_per_unit != degrees_per_unit:
@@ -109,29 +130,88 @@ class GrblTurntable(SerialDevice, Turntable):
         self.last_alarm: int | str | None = None
         # halted after a critical alarm: GRBL ignores everything but a soft reset
         self.halted = False
+        self._homing = False  # a $H cycle this driver started has not ended
+        self._banner = ""
         self._caps: AxisCapabilities | None = None
 
     # -- life cycle ------------------------------------------------------------------------
     def _handshake(self) -> None:
-        self._reset()
-        # Opening the port resets many boards (DTR): a boot banner may follow the one just
-        # read; it is no news here, so take it without raising.
-        time.sleep(0.05)
-        self._drain_pending(raise_alarm=False)
-        lines = self._command("$I")
+        """Open without aborting a running motion (module docstring): a ``?`` status first,
+        a soft reset only when the controller does not answer it sensibly."""
+        self._caps, self._banner, self._homing = None, "", False
+        report = self._status_on_open()
+        if report is not None and report["state"].split(":")[0] in ("Sleep", "Check"):
+            # nothing moves here: a sleeping GRBL takes nothing but a reset (commands.md
+            # $SLP), check mode refuses $I (error:8); a reset ends both
+            report = None
+        if report is None:
+            self._reset()
+            # Opening the port resets many boards (DTR): a boot banner may follow the one
+            # just read; it is no news here, so take it without raising.
+            time.sleep(0.05)
+            self._drain_pending(raise_alarm=False)
+            report = self.status()  # checks the axis is in the status report
+        state = report["state"].split(":")[0]
+        moving = state in _MOVING or state in _SUSPENDED
+        lines = [] if moving else self._command("$I")
+        build = [l for l in lines if l.startswith("[")]
+        if not self._banner:
+            version = next((l[5:].split(".", 2) for l in build if l.startswith("[VER:")), None)
+            self._banner = (f"Grbl {version[0]}.{version[1]}" if version and len(version) > 1
+                            else "Grbl (version not read: it was moving when opened)"
+                            if moving else "Grbl")
         self._info = DeviceInfo(kind=self.kind, driver="grbl", model="GRBL",
                                 firmware=self._banner, port=self.port,
-                                extra={"build": [l for l in lines if l.startswith("[")],
-                                       "axis": self.axis})
-        self.status()  # checks the axis is in the status report
-        self._caps = self._axis_capabilities(self.settings())
+                                extra={"build": build, "axis": self.axis,
+                                       "state_at_open": report["state"]})
+        if not moving:
+            self._caps = self._axis_capabilities(self.settings())
+
+    def _status_on_open(self) -> dict | None:
+        """The first ``?`` report of a controller just opened, or ``None`` when it does not
+        answer sensibly within ``reply_timeout_s`` (silent, garbled: it is then reset). A
+        banner (a board reset by opening the port) is taken and ``?`` asked again, since the
+        first may have reached the boot loader; pushed alarms are recorded."""
+        self._link.write(b"?")
+        deadline = time.monotonic() + self.reply_timeout_s
+        try:
+            while True:
+                line = self._readline(deadline, "status report", self.reply_timeout_s)
+                if line.startswith("<") and line.endswith(">"):
+                    return self._parse_status(line)
+                if line.startswith("Grbl "):
+                    self._banner = line.split("[")[0].strip()
+                    self.halted = False
+                    self._link.write(b"?")
+                    deadline = time.monotonic() + self.reply_timeout_s
+                elif line.startswith("ALARM:"):
+                    self._alarm(line)
+                elif line == CRITICAL_MESSAGE:
+                    self.halted = True
+                elif line.startswith("<"):
+                    return None  # a truncated report: not an answer to go on
+        except (DeviceTimeout, ProtocolError):
+            return None
 
     @property
     def capabilities(self) -> AxisCapabilities:
-        """Speed, acceleration and travel of the turntable axis from ``$$`` (read on open)."""
+        """Speed, acceleration and travel of the turntable axis from ``$$`` (read on open, or
+        here the first time when the controller was moving when opened: GRBL refuses ``$$``
+        during a motion, a :class:`DeviceFault` naming it)."""
         if self._caps is None:
-            raise DeviceDisconnected("device is not open (open it first)",
-                                     device=self._link.device)
+            if not self._link.is_open:
+                raise DeviceDisconnected("device is not open (open it first)",
+                                         device=self._link.device)
+            try:
+                settings = self.settings()
+            except DeviceFault as exc:
+                if exc.code != 8 or isinstance(exc, DeviceAlarm):
+                    raise
+                raise DeviceFault(f"the {self.kind}'s settings ($$) cannot be read while it "
+                                  "moves (it was moving when opened): wait for the motion to "
+                                  "end or stop it", device=self._link.device, code=8,
+                                  text=exc.text) from None
+            self._caps = self._axis_capabilities(settings)
         return self._caps
 
     def settings(self) -> dict[int, float]:
@@ -398,20 +478,35 @@ class GrblTurntable(SerialDevice, Turntable):
         return self._motion_state()[0]
 
     def wait(self, timeout_s: float = 30.0) -> None:
+        """Block until the motion ends (s); a suspended one (feed hold, safety door) is
+        waited for too. At ``timeout_s`` the motion is stopped (:meth:`stop`; a suspended
+        one is cancelled, so cycle start cannot resume it unattended) and
+        :class:`DeviceTimeout` raised, naming a stop that failed too."""
         deadline = time.monotonic() + timeout_s
         while True:
             busy, st = self._motion_state()
             if not busy:
                 return
             if time.monotonic() > deadline:
+                message = f"motion did not end within {timeout_s:g} s"
                 if st.split(":")[0] in _SUSPENDED:
                     what = SUBSTATES.get(st, "motion suspended")
-                    raise DeviceTimeout(f"motion did not end within {timeout_s:g} s: it is "
-                                        f"suspended, state {st} ({what}); resume it with cycle "
-                                        "start or stop it", device=self._link.device)
-                raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
-                                    device=self._link.device)
+                    message += f": it was suspended, state {st} ({what})"
+                raise self._stopped_after_timeout(message)
             time.sleep(self.poll_s)
+
+    def _stopped_after_timeout(self, message: str) -> DeviceTimeout:
+        """Stop the motion that ran out of time; the :class:`DeviceTimeout` to raise says
+        whether it stopped. A safety fault or a disconnection met on the way is raised."""
+        try:
+            self.stop()
+        except (DeviceAlarm, DeviceDisconnected):
+            raise
+        except DeviceError as exc:
+            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): the turntable "
+                                 "may still be moving", device=self._link.device)
+        return DeviceTimeout(f"{message}; stopped (the rest of the move cancelled)",
+                             device=self._link.device)
 
     def _clear_halt(self) -> None:
         """Read what is pending; after a critical alarm, or in sleep mode, soft-reset: the
@@ -422,18 +517,22 @@ class GrblTurntable(SerialDevice, Turntable):
             self._reset()
 
     def home(self, timeout_s: float = 60.0) -> None:
-        """``$H``; if it does not finish in time the cycle is aborted by a soft reset (GRBL
-        then reports ALARM:6, homing failed) so the machine never keeps moving unattended.
-        A controller halted by a hard or soft limit is soft-reset first."""
+        """``$H``; if it does not finish in ``timeout_s`` (s) the cycle is aborted by
+        :meth:`stop` (a soft reset: GRBL then reports ALARM:6, homing failed) so the machine
+        never keeps moving unattended. A controller halted by a hard or soft limit is
+        soft-reset first."""
         self._clear_halt()
         self._link.discard_input()
+        self._homing = True  # left set by an interruption (Ctrl-C): stop() then resets
         try:
             self._command("$H", timeout_s=timeout_s)
         except DeviceTimeout:
-            self._link.write(SOFT_RESET)
-            time.sleep(0.05)
-            self._drain_pending(raise_alarm=False)
+            self.stop()
             raise
+        except DeviceError:
+            self._homing = False
+            raise
+        self._homing = False
         self.state, self.last_alarm = "Idle", None
 
     def unlock(self) -> None:
@@ -467,7 +566,16 @@ class GrblTurntable(SerialDevice, Turntable):
 
     def stop(self) -> None:
         """Feed hold, wait for the hold to complete, then soft reset (position kept). A
-        controller halted by a hard or soft limit has stopped already: nothing is sent."""
+        controller halted by a hard or soft limit has stopped already: nothing is sent.
+        During a homing cycle this driver started (``$H``, also one interrupted before its
+        ``ok``) a soft reset at once: GRBL ignores a feed hold and answers no ``?`` while
+        homing (commands.md), and the reset aborts the cycle (ALARM:6, homing failed)."""
+        if self._homing:
+            self._homing = False
+            self._link.write(SOFT_RESET)
+            time.sleep(0.05)
+            self._drain_pending(raise_alarm=False)
+            return
         self._drain_pending(raise_alarm=False)
         if self.halted:
             return

@@ -11,7 +11,12 @@ Messages (see :mod:`polrig.drivers.apt`): ``HW_REQ_INFO``/``HW_GET_INFO`` (ident
 default 2048 micro-steps and 66:1 worm gear; pylablib ``kinesis.py`` lists the same value).
 
 The stage must be homed after power-up or a motion error (status bit "homed" clear) before
-absolute moves mean anything; ``require_homed`` makes moves refuse until it is.
+absolute moves mean anything; ``require_homed`` makes moves refuse until it is, with a
+:class:`polrig.errors.DeviceAlarm` naming the axis's own kind (``stage`` or ``turntable``) and
+the command that homes it (``polrig home turntable``; the CLI adds ``--config RIG``), as GRBL's
+Alarm lock after power-up does: the acquisition engine never homes such an axis on its own
+(a capture's setup homes the stage, as it does for every stage driver; a turntable is homed by
+the operator).
 
 Frames with a message id this driver does not use are skipped (logged at debug level)
 while it waits for the reply it asked for: the header says how many data bytes follow
@@ -20,11 +25,15 @@ header that is not addressed to the host (0x01), or announces an implausible dat
 is line noise: :class:`ProtocolError`.
 
 End of a motion: ``MOT_MOVE_COMPLETED`` / ``MOT_MOVE_HOMED``. ``MOT_MOVE_STOPPED`` ends it
-too, but unless this driver asked for the stop (:meth:`stop`) the move was interrupted (a
-limit switch, the controller's own stop, another program): :class:`DeviceFault` with the
-position it stopped at. When no message comes for a while, :meth:`wait` asks the status
-bits: a controller that no longer moves has finished, and its end-of-motion message was
-lost on the line (with the motion-error bit set that is a :class:`DeviceFault`).
+too, but unless this driver asked for the stop (:meth:`stop`) the controller stopped the move
+on its own (a limit switch, its stop button, another program): a safety fault,
+:class:`polrig.errors.DeviceAlarm` (never retried nor homed by the acquisition engine; its
+message names the position it stopped at and ``polrig home stage|turntable``). When no message
+comes for a while, :meth:`wait` asks the status bits: a controller that no longer moves has
+finished, and its end-of-motion message was lost on the line (with the motion-error bit set
+that is a :class:`DeviceFault`). A motion that does not end within :meth:`wait`'s timeout is
+stopped (``MOT_MOVE_STOP``) before :class:`DeviceTimeout` is raised, so nothing keeps moving
+unattended.
 
 Capabilities (:attr:`K10cr1Stage.capabilities`, read on open): ``MOT_REQ_VELPARAMS`` ->
 ``MOT_GET_VELPARAMS`` (maximum velocity and acceleration in APT units, converted as
@@ -46,7 +55,14 @@ from polrig.acquisition.hal import (
 )
 from polrig.drivers import apt
 from polrig.drivers._serial import SerialDevice, SerialLink, wrap_deg
-from polrig.errors import DeviceDisconnected, DeviceFault, DeviceTimeout, ProtocolError
+from polrig.errors import (
+    DeviceAlarm,
+    DeviceDisconnected,
+    DeviceError,
+    DeviceFault,
+    DeviceTimeout,
+    ProtocolError,
+)
 
 BAUDRATE = 115200
 STEPS_PER_DEG = 409600 / 3
@@ -89,7 +105,8 @@ class K10cr1Stage(SerialDevice, RotationStage):
         """Maximum velocity and acceleration from ``MOT_GET_VELPARAMS`` (read on open);
         unlimited travel."""
         if self._caps is None:
-            raise DeviceDisconnected("stage is not open (open it first)", device=self._link.device)
+            raise DeviceDisconnected(f"{self.kind} is not open (open it first)",
+                                     device=self._link.device)
         return self._caps
 
     def velocity_params(self) -> tuple[float, float]:
@@ -208,10 +225,11 @@ class K10cr1Stage(SerialDevice, RotationStage):
         steps = stopped[0]
         where = (f"at {wrap_deg(steps / STEPS_PER_DEG - self.zero_offset_deg):.4f} deg"
                  if steps is not None else "at an unknown position")
-        raise DeviceFault(f"move interrupted: the controller stopped it {where} (limit switch, "
-                          "the controller's stop, or another program)",
+        raise DeviceAlarm(f"{self.kind} move interrupted: the controller stopped it {where} "
+                          "(a limit switch that fired: something may be in the way; or its "
+                          "stop button, or another program)",
                           device=self._link.device, code="MOT_MOVE_STOPPED",
-                          text=f"stopped {where} without a stop request")
+                          text=f"stopped {where} without a stop request", axis=self.kind)
 
     # -- RotationStage ---------------------------------------------------------------------
     def status_bits(self) -> int:
@@ -261,9 +279,10 @@ class K10cr1Stage(SerialDevice, RotationStage):
         if angle_deg != angle_deg or abs(angle_deg) == float("inf"):
             raise ValueError(f"stage angle must be finite, got {angle_deg!r}")
         if self.require_homed and not self.status_bits() & apt.STATUS_HOMED:
-            raise DeviceFault("stage is not homed (run `polrig home stage`)",
+            raise DeviceAlarm(f"{self.kind} is not homed (after power-up or a motion error its "
+                              f"position is unknown); the move to {angle_deg:g} deg was refused",
                               device=self._link.device, code="not homed",
-                              text="status bit 'homed' is clear")
+                              text="status bit 'homed' is clear", axis=self.kind)
         steps = round((wrap_deg(angle_deg) + self.zero_offset_deg) * STEPS_PER_DEG)
         self._send(apt.AptMessage(apt.MOT_MOVE_ABSOLUTE, data=struct.pack("<Hi", 1, steps)))
         self._pending, self._interrupted = True, None
@@ -271,12 +290,14 @@ class K10cr1Stage(SerialDevice, RotationStage):
             self.wait(timeout_s)
 
     def wait(self, timeout_s: float = 30.0) -> None:
+        """Block until the pending motion ends (s). At ``timeout_s`` the motion is stopped
+        (:meth:`stop`) and :class:`DeviceTimeout` raised; a stop that fails too is named in
+        it (the axis may still be moving)."""
         deadline = time.monotonic() + timeout_s
         while self._pending:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise DeviceTimeout(f"motion did not end within {timeout_s:g} s",
-                                    device=self._link.device)
+                raise self._stopped_after_timeout(f"motion did not end within {timeout_s:g} s")
             try:
                 msg_id, _, _, data = self._read_message(min(left, POLL_S))
             except DeviceTimeout:
@@ -287,6 +308,18 @@ class K10cr1Stage(SerialDevice, RotationStage):
                 continue
             self._motion_message(msg_id, data)
         self._raise_interrupted()
+
+    def _stopped_after_timeout(self, message: str) -> DeviceTimeout:
+        """Stop the motion that ran out of time; the :class:`DeviceTimeout` to raise says
+        whether it stopped. A safety fault or a disconnection met on the way is raised."""
+        try:
+            self.stop()
+        except (DeviceAlarm, DeviceDisconnected):
+            raise
+        except DeviceError as exc:
+            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): the axis may "
+                                 "still be moving", device=self._link.device)
+        return DeviceTimeout(f"{message}; stopped", device=self._link.device)
 
     def stop(self) -> None:
         """``MOT_MOVE_STOP`` (immediate); the ``MOT_MOVE_STOPPED`` it brings is no fault."""

@@ -156,7 +156,7 @@ def test_disconnect_resets_controller(table, emu):
 def test_not_a_grbl_and_release(tmp_path, emu):
     with pytest.raises(DeviceNotFound):
         GrblTurntable(str(tmp_path / "absent")).open()
-    emu.inject("no_reply", count=1)  # the banner never comes
+    emu.inject("no_reply", count=2)  # no status report, then no banner after the reset
     t = GrblTurntable(emu.port, reply_timeout_s=0.3)
     with pytest.raises(DeviceTimeout):
         t.open()
@@ -271,23 +271,33 @@ def test_soft_limit_halts_until_reset(tmp_path):
 
 def test_feed_hold_suspends_the_move_it_does_not_end_it(table, emu):
     """A feed hold pressed on the controller: wait() does not report the move done (it
-    returned at once with the axis paused); it times out naming Hold:0, and the move ends
-    after cycle start."""
+    returned at once with the axis paused); the move ends after cycle start. A wait that
+    reaches its deadline while the move is held times out naming Hold:0 and cancels the
+    move (feed hold, soft reset: position kept), so a later cycle start cannot resume it
+    with nobody waiting for it."""
     table.home(timeout_s=5)
     emu.speed_factor = 4.0  # 240 deg/s
     table.move_to(180.0, wait=False)
     time.sleep(0.15)
     emu.press_feed_hold()
     assert emu.state == "Hold:0"
-    t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout, match=r"Hold:0 \(feed hold complete"):
-        table.wait(0.3)
-    assert 0.3 <= time.monotonic() - t0 < 0.3 + 2.0  # waited its deadline, not forever
-    assert table.is_busy()
-    assert 0 < table.position_deg() < 180
+    assert table.is_busy()  # held: not done
     emu.press_cycle_start()
     table.wait(5)
     assert table.position_deg() == pytest.approx(180.0, abs=1e-3)
+    table.move_to(0.0, wait=False)
+    time.sleep(0.15)
+    emu.press_feed_hold()
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match=r"Hold:0 \(feed hold complete.*; stopped"):
+        table.wait(0.3)
+    assert 0.3 <= time.monotonic() - t0 < 0.3 + 2.0  # waited its deadline, not forever
+    assert not table.is_busy() and emu.state == "Idle"
+    held = table.position_deg()
+    assert 0 < held < 180
+    emu.press_cycle_start()  # nothing left to resume
+    time.sleep(0.1)
+    assert emu.axis_position() == pytest.approx(held, abs=1e-3) and emu.state == "Idle"
 
 
 def test_open_safety_door_suspends_the_move(table, emu):
@@ -296,14 +306,23 @@ def test_open_safety_door_suspends_the_move(table, emu):
     table.move_to(200.0, wait=False)
     time.sleep(0.15)
     emu.set_door(True)
-    with pytest.raises(DeviceTimeout, match=r"Door:1 \(safety door ajar"):
-        table.wait(0.3)
+    assert table.is_busy()  # suspended, not done
     emu.set_door(False)
-    with pytest.raises(DeviceTimeout, match="Door:0"):
-        table.wait(0.1)
+    assert emu.state == "Door:0" and table.is_busy()
     emu.press_cycle_start()
     table.move_to(200.0, timeout_s=5)  # waits for the resumed move, then this one
     assert emu.axis_position() == pytest.approx(200.0, abs=1e-3)
+    table.move_to(0.0, wait=False)
+    time.sleep(0.15)
+    emu.set_door(True)
+    with pytest.raises(DeviceTimeout, match=r"Door:1 \(safety door ajar.*; stopped"):
+        table.wait(0.3)
+    assert not table.is_busy()  # cancelled: closing the door and cycle start move nothing
+    held = emu.axis_position()
+    emu.set_door(False)
+    emu.press_cycle_start()
+    time.sleep(0.1)
+    assert emu.axis_position() == pytest.approx(held, abs=1e-3)
 
 
 def test_sleeping_controller_is_a_fault(table, emu):
@@ -394,7 +413,7 @@ def test_timeouts_name_the_configured_timeout(tmp_path):
         with pytest.raises(DeviceTimeout, match=r"no reply to '\$X' within 0\.5 s$"):
             t.unlock()
         t.close()
-        emu.inject("no_reply")
+        emu.inject("no_reply", count=2)  # the status report, then the banner of the reset
         with pytest.raises(DeviceTimeout, match=r"no GRBL banner within 0\.5 s$"):
             t.open()
 
