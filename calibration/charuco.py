@@ -202,12 +202,13 @@ def calibrate_intrinsics(detections: list[CharucoDetection], image_size: tuple[i
     """Zhang calibration from board detections in images of ``image_size = (width, height)``.
 
     ``distortion``: ``"none"`` (pinhole only), ``"k1"`` (radial k1), ``"k1k2"`` (radial k1,
-    k2; default) or ``"full"`` (k1, k2, p1, p2, k3). Raises ``ValueError`` naming what to add when there are
-    fewer than 3 usable views (OpenCV's minimum for a stable solution with a planar target).
+    k2; default) or ``"full"`` (k1, k2, p1, p2, k3). Raises :class:`BoardNotFound` (a
+    ``ValueError``) naming what to add when there are fewer than 3 usable views (OpenCV's minimum
+    for a stable solution with a planar target).
     """
     views = [d for d in detections if d.count >= 6]
     if len(views) < 3:
-        raise ValueError(f"intrinsic calibration needs at least 3 board views with 6+ corners, "
+        raise BoardNotFound(f"intrinsic calibration needs at least 3 board views with 6+ corners, "
                          f"got {len(views)}; capture the board at more (tilted) poses")
     obj = [d.object_m.astype(np.float32) for d in views]
     img = [d.corners_px.astype(np.float32) for d in views]

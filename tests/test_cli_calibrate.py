@@ -134,3 +134,11 @@ def test_an_unknown_target_metal_is_refused_at_once(tmp_path, capsys, monkeypatc
                        f"copper, aluminium, chrome, ideal\n")
         assert not (tmp_path / "cal").exists()
     assert rigs_opened == []
+
+
+def test_a_board_the_images_do_not_show_is_a_failure_while_running(tmp_path, capsys):
+    """At 64x48 the board's corners are too small to detect: the images cannot give a result,
+    which is a failure while running (exit 1, as a scene too dark is), not a bad argument."""
+    rc, out, err = _calibrate(tmp_path / "c", capsys)
+    assert rc == 1 and err.count("\n") == 1, err
+    assert "needs at least 3 board views" in err and "nothing was saved" in err
