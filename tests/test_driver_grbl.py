@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import _thread
+import threading
 import time
 
 import pytest
@@ -466,3 +468,79 @@ def test_a_build_without_the_axis_settings(tmp_path):
         assert not t.is_open
         with serial.Serial(emu.port, 115200, exclusive=True):
             pass
+
+
+# -- motion is never left running, nor aborted by opening (issue: audit C) -----------------
+
+def test_opening_does_not_abort_a_running_move(emu):
+    """`polrig move turntable 180 --no-wait`, then another command opens the port: the open
+    asks '?' (answered at any time) and sends no soft reset, which would abort the move with
+    ALARM:3 and lose the position; the version and settings GRBL refuses during a motion
+    (error:8) are read later, and the move ends where it was sent."""
+    with GrblTurntable(emu.port, reply_timeout_s=REPLY_S, poll_s=0.01) as t:
+        t.home(timeout_s=5)
+        emu.speed_factor = 1.0  # 60 deg/s: 3 s to 180 deg
+        t.move_to(180.0, wait=False)
+    time.sleep(0.1)
+    sent = len(emu.received)
+    with GrblTurntable(emu.port, reply_timeout_s=REPLY_S, poll_s=0.01) as t:
+        assert b"\x18" not in emu.received[sent:]
+        assert emu.state == "Run"
+        assert t.info().extra["state_at_open"].startswith("Run")
+        assert t.is_busy()
+        with pytest.raises(DeviceFault, match="cannot be read while it moves") as ei:
+            t.capabilities
+        assert ei.value.code == 8 and not isinstance(ei.value, DeviceAlarm)
+        t.wait(10)
+        assert t.position_deg() == pytest.approx(180.0, abs=1e-3)
+        assert t.capabilities.speed_deg_s == pytest.approx(60.0)  # read once idle
+    assert emu.state == "Idle"
+
+
+def test_opening_resets_a_controller_that_does_not_answer(tmp_path):
+    """A controller halted by a limit ignores '?': the open soft-resets it (as before), and it
+    comes back locked in the Alarm state."""
+    with GrblEmulator(link=tmp_path / "g", speed_factor=20) as emu:
+        with GrblTurntable(emu.port, reply_timeout_s=REPLY_S, poll_s=0.01) as t:
+            t.home(timeout_s=5)
+            emu.trip_hard_limit()
+        assert emu.critical
+        with GrblTurntable(emu.port, reply_timeout_s=REPLY_S, poll_s=0.01) as t:
+            assert not emu.critical and emu.state == "Alarm"
+            assert t.info().firmware.startswith("Grbl 1.1")
+            with pytest.raises(DeviceAlarm):
+                t.move_to(10.0)
+
+
+def test_lower_case_axes_from_the_config(emu):
+    with GrblTurntable(emu.port, axis="a", axes="xyza", reply_timeout_s=REPLY_S) as t:
+        assert t.axes == "XYZA" and t.axis_index == 3
+
+
+def test_a_move_that_times_out_is_stopped(table, emu):
+    """wait() at its deadline stops the axis (feed hold, soft reset: position kept) before
+    DeviceTimeout is raised: nothing keeps turning after the error."""
+    table.home(timeout_s=5)
+    emu.speed_factor = 1.0  # 60 deg/s
+    with pytest.raises(DeviceTimeout, match=r"within 0\.3 s; stopped"):
+        table.move_to(300.0, timeout_s=0.3)
+    assert emu.state == "Idle"
+    here = emu.axis_position()
+    time.sleep(0.2)
+    assert emu.axis_position() == pytest.approx(here, abs=1e-6) and 0 < here < 300
+    table.move_to(0.0, timeout_s=10)  # no alarm: the position was kept
+
+
+def test_a_homing_cycle_interrupted_is_aborted_by_stop(tmp_path):
+    """Ctrl-C while home() waits for the 'ok' of $H, then stop() (what `polrig home` does):
+    a soft reset at once (GRBL ignores a feed hold and '?' while homing), the cycle aborted."""
+    with GrblEmulator(link=tmp_path / "g", speed_factor=1, homing_s=30.0) as emu, \
+            GrblTurntable(emu.port, reply_timeout_s=REPLY_S, poll_s=0.01) as t:
+        timer = threading.Timer(0.3, _thread.interrupt_main)
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            t.home(timeout_s=LONG_S)
+        timer.join()
+        assert emu.state == "Home"
+        t.stop()
+        assert emu.state == "Alarm" and b"!" not in emu.received  # ALARM:6, homing aborted

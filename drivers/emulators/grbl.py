@@ -11,7 +11,8 @@ G1 at the F feed rate, units per minute), run one after another; ``G90``/``G91``
 
 Settings (commands.md, "Grbl Settings"): ``$$`` prints every ``$N=value`` line, ``$N=value``
 sets one (``error:3`` for a number GRBL does not have, ``error:2`` for a bad value; ``$$``
-while a motion runs or is held is ``error:8``, as system.c blocks it). The axes' maximum
+while a motion runs or is held, and ``$I`` outside Idle and Alarm, are ``error:8``, as
+system.c blocks them). The axes' maximum
 rates ``$110..$113`` (units/min) limit G0 and G1; their accelerations ``$120..$123``
 (units/s^2) are reported but moves here run at constant speed; ``$130..$133`` is the
 maximum travel (units). Soft limits (``$20=1``, needs homing ``$22=1``) confine every
@@ -362,6 +363,9 @@ class GrblEmulator(PtyEmulator):
                 self.state = "Sleep"
                 self.send(b"[MSG:Sleeping]\r\n")
             elif cmd == "I":
+                if self.state not in ("Idle", "Alarm"):
+                    self._error(8)  # system.c: $I only in Idle or Alarm
+                    return
                 self.send(b"[VER:1.1h.20190825:ROTARY]\r\n[OPT:V,15,128]\r\n")
                 self._ok()
             elif cmd == "":
