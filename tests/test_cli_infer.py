@@ -179,3 +179,62 @@ def test_two_runs_write_the_same_bytes(frame, tmp_path):
         written.append({p.name: p.read_bytes() for p in sorted((tmp_path / run).iterdir())})
     assert sorted(written[0]) == ["m.exr", "m_aolp.png", "m_dolp.png", "m_grid.png"]
     assert written[0] == written[1]
+
+
+def test_infer_refuses_an_output_that_is_the_raw_frame(frame, tmp_path, capsys):
+    """A raw frame named like a preview of ``--out`` (a_grid.png for a.exr): exit 2, one line
+    naming both, the frame and its sidecar untouched, before the network runs."""
+    import shutil
+
+    raw = tmp_path / "a_grid.png"
+    shutil.copy(frame, raw)
+    shutil.copy(f"{frame}.json", f"{raw}.json")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    capsys.readouterr()
+    assert main(["infer", str(raw), "--state-deg", "0", "--out", str(tmp_path / "a.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"polrig: error: --out preview {raw} is the input {raw};")
+    assert err.count("\n") == 1
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_a_layout_contradicting_the_sidecar_is_refused_as_by_stokes(frame, tmp_path, capsys):
+    """The frame's sidecar says imx250myr (colour): ``--layout imx250mzr`` is refused with the
+    line ``polrig stokes`` gives (the one check, ``check_layout_option``); the same layout is
+    accepted."""
+    capsys.readouterr()
+    out = tmp_path / "m.exr"
+    assert main(["infer", str(frame), "--layout", "imx250mzr", "--state-deg", "0",
+                 "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (
+        f"polrig: error: --layout imx250mzr contradicts the sidecar of {frame}, which says "
+        f"imx250myr; drop --layout (or fix the sidecar)\n")
+    assert list(tmp_path.iterdir()) == []
+    assert main(["infer", str(frame), "--layout", "imx250myr", "--state-deg", "0",
+                 "--out", str(out)]) == 0
+
+
+def test_infer_writes_its_exr_and_previews_all_or_none(frame, tmp_path, monkeypatch, capsys):
+    """OUT_grid.png cannot be written (a full disk): the EXR and previews of the run before stay
+    as they were, nothing new, no temporary; one line naming the preview, exit 1."""
+    import pathlib
+
+    import polrig.app.preview
+    from polrig.atomic import write_error
+
+    out = tmp_path / "m.exr"
+    assert main(["infer", str(frame), "--state-deg", "0", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real = polrig.app.preview.atomic_write_bytes
+
+    def full_at_grid(path, data):
+        if "_grid" in pathlib.Path(path).name:
+            raise write_error(path, OSError(28, "No space left on device"))
+        real(path, data)
+
+    monkeypatch.setattr(polrig.app.preview, "atomic_write_bytes", full_at_grid)
+    capsys.readouterr()
+    assert main(["infer", str(frame), "--state-deg", "90", "--out", str(out)]) == 1
+    assert capsys.readouterr().err == (f"polrig: error: {tmp_path / 'm_grid.png'}: cannot write "
+                                       f"(No space left on device)\n")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

@@ -145,6 +145,50 @@ def test_bad_requests_are_one_line(session, tmp_path, capsys):
         polrig.export(session, tmp_path / "x", "png")
 
 
+def test_export_refuses_its_source_wrong_names_and_ngff_with_tiff(session, tmp_path, capsys):
+    """One line, exit 2, nothing written or replaced: an output that is the source (its own
+    name, a link to it), a name without the format's ending, --ngff with ome-tiff; an unknown
+    revision's line keeps its quotes."""
+    import shutil
+
+    src = tmp_path / "m.exr"
+    shutil.copy(session / "c000_pose000.0" / "mueller.exr", src)
+    (tmp_path / "m.ome.tif").symlink_to(src)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    cases = [
+        (["-o", src, "--format", "ome-tiff"], f"-o {src} is the input {src};"),
+        (["-o", tmp_path / "m.ome.tif", "--format", "ome-tiff"],
+         f"-o {tmp_path / 'm.ome.tif'} is the input {src};"),
+        (["-o", tmp_path / "x.tif", "--format", "ome-tiff"],
+         f"-o {tmp_path / 'x.tif'}: an ome-tiff output's name must end in .ome.tif or .ome.tiff"),
+        (["-o", tmp_path / "x.exr"], f"-o {tmp_path / 'x.exr'}: an ome-zarr output's name must end in .zarr"),
+        (["-o", tmp_path / "x.ome.tif", "--format", "ome-tiff", "--ngff", "0.5"],
+         "--ngff 0.5 applies to --format ome-zarr only, not ome-tiff"),
+    ]
+    for argv, message in cases:
+        capsys.readouterr()
+        assert main(["export", str(src), *map(str, argv)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"polrig: error: {message}") and err.count("\n") == 1, err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert main(["export", str(session), "--revision", "rev9", "-o", str(tmp_path / "r.zarr")]) == 2
+    assert capsys.readouterr().err == (f"polrig: error: {session}: no revision 'rev9' "
+                                       f"(revisions: none)\n")
+    assert main(["export", str(src), "--format", "ome-tiff", "-o", str(tmp_path / "ok.ome.tiff")]) == 0
+
+
+@pytest.mark.parametrize("fmt, name", [("ome-tiff", "o.ome.tif"), ("ome-zarr", "o.zarr")])
+def test_a_full_disk_names_the_export(session, tmp_path, fmt, name):
+    from _cli_helpers import polrig_with_file_size_limit
+
+    out = tmp_path / name
+    res = polrig_with_file_size_limit(["export", session / "c000_pose000.0" / "mueller.exr",
+                                       "--format", fmt, "-o", out], 2048)
+    assert res.returncode == 1, res.stderr
+    assert res.stderr == f"polrig: error: {out}: cannot write (File too large)\n"
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_ome_zarr_reads_each_capture_once(session, tmp_path, monkeypatch):
     from polrig.app import dataset
 
@@ -180,7 +224,7 @@ def test_ome_tiff_reads_each_capture_once_and_writes_every_series_as_the_files_h
     assert sorted(p.name for p in tmp_path.iterdir()) == ["once.ome.tif"]  # no spill folder left
 
 
-def test_pixel_size_from_the_calibration_set(tmp_path, session):
+def test_pixel_size_from_the_calibration_set(tmp_path, session, capsys):
     """The pixel size at the turntable axis: depth 0.5 m where the axis crosses the optical axis,
     f = 600 px, a superpixel of the mono layout is 2x2 sensor pixels: 0.5 / 600 * 2 m."""
     from polrig.calibration.calset import CalibrationSet
@@ -216,3 +260,6 @@ def test_pixel_size_from_the_calibration_set(tmp_path, session):
     with pytest.raises(ValueError, match="the source was captured with 'nominal'"):
         polrig.export(session, tmp_path / "x.zarr", calibration=cal)
     assert not (tmp_path / "x.zarr").exists()
+    # the command's line ends with the closing quote
+    assert main(["export", str(session), "--calibration", str(cal), "-o", str(tmp_path / "x.zarr")]) == 2
+    assert capsys.readouterr().err.endswith("the source was captured with 'nominal'\n")

@@ -341,12 +341,30 @@ def test_stats_cli_equals_the_core_on_a_result_and_per_capture_of_a_session(sess
     prof = (tmp_path / "one_profile.csv").read_text().splitlines()
     cols = [line for line in prof if line.startswith("s,x,y")][0].split(",")
     assert "AoLP_deg.Y" in cols and "retardance_deg.Y" in cols
-    # a session: one block per capture, named
+    # a session: one table, a capture column naming each row's capture
     out = tmp_path / "session.csv"
-    assert main(["stats", str(session), "--roi", "rect:4,4,8,8", "--csv", str(out)]) == 0
-    blocks = read_csv_blocks(out)
-    assert [b[0]["capture"] for b in blocks] == ["c000_pose000.0", "c001_pose090.0"]
-    assert all(int(r["n_counted"]) + int(r["n_masked"]) == 64 for b in blocks for r in b[1])
+    assert main(["stats", str(session), "--roi", "rect:4,4,8,8", "--csv", str(out),
+                 "--profile", "1,1,9,9"]) == 0
+    text = out.read_text()
+    comments = [line for line in text.splitlines() if line.startswith("#")]
+    assert f"# source: {session}" in comments and "# roi: rect:4,4,8,8" in comments
+    assert any(c.startswith("# capture c001_pose090.0: source ") for c in comments)
+    table = list(csv.DictReader(line for line in text.splitlines() if not line.startswith("#")))
+    assert tuple(table[0]) == ("capture",) + roi.STATS_COLUMNS
+    assert sum(line.startswith("capture,") for line in text.splitlines()) == 1  # one header
+    names = [r["capture"] for r in table]
+    assert sorted(set(names)) == ["c000_pose000.0", "c001_pose090.0"]
+    assert names.count("c000_pose000.0") == names.count("c001_pose090.0") == len(want)
+    assert all(int(r["n_counted"]) + int(r["n_masked"]) == 64 for r in table)
+    c1 = [r for r in table if r["capture"] == "c001_pose090.0"]
+    want1 = roi.roi_statistics(roi.roi_mask(roi.parse_roi("rect:4,4,8,8"), (h, w)),
+                               mueller=mueller, sigma=sigma, valid=valid)
+    assert_csv_rows_equal(c1, want1)
+    prof_text = (tmp_path / "session_profile.csv").read_text().splitlines()
+    prof = list(csv.DictReader(line for line in prof_text if not line.startswith("#")))
+    assert list(prof[0])[:4] == ["capture", "s", "x", "y"]
+    assert sum(line.startswith("capture,") for line in prof_text) == 1
+    assert {r["capture"] for r in prof} == {"c000_pose000.0", "c001_pose090.0"}
     capsys.readouterr()
     assert main(["stats", str(result), "--roi", "rect:4,4,8,8"]) == 0  # a printed table
     printed = capsys.readouterr().out

@@ -54,7 +54,7 @@ import dataclasses
 import io
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -493,29 +493,51 @@ def _cell(v) -> str:
     return str(v)
 
 
-def stats_csv(rows: Sequence[RoiRow], header: Mapping[str, str] | None = None) -> str:
+def _csv_text(header: Mapping[str, str] | None, columns: Sequence[str],
+              rows: Iterable[Sequence]) -> str:
+    """``# key: value`` comment lines of ``header``, one line of ``columns``, the ``rows``."""
+    buf = io.StringIO()
+    for k, v in (header or {}).items():
+        buf.write(f"# {k}: {v}\n")
+    wr = csv.writer(buf, lineterminator="\n")
+    wr.writerow(columns)
+    wr.writerows(rows)
+    return buf.getvalue()
+
+
+def stats_csv(rows: Sequence[RoiRow] | Mapping[str, Sequence[RoiRow]],
+              header: Mapping[str, str] | None = None) -> str:
     """CSV text of statistics rows (:data:`STATS_COLUMNS`), preceded by ``# key: value``
-    comment lines of ``header`` (e.g. the source and the ROI). Full float precision."""
-    buf = io.StringIO()
-    for k, v in (header or {}).items():
-        buf.write(f"# {k}: {v}\n")
-    wr = csv.writer(buf, lineterminator="\n")
-    wr.writerow(STATS_COLUMNS)
-    for r in rows:
-        wr.writerow([_cell(v) for v in r.as_tuple()])
-    return buf.getvalue()
+    comment lines of ``header`` (e.g. the source and the ROI). Full float precision.
+
+    ``rows`` by capture name (a session's captures) give one table with a first column
+    ``capture`` naming each row's capture, under one header line."""
+    if isinstance(rows, Mapping):
+        return _csv_text(header, ("capture",) + STATS_COLUMNS,
+                         ([name] + [_cell(v) for v in r.as_tuple()]
+                          for name, part in rows.items() for r in part))
+    return _csv_text(header, STATS_COLUMNS, ([_cell(v) for v in r.as_tuple()] for r in rows))
 
 
-def profile_csv(p: Profile, header: Mapping[str, str] | None = None) -> str:
+def profile_csv(p: Profile | Mapping[str, Profile], header: Mapping[str, str] | None = None) -> str:
     """CSV text of a profile: ``s, x, y`` then one column per quantity and colour
-    (``NAME.CH``)."""
-    buf = io.StringIO()
-    for k, v in (header or {}).items():
-        buf.write(f"# {k}: {v}\n")
-    wr = csv.writer(buf, lineterminator="\n")
-    cols = [(n, ci, f"{n}.{ch}") for n in p.values for ci, ch in enumerate(p.channels)]
-    wr.writerow(["s", "x", "y"] + [c[2] for c in cols])
-    for i in range(p.s.size):
-        wr.writerow([_cell(float(p.s[i])), _cell(float(p.x[i])), _cell(float(p.y[i]))]
-                    + [_cell(float(p.values[n][ci, i])) for n, ci, _ in cols])
-    return buf.getvalue()
+    (``NAME.CH``), preceded by ``# key: value`` comment lines of ``header``.
+
+    Profiles by capture name (a session's captures, each with the same quantities and colours,
+    else ``ValueError``) give one table with a first column ``capture``."""
+    parts = p if isinstance(p, Mapping) else {None: p}
+    first = next(iter(parts.values()))
+    cols = [(n, ci, f"{n}.{ch}") for n in first.values for ci, ch in enumerate(first.channels)]
+    for name, q in parts.items():
+        if list(q.values) != list(first.values) or q.channels != first.channels:
+            raise ValueError(f"profile of {name}: quantities or colours differ from the first's")
+
+    def rows():
+        for name, q in parts.items():
+            for i in range(q.s.size):
+                yield (([name] if isinstance(p, Mapping) else [])
+                       + [_cell(float(q.s[i])), _cell(float(q.x[i])), _cell(float(q.y[i]))]
+                       + [_cell(float(q.values[n][ci, i])) for n, ci, _ in cols])
+
+    lead = ["capture"] if isinstance(p, Mapping) else []
+    return _csv_text(header, lead + ["s", "x", "y"] + [c[2] for c in cols], rows())

@@ -6,7 +6,10 @@ Maps, definitions and the propagation: :mod:`polrig.optics.parameters` and
 :class:`polrig.app.session.Session` (read only, no lock): one maps file per capture that has a
 Mueller result, next to it (``mueller_maps.exr`` beside ``mueller.exr``; not recorded in the
 manifest: a derived file, replaced when analyzed again) or in ``--out DIR`` as
-``<capture>_maps.exr``.
+``<capture>_maps.exr``. A maps file that would be the result it is computed from (or, of a
+session, any of its results or its manifest) is refused before any work
+(:func:`polrig.formats.outputs.check_not_input`). With ``--normals``, pixels outside the
+result's mask (the pixels the decomposition counts) have NaN normals and are not counted.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from polrig.choices import SIGMA_SOURCES
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (check_output_file, check_output_folder, finite_float,
                                      nonnegative_float, positive_float)
+from polrig.formats.outputs import check_not_input
 
 if TYPE_CHECKING:
     import numpy as np
@@ -104,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise ConfigError(f"--out must name an .exr file, got {out}")
     check_output_file(out)
+    check_not_input([("--out", out)], [src])
     print(analyze_file(src, out, args.sigma, args.k, _sfp(args)))
     return 0
 
@@ -128,6 +133,9 @@ def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
         jobs.append((cap["name"], result, out))
     if not jobs:
         raise ConfigError(f"{root}: no capture has a Mueller result yet")
+    inputs = [session.root / "session.json"] + [result for _, result, _ in jobs]
+    check_not_input([("--out" if args.out is not None else "maps file", out)
+                     for _, _, out in jobs], inputs)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
     for name, result, out in jobs:
@@ -166,9 +174,14 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
         f"{b} = {t}" for b, t in pa.DECOMPOSITION_FLAGS.items()) + "; 0 = decomposed, isotropic block"
     if any(k.startswith("mask.") for k in planes):
         described["mask.{ch}"] = "the result's mask plane, copied (reason bits, 0 = valid)"
+    # valid: the result's mask 0 (every pixel without mask planes), for the counts and normals
+    valid = np.ones(maps.flags.shape, bool)
+    masks = [res.extra.get(f"mask.{s}") for s in sfx]
+    if all(m is not None for m in masks):
+        valid = np.stack(masks) == 0
     normals_line = ""
     if sfp is not None:
-        normals_line = _normal_planes(res.mueller, sfp, planes, described)
+        normals_line = _normal_planes(res.mueller, sfp, planes, described, valid)
     metadata: dict[str, Any] = {
         "source": str(src), "planes": described,
         "decomposition_assumption": pa.DECOMPOSITION_ASSUMPTION,
@@ -190,10 +203,6 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
             "reference": "Atkinson and Hancock, IEEE TIP 15(6):1653, 2006 (rho_d, rho_s)"}
     write_exr(out, planes, kind="parameter_maps", metadata=metadata)
     flags = maps.flags
-    valid = np.ones(flags.shape, bool)
-    masks = [res.extra.get(f"mask.{s}") for s in sfx]
-    if all(m is not None for m in masks):
-        valid = np.stack(masks) == 0
     n = int(valid.sum())
     assumed = int(np.count_nonzero(((flags & pa.DECOMP_ASSUMED) != 0) & valid))
     undefined = int(np.count_nonzero(((flags & pa.DECOMP_UNDEFINED) != 0) & valid))
@@ -208,9 +217,11 @@ def analyze_file(src: pathlib.Path, out: pathlib.Path, sigma_source: str = "sigm
 
 
 def _normal_planes(mueller: np.ndarray, sfp: dict, planes: dict[str, np.ndarray],
-                   described: dict[str, str]) -> str:
+                   described: dict[str, str], valid: np.ndarray) -> str:
     """Add the shape-from-polarization planes of ``mueller`` ``(C, 3, 3, H, W)`` to ``planes``
-    and their descriptions to ``described``; return the summary's addition."""
+    and their descriptions to ``described``; return the summary's addition. Pixel-colours
+    outside ``valid`` ``(C, H, W)`` (the result's mask, as for the decomposition's counts) get
+    NaN normals, zeniths and azimuths and are not counted."""
     import numpy as np
 
     from polrig.formats.exr import colour_planes
@@ -219,12 +230,14 @@ def _normal_planes(mueller: np.ndarray, sfp: dict, planes: dict[str, np.ndarray]
     h, w = mueller.shape[-2:]
     view = sp.view_directions(sfp["intrinsics"], (h, w)) if sfp["intrinsics"] else None
     got = sp.normals_from_mueller(mueller, sfp["ior"], sfp["reflection"], view)
+    masked = lambda a: np.where(valid, a, np.nan).astype(np.float32)  # noqa: E731
     for kk, normal in enumerate(got.normals):
         for axis, plane in zip("XYZ", normal):
-            planes.update(colour_planes(f"sfp_normal{kk}.{axis}", plane))
-    for z, zenith in enumerate(got.zenith_deg):
+            planes.update(colour_planes(f"sfp_normal{kk}.{axis}", masked(plane)))
+    zeniths = [masked(z) for z in got.zenith_deg]
+    for z, zenith in enumerate(zeniths):
         planes.update(colour_planes(f"sfp_zenith_deg{z}", zenith))
-    planes.update(colour_planes("sfp_azimuth_deg", got.azimuth_deg))
+    planes.update(colour_planes("sfp_azimuth_deg", masked(got.azimuth_deg)))
     n = f"n = {sfp['ior']:g}"
     if got.reflection == "diffuse":
         described["sfp_normal{k}.{X,Y,Z}.{ch}"] = (
@@ -237,7 +250,9 @@ def _normal_planes(mueller: np.ndarray, sfp: dict, planes: dict[str, np.ndarray]
             "Brewster's angle with azimuth = AoLP + 90 deg, + 270 deg; k = 2, 3 above it")
         described["sfp_zenith_deg{z}.{ch}"] = f"the two zeniths of the specular DoLP, {n}: 0 below, 1 above Brewster's angle"
     described["sfp_azimuth_deg.{ch}"] = "image azimuth of sfp_normal0, [0, 180) deg from image right towards up"
-    found = int(np.count_nonzero(np.isfinite(got.zenith_deg[0])))
+    for key in [k for k in described if k.startswith("sfp_")]:
+        described[key] += "; NaN where the result's mask is set"
+    found = int(np.count_nonzero(np.isfinite(zeniths[0])))
     return (f"; {got.reflection} shape-from-polarization normals ({n}, {len(got.normals)} "
             f"candidates) at {found} pixel-colour(s)")
 

@@ -2,12 +2,16 @@
 EXR as OME-Zarr (OME-NGFF 0.4 by default, ``--ngff 0.5``) or OME-TIFF, for napari and Fiji.
 
 The layout, the channel names and the metadata: :mod:`polrig.app.export` and
-:mod:`polrig.formats.ome`.
+:mod:`polrig.formats.ome`. Refused in one line (exit 2) before anything is read: an output that
+is the source (or, for OME-Zarr, a folder holding it), an output name without the format's
+ending (``.zarr``; ``.ome.tif`` or ``.ome.tiff``), ``--ngff`` with ``--format ome-tiff``. A
+failed write (a full disk) is one line naming the output (exit 1).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import pathlib
 
 from polrig.choices import OME_UNITS
@@ -38,10 +42,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("ome-zarr", "ome-tiff"), default="ome-zarr",
                    help="output format (default ome-zarr)")
     p.add_argument("-o", "--out", type=pathlib.Path, required=True, metavar="OUT",
-                   help="output: a .zarr folder (replaced if it is a Zarr store) or an .ome.tif file")
-    p.add_argument("--ngff", choices=("0.4", "0.5"), default="0.4",
-                   help="OME-Zarr only: OME-NGFF version, 0.4 on Zarr v2 (default: what Fiji's and "
-                        "QuPath's readers read) or 0.5 on Zarr v3")
+                   help="output: a .zarr folder (replaced if it is a Zarr store) or an .ome.tif "
+                        "(.ome.tiff) file; another name is refused")
+    p.add_argument("--ngff", choices=("0.4", "0.5"), default=None,
+                   help="OME-Zarr only (refused with ome-tiff): OME-NGFF version, 0.4 on Zarr v2 "
+                        "(default: what Fiji's and QuPath's readers read) or 0.5 on Zarr v3")
     p.add_argument("--pixel-size", type=pixel_size, default=None, metavar="S|SY,SX",
                    help="the output pixel's size in the object, in --unit (default: not known, "
                         "unit-less pixels)")
@@ -56,24 +61,49 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+#: The output name endings of each format (lower case).
+OUT_ENDINGS = {"ome-zarr": (".zarr",), "ome-tiff": (".ome.tif", ".ome.tiff")}
+#: The errors of a write that ran out of room: the message names the output.
+NO_ROOM = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
 def run(args: argparse.Namespace) -> int:
     from polrig.app.export import export
+    from polrig.atomic import write_error
+    from polrig.formats.outputs import check_not_input
 
     src: pathlib.Path = args.source
+    out: pathlib.Path = args.out
     if not src.exists():
         raise ConfigError(f"{src}: no such session folder or result file")
     if not src.is_dir() and src.suffix.lower() != ".exr":
         raise ConfigError(f"{src}: give a session folder or a Mueller result .exr")
+    if args.ngff is not None and args.format != "ome-zarr":
+        raise ConfigError(f"--ngff {args.ngff} applies to --format ome-zarr only, not "
+                          f"{args.format}")
+    endings = OUT_ENDINGS[args.format]
+    check_not_input([("-o", out)], [src, args.calibration],
+                    replaces_folder=args.format == "ome-zarr")
+    if not out.name.lower().endswith(endings):
+        raise ConfigError(f"-o {out}: an {args.format} output's name must end in "
+                          f"{' or '.join(endings)}")
     if args.format == "ome-tiff":
-        check_output_file(args.out)
+        check_output_file(out)
     else:
-        check_output_file(args.out.with_name(args.out.name + ".probe"))  # its folder exists
+        check_output_file(out.with_name(out.name + ".probe"))  # its folder exists
+    version = args.ngff or "0.4"
     try:
-        out = export(src, args.out, args.format, pixel_size=args.pixel_size, unit=args.unit,
-                     revision=args.revision, version=args.ngff, calibration=args.calibration)
-    except (ValueError, FileExistsError, KeyError) as exc:
-        raise ConfigError(str(exc).strip("'\"")) from None
-    print(f"wrote {out} ({args.format}"
-          f"{f', OME-NGFF {args.ngff}' if args.format == 'ome-zarr' else ''}"
+        written = export(src, out, args.format, pixel_size=args.pixel_size, unit=args.unit,
+                         revision=args.revision, version=version, calibration=args.calibration)
+    except KeyError as exc:  # str() of a KeyError is the repr of its message
+        raise ConfigError(str(exc.args[0]) if exc.args else str(exc)) from None
+    except (ValueError, FileExistsError) as exc:
+        raise ConfigError(str(exc)) from None
+    except OSError as exc:
+        if exc.errno in NO_ROOM:  # tifffile's and zarr's own lines name no file, or a temporary
+            raise write_error(out, exc) from None
+        raise
+    print(f"wrote {written} ({args.format}"
+          f"{f', OME-NGFF {version}' if args.format == 'ome-zarr' else ''}"
           f"{'' if args.pixel_size or args.calibration else ', unit-less pixels'})")
     return 0

@@ -6,6 +6,10 @@ Decode (:func:`polrig.formats.rawio.read_raw`), then the one single-shot route
 the planes) with its options (:class:`polrig.acquisition.plan.SingleShotOptions`, whose refusals
 name this command's options), and the one result writer
 (:func:`polrig.formats.exr.write_result_exr`: ``mask.{colour}`` reason bits as in a session).
+An output (the EXR or a preview) that is an input file (the raw frame, its sidecar, ``--config``)
+is refused before any work; the EXR and its three previews are written all or none
+(:mod:`polrig.formats.outputs`); a ``--layout`` that contradicts the sidecar is refused as by
+``polrig stokes`` (:func:`polrig.cli.commands.stokes.check_layout_option`).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import argparse
 
 from polrig.choices import DEMOSAIC_METHODS, NETWORK_BINNINGS
 from polrig.cli.commands.capture import add_model_size_option
+from polrig.cli.commands.stokes import check_layout_option
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (
     axis_vector,
@@ -109,10 +114,11 @@ FLAGS = {"resolution": "--resolution", "demosaic": "--demosaic", "network_binnin
 #: reason-bit mask always, the sigma with ``--sigma`` (``sigma_noise`` and ``residual`` are not
 #: modelled for the single-shot method).
 PLANES, SIGMA_PLANES = ("mueller", "mask"), ("mueller", "sigma", "mask")
+#: The previews beside ``OUT.exr`` (:func:`polrig.app.preview.write_result_previews`).
+PREVIEW_SUFFIXES = ("_grid.png", "_dolp.png", "_aolp.png")
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import pathlib
     import sys
 
@@ -126,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
     from polrig.cli.commands._units import adc_factor
     from polrig.cli.commands.capture import options_named
     from polrig.formats.exr import write_result_exr
-    from polrig.formats.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw
+    from polrig.formats.outputs import OutputSet, check_not_input
+    from polrig.formats.rawio import DEFAULT_LAYOUT, assumed_layout_note, read_raw, sidecar_path
     from polrig.models.uncertainty import BEYOND_WARN_FRACTION
     from polrig.solve.reference import SATURATED, reason_names
 
@@ -137,12 +144,13 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
     check_output_file(out)
-    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in ("_grid.png", "_dolp.png", "_aolp.png")]
+    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in PREVIEW_SUFFIXES]
     for preview_path in previews:
         check_output_file(preview_path, "--out preview")
+    check_not_input([("--out", out)] + [("--out preview", p) for p in previews],
+                    [args.raw, sidecar_path(args.raw), args.config])
     frame = read_raw(args.raw, layout=args.layout or DEFAULT_LAYOUT)
-    if args.layout:  # the option wins over the sidecar
-        frame = dataclasses.replace(frame, meta=dataclasses.replace(frame.meta, layout=args.layout))
+    check_layout_option(args.raw, args.layout, frame.meta.layout)  # a sidecar's layout stands
     layout = frame.meta.layout
     black = frame.meta.black_level_dn if args.black_level is None else args.black_level
     saturation = (2.0 ** frame.meta.bit_depth - 1) if args.saturation_dn is None else args.saturation_dn
@@ -168,23 +176,25 @@ def run(args: argparse.Namespace) -> int:
                              black_level_dn=black, saturation_dn=saturation, scale=args.scale,
                              stage_zero_axis=args.stage_zero_axis)
     planes = (SIGMA_PLANES if options.sigma else PLANES) + (("geometry",) if options.geometry else ())
-    write_result_exr(out, result, planes=planes, compression="none",
-                     extra=result.extra_planes(planes),
-                     metadata={"method": "single-shot",
-                               "model": f"PIPNet+pBRDF+PMMNet ({route.model.weights_dir}/{route.model.graph})",
-                               **route.model_header(),
-                               "scale_dn": result.scale, "alpha": result.alpha,
-                               "source": str(args.raw), "state_deg": args.state_deg,
-                               "layout": str(layout), "demosaic": options.demosaic,
-                               "saturation_dn": saturation, "units": UNITS,
-                               "adc_dn_per_file_dn": to_adc,
-                               "mask_bits": {str(b): n for b, n in reason_names().items()},
-                               **result.header(planes)})
-    # previews: the measured S0 against its noise sigma decides what is signal
-    flags = result.preview_flags()
     min_snr = DEFAULT_MIN_SNR if args.min_snr is None else args.min_snr
-    write_result_previews(result.mueller, out.parent, stem=out.stem, flags=flags, snr=result.snr,
-                          min_snr=min_snr)
+    flags = result.preview_flags()
+    with OutputSet() as outputs:  # the EXR and its previews: all or none
+        write_result_exr(outputs.temporary(out), result, planes=planes, compression="none",
+                         extra=result.extra_planes(planes),
+                         metadata={"method": "single-shot",
+                                   "model": f"PIPNet+pBRDF+PMMNet ({route.model.weights_dir}/{route.model.graph})",
+                                   **route.model_header(),
+                                   "scale_dn": result.scale, "alpha": result.alpha,
+                                   "source": str(args.raw), "state_deg": args.state_deg,
+                                   "layout": str(layout), "demosaic": options.demosaic,
+                                   "saturation_dn": saturation, "units": UNITS,
+                                   "adc_dn_per_file_dn": to_adc,
+                                   "mask_bits": {str(b): n for b, n in reason_names().items()},
+                                   **result.header(planes)})
+        # previews: the measured S0 against its noise sigma decides what is signal
+        write_result_previews(result.mueller, out.parent, flags=flags, snr=result.snr,
+                              stem=outputs.temporary_stem(out.parent, out.stem, PREVIEW_SUFFIXES),
+                              min_snr=min_snr)
     mueller = result.mueller
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
           f"network {1e3 * result.timings_s['network']:.1f} ms; {mask_summary(flags, result.snr, min_snr)}; "

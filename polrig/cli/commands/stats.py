@@ -4,7 +4,10 @@ GUI's ROI tools).
 
 Statistics, conventions and the two standard errors: :mod:`polrig.app.roi`. A session is read
 through :class:`polrig.app.session.Session` (read only, no lock): every capture with a Mueller
-result, one block of rows each (CSV column ``capture``). A Stokes EXR (``polrig stokes --out``)
+result, in one CSV table whose first column ``capture`` names each row's capture (the profile
+CSV alike; each capture's source, image size and sigma in a ``# capture NAME:`` comment line
+above it). The CSV and its profile are written together or not at all
+(:class:`polrig.formats.outputs.OutputSet`); neither may be an input. A Stokes EXR (``polrig stokes --out``)
 gives the Stokes quantities (S0, DoLP, AoLP) with the masks the Viewer applies
 (:func:`polrig.app.preview.stokes_exr_masks`) and the standard errors from its ``snr`` planes.
 """
@@ -117,20 +120,24 @@ def run(args: argparse.Namespace) -> int:
         if segment is not None:
             profile_out = args.csv.with_name(args.csv.stem + "_profile.csv")
             check_output_file(profile_out, "--csv profile")
+    sources = _sources(args.source)
+    if args.csv is not None:
+        from polrig.formats.outputs import check_not_input
+
+        outputs = [("--csv", args.csv)] + ([("--csv profile", profile_out)] if profile_out else [])
+        inputs = [path for _, path in sources]
+        if args.source.is_dir():
+            inputs.append(args.source / "session.json")
+        check_not_input(outputs, inputs)
     stats_parts, profile_parts = [], []
-    for label, path in _sources(args.source):
+    for label, path in sources:
         data = load_source(path, args.sigma)
         h, w = (data["mueller"] if "mueller" in data else data["stokes"]).shape[-2:]
         region = shape or roi.RectROI(0, 0, w, h)
         inside = roi.roi_mask(region, (h, w))
         rows = roi.roi_statistics(inside, **data)
-        if "stokes" in data:
-            sigma_text = ("snr planes" if data["snr"] is not None
-                          else "none (a Stokes EXR without snr planes)")
-        else:
-            sigma_text = args.sigma if data["sigma"] is not None else "none (no sigma planes)"
         header = {"source": str(path), "roi": region.text(), "image": f"{w}x{h}",
-                  "sigma": sigma_text,
+                  "sigma": _sigma_text(data, args.sigma),
                   "pixel_convention": "pixel (u, v) has its centre at (u + 0.5, v + 0.5)"}
         if label:
             header["capture"] = label
@@ -144,19 +151,52 @@ def run(args: argparse.Namespace) -> int:
             print(f"profile {args.profile} ({prof.s.size} samples every {args.spacing:g} px) of "
                   f"{header.get('capture') or header['source']}: use --csv for the values")
         return 0
-    from polrig.atomic import atomic_write_text
+    from polrig.formats.outputs import OutputSet
 
-    atomic_write_text(args.csv, "".join(roi.stats_csv(rows, header) for header, rows in stats_parts))
-    written = [str(args.csv)]
-    if profile_out is not None:
-        atomic_write_text(profile_out, "".join(
-            roi.profile_csv(p, {**header, "profile": args.profile,
-                                "spacing_px": f"{args.spacing:g}"})
-            for header, p in profile_parts))
-        written.append(str(profile_out))
+    profile_header = {"profile": args.profile, "spacing_px": f"{args.spacing:g}"}
+    with OutputSet() as files:  # the statistics and the profile: all or none
+        _write_csv(files.temporary(args.csv), args.source, stats_parts, roi.stats_csv, {})
+        if profile_out is not None:
+            _write_csv(files.temporary(profile_out), args.source, profile_parts, roi.profile_csv,
+                       profile_header)
+    written = [str(p) for p in files.finals]
     n = sum(len(rows) for _, rows in stats_parts)
     print(f"wrote {', '.join(written)} ({n} rows, {len(stats_parts)} result(s))")
     return 0
+
+
+def _sigma_text(data: dict, requested: str) -> str:
+    """What the standard errors of ``data`` (:func:`load_source`) come from, for the header."""
+    if "stokes" in data:
+        return ("snr planes" if data["snr"] is not None
+                else "none (a Stokes EXR without snr planes)")
+    if data["sigma"] is not None:
+        return requested
+    return "none" if requested == "none" else f"none (no {requested}.M{{rc}} planes)"
+
+
+def _write_csv(path: pathlib.Path, source: pathlib.Path, parts: list, to_csv,
+               extra: dict) -> None:
+    """Write ``parts`` (``(header, rows or profile)`` per result) as one CSV table with
+    ``to_csv`` (:func:`polrig.app.roi.stats_csv` or :func:`~polrig.app.roi.profile_csv`): one
+    result's alone under its header's comment lines, a session's by capture (a ``capture``
+    column) under the session's, each capture's own in a ``# capture NAME:`` line."""
+    from polrig.atomic import atomic_write_text
+
+    if len(parts) == 1 and "capture" not in parts[0][0]:
+        header, data = parts[0]
+        atomic_write_text(path, to_csv(data, {**header, **extra}))
+        return
+    first = parts[0][0]
+    header = {"source": str(source), "roi": first["roi"], "sigma": first["sigma"], **extra,
+              "pixel_convention": first["pixel_convention"]}
+    for key, mixed in (("roi", "each capture's whole image"), ("sigma", "per capture, below")):
+        if any(h[key] != first[key] for h, _ in parts):  # e.g. captures of two sizes
+            header[key] = mixed
+    for h, _ in parts:
+        header[f"capture {h['capture']}"] = (f"source {h['source']}, image {h['image']}, "
+                                             f"sigma {h['sigma']}")
+    atomic_write_text(path, to_csv({h["capture"]: d for h, d in parts}, header))
 
 
 def _num(v: float) -> str:

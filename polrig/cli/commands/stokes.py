@@ -1,4 +1,10 @@
-"""``polrig stokes``: a raw DoFP mosaic -> Stokes EXR plus DoLP and AoLP PNG previews."""
+"""``polrig stokes``: a raw DoFP mosaic -> Stokes EXR plus DoLP and AoLP PNG previews.
+
+An output (the EXR or a preview) that is an input file (the raw frame, its sidecar,
+``--analyzer``, ``--config``) is refused before any work, and the EXR and its six previews are
+written all or none (:mod:`polrig.formats.outputs`): a failed write leaves the files of an
+earlier run as they were. A ``--layout`` that contradicts the sidecar is refused
+(:func:`check_layout_option`, shared with ``polrig infer``)."""
 
 from __future__ import annotations
 
@@ -63,7 +69,8 @@ def register(subparsers) -> None:
                    help="calibrated per-pixel analyzer model (.npz) of this readout")
     p.add_argument("--min-snr", type=nonnegative_float, default=MIN_SNR, metavar="K",
                    help=f"mask DoLP/AoLP where S0 is below K noise standard deviations of the "
-                        f"sensor noise model (default {MIN_SNR:g}; 0 masks nothing)")
+                        f"sensor noise model (default {MIN_SNR:g}; 0 masks only clipped pixels "
+                        f"and those without signal, S0 below 0)")
     p.add_argument("--config", type=pathlib.Path, default=None, metavar="RIG.toml",
                    help="rig configuration whose sensor model (ADC bits, gain, read noise) "
                         "gives the unit and the noise (default: the IMX250 model, 12 bits)")
@@ -88,22 +95,9 @@ def _parse_offset(text: str) -> tuple[int, int]:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from polrig.app.preview import (
-        DARK,
-        SATURATED,
-        aolp_key,
-        aolp_rgb,
-        colorbar,
-        display_valid,
-        diverging,
-        dolp_gray,
-        dolp_legend,
-        mask_summary,
-        s0_snr,
-        tone_map,
-        with_legend,
-    )
+    from polrig.app.preview import DARK, SATURATED, display_valid, mask_summary, s0_snr
     from polrig.formats.exr import colour_planes, write_stokes_exr
+    from polrig.formats.outputs import OutputSet, check_not_input
     from polrig.formats.rawio import (
         DEFAULT_LAYOUT,
         assumed_layout_note,
@@ -112,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         sidecar_path,
     )
     from polrig.sensor.layouts import LAYOUTS
-    from polrig.sensor.stokes import min_max_intensity, stokes_from_raw
+    from polrig.sensor.stokes import stokes_from_raw
 
     out = args.out
     if out.suffix.lower() != ".exr":
@@ -121,15 +115,13 @@ def run(args: argparse.Namespace) -> int:
     stem = out.with_suffix("")
     pngs = {k: stem.with_name(f"{stem.name}_{k}.png")
             for k in ("dolp", "aolp", "imin", "imax", "s1", "s2")}
-    dolp_png, aolp_png = pngs["dolp"], pngs["aolp"]
     for preview in pngs.values():
         check_output_file(preview, "--out preview")
+    check_not_input([("--out", out)] + [("--out preview", p) for p in pngs.values()],
+                    [args.raw, sidecar_path(args.raw), args.analyzer, args.config])
     frame = read_raw(args.raw)
     meta = frame.meta
-    if (args.layout and sidecar_path(args.raw).is_file()
-            and args.layout.lower() != meta.layout.split("@")[0].lower()):
-        raise ConfigError(f"--layout {args.layout} contradicts the sidecar of {args.raw}, which "
-                          f"says {meta.layout}; drop --layout (or fix the sidecar)")
+    check_layout_option(args.raw, args.layout, meta.layout)
     layout_name = args.layout or meta.layout or DEFAULT_LAYOUT
     if layout_name.split("@")[0].lower() not in LAYOUTS:
         raise ConfigError(f"unknown layout {layout_name!r} (sidecar of {args.raw})")
@@ -170,39 +162,82 @@ def run(args: argparse.Namespace) -> int:
                                "dolp_overshoot": res.dolp_overshoot,
                                "min_snr": args.min_snr,
                                "masked_pixels": int((~res.valid).sum())}}
-    write_stokes_exr(out, stokes, extra=extra, metadata=metadata)
-    # previews show one colour plane: Y for mono, G (the best-sampled Bayer colour) for colour
-    c = res.stokes.shape[0]
-    ci = 0 if c == 1 else 1  # green: the best-sampled colour of a Bayer sensor
-    valid = display_valid(flags[ci], snr[ci], args.min_snr)
-    _write_png(dolp_png, with_legend(dolp_gray(res.dolp[ci], valid=valid),
-                                     dolp_legend(res.dolp.shape[-2])))
-    h = res.dolp.shape[-2]
-    _write_png(aolp_png, with_legend(aolp_rgb(res.aolp_deg[ci], res.dolp[ci],
-                                              dolp_as=args.aolp_dolp, valid=valid),
-                                     aolp_key(h, dolp_as=args.aolp_dolp)))
-    imin, imax = min_max_intensity(stokes, res.valid)
-    white = float(np.percentile(stokes[ci, 0][res.valid[ci]], 99.5)) if res.valid[ci].any() else 1.0
-    for key, plane in (("imin", imin[ci]), ("imax", imax[ci])):
-        _write_png(pngs[key], tone_map(plane, white=white, valid=res.valid[ci]))
-    with np.errstate(all="ignore"):
-        lin = np.hypot(stokes[ci, 1], stokes[ci, 2])[res.valid[ci]]
-    vmax = float(np.percentile(lin, 99.5)) if lin.size and lin.max() > 0 else 1.0
-    for key, plane in (("s1", stokes[ci, 1]), ("s2", stokes[ci, 2])):
-        _write_png(pngs[key], with_legend(diverging(plane, vmax=vmax, valid=res.valid[ci]),
-                                          colorbar(h, vmax=vmax)))
+    with OutputSet() as outputs:  # the EXR and its previews: all or none
+        write_stokes_exr(outputs.temporary(out), stokes, extra=extra, metadata=metadata)
+        _write_previews(outputs, pngs, res, stokes, flags, snr, args)
     shown = display_valid(flags, snr, args.min_snr)
     with np.errstate(all="ignore"):
         over = int((shown & (np.hypot(stokes[:, 1], stokes[:, 2]) > stokes[:, 0])).sum())
     clipped = (f"; DoLP above 1 (noise) in {over} shown pixel-colour(s), drawn as 1"
                if over else "")
-    print(f"wrote {out} ({res.stokes.shape[-1]}x{res.stokes.shape[-2]}, {c} colour plane(s), "
+    print(f"wrote {out} ({res.stokes.shape[-1]}x{res.stokes.shape[-2]}, {res.stokes.shape[0]} "
+          f"colour plane(s), "
           f"{args.demosaic}, ADC DN), {', '.join(p.name for p in pngs.values())}; "
           f"{masked}{clipped}")
     note = assumed_layout_note(args.raw, args.layout)  # after the work: a failure stays one line
     if note:
         print(f"polrig stokes: note: {note}", file=sys.stderr)
     return 0
+
+
+def _write_previews(outputs, pngs: dict[str, pathlib.Path], res, stokes: np.ndarray,
+                    flags: np.ndarray, snr: np.ndarray, args: argparse.Namespace) -> None:
+    """Write the previews ``pngs`` (by key: dolp, aolp, imin, imax, s1, s2) to their
+    temporaries in ``outputs`` (:class:`polrig.formats.outputs.OutputSet`). They show one
+    colour plane: Y for mono, G (the best-sampled Bayer colour) for colour."""
+    import numpy as np
+
+    from polrig.app.preview import (
+        aolp_key,
+        aolp_rgb,
+        colorbar,
+        display_valid,
+        diverging,
+        dolp_gray,
+        dolp_legend,
+        tone_map,
+        with_legend,
+    )
+    from polrig.sensor.stokes import min_max_intensity
+
+    c = res.stokes.shape[0]
+    ci = 0 if c == 1 else 1  # green: the best-sampled colour of a Bayer sensor
+    valid = display_valid(flags[ci], snr[ci], args.min_snr)
+    _write_png(outputs.temporary(pngs["dolp"]), with_legend(dolp_gray(res.dolp[ci], valid=valid),
+                                                            dolp_legend(res.dolp.shape[-2])))
+    h = res.dolp.shape[-2]
+    _write_png(outputs.temporary(pngs["aolp"]),
+               with_legend(aolp_rgb(res.aolp_deg[ci], res.dolp[ci], dolp_as=args.aolp_dolp,
+                                    valid=valid),
+                           aolp_key(h, dolp_as=args.aolp_dolp)))
+    imin, imax = min_max_intensity(stokes, res.valid)
+    white = float(np.percentile(stokes[ci, 0][res.valid[ci]], 99.5)) if res.valid[ci].any() else 1.0
+    for key, plane in (("imin", imin[ci]), ("imax", imax[ci])):
+        _write_png(outputs.temporary(pngs[key]), tone_map(plane, white=white, valid=res.valid[ci]))
+    with np.errstate(all="ignore"):
+        lin = np.hypot(stokes[ci, 1], stokes[ci, 2])[res.valid[ci]]
+    vmax = float(np.percentile(lin, 99.5)) if lin.size and lin.max() > 0 else 1.0
+    for key, plane in (("s1", stokes[ci, 1]), ("s2", stokes[ci, 2])):
+        _write_png(outputs.temporary(pngs[key]),
+                   with_legend(diverging(plane, vmax=vmax, valid=res.valid[ci]),
+                               colorbar(h, vmax=vmax)))
+
+
+def check_layout_option(raw: str | pathlib.Path, option: str | None, sidecar_layout: str) -> None:
+    """:class:`ConfigError` when ``--layout`` (``option``) contradicts the sidecar of the raw
+    file ``raw`` (its layout ``sidecar_layout``): the layout names differ, or ``option``
+    gives an ROI offset (``name@x,y``) that differs. Nothing without ``option`` or without a
+    sidecar. ``polrig stokes`` and ``polrig infer`` refuse alike."""
+    from polrig.formats.rawio import sidecar_path
+
+    if not option or not sidecar_path(raw).is_file():
+        return
+    given, said = (t.replace(" ", "").lower() for t in (option, sidecar_layout))
+    if "@" not in given:
+        said = said.split("@")[0]
+    if given != said:
+        raise ConfigError(f"--layout {option} contradicts the sidecar of {raw}, which says "
+                          f"{sidecar_layout}; drop --layout (or fix the sidecar)")
 
 
 def _load_analyzer(path: pathlib.Path) -> AnalyzerModel:
