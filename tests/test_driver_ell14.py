@@ -321,3 +321,62 @@ def test_capabilities_from_the_velocity_setting(emu, percent):
 def test_capabilities_need_an_open_stage(emu):
     with pytest.raises(DeviceDisconnected, match="not open"):
         Ell14Stage(emu.port).capabilities
+
+
+# -- a refused move, a malformed identity, nothing left moving ------------------------------
+
+def test_a_move_refused_as_busy_is_an_error_not_a_success(emu):
+    """`polrig move stage 100 --no-wait`, then `polrig move stage 20` while it still turns:
+    the ELL14 answers the second 'ma' with GS09 (busy: refused). That was taken for 'still
+    moving' and the first move's end reported as success at 100 deg."""
+    emu.speed_factor = 0.05  # 21.5 deg/s
+    with Ell14Stage(emu.port, reply_timeout_s=REPLY_S) as first:
+        first.move_to(100.0, wait=False)
+    with Ell14Stage(emu.port, reply_timeout_s=REPLY_S) as second:
+        with pytest.raises(DeviceFault, match="'ma' refused: the device is busy") as ei:
+            second.move_to(20.0, timeout_s=LONG_S)
+        assert ei.value.code == ell14.BUSY
+        assert emu.move is not None  # the first move goes on, untouched
+        second.stop()
+        emu.speed_factor = 4.0
+        second.move_to(20.0, timeout_s=5)  # a poll's GS09 is still 'moving'
+        assert second.position_deg() == pytest.approx(20.0, abs=PULSE_DEG)
+
+
+def test_polls_answered_busy_mean_still_moving(stage, emu):
+    emu.speed_factor = 0.2  # 86 deg/s: 2 s
+    stage.move_to(170.0, wait=False)
+    assert stage.is_busy() and stage.is_busy()
+    stage.wait(LONG_S)
+    assert stage.position_deg() == pytest.approx(170.0, abs=PULSE_DEG)
+
+
+@pytest.mark.parametrize("field, at", [("firmware", slice(14, 16)), ("travel", slice(18, 22)),
+                                       ("type", slice(0, 2))])
+def test_a_malformed_in_reply_is_a_protocol_error_naming_the_device(tmp_path, field, at):
+    """A non-hex firmware field raised a bare ValueError (outside the IN parse's error
+    handling): now every hex field is checked, a ProtocolError naming the device."""
+
+    class BadIn(Ell14Emulator):
+        def _reply(self, cmd, data):
+            if cmd == "IN":
+                data = data[:at.start] + "Z" * (at.stop - at.start) + data[at.stop:]
+            super()._reply(cmd, data)
+
+    with BadIn(link=tmp_path / "ell") as emu:
+        st = Ell14Stage(emu.port, reply_timeout_s=REPLY_S)
+        with pytest.raises(ProtocolError, match=f"ell14 {emu.port}: malformed IN reply.*{field}"):
+            st.open()
+        assert not st.is_open
+
+
+def test_a_move_that_times_out_is_stopped(stage, emu):
+    """wait() at its deadline sends 'st' before DeviceTimeout: the mount does not go on
+    turning after the error."""
+    emu.speed_factor = 0.05
+    with pytest.raises(DeviceTimeout, match=r"within 0\.3 s; stopped"):
+        stage.move_to(180.0, timeout_s=0.3)
+    assert emu.move is None and b"0st" in emu.received
+    here = emu.position_deg
+    time.sleep(0.2)
+    assert emu.position_deg == here and 0 < here < 180

@@ -9,8 +9,9 @@ import serial
 
 from polrig.drivers import apt
 from polrig.drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
-from polrig.drivers.k10cr1 import K10cr1Stage
+from polrig.drivers.k10cr1 import K10cr1Stage, K10cr1Turntable
 from polrig.errors import (
+    DeviceAlarm,
     DeviceDisconnected,
     DeviceFault,
     DeviceNotFound,
@@ -253,3 +254,49 @@ def test_zero_velocity_parameters_are_a_protocol_error(emu):
     emu.max_velocity = 0
     with pytest.raises(ProtocolError, match="maximum velocity 0"):
         K10cr1Stage(emu.port, reply_timeout_s=0.5).open()
+
+
+# -- safety: a stop the controller made is the operator's; nothing left moving --------------
+
+def test_a_stop_the_controller_made_is_a_safety_fault_naming_the_home_command(emu):
+    """MOT_MOVE_STOPPED nobody asked for (a limit switch that fired): DeviceAlarm, the fault
+    the engine never retries nor homes, naming the axis's own home command (the CLI adds the
+    rig file)."""
+    with K10cr1Turntable(emu.port, reply_timeout_s=REPLY_S) as table:
+        table.home(timeout_s=5)
+        emu.inject("stop_mid_move")
+        with pytest.raises(DeviceAlarm) as ei:
+            table.move_to(60.0, timeout_s=5)
+    alarm = ei.value
+    assert alarm.requires_operator and alarm.axis == "turntable"
+    assert alarm.code == "MOT_MOVE_STOPPED" and "turntable move interrupted" in str(alarm)
+    assert alarm.command_for("rig.toml") == "polrig home turntable --config rig.toml"
+    assert alarm.operator_message("rig.toml").endswith(
+        "then run `polrig home turntable --config rig.toml`")
+
+
+@pytest.mark.parametrize("cls, kind", [(K10cr1Stage, "stage"), (K10cr1Turntable, "turntable")])
+def test_not_homed_names_its_own_kind_and_home_command(emu, cls, kind):
+    """It said 'stage is not homed (run `polrig home stage`)' for a turntable too, as a
+    plain fault the engine re-homed on its own; now, like GRBL's Alarm lock after power-up,
+    a DeviceAlarm naming `polrig home KIND`."""
+    with cls(emu.port, reply_timeout_s=REPLY_S) as axis:
+        with pytest.raises(DeviceAlarm, match=f"{kind} is not homed") as ei:
+            axis.move_to(45.0)
+    assert ei.value.axis == kind and ei.value.code == "not homed"
+    assert ei.value.command_for("r.toml") == f"polrig home {kind} --config r.toml"
+    assert emu.position_deg == 0.0
+
+
+def test_a_move_that_times_out_is_stopped(stage, emu):
+    """wait() at its deadline sends MOT_MOVE_STOP before DeviceTimeout: the stage does not
+    go on turning after the error (it ran to its target, 18 s later)."""
+    stage.home(timeout_s=5)
+    emu.speed_factor = 0.5  # 5 deg/s
+    with pytest.raises(DeviceTimeout, match=r"within 0\.3 s; stopped"):
+        stage.move_to(90.0, timeout_s=0.3)
+    assert emu.move is None
+    here = emu.position_deg
+    time.sleep(0.2)
+    assert emu.position_deg == here and 0 < here < 90
+    assert apt.AptMessage(apt.MOT_MOVE_STOP, 1, 0x01).pack() in emu.received
