@@ -80,11 +80,53 @@ def test_a_failed_move_is_retried_once_after_homing(kind):
         assert rig.stage.position_deg() == pytest.approx(60.0)
         assert any("re-homing and retrying once" in e.message for e in seen
                    if isinstance(e, Retried))
-        # a second failure (the retried move, after position, move_to and home) is raised
+        # a second failure (the retried move, after position, move_to, stop and home) is raised
         rig.faults.inject_fault("stage", kind, after_calls=1)
-        rig.faults.inject_fault("stage", kind, after_calls=3)
+        rig.faults.inject_fault("stage", kind, after_calls=4)
         with pytest.raises(EXPECTED[kind]):
             ex.execute(Move((("stage", 10.0),)))
+
+
+def test_the_retry_stops_the_axis_before_homing_it():
+    """The failed move may still run (an ELL14 answers a home sent then 'busy', GRBL 'Not
+    idle'): the recovery stops the axis first, then homes it, then moves again."""
+    with open_rig(None, **SIM) as rig:
+        calls: list[str] = []
+        for name in ("stop", "home", "move_to"):
+            real = getattr(rig.stage, name)
+            setattr(rig.stage, name, (lambda real, name: lambda *a, **k: (
+                calls.append(name), real(*a, **k))[1])(real, name))
+        rig.faults.inject_fault("stage", "timeout", after_calls=1)  # position, then move_to
+        Executor(rig).execute(Move((("stage", 60.0),)))
+        assert calls == ["move_to", "stop", "home", "move_to"]
+        assert rig.stage.position_deg() == pytest.approx(60.0)
+
+
+@pytest.mark.parametrize("kind, when", [("fault", "home"), ("timeout", "home"),
+                                        ("protocol", "stop")])
+def test_a_recovery_that_fails_reports_the_moves_failure_with_its_reason(kind, when):
+    """The home (or the stop before it) fails too: the move's own failure is raised (its
+    type, its device), with the recovery's reason; it was lost behind the home's error."""
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig)
+        rig.faults.inject_fault("stage", "fault", after_calls=1)  # move_to: code 13
+        rig.faults.inject_fault("stage", kind, after_calls={"stop": 2, "home": 3}[when])
+        with pytest.raises(DeviceFault) as ei:
+            ex.execute(Move((("stage", 60.0),)))
+        step = {"stop": "stopping it", "home": "re-homing it"}[when]
+        message = str(ei.value)
+        assert message.startswith("polarizer stage move to 60 deg failed (")
+        assert f"; {step} failed too: " in message and ei.value.code == 13
+        assert isinstance(ei.value.__cause__, EXPECTED[kind])
+        assert str(ei.value.__cause__) in message
+
+
+def test_a_safety_fault_while_recovering_is_raised_as_itself():
+    with open_rig(None, **SIM) as rig:
+        rig.faults.inject_fault("turntable", "timeout", after_calls=1)
+        rig.faults.inject_fault("turntable", "limit", after_calls=3)  # the home
+        with pytest.raises(DeviceAlarm):
+            Executor(rig).execute(Move((("turntable", 30.0),)))
 
 
 def test_a_disconnection_is_never_retried():

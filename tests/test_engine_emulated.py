@@ -11,18 +11,23 @@ readable error."""
 from __future__ import annotations
 
 import textwrap
+import types
 from pathlib import Path
 
 import pytest
 from _genicam import VIKY, viky_camera
 
-from polrig.acquisition.engine import GuardedRig
+from polrig.acquisition.engine import Executor, GuardedRig, Retried
 from polrig.app.rig import open_rig
 from polrig.calibration.calset import CalibrationSet
 from polrig.calibration.procedures import INTRINSIC_MOUNTS
 from polrig.calibration.runner import run_steps
-from polrig.drivers.emulators.ell14 import Ell14Emulator
+from polrig.drivers import apt
+from polrig.drivers.ell14 import Ell14Stage
+from polrig.drivers.emulators.ell14 import PULSES_PER_REV, Ell14Emulator
 from polrig.drivers.emulators.grbl import GrblEmulator
+from polrig.drivers.emulators.k10cr1 import STEPS_PER_DEG, K10cr1Emulator
+from polrig.drivers.k10cr1 import K10cr1Turntable
 from polrig.errors import DeviceAlarm, DeviceTimeout
 
 pytestmark = pytest.mark.timeout(60)
@@ -127,3 +132,53 @@ def test_a_guarded_home_waits_no_longer_than_the_callers_timeout(tmp_path):
             guarded = GuardedRig.around(rig)
             with pytest.raises(DeviceTimeout):
                 guarded.turntable.home(timeout_s=0.5)  # a 30 s homing cycle
+
+
+def axis_rig(**axes) -> types.SimpleNamespace:
+    """What the executor needs of a rig to move ``axes`` (name -> driver)."""
+    return types.SimpleNamespace(devices=dict(axes), **axes)
+
+
+def test_a_refused_move_is_stopped_before_the_re_home(tmp_path):
+    """The ELL14 still turns (a `polrig move stage 300 --no-wait` before the run): the move
+    is refused (GS09), and its one re-homed retry stops the stage first: a home sent while
+    it turns is refused 'busy' too, which raised the home's error and lost the move's."""
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=0.02) as ell:  # 8.6 deg/s
+        with Ell14Stage(ell.port, reply_timeout_s=0.5) as earlier:
+            earlier.move_to(300.0, wait=False)
+        ell.speed_factor = 4.0
+        with Ell14Stage(ell.port, reply_timeout_s=0.5) as stage:
+            retries: list[str] = []
+            ex = Executor(axis_rig(stage=stage),
+                          subscribers=[lambda e: isinstance(e, Retried) and retries.append(e.message)])
+            sent = len(ell.received)
+            ex.move({"stage": 170.0})
+            assert ell.position_deg == pytest.approx(170.0, abs=360.0 / PULSES_PER_REV)
+            assert len(retries) == 1 and "refused: the device is busy" in retries[0]
+            wire = bytes(ell.received[sent:])
+            assert wire.index(b"0st") < wire.index(b"0ho0")
+
+
+def test_a_k10cr1_turntable_stopped_by_its_controller_is_never_homed_by_the_engine(tmp_path):
+    """A K10CR1 turntable: a never-homed one and a move the controller stopped on its own
+    (a limit switch) stop the run with a DeviceAlarm naming `polrig home turntable`; the
+    engine sends no MOT_MOVE_HOME (it re-homed and went on)."""
+    home = apt.AptMessage(apt.MOT_MOVE_HOME, 1).pack()
+    with K10cr1Emulator(link=tmp_path / "k10", speed_factor=40) as k10, \
+            K10cr1Turntable(k10.port, reply_timeout_s=0.5) as table:
+        retries: list[str] = []
+        ex = Executor(axis_rig(turntable=table),
+                      subscribers=[lambda e: isinstance(e, Retried) and retries.append(e.message)])
+        with pytest.raises(DeviceAlarm, match="turntable is not homed") as ei:
+            ex.move({"turntable": 30.0})
+        assert ei.value.command == "polrig home turntable"
+        assert retries == [] and home not in k10.received and not k10.homed
+        table.home(timeout_s=5)  # the operator's `polrig home turntable`
+        k10.inject("stop_mid_move")
+        with pytest.raises(DeviceAlarm, match="turntable move interrupted") as ei:
+            ex.move({"turntable": 90.0})
+        assert ei.value.command_for("rig.toml") == "polrig home turntable --config rig.toml"
+        assert retries == [] and k10.received.count(home) == 1
+        assert 0 < k10.position_deg < 90
+        ex.move({"turntable": 90.0})  # after the operator cleared it
+        assert k10.position_deg == pytest.approx(90.0, abs=1 / STEPS_PER_DEG)

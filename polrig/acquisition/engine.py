@@ -15,9 +15,13 @@ procedures use it alike, the latter through :class:`GuardedRig`):
 * a camera setting or light switch that times out is retried as often (setting a value
   again is idempotent);
 * a move that times out, faults or gets a garbled reply (:class:`ProtocolError`: line noise
-  leaves the position unknown) is retried once after homing the axis (homing is the
-  documented recovery of the ELL14/K10CR1 stages and loses no data); a second failure is
-  raised; a disconnection is never retried. Each move's timeout comes from its axis's
+  leaves the position unknown) is retried once after stopping and homing the axis (homing is
+  the documented recovery of the ELL14/K10CR1 stages and loses no data; the stop comes first
+  because a home sent while the axis still runs is refused, ELL14 ``busy``, GRBL ``Not
+  idle``); a second failure is raised; if the stop or the home fails, the move's failure is
+  raised with the recovery's reason (an error of the move failure's type; a safety fault or a
+  disconnection met on the way is raised as itself); a disconnection is never retried. Each
+  move's timeout comes from its axis's
   :meth:`polrig.acquisition.hal.RotationStage.calculate_timeout` for the distance it has to go;
 * a safety fault (:class:`polrig.errors.DeviceAlarm`: a limit switch fired, a soft limit, a
   controller locked in its alarm state, issue 33 item 5) is never retried and the axis is
@@ -286,9 +290,10 @@ class Executor:
 
     def move(self, targets: dict[str, float]) -> None:
         """Move every axis of ``targets`` (name -> angle, deg) at once and wait for all; an
-        axis whose move fails recoverably is homed and moved once more on its own. A safety
-        fault (:class:`DeviceAlarm`) of any axis starts nothing more, waits for the axes
-        already moving and is raised, with no retry and no homing."""
+        axis whose move fails recoverably is stopped, homed and moved once more on its own
+        (:meth:`_recover`). A safety fault (:class:`DeviceAlarm`) of any axis starts nothing
+        more, waits for the axes already moving and is raised, with no retry and no
+        homing."""
         failed: dict[str, Exception] = {}
         started = []
         alarm: DeviceAlarm | None = None
@@ -327,8 +332,25 @@ class Executor:
                 self.emit(Retried(f"{_AXIS_NAMES.get(name, name)} move to {angle:g} deg failed "
                                   f"({failed[name]}); re-homing and retrying once"))
                 axis = self.axis(name)
-                axis.home()
+                self._recover(name, axis, angle, failed[name])
                 axis.move_to(angle, wait=True, timeout_s=motion_timeout_s(axis, angle))
+
+    @staticmethod
+    def _recover(name: str, axis: RotationStage, angle_deg: float, failure: Exception) -> None:
+        """Stop ``axis`` (its failed move may still run: a home sent then is refused) and home
+        it. If either fails, ``failure`` (the move's) is raised with the recovery's reason,
+        as an error of its own type; a safety fault or a disconnection is raised as itself."""
+        step = "stopping it"
+        try:
+            axis.stop()
+            step = "re-homing it"
+            axis.home()
+        except NEVER_RETRIED:
+            raise
+        except MOVE_RECOVERABLE as exc:
+            what = f"{_AXIS_NAMES.get(name, name)} move to {angle_deg:g} deg"
+            raise _with_reason(failure, f"{what} failed ({failure}); {step} failed too: "
+                                        f"{exc}") from exc
 
     @staticmethod
     def _let_finish(started: list) -> None:
@@ -355,6 +377,18 @@ class Executor:
 
 
 _AXIS_NAMES = {"stage": "polarizer stage", "turntable": "turntable"}
+
+
+def _with_reason(failure: Exception, message: str) -> Exception:
+    """An error of ``failure``'s type saying ``message``, with its device, code and text."""
+    try:
+        err = type(failure)(message)
+    except TypeError:  # a subclass with another signature: the nearest common type
+        err = DeviceFault(message)
+    for attr in ("device", "code", "text"):
+        if hasattr(failure, attr):
+            setattr(err, attr, getattr(failure, attr))
+    return err
 
 
 def hardware_model(rig) -> HardwareModel:
