@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import _thread
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -82,8 +85,9 @@ def test_move_timeout_and_missing_port(tmp_path, capsys):
         cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{emu.port}"\n')
         t0 = time.monotonic()
         rc, _, err = run(capsys, "move", "stage", "180", "--timeout", "0.3", "--config", cfg)
-        assert rc == 1 and "within 0.3 s" in err and err.count("\n") == 1
+        assert rc == 1 and "within 0.3 s; stopped" in err and err.count("\n") == 1
         assert 0.3 <= time.monotonic() - t0 < 21.0 / 3
+        assert emu.move is None  # stopped before the error: it went on turning to 180 deg
     cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{tmp_path / "ttyNone"}"\n')
     rc, _, err = run(capsys, "move", "stage", "10", "--config", cfg)
     assert rc == 1 and "cannot open serial port" in err and err.count("\n") == 1
@@ -242,3 +246,89 @@ def test_move_beyond_the_capture_limits_is_refused_before_moving(tmp_path, capsy
     assert rc == 2 and out == ""
     assert err.startswith(f"polrig: error: DEG {float(angle):g}: a {axis} angle must be within +-")
     assert len(err.strip().splitlines()) == 1
+
+
+def test_k10cr1_turntable_not_homed_names_its_own_home_command(tmp_path, capsys):
+    """It said 'stage is not homed (run `polrig home stage`)' for a K10CR1 turntable; now
+    one line naming the turntable and `polrig home turntable --config RIG`."""
+    with K10cr1Emulator(link=tmp_path / "k10cr1", speed_factor=40) as emu:
+        cfg = config(tmp_path, f'[turntable]\ndriver = "k10cr1"\nport = "{emu.port}"\n')
+        rc, _, err = run(capsys, "move", "turntable", "45", "--config", cfg)
+        assert rc == 1 and err.count("\n") == 1 and "turntable is not homed" in err
+        assert f"`polrig home turntable --config {cfg}`" in err and "home stage" not in err
+        assert run(capsys, "home", "turntable", "--config", cfg)[0] == 0
+        emu.inject("stop_mid_move")  # a limit switch fires on the way
+        rc, _, err = run(capsys, "move", "turntable", "90", "--config", cfg)
+        assert rc == 1 and err.count("\n") == 1 and "turntable move interrupted" in err
+        assert f"`polrig home turntable --config {cfg}`" in err
+
+
+@pytest.fixture
+def python_sigint():
+    """Python's own Ctrl-C handler, as in a fresh `polrig` process (a GenICam library loaded
+    by an earlier test of this process leaves its own handler installed)."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def interrupt_after(seconds: float, signum: int) -> threading.Timer:
+    """Ctrl-C (SIGINT) or SIGTERM to this process after ``seconds``, as the operator or a
+    service manager would send it to `polrig` (main() turns SIGTERM into an interruption)."""
+    def send() -> None:
+        if signum == signal.SIGINT:
+            _thread.interrupt_main()
+        else:
+            os.kill(os.getpid(), signum)
+    timer = threading.Timer(seconds, send)
+    timer.start()
+    return timer
+
+
+@pytest.mark.parametrize("signum, rc_expected", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_an_interrupted_move_stops_the_turntable(tmp_path, capsys, python_sigint, signum,
+                                                rc_expected):
+    """Ctrl-C or SIGTERM during `polrig move turntable 300`: the command exits (130, 143)
+    and the turntable stops there; it went on turning to 300 deg after the exit."""
+    with GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as emu:
+        cfg = config(tmp_path, f'[turntable]\ndriver = "grbl"\nport = "{emu.port}"\n')
+        assert run(capsys, "home", "turntable", "--config", cfg)[0] == 0
+        emu.speed_factor = 1.0  # 60 deg/s: 5 s to 300 deg
+        timer = interrupt_after(1.0, signum)
+        rc, _, err = run(capsys, "move", "turntable", "300", "--config", cfg)
+        timer.join()
+        assert rc == rc_expected and err.count("\n") == 1
+        assert emu.state == "Idle"
+        here = emu.axis_position()
+        time.sleep(0.2)
+        assert emu.axis_position() == pytest.approx(here, abs=1e-6) and 0 < here < 300
+
+
+def test_an_interrupted_home_stops_the_stage(tmp_path, capsys, python_sigint):
+    with Ell14Emulator(link=tmp_path / "ell14", speed_factor=4) as emu:
+        cfg = config(tmp_path, f'[stage]\ndriver = "ell14"\nport = "{emu.port}"\n')
+        assert run(capsys, "move", "stage", "300", "--config", cfg)[0] == 0
+        emu.speed_factor = 0.02  # 8.6 deg/s: 35 s home
+        timer = interrupt_after(1.0, signal.SIGINT)
+        rc, _, err = run(capsys, "home", "stage", "--config", cfg)
+        timer.join()
+        assert rc == 130 and emu.move is None and b"0st" in emu.received
+        assert 0 < emu.position_deg < 300
+
+
+def test_listing_the_devices_does_not_abort_a_move_under_way(tmp_path, capsys):
+    """`polrig move turntable 180 --no-wait`, then `polrig devices`: opening the GRBL soft-
+    reset it, which aborted the move (ALARM:3, position lost)."""
+    with GrblEmulator(link=tmp_path / "grbl", speed_factor=20) as emu:
+        cfg = config(tmp_path, f'[turntable]\ndriver = "grbl"\nport = "{emu.port}"\n')
+        assert run(capsys, "home", "turntable", "--config", cfg)[0] == 0
+        emu.speed_factor = 1.0  # 3 s to 180 deg
+        rc, out, err = run(capsys, "move", "turntable", "180", "--no-wait", "--config", cfg)
+        assert rc == 0 and "moving to 180 deg" in out, err
+        rc, out, err = run(capsys, "devices", "--config", cfg)
+        assert "ok: GRBL" in out.split("turntable")[1], out + err
+        assert emu.state == "Run" and b"\x18" not in emu.received.split(b"180")[-1]
+        deadline = time.monotonic() + 10
+        while emu.state != "Idle" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert emu.state == "Idle" and emu.axis_position() == pytest.approx(180.0, abs=1e-3)

@@ -1,4 +1,9 @@
-"""``polrig move stage|turntable DEG``: move one axis of the rig and report where it is."""
+"""``polrig move stage|turntable DEG``: move one axis of the rig and report where it is.
+
+A move that does not end within ``--timeout`` is stopped by the driver before the error is
+reported; Ctrl-C or SIGTERM while it runs stops the axis before the command exits
+(:func:`polrig.cli.commands._device_args.stopped_when_interrupted`). ``--no-wait`` returns
+once the move has started and leaves it running."""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ from polrig.cli.commands._device_args import (
     add_config_argument,
     add_timeout_argument,
     identity,
+    stopped_when_interrupted,
 )
 from polrig.errors import ConfigError
 
@@ -38,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
     if abs(args.angle_deg) > limit:
         raise ConfigError(f"DEG {args.angle_deg:g}: a {args.device} angle must be within "
                           f"+-{limit:g} deg (the limit polrig capture applies)")
-    with open_device(args.config, args.device) as dev:
+    with open_device(args.config, args.device) as dev, \
+            stopped_when_interrupted(dev, args.device):
         dev.move_to(args.angle_deg, wait=not args.no_wait, timeout_s=args.timeout)
         if args.no_wait:
             print(f"{args.device}: moving to {args.angle_deg:g} deg ({identity(dev.info())})")
