@@ -355,8 +355,11 @@ class _SimAxis(_SimDevice):
             return
         if remaining > timeout_s:
             clock.sleep(timeout_s)
-            raise DeviceTimeout(f"motion did not end within {timeout_s:g} s "
-                                f"(at {self._position():.3f} deg)", device=self._name)
+            now = clock.now()
+            p = self._move.position(now)
+            self._set_move(Move(p, p, now, self.speed_deg_s, self.accel_deg_s2))  # stopped
+            raise DeviceTimeout(f"motion did not end within {timeout_s:g} s; stopped "
+                                f"(at {p:.3f} deg)", device=self._name)
         clock.sleep(remaining)
 
     def stop(self) -> None:

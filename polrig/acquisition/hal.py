@@ -296,7 +296,9 @@ class RotationStage(Device):
 
     @abc.abstractmethod
     def wait(self, timeout_s: float = 30.0) -> None:
-        """Block until motion ends; :class:`DeviceTimeout` if it does not end in time."""
+        """Block until motion ends. A motion that does not end within ``timeout_s`` (s) is
+        stopped (:meth:`stop`) before :class:`DeviceTimeout` is raised, so nothing keeps
+        moving after the error (the message says when the stop failed too)."""
 
     @abc.abstractmethod
     def stop(self) -> None: ...
