@@ -23,7 +23,6 @@ from polrig.choices import SIGMA_SOURCES
 from polrig.errors import ConfigError
 from polrig.formats.argcheck import (check_output_file, check_output_folder, finite_float,
                                      nonnegative_float, positive_float)
-from polrig.formats.outputs import check_not_input
 
 if TYPE_CHECKING:
     import numpy as np
@@ -99,6 +98,8 @@ def _sfp(args: argparse.Namespace) -> dict | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polrig.formats.outputs import check_not_input
+
     src: pathlib.Path = args.source
     if src.is_dir():
         return _run_session(args, src)
@@ -115,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
     from polrig.app.session import Session
+    from polrig.formats.outputs import check_not_input
 
     if args.out is not None:
         check_output_folder(args.out)
