@@ -38,8 +38,11 @@ raises that alarm at once instead of waiting for a reply that cannot come, and :
 
 A motion suspended by a feed hold or an open safety door (states ``Hold`` and ``Door``,
 interface.md) has not ended: :meth:`wait` keeps waiting, because GRBL resumes it on cycle
-start (``~``) once the operator allows, and at its deadline the timeout names the state. A
-motion that has not ended at :meth:`wait`'s deadline is stopped (:meth:`stop`: feed hold,
+start (``~``) once the operator allows. If it is still suspended at the deadline, the
+operator has stopped the machine: the move is cancelled (as below) and a
+:class:`polrig.errors.DeviceAlarm` naming the state is raised, so that a capture stops and
+is never re-homed and driven on by its engine. A motion that has not ended at :meth:`wait`'s
+deadline is stopped (:meth:`stop`: feed hold,
 then soft reset, position kept) before :class:`DeviceTimeout` is raised, so it neither keeps
 running nor resumes unattended; a homing cycle that runs out of time is aborted by a soft
 reset (:meth:`stop` during ``$H``: GRBL ignores a feed hold while homing). A controller that
@@ -481,7 +484,8 @@ class GrblTurntable(SerialDevice, Turntable):
         """Block until the motion ends (s); a suspended one (feed hold, safety door) is
         waited for too. At ``timeout_s`` the motion is stopped (:meth:`stop`; a suspended
         one is cancelled, so cycle start cannot resume it unattended) and
-        :class:`DeviceTimeout` raised, naming a stop that failed too."""
+        :class:`DeviceTimeout` raised, naming a stop that failed too; a motion still held by
+        the operator then is a :class:`DeviceAlarm` (the operator's to clear, never retried)."""
         deadline = time.monotonic() + timeout_s
         while True:
             busy, st = self._motion_state()
@@ -489,10 +493,15 @@ class GrblTurntable(SerialDevice, Turntable):
                 return
             if time.monotonic() > deadline:
                 message = f"motion did not end within {timeout_s:g} s"
-                if st.split(":")[0] in _SUSPENDED:
+                held = st.split(":")[0] in _SUSPENDED
+                if held:
                     what = SUBSTATES.get(st, "motion suspended")
                     message += f": it was suspended, state {st} ({what})"
-                raise self._stopped_after_timeout(message)
+                timeout = self._stopped_after_timeout(message)
+                if held:  # the operator stopped the machine: theirs to clear, never driven on
+                    raise DeviceAlarm(f"{self.kind} {timeout}, held by the operator",
+                                      device=self._link.device, axis=self.kind) from None
+                raise timeout
             time.sleep(self.poll_s)
 
     def _stopped_after_timeout(self, message: str) -> DeviceTimeout:

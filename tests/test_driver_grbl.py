@@ -291,8 +291,9 @@ def test_feed_hold_suspends_the_move_it_does_not_end_it(table, emu):
     time.sleep(0.15)
     emu.press_feed_hold()
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout, match=r"Hold:0 \(feed hold complete.*; stopped"):
-        table.wait(0.3)
+    with pytest.raises(DeviceAlarm, match=r"Hold:0 \(feed hold complete.*; stopped.*held by the operator") as e:
+        table.wait(0.3)  # the operator stopped it: a safety fault, never retried by the engine
+    assert e.value.axis == "turntable" and e.value.command == "polrig home turntable"
     assert 0.3 <= time.monotonic() - t0 < 0.3 + 2.0  # waited its deadline, not forever
     assert not table.is_busy() and emu.state == "Idle"
     held = table.position_deg()
@@ -317,7 +318,7 @@ def test_open_safety_door_suspends_the_move(table, emu):
     table.move_to(0.0, wait=False)
     time.sleep(0.15)
     emu.set_door(True)
-    with pytest.raises(DeviceTimeout, match=r"Door:1 \(safety door ajar.*; stopped"):
+    with pytest.raises(DeviceAlarm, match=r"Door:1 \(safety door ajar.*; stopped"):
         table.wait(0.3)
     assert not table.is_busy()  # cancelled: closing the door and cycle start move nothing
     held = emu.axis_position()
