@@ -25,6 +25,11 @@ class TooFewAngles(CalibrationError):
     """Too few stage or turntable angles for the fit to be determined."""
 
 
+#: What the images of a step could not give (the board or sphere not seen or clipped, too few
+#: views or angles): a failure while running (``polrig calibrate`` exits 1), not a bad request.
+IMAGE_FAILURES = (BoardNotFound, SphereNotFound, SphereSaturated, TooFewAngles)
+
+
 class SceneTooDark(PolrigError):
     """The scene stays too dark at the longest exposure the procedures can use (light off or
     far too dim): a failure while running (exit 1), not a bad input."""

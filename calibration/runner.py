@@ -42,6 +42,8 @@ from polrig.optics import bases as fr
 from polrig.sensor.analyzer import AnalyzerModel
 
 STEPS = ("intrinsics", "turntable", "light", "stokes", "dofp")
+#: The steps that turn the polarizer stage (its angles are measured from its home).
+STAGE_STEPS = ("light", "stokes", "dofp")
 
 #: The steps whose results each step's result is computed from (where the set has them):
 #: ``turntable`` refines the intrinsics (bundle adjustment), ``light`` uses the intrinsics
@@ -185,6 +187,12 @@ def run_steps(steps, rig, mount: Callable[..., None], cs: CalibrationSet, *,
     check_set_fits_camera(cs, rig, set_name)
     camera = SensorGeometry.of_rig(rig).to_json()
     rig = GuardedRig.around(rig, control=control, on_retry=lambda m: log(f"retry: {m}"))
+    if any(step in STAGE_STEPS for step in steps):
+        # the polarizer stage's zero is where its angles are measured from: homed first, as a
+        # capture's setup homes it (polrig.acquisition.plan.setup_steps); a stage in a safety
+        # fault is not homed (DeviceAlarm: the operator's to clear)
+        rig.stage.home()
+        log("stage: homed")
     for i, step in enumerate(steps):
         later = steps[i + 1:]
 

@@ -70,6 +70,14 @@ def test_light_position_within_1_percent(calibrated):
     assert any(l.startswith("light:") and "±" in l for l in lines)
 
 
+def test_the_stage_is_homed_before_a_step_turns_it(calibrated):
+    """Its angles are measured from its home, as in a capture's setup (a K10CR1 that was never
+    homed would otherwise stop the light step)."""
+    lines = calibrated[4]
+    homed = lines.index("stage: homed")
+    assert homed < min(i for i, l in enumerate(lines) if l.startswith("light:"))
+
+
 def test_generator_offset_and_extinction_ratio(calibrated):
     _, _, cs, e, lines, _ = calibrated
     g = e["generator"]

@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     from polrig.calibration import runner
     from polrig.calibration.calset import CalibrationSet
     from polrig.calibration.charuco import write_board_png
-    from polrig.calibration.errors import CalibrationError
+    from polrig.calibration.errors import IMAGE_FAILURES
     from polrig.calibration.report import write_report
 
     out: pathlib.Path = args.out
@@ -236,10 +236,10 @@ def run(args: argparse.Namespace) -> int:
             _report_saved(out, cs, extras, saved_id[-1] if saved_id else None)
             step = steps[min(len(saved), len(steps) - 1)]
             # the images cannot give a result (a board or sphere not seen, too few views): a
-            # failure while running (exit 1), as a scene too dark is; CalibrationError is a
-            # ValueError only for the library's callers
+            # failure while running (exit 1), as a scene too dark is (a missing earlier step
+            # stays a refusal of the request, exit 2)
             bad_input = isinstance(exc, (ConfigError, FormatError, FileNotFoundError,
-                                         FileExistsError, ValueError)) and not isinstance(exc, CalibrationError)
+                                         FileExistsError, ValueError)) and not isinstance(exc, IMAGE_FAILURES)
             if not bad_input and not isinstance(exc, (PolrigError, OSError)):
                 exc = f"{type(exc).__name__}: {exc}"  # an unexpected error: still one line
             cls = StepRefused if bad_input else StepFailed
