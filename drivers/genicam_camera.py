@@ -66,6 +66,7 @@ import contextlib
 import ctypes
 import math
 import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -118,6 +119,21 @@ def _check_producer(cti: str) -> None:
         raise DeviceNotFound(f"{cti!r} is not a GenTL producer (a shared library without the "
                              "GenTL entry point GCInitLib)", device="genicam")
 
+
+@contextlib.contextmanager
+def _sigint_kept() -> Iterator[None]:
+    """Keep the process's SIGINT handler across ``Harvester.create``: harvesters installs its
+    own (in the main thread), which destroys the image acquirer and swallows the interrupt, so
+    an operator's Ctrl-C would no longer stop a capture (harvesters/core.py, ImageAcquirer
+    ``__init__`` and ``_SignalHandler``). Ctrl-C is polrig's to handle: the capture leaves the
+    session resumable and closes the camera itself."""
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if in_main else None
+    try:
+        yield
+    finally:
+        if in_main and previous is not None:
+            signal.signal(signal.SIGINT, previous)
 
 class _SharedProducer:
     """One GenTL producer (.cti) loaded in this process, with its own ``Harvester``, shared
@@ -341,7 +357,8 @@ class GenicamCamera(Camera):
                                          f"{len(devices)} device(s)", device=self.name)
             chosen, local, d = devices[pick]
             try:
-                ia = chosen.h.create(local)
+                with _sigint_kept():
+                    ia = chosen.h.create(local)
             except _gentl().ResourceInUseException:
                 raise DeviceNotFound(f"camera serial {d.serial_number!r} is already open (by "
                                      "another camera of this process or another program)",

@@ -265,8 +265,8 @@ def test_k10cr1_turntable_not_homed_names_its_own_home_command(tmp_path, capsys)
 
 @pytest.fixture
 def python_sigint():
-    """Python's own Ctrl-C handler, as in a fresh `polrig` process (a GenICam library loaded
-    by an earlier test of this process leaves its own handler installed)."""
+    """Python's own Ctrl-C handler, as in a fresh `polrig` process, whatever an earlier test
+    of this process installed."""
     old = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, old)

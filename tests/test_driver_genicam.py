@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -112,6 +113,21 @@ def test_non_mosaic_format_is_a_format_error(viky):
             c.grab(timeout_s=2.0)
         c.set_pixel_format("Mono8")
         assert c.grab(timeout_s=2.0).raw.shape == (100, 100)
+
+
+def test_opening_a_camera_keeps_the_processs_ctrl_c(viky):
+    """harvesters installs its own SIGINT handler when it creates an image acquirer (it
+    destroys the acquirer and swallows the interrupt); polrig keeps the process's, so an
+    operator's Ctrl-C still stops a capture."""
+    mine = lambda signum, frame: None  # noqa: E731
+    previous = signal.signal(signal.SIGINT, mine)
+    try:
+        with GenicamCamera(viky, serial="0", pixel_format="Mono8", frame_rate_hz=200.0) as c:
+            assert signal.getsignal(signal.SIGINT) is mine
+            c.grab(timeout_s=2.0)
+        assert signal.getsignal(signal.SIGINT) is mine
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_close_reopen_and_errors(viky, tmp_path):
