@@ -291,7 +291,7 @@ class Ell14Stage(SerialDevice, RotationStage):
         while self._move_pending:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise self._stopped_after_timeout(f"motion did not end within {timeout_s:g} s")
+                raise self.stopped_after_timeout(f"motion did not end within {timeout_s:g} s", self._link.device)
             try:
                 try:
                     reply, payload = self._read_reply(min(left, POLL_S))
@@ -307,18 +307,6 @@ class Ell14Stage(SerialDevice, RotationStage):
                 # it is next time instead of waiting for an end that may have passed.
                 self._move_pending = False
                 raise
-
-    def _stopped_after_timeout(self, message: str) -> DeviceTimeout:
-        """Stop the motion that ran out of time; the :class:`DeviceTimeout` to raise says
-        whether it stopped. A safety fault or a disconnection met on the way is raised."""
-        try:
-            self.stop()
-        except (DeviceAlarm, DeviceDisconnected):
-            raise
-        except DeviceError as exc:
-            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): the mount may "
-                                 "still be turning", device=self._link.device)
-        return DeviceTimeout(f"{message}; stopped", device=self._link.device)
 
     def is_busy(self) -> bool:
         if not self._move_pending:

@@ -497,25 +497,13 @@ class GrblTurntable(SerialDevice, Turntable):
                 if held:
                     what = SUBSTATES.get(st, "motion suspended")
                     message += f": it was suspended, state {st} ({what})"
-                timeout = self._stopped_after_timeout(message)
+                timeout = self.stopped_after_timeout(message, self._link.device,
+                                                     "stopped (the rest of the move cancelled)")
                 if held:  # the operator stopped the machine: theirs to clear, never driven on
                     raise DeviceAlarm(f"{self.kind} {timeout}, held by the operator",
                                       device=self._link.device, axis=self.kind) from None
                 raise timeout
             time.sleep(self.poll_s)
-
-    def _stopped_after_timeout(self, message: str) -> DeviceTimeout:
-        """Stop the motion that ran out of time; the :class:`DeviceTimeout` to raise says
-        whether it stopped. A safety fault or a disconnection met on the way is raised."""
-        try:
-            self.stop()
-        except (DeviceAlarm, DeviceDisconnected):
-            raise
-        except DeviceError as exc:
-            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): the turntable "
-                                 "may still be moving", device=self._link.device)
-        return DeviceTimeout(f"{message}; stopped (the rest of the move cancelled)",
-                             device=self._link.device)
 
     def _clear_halt(self) -> None:
         """Read what is pending; after a critical alarm, or in sleep mode, soft-reset: the

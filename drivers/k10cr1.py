@@ -297,7 +297,7 @@ class K10cr1Stage(SerialDevice, RotationStage):
         while self._pending:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise self._stopped_after_timeout(f"motion did not end within {timeout_s:g} s")
+                raise self.stopped_after_timeout(f"motion did not end within {timeout_s:g} s", self._link.device)
             try:
                 msg_id, _, _, data = self._read_message(min(left, POLL_S))
             except DeviceTimeout:
@@ -308,18 +308,6 @@ class K10cr1Stage(SerialDevice, RotationStage):
                 continue
             self._motion_message(msg_id, data)
         self._raise_interrupted()
-
-    def _stopped_after_timeout(self, message: str) -> DeviceTimeout:
-        """Stop the motion that ran out of time; the :class:`DeviceTimeout` to raise says
-        whether it stopped. A safety fault or a disconnection met on the way is raised."""
-        try:
-            self.stop()
-        except (DeviceAlarm, DeviceDisconnected):
-            raise
-        except DeviceError as exc:
-            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): the axis may "
-                                 "still be moving", device=self._link.device)
-        return DeviceTimeout(f"{message}; stopped", device=self._link.device)
 
     def stop(self) -> None:
         """``MOT_MOVE_STOP`` (immediate); the ``MOT_MOVE_STOPPED`` it brings is no fault."""

@@ -24,7 +24,7 @@ import dataclasses
 import math
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from polrig.errors import ConfigError
+from polrig.errors import ConfigError, DeviceAlarm, DeviceDisconnected, DeviceError, DeviceTimeout
 from polrig.sensor.frame import Frame
 
 if TYPE_CHECKING:
@@ -302,6 +302,23 @@ class RotationStage(Device):
 
     @abc.abstractmethod
     def stop(self) -> None: ...
+
+    def stopped_after_timeout(self, message: str, device: str | None = None,
+                              stopped: str = "stopped") -> DeviceTimeout:
+        """What :meth:`wait` raises when a motion did not end in time, after stopping it
+        (:meth:`stop`): a :class:`DeviceTimeout` of ``message`` (why) and ``stopped`` (what the
+        stop did), or naming a stop that failed too, so that the operator knows the axis may
+        still be moving. A safety fault or a disconnection met while stopping is raised as
+        itself. ``device`` names the device in the error. The one place every driver's
+        timeout stops its axis."""
+        try:
+            self.stop()
+        except (DeviceAlarm, DeviceDisconnected):
+            raise
+        except DeviceError as exc:
+            return DeviceTimeout(f"{message}; stopping it failed too ({exc}): it may still be moving",
+                                 device=device)
+        return DeviceTimeout(f"{message}; {stopped}", device=device)
 
 
 class Turntable(RotationStage):
