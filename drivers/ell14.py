@@ -44,9 +44,7 @@ import time
 from polrig.acquisition.hal import AxisCapabilities, DeviceInfo, RotationStage
 from polrig.drivers._serial import SerialDevice, SerialLink, wrap_deg
 from polrig.errors import (
-    DeviceAlarm,
     DeviceDisconnected,
-    DeviceError,
     DeviceFault,
     DeviceTimeout,
     ProtocolError,

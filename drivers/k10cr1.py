@@ -58,7 +58,6 @@ from polrig.drivers._serial import SerialDevice, SerialLink, wrap_deg
 from polrig.errors import (
     DeviceAlarm,
     DeviceDisconnected,
-    DeviceError,
     DeviceFault,
     DeviceTimeout,
     ProtocolError,
