@@ -213,3 +213,21 @@ def test_polarizer_png_and_unpolarized(session, tmp_path, capsys):
     expect = np.clip(np.rint(np.nan_to_num(img.planes["I.Y"].astype(np.float64) * 2)), 0, 65535)
     np.testing.assert_array_equal(p, expect)
     assert "16-bit" in printed and "incident unpolarized, analyzer none" in printed
+
+
+def test_a_damaged_result_fails_alone_and_the_others_are_analysed(session, tmp_path, capsys):
+    """As ``reconstruct`` with damaged captures: the others' maps are written, the damaged one is
+    named, and the command exits 1 (a failure while running), not 2 after the first capture."""
+    import shutil
+
+    copy = tmp_path / "s"
+    shutil.copytree(session, copy, ignore=shutil.ignore_patterns("session.lock", "*_maps.exr"))
+    damaged = _captures(copy)[1] / "mueller.exr"
+    damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])
+    capsys.readouterr()
+    assert main(["analyze", str(copy), "--out", str(tmp_path / "maps")]) == 1
+    out, err = capsys.readouterr()
+    names = [p.name for p in _captures(copy)]
+    assert f"{names[1]}: failed (" in out and err.count("\n") == 1 and "1 of 4 capture(s)" in err, err
+    assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == sorted(
+        f"{n}_maps.exr" for i, n in enumerate(names) if i != 1)

@@ -20,7 +20,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from polrig.choices import SIGMA_SOURCES
-from polrig.errors import ConfigError
+from polrig.errors import ConfigError, FormatError, PolrigError
 from polrig.formats.argcheck import (check_output_file, check_output_folder, finite_float,
                                      nonnegative_float, positive_float)
 
@@ -140,8 +140,16 @@ def _run_session(args: argparse.Namespace, root: pathlib.Path) -> int:
                      for _, _, out in jobs], inputs)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-    for name, result, out in jobs:
-        print(f"{name}: {analyze_file(result, out, args.sigma, args.k, sfp)}")
+    failed = []
+    for name, result, out in jobs:  # a damaged result fails alone; the others are analysed
+        try:
+            print(f"{name}: {analyze_file(result, out, args.sigma, args.k, sfp)}")
+        except FormatError as exc:
+            failed.append(name)
+            print(f"{name}: failed ({exc})")
+    if failed:  # as reconstruct with damaged captures: a failure while running (exit 1)
+        raise PolrigError(f"{root}: {len(failed)} of {len(jobs)} capture(s) could not be analysed "
+                          f"({', '.join(failed)}); the others' maps are written")
     return 0
 
 
