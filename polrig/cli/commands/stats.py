@@ -135,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
         h, w = (data["mueller"] if "mueller" in data else data["stokes"]).shape[-2:]
         region = shape or roi.RectROI(0, 0, w, h)
         inside = roi.roi_mask(region, (h, w))
+        if not inside.any():  # statistics of no pixel would be NaN without a word
+            raise ConfigError(f"--roi {region.text()}: no pixel centre of the {w}x{h} image of {path} lies in it "
+                              f"(pixel (u, v) has its centre at (u + 0.5, v + 0.5))")
         rows = roi.roi_statistics(inside, **data)
         header = {"source": str(path), "roi": region.text(), "image": f"{w}x{h}",
                   "sigma": _sigma_text(data, args.sigma),
