@@ -376,6 +376,7 @@ def test_stats_cli_equals_the_core_on_a_result_and_per_capture_of_a_session(sess
     (["--roi", "rect:0,0,4,4", "--profile", "1,2,3"], "--profile"),
     (["--roi", "rect:0,0,4,4", "--csv", "x.txt"], "--csv"),
     (["--roi", "rect:100000,100000,5,5"], "no pixel centre of the"),  # off the image: not NaN statistics
+    (["--roi", "rect:0,0,4,4", "--profile", "1000,1000,2000,1000"], "the line does not cross"),
 ])
 def test_stats_cli_bad_input_is_one_line(session, argv, words, capsys):
     from polrig.cli import main

@@ -146,7 +146,11 @@ def run(args: argparse.Namespace) -> int:
             header["capture"] = label
         stats_parts.append((header, rows))
         if segment is not None:
-            profile_parts.append((header, roi.profile_of(segment, spacing=args.spacing, **data)))
+            prof = roi.profile_of(segment, spacing=args.spacing, **data)
+            if not any(0 <= x <= w and 0 <= y <= h for x, y in zip(prof.x.tolist(), prof.y.tolist())):
+                raise ConfigError(f"--profile {','.join(f'{v:g}' for v in segment)}: the line does not cross "
+                                  f"the {w}x{h} image of {path}")
+            profile_parts.append((header, prof))
     if args.csv is None:
         for header, rows in stats_parts:
             print(_table(header, rows))
