@@ -189,6 +189,18 @@ def test_a_full_disk_names_the_export(session, tmp_path, fmt, name):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_full_disk_names_the_export_in_the_python_api_too(session, tmp_path):
+    """``polrig.export(...)`` raises the same ``OSError`` naming the output (the command line
+    only prints it), not tifffile's line without a file."""
+    from _cli_helpers import run_with_file_size_limit
+
+    out = tmp_path / "o.ome.tif"
+    code = (f"import errno, polrig\ntry:\n    polrig.export({str(session / 'c000_pose000.0' / 'mueller.exr')!r}, "
+            f"{str(out)!r}, 'ome-tiff')\nexcept OSError as e:\n    print(e.errno == errno.EFBIG, e)\n")
+    res = run_with_file_size_limit(code, 2048)
+    assert res.stdout == f"True {out}: cannot write (File too large)\n", res.stderr
+
+
 def test_ome_zarr_reads_each_capture_once(session, tmp_path, monkeypatch):
     from polrig.app import dataset
 

@@ -33,6 +33,7 @@ states unit-less pixels (scale 1, no unit; ``attributes["pixel_size"]`` says so)
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
 import pathlib
 from typing import Any
@@ -40,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from polrig.app.manifest import sample_fields
+from polrig.atomic import write_error
 from polrig.formats.ome import NGFF_VERSIONS, UNITS, OmeImage, write_ome_tiff, write_ome_zarr
 
 __all__ = ["FORMATS", "export", "dataset_images"]
@@ -194,9 +196,9 @@ def export(source: str | os.PathLike, out: str | os.PathLike, format: str = "ome
     unit-less pixels (module docstring); ``calibration``: the calibration set folder the
     pixel size is computed from instead (:func:`pixel_size_at_turntable_axis`, micrometres);
     ``revision`` a session revision's results. Returns
-    the written path. Raises ``ValueError`` for an unknown format, version or unit and the
+    the written path. Raises ``ValueError`` for an unknown format, version or unit, the
     openers' errors (:class:`polrig.errors.FormatError`, ``KeyError`` for an unknown
-    revision)."""
+    revision), and an ``OSError`` naming ``out`` where the disk is full."""
     from polrig.app.dataset import open_result, open_session
 
     if format not in FORMATS:
@@ -218,11 +220,21 @@ def export(source: str | os.PathLike, out: str | os.PathLike, format: str = "ome
         attrs["pixel_size"]["from"] = (f"calibration set {calibration}: at the turntable axis "
                                        "(its closest approach to the optical axis)")
     images = dataset_images(ds)
-    if format == "ome-zarr":
-        return write_ome_zarr(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,
-                              version=version)
-    return write_ome_tiff(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,
-                          annotations=sample_fields(ds.attrs))
+    try:
+        if format == "ome-zarr":
+            return write_ome_zarr(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,
+                                  version=version)
+        return write_ome_tiff(out, images, pixel_size=pixel_size, unit=unit, attributes=attrs,
+                              annotations=sample_fields(ds.attrs))
+    except OSError as exc:
+        if exc.errno in NO_ROOM:  # tifffile's and zarr's own lines name no file, or a temporary
+            raise write_error(out, exc) from None
+        raise
+
+
+#: The errors of a write that ran out of room (a full disk, a file-size limit, a quota): the
+#: error then names the output the user asked for.
+NO_ROOM = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 def _attributes(ds, pixel_size, unit: str) -> dict[str, Any]:

@@ -11,7 +11,6 @@ failed write (a full disk) is one line naming the output (exit 1).
 from __future__ import annotations
 
 import argparse
-import errno
 import pathlib
 
 from polrig.choices import OME_UNITS
@@ -63,13 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 #: The output name endings of each format (lower case).
 OUT_ENDINGS = {"ome-zarr": (".zarr",), "ome-tiff": (".ome.tif", ".ome.tiff")}
-#: The errors of a write that ran out of room: the message names the output.
-NO_ROOM = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 def run(args: argparse.Namespace) -> int:
     from polrig.app.export import export
-    from polrig.atomic import write_error
     from polrig.formats.outputs import check_not_input
 
     src: pathlib.Path = args.source
@@ -99,10 +95,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(str(exc.args[0]) if exc.args else str(exc)) from None
     except (ValueError, FileExistsError) as exc:
         raise ConfigError(str(exc)) from None
-    except OSError as exc:
-        if exc.errno in NO_ROOM:  # tifffile's and zarr's own lines name no file, or a temporary
-            raise write_error(out, exc) from None
-        raise
     print(f"wrote {written} ({args.format}"
           f"{f', OME-NGFF {version}' if args.format == 'ome-zarr' else ''}"
           f"{'' if args.pixel_size or args.calibration else ', unit-less pixels'})")
