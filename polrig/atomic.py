@@ -40,8 +40,14 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> None:
         if isinstance(exc, OSError):
             raise write_error(path, exc) from None
         raise
-    try:  # make the rename durable; not possible on every platform/filesystem
-        dfd = os.open(path.parent or ".", os.O_RDONLY)
+    fsync_folder(path.parent)
+
+
+def fsync_folder(folder: PathLike) -> None:
+    """``fsync`` ``folder`` so that the renames made in it are durable (silently skipped where
+    the platform or file system cannot)."""
+    try:
+        dfd = os.open(folder, os.O_RDONLY)
     except OSError:
         return
     try:

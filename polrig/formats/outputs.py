@@ -24,7 +24,7 @@ import uuid
 from collections.abc import Iterable, Sequence
 from types import TracebackType
 
-from polrig.atomic import temporary_sibling, write_error
+from polrig.atomic import fsync_folder, temporary_sibling, write_error
 from polrig.errors import ConfigError
 
 PathLike = str | os.PathLike
@@ -170,7 +170,7 @@ class OutputSet:
                 except OSError:
                     pass
         for folder in {f.parent for f in self._temps}:
-            _fsync_folder(folder)
+            fsync_folder(folder)
 
     def _named(self, exc: OSError) -> OSError:
         """``exc`` with every temporary name replaced by its final one (``exc`` itself when it
@@ -186,16 +186,3 @@ class OutputSet:
             new = OSError(text)
         new.errno = exc.errno
         return new
-
-
-def _fsync_folder(folder: pathlib.Path) -> None:
-    try:  # make the renames durable; not possible on every platform/filesystem
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
