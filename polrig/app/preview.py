@@ -509,6 +509,11 @@ def preview_stride(shape: tuple[int, int], max_px: int = PREVIEW_MAX_PX) -> int:
     return max(1, -(-max(shape) // int(max_px)))
 
 
+#: The previews :func:`write_result_previews` writes beside a result, ``<stem><suffix>``: the 3x3
+#: grid, the polarizance's DoLP and AoLP.
+RESULT_PREVIEW_SUFFIXES = ("_grid.png", "_dolp.png", "_aolp.png")
+
+
 def write_result_previews(source, out_dir, *, stem: str | None = None,
                           min_snr: float = DEFAULT_MIN_SNR, flags: np.ndarray | None = None,
                           snr: np.ndarray | None = None,
@@ -550,9 +555,9 @@ def write_result_previews(source, out_dir, *, stem: str | None = None,
     d, a = polarizance(mueller[ci:ci + 1])
     dolp_img = upscale(dolp_gray(d[0], valid=valid), PREVIEW_MIN_PX)
     aolp_img = upscale(aolp_rgb(a[0], d[0], valid=valid), PREVIEW_MIN_PX)
-    images = {f"{stem}_grid.png": grid,
-              f"{stem}_dolp.png": with_legend(dolp_img, dolp_legend(dolp_img.shape[0])),
-              f"{stem}_aolp.png": with_legend(aolp_img, aolp_legend(aolp_img.shape[0]))}
+    images = dict(zip((stem + sfx for sfx in RESULT_PREVIEW_SUFFIXES),
+                      (grid, with_legend(dolp_img, dolp_legend(dolp_img.shape[0])),
+                       with_legend(aolp_img, aolp_legend(aolp_img.shape[0])))))
     written = []
     for name, rgb in images.items():
         path = out_dir / name

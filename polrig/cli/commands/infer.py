@@ -114,8 +114,6 @@ FLAGS = {"resolution": "--resolution", "demosaic": "--demosaic", "network_binnin
 #: reason-bit mask always, the sigma with ``--sigma`` (``sigma_noise`` and ``residual`` are not
 #: modelled for the single-shot method).
 PLANES, SIGMA_PLANES = ("mueller", "mask"), ("mueller", "sigma", "mask")
-#: The previews beside ``OUT.exr`` (:func:`polrig.app.preview.write_result_previews`).
-PREVIEW_SUFFIXES = ("_grid.png", "_dolp.png", "_aolp.png")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,7 +124,12 @@ def run(args: argparse.Namespace) -> int:
 
     from polrig.acquisition.plan import SingleShotOptions
     from polrig.app import calibrations
-    from polrig.app.preview import DEFAULT_MIN_SNR, mask_summary, write_result_previews
+    from polrig.app.preview import (
+        DEFAULT_MIN_SNR,
+        RESULT_PREVIEW_SUFFIXES,
+        mask_summary,
+        write_result_previews,
+    )
     from polrig.app.rig import load_rig_config
     from polrig.app.single_shot import SingleShot
     from polrig.cli.commands._units import adc_factor
@@ -144,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise ValueError(f"--out must be an .exr file, got {out}")
     check_output_file(out)
-    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in PREVIEW_SUFFIXES]
+    previews = [out.with_name(f"{out.stem}{sfx}") for sfx in RESULT_PREVIEW_SUFFIXES]
     for preview_path in previews:
         check_output_file(preview_path, "--out preview")
     check_not_input([("--out", out)] + [("--out preview", p) for p in previews],
@@ -193,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
                                    **result.header(planes)})
         # previews: the measured S0 against its noise sigma decides what is signal
         write_result_previews(result.mueller, out.parent, flags=flags, snr=result.snr,
-                              stem=outputs.temporary_stem(out.parent, out.stem, PREVIEW_SUFFIXES),
+                              stem=outputs.temporary_stem(out.parent, out.stem, RESULT_PREVIEW_SUFFIXES),
                               min_snr=min_snr)
     mueller = result.mueller
     print(f"wrote {out}: {mueller.shape[-1]}x{mueller.shape[-2]}, {mueller.shape[0]} colour(s), "
