@@ -481,7 +481,7 @@ def sizes_table(measured: dict) -> str:
     from polrig.models import sizes
 
     cases = [c[0] for c in SIZE_CASES]
-    lines = [f"One row per model size (`polrig --model-size`, polrig.models.sizes). Accuracy: the full model on the "
+    lines = [f"One row per model size (`polrig infer --model-size`, polrig.models.sizes). Accuracy: the full model on the "
              f"model card's held-out sets (matrix PSNR dB / forward Stokes L2). Speed: warm raw -> Mueller, ms, "
              f"medians of {measured['rounds']} interleaved round(s) here ({measured['provider']}, "
              f"{measured['threads']} intra-op thread(s)"
