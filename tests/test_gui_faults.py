@@ -472,3 +472,84 @@ def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, tmp_
     assert v.view.image() is None and v.data is None and v.path is None
     assert v.readout.text() == "" and v.histogram.counts.size == 0
     assert "bad.exr" in v.view.placeholder
+
+
+# -- 13. a limit switch during a capture: stopped, shown with what to do in this window
+def test_a_limit_switch_during_a_capture_stops_it_and_says_how_to_home_here(qtbot, window,
+                                                                           tmp_path):
+    """The turntable's limit switch fires during capture 2 (the simulated rig's injected
+    safety fault): the capture stops with the session resumable, nothing homes or moves the
+    axis on its own, and the operator is told to home it in this window (the Devices tab):
+    ``polrig home turntable``, the command line's advice, cannot reach devices this window
+    holds (a real serial port is opened exclusively). Homing from the Devices tab, then
+    "Resume session in folder", completes the session."""
+    from PySide6.QtCore import Qt
+
+    wait_connected(qtbot, window)
+    cp, rig = window.capture, window.rig
+    calls = {"home": 0, "move_to": 0}
+    real_home, real_move = rig.turntable.home, rig.turntable.move_to
+    alarm = threading.Event()
+
+    def home(*a, **kw):
+        calls["home"] += alarm.is_set()
+        return real_home(*a, **kw)
+
+    def move_to(*a, **kw):
+        calls["move_to"] += alarm.is_set()
+        return real_move(*a, **kw)
+    rig.turntable.home, rig.turntable.move_to = home, move_to
+
+    def on_frame(ev):  # in the capture's thread, before its next step
+        if ev.kind == "frame" and ev.capture_index == 1 and not alarm.is_set():
+            rig.faults.inject_fault("turntable", "limit", after_calls=0)
+            alarm.set()
+
+    def watch(running):
+        if running and cp.worker is not None:
+            cp.worker.progress.connect(on_frame, Qt.ConnectionType.DirectConnection)
+    cp.running.connect(watch)
+    out = tmp_path / "session"
+    run_capture(qtbot, window, out, "0,90,180")
+    assert alarm.is_set() and cp.last_status == "interrupted", cp.eta.text()
+    m = json.loads((out / "session.json").read_text())
+    assert m["status"] == "interrupted" and "limit switch" in m["status_reason"]
+    assert [c["status"] for c in m["captures"]][:2] == ["complete", "complete"]
+    qtbot.wait(500)  # the window goes on polling; it never drives the axis
+    assert calls == {"home": 0, "move_to": 0}
+    shown = [cp.eta.text()] + [t for t in messages(window, "error") if "limit switch" in t]
+    assert len(shown) >= 3  # the ETA line, the failed capture, the stop
+    for text in shown:
+        assert "polrig home" not in text, text
+        assert "home the turntable (Devices tab, Home)" in text, text
+    assert "Resume session in folder" in messages(window, "error")[-1]
+    window.devices.home("turntable")
+    qtbot.waitUntil(lambda: "home turntable: done" in messages(window), timeout=10000)
+    cp.resume()
+    qtbot.waitUntil(lambda: cp.last_status == "complete", timeout=60000)
+    assert json.loads((out / "session.json").read_text())["status"] == "complete"
+
+
+def test_a_device_alarm_in_a_manual_move_says_how_to_home_here(qtbot, window):
+    wait_connected(qtbot, window)
+    window.rig.faults.inject_fault("stage", "limit", after_calls=0)
+    window.devices.move("stage", 20.0)
+    qtbot.waitUntil(lambda: any("limit switch" in t for t in messages(window, "error")),
+                    timeout=10000)
+    text = next(t for t in messages(window, "error") if "limit switch" in t)
+    assert text.startswith("move stage to 20 deg failed: ")
+    assert "polrig home" not in text and "home the stage (Devices tab, Home)" in text
+    assert "device error 1" in text  # the device's own code stays
+
+
+def test_a_device_alarm_in_a_calibration_step_says_how_to_home_here(qtbot, window, tmp_path):
+    wait_connected(qtbot, window)
+    cal = window.calibration
+    cal.folder.setText(str(tmp_path / "cal"))
+    window.rig.faults.inject_fault("stage", "limit", after_calls=0)  # the step homes it first
+    cal.run_step("dofp")
+    qtbot.waitUntil(lambda: not cal.is_running, timeout=30000)
+    text = messages(window, "error")[-1]
+    assert text.startswith("calibration step dofp failed: ") and "limit switch" in text
+    assert "polrig home" not in text and "home the stage (Devices tab, Home)" in text
+    assert "home the stage (Devices tab, Home)" in cal.report_view.toPlainText()

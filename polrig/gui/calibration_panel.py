@@ -51,6 +51,7 @@ from polrig.calibration.procedures import fixture_words  # noqa: F401 (re-export
 from polrig.calibration.report import write_report
 from polrig.calibration.runner import STEPS
 from polrig.errors import PolrigError
+from polrig.gui.devices import window_advice
 from polrig.gui.rigaccess import RigLocks
 from polrig.gui.widgets import ImageView
 
@@ -327,5 +328,6 @@ class CalibrationPanel(QWidget):
             self.picture.set_image(None if img.isNull() else img)
 
     def _failed(self, step: str, text: str) -> None:
+        text = window_advice(text)  # a safety fault: home the axis in this window
         self.report_view.setPlainText(f"step: {step}\n\nFAILED: {text}")
         self.message.emit("error", f"calibration step {step} failed: {text}")

@@ -79,6 +79,7 @@ from polrig.formats.exr import (
     UNCERTAINTY_PRECISIONS,
     read_mueller_exr,
 )
+from polrig.gui.devices import window_advice
 from polrig.gui.pipeline import fast_white
 from polrig.gui.qtimage import to_qimage
 from polrig.gui.rigaccess import RigLocks
@@ -560,7 +561,8 @@ class CapturePanel(QWidget):
             self.message.emit("warning", f"capture: {ev.message}")
         elif ev.kind == "capture-failed":
             self.message.emit(self._stop_level(), f"capture {ev.capture_index + 1} pose "
-                                                  f"{ev.pose_deg:g} deg: {ev.message}")
+                                                  f"{ev.pose_deg:g} deg: "
+                                                  f"{window_advice(ev.message)}")
         elif ev.kind == "capture-done":
             self._capture_done(ev)
 
@@ -620,6 +622,7 @@ class CapturePanel(QWidget):
 
     def _finished(self, status: str, reason: str, result: object) -> None:
         self.last_status = status
+        reason = window_advice(reason)  # a safety stop: home the axis here, then resume
         if status == "complete":
             n = len(getattr(result, "completed", ())) or len(self.scores) or self.thumbs.count()
             self.eta.setText(f"session complete ({n} captures)")
@@ -638,6 +641,7 @@ class CapturePanel(QWidget):
 
     def _failed(self, text: str) -> None:
         self.last_status = "failed"
+        text = window_advice(text)
         self.eta.setText(f"not started: {text}")
         if not self.events:  # refused before the first frame: no count to show
             self._progress_idle("not started")

@@ -20,6 +20,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import queue
+import re
 import time
 from typing import Any, Callable
 
@@ -42,11 +43,25 @@ from polrig.gui.rigaccess import DEVICE_KINDS, DeviceBusy, RigLocks
 
 
 def error_text(exc: BaseException) -> str:
-    """One line for a device call's exception: the typed polrig text as it is, anything else
-    (a driver bug) with its type."""
+    """One line for a device call's exception: the typed polrig text as it is (a safety
+    fault's advice in this window's words: :func:`window_advice`), anything else (a driver
+    bug) with its type."""
     if isinstance(exc, (PolrigError, OSError, ValueError)):
-        return str(exc)
+        return window_advice(str(exc))
     return f"{type(exc).__name__}: {exc}"
+
+
+#: What a safety fault (:class:`polrig.errors.DeviceAlarm`, its text and
+#: ``operator_message``) tells the command line's operator to run once the cause is cleared.
+_HOME_COMMAND = re.compile(r"then run `polrig home (\w+)(?: --config [^`]*)?`")
+
+
+def window_advice(text: str) -> str:
+    """``text`` with a safety fault's "then run `polrig home AXIS [--config RIG]`" said as
+    this window does it: "then home the AXIS (Devices tab, Home)". The command cannot reach
+    the devices while the window holds them (a serial port is opened exclusively; on the
+    simulated rig it would home another rig); the window never homes an axis on its own."""
+    return _HOME_COMMAND.sub(lambda m: f"then home the {m.group(1)} (Devices tab, Home)", text)
 
 
 @dataclasses.dataclass
