@@ -197,7 +197,8 @@ def test_two_pose_reference_capture_completes(qtbot, window, tmp_path):
     qtbot.waitUntil(lambda: not cp.is_running, timeout=10000)
     assert paused[0] == (True, True)  # the live view paused for the capture...
     assert not window.live_worker.paused  # ...and runs again after it
-    assert cp.thumbs.count() == 2 and not cp.thumbs.item(0).icon().isNull()
+    qtbot.waitUntil(lambda: cp.thumbnails_shown == 2, timeout=10000)  # made off the UI thread
+    assert cp.thumbs.count() == 2
     assert cp.progress.value() == cp.progress.maximum() == 8  # 2 poses x 4 states
     assert set(cp.scores) == {0, 1} and all(s["rmse"] > 0 for s in cp.scores.values())
     assert "RMSE" in cp.score.text()
@@ -206,6 +207,47 @@ def test_two_pose_reference_capture_completes(qtbot, window, tmp_path):
     assert [c["status"] for c in manifest["captures"]] == ["complete", "complete"]
     assert manifest["plan"]["poses_deg"] == [0.0, 90.0]
     wait_frames(qtbot, window, 2)  # live again
+
+
+def test_finished_pose_thumbnails_are_made_off_the_ui_thread(qtbot, window, tmp_path,
+                                                            monkeypatch):
+    """A finished pose's thumbnail reads its Mueller EXR (about 0.8 s at the full sensor's
+    1224x1024 superpixel grid): made on the UI thread it froze the window once per pose. Here
+    each one takes 1 s; the event loop must never wait for it, and the icons still arrive."""
+    import threading
+    import time
+
+    from polrig.gui import capture_panel
+
+    real, threads = capture_panel.thumbnail_rgb, []
+
+    def slow_thumbnail(path, *a, **kw):
+        threads.append(threading.current_thread())
+        time.sleep(1.0)
+        return real(path, *a, **kw)
+    monkeypatch.setattr(capture_panel, "thumbnail_rgb", slow_thumbnail)
+    wait_connected(qtbot, window)
+    cp = window.capture
+    cp.poses.setText("0,90")
+    cp.out.setText(str(tmp_path / "session"))
+    probe = EventLoopProbe(10).start()
+    cp.start()
+    qtbot.waitUntil(lambda: cp.last_status == "complete" and not cp.is_running, timeout=60000)
+    qtbot.waitUntil(lambda: cp.thumbnails_shown == 2, timeout=10000)
+    probe.stop()
+    assert len(threads) == 2 and threading.main_thread() not in threads
+    assert probe.max_latency_s < 0.5, probe.max_latency_s
+    assert [cp.thumbs.item(i).text() for i in range(2)] == ["pose 0 deg", "pose 90 deg"]
+
+
+def test_a_thumbnail_of_an_earlier_run_is_not_put_on_a_new_one(qtbot, window, tmp_path):
+    """A thumbnail that arrives after a new capture started (its run's list was cleared)
+    is dropped, not put on the new run's pose of the same row."""
+    cp = window.capture
+    cp.thumbs.addItem("pose 0 deg")
+    cp._thumbnail_ready(cp._run_id - 1, 0, None, "thumbnail of pose 0: stale")
+    assert cp.thumbs.item(0).icon().isNull()
+    assert not any("stale" in t for _, t in window.messages.messages)
 
 
 def test_capture_needs_connected_devices(qtbot, tmp_path):

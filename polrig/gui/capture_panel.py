@@ -19,7 +19,9 @@ twice. Pause and stop go through
 like ``polrig capture`` reports it: complete, or stopped with the reason (a device fault, a
 full disk, any other file-system error, a processing error) and the hint that the completed
 captures are intact and "Resume session in folder" continues; only a refusal before the
-session exists (bad options, devices not connected, devices busy) is "not started".
+session exists (bad options, devices not connected, devices busy) is "not started". A finished
+pose's thumbnail is read from its result on a thread of its own (about 0.8 s at the full
+sensor), so the window never waits for it.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import pathlib
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Iterator
 
 import numpy as np
@@ -162,12 +165,20 @@ class CapturePanel(QWidget):
 
     running = Signal(bool)
     message = Signal(str, str)
+    #: a finished pose's thumbnail, from the thumbnail thread: run, row, QImage (None: failed),
+    #: the warning when it failed
+    thumbnail_ready = Signal(int, int, object, str)
 
     def __init__(self, rig, locks: RigLocks, parent=None):
         super().__init__(parent)
         self.rig = rig
         self.locks = locks
         self.worker: CaptureWorker | None = None
+        #: thumbnails are read from the poses' result EXRs here, off the UI thread (about 0.8 s
+        #: each at the full sensor); ``_run_id`` tells a run's from those of an earlier one
+        self._thumbnailer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="thumbnails")
+        self._run_id = 0
+        self.thumbnail_ready.connect(self._thumbnail_ready)
         self._active = False
         self.events: list[Progress] = []
         self.scores: dict[int, dict[str, Any]] = {}
@@ -475,6 +486,7 @@ class CapturePanel(QWidget):
             self.message.emit("error", f"capture: cannot start while {self.blocked_by} runs")
             return
         self._request = req
+        self._run_id += 1  # thumbnails still on their way belong to the earlier run
         self.events.clear()
         self.scores.clear()
         self.thumbs.clear()
@@ -612,13 +624,42 @@ class CapturePanel(QWidget):
             self.message.emit("info", f"capture {ev.capture_index + 1} ({text}) done | {line}")
         else:
             self.message.emit("info", f"capture {ev.capture_index + 1} ({text}) done")
-        item = QListWidgetItem(text)
-        if ev.result is not None:
-            try:
-                item.setIcon(QIcon(QPixmap.fromImage(to_qimage(thumbnail_rgb(ev.result)))))
-            except (OSError, PolrigError, ValueError) as exc:
-                self.message.emit("warning", f"thumbnail of pose {ev.pose_deg:g}: {exc}")
-        self.thumbs.addItem(item)
+        self.thumbs.addItem(QListWidgetItem(text))
+        if ev.result is not None:  # its icon comes from the thumbnail thread
+            self._thumbnailer.submit(self._make_thumbnail, self._run_id,
+                                     self.thumbs.count() - 1, ev.result, ev.pose_deg)
+
+    def _make_thumbnail(self, run: int, row: int, path: pathlib.Path, pose_deg: float) -> None:
+        """The thumbnail thread: read and scale one pose's result, hand it to the UI thread."""
+        image, warning = None, ""
+        try:
+            image = to_qimage(thumbnail_rgb(path))
+        except (OSError, PolrigError, ValueError) as exc:
+            warning = f"thumbnail of pose {pose_deg:g}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - a thumbnail must not be lost silently
+            warning = f"thumbnail of pose {pose_deg:g}: {type(exc).__name__}: {exc}"
+        self.thumbnail_ready.emit(run, row, image, warning)
+
+    def _thumbnail_ready(self, run: int, row: int, image, warning: str) -> None:
+        if run != self._run_id:  # a new run started meanwhile: its list was cleared
+            return
+        item = self.thumbs.item(row)
+        if item is None:
+            return
+        if image is not None:
+            item.setIcon(QIcon(QPixmap.fromImage(image)))
+        else:
+            self.message.emit("warning", warning)
+
+    @property
+    def thumbnails_shown(self) -> int:
+        """How many finished poses show their thumbnail."""
+        return sum(not self.thumbs.item(i).icon().isNull() for i in range(self.thumbs.count()))
+
+    def shutdown(self) -> None:
+        """End the thumbnail thread (a thumbnail being made is finished, the others dropped)
+        before the panel goes."""
+        self._thumbnailer.shutdown(wait=True, cancel_futures=True)
 
     def _finished(self, status: str, reason: str, result: object) -> None:
         self.last_status = status

@@ -246,4 +246,5 @@ class MainWindow(QMainWindow):
         self.live_worker.wait(15000)
         self.devices.shutdown(wait_ms=65000)
         self.viewer.shutdown()
+        self.capture.shutdown()
         self.rig.close()

@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     cp.out.setText(str(tmp / "session"))
     w.show_panel(cp)
     cp.start()
-    _wait(app, lambda: cp.thumbs.count() >= 2 or not cp.is_running, 600, "two finished poses")
+    _wait(app, lambda: cp.thumbnails_shown >= 2 or not cp.is_running, 600, "two finished poses")
     _wait(app, lambda: any(e.kind == "frame" and e.step > cp.progress.maximum() // 3 + 2
                            for e in cp.events) or not cp.is_running, 600, "capture progress")
     bar = w.pages[cp].verticalScrollBar()  # the page scrolled to its progress, ETA and poses
