@@ -234,6 +234,12 @@ def reflected_ray(centre_cam_m: np.ndarray, radius_m: float,
     return p, d - 2.0 * (d @ n) * n
 
 
+#: Acceptance of the light position (docs/calibration.md): its error within 1 % of its distance
+#: from where objects are lit. :meth:`LightFit.acceptance` says whether the fit's own
+#: uncertainty assures it.
+ACCEPTANCE_REL = 0.01
+
+
 @dataclasses.dataclass(frozen=True)
 class LightFit:
     """Least-squares light position (camera frame, metres) with its 3x3 covariance."""
@@ -249,11 +255,25 @@ class LightFit:
     def std_m(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.covariance_m2), 0, None))
 
+    def acceptance(self, limit_rel: float = ACCEPTANCE_REL) -> dict:
+        """Whether the reported uncertainty assures the acceptance: twice the 1-sigma along
+        the least certain direction (the covariance's largest eigenvalue; about 95 % of the
+        errors along it) against ``limit_rel`` of the light's distance from the mean sphere
+        centre (the balls sat on the turntable, where objects are lit; metres). Keys
+        ``limit_rel``, ``two_sigma_m``, ``distance_m``, ``two_sigma_rel``, ``assured``."""
+        sigma = float(np.sqrt(max(np.linalg.eigvalsh(self.covariance_m2)[-1], 0.0)))
+        centre = np.mean([s.centre_cam_m for s in self.spheres], axis=0)
+        distance = float(np.linalg.norm(self.position_cam_m - centre))
+        rel = 2.0 * sigma / distance
+        return {"limit_rel": float(limit_rel), "two_sigma_m": 2.0 * sigma,
+                "distance_m": distance, "two_sigma_rel": rel, "assured": bool(rel <= limit_rel)}
+
     def to_json(self) -> dict:
         return {"position_cam_m": self.position_cam_m.tolist(),
                 "std_m": self.std_m.tolist(), "covariance_m2": self.covariance_m2.tolist(),
                 "ray_distances_m": self.ray_distances_m.tolist(),
-                "sphere_centres_cam_m": [s.centre_cam_m.tolist() for s in self.spheres]}
+                "sphere_centres_cam_m": [s.centre_cam_m.tolist() for s in self.spheres],
+                "acceptance": self.acceptance()}
 
 
 def intersect_rays(points_m: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

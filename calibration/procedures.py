@@ -300,7 +300,9 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
 
     The sphere is mounted at each of ``mounts`` (heights) in turn. Per angle: a long exposure (background at mid scale) for the silhouette and a short one
     (highlight below saturation) for the highlight, each the sum of stage angles 0 and 90 deg
-    so that the light is unpolarized and the mosaic does not bias the centroid."""
+    so that the light is unpolarized and the mosaic does not bias the centroid. A ``light:
+    warning:`` line says when the fit's uncertainty does not assure the acceptance
+    (:meth:`polrig.calibration.light.LightFit.acceptance`)."""
     cam = rig.camera
     lay = _layout(cam)
     metal = MirrorMetal.named(DEFAULT_SPHERE_METAL) if sphere_metal is None else sphere_metal
@@ -374,6 +376,13 @@ def run_light(rig, mount: Mount, K: np.ndarray, dist: np.ndarray, radius_m: floa
     dist_m = np.linalg.norm(fit.position_cam_m)
     log(f"light: {len(obs)} sphere views, position {np.round(fit.position_cam_m, 4).tolist()} m "
         f"(camera frame) ± {np.round(fit.std_m * 1000, 2).tolist()} mm, distance {dist_m:.4f} m")
+    acc = fit.acceptance()
+    if not acc["assured"]:
+        log(f"light: warning: the {100 * acc['limit_rel']:g} % acceptance is not assured: 2 sigma "
+            f"along the least certain direction is {1000 * acc['two_sigma_m']:.1f} mm, "
+            f"{100 * acc['two_sigma_rel']:.2f} % of the {acc['distance_m']:.3f} m from the light "
+            f"to the sphere positions (intrinsics and sphere views set it: a larger image or "
+            f"more board and sphere views narrow it)")
     return fit
 
 

@@ -103,6 +103,13 @@ def write_report(directory: str | pathlib.Path, cs: CalibrationSet,
                f"{np.round(L['position_cam_m'], 5).tolist()} ± {np.round(L['std_m'], 5).tolist()}",
                f"- reflected rays: {len(L['ray_distances_m'])}, miss distances (mm): "
                f"{np.round(np.asarray(L['ray_distances_m']) * 1000, 2).tolist()}"]
+        a = L.get("acceptance")
+        if isinstance(a, dict):
+            md.append(f"- acceptance ({100 * a['limit_rel']:g} % of the "
+                      f"{a['distance_m']:.3f} m from the light to the sphere positions): "
+                      f"{'assured' if a['assured'] else '**not assured**'} by the uncertainty "
+                      f"(2 sigma along its least certain direction: "
+                      f"{1000 * a['two_sigma_m']:.1f} mm, {100 * a['two_sigma_rel']:.2f} %)")
         if "sphere_metal" in L:
             md.append(f"- mirror ball: {L['sphere_metal']['name']} (its colour divides the "
                       f"highlight's colour classes)")
