@@ -18,6 +18,13 @@ REFERENCE = WEIGHTS_DIR.parent.parent / "tests" / "data" / "single_shot_referenc
 GRAPHS = ("single_shot.onnx", "single_shot_frame.onnx", "single_shot_probe.onnx")
 #: As polrig.models.reship.TOLERANCE (that module imports nothing heavy, but keep the numbers visible).
 TOLERANCE = {"mueller": 1e-5, "kd": 1e-5, "alpha": 1e-5, "mueller_init": 5e-5, "normal": 5e-5, "wi": 5e-5}
+#: The reference outputs were recorded on the machine that re-shipped the graphs; onnxruntime's
+#: CPU kernels round float32 differently on other processors (the instruction set decides the
+#: kernel), so this test, which runs anywhere, allows the re-shipping's tolerance twice: the
+#: same graph on an AVX2-only AMD EPYC reads ``mueller`` 1.04e-5 and ``mueller_init`` 4.4e-5 off
+#: the recorded outputs, identically with onnxruntime 1.22, 1.26, 1.31 and 1.32 and with 1 or 2
+#: threads.
+ANOTHER_CPU = 2.0
 
 
 def _run(sess, feed: dict) -> dict:
@@ -58,7 +65,7 @@ def test_graph_matches_the_previously_shipped_one(graph):
         assert set(out) <= set(ref)
         for k, v in out.items():
             dev = float(np.max(np.abs(v - ref[k])) / np.max(np.abs(ref[k])))
-            assert dev <= TOLERANCE[k], (graph, k, dev)
+            assert dev <= ANOTHER_CPU * TOLERANCE[k], (graph, k, dev)
 
 
 def test_frame_and_probe_graphs_compute_the_full_graphs_outputs():
