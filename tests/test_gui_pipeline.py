@@ -233,3 +233,25 @@ def test_a_display_size_mueller_grid_shows_as_the_matrix_and_maps_rois_to_image_
     ox, oy = b + 2 * (6 + b), b + (4 + b)
     assert pipeline.display_to_data(d, "mueller", [(ox + 1, oy + 1), (ox + 3, oy + 2)]) == [(2.0, 2.0), (6.0, 4.0)]
     assert pipeline.summary(d) == {"size": (12, 8)}
+
+
+@pytest.mark.parametrize("name, negative", [("mmt_b", (-0.8, -0.2)), ("mmt_A", (-0.8, -0.2)),
+                                            ("sv2", (0.8, -0.2))])
+def test_signed_parameter_maps_show_their_sign(name, negative):
+    """``mmt_b`` and ``mmt_A`` lie in -1..1 (docs/analysis.md; ``b`` < 0 where the block turns
+    the light's frame by more than 45 deg, e.g. optical rotation): their map shows the sign on
+    the diverging map as ``sv2``'s does; on the 0..1 map a negative value looked like 0."""
+    from polrig.optics import parameters as pa
+
+    h, w = 4, 3
+    m = np.zeros((1, 3, 3, h, w), np.float32)
+    m[0, 0, 0] = 100.0
+    for col, (n11, n22) in enumerate((negative, (0.0, 0.0), (0.8, 0.2))):  # diagonal blocks
+        m[0, 1, 1, :, col], m[0, 2, 2, :, col] = 100.0 * n11, 100.0 * n22
+    data = pipeline.PolarizationData.from_mueller(m)
+    v = pa.image_maps(m, None).values[name][0]
+    assert v[0, 0] < -0.1 and v[0, 2] > 0.1  # negative, positive (and zero: column 1)
+    got = pipeline.render_map(data, name, 0)
+    np.testing.assert_array_equal(got, pipeline.preview.diverging(v, vmax=1.0,
+                                                                  valid=np.isfinite(v)))
+    assert not np.array_equal(got[0, 0], pipeline.preview.diverging(np.zeros((1, 1)), vmax=1.0)[0, 0])

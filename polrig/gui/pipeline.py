@@ -522,12 +522,15 @@ def render(data: PolarizationData, display: str, colour: int = LUMINANCE, *,
     return rgb
 
 
-#: Maps shown on a viridis scale over [0, 1] (the others: angles as hue, m00 tone-mapped,
-#: sv2 diverging over [-1, 1], the retardance over [0, 180] deg).
 #: Least height (pixels) of a map image that gets its colour bar (a readable bar is about 90
 #: pixels wide whatever the image's size).
 MAP_LEGEND_MIN_PX = 128
-_UNIT_MAPS = ("DL", "PL", "sv1", "mmt_b", "mmt_t1", "mmt_A", "depolarization")
+#: Maps shown on a viridis scale over [0, 1] (the others: angles as hue, m00 tone-mapped,
+#: the signed ones diverging over [-1, 1], the retardance over [0, 180] deg).
+_UNIT_MAPS = ("DL", "PL", "sv1", "mmt_t1", "depolarization")
+#: The maps with a sign, in -1..1 (docs/analysis.md; ``mmt_b`` < 0 where the block turns the
+#: light's frame by more than 45 deg): on the diverging map, where 0..1 showed them as 0.
+SIGNED_MAPS = ("sv2", "mmt_b", "mmt_A")
 
 
 def map_plane(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
@@ -567,7 +570,7 @@ def render_map(data: PolarizationData, name: str, colour: int = LUMINANCE, *,
     elif name in parameters.ANGLE_PERIOD_DEG:
         period = parameters.ANGLE_PERIOD_DEG[name]
         return preview.aolp_rgb(np.mod(v, period) * (180.0 / period), valid=ok)
-    elif name == "sv2":
+    elif name in SIGNED_MAPS:
         rgb = preview.diverging(v, vmax=1.0, valid=ok)
         bar = preview.value_bar(h, lambda x: preview.diverging(x[:, 0], vmax=1.0)[:, None],
                                 {1.0: "+1", 0.0: "0", -1.0: "-1"}, lo=-1.0, hi=1.0, title=title)
