@@ -183,6 +183,178 @@ def test_leftover_temporary_files_of_a_dead_worker_are_removed(archive, tmp_path
     _no_leftovers(d)
 
 
+def test_a_worker_that_dies_every_time_fails_its_capture_and_the_batch_goes_on(slow_session,
+                                                                              slow_serial,
+                                                                              tmp_path):
+    """Dask gives a task up once its workers died ``allowed-failures + 1`` times (0 here: one
+    SIGKILL): that capture is marked ``failed`` with the reason, in one line, like a damaged
+    one, and the others complete with the serial bytes (it was Dask's ``KilledWorker``
+    traceback, and the batch stopped)."""
+    import dask
+
+    dist = _copies([slow_session], tmp_path / "dist")[0]
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        runner = cluster.DaskRunner.local(2)
+    killed: list[int] = []
+
+    def killer():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            busy = [w for w, keys in runner.client.processing().items() if keys]
+            if busy:
+                pid = runner.client.run(os.getpid, workers=[busy[0]])[busy[0]]
+                time.sleep(0.15)  # into the task
+                if runner.client.processing().get(busy[0]):
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+            time.sleep(0.02)
+
+    t = threading.Thread(target=killer, daemon=True)
+    try:
+        t.start()
+        with pytest.raises(cluster.BatchIncomplete) as info:
+            cluster.reconstruct([dist], runner, demosaic="bilinear")
+    finally:
+        t.join(timeout=5)
+        runner.close()
+    assert killed, "no worker was caught running a task"
+    failed = dict(info.value.batches[0].failed)
+    assert failed and len(info.value.lines) == 1 and "\n" not in str(info.value)
+    assert set(failed.values()) == {"KilledWorker: the worker process running it died 1 time(s) "
+                                    "(killed, or out of memory?)"}
+    got = _results(dist)
+    for i, (name, want) in enumerate(slow_serial.items()):
+        if i in failed:
+            assert got[name][0] == "failed" and got[name][1] is None
+        else:
+            assert got[name] == want
+    _no_leftovers(dist)
+
+
+def test_a_task_whose_workers_all_die_is_one_line_or_its_lost_result():
+    """A task that kills its worker process every time it runs (a real SIGKILL), with Dask's
+    ``allowed-failures`` 0: without ``lost`` (``sim dataset``'s use) :class:`TaskLost`, one
+    line (it was Dask's ``KilledWorker`` traceback); with it, ``lost(job, reason)`` stands for
+    the result and the iteration goes on to every job."""
+    import dask
+
+    def die_on_odd(job):
+        if job % 2:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return job * 10
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        runner = cluster.DaskRunner.local(1)
+    try:
+        with pytest.raises(cluster.TaskLost) as info:
+            list(runner.map_unordered(die_on_odd, [1]))
+        assert str(info.value).endswith(": KilledWorker: the worker process running it died "
+                                        "1 time(s) (killed, or out of memory?)")
+        got = dict(runner.map_unordered(die_on_odd, [0, 2, 3],
+                                        lost=lambda job, why: why.split(":")[0]))
+        # every job answers; 0 and 2 may have been waiting on the worker 3 killed: lost too
+        assert sorted(got) == [0, 2, 3] and got[3] == "KilledWorker"
+        assert all(got[j] in (10 * j, "KilledWorker") for j in (0, 2)), got
+    finally:
+        runner.close()
+
+
+def test_a_full_disk_leaves_the_captures_pending_and_the_same_command_continues(
+        archive, archive_serial, tmp_path, monkeypatch, capsys):
+    """OpenEXR's own error for a full disk (a RuntimeError naming the temporary file and the
+    reason in words) while capture 2's result is written: the batch stops in one line, that
+    capture and the next stay ``pending`` (not ``failed``, which the same command never
+    redoes), and once there is room the same command continues the revision to the
+    uninterrupted run's bytes. Before, the capture was marked failed: as a damaged one (the
+    EXR's error had no errno) and the batch went on, or, where it was seen as a full disk,
+    for good."""
+    import OpenEXR
+
+    d = _copies(archive[:1], tmp_path)[0]
+    real = OpenEXR.File
+
+    class FullDisk:  # the real binding, but no room for capture 2's result
+        def __init__(self, *args, **kw):
+            self._file = real(*args, **kw)
+
+        def __getattr__(self, name):
+            return getattr(self._file, name)
+
+        def write(self, path):
+            if f"{os.sep}c002_" in path:
+                raise RuntimeError(f'Failed to write pixel data to image file "{path}". '
+                                   f"No space left on device.")
+            return self._file.write(path)
+
+    monkeypatch.setattr(OpenEXR, "File", FullDisk)
+    assert main(["reconstruct", str(d), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert "disk full while writing capture 2's result" in err
+    assert "run the same command again to continue" in err
+    revs = [c["revisions"]["rev1"] for c in Session.open(d).captures]
+    assert [r["status"] for r in revs] == ["complete", "complete", "pending", "pending"]
+    assert revs[2]["reason"].startswith("batch stopped by a full disk: OSError: ")
+    assert "No space left on device" in revs[2]["reason"]
+    _no_leftovers(d)
+    monkeypatch.undo()  # room again
+    assert main(["reconstruct", str(d), "--no-progress"]) == 0
+    assert f"revision rev1 continued in {d}" in capsys.readouterr().out
+    assert _results(d) == archive_serial[0]
+    _no_leftovers(d)
+
+
+@pytest.mark.slow
+def test_a_scheduler_lost_mid_batch_is_one_line_and_the_same_command_continues(
+        slow_session, slow_serial, tmp_path):
+    """A running ``dask scheduler`` SIGKILLed after the first capture is recorded: one line
+    (it was Dask's ``FutureCancelledError`` traceback), the finished capture kept, the others
+    ``pending``; the same request continues the revision to the serial bytes."""
+    d = _copies([slow_session], tmp_path / "dist")[0]
+    port = _free_port()
+    env = {**ENV, "DASK_TEMPORARY_DIRECTORY": str(tmp_path / "scratch")}
+    procs = [subprocess.Popen([sys.executable, "-m", "dask", *argv], env=env, cwd=tmp_path,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)
+             for argv in (["scheduler", "--host", "127.0.0.1", "--port", str(port),
+                           "--dashboard-address", "127.0.0.1:0"],
+                          ["worker", f"tcp://127.0.0.1:{port}", "--host", "127.0.0.1",
+                           "--dashboard-address", "127.0.0.1:0", "--nthreads", "1"])]
+    try:
+        deadline = time.monotonic() + 60
+        while True:  # the scheduler up, the worker joined
+            with contextlib.suppress(Exception):
+                runner = cluster.DaskRunner.connect(f"tcp://127.0.0.1:{port}", timeout=2)
+                if runner.client.scheduler_info()["workers"]:
+                    break
+                runner.close()
+            assert time.monotonic() < deadline, "the scheduler or its worker did not start"
+            time.sleep(0.5)
+
+        def kill_scheduler(batch, index, score, reason):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(procs[0].pid, signal.SIGKILL)
+
+        try:
+            with pytest.raises(cluster.SchedulerLost) as info:
+                cluster.reconstruct([d], runner, demosaic="bilinear", on_capture=kill_scheduler)
+        finally:
+            runner.close()
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=20)
+    assert "\n" not in str(info.value) and "run the same command again" in str(info.value)
+    statuses = [c["revisions"]["rev1"]["status"] for c in Session.open(d).captures]
+    assert "complete" in statuses and "pending" in statuses and "failed" not in statuses
+    # (the worker may have gone on writing a result meanwhile: the next run removes it)
+    batches = cluster.reconstruct([d], cluster.SerialRunner(), demosaic="bilinear")
+    assert batches[0].continued and batches[0].revision == "rev1"
+    assert _results(d) == slow_serial
+    _no_leftovers(d)
+
+
 def _spawn(argv: list[str]) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "polrig", *argv], env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -17,8 +17,10 @@ Roles (the session's one-writer rule holds):
 
 Faults: a worker that dies mid-task has its task rerun on another worker by Dask (the rerun
 writes the same bytes; a temporary file the dead one left is removed by the client when the
-batch ends, :func:`discard_leftovers`). A capture whose data is damaged comes back as a
-failure with its reason and is marked ``failed`` in its revision; the batch goes on.
+batch ends, :func:`discard_leftovers`); a capture whose workers all died (Dask's
+``KilledWorker``) is marked ``failed`` with that reason, as is a capture whose data is
+damaged (it comes back as a failure with its reason); the batch goes on. A full disk stops
+the batch with the captures not recorded ``pending``.
 Ctrl-C/SIGTERM cancel the tasks not finished, leave their captures ``pending`` in the
 revision and keep the finished ones; running ``polrig reconstruct`` again with the same
 settings continues that revision with the captures still pending (:func:`prepare`).
@@ -72,11 +74,14 @@ def require_distributed(option: str):
 # -- executors ---------------------------------------------------------------------------------
 class Runner(Protocol):
     """Runs ``fn(job)`` for every job and yields ``(job, result)`` as each finishes (any
-    order). Leaving the iteration early (an exception, Ctrl-C) cancels what has not run."""
+    order). Leaving the iteration early (an exception, Ctrl-C) cancels what has not run.
+    ``lost(job, reason)``, where given, is the result of a job whose worker processes all
+    died while running it (:class:`TaskLost` is raised without it)."""
 
     description: str
 
-    def map_unordered(self, fn: Callable[[Any], Any], jobs: Sequence[Any]
+    def map_unordered(self, fn: Callable[[Any], Any], jobs: Sequence[Any],
+                      lost: Callable[[Any, str], Any] | None = None
                       ) -> Iterator[tuple[Any, Any]]: ...
 
     def close(self) -> None: ...
@@ -87,12 +92,22 @@ class SerialRunner:
 
     description = "serial (this process)"
 
-    def map_unordered(self, fn, jobs):
-        for job in jobs:
+    def map_unordered(self, fn, jobs, lost=None):
+        for job in jobs:  # no worker to lose: ``lost`` is never called
             yield job, fn(job)
 
     def close(self) -> None:
         pass
+
+
+class TaskLost(PolrigError):
+    """A task whose worker processes all died while running it (Dask's ``KilledWorker``, once
+    ``distributed.scheduler.allowed-failures`` reruns are spent); one line."""
+
+
+class SchedulerLost(PolrigError):
+    """The Dask scheduler dropped the batch's tasks mid-batch (it stopped, the network went,
+    someone restarted it); one line. What finished is kept; the same command again continues."""
 
 
 #: Seconds the Dask client and the local cluster each get to close (:meth:`DaskRunner.close`).
@@ -151,8 +166,13 @@ class DaskRunner:
         n = len(client.scheduler_info().get("workers", {}))
         return cls(client, None, f"scheduler {address} ({n} worker(s) now)")
 
-    def map_unordered(self, fn, jobs):
-        from distributed import as_completed
+    def map_unordered(self, fn, jobs, lost=None):
+        """:meth:`Runner.map_unordered` as Dask tasks. A task Dask gave up on because its
+        workers died (``KilledWorker``) is ``lost(job, reason)``, or :class:`TaskLost`
+        without ``lost``; a lost scheduler is :class:`SchedulerLost` (one line each, not
+        Dask's traceback)."""
+        from distributed import KilledWorker, as_completed
+        from distributed.client import FutureCancelledError
 
         tag = uuid.uuid4().hex[:8]
         futures = {self.client.submit(one_core, fn, job, key=f"{fn.__name__}-{tag}-{i}",
@@ -160,7 +180,20 @@ class DaskRunner:
                    for i, job in enumerate(jobs)}
         try:
             for fut in as_completed(list(futures)):
-                yield futures[fut], fut.result()
+                job = futures[fut]
+                try:
+                    result = fut.result()
+                except KilledWorker as exc:
+                    why = (f"KilledWorker: the worker process running it died "
+                           f"{exc.allowed_failures + 1} time(s) (killed, or out of memory?)")
+                    if lost is None:
+                        raise TaskLost(f"task {fut.key}: {why}") from None
+                    result = lost(job, why)
+                except FutureCancelledError as exc:  # not ours: we cancel only after leaving
+                    raise SchedulerLost(f"the Dask scheduler dropped the batch's tasks "
+                                        f"({exc.reason}); what finished is kept: run the "
+                                        f"same command again to continue") from None
+                yield job, result
         finally:  # early exit: pending tasks are cancelled (finished ones just released)
             with contextlib.suppress(Exception):
                 self.client.cancel(list(futures))
@@ -447,11 +480,13 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
               | None = None) -> None:
     """Run every batch's captures on ``runner`` and record each result as it arrives
     (``on_capture(batch, index, score, reason)`` after each: ``reason`` is ``None`` for
-    success). Raises :class:`BatchIncomplete` at the end if captures failed; a full disk
-    stops the batch (``OSError``); Ctrl-C/SIGTERM (``KeyboardInterrupt``) cancel what is not
-    finished, whose captures stay ``pending`` with the reason. Temporary and unrecorded files
-    in the revisions' folders are removed whatever way it ends (after ``runner.close()``,
-    which the caller may not have done: call :meth:`Runner.close` first if it should be)."""
+    success). Raises :class:`BatchIncomplete` at the end if captures failed (a capture whose
+    workers all died is one); a full disk stops the batch (``OSError`` ``ENOSPC``) and
+    Ctrl-C/SIGTERM (``KeyboardInterrupt``) cancel what is not finished: the captures not
+    recorded stay ``pending`` with the reason, for the same command to continue them.
+    Temporary and unrecorded files in the revisions' folders are removed whatever way it
+    ends (after ``runner.close()``, which the caller may not have done: call
+    :meth:`Runner.close` first if it should be)."""
 
     by_key = {}
     jobs: list[CaptureJob] = []
@@ -462,7 +497,7 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
     try:
         with SignalGuard() as guard:
             try:
-                for job, out in runner.map_unordered(process_job, jobs):
+                for job, out in runner.map_unordered(process_job, jobs, lost=_lost_outcome):
                     b = by_key[(job.root, job.index)]
                     with guard.deferred():
                         b.finished += 1
@@ -471,6 +506,9 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                                                      out.record, out.score, job.exr, out.prior,
                                                      out.model,
                                                      job.models != "full")
+                        elif out.disk_full:  # the batch stops: this and the unfinished stay
+                            # pending, and the same command continues them once there is room
+                            _leave_pending(batches, f"batch stopped by a full disk: {out.reason}")
                         else:
                             processing._mark_revision(b.session, job.index, job.revision,
                                                       FAILED, out.reason)
@@ -480,7 +518,8 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                     if out.disk_full:
                         raise OSError(errno.ENOSPC, f"{b.session.root}: disk full while "
                                                     f"writing capture {job.index}'s result "
-                                                    f"({out.reason})")
+                                                    f"({out.reason}); free some space, then run "
+                                                    f"the same command again to continue")
             except KeyboardInterrupt as exc:
                 with guard.deferred():
                     runner.close()  # local workers stop before their leftovers are removed
@@ -492,6 +531,11 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                 discard_leftovers(b)
     if any(b.failed for b in batches):
         raise BatchIncomplete(batches)
+
+
+def _lost_outcome(job: CaptureJob, reason: str) -> CaptureOutcome:
+    """A capture whose task Dask gave up on (its workers died): a failure with ``reason``."""
+    return CaptureOutcome(None, None, reason, False, 0.0)
 
 
 def _leave_pending(batches: Sequence[SessionBatch], reason: str) -> None:

@@ -38,6 +38,7 @@ one line naming the file and leaves no temporary file behind. Unreadable, trunca
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import os
 import pathlib
@@ -192,8 +193,10 @@ def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | N
         try:
             OpenEXR.File(header, chans).write(tmp)
         except RuntimeError as exc:  # OpenEXR reports I/O failures (full disk, ...) this way
-            raise OSError(f"{path}: cannot write the OpenEXR file "
-                          f"({_openexr_reason(exc, tmp)})") from None
+            reason = _openexr_reason(exc, tmp)
+            err = OSError(f"{path}: cannot write the OpenEXR file ({reason})")
+            err.errno = _ERRNO_OF_REASON.get(reason)  # a full disk stays ENOSPC
+            raise err from None
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -204,6 +207,11 @@ def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | N
             raise write_error(path, exc) from None  # name the user's file, not the temporary one
         raise
     return path
+
+
+#: The operating system's error texts (``os.strerror``) -> their ``errno``: OpenEXR's error
+#: names the reason in words only.
+_ERRNO_OF_REASON = {os.strerror(e): e for e in errno.errorcode}
 
 
 def _openexr_reason(exc: RuntimeError, tmp: str) -> str:
