@@ -53,6 +53,19 @@ def window(qtbot, tmp_path):
         close_window(qtbot, w)
 
 
+def open_and_wait(qtbot, viewer, path, kind: str = "exr", timeout: int = 60000) -> bool:
+    """Open ``path`` in ``viewer`` and wait until it is shown (True) or its error is reported
+    (False): the viewer loads files off the UI thread."""
+    with qtbot.waitSignal(viewer.loaded, timeout=timeout) as blocker:
+        assert viewer.open_file(path, kind)
+    return blocker.args[0]
+
+
+def wait_loaded(qtbot, viewer, timeout: int = 60000) -> None:
+    """Wait for the viewer's latest load (a session's first entry, an entry chosen)."""
+    qtbot.waitUntil(lambda: not viewer.loading, timeout=timeout)
+
+
 def wait_connected(qtbot, w: MainWindow, timeout: int = 20000) -> None:
     qtbot.waitUntil(lambda: all(d.is_open for d in w.rig.devices.values()), timeout=timeout)
 
@@ -500,6 +513,7 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
     messages = []
     v.message.connect(lambda lvl, t: messages.append((lvl, t)))
     assert v.open_session(out)
+    wait_loaded(qtbot, v)
     assert v.metadata.text() == "sample: box\noperator: ada\nlot: 7"  # the sample metadata
     labels = [v.entries.item(i).text() for i in range(v.entries.count())]
     assert any("mueller.exr" in t for t in labels) and any("truth_mueller" in t for t in labels)
@@ -511,15 +525,136 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
     assert "Mueller at (u=8, v=8)" in v.readout.text()
     raw_row = next(i for i, t in enumerate(labels) if "raw" in t)
     v.entries.setCurrentRow(raw_row)
+    wait_loaded(qtbot, v)
     assert v.data.raw is not None and "dolp" in v.data.available()
     v.display.setCurrentIndex(v.display.findData("aolp"))
     assert from_qimage(v.view.image()).shape == (16, 16, 3)
     stokes_path = tmp_path / "stokes.exr"
     write_stokes_exr(stokes_path, pipeline.process_frame(frame).stokes)
-    assert v.open_file(stokes_path)
+    assert open_and_wait(qtbot, v, stokes_path)
     assert v.data.mueller is None and v.data.stokes.shape == (3, 3, 16, 16)
-    assert not v.open_file(tmp_path / "missing.exr")
+    assert not open_and_wait(qtbot, v, tmp_path / "missing.exr")
     assert messages[-1][0] == "error" and "missing.exr" in messages[-1][1]
+
+
+def _small_mueller_exr(path, value: float = 100.0):
+    from polrig.formats.exr import write_mueller_exr
+
+    m = np.zeros((1, 3, 3, 12, 16), np.float32)
+    m[:, 0, 0] = value
+    m[:, 1, 1] = 0.5 * value
+    write_mueller_exr(path, m)
+    return path
+
+
+def _slow_reader(monkeypatch, delay_s: float = 1.0, slow: str = ""):
+    """The viewer's EXR reader, ``delay_s`` slower (for files whose name contains ``slow``);
+    returns the list of the threads it ran on."""
+    import threading
+    import time
+
+    from polrig.gui import viewer
+
+    real, threads = viewer.load_exr, []
+
+    def slow_load(path, *a, **kw):
+        threads.append(threading.current_thread())
+        if slow in str(path):
+            time.sleep(delay_s)
+        return real(path, *a, **kw)
+    monkeypatch.setattr(viewer, "load_exr", slow_load)
+    return threads
+
+
+def test_viewer_loads_a_file_off_the_ui_thread(qtbot, tmp_path, monkeypatch):
+    """Reading and rendering a full colour sensor's Mueller result takes seconds (2.2-2.7 s
+    to read, 2.2 s to render at 1224x1024x3): done on the UI thread it froze the window. Here
+    the read takes 1 s; the event loop must never wait for it, and the file is shown."""
+    import threading
+
+    from polrig.gui.viewer import ViewerPanel
+
+    threads = _slow_reader(monkeypatch)
+    path = _small_mueller_exr(tmp_path / "m.exr")
+    v = ViewerPanel()
+    qtbot.addWidget(v)
+    v.show()
+    probe = EventLoopProbe(10).start()
+    started = v.open_file(path)
+    qtbot.waitUntil(lambda: v.data is not None and not getattr(v, "loading", False), timeout=20000)
+    probe.stop()
+    assert started and v.path == path and v.view.image() is not None
+    assert len(threads) == 1 and threads[0] is not threading.main_thread()
+    assert probe.max_latency_s < 0.5, probe.max_latency_s
+    assert v.display.currentData() == "mueller" and v.histogram.counts.size
+
+
+def test_viewer_never_shows_a_load_that_a_newer_one_superseded(qtbot, tmp_path, monkeypatch):
+    """The operator opens B while A is still loading: A is dropped, B is shown."""
+    from polrig.gui.viewer import ViewerPanel
+
+    threads = _slow_reader(monkeypatch, 1.0, slow="slow_a")
+    a = _small_mueller_exr(tmp_path / "slow_a.exr", 100.0)
+    b = _small_mueller_exr(tmp_path / "b.exr", 300.0)
+    v = ViewerPanel()
+    qtbot.addWidget(v)
+    v.show()
+    shown, ends = [], []
+    real_set_data = v.set_data
+    v.set_data = lambda data: (shown.append(data.source), real_set_data(data))
+    v.loaded.connect(ends.append)
+    assert v.open_file(a)
+    qtbot.waitUntil(lambda: len(threads) == 1, timeout=10000)  # A is being read
+    assert v.open_file(b) and v.loading
+    qtbot.waitUntil(lambda: not v.loading, timeout=20000)
+    qtbot.wait(1200)  # A's read has ended meanwhile at the latest
+    assert shown == [str(b)] and ends == [True] and v.path == b
+    assert float(np.nanmax(v.data.mueller[:, 0, 0])) == 300.0
+
+
+def test_closing_the_window_while_a_file_loads_shuts_down_cleanly(qtbot, tmp_path, monkeypatch):
+    _slow_reader(monkeypatch, 1.5)
+    w = make_window(qtbot, tmp_path / "gui.ini")
+    wait_connected(qtbot, w)
+    assert w.viewer.open_file(_small_mueller_exr(tmp_path / "m.exr"))
+    assert w.viewer.loading
+    close_window(qtbot, w)
+    for pool in (w.viewer._loader, w.viewer.roi._worker, w.live.roi._worker):  # all ended
+        assert not any(t.is_alive() for t in pool._threads)
+    qtbot.wait(100)
+    assert w.viewer.data is None and not w.viewer.loading  # never shown once closed
+    assert not w.viewer.open_file(tmp_path / "m.exr")  # nothing starts after the shutdown
+
+
+def test_viewer_roi_statistics_are_computed_off_the_ui_thread(qtbot, tmp_path, monkeypatch):
+    """A region's statistics take seconds at the full sensor (1.8 s for an ellipse, 5-6 s for
+    a large rectangle on a 1224x1024x3 result): here 1 s each; the window never waits."""
+    import threading
+    import time
+
+    from polrig.app import roi
+    from polrig.gui import pipeline as pl
+    from polrig.gui.viewer import ViewerPanel
+
+    real, threads = pl.roi_statistics, []
+
+    def slow_statistics(*a, **kw):
+        threads.append(threading.current_thread())
+        time.sleep(1.0)
+        return real(*a, **kw)
+    monkeypatch.setattr(pl, "roi_statistics", slow_statistics)
+    v = ViewerPanel()
+    qtbot.addWidget(v)
+    v.show()
+    v.set_data(pipeline.PolarizationData.from_mueller(
+        np.full((1, 3, 3, 12, 16), 10.0, np.float32), "x"))
+    probe = EventLoopProbe(10).start()
+    v.roi.set_region(roi.RectROI(2.0, 2.0, 8.0, 6.0))
+    qtbot.waitUntil(lambda: bool(v.roi.rows), timeout=20000)
+    probe.stop()
+    assert threads and threading.main_thread() not in threads
+    assert probe.max_latency_s < 0.5, probe.max_latency_s
+    assert v.roi.rows[0].n_counted == 48 and "48 counted" in v.roi.summary.text()
 
 
 def test_calibration_step_out_of_order_is_a_readable_failure(qtbot, window, tmp_path):

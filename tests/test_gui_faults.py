@@ -456,6 +456,7 @@ def test_live_status_says_when_frames_stop(qtbot, window):
 def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, tmp_path):
     from polrig.formats.exr import write_mueller_exr
     from polrig.gui.viewer import ViewerPanel
+    from test_gui import open_and_wait
 
     good = tmp_path / "good.exr"
     write_mueller_exr(good, np.ones((3, 3, 3, 8, 8), np.float32))
@@ -465,10 +466,10 @@ def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, tmp_
     qtbot.addWidget(v)
     v.resize(800, 500)
     v.show()
-    assert v.open_file(good)
+    assert open_and_wait(qtbot, v, good)
     v._hovered(2, 2)
     assert v.view.image() is not None and v.readout.text() and v.histogram.counts.size
-    assert not v.open_file(bad)
+    assert not open_and_wait(qtbot, v, bad)
     assert v.view.image() is None and v.data is None and v.path is None
     assert v.readout.text() == "" and v.histogram.counts.size == 0
     assert "bad.exr" in v.view.placeholder

@@ -21,6 +21,7 @@ from polrig.cli import main
 from polrig.formats.exr import read_exr, write_mueller_exr
 from polrig.gui import pipeline
 from polrig.gui.qtimage import from_qimage
+from test_gui import open_and_wait
 
 pytestmark = pytest.mark.gui
 
@@ -62,11 +63,11 @@ def viewer(qtbot):
     return v
 
 
-def test_network_geometry_layer_shows_the_normal_map_albedo_and_readout(viewer, files):
+def test_network_geometry_layer_shows_the_normal_map_albedo_and_readout(qtbot, viewer, files):
     result, _ = files
     planes = read_exr(result)
     p, md = planes.planes, planes.metadata
-    assert viewer.open_file(result)
+    assert open_and_wait(qtbot, viewer, result)
     assert viewer.display.findData("geometry") >= 0 and viewer.display.findData("mueller") >= 0
     assert [viewer.geometry_choice.itemData(i) for i in range(viewer.geometry_choice.count())] == [
         "normal", "albedo"]
@@ -106,11 +107,11 @@ def test_network_geometry_layer_shows_the_normal_map_albedo_and_readout(viewer, 
     assert not [m for m in viewer.messages if m[0] == "error"]
 
 
-def test_shape_from_polarization_candidates_by_the_selector(viewer, files):
+def test_shape_from_polarization_candidates_by_the_selector(qtbot, viewer, files):
     _, maps = files
     got = read_exr(maps)
     p = got.planes
-    assert viewer.open_file(maps)  # a maps EXR: geometry only
+    assert open_and_wait(qtbot, viewer, maps)  # a maps EXR: geometry only
     assert [viewer.display.itemData(i) for i in range(viewer.display.count())] == ["geometry"]
     keys = [viewer.geometry_choice.itemData(i) for i in range(viewer.geometry_choice.count())]
     assert keys == ["sfp0", "sfp1"]  # diffuse: the azimuth's pi ambiguity
@@ -144,7 +145,7 @@ def test_shape_from_polarization_candidates_by_the_selector(viewer, files):
     assert not [m for m in viewer.messages if m[0] == "error"]
 
 
-def test_no_geometry_planes_no_layer(tmp_path, viewer):
+def test_no_geometry_planes_no_layer(qtbot, tmp_path, viewer):
     from polrig.gui.viewer import load_exr
 
     path = tmp_path / "m.exr"
@@ -153,11 +154,11 @@ def test_no_geometry_planes_no_layer(tmp_path, viewer):
     write_mueller_exr(path, m)
     data = load_exr(path)
     assert data.geometry is None and "geometry" not in data.available()
-    assert viewer.open_file(path)
+    assert open_and_wait(qtbot, viewer, path)
     assert viewer.display.findData("geometry") < 0 and not viewer.geometry_choice.isEnabled()
 
 
-def test_specular_candidates_name_their_zenith_and_azimuth(viewer, files, tmp_path):
+def test_specular_candidates_name_their_zenith_and_azimuth(qtbot, viewer, files, tmp_path):
     """A specular maps EXR has four candidates (two zeniths about Brewster's angle, each with
     the pi azimuth ambiguity): candidate 3's readout gives zenith 1 (above Brewster) and the
     azimuth of candidate 0 (AoLP + 90 deg) + 180 deg."""
@@ -166,7 +167,7 @@ def test_specular_candidates_name_their_zenith_and_azimuth(viewer, files, tmp_pa
     assert main(["analyze", str(result), "--normals", "--ior", "1.5", "--reflection", "specular",
                  "--out", str(maps)]) == 0
     p = read_exr(maps).planes
-    assert viewer.open_file(maps)
+    assert open_and_wait(qtbot, viewer, maps)
     labels = [viewer.geometry_choice.itemText(i) for i in range(viewer.geometry_choice.count())]
     assert len(labels) == 4 and "above Brewster, azimuth = AoLP + 270 deg" in labels[3]
     viewer.colour.setCurrentIndex(viewer.colour.findData(0))

@@ -45,11 +45,12 @@ def test_viewer_honours_the_valid_plane_and_says_why(qtbot, tmp_path):
     Stokes vector, unflagged. Now the readout says "MASKED: saturated" (or dark, with the SNR)
     and the DoLP display is black there."""
     from polrig.gui.viewer import ViewerPanel
+    from test_gui import open_and_wait
 
     exr = _stokes_exr_with_a_saturated_sky(tmp_path)
     v = ViewerPanel()
     qtbot.addWidget(v)
-    assert v.open_file(exr)
+    assert open_and_wait(qtbot, v, exr)
     v.display.setCurrentIndex(v.display.findData("dolp"))
     v._hovered(2, 1)  # the sky (output rows 0..3)
     assert "MASKED: saturated" in v.readout.text()

@@ -30,9 +30,15 @@ from polrig.gui.qtimage import from_qimage  # noqa: E402
 from polrig.optics import mueller as mu  # noqa: E402
 from polrig.optics import parameters as pa  # noqa: E402
 from polrig.optics.virtual_polarizer import virtual_polarizer_image  # noqa: E402
+from test_gui import open_and_wait  # noqa: E402
 
 pytestmark = pytest.mark.gui
 H, W = 40, 48
+
+
+def roi_done(qtbot, tools) -> None:
+    """Wait for the ROI statistics (computed off the UI thread)."""
+    qtbot.waitUntil(lambda: not tools.busy, timeout=60000)
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +70,7 @@ def viewer(qtbot, result_exr):
     v.show()
     v.messages = []
     v.message.connect(lambda lvl, t: v.messages.append((lvl, t)))
-    assert v.open_file(result_exr)
+    assert open_and_wait(qtbot, v, result_exr)
     return v
 
 
@@ -93,6 +99,7 @@ def test_drawn_rectangle_table_equals_the_headless_statistics(qtbot, viewer):
     drag(qtbot, v.view, (26.0, 15.0), (44.0, 33.0))
     region = v.roi.region
     assert isinstance(region, roi.RectROI)
+    roi_done(qtbot, v.roi)
     # the mouse lands on whole widget pixels: the drawn corners are within a pixel of the aim
     assert abs(region.x - 26) < 1 and abs(region.y - 15) < 1
     assert abs(region.w - 18) < 1.5 and abs(region.h - 18) < 1.5
@@ -126,9 +133,11 @@ def test_drawn_polygon_and_ellipse_and_the_mueller_grid_tile(qtbot, viewer):
                       pos=v.view._widget_point(*pts[-1]).toPoint())
     region = v.roi.region
     assert isinstance(region, roi.PolygonROI) and len(region.points) == 3
+    roi_done(qtbot, v.roi)
     assert v.roi.rows == headless(v, region)
     v.view.set_shape("ellipse", [(10.0, 12.0), (30.0, 28.0)])
     assert v.roi.region == roi.EllipseROI(20.0, 20.0, 10.0, 8.0)
+    roi_done(qtbot, v.roi)
     assert v.roi.rows == headless(v, v.roi.region)
     # on the 3x3 grid, a shape drawn on the m11 tile measures the same pixels
     v.display.setCurrentIndex(v.display.findData("mueller"))
@@ -146,6 +155,7 @@ def test_line_profile_and_csv_export(qtbot, viewer, tmp_path):
     drag(qtbot, v.view, (3.0, 20.0), (45.0, 20.0))
     seg = v.roi.segment
     assert seg is not None and abs(seg[0] - 3) < 1 and abs(seg[2] - 45) < 1
+    roi_done(qtbot, v.roi)
     want = roi.profile_of(seg, mueller=v.data.mueller, sigma=v.data.sigma,
                           valid=pipeline.roi_valid(v.data))  # what polrig stats computes
     whole = roi.line_profile(roi.mueller_quantities(v.data.mueller, v.data.sigma,
@@ -270,16 +280,21 @@ def test_parameter_maps_are_computed_off_the_gui_thread_and_equal_image_maps(qtb
 def test_a_stale_maps_result_is_discarded_when_the_file_changes(qtbot, viewer, tmp_path):
     """Another file opened while the maps of the first are computed: the first's result is
     dropped (never kept or shown) and the maps of the file shown are computed and shown."""
+    import threading
+
     v = viewer
     first = v.data
+    gate, compute = threading.Event(), first.compute_maps
+    first.compute_maps = lambda: (gate.wait(30), compute())[1]  # still running when other shows
     v.display.setCurrentIndex(v.display.findData("maps"))
     assert v.maps_busy
     other = tmp_path / "other.exr"
     m = 500.0 * mu.linear_block(mu.retarder_at(np.full((H, W), 0.4), np.full((H, W), 1.1)))
     img = np.moveaxis(m, (-2, -1), (0, 1))[None].astype(np.float32)
     write_mueller_exr(other, img, extra=element_planes("sigma", np.full(img.shape, 2.0, np.float32)))
-    assert v.open_file(other)  # while the first file's worker still runs (no event handled)
-    assert v.data is not first
+    assert open_and_wait(qtbot, v, other)  # while the first file's maps worker still runs
+    assert v.data is not first and v.maps_busy
+    gate.set()
     qtbot.waitUntil(lambda: _maps_shown(v), timeout=60000)
     assert not first.maps_ready()  # the stale result was discarded
     expect = pa.image_maps(v.data.mueller, v.data.sigma)
@@ -309,7 +324,7 @@ def test_stokes_views_imin_imax_signed_s1_s2_and_the_wheel(qtbot, tmp_path):
     v = ViewerPanel()
     qtbot.addWidget(v)
     v.show()
-    assert v.open_file(path)
+    assert open_and_wait(qtbot, v, path)
     imin, imax = min_max_intensity(stokes)
     np.testing.assert_allclose(imin + imax, stokes[:, 0], rtol=1e-5)
     np.testing.assert_allclose(imax - imin, np.hypot(stokes[:, 1], stokes[:, 2]), rtol=1e-4, atol=1e-3)
@@ -331,6 +346,7 @@ def test_stokes_views_imin_imax_signed_s1_s2_and_the_wheel(qtbot, tmp_path):
     np.testing.assert_array_equal(v.wheel.rgb, preview.aolp_wheel(v.wheel.wheel_px, dolp_as=None))
     # ROI statistics of Stokes data: S0, DoLP, AoLP
     v.view.set_shape("rect", [(0.0, 0.0), (32.0, 24.0)])
+    roi_done(qtbot, v.roi)
     names = {r.quantity for r in v.roi.rows}
     assert names == {"S0", "DoLP", "AoLP_deg"}
     assert next(r for r in v.roi.rows if r.quantity == "S0").mean == pytest.approx(
@@ -368,9 +384,12 @@ def test_live_view_new_displays_and_roi(qtbot, tmp_path):
                                      step=res.step)
             np.testing.assert_array_equal(rgb, expect)
         assert w.live.wheel.mode == "saturation"
+        w.live.pause_for("a test", True)  # no newer frame's statistics replace these
         w.live.view.set_shape("rect", [(2.0, 2.0), (10.0, 12.0)])
         res = w.live.last
         w.live.roi.set_data(res.data)
+        roi_done(qtbot, w.live.roi)
+        assert w.live.roi.data is res.data
         region = w.live.roi.region
         assert region == roi.RectROI(2.0 * res.step, 2.0 * res.step, 8.0 * res.step, 10.0 * res.step)
         inside = roi.roi_mask(region, pipeline.roi_shape(res.data))

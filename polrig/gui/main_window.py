@@ -246,5 +246,6 @@ class MainWindow(QMainWindow):
         self.live_worker.wait(15000)
         self.devices.shutdown(wait_ms=65000)
         self.viewer.shutdown()
+        self.live.roi.shutdown()
         self.capture.shutdown()
         self.rig.close()

@@ -4,7 +4,11 @@ CSV; and the AoLP colour wheel shown beside every image.
 
 The numbers are :func:`polrig.gui.pipeline.roi_statistics` and
 :func:`polrig.app.roi.line_profile` (what ``polrig stats`` computes); this module only turns
-drawn shapes into :mod:`polrig.app.roi` geometry and shows the rows.
+drawn shapes into :mod:`polrig.app.roi` geometry and shows the rows. They are computed on a
+thread of their own (one worker, as the capture panel's thumbnails; at the full sensor's
+1224x1024 superpixel grid a region's statistics take seconds): the table says "computing..."
+meanwhile, a result for an earlier shape or data is dropped, and :meth:`RoiTools.shutdown`
+ends the thread.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import math
 import pathlib
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
@@ -130,16 +135,33 @@ class ProfilePlot(QWidget):
         p.drawText(2, self.height() - 3, f"{self.label}: {lo:.4g} .. {hi:.4g} over {smax:.4g} px")
 
 
+#: What the ROI summary says while the statistics are computed.
+COMPUTING_ROI = "computing the ROI statistics..."
+
+
 class RoiTools(QWidget):
     """Drawing tool choice, statistics table, profile plot and CSV export for an
     :class:`ImageView`. :meth:`set_data` gives the data and how image points map to its pixels
-    (``to_data``: a list of image points -> data points; default the identity)."""
+    (``to_data``: a list of image points -> data points; default the identity). The numbers
+    are computed off the UI thread; :attr:`busy` is True until the latest request's arrive
+    (``computed`` is emitted then)."""
 
     message = Signal(str, str)
+    #: the latest request's numbers are shown (or its error reported)
+    computed = Signal()
+    #: from the statistics thread: request id, rows (None: no region), profile (None: no
+    #: line), error text ("" when none)
+    _result = Signal(int, object, object, str)
 
     def __init__(self, view: ImageView, parent=None):
         super().__init__(parent)
         self.view = view
+        #: ROI statistics and profiles are computed here, off the UI thread; ``_job`` tells
+        #: the latest request's result from those of earlier ones
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="roi-statistics")
+        self._job = 0
+        self._pending = False
+        self._result.connect(self._show_result)
         self.data: pipeline.PolarizationData | None = None
         self.to_data: Callable[[list], list] = lambda pts: pts
         self.region: roi.ROI | None = None
@@ -209,21 +231,73 @@ class RoiTools(QWidget):
 
     # -- numbers
     def recompute(self) -> None:
+        """Measure the region and the line on the data, on the statistics thread."""
+        self._job += 1  # whatever is still being computed is for an earlier request
         data = self.data
         if data is None or (data.mueller is None and data.stokes is None):
+            self._pending = False
             self.rows, self.profile = [], None
             self._fill()
+            self.computed.emit()
             return
+        if self.region is None and self.segment is None:
+            self._pending = False
+            self.computed.emit()
+            return
+        self._pending = True
+        if self.region is not None:
+            self.summary.setText(f"{self.region.text()}: {COMPUTING_ROI}")
         try:
-            if self.region is not None:
-                inside = roi.roi_mask(self.region, pipeline.roi_shape(data))
-                self.rows = pipeline.roi_statistics(data, inside)
-            if self.segment is not None:
-                self.profile = pipeline.roi_profile(data, self.segment)
-        except (ValueError, FloatingPointError) as exc:
-            self.message.emit("error", f"ROI: {exc}")
+            self._worker.submit(self._compute, self._job, data, self.region, self.segment)
+        except RuntimeError:  # shut down: the window is closing
+            self._pending = False
+
+    def _compute(self, job: int, data: pipeline.PolarizationData, region, segment) -> None:
+        """The statistics thread: one request's rows and profile, handed to the UI thread."""
+        if job != self._job:  # superseded while queued
             return
-        self._fill()
+        rows = profile = None
+        error = ""
+        try:
+            if region is not None:
+                rows = pipeline.roi_statistics(data, roi.roi_mask(region, pipeline.roi_shape(data)))
+            if segment is not None:
+                profile = pipeline.roi_profile(data, segment)
+        except (ValueError, FloatingPointError) as exc:
+            error = str(exc)
+        except Exception as exc:  # noqa: BLE001 - a failure is a message, never a dead thread
+            error = f"{type(exc).__name__}: {exc}"
+        try:
+            self._result.emit(job, rows, profile, error)
+        except RuntimeError:  # the panel is gone
+            pass
+
+    def _show_result(self, job: int, rows, profile, error: str) -> None:
+        if job != self._job:  # an earlier shape or data: dropped
+            return
+        self._pending = False
+        if error:
+            self.summary.setText(f"ROI: {error}")
+            self.message.emit("error", f"ROI: {error}")
+        else:
+            if rows is not None:
+                self.rows = rows
+            if profile is not None:
+                self.profile = profile
+            self._fill()
+        self.computed.emit()
+
+    @property
+    def busy(self) -> bool:
+        """True until the numbers of the latest shape and data are shown."""
+        return self._pending
+
+    def shutdown(self) -> None:
+        """End the statistics thread (a computation in progress is finished, queued ones
+        dropped) before the panel goes."""
+        self._job += 1
+        self._pending = False
+        self._worker.shutdown(wait=True, cancel_futures=True)
 
     def _fill(self) -> None:
         self.table.setRowCount(len(self.rows))
@@ -271,6 +345,10 @@ class RoiTools(QWidget):
         """Write the statistics (``path``) and the profile (``PATH_profile.csv``) as CSV
         (:func:`polrig.app.roi.stats_csv`, :func:`polrig.app.roi.profile_csv`); asks for the
         file without ``path``. Returns the files written."""
+        if self.busy:
+            self.message.emit("warning", "ROI: the statistics are still being computed: export "
+                                         "once the table shows them")
+            return []
         if not self.rows and self.profile is None:
             self.message.emit("warning", "ROI: nothing to export: draw an ROI or a line first")
             return []

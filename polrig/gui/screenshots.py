@@ -49,6 +49,16 @@ def _wait(app, cond, timeout_s: float, what: str) -> None:
         time.sleep(0.01)
 
 
+def open_in_viewer(app, viewer, session: pathlib.Path) -> None:
+    """Open ``session`` in ``viewer`` and wait until its first file is shown (the viewer loads
+    files on a thread of its own)."""
+    if not viewer.open_session(session):
+        raise RuntimeError(f"screenshots: the viewer cannot open {session}")
+    _wait(app, lambda: not viewer.loading, 600.0, "the viewer to load the capture")
+    if viewer.data is None:
+        raise RuntimeError(f"screenshots: the viewer cannot show {session}'s first file")
+
+
 def analysis_views(app, viewer, shot) -> None:
     """The viewer's analysis tools on the result it shows: a parameter map with an ellipse ROI,
     its statistics and a line profile (``viewer_roi_stats.png``), then the virtual polarizer
@@ -61,9 +71,11 @@ def analysis_views(app, viewer, shot) -> None:
           "the parameter maps (computed on a worker thread)")
     v.roi.tool.setCurrentIndex(v.roi.tool.findData("line"))
     v.view.set_shape("line", [(0.1 * w, 0.8 * h), (0.9 * w, 0.2 * h)])
+    _wait(app, lambda: not v.roi.busy, 600.0, "the line profile (computed on a worker thread)")
     v.roi.profile_quantity.setCurrentText("retardance_deg")
     v.roi.tool.setCurrentIndex(v.roi.tool.findData("ellipse"))
     v.view.set_shape("ellipse", [(0.3 * w, 0.3 * h), (0.7 * w, 0.6 * h)])
+    _wait(app, lambda: not v.roi.busy, 600.0, "the ROI statistics (computed on a worker thread)")
     shot(v, "viewer_roi_stats.png")
     v.display.setCurrentIndex(v.display.findData("polarizer"))
     v.incident.setValue(30)
@@ -131,12 +143,12 @@ def _analysis_only(app, out: pathlib.Path, tmp: pathlib.Path, size: str) -> list
     v = ViewerPanel()
     v.resize(1560, 900)
     v.show()
-    if not v.open_session(session):
-        raise RuntimeError("screenshots: the viewer cannot open the capture")
+    open_in_viewer(app, v, session)
     written: list[pathlib.Path] = []
     shot = _shooter(app, out, written)
 
     analysis_views(app, v, shot)
+    v.shutdown()
     v.close()
     return written
 
@@ -223,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         adaptive_capture_view(app, w, tmp / "adaptive_session", shot)
     else:
         print("capture_adaptive.png not written: no single-shot model installed")
-    w.viewer.open_session(tmp / "session")
+    open_in_viewer(app, w.viewer, tmp / "session")
     w.show_panel(w.viewer)
     v = w.viewer
     h, wd = v.data.mueller.shape[-2:]  # cursor on the object in the m11 tile

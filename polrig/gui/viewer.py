@@ -12,11 +12,23 @@ The parameter maps (display "Parameter map") take seconds at full sensor size
 the view says "computing parameter maps..." meanwhile and the rest of the viewer stays usable.
 One worker runs at a time; a result for data that is no longer shown (another file was opened)
 is discarded, and the maps of the data shown then are requested in turn.
+
+Opening a file is slow too (a full colour sensor's Mueller result, 1224x1024x3, takes seconds
+to read and render, longer with its sigma planes), so :meth:`ViewerPanel.open_file` only starts
+the load: the file is read, and its first image rendered, on a thread of the panel's own (one
+worker, as the capture panel makes its thumbnails), and shown when it arrives; meanwhile the
+view says "loading NAME...". A load superseded by a newer one (another file or entry chosen
+before it ended) is dropped, never shown. The panel's ``loaded(ok)`` signal and its
+:attr:`~ViewerPanel.loading` property say when the latest load has been shown (or its error
+reported); the ROI statistics follow on their own thread (:class:`polrig.gui.roi_panel.RoiTools`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from PySide6.QtCore import Qt, QThread, Signal
@@ -130,6 +142,71 @@ def result_metadata(path: str | pathlib.Path) -> dict[str, str]:
                         if k not in RESERVED_METADATA_KEYS and isinstance(v, str)}}
 
 
+def initial_display(data: pipeline.PolarizationData, keep: str | None) -> str:
+    """The display a newly opened file shows: the one shown before where the file has it,
+    else the Mueller grid, else the file's first."""
+    available = data.available()
+    if keep in available:
+        return keep
+    return "mueller" if "mueller" in available else available[0]
+
+
+def initial_geometry(data: pipeline.PolarizationData, keep: str | None) -> str | None:
+    """The geometry layer choice a newly opened file shows (kept where it can be)."""
+    keys = [key for key, _ in data.geometry.choices()] if data.geometry is not None else []
+    return keep if keep in keys else (keys[0] if keys else None)
+
+
+@dataclasses.dataclass
+class Rendered:
+    """An image rendered off the UI thread: ``key`` ``(display, colour, options, min_snr)``
+    it was rendered for, the image and its histogram ``(counts, edges, label)``."""
+
+    data: pipeline.PolarizationData
+    key: tuple
+    image: object
+    histogram: tuple
+
+
+@dataclasses.dataclass
+class Loaded:
+    """A file read (and its first image rendered) by the load thread."""
+
+    data: pipeline.PolarizationData
+    #: the result's sample metadata (:func:`result_metadata`; None for a raw frame)
+    metadata: dict | None
+    rendered: Rendered | None
+
+
+def load_and_render(path: pathlib.Path, kind: str, method: str, keep_display: str | None,
+                    keep_geometry: str | None, options: pipeline.ViewOptions,
+                    min_snr: float, wanted: Callable[[], bool] = lambda: True) -> Loaded:
+    """Read ``path`` (``kind`` ``exr`` or ``raw``, a raw frame demosaiced by ``method``) and
+    render the image the viewer will show first (the controls as given), as
+    :meth:`ViewerPanel.set_data` then :meth:`ViewerPanel.refresh` would; not rendered when
+    ``wanted()`` says False once the file is read (superseded). Runs on the load thread;
+    raises what the readers raise."""
+    data = load_exr(path) if kind == "exr" else load_raw(path, method)
+    metadata = result_metadata(path) if kind == "exr" else None
+    if not wanted():
+        return Loaded(data, metadata, None)
+    display = initial_display(data, keep_display)
+    colour = colour_choices(data.n_colours)[0][1]
+    options = dataclasses.replace(
+        options, geometry=initial_geometry(data, keep_geometry) or geometry_layer.NETWORK_NORMAL)
+    rendered = None
+    if display != "maps" or data.maps_ready():  # maps come from a MapsWorker
+        data.min_snr = min_snr
+        try:
+            rgb = pipeline.render(data, display, colour, saturation_overlay=True, options=options)
+            hist = pipeline.histogram(data, display, colour, options=options)
+        except ValueError:  # refresh() says why, on the UI thread
+            pass
+        else:
+            rendered = Rendered(data, (display, colour, options, min_snr), to_qimage(rgb), hist)
+    return Loaded(data, metadata, rendered)
+
+
 def _angle_slider() -> QSlider:
     """A horizontal slider of an angle in whole degrees, 0..180 (180 is 0 again)."""
     sl = QSlider(Qt.Orientation.Horizontal)
@@ -170,9 +247,20 @@ class ViewerPanel(QWidget):
     """Open a session or an EXR, pick an entry, choose the display."""
 
     message = Signal(str, str)
+    #: the latest load has ended: shown (True) or its error reported (False)
+    loaded = Signal(bool)
+    #: from the load thread: load id, path, kind, :class:`Loaded` or the error text
+    _load_ended = Signal(int, object, str, object)
 
     def __init__(self, parent=None):
         super().__init__(parent)
+        #: files are read and first rendered here, off the UI thread; ``_load_id`` tells the
+        #: latest load from those it superseded
+        self._loader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewer-load")
+        self._load_id = 0
+        self._loading = False
+        self._rendered: Rendered | None = None
+        self._load_ended.connect(self._load_finished)
         self.data: pipeline.PolarizationData | None = None
         #: the worker computing parameter maps, if one runs
         self.maps_worker: MapsWorker | None = None
@@ -292,6 +380,8 @@ class ViewerPanel(QWidget):
             self.open_file(path)
 
     def open_session(self, root: str | pathlib.Path) -> bool:
+        """List a session's files (its manifest, read here) and start loading the first
+        (:meth:`open_file`); False when the session cannot be read."""
         try:
             entries = session_entries(root)
             metadata = session_metadata(root)
@@ -310,22 +400,70 @@ class ViewerPanel(QWidget):
         return True
 
     def open_file(self, path: str | pathlib.Path, kind: str = "exr") -> bool:
+        """Start loading ``path`` (``kind`` ``exr`` or ``raw``) on the load thread; it is shown
+        when read (``loaded(True)``), a file that cannot be read is a one-line error
+        (``loaded(False)``). A load still running is superseded: its file is never shown.
+        Returns whether the load started (False once the panel has shut down)."""
+        path = pathlib.Path(path)
+        self._load_id += 1  # an earlier load still running is superseded
+        job = self._load_id
+        o = self.options()
         try:
-            data = load_exr(path) if kind == "exr" else load_raw(path, self.method.currentText())
-        except Exception as exc:  # noqa: BLE001 - a damaged file is a message, never a crash
-            text = (str(exc) if isinstance(exc, (PolrigError, OSError, ValueError))
-                    else f"{type(exc).__name__}: {exc}")
-            self.clear(f"cannot show {pathlib.Path(path).name}: {text}")
-            self.message.emit("error", f"viewer: {text}")
+            self._loader.submit(self._load, job, path, kind, self.method.currentText(),
+                                self.display.currentData(), self.geometry_choice.currentData(),
+                                o, self.min_snr.value())
+        except RuntimeError:  # shut down: the window is closing
+            self._loading = False
             return False
-        self.path = pathlib.Path(path)
+        self._loading = True
+        text = f"loading {path.name}..."
+        self.view.set_banner(text)
+        if self.view.image() is None:
+            self.view.set_placeholder(text)
+        return True
+
+    def _load(self, job: int, path: pathlib.Path, kind: str, *args) -> None:
+        """The load thread: read and render one file, hand it to the UI thread."""
+        if job != self._load_id:  # superseded while queued
+            return
+        try:
+            outcome: Loaded | str = load_and_render(path, kind, *args,
+                                                    wanted=lambda: job == self._load_id)
+        except Exception as exc:  # noqa: BLE001 - a damaged file is a message, never a crash
+            outcome = (str(exc) if isinstance(exc, (PolrigError, OSError, ValueError))
+                       else f"{type(exc).__name__}: {exc}")
+        try:
+            self._load_ended.emit(job, path, kind, outcome)
+        except RuntimeError:  # the panel is gone
+            pass
+
+    def _load_finished(self, job: int, path: pathlib.Path, kind: str, outcome) -> None:
+        if job != self._load_id:  # a newer load was started meanwhile: dropped
+            return
+        self._loading = False
+        self.view.set_banner("")
+        if isinstance(outcome, str):
+            self.clear(f"cannot show {path.name}: {outcome}")
+            self.message.emit("error", f"viewer: {outcome}")
+            self.loaded.emit(False)
+            return
+        self.path = path
         self._kind = kind
-        if kind == "exr":
-            found = result_metadata(path)
+        if outcome.metadata is not None:
+            found = outcome.metadata
             if found or not self.entries.count():  # a session's own stays when its file has none
                 self.metadata.setText(metadata_text(found))
-        self.set_data(data)
-        return True
+        self._rendered = outcome.rendered
+        try:
+            self.set_data(outcome.data)
+        finally:
+            self._rendered = None
+        self.loaded.emit(True)
+
+    @property
+    def loading(self) -> bool:
+        """True from :meth:`open_file` until its file is shown or its error reported."""
+        return self._loading
 
     def _entry_chosen(self, item, _prev=None) -> None:
         if item is not None:
@@ -351,14 +489,12 @@ class ViewerPanel(QWidget):
 
     def set_data(self, data: pipeline.PolarizationData) -> None:
         self.data = data
-        keep = self.display.currentData()
+        want = initial_display(data, self.display.currentData())
         self.display.blockSignals(True)
         self.colour.blockSignals(True)
         self.display.clear()
         for key in data.available():
             self.display.addItem(pipeline.DISPLAYS[key], key)
-        want = keep if keep in data.available() else (
-            "mueller" if "mueller" in data.available() else data.available()[0])
         self.display.setCurrentIndex(self.display.findData(want))
         self.colour.clear()
         for label, value in colour_choices(data.n_colours):
@@ -371,13 +507,12 @@ class ViewerPanel(QWidget):
 
     def _geometry_choices(self, data: pipeline.PolarizationData) -> None:
         """Offer what the data's geometry can show (kept across files where it can)."""
-        keep = self.geometry_choice.currentData()
+        want = initial_geometry(data, self.geometry_choice.currentData())
         self.geometry_choice.blockSignals(True)
         self.geometry_choice.clear()
         for key, label in data.geometry.choices() if data.geometry is not None else []:
             self.geometry_choice.addItem(label, key)
-        at = self.geometry_choice.findData(keep)
-        self.geometry_choice.setCurrentIndex(max(at, 0))
+        self.geometry_choice.setCurrentIndex(max(self.geometry_choice.findData(want), 0))
         self.geometry_choice.setEnabled(data.geometry is not None)
         self.geometry_choice.blockSignals(False)
 
@@ -447,7 +582,12 @@ class ViewerPanel(QWidget):
             self._request_maps()
 
     def shutdown(self, wait_ms: int = 60000) -> bool:
-        """Wait for a running maps worker (numpy cannot be interrupted); True when none runs."""
+        """End the load and ROI threads (a file being read is finished, not shown) and wait
+        for a running maps worker (numpy cannot be interrupted); True when none runs."""
+        self._load_id += 1  # a load in progress skips its rendering and is dropped
+        self._loading = False
+        self._loader.shutdown(wait=True, cancel_futures=True)
+        self.roi.shutdown()
         w = self.maps_worker
         return w is None or w.wait(wait_ms)
 
@@ -466,6 +606,13 @@ class ViewerPanel(QWidget):
             self.histogram.set_data(np.zeros(0), np.zeros(1), COMPUTING_MAPS)
             self.wheel.set_mode(self._wheel_mode(display))
             self._request_maps()
+            return
+        done = self._rendered  # rendered with the file on the load thread
+        if (done is not None and done.data is data
+                and done.key == (display, colour, options, data.min_snr)):
+            self.histogram.set_data(*done.histogram)
+            self.view.set_image(done.image)
+            self.wheel.set_mode(self._wheel_mode(display))
             return
         try:
             rgb = pipeline.render(self.data, display, colour, saturation_overlay=True,
