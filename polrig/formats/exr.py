@@ -478,7 +478,11 @@ def _require(path: pathlib.Path, channels: Collection[str], names: list[str]) ->
 
 def read_stokes_exr(path: PathLike) -> StokesExr:
     """Read a Stokes EXR: ``stokes`` ``(C, 3, H, W)`` float32, other channels in ``extra``."""
-    img = read_exr(path)
+    return stokes_exr(read_exr(path))
+
+
+def stokes_exr(img: ExrImage) -> StokesExr:
+    """:func:`read_stokes_exr` of a file already read whole (:func:`read_exr`)."""
     c = _n_colours(img.path, img.planes, "S0")
     names = stokes_channels(c)
     _require(img.path, img.planes, names)
@@ -491,7 +495,12 @@ def read_stokes_exr(path: PathLike) -> StokesExr:
 def read_mueller_exr(path: PathLike) -> MuellerExr:
     """Read a Mueller EXR: ``mueller`` ``(C, 3, 3, H, W)`` float32, others in ``extra``
     (whatever optional planes the file has: ``sigma``, ``mask``, ... may be absent)."""
-    img = read_exr(path)
+    return mueller_exr(read_exr(path))
+
+
+def mueller_exr(img: ExrImage) -> MuellerExr:
+    """:func:`read_mueller_exr` of a file already read whole (:func:`read_exr`); the Mueller
+    planes are moved out of ``img.planes``, the rest become ``extra``."""
     c = _n_colours(img.path, img.planes, "M00")
     names = mueller_channels(c)
     _require(img.path, img.planes, names)

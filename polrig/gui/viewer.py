@@ -53,7 +53,7 @@ from PySide6.QtWidgets import (
 from polrig.app.manifest import RESERVED_METADATA_KEYS
 from polrig.app.session import Session
 from polrig.errors import FormatError, PolrigError
-from polrig.formats.exr import MuellerRows, read_exr, read_mueller_exr, read_stokes_exr
+from polrig.formats.exr import MuellerRows, mueller_exr, read_exr, stokes_exr
 from polrig.formats.rawio import read_raw
 from polrig.gui import geometry_layer, pipeline
 from polrig.gui.live_panel import DEMOSAIC_METHODS, colour_choices
@@ -76,10 +76,10 @@ def load_exr(path: str | pathlib.Path) -> pipeline.PolarizationData:
     planes = whole.planes
     geometry = geometry_layer.geometry_from_planes(planes, whole.metadata)
     if any(k.startswith("M00.") for k in planes):
-        img = read_mueller_exr(path)
+        img = mueller_exr(whole)  # the file is read once
         data = pipeline.PolarizationData.from_mueller(img.mueller, str(path), img.extra)
     elif any(k.startswith("S0.") for k in planes):
-        img = read_stokes_exr(path)
+        img = stokes_exr(whole)
         data = pipeline.PolarizationData.from_stokes(img.stokes, str(path), img.extra)
     elif geometry is not None:
         data = pipeline.PolarizationData(source=str(path))

@@ -72,11 +72,17 @@ def _sources(src: pathlib.Path) -> list[tuple[str, pathlib.Path]]:
 def load_result(path: pathlib.Path, sigma_source: str = "sigma"):
     """``(mueller, sigma or None, valid)`` of a result EXR: ``valid`` ``(C, H, W)`` is the
     ``mask`` planes' 0 (all True without them)."""
+    from polrig.formats.exr import read_mueller_exr
+
+    return _result_arrays(read_mueller_exr(path), sigma_source)
+
+
+def _result_arrays(res, sigma_source: str):
+    """:func:`load_result` of a Mueller EXR already read (:class:`polrig.formats.exr.MuellerExr`)."""
     import numpy as np
 
-    from polrig.formats.exr import channel_suffixes, element_stack, read_mueller_exr
+    from polrig.formats.exr import channel_suffixes, element_stack
 
-    res = read_mueller_exr(path)
     c = res.mueller.shape[0]
     sigma = None if sigma_source == "none" else element_stack(sigma_source, res.extra, c)
     masks = [res.extra.get(f"mask.{s}") for s in channel_suffixes(c)]
@@ -92,16 +98,16 @@ def load_source(path: pathlib.Path, sigma_source: str = "sigma") -> dict:
     :func:`polrig.app.preview.stokes_exr_masks`); :class:`polrig.errors.FormatError` for any
     other EXR."""
     from polrig.errors import FormatError
-    from polrig.formats.exr import read_exr, read_stokes_exr
+    from polrig.formats.exr import mueller_exr, read_exr, stokes_exr
 
-    names = read_exr(path).planes
-    if any(k.startswith("M00.") for k in names):
-        mueller, sigma, valid = load_result(path, sigma_source)
+    whole = read_exr(path)  # read once: its channels say which kind it is
+    if any(k.startswith("M00.") for k in whole.planes):
+        mueller, sigma, valid = _result_arrays(mueller_exr(whole), sigma_source)
         return {"mueller": mueller, "sigma": sigma, "valid": valid}
-    if any(k.startswith("S0.") for k in names):
+    if any(k.startswith("S0.") for k in whole.planes):
         from polrig.app.preview import stokes_exr_masks
 
-        img = read_stokes_exr(path)
+        img = stokes_exr(whole)
         stokes, valid, _flags, snr = stokes_exr_masks(img.stokes, img.extra)
         return {"stokes": stokes, "valid": valid, "snr": snr}
     raise FormatError(f"{path}: neither a Mueller result (M00.*) nor a Stokes EXR (S0.*)")
