@@ -427,6 +427,36 @@ def test_resume_refuses_a_rig_whose_frames_differ(tmp_path):
             check_resume_rig(s, rig)
 
 
+def test_a_world_recorded_on_another_processor_is_the_same_world():
+    """The simulated world's recorded numbers are compared to float rounding: a session started
+    on one machine resumes on another whose processor rounds the last bits differently (as the
+    version-1 test data's stage axis does on an AVX2-only AMD EPYC), and a real change of a
+    value, a key, a length or a type is still a different world."""
+    import json
+
+    from polrig.app.records import rig_differences, same_values
+
+    world = {"seed": 11, "scene": {"name": "box", "stage_zero_axis": [0.9193993908515852,
+                                                                     0.39331567487433816,
+                                                                     0.002745906021358964]},
+             "noise": True, "exposure_us": 5000.0}
+    elsewhere = json.loads(json.dumps(world))
+    elsewhere["scene"]["stage_zero_axis"][2] = 0.002745906021358971
+    assert same_values(world, elsewhere)
+    rig = {"simulated": True, "sim_parameters": world}
+    assert rig_differences(rig, {"simulated": True, "sim_parameters": elsewhere}) == []
+    changed = json.loads(json.dumps(world))
+    changed["scene"]["stage_zero_axis"][2] *= 1 + 1e-6
+    assert rig_differences(rig, {"simulated": True, "sim_parameters": changed}) == [
+        "simulated world (scene)"]
+    assert not same_values(world, {**world, "seed": 12})
+    assert not same_values(world, {**world, "noise": 1.0})  # a bool is not a number here
+    assert not same_values(world, {**world, "extra": 0})
+    assert not same_values([0.0, 1.0], [0.0])
+    assert not same_values(0.0, 1e-9)
+    assert same_values(0.0, 1e-13)
+
+
 def test_exposure_outside_the_cameras_range_is_refused_before_a_session_exists(tmp_path):
     from polrig.acquisition.plan import PlanError
     from polrig.app.records import check_rig_for_plan

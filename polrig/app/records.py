@@ -111,6 +111,29 @@ def recorded_camera_frames(session: Session) -> CameraFrames | None:
     return None
 
 
+#: Relative difference below which two recorded numbers of the simulated world are the same
+#: value: the world is derived from its configuration in floating point, and another processor
+#: (its vector instructions) or NumPy build rounds the last bits differently (a stage axis
+#: recorded as 0.002745906021358964 on one machine is 0.002745906021358971 on another).
+SAME_VALUE_REL = 1e-9
+
+
+def same_values(a: Any, b: Any) -> bool:
+    """Whether two JSON values are equal, floats to within :data:`SAME_VALUE_REL` (relative,
+    with an absolute floor of ``SAME_VALUE_REL * 1e-3`` for values near 0); anything else,
+    keys and lengths included, exactly."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_values(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(same_values(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) or isinstance(b, float):
+        if isinstance(a, bool) or isinstance(b, bool) or not all(
+                isinstance(v, (int, float)) for v in (a, b)):
+            return False
+        return math.isclose(a, b, rel_tol=SAME_VALUE_REL, abs_tol=SAME_VALUE_REL * 1e-3)
+    return a == b
+
+
 def rig_differences(stored: dict[str, Any], current: dict[str, Any],
                     stored_frames: dict[str, Any] | None = None) -> list[str]:
     """What makes frames of the rig ``current`` (a :func:`rig_record`) incomparable with those
@@ -135,8 +158,8 @@ def rig_differences(stored: dict[str, Any], current: dict[str, Any],
         out.append(f"sensor noise model ({', '.join(keys)})")
     sp, cp = stored.get("sim_parameters"), current.get("sim_parameters")
     if (isinstance(sp, dict) and isinstance(cp, dict) and "error" not in sp
-            and "error" not in cp and sp != cp):
-        keys = sorted(k for k in set(sp) | set(cp) if sp.get(k) != cp.get(k))
+            and "error" not in cp and not same_values(sp, cp)):
+        keys = sorted(k for k in set(sp) | set(cp) if not same_values(sp.get(k), cp.get(k)))
         out.append(f"simulated world ({', '.join(keys)})")
     sd, cd = stored.get("devices") or {}, current.get("devices") or {}
     for name in ("camera", "stage", "turntable", "light"):
