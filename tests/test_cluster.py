@@ -423,6 +423,34 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def test_a_scheduler_with_no_worker_is_said_so_before_the_batch_waits(archive, tmp_path, capsys):
+    """``--scheduler`` of a cluster no worker has joined yet: Dask waits for one (workers may
+    join later, from a job queue), so the command first says where the work goes and that it
+    waits, instead of sitting silent at 0/N; it is then stopped like any batch (Ctrl-C)."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=0, processes=False, protocol="tcp", host="127.0.0.1",
+                      dashboard_address=None) as empty:
+        runner = cluster.open_runner(None, empty.scheduler_address)
+        try:
+            assert runner.description == (f"scheduler {empty.scheduler_address} (no worker yet: "
+                                           "the tasks wait until one joins, e.g. 'dask worker "
+                                           "ADDRESS')")
+        finally:
+            runner.close()
+        session = _copies(archive, tmp_path / "c")[0]
+        timer = threading.Timer(3.0, lambda: signal.raise_signal(signal.SIGINT))
+        timer.start()
+        try:
+            code = main(["reconstruct", str(session), "--scheduler", empty.scheduler_address,
+                         "--no-progress"])
+        finally:
+            timer.cancel()
+    err = capsys.readouterr().err
+    assert code == 130
+    assert f"polrig reconstruct: on scheduler {empty.scheduler_address} (no worker yet" in err
+
+
 def test_unreachable_scheduler_is_one_line_exit_2_before_anything_is_written(archive, tmp_path,
                                                                              capsys):
     import dask

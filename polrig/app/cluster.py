@@ -79,6 +79,9 @@ class Runner(Protocol):
     died while running it (:class:`TaskLost` is raised without it)."""
 
     description: str
+    #: A line for the operator before the batch starts, or None (an external scheduler's
+    #: address and workers: with none yet, the tasks wait silently for one to join).
+    notice: str | None
 
     def map_unordered(self, fn: Callable[[Any], Any], jobs: Sequence[Any],
                       lost: Callable[[Any, str], Any] | None = None
@@ -91,6 +94,7 @@ class SerialRunner:
     """In this process, one job after the other, in order (the default of every command)."""
 
     description = "serial (this process)"
+    notice = None
 
     def map_unordered(self, fn, jobs, lost=None):
         for job in jobs:  # no worker to lose: ``lost`` is never called
@@ -119,8 +123,8 @@ class DaskRunner:
     whose worker died, up to ``distributed.scheduler.allowed-failures`` times). Build it with
     :meth:`local` or :meth:`connect`."""
 
-    def __init__(self, client, cluster=None, description: str = "dask"):
-        self.client, self.cluster, self.description = client, cluster, description
+    def __init__(self, client, cluster=None, description: str = "dask", notice: str | None = None):
+        self.client, self.cluster, self.description, self.notice = client, cluster, description, notice
 
     @classmethod
     def local(cls, n_workers: int) -> "DaskRunner":
@@ -164,7 +168,10 @@ class DaskRunner:
                               f"({why}); start it with 'dask scheduler' or check the "
                               f"address") from None
         n = len(client.scheduler_info().get("workers", {}))
-        return cls(client, None, f"scheduler {address} ({n} worker(s) now)")
+        now = (f"{n} worker(s) now" if n else
+               "no worker yet: the tasks wait until one joins, e.g. 'dask worker ADDRESS'")
+        description = f"scheduler {address} ({now})"
+        return cls(client, None, description, notice=f"on {description}")
 
     def map_unordered(self, fn, jobs, lost=None):
         """:meth:`Runner.map_unordered` as Dask tasks. A task Dask gave up on because its

@@ -101,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
     # the executor first: an unreachable scheduler or a missing extra stops before anything
     # is opened or written
     runner = cluster.open_runner(args.workers, args.scheduler)
+    if runner.notice:  # an external scheduler: where the work goes, and whether it waits
+        print(f"polrig reconstruct: {runner.notice}", file=sys.stderr)
     bar = None
     many = len(paths) > 1
 

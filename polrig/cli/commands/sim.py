@@ -16,6 +16,7 @@ import argparse
 import json
 import math
 import pathlib
+import sys
 import time
 
 from polrig.choices import MATERIAL_MIXES, SCENES
@@ -199,6 +200,8 @@ def run_dataset(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     runner = open_runner(args.workers, args.scheduler)  # unreachable: exit 2, nothing written
+    if runner.notice:  # an external scheduler: where the work goes, and whether it waits
+        print(f"polrig sim dataset: {runner.notice}", file=sys.stderr)
     try:
         res = generate_dataset(args.out, count=args.count, width=args.size, seed=args.seed,
                                holdout=args.holdout, shard_size=args.shard_size,
