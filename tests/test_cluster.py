@@ -129,6 +129,21 @@ def test_from_list_and_serial_command_match_the_library(archive, archive_serial,
         assert _results(d) == s
 
 
+def _kill_a_busy_worker(runner: cluster.DaskRunner, killed: list[int], within_s: float = 120) -> None:
+    """SIGKILL the first worker process the scheduler says is running a task, 0.15 s into it;
+    its pid goes to ``killed``. Run on a thread beside the batch."""
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline and not killed:
+        busy = [w for w, keys in runner.client.processing().items() if keys]
+        if busy:
+            pid = runner.client.run(os.getpid, workers=[busy[0]])[busy[0]]
+            time.sleep(0.15)  # into the task
+            if runner.client.processing().get(busy[0]):
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+        time.sleep(0.02)
+
+
 def test_a_worker_killed_mid_task_is_rerun_and_the_batch_is_identical(slow_session, slow_serial,
                                                                       tmp_path):
     """SIGKILL of a worker process while the scheduler says it is running a task: Dask reruns
@@ -137,20 +152,7 @@ def test_a_worker_killed_mid_task_is_rerun_and_the_batch_is_identical(slow_sessi
     dist = _copies([slow_session], tmp_path / "dist")[0]
     runner = cluster.DaskRunner.local(2)
     killed: list[int] = []
-
-    def killer():
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            busy = [w for w, keys in runner.client.processing().items() if keys]
-            if busy:
-                pid = runner.client.run(os.getpid, workers=[busy[0]])[busy[0]]
-                time.sleep(0.15)  # into the task
-                if runner.client.processing().get(busy[0]):
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
-            time.sleep(0.02)
-
-    t = threading.Thread(target=killer, daemon=True)
+    t = threading.Thread(target=_kill_a_busy_worker, args=(runner, killed), daemon=True)
     try:
         t.start()
         cluster.reconstruct([dist], runner, demosaic="bilinear")
@@ -196,20 +198,7 @@ def test_a_worker_that_dies_every_time_fails_its_capture_and_the_batch_goes_on(s
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
         runner = cluster.DaskRunner.local(2)
     killed: list[int] = []
-
-    def killer():
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            busy = [w for w, keys in runner.client.processing().items() if keys]
-            if busy:
-                pid = runner.client.run(os.getpid, workers=[busy[0]])[busy[0]]
-                time.sleep(0.15)  # into the task
-                if runner.client.processing().get(busy[0]):
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
-            time.sleep(0.02)
-
-    t = threading.Thread(target=killer, daemon=True)
+    t = threading.Thread(target=_kill_a_busy_worker, args=(runner, killed), daemon=True)
     try:
         t.start()
         with pytest.raises(cluster.BatchIncomplete) as info:
