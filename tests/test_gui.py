@@ -657,6 +657,174 @@ def test_viewer_roi_statistics_are_computed_off_the_ui_thread(qtbot, tmp_path, m
     assert v.roi.rows[0].n_counted == 48 and "48 counted" in v.roi.summary.text()
 
 
+#: A Mueller result larger than the viewer redraws at once (viewer.SYNC_REDRAW_MAX_PX, 128x128)
+LARGE_HW = (136, 144)
+
+
+def _slow_render(monkeypatch, delay_s: float = 1.0):
+    """pipeline.render, ``delay_s`` slower; returns the list of ``(thread, display, colour,
+    options, min_snr)`` of its calls."""
+    import threading
+    import time
+
+    real, calls = pipeline.render, []
+
+    def slow_render(data, display, colour=pipeline.LUMINANCE, **kw):
+        calls.append((threading.current_thread(), display, colour, kw.get("options"),
+                      data.min_snr))
+        time.sleep(delay_s)
+        return real(data, display, colour, **kw)
+    monkeypatch.setattr(pipeline, "render", slow_render)
+    return calls
+
+
+def _large_viewer(qtbot, tmp_path, display: str = "polarizer", viewer=None):
+    """A viewer showing a LARGE_HW Mueller result with ``display``, waited for."""
+    from polrig.formats.exr import write_mueller_exr
+    from polrig.gui.viewer import ViewerPanel
+
+    h, w = LARGE_HW
+    m = np.zeros((1, 3, 3, h, w), np.float32)
+    m[:, 0, 0] = np.linspace(50.0, 400.0, h * w, dtype=np.float32).reshape(h, w)
+    m[:, 0, 1] = 0.4 * m[:, 0, 0]
+    m[:, 1, 0] = 0.3 * m[:, 0, 0]
+    m[:, 1, 1] = 0.5 * m[:, 0, 0]
+    path = write_mueller_exr(tmp_path / "large.exr", m)
+    v = viewer
+    if v is None:
+        v = ViewerPanel()
+        qtbot.addWidget(v)
+        v.show()
+    assert open_and_wait(qtbot, v, path)
+    v.display.setCurrentIndex(v.display.findData(display))
+    qtbot.waitUntil(lambda: not getattr(v, "drawing", False), timeout=20000)
+    return v
+
+
+def _record_shown(v) -> list:
+    shown, real = [], v.view.set_image
+    v.view.set_image = lambda img: (shown.append(img), real(img))
+    return shown
+
+
+def test_viewer_redraws_a_large_image_off_the_ui_thread_latest_wins(qtbot, tmp_path, monkeypatch):
+    """Redrawing a full colour sensor's 3x3 Mueller grid after a change of the display took
+    1.1-1.5 s on the UI thread, a dragged slider froze the window for seconds. Here each
+    redraw takes 1 s more; four quick changes: the event loop never waits for them, at most
+    two redraws run (the one in progress, then one with the newest settings) and only the
+    newest settings' image is shown."""
+    import threading
+
+    from polrig.gui import viewer as viewer_module
+    from polrig.gui.qtimage import to_qimage
+
+    assert LARGE_HW[0] * LARGE_HW[1] > getattr(viewer_module, "SYNC_REDRAW_MAX_PX", 0)
+    v = _large_viewer(qtbot, tmp_path)
+    real_render = pipeline.render
+    calls = _slow_render(monkeypatch)
+    shown = _record_shown(v)
+    drawn = []
+    if hasattr(v, "drawn"):
+        v.drawn.connect(lambda: drawn.append(1))
+    probe = EventLoopProbe(10).start()
+    v.incident.setValue(10)
+    qtbot.wait(50)
+    v.incident.setValue(20)
+    qtbot.wait(50)
+    v.min_snr.setValue(5.0)
+    qtbot.wait(50)
+    v.incident.setValue(40)
+    assert v.incident_label.text().strip() == "40 deg"  # the controls answer at once
+    qtbot.waitUntil(lambda: bool(shown) and not getattr(v, "drawing", False), timeout=20000)
+    qtbot.wait(300)
+    probe.stop()
+    assert probe.max_latency_s < 0.5, probe.max_latency_s
+    assert 1 <= len(calls) <= 2, [c[1:] for c in calls]
+    assert threading.main_thread() not in [c[0] for c in calls]
+    assert calls[-1][3].incident_deg == 40.0 and calls[-1][4] == 5.0  # the newest settings
+    v.data.min_snr = 5.0
+    want = real_render(v.data, "polarizer", pipeline.LUMINANCE, saturation_overlay=True,
+                       options=v.options())
+    assert len(shown) == 1 and len(drawn) == 1  # the superseded redraw is never shown
+    np.testing.assert_array_equal(from_qimage(shown[0]), from_qimage(to_qimage(want)))
+    assert v.view.image() is shown[0] and v.view.banner == ""
+
+
+def test_viewer_redraws_a_small_image_at_once(qtbot, tmp_path, monkeypatch):
+    """A small image (the tests' files, a 256x256 sensor's result) is redrawn on the UI
+    thread when the setting changes: it takes milliseconds."""
+    import threading
+
+    from polrig.gui.viewer import ViewerPanel
+
+    v = ViewerPanel()
+    qtbot.addWidget(v)
+    v.show()
+    assert open_and_wait(qtbot, v, _small_mueller_exr(tmp_path / "m.exr"))
+    calls = _slow_render(monkeypatch, 0.0)
+    v.display.setCurrentIndex(v.display.findData("polarizer"))
+    assert not v.drawing and [c[0] for c in calls] == [threading.main_thread()]
+    v.incident.setValue(30)
+    assert not v.drawing and len(calls) == 2 and calls[-1][3].incident_deg == 30.0
+
+
+def test_a_change_while_a_file_loads_draws_the_file_not_the_earlier_one(qtbot, tmp_path,
+                                                                        monkeypatch):
+    """The operator opens another file, then moves a slider while it loads: the file still
+    shown is not redrawn (the new one comes with the newest settings); here the new file cannot
+    be read, the view is cleared, and nothing of the earlier file comes back."""
+    v = _large_viewer(qtbot, tmp_path)
+    threads = _slow_reader(monkeypatch, 1.0, slow="missing")
+    calls = _slow_render(monkeypatch, 0.2)
+    shown = _record_shown(v)
+    assert v.open_file(tmp_path / "missing.exr")
+    qtbot.waitUntil(lambda: len(threads) == 1, timeout=10000)  # being read
+    v.incident.setValue(30)
+    assert v.loading and not v.drawing
+    qtbot.waitUntil(lambda: not v.loading and not v.drawing, timeout=20000)
+    qtbot.wait(500)
+    assert v.data is None and [img for img in shown if img is not None] == [] and not calls
+
+
+def test_a_file_loaded_while_the_settings_change_is_shown_with_the_newest(qtbot, tmp_path,
+                                                                          monkeypatch):
+    import shutil
+
+    from polrig.gui.qtimage import to_qimage
+
+    v = _large_viewer(qtbot, tmp_path)
+    second = shutil.copy(tmp_path / "large.exr", tmp_path / "slow_second.exr")
+    threads = _slow_reader(monkeypatch, 1.0, slow="slow_second")
+    assert v.open_file(second)
+    qtbot.waitUntil(lambda: len(threads) == 1, timeout=10000)  # being read
+    v.incident.setValue(50)
+    v.analyzer.setValue(10)
+    qtbot.waitUntil(lambda: not v.loading and not v.drawing, timeout=20000)
+    assert str(v.path) == str(second) and v.data.source == str(second)
+    want = pipeline.render(v.data, "polarizer", pipeline.LUMINANCE, saturation_overlay=True,
+                           options=v.options())
+    assert v.options().incident_deg == 50.0 and v.options().analyzer_deg == 10.0
+    np.testing.assert_array_equal(from_qimage(v.view.image()), from_qimage(to_qimage(want)))
+
+
+def test_closing_the_window_while_a_redraw_runs_shuts_down_cleanly(qtbot, tmp_path, monkeypatch):
+    w = make_window(qtbot, tmp_path / "gui.ini")
+    wait_connected(qtbot, w)
+    v = _large_viewer(qtbot, tmp_path, viewer=w.viewer)
+    calls = _slow_render(monkeypatch, 1.5)
+    shown = _record_shown(v)
+    v.incident.setValue(30)
+    redraws = lambda: [c for c in calls if c[1] == "polarizer"]  # not the live view's  # noqa: E731
+    qtbot.waitUntil(lambda: bool(redraws()), timeout=10000)  # the redraw runs
+    assert v.drawing
+    close_window(qtbot, w)
+    for pool in (v._loader, v.roi._worker, w.live.roi._worker):  # all ended
+        assert not any(t.is_alive() for t in pool._threads)
+    qtbot.wait(100)
+    assert shown == [] and not v.drawing  # never shown once closed
+    assert len(redraws()) == 1
+
+
 def test_calibration_step_out_of_order_is_a_readable_failure(qtbot, window, tmp_path):
     # the devices open on their own thread: a step started before they are open fails on the
     # camera (DeviceDisconnected), not on the missing intrinsics this test is about

@@ -54,7 +54,8 @@ def open_in_viewer(app, viewer, session: pathlib.Path) -> None:
     files on a thread of its own)."""
     if not viewer.open_session(session):
         raise RuntimeError(f"screenshots: the viewer cannot open {session}")
-    _wait(app, lambda: not viewer.loading, 600.0, "the viewer to load the capture")
+    _wait(app, lambda: not viewer.loading and not viewer.drawing, 600.0,
+          "the viewer to load the capture")
     if viewer.data is None:
         raise RuntimeError(f"screenshots: the viewer cannot show {session}'s first file")
 
@@ -67,8 +68,8 @@ def analysis_views(app, viewer, shot) -> None:
     h, w = v.data.mueller.shape[-2:]
     v.display.setCurrentIndex(v.display.findData("maps"))
     v.map_name.setCurrentIndex(v.map_name.findData("retardance_deg"))
-    _wait(app, lambda: v.data.maps_ready() and v.view.image() is not None, 600.0,
-          "the parameter maps (computed on a worker thread)")
+    _wait(app, lambda: v.data.maps_ready() and v.view.image() is not None and not v.drawing,
+          600.0, "the parameter maps (computed on a worker thread)")
     v.roi.tool.setCurrentIndex(v.roi.tool.findData("line"))
     v.view.set_shape("line", [(0.1 * w, 0.8 * h), (0.9 * w, 0.2 * h)])
     _wait(app, lambda: not v.roi.busy, 600.0, "the line profile (computed on a worker thread)")
@@ -80,6 +81,7 @@ def analysis_views(app, viewer, shot) -> None:
     v.display.setCurrentIndex(v.display.findData("polarizer"))
     v.incident.setValue(30)
     v.analyzer.setValue(120)
+    _wait(app, lambda: not v.drawing, 600.0, "the virtual polarizer (redrawn on a worker thread)")
     shot(v, "viewer_virtual_polarizer.png")
 
 
