@@ -513,6 +513,22 @@ def test_opening_resets_a_controller_that_does_not_answer(tmp_path):
                 t.move_to(10.0)
 
 
+def test_opening_during_a_homing_cycle_resets_it(tmp_path):
+    """GRBL answers no '?' during a homing cycle (commands.md, '?'): a controller found homing
+    (a '$H' of another program) is silent, so the open soft-resets it like any silent
+    controller; the cycle aborts with ALARM:6 and the controller comes back locked in the
+    Alarm state, and moves are refused until it is homed."""
+    with GrblEmulator(link=tmp_path / "g", speed_factor=1, homing_s=30.0) as emu:
+        with emu.lock:
+            emu.feed(b"$H\n", time.monotonic())
+        assert emu.state == "Home"
+        with GrblTurntable(emu.port, reply_timeout_s=REPLY_S, poll_s=0.01) as t:
+            assert b"\x18" in emu.received and emu.state == "Alarm"
+            assert t.info().extra["state_at_open"] == "Alarm" and t.last_alarm == 6
+            with pytest.raises(DeviceAlarm, match="ALARM:6"):
+                t.move_to(10.0)
+
+
 def test_lower_case_axes_from_the_config(emu):
     with GrblTurntable(emu.port, axis="a", axes="xyza", reply_timeout_s=REPLY_S) as t:
         assert t.axes == "XYZA" and t.axis_index == 3

@@ -138,13 +138,49 @@ def test_grbl_documented_replies():
         assert lines(ser, 1)[0].startswith(b"<Run|MPos:")
         time.sleep(0.1)
         ser.write(b"?")
-        assert lines(ser, 1) == [b"<Idle|MPos:0.000,0.000,0.000,10.000|FS:600,0>\r\n"]
+        # FS is the real-time feed rate (interface.md): 0 once nothing moves
+        assert lines(ser, 1) == [b"<Idle|MPos:0.000,0.000,0.000,10.000|FS:0,0>\r\n"]
         ser.write(b"G91 G0 A-4\n")
         assert lines(ser, 1) == [b"ok\r\n"]
         time.sleep(0.05)
         assert emu.axis_position("A") == pytest.approx(6.0)
         ser.write(b"G38.2 A1\n")
         assert lines(ser, 1) == [b"error:20\r\n"]
+
+
+def test_grbl_status_report_waits_for_the_end_of_homing():
+    """commands.md, `?`: accepted at any time "except during a homing cycle" (grbl limits.c
+    runs no real-time command in its homing loop, motion_control.c runs them once the cycle
+    ends): a `?` sent while homing is answered after the cycle, `<Home|...>` before the `ok`
+    of `$H`; a reset during the cycle drops it (ALARM:6, banner). `FS` is the real-time feed
+    rate (interface.md; stepper.c st_get_realtime_rate): that of the motion, 0 when idle."""
+    with GrblEmulator(speed_factor=1, homing_s=0.6) as emu, \
+            serial.Serial(emu.port, 115200, timeout=0.1) as ser:
+        ser.write(b"$H\n")
+        time.sleep(0.1)
+        ser.write(b"?")
+        assert lines(ser, 1, 0.2) == []  # homing: no report yet
+        assert lines(ser, 2, 2.0) == [b"<Home|MPos:0.000,0.000,0.000,0.000|FS:0,0>\r\n",
+                                      b"ok\r\n"]
+        ser.write(b"?")
+        assert lines(ser, 1) == [b"<Idle|MPos:0.000,0.000,0.000,0.000|FS:0,0>\r\n"]
+        ser.write(b"G1 A2 F600\n")  # 10 units/s: 0.2 s
+        assert lines(ser, 1) == [b"ok\r\n"]
+        ser.write(b"?")
+        [report] = lines(ser, 1)
+        assert report.startswith(b"<Run|MPos:") and report.endswith(b"|FS:600,0>\r\n")
+        time.sleep(0.4)
+        ser.write(b"?")
+        assert lines(ser, 1) == [b"<Idle|MPos:0.000,0.000,0.000,2.000|FS:0,0>\r\n"]
+        emu.homing_s = 30.0
+        ser.write(b"$H\n")
+        time.sleep(0.1)
+        ser.write(b"?")
+        assert lines(ser, 1, 0.2) == []
+        ser.write(b"\x18")
+        assert lines(ser, 4) == [b"ALARM:6\r\n", b"\r\n", b"Grbl 1.1h ['$' for help]\r\n",
+                                 b"[MSG:'$H'|'$X' to unlock]\r\n"]
+        assert lines(ser, 1, 0.2) == []  # the reset dropped the report asked during homing
 
 
 def test_grbl_limit_alarm_blocks_everything_until_reset():

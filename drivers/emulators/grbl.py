@@ -2,9 +2,13 @@
 
 Protocol: grbl/grbl ``doc/markdown/interface.md`` and ``commands.md`` (GRBL 1.1): lines of
 G-code or ``$`` commands answered ``ok`` or ``error:N``; real-time single bytes ``?``
-(status report ``<State|MPos:x,y,z,a|FS:feed,speed>``), ``!`` (feed hold), ``~`` (cycle
-start / resume), ``0x18`` (soft reset; banner ``Grbl 1.1h ['$' for help]``). ``$H`` homes
-(``ok`` when the cycle is done), ``$X`` unlocks, ``$I`` prints build info, ``ALARM:N`` is
+(status report ``<State|MPos:x,y,z,a|FS:feed,speed>``, ``FS`` the real-time feed rate: that
+of the running motion, 0 when none runs), ``!`` (feed hold), ``~`` (cycle start / resume),
+``0x18`` (soft reset; banner ``Grbl 1.1h ['$' for help]``). ``$H`` homes (``ok`` when the
+cycle is done; a ``?`` sent during the cycle is answered only when it ends, with a ``<Home|...>``
+report before that ``ok``: commands.md, ``?`` "except during a homing cycle"; grbl
+``limits.c`` runs no real-time commands in its homing loop, ``motion_control.c`` runs them
+after the cycle), ``$X`` unlocks, ``$I`` prints build info, ``ALARM:N`` is
 pushed when an alarm fires. With homing enabled (``$22=1``) the controller starts locked in
 the Alarm state, as real GRBL does. Moves queue in a planner (G0 at the axis maximum rate,
 G1 at the F feed rate, units per minute), run one after another; ``G90``/``G91`` modes.
@@ -98,6 +102,10 @@ class GrblEmulator(PtyEmulator):
         self.move_start_pos: list[float] | None = None
         self.homing_until = 0.0
         self.critical = False  # halted after a hard/soft limit until a soft reset
+        # a '?' received during a homing cycle: answered when the cycle ends (limits.c: "No
+        # time to run protocol_execute_realtime() in this loop"; commands.md, '?')
+        self._report_pending = False
+        self._rate = 0.0  # units/min of the motion that runs (the FS: real-time feed rate)
         #: something in the way: (axis letter, position) where a motion closes a limit
         #: switch (ALARM:1), until the operator takes it away (``None``)
         self.obstacle: tuple[str, float] | None = None
@@ -172,6 +180,7 @@ class GrblEmulator(PtyEmulator):
         dur = dist / speed if speed > 0 else 0.0
         self.move = [LinearMove(p, t, abs(t - p) / dur if dur else 1.0, now)
                      for p, t in zip(self.pos, target)]
+        self._rate = rate
         self.state = "Run"
         self._fails = self.take_fault("error_mid_move") or self.take_fault("hard_limit")
 
@@ -179,6 +188,9 @@ class GrblEmulator(PtyEmulator):
         if self.state == "Home":
             if now >= self.homing_until:
                 self.pos = [0.0] * len(AXES)
+                if self._report_pending:  # motion_control.c: realtime runs after the cycle
+                    self._report_pending = False
+                    self.send(self._status_line())
                 self.state = "Idle"
                 self.send(b"ok\r\n")
             return
@@ -272,6 +284,7 @@ class GrblEmulator(PtyEmulator):
 
     def _power_on(self) -> None:
         self.move, self.queue, self._line = None, [], bytearray()
+        self._report_pending = False
         self.critical = False
         self.state = "Alarm" if self.homing_enabled else "Idle"
 
@@ -304,12 +317,22 @@ class GrblEmulator(PtyEmulator):
 
     def _report(self, now: float) -> None:
         self.tick(now)
+        if self.state == "Home":  # no report while homing: it comes when the cycle ends
+            self._report_pending = True
+            return
+        self.send(self._status_line())
+
+    def _status_line(self) -> bytes:
         pos = ",".join(f"{p:.3f}" for p in self.pos)
         frame = "MPos" if self.status_mask & 1 else "WPos"  # WPos = MPos - WCO, WCO = 0
-        self.send(f"<{self.state}|{frame}:{pos}|FS:{self.feed_rate:.0f},0>\r\n".encode())
+        # FS: the real-time feed rate (interface.md), stepper.c st_get_realtime_rate(): the
+        # current speed in a motion state, 0 otherwise (a hold here is complete at once)
+        rate = self._rate if self.state == "Run" and self.move is not None else 0.0
+        return f"<{self.state}|{frame}:{pos}|FS:{rate:.0f},0>\r\n".encode()
 
     def _soft_reset(self, now: float) -> None:
         self._line = bytearray()
+        self._report_pending = False  # a reset clears the pending real-time requests
         self.critical = False
         if self.state == "Run" or self.state == "Home":
             self.pos = [m.position(now) for m in self.move] if self.move else self.pos
