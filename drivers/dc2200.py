@@ -9,9 +9,13 @@ bTag and its inverse, transfer size, EOM). After a timeout or a malformed reply 
 cleared with INITIATE_CLEAR / CHECK_CLEAR_STATUS and a CLEAR_FEATURE(ENDPOINT_HALT) on
 bulk-OUT, as the spec's section 4.2.1.6 prescribes, so the next command works.
 
-SCPI (Thorlabs DC2200 operation manual, SCPI command reference; IEEE 488.2; the command
-spellings match Thorlabs' own example ``Current_And_Temperature_Controller_Examples``,
-``Python/DC2200 LED Controllers/DC2200 with PyVISA.py``): ``*IDN?``,
+SCPI (Thorlabs DC2200 operation manual, SCPI command reference; IEEE 488.2; ``*IDN?``,
+``SOURCE1:MODE`` and ``OUTPUT1:STATE`` as in Thorlabs' own example
+``Current_And_Temperature_Controller_Examples``, ``Python/DC2200 LED Controllers/DC2200 with
+PyVISA.py``, which does not use the constant-brightness mode; ``SOURCE1:MODE CB`` and
+``SOURCE1:CBRIGHTNESS:BRIGHTNESS`` as independent public DC2200 control code sends them, the
+long forms of ``SOURce1:MODe CB`` and ``SOURce1:CBRightness:BRIGhtness``; not checked against
+the manual's own pages here): ``*IDN?``,
 ``*CLS``, ``SOURCE1:MODE CB`` (constant brightness), ``SOURCE1:CBRIGHTNESS:BRIGHTNESS
 <percent>``, ``OUTPUT1:STATE ON|OFF``; after every setting the error queue is read with
 ``SYST:ERR?`` and a non-zero entry raises :class:`polrig.errors.DeviceFault` with the
