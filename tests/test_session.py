@@ -269,6 +269,43 @@ def test_a_lock_file_alone_does_not_make_a_folder_non_empty(tmp_path):
     assert s.manifest["status"] == "running"
 
 
+_CRASH_IN_FIRST_SAVE = """
+import os, signal, sys
+from polrig.acquisition.plan import CapturePlan
+from polrig.app.session import Session
+os.replace = lambda src, dst: os.kill(os.getpid(), signal.SIGKILL)  # the temporary is whole, not renamed
+Session.create(sys.argv[1], plan=CapturePlan((0.0,)), rig={"simulated": False, "config": None, "devices": {},
+               "sim_parameters": None, "camera_frames": None, "sensor_model": None}, calibration_id="nominal")
+"""
+
+
+def test_a_crash_while_the_session_is_created_leaves_a_folder_a_new_session_takes(tmp_path):
+    """SIGKILL in the first manifest save, before its rename: the folder holds the lock file and
+    the manifest's temporary, no session (``--resume`` says so). A new session in it used to be
+    refused as "not empty; ... or resume the session in it", which it could not: the folder
+    was stuck. It is empty for a new session, whose lock removes the temporary."""
+    import signal
+    import subprocess
+    import sys
+
+    root = tmp_path / "s"
+    child = subprocess.run([sys.executable, "-c", _CRASH_IN_FIRST_SAVE, str(root)], capture_output=True, text=True)
+    assert child.returncode == -signal.SIGKILL, child.stderr
+    left = sorted(p.name for p in root.iterdir())
+    assert len(left) == 2 and left[1] == LOCK_NAME and left[0].startswith(f".{MANIFEST_NAME}."), left
+    assert folder_is_empty(root)
+    s = make(tmp_path)
+    assert sorted(p.name for p in root.iterdir()) == sorted([LOCK_NAME, MANIFEST_NAME])
+    s.unlock()
+    # a save of an existing session cut short likewise: its writer's lock removes the temporary
+    stale = root / left[0]
+    stale.write_bytes(b'{"schema_ver')
+    Session.open(root)  # a reader writes nothing
+    assert stale.exists()
+    Session.open(root, lock=True).unlock()
+    assert not stale.exists() and Session.open(root).verify() == []
+
+
 def test_create_that_fails_after_locking_leaves_no_folder(tmp_path):
     def full(path, data):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))

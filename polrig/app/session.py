@@ -37,6 +37,7 @@ import hashlib
 import json
 import os
 import pathlib
+import re
 import shutil
 import signal
 import threading
@@ -207,10 +208,23 @@ def check_free_space(folder: str | os.PathLike, required_bytes: int) -> int:
 
 def folder_is_empty(folder: pathlib.Path) -> bool:
     """``folder`` does not exist or holds nothing but a session lock file (left by a session
-    whose creation failed after taking the lock)."""
+    whose creation failed after taking the lock) and temporaries of a first manifest that was
+    never in place (a crash while the session was being created:
+    :func:`is_manifest_temporary`)."""
     folder = pathlib.Path(folder)
     return not folder.exists() or (folder.is_dir() and
-                                   all(p.name == LOCK_NAME for p in folder.iterdir()))
+                                   all(p.name == LOCK_NAME or is_manifest_temporary(p)
+                                       for p in folder.iterdir()))
+
+
+def is_manifest_temporary(path: pathlib.Path) -> bool:
+    """``path`` is a temporary sibling of a session's manifest
+    (:func:`polrig.atomic.temporary_sibling` of :data:`MANIFEST_NAME`): a save that a crash
+    cut short before its rename, never a manifest."""
+    return _MANIFEST_TEMPORARY.fullmatch(pathlib.Path(path).name) is not None
+
+
+_MANIFEST_TEMPORARY = re.compile(r"\." + re.escape(MANIFEST_NAME) + r"\.[0-9a-f]{12}\.tmp\.json")
 
 
 class Session:
@@ -334,7 +348,9 @@ class Session:
         """Take the session's exclusive lock (``flock`` on :data:`LOCK_NAME`; no-op if this
         object holds it already). :class:`SessionBusy` (one line, with the holder's process
         id) if another process writes the session. Released by :meth:`unlock`, when this
-        object is garbage-collected, or when the process ends (whatever way it ends)."""
+        object is garbage-collected, or when the process ends (whatever way it ends). Taking
+        it removes the temporaries of manifest saves a crash cut short
+        (:func:`is_manifest_temporary`)."""
         if self._lock_fd is not None:
             return
         path = self.root / LOCK_NAME
@@ -357,6 +373,11 @@ class Session:
             os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
         self._lock_fd = fd
         self._lock_release = weakref.finalize(self, os.close, fd)
+        # a save a crash cut short left its temporary (no writer can be writing one now)
+        for p in self.root.iterdir():
+            if is_manifest_temporary(p):
+                with contextlib.suppress(OSError):
+                    p.unlink()
 
     def unlock(self) -> None:
         """Release the lock taken by :meth:`lock` (no-op if not held). The lock file stays
