@@ -24,6 +24,7 @@ from polrig.acquisition.plan import (
     Checkpoint,
     FrameTag,
     Grab,
+    Home,
     Move,
     SetExposure,
     SetTrigger,
@@ -304,6 +305,37 @@ def test_a_session_on_a_camera_without_exposure_control_reopens_and_has_results(
     # the same pixels are valid as with a camera that reports its exposure (20 ms: its dark
     # current is a fraction of an electron); NaN had invalidated every one of them
     assert valid["no-exposure"] > 0 and abs(valid["no-exposure"] - valid["plain"]) <= 2
+
+
+@pytest.mark.parametrize("during", ["move", "home"])
+def test_ctrl_c_while_axes_move_stops_them_before_it_goes_on(during):
+    """Ctrl-C or SIGTERM (a ``KeyboardInterrupt``) while the engine waits for a move (or a
+    home): every axis it started is stopped before the interruption goes on, so nothing keeps
+    turning once ``polrig capture`` has exited (as ``polrig move`` and ``polrig home`` do). The
+    axes used to be left moving to their targets."""
+    with open_rig(None, **SIM) as rig:
+        ex = Executor(rig)
+        stopped: list[str] = []
+        for name in ("stage", "turntable"):
+            axis = rig.devices[name]
+            real_stop = axis.stop
+            axis.stop = (lambda real, name: lambda: (stopped.append(name), real()))(real_stop, name)
+
+        def ctrl_c(*a, **k):
+            raise KeyboardInterrupt
+
+        if during == "move":
+            rig.turntable.wait = ctrl_c  # the first axis waited for: the stage is moving too
+            with pytest.raises(KeyboardInterrupt):
+                ex.execute(Move((("turntable", 90.0), ("stage", 135.0))))
+            assert sorted(stopped) == ["stage", "turntable"]
+        else:
+            ex.execute(Move((("stage", 135.0),)))
+            rig.stage._wait = ctrl_c  # the home started, then waited for
+            with pytest.raises(KeyboardInterrupt):
+                ex.execute(Home("stage"))
+            assert stopped == ["stage"]
+        assert not rig.turntable.is_busy() and not rig.stage.is_busy()
 
 
 def test_stop_and_pause_at_checkpoints():

@@ -280,12 +280,17 @@ class Executor:
         return self.rig.devices[name]
 
     def home(self, name: str, timeout_s: float | None = None) -> None:
-        """Home axis ``name`` (within ``timeout_s``; ``None``: the axis's default)."""
+        """Home axis ``name`` (within ``timeout_s``; ``None``: the axis's default). Ctrl-C or
+        SIGTERM meanwhile stops the axis before it goes on (:meth:`_stop_interrupted`)."""
         axis = self.axis(name)
-        if timeout_s is None:
-            axis.home()
-        else:
-            axis.home(timeout_s=float(timeout_s))
+        try:
+            if timeout_s is None:
+                axis.home()
+            else:
+                axis.home(timeout_s=float(timeout_s))
+        except KeyboardInterrupt:
+            self._stop_interrupted([name])
+            raise
         self._unsettled = True
 
     def move(self, targets: dict[str, float]) -> None:
@@ -293,7 +298,27 @@ class Executor:
         axis whose move fails recoverably is stopped, homed and moved once more on its own
         (:meth:`_recover`). A safety fault (:class:`DeviceAlarm`) of any axis starts nothing
         more, waits for the axes already moving and is raised, with no retry and no
-        homing."""
+        homing. Ctrl-C or SIGTERM (a ``KeyboardInterrupt``) meanwhile stops every axis the move
+        started before it goes on, so nothing keeps turning once the run has ended
+        (:meth:`_stop_interrupted`)."""
+        begun: list[str] = []
+        try:
+            self._move(targets, begun)
+        except KeyboardInterrupt:
+            self._stop_interrupted(begun)
+            raise
+
+    def _stop_interrupted(self, names: Sequence[str]) -> None:
+        """Stop the axes ``names`` after an interruption (best effort: a stop that fails is
+        not the news, the interruption is)."""
+        for name in dict.fromkeys(names):
+            try:
+                self.axis(name).stop()
+            except (DeviceError, OSError):
+                pass
+
+    def _move(self, targets: dict[str, float], begun: list[str]) -> None:
+        """:meth:`move`; ``begun`` gets the name of each axis as its move is started."""
         failed: dict[str, Exception] = {}
         started = []
         alarm: DeviceAlarm | None = None
@@ -302,6 +327,7 @@ class Executor:
             axis = self.axis(name)
             try:
                 timeout_s = self._timeout_from_here(axis, angle)
+                begun.append(name)
                 axis.move_to(float(angle), wait=False, timeout_s=timeout_s)
                 started.append((name, axis, timeout_s))
             except DeviceDisconnected:
