@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from polrig import __version__
-from polrig.atomic import atomic_write_bytes, temporary_sibling
+from polrig.atomic import atomic_write_bytes, fsync_folder, temporary_sibling
 from polrig.calibration.errors import CalibrationError
 from polrig.calibration.generator import GeneratorModel
 from polrig.calibration.mirror import MirrorMetal
@@ -288,6 +288,7 @@ class CalibrationSet:
             atomic_write_bytes(tmp, (json.dumps(_jsonable(doc), indent=2) + "\n").encode())
             for tmp, final in staged:  # the .npz files first, calibration.json last
                 os.replace(tmp, final)
+            fsync_folder(d)  # the renames are durable
         finally:
             for tmp, _ in staged:
                 if tmp.exists():

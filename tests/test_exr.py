@@ -276,3 +276,20 @@ def test_mueller_rows_one_line_errors(tmp_path):
         MuellerRows(p)
     with pytest.raises(FormatError, match="M00.R/G/B or M00.Y"):
         MuellerRows(write_exr(tmp_path / "t.exr", {"S0.Y": np.zeros((4, 4), np.float32)}))
+
+
+def test_the_rename_of_a_written_exr_is_made_durable(tmp_path, monkeypatch):
+    """After the temporary file is renamed onto the result, its folder is fsync-ed (as
+    polrig.atomic's writes do), so a power loss after the write cannot take the rename back."""
+    import pathlib
+
+    import numpy as np
+
+    from polrig.formats import exr
+
+    synced = []
+    monkeypatch.setattr(exr, "fsync_folder", lambda folder: synced.append((folder, sorted(
+        p.name for p in pathlib.Path(folder).iterdir()))))
+    out = tmp_path / "m.exr"
+    exr.write_exr(out, {"Y": np.zeros((2, 3), np.float32)})
+    assert synced == [(tmp_path, ["m.exr"])]  # after the rename: only the final name is there

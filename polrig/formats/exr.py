@@ -47,7 +47,7 @@ from typing import Any, Collection, Mapping, Protocol, Sequence
 import numpy as np
 import OpenEXR
 
-from polrig.atomic import temporary_sibling, write_error
+from polrig.atomic import fsync_folder, temporary_sibling, write_error
 from polrig.choices import OPTIONAL_PLANES, PLANE_GROUPS, RESULT_PLANES
 from polrig.errors import FormatError
 from polrig.formats.rawio import check_input_file
@@ -206,6 +206,7 @@ def write_exr(path: PathLike, planes: Mapping[str, np.ndarray], *, kind: str | N
         if isinstance(exc, OSError) and tmp in str(exc):
             raise write_error(path, exc) from None  # name the user's file, not the temporary one
         raise
+    fsync_folder(path.parent)  # the rename too, as polrig.atomic's writes
     return path
 
 
