@@ -531,9 +531,23 @@ def test_a_limit_switch_during_a_capture_stops_it_and_says_how_to_home_here(qtbo
     assert json.loads((out / "session.json").read_text())["status"] == "complete"
 
 
+def limit_on_next(rig, method: str) -> None:
+    """The stage's next ``method`` call hits a limit switch: the fault is injected in the
+    calling thread just before that call, so the Devices tab's status polls (they count as
+    device calls too) cannot take it first, as they could, on a loaded machine, between an
+    injection made by the test and the call it was meant for."""
+    real = getattr(rig.stage, method)
+
+    def first(*a, **kw):
+        setattr(rig.stage, method, real)
+        rig.faults.inject_fault("stage", "limit", after_calls=0)
+        return real(*a, **kw)
+    setattr(rig.stage, method, first)
+
+
 def test_a_device_alarm_in_a_manual_move_says_how_to_home_here(qtbot, window):
     wait_connected(qtbot, window)
-    window.rig.faults.inject_fault("stage", "limit", after_calls=0)
+    limit_on_next(window.rig, "move_to")
     window.devices.move("stage", 20.0)
     qtbot.waitUntil(lambda: any("limit switch" in t for t in messages(window, "error")),
                     timeout=10000)
@@ -547,7 +561,7 @@ def test_a_device_alarm_in_a_calibration_step_says_how_to_home_here(qtbot, windo
     wait_connected(qtbot, window)
     cal = window.calibration
     cal.folder.setText(str(tmp_path / "cal"))
-    window.rig.faults.inject_fault("stage", "limit", after_calls=0)  # the step homes it first
+    limit_on_next(window.rig, "home")  # the step homes the stage first
     cal.run_step("dofp")
     qtbot.waitUntil(lambda: not cal.is_running, timeout=30000)
     text = messages(window, "error")[-1]
