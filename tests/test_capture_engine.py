@@ -338,6 +338,32 @@ def test_ctrl_c_while_axes_move_stops_them_before_it_goes_on(during):
         assert not rig.turntable.is_busy() and not rig.stage.is_busy()
 
 
+def test_an_axis_whose_stop_fails_is_named_and_the_others_are_still_stopped():
+    """The one route (:func:`polrig.acquisition.hal.stopped_when_interrupted`, which the
+    engine's moves and ``polrig move``/``home`` use): the axes the list holds when the
+    interruption comes are stopped, each once; a stop that fails is handed to ``failed`` and
+    the next axis is still stopped; the interruption goes on."""
+    from polrig.acquisition.hal import stopped_when_interrupted
+    from polrig.errors import DeviceTimeout
+
+    with open_rig(None, **SIM) as rig:
+        stopped, failures = [], []
+
+        def jammed():
+            stopped.append("stage")
+            raise DeviceTimeout("no reply to the stop", device="stage")
+        rig.stage.stop = jammed
+        real = rig.turntable.stop
+        rig.turntable.stop = lambda: (stopped.append("turntable"), real())
+        axes: list = []
+        with pytest.raises(KeyboardInterrupt):
+            with stopped_when_interrupted(axes, failed=lambda n, e: failures.append((n, str(e)))):
+                axes += [("stage", rig.stage), ("turntable", rig.turntable), ("stage", rig.stage)]
+                raise KeyboardInterrupt
+        assert stopped == ["stage", "turntable"]
+        assert failures == [("stage", "stage: no reply to the stop")]
+
+
 def test_stop_and_pause_at_checkpoints():
     with open_rig(None, **SIM) as rig:
         control = CaptureControl()

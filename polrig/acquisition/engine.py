@@ -54,6 +54,7 @@ from polrig.acquisition.hal import (
     RotationStage,
     grab_timeout_s,
     motion_timeout_s,
+    stopped_when_interrupted,
 )
 from polrig.acquisition.plan import (
     Checkpoint,
@@ -281,16 +282,13 @@ class Executor:
 
     def home(self, name: str, timeout_s: float | None = None) -> None:
         """Home axis ``name`` (within ``timeout_s``; ``None``: the axis's default). Ctrl-C or
-        SIGTERM meanwhile stops the axis before it goes on (:meth:`_stop_interrupted`)."""
+        SIGTERM meanwhile stops the axis before it goes on (:func:`polrig.acquisition.hal.stopped_when_interrupted`)."""
         axis = self.axis(name)
-        try:
+        with stopped_when_interrupted([(name, axis)]):
             if timeout_s is None:
                 axis.home()
             else:
                 axis.home(timeout_s=float(timeout_s))
-        except KeyboardInterrupt:
-            self._stop_interrupted([name])
-            raise
         self._unsettled = True
 
     def move(self, targets: dict[str, float]) -> None:
@@ -300,25 +298,13 @@ class Executor:
         more, waits for the axes already moving and is raised, with no retry and no
         homing. Ctrl-C or SIGTERM (a ``KeyboardInterrupt``) meanwhile stops every axis the move
         started before it goes on, so nothing keeps turning once the run has ended
-        (:meth:`_stop_interrupted`)."""
-        begun: list[str] = []
-        try:
+        (:func:`polrig.acquisition.hal.stopped_when_interrupted`)."""
+        begun: list[tuple[str, RotationStage]] = []
+        with stopped_when_interrupted(begun):
             self._move(targets, begun)
-        except KeyboardInterrupt:
-            self._stop_interrupted(begun)
-            raise
 
-    def _stop_interrupted(self, names: Sequence[str]) -> None:
-        """Stop the axes ``names`` after an interruption (best effort: a stop that fails is
-        not the news, the interruption is)."""
-        for name in dict.fromkeys(names):
-            try:
-                self.axis(name).stop()
-            except (DeviceError, OSError):
-                pass
-
-    def _move(self, targets: dict[str, float], begun: list[str]) -> None:
-        """:meth:`move`; ``begun`` gets the name of each axis as its move is started."""
+    def _move(self, targets: dict[str, float], begun: list[tuple[str, RotationStage]]) -> None:
+        """:meth:`move`; ``begun`` gets each axis, with its name, as its move is started."""
         failed: dict[str, Exception] = {}
         started = []
         alarm: DeviceAlarm | None = None
@@ -327,7 +313,7 @@ class Executor:
             axis = self.axis(name)
             try:
                 timeout_s = self._timeout_from_here(axis, angle)
-                begun.append(name)
+                begun.append((name, axis))
                 axis.move_to(float(angle), wait=False, timeout_s=timeout_s)
                 started.append((name, axis, timeout_s))
             except DeviceDisconnected:

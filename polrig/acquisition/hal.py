@@ -20,11 +20,20 @@ counter-clockwise seen from above (right-handed about the turntable axis, which 
 from __future__ import annotations
 
 import abc
+import contextlib
 import dataclasses
 import math
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from polrig.errors import ConfigError, DeviceAlarm, DeviceDisconnected, DeviceError, DeviceTimeout
+from polrig.errors import (
+    ConfigError,
+    DeviceAlarm,
+    DeviceDisconnected,
+    DeviceError,
+    DeviceTimeout,
+    PolrigError,
+)
 from polrig.sensor.frame import Frame
 
 if TYPE_CHECKING:
@@ -319,6 +328,29 @@ class RotationStage(Device):
             return DeviceTimeout(f"{message}; stopping it failed too ({exc}): it may still be moving",
                                  device=device)
         return DeviceTimeout(f"{message}; {stopped}", device=device)
+
+
+@contextlib.contextmanager
+def stopped_when_interrupted(axes: Iterable[tuple[str, RotationStage]],
+                             failed: Callable[[str, BaseException], None] | None = None
+                             ) -> Iterator[None]:
+    """The body drives ``axes`` (``(name, axis)`` pairs; a list may grow while the body runs,
+    the pairs it holds when the interruption comes count). When the body is interrupted
+    (Ctrl-C, or SIGTERM, which polrig raises as ``KeyboardInterrupt``) each axis is stopped
+    (its driver's :meth:`RotationStage.stop`) before the interruption goes on, so nothing
+    keeps moving after the run has ended. A stop that fails is ``failed(name, exc)`` (default:
+    passed over, the interruption is the news) and the other axes are still stopped. The one
+    place the CLI's ``move``/``home`` and the engine's moves and homing stop on an interruption."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        for name, axis in dict(list(axes)).items():
+            try:
+                axis.stop()
+            except (PolrigError, OSError) as exc:
+                if failed is not None:
+                    failed(name, exc)
+        raise
 
 
 class Turntable(RotationStage):

@@ -1,23 +1,22 @@
 """Arguments and output shared by the commands: the single-device operator commands (move,
 home, light, snap, devices) use the ``--config``/``--timeout`` arguments; raw data is never
 replaced without ``--overwrite`` (:func:`refuse_existing`); an axis command interrupted by
-Ctrl-C or SIGTERM stops its axis (:func:`stopped_when_interrupted`). Argument types and the
+Ctrl-C or SIGTERM stops its axis (:func:`polrig.acquisition.hal.stopped_when_interrupted`,
+with :func:`stop_failed`). Argument types and the
 other path checks are in :mod:`polrig.formats.argcheck`."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import pathlib
 import sys
-from typing import TYPE_CHECKING, Iterable, Iterator
+from typing import TYPE_CHECKING, Iterable
 
-from polrig.errors import PolrigError
 from polrig.formats.argcheck import positive_float
 
 if TYPE_CHECKING:
-    from polrig.acquisition.hal import DeviceInfo, RotationStage
+    from polrig.acquisition.hal import DeviceInfo
 
 
 def add_config_argument(p: argparse.ArgumentParser) -> None:
@@ -30,22 +29,11 @@ def add_timeout_argument(p: argparse.ArgumentParser, default_s: float) -> None:
                    help=f"give up after S seconds (> 0; default {default_s:g})")
 
 
-@contextlib.contextmanager
-def stopped_when_interrupted(axis: RotationStage, name: str) -> Iterator[None]:
-    """The body drives ``axis`` (``name``: ``stage`` or ``turntable``); when it is interrupted
-    (Ctrl-C, or SIGTERM, which the CLI raises as ``KeyboardInterrupt``) the axis is stopped
-    (its driver's ``stop()``) before the interruption goes on, so nothing keeps moving after
-    the command has exited. A stop that fails is one line on stderr (the interruption is
-    still reported); a second interruption during the stop ends it."""
-    try:
-        yield
-    except KeyboardInterrupt:
-        try:
-            axis.stop()
-        except (PolrigError, OSError) as exc:  # the interruption is the news; say why
-            print(f"polrig: could not stop the {name} ({exc}): it may still be moving",
-                  file=sys.stderr)
-        raise
+def stop_failed(name: str, exc: BaseException) -> None:
+    """One line on stderr when stopping an interrupted axis failed
+    (:func:`polrig.acquisition.hal.stopped_when_interrupted`'s ``failed``): the interruption
+    is still reported, and the operator learns the axis may still be moving."""
+    print(f"polrig: could not stop the {name} ({exc}): it may still be moving", file=sys.stderr)
 
 
 def identity(info: DeviceInfo) -> str:

@@ -5,7 +5,7 @@ fired, a soft limit, GRBL locked in its Alarm state): the capture engine never h
 that state on its own, its stop message names this command. For GRBL it soft-resets a
 controller halted by a hard or soft limit, then homes it (``$H``). A homing cycle that does not
 end within ``--timeout`` is stopped by the driver; Ctrl-C or SIGTERM stops it too
-(:func:`polrig.cli.commands._device_args.stopped_when_interrupted`; GRBL: a soft reset, the
+(:func:`polrig.acquisition.hal.stopped_when_interrupted`; GRBL: a soft reset, the
 only way to abort ``$H``)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from polrig.cli.commands._device_args import (
     add_config_argument,
     add_timeout_argument,
     identity,
-    stopped_when_interrupted,
+    stop_failed,
 )
 
 
@@ -34,10 +34,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polrig.acquisition.hal import stopped_when_interrupted
     from polrig.app.rig import open_device
 
     with open_device(args.config, args.device) as dev, \
-            stopped_when_interrupted(dev, args.device):
+            stopped_when_interrupted([(args.device, dev)], failed=stop_failed):
         dev.home(timeout_s=args.timeout)
         print(f"{args.device}: homed, at {dev.position_deg():.4f} deg ({identity(dev.info())})")
     return 0

@@ -2,7 +2,7 @@
 
 A move that does not end within ``--timeout`` is stopped by the driver before the error is
 reported; Ctrl-C or SIGTERM while it runs stops the axis before the command exits
-(:func:`polrig.cli.commands._device_args.stopped_when_interrupted`). ``--no-wait`` returns
+(:func:`polrig.acquisition.hal.stopped_when_interrupted`). ``--no-wait`` returns
 once the move has started and leaves it running."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from polrig.cli.commands._device_args import (
     add_config_argument,
     add_timeout_argument,
     identity,
-    stopped_when_interrupted,
+    stop_failed,
 )
 from polrig.errors import ConfigError
 
@@ -34,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from polrig.acquisition.plan import MAX_POSE_DEG, MAX_STATE_DEG
+    from polrig.acquisition.hal import stopped_when_interrupted
     from polrig.app.rig import open_device
 
     if not math.isfinite(args.angle_deg):
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"DEG {args.angle_deg:g}: a {args.device} angle must be within "
                           f"+-{limit:g} deg (the limit polrig capture applies)")
     with open_device(args.config, args.device) as dev, \
-            stopped_when_interrupted(dev, args.device):
+            stopped_when_interrupted([(args.device, dev)], failed=stop_failed):
         dev.move_to(args.angle_deg, wait=not args.no_wait, timeout_s=args.timeout)
         if args.no_wait:
             print(f"{args.device}: moving to {args.angle_deg:g} deg ({identity(dev.info())})")
