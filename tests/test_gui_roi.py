@@ -398,3 +398,37 @@ def test_live_view_new_displays_and_roi(qtbot, tmp_path):
                                                      snr=res.data.snr)
     finally:
         close_window(qtbot, w)
+
+
+def test_live_roi_statistics_slower_than_the_frames_still_reach_the_table(qtbot, tmp_path,
+                                                                          monkeypatch):
+    """Statistics that take longer than the live view's interval between them (seconds at the
+    full sensor) are shown, then the next frame's: a new frame's request waits for the one
+    being computed instead of superseding it (which left the table empty while frames came)."""
+    import time
+
+    from test_gui import close_window, make_window, wait_frames
+
+    from polrig.gui import live_panel
+
+    real = pipeline.roi_statistics
+    calls = []
+
+    def slow(*a, **k):
+        calls.append(time.monotonic())
+        time.sleep(3 * live_panel.ROI_INTERVAL_S)
+        return real(*a, **k)
+    monkeypatch.setattr(pipeline, "roi_statistics", slow)
+    w = make_window(qtbot, tmp_path / "gui.ini")
+    try:
+        wait_frames(qtbot, w, 2)
+        w.live.set_display("s1")
+        qtbot.waitUntil(lambda: w.live.last is not None and w.live.last.display == "s1",
+                        timeout=20000)
+        w.live.view.set_shape("rect", [(2.0, 2.0), (10.0, 12.0)])
+        shown = w.live.frames_shown
+        qtbot.waitUntil(lambda: bool(w.live.roi.rows), timeout=30000)
+        assert w.live.frames_shown > shown  # the live view went on meanwhile
+        qtbot.waitUntil(lambda: len(calls) >= 2, timeout=30000)  # and the next frame's follow
+    finally:
+        close_window(qtbot, w)

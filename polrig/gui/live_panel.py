@@ -244,7 +244,10 @@ class LivePanel(QWidget):
                 self.roi.summary.setText("ROI statistics need the whole Mueller image: this grid is "
                                          "rendered at display size on the device; draw an ROI or a "
                                          "line and the live view takes whole frames (slower)")
-        elif now - self._roi_at >= ROI_INTERVAL_S or self.roi.data is None:
+        elif (now - self._roi_at >= ROI_INTERVAL_S or self.roi.data is None) and not self.roi.busy:
+            # a frame's statistics replace the previous frame's once those are shown: a new
+            # request while one is computed would drop that one, and with statistics slower
+            # than the interval (seconds at the full sensor) the table would never fill
             self._roi_at = now
             self.roi.set_data(res.data)
         if self._hover != (-1, -1):
