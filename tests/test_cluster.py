@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pathlib
+import re
 import shutil
 import signal
 import socket
@@ -382,6 +383,90 @@ def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, slow
     assert _results(d) == slow_serial
     assert all(_results(d)[k] == v for k, v in kept.items())
     _no_leftovers(d)
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux ``/proc``)."""
+    kids = []
+    for task in pathlib.Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            kids += [int(k) for k in (task / "children").read_text().split()]
+    return kids
+
+
+def _importing_numpy(pid: int) -> bool:
+    """Whether process ``pid`` has loaded numpy's core extension (a worker starting: it
+    imports numpy while it unpickles its task, Linux ``/proc``)."""
+    with contextlib.suppress(OSError):
+        return "_multiarray_umath" in pathlib.Path(f"/proc/{pid}/maps").read_text()
+    return False
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc/self/task").is_dir(), reason="reads Linux /proc")
+def test_ctrl_c_while_the_local_workers_start_is_one_line(archive, tmp_path):
+    """A terminal's Ctrl-C in the seconds the local workers take to start: the workers share
+    the process group, and each printed its ``KeyboardInterrupt`` traceback (the nannies
+    "Nanny failed to start", an ``AssertionError`` at exit) over ``polrig``'s one line. Now
+    the start holds the signal (:func:`polrig.app.cluster.terminal_interrupt_held`): one
+    line, exit 130, nothing written, no process of the command left behind."""
+    d = _copies(archive[:1], tmp_path / "dist")[0]
+    before = Session.open(d).manifest
+    proc = _spawn(["reconstruct", str(d), "--workers", "2", "--demosaic", "bilinear"])
+    try:
+        deadline = time.monotonic() + 60
+        while not any(_importing_numpy(k) for k in _children(proc.pid)):  # a worker starting
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.005)
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the starting workers too
+        out, err = proc.communicate(timeout=120)
+        deadline = time.monotonic() + 30
+        while subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True).stdout:
+            assert time.monotonic() < deadline, "a process of the command was left running"
+            time.sleep(0.1)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip() == "polrig: interrupted", err
+    assert Session.open(d).manifest == before
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signal masks")
+def test_an_interrupt_held_through_a_start_arrives_after_it_and_never_in_its_children():
+    """:func:`polrig.app.cluster.terminal_interrupt_held`: a SIGINT inside is raised as the
+    block ends, not inside; a thread started inside blocks it, and so does a process started
+    by that thread (``/proc/PID/status`` ``SigBlk``, bit 2 = SIGINT); after the block this
+    thread's mask and handler are as before."""
+    def sigint_blocked(status: str) -> bool:
+        mask = int(re.search(r"^SigBlk:\s*([0-9a-f]+)$", status, re.M).group(1), 16)
+        return bool(mask >> (signal.SIGINT - 1) & 1)
+
+    seen = {}
+
+    def child() -> None:
+        seen["thread"] = sigint_blocked(pathlib.Path(
+            f"/proc/self/task/{threading.get_native_id()}/status").read_text())
+        seen["process"] = sigint_blocked(subprocess.run(
+            [sys.executable, "-c", "print(open('/proc/self/status').read())"],
+            capture_output=True, text=True, check=True).stdout)
+
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    reached_the_end = False
+    with pytest.raises(KeyboardInterrupt):
+        with cluster.terminal_interrupt_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            t = threading.Thread(target=child)
+            t.start()
+            t.join()
+            time.sleep(0.05)  # a signal not held would have been raised by now
+            reached_the_end = True
+    assert reached_the_end
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if pathlib.Path("/proc/self/task").is_dir():
+        assert seen == {"thread": True, "process": True}
+    with cluster.terminal_interrupt_held():  # nothing held: nothing raised
+        pass
 
 
 def test_damaged_captures_are_marked_failed_and_summarised_by_session(archive, tmp_path, capsys):

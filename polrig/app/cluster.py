@@ -40,6 +40,8 @@ import logging
 import os
 import pathlib
 import re
+import signal
+import threading
 import time
 import uuid
 from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
@@ -139,14 +141,17 @@ class DaskRunner:
 
         if n_workers < 1:
             raise ConfigError(f"--workers {n_workers}: need at least 1")
-        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                               silence_logs=logging.ERROR)
+        cluster = client = None
         try:
-            client = Client(cluster)
-            client.register_plugin(TerminalInterruptIgnored())
-        except BaseException:
-            cluster.close()
+            with terminal_interrupt_held():
+                cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1,
+                                       processes=True, host="127.0.0.1",
+                                       dashboard_address="127.0.0.1:0",
+                                       silence_logs=logging.ERROR)
+                client = Client(cluster)
+                client.register_plugin(TerminalInterruptIgnored())
+        except BaseException:  # a Ctrl-C held through the start arrives here, once started
+            cls(client, cluster).close()  # what was started (``close`` passes over a None)
             raise
         return cls(client, cluster, f"{n_workers} local worker process(es), 1 thread each")
 
@@ -214,6 +219,46 @@ class DaskRunner:
         if self.cluster is not None:
             with contextlib.suppress(Exception):
                 self.cluster.close(timeout=CLOSE_TIMEOUT_S)
+
+
+@contextlib.contextmanager
+def terminal_interrupt_held() -> Iterator[None]:
+    """A SIGINT (Ctrl-C) during the block is held, and acted on as the block ends; processes
+    started meanwhile never see one.
+
+    For the start of a local cluster: its worker processes share the terminal's process
+    group, so a Ctrl-C in the seconds they take to start reached each of them half-started,
+    and they and their nannies printed tracebacks ("Nanny failed to start") over
+    ``polrig``'s one line. Here SIGINT is blocked in this thread, and a thread or process
+    started from it inherits the block (``pthread_sigmask(3)``; ``execve(2)`` keeps the mask),
+    so the workers spawned never get it; one delivered meanwhile to a thread that does not
+    block it (a numerical library's own threads) is recorded, not raised. As the block ends,
+    the previous handler is back and the signal is delivered to it, once the cluster is up
+    and can be closed cleanly (about 2 s for a few local workers).
+
+    Main thread with a Python-level SIGINT handler only (elsewhere, or when SIGINT is
+    ignored, a plain block). SIGTERM is not held: the nanny stops its worker with it.
+    ``multiprocessing``'s resource tracker is started first: starting it unblocks SIGINT in
+    the starting thread (CPython ``Lib/multiprocessing/resource_tracker.py``,
+    ``ensure_running``), which would lift the block for the threads started after it."""
+    handler = signal.getsignal(signal.SIGINT)
+    if (not hasattr(signal, "pthread_sigmask") or handler in (signal.SIG_IGN, None)
+            or threading.current_thread() is not threading.main_thread()):
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    held: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending one reaches ``handler`` here
+        if held:
+            signal.raise_signal(signal.SIGINT)
 
 
 def one_core(fn: Callable[[Any], Any], job: Any) -> Any:
