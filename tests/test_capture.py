@@ -13,7 +13,7 @@ import pytest
 from polrig.app import processing
 from polrig.app.capture import CaptureControl, CapturePlan, create_session, run_session
 from polrig.app.rig import open_rig
-from polrig.app.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session
+from polrig.app.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session, SessionError
 from polrig.formats.exr import read_mueller_exr
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.analyzer import AnalyzerModel, resolve_layout
@@ -662,6 +662,46 @@ def test_a_write_a_crash_cut_short_in_an_acquired_capture_is_gone_after_the_resu
     assert not leftover.exists()
     assert s2.verify() == []
     assert content(s2) == content(reference_session)
+
+
+@pytest.mark.parametrize("damage", ["changed", "missing"])
+def test_an_acquired_capture_whose_raw_data_is_damaged_is_set_aside_and_acquired_again(
+        tmp_path, reference_session, damage):
+    """An acquired capture whose recorded raw frame changed or went missing can never be
+    processed: each resume used to process it first, fail on the checksum and stop, so the
+    session never went on (the captures after it never acquired). Now the resume moves its
+    folder, whole, to ``damaged/`` (nothing deleted), says so (a ``retry`` event and the
+    history) and acquires it again at its pose: the session completes, equal to an
+    uninterrupted one (the simulated rig gives the same frames)."""
+    out = tmp_path / "s"
+    s = _processing_fails_at_capture_1(out)
+    assert [c["status"] for c in s.captures] == [COMPLETE, "acquired", PENDING, PENDING]
+    raw = s.capture(1)["files"]["raw"][3]["path"]
+    if damage == "changed":
+        data = bytearray((out / raw).read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        (out / raw).write_bytes(bytes(data))
+    else:
+        (out / raw).unlink()
+    before = sorted(p.relative_to(out / s.capture(1)["name"])
+                    for p in s.capture_dir(1).rglob("*"))
+    events = []
+    with sim_rig() as rig:
+        s2, result = resume(rig, out, progress=events.append)
+    assert result.status == "complete"
+    problem = f"{raw}: {'SHA-256 mismatch' if damage == 'changed' else 'missing'} (capture 1, raw)"
+    retries = [e.message for e in events if e.kind == "retry"]
+    assert retries == [f"capture 2/4: its recorded raw data is damaged ({problem}); the capture "
+                       f"is acquired again, its old folder kept in damaged/c001_pose090.0-1"]
+    kept = out / "damaged" / "c001_pose090.0-1"
+    assert sorted(p.relative_to(kept) for p in kept.rglob("*")) == before  # nothing lost
+    event = [h for h in s2.manifest["history"] if h["event"] == "capture set aside"]
+    assert [(h["capture"], h["problems"], h["kept"]) for h in event] == [
+        (1, [problem], "damaged/c001_pose090.0-1")]
+    assert s2.verify() == []
+    assert content(s2) == content(reference_session)
+    with pytest.raises(SessionError, match="capture 1 is complete, not acquired"):
+        s2.set_aside_damaged(1)
 
 
 def test_a_deeper_processing_queue_gives_the_same_session(tmp_path, reference_session):

@@ -600,6 +600,9 @@ class _Run:
         self.control = control or CaptureControl()
         self.plan = session.plan
         self.n = len(session.captures)
+        #: acquired captures whose raw data no longer verifies: acquired again (their reason)
+        self.set_aside = {i: reason for i in session.acquired()
+                          if (reason := session.set_aside_damaged(i)) is not None}
         self.to_process = session.acquired()
         self.to_acquire = [i for i in session.next_pending() if i not in self.to_process]
         self.total = len(self.to_acquire) * self.plan.frames_per_pose()
@@ -768,6 +771,8 @@ class _Run:
         session, plan = self.session, self.plan
         try:
             session.set_status(RUNNING)
+            for index, reason in self.set_aside.items():
+                self.emit("retry", index, f"capture {index + 1}/{self.n}: {reason}")
             setup, body = [], []
             extend = None
             if self.to_acquire and plan.mode == "adaptive":

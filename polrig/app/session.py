@@ -76,6 +76,8 @@ MANIFEST_NAME = "session.json"
 #: Lock file of a session folder: a writer holds an exclusive ``flock`` on it for its whole run
 #: (the file stays; its content is the holder's process id, for the error message only).
 LOCK_NAME = "session.lock"
+#: Where :meth:`Session.set_aside_damaged` moves a capture folder whose raw data is damaged.
+DAMAGED_DIR = "damaged"
 
 WriteHook = Callable[[pathlib.Path, bytes], None]
 
@@ -494,7 +496,7 @@ class Session:
                                              for name, rev in cap["revisions"].items()]
             for prefix, files in groups:
                 for role, entry in files.items():
-                    for rec in entry if isinstance(entry, list) else [entry]:
+                    for rec in _as_list(entry):
                         if "part_of" in rec:  # a view into another role's file
                             continue
                         yield cap, prefix + role, rec
@@ -556,7 +558,7 @@ class Session:
             files = self.capture(index)["files"]
             gone = [role for role in files if role not in ACQUISITION_ROLES]
             paths = [rec["path"] for role in gone
-                     for rec in (files[role] if isinstance(files[role], list) else [files[role]])
+                     for rec in _as_list(files[role])
                      if "part_of" not in rec]
             for role in gone:
                 del files[role]
@@ -613,19 +615,12 @@ class Session:
         problems: list[str] = []
         checked: set[str] = set()
         for cap, role, rec in self.iter_file_records():
-            pairs = [(rec["path"], rec["sha256"])]
-            if "meta_path" in rec:
-                pairs.append((rec["meta_path"], rec["meta_sha256"]))
-            for rel, digest in pairs:
+            for rel, digest in _recorded_pairs(rec):
                 if rel in checked:
                     problems.append(f"{rel}: recorded twice")
                     continue
                 checked.add(rel)
-                path = self.root / rel
-                if not path.is_file():
-                    problems.append(f"{rel}: missing (capture {cap['index']}, {role})")
-                elif sha256_file(path) != digest:
-                    problems.append(f"{rel}: SHA-256 mismatch (capture {cap['index']}, {role})")
+                problems += self._file_problem(rel, digest, f"capture {cap['index']}, {role}")
         for cap in self.captures:
             folder = self.root / cap["name"]
             if folder.exists():
@@ -633,6 +628,68 @@ class Session:
                     if p.is_file() and self.relpath(p) not in checked:
                         problems.append(f"{self.relpath(p)}: not recorded in the manifest")
         return problems
+
+    def _file_problem(self, rel: str, digest: str, what: str) -> list[str]:
+        """``[]`` if the file ``rel`` exists with SHA-256 ``digest``, else its one line."""
+        path = self.root / rel
+        if not path.is_file():
+            return [f"{rel}: missing ({what})"]
+        if sha256_file(path) != digest:
+            return [f"{rel}: SHA-256 mismatch ({what})"]
+        return []
+
+    def acquisition_problems(self, index: int) -> list[str]:
+        """The recorded raw frames, darks and truth of capture ``index``
+        (:data:`ACQUISITION_ROLES`, sidecars included) that are missing or changed, one line
+        each in :meth:`verify`'s words (empty: they can be processed)."""
+        cap = self.capture(index)
+        return [line for role in ACQUISITION_ROLES if role in cap["files"]
+                for rec in _as_list(cap["files"][role]) if "part_of" not in rec
+                for rel, digest in _recorded_pairs(rec)
+                for line in self._file_problem(rel, digest, f"capture {index}, {role}")]
+
+    def set_aside_damaged(self, index: int) -> str | None:
+        """An acquired capture whose recorded raw data is missing or changed
+        (:meth:`acquisition_problems`) cannot be processed, now or ever: its folder is moved,
+        whole, to ``damaged/<folder>-<n>`` (nothing deleted), and the capture is pending again,
+        so the run acquires it anew at its pose; the history says which files and where they
+        went. Returns that reason, or ``None`` (nothing done) when its data verifies."""
+        cap = self.capture(index)
+        if cap["status"] != ACQUIRED:
+            raise SessionError(f"capture {index} is {cap['status']}, not acquired")
+        problems = self.acquisition_problems(index)
+        if not problems:
+            return None
+        folder = self.capture_dir(index)
+        n = 1
+        while (self.root / DAMAGED_DIR / f"{folder.name}-{n}").exists():
+            n += 1
+        kept = self.root / DAMAGED_DIR / f"{folder.name}-{n}"
+        more = f" and {len(problems) - 1} more" if len(problems) > 1 else ""
+        reason = (f"its recorded raw data is damaged ({problems[0]}{more}); the capture is "
+                  f"acquired again, its old folder kept in {self.relpath(kept)}")
+        with self.mutex:  # the records first: the manifest never names a file that is gone
+            cap.update(status=PENDING, reason=reason, files={}, score=None, revisions={})
+            cap.pop("adaptive", None)
+            self.log("capture set aside", capture=index, problems=problems,
+                     kept=self.relpath(kept))
+            self.save()
+        if folder.exists():
+            kept.parent.mkdir(exist_ok=True)
+            os.replace(folder, kept)
+        return reason
+
+
+def _recorded_pairs(rec: dict[str, Any]) -> list[tuple[str, str]]:
+    """A file record's ``(path, sha256)`` pairs: the file, and its sidecar if it has one."""
+    pairs = [(rec["path"], rec["sha256"])]
+    if "meta_path" in rec:
+        pairs.append((rec["meta_path"], rec["meta_sha256"]))
+    return pairs
+
+
+def _as_list(entry: Any) -> list:
+    return entry if isinstance(entry, list) else [entry]
 
 
 def capture_folder_name(index: int, pose_deg: float) -> str:
