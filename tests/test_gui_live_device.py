@@ -91,6 +91,9 @@ def test_the_live_mueller_grid_of_the_device_route_is_the_host_grid_at_display_s
     w = make_window(qtbot, tmp_path / "gui.ini", model_loader=lambda: route, **SIM)
     try:
         w.live_worker.settings.max_display_px = MAX_DISPLAY_PX
+        # phase 0: a frame of the window's first display (Stokes, whole images) is shown
+        qtbot.waitUntil(lambda: w.live.roi.data is not None, timeout=120000)
+        assert w.live.roi.data.mueller is None and w.live.roi.data.stokes is not None
         w.live.set_display("mueller")
         route.device_path().probe_every = 1  # phase 1: every live frame probes, as frame() does
         qtbot.waitUntil(lambda: w.live.last is not None and w.live.last.display == "mueller"
@@ -130,6 +133,10 @@ def test_the_live_mueller_grid_of_the_device_route_is_the_host_grid_at_display_s
         n_live = len(route.calls)
         w.live.view.set_shape("rect", [(b + 10, b + 10), (b + 40, b + 40)])
         assert w.live_worker.settings.full_mueller
+        # what the ROI measures is a frame of this display, not the last one with whole
+        # images (phase 0's, Stokes only: its S0, DoLP, AoLP rows were shown as this frame's)
+        qtbot.waitUntil(lambda: not w.live.roi.busy, timeout=60000)
+        assert w.live.roi.data is None or w.live.roi.data.mueller is not None
         assert w.live.roi.region is not None  # drawn on 85x85 display pixels -> 256x256 image pixels
         qtbot.waitUntil(lambda: w.live.last.data.mueller is not None and bool(w.live.roi.rows), timeout=120000)
         assert w.live.last.data.mueller.shape == (1, 3, 3, 256, 256) and len(route.calls) <= n_live + 1

@@ -240,6 +240,8 @@ class LivePanel(QWidget):
                                                                 res.step)
         self._measuring_changed()
         if pipeline.needs_full_image(res.data, res.display):  # display-pixel means: nothing to measure
+            if self.roi.data is not None:  # an older frame's (say, Stokes only): never measured as this one
+                self.roi.set_data(None)
             if self.roi.region is None and self.roi.segment is None:
                 self.roi.summary.setText("ROI statistics need the whole Mueller image: this grid is "
                                          "rendered at display size on the device; draw an ROI or a "
