@@ -8,7 +8,8 @@ sub-pixel position is the intensity-weighted centroid of the pixels above half i
 (background removed); its ray hits the sphere at ``P`` with normal ``n``; the light lies on the
 reflected ray ``P + s (d - 2 (d.n) n)``. Several spheres (or one sphere at several turntable
 angles) give several rays, whose least-squares intersection is the light position, with a
-covariance from the residuals (``sigma^2 (sum_i (I - l_i l_i^T))^-1``).
+covariance from the residuals (``sigma^2 (sum_i (I - l_i l_i^T))^-1``) plus the sphere model's
+own systematic (:data:`MODEL_SYSTEMATIC_REL`, a Type B term).
 
 References: K.-Y. K. Wong, D. Schnieders, S. Li, "Recovering light directions and camera
 poses from a single sphere", ECCV 2008 (sphere from its silhouette cone); W. Zhou and
@@ -234,6 +235,15 @@ def reflected_ray(centre_cam_m: np.ndarray, radius_m: float,
     return p, d - 2.0 * (d @ n) * n
 
 
+#: The sphere model's own systematic error, a Type B standard uncertainty (JCGM 100:2008,
+#: "GUM", sec. 4.3) per axis, relative to the light's distance from the sphere positions:
+#: a highlight's intensity centroid is not exactly the specular point, nor the dark disc's
+#: mid-level edge exactly the silhouette. Its basis is the method run on the simulated rig
+#: with its exact intrinsics (docs/calibration.md, "Light position"): 0.6-1.5 mm at
+#: 0.52 m, over 320x240, 256x256 and 512x512 images, so it does not shrink with more pixels
+#: or views, and these errors are shared by the views, which the rays' scatter cannot show.
+MODEL_SYSTEMATIC_REL = 0.002
+
 #: Acceptance of the light position (docs/calibration.md): its error within 1 % of its distance
 #: from where objects are lit. :meth:`LightFit.acceptance` says whether the fit's own
 #: uncertainty assures it.
@@ -307,7 +317,11 @@ def fit_light_position(observations: list[SphereObservation], radius_m: float, K
     :mod:`polrig.calibration.procedures`) must use the same views as the fit it perturbs, or a
     view kept or dropped at the margin moves the position by far more than the perturbation
     does (at 256x256 a 15th view kept at fx + 1 sigma moved it by 350 mm, and the light's
-    reported sigma was 0.1-0.23 m against a 6 mm error)."""
+    reported sigma was 0.1-0.23 m against a 6 mm error).
+
+    The covariance is the rays' scatter (:func:`intersect_rays`) plus the sphere model's
+    systematic, :data:`MODEL_SYSTEMATIC_REL` of the light's distance from the mean sphere
+    centre on every axis."""
     if len(observations) < 2:
         raise TooFewAngles(f"light position needs 2+ mirror-sphere views at different positions, "
                            f"got {len(observations)}; add turntable angles or spheres")
@@ -328,4 +342,6 @@ def fit_light_position(observations: list[SphereObservation], radius_m: float, K
     fits = [fits[i] for i in views]
     x, cov, dists = intersect_rays(np.array([f.hit_cam_m for f in fits]),
                                    np.array([f.reflected_dir for f in fits]))
+    distance = np.linalg.norm(x - np.mean([f.centre_cam_m for f in fits], axis=0))
+    cov = cov + (MODEL_SYSTEMATIC_REL * distance) ** 2 * np.eye(3)
     return LightFit(x, cov, dists, tuple(fits), tuple(views))
