@@ -344,6 +344,22 @@ def test_an_interrupted_adaptive_session_resumes_to_the_identical_result(tmp_pat
 
 
 @needs_model
+def test_an_acquired_pose_whose_raw_data_is_damaged_keeps_no_recorded_decision(tmp_path, adaptive_run):
+    """A resume keeps an acquired pose's decisions, except where its recorded raw data no
+    longer verifies: the run sets that pose aside and acquires it again, deciding anew, so its
+    old decisions are not listed as kept ("(recorded)")."""
+    out = tmp_path / "s"
+    shutil.copytree(adaptive_run[0].root, out)
+    s = Session.open(out)
+    s.capture(1)["status"] = "acquired"  # as a run stopped before processing it leaves it
+    assert [k.capture_index for k in kept_decisions(s)] == [0] * len(s.capture(0)["adaptive"]) + \
+        [1] * len(s.capture(1)["adaptive"])
+    raw = out / s.capture(1)["files"]["raw"][0]["path"]
+    raw.write_bytes(raw.read_bytes()[:-1])
+    assert [k.capture_index for k in kept_decisions(s)] == [0] * len(s.capture(0)["adaptive"])
+
+
+@needs_model
 def test_an_interrupted_version_5_session_resumes_stopping_where_it_did(tmp_path):
     """A session written by schema version 5 (no ``min_states``: a pose could stop on the
     network's frame) and interrupted, then resumed by this polrig: the pending pose decides as

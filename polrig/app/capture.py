@@ -435,9 +435,13 @@ def kept_decisions(session: Session) -> tuple[RecordedDecision, ...]:
     complete or acquired (processed, not acquired again), in plan order, each capture's in the
     order made. Every other capture is acquired from scratch
     (:meth:`polrig.app.session.Session.restart_capture` forgets its decisions) and decides
-    again, in that run's ``"decision"`` events. Empty for a new session or another mode."""
+    again, in that run's ``"decision"`` events, as does an acquired capture whose raw data no
+    longer verifies (the run sets it aside: :meth:`polrig.app.session.Session.set_aside_damaged`).
+    Empty for a new session or another mode."""
     return tuple(RecordedDecision(c["index"], c["pose_deg"], d) for c in session.captures
-                 if c["status"] in (COMPLETE, ACQUIRED) for d in c.get("adaptive", ()))
+                 if c.get("adaptive") and (c["status"] == COMPLETE or (
+                     c["status"] == ACQUIRED and not session.acquisition_problems(c["index"])))
+                 for d in c["adaptive"])
 
 
 @dataclasses.dataclass(frozen=True)
