@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 import pathlib
 import re
 import sys
@@ -76,6 +77,18 @@ OLD_POLRIG_MODULES = (
     "calibrations", "processing", "capture", "cluster", "preview", "commands")
 
 
+def parsed(path: pathlib.Path) -> ast.Module:
+    """The syntax tree of ``path``, parsed once per file version in this test process (the
+    checks below walk the same few hundred files; a file written by a test is new)."""
+    stat = path.stat()
+    return _parsed(path, stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=None)
+def _parsed(path: pathlib.Path, mtime_ns: int, size: int) -> ast.Module:
+    return ast.parse(path.read_text("utf-8"), str(path))
+
+
 def _files() -> dict[str, pathlib.Path]:
     """Module name -> file, for every module of the distribution."""
     out = {}
@@ -117,7 +130,7 @@ def import_graph(files: dict[str, pathlib.Path] | None = None) -> dict[str, set[
     files = _files() if files is None else files
     graph: dict[str, set[str]] = {}
     for name, path in files.items():
-        tree = ast.parse(path.read_text("utf-8"), str(path))
+        tree = parsed(path)
         edges = set()
         for _, target in _imports(tree, name, path.name == "__init__.py"):
             while target and target not in files:  # a name inside a module
@@ -205,7 +218,7 @@ def own_single_shot_route(path: pathlib.Path, name: str) -> list[str]:
     """Where module ``name`` (file ``path``) builds a single-shot route of its own: an import
     of :data:`SINGLE_SHOT_RUNTIME` (any name in it, at any depth), a use of a name of
     :data:`SINGLE_SHOT_STEPS`, or a call of a model's ``reconstruct`` (``....model.reconstruct(...)``)."""
-    tree = ast.parse(path.read_text("utf-8"), str(path))
+    tree = parsed(path)
     where = path.relative_to(REPO) if path.is_relative_to(REPO) else path
     bad = [f"{where}:{line} imports {mod}" for line, mod in _imports(tree, name, path.name == "__init__.py")
            if any(mod == r or mod.startswith(r + ".") for r in SINGLE_SHOT_RUNTIME)]
@@ -224,7 +237,7 @@ def old_name_imports(path: pathlib.Path) -> list[str]:
     old = re.compile(r"^(?:(?:%s)(?:\.|$)|polrig\.(?:%s)(?:\.|$))" % (
         "|".join(OLD_TOP_LEVEL), "|".join(OLD_POLRIG_MODULES)))
     bad = []
-    for line, mod in _imports(ast.parse(path.read_text("utf-8"), str(path)), "", False):
+    for line, mod in _imports(parsed(path), "", False):
         if old.match(mod):
             bad.append(f"{path.relative_to(REPO)}:{line} imports {mod}")
     return bad
@@ -352,7 +365,7 @@ def test_the_public_face_is_declared_lazy_and_the_only_way_up():
     with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
         polrig.nothing_here  # noqa: B018
     init = _files()["polrig"]
-    tree = ast.parse(init.read_text("utf-8"))
+    tree = parsed(init)
     assert [m for _, m in _imports(tree, "polrig", True)] == ["importlib"]
     getattr_fn = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "__getattr__"]
     assert getattr_fn and any(isinstance(n, ast.Import) for n in ast.walk(getattr_fn[0]))
@@ -366,7 +379,7 @@ def test_the_public_face_is_declared_lazy_and_the_only_way_up():
 
 def test_runtime_never_imports_torch():
     path = _files()["polrig.models.runtime"]
-    mods = [m for _, m in _imports(ast.parse(path.read_text("utf-8")), "polrig.models.runtime",
+    mods = [m for _, m in _imports(parsed(path), "polrig.models.runtime",
                                    False)]
     assert not [m for m in mods if m == "torch" or m.startswith("torch.")]
 
@@ -444,7 +457,7 @@ def capture_steps_used(path: pathlib.Path, module: str) -> list[str]:
     """The capture steps (:data:`CAPTURE_STEPS`, compared as objects: a re-export is the same
     step) that the code of ``module`` in ``path`` refers to."""
     steps = {id(obj): dotted for dotted in CAPTURE_STEPS if (obj := _resolve(dotted)) is not None}
-    tree = ast.parse(path.read_text("utf-8"), str(path))
+    tree = parsed(path)
     bad = []
     for line, dotted in _names_used(tree, module, path.name == "__init__.py"):
         obj = _resolve(dotted)
@@ -487,7 +500,7 @@ def test_every_shell_captures_through_the_one_capture_call():
     bad = [b for m, p in sorted(files.items()) for b in capture_steps_used(p, m)]
     assert not bad, "a shell builds its own capture:\n" + "\n".join(bad)
     for shell in ("polrig.cli.commands.capture", "polrig.gui.capture_panel"):
-        tree = ast.parse(files[shell].read_text("utf-8"))
+        tree = parsed(files[shell])
         used = {d for _, d in _names_used(tree, shell, False)}
         assert "polrig.app.capture.run_capture" in used, shell
 
