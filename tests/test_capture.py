@@ -666,7 +666,7 @@ def test_a_write_a_crash_cut_short_in_an_acquired_capture_is_gone_after_the_resu
 
 @pytest.mark.parametrize("damage", ["changed", "missing"])
 def test_an_acquired_capture_whose_raw_data_is_damaged_is_set_aside_and_acquired_again(
-        tmp_path, reference_session, damage):
+        tmp_path, reference_session, damage, capsys):
     """An acquired capture whose recorded raw frame changed or went missing can never be
     processed: each resume used to process it first, fail on the checksum and stop, so the
     session never went on (the captures after it never acquired). Now the resume moves its
@@ -702,6 +702,13 @@ def test_an_acquired_capture_whose_raw_data_is_damaged_is_set_aside_and_acquired
     assert content(s2) == content(reference_session)
     with pytest.raises(SessionError, match="capture 1 is complete, not acquired"):
         s2.set_aside_damaged(1)
+    # polrig info says so under the capture
+    from polrig.cli import main
+
+    assert main(["info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert (f"set aside ({event[0]['time']}): {problem}; acquired again, the old folder kept in "
+            f"damaged/c001_pose090.0-1") in info
 
 
 def test_a_deeper_processing_queue_gives_the_same_session(tmp_path, reference_session):

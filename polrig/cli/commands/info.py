@@ -61,6 +61,10 @@ def run(args: argparse.Namespace) -> int:
     for cap in s.captures:
         counts[cap["status"]] = counts.get(cap["status"], 0) + 1
     print("  captures: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())))
+    set_aside: dict[int, list[dict]] = {}  # acquired captures a resume found damaged, acquired again
+    for event in m["history"]:
+        if event["event"] == "capture set aside":
+            set_aside.setdefault(event["capture"], []).append(event)
     for cap in s.captures:
         n_raw = len(cap["files"].get("raw", []))
         n_dark = len(cap["files"].get("dark", []))
@@ -72,6 +76,11 @@ def run(args: argparse.Namespace) -> int:
         if cap["reason"]:
             line += f"  ({cap['reason']})"
         print(line)
+        for event in set_aside.get(cap["index"], ()):
+            problems = event["problems"]
+            more = f" and {len(problems) - 1} more" if len(problems) > 1 else ""
+            print(f"          set aside ({event['time']}): {problems[0]}{more}; acquired again, "
+                  f"the old folder kept in {event['kept']}")
         for d in cap.get("adaptive", ()):  # the states an adaptive capture took, why it stopped
             print(f"          decision: {describe_decision(d)}")
         n_states = s.states_taken(cap["index"])
