@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pathlib
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -147,6 +149,27 @@ def content(root: pathlib.Path) -> list:
     return [(c["pose_deg"], c["status"],
              sorted((role, r["path"], r["sha256"]) for _, role, r in s.iter_file_records(c)))
             for c in s.captures]
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc/self/maps").is_file(), reason="reads Linux /proc")
+def test_ctrl_c_while_the_commands_load_is_one_line(tmp_path):
+    """A Ctrl-C in the first few hundred milliseconds, while the commands' modules load
+    (numpy, the session code), printed Python's ``KeyboardInterrupt`` traceback: only the
+    command's own run was guarded. Sent here as numpy's core extension is being loaded."""
+    cfg = sim_config(tmp_path / "rig.toml")
+    proc = subprocess.Popen([sys.executable, "-m", "polrig", "capture", "--poses", "0:360:90",
+                             "--config", str(cfg), "--out", str(tmp_path / "s"), "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    maps = pathlib.Path(f"/proc/{proc.pid}/maps")
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline:
+        with contextlib.suppress(OSError):
+            if "_multiarray_umath" in maps.read_text():
+                break
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.strip() == "polrig: interrupted", err
 
 
 @pytest.mark.slow

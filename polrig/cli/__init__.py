@@ -54,7 +54,21 @@ def command_parser(parser: argparse.ArgumentParser, name: str | None) -> argpars
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    """``polrig ARGS``: the exit status. Ctrl-C (SIGTERM too, once the command runs) is one line
+    and 130 (143) wherever it comes, the commands' modules loading included."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        if signum == signal.SIGINT:
+            _error_line("polrig: interrupted")
+            return EXIT_INTERRUPTED
+        _error_line(f"polrig: terminated ({signal.Signals(signum).name})")
+        return 128 + signum
+
+
+def _main(argv: list[str] | None) -> int:
+    parser = build_parser()  # imports every command's module: about a second on a cold start
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # the command's usage line above the error, not the top level's
         command_parser(parser, getattr(args, "command", None)).error(
@@ -67,13 +81,6 @@ def main(argv: list[str] | None = None) -> int:
             code = int(args.func(args) or 0)
             sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
             return code
-        except KeyboardInterrupt as exc:
-            signum = getattr(exc, "signum", signal.SIGINT)
-            if signum == signal.SIGINT:
-                _error_line("polrig: interrupted")
-                return EXIT_INTERRUPTED
-            _error_line(f"polrig: terminated ({signal.Signals(signum).name})")
-            return 128 + signum
         except BrokenPipeError:
             return _broken_pipe()
         except Exception as exc:
