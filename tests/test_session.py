@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import pathlib
 
 import pytest
@@ -66,6 +67,31 @@ def test_disk_space_check_names_need_and_free(tmp_path):
         check_free_space(tmp_path / "new" / "deeper", 1 << 62)
     with pytest.raises(SessionError):
         make(tmp_path, required_bytes=1 << 62)
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "statvfs"), reason="POSIX file system flags")
+def test_a_folder_that_cannot_be_written_is_said_so_not_as_no_space(tmp_path, monkeypatch):
+    """``--out`` on a read-only file system (a write-protected card) or a virtual one
+    (``/proc``) read "needs about 2.7 MiB, 0 B are free"; each is now said as what it is,
+    before anything is written."""
+    if pathlib.Path("/proc/self").is_dir():
+        with pytest.raises(SessionError, match=r"in /proc/new: /proc is on a virtual file system"):
+            check_free_space("/proc/new", 1)
+    real = os.statvfs
+
+    class ReadOnly:  # the real figures, with the read-only flag a write-protected card has
+        def __init__(self, path):
+            self._s = real(path)
+
+        def __getattr__(self, name):
+            return self._s.f_flag | os.ST_RDONLY if name == "f_flag" else getattr(self._s, name)
+
+    monkeypatch.setattr(os, "statvfs", ReadOnly)
+    with pytest.raises(SessionError, match=f"in {tmp_path / 'new'}: {tmp_path} is on a read-only file system"):
+        check_free_space(tmp_path / "new", 1)
+    with pytest.raises(SessionError, match="read-only file system"):
+        make(tmp_path)
     assert not (tmp_path / "s").exists()
 
 

@@ -197,10 +197,21 @@ def format_bytes(n: float) -> str:
 
 def check_free_space(folder: str | os.PathLike, required_bytes: int) -> int:
     """Raise :class:`SessionError` unless the file system holding ``folder`` (or its nearest
-    existing parent) has ``required_bytes`` free. Returns the free byte count."""
+    existing parent) can be written and has ``required_bytes`` free: a read-only file system
+    (a write-protected card), a virtual one (``/proc``) and a folder without write permission
+    are each said as such, not as "0 B free". Returns the free byte count."""
     p = pathlib.Path(folder).absolute()
     while not p.exists() and p != p.parent:
         p = p.parent
+    stat = os.statvfs(p) if hasattr(os, "statvfs") else None
+    if stat is not None and stat.f_flag & os.ST_RDONLY:  # a write-protected card, a read-only mount
+        raise SessionError(f"cannot write the session in {folder}: {p} is on a read-only file "
+                           f"system")
+    if stat is not None and stat.f_blocks == 0:  # /proc, /sys: no disk behind it
+        raise SessionError(f"cannot write the session in {folder}: {p} is on a virtual file "
+                           f"system, with no storage behind it")
+    if not os.access(p, os.W_OK):
+        raise SessionError(f"cannot write the session in {folder}: no permission to write in {p}")
     free = shutil.disk_usage(p).free
     if required_bytes > free:
         raise SessionError(f"not enough disk space for the session in {folder}: it needs about "
