@@ -45,6 +45,7 @@ set -u
 # package). PYTHONSAFEPATH: no `python -c` or child puts the working folder (the root, whose
 # polrig/ lacks polrig.models) first on sys.path.
 work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT  # the links, whichever way the script ends
 . benchmarks/polrig_path.sh "$work"
 export PYTHONPATH="$PYTHONPATH:$PWD" PYTHONSAFEPATH=1 PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/gpu-out}

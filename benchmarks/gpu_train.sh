@@ -37,6 +37,7 @@ if compgen -G ".whl/*.whl" > /dev/null && [ ! -d /tmp/wheels ]; then
 fi
 export PYTHONPATH="${PYTHONPATH:+$PYTHONPATH:}/tmp/wheels"
 work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT  # the links and the run's folder, whichever way the script ends
 # polrig is not installed on a lent machine: links name its folders as an install does
 . benchmarks/polrig_path.sh "$work"
 dry=()

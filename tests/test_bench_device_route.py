@@ -21,10 +21,15 @@ def test_gpu_checks_dry_mode_brings_back_the_device_route_table(tmp_path):
     processing (the editable install's finder is not loaded) that sees only the dependencies;
     the script names polrig's folders itself (benchmarks/polrig_path.sh)."""
     deps = os.pathsep.join(p for p in sys.path if p.endswith("site-packages"))
-    env = dict(os.environ, OUT=str(tmp_path), STEPS="device_route", PY=f"{sys.executable} -S", PYTHONPATH=deps)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    env = dict(os.environ, OUT=str(tmp_path), STEPS="device_route", PY=f"{sys.executable} -S", PYTHONPATH=deps,
+               TMPDIR=str(scratch))
     proc = subprocess.run(["bash", "benchmarks/gpu_check.sh", "dry"], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0 and "device_route: rc 0" in proc.stdout, proc.stdout[-2000:]
+    # its links' folder removed (each run left one in /tmp); onnxruntime's own ".ses" file stays
+    assert not [p for p in scratch.iterdir() if p.is_dir()]
     assert "sessions_cpu" not in proc.stdout  # STEPS ran the named step alone
     text = (tmp_path / "device_route.md").read_text()
     rows = [line for line in text.splitlines() if line.startswith("| CPUExecutionProvider | 64x64")]
