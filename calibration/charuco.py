@@ -260,19 +260,62 @@ def board_pose(detection: CharucoDetection, K: np.ndarray,
     return R, tvec.reshape(3), rms
 
 
+#: A pixel's mosaic cell counts as flat when the cell means within half a cell of it stay within
+#: this share of its own (:func:`class_scales`): then every pixel its cell mean averages lies
+#: in one uniform patch.
+FLAT_CELL_SPREAD = 0.1
+#: ... and as bright when its cell mean is at least this share of the frame's 99th percentile.
+BRIGHT_CELL_SHARE = 0.25
+
+
+def _cell_mean(a: np.ndarray, period: tuple[int, int]) -> np.ndarray:
+    """Mean ``(H, W)`` of ``a`` over one mosaic cell centred on every pixel: a separable box of
+    ``p + 1`` taps with half weights at both ends for an even period ``p`` (so every pixel class
+    of the cell weighs alike and a ``p``-periodic pattern averages out exactly)."""
+    def taps(p: int) -> np.ndarray:
+        k = np.ones(p + 1 if p % 2 == 0 else p)
+        if p % 2 == 0:
+            k[0] = k[-1] = 0.5
+        return k / p
+    ph, pw = period
+    return cv2.sepFilter2D(a, -1, taps(pw), taps(ph), borderType=cv2.BORDER_REFLECT)
+
+
 def class_scales(raw: np.ndarray, layout, black_level_dn: float = 0.0) -> np.ndarray:
-    """Relative level of every mosaic pixel ``(H, W)``: the median of its (colour, analyzer)
-    class over the brighter half of ``raw`` (an unpolarized, grey-ish scene)."""
+    """Relative level of every mosaic pixel ``(H, W)`` of a frame of a grey-ish scene.
+
+    Each (colour, analyzer) pixel class's level is the median ratio of its pixels to their own
+    mosaic cell's mean (:func:`_cell_mean`), over the pixels whose cell is bright (at least
+    :data:`BRIGHT_CELL_SHARE` of the frame's 99th percentile) and flat (the cell means around
+    it within :data:`FLAT_CELL_SPREAD`: no edge inside), times the median cell mean there, so
+    that the classes divide to about 1 on the bright parts. A ratio to the pixel's own
+    neighbourhood does not depend on what share of the frame is bright: a board filling most
+    of the frame, half of it black, gives the same levels as a white wall. Where no pixel is
+    bright and flat (a frame of fine texture alone), the bright pixels are used without the
+    flatness test.
+    """
 
     lay = resolve_layout(layout)
     a = np.asarray(raw, dtype=np.float64) - float(black_level_dn)
     a = np.where(np.isfinite(a), a, 0.0)
-    bright = a > np.percentile(a, 50)
+    ph, pw = lay.period
+    cell = _cell_mean(a, (ph, pw))
+    top = float(np.percentile(cell, 99))
     out = np.ones_like(a)
+    if not top > 0:
+        return out
+    bright = cell >= BRIGHT_CELL_SHARE * top
+    win = np.ones((ph + 1, pw + 1), np.uint8)
+    spread = cv2.dilate(cell, win) - cv2.erode(cell, win)
+    use = bright & (spread <= FLAT_CELL_SPREAD * cell)
+    if np.count_nonzero(use) < 16 * ph * pw:
+        use = bright
+    ratio = np.divide(a, cell, out=np.zeros_like(a), where=cell > 0)
+    level = float(np.median(cell[use]))
     for m in lay.masks(a.shape).values():
-        sel = m & bright
-        s = np.median(a[sel]) if np.count_nonzero(sel) > 8 else np.median(a[m])
-        out[m] = s if s > 0 else 1.0
+        sel = m & use
+        r = float(np.median(ratio[sel])) if np.count_nonzero(sel) > 8 else 1.0
+        out[m] = r * level if r > 0 else level
     return out
 
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from polrig.optics.pbrdf import linear_rig_mueller
 from polrig.sim import surface_bsdf
+from polrig.sim.footprint import footprint_albedo
 from polrig.sim.geometry import rows_times, unit
 from polrig.sim.interreflection import one_bounce
 from polrig.sim.materials import SurfaceMaterial
@@ -156,7 +157,7 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
     al_tab = np.array([m.alpha for m in mats])
     eta_tab = np.array([m.eta for m in mats])
     ks_tab = np.array([m.ks for m in mats])
-    kd = kd_tab[mat_index]
+    kd = footprint_albedo(scene, turntable_deg, hits, kd_tab[mat_index])
     alpha, eta, ks = al_tab[mat_index], eta_tab[mat_index], ks_tab[mat_index]
     surface = _surface_parameters(scene, turntable_deg, mat_index, p_loc, kd, alpha, eta, ks)
     baek = ~np.isin(mat_index, list(surface))  # pixels of the Baek-family Material

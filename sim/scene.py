@@ -64,12 +64,29 @@ class SceneObject:
     rotation: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
     region: RegionFn | None = None
     on_turntable: bool = True
+    #: Sub-pixel samples per axis of ``region`` over each pixel's footprint (1: the pixel
+    #: centre alone). Above 1 a pixel's diffuse albedo is the mean over ``n x n`` stratified
+    #: points of the footprint on the surface's tangent plane
+    #: (:func:`polrig.sim.footprint.footprint_albedo`), as a sensor pixel integrates a
+    #: printed pattern; this needs every material to be a Baek :class:`Material` differing
+    #: from the others in ``kd`` alone, so that the mean albedo is the pixel's exact area
+    #: integral for one surface point's geometry.
+    footprint_samples: int = 1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "position_m", np.asarray(self.position_m, float).reshape(3))
         object.__setattr__(self, "rotation", np.asarray(self.rotation, float).reshape(3, 3))
         if not self.materials:
             raise ValueError(f"object {self.name}: needs at least one material")
+        n = self.footprint_samples
+        if not (isinstance(n, int) and n >= 1):
+            raise ValueError(f"object {self.name}: footprint_samples must be an integer >= 1, "
+                             f"got {n!r}")
+        if n > 1 and not _albedo_only(self.materials):
+            raise ValueError(
+                f"object {self.name}: footprint_samples > 1 averages the diffuse albedo, so its "
+                "materials must all be Baek Materials with the same alpha, eta and ks, got "
+                f"{[m.name for m in self.materials]}")
 
     def world_pose(self, turntable: TurntableGeometry,
                    angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -89,7 +106,15 @@ class SceneObject:
         return {"name": self.name, "shape": self.shape.to_json(),
                 "materials": [m.to_json() for m in self.materials],
                 "position_m": self.position_m.tolist(), "rotation": self.rotation.tolist(),
-                "regions": self.region is not None, "on_turntable": self.on_turntable}
+                "regions": self.region is not None, "on_turntable": self.on_turntable,
+                "footprint_samples": self.footprint_samples}
+
+
+def _albedo_only(materials) -> bool:
+    """Whether ``materials`` are Baek :class:`Material` s that differ in ``kd`` alone."""
+    if not all(type(m) is Material for m in materials):
+        return False
+    return len({(m.alpha, m.eta, m.ks) for m in materials}) == 1
 
 
 @dataclasses.dataclass(frozen=True)

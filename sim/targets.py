@@ -53,6 +53,10 @@ MIRROR_ALUMINIUM = SurfaceMaterial("mirror_aluminium", conductor_rgb("aluminium"
 #: The light-calibration ball: polished chrome (GGX roughness 0.04).
 CHROME = SurfaceMaterial("chrome", conductor_rgb("chrome"), 0.04)
 WHITE = Material("matte_white", (0.8, 0.8, 0.8), 0.5, 1.5, ks=0.0)
+#: Sub-pixel samples per axis of the printed board's pattern over each pixel
+#: (:attr:`polrig.sim.scene.SceneObject.footprint_samples`): a pixel sees its area's mean albedo,
+#: as a sensor pixel does, so its square edges move continuously with the board's pose.
+BOARD_FOOTPRINT_SAMPLES = 4
 
 #: Default geometry of the targets (metres, degrees).
 DEFAULTS: dict[str, Any] = {
@@ -126,7 +130,8 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
         img = board_image(o["squares_x"], o["squares_y"], sq, o["marker_m"], o["dictionary"])
         hx, hy = 0.5 * int(o["squares_x"]) * sq, 0.5 * int(o["squares_y"]) * sq
         return [SceneObject("charuco", Rectangle(hx, hy), (BOARD_BLACK, BOARD_WHITE), centre,
-                            rotation=rot, region=board_region(img, sq, hx, hy))]
+                            rotation=rot, region=board_region(img, sq, hx, hy),
+                            footprint_samples=BOARD_FOOTPRINT_SAMPLES)]
     if name in ("mirror_plate", "white_plate"):
         half = float(o["plate_half_m"])
         mat = MIRROR_ALUMINIUM if name == "mirror_plate" else WHITE

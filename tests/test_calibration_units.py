@@ -27,7 +27,7 @@ from polrig.calibration.generator import (
 )
 from polrig.errors import ConfigError, FormatError
 from polrig.optics.mueller import polarizer_stokes
-from polrig.sensor.analyzer import AnalyzerModel
+from polrig.sensor.analyzer import AnalyzerModel, resolve_layout
 
 
 # ------------------------------------------------------------------------------ generator
@@ -157,6 +157,31 @@ def test_intensity_image_removes_a_mosaic_gain_pattern():
     ratio = (out / ref)[4:-4, 4:-4]
     assert ratio.std() / ratio.mean() < 0.01
     assert np.all(np.isfinite(charuco.intensity_image(np.full((8, 8), np.nan), "imx250mzr")))
+
+
+
+@pytest.mark.parametrize("white_share", [0.05, 0.2, 0.45])
+def test_class_levels_do_not_depend_on_how_much_of_the_frame_is_bright(white_share):
+    """A board that fills the frame, mostly black squares and dark background, with its white
+    squares ``white_share`` of the pixels: every class's level is its gain (to 1 %), however
+    small the white share (the median over the brighter half once landed on the black
+    squares for some classes and on the white for others: levels 6 times apart)."""
+    rng = np.random.default_rng(3)
+    gains = np.zeros((176, 176))
+    for m in resolve_layout("imx250myr").masks(gains.shape).values():  # colour x analyzer
+        gains[m] = rng.uniform(0.6, 1.4)
+    scene = np.full((176, 176), 30.0)
+    scene[8:168, 8:168] = 60.0  # the black squares, 10 x 10 of 16 pixels
+    cells = rng.permutation([(r, c) for r in range(10) for c in range(10)])
+    n_white = int(round(white_share * 176 * 176 / 256))
+    for r, c in cells[:n_white]:
+        scene[8 + 16 * r: 24 + 16 * r, 8 + 16 * c: 24 + 16 * c] = 2000.0
+    frame = scene * gains + rng.normal(0.0, 2.0, scene.shape)
+    levels = charuco.class_scales(frame, "imx250myr")
+    ratio = levels / gains
+    assert ratio.std() / ratio.mean() < 0.01
+    flat = charuco.intensity_image(frame, "imx250myr")[scene == 2000.0]
+    assert np.percentile(flat, 95) / np.percentile(flat, 5) < 1.6  # the white squares' edges blur
 
 
 # ------------------------------------------------------------------------------ turntable
