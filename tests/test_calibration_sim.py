@@ -62,14 +62,13 @@ def test_light_position_within_1_percent(calibrated):
     _, _, cs, e, lines, _ = calibrated
     le = e["light"]
     assert le["rel_error_of_illumination_distance"] < 0.01
-    # the reported uncertainty (residual scatter + intrinsics) covers the error within 3 sigma
-    # per axis (it omits systematics of the silhouette/highlight model, about 2 mm in depth at
-    # this image size, see docs/calibration.md)
+    # the reported uncertainty (residual scatter, intrinsics and the sphere model's Type B
+    # term, docs/calibration.md) covers the error within 3 sigma per axis
     std = np.asarray(cs.params["light"]["std_m"])
     assert np.all(np.abs(le["error_m"]) < 3 * std)
     assert any(l.startswith("light:") and "±" in l for l in lines)
-    # the uncertainty assures the 1 % here (2 sigma 0.9 %; at 256x256 it is 1.5 % and the step
-    # says so), and bounds the error
+    # the uncertainty assures the 1 % here (2 sigma 0.55-0.75 % over 8 turntable placements),
+    # and bounds the error
     acc = cs.params["light"]["acceptance"]
     assert acc["assured"] and le["error_norm_m"] < acc["two_sigma_m"]
     assert abs(acc["distance_m"] / le["illumination_distance_m"] - 1) < 0.05
