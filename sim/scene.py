@@ -103,11 +103,13 @@ class SceneObject:
                        len(self.materials) - 1)
 
     def to_json(self) -> dict:
-        return {"name": self.name, "shape": self.shape.to_json(),
-                "materials": [m.to_json() for m in self.materials],
-                "position_m": self.position_m.tolist(), "rotation": self.rotation.tolist(),
-                "regions": self.region is not None, "on_turntable": self.on_turntable,
-                "footprint_samples": self.footprint_samples}
+        out = {"name": self.name, "shape": self.shape.to_json(),
+               "materials": [m.to_json() for m in self.materials],
+               "position_m": self.position_m.tolist(), "rotation": self.rotation.tolist(),
+               "regions": self.region is not None, "on_turntable": self.on_turntable}
+        if self.footprint_samples > 1:  # only then: a scene recorded before it reads the same
+            out["footprint_samples"] = self.footprint_samples
+        return out
 
 
 def _albedo_only(materials) -> bool:

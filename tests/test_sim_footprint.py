@@ -135,3 +135,9 @@ def test_edge_pixels_finds_every_pixel_a_straight_boundary_crosses():
         crossed = (share > 0) & (share < 1)
         flagged = footprint.edge_pixels(side(u, v).astype(int))
         assert np.all(flagged[crossed]), (a, c)
+
+
+def test_the_scene_record_names_footprint_sampling_only_where_an_object_asks():
+    """A scene recorded before footprints existed (a session's rig record) reads the same."""
+    assert "footprint_samples" not in _edge_scene(0.0, 1).objects[0].to_json()
+    assert _edge_scene(0.0, 4).objects[0].to_json()["footprint_samples"] == 4
