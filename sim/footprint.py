@@ -1,4 +1,4 @@
-"""A pixel's footprint: the area mean of a region's albedo, and of the radiance at a silhouette.
+"""A pixel's footprint on a textured surface: the area mean of a region's albedo.
 
 The renderer casts one ray through each pixel centre (:mod:`polrig.sim.render`). For a surface
 whose albedo changes inside a pixel (a printed calibration board's square and marker edges)
@@ -17,18 +17,6 @@ object); elsewhere the footprint's mean is the centre's. The pBRDF is linear in
 the diffuse albedo, so for materials that differ in ``kd`` alone (checked when the object is
 made) the mean albedo at the centre ray's geometry is the pixel's area integral of the
 texture; the shading's own change across one pixel is left to the centre sample, as before.
-
-At an object's outline the same holds for the geometry: a pixel whose footprint the outline
-crosses records a mix of the object's and the background's light, and the centre sample
-instead puts each edge point of a silhouette up to half a pixel off (a mirror ball's outline,
-whose fitted centre sets the light's position: ``docs/calibration.md``, "Light position").
-:func:`silhouette_mix` casts the ``n x n`` sub-pixel rays of every pixel at an outline of an
-object that asks, and gives each sub-ray the radiance of the nearest of the pixel and its 8
-neighbours whose centre ray hit the same object (the pixel's own where none did: a feature
-narrower than a pixel); the pixel's radiance is their mean (:class:`Mix`, applied by
-:meth:`polrig.sim.render.RenderResult.radiance_state`). The neighbours' shading stands in for
-the shading at the sub-ray's own point, an error of the shading's change over one pixel.
-
 A 100 % fill factor is assumed: the sensor's on-chip lens over each pixel gathers the light of
 its whole area (Sony's Polarsens forms the polarizer under the on-chip lens layer:
 https://www.sony-semicon.co.jp/e/products/IS/industry/technology/polarization.html).
@@ -36,12 +24,10 @@ https://www.sony-semicon.co.jp/e/products/IS/industry/technology/polarization.ht
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from polrig.sim.geometry import rows_times
-from polrig.sim.raycast import Hits, surface_hits
+from polrig.sim.raycast import Hits
 from polrig.sim.scene import Scene
 
 #: Smallest ``|cos|`` between a sub-pixel ray and the hit's tangent plane normal for which the
@@ -123,78 +109,3 @@ def footprint_albedo(scene: Scene, turntable_deg: float, hits: Hits,
         mean = total / offsets.size ** 2
         out[sel[ok]] = mean[ok]
     return out
-
-
-@dataclasses.dataclass(frozen=True)
-class Mix:
-    """Each ``target`` pixel's radiance as a weighted mean of 9 pixels' (itself and its 8
-    neighbours, row-major flat indices ``source`` ``(K, 9)``), weights ``weight`` ``(K, 9)``
-    summing to 1 per row: the share of the pixel's ``n x n`` sub-rays each one stands for."""
-
-    target: np.ndarray
-    source: np.ndarray
-    weight: np.ndarray
-
-    def apply(self, image: np.ndarray) -> np.ndarray:
-        """``image`` ``(..., H, W)`` with the targets' values mixed (a new array; the sources
-        are read before any target is written)."""
-        flat = image.reshape(image.shape[:-2] + (-1,))
-        mixed = np.einsum("...kj,kj->...k", flat[..., self.source], self.weight)
-        out = flat.copy()
-        out[..., self.target] = mixed.astype(out.dtype)
-        return out.reshape(image.shape)
-
-
-#: The 9 offsets ``(dy, dx)`` of a pixel and its neighbours, the pixel itself at index 4.
-_NEIGHBOURS = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-
-
-def silhouette_mix(scene: Scene, turntable_deg: float, hits: Hits) -> Mix | None:
-    """The radiance mix (:class:`Mix`) of the pixels at an outline of an object that asks for
-    its footprint (:attr:`polrig.sim.scene.SceneObject.footprint_samples` ``n > 1``; the
-    largest ``n`` of the objects involved), or ``None`` where no object asks.
-
-    ``hits``: the camera rays' hits (:func:`polrig.sim.raycast.surface_hits` of every pixel
-    centre, row-major). A pixel is at an outline when its centre's object (or background)
-    differs from one of its 8 neighbours' (:func:`edge_pixels`) and it or a neighbour hit an
-    object that asks.
-    """
-    samples = np.array([ob.footprint_samples for ob in scene.objects] + [1])
-    if samples.max() <= 1:
-        return None
-    cam = scene.camera
-    h, w = cam.height, cam.width
-    obj = np.full(h * w, -1, dtype=np.int64)
-    obj[hits.index] = hits.obj
-    obj = obj.reshape(h, w)
-    n_px = samples[obj]  # the background's -1 picks the trailing 1
-    asks = np.zeros((h + 2, w + 2), dtype=np.int64)
-    for dy, dx in _NEIGHBOURS + 1:
-        asks[dy:dy + h, dx:dx + w] = np.maximum(asks[dy:dy + h, dx:dx + w], n_px)
-    asks = asks[1:-1, 1:-1]
-    rows, cols = np.nonzero(edge_pixels(obj) & (asks > 1))
-    if not rows.size:
-        return None
-    n = int(asks[rows, cols].max())
-    src_r = np.clip(rows[:, None] + _NEIGHBOURS[None, :, 0], 0, h - 1)
-    src_c = np.clip(cols[:, None] + _NEIGHBOURS[None, :, 1], 0, w - 1)
-    src_obj = obj[src_r, src_c]  # (K, 9)
-    off = stratified_offsets(n)
-    dv, du = np.meshgrid(off, off, indexing="ij")
-    du, dv = du.reshape(-1), dv.reshape(-1)  # (S,)
-    d_cam = np.stack([(cols[:, None] + du[None, :] - cam.cx) / cam.fx,
-                      (rows[:, None] + dv[None, :] - cam.cy) / cam.fy,
-                      np.ones((rows.size, du.size))], axis=-1).reshape(-1, 3)
-    d = rows_times(d_cam, cam.R)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    sub = surface_hits(scene, turntable_deg, np.broadcast_to(cam.centre_m, d.shape), d)
-    sub_obj = np.full(d.shape[0], -1, dtype=np.int64)
-    sub_obj[sub.index] = sub.obj
-    sub_obj = sub_obj.reshape(rows.size, du.size)  # (K, S)
-    dist2 = ((du[:, None] - _NEIGHBOURS[None, :, 1]) ** 2
-             + (dv[:, None] - _NEIGHBOURS[None, :, 0]) ** 2)  # (S, 9)
-    match = src_obj[:, None, :] == sub_obj[:, :, None]  # (K, S, 9)
-    cost = np.where(match, dist2[None], np.inf)
-    pick = np.where(match.any(axis=2), np.argmin(cost, axis=2), 4)  # (K, S)
-    weight = np.stack([(pick == j).mean(axis=1) for j in range(9)], axis=1)
-    return Mix(rows * w + cols, src_r * w + src_c, weight)

@@ -35,7 +35,7 @@ import numpy as np
 
 from polrig.optics.pbrdf import linear_rig_mueller
 from polrig.sim import surface_bsdf
-from polrig.sim.footprint import Mix, footprint_albedo, silhouette_mix
+from polrig.sim.footprint import footprint_albedo
 from polrig.sim.geometry import rows_times, unit
 from polrig.sim.interreflection import one_bounce
 from polrig.sim.materials import SurfaceMaterial
@@ -76,9 +76,6 @@ class RenderResult:
     counts: dict[str, int]
     indirect_index: np.ndarray | None = None  # (K,) flat pixel indices with indirect light
     indirect: np.ndarray | None = None        # (K, 3, 3, 3) float32 indirect radiance Mueller
-    #: radiance mix at the outlines of objects that ask for their footprint
-    #: (:func:`polrig.sim.footprint.silhouette_mix`), applied to the radiance images
-    mix: Mix | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -106,16 +103,12 @@ class RenderResult:
         flat[..., self.indirect_index] += np.moveaxis(values, 0, -1).astype(np.float32)
         return flat.reshape(img.shape)
 
-    def _mixed(self, img: np.ndarray) -> np.ndarray:
-        return img if self.mix is None else self.mix.apply(img)
-
     def radiance_mueller(self) -> np.ndarray:
         """``brdf * inv_r2`` (plus the one-bounce indirect light when rendered with
         ``indirect_samples``) ``(3, 3, 3, H, W)`` float32: emergent radiance per unit radiant
-        intensity of the light and per unit normalised incident Stokes; at the outlines of
-        objects that ask for it, each pixel's footprint mean (:attr:`mix`)."""
-        return self._mixed(self._add_indirect(
-            self._scatter(self.brdf_lit * self.inv_r2_lit[:, None, None, None]), self.indirect))
+        intensity of the light and per unit normalised incident Stokes."""
+        return self._add_indirect(self._scatter(self.brdf_lit * self.inv_r2_lit[:, None, None, None]),
+                                  self.indirect)
 
     def radiance_state(self, s_in: np.ndarray) -> np.ndarray:
         """Emergent radiance Stokes image ``(3, 3, H, W)`` float32 (colour, S0..S2) per unit
@@ -125,7 +118,7 @@ class RenderResult:
         m = self.brdf_lit
         out = (m[..., 0] * s[0] + m[..., 1] * s[1] + m[..., 2] * s[2]) * self.inv_r2_lit[:, None, None]
         ind = None if self.indirect is None else self.indirect @ s
-        return self._mixed(self._add_indirect(self._scatter(out), ind))
+        return self._add_indirect(self._scatter(out), ind)
 
 
 def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx",
@@ -260,8 +253,7 @@ def render(scene: Scene, turntable_deg: float = 0.0, *, distribution: str = "ggx
                 "diffuse_evals": int(n_pix if diff_sel is None else diff_sel.size),
                 "surface_evals": n_surface,
                 "indirect_pixels": 0 if ind_index is None else int(ind_index.size)},
-        indirect_index=ind_index, indirect=ind_values,
-        mix=silhouette_mix(scene, turntable_deg, hits))
+        indirect_index=ind_index, indirect=ind_values)
     tim["assemble"] = time.perf_counter() - t0
     return res
 

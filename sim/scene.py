@@ -64,12 +64,13 @@ class SceneObject:
     rotation: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
     region: RegionFn | None = None
     on_turntable: bool = True
-    #: Sub-pixel samples per axis over each pixel's footprint (1: the pixel centre alone), as a
-    #: sensor pixel integrates its area (:mod:`polrig.sim.footprint`). Above 1, a pixel on the
-    #: object has the mean diffuse albedo of its region over ``n x n`` points of the footprint
-    #: (the materials must then be Baek :class:`Material` s differing in ``kd`` alone, so that
-    #: the mean is the pixel's exact area integral for one surface point's geometry), and a
-    #: pixel at its outline the mean radiance of its ``n x n`` sub-rays' objects.
+    #: Sub-pixel samples per axis of ``region`` over each pixel's footprint (1: the pixel
+    #: centre alone). Above 1 a pixel's diffuse albedo is the mean over ``n x n`` stratified
+    #: points of the footprint on the surface's tangent plane
+    #: (:func:`polrig.sim.footprint.footprint_albedo`), as a sensor pixel integrates a
+    #: printed pattern; this needs every material to be a Baek :class:`Material` differing
+    #: from the others in ``kd`` alone, so that the mean albedo is the pixel's exact area
+    #: integral for one surface point's geometry.
     footprint_samples: int = 1
 
     def __post_init__(self) -> None:
@@ -81,7 +82,7 @@ class SceneObject:
         if not (isinstance(n, int) and n >= 1):
             raise ValueError(f"object {self.name}: footprint_samples must be an integer >= 1, "
                              f"got {n!r}")
-        if n > 1 and self.region is not None and not _albedo_only(self.materials):
+        if n > 1 and not _albedo_only(self.materials):
             raise ValueError(
                 f"object {self.name}: footprint_samples > 1 averages the diffuse albedo, so its "
                 "materials must all be Baek Materials with the same alpha, eta and ks, got "

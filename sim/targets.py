@@ -53,11 +53,10 @@ MIRROR_ALUMINIUM = SurfaceMaterial("mirror_aluminium", conductor_rgb("aluminium"
 #: The light-calibration ball: polished chrome (GGX roughness 0.04).
 CHROME = SurfaceMaterial("chrome", conductor_rgb("chrome"), 0.04)
 WHITE = Material("matte_white", (0.8, 0.8, 0.8), 0.5, 1.5, ks=0.0)
-#: Sub-pixel samples per axis over each pixel of the printed board and the mirror ball
-#: (:attr:`polrig.sim.scene.SceneObject.footprint_samples`): a pixel sees its area's mean, as a
-#: sensor pixel does, so the board's square edges and the ball's outline move continuously
-#: with their pose instead of snapping to the pixel grid.
-FOOTPRINT_SAMPLES = 4
+#: Sub-pixel samples per axis of the printed board's pattern over each pixel
+#: (:attr:`polrig.sim.scene.SceneObject.footprint_samples`): a pixel sees its area's mean albedo,
+#: as a sensor pixel does, so its square edges move continuously with the board's pose.
+BOARD_FOOTPRINT_SAMPLES = 4
 
 #: Default geometry of the targets (metres, degrees).
 DEFAULTS: dict[str, Any] = {
@@ -132,7 +131,7 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
         hx, hy = 0.5 * int(o["squares_x"]) * sq, 0.5 * int(o["squares_y"]) * sq
         return [SceneObject("charuco", Rectangle(hx, hy), (BOARD_BLACK, BOARD_WHITE), centre,
                             rotation=rot, region=board_region(img, sq, hx, hy),
-                            footprint_samples=FOOTPRINT_SAMPLES)]
+                            footprint_samples=BOARD_FOOTPRINT_SAMPLES)]
     if name in ("mirror_plate", "white_plate"):
         half = float(o["plate_half_m"])
         mat = MIRROR_ALUMINIUM if name == "mirror_plate" else WHITE
@@ -141,8 +140,7 @@ def target_objects(name: str, **kw) -> list[SceneObject]:
         r = float(o["sphere_radius_m"])
         pos = np.asarray(o["sphere_offset_m"], float) + [0.0, 0.0, float(o["sphere_height_m"])]
         backdrop_rot = np.column_stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
-        return [SceneObject("chrome_sphere", Sphere(r), (CHROME,), pos,
-                            footprint_samples=FOOTPRINT_SAMPLES),
+        return [SceneObject("chrome_sphere", Sphere(r), (CHROME,), pos),
                 SceneObject("backdrop", Rectangle(1.0, 1.0), (WHITE,),
                             [0.0, float(o["backdrop_y_m"]), OBJECT_Z_M],
                             rotation=backdrop_rot, on_turntable=False)]

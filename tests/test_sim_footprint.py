@@ -1,9 +1,6 @@
-"""A pixel's footprint (:mod:`polrig.sim.footprint`): a texture's albedo and an outline's radiance
-against closed forms."""
+"""A pixel's footprint on a textured surface (:mod:`polrig.sim.footprint`) against closed forms."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 import pytest
@@ -144,67 +141,3 @@ def test_the_scene_record_names_footprint_sampling_only_where_an_object_asks():
     """A scene recorded before footprints existed (a session's rig record) reads the same."""
     assert "footprint_samples" not in _edge_scene(0.0, 1).objects[0].to_json()
     assert _edge_scene(0.0, 4).objects[0].to_json()["footprint_samples"] == 4
-
-
-def _outline_scene(edge_u: float, samples: int) -> Scene:
-    """A uniform plate square to the camera's axis, covering the image left of the column
-    ``edge_u`` (pixels), nothing beyond it; the light behind the camera."""
-    cam = PinholeCamera(FX, FX, CX, 3.5, W, H, np.eye(3), np.zeros(3))
-    half = 1.0
-    right = (edge_u - CX) / FX * DEPTH_M
-    plate = SceneObject("plate", Rectangle(half, half), (LIGHT,), [right - half, 0.0, DEPTH_M],
-                        on_turntable=False, footprint_samples=samples)
-    return Scene("outline", (plate,), cam, PointLight([0.0, 0.0, -0.5]), TurntableGeometry(),
-                 np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, DEPTH_M]))
-
-
-@pytest.mark.parametrize("n", [2, 4, 5])
-@pytest.mark.parametrize("edge_u", [12.0, 12.3, 12.61, 13.95])
-def test_a_pixel_at_an_outline_records_its_footprints_share_of_the_object(n, edge_u):
-    """The pixel the plate's edge crosses holds the share of its strata on the plate times the
-    plate's radiance (its inner neighbour's, to within the shading's change over one pixel);
-    the pixels on either side are unchanged."""
-    mixed = render(_outline_scene(edge_u, n)).radiance_state(np.array([1.0, 0.0, 0.0]))[0, 0]
-    centre = render(_outline_scene(edge_u, 1)).radiance_state(np.array([1.0, 0.0, 0.0]))[0, 0]
-    share = 1.0 - _expected_fraction(edge_u, n)  # strata left of the edge: on the plate
-    k = int(np.nonzero((share > 0) & (share < 1))[0][0]) if np.any((share > 0) & (share < 1)) else None
-    if k is None:  # the edge falls between strata of every pixel: nothing to mix
-        np.testing.assert_array_equal(mixed, centre)
-        return
-    inner = centre[:, k - 1]
-    np.testing.assert_allclose(mixed[:, k], share[k] * inner, rtol=2e-3)
-    others = np.arange(W) != k
-    np.testing.assert_array_equal(mixed[:, others], centre[:, others])
-
-
-def test_a_mirror_balls_outline_is_found_to_a_quarter_of_its_error_at_the_pixel_centres():
-    """The light step's edge points (``light.find_sphere``) on the simulated chrome ball:
-    their mean radial error per view, against the projected outline, is under a quarter of
-    what the pixel centres alone gave (each edge point up to half a pixel off, correlated
-    around the outline: 0.036 px in the worst of three views, against 0.007 with 4 x 4
-    sub-rays)."""
-    from polrig.calibration import light
-    from polrig.sim.scene import make_scene
-    from polrig.sim.targets import FOOTPRINT_SAMPLES, target_scene
-
-    means = {}
-    for n in (1, FOOTPRINT_SAMPLES):
-        scene = target_scene(make_scene("sphere", 320, 240), "chrome_sphere", sphere_height_m=0.1)
-        scene = Scene(scene.name, tuple(dataclasses.replace(o, footprint_samples=n)
-                                        if o.name == "chrome_sphere" else o for o in scene.objects),
-                      scene.camera, scene.light, scene.turntable, scene.stage_zero_axis,
-                      scene.illumination_target_m)
-        cam, ball = scene.camera, scene.objects[0]
-        errs = []
-        for angle in (0.0, 50.0, 110.0):
-            grey = render(scene, angle).radiance_state(np.array([1.0, 0.0, 0.0]))[1, 0]
-            edge = light.find_sphere(grey).edge_px
-            r_w, t_w = ball.world_pose(scene.turntable, angle)
-            c = cam.R @ t_w + cam.t
-            d = np.column_stack([(edge[:, 0] - cam.cx) / cam.fx, (edge[:, 1] - cam.cy) / cam.fy,
-                                 np.ones(len(edge))])
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-            ang = np.arccos(d @ (c / np.linalg.norm(c)))
-            errs.append(abs(np.mean(ang - np.arcsin(ball.shape.radius_m / np.linalg.norm(c)))) * cam.fx)
-        means[n] = max(errs)
-    assert means[FOOTPRINT_SAMPLES] < 0.25 * means[1]
