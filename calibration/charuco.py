@@ -308,7 +308,7 @@ def class_scales(raw: np.ndarray, layout, black_level_dn: float = 0.0) -> np.nda
     win = np.ones((ph + 1, pw + 1), np.uint8)
     spread = cv2.dilate(cell, win) - cv2.erode(cell, win)
     use = bright & (spread <= FLAT_CELL_SPREAD * cell)
-    if np.count_nonzero(use) < 16 * ph * pw:
+    if np.count_nonzero(use) < 16 * ph * pw:  # fewer than 16 pixels of each class
         use = bright
     ratio = np.divide(a, cell, out=np.zeros_like(a), where=cell > 0)
     level = float(np.median(cell[use]))
