@@ -205,7 +205,7 @@ def diffuse_statistic(stokes: np.ndarray, information: np.ndarray, states: np.nd
 
     states = np.ascontiguousarray(np.asarray(states, np.float64).reshape(-1, 3))
     view = np.ascontiguousarray(np.asarray(view, np.float64).reshape(-1, 3))
-    light = np.ascontiguousarray(np.broadcast_to(np.asarray(light, np.float64), view.shape))
+    light = np.array(np.broadcast_to(np.asarray(light, np.float64), view.shape), order="C")  # one kernel type
     stage, cam = (np.ascontiguousarray(a, np.float64) for a in (stage_zero_axis, camera_x_axis))
     stokes = np.ascontiguousarray(np.moveaxis(np.asarray(stokes, np.float64), -1, 0))  # (P, C, J, 3)
     info = np.ascontiguousarray(np.moveaxis(np.asarray(information, np.float64), -1, 0))  # (P, C, J, 3, 3)

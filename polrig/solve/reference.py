@@ -592,6 +592,23 @@ def solve_tiles(inputs: SolveInputs, analyzer_rows, max_condition: float, min_sn
                            sigma_noise if with_cal else None)
 
 
+def _kernel_input(x: np.ndarray) -> np.ndarray:
+    """``x`` as a read-only C-contiguous array: itself (a read-only view) where it is
+    C-contiguous, else a copy (of a band of rows or a broadcast prior: that view's size).
+
+    numba compiles one machine-code version of a kernel per argument type, and an array's
+    type holds its layout and writability. Callers pass contiguous arrays, views of them and
+    read-only broadcasts, so each kernel was compiled, and cached, once per mix (solve_blocks
+    21-25 s each on this project's 2-core machine, 2026-11-30); given one type per dtype, it
+    is compiled once. Typing the views as any-strides ("A") instead keeps them uncopied but
+    made the full-sensor solve 20-35 % slower (``python -m benchmarks reference``)."""
+    x = np.ascontiguousarray(x)
+    if x.flags.writeable:
+        x = x.view()
+        x.flags.writeable = False
+    return x
+
+
 class _TileRun:
     """Solve one tile (rows ``y0 .. y1`` of colour ``c``) into the output images: load the
     samples into block-major float64 buffers (one set per thread, reused), solve, store,
@@ -602,13 +619,13 @@ class _TileRun:
                  max_condition, min_snr, out_max, cal_sd, with_cal, outputs,
                  prior: PriorInputs | None = None) -> None:
         self.kern = kern
-        self.s = s
+        self.s = _kernel_input(s)
         self.ds_gen = _generator_derivatives(s)
-        self.meas, self.var = meas, var
+        self.meas, self.var = _kernel_input(meas), _kernel_input(var)
         self.has_valid = valid is not None
-        self.valid = np.ascontiguousarray(valid) if self.has_valid else np.ones((1,) * 5, bool)
+        self.valid = _kernel_input(valid if self.has_valid else np.ones((1,) * 5, bool))
         self.per_pixel = pixel_rows is not None
-        self.rows = pixel_rows if self.per_pixel else np.zeros((1,) * 5)
+        self.rows = _kernel_input(pixel_rows if self.per_pixel else np.zeros((1,) * 5))
         lanes = kern.LANES
         self.shared_arow = np.repeat(a_shared.reshape(1, 4, 3, 1), lanes, -1)
         # condition numbers with the shared (for per-pixel rows: the ideal) analyzer
@@ -616,7 +633,8 @@ class _TileRun:
         self.max_condition, self.min_snr, self.out_max = max_condition, min_snr, out_max
         self.cal_sd, self.with_cal = cal_sd, with_cal
         self.outputs = outputs
-        self.prior = prior
+        self.prior = None if prior is None else prior._replace(mean=_kernel_input(prior.mean),
+                                                                sigma=_kernel_input(prior.sigma))
         self.local = threading.local()
 
     def _buffers(self, n_blocks: int) -> dict[str, np.ndarray]:
