@@ -88,7 +88,8 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
     from. Fitted per row so that it covers as the single-shot sigma on the calibration scenes,
     the share moves that miss from five held-out sets above the 93-97 % band to the two terrain
     sets below it (:mod:`polrig.models.coverage_diagnosis`; ``docs/continuum.md``, "Against
-    issue 33's acceptance, line by line"), so captures keep 1: a sigma that errs wide is the safer one.
+    issue 33's acceptance, line by line"), so captures keep 1: a sigma that errs wide is the
+    safer one.
 
   So the row's prior precision is the inverse of that covariance written back in ``M``'s
   coordinates: with ``S_r = Pi_r - (Pi_r u)(Pi_r u)^T / (u^T Pi_r u)`` (the marginal's

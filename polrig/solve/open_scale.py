@@ -7,7 +7,8 @@ Two polarizer states observe each row ``m_r`` of the 3x3 block in their plane; a
 innovations' scale (:mod:`polrig.solve.prior_scale`), sees only the directions they observe, and
 where the network errs more along ``w`` than there, the two-state posterior's sigma is too
 small: on the simulated rig's ``plane`` and its plastic + metal scene 91.2 and 90.1 % of the
-elements within 2 sigma, the misses in ``m01``, ``m02`` (``docs/continuum.md``, "Against issue 33's acceptance, line by line").
+elements within 2 sigma, the misses in ``m01``, ``m02`` (``docs/continuum.md``, "Against issue
+33's acceptance, line by line").
 
 Where the pixel is Baek's diffuse term (with his specular term where significant), the rig's
 geometry predicts ``m_r . w`` without the network: the diffuse test on the two states' samples

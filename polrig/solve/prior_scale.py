@@ -30,7 +30,8 @@ frame's term. The observed directions' scale is taken for the whole prior: the o
 at two states (column 2 of the seen frame, light at 45 deg to the seen state) is no part of
 any innovation, so :data:`SHRINK` takes the estimate partly (``c ** SHRINK``), as fitted on
 the calibration scenes (:mod:`polrig.models.coverage_diagnosis`, "A what-if of the prior's scale
-from the innovations"; what it does to every set: ``docs/continuum.md``, "Against issue 33's acceptance, line by line").
+from the innovations"; what it does to every set: ``docs/continuum.md``, "Against issue 33's
+acceptance, line by line").
 
 Captures take it (``--prior-scale innovations``, and ``geometry``, which at two states adds the
 open direction's own scale from the diffuse term's geometry, :mod:`polrig.solve.open_scale`;

@@ -318,7 +318,8 @@ def fit_model(model: ReducedModel, m_hat: np.ndarray, normal: np.ndarray, *,
         return _fit_linear(model, m_hat, normal)
     from polrig.solve import _reduced_kernel as kern  # numba: imported on first use
 
-    starts = np.ascontiguousarray(np.stack([np.where(np.isfinite(t), t, 0.0) for t in model.starts(m_hat)], 1))
+    starts = np.ascontiguousarray(  # C-contiguous: one compiled version of the fits
+        np.stack([np.where(np.isfinite(t), t, 0.0) for t in model.starts(m_hat)], 1))
     m_hat = np.ascontiguousarray(m_hat, np.float64)
     normal = np.ascontiguousarray(normal, np.float64)
     p = len(m_hat)

@@ -459,7 +459,8 @@ def _solve_options(max_condition, min_snr, dtype, chunk_pixels
 
 
 def _float_samples(x: np.ndarray) -> np.ndarray:
-    """float32 and float64 samples as they are (no copy, any strides); others as float64."""
+    """float32 and float64 samples as they are (no copy); others as float64. (The tile driver
+    copies a strided array once, :func:`_kernel_input`.)"""
     return x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)
 
 
@@ -516,8 +517,9 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
 class PriorInputs(NamedTuple):
     """A Gaussian prior on the nine elements for :func:`solve_tiles` (checked by
     :mod:`polrig.solve.hybrid`): ``mean`` and ``sigma`` ``(C, 3, 3, H, W)`` float32 or float64
-    (broadcast views allowed), ``seen_dir`` ``(3,)`` the unit Stokes vector of the state
-    whose samples the prior already holds, ``seen_axis`` ``(3,)`` the axis of its unobserved
+    (broadcast views allowed: copied once, :func:`_kernel_input`), ``seen_dir`` ``(3,)`` the
+    unit Stokes vector of the state whose samples the prior already holds, ``seen_axis``
+    ``(3,)`` the axis of its unobserved
     plane that the row variance along ``seen_dir`` moves onto (all 0: the scalar row factor;
     :func:`polrig.solve.hybrid.plane_axis`) and ``seen_k`` that state's index (-1: none)."""
 
