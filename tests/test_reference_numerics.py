@@ -219,6 +219,31 @@ def test_views_and_contiguous_arrays_share_one_compiled_kernel():
     assert again == first
 
 
+def test_a_large_strided_capture_is_read_in_place(monkeypatch):
+    """Past :data:`KERNEL_COPY_LIMIT` a strided capture (a band view of a larger array) is not
+    copied for the kernels: the solve's peak stays far below one copy of its samples (here the
+    limit is lowered to 1 MiB to keep the arrays small)."""
+    monkeypatch.setattr(ref, "KERNEL_COPY_LIMIT", 2**20)
+    rng = np.random.default_rng(5)
+    s = states(0, 45, 90, 135)
+    meas = rng.uniform(100, 200, (4, 3, 4, 130, 256)).astype(np.float32)
+    var = np.ones_like(meas)
+    band_m, band_v = meas[..., 1:129, :], var[..., 1:129, :]
+    assert not band_m.flags.c_contiguous and band_m.nbytes > ref.KERNEL_COPY_LIMIT
+    ref.solve_reference(s, band_m[..., :2, :], band_v[..., :2, :])  # compile
+    ref.solve_reference(s, band_m[..., :2, :].copy(), band_v[..., :2, :].copy())
+    tracemalloc.start()
+    try:
+        res = ref.solve_reference(s, band_m, band_v)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    outputs = sum(a.nbytes for a in (res.mueller, res.sigma, res.residual, res.mask,
+                                     res.pixel_condition, res.n_samples))
+    assert peak < outputs + band_m.nbytes  # copies of the samples and variances: 2 x nbytes
+    np.testing.assert_array_equal(res.mueller, ref.solve_reference(s, band_m.copy(), band_v.copy()).mueller)
+
+
 # ---------------------------------------------------------------------------- options (item 8)
 @pytest.mark.parametrize("kw,match", [
     (dict(max_condition=float("nan")), "max_condition must be >= 1"),

@@ -460,7 +460,7 @@ def _solve_options(max_condition, min_snr, dtype, chunk_pixels
 
 def _float_samples(x: np.ndarray) -> np.ndarray:
     """float32 and float64 samples as they are (no copy); others as float64. (The tile driver
-    copies a strided array once, :func:`_kernel_input`.)"""
+    copies a small strided array once, :func:`_kernel_input`.)"""
     return x if x.dtype in (np.float32, np.float64) else x.astype(np.float64)
 
 
@@ -517,7 +517,7 @@ def solve_reference(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray
 class PriorInputs(NamedTuple):
     """A Gaussian prior on the nine elements for :func:`solve_tiles` (checked by
     :mod:`polrig.solve.hybrid`): ``mean`` and ``sigma`` ``(C, 3, 3, H, W)`` float32 or float64
-    (broadcast views allowed: copied once, :func:`_kernel_input`), ``seen_dir`` ``(3,)`` the
+    (broadcast views allowed; :func:`_kernel_input`), ``seen_dir`` ``(3,)`` the
     unit Stokes vector of the state whose samples the prior already holds, ``seen_axis``
     ``(3,)`` the axis of its unobserved
     plane that the row variance along ``seen_dir`` moves onto (all 0: the scalar row factor;
@@ -594,17 +594,25 @@ def solve_tiles(inputs: SolveInputs, analyzer_rows, max_condition: float, min_sn
                            sigma_noise if with_cal else None)
 
 
+#: the largest strided input :func:`_kernel_input` copies (bytes)
+KERNEL_COPY_LIMIT = 32 * 2**20
+
+
 def _kernel_input(x: np.ndarray) -> np.ndarray:
-    """``x`` as a read-only C-contiguous array: itself (a read-only view) where it is
-    C-contiguous, else a copy (of a band of rows or a broadcast prior: that view's size).
+    """``x`` read-only and, up to :data:`KERNEL_COPY_LIMIT` bytes, C-contiguous: itself (a
+    read-only view) where it is C-contiguous or larger than that, else a copy.
 
     numba compiles one machine-code version of a kernel per argument type, and an array's
-    type holds its layout and writability. Callers pass contiguous arrays, views of them and
+    type holds its layout and writability. Callers pass contiguous arrays, row bands and
     read-only broadcasts, so each kernel was compiled, and cached, once per mix (solve_blocks
-    21-25 s each on this project's 2-core machine, 2026-11-30); given one type per dtype, it
-    is compiled once. Typing the views as any-strides ("A") instead keeps them uncopied but
+    21-25 s each on this project's 2-core machine, 2026-11-30). The bands and broadcast priors
+    of the capture paths are a few MiB: copied, they run on the contiguous arrays' version. A
+    strided full-sensor array is not copied (its samples alone are 230 MiB in colour: copying
+    samples and variances raised the solve's peak from 304 to 762 MiB); it gets its own
+    version, compiled once. Typing every input as any-strides ("A") instead, with no copy,
     made the full-sensor solve 20-35 % slower (``python -m benchmarks reference``)."""
-    x = np.ascontiguousarray(x)
+    if not x.flags.c_contiguous and x.nbytes <= KERNEL_COPY_LIMIT:
+        x = np.ascontiguousarray(x)
     if x.flags.writeable:
         x = x.view()
         x.flags.writeable = False
