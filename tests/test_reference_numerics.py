@@ -230,8 +230,7 @@ def test_a_large_strided_capture_is_read_in_place(monkeypatch):
     var = np.ones_like(meas)
     band_m, band_v = meas[..., 1:129, :], var[..., 1:129, :]
     assert not band_m.flags.c_contiguous and band_m.nbytes > ref.KERNEL_COPY_LIMIT
-    ref.solve_reference(s, band_m[..., :2, :], band_v[..., :2, :])  # compile
-    ref.solve_reference(s, band_m[..., :2, :].copy(), band_v[..., :2, :].copy())
+    ref.solve_reference(s, band_m, band_v)  # compile (the strided inputs' own version)
     tracemalloc.start()
     try:
         res = ref.solve_reference(s, band_m, band_v)
