@@ -487,8 +487,9 @@ def _light_fit(sigmas_m, distance_m=0.5185, seed=3) -> light.LightFit:
 
 def test_the_light_fit_says_whether_its_uncertainty_assures_the_acceptance(tmp_path):
     """The acceptance is the light within 1 % of its distance; at 256x256 the light was 1.0-1.6 %
-    off (seeds 0-6, before the board corners were mended) while nothing said so, although its reported uncertainty (1 sigma 3.9 mm
-    along its least certain direction, 2 sigma 1.5 % of 0.52 m) did not allow 1 %. The
+    off (seeds 0-6, before the board corners were mended) while nothing said so, although its
+    reported uncertainty (1 sigma 3.9 mm along its least certain direction, 2 sigma 1.5 % of
+    0.52 m) did not allow 1 %. The
     uncertainty along the least certain direction (not the per-axis std) is what counts."""
     from polrig.calibration.report import write_report
 
