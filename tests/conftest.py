@@ -68,3 +68,25 @@ def tiny_train_data(tmp_path_factory) -> pathlib.Path:
     root = tmp_path_factory.mktemp("tiny_train") / "data"
     generate_dataset(root, count=4, width=32, seed=0, shard_size=2, progress=False)
     return root
+
+
+@pytest.fixture
+def viewer_panel(qtbot):
+    """Make standalone :class:`polrig.gui.viewer.ViewerPanel` widgets: ``make(size=None,
+    show=True)`` returns a new panel, resized to ``size`` (width, height px) and shown. At the
+    test's teardown each is shut down (its load and ROI threads ended) before it is closed, as
+    :meth:`polrig.gui.main_window.MainWindow.shutdown` does for the main window's viewer: a panel
+    closed with its thread pools alive could still be handed a queued result while Qt destroys
+    it."""
+    from polrig.gui.viewer import ViewerPanel
+
+    def make(size: tuple[int, int] | None = None, show: bool = True) -> ViewerPanel:
+        v = ViewerPanel()
+        qtbot.addWidget(v, before_close_func=lambda panel: panel.shutdown())
+        if size is not None:
+            v.resize(*size)
+        if show:
+            v.show()
+        return v
+
+    return make

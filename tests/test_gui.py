@@ -492,10 +492,9 @@ def test_settings_are_remembered(qtbot, tmp_path):
     w2.close()
 
 
-def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
+def test_viewer_browses_a_session_and_exrs(qtbot, viewer_panel, tmp_path):
     from polrig.app import capture, processing
     from polrig.formats.exr import write_stokes_exr
-    from polrig.gui.viewer import ViewerPanel
 
     out = tmp_path / "session"
     with build_rig(load_rig_config(None), SIM).open() as rig:
@@ -506,10 +505,7 @@ def test_viewer_browses_a_session_and_exrs(qtbot, tmp_path):
         proc = processing.make_processor(plan, cal, processing.session_sensor_model(s))
         assert capture.run_session(rig, s, processor=proc).status == "complete"
         frame = rig.camera.grab()
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.resize(900, 600)
-    v.show()
+    v = viewer_panel((900, 600))
     messages = []
     v.message.connect(lambda lvl, t: messages.append((lvl, t)))
     assert v.open_session(out)
@@ -566,19 +562,16 @@ def _slow_reader(monkeypatch, delay_s: float = 1.0, slow: str = ""):
     return threads
 
 
-def test_viewer_loads_a_file_off_the_ui_thread(qtbot, tmp_path, monkeypatch):
+def test_viewer_loads_a_file_off_the_ui_thread(qtbot, viewer_panel, tmp_path, monkeypatch):
     """Reading and rendering a full colour sensor's Mueller result takes seconds (2.2-2.7 s
     to read, 2.2 s to render at 1224x1024x3): done on the UI thread it froze the window. Here
     the read takes 1 s; the event loop must never wait for it, and the file is shown."""
     import threading
 
-    from polrig.gui.viewer import ViewerPanel
 
     threads = _slow_reader(monkeypatch)
     path = _small_mueller_exr(tmp_path / "m.exr")
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.show()
+    v = viewer_panel()
     probe = EventLoopProbe(10).start()
     started = v.open_file(path)
     qtbot.waitUntil(lambda: v.data is not None and not getattr(v, "loading", False), timeout=20000)
@@ -589,16 +582,13 @@ def test_viewer_loads_a_file_off_the_ui_thread(qtbot, tmp_path, monkeypatch):
     assert v.display.currentData() == "mueller" and v.histogram.counts.size
 
 
-def test_viewer_never_shows_a_load_that_a_newer_one_superseded(qtbot, tmp_path, monkeypatch):
+def test_viewer_never_shows_a_load_that_a_newer_one_superseded(qtbot, viewer_panel, tmp_path, monkeypatch):
     """The operator opens B while A is still loading: A is dropped, B is shown."""
-    from polrig.gui.viewer import ViewerPanel
 
     threads = _slow_reader(monkeypatch, 1.0, slow="slow_a")
     a = _small_mueller_exr(tmp_path / "slow_a.exr", 100.0)
     b = _small_mueller_exr(tmp_path / "b.exr", 300.0)
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.show()
+    v = viewer_panel()
     shown, ends = [], []
     real_set_data = v.set_data
     v.set_data = lambda data: (shown.append(data.source), real_set_data(data))
@@ -626,7 +616,7 @@ def test_closing_the_window_while_a_file_loads_shuts_down_cleanly(qtbot, tmp_pat
     assert not w.viewer.open_file(tmp_path / "m.exr")  # nothing starts after the shutdown
 
 
-def test_viewer_roi_statistics_are_computed_off_the_ui_thread(qtbot, tmp_path, monkeypatch):
+def test_viewer_roi_statistics_are_computed_off_the_ui_thread(qtbot, viewer_panel, tmp_path, monkeypatch):
     """A region's statistics take seconds at the full sensor (1.8 s for an ellipse, 5-6 s for
     a large rectangle on a 1224x1024x3 result): here 1 s each; the window never waits."""
     import threading
@@ -634,7 +624,6 @@ def test_viewer_roi_statistics_are_computed_off_the_ui_thread(qtbot, tmp_path, m
 
     from polrig.app import roi
     from polrig.gui import pipeline as pl
-    from polrig.gui.viewer import ViewerPanel
 
     real, threads = pl.roi_statistics, []
 
@@ -643,9 +632,7 @@ def test_viewer_roi_statistics_are_computed_off_the_ui_thread(qtbot, tmp_path, m
         time.sleep(1.0)
         return real(*a, **kw)
     monkeypatch.setattr(pl, "roi_statistics", slow_statistics)
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.show()
+    v = viewer_panel()
     v.set_data(pipeline.PolarizationData.from_mueller(
         np.full((1, 3, 3, 12, 16), 10.0, np.float32), "x"))
     probe = EventLoopProbe(10).start()
@@ -678,10 +665,10 @@ def _slow_render(monkeypatch, delay_s: float = 1.0):
     return calls
 
 
-def _large_viewer(qtbot, tmp_path, display: str = "polarizer", viewer=None):
-    """A viewer showing a LARGE_HW Mueller result with ``display``, waited for."""
+def _large_viewer(qtbot, tmp_path, v, display: str = "polarizer"):
+    """Viewer ``v`` (shown) made to show a LARGE_HW Mueller result with ``display``, waited
+    for."""
     from polrig.formats.exr import write_mueller_exr
-    from polrig.gui.viewer import ViewerPanel
 
     h, w = LARGE_HW
     m = np.zeros((1, 3, 3, h, w), np.float32)
@@ -690,11 +677,6 @@ def _large_viewer(qtbot, tmp_path, display: str = "polarizer", viewer=None):
     m[:, 1, 0] = 0.3 * m[:, 0, 0]
     m[:, 1, 1] = 0.5 * m[:, 0, 0]
     path = write_mueller_exr(tmp_path / "large.exr", m)
-    v = viewer
-    if v is None:
-        v = ViewerPanel()
-        qtbot.addWidget(v)
-        v.show()
     assert open_and_wait(qtbot, v, path)
     v.display.setCurrentIndex(v.display.findData(display))
     qtbot.waitUntil(lambda: not getattr(v, "drawing", False), timeout=20000)
@@ -707,7 +689,8 @@ def _record_shown(v) -> list:
     return shown
 
 
-def test_viewer_redraws_a_large_image_off_the_ui_thread_latest_wins(qtbot, tmp_path, monkeypatch):
+def test_viewer_redraws_a_large_image_off_the_ui_thread_latest_wins(qtbot, viewer_panel, tmp_path,
+                                                                   monkeypatch):
     """Redrawing a full colour sensor's 3x3 Mueller grid after a change of the display took
     1.1-1.5 s on the UI thread, a dragged slider froze the window for seconds. Here each
     redraw takes 1 s more; four quick changes: the event loop never waits for them, at most
@@ -719,7 +702,7 @@ def test_viewer_redraws_a_large_image_off_the_ui_thread_latest_wins(qtbot, tmp_p
     from polrig.gui.qtimage import to_qimage
 
     assert LARGE_HW[0] * LARGE_HW[1] > getattr(viewer_module, "SYNC_REDRAW_MAX_PX", 0)
-    v = _large_viewer(qtbot, tmp_path)
+    v = _large_viewer(qtbot, tmp_path, viewer_panel())
     real_render = pipeline.render
     calls = _slow_render(monkeypatch)
     shown = _record_shown(v)
@@ -750,16 +733,13 @@ def test_viewer_redraws_a_large_image_off_the_ui_thread_latest_wins(qtbot, tmp_p
     assert v.view.image() is shown[0] and v.view.banner == ""
 
 
-def test_viewer_redraws_a_small_image_at_once(qtbot, tmp_path, monkeypatch):
+def test_viewer_redraws_a_small_image_at_once(qtbot, viewer_panel, tmp_path, monkeypatch):
     """A small image (the tests' files, a 256x256 sensor's result) is redrawn on the UI
     thread when the setting changes: it takes milliseconds."""
     import threading
 
-    from polrig.gui.viewer import ViewerPanel
 
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.show()
+    v = viewer_panel()
     assert open_and_wait(qtbot, v, _small_mueller_exr(tmp_path / "m.exr"))
     calls = _slow_render(monkeypatch, 0.0)
     v.display.setCurrentIndex(v.display.findData("polarizer"))
@@ -768,12 +748,12 @@ def test_viewer_redraws_a_small_image_at_once(qtbot, tmp_path, monkeypatch):
     assert not v.drawing and len(calls) == 2 and calls[-1][3].incident_deg == 30.0
 
 
-def test_a_change_while_a_file_loads_draws_the_file_not_the_earlier_one(qtbot, tmp_path,
+def test_a_change_while_a_file_loads_draws_the_file_not_the_earlier_one(qtbot, viewer_panel, tmp_path,
                                                                         monkeypatch):
     """The operator opens another file, then moves a slider while it loads: the file still
     shown is not redrawn (the new one comes with the newest settings); here the new file cannot
     be read, the view is cleared, and nothing of the earlier file comes back."""
-    v = _large_viewer(qtbot, tmp_path)
+    v = _large_viewer(qtbot, tmp_path, viewer_panel())
     threads = _slow_reader(monkeypatch, 1.0, slow="missing")
     calls = _slow_render(monkeypatch, 0.2)
     shown = _record_shown(v)
@@ -786,13 +766,13 @@ def test_a_change_while_a_file_loads_draws_the_file_not_the_earlier_one(qtbot, t
     assert v.data is None and [img for img in shown if img is not None] == [] and not calls
 
 
-def test_a_file_loaded_while_the_settings_change_is_shown_with_the_newest(qtbot, tmp_path,
+def test_a_file_loaded_while_the_settings_change_is_shown_with_the_newest(qtbot, viewer_panel, tmp_path,
                                                                           monkeypatch):
     import shutil
 
     from polrig.gui.qtimage import to_qimage
 
-    v = _large_viewer(qtbot, tmp_path)
+    v = _large_viewer(qtbot, tmp_path, viewer_panel())
     second = shutil.copy(tmp_path / "large.exr", tmp_path / "slow_second.exr")
     threads = _slow_reader(monkeypatch, 1.0, slow="slow_second")
     assert v.open_file(second)
@@ -810,7 +790,7 @@ def test_a_file_loaded_while_the_settings_change_is_shown_with_the_newest(qtbot,
 def test_closing_the_window_while_a_redraw_runs_shuts_down_cleanly(qtbot, tmp_path, monkeypatch):
     w = make_window(qtbot, tmp_path / "gui.ini")
     wait_connected(qtbot, w)
-    v = _large_viewer(qtbot, tmp_path, viewer=w.viewer)
+    v = _large_viewer(qtbot, tmp_path, w.viewer)
     calls = _slow_render(monkeypatch, 1.5)
     shown = _record_shown(v)
     v.incident.setValue(30)

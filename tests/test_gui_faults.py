@@ -453,19 +453,15 @@ def test_live_status_says_when_frames_stop(qtbot, window):
     qtbot.waitUntil(lambda: window.fps_label.text().startswith("live "), timeout=10000)
 
 
-def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, tmp_path):
+def test_viewer_clears_the_previous_image_when_a_file_cannot_be_read(qtbot, viewer_panel, tmp_path):
     from polrig.formats.exr import write_mueller_exr
-    from polrig.gui.viewer import ViewerPanel
     from test_gui import open_and_wait
 
     good = tmp_path / "good.exr"
     write_mueller_exr(good, np.ones((3, 3, 3, 8, 8), np.float32))
     bad = tmp_path / "bad.exr"
     bad.write_bytes(good.read_bytes()[:200])
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.resize(800, 500)
-    v.show()
+    v = viewer_panel((800, 500))
     assert open_and_wait(qtbot, v, good)
     v._hovered(2, 2)
     assert v.view.image() is not None and v.readout.text() and v.histogram.counts.size

@@ -51,13 +51,9 @@ def expected_normal_map(x, y, z):
 
 
 @pytest.fixture
-def viewer(qtbot):
-    from polrig.gui.viewer import ViewerPanel
+def viewer(qtbot, viewer_panel):
 
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.resize(1400, 800)
-    v.show()
+    v = viewer_panel((1400, 800))
     v.messages = []
     v.message.connect(lambda lvl, t: v.messages.append((lvl, t)))
     return v

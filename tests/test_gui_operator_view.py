@@ -40,16 +40,14 @@ def _stokes_exr_with_a_saturated_sky(tmp_path):
     return out
 
 
-def test_viewer_honours_the_valid_plane_and_says_why(qtbot, tmp_path):
+def test_viewer_honours_the_valid_plane_and_says_why(qtbot, viewer_panel, tmp_path):
     """A Stokes EXR's ``valid`` plane used to be ignored: the saturated sky read as a valid
     Stokes vector, unflagged. Now the readout says "MASKED: saturated" (or dark, with the SNR)
     and the DoLP display is black there."""
-    from polrig.gui.viewer import ViewerPanel
     from test_gui import open_and_wait
 
     exr = _stokes_exr_with_a_saturated_sky(tmp_path)
-    v = ViewerPanel()
-    qtbot.addWidget(v)
+    v = viewer_panel(show=False)
     assert open_and_wait(qtbot, v, exr)
     v.display.setCurrentIndex(v.display.findData("dolp"))
     v._hovered(2, 1)  # the sky (output rows 0..3)
@@ -66,8 +64,7 @@ def test_viewer_honours_the_valid_plane_and_says_why(qtbot, tmp_path):
     assert rgb[8:, 20:].max() > 0 and (rgb[:4] == pipeline.SATURATION_RGB).all()
 
 
-def test_viewer_masks_a_single_shot_exrs_background_and_labels_the_tiles(qtbot, tmp_path):
-    from polrig.gui.viewer import ViewerPanel
+def test_viewer_masks_a_single_shot_exrs_background_and_labels_the_tiles(qtbot, viewer_panel, tmp_path):
 
     m = np.zeros((1, 3, 3, 40, 40), np.float32)
     m[:, 0, 0] = 100.0
@@ -75,8 +72,7 @@ def test_viewer_masks_a_single_shot_exrs_background_and_labels_the_tiles(qtbot, 
     planes = {"mask": np.zeros((40, 40), np.float32)}
     planes["mask"][:, :20] = 1.0
     data = pipeline.PolarizationData.from_mueller(m, "x", planes)
-    v = ViewerPanel()
-    qtbot.addWidget(v)
+    v = viewer_panel(show=False)
     v.set_data(data)
     rgb = from_qimage(v.view.image())
     b, h = pipeline.GRID_BORDER_PX, 40

@@ -61,13 +61,9 @@ def result_exr(tmp_path_factory):
 
 
 @pytest.fixture
-def viewer(qtbot, result_exr):
-    from polrig.gui.viewer import ViewerPanel
+def viewer(qtbot, viewer_panel, result_exr):
 
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.resize(1400, 800)
-    v.show()
+    v = viewer_panel((1400, 800))
     v.messages = []
     v.message.connect(lambda lvl, t: v.messages.append((lvl, t)))
     assert open_and_wait(qtbot, v, result_exr)
@@ -306,12 +302,11 @@ def test_a_stale_maps_result_is_discarded_when_the_file_changes(qtbot, viewer, t
     np.testing.assert_array_equal(from_qimage(v.view.image()), rgb)
 
 
-def test_stokes_views_imin_imax_signed_s1_s2_and_the_wheel(qtbot, tmp_path):
+def test_stokes_views_imin_imax_signed_s1_s2_and_the_wheel(qtbot, viewer_panel, tmp_path):
     """A Stokes EXR in the viewer: Imin + Imax = S0, Imax - Imin = the polarized intensity,
     S1/S2 on the diverging map, the AoLP display's DoLP as value or saturation, and the wheel
     following it."""
     from polrig.formats.exr import write_stokes_exr
-    from polrig.gui.viewer import ViewerPanel
     from polrig.sensor.stokes import min_max_intensity
 
     rng = np.random.default_rng(5)
@@ -321,9 +316,7 @@ def test_stokes_views_imin_imax_signed_s1_s2_and_the_wheel(qtbot, tmp_path):
     stokes = np.stack([s0, p * s0 * np.cos(2 * a), p * s0 * np.sin(2 * a)], axis=1).astype(np.float32)
     path = tmp_path / "stokes.exr"
     write_stokes_exr(path, stokes)
-    v = ViewerPanel()
-    qtbot.addWidget(v)
-    v.show()
+    v = viewer_panel()
     assert open_and_wait(qtbot, v, path)
     imin, imax = min_max_intensity(stokes)
     np.testing.assert_allclose(imin + imax, stokes[:, 0], rtol=1e-5)
