@@ -8,7 +8,7 @@ and without selection, and the time it adds to the plain reference solve.
   read noise): truths of each reduced model (where it holds: the rejection rate is the test's
   level, the RMSE falls), and "full": a reduced block plus a random full-rank perturbation of
   0 to 800 DN (full solve sigma 20-40 DN), the false-acceptance measurement.
-* **Simulated sets** (``models/continuum.py``'s held-out sets at 64x64, the first ``--count``
+* **Simulated sets** (``models/continuum/``'s held-out sets at 64x64, the first ``--count``
   lit samples; frames of 4 states rendered from the truth and sampled with the dataset's
   sensor model, as ``python -m polrig.models.continuum`` makes them): Baek-material scenes
   (``seen_families``), films and depolarizing layers, conductors, dispersive dielectrics,
@@ -195,7 +195,7 @@ def sim_sets(names, count: int, data: pathlib.Path, rounds: int) -> dict[str, di
             zero = np.zeros_like(ds["mueller"][i], dtype=np.float64)
             fr = cont.sample_frames(ds, i, (zero, zero), sensor, np.random.default_rng([7, tag, i]),
                                     offsets=FOUR)
-            s, meas, var, valid = cont._stack(fr, FOUR)
+            s, meas, var, valid = cont.stack_states(fr, FOUR)
             use = np.broadcast_to(fr.clean, fr.use.shape) & fr.use
             rows.append(evaluate(s, meas, var, valid, fr.truth, use, rounds))
         out[name] = merge(rows)

@@ -106,7 +106,7 @@ def _frames(data_dir, net, count: int, tag: int, seed: int):
     """The frames (:func:`polrig.models.continuum.sample_frames`) and light spread (rad) of the
     first ``count`` lit samples of the set in ``data_dir``; ``tag`` and ``seed`` draw the frames'
     noise as :func:`polrig.models.continuum.evaluate_set` does."""
-    for n, (ds, sensor, i, prior) in enumerate(cn._samples(data_dir, net)):
+    for n, (ds, sensor, i, prior) in enumerate(cn.set_samples(data_dir, net)):
         if n >= count:
             break
         yield cn.sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i])), prior[2]
@@ -224,7 +224,7 @@ def scaled_counts(fr, offsets, correlation, shrinks: Sequence[float], counts: di
     ``gamma`` of ``shrinks``, ``c`` the frames' raw scale from the innovations
     (:func:`polrig.solve.prior_scale.innovation_scale`): adds ``[within 2 sigma, elements]`` to
     ``counts[str(gamma)]``; returns ``c``."""
-    s, meas, var, valid = cn._stack(fr, offsets)
+    s, meas, var, valid = cn.stack_states(fr, offsets)
     c = innovation_scale(*innovations(s, meas, var, valid, fr.prior, fr.sigma, 0))
     for g in shrinks:
         frg = dataclasses.replace(fr, sigma=fr.sigma * c ** g)
@@ -246,7 +246,7 @@ def open_scale_counts(fr, correlation, exponents: Sequence[float], counts: dict,
     from polrig.solve.reference import ILL_CONDITIONED
 
     two = cn.RIG_TWO
-    s, meas, var, valid = cn._stack(fr, two)
+    s, meas, var, valid = cn.stack_states(fr, two)
     sigma = cn.scaled_sigma(fr, two)
     prior = dict(prior_mean=fr.prior, prior_sigma=sigma, seen_state=0, prior_correlation=correlation)
     r = solve_hybrid(s, meas, var, valid, dtype=np.float64, **prior)
@@ -297,7 +297,7 @@ def markdown(result: dict) -> str:
              "the first lit samples of each set, 64x64")
     lines = ["# Where the sigma misses", "",
              f"`{result['command']}` ({result['seconds']:.0f} s on 2 shared CPUs, one-shot): {where}, the frames "
-             "of `models/continuum.py`; the calibration's joint prior.", "",
+             "of `models/continuum/`; the calibration's joint prior.", "",
              "**Within 2 sigma per element** (the rig's frame; m00 m01 m02 / m10 m11 m12 / m20 m21 m22; "
              f"hybrid 2 at {'/'.join(map(str, cn.RIG_TWO))} deg):", "",
              "| set | samples | " + " | ".join(LABELS[m] for m in METHODS) + " |",

@@ -41,7 +41,7 @@ The error model (numpy only: it runs at inference without torch):
   the measured DoLP, the shading, the distance to the silhouette, the local gradient of the
   prediction or of the measured polarization, or the predicted normal's angle to the view); nor
   do two per-image features measured later (the eight held-out sets of
-  ``models/continuum.py``, 48-64 samples each, single-shot: the per-image factor each image would
+  ``models/continuum/``, 48-64 samples each, single-shot: the per-image factor each image would
   need has a Spearman correlation of 0.5 with the mirror passes' mean disagreement over sigma,
   but the best factor of that form, fitted on the reported sets themselves, still leaves the
   sets 92.8-97.1 % apart; the angle between the network's mean light direction and the

@@ -158,7 +158,7 @@ def test_kernel_matches_a_dense_posterior(seed, n, seen, drop):
 @pytest.mark.parametrize("seed,n", [(1, 1), (2, 2), (3, 3), (4, 4)])
 def test_kernel_matches_a_dense_posterior_with_the_scalar_plane_factor(seed, n):
     """``plane_variance="scalar"`` (the row variance spread over the plane by ``f_r``, the
-    comparison of ``models/continuum.py``) against the same oracle."""
+    comparison of ``models/continuum/``) against the same oracle."""
     _kernel_against_the_oracle(seed, n, True, 0.1, "scalar")
 
 

@@ -271,7 +271,7 @@ def test_the_adaptive_rows_stop_as_captures_do_from_the_fewest_states_on():
 
     net = SingleShotModel.load(WEIGHTS_DIR)
     ds = continuum.rig_set("sphere", 32, (0.0,))
-    (_, sensor, i, prior), *_ = continuum._samples(ds, net)
+    (_, sensor, i, prior), *_ = continuum.set_samples(ds, net)
     fr = continuum.sample_frames(ds, i, prior, sensor, np.random.default_rng(0), offsets=(0, 60, 120))
     first, second = continuum.adaptive(fr, 1.0)[-1]
     assert first == 0 and second in (60, 120)

@@ -94,7 +94,7 @@ RANK_ONE = next(m.code for m in MODELS if m.name == "rank_one")
 #: The refractive indices searched (one per image).
 ETAS = tuple(np.round(np.arange(1.2, 2.01, 0.05), 2))
 #: Weight (1/rad^2) of the squared angle from the network's normal in the first pass: a standard
-#: deviation of 33 deg. Measured with ``models/continuum.py``'s two-state rows on the search
+#: deviation of 33 deg. Measured with ``models/continuum/lower_order.py``'s two-state rows on the search
 #: scenes (the first 32 of ``search_all_families``, which no reported set holds; PSNR where a model
 #: holds, over single-shot, with the second pass): 1 gives +6.83 dB, 3 +7.38, 10 +7.17, 30
 #: +6.89; the hybrid with the selection alone +4.75, the one-pass fit with unweighted misfits of

@@ -87,11 +87,11 @@ it overstates the power: ``T`` minimises over the normal, and where the misfit i
 normal while the residual turns with it, the choice of normal absorbs the noise's cross term
 with the residual, so ``T`` falls below the noncentral chi-square. The benchmark therefore
 measures the power by Monte Carlo, the test's statistics and decision (:func:`decide`) on noise
-drawn about the truth (``models/continuum.py``, ``diffuse_test_power``), at the pixels past the
+drawn about the truth (``models/continuum/lower_order.py``, ``diffuse_test_power``), at the pixels past the
 noncentral power point. What the two states cannot tell,
 a truth off the diffuse term along ``u`` alone, no test on them can; there the completion's error
 is the truth's distance from the diffuse term along ``u``, and the benchmark reports that too
-(``models/continuum.py``: the PSNR over every object pixel, and the false acceptance in the
+(``models/continuum/``: the PSNR over every object pixel, and the false acceptance in the
 prior's metric). Measured: ``benchmarks/results/continuum_models.md``.
 
 Shapes: Stokes images ``(C, 3, H, W)``, per-pixel arrays flattened to ``P`` pixels where noted;

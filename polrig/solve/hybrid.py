@@ -72,7 +72,7 @@ The posterior of everything is ``p(M | y_0, Y) ∝ p(z_o | y_0) p(z_u | z_o, y_0
     u^T Sigma_r u)``, about 1.5: that inflated column 2's variance by ``f_r``, and at two
     states 90 deg apart, which leave column 2 alone unobserved, it over-covered (97.1-97.5 %
     within 2 sigma on the seen-family, compact and dispersive sets). Moved onto ``v1`` (the
-    first 24 samples of the eight sets of ``models/continuum.py``, 64x64, the calibrated sigma
+    first 24 samples of the eight sets of ``models/continuum/``, 64x64, the calibrated sigma
     of version 3): two states 0.3-1.1 points lower (95.4-97.1 % where ``f_r`` gave 96.0-97.6 %),
     one state -0.2..+0.6, three -0.1..0; matrix PSNR the same at one and two states (within
     0.01 dB) and +0.03..+0.23 dB at three.
@@ -432,7 +432,7 @@ def solve_hybrid(s_in: np.ndarray, measured: np.ndarray, variance: np.ndarray,
     of the measured samples. ``plane_variance``: where the row's prior variance along the seen
     direction goes (module docstring): ``"axis"`` onto the plane's axis :func:`plane_axis`,
     ``"scalar"`` spread over the plane by the factor ``f_r`` (the form before; for the comparison
-    in ``models/continuum.py``). ``prior_correlation``: the joint prior's ``K`` ``(6, 6)``
+    in ``models/continuum/``). ``prior_correlation``: the joint prior's ``K`` ``(6, 6)``
     (module docstring, "Joint prior"; :attr:`polrig.models.uncertainty.UncertaintyModel.joint_correlation`),
     applied where the seen frame is used whole, the state has an axis and all nine elements have
     a prior; None (default): the per-element prior. ``seen_share``: per row of ``M``, the share
