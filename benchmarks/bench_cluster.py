@@ -90,11 +90,11 @@ def serial_child(d: pathlib.Path) -> None:
     writes nothing, then reconstruct ``DIR`` serially; print the timings as JSON."""
     import json
 
-    from polrig.app import cluster, processing
+    from polrig.app import cluster, reconstruct
     from polrig.app.session import Session
 
     s = Session.open(d)
-    _, proc, done = processing.revision_plan(s, None, None, None, None)
+    _, proc, done = reconstruct.revision_plan(s, None, None, None, None)
     proc.solve(s, done[0], None)
     dt, cpu, read, n = reconstruct_timed(d, cluster.SerialRunner(), time.process_time)
     print(json.dumps({"seconds": dt, "cpu": cpu, "read": read, "n": n}))
@@ -169,7 +169,7 @@ def main(argv=None) -> int:
     if args.serial_child:
         serial_child(pathlib.Path(args.serial_child))
         return 0
-    from polrig.app import cluster
+    from polrig.app import cluster, reconstruct
     from polrig.app.session import Session, format_bytes
 
     load0 = os.getloadavg()
@@ -224,19 +224,10 @@ def main(argv=None) -> int:
                 cpus[name].append(cpu)
                 print(f"round {k + 1} {name}: {rate:.3f} captures/s ({sec:.2f} s/capture, "
                       f"CPU {cpu:.2f} s/capture, read {read / 1e6:.1f} MB)", flush=True)
-        # bytes of one task and one result, as Dask pickles them
-        from polrig.acquisition.plan import ExrChoice
-
-        exr0 = ExrChoice()
-        job = cluster.jobs_of(cluster.SessionBatch(s, "rev1", {"mode": "reference",
-                                                               "demosaic": "superpixel",
-                                                               "mirror_average": False,
-                                                               "resolution": "superpixel",
-                                                               "calibration_id": "nominal",
-                                                               "exr_planes": list(exr0.planes),
-                                                               "exr_uncertainty": exr0.uncertainty,
-                                                               "exr_compression": exr0.compression},
-                                                   [0]), None)[0]
+        # bytes of one task and one result, as Dask pickles them (the settings a revision of
+        # the session's own plan records)
+        settings, _, _ = reconstruct.revision_plan(s, None, None, None, None)
+        job = cluster.jobs_of(cluster.SessionBatch(s, "rev1", settings, [0]), None)[0]
         import cloudpickle
 
         wb = tmp / "bytes"

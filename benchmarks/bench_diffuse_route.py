@@ -89,7 +89,8 @@ def accuracy(tmp: pathlib.Path) -> list[str]:
 
 
 def speed(tmp: pathlib.Path, rounds: int) -> list[str]:
-    from polrig.app.processing import load_calibration, make_processor, session_sensor_model, write_and_score
+    from polrig.app.processing import load_calibration, make_processor, session_sensor_model
+    from polrig.app.result_files import write_and_score
     from polrig.app.session import Session
 
     rows = ["| sensor | models | solve of a pose, median (s) | rounds (s) | peak of numpy's allocations | "

@@ -134,7 +134,7 @@ def warm_up() -> None:
 def run_case(session_dir: pathlib.Path, method: str, score: bool, exr: dict) -> dict:
     """One reconstruct of the session's capture (in this process); wall seconds and bytes of
     the Mueller EXR."""
-    from polrig.app import processing
+    from polrig.app import reconstruct
     from polrig.app.session import Session
 
     warm_up()
@@ -143,7 +143,7 @@ def run_case(session_dir: pathlib.Path, method: str, score: bool, exr: dict) -> 
         if not score:  # a copy of the session without its truth file record: nothing to score
             session.captures[0]["files"].pop("truth_mueller", None)
         t0 = time.perf_counter()
-        revision = processing.reprocess_session(session, demosaic=method, exr=exr)
+        revision = reconstruct.reprocess_session(session, demosaic=method, exr=exr)
         wall = time.perf_counter() - t0
         files = session.captures[0]["revisions"][revision]["files"]
         size = (session.root / files["mueller"]["path"]).stat().st_size
@@ -212,7 +212,7 @@ def pose_table(rounds: int) -> str:
 # -- table 2: a turntable session ----------------------------------------------------------------
 def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: float,
                      exr: dict) -> dict:
-    from polrig.app import capture, processing
+    from polrig.app import capture, processing, reconstruct
 
     with tempfile.TemporaryDirectory(prefix="polrig-bench-") as tmp:
         out = pathlib.Path(tmp) / "s"
@@ -231,7 +231,7 @@ def run_session_case(method: str, overlapped: bool, n_poses: int, clock_speed: f
             t0, c0 = time.perf_counter(), clock.now()
             result = capture.run_session(rig, session, processor=proc if overlapped else None)
             if not overlapped:
-                processing.reprocess_session(session, demosaic=method, exr=exr)
+                reconstruct.reprocess_session(session, demosaic=method, exr=exr)
             wall = time.perf_counter() - t0
             sim_s = clock.now() - c0
         finally:

@@ -10,7 +10,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from polrig.app import processing
+from polrig.app import processing, reconstruct
 from polrig.app.capture import CaptureControl, CapturePlan, create_session, run_session
 from polrig.app.rig import open_rig
 from polrig.app.session import COMPLETE, FAILED, INTERRUPTED, PENDING, Session, SessionError
@@ -276,7 +276,7 @@ def test_reprocess_writes_a_revision_and_never_touches_raw(tmp_path):
         session, proc = start(rig, out, CapturePlan((0.0,)))
         run_session(rig, session, processor=proc)
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "session.json"}
-    name = processing.reprocess_session(Session.open(out), demosaic="bilinear")
+    name = reconstruct.reprocess_session(Session.open(out), demosaic="bilinear")
     s = Session.open(out)
     assert name == "rev1" and s.manifest["revisions"][0]["demosaic"] == "bilinear"
     rev = s.capture(0)["revisions"]["rev1"]
@@ -294,8 +294,8 @@ def test_tampered_raw_frame_is_refused_by_reprocessing(tmp_path):
         run_session(rig, session, processor=proc)
     raw = out / session.capture(0)["files"]["raw"][0]["path"]
     raw.write_bytes(raw.read_bytes()[:-10])
-    with pytest.raises(processing.ReconstructIncomplete, match="capture 0 .*SHA-256"):
-        processing.reprocess_session(Session.open(out))
+    with pytest.raises(reconstruct.ReconstructIncomplete, match="capture 0 .*SHA-256"):
+        reconstruct.reprocess_session(Session.open(out))
     rev = Session.open(out).capture(0)["revisions"]["rev1"]
     assert rev["status"] == FAILED and "SHA-256" in rev["reason"] and rev["files"] == {}
 
@@ -498,8 +498,8 @@ def test_reprocess_goes_on_past_damaged_captures_and_names_them(tmp_path, refere
     truth = out / s.capture(2)["files"]["truth_mueller"]["path"]
     truth.write_bytes(truth.read_bytes() + b"\0")
     failures = []
-    with pytest.raises(processing.ReconstructIncomplete) as info:
-        processing.reprocess_session(s, on_failed=lambda i, r: failures.append(i))
+    with pytest.raises(reconstruct.ReconstructIncomplete) as info:
+        reconstruct.reprocess_session(s, on_failed=lambda i, r: failures.append(i))
     message = str(info.value)
     assert message.startswith("revision rev1: 2 of 4 capture(s) failed, the others are complete")
     assert "capture 1 (c001_pose090.0): FileNotFoundError" in message

@@ -1,6 +1,6 @@
 """``polrig reconstruct`` on Dask distributed (:mod:`polrig.app.cluster`): real worker processes on
 the loopback interface, results compared byte for byte with the serial
-:func:`polrig.app.processing.reprocess_session`; faults (a SIGKILLed worker, Ctrl-C, damaged raw
+:func:`polrig.app.reconstruct.reprocess_session`; faults (a SIGKILLed worker, Ctrl-C, damaged raw
 data, an unreachable scheduler, the extra not installed) against the manifest on disk."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from polrig.app import cluster, processing  # noqa: E402
+from polrig.app import cluster, reconstruct  # noqa: E402
 from polrig.app.session import Session  # noqa: E402
 from polrig.cli import main  # noqa: E402
 
@@ -64,10 +64,10 @@ def _copies(sessions, dest: pathlib.Path) -> list[pathlib.Path]:
 
 
 def _serial(sessions, dest: pathlib.Path, **kw) -> list[pathlib.Path]:
-    """The serial reference: :func:`polrig.app.processing.reprocess_session` on copies."""
+    """The serial reference: :func:`polrig.app.reconstruct.reprocess_session` on copies."""
     copies = _copies(sessions, dest)
     for c in copies:
-        processing.reprocess_session(Session.open(c), **kw)
+        reconstruct.reprocess_session(Session.open(c), **kw)
     return copies
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from polrig.acquisition.plan import PlanError
-from polrig.app import processing
+from polrig.app import processing, reconstruct
 from polrig.app.capture import (
     CaptureControl,
     CapturePlan,
@@ -213,7 +213,7 @@ def test_a_session_from_before_the_field_resumes_to_identical_results(tmp_path):
     s = Session.open(old)
     s.lock()
     try:
-        name = processing.reprocess_session(s, device="cpu")
+        name = reconstruct.reprocess_session(s, device="cpu")
     finally:
         s.unlock()
     s = Session.open(old)
@@ -225,7 +225,7 @@ def test_a_session_from_before_the_field_resumes_to_identical_results(tmp_path):
 def test_cluster_jobs_carry_the_binning_and_old_revisions_continue(tmp_path):
     """:mod:`polrig.app.cluster`: a job carries the revision's binning and the worker's processor is
     keyed by it (two binnings, two processors); ``reconstruct --workers 2 --network-binning 2`` is
-    byte for byte the serial :func:`polrig.app.processing.reprocess_session`; an interrupted revision
+    byte for byte the serial :func:`polrig.app.reconstruct.reprocess_session`; an interrupted revision
     written before the setting existed (no ``network_binning``) is continued by a binning-1
     request, not by a binning-2 one."""
     import shutil
@@ -270,7 +270,7 @@ def test_cluster_jobs_carry_the_binning_and_old_revisions_continue(tmp_path):
             s.unlock()
     pytest.importorskip("distributed")
     serial, dist = shutil.copytree(src, tmp_path / "serial"), shutil.copytree(src, tmp_path / "dist")
-    processing.reprocess_session(Session.open(serial), network_binning=2, device="cpu")
+    reconstruct.reprocess_session(Session.open(serial), network_binning=2, device="cpu")
     assert main(["reconstruct", str(dist), "--workers", "2", "--network-binning", "2", "--device", "cpu",
                  "--no-progress"]) == 0
     for d in (serial, dist):

@@ -13,7 +13,7 @@ import OpenEXR
 import pytest
 
 from polrig.acquisition.plan import ExrChoice, PlanError
-from polrig.app import processing
+from polrig.app import processing, reconstruct, result_files
 from polrig.app.capture import CapturePlan, create_session, run_session
 from polrig.app.rig import open_rig
 from polrig.app.session import COMPLETE, Session, sha256_file
@@ -117,7 +117,7 @@ def test_capture_previews_and_records(tmp_path):
     assert s.verify() == []
     for cap in s.captures:
         files = cap["files"]
-        for role, name in zip(processing.PREVIEW_ROLES, PREVIEWS):
+        for role, name in zip(result_files.PREVIEW_ROLES, PREVIEWS):
             rec = files[role]
             assert rec["path"] == f"{cap['name']}/{name}"
             img = cv2.imread(str(s.root / rec["path"]))
@@ -193,8 +193,8 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
     s = capture(tmp_path / "s", CapturePlan((0.0, 90.0), exr_uncertainty="half"))
     s.lock()
     try:
-        rev1 = processing.reprocess_session(s, exr={"planes": ("mask",), "compression": "none"})
-        rev2 = processing.reprocess_session(s)  # the session plan's choice
+        rev1 = reconstruct.reprocess_session(s, exr={"planes": ("mask",), "compression": "none"})
+        rev2 = reconstruct.reprocess_session(s)  # the session plan's choice
     finally:
         s.unlock()
     s = Session.open(s.root)
@@ -208,7 +208,7 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
         for rev in (rev1, rev2):
             files = cap["revisions"][rev]["files"]
             assert cap["revisions"][rev]["status"] == COMPLETE
-            for role, name in zip(processing.PREVIEW_ROLES, PREVIEWS):
+            for role, name in zip(result_files.PREVIEW_ROLES, PREVIEWS):
                 assert files[role]["path"] == f"{cap['name']}/{rev}/{name}"
         assert "uncertainty" not in cap["revisions"][rev1]["files"]
         chans = _channels(s.root / cap["revisions"][rev1]["files"]["mueller"]["path"])
@@ -219,7 +219,7 @@ def test_reconstruct_revision_has_its_choice_and_previews(tmp_path):
 def new_revision(s: Session) -> tuple[str, processing.Processor]:
     """A new reference revision of locked session ``s`` with capture 0 started in it, and the
     session plan's processor."""
-    settings, _, _ = processing.revision_plan(s, "reference", None, None, EXACT)
+    settings, _, _ = reconstruct.revision_plan(s, "reference", None, None, EXACT)
     rev = s.new_revision(settings)
     s.start_revision(0, rev)
     return rev, processing.make_processor(s.plan, EXACT,
@@ -248,18 +248,18 @@ def test_write_and_score_releases_the_diagnostics_and_cleans_up_a_failed_score(t
         rev, proc = new_revision(s)
         out = proc.solve(s, 0, rev)
         whole = out.truth.run(out.result)
-        records, score = processing.write_and_score(s.root, out, proc.exr)
+        records, score = result_files.write_and_score(s.root, out, proc.exr)
         assert isinstance(out.result, MuellerEstimate)
         assert score == whole and score["pixels_compared"] > 0
         chans = _channels(s.root / records["mueller"]["path"])
         assert "residual.R" in chans and "sigma_noise.M00.R" in chans  # written before release
-        processing.remove_files(s.root / r["path"] for r in records.values())
+        result_files.remove_files(s.root / r["path"] for r in records.values())
 
         out = proc.solve(s, 0, rev)
         truth = out.truth.truth_path
         truth.write_bytes(truth.read_bytes()[:4096])  # truncated after the checksum check
         with pytest.raises(FormatError, match="truth_mueller.exr"):
-            processing.write_and_score(s.root, out, proc.exr)
+            result_files.write_and_score(s.root, out, proc.exr)
         assert not any((s.capture_dir(0) / rev).glob("mueller*"))
     finally:
         s.unlock()

@@ -3,15 +3,15 @@
 Roles (the session's one-writer rule holds):
 
 * **Client** (the ``polrig`` process): takes every session's lock, checks each request
-  before anything is recorded (:func:`polrig.app.processing.revision_plan`), creates (or
+  before anything is recorded (:func:`polrig.app.reconstruct.revision_plan`), creates (or
   continues) each session's revision, submits one :class:`CaptureJob` per capture, and as
-  results arrive records them in the manifest (:func:`polrig.app.processing.record_result`) --
+  results arrive records them in the manifest (:func:`polrig.app.result_files.record_result`) --
   the only process that writes a ``session.json``.
 * **Workers** (:func:`process_job`): open the session read-only from the file system they
   share with the client, read and verify the raw frames themselves (raw data never travels
   through the client), solve (:meth:`polrig.app.processing.Processor.solve`) and write the
   result file under a temporary name in its final folder, then rename it
-  (:func:`polrig.app.processing.write_and_score`, previews included), then score it against
+  (:func:`polrig.app.result_files.write_and_score`, previews included), then score it against
   the simulator's truth if the capture has one; they return the files' records and the score
   (a few hundred bytes).
 
@@ -48,6 +48,8 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 from polrig.acquisition.plan import ExrChoice
 from polrig.app import processing
+from polrig.app.reconstruct import mark_revision, revision_plan
+from polrig.app.result_files import record_result, write_and_score
 from polrig.app.session import (
     FAILED,
     PENDING,
@@ -369,15 +371,13 @@ def process_job(job: CaptureJob) -> CaptureOutcome:
     t0 = time.perf_counter()
     try:
         session = Session.open(job.root)  # read-only: the client holds the lock and writes
-        from polrig.app import processing
-
         proc = _processor(job, session)
         # a file already there is a result the manifest does not record (the client only
         # submits captures not complete in the revision): the unrecorded output of an attempt
         # that died before the client heard of it, replaced by this one's identical bytes
         out = proc.solve(session, job.index, job.revision)
         prior, model = out.prior, out.model
-        record, score = processing.write_and_score(session.root, out, proc.exr, replace=True)
+        record, score = write_and_score(session.root, out, proc.exr, replace=True)
     except Exception as exc:
         return CaptureOutcome(None, None, f"{type(exc).__name__}: {exc}", is_disk_full(exc),
                               time.perf_counter() - t0)
@@ -466,14 +466,14 @@ def prepare(sessions: Sequence[Session], *, mode: str | None = None, demosaic: s
             network_binning: int | None = None, seen_state: int | None = None,
             model_size: str = "auto", models: str | None = None,
             prior_scale: str | None = None) -> list[SessionBatch]:
-    """Check every session's request first (:func:`polrig.app.processing.revision_plan`: nothing
+    """Check every session's request first (:func:`polrig.app.reconstruct.revision_plan`: nothing
     is recorded if one is impossible), then give each a revision: the last one continued when
     it has the same settings and captures still ``pending`` (an interrupted batch), else a
     new one. Leftover files of earlier attempts in the revision's folders are removed."""
 
-    plans = [processing.revision_plan(s, mode, demosaic, mirror_average, calibration,
-                                      resolution, device, exr, network_binning, seen_state, model_size,
-                                      models, prior_scale or DEFAULT_PRIOR_SCALE)
+    plans = [revision_plan(s, mode, demosaic, mirror_average, calibration, resolution, device, exr,
+                           network_binning, seen_state, model_size, models,
+                           prior_scale or DEFAULT_PRIOR_SCALE)
              for s in sessions]
     batches = []
     for s, (settings, _processor_unused, done) in zip(sessions, plans):
@@ -554,16 +554,15 @@ def run_batch(batches: Sequence[SessionBatch], runner: Runner, *,
                     with guard.deferred():
                         b.finished += 1
                         if out.reason is None:
-                            processing.record_result(b.session, job.index, job.revision,
-                                                     out.record, out.score, job.exr, out.prior,
-                                                     out.model,
-                                                     job.models != "full")
+                            record_result(b.session, job.index, job.revision, out.record,
+                                          out.score, job.exr, out.prior, out.model,
+                                          job.models != "full")
                         elif out.disk_full:  # the batch stops: this and the unfinished stay
                             # pending, and the same command continues them once there is room
                             _leave_pending(batches, f"batch stopped by a full disk: {out.reason}")
                         else:
-                            processing._mark_revision(b.session, job.index, job.revision,
-                                                      FAILED, out.reason)
+                            mark_revision(b.session, job.index, job.revision, FAILED,
+                                          out.reason)
                             b.failed.append((job.index, out.reason))
                     if on_capture:
                         on_capture(b, job.index, out.score, out.reason)

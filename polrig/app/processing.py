@@ -10,16 +10,15 @@ calibration and its geometry in :mod:`polrig.app.calibrations`, a session's fram
 Session level: :class:`Processor` (used by :func:`polrig.app.capture.run_session`) reads a
 capture's raw frames back from the session (checksums verified), solves, writes
 ``mueller.exr`` (Mueller channels plus ``sigma``, ``residual`` and ``mask`` planes), and on the
-simulated rig ``truth_mueller.exr`` and a score; :func:`reprocess_session` does the same into
-a new revision for ``polrig reconstruct``.
+simulated rig ``truth_mueller.exr`` and a score (the files written and recorded by
+:mod:`polrig.app.result_files`); :func:`polrig.app.reconstruct.reprocess_session` does the same
+into a new revision for ``polrig reconstruct``.
 
 Uncertainty propagation from the raw samples to the result: :mod:`polrig.solve.radiometry`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import copy
 import dataclasses
 import math
 import pathlib
@@ -36,7 +35,6 @@ from polrig.acquisition.plan import (
     CapturePlan,
     ExrChoice,
     PlanError,
-    check_seen_state,
     single_shot_options,
 )
 from polrig.app.calibrations import (  # noqa: F401 (re-exported)
@@ -58,38 +56,31 @@ from polrig.app.diffuse_route import (
     DIFFUSE_PLANES,
     capture_geometry,
     check_diffuse_states,
-    check_geometry,
     diffuse_header,
     diffuse_planes,
     missing_geometry,
     solve_diffuse,
 )
-from polrig.app.preview import write_result_previews
 from polrig.app.records import (  # noqa: F401 (re-exported)
     sensor_model_of,
     session_frame_geometry,
     session_sensor_model,
 )
-from polrig.app.session import (
-    COMPLETE,
-    FAILED,
-    PENDING,
-    Session,
-    SignalGuard,
-    interruption_reason,
-    is_disk_full,
-    sha256_file,
+from polrig.app.result_files import (
+    CaptureResult,
+    TruthScore,
+    file_record,
+    new_result_path,
+    record_result,
+    remove_files,
+    write_and_score,
 )
+from polrig.app.session import Session, sha256_file
 from polrig.app.sessionio import CaptureFrames, load_capture_frames, read_verified_frame  # noqa: F401 (re-exported)
 from polrig.app.single_shot import SingleShot, SingleShotResult
 from polrig.choices import DEFAULT_PRIOR_SCALE
-from polrig.errors import ConfigError, FormatError, PolrigError
-from polrig.formats.exr import (
-    MuellerRows,
-    channel_suffixes,
-    write_mueller_exr,
-    write_result_exr,
-)
+from polrig.errors import FormatError
+from polrig.formats.exr import channel_suffixes, write_mueller_exr
 from polrig.optics.mueller import polarizer_stokes
 from polrig.sensor.layouts import MosaicLayout
 from polrig.sensor.noise import SensorModel
@@ -112,12 +103,7 @@ from polrig.solve.radiometry import (  # noqa: F401 (re-exported)
     reference_from_frames,
     state_radiance,
 )
-from polrig.solve.reference import (
-    MuellerEstimate,
-    ReferenceResult,
-    reason_names,
-    validate_states,
-)
+from polrig.solve.reference import ReferenceResult, reason_names
 from polrig.solve.scoring import (  # noqa: F401 (re-exported)
     _psnr_db,
     format_score,
@@ -204,201 +190,6 @@ def process_reference(cf: CaptureFrames, calibration: Calibration, model: Sensor
                                    uncertainty_dtype=uncertainty_dtype,
                                    model_selection=model_selection, **extra)
     return result, s_in, lay, list(states)
-
-
-#: Roles of a result's PNG previews (:func:`polrig.app.preview.write_result_previews`), by the
-#: suffix of their file name (``mueller_grid.png``...).
-PREVIEW_ROLES = {"preview_grid": "grid", "preview_dolp": "dolp", "preview_aolp": "aolp"}
-#: The channels of the manifest's ``uncertainty`` view, per plane group.
-_UNCERTAINTY_CHANNELS = {"sigma": "sigma.M{row}{col}.{colour}",
-                         "sigma_noise": "sigma_noise.M{row}{col}.{colour}",
-                         "residual": "residual.{colour}"}
-
-
-@dataclasses.dataclass(frozen=True)
-class TruthScore:
-    """How to score a capture's result against the simulator's truth file ``truth_path``
-    (already verified): the truth as a perfect rig at the output resolution measures it
-    (:func:`polrig.solve.scoring.score_on_output_grid`: ``layout``, demosaic ``method``, incident
-    states ``s_in`` ``(N, 3)``, the capture's own ``states`` as weights, or for the
-    single-shot method ``None`` with the noise ``model`` at ``exposure_us``)."""
-
-    truth_path: pathlib.Path
-    layout: MosaicLayout
-    method: str
-    s_in: np.ndarray
-    states: Sequence[StateRadiance] | None = None
-    model: SensorModel | None = None
-    exposure_us: float | None = None
-
-    def run(self, estimate: MuellerEstimate | ReferenceResult) -> dict[str, Any]:
-        """The score (:func:`polrig.solve.scoring.score_against_truth`'s keys) of ``estimate``;
-        the truth file is read a band of rows at a time (:class:`polrig.formats.exr.MuellerRows`),
-        its ``object_mask`` plane whole."""
-
-        with MuellerRows(self.truth_path) as truth:
-            obj = truth.plane("object_mask")  # output pixels whose whole support lies on it
-            return score_on_output_grid(estimate, truth, self.layout, self.method, self.s_in,
-                                        self.states, model=self.model,
-                                        exposure_us=self.exposure_us, object_mask=obj)
-
-
-@dataclasses.dataclass
-class CaptureResult:
-    """One capture solved by :meth:`Processor.solve`: ``relpath`` (inside the session,
-    ``<capture>/mueller.exr`` or ``<capture>/<revision>/mueller.exr``), ``result`` the solve's
-    arrays (the reference solve's or the single-shot route's), ``metadata`` the EXR header's
-    polrig entries, ``truth`` how to score it against the simulator's truth (``None`` without a
-    truth file), ``extra_planes`` further planes of its EXR. :func:`write_and_score` writes and
-    scores it."""
-
-    relpath: str
-    result: ReferenceResult | SingleShotResult | MuellerEstimate
-    metadata: dict[str, Any]
-    truth: TruthScore | None
-    #: planes written beside :func:`polrig.formats.exr.result_planes`' (name -> ``(H, W)`` array): the
-    #: single-shot ``beyond_calibration.{colour}`` flags, with the ``sigma`` group
-    #: (:meth:`polrig.app.single_shot.SingleShotResult.extra_planes`)
-    extra_planes: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    #: hybrid: the prior's record for the manifest (:class:`polrig.app.manifest.PriorRecord`)
-    prior: dict[str, Any] | None = None
-    #: single-shot and hybrid: the network's model for the manifest (:class:`polrig.app.manifest.ModelRecord`)
-    model: dict[str, Any] | None = None
-
-
-def write_result_files(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
-                       replace: bool = False) -> dict[str, dict[str, Any]]:
-    """Write ``out``'s ``mueller.exr`` (the planes and compression of ``exr``) and its PNG
-    previews next to it (``mueller_grid.png``, ``mueller_dolp.png``, ``mueller_aolp.png``:
-    :func:`polrig.app.preview.write_result_previews`, from the arrays in memory, every
-    :func:`polrig.app.preview.preview_stride`-th pixel of a large result) under ``root``,
-    each atomically (temporary name in its folder, then renamed); return their records by
-    role (``mueller`` and :data:`PREVIEW_ROLES`: ``path``, ``sha256`` hashed from the file
-    as it lies on disk, streamed, ``bytes``). The file's bytes are never held in memory.
-
-    ``replace=False`` refuses (``FileExistsError``) a result file already there (session data
-    is never overwritten); a worker of :mod:`polrig.app.cluster` passes ``True``: a file there is
-    the unrecorded output of an attempt that died, replaced by identical bytes. The one
-    writer of result files, serial (:meth:`Processor.process`) and distributed alike."""
-
-    path = _new_result_path(root, out.relpath, replace)
-    res = out.result
-    rel = pathlib.PurePosixPath(out.relpath).parent
-    previews = {role: path.with_name(f"{path.stem}_{suffix}.png")
-                for role, suffix in PREVIEW_ROLES.items()}
-    written = {"mueller": path, **previews}
-    try:
-        write_result_exr(path, res, planes=exr.planes, uncertainty=exr.uncertainty,
-                         compression=exr.compression, extra=out.extra_planes, metadata=out.metadata)
-        made = write_result_previews(res.mueller, path.parent, stem=path.stem, flags=res.mask)
-        if sorted(made) != sorted(previews.values()):  # pragma: no cover - preview's contract
-            raise RuntimeError(f"previews {made} are not the expected {previews}")
-        return {role: file_record(root, (rel / p.name).as_posix())
-                for role, p in written.items()}
-    except BaseException:  # no partial result left behind (each file is whole or absent)
-        remove_files(written.values())
-        raise
-
-
-def write_and_score(root: pathlib.Path, out: CaptureResult, exr: ExrChoice, *,
-                    replace: bool = False
-                    ) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None]:
-    """Write ``out``'s result files (:func:`write_result_files`), then score it against the
-    truth (``out.truth``; ``None`` without one); return the files' records and the score.
-
-    Consumes ``out``: once the files are written, ``out.result`` is replaced by its
-    :class:`polrig.solve.reference.MuellerEstimate`, so that the diagnostic planes are released
-    before the truth is read (the peak memory of a scored full-sensor pose is the solve's,
-    not the solve's plus the truth's). A score that fails removes the files just written.
-    The serial :meth:`Processor.process` and the workers of :mod:`polrig.app.cluster` both call
-    it."""
-    records = write_result_files(root, out, exr, replace=replace)
-    if out.truth is None:
-        return records, None
-    if not isinstance(out.result, MuellerEstimate):
-        out.result = out.result.estimate()
-    try:
-        return records, out.truth.run(out.result)
-    except BaseException:
-        remove_files(pathlib.Path(root) / r["path"] for r in records.values())
-        raise
-
-
-def remove_files(paths) -> None:
-    """Delete ``paths`` where they exist (best effort: a failure to delete is ignored)."""
-    for p in paths:
-        with contextlib.suppress(OSError):
-            pathlib.Path(p).unlink(missing_ok=True)
-
-
-def _new_result_path(root: pathlib.Path, relpath: str, replace: bool = False) -> pathlib.Path:
-    """``root/relpath`` with its folder made; ``FileExistsError`` if a file is there (unless
-    ``replace``): session data is never overwritten."""
-    path = pathlib.Path(root) / relpath
-    if path.exists() and not replace:
-        raise FileExistsError(f"{path}: refusing to overwrite session data")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-def file_record(root: pathlib.Path, relpath: str) -> dict[str, Any]:
-    """The manifest record (``path``, ``sha256``, ``bytes``) of a file written under ``root``,
-    hashed by streaming it from disk (:func:`polrig.app.session.sha256_file`)."""
-    path = pathlib.Path(root) / relpath
-    return {"path": pathlib.PurePosixPath(relpath).as_posix(), "sha256": sha256_file(path),
-            "bytes": path.stat().st_size}
-
-
-def record_result(session: Session, index: int, revision: str | None,
-                  records: dict[str, dict[str, Any]], score: dict[str, Any] | None,
-                  exr: ExrChoice = ExrChoice(), prior: Mapping[str, Any] | None = None,
-                  model: Mapping[str, Any] | None = None,
-                  model_map: bool = False) -> None:
-    """Record capture ``index``'s written result files (``records`` by role, as
-    :func:`write_result_files` returns: ``mueller`` and its previews) with the ``mueller``
-    file's ``uncertainty`` and ``mask`` views (of the planes ``exr`` wrote; no view of planes
-    not written), and in ``revision`` (if given) its score and status ``complete``; save the
-    manifest (under ``session.mutex``: the next capture's acquisition writes the manifest
-    meanwhile). ``prior``: a hybrid result's prior model (:class:`polrig.app.manifest.PriorRecord`),
-    recorded beside its files, as is ``model``, the network's model of a single-shot or hybrid
-    result (:class:`polrig.app.manifest.ModelRecord`). ``model_map``: the file holds the model selection's
-    planes (``models`` view). The one place a result enters a manifest: the serial
-    :meth:`Processor.process` and the client of :mod:`polrig.app.cluster` (whose workers write
-    the files) both call it."""
-    with session.mutex:
-        cap = session.capture(index)
-        entry = cap if revision is None else cap["revisions"][revision]
-        files = entry["files"]
-        clash = [role for role in records if role in files]
-        if clash:
-            raise FileExistsError(f"capture {index} already has a {clash[0]!r} file")
-        before = copy.deepcopy(entry)
-        path = records["mueller"]["path"]
-        files.update({role: dict(rec) for role, rec in records.items()})
-        sigma = [c for p, c in _UNCERTAINTY_CHANNELS.items() if p in exr.planes]
-        if sigma:
-            files["uncertainty"] = {"part_of": "mueller", "path": path,
-                                    "channels": ", ".join(sigma)}
-        if "mask" in exr.planes:
-            files["mask"] = {"part_of": "mueller", "path": path,
-                             "channels": "mask.{colour} (reason bits, 0 = valid)"}
-        if model_map:
-            files["models"] = {"part_of": "mueller", "path": path,
-                               "channels": "model.{colour} (codes in the header's "
-                                           "model_selection), model_chi2.{colour}, model_p.{colour}; "
-                                           "with --models diffuse also specular.{colour}"}
-        if prior is not None:
-            entry["prior"] = dict(prior)
-        if model is not None:
-            entry["model"] = dict(model)
-        if revision is not None:
-            entry.update(status=COMPLETE, score=score)
-        try:
-            session.save()
-        except BaseException:  # not recorded after all: the manifest in memory says so too
-            entry.clear()
-            entry.update(before)
-            raise
 
 
 def check_prior_scale(choice: str) -> str:
@@ -519,7 +310,7 @@ class Processor:
                 "exposure_us": gt.get("exposure_us"), "gain_db": gt.get("gain_db")}
 
         relpath = f"{cap['name']}/truth_mueller.exr"
-        path = _new_result_path(session.root, relpath)
+        path = new_result_path(session.root, relpath)
         write_mueller_exr(path, gt["mueller"], extra=planes, metadata=meta,  # atomic
                           compression=self.exr.compression)
         with session.mutex:
@@ -536,8 +327,8 @@ class Processor:
                 ) -> dict[str, Any] | None:
         """Solve capture ``index`` from its raw files; write the result files (into
         ``revision`` if given); return the score against the truth (simulated rig) or None.
-        :meth:`solve` and :func:`record_result`, with the file written and scored in between
-        (:func:`write_and_score`)."""
+        :meth:`solve` and :func:`polrig.app.result_files.record_result`, with the file written
+        and scored in between (:func:`polrig.app.result_files.write_and_score`)."""
         out = self.solve(session, index, revision)
         prior = out.prior
         records, score = write_and_score(session.root, out, self.exr)
@@ -835,185 +626,3 @@ def make_processor(plan: CapturePlan, calibration: Calibration, sensor_model: Se
                      model_size, models, len(plan.states_deg), prior_scale)
 
 
-class ReconstructIncomplete(PolrigError):
-    """Some captures of a :func:`reprocess_session` revision failed (damaged or missing
-    files); the others were processed. ``revision`` names it, ``failed`` lists
-    ``(capture index, reason)``."""
-
-    def __init__(self, session: Session, revision: str, failed: list[tuple[int, str]],
-                 attempted: int):
-        self.revision, self.failed = revision, failed
-        names = "; ".join(f"capture {i} ({session.capture(i)['name']}): {reason}"
-                          for i, reason in failed)
-        others = "" if len(failed) == attempted else ", the others are complete"
-        super().__init__(f"revision {revision}: {len(failed)} of {attempted} capture(s) "
-                         f"failed{others}: {names}")
-
-
-def reprocess_session(session: Session, *, mode: str | None = None, demosaic: str | None = None,
-                      mirror_average: bool | None = None, calibration: Calibration | None = None,
-                      command_line: list[str] | None = None,
-                      progress: Callable[[int, dict[str, Any] | None], None] | None = None,
-                      on_failed: Callable[[int, str], None] | None = None,
-                      resolution: str | None = None, device: str = "auto",
-                      exr: Mapping[str, Any] | None = None,
-                      network_binning: int | None = None, seen_state: int | None = None,
-                      model_size: str = "auto", models: str | None = None,
-                      prior_scale: str = DEFAULT_PRIOR_SCALE) -> str:
-    """Re-process every complete capture from its raw frames into a new revision (raw data
-    and earlier results untouched). Returns the revision name.
-
-    ``mode`` ``hybrid`` works on any session with at least one polarizer state: ``seen_state``
-    (index into the session's states; default: the session's where it was hybrid, else 0) names
-    the frame the network sees.
-
-    ``resolution`` (single-shot output grid, :class:`Processor`; default: the session's where it
-    stays single-shot, else ``superpixel``) and ``network_binning`` (single-shot, 1 or 2; default:
-    the session's where it stays single-shot, else 1) are recorded with the revision; ``device``
-    (where the network runs) is not a setting of the result: the provider used is in its header;
-    nor is ``model_size`` (which shipped model, :mod:`polrig.models.sizes`): its results record it.
-    ``exr``: the result files' format, fields of :class:`ExrChoice` (``planes``,
-    ``uncertainty``, ``compression``) overriding the session plan's; recorded with the
-    revision. ``models``: ``full`` (default: never applied silently) or ``auto``
-    (:class:`Processor`), recorded with the revision; so is ``prior_scale`` (hybrid:
-    ``innovations`` or ``calibrated``, :class:`Processor`).
-
-    A capture that cannot be processed (a raw frame missing or changed, a damaged truth file)
-    is marked ``failed`` in the revision with its reason (``on_failed(index, reason)`` is
-    called) and the others are processed; at the end :class:`ReconstructIncomplete` names
-    the failed captures. A full disk stops the revision (the capture is marked failed, the
-    error raised). The session's lock is held while it runs (:class:`SessionBusy` if another
-    process writes the session; the manifest is re-read under it); SIGINT/SIGTERM leave the
-    capture in progress ``pending`` in the revision and raise ``KeyboardInterrupt``."""
-    was_locked = session.locked
-    session.lock()
-    try:
-        if not was_locked:
-            session.reload()  # under the lock: the manifest no other writer changes any more
-        return _reprocess(session, mode, demosaic, mirror_average, calibration, command_line,
-                          progress, on_failed, resolution, device, exr, network_binning, seen_state,
-                          model_size, models, prior_scale)
-    finally:
-        if not was_locked:
-            session.unlock()
-
-
-def revision_plan(session: Session, mode: str | None, demosaic: str | None,
-                  mirror_average: bool | None, calibration: Calibration | None,
-                  resolution: str | None = None, device: str = "auto",
-                  exr: Mapping[str, Any] | None = None, network_binning: int | None = None,
-                  seen_state: int | None = None, model_size: str = "auto",
-                  models: str | None = None, prior_scale: str = DEFAULT_PRIOR_SCALE
-                  ) -> tuple[dict[str, Any], Processor, list[int]]:
-    """What a new revision of ``session`` records and needs, checked before it exists (an
-    impossible request records nothing): ``(settings, processor, captures)`` -- the
-    revision's settings (``mode``, ``demosaic``, ``mirror_average``, ``resolution``,
-    ``network_binning``, ``seen_state``, ``calibration_id``, ``exr_planes``, ``exr_uncertainty``,
-    ``exr_compression``, ``models``, ``prior_scale``; ``None`` arguments, and the :class:`ExrChoice` fields ``exr`` does not name or gives as ``None``,
-    take the session's), its :class:`Processor` (on
-    ``device``) and the indices of the complete captures to process. Shared by
-    :func:`reprocess_session` and :mod:`polrig.app.cluster`."""
-    plan = session.plan
-    mode = mode or plan.mode
-    demosaic = demosaic or plan.demosaic
-    if mirror_average is None:  # the session's choice where it ran the network already
-        mirror_average = plan.mirror_average and mode in NETWORK_MODES and plan.mode in NETWORK_MODES
-    if seen_state is None:  # the session's where it stays hybrid
-        seen_state = plan.seen_state if mode == "hybrid" and plan.mode == "hybrid" else 0
-    if mode == "adaptive" and plan.mode != "adaptive":
-        raise ConfigError(f"{session.root}: captured in {plan.mode} mode; the adaptive method chooses "
-                          f"its states while capturing (reconstruct with the hybrid method)")
-    acquired = plan.acquired_states_deg()
-    check_seen_state(seen_state, mode, len(acquired))
-    if resolution is None:  # the session's where it stays single-shot
-        resolution = plan.resolution if mode == "single-shot" else "superpixel"
-    if network_binning is None:  # the session's where it stays single-shot
-        network_binning = plan.network_binning if mode == "single-shot" else 1
-    choice = dataclasses.replace(plan.exr,
-                                 **{k: v for k, v in (exr or {}).items() if v is not None})
-    calibration = calibration or nominal_calibration()
-    if calibration.sensor is not None:  # before a revision exists: nothing recorded
-        layout, readout, size = session_frame_geometry(session)
-        check_calibration_fits(calibration, layout=layout, readout=readout, sensor_size=size,
-                               what=f"the camera of session {session.root}")
-    if models is None:  # off unless asked: never applied silently
-        models = "full"
-    processor = Processor(mode, demosaic, calibration, session_sensor_model(session), mirror_average,
-                          resolution, device, choice, network_binning, seen_state, model_size,
-                          models, len(acquired), prior_scale)
-    if models == "diffuse":  # before a revision exists
-        check_geometry(single_shot_geometry(calibration, (session.manifest.get("rig") or {}).get("config")))
-    done = [c["index"] for c in session.captures if c["status"] == COMPLETE]
-    if not done:
-        raise ConfigError(f"{session.root}: no complete capture to reconstruct")
-    if mode == "reference" and plan.mode == "adaptive":
-        # each pose took the states its decisions chose: solved per capture, those of fewer than
-        # 3 states fail with their reason and the others go on (before a revision exists: a
-        # session where no pose took 3 records nothing)
-        most = max(session.states_taken(i) for i in done)
-        if most < 3:
-            raise ConfigError(f"{session.root}: captured in adaptive mode, at most {most} polarizer "
-                              f"state(s) per pose; the reference method needs at least 3 "
-                              f"(reconstruct with the hybrid method)")
-    elif mode == "reference":  # before a revision exists: an impossible request records nothing
-        if len(acquired) < 3:
-            raise ConfigError(f"{session.root}: captured in {plan.mode} mode, "
-                              f"{len(acquired)} polarizer state per pose; the reference method "
-                              f"needs at least 3 (reconstruct with the single-shot method, or "
-                              f"capture again with the reference method)")
-        validate_states(calibration.incident_stokes(acquired))
-    return ({"mode": mode, "demosaic": demosaic, "mirror_average": mirror_average,
-             "resolution": resolution, "network_binning": processor.network_binning,
-             "seen_state": processor.seen_state, "calibration_id": calibration.id,
-             "exr_planes": list(choice.planes), "exr_uncertainty": choice.uncertainty,
-             "exr_compression": choice.compression, "models": processor.models,
-             "prior_scale": processor.prior_scale}, processor, done)
-
-
-def _reprocess(session: Session, mode, demosaic, mirror_average, calibration, command_line,
-               progress, on_failed, resolution=None, device="auto", exr=None,
-               network_binning=None, seen_state=None, model_size="auto", models=None,
-               prior_scale=DEFAULT_PRIOR_SCALE) -> str:
-    settings, processor, done = revision_plan(session, mode, demosaic, mirror_average,
-                                              calibration, resolution, device, exr, network_binning,
-                                              seen_state, model_size, models, prior_scale)
-    failed: list[tuple[int, str]] = []
-    with SignalGuard() as guard:
-        name = session.new_revision(settings, command_line)
-        for index in done:
-            session.start_revision(index, name)
-            try:
-                score = processor.process(session, index, revision=name)
-            except Exception as exc:  # this capture's data: record why, go on with the others
-                reason = f"{type(exc).__name__}: {exc}"
-                with guard.deferred():
-                    _mark_revision(session, index, name, FAILED, reason)
-                if is_disk_full(exc):
-                    raise
-                failed.append((index, reason))
-                if on_failed:
-                    on_failed(index, reason)
-                continue
-            except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM
-                with guard.deferred():
-                    _mark_revision(session, index, name, PENDING, interruption_reason(exc))
-                raise
-            if progress:
-                progress(index, score)
-    if failed:
-        raise ReconstructIncomplete(session, name, failed, len(done))
-    return name
-
-
-def _mark_revision(session: Session, index: int, revision: str, status: str,
-                   reason: str) -> None:
-    """Set capture ``index``'s entry of ``revision`` to ``status`` with ``reason`` and save
-    (best effort). Files it wrote stay recorded: each was written completely and checksummed.
-    The manifest on disk is what counts (after a failed save it is the consistent one)."""
-    with contextlib.suppress(OSError, FormatError):
-        session.reload()
-    entry = session.capture(index)["revisions"].setdefault(
-        revision, {"status": PENDING, "files": {}, "score": None, "reason": None})
-    entry.update(status=status, reason=reason)
-    with contextlib.suppress(OSError):
-        session.save()

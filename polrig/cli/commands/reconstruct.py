@@ -88,7 +88,7 @@ def _command_line(args: argparse.Namespace, paths: list[str]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from polrig.app import cluster, processing
+    from polrig.app import cluster, reconstruct
     from polrig.cli.commands.capture import exr_planes_option, options_named
     from polrig.errors import ConfigError
     from polrig.solve.scoring import format_score
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         _close(bar, runner)
         if len(paths) == 1:  # one session: the serial command's own one-line error
             b = next(b for b in exc.batches if b.failed)
-            raise processing.ReconstructIncomplete(b.session, b.revision, b.failed,
+            raise reconstruct.ReconstructIncomplete(b.session, b.revision, b.failed,
                                                    len(b.todo)) from None
         for line in exc.lines:
             print(line, file=sys.stdout)
