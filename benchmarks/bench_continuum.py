@@ -22,7 +22,10 @@ table. ``--joint`` compares the per-element prior with the joint one (``joint_pr
 ``uncertainty.json``; ``--joint-compare``: the two-state test's false acceptance, coverage and
 PSNR at 1-4 states; 64 samples per set, about 22 min) into ``benchmarks/results/continuum_joint.md``,
 ``--joint --rig`` on the rig's scenes at three turntable angles (about 5 min) into
-``continuum_joint_rig.md``.
+``continuum_joint_rig.md``. ``--min-states`` runs the adaptive capture on the rig's scenes (six
+turntable angles, both targets) with a pose allowed to stop from its second state (the capture's
+default) and from its third (``--min-states 3``; about 9 min) into
+``benchmarks/results/continuum_min_states.md`` (``.json``).
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ RIG_DEFAULTS = ["--rig-scenes", ",".join(continuum.RIG_SCENES), "--out", str(RIG
 MODELS_RESULTS = RESULTS.with_name("continuum_models.md")
 MODELS_DEFAULTS = ["--models-only", "--count", "64", "--out", str(MODELS_RESULTS)]
 JOINT_DEFAULTS = ["--joint-compare", "--count", "64", "--out", str(RESULTS.with_name("continuum_joint.md"))]
+MIN_STATES_DEFAULTS = ["--min-states-compare", "--rig-scenes", ",".join(continuum.RIG_SCENES),
+                       "--out", str(RESULTS.with_name("continuum_min_states.md"))]
 JOINT_RIG_DEFAULTS = ["--joint-compare", "--rig-scenes", ",".join(continuum.RIG_SCENES), "--rig-poses", "0,120,240",
                       "--out", str(RESULTS.with_name("continuum_joint_rig.md"))]
 
@@ -49,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
         i = extra.index("--plot-only")
         given = i + 1 < len(extra) and not extra[i + 1].startswith("--")
         return continuum.main(["--plot-only", extra[i + 1] if given else str(RESULTS.with_suffix(".json"))])
+    if "--min-states" in extra:
+        extra.remove("--min-states")
+        return continuum.main(MIN_STATES_DEFAULTS + extra)
     if "--joint" in extra:
         extra.remove("--joint")
         if "--rig" in extra:

@@ -15,6 +15,8 @@ def test_defaults_are_the_committed_tables():
     assert (bench_continuum.RESULTS.with_suffix(".json")).is_file()
     for defaults in (bench_continuum.JOINT_DEFAULTS, bench_continuum.JOINT_RIG_DEFAULTS):
         assert defaults[0] == "--joint-compare" and pathlib.Path(defaults[-1]).with_suffix(".json").is_file()
+    assert bench_continuum.MIN_STATES_DEFAULTS[0] == "--min-states-compare"
+    assert pathlib.Path(bench_continuum.MIN_STATES_DEFAULTS[-1]).with_suffix(".json").is_file()
 
 
 @pytest.mark.skipif(not (WEIGHTS_DIR / "uncertainty.json").is_file(), reason="no calibrated model")

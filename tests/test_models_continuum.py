@@ -276,3 +276,32 @@ def test_the_adaptive_rows_stop_as_captures_do_from_the_fewest_states_on():
     first, second = continuum.adaptive(fr, 1.0)[-1]
     assert first == 0 and second in (60, 120)
     assert continuum.adaptive(fr, 1.0, min_states=1)[-1] == [0]
+
+
+@needs_weights
+def test_min_states_compare_takes_at_least_that_many_states(tmp_path, capsys):
+    """``--min-states-compare``: each pose takes at least the given number of states (2: the
+    capture's default, then 3), never more than the capture allows; at a target every pixel
+    meets at once (1.0) it takes exactly that many. The tables say which is which; a bad scene
+    is one line."""
+    from polrig.acquisition.plan import ADAPTIVE_MIN_STATES
+    from polrig.models.continuum import ADAPTIVE_MAX_STATES, main
+
+    out = tmp_path / "m.md"
+    assert main(["--min-states-compare", "--rig-scenes", "box", "--rig-poses", "0,90", "--size", "32",
+                 "--targets", "1,0.05", "--out", str(out)]) == 0
+    res = json.loads(out.with_suffix(".json").read_text())
+    assert res["min_states"] == [ADAPTIVE_MIN_STATES, 3] and res["targets"] == [1.0, 0.05]
+    m = res["scenes"]["box"]["methods"]
+    assert res["scenes"]["box"]["samples"] == 2
+    for k in res["min_states"]:
+        row = m[f"0.05_min{k}"]
+        assert k <= row["states"] <= ADAPTIVE_MAX_STATES and 0.0 < row["coverage"] <= 1.0 and row["time_s"] > 0
+        assert m[f"1_min{k}"]["states"] == k
+    assert m["0.05_min3"]["time_s"] >= m["0.05_min2"]["time_s"]
+    text = out.read_text()
+    assert "at least 2 states / at least 3 states" in text and "| box | 2 |" in text
+    capsys.readouterr()
+    assert main(["--min-states-compare", "--rig-scenes", "nosuch", "--size", "32"]) == 2
+    err = capsys.readouterr().err
+    assert "nosuch" in err and err.count("\n") == 1

@@ -189,6 +189,7 @@ from polrig.models.continuum.report import (  # noqa: F401
     diffuse_markdown,
     joint_markdown,
     markdown,
+    min_states_markdown,
     models_markdown,
     plot_from_json,
     plot_trade,
@@ -204,6 +205,7 @@ from polrig.models.continuum.run import (  # noqa: F401
     fit_highlight_factor,
     joint_compare,
     joint_rows,
+    min_states_compare,
     run,
     search_states,
 )

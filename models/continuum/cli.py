@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 
 from polrig.models.continuum.report import plot_from_json
-from polrig.models.continuum.run import fit_highlight_factor, joint_compare, run
+from polrig.models.continuum.run import fit_highlight_factor, joint_compare, min_states_compare, run
 from polrig.models.continuum.sets import (
     ADAPTIVE_TARGETS,
     OFFSETS_DEG,
@@ -72,7 +72,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--joint-compare", action="store_true",
                     help="only the per-element prior against the joint one (uncertainty.json's joint_prior): the "
                          "two-state model test's false acceptance, coverage and PSNR at 1 to 4 states")
+    ap.add_argument("--min-states-compare", action="store_true",
+                    help="only the adaptive capture at the capture's least number of states before a pose may stop "
+                         "and at 3, on --rig-scenes (default all) at each of --targets")
     args = ap.parse_args(argv)
+    if args.min_states_compare:
+        scenes = RIG_SCENES if args.rig_scenes is None else tuple(n for n in args.rig_scenes.split(",") if n)
+        return run_main(ap.prog, lambda: (min_states_compare(args.out, scenes=scenes, poses=_poses(args.rig_poses),
+                                                             size=args.size, targets=_targets(args.targets),
+                                                             seed=args.seed, weights_dir=args.weights), 0)[1])
     if args.joint_compare:
         return run_main(ap.prog, lambda: (joint_compare(args.root, args.out, count=args.count,
                                                         sets=[s for s in args.sets.split(",") if s], seed=args.seed,

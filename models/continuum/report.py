@@ -235,6 +235,37 @@ def diffuse_markdown(result: dict) -> list[str]:
     return lines
 
 
+def min_states_markdown(result: dict) -> str:
+    """:func:`polrig.models.continuum.run.min_states_compare`'s result as Markdown: per target, each
+    rig scene's coverage within 2 sigma, matrix PSNR over the object, and states and hardware
+    seconds per pose, for each least number of states before a pose may stop."""
+    mins = result["min_states"]
+    lines = []
+    for t in result["targets"]:
+        cols = [f"min {m}" for m in mins]
+        lines += [f"**Target {t:g}** (relative posterior sigma, {100 * result['share']:.0f} % of the object pixels): "
+                  + " / ".join(cols) + " states before a pose may stop", "",
+                  "| scene | poses | within 2 sigma | matrix PSNR (dB) | states per pose | seconds per pose |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        rows = []
+        for scene, r in result["scenes"].items():
+            m = [r["methods"][f"{t:g}_min{k}"] for k in mins]
+            rows.append(m)
+            lines.append(f"| {scene} | {r['samples']} | " + " / ".join(f"{100 * x['coverage']:.1f}" for x in m)
+                         + " % | " + " / ".join(f"{x['matrix_psnr']:.2f}" for x in m) + " | "
+                         + " / ".join(f"{x['states']:.2f}" for x in m) + " | "
+                         + " / ".join(f"{x['time_s']:.2f}" for x in m) + " |")
+        cov = [[x[k]["coverage"] for x in rows] for k in range(len(mins))]
+        lines.append("| **all scenes** (coverage range; mean PSNR, states and seconds) | | "
+                     + " / ".join(f"{100 * min(c):.1f}-{100 * max(c):.1f}" for c in cov) + " % | "
+                     + " / ".join(f"{np.mean([x[k]['matrix_psnr'] for x in rows]):.2f}" for k in range(len(mins)))
+                     + " | " + " / ".join(f"{np.mean([x[k]['states'] for x in rows]):.2f}" for k in range(len(mins)))
+                     + " | " + " / ".join(f"{np.mean([x[k]['time_s'] for x in rows]):.2f}" for k in range(len(mins)))
+                     + " |")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
 def joint_markdown(result: dict) -> str:
     """:func:`joint_compare`'s result as Markdown tables: per set, each prior's
     (:data:`JOINT_PRIORS`) false acceptance at two states, coverage within 2 sigma and matrix

@@ -33,6 +33,7 @@ from polrig.models.continuum.methods import (
 from polrig.models.continuum.report import (
     joint_markdown,
     markdown,
+    min_states_markdown,
     models_markdown,
     plot_trade,
     prior_words,
@@ -41,11 +42,13 @@ from polrig.models.continuum.report import (
 from polrig.models.continuum.sets import (
     ADAPTIVE_MAX_STATES,
     ADAPTIVE_MORE_STATES,
+    ADAPTIVE_SHARE,
     ADAPTIVE_TARGETS,
     BRACKET,
     FOUR_STATES,
     OFFSETS_DEG,
     RIG_POSES_DEG,
+    RIG_SCENES,
     RIG_THREE,
     RIG_TWO,
     SEARCH_SETS,
@@ -267,6 +270,69 @@ def joint_compare(root, out_md, *, count: int, sets: Sequence[str], seed: int = 
         atomic_write_text(out_md, "# The network's prior: per element against joint\n\n`python -m polrig.models.continuum "
                           f"--joint-compare {what} at {size}x{size} (those with a lit object pixel scored); "
                           f"{result['seconds']:.0f} s on {os.cpu_count()} CPUs.\n\n" + table + "\n")
+    return result
+
+
+def min_states_compare(out_md, *, scenes: Sequence[str] = RIG_SCENES, poses: Sequence[float] = RIG_POSES_DEG,
+                       size: int | None = None, targets: Sequence[float] = ADAPTIVE_TARGETS,
+                       min_states: Sequence[int] | None = None, seed: int = 0, weights_dir=None,
+                       echo=print) -> dict:
+    """The adaptive capture's least number of states before a pose may stop
+    (``--min-states-compare``; :func:`adaptive`'s ``min_states``, the capture's ``--min-states``):
+    each of ``min_states`` (default the capture's default and 3) at each of ``targets`` on the default rig's named ``scenes`` at
+    ``size`` (default :func:`rig_size`), one sample per turntable angle of ``poses``, the frames
+    as :func:`run` makes them with ``--rig-scenes`` (same seeds and tags: its adaptive rows at
+    the capture's default are the ``min 2`` column here), the joint prior as captures use it.
+    Writes ``out_md`` and its ``.json`` when given."""
+    from polrig.acquisition.plan import ADAPTIVE_MIN_STATES
+    from polrig.atomic import atomic_write_text
+    from polrig.errors import ConfigError
+    from polrig.models.evaluate import results_paths
+    from polrig.models.runtime import WEIGHTS_DIR, SingleShotModel
+    from polrig.sim.scene import SCENES
+
+    if min_states is None:
+        min_states = sorted({ADAPTIVE_MIN_STATES, 3})
+    bad = [n for n in scenes if n not in SCENES]
+    if bad or not scenes or not poses:
+        raise ConfigError(f"--rig-scenes: unknown or no scene(s) {', '.join(bad)}; scenes are {', '.join(SCENES)}"
+                          if bad or not scenes else "--rig-poses: give at least one turntable angle")
+    if not min_states or any(m < 1 or m > ADAPTIVE_MAX_STATES for m in min_states):
+        raise ConfigError(f"--min-states-compare: give least numbers of states in 1..{ADAPTIVE_MAX_STATES}, "
+                          f"got {list(min_states)}")
+    net = SingleShotModel.load(weights_dir if weights_dir is not None else WEIGHTS_DIR)
+    correlation = None if net.uncertainty is None else net.uncertainty.joint_correlation
+    size = rig_size() if size is None else int(size)
+    result: dict = {"size": size, "seed": seed, "poses_deg": [float(p) for p in poses], "targets": list(targets),
+                    "share": ADAPTIVE_SHARE, "max_states": ADAPTIVE_MAX_STATES, "min_states": list(min_states),
+                    "prior": "per element" if correlation is None else "joint", "scenes": {}}
+    t0 = time.perf_counter()
+    for tag, scene in enumerate(scenes):
+        rows: dict[str, list] = {}
+        for ds, sensor, i, prior in set_samples(rig_set(scene, size, poses, seed), net):
+            fr = sample_frames(ds, i, prior, sensor, np.random.default_rng([seed, tag, i]))
+            for t in targets:
+                for m in min_states:
+                    *est, taken = adaptive(fr, t, min_states=m, correlation=correlation)
+                    rows.setdefault(f"{t:g}_min{m}", []).append(
+                        score(fr, *est) | {"states": len(taken), "time_s": acquisition_time_s(taken)})
+        result["scenes"][scene] = {"samples": len(next(iter(rows.values()), [])),
+                                   "methods": {k: mean_rows(v) for k, v in rows.items()}}
+        echo(f"{scene}: " + "; ".join(f"{k} {100 * v['coverage']:.1f} % {v['states']:.2f} states {v['time_s']:.2f} s"
+                                     for k, v in result["scenes"][scene]["methods"].items()))
+    result["seconds"] = time.perf_counter() - t0
+    table = min_states_markdown(result)
+    echo(table)
+    if out_md is not None:
+        out_md, out_json = results_paths(out_md)
+        atomic_write_text(out_json, json.dumps(result, indent=1) + "\n")
+        atomic_write_text(out_md, "# The adaptive capture's least number of states\n\n`python -m "
+                          f"polrig.models.continuum --min-states-compare --rig-scenes {','.join(scenes)} --rig-poses "
+                          f"{','.join(f'{p:g}' for p in poses)} --targets {','.join(f'{t:g}' for t in targets)}` "
+                          "(models/continuum/run.py `min_states_compare`): the default simulated rig's scenes at "
+                          f"{size}x{size}, one sample per turntable angle, the frames of `--rig-scenes`; "
+                          f"{result['seconds']:.0f} s on {os.cpu_count()} CPUs. Each cell: "
+                          + " / ".join(f"at least {m} states" for m in min_states) + ".\n\n" + table)
     return result
 
 
