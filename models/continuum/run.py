@@ -279,11 +279,11 @@ def min_states_compare(out_md, *, scenes: Sequence[str] = RIG_SCENES, poses: Seq
                        echo=print) -> dict:
     """The adaptive capture's least number of states before a pose may stop
     (``--min-states-compare``; :func:`adaptive`'s ``min_states``, the capture's ``--min-states``):
-    each of ``min_states`` (default the capture's default and 3) at each of ``targets`` on the default rig's named ``scenes`` at
-    ``size`` (default :func:`rig_size`), one sample per turntable angle of ``poses``, the frames
-    as :func:`run` makes them with ``--rig-scenes`` (same seeds and tags: its adaptive rows at
-    the capture's default are the ``min 2`` column here), the joint prior as captures use it.
-    Writes ``out_md`` and its ``.json`` when given."""
+    each of ``min_states`` (default: the capture's default, and 3) at each of ``targets`` on the
+    default rig's named ``scenes`` at ``size`` (default :func:`rig_size`), one sample per
+    turntable angle of ``poses``, the frames as :func:`run` makes them with ``--rig-scenes``
+    (same seeds and tags: its adaptive rows at the capture's default are the ``min 2`` column
+    here), the joint prior as captures use it. Writes ``out_md`` and its ``.json`` when given."""
     from polrig.acquisition.plan import ADAPTIVE_MIN_STATES
     from polrig.atomic import atomic_write_text
     from polrig.errors import ConfigError
@@ -294,9 +294,11 @@ def min_states_compare(out_md, *, scenes: Sequence[str] = RIG_SCENES, poses: Seq
     if min_states is None:
         min_states = sorted({ADAPTIVE_MIN_STATES, 3})
     bad = [n for n in scenes if n not in SCENES]
-    if bad or not scenes or not poses:
-        raise ConfigError(f"--rig-scenes: unknown or no scene(s) {', '.join(bad)}; scenes are {', '.join(SCENES)}"
-                          if bad or not scenes else "--rig-poses: give at least one turntable angle")
+    if bad or not scenes:
+        raise ConfigError(f"--rig-scenes: unknown scene(s) {', '.join(bad) or '(none given)'}; scenes are "
+                          f"{', '.join(SCENES)}")
+    if not poses:
+        raise ConfigError("--rig-poses: give at least one turntable angle")
     if not min_states or any(m < 1 or m > ADAPTIVE_MAX_STATES for m in min_states):
         raise ConfigError(f"--min-states-compare: give least numbers of states in 1..{ADAPTIVE_MAX_STATES}, "
                           f"got {list(min_states)}")
