@@ -493,14 +493,16 @@ def test_settings_are_remembered(qtbot, tmp_path):
 
 
 def test_viewer_browses_a_session_and_exrs(qtbot, viewer_panel, tmp_path):
+    from polrig.acquisition.plan import CapturePlan
     from polrig.app import capture, processing
+    from polrig.app.manifest import SampleMetadata
     from polrig.formats.exr import write_stokes_exr
 
     out = tmp_path / "session"
     with build_rig(load_rig_config(None), SIM).open() as rig:
-        plan = capture.CapturePlan(poses_deg=(0.0,))
+        plan = CapturePlan(poses_deg=(0.0,))
         cal = processing.load_calibration(None)
-        md = capture.SampleMetadata(sample="box", operator="ada", user={"lot": "7"})
+        md = SampleMetadata(sample="box", operator="ada", user={"lot": "7"})
         s = capture.create_session(out, rig, plan, calibration_id=cal.id, metadata=md)
         proc = processing.make_processor(plan, cal, processing.session_sensor_model(s))
         assert capture.run_session(rig, s, processor=proc).status == "complete"

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from polrig.acquisition.plan import PlanError
-from polrig.app.capture import resumed_prior_scale
+from polrig.app.capture_request import resumed_prior_scale
 from polrig.app.cluster import _continuable
 from polrig.app.session import Session
 from polrig.choices import DEFAULT_PRIOR_SCALE
@@ -127,7 +127,7 @@ def test_a_resumed_session_takes_the_processing_it_recorded_even_before_its_firs
     goes on with them though no result exists yet (an adaptive session's decisions follow the
     scale), and refuses others; a version-6 one recorded none (migrated to null) and resumes as
     it did."""
-    from polrig.app.capture import resumed_processing
+    from polrig.app.capture_request import resumed_processing
     from polrig.app.manifest import migrate_v6
 
     recorded = types.SimpleNamespace(manifest={"processing": {"models": "diffuse", "prior_scale": "calibrated"}},

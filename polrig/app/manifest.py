@@ -806,7 +806,7 @@ def migrate_v6(m: dict[str, Any]) -> dict[str, Any]:
     """Version 6 to 7 (the session's processing options, ``processing``): null, as a version-6
     session did not record them (its resumed runs take what they ask for, as they did; a
     resumed run's prior scale still follows the results already made,
-    :func:`polrig.app.capture.resumed_prior_scale`)."""
+    :func:`polrig.app.capture_request.resumed_prior_scale`)."""
     m = dict(m, schema_version=7)
     m.setdefault("processing", None)
     if isinstance(m.get("history"), list):

@@ -424,7 +424,7 @@ class CapturePanel(QWidget):
         base = dict(out=pathlib.Path(out), resume=resume,
                     calibration=pathlib.Path(calibration) if calibration else None,
                     device=self.device.currentText(), model_size=self.model_size.currentText())
-        if resume:  # the session's own models and prior scale (polrig.app.capture.resumed_processing)
+        if resume:  # the session's own models and prior scale (polrig.app.capture_request.resumed_processing)
             return CaptureRequest(**base)
         base["models"] = self.models.currentText() if self.mode.currentText() != "single-shot" else "full"
         states, exposure = self.states.text().strip(), self.exposure.text().strip()
