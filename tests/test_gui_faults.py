@@ -401,7 +401,7 @@ def test_a_capture_at_the_longest_exposure_completes(qtbot, window, tmp_path):
 
 # -- 11. capture panel messages
 def test_a_non_finite_exposure_is_not_called_an_angle():
-    from polrig.app.capture import parse_float_list, parse_pose_spec
+    from polrig.acquisition.plan import parse_float_list, parse_pose_spec
     from polrig.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"invalid --exposure 'nan': 'nan' is not a finite number$"):
