@@ -20,19 +20,41 @@ settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
 
+#: Workers of ``-n auto`` per CPU: the suite waits on subprocesses (the CLI, Dask workers, a
+#: training run), on the emulated devices' timing and on files, so one worker per CPU leaves them
+#: idle part of the time (a warm run on 2 CPUs: 86 % busy with 2 workers). Measured on 2 CPUs,
+#: whole suite, warm numba cache: 2 workers 661 s, 3 workers 565 s, 4 workers 605 s.
+WORKERS_PER_CPU = 1.5
+#: Memory one worker may need at its peak (bytes): a worker holds about 1.1 GiB after collection,
+#: and some tests start subprocesses of their own; ``-n auto`` starts no more than the machine's
+#: memory holds at this much each.
+WORKER_MEMORY = 2 * 2**30
+
+
 def pytest_xdist_auto_num_workers(config) -> int | None:
-    """Workers of ``-n auto`` (pyproject.toml's addopts): the CPUs this process may run on (its
-    affinity: ``taskset``, a container's cpuset), at most the physical cores. pytest-xdist's own
-    count (psutil's physical cores) ignores the affinity: pinned to one CPU it started two
-    workers on it. ``PYTEST_XDIST_AUTO_NUM_WORKERS=N`` still sets the count (xdist's rule)."""
+    """Workers of ``-n auto`` (pyproject.toml's addopts): :data:`WORKERS_PER_CPU` times the CPUs
+    this process may run on (its affinity: ``taskset``, a container's cpuset; at most the physical
+    cores), rounded down, and no more than the machine's memory holds at :data:`WORKER_MEMORY`
+    each; one on one CPU. pytest-xdist's own count (psutil's physical cores) ignores the
+    affinity: pinned to one CPU it started two workers on it. ``PYTEST_XDIST_AUTO_NUM_WORKERS=N``
+    still sets the count (xdist's rule)."""
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS") or not hasattr(os, "sched_getaffinity"):
         return None  # xdist's own rule
     cpus = len(os.sched_getaffinity(0))
     try:
         import psutil
     except ImportError:
-        return cpus
-    return max(1, min(cpus, psutil.cpu_count(logical=False) or cpus))
+        pass
+    else:
+        cpus = max(1, min(cpus, psutil.cpu_count(logical=False) or cpus))
+    if cpus == 1:
+        return 1
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError):
+        memory = None
+    workers = int(cpus * WORKERS_PER_CPU)
+    return max(1, min(workers, memory // WORKER_MEMORY)) if memory else workers
 
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
