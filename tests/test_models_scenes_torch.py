@@ -154,8 +154,11 @@ def torch_set():
 
 # ------------------------------------------------------------------------------------- tests
 
-def test_batch_is_what_training_reads(sim_set):
+def test_batch_is_what_training_reads(tmp_path):
     """Same keys, shapes (but N), dtypes as load_dataset; the training tensors as train._tensors."""
+    generate_dataset(tmp_path / "data", count=3, width=SIZE, seed=11, families=COVERED_FAMILIES, progress=False,
+                     shard_size=3, compress=False)  # three samples, not the distribution tests' set
+    sim_set = load_dataset(tmp_path / "data")
     b = SceneGenerator(SIZE, seed=0).batch(3)
     assert set(b) - {"stage_deg"} == set(sim_set.arrays)
     for k, v in sim_set.arrays.items():
