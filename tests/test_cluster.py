@@ -351,6 +351,54 @@ def _spawn(argv: list[str]) -> subprocess.Popen:
                             start_new_session=True)
 
 
+#: A Ctrl-C (a real SIGINT) while Dask's client waits on a call its event loop has not started:
+#: the loop is kept busy for 2 s, the signal comes at 0.2 s. ``sys.argv[1]`` says whether the
+#: client's log filter is on. Prints what reaches the log.
+INTERRUPTED_SYNC = """
+import asyncio, logging, os, signal, sys, threading, time
+logging.basicConfig(level=logging.ERROR, stream=sys.stdout, format="%(name)s %(levelname)s %(message)s")
+from distributed.utils import LoopRunner, sync
+from polrig.app import cluster
+if sys.argv[1] == "filtered":
+    cluster.filter_interrupted_sync()
+runner = LoopRunner(asynchronous=False)
+runner.start()
+runner.loop.add_callback(time.sleep, 2.0)
+threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
+async def waited():
+    await asyncio.sleep(30)
+try:
+    sync(runner.loop, waited)
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+time.sleep(2.5)
+logging.getLogger("tornado.application").error("another error")
+runner.stop()
+"""
+
+
+def test_a_ctrl_c_before_the_clients_call_starts_prints_no_traceback():
+    """distributed's ``sync`` logs a ``NameError`` traceback when Ctrl-C comes before the call
+    it waits on has started (its ``cancel`` reads a future not yet assigned); seen in the Ctrl-C
+    test below as a traceback between the progress bar and polrig's one line. The client's
+    filter drops that record and no other."""
+    def run(mode):
+        return subprocess.run([sys.executable, "-c", INTERRUPTED_SYNC, mode], capture_output=True, text=True,
+                              timeout=60)
+
+    plain, filtered = run("plain"), run("filtered")
+    assert "interrupted" in plain.stdout and "NameError" in plain.stdout, plain.stdout + plain.stderr
+    assert "interrupted" in filtered.stdout, filtered.stdout + filtered.stderr
+    assert "Traceback" not in filtered.stdout and "NameError" not in filtered.stdout, filtered.stdout
+    assert "tornado.application ERROR another error" in filtered.stdout  # the others pass
+    cluster.filter_interrupted_sync()
+    cluster.filter_interrupted_sync()
+    import logging
+
+    assert sum(isinstance(f, cluster.InterruptedSyncFilter)
+               for f in logging.getLogger("tornado.application").filters) == 1
+
+
 @pytest.mark.slow
 def test_ctrl_c_keeps_finished_captures_and_a_rerun_continues(slow_session, slow_serial, tmp_path,
                                                               capsys):

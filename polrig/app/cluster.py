@@ -122,6 +122,35 @@ class SchedulerLost(PolrigError):
 CLOSE_TIMEOUT_S = 20.0
 
 
+class InterruptedSyncFilter(logging.Filter):
+    """Drops the one traceback Dask's client logs on a Ctrl-C that arrives before the call it
+    waits on has started: ``distributed.utils.sync`` schedules its ``cancel`` callback, which
+    reads the call's future before it is assigned (a ``NameError``, logged by Tornado's
+    ``tornado.application`` logger on the client's event-loop thread; distributed 2026.8). The
+    interrupt itself is handled as every Ctrl-C is (:func:`run_batch`): this only keeps the
+    operator's terminal to polrig's one line. Every other record passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if not isinstance(exc, NameError):
+            return True
+        tb = exc.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is None:
+            return True
+        code = tb.tb_frame.f_code
+        return not (code.co_name == "cancel"
+                    and pathlib.PurePath(code.co_filename).parts[-2:] == ("distributed", "utils.py"))
+
+
+def filter_interrupted_sync() -> None:
+    """Put :class:`InterruptedSyncFilter` on Tornado's ``tornado.application`` logger (once)."""
+    log = logging.getLogger("tornado.application")
+    if not any(isinstance(f, InterruptedSyncFilter) for f in log.filters):
+        log.addFilter(InterruptedSyncFilter())
+
+
 class DaskRunner:
     """Jobs as Dask tasks (``pure=False``: each runs once per submission; Dask reruns a task
     whose worker died, up to ``distributed.scheduler.allowed-failures`` times). Build it with
@@ -129,6 +158,7 @@ class DaskRunner:
 
     def __init__(self, client, cluster=None, description: str = "dask", notice: str | None = None):
         self.client, self.cluster, self.description, self.notice = client, cluster, description, notice
+        filter_interrupted_sync()
 
     @classmethod
     def local(cls, n_workers: int) -> "DaskRunner":
