@@ -6,6 +6,7 @@ data, an unreachable scheduler, the extra not installed) against the manifest on
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import pathlib
 import re
@@ -393,8 +394,6 @@ def test_a_ctrl_c_before_the_clients_call_starts_prints_no_traceback():
     assert "tornado.application ERROR another error" in filtered.stdout  # the others pass
     cluster.filter_interrupted_sync()
     cluster.filter_interrupted_sync()
-    import logging
-
     assert sum(isinstance(f, cluster.InterruptedSyncFilter)
                for f in logging.getLogger("tornado.application").filters) == 1
 
