@@ -2,21 +2,21 @@
 reference solve on the model card's held-out sets (issue 33 item 4).
 
 ``python -m benchmarks continuum`` runs :mod:`polrig.models.continuum` with the settings of the
-committed table (64 samples per set at 64x64, the 2- and 3-state search on 32; about 14 min on
-2 shared CPUs) and writes ``benchmarks/results/continuum.md`` with its ``.json`` and the
-accuracy-against-time plot ``.png``: matrix PSNR (all object pixels, and those with no clipped
-sample), forward Stokes L2, coverage within 2 sigma, the seen state's treatment, and 3 against 4
-states at equal capture time. Extra arguments go to ``python -m polrig.models.continuum``
-(``--count 8`` for a quick look, ``--out`` elsewhere).
+committed table (64 samples per set at 64x64, the 2- and 3-state search on 32; about 60 min on
+2 shared CPUs: the committed run took 3587 s) and writes ``benchmarks/results/continuum.md``
+with its ``.json`` and the accuracy-against-time plot ``.png``: matrix PSNR (all object pixels,
+and those with no clipped sample), forward Stokes L2, coverage within 2 sigma, the seen
+state's treatment, and 3 against 4 states at equal capture time. Extra arguments go to
+``python -m polrig.models.continuum`` (``--count 8`` for a quick look, ``--out`` elsewhere).
 
 ``python benchmarks/bench_continuum.py --plot-only`` redraws ``continuum.png`` from the committed
 ``continuum.json`` alone (seconds). ``--rig`` scores the default simulated rig's scenes at its size
 instead (:data:`polrig.models.continuum.RIG_SCENES` at the 128x128 analyzer grid of its 512x512
-colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; about 6 min on 2
+colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; about 18 min on 2
 shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``). ``--models``
 runs only the lower-order model comparison at two states (0/90: single-shot, hybrid 2, hybrid 2
 with ``select_models``, its diffuse completion, and the diffuse term tested on the samples alone,
-``polrig.solve.diffuse_test``; 64 samples per set; 9 min on 2 shared CPUs) into
+``polrig.solve.diffuse_test``; 64 samples per set; about 22 min on 2 shared CPUs) into
 ``benchmarks/results/continuum_models.md`` (``.json``); the full run holds it too, as its last
 table. ``--joint`` compares the per-element prior with the joint one (``joint_prior`` in
 ``uncertainty.json``; ``--joint-compare``: the two-state test's false acceptance, coverage and
