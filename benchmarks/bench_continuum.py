@@ -2,12 +2,13 @@
 reference solve on the model card's held-out sets (issue 33 item 4).
 
 ``python -m benchmarks continuum`` runs :mod:`polrig.models.continuum` with the settings of the
-committed table (64 samples per set at 64x64, the 2- and 3-state search on 32; about 60 min on
-2 shared CPUs: the committed run took 3587 s) and writes ``benchmarks/results/continuum.md``
-with its ``.json`` and the accuracy-against-time plot ``.png``: matrix PSNR (all object pixels,
-and those with no clipped sample), forward Stokes L2, coverage within 2 sigma, the seen
-state's treatment, and 3 against 4 states at equal capture time. Extra arguments go to
-``python -m polrig.models.continuum`` (``--count 8`` for a quick look, ``--out`` elsewhere).
+committed table (64 samples per set at 64x64, the 2- and 3-state search on 32; 60-75 min on
+2 shared CPUs: 3587 s for the committed run, 4440 s on 2026-12-01) and writes
+``benchmarks/results/continuum.md`` with its ``.json`` and the accuracy-against-time plot
+``.png``: matrix PSNR (all object pixels, and those with no clipped sample), forward Stokes L2,
+coverage within 2 sigma, the seen state's treatment, and 3 against 4 states at equal capture
+time. Extra arguments go to ``python -m polrig.models.continuum`` (``--count 8`` for a quick
+look, ``--out`` elsewhere).
 
 ``python benchmarks/bench_continuum.py --plot-only`` redraws ``continuum.png`` from the committed
 ``continuum.json`` alone (seconds). ``--rig`` scores the default simulated rig's scenes at its size
