@@ -13,7 +13,7 @@ look, ``--out`` elsewhere).
 ``python benchmarks/bench_continuum.py --plot-only`` redraws ``continuum.png`` from the committed
 ``continuum.json`` alone (seconds). ``--rig`` scores the default simulated rig's scenes at its size
 instead (:data:`polrig.models.continuum.RIG_SCENES` at the 128x128 analyzer grid of its 512x512
-colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; about 18 min on 2
+colour sensor, six turntable angles 0..300 deg, the states searched at 64x64; 18-22 min on 2
 shared CPUs) into ``benchmarks/results/continuum_rig.md`` (``.json``, ``.png``). ``--models``
 runs only the lower-order model comparison at two states (0/90: single-shot, hybrid 2, hybrid 2
 with ``select_models``, its diffuse completion, and the diffuse term tested on the samples alone,
