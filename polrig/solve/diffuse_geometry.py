@@ -65,7 +65,9 @@ the simulated plastic sphere (512x512 mono, the simulator's hidden errors) fell 
 93.1 %, with ``m12`` and ``m22`` from 98.3 and 92.9 % to 83.4 and 83.0 %. The completion of rows
 1 and 2 errs there by more than the change shows. Dropping the share in row 0 alone, whose
 completion the specular term's unfollowed part does not reach (its first row is 0), left
-``m01`` and ``m02`` at 88-92 % on the held-out sets and ``m02`` at 78 % on that capture. Nor
+``m01`` and ``m02`` at 88-92 % on the held-out sets and ``m02`` at 78 % on that capture; a
+share kept in row 0 alone that such captures bear (0.3: ``m02`` 94-100 %) leaves the sets at
+97.1-97.2 %, whose lower block's ``m12`` and ``m21`` err wide as well (2026-12-01). Nor
 does the prediction's own spread stand in for that variance (2026-12-01, not shipped): ``m_v``
 times the spread of the predicted ratio over the index (+-0.1), the other light field and the
 first pass's normal covers 89-93 % of the errors along ``u`` on the held-out sets but 72-87 % on
