@@ -62,8 +62,11 @@ of the prior's variance along ``u`` (``1 / (u^T P_r u)``, ``P_r`` the row's prio
 :func:`polrig.solve.hybrid.unobserved_precision`). At ``g = 0.7``, where the calibration scenes
 pooled cover 95.45 %, the held-out sets came to 93.7-95.8 % (32 samples each). But a capture of
 the simulated plastic sphere (512x512 mono, the simulator's hidden errors) fell from 95.9 to
-93.1 %, with ``m12`` and ``m22`` from 98.3 and 92.9 % to 83.4 and 83.0 %. The completion of rows
-1 and 2 errs there by more than the change shows. Dropping the share in row 0 alone, whose
+93.1 %, with ``m12`` and ``m22`` from 98.3 and 92.9 % to 83.4 and 83.0 %. (That what-if took the
+per-element prior's variance off whole, more than the joint posterior holds along ``u``; taken
+off at most each element's own variance, ``g = 0.7`` leaves them at 97.5 and 90.9 % and ``g = 0.3``
+at 94.8 and 85.8 %, the six wide sets then at 96.6-96.9 %: ``docs/continuum.md``.) The completion
+of rows 1 and 2 errs there by more than the change shows. Dropping the share in row 0 alone, whose
 completion the specular term's unfollowed part does not reach (its first row is 0), left
 ``m01`` and ``m02`` at 88-92 % on the held-out sets and ``m02`` at 78 % on that capture; a
 share kept in row 0 alone that such captures bear (0.3: ``m02`` 94-100 %) leaves the sets at
